@@ -1,0 +1,30 @@
+# The README's two commands: `make demo` (install + whole DAG on the embedded synthetic benchmark)
+# and `make test` (install + test suite).  Everything installs into .venv.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+# The local CPU build of torch; on a CUDA machine set TORCH_SPEC to the CUDA build you want.
+TORCH_SPEC ?= torch==2.13.0
+
+.PHONY: install demo test reduced paper clean-artifacts
+
+install: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml Makefile
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q "$(TORCH_SPEC)"
+	$(BIN)/python -m pip install -q -e ".[dev,sam3]"
+	touch $@
+
+demo: install
+	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
+
+reduced: install
+	PATH="$(CURDIR)/$(BIN):$$PATH" dvc exp run -S profile=reduced
+
+test: install
+	$(BIN)/python -m pytest
+
+clean-artifacts:
+	rm -rf artifacts reports/demo

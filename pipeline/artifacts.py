@@ -1,0 +1,562 @@
+"""Versioned, fingerprinted, atomically written artifacts (Zarr v3 groups, Parquet tables, directories).
+
+Every artifact carries a metadata record (``Meta``):
+
+* ``schema`` / ``schema_version`` -- what the artifact holds (see ``SCHEMAS``);
+* ``stage`` and ``code_version`` -- who produced it;
+* ``params`` -- the canonical parameters that stage read;
+* ``inputs`` -- lineage: path, schema and fingerprint of every input artifact;
+* ``fingerprint`` = sha256(stage, code_version, canonical params, input fingerprints) -- identical
+  for identical inputs and params, different after any change to either;
+* ``library_versions`` and ``created_at`` -- provenance only (not part of the fingerprint).
+
+Writes are atomic: everything is written to a hidden sibling temp path, then renamed into place, so
+a stage killed mid-write leaves nothing that looks complete.  Reads validate the schema and raise
+:class:`ArtifactError` (one line, naming the path) on mismatch or corruption.
+
+Layout decisions
+  Zarr arrays are chunked one image per chunk (axis 0) and sharded ``SHARD_IMAGES`` images per shard
+  file, so a 3,000-image artifact is a handful of files.  Compression: Blosc/zstd with bit-shuffle
+  (masks compress ~50x).  Zarr metadata lives in ``zarr.json`` under the ``geodistill`` key;
+  Parquet metadata in the file's schema metadata under the same key; directory artifacts
+  (checkpoints) in ``meta.json``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime as _dt
+import hashlib
+import importlib.metadata
+import json
+import os
+import shutil
+import sys
+import uuid
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Mapping
+
+import numpy as np
+
+from pipeline.errors import ArtifactError
+
+META_KEY = "geodistill"
+SHARD_IMAGES = 256
+
+
+# --------------------------------------------------------------------------------------------------
+# Schemas
+# --------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Schema:
+    """Required content of one artifact kind.
+
+    ``arrays`` maps array name -> (numpy dtype kind string, ndim) for Zarr artifacts; ``optional``
+    lists arrays that may be absent.  ``columns`` lists required Parquet columns.  ``files`` lists
+    required files of a directory artifact.
+    """
+
+    name: str
+    version: int
+    kind: str  # "zarr" | "parquet" | "dir"
+    arrays: Mapping[str, tuple[str, int]] = dataclasses.field(default_factory=dict)
+    optional: Mapping[str, tuple[str, int]] = dataclasses.field(default_factory=dict)
+    columns: tuple[str, ...] = ()
+    files: tuple[str, ...] = ()
+
+
+def _s(name, version, kind, **kw) -> Schema:
+    return Schema(name=name, version=version, kind=kind, **kw)
+
+
+SCHEMAS: dict[str, Schema] = {
+    s.name: s
+    for s in [
+        _s("manifest", 1, "parquet", columns=(
+            "image_id", "dataset", "domain", "split", "group", "spacecraft", "image_path",
+            "mask_path", "part_path", "width", "height", "sha256")),
+        _s("skipped_files", 1, "parquet", columns=("path", "reason")),
+        # images at the working resolution, manifest order (attrs: image_ids)
+        _s("images", 1, "zarr", arrays={"image": ("u", 4)}),
+        # reference (manual / ground-truth) masks: evaluation, selection and calibration ONLY
+        _s("reference", 1, "zarr", arrays={"mask": ("b", 3), "has_mask": ("b", 1)},
+           optional={"parts": ("u", 3)}),
+        _s("teacher", 1, "zarr", arrays={"masks": ("b", 4), "scores": ("f", 2)},
+           optional={"vflip_masks": ("b", 3), "vflip_scores": ("f", 1)}),
+        _s("teacher_scores", 1, "parquet", columns=(
+            "image_id", "prompt_index", "prompt", "score", "valid", "mask_area")),
+        _s("consensus", 1, "zarr", arrays={
+            "agreement": ("f", 3), "voted": ("b", 3), "n_valid": ("i", 1)}),
+        _s("geometry", 1, "zarr", arrays={"sdf": ("f", 3), "skeleton": ("b", 3)}),
+        _s("gates", 1, "parquet", columns=(
+            "image_id", "c", "v", "a", "a0", "g_conf", "g_valid", "g_area", "g", "n_valid")),
+        _s("checkpoint", 1, "dir", files=("model.pt", "log.parquet")),
+        # a matrix entry outside the active profile: a marker, ignored downstream
+        _s("inactive_run", 1, "dir"),
+        _s("training_log", 1, "parquet", columns=("epoch", "stage", "loss", "val_iou", "val_bf1", "lr", "seconds")),
+        _s("thresholds", 1, "parquet", columns=("method", "seed", "tau", "val_iou")),
+        _s("metrics", 1, "parquet", columns=(
+            "dataset", "group", "method", "seed", "image_id", "threshold_mode", "tau",
+            "iou", "bf1", "precision", "recall", "area_ratio")),
+        _s("teacher_metrics", 1, "parquet", columns=("image_id", "group", "source", "iou", "bf1", "precision", "recall")),
+        _s("efficiency", 1, "parquet", columns=("variant", "params", "gflops", "latency_ms", "throughput", "peak_mb")),
+        _s("generic_table", 1, "parquet"),
+        _s("report", 1, "dir", files=("report.md", "report.html")),
+    ]
+}
+
+
+def get_schema(name: str) -> Schema:
+    try:
+        return SCHEMAS[name]
+    except KeyError:
+        raise ArtifactError(f"unknown artifact schema {name!r}") from None
+
+
+# --------------------------------------------------------------------------------------------------
+# Fingerprints and metadata
+# --------------------------------------------------------------------------------------------------
+def canonical_json(obj: Any) -> str:
+    """Deterministic JSON: sorted keys, no whitespace, numpy scalars and tuples normalised."""
+
+    def default(o):
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, (set, frozenset)):
+            return sorted(o)
+        if isinstance(o, Path):
+            return str(o)
+        raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=default)
+
+
+def fingerprint(stage: str, code_version: str, params: Mapping[str, Any], input_fingerprints: Iterable[str]) -> str:
+    """sha256 over (stage name, stage code version, canonical params, sorted input fingerprints)."""
+    payload = canonical_json({
+        "stage": stage,
+        "code_version": code_version,
+        "params": params,
+        "inputs": sorted(input_fingerprints),
+    })
+    return hashlib.sha256(payload.encode()).hexdigest()
+
+
+def code_version(*paths: str | Path) -> str:
+    """sha256 of the given source files (a stage script and the library modules it uses).
+
+    Directories are hashed recursively over their ``*.py`` files, in sorted order.
+    """
+    h = hashlib.sha256()
+    files: list[Path] = []
+    for p in paths:
+        p = Path(p)
+        files.extend(sorted(p.rglob("*.py")) if p.is_dir() else [p])
+    for f in files:
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+_LIBS = ("numpy", "scipy", "torch", "zarr", "pyarrow", "scikit-image", "opencv-python-headless")
+
+
+def library_versions() -> dict[str, str]:
+    out = {"python": sys.version.split()[0]}
+    for lib in _LIBS:
+        try:
+            out[lib] = importlib.metadata.version(lib)
+        except importlib.metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+@dataclasses.dataclass
+class Meta:
+    schema: str
+    stage: str
+    code_version: str
+    params: dict
+    inputs: list[dict]
+    fingerprint: str = ""
+    schema_version: int = 0
+    library_versions: dict = dataclasses.field(default_factory=dict)
+    created_at: str = ""
+    extra: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        if not self.schema_version:
+            self.schema_version = get_schema(self.schema).version
+        if not self.fingerprint:
+            self.fingerprint = fingerprint(self.stage, self.code_version, self.params,
+                                           [i["fingerprint"] for i in self.inputs])
+        if not self.library_versions:
+            self.library_versions = library_versions()
+        if not self.created_at:
+            self.created_at = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+    def to_dict(self) -> dict:
+        return json.loads(canonical_json(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "Meta":
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+def make_meta(schema: str, stage: str, code_version: str, params: Mapping[str, Any],
+              inputs: Iterable["Artifact | tuple[str, Meta]"] = (), **extra) -> Meta:
+    """Build the metadata record of a new artifact from its stage, params and input artifacts."""
+    lineage = []
+    for inp in inputs:
+        if isinstance(inp, Artifact):
+            path, m = str(inp.path), inp.meta
+        else:
+            path, m = str(inp[0]), inp[1]
+        lineage.append({"path": path, "schema": m.schema, "fingerprint": m.fingerprint})
+    return Meta(schema=schema, stage=stage, code_version=code_version,
+                params=json.loads(canonical_json(dict(params))), inputs=lineage, extra=extra)
+
+
+# --------------------------------------------------------------------------------------------------
+# Atomic writes
+# --------------------------------------------------------------------------------------------------
+def _tmp_sibling(path: Path) -> Path:
+    return path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+
+
+def _replace(tmp: Path, path: Path) -> None:
+    """Move ``tmp`` onto ``path``; an existing directory is first moved aside, then removed."""
+    if path.is_dir() and not path.is_symlink():
+        old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
+        os.replace(path, old)
+        os.replace(tmp, path)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path, is_dir: bool = False) -> Iterator[Path]:
+    """Yield a hidden temp sibling of ``path``; on success rename it onto ``path``, else delete it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_sibling(path)
+    if is_dir:
+        tmp.mkdir()
+    try:
+        yield tmp
+    except BaseException:
+        if tmp.is_dir():
+            shutil.rmtree(tmp, ignore_errors=True)
+        elif tmp.exists():
+            tmp.unlink()
+        raise
+    _replace(tmp, path)
+
+
+def _check_schema_name(meta: Meta, kind: str) -> Schema:
+    schema = get_schema(meta.schema)
+    if schema.kind != kind:
+        raise ArtifactError(f"schema {meta.schema!r} is a {schema.kind} artifact, not {kind}")
+    return schema
+
+
+# --------------------------------------------------------------------------------------------------
+# Zarr
+# --------------------------------------------------------------------------------------------------
+def _compressor():
+    from zarr.codecs import BloscCodec
+
+    return BloscCodec(cname="zstd", clevel=3, shuffle="bitshuffle")
+
+
+class ZarrWriter:
+    """Streamed, atomic writer of a Zarr v3 group.
+
+    >>> with ZarrWriter("x.zarr", meta) as w:                 # doctest: +SKIP
+    ...     w.create("voted", shape=(n, h, w), dtype=bool)
+    ...     for i in range(n): w.write("voted", i, mask_i)     # buffered per shard: memory flat in N
+    ...     w.attrs["prompts"] = [...]
+
+    Rows are buffered until a shard is full, so writes hit each shard file once.  Nothing is
+    visible at the final path until ``__exit__`` succeeds; the metadata goes in last.
+    """
+
+    def __init__(self, path: str | Path, meta: Meta, shard_images: int = SHARD_IMAGES):
+        self.path = Path(path)
+        self.meta = meta
+        self.schema = _check_schema_name(meta, "zarr")
+        self.shard_images = shard_images
+        self.attrs: dict[str, Any] = {}
+        self._ctx = None
+        self._arrays: dict[str, Any] = {}
+        self._buffers: dict[str, dict[int, np.ndarray]] = {}
+
+    def __enter__(self) -> "ZarrWriter":
+        import zarr
+
+        self._ctx = atomic_path(self.path, is_dir=True)
+        self._tmp = self._ctx.__enter__()
+        self._group = zarr.open_group(store=str(self._tmp), mode="w", zarr_format=3)
+        return self
+
+    def create(self, name: str, shape: tuple[int, ...], dtype, fill_value=0) -> None:
+        shape = tuple(int(s) for s in shape)
+        n = max(shape[0], 1) if shape else 1
+        chunks = (1, *shape[1:]) if len(shape) > 1 else (min(n, 65536),)
+        shards = (min(self.shard_images, n), *shape[1:]) if len(shape) > 1 else None
+        kw = dict(name=name, shape=shape, chunks=chunks, dtype=np.dtype(dtype),
+                  compressors=_compressor(), fill_value=fill_value)
+        if shards is not None and shape[0] > 0:
+            kw["shards"] = shards
+        self._arrays[name] = self._group.create_array(**kw)
+        self._buffers[name] = {}
+
+    def write(self, name: str, index: int, value: np.ndarray) -> None:
+        """Write row ``index`` of array ``name`` (buffered until its shard is complete)."""
+        arr = self._arrays[name]
+        buf = self._buffers[name]
+        buf[int(index)] = np.asarray(value, dtype=arr.dtype)
+        if arr.ndim == 1:
+            return
+        shard = int(index) // self.shard_images
+        start = shard * self.shard_images
+        stop = min(start + self.shard_images, arr.shape[0])
+        if all(i in buf for i in range(start, stop)):
+            self._flush_range(name, start, stop)
+
+    def write_all(self, name: str, value: np.ndarray) -> None:
+        """Create array ``name`` from an in-memory array and write it whole."""
+        value = np.asarray(value)
+        self.create(name, value.shape, value.dtype)
+        if value.size:
+            self._arrays[name][...] = value
+
+    def _flush_range(self, name: str, start: int, stop: int) -> None:
+        buf = self._buffers[name]
+        block = np.stack([buf.pop(i) for i in range(start, stop)])
+        self._arrays[name][start:stop] = block
+
+    def _flush(self) -> None:
+        for name, arr in self._arrays.items():
+            buf = self._buffers[name]
+            if not buf:
+                continue
+            if arr.ndim == 1:
+                idx = np.fromiter(buf.keys(), dtype=np.int64)
+                vals = np.array([buf[i] for i in idx.tolist()], dtype=arr.dtype)
+                full = arr[...] if len(idx) < arr.shape[0] else np.zeros(arr.shape, arr.dtype)
+                full[idx] = vals
+                arr[...] = full
+                buf.clear()
+            else:
+                for i in sorted(buf):
+                    arr[i] = buf.pop(i)
+
+    def __exit__(self, exc_type, exc, tb):
+        try:
+            if exc_type is None:
+                self._flush()
+                missing = set(self.schema.arrays) - set(self._arrays)
+                if missing:
+                    raise ArtifactError(f"{self.path}: schema {self.meta.schema!r} needs arrays {sorted(missing)}")
+                self._group.attrs.update({**self.attrs, META_KEY: self.meta.to_dict()})
+        except BaseException as e:  # noqa: BLE001 -- make sure the temp dir is removed
+            self._ctx.__exit__(type(e), e, e.__traceback__)
+            raise
+        return self._ctx.__exit__(exc_type, exc, tb)
+
+
+def write_zarr(path: str | Path, arrays: Mapping[str, np.ndarray], meta: Meta,
+               attrs: Mapping[str, Any] | None = None) -> Path:
+    """Write in-memory arrays as one atomic, fingerprinted Zarr v3 group."""
+    with ZarrWriter(path, meta) as w:
+        for name, value in arrays.items():
+            w.write_all(name, value)
+        w.attrs.update(attrs or {})
+    return Path(path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Parquet
+# --------------------------------------------------------------------------------------------------
+def write_parquet(path: str | Path, table, meta: Meta) -> Path:
+    """Write a pandas DataFrame (or pyarrow Table) atomically with the metadata in its schema."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    schema = _check_schema_name(meta, "parquet")
+    if not isinstance(table, pa.Table):
+        table = pa.Table.from_pandas(table, preserve_index=False)
+    missing = [c for c in schema.columns if c not in table.column_names]
+    if missing:
+        raise ArtifactError(f"{path}: schema {meta.schema!r} needs columns {missing}")
+    md = dict(table.schema.metadata or {})
+    md[META_KEY.encode()] = json.dumps(meta.to_dict()).encode()
+    table = table.replace_schema_metadata(md)
+    with atomic_path(path) as tmp:
+        pq.write_table(table, tmp, compression="zstd")
+    return Path(path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Directory artifacts (checkpoints, reports)
+# --------------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def artifact_dir(path: str | Path, meta: Meta) -> Iterator[Path]:
+    """Yield a temp directory to fill; on success ``meta.json`` is added and it is renamed onto ``path``."""
+    schema = _check_schema_name(meta, "dir")
+    with atomic_path(path, is_dir=True) as tmp:
+        yield tmp
+        missing = [f for f in schema.files if not (tmp / f).exists()]
+        if missing:
+            raise ArtifactError(f"{path}: schema {meta.schema!r} needs files {missing}")
+        (tmp / "meta.json").write_text(json.dumps(meta.to_dict(), indent=1, sort_keys=True))
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------------------
+class Artifact:
+    """A validated artifact opened for reading; ``.meta`` holds schema, fingerprint and lineage."""
+
+    def __init__(self, path: Path, meta: Meta):
+        self.path = path
+        self.meta = meta
+
+    @property
+    def fingerprint(self) -> str:
+        return self.meta.fingerprint
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.meta.schema} v{self.meta.schema_version} {self.path} fp={self.fingerprint[:12]}>"
+
+
+class ZarrArtifact(Artifact):
+    """Zarr group: ``art["voted"]`` is a lazy zarr array, ``art.numpy("voted")`` loads it, ``art.attrs``."""
+
+    def __init__(self, path, meta, group):
+        super().__init__(path, meta)
+        self.group = group
+        self.attrs = {k: v for k, v in group.attrs.items() if k != META_KEY}
+
+    @property
+    def arrays(self) -> dict:
+        return {name: arr for name, arr in self.group.arrays()}
+
+    def __getitem__(self, name: str):
+        try:
+            return self.group[name]
+        except KeyError:
+            raise ArtifactError(f"{self.path}: no array {name!r}") from None
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.group
+
+    def numpy(self, name: str) -> np.ndarray:
+        return np.asarray(self[name][...])
+
+
+class TableArtifact(Artifact):
+    """Parquet table: ``art.df`` is a pandas DataFrame."""
+
+    def __init__(self, path, meta, df):
+        super().__init__(path, meta)
+        self.df = df
+
+    @property
+    def table(self):
+        return self.df
+
+
+class DirArtifact(Artifact):
+    """Directory artifact (checkpoint, report): ``art.files`` and ``art.file(name)``."""
+
+    @property
+    def files(self) -> list[str]:
+        return sorted(p.name for p in self.path.iterdir())
+
+    def file(self, name: str) -> Path:
+        p = self.path / name
+        if not p.exists():
+            raise ArtifactError(f"{self.path}: no file {name!r}")
+        return p
+
+    def table(self, name: str = "log.parquet"):
+        return open_artifact(self.path / name).df
+
+
+def _validate(path: Path, meta_dict: Any, expect: str | None) -> Meta:
+    if not isinstance(meta_dict, dict) or "schema" not in meta_dict:
+        raise ArtifactError(f"{path}: not a geodistill artifact (no metadata); incomplete or foreign")
+    meta = Meta.from_dict(meta_dict)
+    schema = get_schema(meta.schema)
+    if expect is not None and meta.schema != expect:
+        raise ArtifactError(f"{path}: expected a {expect!r} artifact, found {meta.schema!r}")
+    if meta.schema_version != schema.version:
+        raise ArtifactError(f"{path}: schema {meta.schema!r} version {meta.schema_version}, "
+                            f"this code reads version {schema.version}; rerun the producing stage")
+    return meta
+
+
+def open_artifact(path: str | Path, schema: str | None = None) -> Artifact:
+    """Open and validate any artifact: ``.zarr`` group, ``.parquet`` table or directory with ``meta.json``.
+
+    ``schema`` optionally names the expected schema.  Raises :class:`ArtifactError` naming the path
+    when the artifact is missing, incomplete, corrupt or of another schema.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ArtifactError(f"{path}: artifact not found (run the stage that produces it)")
+    try:
+        if path.suffix == ".parquet":
+            import pyarrow.parquet as pq
+
+            tbl = pq.read_table(path)
+            raw = (tbl.schema.metadata or {}).get(META_KEY.encode())
+            meta = _validate(path, json.loads(raw) if raw else None, schema)
+            spec = get_schema(meta.schema)
+            missing = [c for c in spec.columns if c not in tbl.column_names]
+            if missing:
+                raise ArtifactError(f"{path}: missing columns {missing}")
+            return TableArtifact(path, meta, tbl.to_pandas())
+        if path.suffix == ".zarr":
+            import zarr
+
+            group = zarr.open_group(store=str(path), mode="r")
+            meta = _validate(path, group.attrs.get(META_KEY), schema)
+            spec = get_schema(meta.schema)
+            present = {name: arr for name, arr in group.arrays()}
+            for name, (kind, ndim) in {**spec.arrays, **{k: v for k, v in spec.optional.items() if k in present}}.items():
+                if name not in present:
+                    raise ArtifactError(f"{path}: missing array {name!r}")
+                arr = present[name]
+                if np.dtype(arr.dtype).kind != kind or arr.ndim != ndim:
+                    raise ArtifactError(f"{path}: array {name!r} is {arr.dtype}[{arr.ndim}d], "
+                                        f"schema wants kind {kind!r} with {ndim} dims")
+            return ZarrArtifact(path, meta, group)
+        if path.is_dir():
+            mp = path / "meta.json"
+            meta = _validate(path, json.loads(mp.read_text()) if mp.exists() else None, schema)
+            spec = get_schema(meta.schema)
+            missing = [f for f in spec.files if not (path / f).exists()]
+            if missing:
+                raise ArtifactError(f"{path}: missing files {missing}")
+            return DirArtifact(path, meta)
+    except ArtifactError:
+        raise
+    except Exception as e:  # corrupt file, unreadable JSON, broken zarr metadata ...
+        raise ArtifactError(f"{path}: unreadable or corrupt artifact ({type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''})") from None
+    raise ArtifactError(f"{path}: unknown artifact type (expected .zarr, .parquet or a directory)")
+
+
+def read_chunk_rows(arr, indices: np.ndarray) -> np.ndarray:
+    """Read arbitrary rows of a zarr array (sorted, unique) efficiently: one orthogonal selection."""
+    indices = np.asarray(indices, dtype=np.int64)
+    order = np.argsort(indices)
+    out = arr.get_orthogonal_selection((indices[order],))
+    inv = np.empty_like(order)
+    inv[order] = np.arange(len(order))
+    return np.asarray(out)[inv]

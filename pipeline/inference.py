@@ -1,0 +1,138 @@
+"""Student checkpoints and batched inference on the deployed mask path.
+
+Checkpoint directory (schema ``checkpoint``)::
+
+    model.pt      torch.save({"state_dict": mask-path weights, "geometry_state_dict": {...} | None,
+                              "config": TinyUNet config, "method", "seed", "stage", "selected_epoch"})
+    log.parquet   training log (schema ``training_log``)
+    meta.json     artifact metadata (fingerprint, lineage)
+
+Entries of the DAG matrix outside the active profile are directories of schema ``inactive_run``;
+:func:`is_active_run` tells them apart.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from pipeline.errors import ArtifactError
+
+
+def is_active_run(path: str | Path) -> bool:
+    """True for a trained checkpoint directory, False for an inactive matrix entry."""
+    mp = Path(path) / "meta.json"
+    if not mp.exists():
+        raise ArtifactError(f"{path}: not a checkpoint directory (no meta.json)")
+    return json.loads(mp.read_text()).get("schema") == "checkpoint"
+
+
+def iter_runs(checkpoints_dir: str | Path) -> Iterator[tuple[str, int, Path]]:
+    """(method, seed, path) of every *active* run under ``checkpoints/<method>/<seed>/``, sorted."""
+    root = Path(checkpoints_dir)
+    if not root.exists():
+        raise ArtifactError(f"{root}: checkpoints directory not found")
+    for mdir in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        for sdir in sorted((p for p in mdir.iterdir() if p.is_dir() and not p.name.startswith(".")),
+                           key=lambda p: p.name):
+            if (sdir / "meta.json").exists() and is_active_run(sdir):
+                yield mdir.name, int(sdir.name), sdir
+
+
+def load_student(path: str | Path, device="cpu"):
+    """Load a checkpoint directory (or a bare ``model.pt``) -> (TinyUNet in eval mode, payload dict).
+
+    Only the mask path is loaded; geometry heads are training-only.
+    """
+    import torch
+
+    from pipeline.model import TinyUNet
+
+    path = Path(path)
+    pt = path / "model.pt" if path.is_dir() else path
+    if not pt.exists():
+        raise ArtifactError(f"{path}: no model.pt (not a trained checkpoint)")
+    try:
+        payload = torch.load(pt, map_location="cpu", weights_only=False)
+        model = TinyUNet(**payload["config"])
+        model.load_state_dict(payload["state_dict"])
+    except ArtifactError:
+        raise
+    except Exception as e:
+        raise ArtifactError(f"{pt}: unreadable checkpoint ({type(e).__name__})") from None
+    model.to(device).eval()
+    return model, payload
+
+
+def images_to_tensor(images: np.ndarray):
+    """uint8 [N,H,W,3] (or [H,W,3]) -> float32 tensor [N,3,H,W] in [0,1]."""
+    import torch
+
+    arr = np.asarray(images)
+    if arr.ndim == 3:
+        arr = arr[None]
+    if arr.dtype != np.uint8:
+        raise ValueError(f"images must be uint8 NHWC, got {arr.dtype}")
+    return torch.from_numpy(np.ascontiguousarray(arr)).permute(0, 3, 1, 2).float().div_(255.0)
+
+
+@contextlib.contextmanager
+def _autocast(device, dtype):
+    import torch
+
+    if dtype is None:
+        yield
+    else:
+        with torch.autocast(device_type=device.type, dtype=dtype):
+            yield
+
+
+def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: str = "fp32",
+                  channels_last: bool = True) -> np.ndarray:
+    """Foreground probabilities P = sigmoid(Z) float32 [N,H,W] for uint8 images [N,H,W,3].
+
+    ``images`` may be a numpy array or a lazily indexed zarr array; it is read one batch at a time.
+    """
+    import torch
+
+    from pipeline.device import autocast_dtype
+
+    device = torch.device(device)
+    dtype = autocast_dtype(device, precision)
+    model = model.to(device).eval()
+    if channels_last:
+        model = model.to(memory_format=torch.channels_last)
+    n = images.shape[0]
+    out = np.empty((n, images.shape[1], images.shape[2]), dtype=np.float32)
+    with torch.inference_mode(), _autocast(device, dtype):
+        for s in range(0, n, batch_size):
+            x = images_to_tensor(np.asarray(images[s:s + batch_size])).to(device)
+            if channels_last:
+                x = x.contiguous(memory_format=torch.channels_last)
+            out[s:s + batch_size] = torch.sigmoid(model(x).float())[:, 0].cpu().numpy()
+    return out
+
+
+def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
+    """Write a checkpoint directory atomically: model.pt (mask path + optional geometry heads),
+    log.parquet (the training log DataFrame, schema ``training_log``) and meta.json.
+
+    ``meta`` is the checkpoint's :class:`pipeline.artifacts.Meta` (schema ``checkpoint``);
+    ``payload`` adds fields to model.pt (method, seed, stage, selected_epoch, ...).
+    """
+    import torch
+
+    from pipeline.artifacts import artifact_dir, make_meta, write_parquet
+
+    geo = model.geometry_heads.state_dict() if getattr(model, "geometry_heads", None) is not None else None
+    with artifact_dir(path, meta) as tmp:
+        torch.save({"state_dict": model.mask_path_state_dict(), "geometry_state_dict": geo,
+                    "config": dict(model.config), **payload}, tmp / "model.pt")
+        log_meta = make_meta("training_log", meta.stage, meta.code_version, meta.params,
+                             [(str(path), meta)])
+        write_parquet(tmp / "log.parquet", log, log_meta)
+    return Path(path)

@@ -1,0 +1,123 @@
+"""TinyUNet student (paper: "Compact Student Distillation for Stable Silhouette Learning").
+
+Architecture at a glance (channels (24, 48, 96), 384x384 input)::
+
+    x [B,3,H,W] in [0,1] -> normalise
+    enc1  ConvBNReLU(3->24),  ConvBNReLU(24->24)          H   x W
+    enc2  maxpool, ConvBNReLU(24->48), ConvBNReLU(48->48)  H/2 x W/2
+    enc3  maxpool, ConvBNReLU(48->96), ConvBNReLU(96->96)  H/4 x W/4
+    dec2  bilinear x2, concat enc2, ConvBNReLU(144->48), ConvBNReLU(48->48)
+    dec1  bilinear x2, concat enc1, ConvBNReLU(72->24),  ConvBNReLU(24->24)   -> decoded features F
+    mask_head  Conv1x1(24->1)           -> Z (mask logits), P = sigmoid(Z)          [deployed]
+    --- training only (Stage II; created by add_geometry_heads) ---
+    geometry_heads.sdf       Conv1x1(24->1) + tanh -> D^S in [-1,1]
+    geometry_heads.skeleton  Conv1x1(24->1)        -> Z^K (skeleton logits)
+
+``forward(x)`` is the deployed path and returns mask logits only.  ``forward_train(x)`` returns a dict
+with ``mask`` logits and, when the geometry heads exist, ``sdf`` and ``skeleton``.  The area term
+(eq:predicted-area) uses P and has no head.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class ConvBNReLU(nn.Sequential):
+    def __init__(self, cin: int, cout: int):
+        super().__init__(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class DoubleConv(nn.Sequential):
+    def __init__(self, cin: int, cout: int):
+        super().__init__(ConvBNReLU(cin, cout), ConvBNReLU(cout, cout))
+
+
+class GeometryHeads(nn.Module):
+    """Training-only SDF (tanh) and skeleton (logit) heads on the shared decoded features."""
+
+    def __init__(self, features: int):
+        super().__init__()
+        self.sdf = nn.Conv2d(features, 1, 1)
+        self.skeleton = nn.Conv2d(features, 1, 1)
+
+    def forward(self, feats: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {"sdf": torch.tanh(self.sdf(feats)), "skeleton": self.skeleton(feats)}
+
+
+class TinyUNet(nn.Module):
+    # input normalisation: images are float in [0, 1]; centre and scale inside the model so that
+    # exported models take the same input as the PyTorch one.
+    MEAN = 0.5
+    STD = 0.25
+
+    def __init__(self, in_channels: int = 3, channels: Sequence[int] = (24, 48, 96)):
+        super().__init__()
+        c1, c2, c3 = (int(c) for c in channels)
+        self.config = {"in_channels": int(in_channels), "channels": [c1, c2, c3]}
+        self.enc1 = DoubleConv(in_channels, c1)
+        self.enc2 = DoubleConv(c1, c2)
+        self.enc3 = DoubleConv(c2, c3)
+        self.dec2 = DoubleConv(c3 + c2, c2)
+        self.dec1 = DoubleConv(c2 + c1, c1)
+        self.mask_head = nn.Conv2d(c1, 1, 1)
+        self.geometry_heads: GeometryHeads | None = None  # training only, Stage II
+
+    # ---- shared trunk -------------------------------------------------------------------------
+    def decode(self, x: torch.Tensor) -> torch.Tensor:
+        x = (x - self.MEAN) / self.STD
+        e1 = self.enc1(x)
+        e2 = self.enc2(F.max_pool2d(e1, 2))
+        e3 = self.enc3(F.max_pool2d(e2, 2))
+        d2 = F.interpolate(e3, size=e2.shape[-2:], mode="bilinear", align_corners=False)
+        d2 = self.dec2(torch.cat([d2, e2], dim=1))
+        d1 = F.interpolate(d2, size=e1.shape[-2:], mode="bilinear", align_corners=False)
+        return self.dec1(torch.cat([d1, e1], dim=1))
+
+    # ---- deployed path ------------------------------------------------------------------------
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Mask logits Z [B,1,H,W] (the only output at inference, eq:inference-mask thresholds sigmoid(Z))."""
+        return self.mask_head(self.decode(x))
+
+    # ---- training-only ------------------------------------------------------------------------
+    def add_geometry_heads(self) -> "TinyUNet":
+        """Create fresh SDF and skeleton heads (start of Stage II); the mask path is untouched."""
+        ref = self.mask_head.weight
+        self.geometry_heads = GeometryHeads(self.config["channels"][0]).to(device=ref.device, dtype=ref.dtype)
+        return self
+
+    def forward_train(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        feats = self.decode(x)
+        out = {"mask": self.mask_head(feats)}
+        if self.geometry_heads is not None:
+            out.update(self.geometry_heads(feats))
+        return out
+
+    def mask_path_state_dict(self) -> dict[str, torch.Tensor]:
+        """Weights of the deployed path only (no geometry heads)."""
+        return {k: v for k, v in self.state_dict().items() if not k.startswith("geometry_heads.")}
+
+
+def count_parameters(model: nn.Module, deployed_only: bool = True) -> int:
+    """Number of parameters; ``deployed_only`` excludes the training-only geometry heads."""
+    return sum(p.numel() for n, p in model.named_parameters()
+               if not (deployed_only and n.startswith("geometry_heads.")))
+
+
+def count_flops(model: nn.Module, height: int = 384, width: int = 384) -> int:
+    """FLOPs of one forward pass of the deployed path, counted from the graph by
+    ``torch.utils.flop_counter.FlopCounterMode`` (a multiply-add counts as 2 FLOPs)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    ref = next(model.parameters())
+    x = torch.zeros(1, model.config["in_channels"], height, width, device=ref.device, dtype=ref.dtype)
+    was_training = model.training
+    model.eval()
+    with torch.no_grad(), FlopCounterMode(display=False) as counter:
+        model(x)
+    model.train(was_training)
+    return int(counter.get_total_flops())

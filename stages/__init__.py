@@ -1,0 +1,1 @@
+"""Stage commands: thin click wrappers (read artifacts -> call pipeline -> write artifacts)."""

@@ -1,0 +1,71 @@
+"""Conventions shared by every stage command.
+
+* ``--params FILE`` (default params.yaml), ``--set key.path=value`` (repeatable), ``--device``;
+* logs on stderr, progress bars on every loop a user waits on (``pipeline.progress``);
+* user errors (:class:`pipeline.errors.InputError`) -> one line on stderr, exit code 2, no traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping
+
+import click
+
+from pipeline.artifacts import Meta, code_version, make_meta
+from pipeline.errors import InputError
+from pipeline.params import load_params
+
+PIPELINE_DIR = Path(__file__).resolve().parent.parent / "pipeline"
+
+
+def setup_logging() -> None:
+    level = os.environ.get("GEODISTILL_LOG", "INFO").upper()
+    logging.basicConfig(stream=sys.stderr, level=getattr(logging, level, logging.INFO),
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
+
+
+def stage_code_version(stage_file: str, *modules: str) -> str:
+    """Code version of a stage: its own script plus the pipeline modules (or packages) it calls."""
+    paths = [Path(stage_file)] + [PIPELINE_DIR / m for m in modules]
+    return code_version(*paths)
+
+
+def stage_command(name: str) -> Callable:
+    """Decorate ``fn(params, device, **options)`` into a click command with the shared options.
+
+    ``params`` is the effective params dict (profile applied, overrides applied).
+    """
+
+    def deco(fn: Callable) -> click.Command:
+        def wrapper(params_file: str, overrides: tuple[str, ...], device: str, **kw: Any):
+            setup_logging()
+            try:
+                params = load_params(params_file, overrides)
+                return fn(params=params, device=device, **kw)
+            except InputError as e:
+                msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+                click.echo(f"geodistill {name}: error: {msg}", err=True)
+                sys.exit(2)
+
+        wrapper.__click_params__ = list(getattr(fn, "__click_params__", []))
+        wrapper.__doc__ = fn.__doc__
+        wrapper.__name__ = fn.__name__
+        cmd = click.option("--device", default="auto", show_default=True,
+                           help="auto | cpu | cuda")(wrapper)
+        cmd = click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+                           help="override a param, e.g. --set train.epochs_stage1=3 (repeatable)")(cmd)
+        cmd = click.option("--params", "params_file", default="params.yaml", show_default=True,
+                           type=click.Path(dir_okay=False), help="params file")(cmd)
+        return click.command(name=name, help=fn.__doc__)(cmd)
+
+    return deco
+
+
+def meta_for(schema: str, stage: str, code: str, params: Mapping[str, Any],
+             inputs: Iterable = (), **extra) -> Meta:
+    """Shorthand used by stages; see :func:`pipeline.artifacts.make_meta`."""
+    return make_meta(schema, stage, code, params, inputs, **extra)

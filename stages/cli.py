@@ -1,0 +1,46 @@
+"""The ``geodistill`` console script: one click group whose subcommands are the stage commands.
+
+Subcommands are imported lazily so ``geodistill --help`` stays fast (torch is not imported).
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+
+import click
+
+# subcommand -> module under stages/ exposing a click command named ``main``
+COMMANDS = {
+    "prepare": "stages.prepare",
+    "teacher": "stages.teacher",
+    "consensus": "stages.consensus",
+    "geometry": "stages.geometry",
+    "train": "stages.train",
+    "calibrate": "stages.calibrate",
+    "evaluate": "stages.evaluate",
+    "report": "stages.report",
+    "segment": "stages.segment",
+    "export": "stages.export",
+    "benchmark": "stages.benchmark",
+}
+
+
+class LazyGroup(click.Group):
+    def list_commands(self, ctx):
+        return sorted(n for n, m in COMMANDS.items() if importlib.util.find_spec(m) is not None)
+
+    def get_command(self, ctx, name):
+        mod = COMMANDS.get(name)
+        if mod is None or importlib.util.find_spec(mod) is None:
+            return None
+        return importlib.import_module(mod).main
+
+
+@click.group(cls=LazyGroup, help=__doc__)
+def main():
+    pass
+
+
+if __name__ == "__main__":
+    main()
