@@ -24,7 +24,7 @@ reduced: install
 	PATH="$(CURDIR)/$(BIN):$$PATH" dvc exp run -S profile=reduced
 
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -q
 
 clean-artifacts:
 	rm -rf artifacts reports/demo

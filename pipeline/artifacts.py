@@ -180,13 +180,13 @@ class Meta:
     params: dict
     inputs: list[dict]
     fingerprint: str = ""
-    schema_version: int = 0
+    schema_version: int | None = None
     library_versions: dict = dataclasses.field(default_factory=dict)
     created_at: str = ""
     extra: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
-        if not self.schema_version:
+        if self.schema_version is None:
             self.schema_version = get_schema(self.schema).version
         if not self.fingerprint:
             self.fingerprint = fingerprint(self.stage, self.code_version, self.params,

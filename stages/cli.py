@@ -23,6 +23,7 @@ COMMANDS = {
     "segment": "stages.segment",
     "export": "stages.export",
     "benchmark": "stages.benchmark",
+    "analyze_teacher": "stages.analyze_teacher",
 }
 
 

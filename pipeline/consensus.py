@@ -1,0 +1,121 @@
+"""Multi-prompt consensus vote (paper, section "Multi-Prompt Consensus-Based Pseudo-Mask Construction").
+
+For image i with K prompt masks M_ik and scores s_ik:
+
+* valid set (text before eq:agreement-map): V_i = {k : s_ik > 0};
+* agreement map (eq:agreement-map): A_i(x) = (1/|V_i|) * sum_{k in V_i} M_ik(x);
+* voted pseudo-mask (eq:majority-vote): M_i^T(x) = [A_i(x) >= 0.5]; a tie is foreground
+  (3 of 6 valid prompts suffice);
+* no valid prompt (|V_i| = 0): A_i = 0 and M_i^T = 0 (the geometry gate is then 0 too, because
+  g_valid(v=0) = 0, see :mod:`pipeline.geometry`).
+
+Scores only decide validity; they never weight pixels.  The vote compares the float64 agreement
+``count / |V|`` with the threshold, i.e. the equation literally (``3/6 >= 0.5`` is exact in floating
+point); the stored agreement map is float32.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from pipeline.errors import InputError
+
+DEFAULT_VOTE_THRESHOLD = 0.5
+
+
+class Consensus(NamedTuple):
+    """Result of the vote.  Single image: agreement float32 [H,W], voted bool [H,W], valid bool [K].
+    Batched (:func:`vote_batch`): agreement [N,H,W], voted [N,H,W], valid [N,K]."""
+
+    agreement: np.ndarray
+    voted: np.ndarray
+    valid: np.ndarray
+
+    @property
+    def n_valid(self) -> np.ndarray | int:
+        """|V|: number of valid prompts (int for one image, int16 [N] for a batch)."""
+        n = np.count_nonzero(self.valid, axis=-1)
+        return int(n) if np.ndim(n) == 0 else n.astype(np.int16)
+
+
+def check_binary_masks(masks: np.ndarray, name: str = "masks") -> np.ndarray:
+    """Return ``masks`` as a bool array; InputError naming ``name`` unless every value is 0 or 1."""
+    masks = np.asarray(masks)
+    if masks.dtype == bool:
+        return masks
+    if masks.dtype.kind not in "biuf":
+        raise InputError(f"{name}: masks must be binary (bool or 0/1), got dtype {masks.dtype}")
+    if masks.size and not np.isin(masks, (0, 1)).all():
+        bad = masks[~np.isin(masks, (0, 1))].flat[0]
+        raise InputError(f"{name}: masks must be binary (0/1); found value {bad!r}")
+    return masks.astype(bool)
+
+
+def check_scores(scores: np.ndarray, name: str = "scores") -> np.ndarray:
+    """Return ``scores`` as float64; InputError naming ``name`` on NaN / inf."""
+    scores = np.asarray(scores, dtype=np.float64)
+    if not np.isfinite(scores).all():
+        raise InputError(f"{name}: scores contain NaN or infinite values")
+    return scores
+
+
+def valid_prompts(scores: np.ndarray) -> np.ndarray:
+    """V = {k : s_k > 0} as a boolean mask over the last axis (text before eq:agreement-map)."""
+    return check_scores(scores) > 0
+
+
+def vote(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT_VOTE_THRESHOLD) -> Consensus:
+    """Consensus of K prompt masks of one image (eq:agreement-map, eq:majority-vote).
+
+    Parameters
+    ----------
+    masks : bool [K,H,W]   teacher masks M_k (0/1 integers accepted; anything else -> InputError).
+    scores : float [K]     teacher scores s_k; s_k > 0 makes prompt k valid.  NaN -> InputError.
+    threshold : float      vote threshold (the paper's 0.5); M = [A >= threshold].
+
+    Returns
+    -------
+    Consensus(agreement float32 [H,W] in [0,1], voted bool [H,W], valid bool [K]).
+    With no valid prompt, agreement and voted are all zero.
+    """
+    masks = np.asarray(masks)
+    if masks.ndim != 3:
+        raise InputError(f"masks: expected [K,H,W], got shape {masks.shape}")
+    scores = np.asarray(scores)
+    if scores.shape != masks.shape[:1]:
+        raise InputError(f"scores: expected shape ({masks.shape[0]},) to match masks {masks.shape}, got {scores.shape}")
+    c = vote_batch(masks[None], scores[None], threshold)
+    return Consensus(c.agreement[0], c.voted[0], c.valid[0])
+
+
+def vote_batch(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT_VOTE_THRESHOLD) -> Consensus:
+    """Vectorised :func:`vote` over N images: masks bool [N,K,H,W], scores float [N,K].
+
+    Returns Consensus(agreement float32 [N,H,W], voted bool [N,H,W], valid bool [N,K]).
+    """
+    masks = np.asarray(masks)
+    scores = np.asarray(scores)
+    if masks.ndim != 4:
+        raise InputError(f"masks: expected [N,K,H,W], got shape {masks.shape}")
+    if scores.shape != masks.shape[:2]:
+        raise InputError(f"scores: expected shape {masks.shape[:2]} to match masks {masks.shape}, got {scores.shape}")
+    if not 0.0 <= float(threshold) <= 1.0 or not np.isfinite(threshold):
+        raise InputError(f"consensus.vote_threshold={threshold!r} must lie in [0, 1]")
+    masks = check_binary_masks(masks)
+    valid = valid_prompts(scores)
+    n, k, h, w = masks.shape
+    # count of valid foreground votes per pixel; uint8 is enough for K <= 255 prompts
+    if k > 255:
+        raise InputError(f"masks: at most 255 prompts supported, got {k}")
+    counts = np.zeros((n, h, w), dtype=np.uint8)
+    for j in range(k):  # loop over the (few) prompts, vectorised over images and pixels
+        counts += masks[:, j] & valid[:, j, None, None]
+    n_valid = valid.sum(axis=1)
+    agreement = np.zeros((n, h, w), dtype=np.float64)
+    has = n_valid > 0
+    agreement[has] = counts[has] / n_valid[has, None, None]
+    voted = agreement >= threshold
+    voted[~has] = False  # no valid prompt: M = 0 whatever the threshold (threshold 0 included)
+    return Consensus(agreement.astype(np.float32), voted, valid)

@@ -1,0 +1,310 @@
+"""Training methods as data: one declarative table of which loss terms, gating, initialisation, epochs,
+data filter and checkpoint-selection rule each ``--method`` uses, plus the pseudo-label filters.
+
+The training loop (``pipeline.training``) reads a :class:`Method` and has no per-method branches of
+its own.  This module is pure Python/numpy (no torch import), so the train stage can decide quickly
+whether a (method, seed) is in the active profile.
+
+Methods (paper section in brackets)
+
+=====================  =====  =======  ======================  ===================================
+method                 stage  init     objective               data / selection
+=====================  =====  =======  ======================  ===================================
+plain                  1      scratch  L_raw                   all pseudo-masks; best val IoU
+confidence_filtered    1      scratch  L_raw                   pass confidence criterion; best val
+afs_control            1      scratch  L_raw on AFS masks      base prompt, vflip-fused, s >= 0.6
+geodistill             2      stage1   L_refine (gated)        all; train.stage2_select (last)
+gabi                   2      scratch  L_raw + dist + bound.   all; best val IoU; gabi.epochs (30)
+full_scratch_10        2      scratch  L_refine (gated)        10 = epochs_stage2 epochs; best val
+full_scratch_30        2      scratch  L_refine (gated)        30 = epochs_stage1 + epochs_stage2
+sdf_scratch            2      scratch  L_raw + gated SDF       epochs_stage2; best val
+sdf_gated              2      stage1   L_raw + gated SDF       train.stage2_select
+sdf_skel_gated         2      stage1   + skeleton              train.stage2_select
+sdf_area_gated         2      stage1   + area                  train.stage2_select
+no_gate                2      stage1   L_refine with g = 1     train.stage2_select
+geodistill_adaptive    2      stage1   adaptive (see below)    best val IoU (epoch 0 eligible if r<0.5)
+=====================  =====  =======  ======================  ===================================
+
+Decisions where the paper is silent (all documented here and in the params comments):
+
+* Methods trained from random initialisation (Stage I family, ``gabi``, ``*_scratch*``) use the
+  Stage-I learning rate ``train.lr_stage1`` and validation-IoU checkpoint selection, like Stage I.
+  Warm-started Stage-II methods use ``train.lr_stage2`` and ``train.stage2_select`` (paper: last).
+* ``sdf_scratch`` is L_raw + gated SDF from scratch (the warm-start table's "SDF only" row; the gate
+  is kept so that it differs from ``sdf_gated`` only in initialisation).
+* The quality-adaptive mode (paper "External Validation") computes the pass ratio r of the
+  *training* pseudo-labels under the confidence criterion (``train.confidence``):
+  r >= ``train.adaptive.ratio_boundary`` (0.5) -> mode ``anchored``: L_refine + w * L_anchor;
+  r < 0.5 -> mode ``geometry_only``: the Stage-II pseudo-mask region loss (L_raw) is disabled, the
+  geometry terms and the anchor remain, and Stage-II epoch 0 (the Stage-I checkpoint) is a
+  selection candidate.  L_anchor is BCE to the frozen Stage-I probabilities
+  (:func:`pipeline.losses.anchor_loss`), weight ``train.adaptive.anchor_weight`` (0.1: "weak" --
+  an order below the region loss).  Both modes select by validation IoU.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Mapping
+
+import numpy as np
+
+from pipeline.errors import InputError
+
+TERMS = ("region", "anchor", "sdf", "dist", "skel", "area", "boundary")
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """Declarative description of one training method.
+
+    ``epochs``: train-param keys whose values are summed ("gabi.epochs" reads ``train.gabi.epochs``).
+    ``lr``: train-param key of the initial learning rate.  ``init``: ``scratch`` or ``stage1`` (warm
+    start of encoder, decoder and mask head from ``--init``).  ``data``: ``all`` | ``confidence`` |
+    ``afs`` (which training pseudo-labels, see the filters below).  ``terms``: loss terms in the
+    objective (``region`` = L_raw on the pseudo-mask, ``sdf`` = eq:sdf-loss, ``skel`` =
+    eq:skeleton-loss, ``area`` = eq:area-loss, ``dist`` = ungated distance regression, ``boundary`` =
+    boundary-weighted BCE, ``anchor`` = weak anchoring to the frozen Stage-I prediction).
+    ``gate``: ``g`` (gates.parquet) or ``one`` (g = 1).  ``select``: ``best_val`` | ``stage2``
+    (``train.stage2_select``).  ``adaptive``: terms and selection resolved from the pass ratio r.
+    ``uses``: train sub-sections the method reads (they enter its fingerprint).
+    """
+
+    name: str
+    stage: int
+    init: str
+    epochs: tuple[str, ...]
+    lr: str
+    data: str = "all"
+    terms: tuple[str, ...] = ("region",)
+    gate: str = "g"
+    select: str = "best_val"
+    adaptive: bool = False
+    uses: tuple[str, ...] = ()
+    description: str = ""
+
+    @property
+    def geometry_heads(self) -> bool:
+        """Whether the model needs the SDF/skeleton heads (any SDF, distance or skeleton term)."""
+        return any(t in self.terms for t in ("sdf", "dist", "skel"))
+
+    @property
+    def needs_geometry(self) -> bool:
+        """Reads geometry.zarr (SDF/skeleton targets)."""
+        return any(t in self.terms for t in ("sdf", "dist", "skel", "boundary"))
+
+    @property
+    def needs_gates(self) -> bool:
+        """Reads gates.parquet (g, a, or the confidence criterion)."""
+        return (self.gate == "g" and any(t in self.terms for t in ("sdf", "skel", "area"))) \
+            or "area" in self.terms or self.data == "confidence" or self.adaptive
+
+
+_FULL = ("region", "sdf", "skel", "area")
+
+METHODS: dict[str, Method] = {m.name: m for m in [
+    Method("plain", 1, "scratch", ("epochs_stage1",), "lr_stage1",
+           description="Stage I only: L_raw on all voted pseudo-masks"),
+    Method("confidence_filtered", 1, "scratch", ("epochs_stage1",), "lr_stage1", data="confidence",
+           uses=("confidence",),
+           description="plain student on pseudo-labels passing the confidence criterion"),
+    Method("afs_control", 1, "scratch", ("epochs_stage1",), "lr_stage1", data="afs", uses=("afs",),
+           description="annotation-free-style control: base prompt, image+vflip fused, score filter"),
+    Method("geodistill", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=_FULL, select="stage2",
+           description="Stage I -> gated SDF + skeleton + area refinement (eq:refine-loss)"),
+    Method("gabi", 2, "scratch", ("gabi.epochs",), "lr_stage1", terms=("region", "dist", "boundary"),
+           uses=("gabi",),
+           description="GABI-inspired: joint from scratch, ungated distance regression + boundary BCE"),
+    Method("full_scratch_10", 2, "scratch", ("epochs_stage2",), "lr_stage1", terms=_FULL,
+           description="ablation: full gated geometry from scratch, 10 epochs"),
+    Method("full_scratch_30", 2, "scratch", ("epochs_stage1", "epochs_stage2"), "lr_stage1", terms=_FULL,
+           description="ablation: full gated geometry from scratch, 30 epochs"),
+    Method("sdf_scratch", 2, "scratch", ("epochs_stage2",), "lr_stage1", terms=("region", "sdf"),
+           description="ablation: L_raw + gated SDF from scratch"),
+    Method("sdf_gated", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=("region", "sdf"),
+           select="stage2", description="ablation: Stage I -> gated SDF only"),
+    Method("sdf_skel_gated", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=("region", "sdf", "skel"),
+           select="stage2", description="ablation: Stage I -> gated SDF + skeleton"),
+    Method("sdf_area_gated", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=("region", "sdf", "area"),
+           select="stage2", description="ablation: Stage I -> gated SDF + area"),
+    Method("no_gate", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=_FULL, gate="one",
+           select="stage2", description="ablation: full refinement with g = 1"),
+    Method("geodistill_adaptive", 2, "stage1", ("epochs_stage2",), "lr_stage2",
+           terms=("region", "anchor", "sdf", "skel", "area"), adaptive=True,
+           uses=("confidence", "adaptive"),
+           description="quality-adaptive external mode (switch on the pass ratio r)"),
+]}
+
+
+def get_method(name: str) -> Method:
+    """The :class:`Method` called ``name``; InputError listing the valid names otherwise."""
+    try:
+        return METHODS[name]
+    except KeyError:
+        raise InputError(f"--method {name!r}: expected one of {', '.join(METHODS)}") from None
+
+
+def _get(cfg: Mapping[str, Any], dotted: str) -> Any:
+    cur: Any = cfg
+    for k in dotted.split("."):
+        if not isinstance(cur, Mapping) or k not in cur:
+            raise InputError(f"params: train.{dotted} missing")
+        cur = cur[k]
+    return cur
+
+
+def method_epochs(method: Method, cfg: Mapping[str, Any]) -> int:
+    """Number of epochs: the sum of the train params named in ``method.epochs``."""
+    total = 0
+    for key in method.epochs:
+        v = _get(cfg, key)
+        if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+            raise InputError(f"params: train.{key}={v!r} must be a non-negative integer")
+        total += v
+    if total < 1:
+        raise InputError(f"params: {' + '.join('train.' + k for k in method.epochs)} must be >= 1")
+    return total
+
+
+def method_lr(method: Method, cfg: Mapping[str, Any]) -> float:
+    v = _get(cfg, method.lr)
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or v <= 0:
+        raise InputError(f"params: train.{method.lr}={v!r} must be a positive number")
+    return float(v)
+
+
+SUBSECTIONS = ("confidence", "afs", "gabi", "adaptive")
+
+
+def fingerprint_params(method: Method, cfg: Mapping[str, Any]) -> dict:
+    """The train params a method's checkpoint depends on: the train section without the
+    method-specific sub-sections it does not read (so editing ``train.gabi`` does not retrain ``plain``)."""
+    return {k: v for k, v in cfg.items() if k not in SUBSECTIONS or k in method.uses}
+
+
+# --------------------------------------------------------------------------------------------------
+# Profile membership (which matrix entries train)
+# --------------------------------------------------------------------------------------------------
+def is_active(method: str, seed: int, protocol: Mapping[str, Any]) -> bool:
+    """Whether (method, seed) trains under the active profile.
+
+    Ablations (``protocol.ablations``) run only for ``protocol.ablation_seed`` and when listed in
+    ``protocol.active_ablations``; every other method when listed in ``protocol.active_methods`` and
+    ``seed`` is in ``protocol.active_seeds``.
+    """
+    ablations = list(protocol.get("ablations", []) or [])
+    if method in ablations:
+        return method in (protocol.get("active_ablations") or []) and int(seed) == int(protocol.get("ablation_seed", -1))
+    return method in (protocol.get("active_methods") or []) and int(seed) in [int(s) for s in protocol.get("active_seeds") or []]
+
+
+# --------------------------------------------------------------------------------------------------
+# Pseudo-label filters (teacher outputs only -- never reference masks)
+# --------------------------------------------------------------------------------------------------
+def mean_valid_score(scores: np.ndarray) -> np.ndarray:
+    """Mean teacher score over the valid prompts (s_ik > 0, eq:agreement-map's V_i) per image; 0 if none.
+
+    ``scores`` float [N,K] -> float64 [N].
+    """
+    s = np.asarray(scores, dtype=np.float64)
+    valid = s > 0
+    n = valid.sum(1)
+    return np.where(n > 0, (s * valid).sum(1) / np.maximum(n, 1), 0.0)
+
+
+def confidence_pass(agreement: np.ndarray, n_valid: np.ndarray, mean_score: np.ndarray | None,
+                    criterion: str, threshold: float, min_valid: int) -> np.ndarray:
+    """Confidence criterion of the confidence-filtered student (decision; the paper does not state it).
+
+    An image passes when at least ``min_valid`` prompts are valid and its confidence is
+    ``>= threshold``, where the confidence is the foreground agreement c_i (eq:foreground-agreement,
+    ``criterion="agreement"``) or the mean valid-prompt score (``criterion="mean_score"``).
+    Both come from teacher outputs only.  Returns bool [N].
+    """
+    n_valid = np.asarray(n_valid)
+    if criterion == "agreement":
+        conf = np.asarray(agreement, dtype=np.float64)
+    elif criterion == "mean_score":
+        if mean_score is None:
+            raise ValueError("criterion 'mean_score' needs mean_score")
+        conf = np.asarray(mean_score, dtype=np.float64)
+    else:
+        raise InputError(f"params: train.confidence.criterion={criterion!r}: expected agreement or mean_score")
+    return (n_valid >= int(min_valid)) & (conf >= float(threshold))
+
+
+def pass_ratio(passed: np.ndarray) -> float:
+    """Fraction r of images passing a filter (0 for an empty set)."""
+    passed = np.asarray(passed, dtype=bool)
+    return float(passed.mean()) if passed.size else 0.0
+
+
+def adaptive_mode(r: float, boundary: float = 0.5) -> str:
+    """Quality-adaptive external mode from the training pass ratio r (paper: External Validation):
+    ``"anchored"`` when r >= boundary, else ``"geometry_only"``."""
+    return "anchored" if float(r) >= float(boundary) else "geometry_only"
+
+
+def afs_fuse(mask_image: np.ndarray, mask_vflip: np.ndarray, fusion: str = "intersection") -> np.ndarray:
+    """Fuse the base-prompt mask on the image with the one on its vertical flip (flipped back) by their
+    agreement: ``intersection`` keeps pixels both views call foreground, ``union`` either."""
+    a = np.asarray(mask_image, dtype=bool)
+    b = np.asarray(mask_vflip, dtype=bool)
+    if fusion == "intersection":
+        return a & b
+    if fusion == "union":
+        return a | b
+    raise InputError(f"params: train.afs.fusion={fusion!r}: expected intersection or union")
+
+
+def afs_keep(score: np.ndarray, threshold: float = 0.60) -> np.ndarray:
+    """Images kept by the annotation-free-style control: base-prompt teacher score >= threshold
+    (images whose score is below it are dropped)."""
+    return np.asarray(score, dtype=np.float64) >= float(threshold)
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """A method resolved for one run: loss weights of each term, selection rule and candidates.
+
+    ``weights[t]`` multiplies term ``t`` in the objective (absent = not computed).  ``select``:
+    ``best_val`` or ``last``.  ``epoch0_eligible``: the initial (warm-start) model is a candidate.
+    """
+
+    weights: dict
+    select: str
+    epoch0_eligible: bool = False
+    mode: str = ""
+
+
+def resolve_plan(method: Method, cfg: Mapping[str, Any], pass_ratio_r: float | None = None) -> Plan:
+    """Turn the declarative method and the train params into concrete term weights and selection.
+
+    Region terms weigh 1 (eq:raw-loss inside eq:refine-loss); SDF/skeleton/area use
+    ``lambda_sdf/skel/area`` (eq:refine-loss); the GABI terms ``gabi.lambda_dist/lambda_boundary``;
+    the anchor ``adaptive.anchor_weight``.  The adaptive method needs ``pass_ratio_r``.
+    """
+    lam = {"region": 1.0, "sdf": _get(cfg, "lambda_sdf"), "skel": _get(cfg, "lambda_skel"),
+           "area": _get(cfg, "lambda_area")}
+    if "dist" in method.terms:
+        lam["dist"] = _get(cfg, "gabi.lambda_dist")
+    if "boundary" in method.terms:
+        lam["boundary"] = _get(cfg, "gabi.lambda_boundary")
+    if "anchor" in method.terms:
+        lam["anchor"] = _get(cfg, "adaptive.anchor_weight")
+    weights = {t: float(lam[t]) for t in method.terms}
+    if method.select == "stage2":
+        sel = _get(cfg, "stage2_select")
+        if sel not in ("last", "best_val"):
+            raise InputError(f"params: train.stage2_select={sel!r}: expected last or best_val")
+    else:
+        sel = method.select
+    if not method.adaptive:
+        return Plan(weights=weights, select=sel)
+    if pass_ratio_r is None:
+        raise ValueError("the adaptive method needs the pass ratio r")
+    mode = adaptive_mode(pass_ratio_r, _get(cfg, "adaptive.ratio_boundary"))
+    if mode == "geometry_only":
+        weights.pop("region")
+        return Plan(weights=weights, select="best_val", epoch0_eligible=True, mode=mode)
+    return Plan(weights=weights, select="best_val", epoch0_eligible=False, mode=mode)

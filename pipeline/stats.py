@@ -1,0 +1,254 @@
+"""Statistics of the evaluation (paper section "Metrics and Statistical Analysis").
+
+* :func:`seed_summary` -- "mean and standard deviation over three random seeds": the per-seed mean
+  over images first, then the mean and the *sample* standard deviation (ddof = 1) of those per-seed
+  means.  One seed gives std = NaN (undefined), never 0.
+* :func:`paired_hierarchical_bootstrap` -- "95 % confidence intervals ... from matched per-image
+  outputs using 10 000 paired hierarchical bootstrap resamples": spacecraft are resampled with
+  replacement, then images with replacement within each drawn spacecraft; the *same* draw is applied
+  to every method (and every metric), so the interval is for a paired difference.
+* :func:`spearman` -- Spearman's rank correlation with its two-sided p-value (t approximation with
+  n - 2 degrees of freedom, as ``scipy.stats.spearmanr``), used for the gate analysis.
+
+Pure numpy functions on arrays (no I/O); the tables they feed are built in ``pipeline.report.tables``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Iterable, Sequence
+
+import numpy as np
+
+# resample index arrays are generated in blocks of at most this many int64 entries (bounded memory
+# for a large single-spacecraft test set such as TANGO's 3,002 images)
+_BLOCK_ENTRIES = 4_000_000
+
+
+# --------------------------------------------------------------------------------------------------
+# Seed aggregation
+# --------------------------------------------------------------------------------------------------
+def seed_summary(df, by: Sequence[str], metrics: Sequence[str], seed_col: str = "seed"):
+    """Mean and sample std over seeds of the per-seed means.
+
+    ``df`` is a per-image table (one row per image, seed and whatever ``by`` names).  For every ``by``
+    group: per-seed mean of each metric over its images (NaN values, e.g. an undefined small-region
+    IoU, are skipped), then ``<metric>_mean`` = mean over seeds and ``<metric>_std`` = sample
+    standard deviation over seeds (ddof = 1; NaN for a single seed).  Also returns ``n_seeds`` and
+    ``n_images`` (images per seed; the maximum when seeds differ).
+    """
+    import pandas as pd
+
+    by = list(by)
+    metrics = [m for m in metrics if m in df.columns]
+    per_seed = df.groupby(by + [seed_col], sort=True, dropna=False)[metrics].mean()
+    counts = df.groupby(by + [seed_col], sort=True, dropna=False).size()
+    grouped = per_seed.groupby(level=list(range(len(by))), sort=True, dropna=False)
+    out = pd.DataFrame({
+        "n_seeds": grouped.size(),
+        "n_images": counts.groupby(level=list(range(len(by))), sort=True, dropna=False).max(),
+    })
+    for m in metrics:
+        out[f"{m}_mean"] = grouped[m].mean()
+        out[f"{m}_std"] = grouped[m].std(ddof=1)
+    return out.reset_index()
+
+
+# --------------------------------------------------------------------------------------------------
+# Paired hierarchical bootstrap
+# --------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class BootstrapCI:
+    """Point estimate (mean over all images) and percentile interval, one entry per column."""
+
+    estimate: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    n_resamples: int
+    n_clusters: int
+    n_items: int
+
+
+def _cluster_layout(clusters: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """-> (order that sorts items by cluster, cluster start offsets, cluster sizes)."""
+    _, inverse, sizes = np.unique(clusters, return_inverse=True, return_counts=True)
+    order = np.argsort(inverse, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    return order, starts, sizes
+
+
+def hierarchical_resample_means(values: np.ndarray, clusters: np.ndarray, n_resamples: int,
+                                rng: np.random.Generator) -> np.ndarray:
+    """Bootstrap distribution of the mean of ``values`` under two-level resampling.
+
+    Each resample draws C clusters with replacement out of the C clusters, then, for every drawn
+    cluster of size n_c, n_c items with replacement from that cluster; the statistic is the mean over
+    all drawn items (so a resample has a random total size when clusters differ in size, the usual
+    two-stage cluster bootstrap).  ``values`` is [n] or [n, k] (k statistics resampled with the same
+    draws); returns [n_resamples, k].  Vectorised in blocks of resamples: clusters are padded to the
+    largest size and a mask keeps the first n_c draws of each.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    if values.ndim == 1:
+        values = values[:, None]
+    clusters = np.asarray(clusters)
+    if len(values) != len(clusters):
+        raise ValueError(f"values ({len(values)}) and clusters ({len(clusters)}) differ in length")
+    if len(values) == 0:
+        raise ValueError("no items to resample")
+    order, starts, sizes = _cluster_layout(clusters)
+    vals = values[order]
+    n_clusters, n_max, k = len(sizes), int(sizes.max()), values.shape[1]
+    block = max(1, _BLOCK_ENTRIES // (n_clusters * n_max))
+    out = np.empty((n_resamples, k), dtype=np.float64)
+    for b0 in range(0, n_resamples, block):
+        b = min(block, n_resamples - b0)
+        drawn = rng.integers(0, n_clusters, size=(b, n_clusters))                 # level 1: clusters
+        n_drawn = sizes[drawn]                                                     # [b, C]
+        within = (rng.random((b, n_clusters, n_max)) * n_drawn[..., None]).astype(np.int64)  # level 2
+        keep = np.arange(n_max) < n_drawn[..., None]                               # [b, C, n_max]
+        flat = np.where(keep, starts[drawn][..., None] + within, 0)
+        picked = vals[flat] * keep[..., None]                                      # [b, C, n_max, k]
+        out[b0:b0 + b] = picked.sum(axis=(1, 2)) / n_drawn.sum(axis=1)[:, None]
+    return out
+
+
+def paired_hierarchical_bootstrap(treatment: np.ndarray, control: np.ndarray, clusters: np.ndarray,
+                                  n_resamples: int = 10_000, ci: float = 0.95, seed: int = 0) -> BootstrapCI:
+    """CI of the mean paired difference ``treatment - control`` (paper: paired hierarchical bootstrap).
+
+    ``treatment`` and ``control`` are matched per-image values ([n] or [n, k], row i = the same image
+    for both; with several seeds pass each method's seed-averaged value per image, so the estimate is
+    the difference of the seed-averaged means).  ``clusters`` [n] names each image's spacecraft.
+    Resampling the per-image differences is resampling matched rows of both methods at once, which is
+    what "paired" means.  The interval is the percentile interval [q_{(1-ci)/2}, q_{(1+ci)/2}] of the
+    bootstrap means; the estimate is the plain mean of the differences.  Seeded: the same inputs and
+    ``seed`` give the same interval.
+    """
+    t = np.asarray(treatment, dtype=np.float64)
+    c = np.asarray(control, dtype=np.float64)
+    if t.shape != c.shape:
+        raise ValueError(f"treatment {t.shape} and control {c.shape} are not matched")
+    if not 0.0 < ci < 1.0:
+        raise ValueError(f"ci={ci} must lie in (0, 1)")
+    diff = t - c
+    diff2 = diff[:, None] if diff.ndim == 1 else diff
+    if np.isnan(diff2).any():
+        raise ValueError("paired differences contain NaN; drop undefined images before bootstrapping")
+    rng = np.random.default_rng(seed)
+    boot = hierarchical_resample_means(diff2, clusters, int(n_resamples), rng)
+    alpha = (1.0 - ci) / 2.0
+    lo, hi = np.quantile(boot, [alpha, 1.0 - alpha], axis=0)
+    est = diff2.mean(axis=0)
+    squeeze = (lambda a: a[0]) if diff.ndim == 1 else (lambda a: a)
+    return BootstrapCI(estimate=squeeze(est), low=squeeze(lo), high=squeeze(hi), n_resamples=int(n_resamples),
+                       n_clusters=len(np.unique(clusters)), n_items=len(diff2))
+
+
+# --------------------------------------------------------------------------------------------------
+# Spearman rank correlation
+# --------------------------------------------------------------------------------------------------
+def average_ranks(x: np.ndarray) -> np.ndarray:
+    """Ranks 1..n with ties given the average of the ranks they span (``rankdata(method='average')``)."""
+    x = np.asarray(x, dtype=np.float64)
+    order = np.argsort(x, kind="mergesort")
+    xs = x[order]
+    new_run = np.concatenate([[True], xs[1:] != xs[:-1]])
+    run_id = np.cumsum(new_run) - 1
+    run_start = np.flatnonzero(new_run)
+    run_end = np.concatenate([run_start[1:], [len(x)]])       # exclusive
+    avg = (run_start + run_end + 1) / 2.0                       # mean of ranks start+1 .. end
+    ranks = np.empty(len(x), dtype=np.float64)
+    ranks[order] = avg[run_id]
+    return ranks
+
+
+@dataclasses.dataclass(frozen=True)
+class SpearmanResult:
+    rho: float
+    pvalue: float
+    n: int
+
+
+def spearman(x: Iterable[float], y: Iterable[float]) -> SpearmanResult:
+    """Spearman's rho = Pearson correlation of the average ranks of x and y, with the two-sided p-value
+    from t = rho sqrt((n - 2) / (1 - rho^2)) ~ Student t with n - 2 degrees of freedom.
+
+    Pairs with a NaN in either value are dropped.  Undefined cases (fewer than 3 pairs, or a constant
+    input) give rho = p = NaN.  |rho| = 1 gives p = 0.
+    """
+    from scipy.special import stdtr
+
+    x = np.asarray(list(x) if not isinstance(x, np.ndarray) else x, dtype=np.float64)
+    y = np.asarray(list(y) if not isinstance(y, np.ndarray) else y, dtype=np.float64)
+    if x.shape != y.shape:
+        raise ValueError(f"x {x.shape} and y {y.shape} differ in shape")
+    ok = ~(np.isnan(x) | np.isnan(y))
+    x, y = x[ok], y[ok]
+    n = len(x)
+    if n < 3:
+        return SpearmanResult(float("nan"), float("nan"), n)
+    rx, ry = average_ranks(x), average_ranks(y)
+    rx -= rx.mean()
+    ry -= ry.mean()
+    denom = np.sqrt((rx * rx).sum() * (ry * ry).sum())
+    if denom == 0:
+        return SpearmanResult(float("nan"), float("nan"), n)
+    rho = float(np.clip((rx * ry).sum() / denom, -1.0, 1.0))
+    dof = n - 2
+    if abs(rho) >= 1.0:
+        return SpearmanResult(rho, 0.0, n)
+    t = rho * np.sqrt(dof / ((1.0 - rho) * (1.0 + rho)))
+    p = float(2.0 * stdtr(dof, -abs(t)))
+    return SpearmanResult(rho, p, n)
+
+
+# --------------------------------------------------------------------------------------------------
+# Gains against a control method on a per-image table
+# --------------------------------------------------------------------------------------------------
+def method_gains(df, metrics: Sequence[str], control: str = "plain", by: Sequence[str] = ("dataset", "group", "threshold_mode"),
+                 cluster_col: str = "spacecraft", n_resamples: int = 10_000, ci: float = 0.95, seed: int = 0):
+    """Gain of every method over ``control`` with paired hierarchical bootstrap CIs, per ``by`` group.
+
+    ``df`` is the per-image metrics table (columns: method, seed, image_id, ``cluster_col``, ``by``,
+    metrics).  For each method the pairing uses the seeds it shares with the control (e.g. a seed-42
+    ablation is compared with the seed-42 control) and the images both have; each image's value is
+    averaged over those seeds, so ``gain_<m>`` = difference of the seed-averaged means and its CI comes
+    from :func:`paired_hierarchical_bootstrap` (same ``seed`` for every comparison: every method is
+    compared with the control on the same resamples of the same images).  Images whose metric is NaN
+    for either method (an undefined small-region IoU) are left out of that metric's comparison.
+    Returns one row per (by..., method) with ``gain_seeds`` (shared seeds), ``gain_images``,
+    ``gain_<m>``, ``gain_<m>_lo``, ``gain_<m>_hi``; the control itself gets no row.
+    """
+    import pandas as pd
+
+    by = list(by)
+    rows = []
+    for key, part in df.groupby(by, sort=True, dropna=False):
+        key = key if isinstance(key, tuple) else (key,)
+        ctrl = part[part["method"] == control]
+        if ctrl.empty:
+            continue
+        for method, treat in part[part["method"] != control].groupby("method", sort=True):
+            seeds = sorted(set(treat["seed"]) & set(ctrl["seed"]))
+            if not seeds:
+                continue
+            idx = ["image_id", cluster_col]
+            t = treat[treat["seed"].isin(seeds)].groupby(idx)[list(metrics)].mean()
+            c = ctrl[ctrl["seed"].isin(seeds)].groupby(idx)[list(metrics)].mean()
+            both = t.add_suffix("_t").join(c.add_suffix("_c"), how="inner")
+            row = dict(zip(by, key), method=method, gain_seeds=len(seeds), gain_images=len(both))
+            for m in metrics:
+                ok = both[[f"{m}_t", f"{m}_c"]].notna().all(axis=1)
+                sub = both[ok]
+                if sub.empty:
+                    row.update({f"gain_{m}": np.nan, f"gain_{m}_lo": np.nan, f"gain_{m}_hi": np.nan})
+                    continue
+                res = paired_hierarchical_bootstrap(sub[f"{m}_t"].to_numpy(), sub[f"{m}_c"].to_numpy(),
+                                                    sub.index.get_level_values(cluster_col).to_numpy(),
+                                                    n_resamples=n_resamples, ci=ci, seed=seed)
+                row.update({f"gain_{m}": float(res.estimate), f"gain_{m}_lo": float(res.low),
+                            f"gain_{m}_hi": float(res.high)})
+            rows.append(row)
+    cols = by + ["method", "gain_seeds", "gain_images"] + [f"gain_{m}{s}" for m in metrics for s in ("", "_lo", "_hi")]
+    return pd.DataFrame(rows, columns=cols)

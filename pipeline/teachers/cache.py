@@ -1,0 +1,146 @@
+"""Content-addressed cache of teacher answers: one small file per (image, prompt, view).
+
+Teacher inference is the most expensive step of the method (paper: 447.9 ms per image for six SAM 3
+prompts on an RTX 4090), so an answer is computed once and reused by every later run.
+
+Key
+  ``sha256(canonical JSON {image: image sha256 from the manifest, teacher: teacher fingerprint
+  (backend, checkpoint hash, resolution, dtype, simulator seed/version ...), prompt: text,
+  view: identity | vflip})``.  Consequences: adding images or prompts computes only the new
+  entries; a param the teacher does not read is not in the fingerprint and recomputes nothing;
+  any change to what the teacher reads gives new keys (old entries stay, unused, until the cache
+  directory is deleted).
+
+Location
+  ``<cache_dir>/v1/<key[:2]>/<key>.tce`` (``teacher.cache_dir``, default ``.cache/teacher``), outside
+  the DVC outputs so ``dvc repro`` removing ``teacher.zarr`` does not remove it.
+
+Entry format (little endian)
+  ``b"GDTCE01\\n"`` magic (8 bytes) | sha256 of the payload (32 bytes) | payload, where payload =
+  ``height u32 | width u32 | score f32 | np.packbits(mask)``.  Entries are written to a temp file in
+  the same directory and renamed into place, so a kill -9 leaves either the whole entry or none.  A
+  reader verifies the checksum; a corrupt or truncated entry is reported (logged, counted), deleted
+  and treated as a miss, so it is recomputed.
+
+Concurrency
+  Several processes (``--shard i/n`` on several machines with a shared filesystem) may write the
+  same cache: writes are atomic renames and two writers of one key write identical bytes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import os
+import struct
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.artifacts import canonical_json
+
+log = logging.getLogger(__name__)
+
+MAGIC = b"GDTCE01\n"
+LAYOUT_VERSION = "v1"
+_HEADER = struct.Struct("<IIf")
+
+
+def entry_key(image_sha256: str, teacher_fingerprint: str, prompt: str, view: str = "identity") -> str:
+    """sha256 hex key of one (image, teacher, prompt, view) answer."""
+    payload = canonical_json({"image": image_sha256, "teacher": teacher_fingerprint,
+                              "prompt": prompt, "view": view})
+    return hashlib.sha256(payload.encode()).hexdigest()
+
+
+def encode_entry(mask: np.ndarray, score: float) -> bytes:
+    """Serialise one answer (bool [H,W] mask, float score) with its checksum."""
+    mask = np.asarray(mask, dtype=bool)
+    if mask.ndim != 2:
+        raise ValueError(f"cache entry mask must be 2-D, got shape {mask.shape}")
+    payload = _HEADER.pack(mask.shape[0], mask.shape[1], float(score)) + np.packbits(mask, axis=None).tobytes()
+    return MAGIC + hashlib.sha256(payload).digest() + payload
+
+
+class CorruptEntry(ValueError):
+    """A cache entry whose bytes do not match its checksum or layout."""
+
+
+def decode_entry(data: bytes) -> tuple[np.ndarray, float]:
+    """Inverse of :func:`encode_entry`; raises :class:`CorruptEntry` on any mismatch."""
+    if len(data) < len(MAGIC) + 32 + _HEADER.size or not data.startswith(MAGIC):
+        raise CorruptEntry("bad magic or truncated header")
+    digest, payload = data[len(MAGIC):len(MAGIC) + 32], data[len(MAGIC) + 32:]
+    if hashlib.sha256(payload).digest() != digest:
+        raise CorruptEntry("checksum mismatch")
+    h, w, score = _HEADER.unpack_from(payload)
+    bits = np.frombuffer(payload, dtype=np.uint8, offset=_HEADER.size)
+    if bits.size != (h * w + 7) // 8:
+        raise CorruptEntry("mask size does not match header")
+    mask = np.unpackbits(bits, count=h * w).astype(bool).reshape(h, w)
+    return mask, float(score)
+
+
+@dataclasses.dataclass
+class CacheStats:
+    hits: int = 0
+    misses: int = 0
+    corrupt: int = 0
+    written: int = 0
+
+
+class TeacherCache:
+    """Directory of answers for one teacher fingerprint.
+
+    >>> cache = TeacherCache(".cache/teacher", teacher_fp)          # doctest: +SKIP
+    >>> key = cache.key(sha, "spacecraft")                          # doctest: +SKIP
+    >>> cache.get(key) is None  # miss                               # doctest: +SKIP
+    """
+
+    def __init__(self, root: str | Path, teacher_fingerprint: str):
+        self.root = Path(root)
+        self.teacher_fingerprint = teacher_fingerprint
+        self.stats = CacheStats()
+
+    def key(self, image_sha256: str, prompt: str, view: str = "identity") -> str:
+        return entry_key(image_sha256, self.teacher_fingerprint, prompt, view)
+
+    def path(self, key: str) -> Path:
+        return self.root / LAYOUT_VERSION / key[:2] / f"{key}.tce"
+
+    def get(self, key: str) -> tuple[np.ndarray, float] | None:
+        """The cached (mask, score), or None on a miss.  Corrupt entries are reported, removed, missed."""
+        p = self.path(key)
+        try:
+            data = p.read_bytes()
+        except FileNotFoundError:
+            self.stats.misses += 1
+            return None
+        try:
+            out = decode_entry(data)
+        except CorruptEntry as e:
+            log.warning("teacher cache: corrupt entry %s (%s); it will be recomputed", p, e)
+            self.stats.corrupt += 1
+            self.stats.misses += 1
+            try:
+                p.unlink()
+            except FileNotFoundError:
+                pass
+            return None
+        self.stats.hits += 1
+        return out
+
+    def put(self, key: str, mask: np.ndarray, score: float) -> None:
+        """Write one entry atomically (temp file in the same directory, then rename)."""
+        p = self.path(key)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmp = p.with_name(f".{p.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
+        try:
+            tmp.write_bytes(encode_entry(mask, score))
+            os.replace(tmp, p)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+        self.stats.written += 1

@@ -1,0 +1,175 @@
+"""Seed aggregation, paired hierarchical bootstrap and Spearman (pipeline.stats)."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats as sps
+
+from pipeline.stats import (average_ranks, hierarchical_resample_means, method_gains,
+                            paired_hierarchical_bootstrap, seed_summary, spearman)
+
+
+# ---------------------------------------------------------------------------------------- seeds
+def test_seed_summary_mean_and_sample_std_of_per_seed_means():
+    # seed 1 images: 0.2, 0.4 (mean 0.3); seed 2: 0.5, 0.7, 0.9 (mean 0.7) -> mean 0.5, std sqrt(0.08)
+    df = pd.DataFrame({
+        "group": ["A"] * 5, "method": ["m"] * 5, "seed": [1, 1, 2, 2, 2],
+        "iou": [0.2, 0.4, 0.5, 0.7, 0.9], "bf1": [1.0, np.nan, 0.0, 0.0, 0.0],
+    })
+    out = seed_summary(df, ["group", "method"], ["iou", "bf1"])
+    assert len(out) == 1
+    r = out.iloc[0]
+    assert r.n_seeds == 2 and r.n_images == 3
+    assert r.iou_mean == pytest.approx(0.5)
+    assert r.iou_std == pytest.approx(np.std([0.3, 0.7], ddof=1))
+    # NaN is skipped inside a seed: seed 1 bf1 mean is 1.0, seed 2 is 0.0
+    assert r.bf1_mean == pytest.approx(0.5)
+
+
+def test_seed_summary_single_seed_std_is_nan_not_zero():
+    df = pd.DataFrame({"group": ["A", "A"], "seed": [42, 42], "iou": [0.1, 0.3]})
+    r = seed_summary(df, ["group"], ["iou"]).iloc[0]
+    assert r.iou_mean == pytest.approx(0.2)
+    assert np.isnan(r.iou_std)
+
+
+# ------------------------------------------------------------------------------------ bootstrap
+def test_resample_means_respect_clusters():
+    # two clusters with constant values 0 and 1: every resample mean is a mix of whole clusters'
+    # weight, so with equal sizes the only possible means are 0, 0.5 and 1
+    values = np.array([0.0] * 4 + [1.0] * 4)
+    clusters = np.array([0] * 4 + [1] * 4)
+    boot = hierarchical_resample_means(values, clusters, 500, np.random.default_rng(0))[:, 0]
+    assert set(np.round(boot, 6)) <= {0.0, 0.5, 1.0}
+    assert {0.0, 0.5, 1.0} <= set(np.round(boot, 6))
+    # unequal cluster sizes: the mean is weighted by the drawn images, values stay within [0, 1]
+    clusters = np.array([0] * 2 + [1] * 6)
+    boot = hierarchical_resample_means(values, clusters, 500, np.random.default_rng(1))[:, 0]
+    assert boot.min() >= 0.0 and boot.max() <= 1.0
+
+
+def test_bootstrap_is_seeded_and_paired():
+    rng = np.random.default_rng(3)
+    ctrl = rng.random(30)
+    treat = ctrl + 0.1           # a perfectly constant paired difference: zero-width interval
+    clusters = np.repeat(np.arange(5), 6)
+    res = paired_hierarchical_bootstrap(treat, ctrl, clusters, n_resamples=300, seed=1)
+    assert res.estimate == pytest.approx(0.1)
+    assert res.low == pytest.approx(0.1) and res.high == pytest.approx(0.1)
+    # same seed, same data -> identical interval; other seed -> (almost surely) different
+    t = ctrl + rng.normal(0, 0.1, 30)
+    r1 = paired_hierarchical_bootstrap(t, ctrl, clusters, n_resamples=300, seed=5)
+    r2 = paired_hierarchical_bootstrap(t, ctrl, clusters, n_resamples=300, seed=5)
+    r3 = paired_hierarchical_bootstrap(t, ctrl, clusters, n_resamples=300, seed=6)
+    assert (r1.low, r1.high) == (r2.low, r2.high)
+    assert (r1.low, r1.high) != (r3.low, r3.high)
+
+
+def _simulate(rng, n_clusters, true_diff, cluster_sd, image_sd):
+    sizes = rng.integers(5, 16, size=n_clusters)
+    clusters = np.repeat(np.arange(n_clusters), sizes)
+    base = rng.random(len(clusters))                              # cancels in the paired difference
+    effect = true_diff + rng.normal(0, cluster_sd, n_clusters)[clusters] + rng.normal(0, image_sd, len(clusters))
+    return base + effect, base, clusters
+
+
+def test_bootstrap_interval_covers_true_difference_at_nominal_rate():
+    """200 simulated datasets (spacecraft-level and image-level noise); the 95 % interval should
+    contain the true mean difference in about 95 % of them.  Twenty clusters: the percentile cluster
+    bootstrap is slightly liberal with few clusters, so the accepted band is [0.88, 0.99]
+    (binomial sd at 0.95 and n = 200 is 0.015)."""
+    rng = np.random.default_rng(2026)
+    true_diff = 0.05
+    hits = 0
+    n_sims = 200
+    for i in range(n_sims):
+        t, c, cl = _simulate(rng, 20, true_diff, cluster_sd=0.04, image_sd=0.08)
+        res = paired_hierarchical_bootstrap(t, c, cl, n_resamples=1000, ci=0.95, seed=i)
+        hits += res.low <= true_diff <= res.high
+    rate = hits / n_sims
+    assert 0.88 <= rate <= 0.99, rate
+
+
+def test_ignoring_the_hierarchy_would_undercover():
+    """The spacecraft level matters: with strong spacecraft effects, treating the images as
+    independent (every image its own cluster) gives intervals that are far too narrow."""
+    rng = np.random.default_rng(11)
+    hits_h = hits_iid = 0
+    for i in range(100):
+        t, c, cl = _simulate(rng, 8, 0.0, cluster_sd=0.1, image_sd=0.02)
+        h = paired_hierarchical_bootstrap(t, c, cl, n_resamples=500, seed=i)
+        iid = paired_hierarchical_bootstrap(t, c, np.arange(len(cl)), n_resamples=500, seed=i)
+        hits_h += h.low <= 0 <= h.high
+        hits_iid += iid.low <= 0 <= iid.high
+        assert h.high - h.low > iid.high - iid.low
+    assert hits_iid < 60 < hits_h
+
+
+def test_bootstrap_multi_column_and_errors():
+    rng = np.random.default_rng(0)
+    c = rng.random((20, 2))
+    t = c + np.array([0.1, -0.2])
+    res = paired_hierarchical_bootstrap(t, c, np.repeat(np.arange(4), 5), n_resamples=100)
+    np.testing.assert_allclose(res.estimate, [0.1, -0.2])
+    with pytest.raises(ValueError):
+        paired_hierarchical_bootstrap(t[:5], c, np.arange(20))
+    with pytest.raises(ValueError):
+        paired_hierarchical_bootstrap(np.full(3, np.nan), np.zeros(3), np.arange(3))
+
+
+def test_method_gains_pairs_shared_seeds_and_images():
+    rows = []
+    for seed in (1, 2):
+        for i in range(12):
+            sc = i // 4
+            rows.append(dict(dataset="d", group="G", threshold_mode="calibrated", method="plain", seed=seed,
+                             image_id=f"im{i}", spacecraft=f"s{sc}", iou=0.5, bf1=0.4))
+            rows.append(dict(dataset="d", group="G", threshold_mode="calibrated", method="geo", seed=seed,
+                             image_id=f"im{i}", spacecraft=f"s{sc}", iou=0.5 + 0.1 * seed, bf1=0.4))
+    # an ablation with only seed 1 is compared with the seed-1 control
+    for i in range(12):
+        rows.append(dict(dataset="d", group="G", threshold_mode="calibrated", method="abl", seed=1,
+                         image_id=f"im{i}", spacecraft=f"s{i // 4}", iou=0.45, bf1=np.nan if i < 6 else 0.5))
+    df = pd.DataFrame(rows)
+    g = method_gains(df, ["iou", "bf1"], n_resamples=200).set_index("method")
+    assert set(g.index) == {"geo", "abl"}
+    assert g.loc["geo", "gain_iou"] == pytest.approx(0.15)          # mean over seeds of (0.1, 0.2)
+    assert g.loc["geo", "gain_seeds"] == 2 and g.loc["geo", "gain_images"] == 12
+    assert g.loc["abl", "gain_iou"] == pytest.approx(-0.05)
+    assert g.loc["abl", "gain_seeds"] == 1
+    assert g.loc["abl", "gain_bf1"] == pytest.approx(0.1)          # NaN images left out
+    # every image gains exactly 0.15: the interval collapses onto the estimate
+    assert g.loc["geo", "gain_iou_lo"] == pytest.approx(0.15)
+    assert g.loc["geo", "gain_iou_hi"] == pytest.approx(0.15)
+
+
+# ------------------------------------------------------------------------------------- Spearman
+def test_average_ranks_match_scipy():
+    x = np.array([3.0, 1.0, 2.0, 2.0, 5.0, 1.0, 2.0])
+    np.testing.assert_allclose(average_ranks(x), sps.rankdata(x))
+
+
+@pytest.mark.parametrize("case", range(6))
+def test_spearman_agrees_with_scipy(case):
+    rng = np.random.default_rng(case)
+    n = [5, 12, 60, 60, 200, 33][case]
+    x = rng.random(n)
+    y = 0.5 * x + rng.normal(0, 0.3, n)
+    if case == 3:                      # heavy ties (e.g. many g = 0 images)
+        x = np.where(x < 0.3, 0.0, np.round(x, 1))
+    if case == 5:
+        y = -y
+    ours = spearman(x, y)
+    ref = sps.spearmanr(x, y)
+    assert ours.rho == pytest.approx(ref.statistic, abs=1e-12)
+    assert ours.pvalue == pytest.approx(ref.pvalue, rel=1e-9, abs=1e-15)
+    assert ours.n == n
+
+
+def test_spearman_edge_cases():
+    assert np.isnan(spearman([1, 2], [2, 1]).rho)
+    assert np.isnan(spearman([1, 1, 1, 1], [1, 2, 3, 4]).rho)
+    r = spearman([1, 2, 3, 4], [10, 20, 30, 40])
+    assert r.rho == pytest.approx(1.0) and r.pvalue == 0.0
+    r = spearman([1, 2, np.nan, 4, 5], [1, 3, 2, 5, 4])   # NaN pair dropped
+    assert r.n == 4
