@@ -90,7 +90,7 @@ SCHEMAS: dict[str, Schema] = {
             "agreement": ("f", 3), "voted": ("b", 3), "n_valid": ("i", 1)}),
         _s("geometry", 1, "zarr", arrays={"sdf": ("f", 3), "skeleton": ("b", 3)}),
         _s("gates", 1, "parquet", columns=(
-            "image_id", "c", "v", "a", "a0", "g_conf", "g_valid", "g_area", "g", "n_valid")),
+            "image_id", "split", "c", "v", "a", "a0", "g_conf", "g_valid", "g_area", "g", "n_valid")),
         _s("checkpoint", 1, "dir", files=("model.pt", "log.parquet")),
         # a matrix entry outside the active profile: a marker, ignored downstream
         _s("inactive_run", 1, "dir"),
@@ -99,10 +99,16 @@ SCHEMAS: dict[str, Schema] = {
         _s("metrics", 1, "parquet", columns=(
             "dataset", "group", "method", "seed", "image_id", "threshold_mode", "tau",
             "iou", "bf1", "precision", "recall", "area_ratio")),
+        # per (dataset, group, method, threshold_mode): mean/std over seeds + gains vs plain with CIs
+        _s("summary", 1, "parquet", columns=(
+            "dataset", "group", "method", "threshold_mode", "n_seeds", "n_images",
+            "iou_mean", "iou_std", "bf1_mean", "bf1_std")),
         _s("teacher_metrics", 1, "parquet", columns=("image_id", "group", "source", "iou", "bf1", "precision", "recall")),
         _s("efficiency", 1, "parquet", columns=("variant", "params", "gflops", "latency_ms", "throughput", "peak_mb")),
         _s("generic_table", 1, "parquet"),
         _s("report", 1, "dir", files=("report.md", "report.html")),
+        # exported mask path (pipeline/deploy.py); model.onnx only when onnx/onnxruntime import
+        _s("deploy", 1, "dir", files=("model.pt", "model.ts", "deploy.json")),
     ]
 }
 
@@ -266,9 +272,12 @@ def _check_schema_name(meta: Meta, kind: str) -> Schema:
 # --------------------------------------------------------------------------------------------------
 # Zarr
 # --------------------------------------------------------------------------------------------------
-def _compressor():
+def _compressor(dtype):
+    """Masks (bool/uint8) compress best bit-shuffled; floats byte-shuffled at a fast level."""
     from zarr.codecs import BloscCodec
 
+    if np.dtype(dtype).kind == "f":
+        return BloscCodec(cname="zstd", clevel=1, shuffle="shuffle")
     return BloscCodec(cname="zstd", clevel=3, shuffle="bitshuffle")
 
 
@@ -308,7 +317,7 @@ class ZarrWriter:
         chunks = (1, *shape[1:]) if len(shape) > 1 else (min(n, 65536),)
         shards = (min(self.shard_images, n), *shape[1:]) if len(shape) > 1 else None
         kw = dict(name=name, shape=shape, chunks=chunks, dtype=np.dtype(dtype),
-                  compressors=_compressor(), fill_value=fill_value)
+                  compressors=_compressor(dtype), fill_value=fill_value)
         if shards is not None and shape[0] > 0:
             kw["shards"] = shards
         self._arrays[name] = self._group.create_array(**kw)

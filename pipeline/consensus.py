@@ -57,7 +57,7 @@ def check_scores(scores: np.ndarray, name: str = "scores") -> np.ndarray:
     """Return ``scores`` as float64; InputError naming ``name`` on NaN / inf."""
     scores = np.asarray(scores, dtype=np.float64)
     if not np.isfinite(scores).all():
-        raise InputError(f"{name}: scores contain NaN or infinite values")
+        raise InputError(f"{name} contain NaN or infinite values")
     return scores
 
 
@@ -110,12 +110,19 @@ def vote_batch(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT
     if k > 255:
         raise InputError(f"masks: at most 255 prompts supported, got {k}")
     counts = np.zeros((n, h, w), dtype=np.uint8)
-    for j in range(k):  # loop over the (few) prompts, vectorised over images and pixels
-        counts += masks[:, j] & valid[:, j, None, None]
+    masks8 = masks.view(np.uint8)  # bool -> 0/1 bytes without a copy
+    for i, j in zip(*np.nonzero(valid)):  # add the valid prompts' masks only (in-place, no temporaries)
+        counts[i] += masks8[i, j]
     n_valid = valid.sum(axis=1)
-    agreement = np.zeros((n, h, w), dtype=np.float64)
-    has = n_valid > 0
-    agreement[has] = counts[has] / n_valid[has, None, None]
-    voted = agreement >= threshold
-    voted[~has] = False  # no valid prompt: M = 0 whatever the threshold (threshold 0 included)
-    return Consensus(agreement.astype(np.float32), voted, valid)
+    # A takes only the values c / |V| (c = 0..K): per image, a lookup table of the float64 ratio
+    # (rounded to float32 for storage) and of its comparison with the threshold, indexed by counts.
+    c = np.arange(k + 1, dtype=np.float64)
+    ratio = np.divide(c[None, :], n_valid[:, None], out=np.zeros((n, k + 1)), where=n_valid[:, None] > 0)
+    agree_lut = ratio.astype(np.float32)
+    vote_lut = (ratio >= threshold) & (n_valid[:, None] > 0)  # no valid prompt: M = 0 (threshold 0 too)
+    agreement = np.empty((n, h, w), dtype=np.float32)
+    voted = np.empty((n, h, w), dtype=bool)
+    for i in range(n):
+        np.take(agree_lut[i], counts[i], out=agreement[i])
+        np.take(vote_lut[i], counts[i], out=voted[i])
+    return Consensus(agreement, voted, valid)

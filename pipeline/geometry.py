@@ -8,7 +8,8 @@ Distance convention (eq:sdf-target)
                (0 on background); d_out(x) = Euclidean distance from a background pixel x to the
                nearest *foreground* pixel (0 on foreground).  Distances are between pixel centres, in
                pixels, computed exactly by OpenCV (``cv2.distanceTransform(..., cv2.DIST_L2,
-               cv2.DIST_MASK_PRECISE)``).  Hence D~ = d_in - d_out is >= 1 on M and <= -1 off M:
+               cv2.DIST_MASK_PRECISE)``; squared distances rounded back to their exact integers
+               before the square root, see :func:`squared_distance`).  Hence D~ = d_in - d_out is >= 1 on M and <= -1 off M:
                the sign of D~ (and of D) always agrees with M and no pixel has D~ = 0.
     The image border is NOT background: pixels outside the frame do not exist, so a mask touching
     the border gets its d_in from the real background pixels inside the frame only (a spacecraft cut
@@ -65,15 +66,32 @@ def _as_mask(mask: np.ndarray, name: str = "mask") -> np.ndarray:
     return mask
 
 
+def squared_distance(nonzero: np.ndarray) -> np.ndarray:
+    """Exact squared Euclidean distance (float32, integer-valued) from every non-zero pixel of the
+    uint8 image ``nonzero`` to its nearest zero pixel; 0 on zero pixels.  Pixels outside the frame
+    do not exist (the frame is not a zero pixel).
+
+    OpenCV's DIST_MASK_PRECISE transform is exact in squared distance, but its final square root
+    differs by one float32 ulp between calls (it depends on the buffer's alignment); rounding the
+    square back to its integer makes results bit-for-bit deterministic.  Exact while d^2 < 2^22.
+    """
+    cv2 = _cv2()
+    d = cv2.distanceTransform(np.ascontiguousarray(nonzero, dtype=np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    np.multiply(d, d, out=d)
+    return np.rint(d, out=d)
+
+
+def exact_distance(nonzero: np.ndarray) -> np.ndarray:
+    """sqrt of :func:`squared_distance`: exact, deterministic Euclidean distances (float32, pixels)."""
+    return np.sqrt(squared_distance(nonzero))
+
+
 def distance_maps(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(d_in, d_out) float32 [H,W]: exact Euclidean distances (pixels) to the nearest pixel of the
-    other set; see the module docstring.  Only defined when M is neither empty nor full (OpenCV
+    other set; see the module docstring.  Only meaningful when M is neither empty nor full (OpenCV
     returns ~1.8e19 where the other set is empty)."""
-    cv2 = _cv2()
     m8 = np.ascontiguousarray(mask, dtype=np.uint8)
-    d_in = cv2.distanceTransform(m8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    d_out = cv2.distanceTransform(1 - m8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return d_in, d_out
+    return exact_distance(m8), exact_distance(1 - m8)
 
 
 def _sdf_from_distances(d_in: np.ndarray, d_out: np.ndarray, quantile: float, min_scale: float) -> np.ndarray:
@@ -96,6 +114,8 @@ def sdf_target(mask: np.ndarray, *, quantile: float = SDF_QUANTILE, min_scale: f
     set, pixel centres, image border not background); s = q_0.95(|D~|) over all H*W pixels (numpy's
     linear interpolation) when s >= 1e-6, else s = 1; D = clip(D~ / s, -1, 1).
     Edge cases: empty M -> 0 everywhere; full M -> 1 everywhere.  sign(D) agrees with M.
+    With pixel-centre distances |D~| >= 1 on every pixel of a non-degenerate mask, so q >= 1 and the
+    paper's s = 1 fallback (q < 1e-6) is kept for fidelity but only reachable through ``min_scale``.
     """
     mask = _as_mask(mask)
     if not mask.any():
@@ -130,9 +150,7 @@ def skeleton_target(mask: np.ndarray, *, min_distance: float = SKELETON_MIN_DIST
         return np.zeros(mask.shape, bool)
     if mask.all():
         return mask.copy()
-    cv2 = _cv2()
-    d_in = cv2.distanceTransform(np.ascontiguousarray(mask, dtype=np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return _skeleton_from_distance(mask, d_in, min_distance)
+    return _skeleton_from_distance(mask, exact_distance(mask.view(np.uint8)), min_distance)
 
 
 def area_ratio(mask: np.ndarray) -> float:
@@ -185,7 +203,9 @@ def foreground_agreement(agreement: np.ndarray, voted: np.ndarray) -> float | np
 
     ``agreement`` float [H,W] and ``voted`` bool [H,W] -> float; or [N,H,W] each -> float64 [N].
     """
-    agreement = np.asarray(agreement, dtype=np.float64)
+    agreement = np.asarray(agreement)
+    if agreement.dtype.kind != "f":
+        agreement = agreement.astype(np.float64)
     voted = np.asarray(voted, dtype=bool)
     if agreement.shape != voted.shape:
         raise InputError(f"agreement {agreement.shape} and voted {voted.shape} shapes differ")
@@ -195,7 +215,7 @@ def foreground_agreement(agreement: np.ndarray, voted: np.ndarray) -> float | np
     a = agreement.reshape(1 if single else agreement.shape[0], -1)
     m = voted.reshape(a.shape)
     den = np.count_nonzero(m, axis=1)
-    num = np.where(m, a, 0.0).sum(axis=1)
+    num = (a * m).sum(axis=1, dtype=np.float64)  # float32 products are exact (m is 0/1); float64 sum
     c = np.divide(num, den, out=np.zeros(len(den)), where=den > 0)
     return float(c[0]) if single else c
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.errors import InputError
+from pipeline.geometry import squared_distance
 
 DEFAULT_TOLERANCE = 2
 DEFAULT_SMALL_FRACTION = 0.01
@@ -116,11 +117,10 @@ def mask_boundary(mask) -> np.ndarray:
     return mask & ~_cv2().erode(m8, _K3).astype(bool)
 
 
-def _distance_to(boundary: np.ndarray) -> np.ndarray:
-    """Exact Euclidean distance of every pixel to the nearest True pixel of ``boundary``."""
-    cv2 = _cv2()
-    return cv2.distanceTransform(np.ascontiguousarray(~boundary, dtype=np.uint8), cv2.DIST_L2,
-                                 cv2.DIST_MASK_PRECISE)
+def _squared_distance_to(boundary: np.ndarray) -> np.ndarray:
+    """Exact squared Euclidean distance of every pixel to the nearest True pixel of ``boundary``
+    (integer-valued float32; compared with tolerance**2 so that d = t exactly is always matched)."""
+    return squared_distance(~boundary)
 
 
 def _boundary_f1_one(pred: np.ndarray, gt: np.ndarray, tolerance: float) -> float:
@@ -135,8 +135,9 @@ def _boundary_f1_one(pred: np.ndarray, gt: np.ndarray, tolerance: float) -> floa
         return 1.0
     if np_ == 0 or ng == 0:
         return 0.0
-    precision = np.count_nonzero(_distance_to(bg)[bp] <= tolerance) / np_
-    recall = np.count_nonzero(_distance_to(bp)[bg] <= tolerance) / ng
+    t2 = tolerance * tolerance
+    precision = np.count_nonzero(_squared_distance_to(bg)[bp] <= t2) / np_
+    recall = np.count_nonzero(_squared_distance_to(bp)[bg] <= t2) / ng
     if precision + recall == 0:
         return 0.0
     return float(2 * precision * recall / (precision + recall))
@@ -277,9 +278,9 @@ def calibrate_threshold(probs, gts, grid) -> tuple[float, np.ndarray]:
     Ties (equal mean IoU up to 1e-12) go to the tau closest to 0.5, then to the smaller tau.
     """
     grid = np.asarray(grid, dtype=np.float64)
+    if np.ndim(probs) != 3 or np.shape(probs)[0] == 0:
+        raise InputError(f"calibrate_threshold: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
     curve = iou_curve(probs, gts, grid).mean(axis=0)
-    if curve.size and np.asarray(probs).shape[0] == 0:
-        raise InputError("calibrate_threshold: no validation images")
     best = np.flatnonzero(curve >= curve.max() - 1e-12)
     j = best[np.argmin(np.abs(grid[best] - 0.5))]  # argmin returns the first (smallest tau) on ties
     return float(grid[j]), curve

@@ -1,0 +1,386 @@
+"""Real-dataset adapters: a root directory + a protocol file (``data_manifests/*.yaml``) -> manifest rows.
+
+Every adapter returns a :class:`DatasetSpec` (rows with ``image_id, dataset, domain, split, group,
+spacecraft, image_path, mask_path, part_path``); files are not opened here -- the decode pass in
+``build.decode_rows`` reads each one once and applies the bad-input policy.  Annotation-free
+training: training rows never list a mask path, even where the dataset ships one.  Sampling is
+seeded by ``data.seed`` (``np.random.default_rng([seed, stable_hash(key)])`` per spacecraft or
+domain) so adding a spacecraft does not reshuffle another's images.
+
+SpaceSense-Bench (``spacesense``)
+    ``<root>/<Satellite>/[<Satellite>/]<trajectory>/{image,seg}/<timestamp>.png``; depth/lidar folders
+    are ignored.  Any directory named ``image`` under a satellite folder is a trajectory (its parent's
+    name); its mask is ``../seg/<same name>``.  Identity = the satellite folder name with only a
+    leading all-digit timestamp token removed (``20240101_Lunar_Reconnaissance_Orbiter`` ->
+    ``Lunar_Reconnaissance_Orbiter``; never split on the first underscore).  ``seg`` is 8-bit RGB with
+    background (0, 0, 0): binary foreground = any non-black pixel.  Part classes come from the
+    protocol's colour table (RGB, since the loader converts OpenCV's BGR); an empty table means no
+    part labels.  Split: protocol test groups (named spacecraft), then validation and training
+    spacecraft (named, or ``null`` + ``count``: seeded draw from the remaining ones), ``images_per_
+    spacecraft`` seeded per spacecraft.  eq:spacecraft-disjoint is enforced.
+SPEED+ (``speedplus``)
+    ``<root>/<domain>/images/*.jpg`` listed by ``<root>/<domain>/{train,validation,test}.json`` (lists of
+    ``{filename, q_vbs2tango_true, r_Vo2To_vbs_true}``); masks ``<root>/<domain>/masks/<same name>`` (or
+    the same stem as ``.png``), greyscale, foreground > 128.  Per domain: the listed images are
+    shuffled (seeded); the first ``train_images`` (500) are unlabeled training images, then
+    validation and test subsets are drawn, disjoint, from the remaining images that have masks.
+TANGO (``tango``)
+    The public layout could not be checked, so the mapping is entirely the protocol file's:
+    ``images_dir``, ``masks_dir``, ``mask_suffix``, ``train_list`` and ``test_list`` (text, one file
+    name per line, or JSON list of names / of ``{filename}``).  Training: ``train_images`` (500)
+    seeded from the official training list; validation: a disjoint ``val_images`` (500) from the rest
+    of it (masked); test: the official test list unchanged.
+Any folder (``folder``)
+    ``<root>/images/*`` plus optional ``<root>/masks/*`` matched by file stem (png, jpg, tif, bmp).
+    Images without a mask are training images; masked images are split into validation and test
+    (seeded, ``val_fraction``).  Files of other types in ``images/`` are listed so the decode pass
+    reports them as unsupported (error or skipped), never silently ignored.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from pipeline.datasets.loading import SUPPORTED_SUFFIXES
+from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec
+from pipeline.datasets.synthetic import stable_hash
+from pipeline.errors import InputError
+
+log = logging.getLogger(__name__)
+
+MANIFEST_DIR = Path(__file__).resolve().parents[2] / "data_manifests"
+DEFAULT_PROTOCOLS = {
+    "spacesense": "spacesense_bench.yaml",
+    "speedplus": "speedplus.yaml",
+    "tango": "tango.yaml",
+    "folder": "folder.yaml",
+}
+
+
+# ---------------------------------------------------------------------------------------------------
+# Helpers
+# ---------------------------------------------------------------------------------------------------
+def load_protocol(source: str, path: str | None) -> tuple[dict, Path]:
+    """Read a protocol YAML (default: ``data_manifests/<source's file>``); InputError naming the file."""
+    p = Path(path) if path else MANIFEST_DIR / DEFAULT_PROTOCOLS[source]
+    if not p.is_file():
+        raise InputError(f"{p}: protocol file not found")
+    try:
+        proto = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise InputError(f"{p}: invalid YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(proto, dict):
+        raise InputError(f"{p}: protocol must be a mapping")
+    declared = proto.get("dataset")
+    if declared is not None and declared != source:
+        raise InputError(f"{p}: protocol is for dataset {declared!r}, not {source!r}")
+    return proto, p
+
+
+def _get(proto: dict, key: str, where: Path, kind=object):
+    if key not in proto:
+        raise InputError(f"{where}: protocol key {key!r} missing")
+    v = proto[key]
+    if kind is not object and not isinstance(v, kind):
+        raise InputError(f"{where}: protocol key {key!r}={v!r} has the wrong type")
+    return v
+
+
+def _rng(seed: int, key: str) -> np.random.Generator:
+    return np.random.default_rng([int(seed), stable_hash(key)])
+
+
+def _sample(items: list, k: int | None, seed: int, key: str) -> list:
+    """Seeded draw of ``k`` items without replacement, returned in their original order; None = all."""
+    if k is None or k >= len(items):
+        return list(items)
+    idx = np.sort(_rng(seed, key).choice(len(items), size=int(k), replace=False))
+    return [items[i] for i in idx]
+
+
+def _root(cfg: dict) -> Path:
+    root = Path(cfg["root"])
+    if not root.is_dir():
+        raise InputError(f"{root}: dataset root (data.root) not found or not a directory")
+    return root
+
+
+def _row(image_id, dataset, domain, split, group, spacecraft, image_path, mask_path=None, part_path=None, **extra):
+    return {"image_id": image_id, "dataset": dataset, "domain": domain, "split": split, "group": group,
+            "spacecraft": spacecraft, "image_path": str(image_path),
+            "mask_path": str(mask_path) if mask_path else None,
+            "part_path": str(part_path) if part_path else None, **extra}
+
+
+def _frame(rows: list[dict]) -> pd.DataFrame:
+    cols = ["image_id", "dataset", "domain", "split", "group", "spacecraft", "image_path", "mask_path", "part_path"]
+    return pd.DataFrame(rows, columns=cols if not rows else None)
+
+
+def _parse_colors(table: dict | None, where: Path) -> dict[tuple[int, int, int], int]:
+    out = {}
+    for key, label in (table or {}).items():
+        try:
+            rgb = tuple(int(v) for v in str(key).replace(" ", "").split(","))
+            assert len(rgb) == 3 and all(0 <= v <= 255 for v in rgb) and 0 <= int(label) <= 255
+        except (ValueError, AssertionError):
+            raise InputError(f"{where}: part_colors entry {key!r}: {label!r} is not 'R,G,B': label") from None
+        out[rgb] = int(label)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# SpaceSense-Bench
+# ---------------------------------------------------------------------------------------------------
+_TIMESTAMP = re.compile(r"^(\d+)_(.+)$")
+
+
+def spacecraft_identity(folder_name: str) -> str:
+    """Satellite folder name minus a leading all-digit timestamp token (never split otherwise)."""
+    m = _TIMESTAMP.match(folder_name)
+    return m.group(2) if m else folder_name
+
+
+def scan_spacesense(root: Path) -> dict[str, list[tuple[str, Path, Path]]]:
+    """{identity: [(trajectory, image_path, seg_path), ...]} sorted; depth/lidar folders ignored."""
+    found: dict[str, list] = {}
+    for sat in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        ident = spacecraft_identity(sat.name)
+        for img_dir in sorted(sat.rglob("image")):
+            if not img_dir.is_dir():
+                continue
+            traj = img_dir.parent.name
+            for f in sorted(img_dir.iterdir()):
+                if f.is_file() and not f.name.startswith("."):
+                    found.setdefault(ident, []).append((traj, f, img_dir.parent / "seg" / f.name))
+    return found
+
+
+def spacesense_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
+    root = _root(cfg)
+    seed = int(cfg["seed"])
+    found = scan_spacesense(root)
+    if not found:
+        raise InputError(f"{root}: no SpaceSense-Bench <Satellite>/.../<trajectory>/image/*.png files found")
+    splits = _get(proto, "splits", where, dict)
+    groups = _get(splits, "test_groups", where, dict)
+    used: set[str] = set()
+    plan: list[tuple[str, str, str, int]] = []  # (spacecraft, split, group, images)
+
+    def take(names, split, group, per):
+        for n in names:
+            if n not in found:
+                raise InputError(f"{where}: spacecraft {n!r} ({split}/{group}) not found under {root} "
+                                 f"(found: {', '.join(sorted(found))})")
+            if n in used:
+                raise InputError(f"{where}: spacecraft {n!r} listed in more than one split "
+                                 f"(violates eq:spacecraft-disjoint)")
+            used.add(n)
+            plan.append((n, split, group, per))
+
+    per_test = int(splits.get("test_images_per_spacecraft", 20))
+    for g, names in groups.items():
+        take(list(names or []), "test", str(g), per_test)
+    for split in ("val", "train"):
+        s = _get(splits, split, where, dict)
+        names = s.get("spacecraft")
+        if names is None:
+            rest = sorted(set(found) - used)
+            count = int(_get(s, "count", where, int))
+            if count > len(rest):
+                raise InputError(f"{where}: {split} needs {count} spacecraft, only {len(rest)} unassigned under {root}")
+            names = _sample(rest, count, seed, f"spacesense-{split}-spacecraft")
+        take(list(names), split, split, int(_get(s, "images_per_spacecraft", where, int)))
+
+    colors = _parse_colors(proto.get("part_colors"), where)
+    rows = []
+    for sc, split, group, per in plan:
+        items = _sample(found[sc], per, seed, f"spacesense-{sc}")
+        if len(items) < per:
+            log.warning("%s: spacecraft %s has %d images, protocol asks %d", root, sc, len(items), per)
+        for traj, img, seg in items:
+            labeled = split != "train"
+            rows.append(_row(f"{sc}__{traj}__{img.stem}", "spacesense", "spacesense", split, group, sc, img,
+                             seg if labeled else None, seg if labeled and colors else None, trajectory=traj))
+    return DatasetSpec(rows=_frame(rows), mask_threshold=int(proto.get("mask_threshold", 0)),
+                       part_colors=colors or None, spacecraft_disjoint=True,
+                       protocol={"name": "spacesense", "file": str(where), "plan": [list(p) for p in plan]})
+
+
+# ---------------------------------------------------------------------------------------------------
+# SPEED+
+# ---------------------------------------------------------------------------------------------------
+def _read_list(path: Path) -> list[str]:
+    """File names from a JSON list (of names or of ``{filename: ...}``) or a text file (one per line)."""
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise InputError(f"{path}: cannot read list ({e.strerror or e})") from None
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise InputError(f"{path}: invalid JSON ({e.msg} at line {e.lineno})") from None
+        if not isinstance(data, list):
+            raise InputError(f"{path}: expected a JSON list of image entries")
+        names = []
+        for k, item in enumerate(data):
+            name = item.get("filename") if isinstance(item, dict) else item
+            if not isinstance(name, str) or not name:
+                raise InputError(f"{path}: entry {k} has no 'filename'")
+            names.append(name)
+        return names
+    return [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+
+
+def _find_mask(mask_dir: Path, name: str, suffixes=(".png",)) -> Path | None:
+    p = mask_dir / name
+    if p.is_file():
+        return p
+    for s in suffixes:
+        q = mask_dir / (Path(name).stem + s)
+        if q.is_file():
+            return q
+    return None
+
+
+def _split_pool(names: list[str], masks: dict[str, Path | None], n_train: int, n_val: int | None,
+                n_test: int | None, seed: int, key: str) -> list[tuple[str, str]]:
+    """Seeded shuffle -> first n_train unlabeled train, then disjoint val/test from the masked rest."""
+    order = _rng(seed, key).permutation(len(names))
+    shuffled = [names[i] for i in order]
+    train = shuffled[:n_train]
+    masked_rest = [n for n in shuffled[n_train:] if masks.get(n) is not None]
+    val = masked_rest[:n_val] if n_val is not None else masked_rest
+    rest = masked_rest[len(val):]
+    test = rest[:n_test] if n_test is not None else rest
+    return [(n, "train") for n in train] + [(n, "val") for n in val] + [(n, "test") for n in test]
+
+
+def speedplus_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
+    root = _root(cfg)
+    domain = cfg.get("domain") or proto.get("domain")
+    domains = _get(proto, "domains", where, list)
+    if domain not in domains:
+        raise InputError(f"params: data.domain={domain!r} must be one of {domains} for SPEED+")
+    ddir = root / domain
+    lists = [ddir / f for f in _get(proto, "lists", where, list) if (ddir / f).is_file()]
+    if not lists:
+        raise InputError(f"{ddir}: none of the SPEED+ lists {proto['lists']} found")
+    names: list[str] = []
+    seen = set()
+    for lst in lists:
+        for n in _read_list(lst):
+            if n not in seen:
+                seen.add(n)
+                names.append(n)
+    mask_dir = ddir / "masks"
+    masks = {n: _find_mask(mask_dir, n) for n in names}
+    if not any(masks.values()):
+        raise InputError(f"{mask_dir}: no masks found for {domain} (validation and test need masks)")
+    sc = str(proto.get("spacecraft", "Tango"))
+    rows = []
+    for n, split in _split_pool(names, masks, int(_get(proto, "train_images", where, int)),
+                                proto.get("val_images"), proto.get("test_images"), int(cfg["seed"]),
+                                f"speedplus-{domain}"):
+        group = {"train": "train", "val": "val"}.get(split, domain)
+        rows.append(_row(f"{domain}__{Path(n).stem}", "speedplus", domain, split, group, sc,
+                         ddir / "images" / n, masks[n] if split != "train" else None))
+    return DatasetSpec(rows=_frame(rows), mask_threshold=float(proto.get("mask_threshold", 128)),
+                       part_colors=None, spacecraft_disjoint=False,
+                       protocol={"name": "speedplus", "file": str(where), "domain": domain,
+                                 "lists": [str(p) for p in lists]})
+
+
+# ---------------------------------------------------------------------------------------------------
+# TANGO
+# ---------------------------------------------------------------------------------------------------
+def tango_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
+    root = _root(cfg)
+    img_dir = root / _get(proto, "images_dir", where, str)
+    mask_dir = root / _get(proto, "masks_dir", where, str)
+    suffix = str(proto.get("mask_suffix", ".png"))
+    lists = {}
+    for key in ("train_list", "test_list"):
+        p = root / _get(proto, key, where, str)
+        if not p.is_file():
+            raise InputError(f"{p}: TANGO {key.replace('_', ' ')} not found (see {where})")
+        lists[key] = _read_list(p)
+    overlap = set(lists["train_list"]) & set(lists["test_list"])
+    if overlap:
+        raise InputError(f"{where}: {len(overlap)} images in both the official training and test lists "
+                         f"(e.g. {sorted(overlap)[0]})")
+
+    def mask_of(n):
+        return _find_mask(mask_dir, Path(n).stem + suffix, (suffix,))
+
+    train_names = lists["train_list"]
+    masks = {n: mask_of(n) for n in train_names}
+    sc = str(proto.get("spacecraft", "TANGO"))
+    rows = []
+    for n, split in _split_pool(train_names, masks, int(_get(proto, "train_images", where, int)),
+                                int(_get(proto, "val_images", where, int)), 0, int(cfg["seed"]), "tango"):
+        rows.append(_row(f"tango__{Path(n).stem}", "tango", "tango", split, split, sc, img_dir / n,
+                         masks[n] if split == "val" else None))
+    for n in lists["test_list"]:
+        # the official test set is used unchanged: a missing mask is bad input, not a reason to drop
+        rows.append(_row(f"tango__{Path(n).stem}", "tango", "tango", "test", "test", sc, img_dir / n,
+                         mask_of(n) or mask_dir / (Path(n).stem + suffix)))
+    return DatasetSpec(rows=_frame(rows), mask_threshold=float(proto.get("mask_threshold", 127)),
+                       part_colors=None, spacecraft_disjoint=False,
+                       protocol={"name": "tango", "file": str(where)})
+
+
+# ---------------------------------------------------------------------------------------------------
+# Any folder
+# ---------------------------------------------------------------------------------------------------
+def folder_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
+    root = _root(cfg)
+    img_dir = root / str(proto.get("images_dir", "images"))
+    mask_dir = root / str(proto.get("masks_dir", "masks"))
+    if not img_dir.is_dir():
+        raise InputError(f"{img_dir}: images folder not found")
+    images = sorted(p for p in img_dir.iterdir() if p.is_file() and not p.name.startswith("."))
+    masks: dict[str, Path] = {}
+    if mask_dir.is_dir():
+        for m in sorted(mask_dir.iterdir()):
+            if m.is_file() and m.suffix.lower() in SUPPORTED_SUFFIXES:
+                if m.stem in masks:
+                    raise InputError(f"{m}: two mask files for stem {m.stem!r} (also {masks[m.stem]})")
+                masks[m.stem] = m
+    sc = str(proto.get("spacecraft") or root.resolve().name)
+    val_fraction = float(proto.get("val_fraction", 0.5))
+    if not 0 <= val_fraction <= 1:
+        raise InputError(f"{where}: val_fraction={val_fraction} must be in [0, 1]")
+    labeled = [p for p in images if p.stem in masks]
+    order = _rng(int(cfg["seed"]), "folder-val").permutation(len(labeled))
+    n_val = int(round(val_fraction * len(labeled)))
+    val = {labeled[i].stem for i in order[:n_val]}
+    rows = []
+    for p in images:
+        m = masks.get(p.stem)
+        split = "train" if m is None else ("val" if p.stem in val else "test")
+        rows.append(_row(p.stem, "folder", str(proto.get("domain", "folder")), split, split, sc, p,
+                         m if split != "train" else None))
+    if not rows:
+        raise InputError(f"{img_dir}: no files")
+    return DatasetSpec(rows=_frame(rows), mask_threshold=proto.get("mask_threshold"), part_colors=None,
+                       spacecraft_disjoint=False, protocol={"name": "folder", "file": str(where)})
+
+
+ADAPTERS = {"spacesense": spacesense_source, "speedplus": speedplus_source, "tango": tango_source,
+            "folder": folder_source}
+
+
+def build_source(cfg: dict, policy: BadInputPolicy | None = None) -> DatasetSpec:
+    """Rows of the real dataset named by ``data.source`` under ``data.root`` with its protocol file."""
+    source = cfg["source"]
+    proto, where = load_protocol(source, cfg.get("protocol"))
+    return ADAPTERS[source](cfg, proto, where)

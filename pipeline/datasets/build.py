@@ -1,0 +1,178 @@
+"""Assemble a dataset for the ``prepare`` stage: source rows -> checked manifest -> arrays.
+
+``synthetic_source``   renders the embedded benchmark to PNG files (image, GT mask, part labels) in
+                       ``<out_dir>/synthetic/`` (written atomically) and pre-fills the decode cache
+                       with the rendered arrays, so nothing is decoded back.
+``real_source``        dispatches to an adapter (``pipeline.datasets.adapters``).
+``check_manifest``     duplicate ids and eq:spacecraft-disjoint, under the bad-input policy.
+``decode_rows``        first pass: read every file once (filling the decode cache), check masks
+                       against their images, fill width/height/sha256; bad files raise or are skipped.
+``iter_arrays``        second pass (cache hits): working-resolution arrays in manifest order.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from pipeline.artifacts import atomic_path
+from pipeline.datasets import synthetic as syn
+from pipeline.datasets.loading import BadFileError, DecodeCache, load_labels, load_mask, load_rgb
+from pipeline.datasets.manifest import (BadInputPolicy, DatasetSpec, check_rows, drop_duplicate_ids,
+                                        enforce_spacecraft_disjoint)
+from pipeline.errors import InputError
+from pipeline.progress import progress
+
+log = logging.getLogger(__name__)
+
+SYNTHETIC_DIR = "synthetic"
+
+
+def _png(arr: np.ndarray) -> bytes:
+    if arr.ndim == 3:
+        arr = arr[..., ::-1]  # RGB -> BGR for OpenCV
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def view_options(syn_cfg: dict) -> dict:
+    """The generator's view-sampling knobs from ``data.synthetic`` (defaults in synthetic.sample_view)."""
+    keys = ("tiny_range", "regular_range", "tiny_probability", "hard_case_probability", "background_weights")
+    return {k: syn_cfg[k] for k in keys if k in syn_cfg}
+
+
+def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) -> DatasetSpec:
+    """Render the synthetic benchmark (params ``data``) into ``<out_dir>/synthetic`` and list it."""
+    size, seed = int(cfg["resolution"]), int(cfg["seed"])
+    syn_cfg = cfg["synthetic"]
+    plan = syn.synthetic_plan(syn_cfg)
+    opts = view_options(syn_cfg)
+    final = Path(out_dir) / SYNTHETIC_DIR
+    rows = []
+    total = sum(p.views for p in plan)
+    with atomic_path(final, is_dir=True) as tmp, progress(total=total, desc="render synthetic") as bar:
+        for sub in ("images", "masks", "parts"):
+            (tmp / sub).mkdir()
+        for sc in plan:
+            model = syn.make_spacecraft(sc.name, seed)
+            for v in range(sc.views):
+                view = syn.generate_view(model, v, size, seed, opts)
+                iid = f"{sc.name}_v{v:03d}"
+                files = {"images": _png(view.image), "masks": _png(view.mask.astype(np.uint8) * 255),
+                         "parts": _png(view.parts)}
+                for sub, data in files.items():
+                    (tmp / sub / f"{iid}.png").write_bytes(data)
+                if cache is not None:  # the arrays are in hand: cache them under the bytes' hashes
+                    hw = (size, size)
+                    cache.put(hashlib.sha256(files["images"]).hexdigest(), "rgb", size, view.image, hw)
+                    cache.put(hashlib.sha256(files["masks"]).hexdigest(), "maskauto", size, view.mask, hw)
+                    cache.put(hashlib.sha256(files["parts"]).hexdigest(), "labels", size, view.parts, hw)
+                rows.append({
+                    "image_id": iid, "dataset": "synthetic", "domain": "synthetic", "split": sc.split,
+                    "group": sc.group, "spacecraft": sc.name,
+                    "image_path": str(final / "images" / f"{iid}.png"),
+                    "mask_path": str(final / "masks" / f"{iid}.png"),
+                    "part_path": str(final / "parts" / f"{iid}.png"),
+                    "view_index": v, "background": view.background, "hard_case": view.hard_case,
+                    "area_fraction": view.area_fraction,
+                })
+                bar.update(1)
+    return DatasetSpec(rows=pd.DataFrame(rows), mask_threshold=None, part_colors=None,
+                       spacecraft_disjoint=True,
+                       protocol={"name": "synthetic", "plan": [vars(p) for p in plan]})
+
+
+def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = None) -> DatasetSpec:
+    """Rows of a real dataset.  ``<out_dir>/synthetic`` (a declared DVC output) is replaced by a
+    directory holding only a note, so no stale synthetic files survive a switch of source."""
+    from pipeline.datasets import adapters
+
+    spec = adapters.build_source(cfg, policy)
+    if out_dir is not None:
+        with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:
+            (tmp / "README.txt").write_text(f"data.source={cfg['source']}: the synthetic benchmark was not "
+                                            f"generated; the manifest points into {cfg['root']}\n")
+    return spec
+
+
+def check_manifest(spec: DatasetSpec, policy: BadInputPolicy, where: str = "manifest") -> pd.DataFrame:
+    """Columns/splits, unique image ids, and eq:spacecraft-disjoint when the protocol requires it."""
+    rows = check_rows(spec.rows, where)
+    rows = drop_duplicate_ids(rows, policy)
+    if spec.spacecraft_disjoint:
+        rows = enforce_spacecraft_disjoint(rows, policy)
+    return rows
+
+
+def _has(v) -> bool:
+    return isinstance(v, str) and v != ""
+
+
+def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeCache | None,
+                policy: BadInputPolicy) -> pd.DataFrame:
+    """First pass over the files: decode (into the cache), check, and fill width/height/sha256.
+
+    A row is left out (skip_bad) or raises when its image is missing, zero-byte, corrupt or
+    unsupported, when its mask or part file is, or when a mask/part file's size differs from the
+    image's.  Rows without a mask (unlabeled training images) are fine.
+    """
+    keep, width, height, sha = [], [], [], []
+    for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):
+        try:
+            img = load_rgb(r.image_path, size, cache)
+            for col in ("mask_path", "part_path"):
+                path = getattr(r, col)
+                if not _has(path):
+                    continue
+                if col == "mask_path":
+                    got = load_mask(path, size, cache, spec.mask_threshold)
+                else:
+                    got = load_labels(path, size, cache, spec.part_colors)
+                if got.native_hw != img.native_hw:
+                    raise BadFileError(path, f"{col.split('_')[0]} size {got.native_hw[1]}x{got.native_hw[0]} differs "
+                                             f"from image {r.image_path} size {img.native_hw[1]}x{img.native_hw[0]}")
+        except BadFileError as e:
+            policy.report(r.image_id, e.path, e.reason)
+            continue
+        keep.append(i)
+        height.append(img.native_hw[0])
+        width.append(img.native_hw[1])
+        sha.append(img.sha256)
+    out = rows.iloc[keep].reset_index(drop=True).copy()
+    out["width"] = np.asarray(width, np.int64)
+    out["height"] = np.asarray(height, np.int64)
+    out["sha256"] = sha
+    for col in ("mask_path", "part_path"):
+        out[col] = [p if _has(p) else None for p in out[col]]
+    if out.empty:
+        raise InputError("no usable images left after skipping bad files (see the skipped-files table)")
+    for split in ("train", "val", "test"):
+        if not (out["split"] == split).any():
+            log.warning("split %r has no images", split)
+    return out
+
+
+def iter_arrays(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeCache | None
+                ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]]:
+    """Yield ``(row, image uint8 [S,S,3], mask bool [S,S] | None, parts uint8 [S,S] | None)``."""
+    for i, r in enumerate(rows.itertuples(index=False)):
+        img = load_rgb(r.image_path, size, cache).array
+        mask = load_mask(r.mask_path, size, cache, spec.mask_threshold).array if _has(r.mask_path) else None
+        parts = load_labels(r.part_path, size, cache, spec.part_colors).array if _has(r.part_path) else None
+        yield i, img, mask, parts
+
+
+def content_digest(rows: pd.DataFrame) -> str:
+    """sha256 over (image_id, file sha256) in manifest order: the data's identity for the fingerprint."""
+    h = hashlib.sha256()
+    for iid, s in zip(rows["image_id"], rows["sha256"]):
+        h.update(f"{iid}\0{s}\n".encode())
+    return h.hexdigest()

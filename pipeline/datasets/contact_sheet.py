@@ -1,0 +1,50 @@
+"""Contact sheet: a grid of sampled images with their ground-truth contours, so a user can see the data."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pandas as pd
+
+CONTOUR_RGB = (0, 255, 0)
+
+
+def sample_for_sheet(rows: pd.DataFrame, n: int, seed: int) -> np.ndarray:
+    """Row indices: round-robin over (split, group) so every group shows, seeded within a group."""
+    rng = np.random.default_rng(seed)
+    groups = [rng.permutation(idx.to_numpy()) for _, idx in rows.groupby(["split", "group"], sort=True).groups.items()]
+    out: list[int] = []
+    k = 0
+    while len(out) < min(n, len(rows)):
+        for g in groups:
+            if k < len(g) and len(out) < n:
+                out.append(int(g[k]))
+        k += 1
+    return np.asarray(out, np.int64)
+
+
+def tile(image: np.ndarray, mask: np.ndarray | None, label: str, size: int) -> np.ndarray:
+    """One tile: the image upscaled (nearest) to ``size``, GT contour in green, a caption."""
+    t = cv2.resize(image, (size, size), interpolation=cv2.INTER_NEAREST) if image.shape[0] != size else image.copy()
+    if mask is not None and mask.any():
+        m = cv2.resize(mask.astype(np.uint8), (size, size), interpolation=cv2.INTER_NEAREST)
+        contours, _ = cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(t, contours, -1, CONTOUR_RGB, 1)
+    scale = max(size / 400.0, 0.3)
+    cv2.putText(t, label, (3, int(12 * scale / 0.35) if scale > 0.35 else 11), cv2.FONT_HERSHEY_SIMPLEX,
+                scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return t
+
+
+def contact_sheet(tiles: list[np.ndarray], columns: int = 4, pad: int = 2) -> np.ndarray:
+    """Grid of equally sized RGB tiles (row-major), separated by ``pad`` grey pixels."""
+    if not tiles:
+        return np.zeros((8, 8, 3), np.uint8)
+    s = tiles[0].shape[0]
+    cols = min(columns, len(tiles))
+    rows = -(-len(tiles) // cols)
+    sheet = np.full((rows * (s + pad) + pad, cols * (s + pad) + pad, 3), 64, np.uint8)
+    for k, t in enumerate(tiles):
+        r, c = divmod(k, cols)
+        sheet[pad + r * (s + pad): pad + r * (s + pad) + s, pad + c * (s + pad): pad + c * (s + pad) + s] = t
+    return sheet

@@ -1,0 +1,116 @@
+"""Manifest rows, protocol checks and the bad-input policy.
+
+A dataset source (synthetic generator or a real-dataset adapter) yields a :class:`DatasetSpec`: the
+manifest rows (without the decode-time columns width/height/sha256), how to read its masks, and
+whether its protocol is spacecraft-disjoint.  Problems found anywhere -- a duplicate image id, a
+spacecraft in two splits, a missing/zero-byte/corrupt/unsupported file, a mask whose size differs
+from its image -- go through one policy (:class:`BadInputPolicy`): raise a one-line
+:class:`InputError` naming the file, or with ``skip_bad`` leave the row out and record
+``(image_id, path, reason)`` for ``skipped_files.parquet``.  Never silent.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import pandas as pd
+
+from pipeline.errors import InputError
+
+log = logging.getLogger(__name__)
+
+MANIFEST_COLUMNS = ("image_id", "dataset", "domain", "split", "group", "spacecraft", "image_path",
+                    "mask_path", "part_path", "width", "height", "sha256")
+ROW_COLUMNS = MANIFEST_COLUMNS[:9]   # what a source provides; width/height/sha256 come from decoding
+SPLITS = ("train", "val", "test")
+SKIPPED_COLUMNS = ("image_id", "path", "reason")
+
+
+@dataclasses.dataclass
+class DatasetSpec:
+    """A source's manifest rows plus how to read them.
+
+    rows: DataFrame with at least ``ROW_COLUMNS`` (extra columns are kept in the manifest).
+    mask_threshold: foreground = max channel > threshold (None: auto, see loading.mask_from_array).
+    part_colors: colour table for colour-coded part masks ``{(r, g, b): label}``; None = part files
+        are label images (synthetic) or there are no part files.
+    spacecraft_disjoint: enforce eq:spacecraft-disjoint (SpaceSense-Bench-like protocols).
+    protocol: a small dict describing the protocol used (kept in the manifest metadata).
+    """
+
+    rows: pd.DataFrame
+    mask_threshold: float | None = None
+    part_colors: dict | None = None
+    spacecraft_disjoint: bool = True
+    protocol: dict = dataclasses.field(default_factory=dict)
+
+
+class BadInputPolicy:
+    """Raise on the first problem, or (``skip_bad``) record it and let the caller drop the row."""
+
+    def __init__(self, skip_bad: bool):
+        self.skip_bad = bool(skip_bad)
+        self.skipped: list[dict] = []
+
+    def report(self, image_id: str | None, path: str, reason: str) -> None:
+        msg = f"{path}: {reason}" if not reason.startswith(str(path)) else reason
+        if not self.skip_bad:
+            raise InputError(msg + " (set data.skip_bad=true or pass --skip-bad to leave it out)")
+        log.warning("skipping %s", msg)
+        self.skipped.append({"image_id": image_id or "", "path": str(path), "reason": reason})
+
+    def table(self) -> pd.DataFrame:
+        return pd.DataFrame(self.skipped, columns=list(SKIPPED_COLUMNS)).astype(str)
+
+
+def drop_duplicate_ids(rows: pd.DataFrame, policy: BadInputPolicy) -> pd.DataFrame:
+    """Image ids must be unique (every N-indexed artifact is keyed by them); keep the first."""
+    dup = rows["image_id"].duplicated(keep="first")
+    for _, r in rows[dup].iterrows():
+        first = rows.loc[rows["image_id"] == r["image_id"], "image_path"].iloc[0]
+        policy.report(r["image_id"], r["image_path"],
+                      f"duplicate image id {r['image_id']!r} (also used by {first})")
+    return rows[~dup].reset_index(drop=True)
+
+
+SPLIT_PRIORITY = {"test": 0, "val": 1, "train": 2}
+
+
+def spacecraft_split_violations(rows: pd.DataFrame) -> dict[str, list[str]]:
+    """eq:spacecraft-disjoint: S_tr ∩ S_ev = ∅ (and val vs test).  Returns {spacecraft: splits} for violators."""
+    splits = rows.groupby("spacecraft")["split"].agg(lambda s: sorted(set(s), key=SPLIT_PRIORITY.get))
+    return {sc: sp for sc, sp in splits.items() if len(sp) > 1}
+
+
+def enforce_spacecraft_disjoint(rows: pd.DataFrame, policy: BadInputPolicy) -> pd.DataFrame:
+    """Error on a spacecraft in two splits; with skip_bad keep it only in its highest-priority split.
+
+    Priority test > val > train: the evaluation groups are the protocol's fixed sets, so the
+    contaminating copies are removed from the split that would otherwise leak them (training).
+    """
+    bad = spacecraft_split_violations(rows)
+    if not bad:
+        return rows
+    keep = pd.Series(True, index=rows.index)
+    for sc, splits in bad.items():
+        for split in splits[1:]:
+            sel = (rows["spacecraft"] == sc) & (rows["split"] == split)
+            for _, r in rows[sel].iterrows():
+                policy.report(r["image_id"], r["image_path"],
+                              f"spacecraft {sc!r} appears in splits {splits} (violates eq:spacecraft-disjoint)")
+            keep &= ~sel
+    return rows[keep].reset_index(drop=True)
+
+
+def check_rows(rows: pd.DataFrame, where: str) -> pd.DataFrame:
+    """Columns and split names of a source's rows (a bug or a bad protocol file, never skipped)."""
+    missing = [c for c in ROW_COLUMNS if c not in rows.columns]
+    if missing:
+        raise InputError(f"{where}: manifest rows lack columns {missing}")
+    bad = sorted(set(rows["split"]) - set(SPLITS))
+    if bad:
+        raise InputError(f"{where}: unknown split names {bad} (use {list(SPLITS)})")
+    if rows.empty:
+        raise InputError(f"{where}: no images found")
+    return rows

@@ -1,0 +1,931 @@
+"""Deployment of the student's mask path: export, segmentation of image files, CPU efficiency benchmark.
+
+Only the TinyUNet mask path is deployed (paper, eq:inference-mask and the sentence after it: SAM 3,
+the SDF head and the skeleton head are absent from deployment).  The deployed function is
+
+    Z = f(x)            x float32 [B,3,H,W], RGB in [0, 1] (normalisation is inside the model)
+    M = [sigmoid(Z) >= tau]  <=>  [Z >= logit(tau)]                                (eq:inference-mask)
+
+with tau the validation-calibrated threshold of the exported (method, seed).
+
+Deploy bundle (directory artifact, schema ``deploy``)::
+
+    model.pt      {"state_dict": mask-path weights, "config", "method", "seed", "tau", "resolution"}
+                  -- the checkpoint format, so pipeline.inference.load_student() opens the bundle too
+    model.ts      TorchScript (traced) mask path; shape-generic (any batch and size)
+    model.onnx    ONNX mask path, dynamic batch/height/width (only when onnx + onnxruntime import)
+    deploy.json   tau (+ where it came from), working resolution, model config, parameters, GFLOPs,
+                  exporter, parity results, file sha256s, source checkpoint and its fingerprint
+    meta.json     artifact metadata (fingerprint, lineage)
+
+Decisions (the paper is silent on deployment formats):
+
+* TorchScript is produced by ``torch.jit.trace`` of the mask path (TinyUNet holds a class-level
+  normalisation constant and an optional training-only module, which ``torch.jit.script`` rejects);
+  the traced graph reads sizes from the input, so it is batch- and size-generic.  It is saved
+  unfrozen so that it still moves between devices.
+* ONNX uses the TorchScript-based exporter (``torch.onnx.export(..., dynamo=False)``): torch 2.13
+  defaults to the dynamo exporter, which needs ``onnxscript`` (not a dependency, not installed here).
+* Parity (export time and tests): PyTorch, TorchScript and ONNX Runtime logits on deterministic
+  smooth random images at the working resolution (batch 2, exercising the dynamic batch axis).
+  Passing needs finite logits with max |dZ| <= ``atol``; then a mask pixel can only differ where the
+  PyTorch logit lies within ``atol`` of logit(tau), i.e. by float round-off alone.  Strict mask
+  equality at tau (``masks_identical``) and the number of differing pixels are reported alongside
+  (and the tests require identical masks on their inputs).
+* Segment: images are read by :func:`pipeline.datasets.loading.read_rgb` and resized to the working
+  resolution exactly as the training images were (:func:`~pipeline.datasets.loading.resize_image`,
+  area interpolation, square); the probability map is resized back to the original size
+  (bilinear) and thresholded there, which keeps boundaries smoother than resizing a binary mask.
+* int8: ONNX Runtime static quantisation (QDQ format, uint8 asymmetric activations, int8 symmetric
+  per-channel weights, MinMax calibration on TRAINING-split images -- images only, no masks), which
+  runs on the VNNI int8 kernels of x86 CPUs.  Chosen over ``torch.ao`` eager/FX quantisation, which
+  is deprecated in torch 2.x, and over dynamic quantisation, which does not quantise convolutions
+  in ORT's CPU kernels.
+* Peak memory: CPU -- growth of the process's peak resident set (Linux ``/proc/self/clear_refs``
+  reset of VmHWM, then VmHWM - VmRSS before the run, after ``malloc_trim``); CUDA --
+  ``torch.cuda.max_memory_allocated`` after ``reset_peak_memory_stats``.  Where neither is
+  available, NaN.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import os
+import statistics
+import tempfile
+import time
+import uuid
+import warnings
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from pipeline.errors import ArtifactError, InputError
+
+log = logging.getLogger(__name__)
+
+ONNX_INPUT = "image"
+ONNX_OUTPUT = "logits"
+DEPLOY_JSON = "deploy.json"
+BASELINE_VARIANT = "fp32_eager_nchw"
+VARIANTS = ("fp32_eager_nchw", "fp32_channels_last", "bf16_autocast", "bf16_channels_last", "torchscript_frozen",
+            "onnxruntime_fp32", "onnxruntime_int8")
+
+
+class ParityError(RuntimeError):
+    """An exported model does not reproduce the PyTorch mask path (a bug, not a user error)."""
+
+
+# --------------------------------------------------------------------------------------------------
+# Thresholding (eq:inference-mask)
+# --------------------------------------------------------------------------------------------------
+def logit_threshold(tau: float) -> float:
+    """logit(tau) = log(tau / (1 - tau)): [sigmoid(Z) >= tau] == [Z >= logit(tau)] (eq:inference-mask).
+
+    tau = 0 -> -inf (everything foreground), tau = 1 -> +inf (nothing).
+    """
+    tau = float(tau)
+    if not 0.0 <= tau <= 1.0:
+        raise InputError(f"tau={tau}: must lie in [0, 1]")
+    if tau == 0.0:
+        return -math.inf
+    if tau == 1.0:
+        return math.inf
+    return math.log(tau / (1.0 - tau))
+
+
+def mask_from_probs(probs: np.ndarray, tau: float) -> np.ndarray:
+    """M = [P >= tau] (eq:inference-mask), bool with the shape of ``probs``."""
+    return np.asarray(probs) >= float(tau)
+
+
+def check_tau(tau, where: str) -> float:
+    try:
+        t = float(tau)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}={tau!r}: not a number") from None
+    if not 0.0 <= t <= 1.0 or math.isnan(t):
+        raise InputError(f"{where}={tau!r}: must lie in [0, 1]")
+    return t
+
+
+def lookup_tau(thresholds_df, method: str, seed: int) -> float | None:
+    """The calibrated tau of (method, seed) in a thresholds table, or None when the row is absent."""
+    df = thresholds_df
+    rows = df[(df["method"].astype(str) == str(method)) & (df["seed"].astype(int) == int(seed))]
+    if rows.empty:
+        return None
+    return float(rows["tau"].iloc[0])
+
+
+# --------------------------------------------------------------------------------------------------
+# The mask path as a standalone module
+# --------------------------------------------------------------------------------------------------
+def mask_path_model(model):
+    """A float32 CPU copy of the deployed mask path (TinyUNet without the geometry heads), eval mode."""
+    from pipeline.model import TinyUNet
+
+    deployed = TinyUNet(**model.config)
+    deployed.load_state_dict(model.mask_path_state_dict())
+    return deployed.float().eval().requires_grad_(False)
+
+
+def parity_inputs(resolution: int, n: int = 2, seed: int = 0):
+    """Deterministic smooth random RGB images float32 [n,3,R,R] in [0,1] (blobs plus fine noise),
+    so that the parity check sees both foreground-like and background-like logits."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    low = torch.rand(n, 3, max(2, resolution // 8), max(2, resolution // 8), generator=g)
+    x = torch.nn.functional.interpolate(low, size=(resolution, resolution), mode="bilinear",
+                                        align_corners=False)
+    x = 0.85 * x + 0.15 * torch.rand(n, 3, resolution, resolution, generator=g)
+    return x.clamp_(0, 1).contiguous()
+
+
+# --------------------------------------------------------------------------------------------------
+# Export
+# --------------------------------------------------------------------------------------------------
+def onnx_unavailable_reason() -> str | None:
+    """None when ONNX export and ONNX Runtime work here, else a one-line reason (install the extra)."""
+    missing = []
+    for mod in ("onnx", "onnxruntime"):
+        try:
+            __import__(mod)
+        except Exception:  # noqa: BLE001 -- ImportError or a broken binary wheel
+            missing.append(mod)
+    if missing:
+        return (f"{' and '.join(missing)} not importable; ONNX export/benchmark skipped "
+                f"(install the extra: pip install 'geodistill-refine[onnx]')")
+    return None
+
+
+def export_torchscript(model, path: str | Path, resolution: int) -> Path:
+    """Trace the mask path on a [1,3,R,R] example and save it (unfrozen, CPU weights)."""
+    import torch
+
+    deployed = mask_path_model(model)
+    example = torch.zeros(1, deployed.config["in_channels"], resolution, resolution)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # TracerWarning; torch 2.13's deprecation notice for torch.jit
+        traced = torch.jit.trace(deployed, example, check_trace=False)
+    traced.save(str(path))
+    return Path(path)
+
+
+def export_onnx(model, path: str | Path, resolution: int, opset: int) -> Path:
+    """Export the mask path to ONNX (input ``image`` [B,3,H,W] float32, output ``logits`` [B,1,H,W]),
+    batch, height and width dynamic, with the TorchScript-based exporter (module docstring)."""
+    import torch
+
+    deployed = mask_path_model(model)
+    example = torch.zeros(1, deployed.config["in_channels"], resolution, resolution)
+    axes = {0: "batch", 2: "height", 3: "width"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # deprecation notice of the TorchScript-based exporter
+        torch.onnx.export(deployed, (example,), str(path), opset_version=int(opset), dynamo=False,
+                          input_names=[ONNX_INPUT], output_names=[ONNX_OUTPUT],
+                          dynamic_axes={ONNX_INPUT: axes, ONNX_OUTPUT: axes}, do_constant_folding=True)
+    return Path(path)
+
+
+def ort_session(path: str | Path, threads: int | None = None, optimize: bool = True):
+    """ONNX Runtime CPU session; ``threads`` defaults to torch's intra-op thread count (same budget)."""
+    import onnxruntime as ort
+    import torch
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(threads or torch.get_num_threads())
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3
+    so.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_ENABLE_ALL if optimize
+                                   else ort.GraphOptimizationLevel.ORT_DISABLE_ALL)
+    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+
+
+def load_torchscript(path: str | Path, device="cpu"):
+    """torch.jit.load in eval mode (torch 2.13 marks TorchScript deprecated; the notice is silenced)."""
+    import torch
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return torch.jit.load(str(path), map_location=device).eval()
+
+
+def torch_logits(model, x) -> np.ndarray:
+    import torch
+
+    with torch.inference_mode():
+        return model(x).float().cpu().numpy()
+
+
+def compare_logits(reference: np.ndarray, logits: np.ndarray, tau: float, atol: float) -> dict:
+    """Parity of exported ``logits`` against the PyTorch ``reference`` at threshold tau (module docstring)."""
+    reference = np.asarray(reference, np.float64)
+    logits = np.asarray(logits, np.float64)
+    if reference.shape != logits.shape:
+        return {"passed": False, "max_abs_diff": float("inf"), "atol": float(atol), "masks_identical": False,
+                "mask_pixels_differ": -1, "note": f"shape {logits.shape} != {reference.shape}"}
+    finite = bool(np.isfinite(logits).all())
+    diff = float(np.max(np.abs(reference - logits))) if reference.size and finite else (0.0 if finite else float("inf"))
+    z_tau = logit_threshold(tau)
+    differ = (reference >= z_tau) != (logits >= z_tau)
+    return {"passed": bool(finite and diff <= atol), "max_abs_diff": diff, "atol": float(atol),
+            "masks_identical": bool(not differ.any()), "mask_pixels_differ": int(np.count_nonzero(differ)),
+            "pixels": int(reference.size)}
+
+
+def check_parity(model, tau: float, resolution: int, atol: float, torchscript: str | Path | None = None,
+                 onnx: str | Path | None = None) -> dict:
+    """Run the parity check of the exported files against the PyTorch mask path (module docstring).
+
+    Returns ``{"inputs": ..., "torchscript": {...}, "onnx": {...}}`` (a format's entry is absent when its
+    file is not given).  Does not raise; see :func:`require_parity`.
+    """
+    import torch
+
+    x = parity_inputs(resolution)
+    ref = torch_logits(mask_path_model(model), x)
+    out: dict = {"inputs": f"{x.shape[0]} deterministic smooth random images {resolution}x{resolution} (seed 0)",
+                 "tau": float(tau)}
+    if torchscript is not None:
+        ts = load_torchscript(torchscript, "cpu")
+        out["torchscript"] = compare_logits(ref, torch_logits(ts, x), tau, atol)
+    if onnx is not None:
+        sess = ort_session(onnx)
+        out["onnx"] = compare_logits(ref, sess.run(None, {ONNX_INPUT: x.numpy()})[0], tau, atol)
+    return out
+
+
+def require_parity(parity: dict) -> None:
+    """Raise :class:`ParityError` when a checked format failed its parity check."""
+    for fmt in ("torchscript", "onnx"):
+        res = parity.get(fmt)
+        if res is not None and not res["passed"]:
+            raise ParityError(f"{fmt} export differs from PyTorch: max |dZ| = {res['max_abs_diff']:.3g} "
+                              f"(atol {res.get('atol')}), {res['mask_pixels_differ']} mask pixels differ at tau")
+
+
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_source: str, resolution: int,
+                 opset: int, atol: float, onnx: bool = True, source: dict | None = None) -> dict:
+    """Fill a deploy bundle directory ``tmp`` (module docstring) and return its deploy.json content.
+
+    Raises :class:`ParityError` when an exported format fails its parity check.  ``onnx=False`` (or
+    onnx/onnxruntime missing) writes no model.onnx and records why in deploy.json.
+    """
+    import torch
+
+    from pipeline.model import count_flops, count_parameters
+
+    tmp = Path(tmp)
+    deployed = mask_path_model(model)
+    method, seed = payload.get("method"), payload.get("seed")
+    torch.save({"state_dict": deployed.mask_path_state_dict(), "geometry_state_dict": None,
+                "config": dict(deployed.config), "method": method, "seed": seed,
+                "tau": float(tau), "resolution": int(resolution)}, tmp / "model.pt")
+    export_torchscript(deployed, tmp / "model.ts", resolution)
+    onnx_note = None if onnx else "disabled"
+    if onnx and (reason := onnx_unavailable_reason()) is None:
+        export_onnx(deployed, tmp / "model.onnx", resolution, opset)
+    elif onnx:
+        onnx_note = reason
+        log.warning("export: %s", reason)
+    has_onnx = (tmp / "model.onnx").exists()
+    parity = check_parity(deployed, tau, resolution, atol, torchscript=tmp / "model.ts",
+                          onnx=tmp / "model.onnx" if has_onnx else None)
+    require_parity(parity)
+    files = sorted(p.name for p in tmp.iterdir() if p.is_file())
+    info = {
+        "format_version": 1,
+        "method": method, "seed": seed,
+        "tau": float(tau), "tau_source": tau_source,
+        "resolution": int(resolution),
+        "input": {"name": ONNX_INPUT, "dtype": "float32", "layout": "NCHW", "channels": "RGB",
+                  "range": [0.0, 1.0], "size": "any (the model runs at the working resolution; "
+                  "resize images to resolution x resolution with area interpolation)"},
+        "output": {"name": ONNX_OUTPUT, "meaning": "mask logits Z [B,1,H,W]; mask = sigmoid(Z) >= tau "
+                   "<=> Z >= logit(tau) (eq:inference-mask)", "logit_tau": logit_threshold(tau)},
+        "config": dict(deployed.config),
+        "params": count_parameters(deployed),
+        "gflops": count_flops(deployed, resolution, resolution) / 1e9,
+        "opset": int(opset) if has_onnx else None,
+        "onnx_exporter": "torch.onnx.export(dynamo=False) (TorchScript-based)" if has_onnx else None,
+        "onnx_note": onnx_note,
+        "torch_version": torch.__version__,
+        "parity": parity,
+        "files": {f: file_sha256(tmp / f) for f in files},
+        "source": source or {},
+    }
+    (tmp / DEPLOY_JSON).write_text(json.dumps(info, indent=1, sort_keys=True))
+    return info
+
+
+# --------------------------------------------------------------------------------------------------
+# Loading a checkpoint or a deploy bundle for inference
+# --------------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class Segmenter:
+    """A loaded mask path: ``predict_probs(images uint8 [N,R,R,3]) -> P float32 [N,R,R]``."""
+
+    backend: str
+    resolution: int | None
+    tau: float | None
+    tau_source: str
+    predict_logits: Callable  # float32 tensor [N,3,R,R] -> numpy float32 [N,1,R,R]
+    info: dict
+
+    def predict_probs(self, images: np.ndarray, batch_size: int = 8) -> np.ndarray:
+        from pipeline.inference import images_to_tensor
+
+        images = np.asarray(images)
+        out = np.empty(images.shape[:3], np.float32)
+        for s in range(0, len(images), batch_size):
+            z = np.asarray(self.predict_logits(images_to_tensor(images[s:s + batch_size])), np.float32)
+            out[s:s + batch_size] = 1.0 / (1.0 + np.exp(-z[:, 0]))
+        return out
+
+
+def is_deploy_bundle(path: str | Path) -> bool:
+    return (Path(path) / DEPLOY_JSON).is_file()
+
+
+def read_deploy_info(path: str | Path) -> dict:
+    p = Path(path) / DEPLOY_JSON
+    try:
+        return json.loads(p.read_text())
+    except FileNotFoundError:
+        raise ArtifactError(f"{path}: not a deploy bundle (no {DEPLOY_JSON})") from None
+    except (OSError, ValueError) as e:
+        raise ArtifactError(f"{p}: unreadable ({type(e).__name__})") from None
+
+
+def checkpoint_resolution(path: str | Path, payload: dict) -> int | None:
+    """Working resolution recorded with a checkpoint (payload or meta.json extra), else None."""
+    for key in ("resolution", "image_size"):
+        if isinstance(payload.get(key), int):
+            return int(payload[key])
+    mp = Path(path) / "meta.json"
+    if Path(path).is_dir() and mp.exists():
+        try:
+            extra = json.loads(mp.read_text()).get("extra", {}) or {}
+        except ValueError:
+            extra = {}
+        for key in ("resolution", "image_size"):
+            if isinstance(extra.get(key), int):
+                return int(extra[key])
+    return None
+
+
+def load_segmenter(path: str | Path, backend: str = "auto", device="cpu",
+                   thresholds: str | Path | None = None) -> Segmenter:
+    """Open a checkpoint directory or a deploy bundle for inference.
+
+    ``backend``: ``auto`` (deploy bundle -> onnx when ONNX Runtime imports and model.onnx exists,
+    else torchscript; checkpoint -> torch), ``torch``, ``torchscript`` (bundle) or ``onnx`` (bundle).
+    tau and resolution come from deploy.json; for a checkpoint, tau is looked up in ``thresholds``
+    (a thresholds.parquet) by the checkpoint's (method, seed) and the resolution from its payload or
+    metadata -- either may stay None, for the caller to fill (``--tau``, ``--resolution``, params).
+    """
+    import torch
+
+    from pipeline.inference import load_student
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"--checkpoint {path}: not found")
+    if backend not in ("auto", "torch", "torchscript", "onnx"):
+        raise InputError(f"--backend {backend!r}: expected auto, torch, torchscript or onnx")
+    device = torch.device(device)
+    if is_deploy_bundle(path):
+        info = read_deploy_info(path)
+        tau, tau_source = info.get("tau"), f"deploy bundle ({info.get('tau_source', '?')})"
+        resolution = info.get("resolution")
+        if backend == "auto":
+            backend = "onnx" if (path / "model.onnx").exists() and onnx_unavailable_reason() is None else "torchscript"
+    else:
+        info, tau, tau_source, resolution = {}, None, "", None
+        if backend == "auto":
+            backend = "torch"
+        if backend != "torch":
+            raise InputError(f"--backend {backend}: needs a deploy bundle (geodistill export), {path} is a checkpoint")
+
+    if backend == "torch":
+        model, payload = load_student(path, device)
+        if device.type == "cpu":
+            model = model.to(memory_format=torch.channels_last)
+        if resolution is None:
+            resolution = checkpoint_resolution(path, payload)
+        if tau is None and payload.get("tau") is not None:
+            tau, tau_source = float(payload["tau"]), "checkpoint payload"
+        if tau is None and thresholds is not None and Path(thresholds).exists():
+            from pipeline.artifacts import open_artifact
+
+            found = lookup_tau(open_artifact(thresholds, "thresholds").df, payload.get("method"), payload.get("seed"))
+            if found is not None:
+                tau, tau_source = found, f"{thresholds} ({payload.get('method')}, seed {payload.get('seed')})"
+
+        def run(x):
+            # fp32, channels_last: the same path calibrate used to choose tau
+            return predict_logits_torch(model, x, device)
+        info = info or {"method": payload.get("method"), "seed": payload.get("seed")}
+        return Segmenter("torch", resolution, tau, tau_source, run, info)
+
+    if backend == "torchscript":
+        ts_path = path / "model.ts"
+        if not ts_path.exists():
+            raise ArtifactError(f"{path}: no model.ts")
+        ts = load_torchscript(ts_path, device)
+
+        def run(x):
+            with torch.inference_mode():
+                return ts(x.to(device)).float().cpu().numpy()
+        return Segmenter("torchscript", resolution, tau, tau_source, run, info)
+
+    reason = onnx_unavailable_reason()
+    if reason is not None:
+        raise InputError(f"--backend onnx: {reason}")
+    if not (path / "model.onnx").exists():
+        raise ArtifactError(f"{path}: no model.onnx (exported without onnx; use --backend torchscript)")
+    sess = ort_session(path / "model.onnx")
+
+    def run(x):
+        return sess.run(None, {ONNX_INPUT: np.ascontiguousarray(x.numpy(), np.float32)})[0]
+    return Segmenter("onnx", resolution, tau, tau_source, run, info)
+
+
+def predict_logits_torch(model, x, device) -> np.ndarray:
+    """fp32 logits of a PyTorch TinyUNet; on CPU the input goes channels_last (as in
+    pipeline.inference.predict_probs, which calibrate uses), the model is converted by the caller."""
+    import torch
+
+    with torch.inference_mode():
+        x = x.to(device)
+        if device.type == "cpu":
+            x = x.contiguous(memory_format=torch.channels_last)
+        return model(x).float().cpu().numpy()
+
+
+# --------------------------------------------------------------------------------------------------
+# Segment image files
+# --------------------------------------------------------------------------------------------------
+def discover_images(input_path: str | Path) -> tuple[Path, list[Path]]:
+    """(root, image files): a single file (any suffix; the reader decides), or every file with a
+    supported image suffix under a folder, recursively, sorted, hidden entries skipped."""
+    from pipeline.datasets.loading import SUPPORTED_SUFFIXES
+
+    p = Path(input_path)
+    if not p.exists():
+        raise InputError(f"--input {p}: not found")
+    if p.is_file():
+        return p.parent, [p]
+    files = sorted(f for f in p.rglob("*") if f.is_file() and f.suffix.lower() in SUPPORTED_SUFFIXES
+                   and not any(part.startswith(".") for part in f.relative_to(p).parts))
+    return p, files
+
+
+def _is_within(child: Path, parent: Path) -> bool:
+    try:
+        child.relative_to(parent)
+        return True
+    except ValueError:
+        return False
+
+
+def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_is_dir: bool) -> list[Path]:
+    """Output stem per input (``out/<relative folder>/<stem>``; ``<stem>_<ext>`` where two inputs of a
+    folder share a stem).  Refuses (InputError) an output folder equal to or inside an input folder,
+    and any output file that would be one of the inputs."""
+    out = Path(out_dir).resolve()
+    root_r = root.resolve()
+    if input_is_dir and (out == root_r or _is_within(out, root_r)):
+        raise InputError(f"--output {out_dir}: inside the input folder {root}; outputs must not mix with inputs")
+    rel = [f.resolve().relative_to(root_r) if input_is_dir else Path(f.name) for f in files]
+    counts: dict[tuple[Path, str], int] = {}
+    for r in rel:
+        counts[(r.parent, r.stem)] = counts.get((r.parent, r.stem), 0) + 1
+    stems = []
+    for r in rel:
+        name = r.stem if counts[(r.parent, r.stem)] == 1 else f"{r.stem}_{r.suffix.lstrip('.').lower()}"
+        stems.append(out / r.parent / name)
+    inputs = {f.resolve() for f in files}
+    for s in stems:
+        for suffix in OUTPUT_SUFFIXES:
+            target = s.with_name(s.name + suffix)
+            if target in inputs:
+                raise InputError(f"--output {out_dir}: would overwrite the input {target}")
+    return stems
+
+
+OUTPUT_SUFFIXES = ("_mask.png", "_prob.png", "_overlay.png")
+
+
+def probs_to_size(probs: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Bilinear resize of a probability map [R,R] to the original [height, width] (values stay in [0,1])."""
+    import cv2
+
+    if probs.shape == (height, width):
+        return probs
+    return np.clip(cv2.resize(probs, (width, height), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
+
+
+def overlay_image(image: np.ndarray, mask: np.ndarray, color=(255, 40, 40), alpha: float = 0.45) -> np.ndarray:
+    """RGB uint8 overlay: mask tinted with ``color`` at ``alpha``, its inner contour drawn opaque."""
+    import cv2
+
+    out = image.astype(np.float32)
+    col = np.asarray(color, np.float32)
+    out[mask] = (1 - alpha) * out[mask] + alpha * col
+    edge = mask & ~cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    out[edge] = col
+    return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+
+
+def write_png(path: Path, array: np.ndarray) -> None:
+    """Write a PNG atomically (temp name, then rename); RGB arrays are converted to OpenCV's BGR."""
+    import cv2
+
+    arr = array[..., ::-1] if array.ndim == 3 else array
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr))
+    if not ok:
+        raise InputError(f"{path}: PNG encoding failed")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    try:
+        tmp.write_bytes(buf.tobytes())
+        os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
+
+
+@dataclasses.dataclass
+class SegmentResult:
+    written: list[Path]
+    skipped: list[tuple[str, str]]  # (input path, reason)
+
+
+def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[Path], *, tau: float,
+                  resolution: int, batch_size: int = 8, save_prob: bool = False, overlay: bool = False,
+                  on_skip: Callable[[str, str], None] | None = None) -> SegmentResult:
+    """Segment image files in batches: read -> resize to R x R -> P = sigmoid(f(x)) -> resize P back
+    to the original size -> M = [P >= tau] (eq:inference-mask) -> ``<stem>_mask.png`` (0/255), and
+    optionally ``<stem>_prob.png`` (P as uint8, 255 = 1.0) and ``<stem>_overlay.png``.
+
+    A file the reader rejects (InputError) is recorded in ``skipped`` and the rest go on.
+    """
+    from pipeline.datasets.loading import read_rgb, resize_image
+    from pipeline.progress import progress
+
+    written: list[Path] = []
+    skipped: list[tuple[str, str]] = []
+    bar = progress(total=len(files), desc="segment", unit="img")
+    try:
+        for s in range(0, len(files), batch_size):
+            batch = []
+            for f, stem in zip(files[s:s + batch_size], stems[s:s + batch_size]):
+                try:
+                    img = read_rgb(f)
+                except InputError as e:
+                    reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+                    reason = reason[len(f"{f}: "):] if reason.startswith(f"{f}: ") else reason
+                    skipped.append((str(f), reason))
+                    if on_skip is not None:
+                        on_skip(str(f), reason)
+                    bar.update(1)
+                    continue
+                batch.append((stem, img))
+            if not batch:
+                continue
+            work = np.stack([resize_image(img, resolution) for _, img in batch])
+            probs = segmenter.predict_probs(work, batch_size=batch_size)
+            for (stem, img), p in zip(batch, probs):
+                h, w = img.shape[:2]
+                p_full = probs_to_size(p, h, w)
+                mask = mask_from_probs(p_full, tau)
+                out = stem.with_name(stem.name + "_mask.png")
+                write_png(out, mask.astype(np.uint8) * 255)
+                written.append(out)
+                if save_prob:
+                    write_png(stem.with_name(stem.name + "_prob.png"),
+                              np.round(p_full * 255).astype(np.uint8))
+                if overlay:
+                    write_png(stem.with_name(stem.name + "_overlay.png"), overlay_image(img, mask))
+                bar.update(1)
+    finally:
+        bar.close()
+    return SegmentResult(written, skipped)
+
+
+def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str]]) -> Path:
+    """``skipped.csv`` (columns path, reason), written atomically; header only when nothing was skipped."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    with open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["path", "reason"])
+        w.writerows(skipped)
+    os.replace(tmp, path)
+    return path
+
+
+# --------------------------------------------------------------------------------------------------
+# int8 quantisation (ONNX Runtime static, QDQ)
+# --------------------------------------------------------------------------------------------------
+def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_images: np.ndarray) -> Path:
+    """Static int8 quantisation of an ONNX mask path (module docstring: QDQ, u8 activations, s8
+    per-channel weights, MinMax ranges from ``calibration_images`` uint8 [N,H,W,3] -- images only)."""
+    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    from pipeline.inference import images_to_tensor
+
+    images = np.asarray(calibration_images)
+    if images.ndim != 4 or len(images) == 0:
+        raise InputError("int8 calibration needs at least one image (uint8 [N,H,W,3])")
+
+    class _Reader(CalibrationDataReader):
+        def __init__(self):
+            self._it = iter(range(len(images)))
+
+        def get_next(self):
+            i = next(self._it, None)
+            return None if i is None else {ONNX_INPUT: images_to_tensor(images[i:i + 1]).numpy()}
+
+    root = logging.getLogger()
+    level = root.level
+    root.setLevel(logging.ERROR)  # the quantiser warns about every integer shape tensor it leaves alone
+    try:
+        with tempfile.TemporaryDirectory() as td:
+            pre = Path(td) / "pre.onnx"
+            quant_pre_process(str(onnx_path), str(pre))
+            quantize_static(str(pre), str(out_path), _Reader(), quant_format=QuantFormat.QDQ,
+                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True)
+    finally:
+        root.setLevel(level)
+    return Path(out_path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Efficiency benchmark
+# --------------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class Variant:
+    """One way of running the mask path: ``run(x float32 NCHW tensor) -> logits`` (tensor or array)."""
+
+    name: str
+    description: str
+    run: Callable
+    device: str
+    sync: Callable[[], None] = lambda: None
+
+
+def _malloc_trim() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except Exception:  # noqa: BLE001 -- not glibc: nothing to trim
+        pass
+
+
+def _status_kb(field: str) -> int | None:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+class PeakMemory:
+    """Peak memory growth (MiB) over a block: CPU via VmHWM reset, CUDA via max_memory_allocated."""
+
+    def __init__(self, device: str):
+        self.device = device
+        self.peak_mb = float("nan")
+        self.method = "unavailable"
+
+    def __enter__(self):
+        import torch
+
+        if self.device.startswith("cuda"):
+            torch.cuda.synchronize()
+            torch.cuda.reset_peak_memory_stats()
+            self._base = torch.cuda.memory_allocated()
+            self.method = "torch.cuda.max_memory_allocated - allocated before"
+            return self
+        _malloc_trim()
+        self._base = None
+        try:
+            with open("/proc/self/clear_refs", "w") as f:
+                f.write("5")  # resets VmHWM to the current RSS
+            self._base = _status_kb("VmRSS")
+            self.method = "peak RSS growth (VmHWM after - VmRSS before, /proc/self/clear_refs)"
+        except OSError:
+            pass
+        return self
+
+    def __exit__(self, *exc):
+        import torch
+
+        if self.device.startswith("cuda"):
+            torch.cuda.synchronize()
+            self.peak_mb = (torch.cuda.max_memory_allocated() - self._base) / 2**20
+        elif self._base is not None:
+            hwm = _status_kb("VmHWM")
+            if hwm is not None:
+                self.peak_mb = max(0, hwm - self._base) / 1024
+        return False
+
+
+def time_calls(fn: Callable, x, warmup: int, iters: int, sync: Callable[[], None]) -> list[float]:
+    """Wall-clock seconds of ``iters`` calls after ``warmup`` untimed ones."""
+    for _ in range(warmup):
+        fn(x)
+    sync()
+    times = []
+    for _ in range(iters):
+        t0 = time.perf_counter()
+        fn(x)
+        sync()
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def build_variants(model, device, resolution: int, names: Sequence[str], onnx_path: str | Path | None = None,
+                   int8_path: str | Path | None = None) -> tuple[list[Variant], dict[str, str]]:
+    """Variants of the mask path to compare; returns (variants, {skipped name: reason}).
+
+    fp32_eager_nchw          plain PyTorch, contiguous NCHW (the baseline)
+    fp32_channels_last       PyTorch, channels_last model and input
+    bf16_autocast            PyTorch NCHW under bf16 autocast
+    bf16_channels_last       bf16 autocast + channels_last
+    torchscript_frozen       traced, frozen, torch.jit.optimize_for_inference (CPU: oneDNN fusions)
+    onnxruntime_fp32         ONNX Runtime CPU, all graph optimisations
+    onnxruntime_int8         ONNX Runtime CPU on the static int8 QDQ model (quantize_onnx_int8)
+    """
+    import torch
+
+    dev = torch.device(device)
+    skipped: dict[str, str] = {}
+    variants: list[Variant] = []
+    sync = (lambda: torch.cuda.synchronize()) if dev.type == "cuda" else (lambda: None)
+    base = mask_path_model(model).to(dev)
+    cl = mask_path_model(model).to(dev).to(memory_format=torch.channels_last)
+    cl_fmt = torch.channels_last
+
+    def eager(m, to_cl=False, bf16=False):
+        def run(x):
+            x = x.to(dev, non_blocking=True)
+            if to_cl:
+                x = x.contiguous(memory_format=cl_fmt)
+            with torch.inference_mode(), (torch.autocast(dev.type, dtype=torch.bfloat16) if bf16
+                                          else contextlib.nullcontext()):
+                return m(x).float()
+        return run
+
+    for name in names:
+        if name == "fp32_eager_nchw":
+            variants.append(Variant(name, "PyTorch eager fp32, NCHW (baseline)", eager(base), dev.type, sync))
+        elif name == "fp32_channels_last":
+            variants.append(Variant(name, "PyTorch eager fp32, channels_last", eager(cl, True), dev.type, sync))
+        elif name == "bf16_autocast":
+            variants.append(Variant(name, "PyTorch eager, bf16 autocast, NCHW", eager(base, bf16=True), dev.type, sync))
+        elif name == "bf16_channels_last":
+            variants.append(Variant(name, "PyTorch eager, bf16 autocast, channels_last", eager(cl, True, True),
+                                    dev.type, sync))
+        elif name == "torchscript_frozen":
+            example = torch.zeros(1, base.config["in_channels"], resolution, resolution, device=dev)
+            with torch.no_grad(), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                ts = torch.jit.freeze(torch.jit.trace(mask_path_model(model).to(dev), example, check_trace=False))
+                if dev.type == "cpu":
+                    ts = torch.jit.optimize_for_inference(ts)
+            variants.append(Variant(name, "TorchScript traced + frozen + optimize_for_inference, fp32",
+                                    eager(ts), dev.type, sync))
+        elif name in ("onnxruntime_fp32", "onnxruntime_int8"):
+            reason = onnx_unavailable_reason()
+            path = onnx_path if name == "onnxruntime_fp32" else int8_path
+            if reason is None and path is None:
+                reason = "no ONNX model"
+            if reason is not None:
+                skipped[name] = reason
+                continue
+            sess = ort_session(path)
+
+            def run(x, sess=sess):
+                return torch.from_numpy(sess.run(None, {ONNX_INPUT: np.ascontiguousarray(x.cpu().numpy())})[0])
+            desc = ("ONNX Runtime CPU fp32, graph optimisations ORT_ENABLE_ALL" if name == "onnxruntime_fp32" else
+                    "ONNX Runtime CPU int8 (static QDQ: u8 activations, s8 per-channel weights, MinMax "
+                    "calibration on training images)")
+            variants.append(Variant(name, desc, run, "cpu"))
+        else:
+            raise InputError(f"deploy.benchmark_variants: unknown variant {name!r}")
+    return variants, skipped
+
+
+def mean_iou(probs: np.ndarray, masks: np.ndarray, tau: float) -> float:
+    """Mean Image IoU of [P >= tau] against reference masks (pipeline.metrics.image_iou)."""
+    from pipeline.metrics import image_iou
+
+    pred = mask_from_probs(probs, tau)
+    return float(np.mean([image_iou(p, g) for p, g in zip(pred, masks)])) if len(pred) else float("nan")
+
+
+def variant_probs(variant: Variant, images: np.ndarray, batch_size: int) -> np.ndarray:
+    """P = sigmoid(Z) float32 [N,H,W] of a variant on uint8 images [N,H,W,3]."""
+    import torch
+
+    from pipeline.inference import images_to_tensor
+
+    out = np.empty(images.shape[:3], np.float32)
+    for s in range(0, len(images), batch_size):
+        z = variant.run(images_to_tensor(np.asarray(images[s:s + batch_size])))
+        out[s:s + batch_size] = torch.sigmoid(torch.as_tensor(z).float())[:, 0].cpu().numpy()
+    return out
+
+
+def benchmark(model, *, resolution: int, device="cpu", variants: Sequence[str], warmup: int, iters: int,
+              batches: Sequence[int], tau: float | None = None, val_images: np.ndarray | None = None,
+              val_masks: np.ndarray | None = None, onnx_path=None, int8_path=None, seed: int = 0,
+              on_variant: Callable[[str], None] | None = None) -> tuple[list[dict], dict]:
+    """Measure every variant; returns (rows, info).
+
+    Per variant: ``latency_ms`` = median of ``iters`` batch-1 calls after ``warmup`` (random input at
+    ``resolution``); ``throughput`` (images/s) = best over ``batches`` of b / median call time
+    (1 warm-up, then max(2, ceil(iters / b)) calls); ``peak_mb`` = peak memory growth during the
+    batch-1 calls (:class:`PeakMemory`); ``iou`` = mean Image IoU on the validation images at tau and
+    ``iou_delta`` = iou - iou of the fp32 baseline (NaN without validation data); ``speedup`` =
+    baseline latency / latency.  params and GFLOPs are counted on the PyTorch graph
+    (pipeline.model.count_parameters / count_flops) and shared by every variant: they compute the
+    same function (int8 replaces multiply-adds by integer ones, it does not remove them).
+    """
+    import torch
+
+    from pipeline.model import count_flops, count_parameters
+
+    dev = torch.device(device)
+    deployed = mask_path_model(model)
+    params = count_parameters(deployed)
+    gflops = count_flops(deployed, resolution, resolution) / 1e9
+    built, skipped = build_variants(model, dev, resolution, variants, onnx_path, int8_path)
+    g = torch.Generator().manual_seed(seed)
+    x1 = torch.rand(1, deployed.config["in_channels"], resolution, resolution, generator=g)
+    rows = []
+    base_iou = None
+    have_val = val_images is not None and val_masks is not None and len(val_images) > 0 and tau is not None
+    for v in built:
+        if on_variant is not None:
+            on_variant(v.name)
+        with PeakMemory(v.device) as mem:
+            times = time_calls(v.run, x1, warmup, iters, v.sync)
+        latency = statistics.median(times) * 1e3
+        best_tp, best_b = 0.0, 1
+        for b in batches:
+            xb = torch.rand(int(b), x1.shape[1], resolution, resolution, generator=g)
+            tb = time_calls(v.run, xb, 1, max(2, math.ceil(iters / int(b))), v.sync)
+            tp = int(b) / statistics.median(tb)
+            if tp > best_tp:
+                best_tp, best_b = tp, int(b)
+        iou = float("nan")
+        if have_val:
+            iou = mean_iou(variant_probs(v, val_images, max(batches)), val_masks, tau)
+            if v.name == BASELINE_VARIANT:
+                base_iou = iou
+        rows.append({"variant": v.name, "description": v.description, "device": v.device, "params": params,
+                     "gflops": gflops, "latency_ms": latency, "latency_min_ms": min(times) * 1e3,
+                     "throughput": best_tp, "batch": best_b, "peak_mb": mem.peak_mb,
+                     "peak_method": mem.method, "iou": iou, "resolution": int(resolution)})
+        del v
+    base = next((r for r in rows if r["variant"] == BASELINE_VARIANT), None)
+    for r in rows:
+        r["iou_delta"] = (r["iou"] - base_iou) if base_iou is not None and have_val else float("nan")
+        r["speedup"] = base["latency_ms"] / r["latency_ms"] if base else float("nan")
+    info = {"threads": torch.get_num_threads(), "device": str(dev), "resolution": int(resolution),
+            "warmup": int(warmup), "iters": int(iters), "batches": [int(b) for b in batches],
+            "tau": tau, "n_val": int(len(val_images)) if have_val else 0, "skipped": skipped}
+    return rows, info
+
+
+def fastest_within(rows: Sequence[dict], max_iou_drop: float) -> dict | None:
+    """The lowest-latency variant whose |iou_delta| <= ``max_iou_drop`` (any variant without IoU data)."""
+    ok = [r for r in rows if not (abs(r["iou_delta"]) > max_iou_drop)]  # NaN passes: no data to judge
+    return min(ok, key=lambda r: r["latency_ms"]) if ok else None

@@ -1,0 +1,403 @@
+"""Gather the evaluation artifacts into one :class:`Report` (tables, figures, honest statements) and
+the plot tables DVC shows.  A missing input never fails the report: its section says what is missing
+and which stage produces it."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.errors import ArtifactError
+from pipeline.report import figures as F
+from pipeline.report import tables as T
+from pipeline.report.analysis import (gate_analysis, teacher_domain_quality, teacher_prompt_quality)
+from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
+
+# artifact file -> (schema, stage that produces it)
+INPUTS = {
+    "manifest": ("manifest.parquet", "manifest", "prepare"),
+    "images": ("images.zarr", "images", "prepare"),
+    "reference": ("reference.zarr", "reference", "prepare"),
+    "teacher": ("teacher.zarr", "teacher", "teacher"),
+    "consensus": ("consensus.zarr", "consensus", "consensus"),
+    "geometry": ("geometry.zarr", "geometry", "geometry"),
+    "gates": ("gates.parquet", "gates", "geometry"),
+    "thresholds": ("thresholds.parquet", "thresholds", "calibrate"),
+    "metrics": ("metrics.parquet", "metrics", "evaluate"),
+    "summary": ("summary.parquet", "summary", "evaluate"),
+    "teacher_metrics": ("teacher_metrics.parquet", "teacher_metrics", "analyze_teacher"),
+    "efficiency": ("efficiency.parquet", "efficiency", "benchmark"),
+}
+
+
+@dataclasses.dataclass
+class Inputs:
+    art: Path
+    found: dict[str, Any]
+    missing: dict[str, Missing]
+    logs: pd.DataFrame | None = None
+
+    def get(self, name):
+        return self.found.get(name)
+
+    def need(self, *names) -> list[Missing]:
+        return [self.missing[n] for n in names if n in self.missing]
+
+
+def load_inputs(art: str | Path) -> Inputs:
+    """Open every input that exists; record a :class:`Missing` note for each one that does not."""
+    from pipeline.artifacts import open_artifact
+
+    art = Path(art)
+    found, missing = {}, {}
+    for name, (fname, schema, stage) in INPUTS.items():
+        try:
+            found[name] = open_artifact(art / fname, schema)
+        except ArtifactError as e:
+            missing[name] = Missing(f"`{fname}`", f"{e} -- produced by the `{stage}` stage.")
+    inp = Inputs(art, found, missing)
+    inp.logs = training_logs(art / "checkpoints")
+    return inp
+
+
+def training_logs(checkpoints: Path) -> pd.DataFrame | None:
+    """All active runs' training logs stacked, with method and seed columns (None when none)."""
+    from pipeline.artifacts import open_artifact
+    from pipeline.inference import iter_runs
+
+    frames = []
+    try:
+        runs = list(iter_runs(checkpoints))
+    except ArtifactError:
+        return None
+    for method, seed, path in runs:
+        try:
+            log = open_artifact(path).table("log.parquet").copy()
+        except ArtifactError:
+            continue
+        log["method"], log["seed"] = method, seed
+        frames.append(log)
+    return pd.concat(frames, ignore_index=True) if frames else None
+
+
+def teacher_note(backend: str) -> str:
+    if backend == "simulated":
+        return ("Teacher = a SIMULATOR of prompt-dependent foundation-model errors (synthetic benchmark), "
+                "not SAM 3: these teacher numbers describe the simulator.")
+    if backend == "sam3":
+        return "Teacher = SAM 3 with the six fixed text prompts (backend `sam3`)."
+    return f"Teacher backend: `{backend}`."
+
+
+def test_groups(manifest_df: pd.DataFrame) -> list[str]:
+    """Test groups in manifest order (the first is the paper's KCP role: ablations, qualitative)."""
+    return list(dict.fromkeys(manifest_df.loc[manifest_df["split"] == "test", "group"]))
+
+
+# --------------------------------------------------------------------------------------------------
+# Sections
+# --------------------------------------------------------------------------------------------------
+def data_section(inp: Inputs) -> Section:
+    sec = Section("Data, teacher and protocol")
+    m = inp.get("manifest")
+    if m is None:
+        sec.blocks += inp.need("manifest")
+        return sec
+    df = m.df
+    datasets = sorted(df["dataset"].unique())
+    backend = str(inp.get("teacher").attrs.get("backend", "unknown")) if inp.get("teacher") else "unknown"
+    if "synthetic" in datasets:
+        sec.blocks.append(Text(
+            "**Dataset: the embedded SYNTHETIC spacecraft benchmark** (rendered spacecraft with a spacecraft-disjoint "
+            "split shaped like SpaceSense-Bench), not SpaceSense-Bench, SPEED+ or TANGO. Its teacher is a "
+            "**SIMULATOR** of prompt-dependent foundation-model errors, not SAM 3. The numbers below test the "
+            "pipeline's behaviour on this benchmark; they are not comparable to the paper's."))
+    else:
+        sec.blocks.append(Text(f"Dataset(s): {', '.join(f'`{d}`' for d in datasets)}."))
+    sec.blocks.append(Text(teacher_note(backend)))
+    sec.blocks.append(Text(
+        "Manual (reference) masks are used only for validation-time checkpoint selection, threshold calibration "
+        "and evaluation (and, on the synthetic benchmark, inside the teacher simulator); they never enter a "
+        "student's training loss."))
+    rows = []
+    for (ds, split, group), part in df.groupby(["dataset", "split", "group"], sort=False):
+        rows.append([str(ds), str(split), str(group), str(len(part)), str(part["spacecraft"].nunique())])
+    sec.blocks.append(Table("tab:data", "Images per split and group", ["Dataset", "Split", "Group", "Images",
+                                                                      "Spacecraft"], rows))
+    return sec
+
+
+def threshold_section(inp: Inputs, plots: dict) -> Section:
+    sec = Section("Threshold calibration")
+    thr = inp.get("thresholds")
+    if thr is None:
+        sec.blocks += inp.need("thresholds")
+        return sec
+    df = thr.df
+    sec.blocks.append(T.thresholds_table(df))
+    long = [pd.DataFrame({"tau": r["grid"], "val_iou": r["curve"], "method": r["method"], "seed": r["seed"]})
+            for _, r in df.iterrows() if "grid" in df.columns]
+    if long:
+        curves = pd.concat(long, ignore_index=True)
+        plots["threshold_curve"] = curves
+        series = []
+        for method, part in curves.groupby("method", sort=False):
+            mean = part.groupby("tau")["val_iou"].mean()
+            taus = df[df["method"] == method]["tau"]
+            series.append({"x": mean.index.to_numpy(), "y": mean.to_numpy(), "label": T.label(method),
+                           "marker": float(taus.mean())})
+        img = F.line_plot(series, "Validation Image IoU vs threshold", "tau", "mean val Image IoU")
+        sec.blocks.append(Figure("fig:threshold-curves", "Threshold curves", "Mean validation Image IoU of [P >= tau] "
+                                 "over the calibration grid (mean over seeds per method; dot: mean calibrated tau).",
+                                 F.png_bytes(img), "threshold_curves.png"))
+    return sec
+
+
+def results_section(inp: Inputs) -> Section:
+    sec = Section("Student results on the test groups")
+    s = inp.get("summary")
+    if s is None:
+        sec.blocks += inp.need("summary")
+        return sec
+    groups = list(dict.fromkeys(s.df["group"]))
+    if inp.get("manifest") is not None:
+        order = test_groups(inp.get("manifest").df)
+        groups = [g for g in order if g in groups] + [g for g in groups if g not in order]
+    for mode in ("calibrated", "fixed"):
+        if (s.df["threshold_mode"] == mode).any():
+            sec.blocks.append(T.results_table(s.df, mode, groups))
+    for mode in ("calibrated", "fixed"):
+        if (s.df["threshold_mode"] == mode).any():
+            sec.blocks.append(T.diagnostics_table(s.df, mode, groups))
+    return sec
+
+
+def ablation_section(inp: Inputs) -> Section:
+    sec = Section("Ablations of the geometry refinement")
+    m = inp.get("metrics")
+    if m is None:
+        sec.blocks += inp.need("metrics")
+        return sec
+    df = m.df
+    abl = df[df["method"].isin(T.ABLATIONS)]
+    if abl.empty:
+        sec.blocks.append(Text("No ablation run is active in this profile (protocol.active_ablations); the "
+                               "warm-start and component tables need them."))
+        return sec
+    seed = int(abl["seed"].mode().iloc[0])
+    groups = test_groups(inp.get("manifest").df) if inp.get("manifest") else sorted(df["group"].unique())
+    group = groups[0]
+    epochs = {}
+    if inp.logs is not None:
+        for method, part in inp.logs[inp.logs["seed"] == seed].groupby("method"):
+            epochs[method] = int(part.loc[part["epoch"] > 0, "epoch"].nunique())
+    sec.blocks.append(Text(f"Mechanistic ablations: seed {seed} on {group} (the first test group), same data, "
+                           f"pseudo-labels, architecture and calibration protocol. Single-seed evidence only."))
+    for mode in ("calibrated", "fixed"):
+        means = T.ablation_means(df, group, seed, mode)
+        for tab in (T.warm_start_table(means, epochs, group, seed, mode), T.component_table(means, group, seed, mode)):
+            if tab is not None:
+                sec.blocks.append(tab)
+    return sec
+
+
+def teacher_section(inp: Inputs) -> Section:
+    sec = Section("Multi-prompt teacher and reliability gate")
+    tmart = inp.get("teacher_metrics")
+    if tmart is None:
+        sec.blocks += inp.need("teacher_metrics")
+        return sec
+    tm = tmart.df
+    extra = tmart.meta.extra or {}
+    backend = str(extra.get("teacher_backend", "unknown"))
+    note = teacher_note(backend)
+    prompts = list(extra.get("prompts") or [])
+    base = extra.get("base_source", "prompt_0")
+    selected = extra.get("selected_source")
+    if backend == "simulated":
+        sec.blocks.append(Text("**All teacher numbers in this section describe the teacher SIMULATOR of the "
+                               "synthetic benchmark, not SAM 3.**"))
+    if selected is None:
+        sec.blocks.append(Text("No validation image has a reference mask: no validation-selected prompt."))
+    groups = list(dict.fromkeys(tm.loc[tm["split"] == "test", "group"]))
+    for g in groups:
+        sec.blocks.append(T.teacher_prompt_table(teacher_prompt_quality(tm, g, base, selected, prompts), g, note))
+    sec.blocks.append(T.teacher_domain_table(teacher_domain_quality(tm), note))
+    gates = inp.get("gates")
+    if gates is None:
+        sec.blocks += inp.need("gates")
+    else:
+        analyses = [gate_analysis(tm, gates.df, g) for g in groups]
+        if len(groups) > 1:
+            analyses.append(gate_analysis(tm, gates.df, None))
+        sec.blocks.append(T.gate_table(analyses, note))
+    return sec
+
+
+def efficiency_section(inp: Inputs) -> Section:
+    sec = Section("Efficiency")
+    eff = inp.get("efficiency")
+    if eff is None:
+        sec.blocks += inp.need("efficiency")
+    else:
+        sec.blocks.append(T.efficiency_table(eff.df))
+    return sec
+
+
+def training_section(inp: Inputs, plots: dict) -> Section:
+    sec = Section("Training curves")
+    logs = inp.logs
+    if logs is None or "val_iou" not in logs.columns:
+        sec.blocks.append(Missing("training logs", "no active checkpoint with a log.parquet under "
+                                  f"`{inp.art / 'checkpoints'}` -- produced by the `train` stages."))
+        return sec
+    cols = [c for c in ("epoch", "val_iou", "val_bf1", "loss", "stage", "method", "seed") if c in logs.columns]
+    plots["training_curves"] = logs[cols].reset_index(drop=True)
+    series = []
+    for method, part in logs.groupby("method", sort=False):
+        mean = part.groupby("epoch")["val_iou"].mean()
+        series.append({"x": mean.index.to_numpy(float), "y": mean.to_numpy(float), "label": T.label(method)})
+    img = F.line_plot(series, "Validation Image IoU during training", "epoch (of the run's own schedule)",
+                      "val Image IoU")
+    sec.blocks.append(Figure("fig:training-curves", "Training curves", "Validation Image IoU per epoch (mean over "
+                             "seeds per method; warm-started Stage-II runs count their own epochs from 1).",
+                             F.png_bytes(img), "training_curves.png"))
+    return sec
+
+
+# --------------------------------------------------------------------------------------------------
+# Figures from images and predictions
+# --------------------------------------------------------------------------------------------------
+def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str = "geodistill",
+                        control: str = "plain") -> Section:
+    """Paper Fig. qualitative-results: control vs treatment on the first test group, same seed,
+    validation-calibrated thresholds.  Images are chosen by rank of the per-image IoU gain, evenly
+    spaced from the largest gain to the largest loss (so failures are shown too)."""
+    from pipeline.artifacts import read_chunk_rows
+    from pipeline.inference import load_student, predict_probs
+
+    sec = Section("Qualitative results")
+    miss = inp.need("metrics", "thresholds", "images", "reference", "manifest")
+    if miss:
+        sec.blocks += miss
+        return sec
+    m = inp.get("metrics").df
+    cal = m[m["threshold_mode"] == "calibrated"]
+    seeds = sorted(set(cal.loc[cal.method == treatment, "seed"]) & set(cal.loc[cal.method == control, "seed"]))
+    if not seeds or n_images <= 0:
+        sec.blocks.append(Missing(f"runs of both `{control}` and `{treatment}`",
+                                  "the qualitative panels compare them on the same seed."))
+        return sec
+    seed = seeds[0]
+    group = test_groups(inp.get("manifest").df)[0]
+    sub = cal[(cal.group == group) & (cal.seed == seed)]
+    a = sub[sub.method == control].set_index("image_id")
+    b = sub[sub.method == treatment].set_index("image_id")
+    common = a.index.intersection(b.index)
+    gain = (b.loc[common, "iou"] - a.loc[common, "iou"]).sort_values(ascending=False, kind="mergesort")
+    pick = gain.index[np.unique(np.linspace(0, len(gain) - 1, min(n_images, len(gain))).round().astype(int))]
+    mdf = inp.get("manifest").df
+    rows_idx = np.array([int(np.flatnonzero(mdf["image_id"].to_numpy() == i)[0]) for i in pick])
+    order = np.argsort(rows_idx)
+    images = read_chunk_rows(inp.get("images")["image"], rows_idx[order])[np.argsort(order)]
+    gts = read_chunk_rows(inp.get("reference")["mask"], rows_idx[order])[np.argsort(order)].astype(bool)
+    preds = {}
+    for method in (control, treatment):
+        model, _ = load_student(inp.art / "checkpoints" / method / str(seed), device)
+        tau = float(sub[sub.method == method]["tau"].iloc[0])
+        preds[method] = predict_probs(model, images, device=device) >= tau
+    rows = []
+    for j, iid in enumerate(pick):
+        scores = {T.label(mm): f"IoU {r['iou']:.3f}  BF1 {r['bf1']:.3f}"
+                  for mm, r in ((control, a.loc[iid]), (treatment, b.loc[iid]))}
+        rows.append(F.qualitative_row(images[j], gts[j], {T.label(mm): preds[mm][j] for mm in (control, treatment)},
+                                      scores, f"({chr(97 + j)}) {iid}"[:26]))
+    img = F.vstack(rows)
+    sec.blocks.append(Figure(
+        "fig:qualitative-results", f"{T.label(control)} vs {T.label(treatment)} on {group}",
+        f"Seed {seed}, validation-calibrated thresholds. Green: true positives, red: false positives, blue: false "
+        f"negatives; yellow: ground-truth contour. Rows ordered from the largest Image IoU gain to the largest loss "
+        f"of {T.label(treatment)}; metrics on full frames.", F.png_bytes(img), "qualitative.png"))
+    return sec
+
+
+def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
+    """Paper Fig. pseudo-geometry for training images spread over the gate's range (highest g first)."""
+    from pipeline.artifacts import read_chunk_rows
+
+    sec = Section("Pseudo-target construction")
+    miss = inp.need("manifest", "images", "teacher", "consensus", "geometry", "gates")
+    if miss:
+        sec.blocks += miss
+        return sec
+    mdf = inp.get("manifest").df
+    gates = inp.get("gates").df.set_index("image_id")
+    train = mdf.index[mdf["split"] == "train"].to_numpy()
+    if train.size == 0 or n_images <= 0:
+        sec.blocks.append(Text("No training image to show."))
+        return sec
+    ids = mdf["image_id"].to_numpy()
+    g = gates.reindex(ids[train])["g"].to_numpy(float)
+    ranked = train[np.argsort(-np.nan_to_num(g, nan=-1), kind="mergesort")]
+    pick = np.sort(ranked[np.unique(np.linspace(0, len(ranked) - 1, min(n_images, len(ranked))).round().astype(int))])
+    teacher = inp.get("teacher")
+    backend = str(teacher.attrs.get("backend", "unknown"))
+    prompts = list(teacher.attrs.get("prompts", []))
+    images = read_chunk_rows(inp.get("images")["image"], pick)
+    tmasks = read_chunk_rows(teacher["masks"], pick)
+    scores = read_chunk_rows(teacher["scores"], pick)
+    agreement = read_chunk_rows(inp.get("consensus")["agreement"], pick)
+    voted = read_chunk_rows(inp.get("consensus")["voted"], pick)
+    sdf = read_chunk_rows(inp.get("geometry")["sdf"], pick)
+    skel = read_chunk_rows(inp.get("geometry")["skeleton"], pick)
+    rows = []
+    for j, i in enumerate(pick):
+        gr = gates.loc[ids[i]] if ids[i] in gates.index else None
+        gate_text = ([f"c={gr['c']:.2f} v={gr['v']:.2f}", f"a={gr['a']:.3f} g={gr['g']:.2f}"]
+                     if gr is not None else ["gate: n/a", ""])
+        labels = [f"p{k + 1} s={scores[j, k]:.2f}" for k in range(tmasks.shape[1])]
+        rows.append(F.pseudo_target_row(images[j], tmasks[j], labels, agreement[j], voted[j], sdf[j], skel[j],
+                                        gate_text, str(ids[i])[:18]))
+    img = F.vstack(rows)
+    prompt_list = "; ".join(f"p{k + 1} = `{p}`" for k, p in enumerate(prompts))
+    sim = " The prompt masks come from the teacher SIMULATOR, not SAM 3." if backend == "simulated" else ""
+    sec.blocks.append(Figure(
+        "fig:pseudo-geometry", "Multi-prompt pseudo-target construction",
+        f"Training images (highest gate g first): the {tmasks.shape[1]} prompt masks with teacher scores s, the "
+        f"agreement map A, the 50 % vote M, the normalised SDF D (blue inside, red outside) and the skeleton K; the "
+        f"gate's factors c (agreement), v (valid-prompt ratio), a (pseudo area) and g.{sim} Prompts: {prompt_list}.",
+        F.png_bytes(img), "pseudo_targets.png"))
+    return sec
+
+
+def provenance_section(inp: Inputs) -> Section:
+    rows = [[f"`{INPUTS[n][0]}`", a.meta.schema, a.meta.stage, a.fingerprint[:16]] for n, a in inp.found.items()]
+    rows += [[f"`{INPUTS[n][0]}`", "--", "--", "missing"] for n in inp.missing]
+    return Section("Provenance", [Table("tab:provenance", "Input artifacts", ["Artifact", "Schema", "Stage",
+                                                                             "Fingerprint"], rows)])
+
+
+def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu") -> tuple[Report, dict, Inputs]:
+    """-> (report, plot tables {name: DataFrame}, opened inputs)."""
+    inp = load_inputs(art)
+    plots: dict[str, pd.DataFrame] = {}
+    n_qual = int(cfg.get("qualitative_images", 4))
+    n_pseudo = int(cfg.get("pseudo_target_images", 3))
+    sections = [
+        data_section(inp),
+        results_section(inp),
+        qualitative_section(inp, n_qual, device),
+        threshold_section(inp, plots),
+        teacher_section(inp),
+        pseudo_target_section(inp, n_pseudo),
+        ablation_section(inp),
+        efficiency_section(inp),
+        training_section(inp, plots),
+        provenance_section(inp),
+    ]
+    title = "GeoDistill-Refine report" + (f" ({profile} profile)" if profile else "")
+    return Report(title, sections), plots, inp

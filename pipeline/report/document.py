@@ -1,0 +1,154 @@
+"""A tiny document model (sections of text, tables, figures, "missing input" notes) rendered to
+Markdown and to ONE self-contained HTML page (CSS inline, figures as base64 PNG data URIs, no
+scripts, no external requests)."""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import html
+import re
+from typing import Union
+
+
+@dataclasses.dataclass
+class Text:
+    """A paragraph; supports `code` and **bold** inline markup."""
+
+    text: str
+
+
+@dataclasses.dataclass
+class Table:
+    key: str                  # the paper's label, e.g. "tab:spacesense-results"
+    title: str
+    header: list[str]
+    rows: list[list[str]]
+    notes: list[str] = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass
+class Figure:
+    key: str
+    title: str
+    caption: str
+    png: bytes
+    filename: str             # written under figures/
+
+
+@dataclasses.dataclass
+class Missing:
+    """An input that was not there: the report says so instead of failing."""
+
+    what: str
+    detail: str
+
+
+Block = Union[Text, Table, Figure, Missing]
+
+
+@dataclasses.dataclass
+class Section:
+    title: str
+    blocks: list[Block] = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass
+class Report:
+    title: str
+    sections: list[Section]
+
+    def figures(self) -> list[Figure]:
+        return [b for s in self.sections for b in s.blocks if isinstance(b, Figure)]
+
+    def tables(self) -> list[Table]:
+        return [b for s in self.sections for b in s.blocks if isinstance(b, Table)]
+
+
+# --------------------------------------------------------------------------------------------------
+# Markdown
+# --------------------------------------------------------------------------------------------------
+def _md_cell(s: str) -> str:
+    return str(s).replace("|", "\\|").replace("\n", " ")
+
+
+def render_markdown(report: Report, figure_dir: str = "figures") -> str:
+    out = [f"# {report.title}", ""]
+    for sec in report.sections:
+        out += [f"## {sec.title}", ""]
+        for b in sec.blocks:
+            if isinstance(b, Text):
+                out += [b.text, ""]
+            elif isinstance(b, Missing):
+                out += [f"> **Missing: {b.what}.** {b.detail}", ""]
+            elif isinstance(b, Table):
+                out += [f"**{b.title}** (`{b.key}`)", ""]
+                out.append("| " + " | ".join(_md_cell(h) for h in b.header) + " |")
+                out.append("|" + "|".join("---" for _ in b.header) + "|")
+                out += ["| " + " | ".join(_md_cell(c) for c in r) + " |" for r in b.rows]
+                out.append("")
+                out += [f"*{n}*" for n in b.notes]
+                if b.notes:
+                    out.append("")
+            elif isinstance(b, Figure):
+                out += [f"**{b.title}** (`{b.key}`)", "", f"![{b.title}]({figure_dir}/{b.filename})", "",
+                        f"*{b.caption}*", ""]
+    return "\n".join(out).rstrip() + "\n"
+
+
+# --------------------------------------------------------------------------------------------------
+# HTML
+# --------------------------------------------------------------------------------------------------
+CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1200px;margin:2em auto;
+padding:0 1em;color:#222;line-height:1.45}
+h1{font-size:1.7em;border-bottom:2px solid #333;padding-bottom:.2em}h2{font-size:1.3em;margin-top:2em;
+border-bottom:1px solid #bbb}
+table{border-collapse:collapse;margin:.6em 0 .3em 0;font-size:.9em}
+th,td{border-top:1px solid #ccc;border-bottom:1px solid #ccc;padding:.25em .6em;text-align:center}
+th{background:#f2f2f2}td:first-child,th:first-child{text-align:left}
+caption{caption-side:top;text-align:left;font-weight:600;padding:.3em 0}
+.key{color:#777;font-weight:normal;font-family:monospace;font-size:.85em}
+.note{font-size:.85em;color:#444;margin:.2em 0}
+.missing{background:#fff4e5;border-left:4px solid #f0a030;padding:.5em .8em;margin:.6em 0}
+figure{margin:1em 0}figure img{max-width:100%;border:1px solid #ddd}
+figcaption{font-size:.88em;color:#333;margin-top:.3em}
+code{background:#f4f4f4;padding:0 .2em}
+"""
+
+
+def _inline(text: str) -> str:
+    s = html.escape(str(text))
+    s = re.sub(r"`([^`]+)`", r"<code>\1</code>", s)
+    s = re.sub(r"\*\*([^*]+)\*\*", r"<b>\1</b>", s)
+    return s
+
+
+def render_html(report: Report) -> str:
+    """One self-contained page: no external resource of any kind."""
+    parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+             f"<title>{html.escape(report.title)}</title>", f"<style>{CSS}</style></head><body>",
+             f"<h1>{html.escape(report.title)}</h1>"]
+    for i, sec in enumerate(report.sections):
+        parts.append(f'<section id="sec{i}"><h2>{html.escape(sec.title)}</h2>')
+        for b in sec.blocks:
+            if isinstance(b, Text):
+                parts.append(f"<p>{_inline(b.text)}</p>")
+            elif isinstance(b, Missing):
+                parts.append(f'<div class="missing"><b>Missing: {html.escape(b.what)}.</b> {_inline(b.detail)}</div>')
+            elif isinstance(b, Table):
+                parts.append(f'<table data-key="{html.escape(b.key)}"><caption>{_inline(b.title)} '
+                             f'<span class="key">{html.escape(b.key)}</span></caption>')
+                parts.append("<thead><tr>" + "".join(f"<th>{_inline(h)}</th>" for h in b.header) + "</tr></thead><tbody>")
+                for r in b.rows:
+                    parts.append("<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>")
+                parts.append("</tbody></table>")
+                parts += [f'<p class="note">{_inline(n)}</p>' for n in b.notes]
+            elif isinstance(b, Figure):
+                data = base64.b64encode(b.png).decode("ascii")
+                parts.append(f'<figure data-key="{html.escape(b.key)}"><img alt="{html.escape(b.title)}" '
+                             f'src="data:image/png;base64,{data}"><figcaption><b>{html.escape(b.title)}.</b> '
+                             f"{_inline(b.caption)}</figcaption></figure>")
+        parts.append("</section>")
+    parts.append("</body></html>")
+    return "\n".join(parts) + "\n"

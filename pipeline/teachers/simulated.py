@@ -1,0 +1,437 @@
+"""SIMULATOR of a text-prompted foundation teacher's errors, for the synthetic benchmark only.
+
+This is **not a teacher**: :class:`SimulatedFoundationTeacher` (backend name ``simulated``) reads the
+synthetic scene's ground truth -- ``reference.zarr`` ``mask`` and ``parts`` and the manifest extras
+``background``, ``hard_case``, ``area_fraction`` -- and degrades it the way a six-prompt SAM 3 teacher
+degrades on spacecraft images.  It exists so that the whole DAG runs without a download; a real run
+uses the ``sam3`` or ``imported`` backend.  Artifacts it produces say ``backend: simulated`` and
+``simulator: true`` in their attrs.
+
+What it simulates (eq:teacher-prediction: one mask and one score per image and prompt)
+  * image difficulty ``d`` in [0, 1] from the object scale (``area_fraction``; small is hard), the
+    scene's ``hard_case`` flag, a bright (Earth) background and a little image-level noise;
+  * a *teacher breakdown* on hard images (probability grows with ``d``): all prompts but at most one
+    return nothing (score 0), and the one left answers badly -- these are the images whose
+    reliability gate is 0 (paper, table gate-groups: ~30 % of KCP, teacher IoU 0.29 vs 0.85);
+  * six prompt *personas* (one per prompt of eq:prompt-set; an unknown prompt gets a generic one),
+    each with its own miss rate and mixture of failure modes, whose weights grow with ``d``:
+    ``miss`` (no candidate, score 0), ``dilate`` / ``erode`` (boundary bias of a few pixels),
+    ``drop_thin`` (antennas, booms and trusses dropped -- likelier at small scale), ``bus_only`` (only
+    the bus and payload), ``false_positive`` (glare or the bright Earth limb added to the object) and
+    ``wrong_object`` (a glare blob or the Earth limb instead of the spacecraft);
+  * errors *shared* by several prompts, drawn once per image -- thin structures lost by most prompts
+    on small targets, a glare / Earth-limb region several prompts include -- which the majority vote
+    cannot remove (paper, text after table teacher-prompt-quality: "prompt-consistent teacher errors
+    can still remain");
+  * a score that loosely tracks the answer's quality (IoU with the ground truth) plus noise.
+
+Calibration (``python -m pipeline.teachers.simulator_stats``): on a synthetic test group the mean
+single-prompt Image IoU should sit near 0.35 with a spread across prompts near 0.24, the best
+(validation-selected) prompt near 0.57, the six-prompt vote near 0.68 (paper, table
+teacher-prompt-quality), and ~30 % of images should get gate 0 with far lower teacher IoU (table
+gate-groups).
+
+Determinism: every random draw comes from a numpy Generator seeded by sha256 of (image sha256, prompt
+*text*, ``teacher.seed``, view, simulator version); image-level draws (difficulty noise, breakdown,
+shared errors) omit the prompt and the view.  The prompt text rather than its index is hashed so that
+reordering or extending the prompt list leaves every other prompt's answer -- and its cache entry,
+which is keyed by prompt text -- unchanged.  The ``vflip`` view reuses the image-level draws (the
+same scene is as hard upside down) with fresh prompt-level draws.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from pipeline.errors import InputError
+from pipeline.metrics import image_iou
+from pipeline.teachers.base import TeacherInput, finalize_answers
+
+log = logging.getLogger(__name__)
+
+SIMULATOR_VERSION = 1
+BACKEND = "simulated"
+
+# parts codes of reference.zarr `parts`
+BUS, PANEL, THIN, DISH, PAYLOAD = 1, 2, 3, 4, 5
+
+MODES = ("clean", "dilate", "erode", "drop_thin", "bus_only", "false_positive", "wrong_object")
+
+
+@dataclasses.dataclass(frozen=True)
+class Persona:
+    """Failure profile of one prompt.
+
+    ``miss`` + ``miss_slope * d``: probability of a total miss (score 0).  ``modes``: relative weight
+    of each failure mode on an easy image; ``hard_modes``: weight added per unit difficulty.
+    ``boundary_px``: typical boundary error in pixels at 128 px (scaled with the resolution).
+    ``survivor``: probability that this prompt still answers during a breakdown.
+    ``shares``: probability that this prompt takes part in an image's shared error.
+    """
+
+    name: str
+    miss: float
+    miss_slope: float
+    modes: Mapping[str, float]
+    hard_modes: Mapping[str, float]
+    boundary_px: float = 1.5
+    survivor: float = 0.1
+    shares: float = 0.7
+    score_bias: float = 0.0
+
+
+def _m(**kw) -> dict[str, float]:
+    return {m: float(kw.get(m, 0.0)) for m in MODES}
+
+
+# One persona per prompt of eq:prompt-set.  The category-level prompts ("satellite", "space probe")
+# are the least specific: they often find nothing or latch onto another bright object; the
+# structural prompts describe the full silhouette best; "artificial object ... panels and antennas"
+# also likes glare and the Earth limb.
+PERSONAS: dict[str, Persona] = {
+    "spacecraft": Persona(
+        "spacecraft", miss=0.10, miss_slope=0.25,
+        modes=_m(clean=3.0, dilate=1.0, erode=1.2, drop_thin=1.2, bus_only=0.5, false_positive=0.6, wrong_object=0.4),
+        hard_modes=_m(drop_thin=2.0, bus_only=1.0, wrong_object=1.0, false_positive=0.6),
+        survivor=0.2),
+    "satellite": Persona(
+        "satellite", miss=0.55, miss_slope=0.35,
+        modes=_m(clean=1.0, dilate=0.8, erode=0.8, drop_thin=1.0, bus_only=1.2, false_positive=0.6, wrong_object=1.6),
+        hard_modes=_m(bus_only=1.0, wrong_object=2.0),
+        survivor=0.06),
+    "space probe": Persona(
+        "space probe", miss=0.80, miss_slope=0.25,
+        modes=_m(clean=0.3, dilate=0.3, erode=0.3, drop_thin=0.6, bus_only=1.0, false_positive=0.3, wrong_object=2.5),
+        hard_modes=_m(wrong_object=2.0),
+        survivor=0.03),
+    "space vehicle": Persona(
+        "space vehicle", miss=0.30, miss_slope=0.40,
+        modes=_m(clean=2.0, dilate=0.8, erode=1.0, drop_thin=1.2, bus_only=0.8, false_positive=0.5, wrong_object=0.8),
+        hard_modes=_m(drop_thin=1.5, wrong_object=1.2),
+        survivor=0.08),
+    "spacecraft with rigid body and appendages": Persona(
+        "rigid body and appendages", miss=0.04, miss_slope=0.20,
+        modes=_m(clean=4.0, dilate=1.0, erode=0.8, drop_thin=0.6, bus_only=0.3, false_positive=0.4, wrong_object=0.2),
+        hard_modes=_m(drop_thin=1.2, erode=0.6, wrong_object=0.6),
+        survivor=0.2),
+    "artificial object in space with panels and antennas": Persona(
+        "panels and antennas", miss=0.06, miss_slope=0.25,
+        modes=_m(clean=3.0, dilate=1.5, erode=0.5, drop_thin=0.4, bus_only=0.2, false_positive=1.6, wrong_object=0.5),
+        hard_modes=_m(false_positive=1.5, wrong_object=0.8, drop_thin=0.6),
+        survivor=0.12),
+}
+GENERIC_PERSONA = Persona(
+    "generic", miss=0.25, miss_slope=0.35,
+    modes=_m(clean=2.0, dilate=1.0, erode=1.0, drop_thin=1.0, bus_only=0.8, false_positive=0.8, wrong_object=1.0),
+    hard_modes=_m(drop_thin=1.5, wrong_object=1.5), survivor=0.08)
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulatorConfig:
+    """Image-level constants of the simulator (part of its fingerprint through SIMULATOR_VERSION)."""
+
+    easy_area: float = 0.10          # area fraction at and above which scale adds no difficulty
+    hard_area: float = 0.004         # area fraction at and below which scale difficulty is 1
+    w_scale: float = 0.55
+    w_hard_case: float = 0.35
+    w_bright_background: float = 0.15
+    w_noise: float = 0.25
+    breakdown_base: float = 0.04     # P(breakdown) = base + slope * d  (clipped to [0, 0.95])
+    breakdown_slope: float = 0.60
+    shared_thin_base: float = 0.10   # P(shared thin-structure loss) = base + slope * scale difficulty
+    shared_thin_slope: float = 0.60
+    shared_fp_base: float = 0.05     # P(shared glare / Earth-limb region) = base + slope * d
+    shared_fp_slope: float = 0.25
+
+
+def _rng(*parts: Any) -> np.random.Generator:
+    """numpy Generator seeded by sha256 over the string forms of ``parts``."""
+    h = hashlib.sha256("\x1f".join(str(p) for p in parts).encode()).digest()
+    return np.random.Generator(np.random.PCG64(int.from_bytes(h[:16], "little")))
+
+
+# --------------------------------------------------------------------------------------------------
+# Pure mask operations (bool [H,W] in, bool [H,W] out)
+# --------------------------------------------------------------------------------------------------
+def _disk(radius: int) -> np.ndarray:
+    import cv2
+
+    r = max(int(radius), 1)
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Boundary pushed outwards by ``radius`` px (elliptical structuring element); radius 0 = identity."""
+    import cv2
+
+    if radius <= 0:
+        return mask.copy()
+    return cv2.dilate(mask.astype(np.uint8), _disk(radius)).astype(bool)
+
+
+def erode(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Boundary pulled inwards by ``radius`` px; radius 0 = identity."""
+    import cv2
+
+    if radius <= 0:
+        return mask.copy()
+    return cv2.erode(mask.astype(np.uint8), _disk(radius)).astype(bool)
+
+
+def open_mask(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Morphological opening: removes structures thinner than ~2*radius px."""
+    return dilate(erode(mask, radius), radius) & mask
+
+
+def drop_thin(mask: np.ndarray, parts: np.ndarray | None, radius: int, drop_dish: bool) -> np.ndarray:
+    """Mask without thin appendages: parts code 3 (antenna/boom/truss) and optionally 4 (dish)
+    removed, then an opening of ``radius`` px removes any remaining thin residue."""
+    out = mask.copy()
+    if parts is not None:
+        out &= parts != THIN
+        if drop_dish:
+            out &= parts != DISH
+    opened = open_mask(out, radius)
+    return opened if opened.any() else out
+
+
+def bus_only(mask: np.ndarray, parts: np.ndarray | None) -> np.ndarray:
+    """Only the spacecraft bus (+ payload); without parts, a strong opening keeps the compact core."""
+    if parts is not None:
+        core = mask & np.isin(parts, (BUS, PAYLOAD))
+        if core.any():
+            return core
+    n = np.count_nonzero(mask)
+    radius = max(2, int(0.25 * np.sqrt(n / np.pi)))
+    core = open_mask(mask, radius)
+    return core if core.any() else erode(mask, 1)
+
+
+def bright_region(image: np.ndarray, exclude: np.ndarray, min_fraction: float = 0.01) -> np.ndarray:
+    """Largest bright connected region outside ``exclude`` (the Earth limb or a glare patch).
+
+    Bright = luminance >= max(120, 90th percentile of the pixels outside ``exclude``).  Returns an
+    empty mask when that region covers less than ``min_fraction`` of the frame (e.g. a black sky).
+    """
+    import cv2
+
+    lum = image.astype(np.float32).mean(axis=-1)
+    outside = ~exclude
+    if not outside.any():
+        return np.zeros_like(exclude)
+    thr = max(120.0, float(np.percentile(lum[outside], 90)))
+    bright = (lum >= thr) & outside
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(bright.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(exclude)
+    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    region = labels == k
+    return region if region.mean() >= min_fraction else np.zeros_like(exclude)
+
+
+def glare_blob(mask: np.ndarray, rng: np.random.Generator, attached: bool) -> np.ndarray:
+    """An elliptical glare blob: ``attached`` touches the object's boundary (a flare on the hull),
+    otherwise it lies elsewhere in the frame (a reflection or star-tracker ghost)."""
+    h, w = mask.shape
+    n = max(np.count_nonzero(mask), 1)
+    r_obj = np.sqrt(n / np.pi)
+    ys, xs = np.nonzero(mask) if mask.any() else (np.array([h // 2]), np.array([w // 2]))
+    if attached:
+        j = rng.integers(len(ys))
+        cy, cx = ys[j], xs[j]
+        ry, rx = r_obj * rng.uniform(0.3, 0.7, size=2)
+    else:
+        for _ in range(20):
+            cy, cx = rng.uniform(0.1, 0.9) * h, rng.uniform(0.1, 0.9) * w
+            if np.hypot(cy - ys.mean(), cx - xs.mean()) > 1.5 * r_obj + 0.1 * h:
+                break
+        ry, rx = max(r_obj, 0.04 * h) * rng.uniform(0.4, 0.9, size=2)
+    yy, xx = np.ogrid[:h, :w]
+    return ((yy - cy) / max(ry, 1.0)) ** 2 + ((xx - cx) / max(rx, 1.0)) ** 2 <= 1.0
+
+
+# --------------------------------------------------------------------------------------------------
+# Scene difficulty
+# --------------------------------------------------------------------------------------------------
+def _truthy(x: Any) -> bool:
+    if x is None:
+        return False
+    if isinstance(x, str):
+        return x.strip().lower() not in ("", "0", "false", "no", "none", "nan")
+    try:
+        return bool(x) and not (isinstance(x, float) and np.isnan(x))
+    except (TypeError, ValueError):
+        return False
+
+
+def scale_difficulty(area_fraction: float, cfg: SimulatorConfig = SimulatorConfig()) -> float:
+    """0 for targets covering >= ``easy_area`` of the frame, 1 at <= ``hard_area``, log-linear between."""
+    a = max(float(area_fraction), 1e-8)
+    t = (np.log(cfg.easy_area) - np.log(a)) / (np.log(cfg.easy_area) - np.log(cfg.hard_area))
+    return float(np.clip(t, 0.0, 1.0))
+
+
+def scene_difficulty(area_fraction: float, hard_case: bool, bright_background: bool, noise: float,
+                     cfg: SimulatorConfig = SimulatorConfig()) -> float:
+    """d = clip(w_scale*scale + w_hard*hard_case + w_bg*bright_background + w_noise*(noise - 0.5), 0, 1)."""
+    d = (cfg.w_scale * scale_difficulty(area_fraction, cfg) + cfg.w_hard_case * float(hard_case)
+         + cfg.w_bright_background * float(bright_background) + cfg.w_noise * (noise - 0.5))
+    return float(np.clip(d, 0.0, 1.0))
+
+
+@dataclasses.dataclass
+class SceneDraw:
+    """Image-level draws, shared by all prompts (and both views) of one image."""
+
+    difficulty: float
+    scale: float
+    breakdown: bool
+    shared_thin: bool      # thin structures lost by several prompts
+    shared_fp: bool        # one glare / Earth-limb region included by several prompts
+    shared_fp_seed: int
+
+
+# --------------------------------------------------------------------------------------------------
+# The simulator
+# --------------------------------------------------------------------------------------------------
+class SimulatedFoundationTeacher:
+    """SIMULATOR of a six-prompt foundation teacher (see the module docstring).  Reads ground truth."""
+
+    backend = BACKEND
+    needs_reference = True
+    use_cache = True
+
+    def __init__(self, seed: int = 0, resolution: tuple[int, int] | None = None,
+                 config: SimulatorConfig = SimulatorConfig()):
+        self.seed = int(seed)
+        self.resolution = tuple(resolution) if resolution is not None else None
+        self.config = config
+
+    def fingerprint(self) -> dict:
+        return {"backend": BACKEND, "simulator": True, "simulator_version": SIMULATOR_VERSION,
+                "seed": self.seed, "resolution": list(self.resolution) if self.resolution else None}
+
+    # ---- image level --------------------------------------------------------------------------
+    def scene(self, item: TeacherInput) -> SceneDraw:
+        cfg = self.config
+        gt = np.asarray(item.reference["mask"], dtype=bool)
+        ex = item.extras or {}
+        af = ex.get("area_fraction")
+        if af is None or not np.isfinite(float(af)):
+            af = float(gt.mean())
+        bg = str(ex.get("background", "") or "").lower()
+        bright_bg = any(s in bg for s in ("earth", "limb", "planet", "moon", "cloud"))
+        rng = _rng("scene", item.image_sha256, self.seed, SIMULATOR_VERSION)
+        noise = rng.random()
+        scale = scale_difficulty(af, cfg)
+        d = scene_difficulty(af, _truthy(ex.get("hard_case")), bright_bg, noise, cfg)
+        breakdown = rng.random() < np.clip(cfg.breakdown_base + cfg.breakdown_slope * d, 0.0, 0.95)
+        shared_thin = rng.random() < cfg.shared_thin_base + cfg.shared_thin_slope * scale
+        shared_fp = rng.random() < cfg.shared_fp_base + cfg.shared_fp_slope * d
+        return SceneDraw(d, scale, bool(breakdown), bool(shared_thin), bool(shared_fp), int(rng.integers(2**31)))
+
+    def _prompt_draw(self, item: TeacherInput, prompt: str, what: str) -> float:
+        """A view-independent uniform draw for (image, prompt): membership in shared errors and
+        survival of a breakdown are decided per prompt, so adding or removing other prompts never
+        changes this prompt's answer (its cache entry stays valid)."""
+        return float(_rng(what, item.image_sha256, prompt, self.seed, SIMULATOR_VERSION).random())
+
+    # ---- prompt level -------------------------------------------------------------------------
+    def answer(self, item: TeacherInput, prompt: str, scene: SceneDraw) -> tuple[np.ndarray, float]:
+        """One (mask, score) answer of the simulated teacher; score 0 and an empty mask for a miss."""
+        gt = np.asarray(item.reference["mask"], dtype=bool)
+        parts = item.reference.get("parts") if item.reference is not None else None
+        parts = None if parts is None else np.asarray(parts)
+        empty = np.zeros_like(gt)
+        persona = persona_for(prompt)
+        rng = _rng("prompt", item.image_sha256, prompt, self.seed, item.view, SIMULATOR_VERSION)
+        px = max(gt.shape) / 128.0  # boundary errors scale with the resolution
+        d = scene.difficulty
+        if scene.breakdown:
+            if self._prompt_draw(item, prompt, "survive") >= persona.survivor:
+                return empty, 0.0
+            mode = rng.choice(["bus_only", "wrong_object", "drop_thin", "false_positive", "erode"],
+                              p=[0.25, 0.35, 0.15, 0.15, 0.10])
+            boundary = 2.0 * persona.boundary_px
+        else:
+            if rng.random() < np.clip(persona.miss + persona.miss_slope * d, 0.0, 0.98):
+                return empty, 0.0
+            w = np.array([persona.modes[m] + d * persona.hard_modes[m] for m in MODES])
+            mode = MODES[int(rng.choice(len(MODES), p=w / w.sum()))]
+            boundary = persona.boundary_px
+        r = max(1, int(round(boundary * px * rng.uniform(0.7, 1.6))))
+        mask = self._apply(mode, gt, parts, item.image, rng, r, scene)
+        if not scene.breakdown:
+            if (scene.shared_thin and mode != "wrong_object"
+                    and self._prompt_draw(item, prompt, "shared_thin") < persona.shares):
+                mask = drop_thin(mask, parts, max(1, int(round(1.5 * px))), drop_dish=scene.scale > 0.5)
+            if scene.shared_fp and self._prompt_draw(item, prompt, "shared_fp") < persona.shares:
+                mask = mask | self._shared_region(item, gt, scene)
+            # small independent boundary jitter: no two prompts trace the same contour
+            j = int(rng.integers(-1, 2))
+            mask = dilate(mask, j) if j > 0 else erode(mask, -j) if j < 0 else mask
+        if not mask.any():
+            return empty, 0.0
+        q = image_iou(mask, gt)  # the quality the score loosely tracks
+        score = float(np.clip(0.30 + 0.55 * q + persona.score_bias + rng.normal(0.0, 0.12), 0.02, 0.99))
+        return mask, score
+
+    def _shared_region(self, item: TeacherInput, gt: np.ndarray, scene: SceneDraw) -> np.ndarray:
+        region = bright_region(item.image, dilate(gt, 1))
+        if region.any():
+            return region
+        return glare_blob(gt, np.random.default_rng(scene.shared_fp_seed), attached=True)
+
+    @staticmethod
+    def _apply(mode: str, gt, parts, image, rng: np.random.Generator, r: int, scene: SceneDraw) -> np.ndarray:
+        if mode == "clean":
+            return gt.copy()
+        if mode == "dilate":
+            return dilate(gt, r)
+        if mode == "erode":
+            out = erode(gt, r)
+            return out if out.any() else gt.copy()
+        if mode == "drop_thin":
+            return drop_thin(gt, parts, max(1, r), drop_dish=bool(rng.random() < 0.5))
+        if mode == "bus_only":
+            return bus_only(gt, parts)
+        if mode == "false_positive":
+            region = bright_region(image, dilate(gt, 1))
+            if not region.any() or rng.random() < 0.5:
+                region = glare_blob(gt, rng, attached=True)
+            return gt | region
+        if mode == "wrong_object":
+            region = bright_region(image, dilate(gt, 1))
+            if region.any() and rng.random() < 0.6:
+                return region
+            return glare_blob(gt, rng, attached=False) & ~gt
+        raise ValueError(f"unknown simulator mode {mode!r}")
+
+    def predict(self, batch: Sequence[TeacherInput], prompts: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """Answers of the SIMULATOR: masks bool [B,K,H,W], scores float32 [B,K] (0 = invalid)."""
+        if not batch:
+            return np.zeros((0, len(prompts), 0, 0), bool), np.zeros((0, len(prompts)), np.float32)
+        out_masks, out_scores = [], []
+        for item in batch:
+            if item.reference is None or "mask" not in item.reference:
+                raise InputError(f"simulated teacher: no reference mask for image {item.image_id!r}; "
+                                 "the simulator needs the synthetic ground truth (reference.zarr)")
+            gt = np.asarray(item.reference["mask"])
+            if gt.shape != item.image.shape[:2]:
+                raise InputError(f"simulated teacher: reference mask {gt.shape} and image {item.image.shape[:2]} "
+                                 f"of {item.image_id!r} differ in size")
+            scene = self.scene(item)
+            answers = [self.answer(item, p, scene) for p in prompts]
+            out_masks.append(np.stack([a[0] for a in answers]))
+            out_scores.append(np.array([a[1] for a in answers], np.float32))
+        return finalize_answers(np.stack(out_masks), np.stack(out_scores))
+
+
+def persona_for(prompt: str) -> Persona:
+    """The persona of a prompt of eq:prompt-set; any other prompt gets the generic persona."""
+    return PERSONAS.get(prompt.strip().lower(), GENERIC_PERSONA)

@@ -1,0 +1,130 @@
+"""A tiny, randomly initialised SAM 3 checkpoint for offline tests and the teacher benchmark.
+
+Nothing is downloaded: the config mirrors the small ``Sam3Config`` of transformers' own SAM 3 tests
+(``tests/models/sam3/test_modeling_sam3.py``: 2-layer ViT with hidden size 32 and patch 14, one
+DETR encoder / decoder layer, a 2-stage mask decoder), the CLIP tokenizer is built from a byte-level
+vocabulary written to disk here, and the image-processor config is written as
+``preprocessor_config.json``.  The weights are random, so the masks mean nothing; what the tests
+check is the plumbing (loading, preprocessing, encoder reuse, batching, best-query selection).
+
+``size="real"`` builds the full-size SAM 3 architecture (random weights, ~840 M parameters) for GPU
+timing in ``benchmarks/bench_teacher.py``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def _bytes_to_unicode() -> dict[int, str]:
+    """GPT-2 / CLIP byte -> printable unicode map (the alphabet of CLIP's byte-level BPE)."""
+    bs = list(range(ord("!"), ord("~") + 1)) + list(range(ord("¡"), ord("¬") + 1)) + list(range(ord("®"), ord("ÿ") + 1))
+    cs = bs[:]
+    n = 0
+    for b in range(256):
+        if b not in bs:
+            bs.append(b)
+            cs.append(256 + n)
+            n += 1
+    return dict(zip(bs, (chr(c) for c in cs)))
+
+
+def write_clip_vocab(directory: str | Path, words: tuple[str, ...] = ()) -> tuple[Path, Path]:
+    """Write a minimal CLIP BPE vocabulary (``vocab.json`` + ``merges.txt``) into ``directory``.
+
+    Vocabulary: the 256 byte symbols, each also with the end-of-word suffix ``</w>``, the two special
+    tokens, plus whole-word merges for ``words`` (so the prompts become few tokens).  < 1000 entries.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    symbols = list(_bytes_to_unicode().values())
+    vocab: dict[str, int] = {"<|startoftext|>": 0, "<|endoftext|>": 1}  # ids the text config names
+    for s in symbols + [s + "</w>" for s in symbols]:
+        vocab.setdefault(s, len(vocab))
+    merges: list[str] = []
+    for word in words:
+        pieces = list(word)
+        if not pieces:
+            continue
+        pieces[-1] += "</w>"
+        while len(pieces) > 1:
+            a, b = pieces[0], pieces[1]
+            merges.append(f"{a} {b}")
+            vocab.setdefault(a + b, len(vocab))
+            pieces = [a + b] + pieces[2:]
+    vpath, mpath = directory / "vocab.json", directory / "merges.txt"
+    vpath.write_text(json.dumps(vocab))
+    mpath.write_text("#version: 0.2\n" + "\n".join(dict.fromkeys(merges)) + "\n")
+    return vpath, mpath
+
+
+def tiny_sam3_config(image_size: int = 56, num_queries: int = 5, initializer_range: float = 0.2):
+    """The small Sam3Config of transformers' SAM 3 tests (image 56 = 4 x 14 patches).
+
+    ``initializer_range`` is 10x the default so that the random model's scores and masks depend
+    visibly on the image and the prompt (with 0.02 every query scores ~0.253 on every image, and a
+    test could not tell images or prompts apart).
+    """
+    from transformers.models.sam3.configuration_sam3 import (
+        Sam3Config, Sam3DETRDecoderConfig, Sam3DETREncoderConfig, Sam3GeometryEncoderConfig,
+        Sam3MaskDecoderConfig, Sam3VisionConfig, Sam3ViTConfig)
+
+    backbone = Sam3ViTConfig(hidden_size=32, num_hidden_layers=2, num_attention_heads=4, intermediate_size=64,
+                             num_channels=3, image_size=image_size, patch_size=14,
+                             window_size=image_size // 14 // 2, global_attn_indexes=[0, 1])
+    vision = Sam3VisionConfig(backbone_config=backbone, fpn_hidden_size=32, scale_factors=[2.0, 1.0])
+    text = {"vocab_size": 1000, "hidden_size": 32, "intermediate_size": 64, "projection_dim": 32,
+            "num_hidden_layers": 2, "num_attention_heads": 4, "max_position_embeddings": 32, "hidden_act": "gelu",
+            "bos_token_id": 0, "eos_token_id": 1, "pad_token_id": 1}
+    config = Sam3Config(
+        vision_config=vision, text_config=text,
+        geometry_encoder_config=Sam3GeometryEncoderConfig(hidden_size=32, num_layers=1, num_attention_heads=4,
+                                                          intermediate_size=64, mask_fuser_hidden_size=32,
+                                                          mask_fuser_num_layers=1),
+        detr_encoder_config=Sam3DETREncoderConfig(hidden_size=32, num_layers=1, num_attention_heads=4,
+                                                  intermediate_size=64),
+        detr_decoder_config=Sam3DETRDecoderConfig(hidden_size=32, num_layers=1, num_queries=num_queries,
+                                                  num_attention_heads=4, intermediate_size=64),
+        mask_decoder_config=Sam3MaskDecoderConfig(hidden_size=32, num_upsampling_stages=2),
+    )
+    config.initializer_range = initializer_range
+    for sub in (backbone, vision, config.text_config, config.geometry_encoder_config, config.detr_encoder_config,
+                config.detr_decoder_config, config.mask_decoder_config):
+        if hasattr(sub, "initializer_range"):
+            sub.initializer_range = initializer_range
+    return config
+
+
+def preprocessor_config(image_size: int) -> dict:
+    """The image-processor settings SAM 3 checkpoints ship (resize to a square, rescale, normalise)."""
+    return {"image_processor_type": "Sam3ImageProcessor", "do_resize": True,
+            "size": {"height": image_size, "width": image_size}, "resample": 2,
+            "do_rescale": True, "rescale_factor": 1 / 255, "do_normalize": True,
+            "image_mean": [0.5, 0.5, 0.5], "image_std": [0.5, 0.5, 0.5], "do_convert_rgb": True}
+
+
+def build_tiny_sam3(directory: str | Path, *, image_size: int = 56, seed: int = 0, size: str = "tiny",
+                    words: tuple[str, ...] = ()) -> Path:
+    """Save a randomly initialised SAM 3 (``size`` tiny | real) with tokenizer and processor config."""
+    import torch
+    from transformers import CLIPTokenizer, Sam3Config, Sam3Model
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(seed)
+    if size == "tiny":
+        config = tiny_sam3_config(image_size)
+    elif size == "real":
+        config = Sam3Config()
+        image_size = config.vision_config.backbone_config.image_size
+    else:
+        raise ValueError(f"size {size!r}: expected tiny or real")
+    model = Sam3Model(config).eval()
+    model.save_pretrained(directory)
+    vpath, mpath = write_clip_vocab(directory, words)
+    merges = [tuple(line.split()) for line in mpath.read_text().splitlines()[1:] if line.strip()]
+    tok = CLIPTokenizer(vocab=json.loads(vpath.read_text()), merges=merges)
+    tok.save_pretrained(directory)
+    (directory / "preprocessor_config.json").write_text(json.dumps(preprocessor_config(image_size), indent=1))
+    return directory

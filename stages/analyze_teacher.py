@@ -1,0 +1,130 @@
+"""Stage analyze_teacher: how good are the teacher's pseudo-masks, per prompt and voted, and does the
+reliability gate g separate poor from good ones?
+
+Post-hoc analysis only: reference masks of the validation and test splits *measure* teacher quality
+here; the validation split alone chooses the "validation-selected single prompt".  Nothing here feeds
+training.  When the teacher backend is ``simulated`` (the synthetic benchmark), every number describes
+a SIMULATOR of foundation-model errors, not SAM 3 -- the JSON and the report say so.
+
+Writes ``teacher_metrics.parquet`` (one row per image and source: prompt_<k>, vote, val_selected;
+see pipeline.report.analysis) and ``metrics/teacher.json`` (per-group vote quality, prompt table
+summary, Spearman rho/p of g against the vote's Image IoU and Boundary F1).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+import numpy as np
+import pandas as pd
+
+from pipeline.params import require, section
+from stages._common import meta_for, stage_code_version, stage_command
+
+CODE_MODULES = ("metrics.py", "stats.py", "report/analysis.py", "artifacts.py")
+CHUNK = 32
+
+
+def base_prompt_index(teacher_meta) -> int:
+    """The base prompt's index as recorded in the teacher artifact's params (default 0, the paper's
+    p1 = `spacecraft`)."""
+    p = teacher_meta.params or {}
+    cfg = p.get("teacher", p)
+    return int(cfg.get("base_prompt_index", 0)) if isinstance(cfg, dict) else 0
+
+
+def _round(x):
+    return None if x is None or not np.isfinite(x) else round(float(x), 4)
+
+
+@stage_command("analyze_teacher")
+@click.option("--artifacts", "art", default="artifacts", show_default=True, type=click.Path(file_okay=False))
+@click.option("--out", default="artifacts/teacher_metrics.parquet", show_default=True, type=click.Path(dir_okay=False))
+@click.option("--metrics-json", default="artifacts/metrics/teacher.json", show_default=True,
+              type=click.Path(dir_okay=False))
+def main(params, device, art, out, metrics_json):
+    """Teacher prompt / vote quality on val+test, prompt selection on val, gate-vs-quality analysis."""
+    from pipeline.artifacts import atomic_path, open_artifact, read_chunk_rows, write_parquet
+    from pipeline.errors import InputError
+    from pipeline.metrics import per_image_metrics
+    from pipeline.progress import progress
+    from pipeline.report.analysis import (gate_analysis, prompt_source, select_prompt,
+                                          teacher_prompt_quality)
+
+    cfg = section(params, "evaluate")
+    tol = require(cfg, "bf1_tolerance", "evaluate", kind=(int, float), lo=0)
+    small_frac = require(cfg, "small_region_max_fraction", "evaluate", kind=(int, float), lo=0.0, hi=1.0)
+    art = Path(art)
+    manifest = open_artifact(art / "manifest.parquet", "manifest")
+    reference = open_artifact(art / "reference.zarr", "reference")
+    teacher = open_artifact(art / "teacher.zarr", "teacher")
+    consensus = open_artifact(art / "consensus.zarr", "consensus")
+    gates = open_artifact(art / "gates.parquet", "gates")
+    mdf = manifest.df
+    prompts = list(teacher.attrs.get("prompts", []))
+    backend = str(teacher.attrs.get("backend", "unknown"))
+    k_prompts = teacher["masks"].shape[1]
+    base = prompt_source(base_prompt_index(teacher.meta))
+
+    idx = np.flatnonzero(mdf["split"].isin(["val", "test"]).to_numpy() & reference.numpy("has_mask").astype(bool))
+    if idx.size == 0:
+        raise InputError(f"{manifest.path}: no validation/test image has a reference mask; nothing to analyse")
+    info = mdf.iloc[idx][["image_id", "dataset", "domain", "split", "group", "spacecraft"]].reset_index(drop=True)
+    frames = []
+    for s in progress(range(0, idx.size, CHUNK), desc="analyze_teacher"):
+        rows = idx[s:s + CHUNK]
+        part_info = info.iloc[s:s + len(rows)]
+        # reference masks: post-hoc measurement of teacher quality only
+        gts = read_chunk_rows(reference["mask"], rows).astype(bool)
+        masks = read_chunk_rows(teacher["masks"], rows).astype(bool)
+        voted = read_chunk_rows(consensus["voted"], rows).astype(bool)
+        sources = [(prompt_source(k), prompts[k] if k < len(prompts) else f"prompt {k}", masks[:, k])
+                   for k in range(k_prompts)]
+        sources.append(("vote", f"{k_prompts}-prompt majority vote", voted))
+        for name, text, pred in sources:
+            sc = per_image_metrics(pred, gts, tol, max_fraction=small_frac)
+            part = part_info.copy()
+            part["source"], part["prompt"] = name, text
+            for k, v in sc.items():
+                part[k] = v
+            frames.append(part)
+    tm = pd.concat(frames, ignore_index=True)
+    selected, val_means = select_prompt(tm, "val")
+    if selected is not None:
+        sel = tm[tm["source"] == selected].copy()
+        sel["source"] = "val_selected"
+        tm = pd.concat([tm, sel], ignore_index=True)
+
+    code = stage_code_version(__file__, *CODE_MODULES)
+    meta = meta_for("teacher_metrics", "analyze_teacher", code, {"evaluate": cfg},
+                    [manifest, reference, teacher, consensus, gates],
+                    teacher_backend=backend, simulator=backend == "simulated", base_source=base,
+                    selected_source=selected, prompts=prompts,
+                    val_prompt_iou={k: float(v) for k, v in val_means.items()})
+    write_parquet(out, tm, meta)
+
+    digest = {"teacher_backend": backend, "teacher_is_simulator": backend == "simulated",
+              "selected_prompt": prompts[int(selected.split("_")[1])] if selected and prompts else selected,
+              "groups": {}}
+    for group in sorted(tm.loc[tm["split"] == "test", "group"].unique()):
+        q = teacher_prompt_quality(tm, group, base, selected, prompts)
+        ga = gate_analysis(tm, gates.df, group)
+        vote = q[q["config"].str.contains("majority vote")].iloc[0]
+        digest["groups"][str(group)] = {
+            "vote_iou": _round(vote["iou"]), "vote_bf1": _round(vote["bf1"]),
+            "base_iou": _round(q.iloc[0]["iou"]),
+            "selected_iou": _round(q.iloc[1]["iou"]) if selected else None,
+            "gate_rho_iou": _round(ga["rho_iou"]), "gate_p_iou": ga["p_iou"] if np.isfinite(ga["p_iou"]) else None,
+            "gate_rho_bf1": _round(ga["rho_bf1"]), "gate_p_bf1": ga["p_bf1"] if np.isfinite(ga["p_bf1"]) else None,
+            "gate_zero_images": int(ga["table"]["images"].iloc[0]),
+        }
+    with atomic_path(metrics_json) as tmp:
+        tmp.write_text(json.dumps(digest, indent=1, sort_keys=True))
+    click.echo(f"analyze_teacher: {idx.size} images x {k_prompts + 1} sources -> {out} "
+               f"(teacher backend: {backend}{' = SIMULATOR' if backend == 'simulated' else ''})", err=True)
+
+
+if __name__ == "__main__":
+    main()

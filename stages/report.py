@@ -1,0 +1,54 @@
+"""Stage report: the paper's tables and figures from the evaluation artifacts.
+
+Writes ``<out>/report.md``, ``<out>/report.html`` (ONE self-contained page: figures inline as base64
+PNG, no external resources), ``<out>/figures/*.png`` and the DVC plot tables
+``<out>/plots/training_curves.csv`` (epoch, val_iou, ..., method, seed) and
+``<out>/plots/threshold_curve.csv`` (tau, val_iou, method, seed).  Inputs that do not exist (e.g.
+efficiency.parquet before the benchmark ran) are reported as missing in the page, not fatal.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from pipeline.params import section
+from stages._common import meta_for, stage_code_version, stage_command
+
+CODE_MODULES = ("report", "stats.py", "metrics.py", "inference.py", "artifacts.py")
+
+
+@stage_command("report")
+@click.option("--artifacts", "art", default="artifacts", show_default=True, type=click.Path(file_okay=False))
+@click.option("--out", default="reports/demo", show_default=True, type=click.Path(file_okay=False),
+              help="report directory (dvc.yaml: reports/${profile})")
+def main(params, device, art, out):
+    """Write report.md, a self-contained report.html, figures and plot CSVs."""
+    from pipeline.artifacts import artifact_dir
+    from pipeline.device import resolve_device
+    from pipeline.report.build import build_report
+    from pipeline.report.document import render_html, render_markdown
+
+    cfg = section(params, "report")
+    profile = str(params.get("profile", ""))
+    report, plots, inp = build_report(art, cfg, profile, resolve_device(device))
+    code = stage_code_version(__file__, *CODE_MODULES)
+    meta = meta_for("report", "report", code, {"report": cfg, "profile": profile}, list(inp.found.values()),
+                    missing_inputs=sorted(inp.missing))
+    with artifact_dir(out, meta) as tmp:
+        (tmp / "figures").mkdir()
+        for fig in report.figures():
+            (tmp / "figures" / fig.filename).write_bytes(fig.png)
+        (tmp / "plots").mkdir()
+        for name, df in plots.items():
+            df.to_csv(tmp / "plots" / f"{name}.csv", index=False)
+        (tmp / "report.md").write_text(render_markdown(report))
+        (tmp / "report.html").write_text(render_html(report))
+    missing = f" (missing inputs: {', '.join(sorted(inp.missing))})" if inp.missing else ""
+    click.echo(f"report: {len(report.tables())} tables, {len(report.figures())} figures -> {Path(out)}{missing}",
+               err=True)
+
+
+if __name__ == "__main__":
+    main()

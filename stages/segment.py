@@ -1,0 +1,118 @@
+"""``geodistill segment``: binary spacecraft masks for image files with a trained or exported student.
+
+--checkpoint  a checkpoint directory (artifacts/checkpoints/<method>/<seed>) or a deploy bundle
+              (artifacts/deploy, from ``geodistill export``)
+--input       one image file or a folder (searched recursively for png/jpg/jpeg/tif/tiff/bmp)
+--output      folder for ``<name>_mask.png`` (0/255, at the image's original size), optional
+              ``<name>_prob.png`` (--save-prob) and ``<name>_overlay.png`` (--overlay), and skipped.csv
+
+tau: ``--tau`` > the bundle's deploy.json > the checkpoint's row in ``--thresholds`` (default
+artifacts/thresholds.parquet when it exists) > ``calibrate.fixed_tau`` of the params file (with a
+warning).  Working resolution: ``--resolution`` > bundle / checkpoint > ``data.resolution``.
+
+Unlike the pipeline stages this is a user tool: it runs anywhere, and reads the params file only
+for those two fallbacks, when that file exists.  Unreadable images are reported on stderr and in
+skipped.csv and skipped; the rest go on.  Outputs never overwrite inputs (an output folder inside the
+input folder is refused).  Bad options: one line on stderr, exit code 2.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from pipeline.errors import InputError
+
+
+def _fallback(params_file: str, overrides: tuple[str, ...], section_name: str, key: str):
+    """``section.key`` from the params file (profile applied), or None when the file does not exist."""
+    from pipeline.params import load_params
+
+    if not Path(params_file).exists():
+        return None
+    return (load_params(params_file, overrides).get(section_name) or {}).get(key)
+
+
+def run(checkpoint, input_path, output, tau, resolution, thresholds, backend, batch_size, save_prob, overlay,
+        device, params_file, overrides) -> int:
+    from pipeline import deploy
+    from pipeline.device import resolve_device
+    from stages._common import setup_logging
+
+    setup_logging()
+    if not checkpoint:
+        raise InputError("--checkpoint missing: a checkpoint directory or a deploy bundle (geodistill export)")
+    if not input_path:
+        raise InputError("--input missing: an image file or a folder of images")
+    if not output:
+        raise InputError("--output missing: a folder for the masks")
+    if batch_size < 1:
+        raise InputError(f"--batch-size {batch_size}: must be >= 1")
+    root, files = deploy.discover_images(input_path)
+    if not files:
+        raise InputError(f"--input {input_path}: no image files (png, jpg, jpeg, tif, tiff, bmp)")
+    stems = deploy.plan_outputs(root, files, output, Path(input_path).is_dir())
+
+    seg = deploy.load_segmenter(checkpoint, backend, resolve_device(device), thresholds)
+    if tau is not None:
+        tau, source = deploy.check_tau(tau, "--tau"), "--tau"
+    elif seg.tau is not None:
+        tau, source = float(seg.tau), seg.tau_source
+    else:
+        fixed = _fallback(params_file, overrides, "calibrate", "fixed_tau")
+        if fixed is None:
+            raise InputError(f"--checkpoint {checkpoint}: no calibrated tau found; pass --tau or --thresholds")
+        tau, source = deploy.check_tau(fixed, "calibrate.fixed_tau"), "calibrate.fixed_tau (uncalibrated)"
+        click.echo(f"segment: warning: no calibrated tau for {checkpoint}; using {source} = {tau}", err=True)
+    if resolution is None:
+        resolution = seg.resolution or _fallback(params_file, overrides, "data", "resolution")
+    if not isinstance(resolution, int) or resolution < 8:
+        raise InputError(f"--resolution: working resolution unknown or invalid ({resolution!r}); pass --resolution")
+
+    def report(path, reason):
+        click.echo(f"segment: skipped {path}: {reason}", err=True)  # and in skipped.csv
+
+    click.echo(f"segment: {len(files)} image(s), {seg.backend} backend, {resolution}px, tau={tau:.4g} ({source})",
+               err=True)
+    result = deploy.segment_files(seg, files, stems, tau=tau, resolution=resolution, batch_size=batch_size,
+                                  save_prob=save_prob, overlay=overlay, on_skip=report)
+    deploy.write_skipped_csv(Path(output) / "skipped.csv", result.skipped)
+    click.echo(f"segment: wrote {len(result.written)} mask(s) to {output}; skipped {len(result.skipped)} "
+               f"(see {Path(output) / 'skipped.csv'})", err=True)
+    if not result.written:
+        raise InputError(f"--input {input_path}: none of the {len(files)} file(s) could be read")
+    return 0
+
+
+@click.command(name="segment", help=__doc__.split("\n\n")[0])
+@click.option("--checkpoint", default=None, help="checkpoint directory or deploy bundle")
+@click.option("--input", "input_path", default=None, help="image file or folder")
+@click.option("--output", default=None, help="output folder")
+@click.option("--tau", type=float, default=None, help="threshold override (default: the calibrated one)")
+@click.option("--resolution", type=int, default=None, help="working resolution override")
+@click.option("--thresholds", default="artifacts/thresholds.parquet", show_default=True,
+              help="thresholds table used to find a checkpoint's calibrated tau (when it exists)")
+@click.option("--backend", default="auto", show_default=True,
+              help="auto | torch | torchscript | onnx (the last two need a deploy bundle)")
+@click.option("--batch-size", type=int, default=8, show_default=True)
+@click.option("--save-prob", is_flag=True, help="also write <name>_prob.png (P x 255)")
+@click.option("--overlay", is_flag=True, help="also write <name>_overlay.png")
+@click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
+@click.option("--params", "params_file", default="params.yaml", show_default=True,
+              help="params file, read only for the tau / resolution fallbacks")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="override a param (repeatable)")
+def main(checkpoint, input_path, output, tau, resolution, thresholds, backend, batch_size, save_prob, overlay,
+         device, params_file, overrides):
+    try:
+        run(checkpoint, input_path, output, tau, resolution, thresholds, backend, batch_size, save_prob, overlay,
+            device, params_file, overrides)
+    except InputError as e:
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        click.echo(f"geodistill segment: error: {msg}", err=True)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

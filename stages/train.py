@@ -1,0 +1,105 @@
+"""Stage ``train`` (DVC: train_stage1, train_stage2, ablate): train one (method, seed) student.
+
+    python -m stages.train --stage 1|2 --method M --seed S --artifacts artifacts \
+        [--init artifacts/checkpoints/plain/S] --out artifacts/checkpoints/M/S
+
+* (M, S) outside the active profile (``protocol.active_seeds/active_methods``; ablations:
+  ``protocol.active_ablations`` with ``protocol.ablation_seed``) -> an ``inactive_run`` marker
+  directory, written in about a second without importing torch.
+* ``--init`` is the Stage-I checkpoint for warm-started methods (``geodistill``, ``sdf_*_gated``,
+  ``no_gate``, ``geodistill_adaptive``); methods trained from scratch (``gabi``, ``*_scratch*``,
+  Stage-I methods) ignore it and do not record it in their lineage.
+* Per-epoch resume state lives under ``--resume-dir``/<checkpoint fingerprint> (default
+  ``.cache/train``, outside DVC outs): a killed run continues where it stopped; a finished one reruns
+  instantly.
+* Exit codes: 0 ok; 2 bad input (one line naming the file or parameter); 1 training diverged
+  (non-finite loss; one line, no checkpoint written).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from pipeline.errors import InputError, TrainingDiverged
+from pipeline.params import section
+from stages._common import meta_for, stage_code_version, stage_command
+
+CODE_MODULES = ("training.py", "methods.py", "losses.py", "model.py", "inference.py", "metrics.py",
+                "artifacts.py", "device.py")
+
+
+def write_inactive(out: str, stage: int, method: str, seed: int, protocol: dict) -> None:
+    """The matrix entry's marker directory (schema ``inactive_run``); no torch import."""
+    from pipeline.artifacts import artifact_dir
+
+    meta = meta_for("inactive_run", "train", stage_code_version(__file__, "methods.py"),
+                    {"protocol": protocol, "method": method, "seed": seed, "stage": stage},
+                    reason="not in the active profile (params protocol.active_*)")
+    with artifact_dir(out, meta) as tmp:
+        (tmp / "INACTIVE").write_text(f"{method} seed {seed}: not in the active profile\n")
+
+
+def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts: str, init: str | None,
+        out: str, resume_dir: str) -> Path:
+    from pipeline.methods import fingerprint_params, get_method, is_active
+
+    cfg = section(params, "train")
+    protocol = section(params, "protocol")
+    spec = get_method(method)
+    if spec.stage != stage:
+        raise InputError(f"--stage {stage}: method {method!r} belongs to --stage {spec.stage}")
+    if not is_active(method, seed, protocol):
+        write_inactive(out, stage, method, seed, protocol)
+        click.echo(f"train: {method} seed {seed} is inactive in this profile; wrote marker {out}", err=True)
+        return Path(out)
+
+    from pipeline import training
+    from pipeline.device import resolve_device
+    from pipeline.inference import save_checkpoint
+
+    manifest = training.load_manifest(artifacts)
+    data, inputs = training.load_training_data(artifacts, spec, cfg, manifest)
+    val, val_inputs = training.validation_reference(artifacts, manifest)
+    init_state = None
+    if spec.init == "stage1":
+        if not init:
+            raise InputError(f"--init missing: method {method!r} warm-starts from a Stage-I checkpoint")
+        init_state, init_art = training.load_init(init)
+        inputs.append(init_art)
+    meta = meta_for("checkpoint", "train", stage_code_version(__file__, *CODE_MODULES),
+                    {"train": fingerprint_params(spec, cfg), "method": method, "seed": seed, "stage": stage},
+                    inputs + val_inputs, **data.stats)
+    result = training.train(spec, cfg, data, val, seed, init_state=init_state, device=resolve_device(device),
+                            resume_dir=Path(resume_dir) / meta.fingerprint)
+    meta.extra.update(result.info)
+    save_checkpoint(out, result.model, meta, result.log, method=method, seed=seed, stage=stage,
+                    selected_epoch=result.selected_epoch, selection=result.info["selection"],
+                    mode=result.info["mode"], fingerprint=meta.fingerprint)
+    click.echo(f"train: {method} seed {seed}: selected epoch {result.selected_epoch} "
+               f"({result.info['selection']}); wrote {out}", err=True)
+    return Path(out)
+
+
+@stage_command("train")
+@click.option("--stage", type=click.IntRange(1, 2), required=True, help="1 (Stage-I methods) or 2")
+@click.option("--method", required=True, help="plain, geodistill, ... (pipeline.methods.METHODS)")
+@click.option("--seed", type=int, required=True)
+@click.option("--artifacts", default="artifacts", show_default=True, type=click.Path(file_okay=False))
+@click.option("--init", default=None, help="Stage-I checkpoint dir (warm-started methods only; others ignore it)")
+@click.option("--out", required=True, help="checkpoint directory to write")
+@click.option("--resume-dir", default=".cache/train", show_default=True,
+              help="per-epoch resume states (outside DVC outs)")
+def main(params, device, stage, method, seed, artifacts, init, out, resume_dir):
+    """Train one (method, seed) student on pseudo-targets; write checkpoint + training log."""
+    try:
+        run(params, device, stage, method, seed, artifacts, init, out, resume_dir)
+    except TrainingDiverged as e:
+        click.echo(f"geodistill train: training diverged: {str(e).splitlines()[0]}", err=True)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

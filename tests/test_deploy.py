@@ -1,0 +1,268 @@
+"""Export of the mask path (TorchScript, ONNX) with parity checks, and the efficiency benchmark on a
+tiny model (32 px, one iteration) -- no timing assertions, only that everything runs and is consistent."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from click.testing import CliRunner
+
+from pipeline import deploy
+from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
+from pipeline.inference import load_student, save_checkpoint
+from pipeline.model import TinyUNet
+
+REPO = Path(__file__).resolve().parent.parent
+PARAMS = str(REPO / "params.yaml")
+RES = 32
+HAS_ONNX = deploy.onnx_unavailable_reason() is None
+
+
+def tiny_model(seed: int = 0, geometry: bool = False) -> TinyUNet:
+    """A small random TinyUNet whose BN statistics are not the identity (non-trivial logits)."""
+    torch.manual_seed(seed)
+    m = TinyUNet(channels=(4, 8, 16))
+    for mod in m.modules():
+        if isinstance(mod, torch.nn.BatchNorm2d):
+            mod.running_mean.uniform_(-0.2, 0.2)
+            mod.running_var.uniform_(0.5, 1.5)
+    if geometry:
+        m.add_geometry_heads()
+    return m.eval()
+
+
+def make_checkpoint(path: Path, seed: int = 0, method: str = "geodistill", run_seed: int = 42,
+                    geometry: bool = False) -> Path:
+    log = pd.DataFrame({"epoch": [1], "stage": [2], "loss": [0.1], "val_iou": [0.5], "val_bf1": [0.5],
+                        "lr": [1e-4], "seconds": [1.0]})
+    meta = make_meta("checkpoint", "train", "test", {"seed": run_seed, "method": method})
+    return save_checkpoint(path, tiny_model(seed, geometry), meta, log, method=method, seed=run_seed, stage=2,
+                           selected_epoch=1)
+
+
+def make_thresholds(path: Path, rows) -> Path:
+    df = pd.DataFrame(rows, columns=["method", "seed", "tau", "val_iou"])
+    write_parquet(path, df, make_meta("thresholds", "calibrate", "test", {}))
+    return path
+
+
+def make_artifacts(root: Path, n: int = 8) -> Path:
+    """manifest / images / reference at 32 px: bright boxes on dark backgrounds, half train, half val."""
+    rng = np.random.default_rng(0)
+    images = np.full((n, RES, RES, 3), 20, np.uint8)
+    masks = np.zeros((n, RES, RES), bool)
+    for i in range(n):
+        y, x = rng.integers(4, 16, size=2)
+        masks[i, y:y + 12, x:x + 10] = True
+        images[i][masks[i]] = 200
+    ids = [f"img{i}" for i in range(n)]
+    splits = ["train", "val"] * (n // 2)
+    df = pd.DataFrame({"image_id": ids, "dataset": "synthetic", "domain": "synthetic", "split": splits,
+                       "group": splits, "spacecraft": "sc", "image_path": [f"{i}.png" for i in ids],
+                       "mask_path": None, "part_path": None, "width": RES, "height": RES,
+                       "sha256": [hashlib.sha256(im.tobytes()).hexdigest() for im in images]})
+    root.mkdir(parents=True, exist_ok=True)
+    write_parquet(root / "manifest.parquet", df, make_meta("manifest", "prepare", "test", {}))
+    write_zarr(root / "images.zarr", {"image": images}, make_meta("images", "prepare", "test", {}),
+               attrs={"image_ids": ids})
+    write_zarr(root / "reference.zarr", {"mask": masks, "has_mask": np.ones(n, bool)},
+               make_meta("reference", "prepare", "test", {}), attrs={"image_ids": ids})
+    return root
+
+
+def run_export(ckpt, out, *extra):
+    args = ["--params", PARAMS, "--device", "cpu", "--set", f"data.resolution={RES}",
+            "--checkpoint", str(ckpt), "--out", str(out), *extra]
+    return CliRunner().invoke(__import__("stages.export", fromlist=["main"]).main, args)
+
+
+@pytest.fixture(autouse=True)
+def quiet(monkeypatch):
+    monkeypatch.setenv("GEODISTILL_QUIET", "1")
+
+
+# ---- thresholding ---------------------------------------------------------------------------------
+def test_logit_threshold_matches_sigmoid_threshold():
+    z = np.linspace(-6, 6, 1001)
+    p = 1 / (1 + np.exp(-z))
+    for tau in (0.05, 0.3, 0.5, 0.77, 0.95):
+        assert np.array_equal(z >= deploy.logit_threshold(tau), deploy.mask_from_probs(p, tau) | np.isclose(p, tau))
+    assert deploy.logit_threshold(0.5) == 0.0
+    assert deploy.logit_threshold(0.0) == -np.inf and deploy.logit_threshold(1.0) == np.inf
+
+
+def test_compare_logits_detects_drift_and_mask_flips():
+    ref = np.array([[-2.0, -0.5, 0.5, 2.0]])
+    same = deploy.compare_logits(ref, ref + 1e-7, tau=0.5, atol=1e-4)
+    assert same["passed"] and same["masks_identical"] and same["mask_pixels_differ"] == 0
+    flipped = ref.copy()
+    flipped[0, 1] = 0.6  # across logit(0.5) = 0
+    bad = deploy.compare_logits(ref, flipped, tau=0.5, atol=1e-4)
+    assert not bad["passed"] and not bad["masks_identical"] and bad["mask_pixels_differ"] == 1
+    assert bad["max_abs_diff"] == pytest.approx(1.1)
+    # a drift that flips nothing still fails the logit tolerance
+    drift = deploy.compare_logits(ref, ref + 0.01, tau=0.5, atol=1e-4)
+    assert not drift["passed"] and drift["masks_identical"]
+    # the threshold is logit(tau): at tau = 0.9 (logit 2.197) a shift of 0.3 flips the pixel at 2.0
+    shifted = deploy.compare_logits(ref, ref + 0.3, tau=0.9, atol=1.0)
+    assert shifted["passed"] and shifted["mask_pixels_differ"] == 1
+    assert not deploy.compare_logits(ref, np.full_like(ref, np.nan), tau=0.5, atol=1.0)["passed"]
+    with pytest.raises(deploy.ParityError):
+        deploy.require_parity({"onnx": bad})
+
+
+# ---- export ---------------------------------------------------------------------------------------
+def test_export_bundle_parity_and_tau_from_thresholds(tmp_path):
+    ckpt = make_checkpoint(tmp_path / "ckpt", geometry=True)
+    thr = make_thresholds(tmp_path / "thr.parquet", [("plain", 42, 0.31, 0.7), ("geodistill", 42, 0.42, 0.8),
+                                                     ("geodistill", 7, 0.6, 0.8)])
+    r = run_export(ckpt, tmp_path / "deploy", "--thresholds", str(thr))
+    assert r.exit_code == 0, r.output
+    bundle = open_artifact(tmp_path / "deploy", "deploy")
+    info = json.loads((tmp_path / "deploy" / "deploy.json").read_text())
+    assert info["tau"] == pytest.approx(0.42) and "calibrated" in info["tau_source"]
+    assert info["resolution"] == RES and info["method"] == "geodistill" and info["seed"] == 42
+    assert info["source"]["checkpoint_fingerprint"] == open_artifact(ckpt).fingerprint
+    assert bundle.meta.inputs[0]["fingerprint"] == open_artifact(ckpt).fingerprint
+    # the mask path only: no geometry heads in any exported file
+    payload = torch.load(tmp_path / "deploy" / "model.pt", weights_only=False)
+    assert not any(k.startswith("geometry_heads") for k in payload["state_dict"])
+    par = info["parity"]
+    assert par["torchscript"]["passed"] and par["torchscript"]["masks_identical"]
+    assert par["torchscript"]["max_abs_diff"] <= 1e-4
+    if HAS_ONNX:
+        assert par["onnx"]["passed"] and par["onnx"]["masks_identical"] and par["onnx"]["max_abs_diff"] <= 1e-4
+        assert (tmp_path / "deploy" / "model.onnx").exists() and info["opset"] == 17
+    for name, sha in info["files"].items():
+        assert deploy.file_sha256(tmp_path / "deploy" / name) == sha
+
+
+def test_exported_models_reproduce_pytorch_on_new_sizes_and_batches(tmp_path):
+    """Parity beyond the export-time inputs: batch 3 at another (odd) size, independently computed."""
+    ckpt = make_checkpoint(tmp_path / "ckpt", seed=1)
+    assert run_export(ckpt, tmp_path / "deploy", "--tau", "0.5").exit_code == 0
+    model, _ = load_student(ckpt)
+    x = torch.rand(3, 3, 24, 40, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        ref = model(x).numpy()
+    ts = deploy.load_torchscript(tmp_path / "deploy" / "model.ts")
+    with torch.no_grad():
+        got = ts(x).numpy()
+    assert got.shape == (3, 1, 24, 40)
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+    assert np.array_equal(got >= 0, ref >= 0)
+    if HAS_ONNX:
+        sess = deploy.ort_session(tmp_path / "deploy" / "model.onnx")
+        got = sess.run(None, {deploy.ONNX_INPUT: x.numpy()})[0]
+        np.testing.assert_allclose(got, ref, atol=1e-4)
+        assert np.array_equal(got >= 0, ref >= 0)
+
+
+def test_export_falls_back_to_fixed_tau_and_refuses_bad_input(tmp_path):
+    ckpt = make_checkpoint(tmp_path / "ckpt")
+    thr = make_thresholds(tmp_path / "thr.parquet", [("plain", 42, 0.31, 0.7)])
+    r = run_export(ckpt, tmp_path / "deploy", "--thresholds", str(thr), "--set", "calibrate.fixed_tau=0.45",
+                   "--no-onnx")
+    assert r.exit_code == 0, r.output
+    info = json.loads((tmp_path / "deploy" / "deploy.json").read_text())
+    assert info["tau"] == 0.45 and info["tau_source"].startswith("calibrate.fixed_tau")
+    assert not (tmp_path / "deploy" / "model.onnx").exists() and "onnx" not in info["parity"]
+    # missing checkpoint, inactive marker, bad tau: exit 2 with one line, nothing written
+    r = run_export(tmp_path / "nope", tmp_path / "d2")
+    assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1 and "nope" in r.output
+    inactive = tmp_path / "inactive"
+    from pipeline.artifacts import artifact_dir
+
+    with artifact_dir(inactive, make_meta("inactive_run", "train", "test", {})):
+        pass
+    r = run_export(inactive, tmp_path / "d3")
+    assert r.exit_code == 2 and "inactive" in r.output
+    r = run_export(ckpt, tmp_path / "d4", "--tau", "1.5")
+    assert r.exit_code == 2 and "--tau" in r.output
+    assert not any((tmp_path / d).exists() for d in ("d2", "d3", "d4"))
+
+
+@pytest.mark.skipif(not HAS_ONNX, reason="onnx/onnxruntime not installed (optional extra)")
+def test_int8_quantisation_keeps_masks_close(tmp_path):
+    model = tiny_model(2)
+    onnx_path = deploy.export_onnx(model, tmp_path / "m.onnx", RES, 17)
+    calib = (deploy.parity_inputs(RES, n=4, seed=5).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    q = deploy.quantize_onnx_int8(onnx_path, tmp_path / "q.onnx", calib)
+    import onnx
+
+    ops = {n.op_type for n in onnx.load(str(q)).graph.node}
+    assert "QuantizeLinear" in ops and "DequantizeLinear" in ops
+    x = deploy.parity_inputs(RES, n=2, seed=9)
+    ref = deploy.torch_logits(model, x)
+    got = deploy.ort_session(q).run(None, {deploy.ONNX_INPUT: x.numpy()})[0]
+    # int8 is an approximation: logits track fp32 closely relative to their spread
+    assert np.corrcoef(ref.ravel(), got.ravel())[0, 1] > 0.98
+
+
+# ---- benchmark ------------------------------------------------------------------------------------
+def test_benchmark_tiny_model_writes_json_and_parquet(tmp_path):
+    from stages.benchmark import main as bench_main
+
+    ckpt = make_checkpoint(tmp_path / "ckpt")
+    assert run_export(ckpt, tmp_path / "deploy", "--tau", "0.5").exit_code == 0
+    art = make_artifacts(tmp_path / "art")
+    variants = "[fp32_eager_nchw,fp32_channels_last,bf16_autocast,torchscript_frozen,onnxruntime_fp32,onnxruntime_int8]"
+    args = ["--params", PARAMS, "--device", "cpu", "--deploy", str(tmp_path / "deploy"), "--artifacts", str(art),
+            "--out", str(tmp_path / "eff.parquet"), "--json", str(tmp_path / "eff.json"),
+            "--set", "deploy.benchmark_iters=1", "--set", "deploy.benchmark_warmup=0",
+            "--set", "deploy.benchmark_batches=[1,2]", "--set", f"deploy.benchmark_variants={variants}",
+            "--set", "deploy.int8_calibration_images=2"]
+    r = CliRunner().invoke(bench_main, args)
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "eff.json").read_text())
+    expected = {"fp32_eager_nchw", "fp32_channels_last", "bf16_autocast", "torchscript_frozen"}
+    if HAS_ONNX:
+        expected |= {"onnxruntime_fp32", "onnxruntime_int8"}
+    assert set(res["variants"]) == expected
+    assert res["resolution"] == RES and res["n_val"] == 4 and res["baseline"] == "fp32_eager_nchw"
+    model, _ = load_student(ckpt)
+    from pipeline.model import count_flops, count_parameters
+
+    for name, v in res["variants"].items():
+        assert v["params"] == count_parameters(model) and v["gflops"] == pytest.approx(count_flops(model, RES, RES) / 1e9)
+        assert v["latency_ms"] > 0 and v["throughput"] > 0 and v["batch"] in (1, 2)
+        assert 0.0 <= v["iou"] <= 1.0
+    assert res["variants"]["fp32_eager_nchw"]["iou_delta"] == 0.0
+    # fp32 variants compute the same masks up to round-off, so their IoU barely moves
+    assert abs(res["variants"]["fp32_channels_last"]["iou_delta"]) < 0.02
+    # the baseline IoU is the mean Image IoU of [P >= tau] on the val rows, computed independently here
+    from pipeline.inference import predict_probs
+    from pipeline.metrics import image_iou
+
+    imgs = open_artifact(art / "images.zarr").numpy("image")[1::2]
+    gts = open_artifact(art / "reference.zarr").numpy("mask")[1::2]
+    probs = predict_probs(model, imgs, channels_last=False)
+    expect = np.mean([image_iou(p >= 0.5, g) for p, g in zip(probs, gts)])
+    assert res["variants"]["fp32_eager_nchw"]["iou"] == pytest.approx(expect)
+    table = open_artifact(tmp_path / "eff.parquet", "efficiency").df
+    assert set(table["variant"]) == expected
+    assert {"iou_delta", "batch", "resolution", "speedup"} <= set(table.columns)
+    assert "x base" in r.stdout
+
+
+def test_benchmark_standalone_checkpoint_without_artifacts(tmp_path):
+    from stages.benchmark import main as bench_main
+
+    ckpt = make_checkpoint(tmp_path / "ckpt")
+    args = ["--params", PARAMS, "--device", "cpu", "--checkpoint", str(ckpt), "--artifacts", str(tmp_path / "none"),
+            "--thresholds", str(tmp_path / "none.parquet"), "--resolution", "24", "--json", str(tmp_path / "e.json"),
+            "--set", "deploy.benchmark_iters=1", "--set", "deploy.benchmark_warmup=0",
+            "--set", "deploy.benchmark_batches=[1]", "--set", "deploy.benchmark_variants=[fp32_eager_nchw,fp32_channels_last]"]
+    r = CliRunner().invoke(bench_main, args)
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "e.json").read_text())
+    assert res["resolution"] == 24 and set(res["variants"]) == {"fp32_eager_nchw", "fp32_channels_last"}
+    assert res["variants"]["fp32_eager_nchw"]["iou"] is None and "iou" in res["notes"]
+    r = CliRunner().invoke(bench_main, args + ["--set", "deploy.benchmark_variants=[warp_drive]"])
+    assert r.exit_code == 2 and "warp_drive" in r.output

@@ -1,0 +1,203 @@
+"""Report stage end to end (Markdown + one self-contained HTML page), missing inputs, tables, figures,
+and the page rendered in headless Chromium."""
+
+from __future__ import annotations
+
+import base64
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.artifacts import make_meta, open_artifact, write_parquet
+from pipeline.report import figures as F
+from pipeline.report import tables as T
+from test_evaluate import build_tiny_artifacts, invoke, write_params
+
+CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """Tiny artifacts + calibrate/evaluate/analyze_teacher outputs + efficiency table + the report."""
+    from stages.analyze_teacher import main as analyze
+    from stages.calibrate import main as calibrate
+    from stages.evaluate import main as evaluate
+    from stages.report import main as report
+
+    root = tmp_path_factory.mktemp("report")
+    art = build_tiny_artifacts(root / "artifacts")
+    params = write_params(root / "params.yaml")
+    common = ["--params", str(params), "--artifacts", str(art)]
+    for main, extra in [
+        (calibrate, ["--checkpoints", str(art / "checkpoints"), "--out", str(art / "thresholds.parquet")]),
+        (evaluate, ["--checkpoints", str(art / "checkpoints"), "--thresholds", str(art / "thresholds.parquet"),
+                    "--out", str(art / "metrics.parquet"), "--summary", str(art / "summary.parquet"),
+                    "--metrics-json", str(art / "metrics" / "summary.json")]),
+        (analyze, ["--out", str(art / "teacher_metrics.parquet"), "--metrics-json", str(art / "metrics" / "teacher.json")]),
+    ]:
+        res = invoke(main, common + extra)
+        assert res.exit_code == 0, res.output
+    eff = pd.DataFrame({"variant": ["fp32_eager", "bf16_channels_last"], "params": [263_000, 263_000],
+                        "gflops": [18.2, 18.2], "latency_ms": [500.0, 110.0], "throughput": [2.0, 9.1],
+                        "peak_mb": [100.0, 80.0], "iou_delta": [0.0, -0.001]})
+    write_parquet(art / "efficiency.parquet", eff, make_meta("efficiency", "fixture", "test", {}, []))
+    out = root / "reports" / "demo"
+    res = invoke(report, common + ["--out", str(out)])
+    assert res.exit_code == 0, res.output
+    return root, art, params, out
+
+
+def test_report_files_and_tables(built):
+    root, art, params, out = built
+    for f in ("report.md", "report.html", "meta.json", "figures/qualitative.png", "figures/pseudo_targets.png",
+              "figures/threshold_curves.png", "figures/training_curves.png", "plots/training_curves.csv",
+              "plots/threshold_curve.csv"):
+        assert (out / f).is_file(), f
+    assert open_artifact(out, "report").meta.stage == "report"
+    md = (out / "report.md").read_text()
+    for key in ("tab:spacesense-results", "tab:teacher-prompt-quality", "tab:teacher-domain-quality",
+                "tab:gate-groups", "tab:efficiency", "tab:thresholds"):
+        assert key in md, key
+    # every results table exists at the calibrated and at the fixed threshold
+    assert "(validation-calibrated tau)" in md and "(fixed tau = 0.5)" in md
+    # honesty: synthetic data and a simulated teacher are named as such
+    assert "SYNTHETIC" in md and md.count("SIMULATOR") >= 3
+    # numbers in the table are the summary's
+    s = open_artifact(art / "summary.parquet").df
+    r = s[(s.group == "KCP") & (s.method == "geodistill") & (s.threshold_mode == "calibrated")].iloc[0]
+    assert f"{r.iou_mean:.4f} ± {r.iou_std:.4f}" in md
+    assert f"{r.gain_iou:+.4f} [{r.gain_iou_lo:.4f}, {r.gain_iou_hi:.4f}]" in md
+    # plots for DVC
+    tc = pd.read_csv(out / "plots" / "training_curves.csv")
+    assert {"epoch", "val_iou", "method", "seed"} <= set(tc.columns) and len(tc) == 4 * 3
+    th = pd.read_csv(out / "plots" / "threshold_curve.csv")
+    assert list(th.columns) == ["tau", "val_iou", "method", "seed"] and len(th) == 4 * 19
+
+
+def test_html_is_one_self_contained_page(built):
+    _, _, _, out = built
+    html = (out / "report.html").read_text()
+    assert html.count("<table") == (out / "report.md").read_text().count("(`tab:")
+    srcs = re.findall(r'src="([^"]+)"', html)
+    assert len(srcs) == 4 and all(s.startswith("data:image/png;base64,") for s in srcs)
+    # inline images decode to the PNGs written under figures/
+    png = base64.b64decode(srcs[0].split(",", 1)[1])
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape[0] > 50
+    # nothing external: no links, scripts or stylesheets to fetch
+    assert not re.search(r'(href|src)="(https?:|//|/)', html) and "<script" not in html and "<link" not in html
+
+
+def test_report_with_missing_tables_says_so(tmp_path, built):
+    """Only the data artifacts exist: every other section names the missing artifact and its stage."""
+    from stages.report import main as report
+
+    root, art, params, _ = built
+    part = tmp_path / "artifacts"
+    part.mkdir()
+    for f in ("manifest.parquet", "images.zarr", "reference.zarr"):
+        src = art / f
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, part / f)
+    out = tmp_path / "rep"
+    res = invoke(report, ["--params", str(params), "--artifacts", str(part), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    md = (out / "report.md").read_text()
+    for f, stage in (("summary.parquet", "evaluate"), ("thresholds.parquet", "calibrate"),
+                     ("teacher_metrics.parquet", "analyze_teacher"), ("efficiency.parquet", "benchmark")):
+        assert f"**Missing: `{f}`.**" in md and f"`{stage}` stage" in md
+    assert "Missing: training logs" in md
+    assert (out / "report.html").read_text().count('class="missing"') >= 5
+    # an empty artifacts directory still gives a (mostly "missing") report
+    res = invoke(report, ["--params", str(params), "--artifacts", str(tmp_path / "none"), "--out", str(tmp_path / "r2")])
+    assert res.exit_code == 0 and "Missing: `manifest.parquet`" in (tmp_path / "r2" / "report.md").read_text()
+
+
+def test_ablation_tables_from_method_definitions():
+    rows = []
+    for method, base in (("plain", 0.5), ("geodistill", 0.6), ("sdf_gated", 0.58), ("no_gate", 0.55),
+                         ("full_scratch_10", 0.4)):
+        for i in range(4):
+            rows.append(dict(group="KCP", seed=42, threshold_mode="calibrated", method=method, image_id=i,
+                             iou=base + 0.01 * i, bf1=base + 0.1))
+    means = T.ablation_means(pd.DataFrame(rows), "KCP", 42, "calibrated")
+    assert means.loc["geodistill", "iou"] == pytest.approx(0.615)
+    epochs = {"plain": 20, "geodistill": 10, "sdf_gated": 10, "no_gate": 10, "full_scratch_10": 10}
+    warm = T.warm_start_table(means, epochs, "KCP", 42, "calibrated")
+    got = {r[0]: r[1:4] for r in warm.rows}
+    assert got["Plain Student"] == ["20", "--", "20"]
+    assert got["GeoDistill-Refine"] == ["20", "10", "30"]          # warm start: Stage I from plain
+    assert got["Full geometry, from scratch (10)"] == ["--", "10", "10"]
+    comp = {r[0]: r[1:5] for r in T.component_table(means, "KCP", 42, "calibrated").rows}
+    assert comp["Stage I -> gated SDF"] == ["✓", "", "", "✓"]
+    assert comp["SDF + skeleton + area, no gate"] == ["✓", "✓", "✓", ""]
+    assert comp["GeoDistill-Refine"] == ["✓", "✓", "✓", "✓"]
+    # no ablation run -> no ablation table
+    assert T.warm_start_table(means.loc[["plain", "geodistill"]], epochs, "KCP", 42, "calibrated") is None
+
+
+def test_formatting_helpers():
+    assert T.fmt_pm(0.5, np.nan) == "0.5000"
+    assert T.fmt_pm(0.5, 0.01) == "0.5000 ± 0.0100"
+    assert T.fmt_ci(0.0576, 0.0351, 0.0813) == "+0.0576 [0.0351, 0.0813]"
+    assert T.fmt(np.nan) == "--"
+    assert T.main_methods(["geodistill", "no_gate", "plain", "gabi"]) == ["plain", "gabi", "geodistill"]
+
+
+def test_error_overlay_colours():
+    img = np.zeros((8, 8, 3), np.uint8)
+    gt = np.zeros((8, 8), bool)
+    pred = np.zeros((8, 8), bool)
+    gt[2:6, 2:6] = True
+    pred[2:6, 4:8] = True
+    out = F.error_overlay(img, pred, gt, 8, contour=False)
+    tp, fp, fn = out[3, 4], out[3, 7], out[3, 2]
+    assert tp[1] > tp[0] and tp[1] > tp[2]        # green
+    assert fp[0] > fp[1] and fp[0] > fp[2]        # red
+    assert fn[2] > fn[0] and fn[2] > fn[1]        # blue
+    assert (out[0, 0] == 0).all()                 # true negative untouched
+    with_contour = F.error_overlay(img, pred, gt, 8)
+    assert tuple(with_contour[2, 2]) == F.GT_CONTOUR
+
+
+def test_line_plot_draws_series():
+    img = F.line_plot([{"x": [0, 1, 2], "y": [0.1, 0.5, 0.3], "label": "a", "marker": 1.0},
+                       {"x": [0, 2], "y": [0.2, 0.2], "label": "b", "color": (0, 200, 0)}], "t", "x", "y")
+    assert img.shape == (380, 640, 3)
+    colour_a = np.all(img == np.array(F.PALETTE[0], np.uint8), axis=2).sum()
+    colour_b = np.all(img == np.array((0, 200, 0), np.uint8), axis=2).sum()
+    assert colour_a > 100 and colour_b > 100
+    assert F.png_bytes(img)[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Chromium not installed (apt-get install chromium) -- "
+                                             "the headless-browser check of report.html is skipped")
+def test_report_renders_in_headless_chromium(built, tmp_path):
+    _, _, _, out = built
+    flags = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+             "--disable-background-networking", "--disable-component-update", "--disable-sync",
+             "--disable-dev-shm-usage"]
+    url = (out / "report.html").resolve().as_uri()
+    dom = subprocess.run(flags + [f"--user-data-dir={tmp_path / 'u1'}", "--dump-dom", url],
+                         capture_output=True, text=True, timeout=120)
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    html = dom.stdout
+    assert "GeoDistill-Refine report" in html
+    assert len(re.findall(r'<table data-key="tab:spacesense-results"', html)) == 2
+    assert 'data-key="tab:gate-groups"' in html and 'data-key="tab:efficiency"' in html
+    assert len(re.findall(r'<img [^>]*src="data:image/png;base64,', html)) == 4
+    shot = tmp_path / "shot.png"
+    res = subprocess.run(flags + [f"--user-data-dir={tmp_path / 'u2'}", f"--screenshot={shot}",
+                                  "--window-size=1200,3000", url], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and shot.exists(), res.stderr[-2000:]
+    img = cv2.imread(str(shot))
+    assert img is not None and img.shape[:2] == (3000, 1200)
+    # the page painted content: dark text pixels and coloured figure pixels, not a blank page
+    assert (img.min(axis=2) < 60).mean() > 0.002
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
+    assert (hsv[..., 1] > 120).sum() > 500

@@ -1,0 +1,125 @@
+"""SAM 3 backend, offline and for real: a tiny randomly initialised SAM 3 (the small Sam3Config of
+transformers' own tests) plus a CLIP tokenizer built from a vocabulary written here, saved with
+save_pretrained and loaded through the backend."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("transformers")
+
+from pipeline.errors import InputError  # noqa: E402
+from pipeline.teachers.base import TeacherInput  # noqa: E402
+from pipeline.teachers.sam3 import Sam3Teacher, check_checkpoint_dir  # noqa: E402
+from pipeline.teachers.tiny_sam3 import build_tiny_sam3  # noqa: E402
+
+PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
+           "spacecraft with rigid body and appendages", "artificial object in space with panels and antennas"]
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory):
+    words = tuple(dict.fromkeys(w for p in PROMPTS for w in p.split()))
+    return build_tiny_sam3(tmp_path_factory.mktemp("sam3") / "tiny-sam3", words=words)
+
+
+@pytest.fixture(scope="module")
+def items():
+    rng = np.random.default_rng(0)
+    out = []
+    for i in range(3):
+        img = np.full((40, 40, 3), 15, np.uint8)
+        y, x = rng.integers(5, 25, size=2)
+        img[y:y + 12, x:x + 10] = rng.integers(120, 255, size=3)
+        img += rng.integers(0, 20, size=img.shape, dtype=np.uint8)
+        out.append(TeacherInput(f"img{i}", f"sha{i}", img))
+    return out
+
+
+def test_batched_prompts_equal_one_prompt_at_a_time(ckpt, items):
+    teacher = Sam3Teacher(ckpt, device="cpu", batch_size=3, resolution=(40, 40), score_threshold=0.0)
+    masks, scores = teacher.predict(items, PROMPTS)
+    assert masks.shape == (3, 6, 40, 40) and masks.dtype == bool
+    assert scores.shape == (3, 6) and scores.dtype == np.float32
+    ref_masks, ref_scores = teacher.predict_one_prompt_at_a_time(items, PROMPTS)
+    np.testing.assert_allclose(scores, ref_scores, rtol=1e-5, atol=1e-6)
+    assert (masks != ref_masks).mean() < 1e-3  # identical up to pixels exactly at the threshold
+    # the answers depend on the image and the prompt (so a mix-up of the batch order would show)
+    assert np.unique(scores.round(5)).size > 6
+    assert len({m.tobytes() for m in masks.reshape(18, -1)}) > 6
+    assert masks.any() and not masks.all()
+    # image batch size does not change the answers
+    m1, s1 = Sam3Teacher(ckpt, device="cpu", batch_size=1, resolution=(40, 40), score_threshold=0.0).predict(items, PROMPTS)
+    np.testing.assert_allclose(s1, scores, rtol=1e-5, atol=1e-6)
+    assert "torchvision" not in sys.modules
+
+
+def test_encoders_run_once(ckpt, items, monkeypatch):
+    teacher = Sam3Teacher(ckpt, device="cpu", batch_size=2, resolution=(40, 40), score_threshold=0.0)
+    model = teacher.load()
+    calls = {"text": 0, "vision": 0}
+    for name, key in (("get_text_features", "text"), ("get_vision_features", "vision")):
+        orig = getattr(model, name)
+
+        def wrapped(*a, _orig=orig, _key=key, **kw):
+            calls[_key] += 1
+            return _orig(*a, **kw)
+
+        monkeypatch.setattr(model, name, wrapped)
+    teacher.predict(items, PROMPTS)
+    teacher.predict(items[:1], PROMPTS)
+    assert calls == {"text": 1, "vision": 3}  # text once per run; vision once per image batch (2 + 1)
+
+
+def test_score_threshold_marks_prompts_invalid(ckpt, items):
+    base = Sam3Teacher(ckpt, device="cpu", resolution=(40, 40), score_threshold=0.0)
+    _, raw = base.predict(items, PROMPTS)
+    thr = float(np.median(raw))
+    masks, scores = Sam3Teacher(ckpt, device="cpu", resolution=(40, 40), score_threshold=thr).predict(items, PROMPTS)
+    invalid = raw <= thr
+    assert invalid.any() and (~invalid).any()
+    assert (scores[invalid] == 0).all() and not masks[invalid].any()
+    np.testing.assert_allclose(scores[~invalid], raw[~invalid], rtol=1e-5)
+
+
+def test_bf16_runs_and_fingerprint_differs(ckpt, items):
+    t32 = Sam3Teacher(ckpt, device="cpu", resolution=(40, 40))
+    t16 = Sam3Teacher(ckpt, device="cpu", dtype="bf16", resolution=(40, 40), score_threshold=0.0)
+    masks, scores = t16.predict(items[:2], PROMPTS)
+    assert masks.shape == (2, 6, 40, 40) and np.isfinite(scores).all()
+    f32, f16 = t32.fingerprint(), t16.fingerprint()
+    assert f32["checkpoint"] == f16["checkpoint"] and f32["dtype"] != f16["dtype"]
+
+
+def test_not_a_checkpoint_is_an_input_error(tmp_path, ckpt):
+    with pytest.raises(InputError, match="directory not found"):
+        check_checkpoint_dir(tmp_path / "missing")
+    with pytest.raises(InputError, match="no config.json"):
+        check_checkpoint_dir(tmp_path)
+    (tmp_path / "config.json").write_text(json.dumps({"model_type": "sam2"}))
+    with pytest.raises(InputError, match="not a SAM 3 checkpoint"):
+        check_checkpoint_dir(tmp_path)
+    assert check_checkpoint_dir(ckpt) == ckpt
+
+
+def test_stage_with_sam3_backend(ckpt, tmp_path, monkeypatch):
+    from pipeline.artifacts import open_artifact
+    from test_teacher_stage import build_artifacts, cache_files, run_stage
+
+    monkeypatch.setenv("GEODISTILL_QUIET", "1")
+    paths = build_artifacts(tmp_path / "a", n=4)
+    sets = ["teacher.backend=sam3", f"teacher.checkpoint={ckpt}", "teacher.score_threshold=0.0"]
+    r = run_stage(paths, tmp_path / "cache", sets=sets)
+    assert r.exit_code == 0, r.output
+    t = open_artifact(paths["out"], "teacher")
+    assert t.attrs["backend"] == "sam3" and t.attrs["simulator"] is False
+    assert t.numpy("masks").shape == (4, 6, 32, 32) and t.numpy("vflip_masks").shape == (4, 32, 32)
+    assert "reference" not in {i["path"].split("/")[-1].split(".")[0] for i in t.meta.inputs}
+    n_entries = len(cache_files(tmp_path / "cache"))
+    assert n_entries == 4 * 7
+    r = run_stage(paths, tmp_path / "cache", sets=sets)
+    assert r.exit_code == 0 and len(cache_files(tmp_path / "cache")) == n_entries

@@ -1,0 +1,325 @@
+"""Training loop: tiny runs lower the loss, determinism, resume after interruption, divergence,
+warm start, the reference-mask boundary, and the train stage command (incl. inactive markers).
+
+``build_tiny_artifacts`` writes a self-contained set of tiny artifacts (12 images of 32 px) with
+pipeline.artifacts; it does not run any other stage.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from scipy import ndimage
+
+from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
+from pipeline.errors import InputError, TrainingDiverged
+from pipeline.params import load_params, section
+
+REPO = Path(__file__).resolve().parent.parent
+PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle", "p5", "p6"]
+
+
+def _shape_mask(rng, size):
+    yy, xx = np.mgrid[:size, :size]
+    cy, cx = rng.uniform(size * 0.3, size * 0.7, 2)
+    ry, rx = rng.uniform(size * 0.12, size * 0.3, 2)
+    m = ((yy - cy) / ry) ** 2 + ((xx - cx) / rx) ** 2 <= 1
+    # a thin "panel" bar so the skeleton and boundary are non-trivial
+    bar_y = int(cy)
+    m[max(bar_y - 1, 0):bar_y + 1, int(max(cx - 2 * rx, 0)):int(min(cx + 2 * rx, size))] = True
+    return m
+
+
+def _sdf(mask):
+    if not mask.any():
+        return np.zeros(mask.shape, np.float32)
+    if mask.all():
+        return np.ones(mask.shape, np.float32)
+    d = ndimage.distance_transform_edt(mask) - ndimage.distance_transform_edt(~mask)
+    s = max(np.quantile(np.abs(d), 0.95), 1.0)
+    return np.clip(d / s, -1, 1).astype(np.float32)
+
+
+def build_tiny_artifacts(root: Path, n_train: int = 8, n_val: int = 4, n_test: int = 2, size: int = 32,
+                         seed: int = 0) -> Path:
+    """Tiny artifacts in the pipeline's layout: manifest, images, reference, teacher (with vflip),
+    consensus, geometry, gates.  Pseudo-masks are perturbed copies of the reference masks."""
+    rng = np.random.default_rng(seed)
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    n = n_train + n_val + n_test
+    split = ["train"] * n_train + ["val"] * n_val + ["test"] * n_test
+    ids = [f"img{i:03d}" for i in range(n)]
+    truth = np.stack([_shape_mask(rng, size) for _ in range(n)])
+    img = rng.integers(0, 40, (n, size, size, 3)).astype(np.uint8)
+    img[truth] = rng.integers(150, 255, (int(truth.sum()), 3)).astype(np.uint8)
+    K = len(PROMPTS)
+    masks = np.empty((n, K, size, size), bool)
+    for i in range(n):
+        for k in range(K):
+            shift = rng.integers(-1, 2, 2)
+            masks[i, k] = np.roll(truth[i], tuple(shift), axis=(0, 1))
+    scores = rng.uniform(0.3, 0.95, (n, K)).astype(np.float32)
+    scores[1, 2:] = 0.0  # an image with only two valid prompts
+    vflip = np.roll(truth, 1, axis=2)
+    vscores = rng.uniform(0.4, 0.9, n).astype(np.float32)
+    valid = scores > 0
+    agreement = (masks * valid[:, :, None, None]).sum(1) / np.maximum(valid.sum(1), 1)[:, None, None]
+    voted = agreement >= 0.5
+    a = voted.reshape(n, -1).mean(1)
+    c = np.array([agreement[i][voted[i]].mean() if voted[i].any() else 0.0 for i in range(n)])
+    g = rng.uniform(0.2, 1.0, n)
+    g[0] = 0.0  # a fully suppressed sample
+
+    def meta(schema, stage):
+        return make_meta(schema, stage, "test", {"tiny": True, "seed": seed})
+
+    manifest = pd.DataFrame({
+        "image_id": ids, "dataset": "tiny", "domain": "synthetic", "split": split,
+        "group": split, "spacecraft": [f"sc{i % 3}" for i in range(n)], "image_path": [f"{i}.png" for i in ids],
+        "mask_path": [f"{i}_m.png" for i in ids], "part_path": None, "width": size, "height": size,
+        "sha256": "0" * 64})
+    write_parquet(root / "manifest.parquet", manifest, meta("manifest", "prepare"))
+    attrs = {"image_ids": ids}
+    write_zarr(root / "images.zarr", {"image": img}, meta("images", "prepare"), attrs)
+    write_zarr(root / "reference.zarr", {"mask": truth, "has_mask": np.ones(n, bool)},
+               meta("reference", "prepare"), attrs)
+    write_zarr(root / "teacher.zarr", {"masks": masks, "scores": scores, "vflip_masks": vflip,
+                                       "vflip_scores": vscores},
+               meta("teacher", "teacher"), {**attrs, "prompts": PROMPTS})
+    write_zarr(root / "consensus.zarr", {"agreement": agreement.astype(np.float32), "voted": voted,
+                                         "n_valid": valid.sum(1).astype(np.int16)},
+               meta("consensus", "consensus"), attrs)
+    write_zarr(root / "geometry.zarr", {"sdf": np.stack([_sdf(m) for m in voted]),
+                                        "skeleton": np.stack([m & (ndimage.distance_transform_edt(m) > 1.5)
+                                                              for m in voted])},
+               meta("geometry", "geometry"), attrs)
+    gates = pd.DataFrame({"image_id": ids, "split": split, "c": c, "v": valid.sum(1) / 6.0, "a": a,
+                          "a0": float(np.median(a[:n_train])), "g_conf": g, "g_valid": 1.0,
+                          "g_area": 1.0, "g": g, "n_valid": valid.sum(1)})
+    write_parquet(root / "gates.parquet", gates, meta("gates", "geometry"))
+    return root
+
+
+def tiny_cfg(**over) -> dict:
+    """The repo's train section with tiny-run overrides (fp32, 2 epochs, 1 thread)."""
+    cfg = section(load_params(REPO / "params.yaml"), "train")
+    cfg.update({"epochs_stage1": 2, "epochs_stage2": 2, "precision": "fp32", "num_threads": 1,
+                "batch_size": 4})
+    cfg["gabi"] = {**cfg["gabi"], "epochs": 2}
+    cfg.update(over)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return build_tiny_artifacts(tmp_path_factory.mktemp("tiny") / "artifacts")
+
+
+def _run(method_name, art, cfg, seed=42, init_state=None, **kw):
+    from pipeline import training
+    from pipeline.methods import get_method
+
+    m = get_method(method_name)
+    data, _ = training.load_training_data(art, m, cfg)
+    val, _ = training.validation_reference(art)
+    return training.train(m, cfg, data, val, seed, init_state=init_state, show_progress=False, **kw)
+
+
+def _weights(model):
+    return {k: v.clone() for k, v in model.state_dict().items()}
+
+
+def _assert_same(a, b):
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+# --------------------------------------------------------------------------------------------------
+def test_few_steps_lower_the_loss(tiny):
+    res = _run("plain", tiny, tiny_cfg(epochs_stage1=6, lr_stage1=3e-3, schedule="constant"))
+    loss = res.log["loss"].to_numpy()
+    assert np.all(np.isfinite(loss)) and loss[-1] < 0.8 * loss[0]
+    assert set(res.log.columns) >= {"epoch", "stage", "loss", "val_iou", "val_bf1", "lr", "seconds", "bbce", "dice"}
+    assert res.log["val_iou"].notna().all()
+    # Stage-I selection = the best validation IoU epoch
+    assert res.selected_epoch == int(res.log.loc[res.log["val_iou"].idxmax(), "epoch"])
+
+
+def test_same_seed_same_weights_and_different_seed_differs(tiny):
+    cfg = tiny_cfg(epochs_stage1=1)
+    a, b = _run("plain", tiny, cfg), _run("plain", tiny, cfg)
+    _assert_same(_weights(a.model), _weights(b.model))
+    pd.testing.assert_frame_equal(a.log.drop(columns="seconds"), b.log.drop(columns="seconds"))
+    c = _run("plain", tiny, cfg, seed=7)
+    assert not torch.equal(a.model.enc1[0][0].weight, c.model.enc1[0][0].weight)
+
+
+def test_bf16_autocast_run_is_deterministic(tiny):
+    cfg = tiny_cfg(epochs_stage1=1, precision="bf16")
+    a, b = _run("plain", tiny, cfg), _run("plain", tiny, cfg)
+    assert a.info["autocast"] == "bfloat16"
+    _assert_same(_weights(a.model), _weights(b.model))
+
+
+def test_resume_after_interruption_gives_identical_weights(tiny, tmp_path):
+    cfg = tiny_cfg(epochs_stage1=3, lr_stage1=2e-3)
+    full = _run("plain", tiny, cfg, resume_dir=tmp_path / "uninterrupted")
+
+    class Killed(Exception):
+        pass
+
+    def kill_after_2(epoch, row):
+        if epoch == 2:
+            raise Killed
+
+    with pytest.raises(Killed):
+        _run("plain", tiny, cfg, resume_dir=tmp_path / "r", callback=kill_after_2)
+    state = torch.load(tmp_path / "r" / "state.pt", weights_only=False)
+    assert state["epoch"] == 2
+    seen = []
+    resumed = _run("plain", tiny, cfg, resume_dir=tmp_path / "r", callback=lambda e, r: seen.append(e))
+    assert seen == [3]  # only the missing epoch ran
+    _assert_same(_weights(full.model), _weights(resumed.model))
+    pd.testing.assert_frame_equal(full.log.drop(columns="seconds"), resumed.log.drop(columns="seconds"))
+    # a finished state makes a rerun instant (no epoch runs) and gives the same model
+    again = _run("plain", tiny, cfg, resume_dir=tmp_path / "r", callback=lambda e, r: seen.append(e))
+    assert seen == [3]
+    _assert_same(_weights(full.model), _weights(again.model))
+
+
+def test_nan_loss_raises_training_diverged(tiny, tmp_path):
+    cfg = tiny_cfg(epochs_stage1=1, lr_stage1=float("inf"), epochs_stage2=1)
+    with pytest.raises(TrainingDiverged, match="non-finite loss at epoch 1"):
+        _run("plain", tiny, cfg, resume_dir=tmp_path / "nan")
+    assert not (tmp_path / "nan" / "state.pt").exists()
+
+
+def test_warm_start_copies_stage1_weights_and_adds_fresh_heads(tiny):
+    from pipeline.methods import get_method
+    from pipeline.training import build_model
+
+    stage1 = _run("plain", tiny, tiny_cfg(epochs_stage1=1))
+    init = stage1.model.mask_path_state_dict()
+    m = build_model(get_method("geodistill"), tiny_cfg(), 42, init)
+    for k, v in m.mask_path_state_dict().items():
+        assert torch.equal(v, init[k]), k
+    assert m.geometry_heads is not None
+    # the Stage-II run's epoch 0 (before any update) is exactly the Stage-I model
+    res = _run("geodistill", tiny, tiny_cfg(epochs_stage2=1), init_state=init)
+    assert list(res.log["epoch"]) == [0, 1] and np.isnan(res.log.loc[0, "loss"])
+    assert res.log.loc[0, "val_iou"] == pytest.approx(stage1.log["val_iou"].max())  # plain selected its best
+    assert res.selected_epoch == 1  # stage2_select: last
+    assert np.isfinite(res.log.loc[1, ["sdf", "skel", "area", "raw"]].astype(float)).all()
+    assert not torch.equal(res.model.enc1[0][0].weight, init["enc1.0.0.weight"])
+
+
+def test_reference_masks_of_training_rows_never_reach_a_loss(tmp_path):
+    """Corrupting reference masks of train (and test) rows leaves the trained weights unchanged;
+    corrupting a validation mask may change only the selection."""
+    a = build_tiny_artifacts(tmp_path / "a")
+    b = build_tiny_artifacts(tmp_path / "b")
+    ref = open_artifact(b / "reference.zarr")
+    masks = ref.numpy("mask")
+    split = open_artifact(b / "manifest.parquet").df["split"].to_numpy()
+    masks[split != "val"] = ~masks[split != "val"]
+    write_zarr(b / "reference.zarr", {"mask": masks, "has_mask": ref.numpy("has_mask")}, ref.meta,
+               {"image_ids": ref.attrs["image_ids"]})
+    cfg = tiny_cfg(epochs_stage1=2)
+    ra, rb = _run("plain", a, cfg), _run("plain", b, cfg)
+    _assert_same(_weights(ra.model), _weights(rb.model))
+    from pipeline.training import validation_reference
+
+    val, _ = validation_reference(b)
+    assert len(val) == int((split == "val").sum())
+    np.testing.assert_array_equal(val.masks, masks[split == "val"])
+
+
+# --------------------------------------------------------------------------------------------------
+# the stage command
+# --------------------------------------------------------------------------------------------------
+def _params_file(tmp_path, **protocol) -> Path:
+    import yaml
+
+    p = yaml.safe_load((REPO / "params.yaml").read_text())
+    p["profile"] = "demo"
+    p["profiles"]["demo"]["train"] = {"epochs_stage1": 1, "epochs_stage2": 1, "precision": "fp32", "num_threads": 1}
+    p["profiles"]["demo"]["protocol"] = {"active_seeds": [42], "active_methods": ["plain", "geodistill"],
+                                         "active_ablations": [], **protocol}
+    out = tmp_path / "params.yaml"
+    out.write_text(yaml.safe_dump(p))
+    return out
+
+
+def _cli(*args, cwd):
+    env = {"GEODISTILL_QUIET": "1", "PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO)}
+    return subprocess.run([sys.executable, "-m", "stages.train", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True)
+
+
+def test_stage_command_trains_writes_checkpoint_and_warm_starts(tiny, tmp_path):
+    from pipeline.inference import is_active_run, load_student
+
+    params = _params_file(tmp_path)
+    ck = tmp_path / "checkpoints"
+    common = ["--params", str(params), "--artifacts", str(tiny), "--device", "cpu",
+              "--resume-dir", str(tmp_path / "cache")]
+    r1 = _cli("--stage", "1", "--method", "plain", "--seed", "42", "--out", str(ck / "plain/42"), *common, cwd=tmp_path)
+    assert r1.returncode == 0, r1.stderr
+    r2 = _cli("--stage", "2", "--method", "geodistill", "--seed", "42", "--init", str(ck / "plain/42"),
+              "--out", str(ck / "geodistill/42"), *common, cwd=tmp_path)
+    assert r2.returncode == 0, r2.stderr
+    model, payload = load_student(ck / "geodistill/42")
+    assert payload["method"] == "geodistill" and payload["selected_epoch"] == 1
+    assert payload["geometry_state_dict"] is not None
+    art = open_artifact(ck / "geodistill/42", "checkpoint")
+    schemas = sorted(i["schema"] for i in art.meta.inputs)
+    assert schemas == sorted(["manifest", "images", "gates", "consensus", "geometry", "checkpoint", "reference"])
+    assert art.meta.params["method"] == "geodistill" and art.meta.params["seed"] == 42
+    assert "gabi" not in art.meta.params["train"]  # only sub-sections the method reads
+    log = art.table()
+    assert list(log["epoch"]) == [0, 1] and set(log["stage"]) == {2}
+    assert is_active_run(ck / "geodistill/42")
+    # inactive entry: a marker, no torch needed
+    r3 = _cli("--stage", "2", "--method", "gabi", "--seed", "42", "--init", str(ck / "plain/42"),
+              "--out", str(ck / "gabi/42"), *common, cwd=tmp_path)
+    assert r3.returncode == 0, r3.stderr
+    assert not is_active_run(ck / "gabi/42")
+    assert json.loads((ck / "gabi/42/meta.json").read_text())["schema"] == "inactive_run"
+
+
+def test_inactive_marker_does_not_import_torch(tmp_path):
+    params = _params_file(tmp_path)
+    code = ("import sys; from stages.train import main\n"
+            "try:\n  main([%s])\nexcept SystemExit as e:\n  assert not e.code, e.code\n"
+            "assert 'torch' not in sys.modules, 'torch imported'\n") % ", ".join(
+        repr(a) for a in ["--params", str(params), "--stage", "1", "--method", "plain", "--seed", "3407",
+                          "--out", str(tmp_path / "m")])
+    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "m/meta.json").read_text())["schema"] == "inactive_run"
+
+
+def test_stage_command_errors_are_one_line(tiny, tmp_path):
+    params = _params_file(tmp_path)
+    r = _cli("--params", str(params), "--stage", "1", "--method", "nope", "--seed", "42",
+             "--artifacts", str(tiny), "--out", str(tmp_path / "x"), cwd=tmp_path)
+    assert r.returncode == 2 and "--method 'nope'" in r.stderr and "Traceback" not in r.stderr
+    r = _cli("--params", str(params), "--stage", "2", "--method", "geodistill", "--seed", "42",
+             "--artifacts", str(tiny), "--init", str(tmp_path / "missing"), "--out", str(tmp_path / "y"),
+             cwd=tmp_path)
+    assert r.returncode == 2 and "missing" in r.stderr and "Traceback" not in r.stderr
+    # divergence: exit code 1, one line, no checkpoint
+    r = _cli("--params", str(params), "--set", "train.lr_stage1=.inf", "--stage", "1", "--method", "plain",
+             "--seed", "42", "--artifacts", str(tiny), "--out", str(tmp_path / "z"), "--device", "cpu",
+             "--resume-dir", str(tmp_path / "cache2"), cwd=tmp_path)
+    assert r.returncode == 1 and "diverged" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "z").exists()
