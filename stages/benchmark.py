@@ -130,7 +130,7 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
         model, payload = load_student(checkpoint, "cpu")
         inputs.append(open_artifact(checkpoint, "checkpoint"))
         tau_dep, res_dep = seg.tau, seg.resolution
-        if tau_dep is None:
+        if tau_dep is None and tau is None:
             tau_dep = require(section(params, "calibrate"), "fixed_tau", "calibrate")
             click.echo(f"benchmark: no calibrated tau for {checkpoint}; IoU at calibrate.fixed_tau={tau_dep}", err=True)
     tau = deploy.check_tau(tau if tau is not None else tau_dep, "tau")

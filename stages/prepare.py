@@ -53,7 +53,9 @@ def main(params, device, out_dir, source, root, protocol, skip_bad):
     rows = build.check_manifest(spec, policy, where=f"data.source={cfg['source']}")
     rows = build.decode_rows(rows, spec, size, cache, policy)
     code = stage_code_version(__file__, *CODE_MODULES)
-    fp_params = {"data": fingerprint_params(cfg), "content_sha256": build.content_digest(rows)}
+    # fingerprint: the data params, the protocol actually applied, and the selected files' content
+    fp_params = {"data": fingerprint_params(cfg), "protocol": spec.protocol,
+                 "content_sha256": build.content_digest(rows)}
     ids = rows["image_id"].tolist()
     n = len(rows)
     has_parts = rows["part_path"].notna().to_numpy()

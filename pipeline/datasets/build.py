@@ -171,8 +171,8 @@ def iter_arrays(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
 
 
 def content_digest(rows: pd.DataFrame) -> str:
-    """sha256 over (image_id, file sha256) in manifest order: the data's identity for the fingerprint."""
+    """sha256 over (image_id, split, group, file sha256) in manifest order: the data's identity for the fingerprint."""
     h = hashlib.sha256()
-    for iid, s in zip(rows["image_id"], rows["sha256"]):
-        h.update(f"{iid}\0{s}\n".encode())
+    for iid, split, group, s in zip(rows["image_id"], rows["split"], rows["group"], rows["sha256"]):
+        h.update(f"{iid}\0{split}\0{group}\0{s}\n".encode())
     return h.hexdigest()

@@ -69,7 +69,9 @@ class Persona:
 
     ``miss`` + ``miss_slope * d``: probability of a total miss (score 0).  ``modes``: relative weight
     of each failure mode on an easy image; ``hard_modes``: weight added per unit difficulty.
-    ``boundary_px``: typical boundary error in pixels at 128 px (scaled with the resolution).
+    ``boundary_frac``: typical boundary bias of ``dilate`` / ``erode`` as a fraction of the object's
+    equivalent radius sqrt(area / pi) (stochastically rounded to whole pixels, so a tiny object is
+    often traced exactly and a large one is off by a few pixels).
     ``survivor``: probability that this prompt still answers during a breakdown.
     ``shares``: probability that this prompt takes part in an image's shared error.
     """
@@ -79,7 +81,7 @@ class Persona:
     miss_slope: float
     modes: Mapping[str, float]
     hard_modes: Mapping[str, float]
-    boundary_px: float = 1.5
+    boundary_frac: float = 0.10
     survivor: float = 0.1
     shares: float = 0.7
     score_bias: float = 0.0
@@ -95,36 +97,45 @@ def _m(**kw) -> dict[str, float]:
 # also likes glare and the Earth limb.
 PERSONAS: dict[str, Persona] = {
     "spacecraft": Persona(
-        "spacecraft", miss=0.10, miss_slope=0.25,
-        modes=_m(clean=3.0, dilate=1.0, erode=1.2, drop_thin=1.2, bus_only=0.5, false_positive=0.6, wrong_object=0.4),
-        hard_modes=_m(drop_thin=2.0, bus_only=1.0, wrong_object=1.0, false_positive=0.6),
+        "spacecraft", miss=0.06, miss_slope=0.15,
+        modes=_m(clean=4.0, dilate=1.0, erode=1.0, drop_thin=1.0, bus_only=0.6, false_positive=0.6, wrong_object=0.5),
+        hard_modes=_m(drop_thin=1.5, bus_only=1.0, wrong_object=1.0, false_positive=0.5),
         survivor=0.2),
     "satellite": Persona(
-        "satellite", miss=0.55, miss_slope=0.35,
+        "satellite", miss=0.50, miss_slope=0.30,
         modes=_m(clean=1.0, dilate=0.8, erode=0.8, drop_thin=1.0, bus_only=1.2, false_positive=0.6, wrong_object=1.6),
         hard_modes=_m(bus_only=1.0, wrong_object=2.0),
         survivor=0.06),
     "space probe": Persona(
-        "space probe", miss=0.80, miss_slope=0.25,
+        "space probe", miss=0.82, miss_slope=0.15,
         modes=_m(clean=0.3, dilate=0.3, erode=0.3, drop_thin=0.6, bus_only=1.0, false_positive=0.3, wrong_object=2.5),
         hard_modes=_m(wrong_object=2.0),
         survivor=0.03),
     "space vehicle": Persona(
-        "space vehicle", miss=0.30, miss_slope=0.40,
-        modes=_m(clean=2.0, dilate=0.8, erode=1.0, drop_thin=1.2, bus_only=0.8, false_positive=0.5, wrong_object=0.8),
+        "space vehicle", miss=0.25, miss_slope=0.35,
+        modes=_m(clean=2.5, dilate=0.8, erode=1.0, drop_thin=1.2, bus_only=0.8, false_positive=0.5, wrong_object=0.8),
         hard_modes=_m(drop_thin=1.5, wrong_object=1.2),
         survivor=0.08),
     "spacecraft with rigid body and appendages": Persona(
-        "rigid body and appendages", miss=0.04, miss_slope=0.20,
-        modes=_m(clean=4.0, dilate=1.0, erode=0.8, drop_thin=0.6, bus_only=0.3, false_positive=0.4, wrong_object=0.2),
-        hard_modes=_m(drop_thin=1.2, erode=0.6, wrong_object=0.6),
+        "rigid body and appendages", miss=0.02, miss_slope=0.10,
+        modes=_m(clean=6.0, dilate=1.0, erode=0.8, drop_thin=0.5, bus_only=0.3, false_positive=0.4, wrong_object=0.2),
+        hard_modes=_m(drop_thin=1.0, erode=0.5, wrong_object=0.5),
         survivor=0.2),
     "artificial object in space with panels and antennas": Persona(
-        "panels and antennas", miss=0.06, miss_slope=0.25,
-        modes=_m(clean=3.0, dilate=1.5, erode=0.5, drop_thin=0.4, bus_only=0.2, false_positive=1.6, wrong_object=0.5),
-        hard_modes=_m(false_positive=1.5, wrong_object=0.8, drop_thin=0.6),
+        "panels and antennas", miss=0.04, miss_slope=0.15,
+        modes=_m(clean=5.0, dilate=1.5, erode=0.5, drop_thin=0.4, bus_only=0.2, false_positive=1.5, wrong_object=0.5),
+        hard_modes=_m(false_positive=1.5, wrong_object=0.8, drop_thin=0.5),
         survivor=0.12),
 }
+# Scene hard cases of the synthetic benchmark that favour particular failure modes (added weights).
+HARD_CASE_MODES: dict[str, dict[str, float]] = {
+    "glare": {"false_positive": 1.5, "wrong_object": 0.5},
+    "flare": {"false_positive": 1.5, "wrong_object": 0.5},
+    "underexposed": {"erode": 1.0, "drop_thin": 1.0, "bus_only": 0.5},
+    "blur": {"dilate": 1.0, "drop_thin": 0.5},
+    "noise": {"dilate": 0.5, "erode": 0.5},
+}
+
 GENERIC_PERSONA = Persona(
     "generic", miss=0.25, miss_slope=0.35,
     modes=_m(clean=2.0, dilate=1.0, erode=1.0, drop_thin=1.0, bus_only=0.8, false_positive=0.8, wrong_object=1.0),
@@ -143,8 +154,8 @@ class SimulatorConfig:
     w_noise: float = 0.25
     breakdown_base: float = 0.04     # P(breakdown) = base + slope * d  (clipped to [0, 0.95])
     breakdown_slope: float = 0.60
-    shared_thin_base: float = 0.10   # P(shared thin-structure loss) = base + slope * scale difficulty
-    shared_thin_slope: float = 0.60
+    shared_thin_base: float = 0.05   # P(shared thin-structure loss) = base + slope * scale difficulty
+    shared_thin_slope: float = 0.35
     shared_fp_base: float = 0.05     # P(shared glare / Earth-limb region) = base + slope * d
     shared_fp_slope: float = 0.25
 
@@ -190,14 +201,15 @@ def open_mask(mask: np.ndarray, radius: int) -> np.ndarray:
 
 def drop_thin(mask: np.ndarray, parts: np.ndarray | None, radius: int, drop_dish: bool) -> np.ndarray:
     """Mask without thin appendages: parts code 3 (antenna/boom/truss) and optionally 4 (dish)
-    removed, then an opening of ``radius`` px removes any remaining thin residue."""
-    out = mask.copy()
-    if parts is not None:
-        out &= parts != THIN
+    removed; without part labels, an opening of ``radius`` px removes structures thinner than
+    ~2*radius px instead."""
+    if parts is not None and (parts == THIN).any():
+        out = mask & (parts != THIN)
         if drop_dish:
             out &= parts != DISH
-    opened = open_mask(out, radius)
-    return opened if opened.any() else out
+        return out if out.any() else mask.copy()
+    opened = open_mask(mask, radius)
+    return opened if opened.any() else mask.copy()
 
 
 def bus_only(mask: np.ndarray, parts: np.ndarray | None) -> np.ndarray:
@@ -350,30 +362,37 @@ class SimulatedFoundationTeacher:
         empty = np.zeros_like(gt)
         persona = persona_for(prompt)
         rng = _rng("prompt", item.image_sha256, prompt, self.seed, item.view, SIMULATOR_VERSION)
-        px = max(gt.shape) / 128.0  # boundary errors scale with the resolution
+        px = max(gt.shape) / 128.0  # thin structures are ~1-2 px wide at 128 px
+        r_eq = float(np.sqrt(np.count_nonzero(gt) / np.pi))
+        hard = str((item.extras or {}).get("hard_case", "") or "").lower()
         d = scene.difficulty
         if scene.breakdown:
             if self._prompt_draw(item, prompt, "survive") >= persona.survivor:
                 return empty, 0.0
             mode = rng.choice(["bus_only", "wrong_object", "drop_thin", "false_positive", "erode"],
                               p=[0.25, 0.35, 0.15, 0.15, 0.10])
-            boundary = 2.0 * persona.boundary_px
+            boundary = 2.0 * persona.boundary_frac
         else:
             if rng.random() < np.clip(persona.miss + persona.miss_slope * d, 0.0, 0.98):
                 return empty, 0.0
-            w = np.array([persona.modes[m] + d * persona.hard_modes[m] for m in MODES])
+            w = {m: persona.modes[m] + d * persona.hard_modes[m] for m in MODES}
+            for m, extra in HARD_CASE_MODES.get(hard, {}).items():
+                w[m] += extra
+            w = np.array([w[m] for m in MODES])
             mode = MODES[int(rng.choice(len(MODES), p=w / w.sum()))]
-            boundary = persona.boundary_px
-        r = max(1, int(round(boundary * px * rng.uniform(0.7, 1.6))))
+            boundary = persona.boundary_frac
+        r_float = boundary * r_eq * rng.uniform(0.6, 1.4)
+        r = int(np.floor(r_float + rng.random()))  # stochastic rounding: E[r] = r_float
         mask = self._apply(mode, gt, parts, item.image, rng, r, scene)
         if not scene.breakdown:
             if (scene.shared_thin and mode != "wrong_object"
                     and self._prompt_draw(item, prompt, "shared_thin") < persona.shares):
-                mask = drop_thin(mask, parts, max(1, int(round(1.5 * px))), drop_dish=scene.scale > 0.5)
+                mask = drop_thin(mask, parts, max(1, int(round(px))), drop_dish=scene.scale > 0.5)
             if scene.shared_fp and self._prompt_draw(item, prompt, "shared_fp") < persona.shares:
                 mask = mask | self._shared_region(item, gt, scene)
-            # small independent boundary jitter: no two prompts trace the same contour
-            j = int(rng.integers(-1, 2))
+            # small independent boundary jitter on objects large enough to have a few-pixel contour
+            # uncertainty: no two prompts trace the same contour
+            j = int(rng.choice([-1, 0, 1], p=[0.15, 0.7, 0.15])) if r_eq >= 16 * px else 0
             mask = dilate(mask, j) if j > 0 else erode(mask, -j) if j < 0 else mask
         if not mask.any():
             return empty, 0.0
@@ -397,7 +416,7 @@ class SimulatedFoundationTeacher:
             out = erode(gt, r)
             return out if out.any() else gt.copy()
         if mode == "drop_thin":
-            return drop_thin(gt, parts, max(1, r), drop_dish=bool(rng.random() < 0.5))
+            return drop_thin(gt, parts, max(1, round(max(gt.shape) / 128.0)), drop_dish=bool(rng.random() < 0.5))
         if mode == "bus_only":
             return bus_only(gt, parts)
         if mode == "false_positive":
