@@ -368,7 +368,7 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
     sec.blocks.append(Figure(
         "fig:pseudo-geometry", "Multi-prompt pseudo-target construction",
         f"Training images (highest gate g first): the {tmasks.shape[1]} prompt masks with teacher scores s, the "
-        f"agreement map A, the 50 % vote M, the normalised SDF D (blue inside, red outside) and the skeleton K; the "
+        f"agreement map A, the 50 % vote M, the normalised SDF D (eq:sdf-target; red inside, blue outside) and the skeleton K; the "
         f"gate's factors c (agreement), v (valid-prompt ratio), a (pseudo area) and g.{sim} Prompts: {prompt_list}.",
         F.png_bytes(img), "pseudo_targets.png"))
     return sec

@@ -3,8 +3,8 @@ panels, line plots.  Every function returns an RGB uint8 array; :func:`png_bytes
 
 Colour conventions (paper Fig. qualitative-results / prompt-comparison):
   true positive green, false positive red, false negative blue (alpha-blended over the image),
-  ground-truth contour yellow.  Agreement map: viridis in [0, 1].  SDF: blue (inside, negative) -
-  white (boundary) - red (outside, positive), symmetric around 0.
+  ground-truth contour yellow.  Agreement map: viridis in [0, 1].  SDF (eq:sdf-target, D = d_in - d_out
+  normalised): red inside (positive) - white (boundary) - blue outside (negative), symmetric around 0.
 """
 
 from __future__ import annotations
@@ -172,7 +172,7 @@ def pseudo_target_row(image: np.ndarray, prompt_masks: np.ndarray, prompt_labels
         tiles.append(caption_tile(mask_tile(m, size), [lab]))
     tiles.append(caption_tile(colorize(agreement, size, 0.0, 1.0, "viridis"), ["agreement A"]))
     tiles.append(caption_tile(mask_tile(voted, size), ["voted M (A>=0.5)"]))
-    tiles.append(caption_tile(colorize(sdf, size, -1.0, 1.0, "diverging"), ["SDF D (in<0<out)"]))
+    tiles.append(caption_tile(colorize(sdf, size, -1.0, 1.0, "diverging"), ["SDF D (in>0>out)"]))
     tiles.append(caption_tile(skeleton_overlay(image, voted, skeleton, size), ["skeleton K"]))
     return hstack(tiles)
 
@@ -191,7 +191,7 @@ def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, widt
               height: int = 380, ylim: tuple[float, float] | None = None) -> np.ndarray:
     """A simple line plot.  ``series``: dicts with ``x``, ``y``, ``label`` and optional ``marker``
     (an x value to mark with a dot, e.g. the selected threshold) and ``style`` ("solid" | "dashed")."""
-    left, right, top, bottom = 56, 170, 46, 44
+    left, right, top, bottom = 56, 200, 46, 44
     img = np.full((height, width, 3), 255, np.uint8)
     pw, ph = width - left - right, height - top - bottom
     xs = np.concatenate([np.asarray(s["x"], float) for s in series]) if series else np.array([0.0, 1.0])
@@ -243,5 +243,5 @@ def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, widt
         ly = top + 12 + 16 * i
         if ly < height - 4:
             cv2.line(img, (left + pw + 10, ly - 4), (left + pw + 28, ly - 4), col, 2, cv2.LINE_AA)
-            cv2.putText(img, str(s.get("label", ""))[:22], (left + pw + 32, ly), FONT, 0.35, BLACK, 1, cv2.LINE_AA)
+            cv2.putText(img, str(s.get("label", ""))[:30], (left + pw + 32, ly), FONT, 0.35, BLACK, 1, cv2.LINE_AA)
     return img

@@ -1,0 +1,128 @@
+"""Training speed: plain fp32 eager NCHW vs the fast path (channels_last + bf16 autocast), same run.
+
+    python benchmarks/bench_train.py                 # paper protocol size: 270 images at 384^2, 2 epochs
+    python benchmarks/bench_train.py --quick         # 32 images at 256^2, 3 epochs
+    python benchmarks/bench_train.py --images 64 --size 384 --epochs 2 --device cuda
+
+Both variants train the Stage-I ``plain`` method with ``pipeline.training.train`` (same seed, same
+synthetic images and pseudo-masks, same everything except memory format and autocast), then report
+seconds per epoch (training only; validation is timed separately), the per-270-image extrapolation,
+the speed-up ratio (target >= 3x) and the final validation Image IoU of both (should agree within
+noise).  The data is a synthetic stand-in (ellipse + panel bars on noise) generated in memory, so
+the benchmark needs no artifacts.  Prints a table and one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+PAPER_IMAGES = 270
+
+
+def synthetic_set(n: int, size: int, seed: int):
+    """uint8 images [n,size,size,3] and bool masks: a bright ellipse body with a panel bar on noise."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size]
+    masks = np.zeros((n, size, size), bool)
+    for i in range(n):
+        cy, cx = rng.uniform(0.3, 0.7, 2) * size
+        ry, rx = rng.uniform(0.08, 0.2, 2) * size
+        m = ((yy - cy) / ry) ** 2 + ((xx - cx) / rx) ** 2 <= 1
+        h = max(1, size // 64)
+        m[int(cy) - h:int(cy) + h, int(max(cx - 2.5 * rx, 0)):int(min(cx + 2.5 * rx, size))] = True
+        masks[i] = m
+    images = rng.integers(0, 60, (n, size, size, 3), dtype=np.uint8)
+    fg = rng.integers(120, 255, (n, 1, 1, 3), dtype=np.uint8)
+    images = np.where(masks[..., None], fg, images).astype(np.uint8)
+    return images, masks
+
+
+def run_variant(name: str, cfg: dict, data, val, device, seed: int) -> dict:
+    import torch
+
+    from pipeline import training
+    from pipeline.methods import get_method
+
+    epoch_times: list[float] = []
+    marks = [time.perf_counter()]
+
+    def tick(epoch, row):
+        marks.append(time.perf_counter())
+        epoch_times.append(marks[-1] - marks[-2])
+
+    res = training.train(get_method("plain"), cfg, data, None, seed, device=device, callback=tick,
+                         show_progress=False)
+    t0 = time.perf_counter()
+    iou, bf1 = training.validate(res.model, val, device, cfg["precision"], cfg["channels_last"])
+    val_s = time.perf_counter() - t0
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    # the first epoch carries one-off costs (allocator, oneDNN primitive creation): report the rest
+    steady = epoch_times[1:] if len(epoch_times) > 1 else epoch_times
+    return {"variant": name, "precision": cfg["precision"], "channels_last": cfg["channels_last"],
+            "autocast": res.info["autocast"], "epoch_seconds": epoch_times,
+            "seconds_per_epoch": float(np.mean(steady)), "val_iou": iou, "val_bf1": bf1, "val_seconds": val_s,
+            "final_loss": float(res.log["loss"].iloc[-1])}
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--images", type=int, default=PAPER_IMAGES)
+    ap.add_argument("--size", type=int, default=384)
+    ap.add_argument("--epochs", type=int, default=2)
+    ap.add_argument("--val-images", type=int, default=16)
+    ap.add_argument("--quick", action="store_true", help="32 images at 256^2, 3 epochs")
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
+    ap.add_argument("--seed", type=int, default=42)
+    ap.add_argument("--fast-precision", default="auto", help="precision of the fast path (auto|bf16)")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.images, args.size, args.epochs = 32, 256, 3
+
+    import torch
+
+    from pipeline.device import resolve_device
+    from pipeline.params import load_params, section
+    from pipeline.training import TrainData, ValData
+
+    device = resolve_device(args.device)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    images, masks = synthetic_set(args.images + args.val_images, args.size, args.seed)
+    n = args.images
+    data = TrainData(image_ids=[f"b{i}" for i in range(n)], images=images[:n], mask=masks[:n],
+                     area=masks[:n].reshape(n, -1).mean(1).astype(np.float32), gate=np.ones(n, np.float32))
+    val = ValData(image_ids=[f"v{i}" for i in range(args.val_images)], images=images[n:], masks=masks[n:])
+    base = section(load_params(Path(__file__).resolve().parent.parent / "params.yaml"), "train")
+    base.update({"epochs_stage1": args.epochs, "num_threads": 0})
+
+    results = [
+        run_variant("fp32 eager NCHW", {**base, "precision": "fp32", "channels_last": False}, data, val, device, args.seed),
+        run_variant("channels_last + autocast", {**base, "precision": args.fast_precision, "channels_last": True},
+                    data, val, device, args.seed),
+    ]
+    ratio = results[0]["seconds_per_epoch"] / results[1]["seconds_per_epoch"]
+    print(f"device {device} ({torch.get_num_threads()} threads), {n} images at {args.size}^2, "
+          f"batch {base['batch_size']}, {args.epochs} epochs, torch {torch.__version__}")
+    print(f"{'variant':28s} {'autocast':>9s} {'s/epoch':>9s} {'s/epoch@270':>12s} {'val IoU':>8s} {'val BF1':>8s}")
+    for r in results:
+        print(f"{r['variant']:28s} {r['autocast']:>9s} {r['seconds_per_epoch']:9.2f} "
+              f"{r['seconds_per_epoch'] * PAPER_IMAGES / n:12.1f} {r['val_iou']:8.4f} {r['val_bf1']:8.4f}")
+    print(f"speed-up (fp32 eager / fast): {ratio:.2f}x  (target >= 3x)")
+    out = {"device": str(device), "images": n, "size": args.size, "epochs": args.epochs,
+           "ratio": ratio, "results": results}
+    print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()
