@@ -95,9 +95,9 @@ class Method:
 
     @property
     def needs_gates(self) -> bool:
-        """Reads gates.parquet (g, a, or the confidence criterion)."""
-        return (self.gate == "g" and any(t in self.terms for t in ("sdf", "skel", "area"))) \
-            or "area" in self.terms or self.data == "confidence" or self.adaptive
+        """Reads gates.parquet: g_i for the gated terms, a_i for the area term, c_i/n_valid for the
+        confidence criterion (confidence filter, adaptive mode)."""
+        return bool({"sdf", "skel", "area"} & set(self.terms)) or self.data == "confidence" or self.adaptive
 
 
 _FULL = ("region", "sdf", "skel", "area")

@@ -225,11 +225,10 @@ def _afs_targets(teacher, train_idx, cfg) -> tuple[np.ndarray, np.ndarray, float
     if base not in prompts:
         raise InputError(f"params: train.afs.base_prompt={base!r} is not one of {teacher.path}'s prompts {prompts}")
     k = prompts.index(base)
-    img_masks = np.asarray(teacher["masks"].get_orthogonal_selection((np.sort(train_idx), k)), dtype=bool)
-    img_masks = img_masks[np.argsort(np.argsort(train_idx))]
-    flip_masks = _rows(teacher, "vflip_masks", train_idx).astype(bool)
-    scores = np.asarray(teacher["scores"].get_orthogonal_selection((np.sort(train_idx), k)), dtype=np.float64)
-    scores = scores[np.argsort(np.argsort(train_idx))]
+    rows = np.sort(train_idx)  # manifest order (flatnonzero is sorted already)
+    img_masks = np.asarray(teacher["masks"].get_orthogonal_selection((rows, k)), dtype=bool)
+    flip_masks = _rows(teacher, "vflip_masks", rows).astype(bool)
+    scores = np.asarray(teacher["scores"].get_orthogonal_selection((rows, k)), dtype=np.float64)
     fused = afs_fuse(img_masks, flip_masks, a.get("fusion", "intersection"))
     keep = afs_keep(scores, float(a.get("score_threshold", 0.60)))
     return fused, keep, pass_ratio(keep)
@@ -546,7 +545,11 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
                 sums[k] = sums.get(k, 0.0) + v.detach().float() * n
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(epoch=epoch, loss=f"{loss_value:.4f}", val_iou=f"{last_val:.3f}")
+                bar.set_postfix(epoch=epoch, loss=f"{loss_value:.4f}", val_iou=f"{last_val:.3f}", refresh=False)
+        # a finite loss can still leave non-finite weights after the last step (e.g. an inf gradient)
+        if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
+            raise TrainingDiverged(f"{method.name} seed {seed}: non-finite weights after epoch {epoch}; "
+                                   f"no checkpoint written -- lower the learning rate or check the inputs")
         row = empty_row(epoch)
         for k, v in sums.items():
             row["loss" if k == "loss" else k] = float(v) / len(data)

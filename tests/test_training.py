@@ -170,9 +170,11 @@ def test_bf16_autocast_run_is_deterministic(tiny):
     _assert_same(_weights(a.model), _weights(b.model))
 
 
-def test_resume_after_interruption_gives_identical_weights(tiny, tmp_path):
-    cfg = tiny_cfg(epochs_stage1=3, lr_stage1=2e-3)
-    full = _run("plain", tiny, cfg, resume_dir=tmp_path / "uninterrupted")
+@pytest.mark.parametrize("method", ["plain", "geodistill"])
+def test_resume_after_interruption_gives_identical_weights(tiny, tmp_path, method):
+    cfg = tiny_cfg(epochs_stage1=3, epochs_stage2=3, lr_stage1=2e-3)
+    init = _run("plain", tiny, tiny_cfg(epochs_stage1=1)).model.mask_path_state_dict() if method != "plain" else None
+    full = _run(method, tiny, cfg, init_state=init, resume_dir=tmp_path / "uninterrupted")
 
     class Killed(Exception):
         pass
@@ -182,16 +184,16 @@ def test_resume_after_interruption_gives_identical_weights(tiny, tmp_path):
             raise Killed
 
     with pytest.raises(Killed):
-        _run("plain", tiny, cfg, resume_dir=tmp_path / "r", callback=kill_after_2)
+        _run(method, tiny, cfg, init_state=init, resume_dir=tmp_path / "r", callback=kill_after_2)
     state = torch.load(tmp_path / "r" / "state.pt", weights_only=False)
     assert state["epoch"] == 2
     seen = []
-    resumed = _run("plain", tiny, cfg, resume_dir=tmp_path / "r", callback=lambda e, r: seen.append(e))
+    resumed = _run(method, tiny, cfg, init_state=init, resume_dir=tmp_path / "r", callback=lambda e, r: seen.append(e))
     assert seen == [3]  # only the missing epoch ran
     _assert_same(_weights(full.model), _weights(resumed.model))
     pd.testing.assert_frame_equal(full.log.drop(columns="seconds"), resumed.log.drop(columns="seconds"))
     # a finished state makes a rerun instant (no epoch runs) and gives the same model
-    again = _run("plain", tiny, cfg, resume_dir=tmp_path / "r", callback=lambda e, r: seen.append(e))
+    again = _run(method, tiny, cfg, init_state=init, resume_dir=tmp_path / "r", callback=lambda e, r: seen.append(e))
     assert seen == [3]
     _assert_same(_weights(full.model), _weights(again.model))
 
@@ -201,6 +203,10 @@ def test_nan_loss_raises_training_diverged(tiny, tmp_path):
     with pytest.raises(TrainingDiverged, match="non-finite loss at epoch 1"):
         _run("plain", tiny, cfg, resume_dir=tmp_path / "nan")
     assert not (tmp_path / "nan" / "state.pt").exists()
+    # one step per epoch: the loss was finite, the weights after the step are not -> also caught
+    with pytest.raises(TrainingDiverged, match="non-finite weights after epoch 1"):
+        _run("plain", tiny, {**cfg, "batch_size": 8}, resume_dir=tmp_path / "nan2")
+    assert not (tmp_path / "nan2" / "state.pt").exists()
 
 
 def test_warm_start_copies_stage1_weights_and_adds_fresh_heads(tiny):
