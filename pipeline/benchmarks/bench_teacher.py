@@ -1,7 +1,7 @@
 """Teacher speed: seconds per image and the encoder-reuse speed-up of the SAM 3 backend.
 
-    python benchmarks/bench_teacher.py                       # tiny random SAM 3 on CPU (no download)
-    python benchmarks/bench_teacher.py --size real --device cuda --dtype bf16 --images 8   # GPU, full-size random weights
+    python -m pipeline.benchmarks.bench_teacher                       # tiny random SAM 3 on CPU (no download)
+    python -m pipeline.benchmarks.bench_teacher --size real --device cuda --dtype bf16 --images 8   # GPU, full-size random weights
 
 Baseline measured in the same run: six separate calls per image (vision encoder + heads for each
 prompt, :meth:`Sam3Teacher.predict_one_prompt_at_a_time`) against the backend's path (vision encoder

@@ -5,7 +5,7 @@ implementation (scipy.ndimage.distance_transform_edt + np.quantile + ndimage.max
 maxima) measured in the same run on the same masks, with the ratio.  Both produce the same targets
 (checked on every mask before timing).
 
-    .venv/bin/python benchmarks/bench_geometry.py [--n 200] [--size 384] [--repeats 3] [--workers 2]
+    python -m pipeline.benchmarks.bench_geometry [--n 200] [--size 384] [--repeats 3] [--workers 2]
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from pipeline.geometry import pseudo_targets  # noqa: E402
 
