@@ -14,8 +14,11 @@ Deploy bundle (directory artifact, schema ``deploy``)::
                   -- the checkpoint format, so pipeline.inference.load_student() opens the bundle too
     model.ts      TorchScript (traced) mask path; shape-generic (any batch and size)
     model.onnx    ONNX mask path, dynamic batch/height/width (only when onnx + onnxruntime import)
+    model.int8.onnx  static int8 (QDQ) quantisation of model.onnx, calibrated on training-split images
+                  (only when model.onnx exists and training images are given; the CPU fast path)
     deploy.json   tau (+ where it came from), working resolution, model config, parameters, GFLOPs,
-                  exporter, parity results, file sha256s, source checkpoint and its fingerprint
+                  exporter, parity results (int8: agreement report), file sha256s, source checkpoint
+                  and its fingerprint, the int8 file and its calibration image count (or why skipped)
     meta.json     artifact metadata (fingerprint, lineage)
 
 Decisions (the paper is silent on deployment formats):
@@ -40,7 +43,20 @@ Decisions (the paper is silent on deployment formats):
   per-channel weights, MinMax calibration on TRAINING-split images -- images only, no masks), which
   runs on the VNNI int8 kernels of x86 CPUs.  Chosen over ``torch.ao`` eager/FX quantisation, which
   is deprecated in torch 2.x, and over dynamic quantisation, which does not quantise convolutions
-  in ORT's CPU kernels.
+  in ORT's CPU kernels.  The export writes it into the bundle (``model.int8.onnx``), so that segment
+  and the benchmark use the same file.  Calibration images: up to ``deploy.int8_calibration_images``
+  training-split rows of images.zarr, evenly spaced in manifest order (:func:`calibration_rows`),
+  resized to the working resolution like every other input.  Manual/reference masks are never read.
+* int8 parity: int8 is an approximation, never bit-exact, so it is *reported*, not held to
+  ``parity_atol``: on the calibration images, max and mean |Z_int8 - Z_torch| and the fraction of
+  pixels whose mask at tau agrees with PyTorch's.  The export fails (InputError naming the param)
+  only when that agreement is below ``deploy.int8_min_mask_agreement`` (0.99 by default: a fast
+  path may move at most 1 % of pixels).  The images are in-sample for the activation ranges; the
+  held-out effect (validation Image IoU change) is measured by the benchmark.
+* Engines (segment ``--engine``): ``torch`` (model.pt / checkpoint), ``torchscript``, ``onnx`` and
+  ``int8`` (bundle only); ``auto`` = int8 when the bundle holds it and onnxruntime imports, else
+  onnx when available, else torch.  Every engine receives the same preprocessed tensor and the
+  same tau; only the function Z = f(x) differs.
 * Peak memory: CPU -- growth of the process's peak resident set (Linux ``/proc/self/clear_refs``
   reset of VmHWM, then VmHWM - VmRSS before the run, after ``malloc_trim``); CUDA --
   ``torch.cuda.max_memory_allocated`` after ``reset_peak_memory_stats``.  Where neither is
@@ -74,6 +90,8 @@ log = logging.getLogger(__name__)
 ONNX_INPUT = "image"
 ONNX_OUTPUT = "logits"
 DEPLOY_JSON = "deploy.json"
+INT8_FILE = "model.int8.onnx"
+ENGINES = ("auto", "torch", "torchscript", "onnx", "int8")
 BASELINE_VARIANT = "fp32_eager_nchw"
 VARIANTS = ("fp32_eager_nchw", "fp32_channels_last", "bf16_autocast", "bf16_channels_last", "torchscript_frozen",
             "onnxruntime_fp32", "onnxruntime_int8")
@@ -273,6 +291,94 @@ def require_parity(parity: dict) -> None:
                               f"(atol {res.get('atol')}), {res['mask_pixels_differ']} mask pixels differ at tau")
 
 
+# --------------------------------------------------------------------------------------------------
+# int8 calibration data and parity report
+# --------------------------------------------------------------------------------------------------
+def calibration_rows(splits: Sequence[str], n: int) -> np.ndarray:
+    """Row indices of up to ``n`` TRAINING-split images, evenly spaced over the training rows in
+    manifest order (deterministic; all of them when there are at most ``n``).  Empty when none."""
+    train = np.flatnonzero(np.asarray(splits).astype(str) == "train")
+    if len(train) <= n:
+        return train
+    return train[np.unique(np.linspace(0, len(train) - 1, int(n)).round().astype(int))]
+
+
+def read_calibration_images(art: str | Path, n: int, resolution: int | None = None):
+    """``(images uint8 [M,R,R,3] or None, opened artifacts, note)`` for int8 calibration.
+
+    Reads ``art/manifest.parquet`` and ``art/images.zarr`` only -- images, never masks (the
+    reference masks are not an input of quantisation).  ``resolution`` resizes with the segment
+    preprocessing (area interpolation) when images.zarr is at another size.  None (with the reason
+    in ``note``) when the artifacts are absent or hold no training rows.
+    """
+    from pipeline.artifacts import open_artifact, read_chunk_rows
+    from pipeline.datasets.loading import resize_image
+
+    art = Path(art)
+    paths = (art / "manifest.parquet", art / "images.zarr")
+    missing = [str(p) for p in paths if not p.exists()]
+    if missing:
+        return None, [], f"no training images for int8 calibration ({', '.join(missing)} missing)"
+    manifest = open_artifact(paths[0], "manifest")
+    images = open_artifact(paths[1], "images")
+    rows = calibration_rows(manifest.df["split"].to_numpy(), n)
+    if rows.size == 0:
+        return None, [manifest, images], f"no training-split rows in {paths[0]} for int8 calibration"
+    calib = read_chunk_rows(images["image"], rows)
+    if resolution is not None and calib.shape[1:3] != (resolution, resolution):
+        calib = np.stack([resize_image(im, int(resolution)) for im in calib])
+    return calib, [manifest, images], f"{len(calib)} training-split images of {paths[1]} (no masks)"
+
+
+def int8_agreement(reference: np.ndarray, logits: np.ndarray, tau: float, min_agreement: float) -> dict:
+    """int8 parity report (module docstring): max/mean |Z - Z_ref|, and the fraction of pixels with
+    [Z >= logit(tau)] == [Z_ref >= logit(tau)] (eq:inference-mask); ``passed`` = finite logits and
+    agreement >= ``min_agreement``."""
+    reference = np.asarray(reference, np.float64)
+    logits = np.asarray(logits, np.float64)
+    if reference.shape != logits.shape or reference.size == 0:
+        return {"passed": False, "max_abs_diff": float("inf"), "mean_abs_diff": float("inf"),
+                "mask_agreement": 0.0, "min_mask_agreement": float(min_agreement), "mask_pixels_differ": -1,
+                "pixels": int(reference.size), "note": f"shape {logits.shape} vs {reference.shape}"}
+    finite = bool(np.isfinite(logits).all())
+    err = np.abs(reference - logits)
+    z_tau = logit_threshold(tau)
+    differ = int(np.count_nonzero((reference >= z_tau) != (logits >= z_tau)))
+    agreement = 1.0 - differ / reference.size
+    return {"passed": bool(finite and agreement >= min_agreement),
+            "max_abs_diff": float(err.max()) if finite else float("inf"),
+            "mean_abs_diff": float(err.mean()) if finite else float("inf"),
+            "mask_agreement": float(agreement), "min_mask_agreement": float(min_agreement),
+            "mask_pixels_differ": differ, "pixels": int(reference.size)}
+
+
+def check_int8_parity(model, int8_path: str | Path, images: np.ndarray, tau: float, min_agreement: float,
+                      batch_size: int = 8) -> dict:
+    """:func:`int8_agreement` of the int8 ONNX model against the PyTorch mask path on uint8 images
+    [N,R,R,3] (the calibration images at export).  Does not raise; see :func:`require_int8_agreement`."""
+    from pipeline.inference import images_to_tensor
+
+    deployed = mask_path_model(model)
+    sess = ort_session(int8_path)
+    ref, got = [], []
+    for s in range(0, len(images), batch_size):
+        x = images_to_tensor(np.asarray(images[s:s + batch_size]))
+        ref.append(torch_logits(deployed, x))
+        got.append(sess.run(None, {ONNX_INPUT: x.numpy()})[0])
+    out = int8_agreement(np.concatenate(ref), np.concatenate(got), tau, min_agreement)
+    out["images"] = int(len(images))
+    out["inputs"] = f"{len(images)} int8 calibration images (training split), tau = {float(tau):.6g}"
+    return out
+
+
+def require_int8_agreement(report: dict) -> None:
+    """InputError naming ``deploy.int8_min_mask_agreement`` when the int8 model moves too many mask pixels."""
+    if not report["passed"]:
+        raise InputError(f"deploy.int8_min_mask_agreement={report['min_mask_agreement']}: the int8 model agrees "
+                         f"with PyTorch on only {report['mask_agreement']:.4%} of mask pixels "
+                         f"(max |dZ| = {report['max_abs_diff']:.3g}); lower the param or export with --no-int8")
+
+
 def file_sha256(path: str | Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -282,11 +388,17 @@ def file_sha256(path: str | Path) -> str:
 
 
 def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_source: str, resolution: int,
-                 opset: int, atol: float, onnx: bool = True, source: dict | None = None) -> dict:
+                 opset: int, atol: float, onnx: bool = True, source: dict | None = None,
+                 calibration_images: np.ndarray | None = None, calibration_note: str | None = None,
+                 int8_min_agreement: float = 0.99) -> dict:
     """Fill a deploy bundle directory ``tmp`` (module docstring) and return its deploy.json content.
 
-    Raises :class:`ParityError` when an exported format fails its parity check.  ``onnx=False`` (or
-    onnx/onnxruntime missing) writes no model.onnx and records why in deploy.json.
+    Raises :class:`ParityError` when an exported format fails its parity check, and InputError when
+    the int8 model's mask agreement is below ``int8_min_agreement``.  ``onnx=False`` (or
+    onnx/onnxruntime missing) writes no model.onnx and records why in deploy.json.  model.int8.onnx
+    is written when model.onnx exists and ``calibration_images`` (uint8 [N,R,R,3], training split,
+    no masks) are given; otherwise ``int8_note`` says why not (``calibration_note`` when the caller
+    found no images).
     """
     import torch
 
@@ -309,6 +421,22 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
     parity = check_parity(deployed, tau, resolution, atol, torchscript=tmp / "model.ts",
                           onnx=tmp / "model.onnx" if has_onnx else None)
     require_parity(parity)
+    int8 = None
+    if not has_onnx:
+        int8_note = f"no model.onnx ({onnx_note})"
+    elif calibration_images is None or len(calibration_images) == 0:
+        int8_note = calibration_note or "no calibration images given"
+    else:
+        quantize_onnx_int8(tmp / "model.onnx", tmp / INT8_FILE, calibration_images)
+        parity["int8"] = check_int8_parity(deployed, tmp / INT8_FILE, calibration_images, tau, int8_min_agreement)
+        require_int8_agreement(parity["int8"])
+        int8_note = None
+        int8 = {"file": INT8_FILE, "calibration_images": int(len(calibration_images)),
+                "calibration": calibration_note or "training-split images (no masks)",
+                "quantization": "ONNX Runtime static QDQ: uint8 asymmetric activations, int8 symmetric "
+                                "per-channel weights, MinMax calibration"}
+    if int8_note is not None:
+        log.info("export: int8 model skipped: %s", int8_note)
     files = sorted(p.name for p in tmp.iterdir() if p.is_file())
     info = {
         "format_version": 1,
@@ -326,6 +454,8 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
         "opset": int(opset) if has_onnx else None,
         "onnx_exporter": "torch.onnx.export(dynamo=False) (TorchScript-based)" if has_onnx else None,
         "onnx_note": onnx_note,
+        "int8": int8,
+        "int8_note": int8_note,
         "torch_version": torch.__version__,
         "parity": parity,
         "files": {f: file_sha256(tmp / f) for f in files},
@@ -340,9 +470,11 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
 # --------------------------------------------------------------------------------------------------
 @dataclasses.dataclass
 class Segmenter:
-    """A loaded mask path: ``predict_probs(images uint8 [N,R,R,3]) -> P float32 [N,R,R]``."""
+    """A loaded mask path: ``predict_probs(images uint8 [N,R,R,3]) -> P float32 [N,R,R]``.
 
-    backend: str
+    ``engine`` is what computes Z = f(x): torch, torchscript, onnx or int8 (module docstring)."""
+
+    engine: str
     resolution: int | None
     tau: float | None
     tau_source: str
@@ -391,15 +523,40 @@ def checkpoint_resolution(path: str | Path, payload: dict) -> int | None:
     return None
 
 
-def load_segmenter(path: str | Path, backend: str = "auto", device="cpu",
-                   thresholds: str | Path | None = None) -> Segmenter:
-    """Open a checkpoint directory or a deploy bundle for inference.
+def resolve_engine(path: str | Path, engine: str) -> str:
+    """The engine ``auto`` stands for (module docstring), or ``engine`` itself after validation.
 
-    ``backend``: ``auto`` (deploy bundle -> onnx when ONNX Runtime imports and model.onnx exists,
-    else torchscript; checkpoint -> torch), ``torch``, ``torchscript`` (bundle) or ``onnx`` (bundle).
-    tau and resolution come from deploy.json; for a checkpoint, tau is looked up in ``thresholds``
-    (a thresholds.parquet) by the checkpoint's (method, seed) and the resolution from its payload or
-    metadata -- either may stay None, for the caller to fill (``--tau``, ``--resolution``, params).
+    auto: bundle -> int8 when model.int8.onnx exists and onnxruntime imports, else onnx when
+    model.onnx exists and onnxruntime imports, else torch; checkpoint directory -> torch (the only
+    engine a checkpoint supports: anything else is an InputError naming --engine).
+    """
+    path = Path(path)
+    if engine not in ENGINES:
+        raise InputError(f"--engine {engine!r}: expected one of {', '.join(ENGINES)}")
+    if not is_deploy_bundle(path):
+        if engine not in ("auto", "torch"):
+            raise InputError(f"--engine {engine}: needs a deploy bundle (geodistill export); {path} is a "
+                             f"checkpoint directory, which supports --engine torch only")
+        return "torch"
+    if engine != "auto":
+        return engine
+    if onnx_unavailable_reason() is None:
+        if (path / INT8_FILE).exists():
+            return "int8"
+        if (path / "model.onnx").exists():
+            return "onnx"
+    return "torch"
+
+
+def load_segmenter(path: str | Path, engine: str = "auto", device="cpu",
+                   thresholds: str | Path | None = None) -> Segmenter:
+    """Open a checkpoint directory or a deploy bundle for inference with one engine.
+
+    ``engine``: ``auto`` (:func:`resolve_engine`), ``torch`` (model.pt or the checkpoint),
+    ``torchscript`` / ``onnx`` / ``int8`` (bundle only).  tau and resolution come from deploy.json;
+    for a checkpoint, tau is looked up in ``thresholds`` (a thresholds.parquet) by the checkpoint's
+    (method, seed) and the resolution from its payload or metadata -- either may stay None, for the
+    caller to fill (``--tau``, ``--resolution``, params).  ONNX engines run on the CPU.
     """
     import torch
 
@@ -408,23 +565,16 @@ def load_segmenter(path: str | Path, backend: str = "auto", device="cpu",
     path = Path(path)
     if not path.exists():
         raise InputError(f"--checkpoint {path}: not found")
-    if backend not in ("auto", "torch", "torchscript", "onnx"):
-        raise InputError(f"--backend {backend!r}: expected auto, torch, torchscript or onnx")
+    engine = resolve_engine(path, engine)
     device = torch.device(device)
     if is_deploy_bundle(path):
         info = read_deploy_info(path)
         tau, tau_source = info.get("tau"), f"deploy bundle ({info.get('tau_source', '?')})"
         resolution = info.get("resolution")
-        if backend == "auto":
-            backend = "onnx" if (path / "model.onnx").exists() and onnx_unavailable_reason() is None else "torchscript"
     else:
         info, tau, tau_source, resolution = {}, None, "", None
-        if backend == "auto":
-            backend = "torch"
-        if backend != "torch":
-            raise InputError(f"--backend {backend}: needs a deploy bundle (geodistill export), {path} is a checkpoint")
 
-    if backend == "torch":
+    if engine == "torch":
         model, payload = load_student(path, device)
         if device.type == "cpu":
             model = model.to(memory_format=torch.channels_last)
@@ -445,7 +595,7 @@ def load_segmenter(path: str | Path, backend: str = "auto", device="cpu",
         info = info or {"method": payload.get("method"), "seed": payload.get("seed")}
         return Segmenter("torch", resolution, tau, tau_source, run, info)
 
-    if backend == "torchscript":
+    if engine == "torchscript":
         ts_path = path / "model.ts"
         if not ts_path.exists():
             raise ArtifactError(f"{path}: no model.ts")
@@ -458,14 +608,17 @@ def load_segmenter(path: str | Path, backend: str = "auto", device="cpu",
 
     reason = onnx_unavailable_reason()
     if reason is not None:
-        raise InputError(f"--backend onnx: {reason}")
-    if not (path / "model.onnx").exists():
-        raise ArtifactError(f"{path}: no model.onnx (exported without onnx; use --backend torchscript)")
-    sess = ort_session(path / "model.onnx")
+        raise InputError(f"--engine {engine}: {reason}")
+    onnx_file = path / (INT8_FILE if engine == "int8" else "model.onnx")
+    if not onnx_file.exists():
+        why = (info.get("int8_note") or "exported without it") if engine == "int8" else \
+            (info.get("onnx_note") or "exported without onnx")
+        raise ArtifactError(f"{path}: no {onnx_file.name} ({why}); use --engine torch")
+    sess = ort_session(onnx_file)
 
     def run(x):
         return sess.run(None, {ONNX_INPUT: np.ascontiguousarray(x.numpy(), np.float32)})[0]
-    return Segmenter("onnx", resolution, tau, tau_source, run, info)
+    return Segmenter(engine, resolution, tau, tau_source, run, info)
 
 
 def predict_logits_torch(model, x, device) -> np.ndarray:
@@ -577,6 +730,8 @@ def write_png(path: Path, array: np.ndarray) -> None:
 class SegmentResult:
     written: list[Path]
     skipped: list[tuple[str, str]]  # (input path, reason)
+    model_seconds: float = 0.0      # wall time inside the engine (Z = f(x) and sigmoid), all batches
+    total_seconds: float = 0.0      # wall time of the whole loop (reading, resizing, PNG writing included)
 
 
 def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[Path], *, tau: float,
@@ -593,6 +748,8 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
 
     written: list[Path] = []
     skipped: list[tuple[str, str]] = []
+    model_s = 0.0
+    t_start = time.perf_counter()
     bar = progress(total=len(files), desc="segment", unit="img")
     try:
         for s in range(0, len(files), batch_size):
@@ -612,7 +769,9 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
             if not batch:
                 continue
             work = np.stack([resize_image(img, resolution) for _, img in batch])
+            t0 = time.perf_counter()
             probs = segmenter.predict_probs(work, batch_size=batch_size)
+            model_s += time.perf_counter() - t0
             for (stem, img), p in zip(batch, probs):
                 h, w = img.shape[:2]
                 p_full = probs_to_size(p, h, w)
@@ -628,7 +787,7 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
                 bar.update(1)
     finally:
         bar.close()
-    return SegmentResult(written, skipped)
+    return SegmentResult(written, skipped, model_s, time.perf_counter() - t_start)
 
 
 def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str]]) -> Path:

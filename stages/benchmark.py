@@ -7,8 +7,10 @@ mean validation Image IoU against the fp32 baseline at the deployed tau.  The ta
 each variant's speed-up over the baseline measured in the same run; ``--json`` writes the same numbers.
 
 Validation data: rows of images.zarr / reference.zarr with split == 'val' and a reference mask
-(reference masks here only measure accuracy, never train).  int8 calibration uses training-split
-images only (no masks).  Standalone: ``--checkpoint C`` instead of ``--deploy``, ``--resolution 384``
+(reference masks here only measure accuracy, never train).  int8: the bundle's ``model.int8.onnx``
+(calibrated at export) when it has one -- the very file segment runs; otherwise (``--checkpoint``, or a
+bundle exported without it) the ONNX model is quantised here with the same code
+(pipeline.deploy.quantize_onnx_int8) on training-split images only (no masks).  Standalone: ``--checkpoint C`` instead of ``--deploy``, ``--resolution 384``
 to time another size; without artifacts the IoU columns are NaN.  Timings are measurements of this
 machine and its load: nothing here asserts a target, the JSON records whether it was met.
 """
@@ -36,15 +38,10 @@ def _split_rows(manifest_df, split: str, has_mask=None) -> np.ndarray:
     return np.flatnonzero(keep)
 
 
-def _evenly(indices: np.ndarray, n: int) -> np.ndarray:
-    if len(indices) <= n:
-        return indices
-    return indices[np.unique(np.linspace(0, len(indices) - 1, n).round().astype(int))]
-
-
 def load_data(art: Path, n_calib: int):
     """(val images, val masks, calibration images, input artifacts); Nones when artifacts are absent."""
     from pipeline.artifacts import open_artifact, read_chunk_rows
+    from pipeline.deploy import calibration_rows
 
     paths = [art / "manifest.parquet", art / "images.zarr", art / "reference.zarr"]
     if not all(p.exists() for p in paths):
@@ -53,7 +50,7 @@ def load_data(art: Path, n_calib: int):
     images = open_artifact(paths[1], "images")
     reference = open_artifact(paths[2], "reference")
     val = _split_rows(manifest.df, "val", reference.numpy("has_mask"))
-    train = _evenly(_split_rows(manifest.df, "train"), n_calib)
+    train = calibration_rows(manifest.df["split"].to_numpy(), n_calib)  # the export's selection
     val_images = read_chunk_rows(images["image"], val) if val.size else None
     # reference masks: accuracy measurement only (never a training target)
     val_masks = read_chunk_rows(reference["mask"], val).astype(bool) if val.size else None
@@ -116,7 +113,7 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
 
     dev = resolve_device(device)
     inputs = []
-    onnx_path = None
+    onnx_path = bundle_int8 = None
     if deploy_dir is not None:
         bundle = open_artifact(deploy_dir, "deploy")
         inputs.append(bundle)
@@ -125,6 +122,9 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
         tau_dep, res_dep = info["tau"], info["resolution"]
         if (Path(deploy_dir) / "model.onnx").exists():
             onnx_path = Path(deploy_dir) / "model.onnx"
+        if (Path(deploy_dir) / deploy.INT8_FILE).exists():
+            bundle_int8 = Path(deploy_dir) / deploy.INT8_FILE
+            bundle_int8_info = info.get("int8") or {}
     else:
         seg = deploy.load_segmenter(checkpoint, "torch", "cpu", thresholds)
         model, payload = load_student(checkpoint, "cpu")
@@ -151,7 +151,11 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
         if reason is None:
             if onnx_path is None:
                 onnx_path = deploy.export_onnx(model, Path(td) / "model.onnx", resolution, require(cfg, "opset", "deploy"))
-            if "onnxruntime_int8" in variants:
+            if "onnxruntime_int8" in variants and bundle_int8 is not None:
+                int8_path = bundle_int8
+                notes["int8_calibration"] = (f"deploy bundle's {deploy.INT8_FILE} (calibrated at export on "
+                                             f"{bundle_int8_info.get('calibration_images', '?')} training-split images)")
+            elif "onnxruntime_int8" in variants:
                 if calib is None:
                     calib = (deploy.parity_inputs(min(resolution, 128), n=4).permute(0, 2, 3, 1).numpy() * 255
                              ).round().astype(np.uint8)

@@ -7,6 +7,13 @@ setting, 0.5); ``--tau`` overrides both.  The working resolution comes from the 
 records one, else ``data.resolution``.  The parity check (pipeline.deploy.check_parity) runs here and a
 failure stops the stage before anything is written.  ONNX needs the ``onnx`` extra; without it the
 bundle holds TorchScript only and deploy.json says why.
+
+int8: with ``--artifacts DIR`` (manifest.parquet + images.zarr), up to ``deploy.int8_calibration_images``
+TRAINING-split images (images only, never reference masks) calibrate a static int8 ONNX model,
+``model.int8.onnx`` (pipeline.deploy.quantize_onnx_int8, the same code the benchmark uses).  Its
+agreement with PyTorch on those images (max |dZ|, mask agreement at tau) goes into deploy.json; the
+stage fails only when the agreement is below ``deploy.int8_min_mask_agreement``.  Without onnx, without
+the artifacts, or with ``--no-int8`` the bundle has no int8 model and deploy.json (and stderr) say why.
 """
 
 from __future__ import annotations
@@ -28,8 +35,12 @@ log = logging.getLogger("geodistill.export")
               help="thresholds.parquet with the calibrated tau (default: fall back to calibrate.fixed_tau)")
 @click.option("--tau", type=float, default=None, help="override tau (recorded as the tau source)")
 @click.option("--out", default="artifacts/deploy", show_default=True, type=click.Path(file_okay=False))
+@click.option("--artifacts", "art", default=None, type=click.Path(file_okay=False),
+              help="folder with manifest.parquet + images.zarr: training images calibrate model.int8.onnx "
+                   "(default: no int8 model)")
 @click.option("--no-onnx", is_flag=True, help="write TorchScript only")
-def main(params, device, checkpoint, thresholds, tau, out, no_onnx):
+@click.option("--no-int8", is_flag=True, help="skip the int8 ONNX model")
+def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8):
     """Export the mask path (TorchScript + ONNX) with its calibrated tau and a parity check."""
     from pipeline import deploy
     from pipeline.artifacts import artifact_dir, open_artifact
@@ -39,6 +50,8 @@ def main(params, device, checkpoint, thresholds, tau, out, no_onnx):
     cfg = section(params, "deploy")
     opset = require(cfg, "opset", "deploy", kind=int, lo=9, hi=30)
     atol = float(require(cfg, "parity_atol", "deploy", kind=(int, float), lo=0.0))
+    n_calib = require(cfg, "int8_calibration_images", "deploy", kind=int, lo=1)
+    min_agree = float(require(cfg, "int8_min_mask_agreement", "deploy", kind=(int, float), lo=0.0, hi=1.0))
     if not is_active_run(checkpoint):
         raise InputError(f"--checkpoint {checkpoint}: inactive in this profile (no trained model); "
                          f"choose an active run with deploy.export_method / deploy.export_seed")
@@ -67,9 +80,22 @@ def main(params, device, checkpoint, thresholds, tau, out, no_onnx):
         resolution = require(section(params, "data"), "resolution", "data", kind=int, lo=8)
         res_source = "data.resolution"
 
+    calib, calib_note = None, None
+    if no_onnx or no_int8:
+        calib_note = "--no-onnx" if no_onnx else "--no-int8"
+    elif art is None:
+        calib_note = "no --artifacts given (training images calibrate the int8 model)"
+    elif (reason := deploy.onnx_unavailable_reason()) is not None:
+        calib_note = reason
+    else:
+        calib, calib_inputs, calib_note = deploy.read_calibration_images(art, n_calib, int(resolution))
+        inputs += calib_inputs
+
     code = stage_code_version(__file__, *CODE_MODULES)
     meta = meta_for("deploy", "export", code,
-                    {"deploy": {"opset": opset, "parity_atol": atol, "onnx": not no_onnx},
+                    {"deploy": {"opset": opset, "parity_atol": atol, "onnx": not no_onnx,
+                                "int8": calib is not None, "int8_calibration_images": n_calib,
+                                "int8_min_mask_agreement": min_agree},
                      "tau": tau, "tau_source": tau_source, "resolution": int(resolution)}, inputs)
     source = {"checkpoint": str(checkpoint), "checkpoint_fingerprint": ckpt.fingerprint,
               "selected_epoch": payload.get("selected_epoch"), "stage": payload.get("stage"),
@@ -77,13 +103,22 @@ def main(params, device, checkpoint, thresholds, tau, out, no_onnx):
               "bundle_fingerprint": meta.fingerprint}
     with artifact_dir(out, meta) as tmp:
         info = deploy.write_bundle(tmp, model, payload, tau=tau, tau_source=tau_source, resolution=int(resolution),
-                                   opset=opset, atol=atol, onnx=not no_onnx, source=source)
+                                   opset=opset, atol=atol, onnx=not no_onnx, source=source,
+                                   calibration_images=calib, calibration_note=calib_note,
+                                   int8_min_agreement=min_agree)
     par = info["parity"]
     summary = ", ".join(f"{fmt}: max|dZ|={par[fmt]['max_abs_diff']:.2e}, masks identical={par[fmt]['masks_identical']}"
                         for fmt in ("torchscript", "onnx") if fmt in par)
     click.echo(f"export: {method} seed {seed}, tau={tau:.4g}, {resolution}px -> {out} ({summary})", err=True)
     if info.get("onnx_note") and not no_onnx:
         click.echo(f"export: {info['onnx_note']}", err=True)
+    if "int8" in par:
+        q = par["int8"]
+        click.echo(f"export: int8 model {deploy.INT8_FILE}: {q['images']} calibration images, "
+                   f"max|dZ|={q['max_abs_diff']:.3g}, mask agreement={q['mask_agreement']:.4%} "
+                   f"(min {q['min_mask_agreement']:g})", err=True)
+    else:
+        click.echo(f"export: int8 model skipped: {info['int8_note']}", err=True)
 
 
 if __name__ == "__main__":

@@ -6,6 +6,12 @@
 --output      folder for ``<name>_mask.png`` (0/255, at the image's original size), optional
               ``<name>_prob.png`` (--save-prob) and ``<name>_overlay.png`` (--overlay), and skipped.csv
 
+--engine      auto | torch | torchscript | onnx | int8: what computes the logits.  ``auto`` = int8 when
+              the bundle holds model.int8.onnx and onnxruntime imports, else onnx when available,
+              else torch.  A checkpoint directory supports torch only.  Every engine gets the same
+              preprocessed input and the same tau; the engine and its timings are printed on stderr
+              (model ms/image includes the first, warm-up batch).
+
 tau: ``--tau`` > the bundle's deploy.json > the checkpoint's row in ``--thresholds`` (default
 artifacts/thresholds.parquet when it exists) > ``calibrate.fixed_tau`` of the params file (with a
 warning).  Working resolution: ``--resolution`` > bundle / checkpoint > ``data.resolution``.
@@ -35,7 +41,7 @@ def _fallback(params_file: str, overrides: tuple[str, ...], section_name: str, k
     return (load_params(params_file, overrides).get(section_name) or {}).get(key)
 
 
-def run(checkpoint, input_path, output, tau, resolution, thresholds, backend, batch_size, save_prob, overlay,
+def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
         device, params_file, overrides) -> int:
     from pipeline import deploy
     from pipeline.device import resolve_device
@@ -55,7 +61,7 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, backend, ba
         raise InputError(f"--input {input_path}: no image files (png, jpg, jpeg, tif, tiff, bmp)")
     stems = deploy.plan_outputs(root, files, output, Path(input_path).is_dir())
 
-    seg = deploy.load_segmenter(checkpoint, backend, resolve_device(device), thresholds)
+    seg = deploy.load_segmenter(checkpoint, engine, resolve_device(device), thresholds)
     if tau is not None:
         tau, source = deploy.check_tau(tau, "--tau"), "--tau"
     elif seg.tau is not None:
@@ -74,13 +80,18 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, backend, ba
     def report(path, reason):
         click.echo(f"segment: skipped {path}: {reason}", err=True)  # and in skipped.csv
 
-    click.echo(f"segment: {len(files)} image(s), {seg.backend} backend, {resolution}px, tau={tau:.4g} ({source})",
-               err=True)
+    click.echo(f"segment: engine {seg.engine}" + (" (auto)" if engine == "auto" else "")
+               + f", {len(files)} image(s), {resolution}px, tau={tau:.4g} ({source})", err=True)
     result = deploy.segment_files(seg, files, stems, tau=tau, resolution=resolution, batch_size=batch_size,
                                   save_prob=save_prob, overlay=overlay, on_skip=report)
     deploy.write_skipped_csv(Path(output) / "skipped.csv", result.skipped)
     click.echo(f"segment: wrote {len(result.written)} mask(s) to {output}; skipped {len(result.skipped)} "
                f"(see {Path(output) / 'skipped.csv'})", err=True)
+    if result.written:
+        n = len(result.written)
+        click.echo(f"segment: timing: engine {seg.engine}, {1e3 * result.model_seconds / n:.2f} ms/image in the model, "
+                   f"{1e3 * result.total_seconds / n:.2f} ms/image end to end ({n} images, batch {batch_size}, "
+                   f"{resolution}px)", err=True)
     if not result.written:
         raise InputError(f"--input {input_path}: none of the {len(files)} file(s) could be read")
     return 0
@@ -94,8 +105,9 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, backend, ba
 @click.option("--resolution", type=int, default=None, help="working resolution override")
 @click.option("--thresholds", default="artifacts/thresholds.parquet", show_default=True,
               help="thresholds table used to find a checkpoint's calibrated tau (when it exists)")
-@click.option("--backend", default="auto", show_default=True,
-              help="auto | torch | torchscript | onnx (the last two need a deploy bundle)")
+@click.option("--engine", default="auto", show_default=True,
+              help="auto | torch | torchscript | onnx | int8 (all but torch need a deploy bundle); auto = int8 "
+                   "if the bundle has it and onnxruntime imports, else onnx if available, else torch")
 @click.option("--batch-size", type=int, default=8, show_default=True)
 @click.option("--save-prob", is_flag=True, help="also write <name>_prob.png (P x 255)")
 @click.option("--overlay", is_flag=True, help="also write <name>_overlay.png")
@@ -103,10 +115,10 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, backend, ba
 @click.option("--params", "params_file", default="params.yaml", show_default=True,
               help="params file, read only for the tau / resolution fallbacks")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="override a param (repeatable)")
-def main(checkpoint, input_path, output, tau, resolution, thresholds, backend, batch_size, save_prob, overlay,
+def main(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
          device, params_file, overrides):
     try:
-        run(checkpoint, input_path, output, tau, resolution, thresholds, backend, batch_size, save_prob, overlay,
+        run(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
             device, params_file, overrides)
     except InputError as e:
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__

@@ -173,6 +173,8 @@ def test_export_falls_back_to_fixed_tau_and_refuses_bad_input(tmp_path):
     info = json.loads((tmp_path / "deploy" / "deploy.json").read_text())
     assert info["tau"] == 0.45 and info["tau_source"].startswith("calibrate.fixed_tau")
     assert not (tmp_path / "deploy" / "model.onnx").exists() and "onnx" not in info["parity"]
+    assert info["int8"] is None and "int8" not in info["parity"] and info["int8_note"]
+    assert not (tmp_path / "deploy" / deploy.INT8_FILE).exists() and "int8 model skipped" in r.output
     # missing checkpoint, inactive marker, bad tau: exit 2 with one line, nothing written
     r = run_export(tmp_path / "nope", tmp_path / "d2")
     assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1 and "nope" in r.output
@@ -186,6 +188,102 @@ def test_export_falls_back_to_fixed_tau_and_refuses_bad_input(tmp_path):
     r = run_export(ckpt, tmp_path / "d4", "--tau", "1.5")
     assert r.exit_code == 2 and "--tau" in r.output
     assert not any((tmp_path / d).exists() for d in ("d2", "d3", "d4"))
+
+
+def test_calibration_rows_are_training_rows_evenly_spaced():
+    splits = np.array(["val", "train", "test", "train", "train", "val", "train", "train"])
+    assert deploy.calibration_rows(splits, 10).tolist() == [1, 3, 4, 6, 7]
+    rows = deploy.calibration_rows(splits, 3)
+    assert rows.tolist() == [1, 4, 7] and all(splits[rows] == "train")
+    assert deploy.calibration_rows(np.array(["val", "test"]), 4).size == 0
+
+
+def test_int8_agreement_report_counts_flipped_mask_pixels():
+    ref = np.array([[-3.0, -0.2, 0.2, 3.0]] * 25)            # 100 pixels, tau = 0.5 -> logit 0
+    close = ref + 0.05                                         # no pixel crosses 0
+    rep = deploy.int8_agreement(ref, close, 0.5, 0.99)
+    assert rep["passed"] and rep["mask_agreement"] == 1.0 and rep["max_abs_diff"] == pytest.approx(0.05)
+    flipped = close.copy()
+    flipped[:2, 1] = 0.1                                       # 2 of 100 pixels cross logit(tau)
+    rep = deploy.int8_agreement(ref, flipped, 0.5, 0.99)
+    assert not rep["passed"] and rep["mask_pixels_differ"] == 2 and rep["mask_agreement"] == pytest.approx(0.98)
+    assert deploy.int8_agreement(ref, flipped, 0.5, 0.98)["passed"]
+    with pytest.raises(deploy.InputError, match="int8_min_mask_agreement"):
+        deploy.require_int8_agreement(rep)
+    assert not deploy.int8_agreement(ref, np.full_like(ref, np.nan), 0.5, 0.0)["passed"]
+
+
+@pytest.mark.skipif(not HAS_ONNX, reason="onnx/onnxruntime not installed (optional extra)")
+def test_export_writes_int8_model_calibrated_on_training_images(tmp_path):
+    ckpt = make_checkpoint(tmp_path / "ckpt", seed=3)
+    art = make_artifacts(tmp_path / "art")
+    r = run_export(ckpt, tmp_path / "deploy", "--tau", "0.5", "--artifacts", str(art),
+                   "--set", "deploy.int8_calibration_images=3")
+    assert r.exit_code == 0, r.output
+    info = json.loads((tmp_path / "deploy" / "deploy.json").read_text())
+    q = tmp_path / "deploy" / deploy.INT8_FILE
+    assert q.exists() and info["int8"]["file"] == deploy.INT8_FILE and info["int8_note"] is None
+    assert info["int8"]["calibration_images"] == 3 and deploy.file_sha256(q) == info["files"][deploy.INT8_FILE]
+    import onnx
+
+    assert "QuantizeLinear" in {n.op_type for n in onnx.load(str(q)).graph.node}
+    # calibration = training rows only (make_artifacts: even rows train), and images only: the
+    # bundle's lineage names manifest + images but never the reference masks
+    bundle = open_artifact(tmp_path / "deploy", "deploy")
+    assert {i["schema"] for i in bundle.meta.inputs} == {"checkpoint", "manifest", "images"}
+    rows = deploy.calibration_rows(open_artifact(art / "manifest.parquet").df["split"].to_numpy(), 3)
+    assert rows.tolist() == [0, 4, 6]
+    # the reported parity, recomputed independently on those images
+    from pipeline.inference import images_to_tensor
+
+    x = images_to_tensor(open_artifact(art / "images.zarr").numpy("image")[rows])
+    model, _ = load_student(ckpt)
+    with torch.no_grad():
+        ref = model(x).numpy()
+    got = deploy.ort_session(q).run(None, {deploy.ONNX_INPUT: x.numpy()})[0]
+    par = info["parity"]["int8"]
+    assert par["images"] == 3 and par["pixels"] == ref.size
+    assert par["max_abs_diff"] == pytest.approx(float(np.abs(got - ref).max()), rel=1e-5, abs=1e-7)
+    assert par["mask_agreement"] == pytest.approx(float(np.mean((got >= 0) == (ref >= 0))))
+    assert par["passed"] and par["mask_agreement"] >= 0.99 and par["min_mask_agreement"] == 0.99
+    assert "mask agreement" in r.output
+    # without the artifacts the export still works and says why int8 was skipped
+    r = run_export(ckpt, tmp_path / "d2", "--tau", "0.5", "--artifacts", str(tmp_path / "nowhere"))
+    assert r.exit_code == 0, r.output
+    info = json.loads((tmp_path / "d2" / "deploy.json").read_text())
+    assert info["int8"] is None and "missing" in info["int8_note"] and "nowhere" in r.output
+    assert (tmp_path / "d2" / "model.onnx").exists() and not (tmp_path / "d2" / deploy.INT8_FILE).exists()
+
+
+@pytest.mark.skipif(not HAS_ONNX, reason="onnx/onnxruntime not installed (optional extra)")
+def test_export_refuses_an_int8_model_that_moves_too_many_mask_pixels(tmp_path, monkeypatch):
+    """The agreement gate is live: an int8 file that computes another function fails the export."""
+    ckpt = make_checkpoint(tmp_path / "ckpt", seed=3)
+    art = make_artifacts(tmp_path / "art")
+    real = deploy.quantize_onnx_int8
+
+    def quantise_the_wrong_model(onnx_path, out_path, calibration_images):
+        wrong = deploy.export_onnx(tiny_model(seed=11), Path(out_path).with_suffix(".wrong.onnx"), RES, 17)
+        real(wrong, out_path, calibration_images)
+        Path(wrong).unlink()
+        return Path(out_path)
+
+    monkeypatch.setattr(deploy, "quantize_onnx_int8", quantise_the_wrong_model)
+    # tau at the median PyTorch probability on the calibration images: about half the pixels are foreground
+    from pipeline.inference import predict_probs
+
+    model, _ = load_student(ckpt)
+    tau = float(np.median(predict_probs(model, open_artifact(art / "images.zarr").numpy("image")[0::2])))
+    r = run_export(ckpt, tmp_path / "deploy", "--tau", f"{tau:.6f}", "--artifacts", str(art))
+    assert r.exit_code == 2, r.output
+    assert len(r.output.strip().splitlines()) == 1 and "deploy.int8_min_mask_agreement" in r.output
+    assert not (tmp_path / "deploy").exists()
+    # the gate is a param: a 0 minimum accepts the same file and records its (low) agreement
+    r = run_export(ckpt, tmp_path / "deploy", "--tau", f"{tau:.6f}", "--artifacts", str(art),
+                   "--set", "deploy.int8_min_mask_agreement=0.0")
+    assert r.exit_code == 0, r.output
+    par = json.loads((tmp_path / "deploy" / "deploy.json").read_text())["parity"]["int8"]
+    assert par["passed"] and par["mask_agreement"] < 0.99
 
 
 @pytest.mark.skipif(not HAS_ONNX, reason="onnx/onnxruntime not installed (optional extra)")
@@ -206,12 +304,16 @@ def test_int8_quantisation_keeps_masks_close(tmp_path):
 
 
 # ---- benchmark ------------------------------------------------------------------------------------
-def test_benchmark_tiny_model_writes_json_and_parquet(tmp_path):
+def test_benchmark_tiny_model_writes_json_and_parquet(tmp_path, monkeypatch):
     from stages.benchmark import main as bench_main
 
     ckpt = make_checkpoint(tmp_path / "ckpt")
-    assert run_export(ckpt, tmp_path / "deploy", "--tau", "0.5").exit_code == 0
     art = make_artifacts(tmp_path / "art")
+    assert run_export(ckpt, tmp_path / "deploy", "--tau", "0.5", "--artifacts", str(art)).exit_code == 0
+
+    def no_requantising(*a, **k):
+        raise AssertionError("the benchmark must reuse the bundle's int8 model")
+    monkeypatch.setattr(deploy, "quantize_onnx_int8", no_requantising)
     variants = "[fp32_eager_nchw,fp32_channels_last,bf16_autocast,torchscript_frozen,onnxruntime_fp32,onnxruntime_int8]"
     args = ["--params", PARAMS, "--device", "cpu", "--deploy", str(tmp_path / "deploy"), "--artifacts", str(art),
             "--out", str(tmp_path / "eff.parquet"), "--json", str(tmp_path / "eff.json"),
@@ -225,6 +327,8 @@ def test_benchmark_tiny_model_writes_json_and_parquet(tmp_path):
     if HAS_ONNX:
         expected |= {"onnxruntime_fp32", "onnxruntime_int8"}
     assert set(res["variants"]) == expected
+    if HAS_ONNX:
+        assert res["notes"]["int8_calibration"].startswith(f"deploy bundle's {deploy.INT8_FILE}")
     assert res["resolution"] == RES and res["n_val"] == 4 and res["baseline"] == "fp32_eager_nchw"
     model, _ = load_student(ckpt)
     from pipeline.model import count_flops, count_parameters
@@ -258,11 +362,14 @@ def test_benchmark_standalone_checkpoint_without_artifacts(tmp_path):
     args = ["--params", PARAMS, "--device", "cpu", "--checkpoint", str(ckpt), "--artifacts", str(tmp_path / "none"),
             "--thresholds", str(tmp_path / "none.parquet"), "--resolution", "24", "--json", str(tmp_path / "e.json"),
             "--set", "deploy.benchmark_iters=1", "--set", "deploy.benchmark_warmup=0",
-            "--set", "deploy.benchmark_batches=[1]", "--set", "deploy.benchmark_variants=[fp32_eager_nchw,fp32_channels_last]"]
-    r = CliRunner().invoke(bench_main, args)
+            "--set", "deploy.benchmark_batches=[1]"]
+    names = ["fp32_eager_nchw", "fp32_channels_last"] + (["onnxruntime_int8"] if HAS_ONNX else [])
+    r = CliRunner().invoke(bench_main, args + ["--set", f"deploy.benchmark_variants=[{','.join(names)}]"])
     assert r.exit_code == 0, r.output
     res = json.loads((tmp_path / "e.json").read_text())
-    assert res["resolution"] == 24 and set(res["variants"]) == {"fp32_eager_nchw", "fp32_channels_last"}
+    assert res["resolution"] == 24 and set(res["variants"]) == set(names)
+    if HAS_ONNX:  # no bundle: the fallback quantises here (no training images: synthetic calibration)
+        assert "synthetic" in res["notes"]["int8_calibration"]
     assert res["variants"]["fp32_eager_nchw"]["iou"] is None and "iou" in res["notes"]
     r = CliRunner().invoke(bench_main, args + ["--set", "deploy.benchmark_variants=[warp_drive]"])
     assert r.exit_code == 2 and "warp_drive" in r.output

@@ -1,5 +1,6 @@
 """``geodistill segment`` on files of odd sizes and formats, a corrupt file among good ones, both a
-checkpoint and a deploy bundle, and the rule that outputs never overwrite inputs."""
+checkpoint and a deploy bundle with every engine (torch, torchscript, onnx, int8), and the rule that
+outputs never overwrite inputs."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from pipeline import deploy
 from pipeline.datasets.loading import read_rgb, resize_image
 from pipeline.inference import load_student
 from stages.segment import main as segment_main
-from test_deploy import HAS_ONNX, make_checkpoint, make_thresholds, run_export
+from test_deploy import HAS_ONNX, make_artifacts, make_checkpoint, make_thresholds, run_export
 
 RES = 32
 
@@ -95,28 +96,116 @@ def test_segment_checkpoint_folder_odd_sizes_formats_and_corrupt_file(tmp_path):
     assert all(p.read_bytes() == b for p, b in before.items())
 
 
-def test_segment_deploy_bundle_backends_agree_and_use_bundle_tau(tmp_path):
-    ckpt = make_checkpoint(tmp_path / "ckpt", seed=4)
+def toy_trained_checkpoint(path: Path) -> Path:
+    """A tiny TinyUNet fitted for 60 steps to 'bright blob = foreground' on generated 32 px images.
+
+    A random TinyUNet outputs nearly constant probabilities (every mask empty or full), which would
+    make any engine agreement trivially 100 %.  The toy target is computed from the generated image
+    itself (blob interior), a fixture only -- no reference mask and no pipeline stage is involved.
+    """
+    import pandas as pd
+
+    from pipeline.artifacts import make_meta
+    from pipeline.inference import save_checkpoint
+    from test_deploy import tiny_model
+
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[0:RES, 0:RES]
+    x = np.empty((16, 3, RES, RES), np.float32)
+    y = np.empty((16, 1, RES, RES), np.float32)
+    for i in range(16):
+        cy, cx, ry, rx = rng.uniform(8, 24), rng.uniform(8, 24), rng.uniform(4, 10), rng.uniform(4, 10)
+        blob = ((yy - cy) / ry) ** 2 + ((xx - cx) / rx) ** 2 < 1
+        x[i] = np.where(blob, rng.uniform(0.6, 0.9), rng.uniform(0.05, 0.3)) + rng.normal(0, 0.08, (3, RES, RES))
+        y[i, 0] = blob
+    x, y = torch.from_numpy(x.clip(0, 1)), torch.from_numpy(y)
+    model = tiny_model(5).train()
+    opt = torch.optim.Adam(model.parameters(), lr=0.02)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny ops: one thread avoids OpenMP spin-waits on a shared, loaded CPU
+    try:
+        for _ in range(40):
+            opt.zero_grad()
+            torch.nn.functional.binary_cross_entropy_with_logits(model(x), y).backward()
+            opt.step()
+    finally:
+        torch.set_num_threads(threads)
+    log = pd.DataFrame({"epoch": [1], "stage": [1], "loss": [0.1], "val_iou": [0.5], "val_bf1": [0.5],
+                        "lr": [0.02], "seconds": [1.0]})
+    meta = make_meta("checkpoint", "train", "test", {"seed": 42, "method": "geodistill"})
+    return save_checkpoint(path, model.eval(), meta, log, method="geodistill", seed=42, stage=1, selected_epoch=1)
+
+
+def read_masks(folder: Path) -> dict[str, np.ndarray]:
+    return {p.relative_to(folder).as_posix(): cv2.imread(str(p), cv2.IMREAD_UNCHANGED) > 0
+            for p in sorted(folder.rglob("*_mask.png"))}
+
+
+def test_segment_deploy_bundle_engines_agree_and_use_bundle_tau(tmp_path):
+    ckpt = toy_trained_checkpoint(tmp_path / "ckpt")
     thr = make_thresholds(tmp_path / "thr.parquet", [("geodistill", 42, 0.47, 0.8)])
-    assert run_export(ckpt, tmp_path / "deploy", "--thresholds", str(thr)).exit_code == 0
-    write_inputs(tmp_path / "in")
-    backends = ["torch", "torchscript"] + (["onnx"] if HAS_ONNX else [])
+    art = make_artifacts(tmp_path / "art")
+    assert run_export(ckpt, tmp_path / "deploy", "--thresholds", str(thr), "--artifacts", str(art)).exit_code == 0
+    sizes = write_inputs(tmp_path / "in")
+    engines = ["torch", "torchscript"] + (["onnx", "int8"] if HAS_ONNX else [])
     masks = {}
-    for b in backends:
-        r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in" / "odd.png",
-                    "--output", tmp_path / f"out_{b}", "--backend", b)
+    for e in engines:
+        r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in",
+                    "--output", tmp_path / f"out_{e}", "--engine", e)
         assert r.exit_code == 0, r.output
-        assert "tau=0.47" in r.output and f"{b} backend" in r.output
-        masks[b] = cv2.imread(str(tmp_path / f"out_{b}" / "odd_mask.png"), cv2.IMREAD_UNCHANGED)
-        assert masks[b].shape == (53, 37)
-    for b in backends[1:]:
-        assert np.array_equal(masks[b], masks["torch"]), b
+        assert "tau=0.47" in r.output and f"engine {e}," in r.output and "ms/image" in r.output
+        masks[e] = read_masks(tmp_path / f"out_{e}")
+        assert {k: v.shape for k, v in masks[e].items()} == {f"{n}_mask.png": hw for n, hw in sizes.items()}
+    fg = np.mean(np.concatenate([m.ravel() for m in masks["torch"].values()]))
+    assert 0.05 < fg < 0.95, fg  # both classes present, so agreement below is not trivially 100 %
+    for e in ("torchscript", "onnx"):  # fp32 engines: identical masks
+        if e in masks:
+            for name, m in masks["torch"].items():
+                assert np.array_equal(masks[e][name], m), (e, name)
+    if HAS_ONNX:  # int8 is approximate: >= 99 % of all pixels agree with torch
+        same = sum(int(np.count_nonzero(masks["int8"][k] == m)) for k, m in masks["torch"].items())
+        assert same / sum(m.size for m in masks["torch"].values()) >= 0.99
+        # auto picks int8 when the bundle has it
+        r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in" / "odd.png",
+                    "--output", tmp_path / "out_auto")
+        assert r.exit_code == 0 and "engine int8 (auto)" in r.output, r.output
+        assert np.array_equal(read_masks(tmp_path / "out_auto")["odd_mask.png"], masks["int8"]["odd_mask.png"])
     # --tau overrides the bundle's tau: tau = 0 keeps every pixel
     r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in" / "grey.png",
                 "--output", tmp_path / "all", "--tau", 0)
     assert r.exit_code == 0 and (cv2.imread(str(tmp_path / "all" / "grey_mask.png"), 0) == 255).all()
     info = json.loads((tmp_path / "deploy" / "deploy.json").read_text())
     assert info["resolution"] == RES
+
+
+def test_segment_engine_choice_and_refusals(tmp_path):
+    ckpt = make_checkpoint(tmp_path / "ckpt", seed=2)
+    write_inputs(tmp_path / "in")
+    img = tmp_path / "in" / "odd.png"
+    # a checkpoint directory: auto = torch; any other engine is refused with one line, exit 2
+    r = segment("--checkpoint", ckpt, "--input", img, "--output", tmp_path / "o1", "--tau", 0.5,
+                "--resolution", RES)
+    assert r.exit_code == 0 and "engine torch (auto)" in r.output, r.output
+    for e in ("onnx", "int8", "torchscript"):
+        r = segment("--checkpoint", ckpt, "--input", img, "--output", tmp_path / f"x_{e}", "--tau", 0.5,
+                    "--resolution", RES, "--engine", e)
+        lines = r.output.strip().splitlines()
+        assert r.exit_code == 2 and len(lines) == 1 and "--engine" in lines[0] and "checkpoint" in lines[0], r.output
+        assert not (tmp_path / f"x_{e}").exists()
+    r = segment("--checkpoint", ckpt, "--input", img, "--output", tmp_path / "x", "--engine", "tpu")
+    assert r.exit_code == 2 and "--engine" in r.output and len(r.output.strip().splitlines()) == 1
+    # a bundle without an int8 model (no --artifacts at export): auto = onnx, a forced int8 says why not
+    assert run_export(ckpt, tmp_path / "deploy", "--tau", "0.5").exit_code == 0
+    r = segment("--checkpoint", tmp_path / "deploy", "--input", img, "--output", tmp_path / "o2")
+    assert r.exit_code == 0 and f"engine {'onnx' if HAS_ONNX else 'torch'} (auto)" in r.output, r.output
+    r = segment("--checkpoint", tmp_path / "deploy", "--input", img, "--output", tmp_path / "o3", "--engine", "int8")
+    lines = r.output.strip().splitlines()
+    assert r.exit_code == 2 and len(lines) == 1 and (deploy.INT8_FILE in lines[0] or "onnx" in lines[0]), r.output
+    # a bundle exported without onnx: auto = torch
+    assert run_export(ckpt, tmp_path / "ts_only", "--tau", "0.5", "--no-onnx").exit_code == 0
+    r = segment("--checkpoint", tmp_path / "ts_only", "--input", img, "--output", tmp_path / "o4")
+    assert r.exit_code == 0 and "engine torch (auto)" in r.output, r.output
+    assert np.array_equal(read_masks(tmp_path / "o4")["odd_mask.png"], read_masks(tmp_path / "o1")["odd_mask.png"])
 
 
 def test_segment_never_overwrites_inputs_and_rejects_bad_options(tmp_path):
@@ -129,7 +218,7 @@ def test_segment_never_overwrites_inputs_and_rejects_bad_options(tmp_path):
         (["--checkpoint", tmp_path / "missing", "--input", tmp_path / "in", "--output", tmp_path / "o"], "missing"),
         (["--input", tmp_path / "nowhere", "--output", tmp_path / "o"], "nowhere"),
         (["--input", tmp_path / "in", "--output", tmp_path / "o", "--tau", 2], "--tau"),
-        (["--input", tmp_path / "in", "--output", tmp_path / "o", "--backend", "onnx"], "deploy bundle"),
+        (["--input", tmp_path / "in", "--output", tmp_path / "o", "--engine", "onnx"], "deploy bundle"),
         (["--input", tmp_path / "in"], "--output"),
     ]
     for extra, needle in cases:
