@@ -62,20 +62,26 @@ def set_path(d: dict, keys: list[str], value: Any) -> None:
     cur[keys[-1]] = value
 
 
-def load_params(path: str | Path = DEFAULT_PARAMS, overrides: Iterable[str] = ()) -> dict:
-    """Effective params: base sections + the active profile's overrides + ``--set`` overrides.
-
-    ``--set profile=paper`` switches the profile before the profile overrides are applied.
-    """
+def read_yaml_mapping(path: str | Path, what: str = "params file") -> dict:
+    """A YAML file whose top level is a mapping (params, protocol files); InputError naming the file."""
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: params file not found")
+    if not path.is_file():
+        raise InputError(f"{path}: {what} not found")
     try:
         raw = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as e:
         raise InputError(f"{path}: invalid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(raw, dict):
-        raise InputError(f"{path}: top level must be a mapping")
+        raise InputError(f"{path}: {what} must be a mapping at the top level")
+    return raw
+
+
+def load_params(path: str | Path = DEFAULT_PARAMS, overrides: Iterable[str] = ()) -> dict:
+    """Effective params: base sections + the active profile's overrides + ``--set`` overrides.
+
+    ``--set profile=paper`` switches the profile before the profile overrides are applied.
+    """
+    raw = read_yaml_mapping(path)
     parsed = [parse_override(o) for o in overrides]
     for keys, value in parsed:
         if keys == ["profile"]:

@@ -46,12 +46,12 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
 from pipeline.datasets.loading import SUPPORTED_SUFFIXES
 from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec
 from pipeline.datasets.synthetic import stable_hash
 from pipeline.errors import InputError
+from pipeline.params import read_yaml_mapping
 
 log = logging.getLogger(__name__)
 
@@ -70,14 +70,7 @@ DEFAULT_PROTOCOLS = {
 def load_protocol(source: str, path: str | None) -> tuple[dict, Path]:
     """Read a protocol YAML (default: ``data_manifests/<source's file>``); InputError naming the file."""
     p = Path(path) if path else MANIFEST_DIR / DEFAULT_PROTOCOLS[source]
-    if not p.is_file():
-        raise InputError(f"{p}: protocol file not found")
-    try:
-        proto = yaml.safe_load(p.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise InputError(f"{p}: invalid YAML ({str(e).splitlines()[0]})") from None
-    if not isinstance(proto, dict):
-        raise InputError(f"{p}: protocol must be a mapping")
+    proto = read_yaml_mapping(p, "protocol file")
     declared = proto.get("dataset")
     if declared is not None and declared != source:
         raise InputError(f"{p}: protocol is for dataset {declared!r}, not {source!r}")
