@@ -6,9 +6,9 @@
 --output      folder for ``<name>_mask.png`` (0/255, at the image's original size), optional
               ``<name>_prob.png`` (--save-prob) and ``<name>_overlay.png`` (--overlay), and skipped.csv
 
---engine      auto | torch | torchscript | onnx | int8: what computes the logits.  ``auto`` = int8 when
-              the bundle holds model.int8.onnx and onnxruntime imports, else onnx when available,
-              else torch.  A checkpoint directory supports torch only.  Every engine gets the same
+--engine      auto | torch | torchscript | onnx | int8: what computes the logits.  ``auto`` = onnx when
+              the bundle holds model.onnx and onnxruntime imports, else torch: only engines whose
+              masks equal PyTorch's; int8 (faster, approximate) must be asked for.  A checkpoint directory supports torch only.  Every engine gets the same
               preprocessed input and the same tau; the engine and its timings are printed on stderr
               (model ms/image includes the first, warm-up batch).
 
@@ -106,8 +106,8 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
 @click.option("--thresholds", default="artifacts/thresholds.parquet", show_default=True,
               help="thresholds table used to find a checkpoint's calibrated tau (when it exists)")
 @click.option("--engine", default="auto", show_default=True,
-              help="auto | torch | torchscript | onnx | int8 (all but torch need a deploy bundle); auto = int8 "
-                   "if the bundle has it and onnxruntime imports, else onnx if available, else torch")
+              help="auto | torch | torchscript | onnx | int8 (all but torch need a deploy bundle); auto = onnx "
+                   "if available, else torch (exact engines only; int8 is faster but approximate)")
 @click.option("--batch-size", type=int, default=8, show_default=True)
 @click.option("--save-prob", is_flag=True, help="also write <name>_prob.png (P x 255)")
 @click.option("--overlay", is_flag=True, help="also write <name>_overlay.png")

@@ -165,11 +165,11 @@ def test_segment_deploy_bundle_engines_agree_and_use_bundle_tau(tmp_path):
     if HAS_ONNX:  # int8 is approximate: >= 99 % of all pixels agree with torch
         same = sum(int(np.count_nonzero(masks["int8"][k] == m)) for k, m in masks["torch"].items())
         assert same / sum(m.size for m in masks["torch"].values()) >= 0.99
-        # auto picks int8 when the bundle has it
+        # auto picks an exact engine (onnx) even when the bundle has int8: int8 must be asked for
         r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in" / "odd.png",
                     "--output", tmp_path / "out_auto")
-        assert r.exit_code == 0 and "engine int8 (auto)" in r.output, r.output
-        assert np.array_equal(read_masks(tmp_path / "out_auto")["odd_mask.png"], masks["int8"]["odd_mask.png"])
+        assert r.exit_code == 0 and "engine onnx (auto)" in r.output, r.output
+        assert np.array_equal(read_masks(tmp_path / "out_auto")["odd_mask.png"], masks["torch"]["odd_mask.png"])
     # --tau overrides the bundle's tau: tau = 0 keeps every pixel
     r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in" / "grey.png",
                 "--output", tmp_path / "all", "--tau", 0)
