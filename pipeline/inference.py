@@ -136,3 +136,34 @@ def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
                              [(str(path), meta)])
         write_parquet(tmp / "log.parquet", log, log_meta)
     return Path(path)
+
+
+def open_labelled_split(artifacts: str | Path, split: str, purpose: str):
+    """Open manifest, images and reference of a run and pick the ``split`` rows that have a reference mask.
+
+    Returns ``(manifest, images, reference, indices)`` (artifacts opened and validated; indices in
+    manifest order).  Reference masks serve selection, calibration and evaluation only.  InputError
+    naming the manifest when no such row exists (``purpose`` completes the message).
+    """
+    from pipeline.artifacts import open_artifact
+    from pipeline.errors import InputError
+
+    art = Path(artifacts)
+    manifest = open_artifact(art / "manifest.parquet", "manifest")
+    images = open_artifact(art / "images.zarr", "images")
+    reference = open_artifact(art / "reference.zarr", "reference")
+    idx = np.flatnonzero((manifest.df["split"].to_numpy() == split) & reference.numpy("has_mask").astype(bool))
+    if idx.size == 0:
+        name = "validation" if split == "val" else split
+        raise InputError(f"{manifest.path}: no {name} image has a reference mask; {purpose}")
+    return manifest, images, reference, idx
+
+
+def active_runs(checkpoints_dir: str | Path, purpose: str) -> list[tuple[str, int, Path]]:
+    """:func:`iter_runs` as a list; InputError when there is no trained (active) checkpoint to ``purpose``."""
+    from pipeline.errors import InputError
+
+    runs = list(iter_runs(checkpoints_dir))
+    if not runs:
+        raise InputError(f"{checkpoints_dir}: no trained (active) checkpoint to {purpose}")
+    return runs

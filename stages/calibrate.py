@@ -11,7 +11,6 @@ Manual (reference) masks enter here ONLY to calibrate tau -- they are never a tr
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import click
 import numpy as np
@@ -37,11 +36,6 @@ def threshold_grid(cfg: dict) -> np.ndarray:
     return np.round(start + step * np.arange(n), 9)
 
 
-def validation_indices(manifest_df: pd.DataFrame, has_mask: np.ndarray) -> np.ndarray:
-    """Rows of the validation split that have a reference mask (manifest order)."""
-    return np.flatnonzero((manifest_df["split"].to_numpy() == "val") & np.asarray(has_mask, bool))
-
-
 @stage_command("calibrate")
 @click.option("--artifacts", "art", default="artifacts", show_default=True, type=click.Path(file_okay=False),
               help="directory holding manifest.parquet, images.zarr, reference.zarr")
@@ -51,24 +45,15 @@ def main(params, device, art, checkpoints, out):
     """Calibrate tau per (method, seed) by mean validation Image IoU; write thresholds.parquet."""
     from pipeline.artifacts import open_artifact, read_chunk_rows, write_parquet
     from pipeline.device import resolve_device
-    from pipeline.errors import InputError
-    from pipeline.inference import iter_runs, load_student, predict_probs
+    from pipeline.inference import active_runs, load_student, open_labelled_split, predict_probs
     from pipeline.metrics import calibrate_threshold, iou_curve
     from pipeline.progress import progress
 
     cfg = section(params, "calibrate")
     grid = threshold_grid(cfg)
     fixed_tau = float(require(cfg, "fixed_tau", "calibrate", kind=(int, float), lo=0.0, hi=1.0))
-    art = Path(art)
-    manifest = open_artifact(art / "manifest.parquet", "manifest")
-    images = open_artifact(art / "images.zarr", "images")
-    reference = open_artifact(art / "reference.zarr", "reference")
-    val = validation_indices(manifest.df, reference.numpy("has_mask"))
-    if val.size == 0:
-        raise InputError(f"{manifest.path}: no validation image has a reference mask; calibration needs some")
-    runs = list(iter_runs(checkpoints))
-    if not runs:
-        raise InputError(f"{checkpoints}: no trained (active) checkpoint to calibrate")
+    manifest, images, reference, val = open_labelled_split(art, "val", "calibration needs some")
+    runs = active_runs(checkpoints, "calibrate")
 
     dev = resolve_device(device)
     val_images = read_chunk_rows(images["image"], val)

@@ -17,7 +17,6 @@ Reference masks are used here only to score predictions.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import click
 import numpy as np
@@ -71,8 +70,7 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
     """Score every student on every test group; write per-image metrics, summaries with bootstrap CIs."""
     from pipeline.artifacts import atomic_path, open_artifact, read_chunk_rows, write_parquet
     from pipeline.device import resolve_device
-    from pipeline.errors import InputError
-    from pipeline.inference import iter_runs, load_student, predict_probs
+    from pipeline.inference import active_runs, load_student, open_labelled_split, predict_probs
     from pipeline.metrics import per_image_metrics
     from pipeline.progress import progress
     from pipeline.stats import method_gains, seed_summary
@@ -84,18 +82,10 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
     boot_seed = require(cfg, "bootstrap_seed", "evaluate", kind=int)
     ci = require(cfg, "ci", "evaluate", kind=float, lo=0.5, hi=0.999)
 
-    art = Path(art)
-    manifest = open_artifact(art / "manifest.parquet", "manifest")
-    images = open_artifact(art / "images.zarr", "images")
-    reference = open_artifact(art / "reference.zarr", "reference")
+    manifest, images, reference, test = open_labelled_split(art, "test", "nothing to evaluate")
     thr = open_artifact(thresholds, "thresholds")
     mdf = manifest.df
-    test = np.flatnonzero((mdf["split"].to_numpy() == "test") & reference.numpy("has_mask").astype(bool))
-    if test.size == 0:
-        raise InputError(f"{manifest.path}: no test image has a reference mask; nothing to evaluate")
-    runs = list(iter_runs(checkpoints))
-    if not runs:
-        raise InputError(f"{checkpoints}: no trained (active) checkpoint to evaluate")
+    runs = active_runs(checkpoints, "evaluate")
 
     dev = resolve_device(device)
     info = mdf.iloc[test][["image_id", "dataset", "domain", "group", "spacecraft"]].reset_index(drop=True)
