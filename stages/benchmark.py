@@ -59,12 +59,14 @@ def load_data(art: Path, n_calib: int):
 
 
 def format_table(rows, baseline: str) -> str:
-    head = f"{'variant':22s} {'latency ms':>10s} {'x base':>7s} {'img/s':>8s} {'batch':>5s} {'peak MB':>8s} {'IoU':>7s} {'dIoU':>8s}"
+    head = (f"{'variant':22s} {'latency ms':>10s} {'x base':>7s} {'img/s':>8s} {'batch':>5s} {'peak MB':>8s} "
+            f"{'IoU':>7s} {'dIoU':>8s} {'mIoU fp32':>9s}")
     lines = [head, "-" * len(head)]
     for r in rows:
         lines.append(f"{r['variant']:22s} {r['latency_ms']:10.2f} {r['speedup']:7.2f} {r['throughput']:8.2f} "
-                     f"{r['batch']:5d} {r['peak_mb']:8.1f} {r['iou']:7.4f} {r['iou_delta']:+8.4f}")
-    lines.append(f"(x base = {baseline} latency / variant latency, same run)")
+                     f"{r['batch']:5d} {r['peak_mb']:8.1f} {r['iou']:7.4f} {r['iou_delta']:+8.4f} {r['iou_vs_fp32']:9.4f}")
+    lines.append(f"(x base = {baseline} latency / variant latency, timed round-robin in the same run; "
+                 f"mIoU fp32 = mean per-image IoU of the variant's masks with {baseline}'s)")
     return "\n".join(lines)
 
 
@@ -101,6 +103,7 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
     batches = require(cfg, "benchmark_batches", "deploy", kind=list)
     variants = require(cfg, "benchmark_variants", "deploy", kind=list)
     n_calib = require(cfg, "int8_calibration_images", "deploy", kind=int, lo=1)
+    q8 = deploy.int8_params(cfg)
     target_ms = float(require(cfg, "target_latency_ms", "deploy", kind=(int, float), lo=0))
     max_drop = float(require(cfg, "target_iou_drop", "deploy", kind=(int, float), lo=0))
     if not batches or not all(isinstance(b, int) and b >= 1 for b in batches):
@@ -162,7 +165,8 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
                     notes["int8_calibration"] = "no training images found: calibrated on synthetic smooth noise"
                 else:
                     notes["int8_calibration"] = f"{len(calib)} training-split images (no masks)"
-                int8_path = deploy.quantize_onnx_int8(onnx_path, Path(td) / "model_int8.onnx", calib)
+                int8_path = deploy.quantize_onnx_int8(onnx_path, Path(td) / "model_int8.onnx", calib,
+                                                      q8["calibration"], q8["percentile"])
         else:
             click.echo(f"benchmark: {reason}", err=True)
         rows, run_info = deploy.benchmark(

@@ -10,9 +10,10 @@ bundle holds TorchScript only and deploy.json says why.
 
 int8: with ``--artifacts DIR`` (manifest.parquet + images.zarr), up to ``deploy.int8_calibration_images``
 TRAINING-split images (images only, never reference masks) calibrate a static int8 ONNX model,
-``model.int8.onnx`` (pipeline.deploy.quantize_onnx_int8, the same code the benchmark uses).  Its
-agreement with PyTorch on those images (max |dZ|, mask agreement at tau) goes into deploy.json; the
-stage fails only when the agreement is below ``deploy.int8_min_mask_agreement``.  Without onnx, without
+``model.int8.onnx`` (pipeline.deploy.quantize_onnx_int8, the same code the benchmark uses; ranges by
+``deploy.int8_calibration`` / ``deploy.int8_percentile``).  Its agreement with PyTorch on those images
+(max |dZ|, per-image mask IoU at tau) goes into deploy.json; the stage fails only when the mean mask
+IoU is below ``deploy.int8_min_mask_iou``.  Without onnx, without
 the artifacts, or with ``--no-int8`` the bundle has no int8 model and deploy.json (and stderr) say why.
 """
 
@@ -51,7 +52,8 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     opset = require(cfg, "opset", "deploy", kind=int, lo=9, hi=30)
     atol = float(require(cfg, "parity_atol", "deploy", kind=(int, float), lo=0.0))
     n_calib = require(cfg, "int8_calibration_images", "deploy", kind=int, lo=1)
-    min_agree = float(require(cfg, "int8_min_mask_agreement", "deploy", kind=(int, float), lo=0.0, hi=1.0))
+    min_iou = float(require(cfg, "int8_min_mask_iou", "deploy", kind=(int, float), lo=0.0, hi=1.0))
+    q8 = deploy.int8_params(cfg)
     if not is_active_run(checkpoint):
         raise InputError(f"--checkpoint {checkpoint}: inactive in this profile (no trained model); "
                          f"choose an active run with deploy.export_method / deploy.export_seed")
@@ -95,7 +97,8 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     meta = meta_for("deploy", "export", code,
                     {"deploy": {"opset": opset, "parity_atol": atol, "onnx": not no_onnx,
                                 "int8": calib is not None, "int8_calibration_images": n_calib,
-                                "int8_min_mask_agreement": min_agree},
+                                "int8_min_mask_iou": min_iou, "int8_calibration": q8["calibration"],
+                                "int8_percentile": q8["percentile"]},
                      "tau": tau, "tau_source": tau_source, "resolution": int(resolution)}, inputs)
     source = {"checkpoint": str(checkpoint), "checkpoint_fingerprint": ckpt.fingerprint,
               "selected_epoch": payload.get("selected_epoch"), "stage": payload.get("stage"),
@@ -105,7 +108,8 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
         info = deploy.write_bundle(tmp, model, payload, tau=tau, tau_source=tau_source, resolution=int(resolution),
                                    opset=opset, atol=atol, onnx=not no_onnx, source=source,
                                    calibration_images=calib, calibration_note=calib_note,
-                                   int8_min_agreement=min_agree)
+                                   int8_min_mask_iou=min_iou, int8_calibration=q8["calibration"],
+                                   int8_percentile=q8["percentile"])
     par = info["parity"]
     summary = ", ".join(f"{fmt}: max|dZ|={par[fmt]['max_abs_diff']:.2e}, masks identical={par[fmt]['masks_identical']}"
                         for fmt in ("torchscript", "onnx") if fmt in par)
@@ -115,8 +119,8 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     if "int8" in par:
         q = par["int8"]
         click.echo(f"export: int8 model {deploy.INT8_FILE}: {q['images']} calibration images, "
-                   f"max|dZ|={q['max_abs_diff']:.3g}, mask agreement={q['mask_agreement']:.4%} "
-                   f"(min {q['min_mask_agreement']:g})", err=True)
+                   f"max|dZ|={q['max_abs_diff']:.3g}, mask IoU vs PyTorch mean {q['mask_iou_mean']:.4f} "
+                   f"(gate {q['min_mask_iou']:g}), min {q['mask_iou_min']:.4f}", err=True)
     else:
         click.echo(f"export: int8 model skipped: {info['int8_note']}", err=True)
 
