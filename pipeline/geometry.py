@@ -175,7 +175,7 @@ def pseudo_targets(masks: np.ndarray, *, quantile: float = SDF_QUANTILE, min_sca
     n, h, w = masks.shape
     sdf = np.zeros((n, h, w), np.float32)
     skel = np.zeros((n, h, w), bool)
-    counts = np.count_nonzero(masks.reshape(n, -1), axis=1)
+    counts = np.count_nonzero(masks.reshape(n, h * w), axis=1)  # (explicit size: -1 is ambiguous when n = 0)
     area = counts / float(h * w) if h * w else np.zeros(n)
     for i in range(n):
         m = masks[i]
@@ -194,8 +194,8 @@ def pseudo_targets(masks: np.ndarray, *, quantile: float = SDF_QUANTILE, min_sca
 def area_ratios(masks: np.ndarray) -> np.ndarray:
     """Vectorised :func:`area_ratio` over bool [N,H,W] -> float64 [N]."""
     masks = np.asarray(masks, dtype=bool)
-    n = masks.shape[0]
-    return np.count_nonzero(masks.reshape(n, -1), axis=1) / float(np.prod(masks.shape[1:]))
+    n, pixels = masks.shape[0], int(np.prod(masks.shape[1:]))
+    return np.count_nonzero(masks.reshape(n, pixels), axis=1) / float(pixels)
 
 
 def foreground_agreement(agreement: np.ndarray, voted: np.ndarray) -> float | np.ndarray:

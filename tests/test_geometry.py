@@ -14,7 +14,7 @@ from scipy import ndimage
 from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
 from pipeline.consensus import vote_batch
 from pipeline.errors import InputError
-from pipeline.geometry import (GateFactors, area_ratio, distance_maps, foreground_agreement, gate_factors,
+from pipeline.geometry import (GateFactors, area_ratio, area_ratios, distance_maps, foreground_agreement, gate_factors,
                                median_area, pseudo_targets, sdf_target, skeleton_target, valid_ratio)
 
 PARAMS = Path(__file__).resolve().parent.parent / "params.yaml"
@@ -157,6 +157,10 @@ def test_batched_targets_equal_single_functions():
         np.testing.assert_array_equal(sdf[i], sdf_target(m))
         np.testing.assert_array_equal(sk[i], skeleton_target(m))
         assert area[i] == area_ratio(m)
+    # an empty batch (a shard or worker chunk with no images) is an empty result, not an error
+    sdf, sk, area = pseudo_targets(np.zeros((0, 40, 48), bool))
+    assert sdf.shape == sk.shape == (0, 40, 48) and area.shape == (0,)
+    assert area_ratios(np.zeros((0, 4, 5), bool)).shape == (0,)
 
 
 def test_area_ratio():

@@ -95,6 +95,35 @@ def test_bf16_runs_and_fingerprint_differs(ckpt, items):
     assert f32["checkpoint"] == f16["checkpoint"] and f32["dtype"] != f16["dtype"]
 
 
+def test_checkpoint_hash_is_memoised_until_a_file_changes(tmp_path, ckpt, monkeypatch):
+    import os
+    import shutil
+
+    from pipeline.teachers import sam3
+
+    copy = shutil.copytree(ckpt, tmp_path / "ckpt")
+    memo = tmp_path / "cache" / "checkpoint_hashes.json"
+    first = sam3.memoised_checkpoint_hash(copy, memo)
+    assert first == sam3.checkpoint_hash(copy) and memo.exists()
+    real = sam3.checkpoint_hash
+
+    def no_rehash(directory):
+        raise AssertionError("unchanged checkpoint was read again")
+    monkeypatch.setattr(sam3, "checkpoint_hash", no_rehash)
+    assert sam3.memoised_checkpoint_hash(copy, memo) == first
+    assert Sam3Teacher(copy, device="cpu", hash_memo=memo).fingerprint()["checkpoint"] == first
+    monkeypatch.setattr(sam3, "checkpoint_hash", real)
+    # a changed file (new size and mtime) is hashed again and changes the key
+    with open(copy / "config.json", "a") as f:
+        f.write(" ")
+    os.utime(copy / "config.json", ns=(1, 1))
+    second = sam3.memoised_checkpoint_hash(copy, memo)
+    assert second != first and second == real(copy)
+    # an unreadable memo is ignored, not an error
+    memo.write_text("{not json")
+    assert sam3.memoised_checkpoint_hash(copy, memo) == second
+
+
 def test_not_a_checkpoint_is_an_input_error(tmp_path, ckpt):
     with pytest.raises(InputError, match="directory not found"):
         check_checkpoint_dir(tmp_path / "missing")

@@ -8,6 +8,7 @@ sha256 that keys the content-addressed cache (:mod:`pipeline.teachers.cache`).
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 from typing import Any, Mapping
 
 from pipeline.artifacts import canonical_json
@@ -76,7 +77,8 @@ def make_teacher(cfg: Mapping[str, Any], resolution: tuple[int, int], device: st
 
     return Sam3Teacher(cfg["checkpoint"], device=device, dtype=cfg["dtype"], batch_size=cfg["batch_size"],
                        resolution=resolution, score_threshold=cfg.get("score_threshold", 0.3),
-                       mask_threshold=cfg.get("mask_threshold", 0.5))
+                       mask_threshold=cfg.get("mask_threshold", 0.5),
+                       hash_memo=Path(cfg["cache_dir"]) / "checkpoint_hashes.json")
 
 
 def teacher_fingerprint(teacher: Teacher) -> str:

@@ -54,12 +54,57 @@ _WEIGHT_SUFFIXES = (".safetensors", ".bin", ".pt", ".pth")
 def checkpoint_hash(directory: Path) -> str:
     """sha256 over the checkpoint's files (name + bytes, sorted): weights, configs and tokenizer."""
     h = hashlib.sha256()
-    for p in sorted(q for q in directory.rglob("*") if q.is_file() and not q.name.startswith(".")):
+    for p in _checkpoint_files(directory):
         h.update(str(p.relative_to(directory)).encode())
         with open(p, "rb") as f:
             for block in iter(lambda: f.read(1 << 22), b""):
                 h.update(block)
     return h.hexdigest()
+
+
+def _checkpoint_files(directory: Path) -> list[Path]:
+    return sorted(q for q in directory.rglob("*") if q.is_file() and not q.name.startswith("."))
+
+
+def checkpoint_stat(directory: Path) -> list[list]:
+    """[relative path, size, mtime_ns] of every checkpoint file, sorted: what the hash memo is keyed on."""
+    out = []
+    for p in _checkpoint_files(directory):
+        st = p.stat()
+        out.append([str(p.relative_to(directory)), int(st.st_size), int(st.st_mtime_ns)])
+    return out
+
+
+def memoised_checkpoint_hash(directory: Path, memo: Path | None) -> str:
+    """:func:`checkpoint_hash`, remembered in the JSON file ``memo`` while no file's size or mtime changes.
+
+    A SAM 3 checkpoint is 3.4 GB; reading it on every run only to rebuild the cache key cost seconds
+    each time.  Decision (as DVC's own state database does): a file whose size and modification time
+    are unchanged is taken as unchanged, so the memo is keyed on (path, size, mtime_ns) of every file.
+    Editing a file in place while forging its mtime would defeat it; delete ``memo`` to force a rehash.
+    The memo is written atomically and an unreadable one is ignored (recomputed).  ``memo=None``
+    always hashes.
+    """
+    from pipeline.artifacts import atomic_path
+
+    if memo is None:
+        return checkpoint_hash(directory)
+    memo = Path(memo)
+    key, stat = str(Path(directory).resolve()), checkpoint_stat(directory)
+    try:
+        table = json.loads(memo.read_text())
+        if not isinstance(table, dict):
+            table = {}
+    except (OSError, ValueError):
+        table = {}
+    entry = table.get(key)
+    if isinstance(entry, dict) and entry.get("files") == stat and isinstance(entry.get("sha256"), str):
+        return entry["sha256"]
+    digest = checkpoint_hash(directory)
+    table[key] = {"files": stat, "sha256": digest}
+    with atomic_path(memo) as tmp:
+        tmp.write_text(json.dumps(table, indent=1, sort_keys=True))
+    return digest
 
 
 def read_processor_config(directory: Path) -> dict:
@@ -109,7 +154,7 @@ class Sam3Teacher:
 
     def __init__(self, checkpoint: str | Path, *, device: str = "auto", dtype: str = "fp32", batch_size: int = 2,
                  resolution: tuple[int, int] | None = None, score_threshold: float = 0.3,
-                 mask_threshold: float = 0.5):
+                 mask_threshold: float = 0.5, hash_memo: str | Path | None = None):
         import torch
 
         from pipeline.device import resolve_device
@@ -139,6 +184,7 @@ class Sam3Teacher:
         self.mean = torch.tensor(proc.get("image_mean", [0.5, 0.5, 0.5]), dtype=torch.float32).view(1, 3, 1, 1)
         self.std = torch.tensor(proc.get("image_std", [0.5, 0.5, 0.5]), dtype=torch.float32).view(1, 3, 1, 1)
         self._hash = None
+        self._hash_memo = Path(hash_memo) if hash_memo is not None else None  # memoised_checkpoint_hash
         self._model = None
         self._tokenizer = None
         self._text: dict[tuple[str, ...], tuple] = {}
@@ -147,7 +193,7 @@ class Sam3Teacher:
     def fingerprint(self) -> dict:
         if self._hash is None:
             log.info("sam3: hashing checkpoint %s for the cache key", self.checkpoint)
-            self._hash = checkpoint_hash(self.checkpoint)
+            self._hash = memoised_checkpoint_hash(self.checkpoint, self._hash_memo)
         return {"backend": BACKEND, "checkpoint": self._hash, "dtype": self.dtype_name,
                 "resolution": list(self.resolution) if self.resolution else None,
                 "score_threshold": self.score_threshold, "mask_threshold": self.mask_threshold,
