@@ -399,6 +399,9 @@ def test_benchmark_tiny_model_writes_json_and_parquet(tmp_path, monkeypatch):
     if HAS_ONNX:
         assert res["notes"]["int8_calibration"].startswith(f"deploy bundle's {deploy.INT8_FILE}")
     assert res["resolution"] == RES and res["n_val"] == 4 and res["baseline"] == "fp32_eager_nchw"
+    # the 40 ms target is defined at 384 px: at 32 px it is reported as not judged, never as met
+    assert res["target"]["resolution"] == 384 and res["fast_path"]["meets_latency_target"] is None
+    assert "not judged" in r.stdout
     model, _ = load_student(ckpt)
     from pipeline.model import count_flops, count_parameters
 
@@ -439,6 +442,12 @@ def test_benchmark_standalone_checkpoint_without_artifacts(tmp_path):
     assert r.exit_code == 0, r.output
     res = json.loads((tmp_path / "e.json").read_text())
     assert res["resolution"] == 24 and set(res["variants"]) == set(names)
+    r2 = CliRunner().invoke(bench_main, args + ["--set", f"deploy.benchmark_variants=[{names[0]}]",
+                                                "--set", "deploy.target_resolution=24",
+                                                "--set", "deploy.target_latency_ms=100000"])
+    assert r2.exit_code == 0, r2.output
+    judged = json.loads((tmp_path / "e.json").read_text())["fast_path"]
+    assert judged["meets_latency_target"] is True and "100000 ms at 24px: met" in r2.stdout
     if HAS_ONNX:  # no bundle: the fallback quantises here (no training images: synthetic calibration)
         assert "synthetic" in res["notes"]["int8_calibration"]
     assert res["variants"]["fp32_eager_nchw"]["iou"] is None and "iou" in res["notes"]
