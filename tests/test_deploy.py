@@ -336,6 +336,43 @@ def test_int8_quantisation_keeps_masks_close(tmp_path):
         deploy.quantize_onnx_int8(onnx_path, tmp_path / "q5.onnx", calib, "entropy")
 
 
+@pytest.mark.skipif(not HAS_ONNX, reason="onnx/onnxruntime not installed (optional extra)")
+def test_int8_calibration_runs_in_bounded_passes(tmp_path, monkeypatch):
+    """Calibration memory is that of CALIBRATION_CHUNK images, whatever the image count: the
+    calibrator sees passes of at most that many images, and MinMax ranges do not depend on the split."""
+    from onnxruntime.quantization import calibrate
+
+    model = tiny_model(2)
+    onnx_path = deploy.export_onnx(model, tmp_path / "m.onnx", RES, 17)
+    calib = (deploy.parity_inputs(RES, n=5, seed=5).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    whole = deploy.quantize_onnx_int8(onnx_path, tmp_path / "whole.onnx", calib, "minmax")
+    passes = []
+    real = calibrate.create_calibrator
+
+    def counting_calibrator(*a, **k):
+        cal = real(*a, **k)
+        collect = cal.collect_data
+
+        def collect_data(reader):
+            n = 0
+
+            class Counted:
+                def get_next(self):
+                    nonlocal n
+                    item = reader.get_next()
+                    n += item is not None
+                    return item
+            collect(Counted())
+            passes.append(n)
+        cal.collect_data = collect_data
+        return cal
+    monkeypatch.setattr(calibrate, "create_calibrator", counting_calibrator)
+    monkeypatch.setattr(deploy, "CALIBRATION_CHUNK", 2)
+    split = deploy.quantize_onnx_int8(onnx_path, tmp_path / "split.onnx", calib, "minmax")
+    assert passes == [2, 2, 1]
+    assert deploy.file_sha256(split) == deploy.file_sha256(whole)
+
+
 @pytest.mark.parametrize("size", [(32, 32), (37, 50), (9, 8)])
 def test_export_module_computes_the_trained_function_at_any_size(size):
     """ExportMaskPath folds the normalisation into the first conv and reads upsampling sizes off the
