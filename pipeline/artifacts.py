@@ -9,6 +9,8 @@ Every artifact carries a metadata record (``Meta``):
 * ``fingerprint`` = sha256(stage, code_version, canonical params, input fingerprints) -- identical
   for identical inputs and params, different after any change to either;
 * ``library_versions`` and ``created_at`` -- provenance only (not part of the fingerprint).
+  ``created_at`` is the wall clock, or ``SOURCE_DATE_EPOCH`` (seconds, the reproducible-builds
+  convention) when that is set: then a rerun writes byte-identical artifacts.
 
 Writes are atomic: everything is written to a hidden sibling temp path, then renamed into place, so
 a stage killed mid-write leaves nothing that looks complete.  Reads validate the schema and raise
@@ -39,7 +41,7 @@ from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
-from pipeline.errors import ArtifactError
+from pipeline.errors import ArtifactError, InputError
 
 META_KEY = "geodistill"
 SHARD_IMAGES = 256
@@ -178,6 +180,19 @@ def library_versions() -> dict[str, str]:
     return out
 
 
+def creation_time() -> str:
+    """UTC ISO time for ``Meta.created_at``: ``SOURCE_DATE_EPOCH`` when set, else now."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    if epoch:
+        try:
+            when = _dt.datetime.fromtimestamp(int(epoch), _dt.timezone.utc)
+        except (ValueError, OverflowError, OSError):
+            raise InputError(f"SOURCE_DATE_EPOCH={epoch!r}: expected whole seconds since 1970") from None
+    else:
+        when = _dt.datetime.now(_dt.timezone.utc)
+    return when.isoformat(timespec="seconds")
+
+
 @dataclasses.dataclass
 class Meta:
     schema: str
@@ -200,7 +215,7 @@ class Meta:
         if not self.library_versions:
             self.library_versions = library_versions()
         if not self.created_at:
-            self.created_at = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+            self.created_at = creation_time()
 
     def to_dict(self) -> dict:
         return json.loads(canonical_json(dataclasses.asdict(self)))

@@ -16,7 +16,7 @@ import pytest
 import pipeline
 from pipeline.artifacts import (ZarrWriter, artifact_dir, fingerprint, make_meta, open_artifact,
                                 write_parquet, write_zarr)
-from pipeline.errors import ArtifactError
+from pipeline.errors import ArtifactError, InputError
 
 
 def _meta(schema="consensus", params=None, inputs=()):
@@ -45,6 +45,23 @@ def test_zarr_round_trip_and_meta(tmp_path):
     assert m.params == {"vote_threshold": 0.5}
     assert "numpy" in m.library_versions and m.created_at
     assert len(m.fingerprint) == 64
+
+
+def test_source_date_epoch_makes_reruns_byte_identical(tmp_path, monkeypatch):
+    import hashlib
+
+    def digest(path):
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    df = pd.DataFrame({"method": ["plain"], "seed": [42], "tau": [0.5], "val_iou": [0.7]})
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    assert pipeline.artifacts.creation_time() == "2023-11-14T22:13:20+00:00"
+    write_parquet(tmp_path / "a.parquet", df, make_meta("thresholds", "calibrate", "v1", {}))
+    write_parquet(tmp_path / "b.parquet", df, make_meta("thresholds", "calibrate", "v1", {}))
+    assert digest(tmp_path / "a.parquet") == digest(tmp_path / "b.parquet")
+    assert pipeline.open_artifact(tmp_path / "a.parquet").meta.created_at == "2023-11-14T22:13:20+00:00"
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "yesterday")
+    with pytest.raises(InputError, match="SOURCE_DATE_EPOCH"):
+        make_meta("thresholds", "calibrate", "v1", {})
 
 
 def test_streamed_writer_shards_into_few_files(tmp_path):
