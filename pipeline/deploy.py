@@ -357,7 +357,7 @@ def int8_agreement(reference: np.ndarray, logits: np.ndarray, tau: float, min_ma
     -- a gate on masks rather than pixels, because a pixel fraction hides a small object that int8
     loses (it is 0.1 % of the pixels and 100 % of that image's mask).
     """
-    from pipeline.metrics import image_iou
+    from pipeline.metrics import image_ious
 
     reference = np.asarray(reference, np.float64)
     logits = np.asarray(logits, np.float64)
@@ -372,7 +372,7 @@ def int8_agreement(reference: np.ndarray, logits: np.ndarray, tau: float, min_ma
     ref_mask, mask = reference >= z_tau, logits >= z_tau
     differ = int(np.count_nonzero(ref_mask != mask))
     per_image = (len(mask), 1, -1)  # each image's mask as one 2-D row: same IoU, any layout [N,(1,)H,W]
-    ious = np.array([image_iou(a, b) for a, b in zip(mask.reshape(per_image), ref_mask.reshape(per_image))])
+    ious = image_ious(mask.reshape(per_image), ref_mask.reshape(per_image))
     iou_mean = float(ious.mean()) if finite else 0.0
     return {"passed": bool(finite and iou_mean >= min_mask_iou),
             "max_abs_diff": float(err.max()) if finite else float("inf"),
@@ -893,9 +893,11 @@ def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_
             # (redirect: the histogram calibrators print progress lines on stdout)
             pre = Path(td) / "pre.onnx"
             quant_pre_process(str(onnx_path), str(pre))
-            method = CalibrationMethod.Percentile if calibration == "percentile" else CalibrationMethod.MinMax
+            method, options = CalibrationMethod.MinMax, {}
+            if calibration == "percentile":
+                method, options = CalibrationMethod.Percentile, {"percentile": float(percentile)}
             calibrator = create_calibrator(pre, op_types, augmented_model_path=Path(td) / "augmented.onnx",
-                                           calibrate_method=method, extra_options={"percentile": float(percentile)})
+                                           calibrate_method=method, extra_options=options)
             for s in range(0, len(images), CALIBRATION_CHUNK):  # ranges merge over the passes
                 calibrator.collect_data(_Reader(images[s:s + CALIBRATION_CHUNK]))
             for name, data in calibrator.compute_data().items():
@@ -1134,9 +1136,9 @@ def build_variants(model, device, resolution: int, names: Sequence[str], onnx_pa
 
 def mean_image_iou(masks: np.ndarray, reference: np.ndarray) -> float:
     """Mean over images of image_iou(masks[i], reference[i]) (pipeline.metrics; both empty -> 1); NaN if none."""
-    from pipeline.metrics import image_iou
+    from pipeline.metrics import image_ious
 
-    return float(np.mean([image_iou(m, r) for m, r in zip(masks, reference)])) if len(masks) else float("nan")
+    return float(np.mean(image_ious(masks, reference))) if len(masks) else float("nan")
 
 
 def variant_probs(variant: Variant, images: np.ndarray, batch_size: int) -> np.ndarray:

@@ -71,9 +71,9 @@ def _ratio(num: np.ndarray, den: np.ndarray, both_empty: np.ndarray) -> np.ndarr
 
 
 def _region_counts(pred: np.ndarray, gt: np.ndarray):
-    n = pred.shape[0]
-    p = pred.reshape(n, -1)
-    g = gt.reshape(n, -1)
+    n, pixels = pred.shape[0], int(np.prod(pred.shape[1:]))  # (explicit size: -1 is ambiguous when n = 0)
+    p = pred.reshape(n, pixels)
+    g = gt.reshape(n, pixels)
     inter = np.count_nonzero(p & g, axis=1)
     np_ = np.count_nonzero(p, axis=1)
     ng = np.count_nonzero(g, axis=1)
@@ -85,6 +85,13 @@ def image_iou(pred, gt) -> float:
     pred, gt = _pair(pred, gt)
     inter, np_, ng = _region_counts(pred[None], gt[None])
     return float(_ratio(inter, np_ + ng - inter, (np_ == 0) & (ng == 0))[0])
+
+
+def image_ious(preds, gts) -> np.ndarray:
+    """:func:`image_iou` of every pair in batches [N,H,W] -> float64 [N], vectorised."""
+    preds, gts = _pair(preds, gts, ndim=3)
+    inter, np_, ng = _region_counts(preds, gts)
+    return _ratio(inter, np_ + ng - inter, (np_ == 0) & (ng == 0))
 
 
 def precision_recall(pred, gt) -> tuple[float, float]:

@@ -390,13 +390,13 @@ def validate(model, val: ValData | None, device, precision: str = "fp32", channe
     if val is None or len(val) == 0:
         return float("nan"), float("nan")
     from pipeline.inference import predict_probs
-    from pipeline.metrics import boundary_f1, image_iou
+    from pipeline.metrics import boundary_f1, image_ious
 
     probs = predict_probs(model, val.images, device=device, batch_size=16, precision=precision,
                           channels_last=channels_last)
     model.train()
     pred = probs >= tau
-    iou = float(np.mean([image_iou(p, g) for p, g in zip(pred, val.masks)]))
+    iou = float(np.mean(image_ious(pred, val.masks)))
     bf1 = float(np.mean([boundary_f1(p, g, tolerance) for p, g in zip(pred, val.masks)]))
     return iou, bf1
 

@@ -8,7 +8,7 @@ from scipy import ndimage
 from scipy.spatial.distance import cdist
 
 from pipeline.errors import InputError
-from pipeline.metrics import (area_fraction, boundary_f1, calibrate_threshold, image_iou, iou_curve,
+from pipeline.metrics import (area_fraction, boundary_f1, calibrate_threshold, image_iou, image_ious, iou_curve,
                               mask_boundary, per_image_metrics, precision_recall, small_region_iou)
 
 
@@ -220,3 +220,14 @@ def test_calibration_bad_inputs():
         calibrate_threshold(bad, gts, [0.5])
     with pytest.raises(InputError, match="N >= 1"):
         calibrate_threshold(probs[:0], gts[:0], [0.5])
+
+
+def test_image_ious_is_image_iou_per_pair():
+    rng = np.random.default_rng(3)
+    preds = rng.random((5, 9, 7)) > 0.6
+    gts = rng.random((5, 9, 7)) > 0.5
+    preds[1] = gts[1] = False                     # both empty -> 1
+    preds[2] = False                              # one empty -> 0
+    expect = [image_iou(p, g) for p, g in zip(preds, gts)]
+    np.testing.assert_array_equal(image_ious(preds, gts), expect)
+    assert image_ious(np.zeros((0, 4, 4), bool), np.zeros((0, 4, 4), bool)).shape == (0,)

@@ -63,19 +63,23 @@ def main_methods(methods: Sequence[str]) -> list[str]:
 # --------------------------------------------------------------------------------------------------
 # Student results
 # --------------------------------------------------------------------------------------------------
-def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> Table:
-    """Paper Table spacesense-results: per group and method, Image IoU and Boundary F1 (mean ± sample
-    std over seeds) and the gains against Plain Student with 95 % paired hierarchical bootstrap CIs."""
+def group_method_rows(summary: pd.DataFrame, mode: str, groups: Sequence[str]):
+    """(group, method, summary row) at threshold ``mode``, groups in the given order, main methods in
+    the paper's order within each group."""
     s = summary[summary["threshold_mode"] == mode]
-    rows = []
     for g in groups:
         part = s[s["group"] == g].set_index("method")
         for m in main_methods(part.index):
-            r = part.loc[m]
-            rows.append([g, label(m), fmt_pm(r["iou_mean"], r["iou_std"]), fmt_pm(r["bf1_mean"], r["bf1_std"]),
-                         fmt_ci(r.get("gain_iou"), r.get("gain_iou_lo"), r.get("gain_iou_hi")),
-                         fmt_ci(r.get("gain_bf1"), r.get("gain_bf1_lo"), r.get("gain_bf1_hi")),
-                         str(int(r["n_seeds"]))])
+            yield g, m, part.loc[m]
+
+
+def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> Table:
+    """Paper Table spacesense-results: per group and method, Image IoU and Boundary F1 (mean ± sample
+    std over seeds) and the gains against Plain Student with 95 % paired hierarchical bootstrap CIs."""
+    rows = [[g, label(m), fmt_pm(r["iou_mean"], r["iou_std"]), fmt_pm(r["bf1_mean"], r["bf1_std"]),
+             fmt_ci(r.get("gain_iou"), r.get("gain_iou_lo"), r.get("gain_iou_hi")),
+             fmt_ci(r.get("gain_bf1"), r.get("gain_bf1_lo"), r.get("gain_bf1_hi")),
+             str(int(r["n_seeds"]))] for g, m, r in group_method_rows(summary, mode, groups)]
     return Table("tab:spacesense-results", f"Segmentation results on the test groups ({MODE_TEXT.get(mode, mode)})",
                  ["Evaluation set", "Method", "Image IoU", "Boundary F1", "Image IoU gain [95% CI]",
                   "Boundary F1 gain [95% CI]", "Seeds"], rows,
@@ -87,14 +91,9 @@ def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> Ta
 def diagnostics_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> Table:
     """Precision, recall, predicted area ratio and small-region IoU (the paper's supplementary
     diagnostics, shaped like tab:external-results)."""
-    s = summary[summary["threshold_mode"] == mode]
-    rows = []
-    for g in groups:
-        part = s[s["group"] == g].set_index("method")
-        for m in main_methods(part.index):
-            r = part.loc[m]
-            rows.append([g, label(m)] + [fmt_pm(r.get(f"{k}_mean"), r.get(f"{k}_std"))
-                                         for k in ("precision", "recall", "area_ratio", "small_iou")])
+    rows = [[g, label(m)] + [fmt_pm(r.get(f"{k}_mean"), r.get(f"{k}_std"))
+                             for k in ("precision", "recall", "area_ratio", "small_iou")]
+            for g, m, r in group_method_rows(summary, mode, groups)]
     return Table("tab:diagnostics", f"Foreground precision, recall and diagnostics ({MODE_TEXT.get(mode, mode)})",
                  ["Evaluation set", "Method", "Precision", "Recall", "Area ratio", "Small-region IoU"], rows,
                  ["Small-region IoU: IoU within small ground-truth components (see pipeline.metrics."
