@@ -9,12 +9,16 @@ Conventions
     appears, using ``binary_cross_entropy_with_logits`` (a log-sum-exp form: no ``log(0)`` for
     saturated logits).
   * The constants default to the paper's values; the training loop passes them from
-    ``params.yaml`` (section ``train``).
+    ``params.yaml`` (section ``train``) as a :class:`LossConstants`.
+  * :func:`refine_loss` is the one objective (eq:refine-loss, with eq:raw-loss inside it) that every
+    training method uses, with the method's term weights.
   * Pure functions: no I/O, no state.
 """
 
 from __future__ import annotations
 
+import dataclasses
+from types import MappingProxyType
 from typing import Mapping
 
 import torch
@@ -87,10 +91,23 @@ def dice_loss(probs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     return 1.0 - ratio.mean()
 
 
+def raw_terms(logits: torch.Tensor, targets: torch.Tensor, dice_weight: float = PAPER_DICE_WEIGHT,
+              max_weight: float = PAPER_POS_WEIGHT_MAX, probs: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Stage-I silhouette loss ``L_raw = L_BBCE + 0.2 L_Dice`` (eq:raw-loss), ungated, with its parts.
+
+    The one implementation of eq:raw-loss: returns ``{"raw": L_raw, "bbce": L_BBCE (eq:bbce),
+    "dice": L_Dice (eq:dice)}`` (float32 scalars); ``dice_weight`` is the 0.2.  ``probs``:
+    ``sigmoid(logits)`` when the caller has it already (one graph node shared with other terms).
+    """
+    bbce = balanced_bce(logits, targets, None, max_weight)
+    dice = dice_loss(torch.sigmoid(logits.float()) if probs is None else probs, targets)
+    return {"raw": bbce + dice_weight * dice, "bbce": bbce, "dice": dice}
+
+
 def raw_loss(logits: torch.Tensor, targets: torch.Tensor, dice_weight: float = PAPER_DICE_WEIGHT,
              max_weight: float = PAPER_POS_WEIGHT_MAX) -> torch.Tensor:
-    """Stage-I silhouette loss ``L_raw = L_BBCE + 0.2 L_Dice`` (eq:raw-loss), ungated."""
-    return balanced_bce(logits, targets, None, max_weight) + dice_weight * dice_loss(torch.sigmoid(logits.float()), targets)
+    """``L_raw`` (eq:raw-loss) as a scalar: :func:`raw_terms`'s ``raw``."""
+    return raw_terms(logits, targets, dice_weight, max_weight)["raw"]
 
 
 def boundary_band(target_sdf: torch.Tensor, band: float = PAPER_SDF_BAND) -> torch.Tensor:
@@ -179,27 +196,81 @@ def boundary_weighted_bce(logits: torch.Tensor, targets: torch.Tensor, target_sd
     return (b * bce).sum() / (b.sum() + eps)
 
 
+@dataclasses.dataclass(frozen=True)
+class LossConstants:
+    """The numeric constants of the losses (defaults: the paper's values; training passes ``train.*``).
+
+    ``dice_weight`` 0.2 (eq:raw-loss), ``max_weight`` the pi clip 500 (eq:positive-weight), ``sdf_band``
+    0.55 (eq:pseudo-boundary-band), ``sdf_base_weight`` 0.15 (eq:sdf-weight), ``area_eps`` 1e-5
+    (eq:area-error), ``eps`` the denominators' 1e-6 (eq:sdf-loss, eq:area-loss).
+    """
+
+    dice_weight: float = PAPER_DICE_WEIGHT
+    max_weight: float = PAPER_POS_WEIGHT_MAX
+    sdf_band: float = PAPER_SDF_BAND
+    sdf_base_weight: float = PAPER_SDF_BASE_WEIGHT
+    area_eps: float = PAPER_AREA_EPS
+    eps: float = PAPER_EPS
+
+
+#: eq:refine-loss's weights with the paper's lambdas: L_raw (region) weighs 1
+PAPER_REFINE_WEIGHTS = MappingProxyType({"region": 1.0, "sdf": 0.002, "skel": 0.001, "area": 0.05})
+
+#: objective term name -> the key of its value in :func:`refine_loss`'s result ("region" is L_raw)
+TERM_KEYS = {"region": "raw", "anchor": "anchor", "sdf": "sdf", "dist": "dist", "skel": "skel",
+             "area": "area", "boundary": "boundary"}
+
+
+def _term(name: str, z: torch.Tensor, p: torch.Tensor, outputs: Mapping[str, torch.Tensor],
+          targets: Mapping[str, torch.Tensor], gates: torch.Tensor, c: LossConstants) -> dict[str, torch.Tensor]:
+    """One objective term (and, for ``region``, its eq:raw-loss parts) from its equation's function;
+    ``z`` are the float32 mask logits and ``p = sigmoid(z)``."""
+    if name == "region":
+        return raw_terms(z, targets["mask"], c.dice_weight, c.max_weight, probs=p)
+    if name == "sdf":
+        return {"sdf": sdf_loss(outputs["sdf"], targets["sdf"], gates, c.sdf_band, c.sdf_base_weight, c.eps)}
+    if name == "skel":
+        return {"skel": skeleton_loss(outputs["skeleton"], targets["skeleton"], gates, c.max_weight)}
+    if name == "area":
+        return {"area": area_loss(p, targets["area"], gates, c.area_eps, c.eps)}
+    if name == "dist":
+        return {"dist": distance_regression_loss(outputs["sdf"], targets["sdf"])}
+    if name == "boundary":
+        return {"boundary": boundary_weighted_bce(z, targets["mask"], targets["sdf"], c.sdf_band, c.eps)}
+    if name == "anchor":
+        return {"anchor": anchor_loss(z, targets["anchor"])}
+    raise ValueError(f"unknown loss term {name!r}: expected one of {', '.join(TERM_KEYS)}")
+
+
 def refine_loss(outputs: Mapping[str, torch.Tensor], targets: Mapping[str, torch.Tensor],
-                gates: torch.Tensor, *, lambda_sdf: float = 0.002, lambda_skel: float = 0.001,
-                lambda_area: float = 0.05, dice_weight: float = PAPER_DICE_WEIGHT,
-                max_weight: float = PAPER_POS_WEIGHT_MAX, sdf_band: float = PAPER_SDF_BAND,
-                sdf_base_weight: float = PAPER_SDF_BASE_WEIGHT, area_eps: float = PAPER_AREA_EPS,
-                eps: float = PAPER_EPS) -> dict[str, torch.Tensor]:
-    """Stage-II objective (eq:refine-loss)::
+                gates: torch.Tensor, weights: Mapping[str, float] = PAPER_REFINE_WEIGHTS,
+                constants: LossConstants = LossConstants()) -> dict[str, torch.Tensor]:
+    """Stage-II objective (eq:refine-loss), the one implementation every training method uses::
 
         L_refine = L_raw + lambda_SDF L_SDF + lambda_skel L_skel + lambda_area L_area
 
-    ``outputs``: ``mask`` (logits Z), ``sdf`` (D^S), ``skeleton`` (logits Z^K).  ``targets``: ``mask``
-    (M^T), ``sdf`` (D^T), ``skeleton`` (K^T), ``area`` (a_i).  The gate ``g_i`` is applied exactly once,
-    inside L_SDF, L_skel and L_area; L_raw (the primary mask loss) is ungated.
-    Returns ``{"loss", "raw", "bbce", "dice", "sdf", "skel", "area"}`` (float32 scalars).
+    ``weights`` maps each term in the objective to its weight, ``L = sum_t weights[t] L_t`` (summed in
+    ``weights``' order); the default is the paper's eq:refine-loss.  Terms: ``region`` = L_raw
+    (eq:raw-loss, ungated), ``sdf`` (eq:sdf-loss), ``skel`` (eq:skeleton-loss), ``area``
+    (eq:area-loss), and the comparison methods' ``dist`` (:func:`distance_regression_loss`),
+    ``boundary`` (:func:`boundary_weighted_bce`) and ``anchor`` (:func:`anchor_loss`).  So Stage I is
+    ``weights={"region": 1}`` (L = L_raw), the quality-adaptive ``geometry_only`` mode omits
+    ``region``, and the ``no_gate`` ablation passes gates of one.
+
+    ``outputs``: ``mask`` (logits Z), ``sdf`` (D^S), ``skeleton`` (logits Z^K), as the terms need.
+    ``targets``: ``mask`` (M^T), ``sdf`` (D^T), ``skeleton`` (K^T), ``area`` (a_i), ``anchor`` (frozen
+    Stage-I probabilities), as the terms need.  The gate ``g_i`` [B] is applied exactly once, inside
+    L_SDF, L_skel and L_area; L_raw (the primary mask loss) is ungated.
+    Returns ``{"loss"}`` plus every computed term (``raw``, ``bbce``, ``dice`` for ``region``; the
+    other terms under their own names), float32 scalars.
     """
-    z = outputs["mask"]
-    bbce = balanced_bce(z, targets["mask"], None, max_weight)
-    dice = dice_loss(torch.sigmoid(z.float()), targets["mask"])
-    raw = bbce + dice_weight * dice
-    sdf = sdf_loss(outputs["sdf"], targets["sdf"], gates, sdf_band, sdf_base_weight, eps)
-    skel = skeleton_loss(outputs["skeleton"], targets["skeleton"], gates, max_weight)
-    area = area_loss(torch.sigmoid(z.float()), targets["area"], gates, area_eps, eps)
-    loss = raw + lambda_sdf * sdf + lambda_skel * skel + lambda_area * area
-    return {"loss": loss, "raw": raw, "bbce": bbce, "dice": dice, "sdf": sdf, "skel": skel, "area": area}
+    z = outputs["mask"].float()  # one cast (and one sigmoid) shared by the terms: one gradient path
+    p = torch.sigmoid(z)
+    t: dict[str, torch.Tensor] = {}
+    for name in weights:
+        t.update(_term(name, z, p, outputs, targets, gates, constants))
+    total = z.new_zeros(())
+    for name, w in weights.items():
+        total = total + float(w) * t[TERM_KEYS[name]]
+    t["loss"] = total
+    return t

@@ -36,7 +36,8 @@ Decisions where the paper is silent (all documented here and in the params comme
   *training* pseudo-labels under the confidence criterion (``train.confidence``):
   r >= ``train.adaptive.ratio_boundary`` (0.5) -> mode ``anchored``: L_refine + w * L_anchor;
   r < 0.5 -> mode ``geometry_only``: the Stage-II pseudo-mask region loss (L_raw) is disabled, the
-  geometry terms and the anchor remain, and Stage-II epoch 0 (the Stage-I checkpoint) is a
+  geometry terms remain -- and the anchor only with ``train.adaptive.anchor_geometry_only: true``
+  (default false: the paper reads as no anchoring in this mode) --, and Stage-II epoch 0 (the Stage-I checkpoint) is a
   selection candidate.  L_anchor is BCE to the frozen Stage-I probabilities
   (:func:`pipeline.losses.anchor_loss`), weight ``train.adaptive.anchor_weight`` (0.1: "weak" --
   an order below the region loss).  Both modes select by validation IoU.
@@ -173,13 +174,53 @@ def method_lr(method: Method, cfg: Mapping[str, Any]) -> float:
     return float(v)
 
 
-SUBSECTIONS = ("confidence", "afs", "gabi", "adaptive")
+#: train params every method reads (model, optimiser, L_raw, validation selection, numerics).
+COMMON_KEYS = ("channels", "batch_size", "weight_decay", "schedule", "dice_weight", "pos_weight_max",
+               "loss_eps", "precision", "channels_last", "augment_hflip", "val_bf1_tolerance")
+#: extra train params per loss term (eq:refine-loss and the baselines' terms).
+TERM_KEYS = {
+    "region": (),
+    "sdf": ("sdf_band", "sdf_base_weight", "lambda_sdf"),
+    "skel": ("lambda_skel",),
+    "area": ("area_eps", "lambda_area"),
+    "dist": ("gabi.lambda_dist",),
+    "boundary": ("sdf_band", "gabi.lambda_boundary"),
+    "anchor": ("adaptive.anchor_weight",),
+}
+
+
+def param_keys(method: Method) -> tuple[str, ...]:
+    """The dotted params keys (``train.*``) a method's run reads: DVC tracks exactly these for its
+    stage and they form the params part of its checkpoint fingerprint, so editing ``train.lr_stage2``
+    reruns the warm-started Stage-II methods only."""
+    keys = list(COMMON_KEYS) + list(method.epochs) + [method.lr]
+    for t in method.terms:
+        keys += TERM_KEYS[t]
+    if method.select == "stage2":
+        keys.append("stage2_select")
+    keys += list(method.uses)
+    keys = list(dict.fromkeys(keys))
+    # a whole sub-section (``uses``) covers its own keys
+    keys = [k for k in keys if not any(k.startswith(u + ".") for u in method.uses)]
+    return tuple(f"train.{k}" for k in keys)
 
 
 def fingerprint_params(method: Method, cfg: Mapping[str, Any]) -> dict:
-    """The train params a method's checkpoint depends on: the train section without the
-    method-specific sub-sections it does not read (so editing ``train.gabi`` does not retrain ``plain``)."""
-    return {k: v for k, v in cfg.items() if k not in SUBSECTIONS or k in method.uses}
+    """``{train key: value}`` of :func:`param_keys` (the params part of a checkpoint's fingerprint)."""
+    return {k: _get(cfg, k.removeprefix("train.")) for k in param_keys(method)}
+
+
+def input_artifacts(method: Method) -> tuple[str, ...]:
+    """Catalogue names of the artifacts a method's run reads (reference: validation selection only)."""
+    names = ["manifest", "images", "reference"]
+    names.append("teacher" if method.data == "afs" else "consensus")
+    if method.data == "confidence" or method.adaptive:
+        names.append("teacher")  # train.confidence.criterion = mean_score reads the teacher scores
+    if method.needs_gates:
+        names.append("gates")
+    if method.needs_geometry:
+        names.append("geometry")
+    return tuple(dict.fromkeys(names))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -306,5 +347,7 @@ def resolve_plan(method: Method, cfg: Mapping[str, Any], pass_ratio_r: float | N
     mode = adaptive_mode(pass_ratio_r, _get(cfg, "adaptive.ratio_boundary"))
     if mode == "geometry_only":
         weights.pop("region")
+        if not _get(cfg, "adaptive.anchor_geometry_only"):
+            weights.pop("anchor", None)  # the paper reads as no anchoring in this mode (decision; a param)
         return Plan(weights=weights, select="best_val", epoch0_eligible=True, mode=mode)
     return Plan(weights=weights, select="best_val", epoch0_eligible=False, mode=mode)

@@ -19,7 +19,8 @@ Everything is computed on binary masks at the working resolution; ``pred`` and `
 * Predicted foreground area ratio = mean(P).
 * Small-region IoU (``small_region_iou``): IoU restricted to the neighbourhood of small ground-truth
   objects -- see that function; NaN when the ground truth has no small component.
-* Calibration (eq:inference-mask): M = [P >= tau]; tau maximises the mean Image IoU over a grid.
+* Calibration (eq:inference-mask): :func:`iou_curve` gives the Image IoU of M = [P >= tau] at every tau
+  of a grid; the selection rule lives in pipeline.thresholds (calibrate_threshold).
 """
 
 from __future__ import annotations
@@ -277,17 +278,6 @@ def iou_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
     return out
 
 
-def calibrate_threshold(probs, gts, grid) -> tuple[float, np.ndarray]:
-    """Choose tau on validation images by mean Image IoU over ``grid`` (eq:inference-mask).
-
-    probs float [N,H,W] in [0,1]; gts bool [N,H,W]; grid strictly increasing taus.
-    Returns (best_tau, curve) with curve float64 [G] = mean Image IoU at each grid point.
-    Ties (equal mean IoU up to 1e-12) go to the tau closest to 0.5, then to the smaller tau.
-    """
-    grid = np.asarray(grid, dtype=np.float64)
-    if np.ndim(probs) != 3 or np.shape(probs)[0] == 0:
-        raise InputError(f"calibrate_threshold: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
-    curve = iou_curve(probs, gts, grid).mean(axis=0)
-    best = np.flatnonzero(curve >= curve.max() - 1e-12)
-    j = best[np.argmin(np.abs(grid[best] - 0.5))]  # argmin returns the first (smallest tau) on ties
-    return float(grid[j]), curve
+# The selection rule (tau by mean validation Image IoU, ties -> closest to 0.5) is owned by
+# pipeline.thresholds; re-exported for the importers of pipeline.metrics.calibrate_threshold.
+from pipeline.thresholds import calibrate_threshold  # noqa: E402,F401

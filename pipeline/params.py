@@ -1,36 +1,375 @@
-"""params.yaml: every knob, grouped per stage, with a profile switch.
+"""The typed params schema: every knob of the pipeline, its default and its bounds, written once.
 
-Layout::
+``params.yaml`` is the *effective* parameter set that DVC tracks key by key.  It is generated from
+this schema's defaults (the paper's values, eq labels refer to the paper) plus one profile's
+overrides (:mod:`pipeline.profiles`): ``geodistill profile demo|reduced|paper`` writes it, and a
+user then edits single values in it (``dvc exp run -S train.lr_stage2=2e-4`` works the same way).
 
-    profile: demo                # or: paper
-    prepare: {...}               # base values (the paper's, unless stated)
-    ...
-    profiles:
-      demo:  {prepare: {...}}    # overrides applied when profile == demo
-      paper: {...}
+Every stage validates the whole file once at start (:func:`load_params`): a value that is NaN or
+infinite, of the wrong type, out of range, or a key the schema does not know gives one
+:class:`~pipeline.errors.InputError` line naming the key (exit code 2 from the CLI) before anything
+is written.  Why pydantic: strict typed models with bounds, ``extra="forbid"`` and finite-number
+checks replace about seventy hand-written ``require`` calls and keep the default beside the bound.
 
-``load_params`` returns the *effective* params: the base sections deep-merged with
-``profiles[profile]`` and then with ``--set key.path=value`` overrides.  A stage reads only its own
-sections and passes exactly those (canonicalised) to the artifact fingerprint.
+Library code reads the paper's constants from here (``PAPER``), never from its own copies.
 """
 
 from __future__ import annotations
 
 import copy
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable, Literal, Mapping
 
 import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipeline.errors import InputError
 
 DEFAULT_PARAMS = "params.yaml"
 
 
+class _Section(BaseModel):
+    """Strict: no type coercion (``"1e-4"`` is not a number), finite numbers only, unknown keys rejected."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, validate_default=True)
+
+
+Fraction = Field(ge=0.0, le=1.0)
+
+
+def _f(default, description: str = "", **bounds):
+    return Field(default, description=description, **bounds)
+
+
+# --------------------------------------------------------------------------------------------------
+# data (stage prepare)
+# --------------------------------------------------------------------------------------------------
+class SyntheticParams(_Section):
+    """The embedded synthetic benchmark: a SpaceSense-Bench-like spacecraft-disjoint split."""
+
+    train_spacecraft: int = _f(9, "training identities", ge=1, le=10000)
+    train_views: int = _f(30, "views per training identity", ge=1, le=100000)
+    val_spacecraft: int = _f(3, "validation identities", ge=0, le=10000)
+    val_views: int = _f(20, "views per validation identity", ge=0, le=100000)
+    test_groups: list[str] = _f(["KCP", "CVI", "HJM"], "test group names", min_length=0)
+    test_spacecraft_per_group: int = _f(3, ge=0, le=10000)
+    test_views: int = _f(20, ge=0, le=100000)
+    tiny_probability: float = _f(0.15, "approach shots (mask area mostly < 0.1 % of the frame)", ge=0, le=1)
+    tiny_range: list[float] = _f([0.0003, 0.002], "apparent size range of tiny views (frame fraction)",
+                                 min_length=2, max_length=2)
+    regular_range: list[float] = _f([0.005, 0.6], "apparent size range of other views", min_length=2, max_length=2)
+    hard_case_probability: float = _f(0.35, "glare | flare | underexposed | noise | blur", ge=0, le=1)
+    background_weights: list[float] = _f([0.45, 0.35, 0.2], "stars, earth limb, dark lab",
+                                         min_length=3, max_length=3)
+
+    @field_validator("test_groups")
+    @classmethod
+    def _groups(cls, v):
+        if not all(g and g.isidentifier() for g in v) or len(set(v)) != len(v):
+            raise ValueError("must be distinct names (letters, digits, _)")
+        return v
+
+    @field_validator("tiny_range", "regular_range")
+    @classmethod
+    def _range(cls, v):
+        if not 0 < v[0] < v[1] <= 1:
+            raise ValueError("must be [lo, hi] with 0 < lo < hi <= 1")
+        return v
+
+    @field_validator("background_weights")
+    @classmethod
+    def _weights(cls, v):
+        if any(x < 0 for x in v) or sum(v) <= 0:
+            raise ValueError("must be 3 non-negative weights with a positive sum")
+        return v
+
+
+class DataParams(_Section):
+    source: Literal["synthetic", "spacesense", "speedplus", "tango", "folder"] = _f("synthetic")
+    root: str | None = _f(None, "dataset root for real sources")
+    protocol: str | None = _f(None, "protocol file (data_manifests/...); null = the source's default")
+    domain: str | None = _f(None, "speedplus: lightbox | sunlamp | synthetic")
+    resolution: int = _f(384, "working resolution (square), the paper's 384x384", ge=16, le=4096)
+    seed: int = _f(2026, "synthetic identities and views; seeded sampling for real protocols", ge=0)
+    skip_bad: bool = _f(False, "true: leave bad files out and list them in skipped_files.parquet")
+    cache_dir: str | None = _f(".cache/decode", "decode cache, outside DVC outs (not fingerprinted)")
+    synthetic: SyntheticParams = Field(default_factory=SyntheticParams)
+    contact_sheet_images: int = _f(16, ge=0, le=256)
+
+    @model_validator(mode="after")
+    def _root(self):
+        if self.source != "synthetic" and not self.root:
+            raise ValueError(f"data.root is required for data.source={self.source!r}")
+        return self
+
+
+# --------------------------------------------------------------------------------------------------
+# teacher, consensus, geometry
+# --------------------------------------------------------------------------------------------------
+PAPER_PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
+                 "spacecraft with rigid body and appendages",
+                 "artificial object in space with panels and antennas"]
+
+
+class TeacherParams(_Section):
+    backend: Literal["simulated", "sam3", "imported"] = _f(
+        "simulated", "simulated (SIMULATOR of the synthetic benchmark only) | sam3 | imported")
+    prompts: list[str] = _f(PAPER_PROMPTS, "eq:prompt-set, fixed order p1..p6", min_length=1)
+    base_prompt_index: int = _f(0, "the annotation-free-style control's single prompt", ge=0)
+    vflip_base_prompt: bool = _f(True, "also run the base prompt on the vertically flipped image (AFS control)")
+    splits: list[Literal["train", "val", "test"]] = _f(["train", "val", "test"], min_length=1)
+    checkpoint: str | None = _f(None, "sam3: local SAM 3 directory (save_pretrained layout)")
+    imported_dir: str | None = _f(None, "imported: directory in the documented layout")
+    dtype: Literal["fp32", "bf16"] = _f("fp32")
+    batch_size: int = _f(2, "images per SAM 3 forward", ge=1, le=4096)
+    score_threshold: float = _f(0.3, "sam3: queries scoring <= this are no candidate", ge=0, le=1)
+    mask_threshold: float = _f(0.5, "sam3: binarise the chosen query's mask probability", ge=0, le=1)
+    seed: int = _f(0, "simulated teacher (SIMULATOR) seed", ge=0)
+    cache_dir: str = _f(".cache/teacher", "content-addressed cache outside DVC outs")
+
+    @model_validator(mode="after")
+    def _base(self):
+        if self.base_prompt_index >= len(self.prompts):
+            raise ValueError(f"base_prompt_index={self.base_prompt_index} but only {len(self.prompts)} prompts")
+        if len(set(self.prompts)) != len(self.prompts):
+            raise ValueError("prompts must be distinct")
+        return self
+
+
+class ConsensusParams(_Section):
+    vote_threshold: float = _f(0.5, "eq:majority-vote: M = [A >= 0.5]; a tie is foreground", ge=0, le=1)
+
+
+class GeometryParams(_Section):
+    sdf_quantile: float = _f(0.95, "eq:sdf-target: s = q_0.95(|D~|)", ge=0, le=1)
+    sdf_min_scale: float = _f(1e-6, "eq:sdf-target: s = 1 when q < this", ge=0)
+    skeleton_min_distance: float = _f(1.0, "drop skeleton points with d_in <= this (px)", ge=0)
+    n_prompts: int = _f(6, "eq:valid-prompt-ratio denominator; must equal the teacher's prompt count", ge=1)
+    conf_offset: float = _f(0.35, "eq:confidence-gate", ge=0, lt=1)
+    valid_offset: float = _f(0.20, "eq:validity-gate", ge=0, lt=1)
+    area_temperature: float = _f(0.9, "eq:area-gate", gt=0)
+    area_floor: float = _f(0.05, "eq:area-gate lower clip", ge=0, le=1)
+    eps: float = _f(1e-6, ge=0)
+
+
+# --------------------------------------------------------------------------------------------------
+# train (stages train_<method>)
+# --------------------------------------------------------------------------------------------------
+class ConfidenceParams(_Section):
+    criterion: Literal["agreement", "mean_score"] = _f("agreement", "eq:foreground-agreement c_i | mean valid score")
+    threshold: float = _f(0.80, ge=0, le=1)
+    min_valid: int = _f(2, ge=0)
+
+
+class AfsParams(_Section):
+    base_prompt: str = _f("spacecraft", "the single prompt (looked up in teacher.zarr attrs.prompts)")
+    score_threshold: float = _f(0.60, "drop images whose base-prompt score is below this", ge=0, le=1)
+    fusion: Literal["intersection", "union"] = _f("intersection", "of the image and flipped-view masks")
+
+
+class GabiParams(_Section):
+    epochs: int = _f(30, ge=1)
+    lambda_dist: float = _f(0.002, "ungated L1 distance-field regression", ge=0)
+    lambda_boundary: float = _f(0.05, "BCE inside the pseudo-boundary band |D^T| <= sdf_band", ge=0)
+
+
+class AdaptiveParams(_Section):
+    ratio_boundary: float = _f(0.5, "r >= this: anchored; below: geometry_only", ge=0, le=1)
+    anchor_weight: float = _f(0.1, "weight of BCE(Z, frozen Stage-I probabilities)", ge=0)
+    anchor_geometry_only: bool = _f(False, "keep the weak anchor in geometry_only mode (paper: no anchoring)")
+
+
+class TrainParams(_Section):
+    channels: list[int] = _f([24, 48, 96], "TinyUNet encoder widths", min_length=1)
+    batch_size: int = _f(4, ge=1)
+    weight_decay: float = _f(1e-4, ge=0)
+    epochs_stage1: int = _f(20, ge=0)
+    lr_stage1: float = _f(5e-4, gt=0)
+    epochs_stage2: int = _f(10, ge=0)
+    lr_stage2: float = _f(1e-4, gt=0)
+    schedule: Literal["cosine", "constant"] = _f("cosine", "paper gives initial rates only; our choice: cosine to 0")
+    dice_weight: float = _f(0.2, "eq:raw-loss", ge=0)
+    pos_weight_max: float = _f(500.0, "eq:positive-weight clip", gt=0)
+    sdf_band: float = _f(0.55, "eq:pseudo-boundary-band", gt=0)
+    sdf_base_weight: float = _f(0.15, "eq:sdf-weight", ge=0)
+    area_eps: float = _f(1e-5, "eq:area-error", gt=0)
+    loss_eps: float = _f(1e-6, gt=0)
+    lambda_sdf: float = _f(0.002, "eq:refine-loss", ge=0)
+    lambda_skel: float = _f(0.001, "eq:refine-loss", ge=0)
+    lambda_area: float = _f(0.05, "eq:refine-loss", ge=0)
+    stage2_select: Literal["last", "best_val"] = _f("last", "paper: the last Stage-II epoch")
+    precision: Literal["fp32", "bf16", "auto"] = _f("auto", "bf16 autocast where the CPU/GPU supports it")
+    channels_last: bool = _f(True)
+    augment_hflip: bool = _f(False, "the paper states no augmentation")
+    num_threads: int = _f(0, "torch CPU threads; 0 = torch default", ge=0)
+    val_bf1_tolerance: float = _f(2, "Boundary F1 tolerance (px) of the validation tie-break", ge=0)
+    confidence: ConfidenceParams = Field(default_factory=ConfidenceParams)
+    afs: AfsParams = Field(default_factory=AfsParams)
+    gabi: GabiParams = Field(default_factory=GabiParams)
+    adaptive: AdaptiveParams = Field(default_factory=AdaptiveParams)
+
+    @field_validator("channels")
+    @classmethod
+    def _channels(cls, v):
+        if any(c < 1 for c in v):
+            raise ValueError("widths must be >= 1")
+        return v
+
+
+class ProtocolParams(_Section):
+    """Which (method, seed) training runs exist in the DAG: ``runs[method]`` lists its seeds.
+
+    Only listed runs become DVC stages (``train_<method>@<seed>``); a warm-started method needs
+    ``plain`` at the same seed.
+    """
+
+    runs: dict[str, list[int]] = _f({"plain": [42], "geodistill": [42]}, "method -> seeds; [] = no run")
+
+    @field_validator("runs")
+    @classmethod
+    def _runs(cls, v):
+        from pipeline.methods import METHODS  # pure Python, no torch
+
+        for m, seeds in v.items():
+            if m not in METHODS:
+                raise ValueError(f"unknown method {m!r} (one of {', '.join(METHODS)})")
+            if len(set(seeds)) != len(seeds):
+                raise ValueError(f"{m}: seeds must be distinct")
+            if METHODS[m].init == "stage1":
+                missing = sorted(set(seeds) - set(v.get("plain", [])))
+                if missing:
+                    raise ValueError(f"{m} warm-starts from plain, which has no run for seed(s) {missing}")
+        # every method appears (an empty list: no run), in the method table's order
+        return {m: list(v.get(m, [])) for m in METHODS}
+
+
+# --------------------------------------------------------------------------------------------------
+# calibrate, evaluate, report, deploy
+# --------------------------------------------------------------------------------------------------
+class CalibrateParams(_Section):
+    grid_start: float = _f(0.05, ge=0, le=1)
+    grid_stop: float = _f(0.95, ge=0, le=1)
+    grid_step: float = _f(0.01, ge=1e-6, le=1)
+    fixed_tau: float = _f(0.5, "eq:inference-mask fallback / fixed-threshold comparisons", ge=0, le=1)
+
+    @model_validator(mode="after")
+    def _grid(self):
+        if self.grid_stop < self.grid_start:
+            raise ValueError("grid_stop must be >= grid_start")
+        return self
+
+
+class EvaluateParams(_Section):
+    bf1_tolerance: float = _f(2, "Boundary F1 tolerance (px)", ge=0)
+    small_region_max_fraction: float = _f(0.01, "small-region IoU: GT components under 1 % of the frame", ge=0, le=1)
+    bootstrap_resamples: int = _f(10000, ge=1)
+    bootstrap_seed: int = _f(0, ge=0)
+    ci: float = _f(0.95, ge=0.5, le=0.999)
+
+
+class ReportParams(_Section):
+    qualitative_images: int = _f(4, ge=0, le=64)
+    pseudo_target_images: int = _f(3, ge=0, le=64)
+
+
+BENCHMARK_VARIANTS = ["fp32_eager_nchw", "fp32_channels_last", "bf16_autocast", "bf16_channels_last",
+                      "torchscript_frozen", "onnxruntime_fp32", "onnxruntime_int8"]
+
+
+class DeployParams(_Section):
+    export_method: str = _f("geodistill")
+    export_seed: int = _f(42)
+    opset: int = _f(17, "ONNX opset", ge=9, le=30)
+    parity_atol: float = _f(1e-4, "export parity: max |logit difference| vs PyTorch", ge=0)
+    benchmark_warmup: int = _f(5, ge=0)
+    benchmark_iters: int = _f(30, "batch-1 latency = median of this many calls", ge=1)
+    benchmark_batches: list[int] = _f([1, 4, 16], "throughput = best images/s over these", min_length=1)
+    benchmark_resolution: int | None = _f(None, "null = the deploy bundle's working resolution", ge=8)
+    benchmark_variants: list[str] = _f(BENCHMARK_VARIANTS, min_length=1)
+    int8_calibration_images: int = _f(64, "training-split images (no masks) for int8 activation ranges", ge=1)
+    int8_calibration: Literal["percentile", "minmax"] = _f("percentile")
+    int8_percentile: float = _f(99.999, ge=50, le=100)
+    int8_min_mask_iou: float = _f(0.9, "export fails below this mean int8-vs-PyTorch mask IoU", ge=0, le=1)
+    target_latency_ms: float = _f(40, "CPU target at 384x384, batch 1 (reported, never asserted)", ge=0)
+    target_resolution: int = _f(384, "the size the latency target is judged at", ge=1)
+    target_iou_drop: float = _f(0.005, "a fast path may lose at most this much validation Image IoU", ge=0)
+
+    @field_validator("benchmark_batches")
+    @classmethod
+    def _batches(cls, v):
+        if any(b < 1 for b in v):
+            raise ValueError("batch sizes must be >= 1")
+        return v
+
+    @field_validator("benchmark_variants")
+    @classmethod
+    def _variants(cls, v):
+        bad = [x for x in v if x not in BENCHMARK_VARIANTS]
+        if bad:
+            raise ValueError(f"unknown variant(s) {bad} (one of {', '.join(BENCHMARK_VARIANTS)})")
+        return v
+
+
+class Params(_Section):
+    """The whole params file."""
+
+    profile: str = _f("paper", "name of the profile this file was generated from (report folder)")
+    data: DataParams = Field(default_factory=DataParams)
+    teacher: TeacherParams = Field(default_factory=TeacherParams)
+    consensus: ConsensusParams = Field(default_factory=ConsensusParams)
+    geometry: GeometryParams = Field(default_factory=GeometryParams)
+    train: TrainParams = Field(default_factory=TrainParams)
+    protocol: ProtocolParams = Field(default_factory=ProtocolParams)
+    calibrate: CalibrateParams = Field(default_factory=CalibrateParams)
+    evaluate: EvaluateParams = Field(default_factory=EvaluateParams)
+    report: ReportParams = Field(default_factory=ReportParams)
+    deploy: DeployParams = Field(default_factory=DeployParams)
+
+    @model_validator(mode="after")
+    def _cross(self):
+        if self.geometry.n_prompts != len(self.teacher.prompts):
+            raise ValueError(f"geometry.n_prompts={self.geometry.n_prompts} must equal the "
+                             f"{len(self.teacher.prompts)} teacher.prompts")
+        return self
+
+
+#: The paper's values: the schema defaults.  Library code takes its default constants from here.
+PAPER = Params()
+
+
+# --------------------------------------------------------------------------------------------------
+# Validation and loading
+# --------------------------------------------------------------------------------------------------
+def _error_line(err: ValidationError, origin: str) -> str:
+    e = err.errors()[0]
+    key = ".".join(str(p) for p in e["loc"])
+    msg = e["msg"].removeprefix("Value error, ")
+    if e["type"] == "extra_forbidden":
+        msg = "unknown key"
+    shown = "" if e["type"] in ("extra_forbidden", "missing") else f"={e.get('input')!r}"
+    return f"{origin}: {key}{shown}: {msg}" if key else f"{origin}: {msg}"
+
+
+def validate(raw: Mapping[str, Any], origin: str = "params") -> dict:
+    """Validate a whole params mapping against the schema; the effective dict (defaults filled in).
+
+    Raises InputError with one line naming the first bad key.
+    """
+    try:
+        return Params.model_validate(dict(raw)).model_dump(mode="python")
+    except ValidationError as e:
+        raise InputError(_error_line(e, origin)) from None
+
+
+def validate_overrides(raw: Mapping[str, Any], origin: str = "params") -> None:
+    """Check a partial mapping (a profile's overrides): every key known, every value valid."""
+    validate(deep_merge(PAPER.model_dump(mode="python"), raw), origin)
+
+
 def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict:
     out = copy.deepcopy(dict(base))
     for k, v in over.items():
-        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) and k != "runs":
             out[k] = deep_merge(out[k], v)
         else:
             out[k] = copy.deepcopy(v)
@@ -38,7 +377,7 @@ def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict:
 
 
 def parse_override(item: str) -> tuple[list[str], Any]:
-    """``"train.epochs=3"`` -> (["train", "epochs"], 3); the value is parsed as YAML."""
+    """``"train.epochs_stage1=3"`` -> (["train", "epochs_stage1"], 3); the value is parsed as YAML."""
     if "=" not in item:
         raise InputError(f"--set {item!r}: expected key.path=value")
     key, _, raw = item.partition("=")
@@ -62,6 +401,13 @@ def set_path(d: dict, keys: list[str], value: Any) -> None:
     cur[keys[-1]] = value
 
 
+def get_path(d: Mapping[str, Any], dotted: str) -> Any:
+    cur: Any = d
+    for k in dotted.split("."):
+        cur = cur[k]
+    return cur
+
+
 def read_yaml_mapping(path: str | Path, what: str = "params file") -> dict:
     """A YAML file whose top level is a mapping (params, protocol files); InputError naming the file."""
     path = Path(path)
@@ -77,28 +423,26 @@ def read_yaml_mapping(path: str | Path, what: str = "params file") -> dict:
 
 
 def load_params(path: str | Path = DEFAULT_PARAMS, overrides: Iterable[str] = ()) -> dict:
-    """Effective params: base sections + the active profile's overrides + ``--set`` overrides.
+    """The validated params of ``path`` with ``--set key.path=value`` overrides applied.
 
-    ``--set profile=paper`` switches the profile before the profile overrides are applied.
+    ``--set profile=NAME`` starts from that profile instead of the file (handy for single stages).
     """
-    raw = read_yaml_mapping(path)
     parsed = [parse_override(o) for o in overrides]
-    for keys, value in parsed:
-        if keys == ["profile"]:
-            raw["profile"] = value
-    profiles = raw.pop("profiles", {}) or {}
-    profile = raw.get("profile", "demo")
-    if profiles and profile not in profiles:
-        raise InputError(f"{path}: profile {profile!r} is not one of {sorted(profiles)}")
-    eff = deep_merge(raw, profiles.get(profile, {}) or {})
+    profile = next((v for k, v in parsed if k == ["profile"]), None)
+    if profile is not None:
+        from pipeline.profiles import profile_params
+
+        raw = profile_params(str(profile))
+    else:
+        raw = read_yaml_mapping(path)
     for keys, value in parsed:
         if keys != ["profile"]:
-            set_path(eff, keys, value)
-    return eff
+            set_path(raw, keys, value)
+    return validate(raw, str(path) if not parsed else f"{path} (with --set)")
 
 
 def section(params: Mapping[str, Any], name: str) -> dict:
-    """One stage's section of the effective params (a copy); InputError if absent."""
+    """One section of validated params (a copy); InputError if absent."""
     if name not in params or not isinstance(params[name], Mapping):
         raise InputError(f"params: section {name!r} missing")
     return copy.deepcopy(dict(params[name]))
@@ -106,7 +450,11 @@ def section(params: Mapping[str, Any], name: str) -> dict:
 
 def require(cfg: Mapping[str, Any], key: str, where: str, *, kind: type | tuple = object,
             lo: float | None = None, hi: float | None = None) -> Any:
-    """Fetch ``cfg[key]`` and check its type and range; InputError names ``where.key``."""
+    """Fetch ``cfg[key]`` and check its type and range; InputError names ``where.key``.
+
+    For mappings the schema does not cover (dataset protocol files, bundles); params are validated
+    by :func:`validate`.
+    """
     if key not in cfg:
         raise InputError(f"params: {where}.{key} missing")
     v = cfg[key]

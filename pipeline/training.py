@@ -1,14 +1,20 @@
 """Student training: Stage I silhouette learning, Stage II gated geometry refinement, and every
 comparison method of :mod:`pipeline.methods` -- one loop, driven by the declarative method table.
+Arrays in, model and log out: this module opens no file (``stages/train.py`` opens the artifacts and
+owns the on-disk resume state).
 
 Data boundary (the paper's "annotation-free" rule, kept visible here)
-  * :func:`load_training_data` builds every training batch source from *pseudo-targets only*:
-    images.zarr, consensus.zarr (``voted`` = M^T), geometry.zarr (D^T, K^T), gates.parquet (g_i, a_i),
-    teacher.zarr (the confidence filter and the AFS control) and manifest.parquet (split).  It never
-    opens reference.zarr.
-  * :func:`validation_reference` is the ONLY reader of reference.zarr and returns masks of
-    ``split == "val"`` rows only; they serve checkpoint selection (validation Image IoU, Boundary F1
-    tie-break, tau = 0.5) and never reach a loss.
+  * :func:`training_data` builds every training batch source from *pseudo-targets only*, out of the
+    opened artifacts :func:`training_inputs` names: images, consensus (``voted`` = M^T), geometry
+    (D^T, K^T), gates (g_i, a_i), teacher (the confidence filter and the AFS control) and manifest
+    (split).  Reference masks are not among them; it refuses a ``reference`` input.
+  * :func:`validation_data` is the ONLY consumer of reference masks and returns masks of
+    ``split == "val"`` rows only (:class:`ValData`); they serve checkpoint selection (validation
+    Image IoU, Boundary F1 tie-break, tau = 0.5, :func:`select`) and never reach a loss --
+    :func:`train` passes only :class:`TrainData` to :func:`pipeline.losses.refine_loss`.
+
+Objective: :func:`pipeline.losses.refine_loss` (eq:refine-loss, with eq:raw-loss inside it) with the
+method's term weights (:func:`pipeline.methods.resolve_plan`) and the ``train.*`` loss constants.
 
 Schedule and numerics (decisions; the paper gives AdamW, batch 4, weight decay 1e-4 and the initial
 learning rates only)
@@ -23,40 +29,41 @@ learning rates only)
 
 Resilience
   * after every epoch the full state (model incl. geometry heads, optimizer, scheduler, torch RNG,
-    epoch, log so far, best state) is written atomically to ``<resume_dir>/state.pt``; a rerun with
-    the same resume directory (the checkpoint fingerprint) continues after the last finished epoch
-    and produces the same weights as an uninterrupted run; a finished state makes a rerun instant;
+    epoch, log so far, best state) goes to the run's :class:`Checkpointer`; a rerun whose
+    checkpointer returns that state continues after the last finished epoch and produces the same
+    weights as an uninterrupted run; a finished state makes a rerun instant;
   * a non-finite loss raises :class:`pipeline.errors.TrainingDiverged` naming epoch, step and term;
-    nothing is written for that epoch.
+    nothing is saved for that epoch.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import logging
 import math
-import os
 import time
-from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Protocol
 
 import numpy as np
 import torch
 
 from pipeline import losses
-from pipeline.artifacts import Artifact, open_artifact, read_chunk_rows
+from pipeline.artifacts import Artifact, read_chunk_rows
 from pipeline.errors import ArtifactError, InputError, TrainingDiverged
 from pipeline.methods import (Method, Plan, afs_fuse, afs_keep, confidence_pass, mean_valid_score,
                               method_epochs, method_lr, pass_ratio, resolve_plan)
+from pipeline.thresholds import mask_from_probs
 
 log = logging.getLogger(__name__)
 
 #: loss-term columns of the training log (NaN where a method does not use the term)
 LOG_TERMS = ("bbce", "dice", "raw", "sdf", "dist", "skel", "area", "boundary", "anchor")
 LOG_COLUMNS = ("epoch", "stage", "loss", *LOG_TERMS, "val_iou", "val_bf1", "lr", "seconds")
-STATE_FILE = "state.pt"
 STATE_VERSION = 1
+#: tau of the validation masks in checkpoint selection (eq:inference-mask at 0.5; a fixed decision)
+SELECTION_TAU = 0.5
 
 
 # --------------------------------------------------------------------------------------------------
@@ -109,67 +116,73 @@ def _rows(art, name: str, idx: np.ndarray) -> np.ndarray:
     return read_chunk_rows(arr, idx)
 
 
-def load_manifest(artifacts: str | Path):
-    """The manifest table artifact (schema ``manifest``)."""
-    return open_artifact(Path(artifacts) / "manifest.parquet", "manifest")
+def _uses_confidence(method: Method) -> bool:
+    """Whether the method evaluates the confidence criterion (the filter, or the adaptive pass ratio r)."""
+    return method.data == "confidence" or method.adaptive
 
 
-def load_training_data(artifacts: str | Path, method: Method, cfg: Mapping[str, Any],
-                       manifest=None) -> tuple[TrainData, list[Artifact]]:
-    """Read the pseudo-targets of the ``split == "train"`` rows a method trains on.
+def training_inputs(method: Method, cfg: Mapping[str, Any]) -> tuple[str, ...]:
+    """Schemas of the artifacts :func:`training_data` reads for ``method`` (never ``reference``).
 
-    Reads images.zarr and, per the method: consensus.zarr (``voted``), geometry.zarr, gates.parquet
-    and teacher.zarr.  Applies the method's data filter (confidence criterion or AFS score filter)
-    and records the pass ratio r in ``stats``.  Never opens reference.zarr.
-    Returns the data and the list of artifacts read (for the checkpoint's lineage).
+    manifest and images always; gates for the gated/area terms and the confidence criterion; teacher
+    for the AFS control and the ``mean_score`` criterion; consensus (``voted``) unless AFS; geometry
+    for SDF/skeleton/distance/boundary terms.
     """
-    root = Path(artifacts)
-    manifest = manifest if manifest is not None else load_manifest(root)
+    names = ["manifest", "images"]
+    if method.needs_gates:
+        names.append("gates")
+    if method.data == "afs" or (_uses_confidence(method) and cfg["confidence"]["criterion"] == "mean_score"):
+        names.append("teacher")
+    if method.data != "afs":
+        names.append("consensus")
+    if method.needs_geometry:
+        names.append("geometry")
+    return tuple(names)
+
+
+def _train_rows(manifest) -> tuple[list, np.ndarray]:
+    """Manifest image ids (all rows) and the indices of the ``split == "train"`` rows."""
     df = manifest.df
-    ids = df["image_id"].astype(str).tolist()
     train_idx = np.flatnonzero((df["split"] == "train").to_numpy())
     if len(train_idx) == 0:
         raise InputError(f"{manifest.path}: no rows with split == 'train'")
+    return df["image_id"].astype(str).tolist(), train_idx
+
+
+def _gate_table(gates, train_ids: list):
+    """gates.parquet rows of the training images, indexed by image id, in ``train_ids`` order."""
+    gdf = gates.df.assign(image_id=gates.df["image_id"].astype(str)).set_index("image_id")
+    missing = [i for i in train_ids if i not in gdf.index]
+    if missing:
+        raise ArtifactError(f"{gates.path}: no gate row for {len(missing)} training images (e.g. {missing[0]})")
+    return gdf.loc[train_ids]
+
+
+def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Artifact]) -> TrainData:
+    """The pseudo-targets of the ``split == "train"`` rows a method trains on, from opened artifacts.
+
+    ``inputs`` maps schema -> opened artifact for every name in :func:`training_inputs`.  Applies the
+    method's data filter (confidence criterion or AFS score filter) and records the pass ratio r in
+    ``stats``.  Reference masks are refused: they enter only :func:`validation_data`.
+    """
+    if "reference" in inputs:
+        raise ValueError("training_data: reference masks never enter training (use validation_data)")
+    missing = [n for n in training_inputs(method, cfg) if n not in inputs]
+    if missing:
+        raise ValueError(f"training_data: --method {method.name} needs the artifacts {missing}")
+    ids, train_idx = _train_rows(inputs["manifest"])
+    for name in ("images", "teacher", "consensus", "geometry"):
+        if name in inputs:
+            _check_order(inputs[name], ids, name)
     train_ids = [ids[i] for i in train_idx]
-    inputs: list[Artifact] = [manifest]
-
-    images = open_artifact(root / "images.zarr", "images")
-    _check_order(images, ids, "images")
-    inputs.append(images)
-
-    gates_df = None
-    if method.needs_gates:
-        gates = open_artifact(root / "gates.parquet", "gates")
-        inputs.append(gates)
-        gdf = gates.df.assign(image_id=gates.df["image_id"].astype(str)).set_index("image_id")
-        missing = [i for i in train_ids if i not in gdf.index]
-        if missing:
-            raise ArtifactError(f"{gates.path}: no gate row for {len(missing)} training images (e.g. {missing[0]})")
-        gates_df = gdf.loc[train_ids]
-
-    teacher = None
-    uses_confidence = method.data == "confidence" or method.adaptive
-    if method.data == "afs" or (uses_confidence and (cfg.get("confidence") or {}).get("criterion") == "mean_score"):
-        teacher = open_artifact(root / "teacher.zarr", "teacher")
-        _check_order(teacher, ids, "teacher")
-        inputs.append(teacher)
-
+    gates_df = _gate_table(inputs["gates"], train_ids) if "gates" in inputs else None
     stats: dict[str, Any] = {"n_train_rows": int(len(train_idx))}
-    keep = np.ones(len(train_idx), dtype=bool)
-    if method.data == "afs":
-        mask, keep, r = _afs_targets(teacher, train_idx, cfg)
-        stats["afs_pass_ratio"] = r
-    else:
-        consensus = open_artifact(root / "consensus.zarr", "consensus")
-        _check_order(consensus, ids, "consensus")
-        inputs.append(consensus)
-        mask = _rows(consensus, "voted", train_idx).astype(bool)
-    if method.data == "confidence" or method.adaptive:
-        passed = _confidence_pass(gates_df, teacher, train_idx, cfg)
+    mask, keep = _region_targets(method, cfg, inputs, train_idx, stats)
+    if _uses_confidence(method):
+        passed = _confidence_pass(gates_df, inputs.get("teacher"), train_idx, cfg["confidence"])
         stats["confidence_pass_ratio"] = pass_ratio(passed)
         if method.data == "confidence":
             keep &= passed
-
     sel = np.flatnonzero(keep)
     if len(sel) == 0:
         raise InputError(f"--method {method.name}: no training image passes the method's filter "
@@ -177,7 +190,7 @@ def load_training_data(artifacts: str | Path, method: Method, cfg: Mapping[str, 
     rows = train_idx[sel]
     data = TrainData(
         image_ids=[train_ids[i] for i in sel],
-        images=_rows(images, "image", rows),
+        images=_rows(inputs["images"], "image", rows),
         mask=mask[sel],
         area=(gates_df["a"].to_numpy(np.float32)[sel] if gates_df is not None
               else mask[sel].reshape(len(sel), -1).mean(1).astype(np.float32)),
@@ -185,13 +198,21 @@ def load_training_data(artifacts: str | Path, method: Method, cfg: Mapping[str, 
         stats=stats,
     )
     if method.needs_geometry:
-        geometry = open_artifact(root / "geometry.zarr", "geometry")
-        _check_order(geometry, ids, "geometry")
-        inputs.append(geometry)
-        data.sdf = _rows(geometry, "sdf", rows).astype(np.float32)
-        data.skeleton = _rows(geometry, "skeleton", rows).astype(bool)
+        data.sdf = _rows(inputs["geometry"], "sdf", rows).astype(np.float32)
+        data.skeleton = _rows(inputs["geometry"], "skeleton", rows).astype(bool)
     stats["n_train"] = len(data)
-    return data, inputs
+    return data
+
+
+def _region_targets(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Artifact],
+                    train_idx: np.ndarray, stats: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Region pseudo-target of every training row and the rows the AFS filter keeps (all otherwise):
+    the voted mask M^T (eq:majority-vote), or the AFS control's fused base-prompt mask."""
+    if method.data == "afs":
+        mask, keep, r = _afs_targets(inputs["teacher"], train_idx, cfg["afs"])
+        stats["afs_pass_ratio"] = r
+        return mask, keep
+    return _rows(inputs["consensus"], "voted", train_idx).astype(bool), np.ones(len(train_idx), dtype=bool)
 
 
 def gate_values(method: Method, gates_df, sel: np.ndarray) -> np.ndarray:
@@ -205,23 +226,23 @@ def gate_values(method: Method, gates_df, sel: np.ndarray) -> np.ndarray:
     return g
 
 
-def _confidence_pass(gates_df, teacher, train_idx, cfg) -> np.ndarray:
-    c = cfg.get("confidence") or {}
-    criterion = c.get("criterion", "agreement")
+def _confidence_pass(gates_df, teacher, train_idx, c: Mapping[str, Any]) -> np.ndarray:
+    """Confidence criterion (``train.confidence``) of every training row, from teacher outputs only."""
+    criterion = c["criterion"]
     mean_score = mean_valid_score(_rows(teacher, "scores", train_idx)) if criterion == "mean_score" else None
     return confidence_pass(gates_df["c"].to_numpy(), gates_df["n_valid"].to_numpy(), mean_score,
-                           criterion, float(c.get("threshold", 0.8)), int(c.get("min_valid", 1)))
+                           criterion, float(c["threshold"]), int(c["min_valid"]))
 
 
-def _afs_targets(teacher, train_idx, cfg) -> tuple[np.ndarray, np.ndarray, float]:
-    """AFS control targets: base prompt on the image and on its vertical flip (flipped back, stored by
-    the teacher stage as ``vflip_masks``), fused by agreement; keep images with base score >= threshold."""
-    a = cfg.get("afs") or {}
+def _afs_targets(teacher, train_idx, a: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, float]:
+    """AFS control targets (``train.afs``): base prompt on the image and on its vertical flip (flipped
+    back, stored by the teacher stage as ``vflip_masks``), fused by agreement; keep images with base
+    score >= threshold."""
     if "vflip_masks" not in teacher or "vflip_scores" not in teacher:
         raise InputError(f"{teacher.path}: no vflip_masks/vflip_scores; the afs_control method needs "
                          f"teacher.vflip_base_prompt: true")
     prompts = list(teacher.attrs.get("prompts") or [])
-    base = a.get("base_prompt", "spacecraft")
+    base = a["base_prompt"]
     if base not in prompts:
         raise InputError(f"params: train.afs.base_prompt={base!r} is not one of {teacher.path}'s prompts {prompts}")
     k = prompts.index(base)
@@ -229,99 +250,106 @@ def _afs_targets(teacher, train_idx, cfg) -> tuple[np.ndarray, np.ndarray, float
     img_masks = np.asarray(teacher["masks"].get_orthogonal_selection((rows, k)), dtype=bool)
     flip_masks = _rows(teacher, "vflip_masks", rows).astype(bool)
     scores = np.asarray(teacher["scores"].get_orthogonal_selection((rows, k)), dtype=np.float64)
-    fused = afs_fuse(img_masks, flip_masks, a.get("fusion", "intersection"))
-    keep = afs_keep(scores, float(a.get("score_threshold", 0.60)))
+    fused = afs_fuse(img_masks, flip_masks, a["fusion"])
+    keep = afs_keep(scores, float(a["score_threshold"]))
     return fused, keep, pass_ratio(keep)
 
 
-def validation_reference(artifacts: str | Path, manifest=None) -> tuple[ValData | None, list[Artifact]]:
-    """Validation images + reference masks for checkpoint selection -- the ONLY reader of reference.zarr.
+def validation_rows(manifest) -> np.ndarray:
+    """Indices of the manifest's ``split == "val"`` rows (the only rows whose reference masks are read)."""
+    return np.flatnonzero((manifest.df["split"] == "val").to_numpy())
 
-    Returns only rows with ``split == "val"`` and ``has_mask``; None (and no input) when there are none.
-    Reference masks of any other split are never read.
+
+def validation_data(manifest, images: Artifact, reference: Artifact) -> ValData | None:
+    """Validation images + reference masks for checkpoint selection -- the ONLY consumer of reference masks.
+
+    Returns only rows with ``split == "val"`` and ``has_mask``; None when there are none.  Reference
+    masks of any other split are never read.
     """
-    root = Path(artifacts)
-    manifest = manifest if manifest is not None else load_manifest(root)
-    df = manifest.df
-    ids = df["image_id"].astype(str).tolist()
-    val_idx = np.flatnonzero((df["split"] == "val").to_numpy())
+    ids = manifest.df["image_id"].astype(str).tolist()
+    val_idx = validation_rows(manifest)
     if len(val_idx) == 0:
-        return None, []
-    reference = open_artifact(root / "reference.zarr", "reference")
+        return None
     _check_order(reference, ids, "reference")
-    has = _rows(reference, "has_mask", val_idx).astype(bool) if len(val_idx) else np.zeros(0, bool)
-    val_idx = val_idx[has]
+    val_idx = val_idx[_rows(reference, "has_mask", val_idx).astype(bool)]
     if len(val_idx) == 0:
-        return None, [reference]
-    images = open_artifact(root / "images.zarr", "images")
-    val = ValData(image_ids=[ids[i] for i in val_idx], images=_rows(images, "image", val_idx),
-                  masks=_rows(reference, "mask", val_idx).astype(bool))
-    return val, [reference]
+        return None
+    return ValData(image_ids=[ids[i] for i in val_idx], images=_rows(images, "image", val_idx),
+                   masks=_rows(reference, "mask", val_idx).astype(bool))
 
 
 # --------------------------------------------------------------------------------------------------
-# Objective
+# Settings, model, checkpointer
 # --------------------------------------------------------------------------------------------------
-def compute_terms(weights: Mapping[str, float], outputs: Mapping[str, torch.Tensor],
-                  batch: Mapping[str, torch.Tensor], cfg: Mapping[str, Any]) -> dict[str, torch.Tensor]:
-    """The loss terms a plan uses and the weighted total ``loss`` (float32 scalars).
+def loss_constants(cfg: Mapping[str, Any]) -> losses.LossConstants:
+    """The loss constants from the train params (eq:raw-loss .. eq:area-loss)."""
+    return losses.LossConstants(dice_weight=float(cfg["dice_weight"]), max_weight=float(cfg["pos_weight_max"]),
+                                sdf_band=float(cfg["sdf_band"]), sdf_base_weight=float(cfg["sdf_base_weight"]),
+                                area_eps=float(cfg["area_eps"]), eps=float(cfg["loss_eps"]))
 
-    ``region`` = L_raw = BBCE + dice_weight * Dice (eq:raw-loss, logged as ``raw``, ``bbce``, ``dice``),
-    ``sdf`` eq:sdf-loss, ``skel`` eq:skeleton-loss, ``area`` eq:area-loss (each gated by
-    ``batch["gate"]`` once, inside the term), ``dist``/``boundary`` the GABI-inspired terms,
-    ``anchor`` the weak Stage-I anchoring.  With the geodistill weights this equals
-    :func:`pipeline.losses.refine_loss` (eq:refine-loss).
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """The ``train.*`` values one run uses, read once from the params (no defaults here)."""
+
+    epochs: int
+    lr: float
+    batch_size: int
+    weight_decay: float
+    schedule: str
+    precision: str
+    channels_last: bool
+    hflip: bool
+    num_threads: int
+    bf1_tolerance: float
+    constants: losses.LossConstants
+
+    @classmethod
+    def from_params(cls, method: Method, cfg: Mapping[str, Any]) -> "Settings":
+        """Read and check the train section for ``method`` (epochs and lr per the method table)."""
+        batch_size = int(cfg["batch_size"])
+        if batch_size < 1:
+            raise InputError(f"params: train.batch_size={batch_size} must be >= 1")
+        return cls(epochs=method_epochs(method, cfg), lr=method_lr(method, cfg), batch_size=batch_size,
+                   weight_decay=float(cfg["weight_decay"]), schedule=str(cfg["schedule"]),
+                   precision=str(cfg["precision"]), channels_last=bool(cfg["channels_last"]),
+                   hflip=bool(cfg["augment_hflip"]), num_threads=int(cfg["num_threads"]),
+                   bf1_tolerance=float(cfg["val_bf1_tolerance"]), constants=loss_constants(cfg))
+
+
+class Checkpointer(Protocol):
+    """Where a run's per-epoch resume state lives (:func:`train` talks only to this).
+
+    ``load(run_key)`` returns the last saved state for the run (or None); :func:`train` checks its
+    version and run key itself.  ``save(state)`` stores a complete state (atomically, for a durable one).
     """
-    pmax = float(cfg.get("pos_weight_max", losses.PAPER_POS_WEIGHT_MAX))
-    band = float(cfg.get("sdf_band", losses.PAPER_SDF_BAND))
-    eps = float(cfg.get("loss_eps", losses.PAPER_EPS))
-    z = outputs["mask"].float()
-    p = torch.sigmoid(z)
-    t: dict[str, torch.Tensor] = {}
-    if "region" in weights:
-        t["bbce"] = losses.balanced_bce(z, batch["mask"], None, pmax)
-        t["dice"] = losses.dice_loss(p, batch["mask"])
-        t["raw"] = t["bbce"] + float(cfg.get("dice_weight", losses.PAPER_DICE_WEIGHT)) * t["dice"]
-    if "sdf" in weights:
-        t["sdf"] = losses.sdf_loss(outputs["sdf"], batch["sdf"], batch["gate"], band,
-                                   float(cfg.get("sdf_base_weight", losses.PAPER_SDF_BASE_WEIGHT)), eps)
-    if "dist" in weights:
-        t["dist"] = losses.distance_regression_loss(outputs["sdf"], batch["sdf"])
-    if "skel" in weights:
-        t["skel"] = losses.skeleton_loss(outputs["skeleton"], batch["skeleton"], batch["gate"], pmax)
-    if "area" in weights:
-        t["area"] = losses.area_loss(p, batch["area"], batch["gate"],
-                                     float(cfg.get("area_eps", losses.PAPER_AREA_EPS)), eps)
-    if "boundary" in weights:
-        t["boundary"] = losses.boundary_weighted_bce(z, batch["mask"], batch["sdf"], band, eps)
-    if "anchor" in weights:
-        t["anchor"] = losses.anchor_loss(z, batch["anchor"])
-    total = z.new_zeros(())
-    for name, w in weights.items():
-        total = total + float(w) * t["raw" if name == "region" else name]
-    t["loss"] = total
-    return t
+
+    def load(self, run_key: Mapping[str, Any]) -> dict | None: ...
+
+    def save(self, state: dict) -> None: ...
 
 
-# --------------------------------------------------------------------------------------------------
-# Training loop
-# --------------------------------------------------------------------------------------------------
-@dataclasses.dataclass
-class TrainResult:
-    """The selected model (eval mode, CPU), the training log and what was selected and why."""
+class NoCheckpointer:
+    """No resume: nothing is loaded, saves are dropped."""
 
-    model: Any
-    log: Any  # pandas.DataFrame (schema training_log)
-    selected_epoch: int
-    info: dict
+    def load(self, run_key: Mapping[str, Any]) -> dict | None:
+        return None
+
+    def save(self, state: dict) -> None:
+        pass
 
 
-def _autocast(device: torch.device, dtype):
-    if dtype is None:
-        import contextlib
+class MemoryCheckpointer:
+    """Resume state held in memory (a deep copy of the last saved state); for tests and notebooks."""
 
-        return contextlib.nullcontext()
-    return torch.autocast(device_type=device.type, dtype=dtype)
+    def __init__(self) -> None:
+        self.state: dict | None = None
+
+    def load(self, run_key: Mapping[str, Any]) -> dict | None:
+        return copy.deepcopy(self.state)
+
+    def save(self, state: dict) -> None:
+        self.state = copy.deepcopy(state)
 
 
 def _lr_lambda(schedule: str, total_steps: int) -> Callable[[int], float]:
@@ -338,7 +366,7 @@ def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: M
     from pipeline.model import TinyUNet
 
     torch.manual_seed(int(seed))
-    model = TinyUNet(channels=tuple(cfg.get("channels", (24, 48, 96))))
+    model = TinyUNet(channels=tuple(cfg["channels"]))
     if method.init == "stage1":
         if init_state is None:
             raise InputError(f"--method {method.name}: needs --init (the Stage-I checkpoint)")
@@ -352,8 +380,12 @@ def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: M
     return model
 
 
+# --------------------------------------------------------------------------------------------------
+# Batches and validation
+# --------------------------------------------------------------------------------------------------
 def _tensors(data: TrainData, device: torch.device, anchor: np.ndarray | None) -> dict[str, torch.Tensor]:
-    """Whole training set as tensors (uint8 images NHWC, targets), on ``device``, once per run."""
+    """Whole training set as tensors (uint8 images NHWC, targets), on ``device``, once per run.
+    Built from :class:`TrainData` only: pseudo-targets, never reference masks."""
     t = {"image": torch.from_numpy(np.ascontiguousarray(data.images)),
          "mask": torch.from_numpy(np.ascontiguousarray(data.mask)),
          "area": torch.from_numpy(np.ascontiguousarray(data.area, dtype=np.float32)),
@@ -383,11 +415,16 @@ def _batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor 
     return b
 
 
-def validate(model, val: ValData | None, device, precision: str = "fp32", channels_last: bool = True,
-             tau: float = 0.5, tolerance: float = 2) -> tuple[float, float]:
-    """Mean validation Image IoU and Boundary F1 of ``[P >= tau]`` against the reference masks
-    (``pipeline.metrics``); (nan, nan) without validation data.  Leaves the model in train mode."""
-    if val is None or len(val) == 0:
+def _has_val(val: ValData | None) -> bool:
+    return val is not None and len(val) > 0
+
+
+def validate(model, val: ValData | None, device, *, precision: str, channels_last: bool, tolerance: float,
+             tau: float = SELECTION_TAU) -> tuple[float, float]:
+    """Mean validation Image IoU and Boundary F1 (``tolerance`` px) of ``[P >= tau]`` (eq:inference-mask)
+    against the reference masks (``pipeline.metrics``); (nan, nan) without validation data.  Leaves
+    the model in train mode."""
+    if not _has_val(val):
         return float("nan"), float("nan")
     from pipeline.inference import predict_probs
     from pipeline.metrics import boundary_f1, image_ious
@@ -395,202 +432,259 @@ def validate(model, val: ValData | None, device, precision: str = "fp32", channe
     probs = predict_probs(model, val.images, device=device, batch_size=16, precision=precision,
                           channels_last=channels_last)
     model.train()
-    pred = probs >= tau
+    pred = mask_from_probs(probs, tau)
     iou = float(np.mean(image_ious(pred, val.masks)))
     bf1 = float(np.mean([boundary_f1(p, g, tolerance) for p, g in zip(pred, val.masks)]))
     return iou, bf1
 
 
-def _save_state(resume_dir: Path, state: dict) -> None:
-    resume_dir.mkdir(parents=True, exist_ok=True)
-    tmp = resume_dir / f".{STATE_FILE}.tmp-{os.getpid()}"
-    torch.save(state, tmp)
-    os.replace(tmp, resume_dir / STATE_FILE)
+# --------------------------------------------------------------------------------------------------
+# Training loop
+# --------------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class TrainResult:
+    """The selected model (eval mode, CPU), the training log and what was selected and why."""
+
+    model: Any
+    log: Any  # pandas.DataFrame (schema training_log)
+    selected_epoch: int
+    info: dict
 
 
-def _load_state(resume_dir: Path | None, run_key: dict) -> dict | None:
-    if resume_dir is None or not (resume_dir / STATE_FILE).exists():
-        return None
-    try:
-        state = torch.load(resume_dir / STATE_FILE, map_location="cpu", weights_only=False)
-    except Exception as e:  # a state cut off by a kill during torch.save cannot happen (os.replace),
-        log.warning("ignoring unreadable resume state %s (%s)", resume_dir, type(e).__name__)
-        return None
-    if state.get("version") != STATE_VERSION or state.get("run_key") != run_key:
-        log.warning("ignoring resume state %s from a different run", resume_dir)
-        return None
-    return state
+@dataclasses.dataclass
+class _Run:
+    """Everything one (method, seed) run carries between epochs."""
+
+    method: Method
+    seed: int
+    settings: Settings
+    plan: Plan
+    device: torch.device
+    amp: Any  # autocast dtype or None
+    model: Any
+    opt: Any
+    sched: Any
+    tensors: dict
+    n_train: int
+    run_key: dict
+    rows: list = dataclasses.field(default_factory=list)
+    best: dict | None = None
+
+    @property
+    def steps_per_epoch(self) -> int:
+        return max(1, math.ceil(self.n_train / self.settings.batch_size))
+
+
+def _autocast(device: torch.device, dtype):
+    if dtype is None:
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=device.type, dtype=dtype)
 
 
 def _cpu_state(model) -> dict:
     return {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}
 
 
-def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData | None, seed: int, *,
-          init_state: Mapping | None = None, device="cpu", resume_dir: str | Path | None = None,
-          callback: Callable[[int, dict], None] | None = None, show_progress: bool = True) -> TrainResult:
-    """Train one (method, seed) run and return the selected model and its log.
-
-    ``init_state``: Stage-I mask-path state dict for warm-started methods.  ``resume_dir``: where the
-    per-epoch state lives (None: no resume).  ``callback(epoch, row)`` runs after each epoch's state
-    is saved (tests use it to interrupt a run).  Raises TrainingDiverged on a non-finite loss.
-    """
-    import pandas as pd
-
+def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data: TrainData, seed: int,
+           init_state: Mapping | None, device: torch.device) -> _Run:
+    """Model (warm-started or seeded), the frozen Stage-I anchor if the plan uses one, AdamW, the
+    schedule and the training tensors, in this order (the order fixes the torch RNG stream)."""
     from pipeline.device import autocast_dtype
-    from pipeline.progress import progress
 
-    device = torch.device(device)
-    if int(cfg.get("num_threads", 0) or 0) > 0:
-        torch.set_num_threads(int(cfg["num_threads"]))
-    epochs = method_epochs(method, cfg)
-    lr = method_lr(method, cfg)
-    batch_size = int(cfg.get("batch_size", 4))
-    if batch_size < 1:
-        raise InputError(f"params: train.batch_size={batch_size} must be >= 1")
-    precision = str(cfg.get("precision", "auto"))
-    amp = autocast_dtype(device, precision)
-    channels_last = bool(cfg.get("channels_last", True))
-    tol = float(cfg.get("val_bf1_tolerance", 2))
-    plan: Plan = resolve_plan(method, cfg, data.stats.get("confidence_pass_ratio"))
-
+    amp = autocast_dtype(device, s.precision)
     model = build_model(method, cfg, seed, init_state)
     anchor = None
     if "anchor" in plan.weights:
         from pipeline.inference import predict_probs
 
         frozen = build_model(dataclasses.replace(method, terms=("region",)), cfg, seed, init_state)
-        anchor = predict_probs(frozen, data.images, device=device, precision=precision,
-                               channels_last=channels_last)
+        anchor = predict_probs(frozen, data.images, device=device, precision=s.precision,
+                               channels_last=s.channels_last)
     model = model.to(device)
-    if channels_last:
+    if s.channels_last:
         model = model.to(memory_format=torch.channels_last)
     model.train()
-    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=float(cfg.get("weight_decay", 1e-4)))
-    steps_per_epoch = max(1, math.ceil(len(data) / batch_size))
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(str(cfg.get("schedule", "cosine")),
-                                                              epochs * steps_per_epoch))
-    tensors = _tensors(data, device, anchor)
-
-    run_key = {"method": method.name, "seed": int(seed), "epochs": epochs, "n_train": len(data),
+    opt = torch.optim.AdamW(model.parameters(), lr=s.lr, weight_decay=s.weight_decay)
+    run_key = {"method": method.name, "seed": int(seed), "epochs": s.epochs, "n_train": len(data),
                "train_ids": list(data.image_ids)}
-    resume_dir = Path(resume_dir) if resume_dir is not None else None
-    rows: list[dict] = []
-    best: dict | None = None
-    start = 1
-    state = _load_state(resume_dir, run_key)
-    if state is not None:
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
-        torch.set_rng_state(state["torch_rng"])
-        rows, best, start = list(state["log"]), state["best"], int(state["epoch"]) + 1
-        log.info("resuming %s seed %s after epoch %d from %s", method.name, seed, start - 1, resume_dir)
+    run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,
+               opt=opt, sched=None, tensors=_tensors(data, device, anchor), n_train=len(data), run_key=run_key)
+    run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(s.schedule, s.epochs * run.steps_per_epoch))
+    return run
 
-    def consider(epoch: int, row: dict, eligible: bool) -> None:
-        nonlocal best
-        if not eligible:
-            return
-        if plan.select == "last" or val is None or len(val) == 0:
-            best = {"epoch": epoch, "score": None, "state": _cpu_state(model)}
-            return
-        score = (row["val_iou"], row["val_bf1"])
-        if best is None or best["score"] is None or score > tuple(best["score"]):
-            best = {"epoch": epoch, "score": score, "state": _cpu_state(model)}
 
-    def empty_row(epoch: int) -> dict:
-        return {"epoch": epoch, "stage": method.stage, "loss": float("nan"),
-                **{k: float("nan") for k in LOG_TERMS}, "lr": float("nan")}
+def _resume(run: _Run, checkpointer: Checkpointer) -> int:
+    """Restore the checkpointer's state of this run (same version and run key) and return the first
+    epoch still to train (1 without a usable state)."""
+    state = checkpointer.load(run.run_key)
+    if state is None:
+        return 1
+    if state.get("version") != STATE_VERSION or state.get("run_key") != run.run_key:
+        log.warning("ignoring resume state from a different run (%s)", checkpointer)
+        return 1
+    run.model.load_state_dict(state["model"])
+    run.opt.load_state_dict(state["optimizer"])
+    run.sched.load_state_dict(state["scheduler"])
+    torch.set_rng_state(state["torch_rng"])
+    run.rows, run.best = list(state["log"]), state["best"]
+    log.info("resuming %s seed %s after epoch %d from %s", run.method.name, run.seed, state["epoch"], checkpointer)
+    return int(state["epoch"]) + 1
 
-    if start == 1 and not rows and method.init == "stage1":
-        # epoch 0 = the warm start itself: logged for every Stage-II method, a selection candidate
-        # only where the plan says so (quality-adaptive geometry_only mode)
-        t0 = time.perf_counter()
-        row = empty_row(0)
-        row["val_iou"], row["val_bf1"] = validate(model, val, device, precision, channels_last, tolerance=tol)
-        row["seconds"] = time.perf_counter() - t0
-        rows.append(row)
-        consider(0, row, plan.epoch0_eligible)
 
-    total = (epochs - start + 1) * steps_per_epoch
+def _state(run: _Run, epoch: int) -> dict:
+    """The complete resume state after ``epoch`` (CPU copies)."""
+    return {"version": STATE_VERSION, "run_key": run.run_key, "epoch": epoch, "model": _cpu_state(run.model),
+            "optimizer": copy.deepcopy(run.opt.state_dict()), "scheduler": run.sched.state_dict(),
+            "torch_rng": torch.get_rng_state(), "log": run.rows, "best": run.best}
+
+
+def select(best: dict | None, plan: Plan, val: ValData | None, epoch: int, row: Mapping, model,
+           eligible: bool) -> dict | None:
+    """Checkpoint selection: the new best candidate ``{"epoch", "score", "state"}`` after ``epoch``.
+
+    Ineligible epochs change nothing.  ``select == "last"`` or no validation masks: the latest
+    eligible epoch.  ``best_val``: the highest validation (Image IoU, Boundary F1) pair -- IoU first,
+    BF1 breaking ties; an earlier epoch wins a full tie.
+    """
+    if not eligible:
+        return best
+    if plan.select == "last" or not _has_val(val):
+        return {"epoch": epoch, "score": None, "state": _cpu_state(model)}
+    score = (row["val_iou"], row["val_bf1"])
+    if best is None or best["score"] is None or score > tuple(best["score"]):
+        return {"epoch": epoch, "score": score, "state": _cpu_state(model)}
+    return best
+
+
+def _empty_row(run: _Run, epoch: int) -> dict:
+    return {"epoch": epoch, "stage": run.method.stage, "loss": float("nan"),
+            **{k: float("nan") for k in LOG_TERMS}, "lr": float("nan")}
+
+
+def _validated(run: _Run, row: dict, val: ValData | None, t0: float) -> dict:
+    """``row`` with the validation scores and the epoch's seconds (since ``t0``) filled in."""
+    s = run.settings
+    row["val_iou"], row["val_bf1"] = validate(run.model, val, run.device, precision=s.precision,
+                                              channels_last=s.channels_last, tolerance=s.bf1_tolerance)
+    row["seconds"] = time.perf_counter() - t0
+    return row
+
+
+def _warm_start_row(run: _Run, val: ValData | None) -> dict:
+    """Epoch 0 = the warm start itself: logged for every Stage-II warm-started method, a selection
+    candidate only where the plan says so (quality-adaptive ``geometry_only`` mode)."""
+    return _validated(run, _empty_row(run, 0), val, time.perf_counter())
+
+
+def _step(run: _Run, b: Mapping[str, torch.Tensor], epoch: int, step: int) -> dict[str, torch.Tensor]:
+    """One optimizer step on batch ``b``; returns the loss terms (eq:refine-loss with the plan's weights).
+
+    Raises TrainingDiverged (naming the non-finite terms) before touching the weights.
+    """
+    with _autocast(run.device, run.amp):
+        out = run.model.forward_train(b["x"])
+    terms = losses.refine_loss(out, b, b["gate"], run.plan.weights, run.settings.constants)
+    if not math.isfinite(float(terms["loss"].detach())):
+        bad = [k for k, v in terms.items() if k != "loss" and not torch.isfinite(v).all()]
+        raise TrainingDiverged(f"{run.method.name} seed {run.seed}: non-finite loss at epoch {epoch}, "
+                               f"step {step + 1} (terms: {', '.join(bad) or 'loss'}); "
+                               f"no checkpoint written -- lower the learning rate or check the inputs")
+    run.opt.zero_grad(set_to_none=True)
+    terms["loss"].backward()
+    run.opt.step()
+    run.sched.step()
+    return terms
+
+
+def _epoch_batches(run: _Run, epoch: int):
+    """The epoch's batches: a seeded order over all images (``[seed, epoch]``), optional seeded hflip."""
+    n, bs = run.n_train, run.settings.batch_size
+    order = np.random.default_rng([run.seed, epoch]).permutation(n)
+    flips = np.random.default_rng([run.seed, epoch, 1]).random(n) < 0.5 if run.settings.hflip else None
+    for s in range(0, n, bs):
+        idx_np = order[s:s + bs]
+        flip = torch.from_numpy(flips[idx_np]).to(run.device) if flips is not None else None
+        yield len(idx_np), _batch(run.tensors, torch.from_numpy(idx_np).to(run.device), flip,
+                                  run.settings.channels_last)
+
+
+def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
+    """Train one epoch and return its log row (sample-weighted mean terms, start lr, validation)."""
+    t0 = time.perf_counter()
+    lr_epoch = run.opt.param_groups[0]["lr"]
+    last_val = run.rows[-1]["val_iou"] if run.rows else float("nan")
+    sums: dict[str, torch.Tensor] = {}
+    for step, (n, b) in enumerate(_epoch_batches(run, epoch)):
+        terms = _step(run, b, epoch, step)
+        for k, v in terms.items():
+            sums[k] = sums.get(k, 0.0) + v.detach().float() * n
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(epoch=epoch, loss=f"{float(terms['loss'].detach()):.4f}", val_iou=f"{last_val:.3f}",
+                            refresh=False)
+    # a finite loss can still leave non-finite weights after the last step (e.g. an inf gradient)
+    if not all(bool(torch.isfinite(p).all()) for p in run.model.parameters()):
+        raise TrainingDiverged(f"{run.method.name} seed {run.seed}: non-finite weights after epoch {epoch}; "
+                               f"no checkpoint written -- lower the learning rate or check the inputs")
+    row = _empty_row(run, epoch)
+    for k, v in sums.items():
+        row[k] = float(v) / run.n_train
+    row["lr"] = float(lr_epoch)
+    return _validated(run, row, val, t0)
+
+
+def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainResult:
+    """The selected model (CPU, eval mode), the log table and the run's info."""
+    import pandas as pd
+
+    if run.best is None:  # cannot happen with epochs >= 1; kept as a guard against a silent wrong pick
+        raise RuntimeError("no checkpoint candidate")
+    run.model.load_state_dict(run.best["state"])
+    model = run.model.to("cpu").to(memory_format=torch.contiguous_format).eval()
+    plan, s = run.plan, run.settings
+    selection = plan.select if _has_val(val) or plan.select == "last" else "last (no validation masks)"
+    info = {"selected_epoch": int(run.best["epoch"]), "selection": selection, "epochs": s.epochs, "lr": s.lr,
+            "mode": plan.mode, "loss_weights": dict(plan.weights), "epoch0_eligible": plan.epoch0_eligible,
+            "autocast": str(run.amp).replace("torch.", "") if run.amp is not None else "fp32",
+            "channels_last": s.channels_last, **stats}
+    return TrainResult(model=model, log=pd.DataFrame(run.rows, columns=list(LOG_COLUMNS)),
+                       selected_epoch=int(run.best["epoch"]), info=info)
+
+
+def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData | None, seed: int, *,
+          checkpointer: Checkpointer, init_state: Mapping | None = None, device="cpu",
+          callback: Callable[[int, dict], None] | None = None, show_progress: bool = True) -> TrainResult:
+    """Train one (method, seed) run on in-memory arrays and return the selected model and its log.
+
+    ``data``: pseudo-targets (the only source of every loss term).  ``val``: validation images and
+    reference masks, used only by :func:`select` (None: the last epoch is selected).
+    ``checkpointer``: the per-epoch resume state (:class:`NoCheckpointer` for none).
+    ``init_state``: Stage-I mask-path state dict for warm-started methods.  ``callback(epoch, row)``
+    runs after each epoch's state is saved (tests use it to interrupt a run).
+    Raises TrainingDiverged on a non-finite loss or weights; nothing is saved for that epoch.
+    """
+    from pipeline.progress import progress
+
+    s = Settings.from_params(method, cfg)
+    device = torch.device(device)
+    if s.num_threads > 0:
+        torch.set_num_threads(s.num_threads)
+    plan = resolve_plan(method, cfg, data.stats.get("confidence_pass_ratio"))
+    run = _setup(method, cfg, s, plan, data, seed, init_state, device)
+    start = _resume(run, checkpointer)
+    if start == 1 and not run.rows and method.init == "stage1":
+        row = _warm_start_row(run, val)
+        run.rows.append(row)
+        run.best = select(run.best, plan, val, 0, row, run.model, plan.epoch0_eligible)
+    total = (s.epochs - start + 1) * run.steps_per_epoch
     bar = progress(total=total, desc=f"train {method.name} s{seed}") if show_progress and total > 0 else None
-    last_val = rows[-1]["val_iou"] if rows else float("nan")
-    for epoch in range(start, epochs + 1):
-        t0 = time.perf_counter()
-        lr_epoch = opt.param_groups[0]["lr"]
-        order = np.random.default_rng([int(seed), epoch]).permutation(len(data))
-        flips = (np.random.default_rng([int(seed), epoch, 1]).random(len(data)) < 0.5
-                 if cfg.get("augment_hflip", False) else None)
-        sums: dict[str, torch.Tensor] = {}
-        for step, s in enumerate(range(0, len(data), batch_size)):
-            idx_np = order[s:s + batch_size]
-            idx = torch.from_numpy(idx_np).to(device)
-            flip = torch.from_numpy(flips[idx_np]).to(device) if flips is not None else None
-            b = _batch(tensors, idx, flip, channels_last)
-            with _autocast(device, amp):
-                out = model.forward_train(b["x"])
-            terms = compute_terms(plan.weights, out, b, cfg)
-            loss_value = float(terms["loss"].detach())
-            if not math.isfinite(loss_value):
-                bad = [k for k, v in terms.items() if k != "loss" and not torch.isfinite(v).all()]
-                raise TrainingDiverged(f"{method.name} seed {seed}: non-finite loss at epoch {epoch}, "
-                                       f"step {step + 1} (terms: {', '.join(bad) or 'loss'}); "
-                                       f"no checkpoint written -- lower the learning rate or check the inputs")
-            opt.zero_grad(set_to_none=True)
-            terms["loss"].backward()
-            opt.step()
-            sched.step()
-            n = len(idx_np)
-            for k, v in terms.items():
-                sums[k] = sums.get(k, 0.0) + v.detach().float() * n
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(epoch=epoch, loss=f"{loss_value:.4f}", val_iou=f"{last_val:.3f}", refresh=False)
-        # a finite loss can still leave non-finite weights after the last step (e.g. an inf gradient)
-        if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
-            raise TrainingDiverged(f"{method.name} seed {seed}: non-finite weights after epoch {epoch}; "
-                                   f"no checkpoint written -- lower the learning rate or check the inputs")
-        row = empty_row(epoch)
-        for k, v in sums.items():
-            row["loss" if k == "loss" else k] = float(v) / len(data)
-        row["lr"] = float(lr_epoch)
-        row["val_iou"], row["val_bf1"] = validate(model, val, device, precision, channels_last, tolerance=tol)
-        row["seconds"] = time.perf_counter() - t0
-        last_val = row["val_iou"]
-        rows.append(row)
-        consider(epoch, row, plan.select == "best_val" or epoch == epochs)
-        if resume_dir is not None:
-            _save_state(resume_dir, {"version": STATE_VERSION, "run_key": run_key, "epoch": epoch,
-                                     "model": _cpu_state(model), "optimizer": copy.deepcopy(opt.state_dict()),
-                                     "scheduler": sched.state_dict(), "torch_rng": torch.get_rng_state(),
-                                     "log": rows, "best": best})
+    for epoch in range(start, s.epochs + 1):
+        row = _train_epoch(run, epoch, val, bar)
+        run.rows.append(row)
+        run.best = select(run.best, plan, val, epoch, row, run.model, plan.select == "best_val" or epoch == s.epochs)
+        checkpointer.save(_state(run, epoch))
         if callback is not None:
             callback(epoch, row)
     if bar is not None:
         bar.close()
-
-    if best is None:  # cannot happen with epochs >= 1; kept as a guard against a silent wrong pick
-        raise RuntimeError("no checkpoint candidate")
-    model.load_state_dict(best["state"])
-    model = model.to("cpu").to(memory_format=torch.contiguous_format).eval()
-    log_df = pd.DataFrame(rows, columns=list(LOG_COLUMNS))
-    selection = plan.select if (val is not None and len(val)) or plan.select == "last" else "last (no validation masks)"
-    info = {"selected_epoch": int(best["epoch"]), "selection": selection, "epochs": epochs, "lr": lr,
-            "mode": plan.mode, "loss_weights": dict(plan.weights), "epoch0_eligible": plan.epoch0_eligible,
-            "autocast": str(amp).replace("torch.", "") if amp is not None else "fp32",
-            "channels_last": channels_last, **data.stats}
-    return TrainResult(model=model, log=log_df, selected_epoch=int(best["epoch"]), info=info)
-
-
-def load_init(path: str | Path) -> tuple[dict, Artifact]:
-    """Stage-I checkpoint for a warm start: (mask-path state dict, its artifact for the lineage)."""
-    from pipeline.inference import is_active_run, load_student
-
-    p = Path(path)
-    if not (p / "meta.json").exists():
-        raise ArtifactError(f"--init {p}: not a checkpoint directory (run train_stage1 first)")
-    if not is_active_run(p):
-        raise InputError(f"--init {p}: is an inactive run marker; add its method/seed to protocol.active_*")
-    art = open_artifact(p, "checkpoint")
-    model, _ = load_student(p)
-    return model.mask_path_state_dict(), art
+    return _result(run, val, data.stats)

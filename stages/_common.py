@@ -15,12 +15,9 @@ from typing import Any, Callable, Iterable, Mapping
 
 import click
 
-from pipeline.artifacts import Meta, code_version, make_meta
+from pipeline.artifacts import Meta, make_meta
 from pipeline.errors import InputError
 from pipeline.params import load_params
-
-PIPELINE_DIR = Path(__file__).resolve().parent.parent / "pipeline"
-
 
 def setup_logging() -> None:
     level = os.environ.get("GEODISTILL_LOG", "INFO").upper()
@@ -28,10 +25,12 @@ def setup_logging() -> None:
                         format="%(asctime)s %(name)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
 
 
-def stage_code_version(stage_file: str, *modules: str) -> str:
-    """Code version of a stage: its own script plus the pipeline modules (or packages) it calls."""
-    paths = [Path(stage_file)] + [PIPELINE_DIR / m for m in modules]
-    return code_version(*paths)
+def stage_code_version(stage_file: str, *_legacy_modules: str) -> str:
+    """Code version of a stage: every project file its script imports, found from the imports
+    themselves (:func:`pipeline.dag.module_files`, the same list dvc.yaml names as the stage's deps)."""
+    from pipeline.dag import ROOT, _module_name, code_version_of
+
+    return code_version_of(_module_name(Path(stage_file).resolve(), ROOT))
 
 
 def stage_command(name: str) -> Callable:

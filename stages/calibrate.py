@@ -3,7 +3,7 @@
 Paper (Training Details): "The binarization threshold is selected by Image IoU on the corresponding
 validation set and then applied unchanged to the test set."  For each active run (method, seed):
 P = sigmoid(Z) on the validation images, tau = argmax over the grid of the mean Image IoU of
-[P >= tau] (eq:inference-mask; ties -> closest to 0.5).  The whole curve is kept (list columns
+[P >= tau] (eq:inference-mask; ties -> closest to 0.5): pipeline.thresholds.calibrate_threshold.  The whole curve is kept (list columns
 ``grid`` and ``curve``) for the report's threshold-curve figure, with the fixed tau = 0.5 alongside.
 
 Manual (reference) masks enter here ONLY to calibrate tau -- they are never a training target.
@@ -11,29 +11,13 @@ Manual (reference) masks enter here ONLY to calibrate tau -- they are never a tr
 
 from __future__ import annotations
 
-
 import click
-import numpy as np
 import pandas as pd
 
 from pipeline.params import require, section
 from stages._common import meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("metrics.py", "inference.py", "artifacts.py")
-
-
-def threshold_grid(cfg: dict) -> np.ndarray:
-    """tau grid from calibrate.grid_start .. grid_stop (inclusive) in steps of grid_step, rounded to
-    1e-9 so that 0.5 is exactly on the default grid."""
-    from pipeline.errors import InputError
-
-    start = require(cfg, "grid_start", "calibrate", kind=(int, float), lo=0.0, hi=1.0)
-    stop = require(cfg, "grid_stop", "calibrate", kind=(int, float), lo=0.0, hi=1.0)
-    step = require(cfg, "grid_step", "calibrate", kind=(int, float), lo=1e-6, hi=1.0)
-    if stop < start:
-        raise InputError(f"params: calibrate.grid_stop={stop} < calibrate.grid_start={start}")
-    n = int(np.floor((stop - start) / step + 1e-9)) + 1
-    return np.round(start + step * np.arange(n), 9)
+CODE_MODULES = ("thresholds.py", "metrics.py", "inference.py", "artifacts.py")
 
 
 @stage_command("calibrate")
@@ -46,8 +30,9 @@ def main(params, device, art, checkpoints, out):
     from pipeline.artifacts import open_artifact, read_chunk_rows, write_parquet
     from pipeline.device import resolve_device
     from pipeline.inference import active_runs, load_student, open_labelled_split, predict_probs
-    from pipeline.metrics import calibrate_threshold, iou_curve
+    from pipeline.metrics import iou_curve
     from pipeline.progress import progress
+    from pipeline.thresholds import calibrate_threshold, threshold_grid
 
     cfg = section(params, "calibrate")
     grid = threshold_grid(cfg)

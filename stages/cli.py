@@ -10,7 +10,7 @@ import importlib.util
 
 import click
 
-# subcommand -> module under stages/ exposing a click command named ``main``
+# subcommand -> module under stages/ exposing a click command named ``main`` (or ``module:command``)
 COMMANDS = {
     "prepare": "stages.prepare",
     "teacher": "stages.teacher",
@@ -24,18 +24,22 @@ COMMANDS = {
     "export": "stages.export",
     "benchmark": "stages.benchmark",
     "analyze_teacher": "stages.analyze_teacher",
+    "dag": "stages.dag:dag_main",
+    "profile": "stages.dag:profile_main",
 }
 
 
 class LazyGroup(click.Group):
     def list_commands(self, ctx):
-        return sorted(n for n, m in COMMANDS.items() if importlib.util.find_spec(m) is not None)
+        return sorted(n for n, m in COMMANDS.items() if importlib.util.find_spec(m.split(":")[0]) is not None)
 
     def get_command(self, ctx, name):
-        mod = COMMANDS.get(name)
-        if mod is None or importlib.util.find_spec(mod) is None:
+        if name not in COMMANDS:
             return None
-        return importlib.import_module(mod).main
+        mod, _, attr = COMMANDS[name].partition(":")
+        if importlib.util.find_spec(mod) is None:
+            return None
+        return getattr(importlib.import_module(mod), attr or "main")
 
 
 @click.group(cls=LazyGroup, help=__doc__)

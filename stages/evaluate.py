@@ -25,7 +25,7 @@ import pandas as pd
 from pipeline.params import require, section
 from stages._common import meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("metrics.py", "stats.py", "inference.py", "artifacts.py")
+CODE_MODULES = ("thresholds.py", "metrics.py", "stats.py", "inference.py", "artifacts.py")
 GAIN_METRICS = ("iou", "bf1", "precision", "recall")
 CHUNK = 64  # test images predicted and scored per batch (bounded memory for large test sets)
 
@@ -74,6 +74,7 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
     from pipeline.metrics import per_image_metrics
     from pipeline.progress import progress
     from pipeline.stats import method_gains, seed_summary
+    from pipeline.thresholds import mask_from_probs
 
     cfg = section(params, "evaluate")
     tol = require(cfg, "bf1_tolerance", "evaluate", kind=(int, float), lo=0)
@@ -99,7 +100,7 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
             probs = predict_probs(model, read_chunk_rows(images["image"], idx), device=dev)
             gts = read_chunk_rows(reference["mask"], idx).astype(bool)
             for mode, tau in (("calibrated", tau_cal), ("fixed", tau_fixed)):
-                scores = per_image_metrics(probs >= tau, gts, tol, max_fraction=small_frac)
+                scores = per_image_metrics(mask_from_probs(probs, tau), gts, tol, max_fraction=small_frac)
                 part = info.iloc[s:s + len(idx)].copy()
                 part["method"], part["seed"], part["threshold_mode"], part["tau"] = method, int(seed), mode, tau
                 for k, v in scores.items():

@@ -14,12 +14,20 @@
   instantly.
 * Exit codes: 0 ok; 2 bad input (one line naming the file or parameter); 1 training diverged
   (non-finite loss; one line, no checkpoint written).
+
+Wiring only: this module opens the artifacts under ``--artifacts`` (:func:`load_inputs`), the
+``--init`` checkpoint (:func:`load_init`) and the resume state (:class:`FileCheckpointer`);
+:func:`pipeline.training.train` gets arrays and a checkpointer.  Reference masks (reference.zarr)
+are opened only for :func:`pipeline.training.validation_data` (checkpoint selection).
 """
 
 from __future__ import annotations
 
+import logging
+import os
 import sys
 from pathlib import Path
+from typing import Any, Mapping
 
 import click
 
@@ -29,6 +37,84 @@ from stages._common import meta_for, stage_code_version, stage_command
 
 CODE_MODULES = ("training.py", "methods.py", "losses.py", "model.py", "inference.py", "metrics.py",
                 "artifacts.py", "device.py")
+
+#: artifact schema -> its file under --artifacts
+ARTIFACT_FILES = {"manifest": "manifest.parquet", "images": "images.zarr", "gates": "gates.parquet",
+                  "teacher": "teacher.zarr", "consensus": "consensus.zarr", "geometry": "geometry.zarr",
+                  "reference": "reference.zarr"}
+STATE_FILE = "state.pt"
+
+log = logging.getLogger(__name__)
+
+
+class FileCheckpointer:
+    """Per-epoch resume state in ``<directory>/state.pt`` (written atomically: temp file + os.replace)."""
+
+    def __init__(self, directory: str | Path):
+        self.directory = Path(directory)
+
+    def __repr__(self) -> str:
+        return str(self.directory)
+
+    def load(self, run_key: Mapping[str, Any]) -> dict | None:
+        """The saved state, or None when there is none or it cannot be read (train checks the run key)."""
+        import torch
+
+        path = self.directory / STATE_FILE
+        if not path.exists():
+            return None
+        try:
+            return torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as e:  # a state cut off by a kill during torch.save cannot happen (os.replace)
+            log.warning("ignoring unreadable resume state %s (%s)", self.directory, type(e).__name__)
+            return None
+
+    def save(self, state: dict) -> None:
+        import torch
+
+        self.directory.mkdir(parents=True, exist_ok=True)
+        tmp = self.directory / f".{STATE_FILE}.tmp-{os.getpid()}"
+        torch.save(state, tmp)
+        os.replace(tmp, self.directory / STATE_FILE)
+
+
+def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[Any, Any, list]:
+    """Open what the method's training reads and the validation reference; build the arrays.
+
+    Returns (TrainData, ValData or None, the artifacts opened -- the checkpoint's lineage).
+    reference.zarr is opened only when the manifest has validation rows, and goes only to
+    :func:`pipeline.training.validation_data`.
+    """
+    from pipeline import training
+    from pipeline.artifacts import open_artifact
+
+    root = Path(artifacts)
+    inputs = {name: open_artifact(root / ARTIFACT_FILES[name], name)
+              for name in training.training_inputs(spec, cfg)}
+    data = training.training_data(spec, cfg, inputs)
+    opened = list(inputs.values())
+    val = None
+    if len(training.validation_rows(inputs["manifest"])):
+        reference = open_artifact(root / ARTIFACT_FILES["reference"], "reference")
+        opened.append(reference)
+        val = training.validation_data(inputs["manifest"], inputs["images"], reference)
+    return data, val, opened
+
+
+def load_init(path: str | Path):
+    """Stage-I checkpoint for a warm start: (mask-path state dict, its artifact for the lineage)."""
+    from pipeline.artifacts import open_artifact
+    from pipeline.errors import ArtifactError
+    from pipeline.inference import is_active_run, load_student
+
+    p = Path(path)
+    if not (p / "meta.json").exists():
+        raise ArtifactError(f"--init {p}: not a checkpoint directory (run train_stage1 first)")
+    if not is_active_run(p):
+        raise InputError(f"--init {p}: is an inactive run marker; add its method/seed to protocol.active_*")
+    art = open_artifact(p, "checkpoint")
+    model, _ = load_student(p)
+    return model.mask_path_state_dict(), art
 
 
 def write_inactive(out: str, stage: int, method: str, seed: int, protocol: dict) -> None:
@@ -60,20 +146,18 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
     from pipeline.device import resolve_device
     from pipeline.inference import save_checkpoint
 
-    manifest = training.load_manifest(artifacts)
-    data, inputs = training.load_training_data(artifacts, spec, cfg, manifest)
-    val, val_inputs = training.validation_reference(artifacts, manifest)
+    data, val, inputs = load_inputs(artifacts, spec, cfg)
     init_state = None
     if spec.init == "stage1":
         if not init:
             raise InputError(f"--init missing: method {method!r} warm-starts from a Stage-I checkpoint")
-        init_state, init_art = training.load_init(init)
+        init_state, init_art = load_init(init)
         inputs.append(init_art)
     meta = meta_for("checkpoint", "train", stage_code_version(__file__, *CODE_MODULES),
                     {"train": fingerprint_params(spec, cfg), "method": method, "seed": seed, "stage": stage},
-                    inputs + val_inputs, **data.stats)
+                    inputs, **data.stats)
     result = training.train(spec, cfg, data, val, seed, init_state=init_state, device=resolve_device(device),
-                            resume_dir=Path(resume_dir) / meta.fingerprint)
+                            checkpointer=FileCheckpointer(Path(resume_dir) / meta.fingerprint))
     meta.extra.update(result.info)
     save_checkpoint(out, result.model, meta, result.log, method=method, seed=seed, stage=stage,
                     selected_epoch=result.selected_epoch, selection=result.info["selection"],

@@ -161,7 +161,7 @@ def tiny(tmp_path_factory):
 def test_calibration_picks_the_best_grid_point(tiny):
     from pipeline.inference import load_student, predict_probs
     from pipeline.metrics import image_iou
-    from stages.calibrate import threshold_grid
+    from pipeline.thresholds import threshold_grid
 
     root, art, _ = tiny
     thr = open_artifact(art / "thresholds.parquet", "thresholds").df

@@ -16,6 +16,7 @@ from pipeline.report import figures as F
 from pipeline.report import tables as T
 from pipeline.report.analysis import (gate_analysis, teacher_domain_quality, teacher_prompt_quality)
 from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
+from pipeline.thresholds import mask_from_probs
 
 # artifact file -> (schema, stage that produces it)
 INPUTS = {
@@ -309,7 +310,7 @@ def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str
     for method in (control, treatment):
         model, _ = load_student(inp.art / "checkpoints" / method / str(seed), device)
         tau = float(sub[sub.method == method]["tau"].iloc[0])
-        preds[method] = predict_probs(model, images, device=device) >= tau
+        preds[method] = mask_from_probs(predict_probs(model, images, device=device), tau)  # eq:inference-mask
     rows = []
     for j, iid in enumerate(pick):
         scores = {T.label(mm): f"IoU {r['iou']:.3f}  BF1 {r['bf1']:.3f}"

@@ -1,0 +1,167 @@
+"""The artifact catalogue: every artifact once (file name, schema, producing stage), and every stage once
+(script, the artifacts it reads and writes, the params keys it reads).
+
+``dvc.yaml`` is rendered from this table (:mod:`pipeline.dag`), the stage commands take their default
+paths from it, and the report and notebooks look artifacts up here by name.  Library functions take
+arrays and opened artifacts, never file names.
+
+Paths are relative to the artifacts directory (``ARTIFACTS_DIR``); ``{method}``/``{seed}`` fill the
+per-run checkpoint folders, ``{profile}`` the report folder.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+ARTIFACTS_DIR = "artifacts"
+
+
+@dataclasses.dataclass(frozen=True)
+class ArtifactSpec:
+    name: str
+    path: str            # relative to the artifacts directory ("../" for outside it)
+    schema: str | None   # schema name in pipeline.artifacts.SCHEMAS (None: a plain file or folder)
+    stage: str           # the producing stage
+    description: str = ""
+
+
+def _a(name, path, schema, stage, description=""):
+    return ArtifactSpec(name, path, schema, stage, description)
+
+
+ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
+    _a("manifest", "manifest.parquet", "manifest", "prepare", "one row per image: split, group, paths, sha256"),
+    _a("images", "images.zarr", "images", "prepare", "uint8 [N,H,W,3] at the working resolution"),
+    _a("reference", "reference.zarr", "reference", "prepare",
+       "manual masks: selection, calibration and evaluation ONLY (never a loss of an annotation-free method)"),
+    _a("skipped_files", "skipped_files.parquet", "skipped_files", "prepare", "files left out, with the reason"),
+    _a("contact_sheet", "figures/contact_sheet.png", None, "prepare"),
+    _a("synthetic_files", "synthetic", None, "prepare", "synthetic benchmark PNGs the manifest points at"),
+    _a("teacher", "teacher.zarr", "teacher", "teacher", "masks [N,K,H,W], scores [N,K]"),
+    _a("teacher_scores", "teacher_scores.parquet", "teacher_scores", "teacher"),
+    _a("consensus", "consensus.zarr", "consensus", "consensus", "agreement, voted, n_valid"),
+    _a("geometry", "geometry.zarr", "geometry", "geometry", "sdf, skeleton"),
+    _a("gates", "gates.parquet", "gates", "geometry", "c, v, a, a0, g_conf, g_valid, g_area, g"),
+    _a("checkpoints", "checkpoints", None, "train", "all runs: checkpoints/<method>/<seed>/"),
+    _a("checkpoint", "checkpoints/{method}/{seed}", "checkpoint", "train", "one (method, seed) run"),
+    _a("thresholds", "thresholds.parquet", "thresholds", "calibrate"),
+    _a("metrics", "metrics.parquet", "metrics", "evaluate", "per image, calibrated and fixed tau"),
+    _a("summary", "summary.parquet", "summary", "evaluate"),
+    _a("summary_json", "metrics/summary.json", None, "evaluate", "DVC metrics"),
+    _a("teacher_metrics", "teacher_metrics.parquet", "teacher_metrics", "analyze_teacher"),
+    _a("teacher_json", "metrics/teacher.json", None, "analyze_teacher", "DVC metrics"),
+    _a("deploy", "deploy", "deploy", "export", "exported mask path (TorchScript, ONNX, int8, tau)"),
+    _a("efficiency", "efficiency.parquet", "efficiency", "benchmark"),
+    _a("efficiency_json", "metrics/efficiency.json", None, "benchmark", "DVC metrics"),
+    _a("report", "../reports/{profile}", "report", "report", "report.md, report.html, figures, plots"),
+]}
+
+#: DVC metrics files (not cached, so `dvc metrics diff` compares against git).
+METRICS = ("summary_json", "teacher_json", "efficiency_json")
+
+
+def path(name: str, root: str | Path = ARTIFACTS_DIR, **fmt) -> Path:
+    """Where artifact ``name`` lives under ``root`` (``fmt`` fills ``{method}``/``{seed}``/``{profile}``)."""
+    rel = ARTIFACTS[name].path.format(**fmt) if fmt else ARTIFACTS[name].path
+    return Path(root) / rel if not rel.startswith("../") else Path(root).parent / rel[3:]
+
+
+def dvc_path(name: str, **fmt) -> str:
+    """The path as dvc.yaml spells it (relative to the repository root; DVC templates stay templates)."""
+    p = path(name, ARTIFACTS_DIR, **fmt)
+    return p.as_posix()
+
+
+# --------------------------------------------------------------------------------------------------
+# Stages
+# --------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class StageSpec:
+    """One DVC stage: ``python -m <module> <args>``.
+
+    ``args`` is the command line after the module with ``{artifact}`` placeholders; ``deps`` /
+    ``outs`` name catalogue artifacts; ``params`` the dotted params keys the stage reads (DVC tracks
+    them key by key and they are the params of the artifacts' fingerprint); ``data_deps`` extra
+    non-code paths (dataset protocol files).
+    """
+
+    name: str
+    module: str
+    args: str
+    deps: tuple[str, ...]
+    outs: tuple[str, ...]
+    params: tuple[str, ...]
+    data_deps: tuple[str, ...] = ()
+    metrics: tuple[str, ...] = ()
+
+
+def _keys(section: str, *names: str) -> tuple[str, ...]:
+    return tuple(f"{section}.{n}" for n in names)
+
+
+STAGES: dict[str, StageSpec] = {s.name: s for s in [
+    StageSpec("prepare", "stages.prepare", "--out-dir {artifacts_dir}", (),
+              ("manifest", "images", "reference", "skipped_files", "contact_sheet", "synthetic_files"),
+              _keys("data", "source", "root", "protocol", "domain", "resolution", "seed", "skip_bad",
+                    "synthetic", "contact_sheet_images"),
+              data_deps=("data_manifests",)),
+    StageSpec("teacher", "stages.teacher",
+              "--manifest {manifest} --images {images} --reference {reference} --out {teacher} "
+              "--scores {teacher_scores}",
+              ("manifest", "images", "reference"), ("teacher", "teacher_scores"),
+              _keys("teacher", "backend", "prompts", "base_prompt_index", "vflip_base_prompt", "splits",
+                    "checkpoint", "imported_dir", "dtype", "score_threshold", "mask_threshold", "seed")),
+    StageSpec("consensus", "stages.consensus", "--teacher {teacher} --out {consensus}",
+              ("teacher",), ("consensus",), _keys("consensus", "vote_threshold")),
+    StageSpec("geometry", "stages.geometry",
+              "--consensus {consensus} --manifest {manifest} --out {geometry} --gates {gates}",
+              ("consensus", "manifest"), ("geometry", "gates"),
+              _keys("geometry", "sdf_quantile", "sdf_min_scale", "skeleton_min_distance", "n_prompts",
+                    "conf_offset", "valid_offset", "area_temperature", "area_floor", "eps")),
+    # train_<method>: rendered per method from pipeline.methods (see pipeline.dag.train_stage)
+    StageSpec("calibrate", "stages.calibrate",
+              "--artifacts {artifacts_dir} --checkpoints {checkpoints} --out {thresholds}",
+              ("manifest", "images", "reference", "checkpoints"), ("thresholds",),
+              _keys("calibrate", "grid_start", "grid_stop", "grid_step", "fixed_tau")),
+    StageSpec("evaluate", "stages.evaluate",
+              "--artifacts {artifacts_dir} --checkpoints {checkpoints} --thresholds {thresholds} "
+              "--out {metrics} --summary {summary} --metrics-json {summary_json}",
+              ("manifest", "images", "reference", "checkpoints", "thresholds"), ("metrics", "summary"),
+              _keys("evaluate", "bf1_tolerance", "small_region_max_fraction", "bootstrap_resamples",
+                    "bootstrap_seed", "ci"), metrics=("summary_json",)),
+    StageSpec("analyze_teacher", "stages.analyze_teacher",
+              "--artifacts {artifacts_dir} --out {teacher_metrics} --metrics-json {teacher_json}",
+              ("manifest", "reference", "teacher", "consensus", "gates"), ("teacher_metrics",),
+              _keys("evaluate", "bf1_tolerance", "small_region_max_fraction"), metrics=("teacher_json",)),
+    StageSpec("export", "stages.export",
+              "--checkpoint {export_checkpoint} --thresholds {thresholds} --artifacts {artifacts_dir} --out {deploy}",
+              ("export_checkpoint", "thresholds", "manifest", "images"), ("deploy",),
+              _keys("deploy", "export_method", "export_seed", "opset", "parity_atol", "int8_calibration_images",
+                    "int8_calibration", "int8_percentile", "int8_min_mask_iou")
+              + ("calibrate.fixed_tau", "data.resolution")),
+    StageSpec("benchmark", "stages.benchmark",
+              "--deploy {deploy} --artifacts {artifacts_dir} --out {efficiency} --json {efficiency_json}",
+              ("deploy", "manifest", "images", "reference"), ("efficiency",),
+              _keys("deploy", "opset", "benchmark_warmup", "benchmark_iters", "benchmark_batches",
+                    "benchmark_resolution", "benchmark_variants", "int8_calibration_images", "target_latency_ms",
+                    "target_resolution", "target_iou_drop") + ("calibrate.fixed_tau", "data.resolution"),
+              metrics=("efficiency_json",)),
+    StageSpec("report", "stages.report", "--artifacts {artifacts_dir} --out {report}",
+              ("manifest", "images", "reference", "teacher", "consensus", "geometry", "gates", "checkpoints",
+               "thresholds", "metrics", "summary", "teacher_metrics", "efficiency"), ("report",),
+              ("profile",) + _keys("report", "qualitative_images", "pseudo_target_images")),
+]}
+
+#: The path placeholders of stage commands that are not single artifacts.
+EXTRA_PATHS = {
+    "artifacts_dir": ARTIFACTS_DIR,
+    "export_checkpoint": f"{ARTIFACTS_DIR}/checkpoints/${{deploy.export_method}}/${{deploy.export_seed}}",
+}
+
+
+def stage_params(params: dict, keys) -> dict:
+    """``{dotted key: value}`` of ``keys`` in validated params: what a stage fingerprints."""
+    from pipeline.params import get_path
+
+    return {k: get_path(params, k) for k in keys}

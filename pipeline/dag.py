@@ -1,0 +1,256 @@
+"""The DVC DAG, derived rather than typed: code deps from imports, params key by key, active runs only.
+
+* :func:`module_files` follows a stage script's imports (transitively, including imports inside
+  functions) to the project files it runs; they are the stage's code deps in ``dvc.yaml`` and its
+  code version in every artifact fingerprint (:func:`code_version_of`), so the two cannot disagree.
+* :func:`render_dvc_yaml` writes ``dvc.yaml`` from the catalogue (:mod:`pipeline.catalog`) and the
+  method table (:mod:`pipeline.methods`): one ``train_<method>`` stage per method whose
+  ``matrix.seed`` is ``${protocol.runs.<method>}`` -- an empty list in params.yaml means no stage,
+  so only the active (method, seed) runs exist.
+* :func:`render_params_yaml` writes ``params.yaml`` for a profile (:mod:`pipeline.profiles`), with
+  each key's description from the schema as a comment.
+
+``geodistill profile NAME`` and ``geodistill dag [--check]`` (stages/dag.py) call these.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+import functools
+import hashlib
+from pathlib import Path
+from typing import Any, Iterable
+
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+PROJECT_PACKAGES = ("pipeline", "stages")
+
+
+# --------------------------------------------------------------------------------------------------
+# Code deps
+# --------------------------------------------------------------------------------------------------
+def _module_path(name: str, root: Path = ROOT) -> Path | None:
+    """The file of a project module (``pipeline.geometry`` -> pipeline/geometry.py), or None."""
+    parts = name.split(".")
+    if parts[0] not in PROJECT_PACKAGES:
+        return None
+    base = root.joinpath(*parts)
+    if (base / "__init__.py").is_file():
+        return base / "__init__.py"
+    f = base.with_suffix(".py")
+    return f if f.is_file() else None
+
+
+def _module_name(path: Path, root: Path = ROOT) -> str:
+    rel = path.relative_to(root).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _imports(path: Path, root: Path = ROOT) -> set[str]:
+    """Project modules imported anywhere in ``path`` (top level or inside functions), plus the
+    packages they live in (importing ``a.b.c`` runs ``a/__init__`` and ``a/b/__init__``)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    me = _module_name(path, root)
+    is_pkg = path.name == "__init__.py"
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = me.split(".") if is_pkg else me.split(".")[:-1]
+                base = base[: len(base) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            names.add(mod)
+            names.update(f"{mod}.{a.name}" for a in node.names)  # ``from pkg import submodule``
+    out: set[str] = set()
+    for n in names:
+        parts = n.split(".")
+        for i in range(1, len(parts) + 1):
+            out.add(".".join(parts[:i]))
+    return {n for n in out if _module_path(n, root) is not None}
+
+
+@functools.lru_cache(maxsize=None)
+def module_files(module: str, root: Path = ROOT) -> tuple[str, ...]:
+    """Every project file that running ``module`` may execute, sorted, relative to ``root``."""
+    start = _module_path(module, root)
+    if start is None:
+        raise ValueError(f"{module}: not a project module")
+    seen: set[Path] = set()
+    todo = [start]
+    while todo:
+        f = todo.pop()
+        if f in seen:
+            continue
+        seen.add(f)
+        todo.extend(_module_path(m, root) for m in _imports(f, root))
+    return tuple(sorted(p.relative_to(root).as_posix() for p in seen))
+
+
+def code_deps(module: str, root: Path = ROOT) -> list[str]:
+    """:func:`module_files` as dvc.yaml lists them: a sub-package whose every ``*.py`` is used is named
+    by its folder (shorter; DVC hashes the folder, and .dvcignore leaves bytecode out)."""
+    files = module_files(module, root)
+    out: list[str] = []
+    done: set[str] = set()
+    for rel in files:
+        parent = str(Path(rel).parent)
+        if parent in PROJECT_PACKAGES:  # top-level packages: file by file
+            out.append(rel)
+            continue
+        if parent in done:
+            continue
+        members = {p.relative_to(root).as_posix() for p in (root / parent).rglob("*.py")}
+        if members <= set(files):
+            out.append(parent)
+            done.add(parent)
+        else:
+            out.append(rel)
+    return out
+
+
+def code_version_of(module: str, root: Path = ROOT) -> str:
+    """sha256 (16 hex) over the names and bytes of :func:`module_files` -- the stage's code version."""
+    h = hashlib.sha256()
+    for rel in module_files(module, root):
+        h.update(rel.encode())
+        h.update((root / rel).read_bytes())
+    return h.hexdigest()[:16]
+
+
+# --------------------------------------------------------------------------------------------------
+# dvc.yaml
+# --------------------------------------------------------------------------------------------------
+def _fill(template: str, extra: dict[str, str]) -> str:
+    from pipeline.catalog import ARTIFACTS, dvc_path
+
+    values = {n: dvc_path(n, method="${item.method}", seed="${item.seed}", profile="${profile}") for n in ARTIFACTS}
+    values.update(extra)
+    # {name} is a catalogue placeholder; ${...} stays a DVC template
+    return re.sub(r"(?<!\$)\{(\w+)\}", lambda m: values[m.group(1)], template)
+
+
+def _stage_entry(module: str, args: str, deps: Iterable[str], outs: Iterable[str], params: Iterable[str],
+                 metrics: Iterable[str] = (), extra: dict[str, str] | None = None,
+                 matrix: dict | None = None) -> dict:
+    from pipeline.catalog import EXTRA_PATHS
+
+    extra = {**EXTRA_PATHS, **(extra or {})}
+    entry: dict[str, Any] = {}
+    if matrix:
+        entry["matrix"] = matrix
+    entry["cmd"] = f"python -m {module} {_fill(args, extra)}"
+    entry["deps"] = code_deps(module) + [_fill("{" + d + "}", extra) if not d.startswith("data_manifests")
+                                                  else d for d in deps]
+    entry["params"] = list(params)
+    out_paths = [_fill("{" + o + "}", extra) for o in outs]
+    entry["outs"] = [{p: {"cache": False}} if p.startswith("reports/") else p for p in out_paths]
+    if metrics:
+        entry["metrics"] = [{_fill("{" + m + "}", extra): {"cache": False}} for m in metrics]
+    return entry
+
+
+def train_stage(method_name: str) -> dict:
+    """The ``train_<method>`` stage: one run per seed listed in ``protocol.runs.<method>``."""
+    from pipeline.methods import METHODS, input_artifacts, param_keys
+
+    m = METHODS[method_name]
+    ckpt = "artifacts/checkpoints/{name}/${{item.seed}}"
+    init = ckpt.format(name="plain") if m.init == "stage1" else None
+    args = (f"--stage {m.stage} --method {m.name} --seed ${{item.seed}} --artifacts {{artifacts_dir}}"
+            + (f" --init {init}" if init else "") + f" --out {ckpt.format(name=m.name)}")
+    entry = _stage_entry("stages.train", args, input_artifacts(m), (), param_keys(m),
+                         matrix={"seed": f"${{protocol.runs.{m.name}}}"})
+    if init:
+        entry["deps"].append(init)
+    entry["outs"] = [ckpt.format(name=m.name)]
+    return entry
+
+
+def dvc_stages() -> dict[str, dict]:
+    from pipeline.catalog import STAGES
+    from pipeline.methods import METHODS
+
+    order = ["prepare", "teacher", "consensus", "geometry"]
+    out = {n: _stage_entry(STAGES[n].module, STAGES[n].args, STAGES[n].data_deps + STAGES[n].deps,
+                           STAGES[n].outs, STAGES[n].params, STAGES[n].metrics) for n in order}
+    for name in METHODS:
+        out[f"train_{name}"] = train_stage(name)
+    for n, s in STAGES.items():
+        if n not in out:
+            out[n] = _stage_entry(s.module, s.args, s.data_deps + s.deps, s.outs, s.params, s.metrics)
+    return out
+
+
+DVC_HEADER = """\
+# GeoDistill-Refine DAG -- GENERATED by `geodistill dag` from pipeline/catalog.py (artifacts, params
+# keys), pipeline/methods.py (one train_<method> stage per method) and the stages' imports (code deps).
+# Edit those, not this file; a test fails when this file is out of date.
+#
+#   prepare -> teacher -> consensus -> geometry -> train_<method>@<seed> -> calibrate -> evaluate -> report
+#   analyze_teacher -> report;   export -> benchmark -> report
+#
+# Which runs exist is params.yaml's protocol.runs: train_<method> has one stage per listed seed (an
+# empty list: no stage).  Params are tracked key by key: a change reruns exactly the stages reading it.
+"""
+
+
+def render_dvc_yaml() -> str:
+    doc = {"stages": dvc_stages(),
+           "plots": [{"reports/${profile}/plots/training_curves.csv": {"x": "epoch", "y": "val_iou"}},
+                     {"reports/${profile}/plots/threshold_curve.csv": {"x": "tau", "y": "val_iou"}}]}
+    return DVC_HEADER + yaml.safe_dump(doc, sort_keys=False, width=110, default_flow_style=False)
+
+
+# --------------------------------------------------------------------------------------------------
+# params.yaml
+# --------------------------------------------------------------------------------------------------
+PARAMS_HEADER = """\
+# GeoDistill-Refine params -- the effective values of profile {profile!r}, written by
+# `geodistill profile {profile}` from the schema defaults (pipeline/params.py, the paper's values) and the
+# profile's overrides (pipeline/profiles.py).  Edit single values here (or `dvc exp run -S key=value`):
+# DVC tracks every key, so a change reruns exactly the stages that read it.  Switch profile with
+# `geodistill profile demo|reduced|paper` (this file is rewritten).  Every stage validates this file first.
+"""
+
+
+def _flow(v: Any) -> str:
+    return yaml.safe_dump(v, default_flow_style=True, width=10_000).strip().removesuffix("\n...").strip()
+
+
+def _emit(model_cls, values: dict, indent: int, lines: list[str]) -> None:
+    from pydantic import BaseModel
+
+    pad = "  " * indent
+    fields = model_cls.model_fields
+    for key, value in values.items():
+        f = fields.get(key)
+        ann = f.annotation if f is not None else None
+        desc = f" # {f.description}" if f is not None and f.description else ""
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            lines.append(f"{pad}{key}:{desc}")
+            _emit(ann, value, indent + 1, lines)
+        elif key == "runs":
+            lines.append(f"{pad}{key}:{desc}")
+            for m, seeds in value.items():
+                lines.append(f"{pad}  {m}: {_flow(seeds)}")
+        else:
+            lines.append(f"{pad}{key}: {_flow(value)}{' ' if desc else ''}{desc}")
+
+
+def render_params_yaml(profile: str) -> str:
+    from pipeline.params import Params, validate
+    from pipeline.profiles import profile_params
+
+    values = validate(profile_params(profile), f"profile {profile}")
+    lines: list[str] = []
+    _emit(Params, values, 0, lines)
+    return PARAMS_HEADER.format(profile=profile) + "\n".join(lines) + "\n"

@@ -1,0 +1,548 @@
+"""Efficiency benchmark of the deployed mask path on this machine: variants, timing, peak memory, the
+fast path and its verdicts.
+
+Per variant (:func:`build_variants`): parameters and GFLOPs counted on the graph, batch-1 latency
+(median, timed round-robin across the variants), best-batch throughput, peak memory, and the change of
+the mean validation Image IoU against the fp32 baseline at the deployed tau (eq:inference-mask).
+
+Decisions:
+
+* Probe first.  Every variant gets its warm-up and :data:`PROBE_CALLS` timed batch-1 calls before
+  any full timing.  A variant whose probe median is more than :data:`SLOW_FACTOR` times the
+  baseline's (e.g. bf16 autocast on a CPU without native bf16, about 25x slower than fp32) is not
+  timed further: its row keeps the probe (``probe_ms``), ``status`` says "slow on this CPU (...)",
+  and latency, throughput and the IoU columns are NaN (batch 0).  It can never be the fast path.
+* ONNX Runtime sessions used for timing do not spin (:func:`pipeline.deploy.export.ort_session`,
+  ``spinning=False``): an idle spinning pool would steal the cores the round-robin measures others on.
+* Peak memory: CPU -- growth of the process's peak resident set (Linux ``/proc/self/clear_refs``
+  reset of VmHWM, then VmHWM - VmRSS before the run, after ``malloc_trim``); CUDA --
+  ``torch.cuda.max_memory_allocated`` after ``reset_peak_memory_stats``.  Where neither is
+  available, NaN.
+* The latency target (``deploy.target_latency_ms``) is defined at ``deploy.target_resolution``, batch 1:
+  at another size it is "not judged", never "met" (:func:`fast_path_summary`).  Timings are
+  measurements of this machine and its load: nothing asserts a target, the results record whether it
+  was met.
+* int8: the bundle's ``model.int8.onnx`` (calibrated at export) when it has one -- the very file
+  segment runs; otherwise the ONNX model is quantised here with the same code
+  (pipeline.deploy.quantize) on training-split images only (no masks), or on synthetic smooth noise
+  when there are none (:func:`prepare_onnx_models`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+import statistics
+import time
+import warnings
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from pipeline.deploy import quantize as q8
+from pipeline.deploy.bundle import INT8_FILE, read_deploy_info
+from pipeline.deploy.export import (ONNX_INPUT, export_onnx, mask_path_model, onnx_unavailable_reason,
+                                    ort_session, parity_inputs)
+from pipeline.errors import InputError
+from pipeline.thresholds import mask_from_probs, resolve_tau
+
+BASELINE_VARIANT = "fp32_eager_nchw"
+VARIANTS = ("fp32_eager_nchw", "fp32_channels_last", "bf16_autocast", "bf16_channels_last", "torchscript_frozen",
+            "onnxruntime_fp32", "onnxruntime_int8")
+SLOW_FACTOR = 4.0  # a variant probed more than this many times slower than the baseline is not fully timed
+PROBE_CALLS = 2    # timed batch-1 calls of the probe (after the warm-up)
+OK = "ok"
+
+
+@dataclasses.dataclass
+class Variant:
+    """One way of running the mask path: ``run(x float32 NCHW tensor) -> logits`` (tensor or array)."""
+
+    name: str
+    description: str
+    run: Callable
+    device: str
+    sync: Callable[[], None] = lambda: None
+
+
+def _malloc_trim() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except Exception:  # noqa: BLE001 -- not glibc: nothing to trim
+        pass
+
+
+def _status_kb(field: str) -> int | None:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+class PeakMemory:
+    """Peak memory growth (MiB) over a block: CPU via VmHWM reset, CUDA via max_memory_allocated."""
+
+    def __init__(self, device: str):
+        self.device = device
+        self.peak_mb = float("nan")
+        self.method = "unavailable"
+
+    def __enter__(self):
+        import torch
+
+        if self.device.startswith("cuda"):
+            torch.cuda.synchronize()
+            torch.cuda.reset_peak_memory_stats()
+            self._base = torch.cuda.memory_allocated()
+            self.method = "torch.cuda.max_memory_allocated - allocated before"
+            return self
+        _malloc_trim()
+        self._base = None
+        try:
+            with open("/proc/self/clear_refs", "w") as f:
+                f.write("5")  # resets VmHWM to the current RSS
+            self._base = _status_kb("VmRSS")
+            self.method = "peak RSS growth (VmHWM after - VmRSS before, /proc/self/clear_refs)"
+        except OSError:
+            pass
+        return self
+
+    def __exit__(self, *exc):
+        import torch
+
+        if self.device.startswith("cuda"):
+            torch.cuda.synchronize()
+            self.peak_mb = (torch.cuda.max_memory_allocated() - self._base) / 2**20
+        elif self._base is not None:
+            hwm = _status_kb("VmHWM")
+            if hwm is not None:
+                self.peak_mb = max(0, hwm - self._base) / 1024
+        return False
+
+
+def time_calls(fn: Callable, x, warmup: int, iters: int, sync: Callable[[], None]) -> list[float]:
+    """Wall-clock seconds of ``iters`` calls after ``warmup`` untimed ones."""
+    for _ in range(warmup):
+        fn(x)
+    sync()
+    times = []
+    for _ in range(iters):
+        t0 = time.perf_counter()
+        fn(x)
+        sync()
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def interleaved_times(variants: Sequence["Variant"], x, iters: int, block: int = 3) -> dict[str, list[float]]:
+    """Call times (s) of every variant on ``x``, measured round-robin until each has ``iters``.
+
+    Each round gives every variant one untimed call (its caches refill after the others ran) and then
+    up to ``block`` timed calls.  Measuring variant after variant instead lets a slow drift of the
+    machine's load -- other tenants of a shared CPU -- fall on some variants and not on others; in
+    rounds it falls on all alike, which keeps the ratios to the baseline fair.
+    """
+    times: dict[str, list[float]] = {v.name: [] for v in variants}
+    while any(len(t) < iters for t in times.values()):
+        for v in variants:
+            need = min(block, iters - len(times[v.name]))
+            if need > 0:
+                times[v.name] += time_calls(v.run, x, 1, need, v.sync)
+    return times
+
+
+def build_variants(model, device, resolution: int, names: Sequence[str], onnx_path: str | Path | None = None,
+                   int8_path: str | Path | None = None) -> tuple[list[Variant], dict[str, str]]:
+    """Variants of the mask path to compare; returns (variants, {skipped name: reason}).
+
+    fp32_eager_nchw          plain PyTorch, contiguous NCHW (the baseline)
+    fp32_channels_last       PyTorch, channels_last model and input
+    bf16_autocast            PyTorch NCHW under bf16 autocast
+    bf16_channels_last       bf16 autocast + channels_last
+    torchscript_frozen       traced, frozen, torch.jit.optimize_for_inference (CPU: oneDNN fusions)
+    onnxruntime_fp32         ONNX Runtime CPU, all graph optimisations
+    onnxruntime_int8         ONNX Runtime CPU on the static int8 QDQ model (quantize_onnx_int8)
+    """
+    import torch
+
+    dev = torch.device(device)
+    skipped: dict[str, str] = {}
+    variants: list[Variant] = []
+    sync = (lambda: torch.cuda.synchronize()) if dev.type == "cuda" else (lambda: None)
+    base = mask_path_model(model).to(dev)
+    cl = mask_path_model(model).to(dev).to(memory_format=torch.channels_last)
+    cl_fmt = torch.channels_last
+
+    def eager(m, to_cl=False, bf16=False):
+        def run(x):
+            x = x.to(dev, non_blocking=True)
+            if to_cl:
+                x = x.contiguous(memory_format=cl_fmt)
+            with torch.inference_mode(), (torch.autocast(dev.type, dtype=torch.bfloat16) if bf16
+                                          else contextlib.nullcontext()):
+                return m(x).float()
+        return run
+
+    for name in names:
+        if name == "fp32_eager_nchw":
+            variants.append(Variant(name, "PyTorch eager fp32, NCHW (baseline)", eager(base), dev.type, sync))
+        elif name == "fp32_channels_last":
+            variants.append(Variant(name, "PyTorch eager fp32, channels_last", eager(cl, True), dev.type, sync))
+        elif name == "bf16_autocast":
+            variants.append(Variant(name, "PyTorch eager, bf16 autocast, NCHW", eager(base, bf16=True), dev.type, sync))
+        elif name == "bf16_channels_last":
+            variants.append(Variant(name, "PyTorch eager, bf16 autocast, channels_last", eager(cl, True, True),
+                                    dev.type, sync))
+        elif name == "torchscript_frozen":
+            example = torch.zeros(1, base.config["in_channels"], resolution, resolution, device=dev)
+            with torch.no_grad(), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                ts = torch.jit.freeze(torch.jit.trace(mask_path_model(model).to(dev), example, check_trace=False))
+                if dev.type == "cpu":
+                    ts = torch.jit.optimize_for_inference(ts)
+            variants.append(Variant(name, "TorchScript traced + frozen + optimize_for_inference, fp32",
+                                    eager(ts), dev.type, sync))
+        elif name in ("onnxruntime_fp32", "onnxruntime_int8"):
+            reason = onnx_unavailable_reason()
+            path = onnx_path if name == "onnxruntime_fp32" else int8_path
+            if reason is None and path is None:
+                reason = "no ONNX model"
+            if reason is not None:
+                skipped[name] = reason
+                continue
+            sess = ort_session(path, spinning=False)  # idle pools must not steal the timed cores
+
+            def run(x, sess=sess):
+                return torch.from_numpy(sess.run(None, {ONNX_INPUT: np.ascontiguousarray(x.cpu().numpy())})[0])
+            desc = ("ONNX Runtime CPU fp32, graph optimisations ORT_ENABLE_ALL" if name == "onnxruntime_fp32" else
+                    "ONNX Runtime CPU int8 (static QDQ model.int8.onnx: u8 activations, s8 per-channel "
+                    "weights, ranges calibrated on training images)")
+            variants.append(Variant(name, desc, run, "cpu"))
+        else:
+            raise InputError(f"deploy.benchmark_variants: unknown variant {name!r}")
+    return variants, skipped
+
+
+def mean_image_iou(masks: np.ndarray, reference: np.ndarray) -> float:
+    """Mean over images of image_iou(masks[i], reference[i]) (pipeline.metrics; both empty -> 1); NaN if none."""
+    from pipeline.metrics import image_ious
+
+    return float(np.mean(image_ious(masks, reference))) if len(masks) else float("nan")
+
+
+def variant_probs(variant: Variant, images: np.ndarray, batch_size: int) -> np.ndarray:
+    """P = sigmoid(Z) float32 [N,H,W] of a variant on uint8 images [N,H,W,3]."""
+    import torch
+
+    from pipeline.inference import images_to_tensor
+
+    out = np.empty(images.shape[:3], np.float32)
+    for s in range(0, len(images), batch_size):
+        z = variant.run(images_to_tensor(np.asarray(images[s:s + batch_size])))
+        out[s:s + batch_size] = torch.sigmoid(torch.as_tensor(z).float())[:, 0].cpu().numpy()
+    return out
+
+
+def slow_status(probe_ms: float, baseline_probe_ms: float | None, factor: float = SLOW_FACTOR) -> str | None:
+    """The status of a variant whose probe is more than ``factor`` x the baseline's probe
+    ("slow on this CPU (probe: X ms, Y x the baseline)"), else None (time it fully; also when there is
+    no baseline probe to compare with)."""
+    if baseline_probe_ms is None or not baseline_probe_ms > 0 or not probe_ms > factor * baseline_probe_ms:
+        return None
+    return (f"slow on this CPU (probe: {probe_ms:.1f} ms, {probe_ms / baseline_probe_ms:.1f}x the "
+            f"{BASELINE_VARIANT} probe > {factor:g}x): not fully timed")
+
+
+def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence[str], warmup: int, iters: int,
+                     batches: Sequence[int], tau: float | None = None, val_images: np.ndarray | None = None,
+                     val_masks: np.ndarray | None = None, onnx_path=None, int8_path=None, seed: int = 0,
+                     on_variant: Callable[[str], None] | None = None,
+                     slow_factor: float = SLOW_FACTOR) -> tuple[list[dict], dict]:
+    """Measure every variant; returns (rows in the order of ``variants``, info).
+
+    Per variant: ``peak_mb`` = peak memory growth during ``max(1, warmup)`` warm-up calls
+    (:class:`PeakMemory`); ``probe_ms`` = median of :data:`PROBE_CALLS` batch-1 calls right after (the
+    baseline is probed first).  A variant probed more than ``slow_factor`` x the baseline stops there
+    (``status`` from :func:`slow_status`; latency, throughput and IoU columns NaN, batch 0).  The
+    others (``status`` = "ok"): ``latency_ms`` = median of ``iters`` batch-1 calls on a random input at
+    ``resolution``, timed round-robin across them (:func:`interleaved_times`); ``throughput``
+    (images/s) = best over ``batches`` of b / median call time (1 warm-up, then max(2, ceil(iters / b))
+    calls); ``iou`` = mean Image IoU of [P >= tau] (eq:inference-mask) on the validation images and
+    ``iou_delta`` = iou - iou of the fp32 baseline; ``iou_vs_fp32`` = mean per-image IoU between the
+    variant's mask and the baseline's (1 = the same masks; NaN without validation data or baseline);
+    ``speedup`` = baseline latency / latency.  params and GFLOPs are counted on the PyTorch graph
+    (pipeline.model.count_parameters / count_flops) and shared by every variant: they compute the
+    same function (int8 replaces multiply-adds by integer ones, it does not remove them).
+    """
+    import torch
+
+    from pipeline.model import count_flops, count_parameters
+
+    dev = torch.device(device)
+    deployed = mask_path_model(model)
+    params = count_parameters(deployed)
+    gflops = count_flops(deployed, resolution, resolution) / 1e9
+    built, skipped = build_variants(model, dev, resolution, variants, onnx_path, int8_path)
+    g = torch.Generator().manual_seed(seed)
+    x1 = torch.rand(1, deployed.config["in_channels"], resolution, resolution, generator=g)
+    have_val = val_images is not None and val_masks is not None and len(val_images) > 0 and tau is not None
+    rows: dict[str, dict] = {}
+    masks: dict[str, np.ndarray] = {}
+    base_probe = None
+    for v in sorted(built, key=lambda v: v.name != BASELINE_VARIANT):  # the baseline's probe comes first
+        if on_variant is not None:
+            on_variant(v.name)
+        with PeakMemory(v.device) as mem:
+            time_calls(v.run, x1, max(1, warmup), 0, v.sync)
+        probe = statistics.median(time_calls(v.run, x1, 0, PROBE_CALLS, v.sync)) * 1e3
+        base_probe = probe if v.name == BASELINE_VARIANT else base_probe
+        row = {"variant": v.name, "description": v.description, "device": v.device, "params": params,
+               "gflops": gflops, "throughput": float("nan"), "batch": 0, "peak_mb": mem.peak_mb,
+               "peak_method": mem.method, "iou": float("nan"), "resolution": int(resolution), "probe_ms": probe,
+               "status": slow_status(probe, base_probe, slow_factor) or OK}
+        rows[v.name] = row
+        if row["status"] != OK:
+            continue
+        row["throughput"], row["batch"] = best_throughput(v, x1.shape[1], resolution, batches, iters, g)
+        if have_val:
+            masks[v.name] = mask_from_probs(variant_probs(v, val_images, max(batches)), tau)
+            row["iou"] = mean_image_iou(masks[v.name], val_masks)
+    timed = [v for v in built if rows[v.name]["status"] == OK]
+    times = interleaved_times(timed, x1, iters)
+    base = rows.get(BASELINE_VARIANT)
+    for name, r in rows.items():
+        t = times.get(name)
+        r["latency_ms"] = statistics.median(t) * 1e3 if t else float("nan")
+        r["latency_min_ms"] = min(t) * 1e3 if t else float("nan")
+    base_masks = masks.get(BASELINE_VARIANT)
+    for name, r in rows.items():
+        r["iou_delta"] = r["iou"] - base["iou"] if base is not None and have_val else float("nan")
+        r["iou_vs_fp32"] = (mean_image_iou(masks[name], base_masks) if base_masks is not None and name in masks
+                            else float("nan"))
+        r["speedup"] = base["latency_ms"] / r["latency_ms"] if base else float("nan")
+    info = {"threads": torch.get_num_threads(), "device": str(dev), "resolution": int(resolution),
+            "warmup": int(warmup), "iters": int(iters), "batches": [int(b) for b in batches],
+            "latency_timing": "round-robin across variants (interleaved_times)",
+            "probe": {"calls": PROBE_CALLS, "slow_factor": float(slow_factor)},
+            "slow": {n: r["status"] for n, r in rows.items() if r["status"] != OK},
+            "tau": tau, "n_val": int(len(val_images)) if have_val else 0, "skipped": skipped}
+    return [rows[v.name] for v in built], info
+
+
+def best_throughput(variant: Variant, channels: int, resolution: int, batches: Sequence[int], iters: int,
+                    generator) -> tuple[float, int]:
+    """(images/s, batch): the best over ``batches`` of b / median call time on random inputs
+    (1 warm-up, then max(2, ceil(iters / b)) calls per batch size)."""
+    import torch
+
+    best_tp, best_b = 0.0, 1
+    for b in batches:
+        xb = torch.rand(int(b), channels, resolution, resolution, generator=generator)
+        tb = time_calls(variant.run, xb, 1, max(2, math.ceil(iters / int(b))), variant.sync)
+        tp = int(b) / statistics.median(tb)
+        if tp > best_tp:
+            best_tp, best_b = tp, int(b)
+    return best_tp, best_b
+
+
+def fastest_within(rows: Sequence[dict], max_iou_drop: float) -> dict | None:
+    """The lowest-latency fully timed variant (status "ok") whose |iou_delta| <= ``max_iou_drop``
+    (any such variant without IoU data: NaN passes, there is nothing to judge)."""
+    ok = [r for r in rows if r.get("status", OK) == OK and math.isfinite(r["latency_ms"])
+          and not (abs(r["iou_delta"]) > max_iou_drop)]
+    return min(ok, key=lambda r: r["latency_ms"]) if ok else None
+
+
+# --------------------------------------------------------------------------------------------------
+# What the benchmark stage runs: settings, the model under test, data, ONNX models, verdicts, results
+# --------------------------------------------------------------------------------------------------
+def benchmark_settings(cfg: dict) -> dict:
+    """The checked ``deploy`` params of the benchmark (InputError names the param)."""
+    from pipeline.params import require
+
+    s = {"warmup": require(cfg, "benchmark_warmup", "deploy", kind=int, lo=0),
+         "iters": require(cfg, "benchmark_iters", "deploy", kind=int, lo=1),
+         "batches": require(cfg, "benchmark_batches", "deploy", kind=list),
+         "variants": require(cfg, "benchmark_variants", "deploy", kind=list),
+         "n_calib": require(cfg, "int8_calibration_images", "deploy", kind=int, lo=1),
+         "int8": q8.int8_params(cfg),
+         "target_ms": float(require(cfg, "target_latency_ms", "deploy", kind=(int, float), lo=0)),
+         "max_drop": float(require(cfg, "target_iou_drop", "deploy", kind=(int, float), lo=0)),
+         "target_res": require(cfg, "target_resolution", "deploy", kind=int, lo=1),
+         "resolution": cfg.get("benchmark_resolution")}
+    if not s["batches"] or not all(isinstance(b, int) and b >= 1 for b in s["batches"]):
+        raise InputError(f"params: deploy.benchmark_batches={s['batches']!r}: positive integers expected")
+    unknown = [v for v in s["variants"] if v not in VARIANTS]
+    if unknown:
+        raise InputError(f"params: deploy.benchmark_variants: unknown {unknown} (known: {', '.join(VARIANTS)})")
+    return s
+
+
+@dataclasses.dataclass
+class Target:
+    """The model under test: from a deploy bundle or a checkpoint."""
+
+    model: object
+    tau: float
+    tau_source: str
+    resolution: int | None      # its working resolution, when recorded
+    onnx_path: Path | None      # the bundle's model.onnx
+    int8_path: Path | None      # the bundle's model.int8.onnx
+    int8_info: dict
+    inputs: list                # opened artifacts (lineage)
+
+
+def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, fixed_tau=None) -> Target:
+    """Open exactly one of a deploy bundle or a checkpoint directory on the CPU.  tau by
+    :func:`pipeline.thresholds.resolve_tau`: ``tau`` (--tau) > the bundle's > the checkpoint's payload
+    > its row in ``thresholds`` > ``fixed_tau`` (calibrate.fixed_tau)."""
+    from pipeline.artifacts import open_artifact
+    from pipeline.deploy.segmenter import load_segmenter
+    from pipeline.inference import load_student
+
+    if (deploy_dir is None) == (checkpoint is None):
+        raise InputError("give exactly one of --deploy (a bundle) or --checkpoint")
+    if deploy_dir is not None:
+        d = Path(deploy_dir)
+        inputs = [open_artifact(d, "deploy")]
+        info = read_deploy_info(d)
+        model, _ = load_student(d, "cpu")
+        value, source = resolve_tau(option=tau, bundle=(info["tau"], f"deploy bundle ({info.get('tau_source', '?')})"))
+        return Target(model, value, source, info["resolution"], d / "model.onnx" if (d / "model.onnx").exists() else None,
+                      d / INT8_FILE if (d / INT8_FILE).exists() else None, info.get("int8") or {}, inputs)
+    seg = load_segmenter(checkpoint, "torch", "cpu", thresholds)
+    model, _ = load_student(checkpoint, "cpu")
+    value, source = seg.resolve_tau(option=tau, fixed=fixed_tau)
+    return Target(model, value, source, seg.resolution, None, None, {}, [open_artifact(checkpoint, "checkpoint")])
+
+
+def choose_resolution(*candidates) -> int:
+    """The first given of the candidates (--resolution > deploy.benchmark_resolution > the model's
+    working resolution > data.resolution); InputError unless it is an int >= 8."""
+    resolution = next((c for c in candidates if c), None)
+    if not isinstance(resolution, int) or resolution < 8:
+        raise InputError(f"--resolution: invalid or unknown ({resolution!r})")
+    return resolution
+
+
+def read_benchmark_data(art: str | Path, n_calib: int):
+    """(val images, val masks, int8 calibration images, opened artifacts) from ``art``; Nones (and no
+    artifacts) when manifest.parquet, images.zarr or reference.zarr is absent.
+
+    Validation: split == 'val' rows with a reference mask (reference masks only measure accuracy here,
+    never train).  Calibration: the export's selection of training rows (:func:`q8.calibration_rows`)."""
+    from pipeline.artifacts import open_artifact, read_chunk_rows
+
+    art = Path(art)
+    paths = [art / "manifest.parquet", art / "images.zarr", art / "reference.zarr"]
+    if not all(p.exists() for p in paths):
+        return None, None, None, []
+    manifest = open_artifact(paths[0], "manifest")
+    images = open_artifact(paths[1], "images")
+    reference = open_artifact(paths[2], "reference")
+    splits = manifest.df["split"].to_numpy()
+    val = np.flatnonzero((splits == "val") & np.asarray(reference.numpy("has_mask"), bool))
+    train = q8.calibration_rows(splits, n_calib)
+    val_images = read_chunk_rows(images["image"], val) if val.size else None
+    val_masks = read_chunk_rows(reference["mask"], val).astype(bool) if val.size else None
+    calib = read_chunk_rows(images["image"], train) if train.size else None
+    return val_images, val_masks, calib, [manifest, images, reference]
+
+
+def prepare_onnx_models(target: Target, variants: Sequence[str], workdir: str | Path, *, resolution: int,
+                        opset: int, calibration_images: np.ndarray | None, int8: dict) -> tuple:
+    """(onnx_path, int8_path, notes): the ONNX models the ORT variants run (module docstring).
+
+    model.onnx: the bundle's, else exported into ``workdir``.  int8 (only when ``onnxruntime_int8`` is
+    asked for): the bundle's model.int8.onnx, else quantised into ``workdir`` on the training-split
+    ``calibration_images`` or, without any, on synthetic smooth noise.  ``notes`` holds
+    ``int8_calibration`` (how) or ``onnx`` (why there is no ONNX model: onnx not importable).
+    """
+    reason = onnx_unavailable_reason()
+    if reason is not None:
+        return None, None, {"onnx": reason}
+    onnx_path = target.onnx_path or export_onnx(target.model, Path(workdir) / "model.onnx", resolution, opset)
+    if "onnxruntime_int8" not in variants:
+        return onnx_path, None, {}
+    if target.int8_path is not None:
+        return onnx_path, target.int8_path, {"int8_calibration": (
+            f"deploy bundle's {INT8_FILE} (calibrated at export on "
+            f"{target.int8_info.get('calibration_images', '?')} training-split images)")}
+    calib = calibration_images
+    note = f"{len(calib)} training-split images (no masks)" if calib is not None else \
+        "no training images found: calibrated on synthetic smooth noise"
+    if calib is None:
+        calib = (parity_inputs(min(resolution, 128), n=4).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    int8_path = q8.quantize_onnx_int8(onnx_path, Path(workdir) / "model_int8.onnx", calib,
+                                      int8["calibration"], int8["percentile"])
+    return onnx_path, int8_path, {"int8_calibration": note}
+
+
+def clean(v):
+    """JSON value: non-finite floats -> None."""
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def fast_path_summary(rows: Sequence[dict], resolution: int, *, target_ms: float, target_res: int,
+                      max_drop: float) -> dict | None:
+    """The fast path (:func:`fastest_within`) and its verdicts, or None when no variant qualifies.
+
+    ``meets_latency_target``: latency_ms <= target_ms at ``target_res`` -- None ("not judged") at any
+    other resolution; ``within_iou_drop``: |iou_delta| <= max_drop (None without IoU data);
+    ``verdict``: "met" | "NOT met" | "not judged at this size"."""
+    fast = fastest_within(rows, max_drop)
+    if fast is None:
+        return None
+    meets = fast["latency_ms"] <= target_ms if resolution == target_res else None
+    return {"variant": fast["variant"], "latency_ms": fast["latency_ms"], "speedup": fast["speedup"],
+            "iou_delta": clean(fast["iou_delta"]), "meets_latency_target": meets,
+            "within_iou_drop": None if math.isnan(fast["iou_delta"]) else abs(fast["iou_delta"]) <= max_drop,
+            "verdict": "not judged at this size" if meets is None else "met" if meets else "NOT met"}
+
+
+def fast_path_line(summary: dict, rows: Sequence[dict], resolution: int, target_ms: float, target_res: int) -> str:
+    """One line: the fast path, its speed-up over the baseline and the latency verdict."""
+    base = next((r for r in rows if r["variant"] == BASELINE_VARIANT), None)
+    return (f"fast path: {summary['variant']} {summary['latency_ms']:.1f} ms/image at {resolution}px batch 1 "
+            f"({summary['speedup']:.1f}x the {BASELINE_VARIANT} baseline"
+            + (f" of {base['latency_ms']:.1f} ms" if base else "") + f"); target {target_ms:g} ms at "
+            f"{target_res}px: {summary['verdict']}")
+
+
+def format_table(rows: Sequence[dict]) -> str:
+    """The efficiency table for stdout; a variant that was only probed shows its status instead."""
+    head = (f"{'variant':22s} {'latency ms':>10s} {'x base':>7s} {'img/s':>8s} {'batch':>5s} {'peak MB':>8s} "
+            f"{'IoU':>7s} {'dIoU':>8s} {'mIoU fp32':>9s}")
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        if r.get("status", OK) != OK:
+            lines.append(f"{r['variant']:22s} {r['status']}")
+            continue
+        lines.append(f"{r['variant']:22s} {r['latency_ms']:10.2f} {r['speedup']:7.2f} {r['throughput']:8.2f} "
+                     f"{r['batch']:5d} {r['peak_mb']:8.1f} {r['iou']:7.4f} {r['iou_delta']:+8.4f} {r['iou_vs_fp32']:9.4f}")
+    lines.append(f"(x base = {BASELINE_VARIANT} latency / variant latency, timed round-robin in the same run; "
+                 f"mIoU fp32 = mean per-image IoU of the variant's masks with {BASELINE_VARIANT}'s)")
+    return "\n".join(lines)
+
+
+def benchmark_result(rows: Sequence[dict], run_info: dict, settings: dict, *, tau: float, summary: dict | None,
+                     notes: dict) -> dict:
+    """The JSON document of a benchmark run (non-finite numbers as null)."""
+    return {
+        "resolution": run_info["resolution"], "device": run_info["device"], "threads": run_info["threads"],
+        "tau": tau, "n_val": run_info["n_val"], "warmup": settings["warmup"], "iters": settings["iters"],
+        "batches": run_info["batches"], "baseline": BASELINE_VARIANT, "fast_path": summary,
+        "target": {"latency_ms": settings["target_ms"], "max_iou_drop": settings["max_drop"], "batch": 1,
+                   "resolution": settings["target_res"]},
+        "peak_memory_method": rows[0]["peak_method"], "skipped": run_info["skipped"], "notes": notes,
+        "probe": run_info["probe"], "slow": run_info["slow"],
+        "variants": {r["variant"]: {k: clean(v) for k, v in r.items() if k != "variant"} for r in rows},
+    }

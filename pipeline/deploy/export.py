@@ -1,0 +1,197 @@
+"""Export of the deployed mask path (TorchScript, ONNX) and its parity check against PyTorch.
+
+The deployed function is Z = f(x), x float32 [B,3,H,W] RGB in [0, 1] (normalisation is inside the
+model), M = [Z >= logit(tau)] (eq:inference-mask).
+
+Decisions (the paper is silent on deployment formats):
+
+* TorchScript is produced by ``torch.jit.trace`` of the mask path (TinyUNet holds a class-level
+  normalisation constant and an optional training-only module, which ``torch.jit.script`` rejects);
+  the traced graph reads sizes from the input, so it is batch- and size-generic.  It is saved
+  unfrozen so that it still moves between devices.
+* ONNX uses the TorchScript-based exporter (``torch.onnx.export(..., dynamo=False)``): torch 2.13
+  defaults to the dynamo exporter, which needs ``onnxscript`` (not a dependency, not installed here).
+  Both are traced from :class:`pipeline.model.ExportMaskPath`: the same function with the input
+  normalisation folded into the first convolution (the graph input is the image).
+* Parity (export time and tests): PyTorch, TorchScript and ONNX Runtime logits on deterministic
+  smooth random images at the working resolution (batch 2, exercising the dynamic batch axis).
+  Passing needs finite logits with max |dZ| <= ``atol``; then a mask pixel can only differ where the
+  PyTorch logit lies within ``atol`` of logit(tau), i.e. by float round-off alone.  Strict mask
+  equality at tau (``masks_identical``) and the number of differing pixels are reported alongside
+  (and the tests require identical masks on their inputs).
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.thresholds import logit_threshold
+
+ONNX_INPUT = "image"
+ONNX_OUTPUT = "logits"
+
+
+class ParityError(RuntimeError):
+    """An exported model does not reproduce the PyTorch mask path (a bug, not a user error)."""
+
+
+def mask_path_model(model):
+    """A float32 CPU copy of the deployed mask path (TinyUNet without the geometry heads), eval mode."""
+    from pipeline.model import TinyUNet
+
+    deployed = TinyUNet(**model.config)
+    deployed.load_state_dict(model.mask_path_state_dict())
+    return deployed.float().eval().requires_grad_(False)
+
+
+def export_module(model):
+    """The exported form of the mask path (:class:`pipeline.model.ExportMaskPath`: same function,
+    input normalisation folded into the first convolution), float32 CPU, eval mode."""
+    from pipeline.model import ExportMaskPath
+
+    return ExportMaskPath(mask_path_model(model)).eval().requires_grad_(False)
+
+
+def parity_inputs(resolution: int, n: int = 2, seed: int = 0):
+    """Deterministic smooth random RGB images float32 [n,3,R,R] in [0,1] (blobs plus fine noise),
+    so that the parity check sees both foreground-like and background-like logits."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    low = torch.rand(n, 3, max(2, resolution // 8), max(2, resolution // 8), generator=g)
+    x = torch.nn.functional.interpolate(low, size=(resolution, resolution), mode="bilinear",
+                                        align_corners=False)
+    x = 0.85 * x + 0.15 * torch.rand(n, 3, resolution, resolution, generator=g)
+    return x.clamp_(0, 1).contiguous()
+
+
+def onnx_unavailable_reason() -> str | None:
+    """None when ONNX export and ONNX Runtime work here, else a one-line reason (install the extra)."""
+    missing = []
+    for mod in ("onnx", "onnxruntime"):
+        try:
+            __import__(mod)
+        except Exception:  # noqa: BLE001 -- ImportError or a broken binary wheel
+            missing.append(mod)
+    if missing:
+        return (f"{' and '.join(missing)} not importable; ONNX export/benchmark skipped "
+                f"(install the extra: pip install 'geodistill-refine[onnx]')")
+    return None
+
+
+def export_torchscript(model, path: str | Path, resolution: int) -> Path:
+    """Trace the mask path on a [1,3,R,R] example and save it (unfrozen, CPU weights)."""
+    import torch
+
+    deployed = export_module(model)
+    example = torch.zeros(1, deployed.config["in_channels"], resolution, resolution)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # TracerWarning; torch 2.13's deprecation notice for torch.jit
+        traced = torch.jit.trace(deployed, example, check_trace=False)
+    traced.save(str(path))
+    return Path(path)
+
+
+def export_onnx(model, path: str | Path, resolution: int, opset: int) -> Path:
+    """Export the mask path to ONNX (input ``image`` [B,3,H,W] float32, output ``logits`` [B,1,H,W]),
+    batch, height and width dynamic, with the TorchScript-based exporter (module docstring)."""
+    import torch
+
+    deployed = export_module(model)
+    example = torch.zeros(1, deployed.config["in_channels"], resolution, resolution)
+    axes = {0: "batch", 2: "height", 3: "width"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # deprecation notice of the TorchScript-based exporter
+        torch.onnx.export(deployed, (example,), str(path), opset_version=int(opset), dynamo=False,
+                          input_names=[ONNX_INPUT], output_names=[ONNX_OUTPUT],
+                          dynamic_axes={ONNX_INPUT: axes, ONNX_OUTPUT: axes}, do_constant_folding=True)
+    return Path(path)
+
+
+def ort_session(path: str | Path, threads: int | None = None, optimize: bool = True, spinning: bool = True):
+    """ONNX Runtime CPU session; ``threads`` defaults to torch's intra-op thread count (same budget).
+
+    ``spinning=False`` stops ORT's idle thread pools from busy-waiting between calls (session config
+    ``session.intra_op.allow_spinning`` / ``session.inter_op.allow_spinning`` = 0): for timing, where an
+    idle spinning pool would steal the cores that the other variants are measured on."""
+    import onnxruntime as ort
+    import torch
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(threads or torch.get_num_threads())
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3
+    if not spinning:
+        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        so.add_session_config_entry("session.inter_op.allow_spinning", "0")
+    so.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_ENABLE_ALL if optimize
+                                   else ort.GraphOptimizationLevel.ORT_DISABLE_ALL)
+    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+
+
+def load_torchscript(path: str | Path, device="cpu"):
+    """torch.jit.load in eval mode (torch 2.13 marks TorchScript deprecated; the notice is silenced)."""
+    import torch
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return torch.jit.load(str(path), map_location=device).eval()
+
+
+def torch_logits(model, x) -> np.ndarray:
+    import torch
+
+    with torch.inference_mode():
+        return model(x).float().cpu().numpy()
+
+
+def compare_logits(reference: np.ndarray, logits: np.ndarray, tau: float, atol: float) -> dict:
+    """Parity of exported ``logits`` against the PyTorch ``reference`` at threshold tau (module docstring).
+
+    Masks at tau are [Z >= logit(tau)] (eq:inference-mask)."""
+    reference = np.asarray(reference, np.float64)
+    logits = np.asarray(logits, np.float64)
+    if reference.shape != logits.shape:
+        return {"passed": False, "max_abs_diff": float("inf"), "atol": float(atol), "masks_identical": False,
+                "mask_pixels_differ": -1, "note": f"shape {logits.shape} != {reference.shape}"}
+    finite = bool(np.isfinite(logits).all())
+    diff = float(np.max(np.abs(reference - logits))) if reference.size and finite else (0.0 if finite else float("inf"))
+    z_tau = logit_threshold(tau)
+    differ = (reference >= z_tau) != (logits >= z_tau)
+    return {"passed": bool(finite and diff <= atol), "max_abs_diff": diff, "atol": float(atol),
+            "masks_identical": bool(not differ.any()), "mask_pixels_differ": int(np.count_nonzero(differ)),
+            "pixels": int(reference.size)}
+
+
+def check_parity(model, tau: float, resolution: int, atol: float, torchscript: str | Path | None = None,
+                 onnx: str | Path | None = None) -> dict:
+    """Run the parity check of the exported files against the PyTorch mask path (module docstring).
+
+    Returns ``{"inputs": ..., "torchscript": {...}, "onnx": {...}}`` (a format's entry is absent when its
+    file is not given).  Does not raise; see :func:`require_parity`.
+    """
+    import torch
+
+    x = parity_inputs(resolution)
+    ref = torch_logits(mask_path_model(model), x)
+    out: dict = {"inputs": f"{x.shape[0]} deterministic smooth random images {resolution}x{resolution} (seed 0)",
+                 "tau": float(tau)}
+    if torchscript is not None:
+        ts = load_torchscript(torchscript, "cpu")
+        out["torchscript"] = compare_logits(ref, torch_logits(ts, x), tau, atol)
+    if onnx is not None:
+        sess = ort_session(onnx)
+        out["onnx"] = compare_logits(ref, sess.run(None, {ONNX_INPUT: x.numpy()})[0], tau, atol)
+    return out
+
+
+def require_parity(parity: dict) -> None:
+    """Raise :class:`ParityError` when a checked format failed its parity check."""
+    for fmt in ("torchscript", "onnx"):
+        res = parity.get(fmt)
+        if res is not None and not res["passed"]:
+            raise ParityError(f"{fmt} export differs from PyTorch: max |dZ| = {res['max_abs_diff']:.3g} "
+                              f"(atol {res.get('atol')}), {res['mask_pixels_differ']} mask pixels differ at tau")

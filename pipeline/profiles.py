@@ -1,0 +1,57 @@
+"""Profiles: named sets of overrides of the schema defaults (the paper's values, :mod:`pipeline.params`).
+
+``geodistill profile NAME`` writes ``params.yaml`` = defaults + ``PROFILES[NAME]``; DVC then tracks
+each key of that file, so a later edit of one value reruns exactly the stages that read it.
+
+* ``demo``    -- the README's main command: the whole DAG in minutes on 2 CPU cores (128², a small
+  split, Plain Student + GeoDistill-Refine for one seed);
+* ``reduced`` -- the full paper protocol (five methods x three seeds, seven seed-42 ablations) on the
+  synthetic benchmark at 128², which 2-core machines finish; its report is under reports/reduced/;
+* ``paper``   -- the paper's sizes: 384², 270/60/3x60 images, 20 + 10 epochs, the full protocol.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pipeline.errors import InputError
+
+SEEDS = [42, 3407, 2026]
+ABLATION_SEED = 42
+MAIN_METHODS = ["plain", "confidence_filtered", "afs_control", "geodistill", "gabi"]
+ABLATIONS = ["full_scratch_10", "full_scratch_30", "sdf_scratch", "sdf_gated", "sdf_skel_gated",
+             "sdf_area_gated", "no_gate"]
+
+#: The paper's protocol: five methods x three seeds, seven ablations at seed 42.
+FULL_PROTOCOL = {"runs": {**{m: list(SEEDS) for m in MAIN_METHODS}, **{a: [ABLATION_SEED] for a in ABLATIONS}}}
+
+PROFILES: dict[str, dict[str, Any]] = {
+    "demo": {
+        "data": {"resolution": 128,
+                 "synthetic": {"train_spacecraft": 6, "train_views": 12, "val_spacecraft": 3, "val_views": 8,
+                               "test_spacecraft_per_group": 3, "test_views": 8}},
+        "protocol": {"runs": {"plain": [42], "geodistill": [42]}},
+        "evaluate": {"bootstrap_resamples": 2000},
+        "report": {"qualitative_images": 3},
+        "deploy": {"benchmark_iters": 10, "benchmark_batches": [1, 4], "int8_calibration_images": 32},
+    },
+    "reduced": {
+        "data": {"resolution": 128},
+        "protocol": FULL_PROTOCOL,
+        "deploy": {"benchmark_resolution": 384},  # time at the paper's size; IoU at 128
+    },
+    "paper": {
+        "protocol": FULL_PROTOCOL,
+    },
+}
+
+
+def profile_params(name: str) -> dict:
+    """Schema defaults + the profile's overrides (not yet validated: callers validate)."""
+    from pipeline.params import PAPER, deep_merge
+
+    if name not in PROFILES:
+        raise InputError(f"profile {name!r}: expected one of {', '.join(PROFILES)}")
+    out = deep_merge(PAPER.model_dump(mode="python"), PROFILES[name])
+    out["profile"] = name
+    return out

@@ -1,0 +1,149 @@
+"""Thresholds: eq:inference-mask, M = [P >= tau] <=> [Z >= logit(tau)], how tau is calibrated, and
+where tau comes from.
+
+One module owns the three rules; calibrate, evaluate, export, segment, benchmark and the report
+import it:
+
+* the inference mask (eq:inference-mask): :func:`mask_from_probs`, :func:`logit_threshold`;
+* calibration (paper, Training Details: "The binarization threshold is selected by Image IoU on the
+  corresponding validation set and then applied unchanged to the test set"): :func:`threshold_grid`,
+  :func:`select_tau` (the tie rule), :func:`calibrate_threshold`;
+* resolution of the tau a deployed model runs with: :func:`resolve_tau` (precedence
+  option > bundle > checkpoint > thresholds file > fixed tau).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from pipeline.errors import InputError
+
+log = logging.getLogger(__name__)
+
+TIE_TOLERANCE = 1e-12  # mean IoUs closer than this are a tie (select_tau)
+
+
+# --------------------------------------------------------------------------------------------------
+# eq:inference-mask
+# --------------------------------------------------------------------------------------------------
+def logit_threshold(tau: float) -> float:
+    """logit(tau) = log(tau / (1 - tau)): [sigmoid(Z) >= tau] == [Z >= logit(tau)] (eq:inference-mask).
+
+    tau = 0 -> -inf (everything foreground), tau = 1 -> +inf (nothing).
+    """
+    tau = float(tau)
+    if not 0.0 <= tau <= 1.0:
+        raise InputError(f"tau={tau}: must lie in [0, 1]")
+    if tau == 0.0:
+        return -math.inf
+    if tau == 1.0:
+        return math.inf
+    return math.log(tau / (1.0 - tau))
+
+
+def mask_from_probs(probs: np.ndarray, tau: float) -> np.ndarray:
+    """M = [P >= tau] (eq:inference-mask), bool with the shape of ``probs``."""
+    return np.asarray(probs) >= float(tau)
+
+
+def check_tau(tau, where: str) -> float:
+    """``tau`` as a float in [0, 1]; InputError naming ``where`` (an option or param) otherwise."""
+    try:
+        t = float(tau)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}={tau!r}: not a number") from None
+    if not 0.0 <= t <= 1.0 or math.isnan(t):
+        raise InputError(f"{where}={tau!r}: must lie in [0, 1]")
+    return t
+
+
+# --------------------------------------------------------------------------------------------------
+# Calibration on the validation split
+# --------------------------------------------------------------------------------------------------
+def threshold_grid(cfg: dict) -> np.ndarray:
+    """tau grid from calibrate.grid_start .. grid_stop (inclusive) in steps of grid_step, rounded to
+    1e-9 so that 0.5 is exactly on the default grid.  InputError names the param."""
+    from pipeline.params import require
+
+    start = require(cfg, "grid_start", "calibrate", kind=(int, float), lo=0.0, hi=1.0)
+    stop = require(cfg, "grid_stop", "calibrate", kind=(int, float), lo=0.0, hi=1.0)
+    step = require(cfg, "grid_step", "calibrate", kind=(int, float), lo=1e-6, hi=1.0)
+    if stop < start:
+        raise InputError(f"params: calibrate.grid_stop={stop} < calibrate.grid_start={start}")
+    n = int(np.floor((stop - start) / step + 1e-9)) + 1
+    return np.round(start + step * np.arange(n), 9)
+
+
+def select_tau(grid, curve) -> float:
+    """The calibrated tau: argmax over ``grid`` of ``curve`` (mean validation Image IoU per tau).
+
+    Ties (mean IoUs within :data:`TIE_TOLERANCE` of the maximum) go to the tau closest to 0.5, then to
+    the smaller tau.  ``grid`` and ``curve`` are 1-D of equal, non-zero length.
+    """
+    grid = np.asarray(grid, dtype=np.float64)
+    curve = np.asarray(curve, dtype=np.float64)
+    if grid.ndim != 1 or grid.shape != curve.shape or grid.size == 0:
+        raise InputError(f"select_tau: grid {grid.shape} and curve {curve.shape} must be equal non-empty 1-D")
+    best = np.flatnonzero(curve >= curve.max() - TIE_TOLERANCE)
+    order = np.lexsort((grid[best], np.abs(grid[best] - 0.5)))  # closest to 0.5, then smaller tau
+    return float(grid[best[order[0]]])
+
+
+def calibrate_threshold(probs, gts, grid) -> tuple[float, np.ndarray]:
+    """Choose tau on validation images by mean Image IoU over ``grid`` (eq:inference-mask).
+
+    probs float [N,H,W] in [0,1]; gts bool [N,H,W]; grid strictly increasing taus.  Returns
+    (best_tau, curve) with curve float64 [G] = mean Image IoU of [P >= tau] at each grid point
+    (pipeline.metrics.iou_curve); best_tau by :func:`select_tau` (ties -> closest to 0.5, then smaller).
+    """
+    from pipeline.metrics import iou_curve
+
+    grid = np.asarray(grid, dtype=np.float64)
+    if np.ndim(probs) != 3 or np.shape(probs)[0] == 0:
+        raise InputError(f"calibrate_threshold: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
+    curve = iou_curve(probs, gts, grid).mean(axis=0)
+    return select_tau(grid, curve), curve
+
+
+def lookup_tau(thresholds_df, method: str, seed: int) -> float | None:
+    """The calibrated tau of (method, seed) in a thresholds table, or None when the row is absent."""
+    df = thresholds_df
+    rows = df[(df["method"].astype(str) == str(method)) & (df["seed"].astype(int) == int(seed))]
+    if rows.empty:
+        return None
+    return float(rows["tau"].iloc[0])
+
+
+# --------------------------------------------------------------------------------------------------
+# Which tau a deployed model runs with
+# --------------------------------------------------------------------------------------------------
+TAU_SOURCES = ("option", "bundle", "checkpoint", "thresholds", "fixed")
+TAU_LABELS = {"option": "--tau", "bundle": "deploy bundle", "checkpoint": "checkpoint payload",
+              "thresholds": "thresholds table", "fixed": "calibrate.fixed_tau"}
+
+
+def resolve_tau(option=None, bundle=None, checkpoint=None, thresholds=None, fixed=None) -> tuple[float, str]:
+    """The tau to binarise with (eq:inference-mask) and where it came from: ``(tau, source)``.
+
+    Rule: the first candidate that is given, in the order
+    ``option`` (--tau) > ``bundle`` (deploy.json) > ``checkpoint`` (its payload's tau) >
+    ``thresholds`` (the run's row of a thresholds.parquet, calibrated on the validation split) >
+    ``fixed`` (calibrate.fixed_tau: uncalibrated, logged as a warning).  Each candidate is None
+    (absent), a number, or ``(number, source text)``; a bare number's source is its
+    :data:`TAU_LABELS` entry.  The chosen value must lie in [0, 1] (InputError naming its source);
+    InputError when none is given.
+    """
+    given = dict(zip(TAU_SOURCES, (option, bundle, checkpoint, thresholds, fixed)))
+    for name in TAU_SOURCES:
+        cand = given[name]
+        if cand is None or (isinstance(cand, tuple) and cand[0] is None):
+            continue
+        value, source = cand if isinstance(cand, tuple) else (cand, TAU_LABELS[name])
+        tau = check_tau(value, TAU_LABELS[name])
+        if name == "fixed":
+            log.warning("tau = %s from %s (no calibrated tau)", tau, source)
+        return tau, source
+    raise InputError("tau: no calibrated tau found; pass --tau or a thresholds table (--thresholds)")

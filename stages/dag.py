@@ -1,0 +1,58 @@
+"""``geodistill profile NAME`` and ``geodistill dag``: write params.yaml for a profile and dvc.yaml from the
+catalogue, the method table and the stages' imports (pipeline/dag.py)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from pipeline.errors import InputError
+
+
+def _write(path: Path, text: str) -> bool:
+    """Replace ``path`` atomically when its text differs; whether it changed."""
+    if path.is_file() and path.read_text() == text:
+        return False
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+    return True
+
+
+@click.command(name="dag")
+@click.option("--check", is_flag=True, help="only check that dvc.yaml is up to date (exit 1 if not)")
+@click.option("--out", default="dvc.yaml", show_default=True, type=click.Path(dir_okay=False))
+def dag_main(check: bool, out: str) -> None:
+    """Write dvc.yaml from pipeline/catalog.py, pipeline/methods.py and the stages' imports."""
+    from pipeline.dag import render_dvc_yaml
+
+    text = render_dvc_yaml()
+    path = Path(out)
+    if check:
+        if not path.is_file() or path.read_text() != text:
+            click.echo(f"geodistill dag: {path} is out of date; run `geodistill dag`", err=True)
+            sys.exit(1)
+        click.echo(f"{path} is up to date")
+        return
+    click.echo(f"{'wrote' if _write(path, text) else 'unchanged'} {path}")
+
+
+@click.command(name="profile")
+@click.argument("name")
+@click.option("--out", default="params.yaml", show_default=True, type=click.Path(dir_okay=False))
+def profile_main(name: str, out: str) -> None:
+    """Write params.yaml with the effective values of profile NAME (demo | reduced | paper)."""
+    from pipeline.dag import render_params_yaml
+
+    try:
+        text = render_params_yaml(name)
+    except InputError as e:
+        click.echo(f"geodistill profile: error: {e}", err=True)
+        sys.exit(2)
+    click.echo(f"{'wrote' if _write(Path(out), text) else 'unchanged'} {out} (profile {name})")
+
+
+if __name__ == "__main__":
+    dag_main()
