@@ -21,8 +21,9 @@ from typing import NamedTuple
 import numpy as np
 
 from pipeline.errors import InputError
+from pipeline.params import PAPER
 
-DEFAULT_VOTE_THRESHOLD = 0.5
+DEFAULT_VOTE_THRESHOLD = PAPER.consensus.vote_threshold  # eq:majority-vote; the schema holds it
 
 
 class Consensus(NamedTuple):

@@ -85,7 +85,8 @@ def module_files(module: str, root: Path = ROOT) -> tuple[str, ...]:
     if start is None:
         raise ValueError(f"{module}: not a project module")
     seen: set[Path] = set()
-    todo = [start]
+    parts = module.split(".")
+    todo = [start] + [p for i in range(1, len(parts)) if (p := _module_path(".".join(parts[:i]), root))]
     while todo:
         f = todo.pop()
         if f in seen:

@@ -26,7 +26,8 @@ Skeleton ("Skel" in the text after eq:sdf-target)
     M lies within 1 px of the background (d_in = 1 everywhere on 1- and 2-px thick structures), and
     for a full frame (no background, d_in undefined).  K is always inside M.
 
-Gate constants are keyword arguments with the paper's defaults; params.yaml ``geometry:`` holds them.
+Gate constants are keyword arguments whose defaults are the paper's values from the params schema
+(``pipeline.params.PAPER.geometry``); params.yaml ``geometry:`` holds the values a run uses.
 """
 
 from __future__ import annotations
@@ -37,16 +38,18 @@ import numpy as np
 
 from pipeline.errors import InputError
 
-# paper constants (params.yaml geometry section mirrors them)
-SDF_QUANTILE = 0.95
-SDF_MIN_SCALE = 1e-6
-SKELETON_MIN_DISTANCE = 1.0
-N_PROMPTS = 6
-CONF_OFFSET = 0.35
-VALID_OFFSET = 0.20
-AREA_TEMPERATURE = 0.9
-AREA_FLOOR = 0.05
-EPS = 1e-6
+from pipeline.params import PAPER
+
+# the paper's constants, from the params schema (their one place)
+SDF_QUANTILE = PAPER.geometry.sdf_quantile
+SDF_MIN_SCALE = PAPER.geometry.sdf_min_scale
+SKELETON_MIN_DISTANCE = PAPER.geometry.skeleton_min_distance
+N_PROMPTS = PAPER.geometry.n_prompts
+CONF_OFFSET = PAPER.geometry.conf_offset
+VALID_OFFSET = PAPER.geometry.valid_offset
+AREA_TEMPERATURE = PAPER.geometry.area_temperature
+AREA_FLOOR = PAPER.geometry.area_floor
+EPS = PAPER.geometry.eps
 
 
 def _cv2():

@@ -28,10 +28,11 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.errors import InputError
+from pipeline.params import PAPER
 from pipeline.geometry import squared_distance
 
-DEFAULT_TOLERANCE = 2
-DEFAULT_SMALL_FRACTION = 0.01
+DEFAULT_TOLERANCE = PAPER.evaluate.bf1_tolerance  # the params schema holds the defaults
+DEFAULT_SMALL_FRACTION = PAPER.evaluate.small_region_max_fraction
 DEFAULT_SMALL_MARGIN = 3
 
 

@@ -84,8 +84,13 @@ class SyntheticParams(_Section):
         return v
 
 
+SOURCES = ("synthetic", "spacesense", "speedplus", "tango", "folder")
+BACKENDS = ("simulated", "sam3", "imported")
+SPLITS = ("train", "val", "test")
+
+
 class DataParams(_Section):
-    source: Literal["synthetic", "spacesense", "speedplus", "tango", "folder"] = _f("synthetic")
+    source: Literal[SOURCES] = _f("synthetic")
     root: str | None = _f(None, "dataset root for real sources")
     protocol: str | None = _f(None, "protocol file (data_manifests/...); null = the source's default")
     domain: str | None = _f(None, "speedplus: lightbox | sunlamp | synthetic")
@@ -112,12 +117,12 @@ PAPER_PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
 
 
 class TeacherParams(_Section):
-    backend: Literal["simulated", "sam3", "imported"] = _f(
+    backend: Literal[BACKENDS] = _f(
         "simulated", "simulated (SIMULATOR of the synthetic benchmark only) | sam3 | imported")
     prompts: list[str] = _f(PAPER_PROMPTS, "eq:prompt-set, fixed order p1..p6", min_length=1)
     base_prompt_index: int = _f(0, "the annotation-free-style control's single prompt", ge=0)
     vflip_base_prompt: bool = _f(True, "also run the base prompt on the vertically flipped image (AFS control)")
-    splits: list[Literal["train", "val", "test"]] = _f(["train", "val", "test"], min_length=1)
+    splits: list[Literal[SPLITS]] = _f(list(SPLITS), min_length=1)
     checkpoint: str | None = _f(None, "sam3: local SAM 3 directory (save_pretrained layout)")
     imported_dir: str | None = _f(None, "imported: directory in the documented layout")
     dtype: Literal["fp32", "bf16"] = _f("fp32")
@@ -131,8 +136,14 @@ class TeacherParams(_Section):
     def _base(self):
         if self.base_prompt_index >= len(self.prompts):
             raise ValueError(f"base_prompt_index={self.base_prompt_index} but only {len(self.prompts)} prompts")
-        if len(set(self.prompts)) != len(self.prompts):
-            raise ValueError("prompts must be distinct")
+        if any(not p.strip() for p in self.prompts):
+            raise ValueError("prompts must be non-empty strings")
+        if len({p.strip().lower() for p in self.prompts}) != len(self.prompts):
+            raise ValueError(f"prompts has duplicates: {self.prompts}")
+        if self.backend == "sam3" and not self.checkpoint:
+            raise ValueError("teacher.checkpoint is required for backend sam3 (a local save_pretrained directory)")
+        if self.backend == "imported" and not self.imported_dir:
+            raise ValueError("teacher.imported_dir is required for backend imported")
         return self
 
 
@@ -359,6 +370,15 @@ def validate(raw: Mapping[str, Any], origin: str = "params") -> dict:
         return Params.model_validate(dict(raw)).model_dump(mode="python")
     except ValidationError as e:
         raise InputError(_error_line(e, origin)) from None
+
+
+def validate_section(name: str, cfg: Mapping[str, Any]) -> dict:
+    """Validate one section on its own (library entry points called outside a stage)."""
+    model = Params.model_fields[name].annotation
+    try:
+        return model.model_validate(dict(cfg)).model_dump(mode="python")
+    except ValidationError as e:
+        raise InputError(_error_line(e, f"params: {name}")) from None
 
 
 def validate_overrides(raw: Mapping[str, Any], origin: str = "params") -> None:

@@ -64,6 +64,14 @@ def stage_command(name: str) -> Callable:
     return deco
 
 
+def declared_params(params: Mapping[str, Any], stage: str) -> dict:
+    """``{dotted key: value}`` of the params ``stage`` declares in the catalogue: exactly what DVC tracks
+    for it (dvc.yaml) and what enters its artifacts' fingerprints."""
+    from pipeline.catalog import STAGES, stage_params
+
+    return stage_params(params, STAGES[stage].params)
+
+
 def meta_for(schema: str, stage: str, code: str, params: Mapping[str, Any],
              inputs: Iterable = (), **extra) -> Meta:
     """Shorthand used by stages; see :func:`pipeline.artifacts.make_meta`."""

@@ -20,10 +20,9 @@ import click
 import numpy as np
 import pandas as pd
 
-from pipeline.params import require, section
-from stages._common import meta_for, stage_code_version, stage_command
+from pipeline.params import section
+from stages._common import declared_params, meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("metrics.py", "stats.py", "report/analysis.py", "artifacts.py")
 CHUNK = 32
 
 
@@ -54,8 +53,7 @@ def main(params, device, art, out, metrics_json):
                                           teacher_prompt_quality)
 
     cfg = section(params, "evaluate")
-    tol = require(cfg, "bf1_tolerance", "evaluate", kind=(int, float), lo=0)
-    small_frac = require(cfg, "small_region_max_fraction", "evaluate", kind=(int, float), lo=0.0, hi=1.0)
+    tol, small_frac = cfg["bf1_tolerance"], cfg["small_region_max_fraction"]
     art = Path(art)
     manifest = open_artifact(art / "manifest.parquet", "manifest")
     reference = open_artifact(art / "reference.zarr", "reference")
@@ -97,8 +95,8 @@ def main(params, device, art, out, metrics_json):
         sel["source"] = "val_selected"
         tm = pd.concat([tm, sel], ignore_index=True)
 
-    code = stage_code_version(__file__, *CODE_MODULES)
-    meta = meta_for("teacher_metrics", "analyze_teacher", code, {"evaluate": cfg},
+    code = stage_code_version(__file__)
+    meta = meta_for("teacher_metrics", "analyze_teacher", code, declared_params(params, "analyze_teacher"),
                     [manifest, reference, teacher, consensus, gates],
                     teacher_backend=backend, simulator=backend == "simulated", base_source=base,
                     selected_source=selected, prompts=prompts,

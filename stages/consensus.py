@@ -9,11 +9,10 @@ import numpy as np
 from pipeline.artifacts import ZarrWriter, open_artifact
 from pipeline.consensus import vote_batch
 from pipeline.errors import InputError
-from pipeline.params import require, section
+from pipeline.params import section
 from pipeline.progress import progress
-from stages._common import meta_for, stage_code_version, stage_command
+from stages._common import declared_params, meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("consensus.py", "artifacts.py")
 
 
 def check_teacher(teacher) -> tuple[int, int, int, int]:
@@ -41,11 +40,11 @@ def check_teacher(teacher) -> tuple[int, int, int, int]:
 def main(params, device, teacher, out, chunk_images):
     """Multi-prompt consensus vote: agreement map, voted pseudo-mask and valid-prompt count per image."""
     cfg = section(params, "consensus")
-    threshold = require(cfg, "vote_threshold", "consensus", kind=(int, float), lo=0.0, hi=1.0)
+    threshold = cfg["vote_threshold"]
     art = open_artifact(teacher, "teacher")
     n, k, h, w = check_teacher(art)
-    code = stage_code_version(__file__, *CODE_MODULES)
-    meta = meta_for("consensus", "consensus", code, cfg, [art])
+    code = stage_code_version(__file__)
+    meta = meta_for("consensus", "consensus", code, declared_params(params, "consensus"), [art])
     with ZarrWriter(out, meta) as wr:
         wr.create("agreement", (n, h, w), np.float32)
         wr.create("voted", (n, h, w), bool)

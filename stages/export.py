@@ -3,7 +3,7 @@
 tau is the validation-calibrated threshold of the checkpoint's (method, seed) in thresholds.parquet
 (eq:inference-mask).  Fallback, recorded as ``tau_source`` in deploy.json with a warning: without
 ``--thresholds`` or without a row for that run, ``calibrate.fixed_tau`` (the paper's fixed-threshold
-setting, 0.5); ``--tau`` overrides both.  The working resolution comes from the checkpoint when it
+setting, 0.5); ``--tau`` overrides both (pipeline.thresholds.resolve_tau).  The working resolution comes from the checkpoint when it
 records one, else ``data.resolution``.  The parity check (pipeline.deploy.check_parity) runs here and a
 failure stops the stage before anything is written.  ONNX needs the ``onnx`` extra; without it the
 bundle holds TorchScript only and deploy.json says why.
@@ -19,15 +19,12 @@ the artifacts, or with ``--no-int8`` the bundle has no int8 model and deploy.jso
 
 from __future__ import annotations
 
-import logging
-
 import click
 
 from pipeline.params import require, section
 from stages._common import meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("deploy.py", "model.py", "inference.py", "artifacts.py")
-log = logging.getLogger("geodistill.export")
+CODE_MODULES = ("deploy", "thresholds.py", "model.py", "inference.py", "artifacts.py")
 
 
 @stage_command("export")
@@ -47,6 +44,7 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     from pipeline.artifacts import artifact_dir, open_artifact
     from pipeline.errors import InputError
     from pipeline.inference import is_active_run, load_student
+    from pipeline.thresholds import lookup_tau, resolve_tau
 
     cfg = section(params, "deploy")
     opset = require(cfg, "opset", "deploy", kind=int, lo=9, hi=30)
@@ -61,21 +59,15 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     model, payload = load_student(checkpoint, "cpu")
     method, seed = payload.get("method"), payload.get("seed")
     inputs = [ckpt]
-    if tau is not None:
-        tau, tau_source = deploy.check_tau(tau, "--tau"), "--tau"
-    else:
-        found = None
-        if thresholds is not None:
-            table = open_artifact(thresholds, "thresholds")
-            inputs.append(table)
-            found = deploy.lookup_tau(table.df, method, seed)
-        if found is not None:
-            tau, tau_source = found, f"calibrated on the validation split ({thresholds}: {method}, seed {seed})"
-        else:
-            tau = deploy.check_tau(require(section(params, "calibrate"), "fixed_tau", "calibrate"), "calibrate.fixed_tau")
-            tau_source = (f"calibrate.fixed_tau (no calibrated row for {method} seed {seed} in {thresholds})"
-                          if thresholds else "calibrate.fixed_tau (no --thresholds given)")
-            log.warning("export: tau = %s from %s", tau, tau_source)
+    table = open_artifact(thresholds, "thresholds") if thresholds is not None and tau is None else None
+    inputs += [table] if table is not None else []
+    found = lookup_tau(table.df, method, seed) if table is not None else None
+    tau, tau_source = resolve_tau(
+        option=tau,
+        thresholds=(found, f"calibrated on the validation split ({thresholds}: {method}, seed {seed})"),
+        fixed=(section(params, "calibrate").get("fixed_tau"),
+               f"calibrate.fixed_tau (no calibrated row for {method} seed {seed} in {thresholds})"
+               if thresholds else "calibrate.fixed_tau (no --thresholds given)"))
     resolution = deploy.checkpoint_resolution(checkpoint, payload)
     res_source = "checkpoint"
     if resolution is None:

@@ -10,26 +10,15 @@ import pandas as pd
 from pipeline.artifacts import ZarrWriter, open_artifact, write_parquet
 from pipeline.errors import InputError
 from pipeline.geometry import foreground_agreement, gate_factors, median_area, pseudo_targets, valid_ratio
-from pipeline.params import require, section
+from pipeline.params import section
 from pipeline.progress import progress
-from stages._common import meta_for, stage_code_version, stage_command
+from stages._common import declared_params, meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("geometry.py", "artifacts.py")
 
 
 def read_config(params) -> dict:
-    """The geometry section, type- and range-checked (every constant of eq:sdf-target .. eq:area-gate)."""
+    """The geometry section (every constant of eq:sdf-target .. eq:area-gate; validated by the schema)."""
     cfg = section(params, "geometry")
-    num = (int, float)
-    require(cfg, "sdf_quantile", "geometry", kind=num, lo=0.0, hi=1.0)
-    require(cfg, "sdf_min_scale", "geometry", kind=num, lo=0.0)
-    require(cfg, "skeleton_min_distance", "geometry", kind=num, lo=0.0)
-    require(cfg, "n_prompts", "geometry", kind=int, lo=1)
-    require(cfg, "conf_offset", "geometry", kind=num, lo=0.0, hi=0.999999)
-    require(cfg, "valid_offset", "geometry", kind=num, lo=0.0, hi=0.999999)
-    require(cfg, "area_temperature", "geometry", kind=num, lo=1e-12)
-    require(cfg, "area_floor", "geometry", kind=num, lo=0.0, hi=1.0)
-    require(cfg, "eps", "geometry", kind=num, lo=0.0)
     return cfg
 
 
@@ -67,13 +56,13 @@ def main(params, device, consensus, manifest, out, gates, chunk_images):
     cons = open_artifact(consensus, "consensus")
     man = open_artifact(manifest, "manifest")
     n, h, w = check_inputs(cons, man, cfg["n_prompts"])
-    code = stage_code_version(__file__, *CODE_MODULES)
+    code = stage_code_version(__file__)
     c = np.zeros(n)
     a = np.zeros(n)
     n_valid = np.asarray(cons["n_valid"][...]).astype(np.int64)
     if ((n_valid < 0) | (n_valid > cfg["n_prompts"])).any():
         raise InputError(f"{cons.path}: n_valid outside [0, geometry.n_prompts={cfg['n_prompts']}]")
-    with ZarrWriter(out, meta_for("geometry", "geometry", code, cfg, [cons, man])) as wr:
+    with ZarrWriter(out, meta_for("geometry", "geometry", code, declared_params(params, "geometry"), [cons, man])) as wr:
         wr.create("sdf", (n, h, w), np.float32)
         wr.create("skeleton", (n, h, w), bool)
         for s in progress(range(0, n, chunk_images), desc="geometry", total=-(-n // chunk_images)):
@@ -104,7 +93,7 @@ def main(params, device, consensus, manifest, out, gates, chunk_images):
             "c": c, "v": v, "a": a, "a0": np.full(n, a0),
             "g_conf": gf.conf, "g_valid": gf.valid, "g_area": gf.area, "g": gf.g,
             "n_valid": n_valid.astype(np.int16)})
-        write_parquet(gates, table, meta_for("gates", "geometry", code, cfg, [cons, man]))
+        write_parquet(gates, table, meta_for("gates", "geometry", code, declared_params(params, "geometry"), [cons, man]))
 
 
 if __name__ == "__main__":

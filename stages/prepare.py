@@ -24,7 +24,6 @@ from pipeline.params import section
 from pipeline.progress import progress
 from stages._common import meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("datasets", "artifacts.py")
 log = logging.getLogger("geodistill.prepare")
 
 
@@ -52,7 +51,7 @@ def main(params, device, out_dir, source, root, protocol, skip_bad):
             else build.real_source(cfg, policy, out))
     rows = build.check_manifest(spec, policy, where=f"data.source={cfg['source']}")
     rows = build.decode_rows(rows, spec, size, cache, policy)
-    code = stage_code_version(__file__, *CODE_MODULES)
+    code = stage_code_version(__file__)
     # fingerprint: the data params, the protocol actually applied, and the selected files' content
     fp_params = {"data": fingerprint_params(cfg), "protocol": spec.protocol,
                  "content_sha256": build.content_digest(rows)}

@@ -14,9 +14,8 @@ from pathlib import Path
 import click
 
 from pipeline.params import section
-from stages._common import meta_for, stage_code_version, stage_command
+from stages._common import declared_params, meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("report", "stats.py", "metrics.py", "inference.py", "artifacts.py")
 
 
 @stage_command("report")
@@ -33,8 +32,8 @@ def main(params, device, art, out):
     cfg = section(params, "report")
     profile = str(params.get("profile", ""))
     report, plots, inp = build_report(art, cfg, profile, resolve_device(device))
-    code = stage_code_version(__file__, *CODE_MODULES)
-    meta = meta_for("report", "report", code, {"report": cfg, "profile": profile}, list(inp.found.values()),
+    code = stage_code_version(__file__)
+    meta = meta_for("report", "report", code, declared_params(params, "report"), list(inp.found.values()),
                     missing_inputs=sorted(inp.missing))
     with artifact_dir(out, meta) as tmp:
         (tmp / "figures").mkdir()

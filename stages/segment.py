@@ -12,9 +12,9 @@
               preprocessed input and the same tau; the engine and its timings are printed on stderr
               (model ms/image includes the first, warm-up batch).
 
-tau: ``--tau`` > the bundle's deploy.json > the checkpoint's row in ``--thresholds`` (default
-artifacts/thresholds.parquet when it exists) > ``calibrate.fixed_tau`` of the params file (with a
-warning).  Working resolution: ``--resolution`` > bundle / checkpoint > ``data.resolution``.
+tau (pipeline.thresholds.resolve_tau): ``--tau`` > the bundle's deploy.json > the checkpoint's payload >
+its row in ``--thresholds`` (default artifacts/thresholds.parquet when it exists) > ``calibrate.fixed_tau``
+of the params file (with a warning).  Working resolution: ``--resolution`` > bundle / checkpoint > ``data.resolution``.
 
 Unlike the pipeline stages this is a user tool: it runs anywhere, and reads the params file only
 for those two fallbacks, when that file exists.  Unreadable images are reported on stderr and in
@@ -62,16 +62,8 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
     stems = deploy.plan_outputs(root, files, output, Path(input_path).is_dir())
 
     seg = deploy.load_segmenter(checkpoint, engine, resolve_device(device), thresholds)
-    if tau is not None:
-        tau, source = deploy.check_tau(tau, "--tau"), "--tau"
-    elif seg.tau is not None:
-        tau, source = float(seg.tau), seg.tau_source
-    else:
-        fixed = _fallback(params_file, overrides, "calibrate", "fixed_tau")
-        if fixed is None:
-            raise InputError(f"--checkpoint {checkpoint}: no calibrated tau found; pass --tau or --thresholds")
-        tau, source = deploy.check_tau(fixed, "calibrate.fixed_tau"), "calibrate.fixed_tau (uncalibrated)"
-        click.echo(f"segment: warning: no calibrated tau for {checkpoint}; using {source} = {tau}", err=True)
+    tau, source = seg.resolve_tau(option=tau, fixed=(_fallback(params_file, overrides, "calibrate", "fixed_tau"),
+                                                     "calibrate.fixed_tau (uncalibrated)"))
     if resolution is None:
         resolution = seg.resolution or _fallback(params_file, overrides, "data", "resolution")
     if not isinstance(resolution, int) or resolution < 8:

@@ -45,7 +45,6 @@ from pipeline.params import section
 from pipeline.progress import progress
 from stages._common import meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("teachers", "artifacts.py")
 log = logging.getLogger("stages.teacher")
 
 MANIFEST_EXTRAS = ("background", "hard_case", "area_fraction")
@@ -132,7 +131,7 @@ def main(params, device, manifest, images, reference, out, scores, shard):
 
     fp_params = {k: v for k, v in cfg.items() if k != "cache_dir"}  # where the cache lives changes nothing
     inputs = [man, img] + ([ref] if ref is not None else [])
-    code = stage_code_version(__file__, *CODE_MODULES)
+    code = stage_code_version(__file__)
     k = len(prompts)
     run_set = set(run_rows)
     rows = []

@@ -14,6 +14,9 @@ import torch
 from click.testing import CliRunner
 
 from pipeline import deploy
+from pipeline.deploy import benchmark as bench
+from pipeline.deploy import quantize
+from pipeline.errors import InputError
 from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
 from pipeline.inference import load_student, save_checkpoint
 from pipeline.model import TinyUNet
@@ -85,16 +88,6 @@ def run_export(ckpt, out, *extra):
 @pytest.fixture(autouse=True)
 def quiet(monkeypatch):
     monkeypatch.setenv("GEODISTILL_QUIET", "1")
-
-
-# ---- thresholding ---------------------------------------------------------------------------------
-def test_logit_threshold_matches_sigmoid_threshold():
-    z = np.linspace(-6, 6, 1001)
-    p = 1 / (1 + np.exp(-z))
-    for tau in (0.05, 0.3, 0.5, 0.77, 0.95):
-        assert np.array_equal(z >= deploy.logit_threshold(tau), deploy.mask_from_probs(p, tau) | np.isclose(p, tau))
-    assert deploy.logit_threshold(0.5) == 0.0
-    assert deploy.logit_threshold(0.0) == -np.inf and deploy.logit_threshold(1.0) == np.inf
 
 
 def test_compare_logits_detects_drift_and_mask_flips():
@@ -210,7 +203,7 @@ def test_int8_agreement_gates_on_per_image_mask_iou():
     assert rep["mask_pixels_differ"] == 2 and rep["mask_agreement"] == pytest.approx(0.98)
     assert rep["mask_iou_mean"] == pytest.approx((23 + 2 * 2 / 3) / 25) and rep["mask_iou_min"] == pytest.approx(2 / 3)
     assert not rep["passed"] and deploy.int8_agreement(ref, flipped, 0.5, 0.97)["passed"]
-    with pytest.raises(deploy.InputError, match="int8_min_mask_iou"):
+    with pytest.raises(InputError, match="int8_min_mask_iou"):
         deploy.require_int8_agreement(rep)
     assert not deploy.int8_agreement(ref, np.full_like(ref, np.nan), 0.5, 0.0)["passed"]
     # a small object that int8 loses: 99.9 % of the pixels agree, the mask does not
@@ -279,7 +272,7 @@ def test_export_refuses_an_int8_model_whose_masks_stray(tmp_path, monkeypatch):
         Path(wrong).unlink()
         return Path(out_path)
 
-    monkeypatch.setattr(deploy, "quantize_onnx_int8", quantise_the_wrong_model)
+    monkeypatch.setattr(quantize, "quantize_onnx_int8", quantise_the_wrong_model)
     # tau at the median PyTorch probability on the calibration images: about half the pixels are foreground
     from pipeline.inference import predict_probs
 
@@ -332,7 +325,7 @@ def test_int8_quantisation_keeps_masks_close(tmp_path):
     assert deploy.file_sha256(minmax) != deploy.file_sha256(q)
     assert deploy.file_sha256(deploy.quantize_onnx_int8(onnx_path, tmp_path / "q4.onnx", calib, "minmax")) == \
         deploy.file_sha256(minmax)
-    with pytest.raises(deploy.InputError, match="int8_calibration"):
+    with pytest.raises(InputError, match="int8_calibration"):
         deploy.quantize_onnx_int8(onnx_path, tmp_path / "q5.onnx", calib, "entropy")
 
 
@@ -367,7 +360,7 @@ def test_int8_calibration_runs_in_bounded_passes(tmp_path, monkeypatch):
         cal.collect_data = collect_data
         return cal
     monkeypatch.setattr(calibrate, "create_calibrator", counting_calibrator)
-    monkeypatch.setattr(deploy, "CALIBRATION_CHUNK", 2)
+    monkeypatch.setattr(quantize, "CALIBRATION_CHUNK", 2)
     split = deploy.quantize_onnx_int8(onnx_path, tmp_path / "split.onnx", calib, "minmax")
     assert passes == [2, 2, 1]
     assert deploy.file_sha256(split) == deploy.file_sha256(whole)
@@ -419,16 +412,18 @@ def test_benchmark_tiny_model_writes_json_and_parquet(tmp_path, monkeypatch):
 
     def no_requantising(*a, **k):
         raise AssertionError("the benchmark must reuse the bundle's int8 model")
-    monkeypatch.setattr(deploy, "quantize_onnx_int8", no_requantising)
+    monkeypatch.setattr(quantize, "quantize_onnx_int8", no_requantising)
     variants = "[fp32_eager_nchw,fp32_channels_last,bf16_autocast,torchscript_frozen,onnxruntime_fp32,onnxruntime_int8]"
     args = ["--params", PARAMS, "--device", "cpu", "--deploy", str(tmp_path / "deploy"), "--artifacts", str(art),
             "--out", str(tmp_path / "eff.parquet"), "--json", str(tmp_path / "eff.json"),
             "--set", "deploy.benchmark_iters=1", "--set", "deploy.benchmark_warmup=0",
             "--set", "deploy.benchmark_batches=[1,2]", "--set", f"deploy.benchmark_variants={variants}",
             "--set", "deploy.int8_calibration_images=2"]
+    monkeypatch.setattr(bench, "SLOW_FACTOR", 1e9)  # time every variant fully (the probe rule: below)
     r = CliRunner().invoke(bench_main, args)
     assert r.exit_code == 0, r.output
     res = json.loads((tmp_path / "eff.json").read_text())
+    assert all(v["status"] == "ok" and v["probe_ms"] > 0 for v in res["variants"].values())
     expected = {"fp32_eager_nchw", "fp32_channels_last", "bf16_autocast", "torchscript_frozen"}
     if HAS_ONNX:
         expected |= {"onnxruntime_fp32", "onnxruntime_int8"}
@@ -462,7 +457,7 @@ def test_benchmark_tiny_model_writes_json_and_parquet(tmp_path, monkeypatch):
     assert res["variants"]["fp32_eager_nchw"]["iou"] == pytest.approx(expect)
     table = open_artifact(tmp_path / "eff.parquet", "efficiency").df
     assert set(table["variant"]) == expected
-    assert {"iou_delta", "iou_vs_fp32", "batch", "resolution", "speedup"} <= set(table.columns)
+    assert {"iou_delta", "iou_vs_fp32", "batch", "resolution", "speedup", "status", "probe_ms"} <= set(table.columns)
     assert "x base" in r.stdout
 
 
@@ -490,3 +485,38 @@ def test_benchmark_standalone_checkpoint_without_artifacts(tmp_path):
     assert res["variants"]["fp32_eager_nchw"]["iou"] is None and "iou" in res["notes"]
     r = CliRunner().invoke(bench_main, args + ["--set", "deploy.benchmark_variants=[warp_drive]"])
     assert r.exit_code == 2 and "warp_drive" in r.output
+
+
+def test_slow_status_compares_the_probe_with_the_baseline():
+    assert bench.slow_status(4.0, 1.0, 4.0) is None            # exactly 4x: still timed
+    assert bench.slow_status(5.0, 1.0, 4.0).startswith("slow on this CPU (probe: 5.0 ms, 5.0x")
+    assert bench.slow_status(50.0, None, 4.0) is None          # no baseline probe: time it
+    assert bench.slow_status(float("nan"), 1.0, 4.0) is None
+
+
+def test_benchmark_probes_and_does_not_fully_time_a_slow_variant(monkeypatch):
+    """A variant far slower than the baseline gets its warm-up and probe only: a status, NaN timings,
+    never the fast path; the baseline is probed first whatever the order of the variants."""
+    import time
+
+    calls = {"fp32_eager_nchw": 0, "bf16_autocast": 0}
+
+    def fake(name, seconds):
+        def run(x):
+            calls[name] += 1
+            time.sleep(seconds)
+            return torch.zeros(x.shape[0], 1, *x.shape[2:])
+        return bench.Variant(name, name, run, "cpu")
+
+    monkeypatch.setattr(bench, "build_variants", lambda *a, **k: (
+        [fake("bf16_autocast", 0.03), fake("fp32_eager_nchw", 0.001)], {}))
+    rows, info = bench.measure_variants(tiny_model(), resolution=RES, variants=[], warmup=1, iters=3, batches=[1],
+                                        slow_factor=4.0)
+    assert [r["variant"] for r in rows] == ["bf16_autocast", "fp32_eager_nchw"]  # the given order
+    slow, base = rows
+    assert slow["status"].startswith("slow on this CPU") and info["slow"] == {"bf16_autocast": slow["status"]}
+    assert slow["probe_ms"] > 4 * base["probe_ms"] and np.isnan(slow["latency_ms"]) and np.isnan(slow["throughput"])
+    assert calls["bf16_autocast"] == 1 + bench.PROBE_CALLS  # warm-up + probe, nothing more
+    assert base["status"] == "ok" and base["latency_ms"] > 0 and base["throughput"] > 0
+    assert bench.fastest_within(rows, 0.01)["variant"] == "fp32_eager_nchw"
+    assert "slow on this CPU" in bench.format_table(rows)

@@ -96,6 +96,10 @@ def test_raw_loss_is_bbce_plus_point_two_dice():
     m = t([[[1.0, 0.0]], [[0.0, 0.0]]])
     expected = losses.balanced_bce(z, m) + 0.2 * losses.dice_loss(torch.sigmoid(z), m)
     assert losses.raw_loss(z, m).item() == pytest.approx(expected.item(), rel=1e-6)
+    parts = losses.raw_terms(z, m, dice_weight=0.5)
+    assert parts["bbce"].item() == pytest.approx(losses.balanced_bce(z, m).item(), rel=1e-6)
+    assert parts["dice"].item() == pytest.approx(losses.dice_loss(torch.sigmoid(z), m).item(), rel=1e-6)
+    assert parts["raw"].item() == pytest.approx((parts["bbce"] + 0.5 * parts["dice"]).item(), rel=1e-6)
 
 
 # ---- eq:pseudo-boundary-band .. eq:sdf-loss ---------------------------------------------------------
@@ -150,6 +154,42 @@ def test_refine_loss_combination_and_single_gating():
     out0 = losses.refine_loss({"mask": z, "sdf": d_s, "skeleton": zk},
                               {"mask": m, "sdf": d_t, "skeleton": k, "area": a}, t([0.0, 0.0]))
     assert out0["loss"].item() == pytest.approx(raw.item(), rel=1e-6)
+
+
+def _batch():
+    torch.manual_seed(3)
+    out = {"mask": torch.randn(2, 1, 4, 4), "sdf": torch.tanh(torch.randn(2, 1, 4, 4)),
+           "skeleton": torch.randn(2, 1, 4, 4)}
+    tgt = {"mask": (torch.rand(2, 1, 4, 4) > 0.5).float(), "sdf": torch.rand(2, 1, 4, 4) * 2 - 1,
+           "skeleton": (torch.rand(2, 1, 4, 4) > 0.8).float(), "area": t([0.3, 0.6]),
+           "anchor": torch.rand(2, 1, 4, 4)}
+    return out, tgt, t([0.7, 0.2])
+
+
+def test_refine_loss_with_method_weights_sums_exactly_the_named_terms():
+    """The comparison methods' objectives: Stage I = L_raw only, GABI's ungated dist/boundary terms, the
+    adaptive anchor, the geometry_only mode without L_raw, and non-paper constants."""
+    out, tgt, g = _batch()
+    stage1 = losses.refine_loss(out, tgt, g, {"region": 1.0})
+    assert set(stage1) == {"loss", "raw", "bbce", "dice"}
+    assert stage1["loss"].item() == pytest.approx(losses.raw_loss(out["mask"], tgt["mask"]).item(), rel=1e-6)
+    gabi = losses.refine_loss(out, tgt, g, {"region": 1.0, "dist": 0.5, "boundary": 0.25})
+    dist = losses.distance_regression_loss(out["sdf"], tgt["sdf"])
+    bnd = losses.boundary_weighted_bce(out["mask"], tgt["mask"], tgt["sdf"])
+    assert gabi["loss"].item() == pytest.approx((stage1["raw"] + 0.5 * dist + 0.25 * bnd).item(), rel=1e-6)
+    assert gabi["dist"].item() == dist.item() and gabi["boundary"].item() == bnd.item()
+    geo_only = losses.refine_loss(out, tgt, g, {"anchor": 0.1, "sdf": 0.002, "skel": 0.001, "area": 0.05})
+    assert "raw" not in geo_only
+    anchor = losses.anchor_loss(out["mask"], tgt["anchor"])
+    full = losses.refine_loss(out, tgt, g)
+    expected = 0.1 * anchor + 0.002 * full["sdf"] + 0.001 * full["skel"] + 0.05 * full["area"]
+    assert geo_only["loss"].item() == pytest.approx(expected.item(), rel=1e-6)
+    c = losses.LossConstants(dice_weight=0.5, sdf_band=0.2)
+    other = losses.refine_loss(out, tgt, g, constants=c)
+    assert other["raw"].item() == pytest.approx(losses.raw_loss(out["mask"], tgt["mask"], 0.5).item(), rel=1e-6)
+    assert other["sdf"].item() == pytest.approx(losses.sdf_loss(out["sdf"], tgt["sdf"], g, 0.2).item(), rel=1e-6)
+    with pytest.raises(ValueError, match="unknown loss term"):
+        losses.refine_loss(out, tgt, g, {"vibes": 1.0})
 
 
 def test_gradients_flow_and_are_finite():

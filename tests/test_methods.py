@@ -12,7 +12,15 @@ from pipeline.artifacts import make_meta, open_artifact
 from pipeline.errors import InputError
 from pipeline.methods import (METHODS, adaptive_mode, afs_fuse, afs_keep, confidence_pass, get_method,
                               is_active, mean_valid_score, pass_ratio, resolve_plan)
-from tests.test_training import build_tiny_artifacts, tiny_cfg
+from tests.test_training import build_tiny_artifacts, load_arrays, tiny_cfg
+
+
+def _load(tiny, name, cfg):
+    """(TrainData, the artifacts opened) of a method, through the train stage's wiring."""
+    from stages.train import load_inputs
+
+    data, _, inputs = load_inputs(tiny, get_method(name), cfg)
+    return data, inputs
 
 
 @pytest.fixture(scope="module")
@@ -24,11 +32,10 @@ def tiny(tmp_path_factory):
 def stage1_state(tiny):
     from pipeline import training
 
-    m = get_method("plain")
     cfg = tiny_cfg(epochs_stage1=1)
-    data, _ = training.load_training_data(tiny, m, cfg)
-    val, _ = training.validation_reference(tiny)
-    return training.train(m, cfg, data, val, 42, show_progress=False).model.mask_path_state_dict()
+    data, val = load_arrays(tiny, "plain", cfg)
+    return training.train(get_method("plain"), cfg, data, val, 42, checkpointer=training.NoCheckpointer(),
+                          show_progress=False).model.mask_path_state_dict()
 
 
 def _tables(art):
@@ -42,11 +49,13 @@ def _tables(art):
 # ---- the table ----------------------------------------------------------------------------------
 def test_every_protocol_method_is_defined_with_its_stage():
     from pipeline.params import load_params
+    from pipeline.profiles import ABLATIONS, MAIN_METHODS
 
-    p = load_params()["protocol"]
-    for name in p["stage1_methods"]:
+    runs = load_params()["protocol"]["runs"]
+    assert set(runs) <= set(METHODS) and set(MAIN_METHODS) | set(ABLATIONS) <= set(METHODS)
+    for name in ("plain", "confidence_filtered", "afs_control"):
         assert get_method(name).stage == 1
-    for name in p["stage2_methods"] + p["ablations"]:
+    for name in ["geodistill", "gabi", "geodistill_adaptive", *ABLATIONS]:
         assert get_method(name).stage == 2
     with pytest.raises(InputError, match="--method 'nope'"):
         get_method("nope")
@@ -100,15 +109,15 @@ def test_confidence_filter_drops_exactly_the_failing_images(tiny):
 
     gates, _, _ = _tables(tiny)
     cfg = tiny_cfg(confidence={"criterion": "agreement", "threshold": float(np.median(gates["c"])), "min_valid": 3})
-    data, inputs = training.load_training_data(tiny, get_method("confidence_filtered"), cfg)
+    data, inputs = _load(tiny, "confidence_filtered", cfg)
     expect = (gates["c"] >= cfg["confidence"]["threshold"]) & (gates["n_valid"] >= 3)
     assert data.image_ids == gates.loc[expect, "image_id"].tolist()
     assert 0 < len(data) < len(gates)  # the filter really drops something here
     assert data.stats["confidence_pass_ratio"] == pytest.approx(expect.mean())
     assert "teacher" not in {a.meta.schema for a in inputs}  # the agreement criterion reads gates only
     with pytest.raises(InputError, match="no training image passes"):
-        training.load_training_data(tiny, get_method("confidence_filtered"),
-                                    tiny_cfg(confidence={"criterion": "agreement", "threshold": 2.0, "min_valid": 1}))
+        _load(tiny, "confidence_filtered", tiny_cfg(confidence={"criterion": "agreement", "threshold": 2.0,
+                                                                "min_valid": 1}))
 
 
 def test_afs_control_fuses_views_and_drops_low_scores(tiny):
@@ -116,7 +125,7 @@ def test_afs_control_fuses_views_and_drops_low_scores(tiny):
 
     _, teacher, train = _tables(tiny)
     cfg = tiny_cfg(afs={"base_prompt": "spacecraft", "score_threshold": 0.6, "fusion": "intersection"})
-    data, inputs = training.load_training_data(tiny, get_method("afs_control"), cfg)
+    data, inputs = _load(tiny, "afs_control", cfg)
     score = teacher.numpy("scores")[train, 0]
     keep = score >= 0.6
     ids = np.array(teacher.attrs["image_ids"])[train]
@@ -135,16 +144,17 @@ def test_no_gate_really_sets_g_to_one(tiny):
 
     gates, _, _ = _tables(tiny)
     cfg = tiny_cfg()
-    ng, _ = training.load_training_data(tiny, get_method("no_gate"), cfg)
-    gd, _ = training.load_training_data(tiny, get_method("geodistill"), cfg)
+    ng, _ = _load(tiny, "no_gate", cfg)
+    gd, _ = _load(tiny, "geodistill", cfg)
     assert np.all(ng.gate == 1.0)
     np.testing.assert_allclose(gd.gate, gates["g"].to_numpy(np.float32))
     assert gd.gate.min() == 0.0  # the tiny set has a suppressed sample, so the two really differ
 
 
 def test_geodistill_objective_equals_refine_loss():
-    from pipeline.training import compute_terms
+    """The geodistill plan's weights with the train params' constants are the paper's eq:refine-loss."""
     from pipeline.params import load_params
+    from pipeline.training import loss_constants
 
     cfg = load_params()["train"]
     torch.manual_seed(1)
@@ -153,9 +163,11 @@ def test_geodistill_objective_equals_refine_loss():
     batch = {"mask": (torch.rand(3, 1, 8, 8) > 0.6).float(), "sdf": torch.rand(3, 1, 8, 8) * 2 - 1,
              "skeleton": (torch.rand(3, 1, 8, 8) > 0.9).float(), "area": torch.tensor([0.1, 0.3, 0.0]),
              "gate": torch.tensor([0.0, 0.5, 1.0])}
-    mine = compute_terms(resolve_plan(get_method("geodistill"), cfg).weights, out, batch, cfg)
+    mine = losses.refine_loss(out, batch, batch["gate"], resolve_plan(get_method("geodistill"), cfg).weights,
+                              loss_constants(cfg))
     ref = losses.refine_loss(out, batch, batch["gate"])
-    for k in ("loss", "raw", "sdf", "skel", "area"):
+    assert loss_constants(cfg) == losses.LossConstants()
+    for k in ("loss", "raw", "bbce", "dice", "sdf", "skel", "area"):
         assert mine[k].item() == pytest.approx(ref[k].item(), rel=1e-6), k
 
 
@@ -169,7 +181,9 @@ def test_adaptive_mode_switch_follows_r():
     assert hi.mode == "anchored" and "region" in hi.weights and hi.weights["anchor"] == 0.1
     assert not hi.epoch0_eligible
     assert lo.mode == "geometry_only" and "region" not in lo.weights and lo.epoch0_eligible
-    assert {"sdf", "skel", "area", "anchor"} <= set(lo.weights)
+    assert set(lo.weights) == {"sdf", "skel", "area"}  # default: no anchor in geometry_only mode
+    kept = resolve_plan(m, {**cfg, "adaptive": {**cfg["adaptive"], "anchor_geometry_only": True}}, 0.308)
+    assert set(kept.weights) == {"sdf", "skel", "area", "anchor"}
 
 
 @pytest.mark.parametrize("threshold,mode", [(0.0, "anchored"), (1.5, "geometry_only")])
@@ -178,14 +192,16 @@ def test_adaptive_run_decides_mode_from_training_pseudo_labels(tiny, stage1_stat
 
     m = get_method("geodistill_adaptive")
     cfg = tiny_cfg(epochs_stage2=1, confidence={"criterion": "agreement", "threshold": threshold, "min_valid": 1})
-    data, _ = training.load_training_data(tiny, m, cfg)
+    data, val = load_arrays(tiny, m.name, cfg)
     assert len(data) == 8  # the adaptive method filters nothing; r only picks the mode
-    val, _ = training.validation_reference(tiny)
-    res = training.train(m, cfg, data, val, 42, init_state=stage1_state, show_progress=False)
+    res = training.train(m, cfg, data, val, 42, init_state=stage1_state, checkpointer=training.NoCheckpointer(),
+                         show_progress=False)
     assert res.info["mode"] == mode
     assert res.info["confidence_pass_ratio"] == (1.0 if mode == "anchored" else 0.0)
     row = res.log.set_index("epoch").loc[1]
-    assert np.isfinite(row["anchor"]) and (np.isfinite(row["raw"]) == (mode == "anchored"))
+    # anchored: L_refine + anchor; geometry_only (default params): geometry terms only
+    assert np.isfinite(row["anchor"]) == np.isfinite(row["raw"]) == (mode == "anchored")
+    assert np.isfinite(row[["sdf", "skel", "area"]].astype(float)).all()
     assert res.info["epoch0_eligible"] == (mode == "geometry_only")
     best = int(res.log.loc[res.log["val_iou"].idxmax(), "epoch"])
     if mode == "geometry_only":  # epoch 0 competes with epoch 1 on val IoU
@@ -202,10 +218,9 @@ def test_every_method_trains_and_writes_a_loadable_checkpoint(tiny, stage1_state
 
     m = get_method(name)
     cfg = tiny_cfg(epochs_stage1=1, epochs_stage2=1, gabi={"epochs": 1, "lambda_dist": 0.002, "lambda_boundary": 0.05})
-    data, _ = training.load_training_data(tiny, m, cfg)
-    val, _ = training.validation_reference(tiny)
+    data, val = load_arrays(tiny, name, cfg)
     res = training.train(m, cfg, data, val, 42, init_state=stage1_state if m.init == "stage1" else None,
-                         show_progress=False)
+                         checkpointer=training.NoCheckpointer(), show_progress=False)
     assert np.isfinite(res.log["loss"].dropna()).all() and len(res.log["loss"].dropna()) >= 1
     for term in m.terms:
         if term != "region" or not res.info["mode"] == "geometry_only":

@@ -16,6 +16,7 @@ from click.testing import CliRunner
 
 from pipeline import deploy
 from pipeline.datasets.loading import read_rgb, resize_image
+from pipeline.errors import InputError
 from pipeline.inference import load_student
 from stages.segment import main as segment_main
 from test_deploy import HAS_ONNX, make_artifacts, make_checkpoint, make_thresholds, run_export
@@ -239,7 +240,7 @@ def test_segment_never_overwrites_inputs_and_rejects_bad_options(tmp_path):
     r = segment(*base, "--input", flat / "a_mask.png", "--output", tmp_path / "elsewhere")
     assert r.exit_code == 0  # a mask file is an image too; output goes elsewhere
     # a.png's mask would land on the input a_mask.png: refused before anything is written
-    with pytest.raises(deploy.InputError, match="overwrite the input"):
+    with pytest.raises(InputError, match="overwrite the input"):
         deploy.plan_outputs(flat, [flat / "a.png", flat / "a_mask.png"], flat, False)
     assert (flat / "a_mask.png").read_bytes() == before
 

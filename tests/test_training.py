@@ -123,14 +123,25 @@ def tiny(tmp_path_factory):
     return build_tiny_artifacts(tmp_path_factory.mktemp("tiny") / "artifacts")
 
 
-def _run(method_name, art, cfg, seed=42, init_state=None, **kw):
+def load_arrays(art, method_name, cfg):
+    """(TrainData, ValData) of a method from the tiny artifacts, opened by the stage's wiring."""
+    from pipeline.methods import get_method
+    from stages.train import load_inputs
+
+    data, val, _ = load_inputs(art, get_method(method_name), cfg)
+    return data, val
+
+
+def _run(method_name, art, cfg, seed=42, init_state=None, resume_dir=None, checkpointer=None, **kw):
     from pipeline import training
     from pipeline.methods import get_method
+    from stages.train import FileCheckpointer
 
-    m = get_method(method_name)
-    data, _ = training.load_training_data(art, m, cfg)
-    val, _ = training.validation_reference(art)
-    return training.train(m, cfg, data, val, seed, init_state=init_state, show_progress=False, **kw)
+    data, val = load_arrays(art, method_name, cfg)
+    if checkpointer is None:
+        checkpointer = FileCheckpointer(resume_dir) if resume_dir is not None else training.NoCheckpointer()
+    return training.train(get_method(method_name), cfg, data, val, seed, init_state=init_state,
+                          checkpointer=checkpointer, show_progress=False, **kw)
 
 
 def _weights(model):
@@ -198,6 +209,85 @@ def test_resume_after_interruption_gives_identical_weights(tiny, tmp_path, metho
     _assert_same(_weights(full.model), _weights(again.model))
 
 
+def test_train_runs_from_arrays_with_an_in_memory_checkpointer_and_resumes():
+    """No artifacts: arrays in, model and log out; a MemoryCheckpointer resumes an interrupted run."""
+    from pipeline import training
+    from pipeline.methods import get_method
+
+    rng = np.random.default_rng(3)
+    masks = np.stack([_shape_mask(rng, 24) for _ in range(7)])
+    images = np.where(masks[..., None], 200, rng.integers(0, 40, (7, 24, 24, 3))).astype(np.uint8)
+    data = training.TrainData(image_ids=[f"t{i}" for i in range(5)], images=images[:5], mask=masks[:5],
+                              area=masks[:5].reshape(5, -1).mean(1).astype(np.float32),
+                              gate=np.ones(5, np.float32))
+    val = training.ValData(image_ids=["v0", "v1"], images=images[5:], masks=masks[5:])
+    cfg = tiny_cfg(epochs_stage1=3, lr_stage1=2e-3, batch_size=2)
+    m = get_method("plain")
+    full = training.train(m, cfg, data, val, 42, checkpointer=training.NoCheckpointer(), show_progress=False)
+    assert list(full.log["epoch"]) == [1, 2, 3] and full.log["val_iou"].notna().all()
+
+    class Killed(Exception):
+        pass
+
+    def kill_after_1(epoch, row):
+        if epoch == 1:
+            raise Killed
+
+    ck = training.MemoryCheckpointer()
+    with pytest.raises(Killed):
+        training.train(m, cfg, data, val, 42, checkpointer=ck, callback=kill_after_1, show_progress=False)
+    assert ck.state["epoch"] == 1 and len(ck.state["log"]) == 1
+    seen = []
+    resumed = training.train(m, cfg, data, val, 42, checkpointer=ck, show_progress=False,
+                             callback=lambda e, r: seen.append(e))
+    assert seen == [2, 3]
+    _assert_same(_weights(full.model), _weights(resumed.model))
+    pd.testing.assert_frame_equal(full.log.drop(columns="seconds"), resumed.log.drop(columns="seconds"))
+    # a state of another run (different seed) is ignored, not resumed
+    other = training.train(m, cfg, data, val, 7, checkpointer=ck, show_progress=False,
+                           callback=lambda e, r: seen.append(e))
+    assert seen == [2, 3, 1, 2, 3] and other.log["epoch"].tolist() == [1, 2, 3]
+
+
+@pytest.mark.parametrize("method", ["plain", "geodistill", "gabi", "no_gate"])
+def test_training_loss_is_the_losses_module_objective(tiny, method):
+    """The logged epoch-1 terms of a one-batch run (lr 0) equal losses.refine_loss (eq:refine-loss) with
+    the plan's weights -- and, for Stage I, losses.raw_loss (eq:raw-loss) -- on the untrained model."""
+    from pipeline import losses, training
+    from pipeline.methods import get_method, resolve_plan
+
+    m = get_method(method)
+    cfg = tiny_cfg(epochs_stage1=1, epochs_stage2=1, batch_size=64, channels_last=False,
+                   gabi={"epochs": 1, "lambda_dist": 0.002, "lambda_boundary": 0.05})
+    init = _run("plain", tiny, cfg).model.mask_path_state_dict() if m.init == "stage1" else None
+    data, val = load_arrays(tiny, method, cfg)
+    res = training.train(m, cfg, data, val, 42, init_state=init, checkpointer=training.NoCheckpointer(),
+                         show_progress=False)
+    row = res.log.set_index("epoch").loc[1]
+
+    model = training.build_model(m, cfg, 42, init).train()
+    x = torch.from_numpy(data.images).permute(0, 3, 1, 2).float() / 255.0
+    targets = {"mask": torch.from_numpy(data.mask).unsqueeze(1).float(), "area": torch.from_numpy(data.area)}
+    if data.sdf is not None:
+        targets["sdf"] = torch.from_numpy(data.sdf).unsqueeze(1)
+        targets["skeleton"] = torch.from_numpy(data.skeleton).unsqueeze(1).float()
+    with torch.no_grad():
+        out = model.forward_train(x)
+    gates = torch.from_numpy(data.gate)
+    weights = resolve_plan(m, cfg).weights
+    ref = losses.refine_loss(out, targets, gates, weights, training.loss_constants(cfg))
+    for k, v in ref.items():
+        assert row[k] == pytest.approx(v.item(), rel=1e-5), k
+    assert row["raw"] == pytest.approx(losses.raw_loss(out["mask"], targets["mask"]).item(), rel=1e-5)
+    if method == "plain":
+        assert row["loss"] == pytest.approx(row["raw"], rel=1e-6)
+        assert set(ref) == {"loss", "raw", "bbce", "dice"}
+    if method == "no_gate":  # g = 1: the ungated geometry terms
+        assert np.all(data.gate == 1.0)
+        assert row["sdf"] == pytest.approx(losses.sdf_loss(out["sdf"], targets["sdf"], torch.ones(len(data))).item(),
+                                           rel=1e-5)
+
+
 def test_nan_loss_raises_training_diverged(tiny, tmp_path):
     cfg = tiny_cfg(epochs_stage1=1, lr_stage1=float("inf"), epochs_stage2=1)
     with pytest.raises(TrainingDiverged, match="non-finite loss at epoch 1"):
@@ -242,24 +332,33 @@ def test_reference_masks_of_training_rows_never_reach_a_loss(tmp_path):
     cfg = tiny_cfg(epochs_stage1=2)
     ra, rb = _run("plain", a, cfg), _run("plain", b, cfg)
     _assert_same(_weights(ra.model), _weights(rb.model))
-    from pipeline.training import validation_reference
+    from pipeline import training
+    from pipeline.methods import get_method
 
-    val, _ = validation_reference(b)
+    _, val = load_arrays(b, "plain", cfg)
     assert len(val) == int((split == "val").sum())
     np.testing.assert_array_equal(val.masks, masks[split == "val"])
+    # the boundary is explicit in the API: training data refuses reference masks
+    m = get_method("plain")
+    inputs = {n: open_artifact(b / f, n) for n, f in [("manifest", "manifest.parquet"), ("images", "images.zarr"),
+                                                        ("consensus", "consensus.zarr")]}
+    assert "reference" not in training.training_inputs(m, cfg)
+    with pytest.raises(ValueError, match="reference masks never enter training"):
+        training.training_data(m, cfg, {**inputs, "reference": ref})
 
 
 # --------------------------------------------------------------------------------------------------
 # the stage command
 # --------------------------------------------------------------------------------------------------
-def _params_file(tmp_path, **protocol) -> Path:
+def _params_file(tmp_path, runs=None) -> Path:
+    """The repo's params file with 1-epoch fp32 training and ``protocol.runs`` (default: plain and
+    geodistill for seed 42)."""
     import yaml
 
     p = yaml.safe_load((REPO / "params.yaml").read_text())
-    p["profile"] = "demo"
-    p["profiles"]["demo"]["train"] = {"epochs_stage1": 1, "epochs_stage2": 1, "precision": "fp32", "num_threads": 1}
-    p["profiles"]["demo"]["protocol"] = {"active_seeds": [42], "active_methods": ["plain", "geodistill"],
-                                         "active_ablations": [], **protocol}
+    p["train"].update({"epochs_stage1": 1, "epochs_stage2": 1, "precision": "fp32", "num_threads": 1})
+    p["protocol"]["runs"] = {**{m: [] for m in p["protocol"]["runs"]},
+                             **(runs or {"plain": [42], "geodistill": [42]})}
     out = tmp_path / "params.yaml"
     out.write_text(yaml.safe_dump(p))
     return out

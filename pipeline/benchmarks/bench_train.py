@@ -55,13 +55,15 @@ def train_variant(cfg: dict, data, val, device, seed: int) -> dict:
     from pipeline.methods import get_method
 
     marks = [time.perf_counter()]
-    res = training.train(get_method("plain"), cfg, data, None, seed, device=device,
-                         callback=lambda epoch, row: marks.append(time.perf_counter()), show_progress=False)
+    res = training.train(get_method("plain"), cfg, data, None, seed, checkpointer=training.NoCheckpointer(),
+                         device=device, callback=lambda epoch, row: marks.append(time.perf_counter()),
+                         show_progress=False)
     out = {"epoch_seconds": list(np.diff(marks)), "autocast": res.info["autocast"],
            "final_loss": float(res.log["loss"].iloc[-1])}
     if val is not None:
-        out["val_iou"], out["val_bf1"] = training.validate(res.model, val, device, cfg["precision"],
-                                                           cfg["channels_last"])
+        out["val_iou"], out["val_bf1"] = training.validate(res.model, val, device, precision=cfg["precision"],
+                                                           channels_last=cfg["channels_last"],
+                                                           tolerance=cfg["val_bf1_tolerance"])
     return out
 
 

@@ -17,13 +17,13 @@ import logging
 import pandas as pd
 
 from pipeline.errors import InputError
+from pipeline.params import SPLITS
 
 log = logging.getLogger(__name__)
 
 MANIFEST_COLUMNS = ("image_id", "dataset", "domain", "split", "group", "spacecraft", "image_path",
                     "mask_path", "part_path", "width", "height", "sha256")
 ROW_COLUMNS = MANIFEST_COLUMNS[:9]   # what a source provides; width/height/sha256 come from decoding
-SPLITS = ("train", "val", "test")
 SKIPPED_COLUMNS = ("image_id", "path", "reason")
 
 

@@ -265,7 +265,7 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
                      batches: Sequence[int], tau: float | None = None, val_images: np.ndarray | None = None,
                      val_masks: np.ndarray | None = None, onnx_path=None, int8_path=None, seed: int = 0,
                      on_variant: Callable[[str], None] | None = None,
-                     slow_factor: float = SLOW_FACTOR) -> tuple[list[dict], dict]:
+                     slow_factor: float | None = None) -> tuple[list[dict], dict]:
     """Measure every variant; returns (rows in the order of ``variants``, info).
 
     Per variant: ``peak_mb`` = peak memory growth during ``max(1, warmup)`` warm-up calls
@@ -286,6 +286,7 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
 
     from pipeline.model import count_flops, count_parameters
 
+    slow_factor = SLOW_FACTOR if slow_factor is None else float(slow_factor)
     dev = torch.device(device)
     deployed = mask_path_model(model)
     params = count_parameters(deployed)
@@ -377,6 +378,7 @@ def benchmark_settings(cfg: dict) -> dict:
          "target_ms": float(require(cfg, "target_latency_ms", "deploy", kind=(int, float), lo=0)),
          "max_drop": float(require(cfg, "target_iou_drop", "deploy", kind=(int, float), lo=0)),
          "target_res": require(cfg, "target_resolution", "deploy", kind=int, lo=1),
+         "opset": require(cfg, "opset", "deploy", kind=int, lo=9, hi=30),
          "resolution": cfg.get("benchmark_resolution")}
     if not s["batches"] or not all(isinstance(b, int) and b >= 1 for b in s["batches"]):
         raise InputError(f"params: deploy.benchmark_batches={s['batches']!r}: positive integers expected")
