@@ -44,6 +44,7 @@ import numpy as np
 from pipeline.errors import ArtifactError, InputError
 
 META_KEY = "geodistill"
+CHUNKS_KEY = "geodistill_chunk_files"  # array -> number of chunk files that must exist
 SHARD_IMAGES = 256
 
 
@@ -94,8 +95,6 @@ SCHEMAS: dict[str, Schema] = {
         _s("gates", 1, "parquet", columns=(
             "image_id", "split", "c", "v", "a", "a0", "g_conf", "g_valid", "g_area", "g", "n_valid")),
         _s("checkpoint", 1, "dir", files=("model.pt", "log.parquet")),
-        # a matrix entry outside the active profile: a marker, ignored downstream
-        _s("inactive_run", 1, "dir"),
         _s("training_log", 1, "parquet", columns=("epoch", "stage", "loss", "val_iou", "val_bf1", "lr", "seconds")),
         _s("thresholds", 1, "parquet", columns=("method", "seed", "tau", "val_iou")),
         _s("metrics", 1, "parquet", columns=(
@@ -193,6 +192,36 @@ def creation_time() -> str:
     return when.isoformat(timespec="seconds")
 
 
+_RUN_ID: str | None = None
+
+
+def run_id() -> str:
+    """One id per stage execution (per process), recorded in every artifact it writes, so that readers
+    can refuse outputs of one stage that come from different runs (:func:`require_same_run`).
+
+    Random, except under ``SOURCE_DATE_EPOCH``, where it is derived from that value and the command
+    line, so that a rerun writes byte-identical artifacts.
+    """
+    global _RUN_ID
+    if _RUN_ID is None:
+        epoch = os.environ.get("SOURCE_DATE_EPOCH")
+        if epoch:
+            _RUN_ID = hashlib.sha256("\0".join([epoch, *sys.argv[1:]]).encode()).hexdigest()[:16]
+        else:
+            _RUN_ID = uuid.uuid4().hex[:16]
+    return _RUN_ID
+
+
+def require_same_run(*artifacts: "Artifact") -> None:
+    """ArtifactError unless artifacts written by one stage carry the same run id (a stage killed between
+    two of its outputs' renames leaves one new and one old output: they must not be used together)."""
+    arts = [a for a in artifacts if a is not None]
+    for a in arts[1:]:
+        if a.meta.stage == arts[0].meta.stage and a.meta.run_id != arts[0].meta.run_id:
+            raise ArtifactError(f"{a.path}: written by another run of stage {a.meta.stage!r} than {arts[0].path} "
+                                f"(an interrupted run?); rerun stage {a.meta.stage!r}")
+
+
 @dataclasses.dataclass
 class Meta:
     schema: str
@@ -204,6 +233,7 @@ class Meta:
     schema_version: int | None = None
     library_versions: dict = dataclasses.field(default_factory=dict)
     created_at: str = ""
+    run_id: str = ""
     extra: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
@@ -216,6 +246,8 @@ class Meta:
             self.library_versions = library_versions()
         if not self.created_at:
             self.created_at = creation_time()
+        if not self.run_id:
+            self.run_id = run_id()
 
     def to_dict(self) -> dict:
         return json.loads(canonical_json(dataclasses.asdict(self)))
@@ -247,10 +279,77 @@ def _tmp_sibling(path: Path) -> Path:
     return path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
 
 
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Atomically swap two paths (Linux ``renameat2(RENAME_EXCHANGE)``); False where unsupported."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        fn = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    rc = fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE)
+    return rc == 0
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def clean_leftovers(path: Path) -> None:
+    """Remove temporaries of earlier writes of ``path`` whose writer process is gone (a killed stage)."""
+    prefix = f".{path.name}."
+    if not path.parent.is_dir():
+        return
+    for p in path.parent.iterdir():
+        if not p.name.startswith(prefix):
+            continue
+        rest = p.name[len(prefix):]
+        kind, _, tail = rest.partition("-")
+        if kind not in ("tmp", "old"):
+            continue
+        pid = tail.split("-")[0]
+        if pid.isdigit() and _pid_alive(int(pid)) and int(pid) != os.getpid():
+            continue  # another live writer
+        shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+
+
+FAULT_ENV = "GEODISTILL_FAULT"
+
+
+def fault_point(name: str) -> None:
+    """Fault injection for the kill tests: ``GEODISTILL_FAULT=<name>`` makes the process SIGKILL itself
+    here (the tests prove that a kill at each point leaves a complete artifact at the final path)."""
+    if os.environ.get(FAULT_ENV) == name:
+        import signal
+
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
 def _replace(tmp: Path, path: Path) -> None:
-    """Move ``tmp`` onto ``path``; an existing directory is first moved aside, then removed."""
+    """Move ``tmp`` onto ``path`` so that a kill at any instant leaves the old or the new artifact at
+    ``path``: files by ``os.replace``; an existing directory by an atomic exchange of the two
+    directories (then the old one, now at ``tmp``, is removed).  Where the kernel lacks the
+    exchange, the old directory is moved aside first (a kill between the two renames then leaves it
+    at ``.<name>.old-PID-*``, which the next write removes)."""
+    fault_point("before_replace")
     if path.is_dir() and not path.is_symlink():
-        old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
+        if _exchange(tmp, path):
+            fault_point("after_exchange")
+            shutil.rmtree(tmp, ignore_errors=True)
+            return
+        old = path.with_name(f".{path.name}.old-{os.getpid()}-{uuid.uuid4().hex[:8]}")
         os.replace(path, old)
         os.replace(tmp, path)
         shutil.rmtree(old, ignore_errors=True)
@@ -263,6 +362,7 @@ def atomic_path(path: str | Path, is_dir: bool = False) -> Iterator[Path]:
     """Yield a hidden temp sibling of ``path``; on success rename it onto ``path``, else delete it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    clean_leftovers(path)
     tmp = _tmp_sibling(path)
     if is_dir:
         tmp.mkdir()
@@ -288,12 +388,22 @@ def _check_schema_name(meta: Meta, kind: str) -> Schema:
 # Zarr
 # --------------------------------------------------------------------------------------------------
 def _compressor(dtype):
-    """Masks (bool/uint8) compress best bit-shuffled; floats byte-shuffled at a fast level."""
-    from zarr.codecs import BloscCodec
+    """Masks (bool/uint8) compress best bit-shuffled; floats byte-shuffled at a fast level; then a
+    CRC32C checksum on every chunk (Zarr v3's ``crc32c`` codec), so a flipped byte fails the read."""
+    from zarr.codecs import BloscCodec, Crc32cCodec
 
     if np.dtype(dtype).kind == "f":
-        return BloscCodec(cname="zstd", clevel=1, shuffle="shuffle")
-    return BloscCodec(cname="zstd", clevel=3, shuffle="bitshuffle")
+        return [BloscCodec(cname="zstd", clevel=1, shuffle="shuffle"), Crc32cCodec()]
+    return [BloscCodec(cname="zstd", clevel=3, shuffle="bitshuffle"), Crc32cCodec()]
+
+
+def _expected_chunk_files(arr) -> int:
+    """Number of chunk (or shard) files a fully written array has: every one is written, empty or not."""
+    outer = arr.shards or arr.chunks
+    n = 1
+    for size, c in zip(arr.shape, outer):
+        n *= -(-size // c) if size else 0
+    return n
 
 
 class ZarrWriter:
@@ -331,8 +441,9 @@ class ZarrWriter:
         n = max(shape[0], 1) if shape else 1
         chunks = (1, *shape[1:]) if len(shape) > 1 else (min(n, 65536),)
         shards = (min(self.shard_images, n), *shape[1:]) if len(shape) > 1 else None
+        # write_empty_chunks: every chunk exists on disk, so a missing file is detectable (never read as zeros)
         kw = dict(name=name, shape=shape, chunks=chunks, dtype=np.dtype(dtype),
-                  compressors=_compressor(dtype), fill_value=fill_value)
+                  compressors=_compressor(dtype), fill_value=fill_value, config={"write_empty_chunks": True})
         if shards is not None and shape[0] > 0:
             kw["shards"] = shards
         self._arrays[name] = self._group.create_array(**kw)
@@ -386,7 +497,8 @@ class ZarrWriter:
                 missing = set(self.schema.arrays) - set(self._arrays)
                 if missing:
                     raise ArtifactError(f"{self.path}: schema {self.meta.schema!r} needs arrays {sorted(missing)}")
-                self._group.attrs.update({**self.attrs, META_KEY: self.meta.to_dict()})
+                chunk_files = {n: _expected_chunk_files(a) for n, a in self._arrays.items()}
+                self._group.attrs.update({**self.attrs, CHUNKS_KEY: chunk_files, META_KEY: self.meta.to_dict()})
         except BaseException as e:  # noqa: BLE001 -- make sure the temp dir is removed
             self._ctx.__exit__(type(e), e, e.__traceback__)
             raise
@@ -421,7 +533,8 @@ def write_parquet(path: str | Path, table, meta: Meta) -> Path:
     md[META_KEY.encode()] = json.dumps(meta.to_dict()).encode()
     table = table.replace_schema_metadata(md)
     with atomic_path(path) as tmp:
-        pq.write_table(table, tmp, compression="zstd")
+        # page checksums (CRC32): verified on every read, so a flipped byte is an error, not bad data
+        pq.write_table(table, tmp, compression="zstd", write_page_checksum=True)
     return Path(path)
 
 
@@ -472,7 +585,7 @@ class ZarrArtifact(Artifact):
 
     def __getitem__(self, name: str):
         try:
-            return self.group[name]
+            return VerifiedArray(self.group[name], f"{self.path}: array {name!r}")
         except KeyError:
             raise ArtifactError(f"{self.path}: no array {name!r}") from None
 
@@ -481,6 +594,53 @@ class ZarrArtifact(Artifact):
 
     def numpy(self, name: str) -> np.ndarray:
         return np.asarray(self[name][...])
+
+
+class VerifiedArray:
+    """A zarr array whose reads turn a checksum mismatch or undecodable chunk into one ArtifactError
+    line naming the artifact and array (never a traceback, never silently wrong values)."""
+
+    def __init__(self, arr, where: str):
+        self._arr = arr
+        self._where = where
+
+    def __getattr__(self, name):
+        return getattr(self._arr, name)
+
+    def _read(self, fn, *args):
+        try:
+            return fn(*args)
+        except ArtifactError:
+            raise
+        except Exception as e:  # crc32c mismatch, blosc/zstd decode error, truncated shard
+            raise ArtifactError(f"{self._where}: corrupt chunk ({type(e).__name__}); rerun the producing "
+                                "stage") from None
+
+    def __getitem__(self, sel):
+        return self._read(self._arr.__getitem__, sel)
+
+    def get_orthogonal_selection(self, sel):
+        return self._read(self._arr.get_orthogonal_selection, sel)
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[...]
+        return out if dtype is None else out.astype(dtype)
+
+    def __len__(self):
+        return len(self._arr)
+
+
+def _check_chunk_files(path: Path, group) -> None:
+    """Every chunk file recorded at write time must exist (a deleted shard would read back as zeros)."""
+    expected = group.attrs.get(CHUNKS_KEY)
+    if not isinstance(expected, dict):
+        raise ArtifactError(f"{path}: no chunk record (written by an older version); rerun the producing stage")
+    for name, n in expected.items():
+        cdir = path / name / "c"
+        found = sum(1 for p in cdir.rglob("*") if p.is_file()) if cdir.is_dir() else 0
+        if found != n:
+            raise ArtifactError(f"{path}: array {name!r} has {found} of its {n} chunk files; "
+                                "the artifact is incomplete or damaged, rerun the producing stage")
 
 
 class TableArtifact(Artifact):
@@ -538,7 +698,7 @@ def open_artifact(path: str | Path, schema: str | None = None) -> Artifact:
         if path.suffix == ".parquet":
             import pyarrow.parquet as pq
 
-            tbl = pq.read_table(path)
+            tbl = pq.read_table(path, page_checksum_verification=True)
             raw = (tbl.schema.metadata or {}).get(META_KEY.encode())
             meta = _validate(path, json.loads(raw) if raw else None, schema)
             spec = get_schema(meta.schema)
@@ -551,6 +711,7 @@ def open_artifact(path: str | Path, schema: str | None = None) -> Artifact:
 
             group = zarr.open_group(store=str(path), mode="r")
             meta = _validate(path, group.attrs.get(META_KEY), schema)
+            _check_chunk_files(path, group)
             spec = get_schema(meta.schema)
             present = {name: arr for name, arr in group.arrays()}
             for name, (kind, ndim) in {**spec.arrays, **{k: v for k, v in spec.optional.items() if k in present}}.items():

@@ -7,8 +7,7 @@ Checkpoint directory (schema ``checkpoint``)::
     log.parquet   training log (schema ``training_log``)
     meta.json     artifact metadata (fingerprint, lineage)
 
-Entries of the DAG matrix outside the active profile are directories of schema ``inactive_run``;
-:func:`is_active_run` tells them apart.
+Only the runs listed in params.yaml's ``protocol.runs`` exist (one DVC stage each).
 """
 
 from __future__ import annotations
@@ -23,24 +22,41 @@ import numpy as np
 from pipeline.errors import ArtifactError
 
 
-def is_active_run(path: str | Path) -> bool:
-    """True for a trained checkpoint directory, False for an inactive matrix entry."""
-    mp = Path(path) / "meta.json"
-    if not mp.exists():
-        raise ArtifactError(f"{path}: not a checkpoint directory (no meta.json)")
-    return json.loads(mp.read_text()).get("schema") == "checkpoint"
-
-
 def iter_runs(checkpoints_dir: str | Path) -> Iterator[tuple[str, int, Path]]:
-    """(method, seed, path) of every *active* run under ``checkpoints/<method>/<seed>/``, sorted."""
+    """(method, seed, path) of every run under ``checkpoints/<method>/<seed>/``, sorted."""
     root = Path(checkpoints_dir)
     if not root.exists():
         raise ArtifactError(f"{root}: checkpoints directory not found")
     for mdir in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
         for sdir in sorted((p for p in mdir.iterdir() if p.is_dir() and not p.name.startswith(".")),
                            key=lambda p: p.name):
-            if (sdir / "meta.json").exists() and is_active_run(sdir):
+            if (sdir / "meta.json").exists():
                 yield mdir.name, int(sdir.name), sdir
+
+
+def load_payload(pt: str | Path) -> dict:
+    """The dict saved in a ``model.pt``, loaded so that nothing in the file can execute code.
+
+    ``torch.load(weights_only=True)`` unpickles only tensors and plain containers (dict, list, str,
+    numbers); a file that needs anything else -- a crafted pickle, an arbitrary object -- is refused
+    with an :class:`ArtifactError` naming it, before any of its code could run.  Checkpoints travel
+    between labs, so this is the only way the project reads them.
+    """
+    import pickle
+
+    import torch
+
+    pt = Path(pt)
+    try:
+        payload = torch.load(pt, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise ArtifactError(f"{pt}: refused: holds objects other than tensors and plain data "
+                            "(loading it could execute code)") from None
+    except Exception as e:
+        raise ArtifactError(f"{pt}: unreadable checkpoint ({type(e).__name__})") from None
+    if not isinstance(payload, dict) or "state_dict" not in payload or "config" not in payload:
+        raise ArtifactError(f"{pt}: not a GeoDistill checkpoint (no state_dict/config)")
+    return payload
 
 
 def load_student(path: str | Path, device="cpu"):
@@ -56,8 +72,8 @@ def load_student(path: str | Path, device="cpu"):
     pt = path / "model.pt" if path.is_dir() else path
     if not pt.exists():
         raise ArtifactError(f"{path}: no model.pt (not a trained checkpoint)")
+    payload = load_payload(pt)
     try:
-        payload = torch.load(pt, map_location="cpu", weights_only=False)
         model = TinyUNet(**payload["config"])
         model.load_state_dict(payload["state_dict"])
     except ArtifactError:
@@ -160,10 +176,10 @@ def open_labelled_split(artifacts: str | Path, split: str, purpose: str):
 
 
 def active_runs(checkpoints_dir: str | Path, purpose: str) -> list[tuple[str, int, Path]]:
-    """:func:`iter_runs` as a list; InputError when there is no trained (active) checkpoint to ``purpose``."""
+    """:func:`iter_runs` as a list; InputError when there is no trained checkpoint to ``purpose``."""
     from pipeline.errors import InputError
 
     runs = list(iter_runs(checkpoints_dir))
     if not runs:
-        raise InputError(f"{checkpoints_dir}: no trained (active) checkpoint to {purpose}")
+        raise InputError(f"{checkpoints_dir}: no trained checkpoint to {purpose}")
     return runs

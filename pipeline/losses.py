@@ -24,12 +24,15 @@ from typing import Mapping
 import torch
 import torch.nn.functional as F
 
-PAPER_POS_WEIGHT_MAX = 500.0
-PAPER_DICE_WEIGHT = 0.2
-PAPER_SDF_BAND = 0.55
-PAPER_SDF_BASE_WEIGHT = 0.15
-PAPER_AREA_EPS = 1.0e-5
-PAPER_EPS = 1.0e-6
+from pipeline.params import PAPER
+
+# the paper's constants, from the params schema (their one place)
+PAPER_POS_WEIGHT_MAX = PAPER.train.pos_weight_max
+PAPER_DICE_WEIGHT = PAPER.train.dice_weight
+PAPER_SDF_BAND = PAPER.train.sdf_band
+PAPER_SDF_BASE_WEIGHT = PAPER.train.sdf_base_weight
+PAPER_AREA_EPS = PAPER.train.area_eps
+PAPER_EPS = PAPER.train.loss_eps
 
 
 def _per_pixel_weights(weights: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor | None:

@@ -224,22 +224,6 @@ def input_artifacts(method: Method) -> tuple[str, ...]:
 
 
 # --------------------------------------------------------------------------------------------------
-# Profile membership (which matrix entries train)
-# --------------------------------------------------------------------------------------------------
-def is_active(method: str, seed: int, protocol: Mapping[str, Any]) -> bool:
-    """Whether (method, seed) trains under the active profile.
-
-    Ablations (``protocol.ablations``) run only for ``protocol.ablation_seed`` and when listed in
-    ``protocol.active_ablations``; every other method when listed in ``protocol.active_methods`` and
-    ``seed`` is in ``protocol.active_seeds``.
-    """
-    ablations = list(protocol.get("ablations", []) or [])
-    if method in ablations:
-        return method in (protocol.get("active_ablations") or []) and int(seed) == int(protocol.get("ablation_seed", -1))
-    return method in (protocol.get("active_methods") or []) and int(seed) in [int(s) for s in protocol.get("active_seeds") or []]
-
-
-# --------------------------------------------------------------------------------------------------
 # Pseudo-label filters (teacher outputs only -- never reference masks)
 # --------------------------------------------------------------------------------------------------
 def mean_valid_score(scores: np.ndarray) -> np.ndarray:

@@ -278,7 +278,3 @@ def iou_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
         out[s:s + b] = _ratio(inter, union, (n_pred == 0) & (ng == 0))
     return out
 
-
-# The selection rule (tau by mean validation Image IoU, ties -> closest to 0.5) is owned by
-# pipeline.thresholds; re-exported for the importers of pipeline.metrics.calibrate_threshold.
-from pipeline.thresholds import calibrate_threshold  # noqa: E402,F401

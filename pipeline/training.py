@@ -178,12 +178,7 @@ def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, A
     gates_df = _gate_table(inputs["gates"], train_ids) if "gates" in inputs else None
     stats: dict[str, Any] = {"n_train_rows": int(len(train_idx))}
     mask, keep = _region_targets(method, cfg, inputs, train_idx, stats)
-    if _uses_confidence(method):
-        passed = _confidence_pass(gates_df, inputs.get("teacher"), train_idx, cfg["confidence"])
-        stats["confidence_pass_ratio"] = pass_ratio(passed)
-        if method.data == "confidence":
-            keep &= passed
-    sel = np.flatnonzero(keep)
+    sel = np.flatnonzero(keep & _confidence_keep(method, cfg, inputs, gates_df, train_idx, stats))
     if len(sel) == 0:
         raise InputError(f"--method {method.name}: no training image passes the method's filter "
                          f"(train.{'afs' if method.data == 'afs' else 'confidence'}); loosen it")
@@ -192,7 +187,7 @@ def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, A
         image_ids=[train_ids[i] for i in sel],
         images=_rows(inputs["images"], "image", rows),
         mask=mask[sel],
-        area=(gates_df["a"].to_numpy(np.float32)[sel] if gates_df is not None
+        area=(gates_df["a"].to_numpy(np.float32)[sel] if gates_df is not None  # a_i (eq:pseudo-area)
               else mask[sel].reshape(len(sel), -1).mean(1).astype(np.float32)),
         gate=gate_values(method, gates_df, sel),
         stats=stats,
@@ -213,6 +208,19 @@ def _region_targets(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str,
         stats["afs_pass_ratio"] = r
         return mask, keep
     return _rows(inputs["consensus"], "voted", train_idx).astype(bool), np.ones(len(train_idx), dtype=bool)
+
+
+def _confidence_keep(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Artifact], gates_df,
+                     train_idx: np.ndarray, stats: dict) -> np.ndarray:
+    """Rows the confidence filter keeps (all rows unless ``data == "confidence"``); records the pass
+    ratio r of the criterion in ``stats`` wherever the method evaluates it (filter or adaptive mode)."""
+    keep = np.ones(len(train_idx), dtype=bool)
+    if _uses_confidence(method):
+        passed = _confidence_pass(gates_df, inputs.get("teacher"), train_idx, cfg["confidence"])
+        stats["confidence_pass_ratio"] = pass_ratio(passed)
+        if method.data == "confidence":
+            keep &= passed
+    return keep
 
 
 def gate_values(method: Method, gates_df, sel: np.ndarray) -> np.ndarray:

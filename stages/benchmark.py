@@ -27,7 +27,6 @@ import click
 from pipeline.params import section
 from stages._common import meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("deploy", "thresholds.py", "model.py", "inference.py", "metrics.py", "artifacts.py")
 
 
 @stage_command("benchmark")
@@ -87,7 +86,7 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
     if out:
         import pandas as pd
 
-        meta = meta_for("efficiency", "benchmark", stage_code_version(__file__, *CODE_MODULES),
+        meta = meta_for("efficiency", "benchmark", stage_code_version(__file__),
                         {"deploy": cfg, "resolution": resolution, "tau": target.tau},
                         target.inputs + data_inputs, device=run_info["device"], threads=run_info["threads"],
                         notes=notes)

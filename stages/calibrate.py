@@ -14,10 +14,9 @@ from __future__ import annotations
 import click
 import pandas as pd
 
-from pipeline.params import require, section
-from stages._common import meta_for, stage_code_version, stage_command
+from pipeline.params import section
+from stages._common import declared_params, meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("thresholds.py", "metrics.py", "inference.py", "artifacts.py")
 
 
 @stage_command("calibrate")
@@ -36,7 +35,7 @@ def main(params, device, art, checkpoints, out):
 
     cfg = section(params, "calibrate")
     grid = threshold_grid(cfg)
-    fixed_tau = float(require(cfg, "fixed_tau", "calibrate", kind=(int, float), lo=0.0, hi=1.0))
+    fixed_tau = cfg["fixed_tau"]
     manifest, images, reference, val = open_labelled_split(art, "val", "calibration needs some")
     runs = active_runs(checkpoints, "calibrate")
 
@@ -54,8 +53,8 @@ def main(params, device, art, checkpoints, out):
                      "fixed_tau": fixed_tau, "fixed_val_iou": fixed_iou, "n_val": int(val.size),
                      "grid": grid.tolist(), "curve": curve.tolist()})
         inputs.append(open_artifact(path))
-    code = stage_code_version(__file__, *CODE_MODULES)
-    meta = meta_for("thresholds", "calibrate", code, {"calibrate": cfg}, inputs,
+    code = stage_code_version(__file__)
+    meta = meta_for("thresholds", "calibrate", code, declared_params(params, "calibrate"), inputs,
                     note="reference masks of the validation split used only for threshold calibration")
     write_parquet(out, pd.DataFrame(rows), meta)
     click.echo(f"calibrate: {len(rows)} runs on {val.size} validation images -> {out}", err=True)

@@ -22,10 +22,9 @@ import click
 import numpy as np
 import pandas as pd
 
-from pipeline.params import require, section
-from stages._common import meta_for, stage_code_version, stage_command
+from pipeline.params import section
+from stages._common import declared_params, meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("thresholds.py", "metrics.py", "stats.py", "inference.py", "artifacts.py")
 GAIN_METRICS = ("iou", "bf1", "precision", "recall")
 CHUNK = 64  # test images predicted and scored per batch (bounded memory for large test sets)
 
@@ -77,11 +76,8 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
     from pipeline.thresholds import mask_from_probs
 
     cfg = section(params, "evaluate")
-    tol = require(cfg, "bf1_tolerance", "evaluate", kind=(int, float), lo=0)
-    small_frac = require(cfg, "small_region_max_fraction", "evaluate", kind=(int, float), lo=0.0, hi=1.0)
-    n_boot = require(cfg, "bootstrap_resamples", "evaluate", kind=int, lo=1)
-    boot_seed = require(cfg, "bootstrap_seed", "evaluate", kind=int)
-    ci = require(cfg, "ci", "evaluate", kind=float, lo=0.5, hi=0.999)
+    tol, small_frac = cfg["bf1_tolerance"], cfg["small_region_max_fraction"]
+    n_boot, boot_seed, ci = cfg["bootstrap_resamples"], cfg["bootstrap_seed"], cfg["ci"]
 
     manifest, images, reference, test = open_labelled_split(art, "test", "nothing to evaluate")
     thr = open_artifact(thresholds, "thresholds")
@@ -116,10 +112,10 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
                          n_resamples=n_boot, ci=ci, seed=boot_seed)
     summary = summary.merge(gains, on=by, how="left")
 
-    code = stage_code_version(__file__, *CODE_MODULES)
-    write_parquet(out, metrics, meta_for("metrics", "evaluate", code, {"evaluate": cfg}, inputs))
+    code = stage_code_version(__file__)
+    write_parquet(out, metrics, meta_for("metrics", "evaluate", code, declared_params(params, "evaluate"), inputs))
     mmeta = open_artifact(out, "metrics")
-    write_parquet(summary_out, summary, meta_for("summary", "evaluate", code, {"evaluate": cfg}, [mmeta],
+    write_parquet(summary_out, summary, meta_for("summary", "evaluate", code, declared_params(params, "evaluate"), [mmeta],
                                                  control="plain", ci=ci, bootstrap_resamples=n_boot))
     with atomic_path(metrics_json) as tmp:
         tmp.write_text(json.dumps(summary_json(summary), indent=1, sort_keys=True))

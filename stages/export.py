@@ -21,10 +21,9 @@ from __future__ import annotations
 
 import click
 
-from pipeline.params import require, section
+from pipeline.params import section
 from stages._common import meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("deploy", "thresholds.py", "model.py", "inference.py", "artifacts.py")
 
 
 @stage_command("export")
@@ -43,18 +42,13 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     from pipeline import deploy
     from pipeline.artifacts import artifact_dir, open_artifact
     from pipeline.errors import InputError
-    from pipeline.inference import is_active_run, load_student
+    from pipeline.inference import load_student
     from pipeline.thresholds import lookup_tau, resolve_tau
 
     cfg = section(params, "deploy")
-    opset = require(cfg, "opset", "deploy", kind=int, lo=9, hi=30)
-    atol = float(require(cfg, "parity_atol", "deploy", kind=(int, float), lo=0.0))
-    n_calib = require(cfg, "int8_calibration_images", "deploy", kind=int, lo=1)
-    min_iou = float(require(cfg, "int8_min_mask_iou", "deploy", kind=(int, float), lo=0.0, hi=1.0))
+    opset, atol = cfg["opset"], cfg["parity_atol"]
+    n_calib, min_iou = cfg["int8_calibration_images"], cfg["int8_min_mask_iou"]
     q8 = deploy.int8_params(cfg)
-    if not is_active_run(checkpoint):
-        raise InputError(f"--checkpoint {checkpoint}: inactive in this profile (no trained model); "
-                         f"choose an active run with deploy.export_method / deploy.export_seed")
     ckpt = open_artifact(checkpoint, "checkpoint")
     model, payload = load_student(checkpoint, "cpu")
     method, seed = payload.get("method"), payload.get("seed")
@@ -71,7 +65,7 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     resolution = deploy.checkpoint_resolution(checkpoint, payload)
     res_source = "checkpoint"
     if resolution is None:
-        resolution = require(section(params, "data"), "resolution", "data", kind=int, lo=8)
+        resolution = params["data"]["resolution"]
         res_source = "data.resolution"
 
     calib, calib_note = None, None
@@ -85,7 +79,7 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
         calib, calib_inputs, calib_note = deploy.read_calibration_images(art, n_calib, int(resolution))
         inputs += calib_inputs
 
-    code = stage_code_version(__file__, *CODE_MODULES)
+    code = stage_code_version(__file__)
     meta = meta_for("deploy", "export", code,
                     {"deploy": {"opset": opset, "parity_atol": atol, "onnx": not no_onnx,
                                 "int8": calib is not None, "int8_calibration_images": n_calib,

@@ -3,8 +3,14 @@
 --checkpoint  a checkpoint directory (artifacts/checkpoints/<method>/<seed>) or a deploy bundle
               (artifacts/deploy, from ``geodistill export``)
 --input       one image file or a folder (searched recursively for png/jpg/jpeg/tif/tiff/bmp)
---output      folder for ``<name>_mask.png`` (0/255, at the image's original size), optional
-              ``<name>_prob.png`` (--save-prob) and ``<name>_overlay.png`` (--overlay), and skipped.csv
+--output      folder for ``<input name>.mask.png`` (0/255, at the image's original size), optional
+              ``<input name>.prob.png`` (--save-prob) and ``<input name>.overlay.png`` (--overlay), and
+              skipped.csv.  The whole input name is kept and sub-folders are mirrored:
+              ``photos/sub/a.png`` -> ``masks/sub/a.png.mask.png``, so a.png, a.jpg and a_png.png get
+              distinct outputs.  Two inputs whose outputs differ only in letter case (b.png, b.PNG) are
+              refused before anything is written.
+--overwrite   replace output files left by an earlier run; without it an existing output file (or
+              skipped.csv) stops the run before anything is written
 
 --engine      auto | torch | torchscript | onnx | int8: what computes the logits.  ``auto`` = onnx when
               the bundle holds model.onnx and onnxruntime imports, else torch: only engines whose
@@ -14,12 +20,17 @@
 
 tau (pipeline.thresholds.resolve_tau): ``--tau`` > the bundle's deploy.json > the checkpoint's payload >
 its row in ``--thresholds`` (default artifacts/thresholds.parquet when it exists) > ``calibrate.fixed_tau``
-of the params file (with a warning).  Working resolution: ``--resolution`` > bundle / checkpoint > ``data.resolution``.
+of the params file (with a warning).  Working resolution: ``--resolution`` > the one the model was
+trained at (the bundle's deploy.json, the checkpoint's payload or meta.json); never guessed from the
+params file: a checkpoint that records none is refused with a request for ``--resolution N``, and a
+``--resolution`` other than the recorded one is used with a warning.
 
 Unlike the pipeline stages this is a user tool: it runs anywhere, and reads the params file only
-for those two fallbacks, when that file exists.  Unreadable images are reported on stderr and in
-skipped.csv and skipped; the rest go on.  Outputs never overwrite inputs (an output folder inside the
-input folder is refused).  Bad options: one line on stderr, exit code 2.
+for the tau fallback, when that file exists.  Unreadable images are reported on stderr and in
+skipped.csv and skipped; the rest go on.  So are, in an input folder, symbolic links pointing outside
+it, broken links and links to folders (never followed).  Inputs are never modified and outputs never
+overwrite inputs (an output folder inside the input folder is refused).  Bad options and refused
+outputs: one line on stderr naming the path, exit code 2, nothing written.
 """
 
 from __future__ import annotations
@@ -42,8 +53,9 @@ def _fallback(params_file: str, overrides: tuple[str, ...], section_name: str, k
 
 
 def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
-        device, params_file, overrides) -> int:
+        device, params_file, overrides, overwrite=False) -> int:
     from pipeline import deploy
+    from pipeline.deploy import files as F
     from pipeline.device import resolve_device
     from stages._common import setup_logging
 
@@ -56,29 +68,48 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
         raise InputError("--output missing: a folder for the masks")
     if batch_size < 1:
         raise InputError(f"--batch-size {batch_size}: must be >= 1")
-    root, files = deploy.discover_images(input_path)
-    if not files:
-        raise InputError(f"--input {input_path}: no image files (png, jpg, jpeg, tif, tiff, bmp)")
-    stems = deploy.plan_outputs(root, files, output, Path(input_path).is_dir())
+    if resolution is not None and resolution < 8:
+        raise InputError(f"--resolution {resolution}: must be >= 8")
+    found = F.scan_inputs(input_path)
+    if not found.files:
+        extra = f"; skipped {found.skipped[0][0]}: {found.skipped[0][1]}" if found.skipped else ""
+        raise InputError(f"--input {input_path}: no image files (png, jpg, jpeg, tif, tiff, bmp){extra}")
+    files = found.files
+    stems = F.plan_outputs(found.root, files, output, found.is_dir,
+                           suffixes=F.output_suffixes(save_prob, overlay), overwrite=overwrite)
 
     seg = deploy.load_segmenter(checkpoint, engine, resolve_device(device), thresholds)
     tau, source = seg.resolve_tau(option=tau, fixed=(_fallback(params_file, overrides, "calibrate", "fixed_tau"),
                                                      "calibrate.fixed_tau (uncalibrated)"))
+    trained = seg.resolution
+    recorded_in = f"{Path(checkpoint) / deploy.DEPLOY_JSON}" if deploy.is_deploy_bundle(checkpoint) \
+        else f"checkpoint {checkpoint}"
+    if trained is not None and (not isinstance(trained, int) or isinstance(trained, bool) or trained < 8):
+        raise InputError(f"{recorded_in}: invalid resolution {trained!r}; pass --resolution N")
     if resolution is None:
-        resolution = seg.resolution or _fallback(params_file, overrides, "data", "resolution")
-    if not isinstance(resolution, int) or resolution < 8:
-        raise InputError(f"--resolution: working resolution unknown or invalid ({resolution!r}); pass --resolution")
+        if trained is None:
+            raise InputError(f"--checkpoint {checkpoint}: records no training resolution; pass --resolution N "
+                             "(the image size the model was trained at)")
+        resolution, res_source = trained, recorded_in
+    else:
+        res_source = "--resolution"
+        if trained is not None and resolution != trained:
+            click.echo(f"segment: warning: --resolution {resolution} differs from the {trained}px the model was "
+                       f"trained at ({recorded_in})", err=True)
 
     def report(path, reason):
         click.echo(f"segment: skipped {path}: {reason}", err=True)  # and in skipped.csv
 
     click.echo(f"segment: engine {seg.engine}" + (" (auto)" if engine == "auto" else "")
-               + f", {len(files)} image(s), {resolution}px, tau={tau:.4g} ({source})", err=True)
+               + f", {len(files)} image(s), {resolution}px ({res_source}), tau={tau:.4g} ({source})", err=True)
+    for path, reason in found.skipped:
+        report(path, reason)
     result = deploy.segment_files(seg, files, stems, tau=tau, resolution=resolution, batch_size=batch_size,
                                   save_prob=save_prob, overlay=overlay, on_skip=report)
-    deploy.write_skipped_csv(Path(output) / "skipped.csv", result.skipped)
-    click.echo(f"segment: wrote {len(result.written)} mask(s) to {output}; skipped {len(result.skipped)} "
-               f"(see {Path(output) / 'skipped.csv'})", err=True)
+    skipped = found.skipped + result.skipped
+    deploy.write_skipped_csv(Path(output) / F.SKIPPED_CSV, skipped)
+    click.echo(f"segment: wrote {len(result.written)} mask(s) to {output}; skipped {len(skipped)} "
+               f"(see {Path(output) / F.SKIPPED_CSV})", err=True)
     if result.written:
         n = len(result.written)
         click.echo(f"segment: timing: engine {seg.engine}, {1e3 * result.model_seconds / n:.2f} ms/image in the model, "
@@ -94,24 +125,26 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
 @click.option("--input", "input_path", default=None, help="image file or folder")
 @click.option("--output", default=None, help="output folder")
 @click.option("--tau", type=float, default=None, help="threshold override (default: the calibrated one)")
-@click.option("--resolution", type=int, default=None, help="working resolution override")
+@click.option("--resolution", type=int, default=None,
+              help="working resolution N (default: the one recorded with the model; required when none is)")
 @click.option("--thresholds", default="artifacts/thresholds.parquet", show_default=True,
               help="thresholds table used to find a checkpoint's calibrated tau (when it exists)")
 @click.option("--engine", default="auto", show_default=True,
               help="auto | torch | torchscript | onnx | int8 (all but torch need a deploy bundle); auto = onnx "
                    "if available, else torch (exact engines only; int8 is faster but approximate)")
 @click.option("--batch-size", type=int, default=8, show_default=True)
-@click.option("--save-prob", is_flag=True, help="also write <name>_prob.png (P x 255)")
-@click.option("--overlay", is_flag=True, help="also write <name>_overlay.png")
+@click.option("--save-prob", is_flag=True, help="also write <input name>.prob.png (P x 255)")
+@click.option("--overlay", is_flag=True, help="also write <input name>.overlay.png")
+@click.option("--overwrite", is_flag=True, help="replace output files of an earlier run (default: refuse)")
 @click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
 @click.option("--params", "params_file", default="params.yaml", show_default=True,
               help="params file, read only for the tau / resolution fallbacks")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="override a param (repeatable)")
 def main(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
-         device, params_file, overrides):
+         overwrite, device, params_file, overrides):
     try:
         run(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
-            device, params_file, overrides)
+            device, params_file, overrides, overwrite)
     except InputError as e:
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
         click.echo(f"geodistill segment: error: {msg}", err=True)

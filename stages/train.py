@@ -1,11 +1,9 @@
-"""Stage ``train`` (DVC: train_stage1, train_stage2, ablate): train one (method, seed) student.
+"""Stage ``train`` (DVC: ``train_<method>@<seed>``): train one (method, seed) student.
 
     python -m stages.train --stage 1|2 --method M --seed S --artifacts artifacts \
         [--init artifacts/checkpoints/plain/S] --out artifacts/checkpoints/M/S
 
-* (M, S) outside the active profile (``protocol.active_seeds/active_methods``; ablations:
-  ``protocol.active_ablations`` with ``protocol.ablation_seed``) -> an ``inactive_run`` marker
-  directory, written in about a second without importing torch.
+* Which (M, S) runs exist is params.yaml's ``protocol.runs``; dvc.yaml has a stage for exactly those.
 * ``--init`` is the Stage-I checkpoint for warm-started methods (``geodistill``, ``sdf_*_gated``,
   ``no_gate``, ``geodistill_adaptive``); methods trained from scratch (``gabi``, ``*_scratch*``,
   Stage-I methods) ignore it and do not record it in their lineage.
@@ -35,13 +33,7 @@ from pipeline.errors import InputError, TrainingDiverged
 from pipeline.params import section
 from stages._common import meta_for, stage_code_version, stage_command
 
-CODE_MODULES = ("training.py", "methods.py", "losses.py", "model.py", "inference.py", "metrics.py",
-                "artifacts.py", "device.py")
 
-#: artifact schema -> its file under --artifacts
-ARTIFACT_FILES = {"manifest": "manifest.parquet", "images": "images.zarr", "gates": "gates.parquet",
-                  "teacher": "teacher.zarr", "consensus": "consensus.zarr", "geometry": "geometry.zarr",
-                  "reference": "reference.zarr"}
 STATE_FILE = "state.pt"
 
 log = logging.getLogger(__name__)
@@ -64,7 +56,8 @@ class FileCheckpointer:
         if not path.exists():
             return None
         try:
-            return torch.load(path, map_location="cpu", weights_only=False)
+            # tensors and plain containers only: nothing in a state file can execute code
+            return torch.load(path, map_location="cpu", weights_only=True)
         except Exception as e:  # a state cut off by a kill during torch.save cannot happen (os.replace)
             log.warning("ignoring unreadable resume state %s (%s)", self.directory, type(e).__name__)
             return None
@@ -85,17 +78,21 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[An
     reference.zarr is opened only when the manifest has validation rows, and goes only to
     :func:`pipeline.training.validation_data`.
     """
-    from pipeline import training
-    from pipeline.artifacts import open_artifact
+    from pipeline import catalog, training
+    from pipeline.artifacts import open_artifact, require_same_run
 
-    root = Path(artifacts)
-    inputs = {name: open_artifact(root / ARTIFACT_FILES[name], name)
-              for name in training.training_inputs(spec, cfg)}
+    def opened_artifact(name: str):
+        return open_artifact(catalog.path(name, artifacts), catalog.ARTIFACTS[name].schema)
+
+    inputs = {name: opened_artifact(name) for name in training.training_inputs(spec, cfg)}
+    # outputs of one stage must come from one run (a kill between geometry.zarr and gates.parquet)
+    require_same_run(inputs.get("geometry"), inputs.get("gates"))
+    require_same_run(inputs.get("manifest"), inputs.get("images"))
     data = training.training_data(spec, cfg, inputs)
     opened = list(inputs.values())
     val = None
     if len(training.validation_rows(inputs["manifest"])):
-        reference = open_artifact(root / ARTIFACT_FILES["reference"], "reference")
+        reference = opened_artifact("reference")
         opened.append(reference)
         val = training.validation_data(inputs["manifest"], inputs["images"], reference)
     return data, val, opened
@@ -105,42 +102,24 @@ def load_init(path: str | Path):
     """Stage-I checkpoint for a warm start: (mask-path state dict, its artifact for the lineage)."""
     from pipeline.artifacts import open_artifact
     from pipeline.errors import ArtifactError
-    from pipeline.inference import is_active_run, load_student
+    from pipeline.inference import load_student
 
     p = Path(path)
     if not (p / "meta.json").exists():
-        raise ArtifactError(f"--init {p}: not a checkpoint directory (run train_stage1 first)")
-    if not is_active_run(p):
-        raise InputError(f"--init {p}: is an inactive run marker; add its method/seed to protocol.active_*")
+        raise ArtifactError(f"--init {p}: not a checkpoint directory (run train_plain first)")
     art = open_artifact(p, "checkpoint")
     model, _ = load_student(p)
     return model.mask_path_state_dict(), art
 
 
-def write_inactive(out: str, stage: int, method: str, seed: int, protocol: dict) -> None:
-    """The matrix entry's marker directory (schema ``inactive_run``); no torch import."""
-    from pipeline.artifacts import artifact_dir
-
-    meta = meta_for("inactive_run", "train", stage_code_version(__file__, "methods.py"),
-                    {"protocol": protocol, "method": method, "seed": seed, "stage": stage},
-                    reason="not in the active profile (params protocol.active_*)")
-    with artifact_dir(out, meta) as tmp:
-        (tmp / "INACTIVE").write_text(f"{method} seed {seed}: not in the active profile\n")
-
-
 def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts: str, init: str | None,
         out: str, resume_dir: str) -> Path:
-    from pipeline.methods import fingerprint_params, get_method, is_active
+    from pipeline.methods import fingerprint_params, get_method
 
     cfg = section(params, "train")
-    protocol = section(params, "protocol")
     spec = get_method(method)
     if spec.stage != stage:
         raise InputError(f"--stage {stage}: method {method!r} belongs to --stage {spec.stage}")
-    if not is_active(method, seed, protocol):
-        write_inactive(out, stage, method, seed, protocol)
-        click.echo(f"train: {method} seed {seed} is inactive in this profile; wrote marker {out}", err=True)
-        return Path(out)
 
     from pipeline import training
     from pipeline.device import resolve_device
@@ -153,7 +132,7 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
             raise InputError(f"--init missing: method {method!r} warm-starts from a Stage-I checkpoint")
         init_state, init_art = load_init(init)
         inputs.append(init_art)
-    meta = meta_for("checkpoint", "train", stage_code_version(__file__, *CODE_MODULES),
+    meta = meta_for("checkpoint", "train", stage_code_version(__file__),
                     {"train": fingerprint_params(spec, cfg), "method": method, "seed": seed, "stage": stage},
                     inputs, **data.stats)
     result = training.train(spec, cfg, data, val, seed, init_state=init_state, device=resolve_device(device),
@@ -161,6 +140,7 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
     meta.extra.update(result.info)
     save_checkpoint(out, result.model, meta, result.log, method=method, seed=seed, stage=stage,
                     selected_epoch=result.selected_epoch, selection=result.info["selection"],
+                    resolution=int(data.images.shape[1]),
                     mode=result.info["mode"], fingerprint=meta.fingerprint)
     click.echo(f"train: {method} seed {seed}: selected epoch {result.selected_epoch} "
                f"({result.info['selection']}); wrote {out}", err=True)

@@ -161,7 +161,7 @@ def test_consensus_stage_end_to_end(tmp_path):
     assert art.attrs["image_ids"] == [f"img{i}" for i in range(7)]
     assert art.attrs["prompts"] == PROMPTS
     assert art.meta.inputs[0]["fingerprint"] == open_artifact(teacher).fingerprint
-    assert art.meta.params == {"vote_threshold": 0.5}
+    assert art.meta.params == {"consensus.vote_threshold": 0.5}
     # determinism: a rerun gives the same fingerprint and arrays
     out2 = tmp_path / "consensus2.zarr"
     assert _run(["--teacher", str(teacher), "--out", str(out2)], tmp_path).exit_code == 0

@@ -56,14 +56,22 @@ def test_bad_files_raise_input_error_naming_the_file(tmp_path, case):
     assert {"missing": "not found", "zero": "zero-byte", "corrupt": "corrupt", "unsupported": "unsupported"}[case] in msg
 
 
-def test_read_mask_thresholds(tmp_path):
+def test_read_mask_thresholds(tmp_path, caplog):
     m = np.array([[0, 1], [128, 255]], np.uint8)
     p = _write(tmp_path / "m.png", m)
-    assert L.read_mask(p).tolist() == [[False, False], [True, True]]            # auto: > 127
+    with caplog.at_level("WARNING"):
+        assert L.read_mask(p).tolist() == [[False, True], [True, True]]         # default: value > 0
+        L.read_mask(p)
+    assert len([r for r in caplog.records if str(p) in r.getMessage()]) == 1    # multi-valued: warned once
     assert L.read_mask(p, threshold=128).tolist() == [[False, False], [False, True]]
     assert L.read_mask(p, threshold=0).tolist() == [[False, True], [True, True]]
     p01 = _write(tmp_path / "m01.png", np.array([[0, 1]], np.uint8))
-    assert L.read_mask(p01).tolist() == [[False, True]]                         # auto: 0/1 labels
+    assert L.read_mask(p01).tolist() == [[False, True]]                         # 0/1 labels
+    p255 = _write(tmp_path / "m255.png", np.array([[0, 255]], np.uint8))
+    assert L.read_mask(p255).tolist() == [[False, True]]                        # 0/255
+    p16 = _write(tmp_path / "m16.png", np.array([[0, 65535]], np.uint16))
+    assert L.read_mask(p16).tolist() == [[False, True]]                         # 0/65535
+    assert not [r for r in caplog.records if "m01" in r.getMessage() or "m255" in r.getMessage()]
     seg = np.zeros((2, 2, 3), np.uint8)
     seg[0, 1] = (40, 0, 0)                                                      # dark part colour
     assert L.read_mask(_write(tmp_path / "seg.png", seg), threshold=0).tolist() == [[False, True], [False, False]]

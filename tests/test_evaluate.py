@@ -18,7 +18,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from pipeline.artifacts import artifact_dir, make_meta, open_artifact, write_parquet, write_zarr
+from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
 
 SIZE = 32
 PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
@@ -126,8 +126,6 @@ def build_tiny_artifacts(root: Path, methods=("plain", "geodistill"), seeds=(1, 
                                 "val_bf1": rng.uniform(0.2, 0.6, 3), "lr": [1e-3] * 3, "seconds": [0.1] * 3})
             save_checkpoint(art / "checkpoints" / method / str(seed), model, _meta("checkpoint"), log,
                             method=method, seed=seed, stage=1 if method == "plain" else 2, selected_epoch=3)
-    with artifact_dir(art / "checkpoints" / "gabi" / str(seeds[0]), _meta("inactive_run")):
-        pass
     torch.set_num_threads(threads)
     return art
 
@@ -197,7 +195,7 @@ def test_evaluate_end_to_end(tiny):
     assert res.exit_code == 0, res.output
     m = open_artifact(out, "metrics").df
     thr = open_artifact(art / "thresholds.parquet").df
-    # 10 test images x 4 runs x 2 threshold modes; the inactive gabi marker is skipped
+    # 10 test images x 4 runs x 2 threshold modes
     assert len(m) == 10 * 4 * 2 and set(m["method"]) == {"plain", "geodistill"}
     assert set(m["group"]) == {"KCP", "CVI"} and set(m["threshold_mode"]) == {"calibrated", "fixed"}
     # tau applied unchanged: calibrated rows carry the run's calibrated tau, fixed rows 0.5

@@ -319,8 +319,11 @@ def test_geometry_stage_end_to_end(tmp_path):
 
 def test_geometry_stage_bad_inputs(tmp_path):
     _write_inputs(tmp_path)
-    # n_prompts in params differs from the teacher's prompt count
+    # n_prompts in params differs from teacher.prompts: the schema refuses it before any artifact is read
     res = _run_geometry(tmp_path, "--set", "geometry.n_prompts=5")
+    assert res.exit_code == 2 and "geometry.n_prompts=5" in res.output and "teacher.prompts" in res.output
+    # consistent params, but the consensus artifact was voted over another number of prompts
+    res = _run_geometry(tmp_path, "--set", "geometry.n_prompts=5", "--set", "teacher.prompts=[a, b, c, d, e]")
     assert res.exit_code == 2 and "consensus.zarr" in res.output and "n_prompts" in res.output
     # manifest of another length / order
     sub = tmp_path / "sub"

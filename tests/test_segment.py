@@ -44,8 +44,8 @@ def write_inputs(folder: Path) -> dict[str, tuple[int, int]]:
     sub.mkdir()
     cv2.imwrite(str(sub / "odd.jpg"), rgb)
     cv2.imwrite(str(sub / "odd.png"), rgb[:37])  # same stem as odd.jpg in the same folder
-    return {"odd": (53, 37), "grey": (41, 29), "alpha": (30, 70), "deep": (33, 35),
-            "sub/odd_jpg": (53, 37), "sub/odd_png": (37, 37)}
+    return {"odd.png": (53, 37), "grey.png": (41, 29), "alpha.png": (30, 70), "deep.tif": (33, 35),
+            "sub/odd.jpg": (53, 37), "sub/odd.png": (37, 37)}
 
 
 def segment(*args):
@@ -75,18 +75,18 @@ def test_segment_checkpoint_folder_odd_sizes_formats_and_corrupt_file(tmp_path):
     assert r.exit_code == 0, r.output
     out = tmp_path / "out"
     for name, (h, w) in sizes.items():
-        mask = cv2.imread(str(out / f"{name}_mask.png"), cv2.IMREAD_UNCHANGED)
+        mask = cv2.imread(str(out / f"{name}.mask.png"), cv2.IMREAD_UNCHANGED)
         assert mask.shape == (h, w) and mask.dtype == np.uint8 and set(np.unique(mask)) <= {0, 255}
-        assert cv2.imread(str(out / f"{name}_overlay.png")).shape == (h, w, 3)
-        prob = cv2.imread(str(out / f"{name}_prob.png"), cv2.IMREAD_UNCHANGED)
+        assert cv2.imread(str(out / f"{name}.overlay.png")).shape == (h, w, 3)
+        prob = cv2.imread(str(out / f"{name}.prob.png"), cv2.IMREAD_UNCHANGED)
         assert prob.shape == (h, w)
     # content: the mask is [P >= tau] of the documented recipe at the original size
-    for name, src in (("odd", "odd.png"), ("alpha", "alpha.png"), ("deep", "deep.tif"), ("grey", "grey.png")):
-        p = reference_probs(ckpt, tmp_path / "in" / src)
-        mask = cv2.imread(str(out / f"{name}_mask.png"), cv2.IMREAD_UNCHANGED) > 0
+    for name in ("odd.png", "alpha.png", "deep.tif", "grey.png"):
+        p = reference_probs(ckpt, tmp_path / "in" / name)
+        mask = cv2.imread(str(out / f"{name}.mask.png"), cv2.IMREAD_UNCHANGED) > 0
         decided = np.abs(p - 0.5) > 1e-4
         assert np.array_equal(mask[decided], (p >= 0.5)[decided])
-        prob = cv2.imread(str(out / f"{name}_prob.png"), cv2.IMREAD_UNCHANGED)
+        prob = cv2.imread(str(out / f"{name}.prob.png"), cv2.IMREAD_UNCHANGED)
         assert np.abs(prob.astype(float) - p * 255).max() <= 0.51
     # the corrupt and zero-byte files are reported and skipped; the text file is not a candidate
     rows = list(csv.DictReader(open(out / "skipped.csv")))
@@ -139,7 +139,7 @@ def toy_trained_checkpoint(path: Path) -> Path:
 
 def read_masks(folder: Path) -> dict[str, np.ndarray]:
     return {p.relative_to(folder).as_posix(): cv2.imread(str(p), cv2.IMREAD_UNCHANGED) > 0
-            for p in sorted(folder.rglob("*_mask.png"))}
+            for p in sorted(folder.rglob("*.mask.png"))}
 
 
 def test_segment_deploy_bundle_engines_agree_and_use_bundle_tau(tmp_path):
@@ -156,7 +156,7 @@ def test_segment_deploy_bundle_engines_agree_and_use_bundle_tau(tmp_path):
         assert r.exit_code == 0, r.output
         assert "tau=0.47" in r.output and f"engine {e}," in r.output and "ms/image" in r.output
         masks[e] = read_masks(tmp_path / f"out_{e}")
-        assert {k: v.shape for k, v in masks[e].items()} == {f"{n}_mask.png": hw for n, hw in sizes.items()}
+        assert {k: v.shape for k, v in masks[e].items()} == {f"{n}.mask.png": hw for n, hw in sizes.items()}
     fg = np.mean(np.concatenate([m.ravel() for m in masks["torch"].values()]))
     assert 0.05 < fg < 0.95, fg  # both classes present, so agreement below is not trivially 100 %
     for e in ("torchscript", "onnx"):  # fp32 engines: identical masks
@@ -170,11 +170,11 @@ def test_segment_deploy_bundle_engines_agree_and_use_bundle_tau(tmp_path):
         r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in" / "odd.png",
                     "--output", tmp_path / "out_auto")
         assert r.exit_code == 0 and "engine onnx (auto)" in r.output, r.output
-        assert np.array_equal(read_masks(tmp_path / "out_auto")["odd_mask.png"], masks["torch"]["odd_mask.png"])
+        assert np.array_equal(read_masks(tmp_path / "out_auto")["odd.png.mask.png"], masks["torch"]["odd.png.mask.png"])
     # --tau overrides the bundle's tau: tau = 0 keeps every pixel
     r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in" / "grey.png",
                 "--output", tmp_path / "all", "--tau", 0)
-    assert r.exit_code == 0 and (cv2.imread(str(tmp_path / "all" / "grey_mask.png"), 0) == 255).all()
+    assert r.exit_code == 0 and (cv2.imread(str(tmp_path / "all" / "grey.png.mask.png"), 0) == 255).all()
     info = json.loads((tmp_path / "deploy" / "deploy.json").read_text())
     assert info["resolution"] == RES
 
@@ -206,7 +206,7 @@ def test_segment_engine_choice_and_refusals(tmp_path):
     assert run_export(ckpt, tmp_path / "ts_only", "--tau", "0.5", "--no-onnx").exit_code == 0
     r = segment("--checkpoint", tmp_path / "ts_only", "--input", img, "--output", tmp_path / "o4")
     assert r.exit_code == 0 and "engine torch (auto)" in r.output, r.output
-    assert np.array_equal(read_masks(tmp_path / "o4")["odd_mask.png"], read_masks(tmp_path / "o1")["odd_mask.png"])
+    assert np.array_equal(read_masks(tmp_path / "o4")["odd.png.mask.png"], read_masks(tmp_path / "o1")["odd.png.mask.png"])
 
 
 def test_segment_never_overwrites_inputs_and_rejects_bad_options(tmp_path):
@@ -234,15 +234,18 @@ def test_segment_never_overwrites_inputs_and_rejects_bad_options(tmp_path):
     img = read_rgb(tmp_path / "in" / "odd.png")
     cv2.imwrite(str(flat / "a.png"), img)
     cv2.imwrite(str(flat / "b.png"), img)
-    r = segment(*base, "--input", flat / "a.png", "--output", flat)  # a_mask.png: no collision -> fine
-    assert r.exit_code == 0 and (flat / "a_mask.png").exists()
-    before = (flat / "a_mask.png").read_bytes()
-    r = segment(*base, "--input", flat / "a_mask.png", "--output", tmp_path / "elsewhere")
+    r = segment(*base, "--input", flat / "a.png", "--output", flat)  # a.png.mask.png: no collision -> fine
+    assert r.exit_code == 0 and (flat / "a.png.mask.png").exists()
+    before = (flat / "a.png.mask.png").read_bytes()
+    r = segment(*base, "--input", flat / "a.png.mask.png", "--output", tmp_path / "elsewhere")
     assert r.exit_code == 0  # a mask file is an image too; output goes elsewhere
-    # a.png's mask would land on the input a_mask.png: refused before anything is written
-    with pytest.raises(InputError, match="overwrite the input"):
-        deploy.plan_outputs(flat, [flat / "a.png", flat / "a_mask.png"], flat, False)
-    assert (flat / "a_mask.png").read_bytes() == before
+    # a.png's mask would land on the input a.png.mask.png: refused before anything is written, even
+    # with overwrite
+    for overwrite in (False, True):
+        with pytest.raises(InputError, match="overwrite the input"):
+            deploy.plan_outputs(flat, [flat / "a.png", flat / "a.png.mask.png"], tmp_path / "flat", False,
+                                overwrite=overwrite)
+    assert (flat / "a.png.mask.png").read_bytes() == before
 
 
 def test_segment_all_files_unreadable_is_an_error(tmp_path):

@@ -19,10 +19,13 @@ PROMPTS = list(PERSONAS)
 def test_entry_round_trip_and_corruption():
     rng = np.random.default_rng(0)
     mask = rng.random((7, 13)) > 0.5  # odd size: packed bits need padding
-    data = encode_entry(mask, 0.75)
-    back, score = decode_entry(data)
+    key = entry_key("sha", "fp", "spacecraft")
+    data = encode_entry(mask, 0.75, key)
+    back, score = decode_entry(data, key)
     np.testing.assert_array_equal(back, mask)
     assert score == pytest.approx(0.75)
+    with pytest.raises(CorruptEntry, match="key"):
+        decode_entry(data, entry_key("sha", "fp", "satellite"))
     for bad in (data[:-1], data[:10], b"x" + data[1:], data[:-1] + bytes([data[-1] ^ 1])):
         with pytest.raises(CorruptEntry):
             decode_entry(bad)

@@ -33,8 +33,14 @@ TANGO (``tango``)
 Any folder (``folder``)
     ``<root>/images/*`` plus optional ``<root>/masks/*`` matched by file stem (png, jpg, tif, bmp).
     Images without a mask are training images; masked images are split into validation and test
-    (seeded, ``val_fraction``).  Files of other types in ``images/`` are listed so the decode pass
-    reports them as unsupported (error or skipped), never silently ignored.
+    (seeded, ``val_fraction``).  Every entry of ``images/`` and ``masks/`` is either used or goes
+    through the bad-input policy (an error naming the file, or with ``skip_bad`` a row of
+    ``skipped_files.parquet`` with its reason), never silently ignored: files of other types and
+    broken symbolic links are listed so the decode pass reports them (unsupported / broken link);
+    sub-folders, masks of an unsupported type, masks without an image of the same stem, and
+    several masks for one stem (``a.png`` + ``a.jpg``: ambiguous -- every one of them and the image
+    are left out) are reported here.  Hidden files (``.DS_Store``) are listed as not used, not an
+    error.  Masks are binarised by the one rule of ``pipeline.datasets.loading`` (default: value > 0).
 """
 
 from __future__ import annotations
@@ -151,7 +157,7 @@ def scan_spacesense(root: Path) -> dict[str, list[tuple[str, Path, Path]]]:
                 continue
             traj = img_dir.parent.name
             for f in sorted(img_dir.iterdir()):
-                if f.is_file() and not f.name.startswith("."):
+                if (f.is_file() or f.is_symlink()) and not f.name.startswith("."):  # broken link: decode reports it
                     found.setdefault(ident, []).append((traj, f, img_dir.parent / "seg" / f.name))
     return found
 
@@ -235,11 +241,11 @@ def _read_list(path: Path) -> list[str]:
 
 def _find_mask(mask_dir: Path, name: str, suffixes=(".png",)) -> Path | None:
     p = mask_dir / name
-    if p.is_file():
+    if p.is_file() or p.is_symlink():  # a broken link is returned: the decode pass reports it
         return p
     for s in suffixes:
         q = mask_dir / (Path(name).stem + s)
-        if q.is_file():
+        if q.is_file() or q.is_symlink():
             return q
     return None
 
@@ -334,20 +340,59 @@ def tango_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
 # ---------------------------------------------------------------------------------------------------
 # Any folder
 # ---------------------------------------------------------------------------------------------------
-def folder_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
+def _folder_entries(d: Path, what: str, policy: BadInputPolicy) -> list[Path]:
+    """Files (and broken links) directly in ``d``; hidden files are recorded, sub-folders reported."""
+    out = []
+    for p in sorted(d.iterdir()):
+        if p.name.startswith("."):
+            policy.record(p.stem, p, f"hidden file in {what}/, not read")
+        elif p.is_dir():
+            policy.report(p.name, p, f"a folder inside {what}/ (only files directly in {d} are read)")
+        else:
+            out.append(p)
+    return out
+
+
+def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | None = None) -> DatasetSpec:
+    policy = policy or BadInputPolicy(False)
     root = _root(cfg)
     img_dir = root / str(proto.get("images_dir", "images"))
     mask_dir = root / str(proto.get("masks_dir", "masks"))
     if not img_dir.is_dir():
         raise InputError(f"{img_dir}: images folder not found")
-    images = sorted(p for p in img_dir.iterdir() if p.is_file() and not p.name.startswith("."))
-    masks: dict[str, Path] = {}
+    # every entry is kept: unsupported types and broken links are reported by the decode pass
+    images = _folder_entries(img_dir, "images", policy)
+    image_stems = {p.stem for p in images}
+    by_stem: dict[str, list[Path]] = {}
     if mask_dir.is_dir():
-        for m in sorted(mask_dir.iterdir()):
-            if m.is_file() and m.suffix.lower() in SUPPORTED_SUFFIXES:
-                if m.stem in masks:
-                    raise InputError(f"{m}: two mask files for stem {m.stem!r} (also {masks[m.stem]})")
-                masks[m.stem] = m
+        for m in _folder_entries(mask_dir, "masks", policy):
+            if m.suffix.lower() not in SUPPORTED_SUFFIXES:
+                policy.report(m.stem, m, f"unsupported mask type {m.suffix or '(no suffix)'!r} "
+                                         f"(supported: {', '.join(SUPPORTED_SUFFIXES)})")
+            else:
+                by_stem.setdefault(m.stem, []).append(m)
+    masks: dict[str, Path] = {}
+    ambiguous: dict[str, list[Path]] = {}
+    for stem, ms in by_stem.items():
+        if len(ms) > 1:
+            ambiguous[stem] = ms
+            for m in ms:
+                others = ", ".join(o.name for o in ms if o != m)
+                policy.report(stem, m, f"{len(ms)} mask files for stem {stem!r} (also {others}): "
+                                       f"ambiguous, none is used")
+        elif stem not in image_stems:
+            policy.report(stem, ms[0], f"mask without an image: no file with stem {stem!r} in {img_dir}")
+        else:
+            masks[stem] = ms[0]
+    if ambiguous:
+        kept = []
+        for p in images:
+            if p.stem in ambiguous:
+                policy.report(p.stem, p, f"left out: its mask is ambiguous ({len(ambiguous[p.stem])} mask "
+                                         f"files for stem {p.stem!r} in {mask_dir})")
+            else:
+                kept.append(p)
+        images = kept
     sc = str(proto.get("spacecraft") or root.resolve().name)
     val_fraction = float(proto.get("val_fraction", 0.5))
     if not 0 <= val_fraction <= 1:
@@ -370,10 +415,13 @@ def folder_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
 
 ADAPTERS = {"spacesense": spacesense_source, "speedplus": speedplus_source, "tango": tango_source,
             "folder": folder_source}
+SCANNING_ADAPTERS = {"folder"}   # adapters that report unused files themselves (take the policy)
 
 
 def build_source(cfg: dict, policy: BadInputPolicy | None = None) -> DatasetSpec:
     """Rows of the real dataset named by ``data.source`` under ``data.root`` with its protocol file."""
     source = cfg["source"]
     proto, where = load_protocol(source, cfg.get("protocol"))
+    if source in SCANNING_ADAPTERS:
+        return ADAPTERS[source](cfg, proto, where, policy or BadInputPolicy(False))
     return ADAPTERS[source](cfg, proto, where)

@@ -23,7 +23,7 @@ import pandas as pd
 
 from pipeline.artifacts import atomic_path
 from pipeline.datasets import synthetic as syn
-from pipeline.datasets.loading import BadFileError, DecodeCache, load_labels, load_mask, load_rgb
+from pipeline.datasets.loading import BadFileError, DecodeCache, load_labels, load_mask, load_rgb, mask_kind
 from pipeline.datasets.manifest import (BadInputPolicy, DatasetSpec, check_rows, drop_duplicate_ids,
                                         enforce_spacecraft_disjoint)
 from pipeline.errors import InputError
@@ -73,7 +73,7 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
                 if cache is not None:  # the arrays are in hand: cache them under the bytes' hashes
                     hw = (size, size)
                     cache.put(hashlib.sha256(files["images"]).hexdigest(), "rgb", size, view.image, hw)
-                    cache.put(hashlib.sha256(files["masks"]).hexdigest(), "maskauto", size, view.mask, hw)
+                    cache.put(hashlib.sha256(files["masks"]).hexdigest(), mask_kind(None), size, view.mask, hw)
                     cache.put(hashlib.sha256(files["parts"]).hexdigest(), "labels", size, view.parts, hw)
                 rows.append({
                     "image_id": iid, "dataset": "synthetic", "domain": "synthetic", "split": sc.split,
@@ -122,7 +122,8 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
 
     A row is left out (skip_bad) or raises when its image is missing, zero-byte, corrupt or
     unsupported, when its mask or part file is, or when a mask/part file's size differs from the
-    image's.  Rows without a mask (unlabeled training images) are fine.
+    image's.  Rows without a mask (unlabeled training images) are fine.  When a row is left out, its
+    other files (image, mask, part file) are listed too, so every file that is not used is listed.
     """
     keep, width, height, sha = [], [], [], []
     for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):
@@ -141,6 +142,11 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
                                              f"from image {r.image_path} size {img.native_hw[1]}x{img.native_hw[0]}")
         except BadFileError as e:
             policy.report(r.image_id, e.path, e.reason)
+            for col in ("image_path", "mask_path", "part_path"):
+                other = getattr(r, col)
+                if _has(other) and other != e.path:
+                    policy.record(r.image_id, other, f"not used: image {r.image_id!r} was left out "
+                                                     f"({Path(e.path).name}: {e.reason})")
             continue
         keep.append(i)
         height.append(img.native_hw[0])

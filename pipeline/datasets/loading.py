@@ -6,24 +6,34 @@
     transparency; compositing on black would equal dropping it for premultiplied black
     backgrounds); 16-bit is scaled to 8-bit by rounding ``v / 257`` (the exact 65535 -> 255 map);
     float images are taken as [0, 1] and clipped.  OpenCV decodes BGR, so channels are reversed.
-    Raises :class:`InputError` naming the file for a missing, zero-byte, corrupt or unsupported file.
+    Raises :class:`InputError` naming the file for a missing, zero-byte, corrupt or unsupported file,
+    a broken symbolic link or a directory.
 
 ``read_mask(path, threshold)``
-    Any mask file -> bool [H, W]; foreground = max over channels > ``threshold`` (``None``: auto,
-    > 0 for 0/1 label files, otherwise > half the dtype range, i.e. > 127 for 8-bit).
+    Any mask file -> bool [H, W].  THE rule (this module is the only place a mask file is binarised:
+    the dataset adapters and the imported teacher all come here): foreground = max over channels
+    > ``threshold``, and the default ``threshold=None`` means **foreground = value > 0** -- 0/1,
+    0/255 and 0/65535 masks, float probability masks and multi-valued label masks (0 = background,
+    1..K = classes or instances) alike.  A multi-valued mask (non-zero pixels with more than one
+    value, e.g. labels 0..3 or an anti-aliased 0..255 edge) gets one warning naming the file, since
+    "value > 0" may not be what its author meant; a protocol that knows better sets an explicit
+    ``mask_threshold`` (SPEED+ 128, TANGO 127), which is used as given without a warning.
 
 ``load_rgb / load_mask / load_labels`` (the pipeline's entry points)
     Read the file bytes once, hash them (sha256), and return the array resized to the working
     resolution -- area interpolation for images, nearest for masks and labels -- through a decode
     cache keyed by ``(sha256, kind, resolution)`` under ``.cache/decode/`` so no stage decodes the
-    same file twice.  Cache entries are ``.npz`` files (array + native height/width) written to a
-    temp name then renamed (atomic; survive a kill); an unreadable entry is treated as a miss.
+    same file twice.  Cache entries are ``.npz`` files (array + native height/width + their own key +
+    the mask warning, if any) written to a temp name then renamed (atomic; survive a kill); they are
+    read with ``allow_pickle=False``, and an unreadable entry, or one whose stored key is not the key
+    asked for (e.g. a file copied over another), is treated as a miss and rewritten.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import logging
 import os
 import uuid
 from pathlib import Path
@@ -33,8 +43,11 @@ import numpy as np
 
 from pipeline.errors import InputError
 
+log = logging.getLogger(__name__)
+
 SUPPORTED_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 DEFAULT_CACHE_DIR = ".cache/decode"
+MASK_RULE = "foreground = value > 0"
 
 
 class BadFileError(InputError):
@@ -56,6 +69,10 @@ def read_bytes(path: str | Path) -> bytes:
         raise BadFileError(p, f"unsupported image type {p.suffix or '(no suffix)'!r} "
                               f"(supported: {', '.join(SUPPORTED_SUFFIXES)})")
     if not p.is_file():
+        if p.is_symlink():
+            raise BadFileError(p, f"broken symbolic link (its target {os.readlink(p)} does not exist)")
+        if p.is_dir():
+            raise BadFileError(p, "is a directory, not an image file")
         raise BadFileError(p, "file not found")
     try:
         data = p.read_bytes()
@@ -104,22 +121,48 @@ def read_rgb(path: str | Path) -> np.ndarray:
     return to_rgb8(_decode(read_bytes(path), path), path)
 
 
-def mask_from_array(arr: np.ndarray, threshold: float | None = None) -> np.ndarray:
-    """Foreground = max over channels > ``threshold``; ``None`` = auto (> 0 for 0/1 data, else > half range)."""
+_warned: set[str] = set()
+
+
+def multi_valued_note(a: np.ndarray) -> str | None:
+    """None for a binary mask (one non-zero value at most), else a short description of its values."""
+    nz = a[a != 0]
+    if nz.size == 0 or not (nz != nz.flat[0]).any():
+        return None
+    values = np.unique(nz)
+    shown = ", ".join(f"{v:g}" for v in values[:6].tolist()) + (", ..." if values.size > 6 else "")
+    return f"multi-valued label mask (non-zero values {shown}; {values.size} distinct)"
+
+
+def warn_mask_once(path: str | Path, note: str | None) -> None:
+    """The one warning per file (per process) for a multi-valued mask read with the default rule."""
+    if note and str(path) not in _warned:
+        _warned.add(str(path))
+        log.warning("%s: %s: %s (set an explicit mask_threshold in the protocol file for another rule)",
+                    path, note, MASK_RULE)
+
+
+def binarize_mask(arr: np.ndarray, threshold: float | None = None) -> tuple[np.ndarray, str | None]:
+    """``(bool mask, note)``: foreground = max over channels > ``threshold`` (None: > 0, see module
+    docstring); ``note`` describes a multi-valued mask under the default rule, else None."""
     a = arr.max(axis=2) if arr.ndim == 3 else arr
     if threshold is None:
-        if a.size and a.max() <= 1:
-            threshold = 0
-        elif a.dtype.kind == "f":
-            threshold = 0.5
-        else:
-            threshold = np.iinfo(a.dtype).max // 2 if a.dtype.kind in "iu" else 0
-    return a > threshold
+        return a > 0, multi_valued_note(a)
+    return a > threshold, None
+
+
+def mask_from_array(arr: np.ndarray, threshold: float | None = None, path: str | Path | None = None) -> np.ndarray:
+    """Foreground = max over channels > ``threshold``; ``None`` = value > 0 (warns once per ``path``
+    for a multi-valued mask)."""
+    mask, note = binarize_mask(arr, threshold)
+    if path is not None:
+        warn_mask_once(path, note)
+    return mask
 
 
 def read_mask(path: str | Path, threshold: float | None = None) -> np.ndarray:
     """Read a mask file as bool [H, W] at native size; InputError naming the file on bad input."""
-    return mask_from_array(_decode(read_bytes(path), path), threshold)
+    return mask_from_array(_decode(read_bytes(path), path), threshold, path)
 
 
 def parts_from_colors(rgb: np.ndarray, colors: dict[tuple[int, int, int], int]) -> np.ndarray:
@@ -163,10 +206,19 @@ class DecodeCache:
         self.hits = 0
         self.misses = 0
 
+    @staticmethod
+    def key(sha: str, kind: str, size: int) -> str:
+        return f"{sha}-{kind}-{int(size)}"
+
     def path(self, sha: str, kind: str, size: int) -> Path:
-        return self.root / sha[:2] / f"{sha}-{kind}-{int(size)}.npz"
+        return self.root / sha[:2] / f"{self.key(sha, kind, size)}.npz"
 
     def get(self, sha: str, kind: str, size: int) -> tuple[np.ndarray, tuple[int, int]] | None:
+        hit = self.get_entry(sha, kind, size)
+        return None if hit is None else hit[:2]
+
+    def get_entry(self, sha: str, kind: str, size: int) -> tuple[np.ndarray, tuple[int, int], str | None] | None:
+        """``(array, native_hw, note)`` or None (miss, unreadable entry, or an entry of another key)."""
         if self.root is None:
             return None
         p = self.path(sha, kind, size)
@@ -174,22 +226,27 @@ class DecodeCache:
             self.misses += 1
             return None
         try:
-            with np.load(p) as z:
+            with np.load(p, allow_pickle=False) as z:
+                if str(z["k"]) != self.key(sha, kind, size):
+                    raise ValueError("entry of another key")
                 arr, hw = z["a"], tuple(int(v) for v in z["hw"])
-        except Exception:  # noqa: BLE001 -- a torn or foreign entry is a miss; it is rewritten
+                note = str(z["w"]) or None
+        except Exception:  # noqa: BLE001 -- a torn, foreign or misplaced entry is a miss; it is rewritten
             self.misses += 1
             return None
         self.hits += 1
-        return arr, hw
+        return arr, hw, note
 
-    def put(self, sha: str, kind: str, size: int, arr: np.ndarray, native_hw: tuple[int, int]) -> None:
+    def put(self, sha: str, kind: str, size: int, arr: np.ndarray, native_hw: tuple[int, int],
+            note: str | None = None) -> None:
         if self.root is None:
             return
         p = self.path(sha, kind, size)
         p.parent.mkdir(parents=True, exist_ok=True)
         tmp = p.with_name(f".{p.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp.npz")
         try:
-            np.savez(tmp, a=arr, hw=np.asarray(native_hw, np.int64))
+            np.savez(tmp, a=arr, hw=np.asarray(native_hw, np.int64), k=np.str_(self.key(sha, kind, size)),
+                     w=np.str_(note or ""))
             os.replace(tmp, p)
         finally:
             if tmp.exists():
@@ -204,17 +261,22 @@ class Loaded:
 
 
 def _load(path, size: int, kind: str, cache: DecodeCache | None, decode) -> Loaded:
+    """``decode(array) -> array`` or ``(array, note)``; a note (multi-valued mask) is cached with the
+    entry and warned about once per file, whether decoded now or read from the cache."""
     data = read_bytes(path)
     sha = hashlib.sha256(data).hexdigest()
     if cache is not None:
-        hit = cache.get(sha, kind, size)
+        hit = cache.get_entry(sha, kind, size)
         if hit is not None:
+            warn_mask_once(path, hit[2])
             return Loaded(hit[0], sha, hit[1])
     full = decode(_decode(data, path))
+    full, note = full if isinstance(full, tuple) else (full, None)
+    warn_mask_once(path, note)
     hw = (int(full.shape[0]), int(full.shape[1]))
     arr = resize_image(full, size) if kind == "rgb" else resize_nearest(full, size)
     if cache is not None:
-        cache.put(sha, kind, size, arr, hw)
+        cache.put(sha, kind, size, arr, hw, note)
     return Loaded(arr, sha, hw)
 
 
@@ -223,10 +285,15 @@ def load_rgb(path, size: int, cache: DecodeCache | None = None) -> Loaded:
     return _load(path, size, "rgb", cache, lambda a: to_rgb8(a, path))
 
 
+def mask_kind(threshold: float | None) -> str:
+    """Decode-cache kind of a mask read with ``threshold`` (``maskgt0`` for the default rule; the old
+    ``maskauto`` entries, made under an earlier rule, are never read)."""
+    return "maskgt0" if threshold is None else f"mask{threshold}"
+
+
 def load_mask(path, size: int, cache: DecodeCache | None = None, threshold: float | None = None) -> Loaded:
-    """bool [size, size] (nearest), thresholded as :func:`mask_from_array`; cached per threshold."""
-    kind = "maskauto" if threshold is None else f"mask{threshold}"
-    return _load(path, size, kind, cache, lambda a: mask_from_array(a, threshold))
+    """bool [size, size] (nearest), binarised by :func:`binarize_mask`; cached per threshold."""
+    return _load(path, size, mask_kind(threshold), cache, lambda a: binarize_mask(a, threshold))
 
 
 def load_labels(path, size: int, cache: DecodeCache | None = None,

@@ -3,10 +3,14 @@
 A dataset source (synthetic generator or a real-dataset adapter) yields a :class:`DatasetSpec`: the
 manifest rows (without the decode-time columns width/height/sha256), how to read its masks, and
 whether its protocol is spacecraft-disjoint.  Problems found anywhere -- a duplicate image id, a
-spacecraft in two splits, a missing/zero-byte/corrupt/unsupported file, a mask whose size differs
-from its image -- go through one policy (:class:`BadInputPolicy`): raise a one-line
+spacecraft in two splits, a missing/zero-byte/corrupt/unsupported file, a broken symbolic link, a
+directory where a file belongs, a mask without an image, several masks for one image, a mask whose
+size differs from its image -- go through one policy (:class:`BadInputPolicy`): raise a one-line
 :class:`InputError` naming the file, or with ``skip_bad`` leave the row out and record
-``(image_id, path, reason)`` for ``skipped_files.parquet``.  Never silent.
+``(image_id, path, reason)`` for ``skipped_files.parquet``.  Never silent: a file a source finds
+and does not use is either an error or a row of that table.  The only files recorded without
+being an error are hidden ones (name starting with ``.``, e.g. ``.DS_Store``) and the other files
+of a row already left out (:meth:`BadInputPolicy.record`).
 """
 
 from __future__ import annotations
@@ -58,6 +62,12 @@ class BadInputPolicy:
         if not self.skip_bad:
             raise InputError(msg + " (set data.skip_bad=true or pass --skip-bad to leave it out)")
         log.warning("skipping %s", msg)
+        self.skipped.append({"image_id": image_id or "", "path": str(path), "reason": reason})
+
+    def record(self, image_id: str | None, path: str, reason: str) -> None:
+        """List a file that is not used without it being an error (hidden files; the other files of a
+        row already reported)."""
+        log.info("not using %s: %s", path, reason)
         self.skipped.append({"image_id": image_id or "", "path": str(path), "reason": reason})
 
     def table(self) -> pd.DataFrame:

@@ -7,10 +7,26 @@ training images were (:func:`~pipeline.datasets.loading.resize_image`, area inte
 the probability map is resized back to the original size (bilinear) and thresholded there
 (eq:inference-mask, :func:`pipeline.thresholds.mask_from_probs`), which keeps boundaries smoother than
 resizing a binary mask.
+
+Output names (decision): an input keeps its whole name, extension included, and its sub-folder
+relative to the input folder; a fixed suffix is appended: ``sub/a.png`` -> ``<out>/sub/a.png.mask.png``
+(and ``a.png.prob.png``, ``a.png.overlay.png``).  Distinct input paths therefore give distinct output
+paths (``a.png``, ``a.jpg`` and ``a_png.png`` cannot meet).  Before anything is written
+(:func:`plan_outputs`) the run is refused (InputError, one line) when two inputs' outputs differ only in
+letter case (``b.png`` / ``b.PNG``: one would replace the other on a case-insensitive disk, and on
+any disk the folder could not be copied to one), when an output would be a file where another output
+needs a folder, when ``--output`` (or a folder on the way) is a file, when an output would replace an
+input, and -- unless ``overwrite`` -- when an output file or skipped.csv already exists.
+
+Symbolic links inside an input folder (decision): a link to an image inside the input folder is
+segmented under the link's own name; a link whose target lies outside the input folder, a broken link
+and a link to a folder (never followed) are skipped and reported like unreadable files -- a stderr line
+and a row of skipped.csv -- so the run neither escapes the folder nor drops anything silently.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import os
@@ -25,22 +41,81 @@ from pipeline.deploy.segmenter import Segmenter
 from pipeline.errors import InputError
 from pipeline.thresholds import mask_from_probs
 
-OUTPUT_SUFFIXES = ("_mask.png", "_prob.png", "_overlay.png")
+MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX = ".mask.png", ".prob.png", ".overlay.png"
+OUTPUT_SUFFIXES = (MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX)
+SKIPPED_CSV = "skipped.csv"
 
 
-def discover_images(input_path: str | Path) -> tuple[Path, list[Path]]:
-    """(root, image files): a single file (any suffix; the reader decides), or every file with a
-    supported image suffix under a folder, recursively, sorted, hidden entries skipped."""
+def output_path(stem: Path, suffix: str) -> Path:
+    """``<stem><suffix>``: the stem is the output folder joined with the input's relative path."""
+    return stem.with_name(stem.name + suffix)
+
+
+def output_suffixes(save_prob: bool = False, overlay: bool = False) -> tuple[str, ...]:
+    """The output kinds one run writes: the mask, and the probability map / overlay when asked for."""
+    return (MASK_SUFFIX,) + ((PROB_SUFFIX,) if save_prob else ()) + ((OVERLAY_SUFFIX,) if overlay else ())
+
+
+@dataclasses.dataclass
+class Inputs:
+    root: Path                       # the input folder, or the parent of the single input file
+    files: list[Path]                # images to segment, sorted
+    skipped: list[tuple[str, str]]   # (path, reason): links not followed, non-regular files
+    is_dir: bool
+
+
+def scan_inputs(input_path: str | Path) -> Inputs:
+    """The images under ``input_path`` and the entries skipped on the way (module docstring).
+
+    A single file is taken as given (any suffix; the reader decides).  A folder is walked recursively
+    without following links; hidden entries are left out; among the other entries with a supported
+    image suffix, regular files and links to files inside the folder are kept, and broken links,
+    links leaving the folder, links to folders and special files are reported in ``skipped``.
+    """
     from pipeline.datasets.loading import SUPPORTED_SUFFIXES
 
     p = Path(input_path)
     if not p.exists():
         raise InputError(f"--input {p}: not found")
-    if p.is_file():
-        return p.parent, [p]
-    files = sorted(f for f in p.rglob("*") if f.is_file() and f.suffix.lower() in SUPPORTED_SUFFIXES
-                   and not any(part.startswith(".") for part in f.relative_to(p).parts))
-    return p, files
+    if not p.is_dir():
+        return Inputs(p.parent, [p], [], False)
+    root_r = p.resolve()
+    files: list[Path] = []
+    skipped: list[tuple[str, str]] = []
+
+    def walk_error(e: OSError) -> None:
+        skipped.append((str(e.filename), f"folder unreadable ({e.strerror or type(e).__name__})"))
+
+    for dirpath, dirnames, filenames in os.walk(p, onerror=walk_error, followlinks=False):
+        d = Path(dirpath)
+        dirnames[:] = sorted(n for n in dirnames if not n.startswith("."))
+        for n in dirnames:
+            if (d / n).is_symlink():  # os.walk does not descend into it: say so
+                skipped.append((str(d / n), "symbolic link to a folder (links to folders are not followed)"))
+        for n in sorted(filenames):
+            f = d / n
+            if n.startswith(".") or f.suffix.lower() not in SUPPORTED_SUFFIXES:
+                continue
+            if f.is_symlink():
+                try:
+                    target = f.resolve(strict=True)
+                except (OSError, RuntimeError):
+                    skipped.append((str(f), "broken symbolic link"))
+                    continue
+                if not _is_within(target, root_r):
+                    skipped.append((str(f), f"symbolic link pointing outside the input folder (to {target})"))
+                    continue
+            if not f.is_file():
+                skipped.append((str(f), "not a regular file"))
+                continue
+            files.append(f)
+    return Inputs(p, sorted(files), sorted(skipped), True)
+
+
+def discover_images(input_path: str | Path) -> tuple[Path, list[Path]]:
+    """(root, image files) of :func:`scan_inputs` (the skipped entries are dropped: use scan_inputs)."""
+    found = scan_inputs(input_path)
+    return found.root, found.files
 
 
 def _is_within(child: Path, parent: Path) -> bool:
@@ -51,28 +126,89 @@ def _is_within(child: Path, parent: Path) -> bool:
         return False
 
 
-def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_is_dir: bool) -> list[Path]:
-    """Output stem per input (``out/<relative folder>/<stem>``; ``<stem>_<ext>`` where two inputs of a
-    folder share a stem).  Refuses (InputError) an output folder equal to or inside an input folder,
-    and any output file that would be one of the inputs."""
-    out = Path(out_dir).resolve()
+def _relative(f: Path, root: Path, root_r: Path) -> Path:
+    """``f`` relative to the input folder, by its own (link) name when it lies lexically under it."""
+    try:
+        return f.relative_to(root)
+    except ValueError:
+        return f.resolve().relative_to(root_r)
+
+
+def _blocking_file(folder: Path, cache: dict[Path, Path | None]) -> Path | None:
+    """The first existing non-folder among ``folder`` and its parents (mkdir would fail on it), else None."""
+    for p in (folder, *folder.parents):
+        if p in cache:
+            found = cache[p]
+            break
+        if p.is_symlink() or p.exists():
+            found = None if p.is_dir() else p
+            break
+    else:
+        found = None
+    cache[folder] = found
+    return found
+
+
+def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_is_dir: bool, *,
+                 suffixes: Sequence[str] = (MASK_SUFFIX,), overwrite: bool = False) -> list[Path]:
+    """Output stem per input, ``<out>/<relative folder>/<whole input name>`` (module docstring), after
+    every check that can refuse the run, so that a refused run writes nothing.
+
+    InputError (one line naming the path) when: ``out_dir`` or a folder on its way is a file; the
+    output folder is, or is inside, the input folder; two inputs' outputs differ only in letter case,
+    or one output file would be a folder another output needs; an output would be one of the inputs;
+    an output is an existing folder; ``overwrite`` is False and an output file of the kinds
+    ``suffixes`` or ``skipped.csv`` already exists (the first one is named).
+    """
+    out = Path(out_dir).absolute()
+    cache: dict[Path, Path | None] = {}
+    blocked = _blocking_file(out, cache)
+    if blocked is not None:
+        what = "is a file" if blocked == out else f"{blocked} is a file"
+        raise InputError(f"--output {out_dir}: {what}, not a folder")
+    out = out.resolve()
     root_r = root.resolve()
     if input_is_dir and (out == root_r or _is_within(out, root_r)):
         raise InputError(f"--output {out_dir}: inside the input folder {root}; outputs must not mix with inputs")
-    rel = [f.resolve().relative_to(root_r) if input_is_dir else Path(f.name) for f in files]
-    counts: dict[tuple[Path, str], int] = {}
-    for r in rel:
-        counts[(r.parent, r.stem)] = counts.get((r.parent, r.stem), 0) + 1
-    stems = []
-    for r in rel:
-        name = r.stem if counts[(r.parent, r.stem)] == 1 else f"{r.stem}_{r.suffix.lstrip('.').lower()}"
-        stems.append(out / r.parent / name)
+    rel = [_relative(f, root, root_r) if input_is_dir else Path(f.name) for f in files]
+
+    # distinct input paths give distinct names; letter case and file/folder clashes are checked here
+    by_key: dict[str, Path] = {}
+    for f, r in zip(files, rel):
+        key = r.as_posix().casefold()
+        if key in by_key:
+            raise InputError(f"--input: {by_key[key]} and {f} would both write {out / r}{MASK_SUFFIX} "
+                             "(names differ only in letter case); rename one")
+        by_key[key] = f
+    folders: dict[str, Path] = {}
+    for f, r in zip(files, rel):
+        for parent in r.parents:
+            if parent != Path("."):
+                folders.setdefault(parent.as_posix().casefold(), f)
+    for f, r in zip(files, rel):
+        for suffix in OUTPUT_SUFFIXES:
+            key = (r.as_posix() + suffix).casefold()
+            if key in folders:
+                raise InputError(f"--input: the output {out / r}{suffix} of {f} would be the folder holding "
+                                 f"the output of {folders[key]}; rename one")
+
+    stems = [out / r for r in rel]
     inputs = {f.resolve() for f in files}
     for s in stems:
         for suffix in OUTPUT_SUFFIXES:
-            target = s.with_name(s.name + suffix)
-            if target in inputs:
+            target = output_path(s, suffix)
+            if target.resolve() in inputs:
                 raise InputError(f"--output {out_dir}: would overwrite the input {target}")
+    targets = [output_path(s, suffix) for s in stems for suffix in suffixes] + [out / SKIPPED_CSV]
+    for t in targets:
+        blocked = _blocking_file(t.parent, cache)
+        if blocked is not None:
+            raise InputError(f"--output {out_dir}: {blocked} is a file where a folder is needed for {t.name}")
+        if t.is_dir():
+            raise InputError(f"--output {out_dir}: {t} is a folder; an output file must go there")
+        if not overwrite and (t.is_symlink() or t.exists()):
+            raise InputError(f"--output {out_dir}: {t} already exists; pass --overwrite to replace the outputs, "
+                             "or choose another --output")
     return stems
 
 
@@ -105,13 +241,14 @@ def write_png(path: Path, array: np.ndarray) -> None:
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr))
     if not ok:
         raise InputError(f"{path}: PNG encoding failed")
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         tmp.write_bytes(buf.tobytes())
         os.replace(tmp, path)
     except OSError as e:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
         raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
 
 
@@ -127,8 +264,9 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
                   resolution: int, batch_size: int = 8, save_prob: bool = False, overlay: bool = False,
                   on_skip: Callable[[str, str], None] | None = None) -> SegmentResult:
     """Segment image files in batches: read -> resize to R x R -> P = sigmoid(f(x)) -> resize P back
-    to the original size -> M = [P >= tau] (eq:inference-mask) -> ``<stem>_mask.png`` (0/255), and
-    optionally ``<stem>_prob.png`` (P as uint8, 255 = 1.0) and ``<stem>_overlay.png``.
+    to the original size -> M = [P >= tau] (eq:inference-mask) -> ``<stem>.mask.png`` (0/255), and
+    optionally ``<stem>.prob.png`` (P as uint8, 255 = 1.0) and ``<stem>.overlay.png`` (stems from
+    :func:`plan_outputs`, which has already refused collisions and unwanted overwrites).
 
     A file the reader rejects (InputError) is recorded in ``skipped`` and the rest go on.
     """
@@ -165,14 +303,14 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
                 h, w = img.shape[:2]
                 p_full = probs_to_size(p, h, w)
                 mask = mask_from_probs(p_full, tau)
-                out = stem.with_name(stem.name + "_mask.png")
+                out = output_path(stem, MASK_SUFFIX)
                 write_png(out, mask.astype(np.uint8) * 255)
                 written.append(out)
                 if save_prob:
-                    write_png(stem.with_name(stem.name + "_prob.png"),
+                    write_png(output_path(stem, PROB_SUFFIX),
                               np.round(p_full * 255).astype(np.uint8))
                 if overlay:
-                    write_png(stem.with_name(stem.name + "_overlay.png"), overlay_image(img, mask))
+                    write_png(output_path(stem, OVERLAY_SUFFIX), overlay_image(img, mask))
                 bar.update(1)
     finally:
         bar.close()
@@ -182,11 +320,16 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
 def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str]]) -> Path:
     """``skipped.csv`` (columns path, reason), written atomically; header only when nothing was skipped."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
-    with open(tmp, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["path", "reason"])
-        w.writerows(skipped)
-    os.replace(tmp, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["path", "reason"])
+            w.writerows(skipped)
+        os.replace(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
     return path

@@ -84,8 +84,9 @@ def load_segmenter(path: str | Path, engine: str = "auto", device="cpu",
     ``torchscript`` / ``onnx`` / ``int8`` (bundle only).  tau candidates (``Segmenter.taus``, resolved
     by :meth:`Segmenter.resolve_tau`): deploy.json's tau for a bundle; for a checkpoint its payload's
     tau, else its (method, seed) row in ``thresholds`` (a thresholds.parquet).  The resolution comes
-    from deploy.json, or the checkpoint's payload or metadata -- it may stay None, for the caller to
-    fill (``--resolution``, params).  ONNX engines run on the CPU.
+    from deploy.json, or the checkpoint's payload (``payload["resolution"]``) or metadata -- the size the
+    model was trained at; it stays None when none is recorded, and segment then asks for
+    ``--resolution`` rather than guessing one.  ONNX engines run on the CPU.
     """
     import torch
 

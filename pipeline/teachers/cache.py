@@ -12,15 +12,18 @@ Key
   directory is deleted).
 
 Location
-  ``<cache_dir>/v1/<key[:2]>/<key>.tce`` (``teacher.cache_dir``, default ``.cache/teacher``), outside
+  ``<cache_dir>/v2/<key[:2]>/<key>.tce`` (``teacher.cache_dir``, default ``.cache/teacher``), outside
   the DVC outputs so ``dvc repro`` removing ``teacher.zarr`` does not remove it.
 
 Entry format (little endian)
-  ``b"GDTCE01\\n"`` magic (8 bytes) | sha256 of the payload (32 bytes) | payload, where payload =
-  ``height u32 | width u32 | score f32 | np.packbits(mask)``.  Entries are written to a temp file in
-  the same directory and renamed into place, so a kill -9 leaves either the whole entry or none.  A
-  reader verifies the checksum; a corrupt or truncated entry is reported (logged, counted), deleted
-  and treated as a miss, so it is recomputed.
+  ``b"GDTCE02\\n"`` magic (8 bytes) | sha256 of the payload (32 bytes) | payload, where payload =
+  ``key (32 raw bytes) | height u32 | width u32 | score f32 | np.packbits(mask)``.  Plain bytes
+  parsed by :func:`decode_entry` -- never pickle, never ``np.load``.  Entries are written to a temp
+  file in the same directory and renamed into place, so a kill -9 leaves either the whole entry or
+  none.  A reader verifies the checksum AND that the key stored in the entry is the key it asked for
+  (an entry copied or renamed over another key's file is not that key's answer); a corrupt,
+  truncated or misplaced entry is reported (logged, counted), deleted and treated as a miss, so it
+  is recomputed.  Layout ``v1`` entries (no stored key) are in another directory and never read.
 
 Concurrency
   Several processes (``--shard i/n`` on several machines with a shared filesystem) may write the
@@ -43,8 +46,9 @@ from pipeline.artifacts import canonical_json
 
 log = logging.getLogger(__name__)
 
-MAGIC = b"GDTCE01\n"
-LAYOUT_VERSION = "v1"
+MAGIC = b"GDTCE02\n"
+LAYOUT_VERSION = "v2"
+_KEY_BYTES = 32
 _HEADER = struct.Struct("<IIf")
 
 
@@ -55,12 +59,23 @@ def entry_key(image_sha256: str, teacher_fingerprint: str, prompt: str, view: st
     return hashlib.sha256(payload.encode()).hexdigest()
 
 
-def encode_entry(mask: np.ndarray, score: float) -> bytes:
-    """Serialise one answer (bool [H,W] mask, float score) with its checksum."""
+def _key_bytes(key: str) -> bytes:
+    try:
+        raw = bytes.fromhex(key)
+    except ValueError:
+        raw = b""
+    if len(raw) != _KEY_BYTES:
+        raise ValueError(f"cache key must be a sha256 hex digest, got {key!r}")
+    return raw
+
+
+def encode_entry(mask: np.ndarray, score: float, key: str) -> bytes:
+    """Serialise one answer (bool [H,W] mask, float score) with its own ``key`` and a checksum."""
     mask = np.asarray(mask, dtype=bool)
     if mask.ndim != 2:
         raise ValueError(f"cache entry mask must be 2-D, got shape {mask.shape}")
-    payload = _HEADER.pack(mask.shape[0], mask.shape[1], float(score)) + np.packbits(mask, axis=None).tobytes()
+    payload = (_key_bytes(key) + _HEADER.pack(mask.shape[0], mask.shape[1], float(score))
+               + np.packbits(mask, axis=None).tobytes())
     return MAGIC + hashlib.sha256(payload).digest() + payload
 
 
@@ -68,15 +83,19 @@ class CorruptEntry(ValueError):
     """A cache entry whose bytes do not match its checksum or layout."""
 
 
-def decode_entry(data: bytes) -> tuple[np.ndarray, float]:
-    """Inverse of :func:`encode_entry`; raises :class:`CorruptEntry` on any mismatch."""
-    if len(data) < len(MAGIC) + 32 + _HEADER.size or not data.startswith(MAGIC):
+def decode_entry(data: bytes, key: str | None = None) -> tuple[np.ndarray, float]:
+    """Inverse of :func:`encode_entry`; raises :class:`CorruptEntry` on any mismatch, including a
+    stored key other than ``key`` (when given)."""
+    if len(data) < len(MAGIC) + 32 + _KEY_BYTES + _HEADER.size or not data.startswith(MAGIC):
         raise CorruptEntry("bad magic or truncated header")
     digest, payload = data[len(MAGIC):len(MAGIC) + 32], data[len(MAGIC) + 32:]
     if hashlib.sha256(payload).digest() != digest:
         raise CorruptEntry("checksum mismatch")
-    h, w, score = _HEADER.unpack_from(payload)
-    bits = np.frombuffer(payload, dtype=np.uint8, offset=_HEADER.size)
+    stored = payload[:_KEY_BYTES].hex()
+    if key is not None and stored != key:
+        raise CorruptEntry(f"entry holds the answer for key {stored[:12]}..., not {key[:12]}...")
+    h, w, score = _HEADER.unpack_from(payload, _KEY_BYTES)
+    bits = np.frombuffer(payload, dtype=np.uint8, offset=_KEY_BYTES + _HEADER.size)
     if bits.size != (h * w + 7) // 8:
         raise CorruptEntry("mask size does not match header")
     mask = np.unpackbits(bits, count=h * w).astype(bool).reshape(h, w)
@@ -119,7 +138,7 @@ class TeacherCache:
             self.stats.misses += 1
             return None
         try:
-            out = decode_entry(data)
+            out = decode_entry(data, key)
         except CorruptEntry as e:
             log.warning("teacher cache: corrupt entry %s (%s); it will be recomputed", p, e)
             self.stats.corrupt += 1
@@ -138,7 +157,7 @@ class TeacherCache:
         p.parent.mkdir(parents=True, exist_ok=True)
         tmp = p.with_name(f".{p.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
         try:
-            tmp.write_bytes(encode_entry(mask, score))
+            tmp.write_bytes(encode_entry(mask, score, key))
             os.replace(tmp, p)
         finally:
             if tmp.exists():

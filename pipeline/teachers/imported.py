@@ -4,18 +4,27 @@ Layout of ``teacher.imported_dir``::
 
     <dir>/scores.parquet  (or scores.csv)   one row per (image, prompt[, view]):
         image_id      str    the manifest's image_id
-        prompt_index  int    names the mask file (any integer; need not match teacher.prompts order)
-        prompt        str    the prompt text; answers are matched to teacher.prompts by this text
-        score         float  the teacher score s_ik; <= 0 (or NaN) means no candidate -> invalid
+        prompt_index  int    names the mask file: an integer in [0, 32767] (2.0 is fine, 2.5 or "two"
+                             are not); need not match teacher.prompts order; unique per (image,
+                             view) among valid rows; may be empty on a row with score 0
+        prompt        str    the prompt text (non-empty); answers are matched to teacher.prompts by it
+        score         float  the teacher score s_ik: a finite number in [0, 1]; 0 (or an empty cell /
+                             null) means no candidate -> invalid answer
         view          str    optional: identity (default) | vflip
     <dir>/masks/<image_id>/<prompt_index>.png          identity view
     <dir>/masks/<image_id>/vflip_<prompt_index>.png    vflip view (base prompt on the vertically
                                                         flipped image, mask already flipped BACK)
 
-Masks are 8- or 16-bit PNGs, grey or colour; any non-zero pixel is foreground.  A mask whose size
-differs from the working resolution of images.zarr is resized with nearest-neighbour interpolation.
-An invalid answer (score <= 0) needs no PNG.  A requested (image, prompt, view) without a row, or a
-valid row without its PNG, is an InputError naming the missing file or row.
+Every row is checked when the table is read: a non-numeric, non-finite or out-of-range score or
+prompt_index, an empty prompt or image_id, a duplicate row is a one-line InputError naming the
+table and the row (``row i`` counts data rows from 0; for a CSV also its ``line``).
+
+Masks are 8- or 16-bit PNGs, grey or colour, read by the dataset loader's one mask rule
+(``pipeline.datasets.loading.read_mask``): foreground = value > 0, with one warning for a
+multi-valued mask.  A mask whose size differs from the working resolution of images.zarr is resized
+with nearest-neighbour interpolation.  An invalid answer (score 0) needs no PNG.  A requested
+(image, prompt, view) without a row, or a valid row without its PNG, is an InputError naming the
+missing file or row.
 
 The masks are already a cache of the real teacher, so this backend bypasses the content-addressed
 cache (``use_cache = False``); its fingerprint hashes the scores table and every mask file.
@@ -36,16 +45,16 @@ from pipeline.teachers.base import TeacherInput, finalize_answers
 BACKEND = "imported"
 
 
+MAX_PROMPT_INDEX = 32767
+
+
 def read_mask_png(path: Path, shape: tuple[int, int]) -> np.ndarray:
     """Any-bit-depth PNG -> bool [H,W] at ``shape`` (nearest-neighbour resize when sizes differ)."""
     import cv2
 
-    arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if arr is None:
-        raise InputError(f"{path}: unreadable mask PNG")
-    if arr.ndim == 3:
-        arr = arr.max(axis=2)
-    mask = arr > 0
+    from pipeline.datasets.loading import read_mask
+
+    mask = read_mask(path)  # the one mask rule (value > 0); InputError naming the file on bad input
     if mask.shape != tuple(shape):
         mask = cv2.resize(mask.astype(np.uint8), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST) > 0
     return mask
@@ -78,19 +87,72 @@ class ImportedTeacher:
         missing = [c for c in ("image_id", "prompt_index", "prompt", "score") if c not in table.columns]
         if missing:
             raise InputError(f"{self.scores_path}: missing columns {missing}")
-        if "view" not in table.columns:
-            table["view"] = "identity"
-        table["image_id"] = table["image_id"].astype(str)
-        table["view"] = table["view"].fillna("identity").astype(str)
-        bad_views = set(table["view"]) - {"identity", "vflip"}
-        if bad_views:
-            raise InputError(f"{self.scores_path}: unknown view values {sorted(bad_views)} (identity | vflip)")
-        dup = table.duplicated(["image_id", "prompt", "view"])
-        if dup.any():
-            r = table[dup].iloc[0]
-            raise InputError(f"{self.scores_path}: duplicate row for image {r.image_id!r}, prompt {r.prompt!r}")
+        table = self._checked(table.reset_index(drop=True))
         self.table = table.set_index(["image_id", "prompt", "view"])
         self._fp: str | None = None
+
+    def _where(self, i: int, table: pd.DataFrame | None = None) -> str:
+        line = f", line {i + 2}" if self.scores_path.suffix == ".csv" else ""
+        what = ""
+        if table is not None:
+            what = f" (image {table.at[i, 'image_id']!r}, prompt {table.at[i, 'prompt']!r})"
+        return f"{self.scores_path}: row {i}{line}{what}"
+
+    def _checked(self, table: pd.DataFrame) -> pd.DataFrame:
+        """Validate every row (see the module docstring); scores -> float (missing = 0), indices -> int."""
+        if "view" not in table.columns:
+            table["view"] = "identity"
+        for col in ("image_id", "prompt"):
+            empty = table[col].isna() | (table[col].astype(str).str.strip() == "")
+            if empty.any():
+                raise InputError(f"{self._where(int(np.flatnonzero(empty)[0]))}: empty {col}")
+        table["image_id"] = table["image_id"].astype(str)
+        table["prompt"] = table["prompt"].astype(str)
+        table["view"] = table["view"].fillna("identity").astype(str)
+        bad = ~table["view"].isin(["identity", "vflip"])
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(f"{self._where(i, table)}: unknown view {table.at[i, 'view']!r} (identity | vflip)")
+
+        def numeric(col: str) -> pd.Series:
+            raw = table[col]
+            num = pd.to_numeric(raw.where(raw.map(lambda v: not isinstance(v, bool)), "x"), errors="coerce")
+            bad = raw.notna() & num.isna()
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise InputError(f"{self._where(i, table)}: {col} {raw.iloc[i]!r} is not a number")
+            return num.astype(float)
+
+        score = numeric("score")
+        bad = score.notna() & ~(np.isfinite(score) & (score >= 0) & (score <= 1))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(f"{self._where(i, table)}: score {score.iloc[i]!r} must be a finite number in [0, 1]")
+        score = score.fillna(0.0)
+        index = numeric("prompt_index")
+        bad = index.notna() & ~(np.isfinite(index) & (index == np.floor(index))
+                                & (index >= 0) & (index <= MAX_PROMPT_INDEX))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(f"{self._where(i, table)}: prompt_index {table['prompt_index'].iloc[i]!r} must be "
+                             f"an integer in [0, {MAX_PROMPT_INDEX}]")
+        bad = index.isna() & (score > 0)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(f"{self._where(i, table)}: prompt_index missing (score > 0 needs a mask file)")
+        table["score"] = score
+        table["prompt_index"] = index.fillna(-1).astype(np.int64)
+        dup = table.duplicated(["image_id", "prompt", "view"])
+        if dup.any():
+            i = int(np.flatnonzero(dup)[0])
+            raise InputError(f"{self._where(i, table)}: duplicate row for this image, prompt and view")
+        valid = table["score"] > 0
+        dup = valid & table[valid].duplicated(["image_id", "view", "prompt_index"]).reindex(table.index, fill_value=False)
+        if dup.any():
+            i = int(np.flatnonzero(dup)[0])
+            raise InputError(f"{self._where(i, table)}: prompt_index {int(table.at[i, 'prompt_index'])} is used "
+                             f"by another prompt of this image and view (both would read one mask file)")
+        return table
 
     def content_hash(self) -> str:
         """sha256 over the scores table and every mask file (relative path + bytes), sorted."""
@@ -110,7 +172,7 @@ class ImportedTeacher:
             row = self.table.loc[(image_id, prompt, view)]
         except KeyError:
             raise InputError(f"{self.scores_path}: no row for image {image_id!r}, prompt {prompt!r}, view {view}") from None
-        score = float(row["score"]) if pd.notna(row["score"]) else 0.0
+        score = float(row["score"])
         if score <= 0:
             return np.zeros(self.resolution, bool), 0.0
         stem = f"{int(row['prompt_index'])}" if view == "identity" else f"vflip_{int(row['prompt_index'])}"
