@@ -18,10 +18,14 @@ $(VENV)/.installed: pyproject.toml Makefile
 	touch $@
 
 demo: install
+	$(BIN)/geodistill dag --check
 	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
 
-reduced: install
-	PATH="$(CURDIR)/$(BIN):$$PATH" dvc exp run -S profile=reduced
+# Another profile: rewrite params.yaml (and check dvc.yaml), then run the DAG.
+reduced paper: install
+	$(BIN)/geodistill profile $@
+	$(BIN)/geodistill dag --check
+	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
 
 test: install
 	$(BIN)/python -m pytest -q

@@ -135,11 +135,12 @@ class TeacherParams(_Section):
     @model_validator(mode="after")
     def _base(self):
         if self.base_prompt_index >= len(self.prompts):
-            raise ValueError(f"base_prompt_index={self.base_prompt_index} but only {len(self.prompts)} prompts")
-        if any(not p.strip() for p in self.prompts):
-            raise ValueError("prompts must be non-empty strings")
+            raise ValueError(f"teacher.base_prompt_index={self.base_prompt_index} but only {len(self.prompts)} prompts")
+        for i, p in enumerate(self.prompts):
+            if not p.strip():
+                raise ValueError(f"teacher.prompts[{i}]={p!r} must be a non-empty string")
         if len({p.strip().lower() for p in self.prompts}) != len(self.prompts):
-            raise ValueError(f"prompts has duplicates: {self.prompts}")
+            raise ValueError(f"teacher.prompts has duplicates: {self.prompts}")
         if self.backend == "sam3" and not self.checkpoint:
             raise ValueError("teacher.checkpoint is required for backend sam3 (a local save_pretrained directory)")
         if self.backend == "imported" and not self.imported_dir:
@@ -266,7 +267,7 @@ class CalibrateParams(_Section):
     @model_validator(mode="after")
     def _grid(self):
         if self.grid_stop < self.grid_start:
-            raise ValueError("grid_stop must be >= grid_start")
+            raise ValueError("calibrate.grid_stop must be >= calibrate.grid_start")
         return self
 
 
@@ -357,7 +358,9 @@ def _error_line(err: ValidationError, origin: str) -> str:
     msg = e["msg"].removeprefix("Value error, ")
     if e["type"] == "extra_forbidden":
         msg = "unknown key"
-    shown = "" if e["type"] in ("extra_forbidden", "missing") else f"={e.get('input')!r}"
+    # a whole section's (or mapping's) value is too long to repeat; its validator's message names the key
+    shown = "" if e["type"] in ("extra_forbidden", "missing") or isinstance(e.get("input"), Mapping) \
+        else f"={e.get('input')!r}"
     return f"{origin}: {key}{shown}: {msg}" if key else f"{origin}: {msg}"
 
 

@@ -168,16 +168,13 @@ def test_export_falls_back_to_fixed_tau_and_refuses_bad_input(tmp_path):
     assert not (tmp_path / "deploy" / "model.onnx").exists() and "onnx" not in info["parity"]
     assert info["int8"] is None and "int8" not in info["parity"] and info["int8_note"]
     assert not (tmp_path / "deploy" / deploy.INT8_FILE).exists() and "int8 model skipped" in r.output
-    # missing checkpoint, inactive marker, bad tau: exit 2 with one line, nothing written
+    # missing checkpoint, a directory that is not a checkpoint, bad tau: exit 2 with one line, nothing written
     r = run_export(tmp_path / "nope", tmp_path / "d2")
     assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1 and "nope" in r.output
-    inactive = tmp_path / "inactive"
-    from pipeline.artifacts import artifact_dir
-
-    with artifact_dir(inactive, make_meta("inactive_run", "train", "test", {})):
-        pass
-    r = run_export(inactive, tmp_path / "d3")
-    assert r.exit_code == 2 and "inactive" in r.output
+    other = tmp_path / "not_a_checkpoint"
+    other.mkdir()
+    r = run_export(other, tmp_path / "d3")
+    assert r.exit_code == 2 and "not_a_checkpoint" in r.output and len(r.output.strip().splitlines()) == 1
     r = run_export(ckpt, tmp_path / "d4", "--tau", "1.5")
     assert r.exit_code == 2 and "--tau" in r.output
     assert not any((tmp_path / d).exists() for d in ("d2", "d3", "d4"))

@@ -127,7 +127,7 @@ def test_adding_a_prompt_computes_only_that_prompt(art):
     import yaml
 
     prompts = yaml.safe_load(Path(PARAMS).read_text())["teacher"]["prompts"] + ["orbital platform"]
-    r = run_stage(paths, cache, sets=[f"teacher.prompts={prompts!r}".replace("'", '"')])
+    r = run_stage(paths, cache, sets=[f"teacher.prompts={prompts!r}".replace("'", '"'), "geometry.n_prompts=7"])
     assert r.exit_code == 0, r.output
     after = {p: p.stat().st_mtime_ns for p in cache_files(cache)}
     assert len(after) == len(before) + 6

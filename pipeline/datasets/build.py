@@ -144,7 +144,7 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
             policy.report(r.image_id, e.path, e.reason)
             for col in ("image_path", "mask_path", "part_path"):
                 other = getattr(r, col)
-                if _has(other) and other != e.path:
+                if _has(other) and other != e.path and (Path(other).exists() or Path(other).is_symlink()):
                     policy.record(r.image_id, other, f"not used: image {r.image_id!r} was left out "
                                                      f"({Path(e.path).name}: {e.reason})")
             continue

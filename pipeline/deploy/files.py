@@ -177,8 +177,8 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
     for f, r in zip(files, rel):
         key = r.as_posix().casefold()
         if key in by_key:
-            raise InputError(f"--input: {by_key[key]} and {f} would both write {out / r}{MASK_SUFFIX} "
-                             "(names differ only in letter case); rename one")
+            raise InputError(f"--input: {by_key[key]} and {f} differ only in letter case, so their outputs "
+                             f"would be one file on a case-insensitive disk (in {out}); rename one")
         by_key[key] = f
     folders: dict[str, Path] = {}
     for f, r in zip(files, rel):
