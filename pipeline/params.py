@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import copy
 from pathlib import Path
-from typing import Any, Iterable, Literal, Mapping
+from typing import Annotated, Any, Iterable, Literal, Mapping
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -34,7 +34,7 @@ class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, validate_default=True)
 
 
-Fraction = Field(ge=0.0, le=1.0)
+PositiveInt = Annotated[int, Field(ge=1)]
 
 
 def _f(default, description: str = "", **bounds):
@@ -192,7 +192,7 @@ class AdaptiveParams(_Section):
 
 
 class TrainParams(_Section):
-    channels: list[int] = _f([24, 48, 96], "TinyUNet encoder widths", min_length=1)
+    channels: list[PositiveInt] = _f([24, 48, 96], "TinyUNet encoder widths", min_length=1)
     batch_size: int = _f(4, ge=1)
     weight_decay: float = _f(1e-4, ge=0)
     epochs_stage1: int = _f(20, ge=0)
@@ -220,12 +220,6 @@ class TrainParams(_Section):
     gabi: GabiParams = Field(default_factory=GabiParams)
     adaptive: AdaptiveParams = Field(default_factory=AdaptiveParams)
 
-    @field_validator("channels")
-    @classmethod
-    def _channels(cls, v):
-        if any(c < 1 for c in v):
-            raise ValueError("widths must be >= 1")
-        return v
 
 
 class ProtocolParams(_Section):
@@ -295,7 +289,7 @@ class DeployParams(_Section):
     parity_atol: float = _f(1e-4, "export parity: max |logit difference| vs PyTorch", ge=0)
     benchmark_warmup: int = _f(5, ge=0)
     benchmark_iters: int = _f(30, "batch-1 latency = median of this many calls", ge=1)
-    benchmark_batches: list[int] = _f([1, 4, 16], "throughput = best images/s over these", min_length=1)
+    benchmark_batches: list[PositiveInt] = _f([1, 4, 16], "throughput = best images/s over these", min_length=1)
     benchmark_resolution: int | None = _f(None, "null = the deploy bundle's working resolution", ge=8)
     benchmark_variants: list[str] = _f(BENCHMARK_VARIANTS, min_length=1)
     int8_calibration_images: int = _f(64, "training-split images (no masks) for int8 activation ranges", ge=1)
@@ -306,12 +300,6 @@ class DeployParams(_Section):
     target_resolution: int = _f(384, "the size the latency target is judged at", ge=1)
     target_iou_drop: float = _f(0.005, "a fast path may lose at most this much validation Image IoU", ge=0)
 
-    @field_validator("benchmark_batches")
-    @classmethod
-    def _batches(cls, v):
-        if any(b < 1 for b in v):
-            raise ValueError("batch sizes must be >= 1")
-        return v
 
     @field_validator("benchmark_variants")
     @classmethod
