@@ -11,7 +11,7 @@ from pipeline import losses
 from pipeline.artifacts import make_meta, open_artifact
 from pipeline.errors import InputError
 from pipeline.methods import (METHODS, adaptive_mode, afs_fuse, afs_keep, confidence_pass, get_method,
-                              is_active, mean_valid_score, pass_ratio, resolve_plan)
+                              input_artifacts, mean_valid_score, param_keys, pass_ratio, resolve_plan)
 from tests.test_training import build_tiny_artifacts, load_arrays, tiny_cfg
 
 
@@ -82,13 +82,16 @@ def test_method_epochs_and_terms_follow_the_paper_tables():
     assert get_method("sdf_scratch").init == get_method("gabi").init == "scratch"
 
 
-def test_is_active_follows_the_profile():
-    prot = {"ablations": ["no_gate"], "ablation_seed": 42, "active_seeds": [42, 3407],
-            "active_methods": ["plain", "geodistill"], "active_ablations": ["no_gate"]}
-    assert is_active("plain", 3407, prot) and not is_active("plain", 2026, prot)
-    assert not is_active("gabi", 42, prot)
-    assert is_active("no_gate", 42, prot) and not is_active("no_gate", 3407, prot)
-    assert not is_active("no_gate", 42, {**prot, "active_ablations": []})
+def test_param_keys_are_what_each_method_reads():
+    plain, geo, gabi = get_method("plain"), get_method("geodistill"), get_method("gabi")
+    assert "train.lr_stage1" in param_keys(plain) and "train.lr_stage2" not in param_keys(plain)
+    assert "train.lr_stage2" in param_keys(geo) and "train.lr_stage1" not in param_keys(geo)
+    assert "train.lambda_sdf" in param_keys(geo) and "train.lambda_sdf" not in param_keys(plain)
+    assert "train.gabi" in param_keys(gabi) and not any(k.startswith("train.gabi.") for k in param_keys(gabi))
+    assert "train.adaptive" in param_keys(get_method("geodistill_adaptive"))
+    # the boundary: reference masks are read (validation selection), never a teacher-free substitute
+    assert input_artifacts(get_method("afs_control"))[:4] == ("manifest", "images", "reference", "teacher")
+    assert "geometry" in input_artifacts(geo) and "geometry" not in input_artifacts(plain)
 
 
 # ---- filters ------------------------------------------------------------------------------------

@@ -186,7 +186,7 @@ def ablation_section(inp: Inputs) -> Section:
     df = m.df
     abl = df[df["method"].isin(T.ABLATIONS)]
     if abl.empty:
-        sec.blocks.append(Text("No ablation run is active in this profile (protocol.active_ablations); the "
+        sec.blocks.append(Text("No ablation run is listed in this profile (protocol.runs); the "
                                "warm-start and component tables need them."))
         return sec
     seed = int(abl["seed"].mode().iloc[0])
