@@ -46,7 +46,7 @@ def tiny_run(tmp_path_factory):
     params = yaml.safe_load((repo / "params.yaml").read_text())
     from pipeline.params import deep_merge
 
-    params["profiles"]["demo"] = deep_merge(params["profiles"]["demo"], TINY_DEMO)
+    params = deep_merge(params, TINY_DEMO)  # params.yaml is the demo profile's effective file
     (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}",
            "PYTHONPATH": str(repo), "GEODISTILL_QUIET": "1"}
