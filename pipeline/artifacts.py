@@ -322,7 +322,10 @@ def clean_leftovers(path: Path) -> None:
         pid = tail.split("-")[0]
         if pid.isdigit() and _pid_alive(int(pid)) and int(pid) != os.getpid():
             continue  # another live writer
-        shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
 
 
 FAULT_ENV = "GEODISTILL_FAULT"

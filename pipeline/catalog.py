@@ -57,9 +57,6 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
     _a("report", "../reports/{profile}", "report", "report", "report.md, report.html, figures, plots"),
 ]}
 
-#: DVC metrics files (not cached, so `dvc metrics diff` compares against git).
-METRICS = ("summary_json", "teacher_json", "efficiency_json")
-
 
 def path(name: str, root: str | Path = ARTIFACTS_DIR, **fmt) -> Path:
     """Where artifact ``name`` lives under ``root`` (``fmt`` fills ``{method}``/``{seed}``/``{profile}``)."""

@@ -20,7 +20,7 @@ import re
 import functools
 import hashlib
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import yaml
 
@@ -130,64 +130,57 @@ def code_version_of(module: str, root: Path = ROOT) -> str:
 # --------------------------------------------------------------------------------------------------
 # dvc.yaml
 # --------------------------------------------------------------------------------------------------
-def _fill(template: str, extra: dict[str, str]) -> str:
-    from pipeline.catalog import ARTIFACTS, dvc_path
+def _fill(template: str) -> str:
+    """Replace ``{artifact}`` placeholders by catalogue paths; ``${...}`` stays a DVC template."""
+    from pipeline.catalog import ARTIFACTS, EXTRA_PATHS, dvc_path
 
     values = {n: dvc_path(n, method="${item.method}", seed="${item.seed}", profile="${profile}") for n in ARTIFACTS}
-    values.update(extra)
-    # {name} is a catalogue placeholder; ${...} stays a DVC template
+    values.update(EXTRA_PATHS)
     return re.sub(r"(?<!\$)\{(\w+)\}", lambda m: values[m.group(1)], template)
 
 
-def _stage_entry(module: str, args: str, deps: Iterable[str], outs: Iterable[str], params: Iterable[str],
-                 metrics: Iterable[str] = (), extra: dict[str, str] | None = None,
-                 matrix: dict | None = None) -> dict:
-    from pipeline.catalog import EXTRA_PATHS
-
-    extra = {**EXTRA_PATHS, **(extra or {})}
-    entry: dict[str, Any] = {}
-    if matrix:
-        entry["matrix"] = matrix
-    entry["cmd"] = f"python -m {module} {_fill(args, extra)}"
-    entry["deps"] = code_deps(module) + [_fill("{" + d + "}", extra) if not d.startswith("data_manifests")
-                                                  else d for d in deps]
-    entry["params"] = list(params)
-    out_paths = [_fill("{" + o + "}", extra) for o in outs]
+def _stage_entry(spec, matrix: dict | None = None) -> dict:
+    """The dvc.yaml entry of a :class:`pipeline.catalog.StageSpec`: derived code deps, then data deps,
+    then input artifacts; params key by key; outs (reports uncached) and DVC metrics files."""
+    entry: dict[str, Any] = {"matrix": matrix} if matrix else {}
+    entry["cmd"] = f"python -m {spec.module} {_fill(spec.args)}"
+    entry["deps"] = code_deps(spec.module) + list(spec.data_deps) + [_fill("{" + d + "}") for d in spec.deps]
+    entry["params"] = list(spec.params)
+    out_paths = [_fill("{" + o + "}") for o in spec.outs]
     entry["outs"] = [{p: {"cache": False}} if p.startswith("reports/") else p for p in out_paths]
-    if metrics:
-        entry["metrics"] = [{_fill("{" + m + "}", extra): {"cache": False}} for m in metrics]
+    if spec.metrics:
+        entry["metrics"] = [{_fill("{" + m + "}"): {"cache": False}} for m in spec.metrics]
     return entry
 
 
 def train_stage(method_name: str) -> dict:
     """The ``train_<method>`` stage: one run per seed listed in ``protocol.runs.<method>``."""
+    from pipeline.catalog import StageSpec, dvc_path
     from pipeline.methods import METHODS, input_artifacts, param_keys
 
     m = METHODS[method_name]
-    ckpt = "artifacts/checkpoints/{name}/${{item.seed}}"
-    init = ckpt.format(name="plain") if m.init == "stage1" else None
+    out = dvc_path("checkpoint", method=m.name, seed="${item.seed}")
+    init = dvc_path("checkpoint", method="plain", seed="${item.seed}") if m.init == "stage1" else None
     args = (f"--stage {m.stage} --method {m.name} --seed ${{item.seed}} --artifacts {{artifacts_dir}}"
-            + (f" --init {init}" if init else "") + f" --out {ckpt.format(name=m.name)}")
-    entry = _stage_entry("stages.train", args, input_artifacts(m), (), param_keys(m),
-                         matrix={"seed": f"${{protocol.runs.{m.name}}}"})
+            + (f" --init {init}" if init else "") + f" --out {out}")
+    spec = StageSpec(f"train_{m.name}", "stages.train", args, input_artifacts(m), (), param_keys(m))
+    entry = _stage_entry(spec, matrix={"seed": f"${{protocol.runs.{m.name}}}"})
     if init:
         entry["deps"].append(init)
-    entry["outs"] = [ckpt.format(name=m.name)]
+    entry["outs"] = [out]
     return entry
 
 
 def dvc_stages() -> dict[str, dict]:
+    """Every stage of dvc.yaml, in DAG order: the catalogue's data stages, one train stage per method,
+    then the catalogue's downstream stages."""
     from pipeline.catalog import STAGES
     from pipeline.methods import METHODS
 
-    order = ["prepare", "teacher", "consensus", "geometry"]
-    out = {n: _stage_entry(STAGES[n].module, STAGES[n].args, STAGES[n].data_deps + STAGES[n].deps,
-                           STAGES[n].outs, STAGES[n].params, STAGES[n].metrics) for n in order}
-    for name in METHODS:
-        out[f"train_{name}"] = train_stage(name)
-    for n, s in STAGES.items():
-        if n not in out:
-            out[n] = _stage_entry(s.module, s.args, s.data_deps + s.deps, s.outs, s.params, s.metrics)
+    upstream = ["prepare", "teacher", "consensus", "geometry"]
+    out = {n: _stage_entry(STAGES[n]) for n in upstream}
+    out.update({f"train_{name}": train_stage(name) for name in METHODS})
+    out.update({n: _stage_entry(s) for n, s in STAGES.items() if n not in upstream})
     return out
 
 

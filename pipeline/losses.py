@@ -217,7 +217,8 @@ class LossConstants:
 
 
 #: eq:refine-loss's weights with the paper's lambdas: L_raw (region) weighs 1
-PAPER_REFINE_WEIGHTS = MappingProxyType({"region": 1.0, "sdf": 0.002, "skel": 0.001, "area": 0.05})
+PAPER_REFINE_WEIGHTS = MappingProxyType({"region": 1.0, "sdf": PAPER.train.lambda_sdf, "skel": PAPER.train.lambda_skel,
+                                         "area": PAPER.train.lambda_area})  # eq:refine-loss, the schema's lambdas
 
 #: objective term name -> the key of its value in :func:`refine_loss`'s result ("region" is L_raw)
 TERM_KEYS = {"region": "raw", "anchor": "anchor", "sdf": "sdf", "dist": "dist", "skel": "skel",

@@ -210,17 +210,29 @@ def fingerprint_params(method: Method, cfg: Mapping[str, Any]) -> dict:
     return {k: _get(cfg, k.removeprefix("train.")) for k in param_keys(method)}
 
 
-def input_artifacts(method: Method) -> tuple[str, ...]:
-    """Catalogue names of the artifacts a method's run reads (reference: validation selection only)."""
+def uses_confidence(method: Method) -> bool:
+    """Whether the method evaluates the confidence criterion (the filter, or the adaptive pass ratio r)."""
+    return method.data == "confidence" or method.adaptive
+
+
+def input_artifacts(method: Method, criterion: str | None = None) -> tuple[str, ...]:
+    """Catalogue names of the artifacts a method's run reads; ``reference`` serves validation selection only.
+
+    manifest and images always; gates for the gated/area terms and the confidence criterion; teacher
+    for the AFS control and the ``mean_score`` confidence criterion; consensus (``voted``) unless AFS;
+    geometry for SDF/skeleton/distance/boundary terms.  ``criterion`` is ``train.confidence.criterion``;
+    None means either (the superset dvc.yaml tracks, since the criterion is a param).
+    """
     names = ["manifest", "images", "reference"]
-    names.append("teacher" if method.data == "afs" else "consensus")
-    if method.data == "confidence" or method.adaptive:
-        names.append("teacher")  # train.confidence.criterion = mean_score reads the teacher scores
     if method.needs_gates:
         names.append("gates")
+    if method.data == "afs" or (uses_confidence(method) and criterion in (None, "mean_score")):
+        names.append("teacher")
+    if method.data != "afs":
+        names.append("consensus")
     if method.needs_geometry:
         names.append("geometry")
-    return tuple(dict.fromkeys(names))
+    return tuple(names)
 
 
 # --------------------------------------------------------------------------------------------------

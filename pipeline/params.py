@@ -278,6 +278,7 @@ class ReportParams(_Section):
     pseudo_target_images: int = _f(3, ge=0, le=64)
 
 
+INT8_CALIBRATIONS = ("percentile", "minmax")
 BENCHMARK_VARIANTS = ["fp32_eager_nchw", "fp32_channels_last", "bf16_autocast", "bf16_channels_last",
                       "torchscript_frozen", "onnxruntime_fp32", "onnxruntime_int8"]
 
@@ -293,7 +294,7 @@ class DeployParams(_Section):
     benchmark_resolution: int | None = _f(None, "null = the deploy bundle's working resolution", ge=8)
     benchmark_variants: list[str] = _f(BENCHMARK_VARIANTS, min_length=1)
     int8_calibration_images: int = _f(64, "training-split images (no masks) for int8 activation ranges", ge=1)
-    int8_calibration: Literal["percentile", "minmax"] = _f("percentile")
+    int8_calibration: Literal[INT8_CALIBRATIONS] = _f("percentile")
     int8_percentile: float = _f(99.999, ge=50, le=100)
     int8_min_mask_iou: float = _f(0.9, "export fails below this mean int8-vs-PyTorch mask IoU", ge=0, le=1)
     target_latency_ms: float = _f(40, "CPU target at 384x384, batch 1 (reported, never asserted)", ge=0)
@@ -370,11 +371,6 @@ def validate_section(name: str, cfg: Mapping[str, Any]) -> dict:
         return model.model_validate(dict(cfg)).model_dump(mode="python")
     except ValidationError as e:
         raise InputError(_error_line(e, f"params: {name}")) from None
-
-
-def validate_overrides(raw: Mapping[str, Any], origin: str = "params") -> None:
-    """Check a partial mapping (a profile's overrides): every key known, every value valid."""
-    validate(deep_merge(PAPER.model_dump(mode="python"), raw), origin)
 
 
 def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict:

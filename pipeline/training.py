@@ -52,8 +52,8 @@ import torch
 from pipeline import losses
 from pipeline.artifacts import Artifact, read_chunk_rows
 from pipeline.errors import ArtifactError, InputError, TrainingDiverged
-from pipeline.methods import (Method, Plan, afs_fuse, afs_keep, confidence_pass, mean_valid_score,
-                              method_epochs, method_lr, pass_ratio, resolve_plan)
+from pipeline.methods import (Method, Plan, afs_fuse, afs_keep, confidence_pass, input_artifacts, mean_valid_score,
+                              method_epochs, method_lr, pass_ratio, resolve_plan, uses_confidence)
 from pipeline.thresholds import mask_from_probs
 
 log = logging.getLogger(__name__)
@@ -116,28 +116,10 @@ def _rows(art, name: str, idx: np.ndarray) -> np.ndarray:
     return read_chunk_rows(arr, idx)
 
 
-def _uses_confidence(method: Method) -> bool:
-    """Whether the method evaluates the confidence criterion (the filter, or the adaptive pass ratio r)."""
-    return method.data == "confidence" or method.adaptive
-
-
 def training_inputs(method: Method, cfg: Mapping[str, Any]) -> tuple[str, ...]:
-    """Schemas of the artifacts :func:`training_data` reads for ``method`` (never ``reference``).
-
-    manifest and images always; gates for the gated/area terms and the confidence criterion; teacher
-    for the AFS control and the ``mean_score`` criterion; consensus (``voted``) unless AFS; geometry
-    for SDF/skeleton/distance/boundary terms.
-    """
-    names = ["manifest", "images"]
-    if method.needs_gates:
-        names.append("gates")
-    if method.data == "afs" or (_uses_confidence(method) and cfg["confidence"]["criterion"] == "mean_score"):
-        names.append("teacher")
-    if method.data != "afs":
-        names.append("consensus")
-    if method.needs_geometry:
-        names.append("geometry")
-    return tuple(names)
+    """Schemas of the artifacts :func:`training_data` reads for ``method``:
+    :func:`pipeline.methods.input_artifacts` for the configured criterion, never ``reference``."""
+    return tuple(n for n in input_artifacts(method, cfg["confidence"]["criterion"]) if n != "reference")
 
 
 def _train_rows(manifest) -> tuple[list, np.ndarray]:
@@ -215,7 +197,7 @@ def _confidence_keep(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str
     """Rows the confidence filter keeps (all rows unless ``data == "confidence"``); records the pass
     ratio r of the criterion in ``stats`` wherever the method evaluates it (filter or adaptive mode)."""
     keep = np.ones(len(train_idx), dtype=bool)
-    if _uses_confidence(method):
+    if uses_confidence(method):
         passed = _confidence_pass(gates_df, inputs.get("teacher"), train_idx, cfg["confidence"])
         stats["confidence_pass_ratio"] = pass_ratio(passed)
         if method.data == "confidence":

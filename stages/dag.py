@@ -13,11 +13,12 @@ from pipeline.errors import InputError
 
 def _write(path: Path, text: str) -> bool:
     """Replace ``path`` atomically when its text differs; whether it changed."""
+    from pipeline.artifacts import atomic_path
+
     if path.is_file() and path.read_text() == text:
         return False
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
     return True
 
 

@@ -46,11 +46,11 @@ from pipeline.deploy.bundle import INT8_FILE, read_deploy_info
 from pipeline.deploy.export import (ONNX_INPUT, export_onnx, mask_path_model, onnx_unavailable_reason,
                                     ort_session, parity_inputs)
 from pipeline.errors import InputError
+from pipeline.params import BENCHMARK_VARIANTS
 from pipeline.thresholds import mask_from_probs, resolve_tau
 
 BASELINE_VARIANT = "fp32_eager_nchw"
-VARIANTS = ("fp32_eager_nchw", "fp32_channels_last", "bf16_autocast", "bf16_channels_last", "torchscript_frozen",
-            "onnxruntime_fp32", "onnxruntime_int8")
+VARIANTS = tuple(BENCHMARK_VARIANTS)  # the params schema lists them (deploy.benchmark_variants)
 SLOW_FACTOR = 4.0  # a variant probed more than this many times slower than the baseline is not fully timed
 PROBE_CALLS = 2    # timed batch-1 calls of the probe (after the warm-up)
 OK = "ok"
@@ -366,26 +366,12 @@ def fastest_within(rows: Sequence[dict], max_iou_drop: float) -> dict | None:
 # What the benchmark stage runs: settings, the model under test, data, ONNX models, verdicts, results
 # --------------------------------------------------------------------------------------------------
 def benchmark_settings(cfg: dict) -> dict:
-    """The checked ``deploy`` params of the benchmark (InputError names the param)."""
-    from pipeline.params import require
-
-    s = {"warmup": require(cfg, "benchmark_warmup", "deploy", kind=int, lo=0),
-         "iters": require(cfg, "benchmark_iters", "deploy", kind=int, lo=1),
-         "batches": require(cfg, "benchmark_batches", "deploy", kind=list),
-         "variants": require(cfg, "benchmark_variants", "deploy", kind=list),
-         "n_calib": require(cfg, "int8_calibration_images", "deploy", kind=int, lo=1),
-         "int8": q8.int8_params(cfg),
-         "target_ms": float(require(cfg, "target_latency_ms", "deploy", kind=(int, float), lo=0)),
-         "max_drop": float(require(cfg, "target_iou_drop", "deploy", kind=(int, float), lo=0)),
-         "target_res": require(cfg, "target_resolution", "deploy", kind=int, lo=1),
-         "opset": require(cfg, "opset", "deploy", kind=int, lo=9, hi=30),
-         "resolution": cfg.get("benchmark_resolution")}
-    if not s["batches"] or not all(isinstance(b, int) and b >= 1 for b in s["batches"]):
-        raise InputError(f"params: deploy.benchmark_batches={s['batches']!r}: positive integers expected")
-    unknown = [v for v in s["variants"] if v not in VARIANTS]
-    if unknown:
-        raise InputError(f"params: deploy.benchmark_variants: unknown {unknown} (known: {', '.join(VARIANTS)})")
-    return s
+    """The benchmark's ``deploy`` params (validated by the params schema before any stage runs)."""
+    return {"warmup": cfg["benchmark_warmup"], "iters": cfg["benchmark_iters"], "batches": cfg["benchmark_batches"],
+            "variants": cfg["benchmark_variants"], "n_calib": cfg["int8_calibration_images"],
+            "int8": q8.int8_params(cfg), "target_ms": float(cfg["target_latency_ms"]),
+            "max_drop": float(cfg["target_iou_drop"]), "target_res": cfg["target_resolution"],
+            "opset": cfg["opset"], "resolution": cfg["benchmark_resolution"]}
 
 
 @dataclasses.dataclass

@@ -39,6 +39,7 @@ import numpy as np
 
 from pipeline.deploy.export import ONNX_INPUT, mask_path_model, ort_session, torch_logits
 from pipeline.errors import InputError
+from pipeline.params import INT8_CALIBRATIONS
 from pipeline.thresholds import logit_threshold
 
 
@@ -139,7 +140,6 @@ def require_int8_agreement(report: dict) -> None:
                          f"(max |dZ| = {report['max_abs_diff']:.3g}); lower the param or export with --no-int8")
 
 
-INT8_CALIBRATIONS = ("percentile", "minmax")
 CALIBRATION_CHUNK = 4  # images per calibration pass: ORT keeps every activation of a pass in memory
                        # (about 375 MB per 384x384 image for TinyUNet), so passes bound the memory
 
@@ -238,15 +238,9 @@ def shapes_from_quantized(graph) -> int:
 
 
 def int8_params(cfg: dict) -> dict:
-    """The int8 settings of the ``deploy`` params section, checked (InputError names the param):
-    ``calibration`` (deploy.int8_calibration) and ``percentile`` (deploy.int8_percentile)."""
-    from pipeline.params import require
-
-    calibration = require(cfg, "int8_calibration", "deploy", kind=str)
-    if calibration not in INT8_CALIBRATIONS:
-        raise InputError(f"params: deploy.int8_calibration={calibration!r}: one of {', '.join(INT8_CALIBRATIONS)}")
-    percentile = float(require(cfg, "int8_percentile", "deploy", kind=(int, float), lo=50.0, hi=100.0))
-    return {"calibration": calibration, "percentile": percentile}
+    """The int8 settings of the (schema-validated) ``deploy`` params: ``calibration``
+    (deploy.int8_calibration) and ``percentile`` (deploy.int8_percentile)."""
+    return {"calibration": cfg["int8_calibration"], "percentile": float(cfg["int8_percentile"])}
 
 
 def int8_description(calibration: str, percentile: float) -> str:
