@@ -95,7 +95,7 @@ SCHEMAS: dict[str, Schema] = {
         _s("gates", 1, "parquet", columns=(
             "image_id", "split", "c", "v", "a", "a0", "g_conf", "g_valid", "g_area", "g", "n_valid")),
         _s("checkpoint", 1, "dir", files=("model.pt", "log.parquet")),
-        _s("training_log", 1, "parquet", columns=("epoch", "stage", "loss", "val_iou", "val_bf1", "lr", "seconds")),
+        _s("training_log", 2, "parquet", columns=("epoch", "stage", "loss", "val_iou", "val_bf1", "lr")),
         _s("thresholds", 1, "parquet", columns=("method", "seed", "tau", "val_iou")),
         _s("metrics", 1, "parquet", columns=(
             "dataset", "group", "method", "seed", "image_id", "threshold_mode", "tau",
@@ -215,10 +215,13 @@ def run_id() -> str:
 def require_same_run(*artifacts: "Artifact") -> None:
     """ArtifactError unless artifacts written by one stage carry the same run id (a stage killed between
     two of its outputs' renames leaves one new and one old output: they must not be used together)."""
-    arts = [a for a in artifacts if a is not None]
-    for a in arts[1:]:
-        if a.meta.stage == arts[0].meta.stage and a.meta.run_id != arts[0].meta.run_id:
-            raise ArtifactError(f"{a.path}: written by another run of stage {a.meta.stage!r} than {arts[0].path} "
+    first: dict[str, Artifact] = {}  # stage -> the first artifact of that stage
+    for a in artifacts:
+        if a is None or a.meta.stage == "train":  # each (method, seed) checkpoint is its own run
+            continue
+        ref = first.setdefault(a.meta.stage, a)
+        if a.meta.run_id != ref.meta.run_id:
+            raise ArtifactError(f"{a.path}: written by another run of stage {a.meta.stage!r} than {ref.path} "
                                 f"(an interrupted run?); rerun stage {a.meta.stage!r}")
 
 
@@ -378,6 +381,13 @@ def atomic_path(path: str | Path, is_dir: bool = False) -> Iterator[Path]:
             tmp.unlink()
         raise
     _replace(tmp, path)
+
+
+def write_json(path: str | Path, obj: Any) -> Path:
+    """Write ``obj`` as indented, key-sorted JSON atomically (DVC metrics, timings, small records)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
+    return Path(path)
 
 
 def _check_schema_name(meta: Meta, kind: str) -> Schema:

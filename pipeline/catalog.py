@@ -45,6 +45,8 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
     _a("gates", "gates.parquet", "gates", "geometry", "c, v, a, a0, g_conf, g_valid, g_area, g"),
     _a("checkpoints", "checkpoints", None, "train", "all runs: checkpoints/<method>/<seed>/"),
     _a("checkpoint", "checkpoints/{method}/{seed}", "checkpoint", "train", "one (method, seed) run"),
+    _a("train_timings", "timings/train/{method}/{seed}.json", None, "train",
+       "per-epoch wall-clock seconds: NOT a DVC out and not fingerprinted (checkpoints stay byte-identical)"),
     _a("thresholds", "thresholds.parquet", "thresholds", "calibrate"),
     _a("metrics", "metrics.parquet", "metrics", "evaluate", "per image, calibrated and fixed tau"),
     _a("summary", "summary.parquet", "summary", "evaluate"),

@@ -13,7 +13,6 @@ Only the runs listed in params.yaml's ``protocol.runs`` exist (one DVC stage eac
 from __future__ import annotations
 
 import contextlib
-import json
 from pathlib import Path
 from typing import Iterator
 
@@ -64,7 +63,6 @@ def load_student(path: str | Path, device="cpu"):
 
     Only the mask path is loaded; geometry heads are training-only.
     """
-    import torch
 
     from pipeline.model import TinyUNet
 
@@ -161,13 +159,14 @@ def open_labelled_split(artifacts: str | Path, split: str, purpose: str):
     manifest order).  Reference masks serve selection, calibration and evaluation only.  InputError
     naming the manifest when no such row exists (``purpose`` completes the message).
     """
-    from pipeline.artifacts import open_artifact
+    from pipeline.artifacts import open_artifact, require_same_run
     from pipeline.errors import InputError
 
     art = Path(artifacts)
     manifest = open_artifact(art / "manifest.parquet", "manifest")
     images = open_artifact(art / "images.zarr", "images")
     reference = open_artifact(art / "reference.zarr", "reference")
+    require_same_run(manifest, images, reference)
     idx = np.flatnonzero((manifest.df["split"].to_numpy() == split) & reference.numpy("has_mask").astype(bool))
     if idx.size == 0:
         name = "validation" if split == "val" else split

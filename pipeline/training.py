@@ -60,7 +60,10 @@ log = logging.getLogger(__name__)
 
 #: loss-term columns of the training log (NaN where a method does not use the term)
 LOG_TERMS = ("bbce", "dice", "raw", "sdf", "dist", "skel", "area", "boundary", "anchor")
-LOG_COLUMNS = ("epoch", "stage", "loss", *LOG_TERMS, "val_iou", "val_bf1", "lr", "seconds")
+LOG_COLUMNS = ("epoch", "stage", "loss", *LOG_TERMS, "val_iou", "val_bf1", "lr")
+#: wall-clock columns: kept out of the log (a checkpoint must be byte-identical on a rerun under
+#: SOURCE_DATE_EPOCH) and returned as ``TrainResult.timings`` for a separate, non-fingerprinted file
+TIMING_COLUMNS = ("epoch", "seconds")
 STATE_VERSION = 1
 #: tau of the validation masks in checkpoint selection (eq:inference-mask at 0.5; a fixed decision)
 SELECTION_TAU = 0.5
@@ -439,6 +442,8 @@ class TrainResult:
     log: Any  # pandas.DataFrame (schema training_log)
     selected_epoch: int
     info: dict
+    #: per-epoch wall-clock seconds (TIMING_COLUMNS): not part of the checkpoint, see LOG_COLUMNS
+    timings: list = dataclasses.field(default_factory=list)
 
 
 @dataclasses.dataclass
@@ -638,7 +643,8 @@ def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainRe
             "autocast": str(run.amp).replace("torch.", "") if run.amp is not None else "fp32",
             "channels_last": s.channels_last, **stats}
     return TrainResult(model=model, log=pd.DataFrame(run.rows, columns=list(LOG_COLUMNS)),
-                       selected_epoch=int(run.best["epoch"]), info=info)
+                       selected_epoch=int(run.best["epoch"]), info=info,
+                       timings=[{k: r[k] for k in TIMING_COLUMNS} for r in run.rows])
 
 
 def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData | None, seed: int, *,

@@ -13,7 +13,6 @@ summary, Spearman rho/p of g against the vote's Image IoU and Boundary F1).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
@@ -45,7 +44,7 @@ def _round(x):
               type=click.Path(dir_okay=False))
 def main(params, device, art, out, metrics_json):
     """Teacher prompt / vote quality on val+test, prompt selection on val, gate-vs-quality analysis."""
-    from pipeline.artifacts import atomic_path, open_artifact, read_chunk_rows, write_parquet
+    from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run, write_json, write_parquet
     from pipeline.errors import InputError
     from pipeline.metrics import per_image_metrics
     from pipeline.progress import progress
@@ -60,6 +59,7 @@ def main(params, device, art, out, metrics_json):
     teacher = open_artifact(art / "teacher.zarr", "teacher")
     consensus = open_artifact(art / "consensus.zarr", "consensus")
     gates = open_artifact(art / "gates.parquet", "gates")
+    require_same_run(manifest, reference, teacher, consensus, gates)
     mdf = manifest.df
     prompts = list(teacher.attrs.get("prompts", []))
     backend = str(teacher.attrs.get("backend", "unknown"))
@@ -118,8 +118,7 @@ def main(params, device, art, out, metrics_json):
             "gate_rho_bf1": _round(ga["rho_bf1"]), "gate_p_bf1": ga["p_bf1"] if np.isfinite(ga["p_bf1"]) else None,
             "gate_zero_images": int(ga["table"]["images"].iloc[0]),
         }
-    with atomic_path(metrics_json) as tmp:
-        tmp.write_text(json.dumps(digest, indent=1, sort_keys=True))
+    write_json(metrics_json, digest)
     click.echo(f"analyze_teacher: {idx.size} images x {k_prompts + 1} sources -> {out} "
                f"(teacher backend: {backend}{' = SIMULATOR' if backend == 'simulated' else ''})", err=True)
 

@@ -18,7 +18,6 @@ and pipeline.thresholds; this script is wiring.
 
 from __future__ import annotations
 
-import json
 import tempfile
 from pathlib import Path
 
@@ -44,7 +43,7 @@ from stages._common import meta_for, stage_code_version, stage_command
 @click.option("--json", "json_out", default=None, type=click.Path(dir_okay=False), help="JSON results to write")
 def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolution, out, json_out):
     """Latency, throughput, memory and IoU change of the deployed mask path's variants."""
-    from pipeline.artifacts import atomic_path, write_parquet
+    from pipeline.artifacts import write_json, write_parquet
     from pipeline.deploy import benchmark as B
     from pipeline.device import resolve_device
     from pipeline.errors import InputError
@@ -81,8 +80,7 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
         click.echo(B.fast_path_line(summary, rows, resolution, st["target_ms"], st["target_res"]))
     if json_out:
         result = B.benchmark_result(rows, run_info, st, tau=target.tau, summary=summary, notes=notes)
-        with atomic_path(json_out) as tmp:
-            tmp.write_text(json.dumps(result, indent=1, sort_keys=True))
+        write_json(json_out, result)
     if out:
         import pandas as pd
 

@@ -16,7 +16,6 @@ Reference masks are used here only to score predictions.
 
 from __future__ import annotations
 
-import json
 
 import click
 import numpy as np
@@ -67,7 +66,7 @@ def summary_json(summary: pd.DataFrame) -> dict:
               type=click.Path(dir_okay=False))
 def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics_json):
     """Score every student on every test group; write per-image metrics, summaries with bootstrap CIs."""
-    from pipeline.artifacts import atomic_path, open_artifact, read_chunk_rows, write_parquet
+    from pipeline.artifacts import open_artifact, read_chunk_rows, write_json, write_parquet
     from pipeline.device import resolve_device
     from pipeline.inference import active_runs, load_student, open_labelled_split, predict_probs
     from pipeline.metrics import per_image_metrics
@@ -117,8 +116,7 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
     mmeta = open_artifact(out, "metrics")
     write_parquet(summary_out, summary, meta_for("summary", "evaluate", code, declared_params(params, "evaluate"), [mmeta],
                                                  control="plain", ci=ci, bootstrap_resamples=n_boot))
-    with atomic_path(metrics_json) as tmp:
-        tmp.write_text(json.dumps(summary_json(summary), indent=1, sort_keys=True))
+    write_json(metrics_json, summary_json(summary))
     click.echo(f"evaluate: {len(runs)} runs x {test.size} test images -> {out}, {summary_out}", err=True)
 
 

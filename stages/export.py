@@ -41,7 +41,6 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     """Export the mask path (TorchScript + ONNX) with its calibrated tau and a parity check."""
     from pipeline import deploy
     from pipeline.artifacts import artifact_dir, open_artifact
-    from pipeline.errors import InputError
     from pipeline.inference import load_student
     from pipeline.thresholds import lookup_tau, resolve_tau
 

@@ -39,7 +39,7 @@ import click
 import numpy as np
 import pandas as pd
 
-from pipeline.artifacts import ZarrWriter, open_artifact, write_parquet
+from pipeline.artifacts import ZarrWriter, open_artifact, require_same_run, write_parquet
 from pipeline.errors import InputError
 from pipeline.params import section
 from pipeline.progress import progress
@@ -88,6 +88,7 @@ def main(params, device, manifest, images, reference, out, scores, shard):
     n, h, w = image_arr.shape[0], image_arr.shape[1], image_arr.shape[2]
     teacher = make_teacher(cfg, (h, w), device)
     ref = open_artifact(reference, "reference") if teacher.needs_reference else None
+    require_same_run(man, img, ref)
     _check_alignment(df, img, ref)
 
     prompts = list(cfg["prompts"])

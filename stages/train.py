@@ -86,14 +86,14 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[An
 
     inputs = {name: opened_artifact(name) for name in training.training_inputs(spec, cfg)}
     # outputs of one stage must come from one run (a kill between geometry.zarr and gates.parquet)
-    require_same_run(inputs.get("geometry"), inputs.get("gates"))
-    require_same_run(inputs.get("manifest"), inputs.get("images"))
+    require_same_run(*inputs.values())
     data = training.training_data(spec, cfg, inputs)
     opened = list(inputs.values())
     val = None
     if len(training.validation_rows(inputs["manifest"])):
         reference = opened_artifact("reference")
         opened.append(reference)
+        require_same_run(*opened)
         val = training.validation_data(inputs["manifest"], inputs["images"], reference)
     return data, val, opened
 
@@ -121,7 +121,8 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
     if spec.stage != stage:
         raise InputError(f"--stage {stage}: method {method!r} belongs to --stage {spec.stage}")
 
-    from pipeline import training
+    from pipeline import catalog, training
+    from pipeline.artifacts import write_json
     from pipeline.device import resolve_device
     from pipeline.inference import save_checkpoint
 
@@ -142,6 +143,9 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
                     selected_epoch=result.selected_epoch, selection=result.info["selection"],
                     resolution=int(data.images.shape[1]),
                     mode=result.info["mode"], fingerprint=meta.fingerprint)
+    # wall clock beside, not inside, the checkpoint: the checkpoint is byte-identical on a rerun
+    write_json(catalog.path("train_timings", artifacts, method=method, seed=seed),
+               {"method": method, "seed": seed, "device": str(resolve_device(device)), "epochs": result.timings})
     click.echo(f"train: {method} seed {seed}: selected epoch {result.selected_epoch} "
                f"({result.info['selection']}); wrote {out}", err=True)
     return Path(out)

@@ -43,7 +43,7 @@ def tiny_model(seed: int = 0, geometry: bool = False) -> TinyUNet:
 def make_checkpoint(path: Path, seed: int = 0, method: str = "geodistill", run_seed: int = 42,
                     geometry: bool = False) -> Path:
     log = pd.DataFrame({"epoch": [1], "stage": [2], "loss": [0.1], "val_iou": [0.5], "val_bf1": [0.5],
-                        "lr": [1e-4], "seconds": [1.0]})
+                        "lr": [1e-4]})
     meta = make_meta("checkpoint", "train", "test", {"seed": run_seed, "method": method})
     return save_checkpoint(path, tiny_model(seed, geometry), meta, log, method=method, seed=run_seed, stage=2,
                            selected_epoch=1)

@@ -123,7 +123,7 @@ def build_tiny_artifacts(root: Path, methods=("plain", "geodistill"), seeds=(1, 
             model.eval()
             log = pd.DataFrame({"epoch": np.arange(1, 4), "stage": [1, 1, 1] if method == "plain" else [2, 2, 2],
                                 "loss": [0.9, 0.7, 0.6], "val_iou": rng.uniform(0.2, 0.6, 3),
-                                "val_bf1": rng.uniform(0.2, 0.6, 3), "lr": [1e-3] * 3, "seconds": [0.1] * 3})
+                                "val_bf1": rng.uniform(0.2, 0.6, 3), "lr": [1e-3] * 3})
             save_checkpoint(art / "checkpoints" / method / str(seed), model, _meta("checkpoint"), log,
                             method=method, seed=seed, stage=1 if method == "plain" else 2, selected_epoch=3)
     torch.set_num_threads(threads)

@@ -132,7 +132,7 @@ def toy_trained_checkpoint(path: Path) -> Path:
     finally:
         torch.set_num_threads(threads)
     log = pd.DataFrame({"epoch": [1], "stage": [1], "loss": [0.1], "val_iou": [0.5], "val_bf1": [0.5],
-                        "lr": [0.02], "seconds": [1.0]})
+                        "lr": [0.02]})
     meta = make_meta("checkpoint", "train", "test", {"seed": 42, "method": "geodistill"})
     return save_checkpoint(path, model.eval(), meta, log, method="geodistill", seed=42, stage=1, selected_epoch=1)
 

@@ -8,6 +8,7 @@ pipeline.artifacts; it does not run any other stage.
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -159,7 +160,10 @@ def test_few_steps_lower_the_loss(tiny):
     res = _run("plain", tiny, tiny_cfg(epochs_stage1=6, lr_stage1=3e-3, schedule="constant"))
     loss = res.log["loss"].to_numpy()
     assert np.all(np.isfinite(loss)) and loss[-1] < 0.8 * loss[0]
-    assert set(res.log.columns) >= {"epoch", "stage", "loss", "val_iou", "val_bf1", "lr", "seconds", "bbce", "dice"}
+    assert set(res.log.columns) >= {"epoch", "stage", "loss", "val_iou", "val_bf1", "lr", "bbce", "dice"}
+    assert "seconds" not in res.log.columns  # wall clock lives in res.timings, not in the checkpoint
+    assert [t["epoch"] for t in res.timings] == res.log["epoch"].tolist()
+    assert all(t["seconds"] >= 0 for t in res.timings)
     assert res.log["val_iou"].notna().all()
     # Stage-I selection = the best validation IoU epoch
     assert res.selected_epoch == int(res.log.loc[res.log["val_iou"].idxmax(), "epoch"])
@@ -169,7 +173,7 @@ def test_same_seed_same_weights_and_different_seed_differs(tiny):
     cfg = tiny_cfg(epochs_stage1=1)
     a, b = _run("plain", tiny, cfg), _run("plain", tiny, cfg)
     _assert_same(_weights(a.model), _weights(b.model))
-    pd.testing.assert_frame_equal(a.log.drop(columns="seconds"), b.log.drop(columns="seconds"))
+    pd.testing.assert_frame_equal(a.log, b.log)
     c = _run("plain", tiny, cfg, seed=7)
     assert not torch.equal(a.model.enc1[0][0].weight, c.model.enc1[0][0].weight)
 
@@ -202,7 +206,7 @@ def test_resume_after_interruption_gives_identical_weights(tiny, tmp_path, metho
     resumed = _run(method, tiny, cfg, init_state=init, resume_dir=tmp_path / "r", callback=lambda e, r: seen.append(e))
     assert seen == [3]  # only the missing epoch ran
     _assert_same(_weights(full.model), _weights(resumed.model))
-    pd.testing.assert_frame_equal(full.log.drop(columns="seconds"), resumed.log.drop(columns="seconds"))
+    pd.testing.assert_frame_equal(full.log, resumed.log)
     # a finished state makes a rerun instant (no epoch runs) and gives the same model
     again = _run(method, tiny, cfg, init_state=init, resume_dir=tmp_path / "r", callback=lambda e, r: seen.append(e))
     assert seen == [3]
@@ -242,7 +246,7 @@ def test_train_runs_from_arrays_with_an_in_memory_checkpointer_and_resumes():
                              callback=lambda e, r: seen.append(e))
     assert seen == [2, 3]
     _assert_same(_weights(full.model), _weights(resumed.model))
-    pd.testing.assert_frame_equal(full.log.drop(columns="seconds"), resumed.log.drop(columns="seconds"))
+    pd.testing.assert_frame_equal(full.log, resumed.log)
     # a state of another run (different seed) is ignored, not resumed
     other = training.train(m, cfg, data, val, 7, checkpointer=ck, show_progress=False,
                            callback=lambda e, r: seen.append(e))
@@ -399,6 +403,34 @@ def test_stage_command_trains_writes_checkpoint_and_warm_starts(tiny, tmp_path):
               "--out", str(ck / "geodistill/42"), *common, cwd=tmp_path)
     assert r3.returncode == 0, r3.stderr
     assert (ck / "geodistill/42" / "model.pt").read_bytes() == before
+
+
+def test_checkpoints_are_byte_identical_under_source_date_epoch(tiny, tmp_path, monkeypatch):
+    """Issue 16 item 8: two independent runs (no shared resume state) give the same bytes in every
+    checkpoint file; the wall clock goes to the separate timings file only."""
+    import json
+
+    from pipeline import catalog
+
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    params = _params_file(tmp_path)
+    outs = []
+    out = tmp_path / "ck" / "plain/42"
+    for k in range(2):  # the same paths, nothing kept between the runs
+        shutil.rmtree(tmp_path / "ck", ignore_errors=True)
+        shutil.rmtree(tmp_path / "cache", ignore_errors=True)
+        r = subprocess.run([sys.executable, "-m", "stages.train", "--stage", "1", "--method", "plain", "--seed", "42",
+                            "--out", str(out), "--params", str(params), "--artifacts", str(tiny), "--device", "cpu",
+                            "--resume-dir", str(tmp_path / "cache")], cwd=tmp_path, capture_output=True, text=True,
+                           env={"GEODISTILL_QUIET": "1", "PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO),
+                                "SOURCE_DATE_EPOCH": "1700000000"})
+        assert r.returncode == 0, r.stderr
+        outs.append({f.name: f.read_bytes() for f in sorted(out.iterdir())})
+    assert set(outs[0]) == {"model.pt", "log.parquet", "meta.json"}
+    for name in outs[0]:
+        assert outs[0][name] == outs[1][name], name
+    timings = json.loads(catalog.path("train_timings", tiny, method="plain", seed=42).read_text())
+    assert [e["epoch"] for e in timings["epochs"]] == [1] and timings["epochs"][0]["seconds"] > 0
 
 
 def test_stage_command_errors_are_one_line(tiny, tmp_path):

@@ -35,7 +35,7 @@ def ckpts(tmp_path_factory) -> dict[str, Path]:
     weights without it (an older checkpoint)."""
     root = tmp_path_factory.mktemp("ckpts")
     log = pd.DataFrame({"epoch": [1], "stage": [1], "loss": [0.1], "val_iou": [0.5], "val_bf1": [0.5],
-                        "lr": [1e-4], "seconds": [1.0]})
+                        "lr": [1e-4]})
     meta = make_meta("checkpoint", "train", "test", {"seed": 42, "method": "geodistill"})
     common = dict(method="geodistill", seed=42, stage=1, selected_epoch=1, tau=0.5)
     return {"with": save_checkpoint(root / "with", tiny_model(3), meta, log, resolution=RES, **common),

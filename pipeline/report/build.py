@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline import catalog
 from pipeline.errors import ArtifactError
 from pipeline.report import figures as F
 from pipeline.report import tables as T
@@ -19,20 +20,9 @@ from pipeline.report.document import Figure, Missing, Report, Section, Table, Te
 from pipeline.thresholds import mask_from_probs
 
 # artifact file -> (schema, stage that produces it)
-INPUTS = {
-    "manifest": ("manifest.parquet", "manifest", "prepare"),
-    "images": ("images.zarr", "images", "prepare"),
-    "reference": ("reference.zarr", "reference", "prepare"),
-    "teacher": ("teacher.zarr", "teacher", "teacher"),
-    "consensus": ("consensus.zarr", "consensus", "consensus"),
-    "geometry": ("geometry.zarr", "geometry", "geometry"),
-    "gates": ("gates.parquet", "gates", "geometry"),
-    "thresholds": ("thresholds.parquet", "thresholds", "calibrate"),
-    "metrics": ("metrics.parquet", "metrics", "evaluate"),
-    "summary": ("summary.parquet", "summary", "evaluate"),
-    "teacher_metrics": ("teacher_metrics.parquet", "teacher_metrics", "analyze_teacher"),
-    "efficiency": ("efficiency.parquet", "efficiency", "benchmark"),
-}
+#: the catalogue artifacts the report reads (paths, schemas and producing stages from pipeline.catalog)
+INPUTS = ("manifest", "images", "reference", "teacher", "consensus", "geometry", "gates", "thresholds", "metrics",
+          "summary", "teacher_metrics", "efficiency")
 
 
 @dataclasses.dataclass
@@ -51,15 +41,17 @@ class Inputs:
 
 def load_inputs(art: str | Path) -> Inputs:
     """Open every input that exists; record a :class:`Missing` note for each one that does not."""
-    from pipeline.artifacts import open_artifact
+    from pipeline.artifacts import open_artifact, require_same_run
 
     art = Path(art)
     found, missing = {}, {}
-    for name, (fname, schema, stage) in INPUTS.items():
+    for name in INPUTS:
+        spec = catalog.ARTIFACTS[name]
         try:
-            found[name] = open_artifact(art / fname, schema)
+            found[name] = open_artifact(catalog.path(name, art), spec.schema)
         except ArtifactError as e:
-            missing[name] = Missing(f"`{fname}`", f"{e} -- produced by the `{stage}` stage.")
+            missing[name] = Missing(f"`{spec.path}`", f"{e} -- produced by the `{spec.stage}` stage.")
+    require_same_run(*found.values())
     inp = Inputs(art, found, missing)
     inp.logs = training_logs(art / "checkpoints")
     return inp
@@ -376,8 +368,8 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
 
 
 def provenance_section(inp: Inputs) -> Section:
-    rows = [[f"`{INPUTS[n][0]}`", a.meta.schema, a.meta.stage, a.fingerprint[:16]] for n, a in inp.found.items()]
-    rows += [[f"`{INPUTS[n][0]}`", "--", "--", "missing"] for n in inp.missing]
+    rows = [[f"`{catalog.ARTIFACTS[n].path}`", a.meta.schema, a.meta.stage, a.fingerprint[:16]] for n, a in inp.found.items()]
+    rows += [[f"`{catalog.ARTIFACTS[n].path}`", "--", "--", "missing"] for n in inp.missing]
     return Section("Provenance", [Table("tab:provenance", "Input artifacts", ["Artifact", "Schema", "Stage",
                                                                              "Fingerprint"], rows)])
 
