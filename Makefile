@@ -21,11 +21,15 @@ demo: install
 	$(BIN)/geodistill dag --check
 	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
 
-# Another profile: rewrite params.yaml (and check dvc.yaml), then run the DAG.
+# Another profile: rewrite params.yaml (and check dvc.yaml), then run the DAG with `geodistill run`:
+# stale stages as concurrent processes (several training runs per GPU, CPU cores shared out), each one
+# recorded by DVC (dvc.lock), so `dvc repro` afterwards does nothing.  Options through RUN_ARGS, e.g.
+# make paper RUN_ARGS="--gpu-jobs 6 --teacher-shards 8"   (see `geodistill run --help`).
+RUN_ARGS ?=
 reduced paper: install
 	$(BIN)/geodistill profile $@
 	$(BIN)/geodistill dag --check
-	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
+	$(BIN)/geodistill run $(RUN_ARGS)
 
 test: install
 	$(BIN)/python -m pytest -q

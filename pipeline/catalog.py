@@ -6,7 +6,10 @@ paths from it, and the report and notebooks look artifacts up here by name.  Lib
 arrays and opened artifacts, never file names.
 
 Paths are relative to the artifacts directory (``ARTIFACTS_DIR``); ``{method}``/``{seed}`` fill the
-per-run checkpoint folders, ``{profile}`` the report folder.
+per-run checkpoint folders, ``{profile}`` the report folder.  Paths starting ``../`` lie outside it and
+are DVC outs with ``cache: false``: git tracks them (the report, and the metrics, plot tables and
+DVCLive logs that ``dvc metrics show|diff``, ``dvc plots`` and ``dvc exp show`` read;
+:mod:`pipeline.dvc_results`).  :data:`PLOTS` are dvc.yaml's top-level plots.
 """
 
 from __future__ import annotations
@@ -45,17 +48,28 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
     _a("gates", "gates.parquet", "gates", "geometry", "c, v, a, a0, g_conf, g_valid, g_area, g"),
     _a("checkpoints", "checkpoints", None, "train", "all runs: checkpoints/<method>/<seed>/"),
     _a("checkpoint", "checkpoints/{method}/{seed}", "checkpoint", "train", "one (method, seed) run"),
+    _a("train_live", "../reports/dvclive/{method}/{seed}", None, "train",
+       "DVCLive log of the run's epoch rows (metrics.json, plots/metrics/*.tsv): a git-tracked DVC out"),
     _a("train_timings", "timings/train/{method}/{seed}.json", None, "train",
        "per-epoch wall-clock seconds: NOT a DVC out and not fingerprinted (checkpoints stay byte-identical)"),
+    _a("run_logs", "logs/run", None, "run",
+       "`geodistill run`: <stage>.log (stdout+stderr) per stage and timeline.json; NOT a DVC out"),
     _a("thresholds", "thresholds.parquet", "thresholds", "calibrate"),
     _a("metrics", "metrics.parquet", "metrics", "evaluate", "per image, calibrated and fixed tau"),
     _a("summary", "summary.parquet", "summary", "evaluate"),
-    _a("summary_json", "metrics/summary.json", None, "evaluate", "DVC metrics"),
+    _a("metrics_students", "../reports/metrics/students", None, "evaluate",
+       "DVC metrics (git-tracked): <group>/<method>.json = iou, bf1 at the calibrated tau (pipeline.dvc_results)"),
+    _a("plot_training_curves", "../reports/plots/training_curves.csv", None, "evaluate",
+       "DVC plot (git-tracked): method, seed, epoch, val_iou, ... of every run's training log"),
+    _a("plot_threshold_curves", "../reports/plots/threshold_curves.csv", None, "evaluate",
+       "DVC plot (git-tracked): method, seed, tau, val_iou of calibrate's curves"),
     _a("teacher_metrics", "teacher_metrics.parquet", "teacher_metrics", "analyze_teacher"),
-    _a("teacher_json", "metrics/teacher.json", None, "analyze_teacher", "DVC metrics"),
+    _a("metrics_teacher", "../reports/metrics/teacher", None, "analyze_teacher",
+       "DVC metrics (git-tracked): <group>.json = the vote's iou, bf1 and the gate_share g > 0"),
     _a("deploy", "deploy", "deploy", "export", "exported mask path (TorchScript, ONNX, int8, tau)"),
     _a("efficiency", "efficiency.parquet", "efficiency", "benchmark"),
-    _a("efficiency_json", "metrics/efficiency.json", None, "benchmark", "DVC metrics"),
+    _a("metrics_deploy", "../reports/metrics/deploy.json", None, "benchmark",
+       "DVC metrics (git-tracked): latency_ms of the deployed fast path"),
     _a("report", "../reports/{profile}", "report", "report", "report.md, report.html, figures, plots"),
 ]}
 
@@ -93,6 +107,7 @@ class StageSpec:
     params: tuple[str, ...]
     data_deps: tuple[str, ...] = ()
     metrics: tuple[str, ...] = ()
+    exclusive: bool = False  # it measures wall time: `geodistill run` runs it with nothing beside it
 
 
 def _keys(section: str, *names: str) -> tuple[str, ...]:
@@ -122,17 +137,19 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
     StageSpec("calibrate", "stages.calibrate",
               "--artifacts {artifacts_dir} --checkpoints {checkpoints} --out {thresholds}",
               ("manifest", "images", "reference", "checkpoints"), ("thresholds",),
-              _keys("calibrate", "grid_start", "grid_stop", "grid_step", "fixed_tau")),
+              _keys("calibrate", "grid_start", "grid_stop", "grid_step", "fixed_tau", "reliability_bins")),
     StageSpec("evaluate", "stages.evaluate",
               "--artifacts {artifacts_dir} --checkpoints {checkpoints} --thresholds {thresholds} "
-              "--out {metrics} --summary {summary} --metrics-json {summary_json}",
-              ("manifest", "images", "reference", "checkpoints", "thresholds"), ("metrics", "summary"),
-              _keys("evaluate", "bf1_tolerance", "small_region_max_fraction", "bootstrap_resamples",
-                    "bootstrap_seed", "ci"), metrics=("summary_json",)),
+              "--out {metrics} --summary {summary} --metrics-dir {metrics_students} "
+              "--training-curves {plot_training_curves} --threshold-curves {plot_threshold_curves}",
+              ("manifest", "images", "reference", "checkpoints", "thresholds"),
+              ("metrics", "summary", "plot_training_curves", "plot_threshold_curves"),
+              _keys("evaluate", "bf1_tolerance", "small_region_max_fraction", "tiny_target_max_fraction",
+                    "bootstrap_resamples", "bootstrap_seed", "ci"), metrics=("metrics_students",)),
     StageSpec("analyze_teacher", "stages.analyze_teacher",
-              "--artifacts {artifacts_dir} --out {teacher_metrics} --metrics-json {teacher_json}",
+              "--artifacts {artifacts_dir} --out {teacher_metrics} --metrics-dir {metrics_teacher}",
               ("manifest", "reference", "teacher", "consensus", "gates"), ("teacher_metrics",),
-              _keys("evaluate", "bf1_tolerance", "small_region_max_fraction"), metrics=("teacher_json",)),
+              _keys("evaluate", "bf1_tolerance", "small_region_max_fraction"), metrics=("metrics_teacher",)),
     StageSpec("export", "stages.export",
               "--checkpoint {export_checkpoint} --thresholds {thresholds} --artifacts {artifacts_dir} --out {deploy}",
               ("export_checkpoint", "thresholds", "manifest", "images"), ("deploy",),
@@ -140,12 +157,12 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
                     "int8_calibration", "int8_percentile", "int8_min_mask_iou")
               + ("calibrate.fixed_tau", "data.resolution")),
     StageSpec("benchmark", "stages.benchmark",
-              "--deploy {deploy} --artifacts {artifacts_dir} --out {efficiency} --json {efficiency_json}",
+              "--deploy {deploy} --artifacts {artifacts_dir} --out {efficiency} --metrics-json {metrics_deploy}",
               ("deploy", "manifest", "images", "reference"), ("efficiency",),
               _keys("deploy", "opset", "benchmark_warmup", "benchmark_iters", "benchmark_batches",
                     "benchmark_resolution", "benchmark_variants", "int8_calibration_images", "target_latency_ms",
                     "target_resolution", "target_iou_drop") + ("calibrate.fixed_tau", "data.resolution"),
-              metrics=("efficiency_json",)),
+              metrics=("metrics_deploy",), exclusive=True),
     StageSpec("report", "stages.report", "--artifacts {artifacts_dir} --out {report}",
               ("manifest", "images", "reference", "teacher", "consensus", "geometry", "gates", "checkpoints",
                "thresholds", "metrics", "summary", "teacher_metrics", "efficiency"), ("report",),
@@ -157,6 +174,37 @@ EXTRA_PATHS = {
     "artifacts_dir": ARTIFACTS_DIR,
     "export_checkpoint": f"{ARTIFACTS_DIR}/checkpoints/${{deploy.export_method}}/${{deploy.export_seed}}",
 }
+
+
+# --------------------------------------------------------------------------------------------------
+# Plots (dvc.yaml top level)
+# --------------------------------------------------------------------------------------------------
+#: the Vega-Lite template of every plot below: ``.dvc/plots/<name>.json`` (pipeline.offline_plots),
+#: one line per value of the data's ``method`` column (mean over seeds), dashed per revision
+PLOT_TEMPLATE = "method_lines"
+
+
+@dataclasses.dataclass(frozen=True)
+class PlotSpec:
+    """One top-level plot of dvc.yaml: ``y`` of artifact ``data`` (a CSV with a ``method`` column)
+    against ``x``, drawn with :data:`PLOT_TEMPLATE`."""
+
+    name: str
+    data: str
+    x: str
+    y: str
+    title: str
+    x_label: str
+    y_label: str
+
+
+PLOTS: tuple[PlotSpec, ...] = (
+    PlotSpec("training_curves", "plot_training_curves", "epoch", "val_iou",
+             "Validation Image IoU during training (tau 0.5, mean over seeds)", "epoch of the run's own schedule",
+             "val Image IoU"),
+    PlotSpec("threshold_curves", "plot_threshold_curves", "tau", "val_iou",
+             "Validation Image IoU of [P >= tau] (calibration curve, mean over seeds)", "tau", "val Image IoU"),
+)
 
 
 def stage_params(params: dict, keys) -> dict:

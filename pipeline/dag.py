@@ -96,10 +96,16 @@ def module_files(module: str, root: Path = ROOT) -> tuple[str, ...]:
     return tuple(sorted(p.relative_to(root).as_posix() for p in seen))
 
 
-def code_deps(module: str, root: Path = ROOT) -> list[str]:
+def code_deps(module: str, root: Path = ROOT, code_root: Path | None = None) -> list[str]:
     """:func:`module_files` as dvc.yaml lists them: a sub-package whose every ``*.py`` is used is named
-    by its folder (shorter; DVC hashes the folder, and .dvcignore leaves bytecode out)."""
+    by its folder (shorter; DVC hashes the folder, and .dvcignore leaves bytecode out).
+
+    ``code_root`` (a standalone project outside this repository, :mod:`pipeline.distill`): every file
+    by its absolute path under ``code_root`` -- no folders, since that project's .dvcignore cannot keep
+    the installed code's bytecode out of a folder hash."""
     files = module_files(module, root)
+    if code_root is not None:
+        return [(Path(code_root) / rel).as_posix() for rel in files]
     out: list[str] = []
     done: set[str] = set()
     for rel in files:
@@ -139,48 +145,67 @@ def _fill(template: str) -> str:
     return re.sub(r"(?<!\$)\{(\w+)\}", lambda m: values[m.group(1)], template)
 
 
-def _stage_entry(spec, matrix: dict | None = None) -> dict:
+def _stage_entry(spec, matrix: dict | None = None, code_root: Path | None = None,
+                 data_deps: dict[str, list[str]] | None = None) -> dict:
     """The dvc.yaml entry of a :class:`pipeline.catalog.StageSpec`: derived code deps, then data deps,
-    then input artifacts; params key by key; outs (reports uncached) and DVC metrics files."""
+    then input artifacts; params key by key; outs and DVC metrics files (those outside artifacts/ --
+    reports, metrics, plot tables -- uncached, so git tracks them and ``dvc metrics diff`` works).
+
+    ``code_root`` / ``data_deps`` ({stage: paths}, replacing the spec's data deps): a standalone project
+    (:func:`render_dvc_yaml`)."""
     entry: dict[str, Any] = {"matrix": matrix} if matrix else {}
     entry["cmd"] = f"python -m {spec.module} {_fill(spec.args)}"
-    entry["deps"] = code_deps(spec.module) + list(spec.data_deps) + [_fill("{" + d + "}") for d in spec.deps]
+    own_data = list(spec.data_deps) if data_deps is None else list(data_deps.get(spec.name, []))
+    entry["deps"] = code_deps(spec.module, code_root=code_root) + own_data + [_fill("{" + d + "}") for d in spec.deps]
     entry["params"] = list(spec.params)
-    out_paths = [_fill("{" + o + "}") for o in spec.outs]
-    entry["outs"] = [{p: {"cache": False}} if p.startswith("reports/") else p for p in out_paths]
+    entry["outs"] = [_out_entry(o) for o in spec.outs]
     if spec.metrics:
         entry["metrics"] = [{_fill("{" + m + "}"): {"cache": False}} for m in spec.metrics]
     return entry
 
 
-def train_stage(method_name: str) -> dict:
+def _out_entry(name: str) -> str | dict:
+    """A catalogue artifact as a dvc.yaml out: outside artifacts/ (``../`` paths) ``cache: false``."""
+    from pipeline.catalog import ARTIFACTS
+
+    p = _fill("{" + name + "}")
+    return {p: {"cache": False}} if ARTIFACTS[name].path.startswith("../") else p
+
+
+def train_stage(method_name: str, code_root: Path | None = None) -> dict:
     """The ``train_<method>`` stage: one run per seed listed in ``protocol.runs.<method>``."""
     from pipeline.catalog import StageSpec, dvc_path
     from pipeline.methods import METHODS, input_artifacts, param_keys
 
     m = METHODS[method_name]
     out = dvc_path("checkpoint", method=m.name, seed="${item.seed}")
+    live = dvc_path("train_live", method=m.name, seed="${item.seed}")
     init = dvc_path("checkpoint", method="plain", seed="${item.seed}") if m.init == "stage1" else None
     args = (f"--stage {m.stage} --method {m.name} --seed ${{item.seed}} --artifacts {{artifacts_dir}}"
-            + (f" --init {init}" if init else "") + f" --out {out}")
+            + (f" --init {init}" if init else "") + f" --out {out} --live-dir {live}")
     spec = StageSpec(f"train_{m.name}", "stages.train", args, input_artifacts(m), (), param_keys(m))
-    entry = _stage_entry(spec, matrix={"seed": f"${{protocol.runs.{m.name}}}"})
+    entry = _stage_entry(spec, matrix={"seed": f"${{protocol.runs.{m.name}}}"}, code_root=code_root)
     if init:
         entry["deps"].append(init)
-    entry["outs"] = [out]
+    entry["outs"] = [out, {live: {"cache": False}}]
     return entry
 
 
-def dvc_stages() -> dict[str, dict]:
+def dvc_stages(code_root: Path | None = None, data_deps: dict[str, list[str]] | None = None,
+               omit: tuple[str, ...] = ()) -> dict[str, dict]:
     """Every stage of dvc.yaml, in DAG order: the catalogue's data stages, one train stage per method,
-    then the catalogue's downstream stages."""
+    then the catalogue's downstream stages.  ``code_root``/``data_deps``/``omit``: see :func:`render_dvc_yaml`."""
     from pipeline.catalog import STAGES
     from pipeline.methods import METHODS
 
     upstream = ["prepare", "teacher", "consensus", "geometry"]
-    out = {n: _stage_entry(STAGES[n]) for n in upstream}
-    out.update({f"train_{name}": train_stage(name) for name in METHODS})
-    out.update({n: _stage_entry(s) for n, s in STAGES.items() if n not in upstream})
+    out = {n: _stage_entry(STAGES[n], code_root=code_root, data_deps=data_deps) for n in upstream}
+    out.update({f"train_{name}": train_stage(name, code_root) for name in METHODS})
+    out.update({n: _stage_entry(s, code_root=code_root, data_deps=data_deps)
+                for n, s in STAGES.items() if n not in upstream})
+    if omit:  # the omitted stages' outputs are no one's deps any more (their readers cope without them)
+        gone = {_fill("{" + o + "}") for n in omit for o in STAGES[n].outs + STAGES[n].metrics}
+        out = {n: {**e, "deps": [d for d in e["deps"] if d not in gone]} for n, e in out.items() if n not in omit}
     return out
 
 
@@ -194,14 +219,33 @@ DVC_HEADER = """\
 #
 # Which runs exist is params.yaml's protocol.runs: train_<method> has one stage per listed seed (an
 # empty list: no stage).  Params are tracked key by key: a change reruns exactly the stages reading it.
+#
+# Results, git-tracked (cache: false): reports/metrics/ (`dvc metrics show`, `dvc metrics diff <commit>`),
+# reports/plots/ (`geodistill plots`: `dvc plots show` offline, one line per method), reports/dvclive/<method>/<seed>/.
 """
 
 
-def render_dvc_yaml() -> str:
-    doc = {"stages": dvc_stages(),
-           "plots": [{"reports/${profile}/plots/training_curves.csv": {"x": "epoch", "y": "val_iou"}},
-                     {"reports/${profile}/plots/threshold_curve.csv": {"x": "tau", "y": "val_iou"}}]}
-    return DVC_HEADER + yaml.safe_dump(doc, sort_keys=False, width=110, default_flow_style=False)
+def dvc_plots(omit: tuple[str, ...] = ()) -> list[dict]:
+    """dvc.yaml's top-level plots (:data:`pipeline.catalog.PLOTS`), leaving out those whose data's
+    producing stage is omitted."""
+    from pipeline.catalog import ARTIFACTS, PLOT_TEMPLATE, PLOTS, dvc_path
+
+    return [{p.name: {"template": PLOT_TEMPLATE, "x": p.x, "y": {dvc_path(p.data): p.y}, "title": p.title,
+                      "x_label": p.x_label, "y_label": p.y_label}}
+            for p in PLOTS if ARTIFACTS[p.data].stage not in omit]
+
+
+def render_dvc_yaml(code_root: Path | None = None, data_deps: dict[str, list[str]] | None = None,
+                    header: str = DVC_HEADER, omit: tuple[str, ...] = ()) -> str:
+    """dvc.yaml text.  Default: this repository's DAG.  A standalone project (``geodistill distill``'s
+    output folder) passes ``code_root`` (code deps become absolute paths of the installed code, so a
+    code change still reruns exactly the stages that run it) and ``data_deps`` ({stage: paths}, e.g.
+    the input image folder and the generated protocol file instead of data_manifests/) and may
+    ``omit`` catalogue stages that have nothing to do there (``evaluate`` and ``analyze_teacher``
+    without any reference mask); the report reads whatever exists."""
+    doc = {"stages": dvc_stages(code_root, data_deps, omit),
+           "plots": dvc_plots(omit)}
+    return header + yaml.safe_dump(doc, sort_keys=False, width=110, default_flow_style=False)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -240,11 +284,13 @@ def _emit(model_cls, values: dict, indent: int, lines: list[str]) -> None:
             lines.append(f"{pad}{key}: {_flow(value)}{' ' if desc else ''}{desc}")
 
 
-def render_params_yaml(profile: str) -> str:
-    from pipeline.params import Params, validate
+def render_params_yaml(profile: str, overrides: dict | None = None, header: str | None = None) -> str:
+    """params.yaml text of ``profile``; ``overrides`` (a nested mapping, e.g. a standalone project's
+    data source) are merged over it and ``header`` replaces the standard comment block."""
+    from pipeline.params import Params, deep_merge, validate
     from pipeline.profiles import profile_params
 
-    values = validate(profile_params(profile), f"profile {profile}")
+    values = validate(deep_merge(profile_params(profile), overrides or {}), f"profile {profile}")
     lines: list[str] = []
     _emit(Params, values, 0, lines)
-    return PARAMS_HEADER.format(profile=profile) + "\n".join(lines) + "\n"
+    return (header if header is not None else PARAMS_HEADER.format(profile=profile)) + "\n".join(lines) + "\n"

@@ -152,12 +152,13 @@ def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
     return Path(path)
 
 
-def open_labelled_split(artifacts: str | Path, split: str, purpose: str):
+def open_labelled_split(artifacts: str | Path, split: str, purpose: str, allow_empty: bool = False):
     """Open manifest, images and reference of a run and pick the ``split`` rows that have a reference mask.
 
     Returns ``(manifest, images, reference, indices)`` (artifacts opened and validated; indices in
     manifest order).  Reference masks serve selection, calibration and evaluation only.  InputError
-    naming the manifest when no such row exists (``purpose`` completes the message).
+    naming the manifest when no such row exists (``purpose`` completes the message), unless
+    ``allow_empty`` (the indices are then empty).
     """
     from pipeline.artifacts import open_artifact, require_same_run
     from pipeline.errors import InputError
@@ -168,7 +169,7 @@ def open_labelled_split(artifacts: str | Path, split: str, purpose: str):
     reference = open_artifact(art / "reference.zarr", "reference")
     require_same_run(manifest, images, reference)
     idx = np.flatnonzero((manifest.df["split"].to_numpy() == split) & reference.numpy("has_mask").astype(bool))
-    if idx.size == 0:
+    if idx.size == 0 and not allow_empty:
         name = "validation" if split == "val" else split
         raise InputError(f"{manifest.path}: no {name} image has a reference mask; {purpose}")
     return manifest, images, reference, idx

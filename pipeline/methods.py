@@ -23,7 +23,22 @@ sdf_skel_gated         2      stage1   + skeleton              train.stage2_sele
 sdf_area_gated         2      stage1   + area                  train.stage2_select
 no_gate                2      stage1   L_refine with g = 1     train.stage2_select
 geodistill_adaptive    2      stage1   adaptive (see below)    best val IoU (epoch 0 eligible if r<0.5)
+continuation           2      stage1   L_raw only              all; train.stage2_select (last)
+supervised_ceiling     1      scratch  L_raw on REFERENCE      train split's manual masks; best val IoU
 =====================  =====  =======  ======================  ===================================
+
+Controls the paper lacks (issue 17):
+
+* ``continuation`` -- the budget-matched continuation: GeoDistill-Refine's warm start, Stage-II
+  schedule, epochs (``epochs_stage2``, ``lr_stage2``) and selection (``train.stage2_select``) with
+  L_raw only (no geometry term, no geometry heads).  GeoDistill-Refine minus this control is the
+  geometry effect at a matched training budget; this control minus Plain is the effect of the ten
+  extra epochs alone.
+* ``supervised_ceiling`` -- NOT annotation-free: the Plain Student's recipe trained on the training
+  split's REFERENCE (manual) masks.  It is the one method whose loss sees reference masks (its
+  targets come only from :func:`pipeline.supervised.ceiling_training_data`); it runs only with
+  ``protocol.supervised_ceiling: true``, is labelled "(uses reference masks; not annotation-free)"
+  in every table and is never among the annotation-free comparisons (:attr:`Method.annotation_free`).
 
 Decisions where the paper is silent (all documented here and in the params comments):
 
@@ -68,7 +83,8 @@ class Method:
     boundary-weighted BCE, ``anchor`` = weak anchoring to the frozen Stage-I prediction).
     ``gate``: ``g`` (gates.parquet) or ``one`` (g = 1).  ``select``: ``best_val`` | ``stage2``
     (``train.stage2_select``).  ``adaptive``: terms and selection resolved from the pass ratio r.
-    ``uses``: train sub-sections the method reads (they enter its fingerprint).
+    ``uses``: train sub-sections the method reads (they enter its fingerprint).  ``data="reference"``
+    (the supervised ceiling only, see :data:`SUPERVISED_CEILING`): the region target is the manual mask.
     """
 
     name: str
@@ -83,6 +99,11 @@ class Method:
     adaptive: bool = False
     uses: tuple[str, ...] = ()
     description: str = ""
+
+    @property
+    def annotation_free(self) -> bool:
+        """False only for the supervised ceiling: its loss sees reference (manual) masks."""
+        return self.data != "reference"
 
     @property
     def geometry_heads(self) -> bool:
@@ -134,7 +155,44 @@ METHODS: dict[str, Method] = {m.name: m for m in [
            terms=("region", "anchor", "sdf", "skel", "area"), adaptive=True,
            uses=("confidence", "adaptive"),
            description="quality-adaptive external mode (switch on the pass ratio r)"),
+    Method("continuation", 2, "stage1", ("epochs_stage2",), "lr_stage2", select="stage2",
+           description="control: Stage I -> Stage II's schedule, epochs and selection with L_raw only "
+                       "(budget-matched, no geometry)"),
+    Method("supervised_ceiling", 1, "scratch", ("epochs_stage1",), "lr_stage1", data="reference",
+           description="NOT annotation-free: the Plain Student's recipe on the training split's REFERENCE masks"),
 ]}
+
+#: The one method whose loss sees reference (manual) masks.  Behind ``protocol.supervised_ceiling``.
+SUPERVISED_CEILING = "supervised_ceiling"
+#: Controls of a gain: ``plain`` for every annotation-free method (the paper's comparison) and the
+#: budget-matched ``continuation`` for the warm-started Stage-II methods (the geometry effect).
+GAIN_CONTROLS = ("plain", "continuation")
+
+
+def check_reference_boundary(methods: Mapping[str, Method]) -> None:
+    """The annotation-free boundary of the method table: only :data:`SUPERVISED_CEILING` may train on
+    reference masks (``data="reference"``); ValueError naming any other method that asks for them."""
+    bad = [m.name for m in methods.values() if not m.annotation_free and m.name != SUPERVISED_CEILING]
+    if bad:
+        raise ValueError(f"methods {bad} ask for reference-mask targets; only {SUPERVISED_CEILING!r} may")
+
+
+check_reference_boundary(METHODS)
+
+
+def annotation_free_methods(names) -> list[str]:
+    """``names`` without the methods that train on reference masks (unknown names are kept)."""
+    return [n for n in names if n not in METHODS or METHODS[n].annotation_free]
+
+
+def gain_treatments(control: str, names) -> list[str]:
+    """The methods of ``names`` compared with ``control`` (:data:`GAIN_CONTROLS`): every annotation-free
+    method against ``plain``; the warm-started Stage-II methods against ``continuation`` (its budget
+    matches theirs).  Never the supervised ceiling, never the control itself."""
+    free = [n for n in annotation_free_methods(names) if n != control]
+    if control == "continuation":
+        return [n for n in free if n in METHODS and METHODS[n].init == "stage1"]
+    return free
 
 
 def get_method(name: str) -> Method:
@@ -219,8 +277,9 @@ def input_artifacts(method: Method, criterion: str | None = None) -> tuple[str, 
     """Catalogue names of the artifacts a method's run reads; ``reference`` serves validation selection only.
 
     manifest and images always; gates for the gated/area terms and the confidence criterion; teacher
-    for the AFS control and the ``mean_score`` confidence criterion; consensus (``voted``) unless AFS;
-    geometry for SDF/skeleton/distance/boundary terms.  ``criterion`` is ``train.confidence.criterion``;
+    for the AFS control and the ``mean_score`` confidence criterion; consensus (``voted``) unless AFS
+    or the supervised ceiling (whose targets are reference masks); geometry for SDF/skeleton/distance/
+    boundary terms.  ``criterion`` is ``train.confidence.criterion``;
     None means either (the superset dvc.yaml tracks, since the criterion is a param).
     """
     names = ["manifest", "images", "reference"]
@@ -228,7 +287,7 @@ def input_artifacts(method: Method, criterion: str | None = None) -> tuple[str, 
         names.append("gates")
     if method.data == "afs" or (uses_confidence(method) and criterion in (None, "mean_score")):
         names.append("teacher")
-    if method.data != "afs":
+    if method.data not in ("afs", "reference"):
         names.append("consensus")
     if method.needs_geometry:
         names.append("geometry")

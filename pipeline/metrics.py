@@ -12,8 +12,9 @@ Everything is computed on binary masks at the working resolution; ``pred`` and `
   erosion -- the one-pixel-wide, 8-connected inner contour.  The image frame is NOT a contour: the
   erosion treats pixels outside the frame as foreground (OpenCV's default border for erosion), as
   the SDF targets treat the frame as "not background".  A boundary pixel of P is matched when its
-  exact Euclidean distance (``cv2.distanceTransform``, DIST_MASK_PRECISE) to the nearest boundary
-  pixel of G is <= t; BF-precision = matched P-boundary / |P-boundary|, BF-recall symmetric,
+  exact Euclidean distance to the nearest boundary pixel of G is <= t (computed as a dilation of G's
+  boundary by the disk of integer offsets with dy^2 + dx^2 <= t^2, which is exact);
+  BF-precision = matched P-boundary / |P-boundary|, BF-recall symmetric,
   BF1 = 2PR / (P + R) (0 when P + R = 0).  Both masks empty -> 1, exactly one empty -> 0; two
   full-frame masks (no contour at all) -> 1, exactly one contour-less -> 0.
 * Predicted foreground area ratio = mean(P).
@@ -25,11 +26,12 @@ Everything is computed on binary masks at the working resolution; ``pred`` and `
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.params import PAPER
-from pipeline.geometry import squared_distance
 
 DEFAULT_TOLERANCE = PAPER.evaluate.bf1_tolerance  # the params schema holds the defaults
 DEFAULT_SMALL_FRACTION = PAPER.evaluate.small_region_max_fraction
@@ -114,42 +116,125 @@ def area_fraction(pred) -> float:
 
 
 # --------------------------------------------------------------------------------------------------
-# Boundary F1
+# Stacked morphology: N masks in one OpenCV call
 # --------------------------------------------------------------------------------------------------
+# The batch is laid out as one uint8 (0/1) image: the N masks one above the other, each followed by
+# ``pad`` rows of 0, so one 2-D OpenCV call equals N calls on the masks as long as the operation's
+# reach is <= ``pad`` rows.  OpenCV's SIMD loops (erode, dilate, bitwise ops, countNonZero) are several
+# times faster than numpy's on bool arrays, and the evaluation scores every run's test set twice.
 _K3 = np.ones((3, 3), np.uint8)
+_SMALL_LUT_ABOVE = 256  # more small components than this: label lookup table instead of per-box loop
+
+
+def _stack(masks: np.ndarray, pad: int) -> np.ndarray:
+    """bool [N,H,W] -> uint8 0/1 [N*(H+pad), W] with ``pad`` zero rows after each mask."""
+    n, h, w = masks.shape
+    buf = np.zeros((n, h + pad, w), np.uint8)
+    buf[:, :h] = masks
+    return buf.reshape(n * (h + pad), w)
+
+
+def _unstack(stacked: np.ndarray, n: int, h: int) -> np.ndarray:
+    """uint8 stack -> bool [N,H,W] (the pad rows dropped)."""
+    return stacked.reshape(n, -1, stacked.shape[1])[:, :h].astype(bool)
+
+
+def _counts(stacked: np.ndarray, n: int) -> np.ndarray:
+    """Non-zero pixels of each mask of a stack (pad rows are zero) -> int64 [N]."""
+    cv2 = _cv2()
+    per = stacked.reshape(n, -1)
+    return np.fromiter((cv2.countNonZero(row) for row in per), np.int64, count=n)
+
+
+def _boundaries(stacked: np.ndarray, n: int, h: int) -> np.ndarray:
+    """Stacked masks minus their 3x3 erosion.  During the erosion the pad rows are set to 1: outside
+    the frame counts as foreground (OpenCV's default border does the same at the stack's ends), so
+    the frame edge is not boundary."""
+    rows = stacked.reshape(n, -1, stacked.shape[1])
+    rows[:, h:] = 1
+    eroded = _cv2().erode(stacked, _K3)
+    rows[:, h:] = 0
+    return _cv2().subtract(stacked, eroded)
+
+
+def tolerance_disk(tolerance: float) -> np.ndarray:
+    """uint8 [2r+1, 2r+1], r = floor(t): the offsets (dy, dx) with dy^2 + dx^2 <= t^2.  Dilating a
+    set by it marks exactly the pixels whose Euclidean distance to the set is <= t (inclusive): the
+    Boundary-F1 match test without a distance transform."""
+    r = int(np.floor(tolerance))
+    d = np.arange(-r, r + 1)
+    return ((d[:, None] ** 2 + d[None, :] ** 2) <= tolerance * tolerance).astype(np.uint8)
+
+
+def mask_boundaries(masks) -> np.ndarray:
+    """:func:`mask_boundary` of every mask of bool [N,H,W] (one stacked erosion)."""
+    masks = _as_mask(masks, "masks")
+    n, h, _ = masks.shape
+    if n == 0:
+        return masks.copy()
+    return _unstack(_boundaries(_stack(masks, 1), n, h), n, h)
 
 
 def mask_boundary(mask) -> np.ndarray:
     """One-pixel-wide inner boundary: mask minus its 3x3 erosion (frame edge is not boundary)."""
     mask = _as_mask(mask, "mask")
-    m8 = np.ascontiguousarray(mask, dtype=np.uint8)
-    return mask & ~_cv2().erode(m8, _K3).astype(bool)
+    return mask_boundaries(mask[None])[0]
 
 
-def _squared_distance_to(boundary: np.ndarray) -> np.ndarray:
-    """Exact squared Euclidean distance of every pixel to the nearest True pixel of ``boundary``
-    (integer-valued float32; compared with tolerance**2 so that d = t exactly is always matched)."""
-    return squared_distance(~boundary)
+def _near(boundary: np.ndarray, tolerance: float) -> np.ndarray:
+    """Stacked boundary dilated by :func:`tolerance_disk` (the pixels within ``tolerance`` of it)."""
+    disk = tolerance_disk(tolerance)
+    return _cv2().dilate(boundary, disk) if disk.shape[0] > 1 else boundary
 
 
-def _boundary_f1_one(pred: np.ndarray, gt: np.ndarray, tolerance: float) -> float:
-    p_any, g_any = pred.any(), gt.any()
-    if not p_any and not g_any:
-        return 1.0
-    if p_any != g_any:
-        return 0.0
-    bp, bg = mask_boundary(pred), mask_boundary(gt)
-    np_, ng = np.count_nonzero(bp), np.count_nonzero(bg)
-    if np_ == 0 and ng == 0:  # two full-frame masks: no contour anywhere, identical masks
-        return 1.0
-    if np_ == 0 or ng == 0:
-        return 0.0
-    t2 = tolerance * tolerance
-    precision = np.count_nonzero(_squared_distance_to(bg)[bp] <= t2) / np_
-    recall = np.count_nonzero(_squared_distance_to(bp)[bg] <= t2) / ng
-    if precision + recall == 0:
-        return 0.0
-    return float(2 * precision * recall / (precision + recall))
+def _boundary_counts(ps: np.ndarray, gs: np.ndarray, n: int, h: int, tolerance: float, bg=None, near_g=None):
+    """(|P-boundary|, |G-boundary|, matched P-boundary, matched G-boundary) int64 [N] each, from
+    stacks padded by >= floor(tolerance) rows: a boundary pixel is matched when it lies in the other
+    boundary dilated by :func:`tolerance_disk`.  ``bg``/``near_g``: G's boundary and its dilation when
+    already known (:class:`ScoringReference`)."""
+    cv2 = _cv2()
+    bp = _boundaries(ps, n, h)
+    if bg is None:
+        bg = _boundaries(gs, n, h)
+        near_g = _near(bg, tolerance)
+    return (_counts(bp, n), _counts(bg, n), _counts(cv2.bitwise_and(bp, near_g), n),
+            _counts(cv2.bitwise_and(bg, _near(bp, tolerance)), n))
+
+
+def _boundary_counts_torch(preds: np.ndarray, gts: np.ndarray, tolerance: float, device):
+    """:func:`_boundary_counts` with torch on ``device`` (GPU where present), from bool [N,H,W]:
+    erosion = 1 - maxpool(1 - M) (max-pooling ignores its padding, so the frame edge is not
+    boundary), dilation by the tolerance disk = conv2d > 0 (small integer sums, exact in float32)."""
+    import torch
+    import torch.nn.functional as F
+
+    disk = torch.from_numpy(tolerance_disk(tolerance).astype(np.float32))[None, None].to(device)
+    r = disk.shape[-1] // 2
+    with torch.inference_mode():
+        m = torch.from_numpy(np.ascontiguousarray(np.stack([preds, gts], 1))).to(device)  # [N,2,H,W] bool
+        mf = m.flatten(0, 1)[:, None].float()                                             # [2N,1,H,W]
+        bnd = mf - (1 - F.max_pool2d(1 - mf, 3, stride=1, padding=1))                     # mask & ~erosion
+        near = (F.conv2d(bnd, disk, padding=r) > 0).view(len(preds), 2, *mf.shape[-2:])
+        bnd = bnd.view_as(near) > 0
+        counts = bnd.flatten(2).sum(-1)                                                   # [N,2]
+        hit_p = (bnd[:, 0] & near[:, 1]).flatten(1).sum(-1)
+        hit_g = (bnd[:, 1] & near[:, 0]).flatten(1).sum(-1)
+        out = torch.stack([counts[:, 0], counts[:, 1], hit_p, hit_g]).cpu().numpy().astype(np.int64)
+    return out[0], out[1], out[2], out[3]
+
+
+def _bf1_from_counts(np_: np.ndarray, ng: np.ndarray, nbp: np.ndarray, nbg: np.ndarray,
+                     hit_p: np.ndarray, hit_g: np.ndarray) -> np.ndarray:
+    """Boundary F1 per image from mask sizes, boundary sizes and matched boundary pixels, with the
+    module docstring's conventions: both masks empty -> 1, one empty -> 0; both contour-less (two
+    full-frame masks) -> 1, one contour-less -> 0; P + R = 0 -> 0."""
+    precision = np.divide(hit_p, nbp, out=np.zeros(len(nbp)), where=nbp > 0)
+    recall = np.divide(hit_g, nbg, out=np.zeros(len(nbg)), where=nbg > 0)
+    s = precision + recall
+    f1 = np.divide(2 * precision * recall, s, out=np.zeros(len(s)), where=s > 0)
+    f1 = np.where((nbp == 0) | (nbg == 0), np.where((nbp == 0) & (nbg == 0), 1.0, 0.0), f1)
+    p_any, g_any = np_ > 0, ng > 0
+    return np.where(p_any != g_any, 0.0, np.where(~p_any & ~g_any, 1.0, f1))
 
 
 def boundary_f1(pred, gt, tolerance: float = DEFAULT_TOLERANCE) -> float:
@@ -158,35 +243,63 @@ def boundary_f1(pred, gt, tolerance: float = DEFAULT_TOLERANCE) -> float:
     pred, gt = _pair(pred, gt)
     if tolerance < 0:
         raise InputError(f"boundary_f1: tolerance={tolerance!r} must be >= 0")
-    return _boundary_f1_one(pred, gt, float(tolerance))
+    h = pred.shape[0]
+    pad = max(1, int(np.floor(tolerance)))
+    ps, gs = _stack(pred[None], pad), _stack(gt[None], pad)
+    return float(_bf1_from_counts(_counts(ps, 1), _counts(gs, 1), *_boundary_counts(ps, gs, 1, h, float(tolerance)))[0])
 
 
 # --------------------------------------------------------------------------------------------------
 # Small-region IoU
 # --------------------------------------------------------------------------------------------------
+def _small_regions_stacked(gs: np.ndarray, n: int, h: int, w: int, max_fraction: float, margin: int):
+    """(region R, small components S, |S| per image) -- R and S as uint8 stacks (pad >= max(1, margin)
+    rows) -- or None when no ground truth of the batch has a small component (:func:`small_region_iou`)."""
+    cv2 = _cv2()
+    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(gs, connectivity=8)
+    small_ids = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < max_fraction * h * w) + 1
+    if small_ids.size == 0:
+        return None
+    if small_ids.size > _SMALL_LUT_ABOVE:
+        lut = np.zeros(n_lab, np.uint8)
+        lut[small_ids] = 1
+        small = lut[labels]
+    else:  # few small components: mark each inside its bounding box (no pass over the whole stack)
+        small = np.zeros_like(gs)
+        for k in small_ids:
+            x, y, bw, bh = stats[k, :4]
+            box = (slice(y, y + bh), slice(x, x + bw))
+            small[box] |= (labels[box] == k).view(np.uint8)
+    large = cv2.subtract(gs, small)
+    if margin > 0:
+        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
+        region = cv2.dilate(small, disk)
+    else:
+        region = small.copy()
+    return cv2.subtract(region, large), small, _counts(small, n)
+
+
+def _small_region_ious_stacked(ps: np.ndarray, n: int, found) -> np.ndarray:
+    """Small-region IoU per image from the stacked predictions and ``found`` =
+    :func:`_small_regions_stacked` of the references (NaN where a reference has no small component)."""
+    cv2 = _cv2()
+    if found is None:
+        return np.full(n, np.nan)
+    region, small, n_small = found
+    p = cv2.bitwise_and(ps, region)
+    inter, union = _counts(cv2.bitwise_and(p, small), n), _counts(cv2.bitwise_or(p, small), n)
+    return np.divide(inter, union, out=np.full(n, np.nan), where=n_small > 0)
+
+
 def small_region_mask(gt, max_fraction: float = DEFAULT_SMALL_FRACTION, margin: int = DEFAULT_SMALL_MARGIN):
     """(region R, small components S) bool [H,W] each, for :func:`small_region_iou`; R is empty when
     the ground truth has no small component."""
     gt = _as_mask(gt, "gt")
-    cv2 = _cv2()
     h, w = gt.shape
-    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(np.ascontiguousarray(gt, dtype=np.uint8),
-                                                               connectivity=8)
-    areas = stats[1:, cv2.CC_STAT_AREA]
-    small_ids = np.flatnonzero(areas < max_fraction * h * w) + 1
-    if small_ids.size == 0:
-        z = np.zeros_like(gt)
-        return z, z
-    is_small = np.zeros(n_lab, bool)
-    is_small[small_ids] = True
-    small = is_small[labels]
-    large = gt & ~small
-    if margin > 0:
-        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
-        region = cv2.dilate(small.astype(np.uint8), disk).astype(bool)
-    else:
-        region = small.copy()
-    return region & ~large, small
+    found = _small_regions_stacked(_stack(gt[None], max(1, margin)), 1, h, w, max_fraction, margin)
+    if found is None:
+        return np.zeros_like(gt), np.zeros_like(gt)
+    return _unstack(found[0], 1, h)[0], _unstack(found[1], 1, h)[0]
 
 
 def small_region_iou(pred, gt, max_fraction: float = DEFAULT_SMALL_FRACTION,
@@ -201,11 +314,10 @@ def small_region_iou(pred, gt, max_fraction: float = DEFAULT_SMALL_FRACTION,
     component (the image does not enter the mean).
     """
     pred, gt = _pair(pred, gt)
-    region, small = small_region_mask(gt, max_fraction, margin)
-    if not small.any():
-        return float("nan")
-    p = pred & region
-    return float(np.count_nonzero(p & small) / np.count_nonzero(p | small))
+    h, w = gt.shape
+    pad = max(1, int(margin))
+    found = _small_regions_stacked(_stack(gt[None], pad), 1, h, w, max_fraction, margin)
+    return float(_small_region_ious_stacked(_stack(pred[None], pad), 1, found)[0])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -214,32 +326,92 @@ def small_region_iou(pred, gt, max_fraction: float = DEFAULT_SMALL_FRACTION,
 METRIC_NAMES = ("iou", "bf1", "precision", "recall", "area_ratio", "small_iou")
 
 
-def per_image_metrics(preds, gts, tolerance: float = DEFAULT_TOLERANCE, *,
-                      max_fraction: float = DEFAULT_SMALL_FRACTION,
-                      margin: int = DEFAULT_SMALL_MARGIN) -> dict[str, np.ndarray]:
-    """Every metric for N images at once: preds, gts bool [N,H,W] -> dict of float64 [N] arrays
-    ``iou, bf1, precision, recall, area_ratio, small_iou`` (same values as the single-image
-    functions; region metrics vectorised, boundary/small-region metrics per image with OpenCV)."""
-    preds, gts = _pair(preds, gts, ndim=3)
+@dataclasses.dataclass(frozen=True, eq=False)
+class ScoringReference:
+    """The ground-truth side of :func:`per_image_metrics` for N reference masks, computed once by
+    :func:`scoring_reference` and reused for every prediction set scored against them (the evaluate
+    stage scores each run at two thresholds, every run against the same test masks).  Holds the
+    stacked masks (uint8, ``pad`` zero rows after each), their counts, boundaries and tolerance
+    dilations, and the small-region masks (``small`` = None when no mask has a small component)."""
+
+    gts: np.ndarray
+    tolerance: float
+    max_fraction: float
+    margin: int
+    pad: int
+    stacked: np.ndarray
+    count: np.ndarray
+    boundary: np.ndarray
+    near_boundary: np.ndarray
+    small: tuple | None
+
+    def __len__(self) -> int:
+        return len(self.gts)
+
+
+def scoring_reference(gts, tolerance: float = DEFAULT_TOLERANCE, *, max_fraction: float = DEFAULT_SMALL_FRACTION,
+                      margin: int = DEFAULT_SMALL_MARGIN) -> ScoringReference:
+    """:class:`ScoringReference` of bool [N,H,W] reference masks (for :func:`score_masks`)."""
+    gts = _as_mask(gts, "gts")
+    if gts.ndim != 3:
+        raise InputError(f"expected 3-D masks, got shape {gts.shape}")
     if tolerance < 0:
         raise InputError(f"per_image_metrics: tolerance={tolerance!r} must be >= 0")
-    n = preds.shape[0]
-    inter, np_, ng = _region_counts(preds, gts)
+    tolerance = float(tolerance)
+    n, h, w = gts.shape
+    pad = max(1, int(np.floor(tolerance)), int(margin))
+    gs = _stack(gts, pad)
+    bg = _boundaries(gs, n, h) if n else gs
+    return ScoringReference(gts=gts, tolerance=tolerance, max_fraction=float(max_fraction), margin=int(margin),
+                            pad=pad, stacked=gs, count=_counts(gs, n), boundary=bg,
+                            near_boundary=_near(bg, tolerance) if n else gs,
+                            small=_small_regions_stacked(gs, n, h, w, max_fraction, margin) if n else None)
+
+
+def score_masks(preds, reference: ScoringReference, *, device=None) -> dict[str, np.ndarray]:
+    """:func:`per_image_metrics` of ``preds`` bool [N,H,W] against a prepared :class:`ScoringReference`
+    (same numbers; the reference side is not recomputed)."""
+    preds = _as_mask(preds, "preds")
+    if preds.shape != reference.gts.shape:
+        raise InputError(f"pred {preds.shape} and gt {reference.gts.shape} shapes differ")
+    n, h, w = preds.shape
+    if n == 0:
+        return {k: np.zeros(0) for k in METRIC_NAMES}
+    ps = _stack(preds, reference.pad)
+    np_, ng = _counts(ps, n), reference.count
+    inter = _counts(_cv2().bitwise_and(ps, reference.stacked), n)
     both = (np_ == 0) & (ng == 0)
-    hw = float(np.prod(preds.shape[1:])) if n else 1.0
-    bf1 = np.empty(n)
-    small = np.empty(n)
-    for i in range(n):
-        bf1[i] = _boundary_f1_one(preds[i], gts[i], float(tolerance))
-        small[i] = small_region_iou(preds[i], gts[i], max_fraction, margin)
+    if device is None:
+        nbp, nbg, hit_p, hit_g = _boundary_counts(ps, reference.stacked, n, h, reference.tolerance,
+                                                  reference.boundary, reference.near_boundary)
+    else:
+        nbp, nbg, hit_p, hit_g = _boundary_counts_torch(preds, reference.gts, reference.tolerance, device)
     return {
         "iou": _ratio(inter, np_ + ng - inter, both),
-        "bf1": bf1,
+        "bf1": _bf1_from_counts(np_, ng, nbp, nbg, hit_p, hit_g),
         "precision": _ratio(inter, np_, both),
         "recall": _ratio(inter, ng, both),
-        "area_ratio": np_ / hw,
-        "small_iou": small,
+        "area_ratio": np_ / float(h * w),
+        "small_iou": _small_region_ious_stacked(ps, n, reference.small),
     }
+
+
+def per_image_metrics(preds, gts, tolerance: float = DEFAULT_TOLERANCE, *,
+                      max_fraction: float = DEFAULT_SMALL_FRACTION,
+                      margin: int = DEFAULT_SMALL_MARGIN, device=None) -> dict[str, np.ndarray]:
+    """Every metric for N images at once: preds, gts bool [N,H,W] -> dict of float64 [N] arrays
+    ``iou, bf1, precision, recall, area_ratio, small_iou`` (the single-image functions' values).
+
+    Vectorised over the batch: the masks are stacked into one image and every step (counts,
+    erosions, the tolerance-disk dilation that replaces distance transforms, the connected-component
+    labelling) is one OpenCV call for the whole batch.  ``device`` (a torch device such as ``cuda``)
+    runs the Boundary-F1 morphology there instead; None = OpenCV on the CPU.  Same numbers either way.
+    To score several prediction sets against the same references, build the reference side once:
+    ``score_masks(preds, scoring_reference(gts, ...))``.
+    """
+    preds, gts = _pair(preds, gts, ndim=3)
+    return score_masks(preds, scoring_reference(gts, tolerance, max_fraction=max_fraction, margin=margin),
+                       device=device)
 
 
 # --------------------------------------------------------------------------------------------------

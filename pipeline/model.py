@@ -13,6 +13,12 @@ Architecture at a glance (channels (24, 48, 96), 384x384 input)::
     geometry_heads.sdf       Conv1x1(24->1) + tanh -> D^S in [-1,1]
     geometry_heads.skeleton  Conv1x1(24->1)        -> Z^K (skeleton logits)
 
+Normalisation (issue 17, item 4; the paper names BatchNorm only): ``norm="batch"`` (default, the
+paper's ConvBNReLU) with ``bn_momentum`` for the running statistics (PyTorch's 0.1 by default), or
+``norm="group"`` -- GroupNorm with :data:`GROUP_CHANNELS` channels per group, which has no batch or
+running statistics, so training and evaluation normalise alike.  :func:`recompute_bn_stats` is
+"precise BN": the running statistics re-estimated over a fixed set of batches with the current weights.
+
 ``forward(x)`` is the deployed path and returns mask logits only; :class:`ExportMaskPath` is the same
 function in the form that is exported and quantised (normalisation folded into the first conv).  ``forward_train(x)`` returns a dict
 with ``mask`` logits and, when the geometry heads exist, ``sdf`` and ``skeleton``.  The area term
@@ -22,21 +28,48 @@ with ``mask`` logits and, when the geometry heads exist, ``sdf`` and ``skeleton`
 from __future__ import annotations
 
 import copy
-from typing import Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+#: normalisation layers of :class:`TinyUNet` (``train.norm``); "batch" is the paper's
+NORMS = ("batch", "group")
+#: channels per GroupNorm group (``norm="group"``): 24/48/96 channels -> 3/6/12 groups
+GROUP_CHANNELS = 8
+#: PyTorch's BatchNorm momentum, the default of ``train.bn_momentum``
+DEFAULT_BN_MOMENTUM = 0.1
+
+
+def norm_layer(kind: str, channels: int, bn_momentum: float = DEFAULT_BN_MOMENTUM) -> nn.Module:
+    """The normalisation after each 3x3 convolution: ``BatchNorm2d(channels, momentum=bn_momentum)``
+    for ``"batch"``; ``GroupNorm`` with :data:`GROUP_CHANNELS` channels per group for ``"group"`` (one
+    group per channel below that width, never fewer than one group)."""
+    if kind == "batch":
+        return nn.BatchNorm2d(channels, momentum=bn_momentum)
+    if kind == "group":
+        groups = max(1, channels // GROUP_CHANNELS)
+        while channels % groups:
+            groups -= 1
+        return nn.GroupNorm(groups, channels)
+    raise ValueError(f"norm {kind!r}: expected one of {', '.join(NORMS)}")
+
+
+def model_options(cfg: Mapping[str, Any]) -> dict:
+    """TinyUNet keyword arguments from the ``train`` params: ``norm`` and ``bn_momentum``."""
+    return {"norm": str(cfg["norm"]), "bn_momentum": float(cfg["bn_momentum"])}
+
 
 class ConvBNReLU(nn.Sequential):
-    def __init__(self, cin: int, cout: int):
-        super().__init__(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+    def __init__(self, cin: int, cout: int, norm: str = "batch", bn_momentum: float = DEFAULT_BN_MOMENTUM):
+        super().__init__(nn.Conv2d(cin, cout, 3, padding=1, bias=False), norm_layer(norm, cout, bn_momentum),
+                         nn.ReLU(inplace=True))
 
 
 class DoubleConv(nn.Sequential):
-    def __init__(self, cin: int, cout: int):
-        super().__init__(ConvBNReLU(cin, cout), ConvBNReLU(cout, cout))
+    def __init__(self, cin: int, cout: int, **norm: Any):
+        super().__init__(ConvBNReLU(cin, cout, **norm), ConvBNReLU(cout, cout, **norm))
 
 
 class GeometryHeads(nn.Module):
@@ -57,15 +90,21 @@ class TinyUNet(nn.Module):
     MEAN = 0.5
     STD = 0.25
 
-    def __init__(self, in_channels: int = 3, channels: Sequence[int] = (24, 48, 96)):
+    def __init__(self, in_channels: int = 3, channels: Sequence[int] = (24, 48, 96), norm: str = "batch",
+                 bn_momentum: float = DEFAULT_BN_MOMENTUM):
         super().__init__()
         c1, c2, c3 = (int(c) for c in channels)
+        # ``config`` rebuilds the deployed model (checkpoints, export): ``norm`` only where it is not the
+        # paper's BatchNorm, so default checkpoints stay byte-identical; the momentum only acts in training
         self.config = {"in_channels": int(in_channels), "channels": [c1, c2, c3]}
-        self.enc1 = DoubleConv(in_channels, c1)
-        self.enc2 = DoubleConv(c1, c2)
-        self.enc3 = DoubleConv(c2, c3)
-        self.dec2 = DoubleConv(c3 + c2, c2)
-        self.dec1 = DoubleConv(c2 + c1, c1)
+        if norm != "batch":
+            self.config["norm"] = str(norm)
+        kw = {"norm": norm, "bn_momentum": float(bn_momentum)}
+        self.enc1 = DoubleConv(in_channels, c1, **kw)
+        self.enc2 = DoubleConv(c1, c2, **kw)
+        self.enc3 = DoubleConv(c2, c3, **kw)
+        self.dec2 = DoubleConv(c3 + c2, c2, **kw)
+        self.dec1 = DoubleConv(c2 + c1, c1, **kw)
         self.mask_head = nn.Conv2d(c1, 1, 1)
         self.geometry_heads: GeometryHeads | None = None  # training only, Stage II
 
@@ -153,6 +192,41 @@ class ExportMaskPath(nn.Module):
         d2 = self.dec2(torch.cat([d2, e2], dim=1))
         d1 = F.interpolate(d2, size=(h, w), mode="bilinear", align_corners=False)
         return self.mask_head(self.dec1(torch.cat([d1, e1], dim=1)))
+
+
+@torch.no_grad()
+def recompute_bn_stats(model: nn.Module, batches: Iterable[torch.Tensor]) -> int:
+    """Precise BN: replace every BatchNorm's running mean/variance by the plain average of the batch
+    statistics over ``batches`` (forward passes in training mode, no gradient, current weights).
+
+    The EMA of training (``momentum`` 0.1) weights the last ~10 batches of 4 images, taken while the
+    weights still move; this estimate weights every batch alike with the final weights.  Each BN
+    layer's input is produced as in training (earlier layers normalise by batch statistics).
+    ``num_batches_tracked`` and each layer's momentum are restored; the model's mode is restored.
+    Returns the number of batches used (0: no BatchNorm layer or no batch -- nothing changed).
+    """
+    bns = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm) and m.track_running_stats]
+    if not bns:
+        return 0
+    saved = [(m.momentum, m.num_batches_tracked.clone(), m.running_mean.clone(), m.running_var.clone())
+             for m in bns]
+    was_training = model.training
+    for m in bns:
+        m.reset_running_stats()
+        m.momentum = None  # cumulative average: running = mean over the batches seen
+    model.train()
+    n = 0
+    for x in batches:
+        model(x)
+        n += 1
+    for m, (momentum, tracked, mean, var) in zip(bns, saved):
+        m.momentum = momentum
+        m.num_batches_tracked.copy_(tracked)
+        if n == 0:
+            m.running_mean.copy_(mean)
+            m.running_var.copy_(var)
+    model.train(was_training)
+    return n
 
 
 def count_parameters(model: nn.Module, deployed_only: bool = True) -> int:

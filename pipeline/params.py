@@ -125,8 +125,9 @@ class TeacherParams(_Section):
     splits: list[Literal[SPLITS]] = _f(list(SPLITS), min_length=1)
     checkpoint: str | None = _f(None, "sam3: local SAM 3 directory (save_pretrained layout)")
     imported_dir: str | None = _f(None, "imported: directory in the documented layout")
-    dtype: Literal["fp32", "bf16"] = _f("fp32")
-    batch_size: int = _f(2, "images per SAM 3 forward", ge=1, le=4096)
+    dtype: Literal["auto", "fp32", "bf16"] = _f("auto", "sam3: auto = bf16 on CUDA (fp32+TF32 without bf16), fp32 on CPU")
+    batch_size: int = _f(0, "images per SAM 3 forward; 0 = from free GPU memory (2 on a CPU)", ge=0, le=4096)
+    compile: bool = _f(False, "sam3: torch.compile the vision encoder on CUDA (pays after warm-up)")
     score_threshold: float = _f(0.3, "sam3: queries scoring <= this are no candidate", ge=0, le=1)
     mask_threshold: float = _f(0.5, "sam3: binarise the chosen query's mask probability", ge=0, le=1)
     seed: int = _f(0, "simulated teacher (SIMULATOR) seed", ge=0)
@@ -193,6 +194,11 @@ class AdaptiveParams(_Section):
 
 class TrainParams(_Section):
     channels: list[PositiveInt] = _f([24, 48, 96], "TinyUNet encoder widths", min_length=1)
+    norm: Literal["batch", "group"] = _f("batch", "TinyUNet normalisation: batch (paper) | group (GroupNorm, "
+                                         "8 channels per group: no batch statistics)")
+    bn_momentum: float = _f(0.1, "BatchNorm running-statistics momentum (PyTorch's; paper silent)", gt=0, le=1)
+    precise_bn: bool = _f(False, "re-estimate BN running statistics over the training set before each "
+                                 "validation (precise BN; not in the paper)")
     batch_size: int = _f(4, ge=1)
     weight_decay: float = _f(1e-4, ge=0)
     epochs_stage1: int = _f(20, ge=0)
@@ -230,6 +236,8 @@ class ProtocolParams(_Section):
     """
 
     runs: dict[str, list[int]] = _f({"plain": [42], "geodistill": [42]}, "method -> seeds; [] = no run")
+    supervised_ceiling: bool = _f(False, "allow runs of supervised_ceiling: trained on REFERENCE masks, "
+                                         "NOT annotation-free (a ceiling for the student recipe)")
 
     @field_validator("runs")
     @classmethod
@@ -248,6 +256,16 @@ class ProtocolParams(_Section):
         # every method appears (an empty list: no run), in the method table's order
         return {m: list(v.get(m, [])) for m in METHODS}
 
+    @model_validator(mode="after")
+    def _ceiling_flag(self):
+        from pipeline.methods import METHODS
+
+        gated = [m for m, seeds in self.runs.items() if seeds and not METHODS[m].annotation_free]
+        if gated and not self.supervised_ceiling:
+            raise ValueError(f"protocol.runs lists {gated}, which train on reference masks (not annotation-free); "
+                             f"set protocol.supervised_ceiling: true to allow them")
+        return self
+
 
 # --------------------------------------------------------------------------------------------------
 # calibrate, evaluate, report, deploy
@@ -257,6 +275,8 @@ class CalibrateParams(_Section):
     grid_stop: float = _f(0.95, ge=0, le=1)
     grid_step: float = _f(0.01, ge=1e-6, le=1)
     fixed_tau: float = _f(0.5, "eq:inference-mask fallback / fixed-threshold comparisons", ge=0, le=1)
+    reliability_bins: int = _f(10, "equal-width probability bins of the validation reliability diagram and ECE",
+                               ge=2, le=1000)
 
     @model_validator(mode="after")
     def _grid(self):
@@ -268,6 +288,8 @@ class CalibrateParams(_Section):
 class EvaluateParams(_Section):
     bf1_tolerance: float = _f(2, "Boundary F1 tolerance (px)", ge=0)
     small_region_max_fraction: float = _f(0.01, "small-region IoU: GT components under 1 % of the frame", ge=0, le=1)
+    tiny_target_max_fraction: float = _f(0.002, "size split: a tiny target covers under 0.2 % of the frame",
+                                         ge=0, le=1)
     bootstrap_resamples: int = _f(10000, ge=1)
     bootstrap_seed: int = _f(0, ge=0)
     ci: float = _f(0.95, ge=0.5, le=0.999)
@@ -280,7 +302,8 @@ class ReportParams(_Section):
 
 INT8_CALIBRATIONS = ("percentile", "minmax")
 BENCHMARK_VARIANTS = ["fp32_eager_nchw", "fp32_channels_last", "bf16_autocast", "bf16_channels_last",
-                      "torchscript_frozen", "onnxruntime_fp32", "onnxruntime_int8"]
+                      "torchscript_frozen", "onnxruntime_fp32", "onnxruntime_int8", "openvino_int8",
+                      "cuda_graph_bf16"]
 
 
 class DeployParams(_Section):

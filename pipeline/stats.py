@@ -16,7 +16,7 @@ Pure numpy functions on arrays (no I/O); the tables they feed are built in ``pip
 from __future__ import annotations
 
 import dataclasses
-from typing import Iterable, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -77,16 +77,40 @@ def _cluster_layout(clusters: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     return order, starts, sizes
 
 
+def hierarchical_resample_counts(clusters: np.ndarray, n_resamples: int, rng: np.random.Generator,
+                                 block_entries: int = _BLOCK_ENTRIES) -> Iterator[np.ndarray]:
+    """Two-level resamples as multiplicity counts: yields int64 blocks [b, n] (b resamples each, n_resamples
+    in all), entry [r, i] = how many times item i (input order) was drawn in resample r.
+
+    Each resample draws C clusters with replacement out of the C clusters, then, for every drawn cluster
+    of size n_c, n_c items with replacement from that cluster (the usual two-stage cluster bootstrap; a
+    resample's total size is random when clusters differ in size).  The random stream is consumed block
+    by block exactly as the statistic needs it, so a given ``rng`` state always gives the same counts.
+    """
+    clusters = np.asarray(clusters)
+    if len(clusters) == 0:
+        raise ValueError("no items to resample")
+    order, starts, sizes = _cluster_layout(clusters)
+    n, n_clusters, n_max = len(clusters), len(sizes), int(sizes.max())
+    block = max(1, block_entries // (n_clusters * n_max))
+    for b0 in range(0, n_resamples, block):
+        b = min(block, n_resamples - b0)
+        drawn = rng.integers(0, n_clusters, size=(b, n_clusters))                 # level 1: clusters
+        n_drawn = sizes[drawn]                                                     # [b, C]
+        within = (rng.random((b, n_clusters, n_max)) * n_drawn[..., None]).astype(np.int64)  # level 2
+        keep = np.arange(n_max) < n_drawn[..., None]                               # [b, C, n_max]
+        item = order[np.where(keep, starts[drawn][..., None] + within, 0)]         # input positions
+        row = np.broadcast_to(np.arange(b)[:, None, None], item.shape)
+        yield np.bincount((row * n + item)[keep], minlength=b * n).reshape(b, n)
+
+
 def hierarchical_resample_means(values: np.ndarray, clusters: np.ndarray, n_resamples: int,
                                 rng: np.random.Generator) -> np.ndarray:
-    """Bootstrap distribution of the mean of ``values`` under two-level resampling.
-
-    Each resample draws C clusters with replacement out of the C clusters, then, for every drawn
-    cluster of size n_c, n_c items with replacement from that cluster; the statistic is the mean over
-    all drawn items (so a resample has a random total size when clusters differ in size, the usual
-    two-stage cluster bootstrap).  ``values`` is [n] or [n, k] (k statistics resampled with the same
-    draws); returns [n_resamples, k].  Vectorised in blocks of resamples: clusters are padded to the
-    largest size and a mask keeps the first n_c draws of each.
+    """Bootstrap distribution of the mean of ``values`` under two-level resampling
+    (:func:`hierarchical_resample_counts`).  ``values`` is [n] or [n, k] (k statistics resampled with
+    the same draws); returns [n_resamples, k].  One matrix product per block: means = counts @ values
+    / counts.sum(1) (``einsum`` without BLAS, so the summation order -- and every bit of the result --
+    does not depend on the number of threads).
     """
     values = np.asarray(values, dtype=np.float64)
     if values.ndim == 1:
@@ -96,20 +120,12 @@ def hierarchical_resample_means(values: np.ndarray, clusters: np.ndarray, n_resa
         raise ValueError(f"values ({len(values)}) and clusters ({len(clusters)}) differ in length")
     if len(values) == 0:
         raise ValueError("no items to resample")
-    order, starts, sizes = _cluster_layout(clusters)
-    vals = values[order]
-    n_clusters, n_max, k = len(sizes), int(sizes.max()), values.shape[1]
-    block = max(1, _BLOCK_ENTRIES // (n_clusters * n_max))
-    out = np.empty((n_resamples, k), dtype=np.float64)
-    for b0 in range(0, n_resamples, block):
-        b = min(block, n_resamples - b0)
-        drawn = rng.integers(0, n_clusters, size=(b, n_clusters))                 # level 1: clusters
-        n_drawn = sizes[drawn]                                                     # [b, C]
-        within = (rng.random((b, n_clusters, n_max)) * n_drawn[..., None]).astype(np.int64)  # level 2
-        keep = np.arange(n_max) < n_drawn[..., None]                               # [b, C, n_max]
-        flat = np.where(keep, starts[drawn][..., None] + within, 0)
-        picked = vals[flat] * keep[..., None]                                      # [b, C, n_max, k]
-        out[b0:b0 + b] = picked.sum(axis=(1, 2)) / n_drawn.sum(axis=1)[:, None]
+    out = np.empty((n_resamples, values.shape[1]), dtype=np.float64)
+    b0 = 0
+    for counts in hierarchical_resample_counts(clusters, n_resamples, rng):
+        b = len(counts)
+        out[b0:b0 + b] = np.einsum("rn,nk->rk", counts.astype(np.float64), values) / counts.sum(axis=1)[:, None]
+        b0 += b
     return out
 
 
@@ -229,6 +245,11 @@ def method_gains(df, metrics: Sequence[str], control: str = "plain", by: Sequenc
         ctrl = part[part["method"] == control]
         if ctrl.empty:
             continue
+        # every (method, metric) comparison of this group, keyed by the images it pairs: comparisons on
+        # the same images share one resample set (same seed), so they are bootstrapped as the columns
+        # of one matrix -- the same numbers as one bootstrap per comparison, in one pass
+        pending: dict[tuple, list] = {}
+        group_rows = []
         for method, treat in part[part["method"] != control].groupby("method", sort=True):
             seeds = sorted(set(treat["seed"]) & set(ctrl["seed"]))
             if not seeds:
@@ -244,11 +265,17 @@ def method_gains(df, metrics: Sequence[str], control: str = "plain", by: Sequenc
                 if sub.empty:
                     row.update({f"gain_{m}": np.nan, f"gain_{m}_lo": np.nan, f"gain_{m}_hi": np.nan})
                     continue
-                res = paired_hierarchical_bootstrap(sub[f"{m}_t"].to_numpy(), sub[f"{m}_c"].to_numpy(),
-                                                    sub.index.get_level_values(cluster_col).to_numpy(),
-                                                    n_resamples=n_resamples, ci=ci, seed=seed)
-                row.update({f"gain_{m}": float(res.estimate), f"gain_{m}_lo": float(res.low),
-                            f"gain_{m}_hi": float(res.high)})
-            rows.append(row)
+                items = tuple(sub.index)
+                pending.setdefault(items, []).append((row, m, sub[f"{m}_t"].to_numpy(), sub[f"{m}_c"].to_numpy()))
+            group_rows.append(row)
+        for items, cols in pending.items():
+            res = paired_hierarchical_bootstrap(np.stack([t for _, _, t, _ in cols], axis=1),
+                                                np.stack([c for _, _, _, c in cols], axis=1),
+                                                np.array([cl for _, cl in items]),
+                                                n_resamples=n_resamples, ci=ci, seed=seed)
+            for j, (row, m, _, _) in enumerate(cols):
+                row.update({f"gain_{m}": float(res.estimate[j]), f"gain_{m}_lo": float(res.low[j]),
+                            f"gain_{m}_hi": float(res.high[j])})
+        rows.extend(group_rows)
     cols = by + ["method", "gain_seeds", "gain_images"] + [f"gain_{m}{s}" for m in metrics for s in ("", "_lo", "_hi")]
     return pd.DataFrame(rows, columns=cols)

@@ -77,6 +77,18 @@ def threshold_grid(cfg: dict) -> np.ndarray:
     return np.round(start + step * np.arange(n), 9)
 
 
+def _default_grid() -> np.ndarray:
+    from pipeline.params import PAPER
+
+    return threshold_grid(PAPER.calibrate.model_dump())
+
+
+#: The grid of the training log's per-epoch calibrated tau (``val_tau_cal``): the schema's default
+#: calibration grid (0.05..0.95 by 0.01).  Fixed rather than read from ``calibrate.*``: the training
+#: log is part of a checkpoint, and editing the calibrate stage's grid must not retrain every student.
+EPOCH_TAU_GRID = _default_grid()
+
+
 def select_tau(grid, curve) -> float:
     """The calibrated tau: argmax over ``grid`` of ``curve`` (mean validation Image IoU per tau).
 
@@ -106,6 +118,22 @@ def calibrate_threshold(probs, gts, grid) -> tuple[float, np.ndarray]:
         raise InputError(f"calibrate_threshold: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
     curve = iou_curve(probs, gts, grid).mean(axis=0)
     return select_tau(grid, curve), curve
+
+
+#: thresholds.parquet ``tau_source`` of a run that could not be calibrated (no validation image has a
+#: mask): its tau is ``calibrate.fixed_tau``.  Calibrated rows have no ``tau_source`` (or a null one).
+NO_VALIDATION_MASKS = "fixed tau: no validation masks"
+
+
+def lookup_tau_source(thresholds_df, method: str, seed: int) -> str | None:
+    """The ``tau_source`` note of (method, seed) in a thresholds table (e.g. :data:`NO_VALIDATION_MASKS`),
+    or None for a calibrated row, an absent row, or a table without the column."""
+    df = thresholds_df
+    if "tau_source" not in df.columns:
+        return None
+    rows = df[(df["method"].astype(str) == str(method)) & (df["seed"].astype(int) == int(seed))]
+    value = rows["tau_source"].iloc[0] if not rows.empty else None
+    return value if isinstance(value, str) and value else None
 
 
 def lookup_tau(thresholds_df, method: str, seed: int) -> float | None:

@@ -60,7 +60,10 @@ log = logging.getLogger(__name__)
 
 #: loss-term columns of the training log (NaN where a method does not use the term)
 LOG_TERMS = ("bbce", "dice", "raw", "sdf", "dist", "skel", "area", "boundary", "anchor")
-LOG_COLUMNS = ("epoch", "stage", "loss", *LOG_TERMS, "val_iou", "val_bf1", "lr")
+#: ``val_iou``/``val_bf1`` at tau = 0.5 (checkpoint selection); ``val_iou_cal`` at ``val_tau_cal``, the
+#: tau maximising that epoch's mean validation IoU (pipeline.thresholds.calibrate_threshold on
+#: thresholds.EPOCH_TAU_GRID) -- a diagnostic of the fixed-tau reversal, never used for selection
+LOG_COLUMNS = ("epoch", "stage", "loss", *LOG_TERMS, "val_iou", "val_bf1", "val_iou_cal", "val_tau_cal", "lr")
 #: wall-clock columns: kept out of the log (a checkpoint must be byte-identical on a rerun under
 #: SOURCE_DATE_EPOCH) and returned as ``TrainResult.timings`` for a separate, non-fingerprinted file
 TIMING_COLUMNS = ("epoch", "seconds")
@@ -152,6 +155,9 @@ def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, A
     """
     if "reference" in inputs:
         raise ValueError("training_data: reference masks never enter training (use validation_data)")
+    if not method.annotation_free:  # the supervised ceiling: pipeline.supervised, the one exception
+        raise ValueError(f"training_data: --method {method.name} trains on reference masks; "
+                         f"its targets come only from pipeline.supervised.ceiling_training_data")
     missing = [n for n in training_inputs(method, cfg) if n not in inputs]
     if missing:
         raise ValueError(f"training_data: --method {method.name} needs the artifacts {missing}")
@@ -296,6 +302,7 @@ class Settings:
     num_threads: int
     bf1_tolerance: float
     constants: losses.LossConstants
+    precise_bn: bool = False  # re-estimate BN statistics before each validation (train.precise_bn)
 
     @classmethod
     def from_params(cls, method: Method, cfg: Mapping[str, Any]) -> "Settings":
@@ -307,7 +314,8 @@ class Settings:
                    weight_decay=float(cfg["weight_decay"]), schedule=str(cfg["schedule"]),
                    precision=str(cfg["precision"]), channels_last=bool(cfg["channels_last"]),
                    hflip=bool(cfg["augment_hflip"]), num_threads=int(cfg["num_threads"]),
-                   bf1_tolerance=float(cfg["val_bf1_tolerance"]), constants=loss_constants(cfg))
+                   bf1_tolerance=float(cfg["val_bf1_tolerance"]), constants=loss_constants(cfg),
+                   precise_bn=bool(cfg["precise_bn"]))
 
 
 class Checkpointer(Protocol):
@@ -356,10 +364,10 @@ def _lr_lambda(schedule: str, total_steps: int) -> Callable[[int], float]:
 def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: Mapping | None = None):
     """TinyUNet for a method: random init from ``torch.manual_seed(seed)``, or (``init="stage1"``)
     the Stage-I mask path copied from ``init_state``; then fresh geometry heads (seeded) if needed."""
-    from pipeline.model import TinyUNet
+    from pipeline.model import TinyUNet, model_options
 
     torch.manual_seed(int(seed))
-    model = TinyUNet(channels=tuple(cfg["channels"]))
+    model = TinyUNet(channels=tuple(cfg["channels"]), **model_options(cfg))  # train.norm, train.bn_momentum
     if method.init == "stage1":
         if init_state is None:
             raise InputError(f"--method {method.name}: needs --init (the Stage-I checkpoint)")
@@ -401,7 +409,7 @@ def _batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor 
     for k in ("mask", "sdf", "skeleton", "anchor"):
         if k in t:
             b[k] = t[k][idx].unsqueeze(1).float()
-    if flip is not None and bool(flip.any()):
+    if flip is not None:  # (callers pass None when the batch has no flip: no device sync here)
         for k in ("x", "mask", "sdf", "skeleton", "anchor"):
             if k in b:
                 b[k] = torch.where(flip.view(-1, 1, 1, 1), b[k].flip(-1), b[k])
@@ -412,23 +420,43 @@ def _has_val(val: ValData | None) -> bool:
     return val is not None and len(val) > 0
 
 
-def validate(model, val: ValData | None, device, *, precision: str, channels_last: bool, tolerance: float,
-             tau: float = SELECTION_TAU) -> tuple[float, float]:
-    """Mean validation Image IoU and Boundary F1 (``tolerance`` px) of ``[P >= tau]`` (eq:inference-mask)
-    against the reference masks (``pipeline.metrics``); (nan, nan) without validation data.  Leaves
-    the model in train mode."""
+def validation_scores(model, val: ValData | None, device, *, precision: str, channels_last: bool,
+                      tolerance: float, tau: float = SELECTION_TAU, calibrated: bool = True) -> dict[str, float]:
+    """Validation scores of one epoch against the reference masks (``pipeline.metrics``).
+
+    ``val_iou``/``val_bf1``: mean Image IoU and Boundary F1 (``tolerance`` px) of ``[P >= tau]``
+    (eq:inference-mask; tau = 0.5 in checkpoint selection).  With ``calibrated``: ``val_tau_cal`` =
+    the tau of :data:`pipeline.thresholds.EPOCH_TAU_GRID` maximising the mean validation Image IoU
+    (:func:`pipeline.thresholds.calibrate_threshold`, the calibrate stage's rule) and ``val_iou_cal``
+    that maximum.  All NaN without validation data.  Leaves the model in train mode.
+    """
+    nan = float("nan")
+    out = {"val_iou": nan, "val_bf1": nan, "val_iou_cal": nan, "val_tau_cal": nan}
     if not _has_val(val):
-        return float("nan"), float("nan")
+        return out
     from pipeline.inference import predict_probs
     from pipeline.metrics import boundary_f1, image_ious
+    from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold
 
     probs = predict_probs(model, val.images, device=device, batch_size=16, precision=precision,
                           channels_last=channels_last)
     model.train()
     pred = mask_from_probs(probs, tau)
-    iou = float(np.mean(image_ious(pred, val.masks)))
-    bf1 = float(np.mean([boundary_f1(p, g, tolerance) for p, g in zip(pred, val.masks)]))
-    return iou, bf1
+    out["val_iou"] = float(np.mean(image_ious(pred, val.masks)))
+    out["val_bf1"] = float(np.mean([boundary_f1(p, g, tolerance) for p, g in zip(pred, val.masks)]))
+    if calibrated:
+        tau_cal, curve = calibrate_threshold(probs, val.masks, EPOCH_TAU_GRID)
+        out["val_iou_cal"], out["val_tau_cal"] = float(curve.max()), float(tau_cal)
+    return out
+
+
+def validate(model, val: ValData | None, device, *, precision: str, channels_last: bool, tolerance: float,
+             tau: float = SELECTION_TAU) -> tuple[float, float]:
+    """Mean validation Image IoU and Boundary F1 (``tolerance`` px) of ``[P >= tau]`` (eq:inference-mask)
+    against the reference masks; (nan, nan) without validation data (:func:`validation_scores`)."""
+    s = validation_scores(model, val, device, precision=precision, channels_last=channels_last,
+                          tolerance=tolerance, tau=tau, calibrated=False)
+    return s["val_iou"], s["val_bf1"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -499,7 +527,10 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
     if s.channels_last:
         model = model.to(memory_format=torch.channels_last)
     model.train()
-    opt = torch.optim.AdamW(model.parameters(), lr=s.lr, weight_decay=s.weight_decay)
+    # CUDA: the fused AdamW kernel (one launch for all parameters); CPU: the default implementation,
+    # whose numerics the CPU tests pin down bit for bit
+    fused = {"fused": True} if device.type == "cuda" else {}
+    opt = torch.optim.AdamW(model.parameters(), lr=s.lr, weight_decay=s.weight_decay, **fused)
     run_key = {"method": method.name, "seed": int(seed), "epochs": s.epochs, "n_train": len(data),
                "train_ids": list(data.image_ids)}
     run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,
@@ -557,10 +588,11 @@ def _empty_row(run: _Run, epoch: int) -> dict:
 
 
 def _validated(run: _Run, row: dict, val: ValData | None, t0: float) -> dict:
-    """``row`` with the validation scores and the epoch's seconds (since ``t0``) filled in."""
+    """``row`` with the validation scores (:func:`validation_scores`: at tau 0.5 and at the epoch's
+    calibrated tau) and the epoch's seconds (since ``t0``) filled in."""
     s = run.settings
-    row["val_iou"], row["val_bf1"] = validate(run.model, val, run.device, precision=s.precision,
-                                              channels_last=s.channels_last, tolerance=s.bf1_tolerance)
+    row.update(validation_scores(run.model, val, run.device, precision=s.precision,
+                                 channels_last=s.channels_last, tolerance=s.bf1_tolerance))
     row["seconds"] = time.perf_counter() - t0
     return row
 
@@ -579,7 +611,9 @@ def _step(run: _Run, b: Mapping[str, torch.Tensor], epoch: int, step: int) -> di
     with _autocast(run.device, run.amp):
         out = run.model.forward_train(b["x"])
     terms = losses.refine_loss(out, b, b["gate"], run.plan.weights, run.settings.constants)
-    if not math.isfinite(float(terms["loss"].detach())):
+    # CPU: checked every step (free there).  CUDA: reading the loss would stall the GPU every step, so
+    # the epoch's summed loss and the weights are checked once at its end (_train_epoch) instead
+    if run.device.type != "cuda" and not math.isfinite(float(terms["loss"].detach())):
         bad = [k for k, v in terms.items() if k != "loss" and not torch.isfinite(v).all()]
         raise TrainingDiverged(f"{run.method.name} seed {run.seed}: non-finite loss at epoch {epoch}, "
                                f"step {step + 1} (terms: {', '.join(bad) or 'loss'}); "
@@ -592,15 +626,18 @@ def _step(run: _Run, b: Mapping[str, torch.Tensor], epoch: int, step: int) -> di
 
 
 def _epoch_batches(run: _Run, epoch: int):
-    """The epoch's batches: a seeded order over all images (``[seed, epoch]``), optional seeded hflip."""
+    """The epoch's batches: a seeded order over all images (``[seed, epoch]``), optional seeded hflip.
+
+    The order and flips go to the device once per epoch (a host-to-device copy per step would wait for
+    the GPU every step); whether a batch has a flip at all is decided on the host."""
     n, bs = run.n_train, run.settings.batch_size
     order = np.random.default_rng([run.seed, epoch]).permutation(n)
     flips = np.random.default_rng([run.seed, epoch, 1]).random(n) < 0.5 if run.settings.hflip else None
+    order_dev = torch.from_numpy(order).to(run.device)
+    flips_dev = torch.from_numpy(flips[order]).to(run.device) if flips is not None else None
     for s in range(0, n, bs):
-        idx_np = order[s:s + bs]
-        flip = torch.from_numpy(flips[idx_np]).to(run.device) if flips is not None else None
-        yield len(idx_np), _batch(run.tensors, torch.from_numpy(idx_np).to(run.device), flip,
-                                  run.settings.channels_last)
+        flip = flips_dev[s:s + bs] if flips is not None and flips[order[s:s + bs]].any() else None
+        yield min(bs, n - s), _batch(run.tensors, order_dev[s:s + bs], flip, run.settings.channels_last)
 
 
 def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
@@ -615,10 +652,18 @@ def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
             sums[k] = sums.get(k, 0.0) + v.detach().float() * n
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(epoch=epoch, loss=f"{float(terms['loss'].detach()):.4f}", val_iou=f"{last_val:.3f}",
-                            refresh=False)
-    # a finite loss can still leave non-finite weights after the last step (e.g. an inf gradient)
-    if not all(bool(torch.isfinite(p).all()) for p in run.model.parameters()):
+            if run.device.type != "cuda":  # on CUDA the loss is shown per epoch: no per-step sync
+                bar.set_postfix(epoch=epoch, loss=f"{float(terms['loss'].detach()):.4f}", val_iou=f"{last_val:.3f}",
+                                refresh=False)
+    if run.device.type == "cuda" and "loss" in sums and not math.isfinite(float(sums["loss"])):
+        raise TrainingDiverged(f"{run.method.name} seed {run.seed}: non-finite loss in epoch {epoch}; "
+                               f"no checkpoint written -- lower the learning rate or check the inputs")
+    if bar is not None and run.device.type == "cuda" and "loss" in sums:
+        bar.set_postfix(epoch=epoch, loss=f"{float(sums['loss']) / run.n_train:.4f}", val_iou=f"{last_val:.3f}",
+                        refresh=False)
+    # a finite loss can still leave non-finite weights after the last step (e.g. an inf gradient);
+    # one device-to-host read for all parameters
+    if not bool(torch.stack([torch.isfinite(p).all() for p in run.model.parameters()]).all()):
         raise TrainingDiverged(f"{run.method.name} seed {run.seed}: non-finite weights after epoch {epoch}; "
                                f"no checkpoint written -- lower the learning rate or check the inputs")
     row = _empty_row(run, epoch)

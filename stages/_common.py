@@ -33,16 +33,22 @@ def stage_code_version(stage_file: str, *_legacy_modules: str) -> str:
     return code_version_of(_module_name(Path(stage_file).resolve(), ROOT))
 
 
-def stage_command(name: str) -> Callable:
+def stage_command(name: str, default_profile: str | None = None) -> Callable:
     """Decorate ``fn(params, device, **options)`` into a click command with the shared options.
 
-    ``params`` is the effective params dict (profile applied, overrides applied).
+    ``params`` is the effective params dict (profile applied, overrides applied).  ``default_profile``
+    (commands meant to run outside a project, e.g. ``label``): without ``--params`` the params are that
+    profile's values rather than ./params.yaml.
     """
 
     def deco(fn: Callable) -> click.Command:
-        def wrapper(params_file: str, overrides: tuple[str, ...], device: str, **kw: Any):
+        def wrapper(params_file: str | None, overrides: tuple[str, ...], device: str, **kw: Any):
             setup_logging()
             try:
+                if params_file is None:  # --params not given: the profile's values (--set profile=X wins)
+                    if not any(o.split("=", 1)[0].strip() == "profile" for o in overrides):
+                        overrides = (f"profile={default_profile}",) + tuple(overrides)
+                    params_file = f"profile {default_profile}"
                 params = load_params(params_file, overrides)
                 return fn(params=params, device=device, **kw)
             except InputError as e:
@@ -57,8 +63,10 @@ def stage_command(name: str) -> Callable:
                            help="auto | cpu | cuda")(wrapper)
         cmd = click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
                            help="override a param, e.g. --set train.epochs_stage1=3 (repeatable)")(cmd)
-        cmd = click.option("--params", "params_file", default="params.yaml", show_default=True,
-                           type=click.Path(dir_okay=False), help="params file")(cmd)
+        cmd = click.option("--params", "params_file", default=None if default_profile else "params.yaml",
+                           show_default=True, type=click.Path(dir_okay=False),
+                           help=f"params file (default: the {default_profile!r} profile's values)"
+                           if default_profile else "params file")(cmd)
         return click.command(name=name, help=fn.__doc__)(cmd)
 
     return deco

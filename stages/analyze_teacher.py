@@ -7,8 +7,10 @@ training.  When the teacher backend is ``simulated`` (the synthetic benchmark), 
 a SIMULATOR of foundation-model errors, not SAM 3 -- the JSON and the report say so.
 
 Writes ``teacher_metrics.parquet`` (one row per image and source: prompt_<k>, vote, val_selected;
-see pipeline.report.analysis) and ``metrics/teacher.json`` (per-group vote quality, prompt table
-summary, Spearman rho/p of g against the vote's Image IoU and Boundary F1).
+see pipeline.report.analysis) and the DVC metrics ``reports/metrics/teacher/<group>.json`` (git-tracked;
+pipeline.dvc_results.teacher_metric_files: the vote's Image IoU and Boundary F1 on the group's test images
+and the share of them with gate g > 0).  The report draws the prompt tables and the gate's Spearman
+rho from the parquet.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import click
 import numpy as np
 import pandas as pd
 
+from pipeline import catalog
 from pipeline.params import section
 from stages._common import declared_params, meta_for, stage_code_version, stage_command
 
@@ -33,23 +36,19 @@ def base_prompt_index(teacher_meta) -> int:
     return int(cfg.get("base_prompt_index", 0)) if isinstance(cfg, dict) else 0
 
 
-def _round(x):
-    return None if x is None or not np.isfinite(x) else round(float(x), 4)
-
-
 @stage_command("analyze_teacher")
 @click.option("--artifacts", "art", default="artifacts", show_default=True, type=click.Path(file_okay=False))
 @click.option("--out", default="artifacts/teacher_metrics.parquet", show_default=True, type=click.Path(dir_okay=False))
-@click.option("--metrics-json", default="artifacts/metrics/teacher.json", show_default=True,
-              type=click.Path(dir_okay=False))
-def main(params, device, art, out, metrics_json):
+@click.option("--metrics-dir", default=None, type=click.Path(file_okay=False),
+              help="DVC metrics <group>.json, replaced [default: reports/metrics/teacher beside --artifacts]")
+def main(params, device, art, out, metrics_dir):
     """Teacher prompt / vote quality on val+test, prompt selection on val, gate-vs-quality analysis."""
-    from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run, write_json, write_parquet
+    from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run, write_parquet
+    from pipeline.dvc_results import teacher_metric_files, write_metrics_dir
     from pipeline.errors import InputError
     from pipeline.metrics import per_image_metrics
     from pipeline.progress import progress
-    from pipeline.report.analysis import (gate_analysis, prompt_source, select_prompt,
-                                          teacher_prompt_quality)
+    from pipeline.report.analysis import prompt_source, select_prompt
 
     cfg = section(params, "evaluate")
     tol, small_frac = cfg["bf1_tolerance"], cfg["small_region_max_fraction"]
@@ -103,22 +102,7 @@ def main(params, device, art, out, metrics_json):
                     val_prompt_iou={k: float(v) for k, v in val_means.items()})
     write_parquet(out, tm, meta)
 
-    digest = {"teacher_backend": backend, "teacher_is_simulator": backend == "simulated",
-              "selected_prompt": prompts[int(selected.split("_")[1])] if selected and prompts else selected,
-              "groups": {}}
-    for group in sorted(tm.loc[tm["split"] == "test", "group"].unique()):
-        q = teacher_prompt_quality(tm, group, base, selected, prompts)
-        ga = gate_analysis(tm, gates.df, group)
-        vote = q[q["config"].str.contains("majority vote")].iloc[0]
-        digest["groups"][str(group)] = {
-            "vote_iou": _round(vote["iou"]), "vote_bf1": _round(vote["bf1"]),
-            "base_iou": _round(q.iloc[0]["iou"]),
-            "selected_iou": _round(q.iloc[1]["iou"]) if selected else None,
-            "gate_rho_iou": _round(ga["rho_iou"]), "gate_p_iou": ga["p_iou"] if np.isfinite(ga["p_iou"]) else None,
-            "gate_rho_bf1": _round(ga["rho_bf1"]), "gate_p_bf1": ga["p_bf1"] if np.isfinite(ga["p_bf1"]) else None,
-            "gate_zero_images": int(ga["table"]["images"].iloc[0]),
-        }
-    write_json(metrics_json, digest)
+    write_metrics_dir(metrics_dir or catalog.path("metrics_teacher", art), teacher_metric_files(tm, gates.df))
     click.echo(f"analyze_teacher: {idx.size} images x {k_prompts + 1} sources -> {out} "
                f"(teacher backend: {backend}{' = SIMULATOR' if backend == 'simulated' else ''})", err=True)
 

@@ -6,7 +6,8 @@ graph, batch-1 latency (median after warm-up), best-batch throughput, peak memor
 mean validation Image IoU against the fp32 baseline at the deployed tau.  A variant whose short probe is
 more than ``pipeline.deploy.benchmark.SLOW_FACTOR`` x slower than the baseline is not fully timed: its
 ``status`` column says so.  The table goes to stdout with each variant's speed-up over the baseline
-measured in the same run; ``--json`` writes the same numbers.
+measured in the same run; ``--json`` writes the same numbers, ``--metrics-json`` the one DVC metric
+(latency_ms of the deployed fast path; pipeline.dvc_results.deploy_metrics).
 
 Validation data: rows of images.zarr / reference.zarr with split == 'val' and a reference mask
 (reference masks here only measure accuracy, never train).  int8: the bundle's ``model.int8.onnx`` when
@@ -40,10 +41,14 @@ from stages._common import meta_for, stage_code_version, stage_command
 @click.option("--resolution", type=int, default=None, help="time at this size (default: deploy.benchmark_resolution "
               "or the bundle's working resolution); IoU is always measured on images.zarr")
 @click.option("--out", default=None, type=click.Path(dir_okay=False), help="efficiency.parquet to write")
-@click.option("--json", "json_out", default=None, type=click.Path(dir_okay=False), help="JSON results to write")
-def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolution, out, json_out):
+@click.option("--json", "json_out", default=None, type=click.Path(dir_okay=False),
+              help="JSON results to write (every variant, the run's settings and notes)")
+@click.option("--metrics-json", default=None, type=click.Path(dir_okay=False),
+              help="DVC metrics file to write: latency_ms of the deployed fast path (dvc.yaml: reports/metrics/deploy.json)")
+def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolution, out, json_out, metrics_json):
     """Latency, throughput, memory and IoU change of the deployed mask path's variants."""
     from pipeline.artifacts import write_json, write_parquet
+    from pipeline.dvc_results import deploy_metrics
     from pipeline.deploy import benchmark as B
     from pipeline.device import resolve_device
     from pipeline.errors import InputError
@@ -81,6 +86,8 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
     if json_out:
         result = B.benchmark_result(rows, run_info, st, tau=target.tau, summary=summary, notes=notes)
         write_json(json_out, result)
+    if metrics_json:
+        write_json(metrics_json, deploy_metrics(summary, rows, B.BASELINE_VARIANT))
     if out:
         import pandas as pd
 

@@ -6,7 +6,16 @@ P = sigmoid(Z) on the validation images, tau = argmax over the grid of the mean 
 [P >= tau] (eq:inference-mask; ties -> closest to 0.5): pipeline.thresholds.calibrate_threshold.  The whole curve is kept (list columns
 ``grid`` and ``curve``) for the report's threshold-curve figure, with the fixed tau = 0.5 alongside.
 
+Calibration diagnostics of the same validation probabilities (pipeline.diagnostics; issue 17):
+``rel_confidence``, ``rel_frequency``, ``rel_count`` (list columns: the pixel-level reliability diagram
+over ``calibrate.reliability_bins`` equal-width bins) and ``ece`` (expected calibration error);
+``area_curve`` (list, per grid tau: median over validation images of predicted / reference
+foreground area) with ``area_ratio`` and ``fixed_area_ratio`` at the calibrated and the fixed tau.
+
 Manual (reference) masks enter here ONLY to calibrate tau -- they are never a training target.
+
+No validation image with a mask (``geodistill distill`` without ``--val-masks``): nothing to calibrate
+on, so every run gets the fixed tau with ``tau_source`` = pipeline.thresholds.NO_VALIDATION_MASKS (:func:`fixed_thresholds`).
 """
 
 from __future__ import annotations
@@ -19,6 +28,23 @@ from stages._common import declared_params, meta_for, stage_code_version, stage_
 
 
 
+def fixed_thresholds(params, runs, inputs, out) -> None:
+    """No validation image has a mask: every run gets the fixed tau (``calibrate.fixed_tau``, 0.5),
+    ``val_iou`` NaN, ``n_val`` 0 and ``tau_source`` saying why -- export and segment then use 0.5 and
+    the report says that no masks were available."""
+    from pipeline.artifacts import open_artifact, write_parquet
+    from pipeline.thresholds import NO_VALIDATION_MASKS
+
+    fixed_tau = section(params, "calibrate")["fixed_tau"]
+    rows = [{"method": method, "seed": int(seed), "tau": fixed_tau, "val_iou": float("nan"), "fixed_tau": fixed_tau,
+             "fixed_val_iou": float("nan"), "n_val": 0, "tau_source": NO_VALIDATION_MASKS} for method, seed, _ in runs]
+    inputs = list(inputs) + [open_artifact(path) for _, _, path in runs]
+    meta = meta_for("thresholds", "calibrate", stage_code_version(__file__), declared_params(params, "calibrate"),
+                    inputs, note=f"no validation image has a reference mask: tau = calibrate.fixed_tau = {fixed_tau}")
+    write_parquet(out, pd.DataFrame(rows), meta)
+    click.echo(f"calibrate: no validation masks; {len(rows)} runs get the fixed tau {fixed_tau} -> {out}", err=True)
+
+
 @stage_command("calibrate")
 @click.option("--artifacts", "art", default="artifacts", show_default=True, type=click.Path(file_okay=False),
               help="directory holding manifest.parquet, images.zarr, reference.zarr")
@@ -27,6 +53,7 @@ from stages._common import declared_params, meta_for, stage_code_version, stage_
 def main(params, device, art, checkpoints, out):
     """Calibrate tau per (method, seed) by mean validation Image IoU; write thresholds.parquet."""
     from pipeline.artifacts import open_artifact, read_chunk_rows, write_parquet
+    from pipeline.diagnostics import area_ratio_curve, expected_calibration_error, median_area_ratio, reliability_bins
     from pipeline.device import resolve_device
     from pipeline.inference import active_runs, load_student, open_labelled_split, predict_probs
     from pipeline.metrics import iou_curve
@@ -36,8 +63,10 @@ def main(params, device, art, checkpoints, out):
     cfg = section(params, "calibrate")
     grid = threshold_grid(cfg)
     fixed_tau = cfg["fixed_tau"]
-    manifest, images, reference, val = open_labelled_split(art, "val", "calibration needs some")
+    manifest, images, reference, val = open_labelled_split(art, "val", "calibration needs some", allow_empty=True)
     runs = active_runs(checkpoints, "calibrate")
+    if val.size == 0:  # e.g. `geodistill distill` without --val-masks: documented fallback, see fixed_thresholds
+        return fixed_thresholds(params, runs, [manifest, images, reference], out)
 
     dev = resolve_device(device)
     val_images = read_chunk_rows(images["image"], val)
@@ -49,9 +78,16 @@ def main(params, device, art, checkpoints, out):
         probs = predict_probs(model, val_images, device=dev)
         tau, curve = calibrate_threshold(probs, val_masks, grid)
         fixed_iou = float(iou_curve(probs, val_masks, [fixed_tau]).mean())
+        rel = reliability_bins(probs, val_masks, cfg["reliability_bins"])
+        area = median_area_ratio(area_ratio_curve(probs, val_masks, grid))
         rows.append({"method": method, "seed": int(seed), "tau": tau, "val_iou": float(curve.max()),
                      "fixed_tau": fixed_tau, "fixed_val_iou": fixed_iou, "n_val": int(val.size),
-                     "grid": grid.tolist(), "curve": curve.tolist()})
+                     "grid": grid.tolist(), "curve": curve.tolist(),
+                     "ece": expected_calibration_error(rel.confidence, rel.frequency, rel.count),
+                     "rel_confidence": rel.confidence.tolist(), "rel_frequency": rel.frequency.tolist(),
+                     "rel_count": rel.count.tolist(), "area_curve": area.tolist(),
+                     "area_ratio": float(median_area_ratio(area_ratio_curve(probs, val_masks, [tau]))[0]),
+                     "fixed_area_ratio": float(median_area_ratio(area_ratio_curve(probs, val_masks, [fixed_tau]))[0])})
         inputs.append(open_artifact(path))
     code = stage_code_version(__file__)
     meta = meta_for("thresholds", "calibrate", code, declared_params(params, "calibrate"), inputs,

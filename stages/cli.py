@@ -26,6 +26,10 @@ COMMANDS = {
     "analyze_teacher": "stages.analyze_teacher",
     "dag": "stages.dag:dag_main",
     "profile": "stages.dag:profile_main",
+    "run": "stages.run",
+    "label": "stages.label",
+    "distill": "stages.distill",
+    "plots": "stages.plots",
 }
 
 
@@ -42,7 +46,19 @@ class LazyGroup(click.Group):
         return getattr(importlib.import_module(mod), attr or "main")
 
 
+def _print_version(ctx, _param, value):
+    """``--version``: pipeline.__version__, imported only when asked for (keeps --help fast)."""
+    if not value or ctx.resilient_parsing:
+        return
+    from pipeline import __version__
+
+    click.echo(f"geodistill {__version__}")
+    ctx.exit()
+
+
 @click.group(cls=LazyGroup, help=__doc__)
+@click.option("--version", is_flag=True, expose_value=False, is_eager=True, callback=_print_version,
+              help="Show the version and exit.")
 def main():
     pass
 

@@ -41,8 +41,9 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     """Export the mask path (TorchScript + ONNX) with its calibrated tau and a parity check."""
     from pipeline import deploy
     from pipeline.artifacts import artifact_dir, open_artifact
+    from pipeline.device import resolve_device
     from pipeline.inference import load_student
-    from pipeline.thresholds import lookup_tau, resolve_tau
+    from pipeline.thresholds import lookup_tau, lookup_tau_source, resolve_tau
 
     cfg = section(params, "deploy")
     opset, atol = cfg["opset"], cfg["parity_atol"]
@@ -55,9 +56,10 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     table = open_artifact(thresholds, "thresholds") if thresholds is not None and tau is None else None
     inputs += [table] if table is not None else []
     found = lookup_tau(table.df, method, seed) if table is not None else None
+    how = (lookup_tau_source(table.df, method, seed) if table is not None else None) or "calibrated on the validation split"
     tau, tau_source = resolve_tau(
         option=tau,
-        thresholds=(found, f"calibrated on the validation split ({thresholds}: {method}, seed {seed})"),
+        thresholds=(found, f"{how} ({thresholds}: {method}, seed {seed})"),
         fixed=(section(params, "calibrate").get("fixed_tau"),
                f"calibrate.fixed_tau (no calibrated row for {method} seed {seed} in {thresholds})"
                if thresholds else "calibrate.fixed_tau (no --thresholds given)"))
@@ -94,13 +96,17 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
                                    opset=opset, atol=atol, onnx=not no_onnx, source=source,
                                    calibration_images=calib, calibration_note=calib_note,
                                    int8_min_mask_iou=min_iou, int8_calibration=q8["calibration"],
-                                   int8_percentile=q8["percentile"])
+                                   int8_percentile=q8["percentile"], device=resolve_device(device))
     par = info["parity"]
     summary = ", ".join(f"{fmt}: max|dZ|={par[fmt]['max_abs_diff']:.2e}, masks identical={par[fmt]['masks_identical']}"
                         for fmt in ("torchscript", "onnx") if fmt in par)
     click.echo(f"export: {method} seed {seed}, tau={tau:.4g}, {resolution}px -> {out} ({summary})", err=True)
     if info.get("onnx_note") and not no_onnx:
         click.echo(f"export: {info['onnx_note']}", err=True)
+    for name, d in (par.get("device") or {}).items():
+        if isinstance(d, dict):
+            click.echo(f"export: parity on {par['device']['device']}: {name} max|dZ|={d['max_abs_diff']:.2e}, "
+                       f"mask IoU vs fp32 {d['mask_iou']:.4f}", err=True)
     if "int8" in par:
         q = par["int8"]
         click.echo(f"export: int8 model {deploy.INT8_FILE}: {q['images']} calibration images, "

@@ -3,7 +3,10 @@
 Writes ``<out>/report.md``, ``<out>/report.html`` (ONE self-contained page: figures inline as base64
 PNG, no external resources), ``<out>/figures/*.png`` and the DVC plot tables
 ``<out>/plots/training_curves.csv`` (epoch, val_iou, ..., method, seed) and
-``<out>/plots/threshold_curve.csv`` (tau, val_iou, method, seed).  Inputs that do not exist (e.g.
+``<out>/plots/threshold_curve.csv`` (tau, val_iou, method, seed) and ``<out>/plots/area_curve.csv``
+(tau, area_ratio, method, seed: median predicted / reference foreground area on the validation split).
+The controls and threshold-diagnostics section states in words, computed from the numbers, what they
+show about the fixed-tau reversal (pipeline.report.analysis.fixed_tau_findings).  Inputs that do not exist (e.g.
 efficiency.parquet before the benchmark ran) are reported as missing in the page, not fatal.
 """
 

@@ -12,9 +12,11 @@
 --overwrite   replace output files left by an earlier run; without it an existing output file (or
               skipped.csv) stops the run before anything is written
 
---engine      auto | torch | torchscript | onnx | int8: what computes the logits.  ``auto`` = onnx when
-              the bundle holds model.onnx and onnxruntime imports, else torch: only engines whose
-              masks equal PyTorch's; int8 (faster, approximate) must be asked for.  A checkpoint directory supports torch only.  Every engine gets the same
+--engine      auto | torch | cuda | torchscript | onnx | int8 | openvino_int8: what computes the logits.
+              ``auto`` = on a CUDA device ``cuda`` (bf16 + CUDA graphs, pipeline.deploy.cuda_engine),
+              else onnx when the bundle holds model.onnx and onnxruntime imports, else torch: on the
+              CPU only engines whose masks equal PyTorch's; int8 / openvino_int8 (faster,
+              approximate) must be asked for.  A checkpoint directory supports torch and cuda only.  Every engine gets the same
               preprocessed input and the same tau; the engine and its timings are printed on stderr
               (model ms/image includes the first, warm-up batch).
 
@@ -130,8 +132,9 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
 @click.option("--thresholds", default="artifacts/thresholds.parquet", show_default=True,
               help="thresholds table used to find a checkpoint's calibrated tau (when it exists)")
 @click.option("--engine", default="auto", show_default=True,
-              help="auto | torch | torchscript | onnx | int8 (all but torch need a deploy bundle); auto = onnx "
-                   "if available, else torch (exact engines only; int8 is faster but approximate)")
+              help="auto | torch | cuda | torchscript | onnx | int8 | openvino_int8 (all but torch and cuda "
+                   "need a deploy bundle); auto = cuda on a GPU, else onnx if available, else torch (exact "
+                   "engines only on the CPU; the int8 engines are faster but approximate)")
 @click.option("--batch-size", type=int, default=8, show_default=True)
 @click.option("--save-prob", is_flag=True, help="also write <input name>.prob.png (P x 255)")
 @click.option("--overlay", is_flag=True, help="also write <input name>.overlay.png")

@@ -118,7 +118,8 @@ def main(params, device, manifest, images, reference, out, scores, shard):
     t_fp = teacher_fingerprint(teacher)
     cache = TeacherCache(cfg["cache_dir"], t_fp)
     runner = TeacherRunner(teacher, cache, prompts, image_sha=lambda r: shas[r], load=load,
-                           vflip_prompt=vflip_prompt, batch_size=cfg["batch_size"])
+                           vflip_prompt=vflip_prompt,
+                           batch_size=cfg["batch_size"] or getattr(teacher, "runner_batch_size", 2))  # 0 = auto
     if teacher.backend == "simulated":
         log.info("teacher: backend 'simulated' is a SIMULATOR of foundation-model errors that reads the "
                  "synthetic ground truth; it is not a real teacher")

@@ -10,6 +10,10 @@
 * Per-epoch resume state lives under ``--resume-dir``/<checkpoint fingerprint> (default
   ``.cache/train``, outside DVC outs): a killed run continues where it stopped; a finished one reruns
   instantly.
+* The epoch rows are also logged with DVCLive into ``--live-dir`` (dvc.yaml: ``reports/dvclive/<M>/<S>``, a
+  git-tracked out; :func:`write_live_log`): ``dvc plots show reports/dvclive/<M>/<S>/plots/metrics/val_iou.tsv``
+  or any DVCLive-aware viewer reads it.  The checkpoint's log.parquet stays the typed artifact the
+  report and evaluate read.
 * Exit codes: 0 ok; 2 bad input (one line naming the file or parameter); 1 training diverged
   (non-finite loss; one line, no checkpoint written).
 
@@ -76,7 +80,8 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[An
 
     Returns (TrainData, ValData or None, the artifacts opened -- the checkpoint's lineage).
     reference.zarr is opened only when the manifest has validation rows, and goes only to
-    :func:`pipeline.training.validation_data`.
+    :func:`pipeline.training.validation_data` -- except for the supervised ceiling (NOT
+    annotation-free), whose targets :func:`pipeline.supervised.ceiling_training_data` builds from it.
     """
     from pipeline import catalog, training
     from pipeline.artifacts import open_artifact, require_same_run
@@ -87,13 +92,23 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[An
     inputs = {name: opened_artifact(name) for name in training.training_inputs(spec, cfg)}
     # outputs of one stage must come from one run (a kill between geometry.zarr and gates.parquet)
     require_same_run(*inputs.values())
-    data = training.training_data(spec, cfg, inputs)
     opened = list(inputs.values())
-    val = None
-    if len(training.validation_rows(inputs["manifest"])):
+    reference = None
+    if spec.annotation_free:
+        data = training.training_data(spec, cfg, inputs)
+    else:  # the supervised ceiling: the one method whose loss sees reference masks (NOT annotation-free)
+        from pipeline.supervised import ceiling_training_data
+
         reference = opened_artifact("reference")
         opened.append(reference)
         require_same_run(*opened)
+        data = ceiling_training_data(spec, inputs, reference)
+    val = None
+    if len(training.validation_rows(inputs["manifest"])):
+        if reference is None:
+            reference = opened_artifact("reference")
+            opened.append(reference)
+            require_same_run(*opened)
         val = training.validation_data(inputs["manifest"], inputs["images"], reference)
     return data, val, opened
 
@@ -112,14 +127,53 @@ def load_init(path: str | Path):
     return model.mask_path_state_dict(), art
 
 
+#: training-log columns that are not DVCLive metrics (the step, and the schedule's stage number)
+LIVE_SKIP = ("epoch", "stage")
+
+
+def write_live_log(log, directory: str | Path, selected_epoch: int | None = None) -> Path:
+    """Log the run's epoch rows with DVCLive into ``directory`` (replaced atomically).
+
+    Step = ``epoch``; every other numeric column of the training log (pipeline.training.LOG_COLUMNS
+    minus :data:`LIVE_SKIP`) is a metric, a non-finite value (a loss term the method does not use)
+    is left out.  DVCLive writes ``plots/metrics/<column>.tsv`` (step, value) and ``metrics.json``
+    (the last epoch's values, plus ``selected_epoch``), without timestamps: the files are
+    byte-identical on a rerun.  No DVC experiment is saved and no dvc.yaml written (the DVC stage is
+    the experiment; dvc.yaml comes from pipeline/dag.py).
+    """
+    import math
+
+    from dvclive import Live
+
+    from pipeline.artifacts import atomic_path
+
+    logging.getLogger("dvclive").setLevel(logging.WARNING)  # its INFO line names a random experiment
+    columns = [c for c in log.columns if c not in LIVE_SKIP]
+    with atomic_path(directory, is_dir=True) as tmp:
+        live = Live(str(tmp), save_dvc_exp=False, dvcyaml=False, report=None)
+        for row in log.to_dict("records"):
+            live.step = int(row["epoch"])
+            for name in columns:
+                v = row[name]
+                if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+                    live.log_metric(name, float(v))
+        if selected_epoch is not None:
+            live.summary["selected_epoch"] = int(selected_epoch)
+        live.make_summary()
+    return Path(directory)
+
+
 def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts: str, init: str | None,
-        out: str, resume_dir: str) -> Path:
+        out: str, resume_dir: str, live_dir: str | None = None) -> Path:
     from pipeline.methods import fingerprint_params, get_method
 
     cfg = section(params, "train")
     spec = get_method(method)
     if spec.stage != stage:
         raise InputError(f"--stage {stage}: method {method!r} belongs to --stage {spec.stage}")
+    if not spec.annotation_free and not params["protocol"]["supervised_ceiling"]:
+        raise InputError(f"--method {method}: trains on reference masks (not annotation-free); "
+                         f"needs params protocol.supervised_ceiling: true")
 
     from pipeline import catalog, training
     from pipeline.artifacts import write_json
@@ -143,6 +197,8 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
                     selected_epoch=result.selected_epoch, selection=result.info["selection"],
                     resolution=int(data.images.shape[1]),
                     mode=result.info["mode"], fingerprint=meta.fingerprint)
+    write_live_log(result.log, live_dir or catalog.path("train_live", artifacts, method=method, seed=seed),
+                   result.selected_epoch)
     # wall clock beside, not inside, the checkpoint: the checkpoint is byte-identical on a rerun
     write_json(catalog.path("train_timings", artifacts, method=method, seed=seed),
                {"method": method, "seed": seed, "device": str(resolve_device(device)), "epochs": result.timings})
@@ -160,10 +216,12 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
 @click.option("--out", required=True, help="checkpoint directory to write")
 @click.option("--resume-dir", default=".cache/train", show_default=True,
               help="per-epoch resume states (outside DVC outs)")
-def main(params, device, stage, method, seed, artifacts, init, out, resume_dir):
+@click.option("--live-dir", default=None,
+              help="DVCLive log of the epoch rows (default: reports/dvclive/<method>/<seed> beside the artifacts dir)")
+def main(params, device, stage, method, seed, artifacts, init, out, resume_dir, live_dir):
     """Train one (method, seed) student on pseudo-targets; write checkpoint + training log."""
     try:
-        run(params, device, stage, method, seed, artifacts, init, out, resume_dir)
+        run(params, device, stage, method, seed, artifacts, init, out, resume_dir, live_dir)
     except TrainingDiverged as e:
         click.echo(f"geodistill train: training diverged: {str(e).splitlines()[0]}", err=True)
         sys.exit(1)

@@ -19,6 +19,8 @@ CASES = {
     "bench_synthetic": ["--size", "48", "--views", "2", "--baseline-views", "1"],
     "bench_train": ["--images", "4", "--size", "32", "--epochs", "1", "--reps", "1", "--val-images", "2"],
     "bench_teacher": ["--images", "2", "--resolution", "32"],
+    "bench_evaluate": ["--runs", "3", "--images", "6", "--size", "48", "--resamples", "50", "--repeats", "1",
+                       "--student-images", "1"],
 }
 
 

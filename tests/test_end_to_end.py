@@ -70,9 +70,9 @@ def test_dag_runs_end_to_end_and_is_a_noop_the_second_time(tiny_run):
         a = pipeline.open_artifact(art / name)  # validates schema
         assert len(a.meta.fingerprint) == 64
     runs = {(m, s) for m, s, _ in iter_runs(art / "checkpoints")}
-    assert runs == {("plain", 42), ("geodistill", 42)}  # the demo profile's active entries only
+    assert runs == {("plain", 42), ("geodistill", 42), ("continuation", 42)}  # the demo profile's active entries only
     metrics = pipeline.open_artifact(art / "metrics.parquet").df
-    assert set(metrics.method) == {"plain", "geodistill"}
+    assert set(metrics.method) == {"plain", "geodistill", "continuation"}
     assert (repo / "reports" / "demo" / "report.html").exists()
     second = run(sys.executable, "-m", "dvc", "repro")
     assert second.returncode == 0 and "Running stage" not in second.stdout, second.stdout[-2000:]

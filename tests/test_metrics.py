@@ -232,3 +232,69 @@ def test_image_ious_is_image_iou_per_pair():
     expect = [image_iou(p, g) for p, g in zip(preds, gts)]
     np.testing.assert_array_equal(image_ious(preds, gts), expect)
     assert image_ious(np.zeros((0, 4, 4), bool), np.zeros((0, 4, 4), bool)).shape == (0,)
+
+
+# ------------------------------------------------------------------------------------------------
+# Batched fast path == the per-image distance-transform implementation it replaced
+# ------------------------------------------------------------------------------------------------
+def _mask_zoo(n=24, size=48, seed=0):
+    """Smooth blobs, speckle, thin lines, empty and full-frame masks, frame-touching shapes."""
+    rng = np.random.default_rng(seed)
+    out = np.stack([ndimage.gaussian_filter(rng.random((size, size)), rng.uniform(1, 4)) > rng.uniform(0.45, 0.55)
+                    for _ in range(n)])
+    out[0] = False
+    out[1] = True
+    out[2] = rng.random((size, size)) < 0.03        # hundreds of 1-px components
+    out[3, :, 10] = True                            # a one-pixel line through the frame
+    out[4, :size // 2] = True                       # touches three frame edges
+    return out
+
+
+@pytest.mark.parametrize("tolerance,margin", [(2, 3), (0, 3), (1.5, 0), (3, 1)])
+def test_batched_metrics_equal_the_per_image_baseline(tolerance, margin):
+    from pipeline.benchmarks.bench_evaluate import baseline_per_image_metrics
+
+    gts = _mask_zoo(seed=1)
+    preds = np.concatenate([_mask_zoo(seed=2)[:12], np.roll(gts[12:], 1, axis=2)])
+    preds[5] = gts[5]                               # identical pair
+    preds[1] = True                                 # both full frame
+    new = per_image_metrics(preds, gts, tolerance, margin=margin)
+    old = baseline_per_image_metrics(preds, gts, tolerance, 0.01, margin)
+    for k in old:
+        np.testing.assert_array_equal(new[k], old[k], err_msg=k)
+    assert np.isfinite(new["small_iou"]).sum() >= 3 and np.isnan(new["small_iou"]).sum() >= 1
+
+
+def test_many_small_components_take_the_lookup_table_path():
+    from pipeline.benchmarks.bench_evaluate import baseline_small_region_iou
+    from pipeline.metrics import _SMALL_LUT_ABOVE
+
+    rng = np.random.default_rng(4)
+    gts = rng.random((3, 64, 64)) < 0.04            # > _SMALL_LUT_ABOVE isolated pixels in the batch
+    assert ndimage.label(gts[0], np.ones((3, 3)))[1] * 3 > _SMALL_LUT_ABOVE
+    preds = rng.random((3, 64, 64)) < 0.05
+    out = per_image_metrics(preds, gts)["small_iou"]
+    np.testing.assert_array_equal(out, [baseline_small_region_iou(p, g, 0.01, 3) for p, g in zip(preds, gts)])
+
+
+def test_prepared_reference_and_torch_morphology_give_the_same_scores():
+    from pipeline.metrics import score_masks, scoring_reference
+
+    gts = _mask_zoo(seed=5)
+    ref = scoring_reference(gts, 2)
+    for seed in (6, 7):                             # one reference, several prediction sets
+        preds = _mask_zoo(seed=seed)
+        fresh = per_image_metrics(preds, gts, 2)
+        for out in (score_masks(preds, ref), score_masks(preds, ref, device="cpu")):   # torch on the CPU
+            for k in fresh:
+                np.testing.assert_array_equal(out[k], fresh[k], err_msg=k)
+    with pytest.raises(InputError, match="shapes differ"):
+        score_masks(gts[:3], ref)
+
+
+def test_tolerance_disk_is_the_euclidean_ball():
+    from pipeline.metrics import tolerance_disk
+
+    assert tolerance_disk(0).tolist() == [[1]]
+    assert tolerance_disk(1).sum() == 5 and tolerance_disk(1.5).sum() == 9 and tolerance_disk(2).sum() == 13
+    assert tolerance_disk(2)[0].tolist() == [0, 0, 1, 0, 0]   # (2, 1) is sqrt(5) > 2 away

@@ -242,8 +242,9 @@ def _stages_with_changed_params(repo, key, value) -> set[str]:
 @pytest.mark.parametrize("key, value, expected", [
     ("train.lr_stage2", 2e-4, {f"train_{m}@42" for m in
                                ("geodistill", "sdf_gated", "sdf_skel_gated", "sdf_area_gated", "no_gate")}
-     | {"train_geodistill@3407", "train_geodistill@2026"}),
-    ("train.lr_stage1", 1e-3, {f"train_{m}@{s}" for m in ("plain", "confidence_filtered", "afs_control", "gabi")
+     | {f"train_{m}@{s}" for m in ("geodistill", "continuation") for s in (42, 3407, 2026)}),
+    ("train.lr_stage1", 1e-3, {f"train_{m}@{s}" for m in ("plain", "confidence_filtered", "afs_control", "gabi",
+                                                           "supervised_ceiling")
                                for s in (42, 3407, 2026)}
      | {"train_full_scratch_10@42", "train_full_scratch_30@42", "train_sdf_scratch@42"}),
     ("train.gabi.lambda_dist", 0.01, {"train_gabi@42", "train_gabi@3407", "train_gabi@2026"}),
@@ -261,5 +262,5 @@ def test_demo_dag_has_only_active_runs():
     assert r.returncode == 0, r.stderr
     names = set(r.stdout.split())
     train = {n for n in names if n.startswith("train_")}
-    assert train == {"train_plain@42", "train_geodistill@42"}
+    assert train == {"train_plain@42", "train_geodistill@42", "train_continuation@42"}
     assert {"prepare", "teacher", "consensus", "geometry", "calibrate", "evaluate", "report"} <= names

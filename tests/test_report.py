@@ -17,6 +17,7 @@ import pytest
 from pipeline.artifacts import make_meta, open_artifact, write_parquet
 from pipeline.report import figures as F
 from pipeline.report import tables as T
+from test_controls import _other_outputs
 from test_evaluate import build_tiny_artifacts, invoke, write_params
 
 CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
@@ -37,11 +38,11 @@ def built(tmp_path_factory):
     for main, extra in [
         (calibrate, ["--checkpoints", str(art / "checkpoints"), "--out", str(art / "thresholds.parquet")]),
         (evaluate, ["--checkpoints", str(art / "checkpoints"), "--thresholds", str(art / "thresholds.parquet"),
-                    "--out", str(art / "metrics.parquet"), "--summary", str(art / "summary.parquet"),
-                    "--metrics-json", str(art / "metrics" / "summary.json")]),
-        (analyze, ["--out", str(art / "teacher_metrics.parquet"), "--metrics-json", str(art / "metrics" / "teacher.json")]),
+                    "--out", str(art / "metrics.parquet"), "--summary", str(art / "summary.parquet")]),
+        (analyze, ["--out", str(art / "teacher_metrics.parquet")]),
     ]:
-        res = invoke(main, common + extra)
+        # DVC metrics/plot files (whatever their options) go under root, never into the repository
+        res = invoke(main, common + extra + _other_outputs(main, common + extra, root / "dvc"))
         assert res.exit_code == 0, res.output
     eff = pd.DataFrame({"variant": ["fp32_eager", "bf16_channels_last"], "params": [263_000, 263_000],
                         "gflops": [18.2, 18.2], "latency_ms": [500.0, 110.0], "throughput": [2.0, 9.1],
@@ -56,7 +57,9 @@ def built(tmp_path_factory):
 def test_report_files_and_tables(built):
     root, art, params, out = built
     for f in ("report.md", "report.html", "meta.json", "figures/qualitative.png", "figures/pseudo_targets.png",
-              "figures/threshold_curves.png", "figures/training_curves.png", "plots/training_curves.csv",
+              "figures/threshold_curves.png", "figures/training_curves.png", "figures/reliability.png",
+              "figures/area_vs_tau.png", "figures/training_curves_calibrated.png", "plots/training_curves.csv",
+              "plots/area_curve.csv",
               "plots/threshold_curve.csv"):
         assert (out / f).is_file(), f
     assert open_artifact(out, "report").meta.stage == "report"
@@ -85,7 +88,10 @@ def test_html_is_one_self_contained_page(built):
     html = (out / "report.html").read_text()
     assert html.count("<table") == (out / "report.md").read_text().count("(`tab:")
     srcs = re.findall(r'src="([^"]+)"', html)
-    assert len(srcs) == 4 and all(s.startswith("data:image/png;base64,") for s in srcs)
+    # qualitative, pseudo-targets, threshold curves, reliability, area vs tau, training curves (at 0.5 and at
+    # the per-epoch calibrated tau)
+    assert len(srcs) == len(list((out / "figures").glob("*.png"))) == 7
+    assert all(s.startswith("data:image/png;base64,") for s in srcs)
     # inline images decode to the PNGs written under figures/
     png = base64.b64decode(srcs[0].split(",", 1)[1])
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
@@ -190,7 +196,7 @@ def test_report_renders_in_headless_chromium(built, tmp_path):
     assert "GeoDistill-Refine report" in html
     assert len(re.findall(r'<table data-key="tab:spacesense-results"', html)) == 2
     assert 'data-key="tab:gate-groups"' in html and 'data-key="tab:efficiency"' in html
-    assert len(re.findall(r'<img [^>]*src="data:image/png;base64,', html)) == 4
+    assert len(re.findall(r'<img [^>]*src="data:image/png;base64,', html)) == 7
     shot = tmp_path / "shot.png"
     res = subprocess.run(flags + [f"--user-data-dir={tmp_path / 'u2'}", f"--screenshot={shot}",
                                   "--window-size=1200,3000", url], capture_output=True, text=True, timeout=120)
@@ -201,3 +207,18 @@ def test_report_renders_in_headless_chromium(built, tmp_path):
     assert (img.min(axis=2) < 60).mean() > 0.002
     hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
     assert (hsv[..., 1] > 120).sum() > 500
+
+
+def test_efficiency_table_marks_untimed_and_emulated_variants():
+    """Issue 18 item 5: an untimed (pathologically slow) variant shows the reason, not a latency."""
+    from pipeline.report.tables import efficiency_table
+
+    eff = pd.DataFrame({"variant": ["fp32_eager_nchw", "bf16_eager", "int8_onnx"], "params": [259000] * 3,
+                        "gflops": [2.0] * 3, "latency_ms": [10.0, 5000.0, 4.0], "throughput": [100.0, 0.2, 250.0],
+                        "peak_mb": [50.0] * 3, "timed": [True, False, True],
+                        "remark": ["", "not timed: probe 5000 ms = 500x the fp32_eager_nchw probe", "bf16 emulated"]})
+    rows = {r[0]: r for r in efficiency_table(eff).rows}
+    assert rows["fp32_eager_nchw"][3] == "10.00"
+    slow = rows["bf16_eager"]
+    assert slow[3].startswith("not timed: probe 5000 ms") and slow[4] == "--" and "5000.00" not in slow
+    assert "int8_onnx (bf16 emulated)" in rows and rows["int8_onnx (bf16 emulated)"][3] == "4.00"

@@ -173,3 +173,28 @@ def test_spearman_edge_cases():
     assert r.rho == pytest.approx(1.0) and r.pvalue == 0.0
     r = spearman([1, 2, np.nan, 4, 5], [1, 3, 2, 5, 4])   # NaN pair dropped
     assert r.n == 4
+
+
+def test_counts_matrix_bootstrap_equals_the_gather_baseline():
+    from pipeline.benchmarks.bench_evaluate import baseline_method_gains, baseline_resample_means
+
+    rng = np.random.default_rng(0)
+    values = rng.normal(size=(40, 3))
+    clusters = np.repeat(["b", "a", "c", "d"], [5, 15, 12, 8])[rng.permutation(40)]   # unequal, unsorted
+    new = hierarchical_resample_means(values, clusters, 700, np.random.default_rng(3))
+    old = baseline_resample_means(values, clusters, 700, np.random.default_rng(3))
+    np.testing.assert_allclose(new, old, rtol=1e-12)
+    # the per-group matrix bootstrap of method_gains == one bootstrap per (method, metric)
+    rows = []
+    for method in ("plain", "a", "b"):
+        for seed in (1, 2):
+            for i in range(30):
+                rows.append(dict(dataset="d", group="g", threshold_mode="calibrated", method=method, seed=seed,
+                                 image_id=f"i{i}", spacecraft=f"s{i % 4}", iou=rng.random(),
+                                 bf1=np.nan if (method == "b" and i == 3) else rng.random()))
+    df = pd.DataFrame(rows)
+    got = method_gains(df, ["iou", "bf1"], n_resamples=400, seed=9)
+    want = baseline_method_gains(df, ["iou", "bf1"], n_resamples=400, seed=9)
+    assert got.columns.tolist() == want.columns.tolist()
+    num = [c for c in got.columns if c.startswith("gain_")]
+    np.testing.assert_allclose(got[num].to_numpy(float), want[num].to_numpy(float), rtol=1e-12, atol=1e-15)

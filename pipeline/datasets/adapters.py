@@ -31,7 +31,9 @@ TANGO (``tango``)
     seeded from the official training list; validation: a disjoint ``val_images`` (500) from the rest
     of it (masked); test: the official test list unchanged.
 Any folder (``folder``)
-    ``<root>/images/*`` plus optional ``<root>/masks/*`` matched by file stem (png, jpg, tif, bmp).
+    ``<root>/images/*`` plus optional ``<root>/masks/*`` matched by file stem (png, jpg, tif, bmp);
+    the protocol's ``images_dir``/``masks_dir`` rename them (absolute paths allowed; ``masks_dir: null``
+    = no masks).
     Images without a mask are training images; masked images are split into validation and test
     (seeded, ``val_fraction``).  Every entry of ``images/`` and ``masks/`` is either used or goes
     through the bad-input policy (an error naming the file, or with ``skip_bad`` a row of
@@ -357,14 +359,15 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
     policy = policy or BadInputPolicy(False)
     root = _root(cfg)
     img_dir = root / str(proto.get("images_dir", "images"))
-    mask_dir = root / str(proto.get("masks_dir", "masks"))
+    masks_name = proto.get("masks_dir", "masks")  # null: no masks at all (e.g. `geodistill distill` without --val-masks)
+    mask_dir = root / str(masks_name) if masks_name is not None else None
     if not img_dir.is_dir():
         raise InputError(f"{img_dir}: images folder not found")
     # every entry is kept: unsupported types and broken links are reported by the decode pass
     images = _folder_entries(img_dir, "images", policy)
     image_stems = {p.stem for p in images}
     by_stem: dict[str, list[Path]] = {}
-    if mask_dir.is_dir():
+    if mask_dir is not None and mask_dir.is_dir():
         for m in _folder_entries(mask_dir, "masks", policy):
             if m.suffix.lower() not in SUPPORTED_SUFFIXES:
                 policy.report(m.stem, m, f"unsupported mask type {m.suffix or '(no suffix)'!r} "

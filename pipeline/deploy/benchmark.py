@@ -12,6 +12,8 @@ Decisions:
   baseline's (e.g. bf16 autocast on a CPU without native bf16, about 25x slower than fp32) is not
   timed further: its row keeps the probe (``probe_ms``), ``status`` says "slow on this CPU (...)",
   and latency, throughput and the IoU columns are NaN (batch 0).  It can never be the fast path.
+  For the report, every row also has ``timed`` (fully timed) and ``remark`` (:func:`variant_remark`:
+  "not timed: ... pathologically slow on this CPU", "bf16 emulated ..." or "").
 * ONNX Runtime sessions used for timing do not spin (:func:`pipeline.deploy.export.ort_session`,
   ``spinning=False``): an idle spinning pool would steal the cores the round-robin measures others on.
 * Peak memory: CPU -- growth of the process's peak resident set (Linux ``/proc/self/clear_refs``
@@ -54,6 +56,7 @@ VARIANTS = tuple(BENCHMARK_VARIANTS)  # the params schema lists them (deploy.ben
 SLOW_FACTOR = 4.0  # a variant probed more than this many times slower than the baseline is not fully timed
 PROBE_CALLS = 2    # timed batch-1 calls of the probe (after the warm-up)
 OK = "ok"
+INT8_VARIANTS = ("onnxruntime_int8", "openvino_int8")  # run the bundle's model.int8.onnx
 
 
 @dataclasses.dataclass
@@ -170,6 +173,8 @@ def build_variants(model, device, resolution: int, names: Sequence[str], onnx_pa
     torchscript_frozen       traced, frozen, torch.jit.optimize_for_inference (CPU: oneDNN fusions)
     onnxruntime_fp32         ONNX Runtime CPU, all graph optimisations
     onnxruntime_int8         ONNX Runtime CPU on the static int8 QDQ model (quantize_onnx_int8)
+    openvino_int8            the same int8 file on OpenVINO's CPU plugin (pipeline.deploy.openvino_engine)
+    cuda_graph_bf16          CUDA only: bf16 + channels_last + CUDA graphs (pipeline.deploy.cuda_engine)
     """
     import torch
 
@@ -210,6 +215,27 @@ def build_variants(model, device, resolution: int, names: Sequence[str], onnx_pa
                     ts = torch.jit.optimize_for_inference(ts)
             variants.append(Variant(name, "TorchScript traced + frozen + optimize_for_inference, fp32",
                                     eager(ts), dev.type, sync))
+        elif name == "cuda_graph_bf16":
+            if dev.type != "cuda":
+                skipped[name] = "needs a CUDA device (--device cuda)"
+                continue
+            from pipeline.deploy.cuda_engine import FastStudent
+
+            fast = FastStudent(model, dev, precision="bf16", cuda_graphs=True)
+            variants.append(Variant(name, "CUDA graphs, bf16 autocast, channels_last (pipeline.deploy.cuda_engine)",
+                                    lambda x, fast=fast: fast.logits(x).clone(), dev.type, sync))
+        elif name == "openvino_int8":
+            from pipeline.deploy.openvino_engine import OpenVinoRunner, openvino_unavailable_reason
+
+            reason = openvino_unavailable_reason() or onnx_unavailable_reason()
+            if reason is None and int8_path is None:
+                reason = "no int8 ONNX model"
+            if reason is not None:
+                skipped[name] = reason
+                continue
+            runner = OpenVinoRunner(int8_path)
+            variants.append(Variant(name, "OpenVINO CPU on the same static int8 QDQ model.int8.onnx",
+                                    lambda x, runner=runner: torch.from_numpy(runner(x.cpu().numpy())), "cpu"))
         elif name in ("onnxruntime_fp32", "onnxruntime_int8"):
             reason = onnx_unavailable_reason()
             path = onnx_path if name == "onnxruntime_fp32" else int8_path
@@ -261,6 +287,22 @@ def slow_status(probe_ms: float, baseline_probe_ms: float | None, factor: float 
             f"{BASELINE_VARIANT} probe > {factor:g}x): not fully timed")
 
 
+def variant_remark(name: str, device: str, status: str, probe_ms: float, baseline_probe_ms: float | None) -> str:
+    """A short note for the efficiency table ("" when there is nothing to say): why a variant was not
+    fully timed, and -- for bf16 on a CPU without native bf16 (no AVX-512-BF16/AMX) -- that its
+    arithmetic is emulated, so its time says nothing about bf16 on capable hardware."""
+    from pipeline.device import cpu_supports_bf16
+
+    notes = []
+    if status != OK:
+        ratio = probe_ms / baseline_probe_ms if baseline_probe_ms else float("nan")
+        notes.append(f"not timed: probe {probe_ms:.0f} ms = {ratio:.0f}x the {BASELINE_VARIANT} probe "
+                     f"(pathologically slow on this CPU)")
+    if "bf16" in name and device == "cpu" and not cpu_supports_bf16():
+        notes.append("bf16 emulated: this CPU has no AVX-512-BF16/AMX")
+    return "; ".join(notes)
+
+
 def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence[str], warmup: int, iters: int,
                      batches: Sequence[int], tau: float | None = None, val_images: np.ndarray | None = None,
                      val_masks: np.ndarray | None = None, onnx_path=None, int8_path=None, seed: int = 0,
@@ -309,6 +351,8 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
                "gflops": gflops, "throughput": float("nan"), "batch": 0, "peak_mb": mem.peak_mb,
                "peak_method": mem.method, "iou": float("nan"), "resolution": int(resolution), "probe_ms": probe,
                "status": slow_status(probe, base_probe, slow_factor) or OK}
+        row["timed"], row["remark"] = row["status"] == OK, variant_remark(v.name, v.device, row["status"], probe,
+                                                                          base_probe)
         rows[v.name] = row
         if row["status"] != OK:
             continue
@@ -450,15 +494,15 @@ def prepare_onnx_models(target: Target, variants: Sequence[str], workdir: str | 
     """(onnx_path, int8_path, notes): the ONNX models the ORT variants run (module docstring).
 
     model.onnx: the bundle's, else exported into ``workdir``.  int8 (only when ``onnxruntime_int8`` is
-    asked for): the bundle's model.int8.onnx, else quantised into ``workdir`` on the training-split
-    ``calibration_images`` or, without any, on synthetic smooth noise.  ``notes`` holds
+    asked for, or ``openvino_int8``): the bundle's model.int8.onnx, else quantised into ``workdir`` on
+    the training-split ``calibration_images`` or, without any, on synthetic smooth noise.  ``notes`` holds
     ``int8_calibration`` (how) or ``onnx`` (why there is no ONNX model: onnx not importable).
     """
     reason = onnx_unavailable_reason()
     if reason is not None:
         return None, None, {"onnx": reason}
     onnx_path = target.onnx_path or export_onnx(target.model, Path(workdir) / "model.onnx", resolution, opset)
-    if "onnxruntime_int8" not in variants:
+    if not set(variants) & set(INT8_VARIANTS):
         return onnx_path, None, {}
     if target.int8_path is not None:
         return onnx_path, target.int8_path, {"int8_calibration": (
@@ -515,7 +559,8 @@ def format_table(rows: Sequence[dict]) -> str:
             lines.append(f"{r['variant']:22s} {r['status']}")
             continue
         lines.append(f"{r['variant']:22s} {r['latency_ms']:10.2f} {r['speedup']:7.2f} {r['throughput']:8.2f} "
-                     f"{r['batch']:5d} {r['peak_mb']:8.1f} {r['iou']:7.4f} {r['iou_delta']:+8.4f} {r['iou_vs_fp32']:9.4f}")
+                     f"{r['batch']:5d} {r['peak_mb']:8.1f} {r['iou']:7.4f} {r['iou_delta']:+8.4f} {r['iou_vs_fp32']:9.4f}"
+                     + (f"  ({r['remark']})" if r.get("remark") else ""))
     lines.append(f"(x base = {BASELINE_VARIANT} latency / variant latency, timed round-robin in the same run; "
                  f"mIoU fp32 = mean per-image IoU of the variant's masks with {BASELINE_VARIANT}'s)")
     return "\n".join(lines)

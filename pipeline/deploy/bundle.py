@@ -50,7 +50,7 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
                  opset: int, atol: float, onnx: bool = True, source: dict | None = None,
                  calibration_images: np.ndarray | None = None, calibration_note: str | None = None,
                  int8_min_mask_iou: float = 0.9, int8_calibration: str = "percentile",
-                 int8_percentile: float = 99.999) -> dict:
+                 int8_percentile: float = 99.999, device=None) -> dict:
     """Fill a deploy bundle directory ``tmp`` (module docstring) and return its deploy.json content.
 
     Raises :class:`ParityError` when an exported format fails its parity check, and InputError when
@@ -79,7 +79,7 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
         log.warning("export: %s", reason)
     has_onnx = (tmp / "model.onnx").exists()
     parity = check_parity(deployed, tau, resolution, atol, torchscript=tmp / "model.ts",
-                          onnx=tmp / "model.onnx" if has_onnx else None)
+                          onnx=tmp / "model.onnx" if has_onnx else None, device=device)
     require_parity(parity)
     int8 = None
     if not has_onnx:

@@ -167,11 +167,12 @@ def compare_logits(reference: np.ndarray, logits: np.ndarray, tau: float, atol: 
 
 
 def check_parity(model, tau: float, resolution: int, atol: float, torchscript: str | Path | None = None,
-                 onnx: str | Path | None = None) -> dict:
+                 onnx: str | Path | None = None, device=None) -> dict:
     """Run the parity check of the exported files against the PyTorch mask path (module docstring).
 
     Returns ``{"inputs": ..., "torchscript": {...}, "onnx": {...}}`` (a format's entry is absent when its
-    file is not given).  Does not raise; see :func:`require_parity`.
+    file is not given).  With a CUDA ``device`` also ``"device"``: :func:`device_parity` there (reported,
+    not required: the GPU's fp32 is not the CPU's bit for bit).  Does not raise; see :func:`require_parity`.
     """
     import torch
 
@@ -185,6 +186,39 @@ def check_parity(model, tau: float, resolution: int, atol: float, torchscript: s
     if onnx is not None:
         sess = ort_session(onnx)
         out["onnx"] = compare_logits(ref, sess.run(None, {ONNX_INPUT: x.numpy()})[0], tau, atol)
+    if device is not None and torch.device(device).type == "cuda":
+        out["device"] = device_parity(model, tau, resolution, atol, device, torchscript)
+    return out
+
+
+def device_parity(model, tau: float, resolution: int, atol: float, device, torchscript=None) -> dict:
+    """Parity on the device the model will run on: the fp32 PyTorch mask path there (TF32 off) is the
+    reference; compared with it, the TorchScript file on that device and the fast engine
+    (pipeline.deploy.cuda_engine, bf16 + CUDA graphs): max |dZ|, masks identical, and ``mask_iou`` =
+    mean per-image IoU of the masks at tau (:func:`pipeline.deploy.cuda_engine.mask_agreement`).
+    TF32 is switched off for the fp32 comparisons: with it (PyTorch's cuDNN default) two fp32 engines
+    disagree on about 2 % of a mask's pixels.  Runs on a CPU too (then the fast engine is fp32 eager)."""
+    import torch
+
+    from pipeline.deploy.cuda_engine import FastStudent, mask_agreement
+
+    dev = torch.device(device)
+    x = parity_inputs(resolution)
+    z_tau = logit_threshold(tau)
+    out: dict = {"device": str(dev)}
+    tf32 = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        ref = torch_logits(mask_path_model(model).to(dev), x.to(dev))
+        if torchscript is not None:
+            ts_z = torch_logits(load_torchscript(torchscript, dev), x.to(dev))
+            out["torchscript"] = {**compare_logits(ref, ts_z, tau, atol), "mask_iou": mask_agreement(ts_z, ref, z_tau)}
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = tf32
+    fast = FastStudent(model, dev)
+    fz = fast.logits(x).float().cpu().numpy()
+    out["fast_engine"] = {**compare_logits(ref, fz, tau, atol), "precision": fast.precision,
+                          "cuda_graphs": fast.cuda_graphs, "mask_iou": mask_agreement(fz, ref, z_tau)}
     return out
 
 

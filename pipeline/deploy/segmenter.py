@@ -1,8 +1,9 @@
 """Loading a checkpoint or a deploy bundle for inference: :class:`Segmenter` and its engines.
 
 Decision (the paper is silent on deployment formats): engines (segment ``--engine``): ``torch``
-(model.pt / checkpoint), ``torchscript``, ``onnx`` and ``int8`` (bundle only); ``auto`` = onnx when the
-bundle holds it and onnxruntime imports, else torch -- exact engines only (:func:`resolve_engine`).
+(model.pt / checkpoint), ``cuda`` (model.pt / checkpoint: the GPU fast path), ``torchscript``, ``onnx``,
+``int8`` and ``openvino_int8`` (bundle only); ``auto`` = onnx when the bundle holds it and onnxruntime
+imports, else torch -- exact engines only -- and ``cuda`` on a CUDA device (:func:`resolve_engine`).
 Every engine receives the same preprocessed tensor and the same tau; only the function Z = f(x)
 differs.
 """
@@ -20,7 +21,8 @@ from pipeline.deploy.export import ONNX_INPUT, load_torchscript, onnx_unavailabl
 from pipeline.errors import ArtifactError, InputError
 from pipeline.thresholds import lookup_tau, resolve_tau
 
-ENGINES = ("auto", "torch", "torchscript", "onnx", "int8")
+ENGINES = ("auto", "torch", "torchscript", "onnx", "int8", "openvino_int8", "cuda")
+TORCH_ENGINES = ("torch", "cuda")  # engines that run model.pt, so a checkpoint directory supports them too
 
 
 @dataclasses.dataclass
@@ -34,6 +36,59 @@ class Segmenter:
     taus: dict  # tau candidates found with the model: {"bundle" | "checkpoint" | "thresholds": (tau, source)}
     predict_logits: Callable  # float32 tensor [N,3,R,R] -> numpy float32 [N,1,R,R]
     info: dict
+    tau: float | None = None  # the tau :meth:`predict` binarises with (set by :meth:`from_bundle`)
+    tau_source: str = ""
+
+    @classmethod
+    def from_bundle(cls, path: str | Path, *, engine: str = "auto", device="cpu", tau: float | None = None,
+                    resolution: int | None = None) -> "Segmenter":
+        """A segmenter for notebooks: a deploy bundle (``geodistill export`` / ``distill``) or a
+        checkpoint directory, with its tau resolved once (:func:`pipeline.thresholds.resolve_tau`:
+        ``tau`` > the bundle's > the checkpoint's > ``calibrate.fixed_tau`` 0.5 with a warning).
+
+        >>> seg = Segmenter.from_bundle("out/artifacts/deploy")          # doctest: +SKIP
+        >>> mask = seg.predict("image.png")  # bool [H, W] at the image's own size   # doctest: +SKIP
+        """
+        from pipeline.params import PAPER
+
+        seg = load_segmenter(path, engine, device)
+        seg.tau, seg.tau_source = seg.resolve_tau(option=tau, fixed=PAPER.calibrate.fixed_tau)
+        if resolution is not None:
+            seg.resolution = int(resolution)
+        if seg.resolution is None:
+            raise InputError(f"{path}: no working resolution recorded; pass resolution=...")
+        return seg
+
+    def probabilities(self, image) -> np.ndarray:
+        """P float32 [H,W] in [0,1] at the ORIGINAL size of ``image``: a file path, or an array of any
+        size -- grey [H,W] / [H,W,1], RGB [H,W,3], RGBA [H,W,4] (alpha dropped); uint8, uint16 (/257),
+        other integers (clipped to 0..255) or float in [0,1] -- read by the dataset loader's rules
+        (:func:`pipeline.datasets.loading.to_rgb8`), resized to the working resolution like the training
+        images (area), P resized back bilinearly (:func:`pipeline.deploy.files.probs_to_size`)."""
+        from pipeline.datasets.loading import read_rgb, resize_image, to_rgb8
+        from pipeline.deploy.files import probs_to_size
+
+        if self.resolution is None:
+            raise InputError("Segmenter: no working resolution; set .resolution or use Segmenter.from_bundle")
+        if isinstance(image, (str, Path)):
+            rgb = read_rgb(image)
+        else:
+            arr = np.asarray(image)
+            if arr.ndim == 3 and arr.shape[2] in (3, 4):  # RGB(A) -> the BGR(A) order to_rgb8 takes from OpenCV
+                arr = arr[..., [2, 1, 0, 3][:arr.shape[2]]]
+            rgb = to_rgb8(arr)
+        h, w = rgb.shape[:2]
+        probs = self.predict_probs(resize_image(rgb, self.resolution)[None], batch_size=1)[0]
+        return probs_to_size(probs, h, w)
+
+    def predict(self, image) -> np.ndarray:
+        """The spacecraft mask M = [P >= tau] (eq:inference-mask), bool [H,W] at the ORIGINAL size of
+        ``image`` (a path or an array, see :meth:`probabilities`)."""
+        from pipeline.thresholds import mask_from_probs
+
+        if self.tau is None:
+            raise InputError("Segmenter: no tau; use Segmenter.from_bundle (or set .tau)")
+        return mask_from_probs(self.probabilities(image), self.tau)
 
     def resolve_tau(self, option=None, fixed=None) -> tuple[float, str]:
         """(tau, source) by :func:`pipeline.thresholds.resolve_tau` over ``option`` (--tau), the
@@ -51,7 +106,7 @@ class Segmenter:
         return out
 
 
-def resolve_engine(path: str | Path, engine: str) -> str:
+def resolve_engine(path: str | Path, engine: str, device=None) -> str:
     """The engine ``auto`` stands for (module docstring), or ``engine`` itself after validation.
 
     auto: bundle -> onnx when model.onnx exists and onnxruntime imports, else torch; checkpoint
@@ -60,17 +115,26 @@ def resolve_engine(path: str | Path, engine: str) -> str:
     about 3x faster than ONNX fp32 but not exact (reduced synthetic protocol: validation Image IoU
     +0.002, yet a mean per-image IoU of 0.97 between its masks and fp32's), so it must be asked for
     with ``--engine int8`` after checking ``geodistill benchmark``'s IoU columns on your data.
+    ``openvino_int8`` is the same int8 file on OpenVINO (pipeline.deploy.openvino_engine).  On a CUDA
+    ``device``, ``auto`` = ``cuda`` (pipeline.deploy.cuda_engine: bf16 + channels_last + CUDA graphs):
+    on a GPU no engine reproduces the CPU's fp32 masks bit for bit anyway, and its masks are checked
+    against fp32 on the GPU (benchmark's ``mIoU fp32``); ``--engine torch`` stays the fp32 reference.
     """
     path = Path(path)
     if engine not in ENGINES:
         raise InputError(f"--engine {engine!r}: expected one of {', '.join(ENGINES)}")
+    on_cuda = device is not None and str(device).startswith("cuda")
     if not is_deploy_bundle(path):
-        if engine not in ("auto", "torch"):
+        if engine == "auto":
+            return "cuda" if on_cuda else "torch"
+        if engine not in TORCH_ENGINES:
             raise InputError(f"--engine {engine}: needs a deploy bundle (geodistill export); {path} is a "
-                             f"checkpoint directory, which supports --engine torch only")
-        return "torch"
+                             f"checkpoint directory, which supports --engine torch or cuda only")
+        return engine
     if engine != "auto":
         return engine
+    if on_cuda:
+        return "cuda"
     if onnx_unavailable_reason() is None and (path / "model.onnx").exists():
         return "onnx"
     return "torch"
@@ -95,7 +159,7 @@ def load_segmenter(path: str | Path, engine: str = "auto", device="cpu",
     path = Path(path)
     if not path.exists():
         raise InputError(f"--checkpoint {path}: not found")
-    engine = resolve_engine(path, engine)
+    engine = resolve_engine(path, engine, device)
     device = torch.device(device)
     if is_deploy_bundle(path):
         info = read_deploy_info(path)
@@ -120,6 +184,20 @@ def load_segmenter(path: str | Path, engine: str = "auto", device="cpu",
         info = info or {"method": payload.get("method"), "seed": payload.get("seed")}
         return Segmenter("torch", resolution, taus, run, info)
 
+    if engine == "cuda":  # the GPU fast path; eager fp32 channels_last on a CPU
+        from pipeline.deploy.cuda_engine import FastStudent
+
+        model, payload = load_student(path, "cpu")
+        resolution = resolution if resolution is not None else checkpoint_resolution(path, payload)
+        taus = taus or checkpoint_taus(payload, thresholds)
+        fast = FastStudent(model, device)
+
+        def run(x):
+            return fast.logits(x).cpu().numpy()
+        info = info or {"method": payload.get("method"), "seed": payload.get("seed")}
+        return Segmenter("cuda", resolution, taus, run, {**info, "precision": fast.precision,
+                                                         "cuda_graphs": fast.cuda_graphs})
+
     if engine == "torchscript":
         ts_path = path / "model.ts"
         if not ts_path.exists():
@@ -131,14 +209,23 @@ def load_segmenter(path: str | Path, engine: str = "auto", device="cpu",
                 return ts(x.to(device)).float().cpu().numpy()
         return Segmenter("torchscript", resolution, taus, run, info)
 
-    reason = onnx_unavailable_reason()
+    if engine == "openvino_int8":
+        from pipeline.deploy.openvino_engine import OpenVinoRunner, openvino_unavailable_reason
+
+        reason = openvino_unavailable_reason()
+    else:
+        reason = onnx_unavailable_reason()
     if reason is not None:
         raise InputError(f"--engine {engine}: {reason}")
-    onnx_file = path / (INT8_FILE if engine == "int8" else "model.onnx")
+    int8 = engine in ("int8", "openvino_int8")
+    onnx_file = path / (INT8_FILE if int8 else "model.onnx")
     if not onnx_file.exists():
-        why = (info.get("int8_note") or "exported without it") if engine == "int8" else \
+        why = (info.get("int8_note") or "exported without it") if int8 else \
             (info.get("onnx_note") or "exported without onnx")
         raise ArtifactError(f"{path}: no {onnx_file.name} ({why}); use --engine torch")
+    if engine == "openvino_int8":
+        runner = OpenVinoRunner(onnx_file)
+        return Segmenter(engine, resolution, taus, lambda x: runner(x.numpy()), info)
     sess = ort_session(onnx_file)
 
     def run(x):

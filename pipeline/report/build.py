@@ -5,6 +5,7 @@ and which stage produces it."""
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +16,8 @@ from pipeline import catalog
 from pipeline.errors import ArtifactError
 from pipeline.report import figures as F
 from pipeline.report import tables as T
-from pipeline.report.analysis import (gate_analysis, teacher_domain_quality, teacher_prompt_quality)
+from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_analysis, size_split,
+                                      teacher_domain_quality, teacher_prompt_quality, teacher_vote_means)
 from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
 from pipeline.thresholds import mask_from_probs
 
@@ -86,6 +88,21 @@ def teacher_note(backend: str) -> str:
     return f"Teacher backend: `{backend}`."
 
 
+NO_MASKS_NOTE = (
+    "**No validation or test masks were available** (e.g. `geodistill distill` without `--val-masks`): every "
+    "image is a training image, Stage I and Stage II keep their last epoch, the threshold is the fixed "
+    "tau = `calibrate.fixed_tau` (0.5, not calibrated), and there are no accuracy numbers -- the student's "
+    "quality on this data is unmeasured.  Pass a few masks (`--val-masks DIR`) to select, calibrate and score.")
+
+
+def no_reference_masks(manifest_df: pd.DataFrame, reference) -> bool:
+    """True when no validation or test image has a reference mask (nothing was selected, calibrated or scored)."""
+    if reference is None:
+        return False
+    held_out = manifest_df["split"].isin(["val", "test"]).to_numpy()
+    return not (held_out & reference.numpy("has_mask").astype(bool)).any()
+
+
 def test_groups(manifest_df: pd.DataFrame) -> list[str]:
     """Test groups in manifest order (the first is the paper's KCP role: ablations, qualitative)."""
     return list(dict.fromkeys(manifest_df.loc[manifest_df["split"] == "test", "group"]))
@@ -116,6 +133,8 @@ def data_section(inp: Inputs) -> Section:
         "Manual (reference) masks are used only for validation-time checkpoint selection, threshold calibration "
         "and evaluation (and, on the synthetic benchmark, inside the teacher simulator); they never enter a "
         "student's training loss."))
+    if no_reference_masks(df, inp.get("reference")):
+        sec.blocks.append(Text(NO_MASKS_NOTE))
     rows = []
     for (ds, split, group), part in df.groupby(["dataset", "split", "group"], sort=False):
         rows.append([str(ds), str(split), str(group), str(len(part)), str(part["spacecraft"].nunique())])
@@ -142,7 +161,7 @@ def threshold_section(inp: Inputs, plots: dict) -> Section:
             mean = part.groupby("tau")["val_iou"].mean()
             taus = df[df["method"] == method]["tau"]
             series.append({"x": mean.index.to_numpy(), "y": mean.to_numpy(), "label": T.label(method),
-                           "marker": float(taus.mean())})
+                           "marker": float(taus.mean()), **F.method_style(method)})
         img = F.line_plot(series, "Validation Image IoU vs threshold", "tau", "mean val Image IoU")
         sec.blocks.append(Figure("fig:threshold-curves", "Threshold curves", "Mean validation Image IoU of [P >= tau] "
                                  "over the calibration grid (mean over seeds per method; dot: mean calibrated tau).",
@@ -166,7 +185,112 @@ def results_section(inp: Inputs) -> Section:
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
             sec.blocks.append(T.diagnostics_table(s.df, mode, groups))
+    vote = vote_means(inp)
+    for mode in ("calibrated", "fixed"):
+        if (s.df["threshold_mode"] == mode).any():
+            tab = T.reference_points_table(s.df, vote, mode, groups)
+            if tab is not None:
+                sec.blocks.append(tab)
     return sec
+
+
+def vote_means(inp: Inputs) -> pd.DataFrame | None:
+    """The teacher vote scored as a predictor per test group (teacher_metrics.parquet), or None."""
+    tm = inp.get("teacher_metrics")
+    return teacher_vote_means(tm.df) if tm is not None else None
+
+
+def ordered_groups(inp: Inputs, present) -> list[str]:
+    """``present`` groups in the manifest's test-group order (unknown ones last)."""
+    present = list(dict.fromkeys(present))
+    if inp.get("manifest") is None:
+        return present
+    order = test_groups(inp.get("manifest").df)
+    return [g for g in order if g in present] + [g for g in present if g not in order]
+
+
+def diagnostics_section(inp: Inputs, plots: dict) -> Section:
+    """Controls and threshold/calibration diagnostics (issue 17): what the numbers say about the
+    fixed-tau reversal, the budget-matched control, calibration, per-epoch stability, target size."""
+    sec = Section("Controls and threshold diagnostics")
+    s, thr, m = inp.get("summary"), inp.get("thresholds"), inp.get("metrics")
+    if s is None and thr is None:
+        sec.blocks += inp.need("summary", "thresholds")
+        return sec
+    groups = ordered_groups(inp, s.df["group"] if s is not None else [])
+    findings = fixed_tau_findings(s.df if s is not None else None, thr.df if thr is not None else None,
+                                  m.df if m is not None else None, inp.logs, vote_means(inp), groups, label=T.label)
+    sec.blocks += [Text(f) for f in findings]
+    if s is not None:
+        for mode in ("calibrated", "fixed"):
+            tab = T.controls_table(s.df, mode, groups)
+            if tab is not None:
+                sec.blocks.append(tab)
+    if thr is not None and "ece" in thr.df.columns:
+        sec.blocks += calibration_blocks(thr.df, plots)
+    if inp.logs is not None and "val_iou_cal" in inp.logs.columns and inp.logs["val_iou"].notna().any():
+        sec.blocks.append(T.epoch_swing_table(epoch_swings(inp.logs)))
+        sec.blocks.append(epoch_calibrated_figure(inp.logs))
+    if m is not None and "target_size" in m.df.columns:
+        split = size_split(m.df)
+        frac = (m.meta.params or {}).get("evaluate.tiny_target_max_fraction")
+        for mode in ("calibrated", "fixed"):
+            if (split["threshold_mode"] == mode).any():
+                sec.blocks.append(T.size_split_table(split, mode, frac))
+    return sec
+
+
+def calibration_blocks(thr: pd.DataFrame, plots: dict) -> list:
+    """The calibration table, the reliability diagram and the area-vs-tau figure (validation split;
+    mean over seeds per method)."""
+    blocks = [T.calibration_table(thr)]
+    rel, area = [], []
+    for method, part in thr.groupby("method", sort=False):
+        with warnings.catch_warnings():  # a bin empty in every seed stays NaN (not drawn)
+            warnings.simplefilter("ignore", RuntimeWarning)
+            conf = np.nanmean(np.stack([np.asarray(c, float) for c in part["rel_confidence"]]), axis=0)
+            freq = np.nanmean(np.stack([np.asarray(f, float) for f in part["rel_frequency"]]), axis=0)
+        rel.append({"x": conf, "y": freq, "label": f"{T.label(method)} (ECE {part['ece'].mean():.3f})",
+                    **F.method_style(method)})
+        curve = np.nanmean(np.stack([np.asarray(a, float) for a in part["area_curve"]]), axis=0)
+        area.append({"x": np.asarray(part["grid"].iloc[0], float), "y": curve, "label": T.label(method),
+                     "marker": float(part["tau"].mean()), **F.method_style(method)})
+        for _, r in part.iterrows():
+            plots.setdefault("_area", []).append(pd.DataFrame({"tau": r["grid"], "area_ratio": r["area_curve"],
+                                                               "method": method, "seed": r["seed"]}))
+    plots["area_curve"] = pd.concat(plots.pop("_area"), ignore_index=True)
+    rel.append({"x": [0.0, 1.0], "y": [0.0, 1.0], "label": "perfect calibration", "color": F.REFERENCE_LINE,
+                "style": "dashed"})
+    grid = np.asarray(thr["grid"].iloc[0], float)
+    area.append({"x": grid, "y": np.ones_like(grid), "label": "no inflation (ratio 1)", "color": F.REFERENCE_LINE,
+                 "style": "dashed"})
+    blocks.append(Figure("fig:reliability", "Reliability diagram (validation pixels)",
+                         "Fraction of reference-foreground pixels against the mean predicted probability in each "
+                         "equal-width probability bin (mean over seeds per method); below the diagonal = "
+                         "over-confident foreground.", F.png_bytes(F.line_plot(
+                             rel, "Reliability diagram", "mean predicted probability", "foreground frequency",
+                             ylim=(0.0, 1.0))), "reliability.png"))
+    blocks.append(Figure("fig:area-vs-tau", "Predicted against reference foreground area across tau",
+                         "Median over validation images of predicted / reference foreground area of [P >= tau] "
+                         "(mean over seeds per method; dot: mean calibrated tau; dashed grey: no inflation).",
+                         F.png_bytes(F.line_plot(area, "Foreground area vs threshold", "tau",
+                                                 "median predicted / reference area")), "area_vs_tau.png"))
+    return blocks
+
+
+def epoch_calibrated_figure(logs: pd.DataFrame) -> Figure:
+    """Per-epoch validation Image IoU at each epoch's calibrated tau (mean over seeds per method)."""
+    series = []
+    for method, part in logs.groupby("method", sort=False):
+        mean = part.groupby("epoch")["val_iou_cal"].mean()
+        series.append({"x": mean.index.to_numpy(float), "y": mean.to_numpy(float), "label": T.label(method),
+                       **F.method_style(method)})
+    img = F.line_plot(series, "Validation Image IoU at the per-epoch calibrated tau", "epoch (of the run's own "
+                      "schedule)", "val Image IoU at calibrated tau")
+    return Figure("fig:training-curves-calibrated", "Training curves at the calibrated tau",
+                  "Validation Image IoU per epoch at the tau maximising it at that epoch (mean over seeds per "
+                  "method); compare with the tau = 0.5 curves in the training-curves section.", F.png_bytes(img),
+                  "training_curves_calibrated.png")
 
 
 def ablation_section(inp: Inputs) -> Section:
@@ -248,13 +372,15 @@ def training_section(inp: Inputs, plots: dict) -> Section:
         sec.blocks.append(Missing("training logs", "no active checkpoint with a log.parquet under "
                                   f"`{inp.art / 'checkpoints'}` -- produced by the `train` stages."))
         return sec
-    cols = [c for c in ("epoch", "val_iou", "val_bf1", "loss", "stage", "method", "seed") if c in logs.columns]
+    cols = [c for c in ("epoch", "val_iou", "val_bf1", "val_iou_cal", "val_tau_cal", "loss", "stage", "method", "seed")
+            if c in logs.columns]
     plots["training_curves"] = logs[cols].reset_index(drop=True)
     series = []
     for method, part in logs.groupby("method", sort=False):
         mean = part.groupby("epoch")["val_iou"].mean()
-        series.append({"x": mean.index.to_numpy(float), "y": mean.to_numpy(float), "label": T.label(method)})
-    img = F.line_plot(series, "Validation Image IoU during training", "epoch (of the run's own schedule)",
+        series.append({"x": mean.index.to_numpy(float), "y": mean.to_numpy(float), "label": T.label(method),
+                       **F.method_style(method)})
+    img = F.line_plot(series, "Validation Image IoU during training (tau 0.5)", "epoch (of the run's own schedule)",
                       "val Image IoU")
     sec.blocks.append(Figure("fig:training-curves", "Training curves", "Validation Image IoU per epoch (mean over "
                              "seeds per method; warm-started Stage-II runs count their own epochs from 1).",
@@ -385,6 +511,7 @@ def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu") ->
         results_section(inp),
         qualitative_section(inp, n_qual, device),
         threshold_section(inp, plots),
+        diagnostics_section(inp, plots),
         teacher_section(inp),
         pseudo_target_section(inp, n_pseudo),
         ablation_section(inp),

@@ -20,10 +20,31 @@ FN = (40, 90, 240)
 GT_CONTOUR = (255, 230, 0)
 WHITE = (255, 255, 255)
 BLACK = (0, 0, 0)
-# distinct line colours (RGB) for plots
+# distinct line colours (RGB) for plots of series that are not methods
 PALETTE = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189),
            (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
+#: ONE colour per method (and the teacher vote), the same in every figure; no two alike.  Ablations
+#: are also drawn dashed (:data:`DASHED_METHODS`), so that 16 series stay distinguishable.
+METHOD_COLORS = {
+    "plain": (31, 119, 180), "geodistill": (214, 39, 40), "continuation": (255, 127, 14),
+    "confidence_filtered": (44, 160, 44), "afs_control": (148, 103, 189), "gabi": (140, 86, 75),
+    "geodistill_adaptive": (227, 119, 194), "full_scratch_10": (188, 189, 34), "full_scratch_30": (23, 190, 207),
+    "sdf_scratch": (0, 0, 128), "sdf_gated": (0, 128, 128), "sdf_skel_gated": (128, 0, 0),
+    "sdf_area_gated": (240, 50, 230), "no_gate": (100, 100, 255), "supervised_ceiling": (0, 0, 0),
+    "teacher_vote": (127, 127, 127),
+}
+DASHED_METHODS = frozenset({"full_scratch_10", "full_scratch_30", "sdf_scratch", "sdf_gated", "sdf_skel_gated",
+                            "sdf_area_gated", "no_gate", "supervised_ceiling"})
+REFERENCE_LINE = (170, 170, 170)  # diagonals and "ratio = 1" lines
 FONT = cv2.FONT_HERSHEY_SIMPLEX
+LEGEND_SCALE = 0.35
+LEGEND_ROW = 16
+
+
+def method_style(method: str) -> dict:
+    """``{"color", "style"}`` of a method's series (:data:`METHOD_COLORS`; unknown names: grey)."""
+    return {"color": METHOD_COLORS.get(method, (90, 90, 90)),
+            "style": "dashed" if method in DASHED_METHODS else "solid"}
 
 
 def png_bytes(rgb: np.ndarray) -> bytes:
@@ -187,15 +208,35 @@ def _nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
     return np.arange(start, hi + step * 1e-6, step)
 
 
+def _dashed_line(img: np.ndarray, p0, p1, color, dash: int = 7, gap: int = 5) -> None:
+    """A dashed segment from ``p0`` to ``p1`` (dashes of ``dash`` px, gaps of ``gap`` px, in place)."""
+    a, b = np.asarray(p0, float), np.asarray(p1, float)
+    length = float(np.hypot(*(b - a)))
+    if length == 0:
+        return
+    for t0 in np.arange(0.0, length, dash + gap):
+        t1 = min(t0 + dash, length)
+        q0, q1 = a + (b - a) * t0 / length, a + (b - a) * t1 / length
+        cv2.line(img, tuple(int(round(v)) for v in q0), tuple(int(round(v)) for v in q1), color, 2, cv2.LINE_AA)
+
+
 def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, width: int = 640,
               height: int = 380, ylim: tuple[float, float] | None = None) -> np.ndarray:
     """A simple line plot.  ``series``: dicts with ``x``, ``y``, ``label`` and optional ``marker``
-    (an x value to mark with a dot, e.g. the selected threshold) and ``style`` ("solid" | "dashed")."""
+    (an x value to mark with a dot, e.g. the selected threshold), ``color`` and ``style``
+    ("solid" | "dashed").  The plot area is ``width - 256`` by ``height - 90`` px; the image grows to
+    the right and downwards until every legend label fits in full (labels are never cut)."""
     left, right, top, bottom = 56, 200, 46, 44
-    img = np.full((height, width, 3), 255, np.uint8)
     pw, ph = width - left - right, height - top - bottom
+    text_w = max((cv2.getTextSize(str(s.get("label", "")), FONT, LEGEND_SCALE, 1)[0][0] for s in series), default=0)
+    right = max(right, 32 + text_w + 8)
+    width = left + pw + right
+    height = max(height, top + 12 + LEGEND_ROW * len(series) + 4)
+    ph = height - top - bottom
+    img = np.full((height, width, 3), 255, np.uint8)
     xs = np.concatenate([np.asarray(s["x"], float) for s in series]) if series else np.array([0.0, 1.0])
     ys = np.concatenate([np.asarray(s["y"], float) for s in series]) if series else np.array([0.0, 1.0])
+    xs = xs[np.isfinite(xs)] if np.isfinite(xs).any() else np.array([0.0, 1.0])
     ys = ys[np.isfinite(ys)] if np.isfinite(ys).any() else np.array([0.0, 1.0])
     x0, x1 = float(np.min(xs)), float(np.max(xs))
     if x1 <= x0:
@@ -231,7 +272,9 @@ def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, widt
         pts = [px(a, b) for a, b in zip(x[ok], y[ok])]
         dashed = s.get("style") == "dashed"
         for j in range(len(pts) - 1):
-            if not dashed or j % 2 == 0:
+            if dashed:
+                _dashed_line(img, pts[j], pts[j + 1], col)
+            else:
                 cv2.line(img, pts[j], pts[j + 1], col, 2, cv2.LINE_AA)
         if len(pts) == 1:
             cv2.circle(img, pts[0], 3, col, -1, cv2.LINE_AA)
@@ -240,8 +283,11 @@ def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, widt
             my = float(np.interp(mx, x[ok], y[ok]))
             cv2.circle(img, px(mx, my), 5, col, -1, cv2.LINE_AA)
             cv2.circle(img, px(mx, my), 5, BLACK, 1, cv2.LINE_AA)
-        ly = top + 12 + 16 * i
-        if ly < height - 4:
+        ly = top + 12 + LEGEND_ROW * i
+        if dashed:
+            for x in (left + pw + 10, left + pw + 22):
+                cv2.line(img, (x, ly - 4), (x + 6, ly - 4), col, 2, cv2.LINE_AA)
+        else:
             cv2.line(img, (left + pw + 10, ly - 4), (left + pw + 28, ly - 4), col, 2, cv2.LINE_AA)
-            cv2.putText(img, str(s.get("label", ""))[:30], (left + pw + 32, ly), FONT, 0.35, BLACK, 1, cv2.LINE_AA)
+        cv2.putText(img, str(s.get("label", "")), (left + pw + 32, ly), FONT, LEGEND_SCALE, BLACK, 1, cv2.LINE_AA)
     return img

@@ -24,8 +24,12 @@ METHOD_LABELS = {
     "sdf_skel_gated": "Gated SDF + skeleton",
     "sdf_area_gated": "Gated SDF + area",
     "no_gate": "SDF + skeleton + area, no gate",
+    "continuation": "Budget-matched continuation (Stage II, L_raw only)",
+    "supervised_ceiling": "Supervised ceiling (uses reference masks; not annotation-free)",
+    "teacher_vote": "Teacher vote (6-prompt majority, its own binary mask)",
 }
-MAIN_ORDER = ["plain", "confidence_filtered", "afs_control", "gabi", "geodistill", "geodistill_adaptive"]
+MAIN_ORDER = ["plain", "confidence_filtered", "afs_control", "gabi", "geodistill", "geodistill_adaptive",
+              "continuation"]
 WARM_START_ROWS = ["plain", "full_scratch_10", "full_scratch_30", "sdf_scratch", "sdf_gated", "geodistill"]
 COMPONENT_ROWS = ["sdf_gated", "sdf_skel_gated", "sdf_area_gated", "no_gate", "geodistill"]
 ABLATIONS = set(WARM_START_ROWS + COMPONENT_ROWS) - {"plain", "geodistill"}
@@ -34,6 +38,14 @@ MODE_TEXT = {"calibrated": "validation-calibrated tau", "fixed": "fixed tau = 0.
 
 def label(method: str) -> str:
     return METHOD_LABELS.get(method, method)
+
+
+def not_annotation_free(methods: Sequence[str]) -> list[str]:
+    """The methods of ``methods`` that train on reference masks (the supervised ceiling), in order."""
+    from pipeline.methods import annotation_free_methods
+
+    free = set(annotation_free_methods(methods))
+    return [m for m in dict.fromkeys(methods) if m not in free]
 
 
 def fmt(x, digits: int = 4) -> str:
@@ -54,8 +66,11 @@ def fmt_ci(gain, lo, hi, digits: int = 4) -> str:
 
 
 def main_methods(methods: Sequence[str]) -> list[str]:
-    """Methods of the main comparison in the paper's order (ablations excluded; unknown names last)."""
-    present = list(dict.fromkeys(methods))
+    """Annotation-free methods of the main comparison in the paper's order, then the continuation
+    control (ablations and the supervised ceiling excluded; unknown names last)."""
+    from pipeline.methods import annotation_free_methods
+
+    present = annotation_free_methods(list(dict.fromkeys(methods)))
     known = [m for m in MAIN_ORDER if m in present]
     return known + sorted(m for m in present if m not in MAIN_ORDER and m not in ABLATIONS)
 
@@ -224,9 +239,16 @@ def efficiency_table(eff: pd.DataFrame) -> Table:
     rows = []
     for _, r in eff.iterrows():
         params = r["params"]
-        row = [str(r["variant"]),
+        # a variant the benchmark did not time (unsupported, or pathologically slow on this CPU) shows why
+        # instead of numbers; a timed one with a caveat (e.g. bf16 emulated) carries it beside its name
+        timed = bool(r["timed"]) if "timed" in eff.columns else True
+        remark = str(r["remark"]) if "remark" in eff.columns and isinstance(r["remark"], str) else ""
+        name = str(r["variant"]) + (f" ({remark})" if timed and remark else "")
+        speed = ([fmt(r["latency_ms"], 2), fmt(r["throughput"], 1), fmt(r["peak_mb"], 1)] if timed
+                 else [remark or "not timed", "--", "--"])
+        row = [name,
                f"{params / 1e6:.3f} M" if isinstance(params, (int, float, np.number)) and np.isfinite(params) else str(params),
-               fmt(r["gflops"], 2), fmt(r["latency_ms"], 2), fmt(r["throughput"], 1), fmt(r["peak_mb"], 1)]
+               fmt(r["gflops"], 2), *speed]
         for c in extra:
             v = r[c]
             row.append(fmt(v) if isinstance(v, (float, np.floating)) else str(v))
@@ -236,3 +258,146 @@ def efficiency_table(eff: pd.DataFrame) -> Table:
                  + [labels[c] for c in extra], rows, ["Measured by the benchmark stage on this machine; latency (batch 1, median, timed round-robin "
                   "across the variants), throughput and memory at the Resolution column, excluding disk input; "
                   "the IoU columns on the validation images at the model's working resolution."])
+
+
+# --------------------------------------------------------------------------------------------------
+# Controls, reference points and diagnostics (issue 17)
+# --------------------------------------------------------------------------------------------------
+def _ordered_with_ceiling_last(methods: Sequence[str]) -> list[str]:
+    """Annotation-free methods (main order, then ablations by name), then the not-annotation-free ones."""
+    from pipeline.methods import METHODS
+
+    present = list(dict.fromkeys(methods))
+    free = main_methods(present)
+    free += sorted(m for m in present if m in ABLATIONS and m not in free)
+    free += [m for m in present if m not in free and m not in not_annotation_free(present)]
+    order = {m: i for i, m in enumerate(METHODS)}
+    return free + sorted(not_annotation_free(present), key=lambda m: order.get(m, 99))
+
+
+def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> Table | None:
+    """The budget-matched control: per group, Continuation - Plain (Stage II's extra epochs alone),
+    each warm-started method - Continuation (the geometry effect at a matched budget) and
+    GeoDistill-Refine - Plain, with the paired hierarchical bootstrap CIs of the evaluate stage.
+    None when no continuation run was evaluated.  Annotation-free methods only."""
+    s = summary[summary["threshold_mode"] == mode]
+    if "continuation" not in set(s["method"]) or "gain_iou_vs_continuation" not in s.columns:
+        return None
+    rows = []
+    for g in groups:
+        part = s[s["group"] == g].set_index("method")
+
+        def add(what, m, suffix):
+            if m not in part.index:
+                return
+            r = part.loc[m]
+            if not np.isfinite(r.get(f"gain_iou{suffix}", np.nan)):
+                return
+            rows.append([g, what, fmt_ci(r[f"gain_iou{suffix}"], r[f"gain_iou{suffix}_lo"], r[f"gain_iou{suffix}_hi"]),
+                         fmt_ci(r[f"gain_bf1{suffix}"], r[f"gain_bf1{suffix}_lo"], r[f"gain_bf1{suffix}_hi"]),
+                         str(int(r[f"gain_seeds{suffix}"]))])
+
+        add(f"{label('continuation')} − {label('plain')} (extra epochs only)", "continuation", "")
+        warm = ["geodistill"] + sorted(m for m in part.index if m != "geodistill")
+        for m in warm:
+            add(f"{label(m)} − {label('continuation')} (geometry at a matched budget)", m, "_vs_continuation")
+        add(f"{label('geodistill')} − {label('plain')} (the paper's comparison)", "geodistill", "")
+    return Table("tab:controls", f"Budget-matched control: where the gain comes from ({MODE_TEXT.get(mode, mode)})",
+                 ["Evaluation set", "Comparison", "Image IoU difference [95% CI]", "Boundary F1 difference [95% CI]",
+                  "Seeds"], rows,
+                 ["The continuation warm-starts from the same Stage-I checkpoint and trains with Stage II's schedule, "
+                  "epochs and checkpoint selection on L_raw only: a method minus the continuation isolates its "
+                  "geometry terms; the continuation minus Plain isolates the extra epochs.  Paired hierarchical "
+                  "bootstrap over the seeds both runs share."])
+
+
+def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mode: str,
+                           groups: Sequence[str]) -> Table | None:
+    """Reference points beside the students, never compared with CIs: the teacher vote scored as a
+    predictor at its own binary mask (``vote``: per-group means from teacher_metrics.parquet) and the
+    supervised ceiling (uses reference masks; not annotation-free), with Plain Student for context."""
+    s = summary[summary["threshold_mode"] == mode]
+    ceiling = not_annotation_free(s["method"].unique())
+    if not ceiling and (vote is None or vote.empty):
+        return None
+    rows = []
+    for g in groups:
+        part = s[s["group"] == g].set_index("method")
+        for m in ["plain", *ceiling]:
+            if m in part.index:
+                r = part.loc[m]
+                rows.append([g, label(m), fmt_pm(r["iou_mean"], r["iou_std"]), fmt_pm(r["bf1_mean"], r["bf1_std"]),
+                             fmt_pm(r.get("precision_mean"), r.get("precision_std")),
+                             fmt_pm(r.get("recall_mean"), r.get("recall_std")), str(int(r["n_seeds"]))])
+        if vote is not None and g in vote.index:
+            v = vote.loc[g]
+            rows.append([g, label("teacher_vote"), fmt(v["iou"]), fmt(v["bf1"]), fmt(v["precision"]),
+                         fmt(v["recall"]), "--"])
+    return Table("tab:reference-points", f"Reference points: the teacher vote and the supervised ceiling "
+                 f"({MODE_TEXT.get(mode, mode)} for the students)",
+                 ["Evaluation set", "Predictor", "Image IoU", "Boundary F1", "Precision", "Recall", "Seeds"], rows,
+                 ["The supervised ceiling is the Plain Student's recipe trained on the training split's REFERENCE "
+                  "masks: it is not annotation-free and is never part of a gain or its confidence interval.  The "
+                  "teacher vote is the pseudo-label every annotation-free student learns from, scored at its own "
+                  "binary mask (no threshold), identical in both threshold modes."])
+
+
+def calibration_table(thr: pd.DataFrame) -> Table:
+    """Per method, mean ± std over seeds of the validation-split calibration diagnostics: calibrated tau,
+    val Image IoU at tau and at the fixed tau, ECE, and median predicted/reference area at both taus."""
+    rows = []
+    for m in _ordered_with_ceiling_last(thr["method"].unique()):
+        part = thr[thr["method"] == m]
+
+        def ms(col, digits=4):
+            if col not in part.columns:
+                return "--"
+            v = part[col].astype(float)
+            return fmt_pm(v.mean(), v.std(ddof=1) if len(v) > 1 else np.nan, digits)
+
+        rows.append([label(m), ms("tau", 2), ms("val_iou"), ms("fixed_val_iou"), ms("ece"), ms("area_ratio", 2),
+                     ms("fixed_area_ratio", 2), str(len(part))])
+    return Table("tab:calibration", "Calibration diagnostics on the validation split",
+                 ["Method", "Calibrated tau", "Val IoU at tau", "Val IoU at 0.5", "ECE (pixels)",
+                  "Area ratio at tau", "Area ratio at 0.5", "Seeds"], rows,
+                 ["ECE: expected calibration error of the pixel probabilities over equal-width bins "
+                  "(pipeline.diagnostics).  Area ratio: median over validation images of predicted / reference "
+                  "foreground area (1 = no inflation).  Mean ± sample std over seeds."])
+
+
+def epoch_swing_table(swings: pd.DataFrame) -> Table:
+    """Per method and stage: the largest and the median change of validation Image IoU between adjacent
+    epochs at tau 0.5 and at each epoch's calibrated tau, and the range of that tau (training logs)."""
+    rows = []
+    for m in _ordered_with_ceiling_last(swings["method"].unique()):
+        for _, r in swings[swings["method"] == m].iterrows():
+            rows.append([label(m), str(int(r["stage"])), f"{fmt(r['max_swing'], 3)} (seed {int(r['max_seed'])}, "
+                         f"epochs {int(r['max_epoch']) - 1}->{int(r['max_epoch'])})", fmt(r["median_swing"], 3),
+                         fmt(r["max_swing_cal"], 3), fmt(r["median_swing_cal"], 3),
+                         f"{fmt(r['tau_min'], 2)}–{fmt(r['tau_max'], 2)}"])
+    return Table("tab:epoch-swings", "Validation Image IoU between adjacent epochs (training logs)",
+                 ["Method", "Stage", "Largest change at tau 0.5", "Median change at 0.5",
+                  "Largest change at calibrated tau", "Median change at calibrated tau", "Calibrated tau range"], rows,
+                 ["Absolute change of the mean validation Image IoU from one epoch to the next, over all seeds; "
+                  "'calibrated tau' is the tau maximising that epoch's validation IoU (a diagnostic: checkpoint "
+                  "selection uses tau 0.5)."])
+
+
+def size_split_table(split: pd.DataFrame, mode: str, max_fraction: float | None) -> Table:
+    """Metrics split by target size (``split``: seed_summary rows by method, threshold_mode,
+    target_size), pooled over the test groups."""
+    s = split[split["threshold_mode"] == mode]
+    rows = []
+    for m in _ordered_with_ceiling_last(s["method"].unique()):
+        part = s[s["method"] == m].set_index("target_size")
+        for size in ("tiny", "regular", "empty"):
+            if size in part.index:
+                r = part.loc[size]
+                rows.append([label(m), size, str(int(r["n_images"])), fmt_pm(r["iou_mean"], r["iou_std"]),
+                             fmt_pm(r["bf1_mean"], r["bf1_std"]),
+                             fmt_pm(r.get("area_vs_reference_mean"), r.get("area_vs_reference_std"), 2)])
+    lim = f"{100 * max_fraction:g} %" if max_fraction is not None else "evaluate.tiny_target_max_fraction"
+    return Table("tab:size-split", f"Metrics split by target size, all test groups ({MODE_TEXT.get(mode, mode)})",
+                 ["Method", "Target size", "Images per seed", "Image IoU", "Boundary F1", "Mean area vs reference"],
+                 rows, [f"tiny: reference foreground under {lim} of the frame; regular: the rest; empty: no "
+                        f"reference foreground.  Mean ± sample std over seeds of the per-seed means."])

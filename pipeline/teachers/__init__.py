@@ -42,7 +42,7 @@ def make_teacher(cfg: Mapping[str, Any], resolution: tuple[int, int], device: st
 
     return Sam3Teacher(cfg["checkpoint"], device=device, dtype=cfg["dtype"], batch_size=cfg["batch_size"],
                        resolution=resolution, score_threshold=cfg.get("score_threshold", 0.3),
-                       mask_threshold=cfg.get("mask_threshold", 0.5),
+                       mask_threshold=cfg.get("mask_threshold", 0.5), compile=bool(cfg.get("compile", False)),
                        hash_memo=Path(cfg["cache_dir"]) / "checkpoint_hashes.json")
 
 

@@ -1,0 +1,314 @@
+"""Recipe study (issue 17, item 4): why the supervised ceiling is no better than pseudo-labels and why
+validation IoU swings between epochs -- one candidate at a time against the paper recipe.
+
+    python -m pipeline.benchmarks.study_recipe --resolution 96 --seeds 42 --jobs 2          # CPU, small
+    python -m pipeline.benchmarks.study_recipe --device cuda --resolution 384 --jobs 8      # paper size
+
+What it does
+  1. Data: the synthetic benchmark with its simulated teacher, built by the project's own stage
+     commands (``prepare``, ``teacher``, ``consensus`` with ``--set profile=<profile>`` and the size
+     overrides below) into ``--workdir`` -- or, with ``--artifacts DIR``, the artifacts of a run that
+     exists (e.g. a DVC run of ``profile=paper``).  Training arrays come from the training API:
+     :func:`stages.train.load_inputs` -> :func:`pipeline.training.training_data` (``plain``: the voted
+     pseudo-masks) and :func:`pipeline.supervised.ceiling_training_data` (``supervised_ceiling``: the
+     REFERENCE masks; NOT annotation-free, a diagnostic ceiling).
+  2. Runs: every (variant, method, seed) with :func:`pipeline.training.train` (Stage I, ``epochs_stage1``,
+     best validation IoU at tau 0.5, exactly as the DAG's train stage), at most ``--jobs`` processes
+     with ``--threads`` torch threads each.  A variant is the paper recipe with ONE ``train.*`` change
+     (:data:`VARIANTS`): fp32 instead of bf16 autocast, BatchNorm momentum, precise BN, GroupNorm, a
+     lower clip of the positive-class weight, a lower / higher learning rate, a constant schedule.
+  3. Scores, with the project's functions (``predict_probs`` in fp32, ``calibrate_threshold`` on the
+     validation split over the epoch tau grid, ``image_ious``) on the test split:
+       * ``iou_cal`` / ``iou_05`` -- mean test Image IoU at the calibrated tau and at tau 0.5;
+       * ``max_jump`` -- the largest |val IoU(e) - val IoU(e-1)| at tau 0.5 over epochs 1..E of the log;
+       * ``area_cal`` / ``area_05`` -- median over test images of predicted / reference foreground;
+       * ``iou_tiny`` -- mean test IoU at calibrated tau on targets under 0.2 % of the frame;
+     and, once per data set, how often the positive-class weight pi (eq:positive-weight) sits at its
+     clip in the seeded training batches (:func:`pos_weight_stats`).
+Prints one table (means over seeds; ``d`` columns = variant minus the paper recipe, same method) and
+writes every run's numbers to ``--out`` (JSON).  No timing is asserted; per-run seconds are recorded
+for orientation only (the machine may be shared).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+METHODS = ("plain", "supervised_ceiling")
+#: targets under this fraction of the frame count as "tiny" (issue 17 item 3's split)
+TINY_FRACTION = 0.002
+
+#: variant name -> (``train.*`` overrides of the paper recipe, the candidate it tests).  One change each.
+VARIANTS: dict[str, tuple[dict, str]] = {
+    "paper": ({}, "the paper recipe (bf16 autocast where supported, BN momentum 0.1, pi clip 500, lr 5e-4 cosine)"),
+    "fp32": ({"precision": "fp32"}, "bf16 autocast vs fp32"),
+    "bn_momentum_0.01": ({"bn_momentum": 0.01}, "BN running statistics: slower running average"),
+    "precise_bn": ({"precise_bn": True}, "BN running statistics recomputed over the training set before validation"),
+    "groupnorm": ({"norm": "group"}, "no batch statistics at all (GroupNorm)"),
+    "pos_weight_max_10": ({"pos_weight_max": 10.0}, "positive-class weight clipped at 10 instead of 500"),
+    "lr_2e-4": ({"lr_stage1": 2e-4}, "lower learning rate"),
+    "lr_1e-3": ({"lr_stage1": 1e-3}, "higher learning rate"),
+    "constant_lr": ({"schedule": "constant"}, "no cosine decay"),
+}
+
+
+# --------------------------------------------------------------------------------------------------
+# Data
+# --------------------------------------------------------------------------------------------------
+def data_overrides(args) -> list[str]:
+    """``--set`` overrides of the data stages: profile, resolution and (optionally) split sizes."""
+    sets = [f"profile={args.profile}", f"data.resolution={args.resolution}"]
+    for key in ("train_spacecraft", "train_views", "val_spacecraft", "val_views", "test_spacecraft_per_group",
+                "test_views"):
+        v = getattr(args, key)
+        if v is not None:
+            sets.append(f"data.synthetic.{key}={v}")
+    return sets
+
+
+def build_artifacts(workdir: Path, sets: list[str], device: str) -> Path:
+    """Run prepare -> teacher -> consensus (the project's stage commands) into ``workdir/artifacts``
+    unless consensus.zarr is there already; returns the artifacts directory."""
+    from pipeline import catalog
+
+    art = workdir / "artifacts"
+    if catalog.path("consensus", art).exists():
+        return art
+    workdir.mkdir(parents=True, exist_ok=True)
+    p = {n: str(catalog.path(n, art)) for n in ("manifest", "images", "reference", "teacher", "teacher_scores",
+                                                 "consensus")}
+    common = [a for s in sets for a in ("--set", s)] + ["--device", device]
+    cmds = [["stages.prepare", "--out-dir", str(art)],
+            ["stages.teacher", "--manifest", p["manifest"], "--images", p["images"], "--reference",
+             p["reference"], "--out", p["teacher"], "--scores", p["teacher_scores"]],
+            ["stages.consensus", "--teacher", p["teacher"], "--out", p["consensus"]]]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    for cmd in cmds:
+        print("+", " ".join(cmd[:1]), flush=True)
+        subprocess.run([sys.executable, "-m", *cmd, *common], cwd=workdir, env=env, check=True)
+    return art
+
+
+def load_study_data(artifacts: Path, cfg: Mapping[str, Any]) -> dict:
+    """Training arrays per method (via the training API), validation and test images + reference masks."""
+    from pipeline import catalog
+    from pipeline.artifacts import open_artifact
+    from pipeline.methods import get_method
+    from pipeline.training import _rows
+    from stages.train import load_inputs
+
+    out: dict[str, Any] = {}
+    for m in METHODS:
+        data, val, _ = load_inputs(artifacts, get_method(m), cfg)
+        out[m] = data
+        out["val"] = val
+    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
+    images = open_artifact(catalog.path("images", artifacts), "images")
+    reference = open_artifact(catalog.path("reference", artifacts), "reference")
+    test = np.flatnonzero((manifest.df["split"] == "test").to_numpy())
+    test = test[_rows(reference, "has_mask", test).astype(bool)]
+    out["test_images"] = _rows(images, "image", test)
+    out["test_masks"] = _rows(reference, "mask", test).astype(bool)
+    out["test_groups"] = manifest.df["group"].to_numpy()[test].astype(str)
+    return out
+
+
+def pos_weight_stats(mask: np.ndarray, batch_size: int, seed: int, epochs: int, max_weight: float) -> dict:
+    """How the batch-shared positive-class weight pi (eq:positive-weight, :func:`pipeline.losses.positive_weight`)
+    behaves over the training batches of ``epochs`` epochs in the training loop's seeded order
+    (``default_rng([seed, epoch])``): median pi and the share of batches whose pi is at the clip."""
+    import torch
+
+    from pipeline.losses import positive_weight
+
+    n = len(mask)
+    pis = []
+    for epoch in range(1, epochs + 1):
+        order = np.random.default_rng([seed, epoch]).permutation(n)
+        for s in range(0, n, batch_size):
+            pis.append(float(positive_weight(torch.from_numpy(mask[order[s:s + batch_size]]), None, max_weight)))
+    pis = np.asarray(pis)
+    frac = mask.reshape(n, -1).mean(1)
+    return {"median_pi": float(np.median(pis)), "share_at_clip": float(np.mean(pis >= max_weight)),
+            "share_tiny_targets": float(np.mean(frac < TINY_FRACTION)), "n_batches": int(len(pis))}
+
+
+# --------------------------------------------------------------------------------------------------
+# One run
+# --------------------------------------------------------------------------------------------------
+def max_adjacent_jump(val_iou: np.ndarray) -> float:
+    """Largest |v[e] - v[e-1]| over adjacent logged epochs (NaN entries skipped); 0 for < 2 values."""
+    v = np.asarray(val_iou, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(np.max(np.abs(np.diff(v)))) if len(v) > 1 else 0.0
+
+
+def area_ratios(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Per image predicted / reference foreground pixel count (images with a non-empty reference)."""
+    p = pred.reshape(len(pred), -1).sum(1).astype(np.float64)
+    g = gt.reshape(len(gt), -1).sum(1).astype(np.float64)
+    keep = g > 0
+    return p[keep] / g[keep]
+
+
+def score_run(model, val, test_images, test_masks, device) -> dict:
+    """Test scores of a trained model: tau calibrated on validation (the calibrate stage's rule on the
+    epoch tau grid) and tau 0.5; predictions in fp32."""
+    from pipeline.inference import predict_probs
+    from pipeline.metrics import image_ious
+    from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
+
+    vp = predict_probs(model, val.images, device=device, precision="fp32")
+    tau, _ = calibrate_threshold(vp, val.masks, EPOCH_TAU_GRID)
+    tp = predict_probs(model, test_images, device=device, precision="fp32")
+    tiny = test_masks.reshape(len(test_masks), -1).mean(1) < TINY_FRACTION
+    out = {"tau_cal": float(tau)}
+    for key, t in (("cal", tau), ("05", 0.5)):
+        pred = mask_from_probs(tp, t)
+        ious = image_ious(pred, test_masks)
+        out[f"iou_{key}"] = float(ious.mean())
+        out[f"area_{key}"] = float(np.median(area_ratios(pred, test_masks)))
+        out[f"iou_{key}_tiny"] = float(ious[tiny].mean()) if tiny.any() else float("nan")
+        out[f"iou_{key}_rest"] = float(ious[~tiny].mean()) if (~tiny).any() else float("nan")
+    return out
+
+
+_DATA: dict = {}
+
+
+def _init_worker(artifacts: str, cfg: dict, threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+    _DATA.update(load_study_data(Path(artifacts), cfg))
+
+
+def run_one(job: dict) -> dict:
+    """Train (variant, method, seed) and score it; the process's study data come from :func:`_init_worker`."""
+    from pipeline import training
+    from pipeline.methods import get_method
+
+    t0 = time.perf_counter()
+    cfg = job["cfg"]
+    res = training.train(get_method(job["method"]), cfg, _DATA[job["method"]], _DATA["val"], job["seed"],
+                         checkpointer=training.NoCheckpointer(), device=job["device"], show_progress=False)
+    log = res.log[res.log["epoch"] >= 1]
+    out = {k: job[k] for k in ("variant", "method", "seed")}
+    out.update(selected_epoch=res.selected_epoch, max_jump=max_adjacent_jump(log["val_iou"].to_numpy()),
+               val_iou_curve=[float(v) for v in log["val_iou"]],
+               val_iou_cal_curve=[float(v) for v in log["val_iou_cal"]],
+               loss_curve=[float(v) for v in log["loss"]], autocast=res.info["autocast"])
+    out.update(score_run(res.model, _DATA["val"], _DATA["test_images"], _DATA["test_masks"], job["device"]))
+    out["seconds"] = time.perf_counter() - t0
+    print(f"  done {out['variant']:18s} {out['method']:18s} s{out['seed']}: iou_cal {out['iou_cal']:.3f} "
+          f"iou_05 {out['iou_05']:.3f} jump {out['max_jump']:.3f} ({out['seconds']:.0f} s)", flush=True)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Table
+# --------------------------------------------------------------------------------------------------
+COLUMNS = ("iou_cal", "iou_05", "max_jump", "area_cal", "area_05", "iou_cal_tiny", "tau_cal")
+
+
+def summarize(results: list[dict]) -> list[dict]:
+    """Means over seeds per (variant, method), with differences to the paper recipe of the same method."""
+    rows = []
+    for v in dict.fromkeys(r["variant"] for r in results):
+        for m in METHODS:
+            rs = [r for r in results if r["variant"] == v and r["method"] == m]
+            if rs:
+                rows.append({"variant": v, "method": m, "n_seeds": len(rs),
+                             **{c: float(np.mean([r[c] for r in rs])) for c in COLUMNS}})
+    base = {r["method"]: r for r in rows if r["variant"] == "paper"}
+    for r in rows:
+        b = base.get(r["method"])
+        for c in ("iou_cal", "iou_05", "max_jump"):
+            r[f"d_{c}"] = r[c] - b[c] if b is not None else float("nan")
+    return rows
+
+
+def print_table(rows: list[dict], header: str) -> None:
+    print(header)
+    print(f"{'variant':18s} {'method':18s} {'IoU@cal':>7s} {'d':>7s} {'IoU@.5':>7s} {'d':>7s} {'maxjump':>7s} "
+          f"{'d':>7s} {'area@c':>6s} {'area@.5':>7s} {'tinyIoU':>7s} {'tau':>5s}")
+    for r in rows:
+        print(f"{r['variant']:18s} {r['method']:18s} {r['iou_cal']:7.3f} {r['d_iou_cal']:+7.3f} {r['iou_05']:7.3f} "
+              f"{r['d_iou_05']:+7.3f} {r['max_jump']:7.3f} {r['d_max_jump']:+7.3f} {r['area_cal']:6.2f} "
+              f"{r['area_05']:7.2f} {r['iou_cal_tiny']:7.3f} {r['tau_cal']:5.2f}")
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--artifacts", default=None, help="use this artifacts directory (prepare/teacher/consensus done)")
+    ap.add_argument("--workdir", default="study_recipe", help="where the data stages write when --artifacts is not given")
+    ap.add_argument("--profile", default="paper")
+    ap.add_argument("--resolution", type=int, default=384)
+    for key in ("train_spacecraft", "train_views", "val_spacecraft", "val_views", "test_spacecraft_per_group",
+                "test_views"):
+        ap.add_argument("--" + key.replace("_", "-"), type=int, default=None, help=f"data.synthetic.{key}")
+    ap.add_argument("--epochs", type=int, default=None, help="train.epochs_stage1 (default: the profile's)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[42])
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--jobs", type=int, default=1, help="training processes at a time")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads per process")
+    ap.add_argument("--out", default="study_recipe.json")
+    args = ap.parse_args(argv)
+
+    from pipeline.device import resolve_device
+    from pipeline.params import load_params
+
+    device = str(resolve_device(args.device))
+    sets = data_overrides(args)
+    params = load_params(overrides=sets)
+    artifacts = Path(args.artifacts) if args.artifacts else build_artifacts(Path(args.workdir).resolve(), sets, device)
+    base = dict(params["train"])
+    base["num_threads"] = args.threads
+    if args.epochs is not None:
+        base["epochs_stage1"] = args.epochs
+    data = load_study_data(artifacts, base)
+    info = {"artifacts": str(artifacts), "device": device, "resolution": args.resolution, "profile": args.profile,
+            "n_train": {m: len(data[m]) for m in METHODS}, "n_val": len(data["val"]),
+            "n_test": int(len(data["test_masks"])), "epochs": base["epochs_stage1"], "seeds": args.seeds,
+            "threads": args.threads, "jobs": args.jobs,
+            "pos_weight": {m: pos_weight_stats(data[m].mask, base["batch_size"], args.seeds[0], base["epochs_stage1"],
+                                               base["pos_weight_max"]) for m in METHODS}}
+    print(json.dumps({k: v for k, v in info.items()}, indent=None))
+    jobs = [{"variant": v, "method": m, "seed": s, "device": device, "cfg": {**base, **VARIANTS[v][0]}}
+            for s in args.seeds for v in args.variants for m in args.methods]
+    t0 = time.perf_counter()
+    if args.jobs <= 1:
+        _init_worker(str(artifacts), base, args.threads)
+        results = [run_one(j) for j in jobs]
+    else:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(args.jobs, initializer=_init_worker,
+                                          initargs=(str(artifacts), base, args.threads)) as pool:
+            results = pool.map(run_one, jobs, chunksize=1)
+    info["wall_seconds"] = time.perf_counter() - t0
+    rows = summarize(results)
+    print_table(rows, f"\n{info['n_train']} train / {info['n_val']} val / {info['n_test']} test images at "
+                      f"{args.resolution}^2, {base['epochs_stage1']} epochs, seeds {args.seeds}, device {device}, "
+                      f"{args.jobs} x {args.threads} threads; means over seeds; d = variant - paper (same method)")
+    out = {"info": info, "variants": {v: {"overrides": VARIANTS[v][0], "tests": VARIANTS[v][1]} for v in args.variants},
+           "summary": rows, "runs": results}
+    Path(args.out).write_text(json.dumps(out, indent=1))
+    print(f"wrote {args.out}")
+    return out
+
+
+if __name__ == "__main__":
+    main()

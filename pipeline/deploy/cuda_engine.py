@@ -1,0 +1,160 @@
+"""GPU fast path of the deployed mask path (issue 19 item 1): :class:`FastStudent`.
+
+On CUDA, one call of the 0.26 M-parameter TinyUNet at 384^2 is a few hundred small kernels: at batch 1
+the GPU waits on the CPU launching them, and at large batches on memory traffic.  The fast path:
+
+* **CUDA graphs**: the forward pass (and the input normalisation) is captured once per input shape and
+  replayed as one launch; inputs and outputs live in static device buffers.
+* **bf16 autocast + channels_last** (``precision="bf16"``, the default on CUDA): tensor-core
+  convolutions in NHWC; fp32 accumulation and fp32 logits out.  Not bit-exact: the masks are checked
+  against fp32 on the device they run on (``geodistill benchmark``'s ``mIoU fp32`` column,
+  :func:`mask_agreement`).
+* **uint8 host input**: images cross the bus as uint8 NHWC (4x fewer bytes than float32) through a
+  pinned staging buffer (asynchronous copy); the conversion to float [0, 1] NCHW happens on the device,
+  inside the graph (the model's own normalisation follows, as in every other engine).
+* ``compile=True`` additionally wraps the model in ``torch.compile`` (optional: minutes of compilation
+  pay only for long jobs).
+
+CPU fallback (no GPU, and what the tests run): the same class runs eager fp32 channels_last without
+graphs, numerically the engine ``torch`` of pipeline.deploy.segmenter.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+
+
+def _autocast(device, precision: str):
+    import torch
+
+    if precision == "bf16":
+        # cache_enabled=False: autocast's weight-cast cache must not outlive a CUDA-graph capture
+        return torch.autocast(device_type=device.type, dtype=torch.bfloat16, cache_enabled=False)
+    return contextlib.nullcontext()
+
+
+def uint8_to_input(images_u8, channels_last: bool = True):
+    """uint8 [N,H,W,3] tensor (any device) -> float32 [N,3,H,W] in [0, 1] on that device, NHWC-strided
+    when ``channels_last`` (permute only: no copy before the division)."""
+    x = images_u8.permute(0, 3, 1, 2).float().div_(255.0)
+    import torch
+
+    return x.contiguous(memory_format=torch.channels_last) if channels_last else x.contiguous()
+
+
+class FastStudent:
+    """The mask path (a TinyUNet or its mask-path copy) as a fast inference function.
+
+    ``logits(x)``: float32 [N,3,H,W] in [0, 1] (a CPU or device tensor) -> float32 logits tensor
+    [N,1,H,W] on the device.  ``logits_uint8(images)``: uint8 [N,H,W,3] numpy -> the same, with the
+    conversion on the device.  ``precision``: "bf16" | "fp32" | "auto" (bf16 on CUDA, fp32 on CPU);
+    ``cuda_graphs`` (CUDA only, default on) and ``compile`` as in the module docstring.
+    """
+
+    def __init__(self, model, device="cuda", *, precision: str = "auto", cuda_graphs: bool = True,
+                 compile: bool = False):
+        import torch
+
+        from pipeline.deploy.export import mask_path_model
+        from pipeline.errors import InputError
+
+        self.device = torch.device(device)
+        if precision not in ("auto", "bf16", "fp32"):
+            raise InputError(f"precision {precision!r}: expected auto, bf16 or fp32")
+        on_cuda = self.device.type == "cuda"
+        self.precision = ("bf16" if on_cuda else "fp32") if precision == "auto" else precision
+        self.cuda_graphs = bool(cuda_graphs and on_cuda)
+        net = mask_path_model(model).to(self.device).to(memory_format=torch.channels_last)
+        self.net = torch.compile(net, dynamic=False) if compile else net
+        self._graphs: dict[tuple, tuple] = {}      # shape -> (graph, static input, static output)
+        self._pinned: dict[tuple, object] = {}     # shape -> pinned uint8 host buffer
+
+    # -- eager ------------------------------------------------------------------------------------
+    def _forward(self, x):
+        import torch
+
+        with torch.inference_mode(), _autocast(self.device, self.precision):
+            return self.net(x.contiguous(memory_format=torch.channels_last)).float()
+
+    # -- CUDA graphs ------------------------------------------------------------------------------
+    def _graph(self, shape: tuple, uint8: bool):
+        """(graph, static input, static output) for ``shape``, captured on first use (3 warm-up
+        calls on a side stream first, as CUDA graph capture requires)."""
+        import torch
+
+        key = (shape, uint8)
+        if key not in self._graphs:
+            static_in = torch.zeros(shape, dtype=torch.uint8 if uint8 else torch.float32, device=self.device)
+
+            def body():
+                x = uint8_to_input(static_in) if uint8 else static_in
+                return self._forward(x)
+
+            side = torch.cuda.Stream()
+            side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(side):
+                for _ in range(3):
+                    body()
+            torch.cuda.current_stream().wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                static_out = body()
+            self._graphs[key] = (graph, static_in, static_out)
+        return self._graphs[key]
+
+    def logits(self, x):
+        """float32 [N,3,H,W] in [0, 1] -> logits float32 [N,1,H,W] on the device (a graph's output
+        buffer on CUDA: copy it before the next call with the same shape)."""
+        x = x.to(self.device, non_blocking=True)
+        if not self.cuda_graphs:
+            return self._forward(x)
+        graph, static_in, static_out = self._graph(tuple(x.shape), uint8=False)
+        static_in.copy_(x)
+        graph.replay()
+        return static_out
+
+    def logits_uint8(self, images: np.ndarray):
+        """uint8 [N,H,W,3] numpy -> logits float32 [N,1,H,W] on the device (module docstring)."""
+        import torch
+
+        images = np.ascontiguousarray(images)
+        if images.dtype != np.uint8 or images.ndim != 4:
+            from pipeline.errors import InputError
+
+            raise InputError(f"logits_uint8: expected uint8 [N,H,W,3], got {images.dtype} {images.shape}")
+        if self.device.type != "cuda":
+            return self._forward(uint8_to_input(torch.from_numpy(images)))
+        shape = images.shape
+        host = self._pinned.get(shape)
+        if host is None:
+            host = self._pinned[shape] = torch.empty(shape, dtype=torch.uint8, pin_memory=True)
+        host.numpy()[...] = images
+        if not self.cuda_graphs:
+            return self._forward(uint8_to_input(host.to(self.device, non_blocking=True)))
+        graph, static_in, static_out = self._graph(tuple(shape), uint8=True)
+        static_in.copy_(host, non_blocking=True)
+        graph.replay()
+        return static_out
+
+    def probs_uint8(self, images: np.ndarray, batch_size: int = 64) -> np.ndarray:
+        """P = sigmoid(Z) float32 [N,H,W] for uint8 images [N,H,W,3], in batches."""
+        import torch
+
+        images = np.asarray(images)
+        out = np.empty(images.shape[:3], np.float32)
+        for s in range(0, len(images), batch_size):
+            z = self.logits_uint8(images[s:s + batch_size])
+            out[s:s + batch_size] = torch.sigmoid(z[:, 0]).cpu().numpy()
+        return out
+
+
+def mask_agreement(fast_logits: np.ndarray, reference_logits: np.ndarray, z_tau: float) -> float:
+    """Mean per-image IoU of the masks [Z >= z_tau] of a fast engine and of the fp32 reference (both
+    [N,1,H,W] or [N,H,W]); 1 = the same masks (pipeline.metrics.image_ious: both empty -> 1)."""
+    from pipeline.metrics import image_ious
+
+    a = np.asarray(fast_logits).reshape(len(fast_logits), *np.shape(fast_logits)[-2:]) >= z_tau
+    b = np.asarray(reference_logits).reshape(len(reference_logits), *np.shape(reference_logits)[-2:]) >= z_tau
+    return float(np.mean(image_ious(a, b)))

@@ -1,0 +1,189 @@
+"""Results where DVC users look for them: short numeric metrics files and per-method plot tables.
+
+``dvc metrics show`` prints one row per metrics file and one column per key found in any file, so
+every file here has at most three of the same few keys (``iou``, ``bf1``, ``gate_share``,
+``latency_ms``) and the table stays five columns wide however many groups and methods a run has:
+
+=====================================================  =============================================
+``reports/metrics/students/<group>/<method>.json`` (evaluate)  ``iou``, ``bf1``: mean over seeds of the
+                                                       per-seed mean test Image IoU / Boundary F1 at
+                                                       the validation-calibrated tau
+``reports/metrics/teacher/<group>.json`` (analyze_teacher)     ``iou``, ``bf1``: the teacher's voted
+                                                       pseudo-mask (eq:majority-vote) against the
+                                                       reference on the group's test images;
+                                                       ``gate_share``: share of those images whose
+                                                       reliability gate g > 0 (eq:reliability-gate:
+                                                       geometry refinement enabled)
+``reports/metrics/deploy.json`` (benchmark)                    ``latency_ms``: batch-1 median latency of the
+                                                       deployed fast path (the baseline's when no
+                                                       variant qualifies), at the benchmark size
+=====================================================  =============================================
+
+The files are stage outputs with ``cache: false`` outside ``artifacts/``: git tracks them, so
+``dvc metrics diff <commit>`` compares against any commit.  Values are rounded to 4 decimals; a
+non-finite value is left out (DVC shows ``-``).  Group and method names become path components
+(:func:`path_component`).  The detailed numbers (seed std, gains with bootstrap CIs, Spearman rho,
+every benchmark variant) stay in summary.parquet, teacher_metrics.parquet and efficiency.parquet.
+
+Plot tables (evaluate; git-tracked CSVs drawn by the ``method_lines`` template, one line per
+method, see :mod:`pipeline.offline_plots`): :func:`training_curves` (epoch rows of every run's
+training log) and :func:`threshold_curves` (calibrate's validation IoU over the tau grid).
+
+The builders are pure functions of tables; :func:`write_metrics_dir` and :func:`write_csv` write.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import pandas as pd
+
+#: decimals of every metric value (4: a 1e-4 change of a mean IoU is below any effect we report)
+DECIMALS = 4
+#: decimals of plot table values (curves: finer than a pixel at any plot size)
+PLOT_DECIMALS = 6
+#: training-log columns copied into the training-curves table (those present)
+CURVE_COLUMNS = ("val_iou", "val_bf1", "val_iou_cal", "loss")
+
+
+def number(value: Any) -> float | None:
+    """``value`` rounded to :data:`DECIMALS`, or None when it is missing or not finite."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return round(v, DECIMALS) if math.isfinite(v) else None
+
+
+def numeric(d: Mapping[str, Any]) -> dict[str, float]:
+    """The finite entries of ``d``, rounded (a metrics file holds numbers only)."""
+    return {k: n for k, v in d.items() if (n := number(v)) is not None}
+
+
+def path_component(name: Any) -> str:
+    """A group or method name as one safe path component: characters other than letters, digits,
+    ``.``, ``_`` and ``-`` become ``_`` (``"KCP"`` -> ``"KCP"``, ``"a/b c"`` -> ``"a_b_c"``)."""
+    s = re.sub(r"[^A-Za-z0-9._-]", "_", str(name)).strip(".")
+    return s or "_"
+
+
+def _group_dirs(df: pd.DataFrame) -> dict[tuple, str]:
+    """(dataset, group) -> the directory name: the group, or ``<dataset>.<group>`` when a run
+    evaluates several datasets (group names need not be unique across datasets)."""
+    keys = sorted({(str(d), str(g)) for d, g in zip(df["dataset"], df["group"])}) if "dataset" in df else \
+        sorted({("", str(g)) for g in df["group"]})
+    several = len({d for d, _ in keys}) > 1
+    return {(d, g): path_component(f"{d}.{g}" if several else g) for d, g in keys}
+
+
+def _dataset_col(df: pd.DataFrame) -> pd.Series:
+    return df["dataset"].astype(str) if "dataset" in df else pd.Series([""] * len(df), index=df.index)
+
+
+# --------------------------------------------------------------------------------------------------
+# Metrics
+# --------------------------------------------------------------------------------------------------
+def student_metric_files(summary: pd.DataFrame) -> dict[str, dict[str, float]]:
+    """``{"<group>/<method>.json": {"iou", "bf1"}}`` from evaluate's summary table.
+
+    ``summary``: one row per (dataset, group, method, threshold_mode) with ``iou_mean`` and
+    ``bf1_mean`` (mean over seeds of the per-seed test means); only ``threshold_mode ==
+    "calibrated"`` rows are used (the deployed rule).  No calibrated row: an empty dict.
+    """
+    cal = summary[summary["threshold_mode"] == "calibrated"]
+    dirs = _group_dirs(cal)
+    out: dict[str, dict[str, float]] = {}
+    for ds, (_, r) in zip(_dataset_col(cal), cal.iterrows()):
+        rel = f"{dirs[(ds, str(r['group']))]}/{path_component(r['method'])}.json"
+        out[rel] = numeric({"iou": r.get("iou_mean"), "bf1": r.get("bf1_mean")})
+    return out
+
+
+def teacher_metric_files(teacher_table: pd.DataFrame, gates: pd.DataFrame,
+                         split: str = "test") -> dict[str, dict[str, float]]:
+    """``{"<group>.json": {"iou", "bf1", "gate_share"}}`` per group of ``split``.
+
+    ``teacher_table``: analyze_teacher's per-image table (columns image_id, dataset, split, group,
+    source, iou, bf1); the rows with ``source == "vote"`` are the voted pseudo-masks
+    (eq:majority-vote).  ``iou``/``bf1``: their mean over the group's images.  ``gates``: one row per
+    image with the reliability gate ``g`` (eq:reliability-gate); ``gate_share`` = share of the
+    group's scored images with g > 0 (images without a gate row are left out of the share).
+    """
+    vote = teacher_table[(teacher_table["source"] == "vote") & (teacher_table["split"] == split)]
+    dirs = _group_dirs(vote)
+    g = gates.drop_duplicates("image_id").set_index("image_id")["g"]
+    out: dict[str, dict] = {}
+    for (ds, group), part in vote.groupby([_dataset_col(vote), vote["group"].astype(str)], sort=True):
+        gv = part["image_id"].map(g).dropna().to_numpy(float)
+        share = float((gv > 0).mean()) if gv.size else None
+        out[f"{dirs[(ds, group)]}.json"] = numeric({"iou": part["iou"].mean(), "bf1": part["bf1"].mean(),
+                                                    "gate_share": share})
+    return out
+
+
+def deploy_metrics(fast_path: Mapping[str, Any] | None, rows: Iterable[Mapping[str, Any]],
+                   baseline: str) -> dict[str, float]:
+    """``{"latency_ms"}``: the fast path's batch-1 latency (``fast_path`` from
+    pipeline.deploy.benchmark.fast_path_summary), else the ``baseline`` variant's row; ``{}`` when
+    neither was measured."""
+    if fast_path is not None:
+        return numeric({"latency_ms": fast_path.get("latency_ms")})
+    base = next((r for r in rows if r.get("variant") == baseline), None)
+    return numeric({"latency_ms": base.get("latency_ms")}) if base is not None else {}
+
+
+# --------------------------------------------------------------------------------------------------
+# Plot tables
+# --------------------------------------------------------------------------------------------------
+def training_curves(logs: Iterable[tuple[str, int, pd.DataFrame]]) -> pd.DataFrame:
+    """Long table (method, seed, epoch, val_iou, val_bf1, val_iou_cal, loss) of every run's training
+    log (``(method, seed, log)`` triples; columns of :data:`CURVE_COLUMNS` that no log has are left
+    out), sorted by method, seed and epoch, rounded to :data:`PLOT_DECIMALS`."""
+    frames = []
+    for method, seed, log in logs:
+        cols = [c for c in CURVE_COLUMNS if c in log.columns]
+        part = log[["epoch", *cols]].copy()
+        part.insert(0, "seed", int(seed))
+        part.insert(0, "method", str(method))
+        frames.append(part)
+    if not frames:
+        return pd.DataFrame(columns=["method", "seed", "epoch", *CURVE_COLUMNS])
+    df = pd.concat(frames, ignore_index=True)
+    df["epoch"] = df["epoch"].astype(int)
+    return df.sort_values(["method", "seed", "epoch"], kind="stable").round(PLOT_DECIMALS).reset_index(drop=True)
+
+
+def threshold_curves(thresholds: pd.DataFrame) -> pd.DataFrame:
+    """Long table (method, seed, tau, val_iou) of calibrate's curves: the validation mean Image IoU
+    of [P >= tau] (eq:inference-mask) at every ``tau`` of the run's grid (list columns ``grid`` and
+    ``curve`` of thresholds.parquet), sorted by method, seed and tau."""
+    rows = [{"method": str(r["method"]), "seed": int(r["seed"]), "tau": float(t), "val_iou": float(v)}
+            for _, r in thresholds.iterrows() for t, v in zip(r["grid"], r["curve"])]
+    df = pd.DataFrame(rows, columns=["method", "seed", "tau", "val_iou"])
+    return df.sort_values(["method", "seed", "tau"], kind="stable").round(PLOT_DECIMALS).reset_index(drop=True)
+
+
+# --------------------------------------------------------------------------------------------------
+# Writers
+# --------------------------------------------------------------------------------------------------
+def write_metrics_dir(directory: str | Path, files: Mapping[str, Mapping[str, float]]) -> Path:
+    """Replace ``directory`` atomically by the JSON files ``{relative path: metrics}`` (a stale file of
+    a group or method no longer run cannot survive)."""
+    from pipeline.artifacts import atomic_path, write_json
+
+    with atomic_path(directory, is_dir=True) as tmp:
+        for rel, metrics in sorted(files.items()):
+            write_json(tmp / rel, dict(metrics))
+    return Path(directory)
+
+
+def write_csv(path: str | Path, table: pd.DataFrame) -> Path:
+    """``table`` as CSV (header, no index), atomically."""
+    from pipeline.artifacts import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(table.to_csv(index=False, lineterminator="\n"))
+    return Path(path)

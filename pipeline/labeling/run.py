@@ -1,0 +1,364 @@
+"""``geodistill label``: a folder of images -> voted, gated pseudo-masks in standard formats.
+
+The same three steps as the DAG's teacher, consensus and geometry stages, on a plain folder and
+without a DVC project:
+
+1. every image (recursively, any size, grey / RGB / RGBA, 8/16-bit: :func:`pipeline.datasets.loading.
+   load_rgb`) is resized to the working resolution ``data.resolution`` and sent to the teacher
+   (``teacher.*``: SAM 3, imported masks, or the SIMULATOR) through the content-addressed teacher
+   cache (:class:`pipeline.teachers.runner.TeacherRunner`) -- a rerun, or a run killed half-way,
+   recomputes nothing that is cached;
+2. the K prompt masks are voted (:func:`pipeline.consensus.vote`, eq:agreement-map,
+   eq:majority-vote);
+3. the reliability gate of each pseudo-mask (:mod:`pipeline.geometry`: eq:foreground-agreement,
+   eq:valid-prompt-ratio, eq:pseudo-area, eq:confidence-gate .. eq:reliability-gate), with a0 the
+   median area of the non-empty pseudo-masks of the folder (every image is a training image here).
+
+Outputs under ``out`` (formats ``png``, ``coco``, ``yolo``; the table, contact sheet and run record
+always)::
+
+    masks/<relative path without suffix>.png  voted pseudo-mask, 0/255, at the ORIGINAL image size
+    coco.json                                 COCO instances, one RLE annotation per non-empty mask
+    yolo/labels/<relative stem>.txt, yolo/images/<relative path> (links to the inputs), yolo/data.yaml
+    labels.parquet, labels.csv                one row per image: c, v, a, a0, g_conf, g_valid, g_area, g
+    contact_sheet.png                         sampled images with their pseudo-mask contours and g
+    label.json                                backend (and whether it is a SIMULATOR), counts, params
+    skipped.csv                               files that could not be read (only when there are any)
+
+Decisions: the vote happens at the working resolution (the pseudo-mask is exactly the DAG's training
+target for the same image and params) and the voted mask is brought to the original size by
+nearest-neighbour resizing; ``--set data.resolution=...`` gives finer masks for large images.
+Relative cache folders (``teacher.cache_dir``, ``data.cache_dir``) are taken inside ``out``, so a
+rerun into the same folder resumes; an absolute one can be shared with a ``distill`` project (the
+cache key is the image bytes' sha256, the teacher's fingerprint, the prompt and the view -- the same
+keys the DAG's teacher stage uses).  Two inputs whose relative paths differ only in the suffix or
+letter case would share a label file name (YOLO needs ``<image stem>.txt``): refused before anything
+is computed.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+from pipeline.errors import InputError
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("png", "coco", "yolo")
+#: the files and folders written under ``out`` (module docstring), named once
+OUTPUTS = {"masks": "masks", "coco": "coco.json", "yolo": "yolo", "table": "labels.parquet", "csv": "labels.csv",
+           "sheet": "contact_sheet.png", "record": "label.json", "skipped": "skipped.csv"}
+SIMULATOR_NOTE = ("teacher.backend=simulated is a SIMULATOR of foundation-model errors that reads the "
+                  "reference masks given with --reference-masks; these are not a real teacher's labels")
+
+
+@dataclasses.dataclass
+class LabelResult:
+    """What :func:`label_folder` wrote: the output folder, the per-image table and the skipped files."""
+
+    out: Path
+    table: pd.DataFrame
+    skipped: list[tuple[str, str]]
+    formats: tuple[str, ...]
+    backend: str
+
+    @property
+    def simulator(self) -> bool:
+        return self.backend == "simulated"
+
+
+def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
+    """``"png,coco"`` or ``["png", "coco"]`` -> ("png", "coco") in the canonical order; InputError on an
+    unknown or empty list (naming ``--format``)."""
+    items = [f.strip().lower() for f in (formats.split(",") if isinstance(formats, str) else formats)]
+    items = [f for f in items if f]
+    bad = [f for f in items if f not in FORMATS]
+    if bad or not items:
+        raise InputError(f"--format {','.join(items) or repr(formats)}: expected a comma-separated subset of "
+                         f"{','.join(FORMATS)}")
+    return tuple(f for f in FORMATS if f in items)
+
+
+def find_images(input_dir: str | Path) -> tuple[Path, list[Path], list[tuple[str, str]]]:
+    """(folder, image files sorted, skipped (path, reason)) under ``input_dir``, recursively
+    (:func:`pipeline.deploy.files.scan_inputs` rules); InputError when it is not a folder or has no image."""
+    from pipeline.datasets.loading import SUPPORTED_SUFFIXES
+    from pipeline.deploy.files import scan_inputs
+
+    root = Path(input_dir)
+    if not root.is_dir():
+        raise InputError(f"{root}: input folder not found" if not root.exists() else
+                         f"{root}: not a folder (label and distill take a folder of images)")
+    found = scan_inputs(root)
+    if not found.files:
+        raise InputError(f"{root}: no images ({', '.join(s.lstrip('.') for s in SUPPORTED_SUFFIXES)}) in this folder")
+    return root, found.files, found.skipped
+
+
+def image_ids(root: Path, files: Sequence[Path]) -> list[str]:
+    """Each file's path relative to ``root`` without its suffix (posix): the label files' names.
+    InputError when two inputs would get the same name (ignoring letter case)."""
+    ids = [f.relative_to(root).with_suffix("").as_posix() for f in files]
+    seen: dict[str, Path] = {}
+    for iid, f in zip(ids, files):
+        other = seen.setdefault(iid.lower(), f)
+        if other is not f:
+            raise InputError(f"{f}: same label name {iid!r} as {other} (label files are named by the image "
+                             f"path without its suffix; rename one of them)")
+    return ids
+
+
+def find_reference_masks(mask_dir: str | Path, ids: Sequence[str]) -> list[Path]:
+    """The reference mask of every image id in ``mask_dir`` (``<id>.<png|jpg|tif|bmp>``); InputError
+    naming the first image without one (the simulated teacher needs all of them)."""
+    from pipeline.datasets.loading import SUPPORTED_SUFFIXES
+
+    d = Path(mask_dir)
+    if not d.is_dir():
+        raise InputError(f"--reference-masks {d}: folder not found")
+    out = []
+    for iid in ids:
+        hits = [d / f"{iid}{s}" for s in SUPPORTED_SUFFIXES if (d / f"{iid}{s}").is_file()]
+        if not hits:
+            raise InputError(f"--reference-masks {d}: no mask for image {iid!r} (expected {iid}.png)")
+        out.append(hits[0])
+    return out
+
+
+def _inside(path: str | None, out: Path) -> str | None:
+    """A relative cache folder is taken inside the output folder (so a rerun there resumes)."""
+    if path is None:
+        return None
+    return str(path) if Path(path).is_absolute() else str(out / path)
+
+
+def _write_table(out: Path, table: pd.DataFrame) -> None:
+    from pipeline.artifacts import atomic_path
+
+    with atomic_path(out / OUTPUTS["table"]) as tmp:
+        table.to_parquet(tmp, index=False)
+    with atomic_path(out / OUTPUTS["csv"]) as tmp:
+        table.to_csv(tmp, index=False, float_format="%.6g")
+
+
+def _write_png(path: Path, array: np.ndarray) -> None:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(array[..., ::-1] if array.ndim == 3 else array))
+    if not ok:
+        raise InputError(f"{path}: PNG encoding failed")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(buf.tobytes())
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """yolo/images/<rel>: a symbolic link to the input (a copy where links are not allowed)."""
+    import shutil
+
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.symlink(src.resolve(), dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _yolo_data_yaml(yolo_dir: Path) -> str:
+    return (f"# Ultralytics dataset of geodistill label pseudo-masks (images are links to the inputs)\n"
+            f"path: {yolo_dir.resolve().as_posix()}\ntrain: images\nval: images\nnames:\n  0: spacecraft\n")
+
+
+def folder_gates(c: np.ndarray, n_valid: np.ndarray, a: np.ndarray, geo: Mapping):
+    """(v, a0, :class:`pipeline.geometry.GateFactors`) of a labelled folder: every image is a training
+    image, so a0 = the median area of its non-empty pseudo-masks (:func:`pipeline.geometry.median_area`);
+    without any, a0 = 0 (every c is 0 then, so every g is 0 whatever a0 is).  ``geo``: params
+    ``geometry`` (eq:valid-prompt-ratio .. eq:reliability-gate constants)."""
+    from pipeline.geometry import gate_factors, median_area, valid_ratio
+
+    a = np.asarray(a, np.float64)
+    if (a > 0).any():
+        a0 = median_area(a, np.ones(a.shape, bool))
+    else:
+        log.warning("label: the teacher produced no foreground on any image; every gate g is 0")
+        a0 = 0.0
+    v = valid_ratio(n_valid, geo["n_prompts"])
+    gf = gate_factors(c, v, a, a0, conf_offset=geo["conf_offset"], valid_offset=geo["valid_offset"],
+                      area_temperature=geo["area_temperature"], area_floor=geo["area_floor"], eps=geo["eps"])
+    return v, a0, gf
+
+
+def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, device: str = "auto",
+                 formats: str | Sequence[str] = FORMATS, reference_masks: str | Path | None = None) -> LabelResult:
+    """Label every image under ``input_dir`` into ``out`` (module docstring); ``params`` are validated
+    params (schema defaults or a params file): data.resolution / cache_dir / contact_sheet_images /
+    seed, teacher.*, consensus.vote_threshold, geometry.*.  ``reference_masks``: the folder of masks the
+    simulated teacher (a SIMULATOR) reads; refused for real teachers (they never see masks)."""
+    import cv2
+
+    from pipeline.artifacts import atomic_path, write_json
+    from pipeline.consensus import vote
+    from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
+    from pipeline.datasets.loading import DecodeCache, load_mask, load_rgb
+    from pipeline.geometry import area_ratio, foreground_agreement
+    from pipeline.labeling.formats import coco_annotation, coco_document, yolo_lines
+    from pipeline.params import section
+    from pipeline.progress import progress
+    from pipeline.teachers import check_teacher_params, make_teacher, teacher_fingerprint
+    from pipeline.teachers.base import TeacherInput
+    from pipeline.teachers.cache import TeacherCache
+    from pipeline.teachers.runner import TeacherRunner
+
+    fmts = parse_formats(formats)
+    root, files, skipped = find_images(input_dir)
+    out = Path(out)
+    if out.resolve() == root.resolve() or root.resolve() in out.resolve().parents:
+        raise InputError(f"--out {out}: must not be the input folder or inside it")
+    ids = image_ids(root, files)
+    data_cfg, geo = section(params, "data"), section(params, "geometry")
+    tcfg = section(params, "teacher")
+    tcfg["cache_dir"] = _inside(tcfg["cache_dir"], out)
+    tcfg = check_teacher_params(tcfg)
+    size = int(data_cfg["resolution"])
+    simulated = tcfg["backend"] == "simulated"
+    if simulated and reference_masks is None:
+        raise InputError("--backend simulated is a SIMULATOR that reads reference masks: pass --reference-masks "
+                         "DIR (masks named like the images); use --checkpoint SAM3_DIR for real labels")
+    if not simulated and reference_masks is not None:
+        raise InputError(f"--reference-masks: only the simulated teacher reads masks; teacher.backend="
+                         f"{tcfg['backend']} never does")
+    ref_files = find_reference_masks(reference_masks, ids) if simulated else None
+    cache = DecodeCache(_inside(data_cfg["cache_dir"], out)) if data_cfg["cache_dir"] else None
+
+    # pass 1: read every file once (sha256 for the teacher cache, native size), skip unreadable ones
+    keep, shas, sizes = [], [], []
+    for i, f in enumerate(progress(files, desc="label: reading", unit="img")):
+        try:
+            loaded = load_rgb(f, size, cache)
+            if ref_files is not None:
+                ref = load_mask(ref_files[i], size, cache)
+                if ref.native_hw != loaded.native_hw:
+                    raise InputError(f"{ref_files[i]}: mask size {ref.native_hw[1]}x{ref.native_hw[0]} differs from "
+                                     f"image {f} size {loaded.native_hw[1]}x{loaded.native_hw[0]}")
+        except InputError as e:
+            skipped.append((str(f), str(e).splitlines()[0]))
+            continue
+        keep.append(i)
+        shas.append(loaded.sha256)
+        sizes.append(loaded.native_hw)
+    if not keep:
+        raise InputError(f"{root}: none of the {len(files)} images could be read (first: {skipped[-1][1]})")
+    files = [files[i] for i in keep]
+    ids = [ids[i] for i in keep]
+    ref_files = [ref_files[i] for i in keep] if ref_files is not None else None
+    n = len(files)
+
+    teacher = make_teacher(tcfg, (size, size), device)
+    prompts = list(tcfg["prompts"])
+
+    def load(row: int, view: str) -> TeacherInput:
+        image = load_rgb(files[row], size, cache).array
+        reference = None
+        if ref_files is not None:
+            reference = {"mask": load_mask(ref_files[row], size, cache).array.astype(bool)}
+        return TeacherInput(image_id=ids[row], image_sha256=shas[row], image=image, view=view,
+                            reference=reference)
+
+    t_fp = teacher_fingerprint(teacher)
+    runner = TeacherRunner(teacher, TeacherCache(tcfg["cache_dir"], t_fp), prompts,
+                           image_sha=lambda r: shas[r], load=load, vflip_prompt=None, batch_size=tcfg["batch_size"])
+    if simulated:
+        log.warning("label: %s", SIMULATOR_NOTE)
+    stats = runner.fill(range(n))
+    log.info("label: teacher computed %d answers on %d images; %d cached answers reused",
+             stats.answers_computed, stats.images_computed, stats.cache_hits)
+
+    # pass 2: vote, write the per-image outputs, collect the gate inputs
+    rng = np.random.default_rng(int(data_cfg["seed"]))
+    sheet_rows = set(sample_for_sheet(pd.DataFrame({"split": ["train"] * n, "group": ["label"] * n}),
+                                      int(data_cfg["contact_sheet_images"]), int(rng.integers(2**31))).tolist())
+    sheet: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    vote_threshold = float(section(params, "consensus")["vote_threshold"])
+    c, a, n_valid, pixels = np.zeros(n), np.zeros(n), np.zeros(n, np.int64), np.zeros(n, np.int64)
+    annotations: list[dict | None] = []
+    with atomic_path(out / OUTPUTS["masks"], is_dir=True) as masks_tmp, atomic_path(out / OUTPUTS["yolo"], is_dir=True) as yolo_tmp:
+        for row in progress(range(n), desc="label: vote + export", unit="img"):
+            masks, scores, _, _ = runner.answers(row)
+            cons = vote(masks, scores, vote_threshold)
+            c[row] = foreground_agreement(cons.agreement, cons.voted)
+            a[row] = area_ratio(cons.voted)
+            n_valid[row] = cons.n_valid
+            h, w = sizes[row]
+            full = cv2.resize(cons.voted.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+            pixels[row] = int(np.count_nonzero(full))
+            if "png" in fmts:
+                _write_png(masks_tmp / f"{ids[row]}.png", full.astype(np.uint8) * 255)
+            if "coco" in fmts:
+                annotations.append(coco_annotation(full, row + 1, row + 1))
+            if "yolo" in fmts:
+                lines = yolo_lines(full)
+                dst = yolo_tmp / "labels" / f"{ids[row]}.txt"
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                dst.write_text("".join(line + "\n" for line in lines))
+                _link_or_copy(files[row], yolo_tmp / "images" / files[row].relative_to(root))
+            if row in sheet_rows:
+                sheet[row] = (load_rgb(files[row], size, cache).array, cons.voted)
+        if "yolo" in fmts:
+            (yolo_tmp / "data.yaml").write_text(_yolo_data_yaml(out / OUTPUTS["yolo"]))
+        if "png" not in fmts:
+            (masks_tmp / "README.txt").write_text("png format not requested\n")
+        if "yolo" not in fmts:
+            (yolo_tmp / "README.txt").write_text("yolo format not requested\n")
+
+    v, a0, gf = folder_gates(c, n_valid, a, geo)
+    table = pd.DataFrame({
+        "image_id": ids, "file": [f.relative_to(root).as_posix() for f in files],
+        "width": [s[1] for s in sizes], "height": [s[0] for s in sizes], "n_valid": n_valid.astype(np.int16),
+        "c": c, "v": v, "a": a, "a0": np.full(n, a0), "g_conf": gf.conf, "g_valid": gf.valid, "g_area": gf.area,
+        "g": gf.g, "mask_pixels": pixels})
+    table["teacher_backend"] = tcfg["backend"]
+    table["simulator"] = simulated
+    _write_table(out, table)
+
+    if "coco" in fmts:
+        images = [{"id": i + 1, "file_name": table["file"].iloc[i], "width": int(sizes[i][1]),
+                   "height": int(sizes[i][0])} for i in range(n)]
+        for i, ann in enumerate(annotations):
+            if ann is not None:
+                ann.update(gate=round(float(gf.g[i]), 6), agreement=round(float(c[i]), 6))
+        desc = "geodistill label: voted multi-prompt pseudo-masks" + (f" -- {SIMULATOR_NOTE}" if simulated else "")
+        doc = coco_document(images, [x for x in annotations if x is not None], description=desc,
+                            teacher_backend=tcfg["backend"], simulator=simulated)
+        with atomic_path(out / OUTPUTS["coco"]) as tmp:
+            tmp.write_text(json.dumps(doc, separators=(",", ":")))
+
+    tsize = max(size, 192)
+    tiles = [tile(img, voted, f"{ids[r]} g={gf.g[r]:.2f}"[:30], tsize) for r, (img, voted) in sorted(sheet.items())]
+    with atomic_path(out / OUTPUTS["sheet"]) as tmp:
+        _write_png(tmp, contact_sheet(tiles, columns=4))
+
+    if skipped:
+        buf = io.StringIO()
+        wr = csv.writer(buf)
+        wr.writerow(["path", "reason"])
+        wr.writerows(skipped)
+        with atomic_path(out / OUTPUTS["skipped"]) as tmp:
+            tmp.write_text(buf.getvalue())
+    elif (out / OUTPUTS["skipped"]).exists():
+        (out / OUTPUTS["skipped"]).unlink()
+    write_json(out / OUTPUTS["record"], {
+        "input": str(root.resolve()), "images": n, "skipped": len(skipped), "formats": list(fmts),
+        "teacher_backend": tcfg["backend"], "simulator": simulated, "note": SIMULATOR_NOTE if simulated else None,
+        "teacher_fingerprint": t_fp, "prompts": prompts, "resolution": size, "vote_threshold": vote_threshold,
+        "a0": a0, "geometry": geo, "teacher_answers_computed": stats.answers_computed,
+        "teacher_cache_hits": stats.cache_hits})
+    log.info("label: %d images -> %s (%s); %d skipped", n, out, ", ".join(fmts), len(skipped))
+    return LabelResult(out, table, skipped, fmts, tcfg["backend"])

@@ -1,0 +1,106 @@
+"""DVC plots that draw one line per method and render without network.
+
+* :data:`METHOD_LINES` is the Vega-Lite template that the ``plots:`` of dvc.yaml name
+  (``template: method_lines``; DVC looks for ``.dvc/plots/method_lines.json``, committed, written by
+  :func:`template_text`).  It colours by the data's ``method`` column and averages ``y`` over the
+  other rows at the same ``x`` (the seeds), so each method is ONE line, and it dashes by DVC's
+  ``rev`` field, so ``dvc plots diff HEAD~1`` shows each method once per revision.  It asks
+  vega-embed for the SVG renderer (the marks are then elements of the page, which tests count).
+* :func:`offline_page` is the HTML page for ``dvc plots show --html-template``.  DVC's own page
+  loads vega, vega-lite and vega-embed from a CDN (``dvc_render.vega.VegaRenderer.SCRIPTS``) and is
+  blank offline; this page inlines the same major versions (vega 5, vega-lite 5, vega-embed 6) read
+  from the installed ``django-js-lib-vega-embed`` package (:func:`vega_scripts`; the package is
+  the three upstream JS files and needs no Django at run time) and has no ``{scripts}`` placeholder,
+  so DVC adds no CDN tag.  ``geodistill plots`` (stages/plots.py) writes it to a temp file and runs
+  ``dvc plots show`` / ``dvc plots diff`` with it.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+from typing import Sequence
+
+from pipeline.catalog import PLOT_TEMPLATE
+from pipeline.errors import InputError
+
+#: the installed package whose files are the chart library, and its files in load order
+VEGA_PACKAGE = "js_lib_vega_embed"
+VEGA_FILES = ("vega5.js", "vega-lite5.js", "vega-embed6.js")
+
+#: 20 distinct line colours: Vega's tableau20 with its ten saturated colours first, then their light
+#: partners (the scheme itself alternates dark/light pairs, so two methods would get two blues)
+COLOURS = ("#4c78a8", "#f58518", "#54a24b", "#b79a20", "#439894", "#e45756", "#79706e", "#d67195", "#b279a2",
+           "#9e765f", "#9ecae9", "#ffbf79", "#88d27a", "#f2cf5b", "#83bcb6", "#ff9d98", "#bab0ac", "#fcbfd2",
+           "#d6a5c9", "#d8b5a5")
+
+METHOD_LINES = {
+    "$schema": "https://vega.github.io/schema/vega-lite/v5.json",
+    "data": {"values": "<DVC_METRIC_DATA>"},
+    "title": "<DVC_METRIC_TITLE>",
+    "width": 420,
+    "height": 280,
+    "mark": {"type": "line", "strokeWidth": 2},
+    "encoding": {
+        "x": {"field": "<DVC_METRIC_X>", "type": "quantitative", "title": "<DVC_METRIC_X_LABEL>"},
+        "y": {"field": "<DVC_METRIC_Y>", "type": "quantitative", "aggregate": "mean",
+              "title": "<DVC_METRIC_Y_LABEL>", "scale": {"zero": False}},
+        "color": {"field": "method", "type": "nominal", "title": "method", "scale": {"range": list(COLOURS)}},
+        "strokeDash": {"field": "rev", "type": "nominal", "title": "revision"},
+    },
+    "usermeta": {"embedOptions": {"renderer": "svg"}},
+}
+
+
+def template_text() -> str:
+    """The committed ``.dvc/plots/<PLOT_TEMPLATE>.json``."""
+    return json.dumps(METHOD_LINES, indent=1) + "\n"
+
+
+def template_path(repo_root: str | Path) -> Path:
+    return Path(repo_root) / ".dvc" / "plots" / f"{PLOT_TEMPLATE}.json"
+
+
+def vega_scripts() -> list[tuple[str, str]]:
+    """``[(file name, JavaScript)]`` of :data:`VEGA_FILES` from the installed :data:`VEGA_PACKAGE`;
+    InputError when it is not installed."""
+    spec = importlib.util.find_spec(VEGA_PACKAGE)
+    if spec is None or not spec.submodule_search_locations:
+        raise InputError(f"{VEGA_PACKAGE}: not installed (pip install django-js-lib-vega-embed); "
+                         "it provides the chart library of the offline plots page")
+    folder = Path(list(spec.submodule_search_locations)[0]) / "static" / VEGA_PACKAGE
+    out = []
+    for name in VEGA_FILES:
+        f = folder / name
+        if not f.is_file():
+            raise InputError(f"{f}: missing from the installed {VEGA_PACKAGE}; reinstall it")
+        out.append((name, f.read_text(encoding="utf-8")))
+    return out
+
+
+def _inline(code: str) -> str:
+    return code.replace("</script", "<\\/script")
+
+
+def offline_page(scripts: Sequence[tuple[str, str]], title: str = "GeoDistill-Refine plots") -> str:
+    """A ``dvc plots show --html-template`` page: ``scripts`` inlined in order, DVC's plots at
+    ``{plot_divs}``.  A ``</script`` inside the code is written ``<\\/script`` (the same string to
+    JavaScript) so that it cannot end the element early."""
+    blocks = "\n".join(f"<script>/* {name} */\n{_inline(code)}\n</script>" for name, code in scripts)
+    return ("<!DOCTYPE html>\n<html>\n<head>\n<meta charset=\"utf-8\">\n"
+            f"<title>{title}</title>\n{blocks}\n"
+            "<style>body { font-family: sans-serif; } .vega-embed { margin: 1em; }</style>\n"
+            "</head>\n<body>\n{plot_divs}\n</body>\n</html>\n")
+
+
+def dvc_plots_command(page: str | Path, out: str | Path, revs: Sequence[str] = (),
+                      targets: Sequence[str] = (), open_browser: bool = False) -> list[str]:
+    """The ``dvc plots show`` (no ``revs``) or ``dvc plots diff REV...`` arguments (after ``dvc``)
+    that render ``targets`` (all plots of dvc.yaml when empty) with the page template ``page``
+    into ``out``/index.html."""
+    cmd = ["plots", "diff", *revs] if revs else ["plots", "show"]
+    if targets:
+        cmd += ["--targets", *targets] if revs else list(targets)
+    cmd += ["--html-template", str(page), "-o", str(out)]
+    return cmd + (["--open"] if open_browser else [])

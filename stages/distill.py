@@ -1,0 +1,44 @@
+"""``geodistill distill INPUT --out DIR``: folder in, student + deploy bundle + report out, through the
+same DAG in a DVC project generated in DIR (pipeline/standalone.py)."""
+
+from __future__ import annotations
+
+import click
+
+from pipeline.params import BACKENDS
+from stages._common import stage_command
+
+
+@stage_command("distill", default_profile="distill")
+@click.argument("input_dir", metavar="INPUT", type=click.Path())
+@click.option("--out", required=True, type=click.Path(file_okay=False),
+              help="project folder (created; rerun the same command to resume)")
+@click.option("--val-masks", default=None, type=click.Path(),
+              help="masks named like some of the images: those images become validation/test images "
+                   "(threshold, checkpoint choice, report scores); without: tau 0.5, last epoch")
+@click.option("--checkpoint", default=None, type=click.Path(),
+              help="SAM 3 folder (save_pretrained layout); implies --backend sam3")
+@click.option("--backend", type=click.Choice(BACKENDS), default=None,
+              help="teacher: sam3 (default with --checkpoint) | imported (masks made elsewhere); simulated is "
+                   "refused (a SIMULATOR needing masks of every training image)")
+@click.option("--imported-dir", default=None, type=click.Path(), help="imported teacher masks (see the README layout)")
+@click.option("--no-run", is_flag=True, help="only write the DVC project (run it later with `dvc repro` in --out)")
+def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, no_run):
+    """Train a deployable student on a folder of images: SAM 3 pseudo-labels, Stage I (plain student),
+    Stage II (GeoDistill-Refine), threshold, export, report.  --out becomes a DVC project running the
+    pipeline's own DAG, so a rerun resumes where it stopped."""
+    from pipeline.api import choose_teacher
+    from pipeline.standalone import project_outputs, run_project, write_project
+
+    params = choose_teacher(params, backend, checkpoint, imported_dir)
+    project = write_project(input_dir, out, params, val_masks=val_masks)
+    if no_run:
+        click.echo(f"distill: wrote the DVC project {project}; run `dvc repro` there", err=True)
+        return
+    run_project(project, device)
+    res = project_outputs(project)
+    click.echo(f"distill: deploy bundle {res['deploy']}\ndistill: report {res['report']}", err=True)
+
+
+if __name__ == "__main__":
+    main()

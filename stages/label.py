@@ -1,0 +1,42 @@
+"""``geodistill label INPUT --out DIR``: pseudo-labels of a folder of images (pipeline/labeling/run.py)."""
+
+from __future__ import annotations
+
+import click
+
+from pipeline.params import BACKENDS
+from stages._common import stage_command
+
+
+@stage_command("label", default_profile="paper")
+@click.argument("input_dir", metavar="INPUT", type=click.Path())
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
+@click.option("--checkpoint", default=None, type=click.Path(),
+              help="SAM 3 folder (save_pretrained layout); implies --backend sam3")
+@click.option("--backend", type=click.Choice(BACKENDS), default=None,
+              help="teacher: sam3 | imported (masks made elsewhere) | simulated (a SIMULATOR; needs --reference-masks)")
+@click.option("--imported-dir", default=None, type=click.Path(), help="imported teacher masks (see the README layout)")
+@click.option("--reference-masks", default=None, type=click.Path(),
+              help="simulated backend only: masks named like the images, read by the SIMULATOR")
+@click.option("--format", "formats", default="png,coco,yolo", show_default=True,
+              help="comma-separated: png, coco, yolo")
+def main(params, device, input_dir, out, checkpoint, backend, imported_dir, reference_masks, formats):
+    """Label a folder of images with the multi-prompt teacher: voted pseudo-masks as PNG, COCO (RLE)
+    and YOLO segmentation files, a table of agreement c, valid ratio v, area a and gate g per image,
+    and a contact sheet.  Without --params the paper's values are used (working resolution 384).
+    Reruns resume from the teacher cache inside OUT."""
+    from pipeline.api import choose_teacher
+    from pipeline.labeling import label_folder
+    from pipeline.labeling.run import parse_formats
+
+    fmts = parse_formats(formats)  # checked before any work
+    params = choose_teacher(params, backend, checkpoint, imported_dir)
+    result = label_folder(input_dir, out, params, device=device, formats=fmts, reference_masks=reference_masks)
+    g = result.table["g"]
+    click.echo(f"label: {len(result.table)} images -> {result.out} ({', '.join(result.formats)}); "
+               f"gate g median {g.median():.3f}, {int((g > 0).sum())} with g > 0; {len(result.skipped)} skipped"
+               + ("; backend simulated is a SIMULATOR" if result.simulator else ""), err=True)
+
+
+if __name__ == "__main__":
+    main()

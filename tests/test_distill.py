@@ -1,0 +1,150 @@
+"""``geodistill distill``: a folder in, a student, deploy bundle and report out, through the DAG in a DVC
+project generated in --out -- with the tests' tiny random SAM 3, with and without validation masks."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import pandas as pd
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from test_label import make_image_folder, tiny_sam3  # noqa: F401  (the session fixture)
+
+pytestmark = pytest.mark.slow
+
+#: demo-like tiny sizes: 32 px, one epoch per stage, one benchmark variant
+FAST = ["--device", "cpu"] + [a for kv in (
+    "data.resolution=32", "data.contact_sheet_images=2", "teacher.score_threshold=0", "train.epochs_stage1=1",
+    "train.epochs_stage2=1", "train.num_threads=1", "deploy.benchmark_variants=[fp32_eager_nchw]",
+    "deploy.benchmark_iters=1", "deploy.benchmark_warmup=0", "deploy.benchmark_batches=[1]",
+    "deploy.int8_calibration_images=4", "evaluate.bootstrap_resamples=20", "report.qualitative_images=1",
+    "report.pseudo_target_images=1") for a in ("--set", kv)]
+
+
+def cli(*args):
+    from stages.cli import main
+
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def dvc_status(project: Path) -> str:
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    return subprocess.run([sys.executable, "-m", "dvc", "status"], cwd=project, env=env, capture_output=True,
+                          text=True).stdout
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    images, masks = make_image_folder(tmp_path_factory.mktemp("data"))
+    val = masks.parent / "val_masks"
+    val.mkdir()
+    for m in sorted(masks.iterdir())[:8]:  # 8 of the 20 images: 4 validation, 4 test
+        (val / m.name).write_bytes(m.read_bytes())
+    return images, val
+
+
+@pytest.fixture(scope="module")
+def without_masks(folder, tiny_sam3, tmp_path_factory):  # noqa: F811
+    images, _ = folder
+    out = tmp_path_factory.mktemp("distill") / "nomasks"
+    res = cli("distill", images, "--out", out, "--checkpoint", tiny_sam3, *FAST)
+    assert res.exit_code == 0, res.output[-3000:]
+    return out
+
+
+def test_distill_without_masks_fixed_tau_last_epoch_and_said_so(folder, without_masks):
+    from pipeline.deploy.segmenter import Segmenter
+
+    images, _ = folder
+    out = without_masks
+    deploy = json.loads((out / "artifacts" / "deploy" / "deploy.json").read_text())
+    assert deploy["tau"] == 0.5 and "no validation masks" in deploy["tau_source"]
+    thr = pd.read_parquet(out / "artifacts" / "thresholds.parquet")
+    assert set(thr["method"]) == {"plain", "geodistill"} and (thr["tau"] == 0.5).all() and (thr["n_val"] == 0).all()
+    report = (out / "reports" / "distill" / "report.md").read_text()
+    assert "No validation or test masks were available" in report
+    manifest = pd.read_parquet(out / "artifacts" / "manifest.parquet")
+    assert (manifest["split"] == "train").all() and len(manifest) == 20
+    for method in ("plain", "geodistill"):
+        payload_log = pd.read_parquet(out / "artifacts" / "checkpoints" / method / "42" / "log.parquet")
+        assert payload_log["val_iou"].isna().all()
+    stages = yaml.safe_load((out / "dvc.yaml").read_text())["stages"]
+    assert "evaluate" not in stages and "analyze_teacher" not in stages
+    assert str(images.resolve()) in stages["prepare"]["deps"]
+    code = [d for d in stages["prepare"]["deps"] if d.endswith(".py")]
+    assert code and all(Path(d).is_absolute() and Path(d).is_file() for d in code)
+    params = yaml.safe_load((out / "params.yaml").read_text())
+    assert params["data"]["source"] == "folder" and params["teacher"]["backend"] == "sam3"
+    assert params["train"]["epochs_stage1"] == 1 and params["protocol"]["runs"]["geodistill"] == [42]
+    # the bundle predicts at the original size
+    img = sorted(images.iterdir())[1]
+    mask = Segmenter.from_bundle(out / "artifacts" / "deploy").predict(img)
+    assert mask.shape == cv2.imread(str(img), cv2.IMREAD_UNCHANGED).shape[:2] and mask.dtype == bool
+
+
+def test_distill_rerun_resumes(folder, without_masks, tiny_sam3):  # noqa: F811
+    images, _ = folder
+    assert "up to date" in dvc_status(without_masks)
+    before = (without_masks / "artifacts" / "checkpoints" / "geodistill" / "42" / "model.pt").stat().st_mtime_ns
+    res = cli("distill", images, "--out", without_masks, "--checkpoint", tiny_sam3, *FAST)
+    assert res.exit_code == 0, res.output[-3000:]
+    assert (without_masks / "artifacts" / "checkpoints" / "geodistill" / "42" / "model.pt").stat().st_mtime_ns == before
+
+
+def test_distill_with_validation_masks(folder, tiny_sam3, tmp_path):  # noqa: F811
+    images, val = folder
+    out = tmp_path / "masks"
+    res = cli("distill", images, "--out", out, "--checkpoint", tiny_sam3, "--val-masks", val, *FAST)
+    assert res.exit_code == 0, res.output[-3000:]
+    manifest = pd.read_parquet(out / "artifacts" / "manifest.parquet")
+    assert manifest["split"].value_counts().to_dict() == {"train": 12, "val": 4, "test": 4}
+    assert not set(manifest.loc[manifest["split"] == "train", "image_id"]) & {p.stem for p in val.iterdir()}
+    thr = pd.read_parquet(out / "artifacts" / "thresholds.parquet")
+    assert (thr["n_val"] == 4).all() and thr["val_iou"].notna().all()
+    deploy = json.loads((out / "artifacts" / "deploy" / "deploy.json").read_text())
+    assert deploy["tau_source"].startswith("calibrated on the validation split")
+    assert len(pd.read_parquet(out / "artifacts" / "metrics.parquet")) > 0
+    assert "No validation or test masks" not in (out / "reports" / "distill" / "report.md").read_text()
+
+
+@pytest.mark.parametrize("case, message", [
+    ("missing", "folder not found"),
+    ("empty", "no images"),
+    ("simulated", "SIMULATOR"),
+    ("few_masks", "at least 2"),
+    ("not_project", "not a `geodistill distill` project"),
+    ("no_teacher", "--checkpoint SAM3_DIR is required"),
+    ("subfolder", "sub-folder 'nested'"),
+])
+def test_distill_errors_are_one_line_exit_2(folder, tmp_path, tiny_sam3, case, message):  # noqa: F811
+    images, val = folder
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    one = tmp_path / "one"
+    one.mkdir()
+    (one / "img00.png").write_bytes((val / "img00.png").read_bytes())
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "notes.txt").write_text("mine")
+    nested = tmp_path / "withsub"
+    (nested / "nested").mkdir(parents=True)
+    (nested / "a.png").write_bytes((images / "img00.png").read_bytes())
+    ck = ["--checkpoint", tiny_sam3]
+    out = ["--out", tmp_path / "o", "--no-run"]
+    args = {"missing": [tmp_path / "nope", *out, *ck], "empty": [empty, *out, *ck],
+            "simulated": [images, *out, "--backend", "simulated"],
+            "few_masks": [images, *out, *ck, "--val-masks", one],
+            "not_project": [images, "--out", busy, "--no-run", *ck], "no_teacher": [images, *out],
+            "subfolder": [nested, *out, *ck]}[case]
+    res = cli("distill", *args)
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("geodistill distill: error:") and message in lines[0], res.output
+    assert not (tmp_path / "o").exists() and (busy / "notes.txt").read_text() == "mine"
