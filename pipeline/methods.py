@@ -233,8 +233,9 @@ def method_lr(method: Method, cfg: Mapping[str, Any]) -> float:
 
 
 #: train params every method reads (model, optimiser, L_raw, validation selection, numerics).
-COMMON_KEYS = ("channels", "batch_size", "weight_decay", "schedule", "dice_weight", "pos_weight_max",
-               "loss_eps", "precision", "channels_last", "augment_hflip", "val_bf1_tolerance")
+COMMON_KEYS = ("channels", "norm", "bn_momentum", "precise_bn", "batch_size", "weight_decay", "schedule",
+               "dice_weight", "pos_weight_max", "loss_eps", "precision", "channels_last", "augment_hflip",
+               "val_bf1_tolerance")
 #: extra train params per loss term (eq:refine-loss and the baselines' terms).
 TERM_KEYS = {
     "region": (),

@@ -16,9 +16,10 @@ Scheduling rules (decided here, documented in ``geodistill run --help``):
 * ``gpu`` jobs take a slot on a GPU (least-loaded device first, at most ``gpu_slots[d]`` jobs on device
   ``d``) and see only that device (``CUDA_VISIBLE_DEVICES``); other jobs see no GPU.  Without GPUs
   every job is a CPU job.
-* CPU threads: each starting job gets an equal share of the cores the running jobs do not hold (at
-  least one), through ``OMP_NUM_THREADS`` and friends -- N processes never ask for N x cores threads,
-  and a stage running alone (e.g. evaluate at the end) gets all of them.
+* CPU threads: each starting job gets an equal share of the cores the running jobs do not hold, at
+  least ``cores // jobs`` (:attr:`Resources.min_threads`), through ``OMP_NUM_THREADS`` and friends --
+  N processes never ask for N x cores threads (at most about twice the cores in all), and a stage
+  running alone (e.g. evaluate at the end) gets all of them.
 * ``exclusive`` jobs (those that measure wall time) start only when nothing runs, and nothing starts
   beside them; once such a job is the highest-priority ready job, the pool drains for it.
 * A failing job (non-zero exit, or an exception from ``prepare``/``record``) is reported with the last
@@ -69,6 +70,12 @@ class Resources:
     def __post_init__(self):
         if self.jobs < 1 or self.cores < 1 or any(n < 1 for n in self.gpu_slots.values()):
             raise ValueError(f"resources need jobs >= 1, cores >= 1 and >= 1 job per GPU: {self}")
+
+    @property
+    def min_threads(self) -> int:
+        """The fewest threads a job gets: cores // jobs (>= 1).  A process keeps the thread count it
+        started with, so a long job started beside short ones would otherwise keep a small share."""
+        return max(1, self.cores // self.jobs)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,7 +219,8 @@ def pick(queue: Sequence[Job], running: Mapping[str, tuple[Job, Placement]], res
         return [(chosen[0][0], Placement(chosen[0][1], res.cores))]
     held = sum(p.threads for _, p in running.values())
     base, extra = divmod(max(res.cores - held, 0), len(chosen))
-    return [(job, Placement(dev, max(1, base + (1 if i < extra else 0)))) for i, (job, dev) in enumerate(chosen)]
+    return [(job, Placement(dev, max(res.min_threads, base + (1 if i < extra else 0))))
+            for i, (job, dev) in enumerate(chosen)]
 
 
 def child_env(base: Mapping[str, str], job: Job, place: Placement, has_gpus: bool) -> dict[str, str]:

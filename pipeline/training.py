@@ -587,10 +587,28 @@ def _empty_row(run: _Run, epoch: int) -> dict:
             **{k: float("nan") for k in LOG_TERMS}, "lr": float("nan")}
 
 
+def _precise_bn(run: _Run) -> int:
+    """Precise BN (``train.precise_bn``; :func:`pipeline.model.recompute_bn_stats`): BN running statistics
+    = the average batch statistics over all training images in manifest order, in training batches
+    and under the training autocast.  Changes no weight and draws no random number, so the training
+    trajectory is that of the run without it; only evaluation-mode outputs (selection, the checkpoint's
+    buffers) change."""
+    from pipeline.model import recompute_bn_stats
+
+    n, bs = run.n_train, run.settings.batch_size
+    batches = (_batch(run.tensors, torch.arange(i, min(i + bs, n), device=run.device), None,
+                      run.settings.channels_last)["x"] for i in range(0, n, bs))
+    with _autocast(run.device, run.amp):
+        return recompute_bn_stats(run.model, batches)
+
+
 def _validated(run: _Run, row: dict, val: ValData | None, t0: float) -> dict:
     """``row`` with the validation scores (:func:`validation_scores`: at tau 0.5 and at the epoch's
-    calibrated tau) and the epoch's seconds (since ``t0``) filled in."""
+    calibrated tau) and the epoch's seconds (since ``t0``) filled in.  With ``train.precise_bn`` the BN
+    running statistics are first re-estimated over the training images (:func:`_precise_bn`)."""
     s = run.settings
+    if s.precise_bn:
+        _precise_bn(run)
     row.update(validation_scores(run.model, val, run.device, precision=s.precision,
                                  channels_last=s.channels_last, tolerance=s.bf1_tolerance))
     row["seconds"] = time.perf_counter() - t0

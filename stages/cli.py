@@ -56,7 +56,21 @@ def _print_version(ctx, _param, value):
     ctx.exit()
 
 
-@click.group(cls=LazyGroup, help=__doc__)
+USER_HELP = """GeoDistill-Refine: annotation-free spacecraft segmentation.
+
+
+Your own images:
+  geodistill label IMAGES --checkpoint SAM3_DIR --out LABELS      pseudo-masks (PNG, COCO, YOLO)
+  geodistill distill IMAGES --checkpoint SAM3_DIR --out RUN       a trained, exported student
+  geodistill segment --checkpoint RUN/artifacts/deploy --input PHOTOS --output MASKS
+
+
+The pipeline (dvc.yaml): `geodistill run` (or `dvc repro`) runs it; every stage is also a
+command below. `geodistill COMMAND --help` explains one.
+"""
+
+
+@click.group(cls=LazyGroup, help=USER_HELP)
 @click.option("--version", is_flag=True, expose_value=False, is_eager=True, callback=_print_version,
               help="Show the version and exit.")
 def main():

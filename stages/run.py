@@ -142,7 +142,7 @@ class DvcPipeline:
             needs = frozenset(s.addressing for s in self.graph.successors(stage))
             cmds = stage.cmd if isinstance(stage.cmd, list) else [stage.cmd]
             # a stage that imports pipeline/device.py (its code deps are derived from its imports) may use a GPU
-            gpu = any(d.def_path == "pipeline/device.py" for d in stage.deps)
+            gpu = any(d.def_path.endswith("pipeline/device.py") for d in stage.deps)  # absolute in a distill project
             spec = STAGES.get(name)
             env = {"DVC_ROOT": str(self.root), "DVC_STAGE": name}
             if name in SHARDED and teacher_shards > 1:
@@ -208,7 +208,7 @@ def _cores() -> int:
 @click.command(name="run")
 @click.argument("targets", nargs=-1)
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=None,
-              help="processes at once [default: CPU cores]")
+              help="processes at once [default: CPU cores with a GPU, cores/2 without]")
 @click.option("--gpu-jobs", type=click.IntRange(min=1), default=None,
               help=f"concurrent jobs per GPU [default: free memory / {GPU_JOB_MIB} MiB, at most cores/2 per GPU]")
 @click.option("--gpus", default=None, metavar="LIST|none",
@@ -268,7 +268,8 @@ def run_pipeline(root: Path, targets: tuple[str, ...] = (), jobs: int | None = N
     detected = detect_gpus()
     gpu_ids = parse_gpus(gpus, detected)
     slots = {d: gpu_jobs or default_gpu_jobs(detected.get(d, 0), cores, len(gpu_ids)) for d in gpu_ids}
-    res = Resources(jobs=jobs or cores, cores=cores, gpu_slots=slots)
+    # without a GPU every job is a CPU job: at most one per two cores, so each gets >= 2 threads
+    res = Resources(jobs=jobs or (cores if slots else max(1, cores // 2)), cores=cores, gpu_slots=slots)
     log_dir = catalog.path("run_logs", root / catalog.ARTIFACTS_DIR)
     # stage commands say `python`: the interpreter running this command, whatever PATH says
     path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
@@ -277,7 +278,7 @@ def run_pipeline(root: Path, targets: tuple[str, ...] = (), jobs: int | None = N
         pipe.load()
         job_list = pipe.jobs(path, teacher_shards)
         gpu_text = ", ".join(f"GPU {d} x{n}" for d, n in slots.items()) or "no GPU"
-        click.echo(f"geodistill run: {len(pipe.stages)} stages; {res.jobs} processes at once, {cores} CPU cores, "
+        click.echo(f"geodistill run: {len(pipe.stages)} stages; at most {res.jobs} at once, {cores} CPU cores, "
                    f"{gpu_text}")
         if dry_run:
             for k, wave in enumerate(waves(job_list)):

@@ -122,7 +122,7 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
     return 0
 
 
-@click.command(name="segment", help=__doc__.split("\n\n")[0])
+@click.command(name="segment", help="Binary spacecraft masks for image files with a trained or exported student (at each image's original size).")
 @click.option("--checkpoint", default=None, help="checkpoint directory or deploy bundle")
 @click.option("--input", "input_path", default=None, help="image file or folder")
 @click.option("--output", default=None, help="output folder")

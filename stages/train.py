@@ -149,8 +149,16 @@ def write_live_log(log, directory: str | Path, selected_epoch: int | None = None
 
     logging.getLogger("dvclive").setLevel(logging.WARNING)  # its INFO line names a random experiment
     columns = [c for c in log.columns if c not in LIVE_SKIP]
+    class _StageLive(Live):
+        """DVCLive's files without its repository hooks: the DVC stage is the experiment, and
+        DVCLive's own git/DVC probing fails in a repository without commits and would ``dvc init``
+        a plain git checkout."""
+
+        def _init_dvc(self):
+            self._dvc_file = self._init_dvc_file()
+
     with atomic_path(directory, is_dir=True) as tmp:
-        live = Live(str(tmp), save_dvc_exp=False, dvcyaml=False, report=None)
+        live = _StageLive(str(tmp), save_dvc_exp=False, dvcyaml=False, report=None)
         for row in log.to_dict("records"):
             live.step = int(row["epoch"])
             for name in columns:

@@ -126,6 +126,20 @@ def test_train_log_written_with_dvclive_byte_identical(tmp_path):
     assert summary == {"loss": 0.4, "val_iou": 0.7, "lr": 0.001, "selected_epoch": 2, "step": 3}
 
 
+def test_dvclive_log_works_in_a_git_repo_without_commits_and_touches_no_repo(tmp_path, monkeypatch):
+    """A fresh `git init` (no commit) made DVCLive's repository probing raise; and in a git checkout
+    without DVC it would `dvc init` the user's repository.  The stage's log needs neither."""
+    if shutil.which("git") is None:
+        pytest.skip("git not available")
+    from stages.train import write_live_log
+
+    _git(tmp_path, "init", "-q")
+    monkeypatch.chdir(tmp_path)
+    write_live_log(pd.DataFrame({"epoch": [1], "stage": 1, "loss": [0.5], "val_iou": [0.4], "lr": 1e-3}), "live")
+    assert (tmp_path / "live" / "metrics.json").is_file()
+    assert not (tmp_path / ".dvc").exists() and not (tmp_path / "dvc.yaml").exists()
+
+
 # --------------------------------------------------------------------------------------------------
 # dvc.yaml, template, offline page
 # --------------------------------------------------------------------------------------------------

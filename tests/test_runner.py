@@ -69,9 +69,10 @@ def test_pick_bounds_processes_and_shares_threads():
     started = pick(queue, {}, Resources(jobs=3, cores=8))
     assert [j.name for j, _ in started] == ["a", "b", "c"]
     assert [p.threads for _, p in started] == [3, 3, 2] and all(p.device is None for _, p in started)
-    # with 7 of 8 cores held, a newcomer still gets one thread; a full pool starts nothing
+    # with 7 of 8 cores held, a newcomer still gets cores // jobs threads; a full pool starts nothing
     running = {"x": (job("x"), Placement(None, 7))}
-    assert [p.threads for _, p in pick(queue, running, Resources(jobs=2, cores=8))] == [1]
+    assert [p.threads for _, p in pick(queue, running, Resources(jobs=2, cores=8))] == [4]
+    assert [p.threads for _, p in pick(queue, running, Resources(jobs=8, cores=8))][0] == 1
     running["y"] = (job("y"), Placement(None, 1))
     assert pick(queue, running, Resources(jobs=2, cores=8)) == []
 

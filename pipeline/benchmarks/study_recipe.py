@@ -21,11 +21,13 @@ What it does
      validation split over the epoch tau grid, ``image_ious``) on the test split:
        * ``iou_cal`` / ``iou_05`` -- mean test Image IoU at the calibrated tau and at tau 0.5;
        * ``max_jump`` -- the largest |val IoU(e) - val IoU(e-1)| at tau 0.5 over epochs 1..E of the log;
+         ``max_jump_cal`` the same for the log's per-epoch calibrated IoU (``val_iou_cal``);
        * ``area_cal`` / ``area_05`` -- median over test images of predicted / reference foreground;
        * ``iou_tiny`` -- mean test IoU at calibrated tau on targets under 0.2 % of the frame;
      and, once per data set, how often the positive-class weight pi (eq:positive-weight) sits at its
      clip in the seeded training batches (:func:`pos_weight_stats`).
-Prints one table (means over seeds; ``d`` columns = variant minus the paper recipe, same method) and
+Every finished run is appended to ``<out>.runs.jsonl``; rerunning the same command skips the runs
+found there.  Prints one table (means over seeds; ``d`` columns = variant minus the paper recipe, same method) and
 writes every run's numbers to ``--out`` (JSON).  No timing is asserted; per-run seconds are recorded
 for orientation only (the machine may be shared).
 """
@@ -218,12 +220,19 @@ def run_one(job: dict) -> dict:
 # --------------------------------------------------------------------------------------------------
 # Table
 # --------------------------------------------------------------------------------------------------
-COLUMNS = ("iou_cal", "iou_05", "max_jump", "area_cal", "area_05", "iou_cal_tiny", "tau_cal")
+COLUMNS = ("iou_cal", "iou_05", "max_jump", "max_jump_cal", "area_cal", "area_05", "iou_cal_tiny", "tau_cal")
+
+
+def _with_derived(r: Mapping[str, Any]) -> dict:
+    """A run's numbers plus ``max_jump_cal``: the largest adjacent-epoch change of the validation IoU
+    at each epoch's own calibrated tau (separates a moving probability scale from a moving ranking)."""
+    return {**r, "max_jump_cal": max_adjacent_jump(np.asarray(r["val_iou_cal_curve"], dtype=np.float64))}
 
 
 def summarize(results: list[dict]) -> list[dict]:
     """Means over seeds per (variant, method), with differences to the paper recipe of the same method."""
     rows = []
+    results = [_with_derived(r) for r in results]
     for v in dict.fromkeys(r["variant"] for r in results):
         for m in METHODS:
             rs = [r for r in results if r["variant"] == v and r["method"] == m]
@@ -233,7 +242,7 @@ def summarize(results: list[dict]) -> list[dict]:
     base = {r["method"]: r for r in rows if r["variant"] == "paper"}
     for r in rows:
         b = base.get(r["method"])
-        for c in ("iou_cal", "iou_05", "max_jump"):
+        for c in ("iou_cal", "iou_05", "max_jump", "max_jump_cal"):
             r[f"d_{c}"] = r[c] - b[c] if b is not None else float("nan")
     return rows
 
@@ -241,11 +250,44 @@ def summarize(results: list[dict]) -> list[dict]:
 def print_table(rows: list[dict], header: str) -> None:
     print(header)
     print(f"{'variant':18s} {'method':18s} {'IoU@cal':>7s} {'d':>7s} {'IoU@.5':>7s} {'d':>7s} {'maxjump':>7s} "
-          f"{'d':>7s} {'area@c':>6s} {'area@.5':>7s} {'tinyIoU':>7s} {'tau':>5s}")
+          f"{'d':>7s} {'jump@c':>6s} {'area@c':>6s} {'area@.5':>7s} {'tinyIoU':>7s} {'tau':>5s}")
     for r in rows:
         print(f"{r['variant']:18s} {r['method']:18s} {r['iou_cal']:7.3f} {r['d_iou_cal']:+7.3f} {r['iou_05']:7.3f} "
-              f"{r['d_iou_05']:+7.3f} {r['max_jump']:7.3f} {r['d_max_jump']:+7.3f} {r['area_cal']:6.2f} "
+              f"{r['d_iou_05']:+7.3f} {r['max_jump']:7.3f} {r['d_max_jump']:+7.3f} {r['max_jump_cal']:6.3f} {r['area_cal']:6.2f} "
               f"{r['area_05']:7.2f} {r['iou_cal_tiny']:7.3f} {r['tau_cal']:5.2f}")
+
+
+def _run_settings(info: Mapping[str, Any]) -> dict:
+    """The part of ``info`` that must match for finished runs to be reused."""
+    return {k: info[k] for k in ("artifacts", "device", "resolution", "profile", "epochs", "n_train")}
+
+
+def _finished_runs(partial: Path, info: Mapping[str, Any]) -> dict:
+    """Runs already in ``partial`` (JSON lines) when it was written with the same settings, else none
+    (and the file is started afresh)."""
+    if not partial.exists():
+        return {}
+    lines = [json.loads(x) for x in partial.read_text().splitlines() if x.strip()]
+    if not lines or lines[0].get("info") != json.loads(json.dumps(_run_settings(info))):
+        partial.unlink()
+        return {}
+    return {(r["variant"], r["method"], r["seed"]): r for r in lines[1:]}
+
+
+def _run_jobs(jobs: list[dict], artifacts: str, base: dict, n_jobs: int, threads: int):
+    """Yield the results of ``jobs`` as they finish: in this process (``n_jobs`` <= 1) or in a pool of
+    ``n_jobs`` spawned processes (each loads the study data once)."""
+    if not jobs:
+        return
+    if n_jobs <= 1:
+        _init_worker(artifacts, base, threads)
+        for j in jobs:
+            yield run_one(j)
+        return
+    import multiprocessing as mp
+
+    with mp.get_context("spawn").Pool(n_jobs, initializer=_init_worker, initargs=(artifacts, base, threads)) as pool:
+        yield from pool.imap_unordered(run_one, jobs, chunksize=1)
 
 
 def main(argv=None) -> dict:
@@ -288,16 +330,21 @@ def main(argv=None) -> dict:
     print(json.dumps({k: v for k, v in info.items()}, indent=None))
     jobs = [{"variant": v, "method": m, "seed": s, "device": device, "cfg": {**base, **VARIANTS[v][0]}}
             for s in args.seeds for v in args.variants for m in args.methods]
+    # every finished run is appended to <out>.runs.jsonl at once; a rerun with the same settings skips
+    # the runs found there (a long study survives an interruption)
+    partial = Path(str(args.out) + ".runs.jsonl")
+    done = _finished_runs(partial, info)
+    todo = [j for j in jobs if (j["variant"], j["method"], j["seed"]) not in done]
+    results_by_key = dict(done)
     t0 = time.perf_counter()
-    if args.jobs <= 1:
-        _init_worker(str(artifacts), base, args.threads)
-        results = [run_one(j) for j in jobs]
-    else:
-        import multiprocessing as mp
-
-        with mp.get_context("spawn").Pool(args.jobs, initializer=_init_worker,
-                                          initargs=(str(artifacts), base, args.threads)) as pool:
-            results = pool.map(run_one, jobs, chunksize=1)
+    with partial.open("a") as sink:
+        if not done:
+            sink.write(json.dumps({"info": _run_settings(info)}) + "\n")
+        for r in _run_jobs(todo, str(artifacts), base, args.jobs, args.threads):
+            sink.write(json.dumps(r) + "\n")
+            sink.flush()
+            results_by_key[(r["variant"], r["method"], r["seed"])] = r
+    results = [results_by_key[(j["variant"], j["method"], j["seed"])] for j in jobs]
     info["wall_seconds"] = time.perf_counter() - t0
     rows = summarize(results)
     print_table(rows, f"\n{info['n_train']} train / {info['n_val']} val / {info['n_test']} test images at "
