@@ -118,3 +118,7 @@ def test_version_option():
 
     res = CliRunner().invoke(main, ["--version"])
     assert res.exit_code == 0 and res.output.strip() == f"geodistill {pipeline.__version__}"
+    # one version, written once: the installed distribution reads it from pipeline.__version__
+    import importlib.metadata
+
+    assert importlib.metadata.version("geodistill-refine") == pipeline.__version__
