@@ -288,6 +288,8 @@ def _run_jobs(jobs: list[dict], artifacts: str, base: dict, n_jobs: int, threads
 
     with mp.get_context("spawn").Pool(n_jobs, initializer=_init_worker, initargs=(artifacts, base, threads)) as pool:
         yield from pool.imap_unordered(run_one, jobs, chunksize=1)
+        pool.close()  # let the workers exit on their own (terminate() leaves a semaphore behind)
+        pool.join()
 
 
 def main(argv=None) -> dict:
