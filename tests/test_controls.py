@@ -15,19 +15,8 @@ from pipeline.methods import (METHODS, SUPERVISED_CEILING, Method, check_referen
 from tests.test_training import _cli, _params_file, build_tiny_artifacts, load_arrays, tiny_cfg
 
 
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return build_tiny_artifacts(tmp_path_factory.mktemp("tinyc") / "artifacts")
-
-
-@pytest.fixture(scope="module")
-def stage1_state(tiny):
-    from pipeline import training
-
-    cfg = tiny_cfg(epochs_stage1=1)
-    data, val = load_arrays(tiny, "plain", cfg)
-    return training.train(get_method("plain"), cfg, data, val, 42, checkpointer=training.NoCheckpointer(),
-                          show_progress=False).model.mask_path_state_dict()
+# the tiny artifacts and a one-epoch Stage-I state: the same module fixtures as the methods tests
+from tests.test_methods import stage1_state, tiny  # noqa: E402,F401  (pytest fixtures)
 
 
 def _train(tiny, name, cfg, init_state=None, art=None):
