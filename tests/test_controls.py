@@ -171,27 +171,35 @@ def _other_outputs(main, given, root):
     return out
 
 
-@pytest.fixture(scope="module")
-def reported(tmp_path_factory):
+def run_result_stages(root: Path, art: Path, params: Path, report_out: Path | None = None) -> None:
+    """calibrate, evaluate, analyze_teacher (and the report when ``report_out`` is given) on tiny
+    artifacts through their click commands; DVC metrics/plot files go under ``root``/dvc, never into
+    the repository."""
     from stages.analyze_teacher import main as analyze
     from stages.calibrate import main as calibrate
     from stages.evaluate import main as evaluate
     from stages.report import main as report
-    from test_evaluate import build_tiny_artifacts as build_eval, invoke, write_params
+    from test_evaluate import invoke
 
-    root = tmp_path_factory.mktemp("controls")
-    art = build_eval(root / "artifacts", methods=("plain", "geodistill", "continuation", SUPERVISED_CEILING))
-    params = write_params(root / "params.yaml")
     common = ["--params", str(params), "--artifacts", str(art)]
-    for main, extra in [
+    steps = [
         (calibrate, ["--checkpoints", str(art / "checkpoints"), "--out", str(art / "thresholds.parquet")]),
         (evaluate, ["--checkpoints", str(art / "checkpoints"), "--thresholds", str(art / "thresholds.parquet"),
                     "--out", str(art / "metrics.parquet"), "--summary", str(art / "summary.parquet")]),
         (analyze, ["--out", str(art / "teacher_metrics.parquet")]),
-        (report, ["--out", str(root / "report")]),
-    ]:
+    ] + ([(report, ["--out", str(report_out)])] if report_out is not None else [])
+    for main, extra in steps:
         res = invoke(main, common + extra + _other_outputs(main, common + extra, root / "dvc"))
         assert res.exit_code == 0, res.output
+
+
+@pytest.fixture(scope="module")
+def reported(tmp_path_factory):
+    from test_evaluate import build_tiny_artifacts as build_eval, write_params
+
+    root = tmp_path_factory.mktemp("controls")
+    art = build_eval(root / "artifacts", methods=("plain", "geodistill", "continuation", SUPERVISED_CEILING))
+    run_result_stages(root, art, write_params(root / "params.yaml"), root / "report")
     return art, root / "report"
 
 

@@ -17,7 +17,7 @@ import pytest
 from pipeline.artifacts import make_meta, open_artifact, write_parquet
 from pipeline.report import figures as F
 from pipeline.report import tables as T
-from test_controls import _other_outputs
+from test_controls import run_result_stages
 from test_evaluate import build_tiny_artifacts, invoke, write_params
 
 CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
@@ -26,24 +26,13 @@ CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/ch
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
     """Tiny artifacts + calibrate/evaluate/analyze_teacher outputs + efficiency table + the report."""
-    from stages.analyze_teacher import main as analyze
-    from stages.calibrate import main as calibrate
-    from stages.evaluate import main as evaluate
     from stages.report import main as report
 
     root = tmp_path_factory.mktemp("report")
     art = build_tiny_artifacts(root / "artifacts")
     params = write_params(root / "params.yaml")
     common = ["--params", str(params), "--artifacts", str(art)]
-    for main, extra in [
-        (calibrate, ["--checkpoints", str(art / "checkpoints"), "--out", str(art / "thresholds.parquet")]),
-        (evaluate, ["--checkpoints", str(art / "checkpoints"), "--thresholds", str(art / "thresholds.parquet"),
-                    "--out", str(art / "metrics.parquet"), "--summary", str(art / "summary.parquet")]),
-        (analyze, ["--out", str(art / "teacher_metrics.parquet")]),
-    ]:
-        # DVC metrics/plot files (whatever their options) go under root, never into the repository
-        res = invoke(main, common + extra + _other_outputs(main, common + extra, root / "dvc"))
-        assert res.exit_code == 0, res.output
+    run_result_stages(root, art, params)
     eff = pd.DataFrame({"variant": ["fp32_eager", "bf16_channels_last"], "params": [263_000, 263_000],
                         "gflops": [18.2, 18.2], "latency_ms": [500.0, 110.0], "throughput": [2.0, 9.1],
                         "peak_mb": [100.0, 80.0], "iou_delta": [0.0, -0.001]})
