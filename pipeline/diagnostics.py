@@ -108,26 +108,15 @@ def area_ratio_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
     """Predicted over reference foreground area, |[P >= tau]| / |G|, for every image and every tau of
     ``grid`` (strictly increasing): float64 [N, G]; NaN for an image whose reference is empty.
 
-    One pass over the pixels per chunk: each probability is binned by the number of grid points it
-    reaches (as pipeline.metrics.iou_curve does), cumulative counts give |[P >= tau]| at every tau.
+    The counts come from :func:`pipeline.metrics.threshold_counts` (one pass over the pixels).
     """
-    p_all, g_all = _probs_and_masks(probs, gts)
-    grid = np.asarray(grid, dtype=np.float64)
-    if grid.ndim != 1 or grid.size == 0 or not np.isfinite(grid).all() or (np.diff(grid) <= 0).any():
-        raise InputError("area_ratio_curve: grid must be a non-empty, finite, strictly increasing 1-D sequence")
-    n, g = p_all.shape[0], grid.size
-    out = np.empty((n, g))
-    for s in range(0, n, chunk):
-        p = p_all[s:s + chunk].reshape(min(chunk, n - s), -1).astype(np.float64)
-        b = p.shape[0]
-        reach = np.searchsorted(grid, p, side="right")  # number of taus with p >= tau
-        flat = (reach + (g + 1) * np.arange(b)[:, None]).ravel()
-        hist = np.bincount(flat, minlength=b * (g + 1)).reshape(b, g + 1)
-        n_pred = np.cumsum(hist[:, ::-1], axis=1)[:, ::-1][:, 1:]  # pixels with reach > j
-        n_ref = np.count_nonzero(g_all[s:s + chunk].reshape(b, -1), axis=1).astype(np.float64)[:, None]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out[s:s + b] = np.where(n_ref > 0, n_pred / np.maximum(n_ref, 1), np.nan)
-    return out
+    from pipeline.metrics import threshold_counts
+
+    _probs_and_masks(probs, gts)
+    n_pred, _, n_ref = threshold_counts(probs, gts, grid, chunk=chunk)
+    ref = n_ref[:, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(ref > 0, n_pred / np.maximum(ref, 1), np.nan)
 
 
 def median_area_ratio(ratios) -> np.ndarray:

@@ -417,10 +417,14 @@ def per_image_metrics(preds, gts, tolerance: float = DEFAULT_TOLERANCE, *,
 # --------------------------------------------------------------------------------------------------
 # Threshold calibration
 # --------------------------------------------------------------------------------------------------
-def iou_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
-    """Image IoU of [P >= tau] (eq:inference-mask) for every image and every tau of ``grid``:
-    float64 [N, G].  One pass over the pixels: each probability is binned by the number of grid
-    points it reaches, and cumulative counts give |P|, |P & G| at every tau (no per-tau loop)."""
+def threshold_counts(probs, gts, grid, *, chunk: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel counts of M = [P >= tau] (eq:inference-mask) for every image and every tau of ``grid``
+    (strictly increasing): ``(n_pred, inter, n_ref)`` = |M|, |M & G| float64 [N, G] and |G| float64 [N].
+
+    One pass over the pixels: each probability is binned by the number of grid points it reaches,
+    and cumulative counts give |M| and |M & G| at every tau (no per-tau loop).  The one counting
+    core of :func:`iou_curve` and :func:`pipeline.diagnostics.area_ratio_curve`.
+    """
     probs = np.asarray(probs)
     gts = _as_mask(gts, "gts")
     grid = np.asarray(grid, dtype=np.float64)
@@ -430,7 +434,7 @@ def iou_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
         raise InputError("calibration grid must be a non-empty, finite, strictly increasing 1-D sequence")
     n = probs.shape[0]
     g = grid.size
-    out = np.empty((n, g))
+    n_pred, inter, n_ref = np.empty((n, g)), np.empty((n, g)), np.empty(n)
     for s in range(0, n, chunk):
         p = probs[s:s + chunk].reshape(min(chunk, n - s), -1)
         if not np.isfinite(p).all():
@@ -443,10 +447,16 @@ def iou_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
         hist_all = np.bincount(flat, minlength=b * (g + 1)).reshape(b, g + 1)
         hist_fg = np.bincount(flat, weights=m.ravel().astype(np.float64), minlength=b * (g + 1)).reshape(b, g + 1)
         # count of pixels with reach > j, i.e. p >= tau_j, for j = 0..G-1
-        n_pred = np.cumsum(hist_all[:, ::-1], axis=1)[:, ::-1][:, 1:]
-        inter = np.cumsum(hist_fg[:, ::-1], axis=1)[:, ::-1][:, 1:]
-        ng = np.count_nonzero(m, axis=1)[:, None]
-        union = n_pred + ng - inter
-        out[s:s + b] = _ratio(inter, union, (n_pred == 0) & (ng == 0))
-    return out
+        n_pred[s:s + b] = np.cumsum(hist_all[:, ::-1], axis=1)[:, ::-1][:, 1:]
+        inter[s:s + b] = np.cumsum(hist_fg[:, ::-1], axis=1)[:, ::-1][:, 1:]
+        n_ref[s:s + b] = np.count_nonzero(m, axis=1)
+    return n_pred, inter, n_ref
+
+
+def iou_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
+    """Image IoU of [P >= tau] (eq:inference-mask) for every image and every tau of ``grid``:
+    float64 [N, G], from :func:`threshold_counts` (one pass over the pixels)."""
+    n_pred, inter, n_ref = threshold_counts(probs, gts, grid, chunk=chunk)
+    ng = n_ref[:, None]
+    return _ratio(inter, n_pred + ng - inter, (n_pred == 0) & (ng == 0))
 

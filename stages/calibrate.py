@@ -21,6 +21,7 @@ on, so every run gets the fixed tau with ``tau_source`` = pipeline.thresholds.NO
 from __future__ import annotations
 
 import click
+import numpy as np
 import pandas as pd
 
 from pipeline.params import section
@@ -86,7 +87,8 @@ def main(params, device, art, checkpoints, out):
                      "ece": expected_calibration_error(rel.confidence, rel.frequency, rel.count),
                      "rel_confidence": rel.confidence.tolist(), "rel_frequency": rel.frequency.tolist(),
                      "rel_count": rel.count.tolist(), "area_curve": area.tolist(),
-                     "area_ratio": float(median_area_ratio(area_ratio_curve(probs, val_masks, [tau]))[0]),
+                     # tau is a grid point (select_tau): its area ratio is on the curve already
+                     "area_ratio": float(area[int(np.flatnonzero(grid == tau)[0])]),
                      "fixed_area_ratio": float(median_area_ratio(area_ratio_curve(probs, val_masks, [fixed_tau]))[0])})
         inputs.append(open_artifact(path))
     code = stage_code_version(__file__)

@@ -124,7 +124,18 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
     dev = resolve_device(device)
     info = mdf.iloc[test][["image_id", "dataset", "domain", "group", "spacecraft"]].reset_index(drop=True)
     frames, inputs = [], [manifest, images, reference, thr]
-    refs = {}  # chunk start -> ScoringReference of its test masks
+    refs = {}  # chunk start -> (target fractions, ScoringReference) of its test masks
+
+    def chunk_reference(s: int, idx):
+        """The chunk's reference side: read and prepared once, reused by every run when it fits."""
+        if s in refs:
+            return refs[s]
+        gts = read_chunk_rows(reference["mask"], idx).astype(bool)
+        entry = target_fractions(gts), scoring_reference(gts, tol, max_fraction=small_frac)
+        if test.size * gts[0].size <= REFERENCE_CACHE_PIXELS:
+            refs[s] = entry
+        return entry
+
     for method, seed, path in progress(runs, desc="evaluate"):
         tau_cal, tau_fixed = run_thresholds(thr.df, method, seed, path)
         model, _ = load_student(path, dev)
@@ -132,11 +143,7 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
         for s in range(0, test.size, CHUNK):
             idx = test[s:s + CHUNK]
             probs = predict_probs(model, read_chunk_rows(images["image"], idx), device=dev)
-            gts = read_chunk_rows(reference["mask"], idx).astype(bool)
-            target = target_fractions(gts)
-            ref = refs[s] if s in refs else scoring_reference(gts, tol, max_fraction=small_frac)
-            if test.size * gts[0].size <= REFERENCE_CACHE_PIXELS:
-                refs[s] = ref
+            target, ref = chunk_reference(s, idx)
             for mode, tau in (("calibrated", tau_cal), ("fixed", tau_fixed)):
                 scores = score_masks(mask_from_probs(probs, tau), ref)
                 part = info.iloc[s:s + len(idx)].copy()

@@ -38,9 +38,7 @@ is computed.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import json
 import logging
 import os
@@ -151,16 +149,6 @@ def _write_table(out: Path, table: pd.DataFrame) -> None:
         table.to_csv(tmp, index=False, float_format="%.6g")
 
 
-def _write_png(path: Path, array: np.ndarray) -> None:
-    import cv2
-
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(array[..., ::-1] if array.ndim == 3 else array))
-    if not ok:
-        raise InputError(f"{path}: PNG encoding failed")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(buf.tobytes())
-
-
 def _link_or_copy(src: Path, dst: Path) -> None:
     """yolo/images/<rel>: a symbolic link to the input (a copy where links are not allowed)."""
     import shutil
@@ -208,6 +196,7 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
     from pipeline.consensus import vote
     from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
     from pipeline.datasets.loading import DecodeCache, load_mask, load_rgb
+    from pipeline.deploy.files import write_png, write_skipped_csv
     from pipeline.geometry import area_ratio, foreground_agreement
     from pipeline.labeling.formats import coco_annotation, coco_document, yolo_lines
     from pipeline.params import section
@@ -300,7 +289,7 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
             full = cv2.resize(cons.voted.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
             pixels[row] = int(np.count_nonzero(full))
             if "png" in fmts:
-                _write_png(masks_tmp / f"{ids[row]}.png", full.astype(np.uint8) * 255)
+                write_png(masks_tmp / f"{ids[row]}.png", full.astype(np.uint8) * 255)
             if "coco" in fmts:
                 annotations.append(coco_annotation(full, row + 1, row + 1))
             if "yolo" in fmts:
@@ -342,16 +331,10 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
 
     tsize = max(size, 192)
     tiles = [tile(img, voted, f"{ids[r]} g={gf.g[r]:.2f}"[:30], tsize) for r, (img, voted) in sorted(sheet.items())]
-    with atomic_path(out / OUTPUTS["sheet"]) as tmp:
-        _write_png(tmp, contact_sheet(tiles, columns=4))
+    write_png(out / OUTPUTS["sheet"], contact_sheet(tiles, columns=4))
 
     if skipped:
-        buf = io.StringIO()
-        wr = csv.writer(buf)
-        wr.writerow(["path", "reason"])
-        wr.writerows(skipped)
-        with atomic_path(out / OUTPUTS["skipped"]) as tmp:
-            tmp.write_text(buf.getvalue())
+        write_skipped_csv(out / OUTPUTS["skipped"], skipped)
     elif (out / OUTPUTS["skipped"]).exists():
         (out / OUTPUTS["skipped"]).unlink()
     write_json(out / OUTPUTS["record"], {
