@@ -383,6 +383,17 @@ def atomic_path(path: str | Path, is_dir: bool = False) -> Iterator[Path]:
     _replace(tmp, path)
 
 
+def write_text_if_changed(path: str | Path, text: str) -> bool:
+    """Replace ``path`` atomically when its text differs from ``text``; whether it changed (generated
+    files -- dvc.yaml, params.yaml -- keep their mtime when nothing changed)."""
+    path = Path(path)
+    if path.is_file() and path.read_text() == text:
+        return False
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return True
+
+
 def write_json(path: str | Path, obj: Any) -> Path:
     """Write ``obj`` as indented, key-sorted JSON atomically (DVC metrics, timings, small records)."""
     with atomic_path(path) as tmp:

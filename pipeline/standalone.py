@@ -48,6 +48,7 @@ import sys
 from pathlib import Path
 from typing import Mapping
 
+from pipeline.artifacts import write_text_if_changed
 from pipeline.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -111,16 +112,6 @@ def check_val_masks(input_dir: Path, masks: Path) -> int:
     return n
 
 
-def _write_if_changed(path: Path, text: str) -> bool:
-    from pipeline.artifacts import atomic_path
-
-    if path.is_file() and path.read_text() == text:
-        return False
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
-    return True
-
-
 def _dvc(out: Path, *args: str, env: Mapping[str, str] | None = None, capture: bool = True):
     return subprocess.run([sys.executable, "-m", "dvc", *args], cwd=out, env=dict(env or _env()),
                           capture_output=capture, text=True)
@@ -170,13 +161,13 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
 
     text = render_params_yaml(PROFILE, deep_merge(dict(params), project_params(params, input_dir, masks)),
                               header=PARAMS_HEADER)
-    _write_if_changed(out / "params.yaml", text)
-    _write_if_changed(out / PROTOCOL_FILE, protocol_text(input_dir, masks))
+    write_text_if_changed(out / "params.yaml", text)
+    write_text_if_changed(out / PROTOCOL_FILE, protocol_text(input_dir, masks))
     data_deps = {"prepare": [PROTOCOL_FILE, str(input_dir)] + ([str(masks)] if masks is not None else [])}
     omit = () if masks is not None else NO_MASK_STAGES
-    _write_if_changed(out / "dvc.yaml", render_dvc_yaml(code_root=ROOT, data_deps=data_deps, header=DVC_HEADER,
+    write_text_if_changed(out / "dvc.yaml", render_dvc_yaml(code_root=ROOT, data_deps=data_deps, header=DVC_HEADER,
                                                         omit=omit))
-    _write_if_changed(out / ".dvcignore", DVCIGNORE)
+    write_text_if_changed(out / ".dvcignore", DVCIGNORE)
     if not (out / ".dvc").is_dir():
         for args in (("init", "--no-scm", "-q"), ("config", "core.analytics", "false")):
             res = _dvc(out, *args)
@@ -186,7 +177,7 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     record = {"input": str(input_dir), "val_masks": str(masks) if masks is not None else None,
               "teacher_backend": params["teacher"]["backend"], "teacher_checkpoint": params["teacher"]["checkpoint"],
               "code": str(ROOT), "geodistill_version": __version__}
-    _write_if_changed(out / RECORD_FILE, json.dumps(record, indent=1, sort_keys=True) + "\n")
+    write_text_if_changed(out / RECORD_FILE, json.dumps(record, indent=1, sort_keys=True) + "\n")
     return out
 
 

@@ -8,18 +8,8 @@ from pathlib import Path
 
 import click
 
+from pipeline.artifacts import write_text_if_changed
 from pipeline.errors import InputError
-
-
-def _write(path: Path, text: str) -> bool:
-    """Replace ``path`` atomically when its text differs; whether it changed."""
-    from pipeline.artifacts import atomic_path
-
-    if path.is_file() and path.read_text() == text:
-        return False
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
-    return True
 
 
 @click.command(name="dag")
@@ -37,7 +27,7 @@ def dag_main(check: bool, out: str) -> None:
             sys.exit(1)
         click.echo(f"{path} is up to date")
         return
-    click.echo(f"{'wrote' if _write(path, text) else 'unchanged'} {path}")
+    click.echo(f"{'wrote' if write_text_if_changed(path, text) else 'unchanged'} {path}")
 
 
 @click.command(name="profile")
@@ -52,7 +42,7 @@ def profile_main(name: str, out: str) -> None:
     except InputError as e:
         click.echo(f"geodistill profile: error: {e}", err=True)
         sys.exit(2)
-    click.echo(f"{'wrote' if _write(Path(out), text) else 'unchanged'} {out} (profile {name})")
+    click.echo(f"{'wrote' if write_text_if_changed(out, text) else 'unchanged'} {out} (profile {name})")
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import click
 
+from pipeline.artifacts import write_text_if_changed
 from pipeline.errors import InputError
 
 
@@ -40,9 +41,7 @@ def main(targets, revs, out, open_browser):
         click.echo(f"geodistill plots: error: {e}", err=True)
         sys.exit(2)
     template = template_path(".")
-    if not template.is_file():
-        template.parent.mkdir(parents=True, exist_ok=True)
-        template.write_text(template_text())
+    if not template.is_file() and write_text_if_changed(template, template_text()):
         click.echo(f"plots: wrote {template}", err=True)
     with tempfile.TemporaryDirectory() as td:
         page = Path(td) / "page.html"

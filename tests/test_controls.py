@@ -4,6 +4,8 @@ their place in evaluate's gains and in the report; the per-epoch calibrated-tau 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
