@@ -49,6 +49,7 @@ from pathlib import Path
 from typing import Mapping
 
 from pipeline.artifacts import write_text_if_changed
+from pipeline.offline_plots import template_path, template_text
 from pipeline.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -168,6 +169,8 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     write_text_if_changed(out / "dvc.yaml", render_dvc_yaml(code_root=ROOT, data_deps=data_deps, header=DVC_HEADER,
                                                         omit=omit))
     write_text_if_changed(out / ".dvcignore", DVCIGNORE)
+    # dvc.yaml's plots name this template: without it `dvc plots show` fails in the project
+    write_text_if_changed(template_path(out), template_text())
     if not (out / ".dvc").is_dir():
         for args in (("init", "--no-scm", "-q"), ("config", "core.analytics", "false")):
             res = _dvc(out, *args)

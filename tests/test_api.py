@@ -122,3 +122,19 @@ def test_version_option():
     import importlib.metadata
 
     assert importlib.metadata.version("geodistill-refine") == pipeline.__version__
+
+
+def test_distill_project_has_the_plot_template_its_dvc_yaml_names(tmp_path):
+    """dvc.yaml's plots name .dvc/plots/<template>.json: a distill project without it fails `dvc plots show`."""
+    import yaml
+
+    from pipeline.offline_plots import template_path, template_text
+
+    images, masks = make_image_folder(tmp_path / "data", n=4)
+    sam3 = tmp_path / "sam3"
+    sam3.mkdir()
+    pipeline.distill(images, out=tmp_path / "proj", val_masks=masks, checkpoint=sam3, run=False)
+    doc = yaml.safe_load((tmp_path / "proj" / "dvc.yaml").read_text())
+    names = {v["template"] for p in doc["plots"] for v in p.values()}
+    assert {template_path(tmp_path / "proj").stem} == names
+    assert template_path(tmp_path / "proj").read_text() == template_text()
