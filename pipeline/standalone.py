@@ -169,14 +169,15 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     write_text_if_changed(out / "dvc.yaml", render_dvc_yaml(code_root=ROOT, data_deps=data_deps, header=DVC_HEADER,
                                                         omit=omit))
     write_text_if_changed(out / ".dvcignore", DVCIGNORE)
-    # dvc.yaml's plots name this template: without it `dvc plots show` fails in the project
-    write_text_if_changed(template_path(out), template_text())
     if not (out / ".dvc").is_dir():
         for args in (("init", "--no-scm", "-q"), ("config", "core.analytics", "false")):
             res = _dvc(out, *args)
             if res.returncode != 0:
                 raise InputError(f"--out {out}: `dvc {' '.join(args)}` failed: "
                                  f"{(res.stderr or res.stdout).strip().splitlines()[-1:]}")
+    # after `dvc init` (which a pre-made .dvc/ would skip): dvc.yaml's plots name this template, and
+    # without it `dvc plots show` fails in the project
+    write_text_if_changed(template_path(out), template_text())
     record = {"input": str(input_dir), "val_masks": str(masks) if masks is not None else None,
               "teacher_backend": params["teacher"]["backend"], "teacher_checkpoint": params["teacher"]["checkpoint"],
               "code": str(ROOT), "geodistill_version": __version__}

@@ -138,3 +138,4 @@ def test_distill_project_has_the_plot_template_its_dvc_yaml_names(tmp_path):
     names = {v["template"] for p in doc["plots"] for v in p.values()}
     assert {template_path(tmp_path / "proj").stem} == names
     assert template_path(tmp_path / "proj").read_text() == template_text()
+    assert (tmp_path / "proj" / ".dvc" / "config").is_file()  # still initialised as a DVC project
