@@ -27,8 +27,8 @@ def setup_logging() -> None:
 
 def stage_code_version(stage_file: str, *_legacy_modules: str) -> str:
     """Code version of a stage: every project file its script imports, found from the imports
-    themselves (:func:`pipeline.dag.module_files`, the same list dvc.yaml names as the stage's deps)."""
-    from pipeline.dag import ROOT, _module_name, code_version_of
+    themselves (:func:`pipeline.codeversion.module_files`, the same list dvc.yaml names as the stage's deps)."""
+    from pipeline.codeversion import ROOT, _module_name, code_version_of
 
     return code_version_of(_module_name(Path(stage_file).resolve(), ROOT))
 

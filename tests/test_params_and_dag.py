@@ -133,7 +133,7 @@ def test_console_script_lists_stage_commands():
 # derived code deps
 # --------------------------------------------------------------------------------------------------
 def test_module_files_follow_imports_inside_functions_and_packages(tmp_path):
-    from pipeline.dag import code_version_of, module_files
+    from pipeline.codeversion import code_version_of, module_files
 
     (tmp_path / "stages").mkdir()
     (tmp_path / "pipeline" / "sub").mkdir(parents=True)
@@ -166,7 +166,7 @@ def test_dvc_yaml_is_generated_and_current():
 
 
 def test_dvc_yaml_deps_cover_every_module_each_stage_imports():
-    from pipeline.dag import module_files
+    from pipeline.codeversion import module_files
 
     for name, stage in _dvc_yaml()["stages"].items():
         module = stage["cmd"].split()[2]
@@ -176,12 +176,22 @@ def test_dvc_yaml_deps_cover_every_module_each_stage_imports():
                 f"dvc.yaml stage {name}: {f} (imported by {module}) is not among its deps"
 
 
+#: Files that only render or choose params (dvc.yaml, params.yaml); editing them must mark no stage stale.
+NOT_CODE_DEPS = ("pipeline/dag.py", "stages/dag.py")
+
+
+def test_the_dvc_yaml_renderer_is_no_code_dep_of_any_stage():
+    for name, stage in _dvc_yaml()["stages"].items():
+        stale = [f for f in NOT_CODE_DEPS if f in stage["deps"]]
+        assert not stale, f"dvc.yaml stage {name}: editing {stale} would mark it stale"
+
+
 def test_stage_code_version_is_the_derived_one():
-    from pipeline.dag import code_version_of
+    from pipeline.codeversion import code_version_of
     from stages._common import stage_code_version
 
     assert stage_code_version(str(ROOT / "stages" / "consensus.py")) == code_version_of("stages.consensus")
-    assert "pipeline/params.py" in __import__("pipeline.dag").dag.module_files("stages.consensus")
+    assert "pipeline/params.py" in __import__("pipeline.codeversion").codeversion.module_files("stages.consensus")
 
 
 # --------------------------------------------------------------------------------------------------
