@@ -64,9 +64,8 @@ class Segmenter:
         size -- grey [H,W] / [H,W,1], RGB [H,W,3], RGBA [H,W,4] (alpha dropped); uint8, uint16 (/257),
         other integers (clipped to 0..255) or float in [0,1] -- read by the dataset loader's rules
         (:func:`pipeline.datasets.loading.to_rgb8`), resized to the working resolution like the training
-        images (area), P resized back bilinearly (:func:`pipeline.deploy.files.probs_to_size`)."""
-        from pipeline.datasets.loading import read_rgb, resize_image, to_rgb8
-        from pipeline.deploy.files import probs_to_size
+        images (area), P resized back bilinearly (:func:`pipeline.datasets.loading.probs_to_size`)."""
+        from pipeline.datasets.loading import probs_to_size, read_rgb, resize_image, to_rgb8
 
         if self.resolution is None:
             raise InputError("Segmenter: no working resolution; set .resolution or use Segmenter.from_bundle")
