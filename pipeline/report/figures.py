@@ -29,6 +29,7 @@ import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure as Chart
+from matplotlib.ticker import MaxNLocator
 
 from pipeline.methods import METHODS
 
@@ -256,6 +257,8 @@ def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, widt
             _draw_series(ax, s, i, n)
         if ylim is not None:
             ax.set_ylim(*ylim)
+        if series and all(_integral(s["x"]) for s in series):      # epochs: whole-number ticks
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_title(title)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
@@ -267,6 +270,13 @@ def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, widt
     return fig
 
 
+def _integral(values) -> bool:
+    """Whether every finite value is a whole number (e.g. epochs)."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    return bool(v.size) and bool(np.all(v == np.round(v)))
+
+
 def _draw_series(ax, s: dict, i: int, n: int) -> None:
     """One series of :func:`line_plot`: its line with symbols every few points, and its marked point."""
     color = _mpl_color(s.get("color", PALETTE[i % len(PALETTE)]))
@@ -274,7 +284,7 @@ def _draw_series(ax, s: dict, i: int, n: int) -> None:
     y = np.asarray(s["y"], float)
     ok = np.isfinite(x) & np.isfinite(y)
     every = max(1, int(ok.sum()) // 8)
-    width = 1.4 + 1.6 * (n - 1 - i) / max(n - 1, 1)        # earlier = wider, so it shows under later ones
+    width = 1.5 + 1.3 * (n - 1 - i) / max(n - 1, 1)        # earlier = wider, so it shows under later ones
     symbol = s.get("symbol")
     ax.plot(x[ok], y[ok], color=color, linestyle=s.get("style", "solid"), linewidth=width, alpha=0.85,
             marker=symbol, markevery=(i % every, every) if symbol else None, markersize=5,
