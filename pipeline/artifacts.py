@@ -41,6 +41,7 @@ from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
+from pipeline.catalog import LEGACY_WEIGHTS_FILE, WEIGHTS_FILE
 from pipeline.errors import ArtifactError, InputError
 
 META_KEY = "geodistill"
@@ -57,7 +58,7 @@ class Schema:
 
     ``arrays`` maps array name -> (numpy dtype kind string, ndim) for Zarr artifacts; ``optional``
     lists arrays that may be absent.  ``columns`` lists required Parquet columns.  ``files`` lists
-    required files of a directory artifact.
+    required files of a directory artifact; an entry ``"a|b"`` is satisfied by either file.
     """
 
     name: str
@@ -71,6 +72,15 @@ class Schema:
 
 def _s(name, version, kind, **kw) -> Schema:
     return Schema(name=name, version=version, kind=kind, **kw)
+
+
+#: a model's weights: safetensors, or the torch pickle of older runs (pipeline.weights)
+WEIGHTS_FILES = f"{WEIGHTS_FILE}|{LEGACY_WEIGHTS_FILE}"
+
+
+def missing_files(directory: Path, files) -> list[str]:
+    """The entries of a schema's ``files`` absent from ``directory`` (``"a|b"``: neither exists)."""
+    return [f for f in files if not any((Path(directory) / alt).exists() for alt in f.split("|"))]
 
 
 SCHEMAS: dict[str, Schema] = {
@@ -94,7 +104,8 @@ SCHEMAS: dict[str, Schema] = {
         _s("geometry", 1, "zarr", arrays={"sdf": ("f", 3), "skeleton": ("b", 3)}),
         _s("gates", 1, "parquet", columns=(
             "image_id", "split", "c", "v", "a", "a0", "g_conf", "g_valid", "g_area", "g", "n_valid")),
-        _s("checkpoint", 1, "dir", files=("model.pt", "log.parquet")),
+        # weights: model.safetensors (+ model.json), or model.pt of older runs (pipeline.weights)
+        _s("checkpoint", 1, "dir", files=(WEIGHTS_FILES, "log.parquet")),
         _s("training_log", 2, "parquet", columns=("epoch", "stage", "loss", "val_iou", "val_bf1", "lr")),
         _s("thresholds", 1, "parquet", columns=("method", "seed", "tau", "val_iou")),
         _s("metrics", 1, "parquet", columns=(
@@ -109,7 +120,7 @@ SCHEMAS: dict[str, Schema] = {
         _s("generic_table", 1, "parquet"),
         _s("report", 1, "dir", files=("report.md", "report.html")),
         # exported mask path (pipeline/deploy.py); model.onnx only when onnx/onnxruntime import
-        _s("deploy", 1, "dir", files=("model.pt", "model.ts", "deploy.json")),
+        _s("deploy", 1, "dir", files=(WEIGHTS_FILES, "model.ts", "deploy.json")),
     ]
 }
 
@@ -571,7 +582,7 @@ def artifact_dir(path: str | Path, meta: Meta) -> Iterator[Path]:
     schema = _check_schema_name(meta, "dir")
     with atomic_path(path, is_dir=True) as tmp:
         yield tmp
-        missing = [f for f in schema.files if not (tmp / f).exists()]
+        missing = missing_files(tmp, schema.files)
         if missing:
             raise ArtifactError(f"{path}: schema {meta.schema!r} needs files {missing}")
         (tmp / "meta.json").write_text(json.dumps(meta.to_dict(), indent=1, sort_keys=True))
@@ -750,7 +761,7 @@ def open_artifact(path: str | Path, schema: str | None = None) -> Artifact:
             mp = path / "meta.json"
             meta = _validate(path, json.loads(mp.read_text()) if mp.exists() else None, schema)
             spec = get_schema(meta.schema)
-            missing = [f for f in spec.files if not (path / f).exists()]
+            missing = missing_files(path, spec.files)
             if missing:
                 raise ArtifactError(f"{path}: missing files {missing}")
             return DirArtifact(path, meta)

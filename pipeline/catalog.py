@@ -19,6 +19,13 @@ from pathlib import Path
 
 ARTIFACTS_DIR = "artifacts"
 
+#: a model's files in a checkpoint and in a deploy bundle (pipeline.weights): the tensors as safetensors
+#: (nothing in it can execute on load) and the model config with the run's fields as JSON.
+WEIGHTS_FILE = "model.safetensors"
+WEIGHTS_CONFIG_FILE = "model.json"
+#: the torch-pickle weights file older runs wrote; still read (tensors and plain data only), never written
+LEGACY_WEIGHTS_FILE = "model.pt"
+
 
 @dataclasses.dataclass(frozen=True)
 class ArtifactSpec:

@@ -2,10 +2,11 @@
 
 Checkpoint directory (schema ``checkpoint``)::
 
-    model.pt      torch.save({"state_dict": mask-path weights, "geometry_state_dict": {...} | None,
-                              "config": TinyUNet config, "method", "seed", "stage", "selected_epoch"})
-    log.parquet   training log (schema ``training_log``)
-    meta.json     artifact metadata (fingerprint, lineage)
+    model.safetensors  mask-path weights + the training-only geometry heads (``geometry_heads.*``)
+    model.json         TinyUNet config and the run's fields: method, seed, stage, selected_epoch, ...
+                       (both: pipeline.weights; older checkpoints hold one ``model.pt`` instead, still read)
+    log.parquet        training log (schema ``training_log``)
+    meta.json          artifact metadata (fingerprint, lineage)
 
 Only the runs listed in params.yaml's ``protocol.runs`` exist (one DVC stage each).
 """
@@ -33,43 +34,28 @@ def iter_runs(checkpoints_dir: str | Path) -> Iterator[tuple[str, int, Path]]:
                 yield mdir.name, int(sdir.name), sdir
 
 
-def load_payload(pt: str | Path) -> dict:
-    """The dict saved in a ``model.pt``, loaded so that nothing in the file can execute code.
-
-    ``torch.load(weights_only=True)`` unpickles only tensors and plain containers (dict, list, str,
-    numbers); a file that needs anything else -- a crafted pickle, an arbitrary object -- is refused
-    with an :class:`ArtifactError` naming it, before any of its code could run.  Checkpoints travel
-    between labs, so this is the only way the project reads them.
+def load_payload(path: str | Path) -> dict:
+    """The payload of a checkpoint/bundle directory or weights file (:func:`pipeline.weights.read_weights`):
+    ``state_dict``, ``geometry_state_dict``, ``config`` and the run's fields.  Nothing in the files can
+    execute code: safetensors + JSON, or a legacy ``model.pt`` read with ``weights_only=True`` (a file
+    that needs anything but tensors and plain data is refused with an :class:`ArtifactError` naming it).
+    Checkpoints travel between labs, so this is the only way the project reads them.
     """
-    import pickle
+    from pipeline.weights import read_weights
 
-    import torch
-
-    pt = Path(pt)
-    try:
-        payload = torch.load(pt, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:
-        raise ArtifactError(f"{pt}: refused: holds objects other than tensors and plain data "
-                            "(loading it could execute code)") from None
-    except Exception as e:
-        raise ArtifactError(f"{pt}: unreadable checkpoint ({type(e).__name__})") from None
-    if not isinstance(payload, dict) or "state_dict" not in payload or "config" not in payload:
-        raise ArtifactError(f"{pt}: not a GeoDistill checkpoint (no state_dict/config)")
-    return payload
+    return read_weights(path)
 
 
 def load_student(path: str | Path, device="cpu"):
-    """Load a checkpoint directory (or a bare ``model.pt``) -> (TinyUNet in eval mode, payload dict).
+    """Load a checkpoint directory (or a bare weights file) -> (TinyUNet in eval mode, payload dict).
 
     Only the mask path is loaded; geometry heads are training-only.
     """
 
     from pipeline.model import TinyUNet
+    from pipeline.weights import weights_path
 
-    path = Path(path)
-    pt = path / "model.pt" if path.is_dir() else path
-    if not pt.exists():
-        raise ArtifactError(f"{path}: no model.pt (not a trained checkpoint)")
+    pt = weights_path(path)
     payload = load_payload(pt)
     try:
         model = TinyUNet(**payload["config"])
@@ -132,20 +118,19 @@ def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: 
 
 
 def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
-    """Write a checkpoint directory atomically: model.pt (mask path + optional geometry heads),
-    log.parquet (the training log DataFrame, schema ``training_log``) and meta.json.
+    """Write a checkpoint directory atomically: model.safetensors + model.json (mask path + optional
+    geometry heads, config; :func:`pipeline.weights.write_weights`), log.parquet (the training log
+    DataFrame, schema ``training_log``) and meta.json.
 
     ``meta`` is the checkpoint's :class:`pipeline.artifacts.Meta` (schema ``checkpoint``);
-    ``payload`` adds fields to model.pt (method, seed, stage, selected_epoch, ...).
+    ``payload`` adds fields to model.json (method, seed, stage, selected_epoch, ...; JSON values).
     """
-    import torch
-
     from pipeline.artifacts import artifact_dir, make_meta, write_parquet
+    from pipeline.weights import write_weights
 
     geo = model.geometry_heads.state_dict() if getattr(model, "geometry_heads", None) is not None else None
     with artifact_dir(path, meta) as tmp:
-        torch.save({"state_dict": model.mask_path_state_dict(), "geometry_state_dict": geo,
-                    "config": dict(model.config), **payload}, tmp / "model.pt")
+        write_weights(tmp, model.mask_path_state_dict(), model.config, geo, **payload)
         log_meta = make_meta("training_log", meta.stage, meta.code_version, meta.params,
                              [(str(path), meta)])
         write_parquet(tmp / "log.parquet", log, log_meta)

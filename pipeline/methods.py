@@ -85,6 +85,9 @@ class Method:
     (``train.stage2_select``).  ``adaptive``: terms and selection resolved from the pass ratio r.
     ``uses``: train sub-sections the method reads (they enter its fingerprint).  ``data="reference"``
     (the supervised ceiling only, see :data:`SUPERVISED_CEILING`): the region target is the manual mask.
+    ``color`` (hex RGB), ``dash`` (a matplotlib line style: solid, dashed, dashdot, dotted) and ``symbol``
+    (a matplotlib marker): the method's series in every figure (pipeline.report.figures); no two rows
+    share a colour or a symbol, ablations are dashed.
     """
 
     name: str
@@ -99,6 +102,9 @@ class Method:
     adaptive: bool = False
     uses: tuple[str, ...] = ()
     description: str = ""
+    color: str = "#5a5a5a"
+    dash: str = "solid"
+    symbol: str = "o"
 
     @property
     def annotation_free(self) -> bool:
@@ -126,40 +132,55 @@ _FULL = ("region", "sdf", "skel", "area")
 
 METHODS: dict[str, Method] = {m.name: m for m in [
     Method("plain", 1, "scratch", ("epochs_stage1",), "lr_stage1",
-           description="Stage I only: L_raw on all voted pseudo-masks"),
+           description="Stage I only: L_raw on all voted pseudo-masks",
+           color="#1f77b4", dash="solid", symbol="o"),
     Method("confidence_filtered", 1, "scratch", ("epochs_stage1",), "lr_stage1", data="confidence",
            uses=("confidence",),
-           description="plain student on pseudo-labels passing the confidence criterion"),
+           description="plain student on pseudo-labels passing the confidence criterion",
+           color="#2ca02c", dash="solid", symbol="v"),
     Method("afs_control", 1, "scratch", ("epochs_stage1",), "lr_stage1", data="afs", uses=("afs",),
-           description="annotation-free-style control: base prompt, image+vflip fused, score filter"),
+           description="annotation-free-style control: base prompt, image+vflip fused, score filter",
+           color="#9467bd", dash="solid", symbol="^"),
     Method("geodistill", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=_FULL, select="stage2",
-           description="Stage I -> gated SDF + skeleton + area refinement (eq:refine-loss)"),
+           description="Stage I -> gated SDF + skeleton + area refinement (eq:refine-loss)",
+           color="#d62728", dash="solid", symbol="D"),
     Method("gabi", 2, "scratch", ("gabi.epochs",), "lr_stage1", terms=("region", "dist", "boundary"),
            uses=("gabi",),
-           description="GABI-inspired: joint from scratch, ungated distance regression + boundary BCE"),
+           description="GABI-inspired: joint from scratch, ungated distance regression + boundary BCE",
+           color="#8c564b", dash="solid", symbol="P"),
     Method("full_scratch_10", 2, "scratch", ("epochs_stage2",), "lr_stage1", terms=_FULL,
-           description="ablation: full gated geometry from scratch, 10 epochs"),
+           description="ablation: full gated geometry from scratch, 10 epochs",
+           color="#bcbd22", dash="dashed", symbol="<"),
     Method("full_scratch_30", 2, "scratch", ("epochs_stage1", "epochs_stage2"), "lr_stage1", terms=_FULL,
-           description="ablation: full gated geometry from scratch, 30 epochs"),
+           description="ablation: full gated geometry from scratch, 30 epochs",
+           color="#17becf", dash="dashed", symbol=">"),
     Method("sdf_scratch", 2, "scratch", ("epochs_stage2",), "lr_stage1", terms=("region", "sdf"),
-           description="ablation: L_raw + gated SDF from scratch"),
+           description="ablation: L_raw + gated SDF from scratch",
+           color="#000080", dash="dashed", symbol="x"),
     Method("sdf_gated", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=("region", "sdf"),
-           select="stage2", description="ablation: Stage I -> gated SDF only"),
+           select="stage2", description="ablation: Stage I -> gated SDF only",
+           color="#008080", dash="dashed", symbol="+"),
     Method("sdf_skel_gated", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=("region", "sdf", "skel"),
-           select="stage2", description="ablation: Stage I -> gated SDF + skeleton"),
+           select="stage2", description="ablation: Stage I -> gated SDF + skeleton",
+           color="#800000", dash="dashed", symbol="*"),
     Method("sdf_area_gated", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=("region", "sdf", "area"),
-           select="stage2", description="ablation: Stage I -> gated SDF + area"),
+           select="stage2", description="ablation: Stage I -> gated SDF + area",
+           color="#f032e6", dash="dashed", symbol="h"),
     Method("no_gate", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=_FULL, gate="one",
-           select="stage2", description="ablation: full refinement with g = 1"),
+           select="stage2", description="ablation: full refinement with g = 1",
+           color="#6464ff", dash="dashed", symbol="X"),
     Method("geodistill_adaptive", 2, "stage1", ("epochs_stage2",), "lr_stage2",
            terms=("region", "anchor", "sdf", "skel", "area"), adaptive=True,
            uses=("confidence", "adaptive"),
-           description="quality-adaptive external mode (switch on the pass ratio r)"),
+           description="quality-adaptive external mode (switch on the pass ratio r)",
+           color="#e377c2", dash="solid", symbol="d"),
     Method("continuation", 2, "stage1", ("epochs_stage2",), "lr_stage2", select="stage2",
            description="control: Stage I -> Stage II's schedule, epochs and selection with L_raw only "
-                       "(budget-matched, no geometry)"),
+                       "(budget-matched, no geometry)",
+           color="#ff7f0e", dash="dashdot", symbol="s"),
     Method("supervised_ceiling", 1, "scratch", ("epochs_stage1",), "lr_stage1", data="reference",
-           description="NOT annotation-free: the Plain Student's recipe on the training split's REFERENCE masks"),
+           description="NOT annotation-free: the Plain Student's recipe on the training split's REFERENCE masks",
+           color="#000000", dash="dotted", symbol="p"),
 ]}
 
 #: The one method whose loss sees reference (manual) masks.  Behind ``protocol.supervised_ceiling``.

@@ -98,6 +98,14 @@ def image_ious(preds, gts) -> np.ndarray:
     return _ratio(inter, np_ + ng - inter, (np_ == 0) & (ng == 0))
 
 
+def mask_agreement(fast_logits: np.ndarray, reference_logits: np.ndarray, z_tau: float) -> float:
+    """Mean per-image IoU of the masks [Z >= z_tau] of a fast engine and of the fp32 reference (both
+    [N,1,H,W] or [N,H,W]); 1 = the same masks (:func:`image_ious`: both empty -> 1)."""
+    a = np.asarray(fast_logits).reshape(len(fast_logits), *np.shape(fast_logits)[-2:]) >= z_tau
+    b = np.asarray(reference_logits).reshape(len(reference_logits), *np.shape(reference_logits)[-2:]) >= z_tau
+    return float(np.mean(image_ious(a, b)))
+
+
 def precision_recall(pred, gt) -> tuple[float, float]:
     """Foreground (precision, recall) = (|P & G| / |P|, |P & G| / |G|).
 

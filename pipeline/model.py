@@ -143,6 +143,13 @@ class TinyUNet(nn.Module):
         return {k: v for k, v in self.state_dict().items() if not k.startswith("geometry_heads.")}
 
 
+def mask_path_model(model: TinyUNet) -> TinyUNet:
+    """A float32 CPU copy of the deployed mask path (TinyUNet without the geometry heads), eval mode."""
+    deployed = TinyUNet(**model.config)
+    deployed.load_state_dict(model.mask_path_state_dict())
+    return deployed.float().eval().requires_grad_(False)
+
+
 class ExportMaskPath(nn.Module):
     """The deployed mask path of a TinyUNet, rearranged for export and integer inference.
 

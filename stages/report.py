@@ -1,7 +1,7 @@
 """Stage report: the paper's tables and figures from the evaluation artifacts.
 
 Writes ``<out>/report.md``, ``<out>/report.html`` (ONE self-contained page: figures inline as base64
-PNG, no external resources), ``<out>/figures/*.png`` and the DVC plot tables
+PNG, no external resources), ``<out>/figures/*.png`` (and ``*.svg`` of every chart, for papers) and the DVC plot tables
 ``<out>/plots/training_curves.csv`` (epoch, val_iou, ..., method, seed) and
 ``<out>/plots/threshold_curve.csv`` (tau, val_iou, method, seed) and ``<out>/plots/area_curve.csv``
 (tau, area_ratio, method, seed: median predicted / reference foreground area on the validation split).
@@ -42,6 +42,8 @@ def main(params, device, art, out):
         (tmp / "figures").mkdir()
         for fig in report.figures():
             (tmp / "figures" / fig.filename).write_bytes(fig.png)
+            if fig.svg is not None:
+                (tmp / "figures" / fig.svg_filename).write_bytes(fig.svg)
         (tmp / "plots").mkdir()
         for name, df in plots.items():
             df.to_csv(tmp / "plots" / f"{name}.csv", index=False)

@@ -124,8 +124,13 @@ def test_export_bundle_parity_and_tau_from_thresholds(tmp_path):
     assert info["source"]["checkpoint_fingerprint"] == open_artifact(ckpt).fingerprint
     assert bundle.meta.inputs[0]["fingerprint"] == open_artifact(ckpt).fingerprint
     # the mask path only: no geometry heads in any exported file
-    payload = torch.load(tmp_path / "deploy" / "model.pt", weights_only=False)
-    assert not any(k.startswith("geometry_heads") for k in payload["state_dict"])
+    from safetensors.torch import load_file
+
+    assert not (tmp_path / "deploy" / "model.pt").exists()
+    tensors = load_file(tmp_path / "deploy" / "model.safetensors")
+    assert tensors and not any(k.startswith("geometry_heads") for k in tensors)
+    cfg = json.loads((tmp_path / "deploy" / "model.json").read_text())
+    assert cfg["tau"] == pytest.approx(0.42) and cfg["resolution"] == RES and cfg["geometry_heads"] is False
     par = info["parity"]
     assert par["torchscript"]["passed"] and par["torchscript"]["masks_identical"]
     assert par["torchscript"]["max_abs_diff"] <= 1e-4

@@ -128,30 +128,47 @@ def test_findings_are_computed_from_the_numbers():
 
 
 # ---- figures --------------------------------------------------------------------------------------
-def test_one_distinct_colour_per_method():
+def test_one_distinct_style_per_method():
+    """Series styles are fields of the method table: no two methods share a colour or a symbol, the
+    colours are far apart, ablations are dashed, and the figures read exactly these fields."""
+    from matplotlib.colors import to_rgb
+    from matplotlib.lines import Line2D
+
     from pipeline.methods import METHODS
 
-    assert set(METHODS) | {"teacher_vote"} <= set(F.METHOD_COLORS)
-    colours = list(F.METHOD_COLORS.values())
-    assert len(set(colours)) == len(colours)
-    d = min(np.linalg.norm(np.subtract(a, b)) for i, a in enumerate(colours) for b in colours[i + 1:])
+    colours = [np.array(to_rgb(m.color)) * 255 for m in METHODS.values()]
+    d = min(np.linalg.norm(a - b) for i, a in enumerate(colours) for b in colours[i + 1:])
     assert d > 50  # no two methods alike (ablations are additionally dashed)
+    assert len({m.symbol for m in METHODS.values()}) == len(METHODS)
+    assert all(m.dash in Line2D.lineStyles or m.dash in ("solid", "dashed", "dashdot", "dotted")
+               for m in METHODS.values())
+    for name, m in METHODS.items():
+        assert F.method_style(name) == {"color": m.color, "style": m.dash, "symbol": m.symbol, "key": name}
     assert F.method_style("no_gate")["style"] == "dashed" and F.method_style("geodistill")["style"] == "solid"
+    # the budget-matched control is told apart from GeoDistill-Refine by more than its colour
+    assert F.method_style("continuation")["style"] != F.method_style("geodistill")["style"]
+    assert F.method_style("teacher_vote")["color"] == F.UNKNOWN_METHOD["color"]
 
 
 def test_legend_labels_are_never_cut():
+    """16 long legend labels: every label's text lies inside the saved image (the PNG grows to hold it)."""
     import cv2
+
+    from pipeline.methods import METHODS
 
     long = "Supervised ceiling (uses reference masks; not annotation-free)"
     series = [{"x": [0, 1], "y": [0.1 * i, 0.2], "label": f"{long} {i}", **F.method_style(m)}
-              for i, m in enumerate(F.METHOD_COLORS)]
-    img = F.line_plot(series, "t", "x", "y")
-    text_w = cv2.getTextSize(series[0]["label"], F.FONT, F.LEGEND_SCALE, 1)[0][0]
-    assert img.shape[1] >= 56 + 384 + 32 + text_w      # the legend column holds the longest label
-    assert img.shape[0] >= 46 + 12 + F.LEGEND_ROW * len(series)   # every entry has a row
-    # the last entry's text is drawn (dark pixels in its legend row, right of the swatch)
-    y = 46 + 12 + F.LEGEND_ROW * (len(series) - 1)
-    row = img[y - 10:y + 2, 56 + 384 + 32:]
-    assert (row.min(axis=2) < 100).sum() > 50
-    # short labels keep the default size
-    assert F.line_plot([{"x": [0, 1], "y": [0, 1], "label": "a"}], "t", "x", "y").shape == (380, 640, 3)
+              for i, m in enumerate(METHODS)]
+    fig = F.line_plot(series, "t", "x", "y")
+    fig.canvas.draw()
+    legend = fig.axes[0].get_legend()
+    texts = legend.get_texts()
+    assert [t.get_text() for t in texts] == [s["label"] for s in series]   # every entry is there
+    tight = fig.get_tightbbox()                                             # inches: what savefig keeps
+    right = max(t.get_window_extent().x1 for t in texts) / fig.dpi
+    bottom = min(t.get_window_extent().y0 for t in texts) / fig.dpi
+    assert right <= tight.x1 + 1e-6 and bottom >= tight.y0 - 1e-6
+    png = cv2.imdecode(np.frombuffer(F.png_bytes(fig), np.uint8), cv2.IMREAD_COLOR)
+    assert png.shape[1] >= (tight.x1 - tight.x0) * F.PNG_DPI - 2             # the file is that wide
+    # legible text: ticks and legend at 8.5 pt or more
+    assert min(F.CHART_FONT.values()) >= 8.5

@@ -92,10 +92,10 @@ def test_distill_without_masks_fixed_tau_last_epoch_and_said_so(folder, without_
 def test_distill_rerun_resumes(folder, without_masks, tiny_sam3):  # noqa: F811
     images, _ = folder
     assert "up to date" in dvc_status(without_masks)
-    before = (without_masks / "artifacts" / "checkpoints" / "geodistill" / "42" / "model.pt").stat().st_mtime_ns
+    before = (without_masks / "artifacts" / "checkpoints" / "geodistill" / "42" / "model.safetensors").stat().st_mtime_ns
     res = cli("distill", images, "--out", without_masks, "--checkpoint", tiny_sam3, *FAST)
     assert res.exit_code == 0, res.output[-3000:]
-    assert (without_masks / "artifacts" / "checkpoints" / "geodistill" / "42" / "model.pt").stat().st_mtime_ns == before
+    assert (without_masks / "artifacts" / "checkpoints" / "geodistill" / "42" / "model.safetensors").stat().st_mtime_ns == before
 
 
 def test_distill_with_validation_masks(folder, tiny_sam3, tmp_path):  # noqa: F811

@@ -12,7 +12,8 @@ import torch
 
 from pipeline import deploy
 from pipeline.deploy import benchmark as bench
-from pipeline.deploy.cuda_engine import FastStudent, mask_agreement
+from pipeline.deploy.cuda_engine import FastStudent
+from pipeline.metrics import mask_agreement
 from pipeline.deploy.segmenter import load_segmenter, predict_logits_torch, resolve_engine
 from pipeline.errors import InputError
 from pipeline.inference import images_to_tensor

@@ -7,6 +7,7 @@ import base64
 import re
 import shutil
 import subprocess
+from xml.etree import ElementTree
 from pathlib import Path
 
 import cv2
@@ -89,6 +90,32 @@ def test_html_is_one_self_contained_page(built):
     assert not re.search(r'(href|src)="(https?:|//|/)', html) and "<script" not in html and "<link" not in html
 
 
+def test_report_writes_svg_charts(built, tmp_path):
+    """Every chart is also written as SVG beside its PNG: the SVG parses as XML and holds one series per
+    method of the runs it draws; a second report run writes the same bytes."""
+    from stages.report import main as report
+
+    root, art, params, out = built
+    charts = ("threshold_curves", "training_curves", "training_curves_calibrated", "reliability", "area_vs_tau")
+    assert sorted(p.stem for p in (out / "figures").glob("*.svg")) == sorted(charts)
+    methods = set(open_artifact(art / "thresholds.parquet").df["method"])
+    for name in charts:
+        tree = ElementTree.parse(out / "figures" / f"{name}.svg")
+        ids = [g.get("id") for g in tree.iter("{http://www.w3.org/2000/svg}g")]
+        series = [i.removeprefix("series-") for i in ids if i and i.startswith("series-")]
+        assert sorted(m for m in series if not m.isdigit()) == sorted(methods), name   # one per method
+        assert f"figures/{name}.svg" in (out / "report.md").read_text()
+    # the two meanings of "area ratio" have two names
+    md = (out / "report.md").read_text()
+    assert "Foreground fraction" in md and "Pred./ref. area at tau" in md and "Area ratio" not in md
+    again = tmp_path / "again"
+    res = invoke(report, ["--params", str(params), "--artifacts", str(art), "--out", str(again)])
+    assert res.exit_code == 0, res.output
+    for name in charts:
+        for ext in ("svg", "png"):
+            assert (again / "figures" / f"{name}.{ext}").read_bytes() == (out / "figures" / f"{name}.{ext}").read_bytes()
+
+
 def test_report_with_missing_tables_says_so(tmp_path, built):
     """Only the data artifacts exist: every other section names the missing artifact and its stage."""
     from stages.report import main as report
@@ -161,13 +188,40 @@ def test_error_overlay_colours():
 
 
 def test_line_plot_draws_series():
-    img = F.line_plot([{"x": [0, 1, 2], "y": [0.1, 0.5, 0.3], "label": "a", "marker": 1.0},
+    """Each series is one line in its own colour; the chart encodes to PNG and to SVG that parses."""
+    from matplotlib.colors import to_hex
+
+    fig = F.line_plot([{"x": [0, 1, 2], "y": [0.1, 0.5, 0.3], "label": "a", "marker": 1.0},
                        {"x": [0, 2], "y": [0.2, 0.2], "label": "b", "color": (0, 200, 0)}], "t", "x", "y")
-    assert img.shape == (380, 640, 3)
-    colour_a = np.all(img == np.array(F.PALETTE[0], np.uint8), axis=2).sum()
-    colour_b = np.all(img == np.array((0, 200, 0), np.uint8), axis=2).sum()
-    assert colour_a > 100 and colour_b > 100
-    assert F.png_bytes(img)[:8] == b"\x89PNG\r\n\x1a\n"
+    lines = [ln for ln in fig.axes[0].get_lines() if ln.get_gid()]
+    assert [ln.get_label() for ln in lines] == ["a", "b"]
+    assert to_hex(lines[0].get_color()) == to_hex(np.divide(F.PALETTE[0], 255))
+    assert to_hex(lines[1].get_color()) == "#00c800"
+    png = F.png_bytes(fig)
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    blended = 0.85 * np.array((0, 200, 0)[::-1]) + 0.15 * 255            # alpha 0.85 over white (BGR)
+    assert (np.abs(img - blended).max(axis=2) < 12).sum() > 100            # b's line is drawn
+    root = ElementTree.fromstring(F.svg_bytes(fig))
+    ids = [g.get("id") for g in root.iter("{http://www.w3.org/2000/svg}g")]
+    assert ids.count("series-0") == 1 and ids.count("series-1") == 1
+
+
+def test_charts_are_byte_identical(monkeypatch):
+    """Two renders of the same chart give the same PNG and SVG bytes (no date, no random ids), with
+    and without SOURCE_DATE_EPOCH."""
+    series = [{"x": np.linspace(0, 1, 11), "y": np.linspace(0, 1, 11) ** k, "label": m, **F.method_style(m)}
+              for k, m in enumerate(("plain", "geodistill", "continuation"), 1)]
+    renders = []
+    for epoch in (None, "1700000000", "1800000000"):
+        if epoch is None:
+            monkeypatch.delenv("SOURCE_DATE_EPOCH", raising=False)
+        else:
+            monkeypatch.setenv("SOURCE_DATE_EPOCH", epoch)
+        fig = F.line_plot(series, "t", "x", "y")
+        renders.append((F.png_bytes(fig), F.svg_bytes(fig)))
+    assert renders[0] == renders[1] == renders[2]
+    assert b"<dc:date>" not in renders[0][1]
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="Chromium not installed (apt-get install chromium) -- "

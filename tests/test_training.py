@@ -398,11 +398,11 @@ def test_stage_command_trains_writes_checkpoint_and_warm_starts(tiny, tmp_path):
     assert list(log["epoch"]) == [0, 1] and set(log["stage"]) == {2}
     assert payload["resolution"] == int(open_artifact(tiny / "images.zarr").numpy("image").shape[1])
     # a second run with the same params and inputs resumes from its state and is byte-for-byte the same
-    before = (ck / "geodistill/42" / "model.pt").read_bytes()
+    before = (ck / "geodistill/42" / "model.safetensors").read_bytes()
     r3 = _cli("--stage", "2", "--method", "geodistill", "--seed", "42", "--init", str(ck / "plain/42"),
               "--out", str(ck / "geodistill/42"), *common, cwd=tmp_path)
     assert r3.returncode == 0, r3.stderr
-    assert (ck / "geodistill/42" / "model.pt").read_bytes() == before
+    assert (ck / "geodistill/42" / "model.safetensors").read_bytes() == before
 
 
 def test_checkpoints_are_byte_identical_under_source_date_epoch(tiny, tmp_path, monkeypatch):
@@ -426,7 +426,7 @@ def test_checkpoints_are_byte_identical_under_source_date_epoch(tiny, tmp_path, 
                                 "SOURCE_DATE_EPOCH": "1700000000"})
         assert r.returncode == 0, r.stderr
         outs.append({f.name: f.read_bytes() for f in sorted(out.iterdir())})
-    assert set(outs[0]) == {"model.pt", "log.parquet", "meta.json"}
+    assert set(outs[0]) == {"model.safetensors", "model.json", "log.parquet", "meta.json"}
     for name in outs[0]:
         assert outs[0][name] == outs[1][name], name
     timings = json.loads(catalog.path("train_timings", tiny, method="plain", seed=42).read_text())

@@ -184,6 +184,14 @@ def resize_image(img: np.ndarray, size: int) -> np.ndarray:
     return cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
 
 
+def probs_to_size(probs: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Bilinear resize of a probability map [R,R] back to the original [height, width] (values stay in
+    [0,1]): the way back from :func:`resize_image`'s working resolution."""
+    if probs.shape == (height, width):
+        return probs
+    return np.clip(cv2.resize(probs, (width, height), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
+
+
 def resize_nearest(lbl: np.ndarray, size: int) -> np.ndarray:
     """Nearest-neighbour resize of a label/mask array (bool or uint8) to size x size."""
     if lbl.shape[0] == size and lbl.shape[1] == size:

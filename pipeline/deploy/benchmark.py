@@ -32,12 +32,10 @@ Decisions:
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import statistics
 import time
-import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -45,8 +43,9 @@ import numpy as np
 
 from pipeline.deploy import quantize as q8
 from pipeline.deploy.bundle import INT8_FILE, read_deploy_info
-from pipeline.deploy.export import (ONNX_INPUT, export_onnx, mask_path_model, onnx_unavailable_reason,
-                                    ort_session, parity_inputs)
+from pipeline.deploy.engines import ENGINES, ONNX_FILE, Source, unavailable
+from pipeline.deploy.export import export_onnx, onnx_unavailable_reason, parity_inputs
+from pipeline.model import mask_path_model
 from pipeline.errors import InputError
 from pipeline.params import BENCHMARK_VARIANTS
 from pipeline.thresholds import mask_from_probs, resolve_tau
@@ -164,7 +163,8 @@ def interleaved_times(variants: Sequence["Variant"], x, iters: int, block: int =
 
 def build_variants(model, device, resolution: int, names: Sequence[str], onnx_path: str | Path | None = None,
                    int8_path: str | Path | None = None) -> tuple[list[Variant], dict[str, str]]:
-    """Variants of the mask path to compare; returns (variants, {skipped name: reason}).
+    """Variants of the mask path to compare; returns (variants, {skipped name: reason}).  Each name is
+    an engine of the registry (pipeline.deploy.engines.ENGINES: what it runs and how):
 
     fp32_eager_nchw          plain PyTorch, contiguous NCHW (the baseline)
     fp32_channels_last       PyTorch, channels_last model and input
@@ -179,81 +179,22 @@ def build_variants(model, device, resolution: int, names: Sequence[str], onnx_pa
     import torch
 
     dev = torch.device(device)
+    sync = (lambda: torch.cuda.synchronize()) if dev.type == "cuda" else (lambda: None)
+    # ONNX Runtime sessions used for timing do not spin: idle pools must not steal the timed cores
+    src = Source(model, dev, resolution, {ONNX_FILE: onnx_path, INT8_FILE: int8_path}, spinning=False)
     skipped: dict[str, str] = {}
     variants: list[Variant] = []
-    sync = (lambda: torch.cuda.synchronize()) if dev.type == "cuda" else (lambda: None)
-    base = mask_path_model(model).to(dev)
-    cl = mask_path_model(model).to(dev).to(memory_format=torch.channels_last)
-    cl_fmt = torch.channels_last
-
-    def eager(m, to_cl=False, bf16=False):
-        def run(x):
-            x = x.to(dev, non_blocking=True)
-            if to_cl:
-                x = x.contiguous(memory_format=cl_fmt)
-            with torch.inference_mode(), (torch.autocast(dev.type, dtype=torch.bfloat16) if bf16
-                                          else contextlib.nullcontext()):
-                return m(x).float()
-        return run
-
     for name in names:
-        if name == "fp32_eager_nchw":
-            variants.append(Variant(name, "PyTorch eager fp32, NCHW (baseline)", eager(base), dev.type, sync))
-        elif name == "fp32_channels_last":
-            variants.append(Variant(name, "PyTorch eager fp32, channels_last", eager(cl, True), dev.type, sync))
-        elif name == "bf16_autocast":
-            variants.append(Variant(name, "PyTorch eager, bf16 autocast, NCHW", eager(base, bf16=True), dev.type, sync))
-        elif name == "bf16_channels_last":
-            variants.append(Variant(name, "PyTorch eager, bf16 autocast, channels_last", eager(cl, True, True),
-                                    dev.type, sync))
-        elif name == "torchscript_frozen":
-            example = torch.zeros(1, base.config["in_channels"], resolution, resolution, device=dev)
-            with torch.no_grad(), warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                ts = torch.jit.freeze(torch.jit.trace(mask_path_model(model).to(dev), example, check_trace=False))
-                if dev.type == "cpu":
-                    ts = torch.jit.optimize_for_inference(ts)
-            variants.append(Variant(name, "TorchScript traced + frozen + optimize_for_inference, fp32",
-                                    eager(ts), dev.type, sync))
-        elif name == "cuda_graph_bf16":
-            if dev.type != "cuda":
-                skipped[name] = "needs a CUDA device (--device cuda)"
-                continue
-            from pipeline.deploy.cuda_engine import FastStudent
-
-            fast = FastStudent(model, dev, precision="bf16", cuda_graphs=True)
-            variants.append(Variant(name, "CUDA graphs, bf16 autocast, channels_last (pipeline.deploy.cuda_engine)",
-                                    lambda x, fast=fast: fast.logits(x).clone(), dev.type, sync))
-        elif name == "openvino_int8":
-            from pipeline.deploy.openvino_engine import OpenVinoRunner, openvino_unavailable_reason
-
-            reason = openvino_unavailable_reason() or onnx_unavailable_reason()
-            if reason is None and int8_path is None:
-                reason = "no int8 ONNX model"
-            if reason is not None:
-                skipped[name] = reason
-                continue
-            runner = OpenVinoRunner(int8_path)
-            variants.append(Variant(name, "OpenVINO CPU on the same static int8 QDQ model.int8.onnx",
-                                    lambda x, runner=runner: torch.from_numpy(runner(x.cpu().numpy())), "cpu"))
-        elif name in ("onnxruntime_fp32", "onnxruntime_int8"):
-            reason = onnx_unavailable_reason()
-            path = onnx_path if name == "onnxruntime_fp32" else int8_path
-            if reason is None and path is None:
-                reason = "no ONNX model"
-            if reason is not None:
-                skipped[name] = reason
-                continue
-            sess = ort_session(path, spinning=False)  # idle pools must not steal the timed cores
-
-            def run(x, sess=sess):
-                return torch.from_numpy(sess.run(None, {ONNX_INPUT: np.ascontiguousarray(x.cpu().numpy())})[0])
-            desc = ("ONNX Runtime CPU fp32, graph optimisations ORT_ENABLE_ALL" if name == "onnxruntime_fp32" else
-                    "ONNX Runtime CPU int8 (static QDQ model.int8.onnx: u8 activations, s8 per-channel "
-                    "weights, ranges calibrated on training images)")
-            variants.append(Variant(name, desc, run, "cpu"))
-        else:
+        if name not in VARIANTS or name not in ENGINES:
             raise InputError(f"deploy.benchmark_variants: unknown variant {name!r}")
+        reason = unavailable(name, src)
+        if reason is not None:
+            skipped[name] = reason
+            continue
+        engine = ENGINES[name]
+        where = engine.device(dev)
+        variants.append(Variant(name, engine.description, engine.load(src).run, where,
+                                sync if where == dev.type else (lambda: None)))
     return variants, skipped
 
 

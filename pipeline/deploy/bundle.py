@@ -2,8 +2,9 @@
 
 Deploy bundle (directory artifact, schema ``deploy``)::
 
-    model.pt      {"state_dict": mask-path weights, "config", "method", "seed", "tau", "resolution"}
-                  -- the checkpoint format, so pipeline.inference.load_student() opens the bundle too
+    model.safetensors + model.json  mask-path weights; config, method, seed, tau, resolution
+                  -- the checkpoint format (pipeline.weights), so pipeline.inference.load_student() opens
+                  the bundle too (bundles of older versions hold model.pt instead; still read)
     model.ts      TorchScript (traced) mask path; shape-generic (any batch and size)
     model.onnx    ONNX mask path, dynamic batch/height/width (only when onnx + onnxruntime import)
                   -- both traced from pipeline.model.ExportMaskPath (pipeline.deploy.export)
@@ -31,6 +32,7 @@ from pipeline.deploy.export import (ONNX_INPUT, ONNX_OUTPUT, check_parity, expor
                                     mask_path_model, onnx_unavailable_reason, require_parity)
 from pipeline.errors import ArtifactError
 from pipeline.thresholds import logit_threshold
+from pipeline.weights import write_weights
 
 log = logging.getLogger(__name__)
 
@@ -67,9 +69,8 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
     tmp = Path(tmp)
     deployed = mask_path_model(model)
     method, seed = payload.get("method"), payload.get("seed")
-    torch.save({"state_dict": deployed.mask_path_state_dict(), "geometry_state_dict": None,
-                "config": dict(deployed.config), "method": method, "seed": seed,
-                "tau": float(tau), "resolution": int(resolution)}, tmp / "model.pt")
+    write_weights(tmp, deployed.mask_path_state_dict(), deployed.config, None, method=method, seed=seed,
+                  tau=float(tau), resolution=int(resolution))
     export_torchscript(deployed, tmp / "model.ts", resolution)
     onnx_note = None if onnx else "disabled"
     if onnx and (reason := onnx_unavailable_reason()) is None:

@@ -8,7 +8,7 @@ the GPU waits on the CPU launching them, and at large batches on memory traffic.
 * **bf16 autocast + channels_last** (``precision="bf16"``, the default on CUDA): tensor-core
   convolutions in NHWC; fp32 accumulation and fp32 logits out.  Not bit-exact: the masks are checked
   against fp32 on the device they run on (``geodistill benchmark``'s ``mIoU fp32`` column,
-  :func:`mask_agreement`).
+  :func:`pipeline.metrics.mask_agreement`).
 * **uint8 host input**: images cross the bus as uint8 NHWC (4x fewer bytes than float32) through a
   pinned staging buffer (asynchronous copy); the conversion to float [0, 1] NCHW happens on the device,
   inside the graph (the model's own normalisation follows, as in every other engine).
@@ -57,8 +57,8 @@ class FastStudent:
                  compile: bool = False):
         import torch
 
-        from pipeline.deploy.export import mask_path_model
         from pipeline.errors import InputError
+        from pipeline.model import mask_path_model
 
         self.device = torch.device(device)
         if precision not in ("auto", "bf16", "fp32"):
@@ -148,13 +148,3 @@ class FastStudent:
             z = self.logits_uint8(images[s:s + batch_size])
             out[s:s + batch_size] = torch.sigmoid(z[:, 0]).cpu().numpy()
         return out
-
-
-def mask_agreement(fast_logits: np.ndarray, reference_logits: np.ndarray, z_tau: float) -> float:
-    """Mean per-image IoU of the masks [Z >= z_tau] of a fast engine and of the fp32 reference (both
-    [N,1,H,W] or [N,H,W]); 1 = the same masks (pipeline.metrics.image_ious: both empty -> 1)."""
-    from pipeline.metrics import image_ious
-
-    a = np.asarray(fast_logits).reshape(len(fast_logits), *np.shape(fast_logits)[-2:]) >= z_tau
-    b = np.asarray(reference_logits).reshape(len(reference_logits), *np.shape(reference_logits)[-2:]) >= z_tau
-    return float(np.mean(image_ious(a, b)))

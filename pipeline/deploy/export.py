@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.metrics import mask_agreement
+from pipeline.model import mask_path_model
 from pipeline.thresholds import logit_threshold
 
 ONNX_INPUT = "image"
@@ -36,15 +38,6 @@ ONNX_OUTPUT = "logits"
 
 class ParityError(RuntimeError):
     """An exported model does not reproduce the PyTorch mask path (a bug, not a user error)."""
-
-
-def mask_path_model(model):
-    """A float32 CPU copy of the deployed mask path (TinyUNet without the geometry heads), eval mode."""
-    from pipeline.model import TinyUNet
-
-    deployed = TinyUNet(**model.config)
-    deployed.load_state_dict(model.mask_path_state_dict())
-    return deployed.float().eval().requires_grad_(False)
 
 
 def export_module(model):
@@ -195,12 +188,12 @@ def device_parity(model, tau: float, resolution: int, atol: float, device, torch
     """Parity on the device the model will run on: the fp32 PyTorch mask path there (TF32 off) is the
     reference; compared with it, the TorchScript file on that device and the fast engine
     (pipeline.deploy.cuda_engine, bf16 + CUDA graphs): max |dZ|, masks identical, and ``mask_iou`` =
-    mean per-image IoU of the masks at tau (:func:`pipeline.deploy.cuda_engine.mask_agreement`).
+    mean per-image IoU of the masks at tau (:func:`pipeline.metrics.mask_agreement`).
     TF32 is switched off for the fp32 comparisons: with it (PyTorch's cuDNN default) two fp32 engines
     disagree on about 2 % of a mask's pixels.  Runs on a CPU too (then the fast engine is fp32 eager)."""
     import torch
 
-    from pipeline.deploy.cuda_engine import FastStudent, mask_agreement
+    from pipeline.deploy.cuda_engine import FastStudent
 
     dev = torch.device(device)
     x = parity_inputs(resolution)

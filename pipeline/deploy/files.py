@@ -37,6 +37,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
+from pipeline.datasets.loading import probs_to_size
 from pipeline.deploy.segmenter import Segmenter
 from pipeline.errors import InputError
 from pipeline.thresholds import mask_from_probs
@@ -210,15 +211,6 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
             raise InputError(f"--output {out_dir}: {t} already exists; pass --overwrite to replace the outputs, "
                              "or choose another --output")
     return stems
-
-
-def probs_to_size(probs: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Bilinear resize of a probability map [R,R] to the original [height, width] (values stay in [0,1])."""
-    import cv2
-
-    if probs.shape == (height, width):
-        return probs
-    return np.clip(cv2.resize(probs, (width, height), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
 
 
 def overlay_image(image: np.ndarray, mask: np.ndarray, color=(255, 40, 40), alpha: float = 0.45) -> np.ndarray:

@@ -1,9 +1,10 @@
 """Loading a checkpoint or a deploy bundle for inference: :class:`Segmenter` and its engines.
 
-Decision (the paper is silent on deployment formats): engines (segment ``--engine``): ``torch``
-(model.pt / checkpoint), ``cuda`` (model.pt / checkpoint: the GPU fast path), ``torchscript``, ``onnx``,
-``int8`` and ``openvino_int8`` (bundle only); ``auto`` = onnx when the bundle holds it and onnxruntime
-imports, else torch -- exact engines only -- and ``cuda`` on a CUDA device (:func:`resolve_engine`).
+Decision (the paper is silent on deployment formats): engines (segment ``--engine``; one registry with
+the benchmark, pipeline.deploy.engines): ``torch`` (the weights of a checkpoint or a bundle), ``cuda``
+(the same weights: the GPU fast path), ``torchscript``, ``onnx``, ``int8`` and ``openvino_int8`` (bundle
+only); ``auto`` = onnx when the bundle holds it and onnxruntime imports, else torch -- exact engines
+only -- and ``cuda`` on a CUDA device (:func:`resolve_engine`).
 Every engine receives the same preprocessed tensor and the same tau; only the function Z = f(x)
 differs.
 """
@@ -17,12 +18,13 @@ from typing import Callable
 import numpy as np
 
 from pipeline.deploy.bundle import INT8_FILE, checkpoint_resolution, is_deploy_bundle, read_deploy_info
-from pipeline.deploy.export import ONNX_INPUT, load_torchscript, onnx_unavailable_reason, ort_session
+from pipeline.deploy.engines import ENGINES as ENGINE_REGISTRY
+from pipeline.deploy.engines import MODEL_ENGINES, SEGMENT_ENGINES, Source
+from pipeline.deploy.export import onnx_unavailable_reason
 from pipeline.errors import ArtifactError, InputError
 from pipeline.thresholds import lookup_tau, resolve_tau
 
-ENGINES = ("auto", "torch", "torchscript", "onnx", "int8", "openvino_int8", "cuda")
-TORCH_ENGINES = ("torch", "cuda")  # engines that run model.pt, so a checkpoint directory supports them too
+ENGINES = ("auto", *SEGMENT_ENGINES)
 
 
 @dataclasses.dataclass
@@ -64,9 +66,8 @@ class Segmenter:
         size -- grey [H,W] / [H,W,1], RGB [H,W,3], RGBA [H,W,4] (alpha dropped); uint8, uint16 (/257),
         other integers (clipped to 0..255) or float in [0,1] -- read by the dataset loader's rules
         (:func:`pipeline.datasets.loading.to_rgb8`), resized to the working resolution like the training
-        images (area), P resized back bilinearly (:func:`pipeline.deploy.files.probs_to_size`)."""
-        from pipeline.datasets.loading import read_rgb, resize_image, to_rgb8
-        from pipeline.deploy.files import probs_to_size
+        images (area), P resized back bilinearly (:func:`pipeline.datasets.loading.probs_to_size`)."""
+        from pipeline.datasets.loading import probs_to_size, read_rgb, resize_image, to_rgb8
 
         if self.resolution is None:
             raise InputError("Segmenter: no working resolution; set .resolution or use Segmenter.from_bundle")
@@ -127,7 +128,7 @@ def resolve_engine(path: str | Path, engine: str, device=None) -> str:
     if not is_deploy_bundle(path):
         if engine == "auto":
             return "cuda" if on_cuda else "torch"
-        if engine not in TORCH_ENGINES:
+        if engine not in MODEL_ENGINES:
             raise InputError(f"--engine {engine}: needs a deploy bundle (geodistill export); {path} is a "
                              f"checkpoint directory, which supports --engine torch or cuda only")
         return engine
@@ -144,8 +145,8 @@ def load_segmenter(path: str | Path, engine: str = "auto", device="cpu",
                    thresholds: str | Path | None = None) -> Segmenter:
     """Open a checkpoint directory or a deploy bundle for inference with one engine.
 
-    ``engine``: ``auto`` (:func:`resolve_engine`), ``torch`` (model.pt or the checkpoint),
-    ``torchscript`` / ``onnx`` / ``int8`` (bundle only).  tau candidates (``Segmenter.taus``, resolved
+    ``engine``: ``auto`` (:func:`resolve_engine`) or a name of :data:`pipeline.deploy.engines.SEGMENT_ENGINES`
+    (the registry says what each runs).  tau candidates (``Segmenter.taus``, resolved
     by :meth:`Segmenter.resolve_tau`): deploy.json's tau for a bundle; for a checkpoint its payload's
     tau, else its (method, seed) row in ``thresholds`` (a thresholds.parquet).  The resolution comes
     from deploy.json, or the checkpoint's payload (``payload["resolution"]``) or metadata -- the size the
@@ -160,6 +161,7 @@ def load_segmenter(path: str | Path, engine: str = "auto", device="cpu",
     if not path.exists():
         raise InputError(f"--checkpoint {path}: not found")
     engine = resolve_engine(path, engine, device)
+    spec = ENGINE_REGISTRY[engine]
     device = torch.device(device)
     if is_deploy_bundle(path):
         info = read_deploy_info(path)
@@ -168,69 +170,24 @@ def load_segmenter(path: str | Path, engine: str = "auto", device="cpu",
         resolution = info.get("resolution")
     else:
         info, taus, resolution = {}, {}, None
-
-    if engine == "torch":
-        model, payload = load_student(path, device)
-        if device.type == "cpu":
-            model = model.to(memory_format=torch.channels_last)
-        if resolution is None:
-            resolution = checkpoint_resolution(path, payload)
-        if not taus:
-            taus = checkpoint_taus(payload, thresholds)
-
-        def run(x):
-            # fp32, channels_last: the same path calibrate used to choose tau
-            return predict_logits_torch(model, x, device)
-        info = info or {"method": payload.get("method"), "seed": payload.get("seed")}
-        return Segmenter("torch", resolution, taus, run, info)
-
-    if engine == "cuda":  # the GPU fast path; eager fp32 channels_last on a CPU
-        from pipeline.deploy.cuda_engine import FastStudent
-
+    model = None
+    if spec.needs == "model":
         model, payload = load_student(path, "cpu")
         resolution = resolution if resolution is not None else checkpoint_resolution(path, payload)
         taus = taus or checkpoint_taus(payload, thresholds)
-        fast = FastStudent(model, device)
-
-        def run(x):
-            return fast.logits(x).cpu().numpy()
         info = info or {"method": payload.get("method"), "seed": payload.get("seed")}
-        return Segmenter("cuda", resolution, taus, run, {**info, "precision": fast.precision,
-                                                         "cuda_graphs": fast.cuda_graphs})
-
-    if engine == "torchscript":
-        ts_path = path / "model.ts"
-        if not ts_path.exists():
-            raise ArtifactError(f"{path}: no model.ts")
-        ts = load_torchscript(ts_path, device)
-
-        def run(x):
-            with torch.inference_mode():
-                return ts(x.to(device)).float().cpu().numpy()
-        return Segmenter("torchscript", resolution, taus, run, info)
-
-    if engine == "openvino_int8":
-        from pipeline.deploy.openvino_engine import OpenVinoRunner, openvino_unavailable_reason
-
-        reason = openvino_unavailable_reason()
-    else:
-        reason = onnx_unavailable_reason()
-    if reason is not None:
+    elif (reason := spec.requires()) is not None:
         raise InputError(f"--engine {engine}: {reason}")
-    int8 = engine in ("int8", "openvino_int8")
-    onnx_file = path / (INT8_FILE if int8 else "model.onnx")
-    if not onnx_file.exists():
-        why = (info.get("int8_note") or "exported without it") if int8 else \
-            (info.get("onnx_note") or "exported without onnx")
-        raise ArtifactError(f"{path}: no {onnx_file.name} ({why}); use --engine torch")
-    if engine == "openvino_int8":
-        runner = OpenVinoRunner(onnx_file)
-        return Segmenter(engine, resolution, taus, lambda x: runner(x.numpy()), info)
-    sess = ort_session(onnx_file)
+    elif not (path / spec.needs).exists():
+        why = {INT8_FILE: info.get("int8_note") or "exported without it",
+               "model.onnx": info.get("onnx_note") or "exported without onnx"}.get(spec.needs)
+        raise ArtifactError(f"{path}: no {spec.needs}" + (f" ({why}); use --engine torch" if why else ""))
+    source = Source(model, device, resolution, {spec.needs: path / spec.needs} if spec.needs != "model" else {})
+    runner = spec.load(source)
 
     def run(x):
-        return sess.run(None, {ONNX_INPUT: np.ascontiguousarray(x.numpy(), np.float32)})[0]
-    return Segmenter(engine, resolution, taus, run, info)
+        return runner.run(x).float().cpu().numpy()
+    return Segmenter(engine, resolution, taus, run, {**info, **runner.info})
 
 
 def predict_logits_torch(model, x, device) -> np.ndarray:

@@ -3,11 +3,9 @@
 Pure functions on arrays (no I/O).  Conventions, chosen to load in the standard readers:
 
 COCO (``pycocotools``)
-    ``rle_encode(mask)`` is COCO's *compressed* RLE (``{"size": [h, w], "counts": str}``): run lengths
-    of the column-major (Fortran-order) flattened mask, starting with a run of zeros, each length
-    written as the difference to the length two runs earlier in COCO's 6-bit variable-length ASCII
-    code -- the same bytes as ``pycocotools.mask.encode`` (tests/test_label.py checks this), so
-    ``COCO.annToMask`` and ``maskUtils.area`` read it without the library being needed to write it.
+    ``rle_encode(mask)`` is COCO's *compressed* RLE (``{"size": [h, w], "counts": str}``) as
+    ``pycocotools.mask.encode`` writes it (on the Fortran-order uint8 mask; the counts bytes decoded
+    to a JSON string), so ``COCO.annToMask`` and ``maskUtils.area`` read it back.
     One annotation per image: the whole voted pseudo-mask is one spacecraft instance (``iscrowd`` 0;
     a mask split into several parts, e.g. panels cut off by a thin strut, stays one object).  ``area``
     is the pixel count of the mask, ``bbox`` ``[x, y, width, height]`` its tight box in pixels.
@@ -25,6 +23,7 @@ YOLO segmentation (Ultralytics' ``labels/*.txt``)
 from __future__ import annotations
 
 import numpy as np
+from pycocotools import mask as mask_utils
 
 from pipeline.errors import InputError
 
@@ -43,39 +42,12 @@ def _as_mask(mask: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------
 # COCO
 # --------------------------------------------------------------------------------------------------
-def rle_counts(mask: np.ndarray) -> list[int]:
-    """Uncompressed COCO RLE counts: alternating run lengths of 0s and 1s over the column-major
-    flattened mask, starting with 0s (a first count of 0 when the first pixel is foreground)."""
-    flat = _as_mask(mask).ravel(order="F").astype(np.int8)
-    if flat.size == 0:
-        return []
-    change = np.flatnonzero(np.diff(flat)) + 1
-    bounds = np.concatenate(([0], change, [flat.size]))
-    runs = np.diff(bounds).tolist()
-    return ([0] + runs) if flat[0] else runs
-
-
-def rle_string(counts: list[int]) -> str:
-    """COCO's compressed counts string (maskApi.c ``rleToString``): each count minus the count two
-    places earlier (from the third on), in 5-bit groups, low first, 0x20 = more groups follow, +48."""
-    out = []
-    for i, count in enumerate(counts):
-        x = int(count) - (int(counts[i - 2]) if i > 2 else 0)
-        more = True
-        while more:
-            c = x & 0x1F
-            x >>= 5  # arithmetic shift, as on C's signed long
-            more = (x != -1) if (c & 0x10) else (x != 0)
-            if more:
-                c |= 0x20
-            out.append(chr(c + 48))
-    return "".join(out)
-
-
 def rle_encode(mask: np.ndarray) -> dict:
-    """Compressed COCO RLE ``{"size": [h, w], "counts": str}`` of a bool [H,W] mask."""
+    """Compressed COCO RLE ``{"size": [h, w], "counts": str}`` of a bool [H,W] mask, by pycocotools'
+    own encoder (``pycocotools.mask.encode`` of the Fortran-order uint8 mask)."""
     mask = _as_mask(mask)
-    return {"size": [int(mask.shape[0]), int(mask.shape[1])], "counts": rle_string(rle_counts(mask))}
+    rle = mask_utils.encode(np.asfortranarray(mask.astype(np.uint8)))
+    return {"size": [int(mask.shape[0]), int(mask.shape[1])], "counts": rle["counts"].decode("ascii")}
 
 
 def mask_bbox(mask: np.ndarray) -> list[float]:

@@ -165,7 +165,7 @@ def threshold_section(inp: Inputs, plots: dict) -> Section:
         img = F.line_plot(series, "Validation Image IoU vs threshold", "tau", "mean val Image IoU")
         sec.blocks.append(Figure("fig:threshold-curves", "Threshold curves", "Mean validation Image IoU of [P >= tau] "
                                  "over the calibration grid (mean over seeds per method; dot: mean calibrated tau).",
-                                 F.png_bytes(img), "threshold_curves.png"))
+                                 F.png_bytes(img), "threshold_curves.png", F.svg_bytes(img)))
     return sec
 
 
@@ -264,17 +264,19 @@ def calibration_blocks(thr: pd.DataFrame, plots: dict) -> list:
     grid = np.asarray(thr["grid"].iloc[0], float)
     area.append({"x": grid, "y": np.ones_like(grid), "label": "no inflation (ratio 1)", "color": F.REFERENCE_LINE,
                  "style": "dashed"})
+    rel_chart = F.line_plot(rel, "Reliability diagram", "mean predicted probability", "foreground frequency",
+                            ylim=(0.0, 1.0))
     blocks.append(Figure("fig:reliability", "Reliability diagram (validation pixels)",
                          "Fraction of reference-foreground pixels against the mean predicted probability in each "
                          "equal-width probability bin (mean over seeds per method); below the diagonal = "
-                         "over-confident foreground.", F.png_bytes(F.line_plot(
-                             rel, "Reliability diagram", "mean predicted probability", "foreground frequency",
-                             ylim=(0.0, 1.0))), "reliability.png"))
+                         "over-confident foreground.", F.png_bytes(rel_chart), "reliability.png",
+                         F.svg_bytes(rel_chart)))
+    area_chart = F.line_plot(area, "Predicted / reference area vs threshold", "tau",
+                             "median predicted / reference area")
     blocks.append(Figure("fig:area-vs-tau", "Predicted against reference foreground area across tau",
                          "Median over validation images of predicted / reference foreground area of [P >= tau] "
                          "(mean over seeds per method; dot: mean calibrated tau; dashed grey: no inflation).",
-                         F.png_bytes(F.line_plot(area, "Foreground area vs threshold", "tau",
-                                                 "median predicted / reference area")), "area_vs_tau.png"))
+                         F.png_bytes(area_chart), "area_vs_tau.png", F.svg_bytes(area_chart)))
     return blocks
 
 
@@ -290,7 +292,7 @@ def epoch_calibrated_figure(logs: pd.DataFrame) -> Figure:
     return Figure("fig:training-curves-calibrated", "Training curves at the calibrated tau",
                   "Validation Image IoU per epoch at the tau maximising it at that epoch (mean over seeds per "
                   "method); compare with the tau = 0.5 curves in the training-curves section.", F.png_bytes(img),
-                  "training_curves_calibrated.png")
+                  "training_curves_calibrated.png", F.svg_bytes(img))
 
 
 def ablation_section(inp: Inputs) -> Section:
@@ -384,7 +386,7 @@ def training_section(inp: Inputs, plots: dict) -> Section:
                       "val Image IoU")
     sec.blocks.append(Figure("fig:training-curves", "Training curves", "Validation Image IoU per epoch (mean over "
                              "seeds per method; warm-started Stage-II runs count their own epochs from 1).",
-                             F.png_bytes(img), "training_curves.png"))
+                             F.png_bytes(img), "training_curves.png", F.svg_bytes(img)))
     return sec
 
 

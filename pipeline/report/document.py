@@ -34,6 +34,12 @@ class Figure:
     caption: str
     png: bytes
     filename: str             # written under figures/
+    svg: bytes | None = None  # the vector form of a chart, written beside it as <stem>.svg
+
+    @property
+    def svg_filename(self) -> str:
+        """``filename`` with the ``.svg`` suffix (the vector file beside the PNG)."""
+        return self.filename.rsplit(".", 1)[0] + ".svg"
 
 
 @dataclasses.dataclass
@@ -91,8 +97,9 @@ def render_markdown(report: Report, figure_dir: str = "figures") -> str:
                 if b.notes:
                     out.append("")
             elif isinstance(b, Figure):
+                vector = f" Vector: [{b.svg_filename}]({figure_dir}/{b.svg_filename})." if b.svg else ""
                 out += [f"**{b.title}** (`{b.key}`)", "", f"![{b.title}]({figure_dir}/{b.filename})", "",
-                        f"*{b.caption}*", ""]
+                        f"*{b.caption}*{vector}", ""]
     return "\n".join(out).rstrip() + "\n"
 
 

@@ -1,7 +1,19 @@
-"""Figures drawn with OpenCV and numpy only (no matplotlib dependency): error overlays, pseudo-target
-panels, line plots.  Every function returns an RGB uint8 array; :func:`png_bytes` encodes one.
+"""Figures: charts drawn with matplotlib (PNG for the HTML page, SVG for papers), image panels composed
+with OpenCV and numpy (error overlays, pseudo-target panels).  Charts are ``matplotlib.figure.Figure``
+objects on the Agg canvas (no pyplot, no global figure state); image panels are RGB uint8 arrays.
+:func:`png_bytes` encodes either, :func:`svg_bytes` writes a chart as SVG.
 
-Colour conventions (paper Fig. qualitative-results / prompt-comparison):
+Series styles come from the method table (:class:`pipeline.methods.Method` ``color``, ``dash``,
+``symbol``) through :func:`method_style`.  No series hides another: each method has its own colour,
+line style and marker; earlier series are drawn wider and under later ones, and every line is slightly
+transparent, so two identical curves (e.g. the budget-matched continuation under GeoDistill-Refine)
+show as a coloured band with both markers.
+
+Determinism: the SVG carries no date (``metadata={"Date": None}``) and its element ids are salted
+with a fixed ``svg.hashsalt``; the PNG carries no software tag.  Two renders of the same data are
+byte-identical (with or without SOURCE_DATE_EPOCH).
+
+Colour conventions of the image panels (paper Fig. qualitative-results / prompt-comparison):
   true positive green, false positive red, false negative blue (alpha-blended over the image),
   ground-truth contour yellow.  Agreement map: viridis in [0, 1].  SDF (eq:sdf-target, D = d_in - d_out
   normalised): red inside (positive) - white (boundary) - blue outside (negative), symmetric around 0.
@@ -9,10 +21,17 @@ Colour conventions (paper Fig. qualitative-results / prompt-comparison):
 
 from __future__ import annotations
 
+import io
 from typing import Mapping, Sequence
 
 import cv2
+import matplotlib
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure as Chart
+from matplotlib.ticker import MaxNLocator
+
+from pipeline.methods import METHODS
 
 TP = (40, 200, 60)
 FP = (230, 40, 40)
@@ -23,32 +42,31 @@ BLACK = (0, 0, 0)
 # distinct line colours (RGB) for plots of series that are not methods
 PALETTE = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189),
            (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
-#: ONE colour per method (and the teacher vote), the same in every figure; no two alike.  Ablations
-#: are also drawn dashed (:data:`DASHED_METHODS`), so that 16 series stay distinguishable.
-METHOD_COLORS = {
-    "plain": (31, 119, 180), "geodistill": (214, 39, 40), "continuation": (255, 127, 14),
-    "confidence_filtered": (44, 160, 44), "afs_control": (148, 103, 189), "gabi": (140, 86, 75),
-    "geodistill_adaptive": (227, 119, 194), "full_scratch_10": (188, 189, 34), "full_scratch_30": (23, 190, 207),
-    "sdf_scratch": (0, 0, 128), "sdf_gated": (0, 128, 128), "sdf_skel_gated": (128, 0, 0),
-    "sdf_area_gated": (240, 50, 230), "no_gate": (100, 100, 255), "supervised_ceiling": (0, 0, 0),
-    "teacher_vote": (127, 127, 127),
-}
-DASHED_METHODS = frozenset({"full_scratch_10", "full_scratch_30", "sdf_scratch", "sdf_gated", "sdf_skel_gated",
-                            "sdf_area_gated", "no_gate", "supervised_ceiling"})
+UNKNOWN_METHOD = {"color": "#5a5a5a", "style": "solid", "symbol": "."}
 REFERENCE_LINE = (170, 170, 170)  # diagonals and "ratio = 1" lines
 FONT = cv2.FONT_HERSHEY_SIMPLEX
-LEGEND_SCALE = 0.35
-LEGEND_ROW = 16
+#: chart text sizes (points): legible at the page's width and in a two-column paper
+CHART_FONT = {"font.size": 10, "axes.titlesize": 11, "axes.labelsize": 10, "xtick.labelsize": 9,
+              "ytick.labelsize": 9, "legend.fontsize": 8.5}
+#: fixed salt of the SVG's element ids (matplotlib otherwise draws them at random)
+SVG_RC = {"svg.hashsalt": "geodistill-refine", "svg.fonttype": "path"}
+PNG_DPI = 120
 
 
 def method_style(method: str) -> dict:
-    """``{"color", "style"}`` of a method's series (:data:`METHOD_COLORS`; unknown names: grey)."""
-    return {"color": METHOD_COLORS.get(method, (90, 90, 90)),
-            "style": "dashed" if method in DASHED_METHODS else "solid"}
+    """``{"color", "style", "symbol"}`` of a method's series, read from the method table
+    (:data:`pipeline.methods.METHODS`); names not in it (e.g. the teacher vote): grey dots."""
+    m = METHODS.get(method)
+    if m is None:
+        return dict(UNKNOWN_METHOD)
+    return {"color": m.color, "style": m.dash, "symbol": m.symbol, "key": m.name}
 
 
-def png_bytes(rgb: np.ndarray) -> bytes:
-    """Encode an RGB uint8 image as PNG bytes."""
+def png_bytes(fig) -> bytes:
+    """PNG bytes of a chart (:func:`line_plot`) or of an RGB uint8 image panel."""
+    if isinstance(fig, Chart):
+        return _save(fig, "png")
+    rgb = fig
     ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
     if not ok:
         raise RuntimeError("PNG encoding failed")
@@ -198,96 +216,82 @@ def pseudo_target_row(image: np.ndarray, prompt_masks: np.ndarray, prompt_labels
     return hstack(tiles)
 
 
-def _nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
-    if not np.isfinite(lo) or not np.isfinite(hi) or hi <= lo:
-        hi = lo + 1.0
-    raw = (hi - lo) / max(n, 1)
-    mag = 10 ** np.floor(np.log10(raw))
-    step = min((s * mag for s in (1, 2, 2.5, 5, 10) if s * mag >= raw), default=raw)
-    start = np.ceil(lo / step) * step
-    return np.arange(start, hi + step * 1e-6, step)
+def svg_bytes(fig: Chart) -> bytes:
+    """SVG bytes of a chart: no date, fixed element ids (byte-identical across renders)."""
+    return _save(fig, "svg")
 
 
-def _dashed_line(img: np.ndarray, p0, p1, color, dash: int = 7, gap: int = 5) -> None:
-    """A dashed segment from ``p0`` to ``p1`` (dashes of ``dash`` px, gaps of ``gap`` px, in place)."""
-    a, b = np.asarray(p0, float), np.asarray(p1, float)
-    length = float(np.hypot(*(b - a)))
-    if length == 0:
-        return
-    for t0 in np.arange(0.0, length, dash + gap):
-        t1 = min(t0 + dash, length)
-        q0, q1 = a + (b - a) * t0 / length, a + (b - a) * t1 / length
-        cv2.line(img, tuple(int(round(v)) for v in q0), tuple(int(round(v)) for v in q1), color, 2, cv2.LINE_AA)
+def _save(fig: Chart, fmt: str) -> bytes:
+    """Render ``fig`` in ``fmt`` (png | svg | pdf) without any timestamp or random id."""
+    metadata = {"png": {"Software": None}, "svg": {"Date": None}, "pdf": {"CreationDate": None}}[fmt]
+    buf = io.BytesIO()
+    with matplotlib.rc_context({**CHART_FONT, **SVG_RC}):
+        fig.savefig(buf, format=fmt, dpi=PNG_DPI, metadata=metadata, bbox_inches="tight", pad_inches=0.05)
+    return buf.getvalue()
+
+
+def _mpl_color(color) -> str | tuple:
+    """A colour as matplotlib takes it: hex strings pass, RGB 0..255 tuples are scaled to 0..1."""
+    if isinstance(color, str):
+        return color
+    return tuple(float(c) / 255.0 for c in color)
 
 
 def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, width: int = 640,
-              height: int = 380, ylim: tuple[float, float] | None = None) -> np.ndarray:
-    """A simple line plot.  ``series``: dicts with ``x``, ``y``, ``label`` and optional ``marker``
-    (an x value to mark with a dot, e.g. the selected threshold), ``color`` and ``style``
-    ("solid" | "dashed").  The plot area is ``width - 256`` by ``height - 90`` px; the image grows to
-    the right and downwards until every legend label fits in full (labels are never cut)."""
-    left, right, top, bottom = 56, 200, 46, 44
-    pw, ph = width - left - right, height - top - bottom
-    text_w = max((cv2.getTextSize(str(s.get("label", "")), FONT, LEGEND_SCALE, 1)[0][0] for s in series), default=0)
-    right = max(right, 32 + text_w + 8)
-    width = left + pw + right
-    height = max(height, top + 12 + LEGEND_ROW * len(series) + 4)
-    ph = height - top - bottom
-    img = np.full((height, width, 3), 255, np.uint8)
-    xs = np.concatenate([np.asarray(s["x"], float) for s in series]) if series else np.array([0.0, 1.0])
-    ys = np.concatenate([np.asarray(s["y"], float) for s in series]) if series else np.array([0.0, 1.0])
-    xs = xs[np.isfinite(xs)] if np.isfinite(xs).any() else np.array([0.0, 1.0])
-    ys = ys[np.isfinite(ys)] if np.isfinite(ys).any() else np.array([0.0, 1.0])
-    x0, x1 = float(np.min(xs)), float(np.max(xs))
-    if x1 <= x0:
-        x1 = x0 + 1
-    y0, y1 = ylim if ylim is not None else (float(np.min(ys)), float(np.max(ys)))
-    if y1 <= y0:
-        y0, y1 = y0 - 0.05, y1 + 0.05
-    pad = 0.05 * (y1 - y0)
-    y0, y1 = (y0, y1) if ylim is not None else (y0 - pad, y1 + pad)
+              height: int = 380, ylim: tuple[float, float] | None = None) -> Chart:
+    """A line chart (matplotlib, Agg canvas).  ``series``: dicts with ``x``, ``y``, ``label`` and
+    optional ``marker`` (an x value to mark with a large dot, e.g. the selected threshold), ``color``
+    (hex or RGB 0..255), ``style`` (matplotlib line style: solid, dashed, dashdot, dotted) and
+    ``symbol`` (matplotlib marker drawn along the line), ``key`` (the series' SVG id is
+    ``series-<key>``; default ``series-<i>``).  The axes are ``width`` x ``height`` px at
+    100 px per inch; the legend sits right of them and the saved image grows to hold it in full.
 
-    def px(x, y):
-        return (int(round(left + (x - x0) / (x1 - x0) * pw)), int(round(top + (1 - (y - y0) / (y1 - y0)) * ph)))
+    Series ``i`` of ``n`` is drawn wider than the ones after it and below them, and all lines are
+    slightly transparent, so a series that coincides with a later one still shows around it."""
+    with matplotlib.rc_context(CHART_FONT):
+        fig = Chart(figsize=(width / 100.0, height / 100.0), dpi=100)
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot()
+        n = len(series)
+        for i, s in enumerate(series):
+            _draw_series(ax, s, i, n)
+        if ylim is not None:
+            ax.set_ylim(*ylim)
+        if series and all(_integral(s["x"]) for s in series):      # epochs: whole-number ticks
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_title(title)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(True, color="#dddddd", linewidth=0.6)
+        ax.set_axisbelow(True)
+        if n:
+            ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, frameon=False,
+                      handlelength=3.0)
+    return fig
 
-    grey = (220, 220, 220)
-    for t in _nice_ticks(y0, y1):
-        p = px(x0, t)
-        cv2.line(img, (left, p[1]), (left + pw, p[1]), grey, 1)
-        cv2.putText(img, f"{t:.2f}", (4, p[1] + 4), FONT, 0.35, BLACK, 1, cv2.LINE_AA)
-    for t in _nice_ticks(x0, x1):
-        p = px(t, y0)
-        cv2.line(img, (p[0], top), (p[0], top + ph), grey, 1)
-        lab = f"{t:g}"
-        cv2.putText(img, lab, (p[0] - 4 * len(lab), top + ph + 14), FONT, 0.35, BLACK, 1, cv2.LINE_AA)
-    cv2.rectangle(img, (left, top), (left + pw, top + ph), BLACK, 1)
-    cv2.putText(img, title, (left, 20), FONT, 0.5, BLACK, 1, cv2.LINE_AA)
-    cv2.putText(img, xlabel, (left + pw // 2 - 4 * len(xlabel), height - 8), FONT, 0.4, BLACK, 1, cv2.LINE_AA)
-    cv2.putText(img, ylabel, (4, top - 10), FONT, 0.38, BLACK, 1, cv2.LINE_AA)
-    for i, s in enumerate(series):
-        col = s.get("color", PALETTE[i % len(PALETTE)])
-        x = np.asarray(s["x"], float)
-        y = np.asarray(s["y"], float)
-        ok = np.isfinite(x) & np.isfinite(y)
-        pts = [px(a, b) for a, b in zip(x[ok], y[ok])]
-        dashed = s.get("style") == "dashed"
-        for j in range(len(pts) - 1):
-            if dashed:
-                _dashed_line(img, pts[j], pts[j + 1], col)
-            else:
-                cv2.line(img, pts[j], pts[j + 1], col, 2, cv2.LINE_AA)
-        if len(pts) == 1:
-            cv2.circle(img, pts[0], 3, col, -1, cv2.LINE_AA)
-        if s.get("marker") is not None and ok.any():
-            mx = float(s["marker"])
-            my = float(np.interp(mx, x[ok], y[ok]))
-            cv2.circle(img, px(mx, my), 5, col, -1, cv2.LINE_AA)
-            cv2.circle(img, px(mx, my), 5, BLACK, 1, cv2.LINE_AA)
-        ly = top + 12 + LEGEND_ROW * i
-        if dashed:
-            for x in (left + pw + 10, left + pw + 22):
-                cv2.line(img, (x, ly - 4), (x + 6, ly - 4), col, 2, cv2.LINE_AA)
-        else:
-            cv2.line(img, (left + pw + 10, ly - 4), (left + pw + 28, ly - 4), col, 2, cv2.LINE_AA)
-        cv2.putText(img, str(s.get("label", "")), (left + pw + 32, ly), FONT, LEGEND_SCALE, BLACK, 1, cv2.LINE_AA)
-    return img
+
+def _integral(values) -> bool:
+    """Whether every finite value is a whole number (e.g. epochs)."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    return bool(v.size) and bool(np.all(v == np.round(v)))
+
+
+def _draw_series(ax, s: dict, i: int, n: int) -> None:
+    """One series of :func:`line_plot`: its line with symbols every few points, and its marked point."""
+    color = _mpl_color(s.get("color", PALETTE[i % len(PALETTE)]))
+    x = np.asarray(s["x"], float)
+    y = np.asarray(s["y"], float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    every = max(1, int(ok.sum()) // 8)
+    width = 1.5 + 1.3 * (n - 1 - i) / max(n - 1, 1)        # earlier = wider, so it shows under later ones
+    symbol = s.get("symbol")
+    ax.plot(x[ok], y[ok], color=color, linestyle=s.get("style", "solid"), linewidth=width, alpha=0.85,
+            marker=symbol, markevery=(i % every, every) if symbol else None, markersize=5,
+            markerfacecolor="none" if symbol in ("o", "s", "D", "^", "v", "<", ">", "p", "h", "d") else color,
+            label=str(s.get("label", "")), zorder=2 + i, gid=f"series-{s.get('key', i)}")
+    if s.get("marker") is not None and ok.any():
+        mx = float(s["marker"])
+        my = float(np.interp(mx, x[ok], y[ok]))
+        ax.plot([mx], [my], marker="o", markersize=7 + 4 * (n - 1 - i) / max(n - 1, 1), color=color, markeredgecolor="black", linestyle="none",
+                zorder=3 + n + i)

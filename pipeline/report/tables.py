@@ -104,14 +104,16 @@ def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> Ta
 
 
 def diagnostics_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> Table:
-    """Precision, recall, predicted area ratio and small-region IoU (the paper's supplementary
+    """Precision, recall, predicted foreground fraction and small-region IoU (the paper's supplementary
     diagnostics, shaped like tab:external-results)."""
     rows = [[g, label(m)] + [fmt_pm(r.get(f"{k}_mean"), r.get(f"{k}_std"))
                              for k in ("precision", "recall", "area_ratio", "small_iou")]
             for g, m, r in group_method_rows(summary, mode, groups)]
     return Table("tab:diagnostics", f"Foreground precision, recall and diagnostics ({MODE_TEXT.get(mode, mode)})",
-                 ["Evaluation set", "Method", "Precision", "Recall", "Area ratio", "Small-region IoU"], rows,
-                 ["Small-region IoU: IoU within small ground-truth components (see pipeline.metrics."
+                 ["Evaluation set", "Method", "Precision", "Recall", "Foreground fraction", "Small-region IoU"], rows,
+                 ["Foreground fraction: predicted foreground pixels / image pixels (pipeline.metrics; not the "
+                  "predicted / reference area of the calibration table).  "
+                  "Small-region IoU: IoU within small ground-truth components (see pipeline.metrics."
                   "small_region_iou); images without a small component are left out of its mean."])
 
 
@@ -359,9 +361,9 @@ def calibration_table(thr: pd.DataFrame) -> Table:
                      ms("fixed_area_ratio", 2), str(len(part))])
     return Table("tab:calibration", "Calibration diagnostics on the validation split",
                  ["Method", "Calibrated tau", "Val IoU at tau", "Val IoU at 0.5", "ECE (pixels)",
-                  "Area ratio at tau", "Area ratio at 0.5", "Seeds"], rows,
+                  "Pred./ref. area at tau", "Pred./ref. area at 0.5", "Seeds"], rows,
                  ["ECE: expected calibration error of the pixel probabilities over equal-width bins "
-                  "(pipeline.diagnostics).  Area ratio: median over validation images of predicted / reference "
+                  "(pipeline.diagnostics).  Pred./ref. area: median over validation images of predicted / reference "
                   "foreground area (1 = no inflation).  Mean ± sample std over seeds."])
 
 

@@ -1,0 +1,109 @@
+"""A model's weights on disk, in the format the ecosystem shares: ``model.safetensors`` (tensors only)
+plus ``model.json`` (the TinyUNet config and the run's fields: method, seed, tau, resolution, ...).
+File names: :data:`pipeline.catalog.WEIGHTS_FILE`, :data:`~pipeline.catalog.WEIGHTS_CONFIG_FILE`.
+
+Nothing read here can execute code: safetensors holds a JSON header and raw tensor bytes, the config
+is JSON.  Older checkpoints and bundles hold one ``model.pt`` (a torch pickle,
+:data:`~pipeline.catalog.LEGACY_WEIGHTS_FILE`); it is still read, with ``torch.load(weights_only=True)``,
+which unpickles only tensors and plain containers and refuses anything else.
+
+Both forms read into the same *payload* dict: ``state_dict`` (the mask path), ``geometry_state_dict``
+(the training-only heads, or None), ``config`` and the run's fields.  In the safetensors file the
+heads' tensors carry the prefix ``geometry_heads.`` (as in the full model's state dict).
+
+Determinism: the safetensors header lists the tensors in a fixed order with fixed metadata, and the
+JSON is written with sorted keys, so the same weights give the same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import pickle
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from pipeline.catalog import LEGACY_WEIGHTS_FILE, WEIGHTS_CONFIG_FILE, WEIGHTS_FILE
+from pipeline.errors import ArtifactError
+
+GEOMETRY_PREFIX = "geometry_heads."
+#: the safetensors header's metadata: ONE key, since safetensors writes the metadata map in hash order
+#: (two keys come out in either order, and the bytes would differ between runs)
+HEADER = {"format": "pt"}
+
+
+def write_weights(directory: str | Path, state_dict: dict, config: dict,
+                  geometry_state_dict: dict | None = None, **fields) -> None:
+    """Write ``model.safetensors`` and ``model.json`` into ``directory`` (a temp folder of an atomic
+    artifact write).  ``fields`` (method, seed, tau, ...) must be JSON values."""
+    directory = Path(directory)
+    tensors = {k: _plain(v) for k, v in state_dict.items()}
+    for k, v in (geometry_state_dict or {}).items():
+        tensors[GEOMETRY_PREFIX + k] = _plain(v)
+    save_file(tensors, directory / WEIGHTS_FILE, metadata=HEADER)
+    doc = {"config": dict(config), "geometry_heads": geometry_state_dict is not None, **fields}
+    (directory / WEIGHTS_CONFIG_FILE).write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+
+
+def _plain(t: torch.Tensor) -> torch.Tensor:
+    """A tensor safetensors can write: detached, on the CPU, contiguous, its own storage."""
+    return t.detach().to("cpu").contiguous().clone()
+
+
+def weights_path(path: str | Path) -> Path:
+    """The weights file of a checkpoint/bundle directory (safetensors first, else the legacy
+    ``model.pt``), or ``path`` itself when it is a file; ArtifactError when there is none."""
+    path = Path(path)
+    if not path.is_dir():
+        if path.is_file():
+            return path
+        raise ArtifactError(f"{path}: no such weights file")
+    for name in (WEIGHTS_FILE, LEGACY_WEIGHTS_FILE):
+        if (path / name).is_file():
+            return path / name
+    raise ArtifactError(f"{path}: no {WEIGHTS_FILE} or {LEGACY_WEIGHTS_FILE} (not a trained checkpoint)")
+
+
+def read_weights(path: str | Path) -> dict:
+    """The payload (module docstring) of a checkpoint/bundle directory or of one weights file
+    (``*.safetensors`` with its ``model.json`` beside it, or a legacy ``model.pt``).  ArtifactError
+    naming the file when it is unreadable, refused or not a GeoDistill model."""
+    f = weights_path(path)
+    payload = _read_legacy(f) if f.suffix == ".pt" else _read_safetensors(f)
+    if not isinstance(payload, dict) or "state_dict" not in payload or not isinstance(payload.get("config"), dict):
+        raise ArtifactError(f"{f}: not a GeoDistill checkpoint (no state_dict/config)")
+    return payload
+
+
+def _read_safetensors(f: Path) -> dict:
+    """Payload of ``model.safetensors`` + the ``model.json`` beside it."""
+    cfg_path = f.with_name(WEIGHTS_CONFIG_FILE)
+    try:
+        tensors = load_file(f, device="cpu")
+    except (SafetensorError, OSError, ValueError) as e:
+        raise ArtifactError(f"{f}: unreadable weights ({type(e).__name__})") from None
+    try:
+        doc = json.loads(cfg_path.read_text())
+    except FileNotFoundError:
+        raise ArtifactError(f"{f}: no {WEIGHTS_CONFIG_FILE} beside it (the model config)") from None
+    except (OSError, ValueError) as e:
+        raise ArtifactError(f"{cfg_path}: unreadable ({type(e).__name__})") from None
+    if not isinstance(doc, dict):
+        raise ArtifactError(f"{cfg_path}: not a model config (a JSON object)")
+    geo = {k[len(GEOMETRY_PREFIX):]: v for k, v in tensors.items() if k.startswith(GEOMETRY_PREFIX)}
+    state = {k: v for k, v in tensors.items() if not k.startswith(GEOMETRY_PREFIX)}
+    fields = {k: v for k, v in doc.items() if k != "geometry_heads"}
+    return {**fields, "state_dict": state, "geometry_state_dict": geo if doc.get("geometry_heads") else None}
+
+
+def _read_legacy(f: Path) -> dict:
+    """The dict of a legacy ``model.pt``, unpickling tensors and plain data only (weights_only=True)."""
+    try:
+        return torch.load(f, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise ArtifactError(f"{f}: refused: holds objects other than tensors and plain data "
+                            "(loading it could execute code)") from None
+    except Exception as e:
+        raise ArtifactError(f"{f}: unreadable checkpoint ({type(e).__name__})") from None
