@@ -40,8 +40,9 @@ def _parse(text: str, where: str) -> dict[str, float]:
         data = json.loads(text)
     except json.JSONDecodeError as e:
         raise InputError(f"{where}: not JSON ({e.msg})") from None
-    if not isinstance(data, dict):
-        raise InputError(f"{where}: expected a JSON object of metrics")
+    if not isinstance(data, dict) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                             for v in data.values()):
+        raise InputError(f"{where}: expected a JSON object of numbers (a DVC metrics file)")
     return data
 
 

@@ -84,6 +84,9 @@ def test_cli_passes_prints_the_table_and_fails_beyond_tolerance(repo):
 def test_cli_bad_input_is_one_line_and_exit_2(repo, tmp_path_factory, monkeypatch):
     res = CliRunner().invoke(reproduce_check, ["--ref", "no-such-ref"])
     assert res.exit_code == 2 and "error: git ls-tree" in res.output
+    (repo / "KCP" / "plain.json").write_text('{"iou": "high"}')
+    res = CliRunner().invoke(reproduce_check, [])
+    assert res.exit_code == 2 and "plain.json: expected a JSON object of numbers" in res.output
     monkeypatch.chdir(tmp_path_factory.mktemp("not_a_repo"))
     res = CliRunner().invoke(reproduce_check, [])
     assert res.exit_code == 2 and "error: git rev-parse" in res.output
