@@ -3,23 +3,43 @@
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
-# The local CPU build of torch; on a CUDA machine set TORCH_SPEC to the CUDA build you want.
-TORCH_SPEC ?= torch==2.13.0
+# Exact versions of every package (docs/environment.md): a pip constraints file compiled by uv from
+# pyproject.toml for CPython 3.11 on x86-64 Linux.  `make lock` rewrites it (keeping the pinned versions
+# where they still resolve; `make lock LOCK_ARGS=--upgrade` takes the newest).
+LOCK      ?= requirements/lock.txt
+UV_SPEC   ?= uv==0.13.8
+LOCK_ARGS ?=
+# torch's version, pinned in the lock; TORCH_SPEC picks its build: the default is the local CPU build
+# (2.13.0+cpu) on these machines; on a CUDA machine set TORCH_SPEC to that version's CUDA build.
+TORCH_VERSION := 2.13.0
+TORCH_SPEC ?= torch==$(TORCH_VERSION)
+# Artifact creation times and run ids come from SOURCE_DATE_EPOCH (pipeline/artifacts.py): pinned, a
+# rerun writes the same bytes wherever and whenever it runs.  315532800 = 1980-01-01T00:00:00Z, the
+# reproducible-builds convention's floor (the earliest time a ZIP entry can hold).
+SOURCE_DATE_EPOCH ?= 315532800
 
-.PHONY: install demo test reduced paper clean-artifacts
+.PHONY: install lock demo test reduced paper clean-artifacts
 
 install: $(VENV)/.installed
 
-$(VENV)/.installed: pyproject.toml Makefile
+$(VENV)/.installed: pyproject.toml Makefile $(LOCK)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q "$(TORCH_SPEC)"
-	$(BIN)/python -m pip install -q -e ".[dev,sam3]"
+	$(BIN)/python -m pip install -q -c $(LOCK) "$(TORCH_SPEC)"
+	$(BIN)/python -m pip install -q -c $(LOCK) -e ".[dev,sam3]"
 	touch $@
+
+# Re-resolve the lock from pyproject.toml (+ torch==$(TORCH_VERSION)) with uv; then `make test`.
+lock:
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q "$(UV_SPEC)"
+	echo "torch==$(TORCH_VERSION)" | $(BIN)/uv pip compile pyproject.toml - --extra dev --extra sam3 \
+	  --python-version 3.11 --python-platform x86_64-manylinux_2_28 --custom-compile-command "make lock" \
+	  $(LOCK_ARGS) -o $(LOCK)
 
 demo: install
 	$(BIN)/geodistill dag --check
-	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
+	SOURCE_DATE_EPOCH=$(SOURCE_DATE_EPOCH) PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
 
 # Another profile: rewrite params.yaml (and check dvc.yaml), then run the DAG with `geodistill run`:
 # stale stages as concurrent processes (several training runs per GPU, CPU cores shared out), each one
@@ -29,7 +49,7 @@ RUN_ARGS ?=
 reduced paper: install
 	$(BIN)/geodistill profile $@
 	$(BIN)/geodistill dag --check
-	$(BIN)/geodistill run $(RUN_ARGS)
+	SOURCE_DATE_EPOCH=$(SOURCE_DATE_EPOCH) $(BIN)/geodistill run $(RUN_ARGS)
 
 test: install
 	$(BIN)/python -m pytest -q

@@ -40,9 +40,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Callable, Iterable, Mapping, Sequence
 
-#: Environment variables that size the thread pools of torch (OpenMP), BLAS and numexpr.
-THREAD_ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-                   "VECLIB_MAXIMUM_THREADS")
+from pipeline.environment import THREAD_ENV_VARS
 
 
 @dataclasses.dataclass(frozen=True)

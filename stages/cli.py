@@ -30,6 +30,7 @@ COMMANDS = {
     "label": "stages.label",
     "distill": "stages.distill",
     "plots": "stages.plots",
+    "reproduce-check": "stages.reproduce_check",
 }
 
 

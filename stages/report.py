@@ -1,7 +1,10 @@
 """Stage report: the paper's tables and figures from the evaluation artifacts.
 
 Writes ``<out>/report.md``, ``<out>/report.html`` (ONE self-contained page: figures inline as base64
-PNG, no external resources), ``<out>/figures/*.png`` (and ``*.svg`` of every chart, for papers) and the DVC plot tables
+PNG, no external resources), ``<out>/figures/*.png`` (and ``*.svg`` of every chart, for papers),
+``<out>/environment.json`` (where the numbers were computed: this machine's software, torch build and
+CPU, and each training run's precision, threads and device; pipeline.environment; not fingerprinted)
+and the DVC plot tables
 ``<out>/plots/training_curves.csv`` (epoch, val_iou, ..., method, seed) and
 ``<out>/plots/threshold_curve.csv`` (tau, val_iou, method, seed) and ``<out>/plots/area_curve.csv``
 (tau, area_ratio, method, seed: median predicted / reference foreground area on the validation split).
@@ -27,14 +30,17 @@ from stages._common import declared_params, meta_for, stage_code_version, stage_
               help="report directory (dvc.yaml: reports/${profile})")
 def main(params, device, art, out):
     """Write report.md, a self-contained report.html, figures and plot CSVs."""
-    from pipeline.artifacts import artifact_dir
+    from pipeline.artifacts import artifact_dir, write_json
+    from pipeline.environment import collect
     from pipeline.device import resolve_device
     from pipeline.report.build import build_report
     from pipeline.report.document import render_html, render_markdown
+    from pipeline.report.environment import environment_record
 
     cfg = section(params, "report")
     profile = str(params.get("profile", ""))
-    report, plots, inp = build_report(art, cfg, profile, resolve_device(device))
+    env = collect()
+    report, plots, inp = build_report(art, cfg, profile, resolve_device(device), environment=env)
     code = stage_code_version(__file__)
     meta = meta_for("report", "report", code, declared_params(params, "report"), list(inp.found.values()),
                     missing_inputs=sorted(inp.missing))
@@ -49,6 +55,7 @@ def main(params, device, art, out):
             df.to_csv(tmp / "plots" / f"{name}.csv", index=False)
         (tmp / "report.md").write_text(render_markdown(report))
         (tmp / "report.html").write_text(render_html(report))
+        write_json(tmp / "environment.json", environment_record(env, inp.runs))
     missing = f" (missing inputs: {', '.join(sorted(inp.missing))})" if inp.missing else ""
     click.echo(f"report: {len(report.tables())} tables, {len(report.figures())} figures -> {Path(out)}{missing}",
                err=True)

@@ -186,6 +186,7 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
     from pipeline import catalog, training
     from pipeline.artifacts import write_json
     from pipeline.device import resolve_device
+    from pipeline.environment import training_runtime
     from pipeline.inference import save_checkpoint
 
     data, val, inputs = load_inputs(artifacts, spec, cfg)
@@ -200,7 +201,8 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
                     inputs, **data.stats)
     result = training.train(spec, cfg, data, val, seed, init_state=init_state, device=resolve_device(device),
                             checkpointer=FileCheckpointer(Path(resume_dir) / meta.fingerprint))
-    meta.extra.update(result.info)
+    meta.extra.update(result.info)  # info["autocast"]: the precision actually used
+    meta.extra["runtime"] = training_runtime(resolve_device(device))  # provenance, not fingerprinted
     save_checkpoint(out, result.model, meta, result.log, method=method, seed=seed, stage=stage,
                     selected_epoch=result.selected_epoch, selection=result.info["selection"],
                     resolution=int(data.images.shape[1]),

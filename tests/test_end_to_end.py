@@ -81,6 +81,33 @@ def test_dag_runs_end_to_end_and_is_a_noop_the_second_time(tiny_run):
 
 
 @pytest.mark.slow
+def test_every_train_run_and_the_report_record_their_environment(tiny_run):
+    """Each checkpoint's meta.json says what it ran on (precision actually used, torch threads = the tiny
+    profile's train.num_threads, CPU); the report carries the same records in environment.json.  None of
+    it is a fingerprinted param."""
+    import json
+
+    import pipeline
+    from pipeline.artifacts import fingerprint
+    from pipeline.inference import iter_runs
+
+    repo = tiny_run[0]
+    records = {}
+    for method, seed, path in iter_runs(repo / "artifacts" / "checkpoints"):
+        meta = pipeline.open_artifact(path).meta
+        rt = meta.extra["runtime"]
+        assert rt["num_threads"] == TINY_DEMO["train"]["num_threads"] and rt["device"] == "cpu"
+        assert meta.extra["autocast"] in ("bfloat16", "fp32") and rt["cpu_flags"] is not None
+        # the fingerprint is (stage, code, params, inputs) alone: the machine record is not among them
+        assert "runtime" not in json.dumps(meta.params) and meta.fingerprint == fingerprint(
+            meta.stage, meta.code_version, meta.params, [i["fingerprint"] for i in meta.inputs])
+        records[(method, seed)] = (meta.extra["autocast"], rt)
+    env = json.loads((repo / "reports" / "demo" / "environment.json").read_text())
+    assert {(r["method"], r["seed"]): (r["precision"], r["runtime"]) for r in env["training_runs"]} == records
+    assert "## Environment" in (repo / "reports" / "demo" / "report.md").read_text()
+
+
+@pytest.mark.slow
 def test_notebook_opens_every_artifact(tiny_run):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")

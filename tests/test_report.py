@@ -265,3 +265,22 @@ def test_efficiency_table_marks_untimed_and_emulated_variants():
     slow = rows["bf16_eager"]
     assert slow[3].startswith("not timed: probe 5000 ms") and slow[4] == "--" and "5000.00" not in slow
     assert "int8_onnx (bf16 emulated)" in rows and rows["int8_onnx (bf16 emulated)"][3] == "4.00"
+
+
+def test_report_records_its_environment(built):
+    """The Environment section and environment.json: this machine's software and CPU, and one record per
+    training run (the fixture's checkpoints predate extra.runtime, so the table says 'not recorded')."""
+    import json
+
+    from pipeline.inference import iter_runs
+
+    root, art, params, out = built
+    env = json.loads((out / "environment.json").read_text())
+    assert env["report"]["libraries"]["torch"] and env["report"]["cpu"]["logical_cpus"] >= 1
+    assert env["report"]["lock"]["found"]
+    assert {(r["method"], r["seed"]) for r in env["training_runs"]} == {(m, s) for m, s, _ in
+                                                                        iter_runs(art / "checkpoints")}
+    md = (out / "report.md").read_text()
+    assert "## Environment" in md and "tab:environment-training" in md and "not recorded" in md
+    assert f"| torch | {env['report']['libraries']['torch']} |" in md
+    assert 'data-key="tab:environment-machine"' in (out / "report.html").read_text()

@@ -19,6 +19,7 @@ from pipeline.report import tables as T
 from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_analysis, size_split,
                                       teacher_domain_quality, teacher_prompt_quality, teacher_vote_means)
 from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
+from pipeline.report.environment import environment_section, training_runs
 from pipeline.thresholds import mask_from_probs
 
 # artifact file -> (schema, stage that produces it)
@@ -33,6 +34,7 @@ class Inputs:
     found: dict[str, Any]
     missing: dict[str, Missing]
     logs: pd.DataFrame | None = None
+    runs: list = dataclasses.field(default_factory=list)  # pipeline.report.environment.training_runs
 
     def get(self, name):
         return self.found.get(name)
@@ -56,6 +58,7 @@ def load_inputs(art: str | Path) -> Inputs:
     require_same_run(*found.values())
     inp = Inputs(art, found, missing)
     inp.logs = training_logs(art / "checkpoints")
+    inp.runs = training_runs(catalog.path("checkpoints", art))
     return inp
 
 
@@ -502,8 +505,10 @@ def provenance_section(inp: Inputs) -> Section:
                                                                              "Fingerprint"], rows)])
 
 
-def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu") -> tuple[Report, dict, Inputs]:
-    """-> (report, plot tables {name: DataFrame}, opened inputs)."""
+def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu",
+                 environment: dict | None = None) -> tuple[Report, dict, Inputs]:
+    """-> (report, plot tables {name: DataFrame}, opened inputs).  ``environment``: the report machine's
+    record (:func:`pipeline.environment.collect`) for the Environment section (None: not recorded)."""
     inp = load_inputs(art)
     plots: dict[str, pd.DataFrame] = {}
     n_qual = int(cfg.get("qualitative_images", 4))
@@ -519,6 +524,7 @@ def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu") ->
         ablation_section(inp),
         efficiency_section(inp),
         training_section(inp, plots),
+        environment_section(environment, inp.runs),
         provenance_section(inp),
     ]
     title = "GeoDistill-Refine report" + (f" ({profile} profile)" if profile else "")

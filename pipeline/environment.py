@@ -1,0 +1,242 @@
+"""The environment a published number came from: Python, library versions, the torch build, the CPU
+model and the flags that change numerics, thread settings, and whether the installed packages are the
+lock file's (``requirements/lock.txt``, docs/environment.md).
+
+Provenance only, like ``Meta.library_versions`` (:func:`pipeline.artifacts.library_versions`, which
+:func:`collect` extends): nothing here enters a fingerprint, so artifacts stay machine-independent and
+their caches valid.  Two records use it:
+
+* every train run stores :func:`training_runtime` in its checkpoint's ``meta.json`` (``extra.runtime``:
+  device, torch threads, CPU, torch build), next to ``extra.autocast``, the precision it actually used
+  (``bfloat16`` autocast or ``fp32``, pipeline.device.autocast_dtype of ``train.precision``);
+* the report writes :func:`collect` (the machine that built it) and those per-run records to
+  ``environment.json`` and renders them as its "Environment" section (pipeline.report.build).
+
+The parsers (:func:`parse_cpuinfo`, :func:`parse_torch_config`, :func:`parse_lock`,
+:func:`lock_status`, :func:`numerics_env`) are pure functions of text and mappings; the readers call
+them on this machine's files.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.metadata
+import os
+import platform
+import re
+from pathlib import Path
+from typing import Any, Mapping
+
+from pipeline.artifacts import library_versions
+
+ROOT = Path(__file__).resolve().parents[1]
+#: the lock file in the project root (the Makefile's ``LOCK`` names the same file)
+LOCK_FILE = ROOT / "requirements" / "lock.txt"
+
+#: libraries recorded beyond those every artifact records (pipeline.artifacts.library_versions)
+EXTRA_LIBRARIES = ("pandas", "pydantic", "click", "dvc", "dvclive", "onnx", "onnxruntime", "openvino",
+                   "transformers")
+
+#: CPU flags that select different kernels (so possibly different rounding) in torch/oneDNN, ONNX
+#: Runtime and OpenVINO: vector width, fused multiply-add, native bf16/int8 dot products, AMX tiles
+NUMERIC_CPU_FLAGS = ("avx", "avx2", "fma", "f16c", "avx512f", "avx512bw", "avx512vl", "avx512_vnni",
+                     "avx512_bf16", "avx512_fp16", "avx_vnni", "amx_tile", "amx_bf16", "amx_int8")
+
+#: environment variables that size the thread pools of torch (OpenMP), BLAS and numexpr
+#: (pipeline.runner sets them for each process it starts)
+THREAD_ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+                   "VECLIB_MAXIMUM_THREADS")
+
+#: environment variables that change numerics besides the thread counts
+NUMERIC_ENV_VARS = ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE", "ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA",
+                    "DNNL_MAX_CPU_ISA", "ONEDNN_DEFAULT_FPMATH_MODE", "MKL_CBWR", "CUBLAS_WORKSPACE_CONFIG",
+                    "NVIDIA_TF32_OVERRIDE")
+
+#: torch build settings worth a line in a report (from ``torch.__config__.show()``)
+TORCH_SETTINGS = ("TORCH_VERSION", "COMMIT_SHA", "USE_CUDA", "CUDA_VERSION", "CUDNN_VERSION", "BLAS_INFO",
+                  "LAPACK_INFO", "USE_MKL", "USE_MKLDNN", "USE_OPENMP")
+
+
+# --------------------------------------------------------------------------------------------------
+# Pure parsers
+# --------------------------------------------------------------------------------------------------
+def parse_cpuinfo(text: str) -> dict[str, Any]:
+    """``/proc/cpuinfo`` -> ``{"model", "logical_cpus", "flags"}``.
+
+    ``model``: the first ``model name`` (None when absent, e.g. on ARM); ``logical_cpus``: the number of
+    ``processor`` entries; ``flags``: the :data:`NUMERIC_CPU_FLAGS` the first CPU has, in that order.
+    """
+    model, flags, n = None, set(), 0
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        key = key.strip()
+        if key == "processor":
+            n += 1
+        elif key == "model name" and model is None:
+            model = value.strip()
+        elif key in ("flags", "Features") and not flags:
+            flags = set(value.split())
+    return {"model": model, "logical_cpus": n, "flags": [f for f in NUMERIC_CPU_FLAGS if f in flags]}
+
+
+def parse_torch_config(text: str) -> dict[str, Any]:
+    """``torch.__config__.show()`` -> ``{"components": [...], "settings": {...}}``.
+
+    ``components``: the "PyTorch built with" lines (compiler, MKL, oneDNN (MKL-DNN), OpenMP, CPU
+    capability, ...) except the long build-settings line; ``settings``: the :data:`TORCH_SETTINGS`
+    found in that line.
+    """
+    components, settings = [], {}
+    for line in text.splitlines():
+        item = line.strip()
+        if not item.startswith("- "):
+            continue
+        item = item[2:].strip()
+        if item.startswith("Build settings:"):
+            for part in item[len("Build settings:"):].split(", "):
+                key, eq, value = part.partition("=")
+                if eq and key.strip() in TORCH_SETTINGS:
+                    settings[key.strip()] = value.strip().rstrip(",")
+        else:
+            components.append(item)
+    return {"components": components, "settings": settings}
+
+
+def normalize_name(name: str) -> str:
+    """A distribution name in PEP 503 normal form (``Ruamel.YAML`` -> ``ruamel-yaml``)."""
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def parse_lock(text: str) -> dict[str, str]:
+    """``{normalized name: version}`` of the ``name==version`` lines of a requirements/constraints file
+    (comments, options and annotations ignored)."""
+    out = {}
+    for line in text.splitlines():
+        m = re.match(r"^\s*([A-Za-z0-9][A-Za-z0-9._-]*)(?:\[[^\]]*\])?\s*==\s*([^\s;#]+)", line)
+        if m:
+            out[normalize_name(m.group(1))] = m.group(2)
+    return out
+
+
+def public_version(version: str) -> str:
+    """A version without its local label (``2.13.0+cpu`` -> ``2.13.0``): the part a ``==`` pin compares."""
+    return version.split("+", 1)[0]
+
+
+def lock_status(pins: Mapping[str, str], installed: Mapping[str, str]) -> dict[str, Any]:
+    """How the installed distributions compare with the lock's pins.
+
+    ``pins``: :func:`parse_lock`'s result; ``installed``: ``{normalized name: version}``.  A pin matches
+    when the installed public version equals it (the local label of a torch build, ``+cpu`` or
+    ``+cu128``, is the build, not the version).  Pinned packages that are not installed (e.g. the
+    CUDA wheels of PyPI's torch on a CPU machine) are counted, not flagged.  Returns ``pinned``,
+    ``matching``, ``not_installed`` and ``differ`` (``[{"package", "lock", "installed"}]``, sorted).
+    """
+    differ, matching, absent = [], 0, 0
+    for name, version in sorted(pins.items()):
+        have = installed.get(name)
+        if have is None:
+            absent += 1
+        elif public_version(have) == public_version(version):
+            matching += 1
+        else:
+            differ.append({"package": name, "lock": version, "installed": have})
+    return {"pinned": len(pins), "matching": matching, "not_installed": absent, "differ": differ}
+
+
+def numerics_env(environ: Mapping[str, str]) -> dict[str, str]:
+    """The thread-count and numerics environment variables that are set (name -> value)."""
+    return {k: environ[k] for k in THREAD_ENV_VARS + NUMERIC_ENV_VARS if k in environ}
+
+
+# --------------------------------------------------------------------------------------------------
+# Readers (this machine)
+# --------------------------------------------------------------------------------------------------
+def cpu() -> dict[str, Any]:
+    """:func:`parse_cpuinfo` of this machine (model from :mod:`platform` where /proc is absent)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        text = ""
+    info = parse_cpuinfo(text)
+    if info["model"] is None:
+        info["model"] = platform.processor() or platform.machine() or None
+    if not info["logical_cpus"]:
+        info["logical_cpus"] = os.cpu_count() or 0
+    return info
+
+
+def installed_versions() -> dict[str, str]:
+    """``{normalized name: version}`` of every distribution importable here."""
+    out = {}
+    for dist in importlib.metadata.distributions():
+        name = dist.metadata["Name"]
+        if name:
+            out.setdefault(normalize_name(name), dist.version)
+    return out
+
+
+def torch_build() -> dict[str, Any]:
+    """The torch build: version (with its local label), git commit, CUDA version (None: a CPU build),
+    the CPU kernel level it dispatches to, MKL/oneDNN availability, the build's components and settings,
+    and the visible GPUs."""
+    import torch
+
+    out = {"version": torch.__version__, "git": getattr(torch.version, "git_version", None),
+           "cuda": torch.version.cuda, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+           "mkl": bool(torch.backends.mkl.is_available()), "mkldnn": bool(torch.backends.mkldnn.is_available()),
+           **parse_torch_config(torch.__config__.show())}
+    out["gpus"] = ([torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())]
+                   if torch.cuda.is_available() else [])
+    return out
+
+
+def lock_record(path: str | Path = LOCK_FILE, installed: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """The lock file (path, sha256) and :func:`lock_status` of the installed packages against it;
+    ``{"file": path, "found": False}`` when there is no lock file (e.g. an installed copy)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return {"file": str(path), "found": False}
+    status = lock_status(parse_lock(data.decode()), installed_versions() if installed is None else installed)
+    shown = path.resolve().relative_to(ROOT).as_posix() if path.resolve().is_relative_to(ROOT) else str(path)
+    return {"file": shown, "found": True,
+            "sha256": hashlib.sha256(data).hexdigest(), **status}
+
+
+def collect(lock: str | Path = LOCK_FILE) -> dict[str, Any]:
+    """Everything about this machine and installation that can change a published number.
+
+    ``python``, ``platform``, ``libraries`` (name -> version; the artifacts' list plus
+    :data:`EXTRA_LIBRARIES`), ``torch`` (:func:`torch_build`), ``cpu`` (:func:`cpu`), ``threads``
+    (torch intra-/inter-op threads of this process), ``env`` (:func:`numerics_env`) and ``lock``
+    (:func:`lock_record`).  Reads only; deterministic on one machine and installation.
+    """
+    import torch
+
+    libs = {k: v for k, v in library_versions().items() if k != "python"}
+    installed = installed_versions()
+    for name in EXTRA_LIBRARIES:
+        if normalize_name(name) in installed:
+            libs[name] = installed[normalize_name(name)]
+    return {"python": f"{platform.python_implementation()} {platform.python_version()}",
+            "platform": platform.platform(), "libraries": libs, "torch": torch_build(), "cpu": cpu(),
+            "threads": {"torch": torch.get_num_threads(), "torch_interop": torch.get_num_interop_threads()},
+            "env": numerics_env(os.environ), "lock": lock_record(lock, installed)}
+
+
+def training_runtime(device) -> dict[str, Any]:
+    """What a train run ran on, for its checkpoint's ``meta.json`` (``extra.runtime``): device (and GPU
+    name), torch's intra-op thread count at the end of training (``train.num_threads`` when set, else
+    torch's default), the torch build and CPU kernel level, and the CPU model and numeric flags."""
+    import torch
+
+    dev = torch.device(device)
+    info = cpu()
+    out = {"device": str(dev), "num_threads": torch.get_num_threads(), "torch": torch.__version__,
+           "cpu_capability": torch.backends.cpu.get_cpu_capability(), "cpu_model": info["model"],
+           "cpu_flags": info["flags"]}
+    if dev.type == "cuda":
+        out["gpu"] = torch.cuda.get_device_name(dev)
+    return out

@@ -1,0 +1,132 @@
+"""The report's "Environment" section and its machine-readable twin (``environment.json``): where the
+published numbers were computed (pipeline.environment collects it; nothing here is fingerprinted).
+
+* the machine and installation that built the report (:func:`pipeline.environment.collect`);
+* every training run's own record from its checkpoint's ``meta.json``: the precision it actually used
+  (``extra.autocast``), its device, torch threads, CPU and torch build (``extra.runtime``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from pipeline.errors import ArtifactError
+from pipeline.report.document import Section, Table, Text
+
+#: ``extra.autocast`` of a checkpoint -> the precision as the report names it
+PRECISION_TEXT = {"bfloat16": "bf16 autocast", "float16": "fp16 autocast", "fp32": "fp32"}
+NOT_RECORDED = "not recorded"
+
+
+def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
+    """One record per active run under ``checkpoints/<method>/<seed>/``: method, seed, ``precision``
+    (the autocast it actually used), ``runtime`` (``extra.runtime``; None for a checkpoint written
+    before it was recorded) and ``torch`` (the checkpoint's library_versions).  [] without checkpoints."""
+    from pipeline.artifacts import open_artifact
+    from pipeline.inference import iter_runs
+
+    try:
+        runs = list(iter_runs(checkpoints))
+    except ArtifactError:
+        return []
+    out = []
+    for method, seed, path in runs:
+        try:
+            meta = open_artifact(path).meta
+        except ArtifactError:
+            continue
+        extra = meta.extra or {}
+        out.append({"method": method, "seed": int(seed), "precision": extra.get("autocast"),
+                    "runtime": extra.get("runtime"), "torch": (meta.library_versions or {}).get("torch")})
+    return out
+
+
+def environment_record(env: Mapping[str, Any] | None, runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """What ``environment.json`` holds: ``{"report": env, "training_runs": runs}``."""
+    return {"report": dict(env) if env is not None else None, "training_runs": [dict(r) for r in runs]}
+
+
+def _run_config(run: Mapping[str, Any]) -> tuple[str, ...]:
+    """The columns of the training table for one run (runs with equal columns share a row)."""
+    rt = run.get("runtime") or {}
+    device = rt.get("device", NOT_RECORDED) + (f" ({rt['gpu']})" if rt.get("gpu") else "")
+    precision = PRECISION_TEXT.get(run.get("precision"), run.get("precision") or NOT_RECORDED)
+    threads = str(rt["num_threads"]) if "num_threads" in rt else NOT_RECORDED
+    cpu = rt.get("cpu_model") or NOT_RECORDED
+    flags = " ".join(rt.get("cpu_flags") or []) or NOT_RECORDED
+    kernels = rt.get("cpu_capability") or NOT_RECORDED
+    return device, precision, threads, cpu, kernels, flags, str(run.get("torch") or NOT_RECORDED)
+
+
+def training_table(runs: Sequence[Mapping[str, Any]]) -> Table:
+    """Training runs grouped by identical (device, precision, threads, CPU, kernels, flags, torch)."""
+    groups: dict[tuple[str, ...], list[str]] = {}
+    for r in runs:
+        groups.setdefault(_run_config(r), []).append(f"{r['method']} s{r['seed']}")
+    rows = []
+    for config, names in groups.items():
+        who = f"all {len(runs)} runs" if len(groups) == 1 else ", ".join(names)
+        rows.append([who, *config])
+    return Table("tab:environment-training", "Where each training run ran (from its checkpoint's meta.json)",
+                 ["Runs", "Device", "Precision", "torch threads", "CPU", "torch CPU kernels", "CPU flags", "torch"],
+                 rows, notes=["Precision = the autocast actually used (train.precision resolved on that device); "
+                              "threads = torch.get_num_threads() during training."])
+
+
+def software_table(env: Mapping[str, Any]) -> Table:
+    rows = [["Python", env["python"]]] + [[name, version] for name, version in env["libraries"].items()]
+    return Table("tab:environment-software", "Software of the installation that built this report",
+                 ["Package", "Version"], rows)
+
+
+def machine_table(env: Mapping[str, Any]) -> Table:
+    t, c = env["torch"], env["cpu"]
+    settings = t.get("settings", {})
+    onednn = next((x for x in t.get("components", []) if "MKL-DNN" in x or "oneDNN" in x), "--")
+    mkl = next((x for x in t.get("components", []) if "Math Kernel Library" in x), "--")
+    rows = [["Platform", env["platform"]],
+            ["CPU", f"{c['model']} ({c['logical_cpus']} logical CPUs)"],
+            ["CPU flags (numeric kernels)", " ".join(c["flags"]) or "--"],
+            ["torch build", f"{t['version']} ({'CUDA ' + t['cuda'] if t.get('cuda') else 'CPU-only'}; git "
+                            f"{str(t.get('git') or '--')[:12]})"],
+            ["torch CPU kernels", str(t.get("cpu_capability"))],
+            ["oneDNN", onednn if t.get("mkldnn") else f"not available ({onednn})"],
+            ["MKL", mkl if t.get("mkl") else "not available"],
+            ["BLAS / LAPACK", f"{settings.get('BLAS_INFO', '--')} / {settings.get('LAPACK_INFO', '--')}"],
+            ["GPUs", ", ".join(t.get("gpus") or []) or "none"],
+            ["torch threads (report process)", f"{env['threads']['torch']} intra-op, "
+                                               f"{env['threads']['torch_interop']} inter-op"],
+            ["Thread / numerics variables set", ", ".join(f"{k}={v}" for k, v in env["env"].items()) or "none"]]
+    return Table("tab:environment-machine", "Machine and torch build that built this report", ["Item", "Value"], rows)
+
+
+def lock_text(lock: Mapping[str, Any]) -> str:
+    """One sentence on the installed packages against the lock file."""
+    if not lock.get("found"):
+        return (f"No lock file (`{lock.get('file')}`) was found beside the code, so the installed versions "
+                f"were not compared with a lock.")
+    head = (f"Lock `{lock['file']}` (sha256 `{lock['sha256'][:12]}`): {lock['matching']} of {lock['pinned']} pinned "
+            f"packages installed at the pinned version, {lock['not_installed']} not installed (e.g. the CUDA wheels "
+            f"of the public torch build on a CPU machine)")
+    if not lock["differ"]:
+        return head + ", none at another version."
+    diff = "; ".join(f"`{d['package']}` {d['installed']} (lock {d['lock']})" for d in lock["differ"])
+    return head + f". **{len(lock['differ'])} installed at another version than the lock**: {diff}."
+
+
+def environment_section(env: Mapping[str, Any] | None, runs: Sequence[Mapping[str, Any]]) -> Section:
+    """The "Environment" section: the report machine's software, torch build and CPU, and each training
+    run's precision, threads, device and CPU."""
+    sec = Section("Environment", [Text(
+        "Where these numbers were computed. Provenance only: none of it enters an artifact's fingerprint. "
+        "The same record, machine-readable: `environment.json` beside this page.")])
+    if runs:
+        sec.blocks.append(training_table(runs))
+    else:
+        sec.blocks.append(Text("No training run was found, so no run's precision or threads are recorded."))
+    if env is None:
+        sec.blocks.append(Text("The environment of the report process was not recorded."))
+        return sec
+    sec.blocks += [Text(lock_text(env["lock"])), software_table(env), machine_table(env)]
+    return sec
