@@ -113,7 +113,8 @@ def test_report_writes_svg_charts(built, tmp_path):
     assert res.exit_code == 0, res.output
     for name in charts:
         for ext in ("svg", "png"):
-            assert (again / "figures" / f"{name}.{ext}").read_bytes() == (out / "figures" / f"{name}.{ext}").read_bytes()
+            f = f"figures/{name}.{ext}"
+            assert (again / f).read_bytes() == (out / f).read_bytes(), f
 
 
 def test_report_with_missing_tables_says_so(tmp_path, built):
@@ -193,6 +194,9 @@ def test_line_plot_draws_series():
 
     fig = F.line_plot([{"x": [0, 1, 2], "y": [0.1, 0.5, 0.3], "label": "a", "marker": 1.0},
                        {"x": [0, 2], "y": [0.2, 0.2], "label": "b", "color": (0, 200, 0)}], "t", "x", "y")
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    assert isinstance(fig.canvas, FigureCanvasAgg)                       # Agg, no pyplot, no GUI backend
     lines = [ln for ln in fig.axes[0].get_lines() if ln.get_gid()]
     assert [ln.get_label() for ln in lines] == ["a", "b"]
     assert to_hex(lines[0].get_color()) == to_hex(np.divide(F.PALETTE[0], 255))

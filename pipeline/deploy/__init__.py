@@ -13,7 +13,10 @@ Modules, one concern each (their docstrings hold the decisions they implement):
 
 * :mod:`pipeline.deploy.export`     the mask path as a module, TorchScript / ONNX export, parity;
 * :mod:`pipeline.deploy.quantize`   static int8 ONNX model, its calibration images and agreement gate;
-* :mod:`pipeline.deploy.bundle`     the deploy bundle (files, deploy.json), checkpoint resolution;
+* :mod:`pipeline.deploy.bundle`     the deploy bundle (files, deploy.json), checkpoint resolution
+                                     (weights: pipeline.weights, safetensors + JSON);
+* :mod:`pipeline.deploy.engines`    the engine registry (name -> what it runs -> loader -> runner),
+                                     shared by the Segmenter and the benchmark;
 * :mod:`pipeline.deploy.segmenter`  :class:`Segmenter`: a checkpoint or bundle loaded with one engine;
 * :mod:`pipeline.deploy.files`      segmenting image files (inputs, outputs, PNGs, skipped.csv);
 * :mod:`pipeline.deploy.benchmark`  efficiency variants, timing, peak memory, fast path and verdicts.

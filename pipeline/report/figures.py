@@ -293,5 +293,5 @@ def _draw_series(ax, s: dict, i: int, n: int) -> None:
     if s.get("marker") is not None and ok.any():
         mx = float(s["marker"])
         my = float(np.interp(mx, x[ok], y[ok]))
-        ax.plot([mx], [my], marker="o", markersize=7 + 4 * (n - 1 - i) / max(n - 1, 1), color=color, markeredgecolor="black", linestyle="none",
-                zorder=3 + n + i)
+        ax.plot([mx], [my], marker="o", markersize=7 + 4 * (n - 1 - i) / max(n - 1, 1), color=color,
+                markeredgecolor="black", linestyle="none", zorder=3 + n + i)
