@@ -284,6 +284,20 @@ def _emit(model_cls, values: dict, indent: int, lines: list[str]) -> None:
             lines.append(f"{pad}{key}: {_flow(value)}{' ' if desc else ''}{desc}")
 
 
+#: how every generated params file begins (PARAMS_HEADER, a distill project's header): how `profile`
+#: recognises its own output (pipeline.ownership)
+GENERATED_PARAMS_MARK = "# GeoDistill-Refine params"
+
+
+def is_generated_params(path: str | Path) -> bool:
+    """Whether ``path`` is a params file written by ``geodistill profile`` / ``distill`` (its first line)."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            return f.readline().startswith(GENERATED_PARAMS_MARK)
+    except OSError:
+        return False
+
+
 def render_params_yaml(profile: str, overrides: dict | None = None, header: str | None = None) -> str:
     """params.yaml text of ``profile``; ``overrides`` (a nested mapping, e.g. a standalone project's
     data source) are merged over it and ``header`` replaces the standard comment block."""

@@ -16,7 +16,9 @@ paths (``a.png``, ``a.jpg`` and ``a_png.png`` cannot meet).  Before anything is 
 letter case (``b.png`` / ``b.PNG``: one would replace the other on a case-insensitive disk, and on
 any disk the folder could not be copied to one), when an output would be a file where another output
 needs a folder, when ``--output`` (or a folder on the way) is a file, when an output would replace an
-input, and -- unless ``overwrite`` -- when an output file or skipped.csv already exists.
+input, and -- unless ``overwrite`` -- when an output file or skipped.csv already exists that no
+``segment.json`` of an earlier run lists (:mod:`pipeline.ownership`: a rerun replaces its own outputs,
+never a file it did not write).
 
 Symbolic links inside an input folder (decision): a link to an image inside the input folder is
 segmented under the link's own name; a link whose target lies outside the input folder, a broken link
@@ -44,6 +46,8 @@ from pipeline.thresholds import mask_from_probs
 MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX = ".mask.png", ".prob.png", ".overlay.png"
 OUTPUT_SUFFIXES = (MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX)
 SKIPPED_CSV = "skipped.csv"
+#: segment's record (pipeline.ownership): the outputs a rerun may replace without --overwrite
+RECORD = "segment.json"
 
 
 def output_path(stem: Path, suffix: str) -> Path:
@@ -158,8 +162,11 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
     output folder is, or is inside, the input folder; two inputs' outputs differ only in letter case,
     or one output file would be a folder another output needs; an output would be one of the inputs;
     an output is an existing folder; ``overwrite`` is False and an output file of the kinds
-    ``suffixes`` or ``skipped.csv`` already exists (the first one is named).
+    ``suffixes``, ``skipped.csv`` or ``segment.json`` already exists that the ``segment.json`` of an
+    earlier run does not list (the first one is named; :mod:`pipeline.ownership`).
     """
+    from pipeline.ownership import owned_outputs, refuse_unowned
+
     out = Path(out_dir).absolute()
     cache: dict[Path, Path | None] = {}
     blocked = _blocking_file(out, cache)
@@ -199,17 +206,24 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
             target = output_path(s, suffix)
             if target.resolve() in inputs:
                 raise InputError(f"--output {out_dir}: would overwrite the input {target}")
-    targets = [output_path(s, suffix) for s in stems for suffix in suffixes] + [out / SKIPPED_CSV]
+    targets = [output_path(s, suffix) for s in stems for suffix in suffixes] + [out / SKIPPED_CSV, out / RECORD]
     for t in targets:
         blocked = _blocking_file(t.parent, cache)
         if blocked is not None:
             raise InputError(f"--output {out_dir}: {blocked} is a file where a folder is needed for {t.name}")
         if t.is_dir():
             raise InputError(f"--output {out_dir}: {t} is a folder; an output file must go there")
-        if not overwrite and (t.is_symlink() or t.exists()):
-            raise InputError(f"--output {out_dir}: {t} already exists; pass --overwrite to replace the outputs, "
-                             "or choose another --output")
+    own = [out / r for r in owned_outputs(out, RECORD, "segment")]
+    refuse_unowned(targets, own, command="segment", option="--output", where=out_dir,
+                   why=f"not listed in a {RECORD} there", overwrite=overwrite)
     return stems
+
+
+def relative_outputs(out_dir: str | Path, stems: Sequence[Path], suffixes: Sequence[str]) -> list[str]:
+    """The output files of ``stems`` (from :func:`plan_outputs`) and skipped.csv, relative to
+    ``out_dir`` (posix): what ``segment.json`` lists."""
+    out = Path(out_dir).absolute().resolve()
+    return [output_path(s, x).relative_to(out).as_posix() for s in stems for x in suffixes] + [SKIPPED_CSV]
 
 
 def probs_to_size(probs: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -317,15 +331,19 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
     return SegmentResult(written, skipped, model_s, time.perf_counter() - t_start)
 
 
-def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str]]) -> Path:
-    """``skipped.csv`` (columns path, reason), written atomically; header only when nothing was skipped."""
+def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str, str]]) -> Path:
+    """``skipped.csv`` (columns image_id, path, reason: those of skipped_files.parquet,
+    :data:`pipeline.datasets.manifest.SKIPPED_COLUMNS`), written atomically; header only when nothing
+    was skipped."""
+    from pipeline.datasets.manifest import SKIPPED_COLUMNS
+
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["path", "reason"])
+            w.writerow(list(SKIPPED_COLUMNS))
             w.writerows(skipped)
         os.replace(tmp, path)
     except OSError as e:
