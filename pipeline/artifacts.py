@@ -389,8 +389,9 @@ def atomic_path(path: str | Path, is_dir: bool = False) -> Iterator[Path]:
             shutil.rmtree(tmp, ignore_errors=True)
         elif tmp.exists():
             tmp.unlink()
-        if isinstance(e, OSError) and e.filename is None and (code := _errno_of(e)):
-            # a failed write() names no file (ENOSPC while writing, pyarrow's IO errors): name the output
+        if isinstance(e, OSError) and e.filename in (None, str(tmp)) and (code := _errno_of(e)):
+            # a failed write() names no file (ENOSPC while writing, pyarrow's IO errors), an open() the
+            # hidden temporary: name the output the user asked for
             raise OSError(code, os.strerror(code), str(path)) from e
         raise
     _replace(tmp, path)

@@ -41,7 +41,8 @@ def main(params, device, input_dir, out, checkpoint, backend, imported_dir, refe
     click.echo(f"label: {len(result.table)} images -> {result.out} ({', '.join(result.formats)}); "
                f"gate g median {g.median():.3f}, {int((g > 0).sum())} with g > 0"
                + ("; backend simulated is a SIMULATOR" if result.simulator else ""), err=True)
-    click.echo(result.skipped_line, err=True)
+    if result.skipped_line:
+        click.echo(result.skipped_line, err=True)
 
 
 if __name__ == "__main__":

@@ -97,6 +97,8 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
 
     for path, reason in found.skipped:  # links and special files: before anything is written
         policy.report(image_id(path), path, reason)
+    for path, reason in found.unused:  # not images (hidden files, other types): listed, not an error
+        policy.record(image_id(path), path, reason)
 
     seg = deploy.load_segmenter(checkpoint, engine, resolve_device(device), thresholds)
     tau, source = seg.resolve_tau(option=tau, fixed=(_fallback(params_file, overrides, "calibrate", "fixed_tau"),
@@ -129,7 +131,8 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
     listing = Path(output) / F.SKIPPED_CSV
     deploy.write_skipped_csv(listing, policy.rows())
     click.echo(f"segment: wrote {len(result.written)} mask(s) to {output}", err=True)
-    click.echo(policy.summary("segment", listing), err=True)
+    if (line := policy.summary("segment", listing)) is not None:
+        click.echo(line, err=True)
     if result.written:
         n = len(result.written)
         click.echo(f"segment: timing: engine {seg.engine}, {1e3 * result.model_seconds / n:.2f} ms/image in the model, "

@@ -119,9 +119,8 @@ def test_distill_with_validation_masks(folder, tiny_sam3, tmp_path):  # noqa: F8
     ("empty", "no images"),
     ("simulated", "SIMULATOR"),
     ("few_masks", "at least 2"),
-    ("not_project", "not a `geodistill distill` project"),
+    ("not_project", "params.yaml exists and was not written by geodistill distill"),
     ("no_teacher", "--checkpoint SAM3_DIR is required"),
-    ("subfolder", "sub-folder 'nested'"),
 ])
 def test_distill_errors_are_one_line_exit_2(folder, tmp_path, tiny_sam3, case, message):  # noqa: F811
     images, val = folder
@@ -132,19 +131,16 @@ def test_distill_errors_are_one_line_exit_2(folder, tmp_path, tiny_sam3, case, m
     (one / "img00.png").write_bytes((val / "img00.png").read_bytes())
     busy = tmp_path / "busy"
     busy.mkdir()
-    (busy / "notes.txt").write_text("mine")
-    nested = tmp_path / "withsub"
-    (nested / "nested").mkdir(parents=True)
-    (nested / "a.png").write_bytes((images / "img00.png").read_bytes())
+    (busy / "params.yaml").write_text("mine")  # the user's file where the project's would go
     ck = ["--checkpoint", tiny_sam3]
     out = ["--out", tmp_path / "o", "--no-run"]
     args = {"missing": [tmp_path / "nope", *out, *ck], "empty": [empty, *out, *ck],
             "simulated": [images, *out, "--backend", "simulated"],
             "few_masks": [images, *out, *ck, "--val-masks", one],
-            "not_project": [images, "--out", busy, "--no-run", *ck], "no_teacher": [images, *out],
-            "subfolder": [nested, *out, *ck]}[case]
+            "not_project": [images, "--out", busy, "--no-run", *ck], "no_teacher": [images, *out]}[case]
     res = cli("distill", *args)
     assert res.exit_code == 2, res.output
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("geodistill distill: error:") and message in lines[0], res.output
-    assert not (tmp_path / "o").exists() and (busy / "notes.txt").read_text() == "mine"
+    assert not (tmp_path / "o").exists() and (busy / "params.yaml").read_text() == "mine"
+    assert sorted(p.name for p in busy.iterdir()) == ["params.yaml"]  # refused before anything was written

@@ -80,12 +80,12 @@ class BadInputPolicy:
         """Files left out by :meth:`report` (not the ones merely listed by :meth:`record`)."""
         return sum(1 for r in self.skipped if not r.get("listed_only"))
 
-    def summary(self, command: str, listing) -> str:
-        """The one stderr line every command prints at its end: how many bad files were left out and
-        where they are listed (the first one named)."""
+    def summary(self, command: str, listing) -> str | None:
+        """The one stderr line every command prints at its end when bad files were left out: how
+        many, the first one, and where all are listed; None when there were none."""
         bad = [r for r in self.skipped if not r.get("listed_only")]
         if not bad:
-            return f"{command}: no bad files"
+            return None
         return (f"{command}: skipped {len(bad)} bad file(s) (first: {bad[0]['path']}: {bad[0]['reason']}); "
                 f"all are listed with the reason in {listing}")
 

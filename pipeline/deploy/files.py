@@ -39,6 +39,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
+from pipeline.datasets.scan import Inputs, _is_within, scan_inputs  # noqa: F401  (the folder scan, re-exported)
 from pipeline.deploy.segmenter import Segmenter
 from pipeline.errors import InputError
 from pipeline.thresholds import mask_from_probs
@@ -60,74 +61,10 @@ def output_suffixes(save_prob: bool = False, overlay: bool = False) -> tuple[str
     return (MASK_SUFFIX,) + ((PROB_SUFFIX,) if save_prob else ()) + ((OVERLAY_SUFFIX,) if overlay else ())
 
 
-@dataclasses.dataclass
-class Inputs:
-    root: Path                       # the input folder, or the parent of the single input file
-    files: list[Path]                # images to segment, sorted
-    skipped: list[tuple[str, str]]   # (path, reason): links not followed, non-regular files
-    is_dir: bool
-
-
-def scan_inputs(input_path: str | Path) -> Inputs:
-    """The images under ``input_path`` and the entries skipped on the way (module docstring).
-
-    A single file is taken as given (any suffix; the reader decides).  A folder is walked recursively
-    without following links; hidden entries are left out; among the other entries with a supported
-    image suffix, regular files and links to files inside the folder are kept, and broken links,
-    links leaving the folder, links to folders and special files are reported in ``skipped``.
-    """
-    from pipeline.datasets.loading import SUPPORTED_SUFFIXES
-
-    p = Path(input_path)
-    if not p.exists():
-        raise InputError(f"--input {p}: not found")
-    if not p.is_dir():
-        return Inputs(p.parent, [p], [], False)
-    root_r = p.resolve()
-    files: list[Path] = []
-    skipped: list[tuple[str, str]] = []
-
-    def walk_error(e: OSError) -> None:
-        skipped.append((str(e.filename), f"folder unreadable ({e.strerror or type(e).__name__})"))
-
-    for dirpath, dirnames, filenames in os.walk(p, onerror=walk_error, followlinks=False):
-        d = Path(dirpath)
-        dirnames[:] = sorted(n for n in dirnames if not n.startswith("."))
-        for n in dirnames:
-            if (d / n).is_symlink():  # os.walk does not descend into it: say so
-                skipped.append((str(d / n), "symbolic link to a folder (links to folders are not followed)"))
-        for n in sorted(filenames):
-            f = d / n
-            if n.startswith(".") or f.suffix.lower() not in SUPPORTED_SUFFIXES:
-                continue
-            if f.is_symlink():
-                try:
-                    target = f.resolve(strict=True)
-                except (OSError, RuntimeError):
-                    skipped.append((str(f), "broken symbolic link"))
-                    continue
-                if not _is_within(target, root_r):
-                    skipped.append((str(f), f"symbolic link pointing outside the input folder (to {target})"))
-                    continue
-            if not f.is_file():
-                skipped.append((str(f), "not a regular file"))
-                continue
-            files.append(f)
-    return Inputs(p, sorted(files), sorted(skipped), True)
-
-
 def discover_images(input_path: str | Path) -> tuple[Path, list[Path]]:
     """(root, image files) of :func:`scan_inputs` (the skipped entries are dropped: use scan_inputs)."""
     found = scan_inputs(input_path)
     return found.root, found.files
-
-
-def _is_within(child: Path, parent: Path) -> bool:
-    try:
-        child.relative_to(parent)
-        return True
-    except ValueError:
-        return False
 
 
 def _relative(f: Path, root: Path, root_r: Path) -> Path:

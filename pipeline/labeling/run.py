@@ -71,7 +71,7 @@ class LabelResult:
     skipped: list[tuple[str, str]]
     formats: tuple[str, ...]
     backend: str
-    skipped_line: str = ""  # the bad-file summary line (BadInputPolicy.summary)
+    skipped_line: str | None = None  # the bad-file summary line (BadInputPolicy.summary; None: no bad file)
 
     @property
     def simulator(self) -> bool:
@@ -90,11 +90,12 @@ def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
     return tuple(f for f in FORMATS if f in items)
 
 
-def find_images(input_dir: str | Path) -> tuple[Path, list[Path], list[tuple[str, str]]]:
-    """(folder, image files sorted, skipped (path, reason)) under ``input_dir``, recursively
-    (:func:`pipeline.deploy.files.scan_inputs` rules); InputError when it is not a folder or has no image."""
+def find_images(input_dir: str | Path):
+    """The :class:`pipeline.datasets.scan.Inputs` of ``input_dir`` (images sorted, bad entries, files
+    that are not images), recursively (:func:`pipeline.datasets.scan.scan_inputs`, the one scan of
+    label, distill and segment); InputError when it is not a folder or has no image."""
     from pipeline.datasets.loading import SUPPORTED_SUFFIXES
-    from pipeline.deploy.files import scan_inputs
+    from pipeline.datasets.scan import scan_inputs
 
     root = Path(input_dir)
     if not root.is_dir():
@@ -103,7 +104,7 @@ def find_images(input_dir: str | Path) -> tuple[Path, list[Path], list[tuple[str
     found = scan_inputs(root)
     if not found.files:
         raise InputError(f"{root}: no images ({', '.join(s.lstrip('.') for s in SUPPORTED_SUFFIXES)}) in this folder")
-    return root, found.files, found.skipped
+    return found
 
 
 def _id_of(root: Path, path: str | Path) -> str:
@@ -225,14 +226,17 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
     from pipeline.teachers.runner import TeacherRunner
 
     fmts = parse_formats(formats)
-    root, files, found_skipped = find_images(input_dir)
+    found = find_images(input_dir)
+    root, files = found.root, found.files
     out = Path(out)
     if out.resolve() == root.resolve() or root.resolve() in out.resolve().parents:
         raise InputError(f"--out {out}: must not be the input folder or inside it")
     ids = image_ids(root, files)
     policy = BadInputPolicy(section(params, "data")["skip_bad"])
-    for path, reason in found_skipped:  # links leaving the folder, broken links: before anything is written
+    for path, reason in found.skipped:  # links leaving the folder, broken links: before anything is written
         policy.report(_id_of(root, path), path, reason)
+    for path, reason in found.unused:  # not images (hidden files, other types): listed, not an error
+        policy.record(_id_of(root, path), path, reason)
     check_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], "label", overwrite=overwrite)
     data_cfg, geo = section(params, "data"), section(params, "geometry")
     tcfg = section(params, "teacher")
