@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -59,7 +60,7 @@ def without_masks(folder, tiny_sam3, tmp_path_factory):  # noqa: F811
     return out
 
 
-def test_distill_without_masks_fixed_tau_last_epoch_and_said_so(folder, without_masks):
+def test_distill_without_masks_fixed_tau_last_epoch_and_said_so(folder, without_masks, tmp_path):
     from pipeline.deploy.segmenter import Segmenter
 
     images, _ = folder
@@ -70,6 +71,15 @@ def test_distill_without_masks_fixed_tau_last_epoch_and_said_so(folder, without_
     assert set(thr["method"]) == {"plain", "geodistill"} and (thr["tau"] == 0.5).all() and (thr["n_val"] == 0).all()
     report = (out / "reports" / "distill" / "report.md").read_text()
     assert "No validation or test masks were available" in report
+    # what was not computed is said plainly; tau is called what it is; no nan shown as a result (issue 23)
+    assert "Not computed: no validation or test masks" in report and "**Missing:" not in report
+    assert "the fixed tau = 0.5" in report and "validation-calibrated" not in report
+    assert not re.search(r"\bnan\b", report, re.I) and "Val Image IoU change" not in report
+    # a good DVC citizen without git: `dvc plots show` shows the runs' DVCLive curves
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    r = subprocess.run([sys.executable, "-m", "dvc", "plots", "show", "-o", str(tmp_path / "p")], cwd=out, env=env,
+                       capture_output=True, text=True)
+    assert r.returncode == 0 and "training loss" in (tmp_path / "p" / "index.html").read_text(), r.stdout + r.stderr
     manifest = pd.read_parquet(out / "artifacts" / "manifest.parquet")
     assert (manifest["split"] == "train").all() and len(manifest) == 20
     for method in ("plain", "geodistill"):

@@ -521,7 +521,8 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
 
 def provenance_section(inp: Inputs) -> Section:
     rows = [[f"`{catalog.ARTIFACTS[n].path}`", a.meta.schema, a.meta.stage, a.fingerprint[:16]] for n, a in inp.found.items()]
-    rows += [[f"`{catalog.ARTIFACTS[n].path}`", "--", "--", "missing"] for n in inp.missing]
+    rows += [[f"`{catalog.ARTIFACTS[n].path}`", "--", "--",
+              "not computed (no masks)" if inp.no_masks and n in MASK_INPUTS else "missing"] for n in inp.missing]
     return Section("Provenance", [Table("tab:provenance", "Input artifacts", ["Artifact", "Schema", "Stage",
                                                                              "Fingerprint"], rows)])
 
