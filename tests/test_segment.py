@@ -90,8 +90,9 @@ def test_segment_checkpoint_folder_odd_sizes_formats_and_corrupt_file(tmp_path):
         assert np.abs(prob.astype(float) - p * 255).max() <= 0.51
     # with --skip-bad the corrupt and zero-byte files are listed and skipped; the text file is not a candidate
     rows = list(csv.DictReader(open(out / "skipped.csv")))
-    assert sorted(Path(r["path"]).name for r in rows) == ["broken.png", "empty.jpg"]
+    assert sorted(Path(r["path"]).name for r in rows) == ["broken.png", "empty.jpg", "notes.txt"]
     assert all(r["reason"] for r in rows)
+    assert [r["reason"] for r in rows if r["path"].endswith("notes.txt")][0].startswith("not an image file")
     assert "segment: skipped 2 bad file(s) (first: " in r.output and str(out / "skipped.csv") in r.output
     # inputs untouched
     assert all(p.read_bytes() == b for p, b in before.items())
