@@ -114,10 +114,8 @@ def protocol_text(input_dir: Path, val_masks: Path | None) -> str:
 
 
 def check_val_masks(input_dir: Path, masks: Path) -> int:
-    """How many images of ``input_dir`` have a mask (same stem) in ``masks``; InputError under 2 (the
-    folder protocol needs one validation and one test image)."""
-    from pipeline.datasets.loading import SUPPORTED_SUFFIXES
-
+    """How many images of ``input_dir`` have a mask (same id: relative path without the suffix) in
+    ``masks``; InputError under 2 (the folder protocol needs one validation and one test image)."""
     from pipeline.datasets.scan import scan_inputs
 
     def ids(folder: Path) -> set[str]:  # the folder adapter's image ids: relative path without suffix

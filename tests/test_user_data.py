@@ -6,7 +6,6 @@ tiny random SAM 3 or a tiny random checkpoint.  Seconds each."""
 
 from __future__ import annotations
 
-import csv
 import errno
 import json
 import os
@@ -15,8 +14,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pandas as pd
 import pytest
 import yaml

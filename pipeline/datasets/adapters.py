@@ -57,7 +57,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.datasets.loading import SUPPORTED_SUFFIXES
 from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec
 from pipeline.datasets.synthetic import stable_hash
 from pipeline.errors import InputError
