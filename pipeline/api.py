@@ -69,15 +69,23 @@ def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | N
     return validate(deep_merge(params, {"teacher": chosen}), "options")
 
 
+def with_skip_bad(params: dict, skip_bad: bool) -> dict:
+    """``params`` with ``data.skip_bad`` true when ``--skip-bad`` was given (it never turns it off)."""
+    from pipeline.params import deep_merge
+
+    return deep_merge(params, {"data": {"skip_bad": True}}) if skip_bad else params
+
+
 def label(input: str | Path, checkpoint: str | Path | None = None, out: str | Path | None = None,
           formats: str | Sequence[str] = ("png", "coco", "yolo"), *, backend: str | None = None,
           imported_dir: str | Path | None = None, reference_masks: str | Path | None = None,
           params: str | Path | None = None, overrides: Mapping | Iterable[str] | None = None,
-          device: str = "auto"):
+          device: str = "auto", skip_bad: bool = False, overwrite: bool = False):
     """Pseudo-label the images under ``input`` into ``out`` (``geodistill label``;
     :mod:`pipeline.labeling.run`): voted masks as PNG / COCO RLE / YOLO files, the gate table and a
     contact sheet.  Returns a :class:`pipeline.labeling.LabelResult` (``.table``: c, v, a, g per image).
-    ``backend="simulated"`` is a SIMULATOR that needs ``reference_masks``."""
+    ``backend="simulated"`` is a SIMULATOR that needs ``reference_masks``.  ``skip_bad`` and
+    ``overwrite``: the command's ``--skip-bad`` and ``--overwrite`` (docs/own-data.md)."""
     from pipeline.labeling import label_folder
     from pipeline.labeling.run import parse_formats
 
@@ -85,13 +93,16 @@ def label(input: str | Path, checkpoint: str | Path | None = None, out: str | Pa
         raise InputError("label: out= (the output folder) is required")
     fmts = parse_formats(formats)
     p = choose_teacher(effective_params(params, overrides, LABEL_PROFILE), backend, checkpoint, imported_dir)
-    return label_folder(input, out, p, device=device, formats=fmts, reference_masks=reference_masks)
+    p = with_skip_bad(p, skip_bad)
+    return label_folder(input, out, p, device=device, formats=fmts, reference_masks=reference_masks,
+                        overwrite=overwrite)
 
 
 def distill(input: str | Path, out: str | Path | None = None, val_masks: str | Path | None = None,
             checkpoint: str | Path | None = None, *, backend: str | None = None,
             imported_dir: str | Path | None = None, params: str | Path | None = None,
-            overrides: Mapping | Iterable[str] | None = None, device: str = "auto", run: bool = True) -> dict:
+            overrides: Mapping | Iterable[str] | None = None, device: str = "auto", run: bool = True,
+            skip_bad: bool = False, overwrite: bool = False) -> dict:
     """Train a deployable student on the images under ``input`` (``geodistill distill``;
     :mod:`pipeline.standalone`): ``out`` becomes a DVC project running the pipeline's DAG (rerun to
     resume).  Returns ``{"deploy", "report", "thresholds", "checkpoints"}`` paths; ``run=False`` only
@@ -101,7 +112,7 @@ def distill(input: str | Path, out: str | Path | None = None, val_masks: str | P
     if out is None:
         raise InputError("distill: out= (the project folder) is required")
     p = choose_teacher(effective_params(params, overrides, DISTILL_PROFILE), backend, checkpoint, imported_dir)
-    project = write_project(input, out, p, val_masks=val_masks)
+    project = write_project(input, out, with_skip_bad(p, skip_bad), val_masks=val_masks, overwrite=overwrite)
     if run:
         run_project(project, device)
     return project_outputs(project)

@@ -374,6 +374,16 @@ def _replace(tmp: Path, path: Path) -> None:
         os.replace(tmp, path)
 
 
+def _errno_of(e: OSError) -> int | None:
+    """``e.errno``, or the ``[errno N]`` that libraries (pyarrow) put in the message only."""
+    if e.errno:
+        return e.errno
+    import re
+
+    m = re.search(r"\[errno (\d+)\]", str(e), re.I)
+    return int(m.group(1)) if m else None
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path, is_dir: bool = False) -> Iterator[Path]:
     """Yield a hidden temp sibling of ``path``; on success rename it onto ``path``, else delete it."""
@@ -385,11 +395,15 @@ def atomic_path(path: str | Path, is_dir: bool = False) -> Iterator[Path]:
         tmp.mkdir()
     try:
         yield tmp
-    except BaseException:
+    except BaseException as e:
         if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)
         elif tmp.exists():
             tmp.unlink()
+        if isinstance(e, OSError) and e.filename in (None, str(tmp)) and (code := _errno_of(e)):
+            # a failed write() names no file (ENOSPC while writing, pyarrow's IO errors), an open() the
+            # hidden temporary: name the output the user asked for
+            raise OSError(code, os.strerror(code), str(path)) from e
         raise
     _replace(tmp, path)
 

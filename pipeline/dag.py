@@ -125,16 +125,36 @@ def dvc_plots(omit: tuple[str, ...] = ()) -> list[dict]:
             for p in PLOTS if ARTIFACTS[p.data].stage not in omit]
 
 
+#: the DVCLive column a run always logs (stages/train.py: write_live_log), plotted where no validation curve is
+LIVE_PLOT_METRIC = "loss"
+
+
+def live_plots(runs: dict[str, list[int]], metric: str = LIVE_PLOT_METRIC) -> list[dict]:
+    """A top-level plot of the runs' DVCLive logs (``<train_live>/plots/metrics/<metric>.tsv``, one line
+    per run, x = epoch step): what ``dvc plots show`` shows in a project without validation masks,
+    whose validation-curve plots (from the evaluate stage) do not exist."""
+    from pipeline.catalog import dvc_path
+
+    y = {f"{dvc_path('train_live', method=m, seed=s)}/plots/metrics/{metric}.tsv": metric
+         for m, seeds in runs.items() for s in seeds}
+    if not y:
+        return []
+    return [{f"training_{metric}": {"template": "linear", "x": "step", "y": y,
+                                    "title": f"Training {metric} per epoch (DVCLive, one line per run)",
+                                    "x_label": "epoch", "y_label": f"training {metric}"}}]
+
+
 def render_dvc_yaml(code_root: Path | None = None, data_deps: dict[str, list[str]] | None = None,
-                    header: str = DVC_HEADER, omit: tuple[str, ...] = ()) -> str:
+                    header: str = DVC_HEADER, omit: tuple[str, ...] = (), extra_plots: list[dict] = ()) -> str:
     """dvc.yaml text.  Default: this repository's DAG.  A standalone project (``geodistill distill``'s
     output folder) passes ``code_root`` (code deps become absolute paths of the installed code, so a
     code change still reruns exactly the stages that run it) and ``data_deps`` ({stage: paths}, e.g.
     the input image folder and the generated protocol file instead of data_manifests/) and may
     ``omit`` catalogue stages that have nothing to do there (``evaluate`` and ``analyze_teacher``
-    without any reference mask); the report reads whatever exists."""
+    without any reference mask; ``extra_plots`` then take the place of the plots of omitted stages,
+    e.g. :func:`live_plots`); the report reads whatever exists."""
     doc = {"stages": dvc_stages(code_root, data_deps, omit),
-           "plots": dvc_plots(omit)}
+           "plots": dvc_plots(omit) + list(extra_plots)}
     return header + yaml.safe_dump(doc, sort_keys=False, width=110, default_flow_style=False)
 
 
@@ -172,6 +192,20 @@ def _emit(model_cls, values: dict, indent: int, lines: list[str]) -> None:
                 lines.append(f"{pad}  {m}: {_flow(seeds)}")
         else:
             lines.append(f"{pad}{key}: {_flow(value)}{' ' if desc else ''}{desc}")
+
+
+#: how every generated params file begins (PARAMS_HEADER, a distill project's header): how `profile`
+#: recognises its own output (pipeline.ownership)
+GENERATED_PARAMS_MARK = "# GeoDistill-Refine params"
+
+
+def is_generated_params(path: str | Path) -> bool:
+    """Whether ``path`` is a params file written by ``geodistill profile`` / ``distill`` (its first line)."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            return f.readline().startswith(GENERATED_PARAMS_MARK)
+    except OSError:
+        return False
 
 
 def render_params_yaml(profile: str, overrides: dict | None = None, header: str | None = None) -> str:

@@ -17,6 +17,7 @@ Library code reads the paper's constants from here (``PAPER``), never from its o
 from __future__ import annotations
 
 import copy
+import re
 from pathlib import Path
 from typing import Annotated, Any, Iterable, Literal, Mapping
 
@@ -26,6 +27,28 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pipeline.errors import InputError
 
 DEFAULT_PARAMS = "params.yaml"
+
+
+class _Loader(yaml.SafeLoader):
+    """YAML with YAML 1.2's numbers: ``1e-4`` and ``5E-4`` (no dot) are floats, as people write learning
+    rates; PyYAML's YAML 1.1 reader takes them for strings.  The one reader of params, protocol files
+    and ``--set`` values (:func:`load_yaml`)."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+    |[-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+\.[0-9_]*
+    |[-+]?\.(?:inf|Inf|INF)
+    |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."))
+
+
+def load_yaml(text: str):
+    """``yaml.safe_load`` with scientific notation read as numbers (:class:`_Loader`)."""
+    return yaml.load(text, Loader=_Loader)
 
 
 class _Section(BaseModel):
@@ -415,7 +438,7 @@ def parse_override(item: str) -> tuple[list[str], Any]:
     if not key:
         raise InputError(f"--set {item!r}: empty key")
     try:
-        value = yaml.safe_load(raw)
+        value = load_yaml(raw)
     except yaml.YAMLError:
         raise InputError(f"--set {item!r}: value is not valid YAML") from None
     return key.split("."), value
@@ -444,7 +467,7 @@ def read_yaml_mapping(path: str | Path, what: str = "params file") -> dict:
     if not path.is_file():
         raise InputError(f"{path}: {what} not found")
     try:
-        raw = yaml.safe_load(path.read_text()) or {}
+        raw = load_yaml(path.read_text()) or {}
     except yaml.YAMLError as e:
         raise InputError(f"{path}: invalid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(raw, dict):

@@ -2,11 +2,16 @@
 
 * ``--params FILE`` (default params.yaml), ``--set key.path=value`` (repeatable), ``--device``;
 * logs on stderr, progress bars on every loop a user waits on (``pipeline.progress``);
-* user errors (:class:`pipeline.errors.InputError`) -> one line on stderr, exit code 2, no traceback.
+* user errors (:class:`pipeline.errors.InputError`) -> one line on stderr, exit code 2, no traceback;
+* operating-system failures (no space, no permission, read-only file system, path too long, ...) ->
+  one line on stderr naming the path, exit code 1, no traceback (:func:`one_line_errors`, the one place
+  both are handled; writes are atomic, so the previous complete output stays in place).
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import logging
 import os
 import sys
@@ -23,6 +28,50 @@ def setup_logging() -> None:
     level = os.environ.get("GEODISTILL_LOG", "INFO").upper()
     logging.basicConfig(stream=sys.stderr, level=getattr(logging, level, logging.INFO),
                         format="%(asctime)s %(name)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
+
+
+#: exit codes of :func:`one_line_errors`
+EXIT_INPUT, EXIT_OS = 2, 1
+_OS_WHAT = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quota exceeded",
+            errno.EACCES: "permission denied", errno.EPERM: "operation not permitted",
+            errno.EROFS: "read-only file system", errno.ENAMETOOLONG: "path too long"}
+
+
+def os_error_line(e: OSError) -> str:
+    """One line for an operating-system failure: the path, what happened in words, the errno name
+    (``out/masks: no space left on the device (ENOSPC)``)."""
+    what = _OS_WHAT.get(e.errno) or (e.strerror or str(e) or type(e).__name__)
+    name = errno.errorcode.get(e.errno) if e.errno else None
+    path = e.filename if e.filename is not None else None
+    if path is not None and e.filename2 is not None:
+        path = f"{path} -> {e.filename2}"
+    line = f"{what} ({name})" if name else what
+    return f"{path}: {line}" if path is not None else line
+
+
+@contextlib.contextmanager
+def one_line_errors(command: str):
+    """Run a command's body; an InputError ends it with ``geodistill <command>: error: <line>`` and exit
+    code 2, an OSError with ``geodistill <command>: error: <path>: <what> (<ERRNO>)`` and exit code 1 --
+    one line on stderr each, no traceback."""
+    try:
+        yield
+    except InputError as e:
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        click.echo(f"geodistill {command}: error: {msg}", err=True)
+        sys.exit(EXIT_INPUT)
+    except OSError as e:
+        click.echo(f"geodistill {command}: error: {os_error_line(e).splitlines()[0]}", err=True)
+        sys.exit(EXIT_OS)
+
+
+#: the shared options of the user tools (docs/own-data.md): one name, one help text
+overwrite_option = click.option(
+    "--overwrite", is_flag=True,
+    help="replace files in the way that this command did not write (default: refuse, naming the first)")
+skip_bad_option = click.option(
+    "--skip-bad", is_flag=True,
+    help="leave unreadable images out and list them with the reason (default: stop at the first, naming it)")
 
 
 def stage_code_version(stage_file: str, *_legacy_modules: str) -> str:
@@ -44,17 +93,13 @@ def stage_command(name: str, default_profile: str | None = None) -> Callable:
     def deco(fn: Callable) -> click.Command:
         def wrapper(params_file: str | None, overrides: tuple[str, ...], device: str, **kw: Any):
             setup_logging()
-            try:
+            with one_line_errors(name):
                 if params_file is None:  # --params not given: the profile's values (--set profile=X wins)
                     if not any(o.split("=", 1)[0].strip() == "profile" for o in overrides):
                         overrides = (f"profile={default_profile}",) + tuple(overrides)
                     params_file = f"profile {default_profile}"
                 params = load_params(params_file, overrides)
                 return fn(params=params, device=device, **kw)
-            except InputError as e:
-                msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-                click.echo(f"geodistill {name}: error: {msg}", err=True)
-                sys.exit(2)
 
         wrapper.__click_params__ = list(getattr(fn, "__click_params__", []))
         wrapper.__doc__ = fn.__doc__

@@ -60,7 +60,7 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
                                      section(params, "data").get("resolution"))
     val_images, val_masks, calib, data_inputs = B.read_benchmark_data(Path(art), st["n_calib"])
     notes = {} if val_images is not None else {
-        "iou": f"no validation images with reference masks under {art}: IoU columns are NaN"}
+        "iou": f"no validation images with reference masks under {art}: IoU columns not computed"}
     with tempfile.TemporaryDirectory() as td:
         onnx_path, int8_path, onnx_notes = B.prepare_onnx_models(
             target, st["variants"], td, resolution=resolution, opset=st["opset"], calibration_images=calib,

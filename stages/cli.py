@@ -46,6 +46,16 @@ class LazyGroup(click.Group):
             return None
         return getattr(importlib.import_module(mod), attr or "main")
 
+    def invoke(self, ctx):
+        """Every subcommand under :func:`stages._common.one_line_errors` (the stage commands also use it
+        themselves, for ``python -m stages.<name>``): an InputError or OSError the command did not turn
+        into its line still ends in one line, never a traceback."""
+        from stages._common import one_line_errors
+
+        args = [*getattr(ctx, "_protected_args", []), *ctx.args] or [""]
+        with one_line_errors(args[0] or "geodistill"):
+            return super().invoke(ctx)
+
 
 def _print_version(ctx, _param, value):
     """``--version``: pipeline.__version__, imported only when asked for (keeps --help fast)."""

@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from pipeline.artifacts import write_text_if_changed
-from pipeline.errors import InputError
+from stages._common import one_line_errors
 
 
 @click.command(name="dag")
@@ -33,16 +33,20 @@ def dag_main(check: bool, out: str) -> None:
 @click.command(name="profile")
 @click.argument("name")
 @click.option("--out", default="params.yaml", show_default=True, type=click.Path(dir_okay=False))
-def profile_main(name: str, out: str) -> None:
-    """Write params.yaml with the effective values of profile NAME (demo | reduced | paper)."""
-    from pipeline.dag import render_params_yaml
+@click.option("--overwrite", is_flag=True,
+              help="replace an --out file that `geodistill profile` did not write (default: refuse)")
+def profile_main(name: str, out: str, overwrite: bool) -> None:
+    """Write params.yaml with the effective values of profile NAME (demo | reduced | paper).  A rerun
+    rewrites its own file (recognised by the generated header); any other file is refused."""
+    from pipeline.dag import is_generated_params, render_params_yaml
+    from pipeline.ownership import refuse_unowned
 
-    try:
+    with one_line_errors("profile"):
         text = render_params_yaml(name)
-    except InputError as e:
-        click.echo(f"geodistill profile: error: {e}", err=True)
-        sys.exit(2)
-    click.echo(f"{'wrote' if write_text_if_changed(out, text) else 'unchanged'} {out} (profile {name})")
+        path = Path(out)
+        refuse_unowned([path], [path] if is_generated_params(path) else [], command="profile", option="--out",
+                       where=out, why="it lacks the header a generated params file starts with", overwrite=overwrite)
+        click.echo(f"{'wrote' if write_text_if_changed(out, text) else 'unchanged'} {out} (profile {name})")
 
 
 if __name__ == "__main__":

@@ -22,8 +22,18 @@ from __future__ import annotations
 import click
 
 from pipeline.params import section
-from stages._common import meta_for, stage_code_version, stage_command
+from stages._common import meta_for, overwrite_option, stage_code_version, stage_command
 
+
+def is_bundle_dir(path) -> bool:
+    """Whether ``path`` is a folder holding a deploy artifact's meta.json (export's own output)."""
+    import json
+    from pathlib import Path
+
+    try:
+        return json.loads((Path(path) / "meta.json").read_text()).get("schema") == "deploy"
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 @stage_command("export")
@@ -37,14 +47,20 @@ from stages._common import meta_for, stage_code_version, stage_command
                    "(default: no int8 model)")
 @click.option("--no-onnx", is_flag=True, help="write TorchScript only")
 @click.option("--no-int8", is_flag=True, help="skip the int8 ONNX model")
-def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8):
-    """Export the mask path (TorchScript + ONNX) with its calibrated tau and a parity check."""
+@overwrite_option
+def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8, overwrite):
+    """Export the mask path (TorchScript + ONNX) with its calibrated tau and a parity check.  --out is
+    replaced whole when it holds an earlier bundle (its meta.json); anything else there is refused
+    unless --overwrite."""
     from pipeline import deploy
+    from pipeline.ownership import refuse_unowned
     from pipeline.artifacts import artifact_dir, open_artifact
     from pipeline.device import resolve_device
     from pipeline.inference import load_student
     from pipeline.thresholds import lookup_tau, lookup_tau_source, resolve_tau
 
+    refuse_unowned([out], [out] if is_bundle_dir(out) else [], command="export", option="--out", where=out,
+                   why="no deploy bundle's meta.json in it", overwrite=overwrite)
     cfg = section(params, "deploy")
     opset, atol = cfg["opset"], cfg["parity_atol"]
     n_calib, min_iou = cfg["int8_calibration_images"], cfg["int8_min_mask_iou"]

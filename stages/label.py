@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from pipeline.params import BACKENDS
-from stages._common import stage_command
+from stages._common import overwrite_option, skip_bad_option, stage_command
 
 
 @stage_command("label", default_profile="paper")
@@ -20,22 +20,29 @@ from stages._common import stage_command
               help="simulated backend only: masks named like the images, read by the SIMULATOR")
 @click.option("--format", "formats", default="png,coco,yolo", show_default=True,
               help="comma-separated: png, coco, yolo")
-def main(params, device, input_dir, out, checkpoint, backend, imported_dir, reference_masks, formats):
+@skip_bad_option
+@overwrite_option
+def main(params, device, input_dir, out, checkpoint, backend, imported_dir, reference_masks, formats, skip_bad,
+         overwrite):
     """Label a folder of images with the multi-prompt teacher: voted pseudo-masks as PNG, COCO (RLE)
     and YOLO segmentation files, a table of agreement c, valid ratio v, area a and gate g per image,
     and a contact sheet.  Without --params the paper's values are used (working resolution 384).
-    Reruns resume from the teacher cache inside OUT."""
-    from pipeline.api import choose_teacher
+    Reruns resume from the teacher cache inside OUT; label.json there lists what label wrote, and
+    anything else in the way is refused unless --overwrite (docs/own-data.md)."""
+    from pipeline.api import choose_teacher, with_skip_bad
     from pipeline.labeling import label_folder
     from pipeline.labeling.run import parse_formats
 
     fmts = parse_formats(formats)  # checked before any work
-    params = choose_teacher(params, backend, checkpoint, imported_dir)
-    result = label_folder(input_dir, out, params, device=device, formats=fmts, reference_masks=reference_masks)
+    params = with_skip_bad(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad)
+    result = label_folder(input_dir, out, params, device=device, formats=fmts, reference_masks=reference_masks,
+                          overwrite=overwrite)
     g = result.table["g"]
     click.echo(f"label: {len(result.table)} images -> {result.out} ({', '.join(result.formats)}); "
-               f"gate g median {g.median():.3f}, {int((g > 0).sum())} with g > 0; {len(result.skipped)} skipped"
+               f"gate g median {g.median():.3f}, {int((g > 0).sum())} with g > 0"
                + ("; backend simulated is a SIMULATOR" if result.simulator else ""), err=True)
+    if result.skipped_line:
+        click.echo(result.skipped_line, err=True)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """``geodistill plots``: DVC's plots of this project as a page that works offline.
 
-    geodistill plots                       # dvc plots show: every plot of dvc.yaml -> dvc_plots/index.html
+    geodistill plots                       # dvc plots show: every plot of dvc.yaml -> geodistill_plots/index.html (dvc plots show alone writes dvc_plots/)
     geodistill plots --rev HEAD~1          # dvc plots diff HEAD~1: the workspace against a commit
     geodistill plots training_curves -o out --open
 
@@ -23,12 +23,15 @@ import click
 from pipeline.artifacts import write_text_if_changed
 from pipeline.errors import InputError
 
+#: the page folder of `geodistill plots`: not `dvc plots show`'s own dvc_plots/, so neither replaces the other
+OFFLINE_PLOTS_DIR = "geodistill_plots"
+
 
 @click.command(name="plots")
 @click.argument("targets", nargs=-1)
 @click.option("--rev", "revs", multiple=True, metavar="REV",
               help="compare with this git revision (dvc plots diff; repeatable)")
-@click.option("-o", "--out", default="dvc_plots", show_default=True, type=click.Path(file_okay=False),
+@click.option("-o", "--out", default=OFFLINE_PLOTS_DIR, show_default=True, type=click.Path(file_okay=False),
               help="folder of the page (index.html)")
 @click.option("--open", "open_browser", is_flag=True, help="open the page in a browser")
 def main(targets, revs, out, open_browser):

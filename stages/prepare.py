@@ -97,6 +97,8 @@ def main(params, device, out_dir, source, root, protocol, skip_bad):
         ok, buf = cv2.imencode(".png", sheet[..., ::-1])
         tmp.write_bytes(buf.tobytes())
 
+    if (line := policy.summary("prepare", out / "skipped_files.parquet")) is not None:
+        click.echo(line, err=True)
     counts = rows.groupby(["split", "group"]).size().to_dict()
     log.info("prepared %d images (%s) at %dpx; skipped %d; decode cache hits %d misses %d",
              n, ", ".join(f"{s}/{g}: {c}" for (s, g), c in counts.items()), size,

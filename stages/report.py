@@ -56,7 +56,12 @@ def main(params, device, art, out):
         (tmp / "report.md").write_text(render_markdown(report))
         (tmp / "report.html").write_text(render_html(report))
         write_json(tmp / "environment.json", environment_record(env, inp.runs))
-    missing = f" (missing inputs: {', '.join(sorted(inp.missing))})" if inp.missing else ""
+    from pipeline.report.build import MASK_INPUTS
+
+    not_computed = sorted(n for n in inp.missing if inp.no_masks and n in MASK_INPUTS)
+    absent = sorted(n for n in inp.missing if n not in not_computed)
+    missing = (f" (not computed without validation/test masks: {', '.join(not_computed)})" if not_computed else "") \
+        + (f" (missing inputs: {', '.join(absent)})" if absent else "")
     click.echo(f"report: {len(report.tables())} tables, {len(report.figures())} figures -> {Path(out)}{missing}",
                err=True)
 

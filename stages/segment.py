@@ -9,8 +9,11 @@
               ``photos/sub/a.png`` -> ``masks/sub/a.png.mask.png``, so a.png, a.jpg and a_png.png get
               distinct outputs.  Two inputs whose outputs differ only in letter case (b.png, b.PNG) are
               refused before anything is written.
---overwrite   replace output files left by an earlier run; without it an existing output file (or
-              skipped.csv) stops the run before anything is written
+--overwrite   replace files in the way that an earlier segment run did not write; without it such a
+              file stops the run before anything is written.  ``segment.json`` in --output lists what
+              segment wrote there, and a rerun replaces those without asking (pipeline.ownership)
+--skip-bad    leave unreadable images out (listed in skipped.csv); without it the first one stops
+              the run with one line naming it (the bad-file policy of label, distill and prepare)
 
 --engine      auto | torch | cuda | torchscript | onnx | int8 | openvino_int8: what computes the logits.
               ``auto`` = on a CUDA device ``cuda`` (bf16 + CUDA graphs, pipeline.deploy.cuda_engine),
@@ -28,21 +31,21 @@ params file: a checkpoint that records none is refused with a request for ``--re
 ``--resolution`` other than the recorded one is used with a warning.
 
 Unlike the pipeline stages this is a user tool: it runs anywhere, and reads the params file only
-for the tau fallback, when that file exists.  Unreadable images are reported on stderr and in
-skipped.csv and skipped; the rest go on.  So are, in an input folder, symbolic links pointing outside
-it, broken links and links to folders (never followed).  Inputs are never modified and outputs never
+for the tau fallback, when that file exists.  Unreadable images -- and, in an input folder, symbolic
+links pointing outside it, broken links and links to folders (never followed) -- stop the run with
+one line, or with --skip-bad are listed in skipped.csv and counted on stderr; the rest go on.  Inputs are never modified and outputs never
 overwrite inputs (an output folder inside the input folder is refused).  Bad options and refused
 outputs: one line on stderr naming the path, exit code 2, nothing written.
 """
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import click
 
 from pipeline.errors import InputError
+from stages._common import one_line_errors, overwrite_option, skip_bad_option
 
 
 def _fallback(params_file: str, overrides: tuple[str, ...], section_name: str, key: str):
@@ -55,9 +58,11 @@ def _fallback(params_file: str, overrides: tuple[str, ...], section_name: str, k
 
 
 def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
-        device, params_file, overrides, overwrite=False) -> int:
+        device, params_file, overrides, overwrite=False, skip_bad=False) -> int:
     from pipeline import deploy
+    from pipeline.datasets.manifest import BadInputPolicy
     from pipeline.deploy import files as F
+    from pipeline.ownership import claim_outputs
     from pipeline.device import resolve_device
     from stages._common import setup_logging
 
@@ -77,8 +82,23 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
         extra = f"; skipped {found.skipped[0][0]}: {found.skipped[0][1]}" if found.skipped else ""
         raise InputError(f"--input {input_path}: no image files (png, jpg, jpeg, tif, tiff, bmp){extra}")
     files = found.files
-    stems = F.plan_outputs(found.root, files, output, found.is_dir,
-                           suffixes=F.output_suffixes(save_prob, overlay), overwrite=overwrite)
+    suffixes = F.output_suffixes(save_prob, overlay)
+    stems = F.plan_outputs(found.root, files, output, found.is_dir, suffixes=suffixes, overwrite=overwrite)
+    policy = BadInputPolicy(skip_bad, hint="pass --skip-bad to leave it out")
+    root = found.root if found.is_dir else None
+
+    def image_id(path) -> str:
+        """The id label gives the file: its path relative to the input folder, without the suffix."""
+        p = Path(path)
+        try:
+            return (p.relative_to(root) if root is not None else Path(p.name)).with_suffix("").as_posix()
+        except ValueError:
+            return p.stem
+
+    for path, reason in found.skipped:  # links and special files: before anything is written
+        policy.report(image_id(path), path, reason)
+    for path, reason in found.unused:  # not images (hidden files, other types): listed, not an error
+        policy.record(image_id(path), path, reason)
 
     seg = deploy.load_segmenter(checkpoint, engine, resolve_device(device), thresholds)
     tau, source = seg.resolve_tau(option=tau, fixed=(_fallback(params_file, overrides, "calibrate", "fixed_tau"),
@@ -100,18 +120,19 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
                        f"trained at ({recorded_in})", err=True)
 
     def report(path, reason):
-        click.echo(f"segment: skipped {path}: {reason}", err=True)  # and in skipped.csv
+        policy.report(image_id(path), path, reason)  # raises without --skip-bad
 
     click.echo(f"segment: engine {seg.engine}" + (" (auto)" if engine == "auto" else "")
                + f", {len(files)} image(s), {resolution}px ({res_source}), tau={tau:.4g} ({source})", err=True)
-    for path, reason in found.skipped:
-        report(path, reason)
+    claim_outputs(output, F.relative_outputs(output, stems, suffixes), F.RECORD, "segment",
+                  {"input": str(Path(input_path).absolute()), "checkpoint": str(Path(checkpoint).absolute())})
     result = deploy.segment_files(seg, files, stems, tau=tau, resolution=resolution, batch_size=batch_size,
                                   save_prob=save_prob, overlay=overlay, on_skip=report)
-    skipped = found.skipped + result.skipped
-    deploy.write_skipped_csv(Path(output) / F.SKIPPED_CSV, skipped)
-    click.echo(f"segment: wrote {len(result.written)} mask(s) to {output}; skipped {len(skipped)} "
-               f"(see {Path(output) / F.SKIPPED_CSV})", err=True)
+    listing = Path(output) / F.SKIPPED_CSV
+    deploy.write_skipped_csv(listing, policy.rows())
+    click.echo(f"segment: wrote {len(result.written)} mask(s) to {output}", err=True)
+    if (line := policy.summary("segment", listing)) is not None:
+        click.echo(line, err=True)
     if result.written:
         n = len(result.written)
         click.echo(f"segment: timing: engine {seg.engine}, {1e3 * result.model_seconds / n:.2f} ms/image in the model, "
@@ -138,20 +159,17 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
 @click.option("--batch-size", type=int, default=8, show_default=True)
 @click.option("--save-prob", is_flag=True, help="also write <input name>.prob.png (P x 255)")
 @click.option("--overlay", is_flag=True, help="also write <input name>.overlay.png")
-@click.option("--overwrite", is_flag=True, help="replace output files of an earlier run (default: refuse)")
+@overwrite_option
+@skip_bad_option
 @click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
 @click.option("--params", "params_file", default="params.yaml", show_default=True,
               help="params file, read only for the tau / resolution fallbacks")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="override a param (repeatable)")
 def main(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
-         overwrite, device, params_file, overrides):
-    try:
+         overwrite, skip_bad, device, params_file, overrides):
+    with one_line_errors("segment"):
         run(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
-            device, params_file, overrides, overwrite)
-    except InputError as e:
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        click.echo(f"geodistill segment: error: {msg}", err=True)
-        sys.exit(2)
+            device, params_file, overrides, overwrite, skip_bad)
 
 
 if __name__ == "__main__":

@@ -120,7 +120,7 @@ def test_prepare_folder_skip_bad_records_every_case(tmp_path):
     reasons = dict(zip(skipped["path"].map(lambda p: Path(p).name), skipped["reason"]))
     assert "zero-byte" in reasons["zero.png"]
     assert "corrupt" in reasons["corrupt.jpg"]
-    assert "unsupported" in reasons["notes.txt"]
+    assert "not an image file" in reasons["notes.txt"]   # listed, not an error (the folder scan of label/segment)
     assert "differs from image" in reasons["mism.png"]
     assert "duplicate image id 'good0' (also used by" in reasons["good0.png"]   # first in sorted order (good0.bmp) kept
     df = open_artifact(out / "manifest.parquet").df

@@ -61,7 +61,7 @@ def test_library_constants_come_from_the_schema():
     ("train.epochz=5", "train.epochz", "unknown key"),
     ("train.batch_size=two", "train.batch_size", "integer"),
     ("train.batch_size=2.5", "train.batch_size", "integer"),
-    ("train.lr_stage1=1e-4", "train.lr_stage1", "number"),  # YAML 1.1 reads 1e-4 as a string
+    ("train.lr_stage1='1e-4'", "train.lr_stage1", "number"),  # quoted: a string (unquoted 1e-4 is a number)
     ("consensus.vote_threshold=1.5", "consensus.vote_threshold", "less than or equal"),
     ("train.schedule=linear", "train.schedule", "cosine"),
     ("data.synthetic.tiny_range=[0.5, 0.1]", "data.synthetic.tiny_range", "lo < hi"),

@@ -71,7 +71,7 @@ def test_segment_checkpoint_folder_odd_sizes_formats_and_corrupt_file(tmp_path):
     (tmp_path / "in" / "notes.txt").write_text("not an image, not a candidate")
     before = {p: p.read_bytes() for p in (tmp_path / "in").rglob("*") if p.is_file()}
     r = segment("--checkpoint", ckpt, "--input", tmp_path / "in", "--output", tmp_path / "out",
-                "--thresholds", thr, "--resolution", RES, "--save-prob", "--overlay", "--batch-size", 3)
+                "--thresholds", thr, "--resolution", RES, "--save-prob", "--overlay", "--batch-size", 3, "--skip-bad")
     assert r.exit_code == 0, r.output
     out = tmp_path / "out"
     for name, (h, w) in sizes.items():
@@ -88,11 +88,12 @@ def test_segment_checkpoint_folder_odd_sizes_formats_and_corrupt_file(tmp_path):
         assert np.array_equal(mask[decided], (p >= 0.5)[decided])
         prob = cv2.imread(str(out / f"{name}.prob.png"), cv2.IMREAD_UNCHANGED)
         assert np.abs(prob.astype(float) - p * 255).max() <= 0.51
-    # the corrupt and zero-byte files are reported and skipped; the text file is not a candidate
+    # with --skip-bad the corrupt and zero-byte files are listed and skipped; the text file is not a candidate
     rows = list(csv.DictReader(open(out / "skipped.csv")))
-    assert sorted(Path(r["path"]).name for r in rows) == ["broken.png", "empty.jpg"]
+    assert sorted(Path(r["path"]).name for r in rows) == ["broken.png", "empty.jpg", "notes.txt"]
     assert all(r["reason"] for r in rows)
-    assert "broken.png" in r.output and "empty.jpg" in r.output
+    assert [r["reason"] for r in rows if r["path"].endswith("notes.txt")][0].startswith("not an image file")
+    assert "segment: skipped 2 bad file(s) (first: " in r.output and str(out / "skipped.csv") in r.output
     # inputs untouched
     assert all(p.read_bytes() == b for p, b in before.items())
 
@@ -253,6 +254,6 @@ def test_segment_all_files_unreadable_is_an_error(tmp_path):
     (tmp_path / "in").mkdir()
     (tmp_path / "in" / "x.png").write_bytes(b"junk")
     r = segment("--checkpoint", ckpt, "--input", tmp_path / "in", "--output", tmp_path / "out", "--resolution", RES,
-                "--tau", 0.5)
+                "--tau", 0.5, "--skip-bad")
     assert r.exit_code == 2 and "could be read" in r.output.strip().splitlines()[-1]
     assert list(csv.DictReader(open(tmp_path / "out" / "skipped.csv")))[0]["path"].endswith("x.png")

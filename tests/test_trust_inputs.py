@@ -143,23 +143,33 @@ def test_duplicate_mask_stems_are_an_error_or_skippable(tmp_path):
     assert sorted(df["image_id"]) == ["good0", "good2", "good3"]
 
 
-@pytest.mark.parametrize("case", ["orphan_mask", "mask_type", "image_subfolder", "mask_subfolder"])
+@pytest.mark.parametrize("case", ["orphan_mask", "mask_subfolder"])
 def test_every_unused_file_is_an_error_or_listed(tmp_path, case):
     root = folder(tmp_path / "data")
-    bad = {"orphan_mask": root / "masks" / "ghost.png", "mask_type": root / "masks" / "notes.txt",
-           "image_subfolder": root / "images" / "more", "mask_subfolder": root / "masks" / "old"}[case]
-    if case == "orphan_mask":
-        _mask(bad)
-    elif case == "mask_type":
-        bad.write_text("not a mask")
-    else:
-        _img(bad / "x.png")
-    needle = {"orphan_mask": "mask without an image", "mask_type": "unsupported mask type",
-              "image_subfolder": "a folder inside images/", "mask_subfolder": "a folder inside masks/"}[case]
+    # a mask in a sub-folder of masks/ belongs to the image at the same relative path (none here)
+    bad = {"orphan_mask": root / "masks" / "ghost.png", "mask_subfolder": root / "masks" / "old" / "x.png"}[case]
+    _mask(bad)
+    needle = "mask without an image"
     one_error_line(prepare(root, tmp_path / "a"), str(bad), needle)
     res = prepare(root, tmp_path / "b", "--skip-bad")
     assert res.exit_code == 0, res.output
     assert needle in skipped(tmp_path / "b")[str(bad)]
+
+
+def test_sub_folders_are_read_recursively_and_non_images_listed(tmp_path):
+    """The sub-folder rule of label, distill and segment (docs/own-data.md): images in sub-folders are
+    images (id = relative path without suffix), a mask at the same relative path is theirs; a file
+    that is not an image is listed, not an error."""
+    root = folder(tmp_path / "data")
+    _img(root / "images" / "more" / "x.png")
+    _mask(root / "masks" / "more" / "x.png")
+    (root / "masks" / "notes.txt").write_text("not a mask")
+    res = prepare(root, tmp_path / "a")
+    assert res.exit_code == 0, res.output
+    df = open_artifact(tmp_path / "a" / "manifest.parquet").df
+    row = df.set_index("image_id").loc["more/x"]
+    assert row["split"] in ("val", "test") and row["mask_path"] == str(root / "masks" / "more" / "x.png")
+    assert "not an image file" in skipped(tmp_path / "a")[str(root / "masks" / "notes.txt")]
 
 
 def test_hidden_files_are_listed_not_an_error(tmp_path):

@@ -142,7 +142,11 @@ def test_links_leaving_the_input_folder_are_skipped_and_listed(tmp_path, ckpts):
     os.symlink(tmp_path / "private", inp / "linked_dir")
     os.symlink(tmp_path / "gone.png", inp / "broken.png")
     os.symlink(inp / "a.png", inp / "alias.png")  # a link inside the folder is an ordinary input
+    # without --skip-bad: the first one stops the run, one line naming it and the option, nothing written
     r = segment(ckpts["with"], inp, tmp_path / "out")
+    one_error_line(r, str(inp / "broken.png"), "--skip-bad")
+    assert not (tmp_path / "out").exists()
+    r = segment(ckpts["with"], inp, tmp_path / "out", "--skip-bad")
     assert r.exit_code == 0, r.output
     assert "Traceback" not in r.output
     out = tmp_path / "out"
@@ -151,9 +155,9 @@ def test_links_leaving_the_input_folder_are_skipped_and_listed(tmp_path, ckpts):
     assert set(rows) == {"escape.png", "linked_dir", "broken.png"}
     assert "outside the input folder" in rows["escape.png"] and str(outside) in rows["escape.png"]
     assert "not followed" in rows["linked_dir"] and "broken" in rows["broken.png"]
-    for name in rows:  # never silent: each is also a stderr line
-        assert any(line.startswith("segment: skipped") and name in line for line in r.stderr.splitlines())
-    assert "skipped 3" in r.stderr
+    # never silent: one summary line names the first and the listing
+    assert f"segment: skipped 3 bad file(s) (first: {inp / 'broken.png'}: broken" in r.stderr
+    assert str(out / "skipped.csv") in r.stderr
     assert not (tmp_path / "private" / "secret.png.mask.png").exists()
     # only links that leave the folder: one line, nothing written
     only = tmp_path / "only"
@@ -164,33 +168,40 @@ def test_links_leaving_the_input_folder_are_skipped_and_listed(tmp_path, ckpts):
     assert not (tmp_path / "out2").exists()
 
 
-def test_rerun_refuses_to_overwrite_unless_asked(tmp_path, ckpts):
+def test_rerun_replaces_its_own_outputs_and_refuses_a_users_file_unless_asked(tmp_path, ckpts):
     inp = tmp_path / "in"
     image(inp / "a.png")
     image(inp / "b.png", 1)
     out = tmp_path / "out"
     assert segment(ckpts["with"], inp, out).exit_code == 0
     first = snapshot(out)
-    assert len(first) == 3  # 2 masks + skipped.csv
-    image(inp / "c.png", 2)  # a new input: its mask must not be written either when the run is refused
+    assert len(first) == 4  # 2 masks + skipped.csv + segment.json (the record of what segment wrote)
+    # a file segment did not write, where a new input's mask goes: refused, naming it; nothing written
+    image(inp / "c.png", 2)
+    (out / "c.png.mask.png").write_bytes(b"my own hand-made mask")
+    first = snapshot(out)
     r = segment(ckpts["with"], inp, out)
-    line = one_error_line(r, str(out / "a.png.mask.png"), "--overwrite")
-    assert "already exists" in line
+    line = one_error_line(r, str(out / "c.png.mask.png"), "--overwrite")
+    assert "was not written by geodistill segment" in line
     assert snapshot(out) == first
-    # --save-prob alone would not replace a mask's bytes, but the mask is written too: still refused
-    assert segment(ckpts["with"], inp, out, "--save-prob").exit_code == 2 and snapshot(out) == first
-    # a stale skipped.csv alone is an output too
+    # a stale skipped.csv alone (no segment.json) is not segment's either
     lone = tmp_path / "lone"
     lone.mkdir()
     (lone / "skipped.csv").write_text("path,reason\n")
     one_error_line(segment(ckpts["with"], inp / "c.png", lone), str(lone / "skipped.csv"))
-    # --overwrite replaces them (same content: same model, same images) and adds the new one
-    r = segment(ckpts["with"], inp, out, "--overwrite")
+    assert (lone / "skipped.csv").read_text() == "path,reason\n"
+    # without the user's file, a rerun replaces segment's own outputs (same bytes) and adds the new one
+    (out / "c.png.mask.png").unlink()
+    r = segment(ckpts["with"], inp, out)
     assert r.exit_code == 0, r.output
     assert masks(out) == ["a.png.mask.png", "b.png.mask.png", "c.png.mask.png"]
     after = snapshot(out)
-    for p, (data, mtime) in first.items():
-        assert after[p][0] == data and after[p][1] >= mtime
+    assert all(after[p][0] == first[p][0] for p in first if p.name in ("a.png.mask.png", "b.png.mask.png"))
+    # --overwrite is the explicit yes for a file segment did not write
+    (lone / "c.png.mask.png").write_bytes(b"mine")
+    r = segment(ckpts["with"], inp / "c.png", lone, "--overwrite")
+    assert r.exit_code == 0, r.output
+    assert (lone / "c.png.mask.png").read_bytes() == after[out / "c.png.mask.png"][0]
 
 
 def test_resolution_comes_from_the_checkpoint_or_is_asked_for(tmp_path, ckpts):

@@ -31,18 +31,20 @@ TANGO (``tango``)
     seeded from the official training list; validation: a disjoint ``val_images`` (500) from the rest
     of it (masked); test: the official test list unchanged.
 Any folder (``folder``)
-    ``<root>/images/*`` plus optional ``<root>/masks/*`` matched by file stem (png, jpg, tif, bmp);
+    ``<root>/images/**`` plus optional ``<root>/masks/**`` matched by the path relative to the folder
+    without its suffix (the image id: ``sub/a.png`` <-> ``masks/sub/a.png``; png, jpg, tif, bmp);
+    sub-folders are read recursively, as label and segment do (pipeline.datasets.scan);
     the protocol's ``images_dir``/``masks_dir`` rename them (absolute paths allowed; ``masks_dir: null``
     = no masks).
     Images without a mask are training images; masked images are split into validation and test
     (seeded, ``val_fraction``).  Every entry of ``images/`` and ``masks/`` is either used or goes
     through the bad-input policy (an error naming the file, or with ``skip_bad`` a row of
-    ``skipped_files.parquet`` with its reason), never silently ignored: files of other types and
-    broken symbolic links are listed so the decode pass reports them (unsupported / broken link);
-    sub-folders, masks of an unsupported type, masks without an image of the same stem, and
+    ``skipped_files.parquet`` with its reason), never silently ignored: broken symbolic links are
+    kept so the decode pass reports them; links leaving the folder or to folders, masks without an
+    image of the same id, and
     several masks for one stem (``a.png`` + ``a.jpg``: ambiguous -- every one of them and the image
-    are left out) are reported here.  Hidden files (``.DS_Store``) are listed as not used, not an
-    error.  Masks are binarised by the one rule of ``pipeline.datasets.loading`` (default: value > 0).
+    are left out) are reported here.  Hidden files (``.DS_Store``) and files that are not images
+    (``notes.txt``) are listed as not used, not an error.  Masks are binarised by the one rule of ``pipeline.datasets.loading`` (default: value > 0).
 """
 
 from __future__ import annotations
@@ -55,7 +57,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.datasets.loading import SUPPORTED_SUFFIXES
 from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec
 from pipeline.datasets.synthetic import stable_hash
 from pipeline.errors import InputError
@@ -342,17 +343,27 @@ def tango_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
 # ---------------------------------------------------------------------------------------------------
 # Any folder
 # ---------------------------------------------------------------------------------------------------
-def _folder_entries(d: Path, what: str, policy: BadInputPolicy) -> list[Path]:
-    """Files (and broken links) directly in ``d``; hidden files are recorded, sub-folders reported."""
-    out = []
-    for p in sorted(d.iterdir()):
-        if p.name.startswith("."):
-            policy.record(p.stem, p, f"hidden file in {what}/, not read")
-        elif p.is_dir():
-            policy.report(p.name, p, f"a folder inside {what}/ (only files directly in {d} are read)")
-        else:
-            out.append(p)
-    return out
+def _folder_entries(d: Path, what: str, policy: BadInputPolicy) -> list[tuple[str, Path]]:
+    """(id, path) of the image files under ``d``, sub-folders included (:func:`pipeline.datasets.scan.
+    scan_inputs`, the scan label and segment use); id = the path relative to ``d`` without its suffix
+    (posix).  Bad entries (links leaving ``d``, links to folders, special files) go through the
+    policy; hidden files and files that are not images are listed, not an error; broken links are
+    kept for the decode pass to report."""
+    from pipeline.datasets.scan import scan_inputs
+
+    found = scan_inputs(d, keep_broken_links=True)
+
+    def rel_id(p) -> str:
+        try:
+            return Path(p).relative_to(d).with_suffix("").as_posix()
+        except ValueError:
+            return Path(p).stem
+
+    for p, reason in found.skipped:
+        policy.report(rel_id(p), p, reason)
+    for p, reason in found.unused:
+        policy.record(rel_id(p), p, reason)
+    return [(rel_id(p), p) for p in found.files]
 
 
 def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | None = None) -> DatasetSpec:
@@ -363,17 +374,15 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
     mask_dir = root / str(masks_name) if masks_name is not None else None
     if not img_dir.is_dir():
         raise InputError(f"{img_dir}: images folder not found")
-    # every entry is kept: unsupported types and broken links are reported by the decode pass
-    images = _folder_entries(img_dir, "images", policy)
-    image_stems = {p.stem for p in images}
+    # broken links are kept: the decode pass reports them
+    entries = _folder_entries(img_dir, "images", policy)
+    images = [p for _, p in entries]
+    id_of = {p: i for i, p in entries}
+    image_stems = set(id_of.values())
     by_stem: dict[str, list[Path]] = {}
     if mask_dir is not None and mask_dir.is_dir():
-        for m in _folder_entries(mask_dir, "masks", policy):
-            if m.suffix.lower() not in SUPPORTED_SUFFIXES:
-                policy.report(m.stem, m, f"unsupported mask type {m.suffix or '(no suffix)'!r} "
-                                         f"(supported: {', '.join(SUPPORTED_SUFFIXES)})")
-            else:
-                by_stem.setdefault(m.stem, []).append(m)
+        for stem, m in _folder_entries(mask_dir, "masks", policy):
+            by_stem.setdefault(stem, []).append(m)
     masks: dict[str, Path] = {}
     ambiguous: dict[str, list[Path]] = {}
     for stem, ms in by_stem.items():
@@ -390,9 +399,9 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
     if ambiguous:
         kept = []
         for p in images:
-            if p.stem in ambiguous:
-                policy.report(p.stem, p, f"left out: its mask is ambiguous ({len(ambiguous[p.stem])} mask "
-                                         f"files for stem {p.stem!r} in {mask_dir})")
+            if id_of[p] in ambiguous:
+                policy.report(id_of[p], p, f"left out: its mask is ambiguous ({len(ambiguous[id_of[p]])} mask "
+                                           f"files for stem {id_of[p]!r} in {mask_dir})")
             else:
                 kept.append(p)
         images = kept
@@ -400,15 +409,15 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
     val_fraction = float(proto.get("val_fraction", 0.5))
     if not 0 <= val_fraction <= 1:
         raise InputError(f"{where}: val_fraction={val_fraction} must be in [0, 1]")
-    labeled = [p for p in images if p.stem in masks]
+    labeled = [p for p in images if id_of[p] in masks]
     order = _rng(int(cfg["seed"]), "folder-val").permutation(len(labeled))
     n_val = int(round(val_fraction * len(labeled)))
-    val = {labeled[i].stem for i in order[:n_val]}
+    val = {id_of[labeled[i]] for i in order[:n_val]}
     rows = []
     for p in images:
-        m = masks.get(p.stem)
-        split = "train" if m is None else ("val" if p.stem in val else "test")
-        rows.append(_row(p.stem, "folder", str(proto.get("domain", "folder")), split, split, sc, p,
+        m = masks.get(id_of[p])
+        split = "train" if m is None else ("val" if id_of[p] in val else "test")
+        rows.append(_row(id_of[p], "folder", str(proto.get("domain", "folder")), split, split, sc, p,
                          m if split != "train" else None))
     if not rows:
         raise InputError(f"{img_dir}: no files")

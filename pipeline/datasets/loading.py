@@ -62,6 +62,14 @@ class BadFileError(InputError):
 # ---------------------------------------------------------------------------------------------------
 # Decoding (no resizing, no cache)
 # ---------------------------------------------------------------------------------------------------
+def broken_link_reason(p: Path) -> str:
+    """The one wording of a broken symbolic link (the folder scan and the decode pass say the same)."""
+    try:
+        return f"broken symbolic link (its target {os.readlink(p)} does not exist)"
+    except OSError:
+        return "broken symbolic link"
+
+
 def read_bytes(path: str | Path) -> bytes:
     """File bytes; InputError naming the file when missing, unreadable, zero-byte or unsupported."""
     p = Path(path)
@@ -70,7 +78,7 @@ def read_bytes(path: str | Path) -> bytes:
                               f"(supported: {', '.join(SUPPORTED_SUFFIXES)})")
     if not p.is_file():
         if p.is_symlink():
-            raise BadFileError(p, f"broken symbolic link (its target {os.readlink(p)} does not exist)")
+            raise BadFileError(p, broken_link_reason(p))
         if p.is_dir():
             raise BadFileError(p, "is a directory, not an image file")
         raise BadFileError(p, "file not found")

@@ -50,28 +50,57 @@ class DatasetSpec:
     protocol: dict = dataclasses.field(default_factory=dict)
 
 
-class BadInputPolicy:
-    """Raise on the first problem, or (``skip_bad``) record it and let the caller drop the row."""
+#: what a refusal suggests: both work for prepare and distill (and label, which reads data.skip_bad too)
+SKIP_HINT = "pass --skip-bad, or set data.skip_bad: true in params.yaml, to leave it out"
 
-    def __init__(self, skip_bad: bool):
+
+class BadInputPolicy:
+    """Raise on the first problem, or (``skip_bad``) record it and let the caller drop the row.
+
+    The one bad-file policy of prepare (folder source), label, distill and segment (docs/own-data.md):
+    without ``--skip-bad`` the first bad file stops the run with one line naming it and the option;
+    with it, bad files are left out, listed with their reason (``skipped_files.parquet`` /
+    ``skipped.csv``, columns :data:`SKIPPED_COLUMNS`) and counted in one stderr line
+    (:meth:`summary`).  ``hint``: the refusal's suggestion (a command without params: only
+    ``--skip-bad``)."""
+
+    def __init__(self, skip_bad: bool, hint: str = SKIP_HINT):
         self.skip_bad = bool(skip_bad)
+        self.hint = hint
         self.skipped: list[dict] = []
 
     def report(self, image_id: str | None, path: str, reason: str) -> None:
         msg = f"{path}: {reason}" if not reason.startswith(str(path)) else reason
         if not self.skip_bad:
-            raise InputError(msg + " (set data.skip_bad=true or pass --skip-bad to leave it out)")
-        log.warning("skipping %s", msg)
+            raise InputError(f"{msg} ({self.hint})")
+        log.info("skipping %s", msg)
         self.skipped.append({"image_id": image_id or "", "path": str(path), "reason": reason})
+
+    def bad_count(self) -> int:
+        """Files left out by :meth:`report` (not the ones merely listed by :meth:`record`)."""
+        return sum(1 for r in self.skipped if not r.get("listed_only"))
+
+    def summary(self, command: str, listing) -> str | None:
+        """The one stderr line every command prints at its end when bad files were left out: how
+        many, the first one, and where all are listed; None when there were none."""
+        bad = [r for r in self.skipped if not r.get("listed_only")]
+        if not bad:
+            return None
+        return (f"{command}: skipped {len(bad)} bad file(s) (first: {bad[0]['path']}: {bad[0]['reason']}); "
+                f"all are listed with the reason in {listing}")
 
     def record(self, image_id: str | None, path: str, reason: str) -> None:
         """List a file that is not used without it being an error (hidden files; the other files of a
         row already reported)."""
         log.info("not using %s: %s", path, reason)
-        self.skipped.append({"image_id": image_id or "", "path": str(path), "reason": reason})
+        self.skipped.append({"image_id": image_id or "", "path": str(path), "reason": reason, "listed_only": True})
 
     def table(self) -> pd.DataFrame:
         return pd.DataFrame(self.skipped, columns=list(SKIPPED_COLUMNS)).astype(str)
+
+    def rows(self) -> list[tuple[str, str, str]]:
+        """(image_id, path, reason) per listed file: the rows of ``skipped.csv``."""
+        return [(r["image_id"], r["path"], r["reason"]) for r in self.skipped]
 
 
 def drop_duplicate_ids(rows: pd.DataFrame, policy: BadInputPolicy) -> pd.DataFrame:

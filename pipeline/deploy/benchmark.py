@@ -490,20 +490,36 @@ def fast_path_line(summary: dict, rows: Sequence[dict], resolution: int, target_
             f"{target_res}px: {summary['verdict']}")
 
 
+def _cell(v, spec: str, width: int) -> str:
+    """``v`` formatted by ``spec``, or ``--`` (right-aligned to ``width``) when it is missing or not finite."""
+    try:
+        ok = v is not None and math.isfinite(float(v))
+    except (TypeError, ValueError):
+        ok = False
+    return format(v, spec) if ok else f"{'--':>{width}s}"
+
+
 def format_table(rows: Sequence[dict]) -> str:
-    """The efficiency table for stdout; a variant that was only probed shows its status instead."""
-    head = (f"{'variant':22s} {'latency ms':>10s} {'x base':>7s} {'img/s':>8s} {'batch':>5s} {'peak MB':>8s} "
-            f"{'IoU':>7s} {'dIoU':>8s} {'mIoU fp32':>9s}")
+    """The efficiency table for stdout; a variant that was only probed shows its status instead.  The
+    IoU columns are left out when no variant has one (no validation masks: nothing was scored), and a
+    single missing number shows as ``--``, never ``nan``."""
+    timed = [r for r in rows if r.get("status", OK) == OK]
+    scored = any(_cell(r.get("iou"), ".4f", 1) != "--" for r in timed)
+    head = (f"{'variant':22s} {'latency ms':>10s} {'x base':>7s} {'img/s':>8s} {'batch':>5s} {'peak MB':>8s}"
+            + (f" {'IoU':>7s} {'dIoU':>8s} {'mIoU fp32':>9s}" if scored else ""))
     lines = [head, "-" * len(head)]
     for r in rows:
         if r.get("status", OK) != OK:
             lines.append(f"{r['variant']:22s} {r['status']}")
             continue
-        lines.append(f"{r['variant']:22s} {r['latency_ms']:10.2f} {r['speedup']:7.2f} {r['throughput']:8.2f} "
-                     f"{r['batch']:5d} {r['peak_mb']:8.1f} {r['iou']:7.4f} {r['iou_delta']:+8.4f} {r['iou_vs_fp32']:9.4f}"
+        lines.append(f"{r['variant']:22s} {_cell(r['latency_ms'], '10.2f', 10)} {_cell(r['speedup'], '7.2f', 7)} "
+                     f"{_cell(r['throughput'], '8.2f', 8)} {r['batch']:5d} {_cell(r['peak_mb'], '8.1f', 8)}"
+                     + (f" {_cell(r['iou'], '7.4f', 7)} {_cell(r['iou_delta'], '+8.4f', 8)} "
+                        f"{_cell(r['iou_vs_fp32'], '9.4f', 9)}" if scored else "")
                      + (f"  ({r['remark']})" if r.get("remark") else ""))
-    lines.append(f"(x base = {BASELINE_VARIANT} latency / variant latency, timed round-robin in the same run; "
-                 f"mIoU fp32 = mean per-image IoU of the variant's masks with {BASELINE_VARIANT}'s)")
+    lines.append(f"(x base = {BASELINE_VARIANT} latency / variant latency, timed round-robin in the same run"
+                 + (f"; mIoU fp32 = mean per-image IoU of the variant's masks with {BASELINE_VARIANT}'s)" if scored
+                    else "; IoU columns not computed: no validation images with masks)"))
     return "\n".join(lines)
 
 

@@ -16,7 +16,9 @@ paths (``a.png``, ``a.jpg`` and ``a_png.png`` cannot meet).  Before anything is 
 letter case (``b.png`` / ``b.PNG``: one would replace the other on a case-insensitive disk, and on
 any disk the folder could not be copied to one), when an output would be a file where another output
 needs a folder, when ``--output`` (or a folder on the way) is a file, when an output would replace an
-input, and -- unless ``overwrite`` -- when an output file or skipped.csv already exists.
+input, and -- unless ``overwrite`` -- when an output file or skipped.csv already exists that no
+``segment.json`` of an earlier run lists (:mod:`pipeline.ownership`: a rerun replaces its own outputs,
+never a file it did not write).
 
 Symbolic links inside an input folder (decision): a link to an image inside the input folder is
 segmented under the link's own name; a link whose target lies outside the input folder, a broken link
@@ -38,6 +40,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from pipeline.datasets.loading import probs_to_size
+from pipeline.datasets.scan import Inputs, _is_within, scan_inputs  # noqa: F401  (the folder scan, re-exported)
 from pipeline.deploy.segmenter import Segmenter
 from pipeline.errors import InputError
 from pipeline.thresholds import mask_from_probs
@@ -45,6 +48,8 @@ from pipeline.thresholds import mask_from_probs
 MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX = ".mask.png", ".prob.png", ".overlay.png"
 OUTPUT_SUFFIXES = (MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX)
 SKIPPED_CSV = "skipped.csv"
+#: segment's record (pipeline.ownership): the outputs a rerun may replace without --overwrite
+RECORD = "segment.json"
 
 
 def output_path(stem: Path, suffix: str) -> Path:
@@ -57,74 +62,10 @@ def output_suffixes(save_prob: bool = False, overlay: bool = False) -> tuple[str
     return (MASK_SUFFIX,) + ((PROB_SUFFIX,) if save_prob else ()) + ((OVERLAY_SUFFIX,) if overlay else ())
 
 
-@dataclasses.dataclass
-class Inputs:
-    root: Path                       # the input folder, or the parent of the single input file
-    files: list[Path]                # images to segment, sorted
-    skipped: list[tuple[str, str]]   # (path, reason): links not followed, non-regular files
-    is_dir: bool
-
-
-def scan_inputs(input_path: str | Path) -> Inputs:
-    """The images under ``input_path`` and the entries skipped on the way (module docstring).
-
-    A single file is taken as given (any suffix; the reader decides).  A folder is walked recursively
-    without following links; hidden entries are left out; among the other entries with a supported
-    image suffix, regular files and links to files inside the folder are kept, and broken links,
-    links leaving the folder, links to folders and special files are reported in ``skipped``.
-    """
-    from pipeline.datasets.loading import SUPPORTED_SUFFIXES
-
-    p = Path(input_path)
-    if not p.exists():
-        raise InputError(f"--input {p}: not found")
-    if not p.is_dir():
-        return Inputs(p.parent, [p], [], False)
-    root_r = p.resolve()
-    files: list[Path] = []
-    skipped: list[tuple[str, str]] = []
-
-    def walk_error(e: OSError) -> None:
-        skipped.append((str(e.filename), f"folder unreadable ({e.strerror or type(e).__name__})"))
-
-    for dirpath, dirnames, filenames in os.walk(p, onerror=walk_error, followlinks=False):
-        d = Path(dirpath)
-        dirnames[:] = sorted(n for n in dirnames if not n.startswith("."))
-        for n in dirnames:
-            if (d / n).is_symlink():  # os.walk does not descend into it: say so
-                skipped.append((str(d / n), "symbolic link to a folder (links to folders are not followed)"))
-        for n in sorted(filenames):
-            f = d / n
-            if n.startswith(".") or f.suffix.lower() not in SUPPORTED_SUFFIXES:
-                continue
-            if f.is_symlink():
-                try:
-                    target = f.resolve(strict=True)
-                except (OSError, RuntimeError):
-                    skipped.append((str(f), "broken symbolic link"))
-                    continue
-                if not _is_within(target, root_r):
-                    skipped.append((str(f), f"symbolic link pointing outside the input folder (to {target})"))
-                    continue
-            if not f.is_file():
-                skipped.append((str(f), "not a regular file"))
-                continue
-            files.append(f)
-    return Inputs(p, sorted(files), sorted(skipped), True)
-
-
 def discover_images(input_path: str | Path) -> tuple[Path, list[Path]]:
     """(root, image files) of :func:`scan_inputs` (the skipped entries are dropped: use scan_inputs)."""
     found = scan_inputs(input_path)
     return found.root, found.files
-
-
-def _is_within(child: Path, parent: Path) -> bool:
-    try:
-        child.relative_to(parent)
-        return True
-    except ValueError:
-        return False
 
 
 def _relative(f: Path, root: Path, root_r: Path) -> Path:
@@ -159,8 +100,11 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
     output folder is, or is inside, the input folder; two inputs' outputs differ only in letter case,
     or one output file would be a folder another output needs; an output would be one of the inputs;
     an output is an existing folder; ``overwrite`` is False and an output file of the kinds
-    ``suffixes`` or ``skipped.csv`` already exists (the first one is named).
+    ``suffixes``, ``skipped.csv`` or ``segment.json`` already exists that the ``segment.json`` of an
+    earlier run does not list (the first one is named; :mod:`pipeline.ownership`).
     """
+    from pipeline.ownership import owned_outputs, refuse_unowned
+
     out = Path(out_dir).absolute()
     cache: dict[Path, Path | None] = {}
     blocked = _blocking_file(out, cache)
@@ -200,17 +144,24 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
             target = output_path(s, suffix)
             if target.resolve() in inputs:
                 raise InputError(f"--output {out_dir}: would overwrite the input {target}")
-    targets = [output_path(s, suffix) for s in stems for suffix in suffixes] + [out / SKIPPED_CSV]
+    targets = [output_path(s, suffix) for s in stems for suffix in suffixes] + [out / SKIPPED_CSV, out / RECORD]
     for t in targets:
         blocked = _blocking_file(t.parent, cache)
         if blocked is not None:
             raise InputError(f"--output {out_dir}: {blocked} is a file where a folder is needed for {t.name}")
         if t.is_dir():
             raise InputError(f"--output {out_dir}: {t} is a folder; an output file must go there")
-        if not overwrite and (t.is_symlink() or t.exists()):
-            raise InputError(f"--output {out_dir}: {t} already exists; pass --overwrite to replace the outputs, "
-                             "or choose another --output")
+    own = [out / r for r in owned_outputs(out, RECORD, "segment")]
+    refuse_unowned(targets, own, command="segment", option="--output", where=out_dir,
+                   why=f"not listed in a {RECORD} there", overwrite=overwrite)
     return stems
+
+
+def relative_outputs(out_dir: str | Path, stems: Sequence[Path], suffixes: Sequence[str]) -> list[str]:
+    """The output files of ``stems`` (from :func:`plan_outputs`) and skipped.csv, relative to
+    ``out_dir`` (posix): what ``segment.json`` lists."""
+    out = Path(out_dir).absolute().resolve()
+    return [output_path(s, x).relative_to(out).as_posix() for s in stems for x in suffixes] + [SKIPPED_CSV]
 
 
 def overlay_image(image: np.ndarray, mask: np.ndarray, color=(255, 40, 40), alpha: float = 0.45) -> np.ndarray:
@@ -309,15 +260,19 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
     return SegmentResult(written, skipped, model_s, time.perf_counter() - t_start)
 
 
-def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str]]) -> Path:
-    """``skipped.csv`` (columns path, reason), written atomically; header only when nothing was skipped."""
+def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str, str]]) -> Path:
+    """``skipped.csv`` (columns image_id, path, reason: those of skipped_files.parquet,
+    :data:`pipeline.datasets.manifest.SKIPPED_COLUMNS`), written atomically; header only when nothing
+    was skipped."""
+    from pipeline.datasets.manifest import SKIPPED_COLUMNS
+
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["path", "reason"])
+            w.writerow(list(SKIPPED_COLUMNS))
             w.writerows(skipped)
         os.replace(tmp, path)
     except OSError as e:

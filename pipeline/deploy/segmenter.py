@@ -41,6 +41,11 @@ class Segmenter:
     tau: float | None = None  # the tau :meth:`predict` binarises with (set by :meth:`from_bundle`)
     tau_source: str = ""
 
+    def __repr__(self) -> str:
+        """One short line (the dataclass default would print the whole deploy.json in ``info``)."""
+        tau = "unset" if self.tau is None else f"{self.tau:.4g}"
+        return f"Segmenter(engine={self.engine!r}, resolution={self.resolution}, tau={tau})"
+
     @classmethod
     def from_bundle(cls, path: str | Path, *, engine: str = "auto", device="cpu", tau: float | None = None,
                     resolution: int | None = None) -> "Segmenter":

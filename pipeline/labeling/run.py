@@ -23,7 +23,7 @@ always)::
     labels.parquet, labels.csv                one row per image: c, v, a, a0, g_conf, g_valid, g_area, g
     contact_sheet.png                         sampled images with their pseudo-mask contours and g
     label.json                                backend (and whether it is a SIMULATOR), counts, params
-    skipped.csv                               files that could not be read (only when there are any)
+    skipped.csv                               files left out by --skip-bad (columns image_id, path, reason)
 
 Decisions: the vote happens at the working resolution (the pseudo-mask is exactly the DAG's training
 target for the same image and params) and the voted mask is brought to the original size by
@@ -56,6 +56,8 @@ FORMATS = ("png", "coco", "yolo")
 #: the files and folders written under ``out`` (module docstring), named once
 OUTPUTS = {"masks": "masks", "coco": "coco.json", "yolo": "yolo", "table": "labels.parquet", "csv": "labels.csv",
            "sheet": "contact_sheet.png", "record": "label.json", "skipped": "skipped.csv"}
+#: what label.json claims (pipeline.ownership): every output above; the caches under .cache/ only add files
+OWN_OUTPUTS = tuple(v for k, v in OUTPUTS.items() if k != "record")
 SIMULATOR_NOTE = ("teacher.backend=simulated is a SIMULATOR of foundation-model errors that reads the "
                   "reference masks given with --reference-masks; these are not a real teacher's labels")
 
@@ -69,6 +71,7 @@ class LabelResult:
     skipped: list[tuple[str, str]]
     formats: tuple[str, ...]
     backend: str
+    skipped_line: str | None = None  # the bad-file summary line (BadInputPolicy.summary; None: no bad file)
 
     @property
     def simulator(self) -> bool:
@@ -87,11 +90,12 @@ def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
     return tuple(f for f in FORMATS if f in items)
 
 
-def find_images(input_dir: str | Path) -> tuple[Path, list[Path], list[tuple[str, str]]]:
-    """(folder, image files sorted, skipped (path, reason)) under ``input_dir``, recursively
-    (:func:`pipeline.deploy.files.scan_inputs` rules); InputError when it is not a folder or has no image."""
+def find_images(input_dir: str | Path):
+    """The :class:`pipeline.datasets.scan.Inputs` of ``input_dir`` (images sorted, bad entries, files
+    that are not images), recursively (:func:`pipeline.datasets.scan.scan_inputs`, the one scan of
+    label, distill and segment); InputError when it is not a folder or has no image."""
     from pipeline.datasets.loading import SUPPORTED_SUFFIXES
-    from pipeline.deploy.files import scan_inputs
+    from pipeline.datasets.scan import scan_inputs
 
     root = Path(input_dir)
     if not root.is_dir():
@@ -100,7 +104,15 @@ def find_images(input_dir: str | Path) -> tuple[Path, list[Path], list[tuple[str
     found = scan_inputs(root)
     if not found.files:
         raise InputError(f"{root}: no images ({', '.join(s.lstrip('.') for s in SUPPORTED_SUFFIXES)}) in this folder")
-    return root, found.files, found.skipped
+    return found
+
+
+def _id_of(root: Path, path: str | Path) -> str:
+    """The label name of ``path`` (relative to ``root`` without the suffix), or its stem outside ``root``."""
+    try:
+        return Path(path).relative_to(root).with_suffix("").as_posix()
+    except ValueError:
+        return Path(path).stem
 
 
 def image_ids(root: Path, files: Sequence[Path]) -> list[str]:
@@ -185,20 +197,27 @@ def folder_gates(c: np.ndarray, n_valid: np.ndarray, a: np.ndarray, geo: Mapping
 
 
 def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, device: str = "auto",
-                 formats: str | Sequence[str] = FORMATS, reference_masks: str | Path | None = None) -> LabelResult:
+                 formats: str | Sequence[str] = FORMATS, reference_masks: str | Path | None = None,
+                 overwrite: bool = False) -> LabelResult:
     """Label every image under ``input_dir`` into ``out`` (module docstring); ``params`` are validated
     params (schema defaults or a params file): data.resolution / cache_dir / contact_sheet_images /
     seed, teacher.*, consensus.vote_threshold, geometry.*.  ``reference_masks``: the folder of masks the
-    simulated teacher (a SIMULATOR) reads; refused for real teachers (they never see masks)."""
+    simulated teacher (a SIMULATOR) reads; refused for real teachers (they never see masks).
+
+    Ownership (:mod:`pipeline.ownership`): ``label.json`` lists the outputs; an existing output that
+    no label.json of an earlier run lists (a user's own ``masks/``, ``coco.json``, ...) is refused
+    before anything is written, unless ``overwrite``."""
     import cv2
 
     from pipeline.artifacts import atomic_path, write_json
     from pipeline.consensus import vote
     from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
-    from pipeline.datasets.loading import DecodeCache, load_mask, load_rgb
+    from pipeline.datasets.loading import BadFileError, DecodeCache, load_mask, load_rgb
+    from pipeline.datasets.manifest import BadInputPolicy
     from pipeline.deploy.files import write_png, write_skipped_csv
     from pipeline.geometry import area_ratio, foreground_agreement
     from pipeline.labeling.formats import coco_annotation, coco_document, yolo_lines
+    from pipeline.ownership import check_outputs, claim_outputs, record_fields
     from pipeline.params import section
     from pipeline.progress import progress
     from pipeline.teachers import check_teacher_params, make_teacher, teacher_fingerprint
@@ -207,11 +226,18 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
     from pipeline.teachers.runner import TeacherRunner
 
     fmts = parse_formats(formats)
-    root, files, skipped = find_images(input_dir)
+    found = find_images(input_dir)
+    root, files = found.root, found.files
     out = Path(out)
     if out.resolve() == root.resolve() or root.resolve() in out.resolve().parents:
         raise InputError(f"--out {out}: must not be the input folder or inside it")
     ids = image_ids(root, files)
+    policy = BadInputPolicy(section(params, "data")["skip_bad"])
+    for path, reason in found.skipped:  # links leaving the folder, broken links: before anything is written
+        policy.report(_id_of(root, path), path, reason)
+    for path, reason in found.unused:  # not images (hidden files, other types): listed, not an error
+        policy.record(_id_of(root, path), path, reason)
+    check_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], "label", overwrite=overwrite)
     data_cfg, geo = section(params, "data"), section(params, "geometry")
     tcfg = section(params, "teacher")
     tcfg["cache_dir"] = _inside(tcfg["cache_dir"], out)
@@ -237,19 +263,22 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
                 if ref.native_hw != loaded.native_hw:
                     raise InputError(f"{ref_files[i]}: mask size {ref.native_hw[1]}x{ref.native_hw[0]} differs from "
                                      f"image {f} size {loaded.native_hw[1]}x{loaded.native_hw[0]}")
-        except InputError as e:
-            skipped.append((str(f), str(e).splitlines()[0]))
+        except BadFileError as e:
+            policy.report(ids[i] if e.path == str(f) else Path(e.path).stem, e.path, e.reason)
             continue
         keep.append(i)
         shas.append(loaded.sha256)
         sizes.append(loaded.native_hw)
     if not keep:
-        raise InputError(f"{root}: none of the {len(files)} images could be read (first: {skipped[-1][1]})")
+        first = policy.skipped[-1]
+        raise InputError(f"{root}: none of the {len(files)} images could be read (first: {first['path']}: "
+                         f"{first['reason']})")
     files = [files[i] for i in keep]
     ids = [ids[i] for i in keep]
     ref_files = [ref_files[i] for i in keep] if ref_files is not None else None
     n = len(files)
 
+    claim_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], "label", {"input": str(root.resolve()), "complete": False})
     teacher = make_teacher(tcfg, (size, size), device)
     prompts = list(tcfg["prompts"])
 
@@ -333,15 +362,14 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
     tiles = [tile(img, voted, f"{ids[r]} g={gf.g[r]:.2f}"[:30], tsize) for r, (img, voted) in sorted(sheet.items())]
     write_png(out / OUTPUTS["sheet"], contact_sheet(tiles, columns=4))
 
-    if skipped:
-        write_skipped_csv(out / OUTPUTS["skipped"], skipped)
-    elif (out / OUTPUTS["skipped"]).exists():
-        (out / OUTPUTS["skipped"]).unlink()
+    write_skipped_csv(out / OUTPUTS["skipped"], policy.rows())  # header only when nothing was skipped
     write_json(out / OUTPUTS["record"], {
-        "input": str(root.resolve()), "images": n, "skipped": len(skipped), "formats": list(fmts),
+        "input": str(root.resolve()), "images": n, "skipped": policy.bad_count(), "formats": list(fmts),
         "teacher_backend": tcfg["backend"], "simulator": simulated, "note": SIMULATOR_NOTE if simulated else None,
         "teacher_fingerprint": t_fp, "prompts": prompts, "resolution": size, "vote_threshold": vote_threshold,
         "a0": a0, "geometry": geo, "teacher_answers_computed": stats.answers_computed,
-        "teacher_cache_hits": stats.cache_hits})
-    log.info("label: %d images -> %s (%s); %d skipped", n, out, ", ".join(fmts), len(skipped))
-    return LabelResult(out, table, skipped, fmts, tcfg["backend"])
+        "teacher_cache_hits": stats.cache_hits, "complete": True,
+        **record_fields(out, OUTPUTS["record"], "label", OWN_OUTPUTS)})
+    log.info("label: %d images -> %s (%s); %d skipped", n, out, ", ".join(fmts), policy.bad_count())
+    return LabelResult(out, table, [(r["path"], r["reason"]) for r in policy.skipped], fmts, tcfg["backend"],
+                       policy.summary("label", out / OUTPUTS["skipped"]))

@@ -35,11 +35,16 @@ class Inputs:
     missing: dict[str, Missing]
     logs: pd.DataFrame | None = None
     runs: list = dataclasses.field(default_factory=list)  # pipeline.report.environment.training_runs
+    no_masks: bool = False  # no validation or test image has a mask (a distill project without --val-masks)
 
     def get(self, name):
         return self.found.get(name)
 
-    def need(self, *names) -> list[Missing]:
+    def need(self, *names) -> list:
+        """A note per missing input; without any mask, inputs that need masks are not missing but not
+        computed, and one plain sentence says so (:data:`NOT_COMPUTED`)."""
+        if self.no_masks and any(n in MASK_INPUTS for n in names):
+            return [Text(NOT_COMPUTED)]
         return [self.missing[n] for n in names if n in self.missing]
 
 
@@ -59,6 +64,8 @@ def load_inputs(art: str | Path) -> Inputs:
     inp = Inputs(art, found, missing)
     inp.logs = training_logs(art / "checkpoints")
     inp.runs = training_runs(catalog.path("checkpoints", art))
+    if found.get("manifest") is not None:
+        inp.no_masks = no_reference_masks(found["manifest"].df, found.get("reference"))
     return inp
 
 
@@ -96,6 +103,15 @@ NO_MASKS_NOTE = (
     "image is a training image, Stage I and Stage II keep their last epoch, the threshold is the fixed "
     "tau = `calibrate.fixed_tau` (0.5, not calibrated), and there are no accuracy numbers -- the student's "
     "quality on this data is unmeasured.  Pass a few masks (`--val-masks DIR`) to select, calibrate and score.")
+
+
+#: inputs computed only from validation/test masks (the scores; the teacher scored against the masks)
+MASK_INPUTS = ("summary", "metrics", "teacher_metrics")
+NOT_COMPUTED = ("**Not computed: no validation or test masks.** Scores need reference masks, and none were "
+                "given (`geodistill distill` without `--val-masks`), so nothing here was measured.  Rerun with "
+                "`--val-masks DIR` (a few masks named like their images) to compute it.")
+FIXED_TAU_NOTE = ("**Threshold: the fixed tau = {tau:g}** (`calibrate.fixed_tau`), not calibrated: without "
+                  "validation masks there is nothing to calibrate on.  Pass `--val-masks DIR` to calibrate it.")
 
 
 def no_reference_masks(manifest_df: pd.DataFrame, reference) -> bool:
@@ -153,6 +169,10 @@ def threshold_section(inp: Inputs, plots: dict) -> Section:
         sec.blocks += inp.need("thresholds")
         return sec
     df = thr.df
+    if inp.no_masks:
+        taus = sorted({float(t) for t in df["tau"]})
+        sec.blocks.append(Text(FIXED_TAU_NOTE.format(tau=taus[0] if len(taus) == 1 else float("nan"))))
+        return sec
     sec.blocks.append(T.thresholds_table(df))
     long = [pd.DataFrame({"tau": r["grid"], "val_iou": r["curve"], "method": r["method"], "seed": r["seed"]})
             for _, r in df.iterrows() if "grid" in df.columns]
@@ -216,6 +236,9 @@ def diagnostics_section(inp: Inputs, plots: dict) -> Section:
     """Controls and threshold/calibration diagnostics (issue 17): what the numbers say about the
     fixed-tau reversal, the budget-matched control, calibration, per-epoch stability, target size."""
     sec = Section("Controls and threshold diagnostics")
+    if inp.no_masks:
+        sec.blocks.append(Text(NOT_COMPUTED))
+        return sec
     s, thr, m = inp.get("summary"), inp.get("thresholds"), inp.get("metrics")
     if s is None and thr is None:
         sec.blocks += inp.need("summary", "thresholds")
@@ -373,6 +396,9 @@ def efficiency_section(inp: Inputs) -> Section:
 def training_section(inp: Inputs, plots: dict) -> Section:
     sec = Section("Training curves")
     logs = inp.logs
+    if inp.no_masks:
+        sec.blocks.append(Text(NOT_COMPUTED.replace("Scores need", "Validation curves need")))
+        return sec
     if logs is None or "val_iou" not in logs.columns:
         sec.blocks.append(Missing("training logs", "no active checkpoint with a log.parquet under "
                                   f"`{inp.art / 'checkpoints'}` -- produced by the `train` stages."))
@@ -500,7 +526,8 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
 
 def provenance_section(inp: Inputs) -> Section:
     rows = [[f"`{catalog.ARTIFACTS[n].path}`", a.meta.schema, a.meta.stage, a.fingerprint[:16]] for n, a in inp.found.items()]
-    rows += [[f"`{catalog.ARTIFACTS[n].path}`", "--", "--", "missing"] for n in inp.missing]
+    rows += [[f"`{catalog.ARTIFACTS[n].path}`", "--", "--",
+              "not computed (no masks)" if inp.no_masks and n in MASK_INPUTS else "missing"] for n in inp.missing]
     return Section("Provenance", [Table("tab:provenance", "Input artifacts", ["Artifact", "Schema", "Stage",
                                                                              "Fingerprint"], rows)])
 

@@ -237,7 +237,8 @@ def efficiency_table(eff: pd.DataFrame) -> Table:
     variant's masks with fp32's (1 = identical masks), resolution and device."""
     labels = {"speedup": "Speed-up vs fp32 eager", "iou_delta": "Val Image IoU change vs fp32",
               "iou_vs_fp32": "Mask IoU with fp32 (val)", "resolution": "Resolution", "device": "Device"}
-    extra = [c for c in labels if c in eff.columns]
+    # a column with no value at all (the IoU columns without validation masks) is left out, not shown as "--"
+    extra = [c for c in labels if c in eff.columns and not (eff[c].dtype.kind == "f" and eff[c].isna().all())]
     rows = []
     for _, r in eff.iterrows():
         params = r["params"]
@@ -259,7 +260,8 @@ def efficiency_table(eff: pd.DataFrame) -> Table:
                  ["Variant", "Parameters", "GFLOPs", "Latency (ms/image)", "Throughput (image/s)", "Peak memory (MB)"]
                  + [labels[c] for c in extra], rows, ["Measured by the benchmark stage on this machine; latency (batch 1, median, timed round-robin "
                   "across the variants), throughput and memory at the Resolution column, excluding disk input; "
-                  "the IoU columns on the validation images at the model's working resolution."])
+                  "the IoU columns on the validation images at the model's working resolution"
+                  + ("." if "iou_delta" in extra else " (left out: no validation images with masks).")])
 
 
 # --------------------------------------------------------------------------------------------------

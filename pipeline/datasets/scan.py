@@ -1,0 +1,92 @@
+"""The one folder scan of the user tools: label, distill / prepare (folder source) and segment
+(docs/own-data.md).  Sub-folders are walked recursively; links are never followed out of the folder.
+See :func:`scan_inputs`."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+from pipeline.errors import InputError
+
+
+@dataclasses.dataclass
+class Inputs:
+    root: Path                       # the input folder, or the parent of the single input file
+    files: list[Path]                # images to segment, sorted
+    skipped: list[tuple[str, str]]   # (path, reason): bad entries -- links not followed, non-regular files
+    is_dir: bool
+    unused: list[tuple[str, str]] = dataclasses.field(default_factory=list)  # not images: listed, not an error
+
+
+def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> Inputs:
+    """The images under ``input_path`` and the entries skipped on the way (module docstring): the one
+    folder scan of label, distill/prepare (folder source) and segment (docs/own-data.md).
+
+    A single file is taken as given (any suffix; the reader decides).  A folder is walked recursively
+    (sub-folders included) without following links.  Hidden entries (name starting with ``.``) and
+    files without a supported image suffix are not images: listed in ``unused``, never an error.
+    Among the others, regular files and links to files inside the folder are kept; broken links,
+    links leaving the folder, links to folders and special files are bad entries (``skipped``).
+    ``keep_broken_links``: keep broken links in ``files`` instead (the caller's decode pass reports
+    them, with the same wording, :func:`broken_link_reason`).
+    """
+    from pipeline.datasets.loading import SUPPORTED_SUFFIXES, broken_link_reason
+
+    p = Path(input_path)
+    if not p.exists():
+        raise InputError(f"--input {p}: not found")
+    if not p.is_dir():
+        return Inputs(p.parent, [p], [], False)
+    root_r = p.resolve()
+    files: list[Path] = []
+    skipped: list[tuple[str, str]] = []
+    unused: list[tuple[str, str]] = []
+
+    def walk_error(e: OSError) -> None:
+        skipped.append((str(e.filename), f"folder unreadable ({e.strerror or type(e).__name__})"))
+
+    for dirpath, dirnames, filenames in os.walk(p, onerror=walk_error, followlinks=False):
+        d = Path(dirpath)
+        unused.extend((str(d / n), "hidden folder, not read") for n in sorted(dirnames) if n.startswith("."))
+        dirnames[:] = sorted(n for n in dirnames if not n.startswith("."))
+        for n in dirnames:
+            if (d / n).is_symlink():  # os.walk does not descend into it: say so
+                skipped.append((str(d / n), "symbolic link to a folder (links to folders are not followed)"))
+        for n in sorted(filenames):
+            f = d / n
+            if n.startswith("."):
+                unused.append((str(f), "hidden file, not read"))
+                continue
+            if f.suffix.lower() not in SUPPORTED_SUFFIXES:
+                unused.append((str(f), f"not an image file (suffix {f.suffix or '(none)'!r}; images are "
+                                       f"{', '.join(s.lstrip('.') for s in SUPPORTED_SUFFIXES)}), not read"))
+                continue
+            if f.is_symlink():
+                try:
+                    target = f.resolve(strict=True)
+                except (OSError, RuntimeError):
+                    if keep_broken_links:
+                        files.append(f)
+                    else:
+                        skipped.append((str(f), broken_link_reason(f)))
+                    continue
+                if not _is_within(target, root_r):
+                    skipped.append((str(f), f"symbolic link pointing outside the input folder (to {target})"))
+                    continue
+            if not f.is_file():
+                skipped.append((str(f), "not a regular file"))
+                continue
+            files.append(f)
+    return Inputs(p, sorted(files), sorted(skipped), True, sorted(unused))
+
+
+def _is_within(child: Path, parent: Path) -> bool:
+    try:
+        child.relative_to(parent)
+        return True
+    except ValueError:
+        return False
+
+
