@@ -21,6 +21,7 @@ import click
 import numpy as np
 import pandas as pd
 
+from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline import catalog
 from pipeline.params import section
 from stages._common import declared_params, meta_for, stage_code_version, stage_command
@@ -37,8 +38,8 @@ def base_prompt_index(teacher_meta) -> int:
 
 
 @stage_command("analyze_teacher")
-@click.option("--artifacts", "art", default="artifacts", show_default=True, type=click.Path(file_okay=False))
-@click.option("--out", default="artifacts/teacher_metrics.parquet", show_default=True, type=click.Path(dir_okay=False))
+@click.option("--artifacts", "art", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False))
+@click.option("--out", default=dvc_path("teacher_metrics"), show_default=True, type=click.Path(dir_okay=False))
 @click.option("--metrics-dir", default=None, type=click.Path(file_okay=False),
               help="DVC metrics <group>.json, replaced [default: reports/metrics/teacher beside --artifacts]")
 def main(params, device, art, out, metrics_dir):

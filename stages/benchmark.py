@@ -24,6 +24,7 @@ from pathlib import Path
 
 import click
 
+from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.params import section
 from stages._common import meta_for, stage_code_version, stage_command
 
@@ -33,9 +34,9 @@ from stages._common import meta_for, stage_code_version, stage_command
 @click.option("--deploy", "deploy_dir", default=None, type=click.Path(file_okay=False),
               help="deploy bundle (geodistill export); or use --checkpoint")
 @click.option("--checkpoint", default=None, type=click.Path(file_okay=False), help="checkpoint dir instead of a bundle")
-@click.option("--artifacts", "art", default="artifacts", show_default=True, type=click.Path(file_okay=False),
+@click.option("--artifacts", "art", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False),
               help="manifest/images/reference for the IoU check and int8 calibration (optional standalone)")
-@click.option("--thresholds", default="artifacts/thresholds.parquet", show_default=True,
+@click.option("--thresholds", default=dvc_path("thresholds"), show_default=True,
               help="with --checkpoint: where to find its calibrated tau")
 @click.option("--tau", type=float, default=None, help="override the deployed tau")
 @click.option("--resolution", type=int, default=None, help="time at this size (default: deploy.benchmark_resolution "

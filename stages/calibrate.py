@@ -24,6 +24,7 @@ import click
 import numpy as np
 import pandas as pd
 
+from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.params import section
 from stages._common import declared_params, meta_for, stage_code_version, stage_command
 
@@ -47,10 +48,10 @@ def fixed_thresholds(params, runs, inputs, out) -> None:
 
 
 @stage_command("calibrate")
-@click.option("--artifacts", "art", default="artifacts", show_default=True, type=click.Path(file_okay=False),
+@click.option("--artifacts", "art", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False),
               help="directory holding manifest.parquet, images.zarr, reference.zarr")
-@click.option("--checkpoints", default="artifacts/checkpoints", show_default=True, type=click.Path(file_okay=False))
-@click.option("--out", default="artifacts/thresholds.parquet", show_default=True, type=click.Path(dir_okay=False))
+@click.option("--checkpoints", default=dvc_path("checkpoints"), show_default=True, type=click.Path(file_okay=False))
+@click.option("--out", default=dvc_path("thresholds"), show_default=True, type=click.Path(dir_okay=False))
 def main(params, device, art, checkpoints, out):
     """Calibrate tau per (method, seed) by mean validation Image IoU; write thresholds.parquet."""
     from pipeline.artifacts import open_artifact, read_chunk_rows, write_parquet

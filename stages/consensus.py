@@ -6,6 +6,7 @@ from __future__ import annotations
 import click
 import numpy as np
 
+from pipeline.catalog import dvc_path
 from pipeline.artifacts import ZarrWriter, open_artifact
 from pipeline.consensus import vote_batch
 from pipeline.errors import InputError
@@ -33,8 +34,8 @@ def check_teacher(teacher) -> tuple[int, int, int, int]:
 
 
 @stage_command("consensus")
-@click.option("--teacher", default="artifacts/teacher.zarr", show_default=True, help="teacher.zarr input")
-@click.option("--out", default="artifacts/consensus.zarr", show_default=True, help="consensus.zarr output")
+@click.option("--teacher", default=dvc_path("teacher"), show_default=True, help="teacher.zarr input")
+@click.option("--out", default=dvc_path("consensus"), show_default=True, help="consensus.zarr output")
 @click.option("--chunk-images", default=32, show_default=True, type=click.IntRange(1),
               help="images per block (memory only; results do not depend on it)")
 def main(params, device, teacher, out, chunk_images):

@@ -30,6 +30,7 @@ import click
 import numpy as np
 import pandas as pd
 
+from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline import catalog
 from pipeline.params import section
 from stages._common import declared_params, meta_for, stage_code_version, stage_command
@@ -87,11 +88,11 @@ def write_dvc_results(metrics_dir, training_curves_csv, threshold_curves_csv, su
 
 
 @stage_command("evaluate")
-@click.option("--artifacts", "art", default="artifacts", show_default=True, type=click.Path(file_okay=False))
-@click.option("--checkpoints", default="artifacts/checkpoints", show_default=True, type=click.Path(file_okay=False))
-@click.option("--thresholds", default="artifacts/thresholds.parquet", show_default=True, type=click.Path(dir_okay=False))
-@click.option("--out", default="artifacts/metrics.parquet", show_default=True, type=click.Path(dir_okay=False))
-@click.option("--summary", "summary_out", default="artifacts/summary.parquet", show_default=True,
+@click.option("--artifacts", "art", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False))
+@click.option("--checkpoints", default=dvc_path("checkpoints"), show_default=True, type=click.Path(file_okay=False))
+@click.option("--thresholds", default=dvc_path("thresholds"), show_default=True, type=click.Path(dir_okay=False))
+@click.option("--out", default=dvc_path("metrics"), show_default=True, type=click.Path(dir_okay=False))
+@click.option("--summary", "summary_out", default=dvc_path("summary"), show_default=True,
               type=click.Path(dir_okay=False))
 @click.option("--metrics-dir", default=None, type=click.Path(file_okay=False),
               help="DVC metrics <group>/<method>.json, replaced [default: reports/metrics/students beside --artifacts]")

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import click
 
+from pipeline.catalog import dvc_path
 from pipeline.params import section
 from stages._common import meta_for, overwrite_option, stage_code_version, stage_command
 
@@ -41,7 +42,7 @@ def is_bundle_dir(path) -> bool:
 @click.option("--thresholds", default=None, type=click.Path(dir_okay=False),
               help="thresholds.parquet with the calibrated tau (default: fall back to calibrate.fixed_tau)")
 @click.option("--tau", type=float, default=None, help="override tau (recorded as the tau source)")
-@click.option("--out", default="artifacts/deploy", show_default=True, type=click.Path(file_okay=False))
+@click.option("--out", default=dvc_path("deploy"), show_default=True, type=click.Path(file_okay=False))
 @click.option("--artifacts", "art", default=None, type=click.Path(file_okay=False),
               help="folder with manifest.parquet + images.zarr: training images calibrate model.int8.onnx "
                    "(default: no int8 model)")

@@ -7,6 +7,7 @@ import click
 import numpy as np
 import pandas as pd
 
+from pipeline.catalog import dvc_path
 from pipeline.artifacts import ZarrWriter, open_artifact, write_parquet
 from pipeline.errors import InputError
 from pipeline.geometry import foreground_agreement, gate_factors, median_area, pseudo_targets, valid_ratio
@@ -44,10 +45,10 @@ def check_inputs(cons, manifest, n_prompts: int) -> tuple[int, int, int]:
 
 
 @stage_command("geometry")
-@click.option("--consensus", default="artifacts/consensus.zarr", show_default=True, help="consensus.zarr input")
-@click.option("--manifest", default="artifacts/manifest.parquet", show_default=True, help="manifest (splits)")
-@click.option("--out", default="artifacts/geometry.zarr", show_default=True, help="geometry.zarr output")
-@click.option("--gates", default="artifacts/gates.parquet", show_default=True, help="gates.parquet output")
+@click.option("--consensus", default=dvc_path("consensus"), show_default=True, help="consensus.zarr input")
+@click.option("--manifest", default=dvc_path("manifest"), show_default=True, help="manifest (splits)")
+@click.option("--out", default=dvc_path("geometry"), show_default=True, help="geometry.zarr output")
+@click.option("--gates", default=dvc_path("gates"), show_default=True, help="gates.parquet output")
 @click.option("--chunk-images", default=64, show_default=True, type=click.IntRange(1),
               help="images per block (memory only; results do not depend on it)")
 def main(params, device, consensus, manifest, out, gates, chunk_images):

@@ -13,6 +13,7 @@ import click
 import cv2
 import numpy as np
 
+from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.artifacts import ZarrWriter, atomic_path, write_parquet
 from pipeline.datasets import build
 from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
@@ -28,7 +29,7 @@ log = logging.getLogger("geodistill.prepare")
 
 
 @stage_command("prepare")
-@click.option("--out-dir", default="artifacts", show_default=True, type=click.Path(file_okay=False))
+@click.option("--out-dir", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False))
 @click.option("--source", default=None, help="override data.source (synthetic|spacesense|speedplus|tango|folder)")
 @click.option("--root", default=None, help="override data.root (dataset root for real sources)")
 @click.option("--protocol", default=None, help="override data.protocol (protocol YAML)")

@@ -19,14 +19,15 @@ from pathlib import Path
 
 import click
 
+from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.params import section
 from stages._common import declared_params, meta_for, stage_code_version, stage_command
 
 
 
 @stage_command("report")
-@click.option("--artifacts", "art", default="artifacts", show_default=True, type=click.Path(file_okay=False))
-@click.option("--out", default="reports/demo", show_default=True, type=click.Path(file_okay=False),
+@click.option("--artifacts", "art", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False))
+@click.option("--out", default=dvc_path("report", profile="demo"), show_default=True, type=click.Path(file_okay=False),
               help="report directory (dvc.yaml: reports/${profile})")
 def main(params, device, art, out):
     """Write report.md, a self-contained report.html, figures and plot CSVs."""

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import click
 
+from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.errors import InputError
 
 
@@ -70,7 +71,7 @@ def fresh_metrics(metrics_dir: Path) -> dict[str, dict[str, float]]:
 
 @click.command(name="reproduce-check")
 @click.option("--ref", default="HEAD", show_default=True, help="the commit whose metrics are the reference")
-@click.option("--artifacts", default="artifacts", show_default=True, type=click.Path(file_okay=False),
+@click.option("--artifacts", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False),
               help="artifacts directory of the run (the metrics lie beside it, pipeline.catalog)")
 def main(ref, artifacts):
     """Compare this run's student metrics with the committed ones; exit 1 when one differs beyond tolerance."""

@@ -44,6 +44,7 @@ from pathlib import Path
 
 import click
 
+from pipeline.catalog import dvc_path
 from pipeline.errors import InputError
 from stages._common import one_line_errors, overwrite_option, skip_bad_option
 
@@ -150,7 +151,7 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
 @click.option("--tau", type=float, default=None, help="threshold override (default: the calibrated one)")
 @click.option("--resolution", type=int, default=None,
               help="working resolution N (default: the one recorded with the model; required when none is)")
-@click.option("--thresholds", default="artifacts/thresholds.parquet", show_default=True,
+@click.option("--thresholds", default=dvc_path("thresholds"), show_default=True,
               help="thresholds table used to find a checkpoint's calibrated tau (when it exists)")
 @click.option("--engine", default="auto", show_default=True,
               help="auto | torch | cuda | torchscript | onnx | int8 | openvino_int8 (all but torch and cuda "

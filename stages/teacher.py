@@ -39,6 +39,7 @@ import click
 import numpy as np
 import pandas as pd
 
+from pipeline.catalog import dvc_path
 from pipeline.artifacts import ZarrWriter, open_artifact, require_same_run, write_parquet
 from pipeline.errors import InputError
 from pipeline.params import section
@@ -64,12 +65,12 @@ def _check_alignment(manifest: pd.DataFrame, images, reference) -> None:
 
 
 @stage_command("teacher")
-@click.option("--manifest", default="artifacts/manifest.parquet", show_default=True)
-@click.option("--images", default="artifacts/images.zarr", show_default=True)
-@click.option("--reference", default="artifacts/reference.zarr", show_default=True,
+@click.option("--manifest", default=dvc_path("manifest"), show_default=True)
+@click.option("--images", default=dvc_path("images"), show_default=True)
+@click.option("--reference", default=dvc_path("reference"), show_default=True,
               help="read only by the simulated teacher (synthetic ground truth)")
-@click.option("--out", default="artifacts/teacher.zarr", show_default=True)
-@click.option("--scores", default="artifacts/teacher_scores.parquet", show_default=True)
+@click.option("--out", default=dvc_path("teacher"), show_default=True)
+@click.option("--scores", default=dvc_path("teacher_scores"), show_default=True)
 @click.option("--shard", default=None, metavar="I/N",
               help="fill the cache for shard I of N (0-based) only; writes no artifact")
 def main(params, device, manifest, images, reference, out, scores, shard):

@@ -33,6 +33,7 @@ from typing import Any, Mapping
 
 import click
 
+from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.errors import InputError, TrainingDiverged
 from pipeline.params import section
 from stages._common import meta_for, stage_code_version, stage_command
@@ -221,7 +222,7 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
 @click.option("--stage", type=click.IntRange(1, 2), required=True, help="1 (Stage-I methods) or 2")
 @click.option("--method", required=True, help="plain, geodistill, ... (pipeline.methods.METHODS)")
 @click.option("--seed", type=int, required=True)
-@click.option("--artifacts", default="artifacts", show_default=True, type=click.Path(file_okay=False))
+@click.option("--artifacts", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False))
 @click.option("--init", default=None, help="Stage-I checkpoint dir (warm-started methods only; others ignore it)")
 @click.option("--out", required=True, help="checkpoint directory to write")
 @click.option("--resume-dir", default=".cache/train", show_default=True,
