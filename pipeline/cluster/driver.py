@@ -108,8 +108,11 @@ def run_stage(root: str, stage: str, extra_env: dict, threads: int, gpus: float,
               *upstream: dict) -> dict:
     """The body of a stage's Ray task: ``dvc --wait-for-lock repro --single-item STAGE`` under the guard,
     output to ``log_path``.  ``upstream``: the results of the stages it waits for; when one of them did
-    not succeed this stage is ``not_run``.  Returns {stage, status, start, end, returncode, error, node}."""
+    not succeed this stage is ``not_run``.  Returns {stage, status, start, end, returncode, error, node,
+    node_id}."""
     import socket
+
+    import ray
 
     failed = [u["stage"] for u in upstream if u["status"] in ("failed", "not_run")]
     if failed:
@@ -125,7 +128,7 @@ def run_stage(root: str, stage: str, extra_env: dict, threads: int, gpus: float,
     text = Path(log_path).read_text(errors="replace")
     return {"stage": stage, "status": plan.outcome(text) if rc == 0 else "failed", "start": start, "end": end,
             "returncode": rc, "error": None if rc == 0 else f"exit {rc}: {plan.error_line(text)}",
-            "node": socket.gethostname()}
+            "node": socket.gethostname(), "node_id": ray.get_runtime_context().get_node_id()}
 
 
 def driver_env() -> dict[str, str]:
