@@ -28,7 +28,8 @@ def main(targets, address, stage_cpus, train_gpu_fraction, dry_run):
     Each stale stage, and every stage downstream of one, runs `dvc --wait-for-lock repro --single-item
     STAGE` as a Ray task once its upstream stages are done, so DVC decides what is stale and records
     every stage (dvc.lock, cache, run cache): afterwards `dvc status` is clean and `dvc repro` does
-    nothing, and `dvc status` works while it runs.  With GPUs the teacher takes one GPU and each
+    nothing, and `dvc status` works while it runs (a running stage's outputs are busy, as
+    during `dvc repro`).  With GPUs the teacher takes one GPU and each
     training run a fraction of one; CPU stages take cores (OMP_NUM_THREADS); the benchmark runs last
     and alone (it measures time).  Logs and a timeline: artifacts/logs/run/.
 

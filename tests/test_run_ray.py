@@ -136,6 +136,11 @@ def ray_session():
         pytest.skip("git not available")
     ray.init(num_cpus=2, num_gpus=2, include_dashboard=False, log_to_driver=False, logging_level="WARNING",
              runtime_env={"env_vars": {"PYTHONPATH": str(ROOT)}})
+    # two warm workers: on a loaded 2-core machine starting a second worker can take longer than a stage
+    def nap(seconds):  # defined here: pickled by value (the tests folder is not on the workers' path)
+        time.sleep(seconds)
+
+    ray.get([ray.remote(num_cpus=1)(nap).remote(2.0) for _ in range(2)])
     yield ray
     ray.shutdown()
 
@@ -198,11 +203,13 @@ def _alive(pid: int) -> bool:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signals are Linux")
-def test_sigkilled_driver_leaves_no_stage_process(tmp_path):
+def test_dvc_status_works_during_a_run_and_a_sigkilled_driver_leaves_no_stage_process(tmp_path):
     pytest.importorskip("ray")
     slow = ("stages:\n  slow:\n    cmd: python -c \"import os, time; "
-            "open('pids', 'w').write(f'{os.getpid()} {os.getppid()}'); time.sleep(300)\"\n    outs: [out]\n")
+            "open('pids', 'w').write(f'{os.getpid()} {os.getppid()}'); time.sleep(300)\"\n    outs: [out]\n"
+            "  done:\n    cmd: echo d > done.txt\n    outs: [done.txt]\n")
     repo = _project(tmp_path / "p", slow)
+    assert _sh(repo, sys.executable, "-m", "dvc", "repro", "done").returncode == 0  # up to date before the run
     driver = subprocess.Popen([sys.executable, "-m", "stages.cli", "run"], cwd=repo, env=_env(),
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -212,6 +219,10 @@ def test_sigkilled_driver_leaves_no_stage_process(tmp_path):
             time.sleep(0.5)
         stage_pid, dvc_pid = map(int, (repo / "pids").read_text().split())
         assert _alive(stage_pid) and _alive(dvc_pid)
+        # DVC's repository lock is free meanwhile: status of a stage that is not running works (a running
+        # stage's outputs are busy under DVC's per-path lock, as during `dvc repro`)
+        status = _sh(repo, sys.executable, "-m", "dvc", "status", "--json", "done")
+        assert status.returncode == 0 and json.loads(status.stdout) == {}, status.stderr
     finally:
         driver.send_signal(signal.SIGKILL)
         driver.wait()
