@@ -42,9 +42,10 @@ demo: install
 	SOURCE_DATE_EPOCH=$(SOURCE_DATE_EPOCH) PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
 
 # Another profile: rewrite params.yaml (and check dvc.yaml), then run the DAG with `geodistill run`:
-# stale stages as concurrent processes (several training runs per GPU, CPU cores shared out), each one
-# recorded by DVC (dvc.lock), so `dvc repro` afterwards does nothing.  Options through RUN_ARGS, e.g.
-# make paper RUN_ARGS="--gpu-jobs 6 --teacher-shards 8"   (see `geodistill run --help`).
+# stale stages as Ray tasks (the teacher on a GPU, several training runs per GPU, CPU stages on cores),
+# each one `dvc repro --single-item`, so DVC records it and `dvc repro` afterwards does nothing.  Options
+# through RUN_ARGS, e.g. make paper RUN_ARGS="--train-gpu-fraction 0.125"  (see `geodistill run --help`,
+# docs/scaling.md).
 RUN_ARGS ?=
 reduced paper: install
 	$(BIN)/geodistill profile $@

@@ -786,11 +786,30 @@ def open_artifact(path: str | Path, schema: str | None = None) -> Artifact:
     raise ArtifactError(f"{path}: unknown artifact type (expected .zarr, .parquet or a directory)")
 
 
+def row_runs(sorted_rows: np.ndarray) -> list[tuple[int, int, int]]:
+    """Contiguous runs of sorted, unique row numbers: ``(first row, stop row, position of the first in
+    the sorted list)`` each, e.g. [2, 3, 4, 9] -> [(2, 5, 0), (9, 10, 3)]."""
+    rows = np.asarray(sorted_rows, dtype=np.int64)
+    if rows.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(rows) != 1) + 1
+    starts = np.concatenate([[0], breaks])
+    ends = np.concatenate([breaks, [rows.size]])
+    return [(int(rows[a]), int(rows[b - 1]) + 1, int(a)) for a, b in zip(starts, ends)]
+
+
 def read_chunk_rows(arr, indices: np.ndarray) -> np.ndarray:
-    """Read arbitrary rows of a zarr array (sorted, unique) efficiently: one orthogonal selection."""
-    indices = np.asarray(indices, dtype=np.int64)
-    order = np.argsort(indices)
-    out = arr.get_orthogonal_selection((indices[order],))
-    inv = np.empty_like(order)
-    inv[order] = np.arange(len(order))
-    return np.asarray(out)[inv]
+    """Rows ``indices`` (unique, any order) of a zarr array, in that order.
+
+    Each contiguous run of the sorted rows is one plain slice ``arr[a:b]`` written into one output
+    array: zarr's orthogonal selection builds per-element int64 coordinates on sharded arrays (200 rows
+    at 384^2 took 8.3 GB and 24 s against 0.24 GB and 0.28 s as slices; issue 25)."""
+    indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+    order = np.argsort(indices, kind="stable")
+    rows = indices[order]
+    if rows.size and (rows[0] < 0 or rows[-1] >= arr.shape[0] or np.any(np.diff(rows) == 0)):
+        raise IndexError(f"read_chunk_rows: rows must be unique and within 0..{arr.shape[0] - 1}")
+    out = np.empty((rows.size,) + tuple(arr.shape[1:]), dtype=arr.dtype)
+    for a, b, pos in row_runs(rows):
+        out[order[pos:pos + b - a]] = arr[a:b]
+    return out

@@ -43,7 +43,7 @@ NUMERIC_CPU_FLAGS = ("avx", "avx2", "fma", "f16c", "avx512f", "avx512bw", "avx51
                      "avx512_bf16", "avx512_fp16", "avx_vnni", "amx_tile", "amx_bf16", "amx_int8")
 
 #: environment variables that size the thread pools of torch (OpenMP), BLAS and numexpr
-#: (pipeline.runner sets them for each process it starts)
+#: (pipeline.cluster.driver sets them for each stage it starts)
 THREAD_ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
                    "VECLIB_MAXIMUM_THREADS")
 

@@ -55,6 +55,7 @@ import torch
 
 from pipeline import losses
 from pipeline.artifacts import Artifact, read_chunk_rows
+from pipeline.streaming import LazyRows, prefetch, row_means, select_rows
 from pipeline.errors import ArtifactError, InputError, TrainingDiverged
 from pipeline.methods import (Method, Plan, afs_fuse, afs_keep, confidence_pass, input_artifacts, mean_valid_score,
                               method_epochs, method_lr, pass_ratio, resolve_plan, uses_confidence)
@@ -81,8 +82,11 @@ SELECTION_TAU = 0.5
 # --------------------------------------------------------------------------------------------------
 @dataclasses.dataclass
 class TrainData:
-    """Training arrays, in memory, for the rows a method trains on (manifest order).
+    """Training data for the rows a method trains on (manifest order).
 
+    ``images``/``mask``/``sdf``/``skeleton`` are numpy arrays (in memory) or :class:`LazyRows` (read from
+    the Zarr artifacts per batch while training: what :func:`training_data` returns, so memory does
+    not grow with N); both give the same batches and weights for a seed.
     ``mask`` is the region pseudo-target (M^T, or the AFS-fused base-prompt mask); ``sdf``/``skeleton``
     the pseudo-geometry targets (None when the method does not read geometry.zarr); ``area`` a_i and
     ``gate`` g_i per image (g = 1 for ``gate="one"`` methods).  ``stats`` records the filter outcome.
@@ -178,18 +182,19 @@ def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, A
         raise InputError(f"--method {method.name}: no training image passes the method's filter "
                          f"(train.{'afs' if method.data == 'afs' else 'confidence'}); loosen it")
     rows = train_idx[sel]
+    mask = select_rows(mask, sel)
     data = TrainData(
         image_ids=[train_ids[i] for i in sel],
-        images=_rows(inputs["images"], "image", rows),
-        mask=mask[sel],
+        images=LazyRows(inputs["images"]["image"], rows),
+        mask=mask,
         area=(gates_df["a"].to_numpy(np.float32)[sel] if gates_df is not None  # a_i (eq:pseudo-area)
-              else mask[sel].reshape(len(sel), -1).mean(1).astype(np.float32)),
+              else row_means(mask)),
         gate=gate_values(method, gates_df, sel),
         stats=stats,
     )
     if method.needs_geometry:
-        data.sdf = _rows(inputs["geometry"], "sdf", rows).astype(np.float32)
-        data.skeleton = _rows(inputs["geometry"], "skeleton", rows).astype(bool)
+        data.sdf = LazyRows(inputs["geometry"]["sdf"], rows, np.float32)
+        data.skeleton = LazyRows(inputs["geometry"]["skeleton"], rows, bool)
     stats["n_train"] = len(data)
     return data
 
@@ -202,7 +207,7 @@ def _region_targets(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str,
         mask, keep, r = _afs_targets(inputs["teacher"], train_idx, cfg["afs"])
         stats["afs_pass_ratio"] = r
         return mask, keep
-    return _rows(inputs["consensus"], "voted", train_idx).astype(bool), np.ones(len(train_idx), dtype=bool)
+    return LazyRows(inputs["consensus"]["voted"], train_idx, bool), np.ones(len(train_idx), dtype=bool)
 
 
 def _confidence_keep(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Artifact], gates_df,
@@ -388,31 +393,42 @@ def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: M
 # --------------------------------------------------------------------------------------------------
 # Batches and validation
 # --------------------------------------------------------------------------------------------------
-def _tensors(data: TrainData, device: torch.device, anchor: np.ndarray | None) -> dict[str, torch.Tensor]:
-    """Whole training set as tensors (uint8 images NHWC, targets), on ``device``, once per run.
+def _tensors(data: TrainData, device: torch.device, anchor: np.ndarray | None) -> dict[str, torch.Tensor | LazyRows]:
+    """The training set per key (uint8 images NHWC, targets), once per run: in-memory arrays as tensors
+    on ``device``; :class:`LazyRows` stay on disk and :func:`_batch` reads a batch's rows.
     Built from :class:`TrainData` only: pseudo-targets, never reference masks."""
-    t = {"image": torch.from_numpy(np.ascontiguousarray(data.images)),
-         "mask": torch.from_numpy(np.ascontiguousarray(data.mask)),
-         "area": torch.from_numpy(np.ascontiguousarray(data.area, dtype=np.float32)),
-         "gate": torch.from_numpy(np.ascontiguousarray(data.gate, dtype=np.float32))}
+    arrays = {"image": (data.images, None), "mask": (data.mask, None), "area": (data.area, np.float32),
+              "gate": (data.gate, np.float32)}
     if data.sdf is not None:
-        t["sdf"] = torch.from_numpy(np.ascontiguousarray(data.sdf, dtype=np.float32))
-        t["skeleton"] = torch.from_numpy(np.ascontiguousarray(data.skeleton))
+        arrays.update(sdf=(data.sdf, np.float32), skeleton=(data.skeleton, None))
     if anchor is not None:
-        t["anchor"] = torch.from_numpy(np.ascontiguousarray(anchor, dtype=np.float32))
-    return {k: v.to(device) for k, v in t.items()}
+        arrays["anchor"] = (anchor, np.float32)
+    return {k: v if isinstance(v, LazyRows) else torch.from_numpy(np.ascontiguousarray(v, dtype=dt)).to(device)
+            for k, (v, dt) in arrays.items()}
+
+
+def _streaming(t: Mapping[str, torch.Tensor | LazyRows]) -> bool:
+    """True when some training arrays are read from disk per batch."""
+    return any(isinstance(v, LazyRows) for v in t.values())
+
+
+def _take(v: torch.Tensor | LazyRows, idx: torch.Tensor) -> torch.Tensor:
+    """``v[idx]``: indexed on its device, or the rows read from disk and moved to ``idx``'s device."""
+    if isinstance(v, LazyRows):
+        return torch.from_numpy(v[idx.cpu().numpy()]).to(idx.device)
+    return v[idx]
 
 
 def _batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor | None,
            channels_last: bool) -> dict[str, torch.Tensor]:
     """One batch: images uint8 NHWC -> float [B,3,H,W] in [0,1] (NHWC strides = channels_last),
     pixel targets [B,1,H,W] float, per-sample ``area``/``gate`` [B]."""
-    x = t["image"][idx].permute(0, 3, 1, 2).float().div_(255.0)
+    x = _take(t["image"], idx).permute(0, 3, 1, 2).float().div_(255.0)
     x = x.contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
     b = {"x": x, "area": t["area"][idx], "gate": t["gate"][idx]}
     for k in ("mask", "sdf", "skeleton", "anchor"):
         if k in t:
-            b[k] = t[k][idx].unsqueeze(1).float()
+            b[k] = _take(t[k], idx).unsqueeze(1).float()
     if flip is not None:  # (callers pass None when the batch has no flip: no device sync here)
         for k in ("x", "mask", "sdf", "skeleton", "anchor"):
             if k in b:
@@ -651,7 +667,17 @@ def _epoch_batches(run: _Run, epoch: int):
     """The epoch's batches: a seeded order over all images (``[seed, epoch]``), optional seeded hflip.
 
     The order and flips go to the device once per epoch (a host-to-device copy per step would wait for
-    the GPU every step); whether a batch has a flip at all is decided on the host."""
+    the GPU every step); whether a batch has a flip at all is decided on the host.  Streaming data
+    (:class:`LazyRows`) is read by a background thread two batches ahead (:func:`prefetch`): the same
+    batches in the same order."""
+    if _streaming(run.tensors):
+        yield from prefetch(_epoch_batches_in_order(run, epoch), depth=2)
+    else:
+        yield from _epoch_batches_in_order(run, epoch)
+
+
+def _epoch_batches_in_order(run: _Run, epoch: int):
+    """:func:`_epoch_batches` without the prefetching thread."""
     n, bs = run.n_train, run.settings.batch_size
     order = np.random.default_rng([run.seed, epoch]).permutation(n)
     flips = np.random.default_rng([run.seed, epoch, 1]).random(n) < 0.5 if run.settings.hflip else None

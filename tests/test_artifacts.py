@@ -197,3 +197,26 @@ def test_dir_artifact(tmp_path):
     os.remove(tmp_path / "r" / "report.html")
     with pytest.raises(ArtifactError, match="missing files"):
         open_artifact(tmp_path / "r")
+
+
+def test_read_chunk_rows_slices_equal_zarrs_orthogonal_selection(tmp_path):
+    """Plain slices per contiguous run (the fix of issue 25) give exactly what zarr's orthogonal selection
+    gives, for sorted, unsorted and gapped rows of a sharded one-row-per-chunk array."""
+    import zarr
+
+    from pipeline.artifacts import read_chunk_rows, row_runs
+
+    rng = np.random.default_rng(0)
+    data = rng.integers(0, 255, size=(23, 5, 4), dtype=np.uint8)
+    arr = zarr.create_array(str(tmp_path / "a.zarr"), shape=data.shape, dtype=data.dtype, chunks=(1, 5, 4),
+                            shards=(8, 5, 4))
+    arr[:] = data
+    for rows in ([0, 1, 2, 3], [22, 3, 4, 5, 17, 0], list(rng.permutation(23)[:11]), [7], []):
+        rows = np.asarray(rows, dtype=np.int64)
+        got = read_chunk_rows(arr, rows)
+        expect = arr.get_orthogonal_selection((np.sort(rows),))[np.argsort(np.argsort(rows))] if rows.size \
+            else data[:0]
+        assert got.dtype == data.dtype and np.array_equal(got, expect) and np.array_equal(got, data[rows])
+    assert row_runs(np.array([2, 3, 4, 9])) == [(2, 5, 0), (9, 10, 3)]
+    with pytest.raises(IndexError):
+        read_chunk_rows(arr, np.array([1, 1]))

@@ -15,6 +15,8 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 CASES = {
+    "bench_memory": ["--n", "2", "--factor", "2", "--size", "32", "--label-size", "32", "--read-size", "32",
+                     "--reps", "1"],
     "bench_geometry": ["--n", "4", "--size", "64", "--repeats", "1", "--workers", "1"],
     "bench_synthetic": ["--size", "48", "--views", "2", "--baseline-views", "1"],
     "bench_train": ["--images", "4", "--size", "32", "--epochs", "1", "--reps", "1", "--val-images", "2"],

@@ -145,7 +145,7 @@ def test_precise_bn_changes_running_statistics_only(tiny):
         assert torch.equal(a[k], b[k]), k
     assert not torch.allclose(a["enc2.0.1.running_var"], b["enc2.0.1.running_var"])
     # the precise statistics are a function of the final weights and the training images only
-    x = torch.from_numpy(data.images).permute(0, 3, 1, 2).float() / 255.0
+    x = torch.from_numpy(np.asarray(data.images)).permute(0, 3, 1, 2).float() / 255.0
     recompute_bn_stats(runs[False], [x[i:i + cfg["batch_size"]] for i in range(0, len(x), cfg["batch_size"])])
     for k, v in runs[False].state_dict().items():
         assert torch.allclose(v.float(), b[k].float(), atol=1e-5), k

@@ -327,7 +327,7 @@ def main(argv=None) -> dict:
             "n_train": {m: len(data[m]) for m in METHODS}, "n_val": len(data["val"]),
             "n_test": int(len(data["test_masks"])), "epochs": base["epochs_stage1"], "seeds": args.seeds,
             "threads": args.threads, "jobs": args.jobs,
-            "pos_weight": {m: pos_weight_stats(data[m].mask, base["batch_size"], args.seeds[0], base["epochs_stage1"],
+            "pos_weight": {m: pos_weight_stats(np.asarray(data[m].mask), base["batch_size"], args.seeds[0], base["epochs_stage1"],
                                                base["pos_weight_max"]) for m in METHODS}}
     print(json.dumps({k: v for k, v in info.items()}, indent=None))
     jobs = [{"variant": v, "method": m, "seed": s, "device": device, "cfg": {**base, **VARIANTS[v][0]}}

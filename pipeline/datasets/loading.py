@@ -212,7 +212,8 @@ def resize_nearest(lbl: np.ndarray, size: int) -> np.ndarray:
 # Decode cache
 # ---------------------------------------------------------------------------------------------------
 class DecodeCache:
-    """Content-addressed cache of decoded, resized arrays: ``<root>/<sha[:2]>/<sha>-<kind>-<size>.npz``.
+    """Content-addressed cache of decoded, resized arrays: ``<root>/<sha[:2]>/<sha>-<kind>-<size>.npz``,
+    deflate-compressed (``np.savez_compressed``; uncompressed entries of earlier versions still read).
 
     ``root=None`` disables caching (every call decodes).
     """
@@ -261,7 +262,7 @@ class DecodeCache:
         p.parent.mkdir(parents=True, exist_ok=True)
         tmp = p.with_name(f".{p.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp.npz")
         try:
-            np.savez(tmp, a=arr, hw=np.asarray(native_hw, np.int64), k=np.str_(self.key(sha, kind, size)),
+            np.savez_compressed(tmp, a=arr, hw=np.asarray(native_hw, np.int64), k=np.str_(self.key(sha, kind, size)),
                      w=np.str_(note or ""))
             os.replace(tmp, p)
         finally:

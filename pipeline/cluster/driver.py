@@ -1,0 +1,250 @@
+"""``geodistill run`` on Ray: each stale stage is a Ray task running DVC's own command for it.
+
+1. One driver per repository: :class:`RunLock` (``fcntl.flock`` on ``.dvc/tmp/geodistill-run.lock``,
+   released by the kernel however the driver ends).  DVC's own lock is NOT held by the driver, so
+   ``dvc status`` works during a run.
+2. The plan comes from DVC's public commands: ``dvc dag --dot`` (stages, edges) and ``dvc status
+   --json`` (stale stages); the stale stages and their downstream stages are submitted
+   (:mod:`pipeline.cluster.plan`).
+3. Each submitted stage is a Ray task whose arguments are its upstream stages' tasks (ObjectRefs), so
+   it starts when they are done; submitted longest remaining path first; the exclusive ``benchmark``
+   after everything that does not depend on it.  Resources are Ray's: the teacher takes a GPU, a
+   training run a fraction of one, CPU stages cores (``OMP_NUM_THREADS`` follows the task's CPUs).
+4. The task runs ``dvc --wait-for-lock repro --single-item <stage>`` under :mod:`pipeline.cluster.guard`
+   (the process group dies with the worker), so DVC decides if the stage is stale, restores it from its
+   run cache or runs it, and records it (dvc.lock, cache).  Its output goes to
+   ``artifacts/logs/run/<stage>.log``; a failed stage's dependents are not run, independent stages go
+   on; a rerun resumes.
+
+Ray runs embedded and local by default (``ray.init(address="local")``); ``--address`` or
+``RAY_ADDRESS`` joins a cluster, whose nodes must see the repository at the same path (shared storage).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fcntl
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+from pipeline import catalog
+from pipeline.cluster import plan
+from pipeline.environment import THREAD_ENV_VARS
+from pipeline.errors import InputError
+
+#: The driver's lock file, inside DVC's own tmp folder (never committed).
+LOCK_FILE = ".dvc/tmp/geodistill-run.lock"
+NO_RAY = ("geodistill run needs Ray: pip install -e '.[cluster]' "
+          "(or run the DAG one stage at a time with dvc repro)")
+
+
+class RunLock:
+    """Exclusive, non-blocking ``flock`` on the repository's :data:`LOCK_FILE` for one driver.  A second
+    driver gets :class:`InputError`; the kernel releases the lock when the holder dies (even SIGKILL)."""
+
+    def __init__(self, root: Path):
+        self.path = Path(root) / LOCK_FILE
+        self.fd: int | None = None
+
+    def __enter__(self) -> "RunLock":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+            os.close(fd)
+            raise InputError(f"another geodistill run (pid {holder}) is running on {self.path.parents[2]}; "
+                             "wait for it or stop it") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        self.fd = fd
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.fd is not None:
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            os.close(self.fd)
+            self.fd = None
+
+
+def dvc(root: Path, *args: str, env: dict | None = None) -> str:
+    """stdout of ``python -m dvc ARGS`` in ``root``; DVC's first error line as :class:`InputError`."""
+    proc = subprocess.run([sys.executable, "-m", "dvc", *args], cwd=root, env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise InputError(f"dvc {' '.join(args)}: {plan.error_line(proc.stderr + proc.stdout)}")
+    return proc.stdout
+
+
+def read_plan(root: Path, targets: tuple[str, ...] = ()) -> tuple[list[str], dict[str, set[str]], set[str]]:
+    """(stages in DVC's order, {stage: upstream}, stale stages) from ``dvc dag --dot`` and ``dvc status``."""
+    order, needs = plan.parse_dot(dvc(root, "dag", "--dot"))
+    unknown = [t for t in targets if t not in needs]
+    if unknown:
+        raise InputError(f"geodistill run: no stage named {', '.join(unknown)} (see dvc stage list)")
+    raw = dvc(root, "--wait-for-lock", "status", "--json").strip() or "{}"
+    stale = {n for n in json.loads(raw) if n in needs}
+    return order, needs, stale
+
+
+def child_env(extra: dict[str, str], threads: int, gpus: float) -> dict[str, str]:
+    """The stage process's environment: this worker's, ``extra`` (the driver's PATH ...), ``threads``
+    for every thread pool, and no GPU for a task that holds none."""
+    env = {**os.environ, **extra}
+    env.update({k: str(max(1, threads)) for k in THREAD_ENV_VARS})
+    if gpus <= 0:
+        env["CUDA_VISIBLE_DEVICES"] = ""
+    return env
+
+
+def run_stage(root: str, stage: str, extra_env: dict, threads: int, gpus: float, log_path: str, t0: float,
+              *upstream: dict) -> dict:
+    """The body of a stage's Ray task: ``dvc --wait-for-lock repro --single-item STAGE`` under the guard,
+    output to ``log_path``.  ``upstream``: the results of the stages it waits for; when one of them did
+    not succeed this stage is ``not_run``.  Returns {stage, status, start, end, returncode, error, node,
+    node_id}."""
+    import socket
+
+    import ray
+
+    failed = [u["stage"] for u in upstream if u["status"] in ("failed", "not_run")]
+    if failed:
+        return {"stage": stage, "status": "not_run", "error": f"upstream {', '.join(failed)} did not run"}
+    cmd = [sys.executable, "-m", "pipeline.cluster.guard", str(os.getpid()), "--",
+           sys.executable, "-m", "dvc", "--wait-for-lock", "repro", "--single-item", stage]
+    start = time.time() - t0
+    Path(log_path).parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "w") as log:
+        rc = subprocess.call(cmd, cwd=root, env=child_env(extra_env, threads, gpus), stdout=log,
+                             stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+    end = time.time() - t0
+    text = Path(log_path).read_text(errors="replace")
+    return {"stage": stage, "status": plan.outcome(text) if rc == 0 else "failed", "start": start, "end": end,
+            "returncode": rc, "error": None if rc == 0 else f"exit {rc}: {plan.error_line(text)}",
+            "node": socket.gethostname(), "node_id": ray.get_runtime_context().get_node_id()}
+
+
+def driver_env() -> dict[str, str]:
+    """What the stage processes take from the driver: PATH with this interpreter's folder first (stage
+    commands say ``python``), PYTHONPATH and the GEODISTILL_* settings."""
+    env = {"PATH": os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])}
+    env.update({k: v for k, v in os.environ.items() if k == "PYTHONPATH" or k.startswith("GEODISTILL_")})
+    return env
+
+
+def read_costs(path: Path) -> dict[str, float]:
+    """Seconds each stage took when it last ran (the previous timeline's ``costs``; {} without one)."""
+    try:
+        return {str(n): float(v) for n, v in json.loads(Path(path).read_text())["costs"].items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
+
+
+def write_timeline(path: Path, results: dict[str, dict], resources: dict, wall_s: float,
+                   costs: dict[str, float]) -> Path:
+    """The run as JSON (atomic): per stage its result and Ray resources; ``costs`` updated with the
+    seconds of the stages that ran."""
+    ran = {n: r["end"] - r["start"] for n, r in results.items() if r.get("status") == "ran"}
+    obj = {"wall_s": wall_s, "resources": resources, "stages": results, "costs": {**costs, **ran}}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True))
+    os.replace(tmp, path)
+    return path
+
+
+def sizing(ray, stage_cpus: float | None, train_gpu_fraction: float) -> plan.Sizing:
+    """What the connected Ray cluster offers: the largest node's CPUs, all GPUs; a CPU stage takes
+    ``stage_cpus`` (default: half the largest node, at least 1)."""
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    node_cpus = max((n["Resources"].get("CPU", 0.0) for n in nodes), default=1.0) or 1.0
+    gpus = float(ray.cluster_resources().get("GPU", 0.0))
+    return plan.Sizing(node_cpus=node_cpus, gpus=gpus, stage_cpus=stage_cpus or max(1.0, node_cpus // 2),
+                       train_gpu_fraction=train_gpu_fraction)
+
+
+@dataclasses.dataclass
+class RunResult:
+    results: dict[str, dict]
+    wall_s: float
+
+    def count(self, status: str) -> int:
+        return sum(r["status"] == status for r in self.results.values())
+
+    @property
+    def ok(self) -> bool:
+        return all(r["status"] in ("ran", "restored", "up_to_date") for r in self.results.values())
+
+
+def run_pipeline(root: Path, targets: tuple[str, ...] = (), address: str | None = None,
+                 stage_cpus: float | None = None, train_gpu_fraction: float = 0.25, dry_run: bool = False,
+                 echo: Callable[[str], None] = print) -> RunResult | None:
+    """``geodistill run`` without the CLI (None for a dry run).  Uses the Ray session of this process if
+    one is initialised (tests), else starts an embedded local one, or joins ``address``/``RAY_ADDRESS``."""
+    root = Path(root).resolve()
+    if not (root / "dvc.yaml").is_file():
+        raise InputError(f"{root / 'dvc.yaml'}: not found (run geodistill run in the project folder)")
+    with RunLock(root):
+        try:
+            import ray
+        except ImportError:
+            raise InputError(NO_RAY) from None
+        order, needs, stale = read_plan(root, targets)
+        chosen = plan.to_submit(needs, stale, targets)
+        graph = plan.run_alone(plan.subgraph(needs, chosen))
+        log_dir = catalog.path("run_logs", root / catalog.ARTIFACTS_DIR)
+        costs = read_costs(log_dir / "timeline.json")
+        sequence = plan.submission_order(graph, costs, order)
+        echo(f"geodistill run: {len(order)} stages, {len(sequence)} to check with dvc repro: "
+             + (", ".join(sequence) or "nothing to do"))
+        if not sequence:
+            return RunResult({}, 0.0)
+        started_here = not ray.is_initialized()
+        if started_here:
+            addr = address or os.environ.get("RAY_ADDRESS") or "local"
+            ray.init(address=addr, include_dashboard=False, log_to_driver=False, logging_level="WARNING",
+                     configure_logging=True)
+        try:
+            return _submit(ray, root, sequence, graph, sizing(ray, stage_cpus, train_gpu_fraction), log_dir,
+                           costs, dry_run, echo)
+        finally:
+            if started_here:
+                ray.shutdown()
+
+
+def _submit(ray, root: Path, sequence: list[str], graph: dict[str, set[str]], size: plan.Sizing, log_dir: Path,
+            costs: dict[str, float], dry_run: bool, echo) -> RunResult | None:
+    """Submit the stages as Ray tasks in ``sequence``, each waiting for its upstream tasks; wait for all."""
+    res = {n: plan.stage_resources(n, size) for n in sequence}
+    echo(f"geodistill run: Ray cluster with {size.node_cpus:g} CPUs on its largest node, {size.gpus:g} GPUs")
+    if dry_run:
+        for n in sequence:
+            ups = ", ".join(sorted(graph[n])) or "-"
+            echo(f"  {n}: {res[n]['num_cpus']:g} CPU, {res[n]['num_gpus']:g} GPU; after {ups}")
+        return None
+    task = ray.remote(run_stage)
+    extra, t0 = driver_env(), time.time()
+    refs: dict[str, object] = {}
+    for n in sequence:
+        r = res[n]
+        refs[n] = task.options(name=f"stage:{n}", max_retries=1, **r).remote(
+            str(root), n, extra, int(r["num_cpus"]), r["num_gpus"], str(log_dir / f"{n}.log"), t0,
+            *[refs[u] for u in sorted(graph[n])])
+    results: dict[str, dict] = {}
+    pending = {ref: n for n, ref in refs.items()}
+    while pending:
+        done, _ = ray.wait(list(pending), num_returns=1)
+        n = pending.pop(done[0])
+        out = results[n] = {**ray.get(done[0]), **res[n]}
+        if out["status"] == "failed":
+            echo(f"geodistill run: FAILED {n}: {out['error']} (log: {log_dir / (n + '.log')})")
+        elif out["status"] != "not_run":
+            echo(f"geodistill run: {n} {out['status']} in {out['end'] - out['start']:.1f} s")
+    wall = time.time() - t0
+    write_timeline(log_dir / "timeline.json", results, {"node_cpus": size.node_cpus, "gpus": size.gpus}, wall, costs)
+    return RunResult(results, wall)

@@ -1,0 +1,202 @@
+"""What ``geodistill run`` submits, in which order, with which Ray resources -- pure functions.
+
+Inputs are the outputs of DVC's public commands: ``dvc dag --dot`` (stages and edges, ``matrix``
+stages expanded to ``train_plain@42`` ...) and ``dvc status --json`` (stages whose deps, outs, params or
+command changed since their dvc.lock entry).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from typing import Iterable, Mapping
+
+from pipeline.catalog import STAGES
+
+#: ``"a" -> "b";`` and ``"a";`` lines of ``dvc dag --dot``.
+_EDGE = re.compile(r'^\s*"([^"]+)"\s*->\s*"([^"]+)"\s*;?\s*$')
+_NODE = re.compile(r'^\s*"([^"]+)"\s*;?\s*$')
+#: The stage whose command runs SAM 3 (or another teacher): one whole GPU per task.
+TEACHER_STAGE = "teacher"
+#: Stages named ``train_<method>@<seed>`` run the training loops: a fraction of a GPU each.
+TRAIN_PREFIX = "train_"
+
+
+def parse_dot(text: str) -> tuple[list[str], dict[str, set[str]]]:
+    """``dvc dag --dot`` -> (stages in DVC's order, {stage: its upstream stages}).  Nodes that are
+    ``.dvc`` files (imported data, not stages) are dropped."""
+    order: list[str] = []
+    needs: dict[str, set[str]] = {}
+
+    def node(n: str) -> None:
+        if n not in needs:
+            needs[n] = set()
+            order.append(n)
+
+    for line in text.splitlines():
+        if m := _EDGE.match(line):
+            node(m[1]), node(m[2])
+            needs[m[2]].add(m[1])
+        elif m := _NODE.match(line):
+            node(m[1])
+    keep = [n for n in order if not n.endswith(".dvc")]
+    return keep, {n: {u for u in needs[n] if u in needs and not u.endswith(".dvc")} for n in keep}
+
+
+def downstream(needs: Mapping[str, set[str]], roots: Iterable[str]) -> set[str]:
+    """``roots`` and every stage that depends on one of them, directly or not."""
+    children: dict[str, set[str]] = {n: set() for n in needs}
+    for n, ups in needs.items():
+        for u in ups:
+            children[u].add(n)
+    seen, todo = set(), [r for r in roots if r in needs]
+    while todo:
+        n = todo.pop()
+        if n not in seen:
+            seen.add(n)
+            todo.extend(children[n])
+    return seen
+
+
+def upstream(needs: Mapping[str, set[str]], roots: Iterable[str]) -> set[str]:
+    """``roots`` and every stage they depend on, directly or not."""
+    seen, todo = set(), list(roots)
+    while todo:
+        n = todo.pop()
+        if n not in seen:
+            seen.add(n)
+            todo.extend(needs.get(n, ()))
+    return seen
+
+
+def to_submit(needs: Mapping[str, set[str]], stale: Iterable[str], targets: Iterable[str] = ()) -> set[str]:
+    """The stages to hand to ``dvc repro --single-item``: the stale ones and everything downstream of
+    them (a rerun upstream stage may change their deps; DVC decides when each one's turn comes),
+    within ``targets`` and their upstream stages when targets are given."""
+    chosen = downstream(needs, stale)
+    targets = list(targets)
+    return chosen & upstream(needs, targets) if targets else chosen
+
+
+def subgraph(needs: Mapping[str, set[str]], keep: set[str]) -> dict[str, set[str]]:
+    """``needs`` restricted to ``keep``, keeping order constraints through dropped stages (a kept
+    stage waits for every kept stage upstream of it)."""
+    out = {}
+    for n in keep:
+        ups = upstream(needs, needs[n]) & keep
+        out[n] = ups
+    return out
+
+
+def exclusive_stage(name: str) -> bool:
+    """True for a stage that measures wall time (the catalogue's ``exclusive``: ``benchmark``)."""
+    spec = STAGES.get(name.split("@", 1)[0])
+    return bool(spec and spec.exclusive)
+
+
+def run_alone(needs: Mapping[str, set[str]]) -> dict[str, set[str]]:
+    """Exclusive stages after every stage that does not depend on them: nothing runs beside them
+    (their own downstream stages wait for them anyway)."""
+    out = {n: set(u) for n, u in needs.items()}
+    for x in (n for n in needs if exclusive_stage(n)):
+        after = downstream(needs, [x])
+        out[x] |= {n for n in needs if n not in after and not exclusive_stage(n)}
+    return out
+
+
+def topological(needs: Mapping[str, set[str]], order: Iterable[str] = ()) -> list[str]:
+    """Stages upstream first; ties in ``order`` (DVC's order), then by name.  A cycle is an error."""
+    rank = {n: i for i, n in enumerate(order)}
+    key = lambda n: (rank.get(n, len(rank)), n)  # noqa: E731
+    left = {n: set(u) for n, u in needs.items()}
+    out: list[str] = []
+    while left:
+        ready = sorted((n for n, u in left.items() if not u), key=key)
+        if not ready:
+            raise ValueError(f"the stage graph has a cycle among {sorted(left)}")
+        for n in ready:
+            out.append(n)
+            del left[n]
+        for u in left.values():
+            u.difference_update(ready)
+    return out
+
+
+def remaining_path(needs: Mapping[str, set[str]], costs: Mapping[str, float] | None = None) -> dict[str, float]:
+    """Per stage: its cost plus the longest chain of costs downstream of it (``costs``: seconds it
+    took last time, 1 per stage without)."""
+    costs = costs or {}
+    children: dict[str, set[str]] = {n: set() for n in needs}
+    for n, ups in needs.items():
+        for u in ups:
+            children[u].add(n)
+    path: dict[str, float] = {}
+    for n in reversed(topological(needs)):
+        path[n] = float(costs.get(n, 1.0)) + max((path[c] for c in children[n]), default=0.0)
+    return path
+
+
+def submission_order(needs: Mapping[str, set[str]], costs: Mapping[str, float] | None = None,
+                     order: Iterable[str] = ()) -> list[str]:
+    """Upstream stages first; among stages whose upstream stages are all earlier, the longest remaining
+    path first (Ray starts ready tasks roughly in submission order), then DVC's order."""
+    path = remaining_path(needs, costs)
+    rank = {n: i for i, n in enumerate(order)}
+    left = {n: set(u) for n, u in needs.items()}
+    out: list[str] = []
+    while left:
+        ready = [n for n, u in left.items() if not u]
+        if not ready:
+            raise ValueError(f"the stage graph has a cycle among {sorted(left)}")
+        best = min(ready, key=lambda n: (-path[n], rank.get(n, len(rank)), n))
+        out.append(best)
+        del left[best]
+        for u in left.values():
+            u.discard(best)
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Sizing:
+    """What the cluster offers and what a stage may take: ``node_cpus`` (the largest node's CPUs),
+    ``gpus`` (in all), ``stage_cpus`` (a CPU stage), ``train_gpu_fraction``."""
+
+    node_cpus: float
+    gpus: float = 0.0
+    stage_cpus: float = 1.0
+    train_gpu_fraction: float = 0.25
+
+
+def stage_resources(name: str, size: Sizing) -> dict[str, float]:
+    """Ray resources of one stage's task: ``{"num_cpus": c, "num_gpus": g}``.
+
+    With GPUs in the cluster: the teacher takes one GPU and one CPU, a training run
+    ``train_gpu_fraction`` of a GPU and one CPU.  Every other stage (and every stage without GPUs) takes
+    ``stage_cpus`` cores; an exclusive stage takes a whole node's cores (it runs alone anyway)."""
+    base = name.split("@", 1)[0]
+    if size.gpus > 0 and base == TEACHER_STAGE:
+        return {"num_cpus": 1.0, "num_gpus": 1.0}
+    if size.gpus > 0 and base.startswith(TRAIN_PREFIX):
+        return {"num_cpus": 1.0, "num_gpus": float(size.train_gpu_fraction)}
+    if exclusive_stage(name):
+        return {"num_cpus": float(size.node_cpus), "num_gpus": 0.0}
+    return {"num_cpus": float(min(size.stage_cpus, size.node_cpus)), "num_gpus": 0.0}
+
+
+def outcome(log_text: str) -> str:
+    """What ``dvc repro --single-item`` did, from its output: ``ran`` | ``restored`` (DVC's run
+    cache) | ``up_to_date``."""
+    if "Running stage" in log_text:
+        return "ran"
+    if "is cached" in log_text:
+        return "restored"
+    return "up_to_date"
+
+
+def error_line(log_text: str, limit: int = 300) -> str:
+    """The line that says why a stage failed: the last ``ERROR``/``error:`` line, else the last line."""
+    lines = [ln.strip() for ln in log_text.splitlines() if ln.strip()]
+    if not lines:
+        return "(no output)"
+    marked = [ln for ln in lines if ln.startswith("ERROR") or ": error:" in ln or "Error:" in ln]
+    return (marked or lines)[-1][:limit]

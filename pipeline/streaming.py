@@ -1,0 +1,120 @@
+"""Training data that stays on disk: rows of Zarr artifacts read per batch, one batch ahead.
+
+* :class:`LazyRows` -- a row subset of a Zarr array (one image per chunk), read only when indexed
+  (:func:`pipeline.artifacts.read_chunk_rows`: plain slices per contiguous run), cast to a dtype.
+  ``np.asarray(rows)`` reads them all (the in-memory path).
+* :func:`prefetch` -- iterate a generator in a background thread, ``depth`` items ahead, so the next
+  batch is read and decoded while the current one trains (Zarr's codecs release the GIL).
+
+Memory of a training run is then the model, the per-image scalars and ``depth + 1`` batches, whatever
+the number of images (issue 25).
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from pipeline.artifacts import read_chunk_rows
+
+
+class LazyRows:
+    """Rows ``rows`` (unique manifest indices) of the Zarr array ``arr``, as ``dtype`` when read.
+
+    ``x[i]`` (an int, slice or integer array over the subset) reads those rows from disk;
+    ``x.select(sel)`` is the sub-subset without reading; ``np.asarray(x)`` reads everything."""
+
+    def __init__(self, arr, rows: np.ndarray, dtype=None):
+        self.arr = arr
+        self.rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        self.dtype = np.dtype(dtype if dtype is not None else arr.dtype)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (len(self.rows),) + tuple(self.arr.shape[1:])
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def select(self, sel) -> "LazyRows":
+        """The rows ``sel`` (indices or a boolean mask over this subset), still unread."""
+        return LazyRows(self.arr, self.rows[sel], self.dtype)
+
+    def __getitem__(self, key) -> np.ndarray:
+        if isinstance(key, (int, np.integer)):
+            return self[np.array([key])][0]
+        picked = self.rows[key]
+        if picked.size == 0:
+            return np.zeros((0,) + self.shape[1:], dtype=self.dtype)
+        return read_chunk_rows(self.arr, picked).astype(self.dtype, copy=False)
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        out = self[np.arange(len(self))]
+        return out if dtype is None else out.astype(dtype, copy=False)
+
+
+def select_rows(x, sel):
+    """``x[sel]`` for an array, ``x.select(sel)`` (nothing read) for :class:`LazyRows`."""
+    return x.select(sel) if isinstance(x, LazyRows) else x[sel]
+
+
+def row_means(x, block: int = 64) -> np.ndarray:
+    """Mean over each row's elements as float32 (e.g. a mask's foreground fraction), reading ``block``
+    rows at a time; the same numbers as ``x.reshape(len(x), -1).mean(1).astype(np.float32)``."""
+    n = len(x)
+    out = np.empty(n, dtype=np.float32)
+    for s in range(0, n, block):
+        part = np.asarray(x[np.arange(s, min(s + block, n))] if isinstance(x, LazyRows) else x[s:s + block])
+        out[s:s + len(part)] = part.reshape(len(part), -1).mean(1).astype(np.float32)
+    return out
+
+
+_DONE = object()
+
+
+def prefetch(items: Iterable, depth: int = 2) -> Iterator:
+    """Yield ``items`` in order, produced by a background thread up to ``depth`` ahead.  An exception
+    in the producer is raised here; closing this generator early stops the producer."""
+    q: queue.Queue = queue.Queue(maxsize=max(1, depth))
+    stop = threading.Event()
+
+    def produce() -> None:
+        try:
+            for item in items:
+                while not stop.is_set():
+                    try:
+                        q.put((True, item), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put((True, _DONE))
+        except BaseException as e:  # handed to the consumer
+            q.put((False, e))
+
+    t = threading.Thread(target=produce, name="prefetch", daemon=True)
+    t.start()
+    try:
+        while True:
+            ok, item = q.get()
+            if not ok:
+                raise item
+            if item is _DONE:
+                return
+            yield item
+    finally:
+        stop.set()
+        while t.is_alive():  # unblock a producer waiting on a full queue
+            try:
+                q.get_nowait()
+            except queue.Empty:
+                pass
+            t.join(timeout=0.05)
