@@ -137,7 +137,8 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
     StageSpec("calibrate", "stages.calibrate",
               "--artifacts {artifacts_dir} --checkpoints {checkpoints} --out {thresholds}",
               ("manifest", "images", "reference", "checkpoints"), ("thresholds",),
-              _keys("calibrate", "grid_start", "grid_stop", "grid_step", "fixed_tau", "reliability_bins")),
+              _keys("calibrate", "tau_rule", "plateau_tolerance", "smooth_halfwidth", "grid_start", "grid_stop",
+                    "grid_step", "fixed_tau", "reliability_bins") + ("train.recipe",)),
     StageSpec("evaluate", "stages.evaluate",
               "--artifacts {artifacts_dir} --checkpoints {checkpoints} --thresholds {thresholds} "
               "--out {metrics} --summary {summary} --metrics-dir {metrics_students} "

@@ -70,10 +70,11 @@ PROFILES: dict[str, dict[str, Any]] = {
 
 def profile_params(name: str) -> dict:
     """Schema defaults + the profile's overrides (not yet validated: callers validate)."""
-    from pipeline.params import PAPER, deep_merge
+    from pipeline.params import PAPER, deep_merge, unresolved
 
     if name not in PROFILES:
         raise InputError(f"profile {name!r}: expected one of {', '.join(PROFILES)}")
-    out = deep_merge(PAPER.model_dump(mode="python"), PROFILES[name])
+    # recipe parts stay null (= the recipe's value) unless the profile sets them
+    out = deep_merge(unresolved(PAPER.model_dump(mode="python"), {}), PROFILES[name])
     out["profile"] = name
     return out

@@ -59,7 +59,7 @@ def main(params, device, art, checkpoints, out):
     from pipeline.inference import active_runs, load_student, open_labelled_split, predict_probs
     from pipeline.metrics import iou_curve
     from pipeline.progress import progress
-    from pipeline.thresholds import calibrate_threshold, threshold_grid
+    from pipeline.thresholds import calibrate_threshold, rule_options, threshold_grid
 
     cfg = section(params, "calibrate")
     grid = threshold_grid(cfg)
@@ -77,7 +77,7 @@ def main(params, device, art, checkpoints, out):
     for method, seed, path in progress(runs, desc="calibrate"):
         model, _ = load_student(path, dev)
         probs = predict_probs(model, val_images, device=dev)
-        tau, curve = calibrate_threshold(probs, val_masks, grid)
+        tau, curve = calibrate_threshold(probs, val_masks, grid, **rule_options(cfg))
         fixed_iou = float(iou_curve(probs, val_masks, [fixed_tau]).mean())
         rel = reliability_bins(probs, val_masks, cfg["reliability_bins"])
         area = median_area_ratio(area_ratio_curve(probs, val_masks, grid))
