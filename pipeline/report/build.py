@@ -33,6 +33,8 @@ class Inputs:
     found: dict[str, Any]
     missing: dict[str, Missing]
     logs: pd.DataFrame | None = None
+    #: the stability benchmark's noise-floor record (reports/noise_floor.json), None when not measured
+    noise_floor: dict | None = None
 
     def get(self, name):
         return self.found.get(name)
@@ -56,6 +58,9 @@ def load_inputs(art: str | Path) -> Inputs:
     require_same_run(*found.values())
     inp = Inputs(art, found, missing)
     inp.logs = training_logs(art / "checkpoints")
+    from pipeline.report.analysis import load_noise_floor
+
+    inp.noise_floor = load_noise_floor(catalog.path("noise_floor", art))
     return inp
 
 
@@ -181,7 +186,7 @@ def results_section(inp: Inputs) -> Section:
         groups = [g for g in order if g in groups] + [g for g in groups if g not in order]
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
-            sec.blocks.append(T.results_table(s.df, mode, groups))
+            sec.blocks.append(T.results_table(s.df, mode, groups, inp.noise_floor))
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
             sec.blocks.append(T.diagnostics_table(s.df, mode, groups))
@@ -219,11 +224,12 @@ def diagnostics_section(inp: Inputs, plots: dict) -> Section:
         return sec
     groups = ordered_groups(inp, s.df["group"] if s is not None else [])
     findings = fixed_tau_findings(s.df if s is not None else None, thr.df if thr is not None else None,
-                                  m.df if m is not None else None, inp.logs, vote_means(inp), groups, label=T.label)
+                                  m.df if m is not None else None, inp.logs, vote_means(inp), groups, label=T.label,
+                                  noise_floor=inp.noise_floor)
     sec.blocks += [Text(f) for f in findings]
     if s is not None:
         for mode in ("calibrated", "fixed"):
-            tab = T.controls_table(s.df, mode, groups)
+            tab = T.controls_table(s.df, mode, groups, inp.noise_floor)
             if tab is not None:
                 sec.blocks.append(tab)
     if thr is not None and "ece" in thr.df.columns:
