@@ -29,7 +29,16 @@ learning rates only)
     re-estimated over the training images before each validation (:func:`_precise_bn`), which at
     batch 4 steadies the validation IoU at tau 0.5 (``pipeline/benchmarks/study_recipe.py``);
   * Stage-II warm start: encoder, decoder and mask head copied from the Stage-I checkpoint, SDF and
-    skeleton heads freshly initialised from ``torch.manual_seed(seed)``.
+    skeleton heads freshly initialised from ``torch.manual_seed(seed)``;
+  * recipe parts (issue 24, ``train.recipe``; docs/stability.md): ``train.warmup_epochs`` (linear
+    learning-rate warm-up, :func:`_lr_lambda`) and ``train.average_last`` K -- the final model is the
+    mean of the weights after each of the last K epochs (:func:`average_update`) with the BN running
+    statistics recomputed for those averaged weights (:func:`_precise_bn`), instead of the method's
+    selection (an argmax over a noisy validation curve, or the last epoch).  0 = the paper's behaviour;
+  * execution knobs that change numerics -- ``train.num_threads`` and the autocast dtype that
+    ``train.precision`` resolves to on this host -- are in the run key: a resume state saved under
+    other numerics is not resumed (and both params are in the checkpoint fingerprint, the resume
+    directory of ``stages/train.py``).
 
 Resilience
   * after every epoch the full state (model incl. geometry heads, optimizer, scheduler, torch RNG,

@@ -2,8 +2,11 @@
 
 Paper (Training Details): "The binarization threshold is selected by Image IoU on the corresponding
 validation set and then applied unchanged to the test set."  For each active run (method, seed):
-P = sigmoid(Z) on the validation images, tau = argmax over the grid of the mean Image IoU of
-[P >= tau] (eq:inference-mask; ties -> closest to 0.5): pipeline.thresholds.calibrate_threshold.  The whole curve is kept (list columns
+P = sigmoid(Z) on the validation images, the mean Image IoU of [P >= tau] over the grid
+(eq:inference-mask), and tau by ``calibrate.tau_rule`` (a recipe part, docs/stability.md): ``argmax``
+(the paper; ties -> closest to 0.5), ``plateau`` (centre of the taus within
+``calibrate.plateau_tolerance`` of the best) or ``smooth`` (argmax of the moving-average curve):
+pipeline.thresholds.calibrate_threshold.  The whole curve is kept (list columns
 ``grid`` and ``curve``) for the report's threshold-curve figure, with the fixed tau = 0.5 alongside.
 
 Calibration diagnostics of the same validation probabilities (pipeline.diagnostics; issue 17):

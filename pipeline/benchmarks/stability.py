@@ -42,6 +42,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from pipeline.benchmarks import study_recipe as sr
+from pipeline.profiles import FIVE_SEEDS
 
 METHODS = ("plain", "geodistill", "continuation")
 #: (treatment, control) pairs whose gains the demo publishes
@@ -243,7 +244,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--resolution", type=int, default=64)
     ap.add_argument("--epochs", type=int, default=None, help="train.epochs_stage1 (default: the profile's)")
     ap.add_argument("--epochs-stage2", type=int, default=None, help="train.epochs_stage2 (default: the profile's)")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[42, 3407, 2026, 7, 11])
+    ap.add_argument("--seeds", type=int, nargs="+", default=FIVE_SEEDS)
     ap.add_argument("--pert-seeds", type=int, default=None,
                     help="run the perturbations for the first N seeds only (default: all)")
     ap.add_argument("--recipes", nargs="+", default=["paper", "stable"],
