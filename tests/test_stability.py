@@ -200,6 +200,12 @@ def test_spreads_and_target():
     assert sp["geodistill-plain/A/iou"]["mean"] == pytest.approx(0.025)
     assert sp["geodistill-plain/A/iou"]["pert"] == pytest.approx(TOLERANCE["iou"] / 2)
     assert target_met(sp)[0]
+    # the report's floor counts only the perturbations a recipe is exposed to (pinned precision: threads)
+    from pipeline.benchmarks.stability import noise_floor_record
+
+    assert noise_floor_record(sp, {}, ["threads1"])["numbers"]["plain/A/iou"]["floor"] == 0.0
+    assert noise_floor_record(sp, {}, ["threads1", "precision"])["numbers"]["plain/A/iou"]["floor"] == \
+        pytest.approx(TOLERANCE["iou"] / 2)
     runs[-1] = _fake_run("precision", 2, 0.60 + 3 * TOLERANCE["iou"], 0.63, 0.61)
     assert not target_met(spreads(runs, "argmax"))[0]
 
@@ -220,8 +226,8 @@ def test_results_table_states_the_noise_floor_and_the_claim_follows_the_ci():
     from pipeline.report.tables import results_table
 
     record = {"info": {"recipe": "stable", "tau_rule": "plateau", "resolution": 64, "seeds": [1, 2]},
-              "numbers": {"geodistill-plain/A/iou": {"pert": 0.004, "seed_sd": 0.01},
-                          "geodistill-plain/A/bf1": {"pert": 0.03, "seed_sd": 0.02}}}
+              "numbers": {"geodistill-plain/A/iou": {"floor": 0.004, "pert": 0.01, "seed_sd": 0.01},
+                          "geodistill-plain/A/bf1": {"floor": 0.03, "pert": 0.05, "seed_sd": 0.02}}}
     tab = results_table(_summary(0.02, 0.01, 0.03), "calibrated", ["A"], record)
     geo = [r for r in tab.rows if r[1] == "GeoDistill-Refine"][0]
     claim = geo[tab.header.index("Claim")]

@@ -26,8 +26,8 @@ What it does
      seeds moves by at most :data:`pipeline.reproducibility.TOLERANCE` under each perturbation.
 
 Writes every run to ``<out>.runs.jsonl`` (a rerun skips the runs found there) and the summary to
-``--out``; ``--noise-floor PATH`` (e.g. reports/noise_floor.json) writes the chosen recipe's spreads in
-the form the report reads (:func:`pipeline.report.analysis.noise_floor`).  No timing is asserted.
+``--out``; ``--noise-floor PATH`` (e.g. reports/noise_floor.json) writes the first recipe's spreads in
+the form the report reads (:func:`noise_floor_record`, :func:`pipeline.report.analysis.gain_noise_floor`).  No timing is asserted.
 """
 
 from __future__ import annotations
@@ -162,56 +162,82 @@ def published(run: Mapping[str, Any], rule: str) -> dict[str, float]:
 
 def spreads(runs: list[dict], rule: str) -> dict[str, dict]:
     """Per published number: ``mean`` over seeds (default perturbation), ``seed_sd`` (sd over seeds,
-    ddof 1; NaN for one seed), ``pert`` (max over seeds of the range over that seed's perturbations)
-    and ``pert_mean`` (range over perturbations of the mean over the seeds run under every
-    perturbation: what the target judges)."""
+    ddof 1; NaN for one seed), ``pert`` (max over seeds of the range over that seed's perturbations:
+    what a one-seed publication risks), ``pert_mean`` (range over perturbations of the mean over the
+    seeds run under every perturbation) and ``move_<p>`` (|seed-mean under perturbation p - seed-mean
+    under the default|, same seeds: what the target judges)."""
     seeds = sorted({r["seed"] for r in runs})
     perts = [p for p in PERTURBATIONS if any(r["perturbation"] == p for r in runs)]
     val = {(r["perturbation"], r["seed"]): published(r, rule) for r in runs}
     keys = list(next(iter(val.values())))
+    full = [s for s in seeds if all((p, s) in val for p in perts)]  # seeds run under every perturbation
     out = {}
     for k in keys:
         d = [val[("default", s)][k] for s in seeds if ("default", s) in val]
         per_seed = [np.ptp([val[(p, s)][k] for p in perts if (p, s) in val]) for s in seeds
                     if sum((p, s) in val for p in perts) > 1]
-        full = [s for s in seeds if all((p, s) in val for p in perts)]  # seeds run under every perturbation
-        means = [np.mean([val[(p, s)][k] for s in full]) for p in perts] if full else []
+        means = {p: np.mean([val[(p, s)][k] for s in full]) for p in perts} if full else {}
         out[k] = {"mean": float(np.mean(d)) if d else float("nan"),
                   "seed_sd": float(np.std(d, ddof=1)) if len(d) > 1 else float("nan"),
                   "pert": float(max(per_seed)) if per_seed else float("nan"),
-                  "pert_mean": float(np.ptp(means)) if len(means) > 1 else float("nan"),
-                  "n_seeds": len(d)}
+                  "pert_mean": float(np.ptp(list(means.values()))) if len(means) > 1 else float("nan"),
+                  "n_seeds": len(d), "n_pert_seeds": len(full),
+                  **{f"move_{p}": float(abs(means[p] - means["default"])) for p in perts
+                     if p != "default" and "default" in means}}
     return out
 
 
-def target_met(sp: Mapping[str, dict]) -> tuple[bool, float, float]:
-    """Target (issue 24): every student metric's seed-mean moves under the perturbations by at most
-    :data:`pipeline.reproducibility.TOLERANCE` of its metric.  Returns (met, worst IoU move, worst BF1 move)."""
+def exposed(cfg: Mapping[str, Any]) -> list[str]:
+    """The perturbations a recipe is exposed to between hosts: the thread count always (a proxy for
+    another CPU's kernels too), the precision only when ``train.precision`` is ``auto`` (host-dependent);
+    a pinned precision cannot change between hosts."""
+    return ["threads1"] + (["precision"] if cfg["precision"] == "auto" else [])
+
+
+def target_met(sp: Mapping[str, dict], perturbations=("threads1", "precision")) -> tuple[bool, float, float]:
+    """Target (issue 24): under each of ``perturbations`` every student metric's seed-mean (method x
+    group) moves by at most :data:`pipeline.reproducibility.TOLERANCE` of its metric.  Returns
+    (met, worst IoU move, worst BF1 move)."""
     from pipeline.reproducibility import TOLERANCE
 
-    worst = {k: max((v["pert_mean"] for n, v in sp.items() if "-" not in n.split("/")[0] and n.endswith("/" + k)),
-                    default=float("nan")) for k in METRICS}
+    worst = {k: max((v.get(f"move_{p}", float("nan")) for n, v in sp.items() for p in perturbations
+                     if "-" not in n.split("/")[0] and n.endswith("/" + k)), default=float("nan"))
+             for k in METRICS}
     met = all(worst[k] <= TOLERANCE[k] for k in METRICS)
     return met, worst["iou"], worst["bf1"]
 
 
-def print_summary(recipe: str, rule: str, sp: Mapping[str, dict]) -> None:
-    met, wi, wb = target_met(sp)
-    print(f"\n== recipe {recipe}, tau rule {rule}: target {'MET' if met else 'NOT met'} "
-          f"(worst seed-mean move under perturbation: IoU {wi:.4f}, BF1 {wb:.4f})")
-    print(f"{'number':34s} {'mean':>7s} {'seed sd':>7s} {'pert':>7s} {'pert(mean)':>10s}")
+def print_summary(recipe: str, rule: str, sp: Mapping[str, dict], perturbations=("threads1", "precision")) -> None:
+    met, wi, wb = target_met(sp, perturbations)
+    print(f"\n== recipe {recipe}, tau rule {rule}: target {'MET' if met else 'NOT met'} under {list(perturbations)} "
+          f"(worst move of a seed-mean: IoU {wi:.4f}, BF1 {wb:.4f})")
+    moves = [k for k in next(iter(sp.values())) if k.startswith("move_")]
+    print(f"{'number':34s} {'mean':>7s} {'seed sd':>7s} {'pert1':>7s} " + " ".join(f"{m:>14s}" for m in moves))
     for k, v in sp.items():
-        print(f"{k:34s} {v['mean']:+7.3f} {v['seed_sd']:7.3f} {v['pert']:7.3f} {v['pert_mean']:10.3f}")
+        print(f"{k:34s} {v['mean']:+7.3f} {v['seed_sd']:7.3f} {v['pert']:7.3f} "
+              + " ".join(f"{v[m]:14.4f}" for m in moves))
 
 
-def recipe_table(summary: Mapping[str, Mapping[str, dict]]) -> list[dict]:
-    """One row per (recipe, rule): mean plain/geodistill IoU and BF1 over groups, worst perturbation
-    moves of the seed-means, median seed sd, and whether the target holds."""
+def _worst(sp, key: str, metric: str, gains: bool = False) -> float:
+    return max((v.get(key, float("nan")) for n, v in sp.items()
+                if (("-" in n.split("/")[0]) == gains) and n.endswith("/" + metric)), default=float("nan"))
+
+
+def recipe_table(summary: Mapping[str, Mapping[str, dict]], exposure: Mapping[str, list] | None = None) -> list[dict]:
+    """One row per (recipe, rule): mean plain/geodistill/continuation IoU and BF1 over groups, the worst
+    move of a student seed-mean under each perturbation and of a single seed (``pert1``), the median
+    seed sd, and whether the target holds under the recipe's ``exposure`` (default: every perturbation)."""
     rows = []
     for key, sp in summary.items():
         recipe, rule = key.split("|")
-        met, wi, wb = target_met(sp)
-        row = {"recipe": recipe, "rule": rule, "target": met, "pert_iou": wi, "pert_bf1": wb}
+        perts = (exposure or {}).get(recipe, ("threads1", "precision"))
+        met, wi, wb = target_met(sp, perts)
+        row = {"recipe": recipe, "rule": rule, "target": met, "exposed": list(perts), "pert_iou": wi, "pert_bf1": wb}
+        for k in METRICS:
+            for p in ("threads1", "precision"):
+                row[f"move_{p}_{k}"] = _worst(sp, f"move_{p}", k)
+            row[f"pert1_{k}"] = _worst(sp, "pert", k)
+            row[f"gain_pert1_{k}"] = _worst(sp, "pert", k, gains=True)
         for m in METHODS:
             for k in METRICS:
                 row[f"{m}_{k}"] = float(np.mean([v["mean"] for n, v in sp.items()
@@ -224,18 +250,25 @@ def recipe_table(summary: Mapping[str, Mapping[str, dict]]) -> list[dict]:
 
 
 def print_recipe_table(rows: list[dict]) -> None:
-    print(f"\n{'recipe':20s} {'rule':8s} {'plainIoU':>8s} {'geoIoU':>7s} {'contIoU':>7s} {'plainBF1':>8s} "
-          f"{'geoBF1':>7s} {'pertIoU':>7s} {'pertBF1':>7s} {'sdIoU':>6s} {'sdBF1':>6s} target")
+    print(f"\n{'recipe':18s} {'rule':8s} {'plainIoU':>8s} {'geoIoU':>6s} {'contIoU':>7s} {'plainBF1':>8s} {'geoBF1':>6s} "
+          f"{'thrIoU':>6s} {'thrBF1':>6s} {'prcIoU':>6s} {'prcBF1':>6s} {'1sIoU':>6s} {'1sBF1':>6s} {'sdIoU':>6s} "
+          f"{'sdBF1':>6s} target")
     for r in rows:
-        print(f"{r['recipe']:20s} {r['rule']:8s} {r['plain_iou']:8.3f} {r['geodistill_iou']:7.3f} "
-              f"{r['continuation_iou']:7.3f} {r['plain_bf1']:8.3f} {r['geodistill_bf1']:7.3f} {r['pert_iou']:7.4f} "
-              f"{r['pert_bf1']:7.4f} {r['seed_sd_iou']:6.3f} {r['seed_sd_bf1']:6.3f} {'yes' if r['target'] else 'no'}")
+        print(f"{r['recipe']:18s} {r['rule']:8s} {r['plain_iou']:8.3f} {r['geodistill_iou']:6.3f} "
+              f"{r['continuation_iou']:7.3f} {r['plain_bf1']:8.3f} {r['geodistill_bf1']:6.3f} "
+              f"{r['move_threads1_iou']:6.3f} {r['move_threads1_bf1']:6.3f} {r['move_precision_iou']:6.3f} "
+              f"{r['move_precision_bf1']:6.3f} {r['pert1_iou']:6.3f} {r['pert1_bf1']:6.3f} {r['seed_sd_iou']:6.3f} "
+              f"{r['seed_sd_bf1']:6.3f} {'yes' if r['target'] else 'no'} ({'+'.join(r['exposed'])})")
 
 
-def noise_floor_record(sp: Mapping[str, dict], info: Mapping[str, Any]) -> dict:
-    """What the report reads (reports/noise_floor.json): per gain key ``<treatment>-<control>/<group>/<metric>``
-    and per student metric, the perturbation spread (``pert``) and the seed sd (``seed_sd``)."""
-    return {"info": dict(info), "numbers": {k: {"pert": v["pert"], "seed_sd": v["seed_sd"]} for k, v in sp.items()}}
+def noise_floor_record(sp: Mapping[str, dict], info: Mapping[str, Any], perturbations) -> dict:
+    """What the report reads (reports/noise_floor.json, :func:`pipeline.report.analysis.gain_noise_floor`):
+    per published number (``<method>/<group>/<metric>`` and the gains ``<treatment>-<control>/<group>/<metric>``)
+    ``floor`` = the largest move of its seed-mean under the ``perturbations`` the recipe is exposed to,
+    ``pert`` = the largest range over every perturbation of one seed, ``seed_sd``."""
+    nums = {k: {"floor": max((v.get(f"move_{p}", float("nan")) for p in perturbations), default=float("nan")),
+                "pert": v["pert"], "seed_sd": v["seed_sd"]} for k, v in sp.items()}
+    return {"info": {**dict(info), "perturbations": list(perturbations)}, "numbers": nums}
 
 
 def main(argv=None) -> dict:
@@ -305,27 +338,28 @@ def main(argv=None) -> dict:
     from pipeline.thresholds import TAU_RULES
 
     summary = {}
+    exposure = {r: exposed(recipe_train(r, base)) for r in args.recipes}
     for rname in args.recipes:
         runs = [results[(j["recipe"], j["perturbation"], j["seed"])] for j in jobs if j["recipe"] == rname]
         for rule in TAU_RULES:
             summary[f"{rname}|{rule}"] = sp = spreads(runs, rule)
-            print_summary(rname, rule, sp)
-    rows = recipe_table(summary)
+            print_summary(rname, rule, sp, exposure[rname])
+    rows = recipe_table(summary, exposure)
     print(f"\nseeds {args.seeds} (perturbations on {pert_seeds}), {args.resolution}^2, demo sizes, "
-          f"epochs {info['epochs']}; means over seeds and groups; pert = worst move of a group's seed-mean")
+          f"epochs {info['epochs']}; means over seeds and groups; thr/prc = worst move of a student seed-mean "
+          f"(method x group) under 1 thread / the other precision; 1s = worst range over perturbations of one "
+          f"seed; sd = median seed sd; target judged on the perturbations the recipe is exposed to")
     print_recipe_table(rows)
     info["wall_seconds"] = time.perf_counter() - t0
     out = {"info": {**info, "seeds": args.seeds, "pert_seeds": pert_seeds, "recipes": args.recipes},
            "table": rows, "summary": summary}
     Path(args.out).write_text(json.dumps(out, indent=1))
     if args.noise_floor:
-        from pipeline.params import RECIPES as _R  # noqa: F401  (the recipe names)
-
-        first = args.recipes[0]
-        rule = recipe_train(first, base)  # train section; the tau rule of the recipe:
+        first = args.recipes[0]  # its own tau rule (a screening candidate: the paper's argmax)
         rule = load_params(overrides=[*sets, f"train.recipe={first}"])["calibrate"]["tau_rule"] \
             if first in RECIPES else "argmax"
-        rec = noise_floor_record(summary[f"{first}|{rule}"], {**out["info"], "recipe": first, "tau_rule": rule})
+        rec = noise_floor_record(summary[f"{first}|{rule}"], {**out["info"], "recipe": first, "tau_rule": rule},
+                                 exposure[first])
         Path(args.noise_floor).parent.mkdir(parents=True, exist_ok=True)
         Path(args.noise_floor).write_text(json.dumps(rec, indent=1, sort_keys=True) + "\n")
         print(f"wrote {args.noise_floor}")

@@ -359,15 +359,17 @@ def load_noise_floor(path) -> dict | None:
 
 
 def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
-    """Noise floor of a gain in ``metric`` on test ``group``: the largest perturbation spread
-    (``pert``: max over seeds of the range over thread count / precision) the benchmark measured for
-    any published gain (``<treatment>-<control>/<group>/<metric>``) of that group and metric; NaN when
-    the record is None or has no such gain.  One floor per (group, metric): the benchmark measures the
-    demo's comparisons, and a numerical perturbation moves every method's number alike."""
+    """Noise floor of a gain in ``metric`` on test ``group``: the largest ``floor`` (the move of the
+    benchmark's seed-mean under the numerical perturbations its recipe is exposed to:
+    pipeline.benchmarks.stability.noise_floor_record) of any published gain
+    (``<treatment>-<control>/<group>/<metric>``) of that group and metric; NaN when the record is None
+    or has no such gain.  One floor per (group, metric): the benchmark measures the demo's comparisons,
+    and a numerical perturbation moves every method's number alike."""
     if not record:
         return float("nan")
-    vals = [v["pert"] for k, v in record.get("numbers", {}).items()
-            if "-" in k.split("/")[0] and k.split("/")[1:] == [str(group), metric] and np.isfinite(v["pert"])]
+    vals = [v.get("floor", v.get("pert")) for k, v in record.get("numbers", {}).items()
+            if "-" in k.split("/")[0] and k.split("/")[1:] == [str(group), metric]]
+    vals = [x for x in vals if x is not None and np.isfinite(x)]
     return float(max(vals)) if vals else float("nan")
 
 
@@ -376,7 +378,9 @@ def noise_floor_note(record: dict | None) -> str:
     if not record:
         return NOISE_FLOOR_NOT_MEASURED + "."
     i = record.get("info", {})
-    return (f"Noise floor: the largest change of a gain under a numerical perturbation (1 vs 2 threads, fp32 vs "
+    return (f"Noise floor: the largest move of a gain's seed-mean under a numerical perturbation "
+            f"({', '.join(i.get('perturbations', ['?']))}; threads1 = 1 instead of 2 threads, precision = fp32 vs "
             f"bf16), measured by the stability benchmark (recipe {i.get('recipe', '?')}, tau rule "
-            f"{i.get('tau_rule', '?')}, {i.get('resolution', '?')}², seeds {i.get('seeds', '?')}; reports/"
-            f"noise_floor.json); a gain is supported only when its seed-aware CI excludes 0 and it exceeds the floor.")
+            f"{i.get('tau_rule', '?')}, {i.get('resolution', '?')}², seeds {i.get('seeds', '?')}; "
+            f"reports/noise_floor.json); a gain is supported only when its seed-aware CI excludes 0 and it "
+            f"exceeds the floor.")
