@@ -202,8 +202,8 @@ class AdaptiveParams(_Section):
 RECIPES: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0},
               "calibrate": {"tau_rule": "argmax"}},
-    "stable": {"train": {"precision": "fp32", "warmup_epochs": 0, "average_last": 0},
-               "calibrate": {"tau_rule": "plateau"}},
+    "stable": {"train": {"precision": "fp32", "warmup_epochs": 0, "average_last": 5},
+               "calibrate": {"tau_rule": "smooth"}},
 }
 
 

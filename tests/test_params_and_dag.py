@@ -31,7 +31,7 @@ def test_committed_params_yaml_is_the_demo_profile():
     assert (ROOT / "params.yaml").read_text() == render_params_yaml("demo"), \
         "params.yaml is out of date: run `geodistill profile demo`"
     demo = load_params(ROOT / "params.yaml")
-    assert demo["profile"] == "demo" and demo["data"]["resolution"] == 128
+    assert demo["profile"] == "demo" and demo["data"]["resolution"] == 64 and demo["train"]["recipe"] == "stable"
 
 
 @pytest.mark.parametrize("profile", ["demo", "reduced", "paper"])

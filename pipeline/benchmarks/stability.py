@@ -280,6 +280,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--seeds", type=int, nargs="+", default=FIVE_SEEDS)
     ap.add_argument("--pert-seeds", type=int, default=None,
                     help="run the perturbations for the first N seeds only (default: all)")
+    ap.add_argument("--perturbations", nargs="+", default=list(PERTURBATIONS), choices=list(PERTURBATIONS),
+                    help="default is always run; e.g. --perturbations default threads1 for pinned-precision recipes")
     ap.add_argument("--recipes", nargs="+", default=["paper", "stable"],
                     help="train.recipe names and/or screening candidates: " + ", ".join(CANDIDATES))
     ap.add_argument("--jobs", type=int, default=2, help="training processes at a time")
@@ -315,7 +317,7 @@ def main(argv=None) -> dict:
         cfg = recipe_train(rname, base)
         cal = {**params["calibrate"]}
         for s in args.seeds:
-            for p in PERTURBATIONS:
+            for p in dict.fromkeys(["default", *args.perturbations]):
                 if p == "default" or s in pert_seeds:
                     jobs.append({"recipe": rname, "perturbation": p, "seed": s, "cfg": perturbed(cfg, p),
                                  "cal": cal, "tolerance": tolerance})
