@@ -49,7 +49,8 @@ METHODS = ("plain", "geodistill", "continuation")
 GAINS = (("geodistill", "plain"), ("geodistill", "continuation"))
 #: perturbation -> train overrides (``precision`` is resolved per recipe: the other precision)
 PERTURBATIONS = {"default": {"num_threads": 2}, "threads1": {"num_threads": 1}, "precision": {"num_threads": 2}}
-#: screening candidates: one recipe part (or a bundle of them) on top of ``train.recipe: paper``
+#: screening candidates: one recipe part (or a bundle of them) on top of ``train.recipe: paper`` (or of
+#: the recipe the candidate names)
 CANDIDATES: dict[str, dict] = {
     "fp32": {"precision": "fp32"},
     "fp32_avg5": {"precision": "fp32", "average_last": 5},
@@ -57,6 +58,8 @@ CANDIDATES: dict[str, dict] = {
     "fp32_precise_bn": {"precision": "fp32", "precise_bn": True},
     "fp32_pos_weight_10": {"precision": "fp32", "pos_weight_max": 10.0},
     "avg5": {"average_last": 5},
+    "stable_warmup1": {"recipe": "stable", "warmup_epochs": 1},
+    "stable_pos_weight_10": {"recipe": "stable", "pos_weight_max": 10.0},
 }
 METRICS = ("iou", "bf1")
 
@@ -70,7 +73,7 @@ def recipe_train(name: str, base: Mapping[str, Any]) -> dict:
     if name in RECIPES:
         raw["recipe"] = name
     else:
-        raw.update(recipe="paper", **CANDIDATES[name])
+        raw.update({"recipe": "paper", **CANDIDATES[name]})
     return validate_section("train", raw)
 
 
