@@ -363,7 +363,8 @@ def main(argv=None) -> dict:
         first = args.recipes[0]  # its own tau rule (a screening candidate: the paper's argmax)
         rule = load_params(overrides=[*sets, f"train.recipe={first}"])["calibrate"]["tau_rule"] \
             if first in RECIPES else "argmax"
-        rec = noise_floor_record(summary[f"{first}|{rule}"], {**out["info"], "recipe": first, "tau_rule": rule},
+        keep = {k: v for k, v in out["info"].items() if k not in ("artifacts", "wall_seconds", "n_train")}
+        rec = noise_floor_record(summary[f"{first}|{rule}"], {**keep, "recipe": first, "tau_rule": rule},
                                  exposure[first])
         Path(args.noise_floor).parent.mkdir(parents=True, exist_ok=True)
         Path(args.noise_floor).write_text(json.dumps(rec, indent=1, sort_keys=True) + "\n")
