@@ -360,9 +360,9 @@ def main(argv=None) -> dict:
            "table": rows, "summary": summary}
     Path(args.out).write_text(json.dumps(out, indent=1))
     if args.noise_floor:
-        first = args.recipes[0]  # its own tau rule (a screening candidate: the paper's argmax)
-        rule = load_params(overrides=[*sets, f"train.recipe={first}"])["calibrate"]["tau_rule"] \
-            if first in RECIPES else "argmax"
+        first = args.recipes[0]  # its recipe's tau rule (a screening candidate: that of the recipe it extends)
+        base_recipe = first if first in RECIPES else CANDIDATES[first].get("recipe", "paper")
+        rule = RECIPES[base_recipe]["calibrate"]["tau_rule"]
         keep = {k: v for k, v in out["info"].items() if k not in ("artifacts", "wall_seconds", "n_train")}
         rec = noise_floor_record(summary[f"{first}|{rule}"], {**keep, "recipe": first, "tau_rule": rule},
                                  exposure[first])
