@@ -59,6 +59,9 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
        "DVCLive log of the run's epoch rows (metrics.json, plots/metrics/*.tsv): a git-tracked DVC out"),
     _a("train_timings", "timings/train/{method}/{seed}.json", None, "train",
        "per-epoch wall-clock seconds: NOT a DVC out and not fingerprinted (checkpoints stay byte-identical)"),
+    _a("noise_floor", "../reports/noise_floor.json", None, "stability benchmark",
+       "perturbation and seed spreads of the published numbers (python -m pipeline.benchmarks.stability "
+       "--noise-floor); the report reads it when present: NOT a DVC out or dep"),
     _a("run_logs", "logs/run", None, "run",
        "`geodistill run`: <stage>.log (stdout+stderr) per stage and timeline.json; NOT a DVC out"),
     _a("thresholds", "thresholds.parquet", "thresholds", "calibrate"),
@@ -144,7 +147,8 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
     StageSpec("calibrate", "stages.calibrate",
               "--artifacts {artifacts_dir} --checkpoints {checkpoints} --out {thresholds}",
               ("manifest", "images", "reference", "checkpoints"), ("thresholds",),
-              _keys("calibrate", "grid_start", "grid_stop", "grid_step", "fixed_tau", "reliability_bins")),
+              _keys("calibrate", "tau_rule", "plateau_tolerance", "smooth_halfwidth", "grid_start", "grid_stop",
+                    "grid_step", "fixed_tau", "reliability_bins") + ("train.recipe",)),
     StageSpec("evaluate", "stages.evaluate",
               "--artifacts {artifacts_dir} --checkpoints {checkpoints} --thresholds {thresholds} "
               "--out {metrics} --summary {summary} --metrics-dir {metrics_students} "

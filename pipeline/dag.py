@@ -211,10 +211,11 @@ def is_generated_params(path: str | Path) -> bool:
 def render_params_yaml(profile: str, overrides: dict | None = None, header: str | None = None) -> str:
     """params.yaml text of ``profile``; ``overrides`` (a nested mapping, e.g. a standalone project's
     data source) are merged over it and ``header`` replaces the standard comment block."""
-    from pipeline.params import Params, deep_merge, validate
+    from pipeline.params import Params, deep_merge, unresolved, validate
     from pipeline.profiles import profile_params
 
-    values = validate(deep_merge(profile_params(profile), overrides or {}), f"profile {profile}")
+    raw = deep_merge(profile_params(profile), overrides or {})
+    values = unresolved(validate(raw, f"profile {profile}"), raw)  # recipe parts: null = the recipe's value
     lines: list[str] = []
     _emit(Params, values, 0, lines)
     return (header if header is not None else PARAMS_HEADER.format(profile=profile)) + "\n".join(lines) + "\n"

@@ -253,10 +253,12 @@ def method_lr(method: Method, cfg: Mapping[str, Any]) -> float:
     return float(v)
 
 
-#: train params every method reads (model, optimiser, L_raw, validation selection, numerics).
+#: train params every method reads (model, optimiser, L_raw, validation selection, numerics).  The
+#: execution knobs that change numerics (``precision``, ``num_threads``) are among them: DVC reruns
+#: training when one changes and the checkpoint fingerprint (= the resume-state key) moves with it.
 COMMON_KEYS = ("channels", "norm", "bn_momentum", "precise_bn", "batch_size", "weight_decay", "schedule",
-               "dice_weight", "pos_weight_max", "loss_eps", "precision", "channels_last", "augment_hflip",
-               "val_bf1_tolerance")
+               "dice_weight", "pos_weight_max", "loss_eps", "recipe", "precision", "warmup_epochs", "average_last",
+               "channels_last", "augment_hflip", "num_threads", "val_bf1_tolerance")
 #: extra train params per loss term (eq:refine-loss and the baselines' terms).
 TERM_KEYS = {
     "region": (),

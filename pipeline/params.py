@@ -215,6 +215,51 @@ class AdaptiveParams(_Section):
     anchor_geometry_only: bool = _f(False, "keep the weak anchor in geometry_only mode (paper: no anchoring)")
 
 
+# --------------------------------------------------------------------------------------------------
+# Recipes (issue 24): named bundles of "recipe part" values
+# --------------------------------------------------------------------------------------------------
+#: recipe -> section -> part -> value.  ``paper`` is the published recipe (every part at the paper's /
+#: the original implementation's value); ``stable`` is what docs/stability.md measured to make the
+#: published numbers hold under thread-count and precision changes.  Rule: a part left ``null`` (the
+#: schema default) takes the value of ``train.recipe``'s bundle; a part given a value keeps it.
+RECIPES: dict[str, dict[str, dict[str, Any]]] = {
+    "paper": {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0},
+              "calibrate": {"tau_rule": "argmax"}},
+    "stable": {"train": {"precision": "fp32", "warmup_epochs": 0, "average_last": 5},
+               "calibrate": {"tau_rule": "smooth"}},
+}
+
+
+def recipe_parts() -> list[str]:
+    """Dotted keys of every recipe part (``train.precision``, ``calibrate.tau_rule``, ...)."""
+    return [f"{sec}.{k}" for sec, parts in RECIPES["paper"].items() for k in parts]
+
+
+def fill_recipe(data, section: str, recipe: str):
+    """``data`` (a raw section mapping) with every recipe part that is absent or None set to
+    ``RECIPES[recipe][section]``'s value; an unknown recipe or a non-mapping is returned as is (the
+    schema's own check names it)."""
+    if not isinstance(data, Mapping) or recipe not in RECIPES:
+        return data
+    out = dict(data)
+    for k, v in RECIPES[recipe].get(section, {}).items():
+        if out.get(k) is None:
+            out[k] = v
+    return out
+
+
+def unresolved(values: Mapping[str, Any], raw: Mapping[str, Any]) -> dict:
+    """Validated ``values`` with every recipe part that ``raw`` left absent/None set back to None: what
+    params.yaml shows (``null`` = the recipe's value), so that editing ``train.recipe`` alone switches
+    the bundle."""
+    out = copy.deepcopy(dict(values))
+    for dotted in recipe_parts():
+        sec, key = dotted.split(".")
+        if (raw.get(sec) or {}).get(key) is None:
+            out[sec][key] = None
+    return out
+
+
 class TrainParams(_Section):
     channels: list[PositiveInt] = _f([24, 48, 96], "TinyUNet encoder widths", min_length=1)
     norm: Literal["batch", "group"] = _f("batch", "TinyUNet normalisation: batch (paper) | group (GroupNorm, "
@@ -239,15 +284,28 @@ class TrainParams(_Section):
     lambda_skel: float = _f(0.001, "eq:refine-loss", ge=0)
     lambda_area: float = _f(0.05, "eq:refine-loss", ge=0)
     stage2_select: Literal["last", "best_val"] = _f("last", "paper: the last Stage-II epoch")
-    precision: Literal["fp32", "bf16", "auto"] = _f("auto", "bf16 autocast where the CPU/GPU supports it")
+    recipe: Literal["paper", "stable"] = _f("paper", "training recipe: a bundle of the parts marked "
+                                            "'recipe part' (docs/stability.md); an explicit part value wins")
+    precision: Literal["fp32", "bf16", "auto"] | None = _f(
+        None, "recipe part: fp32 | bf16 | auto (bf16 autocast where the CPU/GPU supports it: host-dependent)")
+    warmup_epochs: int | None = _f(None, "recipe part: linear learning-rate warm-up over this many epochs "
+                                         "(0 = none)", ge=0)
+    average_last: int | None = _f(None, "recipe part: final model = mean weights of the last K epochs with BN "
+                                        "statistics recomputed (0 = the method's selection rule)", ge=0)
     channels_last: bool = _f(True)
     augment_hflip: bool = _f(False, "the paper states no augmentation")
-    num_threads: int = _f(0, "torch CPU threads; 0 = torch default", ge=0)
+    num_threads: int = _f(0, "torch CPU threads (changes numerics: tracked and in the resume key); "
+                             "0 = torch default", ge=0)
     val_bf1_tolerance: float = _f(2, "Boundary F1 tolerance (px) of the validation tie-break", ge=0)
     confidence: ConfidenceParams = Field(default_factory=ConfidenceParams)
     afs: AfsParams = Field(default_factory=AfsParams)
     gabi: GabiParams = Field(default_factory=GabiParams)
     adaptive: AdaptiveParams = Field(default_factory=AdaptiveParams)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _recipe_parts(cls, data):
+        return fill_recipe(data, "train", data.get("recipe", "paper") if isinstance(data, Mapping) else "paper")
 
 
 
@@ -294,12 +352,22 @@ class ProtocolParams(_Section):
 # calibrate, evaluate, report, deploy
 # --------------------------------------------------------------------------------------------------
 class CalibrateParams(_Section):
+    tau_rule: Literal["argmax", "plateau", "smooth"] | None = _f(
+        None, "recipe part (train.recipe): argmax of the validation IoU curve | plateau = centre of the "
+              "near-optimal plateau | smooth = argmax of the smoothed curve (pipeline.thresholds)")
+    plateau_tolerance: float = _f(0.005, "tau_rule plateau: taus within this much mean IoU of the best", ge=0, le=1)
+    smooth_halfwidth: int = _f(5, "tau_rule smooth: moving-average half-width in grid points", ge=0, le=1000)
     grid_start: float = _f(0.05, ge=0, le=1)
     grid_stop: float = _f(0.95, ge=0, le=1)
     grid_step: float = _f(0.01, ge=1e-6, le=1)
     fixed_tau: float = _f(0.5, "eq:inference-mask fallback / fixed-threshold comparisons", ge=0, le=1)
     reliability_bins: int = _f(10, "equal-width probability bins of the validation reliability diagram and ECE",
                                ge=2, le=1000)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _recipe_parts(cls, data):  # standalone section: the paper recipe (Params fills it from train.recipe)
+        return fill_recipe(data, "calibrate", "paper")
 
     @model_validator(mode="after")
     def _grid(self):
@@ -359,6 +427,16 @@ class DeployParams(_Section):
 
 class Params(_Section):
     """The whole params file."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _recipe_parts(cls, data):
+        """Recipe parts of other sections follow ``train.recipe`` (sections validate after this)."""
+        if not isinstance(data, Mapping):
+            return data
+        train = data.get("train")
+        recipe = train.get("recipe", "paper") if isinstance(train, Mapping) else "paper"
+        return {**data, "calibrate": fill_recipe(data.get("calibrate") or {}, "calibrate", recipe)}
 
     profile: str = _f("paper", "name of the profile this file was generated from (report folder)")
     data: DataParams = Field(default_factory=DataParams)

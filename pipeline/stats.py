@@ -7,6 +7,15 @@
   outputs using 10 000 paired hierarchical bootstrap resamples": spacecraft are resampled with
   replacement, then images with replacement within each drawn spacecraft; the *same* draw is applied
   to every method (and every metric), so the interval is for a paired difference.
+* :func:`paired_seed_bootstrap` -- the same interval with training noise in it (issue 24): seeds are a
+  level of the hierarchy.  Each resample draws the seeds with replacement and, independently,
+  spacecraft then images (one image draw for every seed: seeds and images are crossed, each seed
+  scores every test image); the statistic is the mean over the drawn seeds of the per-seed resampled
+  mean difference.  With one seed it is exactly :func:`paired_hierarchical_bootstrap`; with several
+  seeds that agree it equals that interval of the seed-averaged differences; seeds that disagree
+  widen it.  :func:`method_gains` uses it.
+* :func:`claim_status` -- the report's wording rule: a gain is "supported" only when its seed-aware
+  CI excludes zero and the gain is larger than its noise floor.
 * :func:`spearman` -- Spearman's rank correlation with its two-sided p-value (t approximation with
   n - 2 degrees of freedom, as ``scipy.stats.spearmanr``), used for the gate analysis.
 
@@ -161,6 +170,77 @@ def paired_hierarchical_bootstrap(treatment: np.ndarray, control: np.ndarray, cl
                        n_clusters=len(np.unique(clusters)), n_items=len(diff2))
 
 
+#: the seed level's random stream: ``default_rng([seed, SEED_STREAM])`` -- separate from the image
+#: level's ``default_rng(seed)``, so the image draws are those of :func:`paired_hierarchical_bootstrap`
+SEED_STREAM = 1
+
+
+def paired_seed_bootstrap(treatment: np.ndarray, control: np.ndarray, clusters: np.ndarray,
+                          n_resamples: int = 10_000, ci: float = 0.95, seed: int = 0) -> BootstrapCI:
+    """Seed-aware CI of the mean paired difference ``treatment - control``: seeds, then spacecraft,
+    then images.
+
+    ``treatment``, ``control``: [S, n] or [S, n, k] -- row s = seed s (the same seed of both methods:
+    a warm-started method and its Stage-I control share it), column i = the same image for every seed
+    and method.  Let d[s, i] be the differences.  Resample r draws seed multiplicities w_r (S draws with
+    replacement out of S) and image multiplicities c_r (spacecraft with replacement, then images within
+    them, :func:`hierarchical_resample_counts`, one draw for all seeds); its value is
+    sum_s w_rs (d[s] . c_r / sum c_r) / S.  The estimate is the plain mean of d; the interval the
+    percentile interval of the resampled values.
+
+    Edge cases: S = 1 draws no seed (w = 1): exactly :func:`paired_hierarchical_bootstrap` of d[0]
+    with the same ``seed``.  Identical rows d[s] give that interval of their mean for any S.
+    """
+    t = np.asarray(treatment, dtype=np.float64)
+    c = np.asarray(control, dtype=np.float64)
+    if t.shape != c.shape or t.ndim not in (2, 3) or t.shape[0] == 0:
+        raise ValueError(f"treatment {t.shape} and control {c.shape} must be matched [S, n] or [S, n, k]")
+    if not 0.0 < ci < 1.0:
+        raise ValueError(f"ci={ci} must lie in (0, 1)")
+    d = t - c
+    d3 = d[..., None] if d.ndim == 2 else d
+    if np.isnan(d3).any():
+        raise ValueError("paired differences contain NaN; drop undefined images before bootstrapping")
+    n_seeds, n, k = d3.shape
+    # image level: every seed's column block resampled with the same draws -> [R, S, k]
+    per_seed = hierarchical_resample_means(d3.transpose(1, 0, 2).reshape(n, n_seeds * k), clusters,
+                                           int(n_resamples), np.random.default_rng(seed))
+    per_seed = per_seed.reshape(int(n_resamples), n_seeds, k)
+    if n_seeds == 1:
+        boot = per_seed[:, 0, :]
+    else:  # seed level: multiplicities of S draws with replacement
+        drawn = np.random.default_rng([seed, SEED_STREAM]).integers(0, n_seeds, size=(int(n_resamples), n_seeds))
+        w = np.stack([np.bincount(row, minlength=n_seeds) for row in drawn]).astype(np.float64)
+        boot = np.einsum("rs,rsk->rk", w, per_seed) / n_seeds
+    alpha = (1.0 - ci) / 2.0
+    lo, hi = np.quantile(boot, [alpha, 1.0 - alpha], axis=0)
+    est = d3.reshape(n_seeds * n, k).mean(axis=0)
+    squeeze = (lambda a: a[0]) if d.ndim == 2 else (lambda a: a)
+    return BootstrapCI(estimate=squeeze(est), low=squeeze(lo), high=squeeze(hi), n_resamples=int(n_resamples),
+                       n_clusters=len(np.unique(clusters)), n_items=n)
+
+
+#: :func:`claim_status` outcomes
+SUPPORTED = "supported"
+CI_COVERS_ZERO = "not supported: the CI covers 0"
+BELOW_NOISE_FLOOR = "not supported: below the noise floor"
+NOT_ESTIMATED = "not estimated"
+
+
+def claim_status(gain: float, low: float, high: float, noise_floor: float | None = None) -> str:
+    """Whether a gain may be called supported: its seed-aware CI [low, high] excludes 0 AND (when a
+    noise floor is known) |gain| exceeds it.  ``noise_floor`` None or NaN = not measured (the CI alone
+    decides; the report says the floor was not measured).  Non-finite gain or bounds -> not estimated.
+    The CI check comes first: a gain inside its CI's zero-cover is reported as such."""
+    if not all(np.isfinite(x) for x in (gain, low, high)):
+        return NOT_ESTIMATED
+    if low <= 0.0 <= high:
+        return CI_COVERS_ZERO
+    if noise_floor is not None and np.isfinite(noise_floor) and abs(gain) <= noise_floor:
+        return BELOW_NOISE_FLOOR
+    return SUPPORTED
+
+
 # --------------------------------------------------------------------------------------------------
 # Spearman rank correlation
 # --------------------------------------------------------------------------------------------------
@@ -228,13 +308,15 @@ def method_gains(df, metrics: Sequence[str], control: str = "plain", by: Sequenc
 
     ``df`` is the per-image metrics table (columns: method, seed, image_id, ``cluster_col``, ``by``,
     metrics).  For each method the pairing uses the seeds it shares with the control (e.g. a seed-42
-    ablation is compared with the seed-42 control) and the images both have; each image's value is
-    averaged over those seeds, so ``gain_<m>`` = difference of the seed-averaged means and its CI comes
-    from :func:`paired_hierarchical_bootstrap` (same ``seed`` for every comparison: every method is
-    compared with the control on the same resamples of the same images).  Images whose metric is NaN
-    for either method (an undefined small-region IoU) are left out of that metric's comparison.
+    ablation is compared with the seed-42 control), paired seed by seed, and the images every one of
+    those seeds of both methods has; ``gain_<m>`` = mean over seeds and images of the differences
+    (= the difference of the seed-averaged means) and its CI comes from :func:`paired_seed_bootstrap`
+    (seeds, then spacecraft, then images; same ``seed`` for every comparison: every method is compared
+    with the control on the same resamples).  ``gain_<m>_seed_sd`` = sample std over seeds of the
+    per-seed mean differences (NaN for one seed).  Images whose metric is NaN for either method (an
+    undefined small-region IoU) are left out of that metric's comparison.
     Returns one row per (by..., method) with ``gain_seeds`` (shared seeds), ``gain_images``,
-    ``gain_<m>``, ``gain_<m>_lo``, ``gain_<m>_hi``; the control itself gets no row.
+    ``gain_<m>``, ``gain_<m>_lo``, ``gain_<m>_hi``, ``gain_<m>_seed_sd``; the control gets no row.
     """
     import pandas as pd
 
@@ -255,27 +337,37 @@ def method_gains(df, metrics: Sequence[str], control: str = "plain", by: Sequenc
             if not seeds:
                 continue
             idx = ["image_id", cluster_col]
-            t = treat[treat["seed"].isin(seeds)].groupby(idx)[list(metrics)].mean()
-            c = ctrl[ctrl["seed"].isin(seeds)].groupby(idx)[list(metrics)].mean()
-            both = t.add_suffix("_t").join(c.add_suffix("_c"), how="inner")
+            # one row per image, columns <metric>_t<s> / <metric>_c<s> per shared seed (inner join: images
+            # every seed of both methods scored)
+            both = None
+            for s_ in seeds:
+                t = treat[treat["seed"] == s_].groupby(idx)[list(metrics)].mean().add_suffix(f"_t{s_}")
+                c = ctrl[ctrl["seed"] == s_].groupby(idx)[list(metrics)].mean().add_suffix(f"_c{s_}")
+                tc = t.join(c, how="inner")
+                both = tc if both is None else both.join(tc, how="inner")
             row = dict(zip(by, key), method=method, gain_seeds=len(seeds), gain_images=len(both))
             for m in metrics:
-                ok = both[[f"{m}_t", f"{m}_c"]].notna().all(axis=1)
-                sub = both[ok]
+                cols_t = [f"{m}_t{s_}" for s_ in seeds]
+                cols_c = [f"{m}_c{s_}" for s_ in seeds]
+                sub = both[both[cols_t + cols_c].notna().all(axis=1)]
                 if sub.empty:
-                    row.update({f"gain_{m}": np.nan, f"gain_{m}_lo": np.nan, f"gain_{m}_hi": np.nan})
+                    row.update({f"gain_{m}": np.nan, f"gain_{m}_lo": np.nan, f"gain_{m}_hi": np.nan,
+                                f"gain_{m}_seed_sd": np.nan})
                     continue
-                items = tuple(sub.index)
-                pending.setdefault(items, []).append((row, m, sub[f"{m}_t"].to_numpy(), sub[f"{m}_c"].to_numpy()))
+                tv, cv = sub[cols_t].to_numpy().T, sub[cols_c].to_numpy().T  # [S, n]
+                per_seed = (tv - cv).mean(axis=1)
+                row[f"gain_{m}_seed_sd"] = float(np.std(per_seed, ddof=1)) if len(seeds) > 1 else np.nan
+                pending.setdefault((tuple(sub.index), len(seeds)), []).append((row, m, tv, cv))
             group_rows.append(row)
-        for items, cols in pending.items():
-            res = paired_hierarchical_bootstrap(np.stack([t for _, _, t, _ in cols], axis=1),
-                                                np.stack([c for _, _, _, c in cols], axis=1),
-                                                np.array([cl for _, cl in items]),
-                                                n_resamples=n_resamples, ci=ci, seed=seed)
+        for (items, _), cols in pending.items():
+            res = paired_seed_bootstrap(np.stack([t for _, _, t, _ in cols], axis=2),
+                                        np.stack([c for _, _, _, c in cols], axis=2),
+                                        np.array([cl for _, cl in items]),
+                                        n_resamples=n_resamples, ci=ci, seed=seed)
             for j, (row, m, _, _) in enumerate(cols):
                 row.update({f"gain_{m}": float(res.estimate[j]), f"gain_{m}_lo": float(res.low[j]),
                             f"gain_{m}_hi": float(res.high[j])})
         rows.extend(group_rows)
-    cols = by + ["method", "gain_seeds", "gain_images"] + [f"gain_{m}{s}" for m in metrics for s in ("", "_lo", "_hi")]
+    cols = by + ["method", "gain_seeds", "gain_images"] + [f"gain_{m}{s}" for m in metrics
+                                                           for s in ("", "_lo", "_hi", "_seed_sd")]
     return pd.DataFrame(rows, columns=cols)

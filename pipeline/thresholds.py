@@ -104,12 +104,70 @@ def select_tau(grid, curve) -> float:
     return float(grid[best[order[0]]])
 
 
-def calibrate_threshold(probs, gts, grid) -> tuple[float, np.ndarray]:
+#: calibration rules (``calibrate.tau_rule``): ``argmax`` (the paper), ``plateau``, ``smooth``
+TAU_RULES = ("argmax", "plateau", "smooth")
+
+
+def plateau_tau(grid, curve, tolerance: float) -> float:
+    """Centre of the near-optimal plateau: the contiguous run of grid points around the argmax
+    (:func:`select_tau`) whose curve is >= max - ``tolerance``; tau = its middle grid point
+    (lower middle for an even count).
+
+    Why: on a flat curve (mean validation IoU over few images) the argmax wanders over the whole
+    plateau with tiny numeric changes; its centre does not.  ``tolerance`` 0 -> the argmax's run of
+    exact ties (normally the argmax itself)."""
+    grid = np.asarray(grid, dtype=np.float64)
+    curve = np.asarray(curve, dtype=np.float64)
+    best = int(np.flatnonzero(grid == select_tau(grid, curve))[0])
+    near = curve >= curve.max() - float(tolerance) - TIE_TOLERANCE
+    lo = best
+    while lo > 0 and near[lo - 1]:
+        lo -= 1
+    hi = best
+    while hi < len(grid) - 1 and near[hi + 1]:
+        hi += 1
+    return float(grid[lo + (hi - lo) // 2])
+
+
+def smooth_curve(curve, halfwidth: int) -> np.ndarray:
+    """Centred moving average of ``curve`` over 2 * ``halfwidth`` + 1 grid points; near the ends the
+    window is cut to the points that exist (no padding).  ``halfwidth`` 0 -> the curve itself."""
+    c = np.asarray(curve, dtype=np.float64)
+    h = int(halfwidth)
+    if h <= 0:
+        return c.copy()
+    s = np.concatenate([[0.0], np.cumsum(c)])
+    i = np.arange(len(c))
+    lo, hi = np.maximum(i - h, 0), np.minimum(i + h + 1, len(c))
+    return (s[hi] - s[lo]) / (hi - lo)
+
+
+def tau_by_rule(grid, curve, rule: str = "argmax", *, tolerance: float = 0.005, halfwidth: int = 5) -> float:
+    """The calibrated tau of ``curve`` (mean validation Image IoU over ``grid``) by ``rule``:
+    ``argmax`` (:func:`select_tau`, the paper), ``plateau`` (:func:`plateau_tau` with ``tolerance``)
+    or ``smooth`` (argmax of :func:`smooth_curve` with ``halfwidth``).  InputError for another rule."""
+    if rule == "argmax":
+        return select_tau(grid, curve)
+    if rule == "plateau":
+        return plateau_tau(grid, curve, tolerance)
+    if rule == "smooth":
+        return select_tau(grid, smooth_curve(curve, halfwidth))
+    raise InputError(f"calibrate.tau_rule={rule!r}: expected one of {', '.join(TAU_RULES)}")
+
+
+def rule_options(cfg) -> dict:
+    """Keyword arguments of :func:`tau_by_rule` from the calibrate params section."""
+    return {"rule": cfg["tau_rule"], "tolerance": cfg["plateau_tolerance"], "halfwidth": cfg["smooth_halfwidth"]}
+
+
+def calibrate_threshold(probs, gts, grid, rule: str = "argmax", *, tolerance: float = 0.005,
+                        halfwidth: int = 5) -> tuple[float, np.ndarray]:
     """Choose tau on validation images by mean Image IoU over ``grid`` (eq:inference-mask).
 
     probs float [N,H,W] in [0,1]; gts bool [N,H,W]; grid strictly increasing taus.  Returns
     (best_tau, curve) with curve float64 [G] = mean Image IoU of [P >= tau] at each grid point
-    (pipeline.metrics.iou_curve); best_tau by :func:`select_tau` (ties -> closest to 0.5, then smaller).
+    (pipeline.metrics.iou_curve); best_tau by :func:`tau_by_rule` (``argmax``, the paper's rule, by
+    default: :func:`select_tau`, ties -> closest to 0.5, then smaller).
     """
     from pipeline.metrics import iou_curve
 
@@ -117,7 +175,7 @@ def calibrate_threshold(probs, gts, grid) -> tuple[float, np.ndarray]:
     if np.ndim(probs) != 3 or np.shape(probs)[0] == 0:
         raise InputError(f"calibrate_threshold: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
     curve = iou_curve(probs, gts, grid).mean(axis=0)
-    return select_tau(grid, curve), curve
+    return tau_by_rule(grid, curve, rule, tolerance=tolerance, halfwidth=halfwidth), curve
 
 
 #: thresholds.parquet ``tau_source`` of a run that could not be calibrated (no validation image has a

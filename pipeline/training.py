@@ -29,7 +29,16 @@ learning rates only)
     re-estimated over the training images before each validation (:func:`_precise_bn`), which at
     batch 4 steadies the validation IoU at tau 0.5 (``pipeline/benchmarks/study_recipe.py``);
   * Stage-II warm start: encoder, decoder and mask head copied from the Stage-I checkpoint, SDF and
-    skeleton heads freshly initialised from ``torch.manual_seed(seed)``.
+    skeleton heads freshly initialised from ``torch.manual_seed(seed)``;
+  * recipe parts (issue 24, ``train.recipe``; docs/stability.md): ``train.warmup_epochs`` (linear
+    learning-rate warm-up, :func:`_lr_lambda`) and ``train.average_last`` K -- the final model is the
+    mean of the weights after each of the last K epochs (:func:`average_update`) with the BN running
+    statistics recomputed for those averaged weights (:func:`_precise_bn`), instead of the method's
+    selection (an argmax over a noisy validation curve, or the last epoch).  0 = the paper's behaviour;
+  * execution knobs that change numerics -- ``train.num_threads`` and the autocast dtype that
+    ``train.precision`` resolves to on this host -- are in the run key: a resume state saved under
+    other numerics is not resumed (and both params are in the checkpoint fingerprint, the resume
+    directory of ``stages/train.py``).
 
 Resilience
   * after every epoch the full state (model incl. geometry heads, optimizer, scheduler, torch RNG,
@@ -312,6 +321,8 @@ class Settings:
     bf1_tolerance: float
     constants: losses.LossConstants
     precise_bn: bool = False  # re-estimate BN statistics before each validation (train.precise_bn)
+    warmup_epochs: int = 0  # linear learning-rate warm-up (train.warmup_epochs; 0 = none, the paper)
+    average_last: int = 0  # final model = mean weights of the last K epochs (train.average_last; 0 = selection)
 
     @classmethod
     def from_params(cls, method: Method, cfg: Mapping[str, Any]) -> "Settings":
@@ -324,7 +335,8 @@ class Settings:
                    precision=str(cfg["precision"]), channels_last=bool(cfg["channels_last"]),
                    hflip=bool(cfg["augment_hflip"]), num_threads=int(cfg["num_threads"]),
                    bf1_tolerance=float(cfg["val_bf1_tolerance"]), constants=loss_constants(cfg),
-                   precise_bn=bool(cfg["precise_bn"]))
+                   precise_bn=bool(cfg["precise_bn"]), warmup_epochs=int(cfg["warmup_epochs"]),
+                   average_last=int(cfg["average_last"]))
 
 
 class Checkpointer(Protocol):
@@ -362,12 +374,20 @@ class MemoryCheckpointer:
         self.state = copy.deepcopy(state)
 
 
-def _lr_lambda(schedule: str, total_steps: int) -> Callable[[int], float]:
+def _lr_lambda(schedule: str, total_steps: int, warmup_steps: int = 0) -> Callable[[int], float]:
+    """Learning-rate factor of optimizer step ``step`` (0-based): ``constant`` 1, or ``cosine``
+    0.5 (1 + cos(pi min(step, T) / T)) with T = ``total_steps``; times the linear warm-up
+    min(1, (step + 1) / W) when ``warmup_steps`` W > 0 (``train.warmup_epochs``).  W = 0 returns the
+    schedule's own function (the paper recipe, unchanged)."""
     if schedule == "constant":
-        return lambda step: 1.0
-    if schedule == "cosine":
-        return lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1)))
-    raise InputError(f"params: train.schedule={schedule!r}: expected cosine or constant")
+        base = lambda step: 1.0  # noqa: E731
+    elif schedule == "cosine":
+        base = lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1)))  # noqa: E731
+    else:
+        raise InputError(f"params: train.schedule={schedule!r}: expected cosine or constant")
+    if warmup_steps <= 0:
+        return base
+    return lambda step: min(1.0, (step + 1) / warmup_steps) * base(step)
 
 
 def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: Mapping | None = None):
@@ -512,6 +532,8 @@ class _Run:
     run_key: dict
     rows: list = dataclasses.field(default_factory=list)
     best: dict | None = None
+    #: running mean of the weights over the last ``average_last`` epochs: {"n": epochs in it, "state": {...}}
+    avg: dict | None = None
 
     @property
     def steps_per_epoch(self) -> int:
@@ -551,11 +573,15 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
     # whose numerics the CPU tests pin down bit for bit
     fused = {"fused": True} if device.type == "cuda" else {}
     opt = torch.optim.AdamW(model.parameters(), lr=s.lr, weight_decay=s.weight_decay, **fused)
+    # the effective numerics are part of the key: a state saved under another thread count or autocast
+    # dtype (``precision: auto`` resolves per host) is not resumed
     run_key = {"method": method.name, "seed": int(seed), "epochs": s.epochs, "n_train": len(data),
-               "train_ids": list(data.image_ids)}
+               "train_ids": list(data.image_ids), "num_threads": int(torch.get_num_threads()),
+               "autocast": str(amp).replace("torch.", "") if amp is not None else "fp32"}
     run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,
                opt=opt, sched=None, tensors=_tensors(data, device, anchor), n_train=len(data), run_key=run_key)
-    run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(s.schedule, s.epochs * run.steps_per_epoch))
+    run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(s.schedule, s.epochs * run.steps_per_epoch,
+                                                                  s.warmup_epochs * run.steps_per_epoch))
     return run
 
 
@@ -573,6 +599,7 @@ def _resume(run: _Run, checkpointer: Checkpointer) -> int:
     run.sched.load_state_dict(state["scheduler"])
     torch.set_rng_state(state["torch_rng"])
     run.rows, run.best = list(state["log"]), state["best"]
+    run.avg = state.get("avg")
     log.info("resuming %s seed %s after epoch %d from %s", run.method.name, run.seed, state["epoch"], checkpointer)
     return int(state["epoch"]) + 1
 
@@ -581,7 +608,8 @@ def _state(run: _Run, epoch: int) -> dict:
     """The complete resume state after ``epoch`` (CPU copies)."""
     return {"version": STATE_VERSION, "run_key": run.run_key, "epoch": epoch, "model": _cpu_state(run.model),
             "optimizer": copy.deepcopy(run.opt.state_dict()), "scheduler": run.sched.state_dict(),
-            "torch_rng": torch.get_rng_state(), "log": run.rows, "best": run.best}
+            "torch_rng": torch.get_rng_state(), "log": run.rows, "best": run.best,
+            **({"avg": run.avg} if run.avg is not None else {})}
 
 
 def select(best: dict | None, plan: Plan, val: ValData | None, epoch: int, row: Mapping, model,
@@ -600,6 +628,30 @@ def select(best: dict | None, plan: Plan, val: ValData | None, epoch: int, row: 
     if best is None or best["score"] is None or score > tuple(best["score"]):
         return {"epoch": epoch, "score": score, "state": _cpu_state(model)}
     return best
+
+
+def average_update(avg: dict | None, state: Mapping[str, torch.Tensor]) -> dict:
+    """Running mean of weights: ``avg`` {"n": k, "state": mean of k states} -> the mean of k + 1 states,
+    mean_{k+1} = mean_k + (w - mean_k) / (k + 1) for every floating-point tensor; other tensors
+    (BN's ``num_batches_tracked``) take the newest value.  ``avg`` None starts the mean at ``state``."""
+    new = {k: v.detach().to("cpu", copy=True) for k, v in state.items()}
+    if avg is None:
+        return {"n": 1, "state": new}
+    n = int(avg["n"]) + 1
+    out = {}
+    for k, v in new.items():
+        m = avg["state"][k]
+        out[k] = m + (v - m) / n if v.is_floating_point() else v
+    return {"n": n, "state": out}
+
+
+def _average(run: _Run, epoch: int) -> None:
+    """Weight averaging (``train.average_last`` K > 0): fold the weights after ``epoch`` into the
+    running mean when ``epoch`` is one of the last K (SWA-style; with the cosine schedule the last
+    epochs move little, so their mean is a low-noise point that needs no argmax over epochs)."""
+    k = run.settings.average_last
+    if k > 0 and epoch > run.settings.epochs - k:
+        run.avg = average_update(run.avg, run.model.state_dict())
 
 
 def _empty_row(run: _Run, epoch: int) -> dict:
@@ -727,10 +779,17 @@ def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainRe
 
     if run.best is None:  # cannot happen with epochs >= 1; kept as a guard against a silent wrong pick
         raise RuntimeError("no checkpoint candidate")
-    run.model.load_state_dict(run.best["state"])
+    if run.avg is not None:  # train.average_last: the averaged weights, BN statistics recomputed for them
+        run.model.load_state_dict(run.avg["state"])
+        _precise_bn(run)
+        run.best = {"epoch": run.settings.epochs, "score": None, "state": None}
+    else:
+        run.model.load_state_dict(run.best["state"])
     model = run.model.to("cpu").to(memory_format=torch.contiguous_format).eval()
     plan, s = run.plan, run.settings
     selection = plan.select if _has_val(val) or plan.select == "last" else "last (no validation masks)"
+    if run.avg is not None:
+        selection = f"mean weights of the last {run.avg['n']} epochs (BN statistics recomputed)"
     info = {"selected_epoch": int(run.best["epoch"]), "selection": selection, "epochs": s.epochs, "lr": s.lr,
             "mode": plan.mode, "loss_weights": dict(plan.weights), "epoch0_eligible": plan.epoch0_eligible,
             "autocast": str(run.amp).replace("torch.", "") if run.amp is not None else "fp32",
@@ -771,6 +830,7 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
         row = _train_epoch(run, epoch, val, bar)
         run.rows.append(row)
         run.best = select(run.best, plan, val, epoch, row, run.model, plan.select == "best_val" or epoch == s.epochs)
+        _average(run, epoch)
         checkpointer.save(_state(run, epoch))
         if callback is not None:
             callback(epoch, row)

@@ -2,8 +2,11 @@
 
 Paper (Training Details): "The binarization threshold is selected by Image IoU on the corresponding
 validation set and then applied unchanged to the test set."  For each active run (method, seed):
-P = sigmoid(Z) on the validation images, tau = argmax over the grid of the mean Image IoU of
-[P >= tau] (eq:inference-mask; ties -> closest to 0.5): pipeline.thresholds.calibrate_threshold.  The whole curve is kept (list columns
+P = sigmoid(Z) on the validation images, the mean Image IoU of [P >= tau] over the grid
+(eq:inference-mask), and tau by ``calibrate.tau_rule`` (a recipe part, docs/stability.md): ``argmax``
+(the paper; ties -> closest to 0.5), ``plateau`` (centre of the taus within
+``calibrate.plateau_tolerance`` of the best) or ``smooth`` (argmax of the moving-average curve):
+pipeline.thresholds.calibrate_threshold.  The whole curve is kept (list columns
 ``grid`` and ``curve``) for the report's threshold-curve figure, with the fixed tau = 0.5 alongside.
 
 Calibration diagnostics of the same validation probabilities (pipeline.diagnostics; issue 17):
@@ -60,7 +63,7 @@ def main(params, device, art, checkpoints, out):
     from pipeline.inference import active_runs, load_student, open_labelled_split, predict_probs
     from pipeline.metrics import iou_curve
     from pipeline.progress import progress
-    from pipeline.thresholds import calibrate_threshold, threshold_grid
+    from pipeline.thresholds import calibrate_threshold, rule_options, threshold_grid
 
     cfg = section(params, "calibrate")
     grid = threshold_grid(cfg)
@@ -78,7 +81,7 @@ def main(params, device, art, checkpoints, out):
     for method, seed, path in progress(runs, desc="calibrate"):
         model, _ = load_student(path, dev)
         probs = predict_probs(model, val_images, device=dev)
-        tau, curve = calibrate_threshold(probs, val_masks, grid)
+        tau, curve = calibrate_threshold(probs, val_masks, grid, **rule_options(cfg))
         fixed_iou = float(iou_curve(probs, val_masks, [fixed_tau]).mean())
         rel = reliability_bins(probs, val_masks, cfg["reliability_bins"])
         area = median_area_ratio(area_ratio_curve(probs, val_masks, grid))

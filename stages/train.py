@@ -9,7 +9,8 @@
   Stage-I methods) ignore it and do not record it in their lineage.
 * Per-epoch resume state lives under ``--resume-dir``/<checkpoint fingerprint> (default
   ``.cache/train``, outside DVC outs): a killed run continues where it stopped; a finished one reruns
-  instantly.
+  instantly.  The fingerprint holds every ``train.*`` key the method reads, the execution knobs
+  ``train.num_threads`` and ``train.precision`` among them, so a changed thread count trains afresh.
 * The epoch rows are also logged with DVCLive into ``--live-dir`` (dvc.yaml: ``reports/dvclive/<M>/<S>``, a
   git-tracked out; :func:`write_live_log`): ``dvc plots show reports/dvclive/<M>/<S>/plots/metrics/val_iou.tsv``
   or any DVCLive-aware viewer reads it.  The checkpoint's log.parquet stays the typed artifact the

@@ -138,9 +138,12 @@ def test_method_gains_pairs_shared_seeds_and_images():
     assert g.loc["abl", "gain_iou"] == pytest.approx(-0.05)
     assert g.loc["abl", "gain_seeds"] == 1
     assert g.loc["abl", "gain_bf1"] == pytest.approx(0.1)          # NaN images left out
-    # every image gains exactly 0.15: the interval collapses onto the estimate
-    assert g.loc["geo", "gain_iou_lo"] == pytest.approx(0.15)
-    assert g.loc["geo", "gain_iou_hi"] == pytest.approx(0.15)
+    # every image gains 0.1 at seed 1 and 0.2 at seed 2: no image-level spread, but the seeds disagree,
+    # so the seed level spans them (the seed-averaged interval of the old bootstrap collapsed to 0.15)
+    assert g.loc["geo", "gain_iou_lo"] == pytest.approx(0.1)
+    assert g.loc["geo", "gain_iou_hi"] == pytest.approx(0.2)
+    assert g.loc["geo", "gain_iou_seed_sd"] == pytest.approx(np.std([0.1, 0.2], ddof=1))
+    assert np.isnan(g.loc["abl", "gain_iou_seed_sd"])
 
 
 # ------------------------------------------------------------------------------------- Spearman
@@ -187,7 +190,7 @@ def test_counts_matrix_bootstrap_equals_the_gather_baseline():
     # the per-group matrix bootstrap of method_gains == one bootstrap per (method, metric)
     rows = []
     for method in ("plain", "a", "b"):
-        for seed in (1, 2):
+        for seed in (1,):  # one seed: the seed-aware bootstrap is the old one (several: test_seed_level_*)
             for i in range(30):
                 rows.append(dict(dataset="d", group="g", threshold_mode="calibrated", method=method, seed=seed,
                                  image_id=f"i{i}", spacecraft=f"s{i % 4}", iou=rng.random(),
@@ -195,6 +198,50 @@ def test_counts_matrix_bootstrap_equals_the_gather_baseline():
     df = pd.DataFrame(rows)
     got = method_gains(df, ["iou", "bf1"], n_resamples=400, seed=9)
     want = baseline_method_gains(df, ["iou", "bf1"], n_resamples=400, seed=9)
-    assert got.columns.tolist() == want.columns.tolist()
-    num = [c for c in got.columns if c.startswith("gain_")]
+    assert [c for c in got.columns if not c.endswith("_seed_sd")] == want.columns.tolist()
+    num = [c for c in want.columns if c.startswith("gain_")]
     np.testing.assert_allclose(got[num].to_numpy(float), want[num].to_numpy(float), rtol=1e-12, atol=1e-15)
+
+
+# ------------------------------------------------------------------------------ seed-aware bootstrap
+def test_seed_bootstrap_with_one_seed_is_the_image_bootstrap():
+    from pipeline.stats import paired_seed_bootstrap
+
+    rng = np.random.default_rng(4)
+    c = rng.random((30, 2))
+    t = c + rng.normal(0.05, 0.1, (30, 2))
+    clusters = np.repeat(np.arange(5), 6)
+    old = paired_hierarchical_bootstrap(t, c, clusters, n_resamples=500, seed=3)
+    new = paired_seed_bootstrap(t[None], c[None], clusters, n_resamples=500, seed=3)
+    for k in ("estimate", "low", "high"):
+        np.testing.assert_array_equal(getattr(new, k), getattr(old, k))
+
+
+def test_seed_level_widens_the_interval_when_seeds_disagree_and_not_when_they_agree():
+    from pipeline.stats import paired_seed_bootstrap
+
+    rng = np.random.default_rng(5)
+    clusters = np.repeat(np.arange(6), 5)
+    c = rng.random((1, 30)).repeat(5, axis=0)
+    noise = rng.normal(0, 0.02, (1, 30))
+    agree = c + 0.03 + noise                                     # five seeds, identical differences
+    shifts = np.array([-0.06, -0.02, 0.03, 0.07, 0.13])[:, None]   # seeds that disagree, same mean +0.03
+    disagree = c + shifts + noise
+    seed_avg = paired_hierarchical_bootstrap(agree.mean(0), c.mean(0), clusters, n_resamples=2000, seed=1)
+    a = paired_seed_bootstrap(agree, c, clusters, n_resamples=2000, seed=1)
+    d = paired_seed_bootstrap(disagree, c, clusters, n_resamples=2000, seed=1)
+    assert a.low == pytest.approx(seed_avg.low) and a.high == pytest.approx(seed_avg.high)
+    assert d.estimate == pytest.approx(a.estimate)               # same mean gain ...
+    assert d.high - d.low > 3 * (a.high - a.low)                 # ... far less certain
+    assert a.low > 0 and d.low < 0                               # the old interval would call it supported
+
+
+def test_claim_status_follows_the_ci_and_the_noise_floor():
+    from pipeline.stats import BELOW_NOISE_FLOOR, CI_COVERS_ZERO, NOT_ESTIMATED, SUPPORTED, claim_status
+
+    assert claim_status(0.03, 0.01, 0.05) == SUPPORTED                  # no floor measured: the CI decides
+    assert claim_status(-0.03, -0.05, -0.01, 0.02) == SUPPORTED         # a supported loss
+    assert claim_status(0.03, -0.01, 0.07, 0.0) == CI_COVERS_ZERO
+    assert claim_status(0.015, 0.005, 0.03, 0.02) == BELOW_NOISE_FLOOR  # CI excludes 0, effect under the floor
+    assert claim_status(0.015, 0.005, 0.03, float("nan")) == SUPPORTED
+    assert claim_status(float("nan"), 0.0, 0.1) == NOT_ESTIMATED

@@ -21,7 +21,7 @@ from scipy import ndimage
 
 from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
 from pipeline.errors import InputError, TrainingDiverged
-from pipeline.params import load_params, section
+from pipeline.params import RECIPES, load_params, section
 
 REPO = Path(__file__).resolve().parent.parent
 PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle", "p5", "p6"]
@@ -114,6 +114,9 @@ def tiny_cfg(**over) -> dict:
     cfg = section(load_params(REPO / "params.yaml"), "train")
     cfg.update({"epochs_stage1": 2, "epochs_stage2": 2, "precision": "fp32", "num_threads": 1,
                 "batch_size": 4})
+    # the paper recipe's other parts (the demo's params.yaml may select another recipe): tests that
+    # need a part set it themselves
+    cfg.update({k: v for k, v in RECIPES["paper"]["train"].items() if k != "precision"}, recipe="paper")
     cfg["gabi"] = {**cfg["gabi"], "epochs": 2}
     cfg.update(over)
     return cfg

@@ -78,22 +78,26 @@ def data_overrides(args) -> list[str]:
     return sets
 
 
-def build_artifacts(workdir: Path, sets: list[str], device: str) -> Path:
-    """Run prepare -> teacher -> consensus (the project's stage commands) into ``workdir/artifacts``
-    unless consensus.zarr is there already; returns the artifacts directory."""
+def build_artifacts(workdir: Path, sets: list[str], device: str, geometry: bool = False) -> Path:
+    """Run prepare -> teacher -> consensus (-> geometry with ``geometry``: the Stage-II methods' targets
+    and gates) with the project's stage commands into ``workdir/artifacts`` unless the last one's
+    output is there already; returns the artifacts directory."""
     from pipeline import catalog
 
     art = workdir / "artifacts"
-    if catalog.path("consensus", art).exists():
+    if catalog.path("gates" if geometry else "consensus", art).exists():
         return art
     workdir.mkdir(parents=True, exist_ok=True)
     p = {n: str(catalog.path(n, art)) for n in ("manifest", "images", "reference", "teacher", "teacher_scores",
-                                                 "consensus")}
+                                                 "consensus", "geometry", "gates")}
     common = [a for s in sets for a in ("--set", s)] + ["--device", device]
     cmds = [["stages.prepare", "--out-dir", str(art)],
             ["stages.teacher", "--manifest", p["manifest"], "--images", p["images"], "--reference",
              p["reference"], "--out", p["teacher"], "--scores", p["teacher_scores"]],
             ["stages.consensus", "--teacher", p["teacher"], "--out", p["consensus"]]]
+    if geometry:
+        cmds.append(["stages.geometry", "--consensus", p["consensus"], "--manifest", p["manifest"], "--out",
+                     p["geometry"], "--gates", p["gates"]])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
     for cmd in cmds:
         print("+", " ".join(cmd[:1]), flush=True)
@@ -101,8 +105,9 @@ def build_artifacts(workdir: Path, sets: list[str], device: str) -> Path:
     return art
 
 
-def load_study_data(artifacts: Path, cfg: Mapping[str, Any]) -> dict:
-    """Training arrays per method (via the training API), validation and test images + reference masks."""
+def load_study_data(artifacts: Path, cfg: Mapping[str, Any], methods=METHODS) -> dict:
+    """Training arrays per method of ``methods`` (via the training API), validation and test images +
+    reference masks (test: images, masks and groups)."""
     from pipeline import catalog
     from pipeline.artifacts import open_artifact
     from pipeline.methods import get_method
@@ -110,7 +115,7 @@ def load_study_data(artifacts: Path, cfg: Mapping[str, Any]) -> dict:
     from stages.train import load_inputs
 
     out: dict[str, Any] = {}
-    for m in METHODS:
+    for m in methods:
         data, val, _ = load_inputs(artifacts, get_method(m), cfg)
         out[m] = data
         out["val"] = val
@@ -274,20 +279,22 @@ def _finished_runs(partial: Path, info: Mapping[str, Any]) -> dict:
     return {(r["variant"], r["method"], r["seed"]): r for r in lines[1:]}
 
 
-def _run_jobs(jobs: list[dict], artifacts: str, base: dict, n_jobs: int, threads: int):
+def _run_jobs(jobs: list[dict], artifacts: str, base: dict, n_jobs: int, threads: int, init=None, run=None):
     """Yield the results of ``jobs`` as they finish: in this process (``n_jobs`` <= 1) or in a pool of
-    ``n_jobs`` spawned processes (each loads the study data once)."""
+    ``n_jobs`` spawned processes (each loads the study data once with ``init``; default
+    :func:`_init_worker`, jobs run by ``run``, default :func:`run_one`)."""
+    init, run = init or _init_worker, run or run_one
     if not jobs:
         return
     if n_jobs <= 1:
-        _init_worker(artifacts, base, threads)
+        init(artifacts, base, threads)
         for j in jobs:
-            yield run_one(j)
+            yield run(j)
         return
     import multiprocessing as mp
 
-    with mp.get_context("spawn").Pool(n_jobs, initializer=_init_worker, initargs=(artifacts, base, threads)) as pool:
-        yield from pool.imap_unordered(run_one, jobs, chunksize=1)
+    with mp.get_context("spawn").Pool(n_jobs, initializer=init, initargs=(artifacts, base, threads)) as pool:
+        yield from pool.imap_unordered(run, jobs, chunksize=1)
         pool.close()  # let the workers exit on their own (terminate() leaves a semaphore behind)
         pool.join()
 

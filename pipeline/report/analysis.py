@@ -190,7 +190,7 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
                        logs: pd.DataFrame | None, vote: pd.DataFrame | None, groups: list[str],
                        treatment: str = "geodistill", control: str = "plain",
                        continuation: str = "continuation", ceiling: str = "supervised_ceiling",
-                       label=lambda m: m) -> list[str]:
+                       label=lambda m: m, noise_floor: dict | None = None) -> list[str]:
     """What the diagnostics show about the fixed-tau reversal, in sentences computed from the numbers
     (no conclusion is fixed in advance: every verdict is a comparison of the numbers it quotes).
 
@@ -267,13 +267,19 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
             cont = [(g, s.loc[(continuation, g)]) for g in groups if (continuation, g) in s.index]
             if not geo or not cont:
                 continue
+            from pipeline.stats import SUPPORTED, claim_status
+
             d_geo = [r["gain_iou_vs_continuation"] for _, r in geo]
-            covers0 = [r["gain_iou_vs_continuation_lo"] <= 0 <= r["gain_iou_vs_continuation_hi"] for _, r in geo]
+            # supported = seed-aware CI excludes 0 and the difference exceeds the noise floor (claim_status)
+            ok = [claim_status(r["gain_iou_vs_continuation"], r["gain_iou_vs_continuation_lo"],
+                               r["gain_iou_vs_continuation_hi"],
+                               gain_noise_floor(noise_floor, g, "iou") if noise_floor else None) == SUPPORTED
+                  for g, r in geo]
             d_cont = [r["gain_iou"] for _, r in cont]
-            verdict = ("no geometry effect beyond the extra epochs is detectable (every 95 % CI covers 0)"
-                       if all(covers0) else
+            verdict = ("no geometry effect beyond the extra epochs is supported (no seed-aware 95 % CI excludes 0 "
+                       "with the difference above the noise floor)" if not any(ok) else
                        f"the geometry terms change Image IoU beyond the extra epochs on "
-                       f"{sum(not c for c in covers0)} of {len(covers0)} groups (CI excludes 0)")
+                       f"{sum(ok)} of {len(ok)} groups (seed-aware CI excludes 0, above the noise floor)")
             share = ""
             tot = [r["gain_iou"] for _, r in geo]
             if all(np.isfinite(tot)) and np.mean(tot) > 1e-9:  # a share of a positive gain only
@@ -332,3 +338,49 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
                        f"{_f(r['max_swing'])} ({label(r['method'])}, seed {int(r['max_seed'])}, epoch "
                        f"{int(r['max_epoch'])}); at each epoch's calibrated tau the largest is {_f(cal)} -- {steadier}.")
     return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Noise floor (issue 24): the stability benchmark's spreads beside the gains
+# --------------------------------------------------------------------------------------------------
+NOISE_FLOOR_NOT_MEASURED = "noise floor not measured (run python -m pipeline.benchmarks.stability --noise-floor)"
+
+
+def load_noise_floor(path) -> dict | None:
+    """The stability benchmark's record (reports/noise_floor.json: ``{"info": ..., "numbers": {key:
+    {"pert", "seed_sd"}}}``), or None when the file is absent."""
+    import json
+    from pathlib import Path
+
+    p = Path(path)
+    if not p.is_file():
+        return None
+    return json.loads(p.read_text())
+
+
+def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
+    """Noise floor of a gain in ``metric`` on test ``group``: the largest ``floor`` (the move of the
+    benchmark's seed-mean under the numerical perturbations its recipe is exposed to:
+    pipeline.benchmarks.stability.noise_floor_record) of any published gain
+    (``<treatment>-<control>/<group>/<metric>``) of that group and metric; NaN when the record is None
+    or has no such gain.  One floor per (group, metric): the benchmark measures the demo's comparisons,
+    and a numerical perturbation moves every method's number alike."""
+    if not record:
+        return float("nan")
+    vals = [v.get("floor", v.get("pert")) for k, v in record.get("numbers", {}).items()
+            if "-" in k.split("/")[0] and k.split("/")[1:] == [str(group), metric]]
+    vals = [x for x in vals if x is not None and np.isfinite(x)]
+    return float(max(vals)) if vals else float("nan")
+
+
+def noise_floor_note(record: dict | None) -> str:
+    """One sentence naming where the floor comes from (or that it was not measured)."""
+    if not record:
+        return NOISE_FLOOR_NOT_MEASURED + "."
+    i = record.get("info", {})
+    return (f"Noise floor: the largest move of a gain's seed-mean under a numerical perturbation "
+            f"({', '.join(i.get('perturbations', ['?']))}; threads1 = 1 instead of 2 threads, precision = fp32 vs "
+            f"bf16), measured by the stability benchmark (recipe {i.get('recipe', '?')}, tau rule "
+            f"{i.get('tau_rule', '?')}, {i.get('resolution', '?')}², seeds {i.get('seeds', '?')}; "
+            f"reports/noise_floor.json); a gain is supported only when its seed-aware CI excludes 0 and it "
+            f"exceeds the floor.")

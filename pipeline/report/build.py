@@ -16,7 +16,7 @@ from pipeline import catalog
 from pipeline.errors import ArtifactError
 from pipeline.report import figures as F
 from pipeline.report import tables as T
-from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_analysis, size_split,
+from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_analysis, load_noise_floor, size_split,
                                       teacher_domain_quality, teacher_prompt_quality, teacher_vote_means)
 from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
 from pipeline.report.environment import environment_section, training_runs
@@ -36,6 +36,8 @@ class Inputs:
     logs: pd.DataFrame | None = None
     runs: list = dataclasses.field(default_factory=list)  # pipeline.report.environment.training_runs
     no_masks: bool = False  # no validation or test image has a mask (a distill project without --val-masks)
+    #: the stability benchmark's noise-floor record (reports/noise_floor.json), None when not measured
+    noise_floor: dict | None = None
 
     def get(self, name):
         return self.found.get(name)
@@ -66,6 +68,7 @@ def load_inputs(art: str | Path) -> Inputs:
     inp.runs = training_runs(catalog.path("checkpoints", art))
     if found.get("manifest") is not None:
         inp.no_masks = no_reference_masks(found["manifest"].df, found.get("reference"))
+    inp.noise_floor = load_noise_floor(catalog.path("noise_floor", art))
     return inp
 
 
@@ -204,7 +207,7 @@ def results_section(inp: Inputs) -> Section:
         groups = [g for g in order if g in groups] + [g for g in groups if g not in order]
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
-            sec.blocks.append(T.results_table(s.df, mode, groups))
+            sec.blocks.append(T.results_table(s.df, mode, groups, inp.noise_floor))
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
             sec.blocks.append(T.diagnostics_table(s.df, mode, groups))
@@ -245,11 +248,12 @@ def diagnostics_section(inp: Inputs, plots: dict) -> Section:
         return sec
     groups = ordered_groups(inp, s.df["group"] if s is not None else [])
     findings = fixed_tau_findings(s.df if s is not None else None, thr.df if thr is not None else None,
-                                  m.df if m is not None else None, inp.logs, vote_means(inp), groups, label=T.label)
+                                  m.df if m is not None else None, inp.logs, vote_means(inp), groups, label=T.label,
+                                  noise_floor=inp.noise_floor)
     sec.blocks += [Text(f) for f in findings]
     if s is not None:
         for mode in ("calibrated", "fixed"):
-            tab = T.controls_table(s.df, mode, groups)
+            tab = T.controls_table(s.df, mode, groups, inp.noise_floor)
             if tab is not None:
                 sec.blocks.append(tab)
     if thr is not None and "ece" in thr.df.columns:

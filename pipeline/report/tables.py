@@ -88,19 +88,49 @@ def group_method_rows(summary: pd.DataFrame, mode: str, groups: Sequence[str]):
             yield g, m, part.loc[m]
 
 
-def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> Table:
+def claim(r, suffix: str, group: str, noise_floor=None) -> str:
+    """The claim column of a gain row: :func:`pipeline.stats.claim_status` of the Image IoU and the
+    Boundary F1 gain (``gain_<metric><suffix>`` with its CI) against the group's noise floor
+    (:func:`pipeline.report.analysis.gain_noise_floor` of ``noise_floor``, the benchmark's record)."""
+    from pipeline.report.analysis import gain_noise_floor
+    from pipeline.stats import NOT_ESTIMATED, claim_status
+
+    out = []
+    for k, name in (("iou", "IoU"), ("bf1", "BF1")):
+        st = claim_status(*(float(r.get(f"gain_{k}{suffix}{x}", np.nan)) for x in ("", "_lo", "_hi")),
+                          gain_noise_floor(noise_floor, group, k) if noise_floor else None)
+        if st != NOT_ESTIMATED:
+            out.append(f"{name}: {st}")
+    return "; ".join(out) or "--"
+
+
+def floor_cell(group: str, noise_floor) -> str:
+    """"IoU x / BF1 y" noise floor of a group, or "not measured"."""
+    from pipeline.report.analysis import gain_noise_floor
+
+    vals = [gain_noise_floor(noise_floor, group, k) for k in ("iou", "bf1")]
+    return "not measured" if not all(np.isfinite(vals)) else f"{fmt(vals[0])} / {fmt(vals[1])}"
+
+
+def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise_floor: dict | None = None) -> Table:
     """Paper Table spacesense-results: per group and method, Image IoU and Boundary F1 (mean ± sample
-    std over seeds) and the gains against Plain Student with 95 % paired hierarchical bootstrap CIs."""
+    std over seeds) and the gains against Plain Student with seed-aware 95 % CIs, the group's noise
+    floor (``noise_floor``: the stability benchmark's record, None = not measured) and the claim."""
+    from pipeline.report.analysis import noise_floor_note
+
     rows = [[g, label(m), fmt_pm(r["iou_mean"], r["iou_std"]), fmt_pm(r["bf1_mean"], r["bf1_std"]),
              fmt_ci(r.get("gain_iou"), r.get("gain_iou_lo"), r.get("gain_iou_hi")),
              fmt_ci(r.get("gain_bf1"), r.get("gain_bf1_lo"), r.get("gain_bf1_hi")),
+             floor_cell(g, noise_floor) if np.isfinite(r.get("gain_iou", np.nan)) else "--",
+             claim(r, "", g, noise_floor) if np.isfinite(r.get("gain_iou", np.nan)) else "--",
              str(int(r["n_seeds"]))] for g, m, r in group_method_rows(summary, mode, groups)]
     return Table("tab:spacesense-results", f"Segmentation results on the test groups ({MODE_TEXT.get(mode, mode)})",
                  ["Evaluation set", "Method", "Image IoU", "Boundary F1", "Image IoU gain [95% CI]",
-                  "Boundary F1 gain [95% CI]", "Seeds"], rows,
+                  "Boundary F1 gain [95% CI]", "Noise floor (IoU / BF1)", "Claim", "Seeds"], rows,
                  ["Mean ± sample std over seeds of the per-seed means; gains against Plain Student with 95 % CIs "
-                  "from a paired hierarchical bootstrap (spacecraft, then images within spacecraft, matched across "
-                  "methods).  A single seed has no std."])
+                  "from a seed-aware paired hierarchical bootstrap (seeds, then spacecraft, then images within "
+                  "spacecraft, matched across methods; pipeline.stats.paired_seed_bootstrap).  A single seed has "
+                  "no std, and its CI holds no training noise.", noise_floor_note(noise_floor)])
 
 
 def diagnostics_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> Table:
@@ -279,11 +309,15 @@ def _ordered_with_ceiling_last(methods: Sequence[str]) -> list[str]:
     return free + sorted(not_annotation_free(present), key=lambda m: order.get(m, 99))
 
 
-def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> Table | None:
+def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
+                   noise_floor: dict | None = None) -> Table | None:
     """The budget-matched control: per group, Continuation - Plain (Stage II's extra epochs alone),
     each warm-started method - Continuation (the geometry effect at a matched budget) and
     GeoDistill-Refine - Plain, with the paired hierarchical bootstrap CIs of the evaluate stage.
-    None when no continuation run was evaluated.  Annotation-free methods only."""
+    None when no continuation run was evaluated.  Annotation-free methods only.  ``noise_floor``: the
+    stability benchmark's record (None = not measured), beside each difference with its claim."""
+    from pipeline.report.analysis import noise_floor_note
+
     s = summary[summary["threshold_mode"] == mode]
     if "continuation" not in set(s["method"]) or "gain_iou_vs_continuation" not in s.columns:
         return None
@@ -299,6 +333,7 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> T
                 return
             rows.append([g, what, fmt_ci(r[f"gain_iou{suffix}"], r[f"gain_iou{suffix}_lo"], r[f"gain_iou{suffix}_hi"]),
                          fmt_ci(r[f"gain_bf1{suffix}"], r[f"gain_bf1{suffix}_lo"], r[f"gain_bf1{suffix}_hi"]),
+                         floor_cell(g, noise_floor), claim(r, suffix, g, noise_floor),
                          str(int(r[f"gain_seeds{suffix}"]))])
 
         add(f"{label('continuation')} − {label('plain')} (extra epochs only)", "continuation", "")
@@ -308,11 +343,12 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> T
         add(f"{label('geodistill')} − {label('plain')} (the paper's comparison)", "geodistill", "")
     return Table("tab:controls", f"Budget-matched control: where the gain comes from ({MODE_TEXT.get(mode, mode)})",
                  ["Evaluation set", "Comparison", "Image IoU difference [95% CI]", "Boundary F1 difference [95% CI]",
-                  "Seeds"], rows,
+                  "Noise floor (IoU / BF1)", "Claim", "Seeds"], rows,
                  ["The continuation warm-starts from the same Stage-I checkpoint and trains with Stage II's schedule, "
                   "epochs and checkpoint selection on L_raw only: a method minus the continuation isolates its "
-                  "geometry terms; the continuation minus Plain isolates the extra epochs.  Paired hierarchical "
-                  "bootstrap over the seeds both runs share."])
+                  "geometry terms; the continuation minus Plain isolates the extra epochs.  Seed-aware paired "
+                  "hierarchical bootstrap (seeds, spacecraft, images) over the seeds both runs share.",
+                  noise_floor_note(noise_floor)])
 
 
 def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mode: str,

@@ -1,0 +1,240 @@
+"""Issue 24: the stable recipe's parts, the recipe/part rule, execution knobs in the resume key, the
+tau rules, the stability benchmark's bookkeeping and the report's noise floor / claim wording."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from tests.test_training import _assert_same, _weights, build_tiny_artifacts, load_arrays, tiny_cfg
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return build_tiny_artifacts(tmp_path_factory.mktemp("stability") / "artifacts")
+
+
+# --------------------------------------------------------------------------------------------------
+# recipes: a bundle for the parts left null; an explicit part wins
+# --------------------------------------------------------------------------------------------------
+def test_recipe_fills_the_null_parts_and_an_explicit_part_wins():
+    from pipeline.params import PAPER, RECIPES, recipe_parts, validate
+
+    paper = validate({})
+    for dotted in recipe_parts():
+        sec, key = dotted.split(".")
+        assert paper[sec][key] == RECIPES["paper"][sec][key] == getattr(getattr(PAPER, sec), key)
+    stable = validate({"train": {"recipe": "stable"}})
+    for dotted in recipe_parts():
+        sec, key = dotted.split(".")
+        assert stable[sec][key] == RECIPES["stable"][sec][key]
+    mixed = validate({"train": {"recipe": "stable", "precision": "bf16"}, "calibrate": {"tau_rule": "argmax"}})
+    assert mixed["train"]["precision"] == "bf16" and mixed["calibrate"]["tau_rule"] == "argmax"
+    assert mixed["train"]["average_last"] == RECIPES["stable"]["train"]["average_last"]
+
+
+def test_params_yaml_keeps_the_parts_null_so_the_recipe_switches_them():
+    from pipeline.dag import render_params_yaml
+    from pipeline.params import recipe_parts
+
+    text = render_params_yaml("paper")
+    for dotted in recipe_parts():
+        assert f"  {dotted.split('.')[1]}: null" in text, dotted
+
+
+def test_the_paper_recipe_is_the_published_behaviour():
+    """The paper recipe's parts are what the paper run did before they existed: autocast where the
+    host has bf16, no warm-up (the schedule's own function), the method's selection, the argmax tau."""
+    from pipeline.params import RECIPES
+    from pipeline.training import _lr_lambda
+
+    assert RECIPES["paper"] == {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0},
+                                "calibrate": {"tau_rule": "argmax"}}
+    f0, f = _lr_lambda("cosine", 100), _lr_lambda("cosine", 100, 0)
+    assert [f0(s) for s in range(0, 101, 7)] == [f(s) for s in range(0, 101, 7)]
+
+
+def test_warmup_scales_the_first_epochs_then_follows_the_schedule():
+    from pipeline.training import _lr_lambda
+
+    f, base = _lr_lambda("cosine", 100, 10), _lr_lambda("cosine", 100)
+    assert f(0) == pytest.approx(0.1 * base(0)) and f(4) == pytest.approx(0.5 * base(4))
+    assert all(f(s) == base(s) for s in range(9, 100))
+
+
+def test_average_update_is_the_running_mean():
+    from pipeline.training import average_update
+
+    states = [{"w": torch.tensor([float(i), 2.0 * i]), "n": torch.tensor(i)} for i in range(1, 5)]
+    avg = None
+    for s in states:
+        avg = average_update(avg, s)
+    assert avg["n"] == 4
+    assert torch.allclose(avg["state"]["w"], torch.tensor([2.5, 5.0]))
+    assert int(avg["state"]["n"]) == 4  # integer buffers: the newest value
+
+
+def test_weight_averaging_gives_the_mean_of_the_last_epochs_with_bn_recomputed(tiny):
+    from pipeline import training
+    from pipeline.methods import get_method
+
+    cfg = tiny_cfg(epochs_stage1=3, lr_stage1=2e-3, average_last=2)
+    data, val = load_arrays(tiny, "plain", cfg)
+    states = []
+    res = training.train(get_method("plain"), cfg, data, val, 42, checkpointer=training.NoCheckpointer(),
+                         show_progress=False)
+    ck = training.MemoryCheckpointer()  # the same trajectory without averaging: the weights after each epoch
+    training.train(get_method("plain"), {**cfg, "average_last": 0}, data, val, 42, checkpointer=ck,
+                   show_progress=False, callback=lambda e, r: states.append(ck.state["model"]))
+    assert "mean weights of the last 2 epochs" in res.info["selection"] and res.selected_epoch == 3
+    w = _weights(res.model)
+    for k, v in states[1].items():  # a conv weight: the mean of epochs 2 and 3
+        if k.endswith("weight") and v.ndim == 4:
+            assert torch.allclose(w[k], (states[1][k] + states[2][k]) / 2, atol=1e-6), k
+            break
+    bn = [k for k in w if k.endswith("running_mean")][0]
+    assert not torch.equal(w[bn], states[2][bn])  # BN statistics recomputed for the averaged weights
+
+
+# --------------------------------------------------------------------------------------------------
+# execution knobs: tracked, and in the resume key
+# --------------------------------------------------------------------------------------------------
+def test_num_threads_and_precision_are_tracked_params_of_every_train_stage():
+    from pipeline.methods import METHODS, fingerprint_params, param_keys
+
+    cfg = tiny_cfg()
+    for m in METHODS.values():
+        assert {"train.num_threads", "train.precision", "train.recipe"} <= set(param_keys(m)), m.name
+        assert fingerprint_params(m, cfg) != fingerprint_params(m, {**cfg, "num_threads": cfg["num_threads"] + 1})
+
+
+def test_changing_num_threads_does_not_resume_the_old_state(tiny, tmp_path):
+    """The train stage's FileCheckpointer lives under the checkpoint fingerprint (which now holds
+    train.num_threads); and even a state handed back under the same directory is not resumed, because
+    the run key holds the effective thread count and autocast dtype."""
+    from pipeline import training
+    from pipeline.methods import get_method
+    from stages.train import FileCheckpointer
+
+    before = torch.get_num_threads()
+    try:
+        cfg = tiny_cfg(epochs_stage1=2, num_threads=1)
+        data, val = load_arrays(tiny, "plain", cfg)
+        ck = FileCheckpointer(tmp_path / "same_dir")
+        seen = []
+        training.train(get_method("plain"), cfg, data, val, 42, checkpointer=ck, show_progress=False)
+        # same threads: the finished state is returned, no epoch runs
+        training.train(get_method("plain"), cfg, data, val, 42, checkpointer=ck, show_progress=False,
+                       callback=lambda e, r: seen.append(e))
+        assert seen == []
+        two = {**cfg, "num_threads": 2}
+        res2 = training.train(get_method("plain"), two, data, val, 42, checkpointer=ck, show_progress=False,
+                              callback=lambda e, r: seen.append(e))
+        assert seen == [1, 2]  # trained afresh under 2 threads
+        fresh = training.train(get_method("plain"), two, data, val, 42, checkpointer=training.NoCheckpointer(),
+                               show_progress=False)
+        _assert_same(_weights(res2.model), _weights(fresh.model))
+    finally:
+        torch.set_num_threads(before)
+
+
+# --------------------------------------------------------------------------------------------------
+# tau rules
+# --------------------------------------------------------------------------------------------------
+def test_plateau_tau_is_the_centre_of_the_near_optimal_run():
+    from pipeline.thresholds import plateau_tau, select_tau, tau_by_rule
+
+    grid = np.round(np.arange(0.05, 0.96, 0.01), 9)
+    curve = 0.6 - 0.5 * (grid - 0.5) ** 2
+    flat = (grid >= 0.70) & (grid <= 0.84)
+    curve[flat] = 0.7 + 0.002 * np.sin(37 * grid[flat])  # a noisy flat top from 0.70 to 0.84
+    assert 0.70 <= select_tau(grid, curve) <= 0.84
+    assert plateau_tau(grid, curve, 0.005) == pytest.approx(0.77)
+    assert tau_by_rule(grid, curve, "plateau", tolerance=0.005) == pytest.approx(0.77)
+    assert plateau_tau(grid, curve, 0.0) == select_tau(grid, curve)     # tolerance 0: the argmax
+    # a second near-optimal bump away from the argmax's run is not part of the plateau
+    curve2 = curve.copy()
+    curve2[grid <= 0.1] = 0.699
+    assert plateau_tau(grid, curve2, 0.005) == pytest.approx(0.77)
+
+
+def test_smooth_curve_is_a_cut_window_moving_average():
+    from pipeline.thresholds import smooth_curve
+
+    c = np.array([1.0, 2.0, 3.0, 10.0, 5.0])
+    np.testing.assert_allclose(smooth_curve(c, 1), [1.5, 2.0, 5.0, 6.0, 7.5])
+    np.testing.assert_array_equal(smooth_curve(c, 0), c)
+
+
+def test_unknown_tau_rule_is_an_input_error():
+    from pipeline.errors import InputError
+    from pipeline.params import load_params
+
+    with pytest.raises(InputError, match="tau_rule"):
+        load_params(overrides=["profile=demo", "calibrate.tau_rule=median"])
+
+
+# --------------------------------------------------------------------------------------------------
+# the benchmark's bookkeeping (no training)
+# --------------------------------------------------------------------------------------------------
+def _fake_run(pert, seed, plain, geo, cont):
+    g = lambda v: {"argmax": {"tau": 0.5, "groups": {"A": {"iou": v, "bf1": v}}}}  # noqa: E731
+    return {"recipe": "r", "perturbation": pert, "seed": seed, "plain": g(plain), "geodistill": g(geo),
+            "continuation": g(cont)}
+
+
+def test_spreads_and_target():
+    from pipeline.benchmarks.stability import spreads, target_met
+    from pipeline.reproducibility import TOLERANCE
+
+    runs = [_fake_run("default", 1, 0.50, 0.52, 0.51), _fake_run("default", 2, 0.60, 0.63, 0.61),
+            _fake_run("threads1", 1, 0.50, 0.52, 0.51), _fake_run("threads1", 2, 0.60, 0.63, 0.61),
+            _fake_run("precision", 1, 0.50 + TOLERANCE["iou"] / 2, 0.52, 0.51),
+            _fake_run("precision", 2, 0.60 + TOLERANCE["iou"] / 2, 0.63, 0.61)]
+    sp = spreads(runs, "argmax")
+    assert sp["plain/A/iou"]["mean"] == pytest.approx(0.55)
+    assert sp["plain/A/iou"]["seed_sd"] == pytest.approx(np.std([0.5, 0.6], ddof=1))
+    assert sp["plain/A/iou"]["pert"] == pytest.approx(TOLERANCE["iou"] / 2)
+    assert sp["geodistill-plain/A/iou"]["mean"] == pytest.approx(0.025)
+    assert sp["geodistill-plain/A/iou"]["pert"] == pytest.approx(TOLERANCE["iou"] / 2)
+    assert target_met(sp)[0]
+    # the report's floor counts only the perturbations a recipe is exposed to (pinned precision: threads)
+    from pipeline.benchmarks.stability import noise_floor_record
+
+    assert noise_floor_record(sp, {}, ["threads1"])["numbers"]["plain/A/iou"]["floor"] == 0.0
+    assert noise_floor_record(sp, {}, ["threads1", "precision"])["numbers"]["plain/A/iou"]["floor"] == \
+        pytest.approx(TOLERANCE["iou"] / 2)
+    runs[-1] = _fake_run("precision", 2, 0.60 + 3 * TOLERANCE["iou"], 0.63, 0.61)
+    assert not target_met(spreads(runs, "argmax"))[0]
+
+
+# --------------------------------------------------------------------------------------------------
+# report: the noise floor beside the gains, "supported" only when the CI says so
+# --------------------------------------------------------------------------------------------------
+def _summary(gain, lo, hi):
+    row = dict(dataset="d", group="A", threshold_mode="calibrated", iou_mean=0.5, iou_std=0.01, bf1_mean=0.5,
+               bf1_std=0.01, n_seeds=5)
+    geo = {**row, "method": "geodistill", "gain_iou": gain, "gain_iou_lo": lo, "gain_iou_hi": hi,
+           "gain_bf1": gain, "gain_bf1_lo": lo, "gain_bf1_hi": hi}
+    return pd.DataFrame([{**row, "method": "plain"}, geo])
+
+
+def test_results_table_states_the_noise_floor_and_the_claim_follows_the_ci():
+    from pipeline.report.analysis import NOISE_FLOOR_NOT_MEASURED
+    from pipeline.report.tables import results_table
+
+    record = {"info": {"recipe": "stable", "tau_rule": "plateau", "resolution": 64, "seeds": [1, 2]},
+              "numbers": {"geodistill-plain/A/iou": {"floor": 0.004, "pert": 0.01, "seed_sd": 0.01},
+                          "geodistill-plain/A/bf1": {"floor": 0.03, "pert": 0.05, "seed_sd": 0.02}}}
+    tab = results_table(_summary(0.02, 0.01, 0.03), "calibrated", ["A"], record)
+    geo = [r for r in tab.rows if r[1] == "GeoDistill-Refine"][0]
+    claim = geo[tab.header.index("Claim")]
+    assert "IoU: supported" in claim and "BF1: not supported: below the noise floor" in claim
+    assert geo[tab.header.index("Noise floor (IoU / BF1)")] == "0.0040 / 0.0300"
+    covers = results_table(_summary(0.02, -0.01, 0.05), "calibrated", ["A"], record)
+    assert "supported" not in covers.rows[1][covers.header.index("Claim")].replace("not supported", "")
+    unmeasured = results_table(_summary(0.02, 0.01, 0.03), "calibrated", ["A"], None)
+    assert "not measured" in unmeasured.rows[1][unmeasured.header.index("Noise floor (IoU / BF1)")]
+    assert any(NOISE_FLOOR_NOT_MEASURED in n for n in unmeasured.notes)
