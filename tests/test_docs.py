@@ -31,3 +31,12 @@ def test_every_relative_link_resolves():
             if "shared/" in link and not target.exists():
                 continue  # the paper sits beside the checkout, not in it
             assert target.exists(), f"{path.name}: broken link {link}"
+
+
+def test_the_methods_table_in_the_docs_names_exactly_the_method_table():
+    from pipeline.methods import METHODS
+
+    text = (ROOT / "docs" / "pipeline.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| `")]
+    named = [n for row in rows for n in re.findall(r"`(\w+)`", row.split("|")[1])]
+    assert sorted(named) == sorted(METHODS), "docs/pipeline.md's methods table and pipeline.methods.METHODS differ"
