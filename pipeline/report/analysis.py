@@ -10,10 +10,13 @@ choice).  Reference masks enter here only to *measure* teacher quality post hoc.
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Callable
+
 import numpy as np
 import pandas as pd
 
-from pipeline.stats import spearman
+from pipeline.stats import SUPPORTED, claim_status, spearman
 
 METRICS = ("iou", "bf1", "precision", "recall")
 
@@ -186,6 +189,208 @@ def _count_sign(values, sign: int) -> int:
     return int(np.sum(v < 0)) if sign < 0 else int(np.sum(v > 0))
 
 
+@dataclasses.dataclass(frozen=True)
+class _Cast:
+    """Who is compared in :func:`fixed_tau_findings`: method names, their display labels and the groups."""
+
+    treatment: str
+    control: str
+    continuation: str
+    ceiling: str
+    groups: list
+    label: Callable
+
+    @property
+    def T(self) -> str:
+        return self.label(self.treatment)
+
+    @property
+    def C(self) -> str:
+        return self.label(self.control)
+
+    @property
+    def K(self) -> str:
+        return self.label(self.continuation)
+
+
+def _mean_tau(thresholds: pd.DataFrame, method: str, column: str = "tau") -> float:
+    return float(thresholds.loc[thresholds["method"] == method, column].mean())
+
+
+def _threshold_findings(thresholds: pd.DataFrame | None, c: _Cast) -> tuple[list[str], float, float]:
+    """The calibrated tau of treatment against control, and their validation ECE; (sentences, tau_t, tau_c)."""
+    if thresholds is None or not {c.treatment, c.control} <= set(thresholds["method"]):
+        return [], np.nan, np.nan
+    tau_t, tau_c = _mean_tau(thresholds, c.treatment), _mean_tau(thresholds, c.control)
+    rel = "higher than" if tau_t > tau_c + 1e-9 else ("lower than" if tau_t < tau_c - 1e-9 else "equal to")
+    out = [f"**Calibrated threshold.** The validation-calibrated tau of {c.T} is {_f(tau_t, 2)} (mean over "
+           f"seeds), {rel} {c.C}'s {_f(tau_c, 2)} (difference {_signed(tau_t - tau_c, 2)})."]
+    if "ece" in thresholds.columns:
+        e_t, e_c = _mean_tau(thresholds, c.treatment, "ece"), _mean_tau(thresholds, c.control, "ece")
+        worse = "worse" if e_t > e_c else "better"
+        out.append(f"Validation expected calibration error: {c.T} {_f(e_t)}, {c.C} {_f(e_c)} -- {c.T} is {worse} "
+                   f"calibrated at the pixel level.")
+    return out, tau_t, tau_c
+
+
+def _gain_findings(summary: pd.DataFrame | None, c: _Cast) -> tuple[list[str], bool | None]:
+    """The sign of the Boundary F1 / Image IoU gain per group at both taus; (sentences, reversal)."""
+    if summary is None:
+        return [], None
+    gains = {}
+    for mode in ("calibrated", "fixed"):
+        s = summary[(summary["threshold_mode"] == mode) & (summary["method"] == c.treatment)].set_index("group")
+        gains[mode] = {k: [float(s.loc[g, f"gain_{k}"]) if g in s.index and f"gain_{k}" in s.columns else np.nan
+                           for g in c.groups] for k in ("iou", "bf1")}
+    n = sum(np.isfinite(x) for x in gains["fixed"]["bf1"])
+    if not n:
+        return [], None
+    out = []
+    for k, name in (("bf1", "Boundary F1"), ("iou", "Image IoU")):
+        cal, fix = gains["calibrated"][k], gains["fixed"][k]
+        out.append(f"**{name} gain of {c.T} over {c.C}** per test group ({', '.join(c.groups)}): calibrated tau "
+                   f"{', '.join(_signed(x) for x in cal)} (positive on {_count_sign(cal, 1)} of {n}); fixed "
+                   f"tau = 0.5 {', '.join(_signed(x) for x in fix)} (negative on {_count_sign(fix, -1)} of {n}).")
+    cal, fix = gains["calibrated"]["bf1"], gains["fixed"]["bf1"]
+    return out, _count_sign(cal, 1) > n / 2 and _count_sign(fix, -1) > n / 2
+
+
+def _area_findings(metrics: pd.DataFrame | None, c: _Cast) -> tuple[list[str], bool | None]:
+    """Median predicted / reference foreground area on the test images at both taus; (sentences, inflation)."""
+    if metrics is None or "area_vs_reference" not in metrics.columns:
+        return [], None
+    med = metrics.groupby(["method", "threshold_mode"])["area_vs_reference"].median()
+    get = lambda m, mode: float(med.get((m, mode), np.nan))  # noqa: E731
+    if not (np.isfinite(get(c.treatment, "fixed")) and np.isfinite(get(c.control, "fixed"))):
+        return [], None
+    parts = [f"{c.label(m)} {_f(get(m, 'fixed'), 2)} at 0.5 and {_f(get(m, 'calibrated'), 2)} at its calibrated "
+             f"tau" for m in (c.treatment, c.control, c.continuation, c.ceiling) if np.isfinite(get(m, "fixed"))]
+    out = ["**Foreground area** (median predicted / reference area over the test images; 1 = none "
+           "inflated): " + "; ".join(parts) + "."]
+    return out, get(c.treatment, "fixed") > get(c.control, "fixed") and get(c.treatment, "fixed") > 1
+
+
+def _reading(reversal: bool | None, inflation: bool | None, tau_t: float, tau_c: float, c: _Cast) -> list[str]:
+    """The verdict on the fixed-tau reversal, from the three facts above."""
+    if reversal is None or not np.isfinite(tau_t):
+        return []
+    facts = [reversal, tau_t > tau_c, bool(inflation)]
+    if all(facts):
+        return [f"**Reading.** The fixed-tau reversal is present and is a threshold effect: {c.T}'s "
+                f"probabilities sit higher (calibrated tau {_signed(tau_t - tau_c, 2)} against {c.C}), so at "
+                f"tau = 0.5 it inflates the foreground more than {c.C} and loses Boundary F1; the "
+                f"validation-calibrated tau removes that loss."]
+    if not reversal:
+        return [f"**Reading.** No fixed-tau reversal in this run: the Boundary F1 gain of {c.T} does not turn "
+                f"from positive at the calibrated tau to negative at 0.5 on most groups."]
+    missing = [w for w, ok in zip(("a higher calibrated tau", "foreground inflation at 0.5"), facts[1:]) if not ok]
+    return [f"**Reading.** The Boundary F1 gain reverses at tau = 0.5, but without "
+            f"{' or '.join(missing)}; the threshold explanation does not fully account for it here."]
+
+
+def _continuation_findings(summary: pd.DataFrame | None, noise_floor: dict | None, c: _Cast) -> list[str]:
+    """Treatment minus the budget-matched continuation, and the continuation minus control, at both taus."""
+    if summary is None or "gain_iou_vs_continuation" not in summary.columns:
+        return []
+    out = []
+    for mode, text in (("calibrated", "calibrated tau"), ("fixed", "tau = 0.5")):
+        s = summary[summary["threshold_mode"] == mode].set_index(["method", "group"])
+        geo = [(g, s.loc[(c.treatment, g)]) for g in c.groups if (c.treatment, g) in s.index]
+        cont = [(g, s.loc[(c.continuation, g)]) for g in c.groups if (c.continuation, g) in s.index]
+        if not geo or not cont:
+            continue
+        d_geo = [r["gain_iou_vs_continuation"] for _, r in geo]
+        # supported = seed-aware CI excludes 0 and the difference exceeds the noise floor (claim_status)
+        ok = [claim_status(r["gain_iou_vs_continuation"], r["gain_iou_vs_continuation_lo"],
+                           r["gain_iou_vs_continuation_hi"],
+                           gain_noise_floor(noise_floor, g, "iou") if noise_floor else None) == SUPPORTED
+              for g, r in geo]
+        d_cont = [r["gain_iou"] for _, r in cont]
+        verdict = ("no geometry effect beyond the extra epochs is supported (no seed-aware 95 % CI excludes 0 "
+                   "with the difference above the noise floor)" if not any(ok) else
+                   f"the geometry terms change Image IoU beyond the extra epochs on "
+                   f"{sum(ok)} of {len(ok)} groups (seed-aware CI excludes 0, above the noise floor)")
+        share = ""
+        tot = [r["gain_iou"] for _, r in geo]
+        if all(np.isfinite(tot)) and np.mean(tot) > 1e-9:  # a share of a positive gain only
+            share = (f"; the continuation accounts for {100 * np.mean(d_cont) / np.mean(tot):.0f} % of "
+                     f"{c.T}'s mean Image IoU gain over {c.C}")
+        out.append(f"**Budget-matched continuation ({text}).** {c.T} − {c.K}: Image IoU "
+                   f"{', '.join(_signed(x) for x in d_geo)}; {c.K} − {c.C}: {', '.join(_signed(x) for x in d_cont)} "
+                   f"-- {verdict}{share}.")
+    return out
+
+
+def _ceiling_finding(summary: pd.DataFrame | None, c: _Cast) -> list[str]:
+    """The supervised ceiling minus control at the calibrated tau, against control's seed spread."""
+    if summary is None or c.ceiling not in set(summary["method"]):
+        return []
+    s = summary[summary["threshold_mode"] == "calibrated"].set_index(["method", "group"])
+    diff = [float(s.loc[(c.ceiling, g), "iou_mean"] - s.loc[(c.control, g), "iou_mean"])
+            for g in c.groups if (c.ceiling, g) in s.index and (c.control, g) in s.index]
+    if not diff:
+        return []
+    std = [float(s.loc[(c.control, g), "iou_std"]) for g in c.groups if (c.control, g) in s.index]
+    spread = float(np.nanmax(std)) if np.isfinite(std).any() else 0.0
+    verdict = ("no better than Plain beyond its seed spread: with this recipe the student, not the "
+               "pseudo-labels, bounds quality" if max(diff) <= spread else
+               "above Plain: better labels would raise this student")
+    return [f"**{c.label(c.ceiling)}** minus {c.C}, Image IoU at the calibrated tau per "
+            f"group: {', '.join(_signed(x) for x in diff)} (largest seed std of {c.C}: {_f(spread)}) -- "
+            f"{verdict}."]
+
+
+def _vote_finding(vote: pd.DataFrame | None, summary: pd.DataFrame | None, c: _Cast) -> list[str]:
+    """The teacher vote scored as a predictor, minus the treatment, per group."""
+    if vote is None or summary is None or not len(vote):
+        return []
+    s = summary[summary["threshold_mode"] == "calibrated"].set_index(["method", "group"])
+    gap = [float(vote.loc[g, "iou"] - s.loc[(c.treatment, g), "iou_mean"])
+           for g in c.groups if g in vote.index and (c.treatment, g) in s.index]
+    if not gap:
+        return []
+    return [f"**Teacher vote as a predictor**: its Image IoU minus {c.T}'s per group "
+            f"{', '.join(_signed(x) for x in gap)} -- the students "
+            f"{'stay below' if min(gap) > 0 else 'reach'} the pseudo-labels they learn from."]
+
+
+def _size_finding(metrics: pd.DataFrame | None, c: _Cast) -> list[str]:
+    """The treatment's Image IoU difference to the control on tiny targets and on the rest."""
+    if metrics is None or "target_size" not in metrics.columns or "seed" not in metrics.columns:
+        return []
+    per_seed = metrics.groupby(["method", "threshold_mode", "target_size", "seed"])["iou"].mean()
+    mean = per_seed.groupby(level=[0, 1, 2]).mean()
+    n_img = metrics[metrics["method"] == c.control].groupby(["target_size", "seed", "threshold_mode"]).size()
+    parts = []
+    for size in ("tiny", "regular"):
+        d = {mode: float(mean.get((c.treatment, mode, size), np.nan) - mean.get((c.control, mode, size), np.nan))
+             for mode in ("calibrated", "fixed")}
+        if np.isfinite(d["calibrated"]):
+            n = int(n_img.xs(size, level="target_size").max()) if size in n_img.index.get_level_values(0) else 0
+            parts.append(f"{size} targets ({n} images per seed): {_signed(d['calibrated'])} at the calibrated tau, "
+                         f"{_signed(d['fixed'])} at 0.5")
+    if not parts:
+        return []
+    return [f"**Target size** ({c.T} − {c.C}, Image IoU; tiny = under evaluate.tiny_target_max_fraction of "
+            f"the frame): " + "; ".join(parts) + "."]
+
+
+def _swing_finding(logs: pd.DataFrame | None, c: _Cast) -> list[str]:
+    """The largest per-epoch change of validation IoU at tau 0.5 against that at each epoch's calibrated tau."""
+    if logs is None or "val_iou_cal" not in logs.columns:
+        return []
+    sw = epoch_swings(logs)
+    if sw.empty:
+        return []
+    r = sw.loc[sw["max_swing"].idxmax()]
+    cal = float(sw["max_swing_cal"].max())
+    steadier = ("steadier: much of the swing is a threshold shift" if np.isfinite(cal) and cal < 0.5 * r["max_swing"]
+                else "about as unsteady: the swing is not only a threshold shift")
+    return [f"**Per-epoch validation IoU.** The largest change between adjacent epochs at tau 0.5 is "
+            f"{_f(r['max_swing'])} ({c.label(r['method'])}, seed {int(r['max_seed'])}, epoch "
+            f"{int(r['max_epoch'])}); at each epoch's calibrated tau the largest is {_f(cal)} -- {steadier}."]
+
+
 def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | None, metrics: pd.DataFrame | None,
                        logs: pd.DataFrame | None, vote: pd.DataFrame | None, groups: list[str],
                        treatment: str = "geodistill", control: str = "plain",
@@ -194,150 +399,19 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
     """What the diagnostics show about the fixed-tau reversal, in sentences computed from the numbers
     (no conclusion is fixed in advance: every verdict is a comparison of the numbers it quotes).
 
-    Covers, where the inputs exist: the calibrated tau of ``treatment`` against ``control``; the sign
-    of the Boundary F1 / Image IoU gain per group at the calibrated and at the fixed tau; foreground
-    inflation (median predicted / reference area on the test images) at both taus; validation ECE;
-    the budget-matched continuation; the supervised ceiling and the teacher vote; per-epoch swings.
+    Covers, where the inputs exist, one finding per function: the calibrated tau of ``treatment`` against
+    ``control`` (:func:`_threshold_findings`); the sign of the Boundary F1 / Image IoU gain per group at
+    the calibrated and at the fixed tau (:func:`_gain_findings`); foreground inflation at both taus
+    (:func:`_area_findings`); the verdict from those three (:func:`_reading`); the budget-matched
+    continuation; the supervised ceiling and the teacher vote; target size; per-epoch swings.
     """
-    out: list[str] = []
-    T, C, K = label(treatment), label(control), label(continuation)
-    # -- thresholds and calibration
-    tau_t = tau_c = np.nan
-    if thresholds is not None and {treatment, control} <= set(thresholds["method"]):
-        tau_t = float(thresholds.loc[thresholds["method"] == treatment, "tau"].mean())
-        tau_c = float(thresholds.loc[thresholds["method"] == control, "tau"].mean())
-        rel = "higher than" if tau_t > tau_c + 1e-9 else ("lower than" if tau_t < tau_c - 1e-9 else "equal to")
-        out.append(f"**Calibrated threshold.** The validation-calibrated tau of {T} is {_f(tau_t, 2)} (mean over "
-                   f"seeds), {rel} {C}'s {_f(tau_c, 2)} (difference {_signed(tau_t - tau_c, 2)}).")
-        if "ece" in thresholds.columns:
-            e_t = float(thresholds.loc[thresholds["method"] == treatment, "ece"].mean())
-            e_c = float(thresholds.loc[thresholds["method"] == control, "ece"].mean())
-            worse = "worse" if e_t > e_c else "better"
-            out.append(f"Validation expected calibration error: {T} {_f(e_t)}, {C} {_f(e_c)} -- {T} is {worse} "
-                       f"calibrated at the pixel level.")
-    # -- gains per group at both taus
-    reversal = None
-    if summary is not None:
-        gains = {}
-        for mode in ("calibrated", "fixed"):
-            s = summary[(summary["threshold_mode"] == mode) & (summary["method"] == treatment)].set_index("group")
-            gains[mode] = {k: [float(s.loc[g, f"gain_{k}"]) if g in s.index and f"gain_{k}" in s.columns else np.nan
-                               for g in groups] for k in ("iou", "bf1")}
-        n = sum(np.isfinite(x) for x in gains["fixed"]["bf1"])
-        if n:
-            for k, name in (("bf1", "Boundary F1"), ("iou", "Image IoU")):
-                cal, fix = gains["calibrated"][k], gains["fixed"][k]
-                out.append(f"**{name} gain of {T} over {C}** per test group ({', '.join(groups)}): calibrated tau "
-                           f"{', '.join(_signed(x) for x in cal)} (positive on {_count_sign(cal, 1)} of {n}); fixed "
-                           f"tau = 0.5 {', '.join(_signed(x) for x in fix)} (negative on {_count_sign(fix, -1)} of {n}).")
-            cal, fix = gains["calibrated"]["bf1"], gains["fixed"]["bf1"]
-            reversal = _count_sign(cal, 1) > n / 2 and _count_sign(fix, -1) > n / 2
-    # -- foreground area at both taus (test images, pooled over groups and seeds)
-    inflation = None
-    if metrics is not None and "area_vs_reference" in metrics.columns:
-        med = metrics.groupby(["method", "threshold_mode"])["area_vs_reference"].median()
-        get = lambda m, mode: float(med.get((m, mode), np.nan))  # noqa: E731
-        if np.isfinite(get(treatment, "fixed")) and np.isfinite(get(control, "fixed")):
-            parts = [f"{label(m)} {_f(get(m, 'fixed'), 2)} at 0.5 and {_f(get(m, 'calibrated'), 2)} at its calibrated "
-                     f"tau" for m in (treatment, control, continuation, ceiling) if np.isfinite(get(m, "fixed"))]
-            out.append("**Foreground area** (median predicted / reference area over the test images; 1 = none "
-                       "inflated): " + "; ".join(parts) + ".")
-            inflation = get(treatment, "fixed") > get(control, "fixed") and get(treatment, "fixed") > 1
-    # -- the verdict on the reversal, from the three facts above
-    if reversal is not None and np.isfinite(tau_t):
-        facts = [reversal, tau_t > tau_c, bool(inflation)]
-        if all(facts):
-            out.append(f"**Reading.** The fixed-tau reversal is present and is a threshold effect: {T}'s "
-                       f"probabilities sit higher (calibrated tau {_signed(tau_t - tau_c, 2)} against {C}), so at "
-                       f"tau = 0.5 it inflates the foreground more than {C} and loses Boundary F1; the "
-                       f"validation-calibrated tau removes that loss.")
-        elif not reversal:
-            out.append(f"**Reading.** No fixed-tau reversal in this run: the Boundary F1 gain of {T} does not turn "
-                       f"from positive at the calibrated tau to negative at 0.5 on most groups.")
-        else:
-            missing = [w for w, ok in zip(("a higher calibrated tau", "foreground inflation at 0.5"), facts[1:])
-                       if not ok]
-            out.append(f"**Reading.** The Boundary F1 gain reverses at tau = 0.5, but without "
-                       f"{' or '.join(missing)}; the threshold explanation does not fully account for it here.")
-    # -- the budget-matched continuation
-    if summary is not None and "gain_iou_vs_continuation" in summary.columns:
-        for mode, text in (("calibrated", "calibrated tau"), ("fixed", "tau = 0.5")):
-            s = summary[summary["threshold_mode"] == mode].set_index(["method", "group"])
-            geo = [(g, s.loc[(treatment, g)]) for g in groups if (treatment, g) in s.index]
-            cont = [(g, s.loc[(continuation, g)]) for g in groups if (continuation, g) in s.index]
-            if not geo or not cont:
-                continue
-            from pipeline.stats import SUPPORTED, claim_status
-
-            d_geo = [r["gain_iou_vs_continuation"] for _, r in geo]
-            # supported = seed-aware CI excludes 0 and the difference exceeds the noise floor (claim_status)
-            ok = [claim_status(r["gain_iou_vs_continuation"], r["gain_iou_vs_continuation_lo"],
-                               r["gain_iou_vs_continuation_hi"],
-                               gain_noise_floor(noise_floor, g, "iou") if noise_floor else None) == SUPPORTED
-                  for g, r in geo]
-            d_cont = [r["gain_iou"] for _, r in cont]
-            verdict = ("no geometry effect beyond the extra epochs is supported (no seed-aware 95 % CI excludes 0 "
-                       "with the difference above the noise floor)" if not any(ok) else
-                       f"the geometry terms change Image IoU beyond the extra epochs on "
-                       f"{sum(ok)} of {len(ok)} groups (seed-aware CI excludes 0, above the noise floor)")
-            share = ""
-            tot = [r["gain_iou"] for _, r in geo]
-            if all(np.isfinite(tot)) and np.mean(tot) > 1e-9:  # a share of a positive gain only
-                share = (f"; the continuation accounts for {100 * np.mean(d_cont) / np.mean(tot):.0f} % of "
-                         f"{T}'s mean Image IoU gain over {C}")
-            out.append(f"**Budget-matched continuation ({text}).** {T} − {K}: Image IoU "
-                       f"{', '.join(_signed(x) for x in d_geo)}; {K} − {C}: {', '.join(_signed(x) for x in d_cont)} "
-                       f"-- {verdict}{share}.")
-    # -- the supervised ceiling and the teacher vote
-    if summary is not None and ceiling in set(summary["method"]):
-        s = summary[summary["threshold_mode"] == "calibrated"].set_index(["method", "group"])
-        diff = [float(s.loc[(ceiling, g), "iou_mean"] - s.loc[(control, g), "iou_mean"])
-                for g in groups if (ceiling, g) in s.index and (control, g) in s.index]
-        if diff:
-            std = [float(s.loc[(control, g), "iou_std"]) for g in groups if (control, g) in s.index]
-            spread = float(np.nanmax(std)) if np.isfinite(std).any() else 0.0
-            verdict = ("no better than Plain beyond its seed spread: with this recipe the student, not the "
-                       "pseudo-labels, bounds quality" if max(diff) <= spread else
-                       "above Plain: better labels would raise this student")
-            out.append(f"**{label(ceiling)}** minus {C}, Image IoU at the calibrated tau per "
-                       f"group: {', '.join(_signed(x) for x in diff)} (largest seed std of {C}: {_f(spread)}) -- "
-                       f"{verdict}.")
-    if vote is not None and summary is not None and len(vote):
-        s = summary[summary["threshold_mode"] == "calibrated"].set_index(["method", "group"])
-        gap = [float(vote.loc[g, "iou"] - s.loc[(treatment, g), "iou_mean"])
-               for g in groups if g in vote.index and (treatment, g) in s.index]
-        if gap:
-            out.append(f"**Teacher vote as a predictor**: its Image IoU minus {T}'s per group "
-                       f"{', '.join(_signed(x) for x in gap)} -- the students "
-                       f"{'stay below' if min(gap) > 0 else 'reach'} the pseudo-labels they learn from.")
-    # -- target size: the treatment's Image IoU difference to the control on tiny targets and the rest
-    if metrics is not None and "target_size" in metrics.columns and "seed" in metrics.columns:
-        per_seed = metrics.groupby(["method", "threshold_mode", "target_size", "seed"])["iou"].mean()
-        mean = per_seed.groupby(level=[0, 1, 2]).mean()
-        n_img = metrics[metrics["method"] == control].groupby(["target_size", "seed", "threshold_mode"]).size()
-        parts = []
-        for size in ("tiny", "regular"):
-            d = {mode: float(mean.get((treatment, mode, size), np.nan) - mean.get((control, mode, size), np.nan))
-                 for mode in ("calibrated", "fixed")}
-            if np.isfinite(d["calibrated"]):
-                n = int(n_img.xs(size, level="target_size").max()) if size in n_img.index.get_level_values(0) else 0
-                parts.append(f"{size} targets ({n} images per seed): {_signed(d['calibrated'])} at the calibrated tau, "
-                             f"{_signed(d['fixed'])} at 0.5")
-        if parts:
-            out.append(f"**Target size** ({T} − {C}, Image IoU; tiny = under evaluate.tiny_target_max_fraction of "
-                       f"the frame): " + "; ".join(parts) + ".")
-    # -- per-epoch swings
-    if logs is not None and "val_iou_cal" in logs.columns:
-        sw = epoch_swings(logs)
-        if not sw.empty:
-            r = sw.loc[sw["max_swing"].idxmax()]
-            cal = float(sw["max_swing_cal"].max())
-            steadier = ("steadier: much of the swing is a threshold shift" if np.isfinite(cal) and cal < 0.5 * r["max_swing"]
-                        else "about as unsteady: the swing is not only a threshold shift")
-            out.append(f"**Per-epoch validation IoU.** The largest change between adjacent epochs at tau 0.5 is "
-                       f"{_f(r['max_swing'])} ({label(r['method'])}, seed {int(r['max_seed'])}, epoch "
-                       f"{int(r['max_epoch'])}); at each epoch's calibrated tau the largest is {_f(cal)} -- {steadier}.")
-    return out
+    c = _Cast(treatment, control, continuation, ceiling, list(groups), label)
+    thresholds_out, tau_t, tau_c = _threshold_findings(thresholds, c)
+    gains_out, reversal = _gain_findings(summary, c)
+    area_out, inflation = _area_findings(metrics, c)
+    return (thresholds_out + gains_out + area_out + _reading(reversal, inflation, tau_t, tau_c, c)
+            + _continuation_findings(summary, noise_floor, c) + _ceiling_finding(summary, c)
+            + _vote_finding(vote, summary, c) + _size_finding(metrics, c) + _swing_finding(logs, c))
 
 
 # --------------------------------------------------------------------------------------------------
