@@ -196,36 +196,35 @@ def folder_gates(c: np.ndarray, n_valid: np.ndarray, a: np.ndarray, geo: Mapping
     return v, a0, gf
 
 
-def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, device: str = "auto",
-                 formats: str | Sequence[str] = FORMATS, reference_masks: str | Path | None = None,
-                 overwrite: bool = False) -> LabelResult:
-    """Label every image under ``input_dir`` into ``out`` (module docstring); ``params`` are validated
-    params (schema defaults or a params file): data.resolution / cache_dir / contact_sheet_images /
-    seed, teacher.*, consensus.vote_threshold, geometry.*.  ``reference_masks``: the folder of masks the
-    simulated teacher (a SIMULATOR) reads; refused for real teachers (they never see masks).
+@dataclasses.dataclass
+class _Job:
+    """One ``label`` run, checked before anything is written (:func:`_plan`)."""
 
-    Ownership (:mod:`pipeline.ownership`): ``label.json`` lists the outputs; an existing output that
-    no label.json of an earlier run lists (a user's own ``masks/``, ``coco.json``, ...) is refused
-    before anything is written, unless ``overwrite``."""
-    import cv2
+    root: Path
+    out: Path
+    files: list
+    ids: list
+    policy: object          # pipeline.datasets.manifest.BadInputPolicy
+    data_cfg: dict
+    geo: dict
+    tcfg: dict
+    size: int
+    simulated: bool
+    ref_files: list | None
+    cache: object           # pipeline.datasets.loading.DecodeCache | None
+    shas: list = dataclasses.field(default_factory=list)
+    sizes: list = dataclasses.field(default_factory=list)
 
-    from pipeline.artifacts import atomic_path, write_json
-    from pipeline.consensus import vote
-    from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
-    from pipeline.datasets.loading import BadFileError, DecodeCache, load_mask, load_rgb
+
+def _plan(input_dir, out, params: Mapping, reference_masks, overwrite: bool) -> _Job:
+    """Scan the folder, apply the bad-file policy to links and non-images, refuse outputs the user owns
+    and check the teacher and reference-mask options -- all before anything is written."""
+    from pipeline.datasets.loading import DecodeCache
     from pipeline.datasets.manifest import BadInputPolicy
-    from pipeline.deploy.files import write_png, write_skipped_csv
-    from pipeline.geometry import area_ratio, foreground_agreement
-    from pipeline.labeling.formats import coco_annotation, coco_document, yolo_lines
-    from pipeline.ownership import check_outputs, claim_outputs, record_fields
+    from pipeline.ownership import check_outputs
     from pipeline.params import section
-    from pipeline.progress import progress
-    from pipeline.teachers import check_teacher_params, make_teacher, teacher_fingerprint
-    from pipeline.teachers.base import TeacherInput
-    from pipeline.teachers.cache import TeacherCache
-    from pipeline.teachers.runner import TeacherRunner
+    from pipeline.teachers import check_teacher_params
 
-    fmts = parse_formats(formats)
     found = find_images(input_dir)
     root, files = found.root, found.files
     out = Path(out)
@@ -242,7 +241,6 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
     tcfg = section(params, "teacher")
     tcfg["cache_dir"] = _inside(tcfg["cache_dir"], out)
     tcfg = check_teacher_params(tcfg)
-    size = int(data_cfg["resolution"])
     simulated = tcfg["backend"] == "simulated"
     if simulated and reference_masks is None:
         raise InputError("--backend simulated is a SIMULATOR that reads reference masks: pass --reference-masks "
@@ -252,122 +250,201 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
                          f"{tcfg['backend']} never does")
     ref_files = find_reference_masks(reference_masks, ids) if simulated else None
     cache = DecodeCache(_inside(data_cfg["cache_dir"], out)) if data_cfg["cache_dir"] else None
+    return _Job(root, out, list(files), list(ids), policy, data_cfg, geo, tcfg, int(data_cfg["resolution"]),
+                simulated, ref_files, cache)
 
-    # pass 1: read every file once (sha256 for the teacher cache, native size), skip unreadable ones
-    keep, shas, sizes = [], [], []
-    for i, f in enumerate(progress(files, desc="label: reading", unit="img")):
+
+def _read_images(job: _Job) -> None:
+    """Pass 1: read every file once (sha256 for the teacher cache, native size); bad files go to the
+    policy and leave ``job``'s lists."""
+    from pipeline.datasets.loading import BadFileError, load_mask, load_rgb
+    from pipeline.progress import progress
+
+    keep = []
+    for i, f in enumerate(progress(job.files, desc="label: reading", unit="img")):
         try:
-            loaded = load_rgb(f, size, cache)
-            if ref_files is not None:
-                ref = load_mask(ref_files[i], size, cache)
+            loaded = load_rgb(f, job.size, job.cache)
+            if job.ref_files is not None:
+                ref = load_mask(job.ref_files[i], job.size, job.cache)
                 if ref.native_hw != loaded.native_hw:
-                    raise InputError(f"{ref_files[i]}: mask size {ref.native_hw[1]}x{ref.native_hw[0]} differs from "
-                                     f"image {f} size {loaded.native_hw[1]}x{loaded.native_hw[0]}")
+                    raise InputError(f"{job.ref_files[i]}: mask size {ref.native_hw[1]}x{ref.native_hw[0]} differs "
+                                     f"from image {f} size {loaded.native_hw[1]}x{loaded.native_hw[0]}")
         except BadFileError as e:
-            policy.report(ids[i] if e.path == str(f) else Path(e.path).stem, e.path, e.reason)
+            job.policy.report(job.ids[i] if e.path == str(f) else Path(e.path).stem, e.path, e.reason)
             continue
         keep.append(i)
-        shas.append(loaded.sha256)
-        sizes.append(loaded.native_hw)
+        job.shas.append(loaded.sha256)
+        job.sizes.append(loaded.native_hw)
     if not keep:
-        first = policy.skipped[-1]
-        raise InputError(f"{root}: none of the {len(files)} images could be read (first: {first['path']}: "
+        first = job.policy.skipped[-1]
+        raise InputError(f"{job.root}: none of the {len(job.files)} images could be read (first: {first['path']}: "
                          f"{first['reason']})")
-    files = [files[i] for i in keep]
-    ids = [ids[i] for i in keep]
-    ref_files = [ref_files[i] for i in keep] if ref_files is not None else None
-    n = len(files)
+    job.files = [job.files[i] for i in keep]
+    job.ids = [job.ids[i] for i in keep]
+    job.ref_files = [job.ref_files[i] for i in keep] if job.ref_files is not None else None
 
-    claim_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], "label", {"input": str(root.resolve()), "complete": False})
-    teacher = make_teacher(tcfg, (size, size), device)
-    prompts = list(tcfg["prompts"])
+
+def _run_teacher(job: _Job, device: str):
+    """The six prompts on every image through the content-addressed cache; (runner, fingerprint, stats)."""
+    from pipeline.datasets.loading import load_mask, load_rgb
+    from pipeline.teachers import make_teacher, teacher_fingerprint
+    from pipeline.teachers.base import TeacherInput
+    from pipeline.teachers.cache import TeacherCache
+    from pipeline.teachers.runner import TeacherRunner
+
+    teacher = make_teacher(job.tcfg, (job.size, job.size), device)
 
     def load(row: int, view: str) -> TeacherInput:
-        image = load_rgb(files[row], size, cache).array
+        image = load_rgb(job.files[row], job.size, job.cache).array
         reference = None
-        if ref_files is not None:
-            reference = {"mask": load_mask(ref_files[row], size, cache).array.astype(bool)}
-        return TeacherInput(image_id=ids[row], image_sha256=shas[row], image=image, view=view,
+        if job.ref_files is not None:
+            reference = {"mask": load_mask(job.ref_files[row], job.size, job.cache).array.astype(bool)}
+        return TeacherInput(image_id=job.ids[row], image_sha256=job.shas[row], image=image, view=view,
                             reference=reference)
 
     t_fp = teacher_fingerprint(teacher)
-    runner = TeacherRunner(teacher, TeacherCache(tcfg["cache_dir"], t_fp), prompts,
-                           image_sha=lambda r: shas[r], load=load, vflip_prompt=None, batch_size=tcfg["batch_size"])
-    if simulated:
+    runner = TeacherRunner(teacher, TeacherCache(job.tcfg["cache_dir"], t_fp), list(job.tcfg["prompts"]),
+                           image_sha=lambda r: job.shas[r], load=load, vflip_prompt=None,
+                           batch_size=job.tcfg["batch_size"])
+    if job.simulated:
         log.warning("label: %s", SIMULATOR_NOTE)
-    stats = runner.fill(range(n))
+    stats = runner.fill(range(len(job.files)))
     log.info("label: teacher computed %d answers on %d images; %d cached answers reused",
              stats.answers_computed, stats.images_computed, stats.cache_hits)
+    return runner, t_fp, stats
 
-    # pass 2: vote, write the per-image outputs, collect the gate inputs
-    rng = np.random.default_rng(int(data_cfg["seed"]))
+
+@dataclasses.dataclass
+class _Votes:
+    """Per-image results of pass 2 (:func:`_vote_and_export`)."""
+
+    c: np.ndarray
+    a: np.ndarray
+    n_valid: np.ndarray
+    pixels: np.ndarray
+    annotations: list
+    sheet: dict
+
+
+def _vote_and_export(job: _Job, runner, fmts: tuple[str, ...], vote_threshold: float) -> _Votes:
+    """Pass 2: vote (eq:majority-vote), write the PNG and YOLO outputs at each image's own size, collect
+    the gate inputs (eq:foreground-agreement, eq:pseudo-area) and the COCO annotations."""
+    import cv2
+
+    from pipeline.artifacts import atomic_path
+    from pipeline.consensus import vote
+    from pipeline.datasets.contact_sheet import sample_for_sheet
+    from pipeline.datasets.loading import load_rgb
+    from pipeline.deploy.files import write_png
+    from pipeline.geometry import area_ratio, foreground_agreement
+    from pipeline.labeling.formats import coco_annotation, yolo_lines
+    from pipeline.progress import progress
+
+    n, out = len(job.files), job.out
+    rng = np.random.default_rng(int(job.data_cfg["seed"]))
     sheet_rows = set(sample_for_sheet(pd.DataFrame({"split": ["train"] * n, "group": ["label"] * n}),
-                                      int(data_cfg["contact_sheet_images"]), int(rng.integers(2**31))).tolist())
-    sheet: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    vote_threshold = float(section(params, "consensus")["vote_threshold"])
-    c, a, n_valid, pixels = np.zeros(n), np.zeros(n), np.zeros(n, np.int64), np.zeros(n, np.int64)
-    annotations: list[dict | None] = []
-    with atomic_path(out / OUTPUTS["masks"], is_dir=True) as masks_tmp, atomic_path(out / OUTPUTS["yolo"], is_dir=True) as yolo_tmp:
+                                      int(job.data_cfg["contact_sheet_images"]), int(rng.integers(2**31))).tolist())
+    v = _Votes(np.zeros(n), np.zeros(n), np.zeros(n, np.int64), np.zeros(n, np.int64), [], {})
+    with atomic_path(out / OUTPUTS["masks"], is_dir=True) as masks_tmp, \
+            atomic_path(out / OUTPUTS["yolo"], is_dir=True) as yolo_tmp:
         for row in progress(range(n), desc="label: vote + export", unit="img"):
             masks, scores, _, _ = runner.answers(row)
             cons = vote(masks, scores, vote_threshold)
-            c[row] = foreground_agreement(cons.agreement, cons.voted)
-            a[row] = area_ratio(cons.voted)
-            n_valid[row] = cons.n_valid
-            h, w = sizes[row]
+            v.c[row] = foreground_agreement(cons.agreement, cons.voted)
+            v.a[row] = area_ratio(cons.voted)
+            v.n_valid[row] = cons.n_valid
+            h, w = job.sizes[row]
             full = cv2.resize(cons.voted.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
-            pixels[row] = int(np.count_nonzero(full))
+            v.pixels[row] = int(np.count_nonzero(full))
             if "png" in fmts:
-                write_png(masks_tmp / f"{ids[row]}.png", full.astype(np.uint8) * 255)
+                write_png(masks_tmp / f"{job.ids[row]}.png", full.astype(np.uint8) * 255)
             if "coco" in fmts:
-                annotations.append(coco_annotation(full, row + 1, row + 1))
+                v.annotations.append(coco_annotation(full, row + 1, row + 1))
             if "yolo" in fmts:
-                lines = yolo_lines(full)
-                dst = yolo_tmp / "labels" / f"{ids[row]}.txt"
+                dst = yolo_tmp / "labels" / f"{job.ids[row]}.txt"
                 dst.parent.mkdir(parents=True, exist_ok=True)
-                dst.write_text("".join(line + "\n" for line in lines))
-                _link_or_copy(files[row], yolo_tmp / "images" / files[row].relative_to(root))
+                dst.write_text("".join(line + "\n" for line in yolo_lines(full)))
+                _link_or_copy(job.files[row], yolo_tmp / "images" / job.files[row].relative_to(job.root))
             if row in sheet_rows:
-                sheet[row] = (load_rgb(files[row], size, cache).array, cons.voted)
+                v.sheet[row] = (load_rgb(job.files[row], job.size, job.cache).array, cons.voted)
         if "yolo" in fmts:
             (yolo_tmp / "data.yaml").write_text(_yolo_data_yaml(out / OUTPUTS["yolo"]))
         if "png" not in fmts:
             (masks_tmp / "README.txt").write_text("png format not requested\n")
         if "yolo" not in fmts:
             (yolo_tmp / "README.txt").write_text("yolo format not requested\n")
+    return v
 
-    v, a0, gf = folder_gates(c, n_valid, a, geo)
+
+def _write_coco(job: _Job, table: pd.DataFrame, v: _Votes, g: np.ndarray) -> None:
+    """``coco.json``: one image and (where the vote is non-empty) one instance with its RLE per image."""
+    from pipeline.artifacts import atomic_path
+    from pipeline.labeling.formats import coco_document
+
+    images = [{"id": i + 1, "file_name": table["file"].iloc[i], "width": int(job.sizes[i][1]),
+               "height": int(job.sizes[i][0])} for i in range(len(job.files))]
+    for i, ann in enumerate(v.annotations):
+        if ann is not None:
+            ann.update(gate=round(float(g[i]), 6), agreement=round(float(v.c[i]), 6))
+    desc = "geodistill label: voted multi-prompt pseudo-masks" + (f" -- {SIMULATOR_NOTE}" if job.simulated else "")
+    doc = coco_document(images, [x for x in v.annotations if x is not None], description=desc,
+                        teacher_backend=job.tcfg["backend"], simulator=job.simulated)
+    with atomic_path(job.out / OUTPUTS["coco"]) as tmp:
+        tmp.write_text(json.dumps(doc, separators=(",", ":")))
+
+
+def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, device: str = "auto",
+                 formats: str | Sequence[str] = FORMATS, reference_masks: str | Path | None = None,
+                 overwrite: bool = False) -> LabelResult:
+    """Label every image under ``input_dir`` into ``out`` (module docstring); ``params`` are validated
+    params (schema defaults or a params file): data.resolution / cache_dir / contact_sheet_images /
+    seed, teacher.*, consensus.vote_threshold, geometry.*.  ``reference_masks``: the folder of masks the
+    simulated teacher (a SIMULATOR) reads; refused for real teachers (they never see masks).
+
+    Ownership (:mod:`pipeline.ownership`): ``label.json`` lists the outputs; an existing output that
+    no label.json of an earlier run lists (a user's own ``masks/``, ``coco.json``, ...) is refused
+    before anything is written, unless ``overwrite``.  Steps: :func:`_plan` (checks), :func:`_read_images`,
+    :func:`_run_teacher`, :func:`_vote_and_export`, then the gates (eq:reliability-gate), the tables, COCO,
+    the contact sheet, skipped.csv and the record."""
+    from pipeline.artifacts import write_json
+    from pipeline.datasets.contact_sheet import contact_sheet, tile
+    from pipeline.deploy.files import write_png, write_skipped_csv
+    from pipeline.ownership import claim_outputs, record_fields
+    from pipeline.params import section
+
+    fmts = parse_formats(formats)
+    job = _plan(input_dir, out, params, reference_masks, overwrite)
+    _read_images(job)
+    out, policy, tcfg, n = job.out, job.policy, job.tcfg, len(job.files)
+    claim_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], "label", {"input": str(job.root.resolve()), "complete": False})
+    runner, t_fp, stats = _run_teacher(job, device)
+    vote_threshold = float(section(params, "consensus")["vote_threshold"])
+    v = _vote_and_export(job, runner, fmts, vote_threshold)
+
+    valid, a0, gf = folder_gates(v.c, v.n_valid, v.a, job.geo)
     table = pd.DataFrame({
-        "image_id": ids, "file": [f.relative_to(root).as_posix() for f in files],
-        "width": [s[1] for s in sizes], "height": [s[0] for s in sizes], "n_valid": n_valid.astype(np.int16),
-        "c": c, "v": v, "a": a, "a0": np.full(n, a0), "g_conf": gf.conf, "g_valid": gf.valid, "g_area": gf.area,
-        "g": gf.g, "mask_pixels": pixels})
+        "image_id": job.ids, "file": [f.relative_to(job.root).as_posix() for f in job.files],
+        "width": [s[1] for s in job.sizes], "height": [s[0] for s in job.sizes],
+        "n_valid": v.n_valid.astype(np.int16), "c": v.c, "v": valid, "a": v.a, "a0": np.full(n, a0),
+        "g_conf": gf.conf, "g_valid": gf.valid, "g_area": gf.area, "g": gf.g, "mask_pixels": v.pixels})
     table["teacher_backend"] = tcfg["backend"]
-    table["simulator"] = simulated
+    table["simulator"] = job.simulated
     _write_table(out, table)
-
     if "coco" in fmts:
-        images = [{"id": i + 1, "file_name": table["file"].iloc[i], "width": int(sizes[i][1]),
-                   "height": int(sizes[i][0])} for i in range(n)]
-        for i, ann in enumerate(annotations):
-            if ann is not None:
-                ann.update(gate=round(float(gf.g[i]), 6), agreement=round(float(c[i]), 6))
-        desc = "geodistill label: voted multi-prompt pseudo-masks" + (f" -- {SIMULATOR_NOTE}" if simulated else "")
-        doc = coco_document(images, [x for x in annotations if x is not None], description=desc,
-                            teacher_backend=tcfg["backend"], simulator=simulated)
-        with atomic_path(out / OUTPUTS["coco"]) as tmp:
-            tmp.write_text(json.dumps(doc, separators=(",", ":")))
+        _write_coco(job, table, v, gf.g)
 
-    tsize = max(size, 192)
-    tiles = [tile(img, voted, f"{ids[r]} g={gf.g[r]:.2f}"[:30], tsize) for r, (img, voted) in sorted(sheet.items())]
+    tsize = max(job.size, 192)
+    tiles = [tile(img, voted, f"{job.ids[r]} g={gf.g[r]:.2f}"[:30], tsize)
+             for r, (img, voted) in sorted(v.sheet.items())]
     write_png(out / OUTPUTS["sheet"], contact_sheet(tiles, columns=4))
 
     write_skipped_csv(out / OUTPUTS["skipped"], policy.rows())  # header only when nothing was skipped
     write_json(out / OUTPUTS["record"], {
-        "input": str(root.resolve()), "images": n, "skipped": policy.bad_count(), "formats": list(fmts),
-        "teacher_backend": tcfg["backend"], "simulator": simulated, "note": SIMULATOR_NOTE if simulated else None,
-        "teacher_fingerprint": t_fp, "prompts": prompts, "resolution": size, "vote_threshold": vote_threshold,
-        "a0": a0, "geometry": geo, "teacher_answers_computed": stats.answers_computed,
+        "input": str(job.root.resolve()), "images": n, "skipped": policy.bad_count(), "formats": list(fmts),
+        "teacher_backend": tcfg["backend"], "simulator": job.simulated,
+        "note": SIMULATOR_NOTE if job.simulated else None, "teacher_fingerprint": t_fp,
+        "prompts": list(tcfg["prompts"]), "resolution": job.size, "vote_threshold": vote_threshold, "a0": a0,
+        "geometry": job.geo, "teacher_answers_computed": stats.answers_computed,
         "teacher_cache_hits": stats.cache_hits, "complete": True,
         **record_fields(out, OUTPUTS["record"], "label", OWN_OUTPUTS)})
     log.info("label: %d images -> %s (%s); %d skipped", n, out, ", ".join(fmts), policy.bad_count())
