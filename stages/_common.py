@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import logging
 import os
@@ -21,6 +22,8 @@ from typing import Any, Callable, Iterable, Mapping
 import click
 
 from pipeline.artifacts import Meta, make_meta
+from pipeline.catalog import STAGES, stage_params
+from pipeline.codeversion import ROOT, _module_name, code_version_of
 from pipeline.errors import InputError
 from pipeline.params import load_params
 
@@ -74,11 +77,9 @@ skip_bad_option = click.option(
     help="leave unreadable images out and list them with the reason (default: stop at the first, naming it)")
 
 
-def stage_code_version(stage_file: str, *_legacy_modules: str) -> str:
+def stage_code_version(stage_file: str) -> str:
     """Code version of a stage: every project file its script imports, found from the imports
     themselves (:func:`pipeline.codeversion.module_files`, the same list dvc.yaml names as the stage's deps)."""
-    from pipeline.codeversion import ROOT, _module_name, code_version_of
-
     return code_version_of(_module_name(Path(stage_file).resolve(), ROOT))
 
 
@@ -120,12 +121,28 @@ def stage_command(name: str, default_profile: str | None = None) -> Callable:
 def declared_params(params: Mapping[str, Any], stage: str) -> dict:
     """``{dotted key: value}`` of the params ``stage`` declares in the catalogue: exactly what DVC tracks
     for it (dvc.yaml) and what enters its artifacts' fingerprints."""
-    from pipeline.catalog import STAGES, stage_params
-
     return stage_params(params, STAGES[stage].params)
 
 
-def meta_for(schema: str, stage: str, code: str, params: Mapping[str, Any],
-             inputs: Iterable = (), **extra) -> Meta:
-    """Shorthand used by stages; see :func:`pipeline.artifacts.make_meta`."""
-    return make_meta(schema, stage, code, params, inputs, **extra)
+@dataclasses.dataclass(frozen=True)
+class StageContext:
+    """What every artifact of one stage run is stamped with, computed once per run: the stage's name,
+    its code version (:func:`stage_code_version`) and the params it declares in the catalogue
+    (:func:`declared_params`, what DVC tracks for it)."""
+
+    stage: str
+    code: str
+    params: dict
+
+    def meta(self, schema: str, inputs: Iterable = (), params: Mapping[str, Any] | None = None, **extra) -> Meta:
+        """The :class:`~pipeline.artifacts.Meta` of one output; ``params`` replaces the declared params
+        where a stage fingerprints a finer view of them (prepare: the files' content, train: the
+        method's keys, teacher: without the cache's location)."""
+        return make_meta(schema, self.stage, self.code, self.params if params is None else params, inputs, **extra)
+
+
+def stage_context(stage: str, stage_file: str, params: Mapping[str, Any]) -> StageContext:
+    """The :class:`StageContext` of stage ``stage`` whose script is ``stage_file`` (its ``__file__``); a
+    stage the catalogue does not list (``train``: its params are the method's keys) declares none."""
+    declared = declared_params(params, stage) if stage in STAGES else {}
+    return StageContext(stage, stage_code_version(stage_file), declared)

@@ -24,7 +24,7 @@ import pandas as pd
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline import catalog
 from pipeline.params import section
-from stages._common import declared_params, meta_for, stage_code_version, stage_command
+from stages._common import stage_command, stage_context
 
 CHUNK = 32
 
@@ -95,9 +95,8 @@ def main(params, device, art, out, metrics_dir):
         sel["source"] = "val_selected"
         tm = pd.concat([tm, sel], ignore_index=True)
 
-    code = stage_code_version(__file__)
-    meta = meta_for("teacher_metrics", "analyze_teacher", code, declared_params(params, "analyze_teacher"),
-                    [manifest, reference, teacher, consensus, gates],
+    meta = stage_context("analyze_teacher", __file__, params).meta(
+                    "teacher_metrics", [manifest, reference, teacher, consensus, gates],
                     teacher_backend=backend, simulator=backend == "simulated", base_source=base,
                     selected_source=selected, prompts=prompts,
                     val_prompt_iou={k: float(v) for k, v in val_means.items()})

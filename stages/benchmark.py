@@ -26,7 +26,7 @@ import click
 
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.params import section
-from stages._common import meta_for, stage_code_version, stage_command
+from stages._common import stage_command, stage_context
 
 
 
@@ -92,10 +92,9 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
     if out:
         import pandas as pd
 
-        meta = meta_for("efficiency", "benchmark", stage_code_version(__file__),
-                        {"deploy": cfg, "resolution": resolution, "tau": target.tau},
-                        target.inputs + data_inputs, device=run_info["device"], threads=run_info["threads"],
-                        notes=notes)
+        meta = stage_context("benchmark", __file__, params).meta(
+            "efficiency", target.inputs + data_inputs, params={"deploy": cfg, "resolution": resolution, "tau": target.tau},
+            device=run_info["device"], threads=run_info["threads"], notes=notes)
         write_parquet(out, pd.DataFrame(rows), meta)
     click.echo(f"benchmark: {len(rows)} variants" + (f" -> {out}" if out else "") + (f", {json_out}" if json_out else ""),
                err=True)

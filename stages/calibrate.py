@@ -29,7 +29,7 @@ import pandas as pd
 
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.params import section
-from stages._common import declared_params, meta_for, stage_code_version, stage_command
+from stages._common import stage_command, stage_context
 
 
 
@@ -44,8 +44,8 @@ def fixed_thresholds(params, runs, inputs, out) -> None:
     rows = [{"method": method, "seed": int(seed), "tau": fixed_tau, "val_iou": float("nan"), "fixed_tau": fixed_tau,
              "fixed_val_iou": float("nan"), "n_val": 0, "tau_source": NO_VALIDATION_MASKS} for method, seed, _ in runs]
     inputs = list(inputs) + [open_artifact(path) for _, _, path in runs]
-    meta = meta_for("thresholds", "calibrate", stage_code_version(__file__), declared_params(params, "calibrate"),
-                    inputs, note=f"no validation image has a reference mask: tau = calibrate.fixed_tau = {fixed_tau}")
+    meta = stage_context("calibrate", __file__, params).meta(
+                    "thresholds", inputs, note=f"no validation image has a reference mask: tau = calibrate.fixed_tau = {fixed_tau}")
     write_parquet(out, pd.DataFrame(rows), meta)
     click.echo(f"calibrate: no validation masks; {len(rows)} runs get the fixed tau {fixed_tau} -> {out}", err=True)
 
@@ -95,9 +95,8 @@ def main(params, device, art, checkpoints, out):
                      "area_ratio": float(area[int(np.flatnonzero(grid == tau)[0])]),
                      "fixed_area_ratio": float(median_area_ratio(area_ratio_curve(probs, val_masks, [fixed_tau]))[0])})
         inputs.append(open_artifact(path))
-    code = stage_code_version(__file__)
-    meta = meta_for("thresholds", "calibrate", code, declared_params(params, "calibrate"), inputs,
-                    note="reference masks of the validation split used only for threshold calibration")
+    meta = stage_context("calibrate", __file__, params).meta(
+                    "thresholds", inputs, note="reference masks of the validation split used only for threshold calibration")
     write_parquet(out, pd.DataFrame(rows), meta)
     click.echo(f"calibrate: {len(rows)} runs on {val.size} validation images -> {out}", err=True)
 

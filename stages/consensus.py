@@ -12,7 +12,7 @@ from pipeline.consensus import vote_batch
 from pipeline.errors import InputError
 from pipeline.params import section
 from pipeline.progress import progress
-from stages._common import declared_params, meta_for, stage_code_version, stage_command
+from stages._common import stage_command, stage_context
 
 
 
@@ -44,8 +44,7 @@ def main(params, device, teacher, out, chunk_images):
     threshold = cfg["vote_threshold"]
     art = open_artifact(teacher, "teacher")
     n, k, h, w = check_teacher(art)
-    code = stage_code_version(__file__)
-    meta = meta_for("consensus", "consensus", code, declared_params(params, "consensus"), [art])
+    meta = stage_context("consensus", __file__, params).meta("consensus", [art])
     with ZarrWriter(out, meta) as wr:
         wr.create("agreement", (n, h, w), np.float32)
         wr.create("voted", (n, h, w), bool)

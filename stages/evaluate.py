@@ -33,7 +33,7 @@ import pandas as pd
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline import catalog
 from pipeline.params import section
-from stages._common import declared_params, meta_for, stage_code_version, stage_command
+from stages._common import stage_command, stage_context
 
 GAIN_METRICS = ("iou", "bf1", "precision", "recall")
 CHUNK = 64  # test images predicted and scored per batch (bounded memory for large test sets)
@@ -169,10 +169,10 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
         vs = vs.rename(columns={c: vs_column(c, "continuation") for c in vs.columns if c not in by})
         summary = summary.merge(vs, on=by, how="left")
 
-    code = stage_code_version(__file__)
-    write_parquet(out, metrics, meta_for("metrics", "evaluate", code, declared_params(params, "evaluate"), inputs))
+    ctx = stage_context("evaluate", __file__, params)
+    write_parquet(out, metrics, ctx.meta("metrics", inputs))
     mmeta = open_artifact(out, "metrics")
-    write_parquet(summary_out, summary, meta_for("summary", "evaluate", code, declared_params(params, "evaluate"), [mmeta],
+    write_parquet(summary_out, summary, ctx.meta("summary", [mmeta],
                                                  control="plain", ci=ci, bootstrap_resamples=n_boot))
     write_dvc_results(metrics_dir or catalog.path("metrics_students", art),
                       training_curves or catalog.path("plot_training_curves", art),

@@ -23,7 +23,7 @@ import click
 
 from pipeline.catalog import dvc_path
 from pipeline.params import section
-from stages._common import meta_for, overwrite_option, stage_code_version, stage_command
+from stages._common import overwrite_option, stage_command, stage_context
 
 
 def is_bundle_dir(path) -> bool:
@@ -97,13 +97,12 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
         calib, calib_inputs, calib_note = deploy.read_calibration_images(art, n_calib, int(resolution))
         inputs += calib_inputs
 
-    code = stage_code_version(__file__)
-    meta = meta_for("deploy", "export", code,
-                    {"deploy": {"opset": opset, "parity_atol": atol, "onnx": not no_onnx,
-                                "int8": calib is not None, "int8_calibration_images": n_calib,
-                                "int8_min_mask_iou": min_iou, "int8_calibration": q8["calibration"],
-                                "int8_percentile": q8["percentile"]},
-                     "tau": tau, "tau_source": tau_source, "resolution": int(resolution)}, inputs)
+    deploy_params = {"opset": opset, "parity_atol": atol, "onnx": not no_onnx, "int8": calib is not None,
+                     "int8_calibration_images": n_calib, "int8_min_mask_iou": min_iou,
+                     "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"]}
+    meta = stage_context("export", __file__, params).meta(
+        "deploy", inputs, params={"deploy": deploy_params, "tau": tau, "tau_source": tau_source,
+                                  "resolution": int(resolution)})
     source = {"checkpoint": str(checkpoint), "checkpoint_fingerprint": ckpt.fingerprint,
               "selected_epoch": payload.get("selected_epoch"), "stage": payload.get("stage"),
               "thresholds": str(thresholds) if thresholds else None, "resolution_source": res_source,

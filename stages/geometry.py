@@ -13,7 +13,7 @@ from pipeline.errors import InputError
 from pipeline.geometry import foreground_agreement, gate_factors, median_area, pseudo_targets, valid_ratio
 from pipeline.params import section
 from pipeline.progress import progress
-from stages._common import declared_params, meta_for, stage_code_version, stage_command
+from stages._common import stage_command, stage_context
 
 
 
@@ -57,13 +57,13 @@ def main(params, device, consensus, manifest, out, gates, chunk_images):
     cons = open_artifact(consensus, "consensus")
     man = open_artifact(manifest, "manifest")
     n, h, w = check_inputs(cons, man, cfg["n_prompts"])
-    code = stage_code_version(__file__)
+    ctx = stage_context("geometry", __file__, params)
     c = np.zeros(n)
     a = np.zeros(n)
     n_valid = np.asarray(cons["n_valid"][...]).astype(np.int64)
     if ((n_valid < 0) | (n_valid > cfg["n_prompts"])).any():
         raise InputError(f"{cons.path}: n_valid outside [0, geometry.n_prompts={cfg['n_prompts']}]")
-    with ZarrWriter(out, meta_for("geometry", "geometry", code, declared_params(params, "geometry"), [cons, man])) as wr:
+    with ZarrWriter(out, ctx.meta("geometry", [cons, man])) as wr:
         wr.create("sdf", (n, h, w), np.float32)
         wr.create("skeleton", (n, h, w), bool)
         for s in progress(range(0, n, chunk_images), desc="geometry", total=-(-n // chunk_images)):
@@ -94,7 +94,7 @@ def main(params, device, consensus, manifest, out, gates, chunk_images):
             "c": c, "v": v, "a": a, "a0": np.full(n, a0),
             "g_conf": gf.conf, "g_valid": gf.valid, "g_area": gf.area, "g": gf.g,
             "n_valid": n_valid.astype(np.int16)})
-        write_parquet(gates, table, meta_for("gates", "geometry", code, declared_params(params, "geometry"), [cons, man]))
+        write_parquet(gates, table, ctx.meta("gates", [cons, man]))
 
 
 if __name__ == "__main__":

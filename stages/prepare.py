@@ -23,7 +23,7 @@ from pipeline.datasets.params import check_data_params, fingerprint_params
 from pipeline.datasets.synthetic import PART_NAMES
 from pipeline.params import section
 from pipeline.progress import progress
-from stages._common import meta_for, stage_code_version, stage_command
+from stages._common import stage_command, stage_context
 
 log = logging.getLogger("geodistill.prepare")
 
@@ -52,7 +52,7 @@ def main(params, device, out_dir, source, root, protocol, skip_bad):
             else build.real_source(cfg, policy, out))
     rows = build.check_manifest(spec, policy, where=f"data.source={cfg['source']}")
     rows = build.decode_rows(rows, spec, size, cache, policy)
-    code = stage_code_version(__file__)
+    ctx = stage_context("prepare", __file__, params)
     # fingerprint: the data params, the protocol actually applied, and the selected files' content
     fp_params = {"data": fingerprint_params(cfg), "protocol": spec.protocol,
                  "content_sha256": build.content_digest(rows)}
@@ -60,8 +60,8 @@ def main(params, device, out_dir, source, root, protocol, skip_bad):
     n = len(rows)
     has_parts = rows["part_path"].notna().to_numpy()
 
-    with ZarrWriter(out / "images.zarr", meta_for("images", "prepare", code, fp_params)) as wi, \
-            ZarrWriter(out / "reference.zarr", meta_for("reference", "prepare", code, fp_params)) as wr:
+    with ZarrWriter(out / "images.zarr", ctx.meta("images", params=fp_params)) as wi, \
+            ZarrWriter(out / "reference.zarr", ctx.meta("reference", params=fp_params)) as wr:
         wi.create("image", (n, size, size, 3), np.uint8)
         wr.create("mask", (n, size, size), bool)
         wr.create("has_mask", (n,), bool)
@@ -81,9 +81,9 @@ def main(params, device, out_dir, source, root, protocol, skip_bad):
                              "simulated teacher only -- never a training loss")
 
     write_parquet(out / "skipped_files.parquet", policy.table(),
-                  meta_for("skipped_files", "prepare", code, fp_params))
+                  ctx.meta("skipped_files", params=fp_params))
     write_parquet(out / "manifest.parquet", rows,
-                  meta_for("manifest", "prepare", code, fp_params, protocol=spec.protocol,
+                  ctx.meta("manifest", params=fp_params, protocol=spec.protocol,
                            resolution=size, spacecraft_disjoint=spec.spacecraft_disjoint))
 
     pick = sample_for_sheet(rows, cfg["contact_sheet_images"], cfg["seed"])

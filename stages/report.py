@@ -21,7 +21,7 @@ import click
 
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.params import section
-from stages._common import declared_params, meta_for, stage_code_version, stage_command
+from stages._common import stage_command, stage_context
 
 
 
@@ -42,8 +42,7 @@ def main(params, device, art, out):
     profile = str(params.get("profile", ""))
     env = collect()
     report, plots, inp = build_report(art, cfg, profile, resolve_device(device), environment=env)
-    code = stage_code_version(__file__)
-    meta = meta_for("report", "report", code, declared_params(params, "report"), list(inp.found.values()),
+    meta = stage_context("report", __file__, params).meta("report", list(inp.found.values()),
                     missing_inputs=sorted(inp.missing))
     with artifact_dir(out, meta) as tmp:
         (tmp / "figures").mkdir()

@@ -44,7 +44,7 @@ from pipeline.artifacts import ZarrWriter, open_artifact, require_same_run, writ
 from pipeline.errors import InputError
 from pipeline.params import section
 from pipeline.progress import progress
-from stages._common import meta_for, stage_code_version, stage_command
+from stages._common import stage_command, stage_context
 
 log = logging.getLogger("stages.teacher")
 
@@ -134,11 +134,11 @@ def main(params, device, manifest, images, reference, out, scores, shard):
 
     fp_params = {k: v for k, v in cfg.items() if k != "cache_dir"}  # where the cache lives changes nothing
     inputs = [man, img] + ([ref] if ref is not None else [])
-    code = stage_code_version(__file__)
+    ctx = stage_context("teacher", __file__, params)
     k = len(prompts)
     run_set = set(run_rows)
     rows = []
-    with ZarrWriter(out, meta_for("teacher", "teacher", code, {"teacher": fp_params}, inputs,
+    with ZarrWriter(out, ctx.meta("teacher", inputs, params={"teacher": fp_params},
                                   teacher_fingerprint=t_fp)) as zw:
         zw.create("masks", (n, k, h, w), bool)
         zw.create("scores", (n, k), np.float32)
@@ -170,7 +170,7 @@ def main(params, device, manifest, images, reference, out, scores, shard):
                                         "split", "ran"])
     table["score"] = table["score"].astype(np.float32)
     table["prompt_index"] = table["prompt_index"].astype(np.int16)
-    write_parquet(scores, table, meta_for("teacher_scores", "teacher", code, {"teacher": fp_params}, inputs,
+    write_parquet(scores, table, ctx.meta("teacher_scores", inputs, params={"teacher": fp_params},
                                           teacher_fingerprint=t_fp))
     log.info("teacher: wrote %s and %s (%d images x %d prompts, backend %s)", out, scores, n, k, teacher.backend)
 

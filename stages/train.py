@@ -37,7 +37,7 @@ import click
 from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.errors import InputError, TrainingDiverged
 from pipeline.params import section
-from stages._common import meta_for, stage_code_version, stage_command
+from stages._common import stage_command, stage_context
 
 
 STATE_FILE = "state.pt"
@@ -198,9 +198,9 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
             raise InputError(f"--init missing: method {method!r} warm-starts from a Stage-I checkpoint")
         init_state, init_art = load_init(init)
         inputs.append(init_art)
-    meta = meta_for("checkpoint", "train", stage_code_version(__file__),
-                    {"train": fingerprint_params(spec, cfg), "method": method, "seed": seed, "stage": stage},
-                    inputs, **data.stats)
+    meta = stage_context("train", __file__, params).meta(
+        "checkpoint", inputs, params={"train": fingerprint_params(spec, cfg), "method": method, "seed": seed,
+                                      "stage": stage}, **data.stats)
     result = training.train(spec, cfg, data, val, seed, init_state=init_state, device=resolve_device(device),
                             checkpointer=FileCheckpointer(Path(resume_dir) / meta.fingerprint))
     meta.extra.update(result.info)  # info["autocast"]: the precision actually used
