@@ -44,7 +44,11 @@ import numpy as np
 from pipeline.catalog import LEGACY_WEIGHTS_FILE, WEIGHTS_FILE
 from pipeline.errors import ArtifactError, InputError
 
-META_KEY = "geodistill"
+#: the program's name (the console script, pyproject.toml [project.scripts]), also the namespace of the
+#: artifacts' metadata.  It equals the proposed method's name by coincidence: tests/test_method_table.py
+#: exempts exactly this assignment from its scan for method names.
+PROGRAM = "geodistill"
+META_KEY = PROGRAM
 CHUNKS_KEY = "geodistill_chunk_files"  # array -> number of chunk files that must exist
 SHARD_IMAGES = 256
 

@@ -65,12 +65,12 @@ def _out_entry(name: str) -> str | dict:
 def train_stage(method_name: str, code_root: Path | None = None) -> dict:
     """The ``train_<method>`` stage: one run per seed listed in ``protocol.runs.<method>``."""
     from pipeline.catalog import StageSpec, dvc_path
-    from pipeline.methods import METHODS, input_artifacts, param_keys
+    from pipeline.methods import METHODS, STAGE_ONE, input_artifacts, param_keys
 
     m = METHODS[method_name]
     out = dvc_path("checkpoint", method=m.name, seed="${item.seed}")
     live = dvc_path("train_live", method=m.name, seed="${item.seed}")
-    init = dvc_path("checkpoint", method="plain", seed="${item.seed}") if m.init == "stage1" else None
+    init = dvc_path("checkpoint", method=STAGE_ONE, seed="${item.seed}") if m.init == "stage1" else None
     args = (f"--stage {m.stage} --method {m.name} --seed ${{item.seed}} --artifacts {{artifacts_dir}}"
             + (f" --init {init}" if init else "") + f" --out {out} --live-dir {live}")
     spec = StageSpec(f"train_{m.name}", "stages.train", args, input_artifacts(m), (), param_keys(m))

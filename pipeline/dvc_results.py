@@ -41,6 +41,8 @@ from typing import Any, Iterable, Mapping
 
 import pandas as pd
 
+from pipeline.artifacts import atomic_path, write_json
+
 #: decimals of every metric value (4: a 1e-4 change of a mean IoU is below any effect we report)
 DECIMALS = 4
 #: decimals of plot table values (curves: finer than a pixel at any plot size)
@@ -172,8 +174,6 @@ def threshold_curves(thresholds: pd.DataFrame) -> pd.DataFrame:
 def write_metrics_dir(directory: str | Path, files: Mapping[str, Mapping[str, float]]) -> Path:
     """Replace ``directory`` atomically by the JSON files ``{relative path: metrics}`` (a stale file of
     a group or method no longer run cannot survive)."""
-    from pipeline.artifacts import atomic_path, write_json
-
     with atomic_path(directory, is_dir=True) as tmp:
         for rel, metrics in sorted(files.items()):
             write_json(tmp / rel, dict(metrics))
@@ -182,8 +182,6 @@ def write_metrics_dir(directory: str | Path, files: Mapping[str, Mapping[str, fl
 
 def write_csv(path: str | Path, table: pd.DataFrame) -> Path:
     """``table`` as CSV (header, no index), atomically."""
-    from pipeline.artifacts import atomic_path
-
     with atomic_path(path) as tmp:
         tmp.write_text(table.to_csv(index=False, lineterminator="\n"))
     return Path(path)

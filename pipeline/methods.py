@@ -2,7 +2,10 @@
 data filter and checkpoint-selection rule each ``--method`` uses, plus the pseudo-label filters.
 
 The training loop (``pipeline.training``) reads a :class:`Method` and has no per-method branches of
-its own.  This module is pure Python/numpy (no torch import), so the train stage can decide quickly
+its own.  The table is also the one source of what each method is in the study -- its label, role,
+ablation tables, the reference point of its gains and its place in the tables (:data:`ROLES`,
+:data:`PROPOSED`, :data:`BASELINE`, :data:`CONTINUATION`, :data:`STAGE_ONE`): the profiles, the evaluation
+and the report derive their lists from it, so adding a method is one row (docs/pipeline.md).  This module is pure Python/numpy (no torch import), so the train stage can decide quickly
 whether a (method, seed) is in the active profile.
 
 Methods (paper section in brackets)
@@ -69,6 +72,24 @@ from pipeline.errors import InputError
 
 TERMS = ("region", "anchor", "sdf", "dist", "skel", "area", "boundary")
 
+#: What a method is in the study (:attr:`Method.role`); the report, the profiles and the evaluation read
+#: it from the table, never from a list of names of their own.
+ROLES = {
+    "main": "a method of the paper's main comparison (results tables; the paper protocol's runs)",
+    "proposed": "the method the paper proposes: a row of the main comparison and the treatment of its headline "
+                "comparisons (qualitative panels, the fixed-tau findings, the stability benchmark's gains)",
+    "external": "a row of the main comparison outside the paper protocol's runs (the quality-adaptive mode)",
+    "control": "a control the paper lacks, run at the main methods' seeds",
+    "ablation": "a mechanistic ablation: a row of its ablation tables only (one seed in the protocol)",
+}
+#: The paper's ablation tables (:attr:`Method.ablation_tables`): a method's rows in them, in table order.
+ABLATION_TABLES = {"warm_start": "tab:warm-start-ablation", "component": "tab:component-ablation"}
+#: Which methods a reference point's gains cover (:attr:`Method.reference_for`; :func:`gain_treatments`).
+GAIN_SCOPES = {
+    "annotation_free": "every annotation-free method (the paper's comparison)",
+    "warm_started": "the warm-started Stage-II methods (init stage1): its training budget matches theirs",
+}
+
 
 @dataclasses.dataclass(frozen=True)
 class Method:
@@ -88,6 +109,12 @@ class Method:
     ``color`` (hex RGB), ``dash`` (a matplotlib line style: solid, dashed, dashdot, dotted) and ``symbol``
     (a matplotlib marker): the method's series in every figure (pipeline.report.figures); no two rows
     share a colour or a symbol, ablations are dashed.
+
+    What the method is in the study (:func:`check_method_table` holds these rules): ``label``, its name in
+    every table and figure; ``role``, one of :data:`ROLES`; ``ablation_tables``, the ablation tables
+    (:data:`ABLATION_TABLES`) it is a row of; ``reference_for``, the methods whose gains are measured
+    against it (:data:`GAIN_SCOPES`; empty: none); ``table_order``, its place in every table of methods
+    (smaller first; unique).
     """
 
     name: str
@@ -105,6 +132,11 @@ class Method:
     color: str = "#5a5a5a"
     dash: str = "solid"
     symbol: str = "o"
+    label: str = ""
+    role: str = "main"
+    ablation_tables: tuple[str, ...] = ()
+    reference_for: str = ""
+    table_order: int = 0
 
     @property
     def annotation_free(self) -> bool:
@@ -133,61 +165,74 @@ _FULL = ("region", "sdf", "skel", "area")
 METHODS: dict[str, Method] = {m.name: m for m in [
     Method("plain", 1, "scratch", ("epochs_stage1",), "lr_stage1",
            description="Stage I only: L_raw on all voted pseudo-masks",
-           color="#1f77b4", dash="solid", symbol="o"),
+           label="Plain Student", reference_for="annotation_free", ablation_tables=("warm_start",),
+           table_order=10, color="#1f77b4", dash="solid", symbol="o"),
     Method("confidence_filtered", 1, "scratch", ("epochs_stage1",), "lr_stage1", data="confidence",
            uses=("confidence",),
            description="plain student on pseudo-labels passing the confidence criterion",
+           label="Confidence-Filtered Student", table_order=20,
            color="#2ca02c", dash="solid", symbol="v"),
     Method("afs_control", 1, "scratch", ("epochs_stage1",), "lr_stage1", data="afs", uses=("afs",),
            description="annotation-free-style control: base prompt, image+vflip fused, score filter",
+           label="Annotation-Free-style Control", table_order=30,
            color="#9467bd", dash="solid", symbol="^"),
     Method("geodistill", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=_FULL, select="stage2",
            description="Stage I -> gated SDF + skeleton + area refinement (eq:refine-loss)",
-           color="#d62728", dash="solid", symbol="D"),
+           label="GeoDistill-Refine", role="proposed", ablation_tables=("warm_start", "component"),
+           table_order=120, color="#d62728", dash="solid", symbol="D"),
     Method("gabi", 2, "scratch", ("gabi.epochs",), "lr_stage1", terms=("region", "dist", "boundary"),
            uses=("gabi",),
            description="GABI-inspired: joint from scratch, ungated distance regression + boundary BCE",
+           label="GABI-inspired Pseudo-Geometry", table_order=40,
            color="#8c564b", dash="solid", symbol="P"),
     Method("full_scratch_10", 2, "scratch", ("epochs_stage2",), "lr_stage1", terms=_FULL,
            description="ablation: full gated geometry from scratch, 10 epochs",
-           color="#bcbd22", dash="dashed", symbol="<"),
+           label="Full geometry, from scratch (10)", role="ablation", ablation_tables=("warm_start",),
+           table_order=50, color="#bcbd22", dash="dashed", symbol="<"),
     Method("full_scratch_30", 2, "scratch", ("epochs_stage1", "epochs_stage2"), "lr_stage1", terms=_FULL,
            description="ablation: full gated geometry from scratch, 30 epochs",
-           color="#17becf", dash="dashed", symbol=">"),
+           label="Full geometry, from scratch (30)", role="ablation", ablation_tables=("warm_start",),
+           table_order=60, color="#17becf", dash="dashed", symbol=">"),
     Method("sdf_scratch", 2, "scratch", ("epochs_stage2",), "lr_stage1", terms=("region", "sdf"),
            description="ablation: L_raw + gated SDF from scratch",
+           label="SDF only, from scratch", role="ablation", ablation_tables=("warm_start",), table_order=70,
            color="#000080", dash="dashed", symbol="x"),
     Method("sdf_gated", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=("region", "sdf"),
            select="stage2", description="ablation: Stage I -> gated SDF only",
-           color="#008080", dash="dashed", symbol="+"),
+           label="Stage I -> gated SDF", role="ablation", ablation_tables=("warm_start", "component"),
+           table_order=80, color="#008080", dash="dashed", symbol="+"),
     Method("sdf_skel_gated", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=("region", "sdf", "skel"),
            select="stage2", description="ablation: Stage I -> gated SDF + skeleton",
+           label="Gated SDF + skeleton", role="ablation", ablation_tables=("component",), table_order=90,
            color="#800000", dash="dashed", symbol="*"),
     Method("sdf_area_gated", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=("region", "sdf", "area"),
            select="stage2", description="ablation: Stage I -> gated SDF + area",
+           label="Gated SDF + area", role="ablation", ablation_tables=("component",), table_order=100,
            color="#f032e6", dash="dashed", symbol="h"),
     Method("no_gate", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=_FULL, gate="one",
            select="stage2", description="ablation: full refinement with g = 1",
-           color="#6464ff", dash="dashed", symbol="X"),
+           label="SDF + skeleton + area, no gate", role="ablation", ablation_tables=("component",),
+           table_order=110, color="#6464ff", dash="dashed", symbol="X"),
     Method("geodistill_adaptive", 2, "stage1", ("epochs_stage2",), "lr_stage2",
            terms=("region", "anchor", "sdf", "skel", "area"), adaptive=True,
            uses=("confidence", "adaptive"),
            description="quality-adaptive external mode (switch on the pass ratio r)",
+           label="GeoDistill-Refine (quality-adaptive)", role="external", table_order=130,
            color="#e377c2", dash="solid", symbol="d"),
     Method("continuation", 2, "stage1", ("epochs_stage2",), "lr_stage2", select="stage2",
            description="control: Stage I -> Stage II's schedule, epochs and selection with L_raw only "
                        "(budget-matched, no geometry)",
+           label="Budget-matched continuation (Stage II, L_raw only)", role="control",
+           reference_for="warm_started", table_order=140,
            color="#ff7f0e", dash="dashdot", symbol="s"),
     Method("supervised_ceiling", 1, "scratch", ("epochs_stage1",), "lr_stage1", data="reference",
            description="NOT annotation-free: the Plain Student's recipe on the training split's REFERENCE masks",
-           color="#000000", dash="dotted", symbol="p"),
+           label="Supervised ceiling (uses reference masks; not annotation-free)", role="control",
+           table_order=150, color="#000000", dash="dotted", symbol="p"),
 ]}
 
 #: The one method whose loss sees reference (manual) masks.  Behind ``protocol.supervised_ceiling``.
 SUPERVISED_CEILING = "supervised_ceiling"
-#: Controls of a gain: ``plain`` for every annotation-free method (the paper's comparison) and the
-#: budget-matched ``continuation`` for the warm-started Stage-II methods (the geometry effect).
-GAIN_CONTROLS = ("plain", "continuation")
 
 
 def check_reference_boundary(methods: Mapping[str, Method]) -> None:
@@ -198,7 +243,70 @@ def check_reference_boundary(methods: Mapping[str, Method]) -> None:
         raise ValueError(f"methods {bad} ask for reference-mask targets; only {SUPERVISED_CEILING!r} may")
 
 
-check_reference_boundary(METHODS)
+def check_method_table(methods: Mapping[str, Method]) -> None:
+    """The study facts of the table hold together (ValueError naming the method otherwise): a label, a
+    role of :data:`ROLES`, ablation tables of :data:`ABLATION_TABLES` (at least one for an ablation), a
+    gain scope of :data:`GAIN_SCOPES` or none, unique labels and table orders; and exactly one proposed
+    method, one reference point per gain scope and one Stage-I method (:func:`the_method`)."""
+    for m in methods.values():
+        if not m.label or m.role not in ROLES or not set(m.ablation_tables) <= set(ABLATION_TABLES) \
+                or (m.role == "ablation" and not m.ablation_tables) or m.reference_for not in ("", *GAIN_SCOPES):
+            raise ValueError(f"method {m.name!r}: label, role, ablation_tables or reference_for not as "
+                             f"pipeline.methods.Method documents")
+    for field in ("label", "table_order"):
+        values = [getattr(m, field) for m in methods.values()]
+        if len(set(values)) != len(values):
+            raise ValueError(f"two methods share a {field}")
+    check_reference_boundary(methods)
+
+
+check_method_table(METHODS)
+
+
+def the_method(what: str, test, methods: Mapping[str, Method] = METHODS) -> str:
+    """The name of the one method of ``methods`` for which ``test(method)`` holds; ValueError naming
+    ``what`` when none or several do (the table must say it once)."""
+    found = [m.name for m in methods.values() if test(m)]
+    if len(found) != 1:
+        raise ValueError(f"the method table must have exactly one {what}; it has {found}")
+    return found[0]
+
+
+#: The method the paper proposes (GeoDistill-Refine): the treatment of the headline comparisons.
+PROPOSED = the_method("proposed method", lambda m: m.role == "proposed")
+#: The reference point of every annotation-free method's gain (Plain Student: the paper's comparison).
+BASELINE = the_method("reference point of every gain", lambda m: m.reference_for == "annotation_free")
+#: The budget-matched continuation: the reference point of the warm-started methods' gains (the
+#: geometry effect at a matched training budget).
+CONTINUATION = the_method("budget-matched control", lambda m: m.reference_for == "warm_started")
+#: Stage I of GeoDistill-Refine: L_raw from scratch on every voted pseudo-mask.  Its checkpoint is where
+#: every warm-started (``init="stage1"``) method starts, at the same seed.
+STAGE_ONE = the_method("Stage-I method", lambda m: m.stage == 1 and m.init == "scratch" and m.data == "all"
+                       and m.terms == ("region",))
+#: Reference points of a gain, in table order (:func:`gain_treatments`).
+GAIN_CONTROLS = tuple(n for n, m in METHODS.items() if m.reference_for)
+
+
+def methods_with_role(*roles: str) -> list[str]:
+    """The methods whose :attr:`Method.role` is one of ``roles``, in the method table's order."""
+    return [n for n, m in METHODS.items() if m.role in roles]
+
+
+def in_table_order(names) -> list[str]:
+    """``names`` (distinct) by :attr:`Method.table_order`; names not in the table keep their order, last."""
+    names = list(dict.fromkeys(names))
+    known = sorted((n for n in names if n in METHODS), key=lambda n: METHODS[n].table_order)
+    return known + [n for n in names if n not in METHODS]
+
+
+def ablation_table_rows(table: str) -> list[str]:
+    """The rows of ablation table ``table`` (a key of :data:`ABLATION_TABLES`), in table order."""
+    return in_table_order(n for n, m in METHODS.items() if table in m.ablation_tables)
+
+
+def method_label(name: str) -> str:
+    """The display label of method ``name`` (:attr:`Method.label`); a name not in the table as is."""
+    return METHODS[name].label if name in METHODS else name
 
 
 def annotation_free_methods(names) -> list[str]:
@@ -207,11 +315,12 @@ def annotation_free_methods(names) -> list[str]:
 
 
 def gain_treatments(control: str, names) -> list[str]:
-    """The methods of ``names`` compared with ``control`` (:data:`GAIN_CONTROLS`): every annotation-free
-    method against ``plain``; the warm-started Stage-II methods against ``continuation`` (its budget
-    matches theirs).  Never the supervised ceiling, never the control itself."""
+    """The methods of ``names`` compared with ``control`` (a reference point: :data:`GAIN_CONTROLS`), by
+    its :attr:`Method.reference_for` (:data:`GAIN_SCOPES`): every annotation-free method against
+    :data:`BASELINE`; the warm-started Stage-II methods against :data:`CONTINUATION` (its budget matches
+    theirs).  Never the supervised ceiling, never the control itself."""
     free = [n for n in annotation_free_methods(names) if n != control]
-    if control == "continuation":
+    if control in METHODS and METHODS[control].reference_for == "warm_started":
         return [n for n in free if n in METHODS and METHODS[n].init == "stage1"]
     return free
 

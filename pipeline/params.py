@@ -25,6 +25,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipeline.errors import InputError
+from pipeline.methods import METHODS, PROPOSED, STAGE_ONE
 
 DEFAULT_PARAMS = "params.yaml"
 
@@ -316,31 +317,27 @@ class ProtocolParams(_Section):
     ``plain`` at the same seed.
     """
 
-    runs: dict[str, list[int]] = _f({"plain": [42], "geodistill": [42]}, "method -> seeds; [] = no run")
+    runs: dict[str, list[int]] = _f({STAGE_ONE: [42], PROPOSED: [42]}, "method -> seeds; [] = no run")
     supervised_ceiling: bool = _f(False, "allow runs of supervised_ceiling: trained on REFERENCE masks, "
                                          "NOT annotation-free (a ceiling for the student recipe)")
 
     @field_validator("runs")
     @classmethod
     def _runs(cls, v):
-        from pipeline.methods import METHODS  # pure Python, no torch
-
         for m, seeds in v.items():
             if m not in METHODS:
                 raise ValueError(f"unknown method {m!r} (one of {', '.join(METHODS)})")
             if len(set(seeds)) != len(seeds):
                 raise ValueError(f"{m}: seeds must be distinct")
             if METHODS[m].init == "stage1":
-                missing = sorted(set(seeds) - set(v.get("plain", [])))
+                missing = sorted(set(seeds) - set(v.get(STAGE_ONE, [])))
                 if missing:
-                    raise ValueError(f"{m} warm-starts from plain, which has no run for seed(s) {missing}")
+                    raise ValueError(f"{m} warm-starts from {STAGE_ONE}, which has no run for seed(s) {missing}")
         # every method appears (an empty list: no run), in the method table's order
         return {m: list(v.get(m, [])) for m in METHODS}
 
     @model_validator(mode="after")
     def _ceiling_flag(self):
-        from pipeline.methods import METHODS
-
         gated = [m for m, seeds in self.runs.items() if seeds and not METHODS[m].annotation_free]
         if gated and not self.supervised_ceiling:
             raise ValueError(f"protocol.runs lists {gated}, which train on reference masks (not annotation-free); "
@@ -398,7 +395,7 @@ BENCHMARK_VARIANTS = ["fp32_eager_nchw", "fp32_channels_last", "bf16_autocast", 
 
 
 class DeployParams(_Section):
-    export_method: str = _f("geodistill")
+    export_method: str = _f(PROPOSED)
     export_seed: int = _f(42)
     opset: int = _f(17, "ONNX opset", ge=9, le=30)
     parity_atol: float = _f(1e-4, "export parity: max |logit difference| vs PyTorch", ge=0)

@@ -29,6 +29,7 @@ from __future__ import annotations
 from typing import Any
 
 from pipeline.errors import InputError
+from pipeline.methods import methods_with_role
 
 SEEDS = [42, 3407, 2026]
 #: issue 24: five seeds for the main methods and the controls of the reduced protocol -- enough for a
@@ -36,11 +37,12 @@ SEEDS = [42, 3407, 2026]
 #: benchmark (pipeline/benchmarks/stability.py) uses the same seeds
 FIVE_SEEDS = SEEDS + [7, 11]
 ABLATION_SEED = 42
-MAIN_METHODS = ["plain", "confidence_filtered", "afs_control", "geodistill", "gabi"]
-ABLATIONS = ["full_scratch_10", "full_scratch_30", "sdf_scratch", "sdf_gated", "sdf_skel_gated",
-             "sdf_area_gated", "no_gate"]
-#: Controls the paper lacks (issue 17), at the main methods' seeds.
-CONTROLS = ["continuation", "supervised_ceiling"]
+#: The paper's five methods (the method table's roles ``main`` and ``proposed``), its seven ablations, and
+#: the controls the paper lacks (issue 17), run at the main methods' seeds -- in the order of the rows of
+#: the method table (pipeline.methods.METHODS).
+MAIN_METHODS = methods_with_role("main", "proposed")
+ABLATIONS = methods_with_role("ablation")
+CONTROLS = methods_with_role("control")
 
 
 

@@ -29,6 +29,8 @@ from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
+from pipeline.methods import BASELINE
+
 # resample index arrays are generated in blocks of at most this many int64 entries (bounded memory
 # for a large single-spacecraft test set such as TANGO's 3,002 images)
 _BLOCK_ENTRIES = 4_000_000
@@ -302,7 +304,7 @@ def spearman(x: Iterable[float], y: Iterable[float]) -> SpearmanResult:
 # --------------------------------------------------------------------------------------------------
 # Gains against a control method on a per-image table
 # --------------------------------------------------------------------------------------------------
-def method_gains(df, metrics: Sequence[str], control: str = "plain", by: Sequence[str] = ("dataset", "group", "threshold_mode"),
+def method_gains(df, metrics: Sequence[str], control: str = BASELINE, by: Sequence[str] = ("dataset", "group", "threshold_mode"),
                  cluster_col: str = "spacecraft", n_resamples: int = 10_000, ci: float = 0.95, seed: int = 0):
     """Gain of every method over ``control`` with paired hierarchical bootstrap CIs, per ``by`` group.
 
@@ -371,3 +373,15 @@ def method_gains(df, metrics: Sequence[str], control: str = "plain", by: Sequenc
     cols = by + ["method", "gain_seeds", "gain_images"] + [f"gain_{m}{s}" for m in metrics
                                                            for s in ("", "_lo", "_hi", "_seed_sd")]
     return pd.DataFrame(rows, columns=cols)
+
+
+def vs_column(column: str, control: str) -> str:
+    """The summary's name of :func:`method_gains` column ``column`` when the gain is over ``control``: as
+    is over :data:`pipeline.methods.BASELINE` (``gain_iou``), else with ``_vs_<control>`` before the
+    bound (``gain_iou_lo`` -> ``gain_iou_vs_continuation_lo``, ``gain_seeds`` -> ``gain_seeds_vs_continuation``)."""
+    if control == BASELINE:
+        return column
+    for end in ("_lo", "_hi"):
+        if column.endswith(end):
+            return f"{column.removesuffix(end)}_vs_{control}{end}"
+    return f"{column}_vs_{control}"

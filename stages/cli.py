@@ -50,10 +50,11 @@ class LazyGroup(click.Group):
         """Every subcommand under :func:`stages._common.one_line_errors` (the stage commands also use it
         themselves, for ``python -m stages.<name>``): an InputError or OSError the command did not turn
         into its line still ends in one line, never a traceback."""
+        from pipeline.artifacts import PROGRAM
         from stages._common import one_line_errors
 
         args = [*getattr(ctx, "_protected_args", []), *ctx.args] or [""]
-        with one_line_errors(args[0] or "geodistill"):
+        with one_line_errors(args[0] or PROGRAM):
             return super().invoke(ctx)
 
 

@@ -112,19 +112,44 @@ def test_findings_are_computed_from_the_numbers():
     thr = pd.DataFrame({"method": ["plain", "plain", "geodistill", "geodistill"], "tau": [0.6, 0.64, 0.8, 0.84],
                         "ece": [0.02, 0.03, 0.06, 0.07]})
     text = " ".join(fixed_tau_findings(_summary([0.04, 0.05], [-0.07, -0.12]), thr, _metrics(1.8), None, None,
-                                       ["KCP", "CVI"]))
+                                       ["KCP", "CVI"], fixed_tau=0.5))
     assert "0.82 (mean over seeds), higher than plain's 0.62 (difference +0.20)" in text
     assert "fixed tau = 0.5 -0.070, -0.120 (negative on 2 of 2)" in text
     assert "geodistill 1.80 at 0.5 and 1.15 at its calibrated tau" in text
     assert "reversal is present and is a threshold effect" in text
     # other numbers, other verdicts: no reversal when the fixed-tau gain stays positive
     text = " ".join(fixed_tau_findings(_summary([0.04, 0.05], [0.01, 0.02]), thr, _metrics(1.8), None, None,
-                                       ["KCP", "CVI"]))
+                                       ["KCP", "CVI"], fixed_tau=0.5))
     assert "No fixed-tau reversal" in text and "threshold effect" not in text
     # a reversal without foreground inflation is not explained by the threshold
     text = " ".join(fixed_tau_findings(_summary([0.04, 0.05], [-0.07, -0.12]), thr, _metrics(1.0), None, None,
-                                       ["KCP", "CVI"]))
+                                       ["KCP", "CVI"], fixed_tau=0.5))
     assert "without foreground inflation at 0.5" in text
+
+
+def test_the_words_about_the_fixed_tau_quote_the_recorded_value():
+    """The fixed tau in the findings and the tables is calibrate.fixed_tau as the run recorded it
+    (thresholds.parquet, else the fixed-mode rows of metrics.parquet), never a number of the report's own."""
+    from types import SimpleNamespace
+
+    from pipeline.report import tables as T
+    from pipeline.report.build import recorded_fixed_tau
+
+    thr = pd.DataFrame({"method": ["plain", "geodistill"], "tau": [0.6, 0.8], "ece": [0.02, 0.06]})
+    text = " ".join(fixed_tau_findings(_summary([0.04, 0.05], [-0.07, -0.12]), thr, _metrics(1.8), None, None,
+                                       ["KCP", "CVI"], fixed_tau=0.35))
+    assert "fixed tau = 0.35 -0.070" in text and "1.80 at 0.35 and" in text and "at tau = 0.35 it inflates" in text
+    assert "0.5" not in text
+    # unknown (no artifact recorded it): the param is named instead of a value
+    text = " ".join(fixed_tau_findings(_summary([0.04, 0.05], [-0.07, -0.12]), thr, _metrics(1.8), None, None,
+                                       ["KCP", "CVI"]))
+    assert "fixed tau = `calibrate.fixed_tau` -0.070" in text
+    assert T.mode_text("fixed", 0.35) == "fixed tau = 0.35" and T.mode_text("fixed", 0.5) == "fixed tau = 0.5"
+    assert "Val IoU at 0.35" in T.calibration_table(thr, 0.35).header
+    art = lambda df: SimpleNamespace(df=df)  # noqa: E731  (an opened artifact: its table)
+    assert recorded_fixed_tau(art(thr.assign(fixed_tau=0.35)), None) == 0.35
+    metrics = pd.DataFrame({"threshold_mode": ["fixed", "calibrated"], "tau": [0.4, 0.7]})
+    assert recorded_fixed_tau(None, art(metrics)) == 0.4 and recorded_fixed_tau(art(thr), None) is None
 
 
 # ---- figures --------------------------------------------------------------------------------------

@@ -30,6 +30,14 @@ import time
 
 import numpy as np
 
+from pipeline.benchmarks.bench_geometry import spacecraft_like_masks
+from pipeline.geometry import squared_distance
+from pipeline.inference import predict_probs
+from pipeline.methods import BASELINE
+from pipeline.metrics import _ratio, _region_counts, per_image_metrics, score_masks, scoring_reference
+from pipeline.profiles import FULL_PROTOCOL
+from pipeline.stats import _cluster_layout, method_gains
+
 PAPER_RUNS = 22          # 5 methods x 3 seeds + 7 seed-42 ablations (pipeline.profiles.FULL_PROTOCOL)
 PAPER_TEST_IMAGES = 180  # 3 groups x 3 spacecraft x 20 views
 
@@ -40,8 +48,6 @@ PAPER_TEST_IMAGES = 180  # 3 groups x 3 spacecraft x 20 views
 def baseline_boundary_f1(pred: np.ndarray, gt: np.ndarray, tolerance: float) -> float:
     """Boundary F1 of one pair with two exact OpenCV distance transforms (the old per-image code)."""
     import cv2
-
-    from pipeline.geometry import squared_distance
 
     k3 = np.ones((3, 3), np.uint8)
 
@@ -92,8 +98,6 @@ def baseline_small_region_iou(pred: np.ndarray, gt: np.ndarray, max_fraction: fl
 
 def baseline_per_image_metrics(preds, gts, tolerance=2.0, max_fraction=0.01, margin=3) -> dict:
     """The old ``per_image_metrics``: region metrics vectorised, the rest one image at a time."""
-    from pipeline.metrics import _ratio, _region_counts
-
     n = len(preds)
     inter, np_, ng = _region_counts(preds, gts)
     both = (np_ == 0) & (ng == 0)
@@ -106,8 +110,6 @@ def baseline_per_image_metrics(preds, gts, tolerance=2.0, max_fraction=0.01, mar
 
 def baseline_resample_means(values, clusters, n_resamples, rng, block_entries=4_000_000) -> np.ndarray:
     """The old two-level bootstrap means: a [b, C, n_max, k] gather per block of resamples."""
-    from pipeline.stats import _cluster_layout
-
     values = np.asarray(values, dtype=np.float64)
     values = values[:, None] if values.ndim == 1 else values
     order, starts, sizes = _cluster_layout(np.asarray(clusters))
@@ -126,7 +128,7 @@ def baseline_resample_means(values, clusters, n_resamples, rng, block_entries=4_
     return out
 
 
-def baseline_method_gains(df, metrics, control="plain", by=("dataset", "group", "threshold_mode"),
+def baseline_method_gains(df, metrics, control=BASELINE, by=("dataset", "group", "threshold_mode"),
                           cluster_col="spacecraft", n_resamples=10_000, ci=0.95, seed=0):
     """The old ``method_gains``: one bootstrap per (group, method, metric)."""
     import pandas as pd
@@ -216,7 +218,6 @@ def student_seconds_per_image(size: int, device: str, n: int) -> float:
     """Median seconds per image of the evaluate stage's inference call (``predict_probs``) on ``device``."""
     import torch
 
-    from pipeline.inference import predict_probs
     from pipeline.model import TinyUNet
 
     torch.manual_seed(0)
@@ -245,11 +246,6 @@ def main(argv=None) -> int:
     ap.add_argument("--student-images", type=int, default=4, help="images timed for the inference estimate "
                                                                    "(0 = skip)")
     args = ap.parse_args(argv)
-
-    from pipeline.benchmarks.bench_geometry import spacecraft_like_masks
-    from pipeline.metrics import per_image_metrics, score_masks, scoring_reference
-    from pipeline.profiles import FULL_PROTOCOL
-    from pipeline.stats import method_gains
 
     metric_device = None if args.device == "cpu" else args.device
     gts = spacecraft_like_masks(args.images, args.size, seed=0)

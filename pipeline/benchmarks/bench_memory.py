@@ -30,7 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.artifacts import read_chunk_rows
 from pipeline.benchmarks.bench_train import synthetic_set
+from pipeline.methods import STAGE_ONE, get_method
+from pipeline.params import load_params, section
+from pipeline.streaming import LazyRows, row_means
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -61,9 +65,6 @@ def child_train(folder: Path, mode: str) -> dict:
     import zarr
 
     from pipeline import training
-    from pipeline.methods import get_method
-    from pipeline.params import load_params, section
-    from pipeline.streaming import LazyRows, row_means
 
     img, msk = zarr.open_array(str(folder / "images.zarr")), zarr.open_array(str(folder / "mask.zarr"))
     n = img.shape[0]
@@ -76,7 +77,7 @@ def child_train(folder: Path, mode: str) -> dict:
     cfg = section(load_params(ROOT / "params.yaml"), "train")
     cfg.update({"epochs_stage1": 1, "num_threads": 0, "precision": "fp32"})
     t = time.perf_counter()
-    training.train(get_method("plain"), cfg, data, None, 42, checkpointer=training.NoCheckpointer(), device="cpu",
+    training.train(get_method(STAGE_ONE), cfg, data, None, 42, checkpointer=training.NoCheckpointer(), device="cpu",
                    show_progress=False)
     return {"peak_mb": peak_mb(), "seconds": time.perf_counter() - t}
 
@@ -94,8 +95,6 @@ def child_label(folder: Path, out: Path, size: int) -> dict:
 def child_read(folder: Path, mode: str) -> dict:
     """200 rows of ``images.zarr``: ``slices`` (read_chunk_rows) or ``orthogonal`` (zarr's selection)."""
     import zarr
-
-    from pipeline.artifacts import read_chunk_rows
 
     arr = zarr.open_array(str(folder / "images.zarr"))
     rows = np.arange(arr.shape[0])

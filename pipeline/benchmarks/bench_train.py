@@ -27,6 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.device import resolve_device
+from pipeline.methods import STAGE_ONE, get_method
+from pipeline.params import load_params, section
+
 
 PAPER_IMAGES = 270
 
@@ -52,10 +56,9 @@ def synthetic_set(n: int, size: int, seed: int):
 def train_variant(cfg: dict, data, val, device, seed: int) -> dict:
     """Train ``plain`` with ``cfg``; per-epoch training seconds (callback marks) and final val metrics."""
     from pipeline import training
-    from pipeline.methods import get_method
 
     marks = [time.perf_counter()]
-    res = training.train(get_method("plain"), cfg, data, None, seed, checkpointer=training.NoCheckpointer(),
+    res = training.train(get_method(STAGE_ONE), cfg, data, None, seed, checkpointer=training.NoCheckpointer(),
                          device=device, callback=lambda epoch, row: marks.append(time.perf_counter()),
                          show_progress=False)
     out = {"epoch_seconds": list(np.diff(marks)), "autocast": res.info["autocast"],
@@ -85,8 +88,6 @@ def main(argv=None) -> dict:
 
     import torch
 
-    from pipeline.device import resolve_device
-    from pipeline.params import load_params, section
     from pipeline.training import TrainData, ValData
 
     device = resolve_device(args.device)

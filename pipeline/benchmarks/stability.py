@@ -42,11 +42,20 @@ from typing import Any, Mapping
 import numpy as np
 
 from pipeline.benchmarks import study_recipe as sr
+from pipeline.device import autocast_dtype
+from pipeline.errors import InputError
+from pipeline.inference import predict_probs
+from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, STAGE_ONE, get_method
+from pipeline.metrics import iou_curve, per_image_metrics
+from pipeline.params import RECIPES, load_params, validate_section
 from pipeline.profiles import FIVE_SEEDS
+from pipeline.reproducibility import TOLERANCE
+from pipeline.thresholds import TAU_RULES, mask_from_probs, tau_by_rule, threshold_grid
 
-METHODS = ("plain", "geodistill", "continuation")
+#: the demo's runs, in training order: Stage I first (the others warm-start from it)
+METHODS = tuple(dict.fromkeys((STAGE_ONE, BASELINE, PROPOSED, CONTINUATION)))
 #: (treatment, control) pairs whose gains the demo publishes
-GAINS = (("geodistill", "plain"), ("geodistill", "continuation"))
+GAINS = ((PROPOSED, BASELINE), (PROPOSED, CONTINUATION))
 #: perturbation -> train overrides (``precision`` is resolved per recipe: the other precision)
 PERTURBATIONS = {"default": {"num_threads": 2}, "threads1": {"num_threads": 1}, "precision": {"num_threads": 2}}
 #: screening candidates: one recipe part (or a bundle of them) on top of ``train.recipe: paper`` (or of
@@ -67,8 +76,6 @@ METRICS = ("iou", "bf1")
 def recipe_train(name: str, base: Mapping[str, Any]) -> dict:
     """The train section of recipe ``name``: a :data:`pipeline.params.RECIPES` name (its bundle with
     the parts null, as a params file leaves them) or a :data:`CANDIDATES` name, over ``base``."""
-    from pipeline.params import RECIPES, validate_section
-
     raw = {**base, **{k: None for k in RECIPES["paper"]["train"]}}
     if name in RECIPES:
         raw["recipe"] = name
@@ -81,8 +88,6 @@ def perturbed(cfg: Mapping[str, Any], perturbation: str) -> dict:
     """``cfg`` under a perturbation: thread count, or the other precision of this host."""
     import torch
 
-    from pipeline.device import autocast_dtype
-
     out = {**cfg, **PERTURBATIONS[perturbation]}
     if perturbation == "precision":
         amp = autocast_dtype(torch.device("cpu"), cfg["precision"])
@@ -92,19 +97,12 @@ def perturbed(cfg: Mapping[str, Any], perturbation: str) -> dict:
 
 def group_scores(probs, masks, groups, tau: float, tolerance: float) -> dict:
     """{group: {"iou", "bf1"}} means of [P >= tau] (eq:inference-mask) per test group."""
-    from pipeline.metrics import per_image_metrics
-    from pipeline.thresholds import mask_from_probs
-
     m = per_image_metrics(mask_from_probs(probs, tau), masks, tolerance)
     return {str(g): {k: float(np.mean(m[k][groups == g])) for k in METRICS} for g in dict.fromkeys(groups)}
 
 
 def score(model, data: Mapping[str, Any], cal: Mapping[str, Any], tolerance: float) -> dict:
     """Per tau rule: the calibrated tau and the per-group test scores (predictions in fp32)."""
-    from pipeline.inference import predict_probs
-    from pipeline.metrics import iou_curve
-    from pipeline.thresholds import TAU_RULES, tau_by_rule, threshold_grid
-
     grid = threshold_grid(cal)
     val = data["val"]
     curve = iou_curve(predict_probs(model, val.images), val.masks, grid).mean(axis=0)
@@ -120,23 +118,22 @@ _DATA: dict = {}
 
 
 def _init_worker(artifacts: str, cfg: dict, threads: int) -> None:
-    _DATA.update(sr.load_study_data(Path(artifacts), cfg, methods=("plain", "geodistill")))
+    _DATA.update(sr.load_study_data(Path(artifacts), cfg, methods=(STAGE_ONE, PROPOSED)))
 
 
 def run_one(job: dict) -> dict:
-    """Train plain, then geodistill and continuation from it, for one (recipe, perturbation, seed)."""
+    """Train Stage I (plain), then the methods warm-started from it, for one (recipe, perturbation, seed)."""
     from pipeline import training
-    from pipeline.methods import get_method
 
     t0 = time.perf_counter()
     cfg, seed = job["cfg"], job["seed"]
     out = {k: job[k] for k in ("recipe", "perturbation", "seed")}
     init = None
     for m in METHODS:
-        data = _DATA["geodistill" if m == "geodistill" else "plain"]
+        data = _DATA[PROPOSED if m == PROPOSED else STAGE_ONE]  # the continuation reads Stage I's pseudo-masks
         res = training.train(get_method(m), cfg, data, _DATA["val"], seed, checkpointer=training.NoCheckpointer(),
                              init_state=init, show_progress=False)
-        if m == "plain":
+        if m == STAGE_ONE:
             init = res.model.mask_path_state_dict()
         out[m] = {"selected_epoch": res.selected_epoch, "autocast": res.info["autocast"],
                   **score(res.model, _DATA, job["cal"], job["tolerance"])}
@@ -201,8 +198,6 @@ def target_met(sp: Mapping[str, dict], perturbations=("threads1", "precision")) 
     """Target (issue 24): under each of ``perturbations`` every student metric's seed-mean (method x
     group) moves by at most :data:`pipeline.reproducibility.TOLERANCE` of its metric.  Returns
     (met, worst IoU move, worst BF1 move)."""
-    from pipeline.reproducibility import TOLERANCE
-
     worst = {k: max((v.get(f"move_{p}", float("nan")) for n, v in sp.items() for p in perturbations
                      if "-" not in n.split("/")[0] and n.endswith("/" + k)), default=float("nan"))
              for k in METRICS}
@@ -295,12 +290,8 @@ def main(argv=None) -> dict:
     # 2-thread run stalls the other (9x slower measured); no effect on the numbers
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-    from pipeline.params import RECIPES, load_params
-
     bad = [r for r in args.recipes if r not in RECIPES and r not in CANDIDATES]
     if bad:
-        from pipeline.errors import InputError
-
         raise InputError(f"--recipes {bad}: expected one of {', '.join([*RECIPES, *CANDIDATES])}")
     ns = argparse.Namespace(profile="demo", resolution=args.resolution,
                             **{k: None for k in ("train_spacecraft", "train_views", "val_spacecraft", "val_views",
@@ -340,8 +331,6 @@ def main(argv=None) -> dict:
             sink.write(json.dumps({**r, "variant": r["recipe"], "method": r["perturbation"]}) + "\n")
             sink.flush()
             results[(r["recipe"], r["perturbation"], r["seed"])] = r
-    from pipeline.thresholds import TAU_RULES
-
     summary = {}
     exposure = {r: exposed(recipe_train(r, base)) for r in args.recipes}
     for rname in args.recipes:

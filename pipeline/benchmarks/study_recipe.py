@@ -45,8 +45,18 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from pipeline import catalog
+from pipeline.artifacts import open_artifact
+from pipeline.device import resolve_device
+from pipeline.inference import predict_probs
+from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
+from pipeline.metrics import image_ious
+from pipeline.params import load_params
+from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
+
 REPO = Path(__file__).resolve().parents[2]
-METHODS = ("plain", "supervised_ceiling")
+#: the Stage-I (Plain Student) recipe and the same recipe on reference masks (the supervised ceiling)
+METHODS = (STAGE_ONE, SUPERVISED_CEILING)
 #: targets under this fraction of the frame count as "tiny" (issue 17 item 3's split)
 TINY_FRACTION = 0.002
 
@@ -82,8 +92,6 @@ def build_artifacts(workdir: Path, sets: list[str], device: str, geometry: bool 
     """Run prepare -> teacher -> consensus (-> geometry with ``geometry``: the Stage-II methods' targets
     and gates) with the project's stage commands into ``workdir/artifacts`` unless the last one's
     output is there already; returns the artifacts directory."""
-    from pipeline import catalog
-
     art = workdir / "artifacts"
     if catalog.path("gates" if geometry else "consensus", art).exists():
         return art
@@ -108,9 +116,6 @@ def build_artifacts(workdir: Path, sets: list[str], device: str, geometry: bool 
 def load_study_data(artifacts: Path, cfg: Mapping[str, Any], methods=METHODS) -> dict:
     """Training arrays per method of ``methods`` (via the training API), validation and test images +
     reference masks (test: images, masks and groups)."""
-    from pipeline import catalog
-    from pipeline.artifacts import open_artifact
-    from pipeline.methods import get_method
     from pipeline.training import _rows
     from stages.train import load_inputs
 
@@ -171,10 +176,6 @@ def area_ratios(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
 def score_run(model, val, test_images, test_masks, device) -> dict:
     """Test scores of a trained model: tau calibrated on validation (the calibrate stage's rule on the
     epoch tau grid) and tau 0.5; predictions in fp32."""
-    from pipeline.inference import predict_probs
-    from pipeline.metrics import image_ious
-    from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
-
     vp = predict_probs(model, val.images, device=device, precision="fp32")
     tau, _ = calibrate_threshold(vp, val.masks, EPOCH_TAU_GRID)
     tp = predict_probs(model, test_images, device=device, precision="fp32")
@@ -203,7 +204,6 @@ def _init_worker(artifacts: str, cfg: dict, threads: int) -> None:
 def run_one(job: dict) -> dict:
     """Train (variant, method, seed) and score it; the process's study data come from :func:`_init_worker`."""
     from pipeline import training
-    from pipeline.methods import get_method
 
     t0 = time.perf_counter()
     cfg = job["cfg"]
@@ -317,9 +317,6 @@ def main(argv=None) -> dict:
     ap.add_argument("--threads", type=int, default=1, help="torch threads per process")
     ap.add_argument("--out", default="study_recipe.json")
     args = ap.parse_args(argv)
-
-    from pipeline.device import resolve_device
-    from pipeline.params import load_params
 
     device = str(resolve_device(args.device))
     sets = data_overrides(args)

@@ -11,12 +11,15 @@ choice).  Reference masks enter here only to *measure* teacher quality post hoc.
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import pandas as pd
 
-from pipeline.stats import SUPPORTED, claim_status, spearman
+from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, SUPERVISED_CEILING
+from pipeline.stats import SUPPORTED, claim_status, seed_summary, spearman, vs_column
 
 METRICS = ("iou", "bf1", "precision", "recall")
 
@@ -141,8 +144,9 @@ def teacher_vote_means(tm: pd.DataFrame, split: str = "test") -> pd.DataFrame:
 
 def epoch_swings(logs: pd.DataFrame) -> pd.DataFrame:
     """Per (method, stage): the largest and the median absolute change of validation Image IoU between
-    adjacent logged epochs of one run, at tau 0.5 (``val_iou``) and at each epoch's calibrated tau
-    (``val_iou_cal``; NaN for logs without it), where the largest one at 0.5 happened (seed, later
+    adjacent logged epochs of one run, at the fixed tau of checkpoint selection (``val_iou``) and at each
+    epoch's calibrated tau (``val_iou_cal``; NaN for logs without it), where the largest ``val_iou`` change
+    happened (seed, later
     epoch), and the range of the per-epoch calibrated tau."""
     rows = []
     has_cal = "val_iou_cal" in logs.columns
@@ -171,9 +175,12 @@ def epoch_swings(logs: pd.DataFrame) -> pd.DataFrame:
 def size_split(metrics: pd.DataFrame) -> pd.DataFrame:
     """Seed summary (pipeline.stats.seed_summary) of Image IoU, Boundary F1 and predicted/reference area
     per method, threshold mode and target size class, pooled over the test groups."""
-    from pipeline.stats import seed_summary
-
     return seed_summary(metrics, ["method", "threshold_mode", "target_size"], ["iou", "bf1", "area_vs_reference"])
+
+
+def tau_text(tau: float | None) -> str:
+    """The fixed tau in the report's words: its value (``:g`` format), or its param's name when unknown (None)."""
+    return "`calibrate.fixed_tau`" if tau is None else f"{tau:g}"
 
 
 def _f(x, digits=3) -> str:
@@ -191,7 +198,8 @@ def _count_sign(values, sign: int) -> int:
 
 @dataclasses.dataclass(frozen=True)
 class _Cast:
-    """Who is compared in :func:`fixed_tau_findings`: method names, their display labels and the groups."""
+    """Who is compared in :func:`fixed_tau_findings`: method names, their display labels, the groups, and
+    the fixed tau in words (:func:`tau_text`)."""
 
     treatment: str
     control: str
@@ -199,6 +207,7 @@ class _Cast:
     ceiling: str
     groups: list
     label: Callable
+    tau0: str
 
     @property
     def T(self) -> str:
@@ -250,7 +259,7 @@ def _gain_findings(summary: pd.DataFrame | None, c: _Cast) -> tuple[list[str], b
         cal, fix = gains["calibrated"][k], gains["fixed"][k]
         out.append(f"**{name} gain of {c.T} over {c.C}** per test group ({', '.join(c.groups)}): calibrated tau "
                    f"{', '.join(_signed(x) for x in cal)} (positive on {_count_sign(cal, 1)} of {n}); fixed "
-                   f"tau = 0.5 {', '.join(_signed(x) for x in fix)} (negative on {_count_sign(fix, -1)} of {n}).")
+                   f"tau = {c.tau0} {', '.join(_signed(x) for x in fix)} (negative on {_count_sign(fix, -1)} of {n}).")
     cal, fix = gains["calibrated"]["bf1"], gains["fixed"]["bf1"]
     return out, _count_sign(cal, 1) > n / 2 and _count_sign(fix, -1) > n / 2
 
@@ -263,7 +272,7 @@ def _area_findings(metrics: pd.DataFrame | None, c: _Cast) -> tuple[list[str], b
     get = lambda m, mode: float(med.get((m, mode), np.nan))  # noqa: E731
     if not (np.isfinite(get(c.treatment, "fixed")) and np.isfinite(get(c.control, "fixed"))):
         return [], None
-    parts = [f"{c.label(m)} {_f(get(m, 'fixed'), 2)} at 0.5 and {_f(get(m, 'calibrated'), 2)} at its calibrated "
+    parts = [f"{c.label(m)} {_f(get(m, 'fixed'), 2)} at {c.tau0} and {_f(get(m, 'calibrated'), 2)} at its calibrated "
              f"tau" for m in (c.treatment, c.control, c.continuation, c.ceiling) if np.isfinite(get(m, "fixed"))]
     out = ["**Foreground area** (median predicted / reference area over the test images; 1 = none "
            "inflated): " + "; ".join(parts) + "."]
@@ -278,31 +287,32 @@ def _reading(reversal: bool | None, inflation: bool | None, tau_t: float, tau_c:
     if all(facts):
         return [f"**Reading.** The fixed-tau reversal is present and is a threshold effect: {c.T}'s "
                 f"probabilities sit higher (calibrated tau {_signed(tau_t - tau_c, 2)} against {c.C}), so at "
-                f"tau = 0.5 it inflates the foreground more than {c.C} and loses Boundary F1; the "
+                f"tau = {c.tau0} it inflates the foreground more than {c.C} and loses Boundary F1; the "
                 f"validation-calibrated tau removes that loss."]
     if not reversal:
         return [f"**Reading.** No fixed-tau reversal in this run: the Boundary F1 gain of {c.T} does not turn "
-                f"from positive at the calibrated tau to negative at 0.5 on most groups."]
-    missing = [w for w, ok in zip(("a higher calibrated tau", "foreground inflation at 0.5"), facts[1:]) if not ok]
-    return [f"**Reading.** The Boundary F1 gain reverses at tau = 0.5, but without "
+                f"from positive at the calibrated tau to negative at {c.tau0} on most groups."]
+    missing = [w for w, ok in zip(("a higher calibrated tau", f"foreground inflation at {c.tau0}"), facts[1:])
+               if not ok]
+    return [f"**Reading.** The Boundary F1 gain reverses at tau = {c.tau0}, but without "
             f"{' or '.join(missing)}; the threshold explanation does not fully account for it here."]
 
 
 def _continuation_findings(summary: pd.DataFrame | None, noise_floor: dict | None, c: _Cast) -> list[str]:
     """Treatment minus the budget-matched continuation, and the continuation minus control, at both taus."""
-    if summary is None or "gain_iou_vs_continuation" not in summary.columns:
+    vs = vs_column("gain_iou", c.continuation)
+    if summary is None or vs not in summary.columns:
         return []
     out = []
-    for mode, text in (("calibrated", "calibrated tau"), ("fixed", "tau = 0.5")):
+    for mode, text in (("calibrated", "calibrated tau"), ("fixed", f"tau = {c.tau0}")):
         s = summary[summary["threshold_mode"] == mode].set_index(["method", "group"])
         geo = [(g, s.loc[(c.treatment, g)]) for g in c.groups if (c.treatment, g) in s.index]
         cont = [(g, s.loc[(c.continuation, g)]) for g in c.groups if (c.continuation, g) in s.index]
         if not geo or not cont:
             continue
-        d_geo = [r["gain_iou_vs_continuation"] for _, r in geo]
+        d_geo = [r[vs] for _, r in geo]
         # supported = seed-aware CI excludes 0 and the difference exceeds the noise floor (claim_status)
-        ok = [claim_status(r["gain_iou_vs_continuation"], r["gain_iou_vs_continuation_lo"],
-                           r["gain_iou_vs_continuation_hi"],
+        ok = [claim_status(r[vs], r[f"{vs}_lo"], r[f"{vs}_hi"],
                            gain_noise_floor(noise_floor, g, "iou") if noise_floor else None) == SUPPORTED
               for g, r in geo]
         d_cont = [r["gain_iou"] for _, r in cont]
@@ -368,7 +378,7 @@ def _size_finding(metrics: pd.DataFrame | None, c: _Cast) -> list[str]:
         if np.isfinite(d["calibrated"]):
             n = int(n_img.xs(size, level="target_size").max()) if size in n_img.index.get_level_values(0) else 0
             parts.append(f"{size} targets ({n} images per seed): {_signed(d['calibrated'])} at the calibrated tau, "
-                         f"{_signed(d['fixed'])} at 0.5")
+                         f"{_signed(d['fixed'])} at {c.tau0}")
     if not parts:
         return []
     return [f"**Target size** ({c.T} − {c.C}, Image IoU; tiny = under evaluate.tiny_target_max_fraction of "
@@ -376,7 +386,8 @@ def _size_finding(metrics: pd.DataFrame | None, c: _Cast) -> list[str]:
 
 
 def _swing_finding(logs: pd.DataFrame | None, c: _Cast) -> list[str]:
-    """The largest per-epoch change of validation IoU at tau 0.5 against that at each epoch's calibrated tau."""
+    """The largest per-epoch change of validation IoU at the fixed tau (checkpoint selection's) against that
+    at each epoch's calibrated tau."""
     if logs is None or "val_iou_cal" not in logs.columns:
         return []
     sw = epoch_swings(logs)
@@ -386,16 +397,16 @@ def _swing_finding(logs: pd.DataFrame | None, c: _Cast) -> list[str]:
     cal = float(sw["max_swing_cal"].max())
     steadier = ("steadier: much of the swing is a threshold shift" if np.isfinite(cal) and cal < 0.5 * r["max_swing"]
                 else "about as unsteady: the swing is not only a threshold shift")
-    return [f"**Per-epoch validation IoU.** The largest change between adjacent epochs at tau 0.5 is "
+    return [f"**Per-epoch validation IoU.** The largest change between adjacent epochs at tau {c.tau0} is "
             f"{_f(r['max_swing'])} ({c.label(r['method'])}, seed {int(r['max_seed'])}, epoch "
             f"{int(r['max_epoch'])}); at each epoch's calibrated tau the largest is {_f(cal)} -- {steadier}."]
 
 
 def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | None, metrics: pd.DataFrame | None,
                        logs: pd.DataFrame | None, vote: pd.DataFrame | None, groups: list[str],
-                       treatment: str = "geodistill", control: str = "plain",
-                       continuation: str = "continuation", ceiling: str = "supervised_ceiling",
-                       label=lambda m: m, noise_floor: dict | None = None) -> list[str]:
+                       treatment: str = PROPOSED, control: str = BASELINE, continuation: str = CONTINUATION,
+                       ceiling: str = SUPERVISED_CEILING, label=lambda m: m, noise_floor: dict | None = None,
+                       fixed_tau: float | None = None) -> list[str]:
     """What the diagnostics show about the fixed-tau reversal, in sentences computed from the numbers
     (no conclusion is fixed in advance: every verdict is a comparison of the numbers it quotes).
 
@@ -403,9 +414,11 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
     ``control`` (:func:`_threshold_findings`); the sign of the Boundary F1 / Image IoU gain per group at
     the calibrated and at the fixed tau (:func:`_gain_findings`); foreground inflation at both taus
     (:func:`_area_findings`); the verdict from those three (:func:`_reading`); the budget-matched
-    continuation; the supervised ceiling and the teacher vote; target size; per-epoch swings.
+    continuation; the supervised ceiling and the teacher vote; target size; per-epoch swings.  Who is
+    compared comes from the method table's roles (pipeline.methods); ``fixed_tau`` is calibrate.fixed_tau
+    as the run recorded it (None: unknown, named by its param).
     """
-    c = _Cast(treatment, control, continuation, ceiling, list(groups), label)
+    c = _Cast(treatment, control, continuation, ceiling, list(groups), label, tau_text(fixed_tau))
     thresholds_out, tau_t, tau_c = _threshold_findings(thresholds, c)
     gains_out, reversal = _gain_findings(summary, c)
     area_out, inflation = _area_findings(metrics, c)
@@ -423,9 +436,6 @@ NOISE_FLOOR_NOT_MEASURED = "noise floor not measured (run python -m pipeline.ben
 def load_noise_floor(path) -> dict | None:
     """The stability benchmark's record (reports/noise_floor.json: ``{"info": ..., "numbers": {key:
     {"pert", "seed_sd"}}}``), or None when the file is absent."""
-    import json
-    from pathlib import Path
-
     p = Path(path)
     if not p.is_file():
         return None

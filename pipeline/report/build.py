@@ -13,11 +13,14 @@ import numpy as np
 import pandas as pd
 
 from pipeline import catalog
+from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run
 from pipeline.errors import ArtifactError
+from pipeline.inference import iter_runs, load_student, predict_probs
+from pipeline.methods import BASELINE, PROPOSED
 from pipeline.report import figures as F
 from pipeline.report import tables as T
 from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_analysis, load_noise_floor, size_split,
-                                      teacher_domain_quality, teacher_prompt_quality, teacher_vote_means)
+                                      tau_text, teacher_domain_quality, teacher_prompt_quality, teacher_vote_means)
 from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
 from pipeline.report.environment import environment_section, training_runs
 from pipeline.thresholds import mask_from_probs
@@ -38,6 +41,8 @@ class Inputs:
     no_masks: bool = False  # no validation or test image has a mask (a distill project without --val-masks)
     #: the stability benchmark's noise-floor record (reports/noise_floor.json), None when not measured
     noise_floor: dict | None = None
+    #: calibrate.fixed_tau as the run recorded it (:func:`recorded_fixed_tau`), None when unknown
+    fixed_tau: float | None = None
 
     def get(self, name):
         return self.found.get(name)
@@ -52,8 +57,6 @@ class Inputs:
 
 def load_inputs(art: str | Path) -> Inputs:
     """Open every input that exists; record a :class:`Missing` note for each one that does not."""
-    from pipeline.artifacts import open_artifact, require_same_run
-
     art = Path(art)
     found, missing = {}, {}
     for name in INPUTS:
@@ -69,14 +72,26 @@ def load_inputs(art: str | Path) -> Inputs:
     if found.get("manifest") is not None:
         inp.no_masks = no_reference_masks(found["manifest"].df, found.get("reference"))
     inp.noise_floor = load_noise_floor(catalog.path("noise_floor", art))
+    inp.fixed_tau = recorded_fixed_tau(found.get("thresholds"), found.get("metrics"))
     return inp
+
+
+def recorded_fixed_tau(thresholds, metrics) -> float | None:
+    """The fixed tau of this run (``calibrate.fixed_tau``) as its artifacts recorded it: thresholds.parquet's
+    ``fixed_tau`` column, else the tau of metrics.parquet's fixed-mode rows; None when neither holds exactly
+    one value.  The report's words about the fixed threshold quote it."""
+    for art, column, rows in ((thresholds, "fixed_tau", None), (metrics, "tau", "fixed")):
+        if art is None or column not in art.df.columns:
+            continue
+        df = art.df if rows is None else art.df[art.df["threshold_mode"] == rows]
+        values = set(df[column].astype(float))
+        if len(values) == 1:
+            return values.pop()
+    return None
 
 
 def training_logs(checkpoints: Path) -> pd.DataFrame | None:
     """All active runs' training logs stacked, with method and seed columns (None when none)."""
-    from pipeline.artifacts import open_artifact
-    from pipeline.inference import iter_runs
-
     frames = []
     try:
         runs = list(iter_runs(checkpoints))
@@ -104,7 +119,7 @@ def teacher_note(backend: str) -> str:
 NO_MASKS_NOTE = (
     "**No validation or test masks were available** (e.g. `geodistill distill` without `--val-masks`): every "
     "image is a training image, Stage I and Stage II keep their last epoch, the threshold is the fixed "
-    "tau = `calibrate.fixed_tau` (0.5, not calibrated), and there are no accuracy numbers -- the student's "
+    "tau = `calibrate.fixed_tau` ({tau}, not calibrated), and there are no accuracy numbers -- the student's "
     "quality on this data is unmeasured.  Pass a few masks (`--val-masks DIR`) to select, calibrate and score.")
 
 
@@ -156,7 +171,7 @@ def data_section(inp: Inputs) -> Section:
         "and evaluation (and, on the synthetic benchmark, inside the teacher simulator); they never enter a "
         "student's training loss."))
     if no_reference_masks(df, inp.get("reference")):
-        sec.blocks.append(Text(NO_MASKS_NOTE))
+        sec.blocks.append(Text(NO_MASKS_NOTE.format(tau=tau_text(inp.fixed_tau))))
     rows = []
     for (ds, split, group), part in df.groupby(["dataset", "split", "group"], sort=False):
         rows.append([str(ds), str(split), str(group), str(len(part)), str(part["spacecraft"].nunique())])
@@ -176,7 +191,7 @@ def threshold_section(inp: Inputs, plots: dict) -> Section:
         taus = sorted({float(t) for t in df["tau"]})
         sec.blocks.append(Text(FIXED_TAU_NOTE.format(tau=taus[0] if len(taus) == 1 else float("nan"))))
         return sec
-    sec.blocks.append(T.thresholds_table(df))
+    sec.blocks.append(T.thresholds_table(df, inp.fixed_tau))
     long = [pd.DataFrame({"tau": r["grid"], "val_iou": r["curve"], "method": r["method"], "seed": r["seed"]})
             for _, r in df.iterrows() if "grid" in df.columns]
     if long:
@@ -207,14 +222,14 @@ def results_section(inp: Inputs) -> Section:
         groups = [g for g in order if g in groups] + [g for g in groups if g not in order]
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
-            sec.blocks.append(T.results_table(s.df, mode, groups, inp.noise_floor))
+            sec.blocks.append(T.results_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau))
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
-            sec.blocks.append(T.diagnostics_table(s.df, mode, groups))
+            sec.blocks.append(T.diagnostics_table(s.df, mode, groups, inp.fixed_tau))
     vote = vote_means(inp)
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
-            tab = T.reference_points_table(s.df, vote, mode, groups)
+            tab = T.reference_points_table(s.df, vote, mode, groups, inp.fixed_tau)
             if tab is not None:
                 sec.blocks.append(tab)
     return sec
@@ -249,31 +264,31 @@ def diagnostics_section(inp: Inputs, plots: dict) -> Section:
     groups = ordered_groups(inp, s.df["group"] if s is not None else [])
     findings = fixed_tau_findings(s.df if s is not None else None, thr.df if thr is not None else None,
                                   m.df if m is not None else None, inp.logs, vote_means(inp), groups, label=T.label,
-                                  noise_floor=inp.noise_floor)
+                                  noise_floor=inp.noise_floor, fixed_tau=inp.fixed_tau)
     sec.blocks += [Text(f) for f in findings]
     if s is not None:
         for mode in ("calibrated", "fixed"):
-            tab = T.controls_table(s.df, mode, groups, inp.noise_floor)
+            tab = T.controls_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau)
             if tab is not None:
                 sec.blocks.append(tab)
     if thr is not None and "ece" in thr.df.columns:
-        sec.blocks += calibration_blocks(thr.df, plots)
+        sec.blocks += calibration_blocks(thr.df, plots, inp.fixed_tau)
     if inp.logs is not None and "val_iou_cal" in inp.logs.columns and inp.logs["val_iou"].notna().any():
-        sec.blocks.append(T.epoch_swing_table(epoch_swings(inp.logs)))
-        sec.blocks.append(epoch_calibrated_figure(inp.logs))
+        sec.blocks.append(T.epoch_swing_table(epoch_swings(inp.logs), inp.fixed_tau))
+        sec.blocks.append(epoch_calibrated_figure(inp.logs, inp.fixed_tau))
     if m is not None and "target_size" in m.df.columns:
         split = size_split(m.df)
         frac = (m.meta.params or {}).get("evaluate.tiny_target_max_fraction")
         for mode in ("calibrated", "fixed"):
             if (split["threshold_mode"] == mode).any():
-                sec.blocks.append(T.size_split_table(split, mode, frac))
+                sec.blocks.append(T.size_split_table(split, mode, frac, inp.fixed_tau))
     return sec
 
 
-def calibration_blocks(thr: pd.DataFrame, plots: dict) -> list:
+def calibration_blocks(thr: pd.DataFrame, plots: dict, fixed_tau: float | None = None) -> list:
     """The calibration table, the reliability diagram and the area-vs-tau figure (validation split;
     mean over seeds per method)."""
-    blocks = [T.calibration_table(thr)]
+    blocks = [T.calibration_table(thr, fixed_tau)]
     rel, area = [], []
     for method, part in thr.groupby("method", sort=False):
         with warnings.catch_warnings():  # a bin empty in every seed stays NaN (not drawn)
@@ -310,7 +325,7 @@ def calibration_blocks(thr: pd.DataFrame, plots: dict) -> list:
     return blocks
 
 
-def epoch_calibrated_figure(logs: pd.DataFrame) -> Figure:
+def epoch_calibrated_figure(logs: pd.DataFrame, fixed_tau: float | None = None) -> Figure:
     """Per-epoch validation Image IoU at each epoch's calibrated tau (mean over seeds per method)."""
     series = []
     for method, part in logs.groupby("method", sort=False):
@@ -321,7 +336,8 @@ def epoch_calibrated_figure(logs: pd.DataFrame) -> Figure:
                       "schedule)", "val Image IoU at calibrated tau")
     return Figure("fig:training-curves-calibrated", "Training curves at the calibrated tau",
                   "Validation Image IoU per epoch at the tau maximising it at that epoch (mean over seeds per "
-                  "method); compare with the tau = 0.5 curves in the training-curves section.", F.png_bytes(img),
+                  f"method); compare with the tau = {tau_text(fixed_tau)} curves in the training-curves section.",
+                  F.png_bytes(img),
                   "training_curves_calibrated.png", F.svg_bytes(img))
 
 
@@ -348,7 +364,8 @@ def ablation_section(inp: Inputs) -> Section:
                            f"pseudo-labels, architecture and calibration protocol. Single-seed evidence only."))
     for mode in ("calibrated", "fixed"):
         means = T.ablation_means(df, group, seed, mode)
-        for tab in (T.warm_start_table(means, epochs, group, seed, mode), T.component_table(means, group, seed, mode)):
+        for tab in (T.warm_start_table(means, epochs, group, seed, mode, inp.fixed_tau),
+                    T.component_table(means, group, seed, mode, inp.fixed_tau)):
             if tab is not None:
                 sec.blocks.append(tab)
     return sec
@@ -415,7 +432,8 @@ def training_section(inp: Inputs, plots: dict) -> Section:
         mean = part.groupby("epoch")["val_iou"].mean()
         series.append({"x": mean.index.to_numpy(float), "y": mean.to_numpy(float), "label": T.label(method),
                        **F.method_style(method)})
-    img = F.line_plot(series, "Validation Image IoU during training (tau 0.5)", "epoch (of the run's own schedule)",
+    img = F.line_plot(series, f"Validation Image IoU during training (tau {tau_text(inp.fixed_tau)})",
+                      "epoch (of the run's own schedule)",
                       "val Image IoU")
     sec.blocks.append(Figure("fig:training-curves", "Training curves", "Validation Image IoU per epoch (mean over "
                              "seeds per method; warm-started Stage-II runs count their own epochs from 1).",
@@ -426,14 +444,11 @@ def training_section(inp: Inputs, plots: dict) -> Section:
 # --------------------------------------------------------------------------------------------------
 # Figures from images and predictions
 # --------------------------------------------------------------------------------------------------
-def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str = "geodistill",
-                        control: str = "plain") -> Section:
+def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str = PROPOSED,
+                        control: str = BASELINE) -> Section:
     """Paper Fig. qualitative-results: control vs treatment on the first test group, same seed,
     validation-calibrated thresholds.  Images are chosen by rank of the per-image IoU gain, evenly
     spaced from the largest gain to the largest loss (so failures are shown too)."""
-    from pipeline.artifacts import read_chunk_rows
-    from pipeline.inference import load_student, predict_probs
-
     sec = Section("Qualitative results")
     miss = inp.need("metrics", "thresholds", "images", "reference", "manifest")
     if miss:
@@ -481,8 +496,6 @@ def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str
 
 def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
     """Paper Fig. pseudo-geometry for training images spread over the gate's range (highest g first)."""
-    from pipeline.artifacts import read_chunk_rows
-
     sec = Section("Pseudo-target construction")
     miss = inp.need("manifest", "images", "teacher", "consensus", "geometry", "gates")
     if miss:

@@ -8,42 +8,35 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
+from pipeline.methods import (BASELINE, CONTINUATION, METHODS, PROPOSED, STAGE_ONE, ablation_table_rows,
+                              annotation_free_methods, in_table_order, method_label, methods_with_role)
+from pipeline.report.analysis import gain_noise_floor, noise_floor_note, tau_text
 from pipeline.report.document import Table
+from pipeline.stats import NOT_ESTIMATED, claim_status, vs_column
 
-METHOD_LABELS = {
-    "plain": "Plain Student",
-    "confidence_filtered": "Confidence-Filtered Student",
-    "afs_control": "Annotation-Free-style Control",
-    "gabi": "GABI-inspired Pseudo-Geometry",
-    "geodistill": "GeoDistill-Refine",
-    "geodistill_adaptive": "GeoDistill-Refine (quality-adaptive)",
-    "full_scratch_10": "Full geometry, from scratch (10)",
-    "full_scratch_30": "Full geometry, from scratch (30)",
-    "sdf_scratch": "SDF only, from scratch",
-    "sdf_gated": "Stage I -> gated SDF",
-    "sdf_skel_gated": "Gated SDF + skeleton",
-    "sdf_area_gated": "Gated SDF + area",
-    "no_gate": "SDF + skeleton + area, no gate",
-    "continuation": "Budget-matched continuation (Stage II, L_raw only)",
-    "supervised_ceiling": "Supervised ceiling (uses reference masks; not annotation-free)",
-    "teacher_vote": "Teacher vote (6-prompt majority, its own binary mask)",
-}
-MAIN_ORDER = ["plain", "confidence_filtered", "afs_control", "gabi", "geodistill", "geodistill_adaptive",
-              "continuation"]
-WARM_START_ROWS = ["plain", "full_scratch_10", "full_scratch_30", "sdf_scratch", "sdf_gated", "geodistill"]
-COMPONENT_ROWS = ["sdf_gated", "sdf_skel_gated", "sdf_area_gated", "no_gate", "geodistill"]
-ABLATIONS = set(WARM_START_ROWS + COMPONENT_ROWS) - {"plain", "geodistill"}
-MODE_TEXT = {"calibrated": "validation-calibrated tau", "fixed": "fixed tau = 0.5"}
+#: the main comparison's rows (results tables): every annotation-free method but the ablations, in table order
+MAIN_ORDER = in_table_order(n for n in annotation_free_methods(METHODS) if METHODS[n].role != "ablation")
+WARM_START_ROWS = ablation_table_rows("warm_start")
+COMPONENT_ROWS = ablation_table_rows("component")
+ABLATIONS = set(methods_with_role("ablation"))
+#: the teacher vote scored as a predictor (a row of the reference-points table; not a method)
+TEACHER_VOTE_LABEL = "Teacher vote (6-prompt majority, its own binary mask)"
+#: the gain columns' suffix of the budget-matched control (pipeline.stats.vs_column)
+VS_CONTINUATION = vs_column("", CONTINUATION)
+
+
+def mode_text(mode: str, fixed_tau: float | None) -> str:
+    """A threshold mode in words: the validation-calibrated tau, or the fixed tau with its value
+    (``fixed_tau``: calibrate.fixed_tau as the run recorded it; None: unknown, named by its param)."""
+    return {"calibrated": "validation-calibrated tau", "fixed": f"fixed tau = {tau_text(fixed_tau)}"}.get(mode, mode)
 
 
 def label(method: str) -> str:
-    return METHOD_LABELS.get(method, method)
+    return method_label(method)
 
 
 def not_annotation_free(methods: Sequence[str]) -> list[str]:
     """The methods of ``methods`` that train on reference masks (the supervised ceiling), in order."""
-    from pipeline.methods import annotation_free_methods
-
     free = set(annotation_free_methods(methods))
     return [m for m in dict.fromkeys(methods) if m not in free]
 
@@ -68,8 +61,6 @@ def fmt_ci(gain, lo, hi, digits: int = 4) -> str:
 def main_methods(methods: Sequence[str]) -> list[str]:
     """Annotation-free methods of the main comparison in the paper's order, then the continuation
     control (ablations and the supervised ceiling excluded; unknown names last)."""
-    from pipeline.methods import annotation_free_methods
-
     present = annotation_free_methods(list(dict.fromkeys(methods)))
     known = [m for m in MAIN_ORDER if m in present]
     return known + sorted(m for m in present if m not in MAIN_ORDER and m not in ABLATIONS)
@@ -92,9 +83,6 @@ def claim(r, suffix: str, group: str, noise_floor=None) -> str:
     """The claim column of a gain row: :func:`pipeline.stats.claim_status` of the Image IoU and the
     Boundary F1 gain (``gain_<metric><suffix>`` with its CI) against the group's noise floor
     (:func:`pipeline.report.analysis.gain_noise_floor` of ``noise_floor``, the benchmark's record)."""
-    from pipeline.report.analysis import gain_noise_floor
-    from pipeline.stats import NOT_ESTIMATED, claim_status
-
     out = []
     for k, name in (("iou", "IoU"), ("bf1", "BF1")):
         st = claim_status(*(float(r.get(f"gain_{k}{suffix}{x}", np.nan)) for x in ("", "_lo", "_hi")),
@@ -106,40 +94,38 @@ def claim(r, suffix: str, group: str, noise_floor=None) -> str:
 
 def floor_cell(group: str, noise_floor) -> str:
     """"IoU x / BF1 y" noise floor of a group, or "not measured"."""
-    from pipeline.report.analysis import gain_noise_floor
-
     vals = [gain_noise_floor(noise_floor, group, k) for k in ("iou", "bf1")]
     return "not measured" if not all(np.isfinite(vals)) else f"{fmt(vals[0])} / {fmt(vals[1])}"
 
 
-def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise_floor: dict | None = None) -> Table:
+def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise_floor: dict | None = None,
+                  fixed_tau: float | None = None) -> Table:
     """Paper Table spacesense-results: per group and method, Image IoU and Boundary F1 (mean ± sample
     std over seeds) and the gains against Plain Student with seed-aware 95 % CIs, the group's noise
-    floor (``noise_floor``: the stability benchmark's record, None = not measured) and the claim."""
-    from pipeline.report.analysis import noise_floor_note
-
+    floor (``noise_floor``: the stability benchmark's record, None = not measured) and the claim.
+    ``fixed_tau`` (every table's): calibrate.fixed_tau as the run recorded it (:func:`mode_text`)."""
     rows = [[g, label(m), fmt_pm(r["iou_mean"], r["iou_std"]), fmt_pm(r["bf1_mean"], r["bf1_std"]),
              fmt_ci(r.get("gain_iou"), r.get("gain_iou_lo"), r.get("gain_iou_hi")),
              fmt_ci(r.get("gain_bf1"), r.get("gain_bf1_lo"), r.get("gain_bf1_hi")),
              floor_cell(g, noise_floor) if np.isfinite(r.get("gain_iou", np.nan)) else "--",
              claim(r, "", g, noise_floor) if np.isfinite(r.get("gain_iou", np.nan)) else "--",
              str(int(r["n_seeds"]))] for g, m, r in group_method_rows(summary, mode, groups)]
-    return Table("tab:spacesense-results", f"Segmentation results on the test groups ({MODE_TEXT.get(mode, mode)})",
+    return Table("tab:spacesense-results", f"Segmentation results on the test groups ({mode_text(mode, fixed_tau)})",
                  ["Evaluation set", "Method", "Image IoU", "Boundary F1", "Image IoU gain [95% CI]",
                   "Boundary F1 gain [95% CI]", "Noise floor (IoU / BF1)", "Claim", "Seeds"], rows,
-                 ["Mean ± sample std over seeds of the per-seed means; gains against Plain Student with 95 % CIs "
+                 [f"Mean ± sample std over seeds of the per-seed means; gains against {label(BASELINE)} with 95 % CIs "
                   "from a seed-aware paired hierarchical bootstrap (seeds, then spacecraft, then images within "
                   "spacecraft, matched across methods; pipeline.stats.paired_seed_bootstrap).  A single seed has "
                   "no std, and its CI holds no training noise.", noise_floor_note(noise_floor)])
 
 
-def diagnostics_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -> Table:
+def diagnostics_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], fixed_tau: float | None = None) -> Table:
     """Precision, recall, predicted foreground fraction and small-region IoU (the paper's supplementary
     diagnostics, shaped like tab:external-results)."""
     rows = [[g, label(m)] + [fmt_pm(r.get(f"{k}_mean"), r.get(f"{k}_std"))
                              for k in ("precision", "recall", "area_ratio", "small_iou")]
             for g, m, r in group_method_rows(summary, mode, groups)]
-    return Table("tab:diagnostics", f"Foreground precision, recall and diagnostics ({MODE_TEXT.get(mode, mode)})",
+    return Table("tab:diagnostics", f"Foreground precision, recall and diagnostics ({mode_text(mode, fixed_tau)})",
                  ["Evaluation set", "Method", "Precision", "Recall", "Foreground fraction", "Small-region IoU"], rows,
                  ["Foreground fraction: predicted foreground pixels / image pixels (pipeline.metrics; not the "
                   "predicted / reference area of the calibration table).  "
@@ -147,12 +133,13 @@ def diagnostics_table(summary: pd.DataFrame, mode: str, groups: Sequence[str]) -
                   "small_region_iou); images without a small component are left out of its mean."])
 
 
-def thresholds_table(thr: pd.DataFrame) -> Table:
+def thresholds_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Table:
     rows = [[label(r["method"]), str(int(r["seed"])), fmt(r["tau"], 2), fmt(r["val_iou"]),
              fmt(r.get("fixed_val_iou", np.nan)), str(int(r.get("n_val", 0)))]
             for _, r in thr.sort_values(["method", "seed"]).iterrows()]
     return Table("tab:thresholds", "Calibrated thresholds (validation split)",
-                 ["Method", "Seed", "tau", "Val Image IoU at tau", "Val Image IoU at 0.5", "Val images"], rows,
+                 ["Method", "Seed", "tau", "Val Image IoU at tau", f"Val Image IoU at {tau_text(fixed_tau)}",
+                  "Val images"], rows,
                  ["tau maximises the mean validation Image IoU over the grid and is applied unchanged to every "
                   "test group.  Manual validation masks are used only for this calibration (and checkpoint "
                   "selection), never in a training loss."])
@@ -170,8 +157,6 @@ def ablation_means(metrics: pd.DataFrame, group: str, seed: int, mode: str) -> p
 
 def _epochs(m: str, epochs: Mapping[str, int]):
     """(Stage I, Stage II, total) epoch strings from the training logs' epoch counts."""
-    from pipeline.methods import METHODS
-
     spec = METHODS.get(m)
     own = epochs.get(m)
     if own is None:
@@ -179,12 +164,13 @@ def _epochs(m: str, epochs: Mapping[str, int]):
     if spec is None or spec.stage == 1:
         return str(own), "--", str(own)
     if spec.init == "stage1":
-        s1 = epochs.get("plain")
+        s1 = epochs.get(STAGE_ONE)
         return (str(s1) if s1 is not None else "?"), str(own), (str(s1 + own) if s1 is not None else "?")
     return "--", str(own), str(own)
 
 
-def warm_start_table(means: pd.DataFrame, epochs: Mapping[str, int], group: str, seed: int, mode: str) -> Table | None:
+def warm_start_table(means: pd.DataFrame, epochs: Mapping[str, int], group: str, seed: int, mode: str,
+                     fixed_tau: float | None = None) -> Table | None:
     """Paper Table warm-start-ablation (rows present in ``means`` only); None when no ablation ran."""
     present = [m for m in WARM_START_ROWS if m in means.index]
     if not any(m in ABLATIONS for m in present):
@@ -193,16 +179,16 @@ def warm_start_table(means: pd.DataFrame, epochs: Mapping[str, int], group: str,
     for m in present:
         s1, s2, tot = _epochs(m, epochs)
         rows.append([label(m), s1, s2, tot, fmt(means.loc[m, "iou"]), fmt(means.loc[m, "bf1"])])
-    return Table("tab:warm-start-ablation", f"Warm-start ablation on {group}, seed {seed} ({MODE_TEXT.get(mode, mode)})",
+    return Table("tab:warm-start-ablation",
+                 f"Warm-start ablation on {group}, seed {seed} ({mode_text(mode, fixed_tau)})",
                  ["Training configuration", "Stage I", "Stage II", "Total epochs", "Image IoU", "Boundary F1"], rows,
                  ["Epoch counts are read from the training logs (Stage I of a warm-started run = the plain "
                   "student's epochs)."])
 
 
-def component_table(means: pd.DataFrame, group: str, seed: int, mode: str) -> Table | None:
+def component_table(means: pd.DataFrame, group: str, seed: int, mode: str,
+                    fixed_tau: float | None = None) -> Table | None:
     """Paper Table component-ablation; check marks come from the method definitions (pipeline.methods)."""
-    from pipeline.methods import METHODS
-
     present = [m for m in COMPONENT_ROWS if m in means.index]
     if not any(m in ABLATIONS for m in present):
         return None
@@ -213,7 +199,7 @@ def component_table(means: pd.DataFrame, group: str, seed: int, mode: str) -> Ta
         tick = lambda b: "✓" if b else ""  # noqa: E731
         rows.append([label(m), tick("sdf" in terms), tick("skel" in terms), tick("area" in terms),
                      tick(spec is not None and spec.gate == "g"), fmt(means.loc[m, "iou"]), fmt(means.loc[m, "bf1"])])
-    return Table("tab:component-ablation", f"Component ablation on {group}, seed {seed} ({MODE_TEXT.get(mode, mode)})",
+    return Table("tab:component-ablation", f"Component ablation on {group}, seed {seed} ({mode_text(mode, fixed_tau)})",
                  ["Refinement configuration", "SDF", "Skel.", "Area", "Gate", "IoU", "BF1"], rows)
 
 
@@ -299,8 +285,6 @@ def efficiency_table(eff: pd.DataFrame) -> Table:
 # --------------------------------------------------------------------------------------------------
 def _ordered_with_ceiling_last(methods: Sequence[str]) -> list[str]:
     """Annotation-free methods (main order, then ablations by name), then the not-annotation-free ones."""
-    from pipeline.methods import METHODS
-
     present = list(dict.fromkeys(methods))
     free = main_methods(present)
     free += sorted(m for m in present if m in ABLATIONS and m not in free)
@@ -310,16 +294,14 @@ def _ordered_with_ceiling_last(methods: Sequence[str]) -> list[str]:
 
 
 def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
-                   noise_floor: dict | None = None) -> Table | None:
+                   noise_floor: dict | None = None, fixed_tau: float | None = None) -> Table | None:
     """The budget-matched control: per group, Continuation - Plain (Stage II's extra epochs alone),
     each warm-started method - Continuation (the geometry effect at a matched budget) and
     GeoDistill-Refine - Plain, with the paired hierarchical bootstrap CIs of the evaluate stage.
     None when no continuation run was evaluated.  Annotation-free methods only.  ``noise_floor``: the
     stability benchmark's record (None = not measured), beside each difference with its claim."""
-    from pipeline.report.analysis import noise_floor_note
-
     s = summary[summary["threshold_mode"] == mode]
-    if "continuation" not in set(s["method"]) or "gain_iou_vs_continuation" not in s.columns:
+    if CONTINUATION not in set(s["method"]) or f"gain_iou{VS_CONTINUATION}" not in s.columns:
         return None
     rows = []
     for g in groups:
@@ -336,12 +318,12 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
                          floor_cell(g, noise_floor), claim(r, suffix, g, noise_floor),
                          str(int(r[f"gain_seeds{suffix}"]))])
 
-        add(f"{label('continuation')} − {label('plain')} (extra epochs only)", "continuation", "")
-        warm = ["geodistill"] + sorted(m for m in part.index if m != "geodistill")
+        add(f"{label(CONTINUATION)} − {label(BASELINE)} (extra epochs only)", CONTINUATION, "")
+        warm = [PROPOSED] + sorted(m for m in part.index if m != PROPOSED)
         for m in warm:
-            add(f"{label(m)} − {label('continuation')} (geometry at a matched budget)", m, "_vs_continuation")
-        add(f"{label('geodistill')} − {label('plain')} (the paper's comparison)", "geodistill", "")
-    return Table("tab:controls", f"Budget-matched control: where the gain comes from ({MODE_TEXT.get(mode, mode)})",
+            add(f"{label(m)} − {label(CONTINUATION)} (geometry at a matched budget)", m, VS_CONTINUATION)
+        add(f"{label(PROPOSED)} − {label(BASELINE)} (the paper's comparison)", PROPOSED, "")
+    return Table("tab:controls", f"Budget-matched control: where the gain comes from ({mode_text(mode, fixed_tau)})",
                  ["Evaluation set", "Comparison", "Image IoU difference [95% CI]", "Boundary F1 difference [95% CI]",
                   "Noise floor (IoU / BF1)", "Claim", "Seeds"], rows,
                  ["The continuation warm-starts from the same Stage-I checkpoint and trains with Stage II's schedule, "
@@ -352,7 +334,7 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
 
 
 def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mode: str,
-                           groups: Sequence[str]) -> Table | None:
+                           groups: Sequence[str], fixed_tau: float | None = None) -> Table | None:
     """Reference points beside the students, never compared with CIs: the teacher vote scored as a
     predictor at its own binary mask (``vote``: per-group means from teacher_metrics.parquet) and the
     supervised ceiling (uses reference masks; not annotation-free), with Plain Student for context."""
@@ -363,7 +345,7 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
     rows = []
     for g in groups:
         part = s[s["group"] == g].set_index("method")
-        for m in ["plain", *ceiling]:
+        for m in [BASELINE, *ceiling]:
             if m in part.index:
                 r = part.loc[m]
                 rows.append([g, label(m), fmt_pm(r["iou_mean"], r["iou_std"]), fmt_pm(r["bf1_mean"], r["bf1_std"]),
@@ -371,10 +353,10 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
                              fmt_pm(r.get("recall_mean"), r.get("recall_std")), str(int(r["n_seeds"]))])
         if vote is not None and g in vote.index:
             v = vote.loc[g]
-            rows.append([g, label("teacher_vote"), fmt(v["iou"]), fmt(v["bf1"]), fmt(v["precision"]),
+            rows.append([g, TEACHER_VOTE_LABEL, fmt(v["iou"]), fmt(v["bf1"]), fmt(v["precision"]),
                          fmt(v["recall"]), "--"])
     return Table("tab:reference-points", f"Reference points: the teacher vote and the supervised ceiling "
-                 f"({MODE_TEXT.get(mode, mode)} for the students)",
+                 f"({mode_text(mode, fixed_tau)} for the students)",
                  ["Evaluation set", "Predictor", "Image IoU", "Boundary F1", "Precision", "Recall", "Seeds"], rows,
                  ["The supervised ceiling is the Plain Student's recipe trained on the training split's REFERENCE "
                   "masks: it is not annotation-free and is never part of a gain or its confidence interval.  The "
@@ -382,7 +364,7 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
                   "binary mask (no threshold), identical in both threshold modes."])
 
 
-def calibration_table(thr: pd.DataFrame) -> Table:
+def calibration_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Table:
     """Per method, mean ± std over seeds of the validation-split calibration diagnostics: calibrated tau,
     val Image IoU at tau and at the fixed tau, ECE, and median predicted/reference area at both taus."""
     rows = []
@@ -398,16 +380,17 @@ def calibration_table(thr: pd.DataFrame) -> Table:
         rows.append([label(m), ms("tau", 2), ms("val_iou"), ms("fixed_val_iou"), ms("ece"), ms("area_ratio", 2),
                      ms("fixed_area_ratio", 2), str(len(part))])
     return Table("tab:calibration", "Calibration diagnostics on the validation split",
-                 ["Method", "Calibrated tau", "Val IoU at tau", "Val IoU at 0.5", "ECE (pixels)",
-                  "Pred./ref. area at tau", "Pred./ref. area at 0.5", "Seeds"], rows,
+                 ["Method", "Calibrated tau", "Val IoU at tau", f"Val IoU at {tau_text(fixed_tau)}", "ECE (pixels)",
+                  "Pred./ref. area at tau", f"Pred./ref. area at {tau_text(fixed_tau)}", "Seeds"], rows,
                  ["ECE: expected calibration error of the pixel probabilities over equal-width bins "
                   "(pipeline.diagnostics).  Pred./ref. area: median over validation images of predicted / reference "
                   "foreground area (1 = no inflation).  Mean ± sample std over seeds."])
 
 
-def epoch_swing_table(swings: pd.DataFrame) -> Table:
+def epoch_swing_table(swings: pd.DataFrame, fixed_tau: float | None = None) -> Table:
     """Per method and stage: the largest and the median change of validation Image IoU between adjacent
-    epochs at tau 0.5 and at each epoch's calibrated tau, and the range of that tau (training logs)."""
+    epochs at the fixed tau (checkpoint selection's) and at each epoch's calibrated tau, and the range of
+    that tau (training logs)."""
     rows = []
     for m in _ordered_with_ceiling_last(swings["method"].unique()):
         for _, r in swings[swings["method"] == m].iterrows():
@@ -416,14 +399,16 @@ def epoch_swing_table(swings: pd.DataFrame) -> Table:
                          fmt(r["max_swing_cal"], 3), fmt(r["median_swing_cal"], 3),
                          f"{fmt(r['tau_min'], 2)}–{fmt(r['tau_max'], 2)}"])
     return Table("tab:epoch-swings", "Validation Image IoU between adjacent epochs (training logs)",
-                 ["Method", "Stage", "Largest change at tau 0.5", "Median change at 0.5",
+                 ["Method", "Stage", f"Largest change at tau {tau_text(fixed_tau)}",
+                  f"Median change at {tau_text(fixed_tau)}",
                   "Largest change at calibrated tau", "Median change at calibrated tau", "Calibrated tau range"], rows,
                  ["Absolute change of the mean validation Image IoU from one epoch to the next, over all seeds; "
                   "'calibrated tau' is the tau maximising that epoch's validation IoU (a diagnostic: checkpoint "
-                  "selection uses tau 0.5)."])
+                  f"selection uses tau {tau_text(fixed_tau)})."])
 
 
-def size_split_table(split: pd.DataFrame, mode: str, max_fraction: float | None) -> Table:
+def size_split_table(split: pd.DataFrame, mode: str, max_fraction: float | None,
+                     fixed_tau: float | None = None) -> Table:
     """Metrics split by target size (``split``: seed_summary rows by method, threshold_mode,
     target_size), pooled over the test groups."""
     s = split[split["threshold_mode"] == mode]
@@ -437,7 +422,7 @@ def size_split_table(split: pd.DataFrame, mode: str, max_fraction: float | None)
                              fmt_pm(r["bf1_mean"], r["bf1_std"]),
                              fmt_pm(r.get("area_vs_reference_mean"), r.get("area_vs_reference_std"), 2)])
     lim = f"{100 * max_fraction:g} %" if max_fraction is not None else "evaluate.tiny_target_max_fraction"
-    return Table("tab:size-split", f"Metrics split by target size, all test groups ({MODE_TEXT.get(mode, mode)})",
+    return Table("tab:size-split", f"Metrics split by target size, all test groups ({mode_text(mode, fixed_tau)})",
                  ["Method", "Target size", "Images per seed", "Image IoU", "Boundary F1", "Mean area vs reference"],
                  rows, [f"tiny: reference foreground under {lim} of the frame; regular: the rest; empty: no "
                         f"reference foreground.  Mean ± sample std over seeds of the per-seed means."])

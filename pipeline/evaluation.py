@@ -1,0 +1,143 @@
+"""The evaluation on the test split: every run's per-image scores at both taus, the seed summaries and the
+gains over the reference points of the method table (the ``evaluate`` stage is its wiring).
+
+* :func:`run_thresholds` -- a run's validation-calibrated tau and the fixed tau (``calibrate.fixed_tau``),
+  both as calibrate recorded them in thresholds.parquet;
+* :func:`score_runs` -- ``metrics.parquet``: one row per (group, method, seed, image, threshold_mode) with
+  Image IoU, Boundary F1, precision, recall, predicted area ratio and small-region IoU
+  (:func:`pipeline.metrics.score_masks`), the target fraction and size class
+  (:mod:`pipeline.diagnostics`) and the predicted / reference area;
+* :func:`summarize` -- ``summary.parquet``: mean and sample std over seeds of the per-seed means
+  (:func:`pipeline.stats.seed_summary`) and, for every reference point of the method table
+  (:data:`pipeline.methods.GAIN_CONTROLS`), the gains of the methods it covers
+  (:func:`pipeline.methods.gain_treatments`) with the seed-aware paired hierarchical bootstrap CI
+  (:func:`pipeline.stats.method_gains`).  The supervised ceiling gets means only.
+
+Reference masks are used here only to score predictions.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+from pipeline.artifacts import read_chunk_rows
+from pipeline.diagnostics import target_fractions, target_size_class
+from pipeline.errors import ArtifactError
+from pipeline.inference import load_student, predict_probs
+from pipeline.methods import BASELINE, GAIN_CONTROLS, gain_treatments
+from pipeline.metrics import score_masks, scoring_reference
+from pipeline.progress import progress
+from pipeline.stats import method_gains, seed_summary, vs_column
+from pipeline.thresholds import mask_from_probs
+
+#: metrics whose gains are bootstrapped
+GAIN_METRICS = ("iou", "bf1", "precision", "recall")
+#: metrics of the seed summary
+SUMMARY_METRICS = ("iou", "bf1", "precision", "recall", "area_ratio", "small_iou", "area_vs_reference")
+#: the per-image table's leading columns (the scores follow)
+METRICS_KEY = ["dataset", "domain", "group", "spacecraft", "method", "seed", "image_id", "threshold_mode", "tau"]
+#: the seed summary's and the gains' grouping
+SUMMARY_BY = ["dataset", "group", "method", "threshold_mode"]
+#: the test images' manifest columns copied into every row
+INFO_COLUMNS = ["image_id", "dataset", "domain", "group", "spacecraft"]
+CHUNK = 64  # test images predicted and scored per batch (bounded memory for large test sets)
+#: the reference masks' scoring geometry (pipeline.metrics.ScoringReference, ~5 bytes a pixel) is built
+#: once and reused by every run while the test set has at most this many pixels, else once per run
+REFERENCE_CACHE_PIXELS = 1 << 26
+
+
+def run_thresholds(thresholds: pd.DataFrame, method: str, seed: int, path) -> tuple[float, float]:
+    """(calibrated tau, fixed tau) of one run; ArtifactError when calibrate did not see the run."""
+    row = thresholds[(thresholds["method"] == method) & (thresholds["seed"] == seed)]
+    if len(row) != 1:
+        raise ArtifactError(f"{path}: no calibrated threshold for {method}/{seed} in thresholds.parquet; "
+                            f"rerun calibrate")
+    return float(row["tau"].iloc[0]), float(row["fixed_tau"].iloc[0])
+
+
+class _ChunkReferences:
+    """The test chunks' reference side (target fractions, :class:`pipeline.metrics.ScoringReference`):
+    read and prepared once, and reused by every run while the test set fits :data:`REFERENCE_CACHE_PIXELS`."""
+
+    def __init__(self, reference_masks, test: np.ndarray, tolerance: float, small_fraction: float):
+        self.masks, self.test, self.tolerance, self.small_fraction = reference_masks, test, tolerance, small_fraction
+        self.cache: dict[int, tuple] = {}
+
+    def get(self, start: int, idx: np.ndarray) -> tuple:
+        if start in self.cache:
+            return self.cache[start]
+        gts = read_chunk_rows(self.masks, idx).astype(bool)
+        entry = target_fractions(gts), scoring_reference(gts, self.tolerance, max_fraction=self.small_fraction)
+        if self.test.size * gts[0].size <= REFERENCE_CACHE_PIXELS:
+            self.cache[start] = entry
+        return entry
+
+
+def _score_chunk(probs: np.ndarray, info: pd.DataFrame, target: np.ndarray, ref, method: str, seed: int,
+                 taus: Mapping[str, float], tiny_fraction: float) -> list[pd.DataFrame]:
+    """The rows of one chunk of one run, one frame per threshold mode (``taus``: mode -> tau)."""
+    frames = []
+    for mode, tau in taus.items():
+        scores = score_masks(mask_from_probs(probs, tau), ref)  # eq:inference-mask
+        part = info.copy()
+        part["method"], part["seed"], part["threshold_mode"], part["tau"] = method, int(seed), mode, tau
+        for k, v in scores.items():
+            part[k] = v
+        part["target_fraction"], part["target_size"] = target, target_size_class(target, tiny_fraction)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            part["area_vs_reference"] = np.where(target > 0, scores["area_ratio"] / np.maximum(target, 1e-300),
+                                                 np.nan)
+        frames.append(part)
+    return frames
+
+
+def score_runs(runs: Sequence[tuple[str, int, Path]], manifest: pd.DataFrame, images, reference, test: np.ndarray,
+               thresholds: pd.DataFrame, cfg: Mapping, device) -> pd.DataFrame:
+    """The per-image metrics table of every run (``(method, seed, checkpoint)``) on the test rows ``test``
+    of ``manifest``, at the run's calibrated and at the fixed tau (``threshold_mode`` calibrated | fixed).
+
+    ``images``/``reference``: the opened images and reference zarrs; ``cfg``: the ``evaluate`` params
+    (``bf1_tolerance``, ``small_region_max_fraction``, ``tiny_target_max_fraction``)."""
+    info = manifest.iloc[test][INFO_COLUMNS].reset_index(drop=True)
+    refs = _ChunkReferences(reference["mask"], test, cfg["bf1_tolerance"], cfg["small_region_max_fraction"])
+    frames = []
+    for method, seed, path in progress(runs, desc="evaluate"):
+        tau_cal, tau_fixed = run_thresholds(thresholds, method, seed, path)
+        model, _ = load_student(path, device)
+        for s in range(0, test.size, CHUNK):
+            idx = test[s:s + CHUNK]
+            probs = predict_probs(model, read_chunk_rows(images["image"], idx), device=device)
+            target, ref = refs.get(s, idx)
+            frames += _score_chunk(probs, info.iloc[s:s + len(idx)], target, ref, method, seed,
+                                   {"calibrated": tau_cal, "fixed": tau_fixed}, cfg["tiny_target_max_fraction"])
+    metrics = pd.concat(frames, ignore_index=True)
+    return metrics[METRICS_KEY + [c for c in metrics.columns if c not in METRICS_KEY]]
+
+
+def control_gains(metrics: pd.DataFrame, control: str, n_boot: int, ci: float, seed: int) -> pd.DataFrame:
+    """Gains over ``control`` (pipeline.stats.method_gains, paired hierarchical bootstrap) of the
+    methods :func:`pipeline.methods.gain_treatments` compares with it -- never the supervised ceiling."""
+    keep = [*gain_treatments(control, metrics["method"].unique()), control]
+    return method_gains(metrics[metrics["method"].isin(keep)], GAIN_METRICS, control=control,
+                        by=[c for c in SUMMARY_BY if c != "method"], n_resamples=n_boot, ci=ci, seed=seed)
+
+
+def summarize(metrics: pd.DataFrame, n_boot: int, ci: float, seed: int) -> pd.DataFrame:
+    """The seed summary of ``metrics`` with the gains over every reference point of the method table:
+    ``gain_<metric>...`` over :data:`pipeline.methods.BASELINE` (always: the results tables' columns) and
+    ``gain_<metric>_vs_<control>...`` over each other reference point that was evaluated
+    (:func:`pipeline.stats.vs_column`).  ``n_boot``/``ci``/``seed``: evaluate.bootstrap_resamples, ci,
+    bootstrap_seed."""
+    summary = seed_summary(metrics, SUMMARY_BY, SUMMARY_METRICS)
+    present = set(metrics["method"])
+    for control in GAIN_CONTROLS:
+        if control != BASELINE and control not in present:
+            continue
+        gains = control_gains(metrics, control, n_boot, ci, seed)
+        gains = gains.rename(columns={c: vs_column(c, control) for c in gains.columns if c not in SUMMARY_BY})
+        summary = summary.merge(gains, on=SUMMARY_BY, how="left")
+    return summary
