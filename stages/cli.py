@@ -10,6 +10,9 @@ import importlib.util
 
 import click
 
+from pipeline import __version__
+from pipeline.artifacts import PROGRAM
+
 # subcommand -> module under stages/ exposing a click command named ``main`` (or ``module:command``)
 COMMANDS = {
     "prepare": "stages.prepare",
@@ -50,8 +53,7 @@ class LazyGroup(click.Group):
         """Every subcommand under :func:`stages._common.one_line_errors` (the stage commands also use it
         themselves, for ``python -m stages.<name>``): an InputError or OSError the command did not turn
         into its line still ends in one line, never a traceback."""
-        from pipeline.artifacts import PROGRAM
-        from stages._common import one_line_errors
+        from stages._common import one_line_errors  # starts pydantic (params): not for --help
 
         args = [*getattr(ctx, "_protected_args", []), *ctx.args] or [""]
         with one_line_errors(args[0] or PROGRAM):
@@ -59,11 +61,9 @@ class LazyGroup(click.Group):
 
 
 def _print_version(ctx, _param, value):
-    """``--version``: pipeline.__version__, imported only when asked for (keeps --help fast)."""
+    """``--version``: pipeline.__version__."""
     if not value or ctx.resilient_parsing:
         return
-    from pipeline import __version__
-
     click.echo(f"geodistill {__version__}")
     ctx.exit()
 

@@ -11,7 +11,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+from pipeline.artifacts import open_artifact
 from pipeline.errors import ArtifactError
+from pipeline.inference import iter_runs
 from pipeline.report.document import Section, Table, Text
 
 #: ``extra.autocast`` of a checkpoint -> the precision as the report names it
@@ -23,9 +25,6 @@ def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
     """One record per active run under ``checkpoints/<method>/<seed>/``: method, seed, ``precision``
     (the autocast it actually used), ``runtime`` (``extra.runtime``; None for a checkpoint written
     before it was recorded) and ``torch`` (the checkpoint's library_versions).  [] without checkpoints."""
-    from pipeline.artifacts import open_artifact
-    from pipeline.inference import iter_runs
-
     try:
         runs = list(iter_runs(checkpoints))
     except ArtifactError:
