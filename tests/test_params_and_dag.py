@@ -272,8 +272,8 @@ def test_demo_dag_has_only_active_runs():
     assert r.returncode == 0, r.stderr
     names = set(r.stdout.split())
     train = {n for n in names if n.startswith("train_")}
-    from pipeline.profiles import FIVE_SEEDS
+    from pipeline.profiles import TEN_SEEDS
 
-    # the demo's runs: three methods at the five seeds whose means it publishes (docs/stability.md)
-    assert train == {f"train_{m}@{s}" for m in ("plain", "geodistill", "continuation") for s in FIVE_SEEDS}
+    # the demo's runs: three methods at the ten seeds whose means it publishes (docs/stability.md)
+    assert train == {f"train_{m}@{s}" for m in ("plain", "geodistill", "continuation") for s in TEN_SEEDS}
     assert {"prepare", "teacher", "consensus", "geometry", "calibrate", "evaluate", "report"} <= names
