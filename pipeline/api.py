@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 from pipeline.errors import InputError
+from pipeline.profiles import load_params_or_profile
 
 LABEL_PROFILE = "paper"
 DISTILL_PROFILE = "distill"
@@ -29,17 +30,11 @@ def effective_params(params: str | Path | None = None, overrides: Mapping | Iter
                      default_profile: str = LABEL_PROFILE) -> dict:
     """Validated params: the file ``params`` (or, when None, ``default_profile``'s values) with
     ``overrides`` applied (``--set profile=X`` picks another profile, as on the command line)."""
-    from pipeline.params import load_params
-
     if isinstance(overrides, Mapping):
         items = [f"{k}={json.dumps(v)}" for k, v in overrides.items()]  # JSON values are YAML
     else:
         items = list(overrides or [])
-    if params is None:
-        if not any(o.split("=", 1)[0].strip() == "profile" for o in items):
-            items.insert(0, f"profile={default_profile}")
-        params = f"profile {default_profile}"
-    return load_params(params, items)
+    return load_params_or_profile(params, items, default_profile)
 
 
 def teacher_overrides(backend: str | None, checkpoint: str | Path | None, imported_dir: str | Path | None) -> dict:

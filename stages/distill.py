@@ -6,10 +6,11 @@ from __future__ import annotations
 import click
 
 from pipeline.params import BACKENDS
+from pipeline.profiles import load_params_or_profile
 from stages._common import overwrite_option, skip_bad_option, stage_command
 
 
-@stage_command("distill", default_profile="distill")
+@stage_command("distill", default_profile="distill", profile_loader=load_params_or_profile)
 @click.argument("input_dir", metavar="INPUT", type=click.Path())
 @click.option("--out", required=True, type=click.Path(file_okay=False),
               help="project folder (created; rerun the same command to resume)")

@@ -50,12 +50,12 @@ def test_defaults_are_the_paper_recipe_and_build_the_same_model():
 
 def test_schema_bounds():
     from pipeline.errors import InputError
-    from pipeline.params import load_params
+    from pipeline.profiles import load_profile
 
-    assert load_params(overrides=["profile=paper", "train.norm=group"])["train"]["norm"] == "group"
+    assert load_profile("paper", ["train.norm=group"])["train"]["norm"] == "group"
     for bad in ("train.norm=layer", "train.bn_momentum=0", "train.bn_momentum=1.5", "train.precise_bn=1"):
         with pytest.raises(InputError, match=bad.split("=")[0].split(".")[1]):
-            load_params(overrides=["profile=paper", bad])
+            load_profile("paper", [bad])
 
 
 def test_options_enter_every_methods_params_and_fingerprint():

@@ -170,10 +170,10 @@ def test_smooth_curve_is_a_cut_window_moving_average():
 
 def test_unknown_tau_rule_is_an_input_error():
     from pipeline.errors import InputError
-    from pipeline.params import load_params
+    from pipeline.profiles import load_profile
 
     with pytest.raises(InputError, match="tau_rule"):
-        load_params(overrides=["profile=demo", "calibrate.tau_rule=median"])
+        load_profile("demo", ["calibrate.tau_rule=median"])
 
 
 # --------------------------------------------------------------------------------------------------

@@ -42,7 +42,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from pipeline.benchmarks import study_recipe as sr
-from pipeline.profiles import FIVE_SEEDS
+from pipeline.profiles import FIVE_SEEDS, load_profile
 
 METHODS = ("plain", "geodistill", "continuation")
 #: (treatment, control) pairs whose gains the demo publishes
@@ -295,7 +295,7 @@ def main(argv=None) -> dict:
     # 2-thread run stalls the other (9x slower measured); no effect on the numbers
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-    from pipeline.params import RECIPES, load_params
+    from pipeline.params import RECIPES
 
     bad = [r for r in args.recipes if r not in RECIPES and r not in CANDIDATES]
     if bad:
@@ -306,8 +306,8 @@ def main(argv=None) -> dict:
                             **{k: None for k in ("train_spacecraft", "train_views", "val_spacecraft", "val_views",
                                                  "test_spacecraft_per_group", "test_views")})
     sets = sr.data_overrides(ns)
-    params = load_params(overrides=sets)
-    artifacts = sr.build_artifacts(Path(args.workdir).resolve(), sets, "cpu", geometry=True)
+    params = load_profile("demo", sets)
+    artifacts = sr.build_artifacts(Path(args.workdir).resolve(), "demo", sets, "cpu", geometry=True)
     base = dict(params["train"])
     if args.epochs is not None:
         base["epochs_stage1"] = args.epochs
