@@ -117,7 +117,7 @@ def dvc_plots(omit: tuple[str, ...] = ()) -> list[dict]:
             for p in PLOTS if ARTIFACTS[p.data].stage not in omit]
 
 
-#: the DVCLive column a run always logs (stages/train.py: write_live_log), plotted where no validation curve is
+#: the DVCLive column a run always logs (pipeline.dvc_results.write_live_log), plotted where no validation curve is
 LIVE_PLOT_METRIC = "loss"
 
 

@@ -344,6 +344,7 @@ def _changed_code_deps(repo) -> dict[str, set[str]]:
     return out
 
 
+@pytest.mark.slow
 def test_editing_profiles_or_the_dag_renderer_marks_no_stage_stale(code_repo):
     """Profiles are data read by `geodistill profile`/label/distill, and dvc.yaml's renderer runs in
     `geodistill dag`: no stage imports either, so editing them reruns nothing.  The control: the same

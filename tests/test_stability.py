@@ -116,7 +116,7 @@ def test_changing_num_threads_does_not_resume_the_old_state(tiny, tmp_path):
     the run key holds the effective thread count and autocast dtype."""
     from pipeline import training
     from pipeline.methods import get_method
-    from stages.train import FileCheckpointer
+    from pipeline.checkpointing import FileCheckpointer
 
     before = torch.get_num_threads()
     try:

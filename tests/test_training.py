@@ -139,7 +139,7 @@ def load_arrays(art, method_name, cfg):
 def _run(method_name, art, cfg, seed=42, init_state=None, resume_dir=None, checkpointer=None, **kw):
     from pipeline import training
     from pipeline.methods import get_method
-    from stages.train import FileCheckpointer
+    from pipeline.checkpointing import FileCheckpointer
 
     data, val = load_arrays(art, method_name, cfg)
     if checkpointer is None:
