@@ -26,6 +26,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipeline.errors import InputError
+from pipeline.methods import METHODS  # pure Python, no torch: this module stays torch-free
 
 DEFAULT_PARAMS = "params.yaml"
 
@@ -324,8 +325,6 @@ class ProtocolParams(_Section):
     @field_validator("runs")
     @classmethod
     def _runs(cls, v):
-        from pipeline.methods import METHODS  # pure Python, no torch
-
         for m, seeds in v.items():
             if m not in METHODS:
                 raise ValueError(f"unknown method {m!r} (one of {', '.join(METHODS)})")
@@ -340,8 +339,6 @@ class ProtocolParams(_Section):
 
     @model_validator(mode="after")
     def _ceiling_flag(self):
-        from pipeline.methods import METHODS
-
         gated = [m for m, seeds in self.runs.items() if seeds and not METHODS[m].annotation_free]
         if gated and not self.supervised_ceiling:
             raise ValueError(f"protocol.runs lists {gated}, which train on reference masks (not annotation-free); "
