@@ -43,8 +43,8 @@ from pipeline.dvc_results import write_live_log
 from pipeline.environment import training_runtime
 from pipeline.errors import ArtifactError, InputError, TrainingDiverged
 from pipeline.inference import load_student, save_checkpoint
-from pipeline.methods import SUPERVISED_CEILING, fingerprint_params, get_method
-from pipeline.params import section
+from pipeline.methods import SELECTION_TAU_KEY, SUPERVISED_CEILING, fingerprint_params, get_method
+from pipeline.params import get_path, section
 from stages._common import stage_command, stage_context
 
 
@@ -115,10 +115,11 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
         init_state, init_art = load_init(init)
         inputs.append(init_art)
     meta = stage_context("train", __file__, params).meta(
-        "checkpoint", inputs, params={"train": fingerprint_params(spec, cfg), "method": method, "seed": seed,
+        "checkpoint", inputs, params={"params": fingerprint_params(spec, params), "method": method, "seed": seed,
                                       "stage": stage}, **data.stats)
     result = training.train(spec, cfg, data, val, seed, init_state=init_state, device=resolve_device(device),
-                            checkpointer=FileCheckpointer(Path(resume_dir) / meta.fingerprint))
+                            checkpointer=FileCheckpointer(Path(resume_dir) / meta.fingerprint),
+                            selection_tau=get_path(params, SELECTION_TAU_KEY))
     meta.extra.update(result.info)  # info["autocast"]: the precision actually used
     meta.extra["runtime"] = training_runtime(resolve_device(device))  # provenance, not fingerprinted
     save_checkpoint(out, result.model, meta, result.log, method=method, seed=seed, stage=stage,

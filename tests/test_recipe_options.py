@@ -60,12 +60,15 @@ def test_schema_bounds():
 
 def test_options_enter_every_methods_params_and_fingerprint():
     from pipeline.methods import METHODS, fingerprint_params, param_keys
+    from pipeline.params import PAPER
 
     cfg = tiny_cfg()
+    calibrate = PAPER.calibrate.model_dump()
     for m in METHODS.values():
         keys = param_keys(m)
         assert {"train.norm", "train.bn_momentum", "train.precise_bn"} <= set(keys), m.name
-        assert fingerprint_params(m, cfg) != fingerprint_params(m, {**cfg, "precise_bn": True})
+        assert fingerprint_params(m, {"train": cfg, "calibrate": calibrate}) != \
+            fingerprint_params(m, {"train": {**cfg, "precise_bn": True}, "calibrate": calibrate})
 
 
 # --------------------------------------------------------------------------------------------------

@@ -103,11 +103,14 @@ def test_weight_averaging_gives_the_mean_of_the_last_epochs_with_bn_recomputed(t
 # --------------------------------------------------------------------------------------------------
 def test_num_threads_and_precision_are_tracked_params_of_every_train_stage():
     from pipeline.methods import METHODS, fingerprint_params, param_keys
+    from pipeline.params import PAPER
 
     cfg = tiny_cfg()
+    calibrate = PAPER.calibrate.model_dump()
     for m in METHODS.values():
         assert {"train.num_threads", "train.precision", "train.recipe"} <= set(param_keys(m)), m.name
-        assert fingerprint_params(m, cfg) != fingerprint_params(m, {**cfg, "num_threads": cfg["num_threads"] + 1})
+        assert fingerprint_params(m, {"train": cfg, "calibrate": calibrate}) != \
+            fingerprint_params(m, {"train": {**cfg, "num_threads": cfg["num_threads"] + 1}, "calibrate": calibrate})
 
 
 def test_changing_num_threads_does_not_resume_the_old_state(tiny, tmp_path):
