@@ -121,8 +121,6 @@ class FastStudent:
 
         images = np.ascontiguousarray(images)
         if images.dtype != np.uint8 or images.ndim != 4:
-            from pipeline.errors import InputError
-
             raise InputError(f"logits_uint8: expected uint8 [N,H,W,3], got {images.dtype} {images.shape}")
         if self.device.type != "cuda":
             return self._forward(uint8_to_input(torch.from_numpy(images)))
