@@ -20,6 +20,11 @@ from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 from pipeline.errors import InputError
+from pipeline.labeling import label_folder
+from pipeline.labeling.run import parse_formats
+from pipeline.params import deep_merge, validate
+from pipeline.profiles import load_params_or_profile
+from pipeline.standalone import project_outputs, run_project, write_project
 
 LABEL_PROFILE = "paper"
 DISTILL_PROFILE = "distill"
@@ -29,17 +34,11 @@ def effective_params(params: str | Path | None = None, overrides: Mapping | Iter
                      default_profile: str = LABEL_PROFILE) -> dict:
     """Validated params: the file ``params`` (or, when None, ``default_profile``'s values) with
     ``overrides`` applied (``--set profile=X`` picks another profile, as on the command line)."""
-    from pipeline.params import load_params
-
     if isinstance(overrides, Mapping):
         items = [f"{k}={json.dumps(v)}" for k, v in overrides.items()]  # JSON values are YAML
     else:
         items = list(overrides or [])
-    if params is None:
-        if not any(o.split("=", 1)[0].strip() == "profile" for o in items):
-            items.insert(0, f"profile={default_profile}")
-        params = f"profile {default_profile}"
-    return load_params(params, items)
+    return load_params_or_profile(params, items, default_profile)
 
 
 def teacher_overrides(backend: str | None, checkpoint: str | Path | None, imported_dir: str | Path | None) -> dict:
@@ -61,8 +60,6 @@ def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | N
     ``checkpoint``, ``imported_dir`` or ``backend`` only a params file naming a SAM 3 checkpoint
     chooses one (the schema's default backend is the synthetic benchmark's SIMULATOR, never picked
     silently)."""
-    from pipeline.params import deep_merge, validate
-
     chosen = teacher_overrides(backend, checkpoint, imported_dir)
     if not chosen and not (params["teacher"]["backend"] == "sam3" and params["teacher"]["checkpoint"]):
         raise InputError("--checkpoint SAM3_DIR is required (or --backend imported|simulated)")
@@ -71,8 +68,6 @@ def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | N
 
 def with_skip_bad(params: dict, skip_bad: bool) -> dict:
     """``params`` with ``data.skip_bad`` true when ``--skip-bad`` was given (it never turns it off)."""
-    from pipeline.params import deep_merge
-
     return deep_merge(params, {"data": {"skip_bad": True}}) if skip_bad else params
 
 
@@ -86,9 +81,6 @@ def label(input: str | Path, checkpoint: str | Path | None = None, out: str | Pa
     contact sheet.  Returns a :class:`pipeline.labeling.LabelResult` (``.table``: c, v, a, g per image).
     ``backend="simulated"`` is a SIMULATOR that needs ``reference_masks``.  ``skip_bad`` and
     ``overwrite``: the command's ``--skip-bad`` and ``--overwrite`` (docs/own-data.md)."""
-    from pipeline.labeling import label_folder
-    from pipeline.labeling.run import parse_formats
-
     if out is None:
         raise InputError("label: out= (the output folder) is required")
     fmts = parse_formats(formats)
@@ -107,8 +99,6 @@ def distill(input: str | Path, out: str | Path | None = None, val_masks: str | P
     :mod:`pipeline.standalone`): ``out`` becomes a DVC project running the pipeline's DAG (rerun to
     resume).  Returns ``{"deploy", "report", "thresholds", "checkpoints"}`` paths; ``run=False`` only
     writes the project."""
-    from pipeline.standalone import project_outputs, run_project, write_project
-
     if out is None:
         raise InputError("distill: out= (the project folder) is required")
     p = choose_teacher(effective_params(params, overrides, DISTILL_PROFILE), backend, checkpoint, imported_dir)

@@ -17,6 +17,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from pipeline.params import get_path
+
 ARTIFACTS_DIR = "artifacts"
 
 #: a model's files in a checkpoint and in a deploy bundle (pipeline.weights): the tensors as safetensors
@@ -220,6 +222,4 @@ PLOTS: tuple[PlotSpec, ...] = (
 
 def stage_params(params: dict, keys) -> dict:
     """``{dotted key: value}`` of ``keys`` in validated params: what a stage fingerprints."""
-    from pipeline.params import get_path
-
     return {k: get_path(params, k) for k in keys}

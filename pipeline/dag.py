@@ -20,7 +20,11 @@ from typing import Any
 
 import yaml
 
+from pipeline.catalog import ARTIFACTS, EXTRA_PATHS, PLOTS, PLOT_TEMPLATE, STAGES, StageSpec, dvc_path
 from pipeline.codeversion import ROOT, code_deps
+from pipeline.methods import METHODS, STAGE_ONE, input_artifacts, param_keys
+from pipeline.params import Params, deep_merge, unresolved, validate
+from pipeline.profiles import profile_params
 
 
 # --------------------------------------------------------------------------------------------------
@@ -28,8 +32,6 @@ from pipeline.codeversion import ROOT, code_deps
 # --------------------------------------------------------------------------------------------------
 def _fill(template: str) -> str:
     """Replace ``{artifact}`` placeholders by catalogue paths; ``${...}`` stays a DVC template."""
-    from pipeline.catalog import ARTIFACTS, EXTRA_PATHS, dvc_path
-
     values = {n: dvc_path(n, method="${item.method}", seed="${item.seed}", profile="${profile}") for n in ARTIFACTS}
     values.update(EXTRA_PATHS)
     return re.sub(r"(?<!\$)\{(\w+)\}", lambda m: values[m.group(1)], template)
@@ -56,17 +58,12 @@ def _stage_entry(spec, matrix: dict | None = None, code_root: Path | None = None
 
 def _out_entry(name: str) -> str | dict:
     """A catalogue artifact as a dvc.yaml out: outside artifacts/ (``../`` paths) ``cache: false``."""
-    from pipeline.catalog import ARTIFACTS
-
     p = _fill("{" + name + "}")
     return {p: {"cache": False}} if ARTIFACTS[name].path.startswith("../") else p
 
 
 def train_stage(method_name: str, code_root: Path | None = None) -> dict:
     """The ``train_<method>`` stage: one run per seed listed in ``protocol.runs.<method>``."""
-    from pipeline.catalog import StageSpec, dvc_path
-    from pipeline.methods import METHODS, STAGE_ONE, input_artifacts, param_keys
-
     m = METHODS[method_name]
     out = dvc_path("checkpoint", method=m.name, seed="${item.seed}")
     live = dvc_path("train_live", method=m.name, seed="${item.seed}")
@@ -85,9 +82,6 @@ def dvc_stages(code_root: Path | None = None, data_deps: dict[str, list[str]] | 
                omit: tuple[str, ...] = ()) -> dict[str, dict]:
     """Every stage of dvc.yaml, in DAG order: the catalogue's data stages, one train stage per method,
     then the catalogue's downstream stages.  ``code_root``/``data_deps``/``omit``: see :func:`render_dvc_yaml`."""
-    from pipeline.catalog import STAGES
-    from pipeline.methods import METHODS
-
     upstream = ["prepare", "teacher", "consensus", "geometry"]
     out = {n: _stage_entry(STAGES[n], code_root=code_root, data_deps=data_deps) for n in upstream}
     out.update({f"train_{name}": train_stage(name, code_root) for name in METHODS})
@@ -118,14 +112,12 @@ DVC_HEADER = """\
 def dvc_plots(omit: tuple[str, ...] = ()) -> list[dict]:
     """dvc.yaml's top-level plots (:data:`pipeline.catalog.PLOTS`), leaving out those whose data's
     producing stage is omitted."""
-    from pipeline.catalog import ARTIFACTS, PLOT_TEMPLATE, PLOTS, dvc_path
-
     return [{p.name: {"template": PLOT_TEMPLATE, "x": p.x, "y": {dvc_path(p.data): p.y}, "title": p.title,
                       "x_label": p.x_label, "y_label": p.y_label}}
             for p in PLOTS if ARTIFACTS[p.data].stage not in omit]
 
 
-#: the DVCLive column a run always logs (stages/train.py: write_live_log), plotted where no validation curve is
+#: the DVCLive column a run always logs (pipeline.dvc_results.write_live_log), plotted where no validation curve is
 LIVE_PLOT_METRIC = "loss"
 
 
@@ -133,8 +125,6 @@ def live_plots(runs: dict[str, list[int]], metric: str = LIVE_PLOT_METRIC) -> li
     """A top-level plot of the runs' DVCLive logs (``<train_live>/plots/metrics/<metric>.tsv``, one line
     per run, x = epoch step): what ``dvc plots show`` shows in a project without validation masks,
     whose validation-curve plots (from the evaluate stage) do not exist."""
-    from pipeline.catalog import dvc_path
-
     y = {f"{dvc_path('train_live', method=m, seed=s)}/plots/metrics/{metric}.tsv": metric
          for m, seeds in runs.items() for s in seeds}
     if not y:
@@ -211,9 +201,6 @@ def is_generated_params(path: str | Path) -> bool:
 def render_params_yaml(profile: str, overrides: dict | None = None, header: str | None = None) -> str:
     """params.yaml text of ``profile``; ``overrides`` (a nested mapping, e.g. a standalone project's
     data source) are merged over it and ``header`` replaces the standard comment block."""
-    from pipeline.params import Params, deep_merge, unresolved, validate
-    from pipeline.profiles import profile_params
-
     raw = deep_merge(profile_params(profile), overrides or {})
     values = unresolved(validate(raw, f"profile {profile}"), raw)  # recipe parts: null = the recipe's value
     lines: list[str] = []

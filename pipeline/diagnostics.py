@@ -26,6 +26,7 @@ import dataclasses
 import numpy as np
 
 from pipeline.errors import InputError
+from pipeline.metrics import threshold_counts
 
 SIZE_CLASSES = ("tiny", "regular", "empty")
 
@@ -110,8 +111,6 @@ def area_ratio_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
 
     The counts come from :func:`pipeline.metrics.threshold_counts` (one pass over the pixels).
     """
-    from pipeline.metrics import threshold_counts
-
     _probs_and_masks(probs, gts)
     n_pred, _, n_ref = threshold_counts(probs, gts, grid, chunk=chunk)
     ref = n_ref[:, None]

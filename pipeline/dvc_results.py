@@ -29,11 +29,16 @@ Plot tables (evaluate; git-tracked CSVs drawn by the ``method_lines`` template, 
 method, see :mod:`pipeline.offline_plots`): :func:`training_curves` (epoch rows of every run's
 training log) and :func:`threshold_curves` (calibrate's validation IoU over the tau grid).
 
-The builders are pure functions of tables; :func:`write_metrics_dir` and :func:`write_csv` write.
+Training logs for DVCLive viewers (train): :func:`write_live_log` writes a run's epoch rows as DVCLive
+files (``reports/dvclive/<method>/<seed>``).
+
+The builders are pure functions of tables; :func:`write_metrics_dir`, :func:`write_csv` and
+:func:`write_live_log` write.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from pathlib import Path
@@ -185,3 +190,45 @@ def write_csv(path: str | Path, table: pd.DataFrame) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(table.to_csv(index=False, lineterminator="\n"))
     return Path(path)
+
+
+#: training-log columns that are not DVCLive metrics (the step, and the schedule's stage number)
+LIVE_SKIP = ("epoch", "stage")
+
+
+def write_live_log(log, directory: str | Path, selected_epoch: int | None = None) -> Path:
+    """Log the run's epoch rows with DVCLive into ``directory`` (replaced atomically).
+
+    Step = ``epoch``; every other numeric column of the training log (pipeline.training.LOG_COLUMNS
+    minus :data:`LIVE_SKIP`) is a metric, a non-finite value (a loss term the method does not use)
+    is left out.  DVCLive writes ``plots/metrics/<column>.tsv`` (step, value) and ``metrics.json``
+    (the last epoch's values, plus ``selected_epoch``), without timestamps: the files are
+    byte-identical on a rerun.  No DVC experiment is saved and no dvc.yaml written (the DVC stage is
+    the experiment; dvc.yaml comes from pipeline/dag.py).  DVCLive is imported here only: an optional
+    dependency of the train stage.
+    """
+    from dvclive import Live
+
+    logging.getLogger("dvclive").setLevel(logging.WARNING)  # its INFO line names a random experiment
+    columns = [c for c in log.columns if c not in LIVE_SKIP]
+
+    class _StageLive(Live):
+        """DVCLive's files without its repository hooks: the DVC stage is the experiment, and
+        DVCLive's own git/DVC probing fails in a repository without commits and would ``dvc init``
+        a plain git checkout."""
+
+        def _init_dvc(self):
+            self._dvc_file = self._init_dvc_file()
+
+    with atomic_path(directory, is_dir=True) as tmp:
+        live = _StageLive(str(tmp), save_dvc_exp=False, dvcyaml=False, report=None)
+        for row in log.to_dict("records"):
+            live.step = int(row["epoch"])
+            for name in columns:
+                v = row[name]
+                if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+                    live.log_metric(name, float(v))
+        if selected_epoch is not None:
+            live.summary["selected_epoch"] = int(selected_epoch)
+        live.make_summary()
+    return Path(directory)

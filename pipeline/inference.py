@@ -19,7 +19,9 @@ from typing import Iterator
 
 import numpy as np
 
-from pipeline.errors import ArtifactError
+from pipeline.artifacts import artifact_dir, make_meta, open_artifact, require_same_run, write_parquet
+from pipeline.device import autocast_dtype
+from pipeline.errors import ArtifactError, InputError
 
 
 def iter_runs(checkpoints_dir: str | Path) -> Iterator[tuple[str, int, Path]]:
@@ -99,8 +101,6 @@ def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: 
     """
     import torch
 
-    from pipeline.device import autocast_dtype
-
     device = torch.device(device)
     dtype = autocast_dtype(device, precision)
     model = model.to(device).eval()
@@ -125,7 +125,6 @@ def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
     ``meta`` is the checkpoint's :class:`pipeline.artifacts.Meta` (schema ``checkpoint``);
     ``payload`` adds fields to model.json (method, seed, stage, selected_epoch, ...; JSON values).
     """
-    from pipeline.artifacts import artifact_dir, make_meta, write_parquet
     from pipeline.weights import write_weights
 
     geo = model.geometry_heads.state_dict() if getattr(model, "geometry_heads", None) is not None else None
@@ -145,9 +144,6 @@ def open_labelled_split(artifacts: str | Path, split: str, purpose: str, allow_e
     naming the manifest when no such row exists (``purpose`` completes the message), unless
     ``allow_empty`` (the indices are then empty).
     """
-    from pipeline.artifacts import open_artifact, require_same_run
-    from pipeline.errors import InputError
-
     art = Path(artifacts)
     manifest = open_artifact(art / "manifest.parquet", "manifest")
     images = open_artifact(art / "images.zarr", "images")
@@ -162,8 +158,6 @@ def open_labelled_split(artifacts: str | Path, split: str, purpose: str, allow_e
 
 def active_runs(checkpoints_dir: str | Path, purpose: str) -> list[tuple[str, int, Path]]:
     """:func:`iter_runs` as a list; InputError when there is no trained checkpoint to ``purpose``."""
-    from pipeline.errors import InputError
-
     runs = list(iter_runs(checkpoints_dir))
     if not runs:
         raise InputError(f"{checkpoints_dir}: no trained checkpoint to {purpose}")

@@ -333,11 +333,13 @@ def get_method(name: str) -> Method:
         raise InputError(f"--method {name!r}: expected one of {', '.join(METHODS)}") from None
 
 
-def _get(cfg: Mapping[str, Any], dotted: str) -> Any:
+def _get(cfg: Mapping[str, Any], dotted: str, prefix: str = "train.") -> Any:
+    """``cfg``'s value at ``dotted``; InputError naming ``prefix + dotted`` when absent (``cfg``: the
+    train section, or with ``prefix=""`` the whole params)."""
     cur: Any = cfg
     for k in dotted.split("."):
         if not isinstance(cur, Mapping) or k not in cur:
-            raise InputError(f"params: train.{dotted} missing")
+            raise InputError(f"params: {prefix}{dotted} missing")
         cur = cur[k]
     return cur
 
@@ -380,10 +382,16 @@ TERM_KEYS = {
 }
 
 
+#: the one key outside ``train.*`` every run reads: the tau of the validation masks in checkpoint
+#: selection (eq:inference-mask), the project's one fixed tau (the report's fixed-tau comparisons and
+#: the calibrate stage's fallback read the same key)
+SELECTION_TAU_KEY = "calibrate.fixed_tau"
+
+
 def param_keys(method: Method) -> tuple[str, ...]:
-    """The dotted params keys (``train.*``) a method's run reads: DVC tracks exactly these for its
-    stage and they form the params part of its checkpoint fingerprint, so editing ``train.lr_stage2``
-    reruns the warm-started Stage-II methods only."""
+    """The dotted params keys a method's run reads -- its ``train.*`` keys and :data:`SELECTION_TAU_KEY`:
+    DVC tracks exactly these for its stage and they form the params part of its checkpoint
+    fingerprint, so editing ``train.lr_stage2`` reruns the warm-started Stage-II methods only."""
     keys = list(COMMON_KEYS) + list(method.epochs) + [method.lr]
     for t in method.terms:
         keys += TERM_KEYS[t]
@@ -393,12 +401,13 @@ def param_keys(method: Method) -> tuple[str, ...]:
     keys = list(dict.fromkeys(keys))
     # a whole sub-section (``uses``) covers its own keys
     keys = [k for k in keys if not any(k.startswith(u + ".") for u in method.uses)]
-    return tuple(f"train.{k}" for k in keys)
+    return tuple(f"train.{k}" for k in keys) + (SELECTION_TAU_KEY,)
 
 
-def fingerprint_params(method: Method, cfg: Mapping[str, Any]) -> dict:
-    """``{train key: value}`` of :func:`param_keys` (the params part of a checkpoint's fingerprint)."""
-    return {k: _get(cfg, k.removeprefix("train.")) for k in param_keys(method)}
+def fingerprint_params(method: Method, params: Mapping[str, Any]) -> dict:
+    """``{dotted key: value}`` of :func:`param_keys` in validated ``params`` (the params part of a
+    checkpoint's fingerprint)."""
+    return {k: _get(params, k, prefix="") for k in param_keys(method)}
 
 
 def uses_confidence(method: Method) -> bool:

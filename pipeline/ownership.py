@@ -22,6 +22,7 @@ import json
 from pathlib import Path
 from typing import Iterable, Mapping
 
+from pipeline.artifacts import write_json
 from pipeline.errors import InputError
 
 WRITTEN_BY = "written_by"
@@ -108,8 +109,6 @@ def claim_outputs(out: str | Path, targets: Iterable[str], record: str, command:
     """Write the record ``out/record`` listing ``targets`` (and what it listed before) BEFORE the
     outputs themselves, so that a run killed half-way is recognised as the command's own by the
     next run; ``fields``: the command's other record fields.  Returns the record written."""
-    from pipeline.artifacts import write_json
-
     doc = {**dict(fields or {}), **record_fields(out, record, command, targets, **legacy)}
     write_json(Path(out) / record, doc)
     return doc

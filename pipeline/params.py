@@ -2,8 +2,9 @@
 
 ``params.yaml`` is the *effective* parameter set that DVC tracks key by key.  It is generated from
 this schema's defaults (the paper's values, eq labels refer to the paper) plus one profile's
-overrides (:mod:`pipeline.profiles`): ``geodistill profile demo|reduced|paper`` writes it, and a
-user then edits single values in it (``dvc exp run -S train.lr_stage2=2e-4`` works the same way).
+overrides (:mod:`pipeline.profiles`, which imports this module, never the reverse):
+``geodistill profile demo|reduced|paper`` writes it, and a user then edits single values in it
+(``dvc exp run -S train.lr_stage2=2e-4`` works the same way).
 
 Every stage validates the whole file once at start (:func:`load_params`): a value that is NaN or
 infinite, of the wrong type, out of range, or a key the schema does not know gives one
@@ -25,7 +26,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipeline.errors import InputError
-from pipeline.methods import METHODS, PROPOSED, STAGE_ONE
+from pipeline.methods import METHODS, PROPOSED, STAGE_ONE  # pure Python, no torch: this module stays torch-free
 
 DEFAULT_PARAMS = "params.yaml"
 
@@ -550,22 +551,26 @@ def read_yaml_mapping(path: str | Path, what: str = "params file") -> dict:
     return raw
 
 
-def load_params(path: str | Path = DEFAULT_PARAMS, overrides: Iterable[str] = ()) -> dict:
-    """The validated params of ``path`` with ``--set key.path=value`` overrides applied.
+#: the override key that names a profile: only the commands that switch profile accept it
+#: (:func:`pipeline.profiles.load_profile` and its callers: ``label``, ``distill``, the notebook API)
+PROFILE_KEY = "profile"
 
-    ``--set profile=NAME`` starts from that profile instead of the file (handy for single stages).
+
+def load_params(path: str | Path = DEFAULT_PARAMS, overrides: Iterable[str] = (),
+                base: Mapping[str, Any] | None = None) -> dict:
+    """The validated params of ``path`` (or of ``base``, raw values already read, with ``path`` naming
+    them in messages) with ``--set key.path=value`` overrides applied.
+
+    ``--set profile=NAME`` is refused here: profiles are data that only the commands switching profile
+    read (:func:`pipeline.profiles.load_profile`); this module does not import them.
     """
     parsed = [parse_override(o) for o in overrides]
-    profile = next((v for k, v in parsed if k == ["profile"]), None)
-    if profile is not None:
-        from pipeline.profiles import profile_params
-
-        raw = profile_params(str(profile))
-    else:
-        raw = read_yaml_mapping(path)
+    if any(keys == [PROFILE_KEY] for keys, _ in parsed):
+        raise InputError(f"--set {PROFILE_KEY}=...: this command reads its params file ({path}); "
+                         f"switch profile with `geodistill profile NAME`")
+    raw = read_yaml_mapping(path) if base is None else copy.deepcopy(dict(base))
     for keys, value in parsed:
-        if keys != ["profile"]:
-            set_path(raw, keys, value)
+        set_path(raw, keys, value)
     return validate(raw, str(path) if not parsed else f"{path} (with --set)")
 
 

@@ -1,7 +1,12 @@
 """Profiles: named sets of overrides of the schema defaults (the paper's values, :mod:`pipeline.params`).
 
-``geodistill profile NAME`` writes ``params.yaml`` = defaults + ``PROFILES[NAME]``; DVC then tracks
-each key of that file, so a later edit of one value reruns exactly the stages that read it.
+``geodistill profile NAME`` writes ``params.yaml`` = defaults + ``PROFILES[NAME]`` (:func:`profile_params`,
+rendered by :func:`pipeline.dag.render_params_yaml`); DVC then tracks each key of that file, so a later
+edit of one value reruns exactly the stages that read it.  Profiles are data read only by the commands
+that switch profile -- ``geodistill profile``, and ``label`` / ``distill`` / the notebook API, which start
+from a profile without ``--params`` and accept ``--set profile=NAME`` (:func:`load_params_or_profile`).
+The stages read params.yaml alone (:func:`pipeline.params.load_params` refuses ``--set profile=``, and
+:mod:`pipeline.params` does not import this module), so editing a profile marks no DVC stage stale.
 
 * ``demo``    -- the README's main command: the whole DAG in minutes on 2 CPU cores (64², a small
   split, 10 + 5 epochs, Plain Student + GeoDistill-Refine + the budget-matched continuation at ten
@@ -26,10 +31,12 @@ Stage-II epochs: about a third of its training time) and leaves the ceiling off.
 
 from __future__ import annotations
 
-from typing import Any
+from pathlib import Path
+from typing import Any, Iterable
 
 from pipeline.errors import InputError
 from pipeline.methods import methods_with_role
+from pipeline.params import PAPER, PROFILE_KEY, deep_merge, load_params, parse_override, unresolved
 
 SEEDS = [42, 3407, 2026]
 #: issue 24: five seeds for the main methods and the controls of the reduced protocol -- enough for a
@@ -93,11 +100,29 @@ PROFILES: dict[str, dict[str, Any]] = {
 
 def profile_params(name: str) -> dict:
     """Schema defaults + the profile's overrides (not yet validated: callers validate)."""
-    from pipeline.params import PAPER, deep_merge, unresolved
-
     if name not in PROFILES:
         raise InputError(f"profile {name!r}: expected one of {', '.join(PROFILES)}")
     # recipe parts stay null (= the recipe's value) unless the profile sets them
     out = deep_merge(unresolved(PAPER.model_dump(mode="python"), {}), PROFILES[name])
-    out["profile"] = name
+    out[PROFILE_KEY] = name
     return out
+
+
+def load_profile(name: str, overrides: Iterable[str] = ()) -> dict:
+    """The validated params of profile ``name`` with ``--set key.path=value`` overrides applied."""
+    return load_params(f"profile {name}", overrides, base=profile_params(name))
+
+
+def load_params_or_profile(params_file: str | Path | None, overrides: Iterable[str], default_profile: str) -> dict:
+    """The params of the commands that switch profile (``label``, ``distill``, the notebook API):
+    ``--set profile=NAME`` starts from that profile (it wins over ``params_file``); otherwise the file
+    ``params_file``, or, when it is None, ``default_profile``'s values."""
+    items = list(overrides)
+    parsed = [parse_override(i) for i in items]
+    named = next((value for keys, value in parsed if keys == [PROFILE_KEY]), None)
+    rest = [i for i, (keys, _) in zip(items, parsed) if keys != [PROFILE_KEY]]
+    if named is not None:
+        return load_profile(str(named), rest)
+    if params_file is None:
+        return load_profile(default_profile, rest)
+    return load_params(params_file, rest)

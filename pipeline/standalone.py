@@ -55,9 +55,15 @@ import sys
 from pathlib import Path
 from typing import Mapping
 
+from pipeline import __version__, catalog
 from pipeline.artifacts import write_text_if_changed
-from pipeline.offline_plots import template_path, template_text
+from pipeline.dag import ROOT, live_plots, render_dvc_yaml, render_params_yaml
+from pipeline.datasets.scan import scan_inputs
 from pipeline.errors import InputError
+from pipeline.labeling.run import find_images
+from pipeline.offline_plots import template_path, template_text
+from pipeline.ownership import check_outputs, record_fields
+from pipeline.params import deep_merge, read_yaml_mapping
 
 log = logging.getLogger(__name__)
 
@@ -116,8 +122,6 @@ def protocol_text(input_dir: Path, val_masks: Path | None) -> str:
 def check_val_masks(input_dir: Path, masks: Path) -> int:
     """How many images of ``input_dir`` have a mask (same id: relative path without the suffix) in
     ``masks``; InputError under 2 (the folder protocol needs one validation and one test image)."""
-    from pipeline.datasets.scan import scan_inputs
-
     def ids(folder: Path) -> set[str]:  # the folder adapter's image ids: relative path without suffix
         return {f.relative_to(folder).with_suffix("").as_posix() for f in scan_inputs(folder).files}
 
@@ -148,12 +152,6 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     ``params``: validated params (the distill profile with the user's overrides and the teacher).  In
     an existing ``out``, every path of :data:`PROJECT_OUTPUTS` that exists must be listed by a
     ``distill.json`` of an earlier run, unless ``overwrite`` (:mod:`pipeline.ownership`)."""
-    from pipeline import __version__
-    from pipeline.dag import ROOT, live_plots, render_dvc_yaml, render_params_yaml
-    from pipeline.labeling.run import find_images
-    from pipeline.ownership import check_outputs, record_fields
-    from pipeline.params import deep_merge
-
     input_dir = check_folder(input_dir, "INPUT")
     find_images(input_dir)  # one line when there is no image at all
     masks = check_folder(val_masks, "--val-masks") if val_masks is not None else None
@@ -229,9 +227,6 @@ def run_project(out: str | Path, device: str = "auto") -> None:
 
 def project_outputs(out: str | Path) -> dict[str, Path]:
     """Where a finished project's results are: deploy bundle, report, thresholds, checkpoints."""
-    from pipeline import catalog
-    from pipeline.params import read_yaml_mapping
-
     out = Path(out)
     art = out / catalog.ARTIFACTS_DIR
     profile = read_yaml_mapping(out / "params.yaml").get("profile", PROFILE)

@@ -18,6 +18,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from pipeline.errors import InputError
 from pipeline.methods import SUPERVISED_CEILING, Method
 
 
@@ -37,7 +38,6 @@ def ceiling_training_data(method: Method, inputs: Mapping[str, Any], reference) 
     ``area`` is each mask's foreground fraction and ``gate`` is 1 (L_raw uses neither).  Raises
     ValueError for any other method, InputError when no training row has a reference mask.
     """
-    from pipeline.errors import InputError
     from pipeline.training import TrainData, _check_order, _rows, _train_rows
 
     require_supervised_ceiling(method)

@@ -9,7 +9,8 @@ import it:
   corresponding validation set and then applied unchanged to the test set"): :func:`threshold_grid`,
   :func:`select_tau` (the tie rule), :func:`calibrate_threshold`;
 * resolution of the tau a deployed model runs with: :func:`resolve_tau` (precedence
-  option > bundle > checkpoint > thresholds file > fixed tau).
+  option > bundle > checkpoint > thresholds file > fixed tau), and beside it the working resolution
+  it runs at: :func:`resolve_resolution` (option > benchmark size > recorded with the model > params).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ import math
 import numpy as np
 
 from pipeline.errors import InputError
+from pipeline.metrics import iou_curve
+from pipeline.params import PAPER, require
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +69,6 @@ def check_tau(tau, where: str) -> float:
 def threshold_grid(cfg: dict) -> np.ndarray:
     """tau grid from calibrate.grid_start .. grid_stop (inclusive) in steps of grid_step, rounded to
     1e-9 so that 0.5 is exactly on the default grid.  InputError names the param."""
-    from pipeline.params import require
-
     start = require(cfg, "grid_start", "calibrate", kind=(int, float), lo=0.0, hi=1.0)
     stop = require(cfg, "grid_stop", "calibrate", kind=(int, float), lo=0.0, hi=1.0)
     step = require(cfg, "grid_step", "calibrate", kind=(int, float), lo=1e-6, hi=1.0)
@@ -78,8 +79,6 @@ def threshold_grid(cfg: dict) -> np.ndarray:
 
 
 def _default_grid() -> np.ndarray:
-    from pipeline.params import PAPER
-
     return threshold_grid(PAPER.calibrate.model_dump())
 
 
@@ -169,8 +168,6 @@ def calibrate_threshold(probs, gts, grid, rule: str = "argmax", *, tolerance: fl
     (pipeline.metrics.iou_curve); best_tau by :func:`tau_by_rule` (``argmax``, the paper's rule, by
     default: :func:`select_tau`, ties -> closest to 0.5, then smaller).
     """
-    from pipeline.metrics import iou_curve
-
     grid = np.asarray(grid, dtype=np.float64)
     if np.ndim(probs) != 3 or np.shape(probs)[0] == 0:
         raise InputError(f"calibrate_threshold: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
@@ -233,3 +230,38 @@ def resolve_tau(option=None, bundle=None, checkpoint=None, thresholds=None, fixe
             log.warning("tau = %s from %s (no calibrated tau)", tau, source)
         return tau, source
     raise InputError("tau: no calibrated tau found; pass --tau or a thresholds table (--thresholds)")
+
+
+# --------------------------------------------------------------------------------------------------
+# Which working resolution a deployed model runs at
+# --------------------------------------------------------------------------------------------------
+RESOLUTION_SOURCES = ("option", "benchmark", "recorded", "params")
+RESOLUTION_LABELS = {"option": "--resolution", "benchmark": "deploy.benchmark_resolution",
+                     "recorded": "the model's recorded resolution", "params": "data.resolution"}
+#: the smallest working resolution a model runs at (the student's four 2x poolings need 8 pixels)
+MIN_RESOLUTION = 8
+
+
+def resolve_resolution(option=None, benchmark=None, recorded=None, params=None,
+                       missing: str = "resolution: none given or recorded; pass --resolution N") -> tuple[int, str]:
+    """The working resolution (square, pixels) and where it came from: ``(resolution, source)``.
+
+    Rule: the first candidate that is given, in the order ``option`` (--resolution, or the notebook
+    API's ``resolution=``) > ``benchmark`` (deploy.benchmark_resolution: the benchmark stage times at
+    that size) > ``recorded`` (the size the model was trained at: the bundle's deploy.json, the
+    checkpoint's payload or meta.json) > ``params`` (data.resolution).  Callers pass only the
+    candidates their command knows (segment and the notebook API never guess from params; export has no
+    option).  Each candidate is None (absent), a number, or ``(number, source text)``; a bare number's
+    source is its :data:`RESOLUTION_LABELS` entry.  The chosen value must be an int >= 8 (InputError
+    naming its source); InputError ``missing`` when none is given.
+    """
+    given = dict(zip(RESOLUTION_SOURCES, (option, benchmark, recorded, params)))
+    for name in RESOLUTION_SOURCES:
+        cand = given[name]
+        if cand is None or (isinstance(cand, tuple) and cand[0] is None):
+            continue
+        value, source = cand if isinstance(cand, tuple) else (cand, RESOLUTION_LABELS[name])
+        if not isinstance(value, int) or isinstance(value, bool) or value < MIN_RESOLUTION:
+            raise InputError(f"{source}: invalid resolution {value!r} (an integer >= {MIN_RESOLUTION})")
+        return int(value), source
+    raise InputError(missing)

@@ -10,7 +10,7 @@ Data boundary (the paper's "annotation-free" rule, kept visible here)
     (split).  Reference masks are not among them; it refuses a ``reference`` input.
   * :func:`validation_data` is the ONLY consumer of reference masks and returns masks of
     ``split == "val"`` rows only (:class:`ValData`); they serve checkpoint selection (validation
-    Image IoU, Boundary F1 tie-break, tau = 0.5, :func:`select`) and never reach a loss --
+    Image IoU, Boundary F1 tie-break, at tau = ``calibrate.fixed_tau``, :func:`select`) and never reach a loss --
     :func:`train` passes only :class:`TrainData` to :func:`pipeline.losses.refine_loss`.
 
 Objective: :func:`pipeline.losses.refine_loss` (eq:refine-loss, with eq:raw-loss inside it) with the
@@ -68,22 +68,21 @@ from pipeline.streaming import LazyRows, prefetch, row_means, select_rows
 from pipeline.errors import ArtifactError, InputError, TrainingDiverged
 from pipeline.methods import (Method, Plan, afs_fuse, afs_keep, confidence_pass, input_artifacts, mean_valid_score,
                               method_epochs, method_lr, pass_ratio, resolve_plan, uses_confidence)
+from pipeline.params import PAPER
 from pipeline.thresholds import mask_from_probs
 
 log = logging.getLogger(__name__)
 
 #: loss-term columns of the training log (NaN where a method does not use the term)
 LOG_TERMS = ("bbce", "dice", "raw", "sdf", "dist", "skel", "area", "boundary", "anchor")
-#: ``val_iou``/``val_bf1`` at tau = 0.5 (checkpoint selection); ``val_iou_cal`` at ``val_tau_cal``, the
-#: tau maximising that epoch's mean validation IoU (pipeline.thresholds.calibrate_threshold on
+#: ``val_iou``/``val_bf1`` at tau = ``calibrate.fixed_tau`` (checkpoint selection); ``val_iou_cal`` at
+#: ``val_tau_cal``, the tau maximising that epoch's mean validation IoU (pipeline.thresholds.calibrate_threshold on
 #: thresholds.EPOCH_TAU_GRID) -- a diagnostic of the fixed-tau reversal, never used for selection
 LOG_COLUMNS = ("epoch", "stage", "loss", *LOG_TERMS, "val_iou", "val_bf1", "val_iou_cal", "val_tau_cal", "lr")
 #: wall-clock columns: kept out of the log (a checkpoint must be byte-identical on a rerun under
 #: SOURCE_DATE_EPOCH) and returned as ``TrainResult.timings`` for a separate, non-fingerprinted file
 TIMING_COLUMNS = ("epoch", "seconds")
 STATE_VERSION = 1
-#: tau of the validation masks in checkpoint selection (eq:inference-mask at 0.5; a fixed decision)
-SELECTION_TAU = 0.5
 
 
 # --------------------------------------------------------------------------------------------------
@@ -320,12 +319,13 @@ class Settings:
     num_threads: int
     bf1_tolerance: float
     constants: losses.LossConstants
+    selection_tau: float  # tau of the validation masks in checkpoint selection (calibrate.fixed_tau)
     precise_bn: bool = False  # re-estimate BN statistics before each validation (train.precise_bn)
     warmup_epochs: int = 0  # linear learning-rate warm-up (train.warmup_epochs; 0 = none, the paper)
     average_last: int = 0  # final model = mean weights of the last K epochs (train.average_last; 0 = selection)
 
     @classmethod
-    def from_params(cls, method: Method, cfg: Mapping[str, Any]) -> "Settings":
+    def from_params(cls, method: Method, cfg: Mapping[str, Any], selection_tau: float) -> "Settings":
         """Read and check the train section for ``method`` (epochs and lr per the method table)."""
         batch_size = int(cfg["batch_size"])
         if batch_size < 1:
@@ -335,6 +335,7 @@ class Settings:
                    precision=str(cfg["precision"]), channels_last=bool(cfg["channels_last"]),
                    hflip=bool(cfg["augment_hflip"]), num_threads=int(cfg["num_threads"]),
                    bf1_tolerance=float(cfg["val_bf1_tolerance"]), constants=loss_constants(cfg),
+                   selection_tau=float(selection_tau),
                    precise_bn=bool(cfg["precise_bn"]), warmup_epochs=int(cfg["warmup_epochs"]),
                    average_last=int(cfg["average_last"]))
 
@@ -461,12 +462,13 @@ def _has_val(val: ValData | None) -> bool:
 
 
 def validation_scores(model, val: ValData | None, device, *, precision: str, channels_last: bool,
-                      tolerance: float, tau: float = SELECTION_TAU, calibrated: bool = True) -> dict[str, float]:
+                      tolerance: float, tau: float = PAPER.calibrate.fixed_tau,
+                      calibrated: bool = True) -> dict[str, float]:
     """Validation scores of one epoch against the reference masks (``pipeline.metrics``).
 
     ``val_iou``/``val_bf1``: mean Image IoU and Boundary F1 (``tolerance`` px) of ``[P >= tau]``
-    (eq:inference-mask; tau = 0.5 in checkpoint selection).  With ``calibrated``: ``val_tau_cal`` =
-    the tau of :data:`pipeline.thresholds.EPOCH_TAU_GRID` maximising the mean validation Image IoU
+    (eq:inference-mask; tau = ``calibrate.fixed_tau`` in checkpoint selection).  With ``calibrated``:
+    ``val_tau_cal`` = the tau of :data:`pipeline.thresholds.EPOCH_TAU_GRID` maximising the mean validation Image IoU
     (:func:`pipeline.thresholds.calibrate_threshold`, the calibrate stage's rule) and ``val_iou_cal``
     that maximum.  All NaN without validation data.  Leaves the model in train mode.
     """
@@ -491,7 +493,7 @@ def validation_scores(model, val: ValData | None, device, *, precision: str, cha
 
 
 def validate(model, val: ValData | None, device, *, precision: str, channels_last: bool, tolerance: float,
-             tau: float = SELECTION_TAU) -> tuple[float, float]:
+             tau: float = PAPER.calibrate.fixed_tau) -> tuple[float, float]:
     """Mean validation Image IoU and Boundary F1 (``tolerance`` px) of ``[P >= tau]`` (eq:inference-mask)
     against the reference masks; (nan, nan) without validation data (:func:`validation_scores`)."""
     s = validation_scores(model, val, device, precision=precision, channels_last=channels_last,
@@ -675,14 +677,14 @@ def _precise_bn(run: _Run) -> int:
 
 
 def _validated(run: _Run, row: dict, val: ValData | None, t0: float) -> dict:
-    """``row`` with the validation scores (:func:`validation_scores`: at tau 0.5 and at the epoch's
+    """``row`` with the validation scores (:func:`validation_scores`: at the selection tau and at the epoch's
     calibrated tau) and the epoch's seconds (since ``t0``) filled in.  With ``train.precise_bn`` the BN
     running statistics are first re-estimated over the training images (:func:`_precise_bn`)."""
     s = run.settings
     if s.precise_bn:
         _precise_bn(run)
     row.update(validation_scores(run.model, val, run.device, precision=s.precision,
-                                 channels_last=s.channels_last, tolerance=s.bf1_tolerance))
+                                 channels_last=s.channels_last, tolerance=s.bf1_tolerance, tau=s.selection_tau))
     row["seconds"] = time.perf_counter() - t0
     return row
 
@@ -801,19 +803,22 @@ def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainRe
 
 def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData | None, seed: int, *,
           checkpointer: Checkpointer, init_state: Mapping | None = None, device="cpu",
-          callback: Callable[[int, dict], None] | None = None, show_progress: bool = True) -> TrainResult:
+          callback: Callable[[int, dict], None] | None = None, show_progress: bool = True,
+          selection_tau: float = PAPER.calibrate.fixed_tau) -> TrainResult:
     """Train one (method, seed) run on in-memory arrays and return the selected model and its log.
 
     ``data``: pseudo-targets (the only source of every loss term).  ``val``: validation images and
     reference masks, used only by :func:`select` (None: the last epoch is selected).
     ``checkpointer``: the per-epoch resume state (:class:`NoCheckpointer` for none).
     ``init_state``: Stage-I mask-path state dict for warm-started methods.  ``callback(epoch, row)``
-    runs after each epoch's state is saved (tests use it to interrupt a run).
+    runs after each epoch's state is saved (tests use it to interrupt a run).  ``selection_tau``: the
+    tau of the validation masks in checkpoint selection (params ``calibrate.fixed_tau``, the one fixed
+    tau of the project; :data:`pipeline.methods.SELECTION_TAU_KEY`).
     Raises TrainingDiverged on a non-finite loss or weights; nothing is saved for that epoch.
     """
     from pipeline.progress import progress
 
-    s = Settings.from_params(method, cfg)
+    s = Settings.from_params(method, cfg, selection_tau)
     device = torch.device(device)
     if s.num_threads > 0:
         torch.set_num_threads(s.num_threads)

@@ -83,23 +83,32 @@ def stage_code_version(stage_file: str) -> str:
     return code_version_of(_module_name(Path(stage_file).resolve(), ROOT))
 
 
-def stage_command(name: str, default_profile: str | None = None) -> Callable:
+#: ``load(params_file, overrides, default_profile) -> params`` of a command that switches profile
+#: (:func:`pipeline.profiles.load_params_or_profile`, passed by ``label``/``distill``: this module, imported
+#: by every stage, does not import the profiles)
+ProfileLoader = Callable[[Any, Iterable[str], str], dict]
+
+
+def stage_command(name: str, default_profile: str | None = None, profile_loader: ProfileLoader | None = None
+                  ) -> Callable:
     """Decorate ``fn(params, device, **options)`` into a click command with the shared options.
 
-    ``params`` is the effective params dict (profile applied, overrides applied).  ``default_profile``
-    (commands meant to run outside a project, e.g. ``label``): without ``--params`` the params are that
-    profile's values rather than ./params.yaml.
+    ``params`` is the effective params dict (overrides applied).  ``default_profile`` with its
+    ``profile_loader`` (commands meant to run outside a project, e.g. ``label``): without ``--params``
+    the params are that profile's values rather than ./params.yaml, and ``--set profile=NAME`` picks
+    another profile; every other command reads its params file and refuses ``--set profile=``.
     """
+    if (default_profile is None) != (profile_loader is None):
+        raise TypeError(f"stage_command({name!r}): default_profile and profile_loader go together")
 
     def deco(fn: Callable) -> click.Command:
         def wrapper(params_file: str | None, overrides: tuple[str, ...], device: str, **kw: Any):
             setup_logging()
             with one_line_errors(name):
-                if params_file is None:  # --params not given: the profile's values (--set profile=X wins)
-                    if not any(o.split("=", 1)[0].strip() == "profile" for o in overrides):
-                        overrides = (f"profile={default_profile}",) + tuple(overrides)
-                    params_file = f"profile {default_profile}"
-                params = load_params(params_file, overrides)
+                if profile_loader is not None:
+                    params = profile_loader(params_file, overrides, default_profile)
+                else:
+                    params = load_params(params_file, overrides)
                 return fn(params=params, device=device, **kw)
 
         wrapper.__click_params__ = list(getattr(fn, "__click_params__", []))

@@ -21,9 +21,15 @@ import click
 import numpy as np
 import pandas as pd
 
-from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline import catalog
+from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run, write_parquet
+from pipeline.catalog import ARTIFACTS_DIR, dvc_path
+from pipeline.dvc_results import teacher_metric_files, write_metrics_dir
+from pipeline.errors import InputError
+from pipeline.metrics import per_image_metrics
 from pipeline.params import section
+from pipeline.progress import progress
+from pipeline.report.analysis import prompt_source, select_prompt
 from stages._common import stage_command, stage_context
 
 CHUNK = 32
@@ -44,13 +50,6 @@ def base_prompt_index(teacher_meta) -> int:
               help="DVC metrics <group>.json, replaced [default: reports/metrics/teacher beside --artifacts]")
 def main(params, device, art, out, metrics_dir):
     """Teacher prompt / vote quality on val+test, prompt selection on val, gate-vs-quality analysis."""
-    from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run, write_parquet
-    from pipeline.dvc_results import teacher_metric_files, write_metrics_dir
-    from pipeline.errors import InputError
-    from pipeline.metrics import per_image_metrics
-    from pipeline.progress import progress
-    from pipeline.report.analysis import prompt_source, select_prompt
-
     cfg = section(params, "evaluate")
     tol, small_frac = cfg["bf1_tolerance"], cfg["small_region_max_fraction"]
     art = Path(art)

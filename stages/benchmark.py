@@ -24,8 +24,13 @@ from pathlib import Path
 
 import click
 
+from pipeline.artifacts import write_json, write_parquet
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
+from pipeline.device import resolve_device
+from pipeline.dvc_results import deploy_metrics
+from pipeline.errors import InputError
 from pipeline.params import section
+from pipeline.thresholds import resolve_resolution
 from stages._common import stage_command, stage_context
 
 
@@ -48,17 +53,12 @@ from stages._common import stage_command, stage_context
               help="DVC metrics file to write: latency_ms of the deployed fast path (dvc.yaml: reports/metrics/deploy.json)")
 def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolution, out, json_out, metrics_json):
     """Latency, throughput, memory and IoU change of the deployed mask path's variants."""
-    from pipeline.artifacts import write_json, write_parquet
-    from pipeline.dvc_results import deploy_metrics
     from pipeline.deploy import benchmark as B
-    from pipeline.device import resolve_device
-    from pipeline.errors import InputError
-
     cfg = section(params, "deploy")
     st = B.benchmark_settings(cfg)
     target = B.open_target(deploy_dir, checkpoint, thresholds, tau, section(params, "calibrate").get("fixed_tau"))
-    resolution = B.choose_resolution(resolution, st["resolution"], target.resolution,
-                                     section(params, "data").get("resolution"))
+    resolution, _ = resolve_resolution(option=resolution, benchmark=st["resolution"], recorded=target.resolution,
+                                       params=section(params, "data").get("resolution"))
     val_images, val_masks, calib, data_inputs = B.read_benchmark_data(Path(art), st["n_calib"])
     notes = {} if val_images is not None else {
         "iou": f"no validation images with reference masks under {art}: IoU columns not computed"}

@@ -27,8 +27,16 @@ import click
 import numpy as np
 import pandas as pd
 
+from pipeline.artifacts import open_artifact, read_chunk_rows, write_parquet
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
+from pipeline.device import resolve_device
+from pipeline.diagnostics import (area_ratio_curve, expected_calibration_error, median_area_ratio,
+    reliability_bins)
+from pipeline.inference import active_runs, load_student, open_labelled_split, predict_probs
+from pipeline.metrics import iou_curve
 from pipeline.params import section
+from pipeline.progress import progress
+from pipeline.thresholds import NO_VALIDATION_MASKS, calibrate_threshold, rule_options, threshold_grid
 from stages._common import stage_command, stage_context
 
 
@@ -37,9 +45,6 @@ def fixed_thresholds(params, runs, inputs, out) -> None:
     """No validation image has a mask: every run gets the fixed tau (``calibrate.fixed_tau``, 0.5),
     ``val_iou`` NaN, ``n_val`` 0 and ``tau_source`` saying why -- export and segment then use 0.5 and
     the report says that no masks were available."""
-    from pipeline.artifacts import open_artifact, write_parquet
-    from pipeline.thresholds import NO_VALIDATION_MASKS
-
     fixed_tau = section(params, "calibrate")["fixed_tau"]
     rows = [{"method": method, "seed": int(seed), "tau": fixed_tau, "val_iou": float("nan"), "fixed_tau": fixed_tau,
              "fixed_val_iou": float("nan"), "n_val": 0, "tau_source": NO_VALIDATION_MASKS} for method, seed, _ in runs]
@@ -57,14 +62,6 @@ def fixed_thresholds(params, runs, inputs, out) -> None:
 @click.option("--out", default=dvc_path("thresholds"), show_default=True, type=click.Path(dir_okay=False))
 def main(params, device, art, checkpoints, out):
     """Calibrate tau per (method, seed) by mean validation Image IoU; write thresholds.parquet."""
-    from pipeline.artifacts import open_artifact, read_chunk_rows, write_parquet
-    from pipeline.diagnostics import area_ratio_curve, expected_calibration_error, median_area_ratio, reliability_bins
-    from pipeline.device import resolve_device
-    from pipeline.inference import active_runs, load_student, open_labelled_split, predict_probs
-    from pipeline.metrics import iou_curve
-    from pipeline.progress import progress
-    from pipeline.thresholds import calibrate_threshold, rule_options, threshold_grid
-
     cfg = section(params, "calibrate")
     grid = threshold_grid(cfg)
     fixed_tau = cfg["fixed_tau"]

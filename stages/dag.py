@@ -9,6 +9,8 @@ from pathlib import Path
 import click
 
 from pipeline.artifacts import write_text_if_changed
+from pipeline.dag import is_generated_params, render_dvc_yaml, render_params_yaml
+from pipeline.ownership import refuse_unowned
 from stages._common import one_line_errors
 
 
@@ -17,8 +19,6 @@ from stages._common import one_line_errors
 @click.option("--out", default="dvc.yaml", show_default=True, type=click.Path(dir_okay=False))
 def dag_main(check: bool, out: str) -> None:
     """Write dvc.yaml from pipeline/catalog.py, pipeline/methods.py and the stages' imports."""
-    from pipeline.dag import render_dvc_yaml
-
     text = render_dvc_yaml()
     path = Path(out)
     if check:
@@ -38,9 +38,6 @@ def dag_main(check: bool, out: str) -> None:
 def profile_main(name: str, out: str, overwrite: bool) -> None:
     """Write params.yaml with the effective values of profile NAME (demo | reduced | paper).  A rerun
     rewrites its own file (recognised by the generated header); any other file is refused."""
-    from pipeline.dag import is_generated_params, render_params_yaml
-    from pipeline.ownership import refuse_unowned
-
     with one_line_errors("profile"):
         text = render_params_yaml(name)
         path = Path(out)

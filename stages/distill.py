@@ -5,11 +5,14 @@ from __future__ import annotations
 
 import click
 
+from pipeline.api import choose_teacher, with_skip_bad
 from pipeline.params import BACKENDS
+from pipeline.profiles import load_params_or_profile
+from pipeline.standalone import project_outputs, run_project, write_project
 from stages._common import overwrite_option, skip_bad_option, stage_command
 
 
-@stage_command("distill", default_profile="distill")
+@stage_command("distill", default_profile="distill", profile_loader=load_params_or_profile)
 @click.argument("input_dir", metavar="INPUT", type=click.Path())
 @click.option("--out", required=True, type=click.Path(file_okay=False),
               help="project folder (created; rerun the same command to resume)")
@@ -30,9 +33,6 @@ def main(params, device, input_dir, out, val_masks, checkpoint, backend, importe
     Stage II (GeoDistill-Refine), threshold, export, report.  --out becomes a DVC project running the
     pipeline's own DAG, so a rerun resumes where it stopped; distill.json there lists what distill
     wrote, and anything else in the way is refused unless --overwrite (docs/own-data.md)."""
-    from pipeline.api import choose_teacher, with_skip_bad
-    from pipeline.standalone import project_outputs, run_project, write_project
-
     params = with_skip_bad(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad)
     project = write_project(input_dir, out, params, val_masks=val_masks, overwrite=overwrite)
     if no_run:

@@ -21,8 +21,13 @@ from __future__ import annotations
 
 import click
 
+from pipeline.artifacts import artifact_dir, open_artifact
 from pipeline.catalog import dvc_path
+from pipeline.device import resolve_device
+from pipeline.inference import load_student
+from pipeline.ownership import refuse_unowned
 from pipeline.params import section
+from pipeline.thresholds import lookup_tau, lookup_tau_source, resolve_resolution, resolve_tau
 from stages._common import overwrite_option, stage_command, stage_context
 
 
@@ -53,12 +58,7 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     """Export the mask path (TorchScript + ONNX) with its calibrated tau and a parity check.  --out is
     replaced whole when it holds an earlier bundle (its meta.json); anything else there is refused
     unless --overwrite."""
-    from pipeline import deploy
-    from pipeline.ownership import refuse_unowned
-    from pipeline.artifacts import artifact_dir, open_artifact
-    from pipeline.device import resolve_device
-    from pipeline.inference import load_student
-    from pipeline.thresholds import lookup_tau, lookup_tau_source, resolve_tau
+    from pipeline import deploy  # torch: this module stays torch-free at import (--help)
 
     refuse_unowned([out], [out] if is_bundle_dir(out) else [], command="export", option="--out", where=out,
                    why="no deploy bundle's meta.json in it", overwrite=overwrite)
@@ -80,11 +80,8 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
         fixed=(section(params, "calibrate").get("fixed_tau"),
                f"calibrate.fixed_tau (no calibrated row for {method} seed {seed} in {thresholds})"
                if thresholds else "calibrate.fixed_tau (no --thresholds given)"))
-    resolution = deploy.checkpoint_resolution(checkpoint, payload)
-    res_source = "checkpoint"
-    if resolution is None:
-        resolution = params["data"]["resolution"]
-        res_source = "data.resolution"
+    resolution, res_source = resolve_resolution(recorded=(deploy.checkpoint_resolution(checkpoint, payload), "checkpoint"),
+                                                params=params["data"]["resolution"])
 
     calib, calib_note = None, None
     if no_onnx or no_int8:

@@ -5,10 +5,11 @@ from __future__ import annotations
 import click
 
 from pipeline.params import BACKENDS
+from pipeline.profiles import load_params_or_profile
 from stages._common import overwrite_option, skip_bad_option, stage_command
 
 
-@stage_command("label", default_profile="paper")
+@stage_command("label", default_profile="paper", profile_loader=load_params_or_profile)
 @click.argument("input_dir", metavar="INPUT", type=click.Path())
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
 @click.option("--checkpoint", default=None, type=click.Path(),

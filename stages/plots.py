@@ -22,6 +22,7 @@ import click
 
 from pipeline.artifacts import write_text_if_changed
 from pipeline.errors import InputError
+from pipeline.offline_plots import dvc_plots_command, offline_page, template_path, template_text, vega_scripts
 
 #: the page folder of `geodistill plots`: not `dvc plots show`'s own dvc_plots/, so neither replaces the other
 OFFLINE_PLOTS_DIR = "geodistill_plots"
@@ -36,8 +37,6 @@ OFFLINE_PLOTS_DIR = "geodistill_plots"
 @click.option("--open", "open_browser", is_flag=True, help="open the page in a browser")
 def main(targets, revs, out, open_browser):
     """Render DVC's plots (one line per method) as a page that needs no network."""
-    from pipeline.offline_plots import dvc_plots_command, offline_page, template_path, template_text, vega_scripts
-
     try:
         scripts = vega_scripts()
     except InputError as e:

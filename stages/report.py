@@ -19,8 +19,13 @@ from pathlib import Path
 
 import click
 
+from pipeline.artifacts import artifact_dir, write_json
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
+from pipeline.device import resolve_device
+from pipeline.environment import collect
 from pipeline.params import section
+from pipeline.report.document import render_html, render_markdown
+from pipeline.report.environment import environment_record
 from stages._common import stage_command, stage_context
 
 
@@ -31,13 +36,7 @@ from stages._common import stage_command, stage_context
               help="report directory (dvc.yaml: reports/${profile})")
 def main(params, device, art, out):
     """Write report.md, a self-contained report.html, figures and plot CSVs."""
-    from pipeline.artifacts import artifact_dir, write_json
-    from pipeline.environment import collect
-    from pipeline.device import resolve_device
     from pipeline.report.build import build_report
-    from pipeline.report.document import render_html, render_markdown
-    from pipeline.report.environment import environment_record
-
     cfg = section(params, "report")
     profile = str(params.get("profile", ""))
     env = collect()

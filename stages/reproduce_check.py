@@ -20,8 +20,10 @@ from pathlib import Path
 
 import click
 
+from pipeline import catalog
 from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.errors import InputError
+from pipeline.reproducibility import TOLERANCE, compare_metrics, difference_table, reproduced
 
 
 def _git(args: list[str], cwd: Path) -> str:
@@ -75,9 +77,6 @@ def fresh_metrics(metrics_dir: Path) -> dict[str, dict[str, float]]:
               help="artifacts directory of the run (the metrics lie beside it, pipeline.catalog)")
 def main(ref, artifacts):
     """Compare this run's student metrics with the committed ones; exit 1 when one differs beyond tolerance."""
-    from pipeline import catalog
-    from pipeline.reproducibility import TOLERANCE, compare_metrics, difference_table, reproduced
-
     metrics_dir = catalog.path("metrics_students", artifacts)
     try:
         committed = committed_metrics(metrics_dir, ref)

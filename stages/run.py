@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from pipeline.cluster.driver import run_pipeline
 from pipeline.errors import InputError
 from stages._common import setup_logging
 
@@ -38,8 +39,6 @@ def main(targets, address, stage_cpus, train_gpu_fraction, dry_run):
     killing the driver, even with SIGKILL, ends every stage process.  Needs the `cluster` extra
     (Ray); without it use `dvc repro`.  Scaling out: docs/scaling.md.
     """
-    from pipeline.cluster.driver import run_pipeline
-
     setup_logging()
     # SIGTERM (scancel, kill) as Ctrl-C: Ray shuts down and the stage processes end with their workers
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))

@@ -45,14 +45,17 @@ from pathlib import Path
 import click
 
 from pipeline.catalog import dvc_path
+from pipeline.datasets.manifest import BadInputPolicy
+from pipeline.device import resolve_device
 from pipeline.errors import InputError
-from stages._common import one_line_errors, overwrite_option, skip_bad_option
+from pipeline.ownership import claim_outputs
+from pipeline.params import load_params
+from pipeline.thresholds import MIN_RESOLUTION, RESOLUTION_LABELS, resolve_resolution
+from stages._common import one_line_errors, overwrite_option, setup_logging, skip_bad_option
 
 
 def _fallback(params_file: str, overrides: tuple[str, ...], section_name: str, key: str):
     """``section.key`` from the params file (profile applied), or None when the file does not exist."""
-    from pipeline.params import load_params
-
     if not Path(params_file).exists():
         return None
     return (load_params(params_file, overrides).get(section_name) or {}).get(key)
@@ -60,12 +63,8 @@ def _fallback(params_file: str, overrides: tuple[str, ...], section_name: str, k
 
 def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
         device, params_file, overrides, overwrite=False, skip_bad=False) -> int:
-    from pipeline import deploy
-    from pipeline.datasets.manifest import BadInputPolicy
+    from pipeline import deploy  # torch: this module stays torch-free at import (--help)
     from pipeline.deploy import files as F
-    from pipeline.ownership import claim_outputs
-    from pipeline.device import resolve_device
-    from stages._common import setup_logging
 
     setup_logging()
     if not checkpoint:
@@ -76,8 +75,8 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
         raise InputError("--output missing: a folder for the masks")
     if batch_size < 1:
         raise InputError(f"--batch-size {batch_size}: must be >= 1")
-    if resolution is not None and resolution < 8:
-        raise InputError(f"--resolution {resolution}: must be >= 8")
+    if resolution is not None and resolution < MIN_RESOLUTION:
+        raise InputError(f"--resolution {resolution}: must be >= {MIN_RESOLUTION}")
     found = F.scan_inputs(input_path)
     if not found.files:
         extra = f"; skipped {found.skipped[0][0]}: {found.skipped[0][1]}" if found.skipped else ""
@@ -107,18 +106,15 @@ def run(checkpoint, input_path, output, tau, resolution, thresholds, engine, bat
     trained = seg.resolution
     recorded_in = f"{Path(checkpoint) / deploy.DEPLOY_JSON}" if deploy.is_deploy_bundle(checkpoint) \
         else f"checkpoint {checkpoint}"
-    if trained is not None and (not isinstance(trained, int) or isinstance(trained, bool) or trained < 8):
-        raise InputError(f"{recorded_in}: invalid resolution {trained!r}; pass --resolution N")
-    if resolution is None:
-        if trained is None:
-            raise InputError(f"--checkpoint {checkpoint}: records no training resolution; pass --resolution N "
-                             "(the image size the model was trained at)")
-        resolution, res_source = trained, recorded_in
-    else:
-        res_source = "--resolution"
-        if trained is not None and resolution != trained:
-            click.echo(f"segment: warning: --resolution {resolution} differs from the {trained}px the model was "
-                       f"trained at ({recorded_in})", err=True)
+    if trained is not None:  # a recorded resolution is checked even when --resolution overrides it
+        resolve_resolution(recorded=(trained, recorded_in))
+    resolution, res_source = resolve_resolution(
+        option=resolution, recorded=(trained, recorded_in),
+        missing=f"--checkpoint {checkpoint}: records no training resolution; pass --resolution N "
+                "(the image size the model was trained at)")
+    if res_source == RESOLUTION_LABELS["option"] and trained is not None and resolution != trained:
+        click.echo(f"segment: warning: --resolution {resolution} differs from the {trained}px the model was "
+                   f"trained at ({recorded_in})", err=True)
 
     def report(path, reason):
         policy.report(image_id(path), path, reason)  # raises without --skip-bad

@@ -12,69 +12,40 @@
   instantly.  The fingerprint holds every ``train.*`` key the method reads, the execution knobs
   ``train.num_threads`` and ``train.precision`` among them, so a changed thread count trains afresh.
 * The epoch rows are also logged with DVCLive into ``--live-dir`` (dvc.yaml: ``reports/dvclive/<M>/<S>``, a
-  git-tracked out; :func:`write_live_log`): ``dvc plots show reports/dvclive/<M>/<S>/plots/metrics/val_iou.tsv``
+  git-tracked out; :func:`pipeline.dvc_results.write_live_log`): ``dvc plots show reports/dvclive/<M>/<S>/plots/metrics/val_iou.tsv``
   or any DVCLive-aware viewer reads it.  The checkpoint's log.parquet stays the typed artifact the
   report and evaluate read.
 * Exit codes: 0 ok; 2 bad input (one line naming the file or parameter); 1 training diverged
   (non-finite loss; one line, no checkpoint written).
 
 Wiring only: this module opens the artifacts under ``--artifacts`` (:func:`load_inputs`), the
-``--init`` checkpoint (:func:`load_init`) and the resume state (:class:`FileCheckpointer`);
+``--init`` checkpoint (:func:`load_init`) and the resume state
+(:class:`pipeline.checkpointing.FileCheckpointer`), and logs the epoch rows
+(:func:`pipeline.dvc_results.write_live_log`);
 :func:`pipeline.training.train` gets arrays and a checkpointer.  Reference masks (reference.zarr)
 are opened only for :func:`pipeline.training.validation_data` (checkpoint selection).
 """
 
 from __future__ import annotations
 
-import logging
-import os
 import sys
 from pathlib import Path
 from typing import Any, Mapping
 
 import click
 
+from pipeline import catalog
+from pipeline.artifacts import open_artifact, write_json
 from pipeline.catalog import ARTIFACTS_DIR
-from pipeline.errors import InputError, TrainingDiverged
-from pipeline.params import section
+from pipeline.checkpointing import FileCheckpointer
+from pipeline.device import resolve_device
+from pipeline.dvc_results import write_live_log
+from pipeline.environment import training_runtime
+from pipeline.errors import ArtifactError, InputError, TrainingDiverged
+from pipeline.inference import load_student, save_checkpoint
+from pipeline.methods import SELECTION_TAU_KEY, SUPERVISED_CEILING, fingerprint_params, get_method
+from pipeline.params import get_path, section
 from stages._common import stage_command, stage_context
-
-
-STATE_FILE = "state.pt"
-
-log = logging.getLogger(__name__)
-
-
-class FileCheckpointer:
-    """Per-epoch resume state in ``<directory>/state.pt`` (written atomically: temp file + os.replace)."""
-
-    def __init__(self, directory: str | Path):
-        self.directory = Path(directory)
-
-    def __repr__(self) -> str:
-        return str(self.directory)
-
-    def load(self, run_key: Mapping[str, Any]) -> dict | None:
-        """The saved state, or None when there is none or it cannot be read (train checks the run key)."""
-        import torch
-
-        path = self.directory / STATE_FILE
-        if not path.exists():
-            return None
-        try:
-            # tensors and plain containers only: nothing in a state file can execute code
-            return torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as e:  # a state cut off by a kill during torch.save cannot happen (os.replace)
-            log.warning("ignoring unreadable resume state %s (%s)", self.directory, type(e).__name__)
-            return None
-
-    def save(self, state: dict) -> None:
-        import torch
-
-        self.directory.mkdir(parents=True, exist_ok=True)
-        tmp = self.directory / f".{STATE_FILE}.tmp-{os.getpid()}"
-        torch.save(state, tmp)
-        os.replace(tmp, self.directory / STATE_FILE)
 
 
 def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[Any, Any, list]:
@@ -117,10 +88,6 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[An
 
 def load_init(path: str | Path):
     """Stage-I checkpoint for a warm start: (mask-path state dict, its artifact for the lineage)."""
-    from pipeline.artifacts import open_artifact
-    from pipeline.errors import ArtifactError
-    from pipeline.inference import load_student
-
     p = Path(path)
     if not (p / "meta.json").exists():
         raise ArtifactError(f"--init {p}: not a checkpoint directory (run train_plain first)")
@@ -129,67 +96,16 @@ def load_init(path: str | Path):
     return model.mask_path_state_dict(), art
 
 
-#: training-log columns that are not DVCLive metrics (the step, and the schedule's stage number)
-LIVE_SKIP = ("epoch", "stage")
-
-
-def write_live_log(log, directory: str | Path, selected_epoch: int | None = None) -> Path:
-    """Log the run's epoch rows with DVCLive into ``directory`` (replaced atomically).
-
-    Step = ``epoch``; every other numeric column of the training log (pipeline.training.LOG_COLUMNS
-    minus :data:`LIVE_SKIP`) is a metric, a non-finite value (a loss term the method does not use)
-    is left out.  DVCLive writes ``plots/metrics/<column>.tsv`` (step, value) and ``metrics.json``
-    (the last epoch's values, plus ``selected_epoch``), without timestamps: the files are
-    byte-identical on a rerun.  No DVC experiment is saved and no dvc.yaml written (the DVC stage is
-    the experiment; dvc.yaml comes from pipeline/dag.py).
-    """
-    import math
-
-    from dvclive import Live
-
-    from pipeline.artifacts import atomic_path
-
-    logging.getLogger("dvclive").setLevel(logging.WARNING)  # its INFO line names a random experiment
-    columns = [c for c in log.columns if c not in LIVE_SKIP]
-    class _StageLive(Live):
-        """DVCLive's files without its repository hooks: the DVC stage is the experiment, and
-        DVCLive's own git/DVC probing fails in a repository without commits and would ``dvc init``
-        a plain git checkout."""
-
-        def _init_dvc(self):
-            self._dvc_file = self._init_dvc_file()
-
-    with atomic_path(directory, is_dir=True) as tmp:
-        live = _StageLive(str(tmp), save_dvc_exp=False, dvcyaml=False, report=None)
-        for row in log.to_dict("records"):
-            live.step = int(row["epoch"])
-            for name in columns:
-                v = row[name]
-                if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
-                    live.log_metric(name, float(v))
-        if selected_epoch is not None:
-            live.summary["selected_epoch"] = int(selected_epoch)
-        live.make_summary()
-    return Path(directory)
-
-
 def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts: str, init: str | None,
         out: str, resume_dir: str, live_dir: str | None = None) -> Path:
-    from pipeline.methods import fingerprint_params, get_method
-
     cfg = section(params, "train")
     spec = get_method(method)
     if spec.stage != stage:
         raise InputError(f"--stage {stage}: method {method!r} belongs to --stage {spec.stage}")
-    if not spec.annotation_free and not params["protocol"]["supervised_ceiling"]:
+    if not spec.annotation_free and not params["protocol"][SUPERVISED_CEILING]:
         raise InputError(f"--method {method}: trains on reference masks (not annotation-free); "
-                         f"needs params protocol.supervised_ceiling: true")
-
-    from pipeline import catalog, training
-    from pipeline.artifacts import write_json
-    from pipeline.device import resolve_device
-    from pipeline.environment import training_runtime
-    from pipeline.inference import save_checkpoint
+                         f"needs params protocol.{SUPERVISED_CEILING}: true")
+    from pipeline import training  # torch: imported once the options are checked
 
     data, val, inputs = load_inputs(artifacts, spec, cfg)
     init_state = None
@@ -199,10 +115,11 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
         init_state, init_art = load_init(init)
         inputs.append(init_art)
     meta = stage_context("train", __file__, params).meta(
-        "checkpoint", inputs, params={"train": fingerprint_params(spec, cfg), "method": method, "seed": seed,
+        "checkpoint", inputs, params={"params": fingerprint_params(spec, params), "method": method, "seed": seed,
                                       "stage": stage}, **data.stats)
     result = training.train(spec, cfg, data, val, seed, init_state=init_state, device=resolve_device(device),
-                            checkpointer=FileCheckpointer(Path(resume_dir) / meta.fingerprint))
+                            checkpointer=FileCheckpointer(Path(resume_dir) / meta.fingerprint),
+                            selection_tau=get_path(params, SELECTION_TAU_KEY))
     meta.extra.update(result.info)  # info["autocast"]: the precision actually used
     meta.extra["runtime"] = training_runtime(resolve_device(device))  # provenance, not fingerprinted
     save_checkpoint(out, result.model, meta, result.log, method=method, seed=seed, stage=stage,

@@ -32,9 +32,9 @@ def _train(tiny, name, cfg, init_state=None, art=None):
 # ---- 2a: the budget-matched continuation ---------------------------------------------------------
 def test_continuation_is_stage2_budget_with_raw_loss_only():
     from pipeline.methods import method_epochs, method_lr
-    from pipeline.params import load_params
+    from pipeline.profiles import load_profile
 
-    cfg = load_params(overrides=["profile=paper"])["train"]
+    cfg = load_profile("paper")["train"]
     c, g = get_method("continuation"), get_method("geodistill")
     assert (c.stage, c.init, c.select) == (g.stage, g.init, g.select) == (2, "stage1", "stage2")
     assert method_epochs(c, cfg) == method_epochs(g, cfg) == 10 and method_lr(c, cfg) == method_lr(g, cfg) == 1e-4

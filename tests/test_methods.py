@@ -63,9 +63,9 @@ def test_every_protocol_method_is_defined_with_its_stage():
 
 def test_method_epochs_and_terms_follow_the_paper_tables():
     from pipeline.methods import method_epochs, method_lr
-    from pipeline.params import load_params
+    from pipeline.profiles import load_profile
 
-    cfg = load_params(overrides=["profile=paper"])["train"]
+    cfg = load_profile("paper")["train"]
     assert method_epochs(get_method("plain"), cfg) == 20 and method_lr(get_method("plain"), cfg) == 5e-4
     assert method_epochs(get_method("geodistill"), cfg) == 10 and method_lr(get_method("geodistill"), cfg) == 1e-4
     assert method_epochs(get_method("gabi"), cfg) == 30

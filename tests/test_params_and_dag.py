@@ -17,6 +17,7 @@ from click.testing import CliRunner
 
 from pipeline.errors import InputError
 from pipeline.params import PAPER, load_params, parse_override, validate
+from pipeline.profiles import load_params_or_profile, load_profile
 from stages._common import stage_command
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -90,10 +91,16 @@ def test_bad_param_from_the_cli_exits_2_and_writes_nothing(tmp_path):
 
 def test_overrides_and_profile_switch(tmp_path):
     assert parse_override("a.b=null") == (["a", "b"], None)
-    p = load_params(ROOT / "params.yaml", ["profile=paper", "train.lr_stage2=0.0002"])
+    # only the commands that switch profile (label, distill, the API) read profiles; a stage refuses
+    p = load_params_or_profile(ROOT / "params.yaml", ["profile=paper", "train.lr_stage2=0.0002"], "distill")
     assert p["profile"] == "paper" and p["data"]["resolution"] == 384 and math.isclose(p["train"]["lr_stage2"], 2e-4)
+    assert load_profile("paper", ["train.lr_stage2=0.0002"]) == p
+    assert load_params_or_profile(None, [], "demo") == load_profile("demo")
+    assert load_params_or_profile(ROOT / "params.yaml", [], "paper") == load_params(ROOT / "params.yaml")
     with pytest.raises(InputError, match="profile 'nope'"):
-        load_params(ROOT / "params.yaml", ["profile=nope"])
+        load_params_or_profile(ROOT / "params.yaml", ["profile=nope"], "paper")
+    with pytest.raises(InputError, match=r"--set profile=\.\.\.: this command reads its params file"):
+        load_params(ROOT / "params.yaml", ["profile=paper"])
     with pytest.raises(InputError, match="key.path=value"):
         load_params(ROOT / "params.yaml", ["nonsense"])
     with pytest.raises(InputError, match="not found"):
@@ -118,6 +125,10 @@ def test_stage_command_conventions(tmp_path):
     assert r.output.strip().splitlines() == ["geodistill toy: error: --n -3: must be >= 0"]
     r = CliRunner().invoke(_toy, ["--params", str(tmp_path / "nope.yaml")])
     assert r.exit_code == 2 and "nope.yaml" in r.output and "Traceback" not in r.output
+    r = CliRunner().invoke(_toy, ["--params", str(p), "--set", "profile=paper"])  # stages read params.yaml alone
+    assert r.exit_code == 2 and r.output.strip().splitlines() == [
+        f"geodistill toy: error: --set profile=...: this command reads its params file ({p}); "
+        "switch profile with `geodistill profile NAME`"]
 
 
 def test_console_script_lists_stage_commands():
@@ -277,3 +288,76 @@ def test_demo_dag_has_only_active_runs():
     # the demo's runs: three methods at the ten seeds whose means it publishes (docs/stability.md)
     assert train == {f"train_{m}@{s}" for m in ("plain", "geodistill", "continuation") for s in TEN_SEEDS}
     assert {"prepare", "teacher", "consensus", "geometry", "calibrate", "evaluate", "report"} <= names
+
+
+# --------------------------------------------------------------------------------------------------
+# profiles and the dvc.yaml renderer are no stage's code dep
+# --------------------------------------------------------------------------------------------------
+def _md5(path: Path) -> str:
+    import hashlib
+
+    return hashlib.md5(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def code_repo(tmp_path_factory):
+    """A copy of this repository's code, data manifests, dvc.yaml and params.yaml whose dvc.lock is the
+    committed one with every file dep's md5 set to the file as it is now (the committed lock may lag the
+    code: the demo reruns later) and its deps list as dvc.yaml names it -- a lock as after a complete
+    run of this code; outputs are absent, which `dvc status` reports apart from code deps."""
+    repo = tmp_path_factory.mktemp("code_repo")
+    for d in ("pipeline", "stages", "data_manifests"):
+        shutil.copytree(ROOT / d, repo / d, ignore=shutil.ignore_patterns("__pycache__"))
+    for f in ("dvc.yaml", "params.yaml"):
+        shutil.copy(ROOT / f, repo / f)
+    assert _dvc(repo, "init", "--no-scm", "-q").returncode == 0
+    _dvc(repo, "config", "core.analytics", "false")
+    declared = yaml.safe_load((repo / "dvc.yaml").read_text())["stages"]
+    committed = yaml.safe_load((ROOT / "dvc.lock").read_text())
+    lock = {"schema": committed["schema"], "stages": {}}
+    for name, entry in committed["stages"].items():
+        base, _, seed = name.partition("@")
+        if base not in declared:
+            continue
+        old = {d["path"]: d for d in entry.get("deps", [])}
+        deps = []
+        for path in (p.replace("${item.seed}", seed) for p in declared[base]["deps"]):
+            dep = dict(old.get(path, {"path": path}))
+            if (repo / path).is_file():
+                dep.update(hash="md5", md5=_md5(repo / path), size=(repo / path).stat().st_size)
+            deps.append(dep)
+        lock["stages"][name] = {**entry, "deps": deps}
+    (repo / "dvc.lock").write_text(yaml.safe_dump(lock, sort_keys=False))
+    return repo
+
+
+def _changed_code_deps(repo) -> dict[str, set[str]]:
+    """``{dep path: stages}`` that `dvc status` reports as changed deps (code and data alike)."""
+    r = _dvc(repo, "status", "--json")
+    assert r.returncode == 0, r.stderr
+    out: dict[str, set[str]] = {}
+    for stage, changes in json.loads(r.stdout).items():
+        for c in changes:
+            if isinstance(c, dict):
+                for path in c.get("changed deps", {}):
+                    out.setdefault(path, set()).add(stage)
+    return out
+
+
+@pytest.mark.slow
+def test_editing_profiles_or_the_dag_renderer_marks_no_stage_stale(code_repo):
+    """Profiles are data read by `geodistill profile`/label/distill, and dvc.yaml's renderer runs in
+    `geodistill dag`: no stage imports either, so editing them reruns nothing.  The control: the same
+    edit of a file the stages do run (pipeline/geometry.py) is reported."""
+    before = _changed_code_deps(code_repo)
+    assert "pipeline/geometry.py" not in before
+    edited = ["pipeline/profiles.py", "pipeline/dag.py"]
+    for rel in edited:
+        with open(code_repo / rel, "a") as f:
+            f.write("# an edit\n")
+    after = _changed_code_deps(code_repo)
+    assert not set(edited) & set(after), {p: after[p] for p in set(edited) & set(after)}
+    with open(code_repo / "pipeline/geometry.py", "a") as f:
+        f.write("# an edit\n")
+    control = _changed_code_deps(code_repo)
+    assert "geometry" in control.get("pipeline/geometry.py", set()), control

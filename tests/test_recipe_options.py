@@ -50,22 +50,25 @@ def test_defaults_are_the_paper_recipe_and_build_the_same_model():
 
 def test_schema_bounds():
     from pipeline.errors import InputError
-    from pipeline.params import load_params
+    from pipeline.profiles import load_profile
 
-    assert load_params(overrides=["profile=paper", "train.norm=group"])["train"]["norm"] == "group"
+    assert load_profile("paper", ["train.norm=group"])["train"]["norm"] == "group"
     for bad in ("train.norm=layer", "train.bn_momentum=0", "train.bn_momentum=1.5", "train.precise_bn=1"):
         with pytest.raises(InputError, match=bad.split("=")[0].split(".")[1]):
-            load_params(overrides=["profile=paper", bad])
+            load_profile("paper", [bad])
 
 
 def test_options_enter_every_methods_params_and_fingerprint():
     from pipeline.methods import METHODS, fingerprint_params, param_keys
+    from pipeline.params import PAPER
 
     cfg = tiny_cfg()
+    calibrate = PAPER.calibrate.model_dump()
     for m in METHODS.values():
         keys = param_keys(m)
         assert {"train.norm", "train.bn_momentum", "train.precise_bn"} <= set(keys), m.name
-        assert fingerprint_params(m, cfg) != fingerprint_params(m, {**cfg, "precise_bn": True})
+        assert fingerprint_params(m, {"train": cfg, "calibrate": calibrate}) != \
+            fingerprint_params(m, {"train": {**cfg, "precise_bn": True}, "calibrate": calibrate})
 
 
 # --------------------------------------------------------------------------------------------------

@@ -103,11 +103,14 @@ def test_weight_averaging_gives_the_mean_of_the_last_epochs_with_bn_recomputed(t
 # --------------------------------------------------------------------------------------------------
 def test_num_threads_and_precision_are_tracked_params_of_every_train_stage():
     from pipeline.methods import METHODS, fingerprint_params, param_keys
+    from pipeline.params import PAPER
 
     cfg = tiny_cfg()
+    calibrate = PAPER.calibrate.model_dump()
     for m in METHODS.values():
         assert {"train.num_threads", "train.precision", "train.recipe"} <= set(param_keys(m)), m.name
-        assert fingerprint_params(m, cfg) != fingerprint_params(m, {**cfg, "num_threads": cfg["num_threads"] + 1})
+        assert fingerprint_params(m, {"train": cfg, "calibrate": calibrate}) != \
+            fingerprint_params(m, {"train": {**cfg, "num_threads": cfg["num_threads"] + 1}, "calibrate": calibrate})
 
 
 def test_changing_num_threads_does_not_resume_the_old_state(tiny, tmp_path):
@@ -116,7 +119,7 @@ def test_changing_num_threads_does_not_resume_the_old_state(tiny, tmp_path):
     the run key holds the effective thread count and autocast dtype."""
     from pipeline import training
     from pipeline.methods import get_method
-    from stages.train import FileCheckpointer
+    from pipeline.checkpointing import FileCheckpointer
 
     before = torch.get_num_threads()
     try:
@@ -170,10 +173,10 @@ def test_smooth_curve_is_a_cut_window_moving_average():
 
 def test_unknown_tau_rule_is_an_input_error():
     from pipeline.errors import InputError
-    from pipeline.params import load_params
+    from pipeline.profiles import load_profile
 
     with pytest.raises(InputError, match="tau_rule"):
-        load_params(overrides=["profile=demo", "calibrate.tau_rule=median"])
+        load_profile("demo", ["calibrate.tau_rule=median"])
 
 
 # --------------------------------------------------------------------------------------------------

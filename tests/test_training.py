@@ -21,6 +21,7 @@ from scipy import ndimage
 
 from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
 from pipeline.errors import InputError, TrainingDiverged
+from pipeline.methods import SELECTION_TAU_KEY
 from pipeline.params import RECIPES, load_params, section
 
 REPO = Path(__file__).resolve().parent.parent
@@ -139,7 +140,7 @@ def load_arrays(art, method_name, cfg):
 def _run(method_name, art, cfg, seed=42, init_state=None, resume_dir=None, checkpointer=None, **kw):
     from pipeline import training
     from pipeline.methods import get_method
-    from stages.train import FileCheckpointer
+    from pipeline.checkpointing import FileCheckpointer
 
     data, val = load_arrays(art, method_name, cfg)
     if checkpointer is None:
@@ -377,6 +378,20 @@ def _cli(*args, cwd):
                           capture_output=True, text=True)
 
 
+def test_checkpoint_selection_scores_validation_at_the_selection_tau(tiny):
+    """training's selection tau is calibrate.fixed_tau (the default is the schema's value, which the
+    train stage passes from params): another tau gives other validation scores, the same tau the same."""
+    from pipeline.params import PAPER
+
+    cfg = tiny_cfg(epochs_stage1=1)
+    a = _run("plain", tiny, cfg)
+    same = _run("plain", tiny, cfg, selection_tau=PAPER.calibrate.fixed_tau)
+    other = _run("plain", tiny, cfg, selection_tau=0.95)
+    pd.testing.assert_frame_equal(a.log, same.log)
+    assert not np.allclose(a.log["val_iou"], other.log["val_iou"])
+    assert a.log["val_tau_cal"].equals(other.log["val_tau_cal"])  # the per-epoch calibrated tau does not move
+
+
 def test_stage_command_trains_writes_checkpoint_and_warm_starts(tiny, tmp_path):
     from pipeline.inference import load_student
 
@@ -396,7 +411,9 @@ def test_stage_command_trains_writes_checkpoint_and_warm_starts(tiny, tmp_path):
     schemas = sorted(i["schema"] for i in art.meta.inputs)
     assert schemas == sorted(["manifest", "images", "gates", "consensus", "geometry", "checkpoint", "reference"])
     assert art.meta.params["method"] == "geodistill" and art.meta.params["seed"] == 42
-    assert not any(k.startswith("train.gabi") for k in art.meta.params["train"])  # only keys the method reads
+    assert not any(k.startswith("train.gabi") for k in art.meta.params["params"])  # only keys the method reads
+    # checkpoint selection scores validation masks at calibrate.fixed_tau: it is in the fingerprint
+    assert art.meta.params["params"][SELECTION_TAU_KEY] == load_params(params)["calibrate"]["fixed_tau"]
     log = art.table()
     assert list(log["epoch"]) == [0, 1] and set(log["stage"]) == {2}
     assert payload["resolution"] == int(open_artifact(tiny / "images.zarr").numpy("image").shape[1])

@@ -48,7 +48,7 @@ from pipeline.inference import predict_probs
 from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, STAGE_ONE, get_method
 from pipeline.metrics import iou_curve, per_image_metrics
 from pipeline.params import RECIPES, load_params, validate_section
-from pipeline.profiles import FIVE_SEEDS
+from pipeline.profiles import FIVE_SEEDS, load_profile
 from pipeline.reproducibility import TOLERANCE
 from pipeline.thresholds import TAU_RULES, mask_from_probs, tau_by_rule, threshold_grid
 
@@ -297,8 +297,8 @@ def main(argv=None) -> dict:
                             **{k: None for k in ("train_spacecraft", "train_views", "val_spacecraft", "val_views",
                                                  "test_spacecraft_per_group", "test_views")})
     sets = sr.data_overrides(ns)
-    params = load_params(overrides=sets)
-    artifacts = sr.build_artifacts(Path(args.workdir).resolve(), sets, "cpu", geometry=True)
+    params = load_profile("demo", sets)
+    artifacts = sr.build_artifacts(Path(args.workdir).resolve(), "demo", sets, "cpu", geometry=True)
     base = dict(params["train"])
     if args.epochs is not None:
         base["epochs_stage1"] = args.epochs

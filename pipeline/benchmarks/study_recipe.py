@@ -6,7 +6,7 @@ validation IoU swings between epochs -- one candidate at a time against the pape
 
 What it does
   1. Data: the synthetic benchmark with its simulated teacher, built by the project's own stage
-     commands (``prepare``, ``teacher``, ``consensus`` with ``--set profile=<profile>`` and the size
+     commands (``prepare``, ``teacher``, ``consensus`` on ``<profile>``'s params file and the size
      overrides below) into ``--workdir`` -- or, with ``--artifacts DIR``, the artifacts of a run that
      exists (e.g. a DVC run of ``profile=paper``).  Training arrays come from the training API:
      :func:`stages.train.load_inputs` -> :func:`pipeline.training.training_data` (``plain``: the voted
@@ -46,12 +46,14 @@ from typing import Any, Mapping
 import numpy as np
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts import open_artifact, write_text_if_changed
+from pipeline.dag import render_params_yaml
 from pipeline.device import resolve_device
 from pipeline.inference import predict_probs
 from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.metrics import image_ious
 from pipeline.params import load_params
+from pipeline.profiles import load_profile
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 
 REPO = Path(__file__).resolve().parents[2]
@@ -78,8 +80,8 @@ VARIANTS: dict[str, tuple[dict, str]] = {
 # Data
 # --------------------------------------------------------------------------------------------------
 def data_overrides(args) -> list[str]:
-    """``--set`` overrides of the data stages: profile, resolution and (optionally) split sizes."""
-    sets = [f"profile={args.profile}", f"data.resolution={args.resolution}"]
+    """``--set`` overrides of the profile's params for the data stages: resolution and (optionally) split sizes."""
+    sets = [f"data.resolution={args.resolution}"]
     for key in ("train_spacecraft", "train_views", "val_spacecraft", "val_views", "test_spacecraft_per_group",
                 "test_views"):
         v = getattr(args, key)
@@ -88,17 +90,20 @@ def data_overrides(args) -> list[str]:
     return sets
 
 
-def build_artifacts(workdir: Path, sets: list[str], device: str, geometry: bool = False) -> Path:
+def build_artifacts(workdir: Path, profile: str, sets: list[str], device: str, geometry: bool = False) -> Path:
     """Run prepare -> teacher -> consensus (-> geometry with ``geometry``: the Stage-II methods' targets
-    and gates) with the project's stage commands into ``workdir/artifacts`` unless the last one's
-    output is there already; returns the artifacts directory."""
+    and gates) with the project's stage commands, on ``workdir/params.yaml`` (``profile``'s, as
+    ``geodistill profile`` writes it) with ``sets`` applied, into ``workdir/artifacts`` unless the last
+    one's output is there already; returns the artifacts directory."""
     art = workdir / "artifacts"
     if catalog.path("gates" if geometry else "consensus", art).exists():
         return art
     workdir.mkdir(parents=True, exist_ok=True)
     p = {n: str(catalog.path(n, art)) for n in ("manifest", "images", "reference", "teacher", "teacher_scores",
                                                  "consensus", "geometry", "gates")}
-    common = [a for s in sets for a in ("--set", s)] + ["--device", device]
+    params_file = workdir / "params.yaml"
+    write_text_if_changed(params_file, render_params_yaml(profile))
+    common = ["--params", str(params_file)] + [a for s in sets for a in ("--set", s)] + ["--device", device]
     cmds = [["stages.prepare", "--out-dir", str(art)],
             ["stages.teacher", "--manifest", p["manifest"], "--images", p["images"], "--reference",
              p["reference"], "--out", p["teacher"], "--scores", p["teacher_scores"]],
@@ -320,8 +325,9 @@ def main(argv=None) -> dict:
 
     device = str(resolve_device(args.device))
     sets = data_overrides(args)
-    params = load_params(overrides=sets)
-    artifacts = Path(args.artifacts) if args.artifacts else build_artifacts(Path(args.workdir).resolve(), sets, device)
+    params = load_profile(args.profile, sets)
+    artifacts = (Path(args.artifacts) if args.artifacts
+                 else build_artifacts(Path(args.workdir).resolve(), args.profile, sets, device))
     base = dict(params["train"])
     base["num_threads"] = args.threads
     if args.epochs is not None:

@@ -41,12 +41,17 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from pipeline.artifacts import open_artifact, read_chunk_rows
 from pipeline.deploy import quantize as q8
 from pipeline.deploy.bundle import INT8_FILE, read_deploy_info
 from pipeline.deploy.engines import ENGINES, ONNX_FILE, Source, unavailable
 from pipeline.deploy.export import export_onnx, onnx_unavailable_reason, parity_inputs
-from pipeline.model import mask_path_model
+from pipeline.deploy.segmenter import load_segmenter
+from pipeline.device import cpu_supports_bf16
 from pipeline.errors import InputError
+from pipeline.inference import images_to_tensor, load_student
+from pipeline.metrics import image_ious
+from pipeline.model import count_flops, count_parameters, mask_path_model
 from pipeline.params import BENCHMARK_VARIANTS
 from pipeline.thresholds import mask_from_probs, resolve_tau
 
@@ -200,16 +205,12 @@ def build_variants(model, device, resolution: int, names: Sequence[str], onnx_pa
 
 def mean_image_iou(masks: np.ndarray, reference: np.ndarray) -> float:
     """Mean over images of image_iou(masks[i], reference[i]) (pipeline.metrics; both empty -> 1); NaN if none."""
-    from pipeline.metrics import image_ious
-
     return float(np.mean(image_ious(masks, reference))) if len(masks) else float("nan")
 
 
 def variant_probs(variant: Variant, images: np.ndarray, batch_size: int) -> np.ndarray:
     """P = sigmoid(Z) float32 [N,H,W] of a variant on uint8 images [N,H,W,3]."""
     import torch
-
-    from pipeline.inference import images_to_tensor
 
     out = np.empty(images.shape[:3], np.float32)
     for s in range(0, len(images), batch_size):
@@ -232,8 +233,6 @@ def variant_remark(name: str, device: str, status: str, probe_ms: float, baselin
     """A short note for the efficiency table ("" when there is nothing to say): why a variant was not
     fully timed, and -- for bf16 on a CPU without native bf16 (no AVX-512-BF16/AMX) -- that its
     arithmetic is emulated, so its time says nothing about bf16 on capable hardware."""
-    from pipeline.device import cpu_supports_bf16
-
     notes = []
     if status != OK:
         ratio = probe_ms / baseline_probe_ms if baseline_probe_ms else float("nan")
@@ -266,8 +265,6 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
     same function (int8 replaces multiply-adds by integer ones, it does not remove them).
     """
     import torch
-
-    from pipeline.model import count_flops, count_parameters
 
     slow_factor = SLOW_FACTOR if slow_factor is None else float(slow_factor)
     dev = torch.device(device)
@@ -377,10 +374,6 @@ def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, fix
     """Open exactly one of a deploy bundle or a checkpoint directory on the CPU.  tau by
     :func:`pipeline.thresholds.resolve_tau`: ``tau`` (--tau) > the bundle's > the checkpoint's payload
     > its row in ``thresholds`` > ``fixed_tau`` (calibrate.fixed_tau)."""
-    from pipeline.artifacts import open_artifact
-    from pipeline.deploy.segmenter import load_segmenter
-    from pipeline.inference import load_student
-
     if (deploy_dir is None) == (checkpoint is None):
         raise InputError("give exactly one of --deploy (a bundle) or --checkpoint")
     if deploy_dir is not None:
@@ -397,23 +390,12 @@ def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, fix
     return Target(model, value, source, seg.resolution, None, None, {}, [open_artifact(checkpoint, "checkpoint")])
 
 
-def choose_resolution(*candidates) -> int:
-    """The first given of the candidates (--resolution > deploy.benchmark_resolution > the model's
-    working resolution > data.resolution); InputError unless it is an int >= 8."""
-    resolution = next((c for c in candidates if c), None)
-    if not isinstance(resolution, int) or resolution < 8:
-        raise InputError(f"--resolution: invalid or unknown ({resolution!r})")
-    return resolution
-
-
 def read_benchmark_data(art: str | Path, n_calib: int):
     """(val images, val masks, int8 calibration images, opened artifacts) from ``art``; Nones (and no
     artifacts) when manifest.parquet, images.zarr or reference.zarr is absent.
 
     Validation: split == 'val' rows with a reference mask (reference masks only measure accuracy here,
     never train).  Calibration: the export's selection of training rows (:func:`q8.calibration_rows`)."""
-    from pipeline.artifacts import open_artifact, read_chunk_rows
-
     art = Path(art)
     paths = [art / "manifest.parquet", art / "images.zarr", art / "reference.zarr"]
     if not all(p.exists() for p in paths):

@@ -31,6 +31,7 @@ from pipeline.deploy import quantize as q8
 from pipeline.deploy.export import (ONNX_INPUT, ONNX_OUTPUT, check_parity, export_onnx, export_torchscript,
                                     mask_path_model, onnx_unavailable_reason, require_parity)
 from pipeline.errors import ArtifactError
+from pipeline.model import count_flops, count_parameters
 from pipeline.thresholds import logit_threshold
 from pipeline.weights import write_weights
 
@@ -63,8 +64,6 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
     found no images).
     """
     import torch
-
-    from pipeline.model import count_flops, count_parameters
 
     tmp = Path(tmp)
     deployed = mask_path_model(model)

@@ -25,6 +25,9 @@ import contextlib
 
 import numpy as np
 
+from pipeline.errors import InputError
+from pipeline.model import mask_path_model
+
 
 def _autocast(device, precision: str):
     import torch
@@ -56,9 +59,6 @@ class FastStudent:
     def __init__(self, model, device="cuda", *, precision: str = "auto", cuda_graphs: bool = True,
                  compile: bool = False):
         import torch
-
-        from pipeline.errors import InputError
-        from pipeline.model import mask_path_model
 
         self.device = torch.device(device)
         if precision not in ("auto", "bf16", "fp32"):
@@ -121,8 +121,6 @@ class FastStudent:
 
         images = np.ascontiguousarray(images)
         if images.dtype != np.uint8 or images.ndim != 4:
-            from pipeline.errors import InputError
-
             raise InputError(f"logits_uint8: expected uint8 [N,H,W,3], got {images.dtype} {images.shape}")
         if self.device.type != "cuda":
             return self._forward(uint8_to_input(torch.from_numpy(images)))

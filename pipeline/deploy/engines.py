@@ -25,7 +25,9 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import torch
 
+from pipeline.deploy import openvino_engine
 from pipeline.deploy.bundle import INT8_FILE
+from pipeline.deploy.cuda_engine import FastStudent
 from pipeline.deploy.export import ONNX_INPUT, load_torchscript, onnx_unavailable_reason, ort_session
 from pipeline.model import mask_path_model
 
@@ -121,8 +123,6 @@ def _eager_module(module, dev: torch.device) -> Runner:
 def _fast(precision: str) -> Callable[[Source], Runner]:
     """pipeline.deploy.cuda_engine.FastStudent (CUDA graphs + channels_last; eager fp32 on a CPU)."""
     def load(src: Source) -> Runner:
-        from pipeline.deploy.cuda_engine import FastStudent
-
         fast = FastStudent(src.model, src.device, precision=precision)
         return Runner(lambda x: fast.logits(x).clone(), {"precision": fast.precision, "cuda_graphs": fast.cuda_graphs})
     return load
@@ -140,15 +140,11 @@ def _onnxruntime(file: str) -> Callable[[Source], Runner]:
 
 
 def _openvino(src: Source) -> Runner:
-    from pipeline.deploy.openvino_engine import OpenVinoRunner
-
-    runner = OpenVinoRunner(src.files[INT8_FILE])
+    runner = openvino_engine.OpenVinoRunner(src.files[INT8_FILE])
     return Runner(lambda x: torch.from_numpy(runner(x.cpu().numpy())))
 
 
 def _openvino_reason() -> str | None:
-    from pipeline.deploy import openvino_engine
-
     return openvino_engine.openvino_unavailable_reason() or onnx_unavailable_reason()
 
 

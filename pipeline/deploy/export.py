@@ -28,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.deploy.cuda_engine import FastStudent
 from pipeline.metrics import mask_agreement
-from pipeline.model import mask_path_model
+from pipeline.model import ExportMaskPath, mask_path_model
 from pipeline.thresholds import logit_threshold
 
 ONNX_INPUT = "image"
@@ -43,8 +44,6 @@ class ParityError(RuntimeError):
 def export_module(model):
     """The exported form of the mask path (:class:`pipeline.model.ExportMaskPath`: same function,
     input normalisation folded into the first convolution), float32 CPU, eval mode."""
-    from pipeline.model import ExportMaskPath
-
     return ExportMaskPath(mask_path_model(model)).eval().requires_grad_(False)
 
 
@@ -192,8 +191,6 @@ def device_parity(model, tau: float, resolution: int, atol: float, device, torch
     TF32 is switched off for the fp32 comparisons: with it (PyTorch's cuDNN default) two fp32 engines
     disagree on about 2 % of a mask's pixels.  Runs on a CPU too (then the fast engine is fp32 eager)."""
     import torch
-
-    from pipeline.deploy.cuda_engine import FastStudent
 
     dev = torch.device(device)
     x = parity_inputs(resolution)

@@ -39,10 +39,13 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from pipeline.datasets.loading import probs_to_size
+from pipeline.datasets.loading import probs_to_size, read_rgb, resize_image
+from pipeline.datasets.manifest import SKIPPED_COLUMNS
 from pipeline.datasets.scan import Inputs, _is_within, scan_inputs  # noqa: F401  (the folder scan, re-exported)
 from pipeline.deploy.segmenter import Segmenter
 from pipeline.errors import InputError
+from pipeline.ownership import owned_outputs, refuse_unowned
+from pipeline.progress import progress
 from pipeline.thresholds import mask_from_probs
 
 MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX = ".mask.png", ".prob.png", ".overlay.png"
@@ -103,8 +106,6 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
     ``suffixes``, ``skipped.csv`` or ``segment.json`` already exists that the ``segment.json`` of an
     earlier run does not list (the first one is named; :mod:`pipeline.ownership`).
     """
-    from pipeline.ownership import owned_outputs, refuse_unowned
-
     out = Path(out_dir).absolute()
     cache: dict[Path, Path | None] = {}
     blocked = _blocking_file(out, cache)
@@ -213,9 +214,6 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
 
     A file the reader rejects (InputError) is recorded in ``skipped`` and the rest go on.
     """
-    from pipeline.datasets.loading import read_rgb, resize_image
-    from pipeline.progress import progress
-
     written: list[Path] = []
     skipped: list[tuple[str, str]] = []
     model_s = 0.0
@@ -264,8 +262,6 @@ def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str, str]])
     """``skipped.csv`` (columns image_id, path, reason: those of skipped_files.parquet,
     :data:`pipeline.datasets.manifest.SKIPPED_COLUMNS`), written atomically; header only when nothing
     was skipped."""
-    from pipeline.datasets.manifest import SKIPPED_COLUMNS
-
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
     try:

@@ -37,8 +37,12 @@ from typing import Sequence
 
 import numpy as np
 
+from pipeline.artifacts import open_artifact, read_chunk_rows
+from pipeline.datasets.loading import resize_image
 from pipeline.deploy.export import ONNX_INPUT, mask_path_model, ort_session, torch_logits
 from pipeline.errors import InputError
+from pipeline.inference import images_to_tensor
+from pipeline.metrics import image_ious
 from pipeline.params import INT8_CALIBRATIONS
 from pipeline.thresholds import logit_threshold
 
@@ -60,9 +64,6 @@ def read_calibration_images(art: str | Path, n: int, resolution: int | None = No
     preprocessing (area interpolation) when images.zarr is at another size.  None (with the reason
     in ``note``) when the artifacts are absent or hold no training rows.
     """
-    from pipeline.artifacts import open_artifact, read_chunk_rows
-    from pipeline.datasets.loading import resize_image
-
     art = Path(art)
     paths = (art / "manifest.parquet", art / "images.zarr")
     missing = [str(p) for p in paths if not p.exists()]
@@ -88,8 +89,6 @@ def int8_agreement(reference: np.ndarray, logits: np.ndarray, tau: float, min_ma
     -- a gate on masks rather than pixels, because a pixel fraction hides a small object that int8
     loses (it is 0.1 % of the pixels and 100 % of that image's mask).
     """
-    from pipeline.metrics import image_ious
-
     reference = np.asarray(reference, np.float64)
     logits = np.asarray(logits, np.float64)
     if reference.shape != logits.shape or reference.size == 0:
@@ -117,8 +116,6 @@ def check_int8_parity(model, int8_path: str | Path, images: np.ndarray, tau: flo
                       batch_size: int = 8) -> dict:
     """:func:`int8_agreement` of the int8 ONNX model against the PyTorch mask path on uint8 images
     [N,R,R,3] (the calibration images at export).  Does not raise; see :func:`require_int8_agreement`."""
-    from pipeline.inference import images_to_tensor
-
     deployed = mask_path_model(model)
     sess = ort_session(int8_path)
     ref, got = [], []
@@ -163,8 +160,6 @@ def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_
     from onnxruntime.quantization.calibrate import create_calibrator
     from onnxruntime.quantization.registry import QDQRegistry, QLinearOpsRegistry
     from onnxruntime.quantization.shape_inference import quant_pre_process
-
-    from pipeline.inference import images_to_tensor
 
     images = np.asarray(calibration_images)
     if images.ndim != 4 or len(images) == 0:

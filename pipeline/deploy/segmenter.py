@@ -17,12 +17,16 @@ from typing import Callable
 
 import numpy as np
 
+from pipeline.artifacts import open_artifact
+from pipeline.datasets.loading import probs_to_size, read_rgb, resize_image, to_rgb8
 from pipeline.deploy.bundle import INT8_FILE, checkpoint_resolution, is_deploy_bundle, read_deploy_info
 from pipeline.deploy.engines import ENGINES as ENGINE_REGISTRY
 from pipeline.deploy.engines import MODEL_ENGINES, SEGMENT_ENGINES, Source
 from pipeline.deploy.export import onnx_unavailable_reason
 from pipeline.errors import ArtifactError, InputError
-from pipeline.thresholds import lookup_tau, resolve_tau
+from pipeline.inference import images_to_tensor, load_student
+from pipeline.params import PAPER
+from pipeline.thresholds import lookup_tau, mask_from_probs, resolve_resolution, resolve_tau
 
 ENGINES = ("auto", *SEGMENT_ENGINES)
 
@@ -56,14 +60,10 @@ class Segmenter:
         >>> seg = Segmenter.from_bundle("out/artifacts/deploy")          # doctest: +SKIP
         >>> mask = seg.predict("image.png")  # bool [H, W] at the image's own size   # doctest: +SKIP
         """
-        from pipeline.params import PAPER
-
         seg = load_segmenter(path, engine, device)
         seg.tau, seg.tau_source = seg.resolve_tau(option=tau, fixed=PAPER.calibrate.fixed_tau)
-        if resolution is not None:
-            seg.resolution = int(resolution)
-        if seg.resolution is None:
-            raise InputError(f"{path}: no working resolution recorded; pass resolution=...")
+        seg.resolution, _ = resolve_resolution(option=(resolution, "resolution="), recorded=(seg.resolution, str(path)),
+                                               missing=f"{path}: no working resolution recorded; pass resolution=...")
         return seg
 
     def probabilities(self, image) -> np.ndarray:
@@ -72,8 +72,6 @@ class Segmenter:
         other integers (clipped to 0..255) or float in [0,1] -- read by the dataset loader's rules
         (:func:`pipeline.datasets.loading.to_rgb8`), resized to the working resolution like the training
         images (area), P resized back bilinearly (:func:`pipeline.datasets.loading.probs_to_size`)."""
-        from pipeline.datasets.loading import probs_to_size, read_rgb, resize_image, to_rgb8
-
         if self.resolution is None:
             raise InputError("Segmenter: no working resolution; set .resolution or use Segmenter.from_bundle")
         if isinstance(image, (str, Path)):
@@ -90,8 +88,6 @@ class Segmenter:
     def predict(self, image) -> np.ndarray:
         """The spacecraft mask M = [P >= tau] (eq:inference-mask), bool [H,W] at the ORIGINAL size of
         ``image`` (a path or an array, see :meth:`probabilities`)."""
-        from pipeline.thresholds import mask_from_probs
-
         if self.tau is None:
             raise InputError("Segmenter: no tau; use Segmenter.from_bundle (or set .tau)")
         return mask_from_probs(self.probabilities(image), self.tau)
@@ -102,8 +98,6 @@ class Segmenter:
         return resolve_tau(option=option, fixed=fixed, **self.taus)
 
     def predict_probs(self, images: np.ndarray, batch_size: int = 8) -> np.ndarray:
-        from pipeline.inference import images_to_tensor
-
         images = np.asarray(images)
         out = np.empty(images.shape[:3], np.float32)
         for s in range(0, len(images), batch_size):
@@ -160,8 +154,6 @@ def load_segmenter(path: str | Path, engine: str = "auto", device="cpu",
     """
     import torch
 
-    from pipeline.inference import load_student
-
     path = Path(path)
     if not path.exists():
         raise InputError(f"--checkpoint {path}: not found")
@@ -215,8 +207,6 @@ def checkpoint_taus(payload: dict, thresholds: str | Path | None) -> dict:
         return {"checkpoint": (float(payload["tau"]), "checkpoint payload")}
     if thresholds is None or not Path(thresholds).exists():
         return {}
-    from pipeline.artifacts import open_artifact
-
     method, seed = payload.get("method"), payload.get("seed")
     found = lookup_tau(open_artifact(thresholds, "thresholds").df, method, seed)
     return {} if found is None else {"thresholds": (found, f"{thresholds} ({method}, seed {seed})")}
