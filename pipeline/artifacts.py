@@ -27,13 +27,16 @@ Layout decisions
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import datetime as _dt
 import hashlib
 import importlib.metadata
 import json
 import os
+import re
 import shutil
+import signal
 import sys
 import uuid
 from pathlib import Path
@@ -303,8 +306,6 @@ _AT_FDCWD = -100
 
 def _exchange(a: Path, b: Path) -> bool:
     """Atomically swap two paths (Linux ``renameat2(RENAME_EXCHANGE)``); False where unsupported."""
-    import ctypes
-
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         fn = libc.renameat2
@@ -353,8 +354,6 @@ def fault_point(name: str) -> None:
     """Fault injection for the kill tests: ``GEODISTILL_FAULT=<name>`` makes the process SIGKILL itself
     here (the tests prove that a kill at each point leaves a complete artifact at the final path)."""
     if os.environ.get(FAULT_ENV) == name:
-        import signal
-
         os.kill(os.getpid(), signal.SIGKILL)
 
 
@@ -382,8 +381,6 @@ def _errno_of(e: OSError) -> int | None:
     """``e.errno``, or the ``[errno N]`` that libraries (pyarrow) put in the message only."""
     if e.errno:
         return e.errno
-    import re
-
     m = re.search(r"\[errno (\d+)\]", str(e), re.I)
     return int(m.group(1)) if m else None
 

@@ -54,6 +54,7 @@ import subprocess
 import sys
 from pathlib import Path
 from typing import Mapping
+import yaml
 
 from pipeline import __version__, catalog
 from pipeline.artifacts import write_text_if_changed
@@ -109,8 +110,6 @@ def project_params(params: Mapping, input_dir: Path, val_masks: Path | None) -> 
 
 def protocol_text(input_dir: Path, val_masks: Path | None) -> str:
     """``folder_protocol.yaml``: the folder adapter's protocol (data_manifests/folder.yaml) for INPUT."""
-    import yaml
-
     proto = {"dataset": "folder", "images_dir": str(input_dir),
              "masks_dir": str(val_masks) if val_masks is not None else None,
              "val_fraction": 0.5, "mask_threshold": None, "spacecraft": input_dir.name, "domain": "folder"}

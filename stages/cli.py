@@ -12,6 +12,7 @@ import click
 
 from pipeline import __version__
 from pipeline.artifacts import PROGRAM
+from stages._common import one_line_errors
 
 # subcommand -> module under stages/ exposing a click command named ``main`` (or ``module:command``)
 COMMANDS = {
@@ -53,8 +54,6 @@ class LazyGroup(click.Group):
         """Every subcommand under :func:`stages._common.one_line_errors` (the stage commands also use it
         themselves, for ``python -m stages.<name>``): an InputError or OSError the command did not turn
         into its line still ends in one line, never a traceback."""
-        from stages._common import one_line_errors  # starts pydantic (params): not for --help
-
         args = [*getattr(ctx, "_protected_args", []), *ctx.args] or [""]
         with one_line_errors(args[0] or PROGRAM):
             return super().invoke(ctx)

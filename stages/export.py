@@ -19,6 +19,9 @@ the artifacts, or with ``--no-int8`` the bundle has no int8 model and deploy.jso
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import click
 
 from pipeline.artifacts import artifact_dir, open_artifact
@@ -33,9 +36,6 @@ from stages._common import overwrite_option, stage_command, stage_context
 
 def is_bundle_dir(path) -> bool:
     """Whether ``path`` is a folder holding a deploy artifact's meta.json (export's own output)."""
-    import json
-    from pathlib import Path
-
     try:
         return json.loads((Path(path) / "meta.json").read_text()).get("schema") == "deploy"
     except (OSError, ValueError, AttributeError):

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
 import subprocess
 import sys
@@ -296,7 +297,6 @@ def _run_jobs(jobs: list[dict], artifacts: str, base: dict, n_jobs: int, threads
         for j in jobs:
             yield run(j)
         return
-    import multiprocessing as mp
 
     with mp.get_context("spawn").Pool(n_jobs, initializer=init, initargs=(artifacts, base, threads)) as pool:
         yield from pool.imap_unordered(run, jobs, chunksize=1)

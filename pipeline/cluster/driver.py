@@ -26,6 +26,7 @@ import dataclasses
 import fcntl
 import json
 import os
+import socket
 import subprocess
 import sys
 import time
@@ -108,8 +109,6 @@ def run_stage(root: str, stage: str, extra_env: dict, threads: int, gpus: float,
     output to ``log_path``.  ``upstream``: the results of the stages it waits for; when one of them did
     not succeed this stage is ``not_run``.  Returns {stage, status, start, end, returncode, error, node,
     node_id}."""
-    import socket
-
     import ray
 
     failed = [u["stage"] for u in upstream if u["status"] in ("failed", "not_run")]

@@ -58,6 +58,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec
+from pipeline.datasets.scan import scan_inputs
 from pipeline.datasets.synthetic import stable_hash
 from pipeline.errors import InputError
 from pipeline.params import read_yaml_mapping
@@ -349,8 +350,6 @@ def _folder_entries(d: Path, what: str, policy: BadInputPolicy) -> list[tuple[st
     (posix).  Bad entries (links leaving ``d``, links to folders, special files) go through the
     policy; hidden files and files that are not images are listed, not an error; broken links are
     kept for the decode pass to report."""
-    from pipeline.datasets.scan import scan_inputs
-
     found = scan_inputs(d, keep_broken_links=True)
 
     def rel_id(p) -> str:

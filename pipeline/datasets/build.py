@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.artifacts import atomic_path
+from pipeline.datasets import adapters
 from pipeline.datasets import synthetic as syn
 from pipeline.datasets.loading import BadFileError, DecodeCache, load_labels, load_mask, load_rgb, mask_kind
 from pipeline.datasets.manifest import (BadInputPolicy, DatasetSpec, check_rows, drop_duplicate_ids,
@@ -93,8 +94,6 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
 def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = None) -> DatasetSpec:
     """Rows of a real dataset.  ``<out_dir>/synthetic`` (a declared DVC output) is replaced by a
     directory holding only a note, so no stale synthetic files survive a switch of source."""
-    from pipeline.datasets import adapters
-
     spec = adapters.build_source(cfg, policy)
     if out_dir is not None:
         with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:

@@ -32,6 +32,7 @@ Decisions:
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import math
 import statistics
@@ -76,8 +77,6 @@ class Variant:
 
 def _malloc_trim() -> None:
     try:
-        import ctypes
-
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except Exception:  # noqa: BLE001 -- not glibc: nothing to trim
         pass
