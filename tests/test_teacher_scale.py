@@ -13,8 +13,10 @@ from pipeline.artifacts import open_artifact
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.cache import TeacherCache
 from pipeline.teachers.distributed import TeacherWorker, decode_jobs
+from pipeline.teachers import runner as runner_module
 from pipeline.teachers.runner import TeacherRunner, TeacherSpec, in_view
 from pipeline.teachers.simulated import PERSONAS, SimulatedFoundationTeacher
+from test_label import FAST, cli, make_image_folder
 from test_teacher_stage import build_artifacts, run_stage
 from test_teacher_units import _items
 
@@ -114,18 +116,27 @@ def test_a_retried_job_rewrites_the_same_entries(tmp_path):
     assert runner.fill(range(4)).answers_computed == 4 * 7 - 2 * len(PROMPTS)
 
 
-def test_ray_data_teacher_gives_the_serial_artifact(tmp_path, monkeypatch):
+@pytest.fixture(scope="module")
+def ray_local():
     ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, num_gpus=2, include_dashboard=False, log_to_driver=False, logging_level="WARNING")
+    yield ray
+    ray.shutdown()
+
+
+def _no_serial_loop(*args, **kwargs):
+    raise AssertionError("the driver ran a job: the Ray actors should have")
+
+
+def test_ray_data_teacher_gives_the_serial_artifact(tmp_path, monkeypatch, ray_local):
     monkeypatch.setenv("GEODISTILL_QUIET", "1")
     paths = build_artifacts(tmp_path / "a", n=6)
     assert run_stage(paths, tmp_path / "serial").exit_code == 0
     serial = {k: open_artifact(paths["out"]).numpy(k) for k in ("masks", "scores", "vflip_masks", "vflip_scores")}
     table = open_artifact(paths["scores"]).df
-    ray.init(num_cpus=2, num_gpus=2, include_dashboard=False, log_to_driver=False, logging_level="WARNING")
-    try:
+    with monkeypatch.context() as m:
+        m.setattr(runner_module, "answer_job", _no_serial_loop)  # this process only: the actors run theirs
         res = run_stage(paths, tmp_path / "ray", "--workers", "2")
-    finally:
-        ray.shutdown()
     assert res.exit_code == 0, res.output
     out = open_artifact(paths["out"])
     for k, v in serial.items():
@@ -134,3 +145,19 @@ def test_ray_data_teacher_gives_the_serial_artifact(tmp_path, monkeypatch):
     assert open_artifact(paths["scores"]).df.equals(table)
     rel = lambda root: {p.relative_to(root): p.read_bytes() for p in root.rglob("*.tce")}  # noqa: E731
     assert rel(tmp_path / "ray") == rel(tmp_path / "serial")           # the same cache, entry for entry
+
+
+def test_label_with_ray_workers_writes_the_serial_labels(tmp_path, monkeypatch, ray_local):
+    monkeypatch.setenv("GEODISTILL_QUIET", "1")
+    img_dir, mask_dir = make_image_folder(tmp_path / "data", n=8)
+    outs = {}
+    for name, extra in (("serial", ()), ("ray", ("--workers", "2"))):
+        outs[name] = tmp_path / name
+        r = cli("label", img_dir, "--out", outs[name], "--backend", "simulated", "--reference-masks", mask_dir,
+                *FAST, *extra)
+        assert r.exit_code == 0, r.output
+    files = lambda root: {p.relative_to(root): p.read_bytes() for p in root.rglob("*")  # noqa: E731
+                          if p.is_file() and not p.is_symlink() and p.name not in ("label.json", "data.yaml")}
+    serial, ray = files(outs["serial"]), files(outs["ray"])
+    assert serial.keys() == ray.keys() and len(serial) > 8 + 3
+    assert [k for k in serial if serial[k] != ray[k]] == []            # PNG, COCO, YOLO, tables, sheet, cache
