@@ -1,18 +1,18 @@
 """``geodistill label``: a folder of images -> voted, gated pseudo-masks in standard formats.
 
-The same three steps as the DAG's teacher, consensus and geometry stages, on a plain folder and
-without a DVC project:
+The DAG's teacher, consensus and geometry steps, composed of the functions those stages call, on a
+plain folder and without a DVC project:
 
 1. every image (recursively, any size, grey / RGB / RGBA, 8/16-bit: :func:`pipeline.datasets.loading.
    load_rgb`) is resized to the working resolution ``data.resolution`` and sent to the teacher
-   (``teacher.*``: SAM 3, imported masks, or the SIMULATOR) through the content-addressed teacher
-   cache (:class:`pipeline.teachers.runner.TeacherRunner`) -- a rerun, or a run killed half-way,
-   recomputes nothing that is cached;
-2. the K prompt masks are voted (:func:`pipeline.consensus.vote`, eq:agreement-map,
-   eq:majority-vote);
-3. the reliability gate of each pseudo-mask (:mod:`pipeline.geometry`: eq:foreground-agreement,
-   eq:valid-prompt-ratio, eq:pseudo-area, eq:confidence-gate .. eq:reliability-gate), with a0 the
-   median area of the non-empty pseudo-masks of the folder (every image is a training image here).
+   (``teacher.*``: SAM 3, imported masks, or the SIMULATOR) through the teacher stage's runner and
+   content-addressed cache (:func:`pipeline.teachers.runner.open_runner`; serial, or with ``workers`` a
+   Ray Data pool) -- a rerun, or a run killed half-way, recomputes nothing that is cached;
+2. the K prompt masks are voted (:func:`pipeline.consensus.vote`, the consensus stage's vote:
+   eq:agreement-map, eq:majority-vote);
+3. the reliability gate of each pseudo-mask (the geometry stage's :func:`pipeline.geometry.image_gates`
+   with eq:foreground-agreement and eq:pseudo-area), with a0 the median area of the non-empty
+   pseudo-masks of the folder (every image is a training image here).
 
 Outputs under ``out`` (formats ``png``, ``coco``, ``yolo``; the table, contact sheet and run record
 always)::

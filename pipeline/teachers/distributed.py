@@ -5,7 +5,8 @@
 1. ``ray.data.from_items`` -- one row per :class:`~pipeline.teachers.runner.TeacherJob` (a batch of
    image rows in one view);
 2. ``map_batches(decode_jobs)`` -- tasks on CPU workers read and resize the job's images (the
-   runner's ``load``: an artifact row or an image file) into :class:`TeacherInput` objects;
+   runner's ``load``: an artifact row or an image file) into :class:`TeacherInput` objects (on a
+   CPU-only cluster Ray Data fuses this step into the teacher actors: same resources, no copy);
 3. ``map_batches(TeacherWorker, compute=ActorPoolStrategy(size=workers))`` -- an actor pool with one
    teacher per GPU (``num_gpus=1`` when the cluster has GPUs and the device is not ``cpu``) or per CPU
    worker; each actor builds the teacher once (SAM 3 loaded once, the text features encoded once, the
@@ -87,13 +88,12 @@ def fill_with_ray(jobs: Sequence[TeacherJob], load: InputLoader, spec: TeacherSp
         ctx.enable_progress_bars = False
         resources = ray.cluster_resources()
         gpus = float(resources.get("GPU", 0.0)) if spec.device != "cpu" else 0.0
-        free_cpus = float(resources.get("CPU", 0.0)) - workers
         log.info("teacher: Ray Data pool of %d teachers (%s), %d jobs", workers,
                  "one GPU each" if gpus else "one CPU each", len(jobs))
         ds = ray.data.from_items([{"job": i} for i in range(len(jobs))], override_num_blocks=max(len(jobs), 1))
-        # decode rides along with the teachers' CPUs when they hold every CPU (Ray Data's backpressure bounds it)
-        ds = ds.map_batches(decode_jobs, fn_kwargs={"jobs": jobs, "load": load}, batch_size=1,
-                            num_cpus=1.0 if free_cpus >= 1 else 0.0)
+        # one CPU per decode task; Ray Data fuses decode into the teacher actors when both ask for the
+        # same resources (CPU-only), and runs it as tasks on the other CPUs beside GPU actors
+        ds = ds.map_batches(decode_jobs, fn_kwargs={"jobs": jobs, "load": load}, batch_size=1, num_cpus=1.0)
         ds = ds.map_batches(TeacherWorker, fn_constructor_kwargs={"spec": spec, "cache_root": cache_root,
                                                                   "fingerprint": fingerprint, "jobs": jobs},
                             batch_size=1, compute=ray.data.ActorPoolStrategy(size=workers),
