@@ -14,7 +14,8 @@ from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.cache import TeacherCache
 from pipeline.teachers.distributed import TeacherWorker, decode_jobs
 from pipeline.teachers import runner as runner_module
-from pipeline.teachers.runner import TeacherRunner, TeacherSpec, in_view
+from pipeline.teachers.jobs import TeacherSpec, in_view
+from pipeline.teachers.runner import TeacherRunner
 from pipeline.teachers.simulated import PERSONAS, SimulatedFoundationTeacher
 from test_label import FAST, cli, make_image_folder
 from test_teacher_stage import build_artifacts, run_stage

@@ -38,7 +38,8 @@ import numpy as np
 
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
-from pipeline.teachers.runner import in_view, open_runner
+from pipeline.teachers.jobs import in_view
+from pipeline.teachers.runner import open_runner
 
 PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
            "spacecraft with rigid body and appendages", "artificial object in space with panels and antennas"]

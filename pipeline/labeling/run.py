@@ -65,7 +65,8 @@ from pipeline.params import section
 from pipeline.progress import progress
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
-from pipeline.teachers.runner import in_view, open_runner
+from pipeline.teachers.jobs import in_view
+from pipeline.teachers.runner import open_runner
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 :func:`fill_with_ray` runs the jobs :class:`pipeline.teachers.runner.TeacherRunner` planned:
 
-1. ``ray.data.from_items`` -- one row per :class:`~pipeline.teachers.runner.TeacherJob` (a batch of
+1. ``ray.data.from_items`` -- one row per :class:`~pipeline.teachers.jobs.TeacherJob` (a batch of
    image rows in one view);
 2. ``map_batches(decode_jobs)`` -- tasks on CPU workers read and resize the job's images (the
    runner's ``load``: an artifact row or an image file) into :class:`TeacherInput` objects (on a
@@ -11,7 +11,7 @@
    teacher per GPU (``num_gpus=1`` when the cluster has GPUs and the device is not ``cpu``) or per CPU
    worker; each actor builds the teacher once (SAM 3 loaded once, the text features encoded once, the
    vision encoder reused by the six prompts inside ``predict``) and calls
-   :func:`pipeline.teachers.runner.answer_job` -- the serial loop's own per-batch function -- which
+   :func:`pipeline.teachers.jobs.answer_job` -- the serial loop's own per-batch function -- which
    writes the job's entries into the content-addressed cache (:mod:`pipeline.teachers.cache`,
    a local folder, NFS or object storage).
 
@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.teachers.cache import TeacherCache
-from pipeline.teachers.runner import InputLoader, TeacherJob, TeacherSpec, answer_job
+from pipeline.teachers.jobs import InputLoader, TeacherJob, TeacherSpec, answer_job
 
 log = logging.getLogger(__name__)
 

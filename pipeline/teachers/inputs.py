@@ -15,7 +15,7 @@ import numpy as np
 
 from pipeline.artifacts import open_artifact
 from pipeline.teachers.base import TeacherInput
-from pipeline.teachers.runner import in_view
+from pipeline.teachers.jobs import in_view
 
 
 class ArtifactInputs:
