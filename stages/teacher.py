@@ -37,6 +37,7 @@ validation and test images for the teacher-quality analysis.
 from __future__ import annotations
 
 import logging
+import os
 
 import click
 import numpy as np
@@ -111,7 +112,7 @@ def main(params, device, manifest, images, reference, out, scores, shard, worker
     require_same_run(man, img, ref)
     _check_alignment(df, img, ref)
     if ref is not None:
-        load.reference = str(reference)
+        load.reference = os.path.abspath(reference)
     if teacher.backend == "simulated":
         log.info("teacher: backend 'simulated' is a SIMULATOR of foundation-model errors that reads the "
                  "synthetic ground truth; it is not a real teacher")

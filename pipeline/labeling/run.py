@@ -286,8 +286,11 @@ class FolderInputs:
     SIMULATOR also the reference masks.  Picklable: Ray's CPU workers decode with it."""
 
     def __init__(self, job: _Job):
-        self.files, self.ids, self.shas, self.ref_files = job.files, job.ids, job.shas, job.ref_files
-        self.size, self.cache = job.size, job.cache
+        absolute = lambda paths: None if paths is None else [Path(os.path.abspath(p)) for p in paths]  # noqa: E731
+        # absolute paths: Ray workers need not share this process's working directory
+        self.files, self.ref_files = absolute(job.files), absolute(job.ref_files)
+        self.ids, self.shas, self.size = job.ids, job.shas, job.size
+        self.cache = DecodeCache(os.path.abspath(job.cache.root)) if job.cache is not None else None
 
     def __call__(self, row: int, view: str) -> TeacherInput:
         image = load_rgb(self.files[row], self.size, self.cache).array

@@ -143,6 +143,11 @@ class TeacherCache:
     def key(self, image_sha256: str, prompt: str, view: str = "identity") -> str:
         return entry_key(image_sha256, self.teacher_fingerprint, prompt, view)
 
+    @property
+    def location(self) -> str:
+        """``root`` as another process (a Ray worker elsewhere) must name it: absolute when local."""
+        return self._base if self.local else self.root
+
     def _layout(self) -> str:
         return f"{self._base.rstrip('/')}/{LAYOUT_VERSION}"
 

@@ -8,6 +8,7 @@ and per-row metadata, and opens the artifacts on first use in each process.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -27,8 +28,8 @@ class ArtifactInputs:
 
     def __init__(self, images: str | Path, reference: str | Path | None, ids: Sequence[str],
                  shas: Sequence[str], extras: Sequence[Mapping[str, Any]]):
-        self.images = str(images)
-        self.reference = str(reference) if reference is not None else None
+        self.images = os.path.abspath(images)  # absolute: Ray workers need not share this cwd
+        self.reference = os.path.abspath(reference) if reference is not None else None
         self.ids, self.shas, self.extras = list(ids), list(shas), list(extras)
         self._arrays = None
 

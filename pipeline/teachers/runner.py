@@ -150,7 +150,7 @@ class TeacherRunner:
         if workers > 0 and jobs:
             if self.spec is None:
                 raise ValueError("TeacherRunner.fill(workers > 0) needs the runner's TeacherSpec")
-            self.stats.answers_computed += fill_with_ray(jobs, self.load, self.spec, self.cache.root,
+            self.stats.answers_computed += fill_with_ray(jobs, self.load, self.spec, self.cache.location,
                                                          self.cache.teacher_fingerprint, workers, address)
         else:
             for job in progress(jobs, desc=f"teacher[{self.teacher.backend}]"):
