@@ -162,3 +162,10 @@ def test_label_with_ray_workers_writes_the_serial_labels(tmp_path, monkeypatch, 
     serial, ray = files(outs["serial"]), files(outs["ray"])
     assert serial.keys() == ray.keys() and len(serial) > 8 + 3
     assert [k for k in serial if serial[k] != ray[k]] == []            # PNG, COCO, YOLO, tables, sheet, cache
+
+
+def test_more_workers_than_the_cluster_holds_is_one_line(tmp_path, monkeypatch, ray_local):
+    monkeypatch.setenv("GEODISTILL_QUIET", "1")
+    paths = build_artifacts(tmp_path / "a", n=2)
+    res = run_stage(paths, tmp_path / "cache", "--workers", "3")
+    assert res.exit_code == 2 and "--workers 3: the Ray cluster has 2 CPUs" in res.output

@@ -88,6 +88,9 @@ def fill_with_ray(jobs: Sequence[TeacherJob], load: InputLoader, spec: TeacherSp
         ctx.enable_progress_bars = False
         resources = ray.cluster_resources()
         gpus = float(resources.get("GPU", 0.0)) if spec.device != "cpu" else 0.0
+        slots, unit = (gpus, "GPUs") if gpus else (float(resources.get("CPU", 0.0)), "CPUs")
+        if workers > slots:  # the pool would wait forever for the missing actors
+            raise InputError(f"--workers {workers}: the Ray cluster has {slots:g} {unit} (one teacher each)")
         log.info("teacher: Ray Data pool of %d teachers (%s), %d jobs", workers,
                  "one GPU each" if gpus else "one CPU each", len(jobs))
         ds = ray.data.from_items([{"job": i} for i in range(len(jobs))], override_num_blocks=max(len(jobs), 1))
