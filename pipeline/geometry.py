@@ -288,3 +288,13 @@ def median_area(a, is_train) -> float:
         raise InputError("median_area: no non-empty training pseudo-mask; a0 (eq:area-gate) is undefined "
                          "(check the teacher output and the manifest's train split)")
     return float(np.median(sel))
+
+
+def image_gates(c, n_valid, a, a0, geo) -> tuple[np.ndarray, GateFactors]:
+    """(v, :class:`GateFactors`) of images with agreement ``c``, valid-prompt counts ``n_valid`` and
+    areas ``a`` against the reference area ``a0`` (eq:valid-prompt-ratio, eq:confidence-gate ..
+    eq:reliability-gate) with the constants of the params ``geometry`` section ``geo``: the gate of the
+    geometry stage and of ``geodistill label``."""
+    v = valid_ratio(n_valid, geo["n_prompts"])
+    return v, gate_factors(c, v, a, a0, conf_offset=geo["conf_offset"], valid_offset=geo["valid_offset"],
+                           area_temperature=geo["area_temperature"], area_floor=geo["area_floor"], eps=geo["eps"])

@@ -10,7 +10,7 @@ import pandas as pd
 from pipeline.catalog import dvc_path
 from pipeline.artifacts import ZarrWriter, open_artifact, write_parquet
 from pipeline.errors import InputError
-from pipeline.geometry import foreground_agreement, gate_factors, median_area, pseudo_targets, valid_ratio
+from pipeline.geometry import foreground_agreement, image_gates, median_area, pseudo_targets
 from pipeline.params import section
 from pipeline.progress import progress
 from stages._common import stage_command, stage_context
@@ -86,9 +86,7 @@ def main(params, device, consensus, manifest, out, gates, chunk_images):
             a0 = median_area(a, split == "train")
         except InputError as err:
             raise InputError(f"{man.path}: {err}") from None
-        v = valid_ratio(n_valid, cfg["n_prompts"])
-        gf = gate_factors(c, v, a, a0, conf_offset=cfg["conf_offset"], valid_offset=cfg["valid_offset"],
-                          area_temperature=cfg["area_temperature"], area_floor=cfg["area_floor"], eps=cfg["eps"])
+        v, gf = image_gates(c, n_valid, a, a0, cfg)
         table = pd.DataFrame({
             "image_id": man.df["image_id"].astype(str).to_numpy(), "split": split,
             "c": c, "v": v, "a": a, "a0": np.full(n, a0),

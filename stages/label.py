@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import click
 
+from pipeline.api import choose_teacher, with_skip_bad
+from pipeline.labeling import label_folder
+from pipeline.labeling.run import parse_formats
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
 from stages._common import overwrite_option, skip_bad_option, stage_command
+from stages.teacher import teacher_workers_options
 
 
 @stage_command("label", default_profile="paper", profile_loader=load_params_or_profile)
@@ -23,21 +27,19 @@ from stages._common import overwrite_option, skip_bad_option, stage_command
               help="comma-separated: png, coco, yolo")
 @skip_bad_option
 @overwrite_option
+@teacher_workers_options
 def main(params, device, input_dir, out, checkpoint, backend, imported_dir, reference_masks, formats, skip_bad,
-         overwrite):
+         overwrite, workers, address):
     """Label a folder of images with the multi-prompt teacher: voted pseudo-masks as PNG, COCO (RLE)
     and YOLO segmentation files, a table of agreement c, valid ratio v, area a and gate g per image,
     and a contact sheet.  Without --params the paper's values are used (working resolution 384).
+    --workers N runs the teacher on a Ray Data pool of N (same labels).
     Reruns resume from the teacher cache inside OUT; label.json there lists what label wrote, and
     anything else in the way is refused unless --overwrite (docs/own-data.md)."""
-    from pipeline.api import choose_teacher, with_skip_bad
-    from pipeline.labeling import label_folder
-    from pipeline.labeling.run import parse_formats
-
     fmts = parse_formats(formats)  # checked before any work
     params = with_skip_bad(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad)
     result = label_folder(input_dir, out, params, device=device, formats=fmts, reference_masks=reference_masks,
-                          overwrite=overwrite)
+                          overwrite=overwrite, workers=workers, address=address)
     g = result.table["g"]
     click.echo(f"label: {len(result.table)} images -> {result.out} ({', '.join(result.formats)}); "
                f"gate g median {g.median():.3f}, {int((g > 0).sum())} with g > 0"

@@ -6,16 +6,19 @@ assemble ``teacher.zarr`` + ``teacher_scores.parquet`` from it::
     python -m stages.teacher --manifest artifacts/manifest.parquet --images artifacts/images.zarr \\
         --reference artifacts/reference.zarr --out artifacts/teacher.zarr --scores artifacts/teacher_scores.parquet
 
-``--shard i/n`` (0 <= i < n) only fills the cache for shard i's images and writes no artifact, so
-several machines sharing ``teacher.cache_dir`` can split the work, e.g. as a SLURM array job::
+``--workers N`` runs the teacher as a Ray Data pipeline (:mod:`pipeline.teachers.distributed`, the
+``cluster`` extra): CPU workers read the images, an actor pool of N teachers (one per GPU, or per CPU
+worker without GPUs) fills the cache with the same per-batch function as the serial loop, then this
+process assembles the artifacts; ``--address`` joins a running Ray cluster (e.g. on SLURM, see
+docs/real-data.md), otherwise Ray runs embedded and local.  Without ``--workers`` (or with 0) the
+serial loop runs in this process, no Ray needed; both give the same cache and the same artifacts.
 
-    #!/bin/bash
-    #SBATCH --job-name=teacher --array=0-7 --gres=gpu:1 --cpus-per-task=8 --time=04:00:00
-    srun python -m stages.teacher --shard ${SLURM_ARRAY_TASK_ID}/${SLURM_ARRAY_TASK_COUNT} \\
-        --set teacher.backend=sam3 --set teacher.checkpoint=/models/sam3 --device cuda
+``--shard i/n`` (0 <= i < n) only fills the cache for shard i's images and writes no artifact (the
+former way to split the work over a SLURM array; Ray with ``--workers`` replaces it)::
 
+    srun python -m stages.teacher --shard ${SLURM_ARRAY_TASK_ID}/${SLURM_ARRAY_TASK_COUNT} --device cuda
     # afterwards, once (computes nothing that the shards cached, writes the artifacts):
-    sbatch --dependency=afterok:<array job id> --wrap "dvc repro teacher"
+    dvc repro teacher
 
 Artifacts (manifest row order, N = all manifest rows):
   teacher.zarr  ``masks`` bool [N,K,H,W], ``scores`` float32 [N,K]; with ``teacher.vflip_base_prompt``
@@ -34,16 +37,20 @@ validation and test images for the teacher-quality analysis.
 from __future__ import annotations
 
 import logging
+import os
 
 import click
 import numpy as np
 import pandas as pd
 
-from pipeline.catalog import dvc_path
 from pipeline.artifacts import ZarrWriter, open_artifact, require_same_run, write_parquet
+from pipeline.catalog import dvc_path
 from pipeline.errors import InputError
 from pipeline.params import section
 from pipeline.progress import progress
+from pipeline.teachers import check_teacher_params
+from pipeline.teachers.inputs import ArtifactInputs
+from pipeline.teachers.runner import open_runner, parse_shard, shard_rows
 from stages._common import stage_command, stage_context
 
 log = logging.getLogger("stages.teacher")
@@ -64,6 +71,15 @@ def _check_alignment(manifest: pd.DataFrame, images, reference) -> None:
             raise InputError(f"{art.path}: attrs image_ids differ from the manifest's image_id order")
 
 
+def teacher_workers_options(fn):
+    """``--workers`` / ``--address``: the teacher's Ray Data executor (teacher stage and label)."""
+    fn = click.option("--address", default=None, metavar="ADDRESS",
+                      help="Ray cluster to join with --workers (default: RAY_ADDRESS, else an embedded local Ray)")(fn)
+    return click.option("--workers", default=0, show_default=True, type=click.IntRange(0),
+                        help="teachers in a Ray Data actor pool (one per GPU or CPU worker); 0 = the serial "
+                             "loop in this process (same results)")(fn)
+
+
 @stage_command("teacher")
 @click.option("--manifest", default=dvc_path("manifest"), show_default=True)
 @click.option("--images", default=dvc_path("images"), show_default=True)
@@ -73,25 +89,15 @@ def _check_alignment(manifest: pd.DataFrame, images, reference) -> None:
 @click.option("--scores", default=dvc_path("teacher_scores"), show_default=True)
 @click.option("--shard", default=None, metavar="I/N",
               help="fill the cache for shard I of N (0-based) only; writes no artifact")
-def main(params, device, manifest, images, reference, out, scores, shard):
+@teacher_workers_options
+def main(params, device, manifest, images, reference, out, scores, shard, workers, address):
     """Six-prompt teacher masks and scores (cached per image and prompt); --shard i/n fills the cache only."""
-    from pipeline.teachers import check_teacher_params, make_teacher, teacher_fingerprint
-    from pipeline.teachers.base import TeacherInput
-    from pipeline.teachers.cache import TeacherCache
-    from pipeline.teachers.runner import TeacherRunner, parse_shard, shard_rows
-
     cfg = check_teacher_params(section(params, "teacher"))
     shard_spec = parse_shard(shard)
     man = open_artifact(manifest, "manifest")
     img = open_artifact(images, "images")
     df = man.df.reset_index(drop=True)
-    image_arr = img["image"]
-    n, h, w = image_arr.shape[0], image_arr.shape[1], image_arr.shape[2]
-    teacher = make_teacher(cfg, (h, w), device)
-    ref = open_artifact(reference, "reference") if teacher.needs_reference else None
-    require_same_run(man, img, ref)
-    _check_alignment(df, img, ref)
-
+    n, h, w = img["image"].shape[:3]
     prompts = list(cfg["prompts"])
     base_prompt = prompts[cfg["base_prompt_index"]]
     vflip_prompt = base_prompt if cfg["vflip_base_prompt"] else None
@@ -99,34 +105,20 @@ def main(params, device, manifest, images, reference, out, scores, shard):
     extras = [c for c in MANIFEST_EXTRAS if c in df.columns]
     shas = df["sha256"].astype(str).tolist()
     ids = df["image_id"].astype(str).tolist()
-    ref_mask = ref["mask"] if ref is not None else None
-    ref_parts = ref["parts"] if ref is not None and "parts" in ref else None
-
-    def load(row: int, view: str) -> TeacherInput:
-        image = np.asarray(image_arr[row])
-        reference_row = None
-        if ref_mask is not None:
-            reference_row = {"mask": np.asarray(ref_mask[row], dtype=bool)}
-            if ref_parts is not None:
-                reference_row["parts"] = np.asarray(ref_parts[row])
-        if view == "vflip":
-            image = np.ascontiguousarray(image[::-1])
-            if reference_row is not None:
-                reference_row = {k: np.ascontiguousarray(v[::-1]) for k, v in reference_row.items()}
-        return TeacherInput(image_id=ids[row], image_sha256=shas[row], image=image, view=view,
-                            reference=reference_row, extras={c: df.at[row, c] for c in extras})
-
-    t_fp = teacher_fingerprint(teacher)
-    cache = TeacherCache(cfg["cache_dir"], t_fp)
-    runner = TeacherRunner(teacher, cache, prompts, image_sha=lambda r: shas[r], load=load,
-                           vflip_prompt=vflip_prompt,
-                           batch_size=cfg["batch_size"] or getattr(teacher, "runner_batch_size", 2))  # 0 = auto
+    load = ArtifactInputs(images, None, ids, shas, [{c: df.at[row, c] for c in extras} for row in range(n)])
+    runner, t_fp = open_runner(cfg, (h, w), device, load, shas, vflip_prompt)
+    teacher = runner.teacher
+    ref = open_artifact(reference, "reference") if teacher.needs_reference else None
+    require_same_run(man, img, ref)
+    _check_alignment(df, img, ref)
+    if ref is not None:
+        load.reference = os.path.abspath(reference)
     if teacher.backend == "simulated":
         log.info("teacher: backend 'simulated' is a SIMULATOR of foundation-model errors that reads the "
                  "synthetic ground truth; it is not a real teacher")
-    stats = runner.fill(shard_rows(run_rows, shard_spec))
-    log.info("teacher: computed %d answers on %d images; %d cached answers reused; %d corrupt entries recomputed",
-             stats.answers_computed, stats.images_computed, stats.cache_hits, stats.cache_corrupt)
+    stats = runner.fill(shard_rows(run_rows, shard_spec), workers=workers, address=address)
+    log.info("teacher: computed %d answers on %d images; %d cached answers reused",
+             stats.answers_computed, stats.images_computed, stats.cache_hits)
     if shard_spec is not None:
         click.echo(f"teacher shard {shard_spec[0]}/{shard_spec[1]}: cache filled "
                    f"({stats.answers_computed} answers computed); run without --shard to assemble", err=True)
@@ -172,6 +164,8 @@ def main(params, device, manifest, images, reference, out, scores, shard):
     table["prompt_index"] = table["prompt_index"].astype(np.int16)
     write_parquet(scores, table, ctx.meta("teacher_scores", inputs, params={"teacher": fp_params},
                                           teacher_fingerprint=t_fp))
+    if runner.stats.cache_corrupt:
+        log.warning("teacher: %d corrupt cache entries were recomputed while assembling", runner.stats.cache_corrupt)
     log.info("teacher: wrote %s and %s (%d images x %d prompts, backend %s)", out, scores, n, k, teacher.backend)
 
 

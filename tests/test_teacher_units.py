@@ -148,7 +148,7 @@ def test_imported_layout(tmp_path):
             np.testing.assert_array_equal(masks[b, j], truth[(img, prompt)][0])
             assert scores[b, j] == pytest.approx(truth[(img, prompt)][1])
     # the vflip view: the stored mask is in the original frame; the runner's flip-back restores it
-    from pipeline.teachers.runner import flip_answer
+    from pipeline.teachers.jobs import flip_answer
 
     fl = [TeacherInput(i, "sha", np.zeros((16, 16, 3), np.uint8), view="vflip") for i in ("a", "b")]
     vm, vs = t.predict(fl, PROMPTS[:1])

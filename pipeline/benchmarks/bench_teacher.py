@@ -15,16 +15,31 @@ prompt, :meth:`Sam3Teacher.predict_one_prompt_at_a_time`) against the backend's 
 once per image batch, features repeated to the six prompts, text encoded once per run).  Also
 prints the SIMULATOR's seconds per image for orientation.  Paper: 447.9 ms per image for six prompts
 on an RTX 4090 (840.5 M parameters).
+
+Teacher throughput on Ray (``--ray-workers 1,2``): the teacher runner's whole fill (plan by listing,
+jobs, cache writes) into a fresh cache, as the serial loop in this process (the baseline, torch on
+``--serial-threads`` threads) and as the Ray Data pipeline with 1 and 2 teacher actors (one CPU each),
+in one run, round robin (the order rotates every repeat), medians and minima of the wall times.  A Ray
+fill includes starting its actor pool (each actor loads the model)::
+
+    python -m pipeline.benchmarks.bench_teacher --ray-workers 1,2 --images 48 --repeats 3
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import statistics
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from pipeline.teachers import check_teacher_params
+from pipeline.teachers.base import TeacherInput
+from pipeline.teachers.jobs import in_view
+from pipeline.teachers.runner import open_runner
 
 PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
            "spacecraft with rigid body and appendages", "artificial object in space with panels and antennas"]
@@ -50,11 +65,18 @@ def main() -> None:
     ap.add_argument("--compile", action="store_true", help="torch.compile the vision encoder (CUDA only)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--checkpoint", default=None, help="use this SAM 3 directory instead of building a random one")
+    ap.add_argument("--ray-workers", default=None, metavar="N,M",
+                    help="teacher throughput instead: serial loop vs a Ray Data pool of N, M ... teachers")
+    ap.add_argument("--serial-threads", type=int, default=1, help="torch threads of the serial baseline")
+    ap.add_argument("--input-size", type=int, default=56,
+                    help="tiny SAM 3's input size (a multiple of 14); larger = more work per image")
     args = ap.parse_args()
+    if args.ray_workers:
+        ray_throughput(args)
+        return
 
     import torch
 
-    from pipeline.teachers.base import TeacherInput
     from pipeline.teachers.sam3 import Sam3Teacher
     from pipeline.teachers.simulated import SimulatedFoundationTeacher
     from pipeline.teachers.tiny_sam3 import build_tiny_sam3
@@ -122,6 +144,83 @@ def main() -> None:
     print(f"  teacher seconds per image:            {t_batched / n:9.4f} s")
     print(f"SIMULATOR (simulated backend):          {t_sim / n * 1e3:9.2f} ms/image")
     print("paper: SAM 3 teacher 447.9 ms/image (six prompts, RTX 4090)")
+
+
+class ArrayInputs:
+    """(row, view) -> TeacherInput over images held in memory (picklable: Ray's decode tasks use it)."""
+
+    def __init__(self, images: np.ndarray):
+        self.images = images
+        self.shas = [hashlib.sha256(im.tobytes()).hexdigest() for im in images]
+
+    def __call__(self, row: int, view: str) -> TeacherInput:
+        return TeacherInput(f"img{row}", self.shas[row], in_view(self.images[row], view), view)
+
+
+def ray_throughput(args) -> None:
+    """Serial loop vs Ray Data pools of teachers, round robin, medians and minima (module docstring)."""
+    import os
+    import platform
+
+    import torch
+
+    from pipeline.teachers.distributed import ray_session
+    from pipeline.teachers.tiny_sam3 import build_tiny_sam3
+
+    pools = [int(w) for w in str(args.ray_workers).split(",")]
+    r, n = args.resolution, args.images
+    images = np.random.default_rng(0).integers(0, 255, (n, r, r, 3), dtype=np.uint8)
+    load = ArrayInputs(images)
+    torch.set_num_threads(args.serial_threads)
+    variants = ["serial"] + [f"ray x{w}" for w in pools]
+    times: dict[str, list[float]] = {v: [] for v in variants}
+    steady: dict[str, list[float]] = {v: [] for v in variants}
+    with tempfile.TemporaryDirectory() as tmp, ray_session() as ray:
+        ckpt = Path(args.checkpoint) if args.checkpoint else build_tiny_sam3(
+            Path(tmp) / "sam3", size=args.size, image_size=args.input_size,
+            words=tuple(w for p in PROMPTS for w in p.split()))
+        base = check_teacher_params({"backend": "sam3", "checkpoint": str(ckpt), "dtype": args.dtype,
+                                     "batch_size": args.batch_size or 2, "prompts": PROMPTS,
+                                     "vflip_base_prompt": False})
+        for rep in range(args.repeats):
+            for v in variants[rep % len(variants):] + variants[:rep % len(variants)]:
+                cfg = {**base, "cache_dir": str(Path(tmp) / f"cache-{rep}-{v.replace(' ', '')}")}
+                t0 = time.perf_counter()
+                runner, _ = open_runner(cfg, (r, r), args.device, load, load.shas)
+                stats = runner.fill(range(n), workers=0 if v == "serial" else int(v.split("x")[1]))
+                times[v].append(time.perf_counter() - t0)
+                assert stats.answers_computed == n * len(PROMPTS), stats
+                steady[v].append(steady_rate(Path(cfg["cache_dir"]), len(PROMPTS)))
+        cpus = ray.cluster_resources().get("CPU", 0)
+    one = statistics.median(times[variants[1]]) if len(variants) > 1 else None
+    print(f"teacher throughput, SAM 3 {args.size} (random weights, input {args.input_size}) on {args.device}, "
+          f"{n} images {r}x{r}, "
+          f"{len(PROMPTS)} prompts, {args.repeats} round-robin repeats; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
+          f"{platform.node()}, {os.cpu_count()} cores, Ray sees {cpus:g} CPUs, load average "
+          f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}")
+    for v in variants:
+        med, low = statistics.median(times[v]), min(times[v])
+        rel = f"  {one / med:5.2f}x the 1-worker pool" if one and v.startswith("ray") else ""
+        print(f"  {v:9s} wall median {med:7.2f} s ({n / med:6.1f} images/s), min {low:7.2f} s{rel}  "
+              f"[{', '.join(f'{t:.2f}' for t in times[v])}]")
+    for v in variants:
+        rate = steady[v]
+        rel = (f"  {statistics.median(rate) / statistics.median(steady[variants[1]]):5.2f}x the 1-worker pool"
+               if len(variants) > 1 and v.startswith("ray") else "")
+        print(f"  {v:9s} steady median {statistics.median(rate):6.1f} images/s, max {max(rate):6.1f}{rel}  "
+              f"[{', '.join(f'{x:.1f}' for x in rate)}]")
+    print("wall: the whole fill (a Ray fill includes starting its actors, which load the model); steady: images "
+          "whose entries were written after the first entry, over the time from the first to the last write")
+    print("target: 2 workers >= 1.7x one worker")
+
+
+def steady_rate(cache_dir: Path, per_image: int) -> float:
+    """Images per second from the cache's write times: entries written after the first one (its job's
+    burst excluded), divided by the time from the first write to the last (start-up excluded)."""
+    stamps = sorted(p.stat().st_mtime for p in cache_dir.rglob("*.tce"))
+    later = sum(1 for t in stamps if t > stamps[0] + 1e-3)
+    span = stamps[-1] - stamps[0]
+    return later / per_image / span if span > 0 else float("nan")
 
 
 if __name__ == "__main__":

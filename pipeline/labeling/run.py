@@ -1,18 +1,18 @@
 """``geodistill label``: a folder of images -> voted, gated pseudo-masks in standard formats.
 
-The same three steps as the DAG's teacher, consensus and geometry stages, on a plain folder and
-without a DVC project:
+The DAG's teacher, consensus and geometry steps, composed of the functions those stages call, on a
+plain folder and without a DVC project:
 
 1. every image (recursively, any size, grey / RGB / RGBA, 8/16-bit: :func:`pipeline.datasets.loading.
    load_rgb`) is resized to the working resolution ``data.resolution`` and sent to the teacher
-   (``teacher.*``: SAM 3, imported masks, or the SIMULATOR) through the content-addressed teacher
-   cache (:class:`pipeline.teachers.runner.TeacherRunner`) -- a rerun, or a run killed half-way,
-   recomputes nothing that is cached;
-2. the K prompt masks are voted (:func:`pipeline.consensus.vote`, eq:agreement-map,
-   eq:majority-vote);
-3. the reliability gate of each pseudo-mask (:mod:`pipeline.geometry`: eq:foreground-agreement,
-   eq:valid-prompt-ratio, eq:pseudo-area, eq:confidence-gate .. eq:reliability-gate), with a0 the
-   median area of the non-empty pseudo-masks of the folder (every image is a training image here).
+   (``teacher.*``: SAM 3, imported masks, or the SIMULATOR) through the teacher stage's runner and
+   content-addressed cache (:func:`pipeline.teachers.runner.open_runner`; serial, or with ``workers`` a
+   Ray Data pool) -- a rerun, or a run killed half-way, recomputes nothing that is cached;
+2. the K prompt masks are voted (:func:`pipeline.consensus.vote`, the consensus stage's vote:
+   eq:agreement-map, eq:majority-vote);
+3. the reliability gate of each pseudo-mask (the geometry stage's :func:`pipeline.geometry.image_gates`
+   with eq:foreground-agreement and eq:pseudo-area), with a0 the median area of the non-empty
+   pseudo-masks of the folder (every image is a training image here).
 
 Outputs under ``out`` (formats ``png``, ``coco``, ``yolo``; the table, contact sheet and run record
 always)::
@@ -45,10 +45,28 @@ import os
 from pathlib import Path
 from typing import Mapping, Sequence
 
+import shutil
+
 import numpy as np
 import pandas as pd
 
+from pipeline.artifacts import atomic_path, write_json
+from pipeline.consensus import vote
+from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
+from pipeline.datasets.loading import SUPPORTED_SUFFIXES, BadFileError, DecodeCache, load_mask, load_rgb
+from pipeline.datasets.manifest import BadInputPolicy
+from pipeline.datasets.scan import scan_inputs
+from pipeline.deploy.files import write_png, write_skipped_csv
 from pipeline.errors import InputError
+from pipeline.geometry import area_ratio, foreground_agreement, image_gates, median_area
+from pipeline.labeling.formats import coco_annotation, coco_document, yolo_lines
+from pipeline.ownership import check_outputs, claim_outputs, record_fields
+from pipeline.params import section
+from pipeline.progress import progress
+from pipeline.teachers import check_teacher_params
+from pipeline.teachers.base import TeacherInput
+from pipeline.teachers.jobs import in_view
+from pipeline.teachers.runner import open_runner
 
 log = logging.getLogger(__name__)
 
@@ -94,9 +112,6 @@ def find_images(input_dir: str | Path):
     """The :class:`pipeline.datasets.scan.Inputs` of ``input_dir`` (images sorted, bad entries, files
     that are not images), recursively (:func:`pipeline.datasets.scan.scan_inputs`, the one scan of
     label, distill and segment); InputError when it is not a folder or has no image."""
-    from pipeline.datasets.loading import SUPPORTED_SUFFIXES
-    from pipeline.datasets.scan import scan_inputs
-
     root = Path(input_dir)
     if not root.is_dir():
         raise InputError(f"{root}: input folder not found" if not root.exists() else
@@ -131,8 +146,6 @@ def image_ids(root: Path, files: Sequence[Path]) -> list[str]:
 def find_reference_masks(mask_dir: str | Path, ids: Sequence[str]) -> list[Path]:
     """The reference mask of every image id in ``mask_dir`` (``<id>.<png|jpg|tif|bmp>``); InputError
     naming the first image without one (the simulated teacher needs all of them)."""
-    from pipeline.datasets.loading import SUPPORTED_SUFFIXES
-
     d = Path(mask_dir)
     if not d.is_dir():
         raise InputError(f"--reference-masks {d}: folder not found")
@@ -153,8 +166,6 @@ def _inside(path: str | None, out: Path) -> str | None:
 
 
 def _write_table(out: Path, table: pd.DataFrame) -> None:
-    from pipeline.artifacts import atomic_path
-
     with atomic_path(out / OUTPUTS["table"]) as tmp:
         table.to_parquet(tmp, index=False)
     with atomic_path(out / OUTPUTS["csv"]) as tmp:
@@ -163,8 +174,6 @@ def _write_table(out: Path, table: pd.DataFrame) -> None:
 
 def _link_or_copy(src: Path, dst: Path) -> None:
     """yolo/images/<rel>: a symbolic link to the input (a copy where links are not allowed)."""
-    import shutil
-
     dst.parent.mkdir(parents=True, exist_ok=True)
     try:
         os.symlink(src.resolve(), dst)
@@ -182,17 +191,13 @@ def folder_gates(c: np.ndarray, n_valid: np.ndarray, a: np.ndarray, geo: Mapping
     image, so a0 = the median area of its non-empty pseudo-masks (:func:`pipeline.geometry.median_area`);
     without any, a0 = 0 (every c is 0 then, so every g is 0 whatever a0 is).  ``geo``: params
     ``geometry`` (eq:valid-prompt-ratio .. eq:reliability-gate constants)."""
-    from pipeline.geometry import gate_factors, median_area, valid_ratio
-
     a = np.asarray(a, np.float64)
     if (a > 0).any():
         a0 = median_area(a, np.ones(a.shape, bool))
     else:
         log.warning("label: the teacher produced no foreground on any image; every gate g is 0")
         a0 = 0.0
-    v = valid_ratio(n_valid, geo["n_prompts"])
-    gf = gate_factors(c, v, a, a0, conf_offset=geo["conf_offset"], valid_offset=geo["valid_offset"],
-                      area_temperature=geo["area_temperature"], area_floor=geo["area_floor"], eps=geo["eps"])
+    v, gf = image_gates(c, n_valid, a, a0, geo)
     return v, a0, gf
 
 
@@ -219,12 +224,6 @@ class _Job:
 def _plan(input_dir, out, params: Mapping, reference_masks, overwrite: bool) -> _Job:
     """Scan the folder, apply the bad-file policy to links and non-images, refuse outputs the user owns
     and check the teacher and reference-mask options -- all before anything is written."""
-    from pipeline.datasets.loading import DecodeCache
-    from pipeline.datasets.manifest import BadInputPolicy
-    from pipeline.ownership import check_outputs
-    from pipeline.params import section
-    from pipeline.teachers import check_teacher_params
-
     found = find_images(input_dir)
     root, files = found.root, found.files
     out = Path(out)
@@ -257,9 +256,6 @@ def _plan(input_dir, out, params: Mapping, reference_masks, overwrite: bool) -> 
 def _read_images(job: _Job) -> None:
     """Pass 1: read every file once (sha256 for the teacher cache, native size); bad files go to the
     policy and leave ``job``'s lists."""
-    from pipeline.datasets.loading import BadFileError, load_mask, load_rgb
-    from pipeline.progress import progress
-
     keep = []
     for i, f in enumerate(progress(job.files, desc="label: reading", unit="img")):
         try:
@@ -284,31 +280,35 @@ def _read_images(job: _Job) -> None:
     job.ref_files = [job.ref_files[i] for i in keep] if job.ref_files is not None else None
 
 
-def _run_teacher(job: _Job, device: str):
-    """The six prompts on every image through the content-addressed cache; (runner, fingerprint, stats)."""
-    from pipeline.datasets.loading import load_mask, load_rgb
-    from pipeline.teachers import make_teacher, teacher_fingerprint
-    from pipeline.teachers.base import TeacherInput
-    from pipeline.teachers.cache import TeacherCache
-    from pipeline.teachers.runner import TeacherRunner
+class FolderInputs:
+    """``(row, view) -> TeacherInput`` of a labelled folder's image files, decoded and resized to the
+    working resolution (:func:`pipeline.datasets.loading.load_rgb`, through the decode cache); for the
+    SIMULATOR also the reference masks.  Picklable: Ray's CPU workers decode with it."""
 
-    teacher = make_teacher(job.tcfg, (job.size, job.size), device)
+    def __init__(self, job: _Job):
+        absolute = lambda paths: None if paths is None else [Path(os.path.abspath(p)) for p in paths]  # noqa: E731
+        # absolute paths: Ray workers need not share this process's working directory
+        self.files, self.ref_files = absolute(job.files), absolute(job.ref_files)
+        self.ids, self.shas, self.size = job.ids, job.shas, job.size
+        self.cache = DecodeCache(os.path.abspath(job.cache.root)) if job.cache is not None else None
 
-    def load(row: int, view: str) -> TeacherInput:
-        image = load_rgb(job.files[row], job.size, job.cache).array
+    def __call__(self, row: int, view: str) -> TeacherInput:
+        image = load_rgb(self.files[row], self.size, self.cache).array
         reference = None
-        if job.ref_files is not None:
-            reference = {"mask": load_mask(job.ref_files[row], job.size, job.cache).array.astype(bool)}
-        return TeacherInput(image_id=job.ids[row], image_sha256=job.shas[row], image=image, view=view,
-                            reference=reference)
+        if self.ref_files is not None:
+            mask = load_mask(self.ref_files[row], self.size, self.cache).array.astype(bool)
+            reference = {"mask": in_view(mask, view)}
+        return TeacherInput(image_id=self.ids[row], image_sha256=self.shas[row], image=in_view(image, view),
+                            view=view, reference=reference)
 
-    t_fp = teacher_fingerprint(teacher)
-    runner = TeacherRunner(teacher, TeacherCache(job.tcfg["cache_dir"], t_fp), list(job.tcfg["prompts"]),
-                           image_sha=lambda r: job.shas[r], load=load, vflip_prompt=None,
-                           batch_size=job.tcfg["batch_size"])
+
+def _run_teacher(job: _Job, device: str, workers: int = 0, address: str | None = None):
+    """The prompts on every image through the teacher stage's runner and cache (serial, or a Ray Data
+    pool of ``workers`` teachers); (runner, fingerprint, stats)."""
+    runner, t_fp = open_runner(job.tcfg, (job.size, job.size), device, FolderInputs(job), job.shas)
     if job.simulated:
         log.warning("label: %s", SIMULATOR_NOTE)
-    stats = runner.fill(range(len(job.files)))
+    stats = runner.fill(range(len(job.files)), workers=workers, address=address)
     log.info("label: teacher computed %d answers on %d images; %d cached answers reused",
              stats.answers_computed, stats.images_computed, stats.cache_hits)
     return runner, t_fp, stats
@@ -329,16 +329,7 @@ class _Votes:
 def _vote_and_export(job: _Job, runner, fmts: tuple[str, ...], vote_threshold: float) -> _Votes:
     """Pass 2: vote (eq:majority-vote), write the PNG and YOLO outputs at each image's own size, collect
     the gate inputs (eq:foreground-agreement, eq:pseudo-area) and the COCO annotations."""
-    import cv2
-
-    from pipeline.artifacts import atomic_path
-    from pipeline.consensus import vote
-    from pipeline.datasets.contact_sheet import sample_for_sheet
-    from pipeline.datasets.loading import load_rgb
-    from pipeline.deploy.files import write_png
-    from pipeline.geometry import area_ratio, foreground_agreement
-    from pipeline.labeling.formats import coco_annotation, yolo_lines
-    from pipeline.progress import progress
+    import cv2  # opencv: heavy, imported where used
 
     n, out = len(job.files), job.out
     rng = np.random.default_rng(int(job.data_cfg["seed"]))
@@ -378,9 +369,6 @@ def _vote_and_export(job: _Job, runner, fmts: tuple[str, ...], vote_threshold: f
 
 def _write_coco(job: _Job, table: pd.DataFrame, v: _Votes, g: np.ndarray) -> None:
     """``coco.json``: one image and (where the vote is non-empty) one instance with its RLE per image."""
-    from pipeline.artifacts import atomic_path
-    from pipeline.labeling.formats import coco_document
-
     images = [{"id": i + 1, "file_name": table["file"].iloc[i], "width": int(job.sizes[i][1]),
                "height": int(job.sizes[i][0])} for i in range(len(job.files))]
     for i, ann in enumerate(v.annotations):
@@ -395,29 +383,25 @@ def _write_coco(job: _Job, table: pd.DataFrame, v: _Votes, g: np.ndarray) -> Non
 
 def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, device: str = "auto",
                  formats: str | Sequence[str] = FORMATS, reference_masks: str | Path | None = None,
-                 overwrite: bool = False) -> LabelResult:
+                 overwrite: bool = False, workers: int = 0, address: str | None = None) -> LabelResult:
     """Label every image under ``input_dir`` into ``out`` (module docstring); ``params`` are validated
     params (schema defaults or a params file): data.resolution / cache_dir / contact_sheet_images /
     seed, teacher.*, consensus.vote_threshold, geometry.*.  ``reference_masks``: the folder of masks the
     simulated teacher (a SIMULATOR) reads; refused for real teachers (they never see masks).
+    ``workers`` / ``address``: the teacher's Ray Data executor, as the teacher stage's ``--workers``
+    (0: the serial loop; same answers either way).
 
     Ownership (:mod:`pipeline.ownership`): ``label.json`` lists the outputs; an existing output that
     no label.json of an earlier run lists (a user's own ``masks/``, ``coco.json``, ...) is refused
     before anything is written, unless ``overwrite``.  Steps: :func:`_plan` (checks), :func:`_read_images`,
     :func:`_run_teacher`, :func:`_vote_and_export`, then the gates (eq:reliability-gate), the tables, COCO,
     the contact sheet, skipped.csv and the record."""
-    from pipeline.artifacts import write_json
-    from pipeline.datasets.contact_sheet import contact_sheet, tile
-    from pipeline.deploy.files import write_png, write_skipped_csv
-    from pipeline.ownership import claim_outputs, record_fields
-    from pipeline.params import section
-
     fmts = parse_formats(formats)
     job = _plan(input_dir, out, params, reference_masks, overwrite)
     _read_images(job)
     out, policy, tcfg, n = job.out, job.policy, job.tcfg, len(job.files)
     claim_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], "label", {"input": str(job.root.resolve()), "complete": False})
-    runner, t_fp, stats = _run_teacher(job, device)
+    runner, t_fp, stats = _run_teacher(job, device, workers, address)
     vote_threshold = float(section(params, "consensus")["vote_threshold"])
     v = _vote_and_export(job, runner, fmts, vote_threshold)
 

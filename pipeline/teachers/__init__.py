@@ -11,6 +11,9 @@ import hashlib
 from pathlib import Path
 from typing import Any, Mapping
 
+from fsspec.core import url_to_fs
+from fsspec.implementations.local import LocalFileSystem
+
 from pipeline.artifacts import canonical_json
 from pipeline.errors import InputError
 from pipeline.params import BACKENDS, SPLITS, validate_section
@@ -43,7 +46,14 @@ def make_teacher(cfg: Mapping[str, Any], resolution: tuple[int, int], device: st
     return Sam3Teacher(cfg["checkpoint"], device=device, dtype=cfg["dtype"], batch_size=cfg["batch_size"],
                        resolution=resolution, score_threshold=cfg.get("score_threshold", 0.3),
                        mask_threshold=cfg.get("mask_threshold", 0.5), compile=bool(cfg.get("compile", False)),
-                       hash_memo=Path(cfg["cache_dir"]) / "checkpoint_hashes.json")
+                       hash_memo=_local_memo(cfg["cache_dir"]))
+
+
+def _local_memo(cache_dir: str) -> Path | None:
+    """Where the checkpoint-hash memo lives: beside a local cache; none for a cache on object storage
+    (the checkpoint is then hashed once per run)."""
+    fs, path = url_to_fs(str(cache_dir))
+    return Path(path) / "checkpoint_hashes.json" if isinstance(fs, LocalFileSystem) else None
 
 
 def teacher_fingerprint(teacher: Teacher) -> str:

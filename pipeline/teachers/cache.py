@@ -13,7 +13,10 @@ Key
 
 Location
   ``<cache_dir>/v2/<key[:2]>/<key>.tce`` (``teacher.cache_dir``, default ``.cache/teacher``), outside
-  the DVC outputs so ``dvc repro`` removing ``teacher.zarr`` does not remove it.
+  the DVC outputs so ``dvc repro`` removing ``teacher.zarr`` does not remove it.  ``cache_dir`` is a
+  local path or any fsspec URL (:func:`fsspec.core.url_to_fs`): NFS through its mount, ``s3://bucket/
+  prefix`` or ``gs://...`` with the matching fsspec package (s3fs, gcsfs) installed, ``memory://`` in
+  tests.
 
 Entry format (little endian)
   ``b"GDTCE02\\n"`` magic (8 bytes) | sha256 of the payload (32 bytes) | payload, where payload =
@@ -25,9 +28,18 @@ Entry format (little endian)
   truncated or misplaced entry is reported (logged, counted), deleted and treated as a miss, so it
   is recomputed.  Layout ``v1`` entries (no stored key) are in another directory and never read.
 
-Concurrency
-  Several processes (``--shard i/n`` on several machines with a shared filesystem) may write the
-  same cache: writes are atomic renames and two writers of one key write identical bytes.
+Existence
+  Which answers exist is decided by listing the cache (:meth:`TeacherCache.listed`, one recursive
+  listing of the layout folder: names only), never by reading entries; an entry is read once, when
+  the artifact is assembled, and a corrupt one found then is recomputed there.
+
+Atomic writes, concurrency, retries
+  Locally an entry is written to a temp file in its directory and renamed into place; on object
+  storage it is one PUT (``fs.pipe``), which a store publishes whole or not at all.  Several
+  processes (Ray workers, ``--shard i/n`` on several machines) may write the same cache, and a task
+  Ray retries may write an entry again: the key names the file and two writers of one key write
+  identical bytes, so a retry replaces an entry by itself and never adds a second one.  Temp names
+  start with a dot and are never listed.
 """
 
 from __future__ import annotations
@@ -41,12 +53,15 @@ import uuid
 from pathlib import Path
 
 import numpy as np
+from fsspec.core import url_to_fs
+from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.artifacts import canonical_json
 
 log = logging.getLogger(__name__)
 
 MAGIC = b"GDTCE02\n"
+SUFFIX = ".tce"
 LAYOUT_VERSION = "v2"
 _KEY_BYTES = 32
 _HEADER = struct.Struct("<IIf")
@@ -111,29 +126,60 @@ class CacheStats:
 
 
 class TeacherCache:
-    """Directory of answers for one teacher fingerprint.
+    """Answers of one teacher fingerprint under ``root`` (a local path or an fsspec URL).
 
     >>> cache = TeacherCache(".cache/teacher", teacher_fp)          # doctest: +SKIP
     >>> key = cache.key(sha, "spacecraft")                          # doctest: +SKIP
-    >>> cache.get(key) is None  # miss                               # doctest: +SKIP
+    >>> key in cache.listed()  # existence: a listing, no entry read # doctest: +SKIP
     """
 
     def __init__(self, root: str | Path, teacher_fingerprint: str):
-        self.root = Path(root)
+        self.root = str(root)
+        self.fs, self._base = url_to_fs(self.root)
+        self.local = isinstance(self.fs, LocalFileSystem)
         self.teacher_fingerprint = teacher_fingerprint
         self.stats = CacheStats()
 
     def key(self, image_sha256: str, prompt: str, view: str = "identity") -> str:
         return entry_key(image_sha256, self.teacher_fingerprint, prompt, view)
 
-    def path(self, key: str) -> Path:
-        return self.root / LAYOUT_VERSION / key[:2] / f"{key}.tce"
+    @property
+    def location(self) -> str:
+        """``root`` as another process (a Ray worker elsewhere) must name it: absolute when local."""
+        return self._base if self.local else self.root
+
+    def _layout(self) -> str:
+        return f"{self._base.rstrip('/')}/{LAYOUT_VERSION}"
+
+    def path(self, key: str) -> Path | str:
+        """Where ``key``'s entry lives: a :class:`~pathlib.Path` for a local cache, else the store's path."""
+        p = f"{self._layout()}/{key[:2]}/{key}{SUFFIX}"
+        return Path(p) if self.local else p
+
+    def listed(self) -> set[str]:
+        """The keys that have an entry, from one recursive listing (names only; nothing is read)."""
+        try:
+            names = self.fs.find(self._layout())
+        except FileNotFoundError:
+            return set()
+        out = set()
+        for name in names:
+            base = name.rsplit("/", 1)[-1]
+            if base.endswith(SUFFIX) and not base.startswith("."):
+                out.add(base[:-len(SUFFIX)])
+        return out
+
+    def _remove(self, p) -> None:
+        try:
+            self.fs.rm_file(str(p))
+        except FileNotFoundError:
+            pass
 
     def get(self, key: str) -> tuple[np.ndarray, float] | None:
         """The cached (mask, score), or None on a miss.  Corrupt entries are reported, removed, missed."""
         p = self.path(key)
         try:
-            data = p.read_bytes()
+            data = self.fs.cat_file(str(p))
         except FileNotFoundError:
             self.stats.misses += 1
             return None
@@ -143,23 +189,24 @@ class TeacherCache:
             log.warning("teacher cache: corrupt entry %s (%s); it will be recomputed", p, e)
             self.stats.corrupt += 1
             self.stats.misses += 1
-            try:
-                p.unlink()
-            except FileNotFoundError:
-                pass
+            self._remove(p)
             return None
         self.stats.hits += 1
         return out
 
     def put(self, key: str, mask: np.ndarray, score: float) -> None:
-        """Write one entry atomically (temp file in the same directory, then rename)."""
+        """Write one entry atomically: temp file + rename locally, a single PUT on a remote store."""
         p = self.path(key)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_name(f".{p.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
-        try:
-            tmp.write_bytes(encode_entry(mask, score, key))
-            os.replace(tmp, p)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
+        data = encode_entry(mask, score, key)
+        if self.local:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            tmp = p.with_name(f".{p.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
+            try:
+                tmp.write_bytes(data)
+                os.replace(tmp, p)
+            finally:
+                if tmp.exists():
+                    tmp.unlink()
+        else:
+            self.fs.pipe_file(p, data)
         self.stats.written += 1

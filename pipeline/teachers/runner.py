@@ -1,13 +1,27 @@
 """Plan, shard, compute and collect teacher answers through the content-addressed cache.
 
 The runner is backend-agnostic: it asks a :class:`~pipeline.teachers.base.Teacher` only for the
-(image, prompt, view) answers that are not in the cache, in image batches, and writes each batch's
-answers to the cache as soon as they exist (a kill -9 loses at most the batch in flight).
+(image, prompt, view) answers that are not in the cache, in image batches (:class:`TeacherJob`), and
+writes each batch's answers to the cache as soon as they exist (a kill -9 loses at most the batches
+in flight).  The teacher stage (``dvc repro teacher``) and ``geodistill label`` both run it
+(:func:`open_runner`), so there is one teacher loop.
+
+One loop, two executors
+  :func:`pipeline.teachers.jobs.answer_job` is the one per-batch function: it predicts one job's images, enforces the
+  invalid-prompt convention, flips ``vflip`` answers back and writes the job's missing entries.
+  :meth:`TeacherRunner.fill` runs it either in this process, job after job (``workers=0``, the
+  default, no Ray needed), or as a Ray Data pipeline (``workers >= 1``,
+  :mod:`pipeline.teachers.distributed`: decode on CPU workers, then an actor pool of teachers, one per
+  GPU or CPU worker, each calling :func:`answer_job`).  The jobs are the same in both, so the cache --
+  and the artifact assembled from it -- is the same.
 
 Work units
   For every manifest row in the teacher splits: the K prompts on the image as is (view ``identity``),
   and, when ``vflip_prompt`` is set, that one prompt on the vertically flipped image (view ``vflip``,
-  answer flipped back) for the annotation-free-style control.
+  answer flipped back) for the annotation-free-style control.  Which answers exist is decided by
+  listing the cache (:meth:`pipeline.teachers.cache.TeacherCache.listed`), never by reading entries;
+  entries are read once, by :meth:`TeacherRunner.answers` at assembly, where a corrupt one is
+  recomputed.
 
 Sharding (``--shard i/n``, 0 <= i < n)
   Shard i owns the rows at positions i, i+n, i+2n, ... of the teacher-split rows in manifest order
@@ -20,19 +34,19 @@ from __future__ import annotations
 import dataclasses
 import logging
 import re
-from typing import Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.progress import progress
-from pipeline.teachers.base import Teacher, TeacherInput, finalize_answers
+from pipeline.teachers import teacher_fingerprint
+from pipeline.teachers.base import VIEWS, Teacher
 from pipeline.teachers.cache import TeacherCache
+from pipeline.teachers.distributed import fill_with_ray
+from pipeline.teachers.jobs import InputLoader, TeacherJob, TeacherSpec, answer_job, predict_view
 
 log = logging.getLogger(__name__)
-
-# row index, view -> TeacherInput (image already in that view)
-InputLoader = Callable[[int, str], TeacherInput]
 
 
 def parse_shard(text: str | None) -> tuple[int, int] | None:
@@ -57,17 +71,12 @@ def shard_rows(rows: Sequence[int], shard: tuple[int, int] | None) -> list[int]:
     return rows[i::n]
 
 
-def flip_answer(mask: np.ndarray) -> np.ndarray:
-    """Undo the vertical flip of the ``vflip`` view (rows reversed; an involution)."""
-    return np.ascontiguousarray(mask[..., ::-1, :])
-
-
 @dataclasses.dataclass
 class RunStats:
     images_computed: int = 0
     answers_computed: int = 0
-    cache_hits: int = 0
-    cache_corrupt: int = 0
+    cache_hits: int = 0      # answers found by listing at planning time
+    cache_corrupt: int = 0   # entries found corrupt at assembly (and recomputed)
 
 
 class TeacherRunner:
@@ -75,12 +84,13 @@ class TeacherRunner:
 
     ``image_sha`` maps a row to its manifest sha256; ``load`` builds the :class:`TeacherInput` of a
     row in a view.  With ``teacher.use_cache`` false (imported masks) the cache is bypassed and
-    :meth:`answers` asks the teacher directly.
+    :meth:`answers` asks the teacher directly.  ``spec`` (how to build the teacher again) is needed
+    only by the Ray executor.
     """
 
     def __init__(self, teacher: Teacher, cache: TeacherCache, prompts: Sequence[str],
                  image_sha: Callable[[int], str], load: InputLoader, vflip_prompt: str | None = None,
-                 batch_size: int = 1):
+                 batch_size: int = 1, spec: TeacherSpec | None = None):
         self.teacher = teacher
         self.cache = cache
         self.prompts = list(prompts)
@@ -88,6 +98,7 @@ class TeacherRunner:
         self.load = load
         self.vflip_prompt = vflip_prompt
         self.batch_size = max(int(batch_size), 1)
+        self.spec = spec
         self.stats = RunStats()
 
     # ---- planning -----------------------------------------------------------------------------
@@ -99,56 +110,51 @@ class TeacherRunner:
         return req
 
     def missing(self, rows: Sequence[int]) -> dict[str, dict[int, list[str]]]:
-        """view -> row -> prompts whose cache entry is absent or corrupt (corrupt ones are removed)."""
-        out: dict[str, dict[int, list[str]]] = {"identity": {}, "vflip": {}}
+        """view -> row -> prompts without a cache entry, from one listing of the cache (nothing read)."""
+        out: dict[str, dict[int, list[str]]] = {v: {} for v in VIEWS}
         if not self.teacher.use_cache:
             return out
-        for row in progress(rows, desc="teacher: checking cache"):
+        present = self.cache.listed()
+        for row in rows:
             sha = self.image_sha(row)
             for prompt, view in self.requests():
-                if self.cache.get(self.cache.key(sha, prompt, view)) is None:
+                if self.cache.key(sha, prompt, view) in present:
+                    self.stats.cache_hits += 1
+                else:
                     out[view].setdefault(row, []).append(prompt)
         return out
 
-    # ---- computing ----------------------------------------------------------------------------
-    def _compute(self, rows: Sequence[int], prompts: Sequence[str], view: str) -> tuple[np.ndarray, np.ndarray]:
-        batch = [self.load(r, view) for r in rows]
-        masks, scores = self.teacher.predict(batch, list(prompts))
-        masks, scores = finalize_answers(masks, scores)
-        if masks.shape[:2] != (len(rows), len(prompts)):
-            raise RuntimeError(f"teacher {self.teacher.backend} returned masks {masks.shape} for "
-                               f"{len(rows)} images x {len(prompts)} prompts")
-        if view == "vflip":
-            masks = flip_answer(masks)
-        return masks, scores
+    def jobs(self, todo: dict[str, dict[int, list[str]]]) -> list[TeacherJob]:
+        """The batches of ``batch_size`` rows per view that compute ``todo`` (identity first)."""
+        jobs = []
+        for view in VIEWS:
+            pending = sorted(todo[view])
+            asked = self.prompts if view == "identity" else [self.vflip_prompt]
+            for i in range(0, len(pending), self.batch_size):
+                rows = pending[i:i + self.batch_size]
+                prompts = tuple(p for p in asked if any(p in todo[view][r] for r in rows))
+                jobs.append(TeacherJob(view, tuple(rows), prompts, tuple(tuple(todo[view][r]) for r in rows)))
+        return jobs
 
-    def fill(self, rows: Sequence[int]) -> RunStats:
-        """Compute and cache every missing answer of ``rows``; returns the run's statistics."""
+    # ---- computing ----------------------------------------------------------------------------
+    def fill(self, rows: Sequence[int], workers: int = 0, address: str | None = None) -> RunStats:
+        """Compute and cache every missing answer of ``rows``: in this process (``workers=0``) or on a
+        Ray Data actor pool of ``workers`` teachers (:mod:`pipeline.teachers.distributed`)."""
         if not self.teacher.use_cache:
             return self.stats
         todo = self.missing(rows)
-        corrupt = self.cache.stats.corrupt
-        n_images = len(set(todo["identity"]) | set(todo["vflip"]))
-        log.info("teacher[%s]: %d of %d images need answers (%d cached answers reused, %d corrupt entries "
-                 "to recompute)", self.teacher.backend, n_images, len(rows), self.cache.stats.hits, corrupt)
-        self.stats.cache_hits += self.cache.stats.hits
-        self.stats.cache_corrupt += corrupt
-        jobs: list[tuple[str, list[int]]] = []
-        for view in ("identity", "vflip"):
-            pending = sorted(todo[view])
-            jobs += [(view, pending[i:i + self.batch_size]) for i in range(0, len(pending), self.batch_size)]
-        for view, batch_rows in progress(jobs, desc=f"teacher[{self.teacher.backend}]"):
-            # one forward per batch over the union of the batch's missing prompts; only the missing
-            # entries are written, so a cached answer is never overwritten by a recomputation
-            prompts = [p for p in (self.prompts if view == "identity" else [self.vflip_prompt])
-                       if any(p in todo[view][r] for r in batch_rows)]
-            masks, scores = self._compute(batch_rows, prompts, view)
-            for b, row in enumerate(batch_rows):
-                sha = self.image_sha(row)
-                for k, prompt in enumerate(prompts):
-                    if prompt in todo[view][row]:
-                        self.cache.put(self.cache.key(sha, prompt, view), masks[b, k], float(scores[b, k]))
-                        self.stats.answers_computed += 1
+        n_images = len(set().union(*(set(t) for t in todo.values())))
+        log.info("teacher[%s]: %d of %d images need answers (%d cached answers reused)",
+                 self.teacher.backend, n_images, len(rows), self.stats.cache_hits)
+        jobs = self.jobs(todo)
+        if workers > 0 and jobs:
+            if self.spec is None:
+                raise ValueError("TeacherRunner.fill(workers > 0) needs the runner's TeacherSpec")
+            self.stats.answers_computed += fill_with_ray(jobs, self.load, self.spec, self.cache.location,
+                                                         self.cache.teacher_fingerprint, workers, address)
+        else:
+            for job in progress(jobs, desc=f"teacher[{self.teacher.backend}]"):
+                self.stats.answers_computed += answer_job(self.teacher, self.cache, job, job.inputs(self.load))
         self.stats.images_computed += n_images
         return self.stats
 
@@ -156,29 +162,52 @@ class TeacherRunner:
     def answers(self, row: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, float | None]:
         """(masks bool [K,H,W], scores float32 [K], vflip mask or None, vflip score or None) of one row.
 
-        Reads the cache; an entry missing here (removed since :meth:`fill`, or a cache-less backend)
-        is computed on the spot and cached.
+        Reads the cache; an entry missing or corrupt here (removed since :meth:`fill`, damaged on disk,
+        or a cache-less backend) is computed on the spot and cached.
         """
         results: dict[tuple[str, str], tuple[np.ndarray, float]] = {}
         if self.teacher.use_cache:
             sha = self.image_sha(row)
+            corrupt = self.cache.stats.corrupt
             for prompt, view in self.requests():
                 hit = self.cache.get(self.cache.key(sha, prompt, view))
                 if hit is not None:
                     results[(prompt, view)] = hit
-        for view in ("identity", "vflip"):
-            need = [p for p, v in self.requests() if v == view and (p, v) not in results]
+            self.stats.cache_corrupt += self.cache.stats.corrupt - corrupt
+        for view in VIEWS:
+            need = tuple(p for p, v in self.requests() if v == view and (p, v) not in results)
             if not need:
                 continue
-            masks, scores = self._compute([row], need, view)
-            for k, prompt in enumerate(need):
-                results[(prompt, view)] = (masks[0, k], float(scores[0, k]))
-                if self.teacher.use_cache:
-                    self.cache.put(self.cache.key(self.image_sha(row), prompt, view), masks[0, k], float(scores[0, k]))
-                    self.stats.answers_computed += 1
+            job = TeacherJob(view, (row,), need, (need,))
+            inputs = job.inputs(self.load)
+            if self.teacher.use_cache:
+                self.stats.answers_computed += answer_job(self.teacher, self.cache, job, inputs)
+                for prompt in need:
+                    results[(prompt, view)] = self.cache.get(self.cache.key(self.image_sha(row), prompt, view))
+            else:
+                masks, scores = predict_view(self.teacher, inputs, need, view)
+                for k, prompt in enumerate(need):
+                    results[(prompt, view)] = (masks[0, k], float(scores[0, k]))
         masks = np.stack([results[(p, "identity")][0] for p in self.prompts])
         scores = np.array([results[(p, "identity")][1] for p in self.prompts], np.float32)
         if self.vflip_prompt is None:
             return masks, scores, None, None
         vm, vs = results[(self.vflip_prompt, "vflip")]
         return masks, scores, vm, float(vs)
+
+
+def open_runner(cfg: Mapping[str, Any], resolution: tuple[int, int], device: str, load: InputLoader,
+                shas: Sequence[str], vflip_prompt: str | None = None) -> tuple[TeacherRunner, str]:
+    """The teacher of the validated ``teacher:`` section ``cfg`` behind its cache: (runner, fingerprint).
+
+    Used by the teacher stage and by ``geodistill label``; images per job: ``teacher.batch_size``, or
+    with 0 (auto) the backend's own unit (``runner_batch_size``, SAM 3) or 2.
+    """
+    spec = TeacherSpec(dict(cfg), tuple(resolution), device)
+    teacher = spec.build()
+    t_fp = teacher_fingerprint(teacher)
+    shas = list(shas)
+    runner = TeacherRunner(teacher, TeacherCache(cfg["cache_dir"], t_fp), list(cfg["prompts"]),
+                           image_sha=shas.__getitem__, load=load, vflip_prompt=vflip_prompt,
+                           batch_size=cfg["batch_size"] or getattr(teacher, "runner_batch_size", 2), spec=spec)
+    return runner, t_fp

@@ -1,0 +1,104 @@
+"""The teacher as a Ray Data pipeline (the ``cluster`` extra): image rows -> CPU decode -> teachers -> cache.
+
+:func:`fill_with_ray` runs the jobs :class:`pipeline.teachers.runner.TeacherRunner` planned:
+
+1. ``ray.data.from_items`` -- one row per :class:`~pipeline.teachers.jobs.TeacherJob` (a batch of
+   image rows in one view);
+2. ``map_batches(decode_jobs)`` -- tasks on CPU workers read and resize the job's images (the
+   runner's ``load``: an artifact row or an image file) into :class:`TeacherInput` objects (on a
+   CPU-only cluster Ray Data fuses this step into the teacher actors: same resources, no copy);
+3. ``map_batches(TeacherWorker, compute=ActorPoolStrategy(size=workers))`` -- an actor pool with one
+   teacher per GPU (``num_gpus=1`` when the cluster has GPUs and the device is not ``cpu``) or per CPU
+   worker; each actor builds the teacher once (SAM 3 loaded once, the text features encoded once, the
+   vision encoder reused by the six prompts inside ``predict``) and calls
+   :func:`pipeline.teachers.jobs.answer_job` -- the serial loop's own per-batch function -- which
+   writes the job's entries into the content-addressed cache (:mod:`pipeline.teachers.cache`,
+   a local folder, NFS or object storage).
+
+A task Ray retries recomputes its job and rewrites the same keys with the same bytes (atomic writes):
+no duplicate, no torn entry.  Ray runs embedded and local unless ``address`` (or ``RAY_ADDRESS``)
+names a cluster, whose workers must reach the cache's storage and the inputs.  Ray is imported here
+only; without it the runner's serial loop does the same work.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from typing import Sequence
+
+import numpy as np
+
+from pipeline.errors import InputError
+from pipeline.teachers.cache import TeacherCache
+from pipeline.teachers.jobs import InputLoader, TeacherJob, TeacherSpec, answer_job
+
+log = logging.getLogger(__name__)
+
+NO_RAY = "the teacher's Ray workers need Ray: pip install -e '.[cluster]' (or run with 0 workers: the serial loop)"
+
+
+def decode_jobs(batch: dict, jobs: Sequence[TeacherJob], load: InputLoader) -> dict:
+    """Ray Data CPU step: each job index -> the list of its :class:`TeacherInput` (images in the job's view)."""
+    inputs = np.empty(len(batch["job"]), dtype=object)
+    for i, j in enumerate(batch["job"]):
+        inputs[i] = jobs[int(j)].inputs(load)
+    return {"job": batch["job"], "inputs": inputs}
+
+
+class TeacherWorker:
+    """Ray Data actor: one teacher (built once per actor) answering jobs into the cache."""
+
+    def __init__(self, spec: TeacherSpec, cache_root: str, fingerprint: str, jobs: Sequence[TeacherJob]):
+        self.teacher = spec.build()
+        self.cache = TeacherCache(cache_root, fingerprint)
+        self.jobs = jobs
+
+    def __call__(self, batch: dict) -> dict:
+        written = [answer_job(self.teacher, self.cache, self.jobs[int(j)], list(inputs))
+                   for j, inputs in zip(batch["job"], batch["inputs"])]
+        return {"job": batch["job"], "written": np.asarray(written, np.int64)}
+
+
+@contextlib.contextmanager
+def ray_session(address: str | None = None):
+    """Ray, joined at ``address`` / ``RAY_ADDRESS``, or embedded and local; reused when already up."""
+    try:
+        import ray
+    except ImportError:
+        raise InputError(NO_RAY) from None
+    started_here = not ray.is_initialized()
+    if started_here:
+        ray.init(address=address or os.environ.get("RAY_ADDRESS") or "local", include_dashboard=False,
+                 log_to_driver=False, logging_level="WARNING", configure_logging=True)
+    try:
+        yield ray
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+def fill_with_ray(jobs: Sequence[TeacherJob], load: InputLoader, spec: TeacherSpec, cache_root: str,
+                  fingerprint: str, workers: int, address: str | None = None) -> int:
+    """Run ``jobs`` on a Ray Data actor pool of ``workers`` teachers; returns the entries written."""
+    jobs = list(jobs)
+    with ray_session(address) as ray:
+        ctx = ray.data.DataContext.get_current()
+        ctx.enable_progress_bars = False
+        resources = ray.cluster_resources()
+        gpus = float(resources.get("GPU", 0.0)) if spec.device != "cpu" else 0.0
+        slots, unit = (gpus, "GPUs") if gpus else (float(resources.get("CPU", 0.0)), "CPUs")
+        if workers > slots:  # the pool would wait forever for the missing actors
+            raise InputError(f"--workers {workers}: the Ray cluster has {slots:g} {unit} (one teacher each)")
+        log.info("teacher: Ray Data pool of %d teachers (%s), %d jobs", workers,
+                 "one GPU each" if gpus else "one CPU each", len(jobs))
+        ds = ray.data.from_items([{"job": i} for i in range(len(jobs))], override_num_blocks=max(len(jobs), 1))
+        # one CPU per decode task; Ray Data fuses decode into the teacher actors when both ask for the
+        # same resources (CPU-only), and runs it as tasks on the other CPUs beside GPU actors
+        ds = ds.map_batches(decode_jobs, fn_kwargs={"jobs": jobs, "load": load}, batch_size=1, num_cpus=1.0)
+        ds = ds.map_batches(TeacherWorker, fn_constructor_kwargs={"spec": spec, "cache_root": cache_root,
+                                                                  "fingerprint": fingerprint, "jobs": jobs},
+                            batch_size=1, compute=ray.data.ActorPoolStrategy(size=workers),
+                            num_cpus=1.0, num_gpus=1.0 if gpus else 0.0)
+        return int(sum(int(row["written"]) for row in ds.iter_rows()))

@@ -1,0 +1,59 @@
+"""The teacher stage's input loader: a row of ``images.zarr`` (and, for the SIMULATOR only, of
+``reference.zarr``) as a :class:`~pipeline.teachers.base.TeacherInput` in a view.
+
+A loader is handed to :class:`pipeline.teachers.runner.TeacherRunner` and, for the Ray executor, to
+CPU workers (:mod:`pipeline.teachers.distributed`), so it is picklable: it carries the artifact paths
+and per-row metadata, and opens the artifacts on first use in each process.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from pipeline.artifacts import open_artifact
+from pipeline.teachers.base import TeacherInput
+from pipeline.teachers.jobs import in_view
+
+
+class ArtifactInputs:
+    """``(row, view) -> TeacherInput`` over ``images.zarr`` (uint8 [N,H,W,3] at the working resolution).
+
+    ``reference`` (``reference.zarr``) is read only when given, i.e. for a teacher whose
+    ``needs_reference`` is true; ``extras[row]`` are that row's manifest extra columns.
+    """
+
+    def __init__(self, images: str | Path, reference: str | Path | None, ids: Sequence[str],
+                 shas: Sequence[str], extras: Sequence[Mapping[str, Any]]):
+        self.images = os.path.abspath(images)  # absolute: Ray workers need not share this cwd
+        self.reference = os.path.abspath(reference) if reference is not None else None
+        self.ids, self.shas, self.extras = list(ids), list(shas), list(extras)
+        self._arrays = None
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_arrays": None}  # zarr handles are reopened by each worker
+
+    def _open(self):
+        if self._arrays is None:
+            image = open_artifact(self.images, "images")["image"]
+            mask = parts = None
+            if self.reference is not None:
+                ref = open_artifact(self.reference, "reference")
+                mask = ref["mask"]
+                parts = ref["parts"] if "parts" in ref else None
+            self._arrays = image, mask, parts
+        return self._arrays
+
+    def __call__(self, row: int, view: str) -> TeacherInput:
+        image, mask, parts = self._open()
+        reference = None
+        if mask is not None:
+            reference = {"mask": in_view(np.asarray(mask[row], dtype=bool), view)}
+            if parts is not None:
+                reference["parts"] = in_view(np.asarray(parts[row]), view)
+        return TeacherInput(image_id=self.ids[row], image_sha256=self.shas[row],
+                            image=in_view(np.asarray(image[row]), view), view=view, reference=reference,
+                            extras=dict(self.extras[row]))

@@ -1,0 +1,88 @@
+"""The teacher's unit of work, shared by the serial loop and the Ray executor.
+
+:class:`TeacherJob` is a batch of image rows in one view with the prompts each row lacks;
+:func:`answer_job` computes one job and writes its cache entries -- the one per-batch function of
+:meth:`pipeline.teachers.runner.TeacherRunner.fill` and of the Ray actors
+(:mod:`pipeline.teachers.distributed`).  :class:`TeacherSpec` rebuilds the same teacher in a worker.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from pipeline.teachers import make_teacher
+from pipeline.teachers.base import VIEWS, Teacher, TeacherInput, finalize_answers
+from pipeline.teachers.cache import TeacherCache
+
+# row index, view -> TeacherInput (image already in that view); picklable for the Ray executor
+InputLoader = Callable[[int, str], TeacherInput]
+
+
+def flip_answer(mask: np.ndarray) -> np.ndarray:
+    """Undo the vertical flip of the ``vflip`` view (rows reversed; an involution)."""
+    return np.ascontiguousarray(mask[..., ::-1, :])
+
+
+def in_view(array: np.ndarray, view: str) -> np.ndarray:
+    """An image (or reference mask) of the identity view as the teacher sees it in ``view``."""
+    if view not in VIEWS:
+        raise ValueError(f"view {view!r}: expected one of {VIEWS}")
+    return np.ascontiguousarray(array[::-1]) if view == "vflip" else array
+
+
+@dataclasses.dataclass(frozen=True)
+class TeacherSpec:
+    """What a worker needs to build the same teacher: :func:`pipeline.teachers.make_teacher` arguments."""
+
+    cfg: Mapping[str, Any]
+    resolution: tuple[int, int]
+    device: str = "auto"
+
+    def build(self) -> Teacher:
+        return make_teacher(self.cfg, self.resolution, self.device)
+
+
+@dataclasses.dataclass(frozen=True)
+class TeacherJob:
+    """One batch of work: ``rows`` in ``view``, one forward over ``prompts`` (the union of the rows'
+    missing prompts); ``missing[b]`` are the prompts whose entries row ``rows[b]`` lacks (only those are
+    written, so a cached answer is never overwritten by a recomputation)."""
+
+    view: str
+    rows: tuple[int, ...]
+    prompts: tuple[str, ...]
+    missing: tuple[tuple[str, ...], ...]
+
+    def inputs(self, load: InputLoader) -> list[TeacherInput]:
+        return [load(r, self.view) for r in self.rows]
+
+
+def predict_view(teacher: Teacher, inputs: Sequence[TeacherInput], prompts: Sequence[str],
+                 view: str) -> tuple[np.ndarray, np.ndarray]:
+    """masks bool [B,K,H,W] and scores float32 [B,K] of ``inputs`` (already in ``view``), answers of
+    the ``vflip`` view flipped back; invalid answers per :func:`pipeline.teachers.base.finalize_answers`."""
+    masks, scores = teacher.predict(list(inputs), list(prompts))
+    masks, scores = finalize_answers(masks, scores)
+    if masks.shape[:2] != (len(inputs), len(prompts)):
+        raise RuntimeError(f"teacher {teacher.backend} returned masks {masks.shape} for "
+                           f"{len(inputs)} images x {len(prompts)} prompts")
+    if view == "vflip":
+        masks = flip_answer(masks)
+    return masks, scores
+
+
+def answer_job(teacher: Teacher, cache: TeacherCache, job: TeacherJob, inputs: Sequence[TeacherInput]) -> int:
+    """Compute one job and write its missing entries; returns how many were written.  The one per-batch
+    function of the serial loop and of the Ray actors; running it twice (a retried task) rewrites the
+    same entries with the same bytes."""
+    masks, scores = predict_view(teacher, inputs, job.prompts, job.view)
+    written = 0
+    for b, (item, want) in enumerate(zip(inputs, job.missing)):
+        for k, prompt in enumerate(job.prompts):
+            if prompt in want:
+                cache.put(cache.key(item.image_sha256, prompt, job.view), masks[b, k], float(scores[b, k]))
+                written += 1
+    return written
