@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import os
+import platform
 import statistics
 import tempfile
 import time
@@ -36,10 +38,15 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.metrics import image_ious
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
+from pipeline.teachers.distributed import ray_session
 from pipeline.teachers.jobs import in_view
 from pipeline.teachers.runner import open_runner
+from pipeline.teachers.sam3 import Sam3Teacher
+from pipeline.teachers.simulated import SimulatedFoundationTeacher
+from pipeline.teachers.tiny_sam3 import build_tiny_sam3
 
 PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
            "spacecraft with rigid body and appendages", "artificial object in space with panels and antennas"]
@@ -77,10 +84,6 @@ def main() -> None:
 
     import torch
 
-    from pipeline.teachers.sam3 import Sam3Teacher
-    from pipeline.teachers.simulated import SimulatedFoundationTeacher
-    from pipeline.teachers.tiny_sam3 import build_tiny_sam3
-
     rng = np.random.default_rng(0)
     r = args.resolution
     items = [TeacherInput(f"img{i}", f"sha{i}", rng.integers(0, 255, (r, r, 3), dtype=np.uint8))
@@ -115,7 +118,6 @@ def main() -> None:
         t_batched = _time(batched, args.repeats)
         t_separate = _time(separate, args.repeats)
         t_today = _time(todays, args.repeats)
-        from pipeline.metrics import image_ious
 
         m_new, s_new = teacher.predict(items, PROMPTS)
         m_old, s_old = today.predict(items, PROMPTS)
@@ -159,13 +161,7 @@ class ArrayInputs:
 
 def ray_throughput(args) -> None:
     """Serial loop vs Ray Data pools of teachers, round robin, medians and minima (module docstring)."""
-    import os
-    import platform
-
     import torch
-
-    from pipeline.teachers.distributed import ray_session
-    from pipeline.teachers.tiny_sam3 import build_tiny_sam3
 
     pools = [int(w) for w in str(args.ray_workers).split(",")]
     r, n = args.resolution, args.images

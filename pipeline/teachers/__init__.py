@@ -18,6 +18,8 @@ from pipeline.artifacts import canonical_json
 from pipeline.errors import InputError
 from pipeline.params import BACKENDS, SPLITS, validate_section
 from pipeline.teachers.base import VIEWS, Teacher, TeacherInput, finalize_answers
+from pipeline.teachers.sam3 import Sam3Teacher
+from pipeline.teachers.simulated import SimulatedFoundationTeacher
 
 
 __all__ = ["BACKENDS", "VIEWS", "Teacher", "TeacherInput", "finalize_answers", "check_teacher_params",
@@ -34,14 +36,11 @@ def make_teacher(cfg: Mapping[str, Any], resolution: tuple[int, int], device: st
     cfg = check_teacher_params(cfg)
     backend = cfg["backend"]
     if backend == "simulated":
-        from pipeline.teachers.simulated import SimulatedFoundationTeacher
-
         return SimulatedFoundationTeacher(seed=cfg["seed"], resolution=resolution)
     if backend == "imported":
         from pipeline.teachers.imported import ImportedTeacher
 
         return ImportedTeacher(cfg["imported_dir"], resolution=resolution)
-    from pipeline.teachers.sam3 import Sam3Teacher
 
     return Sam3Teacher(cfg["checkpoint"], device=device, dtype=cfg["dtype"], batch_size=cfg["batch_size"],
                        resolution=resolution, score_threshold=cfg.get("score_threshold", 0.3),

@@ -35,6 +35,7 @@ files and the processor config.  Anything else is an InputError naming the direc
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -43,6 +44,7 @@ from typing import Sequence
 
 import numpy as np
 
+from pipeline.device import resolve_device
 from pipeline.errors import InputError
 from pipeline.teachers.base import TeacherInput, finalize_answers
 
@@ -169,8 +171,6 @@ def resolve_teacher_dtype(dtype: str, device) -> tuple[str, bool]:
 
 def allow_tf32(on: bool):
     """Context: TF32 matmuls and cuDNN convolutions while ``on`` (restored after); a no-op when off."""
-    import contextlib
-
     import torch
 
     if not on:
@@ -221,8 +221,6 @@ class Sam3Teacher:
                  resolution: tuple[int, int] | None = None, score_threshold: float = 0.3,
                  mask_threshold: float = 0.5, hash_memo: str | Path | None = None, compile: bool = False):
         import torch
-
-        from pipeline.device import resolve_device
 
         self.checkpoint = check_checkpoint_dir(checkpoint)
         self.device = resolve_device(device)

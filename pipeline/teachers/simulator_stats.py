@@ -26,6 +26,9 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+import yaml
+
+from pipeline.teachers.base import TeacherInput
 
 PAPER = {
     "mean_single_iou": 0.3462, "sd_single_iou": 0.2423, "base_iou": 0.4743, "selected_iou": 0.5691,
@@ -134,7 +137,6 @@ def format_stats(s: TeacherStats) -> str:
 def simulate(artifacts: Path, prompts: Sequence[str], seed: int, vflip: bool = False):
     """Run the SIMULATOR over every image of an artifacts directory (no cache); masks, scores, gt, manifest."""
     from pipeline.artifacts import open_artifact
-    from pipeline.teachers.base import TeacherInput
     from pipeline.teachers.simulated import SimulatedFoundationTeacher
 
     man = open_artifact(artifacts / "manifest.parquet", "manifest").df.reset_index(drop=True)
@@ -152,8 +154,6 @@ def simulate(artifacts: Path, prompts: Sequence[str], seed: int, vflip: bool = F
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    import yaml
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--artifacts", default="artifacts", type=Path,
                     help="directory with manifest.parquet, images.zarr, reference.zarr (and maybe teacher.zarr)")
