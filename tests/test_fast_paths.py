@@ -123,15 +123,13 @@ def test_openvino_engine_needs_its_file_or_its_extra(tmp_path, monkeypatch):
 
 # ---- benchmark remarks ------------------------------------------------------------------------------
 def test_variant_remark_marks_slow_and_emulated_variants(monkeypatch):
-    import pipeline.device as dv
-
     assert bench.variant_remark("fp32_channels_last", "cpu", bench.OK, 1.0, 1.0) == ""
     slow = bench.variant_remark("bf16_autocast", "cpu", "slow on this CPU (...)", 100.0, 4.0)
     assert slow.startswith("not timed: probe 100 ms = 25x") and "pathologically slow" in slow
-    monkeypatch.setattr(dv, "cpu_supports_bf16", lambda: False)
+    monkeypatch.setattr(bench, "cpu_supports_bf16", lambda: False)
     assert "bf16 emulated" in bench.variant_remark("bf16_channels_last", "cpu", bench.OK, 1.0, 1.0)
     assert bench.variant_remark("bf16_channels_last", "cuda", bench.OK, 1.0, 1.0) == ""
-    monkeypatch.setattr(dv, "cpu_supports_bf16", lambda: True)
+    monkeypatch.setattr(bench, "cpu_supports_bf16", lambda: True)
     assert bench.variant_remark("bf16_channels_last", "cpu", bench.OK, 1.0, 1.0) == ""
 
 
