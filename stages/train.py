@@ -34,8 +34,11 @@ from typing import Any, Mapping
 
 import click
 
+from pipeline import catalog
+from pipeline.artifacts import open_artifact, require_same_run
 from pipeline.catalog import ARTIFACTS_DIR
-from pipeline.errors import InputError, TrainingDiverged
+from pipeline.errors import ArtifactError, InputError, TrainingDiverged
+from pipeline.inference import load_student
 from pipeline.params import section
 from stages._common import stage_command, stage_context
 
@@ -85,8 +88,7 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[An
     :func:`pipeline.training.validation_data` -- except for the supervised ceiling (NOT
     annotation-free), whose targets :func:`pipeline.supervised.ceiling_training_data` builds from it.
     """
-    from pipeline import catalog, training
-    from pipeline.artifacts import open_artifact, require_same_run
+    from pipeline import training  # torch: imported when a run trains, not with the stage module
 
     def opened_artifact(name: str):
         return open_artifact(catalog.path(name, artifacts), catalog.ARTIFACTS[name].schema)
@@ -99,7 +101,7 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[An
     if spec.annotation_free:
         data = training.training_data(spec, cfg, inputs)
     else:  # the supervised ceiling: the one method whose loss sees reference masks (NOT annotation-free)
-        from pipeline.supervised import ceiling_training_data
+        from pipeline.supervised import ceiling_training_data  # imports pipeline.training (torch)
 
         reference = opened_artifact("reference")
         opened.append(reference)
@@ -117,10 +119,6 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[An
 
 def load_init(path: str | Path):
     """Stage-I checkpoint for a warm start: (mask-path state dict, its artifact for the lineage)."""
-    from pipeline.artifacts import open_artifact
-    from pipeline.errors import ArtifactError
-    from pipeline.inference import load_student
-
     p = Path(path)
     if not (p / "meta.json").exists():
         raise ArtifactError(f"--init {p}: not a checkpoint directory (run train_plain first)")
