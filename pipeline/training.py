@@ -56,8 +56,8 @@ import copy
 import dataclasses
 import functools
 import logging
-import tempfile
 import math
+import tempfile
 import time
 from typing import Any, Callable, Mapping, Protocol
 
