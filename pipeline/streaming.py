@@ -3,29 +3,64 @@
 * :class:`LazyRows` -- a row subset of a Zarr array (one image per chunk), read only when indexed
   (:func:`pipeline.artifacts.read_chunk_rows`: plain slices per contiguous run), cast to a dtype.
   ``np.asarray(rows)`` reads them all (the in-memory path).
+* :class:`MappedRows` -- a target computed per read from the same rows of other sources (the AFS
+  control's fused mask); :class:`RowSource` is what both are (``isinstance`` tells streaming data).
 * :func:`prefetch` -- iterate a generator in a background thread, ``depth`` items ahead, so the next
   batch is read and decoded while the current one trains (Zarr's codecs release the GIL).
 
-Memory of a training run is then the model, the per-image scalars and ``depth + 1`` batches, whatever
-the number of images (issue 25).
+Memory of a training run is then the model, the per-image scalars (ids, gates, areas, the epoch's
+order) and ``depth + 1`` batches, whatever the number of images (issue 25).
 """
 
 from __future__ import annotations
 
 import queue
 import threading
-from typing import Iterable, Iterator
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
 from pipeline.artifacts import read_chunk_rows
 
 
-class LazyRows:
-    """Rows ``rows`` (unique manifest indices) of the Zarr array ``arr``, as ``dtype`` when read.
+class RowSource:
+    """Rows read from disk only when indexed (the base of :class:`LazyRows` and :class:`MappedRows`).
 
-    ``x[i]`` (an int, slice or integer array over the subset) reads those rows from disk;
-    ``x.select(sel)`` is the sub-subset without reading; ``np.asarray(x)`` reads everything."""
+    ``x[i]`` (an int, slice or integer array over the rows) reads those rows; ``x.select(sel)`` is the
+    sub-subset without reading; ``np.asarray(x)`` reads everything (the in-memory path)."""
+
+    dtype: np.dtype
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        raise NotImplementedError
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def select(self, sel) -> "RowSource":
+        raise NotImplementedError
+
+    def read(self, key) -> np.ndarray:
+        """The rows ``key`` (an index array or slice over this subset), as ``dtype``."""
+        raise NotImplementedError
+
+    def __getitem__(self, key) -> np.ndarray:
+        if isinstance(key, (int, np.integer)):
+            return self[np.array([key])][0]
+        return self.read(key)
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        out = self[np.arange(len(self))]
+        return out if dtype is None else out.astype(dtype, copy=False)
+
+
+class LazyRows(RowSource):
+    """Rows ``rows`` (unique manifest indices) of the Zarr array ``arr``, as ``dtype`` when read."""
 
     def __init__(self, arr, rows: np.ndarray, dtype=None):
         self.arr = arr
@@ -36,33 +71,48 @@ class LazyRows:
     def shape(self) -> tuple[int, ...]:
         return (len(self.rows),) + tuple(self.arr.shape[1:])
 
-    @property
-    def ndim(self) -> int:
-        return len(self.shape)
-
-    def __len__(self) -> int:
-        return len(self.rows)
-
     def select(self, sel) -> "LazyRows":
         """The rows ``sel`` (indices or a boolean mask over this subset), still unread."""
         return LazyRows(self.arr, self.rows[sel], self.dtype)
 
-    def __getitem__(self, key) -> np.ndarray:
-        if isinstance(key, (int, np.integer)):
-            return self[np.array([key])][0]
+    def read(self, key) -> np.ndarray:
         picked = self.rows[key]
         if picked.size == 0:
             return np.zeros((0,) + self.shape[1:], dtype=self.dtype)
         return read_chunk_rows(self.arr, picked).astype(self.dtype, copy=False)
 
-    def __array__(self, dtype=None, copy=None) -> np.ndarray:
-        out = self[np.arange(len(self))]
-        return out if dtype is None else out.astype(dtype, copy=False)
+
+class MappedRows(RowSource):
+    """``fn`` applied to the same rows of several row sources, per read: a target derived from stored
+    arrays (e.g. the AFS control's fused mask, :func:`pipeline.methods.afs_fuse`, from the teacher's
+    two masks) is computed per batch instead of held for every image.  ``fn`` must work row by row
+    (its output for a row depends on that row only), so a batch gives the rows of the whole array."""
+
+    def __init__(self, fn: Callable[..., np.ndarray], sources: Sequence[RowSource], dtype, shape: tuple[int, ...]):
+        self.fn = fn
+        self.sources = tuple(sources)
+        self.dtype = np.dtype(dtype)
+        self._row_shape = tuple(shape)
+        if len({len(s) for s in self.sources}) != 1:
+            raise ValueError("MappedRows: sources of different lengths")
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (len(self.sources[0]),) + self._row_shape
+
+    def select(self, sel) -> "MappedRows":
+        return MappedRows(self.fn, [s.select(sel) for s in self.sources], self.dtype, self._row_shape)
+
+    def read(self, key) -> np.ndarray:
+        parts = [s[key] for s in self.sources]
+        if len(parts[0]) == 0:
+            return np.zeros((0,) + self._row_shape, dtype=self.dtype)
+        return np.asarray(self.fn(*parts)).astype(self.dtype, copy=False)
 
 
 def select_rows(x, sel):
-    """``x[sel]`` for an array, ``x.select(sel)`` (nothing read) for :class:`LazyRows`."""
-    return x.select(sel) if isinstance(x, LazyRows) else x[sel]
+    """``x[sel]`` for an array, ``x.select(sel)`` (nothing read) for a :class:`RowSource`."""
+    return x.select(sel) if isinstance(x, RowSource) else x[sel]
 
 
 def row_means(x, block: int = 64) -> np.ndarray:
@@ -71,9 +121,27 @@ def row_means(x, block: int = 64) -> np.ndarray:
     n = len(x)
     out = np.empty(n, dtype=np.float32)
     for s in range(0, n, block):
-        part = np.asarray(x[np.arange(s, min(s + block, n))] if isinstance(x, LazyRows) else x[s:s + block])
+        part = np.asarray(x[np.arange(s, min(s + block, n))] if isinstance(x, RowSource) else x[s:s + block])
         out[s:s + len(part)] = part.reshape(len(part), -1).mean(1).astype(np.float32)
     return out
+
+
+def spill_rows(path, blocks: Iterable[np.ndarray], shape: tuple[int, ...], dtype) -> LazyRows:
+    """Consecutive row blocks written to a scratch Zarr array at ``path`` (one row per chunk, zarr's
+    default codec) and returned as :class:`LazyRows` over all its rows: a per-image intermediate (the
+    frozen Stage-I anchor probabilities) kept on disk, one block in memory at a time.  The caller owns
+    ``path`` (a temporary directory) and removes it."""
+    import zarr  # as the artifacts: opened lazily
+
+    shape = tuple(int(v) for v in shape)
+    arr = zarr.create_array(store=str(path), shape=shape, chunks=(1,) + shape[1:], dtype=np.dtype(dtype))
+    start = 0
+    for block in blocks:
+        arr[start:start + len(block)] = block
+        start += len(block)
+    if start != shape[0]:
+        raise ValueError(f"spill_rows: {start} rows written, {shape[0]} expected")
+    return LazyRows(arr, np.arange(shape[0]))
 
 
 _DONE = object()

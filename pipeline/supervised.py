@@ -9,7 +9,7 @@ reader can tell whether the pseudo-labels or the student bound the quality.  It 
 
 Every other method gets its targets from :func:`pipeline.training.training_data`, which refuses
 reference masks; :func:`ceiling_training_data` refuses every method but the ceiling
-(:func:`require_supervised_ceiling`).  Pure array plumbing on opened artifacts, no file I/O.
+(:func:`require_supervised_ceiling`).  Plumbing on opened artifacts; opens no file.
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.methods import SUPERVISED_CEILING, Method
+from pipeline.streaming import LazyRows, row_means
+from pipeline.training import TrainData, _check_order, _rows, _train_rows
 
 
 def require_supervised_ceiling(method: Method) -> None:
@@ -32,14 +34,13 @@ def require_supervised_ceiling(method: Method) -> None:
 
 def ceiling_training_data(method: Method, inputs: Mapping[str, Any], reference) -> Any:
     """The supervised ceiling's training arrays: images and REFERENCE masks of the ``split == "train"``
-    rows that have a mask (manifest order), as a :class:`pipeline.training.TrainData`.
+    rows that have a mask (manifest order), as a :class:`pipeline.training.TrainData` whose images and
+    masks are read per batch (:class:`pipeline.streaming.LazyRows`).
 
     ``inputs``: opened ``manifest`` and ``images``; ``reference``: the opened reference.zarr.
     ``area`` is each mask's foreground fraction and ``gate`` is 1 (L_raw uses neither).  Raises
     ValueError for any other method, InputError when no training row has a reference mask.
     """
-    from pipeline.training import TrainData, _check_order, _rows, _train_rows
-
     require_supervised_ceiling(method)
     ids, train_idx = _train_rows(inputs["manifest"])
     for art in (inputs["images"], reference):
@@ -49,10 +50,9 @@ def ceiling_training_data(method: Method, inputs: Mapping[str, Any], reference) 
     if len(train_idx) == 0:
         raise InputError(f"{reference.path}: no training image has a reference mask; "
                          f"the supervised ceiling needs them")
-    mask = _rows(reference, "mask", train_idx).astype(bool)
-    data = TrainData(image_ids=[ids[i] for i in train_idx], images=_rows(inputs["images"], "image", train_idx),
-                     mask=mask, area=mask.reshape(len(mask), -1).mean(1).astype(np.float32),
-                     gate=np.ones(len(mask), dtype=np.float32),
+    mask = LazyRows(reference["mask"], train_idx, bool)  # read per batch, as every method's targets
+    data = TrainData(image_ids=[ids[i] for i in train_idx], images=LazyRows(inputs["images"]["image"], train_idx),
+                     mask=mask, area=row_means(mask), gate=np.ones(len(mask), dtype=np.float32),
                      stats={"n_train_rows": n_rows, "targets": "reference masks (NOT annotation-free)"})
     data.stats["n_train"] = len(data)
     return data

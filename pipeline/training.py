@@ -54,8 +54,10 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+import functools
 import logging
 import math
+import tempfile
 import time
 from typing import Any, Callable, Mapping, Protocol
 
@@ -64,12 +66,17 @@ import torch
 
 from pipeline import losses
 from pipeline.artifacts import Artifact, read_chunk_rows
-from pipeline.streaming import LazyRows, prefetch, row_means, select_rows
+from pipeline.device import autocast_dtype
 from pipeline.errors import ArtifactError, InputError, TrainingDiverged
+from pipeline.inference import predict_probs
 from pipeline.methods import (Method, Plan, afs_fuse, afs_keep, confidence_pass, input_artifacts, mean_valid_score,
                               method_epochs, method_lr, pass_ratio, resolve_plan, uses_confidence)
+from pipeline.metrics import boundary_f1, image_ious
+from pipeline.model import TinyUNet, model_options, recompute_bn_stats
 from pipeline.params import PAPER
-from pipeline.thresholds import mask_from_probs
+from pipeline.progress import progress
+from pipeline.streaming import LazyRows, MappedRows, RowSource, prefetch, row_means, select_rows, spill_rows
+from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 
 log = logging.getLogger(__name__)
 
@@ -92,21 +99,23 @@ STATE_VERSION = 1
 class TrainData:
     """Training data for the rows a method trains on (manifest order).
 
-    ``images``/``mask``/``sdf``/``skeleton`` are numpy arrays (in memory) or :class:`LazyRows` (read from
-    the Zarr artifacts per batch while training: what :func:`training_data` returns, so memory does
-    not grow with N); both give the same batches and weights for a seed.
+    ``images``/``mask``/``sdf``/``skeleton`` are numpy arrays (in memory) or row sources
+    (:class:`pipeline.streaming.LazyRows`, :class:`~pipeline.streaming.MappedRows`: read from the Zarr
+    artifacts per batch while training -- what :func:`training_data` returns, so memory does not grow
+    with N); both give the same batches and weights for a seed.  Per image only scalars stay in memory
+    (``image_ids``, ``area``, ``gate``).
     ``mask`` is the region pseudo-target (M^T, or the AFS-fused base-prompt mask); ``sdf``/``skeleton``
     the pseudo-geometry targets (None when the method does not read geometry.zarr); ``area`` a_i and
     ``gate`` g_i per image (g = 1 for ``gate="one"`` methods).  ``stats`` records the filter outcome.
     """
 
     image_ids: list
-    images: np.ndarray
-    mask: np.ndarray
+    images: np.ndarray | RowSource
+    mask: np.ndarray | RowSource
     area: np.ndarray
     gate: np.ndarray
-    sdf: np.ndarray | None = None
-    skeleton: np.ndarray | None = None
+    sdf: np.ndarray | RowSource | None = None
+    skeleton: np.ndarray | RowSource | None = None
     stats: dict = dataclasses.field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -115,7 +124,9 @@ class TrainData:
 
 @dataclasses.dataclass
 class ValData:
-    """Validation images and their reference masks (split == "val" rows with a mask only)."""
+    """Validation images and their reference masks (split == "val" rows with a mask only), in memory:
+    every epoch scores all of them (the paper's 60 validation images at 384^2 are 35 MB; a validation
+    split that grows with N would grow this too)."""
 
     image_ids: list
     images: np.ndarray
@@ -208,7 +219,7 @@ def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, A
 
 
 def _region_targets(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Artifact],
-                    train_idx: np.ndarray, stats: dict) -> tuple[np.ndarray, np.ndarray]:
+                    train_idx: np.ndarray, stats: dict) -> tuple[RowSource, np.ndarray]:
     """Region pseudo-target of every training row and the rows the AFS filter keeps (all otherwise):
     the voted mask M^T (eq:majority-vote), or the AFS control's fused base-prompt mask."""
     if method.data == "afs":
@@ -250,7 +261,7 @@ def _confidence_pass(gates_df, teacher, train_idx, c: Mapping[str, Any]) -> np.n
                            criterion, float(c["threshold"]), int(c["min_valid"]))
 
 
-def _afs_targets(teacher, train_idx, a: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, float]:
+def _afs_targets(teacher, train_idx, a: Mapping[str, Any]) -> tuple[MappedRows, np.ndarray, float]:
     """AFS control targets (``train.afs``): base prompt on the image and on its vertical flip (flipped
     back, stored by the teacher stage as ``vflip_masks``), fused by agreement; keep images with base
     score >= threshold."""
@@ -263,12 +274,20 @@ def _afs_targets(teacher, train_idx, a: Mapping[str, Any]) -> tuple[np.ndarray, 
         raise InputError(f"params: train.afs.base_prompt={base!r} is not one of {teacher.path}'s prompts {prompts}")
     k = prompts.index(base)
     rows = np.sort(train_idx)  # manifest order (flatnonzero is sorted already)
-    img_masks = np.asarray(teacher["masks"].get_orthogonal_selection((rows, k)), dtype=bool)
-    flip_masks = _rows(teacher, "vflip_masks", rows).astype(bool)
+    afs_fuse(np.zeros(1, bool), np.zeros(1, bool), a["fusion"])  # a bad train.afs.fusion fails here, not mid-epoch
+    # fused per batch from the stored masks (streaming.MappedRows): nothing held per image
+    fused = MappedRows(functools.partial(_afs_fuse_prompt, k=k, fusion=a["fusion"]),
+                       [LazyRows(teacher["masks"], rows, bool), LazyRows(teacher["vflip_masks"], rows, bool)],
+                       bool, teacher["vflip_masks"].shape[1:])
     scores = np.asarray(teacher["scores"].get_orthogonal_selection((rows, k)), dtype=np.float64)
-    fused = afs_fuse(img_masks, flip_masks, a["fusion"])
     keep = afs_keep(scores, float(a["score_threshold"]))
     return fused, keep, pass_ratio(keep)
+
+
+def _afs_fuse_prompt(masks: np.ndarray, vflip_masks: np.ndarray, k: int, fusion: str) -> np.ndarray:
+    """The AFS control's target of a batch: prompt ``k`` of the teacher masks [B,K,H,W] fused with the
+    vflip masks [B,H,W] (:func:`pipeline.methods.afs_fuse`)."""
+    return afs_fuse(masks[:, k], vflip_masks, fusion)
 
 
 def validation_rows(manifest) -> np.ndarray:
@@ -394,8 +413,6 @@ def _lr_lambda(schedule: str, total_steps: int, warmup_steps: int = 0) -> Callab
 def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: Mapping | None = None):
     """TinyUNet for a method: random init from ``torch.manual_seed(seed)``, or (``init="stage1"``)
     the Stage-I mask path copied from ``init_state``; then fresh geometry heads (seeded) if needed."""
-    from pipeline.model import TinyUNet, model_options
-
     torch.manual_seed(int(seed))
     model = TinyUNet(channels=tuple(cfg["channels"]), **model_options(cfg))  # train.norm, train.bn_momentum
     if method.init == "stage1":
@@ -414,9 +431,10 @@ def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: M
 # --------------------------------------------------------------------------------------------------
 # Batches and validation
 # --------------------------------------------------------------------------------------------------
-def _tensors(data: TrainData, device: torch.device, anchor: np.ndarray | None) -> dict[str, torch.Tensor | LazyRows]:
+def _tensors(data: TrainData, device: torch.device, anchor: np.ndarray | RowSource | None
+             ) -> dict[str, torch.Tensor | RowSource]:
     """The training set per key (uint8 images NHWC, targets), once per run: in-memory arrays as tensors
-    on ``device``; :class:`LazyRows` stay on disk and :func:`_batch` reads a batch's rows.
+    on ``device``; a :class:`pipeline.streaming.RowSource` stays on disk and :func:`_batch` reads a batch's rows.
     Built from :class:`TrainData` only: pseudo-targets, never reference masks."""
     arrays = {"image": (data.images, None), "mask": (data.mask, None), "area": (data.area, np.float32),
               "gate": (data.gate, np.float32)}
@@ -424,18 +442,18 @@ def _tensors(data: TrainData, device: torch.device, anchor: np.ndarray | None) -
         arrays.update(sdf=(data.sdf, np.float32), skeleton=(data.skeleton, None))
     if anchor is not None:
         arrays["anchor"] = (anchor, np.float32)
-    return {k: v if isinstance(v, LazyRows) else torch.from_numpy(np.ascontiguousarray(v, dtype=dt)).to(device)
+    return {k: v if isinstance(v, RowSource) else torch.from_numpy(np.ascontiguousarray(v, dtype=dt)).to(device)
             for k, (v, dt) in arrays.items()}
 
 
-def _streaming(t: Mapping[str, torch.Tensor | LazyRows]) -> bool:
+def _streaming(t: Mapping[str, torch.Tensor | RowSource]) -> bool:
     """True when some training arrays are read from disk per batch."""
-    return any(isinstance(v, LazyRows) for v in t.values())
+    return any(isinstance(v, RowSource) for v in t.values())
 
 
-def _take(v: torch.Tensor | LazyRows, idx: torch.Tensor) -> torch.Tensor:
+def _take(v: torch.Tensor | RowSource, idx: torch.Tensor) -> torch.Tensor:
     """``v[idx]``: indexed on its device, or the rows read from disk and moved to ``idx``'s device."""
-    if isinstance(v, LazyRows):
+    if isinstance(v, RowSource):
         return torch.from_numpy(v[idx.cpu().numpy()]).to(idx.device)
     return v[idx]
 
@@ -476,10 +494,6 @@ def validation_scores(model, val: ValData | None, device, *, precision: str, cha
     out = {"val_iou": nan, "val_bf1": nan, "val_iou_cal": nan, "val_tau_cal": nan}
     if not _has_val(val):
         return out
-    from pipeline.inference import predict_probs
-    from pipeline.metrics import boundary_f1, image_ious
-    from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold
-
     probs = predict_probs(model, val.images, device=device, batch_size=16, precision=precision,
                           channels_last=channels_last)
     model.train()
@@ -536,6 +550,8 @@ class _Run:
     best: dict | None = None
     #: running mean of the weights over the last ``average_last`` epochs: {"n": epochs in it, "state": {...}}
     avg: dict | None = None
+    #: the run's scratch directory (streamed anchors), removed when :func:`train` returns
+    scratch: tempfile.TemporaryDirectory | None = None
 
     @property
     def steps_per_epoch(self) -> int:
@@ -556,17 +572,14 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
            init_state: Mapping | None, device: torch.device) -> _Run:
     """Model (warm-started or seeded), the frozen Stage-I anchor if the plan uses one, AdamW, the
     schedule and the training tensors, in this order (the order fixes the torch RNG stream)."""
-    from pipeline.device import autocast_dtype
-
     amp = autocast_dtype(device, s.precision)
     model = build_model(method, cfg, seed, init_state)
-    anchor = None
+    anchor, scratch = None, None
     if "anchor" in plan.weights:
-        from pipeline.inference import predict_probs
-
         frozen = build_model(dataclasses.replace(method, terms=("region",)), cfg, seed, init_state)
-        anchor = predict_probs(frozen, data.images, device=device, precision=s.precision,
-                               channels_last=s.channels_last)
+        if isinstance(data.images, RowSource):  # streaming: the anchors go to a scratch Zarr store
+            scratch = tempfile.TemporaryDirectory(prefix="geodistill_anchor_")
+        anchor = _anchor_probs(frozen, data.images, device, s, scratch)
     model = model.to(device)
     if s.channels_last:
         model = model.to(memory_format=torch.channels_last)
@@ -581,10 +594,34 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
                "train_ids": list(data.image_ids), "num_threads": int(torch.get_num_threads()),
                "autocast": str(amp).replace("torch.", "") if amp is not None else "fp32"}
     run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,
-               opt=opt, sched=None, tensors=_tensors(data, device, anchor), n_train=len(data), run_key=run_key)
+               opt=opt, sched=None, tensors=_tensors(data, device, anchor), n_train=len(data), run_key=run_key,
+               scratch=scratch)
     run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(s.schedule, s.epochs * run.steps_per_epoch,
                                                                   s.warmup_epochs * run.steps_per_epoch))
     return run
+
+
+#: images per forward pass of the frozen Stage-I model (predict_probs's default batch, which the anchors
+#: were always computed with: the same batches give the same float32 probabilities)
+ANCHOR_BATCH = 16
+
+
+def _anchor_probs(frozen, images: np.ndarray | RowSource, device: torch.device, s: Settings,
+                  scratch: tempfile.TemporaryDirectory | None) -> np.ndarray | LazyRows:
+    """The frozen Stage-I probabilities of every training image (the target of L_anchor,
+    :func:`pipeline.losses.anchor_loss`), computed once per run, ``ANCHOR_BATCH`` images at a time.
+    Without ``scratch``: one in-memory array.  With it: written block by block to a Zarr array in that
+    directory and read back per training batch (:func:`pipeline.streaming.spill_rows`) -- 0.6 MB per
+    image at 384^2 otherwise held for the whole run."""
+    def blocks():
+        for start in range(0, len(images), ANCHOR_BATCH):
+            yield predict_probs(frozen, images[start:start + ANCHOR_BATCH], device=device, batch_size=ANCHOR_BATCH,
+                                precision=s.precision, channels_last=s.channels_last)
+
+    if scratch is None:
+        return predict_probs(frozen, images, device=device, batch_size=ANCHOR_BATCH, precision=s.precision,
+                             channels_last=s.channels_last)
+    return spill_rows(f"{scratch.name}/anchor.zarr", blocks(), images.shape[:3], np.float32)
 
 
 def _resume(run: _Run, checkpointer: Checkpointer) -> int:
@@ -667,10 +704,9 @@ def _precise_bn(run: _Run) -> int:
     and under the training autocast.  Changes no weight and draws no random number, so the training
     trajectory is that of the run without it; only evaluation-mode outputs (selection, the checkpoint's
     buffers) change."""
-    from pipeline.model import recompute_bn_stats
-
     n, bs = run.n_train, run.settings.batch_size
-    batches = (_batch(run.tensors, torch.arange(i, min(i + bs, n), device=run.device), None,
+    inputs = {k: run.tensors[k] for k in ("image", "area", "gate")}  # the images only: no target is read
+    batches = (_batch(inputs, torch.arange(i, min(i + bs, n), device=run.device), None,
                       run.settings.channels_last)["x"] for i in range(0, n, bs))
     with _autocast(run.device, run.amp):
         return recompute_bn_stats(run.model, batches)
@@ -816,14 +852,23 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
     tau of the project; :data:`pipeline.methods.SELECTION_TAU_KEY`).
     Raises TrainingDiverged on a non-finite loss or weights; nothing is saved for that epoch.
     """
-    from pipeline.progress import progress
-
     s = Settings.from_params(method, cfg, selection_tau)
     device = torch.device(device)
     if s.num_threads > 0:
         torch.set_num_threads(s.num_threads)
     plan = resolve_plan(method, cfg, data.stats.get("confidence_pass_ratio"))
     run = _setup(method, cfg, s, plan, data, seed, init_state, device)
+    try:
+        return _train_run(run, val, checkpointer, callback, show_progress, data.stats)
+    finally:
+        if run.scratch is not None:
+            run.scratch.cleanup()
+
+
+def _train_run(run: _Run, val: ValData | None, checkpointer: Checkpointer,
+               callback: Callable[[int, dict], None] | None, show_progress: bool, stats: Mapping[str, Any]) -> TrainResult:
+    """:func:`train` after the setup: resume, the warm-start row, the epochs, the selected result."""
+    method, plan, s, seed = run.method, run.plan, run.settings, run.seed
     start = _resume(run, checkpointer)
     if start == 1 and not run.rows and method.init == "stage1":
         row = _warm_start_row(run, val)
@@ -841,4 +886,4 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
             callback(epoch, row)
     if bar is not None:
         bar.close()
-    return _result(run, val, data.stats)
+    return _result(run, val, stats)

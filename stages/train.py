@@ -35,7 +35,7 @@ from typing import Any, Mapping
 import click
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact, write_json
+from pipeline.artifacts import open_artifact, require_same_run, write_json
 from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.checkpointing import FileCheckpointer
 from pipeline.device import resolve_device
@@ -56,8 +56,7 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[An
     :func:`pipeline.training.validation_data` -- except for the supervised ceiling (NOT
     annotation-free), whose targets :func:`pipeline.supervised.ceiling_training_data` builds from it.
     """
-    from pipeline import catalog, training
-    from pipeline.artifacts import open_artifact, require_same_run
+    from pipeline import training  # torch: imported when a run trains, not with the stage module
 
     def opened_artifact(name: str):
         return open_artifact(catalog.path(name, artifacts), catalog.ARTIFACTS[name].schema)
@@ -70,7 +69,7 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[An
     if spec.annotation_free:
         data = training.training_data(spec, cfg, inputs)
     else:  # the supervised ceiling: the one method whose loss sees reference masks (NOT annotation-free)
-        from pipeline.supervised import ceiling_training_data
+        from pipeline.supervised import ceiling_training_data  # imports pipeline.training (torch)
 
         reference = opened_artifact("reference")
         opened.append(reference)

@@ -23,6 +23,7 @@ from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_za
 from pipeline.errors import InputError, TrainingDiverged
 from pipeline.methods import SELECTION_TAU_KEY
 from pipeline.params import RECIPES, load_params, section
+from pipeline.streaming import spill_rows
 
 REPO = Path(__file__).resolve().parent.parent
 PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle", "p5", "p6"]
@@ -470,21 +471,33 @@ def test_stage_command_errors_are_one_line(tiny, tmp_path):
     assert not (tmp_path / "z").exists()
 
 
-@pytest.mark.parametrize("method", ["plain", "geodistill"])
-def test_streaming_data_gives_the_in_memory_batches_and_weights(tiny, method):
-    """training_data reads images and targets from the Zarr artifacts per batch (LazyRows, prefetched);
-    the same data loaded into memory gives the same batches of an epoch and bit-identical weights."""
+@pytest.fixture(scope="module")
+def tiny18(tmp_path_factory):
+    """18 training images: more than one block of frozen Stage-I anchors (training.ANCHOR_BATCH = 16)."""
+    return build_tiny_artifacts(tmp_path_factory.mktemp("tiny18") / "artifacts", n_train=18)
+
+
+@pytest.mark.parametrize("method", ["plain", "geodistill", "afs_control", "supervised_ceiling",
+                                    "geodistill_adaptive"])
+def test_streaming_data_gives_the_in_memory_batches_and_weights(tiny18, method, tmp_path, monkeypatch):
+    """load_inputs reads images and targets from the Zarr artifacts per batch (row sources, prefetched;
+    the AFS control's fused mask computed per batch; the adaptive method's frozen Stage-I anchors
+    spilled to a scratch Zarr store, removed after the run); the same data loaded into memory gives
+    the same batches of an epoch and bit-identical weights and log."""
     import dataclasses
+    import tempfile
 
     from pipeline import training
     from pipeline.methods import get_method
-    from pipeline.streaming import LazyRows
+    from pipeline.streaming import MappedRows, RowSource
 
     m = get_method(method)
-    cfg = tiny_cfg(hflip=True)
-    init = _run("plain", tiny, cfg).model.mask_path_state_dict() if m.init == "stage1" else None
-    lazy, val = load_arrays(tiny, method, cfg)
-    assert isinstance(lazy.images, LazyRows) and isinstance(lazy.mask, LazyRows)
+    cfg = tiny_cfg(augment_hflip=True)
+    cfg["adaptive"] = {**cfg["adaptive"], "ratio_boundary": 0.0}  # anchored mode: the anchor term is on
+    init = _run("plain", tiny18, cfg).model.mask_path_state_dict() if m.init == "stage1" else None
+    lazy, val = load_arrays(tiny18, method, cfg)
+    assert isinstance(lazy.images, RowSource) and isinstance(lazy.mask, RowSource)
+    assert isinstance(lazy.mask, MappedRows) == (method == "afs_control")
     assert (lazy.sdf is not None) == m.needs_geometry
     memory = dataclasses.replace(lazy, **{k: np.asarray(getattr(lazy, k)) for k in ("images", "mask", "sdf", "skeleton")
                                           if getattr(lazy, k) is not None})
@@ -495,11 +508,18 @@ def test_streaming_data_gives_the_in_memory_batches_and_weights(tiny, method):
     flip = torch.tensor([True, False, True])
     for k, v in training._batch(t_mem, idx, flip, True).items():
         assert torch.equal(v, training._batch(t_lazy, idx, flip, True)[k]), k
+    spilled = []
+    monkeypatch.setattr(training, "spill_rows", lambda *a: spilled.append(a[0]) or spill_rows(*a))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     runs = [training.train(m, cfg, d, val, 7, init_state=init, checkpointer=training.NoCheckpointer(),
                            show_progress=False) for d in (lazy, memory)]
     _assert_same(_weights(runs[0].model), _weights(runs[1].model))
     timing = [c for c in runs[0].log.columns if "sec" in c or "time" in c]
     pd.testing.assert_frame_equal(runs[0].log.drop(columns=timing), runs[1].log.drop(columns=timing))
+    assert len(spilled) == (method == "geodistill_adaptive")  # the streamed run only
+    if spilled:
+        assert runs[0].info["mode"] == "anchored" and runs[0].log["anchor"].notna().any()
+    assert not list(tmp_path.glob("geodistill_anchor_*"))  # the scratch store is removed
 
 
 def test_prefetch_keeps_order_and_raises_the_producers_error():

@@ -1,25 +1,37 @@
-"""Memory against N: peak RSS of a training epoch and of ``label`` at N and 10N images (issue 25).
+"""Memory against N: peak RSS of training epochs, ``label`` and ``prepare`` at N and 10N images (issue 25).
 
     python -m pipeline.benchmarks.bench_memory                       # N = 24 at 192^2 (train), 64^2 (label)
-    python -m pipeline.benchmarks.bench_memory --n 40 --size 256 --reps 3
+    python -m pipeline.benchmarks.bench_memory --n 27 --size 384 --methods plain,geodistill \
+        --max-batches 12 --check-batches 24 --reps 3 --skip label,prepare,read
 
 Every measurement runs in a fresh Python process (its peak resident set, ``ru_maxrss``, is its own):
 
-* ``train``: one epoch of the Stage-I ``plain`` method (:func:`pipeline.training.train`) on synthetic
-  images and masks stored as Zarr arrays shaped like the artifacts (one image per chunk, sharded), read
-  either streaming (:class:`pipeline.streaming.LazyRows`, what ``training_data`` returns) or loaded into
-  memory first (the previous path).  Also: seconds per epoch (median and minimum of ``--reps``
-  interleaved runs) -> streaming / in-memory throughput.
+* ``train``: one epoch of each ``--methods`` (``plain`` = Stage I; ``geodistill`` = Stage II with the
+  SDF/skeleton/area targets and gates, warm-started from a seeded Stage-I model;
+  ``geodistill_adaptive`` = Stage II in the anchored mode, i.e. with the frozen Stage-I anchors) through
+  :func:`pipeline.training.train`, on synthetic images, masks and geometry targets stored as Zarr
+  arrays shaped like the artifacts (one image per chunk, sharded), read either streaming
+  (:class:`pipeline.streaming.LazyRows`, what ``training_data`` returns) or loaded into memory first (the
+  previous path).  The paper recipe's epoch (``average_last`` 0: no weight averaging pass over all
+  images), fp32, no validation set.  ``--max-batches K`` stops every epoch after K batches (a full
+  epoch at 384^2 is slow on a shared CPU): the streaming loop's peak is reached within its first
+  batches, which ``--check-batches`` (one more streaming run at 10N with that many batches) checks.
+  Also seconds per epoch at 10N, stream and in-memory interleaved (A B A B ..., ``--reps`` each):
+  median and minimum, and their ratio.
 * ``label``: ``pipeline.api.label`` with the simulated teacher on a folder of synthetic PNGs.
+* ``prepare``: the prepare stage on the synthetic source with every view count scaled (N = 168 at the
+  params' counts, 10N = 1680) at ``--label-size``^2.
 * ``read``: ``read_chunk_rows`` of 200 rows at ``--read-size``^2 (plain slices) against zarr's orthogonal
   selection (what it used to do) -- peak RSS and seconds.
 
-Prints a table, the 10N / N ratios (target: within 1.3x) and one JSON line.
+Prints a table, the 10N / N ratios (target: within 1.3x), the per-image slope of the streaming peak and
+its extrapolation to ``--extrapolate`` images (target: 8 GiB at 100,000), and one JSON line.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import resource
 import subprocess
@@ -37,6 +49,8 @@ from pipeline.params import load_params, section
 from pipeline.streaming import LazyRows, row_means
 
 ROOT = Path(__file__).resolve().parents[2]
+#: the synthetic view counts prepare scales by --factor (data.synthetic.*)
+PREPARE_VIEWS = ("train_views", "val_views", "test_views")
 
 
 def peak_mb() -> float:
@@ -44,42 +58,71 @@ def peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def write_zarr_set(folder: Path, n: int, size: int, seed: int = 0) -> Path:
+def rss_mb() -> float:
+    """This process's current resident set size in MB (/proc/self/status VmRSS)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def write_zarr_set(folder: Path, n: int, size: int, seed: int = 0, geometry: bool = False) -> Path:
     """``folder/images.zarr`` uint8 [n,size,size,3] and ``folder/mask.zarr`` bool [n,size,size]: one image per
-    chunk, 256 per shard (as the artifacts); written 16 images at a time."""
+    chunk, 256 per shard (as the artifacts); written 16 images at a time.  ``geometry``: also
+    ``sdf.zarr`` float32 (+-0.5 inside/outside: a stand-in of the artifact's dtype and size, not an SDF)
+    and ``skeleton.zarr`` bool (the mask)."""
     import zarr
 
-    img = zarr.create_array(str(folder / "images.zarr"), shape=(n, size, size, 3), dtype="uint8",
-                            chunks=(1, size, size, 3), shards=(min(256, n), size, size, 3), overwrite=True)
-    msk = zarr.create_array(str(folder / "mask.zarr"), shape=(n, size, size), dtype="bool",
-                            chunks=(1, size, size), shards=(min(256, n), size, size), overwrite=True)
+    def create(name, shape, dtype):
+        return zarr.create_array(str(folder / f"{name}.zarr"), shape=(n, *shape), dtype=dtype, chunks=(1, *shape),
+                                 shards=(min(256, n), *shape), overwrite=True)
+
+    img, msk = create("images", (size, size, 3), "uint8"), create("mask", (size, size), "bool")
+    sdf = create("sdf", (size, size), "float32") if geometry else None
+    skel = create("skeleton", (size, size), "bool") if geometry else None
     for s in range(0, n, 16):
         e = min(s + 16, n)
         images, masks = synthetic_set(e - s, size, seed + s)
         img[s:e], msk[s:e] = images, masks
+        if geometry:
+            sdf[s:e], skel[s:e] = np.where(masks, 0.5, -0.5).astype(np.float32), masks
     return folder
 
 
-def child_train(folder: Path, mode: str) -> dict:
-    """One epoch of ``plain`` on the Zarr set, ``mode`` = stream | memory; peak RSS and seconds."""
+def child_train(folder: Path, mode: str, method_name: str, max_batches: int) -> dict:
+    """One epoch of ``method_name`` on the Zarr set, ``mode`` = stream | memory, at most ``max_batches``
+    batches (0 = all); peak and pre-training RSS, seconds and batches."""
     import zarr
 
     from pipeline import training
 
-    img, msk = zarr.open_array(str(folder / "images.zarr")), zarr.open_array(str(folder / "mask.zarr"))
-    n = img.shape[0]
-    rows = np.arange(n)
-    images, mask = LazyRows(img, rows), LazyRows(msk, rows, bool)
+    method = get_method(method_name)
+    arrays = {"images": None, "mask": bool}
+    if method.needs_geometry:
+        arrays.update(sdf=np.float32, skeleton=bool)
+    n = zarr.open_array(str(folder / "images.zarr")).shape[0]
+    lazy = {k: LazyRows(zarr.open_array(str(folder / f"{k}.zarr")), np.arange(n), dt) for k, dt in arrays.items()}
     if mode == "memory":
-        images, mask = np.asarray(images), np.asarray(mask)
-    data = training.TrainData(image_ids=[f"b{i}" for i in range(n)], images=images, mask=mask,
-                              area=row_means(mask), gate=np.ones(n, np.float32))
+        lazy = {k: np.asarray(v) for k, v in lazy.items()}
+    gate = np.random.default_rng(0).uniform(0.2, 1.0, n).astype(np.float32)
+    data = training.TrainData(image_ids=[f"b{i}" for i in range(n)], area=row_means(lazy["mask"]), gate=gate,
+                              stats={"confidence_pass_ratio": 1.0}, **lazy)  # r = 1: the anchored mode
     cfg = section(load_params(ROOT / "params.yaml"), "train")
-    cfg.update({"epochs_stage1": 1, "num_threads": 0, "precision": "fp32"})
+    cfg.update({"epochs_stage1": 1, "epochs_stage2": 1, "num_threads": 0, "precision": "fp32", "average_last": 0,
+                "precise_bn": False})
+    init = (training.build_model(get_method(STAGE_ONE), cfg, 0).mask_path_state_dict()
+            if method.init == "stage1" else None)
+    if max_batches > 0:  # the epoch's first K batches (the loop itself is unchanged)
+        in_order = training._epoch_batches_in_order
+        training._epoch_batches_in_order = lambda run, epoch: itertools.islice(in_order(run, epoch), max_batches)
+    before = rss_mb()
     t = time.perf_counter()
-    training.train(get_method(STAGE_ONE), cfg, data, None, 42, checkpointer=training.NoCheckpointer(), device="cpu",
-                   show_progress=False)
-    return {"peak_mb": peak_mb(), "seconds": time.perf_counter() - t}
+    training.train(method, cfg, data, None, 42, checkpointer=training.NoCheckpointer(), init_state=init,
+                   device="cpu", show_progress=False)
+    seconds = time.perf_counter() - t
+    steps = -(-n // int(cfg["batch_size"]))
+    steps = min(max_batches, steps) if max_batches > 0 else steps
+    return {"peak_mb": peak_mb(), "rss_before_mb": before, "seconds": seconds, "batches": steps}
 
 
 def child_label(folder: Path, out: Path, size: int) -> dict:
@@ -90,6 +133,23 @@ def child_label(folder: Path, out: Path, size: int) -> dict:
     label(folder / "images", out=out, formats=("png",), backend="simulated", reference_masks=folder / "masks",
           overrides=[f"data.resolution={size}"], device="cpu")
     return {"peak_mb": peak_mb(), "seconds": time.perf_counter() - t}
+
+
+def child_prepare(out: Path, factor: int, size: int) -> dict:
+    """The prepare stage on the synthetic source, every view count times ``factor``, at ``size``^2."""
+    import zarr
+
+    from stages.prepare import main
+
+    views = section(load_params(ROOT / "params.yaml"), "data")["synthetic"]
+    sets = [f"data.synthetic.{k}={int(views[k]) * factor}" for k in PREPARE_VIEWS]
+    args = ["--out-dir", str(out), "--set", f"data.resolution={size}", "--set", f"data.cache_dir={out / 'cache'}"]
+    for item in sets:
+        args += ["--set", item]
+    t = time.perf_counter()
+    main.main(args, standalone_mode=False)
+    n = zarr.open_group(str(out / "images.zarr"))["image"].shape[0]
+    return {"peak_mb": peak_mb(), "seconds": time.perf_counter() - t, "n": n}
 
 
 def child_read(folder: Path, mode: str) -> dict:
@@ -126,62 +186,101 @@ def run_child(*args: str) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def _train_part(tmp: Path, args, sizes: tuple[int, int], methods: list[str]) -> dict:
+    """Peak RSS of every (method, N, mode) and the interleaved timings at 10N."""
+    out: dict = {}
+    geometry = any(m != STAGE_ONE for m in methods)
+    folders = {n: write_zarr_set(tmp / f"train{n}", n, args.size, geometry=geometry) for n in sizes}
+    for method in methods:
+        rows: dict = {}
+        for n in sizes:
+            runs: dict[str, list] = {"stream": [], "memory": []}
+            for _ in range(args.reps if n == sizes[1] else 1):  # interleaved A B A B: load hits both alike
+                for m in runs:
+                    runs[m].append(run_child("train", str(folders[n]), m, method, str(args.max_batches)))
+            rows[n] = {m: {"peak_mb": max(r["peak_mb"] for r in rs), "rss_before_mb": rs[0]["rss_before_mb"],
+                           "seconds": [r["seconds"] for r in rs], "batches": rs[0]["batches"]}
+                       for m, rs in runs.items()}
+        if args.check_batches:
+            rows["check"] = run_child("train", str(folders[sizes[1]]), "stream", method, str(args.check_batches))
+        out[method] = rows
+    return out
+
+
+def _print_train(t: dict, args, sizes: tuple[int, int]) -> None:
+    for method, rows in t.items():
+        a, b = rows[sizes[0]], rows[sizes[1]]
+        for m in ("stream", "memory"):
+            ratio = b[m]["peak_mb"] / a[m]["peak_mb"]
+            print(f"train {method} {args.size}^2, {m:6s}: {a[m]['peak_mb']:8.0f} {b[m]['peak_mb']:8.0f}  "
+                  f"ratio {ratio:.2f}x  (RSS before training {a[m]['rss_before_mb']:.0f} / {b[m]['rss_before_mb']:.0f}; "
+                  f"{b[m]['batches']} batches)" + ("  target <= 1.3x" if m == "stream" else ""))
+        slope = (b["stream"]["peak_mb"] - a["stream"]["peak_mb"]) / (sizes[1] - sizes[0])
+        extra = b["stream"]["peak_mb"] + slope * (args.extrapolate - sizes[1])
+        print(f"  stream slope {slope * 1024:.1f} KB per image -> {args.extrapolate} images: {extra:.0f} MB "
+              f"({extra / 1024:.2f} GiB; target 8 GiB)")
+        if "check" in rows:
+            c = rows["check"]
+            print(f"  stream at {sizes[1]} with {c['batches']} batches: {c['peak_mb']:.0f} MB "
+                  f"(vs {b['stream']['peak_mb']:.0f} MB with {b['stream']['batches']})")
+        s, mem = b["stream"]["seconds"], b["memory"]["seconds"]
+        print(f"  epoch seconds at {sizes[1]} ({b['stream']['batches']} batches): stream median {np.median(s):.1f} "
+              f"(min {min(s):.1f}), in-memory median {np.median(mem):.1f} (min {min(mem):.1f}); throughput "
+              f"stream / in-memory {np.median(mem) / np.median(s):.2f} (min-based {min(mem) / min(s):.2f})")
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=24, help="N images (and 10N)")
     ap.add_argument("--factor", type=int, default=10)
     ap.add_argument("--size", type=int, default=192, help="training image size")
+    ap.add_argument("--methods", default=STAGE_ONE, help="comma list: plain, geodistill, geodistill_adaptive")
+    ap.add_argument("--max-batches", type=int, default=0, help="batches per epoch (0 = the full epoch)")
+    ap.add_argument("--check-batches", type=int, default=0,
+                    help="one more streaming run at 10N with this many batches (peak reached early?)")
+    ap.add_argument("--extrapolate", type=int, default=100_000, help="images for the slope's extrapolation")
     ap.add_argument("--label-size", type=int, default=64)
     ap.add_argument("--read-size", type=int, default=384)
     ap.add_argument("--reps", type=int, default=2, help="interleaved timing runs per training variant at 10N")
-    ap.add_argument("--skip", default="", help="comma list of parts to skip: train,label,read")
+    ap.add_argument("--skip", default="", help="comma list of parts to skip: train,label,prepare,read")
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
         kind, *rest = args.child
-        res = {"train": lambda: child_train(Path(rest[0]), rest[1]),
+        res = {"train": lambda: child_train(Path(rest[0]), rest[1], rest[2], int(rest[3])),
                "label": lambda: child_label(Path(rest[0]), Path(rest[1]), int(rest[2])),
+               "prepare": lambda: child_prepare(Path(rest[0]), int(rest[1]), int(rest[2])),
                "read": lambda: child_read(Path(rest[0]), rest[1])}[kind]()
         print(json.dumps(res))
         return res
 
     skip = set(filter(None, args.skip.split(",")))
     sizes = (args.n, args.n * args.factor)
-    out: dict = {"n": sizes, "size": args.size, "label_size": args.label_size}
+    out: dict = {"n": sizes, "size": args.size, "label_size": args.label_size, "max_batches": args.max_batches}
     with tempfile.TemporaryDirectory(prefix="bench_memory_") as tmp:
         tmp = Path(tmp)
         if "train" not in skip:
-            rows = {}
-            for n in sizes:
-                folder = write_zarr_set(tmp / f"train{n}", n, args.size)
-                runs: dict[str, list] = {"stream": [], "memory": []}
-                for _ in range(args.reps if n == sizes[1] else 1):  # interleaved: load hits both alike
-                    for m in runs:
-                        runs[m].append(run_child("train", str(folder), m))
-                rows[n] = {m: {"peak_mb": max(r["peak_mb"] for r in rs), "seconds": [r["seconds"] for r in rs]}
-                           for m, rs in runs.items()}
-            out["train"] = rows
+            out["train"] = _train_part(tmp, args, sizes, args.methods.split(","))
         if "label" not in skip:
             out["label"] = {n: run_child("label", str(image_folder(tmp / f"label{n}", n, args.label_size)),
                                          str(tmp / f"label_out{n}"), str(args.label_size)) for n in sizes}
+        if "prepare" not in skip:
+            out["prepare"] = {f: run_child("prepare", str(tmp / f"prepare{f}"), str(f), str(args.label_size))
+                              for f in (1, args.factor)}
         if "read" not in skip:
             folder = write_zarr_set(tmp / "read", 200, args.read_size)
             out["read"] = {m: run_child("read", str(folder), m) for m in ("slices", "orthogonal")}
 
     print(f"peak RSS (MB) at N = {sizes[0]} and {sizes[1]} images; each figure from a fresh process")
     if "train" in out:
-        t = out["train"]
-        for m in ("stream", "memory"):
-            a, b = t[sizes[0]][m]["peak_mb"], t[sizes[1]][m]["peak_mb"]
-            print(f"train epoch {args.size}^2, {m:6s}: {a:8.0f} {b:8.0f}  ratio {b / a:.2f}x"
-                  + ("  (target <= 1.3x)" if m == "stream" else ""))
-        s, mem = t[sizes[1]]["stream"]["seconds"], t[sizes[1]]["memory"]["seconds"]
-        print(f"epoch seconds at {sizes[1]}: stream median {np.median(s):.1f} (min {min(s):.1f}), "
-              f"in-memory median {np.median(mem):.1f} (min {min(mem):.1f}); "
-              f"throughput stream / in-memory {np.median(mem) / np.median(s):.2f} (min-based {min(mem) / min(s):.2f})")
+        _print_train(out["train"], args, sizes)
     if "label" in out:
         a, b = out["label"][sizes[0]]["peak_mb"], out["label"][sizes[1]]["peak_mb"]
         print(f"label {args.label_size}^2:           {a:8.0f} {b:8.0f}  ratio {b / a:.2f}x  (target <= 1.3x)")
+    if "prepare" in out:
+        a, b = out["prepare"][1], out["prepare"][args.factor]
+        print(f"prepare {args.label_size}^2 (N = {a['n']}, {b['n']}): {a['peak_mb']:8.0f} {b['peak_mb']:8.0f}  "
+              f"ratio {b['peak_mb'] / a['peak_mb']:.2f}x  (target <= 1.3x)")
     if "read" in out:
         r = out["read"]
         print(f"read 200 rows at {args.read_size}^2: slices {r['slices']['peak_mb']:.0f} MB {r['slices']['seconds']:.2f} s; "
