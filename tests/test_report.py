@@ -91,13 +91,18 @@ def test_html_is_one_self_contained_page(built):
 
 
 def test_report_writes_svg_charts(built, tmp_path):
-    """Every chart is also written as SVG beside its PNG: the SVG parses as XML and holds one series per
-    method of the runs it draws; a second report run writes the same bytes."""
+    """Every figure is also written as SVG beside its PNG: the SVG parses as XML and each chart holds
+    one series per method of the runs it draws; a second report run writes the same bytes."""
     from stages.report import main as report
 
     root, art, params, out = built
     charts = ("threshold_curves", "training_curves", "training_curves_calibrated", "reliability", "area_vs_tau")
-    assert sorted(p.stem for p in (out / "figures").glob("*.svg")) == sorted(charts)
+    panels = ("qualitative", "pseudo_targets")
+    assert sorted(p.stem for p in (out / "figures").glob("*.svg")) == sorted(charts + panels)
+    for name in panels:
+        tree = ElementTree.parse(out / "figures" / f"{name}.svg")
+        assert list(tree.iter("{http://www.w3.org/2000/svg}image")), name      # the tiles, as images
+        assert f"figures/{name}.svg" in (out / "report.md").read_text()
     methods = set(open_artifact(art / "thresholds.parquet").df["method"])
     for name in charts:
         tree = ElementTree.parse(out / "figures" / f"{name}.svg")
@@ -111,7 +116,7 @@ def test_report_writes_svg_charts(built, tmp_path):
     again = tmp_path / "again"
     res = invoke(report, ["--params", str(params), "--artifacts", str(art), "--out", str(again)])
     assert res.exit_code == 0, res.output
-    for name in charts:
+    for name in charts + panels:
         for ext in ("svg", "png"):
             f = f"figures/{name}.{ext}"
             assert (again / f).read_bytes() == (out / f).read_bytes(), f
@@ -186,6 +191,27 @@ def test_error_overlay_colours():
     assert (out[0, 0] == 0).all()                 # true negative untouched
     with_contour = F.error_overlay(img, pred, gt, 8)
     assert tuple(with_contour[2, 2]) == F.GT_CONTOUR
+
+
+def test_image_grid_captions_each_tile_with_matplotlib():
+    """Image panels are matplotlib figures: every tile an image axis with its caption as the axis
+    title, in rows; the tile's pixels are drawn unchanged; two renders give the same bytes."""
+    img = np.zeros((16, 16, 3), np.uint8)
+    gt = np.zeros((16, 16), bool)
+    gt[4:12, 4:12] = True
+    rows = [F.qualitative_row(img, gt, {"A": gt, "B": ~gt}, {"A": "IoU 1.000", "B": "IoU 0.000"}, f"({c})",
+                              size=16) for c in "ab"]
+    fig = F.image_grid(rows)
+    titles = [ax.get_title(loc="left") for ax in fig.axes]
+    assert titles == [
+        "(a)", "ground truth\n(yellow contour)", "A\nIoU 1.000", "B\nIoU 0.000",
+        "(b)", "ground truth\n(yellow contour)", "A\nIoU 1.000", "B\nIoU 0.000"]
+    shown = fig.axes[2].get_images()[0].get_array()
+    assert np.array_equal(np.asarray(shown), rows[0][2][0])                   # the overlay, pixel for pixel
+    assert F.png_bytes(fig) == F.png_bytes(F.image_grid(rows))
+    assert F.svg_bytes(fig) == F.svg_bytes(F.image_grid(rows))
+    ragged = F.image_grid([rows[0], rows[1][:2]])                                # a short row: empty cells
+    assert sum(bool(ax.get_images()) for ax in ragged.axes) == 6
 
 
 def test_line_plot_draws_series():

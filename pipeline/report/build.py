@@ -485,12 +485,12 @@ def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str
                   for mm, r in ((control, a.loc[iid]), (treatment, b.loc[iid]))}
         rows.append(F.qualitative_row(images[j], gts[j], {T.label(mm): preds[mm][j] for mm in (control, treatment)},
                                       scores, f"({chr(97 + j)}) {iid}"[:26]))
-    img = F.vstack(rows)
+    fig = F.image_grid(rows)
     sec.blocks.append(Figure(
         "fig:qualitative-results", f"{T.label(control)} vs {T.label(treatment)} on {group}",
         f"Seed {seed}, validation-calibrated thresholds. Green: true positives, red: false positives, blue: false "
         f"negatives; yellow: ground-truth contour. Rows ordered from the largest Image IoU gain to the largest loss "
-        f"of {T.label(treatment)}; metrics on full frames.", F.png_bytes(img), "qualitative.png"))
+        f"of {T.label(treatment)}; metrics on full frames.", F.png_bytes(fig), "qualitative.png", F.svg_bytes(fig)))
     return sec
 
 
@@ -529,7 +529,7 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
         labels = [f"p{k + 1} s={scores[j, k]:.2f}" for k in range(tmasks.shape[1])]
         rows.append(F.pseudo_target_row(images[j], tmasks[j], labels, agreement[j], voted[j], sdf[j], skel[j],
                                         gate_text, str(ids[i])[:18]))
-    img = F.vstack(rows)
+    fig = F.image_grid(rows)
     prompt_list = "; ".join(f"p{k + 1} = `{p}`" for k, p in enumerate(prompts))
     sim = " The prompt masks come from the teacher SIMULATOR, not SAM 3." if backend == "simulated" else ""
     sec.blocks.append(Figure(
@@ -537,7 +537,7 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
         f"Training images (highest gate g first): the {tmasks.shape[1]} prompt masks with teacher scores s, the "
         f"agreement map A, the 50 % vote M, the normalised SDF D (eq:sdf-target; red inside, blue outside) and the skeleton K; the "
         f"gate's factors c (agreement), v (valid-prompt ratio), a (pseudo area) and g.{sim} Prompts: {prompt_list}.",
-        F.png_bytes(img), "pseudo_targets.png"))
+        F.png_bytes(fig), "pseudo_targets.png", F.svg_bytes(fig)))
     return sec
 
 

@@ -34,7 +34,7 @@ class Figure:
     caption: str
     png: bytes
     filename: str             # written under figures/
-    svg: bytes | None = None  # the vector form of a chart, written beside it as <stem>.svg
+    svg: bytes | None = None  # the vector form of the figure (text as paths), written beside it as <stem>.svg
 
     @property
     def svg_filename(self) -> str:

@@ -1,7 +1,9 @@
-"""Figures: charts drawn with matplotlib (PNG for the HTML page, SVG for papers), image panels composed
-with OpenCV and numpy (error overlays, pseudo-target panels).  Charts are ``matplotlib.figure.Figure``
-objects on the Agg canvas (no pyplot, no global figure state); image panels are RGB uint8 arrays.
-:func:`png_bytes` encodes either, :func:`svg_bytes` writes a chart as SVG.
+"""Figures drawn with matplotlib (PNG for the HTML page, SVG for papers): line charts and grids of image
+panels.  Both are ``matplotlib.figure.Figure`` objects on the Agg canvas (no pyplot, no global figure
+state); :func:`png_bytes` and :func:`svg_bytes` encode them.  The pixels inside an image panel (error
+overlays, agreement and SDF colour maps, skeletons) are computed with numpy and OpenCV as RGB uint8
+tiles -- they are image content, raster by nature -- and laid out, captioned and titled by matplotlib
+(:func:`image_grid`), so the captions are text in the SVG.
 
 Series styles come from the method table (:class:`pipeline.methods.Method` ``color``, ``dash``,
 ``symbol``) through :func:`method_style`.  No series hides another: each method has its own colour,
@@ -44,7 +46,6 @@ PALETTE = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 1
            (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
 UNKNOWN_METHOD = {"color": "#5a5a5a", "style": "solid", "symbol": "."}
 REFERENCE_LINE = (170, 170, 170)  # diagonals and "ratio = 1" lines
-FONT = cv2.FONT_HERSHEY_SIMPLEX
 #: chart text sizes (points): legible at the page's width and in a two-column paper
 CHART_FONT = {"font.size": 10, "axes.titlesize": 11, "axes.labelsize": 10, "xtick.labelsize": 9,
               "ytick.labelsize": 9, "legend.fontsize": 8.5}
@@ -62,15 +63,10 @@ def method_style(method: str) -> dict:
     return {"color": m.color, "style": m.dash, "symbol": m.symbol, "key": m.name}
 
 
-def png_bytes(fig) -> bytes:
-    """PNG bytes of a chart (:func:`line_plot`) or of an RGB uint8 image panel."""
-    if isinstance(fig, Chart):
-        return _save(fig, "png")
-    rgb = fig
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise RuntimeError("PNG encoding failed")
-    return buf.tobytes()
+def png_bytes(fig: Chart) -> bytes:
+    """PNG bytes of a figure (:func:`line_plot`, :func:`image_grid`): no software tag (byte-identical
+    across renders)."""
+    return _save(fig, "png")
 
 
 def _resize(arr: np.ndarray, size: int, nearest: bool) -> np.ndarray:
@@ -145,75 +141,67 @@ def skeleton_overlay(image: np.ndarray, mask: np.ndarray, skeleton: np.ndarray, 
     return out
 
 
-def caption_tile(tile: np.ndarray, lines: Sequence[str], scale: float = 0.36, pad: int = 3) -> np.ndarray:
-    """Add a white band with one or more text lines above a tile."""
-    h_line = int(22 * scale) + 4
-    band = np.full((pad * 2 + h_line * len(lines), tile.shape[1], 3), 255, np.uint8)
-    for i, text in enumerate(lines):
-        y = pad + h_line * (i + 1) - 4
-        cv2.putText(band, text, (3, y), FONT, scale, BLACK, 1, cv2.LINE_AA)
-    return np.concatenate([band, tile], axis=0)
-
-
-def hstack(tiles: Sequence[np.ndarray], gap: int = 4) -> np.ndarray:
-    """Place tiles side by side on white, top-aligned."""
-    h = max(t.shape[0] for t in tiles)
-    padded = []
-    for i, t in enumerate(tiles):
-        canvas = np.full((h, t.shape[1], 3), 255, np.uint8)
-        canvas[:t.shape[0]] = t
-        padded.append(canvas)
-        if i < len(tiles) - 1:
-            padded.append(np.full((h, gap, 3), 255, np.uint8))
-    return np.concatenate(padded, axis=1)
-
-
-def vstack(rows: Sequence[np.ndarray], gap: int = 8) -> np.ndarray:
-    """Stack rows on white, left-aligned."""
-    w = max(r.shape[1] for r in rows)
-    out = []
-    for i, r in enumerate(rows):
-        canvas = np.full((r.shape[0], w, 3), 255, np.uint8)
-        canvas[:, :r.shape[1]] = r
-        out.append(canvas)
-        if i < len(rows) - 1:
-            out.append(np.full((gap, w, 3), 255, np.uint8))
-    return np.concatenate(out, axis=0)
-
-
-def title_band(img: np.ndarray, text: str, scale: float = 0.5) -> np.ndarray:
-    band = np.full((int(30 * scale) + 12, img.shape[1], 3), 255, np.uint8)
-    cv2.putText(band, text, (4, band.shape[0] - 8), FONT, scale, BLACK, 1, cv2.LINE_AA)
-    return np.concatenate([band, img], axis=0)
-
-
 # --------------------------------------------------------------------------------------------------
 # Composite panels
 # --------------------------------------------------------------------------------------------------
+#: one tile of :func:`image_grid`: an RGB uint8 image and its caption lines
+Tile = tuple[np.ndarray, Sequence[str]]
+
+
 def qualitative_row(image: np.ndarray, gt: np.ndarray, preds: Mapping[str, np.ndarray],
-                    scores: Mapping[str, str], title: str, size: int = 160) -> np.ndarray:
-    """One row: image | image + GT contour | one TP/FP/FN overlay per method (caption: its metrics)."""
+                    scores: Mapping[str, str], title: str, size: int = 160) -> list[Tile]:
+    """One row of :func:`image_grid`: image | image + GT contour | one TP/FP/FN overlay per method
+    (caption: its metrics)."""
     img = _resize(to_rgb(image), size, nearest=False)
     gt_view = draw_contour(img.copy(), _resize(np.asarray(gt, np.uint8), size, nearest=True))
-    tiles = [caption_tile(img, [title, ""]), caption_tile(gt_view, ["ground truth", "(yellow contour)"])]
+    tiles = [(img, [title]), (gt_view, ["ground truth", "(yellow contour)"])]
     for name, pred in preds.items():
-        tiles.append(caption_tile(error_overlay(image, pred, gt, size), [name, scores.get(name, "")]))
-    return hstack(tiles)
+        tiles.append((error_overlay(image, pred, gt, size), [name, scores.get(name, "")]))
+    return tiles
 
 
 def pseudo_target_row(image: np.ndarray, prompt_masks: np.ndarray, prompt_labels: Sequence[str],
                       agreement: np.ndarray, voted: np.ndarray, sdf: np.ndarray, skeleton: np.ndarray,
-                      gate_text: Sequence[str], title: str, size: int = 128) -> np.ndarray:
-    """Paper Fig. pseudo-geometry: image, K prompt masks, agreement A, voted M, SDF D, skeleton K
-    over the image, and the gate's numbers (c, v, a, g) in the image tile's caption."""
-    tiles = [caption_tile(_resize(to_rgb(image), size, nearest=False), [title, *gate_text])]
+                      gate_text: Sequence[str], title: str, size: int = 128) -> list[Tile]:
+    """One row of :func:`image_grid` (paper Fig. pseudo-geometry): image, K prompt masks, agreement A,
+    voted M, SDF D, skeleton K over the image, and the gate's numbers (c, v, a, g) in the image tile's
+    caption."""
+    tiles = [(_resize(to_rgb(image), size, nearest=False), [title, *gate_text])]
     for m, lab in zip(prompt_masks, prompt_labels):
-        tiles.append(caption_tile(mask_tile(m, size), [lab]))
-    tiles.append(caption_tile(colorize(agreement, size, 0.0, 1.0, "viridis"), ["agreement A"]))
-    tiles.append(caption_tile(mask_tile(voted, size), ["voted M (A>=0.5)"]))
-    tiles.append(caption_tile(colorize(sdf, size, -1.0, 1.0, "diverging"), ["SDF D (in>0>out)"]))
-    tiles.append(caption_tile(skeleton_overlay(image, voted, skeleton, size), ["skeleton K"]))
-    return hstack(tiles)
+        tiles.append((mask_tile(m, size), [lab]))
+    tiles.append((colorize(agreement, size, 0.0, 1.0, "viridis"), ["agreement A"]))
+    tiles.append((mask_tile(voted, size), ["voted M (A>=0.5)"]))
+    tiles.append((colorize(sdf, size, -1.0, 1.0, "diverging"), ["SDF D (in>0>out)"]))
+    tiles.append((skeleton_overlay(image, voted, skeleton, size), ["skeleton K"]))
+    return tiles
+
+
+#: image panels: inches per tile, caption size (points; legible at the page's width)
+TILE_INCHES = 1.45
+CAPTION_FONT = 8.5
+
+
+def image_grid(rows: Sequence[Sequence[Tile]], tile_inches: float = TILE_INCHES) -> Chart:
+    """Rows of image tiles as one figure: each tile shown pixel for pixel (nearest interpolation, no
+    axes), its caption lines above it as text; rows of unequal length leave the right cells empty."""
+    nrows = len(rows)
+    ncols = max((len(r) for r in rows), default=1)
+    lines = max((len(cap) for r in rows for _, cap in r), default=1)
+    cap_inches = lines * CAPTION_FONT * 1.25 / 72.0
+    with matplotlib.rc_context(CHART_FONT):
+        fig = Chart(figsize=(ncols * tile_inches, nrows * (tile_inches + cap_inches)), dpi=100)
+        FigureCanvasAgg(fig)
+        axes = fig.subplots(nrows, ncols, squeeze=False,
+                            gridspec_kw={"wspace": 0.04, "hspace": cap_inches / tile_inches + 0.06})
+        for r, row in enumerate(rows):
+            for c in range(ncols):
+                ax = axes[r][c]
+                ax.set_axis_off()
+                if c < len(row):
+                    tile, caption = row[c]
+                    ax.imshow(tile, interpolation="nearest")
+                    ax.set_title("\n".join(caption), fontsize=CAPTION_FONT, loc="left", pad=2)
+    return fig
 
 
 def svg_bytes(fig: Chart) -> bytes:
