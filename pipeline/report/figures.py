@@ -31,6 +31,7 @@ import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure as Chart
+from matplotlib.textpath import TextPath
 from matplotlib.ticker import MaxNLocator
 
 from pipeline.methods import METHODS
@@ -176,23 +177,33 @@ def pseudo_target_row(image: np.ndarray, prompt_masks: np.ndarray, prompt_labels
     return tiles
 
 
-#: image panels: inches per tile, caption size (points; legible at the page's width)
+#: image panels: least inches per tile, caption size (points; legible at the page's width)
 TILE_INCHES = 1.45
 CAPTION_FONT = 8.5
 
 
 def image_grid(rows: Sequence[Sequence[Tile]], tile_inches: float = TILE_INCHES) -> Chart:
     """Rows of image tiles as one figure: each tile shown pixel for pixel (nearest interpolation, no
-    axes), its caption lines above it as text; rows of unequal length leave the right cells empty."""
+    axes), its caption lines above it as text; rows of unequal length leave the right cells empty.
+    Tiles are at least ``tile_inches`` wide, and wider where a caption line needs it, so no caption runs
+    into the next tile's."""
     nrows = len(rows)
     ncols = max((len(r) for r in rows), default=1)
     lines = max((len(cap) for r in rows for _, cap in r), default=1)
+    widest = max((TextPath((0, 0), line, size=CAPTION_FONT).get_extents().width / 72.0
+                  for r in rows for _, cap in r for line in cap if line), default=0.0)
+    tile_inches = max(tile_inches, widest + 0.04)
     cap_inches = lines * CAPTION_FONT * 1.25 / 72.0
+    gap = 0.08                                                   # inches between tiles
+    width = ncols * tile_inches + (ncols - 1) * gap
+    height = nrows * (tile_inches + cap_inches)
     with matplotlib.rc_context(CHART_FONT):
-        fig = Chart(figsize=(ncols * tile_inches, nrows * (tile_inches + cap_inches)), dpi=100)
+        fig = Chart(figsize=(width, height), dpi=100)
         FigureCanvasAgg(fig)
+        # every cell exactly tile_inches square: no margins, the captions in the vertical gaps
         axes = fig.subplots(nrows, ncols, squeeze=False,
-                            gridspec_kw={"wspace": 0.04, "hspace": cap_inches / tile_inches + 0.06})
+                            gridspec_kw={"left": 0.0, "right": 1.0, "bottom": 0.0, "top": 1.0 - cap_inches / height,
+                                         "wspace": gap / tile_inches, "hspace": cap_inches / tile_inches})
         for r, row in enumerate(rows):
             for c in range(ncols):
                 ax = axes[r][c]
