@@ -3,6 +3,8 @@ tau rules, the stability benchmark's bookkeeping and the report's noise floor / 
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -241,3 +243,50 @@ def test_results_table_states_the_noise_floor_and_the_claim_follows_the_ci():
     unmeasured = results_table(_summary(0.02, 0.01, 0.03), "calibrated", ["A"], None)
     assert "not measured" in unmeasured.rows[1][unmeasured.header.index("Noise floor (IoU / BF1)")]
     assert any(NOISE_FLOOR_NOT_MEASURED in n for n in unmeasured.notes)
+
+
+# --------------------------------------------------------------------------------------------------
+# one noise-floor file, a record per recipe; the report applies the record of its runs' recipe
+# --------------------------------------------------------------------------------------------------
+def _floor(recipe, resolution, iou):
+    return {"info": {"recipe": recipe, "tau_rule": "argmax", "resolution": resolution, "seeds": [1, 2],
+                     "perturbations": ["threads1"]},
+            "numbers": {"geodistill-plain/A/iou": {"floor": iou, "pert": 0.05, "seed_sd": 0.01}}}
+
+
+def test_noise_floor_file_keeps_a_record_per_recipe(tmp_path):
+    from pipeline.benchmarks.stability import write_noise_floor
+
+    path = tmp_path / "reports" / "noise_floor.json"
+    path.parent.mkdir()
+    path.write_text(json.dumps(_floor("stable", 64, 0.004)))  # the former single-record form
+    doc = write_noise_floor(path, "paper", _floor("paper", 64, 0.02))
+    assert sorted(doc["recipes"]) == ["paper", "stable"]
+    assert json.loads(path.read_text()) == doc
+    assert doc["recipes"]["stable"]["numbers"]["geodistill-plain/A/iou"]["floor"] == 0.004
+    doc = write_noise_floor(path, "paper", _floor("paper", 64, 0.03))  # a rerun replaces its own record only
+    assert doc["recipes"]["paper"]["numbers"]["geodistill-plain/A/iou"]["floor"] == 0.03
+    assert doc["recipes"]["stable"]["numbers"]["geodistill-plain/A/iou"]["floor"] == 0.004
+
+
+def test_report_applies_only_the_floor_of_its_runs_recipe(tmp_path):
+    from pipeline.report.analysis import gain_noise_floor, noise_floor_note, select_noise_floor
+    from pipeline.report.build import noise_floor_for_runs
+
+    doc = {"recipes": {"stable": _floor("stable", 64, 0.004), "paper": _floor("paper", 64, 0.02)}}
+    paper = select_noise_floor(doc, "paper", 128)
+    assert gain_noise_floor(paper, "A", "iou") == 0.02
+    assert gain_noise_floor(select_noise_floor(doc, "stable", 64), "A", "iou") == 0.004
+    # no record for the recipe, or runs of several recipes: not measured, never another recipe's floor
+    assert select_noise_floor({"recipes": {"stable": _floor("stable", 64, 0.004)}}, "paper", 64) is None
+    assert select_noise_floor(doc, None, 64) is None and select_noise_floor(None, "paper", 64) is None
+    # the note names the measured configuration and says when the runs differ from it
+    assert "recipe paper" in noise_floor_note(paper) and "These runs are at 128², not the measured 64²" in \
+        noise_floor_note(paper)
+    assert "These runs are at" not in noise_floor_note(select_noise_floor(doc, "paper", 64))
+    path = tmp_path / "noise_floor.json"
+    path.write_text(json.dumps(doc))
+    runs = [{"method": "plain", "seed": 1, "recipe": "paper"}, {"method": "geodistill", "seed": 1, "recipe": "paper"}]
+    assert noise_floor_for_runs(path, runs, None)["info"]["recipe"] == "paper"
+    assert noise_floor_for_runs(path, runs + [{"method": "plain", "seed": 2, "recipe": "stable"}], None) is None
+    assert noise_floor_for_runs(tmp_path / "absent.json", runs, None) is None

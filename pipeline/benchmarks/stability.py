@@ -26,8 +26,8 @@ What it does
      seeds moves by at most :data:`pipeline.reproducibility.TOLERANCE` under each perturbation.
 
 Writes every run to ``<out>.runs.jsonl`` (a rerun skips the runs found there) and the summary to
-``--out``; ``--noise-floor PATH`` (e.g. reports/noise_floor.json) writes the first recipe's spreads in
-the form the report reads (:func:`noise_floor_record`, :func:`pipeline.report.analysis.gain_noise_floor`).  No timing is asserted.
+``--out``; ``--noise-floor PATH`` (reports/noise_floor.json) puts the first recipe's spreads into that
+file as that recipe's record (other recipes' records are kept), in the form the report reads (:func:`noise_floor_record`, :func:`pipeline.report.analysis.gain_noise_floor`).  No timing is asserted.
 """
 
 from __future__ import annotations
@@ -41,13 +41,14 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from pipeline.artifacts import write_json
 from pipeline.benchmarks import study_recipe as sr
 from pipeline.device import autocast_dtype
 from pipeline.errors import InputError
 from pipeline.inference import predict_probs
 from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, STAGE_ONE, get_method
 from pipeline.metrics import iou_curve, per_image_metrics
-from pipeline.params import RECIPES, load_params, validate_section
+from pipeline.params import RECIPES, validate_section
 from pipeline.profiles import FIVE_SEEDS, load_profile
 from pipeline.reproducibility import TOLERANCE
 from pipeline.thresholds import TAU_RULES, mask_from_probs, tau_by_rule, threshold_grid
@@ -269,6 +270,21 @@ def noise_floor_record(sp: Mapping[str, dict], info: Mapping[str, Any], perturba
     return {"info": {**dict(info), "perturbations": list(perturbations)}, "numbers": nums}
 
 
+def write_noise_floor(path: str | Path, recipe: str, record: dict) -> dict:
+    """Put ``record`` into the noise-floor file ``path`` as the record of ``recipe`` (``{"recipes": {recipe:
+    record}}``; the other recipes' records are kept: one file holds a floor per recipe, and the report
+    applies the one of the recipe its runs used, :func:`pipeline.report.analysis.select_noise_floor`).
+    Replaced atomically.  Returns the whole document."""
+    path = Path(path)
+    doc = json.loads(path.read_text()) if path.is_file() else {}
+    if "numbers" in doc:  # the former single-record form: the record of its own recipe
+        doc = {"recipes": {doc.get("info", {}).get("recipe", "?"): doc}}
+    doc.setdefault("recipes", {})[recipe] = record
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json(path, doc)
+    return doc
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--workdir", default="bench_stability", help="where the data stages write")
@@ -284,7 +300,7 @@ def main(argv=None) -> dict:
                     help="train.recipe names and/or screening candidates: " + ", ".join(CANDIDATES))
     ap.add_argument("--jobs", type=int, default=2, help="training processes at a time")
     ap.add_argument("--out", default="bench_stability.json")
-    ap.add_argument("--noise-floor", default=None, help="write the first recipe's spreads here (the report reads it)")
+    ap.add_argument("--noise-floor", default=None, help="put the first recipe's spreads into this file as its record (reports/noise_floor.json; the report reads the record of its runs' recipe)")
     args = ap.parse_args(argv)
     # idle OpenMP threads sleep instead of spinning: on a shared 2-core machine a spinning thread of a
     # 2-thread run stalls the other (9x slower measured); no effect on the numbers
@@ -355,9 +371,8 @@ def main(argv=None) -> dict:
         keep = {k: v for k, v in out["info"].items() if k not in ("artifacts", "wall_seconds", "n_train")}
         rec = noise_floor_record(summary[f"{first}|{rule}"], {**keep, "recipe": first, "tau_rule": rule},
                                  exposure[first])
-        Path(args.noise_floor).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.noise_floor).write_text(json.dumps(rec, indent=1, sort_keys=True) + "\n")
-        print(f"wrote {args.noise_floor}")
+        write_noise_floor(args.noise_floor, first, rec)
+        print(f"wrote {args.noise_floor} (recipe {first})")
     print(f"wrote {args.out}")
     return out
 

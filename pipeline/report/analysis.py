@@ -11,8 +11,6 @@ choice).  Reference masks enter here only to *measure* teacher quality post hoc.
 from __future__ import annotations
 
 import dataclasses
-import json
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -433,13 +431,22 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
 NOISE_FLOOR_NOT_MEASURED = "noise floor not measured (run python -m pipeline.benchmarks.stability --noise-floor)"
 
 
-def load_noise_floor(path) -> dict | None:
-    """The stability benchmark's record (reports/noise_floor.json: ``{"info": ..., "numbers": {key:
-    {"pert", "seed_sd"}}}``), or None when the file is absent."""
-    p = Path(path)
-    if not p.is_file():
+def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | None = None) -> dict | None:
+    """The noise-floor record of ``recipe`` in the stability benchmark's file (reports/noise_floor.json:
+    ``{"recipes": {recipe: {"info": ..., "numbers": {key: {"floor", "pert", "seed_sd"}}}}}``), with
+    ``applies_to`` = the recipe and ``resolution`` of the runs it is printed beside (the note says where
+    they differ from the measured configuration).  None when ``doc`` is None, ``recipe`` is None (runs of
+    several recipes: no one floor applies) or the file holds no record of that recipe: a floor measured
+    for another recipe is never applied (the paper recipe is exposed to the host's precision, the
+    stable recipe is not).  A file of the former single-record form counts as the record of its
+    ``info.recipe``."""
+    if not doc or recipe is None:
         return None
-    return json.loads(p.read_text())
+    records = doc.get("recipes", {doc.get("info", {}).get("recipe"): doc} if "numbers" in doc else {})
+    rec = records.get(recipe)
+    if rec is None:
+        return None
+    return {**rec, "applies_to": {"recipe": recipe, "resolution": resolution}}
 
 
 def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
@@ -458,13 +465,20 @@ def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
 
 
 def noise_floor_note(record: dict | None) -> str:
-    """One sentence naming where the floor comes from (or that it was not measured)."""
+    """One sentence naming where the floor comes from (or that it was not measured), and a second one
+    when the report's runs differ from the measured configuration (``applies_to``, set by
+    :func:`select_noise_floor`)."""
     if not record:
         return NOISE_FLOOR_NOT_MEASURED + "."
     i = record.get("info", {})
-    return (f"Noise floor: the largest move of a gain's seed-mean under a numerical perturbation "
+    note = (f"Noise floor: the largest move of a gain's seed-mean under a numerical perturbation "
             f"({', '.join(i.get('perturbations', ['?']))}; threads1 = 1 instead of 2 threads, precision = fp32 vs "
             f"bf16), measured by the stability benchmark (recipe {i.get('recipe', '?')}, tau rule "
-            f"{i.get('tau_rule', '?')}, {i.get('resolution', '?')}², seeds {i.get('seeds', '?')}; "
-            f"reports/noise_floor.json); a gain is supported only when its seed-aware CI excludes 0 and it "
-            f"exceeds the floor.")
+            f"{i.get('tau_rule', '?')}, {i.get('resolution', '?')}², {i.get('profile', '?')} sizes, epochs "
+            f"{i.get('epochs', '?')}, seeds {i.get('seeds', '?')}; reports/noise_floor.json); a gain is supported "
+            f"only when its seed-aware CI excludes 0 and it exceeds the floor.")
+    res = (record.get("applies_to") or {}).get("resolution")
+    if res is not None and i.get("resolution") is not None and int(res) != int(i["resolution"]):
+        note += (f" These runs are at {int(res)}², not the measured {int(i['resolution'])}²: the floor is that "
+                 f"of the same recipe in the benchmark's configuration, not a measurement of this one.")
+    return note

@@ -5,6 +5,7 @@ and which stage produces it."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import warnings
 from pathlib import Path
 from typing import Any
@@ -19,7 +20,7 @@ from pipeline.inference import iter_runs, load_student, predict_probs
 from pipeline.methods import BASELINE, PROPOSED
 from pipeline.report import figures as F
 from pipeline.report import tables as T
-from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_analysis, load_noise_floor, size_split,
+from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_analysis, select_noise_floor, size_split,
                                       tau_text, teacher_domain_quality, teacher_prompt_quality, teacher_vote_means)
 from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
 from pipeline.report.environment import environment_section, training_runs
@@ -39,7 +40,8 @@ class Inputs:
     logs: pd.DataFrame | None = None
     runs: list = dataclasses.field(default_factory=list)  # pipeline.report.environment.training_runs
     no_masks: bool = False  # no validation or test image has a mask (a distill project without --val-masks)
-    #: the stability benchmark's noise-floor record (reports/noise_floor.json), None when not measured
+    #: the stability benchmark's noise-floor record of the runs' recipe (reports/noise_floor.json), None when
+    #: not measured
     noise_floor: dict | None = None
     #: calibrate.fixed_tau as the run recorded it (:func:`recorded_fixed_tau`), None when unknown
     fixed_tau: float | None = None
@@ -71,9 +73,19 @@ def load_inputs(art: str | Path) -> Inputs:
     inp.runs = training_runs(catalog.path("checkpoints", art))
     if found.get("manifest") is not None:
         inp.no_masks = no_reference_masks(found["manifest"].df, found.get("reference"))
-    inp.noise_floor = load_noise_floor(catalog.path("noise_floor", art))
+    inp.noise_floor = noise_floor_for_runs(catalog.path("noise_floor", art), inp.runs, found.get("images"))
     inp.fixed_tau = recorded_fixed_tau(found.get("thresholds"), found.get("metrics"))
     return inp
+
+
+def noise_floor_for_runs(path: Path, runs: list, images) -> dict | None:
+    """The stability benchmark's noise-floor record (``path``, absent = not measured) of the recipe the
+    training ``runs`` used (:func:`pipeline.report.analysis.select_noise_floor`), for runs at the
+    resolution of ``images``."""
+    doc = json.loads(path.read_text()) if path.is_file() else None
+    recipes = {r["recipe"] for r in runs if r.get("recipe")}
+    resolution = int(images["image"].shape[1]) if images is not None and "image" in images else None
+    return select_noise_floor(doc, recipes.pop() if len(recipes) == 1 else None, resolution)
 
 
 def recorded_fixed_tau(thresholds, metrics) -> float | None:

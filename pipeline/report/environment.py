@@ -22,7 +22,8 @@ NOT_RECORDED = "not recorded"
 
 
 def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
-    """One record per active run under ``checkpoints/<method>/<seed>/``: method, seed, ``precision``
+    """One record per active run under ``checkpoints/<method>/<seed>/``: method, seed, ``recipe``
+    (``train.recipe`` as the run's fingerprinted params recorded it), ``precision``
     (the autocast it actually used), ``runtime`` (``extra.runtime``; None for a checkpoint written
     before it was recorded) and ``torch`` (the checkpoint's library_versions).  [] without checkpoints."""
     try:
@@ -36,7 +37,8 @@ def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
         except ArtifactError:
             continue
         extra = meta.extra or {}
-        out.append({"method": method, "seed": int(seed), "precision": extra.get("autocast"),
+        out.append({"method": method, "seed": int(seed), "recipe": (meta.params.get("params") or {}).get("train.recipe"),
+                    "precision": extra.get("autocast"),
                     "runtime": extra.get("runtime"), "torch": (meta.library_versions or {}).get("torch")})
     return out
 
