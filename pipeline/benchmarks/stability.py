@@ -44,6 +44,7 @@ import numpy as np
 from pipeline.artifacts import write_json
 from pipeline.benchmarks import study_recipe as sr
 from pipeline.device import autocast_dtype
+from pipeline.environment import cpu
 from pipeline.errors import InputError
 from pipeline.inference import predict_probs
 from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, STAGE_ONE, get_method
@@ -369,7 +370,9 @@ def main(argv=None) -> dict:
         base_recipe = first if first in RECIPES else CANDIDATES[first].get("recipe", "paper")
         rule = RECIPES[base_recipe]["calibrate"]["tau_rule"]
         keep = {k: v for k, v in out["info"].items() if k not in ("artifacts", "wall_seconds", "n_train")}
-        rec = noise_floor_record(summary[f"{first}|{rule}"], {**keep, "recipe": first, "tau_rule": rule},
+        host = cpu()  # where the floor was measured: the report names it (another CPU has other kernels)
+        rec = noise_floor_record(summary[f"{first}|{rule}"], {**keep, "recipe": first, "tau_rule": rule,
+                                                               "cpu": host["model"], "cpu_flags": host["flags"]},
                                  exposure[first])
         write_noise_floor(args.noise_floor, first, rec)
         print(f"wrote {args.noise_floor} (recipe {first})")

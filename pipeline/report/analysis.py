@@ -475,7 +475,8 @@ def noise_floor_note(record: dict | None) -> str:
             f"({', '.join(i.get('perturbations', ['?']))}; threads1 = 1 instead of 2 threads, precision = fp32 vs "
             f"bf16), measured by the stability benchmark (recipe {i.get('recipe', '?')}, tau rule "
             f"{i.get('tau_rule', '?')}, {i.get('resolution', '?')}², {i.get('profile', '?')} sizes, epochs "
-            f"{i.get('epochs', '?')}, seeds {i.get('seeds', '?')}; reports/noise_floor.json); a gain is supported "
+            f"{i.get('epochs', '?')}, seeds {i.get('seeds', '?')}{', on ' + str(i['cpu']) if i.get('cpu') else ''}; "
+            f"reports/noise_floor.json); a gain is supported "
             f"only when its seed-aware CI excludes 0 and it exceeds the floor.")
     res = (record.get("applies_to") or {}).get("resolution")
     if res is not None and i.get("resolution") is not None and int(res) != int(i["resolution"]):
