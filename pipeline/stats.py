@@ -227,11 +227,15 @@ SUPPORTED = "supported"
 CI_COVERS_ZERO = "not supported: the CI covers 0"
 BELOW_NOISE_FLOOR = "not supported: below the noise floor"
 NOT_ESTIMATED = "not estimated"
+ONE_SEED = "not supported: one seed (its CI holds no training noise)"
 
 
-def claim_status(gain: float, low: float, high: float, noise_floor: float | None = None) -> str:
+def claim_status(gain: float, low: float, high: float, noise_floor: float | None = None,
+                 n_seeds: int | None = None) -> str:
     """Whether a gain may be called supported: its seed-aware CI [low, high] excludes 0 AND (when a
-    noise floor is known) |gain| exceeds it.  ``noise_floor`` None or NaN = not measured (the CI alone
+    noise floor is known) |gain| exceeds it AND (when ``n_seeds`` is given) it rests on at least two
+    seeds -- a one-seed CI resamples spacecraft and images only, so it holds no training noise and is
+    not seed-aware (the single-seed ablations); None or NaN = unknown.  ``noise_floor`` None or NaN = not measured (the CI alone
     decides; the report says the floor was not measured).  Non-finite gain or bounds -> not estimated.
     The CI check comes first: a gain inside its CI's zero-cover is reported as such."""
     if not all(np.isfinite(x) for x in (gain, low, high)):
@@ -240,6 +244,8 @@ def claim_status(gain: float, low: float, high: float, noise_floor: float | None
         return CI_COVERS_ZERO
     if noise_floor is not None and np.isfinite(noise_floor) and abs(gain) <= noise_floor:
         return BELOW_NOISE_FLOOR
+    if n_seeds is not None and np.isfinite(n_seeds) and n_seeds < 2:
+        return ONE_SEED
     return SUPPORTED
 
 

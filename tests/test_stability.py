@@ -243,6 +243,10 @@ def test_results_table_states_the_noise_floor_and_the_claim_follows_the_ci():
     unmeasured = results_table(_summary(0.02, 0.01, 0.03), "calibrated", ["A"], None)
     assert "not measured" in unmeasured.rows[1][unmeasured.header.index("Noise floor (IoU / BF1)")]
     assert any(NOISE_FLOOR_NOT_MEASURED in n for n in unmeasured.notes)
+    # a gain on one seed (the seed-42 ablations) is never called supported, however narrow its CI
+    one = _summary(0.02, 0.01, 0.03).assign(gain_seeds=1)
+    tab = results_table(one, "calibrated", ["A"], record)
+    assert "IoU: not supported: one seed" in tab.rows[1][tab.header.index("Claim")]
 
 
 # --------------------------------------------------------------------------------------------------

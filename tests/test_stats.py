@@ -237,7 +237,7 @@ def test_seed_level_widens_the_interval_when_seeds_disagree_and_not_when_they_ag
 
 
 def test_claim_status_follows_the_ci_and_the_noise_floor():
-    from pipeline.stats import BELOW_NOISE_FLOOR, CI_COVERS_ZERO, NOT_ESTIMATED, SUPPORTED, claim_status
+    from pipeline.stats import BELOW_NOISE_FLOOR, CI_COVERS_ZERO, NOT_ESTIMATED, ONE_SEED, SUPPORTED, claim_status
 
     assert claim_status(0.03, 0.01, 0.05) == SUPPORTED                  # no floor measured: the CI decides
     assert claim_status(-0.03, -0.05, -0.01, 0.02) == SUPPORTED         # a supported loss
@@ -245,3 +245,8 @@ def test_claim_status_follows_the_ci_and_the_noise_floor():
     assert claim_status(0.015, 0.005, 0.03, 0.02) == BELOW_NOISE_FLOOR  # CI excludes 0, effect under the floor
     assert claim_status(0.015, 0.005, 0.03, float("nan")) == SUPPORTED
     assert claim_status(float("nan"), 0.0, 0.1) == NOT_ESTIMATED
+    # one seed: its CI holds no training noise, so it supports nothing; two seeds may
+    assert claim_status(0.03, 0.01, 0.05, 0.0, n_seeds=1) == ONE_SEED
+    assert claim_status(0.03, 0.01, 0.05, 0.0, n_seeds=2) == SUPPORTED
+    assert claim_status(0.03, 0.01, 0.05, 0.0, n_seeds=float("nan")) == SUPPORTED
+    assert claim_status(0.03, -0.01, 0.05, 0.0, n_seeds=1) == CI_COVERS_ZERO

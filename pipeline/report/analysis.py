@@ -311,7 +311,8 @@ def _continuation_findings(summary: pd.DataFrame | None, noise_floor: dict | Non
         d_geo = [r[vs] for _, r in geo]
         # supported = seed-aware CI excludes 0 and the difference exceeds the noise floor (claim_status)
         ok = [claim_status(r[vs], r[f"{vs}_lo"], r[f"{vs}_hi"],
-                           gain_noise_floor(noise_floor, g, "iou") if noise_floor else None) == SUPPORTED
+                           gain_noise_floor(noise_floor, g, "iou") if noise_floor else None,
+                           r.get(vs_column("gain_seeds", c.continuation))) == SUPPORTED
               for g, r in geo]
         d_cont = [r["gain_iou"] for _, r in cont]
         verdict = ("no geometry effect beyond the extra epochs is supported (no seed-aware 95 % CI excludes 0 "

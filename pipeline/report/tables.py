@@ -82,11 +82,13 @@ def group_method_rows(summary: pd.DataFrame, mode: str, groups: Sequence[str]):
 def claim(r, suffix: str, group: str, noise_floor=None) -> str:
     """The claim column of a gain row: :func:`pipeline.stats.claim_status` of the Image IoU and the
     Boundary F1 gain (``gain_<metric><suffix>`` with its CI) against the group's noise floor
-    (:func:`pipeline.report.analysis.gain_noise_floor` of ``noise_floor``, the benchmark's record)."""
+    (:func:`pipeline.report.analysis.gain_noise_floor` of ``noise_floor``, the benchmark's record), on
+    the row's ``gain_seeds<suffix>`` seeds (one seed is never "supported")."""
     out = []
     for k, name in (("iou", "IoU"), ("bf1", "BF1")):
         st = claim_status(*(float(r.get(f"gain_{k}{suffix}{x}", np.nan)) for x in ("", "_lo", "_hi")),
-                          gain_noise_floor(noise_floor, group, k) if noise_floor else None)
+                          gain_noise_floor(noise_floor, group, k) if noise_floor else None,
+                          r.get(f"gain_seeds{suffix}"))
         if st != NOT_ESTIMATED:
             out.append(f"{name}: {st}")
     return "; ".join(out) or "--"
