@@ -601,9 +601,12 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
     return run
 
 
-#: images per forward pass of the frozen Stage-I model (predict_probs's default batch, which the anchors
-#: were always computed with: the same batches give the same float32 probabilities)
-ANCHOR_BATCH = 16
+#: images per forward pass of the frozen Stage-I model: the training batch of the paper (4), so the anchor
+#: pass is no larger than a training step -- at 384^2 a pass over 16 images set the adaptive method's peak
+#: (2.7 GB against 1.8 GB for training).  Eval mode (BatchNorm running statistics) makes each image's
+#: probabilities independent of its batch; batches of 4 and 16 gave bit-identical float32 probabilities
+#: in fp32 and under bf16 autocast (2026-11-25, Intel Xeon with AMX; docs/scaling.md)
+ANCHOR_BATCH = 4
 
 
 def _anchor_probs(frozen, images: np.ndarray | RowSource, device: torch.device, s: Settings,

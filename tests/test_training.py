@@ -473,7 +473,7 @@ def test_stage_command_errors_are_one_line(tiny, tmp_path):
 
 @pytest.fixture(scope="module")
 def tiny18(tmp_path_factory):
-    """18 training images: more than one block of frozen Stage-I anchors (training.ANCHOR_BATCH = 16)."""
+    """18 training images: several blocks of frozen Stage-I anchors (training.ANCHOR_BATCH = 4), the last one short."""
     return build_tiny_artifacts(tmp_path_factory.mktemp("tiny18") / "artifacts", n_train=18)
 
 
