@@ -62,8 +62,9 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
     _a("train_timings", "timings/train/{method}/{seed}.json", None, "train",
        "per-epoch wall-clock seconds: NOT a DVC out and not fingerprinted (checkpoints stay byte-identical)"),
     _a("noise_floor", "../reports/noise_floor.json", None, "stability benchmark",
-       "perturbation and seed spreads of the published numbers (python -m pipeline.benchmarks.stability "
-       "--noise-floor); the report reads it when present: NOT a DVC out or dep"),
+       "perturbation and seed spreads of the published numbers, one record per training recipe "
+       "({recipes: {recipe: record}}; python -m pipeline.benchmarks.stability --noise-floor adds or replaces "
+       "its own); the report applies the record of its runs' recipe when present: NOT a DVC out or dep"),
     _a("run_logs", "logs/run", None, "run",
        "`geodistill run`: <stage>.log (stdout+stderr) per stage and timeline.json; NOT a DVC out"),
     _a("thresholds", "thresholds.parquet", "thresholds", "calibrate"),

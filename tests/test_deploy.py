@@ -395,6 +395,26 @@ def test_exported_onnx_and_torchscript_run_at_sizes_other_than_the_traced_one(tm
         assert np.abs(deploy.torch_logits(ts, x) - ref).max() < 1e-4
 
 
+def test_torchscript_file_names_no_folder_of_this_machine(tmp_path):
+    """The bundle's model.ts holds no debug records, so no absolute path of the checkout or of the
+    environment: the same model exported from another clone gives the same bytes."""
+    import zipfile
+
+    import pipeline
+
+    model = tiny_model(4)
+    path = deploy.export_torchscript(model, tmp_path / "m.ts", RES)
+    with zipfile.ZipFile(path) as z:
+        names = z.namelist()
+        blob = b"".join(z.read(n) for n in names)
+    assert names and not [n for n in names if n.endswith(".debug_pkl")]
+    for folder in (Path(pipeline.__file__).parent.parent, Path(torch.__file__).parent, tmp_path):
+        assert str(folder).encode() not in blob, folder
+    assert {n.split("/", 1)[1] for n in names} >= {"data.pkl", "version", "byteorder", ".data/serialization_id"}
+    x = torch.rand(2, 3, RES, RES, generator=torch.Generator().manual_seed(3))
+    assert np.abs(deploy.torch_logits(deploy.load_torchscript(path), x) - deploy.torch_logits(model, x)).max() < 1e-4
+
+
 def test_interleaved_times_measures_variants_round_robin():
     calls = []
     variants = [deploy.Variant(n, n, lambda x, n=n: calls.append(n), "cpu") for n in ("a", "b")]

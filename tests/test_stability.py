@@ -284,6 +284,9 @@ def test_report_applies_only_the_floor_of_its_runs_recipe(tmp_path):
     # no record for the recipe, or runs of several recipes: not measured, never another recipe's floor
     assert select_noise_floor({"recipes": {"stable": _floor("stable", 64, 0.004)}}, "paper", 64) is None
     assert select_noise_floor(doc, None, 64) is None and select_noise_floor(None, "paper", 64) is None
+    # a file of the former single-record form is the record of its own recipe
+    assert gain_noise_floor(select_noise_floor(_floor("stable", 64, 0.004), "stable", 64), "A", "iou") == 0.004
+    assert select_noise_floor(_floor("stable", 64, 0.004), "paper", 64) is None
     # the note names the measured configuration and says when the runs differ from it
     assert "recipe paper" in noise_floor_note(paper) and "These runs are at 128², not the measured 64²" in \
         noise_floor_note(paper)

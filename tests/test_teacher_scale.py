@@ -12,7 +12,7 @@ from fsspec.core import url_to_fs
 from pipeline.artifacts import open_artifact
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.cache import TeacherCache
-from pipeline.teachers.distributed import TeacherWorker, decode_jobs
+from pipeline.teachers.distributed import JOBS_PER_BLOCK, TeacherWorker, decode_jobs, job_blocks
 from pipeline.teachers import runner as runner_module
 from pipeline.teachers.jobs import TeacherSpec, in_view
 from pipeline.teachers.runner import TeacherRunner
@@ -115,6 +115,19 @@ def test_a_retried_job_rewrites_the_same_entries(tmp_path):
     assert after == files and {p: p.read_bytes() for p in after} == before  # no duplicate, same bytes
     # the serial loop computes only what the retried job did not
     assert runner.fill(range(4)).answers_computed == 4 * 7 - 2 * len(PROMPTS)
+
+
+def test_jobs_go_to_the_pool_in_blocks_of_a_few_as_many_per_teacher():
+    assert job_blocks(240, 1) == job_blocks(240, 2) == 240 // JOBS_PER_BLOCK
+    assert job_blocks(0, 2) == 1 and job_blocks(1, 8) == 1 and job_blocks(3, 2) == 2
+    for n in range(1, 120):
+        for workers in range(1, 9):
+            blocks = job_blocks(n, workers)
+            assert 1 <= blocks <= n
+            assert -(-n // blocks) <= JOBS_PER_BLOCK              # no block holds more than that many jobs
+            assert blocks % workers == 0 or blocks == n         # each teacher gets as many blocks
+            if n >= workers:
+                assert blocks >= workers                        # no teacher idles for want of a block
 
 
 @pytest.fixture(scope="module")

@@ -171,6 +171,7 @@ def ray_throughput(args) -> None:
     variants = ["serial"] + [f"ray x{w}" for w in pools]
     times: dict[str, list[float]] = {v: [] for v in variants}
     steady: dict[str, list[float]] = {v: [] for v in variants}
+    startup: dict[str, list[float]] = {v: [] for v in variants}
     with tempfile.TemporaryDirectory() as tmp, ray_session() as ray:
         ckpt = Path(args.checkpoint) if args.checkpoint else build_tiny_sam3(
             Path(tmp) / "sam3", size=args.size, image_size=args.input_size,
@@ -181,12 +182,14 @@ def ray_throughput(args) -> None:
         for rep in range(args.repeats):
             for v in variants[rep % len(variants):] + variants[:rep % len(variants)]:
                 cfg = {**base, "cache_dir": str(Path(tmp) / f"cache-{rep}-{v.replace(' ', '')}")}
-                t0 = time.perf_counter()
+                t0, t0_wall = time.perf_counter(), time.time()  # wall clock: compared with file times
                 runner, _ = open_runner(cfg, (r, r), args.device, load, load.shas)
                 stats = runner.fill(range(n), workers=0 if v == "serial" else int(v.split("x")[1]))
                 times[v].append(time.perf_counter() - t0)
                 assert stats.answers_computed == n * len(PROMPTS), stats
-                steady[v].append(steady_rate(Path(cfg["cache_dir"]), len(PROMPTS)))
+                stamps = write_times(Path(cfg["cache_dir"]))
+                steady[v].append(steady_rate(stamps, len(PROMPTS)))
+                startup[v].append(stamps[0] - t0_wall)
         cpus = ray.cluster_resources().get("CPU", 0)
     one = statistics.median(times[variants[1]]) if len(variants) > 1 else None
     print(f"teacher throughput, SAM 3 {args.size} (random weights, input {args.input_size}) on {args.device}, "
@@ -205,15 +208,30 @@ def ray_throughput(args) -> None:
                if len(variants) > 1 and v.startswith("ray") else "")
         print(f"  {v:9s} steady median {statistics.median(rate):6.1f} images/s, max {max(rate):6.1f}{rel}  "
               f"[{', '.join(f'{x:.1f}' for x in rate)}]")
-    print("wall: the whole fill (a Ray fill includes starting its actors, which load the model); steady: images "
-          "whose entries were written after the first entry, over the time from the first to the last write")
+    for v in variants:
+        print(f"  {v:9s} start-up median {statistics.median(startup[v]):6.2f} s (fill start to first entry)  "
+              f"[{', '.join(f'{x:.2f}' for x in startup[v])}]")
+    if len(variants) > 2:
+        print("  projected whole fill, start-up + images / steady rate (medians above; a model, not a measurement):")
+        for images in (n, 10 * n, 100_000):
+            walls = {v: statistics.median(startup[v]) + images / statistics.median(steady[v]) for v in variants[1:]}
+            print(f"    {images:7d} images: " + ", ".join(f"{v} {walls[variants[1]] / w:4.2f}x" for v, w in
+                                                     list(walls.items())[1:]) + " the 1-worker pool")
+    print("wall: the whole fill (a Ray fill includes starting its actors, which import torch and transformers and "
+          "load the model); steady: images whose entries were written after the first entry, over the time from "
+          "the first to the last write (the pool's throughput); start-up: the same for 1 and 2 workers, so the "
+          "whole-fill ratio approaches the steady one as the number of images grows")
     print("target: 2 workers >= 1.7x one worker")
 
 
-def steady_rate(cache_dir: Path, per_image: int) -> float:
-    """Images per second from the cache's write times: entries written after the first one (its job's
-    burst excluded), divided by the time from the first write to the last (start-up excluded)."""
-    stamps = sorted(p.stat().st_mtime for p in cache_dir.rglob("*.tce"))
+def write_times(cache_dir: Path) -> list[float]:
+    """The modification times of a cache's entries, sorted (wall clock, seconds)."""
+    return sorted(p.stat().st_mtime for p in cache_dir.rglob("*.tce"))
+
+
+def steady_rate(stamps: list[float], per_image: int) -> float:
+    """Images per second from the cache's sorted write times: entries written after the first one (its
+    job's burst excluded), divided by the time from the first write to the last (start-up excluded)."""
     later = sum(1 for t in stamps if t > stamps[0] + 1e-3)
     span = stamps[-1] - stamps[0]
     return later / per_image / span if span > 0 else float("nan")

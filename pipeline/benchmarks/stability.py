@@ -51,6 +51,7 @@ from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, STAGE_ONE, get_me
 from pipeline.metrics import iou_curve, per_image_metrics
 from pipeline.params import RECIPES, validate_section
 from pipeline.profiles import FIVE_SEEDS, load_profile
+from pipeline.report.analysis import noise_floor_records
 from pipeline.reproducibility import TOLERANCE
 from pipeline.thresholds import TAU_RULES, mask_from_probs, tau_by_rule, threshold_grid
 
@@ -277,10 +278,8 @@ def write_noise_floor(path: str | Path, recipe: str, record: dict) -> dict:
     applies the one of the recipe its runs used, :func:`pipeline.report.analysis.select_noise_floor`).
     Replaced atomically.  Returns the whole document."""
     path = Path(path)
-    doc = json.loads(path.read_text()) if path.is_file() else {}
-    if "numbers" in doc:  # the former single-record form: the record of its own recipe
-        doc = {"recipes": {doc.get("info", {}).get("recipe", "?"): doc}}
-    doc.setdefault("recipes", {})[recipe] = record
+    old = json.loads(path.read_text()) if path.is_file() else {}
+    doc = {"recipes": {**noise_floor_records(old), recipe: record}}
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path, doc)
     return doc

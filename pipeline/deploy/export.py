@@ -75,7 +75,8 @@ def onnx_unavailable_reason() -> str | None:
 
 
 def export_torchscript(model, path: str | Path, resolution: int) -> Path:
-    """Trace the mask path on a [1,3,R,R] example and save it (unfrozen, CPU weights)."""
+    """Trace the mask path on a [1,3,R,R] example and save it (unfrozen, CPU weights), without debug
+    records (:func:`save_without_debug_records`): the same model gives the same bytes in any folder."""
     import torch
 
     deployed = export_module(model)
@@ -83,7 +84,39 @@ def export_torchscript(model, path: str | Path, resolution: int) -> Path:
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # TracerWarning; torch 2.13's deprecation notice for torch.jit
         traced = torch.jit.trace(deployed, example, check_trace=False)
-    traced.save(str(path))
+    return save_without_debug_records(traced, path)
+
+
+# Records torch's own writer adds at the end of every archive (copying them would write them twice).
+_WRITER_RECORDS = ("version", "byteorder", ".data/serialization_id")
+
+
+def save_without_debug_records(module, path: str | Path) -> Path:
+    """``torch.jit.save`` of ``module`` to ``path`` minus its ``*.debug_pkl`` records.
+
+    Those records hold the source ranges of the traced code: absolute paths of our files and of
+    torch's (in the virtual environment), so the same model exported from two clones gave two files
+    (and a DVC output that moved with the checkout's folder).  They serve error messages only;
+    ``torch.jit.load`` does without them.  The archive is rewritten by torch's own zip writer
+    (``torch._C.PyTorchFileWriter``, the one ``torch.jit.save`` uses: aligned records, its own
+    version and serialization id), record for record in the original order.
+    """
+    import io
+
+    import torch
+
+    buf = io.BytesIO()
+    torch.jit.save(module, buf)
+    buf.seek(0)
+    reader = torch._C.PyTorchFileReader(buf)
+    writer = torch._C.PyTorchFileWriter(str(path))
+    for name in reader.get_all_records():
+        if name.endswith(".debug_pkl") or name in _WRITER_RECORDS:
+            continue
+        data = reader.get_record(name)
+        writer.write_record(name, data, len(data))
+    writer.write_end_of_file()
+    del writer  # closes the file
     return Path(path)
 
 

@@ -432,6 +432,16 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
 NOISE_FLOOR_NOT_MEASURED = "noise floor not measured (run python -m pipeline.benchmarks.stability --noise-floor)"
 
 
+def noise_floor_records(doc: dict | None) -> dict[str, dict]:
+    """recipe -> record of a noise-floor file (``{"recipes": {recipe: record}}``); a file of the former
+    single-record form (``{"info": ..., "numbers": ...}``) is the record of its ``info.recipe``."""
+    if not doc:
+        return {}
+    if "numbers" in doc:
+        return {doc.get("info", {}).get("recipe", "?"): doc}
+    return dict(doc.get("recipes", {}))
+
+
 def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | None = None) -> dict | None:
     """The noise-floor record of ``recipe`` in the stability benchmark's file (reports/noise_floor.json:
     ``{"recipes": {recipe: {"info": ..., "numbers": {key: {"floor", "pert", "seed_sd"}}}}}``), with
@@ -441,10 +451,9 @@ def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | N
     for another recipe is never applied (the paper recipe is exposed to the host's precision, the
     stable recipe is not).  A file of the former single-record form counts as the record of its
     ``info.recipe``."""
-    if not doc or recipe is None:
+    if recipe is None:
         return None
-    records = doc.get("recipes", {doc.get("info", {}).get("recipe"): doc} if "numbers" in doc else {})
-    rec = records.get(recipe)
+    rec = noise_floor_records(doc).get(recipe)
     if rec is None:
         return None
     return {**rec, "applies_to": {"recipe": recipe, "resolution": resolution}}

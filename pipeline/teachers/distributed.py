@@ -3,7 +3,8 @@
 :func:`fill_with_ray` runs the jobs :class:`pipeline.teachers.runner.TeacherRunner` planned:
 
 1. ``ray.data.from_items`` -- one row per :class:`~pipeline.teachers.jobs.TeacherJob` (a batch of
-   image rows in one view);
+   image rows in one view), :data:`JOBS_PER_BLOCK` jobs to a block (one actor task), the block count
+   a multiple of the pool's size (:func:`job_blocks`);
 2. ``map_batches(decode_jobs)`` -- tasks on CPU workers read and resize the job's images (the
    runner's ``load``: an artifact row or an image file) into :class:`TeacherInput` objects (on a
    CPU-only cluster Ray Data fuses this step into the teacher actors: same resources, no copy);
@@ -61,6 +62,25 @@ class TeacherWorker:
         return {"job": batch["job"], "written": np.asarray(written, np.int64)}
 
 
+# Jobs per Ray Data block (one actor task).  One job per block paid Ray's per-task cost (scheduling,
+# object-store round trips, a driver-side step of the streaming executor) on every image batch: a
+# 1-teacher pool ran at 13.3 images/s beside the serial loop's 14.1, 2 teachers at 24.2.  With 4 jobs
+# per block: 14.5 (serial 14.8) and 26.6 (bench_teacher, docs/scaling.md).  Much larger blocks leave
+# one teacher working alone on the last one (16 jobs in one check: 2 teachers 1.77x one, 4 jobs 1.93x).
+JOBS_PER_BLOCK = 4
+
+
+def job_blocks(n_jobs: int, workers: int, jobs_per_block: int = JOBS_PER_BLOCK) -> int:
+    """How many blocks to cut ``n_jobs`` jobs into for a pool of ``workers`` teachers: about
+    ``jobs_per_block`` jobs each, a multiple of ``workers`` (every teacher gets as many blocks, so none
+    idles while another finishes an extra one), never more blocks than jobs, at least one."""
+    if n_jobs < 1:
+        return 1
+    workers = max(int(workers), 1)
+    per_round = workers * max(int(jobs_per_block), 1)
+    return max(1, min(n_jobs, workers * -(-n_jobs // per_round)))
+
+
 @contextlib.contextmanager
 def ray_session(address: str | None = None):
     """Ray, joined at ``address`` / ``RAY_ADDRESS``, or embedded and local; reused when already up."""
@@ -93,7 +113,8 @@ def fill_with_ray(jobs: Sequence[TeacherJob], load: InputLoader, spec: TeacherSp
             raise InputError(f"--workers {workers}: the Ray cluster has {slots:g} {unit} (one teacher each)")
         log.info("teacher: Ray Data pool of %d teachers (%s), %d jobs", workers,
                  "one GPU each" if gpus else "one CPU each", len(jobs))
-        ds = ray.data.from_items([{"job": i} for i in range(len(jobs))], override_num_blocks=max(len(jobs), 1))
+        ds = ray.data.from_items([{"job": i} for i in range(len(jobs))],
+                                 override_num_blocks=job_blocks(len(jobs), workers))
         # one CPU per decode task; Ray Data fuses decode into the teacher actors when both ask for the
         # same resources (CPU-only), and runs it as tasks on the other CPUs beside GPU actors
         ds = ds.map_batches(decode_jobs, fn_kwargs={"jobs": jobs, "load": load}, batch_size=1, num_cpus=1.0)
