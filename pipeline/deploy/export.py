@@ -23,6 +23,7 @@ Decisions (the paper is silent on deployment formats):
 
 from __future__ import annotations
 
+import io
 import warnings
 from pathlib import Path
 
@@ -101,8 +102,6 @@ def save_without_debug_records(module, path: str | Path) -> Path:
     (``torch._C.PyTorchFileWriter``, the one ``torch.jit.save`` uses: aligned records, its own
     version and serialization id), record for record in the original order.
     """
-    import io
-
     import torch
 
     buf = io.BytesIO()
