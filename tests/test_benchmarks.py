@@ -33,3 +33,17 @@ def test_benchmark_script_runs_and_reports_a_ratio(name):
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert re.search(r"\d+(\.\d+)?\s*x", r.stdout), r.stdout[-2000:]  # "<ratio> x" against the baseline
+
+
+@pytest.mark.slow
+def test_teacher_benchmark_on_ray_prints_each_pools_start_up_and_ratio():
+    pytest.importorskip("ray")
+    r = subprocess.run([sys.executable, "-m", "pipeline.benchmarks.bench_teacher", "--ray-workers", "1,2",
+                        "--images", "8", "--resolution", "32", "--repeats", "1"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    for pool in ("serial", "ray x1", "ray x2"):
+        assert re.search(rf"{pool}\s+wall median .* images/s", r.stdout), r.stdout[-2000:]
+        assert re.search(rf"{pool}\s+start-up median\s+\d+\.\d+ s", r.stdout), r.stdout[-2000:]
+    assert re.search(r"ray x2\s+steady median .*\d\.\d\dx the 1-worker pool", r.stdout), r.stdout[-2000:]
+    assert re.search(r"\n\s+8 images: ray x2 \d\.\d\dx the 1-worker pool", r.stdout), r.stdout[-2000:]
