@@ -606,7 +606,7 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
 #: (2.7 GB against 1.8 GB for training).  Eval mode (BatchNorm running statistics) makes each image's
 #: probabilities independent of its batch; batches of 4 and 16 gave bit-identical float32 probabilities
 #: in fp32 and under bf16 autocast (2026-11-25, Intel Xeon with AMX; docs/scaling.md)
-ANCHOR_BATCH = 4
+ANCHOR_BATCH = PAPER.train.batch_size
 
 
 def _anchor_probs(frozen, images: np.ndarray | RowSource, device: torch.device, s: Settings,
