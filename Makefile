@@ -1,5 +1,5 @@
 # The README's two commands: `make demo` (install + whole DAG on the embedded synthetic benchmark)
-# and `make test` (install + test suite).  Everything installs into .venv.
+# and `make test` (install + `ruff check` + test suite).  Everything installs into .venv.
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
@@ -53,6 +53,7 @@ reduced paper: install
 	SOURCE_DATE_EPOCH=$(SOURCE_DATE_EPOCH) $(BIN)/geodistill run $(RUN_ARGS)
 
 test: install
+	$(BIN)/ruff check
 	$(BIN)/python -m pytest -q
 
 clean-artifacts:

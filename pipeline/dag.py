@@ -21,7 +21,7 @@ from typing import Any
 import yaml
 
 from pipeline.catalog import ARTIFACTS, EXTRA_PATHS, PLOTS, PLOT_TEMPLATE, STAGES, StageSpec, dvc_path
-from pipeline.codeversion import ROOT, code_deps
+from pipeline.codeversion import code_deps
 from pipeline.methods import METHODS, STAGE_ONE, input_artifacts, param_keys
 from pipeline.params import Params, deep_merge, unresolved, validate
 from pipeline.profiles import profile_params

@@ -1,6 +1,5 @@
 """The one image/mask loader: colour conversions, resizing, decode cache, bad files."""
 
-import os
 
 import cv2
 import numpy as np

@@ -108,7 +108,6 @@ def test_confidence_criterion_unit():
 
 
 def test_confidence_filter_drops_exactly_the_failing_images(tiny):
-    from pipeline import training
 
     gates, _, _ = _tables(tiny)
     cfg = tiny_cfg(confidence={"criterion": "agreement", "threshold": float(np.median(gates["c"])), "min_valid": 3})
@@ -124,7 +123,6 @@ def test_confidence_filter_drops_exactly_the_failing_images(tiny):
 
 
 def test_afs_control_fuses_views_and_drops_low_scores(tiny):
-    from pipeline import training
 
     _, teacher, train = _tables(tiny)
     cfg = tiny_cfg(afs={"base_prompt": "spacecraft", "score_threshold": 0.6, "fusion": "intersection"})
@@ -143,7 +141,6 @@ def test_afs_control_fuses_views_and_drops_low_scores(tiny):
 
 # ---- gating -------------------------------------------------------------------------------------
 def test_no_gate_really_sets_g_to_one(tiny):
-    from pipeline import training
 
     gates, _, _ = _tables(tiny)
     cfg = tiny_cfg()

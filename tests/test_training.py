@@ -20,7 +20,7 @@ import torch
 from scipy import ndimage
 
 from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
-from pipeline.errors import InputError, TrainingDiverged
+from pipeline.errors import TrainingDiverged
 from pipeline.methods import SELECTION_TAU_KEY
 from pipeline.params import RECIPES, load_params, section
 from pipeline.streaming import spill_rows
@@ -429,7 +429,6 @@ def test_stage_command_trains_writes_checkpoint_and_warm_starts(tiny, tmp_path):
 def test_checkpoints_are_byte_identical_under_source_date_epoch(tiny, tmp_path, monkeypatch):
     """Issue 16 item 8: two independent runs (no shared resume state) give the same bytes in every
     checkpoint file; the wall clock goes to the separate timings file only."""
-    import json
 
     from pipeline import catalog
 

@@ -89,6 +89,15 @@ def sam3_checkpoint(args, tmp: str) -> Path:
                            words=tuple(w for p in PROMPTS for w in p.split()))
 
 
+def _synced(predict, items, sync):
+    """A timed call: ``predict(items, PROMPTS)`` and then ``sync()`` (a CUDA synchronise, or nothing), so
+    that the clock stops when the device is done."""
+    def call():
+        predict(items, PROMPTS)
+        sync()
+    return call
+
+
 def encoder_reuse(args) -> None:
     """Today's path vs the new one, encoder reuse vs six separate calls, the SIMULATOR (module docstring)."""
     import torch
@@ -108,17 +117,9 @@ def encoder_reuse(args) -> None:
         teacher.predict(items[:1], PROMPTS)  # warm-up (text features cached here, as in a run)
         sync = torch.cuda.synchronize if teacher.device.type == "cuda" else (lambda: None)
 
-        def batched():
-            teacher.predict(items, PROMPTS)
-            sync()
-
-        def separate():
-            teacher.predict_one_prompt_at_a_time(items, PROMPTS)
-            sync()
-
-        def todays():
-            today.predict(items, PROMPTS)
-            sync()
+        batched = _synced(teacher.predict, items, sync)
+        separate = _synced(teacher.predict_one_prompt_at_a_time, items, sync)
+        todays = _synced(today.predict, items, sync)
 
         batched()   # warm-up of every path: CPU kernels and CUDA graphs are built per tensor shape
         separate()
@@ -131,7 +132,7 @@ def encoder_reuse(args) -> None:
         m_old, s_old = today.predict(items, PROMPTS)
         agree = float(np.mean(image_ious(m_new.reshape(-1, r, r), m_old.reshape(-1, r, r))))
         score_diff = float(np.max(np.abs(s_new - s_old))) if s_new.size else 0.0
-        del today
+        del today, todays  # frees the fp32 model before the simulator's timing
     sim_items = []
     for it in items:
         m = np.zeros((r, r), bool)

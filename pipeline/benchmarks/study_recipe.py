@@ -53,7 +53,6 @@ from pipeline.device import resolve_device
 from pipeline.inference import predict_probs
 from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.metrics import image_ious
-from pipeline.params import load_params
 from pipeline.profiles import load_profile
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 

@@ -309,7 +309,7 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
     for g in groups:
         part = s[s["group"] == g].set_index("method")
 
-        def add(what, m, suffix):
+        def add(what, m, suffix, g=g, part=part):
             if m not in part.index:
                 return
             r = part.loc[m]
@@ -373,7 +373,7 @@ def calibration_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Tabl
     for m in _ordered_with_ceiling_last(thr["method"].unique()):
         part = thr[thr["method"] == m]
 
-        def ms(col, digits=4):
+        def ms(col, digits=4, part=part):
             if col not in part.columns:
                 return "--"
             v = part[col].astype(float)

@@ -15,8 +15,7 @@ from fsspec.core import url_to_fs
 from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.artifacts import canonical_json
-from pipeline.errors import InputError
-from pipeline.params import BACKENDS, SPLITS, validate_section
+from pipeline.params import BACKENDS, validate_section
 from pipeline.teachers.base import VIEWS, Teacher, TeacherInput, finalize_answers
 from pipeline.teachers.sam3 import Sam3Teacher
 from pipeline.teachers.simulated import SimulatedFoundationTeacher

@@ -269,6 +269,8 @@ class Sam3Teacher:
     def load(self):
         """Load model and tokenizer once (local files only)."""
         if self._model is None:
+            import torch
+
             try:
                 from transformers import AutoTokenizer, Sam3Model
             except ImportError as e:
