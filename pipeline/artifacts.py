@@ -44,7 +44,7 @@ from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
-from pipeline.catalog import LEGACY_WEIGHTS_FILE, WEIGHTS_FILE
+from pipeline.catalog import DEPLOY_BUNDLE, LEGACY_WEIGHTS_FILE, TRAINING_LOG_FILE, WEIGHTS_FILE
 from pipeline.errors import ArtifactError, InputError
 
 #: the program's name (the console script, pyproject.toml [project.scripts]), also the namespace of the
@@ -112,7 +112,7 @@ SCHEMAS: dict[str, Schema] = {
         _s("gates", 1, "parquet", columns=(
             "image_id", "split", "c", "v", "a", "a0", "g_conf", "g_valid", "g_area", "g", "n_valid")),
         # weights: model.safetensors (+ model.json), or model.pt of older runs (pipeline.weights)
-        _s("checkpoint", 1, "dir", files=(WEIGHTS_FILES, "log.parquet")),
+        _s("checkpoint", 1, "dir", files=(WEIGHTS_FILES, TRAINING_LOG_FILE)),
         _s("training_log", 2, "parquet", columns=("epoch", "stage", "loss", "val_iou", "val_bf1", "lr")),
         _s("thresholds", 1, "parquet", columns=("method", "seed", "tau", "val_iou")),
         _s("metrics", 1, "parquet", columns=(
@@ -126,8 +126,9 @@ SCHEMAS: dict[str, Schema] = {
         _s("efficiency", 1, "parquet", columns=("variant", "params", "gflops", "latency_ms", "throughput", "peak_mb")),
         _s("generic_table", 1, "parquet"),
         _s("report", 1, "dir", files=("report.md", "report.html")),
-        # exported mask path (pipeline/deploy.py); model.onnx only when onnx/onnxruntime import
-        _s("deploy", 1, "dir", files=(WEIGHTS_FILES, "model.ts", "deploy.json")),
+        # exported mask path: the bundle's required files (pipeline.catalog.DEPLOY_BUNDLE; the weights as above)
+        _s("deploy", 1, "dir", files=(WEIGHTS_FILES, *(f.name for k, f in DEPLOY_BUNDLE.items()
+                                                       if f.required and k not in ("weights", "weights_config")))),
     ]
 }
 
@@ -718,7 +719,7 @@ class DirArtifact(Artifact):
             raise ArtifactError(f"{self.path}: no file {name!r}")
         return p
 
-    def table(self, name: str = "log.parquet"):
+    def table(self, name: str = TRAINING_LOG_FILE):
         return open_artifact(self.path / name).df
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from pipeline.engine_table import engines_reading
 from pipeline.params import get_path
 
 ARTIFACTS_DIR = "artifacts"
@@ -27,6 +28,8 @@ WEIGHTS_FILE = "model.safetensors"
 WEIGHTS_CONFIG_FILE = "model.json"
 #: the torch-pickle weights file older runs wrote; still read (tensors and plain data only), never written
 LEGACY_WEIGHTS_FILE = "model.pt"
+#: a checkpoint's training log (schema ``training_log``), beside its weights (pipeline.inference.save_checkpoint)
+TRAINING_LOG_FILE = "log.parquet"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,6 +103,51 @@ def dvc_path(name: str, **fmt) -> str:
 
 
 # --------------------------------------------------------------------------------------------------
+# The deploy bundle's layout (artifact ``deploy``)
+# --------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class BundleFile:
+    """One file of the deploy bundle: its name, what writes it, and what it holds.  Which engines run it
+    is :func:`bundle_readers` (the engine table's ``reads``); ``required``: every bundle has it (the
+    ``deploy`` schema checks it), else only when the export could write it."""
+
+    key: str
+    name: str
+    written_by: str
+    description: str
+    required: bool = True
+
+
+DEPLOY_BUNDLE: dict[str, BundleFile] = {f.key: f for f in [
+    BundleFile("weights", WEIGHTS_FILE, "pipeline.weights.write_weights",
+               "mask-path tensors (a checkpoint's format: pipeline.inference.load_student opens a bundle too; "
+               f"bundles of older versions hold {LEGACY_WEIGHTS_FILE} instead, still read)"),
+    BundleFile("weights_config", WEIGHTS_CONFIG_FILE, "pipeline.weights.write_weights",
+               "model config, method, seed, tau, resolution"),
+    BundleFile("torchscript", "model.ts", "pipeline.deploy.export.export_torchscript",
+               "TorchScript (traced) mask path; shape-generic (any batch and size)"),
+    BundleFile("onnx", "model.onnx", "pipeline.deploy.export.export_onnx",
+               "ONNX mask path, dynamic batch/height/width (only when onnx + onnxruntime import)", required=False),
+    BundleFile("int8", "model.int8.onnx", "pipeline.deploy.quantize.quantize_onnx_int8",
+               "static int8 (QDQ) quantisation of the ONNX model, calibrated on training-split images (only "
+               "when the ONNX model exists and training images are given)", required=False),
+    BundleFile("deploy_json", "deploy.json", "pipeline.deploy.bundle.write_bundle",
+               "tau and its source, working resolution, config, parity, file sha256s, source checkpoint "
+               "(pipeline.deploy.bundle.read_deploy_info: every reader)"),
+]}
+
+
+def bundle_file(key: str) -> str:
+    """The file name of bundle file ``key`` (:data:`DEPLOY_BUNDLE`)."""
+    return DEPLOY_BUNDLE[key].name
+
+
+def bundle_readers(key: str) -> tuple[str, ...]:
+    """The engines that run bundle file ``key`` (:data:`pipeline.engine_table.ENGINE_TABLE`)."""
+    return engines_reading(key)
+
+
+# --------------------------------------------------------------------------------------------------
 # Stages
 # --------------------------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
@@ -131,7 +179,7 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
     StageSpec("prepare", "stages.prepare", "--out-dir {artifacts_dir}", (),
               ("manifest", "images", "reference", "skipped_files", "contact_sheet", "synthetic_files"),
               _keys("data", "source", "root", "protocol", "domain", "resolution", "seed", "skip_bad",
-                    "synthetic", "contact_sheet_images"),
+                    "max_pixels", "synthetic", "contact_sheet_images"),
               data_deps=("data_manifests",)),
     StageSpec("teacher", "stages.teacher",
               "--manifest {manifest} --images {images} --reference {reference} --out {teacher} "
@@ -159,7 +207,7 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               ("manifest", "images", "reference", "checkpoints", "thresholds"),
               ("metrics", "summary", "plot_training_curves", "plot_threshold_curves"),
               _keys("evaluate", "bf1_tolerance", "small_region_max_fraction", "tiny_target_max_fraction",
-                    "bootstrap_resamples", "bootstrap_seed", "ci"), metrics=("metrics_students",)),
+                    "bootstrap_resamples", "bootstrap_seed", "ci", "interval"), metrics=("metrics_students",)),
     StageSpec("analyze_teacher", "stages.analyze_teacher",
               "--artifacts {artifacts_dir} --out {teacher_metrics} --metrics-dir {metrics_teacher}",
               ("manifest", "reference", "teacher", "consensus", "gates"), ("teacher_metrics",),

@@ -62,6 +62,33 @@ def _out_entry(name: str) -> str | dict:
     return {p: {"cache": False}} if ARTIFACTS[name].path.startswith("../") else p
 
 
+#: the script of the per-method training stages (``train_<method>``, :func:`train_stage`; the catalogue
+#: lists the other stages, :data:`pipeline.catalog.STAGES`)
+TRAIN_MODULE = "stages.train"
+
+
+def upstream_stages() -> list[str]:
+    """The catalogue stages the training stages need (the producers of the artifacts any method reads,
+    and theirs), in catalogue order: the stages that come before ``train_<method>`` in the DAG."""
+    producer = {a: s.name for s in STAGES.values() for a in s.outs}
+    todo = [a for m in METHODS.values() for a in input_artifacts(m)]
+    need: set[str] = set()
+    while todo:
+        stage = producer.get(todo.pop())
+        if stage is not None and stage not in need:
+            need.add(stage)
+            todo.extend(STAGES[stage].deps)
+    return [n for n in STAGES if n in need]
+
+
+def stage_modules() -> dict[str, str]:
+    """Every stage of the DAG -> its script module, in DAG order (``train`` for all ``train_<method>``):
+    the pipeline's subcommands of ``geodistill`` (stages/cli.py)."""
+    up = upstream_stages()
+    return {**{n: STAGES[n].module for n in up}, "train": TRAIN_MODULE,
+            **{n: s.module for n, s in STAGES.items() if n not in up}}
+
+
 def train_stage(method_name: str, code_root: Path | None = None) -> dict:
     """The ``train_<method>`` stage: one run per seed listed in ``protocol.runs.<method>``."""
     m = METHODS[method_name]
@@ -70,7 +97,7 @@ def train_stage(method_name: str, code_root: Path | None = None) -> dict:
     init = dvc_path("checkpoint", method=STAGE_ONE, seed="${item.seed}") if m.init == "stage1" else None
     args = (f"--stage {m.stage} --method {m.name} --seed ${{item.seed}} --artifacts {{artifacts_dir}}"
             + (f" --init {init}" if init else "") + f" --out {out} --live-dir {live}")
-    spec = StageSpec(f"train_{m.name}", "stages.train", args, input_artifacts(m), (), param_keys(m))
+    spec = StageSpec(f"train_{m.name}", TRAIN_MODULE, args, input_artifacts(m), (), param_keys(m))
     entry = _stage_entry(spec, matrix={"seed": f"${{protocol.runs.{m.name}}}"}, code_root=code_root)
     if init:
         entry["deps"].append(init)
@@ -82,7 +109,7 @@ def dvc_stages(code_root: Path | None = None, data_deps: dict[str, list[str]] | 
                omit: tuple[str, ...] = ()) -> dict[str, dict]:
     """Every stage of dvc.yaml, in DAG order: the catalogue's data stages, one train stage per method,
     then the catalogue's downstream stages.  ``code_root``/``data_deps``/``omit``: see :func:`render_dvc_yaml`."""
-    upstream = ["prepare", "teacher", "consensus", "geometry"]
+    upstream = upstream_stages()
     out = {n: _stage_entry(STAGES[n], code_root=code_root, data_deps=data_deps) for n in upstream}
     out.update({f"train_{name}": train_stage(name, code_root) for name in METHODS})
     out.update({n: _stage_entry(s, code_root=code_root, data_deps=data_deps)

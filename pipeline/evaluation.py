@@ -24,6 +24,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
+from pipeline import catalog
 from pipeline.artifacts import read_chunk_rows
 from pipeline.diagnostics import target_fractions, target_size_class
 from pipeline.errors import ArtifactError
@@ -31,8 +32,8 @@ from pipeline.inference import load_student, predict_probs
 from pipeline.methods import BASELINE, GAIN_CONTROLS, gain_treatments
 from pipeline.metrics import score_masks, scoring_reference
 from pipeline.progress import progress
-from pipeline.stats import method_gains, seed_summary, vs_column
-from pipeline.thresholds import mask_from_probs
+from pipeline.stats import DEFAULT_INTERVAL, method_gains, seed_summary, vs_column
+from pipeline.thresholds import mask_from_probs, tau_candidates
 
 #: metrics whose gains are bootstrapped
 GAIN_METRICS = ("iou", "bf1", "precision", "recall")
@@ -51,12 +52,13 @@ REFERENCE_CACHE_PIXELS = 1 << 26
 
 
 def run_thresholds(thresholds: pd.DataFrame, method: str, seed: int, path) -> tuple[float, float]:
-    """(calibrated tau, fixed tau) of one run; ArtifactError when calibrate did not see the run."""
-    row = thresholds[(thresholds["method"] == method) & (thresholds["seed"] == seed)]
-    if len(row) != 1:
-        raise ArtifactError(f"{path}: no calibrated threshold for {method}/{seed} in thresholds.parquet; "
+    """(calibrated tau, fixed tau) of one run, both as calibrate recorded them in its thresholds row
+    (:func:`pipeline.thresholds.tau_candidates`); ArtifactError when calibrate did not see the run."""
+    taus = tau_candidates(payload={"method": method, "seed": seed}, thresholds=thresholds)
+    if "thresholds" not in taus:
+        raise ArtifactError(f"{path}: no calibrated threshold for {method}/{seed} in {catalog.ARTIFACTS['thresholds'].path}; "
                             f"rerun calibrate")
-    return float(row["tau"].iloc[0]), float(row["fixed_tau"].iloc[0])
+    return taus["thresholds"][0], taus["fixed"][0]
 
 
 class _ChunkReferences:
@@ -118,26 +120,28 @@ def score_runs(runs: Sequence[tuple[str, int, Path]], manifest: pd.DataFrame, im
     return metrics[METRICS_KEY + [c for c in metrics.columns if c not in METRICS_KEY]]
 
 
-def control_gains(metrics: pd.DataFrame, control: str, n_boot: int, ci: float, seed: int) -> pd.DataFrame:
-    """Gains over ``control`` (pipeline.stats.method_gains, paired hierarchical bootstrap) of the
+def control_gains(metrics: pd.DataFrame, control: str, n_boot: int, ci: float, seed: int,
+                  interval: str = DEFAULT_INTERVAL) -> pd.DataFrame:
+    """Gains over ``control`` (pipeline.stats.method_gains with ``interval``, evaluate.interval) of the
     methods :func:`pipeline.methods.gain_treatments` compares with it -- never the supervised ceiling."""
     keep = [*gain_treatments(control, metrics["method"].unique()), control]
     return method_gains(metrics[metrics["method"].isin(keep)], GAIN_METRICS, control=control,
-                        by=[c for c in SUMMARY_BY if c != "method"], n_resamples=n_boot, ci=ci, seed=seed)
+                        by=[c for c in SUMMARY_BY if c != "method"], n_resamples=n_boot, ci=ci, seed=seed,
+                        interval=interval)
 
 
-def summarize(metrics: pd.DataFrame, n_boot: int, ci: float, seed: int) -> pd.DataFrame:
+def summarize(metrics: pd.DataFrame, n_boot: int, ci: float, seed: int, interval: str = DEFAULT_INTERVAL) -> pd.DataFrame:
     """The seed summary of ``metrics`` with the gains over every reference point of the method table:
     ``gain_<metric>...`` over :data:`pipeline.methods.BASELINE` (always: the results tables' columns) and
     ``gain_<metric>_vs_<control>...`` over each other reference point that was evaluated
-    (:func:`pipeline.stats.vs_column`).  ``n_boot``/``ci``/``seed``: evaluate.bootstrap_resamples, ci,
-    bootstrap_seed."""
+    (:func:`pipeline.stats.vs_column`).  ``n_boot``/``ci``/``seed``/``interval``: evaluate.bootstrap_resamples,
+    ci, bootstrap_seed, interval."""
     summary = seed_summary(metrics, SUMMARY_BY, SUMMARY_METRICS)
     present = set(metrics["method"])
     for control in GAIN_CONTROLS:
         if control != BASELINE and control not in present:
             continue
-        gains = control_gains(metrics, control, n_boot, ci, seed)
+        gains = control_gains(metrics, control, n_boot, ci, seed, interval)
         gains = gains.rename(columns={c: vs_column(c, control) for c in gains.columns if c not in SUMMARY_BY})
         summary = summary.merge(gains, on=SUMMARY_BY, how="left")
     return summary

@@ -19,7 +19,9 @@ from typing import Iterator
 
 import numpy as np
 
+from pipeline import catalog
 from pipeline.artifacts import artifact_dir, make_meta, open_artifact, require_same_run, write_parquet
+from pipeline.catalog import TRAINING_LOG_FILE
 from pipeline.device import autocast_dtype
 from pipeline.errors import ArtifactError, InputError
 
@@ -132,7 +134,7 @@ def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
         write_weights(tmp, model.mask_path_state_dict(), model.config, geo, **payload)
         log_meta = make_meta("training_log", meta.stage, meta.code_version, meta.params,
                              [(str(path), meta)])
-        write_parquet(tmp / "log.parquet", log, log_meta)
+        write_parquet(tmp / TRAINING_LOG_FILE, log, log_meta)
     return Path(path)
 
 
@@ -144,10 +146,9 @@ def open_labelled_split(artifacts: str | Path, split: str, purpose: str, allow_e
     naming the manifest when no such row exists (``purpose`` completes the message), unless
     ``allow_empty`` (the indices are then empty).
     """
-    art = Path(artifacts)
-    manifest = open_artifact(art / "manifest.parquet", "manifest")
-    images = open_artifact(art / "images.zarr", "images")
-    reference = open_artifact(art / "reference.zarr", "reference")
+    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
+    images = open_artifact(catalog.path("images", artifacts), "images")
+    reference = open_artifact(catalog.path("reference", artifacts), "reference")
     require_same_run(manifest, images, reference)
     idx = np.flatnonzero((manifest.df["split"].to_numpy() == split) & reference.numpy("has_mask").astype(bool))
     if idx.size == 0 and not allow_empty:

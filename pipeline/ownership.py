@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Iterable, Mapping
 
 from pipeline.artifacts import write_json
-from pipeline.errors import InputError
+from pipeline.errors import OUT, OVERWRITE, InputError, Option, literal
 
 WRITTEN_BY = "written_by"
 OUTPUTS = "outputs"
@@ -66,7 +66,12 @@ def owned_outputs(out: str | Path, record: str, command: str, *, legacy_outputs:
     return names | {record}
 
 
-def refuse_unowned(paths: Iterable[str | Path], owned: Iterable[str | Path], *, command: str, option: str,
+def _option(option: str | Option) -> Option:
+    """An option given by its flag alone (commands without a Python API) as an :class:`Option`."""
+    return option if isinstance(option, Option) else Option(option, option.lstrip("-").replace("-", "_"))
+
+
+def refuse_unowned(paths: Iterable[str | Path], owned: Iterable[str | Path], *, command: str, option: str | Option,
                    where: str | Path, why: str, overwrite: bool) -> None:
     """InputError naming the first of ``paths`` that exists (a broken link counts) and is not in
     ``owned``, unless ``overwrite`` (the user's explicit yes).  ``why``: how ``command`` recognises its
@@ -78,18 +83,20 @@ def refuse_unowned(paths: Iterable[str | Path], owned: Iterable[str | Path], *, 
     for p in paths:
         p = Path(p)
         if (p.is_symlink() or p.exists()) and p.absolute() not in mine:
-            raise InputError(f"{option} {where}: {p} exists and was not written by {signature(command)} ({why}); "
-                             f"pass --overwrite to replace it, or choose another {option}")
+            opt = _option(option)  # named in the caller's terms (pipeline.errors)
+            raise InputError(f"{{}}: {literal(p)} exists and was not written by {literal(signature(command))} "
+                             f"({literal(why)}); pass {{}} to replace it, or choose another {{}}",
+                             opt(where), OVERWRITE, opt)
 
 
 def check_outputs(out: str | Path, targets: Iterable[str], record: str, command: str, *, overwrite: bool,
-                  option: str = "--out", legacy_outputs: Iterable[str] = (), legacy_keys: Iterable[str] = ()) -> None:
+                  option: str | Option = OUT, legacy_outputs: Iterable[str] = (), legacy_keys: Iterable[str] = ()) -> None:
     """Refuse (InputError, one line) before anything is written when ``out`` is a file, or when one of
     ``targets`` (paths relative to ``out``; the record is added) exists under ``out`` and the record
     of ``command`` there does not list it (:func:`refuse_unowned`)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise InputError(f"{option} {out}: is a file, not a folder")
+        raise InputError("{}: is a file, not a folder", _option(option)(out))
     own = owned_outputs(out, record, command, legacy_outputs=legacy_outputs, legacy_keys=legacy_keys)
     names = list(dict.fromkeys([*targets, record]))
     refuse_unowned([out / t for t in names], [out / t for t in own], command=command, option=option, where=out,

@@ -25,6 +25,7 @@ from typing import Annotated, Any, Iterable, Literal, Mapping
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from pipeline.engine_table import BENCHMARK_VARIANTS  # pure Python: the engine names, one list
 from pipeline.errors import InputError
 from pipeline.methods import METHODS, PROPOSED, STAGE_ONE  # pure Python, no torch: this module stays torch-free
 
@@ -110,7 +111,12 @@ class SyntheticParams(_Section):
 
 
 SOURCES = ("synthetic", "spacesense", "speedplus", "tango", "folder")
-BACKENDS = ("simulated", "sam3", "imported")
+#: the teacher backends, each name once: the schema's choices here, and the keys of the registry
+#: pipeline.teachers.TEACHERS (name -> class; each class takes its ``backend`` from these constants)
+SIMULATED, SAM3, IMPORTED = BACKENDS = ("simulated", "sam3", "imported")
+#: the evaluate stage's gain intervals (pipeline.stats.INTERVALS; docs/intervals.md): the effect on these
+#: test spacecraft (t), the former seed-aware bootstrap, and the effect on spacecraft like these (cluster t)
+SEED_IMAGE_T, SEED_BOOTSTRAP, SEED_CLUSTER_T = GAIN_INTERVALS = ("seed_image_t", "seed_bootstrap", "seed_cluster_t")
 SPLITS = ("train", "val", "test")
 
 
@@ -122,6 +128,8 @@ class DataParams(_Section):
     resolution: int = _f(384, "working resolution (square), the paper's 384x384", ge=16, le=4096)
     seed: int = _f(2026, "synthetic identities and views; seeded sampling for real protocols", ge=0)
     skip_bad: bool = _f(False, "true: leave bad files out and list them in skipped_files.parquet")
+    max_pixels: int = _f(2**26, "refuse images above width x height pixels, read from the file header before "
+                                "decoding (2**26: 8192 x 8192)", ge=1)
     cache_dir: str | None = _f(".cache/decode", "decode cache, outside DVC outs (not fingerprinted)")
     synthetic: SyntheticParams = Field(default_factory=SyntheticParams)
     contact_sheet_images: int = _f(16, ge=0, le=256)
@@ -143,7 +151,7 @@ PAPER_PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
 
 class TeacherParams(_Section):
     backend: Literal[BACKENDS] = _f(
-        "simulated", "simulated (SIMULATOR of the synthetic benchmark only) | sam3 | imported")
+        SIMULATED, "simulated (SIMULATOR of the synthetic benchmark only) | sam3 | imported")
     prompts: list[str] = _f(PAPER_PROMPTS, "eq:prompt-set, fixed order p1..p6", min_length=1)
     base_prompt_index: int = _f(0, "the annotation-free-style control's single prompt", ge=0)
     vflip_base_prompt: bool = _f(True, "also run the base prompt on the vertically flipped image (AFS control)")
@@ -167,9 +175,9 @@ class TeacherParams(_Section):
                 raise ValueError(f"teacher.prompts[{i}]={p!r} must be a non-empty string")
         if len({p.strip().lower() for p in self.prompts}) != len(self.prompts):
             raise ValueError(f"teacher.prompts has duplicates: {self.prompts}")
-        if self.backend == "sam3" and not self.checkpoint:
+        if self.backend == SAM3 and not self.checkpoint:
             raise ValueError("teacher.checkpoint is required for backend sam3 (a local save_pretrained directory)")
-        if self.backend == "imported" and not self.imported_dir:
+        if self.backend == IMPORTED and not self.imported_dir:
             raise ValueError("teacher.imported_dir is required for backend imported")
         return self
 
@@ -382,6 +390,10 @@ class EvaluateParams(_Section):
     bootstrap_resamples: int = _f(10000, ge=1)
     bootstrap_seed: int = _f(0, ge=0)
     ci: float = _f(0.95, ge=0.5, le=0.999)
+    interval: Literal[GAIN_INTERVALS] = _f(
+        SEED_IMAGE_T, "gain CIs (docs/intervals.md): seed_image_t = the effect on these test spacecraft (seeds + "
+        "images within spacecraft, t); seed_cluster_t = on spacecraft like these (C - 1 df: wide with 3); "
+        "seed_bootstrap = the former seed-aware bootstrap (no stated estimand)")
 
 
 class ReportParams(_Section):
@@ -390,9 +402,6 @@ class ReportParams(_Section):
 
 
 INT8_CALIBRATIONS = ("percentile", "minmax")
-BENCHMARK_VARIANTS = ["fp32_eager_nchw", "fp32_channels_last", "bf16_autocast", "bf16_channels_last",
-                      "torchscript_frozen", "onnxruntime_fp32", "onnxruntime_int8", "openvino_int8",
-                      "cuda_graph_bf16"]
 
 
 class DeployParams(_Section):

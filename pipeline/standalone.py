@@ -58,9 +58,10 @@ import yaml
 
 from pipeline import __version__, catalog
 from pipeline.artifacts import write_text_if_changed
-from pipeline.dag import ROOT, live_plots, render_dvc_yaml, render_params_yaml
+from pipeline.codeversion import ROOT
+from pipeline.dag import live_plots, render_dvc_yaml, render_params_yaml
 from pipeline.datasets.scan import scan_inputs
-from pipeline.errors import InputError
+from pipeline.errors import BACKEND, CHECKPOINT, INPUT, OUT, VAL_MASKS, InputError, Option, literal
 from pipeline.labeling.run import find_images
 from pipeline.offline_plots import template_path, template_text
 from pipeline.ownership import check_outputs, record_fields
@@ -93,13 +94,13 @@ PARAMS_HEADER = """\
 """
 
 
-def check_folder(path: str | Path, what: str) -> Path:
-    """An existing folder as an absolute path; InputError naming ``what`` otherwise."""
+def check_folder(path: str | Path, what: Option) -> Path:
+    """An existing folder as an absolute path; InputError naming the option ``what`` otherwise."""
     p = Path(path)
     if not p.exists():
-        raise InputError(f"{what} {p}: folder not found")
+        raise InputError("{}: folder not found", what(p))
     if not p.is_dir():
-        raise InputError(f"{what} {p}: not a folder")
+        raise InputError("{}: not a folder", what(p))
     return p.resolve()
 
 
@@ -126,8 +127,8 @@ def check_val_masks(input_dir: Path, masks: Path) -> int:
 
     n = len(ids(input_dir) & ids(masks))
     if n < 2:
-        raise InputError(f"--val-masks {masks}: {n} mask(s) named like an image of {input_dir}; at least 2 are "
-                         "needed (half validation, half test)")
+        raise InputError(f"{{}}: {n} mask(s) named like an image of {literal(input_dir)}; at least 2 are "
+                         "needed (half validation, half test)", VAL_MASKS(masks))
     return n
 
 
@@ -151,17 +152,18 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     ``params``: validated params (the distill profile with the user's overrides and the teacher).  In
     an existing ``out``, every path of :data:`PROJECT_OUTPUTS` that exists must be listed by a
     ``distill.json`` of an earlier run, unless ``overwrite`` (:mod:`pipeline.ownership`)."""
-    input_dir = check_folder(input_dir, "INPUT")
+    input_dir = check_folder(input_dir, INPUT)
     find_images(input_dir)  # one line when there is no image at all
-    masks = check_folder(val_masks, "--val-masks") if val_masks is not None else None
+    masks = check_folder(val_masks, VAL_MASKS) if val_masks is not None else None
     if masks is not None:
         check_val_masks(input_dir, masks)
     out = Path(out)
     if out.resolve() == input_dir or input_dir in out.resolve().parents:
-        raise InputError(f"--out {out}: must not be the input folder or inside it")
+        raise InputError("{}: must not be the input folder or inside it", OUT(out))
     if params["teacher"]["backend"] == "simulated":
-        raise InputError("--backend simulated: the SIMULATOR reads ground-truth masks of the training images, "
-                         "which a folder of images has not; use --checkpoint SAM3_DIR or --backend imported")
+        raise InputError("{}: the SIMULATOR reads ground-truth masks of the training images, which a folder of "
+                         "images has not; use {} or {}", BACKEND("simulated"), CHECKPOINT("SAM3_DIR"),
+                         BACKEND("imported"))
     check_outputs(out, PROJECT_OUTPUTS, RECORD_FILE, "distill", overwrite=overwrite, **LEGACY)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()
@@ -186,8 +188,8 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
         for args in (("init", "--no-scm", "-q"), ("config", "core.analytics", "false")):
             res = _dvc(out, *args)
             if res.returncode != 0:
-                raise InputError(f"--out {out}: `dvc {' '.join(args)}` failed: "
-                                 f"{(res.stderr or res.stdout).strip().splitlines()[-1:]}")
+                raise InputError(f"{{}}: `dvc {literal(' '.join(args))}` failed: "
+                                 f"{literal((res.stderr or res.stdout).strip().splitlines()[-1:])}", OUT(out))
     # after `dvc init` (which a pre-made .dvc/ would skip): dvc.yaml's plots name this template, and
     # without it `dvc plots show` fails in the project
     write_text_if_changed(template_path(out), template_text())
@@ -201,7 +203,8 @@ _DVC_ERROR = re.compile(r"^ERROR: ")
 
 def run_project(out: str | Path, device: str = "auto") -> None:
     """``dvc repro`` in the project ``out``, its output streamed.  When a stage fails, its own one-line
-    message is held back and raised once (InputError), with DVC's ``ERROR: failed to reproduce ...``
+    message is held back and raised once (InputError, the flags it names spelled again in the caller's
+    terms: :meth:`pipeline.errors.InputError.from_line`), with DVC's ``ERROR: failed to reproduce ...``
     left out; a stage that failed without such a line (a bug: its traceback is shown) is reported by
     DVC's line."""
     out = Path(out)
@@ -219,7 +222,7 @@ def run_project(out: str | Path, device: str = "auto") -> None:
     rc = proc.wait()
     if rc != 0:
         if stage_error is not None:
-            raise InputError(stage_error)
+            raise InputError.from_line(stage_error)
         raise InputError(f"{out}: {dvc_error or f'dvc repro failed (exit {rc})'}; the stage's output is above -- "
                          "fix it and rerun the same command to resume")
 

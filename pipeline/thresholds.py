@@ -17,9 +17,12 @@ from __future__ import annotations
 
 import logging
 import math
+from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 
+from pipeline.artifacts import open_artifact
 from pipeline.errors import InputError
 from pipeline.metrics import iou_curve
 from pipeline.params import PAPER, require
@@ -180,24 +183,28 @@ def calibrate_threshold(probs, gts, grid, rule: str = "argmax", *, tolerance: fl
 NO_VALIDATION_MASKS = "fixed tau: no validation masks"
 
 
+def _run_row(thresholds_df, method: str, seed: int):
+    """The (method, seed) row of a thresholds table (a pandas Series), or None when it is absent."""
+    df = thresholds_df
+    rows = df[(df["method"].astype(str) == str(method)) & (df["seed"].astype(int) == int(seed))]
+    return None if rows.empty else rows.iloc[0]
+
+
+def _note(row) -> str | None:
+    value = row.get("tau_source") if row is not None else None
+    return value if isinstance(value, str) and value else None
+
+
 def lookup_tau_source(thresholds_df, method: str, seed: int) -> str | None:
     """The ``tau_source`` note of (method, seed) in a thresholds table (e.g. :data:`NO_VALIDATION_MASKS`),
     or None for a calibrated row, an absent row, or a table without the column."""
-    df = thresholds_df
-    if "tau_source" not in df.columns:
-        return None
-    rows = df[(df["method"].astype(str) == str(method)) & (df["seed"].astype(int) == int(seed))]
-    value = rows["tau_source"].iloc[0] if not rows.empty else None
-    return value if isinstance(value, str) and value else None
+    return _note(_run_row(thresholds_df, method, seed))
 
 
 def lookup_tau(thresholds_df, method: str, seed: int) -> float | None:
     """The calibrated tau of (method, seed) in a thresholds table, or None when the row is absent."""
-    df = thresholds_df
-    rows = df[(df["method"].astype(str) == str(method)) & (df["seed"].astype(int) == int(seed))]
-    if rows.empty:
-        return None
-    return float(rows["tau"].iloc[0])
+    row = _run_row(thresholds_df, method, seed)
+    return None if row is None else float(row["tau"])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -230,6 +237,66 @@ def resolve_tau(option=None, bundle=None, checkpoint=None, thresholds=None, fixe
             log.warning("tau = %s from %s (no calibrated tau)", tau, source)
         return tau, source
     raise InputError("tau: no calibrated tau found; pass --tau or a thresholds table (--thresholds)")
+
+
+#: the text of a thresholds row's calibrated tau when the row has no ``tau_source`` note
+CALIBRATED = "calibrated on the validation split"
+
+
+def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = None, thresholds=None,
+                   params: Mapping | None = None) -> dict[str, tuple[float, str]]:
+    """The tau candidates of one model, calibrated and fixed: ``{source: (tau, text)}``, the keyword
+    arguments of :func:`resolve_tau` (eq:inference-mask binarises with the one it picks).
+
+    * a deploy bundle (``bundle``: its deploy.json): ``bundle`` = the tau it was exported with;
+    * a checkpoint (``payload``: its model.json fields, at least method and seed): ``checkpoint`` = the
+      payload's tau when it records one, else ``thresholds`` = the run's row of ``thresholds`` (a
+      thresholds.parquet: a path, read only when it exists, an opened artifact or a DataFrame), text
+      :data:`CALIBRATED` or the row's ``tau_source`` note (:data:`NO_VALIDATION_MASKS`);
+    * ``fixed``: ``calibrate.fixed_tau``, the one fixed tau: as calibrate recorded it in the run's
+      thresholds row, else of ``params`` (validated params; None: no fixed candidate).
+
+    Export, segment, benchmark, evaluation (both taus) and :class:`pipeline.Segmenter` take their tau
+    from here.
+    """
+    found: dict[str, tuple[float, str]] = {}
+    if bundle is not None and bundle.get("tau") is not None:
+        found["bundle"] = (float(bundle["tau"]), f"deploy bundle ({bundle.get('tau_source', '?')})")
+    row, method, seed = None, None, None
+    if payload is not None:
+        method, seed = payload.get("method"), payload.get("seed")
+        if payload.get("tau") is not None:
+            found["checkpoint"] = (float(payload["tau"]), TAU_LABELS["checkpoint"])
+        elif (table := _thresholds_table(thresholds)) is not None:
+            row = _run_row(table, method, seed)
+    where = _thresholds_name(thresholds)
+    if row is not None:
+        found["thresholds"] = (float(row["tau"]), f"{_note(row) or CALIBRATED} ({where}: {method}, seed {seed})")
+    label = TAU_LABELS["fixed"]
+    if row is not None and row.get("fixed_tau") is not None:
+        found["fixed"] = (float(row["fixed_tau"]), f"{label} (recorded by calibrate in {where})")
+    elif params is not None and (fixed := (params.get("calibrate") or {}).get("fixed_tau")) is not None:
+        why = "" if payload is None else \
+            f" (no calibrated row for {method} seed {seed} in {where})" if thresholds is not None else \
+            " (no --thresholds given)"
+        found["fixed"] = (fixed, label + why)
+    return found
+
+
+def _thresholds_name(thresholds) -> str | None:
+    """How messages name ``thresholds`` (a path, an opened artifact or a DataFrame)."""
+    if thresholds is None:
+        return None
+    return "thresholds table" if hasattr(thresholds, "columns") else str(getattr(thresholds, "path", thresholds))
+
+
+def _thresholds_table(thresholds):
+    """The DataFrame of ``thresholds`` (a path, read only when it exists; an opened artifact; a DataFrame)."""
+    if thresholds is None or hasattr(thresholds, "columns"):
+        return thresholds
+    if hasattr(thresholds, "df"):
+        return thresholds.df
+    return open_artifact(thresholds, "thresholds").df if Path(thresholds).exists() else None
 
 
 # --------------------------------------------------------------------------------------------------

@@ -2,7 +2,9 @@
 
 * ``--params FILE`` (default params.yaml), ``--set key.path=value`` (repeatable), ``--device``;
 * logs on stderr, progress bars on every loop a user waits on (``pipeline.progress``);
-* user errors (:class:`pipeline.errors.InputError`) -> one line on stderr, exit code 2, no traceback;
+* user errors (:class:`pipeline.errors.InputError`) -> one line on stderr, exit code 2, no traceback,
+  naming options by their flags (``--max-pixels``; the Python API names the same options by their
+  keywords, ``max_pixels=``: :meth:`pipeline.errors.InputError.render`);
 * operating-system failures (no space, no permission, read-only file system, path too long, ...) ->
   one line on stderr naming the path, exit code 1, no traceback (:func:`one_line_errors`, the one place
   both are handled; writes are atomic, so the previous complete output stays in place).
@@ -24,8 +26,8 @@ import click
 from pipeline.artifacts import Meta, make_meta
 from pipeline.catalog import STAGES, stage_params
 from pipeline.codeversion import ROOT, _module_name, code_version_of
-from pipeline.errors import InputError
-from pipeline.params import load_params
+from pipeline.errors import CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError
+from pipeline.params import PAPER, load_params
 
 def setup_logging() -> None:
     level = os.environ.get("GEODISTILL_LOG", "INFO").upper()
@@ -54,13 +56,14 @@ def os_error_line(e: OSError) -> str:
 
 @contextlib.contextmanager
 def one_line_errors(command: str):
-    """Run a command's body; an InputError ends it with ``geodistill <command>: error: <line>`` and exit
-    code 2, an OSError with ``geodistill <command>: error: <path>: <what> (<ERRNO>)`` and exit code 1 --
-    one line on stderr each, no traceback."""
+    """Run a command's body; an InputError ends it with ``geodistill <command>: error: <line>`` (options
+    named by their flags: ``e.render(CLI)``) and exit code 2, an OSError with ``geodistill <command>:
+    error: <path>: <what> (<ERRNO>)`` and exit code 1 -- one line on stderr each, no traceback."""
     try:
         yield
     except InputError as e:
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        line = e.render(CLI)
+        msg = line.splitlines()[0] if line else type(e).__name__
         click.echo(f"geodistill {command}: error: {msg}", err=True)
         sys.exit(EXIT_INPUT)
     except OSError as e:
@@ -68,13 +71,27 @@ def one_line_errors(command: str):
         sys.exit(EXIT_OS)
 
 
-#: the shared options of the user tools (docs/own-data.md): one name, one help text
+#: the shared options of the user tools (docs/own-data.md): one name (pipeline.errors, where the errors
+#: naming them take it from), one help text
 overwrite_option = click.option(
-    "--overwrite", is_flag=True,
+    OVERWRITE.flag, is_flag=True,
     help="replace files in the way that this command did not write (default: refuse, naming the first)")
 skip_bad_option = click.option(
-    "--skip-bad", is_flag=True,
+    SKIP_BAD.flag, is_flag=True,
     help="leave unreadable images out and list them with the reason (default: stop at the first, naming it)")
+max_pixels_option = click.option(
+    MAX_PIXELS.flag, MAX_PIXELS.keyword, type=int, default=None, metavar="N",
+    help="refuse images above N pixels (width x height), read from the file header before decoding; "
+         f"with --skip-bad they are left out and listed (default: data.max_pixels, {PAPER.data.max_pixels:,})")
+
+
+def teacher_workers_options(fn):
+    """``--workers`` / ``--address``: the teacher's Ray Data executor (teacher stage and label)."""
+    fn = click.option("--address", default=None, metavar="ADDRESS",
+                      help="Ray cluster to join with --workers (default: RAY_ADDRESS, else an embedded local Ray)")(fn)
+    return click.option("--workers", default=0, show_default=True, type=click.IntRange(0),
+                        help="teachers in a Ray Data actor pool (one per GPU or CPU worker); 0 = the serial "
+                             "loop in this process (same results)")(fn)
 
 
 def stage_code_version(stage_file: str) -> str:

@@ -15,8 +15,6 @@ rho from the parquet.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 import numpy as np
 import pandas as pd
@@ -27,7 +25,7 @@ from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.dvc_results import teacher_metric_files, write_metrics_dir
 from pipeline.errors import InputError
 from pipeline.metrics import per_image_metrics
-from pipeline.params import section
+from pipeline.params import SIMULATED, section
 from pipeline.progress import progress
 from pipeline.report.analysis import prompt_source, select_prompt
 from stages._common import stage_command, stage_context
@@ -52,12 +50,9 @@ def main(params, device, art, out, metrics_dir):
     """Teacher prompt / vote quality on val+test, prompt selection on val, gate-vs-quality analysis."""
     cfg = section(params, "evaluate")
     tol, small_frac = cfg["bf1_tolerance"], cfg["small_region_max_fraction"]
-    art = Path(art)
-    manifest = open_artifact(art / "manifest.parquet", "manifest")
-    reference = open_artifact(art / "reference.zarr", "reference")
-    teacher = open_artifact(art / "teacher.zarr", "teacher")
-    consensus = open_artifact(art / "consensus.zarr", "consensus")
-    gates = open_artifact(art / "gates.parquet", "gates")
+    manifest, reference, teacher, consensus, gates = (
+        open_artifact(catalog.path(name, art), name)  # each schema is its catalogue name
+        for name in ("manifest", "reference", "teacher", "consensus", "gates"))
     require_same_run(manifest, reference, teacher, consensus, gates)
     mdf = manifest.df
     prompts = list(teacher.attrs.get("prompts", []))
@@ -96,14 +91,14 @@ def main(params, device, art, out, metrics_dir):
 
     meta = stage_context("analyze_teacher", __file__, params).meta(
                     "teacher_metrics", [manifest, reference, teacher, consensus, gates],
-                    teacher_backend=backend, simulator=backend == "simulated", base_source=base,
+                    teacher_backend=backend, simulator=backend == SIMULATED, base_source=base,
                     selected_source=selected, prompts=prompts,
                     val_prompt_iou={k: float(v) for k, v in val_means.items()})
     write_parquet(out, tm, meta)
 
     write_metrics_dir(metrics_dir or catalog.path("metrics_teacher", art), teacher_metric_files(tm, gates.df))
     click.echo(f"analyze_teacher: {idx.size} images x {k_prompts + 1} sources -> {out} "
-               f"(teacher backend: {backend}{' = SIMULATOR' if backend == 'simulated' else ''})", err=True)
+               f"(teacher backend: {backend}{' = SIMULATOR' if backend == SIMULATED else ''})", err=True)
 
 
 if __name__ == "__main__":

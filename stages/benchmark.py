@@ -56,7 +56,7 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
     from pipeline.deploy import benchmark as B
     cfg = section(params, "deploy")
     st = B.benchmark_settings(cfg)
-    target = B.open_target(deploy_dir, checkpoint, thresholds, tau, section(params, "calibrate").get("fixed_tau"))
+    target = B.open_target(deploy_dir, checkpoint, thresholds, tau, params)
     resolution, _ = resolve_resolution(option=resolution, benchmark=st["resolution"], recorded=target.resolution,
                                        params=section(params, "data").get("resolution"))
     val_images, val_masks, calib, data_inputs = B.read_benchmark_data(Path(art), st["n_calib"])

@@ -12,22 +12,14 @@ import click
 
 from pipeline import __version__
 from pipeline.artifacts import PROGRAM
+from pipeline.dag import stage_modules
 from stages._common import one_line_errors
 
-# subcommand -> module under stages/ exposing a click command named ``main`` (or ``module:command``)
+# subcommand -> module under stages/ exposing a click command named ``main`` (or ``module:command``): every
+# stage of the DAG (pipeline.dag.stage_modules, from the catalogue), then the tools
 COMMANDS = {
-    "prepare": "stages.prepare",
-    "teacher": "stages.teacher",
-    "consensus": "stages.consensus",
-    "geometry": "stages.geometry",
-    "train": "stages.train",
-    "calibrate": "stages.calibrate",
-    "evaluate": "stages.evaluate",
-    "report": "stages.report",
+    **stage_modules(),
     "segment": "stages.segment",
-    "export": "stages.export",
-    "benchmark": "stages.benchmark",
-    "analyze_teacher": "stages.analyze_teacher",
     "dag": "stages.dag:dag_main",
     "profile": "stages.dag:profile_main",
     "run": "stages.run",

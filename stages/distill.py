@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import click
 
-from pipeline.api import choose_teacher, with_skip_bad
+from pipeline.api import choose_teacher, with_data_options
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
 from pipeline.standalone import project_outputs, run_project, write_project
-from stages._common import overwrite_option, skip_bad_option, stage_command
+from stages._common import max_pixels_option, overwrite_option, skip_bad_option, stage_command
 
 
 @stage_command("distill", default_profile="distill", profile_loader=load_params_or_profile)
@@ -27,13 +27,15 @@ from stages._common import overwrite_option, skip_bad_option, stage_command
 @click.option("--imported-dir", default=None, type=click.Path(), help="imported teacher masks (see the README layout)")
 @click.option("--no-run", is_flag=True, help="only write the DVC project (run it later with `dvc repro` in --out)")
 @skip_bad_option
+@max_pixels_option
 @overwrite_option
-def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, no_run, skip_bad, overwrite):
+def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, no_run, skip_bad, max_pixels,
+         overwrite):
     """Train a deployable student on a folder of images: SAM 3 pseudo-labels, Stage I (plain student),
     Stage II (GeoDistill-Refine), threshold, export, report.  --out becomes a DVC project running the
     pipeline's own DAG, so a rerun resumes where it stopped; distill.json there lists what distill
     wrote, and anything else in the way is refused unless --overwrite (docs/own-data.md)."""
-    params = with_skip_bad(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad)
+    params = with_data_options(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad, max_pixels)
     project = write_project(input_dir, out, params, val_masks=val_masks, overwrite=overwrite)
     if no_run:
         click.echo(f"distill: wrote the DVC project {project}; run `dvc repro` there", err=True)

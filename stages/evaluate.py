@@ -62,17 +62,18 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
     checkpoints_read = [open_artifact(path, "checkpoint") for _, _, path in runs]
 
     metrics = score_runs(runs, manifest.df, images, reference, test, thr.df, cfg, resolve_device(device))
-    summary = summarize(metrics, n_boot, ci, boot_seed)
+    summary = summarize(metrics, n_boot, ci, boot_seed, cfg["interval"])
 
     ctx = stage_context("evaluate", __file__, params)
     write_parquet(out, metrics, ctx.meta("metrics", [manifest, images, reference, thr, *checkpoints_read]))
     write_parquet(summary_out, summary, ctx.meta("summary", [open_artifact(out, "metrics")],
-                                                 control=BASELINE, ci=ci, bootstrap_resamples=n_boot))
+                                                 control=BASELINE, ci=ci, bootstrap_resamples=n_boot,
+                                                 interval=cfg["interval"]))
     # the DVC results (pipeline.dvc_results): metrics files and the plot tables of the runs' logs and curves
     dvc_results.write_metrics_dir(metrics_dir or catalog.path("metrics_students", art),
                                   dvc_results.student_metric_files(summary))
     dvc_results.write_csv(training_curves or catalog.path("plot_training_curves", art), dvc_results.training_curves(
-        (m, s, ckpt.table("log.parquet")) for (m, s, _), ckpt in zip(runs, checkpoints_read)))
+        (m, s, ckpt.table(catalog.TRAINING_LOG_FILE)) for (m, s, _), ckpt in zip(runs, checkpoints_read)))
     dvc_results.write_csv(threshold_curves or catalog.path("plot_threshold_curves", art),
                           dvc_results.threshold_curves(thr.df))
     click.echo(f"evaluate: {len(runs)} runs x {test.size} test images -> {out}, {summary_out}", err=True)

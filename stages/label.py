@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import click
 
-from pipeline.api import choose_teacher, with_skip_bad
+from pipeline.api import choose_teacher, with_data_options
 from pipeline.labeling import label_folder
 from pipeline.labeling.run import parse_formats
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
-from stages._common import overwrite_option, skip_bad_option, stage_command
-from stages.teacher import teacher_workers_options
+from stages._common import (max_pixels_option, overwrite_option, skip_bad_option, stage_command,
+                            teacher_workers_options)
 
 
 @stage_command("label", default_profile="paper", profile_loader=load_params_or_profile)
@@ -26,10 +26,11 @@ from stages.teacher import teacher_workers_options
 @click.option("--format", "formats", default="png,coco,yolo", show_default=True,
               help="comma-separated: png, coco, yolo")
 @skip_bad_option
+@max_pixels_option
 @overwrite_option
 @teacher_workers_options
 def main(params, device, input_dir, out, checkpoint, backend, imported_dir, reference_masks, formats, skip_bad,
-         overwrite, workers, address):
+         max_pixels, overwrite, workers, address):
     """Label a folder of images with the multi-prompt teacher: voted pseudo-masks as PNG, COCO (RLE)
     and YOLO segmentation files, a table of agreement c, valid ratio v, area a and gate g per image,
     and a contact sheet.  Without --params the paper's values are used (working resolution 384).
@@ -37,7 +38,7 @@ def main(params, device, input_dir, out, checkpoint, backend, imported_dir, refe
     Reruns resume from the teacher cache inside OUT; label.json there lists what label wrote, and
     anything else in the way is refused unless --overwrite (docs/own-data.md)."""
     fmts = parse_formats(formats)  # checked before any work
-    params = with_skip_bad(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad)
+    params = with_data_options(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad, max_pixels)
     result = label_folder(input_dir, out, params, device=device, formats=fmts, reference_masks=reference_masks,
                           overwrite=overwrite, workers=workers, address=address)
     g = result.table["g"]

@@ -18,7 +18,8 @@
 * Exit codes: 0 ok; 2 bad input (one line naming the file or parameter); 1 training diverged
   (non-finite loss; one line, no checkpoint written).
 
-Wiring only: this module opens the artifacts under ``--artifacts`` (:func:`load_inputs`), the
+Wiring only: this module opens the artifacts under ``--artifacts``
+(:func:`pipeline.training_inputs.load_inputs`), the
 ``--init`` checkpoint (:func:`load_init`) and the resume state
 (:class:`pipeline.checkpointing.FileCheckpointer`), and logs the epoch rows
 (:func:`pipeline.dvc_results.write_live_log`);
@@ -30,12 +31,11 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any, Mapping
 
 import click
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact, require_same_run, write_json
+from pipeline.artifacts import open_artifact, write_json
 from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.checkpointing import FileCheckpointer
 from pipeline.device import resolve_device
@@ -45,44 +45,8 @@ from pipeline.errors import ArtifactError, InputError, TrainingDiverged
 from pipeline.inference import load_student, save_checkpoint
 from pipeline.methods import SELECTION_TAU_KEY, SUPERVISED_CEILING, fingerprint_params, get_method
 from pipeline.params import get_path, section
+from pipeline.training_inputs import load_inputs
 from stages._common import stage_command, stage_context
-
-
-def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any]) -> tuple[Any, Any, list]:
-    """Open what the method's training reads and the validation reference; build the arrays.
-
-    Returns (TrainData, ValData or None, the artifacts opened -- the checkpoint's lineage).
-    reference.zarr is opened only when the manifest has validation rows, and goes only to
-    :func:`pipeline.training.validation_data` -- except for the supervised ceiling (NOT
-    annotation-free), whose targets :func:`pipeline.supervised.ceiling_training_data` builds from it.
-    """
-    from pipeline import training  # torch: imported when a run trains, not with the stage module
-
-    def opened_artifact(name: str):
-        return open_artifact(catalog.path(name, artifacts), catalog.ARTIFACTS[name].schema)
-
-    inputs = {name: opened_artifact(name) for name in training.training_inputs(spec, cfg)}
-    # outputs of one stage must come from one run (a kill between geometry.zarr and gates.parquet)
-    require_same_run(*inputs.values())
-    opened = list(inputs.values())
-    reference = None
-    if spec.annotation_free:
-        data = training.training_data(spec, cfg, inputs)
-    else:  # the supervised ceiling: the one method whose loss sees reference masks (NOT annotation-free)
-        from pipeline.supervised import ceiling_training_data  # imports pipeline.training (torch)
-
-        reference = opened_artifact("reference")
-        opened.append(reference)
-        require_same_run(*opened)
-        data = ceiling_training_data(spec, inputs, reference)
-    val = None
-    if len(training.validation_rows(inputs["manifest"])):
-        if reference is None:
-            reference = opened_artifact("reference")
-            opened.append(reference)
-            require_same_run(*opened)
-        val = training.validation_data(inputs["manifest"], inputs["images"], reference)
-    return data, val, opened
 
 
 def load_init(path: str | Path):

@@ -10,7 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 import pipeline
-from test_label import make_image_folder
+from tests._tiny_teacher import make_image_folder
 
 
 @pytest.fixture(scope="module")

@@ -4,8 +4,6 @@ their place in evaluate's gains and in the report; the per-epoch calibrated-tau 
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -14,11 +12,7 @@ from pipeline.artifacts import open_artifact, write_zarr
 from pipeline.errors import InputError
 from pipeline.methods import (METHODS, SUPERVISED_CEILING, Method, check_reference_boundary, gain_treatments,
                               get_method, param_keys, resolve_plan)
-from tests.test_training import _cli, _params_file, build_tiny_artifacts, load_arrays, tiny_cfg
-
-
-# the tiny artifacts and a one-epoch Stage-I state: the same module fixtures as the methods tests
-from tests.test_methods import stage1_state, tiny  # noqa: E402,F401  (pytest fixtures)
+from tests._tiny_train import build_tiny_artifacts, load_arrays, tiny_cfg, train_cli, train_params_file
 
 
 def _train(tiny, name, cfg, init_state=None, art=None):
@@ -130,14 +124,14 @@ def test_ceiling_needs_the_explicit_flag(tiny, tmp_path):
     assert validate(profile_params("demo"))["protocol"]["supervised_ceiling"] is False   # off by default
     assert validate(profile_params("paper"))["protocol"]["runs"][SUPERVISED_CEILING] == [42, 3407, 2026]
     # the train stage refuses the ceiling without the flag (one line, exit 2) ...
-    params = _params_file(tmp_path)
+    params = train_params_file(tmp_path)
     common = ["--params", str(params), "--artifacts", str(tiny), "--device", "cpu", "--resume-dir",
               str(tmp_path / "cache"), "--stage", "1", "--method", SUPERVISED_CEILING, "--seed", "42"]
-    r = _cli(*common, "--out", str(tmp_path / "no"), cwd=tmp_path)
+    r = train_cli(*common, "--out", str(tmp_path / "no"), cwd=tmp_path)
     assert r.returncode == 2 and "protocol.supervised_ceiling" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "no").exists()
     # ... and trains with it; its lineage names reference.zarr once, and no teacher output
-    r = _cli(*common, "--set", "protocol.supervised_ceiling=true", "--out", str(tmp_path / "yes"), cwd=tmp_path)
+    r = train_cli(*common, "--set", "protocol.supervised_ceiling=true", "--out", str(tmp_path / "yes"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     schemas = [i["schema"] for i in open_artifact(tmp_path / "yes", "checkpoint").meta.inputs]
     assert sorted(schemas) == ["images", "manifest", "reference"]
@@ -161,43 +155,9 @@ def test_log_has_val_iou_at_half_and_at_the_epoch_calibrated_tau(tiny):
 
 
 # ---- evaluate and report with the controls --------------------------------------------------------
-def _other_outputs(main, given, root):
-    """Every path option of a stage command not in ``given`` pointed under ``root`` (DVC metrics and
-    plot files default to repository paths; the test must not write there)."""
-    import click
-
-    out = []
-    for opt in main.params:
-        if isinstance(opt, click.Option) and isinstance(opt.type, click.Path) and not set(opt.opts) & set(given):
-            out += [opt.opts[0], str(root / opt.name)]
-    return out
-
-
-def run_result_stages(root: Path, art: Path, params: Path, report_out: Path | None = None) -> None:
-    """calibrate, evaluate, analyze_teacher (and the report when ``report_out`` is given) on tiny
-    artifacts through their click commands; DVC metrics/plot files go under ``root``/dvc, never into
-    the repository."""
-    from stages.analyze_teacher import main as analyze
-    from stages.calibrate import main as calibrate
-    from stages.evaluate import main as evaluate
-    from stages.report import main as report
-    from test_evaluate import invoke
-
-    common = ["--params", str(params), "--artifacts", str(art)]
-    steps = [
-        (calibrate, ["--checkpoints", str(art / "checkpoints"), "--out", str(art / "thresholds.parquet")]),
-        (evaluate, ["--checkpoints", str(art / "checkpoints"), "--thresholds", str(art / "thresholds.parquet"),
-                    "--out", str(art / "metrics.parquet"), "--summary", str(art / "summary.parquet")]),
-        (analyze, ["--out", str(art / "teacher_metrics.parquet")]),
-    ] + ([(report, ["--out", str(report_out)])] if report_out is not None else [])
-    for main, extra in steps:
-        res = invoke(main, common + extra + _other_outputs(main, common + extra, root / "dvc"))
-        assert res.exit_code == 0, res.output
-
-
 @pytest.fixture(scope="module")
 def reported(tmp_path_factory):
-    from test_evaluate import build_tiny_artifacts as build_eval, write_params
+    from tests._tiny_eval import build_tiny_artifacts as build_eval, run_result_stages, write_params
 
     root = tmp_path_factory.mktemp("controls")
     art = build_eval(root / "artifacts", methods=("plain", "geodistill", "continuation", SUPERVISED_CEILING))
@@ -215,7 +175,7 @@ def test_evaluate_compares_with_plain_and_continuation_never_the_ceiling(reporte
     ceil = s.xs(SUPERVISED_CEILING, level="method")
     assert np.isfinite(ceil["iou_mean"]).all()
     assert ceil[[c for c in s.columns if c.startswith("gain_")]].isna().all().all()
-    # geodistill vs the continuation: the paired bootstrap of the two methods alone
+    # geodistill vs the continuation: the gain interval of the two methods alone
     pair = m[m["method"].isin(["geodistill", "continuation"])]
     want = method_gains(pair, ["iou"], control="continuation", by=["dataset", "group", "threshold_mode"],
                         n_resamples=200, ci=0.95, seed=0).set_index(["group", "method", "threshold_mode"])

@@ -16,7 +16,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from test_label import make_image_folder, tiny_sam3  # noqa: F401  (the session fixture)
+from tests._tiny_teacher import make_image_folder
 
 pytestmark = pytest.mark.slow
 

@@ -203,7 +203,7 @@ def _stage_results(repo: Path, art: Path, params: Path, deploy_ms: float) -> Non
     from pipeline.catalog import path as apath
     from stages.analyze_teacher import main as analyze
     from stages.evaluate import main as evaluate
-    from tests.test_evaluate import invoke
+    from tests._tiny_eval import invoke
 
     common = ["--params", str(params), "--artifacts", str(art)]
     res = invoke(evaluate, common + [
@@ -225,15 +225,10 @@ def dvc_project(tmp_path_factory):
     if shutil.which("git") is None:
         pytest.skip("git not available")
     from pipeline.dag import dvc_plots, dvc_stages
-    from stages.calibrate import main as calibrate
-    from tests.test_evaluate import build_tiny_artifacts, invoke, write_params
+    from tests._tiny_eval import calibrated_artifacts, write_params
 
     root = tmp_path_factory.mktemp("dvc_results")
-    art = build_tiny_artifacts(root / "artifacts")
-    params = write_params(root / "params.yaml")
-    res = invoke(calibrate, ["--params", str(params), "--artifacts", str(art), "--checkpoints",
-                             str(art / "checkpoints"), "--out", str(art / "thresholds.parquet")])
-    assert res.exit_code == 0, res.output
+    art, params = calibrated_artifacts(root)
 
     repo = root / "repo"
     repo.mkdir()

@@ -8,11 +8,11 @@ import torch
 
 from pipeline.deploy import benchmark as bench
 from pipeline.deploy.engines import ENGINES, MODEL_ENGINES, SEGMENT_ENGINES, Source, unavailable
-from pipeline.deploy.segmenter import ENGINES as SEGMENT_CHOICES
+from pipeline.engine_table import ENGINE_CHOICES as SEGMENT_CHOICES
 from pipeline.deploy.segmenter import load_segmenter
 from pipeline.inference import images_to_tensor
 from pipeline.params import BENCHMARK_VARIANTS
-from test_deploy import RES, make_checkpoint, tiny_model
+from tests._tiny_deploy import RES, make_checkpoint, tiny_model
 
 
 def test_every_engine_name_is_one_registry_entry():

@@ -17,7 +17,7 @@ from pipeline.metrics import mask_agreement
 from pipeline.deploy.segmenter import load_segmenter, predict_logits_torch, resolve_engine
 from pipeline.errors import InputError
 from pipeline.inference import images_to_tensor
-from tests.test_deploy import HAS_ONNX, RES, make_checkpoint, tiny_model
+from tests._tiny_deploy import HAS_ONNX, RES, make_checkpoint, tiny_model
 
 HAS_OPENVINO = __import__("pipeline.deploy.openvino_engine", fromlist=["x"]).openvino_unavailable_reason() is None
 
@@ -104,7 +104,7 @@ def test_openvino_runs_the_onnx_files_like_onnxruntime(tmp_path):
 
 
 def test_openvino_engine_needs_its_file_or_its_extra(tmp_path, monkeypatch):
-    from tests.test_deploy import run_export
+    from tests._tiny_deploy import run_export
 
     ckpt = make_checkpoint(tmp_path / "ckpt")
     assert run_export(ckpt, tmp_path / "deploy", "--tau", "0.5", "--no-int8").exit_code == 0

@@ -9,6 +9,11 @@ The rule (docs/decisions.md, "Imports"): every import is at the top of its modul
   removed (``geodistill --help`` must not start torch).
 
 :data:`LAZY` is the one list of those dependencies, with the reason for each.
+
+The layers (docs/decisions.md, "Layers"): :data:`LAYERS` is the one statement of the layer order, lowest
+first; a module imports its own layer and those below it, never one above (imports inside functions
+included), and nothing under ``pipeline/`` imports ``stages/`` (:data:`CLI`): the library stands without
+its command line.  Every project file is in exactly one layer.
 """
 
 from __future__ import annotations
@@ -39,6 +44,64 @@ LAZY = {
     "pycocotools": "the COCO writer only",
     "safetensors": "weights I/O only (with torch)",
 }
+
+
+#: The layers, lowest first: (name, what it holds, its files -- paths from the repository root, a folder
+#: ending in "/").  A module imports its own layer and those below, never one above.
+LAYERS = (
+    ("core", "equations, tables and rules: params, methods, catalogue, DAG text; no artifact I/O",
+     ("pipeline/errors.py", "pipeline/progress.py", "pipeline/reproducibility.py", "pipeline/checkpointing.py",
+      "pipeline/codeversion.py", "pipeline/device.py", "pipeline/model.py", "pipeline/methods.py",
+      "pipeline/engine_table.py", "pipeline/params.py", "pipeline/profiles.py", "pipeline/catalog.py",
+      "pipeline/stats.py", "pipeline/metrics.py", "pipeline/losses.py", "pipeline/geometry.py",
+      "pipeline/consensus.py", "pipeline/diagnostics.py", "pipeline/dag.py")),
+    ("artifacts", "typed artifacts and files: Zarr/Parquet I/O, weights, streaming, results, ownership",
+     ("pipeline/__init__.py", "pipeline/artifacts.py", "pipeline/weights.py", "pipeline/streaming.py",
+      "pipeline/offline_plots.py", "pipeline/dvc_results.py", "pipeline/environment.py", "pipeline/ownership.py",
+      "pipeline/thresholds.py")),  # tau calibration, and the tau candidates read from a thresholds table
+    ("stage logic", "each stage's and tool's work, callable and tested without the CLI",
+     ("pipeline/datasets/", "pipeline/prepare.py", "pipeline/teachers/", "pipeline/pseudo_labels.py",
+      "pipeline/training_inputs.py", "pipeline/training.py", "pipeline/supervised.py", "pipeline/inference.py",
+      "pipeline/evaluation.py", "pipeline/exporting.py", "pipeline/segmenting.py", "pipeline/deploy/",
+      "pipeline/report/", "pipeline/cluster/", "pipeline/labeling/")),
+    ("api", "the Python API of the user tools: label, distill, a standalone project",
+     ("pipeline/standalone.py", "pipeline/api.py")),
+    ("stages", "the command line: options -> read artifacts -> call the logic -> write", ("stages/",)),
+    ("benchmarks", "measurements; they run the stages as commands, never import them", ("pipeline/benchmarks/",)),
+)
+#: the command-line layer, which no file of the library (``pipeline/``) imports
+CLI = "stages/"
+
+
+def layer_of(rel: str) -> int | None:
+    """The index in :data:`LAYERS` of the file at ``rel`` (a POSIX path from the root); the longest
+    matching entry decides (``pipeline/benchmarks/`` before a ``pipeline/`` one); None if none matches."""
+    hits = [(len(entry), i) for i, (_, _, entries) in enumerate(LAYERS) for entry in entries
+            if rel == entry or (entry.endswith("/") and rel.startswith(entry))]
+    return max(hits)[1] if hits else None
+
+
+def layer_violations(root: Path = ROOT) -> list[str]:
+    """One line per file in no layer, per import of a higher layer, and per import of the CLI from the library."""
+    bad = []
+    for path in _files(root):
+        rel = path.relative_to(root).as_posix()
+        mine = layer_of(rel)
+        if mine is None:
+            bad.append(f"{rel} is in no layer: add it to LAYERS in tests/test_imports.py (docs/decisions.md, Layers)")
+            continue
+        top, lazy = _imports(path, root)
+        for module, line in top + lazy:
+            target = _project_file(module, root)
+            if target is None or target == path:
+                continue
+            trel = target.relative_to(root).as_posix()
+            theirs = layer_of(trel)
+            if not rel.startswith(CLI) and trel.startswith(CLI):
+                bad.append(f"{rel}:{line} imports {module}: the library imports the command line ({CLI})")
+            elif theirs is not None and theirs > mine:
+                bad.append(f"{rel}:{line} ({LAYERS[mine][0]}) imports {module} ({LAYERS[theirs][0]}, a higher layer)")
+    return bad
 
 
 def _files(root: Path = ROOT) -> list[Path]:
@@ -173,3 +236,25 @@ def test_the_checks_see_a_circle_and_a_misplaced_import(tmp_path):
     assert [line.split(" (")[0] for line in bad] == ["pipeline/a.py:2 imports json inside a function",
                                                    "pipeline/a.py:3 imports pipeline.b inside a function"]
     assert import_circles(tmp_path) == ["pipeline/a.py -> pipeline/b.py -> pipeline/a.py"]
+
+
+def test_every_module_is_in_a_layer_and_imports_none_above_it():
+    bad = layer_violations()
+    assert not bad, "\n".join(bad)
+
+
+def test_the_layer_check_sees_an_upward_import_the_cli_and_an_unplaced_file(tmp_path):
+    """The layer check can fail: in a small tree, a core module importing the API (a lazy import too),
+    a benchmark importing a stage script, and a module no layer lists; a stage importing the core and
+    the API importing the core pass."""
+    files = {"pipeline/__init__.py": "", "pipeline/params.py": "def f():\n    from pipeline import api\n",
+             "pipeline/api.py": "from pipeline import params\n", "pipeline/benchmarks/__init__.py": "",
+             "pipeline/benchmarks/bench_x.py": "import stages.prepare\n", "pipeline/unlisted.py": "",
+             "stages/__init__.py": "", "stages/prepare.py": "from pipeline.params import f\n"}
+    for rel, text in files.items():
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(text)
+    assert layer_violations(tmp_path) == [
+        "pipeline/benchmarks/bench_x.py:1 imports stages.prepare: the library imports the command line (stages/)",
+        "pipeline/params.py:2 (core) imports pipeline.api (api, a higher layer)",
+        "pipeline/unlisted.py is in no layer: add it to LAYERS in tests/test_imports.py (docs/decisions.md, Layers)"]

@@ -15,61 +15,15 @@ import pytest
 from click.testing import CliRunner
 
 from pipeline.labeling.formats import rle_encode, yolo_lines, yolo_polygons
+from tests._tiny_teacher import FAST, cli, make_image_folder
 
 # pycocotools' own NumPy-2 deprecation notice (its __array__), not ours
 pytestmark = pytest.mark.filterwarnings("ignore:__array__ implementation:DeprecationWarning")
-
-PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
-           "spacecraft with rigid body and appendages", "artificial object in space with panels and antennas"]
-SIZES = [(48, 64), (64, 48), (56, 56), (40, 72)]
-FAST = ["--set", "data.resolution=32", "--device", "cpu"]
-
-
-def make_image_folder(root: Path, n: int = 20, seed: int = 0, masks: bool = True) -> tuple[Path, Path]:
-    """``root/images`` with ``n`` synthetic spacecraft-like images (a bright ellipse + a bar on a dark
-    noisy background) of four sizes and four encodings -- 8-bit RGB, grey, RGBA, 16-bit RGB -- and
-    ``root/masks`` with their 0/255 masks (same names)."""
-    img_dir, mask_dir = root / "images", root / "masks"
-    img_dir.mkdir(parents=True)
-    if masks:
-        mask_dir.mkdir()
-    rng = np.random.default_rng(seed)
-    for i in range(n):
-        h, w = SIZES[i % 4]
-        m = np.zeros((h, w), np.uint8)
-        cy, cx = int(rng.integers(16, h - 16)), int(rng.integers(16, w - 16))
-        cv2.ellipse(m, (cx, cy), (int(rng.integers(6, 12)), int(rng.integers(4, 9))), float(rng.integers(0, 180)),
-                    0, 360, 1, -1)
-        cv2.rectangle(m, (cx - 14, cy - 2), (cx + 14, cy + 2), 1, -1)
-        img = rng.normal(20, 8, (h, w, 3))
-        img[m > 0] = rng.integers(120, 230, 3) + rng.normal(0, 10, (int(m.sum()), 3))
-        bgr = img.clip(0, 255).astype(np.uint8)
-        encoded = [bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), np.dstack([bgr, np.full((h, w), 255, np.uint8)]),
-                   bgr.astype(np.uint16) * 257][i % 4]
-        cv2.imwrite(str(img_dir / f"img{i:02d}.png"), encoded)
-        if masks:
-            cv2.imwrite(str(mask_dir / f"img{i:02d}.png"), m * 255)
-    return img_dir, mask_dir
-
-
-@pytest.fixture(scope="session")
-def tiny_sam3(tmp_path_factory):
-    pytest.importorskip("transformers")
-    from pipeline.teachers.tiny_sam3 import build_tiny_sam3
-
-    words = tuple(dict.fromkeys(w for p in PROMPTS for w in p.split()))
-    return build_tiny_sam3(tmp_path_factory.mktemp("sam3") / "tiny-sam3", words=words)
 
 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
     return make_image_folder(tmp_path_factory.mktemp("data"))
-
-
-def cli(*args):
-    from stages.cli import main
-
-    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
 
 
 def parse_yolo(path: Path, w: int, h: int) -> np.ndarray:

@@ -12,7 +12,7 @@ from pipeline.artifacts import make_meta, open_artifact
 from pipeline.errors import InputError
 from pipeline.methods import (METHODS, adaptive_mode, afs_fuse, afs_keep, confidence_pass, get_method,
                               input_artifacts, mean_valid_score, param_keys, pass_ratio, resolve_plan)
-from tests.test_training import build_tiny_artifacts, load_arrays, tiny_cfg
+from tests._tiny_train import load_arrays, tiny_cfg
 
 
 def _load(tiny, name, cfg):
@@ -21,21 +21,6 @@ def _load(tiny, name, cfg):
 
     data, _, inputs = load_inputs(tiny, get_method(name), cfg)
     return data, inputs
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return build_tiny_artifacts(tmp_path_factory.mktemp("tinym") / "artifacts")
-
-
-@pytest.fixture(scope="module")
-def stage1_state(tiny):
-    from pipeline import training
-
-    cfg = tiny_cfg(epochs_stage1=1)
-    data, val = load_arrays(tiny, "plain", cfg)
-    return training.train(get_method("plain"), cfg, data, val, 42, checkpointer=training.NoCheckpointer(),
-                          show_progress=False).model.mask_path_state_dict()
 
 
 def _tables(art):

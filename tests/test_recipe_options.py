@@ -15,16 +15,11 @@ import pytest
 import torch
 from torch import nn
 
-from tests.test_training import build_tiny_artifacts, load_arrays, tiny_cfg
+from tests._tiny_train import load_arrays, tiny_cfg
 
 
 def _batchnorms(model):
     return [m for m in model.modules() if isinstance(m, nn.BatchNorm2d)]
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return build_tiny_artifacts(tmp_path_factory.mktemp("recipe") / "artifacts")
 
 
 # --------------------------------------------------------------------------------------------------

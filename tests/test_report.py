@@ -18,8 +18,7 @@ import pytest
 from pipeline.artifacts import make_meta, open_artifact, write_parquet
 from pipeline.report import figures as F
 from pipeline.report import tables as T
-from test_controls import run_result_stages
-from test_evaluate import build_tiny_artifacts, invoke, write_params
+from tests._tiny_eval import build_tiny_artifacts, invoke, run_result_stages, write_params
 
 CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
 

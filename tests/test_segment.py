@@ -19,7 +19,7 @@ from pipeline.datasets.loading import read_rgb, resize_image
 from pipeline.errors import InputError
 from pipeline.inference import load_student
 from stages.segment import main as segment_main
-from test_deploy import HAS_ONNX, make_artifacts, make_checkpoint, make_thresholds, run_export
+from tests._tiny_deploy import HAS_ONNX, make_artifacts, make_checkpoint, make_thresholds, run_export
 
 RES = 32
 
@@ -109,7 +109,7 @@ def toy_trained_checkpoint(path: Path) -> Path:
 
     from pipeline.artifacts import make_meta
     from pipeline.inference import save_checkpoint
-    from test_deploy import tiny_model
+    from tests._tiny_deploy import tiny_model
 
     rng = np.random.default_rng(1)
     yy, xx = np.mgrid[0:RES, 0:RES]

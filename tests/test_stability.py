@@ -10,12 +10,7 @@ import pandas as pd
 import pytest
 import torch
 
-from tests.test_training import _assert_same, _weights, build_tiny_artifacts, load_arrays, tiny_cfg
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return build_tiny_artifacts(tmp_path_factory.mktemp("stability") / "artifacts")
+from tests._tiny_train import assert_same_state, clone_state, load_arrays, tiny_cfg
 
 
 # --------------------------------------------------------------------------------------------------
@@ -91,7 +86,7 @@ def test_weight_averaging_gives_the_mean_of_the_last_epochs_with_bn_recomputed(t
     training.train(get_method("plain"), {**cfg, "average_last": 0}, data, val, 42, checkpointer=ck,
                    show_progress=False, callback=lambda e, r: states.append(ck.state["model"]))
     assert "mean weights of the last 2 epochs" in res.info["selection"] and res.selected_epoch == 3
-    w = _weights(res.model)
+    w = clone_state(res.model)
     for k, v in states[1].items():  # a conv weight: the mean of epochs 2 and 3
         if k.endswith("weight") and v.ndim == 4:
             assert torch.allclose(w[k], (states[1][k] + states[2][k]) / 2, atol=1e-6), k
@@ -140,7 +135,7 @@ def test_changing_num_threads_does_not_resume_the_old_state(tiny, tmp_path):
         assert seen == [1, 2]  # trained afresh under 2 threads
         fresh = training.train(get_method("plain"), two, data, val, 42, checkpointer=training.NoCheckpointer(),
                                show_progress=False)
-        _assert_same(_weights(res2.model), _weights(fresh.model))
+        assert_same_state(clone_state(res2.model), clone_state(fresh.model))
     finally:
         torch.set_num_threads(before)
 
@@ -215,6 +210,30 @@ def test_spreads_and_target():
     assert not target_met(spreads(runs, "argmax"))[0]
 
 
+def test_target_checks_no_worse_than_the_paper_recipe():
+    """Issue 33: the target also checks the documented "calibrated IoU no worse than the paper recipe",
+    by non-inferiority on the seed spread, and is not met when that cannot be shown."""
+    from pipeline.benchmarks.stability import no_worse_than, recipe_table, spreads, target_met
+    from pipeline.reproducibility import TOLERANCE
+
+    def sp(shift, spread=0.0):
+        return spreads([_fake_run(p, s, 0.5 + shift + d, 0.52 + shift + d, 0.51 + shift + d)
+                        for s, d in ((1, -spread), (2, spread), (3, 0.0)) for p in ("default", "threads1")],
+                       "argmax")
+
+    paper, same, worse = sp(0.0, 0.001), sp(0.0, 0.001), sp(-3 * TOLERANCE["iou"], 0.001)
+    assert no_worse_than(same, paper) is True and no_worse_than(worse, paper) is False
+    assert no_worse_than(same, None) is None
+    # equal means but a seed spread too wide to show it: not shown
+    assert no_worse_than(sp(0.0, 0.1), paper) is False
+    assert target_met(same, ("threads1",), paper, check_reference=True)[0]
+    assert not target_met(worse, ("threads1",), paper, check_reference=True)[0]
+    assert not target_met(same, ("threads1",), None, check_reference=True)[0]   # no paper runs: not shown
+    rows = {r["recipe"]: r for r in recipe_table({"paper|argmax": paper, "stable|argmax": worse},
+                                                  {"paper": ["threads1"], "stable": ["threads1"]})}
+    assert rows["paper"]["target"] and not rows["stable"]["target"] and rows["stable"]["no_worse"] is False
+
+
 # --------------------------------------------------------------------------------------------------
 # report: the noise floor beside the gains, "supported" only when the CI says so
 # --------------------------------------------------------------------------------------------------
@@ -236,17 +255,43 @@ def test_results_table_states_the_noise_floor_and_the_claim_follows_the_ci():
     tab = results_table(_summary(0.02, 0.01, 0.03), "calibrated", ["A"], record)
     geo = [r for r in tab.rows if r[1] == "GeoDistill-Refine"][0]
     claim = geo[tab.header.index("Claim")]
-    assert "IoU: supported" in claim and "BF1: not supported: below the noise floor" in claim
+    # the IoU bound 0.01 clears the floor 0.004; the BF1 bound 0.01 does not clear 0.03
+    assert "IoU: gain supported" in claim and "BF1: no difference detected" in claim
     assert geo[tab.header.index("Noise floor (IoU / BF1)")] == "0.0040 / 0.0300"
+    # the point estimate 0.02 clears the IoU floor 0.015, but the lower bound 0.01 does not
+    tight = {**record, "numbers": {**record["numbers"], "geodistill-plain/A/iou": {"floor": 0.015}}}
+    assert "IoU: no difference detected" in results_table(_summary(0.02, 0.01, 0.03), "calibrated", ["A"],
+                                                           tight).rows[1][tab.header.index("Claim")]
+    loss = results_table(_summary(-0.02, -0.03, -0.01), "calibrated", ["A"], record)
+    assert "IoU: loss supported" in loss.rows[1][loss.header.index("Claim")]
     covers = results_table(_summary(0.02, -0.01, 0.05), "calibrated", ["A"], record)
-    assert "supported" not in covers.rows[1][covers.header.index("Claim")].replace("not supported", "")
+    assert covers.rows[1][covers.header.index("Claim")] == "IoU: no difference detected; BF1: no difference detected"
     unmeasured = results_table(_summary(0.02, 0.01, 0.03), "calibrated", ["A"], None)
     assert "not measured" in unmeasured.rows[1][unmeasured.header.index("Noise floor (IoU / BF1)")]
     assert any(NOISE_FLOOR_NOT_MEASURED in n for n in unmeasured.notes)
+    assert any("Primary endpoint: HJM" in n and "NOT multiplicity-adjusted" in n for n in unmeasured.notes)
     # a gain on one seed (the seed-42 ablations) is never called supported, however narrow its CI
     one = _summary(0.02, 0.01, 0.03).assign(gain_seeds=1)
     tab = results_table(one, "calibrated", ["A"], record)
-    assert "IoU: not supported: one seed" in tab.rows[1][tab.header.index("Claim")]
+    assert "IoU: one seed" in tab.rows[1][tab.header.index("Claim")]
+
+
+def test_results_table_applies_holm_to_its_family_and_tests_the_primary_endpoint_alone():
+    from pipeline.report.tables import results_table
+
+    rows = []
+    for g, p in (("KCP", 0.02), ("CVI", 0.03), ("HJM", 0.02)):
+        s = _summary(0.02, 0.01, 0.03).assign(group=g)
+        s.loc[s["method"] == "geodistill", ["gain_iou_p", "gain_bf1_p"]] = p
+        rows.append(s)
+    tab = results_table(pd.concat(rows), "calibrated", ["KCP", "CVI", "HJM"], None)
+    claims = {r[0]: r[tab.header.index("Claim")] for r in tab.rows if r[1] == "GeoDistill-Refine"}
+    # the primary (HJM, IoU) is tested alone: p 0.02 < 0.05; the five exploratory p's are Holm-adjusted
+    # (0.02 x 5 = 0.10, ...): none stays below 0.05
+    assert claims["HJM"].startswith("IoU: gain supported (primary endpoint)")
+    assert "BF1: no difference detected" in claims["HJM"]
+    assert claims["KCP"] == "IoU: no difference detected; BF1: no difference detected"
+    assert any("the 5 differences" in n for n in tab.notes)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -273,12 +318,13 @@ def test_noise_floor_file_keeps_a_record_per_recipe(tmp_path):
     assert doc["recipes"]["stable"]["numbers"]["geodistill-plain/A/iou"]["floor"] == 0.004
 
 
-def test_report_applies_only_the_floor_of_its_runs_recipe(tmp_path):
+def test_report_applies_only_the_floor_of_its_own_configuration(tmp_path):
     from pipeline.report.analysis import gain_noise_floor, noise_floor_note, select_noise_floor
     from pipeline.report.build import noise_floor_for_runs
 
     doc = {"recipes": {"stable": _floor("stable", 64, 0.004), "paper": _floor("paper", 64, 0.02)}}
-    paper = select_noise_floor(doc, "paper", 128)
+    assert select_noise_floor(doc, "paper", 128) is None   # measured at 64², not this 128² run's floor
+    paper = select_noise_floor(doc, "paper", 64)
     assert gain_noise_floor(paper, "A", "iou") == 0.02
     assert gain_noise_floor(select_noise_floor(doc, "stable", 64), "A", "iou") == 0.004
     # no record for the recipe, or runs of several recipes: not measured, never another recipe's floor
@@ -287,10 +333,10 @@ def test_report_applies_only_the_floor_of_its_runs_recipe(tmp_path):
     # a file of the former single-record form is the record of its own recipe
     assert gain_noise_floor(select_noise_floor(_floor("stable", 64, 0.004), "stable", 64), "A", "iou") == 0.004
     assert select_noise_floor(_floor("stable", 64, 0.004), "paper", 64) is None
-    # the note names the measured configuration and says when the runs differ from it
-    assert "recipe paper" in noise_floor_note(paper) and "These runs are at 128², not the measured 64²" in \
-        noise_floor_note(paper)
-    assert "These runs are at" not in noise_floor_note(select_noise_floor(doc, "paper", 64))
+    # a floor measured at another resolution or on another profile's sizes is never applied
+    assert select_noise_floor({"recipes": {"paper": {**_floor("paper", 64, 0.02), "info": {
+        **_floor("paper", 64, 0.02)["info"], "profile": "demo"}}}}, "paper", 64, "reduced") is None
+    assert "recipe paper" in noise_floor_note(select_noise_floor(doc, "paper", 64))
     path = tmp_path / "noise_floor.json"
     path.write_text(json.dumps(doc))
     runs = [{"method": "plain", "seed": 1, "recipe": "paper"}, {"method": "geodistill", "seed": 1, "recipe": "paper"}]

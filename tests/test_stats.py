@@ -5,8 +5,8 @@ import pandas as pd
 import pytest
 from scipy import stats as sps
 
-from pipeline.stats import (average_ranks, hierarchical_resample_means, method_gains,
-                            paired_hierarchical_bootstrap, seed_summary, spearman)
+from pipeline.stats import (SEED_BOOTSTRAP, SEED_IMAGE_T, average_ranks, hierarchical_resample_means, method_gains,
+                            paired_hierarchical_bootstrap, paired_seed_image_t, seed_summary, spearman)
 
 
 # ---------------------------------------------------------------------------------------- seeds
@@ -131,8 +131,9 @@ def test_method_gains_pairs_shared_seeds_and_images():
         rows.append(dict(dataset="d", group="G", threshold_mode="calibrated", method="abl", seed=1,
                          image_id=f"im{i}", spacecraft=f"s{i // 4}", iou=0.45, bf1=np.nan if i < 6 else 0.5))
     df = pd.DataFrame(rows)
-    g = method_gains(df, ["iou", "bf1"], n_resamples=200).set_index("method")
+    g = method_gains(df, ["iou", "bf1"], n_resamples=200, interval="seed_bootstrap").set_index("method")
     assert set(g.index) == {"geo", "abl"}
+    assert g["gain_iou_p"].isna().all()   # the bootstrap has no p-value
     assert g.loc["geo", "gain_iou"] == pytest.approx(0.15)          # mean over seeds of (0.1, 0.2)
     assert g.loc["geo", "gain_seeds"] == 2 and g.loc["geo", "gain_images"] == 12
     assert g.loc["abl", "gain_iou"] == pytest.approx(-0.05)
@@ -144,6 +145,39 @@ def test_method_gains_pairs_shared_seeds_and_images():
     assert g.loc["geo", "gain_iou_hi"] == pytest.approx(0.2)
     assert g.loc["geo", "gain_iou_seed_sd"] == pytest.approx(np.std([0.1, 0.2], ddof=1))
     assert np.isnan(g.loc["abl", "gain_iou_seed_sd"])
+    # the default interval (the t interval for these spacecraft) also gives the p-value Holm needs
+    from pipeline.stats import DEFAULT_INTERVAL, SEED_IMAGE_T
+
+    t = method_gains(df, ["iou", "bf1"]).set_index("method")
+    assert DEFAULT_INTERVAL == SEED_IMAGE_T and t.loc["geo", "gain_iou"] == pytest.approx(0.15)
+    assert 0.0 <= t.loc["geo", "gain_iou_p"] <= 1.0 and t.loc["geo", "gain_iou_lo"] < 0.15 < t.loc["geo", "gain_iou_hi"]
+
+
+
+def test_method_gains_interval_choice_keeps_the_columns_and_the_gains():
+    rng = np.random.default_rng(5)
+    rows = []
+    for seed in (1, 2, 3):
+        for i in range(12):
+            base = dict(dataset="d", group="G", threshold_mode="calibrated", seed=seed, image_id=f"im{i}",
+                        spacecraft=f"s{i // 4}")
+            rows.append(dict(base, method="plain", iou=0.5, bf1=0.4))
+            rows.append(dict(base, method="geo", iou=0.5 + 0.1 * (seed == 2) + rng.normal(0, 0.05), bf1=0.4))
+    df = pd.DataFrame(rows)
+    boot = method_gains(df, ["iou", "bf1"], n_resamples=200, interval="seed_bootstrap")
+    tt = method_gains(df, ["iou", "bf1"], n_resamples=200, interval=SEED_IMAGE_T)
+    assert list(tt.columns) == list(boot.columns)
+    for col in ("gain_iou", "gain_iou_seed_sd", "gain_seeds", "gain_images"):
+        assert tt[col].tolist() == pytest.approx(boot[col].tolist())
+    # the bounds are paired_seed_image_t's on the [S, n] differences
+    wide = df.pivot_table(index=["seed", "image_id", "spacecraft"], columns="method", values="iou").reset_index()
+    d = (wide["geo"] - wide["plain"]).to_numpy().reshape(3, 12)
+    want = paired_seed_image_t(d, np.zeros_like(d), wide["spacecraft"].to_numpy()[:12])
+    assert tt.loc[0, "gain_iou_lo"] == pytest.approx(want.low) and tt.loc[0, "gain_iou_hi"] == pytest.approx(want.high)
+    # a constant difference (bf1): the zero-width interval under both
+    assert tt.loc[0, "gain_bf1_lo"] == tt.loc[0, "gain_bf1_hi"] == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="interval"):
+        method_gains(df, ["iou"], interval="wald")
 
 
 # ------------------------------------------------------------------------------------- Spearman
@@ -196,9 +230,9 @@ def test_counts_matrix_bootstrap_equals_the_gather_baseline():
                                  image_id=f"i{i}", spacecraft=f"s{i % 4}", iou=rng.random(),
                                  bf1=np.nan if (method == "b" and i == 3) else rng.random()))
     df = pd.DataFrame(rows)
-    got = method_gains(df, ["iou", "bf1"], n_resamples=400, seed=9)
+    got = method_gains(df, ["iou", "bf1"], n_resamples=400, seed=9, interval=SEED_BOOTSTRAP)
     want = baseline_method_gains(df, ["iou", "bf1"], n_resamples=400, seed=9)
-    assert [c for c in got.columns if not c.endswith("_seed_sd")] == want.columns.tolist()
+    assert [c for c in got.columns if not c.endswith(("_seed_sd", "_p"))] == want.columns.tolist()
     num = [c for c in want.columns if c.startswith("gain_")]
     np.testing.assert_allclose(got[num].to_numpy(float), want[num].to_numpy(float), rtol=1e-12, atol=1e-15)
 
@@ -236,17 +270,52 @@ def test_seed_level_widens_the_interval_when_seeds_disagree_and_not_when_they_ag
     assert a.low > 0 and d.low < 0                               # the old interval would call it supported
 
 
-def test_claim_status_follows_the_ci_and_the_noise_floor():
-    from pipeline.stats import BELOW_NOISE_FLOOR, CI_COVERS_ZERO, NOT_ESTIMATED, ONE_SEED, SUPPORTED, claim_status
+def test_claim_status_is_signed_and_puts_the_floor_on_the_bound():
+    """Issue 33: each of the five verdicts, a direction on every supported one, the floor compared with
+    the CI bound nearest 0 (not the point estimate), one seed deciding nothing, Holm's p last."""
+    from pipeline.stats import (GAIN_SUPPORTED, LOSS_SUPPORTED, NO_DIFFERENCE, NOT_ESTIMATED, ONE_SEED, VERDICTS,
+                                claim_status)
 
-    assert claim_status(0.03, 0.01, 0.05) == SUPPORTED                  # no floor measured: the CI decides
-    assert claim_status(-0.03, -0.05, -0.01, 0.02) == SUPPORTED         # a supported loss
-    assert claim_status(0.03, -0.01, 0.07, 0.0) == CI_COVERS_ZERO
-    assert claim_status(0.015, 0.005, 0.03, 0.02) == BELOW_NOISE_FLOOR  # CI excludes 0, effect under the floor
-    assert claim_status(0.015, 0.005, 0.03, float("nan")) == SUPPORTED
+    assert len(set(VERDICTS)) == 5
+    assert claim_status(0.03, 0.01, 0.05) == GAIN_SUPPORTED              # no floor measured: the CI decides
+    assert claim_status(-0.03, -0.05, -0.01, 0.005) == LOSS_SUPPORTED    # a loss is a loss, not "supported"
+    assert claim_status(0.03, -0.01, 0.07, 0.0) == NO_DIFFERENCE
+    assert claim_status(-0.03, -0.07, 0.01, 0.0) == NO_DIFFERENCE        # no direction when the CI covers 0
+    # the floor on the bound: the point estimate 0.03 clears 0.014, the lower bound 0.009 does not
+    assert claim_status(0.03, 0.009, 0.05, 0.014) == NO_DIFFERENCE
+    assert claim_status(0.03, 0.015, 0.05, 0.014) == GAIN_SUPPORTED
+    assert claim_status(-0.03, -0.05, -0.009, 0.014) == NO_DIFFERENCE    # the bound nearest 0 of a loss: high
+    assert claim_status(0.015, 0.005, 0.03, float("nan")) == GAIN_SUPPORTED
     assert claim_status(float("nan"), 0.0, 0.1) == NOT_ESTIMATED
-    # one seed: its CI holds no training noise, so it supports nothing; two seeds may
+    # one seed: its CI holds no training noise, so it decides nothing, whatever the CI; two seeds may
     assert claim_status(0.03, 0.01, 0.05, 0.0, n_seeds=1) == ONE_SEED
-    assert claim_status(0.03, 0.01, 0.05, 0.0, n_seeds=2) == SUPPORTED
-    assert claim_status(0.03, 0.01, 0.05, 0.0, n_seeds=float("nan")) == SUPPORTED
-    assert claim_status(0.03, -0.01, 0.05, 0.0, n_seeds=1) == CI_COVERS_ZERO
+    assert claim_status(0.03, -0.01, 0.05, 0.0, n_seeds=1) == ONE_SEED
+    assert claim_status(0.03, 0.01, 0.05, 0.0, n_seeds=2) == GAIN_SUPPORTED
+    assert claim_status(0.03, 0.01, 0.05, 0.0, n_seeds=float("nan")) == GAIN_SUPPORTED
+    # multiplicity: a Holm-adjusted p at or above alpha leaves no difference detected
+    assert claim_status(0.03, 0.01, 0.05, 0.0, 5, p_adjusted=0.06) == NO_DIFFERENCE
+    assert claim_status(0.03, 0.01, 0.05, 0.0, 5, p_adjusted=0.01) == GAIN_SUPPORTED
+
+
+def test_holm_adjust_matches_the_step_down_definition():
+    from pipeline.stats import holm_adjust
+
+    p = [0.01, 0.04, 0.03, float("nan"), 0.005]
+    adj = holm_adjust(p)
+    # sorted finite: 0.005 (x4), 0.01 (x3), 0.03 (x2), 0.04 (x1), running maximum, capped at 1
+    assert np.allclose(adj[[4, 0, 2, 1]], [0.02, 0.03, 0.06, 0.06]) and np.isnan(adj[3])
+    assert np.allclose(holm_adjust([0.5, 0.9]), [1.0, 1.0]) and holm_adjust([]).shape == (0,)
+    # Holm never adjusts below the raw p, and with one p it is the raw p
+    assert holm_adjust([0.02])[0] == 0.02 and np.all(adj[np.isfinite(adj)] >= np.asarray(p)[np.isfinite(adj)])
+
+
+def test_paired_seed_t_interval():
+    from scipy import stats as sps
+
+    from pipeline.stats import paired_seed_t_interval
+
+    d = [0.01, 0.03, -0.02, 0.04]
+    m, lo, hi = paired_seed_t_interval(d)
+    ref = sps.t.interval(0.95, 3, loc=np.mean(d), scale=np.std(d, ddof=1) / 2)
+    assert np.isclose(m, np.mean(d)) and np.allclose([lo, hi], ref)
+    assert np.isnan(paired_seed_t_interval([0.1])[1]) and np.isnan(paired_seed_t_interval([])[0])

@@ -13,18 +13,17 @@ import pytest
 pytest.importorskip("transformers")
 
 from pipeline.errors import InputError  # noqa: E402
+from pipeline.params import PAPER_PROMPTS  # noqa: E402
 from pipeline.teachers.base import TeacherInput  # noqa: E402
 from pipeline.teachers.sam3 import Sam3Teacher, check_checkpoint_dir  # noqa: E402
-from pipeline.teachers.tiny_sam3 import build_tiny_sam3  # noqa: E402
 
-PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
-           "spacecraft with rigid body and appendages", "artificial object in space with panels and antennas"]
+PROMPTS = PAPER_PROMPTS
 
 
 @pytest.fixture(scope="module")
-def ckpt(tmp_path_factory):
-    words = tuple(dict.fromkeys(w for p in PROMPTS for w in p.split()))
-    return build_tiny_sam3(tmp_path_factory.mktemp("sam3") / "tiny-sam3", words=words)
+def ckpt(tiny_sam3):
+    """The session's tiny random SAM 3 (tests/conftest.py), whose vocabulary holds the paper's prompts."""
+    return tiny_sam3
 
 
 @pytest.fixture(scope="module")
@@ -73,6 +72,30 @@ def test_encoders_run_once(ckpt, items, monkeypatch):
     teacher.predict(items, PROMPTS)
     teacher.predict(items[:1], PROMPTS)
     assert calls == {"text": 1, "vision": 3}  # text once per run; vision once per image batch (2 + 1)
+
+
+def test_compile_wraps_the_vision_encoder_with_torch_compile(ckpt, monkeypatch):
+    """``teacher.compile: true`` reaches ``torch.compile(model.vision_encoder)`` in load() (a NameError
+    once, found on a GPU only): on a CPU the constructor turns compile off, so the test turns it back on
+    after the device check and records torch.compile's calls (returning the module unchanged)."""
+    import torch
+
+    calls = []
+
+    def record(module, *args, **kwargs):
+        calls.append((module, args, kwargs))
+        return module
+
+    monkeypatch.setattr(torch, "compile", record)
+    assert Sam3Teacher(ckpt, device="cpu", compile=True).compile is False  # the device check: CUDA only
+    teacher = Sam3Teacher(ckpt, device="cpu", compile=True)
+    teacher.compile = True  # as on a CUDA device
+    model = teacher.load()
+    assert len(calls) == 1
+    module, args, kwargs = calls[0]
+    assert module is model.vision_encoder and type(module).__name__ == "Sam3VisionModel" and not args and not kwargs
+    assert teacher.load() is model and len(calls) == 1  # loaded (and compiled) once
+    assert Sam3Teacher(ckpt, device="cpu").load() is not None and len(calls) == 1  # off by default
 
 
 def test_score_threshold_marks_prompts_invalid(ckpt, items):
@@ -137,7 +160,7 @@ def test_not_a_checkpoint_is_an_input_error(tmp_path, ckpt):
 
 def test_stage_with_sam3_backend(ckpt, tmp_path, monkeypatch):
     from pipeline.artifacts import open_artifact
-    from test_teacher_stage import build_artifacts, cache_files, run_stage
+    from tests._tiny_teacher import build_artifacts, cache_files, run_stage
 
     monkeypatch.setenv("GEODISTILL_QUIET", "1")
     paths = build_artifacts(tmp_path / "a", n=4)

@@ -17,9 +17,7 @@ from pipeline.teachers import runner as runner_module
 from pipeline.teachers.jobs import TeacherSpec, in_view
 from pipeline.teachers.runner import TeacherRunner
 from pipeline.teachers.simulated import PERSONAS, SimulatedFoundationTeacher
-from test_label import FAST, cli, make_image_folder
-from test_teacher_stage import build_artifacts, run_stage
-from test_teacher_units import _items
+from tests._tiny_teacher import FAST, build_artifacts, cli, make_image_folder, run_stage, teacher_items
 
 PROMPTS = list(PERSONAS)
 RES = (32, 32)
@@ -77,7 +75,7 @@ def test_cache_round_trip_listing_and_corruption(cache_root):
 
 
 def test_existence_is_decided_by_listing_and_corruption_is_fixed_at_assembly(cache_root, monkeypatch):
-    items, rows = _items(5), range(5)
+    items, rows = teacher_items(5), range(5)
     first = _runner(cache_root, items)
     assert first.fill(rows).answers_computed == 5 * 7
     want = _all_answers(first, rows)
@@ -101,7 +99,7 @@ def test_existence_is_decided_by_listing_and_corruption_is_fixed_at_assembly(cac
 
 
 def test_a_retried_job_rewrites_the_same_entries(tmp_path):
-    items = _items(4)
+    items = teacher_items(4)
     runner = _runner(str(tmp_path / "cache"), items, batch_size=2)
     jobs = runner.jobs(runner.missing(range(4)))
     assert [len(j.rows) for j in jobs] == [2, 2, 2, 2]                  # identity x 2, vflip x 2

@@ -1,76 +1,15 @@
-"""The teacher stage end to end on tiny artifacts built here (simulated and imported backends,
-cache hits / misses / resume / shards / corrupt entries, excluded splits, bad input -> exit 2)."""
+"""The teacher stage end to end on the tiny artifacts of tests/_tiny_teacher.py (simulated and imported
+backends, cache hits / misses / resume / shards / corrupt entries, excluded splits, bad input -> exit 2)."""
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
-from click.testing import CliRunner
 
-from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
-from stages.teacher import main as teacher_main
-
-REPO = Path(__file__).resolve().parent.parent
-PARAMS = str(REPO / "params.yaml")
-H = W = 32
-
-
-def _scene(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    parts = np.zeros((H, W), np.uint8)
-    cy, cx = rng.integers(10, 22, size=2)
-    b = int(rng.integers(2, 5))
-    parts[cy - b:cy + b, cx - b:cx + b] = 1
-    parts[cy - 1:cy + 1, max(cx - b - 7, 0):cx - b] = 2
-    parts[cy - 1:cy + 1, cx + b:min(cx + b + 7, W)] = 2
-    parts[max(cy - b - 5, 0):cy - b, cx] = 3
-    mask = parts > 0
-    image = np.full((H, W, 3), 10, np.uint8)
-    image[mask] = 170
-    return image, mask, parts
-
-
-def build_artifacts(root: Path, n: int = 6, splits=None, seed: int = 0) -> dict[str, str]:
-    """manifest.parquet, images.zarr, reference.zarr with ``n`` drawn spacecraft at 32x32."""
-    rng = np.random.default_rng(seed)
-    splits = splits or (["train", "train", "val", "test"] * n)[:n]
-    images, masks, parts = zip(*[_scene(rng) for _ in range(n)])
-    ids = [f"img{i:03d}" for i in range(n)]
-    df = pd.DataFrame({
-        "image_id": ids, "dataset": "synthetic", "domain": "synthetic", "split": splits,
-        "group": splits, "spacecraft": [f"sc{i % 3}" for i in range(n)],
-        "image_path": [f"{i}.png" for i in ids], "mask_path": None, "part_path": None,
-        "width": W, "height": H,
-        "sha256": [hashlib.sha256(im.tobytes()).hexdigest() for im in images],
-        "background": ["earth" if i % 3 == 0 else "black" for i in range(n)],
-        "hard_case": [i % 4 == 3 for i in range(n)],
-        "area_fraction": [float(m.mean()) for m in masks],
-    })
-    paths = {k: str(root / v) for k, v in dict(manifest="manifest.parquet", images="images.zarr",
-                                                reference="reference.zarr", out="teacher.zarr",
-                                                scores="teacher_scores.parquet").items()}
-    write_parquet(paths["manifest"], df, make_meta("manifest", "prepare", "test", {"seed": seed}))
-    write_zarr(paths["images"], {"image": np.stack(images)}, make_meta("images", "prepare", "test", {"seed": seed}),
-               attrs={"image_ids": ids})
-    write_zarr(paths["reference"], {"mask": np.stack(masks), "has_mask": np.ones(n, bool), "parts": np.stack(parts)},
-               make_meta("reference", "prepare", "test", {"seed": seed}), attrs={"image_ids": ids})
-    return paths
-
-
-def run_stage(paths: dict[str, str], cache: Path, *extra: str, sets=()):
-    args = ["--params", PARAMS, "--device", "cpu", "--set", f"teacher.cache_dir={cache}"]
-    for s in sets:
-        args += ["--set", s]
-    for k in ("manifest", "images", "reference", "out", "scores"):
-        args += [f"--{k}", paths[k]]
-    return CliRunner().invoke(teacher_main, args + list(extra), catch_exceptions=False)
-
-
-def cache_files(cache: Path) -> list[Path]:
-    return sorted(cache.rglob("*.tce"))
+from pipeline.artifacts import open_artifact
+from tests._tiny_teacher import PARAMS, H, W, build_artifacts, cache_files, run_stage
 
 
 @pytest.fixture()

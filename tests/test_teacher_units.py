@@ -11,7 +11,7 @@ from pipeline.teachers.base import TeacherInput, finalize_answers
 from pipeline.teachers.cache import CorruptEntry, TeacherCache, decode_entry, encode_entry, entry_key
 from pipeline.teachers.runner import parse_shard, shard_rows
 from pipeline.teachers.simulated import PERSONAS, SimulatedFoundationTeacher
-from test_teacher_stage import _scene
+from tests._tiny_teacher import teacher_items
 
 PROMPTS = list(PERSONAS)
 
@@ -66,19 +66,8 @@ def test_finalize_answers_invalidates_nonpositive_scores():
     assert not m[s == 0].any() and m[s > 0].all()
 
 
-def _items(n=40, seed=0):
-    rng = np.random.default_rng(seed)
-    out = []
-    for i in range(n):
-        image, mask, parts = _scene(rng)
-        out.append(TeacherInput(f"img{i}", f"sha{i}", image, reference={"mask": mask, "parts": parts},
-                                extras={"area_fraction": float(mask.mean()), "hard_case": "none",
-                                        "background": "stars"}))
-    return out
-
-
 def test_simulator_is_deterministic_and_seeded():
-    items = _items(12)
+    items = teacher_items(12)
     t = SimulatedFoundationTeacher(seed=0, resolution=(32, 32))
     m1, s1 = t.predict(items, PROMPTS)
     m2, s2 = SimulatedFoundationTeacher(seed=0, resolution=(32, 32)).predict(items[::-1], PROMPTS[::-1])
@@ -95,7 +84,7 @@ def test_simulator_vote_beats_best_single_prompt():
     from pipeline.consensus import vote_batch
     from pipeline.metrics import per_image_metrics
 
-    items = _items(60, seed=3)
+    items = teacher_items(60, seed=3)
     gt = np.stack([it.reference["mask"] for it in items])
     masks, scores = SimulatedFoundationTeacher(seed=0, resolution=(32, 32)).predict(items, PROMPTS)
     single = np.array([per_image_metrics(masks[:, k], gt)["iou"].mean() for k in range(len(PROMPTS))])
@@ -111,7 +100,7 @@ def test_simulator_vote_beats_best_single_prompt():
 
 
 def test_simulator_needs_reference():
-    item = _items(1)[0]
+    item = teacher_items(1)[0]
     item.reference = None
     with pytest.raises(InputError, match="reference"):
         SimulatedFoundationTeacher().predict([item], PROMPTS)

@@ -1,8 +1,6 @@
 """Training loop: tiny runs lower the loss, determinism, resume after interruption, divergence,
-warm start, the reference-mask boundary, and the train stage command.
-
-``build_tiny_artifacts`` writes a self-contained set of tiny artifacts (12 images of 32 px) with
-pipeline.artifacts; it does not run any other stage.
+warm start, the reference-mask boundary, and the train stage command, on the tiny artifacts of
+tests/_tiny_train.py (the ``tiny`` fixture is in tests/conftest.py).
 """
 
 from __future__ import annotations
@@ -11,131 +9,19 @@ import json
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 import torch
-from scipy import ndimage
 
-from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
+from pipeline.artifacts import open_artifact, write_zarr
 from pipeline.errors import TrainingDiverged
 from pipeline.methods import SELECTION_TAU_KEY
-from pipeline.params import RECIPES, load_params, section
+from pipeline.params import load_params
 from pipeline.streaming import spill_rows
-
-REPO = Path(__file__).resolve().parent.parent
-PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle", "p5", "p6"]
-
-
-def _shape_mask(rng, size):
-    yy, xx = np.mgrid[:size, :size]
-    cy, cx = rng.uniform(size * 0.3, size * 0.7, 2)
-    ry, rx = rng.uniform(size * 0.12, size * 0.3, 2)
-    m = ((yy - cy) / ry) ** 2 + ((xx - cx) / rx) ** 2 <= 1
-    # a thin "panel" bar so the skeleton and boundary are non-trivial
-    bar_y = int(cy)
-    m[max(bar_y - 1, 0):bar_y + 1, int(max(cx - 2 * rx, 0)):int(min(cx + 2 * rx, size))] = True
-    return m
-
-
-def _sdf(mask):
-    if not mask.any():
-        return np.zeros(mask.shape, np.float32)
-    if mask.all():
-        return np.ones(mask.shape, np.float32)
-    d = ndimage.distance_transform_edt(mask) - ndimage.distance_transform_edt(~mask)
-    s = max(np.quantile(np.abs(d), 0.95), 1.0)
-    return np.clip(d / s, -1, 1).astype(np.float32)
-
-
-def build_tiny_artifacts(root: Path, n_train: int = 8, n_val: int = 4, n_test: int = 2, size: int = 32,
-                         seed: int = 0) -> Path:
-    """Tiny artifacts in the pipeline's layout: manifest, images, reference, teacher (with vflip),
-    consensus, geometry, gates.  Pseudo-masks are perturbed copies of the reference masks."""
-    rng = np.random.default_rng(seed)
-    root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
-    n = n_train + n_val + n_test
-    split = ["train"] * n_train + ["val"] * n_val + ["test"] * n_test
-    ids = [f"img{i:03d}" for i in range(n)]
-    truth = np.stack([_shape_mask(rng, size) for _ in range(n)])
-    img = rng.integers(0, 40, (n, size, size, 3)).astype(np.uint8)
-    img[truth] = rng.integers(150, 255, (int(truth.sum()), 3)).astype(np.uint8)
-    K = len(PROMPTS)
-    masks = np.empty((n, K, size, size), bool)
-    for i in range(n):
-        for k in range(K):
-            shift = rng.integers(-1, 2, 2)
-            masks[i, k] = np.roll(truth[i], tuple(shift), axis=(0, 1))
-    scores = rng.uniform(0.3, 0.95, (n, K)).astype(np.float32)
-    scores[1, 2:] = 0.0  # an image with only two valid prompts
-    vflip = np.roll(truth, 1, axis=2)
-    vscores = rng.uniform(0.4, 0.9, n).astype(np.float32)
-    valid = scores > 0
-    agreement = (masks * valid[:, :, None, None]).sum(1) / np.maximum(valid.sum(1), 1)[:, None, None]
-    voted = agreement >= 0.5
-    a = voted.reshape(n, -1).mean(1)
-    c = np.array([agreement[i][voted[i]].mean() if voted[i].any() else 0.0 for i in range(n)])
-    g = rng.uniform(0.2, 1.0, n)
-    g[0] = 0.0  # a fully suppressed sample
-
-    def meta(schema, stage):
-        return make_meta(schema, stage, "test", {"tiny": True, "seed": seed})
-
-    manifest = pd.DataFrame({
-        "image_id": ids, "dataset": "tiny", "domain": "synthetic", "split": split,
-        "group": split, "spacecraft": [f"sc{i % 3}" for i in range(n)], "image_path": [f"{i}.png" for i in ids],
-        "mask_path": [f"{i}_m.png" for i in ids], "part_path": None, "width": size, "height": size,
-        "sha256": "0" * 64})
-    write_parquet(root / "manifest.parquet", manifest, meta("manifest", "prepare"))
-    attrs = {"image_ids": ids}
-    write_zarr(root / "images.zarr", {"image": img}, meta("images", "prepare"), attrs)
-    write_zarr(root / "reference.zarr", {"mask": truth, "has_mask": np.ones(n, bool)},
-               meta("reference", "prepare"), attrs)
-    write_zarr(root / "teacher.zarr", {"masks": masks, "scores": scores, "vflip_masks": vflip,
-                                       "vflip_scores": vscores},
-               meta("teacher", "teacher"), {**attrs, "prompts": PROMPTS})
-    write_zarr(root / "consensus.zarr", {"agreement": agreement.astype(np.float32), "voted": voted,
-                                         "n_valid": valid.sum(1).astype(np.int16)},
-               meta("consensus", "consensus"), attrs)
-    write_zarr(root / "geometry.zarr", {"sdf": np.stack([_sdf(m) for m in voted]),
-                                        "skeleton": np.stack([m & (ndimage.distance_transform_edt(m) > 1.5)
-                                                              for m in voted])},
-               meta("geometry", "geometry"), attrs)
-    gates = pd.DataFrame({"image_id": ids, "split": split, "c": c, "v": valid.sum(1) / 6.0, "a": a,
-                          "a0": float(np.median(a[:n_train])), "g_conf": g, "g_valid": 1.0,
-                          "g_area": 1.0, "g": g, "n_valid": valid.sum(1)})
-    write_parquet(root / "gates.parquet", gates, meta("gates", "geometry"))
-    return root
-
-
-def tiny_cfg(**over) -> dict:
-    """The repo's train section with tiny-run overrides (fp32, 2 epochs, 1 thread)."""
-    cfg = section(load_params(REPO / "params.yaml"), "train")
-    cfg.update({"epochs_stage1": 2, "epochs_stage2": 2, "precision": "fp32", "num_threads": 1,
-                "batch_size": 4})
-    # the paper recipe's other parts (the demo's params.yaml may select another recipe): tests that
-    # need a part set it themselves
-    cfg.update({k: v for k, v in RECIPES["paper"]["train"].items() if k != "precision"}, recipe="paper")
-    cfg["gabi"] = {**cfg["gabi"], "epochs": 2}
-    cfg.update(over)
-    return cfg
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return build_tiny_artifacts(tmp_path_factory.mktemp("tiny") / "artifacts")
-
-
-def load_arrays(art, method_name, cfg):
-    """(TrainData, ValData) of a method from the tiny artifacts, opened by the stage's wiring."""
-    from pipeline.methods import get_method
-    from stages.train import load_inputs
-
-    data, val, _ = load_inputs(art, get_method(method_name), cfg)
-    return data, val
+from tests._tiny_train import (REPO, assert_same_state, build_tiny_artifacts, clone_state, load_arrays, shape_mask,
+                               tiny_cfg, train_cli, train_params_file)
 
 
 def _run(method_name, art, cfg, seed=42, init_state=None, resume_dir=None, checkpointer=None, **kw):
@@ -148,16 +34,6 @@ def _run(method_name, art, cfg, seed=42, init_state=None, resume_dir=None, check
         checkpointer = FileCheckpointer(resume_dir) if resume_dir is not None else training.NoCheckpointer()
     return training.train(get_method(method_name), cfg, data, val, seed, init_state=init_state,
                           checkpointer=checkpointer, show_progress=False, **kw)
-
-
-def _weights(model):
-    return {k: v.clone() for k, v in model.state_dict().items()}
-
-
-def _assert_same(a, b):
-    assert a.keys() == b.keys()
-    for k in a:
-        assert torch.equal(a[k], b[k]), k
 
 
 # --------------------------------------------------------------------------------------------------
@@ -177,7 +53,7 @@ def test_few_steps_lower_the_loss(tiny):
 def test_same_seed_same_weights_and_different_seed_differs(tiny):
     cfg = tiny_cfg(epochs_stage1=1)
     a, b = _run("plain", tiny, cfg), _run("plain", tiny, cfg)
-    _assert_same(_weights(a.model), _weights(b.model))
+    assert_same_state(clone_state(a.model), clone_state(b.model))
     pd.testing.assert_frame_equal(a.log, b.log)
     c = _run("plain", tiny, cfg, seed=7)
     assert not torch.equal(a.model.enc1[0][0].weight, c.model.enc1[0][0].weight)
@@ -187,11 +63,11 @@ def test_bf16_autocast_run_is_deterministic(tiny):
     cfg = tiny_cfg(epochs_stage1=1, precision="bf16")
     a, b = _run("plain", tiny, cfg), _run("plain", tiny, cfg)
     assert a.info["autocast"] == "bfloat16"
-    _assert_same(_weights(a.model), _weights(b.model))
+    assert_same_state(clone_state(a.model), clone_state(b.model))
 
 
 @pytest.mark.parametrize("method", ["plain", "geodistill"])
-def test_resume_after_interruption_gives_identical_weights(tiny, tmp_path, method):
+def test_resume_after_interruption_gives_identicalclone_state(tiny, tmp_path, method):
     cfg = tiny_cfg(epochs_stage1=3, epochs_stage2=3, lr_stage1=2e-3)
     init = _run("plain", tiny, tiny_cfg(epochs_stage1=1)).model.mask_path_state_dict() if method != "plain" else None
     full = _run(method, tiny, cfg, init_state=init, resume_dir=tmp_path / "uninterrupted")
@@ -210,12 +86,12 @@ def test_resume_after_interruption_gives_identical_weights(tiny, tmp_path, metho
     seen = []
     resumed = _run(method, tiny, cfg, init_state=init, resume_dir=tmp_path / "r", callback=lambda e, r: seen.append(e))
     assert seen == [3]  # only the missing epoch ran
-    _assert_same(_weights(full.model), _weights(resumed.model))
+    assert_same_state(clone_state(full.model), clone_state(resumed.model))
     pd.testing.assert_frame_equal(full.log, resumed.log)
     # a finished state makes a rerun instant (no epoch runs) and gives the same model
     again = _run(method, tiny, cfg, init_state=init, resume_dir=tmp_path / "r", callback=lambda e, r: seen.append(e))
     assert seen == [3]
-    _assert_same(_weights(full.model), _weights(again.model))
+    assert_same_state(clone_state(full.model), clone_state(again.model))
 
 
 def test_train_runs_from_arrays_with_an_in_memory_checkpointer_and_resumes():
@@ -224,7 +100,7 @@ def test_train_runs_from_arrays_with_an_in_memory_checkpointer_and_resumes():
     from pipeline.methods import get_method
 
     rng = np.random.default_rng(3)
-    masks = np.stack([_shape_mask(rng, 24) for _ in range(7)])
+    masks = np.stack([shape_mask(rng, 24) for _ in range(7)])
     images = np.where(masks[..., None], 200, rng.integers(0, 40, (7, 24, 24, 3))).astype(np.uint8)
     data = training.TrainData(image_ids=[f"t{i}" for i in range(5)], images=images[:5], mask=masks[:5],
                               area=masks[:5].reshape(5, -1).mean(1).astype(np.float32),
@@ -250,7 +126,7 @@ def test_train_runs_from_arrays_with_an_in_memory_checkpointer_and_resumes():
     resumed = training.train(m, cfg, data, val, 42, checkpointer=ck, show_progress=False,
                              callback=lambda e, r: seen.append(e))
     assert seen == [2, 3]
-    _assert_same(_weights(full.model), _weights(resumed.model))
+    assert_same_state(clone_state(full.model), clone_state(resumed.model))
     pd.testing.assert_frame_equal(full.log, resumed.log)
     # a state of another run (different seed) is ignored, not resumed
     other = training.train(m, cfg, data, val, 7, checkpointer=ck, show_progress=False,
@@ -340,7 +216,7 @@ def test_reference_masks_of_training_rows_never_reach_a_loss(tmp_path):
                {"image_ids": ref.attrs["image_ids"]})
     cfg = tiny_cfg(epochs_stage1=2)
     ra, rb = _run("plain", a, cfg), _run("plain", b, cfg)
-    _assert_same(_weights(ra.model), _weights(rb.model))
+    assert_same_state(clone_state(ra.model), clone_state(rb.model))
     from pipeline import training
     from pipeline.methods import get_method
 
@@ -359,26 +235,6 @@ def test_reference_masks_of_training_rows_never_reach_a_loss(tmp_path):
 # --------------------------------------------------------------------------------------------------
 # the stage command
 # --------------------------------------------------------------------------------------------------
-def _params_file(tmp_path, runs=None) -> Path:
-    """The repo's params file with 1-epoch fp32 training and ``protocol.runs`` (default: plain and
-    geodistill for seed 42)."""
-    import yaml
-
-    p = yaml.safe_load((REPO / "params.yaml").read_text())
-    p["train"].update({"epochs_stage1": 1, "epochs_stage2": 1, "precision": "fp32", "num_threads": 1})
-    p["protocol"]["runs"] = {**{m: [] for m in p["protocol"]["runs"]},
-                             **(runs or {"plain": [42], "geodistill": [42]})}
-    out = tmp_path / "params.yaml"
-    out.write_text(yaml.safe_dump(p))
-    return out
-
-
-def _cli(*args, cwd):
-    env = {"GEODISTILL_QUIET": "1", "PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO)}
-    return subprocess.run([sys.executable, "-m", "stages.train", *args], cwd=cwd, env=env,
-                          capture_output=True, text=True)
-
-
 def test_checkpoint_selection_scores_validation_at_the_selection_tau(tiny):
     """training's selection tau is calibrate.fixed_tau (the default is the schema's value, which the
     train stage passes from params): another tau gives other validation scores, the same tau the same."""
@@ -396,13 +252,13 @@ def test_checkpoint_selection_scores_validation_at_the_selection_tau(tiny):
 def test_stage_command_trains_writes_checkpoint_and_warm_starts(tiny, tmp_path):
     from pipeline.inference import load_student
 
-    params = _params_file(tmp_path)
+    params = train_params_file(tmp_path)
     ck = tmp_path / "checkpoints"
     common = ["--params", str(params), "--artifacts", str(tiny), "--device", "cpu",
               "--resume-dir", str(tmp_path / "cache")]
-    r1 = _cli("--stage", "1", "--method", "plain", "--seed", "42", "--out", str(ck / "plain/42"), *common, cwd=tmp_path)
+    r1 = train_cli("--stage", "1", "--method", "plain", "--seed", "42", "--out", str(ck / "plain/42"), *common, cwd=tmp_path)
     assert r1.returncode == 0, r1.stderr
-    r2 = _cli("--stage", "2", "--method", "geodistill", "--seed", "42", "--init", str(ck / "plain/42"),
+    r2 = train_cli("--stage", "2", "--method", "geodistill", "--seed", "42", "--init", str(ck / "plain/42"),
               "--out", str(ck / "geodistill/42"), *common, cwd=tmp_path)
     assert r2.returncode == 0, r2.stderr
     model, payload = load_student(ck / "geodistill/42")
@@ -420,7 +276,7 @@ def test_stage_command_trains_writes_checkpoint_and_warm_starts(tiny, tmp_path):
     assert payload["resolution"] == int(open_artifact(tiny / "images.zarr").numpy("image").shape[1])
     # a second run with the same params and inputs resumes from its state and is byte-for-byte the same
     before = (ck / "geodistill/42" / "model.safetensors").read_bytes()
-    r3 = _cli("--stage", "2", "--method", "geodistill", "--seed", "42", "--init", str(ck / "plain/42"),
+    r3 = train_cli("--stage", "2", "--method", "geodistill", "--seed", "42", "--init", str(ck / "plain/42"),
               "--out", str(ck / "geodistill/42"), *common, cwd=tmp_path)
     assert r3.returncode == 0, r3.stderr
     assert (ck / "geodistill/42" / "model.safetensors").read_bytes() == before
@@ -433,7 +289,7 @@ def test_checkpoints_are_byte_identical_under_source_date_epoch(tiny, tmp_path, 
     from pipeline import catalog
 
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
-    params = _params_file(tmp_path)
+    params = train_params_file(tmp_path)
     outs = []
     out = tmp_path / "ck" / "plain/42"
     for k in range(2):  # the same paths, nothing kept between the runs
@@ -454,16 +310,16 @@ def test_checkpoints_are_byte_identical_under_source_date_epoch(tiny, tmp_path, 
 
 
 def test_stage_command_errors_are_one_line(tiny, tmp_path):
-    params = _params_file(tmp_path)
-    r = _cli("--params", str(params), "--stage", "1", "--method", "nope", "--seed", "42",
+    params = train_params_file(tmp_path)
+    r = train_cli("--params", str(params), "--stage", "1", "--method", "nope", "--seed", "42",
              "--artifacts", str(tiny), "--out", str(tmp_path / "x"), cwd=tmp_path)
     assert r.returncode == 2 and "--method 'nope'" in r.stderr and "Traceback" not in r.stderr
-    r = _cli("--params", str(params), "--stage", "2", "--method", "geodistill", "--seed", "42",
+    r = train_cli("--params", str(params), "--stage", "2", "--method", "geodistill", "--seed", "42",
              "--artifacts", str(tiny), "--init", str(tmp_path / "missing"), "--out", str(tmp_path / "y"),
              cwd=tmp_path)
     assert r.returncode == 2 and "missing" in r.stderr and "Traceback" not in r.stderr
     # divergence (a finite but absurd lr: the params schema rejects inf): exit code 1, one line, no checkpoint
-    r = _cli("--params", str(params), "--set", "train.lr_stage1=1.0e+30", "--stage", "1", "--method", "plain",
+    r = train_cli("--params", str(params), "--set", "train.lr_stage1=1.0e+30", "--stage", "1", "--method", "plain",
              "--seed", "42", "--artifacts", str(tiny), "--out", str(tmp_path / "z"), "--device", "cpu",
              "--resume-dir", str(tmp_path / "cache2"), cwd=tmp_path)
     assert r.returncode == 1 and "diverged" in r.stderr and "Traceback" not in r.stderr
@@ -478,7 +334,7 @@ def tiny18(tmp_path_factory):
 
 @pytest.mark.parametrize("method", ["plain", "geodistill", "afs_control", "supervised_ceiling",
                                     "geodistill_adaptive"])
-def test_streaming_data_gives_the_in_memory_batches_and_weights(tiny18, method, tmp_path, monkeypatch):
+def test_streaming_data_gives_the_in_memory_batches_andclone_state(tiny18, method, tmp_path, monkeypatch):
     """load_inputs reads images and targets from the Zarr artifacts per batch (row sources, prefetched;
     the AFS control's fused mask computed per batch; the adaptive method's frozen Stage-I anchors
     spilled to a scratch Zarr store, removed after the run); the same data loaded into memory gives
@@ -512,7 +368,7 @@ def test_streaming_data_gives_the_in_memory_batches_and_weights(tiny18, method, 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     runs = [training.train(m, cfg, d, val, 7, init_state=init, checkpointer=training.NoCheckpointer(),
                            show_progress=False) for d in (lazy, memory)]
-    _assert_same(_weights(runs[0].model), _weights(runs[1].model))
+    assert_same_state(clone_state(runs[0].model), clone_state(runs[1].model))
     timing = [c for c in runs[0].log.columns if "sec" in c or "time" in c]
     pd.testing.assert_frame_equal(runs[0].log.drop(columns=timing), runs[1].log.drop(columns=timing))
     assert len(spilled) == (method == "geodistill_adaptive")  # the streamed run only

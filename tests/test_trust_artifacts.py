@@ -136,16 +136,16 @@ def test_outputs_of_one_stage_from_different_runs_are_refused(tmp_path):
 
 def test_train_stage_refuses_gates_from_another_geometry_run(tmp_path):
     """Item 5 through the CLI: new gates.parquet beside an older geometry.zarr -> exit 2, one line."""
-    from test_training import _cli, _params_file, build_tiny_artifacts
+    from tests._tiny_train import build_tiny_artifacts, train_cli, train_params_file
 
     art = build_tiny_artifacts(tmp_path / "artifacts")
     gates = open_artifact(art / "gates.parquet")
     meta = gates.meta
     meta.run_id = "a-later-run"
     write_parquet(art / "gates.parquet", gates.df, meta)
-    r = _cli("--params", str(_params_file(tmp_path)), "--stage", "2", "--method", "sdf_scratch", "--seed", "42",
-             "--artifacts", str(art), "--out", str(tmp_path / "ck"), "--device", "cpu",
-             "--resume-dir", str(tmp_path / "cache"), cwd=tmp_path)
+    r = train_cli("--params", str(train_params_file(tmp_path)), "--stage", "2", "--method", "sdf_scratch",
+                  "--seed", "42", "--artifacts", str(art), "--out", str(tmp_path / "ck"), "--device", "cpu",
+                  "--resume-dir", str(tmp_path / "cache"), cwd=tmp_path)
     _one_error_line(r, "gates.parquet", "another run of stage 'geometry'", "rerun stage 'geometry'")
     assert not (tmp_path / "ck").exists()
 

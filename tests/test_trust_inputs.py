@@ -23,7 +23,7 @@ from pipeline.artifacts import open_artifact
 from pipeline.datasets import loading as L
 from pipeline.teachers.cache import TeacherCache, decode_entry, entry_key
 from stages.prepare import main as prepare_main
-from test_teacher_stage import build_artifacts, cache_files, run_stage
+from tests._tiny_teacher import build_artifacts, cache_files, run_stage
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = str(REPO / "params.yaml")

@@ -12,34 +12,16 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from pipeline.artifacts import make_meta
-from pipeline.inference import save_checkpoint
 from stages.segment import main as segment_main
-from test_deploy import tiny_model
-
-RES = 32
+from tests._tiny_deploy import RES
 
 
 @pytest.fixture(autouse=True)
 def quiet(monkeypatch):
     monkeypatch.setenv("GEODISTILL_QUIET", "1")
-
-
-@pytest.fixture(scope="module")
-def ckpts(tmp_path_factory) -> dict[str, Path]:
-    """A tiny checkpoint recording its training resolution (as the train stage writes it) and the same
-    weights without it (an older checkpoint)."""
-    root = tmp_path_factory.mktemp("ckpts")
-    log = pd.DataFrame({"epoch": [1], "stage": [1], "loss": [0.1], "val_iou": [0.5], "val_bf1": [0.5],
-                        "lr": [1e-4]})
-    meta = make_meta("checkpoint", "train", "test", {"seed": 42, "method": "geodistill"})
-    common = dict(method="geodistill", seed=42, stage=1, selected_epoch=1, tau=0.5)
-    return {"with": save_checkpoint(root / "with", tiny_model(3), meta, log, resolution=RES, **common),
-            "without": save_checkpoint(root / "without", tiny_model(3), meta, log, **common)}
 
 
 def image(path: Path, value: int = 0) -> Path:

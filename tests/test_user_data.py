@@ -19,8 +19,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from test_label import make_image_folder, tiny_sam3  # noqa: F401  (the session fixture)
-from test_trust_segment import ckpts  # noqa: F401  (module fixture: a tiny checkpoint)
+from tests._tiny_teacher import make_image_folder
 
 REPO = Path(__file__).resolve().parents[1]
 CORRUPT_PNG = b"\x89PNG\r\n\x1a\nGARBAGEGARBAGEGARBAGE"  # OpenCV logs "[ WARN..." / "[ERROR..." for this one

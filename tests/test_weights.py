@@ -18,7 +18,7 @@ from pipeline.artifacts import open_artifact
 from pipeline.errors import ArtifactError
 from pipeline.inference import load_student
 from pipeline.weights import read_weights, write_weights
-from test_deploy import RES, make_checkpoint, run_export, tiny_model
+from tests._tiny_deploy import RES, make_checkpoint, run_export, tiny_model
 
 
 @pytest.fixture(autouse=True)

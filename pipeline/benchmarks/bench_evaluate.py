@@ -36,7 +36,7 @@ from pipeline.inference import predict_probs
 from pipeline.methods import BASELINE
 from pipeline.metrics import _ratio, _region_counts, per_image_metrics, score_masks, scoring_reference
 from pipeline.profiles import FULL_PROTOCOL
-from pipeline.stats import _cluster_layout, method_gains
+from pipeline.stats import SEED_BOOTSTRAP, _cluster_layout, method_gains
 
 PAPER_RUNS = 22          # 5 methods x 3 seeds + 7 seed-42 ablations (pipeline.profiles.FULL_PROTOCOL)
 PAPER_TEST_IMAGES = 180  # 3 groups x 3 spacecraft x 20 views
@@ -278,11 +278,12 @@ def main(argv=None) -> int:
     # with several seeds it adds the seed level, which the baseline lacks)
     one = table[table["seed"] == table["seed"].iloc[0]]
     g_old = baseline_method_gains(one, gm, n_resamples=args.resamples)
-    g_new = method_gains(one, gm, n_resamples=args.resamples)
+    g_new = method_gains(one, gm, n_resamples=args.resamples, interval=SEED_BOOTSTRAP)
     num = [c for c in g_old.columns if c.startswith("gain_")]
     np.testing.assert_allclose(g_new[num].to_numpy(float), g_old[num].to_numpy(float), rtol=1e-9, atol=1e-12)
     t_gains = _rounds({"baseline": lambda: baseline_method_gains(table, gm, n_resamples=args.resamples),
-                       "new": lambda: method_gains(table, gm, n_resamples=args.resamples)}, args.repeats)
+                       "new": lambda: method_gains(table, gm, n_resamples=args.resamples, interval=SEED_BOOTSTRAP)},
+                      args.repeats)
 
     infer = student_seconds_per_image(args.size, args.device, args.student_images) if args.student_images else 0.0
 

@@ -42,8 +42,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.artifacts import read_chunk_rows
+from pipeline import catalog
+from pipeline.artifacts import make_meta, read_chunk_rows
 from pipeline.benchmarks.bench_train import synthetic_set
+from pipeline.datasets.params import check_data_params
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import load_params, section
 from pipeline.streaming import LazyRows, row_means
@@ -100,7 +102,7 @@ def child_train(folder: Path, mode: str, method_name: str, max_batches: int) -> 
     arrays = {"images": None, "mask": bool}
     if method.needs_geometry:
         arrays.update(sdf=np.float32, skeleton=bool)
-    n = zarr.open_array(str(folder / "images.zarr")).shape[0]
+    n = zarr.open_array(str(catalog.path("images", folder))).shape[0]
     lazy = {k: LazyRows(zarr.open_array(str(folder / f"{k}.zarr")), np.arange(n), dt) for k, dt in arrays.items()}
     if mode == "memory":
         lazy = {k: np.asarray(v) for k, v in lazy.items()}
@@ -139,16 +141,15 @@ def child_prepare(out: Path, factor: int, size: int) -> dict:
     """The prepare stage on the synthetic source, every view count times ``factor``, at ``size``^2."""
     import zarr
 
-    from stages.prepare import main
+    from pipeline.prepare import prepare
 
     views = section(load_params(ROOT / "params.yaml"), "data")["synthetic"]
     sets = [f"data.synthetic.{k}={int(views[k]) * factor}" for k in PREPARE_VIEWS]
-    args = ["--out-dir", str(out), "--set", f"data.resolution={size}", "--set", f"data.cache_dir={out / 'cache'}"]
-    for item in sets:
-        args += ["--set", item]
+    params = load_params(ROOT / "params.yaml", [f"data.resolution={size}", f"data.cache_dir={out / 'cache'}", *sets])
     t = time.perf_counter()
-    main.main(args, standalone_mode=False)
-    n = zarr.open_group(str(out / "images.zarr"))["image"].shape[0]
+    prepare(check_data_params(section(params, "data")), out,
+            lambda schema, params, **extra: make_meta(schema, "prepare", "bench_memory", params, **extra))
+    n = zarr.open_group(str(catalog.path("images", out)))["image"].shape[0]
     return {"peak_mb": peak_mb(), "seconds": time.perf_counter() - t, "n": n}
 
 
@@ -156,7 +157,7 @@ def child_read(folder: Path, mode: str) -> dict:
     """200 rows of ``images.zarr``: ``slices`` (read_chunk_rows) or ``orthogonal`` (zarr's selection)."""
     import zarr
 
-    arr = zarr.open_array(str(folder / "images.zarr"))
+    arr = zarr.open_array(str(catalog.path("images", folder)))
     rows = np.arange(arr.shape[0])
     t = time.perf_counter()
     out = read_chunk_rows(arr, rows) if mode == "slices" else arr.get_orthogonal_selection((rows,))

@@ -55,6 +55,7 @@ from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.metrics import image_ious
 from pipeline.profiles import load_profile
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
+from pipeline.training_inputs import load_inputs
 
 REPO = Path(__file__).resolve().parents[2]
 #: the Stage-I (Plain Student) recipe and the same recipe on reference masks (the supervised ceiling)
@@ -122,7 +123,6 @@ def load_study_data(artifacts: Path, cfg: Mapping[str, Any], methods=METHODS) ->
     """Training arrays per method of ``methods`` (via the training API), validation and test images +
     reference masks (test: images, masks and groups)."""
     from pipeline.training import _rows
-    from stages.train import load_inputs
 
     out: dict[str, Any] = {}
     for m in methods:

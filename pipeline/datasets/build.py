@@ -88,13 +88,14 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
                 bar.update(1)
     return DatasetSpec(rows=pd.DataFrame(rows), mask_threshold=None, part_colors=None,
                        spacecraft_disjoint=True,
-                       protocol={"name": "synthetic", "plan": [vars(p) for p in plan]})
+                       protocol={"name": "synthetic", "plan": [vars(p) for p in plan]}, max_pixels=cfg.get("max_pixels"))
 
 
 def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = None) -> DatasetSpec:
     """Rows of a real dataset.  ``<out_dir>/synthetic`` (a declared DVC output) is replaced by a
     directory holding only a note, so no stale synthetic files survive a switch of source."""
     spec = adapters.build_source(cfg, policy)
+    spec.max_pixels = cfg.get("max_pixels")  # data.max_pixels: checked on every file's header (decode_rows)
     if out_dir is not None:
         with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:
             (tmp / "README.txt").write_text(f"data.source={cfg['source']}: the synthetic benchmark was not "
@@ -120,27 +121,27 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
     """First pass over the files: decode (into the cache), check, and fill width/height/sha256.
 
     A row is left out (skip_bad) or raises when its image is missing, zero-byte, corrupt or
-    unsupported, when its mask or part file is, or when a mask/part file's size differs from the
-    image's.  Rows without a mask (unlabeled training images) are fine.  When a row is left out, its
+    unsupported or above ``spec.max_pixels`` (read from its header, before decoding), when its mask or
+    part file is, or when a mask/part file's size differs from the image's.  Rows without a mask (unlabeled training images) are fine.  When a row is left out, its
     other files (image, mask, part file) are listed too, so every file that is not used is listed.
     """
     keep, width, height, sha = [], [], [], []
     for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):
         try:
-            img = load_rgb(r.image_path, size, cache)
+            img = load_rgb(r.image_path, size, cache, max_pixels=spec.max_pixels)
             for col in ("mask_path", "part_path"):
                 path = getattr(r, col)
                 if not _has(path):
                     continue
                 if col == "mask_path":
-                    got = load_mask(path, size, cache, spec.mask_threshold)
+                    got = load_mask(path, size, cache, spec.mask_threshold, max_pixels=spec.max_pixels)
                 else:
-                    got = load_labels(path, size, cache, spec.part_colors)
+                    got = load_labels(path, size, cache, spec.part_colors, max_pixels=spec.max_pixels)
                 if got.native_hw != img.native_hw:
                     raise BadFileError(path, f"{col.split('_')[0]} size {got.native_hw[1]}x{got.native_hw[0]} differs "
                                              f"from image {r.image_path} size {img.native_hw[1]}x{img.native_hw[0]}")
         except BadFileError as e:
-            policy.report(r.image_id, e.path, e.reason)
+            policy.report_error(r.image_id, e)
             for col in ("image_path", "mask_path", "part_path"):
                 other = getattr(r, col)
                 if _has(other) and other != e.path and (Path(other).exists() or Path(other).is_symlink()):
@@ -169,9 +170,11 @@ def iter_arrays(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
                 ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]]:
     """Yield ``(row, image uint8 [S,S,3], mask bool [S,S] | None, parts uint8 [S,S] | None)``."""
     for i, r in enumerate(rows.itertuples(index=False)):
-        img = load_rgb(r.image_path, size, cache).array
-        mask = load_mask(r.mask_path, size, cache, spec.mask_threshold).array if _has(r.mask_path) else None
-        parts = load_labels(r.part_path, size, cache, spec.part_colors).array if _has(r.part_path) else None
+        img = load_rgb(r.image_path, size, cache, max_pixels=spec.max_pixels).array
+        mask = (load_mask(r.mask_path, size, cache, spec.mask_threshold, max_pixels=spec.max_pixels).array
+                if _has(r.mask_path) else None)
+        parts = (load_labels(r.part_path, size, cache, spec.part_colors, max_pixels=spec.max_pixels).array
+                 if _has(r.part_path) else None)
         yield i, img, mask, parts
 
 

@@ -9,6 +9,14 @@
     Raises :class:`InputError` naming the file for a missing, zero-byte, corrupt or unsupported file,
     a broken symbolic link or a directory.
 
+The pixel limit (every reader below, ``max_pixels``; params ``data.max_pixels``, default
+:data:`DEFAULT_MAX_PIXELS` = 2**26, an 8192 x 8192 image)
+    Width and height are read from the file header (:func:`pipeline.datasets.image_header.header_size`)
+    before anything is decoded or looked up in the cache; above ``max_pixels`` the file is a bad file
+    (:class:`BadFileError` naming it, its size and the option), so a few-megabyte PNG whose header
+    declares 30,000 x 30,000 pixels never reaches the decoder.  Bytes that carry no PNG, JPEG, TIFF or
+    BMP header are "corrupt or undecodable" before decoding too.
+
 ``read_mask(path, threshold)``
     Any mask file -> bool [H, W].  THE rule (this module is the only place a mask file is binarised:
     the dataset adapters and the imported teacher all come here): foreground = max over channels
@@ -41,22 +49,36 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.datasets.image_header import header_size
+from pipeline.errors import MAX_PIXELS, InputError, Option, literal
+from pipeline.params import PAPER
 
 log = logging.getLogger(__name__)
 
 SUPPORTED_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 DEFAULT_CACHE_DIR = ".cache/decode"
 MASK_RULE = "foreground = value > 0"
+#: the pixel limit's default: the params schema's ``data.max_pixels``
+DEFAULT_MAX_PIXELS = PAPER.data.max_pixels
+UNDECODABLE = "corrupt or undecodable image"
 
 
 class BadFileError(InputError):
-    """A file that cannot be used (missing, zero-byte, corrupt, unsupported, size mismatch); ``.path`` names it."""
+    """A file that cannot be used (missing, zero-byte, corrupt, unsupported, too large, size mismatch).
 
-    def __init__(self, path: str | Path, reason: str):
+    ``.path`` names it and ``.reason`` says why in words that name no option (what the skipped-file
+    listings hold); ``fix`` is a template naming the ``options`` that would let the file in, spelled
+    in the caller's terms (:class:`pipeline.errors.InputError`): ``{path}: {reason} ({fix})``."""
+
+    def __init__(self, path: str | Path, reason: str, fix: str = "", *options: Option):
         self.path = str(path)
         self.reason = reason
-        super().__init__(f"{path}: {reason}")
+        self.fix = fix
+        text = f"{literal(path)}: {literal(reason)}" if options else f"{path}: {reason}"
+        super().__init__(text + (f" ({fix})" if fix else ""), *options)
+
+    def __reduce__(self):  # pickled across Ray workers: rebuilt from its own arguments
+        return type(self), (self.path, self.reason, self.fix, *self.options)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -91,10 +113,43 @@ def read_bytes(path: str | Path) -> bytes:
     return data
 
 
+def pixel_limit(max_pixels: int | None = None) -> int:
+    """``max_pixels`` checked (a whole number >= 1; InputError naming the option in the caller's terms),
+    or :data:`DEFAULT_MAX_PIXELS` when None."""
+    if max_pixels is None:
+        return DEFAULT_MAX_PIXELS
+    if isinstance(max_pixels, bool) or not isinstance(max_pixels, (int, np.integer)) or max_pixels < 1:
+        raise InputError("{}: must be a whole number of pixels >= 1 (width x height; default "
+                         f"{DEFAULT_MAX_PIXELS:,})", MAX_PIXELS(max_pixels))
+    return int(max_pixels)
+
+
+def check_header(data: bytes, path: str | Path, max_pixels: int | None = None) -> tuple[int, int]:
+    """``(width, height)`` from the file header (:func:`pipeline.datasets.image_header.header_size`),
+    before any decoding; :class:`BadFileError` when there is no PNG/JPEG/TIFF/BMP header or the image
+    is above ``max_pixels`` (None: :data:`DEFAULT_MAX_PIXELS`)."""
+    limit = pixel_limit(max_pixels)
+    size = header_size(data)
+    if size is None:
+        raise BadFileError(path, UNDECODABLE)  # no PNG/JPEG/TIFF/BMP header: the decoder's own wording
+    w, h = size
+    if w * h > limit:
+        raise BadFileError(path, f"{w} x {h} = {w * h:,} pixels in its header, above the limit of {limit:,}",
+                           "raise {} to read it", MAX_PIXELS)
+    return size
+
+
+def read_image_bytes(path: str | Path, max_pixels: int | None = None) -> bytes:
+    """:func:`read_bytes`, then :func:`check_header`: the bytes of a file the decoder may take."""
+    data = read_bytes(path)
+    check_header(data, path, max_pixels)
+    return data
+
+
 def _decode(data: bytes, path: str | Path) -> np.ndarray:
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None or arr.size == 0:
-        raise BadFileError(path, "corrupt or undecodable image")
+        raise BadFileError(path, UNDECODABLE)
     return arr
 
 
@@ -124,9 +179,10 @@ def to_rgb8(arr: np.ndarray, path: str | Path = "<array>") -> np.ndarray:
     raise BadFileError(path, f"unsupported channel count {ch}")
 
 
-def read_rgb(path: str | Path) -> np.ndarray:
-    """Read any supported image file as RGB uint8 [H, W, 3] at native size (see module docstring)."""
-    return to_rgb8(_decode(read_bytes(path), path), path)
+def read_rgb(path: str | Path, *, max_pixels: int | None = None) -> np.ndarray:
+    """Read any supported image file as RGB uint8 [H, W, 3] at native size (see module docstring);
+    refused before decoding above ``max_pixels`` (None: :data:`DEFAULT_MAX_PIXELS`)."""
+    return to_rgb8(_decode(read_image_bytes(path, max_pixels), path), path)
 
 
 _warned: set[str] = set()
@@ -168,9 +224,10 @@ def mask_from_array(arr: np.ndarray, threshold: float | None = None, path: str |
     return mask
 
 
-def read_mask(path: str | Path, threshold: float | None = None) -> np.ndarray:
-    """Read a mask file as bool [H, W] at native size; InputError naming the file on bad input."""
-    return mask_from_array(_decode(read_bytes(path), path), threshold, path)
+def read_mask(path: str | Path, threshold: float | None = None, *, max_pixels: int | None = None) -> np.ndarray:
+    """Read a mask file as bool [H, W] at native size; InputError naming the file on bad input (and
+    above ``max_pixels``, before decoding)."""
+    return mask_from_array(_decode(read_image_bytes(path, max_pixels), path), threshold, path)
 
 
 def parts_from_colors(rgb: np.ndarray, colors: dict[tuple[int, int, int], int]) -> np.ndarray:
@@ -277,10 +334,11 @@ class Loaded:
     native_hw: tuple[int, int]   # (height, width) of the file
 
 
-def _load(path, size: int, kind: str, cache: DecodeCache | None, decode) -> Loaded:
+def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pixels: int | None) -> Loaded:
     """``decode(array) -> array`` or ``(array, note)``; a note (multi-valued mask) is cached with the
-    entry and warned about once per file, whether decoded now or read from the cache."""
-    data = read_bytes(path)
+    entry and warned about once per file, whether decoded now or read from the cache.  The pixel limit
+    is checked on the header first, so a cached entry made under a higher limit is refused too."""
+    data = read_image_bytes(path, max_pixels)
     sha = hashlib.sha256(data).hexdigest()
     if cache is not None:
         hit = cache.get_entry(sha, kind, size)
@@ -297,9 +355,10 @@ def _load(path, size: int, kind: str, cache: DecodeCache | None, decode) -> Load
     return Loaded(arr, sha, hw)
 
 
-def load_rgb(path, size: int, cache: DecodeCache | None = None) -> Loaded:
-    """RGB uint8 [size, size, 3] (area interpolation), its sha256 and native size; cached."""
-    return _load(path, size, "rgb", cache, lambda a: to_rgb8(a, path))
+def load_rgb(path, size: int, cache: DecodeCache | None = None, *, max_pixels: int | None = None) -> Loaded:
+    """RGB uint8 [size, size, 3] (area interpolation), its sha256 and native size; cached.  Refused
+    above ``max_pixels`` (None: :data:`DEFAULT_MAX_PIXELS`) before decoding."""
+    return _load(path, size, "rgb", cache, lambda a: to_rgb8(a, path), max_pixels)
 
 
 def mask_kind(threshold: float | None) -> str:
@@ -308,18 +367,19 @@ def mask_kind(threshold: float | None) -> str:
     return "maskgt0" if threshold is None else f"mask{threshold}"
 
 
-def load_mask(path, size: int, cache: DecodeCache | None = None, threshold: float | None = None) -> Loaded:
+def load_mask(path, size: int, cache: DecodeCache | None = None, threshold: float | None = None, *,
+              max_pixels: int | None = None) -> Loaded:
     """bool [size, size] (nearest), binarised by :func:`binarize_mask`; cached per threshold."""
-    return _load(path, size, mask_kind(threshold), cache, lambda a: binarize_mask(a, threshold))
+    return _load(path, size, mask_kind(threshold), cache, lambda a: binarize_mask(a, threshold), max_pixels)
 
 
 def load_labels(path, size: int, cache: DecodeCache | None = None,
-                colors: dict[tuple[int, int, int], int] | None = None) -> Loaded:
+                colors: dict[tuple[int, int, int], int] | None = None, *, max_pixels: int | None = None) -> Loaded:
     """Part labels uint8 [size, size] (nearest): a label image, or a colour-coded one mapped by ``colors``."""
     if colors:
         digest = hashlib.sha256(repr(sorted(colors.items())).encode()).hexdigest()[:10]
         return _load(path, size, f"parts{digest}", cache,
-                     lambda a: parts_from_colors(to_rgb8(a, path), colors))
+                     lambda a: parts_from_colors(to_rgb8(a, path), colors), max_pixels)
 
     def as_labels(a):
         if a.ndim == 3:
@@ -328,4 +388,4 @@ def load_labels(path, size: int, cache: DecodeCache | None = None,
             a = np.clip(a, 0, 255).astype(np.uint8)
         return a
 
-    return _load(path, size, "labels", cache, as_labels)
+    return _load(path, size, "labels", cache, as_labels, max_pixels)

@@ -20,7 +20,7 @@ import logging
 
 import pandas as pd
 
-from pipeline.errors import InputError
+from pipeline.errors import SKIP_BAD, InputError, Option, literal
 from pipeline.params import SPLITS
 
 log = logging.getLogger(__name__)
@@ -41,6 +41,8 @@ class DatasetSpec:
         are label images (synthetic) or there are no part files.
     spacecraft_disjoint: enforce eq:spacecraft-disjoint (SpaceSense-Bench-like protocols).
     protocol: a small dict describing the protocol used (kept in the manifest metadata).
+    max_pixels: the pixel limit its files are read under (params ``data.max_pixels``; None: the
+        default, :data:`pipeline.datasets.loading.DEFAULT_MAX_PIXELS`), checked on each file's header.
     """
 
     rows: pd.DataFrame
@@ -48,10 +50,12 @@ class DatasetSpec:
     part_colors: dict | None = None
     spacecraft_disjoint: bool = True
     protocol: dict = dataclasses.field(default_factory=dict)
+    max_pixels: int | None = None
 
 
-#: what a refusal suggests: both work for prepare and distill (and label, which reads data.skip_bad too)
-SKIP_HINT = "pass --skip-bad, or set data.skip_bad: true in params.yaml, to leave it out"
+#: what a refusal suggests (a template naming ``--skip-bad`` / ``skip_bad=True`` in the caller's terms,
+#: pipeline.errors): both work for prepare and distill (and label, which reads data.skip_bad too)
+SKIP_HINT = "pass {}, or set data.skip_bad: true in params.yaml, to leave it out"
 
 
 class BadInputPolicy:
@@ -62,19 +66,33 @@ class BadInputPolicy:
     with it, bad files are left out, listed with their reason (``skipped_files.parquet`` /
     ``skipped.csv``, columns :data:`SKIPPED_COLUMNS`) and counted in one stderr line
     (:meth:`summary`).  ``hint``: the refusal's suggestion (a command without params: only
-    ``--skip-bad``)."""
+    ``--skip-bad``).  ``hint_options``: the options of ``hint``'s ``{}`` (default: ``--skip-bad``),
+    spelled in the caller's terms (:class:`pipeline.errors.InputError`); a hint without options is
+    taken as it is."""
 
-    def __init__(self, skip_bad: bool, hint: str = SKIP_HINT):
+    def __init__(self, skip_bad: bool, hint: str = SKIP_HINT, hint_options: tuple[Option, ...] | None = None):
         self.skip_bad = bool(skip_bad)
         self.hint = hint
+        self.hint_options = (SKIP_BAD,) if hint_options is None and hint == SKIP_HINT else tuple(hint_options or ())
         self.skipped: list[dict] = []
 
-    def report(self, image_id: str | None, path: str, reason: str) -> None:
+    def report(self, image_id: str | None, path: str, reason: str, fix: str = "", options: tuple[Option, ...] = ()
+               ) -> None:
+        """Refuse ``path`` (InputError: ``path: reason (fix; hint)``) or, with ``skip_bad``, list it
+        with ``reason``.  ``fix``: a template naming ``options`` that would let the file in (a
+        :class:`pipeline.datasets.loading.BadFileError`'s ``fix``)."""
         msg = f"{path}: {reason}" if not reason.startswith(str(path)) else reason
         if not self.skip_bad:
-            raise InputError(f"{msg} ({self.hint})")
+            opts = (*options, *self.hint_options)
+            hint = self.hint if self.hint_options else literal(self.hint) if opts else self.hint
+            text = literal(msg) if opts else msg
+            raise InputError(f"{text} ({fix + '; ' if fix else ''}{hint})", *opts)
         log.info("skipping %s", msg)
         self.skipped.append({"image_id": image_id or "", "path": str(path), "reason": reason})
+
+    def report_error(self, image_id: str | None, error) -> None:
+        """:meth:`report` of a :class:`pipeline.datasets.loading.BadFileError` (its path, reason, fix)."""
+        self.report(image_id, error.path, error.reason, error.fix, error.options)
 
     def bad_count(self) -> int:
         """Files left out by :meth:`report` (not the ones merely listed by :meth:`record`)."""

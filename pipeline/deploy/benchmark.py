@@ -42,10 +42,11 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from pipeline import catalog
 from pipeline.artifacts import open_artifact, read_chunk_rows
 from pipeline.deploy import quantize as q8
-from pipeline.deploy.bundle import INT8_FILE, read_deploy_info
-from pipeline.deploy.engines import ENGINES, ONNX_FILE, Source, unavailable
+from pipeline.deploy.bundle import INT8_FILE, ONNX_FILE, read_deploy_info
+from pipeline.deploy.engines import ENGINES, Source, unavailable
 from pipeline.deploy.export import export_onnx, onnx_unavailable_reason, parity_inputs
 from pipeline.deploy.segmenter import load_segmenter
 from pipeline.device import cpu_supports_bf16
@@ -53,15 +54,15 @@ from pipeline.errors import InputError
 from pipeline.inference import images_to_tensor, load_student
 from pipeline.metrics import image_ious
 from pipeline.model import count_flops, count_parameters, mask_path_model
-from pipeline.params import BENCHMARK_VARIANTS
-from pipeline.thresholds import mask_from_probs, resolve_tau
+from pipeline.engine_table import BENCHMARK_VARIANTS
+from pipeline.thresholds import mask_from_probs, resolve_tau, tau_candidates
 
 BASELINE_VARIANT = "fp32_eager_nchw"
-VARIANTS = tuple(BENCHMARK_VARIANTS)  # the params schema lists them (deploy.benchmark_variants)
+VARIANTS = tuple(BENCHMARK_VARIANTS)  # the engine table's benchmark variants (deploy.benchmark_variants)
 SLOW_FACTOR = 4.0  # a variant probed more than this many times slower than the baseline is not fully timed
 PROBE_CALLS = 2    # timed batch-1 calls of the probe (after the warm-up)
 OK = "ok"
-INT8_VARIANTS = ("onnxruntime_int8", "openvino_int8")  # run the bundle's model.int8.onnx
+INT8_VARIANTS = tuple(n for n in VARIANTS if ENGINES[n].needs == INT8_FILE)  # run the bundle's int8 model
 
 
 @dataclasses.dataclass
@@ -369,10 +370,11 @@ class Target:
     inputs: list                # opened artifacts (lineage)
 
 
-def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, fixed_tau=None) -> Target:
+def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, params=None) -> Target:
     """Open exactly one of a deploy bundle or a checkpoint directory on the CPU.  tau by
-    :func:`pipeline.thresholds.resolve_tau`: ``tau`` (--tau) > the bundle's > the checkpoint's payload
-    > its row in ``thresholds`` > ``fixed_tau`` (calibrate.fixed_tau)."""
+    :func:`pipeline.thresholds.tau_candidates` and :func:`pipeline.thresholds.resolve_tau`: ``tau``
+    (--tau) > the bundle's > the checkpoint's payload > its row in ``thresholds`` > ``calibrate.fixed_tau``
+    of ``params``."""
     if (deploy_dir is None) == (checkpoint is None):
         raise InputError("give exactly one of --deploy (a bundle) or --checkpoint")
     if deploy_dir is not None:
@@ -380,12 +382,12 @@ def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, fix
         inputs = [open_artifact(d, "deploy")]
         info = read_deploy_info(d)
         model, _ = load_student(d, "cpu")
-        value, source = resolve_tau(option=tau, bundle=(info["tau"], f"deploy bundle ({info.get('tau_source', '?')})"))
-        return Target(model, value, source, info["resolution"], d / "model.onnx" if (d / "model.onnx").exists() else None,
+        value, source = resolve_tau(option=tau, **tau_candidates(bundle=info, params=params))
+        return Target(model, value, source, info["resolution"], d / ONNX_FILE if (d / ONNX_FILE).exists() else None,
                       d / INT8_FILE if (d / INT8_FILE).exists() else None, info.get("int8") or {}, inputs)
-    seg = load_segmenter(checkpoint, "torch", "cpu", thresholds)
+    seg = load_segmenter(checkpoint, "torch", "cpu", thresholds, params=params)
     model, _ = load_student(checkpoint, "cpu")
-    value, source = seg.resolve_tau(option=tau, fixed=fixed_tau)
+    value, source = seg.resolve_tau(option=tau)
     return Target(model, value, source, seg.resolution, None, None, {}, [open_artifact(checkpoint, "checkpoint")])
 
 
@@ -395,8 +397,7 @@ def read_benchmark_data(art: str | Path, n_calib: int):
 
     Validation: split == 'val' rows with a reference mask (reference masks only measure accuracy here,
     never train).  Calibration: the export's selection of training rows (:func:`q8.calibration_rows`)."""
-    art = Path(art)
-    paths = [art / "manifest.parquet", art / "images.zarr", art / "reference.zarr"]
+    paths = [catalog.path(name, art) for name in ("manifest", "images", "reference")]
     if not all(p.exists() for p in paths):
         return None, None, None, []
     manifest = open_artifact(paths[0], "manifest")
@@ -423,7 +424,7 @@ def prepare_onnx_models(target: Target, variants: Sequence[str], workdir: str | 
     reason = onnx_unavailable_reason()
     if reason is not None:
         return None, None, {"onnx": reason}
-    onnx_path = target.onnx_path or export_onnx(target.model, Path(workdir) / "model.onnx", resolution, opset)
+    onnx_path = target.onnx_path or export_onnx(target.model, Path(workdir) / ONNX_FILE, resolution, opset)
     if not set(variants) & set(INT8_VARIANTS):
         return onnx_path, None, {}
     if target.int8_path is not None:

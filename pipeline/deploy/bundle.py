@@ -1,6 +1,6 @@
 """The deploy bundle: writing and reading it (deploy.json), and a checkpoint's working resolution.
 
-Deploy bundle (directory artifact, schema ``deploy``)::
+Deploy bundle (directory artifact, schema ``deploy``; its layout, one table: pipeline.catalog.DEPLOY_BUNDLE)::
 
     model.safetensors + model.json  mask-path weights; config, method, seed, tau, resolution
                   -- the checkpoint format (pipeline.weights), so pipeline.inference.load_student() opens
@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.catalog import bundle_file
 from pipeline.deploy import quantize as q8
 from pipeline.deploy.export import (ONNX_INPUT, ONNX_OUTPUT, check_parity, export_onnx, export_torchscript,
                                     mask_path_model, onnx_unavailable_reason, require_parity)
@@ -37,8 +38,11 @@ from pipeline.weights import write_weights
 
 log = logging.getLogger(__name__)
 
-DEPLOY_JSON = "deploy.json"
-INT8_FILE = "model.int8.onnx"
+#: the bundle's files as its writer and readers name them (the layout: pipeline.catalog.DEPLOY_BUNDLE)
+DEPLOY_JSON = bundle_file("deploy_json")
+TORCHSCRIPT_FILE = bundle_file("torchscript")
+ONNX_FILE = bundle_file("onnx")
+INT8_FILE = bundle_file("int8")
 
 
 def file_sha256(path: str | Path) -> str:
@@ -70,24 +74,24 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
     method, seed = payload.get("method"), payload.get("seed")
     write_weights(tmp, deployed.mask_path_state_dict(), deployed.config, None, method=method, seed=seed,
                   tau=float(tau), resolution=int(resolution))
-    export_torchscript(deployed, tmp / "model.ts", resolution)
+    export_torchscript(deployed, tmp / TORCHSCRIPT_FILE, resolution)
     onnx_note = None if onnx else "disabled"
     if onnx and (reason := onnx_unavailable_reason()) is None:
-        export_onnx(deployed, tmp / "model.onnx", resolution, opset)
+        export_onnx(deployed, tmp / ONNX_FILE, resolution, opset)
     elif onnx:
         onnx_note = reason
         log.warning("export: %s", reason)
-    has_onnx = (tmp / "model.onnx").exists()
-    parity = check_parity(deployed, tau, resolution, atol, torchscript=tmp / "model.ts",
-                          onnx=tmp / "model.onnx" if has_onnx else None, device=device)
+    has_onnx = (tmp / ONNX_FILE).exists()
+    parity = check_parity(deployed, tau, resolution, atol, torchscript=tmp / TORCHSCRIPT_FILE,
+                          onnx=tmp / ONNX_FILE if has_onnx else None, device=device)
     require_parity(parity)
     int8 = None
     if not has_onnx:
-        int8_note = f"no model.onnx ({onnx_note})"
+        int8_note = f"no {ONNX_FILE} ({onnx_note})"
     elif calibration_images is None or len(calibration_images) == 0:
         int8_note = calibration_note or "no calibration images given"
     else:
-        q8.quantize_onnx_int8(tmp / "model.onnx", tmp / INT8_FILE, calibration_images, int8_calibration, int8_percentile)
+        q8.quantize_onnx_int8(tmp / ONNX_FILE, tmp / INT8_FILE, calibration_images, int8_calibration, int8_percentile)
         parity["int8"] = q8.check_int8_parity(deployed, tmp / INT8_FILE, calibration_images, tau, int8_min_mask_iou)
         q8.require_int8_agreement(parity["int8"])
         int8_note = None

@@ -1,15 +1,17 @@
 """The engine registry: every way this project runs the deployed mask path Z = f(x), once.
 
-An engine is a name -> (what it needs, a loader that returns the runner).  :class:`Segmenter`
-(``segment --engine``, pipeline.deploy.segmenter) and the efficiency benchmark (``deploy.benchmark_variants``,
-pipeline.deploy.benchmark) both look their names up in :data:`ENGINES`; :data:`SEGMENT_ENGINES` are
-the names segment accepts, the params schema lists the benchmark's (``BENCHMARK_VARIANTS``).
+An engine is a name -> (what it needs, a loader that returns the runner).  The names and what each
+engine is are the engine table (:data:`pipeline.engine_table.ENGINE_TABLE`, torch-free); :data:`ENGINES`
+adds each row's loader (:data:`LOADERS`).  :class:`Segmenter` (``segment --engine``,
+pipeline.deploy.segmenter) and the efficiency benchmark (``deploy.benchmark_variants``,
+pipeline.deploy.benchmark) both look their names up in :data:`ENGINES`; the table derives the names
+segment accepts (``SEGMENT_ENGINES``) and the benchmark's variants (``BENCHMARK_VARIANTS``).
 
 A runner takes x float32 [N,3,H,W] RGB in [0, 1] (a CPU tensor) and returns the logits [N,1,H,W] as a
 torch tensor (on the engine's device; a CUDA-graph output buffer is copied, so it survives the next call).
 
 ``needs``: ``model`` (the PyTorch mask path: a checkpoint or a bundle), or the bundle file it runs
-(``model.ts``, ``model.onnx``, ``model.int8.onnx``).  ``requires``: why it cannot run here (a missing
+(:data:`pipeline.catalog.DEPLOY_BUNDLE`).  ``requires``: why it cannot run here (a missing
 optional package) or None.  ``cpu_only``: runs on the CPU whatever the device (ONNX Runtime,
 OpenVINO); ``cuda_only``: needs a CUDA device.
 """
@@ -25,14 +27,12 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import torch
 
+from pipeline.catalog import bundle_file
 from pipeline.deploy import openvino_engine
-from pipeline.deploy.bundle import INT8_FILE
 from pipeline.deploy.cuda_engine import FastStudent
 from pipeline.deploy.export import ONNX_INPUT, load_torchscript, onnx_unavailable_reason, ort_session
+from pipeline.engine_table import ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES, EngineSpec  # noqa: F401
 from pipeline.model import mask_path_model
-
-ONNX_FILE = "model.onnx"
-TORCHSCRIPT_FILE = "model.ts"
 
 
 @dataclasses.dataclass
@@ -63,7 +63,7 @@ class Engine:
     description: str
     load: Callable[[Source], Runner]
     needs: str = "model"
-    requires: Callable[[], str | None] = lambda: None
+    requires: Callable[[], str | None] = lambda: None  # why it cannot run here, or None
     cpu_only: bool = False
     cuda_only: bool = False
 
@@ -108,9 +108,11 @@ def _torchscript_frozen(src: Source) -> Runner:
     return _eager_module(ts, dev)
 
 
-def _torchscript_file(src: Source) -> Runner:
-    """The bundle's model.ts on the source's device."""
-    return _eager_module(load_torchscript(src.files[TORCHSCRIPT_FILE], src.device), src.device)
+def _torchscript_file(file: str) -> Callable[[Source], Runner]:
+    """A bundle's TorchScript file on the source's device."""
+    def load(src: Source) -> Runner:
+        return _eager_module(load_torchscript(src.files[file], src.device), src.device)
+    return load
 
 
 def _eager_module(module, dev: torch.device) -> Runner:
@@ -139,45 +141,44 @@ def _onnxruntime(file: str) -> Callable[[Source], Runner]:
     return load
 
 
-def _openvino(src: Source) -> Runner:
-    runner = openvino_engine.OpenVinoRunner(src.files[INT8_FILE])
-    return Runner(lambda x: torch.from_numpy(runner(x.cpu().numpy())))
+def _openvino(file: str) -> Callable[[Source], Runner]:
+    """OpenVINO's CPU plugin on a bundle file (pipeline.deploy.openvino_engine)."""
+    def load(src: Source) -> Runner:
+        runner = openvino_engine.OpenVinoRunner(src.files[file])
+        return Runner(lambda x: torch.from_numpy(runner(x.cpu().numpy())))
+    return load
+
+
+def _runs_anywhere() -> None:
+    return None
 
 
 def _openvino_reason() -> str | None:
     return openvino_engine.openvino_unavailable_reason() or onnx_unavailable_reason()
 
 
-_ORT_INT8 = ("ONNX Runtime CPU int8 (static QDQ model.int8.onnx: u8 activations, s8 per-channel weights, ranges "
-             "calibrated on training images)")
-
-#: name -> engine: segment's engines and the benchmark's variants, one registry
-ENGINES: dict[str, Engine] = {
-    "torch": Engine("PyTorch eager fp32 (channels_last on a CPU): the fp32 reference", _eager("cpu")),
-    "cuda": Engine("GPU fast path: CUDA graphs, bf16 autocast, channels_last (eager fp32 on a CPU)", _fast("auto")),
-    "torchscript": Engine("the bundle's TorchScript model.ts", _torchscript_file, needs=TORCHSCRIPT_FILE),
-    "onnx": Engine("ONNX Runtime CPU fp32 on the bundle's model.onnx", _onnxruntime(ONNX_FILE), needs=ONNX_FILE,
-                   requires=onnx_unavailable_reason, cpu_only=True),
-    "int8": Engine(_ORT_INT8, _onnxruntime(INT8_FILE), needs=INT8_FILE, requires=onnx_unavailable_reason,
-                   cpu_only=True),
-    "openvino_int8": Engine("OpenVINO CPU on the same static int8 QDQ model.int8.onnx", _openvino, needs=INT8_FILE,
-                            requires=_openvino_reason, cpu_only=True),
-    "fp32_eager_nchw": Engine("PyTorch eager fp32, NCHW (baseline)", _eager(False)),
-    "fp32_channels_last": Engine("PyTorch eager fp32, channels_last", _eager(True)),
-    "bf16_autocast": Engine("PyTorch eager, bf16 autocast, NCHW", _eager(False, bf16=True)),
-    "bf16_channels_last": Engine("PyTorch eager, bf16 autocast, channels_last", _eager(True, bf16=True)),
-    "torchscript_frozen": Engine("TorchScript traced + frozen + optimize_for_inference, fp32", _torchscript_frozen),
-    "onnxruntime_fp32": Engine("ONNX Runtime CPU fp32, graph optimisations ORT_ENABLE_ALL", _onnxruntime(ONNX_FILE),
-                               needs=ONNX_FILE, requires=onnx_unavailable_reason, cpu_only=True),
-    "onnxruntime_int8": Engine(_ORT_INT8, _onnxruntime(INT8_FILE), needs=INT8_FILE, requires=onnx_unavailable_reason,
-                               cpu_only=True),
-    "cuda_graph_bf16": Engine("CUDA graphs, bf16 autocast, channels_last (pipeline.deploy.cuda_engine)", _fast("bf16"),
-                              cuda_only=True),
+#: the engine table's ``loader`` -> (a factory: (the bundle file it reads or None, **options) -> loader,
+#: why it cannot run here or None)
+LOADERS: dict[str, tuple[Callable[..., Callable[[Source], Runner]], Callable[[], str | None]]] = {
+    "eager": (lambda file, **o: _eager(**o), _runs_anywhere),
+    "fast": (lambda file, **o: _fast(**o), _runs_anywhere),
+    "torchscript_file": (_torchscript_file, _runs_anywhere),
+    "torchscript_frozen": (lambda file: _torchscript_frozen, _runs_anywhere),
+    "onnxruntime": (_onnxruntime, onnx_unavailable_reason),
+    "openvino": (_openvino, _openvino_reason),
 }
-#: the engines ``segment --engine`` (and :class:`Segmenter`) accepts, besides ``auto``
-SEGMENT_ENGINES = ("torch", "torchscript", "onnx", "int8", "openvino_int8", "cuda")
-#: engines that run the PyTorch model, so a checkpoint directory supports them too
-MODEL_ENGINES = tuple(n for n in SEGMENT_ENGINES if ENGINES[n].needs == "model")
+
+
+def _engine(spec: EngineSpec) -> Engine:
+    """The registry entry of an engine table row."""
+    factory, requires = LOADERS[spec.loader]
+    file = None if spec.reads == "weights" else bundle_file(spec.reads)
+    return Engine(spec.description, factory(file, **spec.options), needs=file or "model", requires=requires,
+                  cpu_only=spec.cpu_only, cuda_only=spec.cuda_only)
+
+
+#: name -> engine: segment's engines and the benchmark's variants, one registry (pipeline.engine_table)
+ENGINES: dict[str, Engine] = {name: _engine(spec) for name, spec in ENGINE_TABLE.items()}
 
 
 def unavailable(name: str, src: Source) -> str | None:

@@ -206,13 +206,16 @@ class SegmentResult:
 
 def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[Path], *, tau: float,
                   resolution: int, batch_size: int = 8, save_prob: bool = False, overlay: bool = False,
-                  on_skip: Callable[[str, str], None] | None = None) -> SegmentResult:
+                  on_skip: Callable[[str, str, InputError], None] | None = None,
+                  max_pixels: int | None = None) -> SegmentResult:
     """Segment image files in batches: read -> resize to R x R -> P = sigmoid(f(x)) -> resize P back
     to the original size -> M = [P >= tau] (eq:inference-mask) -> ``<stem>.mask.png`` (0/255), and
     optionally ``<stem>.prob.png`` (P as uint8, 255 = 1.0) and ``<stem>.overlay.png`` (stems from
     :func:`plan_outputs`, which has already refused collisions and unwanted overwrites).
 
-    A file the reader rejects (InputError) is recorded in ``skipped`` and the rest go on.
+    A file the reader rejects (InputError; above ``max_pixels`` on its header, None = ``data.max_pixels``'s
+    default, before decoding) is recorded in ``skipped``, handed to ``on_skip(path, reason, error)``, and
+    the rest go on.
     """
     written: list[Path] = []
     skipped: list[tuple[str, str]] = []
@@ -224,13 +227,13 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
             batch = []
             for f, stem in zip(files[s:s + batch_size], stems[s:s + batch_size]):
                 try:
-                    img = read_rgb(f)
+                    img = read_rgb(f, max_pixels=max_pixels)
                 except InputError as e:
                     reason = str(e).splitlines()[0] if str(e) else type(e).__name__
                     reason = reason[len(f"{f}: "):] if reason.startswith(f"{f}: ") else reason
                     skipped.append((str(f), reason))
                     if on_skip is not None:
-                        on_skip(str(f), reason)
+                        on_skip(str(f), reason, e)
                     bar.update(1)
                     continue
                 batch.append((stem, img))

@@ -37,6 +37,7 @@ from typing import Sequence
 
 import numpy as np
 
+from pipeline import catalog
 from pipeline.artifacts import open_artifact, read_chunk_rows
 from pipeline.datasets.loading import resize_image
 from pipeline.deploy.export import ONNX_INPUT, mask_path_model, ort_session, torch_logits
@@ -64,8 +65,7 @@ def read_calibration_images(art: str | Path, n: int, resolution: int | None = No
     preprocessing (area interpolation) when images.zarr is at another size.  None (with the reason
     in ``note``) when the artifacts are absent or hold no training rows.
     """
-    art = Path(art)
-    paths = (art / "manifest.parquet", art / "images.zarr")
+    paths = (catalog.path("manifest", art), catalog.path("images", art))
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
         return None, [], f"no training images for int8 calibration ({', '.join(missing)} missing)"

@@ -17,18 +17,15 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline.artifacts import open_artifact
-from pipeline.datasets.loading import probs_to_size, read_rgb, resize_image, to_rgb8
-from pipeline.deploy.bundle import INT8_FILE, checkpoint_resolution, is_deploy_bundle, read_deploy_info
-from pipeline.deploy.engines import ENGINES as ENGINE_REGISTRY
-from pipeline.deploy.engines import MODEL_ENGINES, SEGMENT_ENGINES, Source
+from pipeline.datasets.loading import pixel_limit, probs_to_size, read_rgb, resize_image, to_rgb8
+from pipeline.deploy.bundle import INT8_FILE, ONNX_FILE, checkpoint_resolution, is_deploy_bundle, read_deploy_info
+from pipeline.deploy.engines import ENGINES, Source
 from pipeline.deploy.export import onnx_unavailable_reason
 from pipeline.errors import ArtifactError, InputError
 from pipeline.inference import images_to_tensor, load_student
+from pipeline.engine_table import AUTO, ENGINE_CHOICES, MODEL_ENGINES
 from pipeline.params import PAPER
-from pipeline.thresholds import lookup_tau, mask_from_probs, resolve_resolution, resolve_tau
-
-ENGINES = ("auto", *SEGMENT_ENGINES)
+from pipeline.thresholds import mask_from_probs, resolve_resolution, resolve_tau, tau_candidates
 
 
 @dataclasses.dataclass
@@ -39,11 +36,14 @@ class Segmenter:
 
     engine: str
     resolution: int | None
-    taus: dict  # tau candidates found with the model: {"bundle" | "checkpoint" | "thresholds": (tau, source)}
+    taus: dict  # tau candidates of the model (pipeline.thresholds.tau_candidates): {source: (tau, text)}
     predict_logits: Callable  # float32 tensor [N,3,R,R] -> numpy float32 [N,1,R,R]
     info: dict
     tau: float | None = None  # the tau :meth:`predict` binarises with (set by :meth:`from_bundle`)
     tau_source: str = ""
+    #: image files above this many pixels are refused on their header before decoding (None:
+    #: ``data.max_pixels``'s default; :func:`pipeline.datasets.loading.read_rgb`)
+    max_pixels: int | None = None
 
     def __repr__(self) -> str:
         """One short line (the dataclass default would print the whole deploy.json in ``info``)."""
@@ -52,16 +52,18 @@ class Segmenter:
 
     @classmethod
     def from_bundle(cls, path: str | Path, *, engine: str = "auto", device="cpu", tau: float | None = None,
-                    resolution: int | None = None) -> "Segmenter":
+                    resolution: int | None = None, max_pixels: int | None = None) -> "Segmenter":
         """A segmenter for notebooks: a deploy bundle (``geodistill export`` / ``distill``) or a
-        checkpoint directory, with its tau resolved once (:func:`pipeline.thresholds.resolve_tau`:
+        checkpoint directory (image files above ``max_pixels`` pixels are refused on their header; None =
+        ``data.max_pixels``'s default), with its tau resolved once (:func:`pipeline.thresholds.resolve_tau`:
         ``tau`` > the bundle's > the checkpoint's > ``calibrate.fixed_tau`` 0.5 with a warning).
 
         >>> seg = Segmenter.from_bundle("out/artifacts/deploy")          # doctest: +SKIP
         >>> mask = seg.predict("image.png")  # bool [H, W] at the image's own size   # doctest: +SKIP
         """
-        seg = load_segmenter(path, engine, device)
-        seg.tau, seg.tau_source = seg.resolve_tau(option=tau, fixed=PAPER.calibrate.fixed_tau)
+        seg = load_segmenter(path, engine, device, params=PAPER.model_dump())
+        seg.max_pixels = pixel_limit(max_pixels)
+        seg.tau, seg.tau_source = seg.resolve_tau(option=tau)
         seg.resolution, _ = resolve_resolution(option=(resolution, "resolution="), recorded=(seg.resolution, str(path)),
                                                missing=f"{path}: no working resolution recorded; pass resolution=...")
         return seg
@@ -75,7 +77,7 @@ class Segmenter:
         if self.resolution is None:
             raise InputError("Segmenter: no working resolution; set .resolution or use Segmenter.from_bundle")
         if isinstance(image, (str, Path)):
-            rgb = read_rgb(image)
+            rgb = read_rgb(image, max_pixels=self.max_pixels)
         else:
             arr = np.asarray(image)
             if arr.ndim == 3 and arr.shape[2] in (3, 4):  # RGB(A) -> the BGR(A) order to_rgb8 takes from OpenCV
@@ -92,10 +94,10 @@ class Segmenter:
             raise InputError("Segmenter: no tau; use Segmenter.from_bundle (or set .tau)")
         return mask_from_probs(self.probabilities(image), self.tau)
 
-    def resolve_tau(self, option=None, fixed=None) -> tuple[float, str]:
-        """(tau, source) by :func:`pipeline.thresholds.resolve_tau` over ``option`` (--tau), the
-        candidates found with the model, and ``fixed`` (calibrate.fixed_tau)."""
-        return resolve_tau(option=option, fixed=fixed, **self.taus)
+    def resolve_tau(self, option=None) -> tuple[float, str]:
+        """(tau, source) by :func:`pipeline.thresholds.resolve_tau` over ``option`` (--tau) and the
+        model's candidates (:attr:`taus`, calibrated and fixed)."""
+        return resolve_tau(option=option, **self.taus)
 
     def predict_probs(self, images: np.ndarray, batch_size: int = 8) -> np.ndarray:
         images = np.asarray(images)
@@ -121,33 +123,34 @@ def resolve_engine(path: str | Path, engine: str, device=None) -> str:
     against fp32 on the GPU (benchmark's ``mIoU fp32``); ``--engine torch`` stays the fp32 reference.
     """
     path = Path(path)
-    if engine not in ENGINES:
-        raise InputError(f"--engine {engine!r}: expected one of {', '.join(ENGINES)}")
+    if engine not in ENGINE_CHOICES:
+        raise InputError(f"--engine {engine!r}: expected one of {', '.join(ENGINE_CHOICES)}")
     on_cuda = device is not None and str(device).startswith("cuda")
     if not is_deploy_bundle(path):
-        if engine == "auto":
+        if engine == AUTO:
             return "cuda" if on_cuda else "torch"
         if engine not in MODEL_ENGINES:
             raise InputError(f"--engine {engine}: needs a deploy bundle (geodistill export); {path} is a "
                              f"checkpoint directory, which supports --engine torch or cuda only")
         return engine
-    if engine != "auto":
+    if engine != AUTO:
         return engine
     if on_cuda:
         return "cuda"
-    if onnx_unavailable_reason() is None and (path / "model.onnx").exists():
+    if onnx_unavailable_reason() is None and (path / ONNX_FILE).exists():
         return "onnx"
     return "torch"
 
 
-def load_segmenter(path: str | Path, engine: str = "auto", device="cpu",
-                   thresholds: str | Path | None = None) -> Segmenter:
+def load_segmenter(path: str | Path, engine: str = AUTO, device="cpu", thresholds: str | Path | None = None,
+                   params: dict | None = None) -> Segmenter:
     """Open a checkpoint directory or a deploy bundle for inference with one engine.
 
-    ``engine``: ``auto`` (:func:`resolve_engine`) or a name of :data:`pipeline.deploy.engines.SEGMENT_ENGINES`
+    ``engine``: ``auto`` (:func:`resolve_engine`) or a name of :data:`pipeline.engine_table.SEGMENT_ENGINES`
     (the registry says what each runs).  tau candidates (``Segmenter.taus``, resolved
-    by :meth:`Segmenter.resolve_tau`): deploy.json's tau for a bundle; for a checkpoint its payload's
-    tau, else its (method, seed) row in ``thresholds`` (a thresholds.parquet).  The resolution comes
+    by :meth:`Segmenter.resolve_tau`): :func:`pipeline.thresholds.tau_candidates` -- deploy.json's tau for
+    a bundle; for a checkpoint its payload's tau, else its (method, seed) row in ``thresholds`` (a
+    thresholds.parquet); and ``calibrate.fixed_tau`` of ``params`` (None: no fixed tau).  The resolution comes
     from deploy.json, or the checkpoint's payload (``payload["resolution"]``) or metadata -- the size the
     model was trained at; it stays None when none is recorded, and segment then asks for
     ``--resolution`` rather than guessing one.  ONNX engines run on the CPU.
@@ -158,26 +161,23 @@ def load_segmenter(path: str | Path, engine: str = "auto", device="cpu",
     if not path.exists():
         raise InputError(f"--checkpoint {path}: not found")
     engine = resolve_engine(path, engine, device)
-    spec = ENGINE_REGISTRY[engine]
+    spec = ENGINES[engine]
     device = torch.device(device)
-    if is_deploy_bundle(path):
-        info = read_deploy_info(path)
-        taus = {} if info.get("tau") is None else \
-            {"bundle": (info["tau"], f"deploy bundle ({info.get('tau_source', '?')})")}
-        resolution = info.get("resolution")
-    else:
-        info, taus, resolution = {}, {}, None
+    bundle = is_deploy_bundle(path)
+    info = read_deploy_info(path) if bundle else {}
+    resolution = info.get("resolution")
+    taus = tau_candidates(bundle=info, params=params) if bundle else {}
     model = None
     if spec.needs == "model":
         model, payload = load_student(path, "cpu")
         resolution = resolution if resolution is not None else checkpoint_resolution(path, payload)
-        taus = taus or checkpoint_taus(payload, thresholds)
+        taus = taus if "bundle" in taus else tau_candidates(payload=payload, thresholds=thresholds, params=params)
         info = info or {"method": payload.get("method"), "seed": payload.get("seed")}
     elif (reason := spec.requires()) is not None:
         raise InputError(f"--engine {engine}: {reason}")
     elif not (path / spec.needs).exists():
         why = {INT8_FILE: info.get("int8_note") or "exported without it",
-               "model.onnx": info.get("onnx_note") or "exported without onnx"}.get(spec.needs)
+               ONNX_FILE: info.get("onnx_note") or "exported without onnx"}.get(spec.needs)
         raise ArtifactError(f"{path}: no {spec.needs}" + (f" ({why}); use --engine torch" if why else ""))
     source = Source(model, device, resolution, {spec.needs: path / spec.needs} if spec.needs != "model" else {})
     runner = spec.load(source)
@@ -197,16 +197,3 @@ def predict_logits_torch(model, x, device) -> np.ndarray:
         if device.type == "cpu":
             x = x.contiguous(memory_format=torch.channels_last)
         return model(x).float().cpu().numpy()
-
-
-def checkpoint_taus(payload: dict, thresholds: str | Path | None) -> dict:
-    """tau candidates of a checkpoint (for :func:`pipeline.thresholds.resolve_tau`): its payload's tau
-    (``checkpoint``) and its (method, seed) row in the ``thresholds`` table when that file exists
-    (``thresholds``).  The table is read only when the payload has no tau."""
-    if payload.get("tau") is not None:
-        return {"checkpoint": (float(payload["tau"]), "checkpoint payload")}
-    if thresholds is None or not Path(thresholds).exists():
-        return {}
-    method, seed = payload.get("method"), payload.get("seed")
-    found = lookup_tau(open_artifact(thresholds, "thresholds").df, method, seed)
-    return {} if found is None else {"thresholds": (found, f"{thresholds} ({method}, seed {seed})")}

@@ -57,7 +57,7 @@ from pipeline.datasets.loading import SUPPORTED_SUFFIXES, BadFileError, DecodeCa
 from pipeline.datasets.manifest import BadInputPolicy
 from pipeline.datasets.scan import scan_inputs
 from pipeline.deploy.files import write_png, write_skipped_csv
-from pipeline.errors import InputError
+from pipeline.errors import BACKEND, CHECKPOINT, FORMAT, OUT, REFERENCE_MASKS, InputError, literal
 from pipeline.geometry import area_ratio, foreground_agreement, image_gates, median_area
 from pipeline.labeling.formats import coco_annotation, coco_document, yolo_lines
 from pipeline.ownership import check_outputs, claim_outputs, record_fields
@@ -98,13 +98,13 @@ class LabelResult:
 
 def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
     """``"png,coco"`` or ``["png", "coco"]`` -> ("png", "coco") in the canonical order; InputError on an
-    unknown or empty list (naming ``--format``)."""
+    unknown or empty list (naming ``--format`` / ``formats=``)."""
     items = [f.strip().lower() for f in (formats.split(",") if isinstance(formats, str) else formats)]
     items = [f for f in items if f]
     bad = [f for f in items if f not in FORMATS]
     if bad or not items:
-        raise InputError(f"--format {','.join(items) or repr(formats)}: expected a comma-separated subset of "
-                         f"{','.join(FORMATS)}")
+        raise InputError(f"{{}}: expected a comma-separated subset of {','.join(FORMATS)}",
+                         FORMAT(','.join(items) or repr(formats)))
     return tuple(f for f in FORMATS if f in items)
 
 
@@ -148,12 +148,13 @@ def find_reference_masks(mask_dir: str | Path, ids: Sequence[str]) -> list[Path]
     naming the first image without one (the simulated teacher needs all of them)."""
     d = Path(mask_dir)
     if not d.is_dir():
-        raise InputError(f"--reference-masks {d}: folder not found")
+        raise InputError("{}: folder not found", REFERENCE_MASKS(d))
     out = []
     for iid in ids:
         hits = [d / f"{iid}{s}" for s in SUPPORTED_SUFFIXES if (d / f"{iid}{s}").is_file()]
         if not hits:
-            raise InputError(f"--reference-masks {d}: no mask for image {iid!r} (expected {iid}.png)")
+            raise InputError(f"{{}}: no mask for image {literal(repr(iid))} (expected {literal(iid)}.png)",
+                             REFERENCE_MASKS(d))
         out.append(hits[0])
     return out
 
@@ -228,7 +229,7 @@ def _plan(input_dir, out, params: Mapping, reference_masks, overwrite: bool) -> 
     root, files = found.root, found.files
     out = Path(out)
     if out.resolve() == root.resolve() or root.resolve() in out.resolve().parents:
-        raise InputError(f"--out {out}: must not be the input folder or inside it")
+        raise InputError("{}: must not be the input folder or inside it", OUT(out))
     ids = image_ids(root, files)
     policy = BadInputPolicy(section(params, "data")["skip_bad"])
     for path, reason in found.skipped:  # links leaving the folder, broken links: before anything is written
@@ -242,11 +243,12 @@ def _plan(input_dir, out, params: Mapping, reference_masks, overwrite: bool) -> 
     tcfg = check_teacher_params(tcfg)
     simulated = tcfg["backend"] == "simulated"
     if simulated and reference_masks is None:
-        raise InputError("--backend simulated is a SIMULATOR that reads reference masks: pass --reference-masks "
-                         "DIR (masks named like the images); use --checkpoint SAM3_DIR for real labels")
+        raise InputError("{} is a SIMULATOR that reads reference masks: pass {} (masks named like the images); "
+                         "use {} for real labels", BACKEND("simulated"), REFERENCE_MASKS("DIR"),
+                         CHECKPOINT("SAM3_DIR"))
     if not simulated and reference_masks is not None:
-        raise InputError(f"--reference-masks: only the simulated teacher reads masks; teacher.backend="
-                         f"{tcfg['backend']} never does")
+        raise InputError(f"{{}}: only the simulated teacher reads masks; teacher.backend="
+                         f"{literal(tcfg['backend'])} never does", REFERENCE_MASKS)
     ref_files = find_reference_masks(reference_masks, ids) if simulated else None
     cache = DecodeCache(_inside(data_cfg["cache_dir"], out)) if data_cfg["cache_dir"] else None
     return _Job(root, out, list(files), list(ids), policy, data_cfg, geo, tcfg, int(data_cfg["resolution"]),
@@ -254,19 +256,21 @@ def _plan(input_dir, out, params: Mapping, reference_masks, overwrite: bool) -> 
 
 
 def _read_images(job: _Job) -> None:
-    """Pass 1: read every file once (sha256 for the teacher cache, native size); bad files go to the
-    policy and leave ``job``'s lists."""
+    """Pass 1: read every file once (sha256 for the teacher cache, native size); bad files -- and files
+    above ``data.max_pixels``, refused on their header before decoding -- go to the policy and leave
+    ``job``'s lists."""
     keep = []
+    limit = job.data_cfg["max_pixels"]
     for i, f in enumerate(progress(job.files, desc="label: reading", unit="img")):
         try:
-            loaded = load_rgb(f, job.size, job.cache)
+            loaded = load_rgb(f, job.size, job.cache, max_pixels=limit)
             if job.ref_files is not None:
-                ref = load_mask(job.ref_files[i], job.size, job.cache)
+                ref = load_mask(job.ref_files[i], job.size, job.cache, max_pixels=limit)
                 if ref.native_hw != loaded.native_hw:
                     raise InputError(f"{job.ref_files[i]}: mask size {ref.native_hw[1]}x{ref.native_hw[0]} differs "
                                      f"from image {f} size {loaded.native_hw[1]}x{loaded.native_hw[0]}")
         except BadFileError as e:
-            job.policy.report(job.ids[i] if e.path == str(f) else Path(e.path).stem, e.path, e.reason)
+            job.policy.report_error(job.ids[i] if e.path == str(f) else Path(e.path).stem, e)
             continue
         keep.append(i)
         job.shas.append(loaded.sha256)
@@ -290,13 +294,14 @@ class FolderInputs:
         # absolute paths: Ray workers need not share this process's working directory
         self.files, self.ref_files = absolute(job.files), absolute(job.ref_files)
         self.ids, self.shas, self.size = job.ids, job.shas, job.size
+        self.max_pixels = job.data_cfg["max_pixels"]
         self.cache = DecodeCache(os.path.abspath(job.cache.root)) if job.cache is not None else None
 
     def __call__(self, row: int, view: str) -> TeacherInput:
-        image = load_rgb(self.files[row], self.size, self.cache).array
+        image = load_rgb(self.files[row], self.size, self.cache, max_pixels=self.max_pixels).array
         reference = None
         if self.ref_files is not None:
-            mask = load_mask(self.ref_files[row], self.size, self.cache).array.astype(bool)
+            mask = load_mask(self.ref_files[row], self.size, self.cache, max_pixels=self.max_pixels).array.astype(bool)
             reference = {"mask": in_view(mask, view)}
         return TeacherInput(image_id=self.ids[row], image_sha256=self.shas[row], image=in_view(image, view),
                             view=view, reference=reference)
@@ -357,7 +362,8 @@ def _vote_and_export(job: _Job, runner, fmts: tuple[str, ...], vote_threshold: f
                 dst.write_text("".join(line + "\n" for line in yolo_lines(full)))
                 _link_or_copy(job.files[row], yolo_tmp / "images" / job.files[row].relative_to(job.root))
             if row in sheet_rows:
-                v.sheet[row] = (load_rgb(job.files[row], job.size, job.cache).array, cons.voted)
+                v.sheet[row] = (load_rgb(job.files[row], job.size, job.cache,
+                                         max_pixels=job.data_cfg["max_pixels"]).array, cons.voted)
         if "yolo" in fmts:
             (yolo_tmp / "data.yaml").write_text(_yolo_data_yaml(out / OUTPUTS["yolo"]))
         if "png" not in fmts:

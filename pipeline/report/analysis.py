@@ -17,7 +17,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, SUPERVISED_CEILING
-from pipeline.stats import SUPPORTED, claim_status, seed_summary, spearman, vs_column
+from pipeline.stats import (GAIN_SUPPORTED, LOSS_SUPPORTED, NOT_ESTIMATED, claim_status, paired_seed_t_interval,
+                            seed_summary, spearman, vs_column)
 
 METRICS = ("iou", "bf1", "precision", "recall")
 
@@ -181,17 +182,33 @@ def tau_text(tau: float | None) -> str:
     return "`calibrate.fixed_tau`" if tau is None else f"{tau:g}"
 
 
+@dataclasses.dataclass(frozen=True)
+class Endpoint:
+    """One difference a report can test: ``treatment`` - ``control`` in ``metric`` on test ``group`` at
+    ``threshold_mode``."""
+
+    group: str
+    treatment: str
+    control: str
+    metric: str
+    threshold_mode: str
+
+
+#: The one primary endpoint of every report (issue 33): the paper's own lockbox comparison -- HJM is
+#: "reserved as a lockbox set after the method has been frozen" (paper, SpaceSense-Bench) -- of
+#: GeoDistill-Refine against Plain Student in Image IoU at the validation-calibrated tau.  It is tested
+#: alone at alpha; every other difference is exploratory, Holm-adjusted within its table
+#: (pipeline.report.tables.family_holm).
+PRIMARY_ENDPOINT = Endpoint(group="HJM", treatment=PROPOSED, control=BASELINE, metric="iou",
+                            threshold_mode="calibrated")
+
+
 def _f(x, digits=3) -> str:
     return "n/a" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
 
 
 def _signed(x, digits=3) -> str:
     return "n/a" if x is None or not np.isfinite(x) else f"{x:+.{digits}f}"
-
-
-def _count_sign(values, sign: int) -> int:
-    v = np.asarray([x for x in values if np.isfinite(x)], float)
-    return int(np.sum(v < 0)) if sign < 0 else int(np.sum(v > 0))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -224,6 +241,15 @@ def _mean_tau(thresholds: pd.DataFrame, method: str, column: str = "tau") -> flo
     return float(thresholds.loc[thresholds["method"] == method, column].mean())
 
 
+def _per_seed_difference(table: pd.DataFrame, treatment: str, control: str, column: str) -> list[float]:
+    """``column`` of ``treatment`` minus ``control``, one value per seed both have (seed means)."""
+    per = table[table["method"].isin([treatment, control])].groupby(["method", "seed"])[column].mean()
+    t, c = per.get(treatment), per.get(control)
+    if t is None or c is None:
+        return []
+    return [float(t[s_] - c[s_]) for s_ in sorted(set(t.index) & set(c.index))]
+
+
 def _threshold_findings(thresholds: pd.DataFrame | None, c: _Cast) -> tuple[list[str], float, float]:
     """The calibrated tau of treatment against control, and their validation ECE; (sentences, tau_t, tau_c)."""
     if thresholds is None or not {c.treatment, c.control} <= set(thresholds["method"]):
@@ -234,9 +260,13 @@ def _threshold_findings(thresholds: pd.DataFrame | None, c: _Cast) -> tuple[list
            f"seeds), {rel} {c.C}'s {_f(tau_c, 2)} (difference {_signed(tau_t - tau_c, 2)})."]
     if "ece" in thresholds.columns:
         e_t, e_c = _mean_tau(thresholds, c.treatment, "ece"), _mean_tau(thresholds, c.control, "ece")
-        worse = "worse" if e_t > e_c else "better"
-        out.append(f"Validation expected calibration error: {c.T} {_f(e_t)}, {c.C} {_f(e_c)} -- {c.T} is {worse} "
-                   f"calibrated at the pixel level.")
+        d, lo, hi = paired_seed_t_interval(_per_seed_difference(thresholds, c.treatment, c.control, "ece"))
+        if np.isfinite(lo) and (lo > 0 or hi < 0):
+            verdict = f"{c.T} is {'worse' if lo > 0 else 'better'} calibrated at the pixel level"
+        else:
+            verdict = "no difference in pixel-level calibration detected"
+        out.append(f"Validation expected calibration error: {c.T} {_f(e_t)}, {c.C} {_f(e_c)} (difference "
+                   f"{_signed(d)}, 95 % t interval over the shared seeds [{_f(lo)}, {_f(hi)}]) -- {verdict}.")
     return out, tau_t, tau_c
 
 
@@ -244,22 +274,30 @@ def _gain_findings(summary: pd.DataFrame | None, c: _Cast) -> tuple[list[str], b
     """The sign of the Boundary F1 / Image IoU gain per group at both taus; (sentences, reversal)."""
     if summary is None:
         return [], None
-    gains = {}
+    gains, verdicts = {}, {}
     for mode in ("calibrated", "fixed"):
         s = summary[(summary["threshold_mode"] == mode) & (summary["method"] == c.treatment)].set_index("group")
         gains[mode] = {k: [float(s.loc[g, f"gain_{k}"]) if g in s.index and f"gain_{k}" in s.columns else np.nan
                            for g in c.groups] for k in ("iou", "bf1")}
+        verdicts[mode] = {k: [claim_status(*(float(s.loc[g].get(f"gain_{k}{x}", np.nan)) for x in ("", "_lo", "_hi")),
+                                           None, s.loc[g].get("gain_seeds")) if g in s.index else NOT_ESTIMATED
+                              for g in c.groups] for k in ("iou", "bf1")}
     n = sum(np.isfinite(x) for x in gains["fixed"]["bf1"])
     if not n:
         return [], None
     out = []
     for k, name in (("bf1", "Boundary F1"), ("iou", "Image IoU")):
         cal, fix = gains["calibrated"][k], gains["fixed"][k]
-        out.append(f"**{name} gain of {c.T} over {c.C}** per test group ({', '.join(c.groups)}): calibrated tau "
-                   f"{', '.join(_signed(x) for x in cal)} (positive on {_count_sign(cal, 1)} of {n}); fixed "
-                   f"tau = {c.tau0} {', '.join(_signed(x) for x in fix)} (negative on {_count_sign(fix, -1)} of {n}).")
-    cal, fix = gains["calibrated"]["bf1"], gains["fixed"]["bf1"]
-    return out, _count_sign(cal, 1) > n / 2 and _count_sign(fix, -1) > n / 2
+        vc, vf = verdicts["calibrated"][k], verdicts["fixed"][k]
+        out.append(f"**{name} gain of {c.T} over {c.C}** per test group ({', '.join(c.groups)}), each with the "
+                   f"verdict of its seed-aware 95 % CI: calibrated tau "
+                   f"{', '.join(f'{_signed(x)} ({v})' for x, v in zip(cal, vc))}; fixed tau = {c.tau0} "
+                   f"{', '.join(f'{_signed(x)} ({v})' for x, v in zip(fix, vf))}.")
+    # a reversal is claimed only from intervals: a supported gain at the calibrated tau AND a supported
+    # loss at the fixed tau, on most groups -- never from a majority of point-estimate signs
+    vc, vf = verdicts["calibrated"]["bf1"], verdicts["fixed"]["bf1"]
+    both = sum(a == GAIN_SUPPORTED and b == LOSS_SUPPORTED for a, b in zip(vc, vf))
+    return out, both > n / 2
 
 
 def _area_findings(metrics: pd.DataFrame | None, c: _Cast) -> tuple[list[str], bool | None]:
@@ -288,8 +326,9 @@ def _reading(reversal: bool | None, inflation: bool | None, tau_t: float, tau_c:
                 f"tau = {c.tau0} it inflates the foreground more than {c.C} and loses Boundary F1; the "
                 f"validation-calibrated tau removes that loss."]
     if not reversal:
-        return [f"**Reading.** No fixed-tau reversal in this run: the Boundary F1 gain of {c.T} does not turn "
-                f"from positive at the calibrated tau to negative at {c.tau0} on most groups."]
+        return [f"**Reading.** No fixed-tau reversal detected: on most groups the Boundary F1 difference of {c.T} "
+                f"is not both a supported gain at the calibrated tau and a supported loss at {c.tau0} (seed-aware "
+                f"95 % CIs)."]
     missing = [w for w, ok in zip(("a higher calibrated tau", f"foreground inflation at {c.tau0}"), facts[1:])
                if not ok]
     return [f"**Reading.** The Boundary F1 gain reverses at tau = {c.tau0}, but without "
@@ -310,15 +349,15 @@ def _continuation_findings(summary: pd.DataFrame | None, noise_floor: dict | Non
             continue
         d_geo = [r[vs] for _, r in geo]
         # supported = seed-aware CI excludes 0 and the difference exceeds the noise floor (claim_status)
-        ok = [claim_status(r[vs], r[f"{vs}_lo"], r[f"{vs}_hi"],
+        st = [claim_status(r[vs], r[f"{vs}_lo"], r[f"{vs}_hi"],
                            gain_noise_floor(noise_floor, g, "iou") if noise_floor else None,
-                           r.get(vs_column("gain_seeds", c.continuation))) == SUPPORTED
-              for g, r in geo]
+                           r.get(vs_column("gain_seeds", c.continuation))) for g, r in geo]
         d_cont = [r["gain_iou"] for _, r in cont]
-        verdict = ("no geometry effect beyond the extra epochs is supported (no seed-aware 95 % CI excludes 0 "
-                   "with the difference above the noise floor)" if not any(ok) else
-                   f"the geometry terms change Image IoU beyond the extra epochs on "
-                   f"{sum(ok)} of {len(ok)} groups (seed-aware CI excludes 0, above the noise floor)")
+        n_gain, n_loss = st.count(GAIN_SUPPORTED), st.count(LOSS_SUPPORTED)
+        verdict = ("no geometry effect beyond the extra epochs detected (no seed-aware 95 % CI bound clears 0 "
+                   "and the noise floor)" if not (n_gain or n_loss) else
+                   f"the geometry terms raise Image IoU beyond the extra epochs on {n_gain} and lower it on "
+                   f"{n_loss} of {len(st)} groups (the CI bound nearest 0 clears the noise floor)")
         share = ""
         tot = [r["gain_iou"] for _, r in geo]
         if all(np.isfinite(tot)) and np.mean(tot) > 1e-9:  # a share of a positive gain only
@@ -429,7 +468,9 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
 # --------------------------------------------------------------------------------------------------
 # Noise floor (issue 24): the stability benchmark's spreads beside the gains
 # --------------------------------------------------------------------------------------------------
-NOISE_FLOOR_NOT_MEASURED = "noise floor not measured (run python -m pipeline.benchmarks.stability --noise-floor)"
+NOISE_FLOOR_NOT_MEASURED = ("noise floor not measured in this report's configuration (recipe, resolution, data sizes): "
+                            "the verdicts rest on the CI and the multiplicity rule alone; a floor measured elsewhere is "
+                            "never applied (python -m pipeline.benchmarks.stability --noise-floor measures one)")
 
 
 def noise_floor_records(doc: dict | None) -> dict[str, dict]:
@@ -442,21 +483,28 @@ def noise_floor_records(doc: dict | None) -> dict[str, dict]:
     return dict(doc.get("recipes", {}))
 
 
-def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | None = None) -> dict | None:
-    """The noise-floor record of ``recipe`` in the stability benchmark's file (reports/noise_floor.json:
-    ``{"recipes": {recipe: {"info": ..., "numbers": {key: {"floor", "pert", "seed_sd"}}}}}``), with
-    ``applies_to`` = the recipe and ``resolution`` of the runs it is printed beside (the note says where
-    they differ from the measured configuration).  None when ``doc`` is None, ``recipe`` is None (runs of
-    several recipes: no one floor applies) or the file holds no record of that recipe: a floor measured
-    for another recipe is never applied (the paper recipe is exposed to the host's precision, the
-    stable recipe is not).  A file of the former single-record form counts as the record of its
-    ``info.recipe``."""
+def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | None = None,
+                       profile: str | None = None) -> dict | None:
+    """The noise-floor record measured in the report's own configuration, from the stability benchmark's
+    file (reports/noise_floor.json: ``{"recipes": {recipe: {"info": ..., "numbers": {key: {"floor",
+    "pert", "seed_sd"}}}}}``), with ``applies_to`` = the configuration it is printed beside.
+
+    A floor from another configuration is never used (issue 33): None when ``doc`` or ``recipe`` is
+    None (runs of several recipes: no one floor applies), when the file holds no record of that recipe,
+    or when the record was measured at another resolution or on another profile's data sizes
+    (``info.resolution`` / ``info.profile`` against ``resolution`` / ``profile``; an unknown side is not
+    compared).  A file of the former single-record form counts as the record of its ``info.recipe``."""
     if recipe is None:
         return None
     rec = noise_floor_records(doc).get(recipe)
     if rec is None:
         return None
-    return {**rec, "applies_to": {"recipe": recipe, "resolution": resolution}}
+    info = rec.get("info", {})
+    if resolution is not None and info.get("resolution") is not None and int(info["resolution"]) != int(resolution):
+        return None
+    if profile and info.get("profile") and info["profile"] != profile:
+        return None
+    return {**rec, "applies_to": {"recipe": recipe, "resolution": resolution, "profile": profile or None}}
 
 
 def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
@@ -475,21 +523,15 @@ def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
 
 
 def noise_floor_note(record: dict | None) -> str:
-    """One sentence naming where the floor comes from (or that it was not measured), and a second one
-    when the report's runs differ from the measured configuration (``applies_to``, set by
-    :func:`select_noise_floor`)."""
+    """One sentence naming where the floor comes from -- always the report's own configuration
+    (:func:`select_noise_floor`) -- or that it was not measured there."""
     if not record:
         return NOISE_FLOOR_NOT_MEASURED + "."
     i = record.get("info", {})
-    note = (f"Noise floor: the largest move of a gain's seed-mean under a numerical perturbation "
+    return (f"Noise floor: the largest move of a gain's seed-mean under a numerical perturbation "
             f"({', '.join(i.get('perturbations', ['?']))}; threads1 = 1 instead of 2 threads, precision = fp32 vs "
-            f"bf16), measured by the stability benchmark (recipe {i.get('recipe', '?')}, tau rule "
-            f"{i.get('tau_rule', '?')}, {i.get('resolution', '?')}², {i.get('profile', '?')} sizes, epochs "
-            f"{i.get('epochs', '?')}, seeds {i.get('seeds', '?')}{', on ' + str(i['cpu']) if i.get('cpu') else ''}; "
-            f"reports/noise_floor.json); a gain is supported "
-            f"only when its seed-aware CI excludes 0 and it exceeds the floor.")
-    res = (record.get("applies_to") or {}).get("resolution")
-    if res is not None and i.get("resolution") is not None and int(res) != int(i["resolution"]):
-        note += (f" These runs are at {int(res)}², not the measured {int(i['resolution'])}²: the floor is that "
-                 f"of the same recipe in the benchmark's configuration, not a measurement of this one.")
-    return note
+            f"bf16), measured by the stability benchmark in this report's configuration (recipe "
+            f"{i.get('recipe', '?')}, tau rule {i.get('tau_rule', '?')}, {i.get('resolution', '?')}², "
+            f"{i.get('profile', '?')} sizes, epochs {i.get('epochs', '?')}, seeds {i.get('seeds', '?')}"
+            f"{', on ' + str(i['cpu']) if i.get('cpu') else ''}; reports/noise_floor.json); a difference is "
+            f"supported only when the bound of its seed-aware CI nearest 0 clears the floor.")

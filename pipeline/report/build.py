@@ -57,8 +57,9 @@ class Inputs:
         return [self.missing[n] for n in names if n in self.missing]
 
 
-def load_inputs(art: str | Path) -> Inputs:
-    """Open every input that exists; record a :class:`Missing` note for each one that does not."""
+def load_inputs(art: str | Path, profile: str | None = None) -> Inputs:
+    """Open every input that exists; record a :class:`Missing` note for each one that does not.
+    ``profile``: the params profile of the runs (the noise floor must come from its data sizes)."""
     art = Path(art)
     found, missing = {}, {}
     for name in INPUTS:
@@ -73,19 +74,25 @@ def load_inputs(art: str | Path) -> Inputs:
     inp.runs = training_runs(catalog.path("checkpoints", art))
     if found.get("manifest") is not None:
         inp.no_masks = no_reference_masks(found["manifest"].df, found.get("reference"))
-    inp.noise_floor = noise_floor_for_runs(catalog.path("noise_floor", art), inp.runs, found.get("images"))
+    inp.noise_floor = noise_floor_for_runs(catalog.path("noise_floor", art), inp.runs, found.get("images"), profile)
     inp.fixed_tau = recorded_fixed_tau(found.get("thresholds"), found.get("metrics"))
     return inp
 
 
-def noise_floor_for_runs(path: Path, runs: list, images) -> dict | None:
-    """The stability benchmark's noise-floor record (``path``, absent = not measured) of the recipe the
-    training ``runs`` used (:func:`pipeline.report.analysis.select_noise_floor`), for runs at the
-    resolution of ``images``."""
+def noise_floor_for_runs(path: Path, runs: list, images, profile: str | None = None) -> dict | None:
+    """The stability benchmark's noise-floor record (``path``, absent = not measured) measured in this
+    report's configuration: the recipe the training ``runs`` used, the resolution of ``images`` and the
+    ``profile``'s data sizes (:func:`pipeline.report.analysis.select_noise_floor`)."""
     doc = json.loads(path.read_text()) if path.is_file() else None
     recipes = {r["recipe"] for r in runs if r.get("recipe")}
     resolution = int(images["image"].shape[1]) if images is not None and "image" in images else None
-    return select_noise_floor(doc, recipes.pop() if len(recipes) == 1 else None, resolution)
+    return select_noise_floor(doc, recipes.pop() if len(recipes) == 1 else None, resolution, profile)
+
+
+def gain_interval(summary) -> str | None:
+    """The gain interval (evaluate.interval) the evaluate stage recorded in ``summary``'s meta; None for a
+    summary written before it was recorded (then the former seed-aware bootstrap)."""
+    return ((summary.meta.extra or {}).get("interval")) if summary is not None else None
 
 
 def recorded_fixed_tau(thresholds, metrics) -> float | None:
@@ -111,7 +118,7 @@ def training_logs(checkpoints: Path) -> pd.DataFrame | None:
         return None
     for method, seed, path in runs:
         try:
-            log = open_artifact(path).table("log.parquet").copy()
+            log = open_artifact(path).table(catalog.TRAINING_LOG_FILE).copy()
         except ArtifactError:
             continue
         log["method"], log["seed"] = method, seed
@@ -234,7 +241,7 @@ def results_section(inp: Inputs) -> Section:
         groups = [g for g in order if g in groups] + [g for g in groups if g not in order]
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
-            sec.blocks.append(T.results_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau))
+            sec.blocks.append(T.results_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s)))
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
             sec.blocks.append(T.diagnostics_table(s.df, mode, groups, inp.fixed_tau))
@@ -280,7 +287,7 @@ def diagnostics_section(inp: Inputs, plots: dict) -> Section:
     sec.blocks += [Text(f) for f in findings]
     if s is not None:
         for mode in ("calibrated", "fixed"):
-            tab = T.controls_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau)
+            tab = T.controls_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s))
             if tab is not None:
                 sec.blocks.append(tab)
     if thr is not None and "ece" in thr.df.columns:
@@ -398,7 +405,11 @@ def teacher_section(inp: Inputs) -> Section:
     selected = extra.get("selected_source")
     if backend == "simulated":
         sec.blocks.append(Text("**All teacher numbers in this section describe the teacher SIMULATOR of the "
-                               "synthetic benchmark, not SAM 3.**"))
+                               "synthetic benchmark, not SAM 3.**  Two of its findings are true by construction "
+                               "and are not agreement with the paper: the six-prompt vote beating single prompts "
+                               "(the simulator's errors are mostly prompt-specific, calibrated to the paper's "
+                               "prompt table) and the gate separating poor from good pseudo-masks (its breakdown "
+                               "on hard images leaves at most one valid prompt, so g = 0 there)."))
     if selected is None:
         sec.blocks.append(Text("No validation image has a reference mask: no validation-selected prompt."))
     groups = list(dict.fromkeys(tm.loc[tm["split"] == "test", "group"]))
@@ -565,7 +576,7 @@ def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu",
                  environment: dict | None = None) -> tuple[Report, dict, Inputs]:
     """-> (report, plot tables {name: DataFrame}, opened inputs).  ``environment``: the report machine's
     record (:func:`pipeline.environment.collect`) for the Environment section (None: not recorded)."""
-    inp = load_inputs(art)
+    inp = load_inputs(art, profile or None)
     plots: dict[str, pd.DataFrame] = {}
     n_qual = int(cfg.get("qualitative_images", 4))
     n_pseudo = int(cfg.get("pseudo_target_images", 3))

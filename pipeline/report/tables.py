@@ -10,9 +10,10 @@ import pandas as pd
 
 from pipeline.methods import (BASELINE, CONTINUATION, METHODS, PROPOSED, STAGE_ONE, ablation_table_rows,
                               annotation_free_methods, in_table_order, method_label, methods_with_role)
-from pipeline.report.analysis import gain_noise_floor, noise_floor_note, tau_text
+from pipeline.report.analysis import PRIMARY_ENDPOINT, gain_noise_floor, noise_floor_note, tau_text
 from pipeline.report.document import Table
-from pipeline.stats import NOT_ESTIMATED, claim_status, vs_column
+from pipeline.stats import (ALPHA, DEFAULT_INTERVAL, INTERVAL_TEXT, NOT_ESTIMATED, SEED_BOOTSTRAP, claim_status,
+                            holm_adjust, vs_column)
 
 #: the main comparison's rows (results tables): every annotation-free method but the ablations, in table order
 MAIN_ORDER = in_table_order(n for n in annotation_free_methods(METHODS) if METHODS[n].role != "ablation")
@@ -79,19 +80,73 @@ def group_method_rows(summary: pd.DataFrame, mode: str, groups: Sequence[str]):
             yield g, m, part.loc[m]
 
 
-def claim(r, suffix: str, group: str, noise_floor=None) -> str:
-    """The claim column of a gain row: :func:`pipeline.stats.claim_status` of the Image IoU and the
-    Boundary F1 gain (``gain_<metric><suffix>`` with its CI) against the group's noise floor
-    (:func:`pipeline.report.analysis.gain_noise_floor` of ``noise_floor``, the benchmark's record), on
-    the row's ``gain_seeds<suffix>`` seeds (one seed is never "supported")."""
+#: the gain metrics a claim speaks of, with their names in a claim cell
+CLAIM_METRICS = (("iou", "IoU"), ("bf1", "BF1"))
+
+
+def is_primary(group: str, treatment: str, control: str, metric: str, mode: str) -> bool:
+    """Whether this difference is the report's one primary endpoint (:data:`PRIMARY_ENDPOINT`)."""
+    e = PRIMARY_ENDPOINT
+    return (group, treatment, control, metric, mode) == (e.group, e.treatment, e.control, e.metric, e.threshold_mode)
+
+
+def family_holm(entries) -> dict:
+    """Holm-adjusted p-values of one table's family (issue 33: every exploratory difference a table
+    shows is one member).  ``entries``: (key, summary row, suffix, is_primary) per shown difference;
+    each contributes its ``gain_<metric><suffix>_p`` per :data:`CLAIM_METRICS` (absent = not in the
+    family).  The primary endpoint is tested alone at alpha, outside every family.  Returns
+    ``{(key, metric): adjusted p}``."""
+    keys, ps = [], []
+    for key, r, suffix, primary in entries:
+        for k, _ in CLAIM_METRICS:
+            if primary and k == PRIMARY_ENDPOINT.metric:
+                continue
+            keys.append((key, k))
+            ps.append(float(r.get(f"gain_{k}{suffix}_p", np.nan)))
+    return dict(zip(keys, holm_adjust(ps)))
+
+
+def claim(r, suffix: str, group: str, noise_floor=None, p_adjusted: Mapping | None = None,
+          primary_metric: str | None = None) -> str:
+    """The claim column of a gain row: :func:`pipeline.stats.claim_status` -- a signed verdict -- of the
+    Image IoU and the Boundary F1 gain (``gain_<metric><suffix>`` with its CI) against the group's noise
+    floor (:func:`pipeline.report.analysis.gain_noise_floor` of ``noise_floor``, the record measured in
+    this run's configuration, or None), on the row's ``gain_seeds<suffix>`` seeds (one seed never
+    supports a difference), with ``p_adjusted[metric]`` the Holm-adjusted p-value of the table's family
+    (:func:`family_holm`).  ``primary_metric``: that metric is the primary endpoint (unadjusted,
+    marked "primary")."""
     out = []
-    for k, name in (("iou", "IoU"), ("bf1", "BF1")):
+    p_adjusted = p_adjusted or {}
+    for k, name in CLAIM_METRICS:
         st = claim_status(*(float(r.get(f"gain_{k}{suffix}{x}", np.nan)) for x in ("", "_lo", "_hi")),
                           gain_noise_floor(noise_floor, group, k) if noise_floor else None,
-                          r.get(f"gain_seeds{suffix}"))
+                          r.get(f"gain_seeds{suffix}"), p_adjusted.get(k))
         if st != NOT_ESTIMATED:
-            out.append(f"{name}: {st}")
+            out.append(f"{name}: {st}" + (" (primary endpoint)" if k == primary_metric else ""))
     return "; ".join(out) or "--"
+
+
+def interval_text(interval: str | None) -> str:
+    """How a table's CIs were made, in words (``interval``: evaluate.interval as the summary recorded it;
+    None: a summary from before it was recorded, made with the former seed-aware bootstrap)."""
+    return INTERVAL_TEXT[interval or SEED_BOOTSTRAP]
+
+
+def multiplicity_note(holm: Mapping) -> str:
+    """The sentence every claim table carries: the primary endpoint, the family and the procedure
+    (``holm``: :func:`family_holm` of the table; a summary without p-values says it was not adjusted)."""
+    e = PRIMARY_ENDPOINT
+    family_size = sum(np.isfinite(p) for p in holm.values())
+    if holm and not family_size:
+        return (f"Primary endpoint: {e.group}, {label(e.treatment)} − {label(e.control)}, Image IoU at the "
+                f"validation-calibrated tau.  This summary holds no p-values (evaluated before they were "
+                f"recorded), so the {len(holm)} exploratory differences are NOT multiplicity-adjusted here.")
+    return (f"Primary endpoint: {e.group}, {label(e.treatment)} − {label(e.control)}, Image IoU at the "
+            f"validation-calibrated tau (the paper's lockbox), tested alone at alpha = {ALPHA}.  Every other "
+            f"difference is exploratory: Holm's step-down procedure over the {family_size} differences this "
+            f"table shows (its family) controls the family-wise error at alpha = {ALPHA}.  A difference is "
+            f"supported only when its CI excludes 0, its bound nearest 0 clears the noise floor and its "
+            f"Holm-adjusted p-value is below alpha; otherwise \"no difference detected\", with no direction.")
 
 
 def floor_cell(group: str, noise_floor) -> str:
@@ -101,24 +156,31 @@ def floor_cell(group: str, noise_floor) -> str:
 
 
 def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise_floor: dict | None = None,
-                  fixed_tau: float | None = None) -> Table:
+                  fixed_tau: float | None = None, interval: str | None = DEFAULT_INTERVAL) -> Table:
     """Paper Table spacesense-results: per group and method, Image IoU and Boundary F1 (mean ± sample
     std over seeds) and the gains against Plain Student with seed-aware 95 % CIs, the group's noise
     floor (``noise_floor``: the stability benchmark's record, None = not measured) and the claim.
     ``fixed_tau`` (every table's): calibrate.fixed_tau as the run recorded it (:func:`mode_text`)."""
+    shown = [(g, m, r) for g, m, r in group_method_rows(summary, mode, groups)]
+    gains = [((g, m), r, "", is_primary(g, m, BASELINE, PRIMARY_ENDPOINT.metric, mode))
+             for g, m, r in shown if np.isfinite(r.get("gain_iou", np.nan))]
+    holm = family_holm(gains)
+    primary = {key for key, _, _, p in gains if p}
     rows = [[g, label(m), fmt_pm(r["iou_mean"], r["iou_std"]), fmt_pm(r["bf1_mean"], r["bf1_std"]),
              fmt_ci(r.get("gain_iou"), r.get("gain_iou_lo"), r.get("gain_iou_hi")),
              fmt_ci(r.get("gain_bf1"), r.get("gain_bf1_lo"), r.get("gain_bf1_hi")),
              floor_cell(g, noise_floor) if np.isfinite(r.get("gain_iou", np.nan)) else "--",
-             claim(r, "", g, noise_floor) if np.isfinite(r.get("gain_iou", np.nan)) else "--",
-             str(int(r["n_seeds"]))] for g, m, r in group_method_rows(summary, mode, groups)]
+             claim(r, "", g, noise_floor, {k: holm.get(((g, m), k)) for k, _ in CLAIM_METRICS},
+                   PRIMARY_ENDPOINT.metric if (g, m) in primary else None)
+             if np.isfinite(r.get("gain_iou", np.nan)) else "--",
+             str(int(r["n_seeds"]))] for g, m, r in shown]
     return Table("tab:spacesense-results", f"Segmentation results on the test groups ({mode_text(mode, fixed_tau)})",
                  ["Evaluation set", "Method", "Image IoU", "Boundary F1", "Image IoU gain [95% CI]",
                   "Boundary F1 gain [95% CI]", "Noise floor (IoU / BF1)", "Claim", "Seeds"], rows,
-                 [f"Mean ± sample std over seeds of the per-seed means; gains against {label(BASELINE)} with 95 % CIs "
-                  "from a seed-aware paired hierarchical bootstrap (seeds, then spacecraft, then images within "
-                  "spacecraft, matched across methods; pipeline.stats.paired_seed_bootstrap).  A single seed has "
-                  "no std, and its CI holds no training noise.", noise_floor_note(noise_floor)])
+                 [f"Mean ± sample std over seeds of the per-seed means; gains against {label(BASELINE)} with 95 % CIs: "
+                  f"{interval_text(interval)}.  A single seed has no std, and its CI holds no training "
+                  "noise.", noise_floor_note(noise_floor),
+                  multiplicity_note(holm)])
 
 
 def diagnostics_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], fixed_tau: float | None = None) -> Table:
@@ -296,43 +358,45 @@ def _ordered_with_ceiling_last(methods: Sequence[str]) -> list[str]:
 
 
 def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
-                   noise_floor: dict | None = None, fixed_tau: float | None = None) -> Table | None:
+                   noise_floor: dict | None = None, fixed_tau: float | None = None,
+                   interval: str | None = DEFAULT_INTERVAL) -> Table | None:
     """The budget-matched control: per group, Continuation - Plain (Stage II's extra epochs alone),
     each warm-started method - Continuation (the geometry effect at a matched budget) and
-    GeoDistill-Refine - Plain, with the paired hierarchical bootstrap CIs of the evaluate stage.
+    GeoDistill-Refine - Plain, with the seed-aware CIs of the evaluate stage.
     None when no continuation run was evaluated.  Annotation-free methods only.  ``noise_floor``: the
     stability benchmark's record (None = not measured), beside each difference with its claim."""
     s = summary[summary["threshold_mode"] == mode]
     if CONTINUATION not in set(s["method"]) or f"gain_iou{VS_CONTINUATION}" not in s.columns:
         return None
-    rows = []
+    shown = []  # (group, comparison in words, summary row, suffix, control)
     for g in groups:
         part = s[s["group"] == g].set_index("method")
-
-        def add(what, m, suffix, g=g, part=part):
-            if m not in part.index:
-                return
-            r = part.loc[m]
-            if not np.isfinite(r.get(f"gain_iou{suffix}", np.nan)):
-                return
-            rows.append([g, what, fmt_ci(r[f"gain_iou{suffix}"], r[f"gain_iou{suffix}_lo"], r[f"gain_iou{suffix}_hi"]),
-                         fmt_ci(r[f"gain_bf1{suffix}"], r[f"gain_bf1{suffix}_lo"], r[f"gain_bf1{suffix}_hi"]),
-                         floor_cell(g, noise_floor), claim(r, suffix, g, noise_floor),
-                         str(int(r[f"gain_seeds{suffix}"]))])
-
-        add(f"{label(CONTINUATION)} − {label(BASELINE)} (extra epochs only)", CONTINUATION, "")
         warm = [PROPOSED] + sorted(m for m in part.index if m != PROPOSED)
-        for m in warm:
-            add(f"{label(m)} − {label(CONTINUATION)} (geometry at a matched budget)", m, VS_CONTINUATION)
-        add(f"{label(PROPOSED)} − {label(BASELINE)} (the paper's comparison)", PROPOSED, "")
+        for what, m, suffix, control in (
+                [(f"{label(CONTINUATION)} − {label(BASELINE)} (extra epochs only)", CONTINUATION, "", BASELINE)]
+                + [(f"{label(m)} − {label(CONTINUATION)} (geometry at a matched budget)", m, VS_CONTINUATION,
+                    CONTINUATION) for m in warm]
+                + [(f"{label(PROPOSED)} − {label(BASELINE)} (the paper's comparison)", PROPOSED, "", BASELINE)]):
+            if m in part.index and np.isfinite(part.loc[m].get(f"gain_iou{suffix}", np.nan)):
+                shown.append((g, what, part.loc[m], suffix, control, m))
+    entries = [((g, what), r, suffix, is_primary(g, m, control, PRIMARY_ENDPOINT.metric, mode))
+               for g, what, r, suffix, control, m in shown]
+    holm = family_holm(entries)
+    rows = [[g, what, fmt_ci(r[f"gain_iou{suffix}"], r[f"gain_iou{suffix}_lo"], r[f"gain_iou{suffix}_hi"]),
+             fmt_ci(r[f"gain_bf1{suffix}"], r[f"gain_bf1{suffix}_lo"], r[f"gain_bf1{suffix}_hi"]),
+             floor_cell(g, noise_floor),
+             claim(r, suffix, g, noise_floor, {k: holm.get(((g, what), k)) for k, _ in CLAIM_METRICS},
+                   PRIMARY_ENDPOINT.metric if primary else None),
+             str(int(r[f"gain_seeds{suffix}"]))]
+            for (g, what, r, suffix, _, _), (_, _, _, primary) in zip(shown, entries)]
     return Table("tab:controls", f"Budget-matched control: where the gain comes from ({mode_text(mode, fixed_tau)})",
                  ["Evaluation set", "Comparison", "Image IoU difference [95% CI]", "Boundary F1 difference [95% CI]",
                   "Noise floor (IoU / BF1)", "Claim", "Seeds"], rows,
                  ["The continuation warm-starts from the same Stage-I checkpoint and trains with Stage II's schedule, "
                   "epochs and checkpoint selection on L_raw only: a method minus the continuation isolates its "
-                  "geometry terms; the continuation minus Plain isolates the extra epochs.  Seed-aware paired "
-                  "hierarchical bootstrap (seeds, spacecraft, images) over the seeds both runs share.",
-                  noise_floor_note(noise_floor)])
+                  "geometry terms; the continuation minus Plain isolates the extra epochs.  95 % CIs over the seeds "
+                  f"both runs share: {interval_text(interval)}.",
+                  noise_floor_note(noise_floor), multiplicity_note(holm)])
 
 
 def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mode: str,

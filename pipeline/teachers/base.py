@@ -25,6 +25,8 @@ from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
 import numpy as np
 
 VIEWS = ("identity", "vflip")
+#: the manifest columns a teacher that reads the reference (the SIMULATOR) also gets (``TeacherInput.extras``)
+MANIFEST_EXTRAS = ("background", "hard_case", "area_fraction")
 
 
 @dataclasses.dataclass
@@ -71,3 +73,9 @@ def finalize_answers(masks: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray,
     scores[invalid] = 0.0
     masks[invalid] = False
     return masks, scores
+
+
+def manifest_extras(manifest) -> list[dict[str, Any]]:
+    """Per row of the manifest frame (index 0..N-1), its :data:`MANIFEST_EXTRAS` values (those it has)."""
+    cols = [c for c in MANIFEST_EXTRAS if c in manifest.columns]
+    return [{c: manifest.at[row, c] for c in cols} for row in range(len(manifest))]

@@ -34,15 +34,17 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
-import pandas as pd
 
 from pipeline.errors import InputError
+from pipeline.params import IMPORTED as BACKEND
 from pipeline.teachers.base import TeacherInput, finalize_answers
 
-BACKEND = "imported"
+if TYPE_CHECKING:  # pandas is imported where a scores table is read (it is heavy, and only this backend needs it)
+    import pandas as pd
+
 
 
 MAX_PROMPT_INDEX = 32767
@@ -67,11 +69,18 @@ class ImportedTeacher:
     needs_reference = False
     use_cache = False
 
+    @classmethod
+    def from_params(cls, cfg, resolution: tuple[int, int], device: str = "auto") -> "ImportedTeacher":
+        """From the validated ``teacher:`` section (:func:`pipeline.teachers.make_teacher`); no device."""
+        return cls(cfg["imported_dir"], resolution=resolution)
+
     def __init__(self, root: str | Path, resolution: tuple[int, int]):
         self.root = Path(root)
         self.resolution = tuple(resolution)
         if not self.root.is_dir():
             raise InputError(f"{self.root}: teacher.imported_dir is not a directory")
+        import pandas as pd
+
         table = None
         for name in ("scores.parquet", "scores.csv"):
             p = self.root / name
@@ -100,6 +109,8 @@ class ImportedTeacher:
 
     def _checked(self, table: pd.DataFrame) -> pd.DataFrame:
         """Validate every row (see the module docstring); scores -> float (missing = 0), indices -> int."""
+        import pandas as pd
+
         if "view" not in table.columns:
             table["view"] = "identity"
         for col in ("image_id", "prompt"):

@@ -43,14 +43,17 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+from fsspec.core import url_to_fs
+from fsspec.implementations.local import LocalFileSystem
 
+from pipeline.artifacts import atomic_path
 from pipeline.device import resolve_device
 from pipeline.errors import InputError
+from pipeline.params import SAM3 as BACKEND
 from pipeline.teachers.base import TeacherInput, finalize_answers
 
 log = logging.getLogger(__name__)
 
-BACKEND = "sam3"
 TEXT_MAX_LENGTH = 32  # Sam3Processor pads prompts to 32 tokens
 SAM3_MODEL_TYPES = ("sam3", "sam3_video")
 _WEIGHT_SUFFIXES = (".safetensors", ".bin", ".pt", ".pth")
@@ -90,8 +93,6 @@ def memoised_checkpoint_hash(directory: Path, memo: Path | None) -> str:
     The memo is written atomically and an unreadable one is ignored (recomputed).  ``memo=None``
     always hashes.
     """
-    from pipeline.artifacts import atomic_path
-
     if memo is None:
         return checkpoint_hash(directory)
     memo = Path(memo)
@@ -210,12 +211,28 @@ def auto_batch_size(device, used_bytes: int | None = None, free_bytes: int | Non
     return int(min(MAX_AUTO_BATCH, max(1, (headroom * free_bytes) // per_image)))
 
 
+def local_hash_memo(cache_dir: str) -> Path | None:
+    """Where the checkpoint-hash memo lives: beside a local teacher cache; none for a cache on object
+    storage (the checkpoint is then hashed once per run)."""
+    fs, path = url_to_fs(str(cache_dir))
+    return Path(path) / "checkpoint_hashes.json" if isinstance(fs, LocalFileSystem) else None
+
+
 class Sam3Teacher:
     """Frozen SAM 3 answering text prompts (see the module docstring)."""
 
     backend = BACKEND
     needs_reference = False
     use_cache = True
+
+    @classmethod
+    def from_params(cls, cfg, resolution: tuple[int, int], device: str = "auto") -> "Sam3Teacher":
+        """From the validated ``teacher:`` section (:func:`pipeline.teachers.make_teacher`); the
+        checkpoint-hash memo lives beside a local cache (:func:`local_hash_memo`)."""
+        return cls(cfg["checkpoint"], device=device, dtype=cfg["dtype"], batch_size=cfg["batch_size"],
+                   resolution=resolution, score_threshold=cfg["score_threshold"],
+                   mask_threshold=cfg["mask_threshold"], compile=cfg["compile"],
+                   hash_memo=local_hash_memo(cfg["cache_dir"]))
 
     def __init__(self, checkpoint: str | Path, *, device: str = "auto", dtype: str = "auto", batch_size: int = 0,
                  resolution: tuple[int, int] | None = None, score_threshold: float = 0.3,

@@ -52,12 +52,12 @@ import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.metrics import image_iou
+from pipeline.params import SIMULATED as BACKEND
 from pipeline.teachers.base import TeacherInput, finalize_answers
 
 log = logging.getLogger(__name__)
 
 SIMULATOR_VERSION = 1
-BACKEND = "simulated"
 
 # parts codes of reference.zarr `parts`
 BUS, PANEL, THIN, DISH, PAYLOAD = 1, 2, 3, 4, 5
@@ -319,6 +319,11 @@ class SimulatedFoundationTeacher:
     backend = BACKEND
     needs_reference = True
     use_cache = True
+
+    @classmethod
+    def from_params(cls, cfg, resolution: tuple[int, int], device: str = "auto") -> "SimulatedFoundationTeacher":
+        """From the validated ``teacher:`` section (:func:`pipeline.teachers.make_teacher`); no device."""
+        return cls(seed=cfg["seed"], resolution=resolution)
 
     def __init__(self, seed: int = 0, resolution: tuple[int, int] | None = None,
                  config: SimulatorConfig = SimulatorConfig()):

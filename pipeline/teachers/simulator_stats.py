@@ -28,7 +28,14 @@ from typing import Sequence
 import numpy as np
 import yaml
 
-from pipeline.teachers.base import TeacherInput
+from pipeline import catalog
+from pipeline.artifacts import open_artifact
+from pipeline.consensus import vote_batch
+from pipeline.geometry import area_ratios, foreground_agreement, gate_factors, median_area, valid_ratio
+from pipeline.metrics import boundary_f1, per_image_metrics
+from pipeline.params import PAPER_PROMPTS
+from pipeline.teachers.base import TeacherInput, manifest_extras
+from pipeline.teachers.simulated import SimulatedFoundationTeacher
 
 PAPER = {
     "mean_single_iou": 0.3462, "sd_single_iou": 0.2423, "base_iou": 0.4743, "selected_iou": 0.5691,
@@ -58,8 +65,6 @@ class TeacherStats:
 
 
 def _mean_iou(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    from pipeline.metrics import per_image_metrics
-
     return per_image_metrics(pred, gt)["iou"]
 
 
@@ -72,10 +77,6 @@ def compute_teacher_stats(masks: np.ndarray, scores: np.ndarray, gt: np.ndarray,
     (all test images when no image has that group), the prompt is selected on ``split == val`` and
     a0 is the median pseudo-area of the training images (eq:area-gate).
     """
-    from pipeline.consensus import vote_batch
-    from pipeline.geometry import area_ratios, foreground_agreement, gate_factors, median_area, valid_ratio
-    from pipeline.metrics import boundary_f1
-
     split = np.asarray(split).astype(str)
     group = np.asarray(group).astype(str)
     sel = group == group_name
@@ -136,26 +137,23 @@ def format_stats(s: TeacherStats) -> str:
 
 def simulate(artifacts: Path, prompts: Sequence[str], seed: int, vflip: bool = False):
     """Run the SIMULATOR over every image of an artifacts directory (no cache); masks, scores, gt, manifest."""
-    from pipeline.artifacts import open_artifact
-    from pipeline.teachers.simulated import SimulatedFoundationTeacher
-
-    man = open_artifact(artifacts / "manifest.parquet", "manifest").df.reset_index(drop=True)
-    images = open_artifact(artifacts / "images.zarr", "images").numpy("image")
-    ref = open_artifact(artifacts / "reference.zarr", "reference")
+    man = open_artifact(catalog.path("manifest", artifacts), "manifest").df.reset_index(drop=True)
+    images = open_artifact(catalog.path("images", artifacts), "images").numpy("image")
+    ref = open_artifact(catalog.path("reference", artifacts), "reference")
     gt = ref.numpy("mask")
     parts = ref.numpy("parts") if "parts" in ref else None
     teacher = SimulatedFoundationTeacher(seed=seed, resolution=gt.shape[1:])
-    extras = [c for c in ("background", "hard_case", "area_fraction") if c in man.columns]
+    extras = manifest_extras(man)
     items = [TeacherInput(str(r.image_id), str(r.sha256), images[i], "identity",
                           {"mask": gt[i], **({"parts": parts[i]} if parts is not None else {})},
-                          {c: man.at[i, c] for c in extras}) for i, r in enumerate(man.itertuples())]
+                          extras[i]) for i, r in enumerate(man.itertuples())]
     masks, scores = teacher.predict(items, prompts)
     return masks, scores, gt, man
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--artifacts", default="artifacts", type=Path,
+    ap.add_argument("--artifacts", default=catalog.ARTIFACTS_DIR, type=Path,
                     help="directory with manifest.parquet, images.zarr, reference.zarr (and maybe teacher.zarr)")
     ap.add_argument("--teacher", default=None, type=Path, help="teacher.zarr to evaluate (default: simulate now)")
     ap.add_argument("--group", default="KCP", help="test group to report (paper: KCP)")
@@ -163,18 +161,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--params", default="params.yaml", type=Path)
     args = ap.parse_args(argv)
     cfg = (yaml.safe_load(args.params.read_text()) or {}).get("teacher", {}) if args.params.exists() else {}
-    prompts = cfg.get("prompts") or ["spacecraft", "satellite", "space probe", "space vehicle",
-                                     "spacecraft with rigid body and appendages",
-                                     "artificial object in space with panels and antennas"]
+    prompts = cfg.get("prompts") or list(PAPER_PROMPTS)
     base = int(cfg.get("base_prompt_index", 0))
     seed = args.seed if args.seed is not None else int(cfg.get("seed", 0))
     if args.teacher is not None:
-        from pipeline.artifacts import open_artifact
 
         t = open_artifact(args.teacher, "teacher")
         masks, scores, prompts = t.numpy("masks"), t.numpy("scores"), list(t.attrs["prompts"])
-        man = open_artifact(args.artifacts / "manifest.parquet", "manifest").df.reset_index(drop=True)
-        gt = open_artifact(args.artifacts / "reference.zarr", "reference").numpy("mask")
+        man = open_artifact(catalog.path("manifest", args.artifacts), "manifest").df.reset_index(drop=True)
+        gt = open_artifact(catalog.path("reference", args.artifacts), "reference").numpy("mask")
         print(f"evaluating {args.teacher} (backend {t.attrs.get('backend')})")
     else:
         masks, scores, gt, man = simulate(args.artifacts, prompts, seed)

@@ -1,0 +1,120 @@
+"""Width and height of an image file from its header, without decoding a pixel.
+
+:func:`header_size` reads the four formats the loader takes (``loading.SUPPORTED_SUFFIXES``) by their
+content, as OpenCV does (not by the suffix):
+
+* PNG  -- the IHDR chunk, which the format requires first;
+* JPEG -- the first start-of-frame marker (SOF0..SOF15 but DHT, JPG and DAC), walking the segments;
+* TIFF -- classic (42) and BigTIFF (43), either byte order: ImageWidth / ImageLength of the first
+  directory (OpenCV decodes the first page);
+* BMP  -- the DIB header (BITMAPCOREHEADER's 16-bit sizes, or the 32-bit ones of every later header;
+  a negative height is a top-down bitmap).
+
+Decision (docs/dependencies.md): our own ~80 lines rather than Pillow (installed, through
+scikit-image, imageio and matplotlib).  Pillow's lazy ``Image.open`` reads only the header too, but
+it refuses to identify some layouts OpenCV decodes (e.g. multi-channel float TIFFs), and its own
+bomb guard raises during ``open`` above 2 x 89 M pixels -- a process-wide setting we would have to
+change.  These readers parse the bytes the loader already holds, know nothing about pixel types, and
+are exercised by tests against files OpenCV writes and against hand-built headers.
+"""
+
+from __future__ import annotations
+
+import struct
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: JPEG start-of-frame markers: C0..CF except C4 (DHT), C8 (JPG, reserved) and CC (DAC)
+_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def _png(data: bytes) -> tuple[int, int] | None:
+    if len(data) < 24 or data[12:16] != b"IHDR":
+        return None
+    return struct.unpack(">II", data[16:24])
+
+
+def _jpeg(data: bytes) -> tuple[int, int] | None:
+    i, n = 2, len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xD9)):  # TEM, RSTn, SOI, EOI: no length
+            i += 2
+            continue
+        length = struct.unpack(">H", data[i + 2:i + 4])[0]
+        if marker in _SOF:
+            if i + 9 > n:
+                return None
+            h, w = struct.unpack(">HH", data[i + 5:i + 9])
+            return w, h
+        if marker == 0xDA or length < 2:  # start of scan before any frame header: not a valid file
+            return None
+        i += 2 + length
+    return None
+
+
+def _tiff(data: bytes) -> tuple[int, int] | None:
+    e = "<" if data[:2] == b"II" else ">"
+    version = struct.unpack(e + "H", data[2:4])[0]
+    if version == 42:
+        head, count_fmt, entry_fmt, entry_size, off_fmt = 8, "H", "HHI", 12, "I"
+    elif version == 43 and len(data) >= 16:
+        head, count_fmt, entry_fmt, entry_size, off_fmt = 16, "Q", "HHQ", 20, "Q"
+    else:
+        return None
+    size = lambda fmt: struct.calcsize(e + fmt)  # noqa: E731 -- standard sizes, no alignment
+    ifd = struct.unpack(e + off_fmt, data[head - size(off_fmt):head])[0]
+    csize = size(count_fmt)
+    if ifd + csize > len(data):
+        return None
+    count = struct.unpack(e + count_fmt, data[ifd:ifd + csize])[0]
+    dims: dict[int, int] = {}
+    value_at = size(entry_fmt)
+    for k in range(count):
+        at = ifd + csize + k * entry_size
+        if at + entry_size > len(data):
+            return None
+        tag, typ, n = struct.unpack(e + entry_fmt, data[at:at + value_at])
+        if tag in (256, 257) and n == 1:
+            fmt = {3: "H", 4: "I", 16: "Q"}.get(typ)
+            if fmt is None:
+                return None
+            dims[tag] = struct.unpack(e + fmt, data[at + value_at:at + value_at + size(fmt)])[0]
+    if 256 not in dims or 257 not in dims:
+        return None
+    return dims[256], dims[257]
+
+
+def _bmp(data: bytes) -> tuple[int, int] | None:
+    if len(data) < 26:
+        return None
+    dib = struct.unpack("<I", data[14:18])[0]
+    if dib == 12:
+        return struct.unpack("<HH", data[18:22])
+    w, h = struct.unpack("<ii", data[18:26])
+    return (w, abs(h)) if w > 0 else None
+
+
+def header_size(data: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` declared by the header of a PNG, JPEG, TIFF or BMP file's bytes; None when
+    the bytes start with none of them, or the header is cut short, malformed or declares a zero size."""
+    try:
+        if data.startswith(PNG_SIGNATURE):
+            size = _png(data)
+        elif data.startswith(b"\xff\xd8\xff"):
+            size = _jpeg(data)
+        elif data[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+            size = _tiff(data)
+        elif data.startswith(b"BM"):
+            size = _bmp(data)
+        else:
+            return None
+    except struct.error:  # cut short inside a field
+        return None
+    if size is None or size[0] <= 0 or size[1] <= 0:
+        return None
+    return int(size[0]), int(size[1])

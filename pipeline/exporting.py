@@ -1,0 +1,144 @@
+"""The export stage's logic: one checkpoint -> what its deploy bundle holds (``stages/export.py`` is wiring).
+
+* :func:`plan_export` -- open the checkpoint, pick tau (:func:`pipeline.thresholds.tau_candidates` and
+  :func:`pipeline.thresholds.resolve_tau`: ``tau`` > the checkpoint's payload > its calibrated row in
+  ``thresholds`` > ``calibrate.fixed_tau``, eq:inference-mask), the working resolution (recorded with
+  the checkpoint, else ``data.resolution``) and the int8 calibration images (TRAINING split of
+  ``artifacts``, images only), and say what the bundle's fingerprint depends on;
+* :func:`write_export` -- write the bundle atomically (:func:`pipeline.deploy.write_bundle`, parity
+  checks first: a failure leaves nothing behind);
+* :func:`export_lines` -- the lines export prints about it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any, Mapping
+
+from pipeline.artifacts import artifact_dir, open_artifact
+from pipeline.inference import load_student
+from pipeline.params import section
+from pipeline.thresholds import resolve_resolution, resolve_tau, tau_candidates
+
+
+def is_bundle_dir(path) -> bool:
+    """Whether ``path`` is a folder holding a deploy artifact's meta.json (export's own output)."""
+    try:
+        return json.loads((Path(path) / "meta.json").read_text()).get("schema") == "deploy"
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+@dataclasses.dataclass
+class ExportPlan:
+    """What :func:`write_export` writes, and the fingerprint's inputs and params (``inputs``, ``params``)."""
+
+    model: Any
+    payload: dict
+    checkpoint: str
+    checkpoint_fingerprint: str
+    tau: float
+    tau_source: str
+    resolution: int
+    resolution_source: str
+    onnx: bool
+    calibration_images: Any
+    calibration_note: str | None
+    settings: dict          # deploy.* as write_bundle takes them
+    inputs: list            # opened artifacts (lineage)
+    params: dict            # the fingerprint's params
+    thresholds: str | None
+
+    @property
+    def method(self):
+        return self.payload.get("method")
+
+    @property
+    def seed(self):
+        return self.payload.get("seed")
+
+    def source(self, fingerprint: str) -> dict:
+        """deploy.json's ``source``: the checkpoint, tau's table, the resolution's origin, the bundle's fingerprint."""
+        return {"checkpoint": self.checkpoint, "checkpoint_fingerprint": self.checkpoint_fingerprint,
+                "selected_epoch": self.payload.get("selected_epoch"), "stage": self.payload.get("stage"),
+                "thresholds": self.thresholds, "resolution_source": self.resolution_source,
+                "bundle_fingerprint": fingerprint}
+
+
+def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | None = None, artifacts=None,
+                onnx: bool = True, int8: bool = True) -> ExportPlan:
+    """Everything export decides before writing (module docstring).  ``onnx=False`` (``--no-onnx``)
+    writes TorchScript only; ``int8=False`` (``--no-int8``) or no ``artifacts`` (``--artifacts``): no
+    int8 model, and the plan's ``calibration_note`` says why."""
+    from pipeline import deploy  # torch
+
+    cfg = section(params, "deploy")
+    q8 = deploy.int8_params(cfg)
+    ckpt = open_artifact(checkpoint, "checkpoint")
+    model, payload = load_student(checkpoint, "cpu")
+    inputs = [ckpt]
+    table = open_artifact(thresholds, "thresholds") if thresholds is not None and tau is None else None
+    inputs += [table] if table is not None else []
+    value, source = resolve_tau(option=tau, **tau_candidates(payload=payload, thresholds=table, params=params))
+    resolution, res_source = resolve_resolution(recorded=(deploy.checkpoint_resolution(checkpoint, payload), "checkpoint"),
+                                                params=params["data"]["resolution"])
+    calib, calib_note = None, None
+    if not onnx or not int8:
+        calib_note = "--no-onnx" if not onnx else "--no-int8"
+    elif artifacts is None:
+        calib_note = "no --artifacts given (training images calibrate the int8 model)"
+    elif (reason := deploy.onnx_unavailable_reason()) is not None:
+        calib_note = reason
+    else:
+        calib, calib_inputs, calib_note = deploy.read_calibration_images(artifacts, cfg["int8_calibration_images"],
+                                                                         int(resolution))
+        inputs += calib_inputs
+    settings = {"opset": cfg["opset"], "atol": cfg["parity_atol"], "int8_min_mask_iou": cfg["int8_min_mask_iou"],
+                "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"]}
+    deploy_params = {"opset": cfg["opset"], "parity_atol": cfg["parity_atol"], "onnx": onnx, "int8": calib is not None,
+                     "int8_calibration_images": cfg["int8_calibration_images"],
+                     "int8_min_mask_iou": cfg["int8_min_mask_iou"],
+                     "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"]}
+    return ExportPlan(model, payload, str(checkpoint), ckpt.fingerprint, value, source, int(resolution), res_source,
+                      onnx, calib, calib_note, settings, inputs,
+                      {"deploy": deploy_params, "tau": value, "tau_source": source, "resolution": int(resolution)},
+                      str(thresholds) if thresholds else None)
+
+
+def write_export(plan: ExportPlan, out, meta, device=None) -> dict:
+    """Write the bundle of ``plan`` to ``out`` (replaced whole) with artifact metadata ``meta``; its
+    deploy.json content."""
+    from pipeline import deploy  # torch
+
+    with artifact_dir(out, meta) as tmp:
+        return deploy.write_bundle(tmp, plan.model, plan.payload, tau=plan.tau, tau_source=plan.tau_source,
+                                   resolution=plan.resolution, onnx=plan.onnx, source=plan.source(meta.fingerprint),
+                                   calibration_images=plan.calibration_images, calibration_note=plan.calibration_note,
+                                   device=device, **plan.settings)
+
+
+def export_lines(plan: ExportPlan, info: Mapping, out) -> list[str]:
+    """What export prints about the bundle it wrote: tau, size and parity; the ONNX note; device parity;
+    the int8 model's agreement (or why it was skipped)."""
+    from pipeline.deploy import INT8_FILE
+
+    par = info["parity"]
+    summary = ", ".join(f"{fmt}: max|dZ|={par[fmt]['max_abs_diff']:.2e}, masks identical={par[fmt]['masks_identical']}"
+                        for fmt in ("torchscript", "onnx") if fmt in par)
+    lines = [f"export: {plan.method} seed {plan.seed}, tau={plan.tau:.4g}, {plan.resolution}px -> {out} ({summary})"]
+    if info.get("onnx_note") and plan.onnx:
+        lines.append(f"export: {info['onnx_note']}")
+    for name, d in (par.get("device") or {}).items():
+        if isinstance(d, dict):
+            lines.append(f"export: parity on {par['device']['device']}: {name} max|dZ|={d['max_abs_diff']:.2e}, "
+                         f"mask IoU vs fp32 {d['mask_iou']:.4f}")
+    if "int8" in par:
+        q = par["int8"]
+        lines.append(f"export: int8 model {INT8_FILE}: {q['images']} calibration images, "
+                     f"max|dZ|={q['max_abs_diff']:.3g}, mask IoU vs PyTorch mean {q['mask_iou_mean']:.4f} "
+                     f"(gate {q['min_mask_iou']:g}), min {q['mask_iou_min']:.4f}")
+    else:
+        lines.append(f"export: int8 model skipped: {info['int8_note']}")
+    return lines

@@ -1,0 +1,102 @@
+"""The prepare stage's work, callable without the CLI: a dataset -> manifest.parquet, images.zarr,
+reference.zarr, skipped_files.parquet and the contact sheet under one artifacts directory
+(eq:spacecraft-disjoint holds for the synthetic benchmark and the protocols of :mod:`pipeline.datasets`).
+
+The files are named by the catalogue (:mod:`pipeline.catalog`); the sources, decoding and the bad-file
+policy are :mod:`pipeline.datasets`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from pipeline import catalog
+from pipeline.artifacts import Meta, ZarrWriter, atomic_path, write_parquet
+from pipeline.datasets import build
+from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
+from pipeline.datasets.loading import DecodeCache
+from pipeline.datasets.manifest import BadInputPolicy
+from pipeline.datasets.params import fingerprint_params
+from pipeline.datasets.synthetic import PART_NAMES
+from pipeline.progress import progress
+
+#: the reference artifact's note: what its masks may be used for
+REFERENCE_NOTE = ("reference masks: checkpoint selection, calibration, evaluation and the simulated teacher only "
+                  "-- never a training loss")
+
+
+@dataclasses.dataclass
+class Prepared:
+    """What :func:`prepare` wrote: the manifest rows, the bad-file policy's record and the decode cache."""
+
+    rows: pd.DataFrame
+    policy: BadInputPolicy
+    cache: DecodeCache
+
+
+def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
+    """Build every prepare artifact under ``out`` from the validated ``data:`` section ``cfg``.
+
+    ``meta(schema, params=..., **extra)`` stamps each artifact; its params are the fingerprint of the
+    content: the data params, the protocol actually applied and the selected files' content.
+    """
+    out = Path(out)
+    size = cfg["resolution"]
+    cache = DecodeCache(cfg["cache_dir"])
+    policy = BadInputPolicy(cfg["skip_bad"])
+    spec = (build.synthetic_source(cfg, out, cache) if cfg["source"] == "synthetic"
+            else build.real_source(cfg, policy, out))
+    rows = build.check_manifest(spec, policy, where=f"data.source={cfg['source']}")
+    rows = build.decode_rows(rows, spec, size, cache, policy)
+    fp_params = {"data": fingerprint_params(cfg), "protocol": spec.protocol,
+                 "content_sha256": build.content_digest(rows)}
+    ids = rows["image_id"].tolist()
+    n = len(rows)
+    has_parts = rows["part_path"].notna().to_numpy()
+
+    with ZarrWriter(catalog.path("images", out), meta("images", params=fp_params)) as wi, \
+            ZarrWriter(catalog.path("reference", out), meta("reference", params=fp_params)) as wr:
+        wi.create("image", (n, size, size, 3), np.uint8)
+        wr.create("mask", (n, size, size), bool)
+        wr.create("has_mask", (n,), bool)
+        if has_parts.any():
+            wr.create("parts", (n, size, size), np.uint8)
+            wr.create("has_parts", (n,), bool)
+        for i, img, mask, parts in progress(build.iter_arrays(rows, spec, size, cache), total=n, desc="write arrays"):
+            wi.write("image", i, img)
+            wr.write("mask", i, mask if mask is not None else np.zeros((size, size), bool))
+            wr.write("has_mask", i, mask is not None)
+            if has_parts.any():
+                wr.write("parts", i, parts if parts is not None else np.zeros((size, size), np.uint8))
+                wr.write("has_parts", i, parts is not None)
+        wi.attrs.update(image_ids=ids, resolution=size)
+        wr.attrs.update(image_ids=ids, resolution=size, part_names=list(PART_NAMES), note=REFERENCE_NOTE)
+
+    write_parquet(catalog.path("skipped_files", out), policy.table(), meta("skipped_files", params=fp_params))
+    write_parquet(catalog.path("manifest", out), rows,
+                  meta("manifest", params=fp_params, protocol=spec.protocol, resolution=size,
+                       spacecraft_disjoint=spec.spacecraft_disjoint))
+    write_contact_sheet(catalog.path("contact_sheet", out), rows, spec, cfg, cache)
+    return Prepared(rows, policy, cache)
+
+
+def write_contact_sheet(path: Path, rows: pd.DataFrame, spec, cfg: dict, cache: DecodeCache) -> None:
+    """The contact sheet PNG: ``data.contact_sheet_images`` seeded picks, each with its mask outline."""
+    size = cfg["resolution"]
+    pick = sample_for_sheet(rows, cfg["contact_sheet_images"], cfg["seed"])
+    tsize = max(size, 192)
+    tiles = []
+    for i in pick:
+        r = rows.iloc[int(i)]
+        img, mask, _ = next(build.iter_arrays(rows.iloc[[int(i)]], spec, size, cache))[1:]
+        tiles.append(tile(img, mask, f"{r['group']} {r['spacecraft']}"[:28], tsize))
+    sheet = contact_sheet(tiles, columns=4)
+    with atomic_path(path) as tmp:
+        ok, buf = cv2.imencode(".png", sheet[..., ::-1])
+        tmp.write_bytes(buf.tobytes())

@@ -1,0 +1,130 @@
+"""``geodistill segment``'s logic: binary masks for image files with a checkpoint or a deploy bundle
+(``stages/segment.py`` is wiring: its options, the params file, one-line errors).
+
+:func:`segment_images` checks the options, finds the inputs and plans every output before anything
+is written (pipeline.deploy.files), loads the model with one engine (:func:`pipeline.deploy.load_segmenter`),
+picks tau (:func:`pipeline.thresholds.tau_candidates` then :func:`pipeline.thresholds.resolve_tau`:
+``tau`` > the bundle's > the checkpoint's payload > its row in ``thresholds`` > ``calibrate.fixed_tau``
+of ``params``) and the working resolution (``resolution`` > the one recorded with the model; never
+guessed), claims the output folder (pipeline.ownership), writes M = [P >= tau] (eq:inference-mask) at
+each image's own size and skipped.csv, and reports on ``echo``.  A user error is an InputError naming
+the option.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Callable, Mapping
+
+from pipeline.datasets.loading import BadFileError, pixel_limit
+from pipeline.datasets.manifest import BadInputPolicy
+from pipeline.device import resolve_device
+from pipeline.engine_table import AUTO
+from pipeline.errors import InputError
+from pipeline.ownership import claim_outputs
+from pipeline.thresholds import MIN_RESOLUTION, RESOLUTION_LABELS, resolve_resolution
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
+def check_options(checkpoint, input_path, output, batch_size: int, resolution: int | None) -> None:
+    """InputError naming the first missing or invalid option."""
+    if not checkpoint:
+        raise InputError("--checkpoint missing: a checkpoint directory or a deploy bundle (geodistill export)")
+    if not input_path:
+        raise InputError("--input missing: an image file or a folder of images")
+    if not output:
+        raise InputError("--output missing: a folder for the masks")
+    if batch_size < 1:
+        raise InputError(f"--batch-size {batch_size}: must be >= 1")
+    if resolution is not None and resolution < MIN_RESOLUTION:
+        raise InputError(f"--resolution {resolution}: must be >= {MIN_RESOLUTION}")
+
+
+def segment_images(checkpoint, input_path, output, *, tau: float | None = None, resolution: int | None = None,
+                   thresholds=None, engine: str = AUTO, batch_size: int = 8, save_prob: bool = False,
+                   overlay: bool = False, device="auto", params: Mapping | None = None, overwrite: bool = False,
+                   skip_bad: bool = False, max_pixels: int | None = None, echo: Callable[[str], None] = _stderr):
+    """Segment one image file or a folder (module docstring); the result of
+    :func:`pipeline.deploy.segment_files` (``written``, timings).  ``params``: validated params, read
+    for ``calibrate.fixed_tau`` only (None: no fixed tau fallback)."""
+    from pipeline import deploy  # torch
+    from pipeline.deploy import files as F
+
+    check_options(checkpoint, input_path, output, batch_size, resolution)
+    found = F.scan_inputs(input_path)
+    if not found.files:
+        extra = f"; skipped {found.skipped[0][0]}: {found.skipped[0][1]}" if found.skipped else ""
+        raise InputError(f"--input {input_path}: no image files (png, jpg, jpeg, tif, tiff, bmp){extra}")
+    files = found.files
+    suffixes = F.output_suffixes(save_prob, overlay)
+    stems = F.plan_outputs(found.root, files, output, found.is_dir, suffixes=suffixes, overwrite=overwrite)
+    policy = BadInputPolicy(skip_bad, hint="pass --skip-bad to leave it out")
+    root = found.root if found.is_dir else None
+
+    def image_id(path) -> str:
+        """The id label gives the file: its path relative to the input folder, without the suffix."""
+        p = Path(path)
+        try:
+            return (p.relative_to(root) if root is not None else Path(p.name)).with_suffix("").as_posix()
+        except ValueError:
+            return p.stem
+
+    max_pixels = pixel_limit(max_pixels)  # images above it are refused on their header (data.max_pixels)
+    for path, reason in found.skipped:  # links and special files: before anything is written
+        policy.report(image_id(path), path, reason)
+    for path, reason in found.unused:  # not images (hidden files, other types): listed, not an error
+        policy.record(image_id(path), path, reason)
+
+    seg = deploy.load_segmenter(checkpoint, engine, resolve_device(device), thresholds, params=params)
+    tau, source = seg.resolve_tau(option=tau)
+    resolution, res_source = model_resolution(seg.resolution, resolution, checkpoint, echo)
+
+    def report(path, reason, error):  # raises without --skip-bad, naming the option in the caller's terms
+        if isinstance(error, BadFileError):
+            policy.report_error(image_id(path), error)
+        else:
+            policy.report(image_id(path), path, reason)
+
+    echo(f"segment: engine {seg.engine}" + (" (auto)" if engine == AUTO else "")
+         + f", {len(files)} image(s), {resolution}px ({res_source}), tau={tau:.4g} ({source})")
+    claim_outputs(output, F.relative_outputs(output, stems, suffixes), F.RECORD, "segment",
+                  {"input": str(Path(input_path).absolute()), "checkpoint": str(Path(checkpoint).absolute())})
+    result = deploy.segment_files(seg, files, stems, tau=tau, resolution=resolution, batch_size=batch_size,
+                                  save_prob=save_prob, overlay=overlay, on_skip=report, max_pixels=max_pixels)
+    listing = Path(output) / F.SKIPPED_CSV
+    deploy.write_skipped_csv(listing, policy.rows())
+    echo(f"segment: wrote {len(result.written)} mask(s) to {output}")
+    if (line := policy.summary("segment", listing)) is not None:
+        echo(line)
+    if result.written:
+        n = len(result.written)
+        echo(f"segment: timing: engine {seg.engine}, {1e3 * result.model_seconds / n:.2f} ms/image in the model, "
+             f"{1e3 * result.total_seconds / n:.2f} ms/image end to end ({n} images, batch {batch_size}, "
+             f"{resolution}px)")
+    if not result.written:
+        raise InputError(f"--input {input_path}: none of the {len(files)} file(s) could be read")
+    return result
+
+
+def model_resolution(trained: int | None, option: int | None, checkpoint,
+                     echo: Callable[[str], None] = _stderr) -> tuple[int, str]:
+    """The working resolution segment runs at and where it came from: ``option`` (--resolution) > the
+    one recorded with the model (``trained``), never guessed; a recorded one is checked even when the
+    option overrides it, and an option other than it is used with a warning on ``echo``."""
+    from pipeline.deploy import DEPLOY_JSON, is_deploy_bundle
+
+    recorded_in = f"{Path(checkpoint) / DEPLOY_JSON}" if is_deploy_bundle(checkpoint) else f"checkpoint {checkpoint}"
+    if trained is not None:  # a recorded resolution is checked even when --resolution overrides it
+        resolve_resolution(recorded=(trained, recorded_in))
+    resolution, res_source = resolve_resolution(
+        option=option, recorded=(trained, recorded_in),
+        missing=f"--checkpoint {checkpoint}: records no training resolution; pass --resolution N "
+                "(the image size the model was trained at)")
+    if res_source == RESOLUTION_LABELS["option"] and trained is not None and resolution != trained:
+        echo(f"segment: warning: --resolution {resolution} differs from the {trained}px the model was "
+             f"trained at ({recorded_in})")
+    return resolution, res_source

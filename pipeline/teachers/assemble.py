@@ -1,0 +1,170 @@
+"""The teacher stage's work (eq:prompt-set, eq:teacher-prediction), callable without the CLI.
+
+:func:`open_teacher_run` puts the teacher of a validated ``teacher:`` section behind its cache over the
+rows of a manifest (:class:`TeacherRun`); :meth:`TeacherRun.fill` computes what the cache lacks and
+:meth:`TeacherRun.write` assembles ``teacher.zarr`` and the score table from the cache, in manifest
+row order (the layout is in ``stages/teacher.py``'s docstring).
+
+Rows whose split is not in ``teacher.splits`` are not sent to the teacher: their masks are empty,
+their scores 0 (all prompts invalid, so eq:valid-set is empty and the gate is 0) and ``ran`` is false.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+from pipeline.artifacts import Meta, ZarrWriter, open_artifact, require_same_run, write_parquet
+from pipeline.errors import InputError
+from pipeline.params import SIMULATED
+from pipeline.progress import progress
+from pipeline.teachers.base import manifest_extras
+from pipeline.teachers.inputs import ArtifactInputs
+from pipeline.teachers.runner import RunStats, TeacherRunner, open_runner
+
+log = logging.getLogger(__name__)
+
+#: teacher_scores.parquet: one row per (image, prompt)
+SCORE_COLUMNS = ("image_id", "prompt_index", "prompt", "score", "valid", "mask_area", "split", "ran")
+
+
+def check_alignment(manifest: pd.DataFrame, images, reference) -> None:
+    """images.zarr (and reference.zarr, if given) have the manifest's rows in its order."""
+    n = len(manifest)
+    ids = [str(i) for i in manifest["image_id"]]
+    for art, name in ((images, "image"), (reference, "mask")):
+        if art is None:
+            continue
+        if art[name].shape[0] != n:
+            raise InputError(f"{art.path}: {art[name].shape[0]} rows but the manifest has {n}")
+        att = art.attrs.get("image_ids")
+        if att is not None and [str(i) for i in att] != ids:
+            raise InputError(f"{art.path}: attrs image_ids differ from the manifest's image_id order")
+
+
+def vflip_prompt(cfg: Mapping[str, Any]) -> str | None:
+    """The base prompt, run on the flipped image too (annotation-free-style control), if ``vflip_base_prompt``."""
+    return cfg["prompts"][cfg["base_prompt_index"]] if cfg["vflip_base_prompt"] else None
+
+
+def fingerprint_params(cfg: Mapping[str, Any]) -> dict:
+    """The ``teacher:`` section as the artifacts' fingerprint holds it: where the cache lives changes nothing."""
+    return {k: v for k, v in cfg.items() if k != "cache_dir"}
+
+
+def score_rows(image_id: str, prompts: Sequence[str], masks: np.ndarray, scores: np.ndarray, split: str,
+               ran: bool) -> list[tuple]:
+    """One image's rows of the score table (:data:`SCORE_COLUMNS`): per prompt its score, validity
+    (score > 0, eq:valid-set) and mask area (foreground fraction of the frame, eq:pseudo-area applied
+    to M_ik); ``masks`` bool [K,H,W], ``scores`` float32 [K]."""
+    k = len(prompts)
+    areas = masks.reshape(k, -1).mean(axis=1)
+    return [(image_id, j, prompts[j], float(scores[j]), bool(scores[j] > 0), float(areas[j]), split, ran)
+            for j in range(k)]
+
+
+def score_table(rows: Sequence[tuple]) -> pd.DataFrame:
+    """teacher_scores.parquet's frame from :func:`score_rows` (score float32, prompt_index int16)."""
+    table = pd.DataFrame(rows, columns=list(SCORE_COLUMNS))
+    table["score"] = table["score"].astype(np.float32)
+    table["prompt_index"] = table["prompt_index"].astype(np.int16)
+    return table
+
+
+@dataclasses.dataclass
+class TeacherRun:
+    """The teacher of one ``teacher:`` section behind its cache, over the rows of one manifest."""
+
+    cfg: dict
+    runner: TeacherRunner
+    fingerprint: str            # the teacher's (the cache's teacher component)
+    manifest: pd.DataFrame      # index 0..N-1
+    shape: tuple[int, int, int]  # N, H, W of images.zarr
+    inputs: list                # the opened artifacts the outputs descend from (manifest, images[, reference])
+    rows: list[int]             # the rows in teacher.splits, in manifest order
+
+    @property
+    def teacher(self):
+        return self.runner.teacher
+
+    @property
+    def prompts(self) -> list[str]:
+        return list(self.cfg["prompts"])
+
+    def fill(self, rows: Sequence[int], workers: int = 0, address: str | None = None) -> RunStats:
+        """Compute and cache what ``rows`` (of :attr:`rows`) lack (:meth:`TeacherRunner.fill`)."""
+        stats = self.runner.fill(rows, workers=workers, address=address)
+        log.info("teacher: computed %d answers on %d images; %d cached answers reused",
+                 stats.answers_computed, stats.images_computed, stats.cache_hits)
+        return stats
+
+    def write(self, out: str | Path, scores: str | Path, meta: Callable[[str], Meta]) -> pd.DataFrame:
+        """Assemble ``out`` (teacher.zarr) and ``scores`` (teacher_scores.parquet) from the cache, every
+        manifest row in order; ``meta(schema)`` stamps each.  Returns the score table."""
+        n, h, w = self.shape
+        prompts, vflip, k = self.prompts, vflip_prompt(self.cfg), len(self.prompts)
+        ids = self.manifest["image_id"].astype(str).tolist()
+        splits = self.manifest["split"].astype(str).tolist()
+        run_set = set(self.rows)
+        rows = []
+        with ZarrWriter(out, meta("teacher")) as zw:
+            zw.create("masks", (n, k, h, w), bool)
+            zw.create("scores", (n, k), np.float32)
+            if vflip is not None:
+                zw.create("vflip_masks", (n, h, w), bool)
+                zw.create("vflip_scores", (n,), np.float32)
+            for row in progress(range(n), desc="teacher: assembling"):
+                if row in run_set:
+                    masks, sc, vmask, vscore = self.runner.answers(row)
+                else:
+                    masks, sc = np.zeros((k, h, w), bool), np.zeros(k, np.float32)
+                    vmask, vscore = np.zeros((h, w), bool), 0.0
+                zw.write("masks", row, masks)
+                zw.write("scores", row, sc)
+                if vflip is not None:
+                    zw.write("vflip_masks", row, vmask)
+                    zw.write("vflip_scores", row, np.float32(vscore))
+                rows += score_rows(ids[row], prompts, masks, sc, splits[row], row in run_set)
+            zw.attrs.update({
+                "prompts": prompts, "image_ids": ids, "backend": self.teacher.backend,
+                "simulator": self.teacher.backend == SIMULATED, "teacher_fingerprint": self.fingerprint,
+                "teacher": self.teacher.fingerprint(), "splits_run": list(self.cfg["splits"]),
+                "base_prompt_index": self.cfg["base_prompt_index"], "vflip_prompt": vflip,
+            })
+        table = score_table(rows)
+        write_parquet(scores, table, meta("teacher_scores"))
+        if self.runner.stats.cache_corrupt:
+            log.warning("teacher: %d corrupt cache entries were recomputed while assembling",
+                        self.runner.stats.cache_corrupt)
+        log.info("teacher: wrote %s and %s (%d images x %d prompts, backend %s)", out, scores, n, k,
+                 self.teacher.backend)
+        return table
+
+
+def open_teacher_run(cfg: Mapping[str, Any], manifest, images, reference: str | Path,
+                     device: str = "auto") -> TeacherRun:
+    """The teacher of the validated ``teacher:`` section ``cfg`` over the opened ``manifest`` and
+    ``images`` artifacts; ``reference`` (reference.zarr's path) is opened only for a teacher that reads
+    it (the SIMULATOR).  Checks that the artifacts come from one run and share the manifest's rows."""
+    df = manifest.df.reset_index(drop=True)
+    n, h, w = images["image"].shape[:3]
+    rows = [i for i, s in enumerate(df["split"].astype(str)) if s in cfg["splits"]]
+    shas = df["sha256"].astype(str).tolist()
+    load = ArtifactInputs(images.path, None, df["image_id"].astype(str).tolist(), shas, manifest_extras(df))
+    runner, t_fp = open_runner(cfg, (h, w), device, load, shas, vflip_prompt(cfg))
+    ref = open_artifact(reference, "reference") if runner.teacher.needs_reference else None
+    require_same_run(manifest, images, ref)
+    check_alignment(df, images, ref)
+    if ref is not None:
+        load.reference = os.path.abspath(reference)
+    if runner.teacher.backend == SIMULATED:
+        log.info("teacher: backend 'simulated' is a SIMULATOR of foundation-model errors that reads the "
+                 "synthetic ground truth; it is not a real teacher")
+    return TeacherRun(dict(cfg), runner, t_fp, df, (n, h, w), [manifest, images] + ([ref] if ref is not None else []),
+                      rows)
