@@ -12,6 +12,7 @@ keyword argument (``skip_bad=True``, ``max_pixels=``), on the command line by it
 >>> res = pipeline.label("images/", checkpoint="sam3/", out="labels/")               # doctest: +SKIP
 >>> res.table[["image_id", "c", "v", "a", "g"]].head()                             # doctest: +SKIP
 >>> out = pipeline.distill("images/", out="run/", checkpoint="sam3/", val_masks="masks/")  # doctest: +SKIP
+>>> out = pipeline.distill("images/", out="run/", labels="labels/")  # label's teacher answers  # doctest: +SKIP
 >>> mask = pipeline.Segmenter.from_bundle(out["deploy"]).predict("images/x.png")   # doctest: +SKIP
 """
 
@@ -22,15 +23,18 @@ from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 from pipeline.datasets.loading import pixel_limit
-from pipeline.errors import BACKEND, CHECKPOINT, OUT, InputError
+from pipeline.errors import BACKEND, CHECKPOINT, LABELS, OUT, InputError, literal
 from pipeline.labeling import label_folder
-from pipeline.labeling.run import parse_formats
+from pipeline.labeling.run import check_label_folder, parse_formats
 from pipeline.params import deep_merge, validate
 from pipeline.profiles import load_params_or_profile
 from pipeline.standalone import project_outputs, run_project, write_project
 
 LABEL_PROFILE = "paper"
 DISTILL_PROFILE = "distill"
+#: the teacher keys that do not change its answers: everything else in label.json's teacher section is
+#: what made the pseudo-labels, and ``distill --labels`` takes it (:func:`params_from_labels`)
+TEACHER_RUN_KEYS = ("base_prompt_index", "vflip_base_prompt", "splits", "batch_size", "compile", "cache_dir")
 
 
 def effective_params(params: str | Path | None = None, overrides: Mapping | Iterable[str] | None = None,
@@ -67,6 +71,50 @@ def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | N
     if not chosen and not (params["teacher"]["backend"] == "sam3" and params["teacher"]["checkpoint"]):
         raise InputError("{} is required (or {})", CHECKPOINT("SAM3_DIR"), BACKEND("imported|simulated"))
     return validate(deep_merge(params, {"teacher": chosen}), "options")
+
+
+def params_from_labels(params: dict, labels: str | Path, input_dir: str | Path, backend: str | None = None,
+                       checkpoint: str | Path | None = None, imported_dir: str | Path | None = None,
+                       default_profile: str = DISTILL_PROFILE) -> dict:
+    """``params`` for a distill that trains from the ``label`` output folder ``labels`` without running
+    the teacher again (``--labels`` / ``labels=``).  The folder must be an unmodified, complete label
+    output of ``input_dir`` (:func:`pipeline.labeling.run.check_label_folder`).  What made its
+    pseudo-labels is taken from its label.json: the teacher (every key but :data:`TEACHER_RUN_KEYS`),
+    ``data.resolution``, ``consensus.vote_threshold`` and ``geometry``; a value the caller set otherwise
+    (``--set``/``--params``/``--checkpoint``, or their keywords; anything not ``default_profile``'s
+    value) is refused, naming both.  Unless the caller set ``teacher.cache_dir``, the teacher cache is
+    label's, so the teacher stage finds every answer there (the keys are the image bytes and the
+    teacher: :mod:`pipeline.teachers.cache`)."""
+    record = check_label_folder(labels, input_dir)
+    base = load_params_or_profile(None, [], default_profile)
+    chosen = teacher_overrides(backend, checkpoint, imported_dir)
+    taken = {("teacher", k): v for k, v in record["teacher"].items() if k not in TEACHER_RUN_KEYS}
+    taken.update({("geometry", k): v for k, v in record["geometry"].items()})
+    taken.update({("data", "resolution"): record["resolution"], ("consensus", "vote_threshold"): record["vote_threshold"]})
+    for (sec, key), value in taken.items():
+        given = chosen.get(key) if sec == "teacher" and key in chosen else params[sec].get(key)
+        if (given != base[sec].get(key) or (sec == "teacher" and key in chosen)) and given != value:
+            raise InputError(f"{{}}: label made these pseudo-labels with {sec}.{key}={literal(repr(value))}, "
+                             f"not {literal(repr(given))}; leave it out, or rerun label with it", LABELS(labels))
+    merged = deep_merge(params, {})  # a copy
+    for (sec, key), value in taken.items():
+        merged[sec][key] = value
+    if params["teacher"]["cache_dir"] == base["teacher"]["cache_dir"]:
+        merged["teacher"]["cache_dir"] = str(Path(record["teacher"]["cache_dir"]).resolve())
+    return validate(merged, "labels")
+
+
+def distill_params(params: dict, input_dir: str | Path, labels: str | Path | None, backend: str | None,
+                   checkpoint: str | Path | None, imported_dir: str | Path | None, skip_bad: bool = False,
+                   max_pixels: int | None = None) -> dict:
+    """The params of a distill project (command and API): the teacher from a label folder
+    (:func:`params_from_labels`) or from the teacher options (:func:`choose_teacher`), then the data
+    options (:func:`with_data_options`)."""
+    if labels is not None:
+        params = params_from_labels(params, labels, input_dir, backend, checkpoint, imported_dir)
+    else:
+        params = choose_teacher(params, backend, checkpoint, imported_dir)
+    return with_data_options(params, skip_bad, max_pixels)
 
 
 def with_data_options(params: dict, skip_bad: bool = False, max_pixels: int | None = None) -> dict:
@@ -106,16 +154,20 @@ def distill(input: str | Path, out: str | Path | None = None, val_masks: str | P
             checkpoint: str | Path | None = None, *, backend: str | None = None,
             imported_dir: str | Path | None = None, params: str | Path | None = None,
             overrides: Mapping | Iterable[str] | None = None, device: str = "auto", run: bool = True,
-            skip_bad: bool = False, overwrite: bool = False, max_pixels: int | None = None) -> dict:
+            skip_bad: bool = False, overwrite: bool = False, max_pixels: int | None = None,
+            labels: str | Path | None = None) -> dict:
     """Train a deployable student on the images under ``input`` (``geodistill distill``;
     :mod:`pipeline.standalone`): ``out`` becomes a DVC project running the pipeline's DAG (rerun to
     resume).  Returns ``{"deploy", "report", "thresholds", "checkpoints"}`` paths; ``run=False`` only
-    writes the project.  ``skip_bad``, ``overwrite``, ``max_pixels``: as for :func:`label`."""
+    writes the project.  ``skip_bad``, ``overwrite``, ``max_pixels``: as for :func:`label`.
+    ``labels``: an unmodified :func:`label` output folder of the same images -- its teacher, resolution,
+    vote and gate are used and its teacher cache is read, so the teacher computes nothing again
+    (:func:`params_from_labels`; no ``checkpoint`` needed)."""
     if out is None:
         raise InputError("distill: {} (the project folder) is required", OUT)
-    p = choose_teacher(effective_params(params, overrides, DISTILL_PROFILE), backend, checkpoint, imported_dir)
-    p = with_data_options(p, skip_bad, max_pixels)
-    project = write_project(input, out, p, val_masks=val_masks, overwrite=overwrite)
+    p = distill_params(effective_params(params, overrides, DISTILL_PROFILE), input, labels, backend, checkpoint,
+                       imported_dir, skip_bad, max_pixels)
+    project = write_project(input, out, p, val_masks=val_masks, overwrite=overwrite, labels=labels)
     if run:
         run_project(project, device)
     return project_outputs(project)

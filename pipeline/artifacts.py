@@ -125,6 +125,8 @@ SCHEMAS: dict[str, Schema] = {
         _s("teacher_metrics", 1, "parquet", columns=("image_id", "group", "source", "iou", "bf1", "precision", "recall")),
         _s("efficiency", 1, "parquet", columns=("variant", "params", "gflops", "latency_ms", "throughput", "peak_mb")),
         _s("generic_table", 1, "parquet"),
+        # masks a person corrected (geodistill review import): compressed COCO RLE at the image's own size
+        _s("corrections", 1, "parquet", columns=("image_id", "file", "width", "height", "rle", "pixels", "source")),
         _s("report", 1, "dir", files=("report.md", "report.html")),
         # exported mask path: the bundle's required files (pipeline.catalog.DEPLOY_BUNDLE; the weights as above)
         _s("deploy", 1, "dir", files=(WEIGHTS_FILES, *(f.name for k, f in DEPLOY_BUNDLE.items()

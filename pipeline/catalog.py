@@ -87,6 +87,12 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
     _a("metrics_deploy", "../reports/metrics/deploy.json", None, "benchmark",
        "DVC metrics (git-tracked): latency_ms of the deployed fast path"),
     _a("report", "../reports/{profile}", "report", "report", "report.md, report.html, figures, plots"),
+    _a("metrics_efficiency", "../reports/metrics/efficiency", None, "report",
+       "DVC metrics (git-tracked): <group>/<method>.json = distillation efficiency (test Image IoU / the "
+       "teacher vote's) and its interval at the calibrated tau (pipeline.dvc_results.efficiency_metric_files)"),
+    _a("corrections", "corrections.parquet", "corrections", "review import",
+       "masks a person corrected (geodistill review import; compressed COCO RLE at each image's own size): "
+       "manual masks, never a loss of an annotation-free method; not yet a DVC stage's dep"),
 ]}
 
 
@@ -225,10 +231,12 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
                     "benchmark_resolution", "benchmark_variants", "int8_calibration_images", "target_latency_ms",
                     "target_resolution", "target_iou_drop") + ("calibrate.fixed_tau", "data.resolution"),
               metrics=("metrics_deploy",), exclusive=True),
-    StageSpec("report", "stages.report", "--artifacts {artifacts_dir} --out {report}",
+    StageSpec("report", "stages.report",
+              "--artifacts {artifacts_dir} --out {report} --metrics-dir {metrics_efficiency}",
               ("manifest", "images", "reference", "teacher", "consensus", "geometry", "gates", "checkpoints",
                "thresholds", "metrics", "summary", "teacher_metrics", "efficiency"), ("report",),
-              ("profile",) + _keys("report", "qualitative_images", "pseudo_target_images")),
+              ("profile",) + _keys("report", "qualitative_images", "pseudo_target_images"),
+              metrics=("metrics_efficiency",)),
 ]}
 
 #: The path placeholders of stage commands that are not single artifacts.

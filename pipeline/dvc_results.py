@@ -2,7 +2,8 @@
 
 ``dvc metrics show`` prints one row per metrics file and one column per key found in any file, so
 every file here has at most three of the same few keys (``iou``, ``bf1``, ``gate_share``,
-``latency_ms``) and the table stays five columns wide however many groups and methods a run has:
+``latency_ms``, ``efficiency``) and the table stays six columns wide (under 120 characters) however many
+groups and methods a run has:
 
 =====================================================  =============================================
 ``reports/metrics/students/<group>/<method>.json`` (evaluate)  ``iou``, ``bf1``: mean over seeds of the
@@ -17,13 +18,19 @@ every file here has at most three of the same few keys (``iou``, ``bf1``, ``gate
 ``reports/metrics/deploy.json`` (benchmark)                    ``latency_ms``: batch-1 median latency of the
                                                        deployed fast path (the baseline's when no
                                                        variant qualifies), at the benchmark size
+``reports/metrics/efficiency/<group>/<method>.json`` (report)  ``efficiency``: the distillation efficiency,
+                                                       the students' ``iou`` over the teacher vote's
+                                                       on the same test images
+                                                       (:func:`distillation_efficiency`)
 =====================================================  =============================================
 
 The files are stage outputs with ``cache: false`` outside ``artifacts/``: git tracks them, so
 ``dvc metrics diff <commit>`` compares against any commit.  Values are rounded to 4 decimals; a
 non-finite value is left out (DVC shows ``-``).  Group and method names become path components
 (:func:`path_component`).  The detailed numbers (seed std, gains with bootstrap CIs, Spearman rho,
-every benchmark variant) stay in summary.parquet, teacher_metrics.parquet and efficiency.parquet.
+every benchmark variant) stay in summary.parquet, teacher_metrics.parquet and efficiency.parquet; the
+efficiency's per-seed interval is the report's (reference-points table: two more keys per file would
+widen ``dvc metrics show`` to 145 characters with every method of the catalogue).
 
 Plot tables (evaluate; git-tracked CSVs drawn by the ``method_lines`` template, one line per
 method, see :mod:`pipeline.offline_plots`): :func:`training_curves` (epoch rows of every run's
@@ -128,6 +135,53 @@ def teacher_metric_files(teacher_table: pd.DataFrame, gates: pd.DataFrame,
         share = float((gv > 0).mean()) if gv.size else None
         out[f"{dirs[(ds, group)]}.json"] = numeric({"iou": part["iou"].mean(), "bf1": part["bf1"].mean(),
                                                     "gate_share": share})
+    return out
+
+
+def distillation_efficiency(student_mean: float, student_std: float, n_seeds: int, vote_iou: float,
+                            ci: float = 0.95) -> tuple[float, float, float]:
+    """Distillation efficiency = student Image IoU / teacher-vote Image IoU on the same test images:
+    (ratio, low, high).
+
+    ``student_mean``/``student_std``: the mean and sample std (ddof 1) over ``n_seeds`` seeds of the
+    per-seed mean test Image IoU (evaluate's summary: ``iou_mean``, ``iou_std``); ``vote_iou``: the
+    teacher vote's mean Image IoU on the group's test images (analyze_teacher).  The ratio is the
+    ratio of the seed mean to the vote.  The vote has no seed (the same pseudo-masks in every run), so
+    the per-seed ratios r_s = IoU_s / vote have mean = that ratio and std = student_std / vote, and the
+    interval is the per-seed ratio t interval: ratio -+ t_{S-1, (1+ci)/2} std / (vote sqrt(S)).  It
+    covers the seeds' training noise on these test images, not the sampling of the images (student and
+    vote are scored on the same ones).  One seed, or a vote IoU of 0: the interval is (nan, nan); no
+    vote: everything is nan.
+    """
+    nan = float("nan")
+    vote, mean = float(vote_iou), float(student_mean)
+    if not (math.isfinite(vote) and math.isfinite(mean)) or vote <= 0:
+        return nan, nan, nan
+    ratio = mean / vote
+    std = float(student_std)
+    if int(n_seeds) < 2 or not math.isfinite(std):
+        return ratio, nan, nan
+    from scipy.special import stdtrit
+
+    half = float(stdtrit(int(n_seeds) - 1, (1.0 + ci) / 2.0)) * std / (vote * math.sqrt(int(n_seeds)))
+    return ratio, ratio - half, ratio + half
+
+
+def efficiency_metric_files(summary: pd.DataFrame, vote: Mapping[str, float]) -> dict[str, dict[str, float]]:
+    """``{"<group>/<method>.json": {"efficiency"}}``: the :func:`distillation_efficiency` ratio of every
+    method (students and the supervised ceiling) at the calibrated tau, for the groups with a vote IoU in
+    ``vote`` (group -> teacher-vote Image IoU).  For its own folder (``reports/metrics/efficiency/``,
+    written by the report stage): the students' files keep their keys.  The interval is left to the
+    report, as the seed std is (module docstring)."""
+    cal = summary[summary["threshold_mode"] == "calibrated"]
+    dirs = _group_dirs(cal)
+    out: dict[str, dict[str, float]] = {}
+    for ds, (_, r) in zip(_dataset_col(cal), cal.iterrows()):
+        if str(r["group"]) not in vote:
+            continue
+        e, _, _ = distillation_efficiency(r["iou_mean"], r.get("iou_std"), r.get("n_seeds", 1), vote[str(r["group"])])
+        rel = f"{dirs[(ds, str(r['group']))]}/{path_component(r['method'])}.json"
+        out[rel] = numeric({"efficiency": e})
     return out
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from pipeline.artifacts import artifact_dir, open_artifact
+from pipeline.catalog import bundle_file
 from pipeline.inference import load_student
 from pipeline.params import section
 from pipeline.thresholds import resolve_resolution, resolve_tau, tau_candidates
@@ -29,6 +30,18 @@ def is_bundle_dir(path) -> bool:
         return json.loads((Path(path) / "meta.json").read_text()).get("schema") == "deploy"
     except (OSError, ValueError, AttributeError):
         return False
+
+
+def bundle_files(path) -> set[str]:
+    """The files of the deploy bundle in ``path`` (its deploy.json's ``files``, deploy.json, meta.json);
+    empty when ``path`` holds no bundle: what export may replace there (pipeline.ownership)."""
+    if not is_bundle_dir(path):
+        return set()
+    try:
+        listed = json.loads((Path(path) / bundle_file("deploy_json")).read_text()).get("files") or {}
+    except (OSError, ValueError, AttributeError):
+        listed = {}
+    return {str(f) for f in listed} | {bundle_file("deploy_json"), "meta.json"}
 
 
 @dataclasses.dataclass

@@ -36,7 +36,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.errors import SET, InputError
 
 from pipeline.params import PAPER
 
@@ -277,7 +277,8 @@ def median_area(a, is_train) -> float:
     ``a`` float [N] pseudo-area ratios, ``is_train`` bool [N].  Numpy's median (mean of the two
     middle values for an even count).  Decision for the degenerate case: when no training image has
     a non-empty pseudo-mask there is no reference area, and any fallback would silently change what
-    the area gate means, so this raises InputError (the teacher produced nothing usable to train on).
+    the area gate means, so this raises :class:`NoForeground`, an InputError in the user's terms (the
+    teacher produced nothing usable to train on).
     """
     a = np.asarray(a, dtype=np.float64)
     is_train = np.asarray(is_train, dtype=bool)
@@ -285,9 +286,21 @@ def median_area(a, is_train) -> float:
         raise InputError(f"median_area: a {a.shape} and is_train {is_train.shape} shapes differ")
     sel = a[is_train & (a > 0)]
     if sel.size == 0:
-        raise InputError("median_area: no non-empty training pseudo-mask; a0 (eq:area-gate) is undefined "
-                         "(check the teacher output and the manifest's train split)")
+        raise NoForeground()
     return float(np.median(sel))
+
+
+class NoForeground(InputError):
+    """No training image has a non-empty pseudo-mask (:func:`median_area`): said in the user's terms --
+    no file, no equation; the params override is spelled for the caller (``--set ...`` on the command
+    line, ``overrides=[...]`` in Python: :class:`pipeline.errors.Option`)."""
+
+    def __init__(self):
+        super().__init__("The teacher found no spacecraft in any training image; try a lower `{}` or check the "
+                         "prompts", SET(["teacher.score_threshold=…"]))
+
+    def __reduce__(self):  # pickles (a worker process) as itself: its message takes no arguments
+        return (NoForeground, ())
 
 
 def image_gates(c, n_valid, a, a0, geo) -> tuple[np.ndarray, GateFactors]:

@@ -369,7 +369,8 @@ def method_lr(method: Method, cfg: Mapping[str, Any]) -> float:
 #: training when one changes and the checkpoint fingerprint (= the resume-state key) moves with it.
 COMMON_KEYS = ("channels", "norm", "bn_momentum", "precise_bn", "batch_size", "weight_decay", "schedule",
                "dice_weight", "pos_weight_max", "loss_eps", "recipe", "precision", "warmup_epochs", "average_last",
-               "channels_last", "augment_hflip", "num_threads", "val_bf1_tolerance")
+               "channels_last", "augment_hflip", "num_threads", "val_bf1_tolerance",
+               "decay_fraction", "augment", "augmentation")
 #: extra train params per loss term (eq:refine-loss and the baselines' terms).
 TERM_KEYS = {
     "region": (),

@@ -11,15 +11,27 @@ earlier output by a *record*:
 * ``export``'s bundle folder is its own when it holds a deploy artifact's ``meta.json``;
 * ``profile``'s params file is its own when it starts with the generated header.
 
-Any other existing path in the way is refused before anything is written: one line naming it (exit
-code 2, :class:`~pipeline.errors.InputError`).  ``--overwrite`` is the user's explicit yes.  The
-policy is written here once; docs/own-data.md describes it for users.
+The policy -- a command replaces only what it wrote, ``--overwrite`` or not -- is written here once
+(docs/own-data.md describes it for users):
+
+* a record lists the **files** the command wrote (``label`` and ``segment`` file by file; ``distill``
+  its project files and the folders DVC fills); a rerun replaces, and (``label``) removes when this
+  run no longer makes them, exactly the listed files (:func:`remove_stale`).  A folder listed by a
+  record of an earlier version owns the files at the paths this run writes inside it, nothing else;
+* a **file** the command did not write, where one of its outputs would go, is refused before anything
+  is written: one line naming it (exit code 2, :class:`~pipeline.errors.InputError`) -- with
+  ``--overwrite`` too, since the command can neither leave it in place nor replace it;
+* a **folder** in the way that no record of the command claims (the user's ``masks/``) is refused
+  unless ``--overwrite``: the user's yes to write the command's files into it;
+* every other file in the output folders is **left in place** -- never deleted, never replaced
+  (``export``, which swaps its bundle folder in whole, refuses a foreign file inside it instead:
+  :func:`refuse_foreign_files`).
 """
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Iterable, Mapping
 
 from pipeline.artifacts import write_json
@@ -71,36 +83,91 @@ def _option(option: str | Option) -> Option:
     return option if isinstance(option, Option) else Option(option, option.lstrip("-").replace("-", "_"))
 
 
+def owns(rel: str, own: Iterable[str]) -> bool:
+    """Whether the relative path ``rel`` (posix) is owned by a record listing ``own``: listed itself,
+    or inside a listed folder (records of earlier versions listed folders, not files)."""
+    own = set(own)
+    parts = PurePosixPath(rel).parts
+    return any("/".join(parts[:i]) in own for i in range(1, len(parts) + 1))
+
+
+def _refuse_file(p: Path, command: str, option: Option, where, why: str) -> None:
+    raise InputError(f"{{}}: {literal(p)} exists and was not written by {literal(signature(command))} "
+                     f"({literal(why)}); {{}} replaces only what {literal(signature(command))} wrote: move it "
+                     f"away, or choose another {{}}", option(where), OVERWRITE, option)
+
+
 def refuse_unowned(paths: Iterable[str | Path], owned: Iterable[str | Path], *, command: str, option: str | Option,
                    where: str | Path, why: str, overwrite: bool) -> None:
     """InputError naming the first of ``paths`` that exists (a broken link counts) and is not in
-    ``owned``, unless ``overwrite`` (the user's explicit yes).  ``why``: how ``command`` recognises its
-    own output (e.g. "not listed in its label.json"); ``option``/``where``: the option and value that
+    ``owned`` (module docstring): a file -- or link -- always; a folder unless ``overwrite`` (the
+    user's yes to write into it; what is in it stays).  ``why``: how ``command`` recognises its own
+    output (e.g. "not listed in its label.json"); ``option``/``where``: the option and value that
     named the output location (``--out run/``)."""
-    if overwrite:
-        return
     mine = {Path(p).absolute() for p in owned}
+    opt = _option(option)  # named in the caller's terms (pipeline.errors)
     for p in paths:
         p = Path(p)
-        if (p.is_symlink() or p.exists()) and p.absolute() not in mine:
-            opt = _option(option)  # named in the caller's terms (pipeline.errors)
+        if not (p.is_symlink() or p.exists()) or p.absolute() in mine:
+            continue
+        if p.is_dir() and not p.is_symlink():
+            if overwrite:
+                continue
             raise InputError(f"{{}}: {literal(p)} exists and was not written by {literal(signature(command))} "
-                             f"({literal(why)}); pass {{}} to replace it, or choose another {{}}",
+                             f"({literal(why)}); pass {{}} to write into it (files there that "
+                             f"{literal(signature(command))} does not write stay), or choose another {{}}",
                              opt(where), OVERWRITE, opt)
+        _refuse_file(p, command, opt, where, why)
+
+
+def refuse_foreign_files(folder: str | Path, own: Iterable[str], *, command: str, option: str | Option,
+                         where: str | Path, why: str) -> None:
+    """InputError naming the first file (or link) under ``folder`` whose relative path is not in
+    ``own``: for a command that replaces ``folder`` whole, so that nothing it did not write is lost
+    (``--overwrite`` or not)."""
+    folder, own = Path(folder), set(own)
+    if not folder.is_dir():
+        return
+    for p in sorted(folder.rglob("*")):
+        if (p.is_file() or p.is_symlink()) and p.relative_to(folder).as_posix() not in own:
+            _refuse_file(p, command, _option(option), where, why)
 
 
 def check_outputs(out: str | Path, targets: Iterable[str], record: str, command: str, *, overwrite: bool,
                   option: str | Option = OUT, legacy_outputs: Iterable[str] = (), legacy_keys: Iterable[str] = ()) -> None:
     """Refuse (InputError, one line) before anything is written when ``out`` is a file, or when one of
-    ``targets`` (paths relative to ``out``; the record is added) exists under ``out`` and the record
-    of ``command`` there does not list it (:func:`refuse_unowned`)."""
+    ``targets`` (paths relative to ``out``, files or folders; the record is added) or a folder on the
+    way to one exists under ``out`` and the record of ``command`` there does not own it
+    (:func:`owns`, :func:`refuse_unowned`)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError("{}: is a file, not a folder", _option(option)(out))
     own = owned_outputs(out, record, command, legacy_outputs=legacy_outputs, legacy_keys=legacy_keys)
     names = list(dict.fromkeys([*targets, record]))
-    refuse_unowned([out / t for t in names], [out / t for t in own], command=command, option=option, where=out,
+    folders = list(dict.fromkeys(str(q) for t in names for q in reversed(PurePosixPath(t).parents) if str(q) != "."))
+    claimed = {str(q) for o in own for q in PurePosixPath(o).parents} | own  # a folder holding a listed file
+    in_way = [n for n in folders if n not in claimed and not owns(n, own)] + [n for n in names if not owns(n, own)]
+    refuse_unowned([out / t for t in in_way], [], command=command, option=option, where=out,
                    why=f"not listed in a {record} of {signature(command)} there", overwrite=overwrite)
+
+
+def remove_stale(out: str | Path, previous: Iterable[str], current: Iterable[str]) -> list[str]:
+    """Remove the files a record listed before (``previous``) that this run did not write (``current``)
+    -- the command's own, from a run with other formats or other images -- and the folders that leaves
+    empty; never anything else (a listed folder of an earlier version's record is not walked).
+    Returns the removed paths (relative)."""
+    out, keep, removed = Path(out), set(current), []
+    for rel in sorted(set(previous) - keep):
+        p = out / rel
+        if p.is_symlink() or p.is_file():
+            p.unlink()
+            removed.append(rel)
+            for parent in p.relative_to(out).parents:
+                d = out / parent
+                if parent == Path(".") or any(d.iterdir()):
+                    break
+                d.rmdir()
+    return removed
 
 
 def record_fields(out: str | Path, record: str, command: str, targets: Iterable[str],

@@ -110,7 +110,7 @@ class SyntheticParams(_Section):
         return v
 
 
-SOURCES = ("synthetic", "spacesense", "speedplus", "tango", "folder")
+SOURCES = ("synthetic", "spacesense", "spark", "speedplus", "tango", "folder")
 #: the teacher backends, each name once: the schema's choices here, and the keys of the registry
 #: pipeline.teachers.TEACHERS (name -> class; each class takes its ``backend`` from these constants)
 SIMULATED, SAM3, IMPORTED = BACKENDS = ("simulated", "sam3", "imported")
@@ -232,10 +232,19 @@ class AdaptiveParams(_Section):
 #: the original implementation's value); ``stable`` is what docs/stability.md measured to make the
 #: published numbers hold under thread-count and precision changes.  Rule: a part left ``null`` (the
 #: schema default) takes the value of ``train.recipe``'s bundle; a part given a value keeps it.
+#: ``strong`` (docs/student.md) trains the same model longer on augmented images: target-consistent
+#: augmentation (pipeline.augment), a warm-up / stable / decay learning rate, the mean weights of the
+#: decay phase's last epochs and a batch of 8 (twice the images per step: fewer, fuller steps on a CPU
+#: or a GPU).  Its lengths are a first choice, not yet the measured plateau (pipeline.benchmarks.convergence).
 RECIPES: dict[str, dict[str, dict[str, Any]]] = {
-    "paper": {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0},
+    "paper": {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4,
+                        "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False},
               "calibrate": {"tau_rule": "argmax"}},
-    "stable": {"train": {"precision": "fp32", "warmup_epochs": 0, "average_last": 5},
+    "stable": {"train": {"precision": "fp32", "warmup_epochs": 0, "average_last": 5, "batch_size": 4,
+                         "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False},
+               "calibrate": {"tau_rule": "smooth"}},
+    "strong": {"train": {"precision": "fp32", "warmup_epochs": 2, "average_last": 4, "batch_size": 8,
+                         "epochs_stage1": 80, "epochs_stage2": 20, "schedule": "wsd", "augment": True},
                "calibrate": {"tau_rule": "smooth"}},
 }
 
@@ -270,6 +279,34 @@ def unresolved(values: Mapping[str, Any], raw: Mapping[str, Any]) -> dict:
     return out
 
 
+class AugmentParams(_Section):
+    """Target-consistent augmentation (pipeline.augment), used when ``train.augment`` is on: probabilities
+    and magnitudes.  Flips and 90-degree rotations move every target exactly; a rescale recomputes the
+    SDF, skeleton and area from the augmented pseudo-mask; the gate is unchanged."""
+
+    hflip: float = _f(0.5, "probability of a left-right flip", ge=0, le=1)
+    vflip: float = _f(0.5, "probability of an up-down flip", ge=0, le=1)
+    rot90: bool = _f(True, "a uniformly drawn multiple of 90 degrees (square images; 180 otherwise)")
+    scale_probability: float = _f(0.5, "probability of a scale/crop jitter", ge=0, le=1)
+    scale_range: list[float] = _f([0.75, 1.33], "zoom factor range (log-uniform; < 1 zooms out, padding black)",
+                                  min_length=2, max_length=2)
+    photometric_probability: float = _f(0.8, "probability of the photometric part", ge=0, le=1)
+    brightness: float = _f(0.15, "additive brightness shift up to this (fraction of full scale)", ge=0, le=1)
+    contrast: float = _f(0.3, "contrast factor in [1/(1+x)..1+x] about the image mean", ge=0, le=10)
+    gamma: float = _f(0.3, "gamma in [1/(1+x), 1+x] (log-uniform)", ge=0, le=10)
+    glare_probability: float = _f(0.15, "probability of a saturated glare spot", ge=0, le=1)
+    blur_probability: float = _f(0.2, "probability of a Gaussian blur", ge=0, le=1)
+    blur_sigma: float = _f(1.5, "largest blur sigma (px)", ge=0, le=50)
+    noise_std: float = _f(0.03, "largest Gaussian sensor-noise std (fraction of full scale)", ge=0, le=1)
+
+    @field_validator("scale_range")
+    @classmethod
+    def _scale(cls, v):
+        if not 0 < v[0] <= v[1]:
+            raise ValueError("must be [lo, hi] with 0 < lo <= hi")
+        return v
+
+
 class TrainParams(_Section):
     channels: list[PositiveInt] = _f([24, 48, 96], "TinyUNet encoder widths", min_length=1)
     norm: Literal["batch", "group"] = _f("batch", "TinyUNet normalisation: batch (paper) | group (GroupNorm, "
@@ -277,13 +314,16 @@ class TrainParams(_Section):
     bn_momentum: float = _f(0.1, "BatchNorm running-statistics momentum (PyTorch's; paper silent)", gt=0, le=1)
     precise_bn: bool = _f(False, "re-estimate BN running statistics over the training set before each "
                                  "validation (precise BN; not in the paper)")
-    batch_size: int = _f(4, ge=1)
+    batch_size: int | None = _f(None, "recipe part: images per optimizer step", ge=1)
     weight_decay: float = _f(1e-4, ge=0)
-    epochs_stage1: int = _f(20, ge=0)
+    epochs_stage1: int | None = _f(None, "recipe part: Stage-I epochs", ge=0)
     lr_stage1: float = _f(5e-4, gt=0)
-    epochs_stage2: int = _f(10, ge=0)
+    epochs_stage2: int | None = _f(None, "recipe part: Stage-II epochs", ge=0)
     lr_stage2: float = _f(1e-4, gt=0)
-    schedule: Literal["cosine", "constant"] = _f("cosine", "paper gives initial rates only; our choice: cosine to 0")
+    schedule: Literal["cosine", "constant", "wsd"] | None = _f(
+        None, "recipe part: learning rate after the warm-up (paper gives initial rates only): cosine to 0 | "
+              "constant | wsd = constant, then linear to 0 over the last decay_fraction of the steps")
+    decay_fraction: float = _f(0.2, "schedule wsd: share of the optimizer steps in the decay phase", gt=0, le=1)
     dice_weight: float = _f(0.2, "eq:raw-loss", ge=0)
     pos_weight_max: float = _f(500.0, "eq:positive-weight clip", gt=0)
     sdf_band: float = _f(0.55, "eq:pseudo-boundary-band", gt=0)
@@ -294,7 +334,7 @@ class TrainParams(_Section):
     lambda_skel: float = _f(0.001, "eq:refine-loss", ge=0)
     lambda_area: float = _f(0.05, "eq:refine-loss", ge=0)
     stage2_select: Literal["last", "best_val"] = _f("last", "paper: the last Stage-II epoch")
-    recipe: Literal["paper", "stable"] = _f("paper", "training recipe: a bundle of the parts marked "
+    recipe: Literal["paper", "stable", "strong"] = _f("paper", "training recipe: a bundle of the parts marked "
                                             "'recipe part' (docs/stability.md); an explicit part value wins")
     precision: Literal["fp32", "bf16", "auto"] | None = _f(
         None, "recipe part: fp32 | bf16 | auto (bf16 autocast where the CPU/GPU supports it: host-dependent)")
@@ -304,6 +344,9 @@ class TrainParams(_Section):
                                         "statistics recomputed (0 = the method's selection rule)", ge=0)
     channels_last: bool = _f(True)
     augment_hflip: bool = _f(False, "the paper states no augmentation")
+    augment: bool | None = _f(None, "recipe part: target-consistent augmentation (train.augmentation; "
+                                    "pipeline.augment); replaces augment_hflip when on")
+    augmentation: AugmentParams = Field(default_factory=AugmentParams)
     num_threads: int = _f(0, "torch CPU threads (changes numerics: tracked and in the resume key); "
                              "0 = torch default", ge=0)
     val_bf1_tolerance: float = _f(2, "Boundary F1 tolerance (px) of the validation tie-break", ge=0)

@@ -1,14 +1,59 @@
-"""Progress bars (stderr) for every loop a user waits on; quiet when GEODISTILL_QUIET=1."""
+"""Progress bars (stderr) for every loop a user waits on.
+
+* A bar stays on screen when its loop ends (its final count is the record of what was done); bars count
+  the user's units (``unit="img"`` for images, never batches).
+* Quiet -- no bar at all -- when ``GEODISTILL_QUIET=1`` or inside :func:`quiet_bars` (a command's
+  ``--quiet``).
+* ``tqdm.auto``: widgets in Jupyter (ipywidgets, the ``notebook`` extra), text bars elsewhere.
+* Third-party bars (transformers' "Loading weights" at a checkpoint load) are switched off around the
+  call that would draw them (:func:`library_bars_off`).
+"""
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import os
 import sys
 
 from tqdm.auto import tqdm
 
+_QUIET = contextvars.ContextVar("geodistill_quiet_bars", default=False)
+
+
+def bars_quiet() -> bool:
+    """Whether bars are off: ``GEODISTILL_QUIET=1`` or inside :func:`quiet_bars`."""
+    return _QUIET.get() or os.environ.get("GEODISTILL_QUIET", "") == "1"
+
+
+@contextlib.contextmanager
+def quiet_bars(on: bool = True):
+    """No progress bar inside (``on``); restored after, whatever happens."""
+    token = _QUIET.set(bool(on) or _QUIET.get())
+    try:
+        yield
+    finally:
+        _QUIET.reset(token)
+
 
 def progress(iterable=None, desc: str = "", total: int | None = None, **kw):
-    disable = os.environ.get("GEODISTILL_QUIET", "") == "1"
-    return tqdm(iterable, desc=desc, total=total, file=sys.stderr, disable=disable,
-                dynamic_ncols=True, mininterval=0.5, leave=False, **kw)
+    """A tqdm bar on stderr that stays when done (``leave=True`` unless a caller says otherwise)."""
+    kw.setdefault("leave", True)
+    return tqdm(iterable, desc=desc, total=total, file=sys.stderr, disable=bars_quiet(),
+                dynamic_ncols=True, mininterval=0.5, **kw)
+
+
+@contextlib.contextmanager
+def library_bars_off():
+    """transformers' and huggingface_hub's own progress bars off inside (its "Loading weights" bar of
+    ``from_pretrained``), restored after; transformers is imported here, lazily, only by its callers'
+    code paths (the sam3 extra).  Their warnings still show: only the bars go."""
+    from transformers.utils import logging as hf_logging
+
+    was_on = hf_logging.is_progress_bar_enabled()
+    hf_logging.disable_progress_bar()
+    try:
+        yield
+    finally:
+        if was_on:
+            hf_logging.enable_progress_bar()

@@ -20,7 +20,8 @@ import pandas as pd
 from pipeline.artifacts import Meta, ZarrWriter, write_parquet
 from pipeline.consensus import vote_batch
 from pipeline.errors import InputError
-from pipeline.geometry import GateFactors, foreground_agreement, image_gates, median_area, pseudo_targets
+from pipeline.geometry import (GateFactors, NoForeground, foreground_agreement, image_gates, median_area,
+                               pseudo_targets)
 from pipeline.progress import progress
 
 
@@ -134,6 +135,8 @@ def write_geometry(cons, manifest, cfg: Mapping[str, Any], out: str | Path, gate
         split = manifest.df["split"].astype(str).to_numpy()
         try:
             a0 = median_area(a, split == "train")
+        except NoForeground:
+            raise  # said in the user's terms, no file to name
         except InputError as err:
             raise InputError(f"{manifest.path}: {err}") from None
         v, gf = image_gates(c, n_valid, a, a0, cfg)

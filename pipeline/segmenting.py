@@ -47,14 +47,19 @@ def check_options(checkpoint, input_path, output, batch_size: int, resolution: i
 def segment_images(checkpoint, input_path, output, *, tau: float | None = None, resolution: int | None = None,
                    thresholds=None, engine: str = AUTO, batch_size: int = 8, save_prob: bool = False,
                    overlay: bool = False, device="auto", params: Mapping | None = None, overwrite: bool = False,
-                   skip_bad: bool = False, max_pixels: int | None = None, echo: Callable[[str], None] = _stderr):
+                   skip_bad: bool = False, max_pixels: int | None = None, echo: Callable[[str], None] = _stderr,
+                   workers: int | None = None):
     """Segment one image file or a folder (module docstring); the result of
     :func:`pipeline.deploy.segment_files` (``written``, timings).  ``params``: validated params, read
-    for ``calibrate.fixed_tau`` only (None: no fixed tau fallback)."""
+    for ``calibrate.fixed_tau`` only (None: no fixed tau fallback).  ``workers``: reader threads that
+    overlap decoding and PNG writing with inference (None: segment_files' default; 0 = the serial
+    loop; the same bytes either way)."""
     from pipeline import deploy  # torch
     from pipeline.deploy import files as F
 
     check_options(checkpoint, input_path, output, batch_size, resolution)
+    if workers is not None and workers < 0:
+        raise InputError(f"workers={workers}: must be >= 0 (0 = the serial loop)")
     found = F.scan_inputs(input_path)
     if not found.files:
         extra = f"; skipped {found.skipped[0][0]}: {found.skipped[0][1]}" if found.skipped else ""
@@ -94,7 +99,8 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
     claim_outputs(output, F.relative_outputs(output, stems, suffixes), F.RECORD, "segment",
                   {"input": str(Path(input_path).absolute()), "checkpoint": str(Path(checkpoint).absolute())})
     result = deploy.segment_files(seg, files, stems, tau=tau, resolution=resolution, batch_size=batch_size,
-                                  save_prob=save_prob, overlay=overlay, on_skip=report, max_pixels=max_pixels)
+                                  save_prob=save_prob, overlay=overlay, on_skip=report, max_pixels=max_pixels,
+                                  **({} if workers is None else {"workers": workers}))
     listing = Path(output) / F.SKIPPED_CSV
     deploy.write_skipped_csv(listing, policy.rows())
     echo(f"segment: wrote {len(result.written)} mask(s) to {output}")

@@ -17,8 +17,9 @@ Design (decision; the issue asks for "the same DAG ... reproducible and resumabl
     mask folder and the protocol file instead of ``data_manifests/`` (adding an image reruns it);
   - ``distill.json``: what the project was made from (input, masks, teacher, version) and the record
     of what distill writes there (:mod:`pipeline.ownership`), written first: a rerun into the same
-    folder resumes, and any other file in the way (say, the user's own params.yaml) is refused
-    before anything is written unless ``overwrite`` (``--overwrite``); other files may stay beside;
+    folder resumes; a user's file where a project file goes (say, their own params.yaml) is refused
+    before anything is written, ``overwrite`` or not, and a user's folder in the way (``artifacts/``)
+    unless ``overwrite`` (``--overwrite``); files of the user's stay;
   - ``.cache/`` (decode cache, teacher cache, per-epoch training state; DVC-ignored): why a rerun, or a
     run killed half-way, resumes -- DVC skips finished stages, the teacher stage computes only the
     missing answers, a training stage continues from its last epoch.
@@ -39,7 +40,12 @@ anyway; Stage I selects the last epoch when there is no validation mask), tau is
 ``calibrate.fixed_tau`` = 0.5, and the report says that no masks were available.
 
 The teacher: SAM 3 needs ``--checkpoint`` (a local ``save_pretrained`` folder); ``--backend imported``
-reads masks made elsewhere.  The simulated teacher cannot label a folder of your images for training:
+reads masks made elsewhere.  ``--labels LABEL_DIR`` (``labels=``) takes the teacher and everything
+else that made a ``label`` folder's pseudo-labels (resolution, vote, gate) from its label.json, after
+checking the folder against the checksums recorded there, and points ``teacher.cache_dir`` at label's
+teacher cache: the teacher stage finds every answer cached and computes none
+(:func:`pipeline.api.params_from_labels`).  A ``label`` run and a ``distill`` run of the same images
+share the answers this way only; the project's own ``.cache/teacher`` is used otherwise.  The simulated teacher cannot label a folder of your images for training:
 it is a SIMULATOR that reads ground-truth masks of every training image, which a folder has not
 (the ``folder`` protocol never gives a training image a mask) -- refused with one line.
 """
@@ -60,9 +66,11 @@ from pipeline import __version__, catalog
 from pipeline.artifacts import write_text_if_changed
 from pipeline.codeversion import ROOT
 from pipeline.dag import live_plots, render_dvc_yaml, render_params_yaml
+from pipeline.dvc_results import path_component
 from pipeline.datasets.scan import scan_inputs
 from pipeline.errors import BACKEND, CHECKPOINT, INPUT, OUT, VAL_MASKS, InputError, Option, literal
 from pipeline.labeling.run import find_images
+from pipeline.methods import PROPOSED, method_label
 from pipeline.offline_plots import template_path, template_text
 from pipeline.ownership import check_outputs, record_fields
 from pipeline.params import deep_merge, read_yaml_mapping
@@ -146,8 +154,11 @@ def _env(device: str = "auto") -> dict:
 
 
 def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
-                  val_masks: str | Path | None = None, overwrite: bool = False) -> Path:
+                  val_masks: str | Path | None = None, overwrite: bool = False,
+                  labels: str | Path | None = None) -> Path:
     """Create or update the DVC project in ``out`` for ``input_dir`` (module docstring); returns ``out``.
+    ``labels``: the label folder ``params`` were taken from (:func:`pipeline.api.params_from_labels`),
+    recorded in distill.json.
 
     ``params``: validated params (the distill profile with the user's overrides and the teacher).  In
     an existing ``out``, every path of :data:`PROJECT_OUTPUTS` that exists must be listed by a
@@ -169,6 +180,7 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     out = out.resolve()
     record = {"input": str(input_dir), "val_masks": str(masks) if masks is not None else None,
               "teacher_backend": params["teacher"]["backend"], "teacher_checkpoint": params["teacher"]["checkpoint"],
+              "labels": str(Path(labels).resolve()) if labels is not None else None,
               "code": str(ROOT), "geodistill_version": __version__,
               **record_fields(out, RECORD_FILE, "distill", PROJECT_OUTPUTS, **LEGACY)}
     write_text_if_changed(out / RECORD_FILE, json.dumps(record, indent=1, sort_keys=True) + "\n")  # first
@@ -234,6 +246,43 @@ def project_outputs(out: str | Path) -> dict[str, Path]:
     profile = read_yaml_mapping(out / "params.yaml").get("profile", PROFILE)
     return {"deploy": catalog.path("deploy", art), "report": catalog.path("report", art, profile=profile) / "report.html",
             "thresholds": catalog.path("thresholds", art), "checkpoints": catalog.path("checkpoints", art)}
+
+
+def efficiency_line(out: str | Path) -> str | None:
+    """The summary line of a finished project whose held-out images have masks (``--val-masks``): "the
+    student reaches X of its labels", X = the deployed student's (``deploy.export_method``) distillation
+    efficiency, its test Image IoU at the calibrated tau over the teacher vote's on the same images (the
+    test half of the masked images; the report stage's ``metrics_efficiency`` files,
+    :func:`pipeline.dvc_results.efficiency_metric_files`), per group when there are several.  None when
+    there is no such file (no masks, or no test image)."""
+    out = Path(out)
+    art = out / catalog.ARTIFACTS_DIR
+    method = str((read_yaml_mapping(out / "params.yaml").get("deploy") or {}).get("export_method", PROPOSED))
+    found = []
+    for f in sorted(catalog.path("metrics_efficiency", art).glob(f"*/{path_component(method)}.json")):
+        group = f.parent.name
+        eff = _metric(f, "efficiency")
+        if eff is not None:
+            found.append((group, eff, _metric(catalog.path("metrics_students", art) / group / f.name, "iou"),
+                          _metric(catalog.path("metrics_teacher", art) / f"{group}.json", "iou")))
+    if not found:
+        return None
+    if len(found) == 1 and None not in found[0]:
+        _, e, iou, vote = found[0]
+        return (f"the student reaches {e:.2f} of its labels ({method_label(method)}: test Image IoU {iou:.3f}, "
+                f"the teacher vote's {vote:.3f} on the same held-out images with masks)")
+    ratios = ", ".join(f"{e:.2f}" + (f" ({g})" if len(found) > 1 else "") for g, e, _, _ in found)
+    return (f"the student reaches {ratios} of its labels ({method_label(method)}: test Image IoU over the teacher "
+            "vote's on the same held-out images with masks)")
+
+
+def _metric(path: Path, key: str) -> float | None:
+    """``key`` of the DVC metrics file ``path`` (pipeline.dvc_results), None when either is absent."""
+    try:
+        value = json.loads(path.read_text()).get(key)
+    except (OSError, ValueError):
+        return None
+    return float(value) if isinstance(value, (int, float)) else None
 
 
 def distill_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, val_masks: str | Path | None = None,

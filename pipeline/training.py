@@ -65,6 +65,7 @@ import numpy as np
 import torch
 
 from pipeline import losses
+from pipeline.augment import AugmentSpec, GeometryConstants, augment_batch
 from pipeline.artifacts import Artifact, read_chunk_rows
 from pipeline.device import autocast_dtype
 from pipeline.errors import ArtifactError, InputError, TrainingDiverged
@@ -117,6 +118,9 @@ class TrainData:
     sdf: np.ndarray | RowSource | None = None
     skeleton: np.ndarray | RowSource | None = None
     stats: dict = dataclasses.field(default_factory=dict)
+    #: the constants the geometry stage computed ``sdf``/``skeleton`` with: an augmented rescale
+    #: recomputes them with the same (``train.augment``; :mod:`pipeline.augment`)
+    geometry: GeometryConstants = dataclasses.field(default_factory=GeometryConstants)
 
     def __len__(self) -> int:
         return len(self.image_ids)
@@ -214,8 +218,23 @@ def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, A
     if method.needs_geometry:
         data.sdf = LazyRows(inputs["geometry"]["sdf"], rows, np.float32)
         data.skeleton = LazyRows(inputs["geometry"]["skeleton"], rows, bool)
+        data.geometry = geometry_constants(inputs["geometry"])
     stats["n_train"] = len(data)
     return data
+
+
+def geometry_constants(geometry: Artifact) -> GeometryConstants:
+    """The ``geometry.*`` constants recorded in geometry.zarr's params (the values its SDF and skeleton
+    were computed with); the schema defaults where the artifact records none."""
+    params = getattr(getattr(geometry, "meta", None), "params", None) or {}
+    nested = params.get("geometry") if isinstance(params.get("geometry"), Mapping) else {}
+
+    def get(key: str, default: float) -> float:
+        return float(params.get(f"geometry.{key}", nested.get(key, default)))
+
+    d = GeometryConstants()
+    return GeometryConstants(quantile=get("sdf_quantile", d.quantile), min_scale=get("sdf_min_scale", d.min_scale),
+                             min_distance=get("skeleton_min_distance", d.min_distance))
 
 
 def _region_targets(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Artifact],
@@ -342,6 +361,8 @@ class Settings:
     precise_bn: bool = False  # re-estimate BN statistics before each validation (train.precise_bn)
     warmup_epochs: int = 0  # linear learning-rate warm-up (train.warmup_epochs; 0 = none, the paper)
     average_last: int = 0  # final model = mean weights of the last K epochs (train.average_last; 0 = selection)
+    decay_fraction: float = 0.2  # schedule wsd: share of the steps in the decay phase (train.decay_fraction)
+    augment: AugmentSpec | None = None  # target-consistent augmentation (train.augment; None = off)
 
     @classmethod
     def from_params(cls, method: Method, cfg: Mapping[str, Any], selection_tau: float) -> "Settings":
@@ -356,7 +377,8 @@ class Settings:
                    bf1_tolerance=float(cfg["val_bf1_tolerance"]), constants=loss_constants(cfg),
                    selection_tau=float(selection_tau),
                    precise_bn=bool(cfg["precise_bn"]), warmup_epochs=int(cfg["warmup_epochs"]),
-                   average_last=int(cfg["average_last"]))
+                   average_last=int(cfg["average_last"]), decay_fraction=float(cfg.get("decay_fraction", 0.2)),
+                   augment=AugmentSpec.from_params(cfg["augmentation"]) if cfg.get("augment") else None)
 
 
 class Checkpointer(Protocol):
@@ -394,20 +416,32 @@ class MemoryCheckpointer:
         self.state = copy.deepcopy(state)
 
 
-def _lr_lambda(schedule: str, total_steps: int, warmup_steps: int = 0) -> Callable[[int], float]:
-    """Learning-rate factor of optimizer step ``step`` (0-based): ``constant`` 1, or ``cosine``
-    0.5 (1 + cos(pi min(step, T) / T)) with T = ``total_steps``; times the linear warm-up
-    min(1, (step + 1) / W) when ``warmup_steps`` W > 0 (``train.warmup_epochs``).  W = 0 returns the
-    schedule's own function (the paper recipe, unchanged)."""
+def _lr_lambda(schedule: str, total_steps: int, warmup_steps: int = 0, decay_steps: int = 0) -> Callable[[int], float]:
+    """Learning-rate factor of optimizer step ``step`` (0-based): ``constant`` 1, ``cosine``
+    0.5 (1 + cos(pi min(step, T) / T)) with T = ``total_steps``, or ``wsd`` (warm-up / stable / decay)
+    1 until the last D = ``decay_steps`` steps, then linear to 0: min(1, max(0, T - step) / D); times
+    the linear warm-up min(1, (step + 1) / W) when ``warmup_steps`` W > 0 (``train.warmup_epochs``).
+    W = 0 returns the schedule's own function (the paper recipe, unchanged).  The stable phase of
+    ``wsd`` does not depend on T, so a run branched off it into a decay of D steps at any point is
+    the run of that length (pipeline.benchmarks.convergence)."""
     if schedule == "constant":
         base = lambda step: 1.0  # noqa: E731
     elif schedule == "cosine":
         base = lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1)))  # noqa: E731
+    elif schedule == "wsd":
+        d = max(int(decay_steps), 1)
+        base = lambda step: min(1.0, max(0, total_steps - step) / d)  # noqa: E731
     else:
-        raise InputError(f"params: train.schedule={schedule!r}: expected cosine or constant")
+        raise InputError(f"params: train.schedule={schedule!r}: expected cosine, constant or wsd")
     if warmup_steps <= 0:
         return base
     return lambda step: min(1.0, (step + 1) / warmup_steps) * base(step)
+
+
+def decay_steps(total_steps: int, fraction: float) -> int:
+    """Optimizer steps in the decay phase of the ``wsd`` schedule: ``fraction`` of ``total_steps``,
+    rounded, at least 1."""
+    return max(1, int(round(total_steps * fraction)))
 
 
 def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: Mapping | None = None):
@@ -473,6 +507,27 @@ def _batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor 
             if k in b:
                 b[k] = torch.where(flip.view(-1, 1, 1, 1), b[k].flip(-1), b[k])
     return b
+
+
+def _host_rows(v: torch.Tensor | RowSource, idx: np.ndarray) -> np.ndarray:
+    """Rows ``idx`` of a training array as numpy (read from disk, or copied from the device)."""
+    if isinstance(v, RowSource):
+        return np.asarray(v[idx])
+    return v[torch.from_numpy(idx).to(v.device)].cpu().numpy()
+
+
+def _augmented_batch(run: _Run, idx: np.ndarray, epoch: int) -> dict[str, torch.Tensor]:
+    """The batch of training rows ``idx`` augmented (:func:`pipeline.augment.augment_batch`; image ``i``
+    seeded with ``[seed, epoch, i]``, so a resumed run and any batch size see the same augmentation of
+    an image in an epoch), then as :func:`_batch` builds it."""
+    t = run.tensors
+    keys = [k for k in ("mask", "sdf", "skeleton", "anchor", "area", "gate") if k in t]
+    images, targets = augment_batch(_host_rows(t["image"], idx), {k: _host_rows(t[k], idx) for k in keys},
+                                    [[run.seed, epoch, int(i)] for i in idx], run.settings.augment,
+                                    run.geometry)
+    dev = {"image": torch.from_numpy(images).to(run.device),
+           **{k: torch.from_numpy(np.ascontiguousarray(v)).to(run.device) for k, v in targets.items()}}
+    return _batch(dev, torch.arange(len(idx), device=run.device), None, run.settings.channels_last)
 
 
 def _has_val(val: ValData | None) -> bool:
@@ -552,6 +607,8 @@ class _Run:
     avg: dict | None = None
     #: the run's scratch directory (streamed anchors), removed when :func:`train` returns
     scratch: tempfile.TemporaryDirectory | None = None
+    #: the geometry constants of the training data's SDF/skeleton (augmented rescales recompute them)
+    geometry: GeometryConstants = dataclasses.field(default_factory=GeometryConstants)
 
     @property
     def steps_per_epoch(self) -> int:
@@ -595,9 +652,10 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
                "autocast": str(amp).replace("torch.", "") if amp is not None else "fp32"}
     run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,
                opt=opt, sched=None, tensors=_tensors(data, device, anchor), n_train=len(data), run_key=run_key,
-               scratch=scratch)
-    run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(s.schedule, s.epochs * run.steps_per_epoch,
-                                                                  s.warmup_epochs * run.steps_per_epoch))
+               scratch=scratch, geometry=data.geometry)
+    total = s.epochs * run.steps_per_epoch
+    run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(s.schedule, total, s.warmup_epochs * run.steps_per_epoch,
+                                                                  decay_steps(total, s.decay_fraction)))
     return run
 
 
@@ -773,6 +831,10 @@ def _epoch_batches_in_order(run: _Run, epoch: int):
     """:func:`_epoch_batches` without the prefetching thread."""
     n, bs = run.n_train, run.settings.batch_size
     order = np.random.default_rng([run.seed, epoch]).permutation(n)
+    if run.settings.augment is not None:  # train.augment: replaces augment_hflip (its flips are part of it)
+        for s in range(0, n, bs):
+            yield min(bs, n - s), _augmented_batch(run, order[s:s + bs], epoch)
+        return
     flips = np.random.default_rng([run.seed, epoch, 1]).random(n) < 0.5 if run.settings.hflip else None
     order_dev = torch.from_numpy(order).to(run.device)
     flips_dev = torch.from_numpy(flips[order]).to(run.device) if flips is not None else None

@@ -26,7 +26,7 @@ import click
 from pipeline.artifacts import Meta, make_meta
 from pipeline.catalog import STAGES, stage_params
 from pipeline.codeversion import ROOT, _module_name, code_version_of
-from pipeline.errors import CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError
+from pipeline.errors import CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError, calling
 from pipeline.params import PAPER, load_params
 
 def setup_logging() -> None:
@@ -58,9 +58,11 @@ def os_error_line(e: OSError) -> str:
 def one_line_errors(command: str):
     """Run a command's body; an InputError ends it with ``geodistill <command>: error: <line>`` (options
     named by their flags: ``e.render(CLI)``) and exit code 2, an OSError with ``geodistill <command>:
-    error: <path>: <what> (<ERRNO>)`` and exit code 1 -- one line on stderr each, no traceback."""
+    error: <path>: <what> (<ERRNO>)`` and exit code 1 -- one line on stderr each, no traceback.  Inside,
+    the library's warnings name options by their flags too (:func:`pipeline.errors.caller`)."""
     try:
-        yield
+        with calling(CLI):
+            yield
     except InputError as e:
         line = e.render(CLI)
         msg = line.splitlines()[0] if line else type(e).__name__
@@ -75,7 +77,8 @@ def one_line_errors(command: str):
 #: naming them take it from), one help text
 overwrite_option = click.option(
     OVERWRITE.flag, is_flag=True,
-    help="replace files in the way that this command did not write (default: refuse, naming the first)")
+    help="write into an existing output folder this command did not make; files of yours there stay, and "
+         "a file of yours where an output goes is refused by name either way (docs/own-data.md)")
 skip_bad_option = click.option(
     SKIP_BAD.flag, is_flag=True,
     help="leave unreadable images out and list them with the reason (default: stop at the first, naming it)")

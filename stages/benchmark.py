@@ -80,6 +80,8 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
     if not rows:
         raise InputError("deploy.benchmark_variants: nothing could be measured")
     click.echo(B.format_table(rows))
+    if sweep := B.format_sweep(run_info):  # the CUDA batch sweep
+        click.echo(sweep)
     summary = B.fast_path_summary(rows, resolution, target_ms=st["target_ms"], target_res=st["target_res"],
                                   max_drop=st["max_drop"])
     if summary is not None:

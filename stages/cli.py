@@ -24,6 +24,7 @@ COMMANDS = {
     "profile": "stages.dag:profile_main",
     "run": "stages.run",
     "label": "stages.label",
+    "review": "stages.review",
     "distill": "stages.distill",
     "plots": "stages.plots",
     "reproduce-check": "stages.reproduce_check",

@@ -34,7 +34,8 @@ def dag_main(check: bool, out: str) -> None:
 @click.argument("name")
 @click.option("--out", default="params.yaml", show_default=True, type=click.Path(dir_okay=False))
 @click.option("--overwrite", is_flag=True,
-              help="replace an --out file that `geodistill profile` did not write (default: refuse)")
+              help="accepted like the other commands' --overwrite; a params file that `geodistill profile` did "
+                   "not write is never replaced (refused by name)")
 def profile_main(name: str, out: str, overwrite: bool) -> None:
     """Write params.yaml with the effective values of profile NAME (demo | reduced | paper).  A rerun
     rewrites its own file (recognised by the generated header); any other file is refused."""

@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import click
 
-from pipeline.api import choose_teacher, with_data_options
+from pipeline.api import distill_params
+from pipeline.errors import LABELS
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
-from pipeline.standalone import project_outputs, run_project, write_project
+from pipeline.standalone import efficiency_line, project_outputs, run_project, write_project
 from stages._common import max_pixels_option, overwrite_option, skip_bad_option, stage_command
 
 
@@ -25,24 +26,33 @@ from stages._common import max_pixels_option, overwrite_option, skip_bad_option,
               help="teacher: sam3 (default with --checkpoint) | imported (masks made elsewhere); simulated is "
                    "refused (a SIMULATOR needing masks of every training image)")
 @click.option("--imported-dir", default=None, type=click.Path(), help="imported teacher masks (see the README layout)")
+@click.option(LABELS.flag, LABELS.keyword, default=None, type=click.Path(), metavar="LABEL_DIR",
+              help="an unmodified `geodistill label` output of the same images: train from its pseudo-labels "
+                   "(its teacher, resolution, vote and gate) and its teacher cache, so the teacher computes "
+                   "nothing again; no --checkpoint needed")
 @click.option("--no-run", is_flag=True, help="only write the DVC project (run it later with `dvc repro` in --out)")
 @skip_bad_option
 @max_pixels_option
 @overwrite_option
-def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, no_run, skip_bad, max_pixels,
-         overwrite):
+def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, labels, no_run, skip_bad,
+         max_pixels, overwrite):
     """Train a deployable student on a folder of images: SAM 3 pseudo-labels, Stage I (plain student),
     Stage II (GeoDistill-Refine), threshold, export, report.  --out becomes a DVC project running the
     pipeline's own DAG, so a rerun resumes where it stopped; distill.json there lists what distill
-    wrote, and anything else in the way is refused unless --overwrite (docs/own-data.md)."""
-    params = with_data_options(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad, max_pixels)
-    project = write_project(input_dir, out, params, val_masks=val_masks, overwrite=overwrite)
+    wrote; a file of yours where a project file goes is refused by name (--overwrite or not), and
+    --overwrite writes into a folder of yours; your files there stay (docs/own-data.md).
+    --labels LABEL_DIR trains from a `geodistill label` output of the same images, reusing its
+    teacher answers; a changed mask there is refused (corrections go through `geodistill review import`)."""
+    params = distill_params(params, input_dir, labels, backend, checkpoint, imported_dir, skip_bad, max_pixels)
+    project = write_project(input_dir, out, params, val_masks=val_masks, overwrite=overwrite, labels=labels)
     if no_run:
         click.echo(f"distill: wrote the DVC project {project}; run `dvc repro` there", err=True)
         return
     run_project(project, device)
     res = project_outputs(project)
     click.echo(f"distill: deploy bundle {res['deploy']}\ndistill: report {res['report']}", err=True)
+    if (line := efficiency_line(project)) is not None:  # with --val-masks
+        click.echo(f"distill: {line}", err=True)
 
 
 if __name__ == "__main__":

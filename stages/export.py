@@ -24,8 +24,8 @@ import click
 
 from pipeline.catalog import dvc_path
 from pipeline.device import resolve_device
-from pipeline.exporting import export_lines, is_bundle_dir, plan_export, write_export
-from pipeline.ownership import refuse_unowned
+from pipeline.exporting import bundle_files, export_lines, is_bundle_dir, plan_export, write_export
+from pipeline.ownership import refuse_foreign_files, refuse_unowned
 from stages._common import overwrite_option, stage_command, stage_context
 
 
@@ -43,10 +43,13 @@ from stages._common import overwrite_option, stage_command, stage_context
 @overwrite_option
 def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8, overwrite):
     """Export the mask path (TorchScript + ONNX) with its calibrated tau and a parity check.  --out is
-    replaced whole when it holds an earlier bundle (its meta.json); anything else there is refused
-    unless --overwrite."""
+    replaced whole when it holds an earlier bundle (its meta.json) and nothing else; a folder without
+    a bundle is refused unless --overwrite, and a file in it that is not a bundle's is always refused."""
     refuse_unowned([out], [out] if is_bundle_dir(out) else [], command="export", option="--out", where=out,
                    why="no deploy bundle's meta.json in it", overwrite=overwrite)
+    # the bundle is swapped in whole: a file in it that no earlier bundle lists is refused, never lost
+    refuse_foreign_files(out, bundle_files(out), command="export", option="--out", where=out,
+                         why="not a file of the deploy bundle there, which export replaces whole")
     plan = plan_export(checkpoint, params, thresholds=thresholds, tau=tau, artifacts=art, onnx=not no_onnx,
                        int8=not no_int8)
     meta = stage_context("export", __file__, params).meta("deploy", plan.inputs, params=plan.params)

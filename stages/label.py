@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
+import logging
+import os
+
 import click
 
 from pipeline.api import choose_teacher, with_data_options
 from pipeline.labeling import label_folder
-from pipeline.labeling.run import parse_formats
+from pipeline.labeling.run import OUTPUTS, YOLO_LISTS, parse_formats
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
+from pipeline.progress import quiet_bars
 from stages._common import (max_pixels_option, overwrite_option, skip_bad_option, stage_command,
                             teacher_workers_options)
 
@@ -25,28 +31,64 @@ from stages._common import (max_pixels_option, overwrite_option, skip_bad_option
               help="simulated backend only: masks named like the images, read by the SIMULATOR")
 @click.option("--format", "formats", default="png,coco,yolo", show_default=True,
               help="comma-separated: png, coco, yolo")
+@click.option("--copy-images", is_flag=True,
+              help="yolo/images holds copies of the inputs (default: relative links, which survive moving the "
+                   "input and output folders together)")
+@click.option("--quiet", "-q", is_flag=True, help="no progress bars (warnings, errors and the summary line stay)")
 @skip_bad_option
 @max_pixels_option
 @overwrite_option
 @teacher_workers_options
-def main(params, device, input_dir, out, checkpoint, backend, imported_dir, reference_masks, formats, skip_bad,
-         max_pixels, overwrite, workers, address):
+def main(params, device, input_dir, out, checkpoint, backend, imported_dir, reference_masks, formats, copy_images,
+         quiet, skip_bad, max_pixels, overwrite, workers, address):
     """Label a folder of images with the multi-prompt teacher: voted pseudo-masks as PNG, COCO (RLE)
     and YOLO segmentation files, a table of agreement c, valid ratio v, area a and gate g per image,
     and a contact sheet.  Without --params the paper's values are used (working resolution 384).
     --workers N runs the teacher on a Ray Data pool of N (same labels).
     Reruns resume from the teacher cache inside OUT; label.json there lists what label wrote, and
-    anything else in the way is refused unless --overwrite (docs/own-data.md)."""
+    a file of yours where an output goes is refused by name (--overwrite or not); your other files stay;
+    --overwrite writes into a folder of yours such as your own masks/ (docs/own-data.md).
+    The console: progress bars (none with --quiet), warnings and one summary line; the step log with
+    GEODISTILL_LOG=INFO."""
     fmts = parse_formats(formats)  # checked before any work
     params = with_data_options(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad, max_pixels)
-    result = label_folder(input_dir, out, params, device=device, formats=fmts, reference_masks=reference_masks,
-                          overwrite=overwrite, workers=workers, address=address)
-    g = result.table["g"]
-    click.echo(f"label: {len(result.table)} images -> {result.out} ({', '.join(result.formats)}); "
-               f"gate g median {g.median():.3f}, {int((g > 0).sum())} with g > 0"
-               + ("; backend simulated is a SIMULATOR" if result.simulator else ""), err=True)
+    with quiet_bars(quiet), _step_log_off():
+        result = label_folder(input_dir, out, params, device=device, formats=fmts, reference_masks=reference_masks,
+                              overwrite=overwrite, workers=workers, address=address, copy_images=copy_images)
+    click.echo(summary_line(result), err=True)
     if result.skipped_line:
         click.echo(result.skipped_line, err=True)
+
+
+@contextlib.contextmanager
+def _step_log_off():
+    """The project's INFO step log off for the command (its warnings stay), unless GEODISTILL_LOG names a
+    level: the summary line says what the steps did."""
+    logger = logging.getLogger("pipeline")
+    before = logger.level
+    if "GEODISTILL_LOG" not in os.environ:
+        logger.setLevel(max(logging.WARNING, logger.getEffectiveLevel()))
+    try:
+        yield
+    finally:
+        logger.setLevel(before)
+
+
+def summary_line(result) -> str:
+    """The command's one line: images, where, formats, the teacher's work (computed / from the cache, from
+    label.json), the gates and the YOLO validation share."""
+    record = json.loads((result.out / OUTPUTS["record"]).read_text())
+    g = result.table["g"]
+    parts = [f"label: {len(result.table)} images -> {result.out} ({', '.join(result.formats)})",
+             f"teacher answers {record['teacher_answers_computed']} computed, {record['teacher_cache_hits']} cached",
+             f"gate g median {g.median():.3f}, {int((g > 0).sum())} with g > 0"]
+    val = result.out / OUTPUTS["yolo"] / YOLO_LISTS[1]
+    if "yolo" in result.formats:
+        parts.append(f"yolo val: {len(val.read_text().splitlines())} of {len(result.table)} images" if val.is_file()
+                     else "yolo: no val split (README.txt)")
+    if result.simulator:
+        parts.append("backend simulated is a SIMULATOR")
+    return "; ".join(parts)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Stage `prepare`: dataset -> manifest.parquet, images.zarr, reference.zarr, skipped_files.parquet, contact sheet.
 
 Default source: the embedded synthetic spacecraft benchmark (PNG files under ``<out-dir>/synthetic``).
-Real sources: ``--source spacesense|speedplus|tango|folder --root DIR [--protocol FILE]``.
+Real sources: ``--source spacesense|spark|speedplus|tango|folder --root DIR [--protocol FILE]``.
 
 Wiring only: the work is :func:`pipeline.prepare.prepare`.
 """
@@ -15,7 +15,7 @@ import click
 from pipeline import catalog
 from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.datasets.params import check_data_params
-from pipeline.params import section
+from pipeline.params import SOURCES, section
 from pipeline.prepare import prepare
 from stages._common import stage_command, stage_context
 
@@ -24,7 +24,7 @@ log = logging.getLogger("geodistill.prepare")
 
 @stage_command("prepare")
 @click.option("--out-dir", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False))
-@click.option("--source", default=None, help="override data.source (synthetic|spacesense|speedplus|tango|folder)")
+@click.option("--source", default=None, help=f"override data.source ({'|'.join(SOURCES)})")
 @click.option("--root", default=None, help="override data.root (dataset root for real sources)")
 @click.option("--protocol", default=None, help="override data.protocol (protocol YAML)")
 @click.option("--skip-bad", is_flag=True, help="leave bad files out (recorded in skipped_files.parquet)")

@@ -11,6 +11,12 @@ and the DVC plot tables
 The controls and threshold-diagnostics section states in words, computed from the numbers, what they
 show about the fixed-tau reversal (pipeline.report.analysis.fixed_tau_findings).  Inputs that do not exist (e.g.
 efficiency.parquet before the benchmark ran) are reported as missing in the page, not fatal.
+
+It also writes the DVC metrics ``reports/metrics/efficiency/<group>/<method>.json`` (git-tracked;
+pipeline.dvc_results.efficiency_metric_files): the distillation efficiency of every student and of the
+supervised ceiling, test Image IoU at the calibrated tau / the teacher vote's on the same test images,
+with its per-seed ratio t interval -- the reference-points table's "IoU ÷ vote", from the same numbers.
+Without summary.parquet or teacher_metrics.parquet (no test masks) the folder is empty.
 """
 
 from __future__ import annotations
@@ -19,9 +25,11 @@ from pathlib import Path
 
 import click
 
+from pipeline import catalog
 from pipeline.artifacts import artifact_dir, write_json
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.device import resolve_device
+from pipeline.dvc_results import efficiency_metric_files, write_metrics_dir
 from pipeline.environment import collect
 from pipeline.params import section
 from pipeline.report.document import render_html, render_markdown
@@ -34,7 +42,10 @@ from stages._common import stage_command, stage_context
 @click.option("--artifacts", "art", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False))
 @click.option("--out", default=dvc_path("report", profile="demo"), show_default=True, type=click.Path(file_okay=False),
               help="report directory (dvc.yaml: reports/${profile})")
-def main(params, device, art, out):
+@click.option("--metrics-dir", default=None, type=click.Path(file_okay=False),
+              help="DVC metrics <group>/<method>.json of the distillation efficiency, replaced "
+                   "[default: reports/metrics/efficiency beside --artifacts]")
+def main(params, device, art, out, metrics_dir):
     """Write report.md, a self-contained report.html, figures and plot CSVs."""
     from pipeline.report.build import build_report
     cfg = section(params, "report")
@@ -55,6 +66,7 @@ def main(params, device, art, out):
         (tmp / "report.md").write_text(render_markdown(report))
         (tmp / "report.html").write_text(render_html(report))
         write_json(tmp / "environment.json", environment_record(env, inp.runs))
+    write_metrics_dir(metrics_dir or catalog.path("metrics_efficiency", art), efficiency_files(inp))
     from pipeline.report.build import MASK_INPUTS
 
     not_computed = sorted(n for n in inp.missing if inp.no_masks and n in MASK_INPUTS)
@@ -63,6 +75,17 @@ def main(params, device, art, out):
         + (f" (missing inputs: {', '.join(absent)})" if absent else "")
     click.echo(f"report: {len(report.tables())} tables, {len(report.figures())} figures -> {Path(out)}{missing}",
                err=True)
+
+
+def efficiency_files(inp) -> dict[str, dict[str, float]]:
+    """The efficiency metrics files of the report's inputs ``inp`` (pipeline.report.build.Inputs): the
+    summary's students over the vote means the reference-points table uses; ``{}`` without either."""
+    from pipeline.report.build import vote_means
+
+    summary, vote = inp.get("summary"), vote_means(inp)
+    if summary is None or vote is None:
+        return {}
+    return efficiency_metric_files(summary.df, {str(g): float(v) for g, v in vote["iou"].items()})
 
 
 if __name__ == "__main__":

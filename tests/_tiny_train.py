@@ -113,7 +113,8 @@ def tiny_cfg(**over) -> dict:
                 "batch_size": 4})
     # the paper recipe's other parts (the demo's params.yaml may select another recipe): tests that
     # need a part set it themselves
-    cfg.update({k: v for k, v in RECIPES["paper"]["train"].items() if k != "precision"}, recipe="paper")
+    cfg.update({k: v for k, v in RECIPES["paper"]["train"].items()
+                if k not in ("precision", "epochs_stage1", "epochs_stage2", "batch_size")}, recipe="paper")
     cfg["gabi"] = {**cfg["gabi"], "epochs": 2}
     cfg.update(over)
     return cfg

@@ -108,6 +108,7 @@ def test_decode_cache_hits_and_recovers_from_torn_entries(tmp_path):
 def test_parts_from_colors():
     rgb = np.zeros((1, 3, 3), np.uint8)
     rgb[0, 1] = (10, 20, 30)
-    rgb[0, 2] = (1, 2, 3)
-    out = L.parts_from_colors(rgb, {(10, 20, 30): 2})
-    assert out.tolist() == [[0, 2, 0]]
+    assert L.parts_from_colors(rgb, {(10, 20, 30): 2}).tolist() == [[0, 2, 0]]
+    rgb[0, 2] = (1, 2, 3)                        # outside the table: refused, never silently background
+    with pytest.raises(L.BadFileError, match=r"p.png: seg colour \(1, 2, 3\) is outside the class table"):
+        L.parts_from_colors(rgb, {(10, 20, 30): 2}, "p.png")

@@ -90,13 +90,16 @@ def test_epoch_swings_by_hand():
 
 
 # ---- findings in words ----------------------------------------------------------------------------
-def _summary(bf1_cal, bf1_fix, groups=("KCP", "CVI")):
+def _summary(bf1_cal, bf1_fix, groups=("KCP", "CVI"), half_width=0.02):
+    """Gains with CIs of +-``half_width`` on five seeds (the verdicts come from the intervals)."""
     rows = []
     for mode, gains in (("calibrated", bf1_cal), ("fixed", bf1_fix)):
         for g, gain in zip(groups, gains):
             rows.append(dict(group=g, method="plain", threshold_mode=mode, iou_mean=0.45, iou_std=0.01))
             rows.append(dict(group=g, method="geodistill", threshold_mode=mode, iou_mean=0.47, iou_std=0.01,
-                             gain_iou=0.02, gain_bf1=gain))
+                             gain_iou=0.02, gain_iou_lo=0.02 - half_width, gain_iou_hi=0.02 + half_width,
+                             gain_bf1=gain, gain_bf1_lo=gain - half_width, gain_bf1_hi=gain + half_width,
+                             gain_seeds=5))
     return pd.DataFrame(rows)
 
 
@@ -109,18 +112,28 @@ def _metrics(area_geo_fixed):
 
 
 def test_findings_are_computed_from_the_numbers():
-    thr = pd.DataFrame({"method": ["plain", "plain", "geodistill", "geodistill"], "tau": [0.6, 0.64, 0.8, 0.84],
-                        "ece": [0.02, 0.03, 0.06, 0.07]})
+    thr = pd.DataFrame({"method": ["plain", "plain", "geodistill", "geodistill"], "seed": [1, 2, 1, 2],
+                        "tau": [0.6, 0.64, 0.8, 0.84], "ece": [0.02, 0.03, 0.06, 0.07]})
     text = " ".join(fixed_tau_findings(_summary([0.04, 0.05], [-0.07, -0.12]), thr, _metrics(1.8), None, None,
                                        ["KCP", "CVI"], fixed_tau=0.5))
     assert "0.82 (mean over seeds), higher than plain's 0.62 (difference +0.20)" in text
-    assert "fixed tau = 0.5 -0.070, -0.120 (negative on 2 of 2)" in text
+    assert "fixed tau = 0.5 -0.070 (loss supported), -0.120 (loss supported)" in text
+    assert "calibrated tau +0.040 (gain supported), +0.050 (gain supported)" in text
     assert "geodistill 1.80 at 0.5 and 1.15 at its calibrated tau" in text
     assert "reversal is present and is a threshold effect" in text
+    # the ECE sentence follows its t interval over the shared seeds: +0.04 at both seeds -> worse
+    assert "geodistill is worse calibrated" in text
+    noisy = thr.assign(ece=[0.02, 0.09, 0.06, 0.03])   # per-seed differences +0.04, -0.06: the CI covers 0
+    text_ece = " ".join(fixed_tau_findings(None, noisy, None, None, None, ["KCP"], fixed_tau=0.5))
+    assert "no difference in pixel-level calibration detected" in text_ece and "worse" not in text_ece
     # other numbers, other verdicts: no reversal when the fixed-tau gain stays positive
     text = " ".join(fixed_tau_findings(_summary([0.04, 0.05], [0.01, 0.02]), thr, _metrics(1.8), None, None,
                                        ["KCP", "CVI"], fixed_tau=0.5))
     assert "No fixed-tau reversal" in text and "threshold effect" not in text
+    # negative point estimates whose CIs cover 0 are no reversal: a majority of signs decides nothing
+    text = " ".join(fixed_tau_findings(_summary([0.04, 0.05], [-0.01, -0.015]), thr, _metrics(1.8), None, None,
+                                       ["KCP", "CVI"], fixed_tau=0.5))
+    assert "No fixed-tau reversal detected" in text and "threshold effect" not in text
     # a reversal without foreground inflation is not explained by the threshold
     text = " ".join(fixed_tau_findings(_summary([0.04, 0.05], [-0.07, -0.12]), thr, _metrics(1.0), None, None,
                                        ["KCP", "CVI"], fixed_tau=0.5))

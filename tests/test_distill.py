@@ -122,6 +122,9 @@ def test_distill_with_validation_masks(folder, tiny_sam3, tmp_path):  # noqa: F8
     assert deploy["tau_source"].startswith("calibrated on the validation split")
     assert len(pd.read_parquet(out / "artifacts" / "metrics.parquet")) > 0
     assert "No validation or test masks" not in (out / "reports" / "distill" / "report.md").read_text()
+    # the summary ends with the deployed student's distillation efficiency (the report stage's DVC metrics)
+    eff = json.loads((out / "reports" / "metrics" / "efficiency" / "test" / "geodistill.json").read_text())
+    assert f"distill: the student reaches {eff['efficiency']:.2f} of its labels" in res.output
 
 
 @pytest.mark.parametrize("case, message", [

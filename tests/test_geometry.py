@@ -244,7 +244,7 @@ def test_median_area_uses_non_empty_training_masks_only():
     a = np.array([0.0, 0.1, 0.3, 0.2, 0.9, 0.0, 0.4])
     is_train = np.array([True, True, True, True, False, True, True])
     assert median_area(a, is_train) == pytest.approx(0.25)       # median of 0.1, 0.3, 0.2, 0.4
-    with pytest.raises(InputError, match="non-empty training"):
+    with pytest.raises(InputError, match="no spacecraft in any training image"):
         median_area(np.array([0.0, 0.2]), np.array([True, False]))
 
 

@@ -253,6 +253,10 @@ def test_charts_are_byte_identical(monkeypatch):
     assert b"<dc:date>" not in renders[0][1]
 
 
+#: the screenshot's height: tall enough to reach the first figure below the results tables and their notes
+SHOT_HEIGHT = 8000
+
+
 @pytest.mark.skipif(CHROMIUM is None, reason="Chromium not installed (apt-get install chromium) -- "
                                              "the headless-browser check of report.html is skipped")
 def test_report_renders_in_headless_chromium(built, tmp_path):
@@ -271,10 +275,10 @@ def test_report_renders_in_headless_chromium(built, tmp_path):
     assert len(re.findall(r'<img [^>]*src="data:image/png;base64,', html)) == 7
     shot = tmp_path / "shot.png"
     res = subprocess.run(flags + [f"--user-data-dir={tmp_path / 'u2'}", f"--screenshot={shot}",
-                                  "--window-size=1200,3000", url], capture_output=True, text=True, timeout=120)
+                                  f"--window-size=1200,{SHOT_HEIGHT}", url], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0 and shot.exists(), res.stderr[-2000:]
     img = cv2.imread(str(shot))
-    assert img is not None and img.shape[:2] == (3000, 1200)
+    assert img is not None and img.shape[:2] == (SHOT_HEIGHT, 1200)
     # the page painted content: dark text pixels and coloured figure pixels, not a blank page
     assert (img.min(axis=2) < 60).mean() > 0.002
     hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)

@@ -47,7 +47,9 @@ def test_the_paper_recipe_is_the_published_behaviour():
     from pipeline.params import RECIPES
     from pipeline.training import _lr_lambda
 
-    assert RECIPES["paper"] == {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0},
+    assert RECIPES["paper"] == {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4,
+                                          "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine",
+                                          "augment": False},
                                 "calibrate": {"tau_rule": "argmax"}}
     f0, f = _lr_lambda("cosine", 100), _lr_lambda("cosine", 100, 0)
     assert [f0(s) for s in range(0, 101, 7)] == [f(s) for s in range(0, 101, 7)]

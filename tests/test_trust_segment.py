@@ -179,11 +179,10 @@ def test_rerun_replaces_its_own_outputs_and_refuses_a_users_file_unless_asked(tm
     assert masks(out) == ["a.png.mask.png", "b.png.mask.png", "c.png.mask.png"]
     after = snapshot(out)
     assert all(after[p][0] == first[p][0] for p in first if p.name in ("a.png.mask.png", "b.png.mask.png"))
-    # --overwrite is the explicit yes for a file segment did not write
+    # --overwrite replaces only what segment wrote: a user's file in the way stays refused
     (lone / "c.png.mask.png").write_bytes(b"mine")
-    r = segment(ckpts["with"], inp / "c.png", lone, "--overwrite")
-    assert r.exit_code == 0, r.output
-    assert (lone / "c.png.mask.png").read_bytes() == after[out / "c.png.mask.png"][0]
+    one_error_line(segment(ckpts["with"], inp / "c.png", lone, "--overwrite"), str(lone / "c.png.mask.png"))
+    assert (lone / "c.png.mask.png").read_bytes() == b"mine"
 
 
 def test_resolution_comes_from_the_checkpoint_or_is_asked_for(tmp_path, ckpts):

@@ -100,19 +100,18 @@ def test_label_rerun_resumes_its_own_output_and_overwrite_is_the_users_yes(tmp_p
     r = label(images, out)
     assert r.exit_code == 0, r.output
     record = json.loads((out / "label.json").read_text())
-    assert record["written_by"] == "geodistill label" and "masks" in record["outputs"]
+    assert record["written_by"] == "geodistill label" and any(p.startswith("masks/") for p in record["outputs"])
     first = snapshot(out)
     r = label(images, out)  # its own output: replaced, from the teacher cache
     assert r.exit_code == 0, r.output
     assert snapshot(out)["coco.json"] == first["coco.json"] and (out / "notes.txt").read_text().startswith("beside")
-    # --overwrite replaces a user's file in the way
+    # a user's file in the way is refused, --overwrite or not: it replaces only what label wrote
     other = tmp_path / "other"
     other.mkdir()
     (other / "coco.json").write_text("mine")
     assert label(images, other).exit_code == 2 and (other / "coco.json").read_text() == "mine"
-    r = label(images, other, "--overwrite")
-    assert r.exit_code == 0, r.output
-    assert json.loads((other / "coco.json").read_text())["images"]
+    one_line(label(images, other, "--overwrite"), 2, str(other / "coco.json"), "replaces only what")
+    assert (other / "coco.json").read_text() == "mine"
 
 
 def test_distill_refuses_a_users_file_and_resumes_its_own_project(tmp_path, images):
@@ -144,7 +143,10 @@ def test_profile_and_export_refuse_a_users_file(tmp_path, ckpts):  # noqa: F811
     mine.write_text("my: own params\n")
     one_line(cli("profile", "demo", "--out", mine), 2, str(mine), "--overwrite")
     assert mine.read_text() == "my: own params\n"
-    assert cli("profile", "demo", "--out", mine, "--overwrite").exit_code == 0
+    assert cli("profile", "demo", "--out", mine, "--overwrite").exit_code == 2  # never replaces a user's file
+    assert mine.read_text() == "my: own params\n"
+    mine.unlink()
+    assert cli("profile", "demo", "--out", mine).exit_code == 0
     assert cli("profile", "paper", "--out", mine).exit_code == 0  # its own file now
     deploy = tmp_path / "deploy"
     deploy.mkdir()

@@ -15,9 +15,22 @@ SpaceSense-Bench (``spacesense``)
     ``Lunar_Reconnaissance_Orbiter``; never split on the first underscore).  ``seg`` is 8-bit RGB with
     background (0, 0, 0): binary foreground = any non-black pixel.  Part classes come from the
     protocol's colour table (RGB, since the loader converts OpenCV's BGR); an empty table means no
-    part labels.  Split: protocol test groups (named spacecraft), then validation and training
-    spacecraft (named, or ``null`` + ``count``: seeded draw from the remaining ones), ``images_per_
-    spacecraft`` seeded per spacecraft.  eq:spacecraft-disjoint is enforced.
+    part labels.  With a table, a seg colour outside it refuses the file (one line naming the file
+    and the colour; ``skip_bad`` leaves it out), never silently background.  Split
+    (:func:`_disjoint_plan`): protocol test groups (named spacecraft, or a count drawn seeded), then
+    validation and training spacecraft (named, or ``null`` + ``count``: seeded draw from the
+    remaining ones), ``images_per_spacecraft`` seeded per spacecraft.  eq:spacecraft-disjoint is
+    enforced.
+SPARK 2024 stream 1 (``spark``)
+    ``<root>/images/<Class>/<split>/*_img.jpg`` and ``<root>/mask/<Class>/<split>/*_layer.jpg``, listed
+    by ``<root>/train.csv`` / ``val.csv`` (columns ``Class``, ``Image name``, ``Mask name``; names are
+    file names in those folders).  The class is the spacecraft identity; both official lists are
+    pooled and re-split spacecraft-disjoint by the SpaceSense machinery above (the official split is
+    kept in the ``spark_split`` column and the image id ``<Class>__<split>__<stem>``).  Masks are RGB
+    JPEG (red body, blue panels, black background): binary foreground = max channel >
+    ``mask_threshold`` (127), part labels through the colour table with the protocol's stated
+    ``color_tolerance`` and ``color_blends`` (pipeline.datasets.loading.ColorTable), never exact
+    colours; a colour that is neither a table colour nor a blend of two refuses the file.
 SPEED+ (``speedplus``)
     ``<root>/<domain>/images/*.jpg`` listed by ``<root>/<domain>/{train,validation,test}.json`` (lists of
     ``{filename, q_vbs2tango_true, r_Vo2To_vbs_true}``); masks ``<root>/<domain>/masks/<same name>`` (or
@@ -49,6 +62,7 @@ Any folder (``folder``)
 
 from __future__ import annotations
 
+import csv
 import json
 import logging
 import re
@@ -57,6 +71,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.datasets.loading import ColorTable
 from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec
 from pipeline.datasets.scan import scan_inputs
 from pipeline.datasets.synthetic import stable_hash
@@ -68,6 +83,7 @@ log = logging.getLogger(__name__)
 MANIFEST_DIR = Path(__file__).resolve().parents[2] / "data_manifests"
 DEFAULT_PROTOCOLS = {
     "spacesense": "spacesense_bench.yaml",
+    "spark": "spark.yaml",
     "speedplus": "speedplus.yaml",
     "tango": "tango.yaml",
     "folder": "folder.yaml",
@@ -127,16 +143,97 @@ def _frame(rows: list[dict]) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=cols if not rows else None)
 
 
-def _parse_colors(table: dict | None, where: Path) -> dict[tuple[int, int, int], int]:
+def _parse_colors(proto: dict, where: Path) -> ColorTable | None:
+    """The protocol's ``part_colors`` ("R,G,B": label), ``color_tolerance`` (0) and ``color_blends``
+    (false) as a :class:`~pipeline.datasets.loading.ColorTable`; None when the table is empty."""
     out = {}
-    for key, label in (table or {}).items():
+    for key, label in (proto.get("part_colors") or {}).items():
         try:
             rgb = tuple(int(v) for v in str(key).replace(" ", "").split(","))
             assert len(rgb) == 3 and all(0 <= v <= 255 for v in rgb) and 0 <= int(label) <= 255
         except (ValueError, AssertionError):
             raise InputError(f"{where}: part_colors entry {key!r}: {label!r} is not 'R,G,B': label") from None
         out[rgb] = int(label)
-    return out
+    tol, blends = proto.get("color_tolerance", 0), proto.get("color_blends", False)
+    if isinstance(tol, bool) or not isinstance(tol, int) or not 0 <= tol <= 127:
+        raise InputError(f"{where}: color_tolerance={tol!r} must be a whole number in [0, 127]")
+    if not isinstance(blends, bool):
+        raise InputError(f"{where}: color_blends={blends!r} must be true or false")
+    if not out:
+        return None
+    table = ColorTable(out, tol, blends)
+    cols = list(table.entries())
+    for k, a in enumerate(cols):
+        for b in cols[k + 1:]:
+            if max(abs(x - y) for x, y in zip(a, b)) <= 2 * tol:
+                raise InputError(f"{where}: part colours {a} and {b} are within 2 x color_tolerance={tol} of "
+                                 f"each other (a pixel could match both)")
+    return table
+
+
+def _disjoint_plan(found: dict[str, list], splits: dict, where: Path, root: Path, seed: int, name: str
+                   ) -> list[tuple[str, str, str, int]]:
+    """eq:spacecraft-disjoint plan ``[(spacecraft, split, group, images)]`` from a protocol's ``splits``:
+    ``test_groups`` (group -> list of named spacecraft, or a count drawn seeded from the ones no other
+    group names), then ``val`` and ``train`` (``spacecraft``: a list, or null + ``count``: seeded draw from
+    the remaining ones).  A spacecraft named twice or absent under ``root`` is an InputError."""
+    groups = _get(splits, "test_groups", where, dict)
+    used: set[str] = set()
+    plan: list[tuple[str, str, str, int]] = []
+
+    def take(names, split, group, per):
+        for n in names:
+            if n not in found:
+                raise InputError(f"{where}: spacecraft {n!r} ({split}/{group}) not found under {root} "
+                                 f"(found: {', '.join(sorted(found))})")
+            if n in used:
+                raise InputError(f"{where}: spacecraft {n!r} listed in more than one split "
+                                 f"(violates eq:spacecraft-disjoint)")
+            used.add(n)
+            plan.append((n, split, group, per))
+
+    def draw(count, split, group):
+        rest = sorted(set(found) - used - named)
+        if count > len(rest):
+            raise InputError(f"{where}: {group} needs {count} spacecraft, only {len(rest)} unassigned under {root}")
+        return _sample(rest, count, seed, f"{name}-{group}-spacecraft")
+
+    per_test = int(splits.get("test_images_per_spacecraft", 20))
+    named = {n for v in groups.values() if isinstance(v, list) for n in v}
+    for g, names in groups.items():
+        if isinstance(names, int) and not isinstance(names, bool):
+            names = draw(names, "test", str(g))
+        take(list(names or []), "test", str(g), per_test)
+    named = set()
+    for split in ("val", "train"):
+        s = _get(splits, split, where, dict)
+        names = s.get("spacecraft")
+        if names is None:
+            names = draw(int(_get(s, "count", where, int)), split, split)
+        take(list(names), split, split, int(_get(s, "images_per_spacecraft", where, int)))
+    return plan
+
+
+def _disjoint_source(name: str, found: dict[str, list[tuple[str, Path, Path]]], cfg: dict, proto: dict,
+                     where: Path, root: Path, column: str, mask_threshold: float) -> DatasetSpec:
+    """A spacecraft-disjoint dataset (SpaceSense-Bench, SPARK): ``found`` {spacecraft: [(sub, image,
+    mask)]} -> :func:`_disjoint_plan`, then ``images_per_spacecraft`` items sampled seeded per spacecraft
+    (in their listed order), id ``<spacecraft>__<sub>__<image stem>``, ``sub`` kept in ``column``; masks
+    (and, with a colour table, part labels from the same file) on validation and test rows only."""
+    seed = int(cfg["seed"])
+    plan = _disjoint_plan(found, _get(proto, "splits", where, dict), where, root, seed, name)
+    colors = _parse_colors(proto, where)
+    rows = []
+    for sc, split, group, per in plan:
+        items = _sample(found[sc], per, seed, f"{name}-{sc}")
+        if len(items) < per:
+            log.warning("%s: spacecraft %s has %d images, protocol asks %d", root, sc, len(items), per)
+        labeled = split != "train"
+        for sub, img, mask in items:
+            rows.append(_row(f"{sc}__{sub}__{Path(img).stem}", name, name, split, group, sc, img,
+                             mask if labeled else None, mask if labeled and colors else None, **{column: sub}))
+    return DatasetSpec(rows=_frame(rows), mask_threshold=mask_threshold, part_colors=colors,
+                       spacecraft_disjoint=True, protocol={"name": name, "file": str(where), "plan": [list(p) for p in plan]})
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -168,53 +265,65 @@ def scan_spacesense(root: Path) -> dict[str, list[tuple[str, Path, Path]]]:
 
 def spacesense_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
     root = _root(cfg)
-    seed = int(cfg["seed"])
     found = scan_spacesense(root)
     if not found:
         raise InputError(f"{root}: no SpaceSense-Bench <Satellite>/.../<trajectory>/image/*.png files found")
-    splits = _get(proto, "splits", where, dict)
-    groups = _get(splits, "test_groups", where, dict)
-    used: set[str] = set()
-    plan: list[tuple[str, str, str, int]] = []  # (spacecraft, split, group, images)
+    return _disjoint_source("spacesense", found, cfg, proto, where, root, "trajectory",
+                            int(proto.get("mask_threshold", 0)))
 
-    def take(names, split, group, per):
-        for n in names:
-            if n not in found:
-                raise InputError(f"{where}: spacecraft {n!r} ({split}/{group}) not found under {root} "
-                                 f"(found: {', '.join(sorted(found))})")
-            if n in used:
-                raise InputError(f"{where}: spacecraft {n!r} listed in more than one split "
-                                 f"(violates eq:spacecraft-disjoint)")
-            used.add(n)
-            plan.append((n, split, group, per))
 
-    per_test = int(splits.get("test_images_per_spacecraft", 20))
-    for g, names in groups.items():
-        take(list(names or []), "test", str(g), per_test)
-    for split in ("val", "train"):
-        s = _get(splits, split, where, dict)
-        names = s.get("spacecraft")
-        if names is None:
-            rest = sorted(set(found) - used)
-            count = int(_get(s, "count", where, int))
-            if count > len(rest):
-                raise InputError(f"{where}: {split} needs {count} spacecraft, only {len(rest)} unassigned under {root}")
-            names = _sample(rest, count, seed, f"spacesense-{split}-spacecraft")
-        take(list(names), split, split, int(_get(s, "images_per_spacecraft", where, int)))
+# ---------------------------------------------------------------------------------------------------
+# SPARK 2024, stream 1
+# ---------------------------------------------------------------------------------------------------
+SPARK_COLUMNS = ("Class", "Image name", "Mask name")
 
-    colors = _parse_colors(proto.get("part_colors"), where)
-    rows = []
-    for sc, split, group, per in plan:
-        items = _sample(found[sc], per, seed, f"spacesense-{sc}")
-        if len(items) < per:
-            log.warning("%s: spacecraft %s has %d images, protocol asks %d", root, sc, len(items), per)
-        for traj, img, seg in items:
-            labeled = split != "train"
-            rows.append(_row(f"{sc}__{traj}__{img.stem}", "spacesense", "spacesense", split, group, sc, img,
-                             seg if labeled else None, seg if labeled and colors else None, trajectory=traj))
-    return DatasetSpec(rows=_frame(rows), mask_threshold=int(proto.get("mask_threshold", 0)),
-                       part_colors=colors or None, spacecraft_disjoint=True,
-                       protocol={"name": "spacesense", "file": str(where), "plan": [list(p) for p in plan]})
+
+def _read_spark_csv(path: Path) -> list[dict]:
+    """The rows of a SPARK list (``train.csv`` / ``val.csv``: columns :data:`SPARK_COLUMNS`, others
+    ignored); InputError naming the file when a column is missing or a row has an empty cell."""
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f)
+            fields = [c.strip() for c in reader.fieldnames or []]
+            missing = [c for c in SPARK_COLUMNS if c not in fields]
+            if missing:
+                raise InputError(f"{path}: SPARK list lacks column(s) {missing} (has {fields})")
+            rows = []
+            for line, raw in enumerate(reader, start=2):
+                r = {(k or "").strip(): (v or "").strip() for k, v in raw.items()}
+                if not all(r.get(c) for c in SPARK_COLUMNS):
+                    raise InputError(f"{path}: line {line} has an empty cell in {' / '.join(SPARK_COLUMNS)}")
+                rows.append(r)
+            return rows
+    except OSError as e:
+        raise InputError(f"{path}: cannot read SPARK list ({e.strerror or e})") from None
+    except (csv.Error, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: not a readable CSV ({e})") from None
+
+
+def scan_spark(root: Path, lists: dict[str, str], where: Path) -> dict[str, list[tuple[str, Path, Path]]]:
+    """{class: [(official split, image path, mask path), ...]} from the lists that exist (``lists``:
+    official split -> CSV name under ``root``): ``images/<Class>/<split>/<Image name>`` and
+    ``mask/<Class>/<split>/<Mask name>``; files are not opened (the decode pass reports missing ones)."""
+    found: dict[str, list] = {}
+    present = {str(split): root / str(name) for split, name in lists.items() if (root / str(name)).is_file()}
+    if not present:
+        raise InputError(f"{root}: none of the SPARK lists {sorted(lists.values())} found (see {where})")
+    for split, path in present.items():
+        for r in _read_spark_csv(path):
+            cls = r["Class"]
+            found.setdefault(cls, []).append((split, root / "images" / cls / split / r["Image name"],
+                                              root / "mask" / cls / split / r["Mask name"]))
+    return found
+
+
+def spark_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
+    """SPARK 2024 stream 1: the classes are the spacecraft; both official lists are pooled and re-split
+    spacecraft-disjoint by the protocol (:func:`_disjoint_plan`, as SpaceSense-Bench)."""
+    root = _root(cfg)
+    found = scan_spark(root, dict(_get(proto, "lists", where, dict)), where)
+    return _disjoint_source("spark", found, cfg, proto, where, root, "spark_split",
+                            int(_get(proto, "mask_threshold", where, int)))
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -424,7 +533,7 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
                        spacecraft_disjoint=False, protocol={"name": "folder", "file": str(where)})
 
 
-ADAPTERS = {"spacesense": spacesense_source, "speedplus": speedplus_source, "tango": tango_source,
+ADAPTERS = {"spacesense": spacesense_source, "spark": spark_source, "speedplus": speedplus_source, "tango": tango_source,
             "folder": folder_source}
 SCANNING_ADAPTERS = {"folder"}   # adapters that report unused files themselves (take the policy)
 

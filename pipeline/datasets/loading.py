@@ -27,6 +27,12 @@ The pixel limit (every reader below, ``max_pixels``; params ``data.max_pixels``,
     "value > 0" may not be what its author meant; a protocol that knows better sets an explicit
     ``mask_threshold`` (SPEED+ 128, TANGO 127), which is used as given without a warning.
 
+``parts_from_colors(rgb, table)`` (colour-coded part masks: SpaceSense-Bench, SPARK)
+    Each pixel takes the label of the :class:`ColorTable` colour it matches within the table's
+    tolerance (black = background); with ``blends`` a JPEG blend of two table colours takes the nearer
+    one's.  A colour outside the table refuses the file (:class:`BadFileError`, so ``--skip-bad``
+    leaves it out), never silently background.
+
 ``load_rgb / load_mask / load_labels`` (the pipeline's entry points)
     Read the file bytes once, hash them (sha256), and return the array resized to the working
     resolution -- area interpolation for images, nearest for masks and labels -- through a decode
@@ -230,13 +236,80 @@ def read_mask(path: str | Path, threshold: float | None = None, *, max_pixels: i
     return mask_from_array(_decode(read_image_bytes(path, max_pixels), path), threshold, path)
 
 
-def parts_from_colors(rgb: np.ndarray, colors: dict[tuple[int, int, int], int]) -> np.ndarray:
-    """Colour-coded part mask (RGB uint8) -> part labels uint8; colours not in the table -> 0."""
+#: the colour of background in every colour-coded part mask (label 0 unless a table maps it)
+BACKGROUND_RGB = (0, 0, 0)
+
+
+@dataclasses.dataclass(frozen=True)
+class ColorTable:
+    """A colour-coded part mask's class table: ``colors`` ``{(r, g, b): label}`` (RGB), with black
+    (:data:`BACKGROUND_RGB`) = background (label 0) unless listed.
+
+    ``tolerance``: a pixel takes a colour's label when every channel is within ``tolerance`` of it
+    (0: exact colours, for PNG masks; JPEG masks need more).  ``blends``: a pixel matching no colour
+    that lies within ``tolerance`` (every channel) of the straight line between two table colours --
+    what JPEG's chroma subsampling and ringing make of a boundary between two classes -- takes the
+    label of the nearer of the two.  Any other pixel is a colour outside the class table: the file is
+    refused (:func:`parts_from_colors`).  The adapters check that no two colours are within
+    ``2 * tolerance`` of each other, so a pixel never matches two."""
+
+    colors: dict
+    tolerance: int = 0
+    blends: bool = False
+
+    def __bool__(self) -> bool:  # an empty table is no table: there are no part labels to read
+        return bool(self.colors)
+
+    def entries(self) -> dict[tuple[int, int, int], int]:
+        return {BACKGROUND_RGB: 0, **{tuple(int(v) for v in k): int(lbl) for k, lbl in self.colors.items()}}
+
+    def kind(self) -> str:
+        """Decode-cache kind: the table, its tolerance and the rule (entries made under the former rule,
+        which made unknown colours background, are never read)."""
+        key = repr((sorted(self.entries().items()), int(self.tolerance), bool(self.blends), "refuse-unknown"))
+        return f"parts{hashlib.sha256(key.encode()).hexdigest()[:10]}"
+
+
+def as_color_table(colors: dict | ColorTable) -> ColorTable:
+    return colors if isinstance(colors, ColorTable) else ColorTable(dict(colors))
+
+
+def parts_from_colors(rgb: np.ndarray, colors: dict | ColorTable, path: str | Path = "<array>") -> np.ndarray:
+    """Colour-coded part mask (RGB uint8) -> part labels uint8 by the :class:`ColorTable` (a plain
+    dict: exact colours).  A pixel matching no colour (nor, with ``blends``, a blend of two) is a
+    colour outside the class table: :class:`BadFileError` naming ``path`` and the most frequent such
+    colour, never silently background."""
+    table = as_color_table(colors)
+    entries = table.entries()
+    cols = np.array(list(entries), np.int32)                               # K, 3
+    labels = np.array(list(entries.values()), np.uint8)
     key = (rgb[..., 0].astype(np.uint32) << 16) | (rgb[..., 1].astype(np.uint32) << 8) | rgb[..., 2]
-    out = np.zeros(rgb.shape[:2], np.uint8)
-    for (r, g, b), label in colors.items():
-        out[key == ((r << 16) | (g << 8) | b)] = label
-    return out
+    uniq, inverse, counts = np.unique(key.ravel(), return_inverse=True, return_counts=True)
+    u = np.stack([(uniq >> 16) & 255, (uniq >> 8) & 255, uniq & 255], axis=1).astype(np.int32)   # U, 3
+    dist = np.abs(u[:, None, :] - cols[None, :, :]).max(axis=2)            # U, K (every channel within)
+    nearest = dist.argmin(axis=1)
+    ulab = labels[nearest]
+    unmatched = dist[np.arange(len(u)), nearest] > table.tolerance
+    if table.blends and unmatched.any() and len(cols) > 1:
+        i, j = np.triu_indices(len(cols), k=1)
+        seg = (cols[j] - cols[i]).astype(np.float64)                      # P, 3
+        rel = u[unmatched][:, None, :] - cols[i][None, :, :]               # M, P, 3
+        a = np.clip((rel * seg[None]).sum(axis=2) / (seg * seg).sum(axis=1)[None], 0.0, 1.0)   # M, P
+        off = np.abs(rel - a[..., None] * seg[None]).max(axis=2)           # M, P
+        best = off.argmin(axis=1)
+        ok = off[np.arange(len(best)), best] <= table.tolerance
+        ab = a[np.arange(len(best)), best]
+        blended = np.where(ab < 0.5, labels[i[best]], labels[j[best]])
+        idx = np.flatnonzero(unmatched)
+        ulab[idx[ok]] = blended[ok]
+        unmatched[idx[ok]] = False
+    if unmatched.any():
+        worst = np.flatnonzero(unmatched)[counts[unmatched].argmax()]
+        r, g, b = (int(v) for v in u[worst])
+        within = f" within {table.tolerance}" if table.tolerance else ""
+        raise BadFileError(path, f"seg colour ({r}, {g}, {b}) is outside the class table ({int(counts[unmatched].sum())} "
+                                 f"pixel(s) match no part_colors entry{within}; black is background)")
+    return ulab[inverse].reshape(rgb.shape[:2])
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -374,12 +447,13 @@ def load_mask(path, size: int, cache: DecodeCache | None = None, threshold: floa
 
 
 def load_labels(path, size: int, cache: DecodeCache | None = None,
-                colors: dict[tuple[int, int, int], int] | None = None, *, max_pixels: int | None = None) -> Loaded:
-    """Part labels uint8 [size, size] (nearest): a label image, or a colour-coded one mapped by ``colors``."""
+                colors: dict | ColorTable | None = None, *, max_pixels: int | None = None) -> Loaded:
+    """Part labels uint8 [size, size] (nearest): a label image, or a colour-coded one mapped by ``colors``
+    (:func:`parts_from_colors`: a colour outside the table refuses the file)."""
     if colors:
-        digest = hashlib.sha256(repr(sorted(colors.items())).encode()).hexdigest()[:10]
-        return _load(path, size, f"parts{digest}", cache,
-                     lambda a: parts_from_colors(to_rgb8(a, path), colors), max_pixels)
+        table = as_color_table(colors)
+        return _load(path, size, table.kind(), cache,
+                     lambda a: parts_from_colors(to_rgb8(a, path), table, path), max_pixels)
 
     def as_labels(a):
         if a.ndim == 3:

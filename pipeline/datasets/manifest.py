@@ -37,7 +37,8 @@ class DatasetSpec:
 
     rows: DataFrame with at least ``ROW_COLUMNS`` (extra columns are kept in the manifest).
     mask_threshold: foreground = max channel > threshold (None: auto, see loading.mask_from_array).
-    part_colors: colour table for colour-coded part masks ``{(r, g, b): label}``; None = part files
+    part_colors: colour table for colour-coded part masks ``{(r, g, b): label}`` or a
+        :class:`pipeline.datasets.loading.ColorTable` (with a tolerance); None = part files
         are label images (synthetic) or there are no part files.
     spacecraft_disjoint: enforce eq:spacecraft-disjoint (SpaceSense-Bench-like protocols).
     protocol: a small dict describing the protocol used (kept in the manifest metadata).

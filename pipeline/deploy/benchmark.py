@@ -16,6 +16,10 @@ Decisions:
   "not timed: ... pathologically slow on this CPU", "bf16 emulated ..." or "").
 * ONNX Runtime sessions used for timing do not spin (:func:`pipeline.deploy.export.ort_session`,
   ``spinning=False``): an idle spinning pool would steal the cores the round-robin measures others on.
+* Throughput on CUDA: the batches sweep ``deploy.benchmark_batches`` and every power of two up to
+  :data:`CUDA_MAX_BATCH` (256), stopping at the first batch that raises ``torch.cuda.OutOfMemoryError``;
+  the best is reported (:func:`throughput_batches`, :func:`throughput_sweep`).  A small model fills a
+  GPU only at large batches; on a CPU the configured batches are kept as they are.
 * Peak memory: CPU -- growth of the process's peak resident set (Linux ``/proc/self/clear_refs``
   reset of VmHWM, then VmHWM - VmRSS before the run, after ``malloc_trim``); CUDA --
   ``torch.cuda.max_memory_allocated`` after ``reset_peak_memory_stats``.  Where neither is
@@ -62,6 +66,7 @@ VARIANTS = tuple(BENCHMARK_VARIANTS)  # the engine table's benchmark variants (d
 SLOW_FACTOR = 4.0  # a variant probed more than this many times slower than the baseline is not fully timed
 PROBE_CALLS = 2    # timed batch-1 calls of the probe (after the warm-up)
 OK = "ok"
+CUDA_MAX_BATCH = 256  # on CUDA the throughput sweep goes up to this batch, or to the first out-of-memory one
 INT8_VARIANTS = tuple(n for n in VARIANTS if ENGINES[n].needs == INT8_FILE)  # run the bundle's int8 model
 
 
@@ -256,8 +261,10 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
     (``status`` from :func:`slow_status`; latency, throughput and IoU columns NaN, batch 0).  The
     others (``status`` = "ok"): ``latency_ms`` = median of ``iters`` batch-1 calls on a random input at
     ``resolution``, timed round-robin across them (:func:`interleaved_times`); ``throughput``
-    (images/s) = best over ``batches`` of b / median call time (1 warm-up, then max(2, ceil(iters / b))
-    calls); ``iou`` = mean Image IoU of [P >= tau] (eq:inference-mask) on the validation images and
+    (images/s) = best over ``batches`` -- on CUDA, over the sweep of :func:`throughput_batches` up to
+    :data:`CUDA_MAX_BATCH` or the first out-of-memory batch -- of b / median call time (1 warm-up, then
+    max(2, ceil(iters / b)) calls; :func:`throughput_sweep`; every batch's images/s in
+    ``info["throughput_sweep"]``); ``iou`` = mean Image IoU of [P >= tau] (eq:inference-mask) on the validation images and
     ``iou_delta`` = iou - iou of the fp32 baseline; ``iou_vs_fp32`` = mean per-image IoU between the
     variant's mask and the baseline's (1 = the same masks; NaN without validation data or baseline);
     ``speedup`` = baseline latency / latency.  params and GFLOPs are counted on the PyTorch graph
@@ -277,6 +284,7 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
     have_val = val_images is not None and val_masks is not None and len(val_images) > 0 and tau is not None
     rows: dict[str, dict] = {}
     masks: dict[str, np.ndarray] = {}
+    sweeps: dict[str, Sweep] = {}
     base_probe = None
     for v in sorted(built, key=lambda v: v.name != BASELINE_VARIANT):  # the baseline's probe comes first
         if on_variant is not None:
@@ -294,7 +302,8 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
         rows[v.name] = row
         if row["status"] != OK:
             continue
-        row["throughput"], row["batch"] = best_throughput(v, x1.shape[1], resolution, batches, iters, g)
+        sweeps[v.name] = throughput_sweep(v, x1.shape[1], resolution, throughput_batches(batches, v.device), iters, g)
+        row["throughput"], row["batch"] = sweeps[v.name].best, sweeps[v.name].batch
         if have_val:
             masks[v.name] = mask_from_probs(variant_probs(v, val_images, max(batches)), tau)
             row["iou"] = mean_image_iou(masks[v.name], val_masks)
@@ -313,6 +322,7 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
         r["speedup"] = base["latency_ms"] / r["latency_ms"] if base else float("nan")
     info = {"threads": torch.get_num_threads(), "device": str(dev), "resolution": int(resolution),
             "warmup": int(warmup), "iters": int(iters), "batches": [int(b) for b in batches],
+            "throughput_sweep": {n: sw.record() for n, sw in sweeps.items()},
             "latency_timing": "round-robin across variants (interleaved_times)",
             "probe": {"calls": PROBE_CALLS, "slow_factor": float(slow_factor)},
             "slow": {n: r["status"] for n, r in rows.items() if r["status"] != OK},
@@ -320,20 +330,69 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
     return [rows[v.name] for v in built], info
 
 
-def best_throughput(variant: Variant, channels: int, resolution: int, batches: Sequence[int], iters: int,
-                    generator) -> tuple[float, int]:
-    """(images/s, batch): the best over ``batches`` of b / median call time on random inputs
-    (1 warm-up, then max(2, ceil(iters / b)) calls per batch size)."""
+@dataclasses.dataclass
+class Sweep:
+    """A throughput sweep: images/s per batch tried (ascending), the best, and the batch that ran out of
+    memory (None: every batch ran)."""
+
+    images_per_s: dict[int, float]
+    best: float
+    batch: int
+    oom_batch: int | None = None
+
+    def record(self) -> dict:
+        """JSON-friendly: the batches as strings."""
+        return {"images_per_s": {str(b): tp for b, tp in self.images_per_s.items()}, "best_batch": self.batch,
+                "oom_batch": self.oom_batch}
+
+
+def throughput_batches(batches: Sequence[int], device: str) -> list[int]:
+    """The batches the throughput of a variant running on ``device`` is measured at, ascending.
+
+    Decision: on a CPU, ``deploy.benchmark_batches`` as given (a CPU is busy from batch 1 or 4 on, and
+    every large batch costs seconds per call).  On CUDA, those and every power of two up to
+    :data:`CUDA_MAX_BATCH`: a 0.26 M-parameter model keeps a GPU busy only at batches of hundreds
+    (at 16 the launches, not the arithmetic, set the pace); the sweep stops at the first batch that
+    runs out of GPU memory (:func:`throughput_sweep`)."""
+    tried = {int(b) for b in batches}
+    if str(device).startswith("cuda"):
+        tried |= {2 ** k for k in range(CUDA_MAX_BATCH.bit_length()) if 2 ** k <= CUDA_MAX_BATCH}
+    return sorted(tried)
+
+
+def _release_after_oom() -> None:
+    """Give the cached blocks of a failed large batch back, so that the variant can go on at small ones."""
     import torch
 
-    best_tp, best_b = 0.0, 1
-    for b in batches:
-        xb = torch.rand(int(b), channels, resolution, resolution, generator=generator)
-        tb = time_calls(variant.run, xb, 1, max(2, math.ceil(iters / int(b))), variant.sync)
-        tp = int(b) / statistics.median(tb)
-        if tp > best_tp:
-            best_tp, best_b = tp, int(b)
-    return best_tp, best_b
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+        torch.cuda.empty_cache()
+
+
+def throughput_sweep(variant: Variant, channels: int, resolution: int, batches: Sequence[int], iters: int,
+                     generator) -> Sweep:
+    """Images/s of ``variant`` at each of ``batches`` in ascending order: b / median call time on random
+    inputs (1 warm-up, then max(2, ceil(iters / b)) calls per batch size); the best of them.  A batch
+    raising ``torch.cuda.OutOfMemoryError`` ends the sweep (no larger batch is tried) and is recorded
+    as ``oom_batch``; when even the first batch runs out of memory the OOM error is raised."""
+    import torch
+
+    tps: dict[int, float] = {}
+    oom = None
+    for b in sorted(int(b) for b in batches):
+        xb = torch.rand(b, channels, resolution, resolution, generator=generator)
+        try:
+            tb = time_calls(variant.run, xb, 1, max(2, math.ceil(iters / b)), variant.sync)
+        except torch.cuda.OutOfMemoryError:
+            if not tps:
+                raise
+            del xb
+            _release_after_oom()
+            oom = b
+            break
+        tps[b] = b / statistics.median(tb)
+    best_b = max(tps, key=lambda b: tps[b])
+    return Sweep(tps, tps[best_b], best_b, oom)
 
 
 def fastest_within(rows: Sequence[dict], max_iou_drop: float) -> dict | None:
@@ -505,6 +564,20 @@ def format_table(rows: Sequence[dict]) -> str:
     return "\n".join(lines)
 
 
+def format_sweep(run_info: dict) -> str:
+    """One line per variant whose throughput was measured at more batches than ``deploy.benchmark_batches``
+    (the CUDA sweep): images/s per batch, the best, and the batch that ran out of memory; "" when none was."""
+    configured = {str(b) for b in run_info["batches"]}
+    lines = []
+    for name, sw in run_info.get("throughput_sweep", {}).items():
+        if set(sw["images_per_s"]) <= configured:
+            continue
+        cells = ", ".join(f"{b}: {tp:,.0f}" for b, tp in sw["images_per_s"].items())
+        oom = f"; batch {sw['oom_batch']} ran out of memory" if sw["oom_batch"] is not None else ""
+        lines.append(f"throughput sweep {name} (batch: images/s): {cells}; best at batch {sw['best_batch']}{oom}")
+    return "\n".join(lines)
+
+
 def benchmark_result(rows: Sequence[dict], run_info: dict, settings: dict, *, tau: float, summary: dict | None,
                      notes: dict) -> dict:
     """The JSON document of a benchmark run (non-finite numbers as null)."""
@@ -515,6 +588,6 @@ def benchmark_result(rows: Sequence[dict], run_info: dict, settings: dict, *, ta
         "target": {"latency_ms": settings["target_ms"], "max_iou_drop": settings["max_drop"], "batch": 1,
                    "resolution": settings["target_res"]},
         "peak_memory_method": rows[0]["peak_method"], "skipped": run_info["skipped"], "notes": notes,
-        "probe": run_info["probe"], "slow": run_info["slow"],
+        "probe": run_info["probe"], "slow": run_info["slow"], "throughput_sweep": run_info.get("throughput_sweep", {}),
         "variants": {r["variant"]: {k: clean(v) for k, v in r.items() if k != "variant"} for r in rows},
     }

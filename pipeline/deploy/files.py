@@ -6,7 +6,9 @@ Decision (the paper is silent on deployment): images are read by
 training images were (:func:`~pipeline.datasets.loading.resize_image`, area interpolation, square);
 the probability map is resized back to the original size (bilinear) and thresholded there
 (eq:inference-mask, :func:`pipeline.thresholds.mask_from_probs`), which keeps boundaries smoother than
-resizing a binary mask.
+resizing a binary mask.  Reading and writing overlap the inference (reader threads ahead, one writer
+thread behind, bounded queues) without changing a byte of the outputs (:func:`segment_files`,
+``workers``; ``workers=0`` is the serial loop).
 
 Output names (decision): an input keeps its whole name, extension included, and its sub-folder
 relative to the input folder; a fixed suffix is appended: ``sub/a.png`` -> ``<out>/sub/a.png.mask.png``
@@ -28,12 +30,17 @@ and a row of skipped.csv -- so the run neither escapes the folder nor drops anyt
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import csv
 import dataclasses
+import functools
 import os
+import queue
+import threading
 import time
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
@@ -204,10 +211,87 @@ class SegmentResult:
     total_seconds: float = 0.0      # wall time of the whole loop (reading, resizing, PNG writing included)
 
 
+#: segment_files' default: one reader thread (decode + resize) beside the inference; 0 = the serial loop
+IO_WORKERS = 1
+
+
+def _skip_reason(f: Path, e: InputError) -> str:
+    """The reason skipped.csv gives for ``f``: the error's first line without the leading path."""
+    reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+    return reason[len(f"{f}: "):] if reason.startswith(f"{f}: ") else reason
+
+
+def _load(f: Path, resolution: int, max_pixels: int | None, keep_image: bool):
+    """(the R x R working image, the original (h, w), the original image when ``keep_image`` else None)."""
+    img = read_rgb(f, max_pixels=max_pixels)
+    return resize_image(img, resolution), img.shape[:2], img if keep_image else None
+
+
+def _save(stem: Path, p: np.ndarray, shape: tuple[int, int], img: np.ndarray | None, tau: float,
+          save_prob: bool, overlay: bool) -> Path:
+    """P back to the original size, M = [P >= tau] (eq:inference-mask), the PNGs of one image; its mask path."""
+    h, w = shape
+    p_full = probs_to_size(p, h, w)
+    mask = mask_from_probs(p_full, tau)
+    out = output_path(stem, MASK_SUFFIX)
+    write_png(out, mask.astype(np.uint8) * 255)
+    if save_prob:
+        write_png(output_path(stem, PROB_SUFFIX), np.round(p_full * 255).astype(np.uint8))
+    if overlay:
+        write_png(output_path(stem, OVERLAY_SUFFIX), overlay_image(img, mask))
+    return out
+
+
+class _Writer:
+    """A thread that runs :func:`_save` on jobs in the order they are put, through a queue of at most
+    ``depth`` jobs (a full queue blocks :meth:`put`: memory stays flat).  The first error stops the
+    writing (later jobs are dropped) and :meth:`flush` / :meth:`close` raise it in the caller's thread."""
+
+    def __init__(self, depth: int, done: Callable[[], None]):
+        self.written: list[Path] = []
+        self.error: BaseException | None = None
+        self.abort = False
+        self._done = done
+        self._q: queue.Queue = queue.Queue(maxsize=depth)
+        self._thread = threading.Thread(target=self._run, name="segment-write", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            job = self._q.get()
+            try:
+                if job is None:
+                    return
+                if self.error is None and not self.abort:
+                    self.written.append(_save(*job))
+                    self._done()
+            except BaseException as e:  # noqa: BLE001 -- handed to the caller's thread by flush/close
+                self.error = e
+            finally:
+                self._q.task_done()
+
+    def put(self, job) -> None:
+        if self.error is not None:
+            raise self.error
+        self._q.put(job)
+
+    def flush(self) -> None:
+        """Wait until every job put so far is written; raise the writer's error if there is one."""
+        self._q.join()
+        if self.error is not None:
+            raise self.error
+
+    def close(self, abort: bool = False) -> None:
+        """Stop the thread after the jobs put so far (``abort``: drop them); does not raise."""
+        self.abort = self.abort or abort
+        self._q.put(None)
+        self._thread.join()
+
+
 def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[Path], *, tau: float,
                   resolution: int, batch_size: int = 8, save_prob: bool = False, overlay: bool = False,
                   on_skip: Callable[[str, str, InputError], None] | None = None,
-                  max_pixels: int | None = None) -> SegmentResult:
+                  max_pixels: int | None = None, workers: int = IO_WORKERS) -> SegmentResult:
     """Segment image files in batches: read -> resize to R x R -> P = sigmoid(f(x)) -> resize P back
     to the original size -> M = [P >= tau] (eq:inference-mask) -> ``<stem>.mask.png`` (0/255), and
     optionally ``<stem>.prob.png`` (P as uint8, 255 = 1.0) and ``<stem>.overlay.png`` (stems from
@@ -216,49 +300,128 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
     A file the reader rejects (InputError; above ``max_pixels`` on its header, None = ``data.max_pixels``'s
     default, before decoding) is recorded in ``skipped``, handed to ``on_skip(path, reason, error)``, and
     the rest go on.
+
+    ``workers`` (decision: I/O overlaps inference): ``workers`` >= 1 threads read and resize the next
+    images while the engine runs a batch, and one writer thread resizes P back, thresholds and writes
+    the PNGs of the previous batch (:class:`_Writer`), both through bounded queues (at most two batches
+    read ahead, one batch waiting to be written), so memory does not grow with the number of files.
+    ``workers=0`` is the serial loop.  Both give the same bytes in the same files: every step is the
+    same function of the same image (the threads change when, never what); files are written, skipped
+    (``on_skip``, in the main thread) and listed in input order; and an error -- of ``on_skip``, the
+    engine or the writer -- is raised only after every output the serial loop would have written
+    before it is written (the writer is flushed first), so a run stopped by a bad file leaves the
+    same files behind.
     """
-    written: list[Path] = []
-    skipped: list[tuple[str, str]] = []
-    model_s = 0.0
-    t_start = time.perf_counter()
+    if workers < 0:
+        raise InputError(f"workers={workers}: must be >= 0 (0 = the serial loop)")
+    loop = _segment_serial if workers == 0 else functools.partial(_segment_overlapped, workers=workers)
     bar = progress(total=len(files), desc="segment", unit="img")
+    t_start = time.perf_counter()
     try:
-        for s in range(0, len(files), batch_size):
-            batch = []
-            for f, stem in zip(files[s:s + batch_size], stems[s:s + batch_size]):
-                try:
-                    img = read_rgb(f, max_pixels=max_pixels)
-                except InputError as e:
-                    reason = str(e).splitlines()[0] if str(e) else type(e).__name__
-                    reason = reason[len(f"{f}: "):] if reason.startswith(f"{f}: ") else reason
-                    skipped.append((str(f), reason))
-                    if on_skip is not None:
-                        on_skip(str(f), reason, e)
-                    bar.update(1)
-                    continue
-                batch.append((stem, img))
-            if not batch:
-                continue
-            work = np.stack([resize_image(img, resolution) for _, img in batch])
-            t0 = time.perf_counter()
-            probs = segmenter.predict_probs(work, batch_size=batch_size)
-            model_s += time.perf_counter() - t0
-            for (stem, img), p in zip(batch, probs):
-                h, w = img.shape[:2]
-                p_full = probs_to_size(p, h, w)
-                mask = mask_from_probs(p_full, tau)
-                out = output_path(stem, MASK_SUFFIX)
-                write_png(out, mask.astype(np.uint8) * 255)
-                written.append(out)
-                if save_prob:
-                    write_png(output_path(stem, PROB_SUFFIX),
-                              np.round(p_full * 255).astype(np.uint8))
-                if overlay:
-                    write_png(output_path(stem, OVERLAY_SUFFIX), overlay_image(img, mask))
-                bar.update(1)
+        written, skipped, model_s = loop(segmenter, files, stems, tau=tau, resolution=resolution,
+                                         batch_size=batch_size, save_prob=save_prob, overlay=overlay,
+                                         on_skip=on_skip, max_pixels=max_pixels, bar=bar)
     finally:
         bar.close()
     return SegmentResult(written, skipped, model_s, time.perf_counter() - t_start)
+
+
+def _skip(f: Path, e: InputError, skipped: list, on_skip) -> None:
+    reason = _skip_reason(f, e)
+    skipped.append((str(f), reason))
+    if on_skip is not None:
+        on_skip(str(f), reason, e)
+
+
+def _infer(segmenter: Segmenter, batch: list, batch_size: int) -> tuple[np.ndarray, float]:
+    """(P of the batch's working images, seconds in the engine)."""
+    work = np.stack([item[0] for _, item in batch])
+    t0 = time.perf_counter()
+    probs = segmenter.predict_probs(work, batch_size=batch_size)
+    return probs, time.perf_counter() - t0
+
+
+def _segment_serial(segmenter, files, stems, *, tau, resolution, batch_size, save_prob, overlay, on_skip,
+                    max_pixels, bar):
+    """The serial loop (``workers=0``): read a batch, run it, write it, then the next."""
+    written: list[Path] = []
+    skipped: list[tuple[str, str]] = []
+    model_s = 0.0
+    for s in range(0, len(files), batch_size):
+        batch = []
+        for f, stem in zip(files[s:s + batch_size], stems[s:s + batch_size]):
+            try:
+                batch.append((stem, _load(f, resolution, max_pixels, overlay)))
+            except InputError as e:
+                _skip(f, e, skipped, on_skip)
+                bar.update(1)
+        if not batch:
+            continue
+        probs, dt = _infer(segmenter, batch, batch_size)
+        model_s += dt
+        for (stem, (_, shape, img)), p in zip(batch, probs):
+            written.append(_save(stem, p, shape, img, tau, save_prob, overlay))
+            bar.update(1)
+    return written, skipped, model_s
+
+
+def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size, save_prob, overlay, on_skip,
+                        max_pixels, bar, workers):
+    """The overlapped loop (``workers`` >= 1): reads run ahead in a pool, writes behind in a thread."""
+    skipped: list[tuple[str, str]] = []
+    model_s = 0.0
+    lock = threading.Lock()
+
+    def done() -> None:
+        with lock:
+            bar.update(1)
+
+    ahead = 2 * batch_size  # reads in flight: the next two batches
+    jobs = iter(zip(files, stems))
+    pending: collections.deque = collections.deque()
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="segment-read")
+    writer = _Writer(depth=batch_size, done=done)
+
+    def fill() -> None:
+        while len(pending) < ahead and (job := next(jobs, None)) is not None:
+            pending.append((*job, pool.submit(_load, job[0], resolution, max_pixels, overlay)))
+
+    try:
+        fill()
+        while pending:
+            batch = []
+            while pending and len(batch) < batch_size:
+                f, stem, fut = pending.popleft()
+                fill()
+                try:
+                    batch.append((stem, fut.result()))
+                except InputError as e:
+                    writer.flush()  # the serial loop has written everything before this file
+                    _skip(f, e, skipped, on_skip)
+                    done()
+            if not batch:
+                continue
+            probs, dt = _infer(segmenter, batch, batch_size)
+            model_s += dt
+            for (stem, (_, shape, img)), p in zip(batch, probs):
+                writer.put((stem, p, shape, img, tau, save_prob, overlay))
+        writer.flush()
+    except Exception as e:
+        for *_, fut in pending:
+            fut.cancel()
+        try:
+            writer.flush()  # what the serial loop had written before the error
+        except Exception as first:  # noqa: BLE001 -- a write failed on an earlier file: the serial loop stopped there
+            if first is not e:
+                raise first from None
+        raise
+    except BaseException:  # KeyboardInterrupt: stop now
+        writer.abort = True
+        raise
+    finally:
+        writer.close()
+        pool.shutdown(wait=True, cancel_futures=True)
+    return writer.written, skipped, model_s
 
 
 def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str, str]]) -> Path:

@@ -19,8 +19,14 @@ always)::
 
     masks/<relative path without suffix>.png  voted pseudo-mask, 0/255, at the ORIGINAL image size
     coco.json                                 COCO instances, one RLE annotation per non-empty mask
-    yolo/labels/<relative stem>.txt, yolo/images/<relative path> (links to the inputs), yolo/data.yaml
-    labels.parquet, labels.csv                one row per image: c, v, a, a0, g_conf, g_valid, g_area, g
+    yolo/labels/<relative stem>.txt           YOLO segmentation lines per image
+    yolo/images/<relative path>               a RELATIVE symbolic link to the input (a copy with --copy-images)
+    yolo/data.yaml, yolo/train.txt, yolo/val.txt, yolo/README.txt
+                                              the Ultralytics dataset: image lists relative to the folder, a
+                                              seeded validation share (formats.yolo_split; no val.txt below
+                                              2 images, the reason in README.txt)
+    labels.parquet, labels.csv                one row per image: c, v, a, a0, g_conf, g_valid, g_area, g, and h
+                                              (prompt disagreement: pipeline.review.disagreement)
     contact_sheet.png                         sampled images with their pseudo-mask contours and g
     label.json                                backend (and whether it is a SIMULATOR), counts, params
     skipped.csv                               files left out by --skip-bad (columns image_id, path, reason)
@@ -29,9 +35,10 @@ Decisions: the vote happens at the working resolution (the pseudo-mask is exactl
 target for the same image and params) and the voted mask is brought to the original size by
 nearest-neighbour resizing; ``--set data.resolution=...`` gives finer masks for large images.
 Relative cache folders (``teacher.cache_dir``, ``data.cache_dir``) are taken inside ``out``, so a
-rerun into the same folder resumes; an absolute one can be shared with a ``distill`` project (the
-cache key is the image bytes' sha256, the teacher's fingerprint, the prompt and the view -- the same
-keys the DAG's teacher stage uses).  Two inputs whose relative paths differ only in the suffix or
+rerun into the same folder resumes; label.json records the teacher cache as an absolute path, and
+``distill --labels OUT`` reads it after checking OUT against label.json's checksums
+(:func:`check_label_folder`), so distill computes no answer again (the cache key is the image bytes'
+sha256, the teacher's fingerprint, the prompt and the view -- the same keys the DAG's teacher stage uses).  Two inputs whose relative paths differ only in the suffix or
 letter case would share a label file name (YOLO needs ``<image stem>.txt``): refused before anything
 is computed.
 """
@@ -39,9 +46,11 @@ is computed.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import os
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -57,12 +66,17 @@ from pipeline.datasets.loading import SUPPORTED_SUFFIXES, BadFileError, DecodeCa
 from pipeline.datasets.manifest import BadInputPolicy
 from pipeline.datasets.scan import scan_inputs
 from pipeline.deploy.files import write_png, write_skipped_csv
-from pipeline.errors import BACKEND, CHECKPOINT, FORMAT, OUT, REFERENCE_MASKS, InputError, literal
-from pipeline.geometry import area_ratio, foreground_agreement, image_gates, median_area
-from pipeline.labeling.formats import coco_annotation, coco_document, yolo_lines
-from pipeline.ownership import check_outputs, claim_outputs, record_fields
+from pipeline.errors import (BACKEND, CHECKPOINT, FORMAT, INPUT, LABELS, OUT, REFERENCE_MASKS, InputError, caller,
+                             literal)
+from pipeline.geometry import NoForeground, area_ratio, foreground_agreement, image_gates, median_area
+from pipeline.labeling.formats import (coco_annotation, coco_document, yolo_data_yaml, yolo_image_list,
+                                       yolo_lines, yolo_readme, yolo_split)
+from pipeline.ownership import OUTPUTS as RECORD_OUTPUTS
+from pipeline.ownership import (WRITTEN_BY, check_outputs, claim_outputs, owned_outputs, read_record,
+                                remove_stale, signature)
 from pipeline.params import section
 from pipeline.progress import progress
+from pipeline.review.disagreement import agreement_entropy
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.jobs import in_view
@@ -74,8 +88,11 @@ FORMATS = ("png", "coco", "yolo")
 #: the files and folders written under ``out`` (module docstring), named once
 OUTPUTS = {"masks": "masks", "coco": "coco.json", "yolo": "yolo", "table": "labels.parquet", "csv": "labels.csv",
            "sheet": "contact_sheet.png", "record": "label.json", "skipped": "skipped.csv"}
-#: what label.json claims (pipeline.ownership): every output above; the caches under .cache/ only add files
-OWN_OUTPUTS = tuple(v for k, v in OUTPUTS.items() if k != "record")
+#: yolo/'s image lists: training, then validation (pipeline.labeling.formats.yolo_split)
+YOLO_LISTS = ("train.txt", "val.txt")
+#: the outputs written whatever the formats (label.json lists them and the files of each format,
+#: :func:`label_targets`; pipeline.ownership); the caches under .cache/ only add files
+ALWAYS = tuple(OUTPUTS[k] for k in ("table", "csv", "sheet", "skipped"))
 SIMULATOR_NOTE = ("teacher.backend=simulated is a SIMULATOR of foundation-model errors that reads the "
                   "reference masks given with --reference-masks; these are not a real teacher's labels")
 
@@ -173,30 +190,122 @@ def _write_table(out: Path, table: pd.DataFrame) -> None:
         table.to_csv(tmp, index=False, float_format="%.6g")
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
-    """yolo/images/<rel>: a symbolic link to the input (a copy where links are not allowed)."""
+def label_targets(root: Path, files: Sequence[Path], ids: Sequence[str], fmts: Sequence[str]) -> list[str]:
+    """The files a run writes under ``out`` for ``files`` (ids ``ids``) in formats ``fmts``, relative
+    (posix), the record left out: what label.json lists (module docstring)."""
+    out = list(ALWAYS)
+    if "png" in fmts:
+        out += [f"{OUTPUTS['masks']}/{i}.png" for i in ids]
+    if "coco" in fmts:
+        out.append(OUTPUTS["coco"])
+    if "yolo" in fmts:
+        out += [f"{OUTPUTS['yolo']}/labels/{i}.txt" for i in ids]
+        out += [f"{OUTPUTS['yolo']}/images/{f.relative_to(root).as_posix()}" for f in files]
+        lists = YOLO_LISTS if len(ids) >= 2 else YOLO_LISTS[:1]  # no val.txt below 2 images (yolo_split)
+        out += [f"{OUTPUTS['yolo']}/{name}" for name in ("data.yaml", *lists, "README.txt")]
+    return out
+
+
+def file_checksums(out: Path, rels: Sequence[str]) -> dict[str, str]:
+    """sha256 of each regular file of ``rels`` under ``out`` (links to the inputs left out): label.json
+    records them, so a reader (``distill --labels``) can tell an unmodified label folder."""
+    sums = {}
+    for rel in rels:
+        p = out / rel
+        if p.is_file() and not p.is_symlink():
+            sums[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return sums
+
+
+def check_label_folder(label_dir: str | Path, input_dir: str | Path) -> dict:
+    """The record (label.json) of an UNMODIFIED, complete ``label`` output folder of the images in
+    ``input_dir``, for ``distill --labels`` / ``distill(labels=...)``; InputError, one line naming the
+    option, when it is not one: no label.json of label's, a run that did not finish, other images (a
+    labelled image gone, an image added since, neither labelled nor listed in skipped.csv), the
+    SIMULATOR's labels, or a file label wrote (masks, tables, COCO, YOLO) missing or changed since --
+    its sha256 differs from the one label.json records.  Corrected masks enter only through review
+    import, where they are marked as corrections, never by editing a label folder."""
+    d, root = Path(label_dir), Path(input_dir).resolve()
+    record = read_record(d / OUTPUTS["record"], "label")
+    if record is None:
+        raise InputError(f"{{}}: {'folder not found' if not d.is_dir() else 'not an output folder of label'} "
+                         f"(no {literal(OUTPUTS['record'])} of label there)", LABELS(d))
+    if record.get("complete") is not True:
+        raise InputError("{}: that label run did not finish; rerun label into it (it resumes from its cache)",
+                         LABELS(d))
+    if Path(str(record.get("input"))) != root:
+        raise InputError(f"{{}}: these are the labels of {literal(record.get('input'))}, not of {{}}", LABELS(d),
+                         INPUT(input_dir))
+    if record.get("simulator"):
+        raise InputError("{}: labelled by the SIMULATOR (it reads reference masks), which distill cannot train "
+                         "from; label with a real teacher", LABELS(d))
+    sums = record.get("checksums")
+    if not isinstance(sums, dict) or not isinstance(record.get("teacher"), dict):
+        raise InputError("{}: its label.json records no checksums (an older label); rerun label into it",
+                         LABELS(d))
+    for rel, digest in sorted(sums.items()):
+        p = d / rel
+        if not p.is_file():
+            raise InputError(f"{{}}: {literal(rel)} is missing, the folder is incomplete; rerun label into it",
+                             LABELS(d))
+        if hashlib.sha256(p.read_bytes()).hexdigest() != digest:
+            raise InputError(f"{{}}: {literal(rel)} changed after label wrote it; distill trains only on an "
+                             "unmodified label folder -- corrected masks enter only through `geodistill review "
+                             "import`, where they are marked as corrections", LABELS(d))
+    labelled = set(pd.read_parquet(d / OUTPUTS["table"], columns=["image_id"])["image_id"].astype(str))
+    skipped = set(pd.read_csv(d / OUTPUTS["skipped"], dtype=str, keep_default_na=False)["image_id"])
+    found = find_images(root)
+    now = set(image_ids(found.root, found.files))
+    for what, ids in (("was labelled but is gone from", labelled - now), ("was added to", now - labelled - skipped)):
+        if ids:
+            raise InputError(f"{{}}: image {literal(repr(sorted(ids)[0]))} {what} {{}} since label ran "
+                             f"({len(ids)} such); rerun label", LABELS(d), INPUT(input_dir))
+    return record
+
+
+def _link_or_copy(src: Path, dst: Path, copy: bool = False) -> None:
+    """yolo/images/<rel>: a RELATIVE symbolic link to the input (it survives moving the input and output
+    folders together), or with ``copy`` -- or where links are not allowed -- a copy (it goes anywhere).
+    An earlier run's link or copy there (label.json lists it) is replaced, never written through."""
     dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.symlink(src.resolve(), dst)
-    except OSError:
-        shutil.copy2(src, dst)
+    if dst.is_symlink() or dst.is_file():
+        dst.unlink()
+    if not copy:
+        try:  # real paths on both sides: a link inside a linked folder still points at the file
+            os.symlink(os.path.relpath(os.path.realpath(src), os.path.realpath(dst.parent)), dst)
+            return
+        except OSError:
+            pass
+    with atomic_path(dst) as tmp:
+        shutil.copy2(src, tmp)
 
 
-def _yolo_data_yaml(yolo_dir: Path) -> str:
-    return (f"# Ultralytics dataset of geodistill label pseudo-masks (images are links to the inputs)\n"
-            f"path: {yolo_dir.resolve().as_posix()}\ntrain: images\nval: images\nnames:\n  0: spacecraft\n")
+def _write_yolo_dataset(yolo_dir: Path, rels: Sequence[str], ids: Sequence[str], seed: int, copies: bool) -> None:
+    """data.yaml, train.txt, val.txt (when there is a split) and README.txt of ``yolo/``
+    (:mod:`pipeline.labeling.formats`: the seeded split and the texts)."""
+    train, val = yolo_split(ids, seed)
+    copies = copies or not (yolo_dir / "images" / rels[0]).is_symlink()  # links refused by the file system
+    for name, rows in zip(YOLO_LISTS, (train, val)):
+        if rows:
+            with atomic_path(yolo_dir / name) as tmp:
+                tmp.write_text(yolo_image_list([rels[i] for i in rows]))
+    for name, text in (("data.yaml", yolo_data_yaml(len(train), len(val), seed)),
+                       ("README.txt", yolo_readme(len(train), len(val), seed, copies))):
+        with atomic_path(yolo_dir / name) as tmp:
+            tmp.write_text(text)
 
 
 def folder_gates(c: np.ndarray, n_valid: np.ndarray, a: np.ndarray, geo: Mapping):
     """(v, a0, :class:`pipeline.geometry.GateFactors`) of a labelled folder: every image is a training
     image, so a0 = the median area of its non-empty pseudo-masks (:func:`pipeline.geometry.median_area`);
-    without any, a0 = 0 (every c is 0 then, so every g is 0 whatever a0 is).  ``geo``: params
-    ``geometry`` (eq:valid-prompt-ratio .. eq:reliability-gate constants)."""
+    without any, a0 = 0 (every c is 0 then, so every g is 0 whatever a0 is) and label warns with the
+    words distill fails with on the same images (:class:`pipeline.geometry.NoForeground`, spelled for
+    the caller).  ``geo``: params ``geometry`` (eq:valid-prompt-ratio .. eq:reliability-gate constants)."""
     a = np.asarray(a, np.float64)
-    if (a > 0).any():
+    try:
         a0 = median_area(a, np.ones(a.shape, bool))
-    else:
-        log.warning("label: the teacher produced no foreground on any image; every gate g is 0")
+    except NoForeground as e:
+        log.warning("label: %s (every gate g is 0)", e.render(caller()))
         a0 = 0.0
     v, gf = image_gates(c, n_valid, a, a0, geo)
     return v, a0, gf
@@ -222,7 +331,7 @@ class _Job:
     sizes: list = dataclasses.field(default_factory=list)
 
 
-def _plan(input_dir, out, params: Mapping, reference_masks, overwrite: bool) -> _Job:
+def _plan(input_dir, out, params: Mapping, reference_masks, overwrite: bool, fmts: Sequence[str] = FORMATS) -> _Job:
     """Scan the folder, apply the bad-file policy to links and non-images, refuse outputs the user owns
     and check the teacher and reference-mask options -- all before anything is written."""
     found = find_images(input_dir)
@@ -236,10 +345,10 @@ def _plan(input_dir, out, params: Mapping, reference_masks, overwrite: bool) -> 
         policy.report(_id_of(root, path), path, reason)
     for path, reason in found.unused:  # not images (hidden files, other types): listed, not an error
         policy.record(_id_of(root, path), path, reason)
-    check_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], "label", overwrite=overwrite)
+    check_outputs(out, label_targets(root, files, ids, fmts), OUTPUTS["record"], "label", overwrite=overwrite)
     data_cfg, geo = section(params, "data"), section(params, "geometry")
     tcfg = section(params, "teacher")
-    tcfg["cache_dir"] = _inside(tcfg["cache_dir"], out)
+    tcfg["cache_dir"] = _inside(tcfg["cache_dir"], out.resolve())  # absolute: label.json names it to distill
     tcfg = check_teacher_params(tcfg)
     simulated = tcfg["backend"] == "simulated"
     if simulated and reference_masks is None:
@@ -329,47 +438,48 @@ class _Votes:
     pixels: np.ndarray
     annotations: list
     sheet: dict
+    h: np.ndarray  # prompt disagreement (pipeline.review.disagreement: mean entropy of A over the union)
 
 
-def _vote_and_export(job: _Job, runner, fmts: tuple[str, ...], vote_threshold: float) -> _Votes:
-    """Pass 2: vote (eq:majority-vote), write the PNG and YOLO outputs at each image's own size, collect
-    the gate inputs (eq:foreground-agreement, eq:pseudo-area) and the COCO annotations."""
+def _vote_and_export(job: _Job, runner, fmts: tuple[str, ...], vote_threshold: float,
+                     copy_images: bool = False) -> _Votes:
+    """Pass 2: vote (eq:majority-vote), write the PNG and YOLO outputs at each image's own size (YOLO's
+    images as relative links, or copies with ``copy_images``), collect the gate inputs
+    (eq:foreground-agreement, eq:pseudo-area) and the COCO annotations."""
     import cv2  # opencv: heavy, imported where used
 
     n, out = len(job.files), job.out
     rng = np.random.default_rng(int(job.data_cfg["seed"]))
     sheet_rows = set(sample_for_sheet(pd.DataFrame({"split": ["train"] * n, "group": ["label"] * n}),
                                       int(job.data_cfg["contact_sheet_images"]), int(rng.integers(2**31))).tolist())
-    v = _Votes(np.zeros(n), np.zeros(n), np.zeros(n, np.int64), np.zeros(n, np.int64), [], {})
-    with atomic_path(out / OUTPUTS["masks"], is_dir=True) as masks_tmp, \
-            atomic_path(out / OUTPUTS["yolo"], is_dir=True) as yolo_tmp:
+    v = _Votes(np.zeros(n), np.zeros(n), np.zeros(n, np.int64), np.zeros(n, np.int64), [], {}, np.zeros(n))
+    # file by file, never a folder swapped in whole: what label did not write there stays (pipeline.ownership)
+    with nullcontext(out / OUTPUTS["masks"]) as masks_dir, nullcontext(out / OUTPUTS["yolo"]) as yolo_dir:
         for row in progress(range(n), desc="label: vote + export", unit="img"):
             masks, scores, _, _ = runner.answers(row)
             cons = vote(masks, scores, vote_threshold)
             v.c[row] = foreground_agreement(cons.agreement, cons.voted)
             v.a[row] = area_ratio(cons.voted)
             v.n_valid[row] = cons.n_valid
+            v.h[row] = agreement_entropy(cons.agreement)
             h, w = job.sizes[row]
             full = cv2.resize(cons.voted.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
             v.pixels[row] = int(np.count_nonzero(full))
             if "png" in fmts:
-                write_png(masks_tmp / f"{job.ids[row]}.png", full.astype(np.uint8) * 255)
+                write_png(masks_dir / f"{job.ids[row]}.png", full.astype(np.uint8) * 255)
             if "coco" in fmts:
                 v.annotations.append(coco_annotation(full, row + 1, row + 1))
             if "yolo" in fmts:
-                dst = yolo_tmp / "labels" / f"{job.ids[row]}.txt"
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                dst.write_text("".join(line + "\n" for line in yolo_lines(full)))
-                _link_or_copy(job.files[row], yolo_tmp / "images" / job.files[row].relative_to(job.root))
+                with atomic_path(yolo_dir / "labels" / f"{job.ids[row]}.txt") as dst:
+                    dst.write_text("".join(line + "\n" for line in yolo_lines(full)))
+                _link_or_copy(job.files[row], yolo_dir / "images" / job.files[row].relative_to(job.root),
+                              copy_images)
             if row in sheet_rows:
                 v.sheet[row] = (load_rgb(job.files[row], job.size, job.cache,
                                          max_pixels=job.data_cfg["max_pixels"]).array, cons.voted)
         if "yolo" in fmts:
-            (yolo_tmp / "data.yaml").write_text(_yolo_data_yaml(out / OUTPUTS["yolo"]))
-        if "png" not in fmts:
-            (masks_tmp / "README.txt").write_text("png format not requested\n")
-        if "yolo" not in fmts:
-            (yolo_tmp / "README.txt").write_text("yolo format not requested\n")
+            _write_yolo_dataset(yolo_dir, [f.relative_to(job.root).as_posix() for f in job.files], job.ids,
+                                int(job.data_cfg["seed"]), copy_images)
     return v
 
 
@@ -389,34 +499,39 @@ def _write_coco(job: _Job, table: pd.DataFrame, v: _Votes, g: np.ndarray) -> Non
 
 def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, device: str = "auto",
                  formats: str | Sequence[str] = FORMATS, reference_masks: str | Path | None = None,
-                 overwrite: bool = False, workers: int = 0, address: str | None = None) -> LabelResult:
+                 overwrite: bool = False, workers: int = 0, address: str | None = None,
+                 copy_images: bool = False) -> LabelResult:
     """Label every image under ``input_dir`` into ``out`` (module docstring); ``params`` are validated
     params (schema defaults or a params file): data.resolution / cache_dir / contact_sheet_images /
     seed, teacher.*, consensus.vote_threshold, geometry.*.  ``reference_masks``: the folder of masks the
     simulated teacher (a SIMULATOR) reads; refused for real teachers (they never see masks).
     ``workers`` / ``address``: the teacher's Ray Data executor, as the teacher stage's ``--workers``
-    (0: the serial loop; same answers either way).
+    (0: the serial loop; same answers either way).  ``copy_images``: ``yolo/images`` holds copies of the
+    inputs instead of relative links (``--copy-images``).
 
-    Ownership (:mod:`pipeline.ownership`): ``label.json`` lists the outputs; an existing output that
-    no label.json of an earlier run lists (a user's own ``masks/``, ``coco.json``, ...) is refused
-    before anything is written, unless ``overwrite``.  Steps: :func:`_plan` (checks), :func:`_read_images`,
+    Ownership (:mod:`pipeline.ownership`): ``label.json`` lists the files written; a user's file where
+    one goes (``coco.json``, ``masks/a.png``) is refused before anything is written, ``overwrite`` or
+    not; a user's folder (``masks/``) is refused unless ``overwrite``, and the files in it stay; label's
+    own files of an earlier run that this run does not write are removed.  Steps: :func:`_plan` (checks), :func:`_read_images`,
     :func:`_run_teacher`, :func:`_vote_and_export`, then the gates (eq:reliability-gate), the tables, COCO,
     the contact sheet, skipped.csv and the record."""
     fmts = parse_formats(formats)
-    job = _plan(input_dir, out, params, reference_masks, overwrite)
+    job = _plan(input_dir, out, params, reference_masks, overwrite, fmts)
     _read_images(job)
     out, policy, tcfg, n = job.out, job.policy, job.tcfg, len(job.files)
-    claim_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], "label", {"input": str(job.root.resolve()), "complete": False})
+    previous = owned_outputs(out, OUTPUTS["record"], "label")
+    current = label_targets(job.root, job.files, job.ids, fmts)
+    claim_outputs(out, current, OUTPUTS["record"], "label", {"input": str(job.root.resolve()), "complete": False})
     runner, t_fp, stats = _run_teacher(job, device, workers, address)
     vote_threshold = float(section(params, "consensus")["vote_threshold"])
-    v = _vote_and_export(job, runner, fmts, vote_threshold)
+    v = _vote_and_export(job, runner, fmts, vote_threshold, copy_images)
 
     valid, a0, gf = folder_gates(v.c, v.n_valid, v.a, job.geo)
     table = pd.DataFrame({
         "image_id": job.ids, "file": [f.relative_to(job.root).as_posix() for f in job.files],
         "width": [s[1] for s in job.sizes], "height": [s[0] for s in job.sizes],
         "n_valid": v.n_valid.astype(np.int16), "c": v.c, "v": valid, "a": v.a, "a0": np.full(n, a0),
-        "g_conf": gf.conf, "g_valid": gf.valid, "g_area": gf.area, "g": gf.g, "mask_pixels": v.pixels})
+        "g_conf": gf.conf, "g_valid": gf.valid, "g_area": gf.area, "g": gf.g, "h": v.h, "mask_pixels": v.pixels})
     table["teacher_backend"] = tcfg["backend"]
     table["simulator"] = job.simulated
     _write_table(out, table)
@@ -429,14 +544,21 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
     write_png(out / OUTPUTS["sheet"], contact_sheet(tiles, columns=4))
 
     write_skipped_csv(out / OUTPUTS["skipped"], policy.rows())  # header only when nothing was skipped
+    # label's own files of another run (formats not asked for now, images no longer there) go
+    removed = remove_stale(out, previous - {OUTPUTS["record"]}, current)
+    if removed:
+        log.info("label: removed %d file(s) an earlier label run wrote that this run does not (first: %s)",
+                 len(removed), removed[0])
     write_json(out / OUTPUTS["record"], {
         "input": str(job.root.resolve()), "images": n, "skipped": policy.bad_count(), "formats": list(fmts),
         "teacher_backend": tcfg["backend"], "simulator": job.simulated,
         "note": SIMULATOR_NOTE if job.simulated else None, "teacher_fingerprint": t_fp,
         "prompts": list(tcfg["prompts"]), "resolution": job.size, "vote_threshold": vote_threshold, "a0": a0,
         "geometry": job.geo, "teacher_answers_computed": stats.answers_computed,
-        "teacher_cache_hits": stats.cache_hits, "complete": True,
-        **record_fields(out, OUTPUTS["record"], "label", OWN_OUTPUTS)})
-    log.info("label: %d images -> %s (%s); %d skipped", n, out, ", ".join(fmts), policy.bad_count())
+        "teacher_cache_hits": stats.cache_hits, "complete": True, "teacher": tcfg,
+        "checksums": file_checksums(out, current),
+        WRITTEN_BY: signature("label"), RECORD_OUTPUTS: sorted({*current, OUTPUTS["record"]})})
+    # the summary is the caller's one line (stages/label.py), not also a log line
+    log.debug("label: %d images -> %s (%s); %d skipped", n, out, ", ".join(fmts), policy.bad_count())
     return LabelResult(out, table, [(r["path"], r["reason"]) for r in policy.skipped], fmts, tcfg["backend"],
                        policy.summary("label", out / OUTPUTS["skipped"]))

@@ -242,7 +242,10 @@ def _mean_tau(thresholds: pd.DataFrame, method: str, column: str = "tau") -> flo
 
 
 def _per_seed_difference(table: pd.DataFrame, treatment: str, control: str, column: str) -> list[float]:
-    """``column`` of ``treatment`` minus ``control``, one value per seed both have (seed means)."""
+    """``column`` of ``treatment`` minus ``control``, one value per seed both have (seed means); [] when
+    the table records no seeds."""
+    if "seed" not in table.columns:
+        return []
     per = table[table["method"].isin([treatment, control])].groupby(["method", "seed"])[column].mean()
     t, c = per.get(treatment), per.get(control)
     if t is None or c is None:

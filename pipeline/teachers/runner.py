@@ -152,9 +152,13 @@ class TeacherRunner:
                 raise ValueError("TeacherRunner.fill(workers > 0) needs the runner's TeacherSpec")
             self.stats.answers_computed += fill_with_ray(jobs, self.load, self.spec, self.cache.location,
                                                          self.cache.teacher_fingerprint, workers, address)
-        else:
-            for job in progress(jobs, desc=f"teacher[{self.teacher.backend}]"):
-                self.stats.answers_computed += answer_job(self.teacher, self.cache, job, job.inputs(self.load))
+        elif jobs:
+            # the bar counts images (a job is a batch of them, per view), not jobs
+            with progress(total=sum(len(j.rows) for j in jobs), desc=f"teacher[{self.teacher.backend}]",
+                          unit="img") as bar:
+                for job in jobs:
+                    self.stats.answers_computed += answer_job(self.teacher, self.cache, job, job.inputs(self.load))
+                    bar.update(len(job.rows))
         self.stats.images_computed += n_images
         return self.stats
 

@@ -50,6 +50,7 @@ from pipeline.artifacts import atomic_path
 from pipeline.device import resolve_device
 from pipeline.errors import InputError
 from pipeline.params import SAM3 as BACKEND
+from pipeline.progress import library_bars_off
 from pipeline.teachers.base import TeacherInput, finalize_answers
 
 log = logging.getLogger(__name__)
@@ -294,8 +295,9 @@ class Sam3Teacher:
                 raise InputError(f"teacher.backend=sam3 needs transformers>=5 with SAM 3 "
                                  f"(pip install '.[sam3]'): {e}") from None
             try:
-                model = Sam3Model.from_pretrained(self.checkpoint, local_files_only=True, dtype=self.torch_dtype)
-                self._tokenizer = AutoTokenizer.from_pretrained(self.checkpoint, local_files_only=True)
+                with library_bars_off():  # no "Loading weights" bar of transformers' own
+                    model = Sam3Model.from_pretrained(self.checkpoint, local_files_only=True, dtype=self.torch_dtype)
+                    self._tokenizer = AutoTokenizer.from_pretrained(self.checkpoint, local_files_only=True)
             except (OSError, ValueError) as e:
                 raise InputError(f"{self.checkpoint}: cannot load SAM 3 checkpoint "
                                  f"({type(e).__name__}: {str(e).splitlines()[0][:200]})") from None

@@ -1,0 +1,181 @@
+"""Convergence study: where does the student's validation Image IoU plateau?
+
+``python -m pipeline.benchmarks.convergence`` -- by default at 128^2 on the reduced profile's data, for
+the Plain Student and the supervised ceiling, one seed.  One run gives every training length: a
+warm-up / stable / decay schedule (``train.schedule: wsd``, :func:`pipeline.training._lr_lambda`)
+whose stable phase does not depend on the run's length, so
+
+  1. one stable-phase run (linear warm-up, then the constant learning rate) saves its full state
+     (weights, optimizer, RNG) after each branch epoch E = E0, 2 E0, 4 E0, ... (doublings);
+  2. from each saved state a decay branch runs ``decay_fraction / (1 - decay_fraction)`` x E more epochs
+     (at least one) with the learning rate falling linearly to 0 -- the run of total length
+     E / (1 - decay_fraction) epochs, exactly, without training it from scratch;
+  3. each branch's final weights (BN statistics recomputed) are scored on the VALIDATION images at the
+     tau calibrated on them (the calibrate stage's rule on the epoch grid) and at tau 0.5.
+
+Plateau: the first length whose next doubling gains less than ``--plateau-gain`` (0.005) validation
+Image IoU at the calibrated tau.  Everything is chosen on validation images; the TEST images are scored
+once, for the plateau length of each method only, at the validation-calibrated tau (``test_iou``).
+With ``--recipe strong`` the branches train on augmented batches (``train.augment``).
+
+Writes one JSON (``--out``): per method, the curve (optimizer steps, epochs, validation IoU) and the
+plateau.  Resumable per method: a finished method in ``--out`` is not rerun.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+from pipeline.device import resolve_device
+from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
+from pipeline.profiles import load_profile
+from pipeline.benchmarks.study_recipe import build_artifacts, load_study_data, score_run
+
+#: a doubling of the optimizer steps that gains less validation Image IoU than this is the plateau
+PLATEAU_GAIN = 0.005
+
+
+def branch_epochs(first: int, doublings: int) -> list[int]:
+    """Stable-phase epochs where the decay branches start: first, 2 first, ..., 2^doublings first."""
+    return [int(first) * 2 ** k for k in range(int(doublings) + 1)]
+
+
+def decay_epochs(stable: int, fraction: float) -> int:
+    """Epochs of the decay branch after ``stable`` stable-phase epochs: the decay is ``fraction`` of the
+    whole run, at least one epoch."""
+    return max(1, int(round(stable * fraction / (1.0 - fraction))))
+
+
+def plateau(values: list[float], gain: float = PLATEAU_GAIN) -> int | None:
+    """Index of the first length whose next doubling gains less than ``gain`` (values: one per
+    doubling, in order); None when every doubling still gains that much."""
+    for i in range(len(values) - 1):
+        if values[i + 1] - values[i] < gain:
+            return i
+    return None
+
+
+class _BranchSaver:
+    """A :class:`pipeline.training.Checkpointer` that keeps the full state after the branch epochs."""
+
+    def __init__(self, epochs: list[int]) -> None:
+        self.epochs, self.states = set(epochs), {}
+
+    def load(self, run_key):
+        return None
+
+    def save(self, state: dict) -> None:
+        if state["epoch"] in self.epochs:
+            self.states[state["epoch"]] = copy.deepcopy(state)
+
+
+class _StartFrom:
+    """A checkpointer that starts a run from a saved stable-phase state: weights, optimizer and RNG,
+    with a fresh schedule (the decay) and log."""
+
+    def __init__(self, state: Mapping[str, Any], lr: float) -> None:
+        import torch
+
+        from pipeline.training import STATE_VERSION
+
+        self.state, self.version = state, STATE_VERSION
+        dummy = torch.optim.AdamW([torch.zeros(1, requires_grad=True)], lr=lr)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(dummy, lambda step: 1.0).state_dict()
+
+    def load(self, run_key):
+        s = self.state
+        return {"version": self.version, "run_key": run_key, "epoch": 0, "model": s["model"],
+                "optimizer": s["optimizer"], "scheduler": self.scheduler, "torch_rng": s["torch_rng"],
+                "log": [], "best": None}
+
+    def save(self, state: dict) -> None:
+        pass
+
+
+def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, branches: list[int],
+                 fraction: float, device: str) -> list[dict]:
+    """The curve of one method: for each branch epoch, the decay branch's validation scores."""
+    from pipeline import training
+
+    spec = get_method(method)
+    stable = {**cfg, "epochs_stage1": max(branches), "schedule": "constant", "average_last": 0}
+    saver = _BranchSaver(branches)
+    steps_per_epoch = max(1, -(-len(data) // int(cfg["batch_size"])))
+    t0 = time.perf_counter()
+    training.train(spec, stable, data, val, seed, checkpointer=saver, device=device, show_progress=False)
+    stable_s = time.perf_counter() - t0
+    curve = []
+    for e in branches:
+        d = decay_epochs(e, fraction)
+        decay = {**cfg, "epochs_stage1": d, "schedule": "wsd", "decay_fraction": 1.0, "warmup_epochs": 0,
+                 "average_last": 1}  # the branch's last weights, BN statistics recomputed
+        t1 = time.perf_counter()
+        res = training.train(spec, decay, data, val, seed, checkpointer=_StartFrom(saver.states[e], training.method_lr(spec, cfg)),
+                             device=device, show_progress=False)
+        scores = training.validation_scores(res.model, val, device, precision="fp32", channels_last=False,
+                                            tolerance=float(cfg["val_bf1_tolerance"]))
+        curve.append({"stable_epochs": e, "decay_epochs": d, "epochs": e + d, "steps": (e + d) * steps_per_epoch,
+                      "val_iou_cal": scores["val_iou_cal"], "val_tau_cal": scores["val_tau_cal"],
+                      "val_iou_05": scores["val_iou"], "val_bf1_05": scores["val_bf1"],
+                      "decay_seconds": time.perf_counter() - t1, "_model": res.model})
+    curve[0]["stable_seconds"] = stable_s
+    return curve
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--artifacts", default=None, help="an artifacts directory with prepare .. consensus done")
+    ap.add_argument("--workdir", default="convergence", help="where the data stages write without --artifacts")
+    ap.add_argument("--profile", default="reduced")
+    ap.add_argument("--recipe", default="paper", help="train.recipe of the branches (paper | stable | strong)")
+    ap.add_argument("--set", dest="sets", action="append", default=[], help="a params override (repeatable)")
+    ap.add_argument("--methods", nargs="+", default=[STAGE_ONE, SUPERVISED_CEILING])
+    ap.add_argument("--seed", type=int, default=42)
+    ap.add_argument("--first", type=int, default=5, help="stable epochs of the shortest branch")
+    ap.add_argument("--doublings", type=int, default=5, help="branches at first x 2^k, k = 0..doublings")
+    ap.add_argument("--decay-fraction", type=float, default=None, help="default: train.decay_fraction")
+    ap.add_argument("--plateau-gain", type=float, default=PLATEAU_GAIN)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", default="convergence.json")
+    args = ap.parse_args(argv)
+
+    device = str(resolve_device(args.device))
+    params = load_profile(args.profile, [f"train.recipe={args.recipe}", *args.sets])
+    artifacts = Path(args.artifacts) if args.artifacts else \
+        build_artifacts(Path(args.workdir).resolve(), args.profile, list(args.sets), device)
+    cfg = {**params["train"], "num_threads": args.threads}
+    fraction = float(args.decay_fraction if args.decay_fraction is not None else cfg["decay_fraction"])
+    branches = branch_epochs(args.first, args.doublings)
+    out_path = Path(args.out)
+    doc = json.loads(out_path.read_text()) if out_path.exists() else {}
+    doc["info"] = {"profile": args.profile, "recipe": args.recipe, "sets": args.sets, "seed": args.seed,
+                   "resolution": int(params["data"]["resolution"]), "branches": branches, "decay_fraction": fraction,
+                   "plateau_gain": args.plateau_gain, "device": device, "threads": args.threads}
+    data = load_study_data(artifacts, cfg, methods=tuple(args.methods))
+    for m in args.methods:
+        if m in doc.get("methods", {}):
+            print(f"{m}: done already in {out_path}", flush=True)
+            continue
+        curve = study_method(m, cfg, data[m], data["val"], args.seed, branches, fraction, device)
+        i = plateau([c["val_iou_cal"] for c in curve], args.plateau_gain)
+        chosen = curve[i if i is not None else -1]
+        test = score_run(chosen["_model"], data["val"], data["test_images"], data["test_masks"], device)  # once
+        doc.setdefault("methods", {})[m] = {
+            "curve": [{k: v for k, v in c.items() if k != "_model"} for c in curve],
+            "plateau_index": i, "plateau_steps": chosen["steps"] if i is not None else None,
+            "chosen_epochs": chosen["epochs"], "test_iou": test["iou_cal"], "test_tau": test["tau_cal"]}
+        out_path.write_text(json.dumps(doc, indent=1))  # partial results survive an interruption
+        print(f"{m}: " + ", ".join(f"{c['steps']} steps {c['val_iou_cal']:.3f}" for c in curve)
+              + f"; plateau {'at ' + str(chosen['steps']) + ' steps' if i is not None else 'not reached'}; "
+              f"test IoU {test['iou_cal']:.3f} (scored once)", flush=True)
+    return doc
+
+
+if __name__ == "__main__":
+    main()

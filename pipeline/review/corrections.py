@@ -1,0 +1,254 @@
+"""``geodistill review import SOURCE --review DIR``: corrected masks -> the versioned ``corrections`` artifact.
+
+SOURCE is one of (``fmt="auto"`` tells them apart):
+
+``labelstudio``  Label Studio's JSON export (a list of tasks).  A task belongs to the export when its
+                 ``data.geodistill_export`` is the export id of ``DIR/review.json``; its mask is the
+                 union of the brush (:func:`pipeline.review.formats.ls_rle_decode`) and polygon results
+                 of its last annotation that was not cancelled; a task nobody annotated is not a
+                 correction and is left out (counted).
+``cvat``         CVAT's COCO 1.0 export (``instances_default.json``): images matched by ``file_name``
+                 (the image's path relative to the labelled folder, as exported); an image's mask is the
+                 union of its annotations (polygons, uncompressed or compressed RLE, decoded by
+                 pycocotools).
+``png``          a folder of masks ``<image id>.<png|jpg|tif|bmp>`` (sub-folders as in the image ids),
+                 binarised by the loader's one rule (value > 0).
+
+Refused, with one line naming the file and the image (exit code 2): a task from another export, an
+image the export does not hold, a mask whose size is not the image's, an empty mask (a spacecraft
+image with no spacecraft is not a correction this pipeline can use), a file that is not one of the
+formats, and no correction at all.
+
+The artifact (schema ``corrections``, catalogue entry ``corrections``) is a Parquet table, one row per
+corrected image: ``image_id, file, width, height``, ``rle`` (compressed COCO RLE counts of the mask at
+the image's own size, :func:`pipeline.labeling.formats.rle_encode`), ``pixels``, ``source`` (the
+format), and ``iou_to_voted`` (Image IoU of the correction and the voted mask it started from: 1 =
+the person changed nothing), with the artifact's meta and fingerprint (stage ``review import``; params:
+the format, the export id and the sha256 of the source's bytes).  These are MANUAL masks: like the
+reference masks they may select, calibrate and evaluate, and never enter the loss of an annotation-free
+method.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.artifacts import make_meta, open_artifact, write_parquet
+from pipeline.datasets.loading import SUPPORTED_SUFFIXES, read_mask
+from pipeline.datasets.scan import scan_inputs
+from pipeline.errors import ArtifactError, InputError, Option, literal
+from pipeline.labeling.formats import rle_encode
+from pipeline.metrics import image_iou
+from pipeline.ownership import read_record, refuse_unowned
+from pipeline.review.export import COMMAND as EXPORT_COMMAND
+from pipeline.review.export import EXPORT_FIELD, OUTPUTS as EXPORT_OUTPUTS
+from pipeline.review.formats import (LS_FROM_NAME, FormatError, coco_segmentation_mask, ls_rle_decode,
+                                     polygon_mask)
+
+log = logging.getLogger(__name__)
+
+STAGE = "review import"
+SOURCE = Option("SOURCE", "source")
+REVIEW = Option("--review", "review")
+FROM = Option("--from", "fmt")
+FORMATS = ("auto", "labelstudio", "cvat", "png")
+
+
+def read_review(review_dir: str | Path) -> dict:
+    """The record of a complete ``review export`` folder; InputError naming ``--review`` otherwise."""
+    d = Path(review_dir)
+    rec = read_record(d / EXPORT_OUTPUTS["record"], EXPORT_COMMAND)
+    if rec is None or not rec.get("complete"):
+        raise InputError(f"{{}}: not a finished export of geodistill {literal(EXPORT_COMMAND)} (no complete "
+                         f"{literal(EXPORT_OUTPUTS['record'])} of it there)", REVIEW(d))
+    return rec
+
+
+def detect_format(source: Path) -> str:
+    """``png`` for a folder, else ``labelstudio`` (a JSON list) or ``cvat`` (a JSON object with images)."""
+    if source.is_dir():
+        return "png"
+    doc = _read_json(source)
+    if isinstance(doc, list):
+        return "labelstudio"
+    if isinstance(doc, dict) and "images" in doc and "annotations" in doc:
+        return "cvat"
+    raise InputError(f"{source}: neither a Label Studio JSON export (a list of tasks) nor a COCO file (images, "
+                     f"annotations)")
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError("{}: file not found", SOURCE(path)) from None
+    except (ValueError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: not JSON ({e})") from None
+
+
+def _check(mask: np.ndarray, image: dict, where: str) -> np.ndarray:
+    h, w = image["height"], image["width"]
+    if mask.shape != (h, w):
+        raise InputError(f"{where}: mask size {mask.shape[1]}x{mask.shape[0]} differs from image "
+                         f"{image['image_id']!r} size {w}x{h}")
+    if not mask.any():
+        raise InputError(f"{where}: the corrected mask of image {image['image_id']!r} is empty")
+    return mask
+
+
+def _labelstudio(path: Path, review: dict) -> dict[str, np.ndarray]:
+    tasks = _read_json(path)
+    if not isinstance(tasks, list):
+        raise InputError(f"{path}: not a Label Studio JSON export (expected a list of tasks)")
+    by_id = {im["image_id"]: im for im in review["images"]}
+    out, untouched = {}, 0
+    for k, task in enumerate(tasks):
+        data = task.get("data", {}) if isinstance(task, dict) else {}
+        where = f"{path}: task {task.get('id', k) if isinstance(task, dict) else k}"
+        if data.get(EXPORT_FIELD) != review["export_id"]:
+            raise InputError(f"{where}: from another export ({EXPORT_FIELD}={data.get(EXPORT_FIELD)!r}, this "
+                             f"export is {review['export_id']!r})")
+        image = by_id.get(data.get("image_id"))
+        if image is None:
+            raise InputError(f"{where}: unknown image {data.get('image_id')!r} (not in this export)")
+        done = [a for a in task.get("annotations", []) if not a.get("was_cancelled") and a.get("result")]
+        if not done:
+            untouched += 1
+            continue
+        h, w = image["height"], image["width"]
+        mask = np.zeros((h, w), bool)
+        for res in done[-1]["result"]:
+            if res.get("from_name") not in (None, LS_FROM_NAME):
+                continue
+            size = (res.get("original_height", h), res.get("original_width", w))
+            if tuple(size) != (h, w):
+                raise InputError(f"{where}: result size {size[1]}x{size[0]} differs from image "
+                                 f"{image['image_id']!r} size {w}x{h}")
+            value = res.get("value", {})
+            try:
+                if res.get("type") == "brushlabels" or "rle" in value:
+                    mask |= ls_rle_decode(value.get("rle"), h, w)
+                elif "points" in value:
+                    mask |= polygon_mask([value["points"]], h, w, scale=(w / 100.0, h / 100.0))
+            except FormatError as e:
+                raise InputError(f"{where}: {e}") from None
+        out[image["image_id"]] = _check(mask, image, where)
+    if untouched:
+        log.info("review import: %d of %d tasks have no annotation (not corrected): left out", untouched, len(tasks))
+    return out
+
+
+def _cvat(path: Path, review: dict) -> dict[str, np.ndarray]:
+    doc = _read_json(path)
+    by_file = {im["file"]: im for im in review["images"]}
+    images, out = {}, {}
+    for im in doc.get("images", []):
+        image = by_file.get(im.get("file_name"))
+        if image is None:
+            raise InputError(f"{path}: unknown image {im.get('file_name')!r} (not in this export)")
+        if (im.get("height"), im.get("width")) != (image["height"], image["width"]):
+            raise InputError(f"{path}: image {im.get('file_name')!r} size {im.get('width')}x{im.get('height')} "
+                             f"differs from {image['width']}x{image['height']}")
+        images[im["id"]] = image
+        out[image["image_id"]] = np.zeros((image["height"], image["width"]), bool)
+    for ann in doc.get("annotations", []):
+        image = images.get(ann.get("image_id"))
+        if image is None:
+            raise InputError(f"{path}: annotation {ann.get('id')} names image id {ann.get('image_id')}, not in the file")
+        try:
+            out[image["image_id"]] |= coco_segmentation_mask(ann.get("segmentation"), image["height"], image["width"])
+        except FormatError as e:
+            raise InputError(f"{path}: annotation {ann.get('id')} of {image['file']!r}: {e}") from None
+    for iid, mask in out.items():
+        _check(mask, next(im for im in images.values() if im["image_id"] == iid), f"{path}")
+    return out
+
+
+def _png(folder: Path, review: dict) -> dict[str, np.ndarray]:
+    by_id = {im["image_id"]: im for im in review["images"]}
+    out = {}
+    for f in scan_inputs(folder).files:
+        iid = f.relative_to(folder).with_suffix("").as_posix()
+        image = by_id.get(iid)
+        if image is None:
+            raise InputError(f"{f}: unknown image {iid!r} (not in this export; masks are named <image id>"
+                             f"{SUPPORTED_SUFFIXES[0]})")
+        if iid in out:
+            raise InputError(f"{f}: a second mask for image {iid!r}")
+        out[iid] = _check(read_mask(f), image, str(f))   # a bad file: its own one-line InputError
+    return out
+
+
+READERS = {"labelstudio": _labelstudio, "cvat": _cvat, "png": _png}
+
+
+def source_digest(source: Path) -> str:
+    """sha256 of the source's bytes (a folder: of its files' relative paths and bytes, sorted)."""
+    h = hashlib.sha256()
+    files = sorted(p for p in source.rglob("*") if p.is_file()) if source.is_dir() else [source]
+    for p in files:
+        h.update(p.relative_to(source).as_posix().encode() if source.is_dir() else b"")
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def import_corrections(source: str | Path, review_dir: str | Path, out: str | Path, *, fmt: str = "auto",
+                       code_version: str = "", overwrite: bool = False):
+    """Read the corrections in ``source`` (module docstring), check them against the export in
+    ``review_dir`` and write the ``corrections`` artifact to ``out``; returns it opened.  ``out`` is
+    replaced only when it is a corrections artifact (this command's own earlier output) or with
+    ``overwrite``."""
+    import pandas as pd
+
+    source, out = Path(source), Path(out)
+    if fmt not in FORMATS:
+        raise InputError(f"{{}}: expected one of {', '.join(FORMATS)}", FROM(fmt))
+    if not source.exists():
+        raise InputError("{}: not found", SOURCE(source))
+    review = read_review(review_dir)
+    fmt = detect_format(source) if fmt == "auto" else fmt
+    if (fmt == "png") != source.is_dir():
+        raise InputError(f"{{}}: {literal(fmt)} reads a {'folder' if fmt == 'png' else 'JSON file'}", SOURCE(source))
+    owned = []
+    try:
+        if out.exists():
+            open_artifact(out, "corrections")
+            owned = [out]
+    except ArtifactError:
+        pass
+    refuse_unowned([out], owned, command=STAGE, option="--out", where=out,
+                   why="not a corrections artifact", overwrite=overwrite)
+    masks = READERS[fmt](source, review)
+    if not masks:
+        raise InputError(f"{{}}: no corrected mask in it ({literal(fmt)})", SOURCE(source))
+    rows = []
+    for im in review["images"]:   # the export's order: rank
+        if im["image_id"] not in masks:
+            continue
+        m = masks[im["image_id"]]
+        voted = coco_decode(im["voted_rle"])
+        rows.append({"image_id": im["image_id"], "file": im["file"], "width": im["width"], "height": im["height"],
+                     "rle": rle_encode(m)["counts"], "pixels": int(np.count_nonzero(m)), "source": fmt,
+                     "iou_to_voted": image_iou(m, voted), "rank": im["rank"]})
+    params = {"format": fmt, "export_id": review["export_id"], "source_sha256": source_digest(source)}
+    meta = make_meta("corrections", STAGE, code_version, params, export_id=review["export_id"],
+                     simulator=bool(review.get("simulator")))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_parquet(out, pd.DataFrame(rows), meta)
+    return open_artifact(out, "corrections")
+
+
+def coco_decode(rle: dict) -> np.ndarray:
+    """bool [H,W] of a compressed COCO RLE ``{"size", "counts": str}`` (pycocotools)."""
+    return coco_segmentation_mask(rle, *rle["size"])
+
+
+def correction_masks(artifact) -> dict[str, np.ndarray]:
+    """{image id: bool [H,W]} of an opened corrections artifact."""
+    return {r.image_id: coco_decode({"size": [int(r.height), int(r.width)], "counts": r.rle})
+            for r in artifact.table.itertuples(index=False)}

@@ -1,0 +1,174 @@
+"""``geodistill review export LABEL_DIR --out DIR``: the images of a ``label`` output folder that most
+need a person, ranked (:mod:`pipeline.review.ranking`), as a Label Studio import, a CVAT import and a CSV.
+
+Reads ``LABEL_DIR/label.json`` (it must be a complete run of ``geodistill label``), ``labels.parquet``
+(with its disagreement column ``h``) and the voted masks ``masks/<image id>.png`` (the ``png`` format
+of label); with a student (``predict``: the CLI's ``--student BUNDLE``) also the input images, for the
+student-teacher disagreement.  Writes under ``out`` only, and nothing else::
+
+    review.json                         the record (pipeline.ownership), written first: the export id,
+                                        ranking, and per exported image its id, file, size, rank,
+                                        score and voted mask (compressed COCO RLE) -- what review
+                                        import checks the corrections against
+    ranked.csv                          the exported images, best candidate first: rank, score, image
+                                        id, file, width, height and the label table's columns
+    labelstudio/tasks.json              Label Studio tasks: data.image (``image_url`` + the image's
+                                        path relative to the labelled folder), data.image_id, data.
+                                        geodistill_export (the export id), rank and scores, and the
+                                        voted mask as a prediction (brush RLE, or polygons)
+    labelstudio/label_config.xml        the labelling interface those results name
+    cvat/instances_default.json         COCO 1.0 for CVAT's "Import annotations": file_name = the image's
+                                        path relative to the labelled folder, the voted mask as
+                                        uncompressed RLE (iscrowd 1), or polygons
+
+The formats are :mod:`pipeline.review.formats`.  An image whose vote is empty gets a task without a
+prediction (and no COCO annotation): the person draws it.  The export id is a hash of the label run's
+teacher fingerprint, the options and the exported rows, so the same inputs give the same files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from pipeline.artifacts import atomic_path, canonical_json, write_json
+from pipeline.datasets.loading import read_mask
+from pipeline.errors import OUT, InputError, Option, literal
+from pipeline.labeling.formats import SPACECRAFT_CATEGORY, rle_encode
+from pipeline.labeling.run import OUTPUTS as LABEL_OUTPUTS
+from pipeline.ownership import check_outputs, claim_outputs, read_record, record_fields
+from pipeline.review.formats import coco_review_annotation, ls_label_config, ls_results
+from pipeline.review.ranking import DEFAULT_RANKING, STUDENT_COLUMN, rank, student_disagreement
+
+COMMAND = "review export"
+LABEL_DIR = Option("LABEL_DIR", "label_dir")
+TOP = Option("--top", "top")
+LS_SHAPE = Option("--ls-shape", "ls_shape")
+COCO_SHAPE = Option("--coco-shape", "coco_shape")
+LS_SHAPES, COCO_SHAPES = ("brush", "polygon"), ("rle", "polygon")
+#: Label Studio's local-files URL: with LABEL_STUDIO_LOCAL_FILES_DOCUMENT_ROOT = the labelled folder
+DEFAULT_IMAGE_URL = "/data/local-files/?d="
+#: the files and folders written under ``out`` (module docstring), named once
+OUTPUTS = {"record": "review.json", "csv": "ranked.csv", "labelstudio": "labelstudio", "cvat": "cvat"}
+OWN_OUTPUTS = tuple(v for k, v in OUTPUTS.items() if k != "record")
+LS_TASKS, LS_CONFIG, CVAT_COCO = "tasks.json", "label_config.xml", "instances_default.json"
+EXPORT_FIELD = "geodistill_export"   # the task data field naming the export (review import checks it)
+MODEL_VERSION = "geodistill-vote"    # the predictions' model_version in Label Studio
+
+
+@dataclasses.dataclass
+class ReviewExport:
+    """What :func:`export_review` wrote: the folder, the ranked rows, the export id and the ranking."""
+
+    out: Path
+    table: object   # pandas.DataFrame, ranked
+    export_id: str
+    ranking: str
+
+
+def read_label_folder(label_dir: str | Path):
+    """(record, table) of a complete ``geodistill label`` output folder with its PNG masks; InputError
+    (one line naming LABEL_DIR) otherwise."""
+    import pandas as pd
+
+    d = Path(label_dir)
+    record = read_record(d / LABEL_OUTPUTS["record"], "label")
+    if record is None:
+        raise InputError(f"{{}}: not an output folder of geodistill label (no {literal(LABEL_OUTPUTS['record'])} "
+                         f"of it there)", LABEL_DIR(d))
+    if not record.get("complete"):
+        raise InputError("{}: that label run did not finish; rerun it (it resumes from its cache)", LABEL_DIR(d))
+    if "png" not in record.get("formats", []):
+        raise InputError(f"{{}}: label wrote no {literal(LABEL_OUTPUTS['masks'])}/ PNGs there; rerun it with "
+                         f"--format png (plus any other format)", LABEL_DIR(d))
+    table = pd.read_parquet(d / LABEL_OUTPUTS["table"])
+    return record, table
+
+
+def voted_mask(label_dir: Path, image_id: str, width: int, height: int) -> np.ndarray:
+    """The voted mask label wrote for ``image_id`` (bool [H,W]); InputError when its size is not the image's."""
+    path = Path(label_dir) / LABEL_OUTPUTS["masks"] / f"{image_id}.png"
+    mask = read_mask(path)
+    if mask.shape != (height, width):
+        raise InputError(f"{path}: mask size {mask.shape[1]}x{mask.shape[0]} is not the image's {width}x{height}")
+    return mask
+
+
+def mask_digest(mask: np.ndarray) -> str:
+    """sha256 of a bool mask's shape and packed bits (the content, not a file encoding)."""
+    m = np.asarray(mask, bool)
+    return hashlib.sha256(f"{m.shape[0]}x{m.shape[1]}:".encode() + np.packbits(m).tobytes()).hexdigest()
+
+
+def _check_options(top, ls_shape: str, coco_shape: str) -> None:
+    if top is not None and int(top) < 1:
+        raise InputError("{}: must be at least 1 (leave it out to export every image)", TOP(top))
+    if ls_shape not in LS_SHAPES:
+        raise InputError(f"{{}}: expected one of {', '.join(LS_SHAPES)}", LS_SHAPE(ls_shape))
+    if coco_shape not in COCO_SHAPES:
+        raise InputError(f"{{}}: expected one of {', '.join(COCO_SHAPES)}", COCO_SHAPE(coco_shape))
+
+
+def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = None, ranking: str = DEFAULT_RANKING,
+                  ls_shape: str = "brush", coco_shape: str = "rle", image_url: str = DEFAULT_IMAGE_URL,
+                  predict: Callable[[Path], np.ndarray] | None = None, overwrite: bool = False) -> ReviewExport:
+    """Rank the images of ``label_dir`` and write the top ``top`` (None: all) under ``out`` (module
+    docstring).  ``predict(image_path) -> bool [H,W]``: a student, for the ``student`` ranking (and the
+    ``combined`` one).  Everything is checked -- options, the label folder, the ranking's columns, files
+    in the way that this command did not write (refused unless ``overwrite``) -- before anything is
+    written."""
+    _check_options(top, ls_shape, coco_shape)
+    label_dir, out = Path(label_dir), Path(out)
+    record, table = read_label_folder(label_dir)
+    check_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], COMMAND, overwrite=overwrite, option=OUT)
+    sizes = dict(zip(table["image_id"], zip(table["width"].astype(int), table["height"].astype(int))))
+    if predict is not None:
+        root = Path(record["input"])
+        table[STUDENT_COLUMN] = [student_disagreement(predict(root / f), voted_mask(label_dir, i, *sizes[i]))
+                                 for i, f in zip(table["image_id"], table["file"])]
+    ranked = rank(table, ranking, top)   # refuses an unknown ranking or a missing column: nothing written yet
+    masks = {i: voted_mask(label_dir, i, *sizes[i]) for i in ranked["image_id"]}
+    rows = [{"image_id": str(r.image_id), "file": str(r.file), "width": int(r.width), "height": int(r.height),
+             "rank": int(r.rank), "score": round(float(r.score), 6), "mask_sha256": mask_digest(masks[r.image_id])}
+            for r in ranked.itertuples(index=False)]
+    options = {"ranking": ranking, "top": top, "ls_shape": ls_shape, "coco_shape": coco_shape, "image_url": image_url,
+               "student": predict is not None}
+    export_id = hashlib.sha256(canonical_json({"teacher": record.get("teacher_fingerprint"), "options": options,
+                                               "rows": rows}).encode()).hexdigest()[:16]
+    claim_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], COMMAND, {"export_id": export_id, "complete": False})
+
+    with atomic_path(out / OUTPUTS["csv"]) as tmp:
+        ranked.to_csv(tmp, index=False, float_format="%.6g")
+    tasks, images, annotations = [], [], []
+    for k, r in enumerate(ranked.itertuples(index=False)):
+        mask = masks[r.image_id]
+        data = {"image": f"{image_url}{r.file}", "image_id": str(r.image_id), EXPORT_FIELD: export_id,
+                "rank": int(r.rank), "score": round(float(r.score), 6), "g": round(float(r.g), 6),
+                "h": round(float(r.h), 6)}
+        result = ls_results(mask, ls_shape, result_id=f"vote{k + 1}")
+        tasks.append({"data": data, "predictions": [{"model_version": MODEL_VERSION, "score": data["g"],
+                                                     "result": result}] if result else []})
+        images.append({"id": k + 1, "file_name": str(r.file), "width": int(r.width), "height": int(r.height)})
+        ann = coco_review_annotation(mask, len(annotations) + 1, k + 1, coco_shape)
+        if ann is not None:
+            annotations.append(ann)
+    with atomic_path(out / OUTPUTS["labelstudio"], is_dir=True) as tmp:
+        (tmp / LS_TASKS).write_text(json.dumps(tasks, separators=(",", ":")))
+        (tmp / LS_CONFIG).write_text(ls_label_config(ls_shape))
+    coco = {"info": {"version": "1.0", "description": f"geodistill review export {export_id}: voted pseudo-masks "
+                                                      f"ranked by {ranking}"},
+            "licenses": [], "categories": [dict(SPACECRAFT_CATEGORY)], "images": images, "annotations": annotations}
+    with atomic_path(out / OUTPUTS["cvat"], is_dir=True) as tmp:
+        (tmp / CVAT_COCO).write_text(json.dumps(coco, separators=(",", ":")))
+    for row in rows:
+        row["voted_rle"] = rle_encode(masks[row["image_id"]])
+    write_json(out / OUTPUTS["record"], {
+        "export_id": export_id, "label_dir": str(label_dir.resolve()), "input": record["input"],
+        "simulator": bool(record.get("simulator")), **options, "images": rows, "complete": True,
+        **record_fields(out, OUTPUTS["record"], COMMAND, OWN_OUTPUTS)})
+    return ReviewExport(out, ranked, export_id, ranking)

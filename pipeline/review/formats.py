@@ -1,0 +1,216 @@
+"""The review formats, pure functions on arrays: Label Studio brush RLE and polygons, COCO 1.0 for CVAT.
+
+Label Studio brush RLE (``BrushLabels`` results, ``value.format: "rle"``)
+    The mask is an RGBA image flattened row by row (pixel (y, x) -> values ``4 * (y * W + x) .. + 3``)
+    and packed with thi.ng's ``rle-pack`` bit format, as label-studio-converter's ``brush.encode_rle``
+    writes it and Label Studio's front end decodes it: a 32-bit value count, the word size minus one (5
+    bits: 8), four run-length field widths minus one (4 bits each: 3, 4, 8, 16), then segments -- a
+    run ``1, size index (2 bits), length - 1, value (word)`` or a literal stretch ``0, size index,
+    length - 1, value, value, ...`` -- most significant bit first, zero-padded to whole bytes (and, as
+    the converter does, one more zero byte when already whole).  :func:`ls_rle_encode` writes runs
+    only (a mask repeats every pixel over its four channels, so no run is shorter than 4) with the
+    value 255 in all four channels: an opaque mask, as ``brush.mask2rle`` of a 0/255 mask gives --
+    a 0/1 mask would be stored with alpha 1, drawn invisible, the common reason pre-annotations "do
+    not render".  ``result.original_width`` / ``original_height`` are the image's own size.
+    :func:`ls_rle_decode` reads the whole format (literal stretches included: Label Studio's own
+    exports use them), and a pixel is foreground when its alpha is > 0 (label-studio-converter's
+    ``ls_rle_to_coco_rle`` rule).
+Label Studio polygons (``PolygonLabels``, ``--ls-shape polygon``)
+    One result per connected region, its outer contour (the YOLO writer's
+    :func:`pipeline.labeling.formats.yolo_polygons`) in per cent of the width and height; holes are
+    filled, and specks of 1-2 px are left out -- so a polygon round trip is not pixel-exact, a brush one is.
+COCO 1.0 for CVAT (``--coco-shape rle``, the default)
+    One annotation per image with the whole mask as *uncompressed* RLE (``counts`` a list of run
+    lengths, column-major, starting with background) and ``iscrowd: 1`` -- the form CVAT's own COCO
+    1.0 export uses for masks, so its importer reads it back as a mask.  ``--coco-shape polygon``:
+    ``iscrowd: 0`` with one ``[x1, y1, x2, y2, ...]`` outer contour per region in pixels (holes filled).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pycocotools import mask as mask_utils
+
+from pipeline.labeling.formats import SPACECRAFT_CATEGORY, mask_bbox, yolo_polygons
+
+#: rle-pack parameters label-studio-converter writes (word size 8; run-length field widths)
+LS_WORD_SIZE = 8
+LS_RLE_SIZES = (3, 4, 8, 16)
+LS_OPAQUE = 255   # the value of a foreground pixel in each of R, G, B, A
+LS_FROM_NAME, LS_TO_NAME = "mask", "image"   # the control and object tag names of :func:`ls_label_config`
+LABEL = SPACECRAFT_CATEGORY["name"]
+
+
+class FormatError(ValueError):
+    """A corrupt or inconsistent annotation (the importer turns it into a one-line InputError)."""
+
+
+# --------------------------------------------------------------------------------------------------
+# Label Studio brush RLE
+# --------------------------------------------------------------------------------------------------
+def _run_bits(length: int, value: int) -> str:
+    """One run segment of ``length`` values, field for field as label-studio-converter's ``encode_rle``
+    writes it (so the bytes match too): the narrowest of the 3-, 4- and 8-bit length fields, else
+    16-bit fields, in pieces of 2**16 values while more than 2**16 remain."""
+    word = format(value, f"0{LS_WORD_SIZE}b")
+    for index, width in enumerate(LS_RLE_SIZES[:3]):
+        if length <= 2 ** width:
+            return "1" + format(index, "02b") + format(length - 1, f"0{width}b") + word
+    out = []
+    while length > 2 ** 16:
+        out.append("111" + format(2 ** 16 - 1, "016b") + word)
+        length -= 2 ** 16
+    out.append("111" + format(length - 1, "016b") + word)
+    return "".join(out)
+
+
+def ls_rle_encode(mask: np.ndarray) -> list[int]:
+    """Label Studio brush RLE (a list of byte values) of a bool [H,W] mask (module docstring)."""
+    mask = np.asarray(mask, bool)
+    if mask.ndim != 2:
+        raise FormatError(f"mask: expected [H,W], got shape {mask.shape}")
+    flat = mask.ravel()
+    n = flat.size
+    bits = [format(4 * n, "032b"), format(LS_WORD_SIZE - 1, "05b"), "".join(format(s - 1, "04b") for s in LS_RLE_SIZES)]
+    if n:
+        change = np.flatnonzero(flat[1:] != flat[:-1]) + 1
+        starts = np.concatenate([[0], change])
+        lengths = np.diff(np.concatenate([starts, [n]]))
+        bits += [_run_bits(4 * int(length), LS_OPAQUE if flat[s] else 0) for s, length in zip(starts, lengths)]
+    text = "".join(bits)
+    text += "0" * (8 - len(text) % 8)  # as label-studio-converter: a whole extra zero byte when aligned
+    packed = np.packbits(np.frombuffer(text.encode("ascii"), np.uint8) - ord("0"))
+    return packed.tolist()
+
+
+def ls_rle_decode(rle, height: int, width: int) -> np.ndarray:
+    """bool [H,W] of a Label Studio brush RLE (alpha > 0); FormatError when it is not valid RLE or does
+    not hold H x W x 4 values."""
+    try:
+        data = np.asarray(rle, np.int64)
+        if data.ndim != 1 or data.size < 5 or (data < 0).any() or (data > 255).any():
+            raise ValueError
+    except (TypeError, ValueError):
+        raise FormatError("brush rle is not a list of byte values") from None
+    bits = (np.unpackbits(data.astype(np.uint8)) + ord("0")).tobytes().decode("ascii")
+    pos = 0
+
+    def read(k: int) -> int:
+        nonlocal pos
+        if pos + k > len(bits):
+            raise FormatError("brush rle ends early")
+        v = int(bits[pos:pos + k], 2) if k else 0
+        pos += k
+        return v
+
+    num = read(32)
+    if num != 4 * height * width:
+        raise FormatError(f"brush rle holds {num} values, expected {4 * height * width} (= {width}x{height}x4)")
+    word = read(5) + 1
+    sizes = [read(4) + 1 for _ in range(4)]
+    out = np.zeros(num, np.uint32)
+    i = 0
+    while i < num:
+        run = read(1)
+        j = min(i + 1 + read(sizes[read(2)]), num)
+        if run:
+            out[i:j] = read(word)
+        else:
+            out[i:j] = [read(word) for _ in range(j - i)]
+        i = j
+    return out.reshape(height, width, 4)[:, :, 3] > 0
+
+
+def ls_label_config(shape: str = "brush") -> str:
+    """The Label Studio labelling interface (XML) the tasks' results name: an image and one label."""
+    tag = {"brush": "BrushLabels", "polygon": "PolygonLabels"}[shape]
+    return (f'<View>\n  <Image name="{LS_TO_NAME}" value="$image" zoom="true"/>\n'
+            f'  <{tag} name="{LS_FROM_NAME}" toName="{LS_TO_NAME}">\n'
+            f'    <Label value="{LABEL}" background="#ff3b30"/>\n  </{tag}>\n</View>\n')
+
+
+def ls_results(mask: np.ndarray, shape: str = "brush", result_id: str = "r0") -> list[dict]:
+    """The ``result`` list of one prediction: one brush result, or one polygon result per region."""
+    mask = np.asarray(mask, bool)
+    h, w = mask.shape
+    common = {"from_name": LS_FROM_NAME, "to_name": LS_TO_NAME, "original_width": int(w), "original_height": int(h),
+              "image_rotation": 0, "origin": "prediction"}
+    if not mask.any():
+        return []
+    if shape == "brush":
+        return [{"id": result_id, "type": "brushlabels", **common,
+                 "value": {"format": "rle", "rle": ls_rle_encode(mask), "brushlabels": [LABEL]}}]
+    return [{"id": f"{result_id}p{k}", "type": "polygonlabels", **common,
+             "value": {"points": np.round(poly * 100.0, 4).tolist(), "closed": True, "polygonlabels": [LABEL]}}
+            for k, poly in enumerate(yolo_polygons(mask))]
+
+
+def polygon_mask(polygons, height: int, width: int, scale=(1.0, 1.0)) -> np.ndarray:
+    """bool [H,W]: the union of filled polygons (lists of [x, y] points, or flat [x1, y1, ...]) with
+    coordinates multiplied by ``scale`` (x, y) -- (W/100, H/100) for Label Studio's per cent."""
+    import cv2
+
+    out = np.zeros((height, width), np.uint8)
+    for poly in polygons:
+        pts = np.asarray(poly, np.float64).reshape(-1, 2) * np.asarray(scale, np.float64)
+        if len(pts) >= 3:
+            cv2.fillPoly(out, [np.round(pts).astype(np.int32)], 1)
+    return out.astype(bool)
+
+
+# --------------------------------------------------------------------------------------------------
+# COCO 1.0 (CVAT)
+# --------------------------------------------------------------------------------------------------
+def coco_uncompressed_rle(mask: np.ndarray) -> dict:
+    """``{"size": [h, w], "counts": [run lengths]}``: column-major runs starting with background."""
+    mask = np.asarray(mask, bool)
+    flat = mask.ravel(order="F")
+    change = np.flatnonzero(flat[1:] != flat[:-1]) + 1
+    bounds = np.concatenate([[0], change, [flat.size]])
+    counts = np.diff(bounds).tolist()
+    if flat.size and flat[0]:
+        counts = [0] + counts
+    return {"size": [int(mask.shape[0]), int(mask.shape[1])], "counts": [int(c) for c in counts]}
+
+
+def coco_review_annotation(mask: np.ndarray, annotation_id: int, image_id: int, shape: str = "rle", **extra) -> dict | None:
+    """One COCO annotation of a mask for CVAT (module docstring); None for an empty mask."""
+    mask = np.asarray(mask, bool)
+    area = int(np.count_nonzero(mask))
+    if area == 0:
+        return None
+    if shape == "rle":
+        seg, crowd = coco_uncompressed_rle(mask), 1
+    else:
+        h, w = mask.shape
+        seg = [np.round(p * [w, h], 2).ravel().tolist() for p in yolo_polygons(mask)]
+        crowd = 0
+    return {"id": int(annotation_id), "image_id": int(image_id), "category_id": SPACECRAFT_CATEGORY["id"],
+            "segmentation": seg, "area": area, "bbox": mask_bbox(mask), "iscrowd": crowd, **extra}
+
+
+def coco_segmentation_mask(segmentation, height: int, width: int) -> np.ndarray:
+    """bool [H,W] of a COCO segmentation -- polygons, uncompressed or compressed RLE -- by pycocotools'
+    own decoder (``frPyObjects`` / ``merge`` / ``decode``); FormatError when it cannot be read."""
+    try:
+        if isinstance(segmentation, list):
+            polys = [p for p in segmentation if len(p) >= 6]
+            if not polys:
+                return np.zeros((height, width), bool)
+            rle = mask_utils.merge(mask_utils.frPyObjects(polys, height, width))
+        elif isinstance(segmentation, dict) and isinstance(segmentation.get("counts"), list):
+            if list(segmentation.get("size", [])) != [height, width]:
+                raise FormatError(f"RLE size {segmentation.get('size')} is not the image's [{height}, {width}]")
+            rle = mask_utils.frPyObjects(segmentation, height, width)
+        elif isinstance(segmentation, dict) and isinstance(segmentation.get("counts"), (str, bytes)):
+            if list(segmentation.get("size", [])) != [height, width]:
+                raise FormatError(f"RLE size {segmentation.get('size')} is not the image's [{height}, {width}]")
+            counts = segmentation["counts"]
+            rle = {"size": [height, width], "counts": counts.encode("ascii") if isinstance(counts, str) else counts}
+        else:
+            raise FormatError("segmentation is neither polygons nor RLE")
+        return mask_utils.decode(rle).astype(bool)
+    except (TypeError, ValueError, KeyError) as e:
+        if isinstance(e, FormatError):
+            raise
+        raise FormatError(f"segmentation cannot be decoded ({e})") from None

@@ -1,0 +1,33 @@
+"""The convergence benchmark (pipeline/benchmarks/convergence.py): branch lengths, the plateau rule, and
+a tiny end-to-end run whose decay branches start from the stable phase's saved states."""
+
+from __future__ import annotations
+
+import json
+
+from pipeline.benchmarks.convergence import branch_epochs, decay_epochs, main, plateau
+
+
+def test_lengths_and_the_plateau_rule():
+    assert branch_epochs(5, 3) == [5, 10, 20, 40]
+    assert decay_epochs(8, 0.2) == 2 and decay_epochs(1, 0.2) == 1  # at least one decay epoch
+    assert plateau([0.40, 0.50, 0.53, 0.534, 0.60]) == 2  # 0.53 -> 0.534 gains < 0.005
+    assert plateau([0.40, 0.50, 0.56]) is None
+    assert plateau([0.50, 0.49]) == 0  # a loss is no gain
+
+
+def test_tiny_study_runs_both_methods_and_scores_test_once(tiny, tmp_path):
+    out = tmp_path / "conv.json"
+    doc = main(["--artifacts", str(tiny), "--profile", "demo", "--first", "1", "--doublings", "1",
+                "--threads", "1", "--set", "train.precision=fp32", "--out", str(out)])
+    assert json.loads(out.read_text()) == json.loads(json.dumps(doc))
+    for m in ("plain", "supervised_ceiling"):
+        r = doc["methods"][m]
+        assert [c["stable_epochs"] for c in r["curve"]] == [1, 2]
+        assert [c["epochs"] for c in r["curve"]] == [2, 3] and r["curve"][1]["steps"] > r["curve"][0]["steps"]
+        assert all(0 <= c["val_iou_cal"] <= 1 for c in r["curve"]) and 0 <= r["test_iou"] <= 1
+    # different labels, different curves; a rerun resumes (nothing retrained)
+    assert doc["methods"]["plain"]["curve"] != doc["methods"]["supervised_ceiling"]["curve"]
+    again = main(["--artifacts", str(tiny), "--profile", "demo", "--first", "1", "--doublings", "1",
+                  "--threads", "1", "--set", "train.precision=fp32", "--out", str(out)])
+    assert again["methods"] == doc["methods"]

@@ -1,0 +1,62 @@
+"""Distillation efficiency: student Image IoU / teacher-vote Image IoU per test group, with a per-seed
+ratio t interval (pipeline/dvc_results.py), in the report's reference-points table and as metrics."""
+
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+import pytest
+
+from pipeline.dvc_results import distillation_efficiency, efficiency_metric_files
+
+
+def test_efficiency_is_the_ratio_of_the_seed_mean_with_a_per_seed_ratio_t_interval():
+    per_seed = [0.50, 0.52, 0.55, 0.49, 0.54]
+    vote = 0.62
+    s = pd.Series(per_seed)
+    e, lo, hi = distillation_efficiency(s.mean(), s.std(ddof=1), len(s), vote)
+    ratios = pd.Series([x / vote for x in per_seed])
+    t = 2.7764451051977987  # t_{4, 0.975}
+    half = t * ratios.std(ddof=1) / math.sqrt(5)
+    assert e == pytest.approx(ratios.mean()) and e == pytest.approx(s.mean() / vote)
+    assert (lo, hi) == (pytest.approx(e - half), pytest.approx(e + half))
+    e1, lo1, hi1 = distillation_efficiency(0.5, float("nan"), 1, 0.6)  # one seed: no interval
+    assert e1 == pytest.approx(0.5 / 0.6) and math.isnan(lo1) and math.isnan(hi1)
+    assert all(math.isnan(x) for x in distillation_efficiency(0.5, 0.01, 3, float("nan")))
+    assert all(math.isnan(x) for x in distillation_efficiency(0.5, 0.01, 3, 0.0))
+
+
+def _summary():
+    rows = []
+    for g, vals in (("KCP", (0.51, 0.02, 0.57, 0.01)), ("HJM", (0.49, 0.03, 0.54, 0.02))):
+        for m, (mean, std) in (("plain", vals[:2]), ("supervised_ceiling", vals[2:])):
+            for mode in ("calibrated", "fixed"):
+                rows.append({"dataset": "synthetic", "group": g, "method": m, "threshold_mode": mode,
+                             "iou_mean": mean - (0.05 if mode == "fixed" else 0), "iou_std": std, "bf1_mean": 0.5,
+                             "bf1_std": 0.01, "precision_mean": 0.6, "precision_std": 0.01, "recall_mean": 0.7,
+                             "recall_std": 0.01, "n_seeds": 5})
+    return pd.DataFrame(rows)
+
+
+def test_metric_files_hold_every_method_and_group_with_a_vote():
+    files = efficiency_metric_files(_summary(), {"KCP": 0.6})
+    assert sorted(files) == ["KCP/plain.json", "KCP/supervised_ceiling.json"]  # HJM has no vote here
+    assert files["KCP/plain.json"]["efficiency"] == round(0.51 / 0.6, 4)
+    # the ratio only: the interval is the report's, so `dvc metrics show` stays narrow (pipeline.dvc_results)
+    assert files["KCP/supervised_ceiling.json"] == {"efficiency": round(0.57 / 0.6, 4)}
+
+
+def test_reference_points_table_shows_the_efficiency_of_students_and_ceiling():
+    from pipeline.report.tables import reference_points_table
+
+    vote = pd.DataFrame({"iou": [0.6, 0.7], "bf1": [0.5, 0.5], "precision": [0.6, 0.6], "recall": [0.7, 0.7]},
+                        index=["KCP", "HJM"])
+    tab = reference_points_table(_summary(), vote, "calibrated", ["KCP", "HJM"])
+    col = tab.header.index("IoU ÷ vote")
+    cells = {(r[0], r[1]): r[col] for r in tab.rows}
+    plain = next(v for (g, name), v in cells.items() if g == "HJM" and "Plain" in name)
+    e, lo, hi = distillation_efficiency(0.49, 0.03, 5, 0.7)
+    assert plain == f"{e:.2f} [{lo:.2f}, {hi:.2f}]"
+    assert sum(v.startswith(f"{0.57 / 0.6:.2f}") for v in cells.values()) == 1  # the ceiling on KCP
+    assert any("vote" in name.lower() and v == "1" for (_, name), v in cells.items())
