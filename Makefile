@@ -18,7 +18,7 @@ TORCH_SPEC ?= torch==$(TORCH_VERSION)
 # reproducible-builds convention's floor (the earliest time a ZIP entry can hold).
 SOURCE_DATE_EPOCH ?= 315532800
 
-.PHONY: install lock demo test reduced paper clean-artifacts
+.PHONY: install lock demo test reduced paper clean-artifacts review-e2e
 
 install: $(VENV)/.installed
 
@@ -58,3 +58,11 @@ test: install
 
 clean-artifacts:
 	rm -rf artifacts reports/demo
+
+# Opt-in, never in CI: the Label Studio round trip against a real server (pipeline/review/e2e.py).
+# label-studio installs into its own venv (it pins packages of its own); REVIEW_E2E_ARGS may name a
+# review export folder (--review DIR), else synthetic brush masks go through.
+LS_VENV ?= .cache/label-studio-venv
+review-e2e:
+	test -x $(LS_VENV)/bin/label-studio || ($(PYTHON) -m venv $(LS_VENV) && $(LS_VENV)/bin/pip install -q label-studio)
+	$(BIN)/python -m pipeline.review.e2e --label-studio $(LS_VENV)/bin/label-studio $(REVIEW_E2E_ARGS)

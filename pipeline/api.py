@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 from pipeline.datasets.loading import pixel_limit
-from pipeline.errors import BACKEND, CHECKPOINT, LABELS, OUT, InputError, literal
-from pipeline.labeling import label_folder
+from pipeline.errors import BACKEND, CHECKPOINT, LABELS, InputError, literal
+from pipeline.labeling import LabelResult, label_folder
 from pipeline.labeling.run import check_label_folder, parse_formats
 from pipeline.params import deep_merge, validate
 from pipeline.profiles import load_params_or_profile
@@ -130,19 +130,20 @@ def with_data_options(params: dict, skip_bad: bool = False, max_pixels: int | No
     return deep_merge(params, {"data": data}) if data else params
 
 
-def label(input: str | Path, checkpoint: str | Path | None = None, out: str | Path | None = None,
-          formats: str | Sequence[str] = ("png", "coco", "yolo"), *, backend: str | None = None,
+def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None = None,
+          formats: str | Sequence[str] = ("png", "coco", "yolo"), backend: str | None = None,
           imported_dir: str | Path | None = None, reference_masks: str | Path | None = None,
           params: str | Path | None = None, overrides: Mapping | Iterable[str] | None = None,
-          device: str = "auto", skip_bad: bool = False, overwrite: bool = False, max_pixels: int | None = None):
+          device: str = "auto", skip_bad: bool = False, overwrite: bool = False,
+          max_pixels: int | None = None) -> LabelResult:
     """Pseudo-label the images under ``input`` into ``out`` (``geodistill label``;
     :mod:`pipeline.labeling.run`): voted masks as PNG / COCO RLE / YOLO files, the gate table and a
-    contact sheet.  Returns a :class:`pipeline.labeling.LabelResult` (``.table``: c, v, a, g per image).
-    ``backend="simulated"`` is a SIMULATOR that needs ``reference_masks``.  ``skip_bad``, ``overwrite``
-    and ``max_pixels`` (None: the params' ``data.max_pixels``, 2**26 by default): the command's
-    ``--skip-bad``, ``--overwrite`` and ``--max-pixels`` (docs/own-data.md)."""
-    if out is None:
-        raise InputError("label: {} (the output folder) is required", OUT)
+    contact sheet.  Returns a :class:`pipeline.labeling.LabelResult` (``.table``: c, v, a, g per image;
+    ``.masks``: image id -> mask PNG).  Every argument but ``input`` is a keyword; ``out`` is required,
+    and a teacher: ``checkpoint`` (SAM 3), ``backend="imported"`` with ``imported_dir``, or a ``params``
+    file naming a checkpoint.  ``backend="simulated"`` is a SIMULATOR that needs ``reference_masks``.
+    ``skip_bad``, ``overwrite`` and ``max_pixels`` (None: the params' ``data.max_pixels``, 2**26 by
+    default): the command's ``--skip-bad``, ``--overwrite`` and ``--max-pixels`` (docs/own-data.md)."""
     fmts = parse_formats(formats)
     p = choose_teacher(effective_params(params, overrides, LABEL_PROFILE), backend, checkpoint, imported_dir)
     p = with_data_options(p, skip_bad, max_pixels)
@@ -150,8 +151,8 @@ def label(input: str | Path, checkpoint: str | Path | None = None, out: str | Pa
                         overwrite=overwrite)
 
 
-def distill(input: str | Path, out: str | Path | None = None, val_masks: str | Path | None = None,
-            checkpoint: str | Path | None = None, *, backend: str | None = None,
+def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None = None,
+            checkpoint: str | Path | None = None, backend: str | None = None,
             imported_dir: str | Path | None = None, params: str | Path | None = None,
             overrides: Mapping | Iterable[str] | None = None, device: str = "auto", run: bool = True,
             skip_bad: bool = False, overwrite: bool = False, max_pixels: int | None = None,
@@ -159,12 +160,11 @@ def distill(input: str | Path, out: str | Path | None = None, val_masks: str | P
     """Train a deployable student on the images under ``input`` (``geodistill distill``;
     :mod:`pipeline.standalone`): ``out`` becomes a DVC project running the pipeline's DAG (rerun to
     resume).  Returns ``{"deploy", "report", "thresholds", "checkpoints"}`` paths; ``run=False`` only
-    writes the project.  ``skip_bad``, ``overwrite``, ``max_pixels``: as for :func:`label`.
+    writes the project.  Every argument but ``input`` is a keyword; ``out`` is required.  ``skip_bad``,
+    ``overwrite``, ``max_pixels``: as for :func:`label`.
     ``labels``: an unmodified :func:`label` output folder of the same images -- its teacher, resolution,
     vote and gate are used and its teacher cache is read, so the teacher computes nothing again
     (:func:`params_from_labels`; no ``checkpoint`` needed)."""
-    if out is None:
-        raise InputError("distill: {} (the project folder) is required", OUT)
     p = distill_params(effective_params(params, overrides, DISTILL_PROFILE), input, labels, backend, checkpoint,
                        imported_dir, skip_bad, max_pixels)
     project = write_project(input, out, p, val_masks=val_masks, overwrite=overwrite, labels=labels)

@@ -127,6 +127,8 @@ SCHEMAS: dict[str, Schema] = {
         _s("generic_table", 1, "parquet"),
         # masks a person corrected (geodistill review import): compressed COCO RLE at the image's own size
         _s("corrections", 1, "parquet", columns=("image_id", "file", "width", "height", "rle", "pixels", "source")),
+        # the corrections at the working resolution, checked against a run (stage corrections; attrs image_ids, mode)
+        _s("corrected", 1, "zarr", arrays={"mask": ("b", 3), "row": ("i", 1)}),
         _s("report", 1, "dir", files=("report.md", "report.html")),
         # exported mask path: the bundle's required files (pipeline.catalog.DEPLOY_BUNDLE; the weights as above)
         _s("deploy", 1, "dir", files=(WEIGHTS_FILES, *(f.name for k, f in DEPLOY_BUNDLE.items()

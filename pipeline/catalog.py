@@ -92,7 +92,11 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
        "teacher vote's) and its interval at the calibrated tau (pipeline.dvc_results.efficiency_metric_files)"),
     _a("corrections", "corrections.parquet", "corrections", "review import",
        "masks a person corrected (geodistill review import; compressed COCO RLE at each image's own size): "
-       "manual masks, never a loss of an annotation-free method; not yet a DVC stage's dep"),
+       "manual masks, never a loss of an annotation-free method; the corrections stage's dep when params "
+       "review.corrections names it"),
+    _a("corrected", "corrected.zarr", "corrected", "corrections",
+       "the corrections checked against this run and at the working resolution, for review.mode (validate: "
+       "validation masks; replace: training targets, NOT annotation-free); only when review.corrections is set"),
 ]}
 
 
@@ -140,6 +144,18 @@ DEPLOY_BUNDLE: dict[str, BundleFile] = {f.key: f for f in [
     BundleFile("deploy_json", "deploy.json", "pipeline.deploy.bundle.write_bundle",
                "tau and its source, working resolution, config, parity, file sha256s, source checkpoint "
                "(pipeline.deploy.bundle.read_deploy_info: every reader)"),
+    # the input/output contract and its golden pair (bundles of older versions have none: not required)
+    BundleFile("contract", "contract.json", "pipeline.deploy.bundle.write_contract",
+               "the written input/output contract for software that runs the ONNX model without this project: "
+               "frame reading, size, channel order, normalisation, dtype, tau, output meaning, confidence, "
+               "the golden pair and its tolerance", required=False),
+    BundleFile("golden_input", "golden_input.npy", "pipeline.deploy.bundle.write_contract",
+               "a golden model input: one RGB uint8 frame [R,R,3] at the working resolution", required=False),
+    BundleFile("golden_probs", "golden_probs.npy", "pipeline.deploy.bundle.write_contract",
+               "the golden output: P = sigmoid(Z) float32 [R,R] of the golden input (PyTorch fp32, CPU)",
+               required=False),
+    BundleFile("golden_mask", "golden_mask.npy", "pipeline.deploy.bundle.write_contract",
+               "the golden mask [P >= tau], bool [R,R]", required=False),
 ]}
 
 
@@ -185,7 +201,7 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
     StageSpec("prepare", "stages.prepare", "--out-dir {artifacts_dir}", (),
               ("manifest", "images", "reference", "skipped_files", "contact_sheet", "synthetic_files"),
               _keys("data", "source", "root", "protocol", "domain", "resolution", "seed", "skip_bad",
-                    "max_pixels", "synthetic", "contact_sheet_images"),
+                    "max_pixels", "bit_depth", "letterbox", "synthetic", "contact_sheet_images"),
               data_deps=("data_manifests",)),
     StageSpec("teacher", "stages.teacher",
               "--manifest {manifest} --images {images} --reference {reference} --out {teacher} "
@@ -223,7 +239,7 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               ("export_checkpoint", "thresholds", "manifest", "images"), ("deploy",),
               _keys("deploy", "export_method", "export_seed", "opset", "parity_atol", "int8_calibration_images",
                     "int8_calibration", "int8_percentile", "int8_min_mask_iou")
-              + ("calibrate.fixed_tau", "data.resolution")),
+              + ("calibrate.fixed_tau", "data.resolution", "data.bit_depth", "data.letterbox")),
     StageSpec("benchmark", "stages.benchmark",
               "--deploy {deploy} --artifacts {artifacts_dir} --out {efficiency} --metrics-json {metrics_deploy}",
               ("deploy", "manifest", "images", "reference"), ("efficiency",),
@@ -236,7 +252,11 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               ("manifest", "images", "reference", "teacher", "consensus", "geometry", "gates", "checkpoints",
                "thresholds", "metrics", "summary", "teacher_metrics", "efficiency"), ("report",),
               ("profile",) + _keys("report", "qualitative_images", "pseudo_target_images"),
-              metrics=("metrics_efficiency",)),
+              metrics=("metrics_efficiency",)),    # optional: in dvc.yaml only when params review.corrections is set (pipeline.dag.OPTIONAL_STAGES)
+    StageSpec("corrections", "stages.corrections",
+              "--corrections ${review.corrections} --artifacts {artifacts_dir} --out {corrected}",
+              ("manifest", "images"), ("corrected",), _keys("review", "corrections", "mode") + ("data.source",),
+              data_deps=("${review.corrections}",)),
 ]}
 
 #: The path placeholders of stage commands that are not single artifacts.

@@ -105,15 +105,51 @@ def train_stage(method_name: str, code_root: Path | None = None) -> dict:
     return entry
 
 
+#: Catalogue stages that exist in dvc.yaml only when a param is set (the stage -> the dotted key): the
+#: ``corrections`` stage with ``review.corrections`` (pipeline/review/apply.py).  Unset, dvc.yaml and
+#: every fingerprint are what they were without the stage.
+OPTIONAL_STAGES = {"corrections": "review.corrections"}
+#: what the training stages read from the ``corrections`` stage when it exists (its out and params)
+REVIEW_TRAIN_DEPS = ("corrected",)
+REVIEW_TRAIN_PARAMS = ("review.corrections", "review.mode", "review.human_targets")
+#: the stages past training that read the ``corrections`` stage's out when it exists (validate mode: the
+#: corrected images are validation images, pipeline.inference.validation_corrections), and their params
+REVIEW_VALIDATION_STAGES = ("calibrate",)
+REVIEW_VALIDATION_PARAMS = ("review.corrections", "review.mode")
+
+
+def optional_stages_on(params: dict | None) -> tuple[str, ...]:
+    """The :data:`OPTIONAL_STAGES` whose key is set (not null/empty) in ``params`` (a params dict)."""
+    def get(key):
+        cur = params or {}
+        for k in key.split("."):
+            cur = cur.get(k) if isinstance(cur, dict) else None
+        return cur
+
+    return tuple(n for n, key in OPTIONAL_STAGES.items() if get(key))
+
+
 def dvc_stages(code_root: Path | None = None, data_deps: dict[str, list[str]] | None = None,
-               omit: tuple[str, ...] = ()) -> dict[str, dict]:
+               omit: tuple[str, ...] = (), optional: tuple[str, ...] = ()) -> dict[str, dict]:
     """Every stage of dvc.yaml, in DAG order: the catalogue's data stages, one train stage per method,
-    then the catalogue's downstream stages.  ``code_root``/``data_deps``/``omit``: see :func:`render_dvc_yaml`."""
+    then the catalogue's downstream stages.  ``code_root``/``data_deps``/``omit``/``optional``: see
+    :func:`render_dvc_yaml`."""
     upstream = upstream_stages()
     out = {n: _stage_entry(STAGES[n], code_root=code_root, data_deps=data_deps) for n in upstream}
-    out.update({f"train_{name}": train_stage(name, code_root) for name in METHODS})
+    if "corrections" in optional:  # before the training stages, which read its out
+        out["corrections"] = _stage_entry(STAGES["corrections"], code_root=code_root)
+    trains = {f"train_{name}": train_stage(name, code_root) for name in METHODS}
+    if "corrections" in optional:
+        for e in trains.values():
+            e["deps"] += [_fill("{" + d + "}") for d in REVIEW_TRAIN_DEPS]
+            e["params"] += list(REVIEW_TRAIN_PARAMS)
+    out.update(trains)
     out.update({n: _stage_entry(s, code_root=code_root, data_deps=data_deps)
-                for n, s in STAGES.items() if n not in upstream})
+                for n, s in STAGES.items() if n not in upstream and n not in OPTIONAL_STAGES})
+    if "corrections" in optional:
+        for n in REVIEW_VALIDATION_STAGES:
+            out[n]["deps"] += [_fill("{" + d + "}") for d in REVIEW_TRAIN_DEPS]
+            out[n]["params"] += list(REVIEW_VALIDATION_PARAMS)
     if omit:  # the omitted stages' outputs are no one's deps any more (their readers cope without them)
         gone = {_fill("{" + o + "}") for n in omit for o in STAGES[n].outs + STAGES[n].metrics}
         out = {n: {**e, "deps": [d for d in e["deps"] if d not in gone]} for n, e in out.items() if n not in omit}
@@ -162,15 +198,17 @@ def live_plots(runs: dict[str, list[int]], metric: str = LIVE_PLOT_METRIC) -> li
 
 
 def render_dvc_yaml(code_root: Path | None = None, data_deps: dict[str, list[str]] | None = None,
-                    header: str = DVC_HEADER, omit: tuple[str, ...] = (), extra_plots: list[dict] = ()) -> str:
+                    header: str = DVC_HEADER, omit: tuple[str, ...] = (), extra_plots: list[dict] = (),
+                    optional: tuple[str, ...] = ()) -> str:
     """dvc.yaml text.  Default: this repository's DAG.  A standalone project (``geodistill distill``'s
     output folder) passes ``code_root`` (code deps become absolute paths of the installed code, so a
     code change still reruns exactly the stages that run it) and ``data_deps`` ({stage: paths}, e.g.
     the input image folder and the generated protocol file instead of data_manifests/) and may
     ``omit`` catalogue stages that have nothing to do there (``evaluate`` and ``analyze_teacher``
     without any reference mask; ``extra_plots`` then take the place of the plots of omitted stages,
-    e.g. :func:`live_plots`); the report reads whatever exists."""
-    doc = {"stages": dvc_stages(code_root, data_deps, omit),
+    e.g. :func:`live_plots`); the report reads whatever exists.  ``optional``: the
+    :data:`OPTIONAL_STAGES` to render (:func:`optional_stages_on` of the params; none by default)."""
+    doc = {"stages": dvc_stages(code_root, data_deps, omit, optional),
            "plots": dvc_plots(omit) + list(extra_plots)}
     return header + yaml.safe_dump(doc, sort_keys=False, width=110, default_flow_style=False)
 

@@ -59,7 +59,7 @@ class ExportPlan:
     onnx: bool
     calibration_images: Any
     calibration_note: str | None
-    settings: dict          # deploy.* as write_bundle takes them
+    settings: dict          # deploy.* as write_bundle takes them (and ``frames``: data.bit_depth, data.letterbox)
     inputs: list            # opened artifacts (lineage)
     params: dict            # the fingerprint's params
     thresholds: str | None
@@ -86,6 +86,7 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
     writes TorchScript only; ``int8=False`` (``--no-int8``) or no ``artifacts`` (``--artifacts``): no
     int8 model, and the plan's ``calibration_note`` says why."""
     from pipeline import deploy  # torch
+    from pipeline.deploy.bundle import frame_reading
 
     cfg = section(params, "deploy")
     q8 = deploy.int8_params(cfg)
@@ -108,15 +109,19 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
         calib, calib_inputs, calib_note = deploy.read_calibration_images(artifacts, cfg["int8_calibration_images"],
                                                                          int(resolution))
         inputs += calib_inputs
+    frames = frame_reading({k: params["data"].get(k) for k in ("bit_depth", "letterbox")
+                                   if params["data"].get(k) is not None})
     settings = {"opset": cfg["opset"], "atol": cfg["parity_atol"], "int8_min_mask_iou": cfg["int8_min_mask_iou"],
-                "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"]}
+                "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"], "frames": frames}
     deploy_params = {"opset": cfg["opset"], "parity_atol": cfg["parity_atol"], "onnx": onnx, "int8": calib is not None,
                      "int8_calibration_images": cfg["int8_calibration_images"],
                      "int8_min_mask_iou": cfg["int8_min_mask_iou"],
                      "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"]}
+    fingerprinted = {"deploy": deploy_params, "tau": value, "tau_source": source, "resolution": int(resolution)}
+    if frames != frame_reading():  # in the fingerprint when set (earlier bundles' fingerprints stay)
+        fingerprinted["frames"] = frames
     return ExportPlan(model, payload, str(checkpoint), ckpt.fingerprint, value, source, int(resolution), res_source,
-                      onnx, calib, calib_note, settings, inputs,
-                      {"deploy": deploy_params, "tau": value, "tau_source": source, "resolution": int(resolution)},
+                      onnx, calib, calib_note, settings, inputs, fingerprinted,
                       str(thresholds) if thresholds else None)
 
 

@@ -20,7 +20,8 @@ from typing import Iterator
 import numpy as np
 
 from pipeline import catalog
-from pipeline.artifacts import artifact_dir, make_meta, open_artifact, require_same_run, write_parquet
+from pipeline.artifacts import (Artifact, artifact_dir, make_meta, open_artifact, read_chunk_rows, require_same_run,
+    write_parquet)
 from pipeline.catalog import TRAINING_LOG_FILE
 from pipeline.device import autocast_dtype
 from pipeline.errors import ArtifactError, InputError
@@ -155,6 +156,57 @@ def open_labelled_split(artifacts: str | Path, split: str, purpose: str, allow_e
         name = "validation" if split == "val" else split
         raise InputError(f"{manifest.path}: no {name} image has a reference mask; {purpose}")
     return manifest, images, reference, idx
+
+
+#: the params key of the review mode (params ``review``; the modes: :mod:`pipeline.review.apply`)
+REVIEW_MODE_KEY = "review.mode"
+#: the review mode whose corrected images are validation masks (checkpoint selection, tau, the report)
+VALIDATE = "validate"
+#: the thresholds artifact's meta field (extra) counting the corrected training images calibrate used as
+#: validation images (recorded only in ``validate`` mode; the report reads it)
+CORRECTED_VALIDATION = "corrected_validation"
+
+
+def validation_corrections(artifacts: str | Path, review) -> Artifact | None:
+    """The opened ``corrected`` artifact (stage corrections) when the ``review`` params section makes the
+    corrected training images validation images (``review.mode: validate`` with ``review.corrections``
+    set); None otherwise (the default: nothing else is opened, the run reads what it read before).
+    InputError when the artifact was written for the other mode (``mode`` also names the params' mode)."""
+    if not (review and review.get("corrections") and review.get("mode") == VALIDATE):
+        return None
+    corrected = open_artifact(catalog.path("corrected", artifacts), catalog.ARTIFACTS["corrected"].schema)
+    require_mode(corrected, VALIDATE)
+    return corrected
+
+
+def require_mode(corrected, mode: str) -> None:
+    """InputError unless the opened ``corrected`` artifact was written for ``review.mode`` = ``mode``."""
+    if corrected.attrs.get("mode") != mode:
+        raise InputError(f"{corrected.path}: written for {REVIEW_MODE_KEY}={corrected.attrs.get('mode')!r}, the "
+                         f"params say {mode!r}; rerun the corrections stage")
+
+
+def corrected_validation(corrected, images) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """(image ids, images [M,R,R,C], masks bool [M,R,R]) of the corrected images in ascending manifest
+    row: the opened ``images`` artifact's rows of the opened ``corrected`` artifact, with their
+    corrected masks -- the validation images ``validate`` mode adds (the validation masks' one reader
+    besides the reference: :func:`with_validation_corrections`, and the train stage's checkpoint selection)."""
+    rows = np.asarray(corrected["row"], dtype=np.int64)
+    order = np.argsort(rows, kind="stable")  # chunk reads want ascending rows; keep ids in step
+    ids = [list(corrected.attrs["image_ids"])[i] for i in order]
+    return ids, read_chunk_rows(images["image"], rows[order]), np.asarray(corrected["mask"], dtype=bool)[order]
+
+
+def with_validation_corrections(val_images: np.ndarray, val_masks: np.ndarray, corrected, images
+                                ) -> tuple[np.ndarray, np.ndarray]:
+    """The validation arrays (images, bool masks; reference rows of split ``val``) with the corrected
+    images appended (:func:`corrected_validation`); unchanged when ``corrected`` is None."""
+    if corrected is None:
+        return val_images, val_masks
+    _, imgs, masks = corrected_validation(corrected, images)
+    if len(val_images) == 0:
+        return imgs, masks
+    return np.concatenate([val_images, imgs]), np.concatenate([val_masks, masks])
 
 
 def active_runs(checkpoints_dir: str | Path, purpose: str) -> list[tuple[str, int, Path]]:

@@ -235,6 +235,29 @@ METHODS: dict[str, Method] = {m.name: m for m in [
 SUPERVISED_CEILING = "supervised_ceiling"
 
 
+#: What every table appends to the label of a run trained with human-corrected masks in its loss
+#: (``review.mode: replace`` with ``review.human_targets: true``; pipeline/review/apply.py): like the
+#: supervised ceiling, such a run is NOT annotation-free, whatever its method.
+HUMAN_TARGETS_LABEL = "(trained on human corrections; not annotation-free)"
+
+
+def replaces_targets(review: Mapping[str, Any] | None) -> bool:
+    """Whether the ``review`` params section puts human-corrected masks into the loss (replace mode)."""
+    return bool(review and review.get("corrections") and review.get("mode") == "replace")
+
+
+def run_annotation_free(method: Method, review: Mapping[str, Any] | None = None) -> bool:
+    """Whether a run of ``method`` under the ``review`` params section is annotation-free: the method is
+    (:attr:`Method.annotation_free`) and no human-corrected mask replaces a target (:func:`replaces_targets`)."""
+    return method.annotation_free and not replaces_targets(review)
+
+
+def run_label(method: Method, review: Mapping[str, Any] | None = None) -> str:
+    """The method's label in a table, with :data:`HUMAN_TARGETS_LABEL` when the run trained on corrections."""
+    return method.label if run_annotation_free(method, review) or not method.annotation_free \
+        else f"{method.label} {HUMAN_TARGETS_LABEL}"
+
+
 def check_reference_boundary(methods: Mapping[str, Method]) -> None:
     """The annotation-free boundary of the method table: only :data:`SUPERVISED_CEILING` may train on
     reference masks (``data="reference"``); ValueError naming any other method that asks for them."""

@@ -118,6 +118,9 @@ SIMULATED, SAM3, IMPORTED = BACKENDS = ("simulated", "sam3", "imported")
 #: test spacecraft (t), the former seed-aware bootstrap, and the effect on spacecraft like these (cluster t)
 SEED_IMAGE_T, SEED_BOOTSTRAP, SEED_CLUSTER_T = GAIN_INTERVALS = ("seed_image_t", "seed_bootstrap", "seed_cluster_t")
 SPLITS = ("train", "val", "test")
+#: ``data.bit_depth``: how many of a 16-bit file's bits carry the signal (pipeline.datasets.loading.scale_16bit)
+AUTO_BIT_DEPTH = "auto"
+BIT_DEPTHS = (AUTO_BIT_DEPTH, 10, 12, 14, 16)
 
 
 class DataParams(_Section):
@@ -130,6 +133,11 @@ class DataParams(_Section):
     skip_bad: bool = _f(False, "true: leave bad files out and list them in skipped_files.parquet")
     max_pixels: int = _f(2**26, "refuse images above width x height pixels, read from the file header before "
                                 "decoding (2**26: 8192 x 8192)", ge=1)
+    bit_depth: Literal[BIT_DEPTHS] = _f(
+        AUTO_BIT_DEPTH, "bits a 16-bit frame's sensor fills: auto = the file's own (full range, value / 257; a warning "
+                        "when a frame uses under 1/8 of it); 10/12/14/16 = value * 255 / (2**bits - 1), clipped")
+    letterbox: bool = _f(False, "false: squash each frame to the square working resolution (the paper); true: pad it "
+                                "to a square with black first (aspect ratio kept), predictions cropped back exactly")
     cache_dir: str | None = _f(".cache/decode", "decode cache, outside DVC outs (not fingerprinted)")
     synthetic: SyntheticParams = Field(default_factory=SyntheticParams)
     contact_sheet_images: int = _f(16, ge=0, le=256)
@@ -475,6 +483,32 @@ class DeployParams(_Section):
         return v
 
 
+# --------------------------------------------------------------------------------------------------
+# review (stage corrections; pipeline/review/apply.py)
+# --------------------------------------------------------------------------------------------------
+class ReviewParams(_Section):
+    """Masks a person corrected (``geodistill review import``) and how the DAG uses them.
+
+    ``corrections: null`` (the default) is today's pipeline: no ``corrections`` stage in dvc.yaml and
+    no artifact of it read by any stage.
+    """
+
+    corrections: str | None = _f(None, "a corrections artifact (geodistill review import --out); null = none")
+    mode: Literal["validate", "replace"] = _f(
+        "validate", "validate: the corrected training images leave training and become validation masks "
+                    "(the student stays annotation-free) | replace: they replace those images' voted masks "
+                    "in training (NOT annotation-free; needs human_targets: true)")
+    human_targets: bool = _f(False, "allow mode replace: human-corrected masks enter the loss, so the students "
+                                    "are NOT annotation-free (labelled so, like protocol.supervised_ceiling)")
+
+    @model_validator(mode="after")
+    def _replace_flag(self):
+        if self.corrections and self.mode == "replace" and not self.human_targets:
+            raise ValueError("mode replace trains on human-corrected masks (not annotation-free); "
+                             "set review.human_targets: true to allow it")
+        return self
+
+
 class Params(_Section):
     """The whole params file."""
 
@@ -499,6 +533,7 @@ class Params(_Section):
     evaluate: EvaluateParams = Field(default_factory=EvaluateParams)
     report: ReportParams = Field(default_factory=ReportParams)
     deploy: DeployParams = Field(default_factory=DeployParams)
+    review: ReviewParams = Field(default_factory=ReviewParams)
 
     @model_validator(mode="after")
     def _cross(self):

@@ -103,7 +103,12 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
                                   **({} if workers is None else {"workers": workers}))
     listing = Path(output) / F.SKIPPED_CSV
     deploy.write_skipped_csv(listing, policy.rows())
-    echo(f"segment: wrote {len(result.written)} mask(s) to {output}")
+    F.write_confidence_csv(Path(output) / F.CONFIDENCE_CSV, Path(output).absolute().resolve(), result.written,
+                           result.scores)
+    lowest = (f" (lowest {min(result.scores):.3f}: {result.written[result.scores.index(min(result.scores))].name})"
+              if result.scores else "")
+    echo(f"segment: wrote {len(result.written)} mask(s) to {output}; per-frame confidence in "
+         f"{F.CONFIDENCE_CSV}{lowest}")
     if (line := policy.summary("segment", listing)) is not None:
         echo(line)
     if result.written:

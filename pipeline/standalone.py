@@ -28,9 +28,15 @@ Design (decision; the issue asks for "the same DAG ... reproducible and resumabl
   stage commands are ``python -m stages.<name>``).  ``--device cpu`` hides CUDA from the stages
   (``CUDA_VISIBLE_DEVICES=""``); the default ``auto`` lets each stage use a GPU when there is one.
   Later, ``cd OUT && dvc repro`` works the same way: edit a value in params.yaml, run ``dvc repro``,
-  and exactly the stages that read it rerun.  (The project is ``--no-scm``: no git, so ``dvc exp``
-  commands, which need git, are not suggested.)  When a stage fails, its own one-line message is
-  the one distill prints (DVC's "failed to reproduce" line is left out, :func:`run_project`).
+  and exactly the stages that read it rerun.  When a stage fails, its own one-line message is
+  the one distill prints (DVC's "failed to reproduce" line is left out, :func:`run_project`), and
+  DVC's closing "Use `dvc push` ..." is left out too (a distill project has no remote).
+
+* git: where ``git`` is installed, a new project is a git repository of its own (:func:`init_git`:
+  ``git init``, a ``.gitignore`` for the caches, ``dvc init`` with git, ``core.autostage`` on so DVC
+  stages what it changes instead of printing ``git add`` hints, and one commit of the project files by
+  "geodistill distill"), so ``dvc exp run -S key=value`` and ``dvc exp show`` work there.  Without
+  git (or in a project made before) it is ``--no-scm``: ``dvc repro`` only, ``dvc exp`` needs git.
 
 Validation masks (``--val-masks DIR``, named like the images): the ``folder`` protocol puts the images
 that have a mask into validation and test (seeded halves, ``val_fraction`` 0.5) and trains on the
@@ -56,8 +62,10 @@ import json
 import logging
 import os
 import re
+import shutil
 import subprocess
 import sys
+import threading
 from pathlib import Path
 from typing import Mapping
 import yaml
@@ -87,6 +95,16 @@ DVCIGNORE = "/.cache/\n__pycache__/\n*.pyc\n"
 #: folder and lock, the caches and the DAG's outputs (artifacts/, reports/)
 PROJECT_OUTPUTS = ("params.yaml", "dvc.yaml", "dvc.lock", PROTOCOL_FILE, ".dvcignore", ".dvc", ".cache",
                    "artifacts", "reports")
+#: what distill writes too when it makes a new project a git repository (:func:`git_outputs`)
+GIT_OUTPUTS = (".git", ".gitignore")
+#: the project's .gitignore (DVC adds its stage outputs to .gitignore files of their own folders)
+GITIGNORE = "/.cache/\n__pycache__/\n*.pyc\n/dvc_plots/\n/geodistill_plots/\n"
+#: the files of distill's first commit in a new git project (:func:`init_git`)
+GIT_TRACKED = ("params.yaml", "dvc.yaml", PROTOCOL_FILE, RECORD_FILE, ".dvcignore", ".gitignore", ".dvc")
+#: the author of that commit: the command, not the user (unsigned: no key prompt)
+GIT_AUTHOR = ("-c", "user.name=geodistill distill", "-c", "user.email=geodistill@localhost", "-c", "commit.gpgsign=false")
+#: DVC's last line after `dvc repro` (dvc/commands/repro.py), left out: a distill project has no remote
+DVC_PUSH_HINT = "Use `dvc push` to send your updates to remote storage."
 #: a distill.json written before records named their writer: recognised by these keys
 LEGACY = {"legacy_outputs": PROJECT_OUTPUTS, "legacy_keys": ("input", "code", "geodistill_version")}
 DVC_HEADER = """\
@@ -175,14 +193,15 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
         raise InputError("{}: the SIMULATOR reads ground-truth masks of the training images, which a folder of "
                          "images has not; use {} or {}", BACKEND("simulated"), CHECKPOINT("SAM3_DIR"),
                          BACKEND("imported"))
-    check_outputs(out, PROJECT_OUTPUTS, RECORD_FILE, "distill", overwrite=overwrite, **LEGACY)
+    git = git_outputs(out)
+    check_outputs(out, PROJECT_OUTPUTS + git, RECORD_FILE, "distill", overwrite=overwrite, **LEGACY)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()
     record = {"input": str(input_dir), "val_masks": str(masks) if masks is not None else None,
               "teacher_backend": params["teacher"]["backend"], "teacher_checkpoint": params["teacher"]["checkpoint"],
               "labels": str(Path(labels).resolve()) if labels is not None else None,
               "code": str(ROOT), "geodistill_version": __version__,
-              **record_fields(out, RECORD_FILE, "distill", PROJECT_OUTPUTS, **LEGACY)}
+              **record_fields(out, RECORD_FILE, "distill", PROJECT_OUTPUTS + git, **LEGACY)}
     write_text_if_changed(out / RECORD_FILE, json.dumps(record, indent=1, sort_keys=True) + "\n")  # first
 
     text = render_params_yaml(PROFILE, deep_merge(dict(params), project_params(params, input_dir, masks)),
@@ -196,8 +215,11 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     write_text_if_changed(out / "dvc.yaml", render_dvc_yaml(code_root=ROOT, data_deps=data_deps, header=DVC_HEADER,
                                                         omit=omit, extra_plots=extra))
     write_text_if_changed(out / ".dvcignore", DVCIGNORE)
+    new_git = bool(git) and init_git(out)
     if not (out / ".dvc").is_dir():
-        for args in (("init", "--no-scm", "-q"), ("config", "core.analytics", "false")):
+        scm = new_git or ((out / ".git").is_dir() and ".git" in record["outputs"])  # a git init of a killed run
+        for args in (("init", "-q") if scm else ("init", "--no-scm", "-q"), ("config", "core.analytics", "false"),
+                     *([("config", "core.autostage", "true")] if scm else [])):
             res = _dvc(out, *args)
             if res.returncode != 0:
                 raise InputError(f"{{}}: `dvc {literal(' '.join(args))}` failed: "
@@ -205,7 +227,42 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     # after `dvc init` (which a pre-made .dvc/ would skip): dvc.yaml's plots name this template, and
     # without it `dvc plots show` fails in the project
     write_text_if_changed(template_path(out), template_text())
+    if new_git:
+        commit_project(out)
     return out
+
+
+def git_outputs(out: Path) -> tuple[str, ...]:
+    """:data:`GIT_OUTPUTS` when ``out`` is to become a new git project (git is installed and ``out`` has
+    none of ``.dvc``, ``.git``, ``.gitignore``: a project made before stays ``--no-scm``, a repository or
+    .gitignore of the user's is left alone), else ()."""
+    if shutil.which("git") is None or any((Path(out) / f).exists() for f in (".dvc", *GIT_OUTPUTS)):
+        return ()
+    return GIT_OUTPUTS
+
+
+def init_git(out: Path) -> bool:
+    """``git init`` in the new project folder ``out`` and its ``.gitignore``; True when done (False,
+    with a warning, when git fails: the project is then ``--no-scm``)."""
+    res = subprocess.run(["git", "init", "-q", str(out)], capture_output=True, text=True)
+    if res.returncode != 0:
+        log.warning("distill: `git init` failed in %s (%s); the project is --no-scm", out, res.stderr.strip())
+        return False
+    write_text_if_changed(out / ".gitignore", GITIGNORE)
+    return True
+
+
+def commit_project(out: Path) -> None:
+    """One commit of distill's project files (:data:`GIT_TRACKED`) in the git repository :func:`init_git`
+    made, by "geodistill distill": ``dvc exp`` needs a commit to start from."""
+    tracked = [f for f in GIT_TRACKED if (out / f).exists()]
+    for args in (("add", "--", *tracked), (*GIT_AUTHOR, "commit", "-q", "--no-verify", "-m",
+                                           "geodistill distill: the project")):
+        res = subprocess.run(["git", *args], cwd=out, capture_output=True, text=True)
+        if res.returncode != 0:
+            log.warning("distill: `git %s` failed in %s: %s", args[0] if args[0] != "-c" else "commit", out,
+                        res.stderr.strip())
+            return
 
 
 #: a stage's own one-line error (stages._common.one_line_errors) and DVC's lines about a failed stage
@@ -221,7 +278,9 @@ def run_project(out: str | Path, device: str = "auto") -> None:
     DVC's line."""
     out = Path(out)
     proc = subprocess.Popen([sys.executable, "-m", "dvc", "repro"], cwd=out, env=_env(device),
-                            stderr=subprocess.PIPE, text=True, errors="replace")
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, errors="replace")
+    relay = threading.Thread(target=_relay_stdout, args=(proc.stdout,), daemon=True)
+    relay.start()
     stage_error = dvc_error = None
     for line in proc.stderr:
         if (m := _STAGE_ERROR.match(line.rstrip("\n"))) is not None:
@@ -232,11 +291,20 @@ def run_project(out: str | Path, device: str = "auto") -> None:
             sys.stderr.write(line)
             sys.stderr.flush()
     rc = proc.wait()
+    relay.join()
     if rc != 0:
         if stage_error is not None:
             raise InputError.from_line(stage_error)
         raise InputError(f"{out}: {dvc_error or f'dvc repro failed (exit {rc})'}; the stage's output is above -- "
                          "fix it and rerun the same command to resume")
+
+
+def _relay_stdout(stream) -> None:
+    """``dvc repro``'s standard output to ours, line by line, without :data:`DVC_PUSH_HINT`."""
+    for line in stream:
+        if line.strip() != DVC_PUSH_HINT:
+            sys.stdout.write(line)
+            sys.stdout.flush()
 
 
 def project_outputs(out: str | Path) -> dict[str, Path]:

@@ -15,7 +15,10 @@ over ``calibrate.reliability_bins`` equal-width bins) and ``ece`` (expected cali
 ``area_curve`` (list, per grid tau: median over validation images of predicted / reference
 foreground area) with ``area_ratio`` and ``fixed_area_ratio`` at the calibrated and the fixed tau.
 
-Manual (reference) masks enter here ONLY to calibrate tau -- they are never a training target.
+Manual (reference) masks enter here ONLY to calibrate tau -- they are never a training target.  With
+``review.mode: validate`` (and ``review.corrections`` set) the corrected training images are validation
+images too, with their corrected masks (pipeline.inference.validation_corrections; their count is
+recorded in the thresholds' meta, ``corrected_validation``, for the report).
 
 No validation image with a mask (``geodistill distill`` without ``--val-masks``): nothing to calibrate
 on, so every run gets the fixed tau with ``tau_source`` = pipeline.thresholds.NO_VALIDATION_MASKS (:func:`fixed_thresholds`).
@@ -32,7 +35,8 @@ from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.device import resolve_device
 from pipeline.diagnostics import (area_ratio_curve, expected_calibration_error, median_area_ratio,
     reliability_bins)
-from pipeline.inference import active_runs, load_student, open_labelled_split, predict_probs
+from pipeline.inference import (CORRECTED_VALIDATION, active_runs, load_student, open_labelled_split, predict_probs,
+    validation_corrections, with_validation_corrections)
 from pipeline.metrics import iou_curve
 from pipeline.params import section
 from pipeline.progress import progress
@@ -66,15 +70,18 @@ def main(params, device, art, checkpoints, out):
     grid = threshold_grid(cfg)
     fixed_tau = cfg["fixed_tau"]
     manifest, images, reference, val = open_labelled_split(art, "val", "calibration needs some", allow_empty=True)
+    # review.mode validate: the corrected training images are validation images too (pipeline/review/apply.py)
+    corrected = validation_corrections(art, section(params, "review"))
     runs = active_runs(checkpoints, "calibrate")
-    if val.size == 0:  # e.g. `geodistill distill` without --val-masks: documented fallback, see fixed_thresholds
+    if val.size == 0 and corrected is None:  # e.g. `geodistill distill` without --val-masks: see fixed_thresholds
         return fixed_thresholds(params, runs, [manifest, images, reference], out)
 
     dev = resolve_device(device)
-    val_images = read_chunk_rows(images["image"], val)
-    # reference masks: threshold calibration only (never a training loss)
-    val_masks = read_chunk_rows(reference["mask"], val).astype(bool)
-    rows, inputs = [], [manifest, images, reference]
+    # reference (and corrected) masks: threshold calibration only (never a training loss)
+    val_images, val_masks = with_validation_corrections(
+        read_chunk_rows(images["image"], val), read_chunk_rows(reference["mask"], val).astype(bool), corrected, images)
+    n_val = len(val_masks)
+    rows, inputs = [], [manifest, images, reference] + ([corrected] if corrected is not None else [])
     for method, seed, path in progress(runs, desc="calibrate"):
         model, _ = load_student(path, dev)
         probs = predict_probs(model, val_images, device=dev)
@@ -83,7 +90,7 @@ def main(params, device, art, checkpoints, out):
         rel = reliability_bins(probs, val_masks, cfg["reliability_bins"])
         area = median_area_ratio(area_ratio_curve(probs, val_masks, grid))
         rows.append({"method": method, "seed": int(seed), "tau": tau, "val_iou": float(curve.max()),
-                     "fixed_tau": fixed_tau, "fixed_val_iou": fixed_iou, "n_val": int(val.size),
+                     "fixed_tau": fixed_tau, "fixed_val_iou": fixed_iou, "n_val": n_val,
                      "grid": grid.tolist(), "curve": curve.tolist(),
                      "ece": expected_calibration_error(rel.confidence, rel.frequency, rel.count),
                      "rel_confidence": rel.confidence.tolist(), "rel_frequency": rel.frequency.tolist(),
@@ -92,10 +99,14 @@ def main(params, device, art, checkpoints, out):
                      "area_ratio": float(area[int(np.flatnonzero(grid == tau)[0])]),
                      "fixed_area_ratio": float(median_area_ratio(area_ratio_curve(probs, val_masks, [fixed_tau]))[0])})
         inputs.append(open_artifact(path))
-    meta = stage_context("calibrate", __file__, params).meta(
-                    "thresholds", inputs, note="reference masks of the validation split used only for threshold calibration")
+    note = "reference masks of the validation split used only for threshold calibration"
+    extra = {}
+    if corrected is not None:
+        note += f", with the masks of {n_val - val.size} corrected training images (review.mode validate)"
+        extra[CORRECTED_VALIDATION] = n_val - int(val.size)
+    meta = stage_context("calibrate", __file__, params).meta("thresholds", inputs, note=note, **extra)
     write_parquet(out, pd.DataFrame(rows), meta)
-    click.echo(f"calibrate: {len(rows)} runs on {val.size} validation images -> {out}", err=True)
+    click.echo(f"calibrate: {len(rows)} runs on {n_val} validation images -> {out}", err=True)
 
 
 if __name__ == "__main__":

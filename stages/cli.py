@@ -15,10 +15,18 @@ from pipeline.artifacts import PROGRAM
 from pipeline.dag import stage_modules
 from stages._common import one_line_errors
 
+def command_name(stage: str) -> str:
+    """The ``geodistill`` command of a DVC stage: its name with "-" for "_" (the stage keeps its name in
+    dvc.yaml and dvc.lock)."""
+    return stage.replace("_", "-")
+
+
 # subcommand -> module under stages/ exposing a click command named ``main`` (or ``module:command``): every
-# stage of the DAG (pipeline.dag.stage_modules, from the catalogue), then the tools
+# stage of the DAG (pipeline.dag.stage_modules, from the catalogue; a command is named like its stage with
+# "-" for "_", as every other command is spelled: `analyze-teacher` runs the DVC stage `analyze_teacher`),
+# then the tools
 COMMANDS = {
-    **stage_modules(),
+    **{command_name(stage): module for stage, module in stage_modules().items()},
     "segment": "stages.segment",
     "dag": "stages.dag:dag_main",
     "profile": "stages.dag:profile_main",
@@ -31,11 +39,16 @@ COMMANDS = {
 }
 
 
+#: old spellings still accepted (not listed in --help): a DVC stage's own name with "_"
+ALIASES = {stage: command_name(stage) for stage in stage_modules() if command_name(stage) != stage}
+
+
 class LazyGroup(click.Group):
     def list_commands(self, ctx):
         return sorted(n for n, m in COMMANDS.items() if importlib.util.find_spec(m.split(":")[0]) is not None)
 
     def get_command(self, ctx, name):
+        name = ALIASES.get(name, name)
         if name not in COMMANDS:
             return None
         mod, _, attr = COMMANDS[name].partition(":")

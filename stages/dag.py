@@ -7,10 +7,12 @@ import sys
 from pathlib import Path
 
 import click
+import yaml
 
 from pipeline.artifacts import write_text_if_changed
-from pipeline.dag import is_generated_params, render_dvc_yaml, render_params_yaml
+from pipeline.dag import is_generated_params, optional_stages_on, render_dvc_yaml, render_params_yaml
 from pipeline.ownership import refuse_unowned
+from pipeline.profiles import PROFILES
 from stages._common import one_line_errors
 
 
@@ -18,8 +20,10 @@ from stages._common import one_line_errors
 @click.option("--check", is_flag=True, help="only check that dvc.yaml is up to date (exit 1 if not)")
 @click.option("--out", default="dvc.yaml", show_default=True, type=click.Path(dir_okay=False))
 def dag_main(check: bool, out: str) -> None:
-    """Write dvc.yaml from pipeline/catalog.py, pipeline/methods.py and the stages' imports."""
-    text = render_dvc_yaml()
+    """Write dvc.yaml from pipeline/catalog.py, pipeline/methods.py and the stages' imports (and the
+    optional stages params.yaml switches on: the corrections stage with review.corrections)."""
+    raw = yaml.safe_load(Path("params.yaml").read_text()) if Path("params.yaml").is_file() else None
+    text = render_dvc_yaml(optional=optional_stages_on(raw))
     path = Path(out)
     if check:
         if not path.is_file() or path.read_text() != text:
@@ -31,14 +35,15 @@ def dag_main(check: bool, out: str) -> None:
 
 
 @click.command(name="profile")
-@click.argument("name")
+@click.argument("name", type=click.Choice(list(PROFILES)))
 @click.option("--out", default="params.yaml", show_default=True, type=click.Path(dir_okay=False))
 @click.option("--overwrite", is_flag=True,
               help="accepted like the other commands' --overwrite; a params file that `geodistill profile` did "
                    "not write is never replaced (refused by name)")
 def profile_main(name: str, out: str, overwrite: bool) -> None:
-    """Write params.yaml with the effective values of profile NAME (demo | reduced | paper).  A rerun
-    rewrites its own file (recognised by the generated header); any other file is refused."""
+    """Write params.yaml with the effective values of profile NAME (one of the choices above,
+    pipeline/profiles.py).  A rerun rewrites its own file (recognised by the generated header); any
+    other file is refused."""
     with one_line_errors("profile"):
         text = render_params_yaml(name)
         path = Path(out)

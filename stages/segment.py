@@ -5,7 +5,8 @@
 --input       one image file or a folder (searched recursively for png/jpg/jpeg/tif/tiff/bmp)
 --output      folder for ``<input name>.mask.png`` (0/255, at the image's original size), optional
               ``<input name>.prob.png`` (--save-prob) and ``<input name>.overlay.png`` (--overlay), and
-              skipped.csv.  The whole input name is kept and sub-folders are mirrored:
+              skipped.csv and confidence.csv (each mask's per-frame confidence in [0, 1], low = don't trust
+              this frame: pipeline.deploy.confidence).  The whole input name is kept and sub-folders are mirrored:
               ``photos/sub/a.png`` -> ``masks/sub/a.png.mask.png``, so a.png, a.jpg and a_png.png get
               distinct outputs.  Two inputs whose outputs differ only in letter case (b.png, b.PNG) are
               refused before anything is written.
@@ -55,9 +56,9 @@ from stages._common import max_pixels_option, one_line_errors, overwrite_option,
 
 
 @click.command(name="segment", help="Binary spacecraft masks for image files with a trained or exported student (at each image's original size).")
-@click.option("--checkpoint", default=None, help="checkpoint directory or deploy bundle")
-@click.option("--input", "input_path", default=None, help="image file or folder")
-@click.option("--output", default=None, help="output folder")
+@click.option("--checkpoint", required=True, help="checkpoint directory or deploy bundle")
+@click.option("--input", "input_path", required=True, help="image file or folder")
+@click.option("--output", required=True, help="output folder")
 @click.option("--tau", type=float, default=None, help="threshold override (default: the calibrated one)")
 @click.option("--resolution", type=int, default=None,
               help="working resolution N (default: the one recorded with the model; required when none is)")

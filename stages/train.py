@@ -70,7 +70,7 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
                          f"needs params protocol.{SUPERVISED_CEILING}: true")
     from pipeline import training  # torch: imported once the options are checked
 
-    data, val, inputs = load_inputs(artifacts, spec, cfg)
+    data, val, inputs = load_inputs(artifacts, spec, cfg, review=section(params, "review"))
     init_state = None
     if spec.init == "stage1":
         if not init:

@@ -3,6 +3,8 @@ stage scripts only wire options to these functions."""
 
 from __future__ import annotations
 
+import csv
+
 import json
 
 import numpy as np
@@ -76,7 +78,17 @@ def test_segment_images_writes_masks_with_the_bundle_tau(exported, tmp_path):
     assert said[0] == f"segment: engine torch, 2 image(s), {RES}px ({root / 'deploy' / bundle_file('deploy_json')}), " \
                       "tau=0.42 (deploy bundle (calibrated on the validation split (" + \
                       f"{root / 'thresholds.parquet'}: geodistill, seed 42)))"
-    assert said[1] == f"segment: wrote 2 mask(s) to {tmp_path / 'out'}" and "ms/image" in said[-1]
+    assert said[1].startswith(f"segment: wrote 2 mask(s) to {tmp_path / 'out'}; per-frame confidence in "
+                              "confidence.csv (lowest ") and "ms/image" in said[-1]
+    # the frame confidence of each mask: the Segmenter's own score of that image (flight software's "trust it?")
+    from pipeline.deploy import Segmenter
+
+    rows = list(csv.DictReader(open(tmp_path / "out" / "confidence.csv")))
+    seg = Segmenter.from_bundle(root / "deploy", engine="torch")
+    assert [r["mask"] for r in rows] == ["a.png.mask.png", "b.png.mask.png"]
+    assert [float(r["confidence"]) for r in rows] == pytest.approx([seg.score(images / n) for n in ("a.png", "b.png")],
+                                                                   abs=1e-6)
+    assert min(result.scores) == pytest.approx(float(said[1].split("(lowest ")[1].split(":")[0]), abs=1e-3)
 
 
 def test_segment_options_and_resolution_are_checked_before_anything_is_written(exported, tmp_path):

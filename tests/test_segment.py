@@ -221,13 +221,17 @@ def test_segment_never_overwrites_inputs_and_rejects_bad_options(tmp_path):
         (["--input", tmp_path / "nowhere", "--output", tmp_path / "o"], "nowhere"),
         (["--input", tmp_path / "in", "--output", tmp_path / "o", "--tau", 2], "--tau"),
         (["--input", tmp_path / "in", "--output", tmp_path / "o", "--engine", "onnx"], "deploy bundle"),
-        (["--input", tmp_path / "in"], "--output"),
     ]
     for extra, needle in cases:
         r = segment(*base, *extra)
         assert r.exit_code == 2, (extra, r.output)
         lines = r.output.strip().splitlines()
         assert len(lines) == 1 and needle in lines[0], (extra, r.output)
+    # a missing required option: click's usage error (exit 2), its last line naming the option, as for
+    # label and distill; --help marks the three as [required]
+    r = segment(*base, "--input", tmp_path / "in")
+    assert r.exit_code == 2 and r.output.strip().splitlines()[-1] == "Error: Missing option '--output'.", r.output
+    assert segment("--help").output.count("[required]") == 3
     assert not (tmp_path / "in" / "masks").exists() and not (tmp_path / "o").exists()
     # an input that is itself named like an output of another input in the same folder
     flat = tmp_path / "flat"

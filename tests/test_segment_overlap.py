@@ -130,10 +130,10 @@ def test_errors_of_the_writer_and_the_reader_propagate_after_the_same_outputs(ck
     assert len([k for k in left[0] if k.endswith(".mask.png")]) == 5 and left[2] == left[0]
     monkeypatch.setattr(F, "write_png", real_write)
 
-    def failing_read(path, max_pixels=None):
+    def failing_read(path, **options):
         if Path(path).name.startswith("im08"):
             raise RuntimeError("decoder crashed")
-        return real_read(path, max_pixels=max_pixels)
+        return real_read(path, **options)
 
     monkeypatch.setattr(F, "read_rgb", failing_read)
     for workers in (0, 2):
@@ -144,7 +144,11 @@ def test_errors_of_the_writer_and_the_reader_propagate_after_the_same_outputs(ck
 
 
 class CountingSegmenter:
-    """A fake engine: P = 0.5 everywhere; records how many images were read when each batch ran."""
+    """A fake engine: P = 0.5 everywhere; records how many images were read when each batch ran.  Frames
+    are read as a Segmenter's defaults read them (bit depth from the file, squashed to a square)."""
+
+    bit_depth = "auto"
+    letterbox = False
 
     def __init__(self, loads: list):
         self.loads = loads

@@ -157,7 +157,8 @@ def test_rerun_replaces_its_own_outputs_and_refuses_a_users_file_unless_asked(tm
     out = tmp_path / "out"
     assert segment(ckpts["with"], inp, out).exit_code == 0
     first = snapshot(out)
-    assert len(first) == 4  # 2 masks + skipped.csv + segment.json (the record of what segment wrote)
+    # 2 masks + skipped.csv + confidence.csv + segment.json (the record of what segment wrote)
+    assert len(first) == 5
     # a file segment did not write, where a new input's mask goes: refused, naming it; nothing written
     image(inp / "c.png", 2)
     (out / "c.png.mask.png").write_bytes(b"my own hand-made mask")

@@ -88,7 +88,8 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
                 bar.update(1)
     return DatasetSpec(rows=pd.DataFrame(rows), mask_threshold=None, part_colors=None,
                        spacecraft_disjoint=True,
-                       protocol={"name": "synthetic", "plan": [vars(p) for p in plan]}, max_pixels=cfg.get("max_pixels"))
+                       protocol={"name": "synthetic", "plan": [vars(p) for p in plan]}, max_pixels=cfg.get("max_pixels"),
+                       letterbox=bool(cfg.get("letterbox", False)))
 
 
 def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = None) -> DatasetSpec:
@@ -96,6 +97,7 @@ def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = 
     directory holding only a note, so no stale synthetic files survive a switch of source."""
     spec = adapters.build_source(cfg, policy)
     spec.max_pixels = cfg.get("max_pixels")  # data.max_pixels: checked on every file's header (decode_rows)
+    spec.bit_depth, spec.letterbox = cfg.get("bit_depth", "auto"), bool(cfg.get("letterbox", False))
     if out_dir is not None:
         with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:
             (tmp / "README.txt").write_text(f"data.source={cfg['source']}: the synthetic benchmark was not "
@@ -128,15 +130,18 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
     keep, width, height, sha = [], [], [], []
     for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):
         try:
-            img = load_rgb(r.image_path, size, cache, max_pixels=spec.max_pixels)
+            img = load_rgb(r.image_path, size, cache, max_pixels=spec.max_pixels, bit_depth=spec.bit_depth,
+                           letterbox=spec.letterbox)
             for col in ("mask_path", "part_path"):
                 path = getattr(r, col)
                 if not _has(path):
                     continue
                 if col == "mask_path":
-                    got = load_mask(path, size, cache, spec.mask_threshold, max_pixels=spec.max_pixels)
+                    got = load_mask(path, size, cache, spec.mask_threshold, max_pixels=spec.max_pixels,
+                                    letterbox=spec.letterbox)
                 else:
-                    got = load_labels(path, size, cache, spec.part_colors, max_pixels=spec.max_pixels)
+                    got = load_labels(path, size, cache, spec.part_colors, max_pixels=spec.max_pixels,
+                                      letterbox=spec.letterbox)
                 if got.native_hw != img.native_hw:
                     raise BadFileError(path, f"{col.split('_')[0]} size {got.native_hw[1]}x{got.native_hw[0]} differs "
                                              f"from image {r.image_path} size {img.native_hw[1]}x{img.native_hw[0]}")
@@ -170,11 +175,12 @@ def iter_arrays(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
                 ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]]:
     """Yield ``(row, image uint8 [S,S,3], mask bool [S,S] | None, parts uint8 [S,S] | None)``."""
     for i, r in enumerate(rows.itertuples(index=False)):
-        img = load_rgb(r.image_path, size, cache, max_pixels=spec.max_pixels).array
-        mask = (load_mask(r.mask_path, size, cache, spec.mask_threshold, max_pixels=spec.max_pixels).array
-                if _has(r.mask_path) else None)
-        parts = (load_labels(r.part_path, size, cache, spec.part_colors, max_pixels=spec.max_pixels).array
-                 if _has(r.part_path) else None)
+        img = load_rgb(r.image_path, size, cache, max_pixels=spec.max_pixels, bit_depth=spec.bit_depth,
+                       letterbox=spec.letterbox).array
+        mask = (load_mask(r.mask_path, size, cache, spec.mask_threshold, max_pixels=spec.max_pixels,
+                          letterbox=spec.letterbox).array if _has(r.mask_path) else None)
+        parts = (load_labels(r.part_path, size, cache, spec.part_colors, max_pixels=spec.max_pixels,
+                             letterbox=spec.letterbox).array if _has(r.part_path) else None)
         yield i, img, mask, parts
 
 

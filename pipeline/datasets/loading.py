@@ -4,8 +4,8 @@
     Any supported file (png, jpg/jpeg, tif/tiff, bmp) -> RGB uint8 [H, W, 3] at native size.
     Grey is replicated to three channels; RGBA drops alpha (spacecraft imagery has no meaningful
     transparency; compositing on black would equal dropping it for premultiplied black
-    backgrounds); 16-bit is scaled to 8-bit by rounding ``v / 257`` (the exact 65535 -> 255 map);
-    float images are taken as [0, 1] and clipped.  OpenCV decodes BGR, so channels are reversed.
+    backgrounds); 16-bit is scaled to 8-bit by :func:`scale_16bit` under the stated bit depth
+    (``bit_depth``); float images are taken as [0, 1] and clipped.  OpenCV decodes BGR, so channels are reversed.
     Raises :class:`InputError` naming the file for a missing, zero-byte, corrupt or unsupported file,
     a broken symbolic link or a directory.
 
@@ -16,6 +16,21 @@ The pixel limit (every reader below, ``max_pixels``; params ``data.max_pixels``,
     (:class:`BadFileError` naming it, its size and the option), so a few-megabyte PNG whose header
     declares 30,000 x 30,000 pixels never reaches the decoder.  Bytes that carry no PNG, JPEG, TIFF or
     BMP header are "corrupt or undecodable" before decoding too.
+
+Bit depth (params ``data.bit_depth``; every reader below takes ``bit_depth``, the one helper is
+:func:`scale_16bit`)
+    ``auto`` (the default) takes a 16-bit file as full range: rounding ``v / 257`` (the exact
+    65535 -> 255 map).  A sensor of 10, 12 or 14 bits stored in 16-bit files fills only the low bits, and
+    its frames come out nearly black that way: under ``auto`` a 16-bit frame whose brightest value is
+    below 1/8 of the range (< 8192) gets one warning per file naming it and the option.  ``bit_depth`` =
+    10/12/14/16 maps ``v * 255 / (2**bits - 1)`` (rounded; values above ``2**bits - 1`` clip to 255, with
+    one warning per file).  8-bit and float files are not affected.
+
+Aspect ratio (params ``data.letterbox``; ``letterbox=`` of the resizers below)
+    False (the paper): every frame is squashed to the square working resolution.  True: the frame is
+    first padded with black to a square (centred: :func:`letterbox_box`), then resized; the way back
+    (:func:`probs_to_size`) samples only working pixels that hold some of the frame and crops the pad, so
+    a prediction comes back at the frame's own size and the pad never reaches it.
 
 ``read_mask(path, threshold)``
     Any mask file -> bool [H, W].  THE rule (this module is the only place a mask file is binarised:
@@ -57,7 +72,7 @@ import numpy as np
 
 from pipeline.datasets.image_header import header_size
 from pipeline.errors import MAX_PIXELS, InputError, Option, literal
-from pipeline.params import PAPER
+from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER
 
 log = logging.getLogger(__name__)
 
@@ -159,12 +174,51 @@ def _decode(data: bytes, path: str | Path) -> np.ndarray:
     return arr
 
 
-def to_rgb8(arr: np.ndarray, path: str | Path = "<array>") -> np.ndarray:
-    """Decoded OpenCV array (grey, BGR, BGRA; 8/16-bit or float) -> RGB uint8 [H, W, 3]."""
+#: under ``bit_depth="auto"``, a 16-bit frame whose brightest value is below this (1/8 of the range) is
+#: warned about: it is most likely a 10-14-bit sensor's frame, which full range makes nearly black
+LOW_RANGE_16BIT = 1 << 13
+
+
+def check_bit_depth(bit_depth) -> str | int:
+    """``bit_depth`` checked against :data:`pipeline.params.BIT_DEPTHS` (params validate ``data.bit_depth``
+    on load; this guards the Python API's ``bit_depth=``)."""
+    if not isinstance(bit_depth, bool) and bit_depth in BIT_DEPTHS:
+        return bit_depth
+    raise InputError(f"bit_depth={bit_depth!r}: expected one of {', '.join(map(str, BIT_DEPTHS))} (bits of a "
+                     f"16-bit frame's sensor; auto = the file's full range)")
+
+
+def scale_16bit(arr: np.ndarray, bit_depth="auto") -> tuple[np.ndarray, str | None]:
+    """``(uint8 array, note)`` of a uint16 array under the stated ``bit_depth`` (module docstring):
+    ``auto``/16 = ``round(v / 257)``; 10/12/14 = ``round(min(v, 2**bits - 1) * 255 / (2**bits - 1))``.
+    ``note`` (None when there is nothing to say) is the warning's text: a frame under 1/8 of the range
+    under ``auto``, or values above the stated depth."""
+    bit_depth = check_bit_depth(bit_depth)
+    peak = int(arr.max()) if arr.size else 0
+    if bit_depth in (AUTO_BIT_DEPTH, 16):
+        a8 = ((arr.astype(np.uint32) + 128) // 257).astype(np.uint8)
+        note = None
+        if bit_depth == AUTO_BIT_DEPTH and peak < LOW_RANGE_16BIT:
+            note = (f"16-bit frame whose brightest value is {peak:,} of 65,535 (under 1/8 of the range): read as "
+                    f"full range it comes out nearly black; if the sensor has fewer bits, set data.bit_depth "
+                    f"(bit_depth=) to 10, 12 or 14")
+        return a8, note
+    top = (1 << int(bit_depth)) - 1
+    a = np.minimum(arr, top).astype(np.uint32)
+    a8 = ((a * 510 + top) // (2 * top)).astype(np.uint8)      # round(v * 255 / top), exact integers
+    note = (f"values up to {peak:,} above the stated {bit_depth}-bit maximum {top:,} (clipped to white); "
+            f"check data.bit_depth (bit_depth=)") if peak > top else None
+    return a8, note
+
+
+def rgb8_and_note(arr: np.ndarray, path: str | Path = "<array>", bit_depth="auto") -> tuple[np.ndarray, str | None]:
+    """:func:`to_rgb8` without its warning: ``(RGB uint8 [H, W, 3], note or None)`` (the decode cache
+    keeps the note with the entry, so a cached frame is warned about too)."""
+    note = None
     if arr.dtype == np.uint8:
         a8 = arr
     elif arr.dtype == np.uint16:
-        a8 = ((arr.astype(np.uint32) + 128) // 257).astype(np.uint8)
+        a8, note = scale_16bit(arr, bit_depth)
     elif arr.dtype.kind == "f":
         a8 = (np.clip(np.nan_to_num(arr), 0, 1) * 255 + 0.5).astype(np.uint8)
     elif arr.dtype.kind in "iu":
@@ -172,26 +226,43 @@ def to_rgb8(arr: np.ndarray, path: str | Path = "<array>") -> np.ndarray:
     else:
         raise BadFileError(path, f"unsupported pixel type {arr.dtype}")
     if a8.ndim == 2:
-        return np.repeat(a8[..., None], 3, axis=2)
+        return np.repeat(a8[..., None], 3, axis=2), note
     if a8.ndim != 3:
         raise BadFileError(path, f"unsupported image shape {arr.shape}")
     ch = a8.shape[2]
     if ch == 1:
-        return np.repeat(a8, 3, axis=2)
+        return np.repeat(a8, 3, axis=2), note
     if ch == 3:
-        return np.ascontiguousarray(a8[..., ::-1])
+        return np.ascontiguousarray(a8[..., ::-1]), note
     if ch == 4:
-        return np.ascontiguousarray(a8[..., 2::-1])
+        return np.ascontiguousarray(a8[..., 2::-1]), note
     raise BadFileError(path, f"unsupported channel count {ch}")
 
 
-def read_rgb(path: str | Path, *, max_pixels: int | None = None) -> np.ndarray:
+def to_rgb8(arr: np.ndarray, path: str | Path = "<array>", bit_depth="auto") -> np.ndarray:
+    """Decoded OpenCV array (grey, BGR, BGRA; 8/16-bit or float) -> RGB uint8 [H, W, 3]; a 16-bit array
+    by :func:`scale_16bit` under ``bit_depth`` (its note warned once per ``path``)."""
+    rgb, note = rgb8_and_note(arr, path, bit_depth)
+    warn_frame_once(path, note)
+    return rgb
+
+
+def read_rgb(path: str | Path, *, max_pixels: int | None = None, bit_depth="auto") -> np.ndarray:
     """Read any supported image file as RGB uint8 [H, W, 3] at native size (see module docstring);
-    refused before decoding above ``max_pixels`` (None: :data:`DEFAULT_MAX_PIXELS`)."""
-    return to_rgb8(_decode(read_image_bytes(path, max_pixels), path), path)
+    refused before decoding above ``max_pixels`` (None: :data:`DEFAULT_MAX_PIXELS`); 16-bit files under
+    ``bit_depth`` (``data.bit_depth``)."""
+    return to_rgb8(_decode(read_image_bytes(path, max_pixels), path), path, bit_depth)
 
 
 _warned: set[str] = set()
+_warned_frames: set[tuple[str, str]] = set()
+
+
+def warn_frame_once(path: str | Path, note: str | None) -> None:
+    """The one warning per (file, note) per process about how a frame's pixel values were read."""
+    if note and (str(path), note) not in _warned_frames:
+        _warned_frames.add((str(path), note))
+        log.warning("%s: %s", path, note)
 
 
 def multi_valued_note(a: np.ndarray) -> str | None:
@@ -315,23 +386,69 @@ def parts_from_colors(rgb: np.ndarray, colors: dict | ColorTable, path: str | Pa
 # ---------------------------------------------------------------------------------------------------
 # Resizing
 # ---------------------------------------------------------------------------------------------------
-def resize_image(img: np.ndarray, size: int) -> np.ndarray:
-    """Square working resolution, area interpolation (the paper resizes every image to 384 x 384)."""
+def letterbox_box(height: int, width: int) -> tuple[int, int, int]:
+    """``(side, top, left)``: a [height, width] frame padded to the square ``side = max(height, width)``
+    sits at rows ``top:top + height`` and columns ``left:left + width`` (centred, the odd pixel of pad
+    below / right)."""
+    side = max(int(height), int(width))
+    return side, (side - int(height)) // 2, (side - int(width)) // 2
+
+
+def pad_to_square(img: np.ndarray) -> np.ndarray:
+    """``img`` [H, W, ...] padded with zeros (black; background) to [side, side, ...] (:func:`letterbox_box`)."""
+    side, top, left = letterbox_box(*img.shape[:2])
+    if img.shape[0] == img.shape[1]:
+        return img
+    pad = [(top, side - img.shape[0] - top), (left, side - img.shape[1] - left)] + [(0, 0)] * (img.ndim - 2)
+    return np.pad(img, pad)
+
+
+def resize_image(img: np.ndarray, size: int, letterbox: bool = False) -> np.ndarray:
+    """Square working resolution, area interpolation (the paper resizes every image to 384 x 384);
+    ``letterbox``: padded to a square with black first (:func:`pad_to_square`)."""
+    if letterbox:
+        img = pad_to_square(img)
     if img.shape[0] == size and img.shape[1] == size:
         return img
     return cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
 
 
-def probs_to_size(probs: np.ndarray, height: int, width: int) -> np.ndarray:
+def _frame_samples(n: int, offset: int, side: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bilinear taps along one axis from a frame's ``n`` pixels (at ``offset`` in the padded square of
+    ``side``) into the working grid of ``size``: ``(i0, i1, weight of i1)``.  Sample positions are
+    clamped to the working pixels that hold some of the frame, so no tap lands on pure pad."""
+    scale = size / side
+    lo = int(np.floor(offset * scale))
+    hi = max(lo, int(np.ceil((offset + n) * scale)) - 1)
+    c = np.clip((np.arange(n) + offset + 0.5) * scale - 0.5, lo, hi)
+    i0 = np.floor(c).astype(np.intp)
+    i1 = np.minimum(i0 + 1, hi)
+    return i0, i1, (c - i0).astype(np.float32)
+
+
+def probs_to_size(probs: np.ndarray, height: int, width: int, letterbox: bool = False) -> np.ndarray:
     """Bilinear resize of a probability map [R,R] back to the original [height, width] (values stay in
-    [0,1]): the way back from :func:`resize_image`'s working resolution."""
-    if probs.shape == (height, width):
-        return probs
-    return np.clip(cv2.resize(probs, (width, height), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
+    [0,1]): the way back from :func:`resize_image`'s working resolution.  ``letterbox``: the pad is
+    cropped -- each frame pixel is sampled bilinearly at its own place in the padded square, from the
+    working pixels that hold some of the frame only (module docstring)."""
+    if not letterbox:
+        if probs.shape == (height, width):
+            return probs
+        return np.clip(cv2.resize(probs, (width, height), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
+    side, top, left = letterbox_box(height, width)
+    r0, r1, ry = _frame_samples(height, top, side, probs.shape[0])
+    c0, c1, cx = _frame_samples(width, left, side, probs.shape[1])
+    p = np.asarray(probs, np.float32)
+    rows = p[r0] * (1 - ry)[:, None] + p[r1] * ry[:, None]                 # height x R
+    out = rows[:, c0] * (1 - cx)[None, :] + rows[:, c1] * cx[None, :]     # height x width
+    return np.clip(out, 0.0, 1.0)
 
 
-def resize_nearest(lbl: np.ndarray, size: int) -> np.ndarray:
-    """Nearest-neighbour resize of a label/mask array (bool or uint8) to size x size."""
+def resize_nearest(lbl: np.ndarray, size: int, letterbox: bool = False) -> np.ndarray:
+    """Nearest-neighbour resize of a label/mask array (bool or uint8) to size x size (``letterbox``:
+    padded with background first, as :func:`resize_image`)."""
+    if letterbox:
+        lbl = pad_to_square(lbl)
     if lbl.shape[0] == size and lbl.shape[1] == size:
         return lbl
     out = cv2.resize(lbl.astype(np.uint8), (size, size), interpolation=cv2.INTER_NEAREST)
@@ -407,31 +524,45 @@ class Loaded:
     native_hw: tuple[int, int]   # (height, width) of the file
 
 
-def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pixels: int | None) -> Loaded:
-    """``decode(array) -> array`` or ``(array, note)``; a note (multi-valued mask) is cached with the
-    entry and warned about once per file, whether decoded now or read from the cache.  The pixel limit
-    is checked on the header first, so a cached entry made under a higher limit is refused too."""
+def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pixels: int | None,
+          letterbox: bool = False) -> Loaded:
+    """``decode(array) -> array`` or ``(array, note)``; a note (multi-valued mask; a frame's bit depth)
+    is cached with the entry and warned about once per file, whether decoded now or read from the
+    cache.  The pixel limit is checked on the header first, so a cached entry made under a higher limit
+    is refused too.  ``letterbox`` (:func:`resize_image`) gets its own cache kind."""
     data = read_image_bytes(path, max_pixels)
     sha = hashlib.sha256(data).hexdigest()
+    rgb = kind.startswith("rgb")
+    warn = warn_frame_once if rgb else warn_mask_once
+    kind = f"{kind}-letterbox" if letterbox else kind
     if cache is not None:
         hit = cache.get_entry(sha, kind, size)
         if hit is not None:
-            warn_mask_once(path, hit[2])
+            warn(path, hit[2])
             return Loaded(hit[0], sha, hit[1])
     full = decode(_decode(data, path))
     full, note = full if isinstance(full, tuple) else (full, None)
-    warn_mask_once(path, note)
+    warn(path, note)
     hw = (int(full.shape[0]), int(full.shape[1]))
-    arr = resize_image(full, size) if kind == "rgb" else resize_nearest(full, size)
+    arr = resize_image(full, size, letterbox) if rgb else resize_nearest(full, size, letterbox)
     if cache is not None:
         cache.put(sha, kind, size, arr, hw, note)
     return Loaded(arr, sha, hw)
 
 
-def load_rgb(path, size: int, cache: DecodeCache | None = None, *, max_pixels: int | None = None) -> Loaded:
+def rgb_kind(bit_depth="auto") -> str:
+    """Decode-cache kind of a frame read under ``bit_depth`` (``rgb`` for ``auto``, as before)."""
+    bit_depth = check_bit_depth(bit_depth)
+    return "rgb" if bit_depth == AUTO_BIT_DEPTH else f"rgb{int(bit_depth)}bit"
+
+
+def load_rgb(path, size: int, cache: DecodeCache | None = None, *, max_pixels: int | None = None,
+             bit_depth="auto", letterbox: bool = False) -> Loaded:
     """RGB uint8 [size, size, 3] (area interpolation), its sha256 and native size; cached.  Refused
-    above ``max_pixels`` (None: :data:`DEFAULT_MAX_PIXELS`) before decoding."""
-    return _load(path, size, "rgb", cache, lambda a: to_rgb8(a, path), max_pixels)
+    above ``max_pixels`` (None: :data:`DEFAULT_MAX_PIXELS`) before decoding; 16-bit files read under
+    ``bit_depth`` (:func:`scale_16bit`); ``letterbox``: padded to a square first (:func:`resize_image`)."""
+    return _load(path, size, rgb_kind(bit_depth), cache, lambda a: rgb8_and_note(a, path, bit_depth), max_pixels,
+                 letterbox)
 
 
 def mask_kind(threshold: float | None) -> str:
@@ -441,19 +572,23 @@ def mask_kind(threshold: float | None) -> str:
 
 
 def load_mask(path, size: int, cache: DecodeCache | None = None, threshold: float | None = None, *,
-              max_pixels: int | None = None) -> Loaded:
-    """bool [size, size] (nearest), binarised by :func:`binarize_mask`; cached per threshold."""
-    return _load(path, size, mask_kind(threshold), cache, lambda a: binarize_mask(a, threshold), max_pixels)
+              max_pixels: int | None = None, letterbox: bool = False) -> Loaded:
+    """bool [size, size] (nearest), binarised by :func:`binarize_mask`; cached per threshold;
+    ``letterbox`` as :func:`load_rgb`'s."""
+    return _load(path, size, mask_kind(threshold), cache, lambda a: binarize_mask(a, threshold), max_pixels,
+                 letterbox)
 
 
 def load_labels(path, size: int, cache: DecodeCache | None = None,
-                colors: dict | ColorTable | None = None, *, max_pixels: int | None = None) -> Loaded:
+                colors: dict | ColorTable | None = None, *, max_pixels: int | None = None,
+                letterbox: bool = False) -> Loaded:
     """Part labels uint8 [size, size] (nearest): a label image, or a colour-coded one mapped by ``colors``
-    (:func:`parts_from_colors`: a colour outside the table refuses the file)."""
+    (:func:`parts_from_colors`: a colour outside the table refuses the file); ``letterbox`` as
+    :func:`load_rgb`'s."""
     if colors:
         table = as_color_table(colors)
         return _load(path, size, table.kind(), cache,
-                     lambda a: parts_from_colors(to_rgb8(a, path), table, path), max_pixels)
+                     lambda a: parts_from_colors(rgb8_and_note(a, path)[0], table, path), max_pixels, letterbox)
 
     def as_labels(a):
         if a.ndim == 3:
@@ -462,4 +597,4 @@ def load_labels(path, size: int, cache: DecodeCache | None = None,
             a = np.clip(a, 0, 255).astype(np.uint8)
         return a
 
-    return _load(path, size, "labels", cache, as_labels, max_pixels)
+    return _load(path, size, "labels", cache, as_labels, max_pixels, letterbox)

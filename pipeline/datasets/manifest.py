@@ -44,6 +44,8 @@ class DatasetSpec:
     protocol: a small dict describing the protocol used (kept in the manifest metadata).
     max_pixels: the pixel limit its files are read under (params ``data.max_pixels``; None: the
         default, :data:`pipeline.datasets.loading.DEFAULT_MAX_PIXELS`), checked on each file's header.
+    bit_depth, letterbox: how frames are read and resized (params ``data.bit_depth``, ``data.letterbox``;
+        :func:`pipeline.datasets.loading.load_rgb`).
     """
 
     rows: pd.DataFrame
@@ -52,6 +54,8 @@ class DatasetSpec:
     spacecraft_disjoint: bool = True
     protocol: dict = dataclasses.field(default_factory=dict)
     max_pixels: int | None = None
+    bit_depth: str | int = "auto"
+    letterbox: bool = False
 
 
 #: what a refusal suggests (a template naming ``--skip-bad`` / ``skip_bad=True`` in the caller's terms,

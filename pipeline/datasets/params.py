@@ -18,6 +18,9 @@ def check_data_params(cfg: dict) -> dict:
 def fingerprint_params(cfg: dict) -> dict:
     """The part of ``data`` that determines the prepared content (synthetic knobs only for synthetic)."""
     out = {k: v for k, v in cfg.items() if k not in NON_CONTENT_KEYS}
+    for key, default in (("bit_depth", "auto"), ("letterbox", False)):  # keys added later: in it when set
+        if out.get(key, default) == default:
+            out.pop(key, None)
     if cfg.get("source") != "synthetic":
         out.pop("synthetic", None)
     return out

@@ -11,6 +11,13 @@ Deploy bundle (directory artifact, schema ``deploy``; its layout, one table: pip
     model.int8.onnx  static int8 (QDQ) quantisation of model.onnx, calibrated on training-split images
                   (only when model.onnx exists and training images are given; the CPU fast path;
                   pipeline.deploy.quantize)
+    contract.json the written input/output contract (:func:`write_contract`): how a frame becomes the
+                  model's input (bit depth, squash or letterbox, size, channel order, normalisation,
+                  dtype, layout), what the output means (logits, tau, the mask, the way back to the
+                  frame, the per-frame confidence), and the golden pair with its tolerance -- enough to
+                  run model.onnx with onnxruntime and numpy alone
+    golden_input.npy, golden_probs.npy, golden_mask.npy  the golden pair: one working-resolution RGB
+                  uint8 frame, its probabilities P = sigmoid(Z) (PyTorch fp32 on the CPU) and its mask
     deploy.json   tau (+ where it came from, pipeline.thresholds.resolve_tau), working resolution, model
                   config, parameters, GFLOPs, exporter, parity results (int8: agreement report), file
                   sha256s, source checkpoint and its fingerprint, the int8 file and its calibration image
@@ -28,9 +35,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.catalog import bundle_file
+from pipeline.deploy.confidence import CONFIDENCE_BAND
 from pipeline.deploy import quantize as q8
 from pipeline.deploy.export import (ONNX_INPUT, ONNX_OUTPUT, check_parity, export_onnx, export_torchscript,
-                                    mask_path_model, onnx_unavailable_reason, require_parity)
+                                    mask_path_model, onnx_unavailable_reason, require_parity, torch_logits)
 from pipeline.errors import ArtifactError
 from pipeline.model import count_flops, count_parameters
 from pipeline.thresholds import logit_threshold
@@ -43,6 +51,10 @@ DEPLOY_JSON = bundle_file("deploy_json")
 TORCHSCRIPT_FILE = bundle_file("torchscript")
 ONNX_FILE = bundle_file("onnx")
 INT8_FILE = bundle_file("int8")
+CONTRACT_FILE = bundle_file("contract")
+GOLDEN_FILES = {k: bundle_file(f"golden_{k}") for k in ("input", "probs", "mask")}
+#: the contract's version: a change of its meaning (not a new key) raises it
+CONTRACT_VERSION = 1
 
 
 def file_sha256(path: str | Path) -> str:
@@ -57,7 +69,7 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
                  opset: int, atol: float, onnx: bool = True, source: dict | None = None,
                  calibration_images: np.ndarray | None = None, calibration_note: str | None = None,
                  int8_min_mask_iou: float = 0.9, int8_calibration: str = "percentile",
-                 int8_percentile: float = 99.999, device=None) -> dict:
+                 int8_percentile: float = 99.999, device=None, frames: dict | None = None) -> dict:
     """Fill a deploy bundle directory ``tmp`` (module docstring) and return its deploy.json content.
 
     Raises :class:`ParityError` when an exported format fails its parity check, and InputError when
@@ -65,7 +77,9 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
     onnx/onnxruntime missing) writes no model.onnx and records why in deploy.json.  model.int8.onnx
     is written when model.onnx exists and ``calibration_images`` (uint8 [N,R,R,3], training split,
     no masks) are given; otherwise ``int8_note`` says why not (``calibration_note`` when the caller
-    found no images).
+    found no images).  ``frames`` (``bit_depth``, ``letterbox``: params ``data.bit_depth`` and
+    ``data.letterbox``, how the training frames were read and resized; default auto and squash) is
+    recorded so that :meth:`pipeline.Segmenter.from_bundle` and ``segment`` read frames the same way.
     """
     import torch
 
@@ -102,12 +116,15 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
                 "quantization": q8.int8_description(int8_calibration, int8_percentile)}
     if int8_note is not None:
         log.info("export: int8 model skipped: %s", int8_note)
+    write_contract(tmp, deployed, tau=tau, resolution=resolution, frames=frames, atol=atol,
+                   onnx_file=ONNX_FILE if has_onnx else None)
     files = sorted(p.name for p in tmp.iterdir() if p.is_file())
     info = {
         "format_version": 1,
         "method": method, "seed": seed,
         "tau": float(tau), "tau_source": tau_source,
         "resolution": int(resolution),
+        "frames": frame_reading(frames),
         "input": {"name": ONNX_INPUT, "dtype": "float32", "layout": "NCHW", "channels": "RGB",
                   "range": [0.0, 1.0], "size": "any (the model runs at the working resolution; "
                   "resize images to resolution x resolution with area interpolation)"},
@@ -128,6 +145,86 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
     }
     (tmp / DEPLOY_JSON).write_text(json.dumps(info, indent=1, sort_keys=True))
     return info
+
+
+def golden_frame(resolution: int) -> np.ndarray:
+    """The golden input: a fixed RGB uint8 frame [R,R,3] (a lit ellipse with panels on a dark, noisy
+    background; seeded, so every export of the same model writes the same bytes)."""
+    rng = np.random.default_rng(20261126)
+    r = int(resolution)
+    yy, xx = np.mgrid[0:r, 0:r] / max(r - 1, 1)
+    body = ((yy - 0.5) / 0.22) ** 2 + ((xx - 0.5) / 0.14) ** 2 <= 1
+    panels = (np.abs(yy - 0.5) < 0.06) & (np.abs(xx - 0.5) < 0.42)
+    img = rng.normal(18, 6, (r, r, 3))
+    img[panels] = [60, 80, 170]
+    img[body] = 190 - 80 * xx[body][:, None] + rng.normal(0, 8, (int(body.sum()), 3))
+    return np.clip(img, 0, 255).round().astype(np.uint8)
+
+
+def write_contract(tmp: str | Path, deployed, *, tau: float, resolution: int, frames: dict | None = None,
+                   atol: float = 1e-4, onnx_file: str | None = ONNX_FILE) -> dict:
+    """Write contract.json and the golden pair into the bundle folder ``tmp`` (module docstring); the
+    contract's content.  The golden output is the deployed PyTorch mask path's in fp32 on the CPU; an
+    ONNX runtime reproduces P within ``atol`` (the export's parity tolerance on the logits, which bounds
+    P's: |dP| <= |dZ| / 4) and the mask except at pixels with |P - tau| <= atol."""
+    tmp = Path(tmp)
+    r = int(resolution)
+    frames = frame_reading(frames)
+    golden = golden_frame(r)
+    x = golden[None].transpose(0, 3, 1, 2).astype(np.float32) / np.float32(255.0)
+    import torch
+
+    z = torch_logits(deployed, torch.from_numpy(x))[0, 0]
+    probs = (1.0 / (1.0 + np.exp(-z.astype(np.float64)))).astype(np.float32)
+    np.save(tmp / GOLDEN_FILES["input"], golden)
+    np.save(tmp / GOLDEN_FILES["probs"], probs)
+    np.save(tmp / GOLDEN_FILES["mask"], probs >= np.float32(tau))
+    letterbox = frames["letterbox"]
+    contract = {
+        "contract_version": CONTRACT_VERSION,
+        "model": {"onnx": onnx_file, "torchscript": TORCHSCRIPT_FILE, "weights": bundle_file("weights")},
+        "frame_to_input": {
+            "decode": "to RGB uint8 [H,W,3]: grey replicated to 3 channels, alpha dropped, BGR decoders' "
+                      "channels reversed; float frames in [0,1] times 255, rounded",
+            "bit_depth": frames["bit_depth"],
+            "bit_depth_rule": "16-bit frames: auto or 16 -> round(v / 257); 10/12/14 -> round(min(v, 2**bits - 1) "
+                              "* 255 / (2**bits - 1)); 8-bit frames as they are",
+            "aspect": "letterbox" if letterbox else "squash",
+            "aspect_rule": ("pad to a square side = max(H, W) with zeros (black), the frame at rows "
+                            "(side - H) // 2 and columns (side - W) // 2, then resize" if letterbox
+                            else "resize the whole frame to a square, ignoring its aspect ratio"),
+            "resize": f"to {r} x {r} with area interpolation (OpenCV INTER_AREA)",
+        },
+        "input": {"name": ONNX_INPUT, "dtype": "float32", "layout": "NCHW", "shape": ["N", 3, r, r],
+                  "channel_order": "RGB", "normalisation": "x = uint8 / 255 (no mean or std: the model "
+                  "folds its own normalisation into its first convolution)", "range": [0.0, 1.0]},
+        "output": {"name": ONNX_OUTPUT, "dtype": "float32", "shape": ["N", 1, r, r],
+                   "meaning": "mask logits Z; P = sigmoid(Z) is the probability that a pixel is spacecraft; "
+                              "the mask is P >= tau, i.e. Z >= logit_tau (eq:inference-mask)",
+                   "tau": float(tau), "logit_tau": logit_threshold(tau),
+                   "back_to_frame": ("resize P bilinearly to side x side, crop the pad, then threshold" if letterbox
+                                     else "resize P bilinearly (OpenCV INTER_LINEAR) to H x W, then threshold")},
+        "confidence": {"band": CONFIDENCE_BAND, "range": [0.0, 1.0],
+                       "definition": "at the working resolution: m = (P - tau) / (1 - tau) where P >= tau, "
+                                     "(tau - P) / tau elsewhere; score = mean of m over the mask [P >= tau] "
+                                     "grown by `band` pixels (square neighbourhood), or over the whole frame "
+                                     "when the mask is empty; low = do not trust this frame (it ranks frames, "
+                                     "it is not a probability of being right)"},
+        "golden": {"input": GOLDEN_FILES["input"], "input_meaning": f"RGB uint8 [{r},{r},3], already at the "
+                   "working resolution (no resize)", "probabilities": GOLDEN_FILES["probs"],
+                   "mask": GOLDEN_FILES["mask"], "atol_probabilities": float(atol),
+                   "mask_rule": "equal to P >= tau except where |P - tau| <= atol_probabilities",
+                   "reference": "PyTorch fp32 on the CPU"},
+    }
+    (tmp / CONTRACT_FILE).write_text(json.dumps(contract, indent=1, sort_keys=True))
+    return contract
+
+
+def frame_reading(frames: dict | None = None) -> dict:
+    """deploy.json's ``frames``: ``{"bit_depth": auto|10|12|14|16, "letterbox": bool}`` (absent keys:
+    auto, squash -- what bundles without the record were made with)."""
+    frames = frames or {}
+    return {"bit_depth": frames.get("bit_depth", "auto"), "letterbox": bool(frames.get("letterbox", False))}
 
 
 def is_deploy_bundle(path: str | Path) -> bool:

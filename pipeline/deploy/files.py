@@ -2,8 +2,10 @@
 skipped.csv.
 
 Decision (the paper is silent on deployment): images are read by
-:func:`pipeline.datasets.loading.read_rgb` and resized to the working resolution exactly as the
-training images were (:func:`~pipeline.datasets.loading.resize_image`, area interpolation, square);
+:func:`pipeline.datasets.loading.read_rgb` (16-bit under the segmenter's ``bit_depth``) and resized to
+the working resolution exactly as the training images were (:func:`~pipeline.datasets.loading.resize_image`,
+area interpolation, square; padded to a square first when the segmenter letterboxes, the pad cropped on
+the way back);
 the probability map is resized back to the original size (bilinear) and thresholded there
 (eq:inference-mask, :func:`pipeline.thresholds.mask_from_probs`), which keeps boundaries smoother than
 resizing a binary mask.  Reading and writing overlap the inference (reader threads ahead, one writer
@@ -49,6 +51,7 @@ import numpy as np
 from pipeline.datasets.loading import probs_to_size, read_rgb, resize_image
 from pipeline.datasets.manifest import SKIPPED_COLUMNS
 from pipeline.datasets.scan import Inputs, _is_within, scan_inputs  # noqa: F401  (the folder scan, re-exported)
+from pipeline.deploy.confidence import frame_confidence
 from pipeline.deploy.segmenter import Segmenter
 from pipeline.errors import InputError
 from pipeline.ownership import owned_outputs, refuse_unowned
@@ -58,6 +61,8 @@ from pipeline.thresholds import mask_from_probs
 MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX = ".mask.png", ".prob.png", ".overlay.png"
 OUTPUT_SUFFIXES = (MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX)
 SKIPPED_CSV = "skipped.csv"
+#: one row per written mask: its path and the frame's confidence (pipeline.deploy.confidence)
+CONFIDENCE_CSV = "confidence.csv"
 #: segment's record (pipeline.ownership): the outputs a rerun may replace without --overwrite
 RECORD = "segment.json"
 
@@ -152,7 +157,8 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
             target = output_path(s, suffix)
             if target.resolve() in inputs:
                 raise InputError(f"--output {out_dir}: would overwrite the input {target}")
-    targets = [output_path(s, suffix) for s in stems for suffix in suffixes] + [out / SKIPPED_CSV, out / RECORD]
+    targets = [output_path(s, suffix) for s in stems for suffix in suffixes] + [out / SKIPPED_CSV, out / CONFIDENCE_CSV,
+                                                                               out / RECORD]
     for t in targets:
         blocked = _blocking_file(t.parent, cache)
         if blocked is not None:
@@ -166,10 +172,11 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
 
 
 def relative_outputs(out_dir: str | Path, stems: Sequence[Path], suffixes: Sequence[str]) -> list[str]:
-    """The output files of ``stems`` (from :func:`plan_outputs`) and skipped.csv, relative to
-    ``out_dir`` (posix): what ``segment.json`` lists."""
+    """The output files of ``stems`` (from :func:`plan_outputs`), skipped.csv and confidence.csv, relative
+    to ``out_dir`` (posix): what ``segment.json`` lists."""
     out = Path(out_dir).absolute().resolve()
-    return [output_path(s, x).relative_to(out).as_posix() for s in stems for x in suffixes] + [SKIPPED_CSV]
+    return ([output_path(s, x).relative_to(out).as_posix() for s in stems for x in suffixes]
+            + [SKIPPED_CSV, CONFIDENCE_CSV])
 
 
 def overlay_image(image: np.ndarray, mask: np.ndarray, color=(255, 40, 40), alpha: float = 0.45) -> np.ndarray:
@@ -209,6 +216,7 @@ class SegmentResult:
     skipped: list[tuple[str, str]]  # (input path, reason)
     model_seconds: float = 0.0      # wall time inside the engine (Z = f(x) and sigmoid), all batches
     total_seconds: float = 0.0      # wall time of the whole loop (reading, resizing, PNG writing included)
+    scores: list[float] = dataclasses.field(default_factory=list)  # frame confidence of each written mask
 
 
 #: segment_files' default: one reader thread (decode + resize) beside the inference; 0 = the serial loop
@@ -221,17 +229,20 @@ def _skip_reason(f: Path, e: InputError) -> str:
     return reason[len(f"{f}: "):] if reason.startswith(f"{f}: ") else reason
 
 
-def _load(f: Path, resolution: int, max_pixels: int | None, keep_image: bool):
-    """(the R x R working image, the original (h, w), the original image when ``keep_image`` else None)."""
-    img = read_rgb(f, max_pixels=max_pixels)
-    return resize_image(img, resolution), img.shape[:2], img if keep_image else None
+def _load(f: Path, resolution: int, max_pixels: int | None, keep_image: bool, bit_depth="auto",
+          letterbox: bool = False):
+    """(the R x R working image, the original (h, w), the original image when ``keep_image`` else None);
+    16-bit files under ``bit_depth``, ``letterbox`` as the model was trained (the segmenter's)."""
+    img = read_rgb(f, max_pixels=max_pixels, bit_depth=bit_depth)
+    return resize_image(img, resolution, letterbox), img.shape[:2], img if keep_image else None
 
 
 def _save(stem: Path, p: np.ndarray, shape: tuple[int, int], img: np.ndarray | None, tau: float,
-          save_prob: bool, overlay: bool) -> Path:
-    """P back to the original size, M = [P >= tau] (eq:inference-mask), the PNGs of one image; its mask path."""
+          save_prob: bool, overlay: bool, letterbox: bool = False) -> tuple[Path, float]:
+    """P back to the original size, M = [P >= tau] (eq:inference-mask), the PNGs of one image; (its mask
+    path, the frame's confidence from the working-resolution P, as :meth:`Segmenter.score`)."""
     h, w = shape
-    p_full = probs_to_size(p, h, w)
+    p_full = probs_to_size(p, h, w, letterbox)
     mask = mask_from_probs(p_full, tau)
     out = output_path(stem, MASK_SUFFIX)
     write_png(out, mask.astype(np.uint8) * 255)
@@ -239,7 +250,7 @@ def _save(stem: Path, p: np.ndarray, shape: tuple[int, int], img: np.ndarray | N
         write_png(output_path(stem, PROB_SUFFIX), np.round(p_full * 255).astype(np.uint8))
     if overlay:
         write_png(output_path(stem, OVERLAY_SUFFIX), overlay_image(img, mask))
-    return out
+    return out, frame_confidence(p, tau)
 
 
 class _Writer:
@@ -248,7 +259,7 @@ class _Writer:
     writing (later jobs are dropped) and :meth:`flush` / :meth:`close` raise it in the caller's thread."""
 
     def __init__(self, depth: int, done: Callable[[], None]):
-        self.written: list[Path] = []
+        self.written: list[tuple[Path, float]] = []  # (mask path, frame confidence) per written image
         self.error: BaseException | None = None
         self.abort = False
         self._done = done
@@ -323,7 +334,8 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
                                          on_skip=on_skip, max_pixels=max_pixels, bar=bar)
     finally:
         bar.close()
-    return SegmentResult(written, skipped, model_s, time.perf_counter() - t_start)
+    return SegmentResult([w for w, _ in written], skipped, model_s, time.perf_counter() - t_start,
+                         [c for _, c in written])
 
 
 def _skip(f: Path, e: InputError, skipped: list, on_skip) -> None:
@@ -351,7 +363,8 @@ def _segment_serial(segmenter, files, stems, *, tau, resolution, batch_size, sav
         batch = []
         for f, stem in zip(files[s:s + batch_size], stems[s:s + batch_size]):
             try:
-                batch.append((stem, _load(f, resolution, max_pixels, overlay)))
+                batch.append((stem, _load(f, resolution, max_pixels, overlay, segmenter.bit_depth,
+                                          segmenter.letterbox)))
             except InputError as e:
                 _skip(f, e, skipped, on_skip)
                 bar.update(1)
@@ -360,7 +373,7 @@ def _segment_serial(segmenter, files, stems, *, tau, resolution, batch_size, sav
         probs, dt = _infer(segmenter, batch, batch_size)
         model_s += dt
         for (stem, (_, shape, img)), p in zip(batch, probs):
-            written.append(_save(stem, p, shape, img, tau, save_prob, overlay))
+            written.append(_save(stem, p, shape, img, tau, save_prob, overlay, segmenter.letterbox))
             bar.update(1)
     return written, skipped, model_s
 
@@ -384,7 +397,8 @@ def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size,
 
     def fill() -> None:
         while len(pending) < ahead and (job := next(jobs, None)) is not None:
-            pending.append((*job, pool.submit(_load, job[0], resolution, max_pixels, overlay)))
+            pending.append((*job, pool.submit(_load, job[0], resolution, max_pixels, overlay, segmenter.bit_depth,
+                                              segmenter.letterbox)))
 
     try:
         fill()
@@ -404,7 +418,7 @@ def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size,
             probs, dt = _infer(segmenter, batch, batch_size)
             model_s += dt
             for (stem, (_, shape, img)), p in zip(batch, probs):
-                writer.put((stem, p, shape, img, tau, save_prob, overlay))
+                writer.put((stem, p, shape, img, tau, save_prob, overlay, segmenter.letterbox))
         writer.flush()
     except Exception as e:
         for *_, fut in pending:
@@ -424,18 +438,33 @@ def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size,
     return writer.written, skipped, model_s
 
 
+def write_confidence_csv(path: str | Path, out_dir: str | Path, written: Sequence[Path],
+                         scores: Sequence[float]) -> Path:
+    """``confidence.csv``: one row per written mask -- ``mask`` (relative to ``out_dir``) and
+    ``confidence``, the frame's confidence in [0, 1] (:func:`pipeline.deploy.confidence.frame_confidence`:
+    low = don't trust this frame) -- written atomically."""
+    out = Path(out_dir)
+    return _write_csv(path, ["mask", "confidence"],
+                      [(Path(m).relative_to(out).as_posix(), f"{c:.6f}") for m, c in zip(written, scores)])
+
+
 def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str, str]]) -> Path:
     """``skipped.csv`` (columns image_id, path, reason: those of skipped_files.parquet,
     :data:`pipeline.datasets.manifest.SKIPPED_COLUMNS`), written atomically; header only when nothing
     was skipped."""
+    return _write_csv(path, list(SKIPPED_COLUMNS), skipped)
+
+
+def _write_csv(path: str | Path, header: list[str], rows: Iterable) -> Path:
+    """A CSV file with ``header`` and ``rows``, replaced atomically; an OSError is one InputError line."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(list(SKIPPED_COLUMNS))
-            w.writerows(skipped)
+            w.writerow(header)
+            w.writerows(rows)
         os.replace(tmp, path)
     except OSError as e:
         with contextlib.suppress(OSError):

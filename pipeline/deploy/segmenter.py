@@ -7,6 +7,9 @@ only); ``auto`` = onnx when the bundle holds it and onnxruntime imports, else to
 only -- and ``cuda`` on a CUDA device (:func:`resolve_engine`).
 Every engine receives the same preprocessed tensor and the same tau; only the function Z = f(x)
 differs.
+
+Per-frame confidence: :func:`pipeline.deploy.confidence.frame_confidence` (``score`` and
+``predict(..., return_score=True)``).
 """
 
 from __future__ import annotations
@@ -17,7 +20,8 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline.datasets.loading import pixel_limit, probs_to_size, read_rgb, resize_image, to_rgb8
+from pipeline.datasets.loading import check_bit_depth, pixel_limit, probs_to_size, read_rgb, resize_image, to_rgb8
+from pipeline.deploy.confidence import CONFIDENCE_BAND, confidence_rank_check, frame_confidence  # noqa: F401
 from pipeline.deploy.bundle import INT8_FILE, ONNX_FILE, checkpoint_resolution, is_deploy_bundle, read_deploy_info
 from pipeline.deploy.engines import ENGINES, Source
 from pipeline.deploy.export import onnx_unavailable_reason
@@ -44,6 +48,11 @@ class Segmenter:
     #: image files above this many pixels are refused on their header before decoding (None:
     #: ``data.max_pixels``'s default; :func:`pipeline.datasets.loading.read_rgb`)
     max_pixels: int | None = None
+    #: how frames are read and resized, as the model's training images were (params ``data.bit_depth`` and
+    #: ``data.letterbox``; a bundle records both, :meth:`from_bundle`): 16-bit frames' stated bit depth
+    #: (:func:`pipeline.datasets.loading.scale_16bit`), and squash (False, the paper) or letterbox
+    bit_depth: str | int = "auto"
+    letterbox: bool = False
 
     def __repr__(self) -> str:
         """One short line (the dataclass default would print the whole deploy.json in ``info``)."""
@@ -52,17 +61,23 @@ class Segmenter:
 
     @classmethod
     def from_bundle(cls, path: str | Path, *, engine: str = "auto", device="cpu", tau: float | None = None,
-                    resolution: int | None = None, max_pixels: int | None = None) -> "Segmenter":
+                    resolution: int | None = None, max_pixels: int | None = None, bit_depth=None,
+                    letterbox: bool | None = None) -> "Segmenter":
         """A segmenter for notebooks: a deploy bundle (``geodistill export`` / ``distill``) or a
         checkpoint directory (image files above ``max_pixels`` pixels are refused on their header; None =
         ``data.max_pixels``'s default), with its tau resolved once (:func:`pipeline.thresholds.resolve_tau`:
         ``tau`` > the bundle's > the checkpoint's > ``calibrate.fixed_tau`` 0.5 with a warning).
+        ``bit_depth`` (auto, 10, 12, 14, 16) and ``letterbox`` default to what the bundle records
+        (its ``frames``; a checkpoint or an older bundle: auto and squash).
 
         >>> seg = Segmenter.from_bundle("out/artifacts/deploy")          # doctest: +SKIP
         >>> mask = seg.predict("image.png")  # bool [H, W] at the image's own size   # doctest: +SKIP
         """
         seg = load_segmenter(path, engine, device, params=PAPER.model_dump())
         seg.max_pixels = pixel_limit(max_pixels)
+        frames = seg.info.get("frames") or {}
+        seg.bit_depth = check_bit_depth(frames.get("bit_depth", "auto") if bit_depth is None else bit_depth)
+        seg.letterbox = bool(frames.get("letterbox", False) if letterbox is None else letterbox)
         seg.tau, seg.tau_source = seg.resolve_tau(option=tau)
         seg.resolution, _ = resolve_resolution(option=(resolution, "resolution="), recorded=(seg.resolution, str(path)),
                                                missing=f"{path}: no working resolution recorded; pass resolution=...")
@@ -72,27 +87,47 @@ class Segmenter:
         """P float32 [H,W] in [0,1] at the ORIGINAL size of ``image``: a file path, or an array of any
         size -- grey [H,W] / [H,W,1], RGB [H,W,3], RGBA [H,W,4] (alpha dropped); uint8, uint16 (/257),
         other integers (clipped to 0..255) or float in [0,1] -- read by the dataset loader's rules
-        (:func:`pipeline.datasets.loading.to_rgb8`), resized to the working resolution like the training
-        images (area), P resized back bilinearly (:func:`pipeline.datasets.loading.probs_to_size`)."""
+        (:func:`pipeline.datasets.loading.to_rgb8`, 16-bit under :attr:`bit_depth`), resized to the
+        working resolution like the training images (area; :attr:`letterbox`: padded to a square first),
+        P resized back bilinearly (:func:`pipeline.datasets.loading.probs_to_size`, the pad cropped)."""
+        probs, (h, w) = self.working_probabilities(image)
+        return probs_to_size(probs, h, w, self.letterbox)
+
+    def working_probabilities(self, image) -> tuple[np.ndarray, tuple[int, int]]:
+        """(P float32 [R,R] at the working resolution, the frame's (height, width)): :meth:`probabilities`
+        before the way back."""
         if self.resolution is None:
             raise InputError("Segmenter: no working resolution; set .resolution or use Segmenter.from_bundle")
         if isinstance(image, (str, Path)):
-            rgb = read_rgb(image, max_pixels=self.max_pixels)
+            rgb = read_rgb(image, max_pixels=self.max_pixels, bit_depth=self.bit_depth)
         else:
             arr = np.asarray(image)
             if arr.ndim == 3 and arr.shape[2] in (3, 4):  # RGB(A) -> the BGR(A) order to_rgb8 takes from OpenCV
                 arr = arr[..., [2, 1, 0, 3][:arr.shape[2]]]
-            rgb = to_rgb8(arr)
-        h, w = rgb.shape[:2]
-        probs = self.predict_probs(resize_image(rgb, self.resolution)[None], batch_size=1)[0]
-        return probs_to_size(probs, h, w)
+            rgb = to_rgb8(arr, bit_depth=self.bit_depth)
+        probs = self.predict_probs(resize_image(rgb, self.resolution, self.letterbox)[None], batch_size=1)[0]
+        return probs, rgb.shape[:2]
 
-    def predict(self, image) -> np.ndarray:
+    def predict(self, image, *, return_score: bool = False):
         """The spacecraft mask M = [P >= tau] (eq:inference-mask), bool [H,W] at the ORIGINAL size of
-        ``image`` (a path or an array, see :meth:`probabilities`)."""
+        ``image`` (a path or an array, see :meth:`probabilities`); for a list or tuple of images, the
+        list of their masks.  ``return_score``: ``(mask, score)`` (a list of them for a list) with the
+        frame's confidence in [0, 1] (:func:`frame_confidence`, module docstring; low = don't trust it)."""
+        tau = self._tau()
+        if isinstance(image, (list, tuple)):
+            return [self.predict(one, return_score=return_score) for one in image]
+        probs, (h, w) = self.working_probabilities(image)
+        mask = mask_from_probs(probs_to_size(probs, h, w, self.letterbox), tau)
+        return (mask, frame_confidence(probs, tau)) if return_score else mask
+
+    def score(self, image) -> float:
+        """The frame's confidence in [0, 1] (:func:`frame_confidence`; low = don't trust this frame)."""
+        return frame_confidence(self.working_probabilities(image)[0], self._tau())
+
+    def _tau(self) -> float:
         if self.tau is None:
             raise InputError("Segmenter: no tau; use Segmenter.from_bundle (or set .tau)")
-        return mask_from_probs(self.probabilities(image), self.tau)
+        return self.tau
 
     def resolve_tau(self, option=None) -> tuple[float, str]:
         """(tau, source) by :func:`pipeline.thresholds.resolve_tau` over ``option`` (--tau) and the

@@ -97,9 +97,11 @@ SIMULATOR_NOTE = ("teacher.backend=simulated is a SIMULATOR of foundation-model 
                   "reference masks given with --reference-masks; these are not a real teacher's labels")
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(repr=False)
 class LabelResult:
-    """What :func:`label_folder` wrote: the output folder, the per-image table and the skipped files."""
+    """What :func:`label_folder` (``pipeline.label``) wrote: the output folder ``out``, the per-image
+    ``table`` (image_id, c, v, a, g, ...), the ``skipped`` files (path, reason), the ``formats`` written,
+    the teacher ``backend``; :attr:`masks` maps each image id to its mask PNG.  Its repr is one line."""
 
     out: Path
     table: pd.DataFrame
@@ -111,6 +113,18 @@ class LabelResult:
     @property
     def simulator(self) -> bool:
         return self.backend == "simulated"
+
+    @property
+    def masks(self) -> dict[str, Path]:
+        """image id -> its voted mask ``out/masks/<image id>.png`` (at the image's own size); empty when
+        ``png`` was not among the formats."""
+        if "png" not in self.formats:
+            return {}
+        return {str(i): Path(self.out) / OUTPUTS["masks"] / f"{i}.png" for i in self.table["image_id"]}
+
+    def __repr__(self) -> str:
+        return (f"LabelResult(out={str(self.out)!r}, images={len(self.table)}, formats={list(self.formats)}, "
+                f"skipped={len(self.skipped)}, backend={self.backend!r})")
 
 
 def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
@@ -372,7 +386,7 @@ def _read_images(job: _Job) -> None:
     limit = job.data_cfg["max_pixels"]
     for i, f in enumerate(progress(job.files, desc="label: reading", unit="img")):
         try:
-            loaded = load_rgb(f, job.size, job.cache, max_pixels=limit)
+            loaded = load_rgb(f, job.size, job.cache, max_pixels=limit, bit_depth=job.data_cfg.get("bit_depth", "auto"))
             if job.ref_files is not None:
                 ref = load_mask(job.ref_files[i], job.size, job.cache, max_pixels=limit)
                 if ref.native_hw != loaded.native_hw:
@@ -404,10 +418,12 @@ class FolderInputs:
         self.files, self.ref_files = absolute(job.files), absolute(job.ref_files)
         self.ids, self.shas, self.size = job.ids, job.shas, job.size
         self.max_pixels = job.data_cfg["max_pixels"]
+        self.bit_depth = job.data_cfg.get("bit_depth", "auto")
         self.cache = DecodeCache(os.path.abspath(job.cache.root)) if job.cache is not None else None
 
     def __call__(self, row: int, view: str) -> TeacherInput:
-        image = load_rgb(self.files[row], self.size, self.cache, max_pixels=self.max_pixels).array
+        image = load_rgb(self.files[row], self.size, self.cache, max_pixels=self.max_pixels,
+                         bit_depth=self.bit_depth).array
         reference = None
         if self.ref_files is not None:
             mask = load_mask(self.ref_files[row], self.size, self.cache, max_pixels=self.max_pixels).array.astype(bool)
@@ -475,8 +491,8 @@ def _vote_and_export(job: _Job, runner, fmts: tuple[str, ...], vote_threshold: f
                 _link_or_copy(job.files[row], yolo_dir / "images" / job.files[row].relative_to(job.root),
                               copy_images)
             if row in sheet_rows:
-                v.sheet[row] = (load_rgb(job.files[row], job.size, job.cache,
-                                         max_pixels=job.data_cfg["max_pixels"]).array, cons.voted)
+                v.sheet[row] = (load_rgb(job.files[row], job.size, job.cache, max_pixels=job.data_cfg["max_pixels"],
+                                         bit_depth=job.data_cfg.get("bit_depth", "auto")).array, cons.voted)
         if "yolo" in fmts:
             _write_yolo_dataset(yolo_dir, [f.relative_to(job.root).as_posix() for f in job.files], job.ids,
                                 int(job.data_cfg["seed"]), copy_images)

@@ -16,8 +16,9 @@ import pandas as pd
 from pipeline import catalog
 from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run
 from pipeline.errors import ArtifactError
-from pipeline.inference import iter_runs, load_student, predict_probs
+from pipeline.inference import CORRECTED_VALIDATION, iter_runs, load_student, predict_probs
 from pipeline.methods import BASELINE, PROPOSED
+from pipeline.metrics import image_iou
 from pipeline.report import figures as F
 from pipeline.report import tables as T
 from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_analysis, select_noise_floor, size_split,
@@ -45,6 +46,11 @@ class Inputs:
     noise_floor: dict | None = None
     #: calibrate.fixed_tau as the run recorded it (:func:`recorded_fixed_tau`), None when unknown
     fixed_tau: float | None = None
+    #: {method: the review params its runs recorded} for runs trained on human corrections
+    #: (:func:`recorded_review`; labels: :func:`pipeline.report.tables.human_trained`)
+    run_review: dict = dataclasses.field(default_factory=dict)
+    #: corrected training images calibrate used as validation images (review.mode validate), 0 if none
+    corrected_validation: int = 0
 
     def get(self, name):
         return self.found.get(name)
@@ -76,7 +82,44 @@ def load_inputs(art: str | Path, profile: str | None = None) -> Inputs:
         inp.no_masks = no_reference_masks(found["manifest"].df, found.get("reference"))
     inp.noise_floor = noise_floor_for_runs(catalog.path("noise_floor", art), inp.runs, found.get("images"), profile)
     inp.fixed_tau = recorded_fixed_tau(found.get("thresholds"), found.get("metrics"))
+    inp.run_review = recorded_review(catalog.path("checkpoints", art))
+    thr = found.get("thresholds")
+    inp.corrected_validation = int((thr.meta.extra or {}).get(CORRECTED_VALIDATION, 0)) if thr is not None else 0
     return inp
+
+
+def recorded_review(checkpoints: Path) -> dict[str, dict]:
+    """{method: ``review`` params} of the runs whose checkpoint records human corrections in the loss
+    (``annotation_free: false`` with ``corrections_mode``, written by
+    :func:`pipeline.training_inputs.replace_targets`); {} when none did or there are no checkpoints."""
+    try:
+        extras = [(method, _meta_extra(path)) for method, _, path in iter_runs(checkpoints)]
+    except ArtifactError:
+        return {}
+    return {method: {"corrections": int(e.get("human_corrections", 0)), "mode": e["corrections_mode"]}
+            for method, e in extras if e.get("annotation_free") is False and e.get("corrections_mode")}
+
+
+def _meta_extra(path: Path) -> dict:
+    """The ``extra`` fields of the artifact at ``path`` ({} when it cannot be read)."""
+    try:
+        return open_artifact(path).meta.extra or {}
+    except ArtifactError:
+        return {}
+
+
+def corrections_note(inp: Inputs) -> str | None:
+    """A sentence on the human corrections this run used (review params; pipeline/review/apply.py), None without."""
+    parts = []
+    if inp.corrected_validation:
+        parts.append(f"**{inp.corrected_validation} training images a person corrected are validation images** "
+                     f"(`review.mode: validate`): their corrected masks select checkpoints and calibrate tau, and "
+                     f"they left the training set, so the students stay annotation-free.")
+    if inp.run_review:
+        names = ", ".join(T.label(m) for m in inp.run_review)
+        parts.append(f"**Trained on human corrections (`review.mode: replace`), NOT annotation-free:** {names}. "
+                     f"Corrected masks replaced those images' voted masks in the loss; every table labels these runs.")
+    return " ".join(parts) or None
 
 
 def noise_floor_for_runs(path: Path, runs: list, images, profile: str | None = None) -> dict | None:
@@ -189,8 +232,10 @@ def data_section(inp: Inputs) -> Section:
         "Manual (reference) masks are used only for validation-time checkpoint selection, threshold calibration "
         "and evaluation (and, on the synthetic benchmark, inside the teacher simulator); they never enter a "
         "student's training loss."))
-    if no_reference_masks(df, inp.get("reference")):
+    if no_reference_masks(df, inp.get("reference")) and not inp.corrected_validation:
         sec.blocks.append(Text(NO_MASKS_NOTE.format(tau=tau_text(inp.fixed_tau))))
+    if (note := corrections_note(inp)) is not None:
+        sec.blocks.append(Text(note))
     rows = []
     for (ds, split, group), part in df.groupby(["dataset", "split", "group"], sort=False):
         rows.append([str(ds), str(split), str(group), str(len(part)), str(part["spacecraft"].nunique())])
@@ -206,7 +251,7 @@ def threshold_section(inp: Inputs, plots: dict) -> Section:
         sec.blocks += inp.need("thresholds")
         return sec
     df = thr.df
-    if inp.no_masks:
+    if inp.no_masks and not inp.corrected_validation:
         taus = sorted({float(t) for t in df["tau"]})
         sec.blocks.append(Text(FIXED_TAU_NOTE.format(tau=taus[0] if len(taus) == 1 else float("nan"))))
         return sec
@@ -393,6 +438,10 @@ def ablation_section(inp: Inputs) -> Section:
 def teacher_section(inp: Inputs) -> Section:
     sec = Section("Multi-prompt teacher and reliability gate")
     tmart = inp.get("teacher_metrics")
+    if inp.no_masks:
+        sec.blocks.append(Text(NOT_COMPUTED.replace("Scores need", "The teacher's scores need")))
+        sec.blocks += gate_distribution_blocks(inp)
+        return sec
     if tmart is None:
         sec.blocks += inp.need("teacher_metrics")
         return sec
@@ -442,6 +491,8 @@ def training_section(inp: Inputs, plots: dict) -> Section:
     logs = inp.logs
     if inp.no_masks:
         sec.blocks.append(Text(NOT_COMPUTED.replace("Scores need", "Validation curves need")))
+        if logs is not None and "loss" in logs.columns:
+            sec.blocks.append(loss_figure(logs))
         return sec
     if logs is None or "val_iou" not in logs.columns:
         sec.blocks.append(Missing("training logs", "no active checkpoint with a log.parquet under "
@@ -473,6 +524,9 @@ def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str
     validation-calibrated thresholds.  Images are chosen by rank of the per-image IoU gain, evenly
     spaced from the largest gain to the largest loss (so failures are shown too)."""
     sec = Section("Qualitative results")
+    if inp.no_masks:
+        sec.blocks += pseudo_label_panels(inp, n_images, device, (control, treatment))
+        return sec
     miss = inp.need("metrics", "thresholds", "images", "reference", "manifest")
     if miss:
         sec.blocks += miss
@@ -494,9 +548,8 @@ def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str
     pick = gain.index[np.unique(np.linspace(0, len(gain) - 1, min(n_images, len(gain))).round().astype(int))]
     mdf = inp.get("manifest").df
     rows_idx = np.array([int(np.flatnonzero(mdf["image_id"].to_numpy() == i)[0]) for i in pick])
-    order = np.argsort(rows_idx)
-    images = read_chunk_rows(inp.get("images")["image"], rows_idx[order])[np.argsort(order)]
-    gts = read_chunk_rows(inp.get("reference")["mask"], rows_idx[order])[np.argsort(order)].astype(bool)
+    images = read_chunk_rows(inp.get("images")["image"], rows_idx)
+    gts = read_chunk_rows(inp.get("reference")["mask"], rows_idx).astype(bool)
     preds = {}
     for method in (control, treatment):
         model, _ = load_student(inp.art / "checkpoints" / method / str(seed), device)
@@ -515,6 +568,102 @@ def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str
         f"negatives; yellow: ground-truth contour. Rows ordered from the largest Image IoU gain to the largest loss "
         f"of {T.label(treatment)}; metrics on full frames.", F.png_bytes(fig), "qualitative.png", F.svg_bytes(fig)))
     return sec
+
+
+def gate_extremes(g: np.ndarray, n_images: int) -> np.ndarray:
+    """Positions into ``g`` of the ``max(1, n_images // 2)`` lowest gates (lowest first) then as many
+    highest (highest first), each image once; ties in the given order."""
+    k = max(1, n_images // 2)
+    order = np.argsort(np.asarray(g, float), kind="mergesort")
+    low = order[:k]
+    high = [i for i in order[::-1][:k] if i not in set(low)]
+    return np.asarray([*low, *high], dtype=np.int64)
+
+
+def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu", methods: tuple[str, ...] = (BASELINE, PROPOSED)) -> list:
+    """Without any mask: the students' masks beside the pseudo-labels they were trained on (the 50 %
+    vote M) for the lowest- and the highest-gate training images (:func:`gate_extremes`), at each run's
+    threshold (thresholds.parquet: the fixed tau).  The colours and the IoU compare a student with the
+    pseudo-label, not with a true mask: agreement with the teacher, not accuracy."""
+    miss = [inp.missing[n] for n in ("thresholds", "images", "consensus", "gates", "manifest") if n in inp.missing]
+    if miss:
+        return miss
+    thr = inp.get("thresholds").df
+    present = [m for m in methods if m in set(thr["method"])]
+    seeds = sorted(set.intersection(*(set(thr.loc[thr["method"] == m, "seed"]) for m in present))) if present else []
+    if not seeds or n_images <= 0:
+        return [Missing(f"a run of `{'` or `'.join(methods)}`", "the panels show its student's masks.")]
+    seed = seeds[0]
+    mdf = inp.get("manifest").df
+    gates = inp.get("gates").df.set_index("image_id")["g"]
+    train = np.flatnonzero((mdf["split"] == "train").to_numpy() & mdf["image_id"].isin(gates.index).to_numpy())
+    if train.size == 0:
+        return [Text("No training image with a gate to show.")]
+    ids = mdf["image_id"].to_numpy()
+    g = gates.reindex(ids[train]).to_numpy(float)
+    pos = gate_extremes(g, n_images)
+    rows_idx = train[pos]
+    images = read_chunk_rows(inp.get("images")["image"], rows_idx)
+    voted = read_chunk_rows(inp.get("consensus")["voted"], rows_idx).astype(bool)
+    preds, taus = {}, {}
+    for method in present:
+        model, _ = load_student(inp.art / "checkpoints" / method / str(seed), device)
+        taus[method] = float(thr.loc[(thr["method"] == method) & (thr["seed"] == seed), "tau"].iloc[0])
+        preds[method] = mask_from_probs(predict_probs(model, images, device=device), taus[method])  # eq:inference-mask
+    rows = []
+    for j, i in enumerate(rows_idx):
+        scores = {T.label(m): f"IoU vs M {image_iou(preds[m][j], voted[j]):.2f}" for m in present}
+        rows.append(F.qualitative_row(images[j], voted[j], {T.label(m): preds[m][j] for m in present}, scores,
+                                      f"({chr(97 + j)}) g={g[pos[j]]:.2f} {ids[i]}"[:26],
+                                      reference=("pseudo-label M", "(yellow contour)")))
+    fig = F.image_grid(rows)
+    n_low = max(1, n_images // 2)
+    tau_words = ", ".join(f"{T.label(m)} tau = {taus[m]:g}" for m in present)
+    return [Figure(
+        "fig:student-vs-pseudo-labels", "Students beside their pseudo-labels (no masks: agreement, not accuracy)",
+        f"Seed {seed}; the {min(n_low, len(pos))} training image(s) with the lowest reliability gate g first, then "
+        f"the highest ({tau_words}: the fixed threshold).  Yellow contour: the pseudo-label M (the teacher's 50 % "
+        "vote the students were trained on), not a true mask.  Green: student and M agree on foreground, red: "
+        "student only, blue: M only; IoU vs M is their agreement.  A low-gate row shows where the pseudo-label "
+        "is least trusted; only masks (`--val-masks`) say which of the two is right.",
+        F.png_bytes(fig), "student_vs_pseudo_labels.png", F.svg_bytes(fig))]
+
+
+def gate_distribution_blocks(inp: Inputs) -> list:
+    """The reliability gate g of the training images (gates.parquet) as a histogram with one sentence of
+    counts; shown where the teacher's scores need masks that are absent."""
+    gates = inp.get("gates")
+    if gates is None:
+        return inp.need("gates")
+    df = gates.df
+    g = df.loc[df["split"] == "train", "g"].to_numpy(float) if "split" in df.columns else df["g"].to_numpy(float)
+    g = g[np.isfinite(g)]
+    if g.size == 0:
+        return [Text("No training image has a gate.")]
+    zero = int((g == 0).sum())
+    img = F.histogram(g, np.linspace(0.0, 1.0, 21), "Reliability gate of the training images", "gate g",
+                      "training images")
+    return [Text(f"Gate g over the {g.size} training images: median {np.median(g):.2f}, {zero} "
+                 f"({zero / g.size:.0%}) at g = 0 (their pseudo-geometry terms get no weight in Stage II), "
+                 f"{int((g >= 0.5).sum())} at g >= 0.5."),
+            Figure("fig:gate-distribution", "Distribution of the reliability gate",
+                   "Training images per gate bin (width 0.05); g = c-, v- and area-gate factors multiplied "
+                   "(eq:reliability-gate).  Computed without masks.", F.png_bytes(img), "gate_distribution.png",
+                   F.svg_bytes(img))]
+
+
+def loss_figure(logs: pd.DataFrame) -> Figure:
+    """The training loss per epoch (mean over seeds per method): what a run without validation masks
+    has to show of its training."""
+    series = []
+    for method, part in logs.groupby("method", sort=False):
+        mean = part.groupby("epoch")["loss"].mean()
+        series.append({"x": mean.index.to_numpy(float), "y": mean.to_numpy(float), "label": T.label(method),
+                       **F.method_style(method)})
+    img = F.line_plot(series, "Training loss", "epoch (of the run's own schedule)", "loss")
+    return Figure("fig:training-loss", "Training loss", "Training loss per epoch (mean over seeds per method; "
+                  "Stage I and Stage II losses differ in their terms, so compare a method with itself).",
+                  F.png_bytes(img), "training_loss.png", F.svg_bytes(img))
 
 
 def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
@@ -580,7 +729,16 @@ def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu",
     plots: dict[str, pd.DataFrame] = {}
     n_qual = int(cfg.get("qualitative_images", 4))
     n_pseudo = int(cfg.get("pseudo_target_images", 3))
-    sections = [
+    with T.human_trained(inp.run_review):
+        sections = build_sections(inp, plots, n_qual, n_pseudo, environment, device)
+    title = "GeoDistill-Refine report" + (f" ({profile} profile)" if profile else "")
+    return Report(title, sections), plots, inp
+
+
+def build_sections(inp: Inputs, plots: dict, n_qual: int, n_pseudo: int, environment: dict | None,
+                   device="cpu") -> list[Section]:
+    """The report's sections in order (labels: :func:`build_report`'s :func:`pipeline.report.tables.human_trained`)."""
+    return [
         data_section(inp),
         results_section(inp),
         qualitative_section(inp, n_qual, device),
@@ -594,5 +752,3 @@ def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu",
         environment_section(environment, inp.runs),
         provenance_section(inp),
     ]
-    title = "GeoDistill-Refine report" + (f" ({profile} profile)" if profile else "")
-    return Report(title, sections), plots, inp

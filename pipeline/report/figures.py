@@ -150,12 +150,14 @@ Tile = tuple[np.ndarray, Sequence[str]]
 
 
 def qualitative_row(image: np.ndarray, gt: np.ndarray, preds: Mapping[str, np.ndarray],
-                    scores: Mapping[str, str], title: str, size: int = 160) -> list[Tile]:
-    """One row of :func:`image_grid`: image | image + GT contour | one TP/FP/FN overlay per method
-    (caption: its metrics)."""
+                    scores: Mapping[str, str], title: str, size: int = 160,
+                    reference: Sequence[str] = ("ground truth", "(yellow contour)")) -> list[Tile]:
+    """One row of :func:`image_grid`: image | image + reference contour | one TP/FP/FN overlay per
+    method (caption: its metrics).  ``reference``: the caption of the mask ``gt`` (a pseudo-label when
+    there is no true mask)."""
     img = _resize(to_rgb(image), size, nearest=False)
     gt_view = draw_contour(img.copy(), _resize(np.asarray(gt, np.uint8), size, nearest=True))
-    tiles = [(img, [title]), (gt_view, ["ground truth", "(yellow contour)"])]
+    tiles = [(img, [title]), (gt_view, list(reference))]
     for name, pred in preds.items():
         tiles.append((error_overlay(image, pred, gt, size), [name, scores.get(name, "")]))
     return tiles
@@ -266,6 +268,26 @@ def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, widt
         if n:
             ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, frameon=False,
                       handlelength=3.0)
+    return fig
+
+
+def histogram(values, bins, title: str, xlabel: str, ylabel: str, width: int = 640, height: int = 300) -> Chart:
+    """A histogram of ``values`` over the bin edges ``bins`` (matplotlib, Agg canvas; axes ``width`` x
+    ``height`` px at 100 px per inch), whole-number counts on the y axis."""
+    counts, edges = np.histogram(np.asarray(values, float), bins=np.asarray(bins, float))
+    with matplotlib.rc_context(CHART_FONT):
+        fig = Chart(figsize=(width / 100.0, height / 100.0), dpi=100)
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot()
+        ax.bar(edges[:-1], counts, width=np.diff(edges), align="edge", color=_mpl_color(PALETTE[0]),
+               edgecolor="white", linewidth=0.6, gid="histogram")
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_xlim(float(edges[0]), float(edges[-1]))
+        ax.set_title(title)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(True, axis="y", color="#dddddd", linewidth=0.6)
+        ax.set_axisbelow(True)
     return fig
 
 

@@ -3,15 +3,17 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
-from typing import Mapping, Sequence
+from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
 
 from pipeline.dvc_results import distillation_efficiency
 from pipeline.methods import (BASELINE, CONTINUATION, METHODS, PROPOSED, STAGE_ONE, ablation_table_rows,
-                              annotation_free_methods, in_table_order, method_label, methods_with_role)
+                              annotation_free_methods, in_table_order, method_label, methods_with_role, run_label)
 from pipeline.report.analysis import PRIMARY_ENDPOINT, gain_noise_floor, noise_floor_note, tau_text
 from pipeline.report.document import Table
 from pipeline.stats import (ALPHA, DEFAULT_INTERVAL, INTERVAL_TEXT, NOT_ESTIMATED, SEED_BOOTSTRAP, claim_status,
@@ -34,8 +36,27 @@ def mode_text(mode: str, fixed_tau: float | None) -> str:
     return {"calibrated": "validation-calibrated tau", "fixed": f"fixed tau = {tau_text(fixed_tau)}"}.get(mode, mode)
 
 
+#: {method: the ``review`` params its runs trained under, as their checkpoints recorded them} while a report is
+#: built (:func:`human_trained`); empty otherwise
+_RUN_REVIEW: contextvars.ContextVar[Mapping] = contextvars.ContextVar("run_review", default={})
+
+
+@contextlib.contextmanager
+def human_trained(run_review: Mapping[str, Mapping]) -> Iterator[None]:
+    """Within the block, :func:`label` labels each method by its runs' recorded ``review`` params
+    (``run_review``: {method: {"corrections": ..., "mode": ...}}): a run trained on human corrections
+    (``replace``) is marked NOT annotation-free in every table, figure and sentence
+    (:func:`pipeline.methods.run_label`), as the supervised ceiling's label says it trains on reference masks."""
+    token = _RUN_REVIEW.set(dict(run_review))
+    try:
+        yield
+    finally:
+        _RUN_REVIEW.reset(token)
+
+
 def label(method: str) -> str:
-    return method_label(method)
+    """The method's display label, for the run it names (:func:`human_trained`)."""
+    return run_label(METHODS[method], _RUN_REVIEW.get().get(method)) if method in METHODS else method_label(method)
 
 
 def not_annotation_free(methods: Sequence[str]) -> list[str]:

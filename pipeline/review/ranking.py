@@ -18,9 +18,12 @@ folder's median) -- where h can be 0 (every valid prompt empty, or all prompts w
 h sees disagreement on pixels the vote dropped (the outvoted panel, the glare blob a minority claimed),
 which the gate's c (agreement inside the voted mask only, eq:foreground-agreement) does not.  The
 gate also has a long tie at g = 0 (g_valid and g_conf floor to 0), which h orders.  Percentile ranks
-combine them without calibrating one scale against the other.  The choice is argued, not yet measured:
-a measurement of the student IoU bought per corrected image, by ranking, is what should confirm or
-overturn it (docs/own-data.md, "Review and correct").
+combine them without calibrating one scale against the other.  The choice is argued; the one
+measurement (``python -m pipeline.benchmarks.review_value``, docs/review.md) does not settle it: on the
+synthetic benchmark no selection of up to 50 corrected images moves the Plain Student's test IoU beyond
+the seed noise, ``combined`` does not beat random at k = 25, and past its top ~10 its picks are no
+worse-labelled than random's while ``gate`` keeps finding the simulator's breakdowns (which it finds
+by construction there; a real teacher's failures need not line up with g).
 """
 
 from __future__ import annotations
