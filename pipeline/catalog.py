@@ -55,7 +55,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
     _a("synthetic_files", "synthetic", None, "prepare", "synthetic benchmark PNGs the manifest points at"),
     _a("teacher", "teacher.zarr", "teacher", "teacher", "masks [N,K,H,W], scores [N,K]"),
     _a("teacher_scores", "teacher_scores.parquet", "teacher_scores", "teacher"),
-    _a("consensus", "consensus.zarr", "consensus", "consensus", "agreement, voted, n_valid"),
+    _a("consensus", "consensus.zarr", "consensus", "consensus", "agreement, voted, n_valid, h (prompt disagreement)"),
     _a("geometry", "geometry.zarr", "geometry", "geometry", "sdf, skeleton"),
     _a("gates", "gates.parquet", "gates", "geometry", "c, v, a, a0, g_conf, g_valid, g_area, g"),
     _a("checkpoints", "checkpoints", None, "train", "all runs: checkpoints/<method>/<seed>/"),
@@ -97,6 +97,9 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
     _a("corrected", "corrected.zarr", "corrected", "corrections",
        "the corrections checked against this run and at the working resolution, for review.mode (validate: "
        "validation masks; replace: training targets, NOT annotation-free); only when review.corrections is set"),
+    _a("review", "review", None, "review_export",
+       "the training images a person should check first (review.top, ranked by review.ranking): ranked.csv, "
+       "labelstudio/, cvat/ and review.json, as geodistill review export writes them"),
 ]}
 
 
@@ -257,6 +260,9 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               "--corrections ${review.corrections} --artifacts {artifacts_dir} --out {corrected}",
               ("manifest", "images"), ("corrected",), _keys("review", "corrections", "mode") + ("data.source",),
               data_deps=("${review.corrections}",)),
+    StageSpec("review_export", "stages.review_export", "--artifacts {artifacts_dir} --out {review}",
+              ("manifest", "consensus", "gates"), ("review",),
+              _keys("review", "top", "ranking") + ("data.letterbox", "teacher.backend")),
 ]}
 
 #: The path placeholders of stage commands that are not single artifacts.

@@ -484,7 +484,7 @@ class DeployParams(_Section):
 
 
 # --------------------------------------------------------------------------------------------------
-# review (stage corrections; pipeline/review/apply.py)
+# review (stages review_export and corrections; pipeline/review/export.py, apply.py)
 # --------------------------------------------------------------------------------------------------
 class ReviewParams(_Section):
     """Masks a person corrected (``geodistill review import``) and how the DAG uses them.
@@ -500,6 +500,11 @@ class ReviewParams(_Section):
                     "in training (NOT annotation-free; needs human_targets: true)")
     human_targets: bool = _f(False, "allow mode replace: human-corrected masks enter the loss, so the students "
                                     "are NOT annotation-free (labelled so, like protocol.supervised_ceiling)")
+    top: int = _f(50, "stage review_export: how many training images to export for a person to check "
+                      "(artifacts/review: ranked.csv, Label Studio and CVAT imports)", ge=1)
+    ranking: Literal["combined", "gate", "disagreement"] = _f(
+        "combined", "stage review_export: the ranking (pipeline.review.ranking; combined: mean percentile rank "
+                    "of 1 - g and h | gate | disagreement)")
 
     @model_validator(mode="after")
     def _replace_flag(self):

@@ -1,6 +1,7 @@
 """The consensus and geometry stages' work, callable without the CLI: the pseudo-label artifacts.
 
-* :func:`write_consensus`: teacher.zarr -> consensus.zarr (agreement, voted, n_valid; eq:agreement-map,
+* :func:`write_consensus`: teacher.zarr -> consensus.zarr (agreement, voted, n_valid, and the prompt
+  disagreement h of :mod:`pipeline.review.disagreement`; eq:agreement-map,
   eq:majority-vote, :mod:`pipeline.consensus`);
 * :func:`write_geometry`: consensus.zarr + manifest -> geometry.zarr (sdf, skeleton; eq:sdf-target) and
   the gates table (eq:foreground-agreement .. eq:reliability-gate, :mod:`pipeline.geometry`).
@@ -23,6 +24,7 @@ from pipeline.errors import InputError
 from pipeline.geometry import (GateFactors, NoForeground, foreground_agreement, image_gates, median_area,
                                pseudo_targets)
 from pipeline.progress import progress
+from pipeline.review.disagreement import agreement_entropy
 
 
 # --------------------------------------------------------------------------------------------------
@@ -53,6 +55,7 @@ def write_consensus(teacher, threshold: float, out: str | Path, meta: Callable[[
         wr.create("agreement", (n, h, w), np.float32)
         wr.create("voted", (n, h, w), bool)
         wr.create("n_valid", (n,), np.int16)
+        wr.create("h", (n,), np.float64)   # the prompt disagreement label records (pipeline.review.disagreement)
         for s in progress(range(0, n, chunk_images), desc="consensus", total=-(-n // chunk_images)):
             e = min(s + chunk_images, n)
             try:
@@ -60,10 +63,12 @@ def write_consensus(teacher, threshold: float, out: str | Path, meta: Callable[[
             except InputError as err:
                 raise InputError(f"{teacher.path} (images {s}..{e - 1}): {err}") from None
             n_valid = c.n_valid
+            h = agreement_entropy(c.agreement)   # of the stored float32 map, as label computes it
             for j in range(e - s):
                 wr.write("agreement", s + j, c.agreement[j])
                 wr.write("voted", s + j, c.voted[j])
                 wr.write("n_valid", s + j, n_valid[j])
+                wr.write("h", s + j, h[j])
         wr.attrs.update({"image_ids": list(teacher.attrs["image_ids"]), "prompts": list(teacher.attrs["prompts"])})
 
 

@@ -101,3 +101,25 @@ def test_the_score_ranks_degraded_frames_below_clean_ones(student):
     mask, s = student.predict(frames[0], return_score=True)
     assert s == student.score(frames[0]) and 0.0 <= s <= 1.0
     np.testing.assert_array_equal(mask, student.predict(frames[0]))
+
+
+def test_the_frame_confidence_benchmark_scores_a_runs_frames(tmp_path, capsys):
+    """Smoke test of python -m pipeline.benchmarks.frame_confidence on tiny artifacts and bundle: one
+    row per group and one pooled, each frame's score the Segmenter's own, rho that of the stats module."""
+    from pipeline.benchmarks import frame_confidence as bench
+    from pipeline.stats import spearman
+    from tests._tiny_deploy import make_artifacts, make_checkpoint, run_export
+
+    art = make_artifacts(tmp_path / "artifacts")
+    ckpt = make_checkpoint(tmp_path / "ckpt")
+    assert run_export(ckpt, tmp_path / "deploy", "--tau", "0.5", "--no-onnx").exit_code == 0
+    table = bench.main(["--artifacts", str(art), "--deploy", str(tmp_path / "deploy"), "--split", "val"])
+    out = capsys.readouterr().out
+    assert [r["group"] for r in table] == ["val", "all"] and table[0]["n"] == 4 and "IoU lowest 25%" in out
+    scores, ious = bench.frame_scores(art, tmp_path / "deploy", split="val")["val"]
+    seg = Segmenter.from_bundle(tmp_path / "deploy", engine="torch")
+    from pipeline.artifacts import open_artifact
+
+    images = open_artifact(art / "images.zarr", "images")
+    assert scores[0] == pytest.approx(seg.score(np.asarray(images["image"][1])))   # val rows: 1, 3, 5, 7
+    assert table[0]["rho"] == pytest.approx(spearman(scores, ious).rho, nan_ok=True)

@@ -332,6 +332,11 @@ def code_repo(tmp_path_factory):
                 dep.update(hash="md5", md5=_md5(repo / path), size=(repo / path).stat().st_size)
             deps.append(dep)
         lock["stages"][name] = {**entry, "deps": deps}
+    for name, stage in declared.items():   # a stage added since the committed lock: locked as after its first run
+        if "cmd" in stage and not any(n.partition("@")[0] == name for n in committed["stages"]):
+            lock["stages"][name] = {"cmd": stage["cmd"], "deps": [
+                {"path": p, "hash": "md5", "md5": _md5(repo / p), "size": (repo / p).stat().st_size}
+                if (repo / p).is_file() else {"path": p} for p in stage.get("deps", [])]}
     (repo / "dvc.lock").write_text(yaml.safe_dump(lock, sort_keys=False))
     return repo
 

@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import catalog
+from pipeline.review.corrections import coco_decode, correction_masks, import_corrections, read_review
+from pipeline.review.export import MODEL_VERSION
 from pipeline.review.formats import ls_label_config, ls_results, ls_rle_decode
 
 TOKEN = "geodistill-e2e-token-0123456789abcdef01234567"  # a throwaway server's legacy API token
@@ -52,7 +54,7 @@ def synthetic_tasks(n: int = 4, size: tuple[int, int] = (48, 64)) -> tuple[list[
         iid = f"e2e/{i:02d}"
         masks[iid] = m
         tasks.append({"data": {"image": f"/data/local-files/?d={iid}.png", "image_id": iid},
-                      "predictions": [{"model_version": "geodistill", "result": ls_results(m)}]})
+                      "predictions": [{"model_version": MODEL_VERSION, "result": ls_results(m)}]})
     return tasks, masks
 
 
@@ -124,8 +126,6 @@ def check_synthetic(exported: list[dict], masks: dict[str, np.ndarray]) -> list[
 
 def check_review(exported: list[dict], review_dir: Path, workdir: Path) -> list[str]:
     """Read the export back with ``review import`` and compare each mask with the recorded vote."""
-    from pipeline.review.corrections import coco_decode, correction_masks, import_corrections, read_review
-
     src = workdir / "export.json"
     src.write_text(json.dumps(exported))
     art = import_corrections(src, review_dir, catalog.path("corrections", workdir), fmt="labelstudio")

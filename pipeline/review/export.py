@@ -37,7 +37,7 @@ from typing import Callable
 import numpy as np
 
 from pipeline.artifacts import atomic_path, canonical_json, write_json
-from pipeline.datasets.loading import read_mask
+from pipeline.datasets.loading import probs_to_size, read_mask
 from pipeline.errors import OUT, InputError, Option, literal
 from pipeline.labeling.formats import SPACECRAFT_CATEGORY, rle_encode
 from pipeline.labeling.run import OUTPUTS as LABEL_OUTPUTS
@@ -131,15 +131,32 @@ def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = N
         root = Path(record["input"])
         table[STUDENT_COLUMN] = [student_disagreement(predict(root / f), voted_mask(label_dir, i, *sizes[i]))
                                  for i, f in zip(table["image_id"], table["file"])]
-    ranked = rank(table, ranking, top)   # refuses an unknown ranking or a missing column: nothing written yet
-    masks = {i: voted_mask(label_dir, i, *sizes[i]) for i in ranked["image_id"]}
+    return write_export(out, table, lambda i: voted_mask(label_dir, i, *sizes[i]), top=top, ranking=ranking,
+                        ls_shape=ls_shape, coco_shape=coco_shape, image_url=image_url,
+                        identity={"teacher": record.get("teacher_fingerprint")},
+                        options={"student": predict is not None},
+                        record={"label_dir": str(label_dir.resolve()), "input": record["input"],
+                                "simulator": bool(record.get("simulator"))})
+
+
+def write_export(out: Path, table, mask_of: Callable[[str], np.ndarray], *, top: int | None, ranking: str,
+                 ls_shape: str, coco_shape: str, image_url: str, identity: dict, options: dict | None = None,
+                 record: dict | None = None) -> ReviewExport:
+    """The export itself, shared by ``review export`` (a label folder) and the DAG stage ``review_export``
+    (a run's artifacts): rank ``table`` (columns image_id, file, width, height, g, h, ...; :func:`rank`),
+    take each exported image's voted mask from ``mask_of(image id)`` (bool [height, width]) and write
+    the files of the module docstring under ``out``.  ``identity`` (the teacher's fingerprint) and the
+    options enter the export id; ``record``: the record's fields about the source.  The caller has
+    checked the options and the outputs (:func:`_check_options`, ``check_outputs``); the ranking refuses
+    an unknown name or a missing column before anything is written."""
+    ranked = rank(table, ranking, top)
+    masks = {i: mask_of(i) for i in ranked["image_id"]}
     rows = [{"image_id": str(r.image_id), "file": str(r.file), "width": int(r.width), "height": int(r.height),
              "rank": int(r.rank), "score": round(float(r.score), 6), "mask_sha256": mask_digest(masks[r.image_id])}
             for r in ranked.itertuples(index=False)]
     options = {"ranking": ranking, "top": top, "ls_shape": ls_shape, "coco_shape": coco_shape, "image_url": image_url,
-               "student": predict is not None}
-    export_id = hashlib.sha256(canonical_json({"teacher": record.get("teacher_fingerprint"), "options": options,
-                                               "rows": rows}).encode()).hexdigest()[:16]
+               "student": False, **(options or {})}
+    export_id = hashlib.sha256(canonical_json({**identity, "options": options, "rows": rows}).encode()).hexdigest()[:16]
     claim_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], COMMAND, {"export_id": export_id, "complete": False})
 
     with atomic_path(out / OUTPUTS["csv"]) as tmp:
@@ -168,7 +185,58 @@ def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = N
     for row in rows:
         row["voted_rle"] = rle_encode(masks[row["image_id"]])
     write_json(out / OUTPUTS["record"], {
-        "export_id": export_id, "label_dir": str(label_dir.resolve()), "input": record["input"],
-        "simulator": bool(record.get("simulator")), **options, "images": rows, "complete": True,
+        "export_id": export_id, **(record or {}), **options, "images": rows, "complete": True,
         **record_fields(out, OUTPUTS["record"], COMMAND, OWN_OUTPUTS)})
     return ReviewExport(out, ranked, export_id, ranking)
+
+
+# --------------------------------------------------------------------------------------------------
+# the DAG stage review_export: the same export on a run's artifacts
+# --------------------------------------------------------------------------------------------------
+#: the split the DAG stage exports: corrections are accepted for training images only (pipeline.review.apply)
+RUN_SPLIT = "train"
+
+
+def run_table(manifest_df, gates_df, h: np.ndarray):
+    """The label-table view of a run's training images: image_id, file (the manifest's image_path),
+    width, height (the image's own size), the gates table's columns and h (consensus.zarr, manifest
+    order); InputError when the gates table is not in the manifest's order."""
+    ids = manifest_df["image_id"].astype(str).to_numpy()
+    if list(gates_df["image_id"].astype(str)) != list(ids) or len(h) != len(ids):
+        raise InputError("gates and consensus do not follow the manifest's images (artifacts of different runs?)")
+    table = gates_df.drop(columns=["split"]).copy()
+    table.insert(1, "file", manifest_df["image_path"].astype(str).to_numpy())
+    table.insert(2, "width", manifest_df["width"].astype(int).to_numpy())
+    table.insert(3, "height", manifest_df["height"].astype(int).to_numpy())
+    table["h"] = np.asarray(h, np.float64)
+    return table[(manifest_df["split"] == RUN_SPLIT).to_numpy()].reset_index(drop=True)
+
+
+def export_run(manifest, consensus, gates, out: str | Path, *, top: int | None, ranking: str = DEFAULT_RANKING,
+               letterbox: bool = False, ls_shape: str = "brush", coco_shape: str = "rle",
+               image_url: str = DEFAULT_IMAGE_URL, simulator: bool = False, overwrite: bool = False) -> ReviewExport:
+    """The DAG stage ``review_export``: :func:`write_export` on a run's opened manifest, consensus (with
+    its ``h``) and gates -- the training images (the ones a correction can enter), each voted mask
+    brought from the working resolution to the image's own size as the deployed student's mask is
+    (:func:`pipeline.datasets.loading.probs_to_size`, then >= 0.5; ``letterbox``: ``data.letterbox``), so
+    that ``review import`` and the ``corrections`` stage read the corrections back.  Task image paths
+    are the manifest's ``image_path`` (Label Studio's document root: the data root); ``simulator``: the
+    teacher is the simulator (``teacher.backend``), recorded as label records it."""
+    _check_options(top, ls_shape, coco_shape)
+    if "h" not in consensus:
+        raise InputError(f"{consensus.path}: no prompt disagreement h (written by an older consensus stage); "
+                         f"rerun the consensus stage")
+    out = Path(out)
+    table = run_table(manifest.df, gates.df, np.asarray(consensus["h"][...]))
+    check_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], COMMAND, overwrite=overwrite, option=OUT)
+    row = {iid: i for i, iid in enumerate(manifest.df["image_id"].astype(str))}
+    sizes = dict(zip(table["image_id"], zip(table["width"], table["height"])))
+
+    def mask_of(iid: str) -> np.ndarray:
+        voted = np.asarray(consensus["voted"][row[iid]], np.float32)
+        return probs_to_size(voted, int(sizes[iid][1]), int(sizes[iid][0]), letterbox) >= 0.5
+
+    return write_export(out, table, mask_of, top=top, ranking=ranking, ls_shape=ls_shape, coco_shape=coco_shape,
+                        image_url=image_url, identity={"teacher": consensus.meta.fingerprint},
+                        record={"label_dir": None, "input": None, "simulator": bool(simulator)})
+
