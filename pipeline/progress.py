@@ -19,11 +19,13 @@ import sys
 from tqdm.auto import tqdm
 
 _QUIET = contextvars.ContextVar("geodistill_quiet_bars", default=False)
+#: the environment variable that turns every bar off (a command's --quiet hands it to its child processes)
+QUIET_ENV = "GEODISTILL_QUIET"
 
 
 def bars_quiet() -> bool:
     """Whether bars are off: ``GEODISTILL_QUIET=1`` or inside :func:`quiet_bars`."""
-    return _QUIET.get() or os.environ.get("GEODISTILL_QUIET", "") == "1"
+    return _QUIET.get() or os.environ.get(QUIET_ENV, "") == "1"
 
 
 @contextlib.contextmanager

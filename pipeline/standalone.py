@@ -82,6 +82,7 @@ from pipeline.methods import PROPOSED, method_label
 from pipeline.offline_plots import template_path, template_text
 from pipeline.ownership import check_outputs, record_fields
 from pipeline.params import deep_merge, read_yaml_mapping
+from pipeline.progress import QUIET_ENV, bars_quiet
 
 log = logging.getLogger(__name__)
 
@@ -168,6 +169,8 @@ def _env(device: str = "auto") -> dict:
            "DVC_NO_ANALYTICS": "1"}
     if device == "cpu":
         env["CUDA_VISIBLE_DEVICES"] = ""
+    if bars_quiet():  # distill --quiet: the stages DVC runs draw no bars either
+        env[QUIET_ENV] = "1"
     return env
 
 

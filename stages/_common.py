@@ -82,6 +82,9 @@ overwrite_option = click.option(
 skip_bad_option = click.option(
     SKIP_BAD.flag, is_flag=True,
     help="leave unreadable images out and list them with the reason (default: stop at the first, naming it)")
+#: no progress bars (label, distill, segment): warnings, errors and the summary lines stay
+quiet_option = click.option("--quiet", "-q", is_flag=True,
+                            help="no progress bars (warnings, errors and the summary line stay)")
 max_pixels_option = click.option(
     MAX_PIXELS.flag, MAX_PIXELS.keyword, type=int, default=None, metavar="N",
     help="refuse images above N pixels (width x height), read from the file header before decoding; "

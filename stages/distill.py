@@ -10,7 +10,8 @@ from pipeline.errors import LABELS
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
 from pipeline.standalone import efficiency_line, project_outputs, run_project, write_project
-from stages._common import max_pixels_option, overwrite_option, skip_bad_option, stage_command
+from pipeline.progress import quiet_bars
+from stages._common import max_pixels_option, overwrite_option, quiet_option, skip_bad_option, stage_command
 
 
 @stage_command("distill", default_profile="distill", profile_loader=load_params_or_profile)
@@ -34,8 +35,9 @@ from stages._common import max_pixels_option, overwrite_option, skip_bad_option,
 @skip_bad_option
 @max_pixels_option
 @overwrite_option
+@quiet_option
 def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, labels, no_run, skip_bad,
-         max_pixels, overwrite):
+         max_pixels, overwrite, quiet):
     """Train a deployable student on a folder of images: SAM 3 pseudo-labels, Stage I (plain student),
     Stage II (GeoDistill-Refine), threshold, export, report.  --out becomes a DVC project running the
     pipeline's own DAG, so a rerun resumes where it stopped; distill.json there lists what distill
@@ -48,7 +50,8 @@ def main(params, device, input_dir, out, val_masks, checkpoint, backend, importe
     if no_run:
         click.echo(f"distill: wrote the DVC project {project}; run `dvc repro` there", err=True)
         return
-    run_project(project, device)
+    with quiet_bars(quiet):  # --quiet: no bars in this process nor in the stages DVC runs
+        run_project(project, device)
     res = project_outputs(project)
     click.echo(f"distill: deploy bundle {res['deploy']}\ndistill: report {res['report']}", err=True)
     if (line := efficiency_line(project)) is not None:  # with --val-masks

@@ -15,7 +15,7 @@ from pipeline.labeling.run import OUTPUTS, YOLO_LISTS, parse_formats
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
 from pipeline.progress import quiet_bars
-from stages._common import (max_pixels_option, overwrite_option, skip_bad_option, stage_command,
+from stages._common import (max_pixels_option, overwrite_option, quiet_option, skip_bad_option, stage_command,
                             teacher_workers_options)
 
 
@@ -34,7 +34,7 @@ from stages._common import (max_pixels_option, overwrite_option, skip_bad_option
 @click.option("--copy-images", is_flag=True,
               help="yolo/images holds copies of the inputs (default: relative links, which survive moving the "
                    "input and output folders together)")
-@click.option("--quiet", "-q", is_flag=True, help="no progress bars (warnings, errors and the summary line stay)")
+@quiet_option
 @skip_bad_option
 @max_pixels_option
 @overwrite_option

@@ -93,3 +93,36 @@ def test_the_notebook_extra_installs_ipywidgets_pinned_by_the_lock():
     lock = (REPO / "requirements" / "lock.txt").read_text()
     for pkg in ("ipywidgets", "widgetsnbextension", "jupyterlab-widgets"):
         assert re.search(rf"^{pkg}==\S+$", lock, re.M), pkg
+
+
+def test_segment_and_distill_take_quiet_too(tmp_path, console, monkeypatch):
+    """--quiet is one shared option: segment draws no bar with it; distill hands it to the stages DVC runs
+    (GEODISTILL_QUIET in their environment), and not without it."""
+    import cv2
+    import numpy as np
+    from click.testing import CliRunner
+
+    from pipeline.progress import QUIET_ENV
+    from pipeline.standalone import _env
+    from stages.cli import main
+    from tests._tiny_deploy import make_checkpoint
+
+    ckpt = make_checkpoint(tmp_path / "ckpt")
+    (tmp_path / "in").mkdir()
+    cv2.imwrite(str(tmp_path / "in" / "a.png"), np.full((20, 24, 3), 90, np.uint8))
+
+    def segment(out, *extra):
+        return CliRunner().invoke(main, ["segment", "--device", "cpu", "--checkpoint", str(ckpt), "--input",
+                                         str(tmp_path / "in"), "--output", str(tmp_path / out), "--resolution", "32",
+                                         "--tau", "0.5", *extra])
+
+    loud, quiet = segment("o1"), segment("o2", "--quiet")
+    assert loud.exit_code == quiet.exit_code == 0, loud.output + quiet.output
+    assert "%|" in loud.stderr and "segment: wrote 1 mask(s)" in loud.stderr, loud.stderr
+    assert "%|" not in quiet.stderr and "segment: wrote 1 mask(s)" in quiet.stderr, quiet.stderr
+    monkeypatch.delenv(QUIET_ENV, raising=False)
+    assert QUIET_ENV not in _env("cpu")
+    with quiet_bars():
+        assert _env("cpu")[QUIET_ENV] == "1"
+    for command in ("label", "distill", "segment"):
+        assert "--quiet" in CliRunner().invoke(main, [command, "--help"]).output
