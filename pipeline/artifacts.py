@@ -108,7 +108,7 @@ SCHEMAS: dict[str, Schema] = {
             "image_id", "prompt_index", "prompt", "score", "valid", "mask_area")),
         _s("consensus", 1, "zarr", arrays={
             "agreement": ("f", 3), "voted": ("b", 3), "n_valid": ("i", 1)},
-           optional={"h": ("f", 1)}),   # the prompt disagreement (pipeline.review.disagreement); older runs lack it
+           optional={"h": ("f", 1)}),   # the prompt disagreement (pipeline.consensus.agreement_entropy); older runs lack it
         _s("geometry", 1, "zarr", arrays={"sdf": ("f", 3), "skeleton": ("b", 3)}),
         _s("gates", 1, "parquet", columns=(
             "image_id", "split", "c", "v", "a", "a0", "g_conf", "g_valid", "g_area", "g", "n_valid")),

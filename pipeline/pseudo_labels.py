@@ -1,7 +1,7 @@
 """The consensus and geometry stages' work, callable without the CLI: the pseudo-label artifacts.
 
 * :func:`write_consensus`: teacher.zarr -> consensus.zarr (agreement, voted, n_valid, and the prompt
-  disagreement h of :mod:`pipeline.review.disagreement`; eq:agreement-map,
+  disagreement h of :func:`pipeline.consensus.agreement_entropy`; eq:agreement-map,
   eq:majority-vote, :mod:`pipeline.consensus`);
 * :func:`write_geometry`: consensus.zarr + manifest -> geometry.zarr (sdf, skeleton; eq:sdf-target) and
   the gates table (eq:foreground-agreement .. eq:reliability-gate, :mod:`pipeline.geometry`).
@@ -24,7 +24,7 @@ from pipeline.errors import InputError
 from pipeline.geometry import (GateFactors, NoForeground, foreground_agreement, image_gates, median_area,
                                pseudo_targets)
 from pipeline.progress import progress
-from pipeline.review.disagreement import agreement_entropy
+from pipeline.consensus import agreement_entropy
 
 
 # --------------------------------------------------------------------------------------------------
@@ -55,7 +55,7 @@ def write_consensus(teacher, threshold: float, out: str | Path, meta: Callable[[
         wr.create("agreement", (n, h, w), np.float32)
         wr.create("voted", (n, h, w), bool)
         wr.create("n_valid", (n,), np.int16)
-        wr.create("h", (n,), np.float64)   # the prompt disagreement label records (pipeline.review.disagreement)
+        wr.create("h", (n,), np.float64)   # the prompt disagreement label records (pipeline.consensus.agreement_entropy)
         for s in progress(range(0, n, chunk_images), desc="consensus", total=-(-n // chunk_images)):
             e = min(s + chunk_images, n)
             try:

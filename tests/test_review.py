@@ -13,7 +13,7 @@ import pytest
 
 from pipeline.artifacts import open_artifact
 from pipeline.review.corrections import correction_masks
-from pipeline.review.disagreement import agreement_entropy
+from pipeline.consensus import agreement_entropy
 from pipeline.review.formats import coco_uncompressed_rle, ls_rle_decode, ls_rle_encode
 from pipeline.review.ranking import rank
 from tests._tiny_teacher import FAST, cli, make_image_folder

@@ -16,7 +16,7 @@ from click.testing import CliRunner
 from pipeline.artifacts import make_meta, open_artifact
 from pipeline.consensus import vote_batch
 from pipeline.pseudo_labels import write_consensus
-from pipeline.review.disagreement import agreement_entropy
+from pipeline.consensus import agreement_entropy
 from pipeline.review.export import CVAT_COCO, LS_TASKS, OUTPUTS, export_run, run_table
 from pipeline.review.ranking import rank
 

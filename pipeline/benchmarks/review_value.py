@@ -11,7 +11,7 @@ their reference masks (``review.mode: replace``), and the Stage-I student's test
 * Selections of the same k training images: ``combined`` (the ranking ``review export`` ships,
   :data:`pipeline.review.ranking.DEFAULT_RANKING`), ``gate`` (lowest g first) and ``random``
   (``--draws`` draws per seed).  The scores are the ones ``review export`` uses: g from gates.parquet,
-  h = :func:`pipeline.review.disagreement.agreement_entropy` of the consensus agreement map.
+  h = :func:`pipeline.consensus.agreement_entropy` of the consensus agreement map.
 * The corrections: the images' reference masks replace their voted masks
   (:func:`pipeline.training_inputs.replace_targets`, what the train stage does in replace mode): the
   student is NOT annotation-free.  k = 0 is the Plain Student.
@@ -39,7 +39,7 @@ from pipeline.inference import predict_probs
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.metrics import image_ious
 from pipeline.params import load_params, section
-from pipeline.review.disagreement import agreement_entropy
+from pipeline.consensus import agreement_entropy
 from pipeline.review.ranking import DEFAULT_RANKING, scores
 from pipeline.stats import paired_seed_image_t
 from pipeline.thresholds import mask_from_probs

@@ -26,7 +26,7 @@ always)::
                                               seeded validation share (formats.yolo_split; no val.txt below
                                               2 images, the reason in README.txt)
     labels.parquet, labels.csv                one row per image: c, v, a, a0, g_conf, g_valid, g_area, g, and h
-                                              (prompt disagreement: pipeline.review.disagreement)
+                                              (prompt disagreement: pipeline.consensus.agreement_entropy)
     contact_sheet.png                         sampled images with their pseudo-mask contours and g
     label.json                                backend (and whether it is a SIMULATOR), counts, params
     skipped.csv                               files left out by --skip-bad (columns image_id, path, reason)
@@ -76,7 +76,7 @@ from pipeline.ownership import (WRITTEN_BY, check_outputs, claim_outputs, owned_
                                 remove_stale, signature)
 from pipeline.params import section
 from pipeline.progress import progress
-from pipeline.review.disagreement import agreement_entropy
+from pipeline.consensus import agreement_entropy
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.jobs import in_view
@@ -454,7 +454,7 @@ class _Votes:
     pixels: np.ndarray
     annotations: list
     sheet: dict
-    h: np.ndarray  # prompt disagreement (pipeline.review.disagreement: mean entropy of A over the union)
+    h: np.ndarray  # prompt disagreement (pipeline.consensus.agreement_entropy: mean entropy of A over the union)
 
 
 def _vote_and_export(job: _Job, runner, fmts: tuple[str, ...], vote_threshold: float,

@@ -1,7 +1,7 @@
 """The human loop: rank the images a person should check, export them to Label Studio / CVAT, and read
 the corrected masks back (``geodistill review export|import``).
 
-:mod:`pipeline.review.disagreement` -- the per-image prompt-disagreement statistic ``label`` records;
+:func:`pipeline.consensus.agreement_entropy` -- the per-image prompt-disagreement statistic ``label`` records;
 :mod:`pipeline.review.ranking` -- the rankings (which images most need a person);
 :mod:`pipeline.review.formats` -- Label Studio brush RLE / polygons and COCO RLE (pure);
 :mod:`pipeline.review.export` -- ``review export`` on a ``label`` output folder;

@@ -5,7 +5,7 @@ by score, highest first, ties broken by image id (the same table gives the same 
 
 ``gate``          1 - g: the reliability gate (eq:reliability-gate) -- low agreement c, few valid prompts
                   v, or an implausible area a against the folder's median a0.
-``disagreement``  h: the prompts' disagreement (:mod:`pipeline.review.disagreement`, the agreement map's
+``disagreement``  h: the prompts' disagreement (:func:`pipeline.consensus.agreement_entropy`, the agreement map's
                   mean binary entropy over the union of the prompt masks; eq:agreement-map).
 ``student``       1 - IoU(student mask, voted mask) at the image's own size: where the distilled student
                   and its teacher's vote part ways (only with a student: ``--student BUNDLE``).
