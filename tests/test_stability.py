@@ -345,3 +345,21 @@ def test_report_applies_only_the_floor_of_its_own_configuration(tmp_path):
     assert noise_floor_for_runs(path, runs, None)["info"]["recipe"] == "paper"
     assert noise_floor_for_runs(path, runs + [{"method": "plain", "seed": 2, "recipe": "stable"}], None) is None
     assert noise_floor_for_runs(tmp_path / "absent.json", runs, None) is None
+
+
+def test_noise_floor_file_keeps_a_record_per_configuration(tmp_path):
+    """The reduced profile's 128² floor and the demo's 64² floor of the same recipe live side by side,
+    and each report picks the one of its own configuration (never the other)."""
+    from pipeline.benchmarks.stability import write_noise_floor
+    from pipeline.report.analysis import gain_noise_floor, noise_floor_key, select_noise_floor
+
+    path = tmp_path / "noise_floor.json"
+    write_noise_floor(path, noise_floor_key("paper", "demo", 64), _floor("paper", 64, 0.02))
+    reduced = {**_floor("paper", 128, 0.011)}
+    reduced["info"] = {**reduced["info"], "profile": "reduced"}
+    doc = write_noise_floor(path, noise_floor_key("paper", "reduced", 128), reduced)
+    assert sorted(doc["recipes"]) == ["paper", "paper@reduced-128"]
+    assert gain_noise_floor(select_noise_floor(doc, "paper", 128, "reduced"), "A", "iou") == 0.011
+    assert gain_noise_floor(select_noise_floor(doc, "paper", 64, "demo"), "A", "iou") == 0.02
+    assert select_noise_floor(doc, "paper", 384, "paper") is None   # no floor measured at the paper's size
+    assert select_noise_floor(doc, "stable", 128, "reduced") is None

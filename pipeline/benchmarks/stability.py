@@ -3,10 +3,14 @@ perturbations, and how do they compare with the seed-to-seed spread?
 
     python -m pipeline.benchmarks.stability                                   # screening: 64², 5 seeds
     python -m pipeline.benchmarks.stability --resolution 128 --recipes paper stable --seeds 42 3407 2026 7 11
+    # the reduced report's own floor: its sizes, 128², its recipe (paper), 20 + 10 epochs
+    python -m pipeline.benchmarks.stability --profile reduced --recipes paper --seeds 42 3407 2026 --jobs 1 \
+        --noise-floor reports/noise_floor.json
 
 What it does
-  1. Data: the demo profile's synthetic benchmark (its simulated teacher is a SIMULATOR), built with
-     the project's stage commands at ``--resolution`` (:func:`pipeline.benchmarks.study_recipe.build_artifacts`).
+  1. Data: the ``--profile``'s synthetic benchmark (default: the demo's sizes; ``--profile reduced``
+     for the reduced report's 270/60/3x60 images; its simulated teacher is a SIMULATOR), built with
+     the project's stage commands at ``--resolution`` (default: the profile's) (:func:`pipeline.benchmarks.study_recipe.build_artifacts`).
   2. Runs: for every (recipe, perturbation, seed) the demo's methods in-process --
      ``plain`` (Stage I), then ``geodistill`` and the budget-matched ``continuation`` warm-started
      from that plain model -- with :func:`pipeline.training.train` (the DVC train stage's loop).
@@ -27,7 +31,7 @@ What it does
 
 Writes every run to ``<out>.runs.jsonl`` (a rerun skips the runs found there) and the summary to
 ``--out``; ``--noise-floor PATH`` (reports/noise_floor.json) puts the first recipe's spreads into that
-file as that recipe's record (other recipes' records are kept), in the form the report reads (:func:`noise_floor_record`, :func:`pipeline.report.analysis.gain_noise_floor`).  No timing is asserted.
+file as the record of that recipe in this configuration (other records are kept), in the form the report reads (:func:`noise_floor_record`, :func:`pipeline.report.analysis.gain_noise_floor`).  No timing is asserted.
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, STAGE_ONE, get_me
 from pipeline.metrics import iou_curve, per_image_metrics
 from pipeline.params import RECIPES, validate_section
 from pipeline.profiles import FIVE_SEEDS, load_profile
-from pipeline.report.analysis import noise_floor_records
+from pipeline.report.analysis import noise_floor_key, noise_floor_records
 from pipeline.reproducibility import TOLERANCE
 from pipeline.thresholds import TAU_RULES, mask_from_probs, tau_by_rule, threshold_grid
 
@@ -306,14 +310,15 @@ def noise_floor_record(sp: Mapping[str, dict], info: Mapping[str, Any], perturba
     return {"info": {**dict(info), "perturbations": list(perturbations)}, "numbers": nums}
 
 
-def write_noise_floor(path: str | Path, recipe: str, record: dict) -> dict:
-    """Put ``record`` into the noise-floor file ``path`` as the record of ``recipe`` (``{"recipes": {recipe:
-    record}}``; the other recipes' records are kept: one file holds a floor per recipe, and the report
-    applies the one of the recipe its runs used, :func:`pipeline.report.analysis.select_noise_floor`).
-    Replaced atomically.  Returns the whole document."""
+def write_noise_floor(path: str | Path, key: str, record: dict) -> dict:
+    """Put ``record`` into the noise-floor file ``path`` under ``key`` (``{"recipes": {key: record}}``,
+    the key from :func:`pipeline.report.analysis.noise_floor_key`: one record per configuration -- recipe,
+    profile sizes, resolution; the other records are kept, and the report applies the one measured in
+    its own configuration, :func:`pipeline.report.analysis.select_noise_floor`).  Replaced atomically.
+    Returns the whole document."""
     path = Path(path)
     old = json.loads(path.read_text()) if path.is_file() else {}
-    doc = {"recipes": {**noise_floor_records(old), recipe: record}}
+    doc = {"recipes": {**noise_floor_records(old), key: record}}
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path, doc)
     return doc
@@ -322,7 +327,9 @@ def write_noise_floor(path: str | Path, recipe: str, record: dict) -> dict:
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--workdir", default="bench_stability", help="where the data stages write")
-    ap.add_argument("--resolution", type=int, default=64)
+    ap.add_argument("--profile", default="demo", choices=["demo", "reduced", "paper"],
+                    help="whose data sizes and epochs (e.g. reduced: 270/60/3x60 images, 20 + 10 epochs)")
+    ap.add_argument("--resolution", type=int, default=None, help="default: the profile's data.resolution")
     ap.add_argument("--epochs", type=int, default=None, help="train.epochs_stage1 (default: the profile's)")
     ap.add_argument("--epochs-stage2", type=int, default=None, help="train.epochs_stage2 (default: the profile's)")
     ap.add_argument("--seeds", type=int, nargs="+", default=FIVE_SEEDS)
@@ -343,12 +350,14 @@ def main(argv=None) -> dict:
     bad = [r for r in args.recipes if r not in RECIPES and r not in CANDIDATES]
     if bad:
         raise InputError(f"--recipes {bad}: expected one of {', '.join([*RECIPES, *CANDIDATES])}")
-    ns = argparse.Namespace(profile="demo", resolution=args.resolution,
+    if args.resolution is None:
+        args.resolution = int(load_profile(args.profile)["data"]["resolution"])
+    ns = argparse.Namespace(profile=args.profile, resolution=args.resolution,
                             **{k: None for k in ("train_spacecraft", "train_views", "val_spacecraft", "val_views",
                                                  "test_spacecraft_per_group", "test_views")})
     sets = sr.data_overrides(ns)
-    params = load_profile("demo", sets)
-    artifacts = sr.build_artifacts(Path(args.workdir).resolve(), "demo", sets, "cpu", geometry=True)
+    params = load_profile(args.profile, sets)
+    artifacts = sr.build_artifacts(Path(args.workdir).resolve(), args.profile, sets, "cpu", geometry=True)
     base = dict(params["train"])
     if args.epochs is not None:
         base["epochs_stage1"] = args.epochs
@@ -365,7 +374,7 @@ def main(argv=None) -> dict:
                 if p == "default" or s in pert_seeds:
                     jobs.append({"recipe": rname, "perturbation": p, "seed": s, "cfg": perturbed(cfg, p),
                                  "cal": cal, "tolerance": tolerance})
-    info = {"artifacts": str(artifacts), "device": "cpu", "resolution": args.resolution, "profile": "demo",
+    info = {"artifacts": str(artifacts), "device": "cpu", "resolution": args.resolution, "profile": args.profile,
             "epochs": [base["epochs_stage1"], base["epochs_stage2"]], "n_train": None}
     partial = Path(str(args.out) + ".runs.jsonl")
     done = sr._finished_runs(partial, info)  # keyed (variant, method, seed): here (recipe, perturbation, seed)
@@ -407,8 +416,9 @@ def main(argv=None) -> dict:
         rec = noise_floor_record(summary[f"{first}|{rule}"], {**keep, "recipe": first, "tau_rule": rule,
                                                                "cpu": host["model"], "cpu_flags": host["flags"]},
                                  exposure[first])
-        write_noise_floor(args.noise_floor, first, rec)
-        print(f"wrote {args.noise_floor} (recipe {first})")
+        key = noise_floor_key(first, args.profile, args.resolution)
+        write_noise_floor(args.noise_floor, key, rec)
+        print(f"wrote {args.noise_floor} (record {key})")
     print(f"wrote {args.out}")
     return out
 

@@ -477,7 +477,8 @@ NOISE_FLOOR_NOT_MEASURED = ("noise floor not measured in this report's configura
 
 
 def noise_floor_records(doc: dict | None) -> dict[str, dict]:
-    """recipe -> record of a noise-floor file (``{"recipes": {recipe: record}}``); a file of the former
+    """key -> record of a noise-floor file (``{"recipes": {key: record}}``; a key is the recipe, or
+    :func:`noise_floor_key` for a record measured on another profile's sizes); a file of the former
     single-record form (``{"info": ..., "numbers": ...}``) is the record of its ``info.recipe``."""
     if not doc:
         return {}
@@ -486,28 +487,40 @@ def noise_floor_records(doc: dict | None) -> dict[str, dict]:
     return dict(doc.get("recipes", {}))
 
 
+def noise_floor_key(recipe: str, profile: str | None = None, resolution: int | None = None) -> str:
+    """The key of a noise-floor record in reports/noise_floor.json: the recipe alone for the demo
+    profile's sizes (the file's first records), ``<recipe>@<profile>-<resolution>`` otherwise -- one
+    file holds a floor per configuration, and :func:`select_noise_floor` picks by the record's ``info``,
+    not by its key."""
+    if profile in (None, "demo"):
+        return recipe
+    return f"{recipe}@{profile}-{resolution}"
+
+
 def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | None = None,
                        profile: str | None = None) -> dict | None:
     """The noise-floor record measured in the report's own configuration, from the stability benchmark's
-    file (reports/noise_floor.json: ``{"recipes": {recipe: {"info": ..., "numbers": {key: {"floor",
+    file (reports/noise_floor.json: ``{"recipes": {key: {"info": ..., "numbers": {key: {"floor",
     "pert", "seed_sd"}}}}}``), with ``applies_to`` = the configuration it is printed beside.
 
     A floor from another configuration is never used (issue 33): None when ``doc`` or ``recipe`` is
     None (runs of several recipes: no one floor applies), when the file holds no record of that recipe,
-    or when the record was measured at another resolution or on another profile's data sizes
+    or when every record of it was measured at another resolution or on another profile's data sizes
     (``info.resolution`` / ``info.profile`` against ``resolution`` / ``profile``; an unknown side is not
-    compared).  A file of the former single-record form counts as the record of its ``info.recipe``."""
+    compared).  A record's recipe is its ``info.recipe`` (else its key); a file of the former
+    single-record form counts as the record of its ``info.recipe``."""
     if recipe is None:
         return None
-    rec = noise_floor_records(doc).get(recipe)
-    if rec is None:
-        return None
-    info = rec.get("info", {})
-    if resolution is not None and info.get("resolution") is not None and int(info["resolution"]) != int(resolution):
-        return None
-    if profile and info.get("profile") and info["profile"] != profile:
-        return None
-    return {**rec, "applies_to": {"recipe": recipe, "resolution": resolution, "profile": profile or None}}
+    for key, rec in noise_floor_records(doc).items():
+        info = rec.get("info", {})
+        if info.get("recipe", key) != recipe:
+            continue
+        if resolution is not None and info.get("resolution") is not None and int(info["resolution"]) != int(resolution):
+            continue
+        if profile and info.get("profile") and info["profile"] != profile:
+            continue
+        return {**rec, "applies_to": {"recipe": recipe, "resolution": resolution, "profile": profile or None}}
+    return None
 
 
 def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
