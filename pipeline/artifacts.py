@@ -219,6 +219,11 @@ def creation_time() -> str:
 _RUN_ID: str | None = None
 
 
+def _new_run_id(argv: list[str]) -> str:
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    return hashlib.sha256("\0".join([epoch, *argv]).encode()).hexdigest()[:16] if epoch else uuid.uuid4().hex[:16]
+
+
 def run_id() -> str:
     """One id per stage execution (per process), recorded in every artifact it writes, so that readers
     can refuse outputs of one stage that come from different runs (:func:`require_same_run`).
@@ -228,12 +233,21 @@ def run_id() -> str:
     """
     global _RUN_ID
     if _RUN_ID is None:
-        epoch = os.environ.get("SOURCE_DATE_EPOCH")
-        if epoch:
-            _RUN_ID = hashlib.sha256("\0".join([epoch, *sys.argv[1:]]).encode()).hexdigest()[:16]
-        else:
-            _RUN_ID = uuid.uuid4().hex[:16]
+        _RUN_ID = _new_run_id(sys.argv[1:])
     return _RUN_ID
+
+
+@contextlib.contextmanager
+def run_as(argv: list[str]):
+    """Inside, :func:`run_id` is the id of a process whose command line (without the program) is
+    ``argv``: a process doing several runs' work (the train stage for a group of seeds) records in each
+    run's artifacts the id its own process would."""
+    global _RUN_ID
+    saved, _RUN_ID = _RUN_ID, _new_run_id(list(argv))
+    try:
+        yield _RUN_ID
+    finally:
+        _RUN_ID = saved
 
 
 def require_same_run(*artifacts: "Artifact") -> None:

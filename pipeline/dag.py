@@ -5,7 +5,10 @@
 * :func:`render_dvc_yaml` writes ``dvc.yaml`` from the catalogue (:mod:`pipeline.catalog`) and the
   method table (:mod:`pipeline.methods`): one ``train_<method>`` stage per method whose
   ``matrix.seed`` is ``${protocol.runs.<method>}`` -- an empty list in params.yaml means no stage,
-  so only the active (method, seed) runs exist.
+  so only the active (method, seed) runs exist.  With ``protocol.seeds_per_stage`` > 1
+  (:func:`seed_groups`) a stage trains a group of seeds in one process instead: the process start, the
+  imports and the data load are paid once per group (docs/performance.md, "The demo's wall time"),
+  and each (method, seed) keeps its own outs; the seeds are then written into dvc.yaml.
 * :func:`render_params_yaml` writes ``params.yaml`` for a profile (:mod:`pipeline.profiles`), with
   each key's description from the schema as a comment.
 
@@ -89,20 +92,60 @@ def stage_modules() -> dict[str, str]:
             **{n: s.module for n, s in STAGES.items() if n not in up}}
 
 
-def train_stage(method_name: str, code_root: Path | None = None) -> dict:
-    """The ``train_<method>`` stage: one run per seed listed in ``protocol.runs.<method>``."""
+def train_stage(method_name: str, code_root: Path | None = None, seeds: list[int] | None = None) -> dict:
+    """A training stage of ``method_name``: with ``seeds`` None the ``train_<method>`` matrix stage, one
+    run per seed listed in ``protocol.runs.<method>`` (DVC names them ``train_<method>@<seed>``); with
+    ``seeds`` one stage that trains those seeds in one process (``--seed`` repeated, each seed with its
+    own ``--out``/``--init``/``--live-dir``, so each (method, seed) keeps its own outs)."""
     m = METHODS[method_name]
-    out = dvc_path("checkpoint", method=m.name, seed="${item.seed}")
-    live = dvc_path("train_live", method=m.name, seed="${item.seed}")
-    init = dvc_path("checkpoint", method=STAGE_ONE, seed="${item.seed}") if m.init == "stage1" else None
-    args = (f"--stage {m.stage} --method {m.name} --seed ${{item.seed}} --artifacts {{artifacts_dir}}"
-            + (f" --init {init}" if init else "") + f" --out {out} --live-dir {live}")
+    items = ["${item.seed}"] if seeds is None else [str(s) for s in seeds]
+    outs = [dvc_path("checkpoint", method=m.name, seed=s) for s in items]
+    lives = [dvc_path("train_live", method=m.name, seed=s) for s in items]
+    inits = [dvc_path("checkpoint", method=STAGE_ONE, seed=s) for s in items] if m.init == "stage1" else []
+    args = (f"--stage {m.stage} --method {m.name}" + "".join(f" --seed {s}" for s in items)
+            + " --artifacts {artifacts_dir}" + "".join(f" --init {i}" for i in inits)
+            + "".join(f" --out {o}" for o in outs) + "".join(f" --live-dir {v}" for v in lives))
     spec = StageSpec(f"train_{m.name}", TRAIN_MODULE, args, input_artifacts(m), (), param_keys(m))
-    entry = _stage_entry(spec, matrix={"seed": f"${{protocol.runs.{m.name}}}"}, code_root=code_root)
-    if init:
-        entry["deps"].append(init)
-    entry["outs"] = [out, {live: {"cache": False}}]
+    matrix = {"seed": f"${{protocol.runs.{m.name}}}"} if seeds is None else None
+    entry = _stage_entry(spec, matrix=matrix, code_root=code_root)
+    entry["deps"] += inits
+    entry["outs"] = [o for out, live in zip(outs, lives) for o in (out, {live: {"cache": False}})]
     return entry
+
+
+#: the params key that groups the training runs (pipeline.params.ProtocolParams.seeds_per_stage)
+SEEDS_PER_STAGE_KEY = "protocol.seeds_per_stage"
+
+
+def train_stage_name(method_name: str, seeds: list[int] | None = None, all_seeds: list[int] | None = None) -> str:
+    """The dvc.yaml name of a training stage: ``train_<method>`` for the matrix stage (``seeds`` None;
+    DVC adds ``@<seed>``) and for a group holding all the method's seeds (``all_seeds`` None: the group is
+    all of them); ``train_<method>-<seed>-<seed>...`` for a group of some of them."""
+    if seeds is None or all_seeds is None or list(seeds) == list(all_seeds):
+        return f"train_{method_name}"
+    return f"train_{method_name}-" + "-".join(str(s) for s in seeds)
+
+
+def seed_groups(params: dict | None) -> dict[str, list[list[int]]] | None:
+    """{method: its seeds in groups of ``protocol.seeds_per_stage``, in ``protocol.runs`` order} for the
+    methods with runs, from a params dict (params.yaml as read); None when the key is 1 or absent: one
+    stage per (method, seed), templated from ``protocol.runs`` (the default)."""
+    protocol = (params or {}).get("protocol") or {}
+    per_stage = protocol.get(SEEDS_PER_STAGE_KEY.split(".")[-1]) or 1
+    if per_stage <= 1:
+        return None
+    return {m: [list(seeds[i:i + per_stage]) for i in range(0, len(seeds), per_stage)]
+            for m, seeds in (protocol.get("runs") or {}).items() if seeds}
+
+
+def train_stages(code_root: Path | None = None, groups: dict[str, list[list[int]]] | None = None) -> dict[str, dict]:
+    """The training stages, in method-table order: one matrix stage per method (``groups`` None), or
+    one stage per group of seeds (:func:`seed_groups`; methods without a group have no stage)."""
+    if groups is None:
+        return {f"train_{name}": train_stage(name, code_root) for name in METHODS}
+    everyone = {m: [s for g in gs for s in g] for m, gs in groups.items()}
+    return {train_stage_name(name, g, everyone[name]): train_stage(name, code_root, g)
+            for name in METHODS for g in groups.get(name, [])}
 
 
 #: Catalogue stages that exist in dvc.yaml only when a param is set (the stage -> the dotted key): the
@@ -130,15 +173,16 @@ def optional_stages_on(params: dict | None) -> tuple[str, ...]:
 
 
 def dvc_stages(code_root: Path | None = None, data_deps: dict[str, list[str]] | None = None,
-               omit: tuple[str, ...] = (), optional: tuple[str, ...] = ()) -> dict[str, dict]:
-    """Every stage of dvc.yaml, in DAG order: the catalogue's data stages, one train stage per method,
-    then the catalogue's downstream stages.  ``code_root``/``data_deps``/``omit``/``optional``: see
-    :func:`render_dvc_yaml`."""
+               omit: tuple[str, ...] = (), optional: tuple[str, ...] = (),
+               groups: dict[str, list[list[int]]] | None = None) -> dict[str, dict]:
+    """Every stage of dvc.yaml, in DAG order: the catalogue's data stages, the training stages (one per
+    method, or per group of seeds: :func:`train_stages`), then the catalogue's downstream stages.
+    ``code_root``/``data_deps``/``omit``/``optional``/``groups``: see :func:`render_dvc_yaml`."""
     upstream = upstream_stages()
     out = {n: _stage_entry(STAGES[n], code_root=code_root, data_deps=data_deps) for n in upstream}
     if "corrections" in optional:  # before the training stages, which read its out
         out["corrections"] = _stage_entry(STAGES["corrections"], code_root=code_root)
-    trains = {f"train_{name}": train_stage(name, code_root) for name in METHODS}
+    trains = train_stages(code_root, groups)
     if "corrections" in optional:
         for e in trains.values():
             e["deps"] += [_fill("{" + d + "}") for d in REVIEW_TRAIN_DEPS]
@@ -165,7 +209,10 @@ DVC_HEADER = """\
 #   analyze_teacher -> report;   export -> benchmark -> report
 #
 # Which runs exist is params.yaml's protocol.runs: train_<method> has one stage per listed seed (an
-# empty list: no stage).  Params are tracked key by key: a change reruns exactly the stages reading it.
+# empty list: no stage) -- or, with protocol.seeds_per_stage > 1, one stage per group of that many seeds
+# (train_<method>, or train_<method>-<seed>-...), one process each, listing its seeds (rerun `geodistill
+# dag` after editing protocol.runs then).  Params are tracked key by key: a change reruns exactly the
+# stages reading it.
 #
 # Results, git-tracked (cache: false): reports/metrics/ (`dvc metrics show`, `dvc metrics diff <commit>`),
 # reports/plots/ (`geodistill plots`: `dvc plots show` offline, one line per method), reports/dvclive/<method>/<seed>/.
@@ -199,7 +246,7 @@ def live_plots(runs: dict[str, list[int]], metric: str = LIVE_PLOT_METRIC) -> li
 
 def render_dvc_yaml(code_root: Path | None = None, data_deps: dict[str, list[str]] | None = None,
                     header: str = DVC_HEADER, omit: tuple[str, ...] = (), extra_plots: list[dict] = (),
-                    optional: tuple[str, ...] = ()) -> str:
+                    optional: tuple[str, ...] = (), groups: dict[str, list[list[int]]] | None = None) -> str:
     """dvc.yaml text.  Default: this repository's DAG.  A standalone project (``geodistill distill``'s
     output folder) passes ``code_root`` (code deps become absolute paths of the installed code, so a
     code change still reruns exactly the stages that run it) and ``data_deps`` ({stage: paths}, e.g.
@@ -207,10 +254,19 @@ def render_dvc_yaml(code_root: Path | None = None, data_deps: dict[str, list[str
     ``omit`` catalogue stages that have nothing to do there (``evaluate`` and ``analyze_teacher``
     without any reference mask; ``extra_plots`` then take the place of the plots of omitted stages,
     e.g. :func:`live_plots`); the report reads whatever exists.  ``optional``: the
-    :data:`OPTIONAL_STAGES` to render (:func:`optional_stages_on` of the params; none by default)."""
-    doc = {"stages": dvc_stages(code_root, data_deps, omit, optional),
+    :data:`OPTIONAL_STAGES` to render (:func:`optional_stages_on` of the params; none by default).
+    ``groups``: the training runs grouped several seeds to a stage (:func:`seed_groups` of the params;
+    None by default: one templated stage per (method, seed))."""
+    doc = {"stages": dvc_stages(code_root, data_deps, omit, optional, groups),
            "plots": dvc_plots(omit) + list(extra_plots)}
     return header + yaml.safe_dump(doc, sort_keys=False, width=110, default_flow_style=False)
+
+
+def project_dvc_yaml(params: dict | None) -> str:
+    """This repository's dvc.yaml for ``params`` (params.yaml as read; None without one): the
+    :data:`OPTIONAL_STAGES` it switches on and its training runs' grouping (:func:`seed_groups`) --
+    what ``geodistill dag`` writes and ``geodistill dag --check`` compares."""
+    return render_dvc_yaml(optional=optional_stages_on(params), groups=seed_groups(params))
 
 
 # --------------------------------------------------------------------------------------------------

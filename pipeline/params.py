@@ -374,12 +374,18 @@ class ProtocolParams(_Section):
     """Which (method, seed) training runs exist in the DAG: ``runs[method]`` lists its seeds.
 
     Only listed runs become DVC stages (``train_<method>@<seed>``); a warm-started method needs
-    ``plain`` at the same seed.
+    ``plain`` at the same seed.  ``seeds_per_stage`` > 1 groups a method's seeds into stages of that many
+    runs, each group one process (pipeline/dag.py, :func:`pipeline.dag.seed_groups`); it shapes dvc.yaml
+    only: every run's checkpoint is the same bytes either way.
     """
 
     runs: dict[str, list[int]] = _f({STAGE_ONE: [42], PROPOSED: [42]}, "method -> seeds; [] = no run")
     supervised_ceiling: bool = _f(False, "allow runs of supervised_ceiling: trained on REFERENCE masks, "
                                          "NOT annotation-free (a ceiling for the student recipe)")
+    seeds_per_stage: int = _f(1, "training runs of a method per DVC stage, trained one after another in one "
+                                 "process: 1 = a stage per (method, seed), train_<method>@<seed> (what geodistill "
+                                 "run spreads over workers); n > 1 = groups of n seeds (rerun geodistill dag after "
+                                 "editing runs)", ge=1, le=1000)
 
     @field_validator("runs")
     @classmethod

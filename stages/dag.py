@@ -10,7 +10,7 @@ import click
 import yaml
 
 from pipeline.artifacts import write_text_if_changed
-from pipeline.dag import is_generated_params, optional_stages_on, render_dvc_yaml, render_params_yaml
+from pipeline.dag import is_generated_params, project_dvc_yaml, render_params_yaml
 from pipeline.ownership import refuse_unowned
 from pipeline.profiles import PROFILES
 from stages._common import one_line_errors
@@ -21,9 +21,10 @@ from stages._common import one_line_errors
 @click.option("--out", default="dvc.yaml", show_default=True, type=click.Path(dir_okay=False))
 def dag_main(check: bool, out: str) -> None:
     """Write dvc.yaml from pipeline/catalog.py, pipeline/methods.py and the stages' imports (and the
-    optional stages params.yaml switches on: the corrections stage with review.corrections)."""
+    optional stages params.yaml switches on: the corrections stage with review.corrections; the
+    training runs in groups of seeds with protocol.seeds_per_stage > 1)."""
     raw = yaml.safe_load(Path("params.yaml").read_text()) if Path("params.yaml").is_file() else None
-    text = render_dvc_yaml(optional=optional_stages_on(raw))
+    text = project_dvc_yaml(raw)
     path = Path(out)
     if check:
         if not path.is_file() or path.read_text() != text:

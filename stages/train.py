@@ -1,9 +1,15 @@
-"""Stage ``train`` (DVC: ``train_<method>@<seed>``): train one (method, seed) student.
+"""Stage ``train`` (DVC: ``train_<method>@<seed>``, or ``train_<method>`` for a group of seeds): train
+(method, seed) students, one or several seeds of one method in one process.
 
-    python -m stages.train --stage 1|2 --method M --seed S --artifacts artifacts \
-        [--init artifacts/checkpoints/plain/S] --out artifacts/checkpoints/M/S
+    python -m stages.train --stage 1|2 --method M --seed S [--seed S2 ...] --artifacts artifacts \
+        [--init artifacts/checkpoints/plain/S ...] --out artifacts/checkpoints/M/S [--out ... ]
 
 * Which (M, S) runs exist is params.yaml's ``protocol.runs``; dvc.yaml has a stage for exactly those.
+  ``protocol.seeds_per_stage`` > 1 puts several seeds of a method in one stage (pipeline/dag.py): the
+  seeds come as repeated ``--seed``, each with its own ``--out`` (and ``--init``, ``--live-dir``) in the
+  same order.  The artifacts are opened once (:func:`open_method`); each seed's run is then exactly the
+  one a process of its own makes (:func:`train_seed`: seeded, threads set, nothing shared between the
+  runs but the read-only arrays), so its checkpoint is byte-identical either way.
 * ``--init`` is the Stage-I checkpoint for warm-started methods (``geodistill``, ``sdf_*_gated``,
   ``no_gate``, ``geodistill_adaptive``); methods trained from scratch (``gabi``, ``*_scratch*``,
   Stage-I methods) ignore it and do not record it in their lineage.
@@ -29,13 +35,15 @@ are opened only for :func:`pipeline.training.validation_data` (checkpoint select
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
+from typing import Any
 
 import click
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact, write_json
+from pipeline.artifacts import open_artifact, run_as, write_json
 from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.checkpointing import FileCheckpointer
 from pipeline.device import resolve_device
@@ -59,8 +67,24 @@ def load_init(path: str | Path):
     return model.mask_path_state_dict(), art
 
 
-def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts: str, init: str | None,
-        out: str, resume_dir: str, live_dir: str | None = None) -> Path:
+@dataclasses.dataclass(frozen=True)
+class MethodInputs:
+    """What every seed of one method reads, opened once (:func:`open_method`): the checked method, the
+    train params, the arrays (read-only to the runs), the opened artifacts (the lineage; each run copies
+    the list) and the stage's context (its code version)."""
+
+    spec: Any
+    stage: int
+    cfg: dict
+    data: Any
+    val: Any
+    inputs: tuple
+    context: Any
+
+
+def open_method(params: dict, stage: int, method: str, artifacts: str) -> MethodInputs:
+    """Check the method against ``--stage`` and the params, then open what its runs read
+    (:func:`pipeline.training_inputs.load_inputs`)."""
     cfg = section(params, "train")
     spec = get_method(method)
     if spec.stage != stage:
@@ -68,26 +92,33 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
     if not spec.annotation_free and not params["protocol"][SUPERVISED_CEILING]:
         raise InputError(f"--method {method}: trains on reference masks (not annotation-free); "
                          f"needs params protocol.{SUPERVISED_CEILING}: true")
+    data, val, inputs = load_inputs(artifacts, spec, cfg, review=section(params, "review"))
+    return MethodInputs(spec, stage, cfg, data, val, tuple(inputs), stage_context("train", __file__, params))
+
+
+def train_seed(m: MethodInputs, params: dict, device: str, seed: int, artifacts: str, init: str | None, out: str,
+               resume_dir: str, live_dir: str | None = None) -> Path:
+    """One (method, seed) run on the opened inputs: its checkpoint, DVCLive log and timings."""
     from pipeline import training  # torch: imported once the options are checked
 
-    data, val, inputs = load_inputs(artifacts, spec, cfg, review=section(params, "review"))
+    spec, method, inputs = m.spec, m.spec.name, list(m.inputs)
     init_state = None
     if spec.init == "stage1":
         if not init:
             raise InputError(f"--init missing: method {method!r} warm-starts from a Stage-I checkpoint")
         init_state, init_art = load_init(init)
         inputs.append(init_art)
-    meta = stage_context("train", __file__, params).meta(
+    meta = m.context.meta(
         "checkpoint", inputs, params={"params": fingerprint_params(spec, params), "method": method, "seed": seed,
-                                      "stage": stage}, **data.stats)
-    result = training.train(spec, cfg, data, val, seed, init_state=init_state, device=resolve_device(device),
+                                      "stage": m.stage}, **m.data.stats)
+    result = training.train(spec, m.cfg, m.data, m.val, seed, init_state=init_state, device=resolve_device(device),
                             checkpointer=FileCheckpointer(Path(resume_dir) / meta.fingerprint),
                             selection_tau=get_path(params, SELECTION_TAU_KEY))
     meta.extra.update(result.info)  # info["autocast"]: the precision actually used
     meta.extra["runtime"] = training_runtime(resolve_device(device))  # provenance, not fingerprinted
-    save_checkpoint(out, result.model, meta, result.log, method=method, seed=seed, stage=stage,
+    save_checkpoint(out, result.model, meta, result.log, method=method, seed=seed, stage=m.stage,
                     selected_epoch=result.selected_epoch, selection=result.info["selection"],
-                    resolution=int(data.images.shape[1]),
+                    resolution=int(m.data.images.shape[1]),
                     mode=result.info["mode"], fingerprint=meta.fingerprint)
     write_live_log(result.log, live_dir or catalog.path("train_live", artifacts, method=method, seed=seed),
                    result.selected_epoch)
@@ -99,21 +130,82 @@ def run(params: dict, device: str, stage: int, method: str, seed: int, artifacts
     return Path(out)
 
 
+#: the options given once per ``--seed`` (:func:`per_seed`, :func:`seed_argv`)
+PER_SEED_FLAGS = ("--seed", "--init", "--out", "--live-dir")
+
+
+def seed_argv(argv: list[str], k: int) -> list[str]:
+    """The command line of the ``k``-th seed's run alone: ``argv`` with only the ``k``-th value of each
+    per-seed option (:data:`PER_SEED_FLAGS`).  For dvc.yaml's grouped command this is, word for word,
+    the per-seed stage's command (pipeline/dag.py), so the run id each checkpoint records under
+    ``SOURCE_DATE_EPOCH`` -- derived from the command line -- is the one a process of its own records."""
+    out, seen, i = [], dict.fromkeys(PER_SEED_FLAGS, 0), 0
+    while i < len(argv):
+        flag, eq, _ = argv[i].partition("=")
+        if flag not in PER_SEED_FLAGS:
+            out.append(argv[i])
+            i += 1
+            continue
+        width = 1 if eq else 2
+        if seen[flag] == k:
+            out += argv[i:i + width]
+        seen[flag] += 1
+        i += width
+    return out
+
+
+def per_seed(seeds: tuple[int, ...], flag: str, values: tuple[str, ...], required: bool) -> list[str | None]:
+    """The values of a repeatable per-seed option, one per ``--seed`` in the same order (none given and
+    not ``required``: None for every seed)."""
+    if not values and not required:
+        return [None] * len(seeds)
+    if len(values) != len(seeds):
+        raise InputError(f"{flag}: {len(values)} given for {len(seeds)} --seed; give one per --seed, in their order")
+    return list(values)
+
+
+def run_seeds(params: dict, device: str, stage: int, method: str, seeds: tuple[int, ...], artifacts: str,
+              inits: tuple[str, ...], outs: tuple[str, ...], resume_dir: str, live_dirs: tuple[str, ...] = ()
+              ) -> list[Path]:
+    """Several seeds of one method in this process: the artifacts opened once, then each seed's run as
+    a process of its own would make it (:func:`train_seed`; with several seeds each records the run id
+    of its own command line, :func:`seed_argv` of this process's).  A finished seed's rerun trains no
+    epoch (its resume state), so a stage killed midway retrains only what was left."""
+    if not seeds:
+        raise InputError("--seed missing: give one or more")
+    if len(set(seeds)) != len(seeds):
+        raise InputError(f"--seed: {', '.join(str(s) for s in seeds)} names a seed twice")
+    out_of = per_seed(seeds, "--out", outs, required=True)
+    init_of = per_seed(seeds, "--init", inits, required=False)
+    live_of = per_seed(seeds, "--live-dir", live_dirs, required=False)
+    m = open_method(params, stage, method, artifacts)
+    if len(seeds) == 1:
+        return [train_seed(m, params, device, seeds[0], artifacts, init_of[0], out_of[0], resume_dir, live_of[0])]
+    done = []
+    for k, (s, i, o, lv) in enumerate(zip(seeds, init_of, out_of, live_of)):
+        with run_as(seed_argv(sys.argv[1:], k)):  # the run id its own process records (not fingerprinted)
+            done.append(train_seed(m, params, device, s, artifacts, i, o, resume_dir, lv))
+    return done
+
+
 @stage_command("train")
 @click.option("--stage", type=click.IntRange(1, 2), required=True, help="1 (Stage-I methods) or 2")
 @click.option("--method", required=True, help="plain, geodistill, ... (pipeline.methods.METHODS)")
-@click.option("--seed", type=int, required=True)
+@click.option("--seed", "seeds", type=int, multiple=True, required=True,
+              help="a seed to train (repeatable: the seeds run one after another in this process)")
 @click.option("--artifacts", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False))
-@click.option("--init", default=None, help="Stage-I checkpoint dir (warm-started methods only; others ignore it)")
-@click.option("--out", required=True, help="checkpoint directory to write")
+@click.option("--init", "inits", multiple=True,
+              help="Stage-I checkpoint dir, one per --seed (warm-started methods only; others ignore it)")
+@click.option("--out", "outs", multiple=True, required=True, help="checkpoint directory to write, one per --seed")
 @click.option("--resume-dir", default=".cache/train", show_default=True,
               help="per-epoch resume states (outside DVC outs)")
-@click.option("--live-dir", default=None,
-              help="DVCLive log of the epoch rows (default: reports/dvclive/<method>/<seed> beside the artifacts dir)")
-def main(params, device, stage, method, seed, artifacts, init, out, resume_dir, live_dir):
-    """Train one (method, seed) student on pseudo-targets; write checkpoint + training log."""
+@click.option("--live-dir", "live_dirs", multiple=True,
+              help="DVCLive log of the epoch rows, one per --seed (default: reports/dvclive/<method>/<seed> "
+                   "beside the artifacts dir)")
+def main(params, device, stage, method, seeds, artifacts, inits, outs, resume_dir, live_dirs):
+    """Train (method, seed) students on pseudo-targets; write checkpoint + training log per seed."""
     try:
-        run(params, device, stage, method, seed, artifacts, init, out, resume_dir, live_dir)
+        run_seeds(params, device, stage, method, seeds, artifacts, inits, outs, resume_dir, live_dirs)
     except TrainingDiverged as e:
         click.echo(f"geodistill train: training diverged: {str(e).splitlines()[0]}", err=True)
         sys.exit(1)

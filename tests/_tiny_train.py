@@ -155,8 +155,8 @@ def train_params_file(tmp_path, runs=None) -> Path:
     return out
 
 
-def train_cli(*args, cwd):
-    """``python -m stages.train`` with ``args`` in a subprocess (quiet, this repository on the path)."""
-    env = {"GEODISTILL_QUIET": "1", "PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO)}
+def train_cli(*args, cwd, env=None):
+    """``python -m stages.train`` with ``args`` in a subprocess (quiet, this repository on the path, ``env`` added)."""
+    env = {"GEODISTILL_QUIET": "1", "PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), **(env or {})}
     return subprocess.run([sys.executable, "-m", "stages.train", *args], cwd=cwd, env=env,
                           capture_output=True, text=True)

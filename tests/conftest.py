@@ -14,15 +14,148 @@ redefinitions).  What several modules share lives here (fixtures) or in a helper
 - ``tests/_tiny_teacher.py`` -- the teacher stage's tiny artifacts and runner, a folder of images and the
   ``geodistill`` command runner.
 
+- ``tests/_tiny_lane.py``  -- the second lane: the long subprocess-only runs (the tiny demo DAG, the two
+  ``distill`` runs, the benchmark scripts) started in the background when the session starts.
+
 Helper modules import no test module either; tests/test_test_layout.py checks both.  The fixtures
 import their helpers when first used, so that a run of a light test module does not load them.
+
+**The lane** (wall time on CI's two cores): a test that checks a long run asks for a fixture that
+*waits* for it (:data:`LANE_FIXTURES`: ``tiny_demo``, ``distill_without_masks``, ``distill_with_masks``,
+``bench_script``, ``bench_teacher_ray``).  When the session starts, ``_lane_prefetch`` queues every run
+the selected tests will wait for, in the order they will wait, on one background thread that starts
+the same commands as subprocesses; meanwhile the other tests run.  The modules holding such a test
+run last (``pytest_collection_modifyitems``), so their runs are usually done when they are reached.  A
+run of one such module alone takes as long as before: its test waits at once.
 """
 
 from __future__ import annotations
 
+import importlib.util
+import shutil
 from pathlib import Path
 
 import pytest
+
+#: the fixtures that wait for a run on the lane (tests/_tiny_lane.py), and the run's key
+LANE_FIXTURES = {"tiny_demo": "tiny_demo", "distill_without_masks": "distill_nomasks",
+                 "distill_with_masks": "distill_masks", "bench_teacher_ray": "bench:bench_teacher_ray"}
+
+
+def _lane_keys(item) -> list[str]:
+    """The lane runs the test ``item`` waits for."""
+    names = getattr(item, "fixturenames", ())
+    keys = [key for name, key in LANE_FIXTURES.items() if name in names]
+    if "bench_script" in names and hasattr(item, "callspec"):
+        keys.append(f"bench:{item.callspec.params['bench_script']}")
+    return keys
+
+
+def pytest_collection_modifyitems(config, items):
+    """The modules with a test that waits for a lane run go last, in their order (their runs have the
+    rest of the session to finish in the background)."""
+    last = {item.path for item in items if _lane_keys(item)}
+    items[:] = [i for i in items if i.path not in last] + [i for i in items if i.path in last]
+
+
+@pytest.fixture(scope="session")
+def lane():
+    """The second lane (tests/_tiny_lane.py); its runs are killed when the session ends."""
+    from tests._tiny_lane import Lane
+
+    lane = Lane()
+    yield lane
+    lane.close()
+
+
+def _submit(request, lane, key: str) -> None:
+    """Queue the lane run ``key`` (once), with what it needs from this session (folders, the tiny SAM 3)."""
+    from tests import _tiny_lane as tl
+
+    if key in lane.jobs:
+        return
+    factory = request.getfixturevalue("tmp_path_factory")
+    if key == "tiny_demo":
+        if shutil.which("git") is None:
+            pytest.skip("git not available")
+        lane.submit(key, tl.tiny_demo_run, factory.mktemp("repo"))
+    elif key in ("distill_nomasks", "distill_masks"):
+        sam3 = request.getfixturevalue("tiny_sam3")
+        images, val = request.getfixturevalue("distill_folder")
+        if key == "distill_nomasks":
+            lane.submit(key, tl.distill_run, images, factory.mktemp("distill") / "nomasks", sam3)
+        else:
+            lane.submit(key, tl.distill_run, images, factory.mktemp("distill") / "masks", sam3, "--val-masks", val)
+    elif key.startswith("bench:"):
+        if key.endswith("_ray") and importlib.util.find_spec("ray") is None:
+            pytest.skip("ray not installed")
+        lane.submit(key, tl.bench_run, key.removeprefix("bench:"))
+    else:
+        raise KeyError(key)
+
+
+def _lane_result(request, key: str):
+    lane = request.getfixturevalue("lane")
+    _submit(request, lane, key)
+    return lane.wait(key)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _lane_prefetch(request):
+    """Queue on the lane every run a selected test will wait for, in the order the tests will wait."""
+    keys = list(dict.fromkeys(k for item in request.session.items for k in _lane_keys(item)))
+    if keys:
+        lane = request.getfixturevalue("lane")
+        for key in keys:
+            try:
+                _submit(request, lane, key)
+            except pytest.skip.Exception:  # the test that waits for it skips by itself
+                pass
+
+
+@pytest.fixture(scope="session")
+def tiny_demo(request) -> tuple[Path, dict, str]:
+    """(repo, env, stdout of the first ``dvc repro``) of the tiny demo DAG run in a copy of the repository
+    (tests._tiny_lane.tiny_demo_run), on the lane."""
+    return _lane_result(request, "tiny_demo")
+
+
+@pytest.fixture(scope="session")
+def distill_folder(tmp_path_factory) -> tuple[Path, Path]:
+    """The distill tests' folder of 20 images and a folder of 8 of their masks (4 validation, 4 test)."""
+    from tests._tiny_teacher import make_image_folder
+
+    images, masks = make_image_folder(tmp_path_factory.mktemp("data"))
+    val = masks.parent / "val_masks"
+    val.mkdir()
+    for m in sorted(masks.iterdir())[:8]:
+        (val / m.name).write_bytes(m.read_bytes())
+    return images, val
+
+
+@pytest.fixture(scope="session")
+def distill_without_masks(request):
+    """(out, finished process) of ``geodistill distill`` on :func:`distill_folder`'s images, no masks, on the lane."""
+    return _lane_result(request, "distill_nomasks")
+
+
+@pytest.fixture(scope="session")
+def distill_with_masks(request):
+    """(out, finished process) of ``geodistill distill`` with ``--val-masks``, on the lane."""
+    return _lane_result(request, "distill_masks")
+
+
+@pytest.fixture
+def bench_script(request):
+    """(name, finished process) of the benchmark script case ``request.param`` (indirect
+    parametrization; tests._tiny_lane.BENCH_CASES), on the lane."""
+    return request.param, _lane_result(request, f"bench:{request.param}")
+
+
+@pytest.fixture(scope="session")
+def bench_teacher_ray(request):
+    """The teacher benchmark's run with Ray pools of 1 and 2 workers (finished process), on the lane."""
+    return _lane_result(request, "bench:bench_teacher_ray")
 
 
 @pytest.fixture(scope="module")

@@ -6,41 +6,31 @@ No timing is asserted here: performance targets live in the scripts' output, not
 from __future__ import annotations
 
 import re
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+from tests._tiny_lane import BENCH_CASES
 
-CASES = {
-    "bench_memory": ["--n", "2", "--factor", "2", "--size", "32", "--label-size", "32", "--read-size", "32",
-                     "--reps", "1"],
-    "bench_geometry": ["--n", "4", "--size", "64", "--repeats", "1", "--workers", "1"],
-    "bench_synthetic": ["--size", "48", "--views", "2", "--baseline-views", "1"],
-    "bench_train": ["--images", "4", "--size", "32", "--epochs", "1", "--reps", "1", "--val-images", "2"],
-    "bench_teacher": ["--images", "2", "--resolution", "32"],
-    "bench_evaluate": ["--runs", "3", "--images", "6", "--size", "48", "--resamples", "50", "--repeats", "1",
-                       "--student-images", "1"],
-}
+#: the scripts' tiny-size cases (tests/_tiny_lane.py; the Ray case has its own test below)
+CASES = sorted(c for c in BENCH_CASES if not c.endswith("_ray"))
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(CASES))
-def test_benchmark_script_runs_and_reports_a_ratio(name):
-    r = subprocess.run([sys.executable, "-m", f"pipeline.benchmarks.{name}", *CASES[name]], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+@pytest.mark.parametrize("bench_script", CASES, indirect=True)
+def test_benchmark_script_runs_and_reports_a_ratio(bench_script):
+    """``python -m pipeline.benchmarks.<name>`` at tiny sizes (run on the tests' second lane: tests/conftest.py)."""
+    name, r = bench_script
+    assert r.args[2] == f"pipeline.benchmarks.{name}" and r.args[3:] == BENCH_CASES[name]
     assert r.returncode == 0, r.stderr[-2000:]
     assert re.search(r"\d+(\.\d+)?\s*x", r.stdout), r.stdout[-2000:]  # "<ratio> x" against the baseline
 
 
 @pytest.mark.slow
-def test_teacher_benchmark_on_ray_prints_each_pools_start_up_and_ratio():
+def test_teacher_benchmark_on_ray_prints_each_pools_start_up_and_ratio(bench_teacher_ray):
     pytest.importorskip("ray")
-    r = subprocess.run([sys.executable, "-m", "pipeline.benchmarks.bench_teacher", "--ray-workers", "1,2",
-                        "--images", "8", "--resolution", "32", "--repeats", "1"], cwd=ROOT,
-                       capture_output=True, text=True, timeout=600)
+    r = bench_teacher_ray  # --ray-workers 1,2 --images 8 --resolution 32 --repeats 1, on the second lane
     assert r.returncode == 0, r.stderr[-2000:]
     for pool in ("serial", "ray x1", "ray x2"):
         assert re.search(rf"{pool}\s+wall median .* images/s", r.stdout), r.stdout[-2000:]
@@ -77,7 +67,7 @@ def test_stability_main_on_tiny_artifacts_prints_and_writes_its_summary(tmp_path
     for rule in TAU_RULES:
         assert f"== recipe paper, tau rule {rule}: target" in text
     assert re.search(r"recipe\s+rule\s+plainIoU\s+geoIoU\s+contIoU", text), text[-2000:]
-    assert f"wrote {floor} (recipe paper)" in text and f"wrote {out}" in text
+    assert f"wrote {floor} (record paper)" in text and f"wrote {out}" in text
     saved = json.loads(out.read_text())
     assert saved["info"]["seeds"] == saved["info"]["pert_seeds"] == [0]
     assert [(r["recipe"], r["rule"]) for r in saved["table"]] == [("paper", rule) for rule in TAU_RULES]

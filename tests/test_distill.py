@@ -16,17 +16,9 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from tests._tiny_teacher import make_image_folder
+from tests._tiny_lane import DISTILL_FAST as FAST  # demo-like tiny sizes: 32 px, one epoch per stage
 
 pytestmark = pytest.mark.slow
-
-#: demo-like tiny sizes: 32 px, one epoch per stage, one benchmark variant
-FAST = ["--device", "cpu"] + [a for kv in (
-    "data.resolution=32", "data.contact_sheet_images=2", "teacher.score_threshold=0", "train.epochs_stage1=1",
-    "train.epochs_stage2=1", "train.num_threads=1", "deploy.benchmark_variants=[fp32_eager_nchw]",
-    "deploy.benchmark_iters=1", "deploy.benchmark_warmup=0", "deploy.benchmark_batches=[1]",
-    "deploy.int8_calibration_images=4", "evaluate.bootstrap_resamples=20", "report.qualitative_images=1",
-    "report.pseudo_target_images=1") for a in ("--set", kv)]
 
 
 def cli(*args):
@@ -42,21 +34,17 @@ def dvc_status(project: Path) -> str:
 
 
 @pytest.fixture(scope="module")
-def folder(tmp_path_factory):
-    images, masks = make_image_folder(tmp_path_factory.mktemp("data"))
-    val = masks.parent / "val_masks"
-    val.mkdir()
-    for m in sorted(masks.iterdir())[:8]:  # 8 of the 20 images: 4 validation, 4 test
-        (val / m.name).write_bytes(m.read_bytes())
-    return images, val
+def folder(distill_folder):
+    """20 images and a folder of 8 of their masks (4 validation, 4 test): tests/conftest.py."""
+    return distill_folder
 
 
 @pytest.fixture(scope="module")
-def without_masks(folder, tiny_sam3, tmp_path_factory):  # noqa: F811
-    images, _ = folder
-    out = tmp_path_factory.mktemp("distill") / "nomasks"
-    res = cli("distill", images, "--out", out, "--checkpoint", tiny_sam3, *FAST)
-    assert res.exit_code == 0, res.output[-3000:]
+def without_masks(distill_without_masks):
+    """The project of ``geodistill distill`` (the command, run on the tests' second lane:
+    tests/conftest.py) on the folder without masks."""
+    out, res = distill_without_masks
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     return out
 
 
@@ -108,11 +96,10 @@ def test_distill_rerun_resumes(folder, without_masks, tiny_sam3):  # noqa: F811
     assert (without_masks / "artifacts" / "checkpoints" / "geodistill" / "42" / "model.safetensors").stat().st_mtime_ns == before
 
 
-def test_distill_with_validation_masks(folder, tiny_sam3, tmp_path):  # noqa: F811
+def test_distill_with_validation_masks(folder, distill_with_masks):
     images, val = folder
-    out = tmp_path / "masks"
-    res = cli("distill", images, "--out", out, "--checkpoint", tiny_sam3, "--val-masks", val, *FAST)
-    assert res.exit_code == 0, res.output[-3000:]
+    out, res = distill_with_masks  # the command with --val-masks, run on the tests' second lane
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     manifest = pd.read_parquet(out / "artifacts" / "manifest.parquet")
     assert manifest["split"].value_counts().to_dict() == {"train": 12, "val": 4, "test": 4}
     assert not set(manifest.loc[manifest["split"] == "train", "image_id"]) & {p.stem for p in val.iterdir()}
@@ -124,7 +111,7 @@ def test_distill_with_validation_masks(folder, tiny_sam3, tmp_path):  # noqa: F8
     assert "No validation or test masks" not in (out / "reports" / "distill" / "report.md").read_text()
     # the summary ends with the deployed student's distillation efficiency (the report stage's DVC metrics)
     eff = json.loads((out / "reports" / "metrics" / "efficiency" / "test" / "geodistill.json").read_text())
-    assert f"distill: the student reaches {eff['efficiency']:.2f} of its labels" in res.output
+    assert f"distill: the student reaches {eff['efficiency']:.2f} of its labels" in res.stderr
 
 
 @pytest.mark.parametrize("case, message", [

@@ -7,57 +7,25 @@ This is the test that fails when dvc.yaml and the stage command lines drift apar
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-import yaml
+
+from tests._tiny_lane import TINY_DEMO
 
 ROOT = Path(__file__).resolve().parent.parent
 
-TINY_DEMO = {
-    "data": {"resolution": 48,
-             "synthetic": {"train_spacecraft": 3, "train_views": 4, "val_spacecraft": 2, "val_views": 3,
-                           "test_groups": ["KCP", "CVI"], "test_spacecraft_per_group": 2, "test_views": 3}},
-    "train": {"epochs_stage1": 2, "epochs_stage2": 1, "num_threads": 1},
-    "evaluate": {"bootstrap_resamples": 200},
-    "deploy": {"benchmark_iters": 2, "benchmark_warmup": 1, "benchmark_batches": [1, 2]},
-}
-
-
-def _copy_repo(dst: Path) -> None:
-    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, capture_output=True,
-                           text=True, check=True).stdout.split()
-    for f in files:
-        src = ROOT / f
-        if src.is_file() and not f.startswith(("reports/reduced", "tests/")):
-            (dst / f).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(src, dst / f)
-
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    if shutil.which("git") is None:
-        pytest.skip("git not available")
-    repo = tmp_path_factory.mktemp("repo")
-    _copy_repo(repo)
-    params = yaml.safe_load((repo / "params.yaml").read_text())
-    from pipeline.params import deep_merge
-
-    params = deep_merge(params, TINY_DEMO)  # params.yaml is the demo profile's effective file
-    # one seed of each of the demo's methods (the demo publishes seed means; one seed keeps this test fast)
-    params["protocol"]["runs"] = {m: seeds[:1] for m, seeds in params["protocol"]["runs"].items()}
-    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}",
-           "PYTHONPATH": str(repo), "GEODISTILL_QUIET": "1"}
+def tiny_run(tiny_demo):
+    """The demo's DAG on :data:`TINY_DEMO` sizes with one seed of each method, run by ``dvc repro`` in a copy
+    of the repository (tests._tiny_lane.tiny_demo_run, on the tests' second lane: tests/conftest.py):
+    (repo, env, the first repro's stdout, a command runner in the repo)."""
+    repo, env, first = tiny_demo
     run = lambda *a: subprocess.run(list(a), cwd=repo, env=env, capture_output=True, text=True)  # noqa: E731
-    for cmd in (["git", "init", "-q"], [sys.executable, "-m", "dvc", "config", "core.analytics", "false"]):
-        assert run(*cmd).returncode == 0
-    first = run(sys.executable, "-m", "dvc", "repro")
-    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
-    return repo, env, first.stdout, run
+    return repo, env, first, run
 
 
 @pytest.mark.slow

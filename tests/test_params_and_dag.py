@@ -176,9 +176,10 @@ def _dvc_yaml() -> dict:
 
 
 def test_dvc_yaml_is_generated_and_current():
-    from pipeline.dag import render_dvc_yaml
+    from pipeline.dag import project_dvc_yaml
 
-    assert (ROOT / "dvc.yaml").read_text() == render_dvc_yaml(), "dvc.yaml is out of date: run `geodistill dag`"
+    params = yaml.safe_load((ROOT / "params.yaml").read_text())  # the demo groups its seeds (protocol.seeds_per_stage)
+    assert (ROOT / "dvc.yaml").read_text() == project_dvc_yaml(params), "dvc.yaml is out of date: run `geodistill dag`"
 
 
 def test_dvc_yaml_deps_cover_every_module_each_stage_imports():
@@ -224,14 +225,14 @@ def paper_repo(tmp_path_factory):
     separately from params)."""
     if shutil.which("git") is None:
         pytest.skip("git not available")
-    from pipeline.dag import dvc_stages, render_params_yaml
+    from pipeline.dag import dvc_stages, project_dvc_yaml, render_params_yaml
 
     repo = tmp_path_factory.mktemp("paper_repo")
     subprocess.run(["git", "init", "-q"], cwd=repo, check=True)
     assert _dvc(repo, "init", "-q").returncode == 0
     _dvc(repo, "config", "core.analytics", "false")
-    shutil.copy(ROOT / "dvc.yaml", repo / "dvc.yaml")
     (repo / "params.yaml").write_text(render_params_yaml("paper"))
+    (repo / "dvc.yaml").write_text(project_dvc_yaml(yaml.safe_load((repo / "params.yaml").read_text())))  # per seed
     params = load_params(repo / "params.yaml")
     from pipeline.params import get_path
 
@@ -290,8 +291,11 @@ def test_demo_dag_has_only_active_runs():
     train = {n for n in names if n.startswith("train_")}
     from pipeline.profiles import TEN_SEEDS
 
-    # the demo's runs: three methods at the ten seeds whose means it publishes (docs/stability.md)
-    assert train == {f"train_{m}@{s}" for m in ("plain", "geodistill", "continuation") for s in TEN_SEEDS}
+    # the demo's runs: three methods at the ten seeds whose means it publishes (docs/stability.md), each
+    # method's seeds in one stage (protocol.seeds_per_stage; tests/test_train_grouped.py)
+    assert train == {f"train_{m}" for m in ("plain", "geodistill", "continuation")}
+    outs = {o for n in train for o in _dvc_yaml()["stages"][n]["outs"] if isinstance(o, str)}
+    assert outs == {f"artifacts/checkpoints/{m}/{s}" for m in ("plain", "geodistill", "continuation") for s in TEN_SEEDS}
     assert {"prepare", "teacher", "consensus", "geometry", "calibrate", "evaluate", "report"} <= names
 
 
@@ -322,7 +326,7 @@ def code_repo(tmp_path_factory):
     lock = {"schema": committed["schema"], "stages": {}}
     for name, entry in committed["stages"].items():
         base, _, seed = name.partition("@")
-        if base not in declared:
+        if base not in declared or bool(seed) != ("matrix" in declared[base]):  # gone, or now of the other shape
             continue
         old = {d["path"]: d for d in entry.get("deps", [])}
         deps = []
@@ -333,7 +337,7 @@ def code_repo(tmp_path_factory):
             deps.append(dep)
         lock["stages"][name] = {**entry, "deps": deps}
     for name, stage in declared.items():   # a stage added since the committed lock: locked as after its first run
-        if "cmd" in stage and not any(n.partition("@")[0] == name for n in committed["stages"]):
+        if "cmd" in stage and not any(n.partition("@")[0] == name for n in lock["stages"]):
             lock["stages"][name] = {"cmd": stage["cmd"], "deps": [
                 {"path": p, "hash": "md5", "md5": _md5(repo / p), "size": (repo / p).stat().st_size}
                 if (repo / p).is_file() else {"path": p} for p in stage.get("deps", [])]}
