@@ -64,6 +64,16 @@ def test_plan_from_dvc_dag_and_status():
         plan.topological({"a": {"b"}, "b": {"a"}})
 
 
+def test_pinned_train_threads_read_from_params(tmp_path):
+    from pipeline.cluster.driver import pinned_train_threads
+
+    assert pinned_train_threads(tmp_path) == 0  # no params.yaml
+    (tmp_path / "params.yaml").write_text("train:\n  num_threads: 2\n")
+    assert pinned_train_threads(tmp_path) == 2
+    (tmp_path / "params.yaml").write_text("train:\n  num_threads: 0\n")
+    assert pinned_train_threads(tmp_path) == 0
+
+
 def test_stage_resources_follow_the_cluster():
     gpu = plan.Sizing(node_cpus=16, gpus=2, stage_cpus=4, train_gpu_fraction=0.25)
     assert plan.stage_resources("teacher", gpu) == {"num_cpus": 1.0, "num_gpus": 1.0}
@@ -72,6 +82,16 @@ def test_stage_resources_follow_the_cluster():
     assert plan.stage_resources("benchmark", gpu) == {"num_cpus": 16.0, "num_gpus": 0.0}  # a whole node
     cpu = plan.Sizing(node_cpus=2, gpus=0, stage_cpus=8)
     assert plan.stage_resources("teacher", cpu) == {"num_cpus": 2.0, "num_gpus": 0.0}  # capped at a node
+    # a training run pinned to 2 torch threads takes 2 cores, not the 1 a CPU stage gets (two such runs on
+    # 2 cores would run 4 busy threads); unpinned (0) it takes the CPU stage's share; never over a node
+    pinned = plan.Sizing(node_cpus=2, gpus=0, stage_cpus=1, train_threads=2)
+    assert plan.stage_resources("train_plain@42", pinned) == {"num_cpus": 2.0, "num_gpus": 0.0}
+    assert plan.stage_resources("train_plain", pinned) == {"num_cpus": 2.0, "num_gpus": 0.0}  # a seed group
+    assert plan.stage_resources("calibrate", pinned) == {"num_cpus": 1.0, "num_gpus": 0.0}
+    assert plan.stage_resources("train_plain@42", plan.Sizing(node_cpus=2, stage_cpus=1)) == {"num_cpus": 1.0,
+                                                                                             "num_gpus": 0.0}
+    assert plan.stage_resources("train_plain@42", plan.Sizing(node_cpus=2, stage_cpus=1, train_threads=8)) \
+        == {"num_cpus": 2.0, "num_gpus": 0.0}
     assert plan.outcome("Running stage 'a':\n> x") == "ran"
     assert plan.outcome("Stage 'a' is cached - skipping run, checking out outputs") == "restored"
     assert plan.outcome("Stage 'a' didn't change, skipping") == "up_to_date"

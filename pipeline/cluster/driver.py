@@ -37,6 +37,7 @@ from pipeline import catalog
 from pipeline.cluster import plan
 from pipeline.environment import THREAD_ENV_VARS
 from pipeline.errors import InputError
+from pipeline.params import DEFAULT_PARAMS, read_yaml_mapping
 
 #: The driver's lock file, inside DVC's own tmp folder (never committed).
 LOCK_FILE = ".dvc/tmp/geodistill-run.lock"
@@ -157,14 +158,25 @@ def write_timeline(path: Path, results: dict[str, dict], resources: dict, wall_s
     return path
 
 
-def sizing(ray, stage_cpus: float | None, train_gpu_fraction: float) -> plan.Sizing:
+def sizing(ray, stage_cpus: float | None, train_gpu_fraction: float, train_threads: int = 0) -> plan.Sizing:
     """What the connected Ray cluster offers: the largest node's CPUs, all GPUs; a CPU stage takes
-    ``stage_cpus`` (default: half the largest node, at least 1)."""
+    ``stage_cpus`` (default: half the largest node, at least 1); a training run at least its pinned
+    ``train_threads`` (:func:`pipeline.cluster.plan.stage_resources`)."""
     nodes = [n for n in ray.nodes() if n.get("Alive")]
     node_cpus = max((n["Resources"].get("CPU", 0.0) for n in nodes), default=1.0) or 1.0
     gpus = float(ray.cluster_resources().get("GPU", 0.0))
     return plan.Sizing(node_cpus=node_cpus, gpus=gpus, stage_cpus=stage_cpus or max(1.0, node_cpus // 2),
-                       train_gpu_fraction=train_gpu_fraction)
+                       train_gpu_fraction=train_gpu_fraction, train_threads=train_threads)
+
+
+def pinned_train_threads(root: Path) -> int:
+    """``train.num_threads`` of the project's params.yaml (0 when absent or unreadable: DVC reports a bad
+    params file itself when the stage runs)."""
+    try:
+        value = read_yaml_mapping(root / DEFAULT_PARAMS).get("train", {}).get("num_threads", 0)
+        return max(0, int(value or 0))
+    except (InputError, OSError, TypeError, ValueError, AttributeError):
+        return 0
 
 
 @dataclasses.dataclass
@@ -209,7 +221,8 @@ def run_pipeline(root: Path, targets: tuple[str, ...] = (), address: str | None 
             ray.init(address=addr, include_dashboard=False, log_to_driver=False, logging_level="WARNING",
                      configure_logging=True)
         try:
-            return _submit(ray, root, sequence, graph, sizing(ray, stage_cpus, train_gpu_fraction), log_dir,
+            return _submit(ray, root, sequence, graph,
+                           sizing(ray, stage_cpus, train_gpu_fraction, pinned_train_threads(root)), log_dir,
                            costs, dry_run, echo)
         finally:
             if started_here:

@@ -159,12 +159,15 @@ def submission_order(needs: Mapping[str, set[str]], costs: Mapping[str, float] |
 @dataclasses.dataclass(frozen=True)
 class Sizing:
     """What the cluster offers and what a stage may take: ``node_cpus`` (the largest node's CPUs),
-    ``gpus`` (in all), ``stage_cpus`` (a CPU stage), ``train_gpu_fraction``."""
+    ``gpus`` (in all), ``stage_cpus`` (a CPU stage), ``train_gpu_fraction``, ``train_threads`` (params
+    ``train.num_threads``: the torch threads a training run pins whatever OMP_NUM_THREADS says; 0 = not
+    pinned)."""
 
     node_cpus: float
     gpus: float = 0.0
     stage_cpus: float = 1.0
     train_gpu_fraction: float = 0.25
+    train_threads: int = 0
 
 
 def stage_resources(name: str, size: Sizing) -> dict[str, float]:
@@ -172,7 +175,10 @@ def stage_resources(name: str, size: Sizing) -> dict[str, float]:
 
     With GPUs in the cluster: the teacher takes one GPU and one CPU, a training run
     ``train_gpu_fraction`` of a GPU and one CPU.  Every other stage (and every stage without GPUs) takes
-    ``stage_cpus`` cores; an exclusive stage takes a whole node's cores (it runs alone anyway)."""
+    ``stage_cpus`` cores; an exclusive stage takes a whole node's cores (it runs alone anyway).  Without
+    GPUs a training run takes at least its pinned ``train_threads`` cores (at most a node's): the
+    published profiles pin 2 threads, and two such runs on the two cores a default ``stage_cpus`` of 1
+    would give them ran four busy threads on two cores, each run several times slower."""
     base = name.split("@", 1)[0]
     if size.gpus > 0 and base == TEACHER_STAGE:
         return {"num_cpus": 1.0, "num_gpus": 1.0}
@@ -180,7 +186,10 @@ def stage_resources(name: str, size: Sizing) -> dict[str, float]:
         return {"num_cpus": 1.0, "num_gpus": float(size.train_gpu_fraction)}
     if exclusive_stage(name):
         return {"num_cpus": float(size.node_cpus), "num_gpus": 0.0}
-    return {"num_cpus": float(min(size.stage_cpus, size.node_cpus)), "num_gpus": 0.0}
+    cpus = size.stage_cpus
+    if base.startswith(TRAIN_PREFIX):
+        cpus = max(cpus, float(size.train_threads))
+    return {"num_cpus": float(min(cpus, size.node_cpus)), "num_gpus": 0.0}
 
 
 def outcome(log_text: str) -> str:
