@@ -65,9 +65,10 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
     _a("train_timings", "timings/train/{method}/{seed}.json", None, "train",
        "per-epoch wall-clock seconds: NOT a DVC out and not fingerprinted (checkpoints stay byte-identical)"),
     _a("noise_floor", "../reports/noise_floor.json", None, "stability benchmark",
-       "perturbation and seed spreads of the published numbers, one record per training recipe "
-       "({recipes: {recipe: record}}; python -m pipeline.benchmarks.stability --noise-floor adds or replaces "
-       "its own); the report applies the record of its runs' recipe when present: NOT a DVC out or dep"),
+       "perturbation and seed spreads of the published numbers, one record per configuration "
+       "({recipes: {key: record}}; python -m pipeline.benchmarks.stability --noise-floor adds or replaces "
+       "its own); the report applies the record measured in its own configuration when there is one: a "
+       "DVC dep of report in this repository's DAG (not a DVC out: the benchmark writes it)"),
     _a("run_logs", "logs/run", None, "run",
        "`geodistill run`: <stage>.log (stdout+stderr) per stage and timeline.json; NOT a DVC out"),
     _a("thresholds", "thresholds.parquet", "thresholds", "calibrate"),
@@ -255,7 +256,9 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               ("manifest", "images", "reference", "teacher", "consensus", "geometry", "gates", "checkpoints",
                "thresholds", "metrics", "summary", "teacher_metrics", "efficiency"), ("report",),
               ("profile",) + _keys("report", "qualitative_images", "pseudo_target_images"),
-              metrics=("metrics_efficiency",)),    # optional: in dvc.yaml only when params review.corrections is set (pipeline.dag.OPTIONAL_STAGES)
+              # a new floor changes the report's verdicts, so it reruns the report (a standalone
+              # project, which has no floor file, replaces the data deps: pipeline.dag.render_dvc_yaml)
+              data_deps=(dvc_path("noise_floor"),), metrics=("metrics_efficiency",)),    # optional: in dvc.yaml only when params review.corrections is set (pipeline.dag.OPTIONAL_STAGES)
     StageSpec("corrections", "stages.corrections",
               "--corrections ${review.corrections} --artifacts {artifacts_dir} --out {corrected}",
               ("manifest", "images"), ("corrected",), _keys("review", "corrections", "mode") + ("data.source",),

@@ -375,3 +375,21 @@ def test_editing_profiles_or_the_dag_renderer_marks_no_stage_stale(code_repo):
         f.write("# an edit\n")
     control = _changed_code_deps(code_repo)
     assert "geometry" in control.get("pipeline/geometry.py", set()), control
+
+
+def test_report_reruns_when_the_noise_floor_changes():
+    """The report's verdicts read reports/noise_floor.json: in this repository's DAG it is a dep of the
+    report stage (a new floor reruns the report); a standalone project, which has no floor file,
+    does not list it (DVC would stop on a missing dep)."""
+    import yaml
+
+    from pipeline.catalog import dvc_path
+    from pipeline.dag import render_dvc_yaml
+
+    floor = dvc_path("noise_floor")
+    assert floor == "reports/noise_floor.json"
+    project = yaml.safe_load(render_dvc_yaml())["stages"]
+    assert floor in project["report"]["deps"]
+    assert not any(floor in e["deps"] for n, e in project.items() if n != "report")
+    standalone = yaml.safe_load(render_dvc_yaml(code_root=Path("/x"), data_deps={"prepare": ["images"]}))["stages"]
+    assert floor not in standalone["report"]["deps"]
