@@ -277,7 +277,7 @@ PARAMS_HEADER = """\
 # `geodistill profile {profile}` from the schema defaults (pipeline/params.py, the paper's values) and the
 # profile's overrides (pipeline/profiles.py).  Edit single values here (or `dvc exp run -S key=value`):
 # DVC tracks every key, so a change reruns exactly the stages that read it.  Switch profile with
-# `geodistill profile demo|reduced|paper` (this file is rewritten).  Every stage validates this file first.
+# `geodistill profile demo|reduced|reduced-strong|paper` (this file is rewritten).  Every stage validates this file first.
 """
 
 

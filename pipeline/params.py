@@ -3,7 +3,7 @@
 ``params.yaml`` is the *effective* parameter set that DVC tracks key by key.  It is generated from
 this schema's defaults (the paper's values, eq labels refer to the paper) plus one profile's
 overrides (:mod:`pipeline.profiles`, which imports this module, never the reverse):
-``geodistill profile demo|reduced|paper`` writes it, and a user then edits single values in it
+``geodistill profile demo|reduced|reduced-strong|paper`` writes it, and a user then edits single values in it
 (``dvc exp run -S train.lr_stage2=2e-4`` works the same way).
 
 Every stage validates the whole file once at start (:func:`load_params`): a value that is NaN or

@@ -16,6 +16,9 @@ The stages read params.yaml alone (:func:`pipeline.params.load_params` refuses `
   (continuation, supervised ceiling) on the synthetic benchmark at 128², the main methods and the
   controls at five seeds (issue 24: seed-aware CIs need them), which 2-core machines finish; its
   report is under reports/reduced/;
+* ``reduced-strong`` -- the reduced profile's data at 128² under ``train.recipe: strong``: Plain,
+  GeoDistill-Refine, the continuation and the ceiling at three seeds, the geometry question asked at a
+  converged student (report under reports/reduced-strong/);
 * ``distill`` -- what ``geodistill distill`` starts from: the paper's sizes, Plain Student (Stage I) and
   GeoDistill-Refine (Stage II) for one seed (the command points data at your folder);
 * ``paper``   -- the paper's sizes: 384², 270/60/3x60 images, 20 + 10 epochs, the full protocol with
@@ -64,6 +67,9 @@ def full_protocol(seeds: list[int]) -> dict:
             "supervised_ceiling": True}
 
 
+#: the runs of the geometry question at convergence: the two students, the control that matches
+#: Stage II's extra epochs, and the ceiling that says whether the labels or the recipe bound quality
+STRONG_STUDY_METHODS = ["plain", "geodistill", "continuation", "supervised_ceiling"]
 #: The paper's protocol: three seeds, as published.
 FULL_PROTOCOL = full_protocol(SEEDS)
 
@@ -99,6 +105,15 @@ PROFILES: dict[str, dict[str, Any]] = {
     "paper": {
         "train": {"num_threads": PUBLISHED_THREADS},
         "protocol": FULL_PROTOCOL,
+    },
+    # the geometry question at convergence (docs/student.md): the reduced profile's data at 128² under the
+    # strong recipe, only the four runs that answer it -- Plain, GeoDistill-Refine, the budget-matched
+    # continuation and the supervised ceiling -- at the paper's three seeds (2-core affordable)
+    "reduced-strong": {
+        "data": {"resolution": 128},
+        "train": {"recipe": "strong", "num_threads": PUBLISHED_THREADS},
+        "protocol": {"runs": {m: list(SEEDS) for m in STRONG_STUDY_METHODS}, "supervised_ceiling": True},
+        "deploy": {"benchmark_resolution": 384},
     },
     # `geodistill distill` (pipeline/standalone.py): your folder at the paper's sizes, Stage I then
     # Stage II for one seed; the command sets data.source=folder and the teacher on top

@@ -34,15 +34,20 @@ def test_committed_params_yaml_is_the_demo_profile():
     assert demo["profile"] == "demo" and demo["data"]["resolution"] == 64 and demo["train"]["recipe"] == "stable"
 
 
-@pytest.mark.parametrize("profile", ["demo", "reduced", "paper"])
+@pytest.mark.parametrize("profile", ["demo", "reduced", "reduced-strong", "paper"])
 def test_profiles_validate_and_paper_is_the_schema_default(profile):
     from pipeline.profiles import profile_params
 
     from pipeline.profiles import PUBLISHED_THREADS
 
     p = validate(profile_params(profile))
-    if profile in ("demo", "reduced", "paper"):   # profiles that publish numbers pin their threads (issue 33)
+    if profile in ("demo", "reduced", "reduced-strong", "paper"):   # profiles that publish numbers pin threads
         assert p["train"]["num_threads"] == PUBLISHED_THREADS > 0
+    if profile == "reduced-strong":  # the geometry question at convergence: four runs, three seeds, strong
+        assert p["train"]["recipe"] == "strong" and p["train"]["augment"] is True
+        assert {m for m, s in p["protocol"]["runs"].items() if s} == \
+            {"plain", "geodistill", "continuation", "supervised_ceiling"}
+        assert all(len(s) == 3 for s in p["protocol"]["runs"].values() if s)
     if profile == "paper":
         schema = PAPER.model_dump()
         schema["train"] = {**schema["train"], "num_threads": PUBLISHED_THREADS}
