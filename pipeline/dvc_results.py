@@ -167,6 +167,24 @@ def distillation_efficiency(student_mean: float, student_std: float, n_seeds: in
     return ratio, ratio - half, ratio + half
 
 
+#: the student's distillation-efficiency targets (docs/student.md): method -> (the ratio it should reach,
+#: whether its whole interval must lie above it).  Plain should learn almost all its labels hold, the
+#: proposed student should reach its labels, and the ceiling -- trained on reference masks -- should be
+#: clearly above them, i.e. its interval's low end above 1.  Printed beside the table, never asserted.
+EFFICIENCY_TARGETS: dict[str, tuple[float, bool]] = {"plain": (0.95, False), "geodistill": (1.0, False),
+                                                      "supervised_ceiling": (1.0, True)}
+
+
+def efficiency_target_met(method: str, ratio: float, low: float) -> bool | None:
+    """Whether a (method's ratio, interval low end) meets :data:`EFFICIENCY_TARGETS`; None when the method
+    has no target or the number it is judged on is not finite (one seed for a target on the interval)."""
+    if method not in EFFICIENCY_TARGETS:
+        return None
+    target, on_interval = EFFICIENCY_TARGETS[method]
+    x = low if on_interval else ratio
+    return bool(x >= target) if math.isfinite(x) else None
+
+
 def efficiency_metric_files(summary: pd.DataFrame, vote: Mapping[str, float]) -> dict[str, dict[str, float]]:
     """``{"<group>/<method>.json": {"efficiency"}}``: the :func:`distillation_efficiency` ratio of every
     method (students and the supervised ceiling) at the calibrated tau, for the groups with a vote IoU in

@@ -60,3 +60,29 @@ def test_reference_points_table_shows_the_efficiency_of_students_and_ceiling():
     assert plain == f"{e:.2f} [{lo:.2f}, {hi:.2f}]"
     assert sum(v.startswith(f"{0.57 / 0.6:.2f}") for v in cells.values()) == 1  # the ceiling on KCP
     assert any("vote" in name.lower() and v == "1" for (_, name), v in cells.items())
+
+
+def test_targets_judge_the_ratio_or_the_interval_and_the_table_says_how_many_groups_meet_them():
+    from pipeline.dvc_results import EFFICIENCY_TARGETS, efficiency_target_met
+    from pipeline.report.tables import reference_points_table
+
+    assert efficiency_target_met("plain", 0.96, 0.80) is True        # on the ratio
+    assert efficiency_target_met("plain", 0.94, 0.90) is False
+    assert efficiency_target_met("supervised_ceiling", 1.05, 0.99) is False  # "clearly above": the interval
+    assert efficiency_target_met("supervised_ceiling", 1.05, 1.01) is True
+    assert efficiency_target_met("supervised_ceiling", 1.05, float("nan")) is None  # one seed: not judged
+    assert efficiency_target_met("continuation", 2.0, 2.0) is None
+    assert set(EFFICIENCY_TARGETS) == {"plain", "geodistill", "supervised_ceiling"}
+
+    summary = _summary()
+    geo = summary[summary["method"] == "plain"].assign(method="geodistill", iou_mean=0.65)
+    vote = pd.DataFrame({"iou": [0.6, 0.7], "bf1": [0.5, 0.5], "precision": [0.6, 0.6], "recall": [0.7, 0.7]},
+                        index=["KCP", "HJM"])
+    tab = reference_points_table(pd.concat([summary, geo]), vote, "calibrated", ["KCP", "HJM"])
+    assert sum("GeoDistill" in r[1] for r in tab.rows) == 2           # the proposed student has its ratio too
+    note = next(n for n in tab.notes if n.startswith("Targets"))
+    # plain 0.51/0.6 = 0.85 and 0.49/0.7 = 0.70: below 0.95 on both; geodistill 0.65/0.6 >= 1 on KCP only;
+    # the ceiling's intervals (0.57 +- 0.01, 0.54 +- 0.02 over 5 seeds) are below 1 x the vote on both
+    assert "≥ 0.95 × the vote: met on 0 of 2 groups" in note
+    assert "≥ 1.00 × the vote: met on 1 of 2 groups" in note
+    assert "interval above 1.00 × the vote: met on 0 of 2 groups" in note

@@ -11,7 +11,7 @@ from typing import Iterator, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from pipeline.dvc_results import distillation_efficiency
+from pipeline.dvc_results import EFFICIENCY_TARGETS, distillation_efficiency, efficiency_target_met
 from pipeline.methods import (BASELINE, CONTINUATION, METHODS, PROPOSED, STAGE_ONE, ablation_table_rows,
                               annotation_free_methods, in_table_order, method_label, methods_with_role, run_label)
 from pipeline.report.analysis import PRIMARY_ENDPOINT, gain_noise_floor, noise_floor_note, tau_text
@@ -431,17 +431,19 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
     ceiling = not_annotation_free(s["method"].unique())
     if not ceiling and (vote is None or vote.empty):
         return None
-    rows = []
+    rows, verdicts = [], []
     for g in groups:
         part = s[s["group"] == g].set_index("method")
         vote_iou = float(vote.loc[g, "iou"]) if vote is not None and g in vote.index else float("nan")
-        for m in [BASELINE, *ceiling]:
+        for m in [BASELINE, PROPOSED, *ceiling]:
             if m in part.index:
                 r = part.loc[m]
                 rows.append([g, label(m), fmt_pm(r["iou_mean"], r["iou_std"]), fmt_pm(r["bf1_mean"], r["bf1_std"]),
                              fmt_pm(r.get("precision_mean"), r.get("precision_std")),
                              fmt_pm(r.get("recall_mean"), r.get("recall_std")), str(int(r["n_seeds"])),
                              efficiency_text(r["iou_mean"], r["iou_std"], r["n_seeds"], vote_iou)])
+                e, lo, _ = distillation_efficiency(r["iou_mean"], r["iou_std"], r["n_seeds"], vote_iou)
+                verdicts.append((m, efficiency_target_met(m, e, lo)))
         if vote is not None and g in vote.index:
             v = vote.loc[g]
             rows.append([g, TEACHER_VOTE_LABEL, fmt(v["iou"]), fmt(v["bf1"]), fmt(v["precision"]),
@@ -450,13 +452,27 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
                  f"({mode_text(mode, fixed_tau)} for the students)",
                  ["Evaluation set", "Predictor", "Image IoU", "Boundary F1", "Precision", "Recall", "Seeds",
                   "IoU ÷ vote"], rows,
-                 ["The supervised ceiling is the Plain Student's recipe trained on the training split's REFERENCE "
+                 [n for n in ["The supervised ceiling is the Plain Student's recipe trained on the training split's REFERENCE "
                   "masks: it is not annotation-free and is never part of a gain or its confidence interval.  The "
                   "teacher vote is the pseudo-label every annotation-free student learns from, scored at its own "
                   "binary mask (no threshold), identical in both threshold modes.",
                   "IoU ÷ vote is the distillation efficiency: the seed-mean Image IoU divided by the teacher vote's "
                   "on the same test images, with a 95 % per-seed ratio t interval (the vote has no seed; the "
-                  "interval covers training noise, not the sampling of the images)."])
+                  "interval covers training noise, not the sampling of the images).",
+                  efficiency_targets_note(verdicts)] if n])
+
+
+def efficiency_targets_note(verdicts: Sequence[tuple[str, bool | None]]) -> str:
+    """The distillation-efficiency targets (:data:`pipeline.dvc_results.EFFICIENCY_TARGETS`) and, per method,
+    on how many of the table's groups they are met: ``verdicts`` = (method, met or None) per row."""
+    parts = []
+    for m, (target, on_interval) in EFFICIENCY_TARGETS.items():
+        judged = [v for mm, v in verdicts if mm == m and v is not None]
+        if not any(mm == m for mm, _ in verdicts):
+            continue
+        what = f"{label(m)} {'interval above' if on_interval else '≥'} {target:.2f} × the vote"
+        parts.append(f"{what}: met on {sum(judged)} of {len(judged)} groups" if judged else f"{what}: not judged")
+    return ("Targets (printed, not asserted): " + "; ".join(parts) + ".") if parts else ""
 
 
 def efficiency_text(mean: float, std: float, n_seeds: int, vote_iou: float) -> str:
