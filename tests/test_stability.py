@@ -339,6 +339,10 @@ def test_report_applies_only_the_floor_of_its_own_configuration(tmp_path):
     assert select_noise_floor({"recipes": {"paper": {**_floor("paper", 64, 0.02), "info": {
         **_floor("paper", 64, 0.02)["info"], "profile": "demo"}}}}, "paper", 64, "reduced") is None
     assert "recipe paper" in noise_floor_note(select_noise_floor(doc, "paper", 64))
+    # a floor whose perturbations ran on fewer seeds says on which
+    part = {**paper, "info": {**paper["info"], "seeds": [1, 2, 3], "pert_seeds": [1, 2]}}
+    assert "seeds [1, 2, 3], perturbed on [1, 2]" in noise_floor_note(part)
+    assert "perturbed" not in noise_floor_note({**paper, "info": {**paper["info"], "seeds": [1, 2], "pert_seeds": [1, 2]}})
     path = tmp_path / "noise_floor.json"
     path.write_text(json.dumps(doc))
     runs = [{"method": "plain", "seed": 1, "recipe": "paper"}, {"method": "geodistill", "seed": 1, "recipe": "paper"}]

@@ -398,7 +398,7 @@ def main(argv=None) -> dict:
             summary[f"{rname}|{rule}"] = sp = spreads(runs, rule)
             print_summary(rname, rule, sp, exposure[rname])
     rows = recipe_table(summary, exposure)
-    print(f"\nseeds {args.seeds} (perturbations on {pert_seeds}), {args.resolution}^2, demo sizes, "
+    print(f"\nseeds {args.seeds} (perturbations on {pert_seeds}), {args.resolution}^2, the {args.profile} profile's sizes, "
           f"epochs {info['epochs']}; means over seeds and groups; thr/prc = worst move of a student seed-mean "
           f"(method x group) under 1 thread / the other precision; 1s = worst range over perturbations of one "
           f"seed; sd = median seed sd; target judged on the perturbations the recipe is exposed to")

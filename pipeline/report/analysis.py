@@ -544,10 +544,13 @@ def noise_floor_note(record: dict | None) -> str:
     if not record:
         return NOISE_FLOOR_NOT_MEASURED + "."
     i = record.get("info", {})
+    seeds, perturbed = i.get("seeds", "?"), i.get("pert_seeds")
+    if perturbed and list(perturbed) != list(seeds):  # the moves come from the perturbed seeds' mean only
+        seeds = f"{seeds}, perturbed on {perturbed}"
     return (f"Noise floor: the largest move of a gain's seed-mean under a numerical perturbation "
             f"({', '.join(i.get('perturbations', ['?']))}; threads1 = 1 instead of 2 threads, precision = fp32 vs "
             f"bf16), measured by the stability benchmark in this report's configuration (recipe "
             f"{i.get('recipe', '?')}, tau rule {i.get('tau_rule', '?')}, {i.get('resolution', '?')}², "
-            f"{i.get('profile', '?')} sizes, epochs {i.get('epochs', '?')}, seeds {i.get('seeds', '?')}"
+            f"{i.get('profile', '?')} sizes, epochs {i.get('epochs', '?')}, seeds {seeds}"
             f"{', on ' + str(i['cpu']) if i.get('cpu') else ''}; reports/noise_floor.json); a difference is "
             f"supported only when the bound of its seed-aware CI nearest 0 clears the floor.")
