@@ -438,11 +438,11 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
         for m in [BASELINE, PROPOSED, *ceiling]:
             if m in part.index:
                 r = part.loc[m]
+                e, lo, hi = distillation_efficiency(r["iou_mean"], r["iou_std"], r["n_seeds"], vote_iou)
                 rows.append([g, label(m), fmt_pm(r["iou_mean"], r["iou_std"]), fmt_pm(r["bf1_mean"], r["bf1_std"]),
                              fmt_pm(r.get("precision_mean"), r.get("precision_std")),
                              fmt_pm(r.get("recall_mean"), r.get("recall_std")), str(int(r["n_seeds"])),
-                             efficiency_text(r["iou_mean"], r["iou_std"], r["n_seeds"], vote_iou)])
-                e, lo, _ = distillation_efficiency(r["iou_mean"], r["iou_std"], r["n_seeds"], vote_iou)
+                             efficiency_text(e, lo, hi)])
                 verdicts.append((m, efficiency_target_met(m, e, lo)))
         if vote is not None and g in vote.index:
             v = vote.loc[g]
@@ -475,9 +475,9 @@ def efficiency_targets_note(verdicts: Sequence[tuple[str, bool | None]]) -> str:
     return ("Targets (printed, not asserted): " + "; ".join(parts) + ".") if parts else ""
 
 
-def efficiency_text(mean: float, std: float, n_seeds: int, vote_iou: float) -> str:
-    """``0.84 [0.80, 0.88]``: :func:`pipeline.dvc_results.distillation_efficiency`; ``--`` without a vote."""
-    e, lo, hi = distillation_efficiency(mean, std, n_seeds, vote_iou)
+def efficiency_text(e: float, lo: float, hi: float) -> str:
+    """``0.84 [0.80, 0.88]`` from :func:`pipeline.dvc_results.distillation_efficiency`'s (ratio, low, high);
+    ``--`` without a vote."""
     if not math.isfinite(e):
         return "--"
     return f"{e:.2f}" + (f" [{lo:.2f}, {hi:.2f}]" if math.isfinite(lo) else "")
