@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 
-from pipeline.benchmarks.convergence import branch_epochs, decay_epochs, main, plateau
+from pipeline.benchmarks.convergence import BranchStore, branch_epochs, decay_epochs, main, plateau
 
 
 def test_lengths_and_the_plateau_rule():
@@ -31,3 +31,27 @@ def test_tiny_study_runs_both_methods_and_scores_test_once(tiny, tmp_path):
     again = main(["--artifacts", str(tiny), "--profile", "demo", "--first", "1", "--doublings", "1",
                   "--threads", "1", "--set", "train.precision=fp32", "--out", str(out)])
     assert again["methods"] == doc["methods"]
+
+
+def test_more_doublings_continue_the_saved_stable_phase(tiny, tmp_path):
+    """A rerun with one more doubling trains only the new branch, from the last saved stable state, and
+    gives the curve a study of that length from scratch gives."""
+    base = ["--artifacts", str(tiny), "--profile", "demo", "--first", "1", "--threads", "1",
+            "--set", "train.precision=fp32", "--methods", "plain"]
+    grown = tmp_path / "grown"
+    short = main([*base, "--doublings", "1", "--out", str(grown / "c.json"), "--states", str(grown / "s")])
+    store = next((grown / "s").iterdir())
+    assert sorted(p.name for p in store.iterdir()) == ["decay-00001", "decay-00002", "stable-00001", "stable-00002"]
+    # the longer stable run resumes from the last saved state; a state of another run is not used
+    saved = BranchStore(store, [1, 2, 4])
+    key = saved.state(2)["run_key"]
+    assert saved.load({**key, "epochs": 4})["epoch"] == 2
+    assert saved.load({**key, "epochs": 4, "seed": key["seed"] + 1}) is None
+    longer = main([*base, "--doublings", "2", "--out", str(grown / "c.json"), "--states", str(grown / "s")])
+    curve = longer["methods"]["plain"]["curve"]
+    assert curve[:2] == short["methods"]["plain"]["curve"]  # the finished branches are kept, not retrained
+    assert "stable_seconds" in curve[2] and (store / "stable-00004").is_dir()
+    fresh = main([*base, "--doublings", "2", "--out", str(tmp_path / "fresh.json"), "--states", str(tmp_path / "fs")])
+    strip = lambda c: [{k: v for k, v in r.items() if not k.endswith("seconds")} for r in c]  # noqa: E731
+    assert strip(curve) == strip(fresh["methods"]["plain"]["curve"])
+    assert longer["methods"]["plain"]["test_iou"] == fresh["methods"]["plain"]["test_iou"]

@@ -117,8 +117,10 @@ def test_findings_are_computed_from_the_numbers():
     text = " ".join(fixed_tau_findings(_summary([0.04, 0.05], [-0.07, -0.12]), thr, _metrics(1.8), None, None,
                                        ["KCP", "CVI"], fixed_tau=0.5))
     assert "0.82 (mean over seeds), higher than plain's 0.62 (difference +0.20)" in text
-    assert "fixed tau = 0.5 -0.070 (loss supported), -0.120 (loss supported)" in text
-    assert "calibrated tau +0.040 (gain supported), +0.050 (gain supported)" in text
+    assert "fixed tau = 0.5 -0.070 (CI below 0), -0.120 (CI below 0)" in text
+    assert "calibrated tau +0.040 (CI above 0), +0.050 (CI above 0)" in text
+    # these intervals are unadjusted and floor-free: the verdict words belong to the claim tables alone
+    assert "(gain supported)" not in text and "(loss supported)" not in text
     assert "geodistill 1.80 at 0.5 and 1.15 at its calibrated tau" in text
     assert "reversal is present and is a threshold effect" in text
     # the ECE sentence follows its t interval over the shared seeds: +0.04 at both seeds -> worse

@@ -19,18 +19,23 @@ once, for the plateau length of each method only, at the validation-calibrated t
 With ``--recipe strong`` the branches train on augmented batches (``train.augment``).
 
 Writes one JSON (``--out``): per method, the curve (optimizer steps, epochs, validation IoU) and the
-plateau.  Resumable per method: a finished method in ``--out`` is not rerun.
+plateau.  Resumable and extensible: the stable-phase states at the branch epochs and each branch's final
+weights are kept on disk (``--states``, default ``<workdir>/branch_states``, one folder per method, seed
+and training config), and the curve in ``--out`` keeps every finished branch.  A rerun with more
+``--doublings`` continues the stable phase from its last saved state and trains only the new branches;
+a killed run loses at most the epochs since the last saved branch state.
 """
 
 from __future__ import annotations
 
 import argparse
-import copy
+import hashlib
 import json
 import time
 from pathlib import Path
 from typing import Any, Mapping
 
+from pipeline.checkpointing import FileCheckpointer
 from pipeline.device import resolve_device
 from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.profiles import load_profile
@@ -60,18 +65,59 @@ def plateau(values: list[float], gain: float = PLATEAU_GAIN) -> int | None:
     return None
 
 
-class _BranchSaver:
-    """A :class:`pipeline.training.Checkpointer` that keeps the full state after the branch epochs."""
+def store_key(method: str, seed: int, cfg: Mapping[str, Any], data_id: Mapping[str, Any]) -> str:
+    """Folder name of one study run's saved states: the method, the seed and a digest of everything that
+    makes them (the training config and where the data came from)."""
+    blob = json.dumps({"cfg": cfg, "data": data_id}, sort_keys=True, default=str)
+    return f"{method}-s{int(seed)}-{hashlib.sha256(blob.encode()).hexdigest()[:12]}"
 
-    def __init__(self, epochs: list[int]) -> None:
-        self.epochs, self.states = set(epochs), {}
+
+class BranchStore:
+    """The stable-phase states at the branch epochs and the decay branches' final weights, on disk.
+
+    As a :class:`pipeline.training.Checkpointer` of the stable run it keeps the full state (weights,
+    optimizer, RNG) after each branch epoch (``stable-EEEEE/``, written atomically by
+    :class:`pipeline.checkpointing.FileCheckpointer`), and resumes the stable run from the latest saved
+    state: the stable phase does not depend on the run's length (constant rate after the warm-up; batch
+    order and augmentation seeded per epoch), so a longer run continues a shorter one.  Only the run
+    key's ``epochs`` may differ; a state of another method, seed, data or thread count is not used.
+    """
+
+    def __init__(self, directory: str | Path, epochs: list[int]) -> None:
+        self.directory, self.epochs = Path(directory), sorted(int(e) for e in epochs)
+
+    def _states(self, epoch: int) -> FileCheckpointer:
+        return FileCheckpointer(self.directory / f"stable-{int(epoch):05d}")
+
+    def _weights(self, epoch: int) -> FileCheckpointer:
+        return FileCheckpointer(self.directory / f"decay-{int(epoch):05d}")
+
+    def state(self, epoch: int) -> dict | None:
+        """The stable-phase state after ``epoch`` (None when not saved)."""
+        return self._states(epoch).load(None)
 
     def load(self, run_key):
+        for e in reversed([e for e in self.epochs if e <= int(run_key["epochs"])]):
+            state = self.state(e)
+            if state is None:
+                continue
+            if {k: v for k, v in state["run_key"].items() if k != "epochs"} != \
+                    {k: v for k, v in run_key.items() if k != "epochs"}:
+                return None
+            return {**state, "run_key": dict(run_key)}
         return None
 
     def save(self, state: dict) -> None:
         if state["epoch"] in self.epochs:
-            self.states[state["epoch"]] = copy.deepcopy(state)
+            self._states(state["epoch"]).save(state)
+
+    def save_weights(self, epoch: int, model) -> None:
+        """The final weights of the decay branch from ``epoch``."""
+        self._weights(epoch).save({"epoch": int(epoch), "model": {k: v.detach().cpu() for k, v in model.state_dict().items()}})
+
+    def weights(self, epoch: int) -> dict | None:
+        s = self._weights(epoch).load(None)
+        return None if s is None else s["model"]
 
 
 class _StartFrom:
@@ -98,33 +144,53 @@ class _StartFrom:
 
 
 def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, branches: list[int],
-                 fraction: float, device: str) -> list[dict]:
-    """The curve of one method: for each branch epoch, the decay branch's validation scores."""
+                 fraction: float, device: str, store: BranchStore, done: Mapping[int, dict] | None = None) -> list[dict]:
+    """The curve of one method: for each branch epoch, the decay branch's validation scores.  Branches in
+    ``done`` (by stable epochs) are kept as they are; the stable phase runs only if a new branch's state
+    is not in ``store``, from the latest saved one."""
     from pipeline import training
 
+    done = dict(done or {})
     spec = get_method(method)
-    stable = {**cfg, "epochs_stage1": max(branches), "schedule": "constant", "average_last": 0}
-    saver = _BranchSaver(branches)
+    todo = [e for e in branches if e not in done]
     steps_per_epoch = max(1, -(-len(data) // int(cfg["batch_size"])))
-    t0 = time.perf_counter()
-    training.train(spec, stable, data, val, seed, checkpointer=saver, device=device, show_progress=False)
-    stable_s = time.perf_counter() - t0
+    stable_s = None
+    if any(store.state(e) is None for e in todo):
+        stable = {**cfg, "epochs_stage1": max(todo), "schedule": "constant", "average_last": 0}
+        t0 = time.perf_counter()
+        training.train(spec, stable, data, val, seed, checkpointer=store, device=device, show_progress=False)
+        stable_s = time.perf_counter() - t0
     curve = []
     for e in branches:
+        if e in done:
+            curve.append(dict(done[e]))
+            continue
         d = decay_epochs(e, fraction)
         decay = {**cfg, "epochs_stage1": d, "schedule": "wsd", "decay_fraction": 1.0, "warmup_epochs": 0,
                  "average_last": 1}  # the branch's last weights, BN statistics recomputed
         t1 = time.perf_counter()
-        res = training.train(spec, decay, data, val, seed, checkpointer=_StartFrom(saver.states[e], training.method_lr(spec, cfg)),
+        res = training.train(spec, decay, data, val, seed, checkpointer=_StartFrom(store.state(e), training.method_lr(spec, cfg)),
                              device=device, show_progress=False)
+        store.save_weights(e, res.model)
         scores = training.validation_scores(res.model, val, device, precision="fp32", channels_last=False,
                                             tolerance=float(cfg["val_bf1_tolerance"]))
         curve.append({"stable_epochs": e, "decay_epochs": d, "epochs": e + d, "steps": (e + d) * steps_per_epoch,
                       "val_iou_cal": scores["val_iou_cal"], "val_tau_cal": scores["val_tau_cal"],
                       "val_iou_05": scores["val_iou"], "val_bf1_05": scores["val_bf1"],
-                      "decay_seconds": time.perf_counter() - t1, "_model": res.model})
-    curve[0]["stable_seconds"] = stable_s
+                      "decay_seconds": time.perf_counter() - t1})
+        if stable_s is not None:
+            curve[-1]["stable_seconds"] = stable_s  # the stable phase this session ran, up to max(todo)
+            stable_s = None
     return curve
+
+
+def branch_model(method: str, cfg: Mapping[str, Any], seed: int, state: Mapping) -> Any:
+    """The student of a decay branch from its saved weights (eval mode)."""
+    from pipeline.training import build_model
+
+    model = build_model(get_method(method), cfg, seed)  # the study's methods train from scratch
+    model.load_state_dict(state)
+    return model.eval()
 
 
 def main(argv=None) -> dict:
@@ -143,6 +209,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="convergence.json")
+    ap.add_argument("--states", default=None,
+                    help="where the branch states and weights are kept (default: <workdir>/branch_states)")
     args = ap.parse_args(argv)
 
     device = str(resolve_device(args.device))
@@ -154,26 +222,39 @@ def main(argv=None) -> dict:
     branches = branch_epochs(args.first, args.doublings)
     out_path = Path(args.out)
     doc = json.loads(out_path.read_text()) if out_path.exists() else {}
-    doc["info"] = {"profile": args.profile, "recipe": args.recipe, "sets": args.sets, "seed": args.seed,
-                   "resolution": int(params["data"]["resolution"]), "branches": branches, "decay_fraction": fraction,
-                   "plateau_gain": args.plateau_gain, "device": device, "threads": args.threads}
+    info = {"profile": args.profile, "recipe": args.recipe, "sets": args.sets, "seed": args.seed,
+            "resolution": int(params["data"]["resolution"]), "decay_fraction": fraction,
+            "plateau_gain": args.plateau_gain, "device": device, "threads": args.threads}
+    if doc and {k: v for k, v in doc.get("info", {}).items() if k != "branches"} != info:
+        ap.error(f"--out {out_path}: holds a study with other settings; give another --out")
+    doc["info"] = {**info, "branches": branches}
     data = load_study_data(artifacts, cfg, methods=tuple(args.methods))
+    data_id = {"profile": args.profile, "sets": args.sets, "artifacts": str(artifacts.resolve()), "fraction": fraction}
+    states = Path(args.states) if args.states else Path(args.workdir).resolve() / "branch_states"
     for m in args.methods:
-        if m in doc.get("methods", {}):
+        prev = doc.get("methods", {}).get(m, {})
+        done = {c["stable_epochs"]: c for c in prev.get("curve", [])}
+        if all(e in done for e in branches) and prev.get("branches") == branches:
             print(f"{m}: done already in {out_path}", flush=True)
             continue
-        curve = study_method(m, cfg, data[m], data["val"], args.seed, branches, fraction, device)
+        store = BranchStore(states / store_key(m, args.seed, cfg, data_id), branches)
+        curve = study_method(m, cfg, data[m], data["val"], args.seed, branches, fraction, device, store, done)
         i = plateau([c["val_iou_cal"] for c in curve], args.plateau_gain)
         chosen = curve[i if i is not None else -1]
-        test = score_run(chosen["_model"], data["val"], data["test_images"], data["test_masks"], device)  # once
+        weights = store.weights(chosen["stable_epochs"])
+        if weights is None:  # a branch scored before its weights were kept: run that decay again
+            study_method(m, cfg, data[m], data["val"], args.seed, [chosen["stable_epochs"]], fraction, device, store)
+            weights = store.weights(chosen["stable_epochs"])
+        model = branch_model(m, cfg, args.seed, weights)
+        test = score_run(model, data["val"], data["test_images"], data["test_masks"], device)  # the chosen length only
         doc.setdefault("methods", {})[m] = {
-            "curve": [{k: v for k, v in c.items() if k != "_model"} for c in curve],
+            "branches": branches, "curve": [dict(c) for c in curve],
             "plateau_index": i, "plateau_steps": chosen["steps"] if i is not None else None,
             "chosen_epochs": chosen["epochs"], "test_iou": test["iou_cal"], "test_tau": test["tau_cal"]}
         out_path.write_text(json.dumps(doc, indent=1))  # partial results survive an interruption
         print(f"{m}: " + ", ".join(f"{c['steps']} steps {c['val_iou_cal']:.3f}" for c in curve)
               + f"; plateau {'at ' + str(chosen['steps']) + ' steps' if i is not None else 'not reached'}; "
-              f"test IoU {test['iou_cal']:.3f} (scored once)", flush=True)
+              f"test IoU {test['iou_cal']:.3f} (scored once, at the chosen length)", flush=True)
     return doc
 
 

@@ -17,8 +17,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, SUPERVISED_CEILING
-from pipeline.stats import (GAIN_SUPPORTED, LOSS_SUPPORTED, NOT_ESTIMATED, claim_status, paired_seed_t_interval,
-                            seed_summary, spearman, vs_column)
+from pipeline.stats import (GAIN_SUPPORTED, LOSS_SUPPORTED, NO_DIFFERENCE, NOT_ESTIMATED, ONE_SEED, claim_status,
+                            paired_seed_t_interval, seed_summary, spearman, vs_column)
 
 METRICS = ("iou", "bf1", "precision", "recall")
 
@@ -273,6 +273,13 @@ def _threshold_findings(thresholds: pd.DataFrame | None, c: _Cast) -> tuple[list
     return out, tau_t, tau_c
 
 
+#: a per-comparison interval in words: :func:`pipeline.stats.claim_status` without a noise floor or a
+#: multiplicity adjustment says only which side of 0 the CI lies on, so a sentence built from it must not
+#: use the verdict words, which the claim tables reserve for the full rule (floor on the bound, Holm)
+INTERVAL_SIDE = {GAIN_SUPPORTED: "CI above 0", LOSS_SUPPORTED: "CI below 0", NO_DIFFERENCE: "CI covers 0",
+                 ONE_SEED: ONE_SEED, NOT_ESTIMATED: NOT_ESTIMATED}
+
+
 def _gain_findings(summary: pd.DataFrame | None, c: _Cast) -> tuple[list[str], bool | None]:
     """The sign of the Boundary F1 / Image IoU gain per group at both taus; (sentences, reversal)."""
     if summary is None:
@@ -293,9 +300,10 @@ def _gain_findings(summary: pd.DataFrame | None, c: _Cast) -> tuple[list[str], b
         cal, fix = gains["calibrated"][k], gains["fixed"][k]
         vc, vf = verdicts["calibrated"][k], verdicts["fixed"][k]
         out.append(f"**{name} gain of {c.T} over {c.C}** per test group ({', '.join(c.groups)}), each with the "
-                   f"verdict of its seed-aware 95 % CI: calibrated tau "
-                   f"{', '.join(f'{_signed(x)} ({v})' for x, v in zip(cal, vc))}; fixed tau = {c.tau0} "
-                   f"{', '.join(f'{_signed(x)} ({v})' for x, v in zip(fix, vf))}.")
+                   f"side of 0 its seed-aware 95 % CI lies on (unadjusted and without the noise floor: the "
+                   f"claim tables' verdicts add both): calibrated tau "
+                   f"{', '.join(f'{_signed(x)} ({INTERVAL_SIDE[v]})' for x, v in zip(cal, vc))}; fixed tau = "
+                   f"{c.tau0} {', '.join(f'{_signed(x)} ({INTERVAL_SIDE[v]})' for x, v in zip(fix, vf))}.")
     # a reversal is claimed only from intervals: a supported gain at the calibrated tau AND a supported
     # loss at the fixed tau, on most groups -- never from a majority of point-estimate signs
     vc, vf = verdicts["calibrated"]["bf1"], verdicts["fixed"]["bf1"]
@@ -330,8 +338,7 @@ def _reading(reversal: bool | None, inflation: bool | None, tau_t: float, tau_c:
                 f"validation-calibrated tau removes that loss."]
     if not reversal:
         return [f"**Reading.** No fixed-tau reversal detected: on most groups the Boundary F1 difference of {c.T} "
-                f"is not both a supported gain at the calibrated tau and a supported loss at {c.tau0} (seed-aware "
-                f"95 % CIs)."]
+                f"does not have its seed-aware 95 % CI above 0 at the calibrated tau and below 0 at {c.tau0}."]
     missing = [w for w, ok in zip(("a higher calibrated tau", f"foreground inflation at {c.tau0}"), facts[1:])
                if not ok]
     return [f"**Reading.** The Boundary F1 gain reverses at tau = {c.tau0}, but without "
