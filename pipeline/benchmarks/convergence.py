@@ -9,7 +9,9 @@ whose stable phase does not depend on the run's length, so
      (weights, optimizer, RNG) after each branch epoch E = E0, 2 E0, 4 E0, ... (doublings);
   2. from each saved state a decay branch runs ``decay_fraction / (1 - decay_fraction)`` x E more epochs
      (at least one) with the learning rate falling linearly to 0 -- the run of total length
-     E / (1 - decay_fraction) epochs, exactly, without training it from scratch;
+     E / (1 - decay_fraction) epochs without training it from scratch: its learning-rate schedule
+     exactly; its batch order and augmentation are seeded by the branch's own epochs 1..D, so they
+     repeat the first epochs' (deterministic, not the single run's order);
   3. each branch's final weights (BN statistics recomputed) are scored on the VALIDATION images at the
      tau calibrated on them (the calibrate stage's rule on the epoch grid) and at tau 0.5.
 
