@@ -31,12 +31,12 @@ a killed run loses at most the epochs since the last saved branch state.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import time
 from pathlib import Path
 from typing import Any, Mapping
 
+from pipeline.artifacts import fingerprint
 from pipeline.checkpointing import FileCheckpointer
 from pipeline.device import resolve_device
 from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
@@ -70,8 +70,7 @@ def plateau(values: list[float], gain: float = PLATEAU_GAIN) -> int | None:
 def store_key(method: str, seed: int, cfg: Mapping[str, Any], data_id: Mapping[str, Any]) -> str:
     """Folder name of one study run's saved states: the method, the seed and a digest of everything that
     makes them (the training config and where the data came from)."""
-    blob = json.dumps({"cfg": cfg, "data": data_id}, sort_keys=True, default=str)
-    return f"{method}-s{int(seed)}-{hashlib.sha256(blob.encode()).hexdigest()[:12]}"
+    return f"{method}-s{int(seed)}-{fingerprint('convergence', '', {'cfg': cfg, 'data': data_id}, [])[:12]}"
 
 
 class BranchStore:
