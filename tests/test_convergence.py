@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from pipeline.benchmarks.convergence import BranchStore, branch_epochs, decay_epochs, main, plateau
 
 
@@ -55,3 +57,12 @@ def test_more_doublings_continue_the_saved_stable_phase(tiny, tmp_path):
     strip = lambda c: [{k: v for k, v in r.items() if not k.endswith("seconds")} for r in c]  # noqa: E731
     assert strip(curve) == strip(fresh["methods"]["plain"]["curve"])
     assert longer["methods"]["plain"]["test_iou"] == fresh["methods"]["plain"]["test_iou"]
+
+
+def test_a_file_that_is_not_a_study_is_refused_and_kept(tiny, tmp_path):
+    """--out naming a user's own file: exit 2, one line, the file untouched."""
+    mine = tmp_path / "notes.json"
+    mine.write_text("my notes, not JSON")
+    with pytest.raises(SystemExit) as e:
+        main(["--artifacts", str(tiny), "--profile", "demo", "--out", str(mine), "--states", str(tmp_path / "s")])
+    assert e.value.code == 2 and mine.read_text() == "my notes, not JSON"

@@ -222,7 +222,12 @@ def main(argv=None) -> dict:
     fraction = float(args.decay_fraction if args.decay_fraction is not None else cfg["decay_fraction"])
     branches = branch_epochs(args.first, args.doublings)
     out_path = Path(args.out)
-    doc = json.loads(out_path.read_text()) if out_path.exists() else {}
+    try:
+        doc = json.loads(out_path.read_text()) if out_path.exists() else {}
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        doc = None
+    if not isinstance(doc, dict) or (doc and not isinstance(doc.get("info"), dict)):
+        ap.error(f"--out {out_path}: exists and is not a convergence study; give another --out")
     info = {"profile": args.profile, "recipe": args.recipe, "sets": args.sets, "seed": args.seed,
             "resolution": int(params["data"]["resolution"]), "decay_fraction": fraction,
             "plateau_gain": args.plateau_gain, "device": device, "threads": args.threads}
