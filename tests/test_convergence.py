@@ -21,7 +21,8 @@ def test_lengths_and_the_plateau_rule():
 def test_tiny_study_runs_both_methods_and_scores_test_once(tiny, tmp_path):
     out = tmp_path / "conv.json"
     doc = main(["--artifacts", str(tiny), "--profile", "demo", "--first", "1", "--doublings", "1",
-                "--threads", "1", "--set", "train.precision=fp32", "--out", str(out)])
+                "--threads", "1", "--set", "train.precision=fp32", "--out", str(out),
+                "--states", str(tmp_path / "s")])
     assert json.loads(out.read_text()) == json.loads(json.dumps(doc))
     for m in ("plain", "supervised_ceiling"):
         r = doc["methods"][m]
@@ -31,7 +32,8 @@ def test_tiny_study_runs_both_methods_and_scores_test_once(tiny, tmp_path):
     # different labels, different curves; a rerun resumes (nothing retrained)
     assert doc["methods"]["plain"]["curve"] != doc["methods"]["supervised_ceiling"]["curve"]
     again = main(["--artifacts", str(tiny), "--profile", "demo", "--first", "1", "--doublings", "1",
-                  "--threads", "1", "--set", "train.precision=fp32", "--out", str(out)])
+                  "--threads", "1", "--set", "train.precision=fp32", "--out", str(out),
+                "--states", str(tmp_path / "s")])
     assert again["methods"] == doc["methods"]
 
 
