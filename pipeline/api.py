@@ -22,7 +22,7 @@ import json
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
-from pipeline.datasets.loading import pixel_limit
+from pipeline.datasets.loading import check_bit_depth, pixel_limit
 from pipeline.errors import BACKEND, CHECKPOINT, LABELS, InputError, literal
 from pipeline.labeling import LabelResult, label_folder
 from pipeline.labeling.run import check_label_folder, parse_formats
@@ -106,7 +106,7 @@ def params_from_labels(params: dict, labels: str | Path, input_dir: str | Path, 
 
 def distill_params(params: dict, input_dir: str | Path, labels: str | Path | None, backend: str | None,
                    checkpoint: str | Path | None, imported_dir: str | Path | None, skip_bad: bool = False,
-                   max_pixels: int | None = None) -> dict:
+                   max_pixels: int | None = None, bit_depth: str | int | None = None) -> dict:
     """The params of a distill project (command and API): the teacher from a label folder
     (:func:`params_from_labels`) or from the teacher options (:func:`choose_teacher`), then the data
     options (:func:`with_data_options`)."""
@@ -114,19 +114,22 @@ def distill_params(params: dict, input_dir: str | Path, labels: str | Path | Non
         params = params_from_labels(params, labels, input_dir, backend, checkpoint, imported_dir)
     else:
         params = choose_teacher(params, backend, checkpoint, imported_dir)
-    return with_data_options(params, skip_bad, max_pixels)
+    return with_data_options(params, skip_bad, max_pixels, bit_depth)
 
 
-def with_data_options(params: dict, skip_bad: bool = False, max_pixels: int | None = None) -> dict:
-    """``params`` with the bad-file options of label and distill (``--skip-bad`` / ``skip_bad=``,
-    ``--max-pixels`` / ``max_pixels=``): ``data.skip_bad`` true when ``skip_bad`` (it never turns it
-    off), ``data.max_pixels`` when ``max_pixels`` is given (checked, InputError naming the option;
-    None keeps the params' value)."""
+def with_data_options(params: dict, skip_bad: bool = False, max_pixels: int | None = None,
+                      bit_depth: str | int | None = None) -> dict:
+    """``params`` with the data options of label and distill (``--skip-bad`` / ``skip_bad=``,
+    ``--max-pixels`` / ``max_pixels=``, ``--bit-depth`` / ``bit_depth=``): ``data.skip_bad`` true when
+    ``skip_bad`` (it never turns it off), ``data.max_pixels`` and ``data.bit_depth`` when given (checked,
+    InputError naming the option; None keeps the params' value)."""
     data: dict = {}
     if skip_bad:
         data["skip_bad"] = True
     if max_pixels is not None:
         data["max_pixels"] = pixel_limit(max_pixels)
+    if bit_depth is not None:
+        data["bit_depth"] = check_bit_depth(bit_depth)
     return deep_merge(params, {"data": data}) if data else params
 
 
@@ -135,7 +138,7 @@ def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None =
           imported_dir: str | Path | None = None, reference_masks: str | Path | None = None,
           params: str | Path | None = None, overrides: Mapping | Iterable[str] | None = None,
           device: str = "auto", skip_bad: bool = False, overwrite: bool = False,
-          max_pixels: int | None = None) -> LabelResult:
+          max_pixels: int | None = None, bit_depth: str | int | None = None) -> LabelResult:
     """Pseudo-label the images under ``input`` into ``out`` (``geodistill label``;
     :mod:`pipeline.labeling.run`): voted masks as PNG / COCO RLE / YOLO files, the gate table and a
     contact sheet.  Returns a :class:`pipeline.labeling.LabelResult` (``.table``: c, v, a, g per image;
@@ -143,10 +146,11 @@ def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None =
     and a teacher: ``checkpoint`` (SAM 3), ``backend="imported"`` with ``imported_dir``, or a ``params``
     file naming a checkpoint.  ``backend="simulated"`` is a SIMULATOR that needs ``reference_masks``.
     ``skip_bad``, ``overwrite`` and ``max_pixels`` (None: the params' ``data.max_pixels``, 2**26 by
-    default): the command's ``--skip-bad``, ``--overwrite`` and ``--max-pixels`` (docs/own-data.md)."""
+    default): the command's ``--skip-bad``, ``--overwrite`` and ``--max-pixels`` (docs/own-data.md);
+    ``bit_depth`` (auto, 10, 12, 14, 16; None: the params' ``data.bit_depth``): ``--bit-depth``."""
     fmts = parse_formats(formats)
     p = choose_teacher(effective_params(params, overrides, LABEL_PROFILE), backend, checkpoint, imported_dir)
-    p = with_data_options(p, skip_bad, max_pixels)
+    p = with_data_options(p, skip_bad, max_pixels, bit_depth)
     return label_folder(input, out, p, device=device, formats=fmts, reference_masks=reference_masks,
                         overwrite=overwrite)
 
@@ -156,18 +160,20 @@ def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None 
             imported_dir: str | Path | None = None, params: str | Path | None = None,
             overrides: Mapping | Iterable[str] | None = None, device: str = "auto", run: bool = True,
             skip_bad: bool = False, overwrite: bool = False, max_pixels: int | None = None,
-            labels: str | Path | None = None) -> dict:
+            labels: str | Path | None = None, bit_depth: str | int | None = None, benchmark: bool = True) -> dict:
     """Train a deployable student on the images under ``input`` (``geodistill distill``;
     :mod:`pipeline.standalone`): ``out`` becomes a DVC project running the pipeline's DAG (rerun to
     resume).  Returns ``{"deploy", "report", "thresholds", "checkpoints"}`` paths; ``run=False`` only
     writes the project.  Every argument but ``input`` is a keyword; ``out`` is required.  ``skip_bad``,
-    ``overwrite``, ``max_pixels``: as for :func:`label`.
+    ``overwrite``, ``max_pixels``, ``bit_depth``: as for :func:`label`.
     ``labels``: an unmodified :func:`label` output folder of the same images -- its teacher, resolution,
     vote and gate are used and its teacher cache is read, so the teacher computes nothing again
-    (:func:`params_from_labels`; no ``checkpoint`` needed)."""
+    (:func:`params_from_labels`; no ``checkpoint`` needed).  ``benchmark=False``: no benchmark stage
+    (``--no-benchmark``)."""
     p = distill_params(effective_params(params, overrides, DISTILL_PROFILE), input, labels, backend, checkpoint,
-                       imported_dir, skip_bad, max_pixels)
-    project = write_project(input, out, p, val_masks=val_masks, overwrite=overwrite, labels=labels)
+                       imported_dir, skip_bad, max_pixels, bit_depth)
+    project = write_project(input, out, p, val_masks=val_masks, overwrite=overwrite, labels=labels,
+                            benchmark=benchmark)
     if run:
         run_project(project, device)
     return project_outputs(project)

@@ -75,10 +75,12 @@ SKIP_BAD = Option("--skip-bad", "skip_bad", is_flag=True)
 OVERWRITE = Option("--overwrite", "overwrite", is_flag=True)
 MAX_PIXELS = Option("--max-pixels", "max_pixels")
 LABELS = Option("--labels", "labels")
+#: the bits a 16-bit frame's sensor fills (params ``data.bit_depth``; label, distill, segment)
+BIT_DEPTH = Option("--bit-depth", "bit_depth")
 #: a params override: ``--set key=value`` on the command line, ``overrides=["key=value"]`` in Python
 SET = Option("--set", "overrides", many=True)
 OPTIONS = (INPUT, OUT, CHECKPOINT, BACKEND, IMPORTED_DIR, REFERENCE_MASKS, VAL_MASKS, FORMAT, SKIP_BAD, OVERWRITE,
-           MAX_PIXELS, LABELS, SET)
+           MAX_PIXELS, LABELS, BIT_DEPTH, SET)
 
 _CALLER: contextvars.ContextVar[str] = contextvars.ContextVar("geodistill_caller", default=API)
 

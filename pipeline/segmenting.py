@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 from typing import Callable, Mapping
 
-from pipeline.datasets.loading import BadFileError, pixel_limit
+from pipeline.datasets.loading import BadFileError, check_bit_depth, pixel_limit, reset_frame_warnings
 from pipeline.datasets.manifest import BadInputPolicy
 from pipeline.device import resolve_device
 from pipeline.engine_table import AUTO
@@ -48,12 +48,13 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
                    thresholds=None, engine: str = AUTO, batch_size: int = 8, save_prob: bool = False,
                    overlay: bool = False, device="auto", params: Mapping | None = None, overwrite: bool = False,
                    skip_bad: bool = False, max_pixels: int | None = None, echo: Callable[[str], None] = _stderr,
-                   workers: int | None = None):
+                   workers: int | None = None, bit_depth: str | int | None = None):
     """Segment one image file or a folder (module docstring); the result of
     :func:`pipeline.deploy.segment_files` (``written``, timings).  ``params``: validated params, read
     for ``calibrate.fixed_tau`` only (None: no fixed tau fallback).  ``workers``: reader threads that
     overlap decoding and PNG writing with inference (None: segment_files' default; 0 = the serial
-    loop; the same bytes either way)."""
+    loop; the same bytes either way).  ``bit_depth`` (``--bit-depth``): how 16-bit frames are read
+    (None: what the bundle records, else auto)."""
     from pipeline import deploy  # torch
     from pipeline.deploy import files as F
 
@@ -85,6 +86,9 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
         policy.record(image_id(path), path, reason)
 
     seg = deploy.load_segmenter(checkpoint, engine, resolve_device(device), thresholds, params=params)
+    if bit_depth is not None:
+        seg.bit_depth = check_bit_depth(bit_depth)
+    reset_frame_warnings()  # each run says once how it reads 16-bit frames
     tau, source = seg.resolve_tau(option=tau)
     resolution, res_source = model_resolution(seg.resolution, resolution, checkpoint, echo)
 

@@ -80,7 +80,7 @@ from pipeline.errors import BACKEND, CHECKPOINT, INPUT, OUT, VAL_MASKS, InputErr
 from pipeline.labeling.run import find_images
 from pipeline.methods import PROPOSED, method_label
 from pipeline.offline_plots import template_path, template_text
-from pipeline.ownership import check_outputs, record_fields
+from pipeline.ownership import check_outputs, record_fields, refuse_foreign_files
 from pipeline.params import deep_merge, read_yaml_mapping
 from pipeline.progress import QUIET_ENV, bars_quiet
 
@@ -91,6 +91,8 @@ PROTOCOL_FILE = "folder_protocol.yaml"
 RECORD_FILE = "distill.json"
 #: stages left out of a project without any mask: nothing to score (calibrate stays: it writes the fixed tau)
 NO_MASK_STAGES = ("evaluate", "analyze_teacher")
+#: the stage ``--no-benchmark`` leaves out (the report then says the efficiency table was not made)
+BENCHMARK_STAGE = "benchmark"
 DVCIGNORE = "/.cache/\n__pycache__/\n*.pyc\n"
 #: what distill writes in --out (its record lists them; pipeline.ownership): the project files, DVC's
 #: folder and lock, the caches and the DAG's outputs (artifacts/, reports/)
@@ -176,10 +178,10 @@ def _env(device: str = "auto") -> dict:
 
 def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
                   val_masks: str | Path | None = None, overwrite: bool = False,
-                  labels: str | Path | None = None) -> Path:
+                  labels: str | Path | None = None, benchmark: bool = True) -> Path:
     """Create or update the DVC project in ``out`` for ``input_dir`` (module docstring); returns ``out``.
     ``labels``: the label folder ``params`` were taken from (:func:`pipeline.api.params_from_labels`),
-    recorded in distill.json.
+    recorded in distill.json.  ``benchmark=False`` (``--no-benchmark``): no benchmark stage in dvc.yaml.
 
     ``params``: validated params (the distill profile with the user's overrides and the teacher).  In
     an existing ``out``, every path of :data:`PROJECT_OUTPUTS` that exists must be listed by a
@@ -198,6 +200,7 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
                          BACKEND("imported"))
     git = git_outputs(out)
     check_outputs(out, PROJECT_OUTPUTS + git, RECORD_FILE, "distill", overwrite=overwrite, **LEGACY)
+    refuse_foreign_outputs(out)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()
     record = {"input": str(input_dir), "val_masks": str(masks) if masks is not None else None,
@@ -212,7 +215,7 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     write_text_if_changed(out / "params.yaml", text)
     write_text_if_changed(out / PROTOCOL_FILE, protocol_text(input_dir, masks))
     data_deps = {"prepare": [PROTOCOL_FILE, str(input_dir)] + ([str(masks)] if masks is not None else [])}
-    omit = () if masks is not None else NO_MASK_STAGES
+    omit = (() if masks is not None else NO_MASK_STAGES) + (() if benchmark else (BENCHMARK_STAGE,))
     # without masks the evaluate stage's plots are omitted: `dvc plots show` shows the runs' DVCLive loss
     extra = live_plots(params["protocol"]["runs"]) if masks is None else []
     write_text_if_changed(out / "dvc.yaml", render_dvc_yaml(code_root=ROOT, data_deps=data_deps, header=DVC_HEADER,
@@ -233,6 +236,49 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     if new_git:
         commit_project(out)
     return out
+
+
+def dvc_folder_files(project: Path, lock: Mapping, rel: str) -> set[str] | None:
+    """The files (relative, posix) DVC recorded in the output folder ``rel`` of ``project``: its dvc.lock
+    entry's ``.dir`` listing in the project's cache; None when DVC recorded none (no entry, not cached)."""
+    for stage in (lock.get("stages") or {}).values():
+        for o in stage.get("outs") or []:
+            md5 = str(o.get("md5", ""))
+            if o.get("path") != rel or not md5.endswith(".dir"):
+                continue
+            for cache in (project / ".dvc" / "cache" / "files" / "md5", project / ".dvc" / "cache"):  # DVC 3, 2
+                try:
+                    listing = json.loads((cache / md5[:2] / md5[2:]).read_text())
+                except (OSError, ValueError):
+                    continue
+                return {str(e["relpath"]) for e in listing if isinstance(e, dict) and "relpath" in e}
+    return None
+
+
+def refuse_foreign_outputs(out: str | Path) -> None:
+    """Refuse (InputError naming it, ``--overwrite`` or not) a file inside an output folder of the DAG
+    that the DAG did not write: ``dvc repro`` replaces such a folder whole, so the file would be lost.
+    The DAG's own files are those DVC recorded there (:func:`dvc_folder_files`); for the deploy bundle,
+    without a record, those export recognises as its bundle's (:func:`pipeline.exporting.bundle_files`,
+    export's own check: :func:`pipeline.ownership.refuse_foreign_files`).  Other folders without a record
+    are left to DVC (a run killed half-way leaves the stage's own files there)."""
+    from pipeline.exporting import bundle_files
+
+    out = Path(out)
+    try:
+        lock = yaml.safe_load((out / "dvc.lock").read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        lock = {}
+    deploy = catalog.path("deploy", Path(catalog.ARTIFACTS_DIR)).as_posix()
+    folders = {str(o.get("path")) for st in (lock.get("stages") or {}).values() for o in st.get("outs") or []
+               if str(o.get("md5", "")).endswith(".dir")} | {deploy}
+    for rel in sorted(folders):
+        own = dvc_folder_files(out, lock, rel)
+        if rel == deploy:
+            own = (own or set()) | bundle_files(out / rel)
+        if own is not None:
+            refuse_foreign_files(out / rel, own, command="distill", option=OUT, where=out,
+                                 why=f"not written there by the pipeline, and `dvc repro` replaces {rel}/ whole")
 
 
 def git_outputs(out: Path) -> tuple[str, ...]:

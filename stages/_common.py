@@ -26,8 +26,8 @@ import click
 from pipeline.artifacts import Meta, make_meta
 from pipeline.catalog import STAGES, stage_params
 from pipeline.codeversion import ROOT, _module_name, code_version_of
-from pipeline.errors import CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError, calling
-from pipeline.params import PAPER, load_params
+from pipeline.errors import BIT_DEPTH, CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError, calling
+from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER, load_params
 
 def setup_logging() -> None:
     level = os.environ.get("GEODISTILL_LOG", "INFO").upper()
@@ -89,6 +89,12 @@ max_pixels_option = click.option(
     MAX_PIXELS.flag, MAX_PIXELS.keyword, type=int, default=None, metavar="N",
     help="refuse images above N pixels (width x height), read from the file header before decoding; "
          f"with --skip-bad they are left out and listed (default: data.max_pixels, {PAPER.data.max_pixels:,})")
+
+bit_depth_option = click.option(
+    BIT_DEPTH.flag, BIT_DEPTH.keyword, type=click.Choice([str(b) for b in BIT_DEPTHS]), default=None,
+    callback=lambda ctx, param, v: v if v in (None, AUTO_BIT_DEPTH) else int(v),
+    help="bits a 16-bit frame's sensor fills (default: what the bundle records, else data.bit_depth, "
+         f"{PAPER.data.bit_depth!r}: the file's full range)")
 
 
 def teacher_workers_options(fn):

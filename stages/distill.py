@@ -11,7 +11,8 @@ from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
 from pipeline.standalone import efficiency_line, project_outputs, run_project, write_project
 from pipeline.progress import quiet_bars
-from stages._common import max_pixels_option, overwrite_option, quiet_option, skip_bad_option, stage_command
+from stages._common import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option, skip_bad_option,
+                            stage_command)
 
 
 @stage_command("distill", default_profile="distill", profile_loader=load_params_or_profile)
@@ -32,12 +33,15 @@ from stages._common import max_pixels_option, overwrite_option, quiet_option, sk
                    "(its teacher, resolution, vote and gate) and its teacher cache, so the teacher computes "
                    "nothing again; no --checkpoint needed")
 @click.option("--no-run", is_flag=True, help="only write the DVC project (run it later with `dvc repro` in --out)")
+@click.option("--no-benchmark", is_flag=True, help="leave out the efficiency benchmark of the deploy bundle "
+              "(time it later: `geodistill benchmark --deploy artifacts/deploy` in --out)")
 @skip_bad_option
 @max_pixels_option
+@bit_depth_option
 @overwrite_option
 @quiet_option
-def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, labels, no_run, skip_bad,
-         max_pixels, overwrite, quiet):
+def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, labels, no_run, no_benchmark,
+         skip_bad, max_pixels, bit_depth, overwrite, quiet):
     """Train a deployable student on a folder of images: SAM 3 pseudo-labels, Stage I (plain student),
     Stage II (GeoDistill-Refine), threshold, export, report.  --out becomes a DVC project running the
     pipeline's own DAG, so a rerun resumes where it stopped; distill.json there lists what distill
@@ -45,8 +49,10 @@ def main(params, device, input_dir, out, val_masks, checkpoint, backend, importe
     --overwrite writes into a folder of yours; your files there stay (docs/own-data.md).
     --labels LABEL_DIR trains from a `geodistill label` output of the same images, reusing its
     teacher answers; a changed mask there is refused (corrections go through `geodistill review import`)."""
-    params = distill_params(params, input_dir, labels, backend, checkpoint, imported_dir, skip_bad, max_pixels)
-    project = write_project(input_dir, out, params, val_masks=val_masks, overwrite=overwrite, labels=labels)
+    params = distill_params(params, input_dir, labels, backend, checkpoint, imported_dir, skip_bad, max_pixels,
+                            bit_depth)
+    project = write_project(input_dir, out, params, val_masks=val_masks, overwrite=overwrite, labels=labels,
+                            benchmark=not no_benchmark)
     if no_run:
         click.echo(f"distill: wrote the DVC project {project}; run `dvc repro` there", err=True)
         return

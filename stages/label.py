@@ -15,8 +15,8 @@ from pipeline.labeling.run import OUTPUTS, YOLO_LISTS, parse_formats
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
 from pipeline.progress import quiet_bars
-from stages._common import (max_pixels_option, overwrite_option, quiet_option, skip_bad_option, stage_command,
-                            teacher_workers_options)
+from stages._common import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option, skip_bad_option,
+                            stage_command, teacher_workers_options)
 
 
 @stage_command("label", default_profile="paper", profile_loader=load_params_or_profile)
@@ -37,10 +37,11 @@ from stages._common import (max_pixels_option, overwrite_option, quiet_option, s
 @quiet_option
 @skip_bad_option
 @max_pixels_option
+@bit_depth_option
 @overwrite_option
 @teacher_workers_options
 def main(params, device, input_dir, out, checkpoint, backend, imported_dir, reference_masks, formats, copy_images,
-         quiet, skip_bad, max_pixels, overwrite, workers, address):
+         quiet, skip_bad, max_pixels, bit_depth, overwrite, workers, address):
     """Label a folder of images with the multi-prompt teacher: voted pseudo-masks as PNG, COCO (RLE)
     and YOLO segmentation files, a table of agreement c, valid ratio v, area a and gate g per image,
     and a contact sheet.  Without --params the paper's values are used (working resolution 384).
@@ -51,7 +52,8 @@ def main(params, device, input_dir, out, checkpoint, backend, imported_dir, refe
     The console: progress bars (none with --quiet), warnings and one summary line; the step log with
     GEODISTILL_LOG=INFO."""
     fmts = parse_formats(formats)  # checked before any work
-    params = with_data_options(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad, max_pixels)
+    params = with_data_options(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad, max_pixels,
+                               bit_depth)
     with quiet_bars(quiet), _step_log_off():
         result = label_folder(input_dir, out, params, device=device, formats=fmts, reference_masks=reference_masks,
                               overwrite=overwrite, workers=workers, address=address, copy_images=copy_images)

@@ -53,8 +53,8 @@ from pipeline.engine_table import AUTO, ENGINE_CHOICES, MODEL_ENGINES
 from pipeline.params import load_params
 from pipeline.segmenting import segment_images
 from pipeline.progress import quiet_bars
-from stages._common import (max_pixels_option, one_line_errors, overwrite_option, quiet_option, setup_logging,
-                            skip_bad_option)
+from stages._common import (bit_depth_option, max_pixels_option, one_line_errors, overwrite_option, quiet_option,
+                            setup_logging, skip_bad_option)
 
 
 @click.command(name="segment", help="Binary spacecraft masks for image files with a trained or exported student (at each image's original size).")
@@ -76,20 +76,21 @@ from stages._common import (max_pixels_option, one_line_errors, overwrite_option
 @overwrite_option
 @skip_bad_option
 @max_pixels_option
+@bit_depth_option
 @quiet_option
 @click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
 @click.option("--params", "params_file", default="params.yaml", show_default=True,
               help="params file, read only for the tau / resolution fallbacks")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="override a param (repeatable)")
 def main(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
-         overwrite, skip_bad, max_pixels, quiet, device, params_file, overrides):
+         overwrite, skip_bad, max_pixels, bit_depth, quiet, device, params_file, overrides):
     with one_line_errors("segment"):
         setup_logging()
         params = load_params(params_file, overrides) if Path(params_file).exists() else None
         with quiet_bars(quiet):
             segment_images(checkpoint, input_path, output, tau=tau, resolution=resolution, thresholds=thresholds,
                            engine=engine, batch_size=batch_size, save_prob=save_prob, overlay=overlay, device=device,
-                           params=params, overwrite=overwrite, skip_bad=skip_bad, max_pixels=max_pixels, echo=lambda line: click.echo(line, err=True))
+                           params=params, overwrite=overwrite, skip_bad=skip_bad, max_pixels=max_pixels, bit_depth=bit_depth, echo=lambda line: click.echo(line, err=True))
 
 
 if __name__ == "__main__":

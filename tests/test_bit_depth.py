@@ -130,3 +130,66 @@ def test_segment_and_the_segmenter_read_frames_at_their_bit_depth(tmp_path):
     seg.predict(raw)                                   # an array straight from the sensor
     seg.predict(f)                                     # the same frame from its file
     assert len(seen) == 2 and seen[0].max() == seen[1].max() == 1.0
+
+
+def _low_range_warnings(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if loading.LOW_RANGE_NOTE in r.getMessage()]
+
+
+def _twelve_bit_folder(root):
+    from tests._tiny_teacher import make_image_folder
+
+    images, _ = make_image_folder(root, n=3, masks=False)
+    cv2.imwrite(str(images / "deep.png"), twelve_bit_frame(32, 32))
+    return images
+
+
+def test_label_warns_once_naming_the_flag_on_the_cli_and_the_keyword_in_python(tmp_path, caplog, tiny_sam3):
+    import pipeline
+    from click.testing import CliRunner
+    from stages.cli import main
+
+    images = _twelve_bit_folder(tmp_path / "data")
+    fast = ["--set", "data.resolution=32", "--set", "data.contact_sheet_images=2", "--device", "cpu"]
+    run = lambda out, *extra: CliRunner().invoke(main, ["label", str(images), "--out", str(tmp_path / out),  # noqa: E731
+                                                        "--checkpoint", str(tiny_sam3), "--format", "png",
+                                                        *fast, *extra])
+    with caplog.at_level(logging.WARNING, logger=loading.__name__):
+        res = run("a")
+    assert res.exit_code == 0, res.output
+    said = _low_range_warnings(caplog)
+    assert len(said) == 1 and "--bit-depth 12" in said[0] and "bit_depth=" not in said[0], said  # once, not twice
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger=loading.__name__):  # the flag states the depth: nothing to say
+        assert run("b", "--bit-depth", "12").exit_code == 0
+        assert run("c", "--set", "data.bit_depth=12").exit_code == 0
+    assert _low_range_warnings(caplog) == []
+    with caplog.at_level(logging.WARNING, logger=loading.__name__):
+        pipeline.label(images, out=tmp_path / "d", checkpoint=tiny_sam3, formats="png", device="cpu",
+                       overrides=["data.resolution=32", "data.contact_sheet_images=2"])
+    said = _low_range_warnings(caplog)
+    assert len(said) == 1 and "bit_depth=12" in said[0] and "--bit-depth" not in said[0], said
+
+
+def test_segment_reads_frames_as_the_bundle_records_and_warns_only_when_no_depth_is_known(tmp_path, caplog, ckpts):
+    from click.testing import CliRunner
+    from stages.cli import main
+    from tests._tiny_deploy import run_export
+
+    bundle = tmp_path / "deploy"
+    res = run_export(ckpts["with"], bundle, "--no-int8", "--no-onnx", "--set", "data.bit_depth=12")
+    assert res.exit_code == 0, res.output
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "deep.png"), twelve_bit_frame(32, 32))
+    seg = lambda model, out, *extra: CliRunner().invoke(main, ["segment", "--checkpoint", str(model), "--input",  # noqa: E731
+                                                               str(frames), "--output", str(tmp_path / out),
+                                                               "--device", "cpu", "--engine", "torch", *extra])
+    with caplog.at_level(logging.WARNING, logger=loading.__name__):
+        assert seg(bundle, "a").exit_code == 0                                  # the bundle records 12
+        assert seg(ckpts["with"], "b", "--bit-depth", "12").exit_code == 0      # the flag says 12
+    assert _low_range_warnings(caplog) == []
+    with caplog.at_level(logging.WARNING, logger=loading.__name__):
+        assert seg(ckpts["with"], "c").exit_code == 0                           # nothing known: said once
+    said = _low_range_warnings(caplog)
+    assert len(said) == 1 and "--bit-depth 12" in said[0], said

@@ -150,3 +150,59 @@ def test_profile_overwrite_never_replaces_a_users_params_file(tmp_path):
     line = error_line(cli("profile", "demo", "--out", mine, "--overwrite"))
     assert str(mine) in line and "replaces only what geodistill profile wrote" in line
     assert mine.read_bytes() == b"my: params\n" and beside.read_bytes() == MINE
+
+
+def test_distill_refuses_a_users_file_inside_a_folder_dvc_replaces_whole_before_dvc_repro(tmp_path, images,
+                                                                                         tiny_sam3, monkeypatch):
+    import stages.distill
+
+    out = tmp_path / "run"
+    distill = ("distill", images, "--out", out, "--checkpoint", tiny_sam3, *FAST)
+    assert cli(*distill, "--no-run").exit_code == 0
+    # an earlier run's bundle (export's own files) with the user's notes inside it
+    deploy = out / "artifacts" / "deploy"
+    put(deploy / "meta.json", json.dumps({"schema": "deploy"}).encode())
+    put(deploy / "deploy.json", json.dumps({"files": {"model.ts": "0"}}).encode())
+    put(deploy / "model.ts", b"an earlier bundle's model")
+    notes = put(deploy / "my_notes.txt")
+    monkeypatch.setattr(stages.distill, "run_project", lambda *a, **k: pytest.fail("dvc repro ran"))
+    for extra in ((), ("--overwrite",)):
+        line = error_line(cli(*distill, *extra))
+        assert str(notes) in line and "`dvc repro` replaces artifacts/deploy/ whole" in line, line
+    assert notes.read_bytes() == MINE
+    notes.unlink()
+    # a folder DVC recorded (dvc.lock + its .dir listing in the project's cache): a file it did not list
+    ck = out / "artifacts" / "checkpoints" / "plain" / "42"
+    put(ck / "model.safetensors", b"weights")
+    listing = json.dumps([{"relpath": "model.safetensors", "md5": "0"}]).encode()
+    put(out / ".dvc" / "cache" / "files" / "md5" / "ab" / "cdef.dir", listing)
+    lock = {"schema": "2.0", "stages": {"train_plain": {"cmd": "x", "outs": [
+        {"path": "artifacts/checkpoints/plain/42", "hash": "md5", "md5": "abcdef.dir"}]}}}
+    put(out / "dvc.lock", json.dumps(lock).encode())  # JSON is YAML
+    mine = put(ck / "notes.txt")
+    line = error_line(cli(*distill, "--overwrite"))
+    assert str(mine) in line and mine.read_bytes() == MINE
+
+
+def test_a_label_rerun_that_would_remove_the_masks_of_gone_images_is_refused_unless_overwrite(tmp_path, images,
+                                                                                             tiny_sam3):
+    import shutil
+
+    out = tmp_path / "labels"
+    assert cli("label", images, "--out", out, "--checkpoint", tiny_sam3, *FAST, "--format", "png").exit_code == 0
+    more = tmp_path / "more"
+    shutil.copytree(images, more)
+    (more / "extra.png").write_bytes((more / "img00.png").read_bytes())
+    # adding images to a labelled folder stays allowed (the input changed, every earlier image is there)
+    assert cli("label", more, "--out", out, "--checkpoint", tiny_sam3, *FAST, "--format", "png").exit_code == 0
+    before = sorted(p.name for p in (out / "masks").iterdir())
+    assert "extra.png" in before
+    fewer = tmp_path / "fewer"
+    shutil.copytree(images, fewer)
+    (fewer / "img00.png").unlink()
+    line = error_line(cli("label", fewer, "--out", out, "--checkpoint", tiny_sam3, *FAST, "--format", "png"))
+    assert "holds the labels of 2 image(s) no longer in" in line and "masks/extra.png" in line, line
+    assert "--overwrite" in line and sorted(p.name for p in (out / "masks").iterdir()) == before
+    r = cli("label", fewer, "--out", out, "--checkpoint", tiny_sam3, *FAST, "--format", "png", "--overwrite")
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (out / "masks").iterdir()) == sorted(set(before) - {"img00.png", "extra.png"})

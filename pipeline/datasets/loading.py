@@ -71,7 +71,7 @@ import cv2
 import numpy as np
 
 from pipeline.datasets.image_header import header_size
-from pipeline.errors import MAX_PIXELS, InputError, Option, literal
+from pipeline.errors import BIT_DEPTH, MAX_PIXELS, InputError, Option, caller, literal
 from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER
 
 log = logging.getLogger(__name__)
@@ -177,6 +177,11 @@ def _decode(data: bytes, path: str | Path) -> np.ndarray:
 #: under ``bit_depth="auto"``, a 16-bit frame whose brightest value is below this (1/8 of the range) is
 #: warned about: it is most likely a 10-14-bit sensor's frame, which full range makes nearly black
 LOW_RANGE_16BIT = 1 << 13
+#: where a bit-depth note names the option: spelled for the caller when warned (:func:`warn_frame_once`:
+#: ``--bit-depth 12`` on the command line, ``bit_depth=12`` in Python), so the decode cache keeps one text
+BIT_DEPTH_HINT = "<bit depth option>"
+#: the start of the note of a frame that uses under 1/8 of the 16-bit range (warned once per run)
+LOW_RANGE_NOTE = "16-bit frame whose brightest value is"
 
 
 def check_bit_depth(bit_depth) -> str | int:
@@ -184,8 +189,8 @@ def check_bit_depth(bit_depth) -> str | int:
     on load; this guards the Python API's ``bit_depth=``)."""
     if not isinstance(bit_depth, bool) and bit_depth in BIT_DEPTHS:
         return bit_depth
-    raise InputError(f"bit_depth={bit_depth!r}: expected one of {', '.join(map(str, BIT_DEPTHS))} (bits of a "
-                     f"16-bit frame's sensor; auto = the file's full range)")
+    raise InputError(f"{{}}: expected one of {', '.join(map(str, BIT_DEPTHS))} (bits of a "
+                     "16-bit frame's sensor; auto = the file's full range)", BIT_DEPTH(bit_depth))
 
 
 def scale_16bit(arr: np.ndarray, bit_depth="auto") -> tuple[np.ndarray, str | None]:
@@ -200,14 +205,14 @@ def scale_16bit(arr: np.ndarray, bit_depth="auto") -> tuple[np.ndarray, str | No
         note = None
         if bit_depth == AUTO_BIT_DEPTH and peak < LOW_RANGE_16BIT:
             note = (f"16-bit frame whose brightest value is {peak:,} of 65,535 (under 1/8 of the range): read as "
-                    f"full range it comes out nearly black; if the sensor has fewer bits, set data.bit_depth "
-                    f"(bit_depth=) to 10, 12 or 14")
+                    f"full range it comes out nearly black; if the sensor has fewer bits, say how many: "
+                    f"{BIT_DEPTH_HINT} (10, 12 or 14)")
         return a8, note
     top = (1 << int(bit_depth)) - 1
     a = np.minimum(arr, top).astype(np.uint32)
     a8 = ((a * 510 + top) // (2 * top)).astype(np.uint8)      # round(v * 255 / top), exact integers
     note = (f"values up to {peak:,} above the stated {bit_depth}-bit maximum {top:,} (clipped to white); "
-            f"check data.bit_depth (bit_depth=)") if peak > top else None
+            f"check {BIT_DEPTH_HINT}") if peak > top else None
     return a8, note
 
 
@@ -259,10 +264,23 @@ _warned_frames: set[tuple[str, str]] = set()
 
 
 def warn_frame_once(path: str | Path, note: str | None) -> None:
-    """The one warning per (file, note) per process about how a frame's pixel values were read."""
-    if note and (str(path), note) not in _warned_frames:
-        _warned_frames.add((str(path), note))
-        log.warning("%s: %s", path, note)
+    """The one warning per (file, note) about how a frame's pixel values were read -- the file by its
+    absolute path, so a run reading it by two spellings warns once; a frame under 1/8 of the 16-bit range
+    (no bit depth stated) once per run (:func:`reset_frame_warnings`).  The option is named in the
+    caller's terms (:data:`BIT_DEPTH_HINT`)."""
+    if not note:
+        return
+    key = ("", LOW_RANGE_NOTE) if note.startswith(LOW_RANGE_NOTE) else (os.path.abspath(path), note)
+    if key in _warned_frames:
+        return
+    _warned_frames.add(key)
+    hint = BIT_DEPTH(12) if note.startswith(LOW_RANGE_NOTE) else BIT_DEPTH
+    log.warning("%s: %s", path, note.replace(BIT_DEPTH_HINT, hint.spell(caller())))
+
+
+def reset_frame_warnings() -> None:
+    """A new run (label, segment): its frames are warned about again (:func:`warn_frame_once`)."""
+    _warned_frames.clear()
 
 
 def multi_valued_note(a: np.ndarray) -> str | None:

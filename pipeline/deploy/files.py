@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import contextvars
 import csv
 import dataclasses
 import functools
@@ -397,8 +398,9 @@ def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size,
 
     def fill() -> None:
         while len(pending) < ahead and (job := next(jobs, None)) is not None:
-            pending.append((*job, pool.submit(_load, job[0], resolution, max_pixels, overlay, segmenter.bit_depth,
-                                              segmenter.letterbox)))
+            # in this context: a reader's warning names options in the caller's terms (pipeline.errors.caller)
+            pending.append((*job, pool.submit(contextvars.copy_context().run, _load, job[0], resolution, max_pixels,
+                                              overlay, segmenter.bit_depth, segmenter.letterbox)))
 
     try:
         fill()

@@ -219,7 +219,10 @@ def load_segmenter(path: str | Path, engine: str = AUTO, device="cpu", threshold
 
     def run(x):
         return runner.run(x).float().cpu().numpy()
-    return Segmenter(engine, resolution, taus, run, {**info, **runner.info})
+    frames = info.get("frames") or {}  # read frames as the model's training images were (segment and from_bundle)
+    return Segmenter(engine, resolution, taus, run, {**info, **runner.info},
+                     bit_depth=check_bit_depth(frames.get("bit_depth", "auto")),
+                     letterbox=bool(frames.get("letterbox", False)))
 
 
 def predict_logits_torch(model, x, device) -> np.ndarray:

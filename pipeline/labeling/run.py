@@ -62,12 +62,13 @@ import pandas as pd
 from pipeline.artifacts import atomic_path, write_json
 from pipeline.consensus import vote
 from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
-from pipeline.datasets.loading import SUPPORTED_SUFFIXES, BadFileError, DecodeCache, load_mask, load_rgb
+from pipeline.datasets.loading import (SUPPORTED_SUFFIXES, BadFileError, DecodeCache, load_mask, load_rgb,
+                                       reset_frame_warnings)
 from pipeline.datasets.manifest import BadInputPolicy
 from pipeline.datasets.scan import scan_inputs
 from pipeline.deploy.files import write_png, write_skipped_csv
-from pipeline.errors import (BACKEND, CHECKPOINT, FORMAT, INPUT, LABELS, OUT, REFERENCE_MASKS, InputError, caller,
-                             literal)
+from pipeline.errors import (BACKEND, CHECKPOINT, FORMAT, INPUT, LABELS, OUT, OVERWRITE, REFERENCE_MASKS, InputError,
+                             caller, literal)
 from pipeline.geometry import NoForeground, area_ratio, foreground_agreement, image_gates, median_area
 from pipeline.labeling.formats import (coco_annotation, coco_document, yolo_data_yaml, yolo_image_list,
                                        yolo_lines, yolo_readme, yolo_split)
@@ -231,6 +232,16 @@ def file_checksums(out: Path, rels: Sequence[str]) -> dict[str, str]:
     return sums
 
 
+def labels_of_gone_images(out: Path, root: Path, files: Sequence[Path], ids: Sequence[str]) -> list[str]:
+    """The per-image files (masks, YOLO labels and images) an earlier label run in ``out`` wrote for
+    images that are not among ``files`` now: what a rerun would remove (relative, sorted)."""
+    per_image = (f"{OUTPUTS['masks']}/", f"{OUTPUTS['yolo']}/labels/", f"{OUTPUTS['yolo']}/images/")
+    previous = owned_outputs(out, OUTPUTS["record"], "label")
+    now = set(label_targets(root, files, ids, FORMATS))
+    return sorted(p for p in previous - now if p.startswith(per_image)
+                  and ((out / p).is_symlink() or (out / p).is_file()))
+
+
 def check_label_folder(label_dir: str | Path, input_dir: str | Path) -> dict:
     """The record (label.json) of an UNMODIFIED, complete ``label`` output folder of the images in
     ``input_dir``, for ``distill --labels`` / ``distill(labels=...)``; InputError, one line naming the
@@ -360,6 +371,11 @@ def _plan(input_dir, out, params: Mapping, reference_masks, overwrite: bool, fmt
     for path, reason in found.unused:  # not images (hidden files, other types): listed, not an error
         policy.record(_id_of(root, path), path, reason)
     check_outputs(out, label_targets(root, files, ids, fmts), OUTPUTS["record"], "label", overwrite=overwrite)
+    gone = labels_of_gone_images(out, root, files, ids)
+    if gone and not overwrite:  # adding images is fine; losing the labels of images no longer here is not
+        raise InputError(f"{{}}: holds the labels of {len(gone)} image(s) no longer in {literal(root)} (first: "
+                         f"{literal(gone[0])}), which this run would remove; pass {{}} to remove them, or choose "
+                         "another {}", OUT(out), OVERWRITE, OUT)
     data_cfg, geo = section(params, "data"), section(params, "geometry")
     tcfg = section(params, "teacher")
     tcfg["cache_dir"] = _inside(tcfg["cache_dir"], out.resolve())  # absolute: label.json names it to distill
@@ -533,6 +549,7 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
     the contact sheet, skipped.csv and the record."""
     fmts = parse_formats(formats)
     job = _plan(input_dir, out, params, reference_masks, overwrite, fmts)
+    reset_frame_warnings()  # each run says once how it reads 16-bit frames
     _read_images(job)
     out, policy, tcfg, n = job.out, job.policy, job.tcfg, len(job.files)
     previous = owned_outputs(out, OUTPUTS["record"], "label")
