@@ -290,14 +290,20 @@ def median_area(a, is_train) -> float:
     return float(np.median(sel))
 
 
+#: what label's summary and distill's error say when every pseudo-mask is empty, with the two likely
+#: causes (the ``{}``: the params override, spelled for the caller)
+NO_FOREGROUND = ("The teacher found no spacecraft in any training image; the two likely causes: the checkpoint "
+                 "is not a trained SAM 3 (random or other weights), or the teacher's scores are below "
+                 "teacher.score_threshold on these images (try a lower `{}`; or check the prompts)")
+
+
 class NoForeground(InputError):
     """No training image has a non-empty pseudo-mask (:func:`median_area`): said in the user's terms --
-    no file, no equation; the params override is spelled for the caller (``--set ...`` on the command
-    line, ``overrides=[...]`` in Python: :class:`pipeline.errors.Option`)."""
+    no file, no equation (:data:`NO_FOREGROUND`); the params override is spelled for the caller (``--set
+    ...`` on the command line, ``overrides=[...]`` in Python: :class:`pipeline.errors.Option`)."""
 
     def __init__(self):
-        super().__init__("The teacher found no spacecraft in any training image; try a lower `{}` or check the "
-                         "prompts", SET(["teacher.score_threshold=…"]))
+        super().__init__(NO_FOREGROUND, SET(["teacher.score_threshold=…"]))
 
     def __reduce__(self):  # pickles (a worker process) as itself: its message takes no arguments
         return (NoForeground, ())

@@ -10,6 +10,8 @@ import os
 import click
 
 from pipeline.api import choose_teacher, with_data_options
+from pipeline.errors import CLI
+from pipeline.geometry import NoForeground
 from pipeline.labeling import label_folder
 from pipeline.labeling.run import OUTPUTS, YOLO_LISTS, parse_formats
 from pipeline.params import BACKENDS
@@ -58,6 +60,8 @@ def main(params, device, input_dir, out, checkpoint, backend, imported_dir, refe
         result = label_folder(input_dir, out, params, device=device, formats=fmts, reference_masks=reference_masks,
                               overwrite=overwrite, workers=workers, address=address, copy_images=copy_images)
     click.echo(summary_line(result), err=True)
+    if (line := empty_line(result)) is not None:
+        click.echo(line, err=True)
     if result.skipped_line:
         click.echo(result.skipped_line, err=True)
 
@@ -74,6 +78,14 @@ def _step_log_off():
         yield
     finally:
         logger.setLevel(before)
+
+
+def empty_line(result) -> str | None:
+    """The summary's plain word when every mask is empty (the run still succeeds: exit 0), with the two
+    likely causes in distill's words (:data:`pipeline.geometry.NO_FOREGROUND`); None otherwise."""
+    if len(result.table) and not (result.table["mask_pixels"] > 0).any():
+        return f"label: all {len(result.table)} masks are empty. {NoForeground().render(CLI)}"
+    return None
 
 
 def summary_line(result) -> str:

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from pipeline.errors import API, CLI, SET, InputError, caller, calling
-from pipeline.geometry import NoForeground, median_area
+from pipeline.geometry import NO_FOREGROUND, NoForeground, median_area
 from pipeline.labeling.run import folder_gates
 from pipeline.params import PAPER
 
-WORDS = "The teacher found no spacecraft in any training image; try a lower `{}` or check the prompts"
+WORDS = NO_FOREGROUND
 
 
 def test_no_foreground_names_the_fix_in_each_callers_terms():
