@@ -365,13 +365,19 @@ def project_outputs(out: str | Path) -> dict[str, Path]:
             "thresholds": catalog.path("thresholds", art), "checkpoints": catalog.path("checkpoints", art)}
 
 
+#: below this teacher-vote Image IoU distill prints no efficiency ratio: over a vote that found almost
+#: nothing, the ratio is large and means nothing (47.5 x a vote of IoU 0.004)
+MIN_VOTE_IOU = 0.05
+
+
 def efficiency_line(out: str | Path) -> str | None:
-    """The summary line of a finished project whose held-out images have masks (``--val-masks``): "the
-    student reaches X of its labels", X = the deployed student's (``deploy.export_method``) distillation
-    efficiency, its test Image IoU at the calibrated tau over the teacher vote's on the same images (the
-    test half of the masked images; the report stage's ``metrics_efficiency`` files,
-    :func:`pipeline.dvc_results.efficiency_metric_files`), per group when there are several.  None when
-    there is no such file (no masks, or no test image)."""
+    """The summary line of a finished project whose held-out images have masks (``--val-masks``): the
+    deployed student's (``deploy.export_method``) distillation efficiency as a ratio with its meaning,
+    "0.93 × the teacher vote's Image IoU" -- its test Image IoU at the calibrated tau over the teacher
+    vote's on the same images (the report stage's ``metrics_efficiency`` files,
+    :func:`pipeline.dvc_results.efficiency_metric_files`), per group when there are several.  A group
+    whose vote IoU is below :data:`MIN_VOTE_IOU` gets no ratio, and the line says why.  None when there
+    is no such file (no masks, or no test image)."""
     out = Path(out)
     art = out / catalog.ARTIFACTS_DIR
     method = str((read_yaml_mapping(out / "params.yaml").get("deploy") or {}).get("export_method", PROPOSED))
@@ -384,13 +390,24 @@ def efficiency_line(out: str | Path) -> str | None:
                           _metric(catalog.path("metrics_teacher", art) / f"{group}.json", "iou")))
     if not found:
         return None
-    if len(found) == 1 and None not in found[0]:
-        _, e, iou, vote = found[0]
-        return (f"the student reaches {e:.2f} of its labels ({method_label(method)}: test Image IoU {iou:.3f}, "
-                f"the teacher vote's {vote:.3f} on the same held-out images with masks)")
-    ratios = ", ".join(f"{e:.2f}" + (f" ({g})" if len(found) > 1 else "") for g, e, _, _ in found)
-    return (f"the student reaches {ratios} of its labels ({method_label(method)}: test Image IoU over the teacher "
-            "vote's on the same held-out images with masks)")
+    name = method_label(method)
+    low = [(g, vote) for g, _, _, vote in found if vote is not None and vote < MIN_VOTE_IOU]
+    kept = [row for row in found if row[0] not in {g for g, _ in low}]
+    why = ("; no ratio for " + ", ".join(g for g, _ in low) + ": the teacher vote's Image IoU there is "
+           + ", ".join(f"{v:.3f}" for _, v in low) + f", below {MIN_VOTE_IOU:g}, so the teacher found almost "
+           "nothing to distil and a ratio would mean nothing") if low and kept else ""
+    if not kept:
+        vote = ", ".join(f"{v:.3f}" for _, v in low)
+        return (f"no distillation efficiency: the teacher vote's test Image IoU is {vote}, below {MIN_VOTE_IOU:g} "
+                f"(the teacher found almost nothing on the held-out images with masks), so a ratio to it would "
+                f"mean nothing; {name}'s own test Image IoU is in the report")
+    if len(kept) == 1 and len(found) == 1 and None not in kept[0]:
+        _, e, iou, vote = kept[0]
+        return (f"the student's test Image IoU is {e:.2f} × the teacher vote's Image IoU ({name}: {iou:.3f}; the "
+                f"vote: {vote:.3f}, on the same held-out images with masks)")
+    ratios = ", ".join(f"{e:.2f} ×" + (f" ({g})" if len(found) > 1 else "") for g, e, _, _ in kept)
+    return (f"the student's test Image IoU is {ratios} the teacher vote's Image IoU ({name}, on the same "
+            f"held-out images with masks){why}")
 
 
 def _metric(path: Path, key: str) -> float | None:

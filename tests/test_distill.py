@@ -111,7 +111,7 @@ def test_distill_with_validation_masks(folder, distill_with_masks):
     assert "No validation or test masks" not in (out / "reports" / "distill" / "report.md").read_text()
     # the summary ends with the deployed student's distillation efficiency (the report stage's DVC metrics)
     eff = json.loads((out / "reports" / "metrics" / "efficiency" / "test" / "geodistill.json").read_text())
-    assert f"distill: the student reaches {eff['efficiency']:.2f} of its labels" in res.stderr
+    assert f"distill: the student's test Image IoU is {eff['efficiency']:.2f} × the teacher vote's" in res.stderr
 
 
 @pytest.mark.parametrize("case, message", [

@@ -1,7 +1,7 @@
 """Distillation efficiency where users look for it: the report stage's DVC metrics
 (``reports/metrics/efficiency/<group>/<method>.json``, the same ratio as the reference-points table),
 ``dvc metrics show`` still under 120 characters with them, and ``geodistill distill --val-masks``'s
-summary line "the student reaches X of its labels"."""
+summary line "the student's test Image IoU is X × the teacher vote's Image IoU"."""
 
 from __future__ import annotations
 
@@ -145,11 +145,21 @@ def test_efficiency_line_names_the_deployed_students_ratio_and_both_ious(tmp_pat
     from pipeline.standalone import efficiency_line
 
     line = efficiency_line(_project(tmp_path / "p"))
-    assert line == (f"the student reaches 0.87 of its labels ({method_label(PROPOSED)}: test Image IoU 0.512, "
-                    f"the teacher vote's {0.5123 / 0.8712:.3f} on the same held-out images with masks)")
+    assert line == (f"the student's test Image IoU is 0.87 × the teacher vote's Image IoU ({method_label(PROPOSED)}: "
+                    f"0.512; the vote: {0.5123 / 0.8712:.3f}, on the same held-out images with masks)")
     # several groups: a ratio per group
     line = efficiency_line(_project(tmp_path / "g", groups=("KCP", "HJM"), export=BASELINE))
-    assert line.startswith("the student reaches 0.87 (HJM), 0.87 (KCP) of its labels (Plain Student:")
+    assert line.startswith("the student's test Image IoU is 0.87 × (HJM), 0.87 × (KCP) the teacher vote's Image IoU "
+                           "(Plain Student,")
+
+
+def test_no_efficiency_ratio_over_a_vote_that_found_almost_nothing_and_the_line_says_why(tmp_path):
+    from pipeline.standalone import MIN_VOTE_IOU, efficiency_line
+
+    # the issue's case: a student IoU of 0.19 over a vote of 0.004 (47.5 ×) is no ratio to print
+    line = efficiency_line(_project(tmp_path / "p", efficiency=47.5))
+    assert "×" not in line and "47.5" not in line and f"below {MIN_VOTE_IOU:g}" in line, line
+    assert line.startswith("no distillation efficiency: the teacher vote's test Image IoU is 0.011"), line
 
 
 def test_no_efficiency_line_without_masks(tmp_path):
@@ -175,4 +185,4 @@ def test_distill_prints_the_line_after_its_summary(tmp_path, monkeypatch):
                                             "--imported-dir", str(tmp_path / "in")], catch_exceptions=False)
     assert res.exit_code == 0, res.output
     lines = res.output.strip().splitlines()
-    assert lines[-2].startswith("distill: report ") and lines[-1].startswith("distill: the student reaches 0.87 of")
+    assert lines[-2].startswith("distill: report ") and lines[-1].startswith("distill: the student's test Image IoU is 0.87 × the teacher vote's")
