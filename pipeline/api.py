@@ -26,9 +26,10 @@ from pipeline.datasets.loading import check_bit_depth, pixel_limit
 from pipeline.errors import BACKEND, CHECKPOINT, LABELS, InputError, literal
 from pipeline.labeling import LabelResult, label_folder
 from pipeline.labeling.run import check_label_folder, parse_formats
-from pipeline.params import deep_merge, validate
+from pipeline.params import SAM3, deep_merge, validate
 from pipeline.profiles import load_params_or_profile
 from pipeline.standalone import project_outputs, run_project, write_project
+from pipeline.teachers.sam3 import check_checkpoint_dir
 
 LABEL_PROFILE = "paper"
 DISTILL_PROFILE = "distill"
@@ -54,6 +55,8 @@ def teacher_overrides(backend: str | None, checkpoint: str | Path | None, import
     if backend is None:
         backend = "sam3" if checkpoint else "imported" if imported_dir else None
     out = {} if backend is None else {"backend": backend}
+    if checkpoint and backend == SAM3:  # checked here: the error names the option the user gave
+        check_checkpoint_dir(checkpoint, CHECKPOINT)
     if checkpoint:
         out["checkpoint"] = str(Path(checkpoint).resolve())
     if imported_dir:

@@ -21,7 +21,7 @@ from pipeline.datasets.loading import BadFileError, check_bit_depth, pixel_limit
 from pipeline.datasets.manifest import BadInputPolicy
 from pipeline.device import resolve_device
 from pipeline.engine_table import AUTO
-from pipeline.errors import InputError
+from pipeline.errors import CHECKPOINT, InputError
 from pipeline.ownership import claim_outputs
 from pipeline.thresholds import MIN_RESOLUTION, RESOLUTION_LABELS, resolve_resolution
 
@@ -33,7 +33,7 @@ def _stderr(line: str) -> None:
 def check_options(checkpoint, input_path, output, batch_size: int, resolution: int | None) -> None:
     """InputError naming the first missing or invalid option."""
     if not checkpoint:
-        raise InputError("--checkpoint missing: a checkpoint directory or a deploy bundle (geodistill export)")
+        raise InputError("{} missing: a checkpoint directory or a deploy bundle (geodistill export)", CHECKPOINT)
     if not input_path:
         raise InputError("--input missing: an image file or a folder of images")
     if not output:

@@ -71,3 +71,34 @@ def test_api_errors_of_distill_from_labels_name_keywords(tmp_path):
     assert str(err.value) == f"labels={str(tmp_path / 'nope')!r}: folder not found (no label.json of label there)"
     assert err.value.render(CLI).startswith(f"--labels {tmp_path / 'nope'}: folder not found")
     assert not (tmp_path / "run").exists()
+
+
+def test_a_bad_checkpoint_is_named_as_the_user_gave_it(tmp_path):
+    """--checkpoint on the command line (not the params key teacher.checkpoint=), checkpoint= in Python."""
+    import pipeline
+    from click.testing import CliRunner
+    from stages.cli import main
+    from pipeline.segmenting import segment_images
+    from tests._tiny_teacher import make_image_folder
+
+    images, _ = make_image_folder(tmp_path / "data", n=2, masks=False)
+    nope, empty = tmp_path / "nope", tmp_path / "empty"
+    empty.mkdir()
+    for ck, why in ((nope, "directory not found"), (empty, "not a SAM 3 checkpoint (no config.json)")):
+        for cmd in ("label", "distill"):
+            res = CliRunner().invoke(main, [cmd, str(images), "--out", str(tmp_path / cmd), "--checkpoint", str(ck)])
+            lines = [ln for ln in res.output.splitlines() if ln.strip()]
+            assert res.exit_code == 2 and lines == [f"geodistill {cmd}: error: --checkpoint {ck}: {why}"
+                                                    + (" (a local SAM 3 checkpoint saved with save_pretrained; "
+                                                       "nothing is downloaded)" if ck == nope else "")], res.output
+        for call in (pipeline.label, pipeline.distill):
+            with pytest.raises(InputError) as err:
+                call(images, out=tmp_path / "api", checkpoint=ck)
+            assert str(err.value).startswith(f"checkpoint={str(ck)!r}: {why}") and "--" not in str(err.value)
+    res = CliRunner().invoke(main, ["segment", "--checkpoint", str(nope), "--input", str(images), "--output",
+                                    str(tmp_path / "m")])
+    assert res.exit_code == 2 and f"error: --checkpoint {nope}: not found" in res.output, res.output
+    with pytest.raises(InputError) as err:
+        segment_images(nope, images, tmp_path / "m")
+    assert str(err.value) == f"checkpoint={str(nope)!r}: not found"
+    assert not (tmp_path / "label").exists() and not (tmp_path / "distill").exists() and not (tmp_path / "api").exists()

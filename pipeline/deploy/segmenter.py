@@ -25,7 +25,7 @@ from pipeline.deploy.confidence import CONFIDENCE_BAND, confidence_rank_check, f
 from pipeline.deploy.bundle import INT8_FILE, ONNX_FILE, checkpoint_resolution, is_deploy_bundle, read_deploy_info
 from pipeline.deploy.engines import ENGINES, Source
 from pipeline.deploy.export import onnx_unavailable_reason
-from pipeline.errors import ArtifactError, InputError
+from pipeline.errors import CHECKPOINT, ArtifactError, InputError
 from pipeline.inference import images_to_tensor, load_student
 from pipeline.engine_table import AUTO, ENGINE_CHOICES, MODEL_ENGINES
 from pipeline.params import PAPER
@@ -194,7 +194,7 @@ def load_segmenter(path: str | Path, engine: str = AUTO, device="cpu", threshold
 
     path = Path(path)
     if not path.exists():
-        raise InputError(f"--checkpoint {path}: not found")
+        raise InputError("{}: not found", CHECKPOINT(path))
     engine = resolve_engine(path, engine, device)
     spec = ENGINES[engine]
     device = torch.device(device)

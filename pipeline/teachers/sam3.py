@@ -48,7 +48,7 @@ from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.artifacts import atomic_path
 from pipeline.device import resolve_device
-from pipeline.errors import InputError
+from pipeline.errors import InputError, Option, literal
 from pipeline.params import SAM3 as BACKEND
 from pipeline.progress import library_bars_off
 from pipeline.teachers.base import TeacherInput, finalize_answers
@@ -130,25 +130,34 @@ def read_processor_config(directory: Path) -> dict:
                      "(save the Sam3Processor with the model)")
 
 
-def check_checkpoint_dir(directory: str | Path) -> Path:
-    """The checkpoint directory, or an InputError saying why it is not a local SAM 3 checkpoint."""
+def check_checkpoint_dir(directory: str | Path, option: Option | None = None) -> Path:
+    """The checkpoint directory, or an InputError saying why it is not a local SAM 3 checkpoint.
+    ``option``: the user option that named it (``--checkpoint`` / ``checkpoint=``), named in the
+    caller's terms; None: the params key ``teacher.checkpoint``."""
     d = Path(directory).expanduser()
+
+    def refuse(where: Path | None, why: str) -> InputError:  # where: a file in it (None: the folder itself)
+        if option is None:
+            return InputError(f"{where or d}: {why}" if where is not None or d.is_dir() else
+                              f"teacher.checkpoint={str(directory)!r}: {why}")
+        return InputError("{}: " + literal(f"{where}: {why}" if where is not None else why), option(directory))
+
     if not d.is_dir():
-        raise InputError(f"teacher.checkpoint={str(directory)!r}: directory not found "
-                         "(a local SAM 3 checkpoint saved with save_pretrained; nothing is downloaded)")
+        raise refuse(None, "directory not found (a local SAM 3 checkpoint saved with save_pretrained; "
+                           "nothing is downloaded)")
     cfg_path = d / "config.json"
     if not cfg_path.exists():
-        raise InputError(f"{d}: not a SAM 3 checkpoint (no config.json)")
+        raise refuse(None, "not a SAM 3 checkpoint (no config.json)")
     try:
         model_type = json.loads(cfg_path.read_text()).get("model_type")
     except json.JSONDecodeError:
-        raise InputError(f"{cfg_path}: not valid JSON") from None
+        raise refuse(cfg_path, "not valid JSON") from None
     if model_type not in SAM3_MODEL_TYPES:
-        raise InputError(f"{d}: not a SAM 3 checkpoint (config.json model_type={model_type!r}, expected 'sam3')")
+        raise refuse(None, f"not a SAM 3 checkpoint (config.json model_type={model_type!r}, expected 'sam3')")
     if not any(p.suffix in _WEIGHT_SUFFIXES for p in d.iterdir()):
-        raise InputError(f"{d}: SAM 3 checkpoint without weights (*.safetensors)")
+        raise refuse(None, "SAM 3 checkpoint without weights (*.safetensors)")
     if not any((d / f).exists() for f in ("tokenizer.json", "vocab.json")):
-        raise InputError(f"{d}: SAM 3 checkpoint without CLIP tokenizer files (tokenizer.json or vocab.json)")
+        raise refuse(None, "SAM 3 checkpoint without CLIP tokenizer files (tokenizer.json or vocab.json)")
     return d
 
 
