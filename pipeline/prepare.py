@@ -95,7 +95,7 @@ def write_contact_sheet(path: Path, rows: pd.DataFrame, spec, cfg: dict, cache: 
     for i in pick:
         r = rows.iloc[int(i)]
         img, mask, _ = next(build.iter_arrays(rows.iloc[[int(i)]], spec, size, cache))[1:]
-        tiles.append(tile(img, mask, f"{r['group']} {r['spacecraft']}"[:28], tsize))
+        tiles.append(tile(img, mask, f"{r['group']} {r['spacecraft']}", tsize))
     sheet = contact_sheet(tiles, columns=4)
     with atomic_path(path) as tmp:
         ok, buf = cv2.imencode(".png", sheet[..., ::-1])

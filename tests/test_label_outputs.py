@@ -10,6 +10,7 @@ import shlex
 import shutil
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from pipeline.labeling.formats import yolo_split
@@ -125,3 +126,17 @@ def test_readme_quick_start_runs_as_written_with_the_tiny_sam3(tmp_path, tiny_sa
             cmd.make_context(argv[1], argv[2:])  # every flag it names exists and the line parses
         ran.append(argv[1])
     assert ran == ["label", "distill"]
+
+
+def test_a_contact_sheet_caption_is_wrapped_or_shrunk_never_cut():
+    import cv2
+
+    from pipeline.datasets.contact_sheet import caption_lines, tile
+
+    label = "deep/sub/folder/a_very_long_image_name_from_a_camera_0001 g=0.93"
+    for size in (32, 192, 384):
+        lines, scale = caption_lines(label, size - 6, max(size / 400.0, 0.3))
+        assert "".join(lines).replace(" ", "") == label.replace(" ", "")   # every character is there
+        assert all(cv2.getTextSize(ln, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] <= size - 6 for ln in lines)
+        assert tile(np.zeros((size, size, 3), np.uint8), None, label, size).shape == (size, size, 3)
+    assert caption_lines("img01 g=0.50", 186, 0.48) == (["img01 g=0.50"], 0.48)  # a short one: as it was

@@ -30,10 +30,39 @@ def tile(image: np.ndarray, mask: np.ndarray | None, label: str, size: int) -> n
         m = cv2.resize(mask.astype(np.uint8), (size, size), interpolation=cv2.INTER_NEAREST)
         contours, _ = cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
         cv2.drawContours(t, contours, -1, CONTOUR_RGB, 1)
-    scale = max(size / 400.0, 0.3)
-    cv2.putText(t, label, (3, int(12 * scale / 0.35) if scale > 0.35 else 11), cv2.FONT_HERSHEY_SIMPLEX,
-                scale, (255, 255, 255), 1, cv2.LINE_AA)
+    lines, scale = caption_lines(label, size - 6, max(size / 400.0, 0.3))
+    height = cv2.getTextSize("Ag", cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][1]
+    for i, line in enumerate(lines):
+        cv2.putText(t, line, (3, (height + 3) * (i + 1)), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1,
+                    cv2.LINE_AA)
     return t
+
+
+def caption_lines(label: str, width: int, scale: float, min_scale: float = 0.25) -> tuple[list[str], float]:
+    """``label`` wrapped at spaces and ``/`` into lines of at most ``width`` pixels at font ``scale`` --
+    shrunk (down to ``min_scale``) while a single word is wider, then broken inside the word -- so that
+    a caption is never cut: (lines, scale)."""
+    def fits(text: str, sc: float) -> bool:
+        return cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, sc, 1)[0][0] <= width
+
+    words = [w for w in label.replace("/", "/ ").split(" ") if w]
+    while scale > min_scale and not all(fits(w, scale) for w in words):
+        scale = max(min_scale, scale * 0.9)
+    pieces = []
+    for w in words:  # still too wide at the smallest scale: broken into pieces that fit
+        while not fits(w, scale) and len(w) > 1:
+            k = max(k for k in range(1, len(w) + 1) if k == 1 or fits(w[:k], scale))
+            pieces.append(w[:k])
+            w = w[k:]
+        pieces.append(w)
+    lines: list[str] = []
+    for w in pieces:
+        joined = f"{lines[-1]}{'' if lines[-1].endswith('/') else ' '}{w}" if lines else w
+        if lines and fits(joined, scale):
+            lines[-1] = joined
+        else:
+            lines.append(w)
+    return lines, scale
 
 
 def contact_sheet(tiles: list[np.ndarray], columns: int = 4, pad: int = 2) -> np.ndarray:

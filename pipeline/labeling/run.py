@@ -572,7 +572,7 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
         _write_coco(job, table, v, gf.g)
 
     tsize = max(job.size, 192)
-    tiles = [tile(img, voted, f"{job.ids[r]} g={gf.g[r]:.2f}"[:30], tsize)
+    tiles = [tile(img, voted, f"{job.ids[r]} g={gf.g[r]:.2f}", tsize)
              for r, (img, voted) in sorted(v.sheet.items())]
     write_png(out / OUTPUTS["sheet"], contact_sheet(tiles, columns=4))
 
