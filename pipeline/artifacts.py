@@ -611,6 +611,22 @@ def write_parquet(path: str | Path, table, meta: Meta) -> Path:
 # --------------------------------------------------------------------------------------------------
 # Directory artifacts (checkpoints, reports)
 # --------------------------------------------------------------------------------------------------
+
+@contextlib.contextmanager
+def folders_gone_on_failure(*folders: str | Path) -> Iterator[None]:
+    """Inside: when the block fails, each of ``folders`` that did not exist before it is removed again
+    (with what the block put there): a run that fails before writing an output leaves no folder it made
+    (a decode cache, the output folder itself).  Folders that existed stay as they are."""
+    new = [Path(f) for f in folders if not Path(f).exists()]
+    try:
+        yield
+    except BaseException:
+        for f in new:
+            if f.is_dir() and not f.is_symlink():
+                shutil.rmtree(f, ignore_errors=True)
+        raise
+
+
 @contextlib.contextmanager
 def artifact_dir(path: str | Path, meta: Meta) -> Iterator[Path]:
     """Yield a temp directory to fill; on success ``meta.json`` is added and it is renamed onto ``path``."""

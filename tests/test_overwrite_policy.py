@@ -206,3 +206,19 @@ def test_a_label_rerun_that_would_remove_the_masks_of_gone_images_is_refused_unl
     r = cli("label", fewer, "--out", out, "--checkpoint", tiny_sam3, *FAST, "--format", "png", "--overwrite")
     assert r.exit_code == 0, r.output
     assert sorted(p.name for p in (out / "masks").iterdir()) == sorted(set(before) - {"img00.png", "extra.png"})
+
+
+def test_a_label_that_fails_before_any_output_leaves_no_folder_it_made(tmp_path, images, tiny_sam3):
+    import shutil
+
+    bad = tmp_path / "bad"
+    shutil.copytree(images, bad)
+    (bad / "zz_broken.png").write_bytes(b"not an image")  # read after the good ones: their decode is cached
+    out = tmp_path / "labels"
+    line = error_line(cli("label", bad, "--out", out, "--checkpoint", tiny_sam3, *FAST))
+    assert "zz_broken.png" in line and not out.exists()   # no .cache/decode left behind
+    # an output folder that was there stays, with what was in it
+    out.mkdir()
+    mine = put(out / "notes.txt")
+    error_line(cli("label", bad, "--out", out, "--checkpoint", tiny_sam3, *FAST))
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"] and mine.read_bytes() == MINE

@@ -59,7 +59,7 @@ import shutil
 import numpy as np
 import pandas as pd
 
-from pipeline.artifacts import atomic_path, write_json
+from pipeline.artifacts import atomic_path, folders_gone_on_failure, write_json
 from pipeline.consensus import vote
 from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
 from pipeline.datasets.loading import (SUPPORTED_SUFFIXES, BadFileError, DecodeCache, load_mask, load_rgb,
@@ -550,7 +550,9 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
     fmts = parse_formats(formats)
     job = _plan(input_dir, out, params, reference_masks, overwrite, fmts)
     reset_frame_warnings()  # each run says once how it reads 16-bit frames
-    _read_images(job)
+    made = [job.out, job.out / ".cache"] + ([job.cache.root] if job.cache is not None else [])
+    with folders_gone_on_failure(*made):  # a bad image stops the run before any output: no folder of it stays
+        _read_images(job)
     out, policy, tcfg, n = job.out, job.policy, job.tcfg, len(job.files)
     previous = owned_outputs(out, OUTPUTS["record"], "label")
     current = label_targets(job.root, job.files, job.ids, fmts)
