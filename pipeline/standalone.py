@@ -319,14 +319,18 @@ _STAGE_ERROR = re.compile(r"^geodistill [\w-]+: error: (.*)$")
 _DVC_ERROR = re.compile(r"^ERROR: ")
 
 
-def run_project(out: str | Path, device: str = "auto") -> None:
+def run_project(out: str | Path, device: str = "auto", quiet: bool = False) -> None:
     """``dvc repro`` in the project ``out``, its output streamed.  When a stage fails, its own one-line
     message is held back and raised once (InputError, the flags it names spelled again in the caller's
     terms: :meth:`pipeline.errors.InputError.from_line`), with DVC's ``ERROR: failed to reproduce ...``
     left out; a stage that failed without such a line (a bug: its traceback is shown) is reported by
-    DVC's line."""
+    DVC's line.  ``quiet`` (``--quiet``): ``dvc repro -q`` and the stages' step log at WARNING (unless
+    ``GEODISTILL_LOG`` says otherwise)."""
     out = Path(out)
-    proc = subprocess.Popen([sys.executable, "-m", "dvc", "repro"], cwd=out, env=_env(device),
+    env = _env(device)
+    if quiet:  # --quiet: warnings, errors and the summary only -- no DVC stage lines, no INFO step log
+        env.setdefault("GEODISTILL_LOG", "WARNING")
+    proc = subprocess.Popen([sys.executable, "-m", "dvc", "repro", *(["-q"] if quiet else [])], cwd=out, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, errors="replace")
     relay = threading.Thread(target=_relay_stdout, args=(proc.stdout,), daemon=True)
     relay.start()

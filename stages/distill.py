@@ -57,7 +57,7 @@ def main(params, device, input_dir, out, val_masks, checkpoint, backend, importe
         click.echo(f"distill: wrote the DVC project {project}; run `dvc repro` there", err=True)
         return
     with quiet_bars(quiet):  # --quiet: no bars in this process nor in the stages DVC runs
-        run_project(project, device)
+        run_project(project, device, quiet=quiet)
     res = project_outputs(project)
     click.echo(f"distill: deploy bundle {res['deploy']}\ndistill: report {res['report']}", err=True)
     if (line := efficiency_line(project)) is not None:  # with --val-masks

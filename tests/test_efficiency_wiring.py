@@ -186,3 +186,30 @@ def test_distill_prints_the_line_after_its_summary(tmp_path, monkeypatch):
     assert res.exit_code == 0, res.output
     lines = res.output.strip().splitlines()
     assert lines[-2].startswith("distill: report ") and lines[-1].startswith("distill: the student's test Image IoU is 0.87 × the teacher vote's")
+
+
+def test_distill_quiet_runs_dvc_quiet_and_the_stages_at_warning(tmp_path, monkeypatch):
+    """-q: only warnings, errors and the summary -- `dvc repro -q` (no stage lines) and the stages' INFO
+    step log off; without -q both stay."""
+    import io
+    import subprocess
+
+    import pipeline.standalone as S
+
+    seen = []
+
+    class FakeDvc:
+        def __init__(self, args, env=None, **kw):
+            seen.append((args, env))
+            self.stdout, self.stderr = io.StringIO(""), io.StringIO("")
+
+        def wait(self):
+            return 0
+
+    monkeypatch.setattr(subprocess, "Popen", FakeDvc)
+    monkeypatch.delenv("GEODISTILL_LOG", raising=False)
+    S.run_project(tmp_path, quiet=True)
+    S.run_project(tmp_path)
+    (quiet_args, quiet_env), (args, env) = seen
+    assert quiet_args[-2:] == ["repro", "-q"] and quiet_env["GEODISTILL_LOG"] == "WARNING"
+    assert args[-1] == "repro" and "GEODISTILL_LOG" not in env
