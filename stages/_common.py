@@ -91,9 +91,10 @@ max_pixels_option = click.option(
          f"with --skip-bad they are left out and listed (default: data.max_pixels, {PAPER.data.max_pixels:,})")
 
 bit_depth_option = click.option(
-    BIT_DEPTH.flag, BIT_DEPTH.keyword, type=click.Choice([str(b) for b in BIT_DEPTHS]), default=None,
+    BIT_DEPTH.flag, BIT_DEPTH.keyword, type=click.Choice([str(b) for b in BIT_DEPTHS]), default=None, metavar="BITS",
     callback=lambda ctx, param, v: v if v in (None, AUTO_BIT_DEPTH) else int(v),
-    help="bits a 16-bit frame's sensor fills (default: what the bundle records, else data.bit_depth, "
+    help=f"bits a 16-bit frame's sensor fills: {', '.join(map(str, BIT_DEPTHS))} (default: what the bundle records, "
+         "else data.bit_depth, "
          f"{PAPER.data.bit_depth!r}: the file's full range)")
 
 
