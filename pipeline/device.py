@@ -18,14 +18,22 @@ def resolve_device(name: str = "auto"):
     return torch.device(name)
 
 
-def cpu_supports_bf16() -> bool:
-    """True where the CPU has native bf16 matrix units (AVX-512-BF16 / AMX), so bf16 autocast pays off."""
+#: the CPU flags (/proc/cpuinfo) of native bf16 arithmetic; without one, bf16 is emulated in fp32 and far slower
+BF16_FLAGS = ("avx512_bf16", "amx_bf16")
+
+
+def cpu_flags() -> frozenset[str]:
+    """The CPU's feature flags from /proc/cpuinfo (empty where there is none: not Linux)."""
     try:
         with open("/proc/cpuinfo") as f:
-            flags = f.read()
+            return frozenset(w for line in f if line.startswith("flags") for w in line.split(":", 1)[1].split())
     except OSError:
-        return False
-    return "avx512_bf16" in flags or "amx_bf16" in flags
+        return frozenset()
+
+
+def cpu_supports_bf16() -> bool:
+    """True where the CPU has native bf16 matrix units (:data:`BF16_FLAGS`), so bf16 autocast pays off."""
+    return not cpu_flags().isdisjoint(BF16_FLAGS)
 
 
 def autocast_dtype(device, precision: str):

@@ -32,6 +32,11 @@ class EngineSpec:
     segment: bool = False                # offered by segment --engine and the Segmenter
     benchmark: bool = False              # a benchmark variant (deploy.benchmark_variants)
 
+    @property
+    def bf16(self) -> bool:
+        """Computes in bf16 whatever the hardware (``auto`` precision falls back to fp32 instead)."""
+        return bool(self.options.get("bf16")) or self.options.get("precision") == "bf16"
+
 
 _ORT_INT8 = ("ONNX Runtime CPU int8 (static QDQ model.int8.onnx: u8 activations, s8 per-channel weights, ranges "
              "calibrated on training images)")

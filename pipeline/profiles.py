@@ -20,7 +20,8 @@ The stages read params.yaml alone (:func:`pipeline.params.load_params` refuses `
   GeoDistill-Refine, the continuation and the ceiling at three seeds, the geometry question asked at a
   converged student (report under reports/reduced-strong/);
 * ``distill`` -- what ``geodistill distill`` starts from: the paper's sizes, Plain Student (Stage I) and
-  GeoDistill-Refine (Stage II) for one seed (the command points data at your folder);
+  GeoDistill-Refine (Stage II) for one seed, and a small benchmark (:data:`DISTILL_BENCHMARK`; the
+  command points data at your folder);
 * ``paper``   -- the paper's sizes: 384², 270/60/3x60 images, 20 + 10 epochs, the full protocol with
   the controls.
 
@@ -76,6 +77,13 @@ FULL_PROTOCOL = full_protocol(SEEDS)
 #: torch CPU threads of every profile that publishes numbers (demo, reduced, paper)
 PUBLISHED_THREADS = 2
 
+#: `geodistill distill`'s benchmark plan (issue 44): the fp32 baseline and the engine `segment` runs by
+#: default (ONNX Runtime fp32), one warm-up, 5 batch-1 calls -- under a minute and 1 GB at 384² on 2
+#: cores, where the full table (the DVC stage of `make demo` and of the other profiles, the schema's
+#: defaults) took minutes.  No int8: a bundle without one would be quantised again here
+DISTILL_BENCHMARK = {"benchmark_variants": ["fp32_eager_nchw", "onnxruntime_fp32"],
+                     "benchmark_warmup": 1, "benchmark_iters": 5, "benchmark_batches": [1]}
+
 PROFILES: dict[str, dict[str, Any]] = {
     # docs/stability.md: the stable recipe, threads pinned, and seed means over ten seeds at 64² with
     # half the epochs -- exactly the configuration the stability benchmark measured
@@ -120,6 +128,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     "distill": {
         "teacher": {"vflip_base_prompt": False},  # the flipped view only serves afs_control, not run here
         "protocol": {"runs": {"plain": [42], "geodistill": [42]}},
+        "deploy": DISTILL_BENCHMARK,
     },
 }
 

@@ -122,22 +122,68 @@ def test_openvino_engine_needs_its_file_or_its_extra(tmp_path, monkeypatch):
 
 
 # ---- benchmark remarks ------------------------------------------------------------------------------
-def test_variant_remark_marks_slow_and_emulated_variants(monkeypatch):
-    assert bench.variant_remark("fp32_channels_last", "cpu", bench.OK, 1.0, 1.0) == ""
-    slow = bench.variant_remark("bf16_autocast", "cpu", "slow on this CPU (...)", 100.0, 4.0)
+def test_variant_remark_marks_skipped_and_slow_variants():
+    assert bench.variant_remark(bench.OK, 1.0, 1.0) == ""
+    slow = bench.variant_remark("slow on this CPU (...)", 100.0, 4.0)
     assert slow.startswith("not timed: probe 100 ms = 25x") and "pathologically slow" in slow
-    monkeypatch.setattr(bench, "cpu_supports_bf16", lambda: False)
-    assert "bf16 emulated" in bench.variant_remark("bf16_channels_last", "cpu", bench.OK, 1.0, 1.0)
-    assert bench.variant_remark("bf16_channels_last", "cuda", bench.OK, 1.0, 1.0) == ""
-    monkeypatch.setattr(bench, "cpu_supports_bf16", lambda: True)
-    assert bench.variant_remark("bf16_channels_last", "cpu", bench.OK, 1.0, 1.0) == ""
+    assert bench.variant_remark("skipped: needs a CUDA device", float("nan"), None) == "not run: needs a CUDA device"
 
 
 def test_measured_rows_carry_timed_and_remark():
     rows, info = bench.measure_variants(tiny_model(), resolution=RES, variants=["fp32_eager_nchw", "cuda_graph_bf16"],
                                         warmup=0, iters=1, batches=[1])
-    assert [r["variant"] for r in rows] == ["fp32_eager_nchw"] and "cuda_graph_bf16" in info["skipped"]
+    assert [r["variant"] for r in rows] == ["fp32_eager_nchw", "cuda_graph_bf16"] and "cuda_graph_bf16" in info["skipped"]
     assert rows[0]["timed"] is True and rows[0]["remark"] == ""
+    # the variant the host cannot run is in the table as skipped, with the reason and no numbers
+    skipped = rows[1]
+    assert skipped["status"] == "skipped: " + info["skipped"]["cuda_graph_bf16"] and skipped["timed"] is False
+    assert "CUDA" in skipped["remark"] and np.isnan(skipped["latency_ms"]) and "cuda_graph_bf16" not in info["slow"]
+    assert "skipped: needs a CUDA device" in bench.format_table(rows)
+
+
+def _counting_engines(monkeypatch, names):
+    """Replace the loaders of engines ``names`` by ones that count their loads and calls (a fake runner)."""
+    import dataclasses
+
+    from pipeline.deploy import engines
+
+    calls = {n: 0 for n in names}
+
+    def loader(name):
+        def load(src):
+            calls[name] += 1
+
+            def run(x):
+                calls[name] += 1
+                return torch.zeros(x.shape[0], 1, *x.shape[2:])
+            return engines.Runner(run)
+        return load
+    for n in names:
+        monkeypatch.setitem(engines.ENGINES, n, dataclasses.replace(engines.ENGINES[n], load=loader(n)))
+    return calls
+
+
+@pytest.mark.parametrize("flags, native", [({"avx2", "fma"}, False), ({"avx512f", "avx512_vnni"}, False),
+                                           ({"avx2", "avx512_bf16"}, True), ({"amx_bf16", "amx_tile"}, True)])
+def test_a_bf16_variant_on_a_cpu_without_native_bf16_is_never_called(monkeypatch, flags, native):
+    """Issue 44: bf16 on a CPU whose flags lack avx512_bf16 and amx_bf16 is decided from the flags -- never
+    loaded, never called -- and is in the table as skipped with the reason; with either flag it is timed."""
+    import pipeline.device
+
+    monkeypatch.setattr(pipeline.device, "cpu_flags", lambda: frozenset(flags))
+    calls = _counting_engines(monkeypatch, ["bf16_autocast", "bf16_channels_last"])
+    rows, info = bench.measure_variants(tiny_model(), resolution=RES, variants=list(bench.VARIANTS), warmup=1,
+                                        iters=1, batches=[1], slow_factor=1e9)
+    by = {r["variant"]: r for r in rows}
+    assert set(by) == set(bench.VARIANTS)  # every variant has its row, run or not
+    for name in calls:
+        if native:
+            assert calls[name] > 0 and by[name]["status"] == bench.OK
+        else:
+            assert calls[name] == 0, f"{name} was called on a CPU without native bf16"
+            assert by[name]["status"].startswith("skipped: bf16 is emulated on this CPU")
+            assert by[name]["remark"].startswith("not run: bf16 is emulated") and not by[name]["timed"]
+    assert "needs a CUDA device" in by["cuda_graph_bf16"]["status"]  # and CUDA on a CPU host, likewise
 
 
 # ---- SAM 3 teacher: dtype auto, batch size from memory -----------------------------------------------

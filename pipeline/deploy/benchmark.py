@@ -7,13 +7,16 @@ the mean validation Image IoU against the fp32 baseline at the deployed tau (eq:
 
 Decisions:
 
-* Probe first.  Every variant gets its warm-up and :data:`PROBE_CALLS` timed batch-1 calls before
+* Never call what the host cannot run natively.  A variant the host cannot run (a missing package or
+  file, CUDA on a CPU, bf16 on a CPU without the native-bf16 flags -- emulated, up to a minute per
+  384² image: :func:`pipeline.deploy.engines.unavailable`) is decided before any call and gets a row
+  whose ``status`` is "skipped: <why>" (:data:`SKIPPED`), every number NaN.
+* Probe first.  Every other variant gets its warm-up and :data:`PROBE_CALLS` timed batch-1 calls before
   any full timing.  A variant whose probe median is more than :data:`SLOW_FACTOR` times the
-  baseline's (e.g. bf16 autocast on a CPU without native bf16, about 25x slower than fp32) is not
-  timed further: its row keeps the probe (``probe_ms``), ``status`` says "slow on this CPU (...)",
-  and latency, throughput and the IoU columns are NaN (batch 0).  It can never be the fast path.
-  For the report, every row also has ``timed`` (fully timed) and ``remark`` (:func:`variant_remark`:
-  "not timed: ... pathologically slow on this CPU", "bf16 emulated ..." or "").
+  baseline's is not timed further: its row keeps the probe (``probe_ms``), ``status`` says "slow on
+  this CPU (...)", and latency, throughput and the IoU columns are NaN (batch 0).  It can never be the
+  fast path.  For the report, every row also has ``timed`` (fully timed) and ``remark``
+  (:func:`variant_remark`: "not run: ...", "not timed: ... pathologically slow on this CPU" or "").
 * ONNX Runtime sessions used for timing do not spin (:func:`pipeline.deploy.export.ort_session`,
   ``spinning=False``): an idle spinning pool would steal the cores the round-robin measures others on.
 * Throughput on CUDA: the batches sweep ``deploy.benchmark_batches`` and every power of two up to
@@ -53,7 +56,6 @@ from pipeline.deploy.bundle import INT8_FILE, ONNX_FILE, read_deploy_info
 from pipeline.deploy.engines import ENGINES, Source, unavailable
 from pipeline.deploy.export import export_onnx, onnx_unavailable_reason, parity_inputs
 from pipeline.deploy.segmenter import load_segmenter
-from pipeline.device import cpu_supports_bf16
 from pipeline.errors import InputError
 from pipeline.inference import images_to_tensor, load_student
 from pipeline.metrics import image_ious
@@ -66,6 +68,9 @@ VARIANTS = tuple(BENCHMARK_VARIANTS)  # the engine table's benchmark variants (d
 SLOW_FACTOR = 4.0  # a variant probed more than this many times slower than the baseline is not fully timed
 PROBE_CALLS = 2    # timed batch-1 calls of the probe (after the warm-up)
 OK = "ok"
+SKIPPED = "skipped"  # the status of a variant never called on this host: "skipped: <why>"
+#: the timer of every measurement (a module attribute so that a test can put a fake clock in its place)
+clock = time.perf_counter
 CUDA_MAX_BATCH = 256  # on CUDA the throughput sweep goes up to this batch, or to the first out-of-memory one
 INT8_VARIANTS = tuple(n for n in VARIANTS if ENGINES[n].needs == INT8_FILE)  # run the bundle's int8 model
 
@@ -147,10 +152,10 @@ def time_calls(fn: Callable, x, warmup: int, iters: int, sync: Callable[[], None
     sync()
     times = []
     for _ in range(iters):
-        t0 = time.perf_counter()
+        t0 = clock()
         fn(x)
         sync()
-        times.append(time.perf_counter() - t0)
+        times.append(clock() - t0)
     return times
 
 
@@ -234,18 +239,26 @@ def slow_status(probe_ms: float, baseline_probe_ms: float | None, factor: float 
             f"{BASELINE_VARIANT} probe > {factor:g}x): not fully timed")
 
 
-def variant_remark(name: str, device: str, status: str, probe_ms: float, baseline_probe_ms: float | None) -> str:
+def variant_remark(status: str, probe_ms: float, baseline_probe_ms: float | None) -> str:
     """A short note for the efficiency table ("" when there is nothing to say): why a variant was not
-    fully timed, and -- for bf16 on a CPU without native bf16 (no AVX-512-BF16/AMX) -- that its
-    arithmetic is emulated, so its time says nothing about bf16 on capable hardware."""
-    notes = []
-    if status != OK:
-        ratio = probe_ms / baseline_probe_ms if baseline_probe_ms else float("nan")
-        notes.append(f"not timed: probe {probe_ms:.0f} ms = {ratio:.0f}x the {BASELINE_VARIANT} probe "
-                     f"(pathologically slow on this CPU)")
-    if "bf16" in name and device == "cpu" and not cpu_supports_bf16():
-        notes.append("bf16 emulated: this CPU has no AVX-512-BF16/AMX")
-    return "; ".join(notes)
+    run (``status`` "skipped: <why>") or not fully timed."""
+    if status.startswith(SKIPPED):
+        return "not run: " + status.split(": ", 1)[-1]
+    if status == OK:
+        return ""
+    ratio = probe_ms / baseline_probe_ms if baseline_probe_ms else float("nan")
+    return (f"not timed: probe {probe_ms:.0f} ms = {ratio:.0f}x the {BASELINE_VARIANT} probe "
+            f"(pathologically slow on this CPU)")
+
+
+def skipped_row(name: str, why: str, device: str, params: int, gflops: float, resolution: int) -> dict:
+    """The row of a variant never called on this host (``status`` "skipped: <why>", every measurement NaN)."""
+    nan = float("nan")
+    status = f"{SKIPPED}: {why}"
+    return {"variant": name, "description": ENGINES[name].description if name in ENGINES else name,
+            "device": device, "params": params, "gflops": gflops, "throughput": nan, "batch": 0, "peak_mb": nan,
+            "peak_method": "", "iou": nan, "resolution": int(resolution), "probe_ms": nan, "status": status,
+            "timed": False, "remark": variant_remark(status, nan, None)}
 
 
 def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence[str], warmup: int, iters: int,
@@ -255,7 +268,8 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
                      slow_factor: float | None = None) -> tuple[list[dict], dict]:
     """Measure every variant; returns (rows in the order of ``variants``, info).
 
-    Per variant: ``peak_mb`` = peak memory growth during ``max(1, warmup)`` warm-up calls
+    A variant the host cannot run is never called: its row is :func:`skipped_row` (``info["skipped"]``:
+    name -> why).  Per other variant: ``peak_mb`` = peak memory growth during ``max(1, warmup)`` warm-up calls
     (:class:`PeakMemory`); ``probe_ms`` = median of :data:`PROBE_CALLS` batch-1 calls right after (the
     baseline is probed first).  A variant probed more than ``slow_factor`` x the baseline stops there
     (``status`` from :func:`slow_status`; latency, throughput and IoU columns NaN, batch 0).  The
@@ -264,7 +278,7 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
     (images/s) = best over ``batches`` -- on CUDA, over the sweep of :func:`throughput_batches` up to
     :data:`CUDA_MAX_BATCH` or the first out-of-memory batch -- of b / median call time (1 warm-up, then
     max(2, ceil(iters / b)) calls; :func:`throughput_sweep`; every batch's images/s in
-    ``info["throughput_sweep"]``); ``iou`` = mean Image IoU of [P >= tau] (eq:inference-mask) on the validation images and
+    ``info["throughput_sweep"]``; batches of 1 alone: 1 / latency, no extra calls); ``iou`` = mean Image IoU of [P >= tau] (eq:inference-mask) on the validation images and
     ``iou_delta`` = iou - iou of the fp32 baseline; ``iou_vs_fp32`` = mean per-image IoU between the
     variant's mask and the baseline's (1 = the same masks; NaN without validation data or baseline);
     ``speedup`` = baseline latency / latency.  params and GFLOPs are counted on the PyTorch graph
@@ -297,16 +311,19 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
                "gflops": gflops, "throughput": float("nan"), "batch": 0, "peak_mb": mem.peak_mb,
                "peak_method": mem.method, "iou": float("nan"), "resolution": int(resolution), "probe_ms": probe,
                "status": slow_status(probe, base_probe, slow_factor) or OK}
-        row["timed"], row["remark"] = row["status"] == OK, variant_remark(v.name, v.device, row["status"], probe,
-                                                                          base_probe)
+        row["timed"], row["remark"] = row["status"] == OK, variant_remark(row["status"], probe, base_probe)
         rows[v.name] = row
         if row["status"] != OK:
             continue
-        sweeps[v.name] = throughput_sweep(v, x1.shape[1], resolution, throughput_batches(batches, v.device), iters, g)
-        row["throughput"], row["batch"] = sweeps[v.name].best, sweeps[v.name].batch
+        tried = throughput_batches(batches, v.device)
+        if tried != [1]:  # at batch 1 alone, throughput is 1 / latency: the round-robin below measures it
+            sweeps[v.name] = throughput_sweep(v, x1.shape[1], resolution, tried, iters, g)
+            row["throughput"], row["batch"] = sweeps[v.name].best, sweeps[v.name].batch
         if have_val:
             masks[v.name] = mask_from_probs(variant_probs(v, val_images, max(batches)), tau)
             row["iou"] = mean_image_iou(masks[v.name], val_masks)
+    for name, why in skipped.items():
+        rows[name] = skipped_row(name, why, ENGINES[name].device(dev), params, gflops, resolution)
     timed = [v for v in built if rows[v.name]["status"] == OK]
     times = interleaved_times(timed, x1, iters)
     base = rows.get(BASELINE_VARIANT)
@@ -314,6 +331,9 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
         t = times.get(name)
         r["latency_ms"] = statistics.median(t) * 1e3 if t else float("nan")
         r["latency_min_ms"] = min(t) * 1e3 if t else float("nan")
+        if t and name not in sweeps:  # batch 1 only: images/s from the latency calls
+            sweeps[name] = Sweep({1: 1e3 / r["latency_ms"]}, 1e3 / r["latency_ms"], 1)
+            r["throughput"], r["batch"] = sweeps[name].best, 1
     base_masks = masks.get(BASELINE_VARIANT)
     for name, r in rows.items():
         r["iou_delta"] = r["iou"] - base["iou"] if base is not None and have_val else float("nan")
@@ -325,9 +345,10 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
             "throughput_sweep": {n: sw.record() for n, sw in sweeps.items()},
             "latency_timing": "round-robin across variants (interleaved_times)",
             "probe": {"calls": PROBE_CALLS, "slow_factor": float(slow_factor)},
-            "slow": {n: r["status"] for n, r in rows.items() if r["status"] != OK},
+            "slow": {n: r["status"] for n, r in rows.items() if r["status"] != OK and n not in skipped},
             "tau": tau, "n_val": int(len(val_images)) if have_val else 0, "skipped": skipped}
-    return [rows[v.name] for v in built], info
+    order = dict.fromkeys([*variants, *(v.name for v in built), *skipped])  # the given order, then the rest
+    return [rows[n] for n in order if n in rows], info
 
 
 @dataclasses.dataclass
@@ -541,7 +562,7 @@ def _cell(v, spec: str, width: int) -> str:
 
 
 def format_table(rows: Sequence[dict]) -> str:
-    """The efficiency table for stdout; a variant that was only probed shows its status instead.  The
+    """The efficiency table for stdout; a variant that was skipped or only probed shows its status instead.  The
     IoU columns are left out when no variant has one (no validation masks: nothing was scored), and a
     single missing number shows as ``--``, never ``nan``."""
     timed = [r for r in rows if r.get("status", OK) == OK]
@@ -587,7 +608,8 @@ def benchmark_result(rows: Sequence[dict], run_info: dict, settings: dict, *, ta
         "batches": run_info["batches"], "baseline": BASELINE_VARIANT, "fast_path": summary,
         "target": {"latency_ms": settings["target_ms"], "max_iou_drop": settings["max_drop"], "batch": 1,
                    "resolution": settings["target_res"]},
-        "peak_memory_method": rows[0]["peak_method"], "skipped": run_info["skipped"], "notes": notes,
+        "peak_memory_method": next((r["peak_method"] for r in rows if r["peak_method"]), ""),
+        "skipped": run_info["skipped"], "notes": notes,
         "probe": run_info["probe"], "slow": run_info["slow"], "throughput_sweep": run_info.get("throughput_sweep", {}),
         "variants": {r["variant"]: {k: clean(v) for k, v in r.items() if k != "variant"} for r in rows},
     }

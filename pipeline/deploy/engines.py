@@ -13,7 +13,8 @@ torch tensor (on the engine's device; a CUDA-graph output buffer is copied, so i
 ``needs``: ``model`` (the PyTorch mask path: a checkpoint or a bundle), or the bundle file it runs
 (:data:`pipeline.catalog.DEPLOY_BUNDLE`).  ``requires``: why it cannot run here (a missing
 optional package) or None.  ``cpu_only``: runs on the CPU whatever the device (ONNX Runtime,
-OpenVINO); ``cuda_only``: needs a CUDA device.
+OpenVINO); ``cuda_only``: needs a CUDA device; ``bf16``: computes in bf16, so on a CPU without native
+bf16 (:data:`pipeline.device.BF16_FLAGS`) it is unavailable, decided from the flags without a call.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from pipeline.catalog import bundle_file
 from pipeline.deploy import openvino_engine
 from pipeline.deploy.cuda_engine import FastStudent
 from pipeline.deploy.export import ONNX_INPUT, load_torchscript, onnx_unavailable_reason, ort_session
+from pipeline.device import BF16_FLAGS, cpu_supports_bf16
 from pipeline.engine_table import ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES, EngineSpec  # noqa: F401
 from pipeline.model import mask_path_model
 
@@ -66,6 +68,7 @@ class Engine:
     requires: Callable[[], str | None] = lambda: None  # why it cannot run here, or None
     cpu_only: bool = False
     cuda_only: bool = False
+    bf16: bool = False  # computes in bf16 (EngineSpec.bf16)
 
     def device(self, device: torch.device) -> str:
         """Where it runs for a requested ``device``."""
@@ -174,7 +177,7 @@ def _engine(spec: EngineSpec) -> Engine:
     factory, requires = LOADERS[spec.loader]
     file = None if spec.reads == "weights" else bundle_file(spec.reads)
     return Engine(spec.description, factory(file, **spec.options), needs=file or "model", requires=requires,
-                  cpu_only=spec.cpu_only, cuda_only=spec.cuda_only)
+                  cpu_only=spec.cpu_only, cuda_only=spec.cuda_only, bf16=spec.bf16)
 
 
 #: name -> engine: segment's engines and the benchmark's variants, one registry (pipeline.engine_table)
@@ -182,10 +185,13 @@ ENGINES: dict[str, Engine] = {name: _engine(spec) for name, spec in ENGINE_TABLE
 
 
 def unavailable(name: str, src: Source) -> str | None:
-    """Why engine ``name`` cannot run on ``src`` (a package, the device, a file), or None."""
+    """Why engine ``name`` cannot run on ``src`` (a package, the device, the CPU's flags, a file), or None."""
     engine = ENGINES[name]
     if engine.cuda_only and src.device.type != "cuda":
         return "needs a CUDA device (--device cuda)"
+    # decided from the flags, never by a call: emulated bf16 costs up to a minute per 384² image
+    if engine.bf16 and engine.device(src.device) == "cpu" and not cpu_supports_bf16():
+        return f"bf16 is emulated on this CPU (none of the flags {', '.join(BF16_FLAGS)})"
     reason = engine.requires()
     if reason is None and engine.needs != "model" and src.files.get(engine.needs) is None:
         reason = f"no {engine.needs}"
