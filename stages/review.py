@@ -6,8 +6,9 @@ import click
 
 from pipeline import catalog
 from pipeline.deploy.segmenter import Segmenter
-from pipeline.review.corrections import FORMATS, import_corrections
-from pipeline.review.export import COCO_SHAPES, DEFAULT_IMAGE_URL, LS_SHAPES, export_review
+from pipeline.review.corrections import FORMATS, import_corrections, read_review
+from pipeline.review.export import COCO_SHAPES, LS_RECORD_KEY, LS_SHAPES, export_review, server_env
+from pipeline.review.labelstudio import Client, upload_review
 from pipeline.review.ranking import DEFAULT_RANKING, RANKINGS
 from stages._common import one_line_errors, overwrite_option, setup_logging, stage_code_version
 
@@ -31,8 +32,9 @@ def review():
               help="Label Studio pre-annotation: brush (exact) or polygon")
 @click.option("--coco-shape", type=click.Choice(COCO_SHAPES), default="rle", show_default=True,
               help="CVAT COCO 1.0 segmentation: rle (exact) or polygon")
-@click.option("--image-url", default=DEFAULT_IMAGE_URL, show_default=True,
-              help="prefix of the tasks' image URLs (+ the image's path relative to the labelled folder)")
+@click.option("--image-url", default=None,
+              help="prefix of the tasks' image URLs (+ the image's path relative to the labelled folder); "
+                   "default: Label Studio local files of the labelled folder (see review upload)")
 @overwrite_option
 def export_main(label_dir, out, top, ranking, student, ls_shape, coco_shape, image_url, overwrite):
     """Write the images of a label output folder that most need a person, best first: a Label Studio
@@ -47,6 +49,29 @@ def export_main(label_dir, out, top, ranking, student, ls_shape, coco_shape, ima
                             image_url=image_url, predict=predict, overwrite=overwrite)
         click.echo(f"review export: {len(res.table)} images ranked by {res.ranking} -> {res.out} "
                    f"(export {res.export_id})", err=True)
+        layout = read_review(res.out).get(LS_RECORD_KEY)
+        if layout:
+            env = " ".join(f"{k}={v}" for k, v in server_env(layout).items())
+            click.echo(f"review export: serve the images with `{env} label-studio`, then `geodistill review "
+                       f"upload {res.out}` (or a Local files storage of path {layout['storage_path']})", err=True)
+
+
+@review.command(name="upload")
+@click.argument("review_dir", metavar="REVIEW_DIR", type=click.Path(file_okay=False))
+@click.option("--url", default="http://localhost:8080", show_default=True, envvar="LABEL_STUDIO_URL",
+              help="the Label Studio server (env LABEL_STUDIO_URL)")
+@click.option("--token", required=True, envvar="LABEL_STUDIO_API_KEY",
+              help="your API token: a legacy token or a personal access token (env LABEL_STUDIO_API_KEY)")
+@click.option("--title", default=None, help="the project's title (default: geodistill review <export id>)")
+def upload_main(review_dir, url, token, title):
+    """Create a Label Studio project for a review export through the API: its labelling interface, the
+    Local files storage connection that serves the images, and the tasks; then check the first image
+    is served.  Label Studio must run with the two variables review export printed."""
+    setup_logging()
+    with one_line_errors("review upload"):
+        res = upload_review(Client(url, token), review_dir, title)
+        click.echo(f"review upload: {res['tasks']} tasks -> {url.rstrip('/')}/projects/{res['project']}/data"
+                   + (" (images served)" if res["served"] else ""), err=True)
 
 
 @review.command(name="import")
@@ -65,9 +90,9 @@ def import_main(source, review_dir, out, fmt, overwrite):
     with one_line_errors("review import"):
         art = import_corrections(source, review_dir, out, fmt=fmt, code_version=stage_code_version(__file__),
                                  overwrite=overwrite)
-        t = art.table
-        click.echo(f"review import: {len(t)} corrected masks -> {out} (median IoU to the vote "
-                   f"{t['iou_to_voted'].median():.3f})", err=True)
+        t, n = art.table, len(read_review(review_dir)["images"])
+        click.echo(f"review import: {len(t)} corrected masks of the export's {n} images -> {out} (median IoU "
+                   f"to the vote {t['iou_to_voted'].median():.3f}; the other {n - len(t)} not corrected)", err=True)
 
 
 main = review

@@ -5,6 +5,7 @@ vendored below as the reference; pycocotools), and the corrections import with i
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -14,7 +15,8 @@ import pytest
 from pipeline.artifacts import open_artifact
 from pipeline.review.corrections import correction_masks
 from pipeline.consensus import agreement_entropy
-from pipeline.review.formats import coco_uncompressed_rle, ls_rle_decode, ls_rle_encode
+from pipeline.review.formats import (coco_uncompressed_rle, ls_brush_rgba, ls_rle_decode, ls_rle_encode,
+                                     ls_rle_encode_values)
 from pipeline.review.ranking import rank
 from tests._tiny_teacher import FAST, cli, make_image_folder
 
@@ -177,6 +179,10 @@ def test_brush_rle_matches_label_studio_converter_bit_for_bit():
     rgba = np.repeat(m.astype(np.uint8) * 255, 4).reshape(*m.shape, 4)
     rgba[..., 0] = np.arange(m.size).reshape(m.shape) % 7          # breaks every run into literals
     assert (ls_rle_decode(encode_rle(rgba.ravel()), *m.shape) == m).all()
+    # a drawn stroke's soft alpha copied into R, G, B (Label Studio's editor): the converter's bytes
+    alpha = (np.arange(m.size).reshape(m.shape) * 37 % 256).astype(np.uint8) * m
+    assert ls_rle_encode_values(ls_brush_rgba(alpha)) == encode_rle(np.repeat(alpha.ravel(), 4))
+    assert (ls_rle_decode(ls_rle_encode_values(ls_brush_rgba(alpha)), *m.shape) == (alpha > 0)).all()
 
 
 def test_coco_rle_for_cvat_decodes_with_pycocotools():
@@ -238,6 +244,8 @@ def test_export_writes_ranked_label_studio_and_cvat_files(labelled, exported):
     assert np.allclose(ranked["score"], expected["score"], atol=1e-6)
     record = json.loads((exported / "review.json").read_text())
     assert record["written_by"] == "geodistill review export" and record["complete"]
+    # Label Studio local files: the storage path is the labelled folder, the URLs start from its parent
+    assert record["label_studio"] == {"storage_path": record["input"], "document_root": str(Path(record["input"]).parent)}
 
     tasks = json.loads((exported / "labelstudio" / "tasks.json").read_text())
     assert [t["data"]["image_id"] for t in tasks] == ranked["image_id"].tolist()
@@ -245,7 +253,8 @@ def test_export_writes_ranked_label_studio_and_cvat_files(labelled, exported):
     by_file = {im["file_name"]: im for im in coco.dataset["images"]}
     for task, row in zip(tasks, ranked.itertuples()):
         m = voted(labelled, row.image_id)
-        assert task["data"]["geodistill_export"] == record["export_id"] and task["data"]["image"].endswith(row.file)
+        assert task["data"]["geodistill_export"] == record["export_id"]
+        assert task["data"]["image"] == f"/data/local-files/?d={Path(record['input']).name}/{row.file}"
         results = task["predictions"][0]["result"] if task["predictions"] else []
         assert len(results) == int(m.any())
         for res in results:

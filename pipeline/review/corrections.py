@@ -10,12 +10,14 @@ SOURCE is one of (``fmt="auto"`` tells them apart):
 ``cvat``         CVAT's COCO 1.0 export (``instances_default.json``): images matched by ``file_name``
                  (the image's path relative to the labelled folder, as exported); an image's mask is the
                  union of its annotations (polygons, uncompressed or compressed RLE, decoded by
-                 pycocotools).
+                 pycocotools).  CVAT lists every image of its task, drawn or not: an image without
+                 annotations is not a correction and is left out (counted), as is one the export does
+                 not hold (a task made of the whole folder).
 ``png``          a folder of masks ``<image id>.<png|jpg|tif|bmp>`` (sub-folders as in the image ids),
                  binarised by the loader's one rule (value > 0).
 
 Refused, with one line naming the file and the image (exit code 2): a task from another export, an
-image the export does not hold, a mask whose size is not the image's, an empty mask (a spacecraft
+image the export does not hold (annotated), a mask whose size is not the image's, an empty mask (a spacecraft
 image with no spacecraft is not a correction this pipeline can use), a file that is not one of the
 formats, and no correction at all.
 
@@ -145,27 +147,40 @@ def _labelstudio(path: Path, review: dict) -> dict[str, np.ndarray]:
 
 def _cvat(path: Path, review: dict) -> dict[str, np.ndarray]:
     doc = _read_json(path)
+    if not isinstance(doc, dict):
+        raise InputError(f"{path}: not a COCO 1.0 file (expected an object with images and annotations)")
     by_file = {im["file"]: im for im in review["images"]}
-    images, out = {}, {}
+    drawn: dict = {}
+    for ann in doc.get("annotations", []):
+        drawn.setdefault(ann.get("image_id"), []).append(ann)
+    listed = {im.get("id") for im in doc.get("images", [])}
+    stray = next((a for i, a in drawn.items() if i not in listed), None)
+    if stray is not None:
+        raise InputError(f"{path}: annotation {stray[0].get('id')} names image id {stray[0].get('image_id')}, "
+                         f"not in the file")
+    out, undrawn, foreign = {}, 0, 0
     for im in doc.get("images", []):
+        anns = drawn.get(im.get("id"), [])
         image = by_file.get(im.get("file_name"))
+        if not anns:   # CVAT lists every image of its task; nobody drew on this one: not a correction
+            undrawn += image is not None
+            foreign += image is None
+            continue
         if image is None:
             raise InputError(f"{path}: unknown image {im.get('file_name')!r} (not in this export)")
         if (im.get("height"), im.get("width")) != (image["height"], image["width"]):
             raise InputError(f"{path}: image {im.get('file_name')!r} size {im.get('width')}x{im.get('height')} "
                              f"differs from {image['width']}x{image['height']}")
-        images[im["id"]] = image
-        out[image["image_id"]] = np.zeros((image["height"], image["width"]), bool)
-    for ann in doc.get("annotations", []):
-        image = images.get(ann.get("image_id"))
-        if image is None:
-            raise InputError(f"{path}: annotation {ann.get('id')} names image id {ann.get('image_id')}, not in the file")
-        try:
-            out[image["image_id"]] |= coco_segmentation_mask(ann.get("segmentation"), image["height"], image["width"])
-        except FormatError as e:
-            raise InputError(f"{path}: annotation {ann.get('id')} of {image['file']!r}: {e}") from None
-    for iid, mask in out.items():
-        _check(mask, next(im for im in images.values() if im["image_id"] == iid), f"{path}")
+        mask = np.zeros((image["height"], image["width"]), bool)
+        for ann in anns:
+            try:
+                mask |= coco_segmentation_mask(ann.get("segmentation"), image["height"], image["width"])
+            except FormatError as e:
+                raise InputError(f"{path}: annotation {ann.get('id')} of {image['file']!r}: {e}") from None
+        out[image["image_id"]] = _check(mask, image, f"{path}")
+    if undrawn or foreign:
+        log.info("review import: %d images of the export have no annotation (not corrected) and %d not in the "
+                 "export have none: left out", undrawn, foreign)
     return out
 
 

@@ -12,8 +12,10 @@ student-teacher disagreement.  Writes under ``out`` only, and nothing else::
                                         import checks the corrections against
     ranked.csv                          the exported images, best candidate first: rank, score, image
                                         id, file, width, height and the label table's columns
-    labelstudio/tasks.json              Label Studio tasks: data.image (``image_url`` + the image's
-                                        path relative to the labelled folder), data.image_id, data.
+    labelstudio/tasks.json              Label Studio tasks: data.image (by default a Label Studio
+                                        local-files URL, :func:`local_files_layout`; with
+                                        ``image_url``, it + the image's path relative to the labelled
+                                        folder), data.image_id, data.
                                         geodistill_export (the export id), rank and scores, and the
                                         voted mask as a prediction (brush RLE, or polygons)
     labelstudio/label_config.xml        the labelling interface those results name
@@ -31,6 +33,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
+import urllib.parse
 from pathlib import Path
 from typing import Callable
 
@@ -51,14 +55,16 @@ TOP = Option("--top", "top")
 LS_SHAPE = Option("--ls-shape", "ls_shape")
 COCO_SHAPE = Option("--coco-shape", "coco_shape")
 LS_SHAPES, COCO_SHAPES = ("brush", "polygon"), ("rle", "polygon")
-#: Label Studio's local-files URL: with LABEL_STUDIO_LOCAL_FILES_DOCUMENT_ROOT = the labelled folder
-DEFAULT_IMAGE_URL = "/data/local-files/?d="
 #: the files and folders written under ``out`` (module docstring), named once
 OUTPUTS = {"record": "review.json", "csv": "ranked.csv", "labelstudio": "labelstudio", "cvat": "cvat"}
 OWN_OUTPUTS = tuple(v for k, v in OUTPUTS.items() if k != "record")
 LS_TASKS, LS_CONFIG, CVAT_COCO = "tasks.json", "label_config.xml", "instances_default.json"
 EXPORT_FIELD = "geodistill_export"   # the task data field naming the export (review import checks it)
 MODEL_VERSION = "geodistill-vote"    # the predictions' model_version in Label Studio
+#: Label Studio's local-files URLs and the two variables that let it serve them (pipeline.review.labelstudio)
+LOCAL_FILES_URL = "/data/local-files/?d="
+ENV_SERVING, ENV_ROOT = "LABEL_STUDIO_LOCAL_FILES_SERVING_ENABLED", "LABEL_STUDIO_LOCAL_FILES_DOCUMENT_ROOT"
+LS_RECORD_KEY = "label_studio"   # review.json: {"document_root", "storage_path"} of the local-files URLs
 
 
 @dataclasses.dataclass
@@ -105,6 +111,47 @@ def mask_digest(mask: np.ndarray) -> str:
     return hashlib.sha256(f"{m.shape[0]}x{m.shape[1]}:".encode() + np.packbits(m).tobytes()).hexdigest()
 
 
+# --------------------------------------------------------------------------------------------------
+# Label Studio local files: Label Studio (1.23.2, io_storages/localfiles/) serves /data/local-files/?d=PATH
+# only with both variables set, PATH relative to the document root, and under a project's Local files
+# storage whose path -- a strict sub-folder of the document root -- contains the file
+# --------------------------------------------------------------------------------------------------
+def local_files_layout(image_paths: list[Path], image_root: Path | None = None) -> dict:
+    """``{"document_root", "storage_path"}`` serving ``image_paths`` as Label Studio local files: the
+    storage path is ``image_root`` (default: the folder the images share), the document root its parent.
+    Relative image paths give relative folders (a run's manifest names its images from the project
+    root, so its DAG output does not depend on where the project lies); InputError when the folder is
+    the file-system root (Label Studio needs a folder above it)."""
+    if image_root is not None:
+        storage = Path(image_root)
+    else:
+        dirs = [str(Path(p).parent) for p in image_paths] or ["."]
+        try:
+            storage = Path(os.path.commonpath(dirs))
+        except ValueError:   # absolute and relative paths mixed
+            storage = Path(os.path.commonpath([str(Path(d).resolve()) for d in dirs]))
+    if storage.parent == storage:   # "." has no parent written out
+        storage = storage.resolve()
+    if storage.parent == storage:
+        raise InputError(f"{storage}: the images share no folder below the file-system root, so Label Studio's "
+                         f"Local files storage cannot serve them; give the tasks URLs of your own "
+                         f"(review export's --image-url)")
+    return {"document_root": str(storage.parent), "storage_path": str(storage)}
+
+
+def local_files_url(path: Path, layout: dict) -> str:
+    """The task URL of image ``path`` under ``layout``: LOCAL_FILES_URL + its path from the document
+    root, percent-encoded (a ``+``, ``&`` or ``#`` in a file name would otherwise change the query)."""
+    rel = Path(path).resolve().relative_to(Path(layout["document_root"]).resolve()).as_posix()
+    return LOCAL_FILES_URL + urllib.parse.quote(rel, safe="/")
+
+
+def server_env(layout: dict) -> dict:
+    """The environment variables Label Studio must start with to serve ``layout``'s images (relative
+    folders taken from the working directory)."""
+    return {ENV_SERVING: "true", ENV_ROOT: str(Path(layout["document_root"]).resolve())}
+
+
 def _check_options(top, ls_shape: str, coco_shape: str) -> None:
     if top is not None and int(top) < 1:
         raise InputError("{}: must be at least 1 (leave it out to export every image)", TOP(top))
@@ -115,11 +162,12 @@ def _check_options(top, ls_shape: str, coco_shape: str) -> None:
 
 
 def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = None, ranking: str = DEFAULT_RANKING,
-                  ls_shape: str = "brush", coco_shape: str = "rle", image_url: str = DEFAULT_IMAGE_URL,
+                  ls_shape: str = "brush", coco_shape: str = "rle", image_url: str | None = None,
                   predict: Callable[[Path], np.ndarray] | None = None, overwrite: bool = False) -> ReviewExport:
     """Rank the images of ``label_dir`` and write the top ``top`` (None: all) under ``out`` (module
-    docstring).  ``predict(image_path) -> bool [H,W]``: a student, for the ``student`` ranking (and the
-    ``combined`` one).  Everything is checked -- options, the label folder, the ranking's columns, files
+    docstring).  ``image_url``: the prefix of the tasks' image URLs (None: Label Studio's local files,
+    :func:`local_files_layout`).  ``predict(image_path) -> bool [H,W]``: a student, for the ``student``
+    ranking (and the ``combined`` one).  Everything is checked -- options, the label folder, the ranking's columns, files
     in the way that this command did not write (refused unless ``overwrite``) -- before anything is
     written."""
     _check_options(top, ls_shape, coco_shape)
@@ -133,20 +181,22 @@ def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = N
                                  for i, f in zip(table["image_id"], table["file"])]
     return write_export(out, table, lambda i: voted_mask(label_dir, i, *sizes[i]), top=top, ranking=ranking,
                         ls_shape=ls_shape, coco_shape=coco_shape, image_url=image_url,
-                        identity={"teacher": record.get("teacher_fingerprint")},
+                        image_root=Path(record["input"]), identity={"teacher": record.get("teacher_fingerprint")},
                         options={"student": predict is not None},
                         record={"label_dir": str(label_dir.resolve()), "input": record["input"],
                                 "simulator": bool(record.get("simulator"))})
 
 
 def write_export(out: Path, table, mask_of: Callable[[str], np.ndarray], *, top: int | None, ranking: str,
-                 ls_shape: str, coco_shape: str, image_url: str, identity: dict, options: dict | None = None,
-                 record: dict | None = None) -> ReviewExport:
+                 ls_shape: str, coco_shape: str, image_url: str | None, identity: dict, options: dict | None = None,
+                 record: dict | None = None, image_root: Path | None = None) -> ReviewExport:
     """The export itself, shared by ``review export`` (a label folder) and the DAG stage ``review_export``
     (a run's artifacts): rank ``table`` (columns image_id, file, width, height, g, h, ...; :func:`rank`),
     take each exported image's voted mask from ``mask_of(image id)`` (bool [height, width]) and write
-    the files of the module docstring under ``out``.  ``identity`` (the teacher's fingerprint) and the
-    options enter the export id; ``record``: the record's fields about the source.  The caller has
+    the files of the module docstring under ``out``.  ``image_root``: the folder the ``file`` column is
+    relative to (None: the paths as they are); with ``image_url`` None the tasks' URLs are Label Studio
+    local files of that folder (:func:`local_files_layout`, recorded in ``review.json``).  ``identity``
+    (the teacher's fingerprint) and the options enter the export id; ``record``: the record's fields about the source.  The caller has
     checked the options and the outputs (:func:`_check_options`, ``check_outputs``); the ranking refuses
     an unknown name or a missing column before anything is written."""
     ranked = rank(table, ranking, top)
@@ -157,6 +207,8 @@ def write_export(out: Path, table, mask_of: Callable[[str], np.ndarray], *, top:
     options = {"ranking": ranking, "top": top, "ls_shape": ls_shape, "coco_shape": coco_shape, "image_url": image_url,
                "student": False, **(options or {})}
     export_id = hashlib.sha256(canonical_json({**identity, "options": options, "rows": rows}).encode()).hexdigest()[:16]
+    paths = {r.image_id: Path(image_root or "") / str(r.file) for r in ranked.itertuples(index=False)}
+    layout = local_files_layout(list(paths.values()), image_root) if image_url is None else None
     claim_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], COMMAND, {"export_id": export_id, "complete": False})
 
     with atomic_path(out / OUTPUTS["csv"]) as tmp:
@@ -164,7 +216,8 @@ def write_export(out: Path, table, mask_of: Callable[[str], np.ndarray], *, top:
     tasks, images, annotations = [], [], []
     for k, r in enumerate(ranked.itertuples(index=False)):
         mask = masks[r.image_id]
-        data = {"image": f"{image_url}{r.file}", "image_id": str(r.image_id), EXPORT_FIELD: export_id,
+        url = local_files_url(paths[r.image_id], layout) if layout is not None else f"{image_url}{r.file}"
+        data = {"image": url, "image_id": str(r.image_id), EXPORT_FIELD: export_id,
                 "rank": int(r.rank), "score": round(float(r.score), 6), "g": round(float(r.g), 6),
                 "h": round(float(r.h), 6)}
         result = ls_results(mask, ls_shape, result_id=f"vote{k + 1}")
@@ -185,7 +238,7 @@ def write_export(out: Path, table, mask_of: Callable[[str], np.ndarray], *, top:
     for row in rows:
         row["voted_rle"] = rle_encode(masks[row["image_id"]])
     write_json(out / OUTPUTS["record"], {
-        "export_id": export_id, **(record or {}), **options, "images": rows, "complete": True,
+        "export_id": export_id, **(record or {}), **options, LS_RECORD_KEY: layout, "images": rows, "complete": True,
         **record_fields(out, OUTPUTS["record"], COMMAND, OWN_OUTPUTS)})
     return ReviewExport(out, ranked, export_id, ranking)
 
@@ -214,14 +267,14 @@ def run_table(manifest_df, gates_df, h: np.ndarray):
 
 def export_run(manifest, consensus, gates, out: str | Path, *, top: int | None, ranking: str = DEFAULT_RANKING,
                letterbox: bool = False, ls_shape: str = "brush", coco_shape: str = "rle",
-               image_url: str = DEFAULT_IMAGE_URL, simulator: bool = False, overwrite: bool = False) -> ReviewExport:
+               image_url: str | None = None, simulator: bool = False, overwrite: bool = False) -> ReviewExport:
     """The DAG stage ``review_export``: :func:`write_export` on a run's opened manifest, consensus (with
     its ``h``) and gates -- the training images (the ones a correction can enter), each voted mask
     brought from the working resolution to the image's own size as the deployed student's mask is
     (:func:`pipeline.datasets.loading.probs_to_size`, then >= 0.5; ``letterbox``: ``data.letterbox``), so
     that ``review import`` and the ``corrections`` stage read the corrections back.  Task image paths
-    are the manifest's ``image_path`` (Label Studio's document root: the data root); ``simulator``: the
-    teacher is the simulator (``teacher.backend``), recorded as label records it."""
+    are Label Studio local files of the manifest's ``image_path``s (the storage path: the folder they
+    share, relative as the manifest names it); ``simulator``: the teacher is the simulator (``teacher.backend``), recorded as label records it."""
     _check_options(top, ls_shape, coco_shape)
     if "h" not in consensus:
         raise InputError(f"{consensus.path}: no prompt disagreement h (written by an older consensus stage); "

@@ -11,7 +11,9 @@ Label Studio brush RLE (``BrushLabels`` results, ``value.format: "rle"``)
     only (a mask repeats every pixel over its four channels, so no run is shorter than 4) with the
     value 255 in all four channels: an opaque mask, as ``brush.mask2rle`` of a 0/255 mask gives --
     a 0/1 mask would be stored with alpha 1, drawn invisible, the common reason pre-annotations "do
-    not render".  ``result.original_width`` / ``original_height`` are the image's own size.
+    not render".  ``result.original_width`` / ``original_height`` are the image's own size.  A brush
+    stroke drawn in Label Studio's editor is anti-aliased: its RLE holds the layer's soft alpha copied
+    into R, G and B (:func:`ls_brush_rgba`, packed by :func:`ls_rle_encode_values`).
     :func:`ls_rle_decode` reads the whole format (literal stretches included: Label Studio's own
     exports use them), and a pixel is foreground when its alpha is > 0 (label-studio-converter's
     ``ls_rle_to_coco_rle`` rule).
@@ -69,14 +71,30 @@ def ls_rle_encode(mask: np.ndarray) -> list[int]:
     mask = np.asarray(mask, bool)
     if mask.ndim != 2:
         raise FormatError(f"mask: expected [H,W], got shape {mask.shape}")
-    flat = mask.ravel()
+    return ls_rle_encode_values(np.repeat(mask.ravel().astype(np.uint8) * LS_OPAQUE, 4))
+
+
+def ls_brush_rgba(alpha: np.ndarray) -> np.ndarray:
+    """The RGBA values [H*W*4] Label Studio's editor encodes for a drawn brush region whose layer has
+    the uint8 [H,W] ``alpha`` (anti-aliased edges included): its ``exportRLE`` copies each pixel's alpha
+    into R, G and B."""
+    alpha = np.asarray(alpha, np.uint8)
+    if alpha.ndim != 2:
+        raise FormatError(f"alpha: expected [H,W], got shape {alpha.shape}")
+    return np.repeat(alpha.ravel(), 4)
+
+
+def ls_rle_encode_values(values: np.ndarray) -> list[int]:
+    """rle-pack bytes of any uint8 values (an RGBA image flattened row by row), runs only -- byte for
+    byte what label-studio-converter's ``brush.encode_rle`` writes for the same values."""
+    flat = np.asarray(values, np.uint8).ravel()
     n = flat.size
-    bits = [format(4 * n, "032b"), format(LS_WORD_SIZE - 1, "05b"), "".join(format(s - 1, "04b") for s in LS_RLE_SIZES)]
+    bits = [format(n, "032b"), format(LS_WORD_SIZE - 1, "05b"), "".join(format(s - 1, "04b") for s in LS_RLE_SIZES)]
     if n:
         change = np.flatnonzero(flat[1:] != flat[:-1]) + 1
         starts = np.concatenate([[0], change])
         lengths = np.diff(np.concatenate([starts, [n]]))
-        bits += [_run_bits(4 * int(length), LS_OPAQUE if flat[s] else 0) for s, length in zip(starts, lengths)]
+        bits += [_run_bits(int(length), int(flat[s])) for s, length in zip(starts, lengths)]
     text = "".join(bits)
     text += "0" * (8 - len(text) % 8)  # as label-studio-converter: a whole extra zero byte when aligned
     packed = np.packbits(np.frombuffer(text.encode("ascii"), np.uint8) - ord("0"))
