@@ -242,7 +242,7 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               "--checkpoint {export_checkpoint} --thresholds {thresholds} --artifacts {artifacts_dir} --out {deploy}",
               ("export_checkpoint", "thresholds", "manifest", "images"), ("deploy",),
               _keys("deploy", "export_method", "export_seed", "opset", "parity_atol", "int8_calibration_images",
-                    "int8_calibration", "int8_percentile", "int8_min_mask_iou")
+                    "int8_calibration", "int8_percentile", "int8_weight_bits", "int8_min_mask_iou")
               + ("calibrate.fixed_tau", "data.resolution", "data.bit_depth", "data.letterbox")),
     StageSpec("benchmark", "stages.benchmark",
               "--deploy {deploy} --artifacts {artifacts_dir} --out {efficiency} --metrics-json {metrics_deploy}",

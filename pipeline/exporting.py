@@ -112,11 +112,13 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
     frames = frame_reading({k: params["data"].get(k) for k in ("bit_depth", "letterbox")
                                    if params["data"].get(k) is not None})
     settings = {"opset": cfg["opset"], "atol": cfg["parity_atol"], "int8_min_mask_iou": cfg["int8_min_mask_iou"],
-                "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"], "frames": frames}
+                "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"],
+                "int8_weight_bits": q8["weight_bits"], "frames": frames}
     deploy_params = {"opset": cfg["opset"], "parity_atol": cfg["parity_atol"], "onnx": onnx, "int8": calib is not None,
                      "int8_calibration_images": cfg["int8_calibration_images"],
                      "int8_min_mask_iou": cfg["int8_min_mask_iou"],
-                     "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"]}
+                     "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"],
+                     "int8_weight_bits": q8["weight_bits"]}
     fingerprinted = {"deploy": deploy_params, "tau": value, "tau_source": source, "resolution": int(resolution)}
     if frames != frame_reading():  # in the fingerprint when set (earlier bundles' fingerprints stay)
         fingerprinted["frames"] = frames
@@ -152,7 +154,7 @@ def export_lines(plan: ExportPlan, info: Mapping, out) -> list[str]:
         if isinstance(d, dict):
             lines.append(f"export: parity on {par['device']['device']}: {name} max|dZ|={d['max_abs_diff']:.2e}, "
                          f"mask IoU vs fp32 {d['mask_iou']:.4f}")
-    if "int8" in par:
+    if "int8" in par and info.get("int8"):
         q = par["int8"]
         lines.append(f"export: int8 model {INT8_FILE}: {q['images']} calibration images, "
                      f"max|dZ|={q['max_abs_diff']:.3g}, mask IoU vs PyTorch mean {q['mask_iou_mean']:.4f} "

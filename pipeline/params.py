@@ -475,7 +475,11 @@ class DeployParams(_Section):
     int8_calibration_images: int = _f(64, "training-split images (no masks) for int8 activation ranges", ge=1)
     int8_calibration: Literal[INT8_CALIBRATIONS] = _f("percentile")
     int8_percentile: float = _f(99.999, ge=50, le=100)
-    int8_min_mask_iou: float = _f(0.9, "export fails below this mean int8-vs-PyTorch mask IoU", ge=0, le=1)
+    int8_weight_bits: Literal[7, 8] = _f(7, "int8 weight range: 7 = [-64, 64], no u8*s8 pair sum saturates "
+                                         "int16 on CPUs without VNNI, so every x86 CPU gives the same masks; "
+                                         "8 = [-127, 127], those masks only on VNNI/AMX CPUs")
+    int8_min_mask_iou: float = _f(0.9, "below this mean int8-vs-PyTorch mask IoU the bundle ships fp32 only "
+                                       "(deploy.json and contract.json say why)", ge=0, le=1)
     target_latency_ms: float = _f(40, "CPU target at 384x384, batch 1 (reported, never asserted)", ge=0)
     target_resolution: int = _f(384, "the size the latency target is judged at", ge=1)
     target_iou_drop: float = _f(0.005, "a fast path may lose at most this much validation Image IoU", ge=0)

@@ -77,6 +77,7 @@ from pipeline.dag import live_plots, render_dvc_yaml, render_params_yaml
 from pipeline.dvc_results import path_component
 from pipeline.datasets.scan import scan_inputs
 from pipeline.errors import BACKEND, CHECKPOINT, INPUT, OUT, VAL_MASKS, InputError, Option, literal
+from pipeline.exporting import bundle_files
 from pipeline.labeling.run import find_images
 from pipeline.methods import PROPOSED, method_label
 from pipeline.offline_plots import template_path, template_text
@@ -262,8 +263,6 @@ def refuse_foreign_outputs(out: str | Path) -> None:
     without a record, those export recognises as its bundle's (:func:`pipeline.exporting.bundle_files`,
     export's own check: :func:`pipeline.ownership.refuse_foreign_files`).  Other folders without a record
     are left to DVC (a run killed half-way leaves the stage's own files there)."""
-    from pipeline.exporting import bundle_files
-
     out = Path(out)
     try:
         lock = yaml.safe_load((out / "dvc.lock").read_text()) or {}

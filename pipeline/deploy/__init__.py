@@ -39,7 +39,7 @@ from pipeline.deploy.files import (OUTPUT_SUFFIXES, SegmentResult, discover_imag
                                    segment_files, write_skipped_csv)
 from pipeline.deploy.quantize import (CALIBRATION_CHUNK, INT8_CALIBRATIONS, calibration_rows,  # noqa: F401
                                       check_int8_parity, int8_agreement, int8_params, quantize_onnx_int8,
-                                      read_calibration_images, require_int8_agreement)
+                                      read_calibration_images)
 from pipeline.deploy.engines import ENGINES  # noqa: F401
 from pipeline.deploy.segmenter import Segmenter, load_segmenter, resolve_engine  # noqa: F401
 from pipeline.deploy.benchmark import (BASELINE_VARIANT, VARIANTS, Variant, fastest_within,  # noqa: F401,E402

@@ -40,12 +40,15 @@ class OpenVinoRunner:
 
     def __init__(self, path: str | Path, threads: int | None = None):
         import openvino as ov
-        import torch
 
+        if threads is None:
+            import torch  # only for the default: a child process that names its threads stays torch-free
+
+            threads = torch.get_num_threads()
         self.path = Path(path)
         self.core = ov.Core()
         self.model = self.core.read_model(str(self.path))
-        self.config = {"INFERENCE_NUM_THREADS": int(threads or torch.get_num_threads()), "NUM_STREAMS": 1,
+        self.config = {"INFERENCE_NUM_THREADS": int(threads), "NUM_STREAMS": 1,
                        "PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32",
                        "ENABLE_CPU_PINNING": False}
         self._requests: dict[tuple, object] = {}
