@@ -517,7 +517,7 @@ def prepare_onnx_models(target: Target, variants: Sequence[str], workdir: str | 
     if calib is None:
         calib = (parity_inputs(min(resolution, 128), n=4).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
     int8_path = q8.quantize_onnx_int8(onnx_path, Path(workdir) / "model_int8.onnx", calib,
-                                      int8["calibration"], int8["percentile"])
+                                      int8["calibration"], int8["percentile"], int8["weight_bits"])
     return onnx_path, int8_path, {"int8_calibration": note}
 
 
