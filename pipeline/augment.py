@@ -209,10 +209,11 @@ def augment_sample(image: np.ndarray, targets: Mapping[str, Any], rng: np.random
         s = math.exp(rng.uniform(math.log(lo), math.log(hi)))
         window = crop_window((h, w), s, rng)
         image = resample(image, window, nearest=False)
-        pixel["mask"] = resample(pixel["mask"].astype(bool), window, nearest=True)
+        soft = pixel["mask"].dtype.kind == "f"  # train.soft_targets: the agreement map resamples bilinearly
+        pixel["mask"] = resample(pixel["mask"] if soft else pixel["mask"].astype(bool), window, nearest=not soft)
         if "anchor" in pixel:
             pixel["anchor"] = resample(pixel["anchor"].astype(np.float32), window, nearest=False)
-        sdf, skel, area = recompute_geometry(pixel["mask"], geometry)
+        sdf, skel, area = recompute_geometry(pixel["mask"] >= 0.5 if soft else pixel["mask"], geometry)
         if "sdf" in pixel:
             pixel["sdf"] = sdf
         if "skeleton" in pixel:

@@ -247,13 +247,16 @@ class AdaptiveParams(_Section):
 #: (pipeline.benchmarks.convergence, docs/student.md) found none within 400 epochs.
 RECIPES: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4,
-                        "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False},
+                        "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False,
+                        "ema_decay": 0.0, "soft_targets": False},
               "calibrate": {"tau_rule": "argmax"}},
     "stable": {"train": {"precision": "fp32", "warmup_epochs": 0, "average_last": 5, "batch_size": 4,
-                         "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False},
+                         "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False,
+                         "ema_decay": 0.0, "soft_targets": False},
                "calibrate": {"tau_rule": "smooth"}},
     "strong": {"train": {"precision": "fp32", "warmup_epochs": 2, "average_last": 4, "batch_size": 8,
-                         "epochs_stage1": 80, "epochs_stage2": 20, "schedule": "wsd", "augment": True},
+                         "epochs_stage1": 80, "epochs_stage2": 20, "schedule": "wsd", "augment": True,
+                         "ema_decay": 0.0, "soft_targets": False},
                "calibrate": {"tau_rule": "smooth"}},
 }
 
@@ -351,6 +354,12 @@ class TrainParams(_Section):
                                          "(0 = none)", ge=0)
     average_last: int | None = _f(None, "recipe part: final model = mean weights of the last K epochs with BN "
                                         "statistics recomputed (0 = the method's selection rule)", ge=0)
+    ema_decay: float | None = _f(None, "recipe part: final model = exponential moving average of the weights "
+                                       "(this decay per optimizer step) with BN statistics recomputed; 0 = off",
+                                 ge=0, lt=1)
+    soft_targets: bool | None = _f(None, "recipe part: the region target is the agreement map A "
+                                         "(eq:agreement-map) instead of the voted mask M^T in eq:raw-loss -- "
+                                         "a departure from the paper, named in every table")
     channels_last: bool = _f(True)
     augment_hflip: bool = _f(False, "the paper states no augmentation")
     augment: bool | None = _f(None, "recipe part: target-consistent augmentation (train.augmentation; "

@@ -240,12 +240,16 @@ def geometry_constants(geometry: Artifact) -> GeometryConstants:
 def _region_targets(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Artifact],
                     train_idx: np.ndarray, stats: dict) -> tuple[RowSource, np.ndarray]:
     """Region pseudo-target of every training row and the rows the AFS filter keeps (all otherwise):
-    the voted mask M^T (eq:majority-vote), or the AFS control's fused base-prompt mask."""
+    the voted mask M^T (eq:majority-vote), the agreement map A (eq:agreement-map, float in [0, 1]) with
+    ``train.soft_targets``, or the AFS control's fused base-prompt mask."""
     if method.data == "afs":
         mask, keep, r = _afs_targets(inputs["teacher"], train_idx, cfg["afs"])
         stats["afs_pass_ratio"] = r
         return mask, keep
-    return LazyRows(inputs["consensus"]["voted"], train_idx, bool), np.ones(len(train_idx), dtype=bool)
+    keep = np.ones(len(train_idx), dtype=bool)
+    if cfg.get("soft_targets"):  # train.soft_targets: A (eq:agreement-map) in eq:raw-loss, not M^T
+        return LazyRows(inputs["consensus"]["agreement"], train_idx, np.float32), keep
+    return LazyRows(inputs["consensus"]["voted"], train_idx, bool), keep
 
 
 def _confidence_keep(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Artifact], gates_df,
@@ -363,6 +367,7 @@ class Settings:
     average_last: int = 0  # final model = mean weights of the last K epochs (train.average_last; 0 = selection)
     decay_fraction: float = 0.2  # schedule wsd: share of the steps in the decay phase (train.decay_fraction)
     augment: AugmentSpec | None = None  # target-consistent augmentation (train.augment; None = off)
+    ema_decay: float = 0.0  # final model = EMA of the weights (train.ema_decay; 0 = off)
 
     @classmethod
     def from_params(cls, method: Method, cfg: Mapping[str, Any], selection_tau: float) -> "Settings":
@@ -378,7 +383,8 @@ class Settings:
                    selection_tau=float(selection_tau),
                    precise_bn=bool(cfg["precise_bn"]), warmup_epochs=int(cfg["warmup_epochs"]),
                    average_last=int(cfg["average_last"]), decay_fraction=float(cfg.get("decay_fraction", 0.2)),
-                   augment=AugmentSpec.from_params(cfg["augmentation"]) if cfg.get("augment") else None)
+                   augment=AugmentSpec.from_params(cfg["augmentation"]) if cfg.get("augment") else None,
+                   ema_decay=float(cfg.get("ema_decay") or 0.0))
 
 
 class Checkpointer(Protocol):
@@ -605,6 +611,8 @@ class _Run:
     best: dict | None = None
     #: running mean of the weights over the last ``average_last`` epochs: {"n": epochs in it, "state": {...}}
     avg: dict | None = None
+    #: exponential moving average of the parameters (``train.ema_decay`` > 0), on the run's device
+    ema: list | None = None
     #: the run's scratch directory (streamed anchors), removed when :func:`train` returns
     scratch: tempfile.TemporaryDirectory | None = None
     #: the geometry constants of the training data's SDF/skeleton (augmented rescales recompute them)
@@ -653,6 +661,8 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
     run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,
                opt=opt, sched=None, tensors=_tensors(data, device, anchor), n_train=len(data), run_key=run_key,
                scratch=scratch, geometry=data.geometry)
+    if s.ema_decay > 0:
+        run.ema = [p.detach().clone() for p in model.parameters()]
     total = s.epochs * run.steps_per_epoch
     run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(s.schedule, total, s.warmup_epochs * run.steps_per_epoch,
                                                                   decay_steps(total, s.decay_fraction)))
@@ -700,6 +710,8 @@ def _resume(run: _Run, checkpointer: Checkpointer) -> int:
     torch.set_rng_state(state["torch_rng"])
     run.rows, run.best = list(state["log"]), state["best"]
     run.avg = state.get("avg")
+    if run.ema is not None and state.get("ema") is not None:
+        run.ema = [t.to(run.device) for t in state["ema"]]
     log.info("resuming %s seed %s after epoch %d from %s", run.method.name, run.seed, state["epoch"], checkpointer)
     return int(state["epoch"]) + 1
 
@@ -709,7 +721,8 @@ def _state(run: _Run, epoch: int) -> dict:
     return {"version": STATE_VERSION, "run_key": run.run_key, "epoch": epoch, "model": _cpu_state(run.model),
             "optimizer": copy.deepcopy(run.opt.state_dict()), "scheduler": run.sched.state_dict(),
             "torch_rng": torch.get_rng_state(), "log": run.rows, "best": run.best,
-            **({"avg": run.avg} if run.avg is not None else {})}
+            **({"avg": run.avg} if run.avg is not None else {}),
+            **({"ema": [t.detach().to("cpu", copy=True) for t in run.ema]} if run.ema is not None else {})}
 
 
 def select(best: dict | None, plan: Plan, val: ValData | None, epoch: int, row: Mapping, model,
@@ -811,6 +824,8 @@ def _step(run: _Run, b: Mapping[str, torch.Tensor], epoch: int, step: int) -> di
     terms["loss"].backward()
     run.opt.step()
     run.sched.step()
+    if run.ema is not None:  # e <- d e + (1 - d) w after every step
+        torch._foreach_lerp_(run.ema, [p.detach() for p in run.model.parameters()], 1.0 - run.settings.ema_decay)
     return terms
 
 
@@ -882,7 +897,13 @@ def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainRe
 
     if run.best is None:  # cannot happen with epochs >= 1; kept as a guard against a silent wrong pick
         raise RuntimeError("no checkpoint candidate")
-    if run.avg is not None:  # train.average_last: the averaged weights, BN statistics recomputed for them
+    if run.ema is not None:  # train.ema_decay: the averaged parameters, BN statistics recomputed for them
+        with torch.no_grad():
+            for p, e in zip(run.model.parameters(), run.ema):
+                p.copy_(e)
+        _precise_bn(run)
+        run.best = {"epoch": run.settings.epochs, "score": None, "state": None}
+    elif run.avg is not None:  # train.average_last: the averaged weights, BN statistics recomputed for them
         run.model.load_state_dict(run.avg["state"])
         _precise_bn(run)
         run.best = {"epoch": run.settings.epochs, "score": None, "state": None}
@@ -891,7 +912,9 @@ def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainRe
     model = run.model.to("cpu").to(memory_format=torch.contiguous_format).eval()
     plan, s = run.plan, run.settings
     selection = plan.select if _has_val(val) or plan.select == "last" else "last (no validation masks)"
-    if run.avg is not None:
+    if run.ema is not None:
+        selection = f"moving average of the weights, decay {s.ema_decay:g} per step (BN statistics recomputed)"
+    elif run.avg is not None:
         selection = f"mean weights of the last {run.avg['n']} epochs (BN statistics recomputed)"
     info = {"selected_epoch": int(run.best["epoch"]), "selection": selection, "epochs": s.epochs, "lr": s.lr,
             "mode": plan.mode, "loss_weights": dict(plan.weights), "epoch0_eligible": plan.epoch0_eligible,

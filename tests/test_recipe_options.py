@@ -210,3 +210,61 @@ def test_study_runs_end_to_end_on_tiny_artifacts(tiny, tmp_path, capsys):
                      "--variants", "paper", "precise_bn", "--out", str(out)])
     assert again["runs"] == json.loads(json.dumps(res["runs"]))
     assert len((tmp_path / "study.json.runs.jsonl").read_text().splitlines()) == 5
+
+
+# --------------------------------------------------------------------------------------------------
+# issue 43: the weights' moving average and soft targets (recipe parts)
+# --------------------------------------------------------------------------------------------------
+def test_ema_final_model_is_the_moving_average_of_the_steps(tiny):
+    """train.ema_decay d: e <- d e + (1 - d) w after every step; the final model holds e (BN recomputed)."""
+    from pipeline import training
+    from pipeline.methods import get_method
+
+    cfg = tiny_cfg(ema_decay=0.5, epochs_stage1=1)
+    data, val = load_arrays(tiny, "plain", cfg)
+    seen = []
+    real = training._step
+
+    def spy(run, b, epoch, step):
+        out = real(run, b, epoch, step)
+        seen.append([p.detach().clone() for p in run.model.parameters()])
+        return out
+
+    import unittest.mock as mock
+
+    with mock.patch.object(training, "_step", spy):
+        res = training.train(get_method("plain"), cfg, data, val, 3, checkpointer=training.NoCheckpointer(),
+                             show_progress=False)
+    first = training.build_model(get_method("plain"), cfg, 3)
+    ema = [p.detach().clone() for p in first.parameters()]
+    for w in seen:
+        ema = [0.5 * e + 0.5 * x for e, x in zip(ema, w)]
+    for got, want in zip(res.model.parameters(), ema):
+        torch.testing.assert_close(got, want)
+    assert "moving average" in res.info["selection"]
+    plain = training.train(get_method("plain"), tiny_cfg(epochs_stage1=1), data, val, 3,
+                           checkpointer=training.NoCheckpointer(), show_progress=False)
+    assert not all(torch.equal(a, b) for a, b in zip(plain.model.parameters(), res.model.parameters()))
+
+
+def test_soft_targets_train_on_the_agreement_map(tiny):
+    """train.soft_targets: the region target is A (eq:agreement-map), float in [0, 1], not M^T."""
+    from pipeline.artifacts import open_artifact
+
+    data, _ = load_arrays(tiny, "plain", tiny_cfg(soft_targets=True))
+    hard, _ = load_arrays(tiny, "plain", tiny_cfg())
+    agreement = open_artifact(tiny / "consensus.zarr").numpy("agreement")
+    rows = np.arange(len(data))
+    soft = np.asarray(data.mask[rows])
+    assert soft.dtype == np.float32 and np.array_equal(soft, agreement[: len(soft)])
+    assert np.array_equal(np.asarray(hard.mask[rows]), agreement[: len(soft)] >= 0.5)
+    assert ((soft > 0) & (soft < 1)).any()
+    # the augmentation's rescale resamples the soft target bilinearly and keeps it in [0, 1]
+    from pipeline.augment import AugmentSpec, GeometryConstants, augment_batch
+    from pipeline.params import AugmentParams
+
+    spec = AugmentSpec.from_params({**AugmentParams().model_dump(), "scale_probability": 1.0})
+    imgs, targets = augment_batch(np.asarray(data.images[rows]), {"mask": soft, "area": data.area},
+                                  [[0, 1, int(i)] for i in rows], spec, GeometryConstants())
+    assert targets["mask"].dtype == np.float32 and targets["mask"].min() >= 0 and targets["mask"].max() <= 1
+    assert ((targets["mask"] > 0) & (targets["mask"] < 1)).any()
