@@ -27,7 +27,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from pipeline.benchmarks.study_recipe import _run_jobs, build_artifacts, load_study_data
+from benchmarks.study_recipe import _run_jobs, build_artifacts, load_study_data
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.profiles import load_profile
 

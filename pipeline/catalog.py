@@ -66,7 +66,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
        "per-epoch wall-clock seconds: NOT a DVC out and not fingerprinted (checkpoints stay byte-identical)"),
     _a("noise_floor", "../reports/noise_floor.json", None, "stability benchmark",
        "perturbation and seed spreads of the published numbers, one record per configuration "
-       "({recipes: {key: record}}; python -m pipeline.benchmarks.stability --noise-floor adds or replaces "
+       "({recipes: {key: record}}; python -m benchmarks.stability --noise-floor adds or replaces "
        "its own); the report applies the record measured in its own configuration when there is one: a "
        "DVC dep of report in this repository's DAG (not a DVC out: the benchmark writes it)"),
     _a("run_logs", "logs/run", None, "run",

@@ -244,7 +244,7 @@ class AdaptiveParams(_Section):
 #: augmentation (pipeline.augment), a warm-up / stable / decay learning rate, the mean weights of the
 #: decay phase's last epochs and a batch of 8 (twice the images per step: fewer, fuller steps on a CPU
 #: or a GPU).  Its lengths are a first choice, below the plateau: the convergence study
-#: (pipeline.benchmarks.convergence, docs/student.md) found none within 400 epochs.
+#: (benchmarks.convergence, docs/student.md) found none within 400 epochs.
 RECIPES: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4,
                         "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False,

@@ -45,7 +45,7 @@ from pipeline.params import PAPER, PROFILE_KEY, deep_merge, load_params, parse_o
 SEEDS = [42, 3407, 2026]
 #: issue 24: five seeds for the main methods and the controls of the reduced protocol -- enough for a
 #: seed-aware bootstrap (pipeline.stats.paired_seed_bootstrap) to see the training noise; the stability
-#: benchmark (pipeline/benchmarks/stability.py) uses the same seeds
+#: benchmark (benchmarks/stability.py) uses the same seeds
 FIVE_SEEDS = SEEDS + [7, 11]
 #: the demo's seeds: with ten, a one-thread run moves no published seed mean by more than 0.005 IoU /
 #: 0.008 BF1 (with five: 0.023 BF1, over the tolerance) -- docs/stability.md, "ten seeds"

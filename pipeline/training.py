@@ -27,7 +27,7 @@ learning rates only)
   * normalisation (issue 17 item 4; defaults = PyTorch's BatchNorm, momentum 0.1): ``train.norm``
     (batch | group), ``train.bn_momentum``, and ``train.precise_bn`` -- BN running statistics
     re-estimated over the training images before each validation (:func:`_precise_bn`), which at
-    batch 4 steadies the validation IoU at tau 0.5 (``pipeline/benchmarks/study_recipe.py``);
+    batch 4 steadies the validation IoU at tau 0.5 (``benchmarks/study_recipe.py``);
   * Stage-II warm start: encoder, decoder and mask head copied from the Stage-I checkpoint, SDF and
     skeleton heads freshly initialised from ``torch.manual_seed(seed)``;
   * recipe parts (issue 24, ``train.recipe``; docs/stability.md): ``train.warmup_epochs`` (linear
@@ -429,7 +429,7 @@ def _lr_lambda(schedule: str, total_steps: int, warmup_steps: int = 0, decay_ste
     the linear warm-up min(1, (step + 1) / W) when ``warmup_steps`` W > 0 (``train.warmup_epochs``).
     W = 0 returns the schedule's own function (the paper recipe, unchanged).  The stable phase of
     ``wsd`` does not depend on T, so a run branched off it into a decay of D steps at any point is
-    the run of that length (pipeline.benchmarks.convergence)."""
+    the run of that length (benchmarks.convergence)."""
     if schedule == "constant":
         base = lambda step: 1.0  # noqa: E731
     elif schedule == "cosine":

@@ -203,7 +203,7 @@ BENCH_CASES = {
 
 
 def bench_run(lane: Lane, case: str) -> subprocess.CompletedProcess:
-    """``python -m pipeline.benchmarks.<script> ARGS`` of :data:`BENCH_CASES` ``case`` in the repository."""
+    """``python -m benchmarks.<script> ARGS`` of :data:`BENCH_CASES` ``case`` in the repository."""
     script = case.removesuffix("_ray")
-    return lane.run([sys.executable, "-m", f"pipeline.benchmarks.{script}", *BENCH_CASES[case]], cwd=REPO,
+    return lane.run([sys.executable, "-m", f"benchmarks.{script}", *BENCH_CASES[case]], cwd=REPO,
                     timeout=600 if case.endswith("_ray") else 300)

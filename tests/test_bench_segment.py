@@ -1,4 +1,4 @@
-"""Smoke test of ``python -m pipeline.benchmarks.bench_segment`` at a tiny size: every CPU engine timed
+"""Smoke test of ``python -m benchmarks.bench_segment`` at a tiny size: every CPU engine timed
 (or skipped with its reason), model-only beside end to end, the ratios and the stated target."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import pytest
 
-from pipeline.benchmarks import bench_segment as B
+from benchmarks import bench_segment as B
 from pipeline.errors import InputError
 
 

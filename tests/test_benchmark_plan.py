@@ -60,9 +60,9 @@ def test_no_benchmark_leaves_the_stage_out_and_a_rerun_without_it_puts_it_back(t
 
 
 def test_bench_distill_times_both_cases_round_robin_and_prints_the_ratio(capsys):
-    """Smoke test of pipeline/benchmarks/bench_distill.py with a fake runner whose cost is declared (no run,
+    """Smoke test of benchmarks/bench_distill.py with a fake runner whose cost is declared (no run,
     no timing): both cases every round in alternating order, fresh folders, the ratio against the target."""
-    from pipeline.benchmarks import bench_distill
+    from benchmarks import bench_distill
 
     seen = []
 

@@ -20,9 +20,9 @@ CASES = sorted(c for c in BENCH_CASES if not c.endswith("_ray"))
 @pytest.mark.slow
 @pytest.mark.parametrize("bench_script", CASES, indirect=True)
 def test_benchmark_script_runs_and_reports_a_ratio(bench_script):
-    """``python -m pipeline.benchmarks.<name>`` at tiny sizes (run on the tests' second lane: tests/conftest.py)."""
+    """``python -m benchmarks.<name>`` at tiny sizes (run on the tests' second lane: tests/conftest.py)."""
     name, r = bench_script
-    assert r.args[2] == f"pipeline.benchmarks.{name}" and r.args[3:] == BENCH_CASES[name]
+    assert r.args[2] == f"benchmarks.{name}" and r.args[3:] == BENCH_CASES[name]
     assert r.returncode == 0, r.stderr[-2000:]
     assert re.search(r"\d+(\.\d+)?\s*x", r.stdout), r.stdout[-2000:]  # "<ratio> x" against the baseline
 
@@ -49,7 +49,7 @@ def test_stability_main_on_tiny_artifacts_prints_and_writes_its_summary(tmp_path
 
     import torch
 
-    from pipeline.benchmarks import stability
+    from benchmarks import stability
     from pipeline.thresholds import TAU_RULES
     from tests._tiny_train import build_tiny_artifacts
 
@@ -90,7 +90,7 @@ def test_bench_cluster_main_reports_nodes_and_the_outputs_that_differ(tmp_path, 
 
     import yaml
 
-    from pipeline.benchmarks import bench_cluster
+    from benchmarks import bench_cluster
     from pipeline.cluster import driver
 
     calls = []

@@ -26,7 +26,7 @@ ALLOWED = {
     ("pipeline/artifacts.py", ".parquet"): "open_artifact dispatches on the file format's suffix",
     ("pipeline/artifacts.py", ".zarr"): "open_artifact dispatches on the file format's suffix",
     ("pipeline/training.py", "/anchor.zarr"): "a scratch spill file in a temporary folder, not an artifact",
-    ("pipeline/benchmarks/bench_memory.py", ".zarr"): "the memory benchmark's own scratch arrays, not artifacts",
+    ("benchmarks/bench_memory.py", ".zarr"): "the memory benchmark's own scratch arrays, not artifacts",
     ("pipeline/teachers/imported.py", "scores.parquet"): "the imported teacher's input layout (files a user brings)",
     ("pipeline/teachers/imported.py", ".parquet"): "the imported teacher's scores file: Parquet or CSV by suffix",
     ("pipeline/labeling/run.py", "labels.parquet"): "the label command's own output table (pipeline.labeling.run.OUTPUTS)",

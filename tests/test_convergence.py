@@ -1,4 +1,4 @@
-"""The convergence benchmark (pipeline/benchmarks/convergence.py): branch lengths, the plateau rule, and
+"""The convergence benchmark (benchmarks/convergence.py): branch lengths, the plateau rule, and
 a tiny end-to-end run whose decay branches start from the stable phase's saved states."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from pipeline.benchmarks.convergence import BranchStore, branch_epochs, decay_epochs, main, plateau
+from benchmarks.convergence import BranchStore, branch_epochs, decay_epochs, main, plateau
 
 
 def test_lengths_and_the_plateau_rule():

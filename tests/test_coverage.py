@@ -1,11 +1,11 @@
 """Intervals that cover: the known-truth coverage benchmark and the seed-aware t interval
-(pipeline.benchmarks.coverage, pipeline.stats.paired_seed_image_t; docs/intervals.md)."""
+(benchmarks.coverage, pipeline.stats.paired_seed_image_t; docs/intervals.md)."""
 
 import numpy as np
 import pytest
 from scipy import stats as sps
 
-from pipeline.benchmarks import coverage
+from benchmarks import coverage
 from pipeline.stats import (INTERVALS, SEED_BOOTSTRAP, SEED_CLUSTER_T, SEED_IMAGE_T, SPACECRAFT_RANDOM,
                             paired_seed_bootstrap, paired_seed_image_t)
 

@@ -104,9 +104,9 @@ def test_the_score_ranks_degraded_frames_below_clean_ones(student):
 
 
 def test_the_frame_confidence_benchmark_scores_a_runs_frames(tmp_path, capsys):
-    """Smoke test of python -m pipeline.benchmarks.frame_confidence on tiny artifacts and bundle: one
+    """Smoke test of python -m benchmarks.frame_confidence on tiny artifacts and bundle: one
     row per group and one pooled, each frame's score the Segmenter's own, rho that of the stats module."""
-    from pipeline.benchmarks import frame_confidence as bench
+    from benchmarks import frame_confidence as bench
     from pipeline.stats import spearman
     from tests._tiny_deploy import make_artifacts, make_checkpoint, run_export
 

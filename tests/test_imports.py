@@ -12,8 +12,8 @@ The rule (docs/decisions.md, "Imports"): every import is at the top of its modul
 
 The layers (docs/decisions.md, "Layers"): :data:`LAYERS` is the one statement of the layer order, lowest
 first; a module imports its own layer and those below it, never one above (imports inside functions
-included), and nothing under ``pipeline/`` imports ``stages/`` (:data:`CLI`): the library stands without
-its command line.  Every project file is in exactly one layer.
+included), and nothing outside the command line (:data:`CLI`) imports it: the library and the benchmarks
+stand without it.  Every project file is in exactly one layer.
 """
 
 from __future__ import annotations
@@ -67,22 +67,22 @@ LAYERS = (
     ("api", "the Python API of the user tools: label, distill, a standalone project",
      ("pipeline/standalone.py", "pipeline/api.py")),
     ("stages", "the command line: options -> read artifacts -> call the logic -> write", ("stages/",)),
-    ("benchmarks", "measurements; they run the stages as commands, never import them", ("pipeline/benchmarks/",)),
+    ("benchmarks", "measurements; they run the stages as commands, never import them", ("benchmarks/",)),
 )
-#: the command-line layer, which no file of the library (``pipeline/``) imports
-CLI = "stages/"
+#: the command line, which no file outside it (the library, the benchmarks) imports
+CLI = ("stages/",)
 
 
 def layer_of(rel: str) -> int | None:
     """The index in :data:`LAYERS` of the file at ``rel`` (a POSIX path from the root); the longest
-    matching entry decides (``pipeline/benchmarks/`` before a ``pipeline/`` one); None if none matches."""
+    matching entry decides (``pipeline/deploy/`` before a ``pipeline/`` one); None if none matches."""
     hits = [(len(entry), i) for i, (_, _, entries) in enumerate(LAYERS) for entry in entries
             if rel == entry or (entry.endswith("/") and rel.startswith(entry))]
     return max(hits)[1] if hits else None
 
 
 def layer_violations(root: Path = ROOT) -> list[str]:
-    """One line per file in no layer, per import of a higher layer, and per import of the CLI from the library."""
+    """One line per file in no layer, per import of a higher layer, and per import of the CLI from outside it."""
     bad = []
     for path in _files(root):
         rel = path.relative_to(root).as_posix()
@@ -98,7 +98,7 @@ def layer_violations(root: Path = ROOT) -> list[str]:
             trel = target.relative_to(root).as_posix()
             theirs = layer_of(trel)
             if not rel.startswith(CLI) and trel.startswith(CLI):
-                bad.append(f"{rel}:{line} imports {module}: the library imports the command line ({CLI})")
+                bad.append(f"{rel}:{line} imports {module}: only the command line imports it ({', '.join(CLI)})")
             elif theirs is not None and theirs > mine:
                 bad.append(f"{rel}:{line} ({LAYERS[mine][0]}) imports {module} ({LAYERS[theirs][0]}, a higher layer)")
     return bad
@@ -248,13 +248,13 @@ def test_the_layer_check_sees_an_upward_import_the_cli_and_an_unplaced_file(tmp_
     a benchmark importing a stage script, and a module no layer lists; a stage importing the core and
     the API importing the core pass."""
     files = {"pipeline/__init__.py": "", "pipeline/params.py": "def f():\n    from pipeline import api\n",
-             "pipeline/api.py": "from pipeline import params\n", "pipeline/benchmarks/__init__.py": "",
-             "pipeline/benchmarks/bench_x.py": "import stages.prepare\n", "pipeline/unlisted.py": "",
+             "pipeline/api.py": "from pipeline import params\n", "benchmarks/__init__.py": "",
+             "benchmarks/bench_x.py": "import stages.prepare\n", "pipeline/unlisted.py": "",
              "stages/__init__.py": "", "stages/prepare.py": "from pipeline.params import f\n"}
     for rel, text in files.items():
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_text(text)
     assert layer_violations(tmp_path) == [
-        "pipeline/benchmarks/bench_x.py:1 imports stages.prepare: the library imports the command line (stages/)",
+        "benchmarks/bench_x.py:1 imports stages.prepare: only the command line imports it (stages/)",
         "pipeline/params.py:2 (core) imports pipeline.api (api, a higher layer)",
         "pipeline/unlisted.py is in no layer: add it to LAYERS in tests/test_imports.py (docs/decisions.md, Layers)"]

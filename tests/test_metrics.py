@@ -252,7 +252,7 @@ def _mask_zoo(n=24, size=48, seed=0):
 
 @pytest.mark.parametrize("tolerance,margin", [(2, 3), (0, 3), (1.5, 0), (3, 1)])
 def test_batched_metrics_equal_the_per_image_baseline(tolerance, margin):
-    from pipeline.benchmarks.bench_evaluate import baseline_per_image_metrics
+    from benchmarks.bench_evaluate import baseline_per_image_metrics
 
     gts = _mask_zoo(seed=1)
     preds = np.concatenate([_mask_zoo(seed=2)[:12], np.roll(gts[12:], 1, axis=2)])
@@ -266,7 +266,7 @@ def test_batched_metrics_equal_the_per_image_baseline(tolerance, margin):
 
 
 def test_many_small_components_take_the_lookup_table_path():
-    from pipeline.benchmarks.bench_evaluate import baseline_small_region_iou
+    from benchmarks.bench_evaluate import baseline_small_region_iou
     from pipeline.metrics import _SMALL_LUT_ABOVE
 
     rng = np.random.default_rng(4)

@@ -1,5 +1,5 @@
 """Recipe options of issue 17 item 4 (train.norm, train.bn_momentum, train.precise_bn) and the recipe
-study script (pipeline/benchmarks/study_recipe.py).
+study script (benchmarks/study_recipe.py).
 
 The options default to the paper recipe: a default run builds exactly the model it built before
 (same modules, config and weights), and the options enter every method's params keys so that DVC
@@ -166,7 +166,7 @@ def test_precise_bn_in_the_train_stage_log_differs_from_ema(tiny):
 # the study script
 # --------------------------------------------------------------------------------------------------
 def test_study_helpers():
-    from pipeline.benchmarks import study_recipe as sr
+    from benchmarks import study_recipe as sr
 
     assert sr.max_adjacent_jump(np.array([0.1, 0.4, np.nan, 0.3, 0.35])) == pytest.approx(0.3)
     assert sr.max_adjacent_jump(np.array([0.5])) == 0.0
@@ -190,7 +190,7 @@ def test_study_helpers():
 
 
 def test_study_runs_end_to_end_on_tiny_artifacts(tiny, tmp_path, capsys):
-    from pipeline.benchmarks import study_recipe as sr
+    from benchmarks import study_recipe as sr
 
     out = tmp_path / "study.json"
     res = sr.main(["--artifacts", str(tiny), "--resolution", "32", "--epochs", "1", "--seeds", "0",

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.benchmarks import review_value as rv
+from benchmarks import review_value as rv
 from tests._tiny_train import tiny_cfg
 
 

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 
-from pipeline.benchmarks import review_value as rv
+from benchmarks import review_value as rv
 
 
 def _runs(seed: int, rng) -> list[dict]:

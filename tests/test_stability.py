@@ -188,7 +188,7 @@ def _fake_run(pert, seed, plain, geo, cont):
 
 
 def test_spreads_and_target():
-    from pipeline.benchmarks.stability import spreads, target_met
+    from benchmarks.stability import spreads, target_met
     from pipeline.reproducibility import TOLERANCE
 
     runs = [_fake_run("default", 1, 0.50, 0.52, 0.51), _fake_run("default", 2, 0.60, 0.63, 0.61),
@@ -203,7 +203,7 @@ def test_spreads_and_target():
     assert sp["geodistill-plain/A/iou"]["pert"] == pytest.approx(TOLERANCE["iou"] / 2)
     assert target_met(sp)[0]
     # the report's floor counts only the perturbations a recipe is exposed to (pinned precision: threads)
-    from pipeline.benchmarks.stability import noise_floor_record
+    from benchmarks.stability import noise_floor_record
 
     assert noise_floor_record(sp, {}, ["threads1"])["numbers"]["plain/A/iou"]["floor"] == 0.0
     assert noise_floor_record(sp, {}, ["threads1", "precision"])["numbers"]["plain/A/iou"]["floor"] == \
@@ -215,7 +215,7 @@ def test_spreads_and_target():
 def test_target_checks_no_worse_than_the_paper_recipe():
     """Issue 33: the target also checks the documented "calibrated IoU no worse than the paper recipe",
     by non-inferiority on the seed spread, and is not met when that cannot be shown."""
-    from pipeline.benchmarks.stability import no_worse_than, recipe_table, spreads, target_met
+    from benchmarks.stability import no_worse_than, recipe_table, spreads, target_met
     from pipeline.reproducibility import TOLERANCE
 
     def sp(shift, spread=0.0):
@@ -306,7 +306,7 @@ def _floor(recipe, resolution, iou):
 
 
 def test_noise_floor_file_keeps_a_record_per_recipe(tmp_path):
-    from pipeline.benchmarks.stability import write_noise_floor
+    from benchmarks.stability import write_noise_floor
 
     path = tmp_path / "reports" / "noise_floor.json"
     path.parent.mkdir()
@@ -354,7 +354,7 @@ def test_report_applies_only_the_floor_of_its_own_configuration(tmp_path):
 def test_noise_floor_file_keeps_a_record_per_configuration(tmp_path):
     """The reduced profile's 128² floor and the demo's 64² floor of the same recipe live side by side,
     and each report picks the one of its own configuration (never the other)."""
-    from pipeline.benchmarks.stability import write_noise_floor
+    from benchmarks.stability import write_noise_floor
     from pipeline.report.analysis import gain_noise_floor, noise_floor_key, select_noise_floor
 
     path = tmp_path / "noise_floor.json"

@@ -213,7 +213,7 @@ def test_spearman_edge_cases():
 
 
 def test_counts_matrix_bootstrap_equals_the_gather_baseline():
-    from pipeline.benchmarks.bench_evaluate import baseline_method_gains, baseline_resample_means
+    from benchmarks.bench_evaluate import baseline_method_gains, baseline_resample_means
 
     rng = np.random.default_rng(0)
     values = rng.normal(size=(40, 3))

@@ -29,7 +29,7 @@ Rasterisation
     the specular hot spot a spot on a flat face); foil gets a crinkle normal perturbation.  A small
     optical PSF (Gaussian) anti-aliases edges.  Hard cases change the image only, never the ground
     truth.  ``rasterizer="numpy"`` swaps OpenCV for a plain per-pixel half-plane / segment-distance
-    rasteriser (same primitives, same buffer): the baseline of ``python -m pipeline.benchmarks.bench_synthetic``.
+    rasteriser (same primitives, same buffer): the baseline of ``python -m benchmarks.bench_synthetic``.
 
 Everything is deterministic for a seed: each view draws from its own
 ``np.random.default_rng([seed, stable_hash(name), view_index])``.

@@ -480,7 +480,7 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
 # --------------------------------------------------------------------------------------------------
 NOISE_FLOOR_NOT_MEASURED = ("noise floor not measured in this report's configuration (recipe, resolution, data sizes): "
                             "the verdicts rest on the CI and the multiplicity rule alone; a floor measured elsewhere is "
-                            "never applied (python -m pipeline.benchmarks.stability --noise-floor measures one)")
+                            "never applied (python -m benchmarks.stability --noise-floor measures one)")
 
 
 def noise_floor_records(doc: dict | None) -> dict[str, dict]:
@@ -533,7 +533,7 @@ def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | N
 def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
     """Noise floor of a gain in ``metric`` on test ``group``: the largest ``floor`` (the move of the
     benchmark's seed-mean under the numerical perturbations its recipe is exposed to:
-    pipeline.benchmarks.stability.noise_floor_record) of any published gain
+    benchmarks.stability.noise_floor_record) of any published gain
     (``<treatment>-<control>/<group>/<metric>``) of that group and metric; NaN when the record is None
     or has no such gain.  One floor per (group, metric): the benchmark measures the demo's comparisons,
     and a numerical perturbation moves every method's number alike."""

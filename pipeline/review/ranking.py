@@ -19,7 +19,7 @@ h sees disagreement on pixels the vote dropped (the outvoted panel, the glare bl
 which the gate's c (agreement inside the voted mask only, eq:foreground-agreement) does not.  The
 gate also has a long tie at g = 0 (g_valid and g_conf floor to 0), which h orders.  Percentile ranks
 combine them without calibrating one scale against the other.  The choice is argued; the one
-measurement (``python -m pipeline.benchmarks.review_value``, docs/review.md) does not settle it: on the
+measurement (``python -m benchmarks.review_value``, docs/review.md) does not settle it: on the
 synthetic benchmark no selection of up to 50 corrected images moves the Plain Student's test IoU beyond
 the seed noise, ``combined`` does not beat random at k = 25, and past its top ~10 its picks are no
 worse-labelled than random's while ``gate`` keeps finding the simulator's breakdowns (which it finds

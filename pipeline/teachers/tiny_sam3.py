@@ -8,7 +8,7 @@ vocabulary written to disk here, and the image-processor config is written as
 check is the plumbing (loading, preprocessing, encoder reuse, batching, best-query selection).
 
 ``size="real"`` builds the full-size SAM 3 architecture (random weights, ~840 M parameters) for GPU
-timing in ``python -m pipeline.benchmarks.bench_teacher``.
+timing in ``python -m benchmarks.bench_teacher``.
 """
 
 from __future__ import annotations

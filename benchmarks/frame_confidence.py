@@ -2,7 +2,7 @@
 confidence (:func:`pipeline.deploy.confidence.frame_confidence`, :meth:`pipeline.Segmenter.score`) and
 its Image IoU against the reference masks, per test group of a run's artifacts.
 
-    python -m pipeline.benchmarks.frame_confidence --artifacts artifacts [--deploy artifacts/deploy]
+    python -m benchmarks.frame_confidence --artifacts artifacts [--deploy artifacts/deploy]
 
 Reads the run's test images at the working resolution (images.zarr), the reference masks and the deploy
 bundle; prints, per test group and pooled, the number of frames, rho with its p-value (t approximation,

@@ -1,8 +1,8 @@
 """Recipe study (issue 17, item 4): why the supervised ceiling is no better than pseudo-labels and why
 validation IoU swings between epochs -- one candidate at a time against the paper recipe.
 
-    python -m pipeline.benchmarks.study_recipe --resolution 96 --seeds 42 --jobs 2          # CPU, small
-    python -m pipeline.benchmarks.study_recipe --device cuda --resolution 384 --jobs 8      # paper size
+    python -m benchmarks.study_recipe --resolution 96 --seeds 42 --jobs 2          # CPU, small
+    python -m benchmarks.study_recipe --device cuda --resolution 384 --jobs 8      # paper size
 
 What it does
   1. Data: the synthetic benchmark with its simulated teacher, built by the project's own stage

@@ -7,7 +7,7 @@ one variant (the baseline, :data:`pipeline.deploy.benchmark.BASELINE_VARIANT`), 
 project folder, so every run computes the whole DAG.  Prints each case's wall-time median and minimum
 and the ratio default / one variant of both, against the 1.5x target.
 
-    python -m pipeline.benchmarks.bench_distill IMAGES --checkpoint SAM3_DIR --reps 3 \\
+    python -m benchmarks.bench_distill IMAGES --checkpoint SAM3_DIR --reps 3 \\
         --set train.epochs_stage1=1 --set train.epochs_stage2=1
 """
 

@@ -8,7 +8,7 @@ Measures, in one run and on the same views:
   * prepare path -- fast path + PNG encoding of image, mask and part labels (what `prepare` writes);
   * 2 workers   -- the fast path in a 2-process pool (the project's 2-core machines).
 Prints images/s and the fast/baseline ratio.  Usage:
-    python -m pipeline.benchmarks.bench_synthetic [--size 384] [--views 60] [--baseline-views 30]
+    python -m benchmarks.bench_synthetic [--size 384] [--views 60] [--baseline-views 30]
 """
 
 from __future__ import annotations

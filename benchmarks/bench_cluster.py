@@ -1,6 +1,6 @@
 """A two-node Ray cluster on one host runs the DAG; its outputs against a serial ``dvc repro``'s.
 
-    python -m pipeline.benchmarks.bench_cluster --repo COPY --serial DONE [--targets teacher ...]
+    python -m benchmarks.bench_cluster --repo COPY --serial DONE [--targets teacher ...]
 
 ``COPY`` is a fresh copy of a project (nothing run yet); ``DONE`` the same project after a serial
 ``dvc repro``.  Starts ``ray.cluster_utils.Cluster`` with two nodes of ``--cpus`` CPUs each (and

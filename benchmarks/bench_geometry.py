@@ -5,7 +5,7 @@ implementation (scipy.ndimage.distance_transform_edt + np.quantile + ndimage.max
 maxima) measured in the same run on the same masks, with the ratio.  Both produce the same targets
 (checked on every mask before timing).
 
-    python -m pipeline.benchmarks.bench_geometry [--n 200] [--size 384] [--repeats 3] [--workers 2]
+    python -m benchmarks.bench_geometry [--n 200] [--size 384] [--repeats 3] [--workers 2]
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Training speed: plain fp32 eager NCHW vs the fast path (channels_last + bf16 autocast), same run.
 
-    python -m pipeline.benchmarks.bench_train                 # paper protocol size: 270 images at 384^2, 2 epochs
-    python -m pipeline.benchmarks.bench_train --quick         # 32 images at 256^2, 3 epochs
-    python -m pipeline.benchmarks.bench_train --images 64 --size 384 --epochs 2 --device cuda
+    python -m benchmarks.bench_train                 # paper protocol size: 270 images at 384^2, 2 epochs
+    python -m benchmarks.bench_train --quick         # 32 images at 256^2, 3 epochs
+    python -m benchmarks.bench_train --images 64 --size 384 --epochs 2 --device cuda
 
 Both variants train the Stage-I ``plain`` method with ``pipeline.training.train`` (same seed, same
 synthetic images and pseudo-masks, same everything except memory format and autocast).

@@ -1,13 +1,13 @@
 """What a person's corrections buy: a simulated person corrects the k top-ranked training images with
 their reference masks (``review.mode: replace``), and the Stage-I student's test Image IoU is measured.
 
-    python -m pipeline.benchmarks.review_value --resolution 64 --seeds 42 43 44          # the study
-    python -m pipeline.benchmarks.review_value --resolution 32 --ks 0 2 --seeds 42 --draws 1 \
+    python -m benchmarks.review_value --resolution 64 --seeds 42 43 44          # the study
+    python -m benchmarks.review_value --resolution 32 --ks 0 2 --seeds 42 --draws 1 \
         --set data.synthetic.train_spacecraft=2 ...                                     # a smoke run
-    python -m pipeline.benchmarks.review_value --runs seed42.json seed43.json --figure curve.png  # summarize
+    python -m benchmarks.review_value --runs seed42.json seed43.json --figure curve.png  # summarize
 
 * Data: the synthetic benchmark and its simulated teacher, built by the project's stage commands
-  (:func:`pipeline.benchmarks.study_recipe.build_artifacts`, with the geometry stage for the gates).
+  (:func:`benchmarks.study_recipe.build_artifacts`, with the geometry stage for the gates).
 * Selections of the same k training images: ``combined`` (the ranking ``review export`` ships,
   :data:`pipeline.review.ranking.DEFAULT_RANKING`), ``gate`` (lowest g first) and ``random``
   (``--draws`` draws per seed).  The scores are the ones ``review export`` uses: g from gates.parquet,
@@ -15,7 +15,7 @@ their reference masks (``review.mode: replace``), and the Stage-I student's test
 * The corrections: the images' reference masks replace their voted masks
   (:func:`pipeline.training_inputs.replace_targets`, what the train stage does in replace mode): the
   student is NOT annotation-free.  k = 0 is the Plain Student.
-* Scores: test Image IoU at the calibrated tau (:func:`pipeline.benchmarks.study_recipe.score_run`),
+* Scores: test Image IoU at the calibrated tau (:func:`benchmarks.study_recipe.score_run`),
   Stage I (``plain``), per seed; each selection's gain over k = 0 with a seed-aware interval
   (:func:`pipeline.stats.paired_seed_image_t`, spacecraft fixed), and the ranking minus random.
 
@@ -34,7 +34,7 @@ import numpy as np
 
 from pipeline import catalog
 from pipeline.artifacts import open_artifact
-from pipeline.benchmarks.study_recipe import build_artifacts, score_run
+from benchmarks.study_recipe import build_artifacts, score_run
 from pipeline.inference import predict_probs
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.metrics import image_ious

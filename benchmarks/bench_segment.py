@@ -1,7 +1,7 @@
 """Segmenting a folder end to end against the engine alone, every CPU engine, in one run.
 
-    python -m pipeline.benchmarks.bench_segment                       # 64 photos at 640x480, 384^2 model
-    python -m pipeline.benchmarks.bench_segment --images 200 --engines onnx,openvino_int8
+    python -m benchmarks.bench_segment                       # 64 photos at 640x480, 384^2 model
+    python -m benchmarks.bench_segment --images 200 --engines onnx,openvino_int8
 
 What a user of ``geodistill segment`` waits for is the folder, not the model: decode -> resize to R x R
 -> Z = f(x) -> P back to the photo's size -> M = [P >= tau] (eq:inference-mask) -> PNG.  This script

@@ -1,14 +1,14 @@
 """Teacher speed: seconds per image and the encoder-reuse speed-up of the SAM 3 backend.
 
-    python -m pipeline.benchmarks.bench_teacher                       # tiny random SAM 3 on CPU (no download)
-    python -m pipeline.benchmarks.bench_teacher --size real --device cuda --dtype bf16 --images 8   # GPU, full-size random weights
+    python -m benchmarks.bench_teacher                       # tiny random SAM 3 on CPU (no download)
+    python -m benchmarks.bench_teacher --size real --device cuda --dtype bf16 --images 8   # GPU, full-size random weights
 
 Today's path beside the new one (issue 19 item 4), same run, same images: ``today`` = the former
 params defaults (fp32, 2 images per forward, eager) against ``new`` = ``--dtype`` (default auto: bf16 on
 CUDA, fp32 on a CPU), ``--batch-size`` (default 0 = from free GPU memory) and ``--compile``, with the
 agreement of their answers (mean per-image mask IoU, max score difference; bf16 tolerance on CUDA).
 
-    python -m pipeline.benchmarks.bench_teacher --size real --device cuda --images 16 --compile
+    python -m benchmarks.bench_teacher --size real --device cuda --images 16 --compile
 
 Also measured in the same run: six separate calls per image (vision encoder + heads for each
 prompt, :meth:`Sam3Teacher.predict_one_prompt_at_a_time`) against the backend's path (vision encoder
@@ -22,7 +22,7 @@ jobs, cache writes) into a fresh cache, as the serial loop in this process (the 
 in one run, round robin (the order rotates every repeat), medians and minima of the wall times.  A Ray
 fill includes starting its actor pool (each actor loads the model)::
 
-    python -m pipeline.benchmarks.bench_teacher --ray-workers 1,2 --images 48 --repeats 3
+    python -m benchmarks.bench_teacher --ray-workers 1,2 --images 48 --repeats 3
 """
 
 from __future__ import annotations

@@ -1,16 +1,16 @@
 """Stability benchmark (issue 24 item 1): do the demo's published numbers hold under numerical
 perturbations, and how do they compare with the seed-to-seed spread?
 
-    python -m pipeline.benchmarks.stability                                   # screening: 64², 5 seeds
-    python -m pipeline.benchmarks.stability --resolution 128 --recipes paper stable --seeds 42 3407 2026 7 11
+    python -m benchmarks.stability                                   # screening: 64², 5 seeds
+    python -m benchmarks.stability --resolution 128 --recipes paper stable --seeds 42 3407 2026 7 11
     # the reduced report's own floor: its sizes, 128², its recipe (paper), 20 + 10 epochs
-    python -m pipeline.benchmarks.stability --profile reduced --recipes paper --seeds 42 3407 2026 --jobs 1 \
+    python -m benchmarks.stability --profile reduced --recipes paper --seeds 42 3407 2026 --jobs 1 \
         --noise-floor reports/noise_floor.json
 
 What it does
   1. Data: the ``--profile``'s synthetic benchmark (default: the demo's sizes; ``--profile reduced``
      for the reduced report's 270/60/3x60 images; its simulated teacher is a SIMULATOR), built with
-     the project's stage commands at ``--resolution`` (default: the profile's) (:func:`pipeline.benchmarks.study_recipe.build_artifacts`).
+     the project's stage commands at ``--resolution`` (default: the profile's) (:func:`benchmarks.study_recipe.build_artifacts`).
   2. Runs: for every (recipe, perturbation, seed) the demo's methods in-process --
      ``plain`` (Stage I), then ``geodistill`` and the budget-matched ``continuation`` warm-started
      from that plain model -- with :func:`pipeline.training.train` (the DVC train stage's loop).
@@ -46,7 +46,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from pipeline.artifacts import write_json
-from pipeline.benchmarks import study_recipe as sr
+from benchmarks import study_recipe as sr
 from pipeline.device import autocast_dtype
 from pipeline.environment import cpu
 from pipeline.errors import InputError

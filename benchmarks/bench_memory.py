@@ -1,7 +1,7 @@
 """Memory against N: peak RSS of training epochs, ``label`` and ``prepare`` at N and 10N images (issue 25).
 
-    python -m pipeline.benchmarks.bench_memory                       # N = 24 at 192^2 (train), 64^2 (label)
-    python -m pipeline.benchmarks.bench_memory --n 27 --size 384 --methods plain,geodistill \
+    python -m benchmarks.bench_memory                       # N = 24 at 192^2 (train), 64^2 (label)
+    python -m benchmarks.bench_memory --n 27 --size 384 --methods plain,geodistill \
         --max-batches 12 --check-batches 24 --reps 3 --skip label,prepare,read
 
 Every measurement runs in a fresh Python process (its peak resident set, ``ru_maxrss``, is its own):
@@ -44,7 +44,7 @@ import numpy as np
 
 from pipeline import catalog
 from pipeline.artifacts import make_meta, read_chunk_rows
-from pipeline.benchmarks.bench_train import synthetic_set
+from benchmarks.bench_train import synthetic_set
 from pipeline.datasets.params import check_data_params
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import load_params, section
@@ -180,7 +180,7 @@ def image_folder(root: Path, n: int, size: int) -> Path:
 
 def run_child(*args: str) -> dict:
     """Run this module as ``--child ARGS`` in a fresh process; its JSON result."""
-    proc = subprocess.run([sys.executable, "-m", "pipeline.benchmarks.bench_memory", "--child", *args],
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.bench_memory", "--child", *args],
                           capture_output=True, text=True, cwd=ROOT)
     if proc.returncode != 0:
         raise RuntimeError(f"child {args} failed: {proc.stderr.strip().splitlines()[-1:]}")

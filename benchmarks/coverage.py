@@ -1,6 +1,6 @@
 """Known-truth coverage of the gain intervals in the evaluation's design (docs/intervals.md).
 
-    python -m pipeline.benchmarks.coverage [--replicates 5000] [--resamples 1000] [--seeds 3 5 10]
+    python -m benchmarks.coverage [--replicates 5000] [--resamples 1000] [--seeds 3 5 10]
 
 Simulates one test group as the reports see it: C spacecraft (default 3) x n images each (default 20),
 scored by S seeds of both methods (seeds and images crossed), paired per-image differences

@@ -1,7 +1,7 @@
 """Evaluation speed (issue 19 item 3): per-image metrics and bootstrap gains, old vs new, same run.
 
-    python -m pipeline.benchmarks.bench_evaluate                  # paper protocol: 22 runs x 180 images at 384^2
-    python -m pipeline.benchmarks.bench_evaluate --device cuda    # Boundary-F1 morphology and the student on the GPU
+    python -m benchmarks.bench_evaluate                  # paper protocol: 22 runs x 180 images at 384^2
+    python -m benchmarks.bench_evaluate --device cuda    # Boundary-F1 morphology and the student on the GPU
 
 The ``evaluate`` stage does, per run (method, seed): predict the test images, threshold at two taus
 (calibrated, fixed), score every image (``per_image_metrics``); then seed summaries and the paired
@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from pipeline.benchmarks.bench_geometry import spacecraft_like_masks
+from benchmarks.bench_geometry import spacecraft_like_masks
 from pipeline.geometry import squared_distance
 from pipeline.inference import predict_probs
 from pipeline.methods import BASELINE

@@ -1,6 +1,6 @@
 """Convergence study: where does the student's validation Image IoU plateau?
 
-``python -m pipeline.benchmarks.convergence`` -- by default at 128^2 on the reduced profile's data, for
+``python -m benchmarks.convergence`` -- by default at 128^2 on the reduced profile's data, for
 the Plain Student and the supervised ceiling, one seed.  One run gives every training length: a
 warm-up / stable / decay schedule (``train.schedule: wsd``, :func:`pipeline.training._lr_lambda`)
 whose stable phase does not depend on the run's length, so
@@ -41,7 +41,7 @@ from pipeline.checkpointing import FileCheckpointer
 from pipeline.device import resolve_device
 from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.profiles import load_profile
-from pipeline.benchmarks.study_recipe import build_artifacts, load_study_data, score_run
+from benchmarks.study_recipe import build_artifacts, load_study_data, score_run
 
 #: a doubling of the optimizer steps that gains less validation Image IoU than this is the plateau
 PLATEAU_GAIN = 0.005
