@@ -48,13 +48,14 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
                    thresholds=None, engine: str = AUTO, batch_size: int = 8, save_prob: bool = False,
                    overlay: bool = False, device="auto", params: Mapping | None = None, overwrite: bool = False,
                    skip_bad: bool = False, max_pixels: int | None = None, echo: Callable[[str], None] = _stderr,
-                   workers: int | None = None, bit_depth: str | int | None = None):
+                   workers: int | None = None, bit_depth: str | int | None = None, quiet: bool = False):
     """Segment one image file or a folder (module docstring); the result of
     :func:`pipeline.deploy.segment_files` (``written``, timings).  ``params``: validated params, read
     for ``calibrate.fixed_tau`` only (None: no fixed tau fallback).  ``workers``: reader threads that
     overlap decoding and PNG writing with inference (None: segment_files' default; 0 = the serial
     loop; the same bytes either way).  ``bit_depth`` (``--bit-depth``): how 16-bit frames are read
-    (None: what the bundle records, else auto)."""
+    (None: what the bundle records, else auto).  ``quiet`` (``--quiet``): only warnings, errors and the
+    summary line on ``echo`` (no engine and timing lines)."""
     from pipeline import deploy  # torch
     from pipeline.deploy import files as F
 
@@ -98,7 +99,8 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
         else:
             policy.report(image_id(path), path, reason)
 
-    echo(f"segment: engine {seg.engine}" + (" (auto)" if engine == AUTO else "")
+    info = (lambda line: None) if quiet else echo  # what is neither a warning nor the summary
+    info(f"segment: engine {seg.engine}" + (" (auto)" if engine == AUTO else "")
          + f", {len(files)} image(s), {resolution}px ({res_source}), tau={tau:.4g} ({source})")
     claim_outputs(output, F.relative_outputs(output, stems, suffixes), F.RECORD, "segment",
                   {"input": str(Path(input_path).absolute()), "checkpoint": str(Path(checkpoint).absolute())})
@@ -117,7 +119,7 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
         echo(line)
     if result.written:
         n = len(result.written)
-        echo(f"segment: timing: engine {seg.engine}, {1e3 * result.model_seconds / n:.2f} ms/image in the model, "
+        info(f"segment: timing: engine {seg.engine}, {1e3 * result.model_seconds / n:.2f} ms/image in the model, "
              f"{1e3 * result.total_seconds / n:.2f} ms/image end to end ({n} images, batch {batch_size}, "
              f"{resolution}px)")
     if not result.written:

@@ -24,7 +24,7 @@
               CPU only engines whose masks equal PyTorch's; int8 / openvino_int8 (faster,
               approximate) must be asked for.  A checkpoint directory supports torch and cuda only.  Every engine gets the same
               preprocessed input and the same tau; the engine and its timings are printed on stderr
-              (model ms/image includes the first, warm-up batch).
+              (model ms/image includes the first, warm-up batch; not with --quiet).
 
 tau (pipeline.thresholds.resolve_tau): ``--tau`` > the bundle's deploy.json > the checkpoint's payload >
 its row in ``--thresholds`` (default artifacts/thresholds.parquet when it exists) > ``calibrate.fixed_tau``
@@ -90,7 +90,8 @@ def main(checkpoint, input_path, output, tau, resolution, thresholds, engine, ba
         with quiet_bars(quiet):
             segment_images(checkpoint, input_path, output, tau=tau, resolution=resolution, thresholds=thresholds,
                            engine=engine, batch_size=batch_size, save_prob=save_prob, overlay=overlay, device=device,
-                           params=params, overwrite=overwrite, skip_bad=skip_bad, max_pixels=max_pixels, bit_depth=bit_depth, echo=lambda line: click.echo(line, err=True))
+                           params=params, overwrite=overwrite, skip_bad=skip_bad, max_pixels=max_pixels, bit_depth=bit_depth, quiet=quiet,
+                           echo=lambda line: click.echo(line, err=True))
 
 
 if __name__ == "__main__":

@@ -120,6 +120,10 @@ def test_segment_and_distill_take_quiet_too(tmp_path, console, monkeypatch):
     assert loud.exit_code == quiet.exit_code == 0, loud.output + quiet.output
     assert "%|" in loud.stderr and "segment: wrote 1 mask(s)" in loud.stderr, loud.stderr
     assert "%|" not in quiet.stderr and "segment: wrote 1 mask(s)" in quiet.stderr, quiet.stderr
+    # -q: the summary (and warnings, errors) only -- not the engine and timing lines the default prints
+    assert "segment: engine torch" in loud.stderr and "segment: timing:" in loud.stderr, loud.stderr
+    assert [ln for ln in quiet.stderr.splitlines() if ln.strip()] == [
+        ln.replace("o1", "o2") for ln in loud.stderr.splitlines() if ln.startswith("segment: wrote")], quiet.stderr
     monkeypatch.delenv(QUIET_ENV, raising=False)
     assert QUIET_ENV not in _env("cpu")
     with quiet_bars():
