@@ -24,8 +24,8 @@ The policy -- a command replaces only what it wrote, ``--overwrite`` or not -- i
 * a **folder** in the way that no record of the command claims (the user's ``masks/``) is refused
   unless ``--overwrite``: the user's yes to write the command's files into it;
 * every other file in the output folders is **left in place** -- never deleted, never replaced
-  (``export``, which swaps its bundle folder in whole, refuses a foreign file inside it instead:
-  :func:`refuse_foreign_files`).
+  (``export``, which swaps its bundle folder in whole, and ``review export``, which swaps its
+  ``labelstudio/`` and ``cvat/``, refuse a foreign file inside them instead: :func:`refuse_foreign_files`).
 """
 
 from __future__ import annotations

@@ -280,6 +280,29 @@ def test_export_refuses_files_it_did_not_write(labelled, tmp_path):
     assert res.exit_code == 2 and "not an output folder of geodistill label" in res.output
 
 
+def test_export_refuses_a_users_file_inside_the_folders_it_replaces_whole(labelled, exported, tmp_path):
+    """labelstudio/ and cvat/ are swapped in whole: a file of the user's in one is refused by name before
+    anything runs, --overwrite or not, on a rerun over an earlier export and in a folder without one."""
+    import shutil
+
+    again = tmp_path / "again"
+    shutil.copytree(exported, again)
+    notes = again / "labelstudio" / "my_notes.txt"
+    notes.write_text("mine\n")
+    before = {p: p.read_bytes() for p in again.rglob("*") if p.is_file()}
+    for extra in ((), ("--overwrite",)):
+        res = cli("review", "export", labelled, "--out", again, "--top", 6, *extra)
+        assert res.exit_code == 2 and len(res.output.strip().splitlines()) == 1, res.output
+        assert str(notes) in res.output and "--overwrite" in res.output, res.output
+        assert {p: p.read_bytes() for p in again.rglob("*") if p.is_file()} == before   # nothing ran
+    fresh = tmp_path / "fresh"
+    (fresh / "cvat").mkdir(parents=True)
+    (fresh / "cvat" / "mine.json").write_text("{}")
+    res = cli("review", "export", labelled, "--out", fresh, "--overwrite")
+    assert res.exit_code == 2 and str(fresh / "cvat" / "mine.json") in res.output, res.output
+    assert sorted(p.name for p in fresh.rglob("*")) == ["cvat", "mine.json"]
+
+
 def corrected(m: np.ndarray) -> np.ndarray:
     """A person's correction: the vote plus a block (never empty)."""
     c = m.copy()

@@ -45,7 +45,8 @@ from pipeline.datasets.loading import probs_to_size, read_mask
 from pipeline.errors import OUT, InputError, Option, literal
 from pipeline.labeling.formats import SPACECRAFT_CATEGORY, rle_encode
 from pipeline.labeling.run import OUTPUTS as LABEL_OUTPUTS
-from pipeline.ownership import check_outputs, claim_outputs, read_record, record_fields
+from pipeline.ownership import (check_outputs, claim_outputs, read_record, record_fields,
+                                refuse_foreign_files, signature)
 from pipeline.review.formats import coco_review_annotation, ls_label_config, ls_results
 from pipeline.review.ranking import DEFAULT_RANKING, STUDENT_COLUMN, rank, student_disagreement
 
@@ -59,6 +60,8 @@ LS_SHAPES, COCO_SHAPES = ("brush", "polygon"), ("rle", "polygon")
 OUTPUTS = {"record": "review.json", "csv": "ranked.csv", "labelstudio": "labelstudio", "cvat": "cvat"}
 OWN_OUTPUTS = tuple(v for k, v in OUTPUTS.items() if k != "record")
 LS_TASKS, LS_CONFIG, CVAT_COCO = "tasks.json", "label_config.xml", "instances_default.json"
+#: the files the export writes in each folder of OUTPUTS, which it replaces whole (atomic_path)
+FOLDER_FILES = {OUTPUTS["labelstudio"]: (LS_TASKS, LS_CONFIG), OUTPUTS["cvat"]: (CVAT_COCO,)}
 EXPORT_FIELD = "geodistill_export"   # the task data field naming the export (review import checks it)
 MODEL_VERSION = "geodistill-vote"    # the predictions' model_version in Label Studio
 #: Label Studio's local-files URLs and the two variables that let it serve them (pipeline.review.labelstudio)
@@ -161,6 +164,16 @@ def _check_options(top, ls_shape: str, coco_shape: str) -> None:
         raise InputError(f"{{}}: expected one of {', '.join(COCO_SHAPES)}", COCO_SHAPE(coco_shape))
 
 
+def check_export_outputs(out: Path, overwrite: bool) -> None:
+    """Refuse (InputError, one line) before anything is written: a file of the user's inside a folder
+    the export swaps in whole (``labelstudio/``, ``cvat/``), ``overwrite`` or not, then what else is
+    in the way (:func:`pipeline.ownership.check_outputs`).  ``out``: the export folder."""
+    for folder, files in FOLDER_FILES.items():  # first: --overwrite would not save such a file either
+        refuse_foreign_files(out / folder, files, command=COMMAND, option=OUT, where=out,
+                             why=f"not a file {signature(COMMAND)} writes in {folder}/, which it replaces whole")
+    check_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], COMMAND, overwrite=overwrite, option=OUT)
+
+
 def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = None, ranking: str = DEFAULT_RANKING,
                   ls_shape: str = "brush", coco_shape: str = "rle", image_url: str | None = None,
                   predict: Callable[[Path], np.ndarray] | None = None, overwrite: bool = False) -> ReviewExport:
@@ -173,7 +186,7 @@ def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = N
     _check_options(top, ls_shape, coco_shape)
     label_dir, out = Path(label_dir), Path(out)
     record, table = read_label_folder(label_dir)
-    check_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], COMMAND, overwrite=overwrite, option=OUT)
+    check_export_outputs(out, overwrite)
     sizes = dict(zip(table["image_id"], zip(table["width"].astype(int), table["height"].astype(int))))
     if predict is not None:
         root = Path(record["input"])
@@ -281,7 +294,7 @@ def export_run(manifest, consensus, gates, out: str | Path, *, top: int | None, 
                          f"rerun the consensus stage")
     out = Path(out)
     table = run_table(manifest.df, gates.df, np.asarray(consensus["h"][...]))
-    check_outputs(out, OWN_OUTPUTS, OUTPUTS["record"], COMMAND, overwrite=overwrite, option=OUT)
+    check_export_outputs(out, overwrite)
     row = {iid: i for i, iid in enumerate(manifest.df["image_id"].astype(str))}
     sizes = dict(zip(table["image_id"], zip(table["width"], table["height"])))
 
