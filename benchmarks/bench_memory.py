@@ -50,7 +50,7 @@ from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import load_params, section
 from pipeline.streaming import LazyRows, row_means
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 #: the synthetic view counts prepare scales by --factor (data.synthetic.*)
 PREPARE_VIEWS = ("train_views", "val_views", "test_views")
 

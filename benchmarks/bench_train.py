@@ -97,7 +97,7 @@ def main(argv=None) -> dict:
     data = TrainData(image_ids=[f"b{i}" for i in range(n)], images=images[:n], mask=masks[:n],
                      area=masks[:n].reshape(n, -1).mean(1).astype(np.float32), gate=np.ones(n, np.float32))
     val = ValData(image_ids=[f"v{i}" for i in range(args.val_images)], images=images[n:], masks=masks[n:])
-    base = section(load_params(Path(__file__).resolve().parents[2] / "params.yaml"), "train")
+    base = section(load_params(Path(__file__).resolve().parents[1] / "params.yaml"), "train")
     base.update({"epochs_stage1": args.epochs, "num_threads": 0})
 
     variants = {"fp32 eager NCHW": {**base, "precision": "fp32", "channels_last": False},

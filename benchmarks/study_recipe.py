@@ -57,7 +57,7 @@ from pipeline.profiles import load_profile
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 from pipeline.training_inputs import load_inputs
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[1]
 #: the Stage-I (Plain Student) recipe and the same recipe on reference masks (the supervised ceiling)
 METHODS = (STAGE_ONE, SUPERVISED_CEILING)
 #: targets under this fraction of the frame count as "tiny" (issue 17 item 3's split)
