@@ -59,7 +59,7 @@ test: install
 clean-artifacts:
 	rm -rf artifacts reports/demo
 
-# Opt-in, never in CI: the Label Studio review loop against a real server (pipeline/review/e2e.py):
+# Opt-in, never in CI: the Label Studio review loop against a real server (tools/review_e2e.py):
 # upload through the API with the Local files storage, every image URL fetched, a drawn anti-aliased
 # brush correction back through review import.  label-studio installs into its own venv (it pins
 # packages of its own), at the version last checked (docs/review.md); REVIEW_E2E_ARGS may name a review
@@ -68,4 +68,4 @@ LS_VENV ?= .cache/label-studio-venv
 LS_VERSION ?= 1.23.2
 review-e2e:
 	test -x $(LS_VENV)/bin/label-studio || ($(PYTHON) -m venv $(LS_VENV) && $(LS_VENV)/bin/pip install -q label-studio==$(LS_VERSION))
-	$(BIN)/python -m pipeline.review.e2e --label-studio $(LS_VENV)/bin/label-studio $(REVIEW_E2E_ARGS)
+	$(BIN)/python -m tools.review_e2e --label-studio $(LS_VENV)/bin/label-studio $(REVIEW_E2E_ARGS)

@@ -18,7 +18,7 @@ import hashlib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PROJECT_PACKAGES = ("pipeline", "stages", "benchmarks")
+PROJECT_PACKAGES = ("pipeline", "stages", "benchmarks", "tools")
 
 
 def _module_path(name: str, root: Path = ROOT) -> Path | None:

@@ -143,3 +143,17 @@ def test_bench_cluster_main_reports_nodes_and_the_outputs_that_differ(tmp_path, 
     assert re.match(r"\s+teacher\s+node aaaaaaaa\s+ran$", lines[1]), lines
     assert lines[3] == "outputs equal to the serial dvc repro: 1 of 2; differ: ['train_plain@42:ckpt']"
     assert json.loads(lines[4]) == json.loads(json.dumps(res))
+
+
+def test_simulator_stats_main_on_tiny_artifacts_prints_the_table(tmp_path, capsys):
+    """``python -m benchmarks.simulator_stats`` in-process: the SIMULATOR over 8 drawn 32 px images (no
+    params file: the paper's prompts), its statistics beside the paper's."""
+    from benchmarks import simulator_stats
+    from tests._tiny_teacher import build_artifacts
+
+    build_artifacts(tmp_path, n=8)
+    assert simulator_stats.main(["--artifacts", str(tmp_path), "--params", str(tmp_path / "none.yaml"),
+                                 "--seed", "0"]) == 0
+    out = capsys.readouterr().out
+    assert "teacher SIMULATOR vs paper" in out and "group test, 2 images" in out
+    assert re.search(r"six-prompt vote Image IoU\s+\d\.\d{4}\s+0\.6833", out), out

@@ -67,10 +67,14 @@ LAYERS = (
     ("api", "the Python API of the user tools: label, distill, a standalone project",
      ("pipeline/standalone.py", "pipeline/api.py")),
     ("stages", "the command line: options -> read artifacts -> call the logic -> write", ("stages/",)),
-    ("benchmarks", "measurements; they run the stages as commands, never import them", ("benchmarks/",)),
+    ("benchmarks", "measurements and developer tools; they run the stages as commands, never import them",
+     ("benchmarks/", "tools/")),
 )
 #: the command line, which no file outside it (the library, the benchmarks) imports
 CLI = ("stages/",)
+#: the library's one package whose modules may run as scripts (``if __name__ == "__main__"``): the
+#: command line; every other script is a benchmark or a tool (:data:`LAYERS`)
+LIBRARY_SCRIPTS = ("pipeline/cli/",)
 
 
 def layer_of(rel: str) -> int | None:
@@ -258,3 +262,39 @@ def test_the_layer_check_sees_an_upward_import_the_cli_and_an_unplaced_file(tmp_
         "benchmarks/bench_x.py:1 imports stages.prepare: only the command line imports it (stages/)",
         "pipeline/params.py:2 (core) imports pipeline.api (api, a higher layer)",
         "pipeline/unlisted.py is in no layer: add it to LAYERS in tests/test_imports.py (docs/decisions.md, Layers)"]
+
+
+def _is_main_block(node: ast.AST) -> bool:
+    """``if __name__ == "__main__":`` (either operand order)."""
+    if not (isinstance(node, ast.If) and isinstance(node.test, ast.Compare) and len(node.test.ops) == 1
+            and isinstance(node.test.ops[0], ast.Eq)):
+        return False
+    sides = [node.test.left, *node.test.comparators]
+    return {getattr(s, "id", None) for s in sides} >= {"__name__"} and any(
+        isinstance(s, ast.Constant) and s.value == "__main__" for s in sides)
+
+
+def library_scripts(root: Path = ROOT) -> list[str]:
+    """Each module under pipeline/, outside :data:`LIBRARY_SCRIPTS`, with a ``__main__`` block."""
+    return [f"{rel}:{node.lineno} runs as a script: move it to benchmarks/ or tools/ (the library's only "
+            f"scripts are the command line, {', '.join(LIBRARY_SCRIPTS)})"
+            for path in sorted((root / "pipeline").rglob("*.py"))
+            if not (rel := path.relative_to(root).as_posix()).startswith(LIBRARY_SCRIPTS)
+            for node in ast.parse(path.read_text(), filename=str(path)).body if _is_main_block(node)]
+
+
+def test_no_module_of_the_library_but_the_command_line_runs_as_a_script():
+    bad = library_scripts()
+    assert not bad, "\n".join(bad)
+
+
+def test_the_script_check_sees_a_main_block_in_the_library_only(tmp_path):
+    main = 'if __name__ == "__main__":\n    main()\n'
+    files = {"pipeline/__init__.py": "", "pipeline/tool.py": "def main(): ...\n" + main,
+             "pipeline/flipped.py": "if '__main__' == __name__:\n    pass\n",
+             "pipeline/name_only.py": "if __name__ == 'pipeline.name_only':\n    pass\n",
+             "pipeline/cli/__init__.py": main, "benchmarks/bench_x.py": main}
+    for rel, text in files.items():
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(text)
+    assert [line.split(" ")[0] for line in library_scripts(tmp_path)] == ["pipeline/flipped.py:1", "pipeline/tool.py:2"]

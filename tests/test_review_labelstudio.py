@@ -18,7 +18,7 @@ import pytest
 
 from pipeline.errors import InputError
 from pipeline.review.corrections import coco_decode, correction_masks, import_corrections, read_review
-from pipeline.review.e2e import drawn_stroke, stroke_result, synthetic_export
+from tools.review_e2e import drawn_stroke, stroke_result, synthetic_export
 from pipeline.review.formats import ls_rle_decode
 from pipeline.review.export import LOCAL_FILES_URL, local_files_layout, local_files_url
 from pipeline.review.labelstudio import STORAGE_API, Client, upload_review

@@ -74,6 +74,18 @@ def test_pinned_train_threads_read_from_params(tmp_path):
     assert pinned_train_threads(tmp_path) == 0
 
 
+def test_the_guard_runs_a_command_as_python_c_and_returns_its_exit_code():
+    """pipeline.cluster.guard.command: CMD runs under the guard (``python -c``, no script in the library);
+    the guard's exit code is CMD's; a malformed command line is the usage line and exit 2."""
+    from pipeline.cluster import guard
+
+    r = subprocess.run(guard.command(os.getpid(), [sys.executable, "-c", "print('ran'); raise SystemExit(3)"]),
+                       capture_output=True, text=True, start_new_session=True, timeout=60)
+    assert (r.returncode, r.stdout.strip()) == (3, "ran")
+    r = subprocess.run([sys.executable, "-c", guard.ENTRY, "1"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "usage" in r.stderr
+
+
 def test_stage_resources_follow_the_cluster():
     gpu = plan.Sizing(node_cpus=16, gpus=2, stage_cpus=4, train_gpu_fraction=0.25)
     assert plan.stage_resources("teacher", gpu) == {"num_cpus": 1.0, "num_gpus": 1.0}

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Callable
 
 from pipeline import catalog
-from pipeline.cluster import plan
+from pipeline.cluster import guard, plan
 from pipeline.environment import THREAD_ENV_VARS
 from pipeline.errors import InputError
 from pipeline.params import DEFAULT_PARAMS, read_yaml_mapping
@@ -115,8 +115,7 @@ def run_stage(root: str, stage: str, extra_env: dict, threads: int, gpus: float,
     failed = [u["stage"] for u in upstream if u["status"] in ("failed", "not_run")]
     if failed:
         return {"stage": stage, "status": "not_run", "error": f"upstream {', '.join(failed)} did not run"}
-    cmd = [sys.executable, "-m", "pipeline.cluster.guard", str(os.getpid()), "--",
-           sys.executable, "-m", "dvc", "--wait-for-lock", "repro", "--single-item", stage]
+    cmd = guard.command(os.getpid(), [sys.executable, "-m", "dvc", "--wait-for-lock", "repro", "--single-item", stage])
     start = time.time() - t0
     Path(log_path).parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "w") as log:

@@ -1,5 +1,5 @@
-"""``python -m pipeline.cluster.guard PARENT_PID -- CMD ...``: run CMD; its whole process group dies
-with PARENT_PID.
+"""Run CMD so that its whole process group dies with PARENT_PID: :func:`command` is the command line
+(``python -c`` calling :func:`main`; the library runs no module as a script).
 
 A Ray task starts the guard as the leader of a new process group (``start_new_session``); the guard
 starts CMD (``dvc repro``, which starts the stage's shell and Python) in that group.  Two ways the
@@ -61,11 +61,20 @@ def watchdog(guard_pid: int) -> int:
         os._exit(0)
 
 
+#: the guard's entry, run by :func:`command` as ``python -c``
+ENTRY = "import sys; from pipeline.cluster.guard import main; sys.exit(main())"
+
+
+def command(parent_pid: int, cmd: list[str]) -> list[str]:
+    """The command line that runs ``cmd`` under the guard, its group dying with ``parent_pid``."""
+    return [sys.executable, "-c", ENTRY, str(parent_pid), "--", *cmd]
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``argv = [PARENT_PID, "--", CMD...]`` under the guard; its exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if len(argv) < 3 or argv[1] != "--":
-        print("usage: python -m pipeline.cluster.guard PARENT_PID -- CMD ...", file=sys.stderr)
+        print(f"usage: python -c {ENTRY!r} PARENT_PID -- CMD ...", file=sys.stderr)
         return 2
     parent, cmd = int(argv[0]), argv[2:]
     for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
@@ -80,6 +89,3 @@ def main(argv: list[str] | None = None) -> int:
         os.kill(dog, signal.SIGKILL)
         os.waitpid(dog, 0)
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -27,7 +27,7 @@ What it simulates (eq:teacher-prediction: one mask and one score per image and p
     can still remain");
   * a score that loosely tracks the answer's quality (IoU with the ground truth) plus noise.
 
-Calibration (``python -m pipeline.teachers.simulator_stats``): on a synthetic test group the mean
+Calibration (``python -m benchmarks.simulator_stats``): on a synthetic test group the mean
 single-prompt Image IoU should sit near 0.35 with a spread across prompts near 0.24, the best
 (validation-selected) prompt near 0.57, the six-prompt vote near 0.68 (paper, table
 teacher-prompt-quality), and ~30 % of images should get gate 0 with far lower teacher IoU (table

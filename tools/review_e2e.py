@@ -5,7 +5,7 @@ through its HTTP API (project, Local files storage connection, tasks:
 with the file, draw a correction on every task, export the project as JSON and read it back with
 ``review import`` (:func:`pipeline.review.corrections.import_corrections`).
 
-    python -m pipeline.review.e2e --label-studio /path/to/venv/bin/label-studio [--review DIR] [--keep]
+    python -m tools.review_e2e --label-studio /path/to/venv/bin/label-studio [--review DIR] [--keep]
 
 The correction is drawn as Label Studio's editor draws a brush stroke: an anti-aliased round-capped
 line (``cv2.line``, ``LINE_AA``) whose soft alpha is copied into R, G and B and packed as rle-pack

@@ -1,7 +1,7 @@
 """How close is the teacher SIMULATOR to the paper's real SAM 3 teacher?  Prints both side by side.
 
-    python -m pipeline.teachers.simulator_stats --artifacts artifacts            # uses teacher.zarr if present
-    python -m pipeline.teachers.simulator_stats --artifacts /tmp/data --group KCP --seed 0
+    python -m benchmarks.simulator_stats --artifacts artifacts            # uses teacher.zarr if present
+    python -m benchmarks.simulator_stats --artifacts /tmp/data --group KCP --seed 0
 
 Paper targets (SpaceSense-Bench KCP; tables teacher-prompt-quality and gate-groups):
 
