@@ -393,7 +393,8 @@ def method_lr(method: Method, cfg: Mapping[str, Any]) -> float:
 COMMON_KEYS = ("channels", "norm", "bn_momentum", "precise_bn", "batch_size", "weight_decay", "schedule",
                "dice_weight", "pos_weight_max", "loss_eps", "recipe", "precision", "warmup_epochs", "average_last",
                "channels_last", "augment_hflip", "num_threads", "val_bf1_tolerance",
-               "decay_fraction", "augment", "augmentation")
+               "decay_fraction", "augment", "augmentation", "ema_decay", "soft_targets", "until", "step_budget",
+               "time_budget", "plateau_gain", "plateau_min_epochs", "holdout_fraction")
 #: extra train params per loss term (eq:refine-loss and the baselines' terms).
 TERM_KEYS = {
     "region": (),

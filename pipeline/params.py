@@ -248,15 +248,15 @@ class AdaptiveParams(_Section):
 RECIPES: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4,
                         "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False,
-                        "ema_decay": 0.0, "soft_targets": False},
+                        "ema_decay": 0.0, "soft_targets": False, "until": "epochs"},
               "calibrate": {"tau_rule": "argmax"}},
     "stable": {"train": {"precision": "fp32", "warmup_epochs": 0, "average_last": 5, "batch_size": 4,
                          "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False,
-                         "ema_decay": 0.0, "soft_targets": False},
+                         "ema_decay": 0.0, "soft_targets": False, "until": "epochs"},
                "calibrate": {"tau_rule": "smooth"}},
     "strong": {"train": {"precision": "fp32", "warmup_epochs": 2, "average_last": 4, "batch_size": 8,
                          "epochs_stage1": 80, "epochs_stage2": 20, "schedule": "wsd", "augment": True,
-                         "ema_decay": 0.0, "soft_targets": False},
+                         "ema_decay": 0.0, "soft_targets": False, "until": "epochs"},
                "calibrate": {"tau_rule": "smooth"}},
 }
 
@@ -360,6 +360,19 @@ class TrainParams(_Section):
     soft_targets: bool | None = _f(None, "recipe part: the region target is the agreement map A "
                                          "(eq:agreement-map) instead of the voted mask M^T in eq:raw-loss -- "
                                          "a departure from the paper, named in every table")
+    until: Literal["epochs", "plateau"] | None = _f(
+        None, "recipe part, Stage I: epochs = train epochs_stage1 epochs | plateau = stop the stable phase when "
+              "the validation IoU stops improving (train.plateau_gain) or the step budget is spent, then decay "
+              "(docs/student.md); epochs_stage1 caps the run")
+    step_budget: int = _f(0, "Stage I with until: plateau: optimizer steps at most, warm-up and decay included "
+                             "(0 = none; distill --time writes it)", ge=0)
+    time_budget: str | None = _f(None, "what distill --time converted into train.step_budget (a record; not read "
+                                       "by training)")
+    plateau_gain: float = _f(0.005, "until: plateau: the stable phase stops when its second half gains less "
+                                    "than this validation Image IoU over its first half", ge=0)
+    plateau_min_epochs: int = _f(8, "until: plateau: stable epochs before the rule may stop", ge=2)
+    holdout_fraction: float = _f(0.1, "until: plateau without validation masks: share of the pseudo-labelled "
+                                      "training images held out and scored against their vote", gt=0, lt=1)
     channels_last: bool = _f(True)
     augment_hflip: bool = _f(False, "the paper states no augmentation")
     augment: bool | None = _f(None, "recipe part: target-consistent augmentation (train.augmentation; "

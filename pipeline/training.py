@@ -90,6 +90,9 @@ LOG_COLUMNS = ("epoch", "stage", "loss", *LOG_TERMS, "val_iou", "val_bf1", "val_
 #: wall-clock columns: kept out of the log (a checkpoint must be byte-identical on a rerun under
 #: SOURCE_DATE_EPOCH) and returned as ``TrainResult.timings`` for a separate, non-fingerprinted file
 TIMING_COLUMNS = ("epoch", "seconds")
+#: params that only bound a ``train.until: plateau`` run: a run under another budget continues from the same
+#: resume state (its folder's key leaves them out; stages/train.py)
+BUDGET_PARAMS = ("train.step_budget", "train.time_budget")
 STATE_VERSION = 1
 
 
@@ -368,6 +371,11 @@ class Settings:
     decay_fraction: float = 0.2  # schedule wsd: share of the steps in the decay phase (train.decay_fraction)
     augment: AugmentSpec | None = None  # target-consistent augmentation (train.augment; None = off)
     ema_decay: float = 0.0  # final model = EMA of the weights (train.ema_decay; 0 = off)
+    until: str = "epochs"  # Stage I: the fixed length, or stop at the plateau (train.until)
+    step_budget: int = 0  # until plateau: optimizer steps at most (train.step_budget; 0 = none)
+    plateau_gain: float = 0.005  # until plateau: the stopping rule's gain (train.plateau_gain)
+    plateau_min_epochs: int = 8  # until plateau: stable epochs before the rule may stop
+    holdout_fraction: float = 0.1  # until plateau without validation masks: pseudo-labelled share held out
 
     @classmethod
     def from_params(cls, method: Method, cfg: Mapping[str, Any], selection_tau: float) -> "Settings":
@@ -384,7 +392,11 @@ class Settings:
                    precise_bn=bool(cfg["precise_bn"]), warmup_epochs=int(cfg["warmup_epochs"]),
                    average_last=int(cfg["average_last"]), decay_fraction=float(cfg.get("decay_fraction", 0.2)),
                    augment=AugmentSpec.from_params(cfg["augmentation"]) if cfg.get("augment") else None,
-                   ema_decay=float(cfg.get("ema_decay") or 0.0))
+                   ema_decay=float(cfg.get("ema_decay") or 0.0),
+                   until=str(cfg.get("until") or "epochs") if method.stage == 1 else "epochs",
+                   step_budget=int(cfg.get("step_budget") or 0), plateau_gain=float(cfg.get("plateau_gain", 0.005)),
+                   plateau_min_epochs=int(cfg.get("plateau_min_epochs", 8)),
+                   holdout_fraction=float(cfg.get("holdout_fraction", 0.1)))
 
 
 class Checkpointer(Protocol):
@@ -613,6 +625,11 @@ class _Run:
     avg: dict | None = None
     #: exponential moving average of the parameters (``train.ema_decay`` > 0), on the run's device
     ema: list | None = None
+    #: ``train.until: plateau``: {"stable_end": the last stable epoch or None, "epochs": the run's length
+    #: so far, "reason": why the stable phase stopped}; None = the fixed length
+    until: dict | None = None
+    #: the full state at the end of the stable phase (until plateau): a larger budget continues from it
+    stable_state: dict | None = None
     #: the run's scratch directory (streamed anchors), removed when :func:`train` returns
     scratch: tempfile.TemporaryDirectory | None = None
     #: the geometry constants of the training data's SDF/skeleton (augmented rescales recompute them)
@@ -621,6 +638,11 @@ class _Run:
     @property
     def steps_per_epoch(self) -> int:
         return max(1, math.ceil(self.n_train / self.settings.batch_size))
+
+    @property
+    def epochs(self) -> int:
+        """The run's length: ``train.epochs_*``, or (until plateau) the stable phase plus its decay."""
+        return self.until["epochs"] if self.until is not None else self.settings.epochs
 
 
 def _autocast(device: torch.device, dtype):
@@ -656,6 +678,7 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
     # the effective numerics are part of the key: a state saved under another thread count or autocast
     # dtype (``precision: auto`` resolves per host) is not resumed
     run_key = {"method": method.name, "seed": int(seed), "epochs": s.epochs, "n_train": len(data),
+               **({"until": s.until, "step_budget": s.step_budget} if s.until != "epochs" else {}),
                "train_ids": list(data.image_ids), "num_threads": int(torch.get_num_threads()),
                "autocast": str(amp).replace("torch.", "") if amp is not None else "fp32"}
     run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,
@@ -664,9 +687,76 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
     if s.ema_decay > 0:
         run.ema = [p.detach().clone() for p in model.parameters()]
     total = s.epochs * run.steps_per_epoch
-    run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(s.schedule, total, s.warmup_epochs * run.steps_per_epoch,
-                                                                  decay_steps(total, s.decay_fraction)))
+    if s.until == "plateau":
+        run.until = {"stable_end": None, "epochs": stable_cap(s, run.steps_per_epoch), "reason": None}
+        run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _until_lambda(run))
+    else:
+        run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(s.schedule, total, s.warmup_epochs * run.steps_per_epoch,
+                                                                      decay_steps(total, s.decay_fraction)))
     return run
+
+
+def decay_epochs(stable: int, fraction: float) -> int:
+    """Epochs of the decay after ``stable`` stable-phase epochs: the decay is ``fraction`` of the whole run,
+    D = max(1, round(E f / (1 - f)))."""
+    return max(1, int(round(stable * fraction / (1.0 - fraction))))
+
+
+def stable_cap(s: Settings, steps_per_epoch: int) -> int:
+    """The most stable-phase epochs E of a ``train.until: plateau`` run: E + D(E) <= ``epochs_stage1`` and,
+    with a step budget B, (E + D(E)) x steps per epoch <= B (at least one epoch)."""
+    best = 1
+    for e in range(1, s.epochs + 1):
+        total = e + decay_epochs(e, s.decay_fraction)
+        if total > s.epochs or (s.step_budget and total * steps_per_epoch > s.step_budget):
+            break
+        best = e
+    return best
+
+
+def plateau_reached(scores: list[float], gain: float, min_epochs: int) -> bool:
+    """The stopping rule of ``train.until: plateau`` (docs/student.md) on the stable phase's validation IoU
+    per epoch: after E >= ``min_epochs`` epochs, stop when the best of epochs (E/2, E] beats the best of
+    epochs [1, E/2] by less than ``gain`` -- the last doubling of the optimizer steps gained less than
+    ``gain``, the convergence study's plateau (benchmarks.convergence) on one running curve."""
+    e = len(scores)
+    if e < max(2, int(min_epochs)) or not all(math.isfinite(v) for v in scores):
+        return False
+    half = e // 2
+    return max(scores[half:]) - max(scores[:half]) < gain
+
+
+def _until_lambda(run: _Run) -> Callable[[int], float]:
+    """Learning-rate factor of step ``step`` under ``train.until: plateau``: the warm-up, 1 through the stable
+    phase, then linear to 0 over the decay that follows the stop (``run.until``, read at every step)."""
+    spe, warm = run.steps_per_epoch, run.settings.warmup_epochs * run.steps_per_epoch
+
+    def factor(step: int) -> float:
+        w = min(1.0, (step + 1) / warm) if warm > 0 else 1.0
+        end = run.until["stable_end"]
+        if end is None:
+            return w
+        total, start = run.until["epochs"] * spe, end * spe
+        return w * min(1.0, max(0, total - step) / max(total - start, 1))
+
+    return factor
+
+
+def _stop_stable(run: _Run, epoch: int) -> None:
+    """After stable epoch ``epoch`` (until plateau): stop at the plateau or the cap, keep the stable state,
+    and schedule the decay."""
+    u, s = run.until, run.settings
+    scores = [r["val_iou_cal"] for r in run.rows if r["epoch"] >= 1]
+    if plateau_reached(scores, s.plateau_gain, s.plateau_min_epochs):
+        u["reason"] = f"plateau: the last doubling gained less than {s.plateau_gain:g} validation IoU"
+    elif epoch >= u["epochs"]:
+        budget = s.step_budget and (epoch + 1 + decay_epochs(epoch + 1, s.decay_fraction)) * run.steps_per_epoch \
+            > s.step_budget
+        u["reason"] = "the step budget (train.step_budget)" if budget else "the epochs cap (train.epochs_stage1)"
+    else:
+        return
+    run.stable_state = _state(run, epoch)
+    u["stable_end"], u["epochs"] = epoch, epoch + decay_epochs(epoch, s.decay_fraction)
 
 
 #: images per forward pass of the frozen Stage-I model: the training batch of the paper (4), so the anchor
@@ -701,19 +791,43 @@ def _resume(run: _Run, checkpointer: Checkpointer) -> int:
     state = checkpointer.load(run.run_key)
     if state is None:
         return 1
-    if state.get("version") != STATE_VERSION or state.get("run_key") != run.run_key:
-        log.warning("ignoring resume state from a different run (%s)", checkpointer)
+    if state.get("version") != STATE_VERSION:
         return 1
+    if state.get("run_key") != run.run_key:
+        state = _continued(run, state)
+        if state is None:
+            log.warning("ignoring resume state from a different run (%s)", checkpointer)
+            return 1
     run.model.load_state_dict(state["model"])
     run.opt.load_state_dict(state["optimizer"])
     run.sched.load_state_dict(state["scheduler"])
     torch.set_rng_state(state["torch_rng"])
     run.rows, run.best = list(state["log"]), state["best"]
     run.avg = state.get("avg")
+    if run.until is not None and state.get("until") is not None:
+        run.until.update(state["until"])
+        run.stable_state = state.get("stable_state")
     if run.ema is not None and state.get("ema") is not None:
         run.ema = [t.to(run.device) for t in state["ema"]]
     log.info("resuming %s seed %s after epoch %d from %s", run.method.name, run.seed, state["epoch"], checkpointer)
     return int(state["epoch"]) + 1
+
+
+def _continued(run: _Run, state: dict) -> dict | None:
+    """A state of the same until-plateau run under another step budget, as this run resumes it: a run the
+    budget stopped continues its stable phase from the saved stable state; one the plateau stopped is
+    finished; anything else None (not this run)."""
+    key = {k: v for k, v in state.get("run_key", {}).items() if k != "step_budget"}
+    if run.until is None or key != {k: v for k, v in run.run_key.items() if k != "step_budget"}:
+        return None
+    u = state.get("until") or {}
+    if str(u.get("reason", "")).startswith("plateau"):
+        return {**state, "run_key": run.run_key}
+    stable = state.get("stable_state")
+    if stable is None or stable["epoch"] >= stable_cap(run.settings, run.steps_per_epoch):
+        return None  # a smaller budget: train again
+    return {**stable, "run_key": run.run_key, "until": {"stable_end": None, "reason": None,
+                                                        "epochs": stable_cap(run.settings, run.steps_per_epoch)}}
 
 
 def _state(run: _Run, epoch: int) -> dict:
@@ -722,7 +836,8 @@ def _state(run: _Run, epoch: int) -> dict:
             "optimizer": copy.deepcopy(run.opt.state_dict()), "scheduler": run.sched.state_dict(),
             "torch_rng": torch.get_rng_state(), "log": run.rows, "best": run.best,
             **({"avg": run.avg} if run.avg is not None else {}),
-            **({"ema": [t.detach().to("cpu", copy=True) for t in run.ema]} if run.ema is not None else {})}
+            **({"ema": [t.detach().to("cpu", copy=True) for t in run.ema]} if run.ema is not None else {}),
+            **({"until": dict(run.until), "stable_state": run.stable_state} if run.until is not None else {})}
 
 
 def select(best: dict | None, plan: Plan, val: ValData | None, epoch: int, row: Mapping, model,
@@ -763,7 +878,9 @@ def _average(run: _Run, epoch: int) -> None:
     running mean when ``epoch`` is one of the last K (SWA-style; with the cosine schedule the last
     epochs move little, so their mean is a low-noise point that needs no argmax over epochs)."""
     k = run.settings.average_last
-    if k > 0 and epoch > run.settings.epochs - k:
+    if run.until is not None and run.until["stable_end"] is None:
+        return  # until plateau: only the decay's epochs are averaged (the run's end is not known before)
+    if k > 0 and epoch > run.epochs - k:
         run.avg = average_update(run.avg, run.model.state_dict())
 
 
@@ -902,11 +1019,11 @@ def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainRe
             for p, e in zip(run.model.parameters(), run.ema):
                 p.copy_(e)
         _precise_bn(run)
-        run.best = {"epoch": run.settings.epochs, "score": None, "state": None}
+        run.best = {"epoch": run.epochs, "score": None, "state": None}
     elif run.avg is not None:  # train.average_last: the averaged weights, BN statistics recomputed for them
         run.model.load_state_dict(run.avg["state"])
         _precise_bn(run)
-        run.best = {"epoch": run.settings.epochs, "score": None, "state": None}
+        run.best = {"epoch": run.epochs, "score": None, "state": None}
     else:
         run.model.load_state_dict(run.best["state"])
     model = run.model.to("cpu").to(memory_format=torch.contiguous_format).eval()
@@ -916,10 +1033,13 @@ def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainRe
         selection = f"moving average of the weights, decay {s.ema_decay:g} per step (BN statistics recomputed)"
     elif run.avg is not None:
         selection = f"mean weights of the last {run.avg['n']} epochs (BN statistics recomputed)"
-    info = {"selected_epoch": int(run.best["epoch"]), "selection": selection, "epochs": s.epochs, "lr": s.lr,
+    info = {"selected_epoch": int(run.best["epoch"]), "selection": selection, "epochs": run.epochs, "lr": s.lr,
+            "steps_run": int(run.epochs * run.steps_per_epoch),
             "mode": plan.mode, "loss_weights": dict(plan.weights), "epoch0_eligible": plan.epoch0_eligible,
             "autocast": str(run.amp).replace("torch.", "") if run.amp is not None else "fp32",
             "channels_last": s.channels_last, **stats}
+    if run.until is not None:
+        info.update(stable_epochs=run.until["stable_end"], stopped=run.until["reason"])
     return TrainResult(model=model, log=pd.DataFrame(run.rows, columns=list(LOG_COLUMNS)),
                        selected_epoch=int(run.best["epoch"]), info=info,
                        timings=[{k: r[k] for k in TIMING_COLUMNS} for r in run.rows])
@@ -945,6 +1065,8 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
     if s.num_threads > 0:
         torch.set_num_threads(s.num_threads)
     plan = resolve_plan(method, cfg, data.stats.get("confidence_pass_ratio"))
+    if s.until == "plateau" and not _has_val(val):
+        data, val = holdout(data, s.holdout_fraction)
     run = _setup(method, cfg, s, plan, data, seed, init_state, device)
     try:
         return _train_run(run, val, checkpointer, callback, show_progress, data.stats)
@@ -953,25 +1075,55 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
             run.scratch.cleanup()
 
 
+def holdout(data: TrainData, fraction: float) -> tuple[TrainData, ValData | None]:
+    """Without validation masks, the plateau rule scores a held-out ``fraction`` of the pseudo-labelled
+    training images against their vote (evenly spaced in manifest order, at least 2, at most half):
+    (the rest to train on, those as :class:`ValData` whose masks are the vote M^T, or A >= 0.5 for soft
+    targets).  Fewer than 8 images: nothing is held out and the rule has nothing to score (None)."""
+    n = len(data)
+    if n < 8:
+        return data, None
+    k = min(n // 2, max(2, int(round(fraction * n))))
+    held = np.unique(np.linspace(0, n - 1, k).round().astype(int))
+    rest = np.setdiff1d(np.arange(n), held)
+    masks = np.asarray(data.mask[held])
+    val = ValData([f"holdout:{data.image_ids[i]}" for i in held], np.asarray(data.images[held]),
+                  masks >= 0.5 if masks.dtype.kind == "f" else masks.astype(bool))
+    sub = dataclasses.replace(
+        data, image_ids=[data.image_ids[i] for i in rest], images=select_rows(data.images, rest),
+        mask=select_rows(data.mask, rest), area=data.area[rest], gate=data.gate[rest],
+        sdf=None if data.sdf is None else select_rows(data.sdf, rest),
+        skeleton=None if data.skeleton is None else select_rows(data.skeleton, rest),
+        stats={**data.stats, "plateau_scored_on": f"{len(held)} held-out pseudo-labelled training images "
+                                                  "against their vote (no validation masks)"})
+    return sub, val
+
+
 def _train_run(run: _Run, val: ValData | None, checkpointer: Checkpointer,
                callback: Callable[[int, dict], None] | None, show_progress: bool, stats: Mapping[str, Any]) -> TrainResult:
     """:func:`train` after the setup: resume, the warm-start row, the epochs, the selected result."""
-    method, plan, s, seed = run.method, run.plan, run.settings, run.seed
+    method, plan, seed = run.method, run.plan, run.seed
     start = _resume(run, checkpointer)
     if start == 1 and not run.rows and method.init == "stage1":
         row = _warm_start_row(run, val)
         run.rows.append(row)
         run.best = select(run.best, plan, val, 0, row, run.model, plan.epoch0_eligible)
-    total = (s.epochs - start + 1) * run.steps_per_epoch
+    total = (run.epochs - start + 1) * run.steps_per_epoch
     bar = progress(total=total, desc=f"train {method.name} s{seed}") if show_progress and total > 0 else None
-    for epoch in range(start, s.epochs + 1):
+    epoch = start
+    while epoch <= run.epochs:
         row = _train_epoch(run, epoch, val, bar)
         run.rows.append(row)
-        run.best = select(run.best, plan, val, epoch, row, run.model, plan.select == "best_val" or epoch == s.epochs)
+        if run.until is not None and run.until["stable_end"] is None:
+            _stop_stable(run, epoch)
+            if bar is not None:  # the ETA follows the run's length once the decay is scheduled
+                bar.total = bar.n + (run.epochs - epoch) * run.steps_per_epoch
+        run.best = select(run.best, plan, val, epoch, row, run.model, plan.select == "best_val" or epoch == run.epochs)
         _average(run, epoch)
         checkpointer.save(_state(run, epoch))
         if callback is not None:
             callback(epoch, row)
+        epoch += 1
     if bar is not None:
         bar.close()
     return _result(run, val, stats)

@@ -108,11 +108,15 @@ def train_seed(m: MethodInputs, params: dict, device: str, seed: int, artifacts:
             raise InputError(f"--init missing: method {method!r} warm-starts from a Stage-I checkpoint")
         init_state, init_art = load_init(init)
         inputs.append(init_art)
-    meta = m.context.meta(
-        "checkpoint", inputs, params={"params": fingerprint_params(spec, params), "method": method, "seed": seed,
-                                      "stage": m.stage}, **m.data.stats)
+    fp = fingerprint_params(spec, params)
+    meta = m.context.meta("checkpoint", inputs, params={"params": fp, "method": method, "seed": seed,
+                                                        "stage": m.stage}, **m.data.stats)
+    # the resume folder's key leaves the budget out: a larger train.step_budget continues the same run
+    resume = m.context.meta("checkpoint", inputs, params={
+        "params": {k: v for k, v in fp.items() if k not in training.BUDGET_PARAMS}, "method": method,
+        "seed": seed, "stage": m.stage}, **m.data.stats).fingerprint
     result = training.train(spec, m.cfg, m.data, m.val, seed, init_state=init_state, device=resolve_device(device),
-                            checkpointer=FileCheckpointer(Path(resume_dir) / meta.fingerprint),
+                            checkpointer=FileCheckpointer(Path(resume_dir) / resume),
                             selection_tau=get_path(params, SELECTION_TAU_KEY))
     meta.extra.update(result.info)  # info["autocast"]: the precision actually used
     meta.extra["runtime"] = training_runtime(resolve_device(device))  # provenance, not fingerprinted
@@ -125,8 +129,10 @@ def train_seed(m: MethodInputs, params: dict, device: str, seed: int, artifacts:
     # wall clock beside, not inside, the checkpoint: the checkpoint is byte-identical on a rerun
     write_json(catalog.path("train_timings", artifacts, method=method, seed=seed),
                {"method": method, "seed": seed, "device": str(resolve_device(device)), "epochs": result.timings})
+    stopped = f", {result.info['steps_run']} steps, stopped at {result.info['stopped']}" \
+        if result.info.get("stopped") else ""
     click.echo(f"train: {method} seed {seed}: selected epoch {result.selected_epoch} "
-               f"({result.info['selection']}); wrote {out}", err=True)
+               f"({result.info['selection']}{stopped}); wrote {out}", err=True)
     return Path(out)
 
 
