@@ -8,23 +8,23 @@
 
 Both stream blocks of images, so memory is flat in N; the block size changes nothing in the results.
 Each takes opened artifacts and ``meta(schema)``, the stamp of each output (the stage's provenance).
+``geodistill label`` (:mod:`pipeline.labeling.run`) calls the same :func:`vote_block` and
+:func:`reliability_gates` on a folder, so its masks and gates are the DAG's.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, NamedTuple
 
 import numpy as np
 import pandas as pd
 
 from pipeline.artifacts import Meta, ZarrWriter, write_parquet
-from pipeline.consensus import vote_batch
+from pipeline.consensus import Consensus, agreement_entropy, vote_batch
 from pipeline.errors import InputError
-from pipeline.geometry import (GateFactors, NoForeground, foreground_agreement, image_gates, median_area,
-                               pseudo_targets)
+from pipeline.geometry import GateFactors, NoForeground, foreground_agreement, image_gates, median_area, pseudo_targets
 from pipeline.progress import progress
-from pipeline.consensus import agreement_entropy
 
 
 # --------------------------------------------------------------------------------------------------
@@ -47,6 +47,17 @@ def check_teacher(teacher) -> tuple[int, int, int, int]:
     return n, k, h, w
 
 
+def vote_block(masks: np.ndarray, scores: np.ndarray, threshold: float) -> tuple[Consensus, np.ndarray]:
+    """The vote of a block of images and its prompt disagreement: A, M = [A >= threshold]
+    (eq:agreement-map, eq:majority-vote) and H_i (:func:`pipeline.consensus.agreement_entropy`, of the
+    float32 map consensus.zarr stores).
+
+    ``masks`` bool [N,K,H,W], ``scores`` float [N,K], ``threshold`` ``consensus.vote_threshold``;
+    returns (Consensus with [N,...] fields, h float64 [N])."""
+    c = vote_batch(masks, scores, threshold)
+    return c, agreement_entropy(c.agreement)
+
+
 def write_consensus(teacher, threshold: float, out: str | Path, meta: Callable[[str], Meta],
                     chunk_images: int = 32) -> None:
     """consensus.zarr from the opened teacher artifact: the vote at ``threshold`` (``consensus.vote_threshold``)."""
@@ -59,11 +70,10 @@ def write_consensus(teacher, threshold: float, out: str | Path, meta: Callable[[
         for s in progress(range(0, n, chunk_images), desc="consensus", total=-(-n // chunk_images)):
             e = min(s + chunk_images, n)
             try:
-                c = vote_batch(teacher["masks"][s:e], teacher["scores"][s:e], threshold)
+                c, h = vote_block(teacher["masks"][s:e], teacher["scores"][s:e], threshold)
             except InputError as err:
                 raise InputError(f"{teacher.path} (images {s}..{e - 1}): {err}") from None
             n_valid = c.n_valid
-            h = agreement_entropy(c.agreement)   # of the stored float32 map, as label computes it
             for j in range(e - s):
                 wr.write("agreement", s + j, c.agreement[j])
                 wr.write("voted", s + j, c.voted[j])
@@ -96,14 +106,43 @@ def check_consensus(cons, manifest, n_prompts: int) -> tuple[int, int, int]:
     return n, h, w
 
 
-def gate_table(image_ids: np.ndarray, split: np.ndarray, c: np.ndarray, v: np.ndarray, a: np.ndarray, a0: float,
-               gates: GateFactors, n_valid: np.ndarray) -> pd.DataFrame:
-    """The gates table, one row per image: c, v, a, a0 and the factors of g (eq:reliability-gate)."""
-    return pd.DataFrame({
-        "image_id": image_ids, "split": split,
-        "c": c, "v": v, "a": a, "a0": np.full(len(c), a0),
-        "g_conf": gates.conf, "g_valid": gates.valid, "g_area": gates.area, "g": gates.g,
-        "n_valid": n_valid.astype(np.int16)})
+class Gates(NamedTuple):
+    """The reliability gates of a set of images (:func:`reliability_gates`): ``a0`` the reference area
+    (0.0 when ``missing``), ``v`` the valid-prompt ratios and ``factors`` (g_conf, g_valid, g_area, g)."""
+
+    a0: float
+    v: np.ndarray
+    factors: GateFactors
+    missing: bool
+
+
+def reliability_gates(c, n_valid, a, is_train, geo: Mapping[str, Any]) -> Gates:
+    """The gate of every image, with a0 by the one rule of docs/decisions.md ("The area reference a0").
+
+    a0 = median{a_i : i in the training split, a_i > 0}        (text before eq:confidence-gate)
+    g_i = clip(g_conf * g_valid * g_area, 0, 1) at a0          (eq:confidence-gate .. eq:reliability-gate)
+
+    When no training image has a non-empty vote, a0 is missing: the gates are those of a0 = 0 (g_area
+    1 on an empty mask, the floor ``area_floor`` once a > 1.4e-5; every training g is 0 since its c is 0)
+    and ``missing`` is set, for the caller to say so (:class:`pipeline.geometry.NoForeground`).
+
+    ``c`` eq:foreground-agreement, ``n_valid`` valid-prompt counts, ``a`` eq:pseudo-area, all [N];
+    ``is_train`` bool [N] (all true for a folder: every image is a training image); ``geo`` the
+    params ``geometry`` section."""
+    a = np.asarray(a, np.float64)
+    try:
+        a0, missing = median_area(a, is_train), False
+    except NoForeground:
+        a0, missing = 0.0, True
+    v, factors = image_gates(c, n_valid, a, a0, geo)
+    return Gates(a0, v, factors, missing)
+
+
+def gate_columns(c, a, gates: Gates) -> dict[str, np.ndarray]:
+    """The gate columns of the gates table and of label's table: c, v, a, a0, g_conf, g_valid, g_area, g."""
+    f = gates.factors
+    return {"c": c, "v": gates.v, "a": a, "a0": np.full(len(c), gates.a0),
+            "g_conf": f.conf, "g_valid": f.valid, "g_area": f.area, "g": f.g}
 
 
 def write_geometry(cons, manifest, cfg: Mapping[str, Any], out: str | Path, gates: str | Path,
@@ -111,7 +150,8 @@ def write_geometry(cons, manifest, cfg: Mapping[str, Any], out: str | Path, gate
     """geometry.zarr (sdf, skeleton of each voted mask) and the gates table from the opened consensus
     and manifest artifacts; ``cfg`` is the ``geometry:`` section.  Returns the gates table.
 
-    a0 (eq:area-gate) is the median pseudo-area of the training split's images."""
+    The gates are :func:`reliability_gates` over the manifest's training split; a missing a0 stops
+    the stage with :class:`pipeline.geometry.NoForeground` (nothing to train on)."""
     n_prompts = cfg["n_prompts"]
     n, h, w = check_consensus(cons, manifest, n_prompts)
     c = np.zeros(n)
@@ -138,13 +178,10 @@ def write_geometry(cons, manifest, cfg: Mapping[str, Any], out: str | Path, gate
                 wr.write("skeleton", s + j, skel[j])
         wr.attrs.update({"image_ids": list(cons.attrs["image_ids"])})
         split = manifest.df["split"].astype(str).to_numpy()
-        try:
-            a0 = median_area(a, split == "train")
-        except NoForeground:
-            raise  # said in the user's terms, no file to name
-        except InputError as err:
-            raise InputError(f"{manifest.path}: {err}") from None
-        v, gf = image_gates(c, n_valid, a, a0, cfg)
-        table = gate_table(manifest.df["image_id"].astype(str).to_numpy(), split, c, v, a, a0, gf, n_valid)
+        gated = reliability_gates(c, n_valid, a, split == "train", cfg)
+        if gated.missing:
+            raise NoForeground()  # said in the user's terms, no file to name
+        table = pd.DataFrame({"image_id": manifest.df["image_id"].astype(str).to_numpy(), "split": split,
+                              **gate_columns(c, a, gated), "n_valid": n_valid.astype(np.int16)})
         write_parquet(gates, table, meta("gates"))
     return table

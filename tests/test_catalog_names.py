@@ -29,8 +29,8 @@ ALLOWED = {
     ("benchmarks/bench_memory.py", ".zarr"): "the memory benchmark's own scratch arrays, not artifacts",
     ("pipeline/teachers/imported.py", "scores.parquet"): "the imported teacher's input layout (files a user brings)",
     ("pipeline/teachers/imported.py", ".parquet"): "the imported teacher's scores file: Parquet or CSV by suffix",
-    ("pipeline/labeling/run.py", "labels.parquet"): "the label command's own output table (pipeline.labeling.run.OUTPUTS)",
-    ("pipeline/labeling/run.py", "contact_sheet.png"): "the label command's own output table (pipeline.labeling.run.OUTPUTS)",
+    ("pipeline/labeling/writing.py", "labels.parquet"): "the label command's own output table (pipeline.labeling.writing.OUTPUTS)",
+    ("pipeline/labeling/writing.py", "contact_sheet.png"): "the label command's own output table (pipeline.labeling.writing.OUTPUTS)",
 }
 
 

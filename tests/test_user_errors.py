@@ -51,11 +51,11 @@ def test_label_warns_with_the_same_words_for_its_caller(caplog):
     zeros, geo = np.zeros(3), PAPER.geometry.model_dump()
     assert caller() == API
     with caplog.at_level(logging.WARNING, logger="pipeline.labeling.run"):
-        _, a0, gf = folder_gates(zeros, np.zeros(3, np.int64), zeros, geo)
+        gates = folder_gates(zeros, np.zeros(3, np.int64), zeros, geo)
         with calling(CLI):
             assert caller() == CLI
             folder_gates(zeros, np.zeros(3, np.int64), zeros, geo)
-    assert caller() == API and a0 == 0.0 and not gf.g.any()
+    assert caller() == API and gates.missing and gates.a0 == 0.0 and not gates.factors.g.any()
     api, cli = (r.getMessage() for r in caplog.records)
     assert api == "label: " + WORDS.format("overrides=['teacher.score_threshold=…']") + " (every gate g is 0)"
     assert cli == "label: " + WORDS.format("--set teacher.score_threshold=…") + " (every gate g is 0)"
@@ -77,7 +77,7 @@ def test_a_bad_checkpoint_is_named_as_the_user_gave_it(tmp_path):
     """--checkpoint on the command line (not the params key teacher.checkpoint=), checkpoint= in Python."""
     import pipeline
     from click.testing import CliRunner
-    from stages.cli import main
+    from pipeline.cli.main import main
     from pipeline.segmenting import segment_images
     from tests._tiny_teacher import make_image_folder
 
