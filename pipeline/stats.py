@@ -507,7 +507,8 @@ INTERVALS = {
     SEED_IMAGE_T: functools.partial(paired_seed_image_t, spacecraft=SPACECRAFT_FIXED),
     SEED_CLUSTER_T: functools.partial(paired_seed_image_t, spacecraft=SPACECRAFT_RANDOM),
 }
-#: what each interval covers, in a report's words (its estimand and how it is built)
+#: what each interval covers, in a report's words (its estimand and how it is built); ``{spacecraft}``:
+#: the test groups' spacecraft count as the report's data table shows it (pipeline.report.tables.interval_text)
 INTERVAL_TEXT = {
     SEED_BOOTSTRAP: "a seed-aware paired hierarchical bootstrap (seeds, then spacecraft, then images within "
                     "spacecraft; pipeline.stats.paired_seed_bootstrap; no stated estimand, and it under-covers "
@@ -515,7 +516,8 @@ INTERVAL_TEXT = {
     SEED_IMAGE_T: "seed-aware paired t intervals for the effect on THESE test spacecraft (seed-to-seed variance "
                   "plus the image variance within each spacecraft, Satterthwaite degrees of freedom; "
                   "pipeline.stats.paired_seed_image_t).  They do not cover the effect on other spacecraft like "
-                  "these: with 3 spacecraft per group that interval is 2-3 times wider (docs/intervals.md)",
+                  "these: with {spacecraft} per test group that interval is much wider, and with one there is "
+                  "none (docs/intervals.md)",
     SEED_CLUSTER_T: "seed-aware cluster t intervals for the effect on spacecraft LIKE these (C - 1 degrees of "
                     "freedom; pipeline.stats.paired_seed_image_t with spacecraft random; docs/intervals.md)",
 }

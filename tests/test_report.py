@@ -52,10 +52,10 @@ def test_report_files_and_tables(built):
               "plots/threshold_curve.csv"):
         assert (out / f).is_file(), f
     assert open_artifact(out, "report").meta.stage == "report"
-    md = (out / "report.md").read_text()
+    md, html = (out / "report.md").read_text(), (out / "report.html").read_text()
     for key in ("tab:spacesense-results", "tab:teacher-prompt-quality", "tab:teacher-domain-quality",
                 "tab:gate-groups", "tab:efficiency", "tab:thresholds"):
-        assert key in md, key
+        assert f'<table data-key="{key}">' in html, key
     # every results table exists at the calibrated and at the fixed threshold
     assert "(validation-calibrated tau)" in md and "(fixed tau = 0.5)" in md
     # honesty: synthetic data and a simulated teacher are named as such
@@ -75,7 +75,7 @@ def test_report_files_and_tables(built):
 def test_html_is_one_self_contained_page(built):
     _, _, _, out = built
     html = (out / "report.html").read_text()
-    assert html.count("<table") == (out / "report.md").read_text().count("(`tab:")
+    assert html.count("<table") == len(re.findall(r"^\|---", (out / "report.md").read_text(), re.M))
     srcs = re.findall(r'src="([^"]+)"', html)
     # qualitative, pseudo-targets, threshold curves, reliability, area vs tau, training curves (at 0.5 and at
     # the per-epoch calibrated tau)
@@ -314,6 +314,74 @@ def test_report_records_its_environment(built):
     assert {(r["method"], r["seed"]) for r in env["training_runs"]} == {(m, s) for m, s, _ in
                                                                         iter_runs(art / "checkpoints")}
     md = (out / "report.md").read_text()
-    assert "## Environment" in md and "tab:environment-training" in md and "not recorded" in md
+    html = (out / "report.html").read_text()
+    assert "## Environment" in md and 'data-key="tab:environment-training"' in html and "not recorded" in md
     assert f"| torch | {env['report']['libraries']['torch']} |" in md
-    assert 'data-key="tab:environment-machine"' in (out / "report.html").read_text()
+    assert 'data-key="tab:environment-machine"' in html
+
+
+def test_report_has_one_glossary_and_shows_no_internal_labels(built):
+    """The glossary's terms (pipeline.report.glossary, written once) are the report's "Terms" section; no
+    table, figure or equation label (tab:..., fig:..., eq:...) is in the text a reader sees."""
+    from pipeline.report.glossary import TERMS
+
+    _, _, _, out = built
+    md, html = (out / "report.md").read_text(), (out / "report.html").read_text()
+    assert md.count("## Terms used in this report") == 1
+    terms = [t for t, _ in TERMS]
+    assert len(set(terms)) == len(terms) and {"vote", "gate", "ceiling", "noise floor", "primary endpoint",
+                                               "lockbox", "HJM"} <= set(terms)
+    for term, meaning in TERMS:
+        assert f"| {term} | {meaning} |" in md, term
+        assert 1 <= meaning.count(".") <= 3, term                 # one or two plain sentences
+    visible = re.sub(r"<[^>]+>", " ", re.sub(r"<(style|script)[^>]*>.*?</\1>", " ", html, flags=re.S))
+    for text in (md, visible):
+        assert not re.search(r"\b(tab|fig|eq):[a-z]", text), re.search(r"\b(tab|fig|eq):[a-z].{0,40}", text)
+
+
+def test_the_interval_footnote_states_the_spacecraft_the_data_table_shows(built):
+    """The split table's spacecraft per test group and the results footnote come from the same manifest
+    (tiny data: KCP 3, CVI 2 -- not the "3 per group" of the design)."""
+    _, art, _, out = built
+    md = (out / "report.md").read_text()
+    lines = md.splitlines()
+    start = lines.index("**Images per split and group**")
+    rows = [[c.strip() for c in ln.strip("|").split("|")] for ln in lines[start + 4:] if ln.startswith("|")]
+    rows = rows[:next((i for i, r in enumerate(rows) if len(r) != 5), len(rows))]
+    test = sorted({int(r[4]) for r in rows if r[1] == "test"})
+    manifest = open_artifact(art / "manifest.parquet").df
+    assert test == sorted(manifest[manifest.split == "test"].groupby("group")["spacecraft"].nunique()) == [2, 3]
+    assert md.count("with 2-3 spacecraft per test group") >= 2 and "with 3 spacecraft per group" not in md
+
+
+def test_efficiency_says_the_benchmark_was_skipped_on_purpose(tmp_path):
+    """A distill project made with --no-benchmark (dvc.yaml without the benchmark stage) says so in the
+    Efficiency section; with the stage, or outside a DVC project, it is the usual missing-input note."""
+    from pipeline.dag import render_dvc_yaml
+    from pipeline.report.build import BENCHMARK_SKIPPED, efficiency_section, load_inputs
+    from pipeline.report.document import Missing, Text
+    from pipeline.standalone import BENCHMARK_STAGE
+
+    art = tmp_path / "artifacts"
+    art.mkdir()
+    assert isinstance(efficiency_section(load_inputs(art)).blocks[0], Missing)          # no dvc.yaml
+    (tmp_path / "dvc.yaml").write_text(render_dvc_yaml(omit=(BENCHMARK_STAGE,)))
+    block = efficiency_section(load_inputs(art)).blocks[0]
+    assert isinstance(block, Text) and block.text == BENCHMARK_SKIPPED.format(stage=BENCHMARK_STAGE)
+    assert "--no-benchmark" in block.text and "missing" not in block.text.lower()
+    (tmp_path / "dvc.yaml").write_text(render_dvc_yaml())
+    assert isinstance(efficiency_section(load_inputs(art)).blocks[0], Missing)
+
+
+def test_panel_captions_wrap_instead_of_being_cut():
+    """A caption line wider than the widest tile wraps (inside a word where it must): every character
+    is in the figure, and the tile stays at most MAX_TILE_INCHES wide."""
+    title = "(a) g=0.42 flight-7/camera_left/frame-000123-with-a-very-long-name"
+    tile = np.zeros((8, 8, 3), np.uint8)
+    lines = F.wrap_caption(title)
+    assert "".join(lines).replace(" ", "") == title.replace(" ", "")
+    assert len(lines) > 1 and all(F.caption_inches(x) <= F.MAX_TILE_INCHES for x in lines)
+    fig = F.image_grid([[(tile, [title]), (tile, ["ground truth"])]])
+    shown = [ax.get_title(loc="left") for ax in fig.axes]
+    assert shown[0].replace("\n", "").replace(" ", "") == title.replace(" ", "")
+    assert fig.get_size_inches()[0] <= 2 * F.MAX_TILE_INCHES + 0.2  # two tiles, their margins and the gap

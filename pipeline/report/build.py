@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+import yaml
 
 from pipeline import catalog
 from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run
@@ -25,6 +26,7 @@ from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_ana
                                       tau_text, teacher_domain_quality, teacher_prompt_quality, teacher_vote_means)
 from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
 from pipeline.report.environment import environment_section, training_runs
+from pipeline.report.glossary import glossary_section
 from pipeline.thresholds import mask_from_probs
 
 # artifact file -> (schema, stage that produces it)
@@ -236,9 +238,9 @@ def data_section(inp: Inputs) -> Section:
         sec.blocks.append(Text(NO_MASKS_NOTE.format(tau=tau_text(inp.fixed_tau))))
     if (note := corrections_note(inp)) is not None:
         sec.blocks.append(Text(note))
-    rows = []
+    rows, spacecraft = [], T.spacecraft_per_group(df)  # the footnotes state the same counts
     for (ds, split, group), part in df.groupby(["dataset", "split", "group"], sort=False):
-        rows.append([str(ds), str(split), str(group), str(len(part)), str(part["spacecraft"].nunique())])
+        rows.append([str(ds), str(split), str(group), str(len(part)), str(spacecraft[str(group)])])
     sec.blocks.append(Table("tab:data", "Images per split and group", ["Dataset", "Split", "Group", "Images",
                                                                       "Spacecraft"], rows))
     return sec
@@ -286,7 +288,8 @@ def results_section(inp: Inputs) -> Section:
         groups = [g for g in order if g in groups] + [g for g in groups if g not in order]
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
-            sec.blocks.append(T.results_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s)))
+            sec.blocks.append(T.results_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s),
+                                              spacecraft_counts(inp)))
     for mode in ("calibrated", "fixed"):
         if (s.df["threshold_mode"] == mode).any():
             sec.blocks.append(T.diagnostics_table(s.df, mode, groups, inp.fixed_tau))
@@ -297,6 +300,12 @@ def results_section(inp: Inputs) -> Section:
             if tab is not None:
                 sec.blocks.append(tab)
     return sec
+
+
+def spacecraft_counts(inp: Inputs) -> dict[str, int] | None:
+    """{group: spacecraft} of the manifest (the data table's column), None without a manifest."""
+    m = inp.get("manifest")
+    return T.spacecraft_per_group(m.df) if m is not None else None
 
 
 def vote_means(inp: Inputs) -> pd.DataFrame | None:
@@ -332,7 +341,8 @@ def diagnostics_section(inp: Inputs, plots: dict) -> Section:
     sec.blocks += [Text(f) for f in findings]
     if s is not None:
         for mode in ("calibrated", "fixed"):
-            tab = T.controls_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s))
+            tab = T.controls_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s),
+                                   spacecraft_counts(inp))
             if tab is not None:
                 sec.blocks.append(tab)
     if thr is not None and "ece" in thr.df.columns:
@@ -476,10 +486,30 @@ def teacher_section(inp: Inputs) -> Section:
     return sec
 
 
+#: the Efficiency section of a project made without its benchmark stage (``distill --no-benchmark``)
+BENCHMARK_SKIPPED = ("**The efficiency benchmark was skipped on purpose** (`geodistill distill --no-benchmark`): this "
+                     "project's pipeline has no {stage} stage, so the deployed student's speed and memory were not "
+                     "measured.  Run distill again without `--no-benchmark` to measure them.")
+
+
+def stage_left_out(art: Path, stage: str) -> bool:
+    """Whether the DVC project of the artifacts folder ``art`` leaves ``stage`` out on purpose: its
+    dvc.yaml (beside ``art``) lists stages, but not this one (a distill project made with
+    ``--no-benchmark``); False without a readable dvc.yaml."""
+    try:
+        stages = (yaml.safe_load((Path(art).parent / "dvc.yaml").read_text()) or {}).get("stages")
+    except (OSError, yaml.YAMLError, AttributeError):
+        return False
+    return isinstance(stages, dict) and bool(stages) and stage not in stages
+
+
 def efficiency_section(inp: Inputs) -> Section:
     sec = Section("Efficiency")
     eff = inp.get("efficiency")
-    if eff is None:
+    stage = catalog.ARTIFACTS["efficiency"].stage
+    if eff is None and stage_left_out(inp.art, stage):
+        sec.blocks.append(Text(BENCHMARK_SKIPPED.format(stage=stage)))
+    elif eff is None:
         sec.blocks += inp.need("efficiency")
     else:
         sec.blocks.append(T.efficiency_table(eff.df))
@@ -560,7 +590,7 @@ def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str
         scores = {T.label(mm): f"IoU {r['iou']:.3f}  BF1 {r['bf1']:.3f}"
                   for mm, r in ((control, a.loc[iid]), (treatment, b.loc[iid]))}
         rows.append(F.qualitative_row(images[j], gts[j], {T.label(mm): preds[mm][j] for mm in (control, treatment)},
-                                      scores, f"({chr(97 + j)}) {iid}"[:26]))
+                                      scores, f"({chr(97 + j)}) {iid}"))
     fig = F.image_grid(rows)
     sec.blocks.append(Figure(
         "fig:qualitative-results", f"{T.label(control)} vs {T.label(treatment)} on {group}",
@@ -614,7 +644,7 @@ def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu", methods: tuple
     for j, i in enumerate(rows_idx):
         scores = {T.label(m): f"IoU vs M {image_iou(preds[m][j], voted[j]):.2f}" for m in present}
         rows.append(F.qualitative_row(images[j], voted[j], {T.label(m): preds[m][j] for m in present}, scores,
-                                      f"({chr(97 + j)}) g={g[pos[j]]:.2f} {ids[i]}"[:26],
+                                      f"({chr(97 + j)}) g={g[pos[j]]:.2f} {ids[i]}",
                                       reference=("pseudo-label M", "(yellow contour)")))
     fig = F.image_grid(rows)
     n_low = max(1, n_images // 2)
@@ -647,8 +677,8 @@ def gate_distribution_blocks(inp: Inputs) -> list:
                  f"({zero / g.size:.0%}) at g = 0 (their pseudo-geometry terms get no weight in Stage II), "
                  f"{int((g >= 0.5).sum())} at g >= 0.5."),
             Figure("fig:gate-distribution", "Distribution of the reliability gate",
-                   "Training images per gate bin (width 0.05); g = c-, v- and area-gate factors multiplied "
-                   "(eq:reliability-gate).  Computed without masks.", F.png_bytes(img), "gate_distribution.png",
+                   "Training images per gate bin (width 0.05); g = c-, v- and area-gate factors multiplied.  "
+                   "Computed without masks.", F.png_bytes(img), "gate_distribution.png",
                    F.svg_bytes(img))]
 
 
@@ -700,14 +730,14 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
                      if gr is not None else ["gate: n/a", ""])
         labels = [f"p{k + 1} s={scores[j, k]:.2f}" for k in range(tmasks.shape[1])]
         rows.append(F.pseudo_target_row(images[j], tmasks[j], labels, agreement[j], voted[j], sdf[j], skel[j],
-                                        gate_text, str(ids[i])[:18]))
+                                        gate_text, str(ids[i])))
     fig = F.image_grid(rows)
     prompt_list = "; ".join(f"p{k + 1} = `{p}`" for k, p in enumerate(prompts))
     sim = " The prompt masks come from the teacher SIMULATOR, not SAM 3." if backend == "simulated" else ""
     sec.blocks.append(Figure(
         "fig:pseudo-geometry", "Multi-prompt pseudo-target construction",
         f"Training images (highest gate g first): the {tmasks.shape[1]} prompt masks with teacher scores s, the "
-        f"agreement map A, the 50 % vote M, the normalised SDF D (eq:sdf-target; red inside, blue outside) and the skeleton K; the "
+        f"agreement map A, the 50 % vote M, the normalised SDF D (red inside, blue outside) and the skeleton K; the "
         f"gate's factors c (agreement), v (valid-prompt ratio), a (pseudo area) and g.{sim} Prompts: {prompt_list}.",
         F.png_bytes(fig), "pseudo_targets.png", F.svg_bytes(fig)))
     return sec
@@ -739,6 +769,7 @@ def build_sections(inp: Inputs, plots: dict, n_qual: int, n_pseudo: int, environ
                    device="cpu") -> list[Section]:
     """The report's sections in order (labels: :func:`build_report`'s :func:`pipeline.report.tables.human_trained`)."""
     return [
+        glossary_section(),
         data_section(inp),
         results_section(inp),
         qualitative_section(inp, n_qual, device),

@@ -20,7 +20,7 @@ class Text:
 
 @dataclasses.dataclass
 class Table:
-    key: str                  # the paper's label, e.g. "tab:spacesense-results"
+    key: str                  # an id for tests and the HTML's data-key (e.g. "tab:spacesense-results"), never shown
     title: str
     header: list[str]
     rows: list[list[str]]
@@ -88,7 +88,7 @@ def render_markdown(report: Report, figure_dir: str = "figures") -> str:
             elif isinstance(b, Missing):
                 out += [f"> **Missing: {b.what}.** {b.detail}", ""]
             elif isinstance(b, Table):
-                out += [f"**{b.title}** (`{b.key}`)", ""]
+                out += [f"**{b.title}**", ""]
                 out.append("| " + " | ".join(_md_cell(h) for h in b.header) + " |")
                 out.append("|" + "|".join("---" for _ in b.header) + "|")
                 out += ["| " + " | ".join(_md_cell(c) for c in r) + " |" for r in b.rows]
@@ -98,7 +98,7 @@ def render_markdown(report: Report, figure_dir: str = "figures") -> str:
                     out.append("")
             elif isinstance(b, Figure):
                 vector = f" Vector: [{b.svg_filename}]({figure_dir}/{b.svg_filename})." if b.svg else ""
-                out += [f"**{b.title}** (`{b.key}`)", "", f"![{b.title}]({figure_dir}/{b.filename})", "",
+                out += [f"**{b.title}**", "", f"![{b.title}]({figure_dir}/{b.filename})", "",
                         f"*{b.caption}*{vector}", ""]
     return "\n".join(out).rstrip() + "\n"
 
@@ -115,7 +115,6 @@ table{border-collapse:collapse;margin:.6em 0 .3em 0;font-size:.9em}
 th,td{border-top:1px solid #ccc;border-bottom:1px solid #ccc;padding:.25em .6em;text-align:center}
 th{background:#f2f2f2}td:first-child,th:first-child{text-align:left}
 caption{caption-side:top;text-align:left;font-weight:600;padding:.3em 0}
-.key{color:#777;font-weight:normal;font-family:monospace;font-size:.85em}
 .note{font-size:.85em;color:#444;margin:.2em 0}
 .missing{background:#fff4e5;border-left:4px solid #f0a030;padding:.5em .8em;margin:.6em 0}
 figure{margin:1em 0}figure img{max-width:100%;border:1px solid #ddd}
@@ -144,8 +143,7 @@ def render_html(report: Report) -> str:
             elif isinstance(b, Missing):
                 parts.append(f'<div class="missing"><b>Missing: {html.escape(b.what)}.</b> {_inline(b.detail)}</div>')
             elif isinstance(b, Table):
-                parts.append(f'<table data-key="{html.escape(b.key)}"><caption>{_inline(b.title)} '
-                             f'<span class="key">{html.escape(b.key)}</span></caption>')
+                parts.append(f'<table data-key="{html.escape(b.key)}"><caption>{_inline(b.title)}</caption>')
                 parts.append("<thead><tr>" + "".join(f"<th>{_inline(h)}</th>" for h in b.header) + "</tr></thead><tbody>")
                 for r in b.rows:
                     parts.append("<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>")

@@ -179,21 +179,51 @@ def pseudo_target_row(image: np.ndarray, prompt_masks: np.ndarray, prompt_labels
     return tiles
 
 
-#: image panels: least inches per tile, caption size (points; legible at the page's width)
+#: image panels: least inches per tile, caption size (points; legible at the page's width) and the widest
+#: a tile grows for its caption (a longer caption line wraps: :func:`wrap_caption`)
 TILE_INCHES = 1.45
 CAPTION_FONT = 8.5
+MAX_TILE_INCHES = 2.4
+
+
+def caption_inches(line: str) -> float:
+    """The width of ``line`` at the caption font, in inches."""
+    return TextPath((0, 0), line, size=CAPTION_FONT).get_extents().width / 72.0 if line.strip() else 0.0
+
+
+def wrap_caption(line: str, width: float = MAX_TILE_INCHES) -> list[str]:
+    """``line`` as lines of at most ``width`` inches at the caption font, broken at spaces and, where one
+    word alone is wider than a line, inside it: the whole text, never cut."""
+    def fits(text: str) -> bool:
+        return caption_inches(text) <= width
+
+    lines = [""]
+    for word in line.split(" "):
+        joined = f"{lines[-1]} {word}" if lines[-1] else word
+        if fits(joined):
+            lines[-1] = joined
+            continue
+        if fits(word):
+            lines.append(word)
+            continue
+        while not fits(joined):  # a word wider than a line fills this one, then lines of its own
+            k = max(k for k in range(1, len(joined)) if k == 1 or fits(joined[:k]))
+            lines[-1], joined = joined[:k].rstrip(), joined[k:].lstrip()
+            lines.append("")
+        lines[-1] = joined
+    return lines
 
 
 def image_grid(rows: Sequence[Sequence[Tile]], tile_inches: float = TILE_INCHES) -> Chart:
     """Rows of image tiles as one figure: each tile shown pixel for pixel (nearest interpolation, no
     axes), its caption lines above it as text; rows of unequal length leave the right cells empty.
-    Tiles are at least ``tile_inches`` wide, and wider where a caption line needs it, so no caption runs
-    into the next tile's."""
+    Tiles are at least ``tile_inches`` wide, and wider where a caption line needs it (up to
+    :data:`MAX_TILE_INCHES`, beyond which the line wraps), so no caption is cut or runs into the next tile's."""
+    rows = [[(tile, [part for line in cap for part in wrap_caption(line)]) for tile, cap in row] for row in rows]
     nrows = len(rows)
     ncols = max((len(r) for r in rows), default=1)
     lines = max((len(cap) for r in rows for _, cap in r), default=1)
-    widest = max((TextPath((0, 0), line, size=CAPTION_FONT).get_extents().width / 72.0
-                  for r in rows for _, cap in r for line in cap if line), default=0.0)
+    widest = max((caption_inches(line) for r in rows for _, cap in r for line in cap), default=0.0)
     tile_inches = max(tile_inches, widest + 0.04)
     cap_inches = lines * CAPTION_FONT * 1.25 / 72.0
     gap = 0.08                                                   # inches between tiles

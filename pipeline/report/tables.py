@@ -149,10 +149,27 @@ def claim(r, suffix: str, group: str, noise_floor=None, p_adjusted: Mapping | No
     return "; ".join(out) or "--"
 
 
-def interval_text(interval: str | None) -> str:
+def spacecraft_per_group(manifest: pd.DataFrame) -> dict[str, int]:
+    """{group: distinct spacecraft} of a manifest's images: the data table's column and the count the
+    interval footnotes state (:func:`interval_text`), from the same rows."""
+    return {str(g): int(n) for g, n in manifest.groupby("group", sort=False)["spacecraft"].nunique().items()}
+
+
+def spacecraft_words(spacecraft: Mapping[str, int] | None, groups: Sequence[str]) -> str:
+    """"3 spacecraft" (or "1-3 spacecraft") in ``groups`` by ``spacecraft`` (:func:`spacecraft_per_group`);
+    "few spacecraft" when unknown."""
+    counts = sorted({int(spacecraft[g]) for g in groups if g in spacecraft}) if spacecraft else []
+    if not counts:
+        return "few spacecraft"
+    return f"{counts[0]} spacecraft" if len(counts) == 1 else f"{counts[0]}-{counts[-1]} spacecraft"
+
+
+def interval_text(interval: str | None, spacecraft: Mapping[str, int] | None = None,
+                  groups: Sequence[str] = ()) -> str:
     """How a table's CIs were made, in words (``interval``: evaluate.interval as the summary recorded it;
-    None: a summary from before it was recorded, made with the former seed-aware bootstrap)."""
-    return INTERVAL_TEXT[interval or SEED_BOOTSTRAP]
+    None: a summary from before it was recorded, made with the former seed-aware bootstrap), with the
+    spacecraft count of the table's ``groups`` (:func:`spacecraft_words`)."""
+    return INTERVAL_TEXT[interval or SEED_BOOTSTRAP].format(spacecraft=spacecraft_words(spacecraft, groups))
 
 
 def multiplicity_note(holm: Mapping) -> str:
@@ -179,11 +196,13 @@ def floor_cell(group: str, noise_floor) -> str:
 
 
 def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise_floor: dict | None = None,
-                  fixed_tau: float | None = None, interval: str | None = DEFAULT_INTERVAL) -> Table:
+                  fixed_tau: float | None = None, interval: str | None = DEFAULT_INTERVAL,
+                  spacecraft: Mapping[str, int] | None = None) -> Table:
     """Paper Table spacesense-results: per group and method, Image IoU and Boundary F1 (mean ± sample
     std over seeds) and the gains against Plain Student with seed-aware 95 % CIs, the group's noise
     floor (``noise_floor``: the stability benchmark's record, None = not measured) and the claim.
-    ``fixed_tau`` (every table's): calibrate.fixed_tau as the run recorded it (:func:`mode_text`)."""
+    ``fixed_tau`` (every table's): calibrate.fixed_tau as the run recorded it (:func:`mode_text`).
+    ``spacecraft``: {group: spacecraft} of the data (:func:`spacecraft_per_group`; None: unknown)."""
     shown = [(g, m, r) for g, m, r in group_method_rows(summary, mode, groups)]
     gains = [((g, m), r, "", is_primary(g, m, BASELINE, PRIMARY_ENDPOINT.metric, mode))
              for g, m, r in shown if np.isfinite(r.get("gain_iou", np.nan))]
@@ -201,8 +220,8 @@ def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise
                  ["Evaluation set", "Method", "Image IoU", "Boundary F1", "Image IoU gain [95% CI]",
                   "Boundary F1 gain [95% CI]", "Noise floor (IoU / BF1)", "Claim", "Seeds"], rows,
                  [f"Mean ± sample std over seeds of the per-seed means; gains against {label(BASELINE)} with 95 % CIs: "
-                  f"{interval_text(interval)}.  A single seed has no std, and its CI holds no training "
-                  "noise.", noise_floor_note(noise_floor),
+                  f"{interval_text(interval, spacecraft, groups)}.  A single seed has no std, and its CI holds "
+                  "no training noise.", noise_floor_note(noise_floor),
                   multiplicity_note(holm)])
 
 
@@ -382,12 +401,14 @@ def _ordered_with_ceiling_last(methods: Sequence[str]) -> list[str]:
 
 def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
                    noise_floor: dict | None = None, fixed_tau: float | None = None,
-                   interval: str | None = DEFAULT_INTERVAL) -> Table | None:
+                   interval: str | None = DEFAULT_INTERVAL, spacecraft: Mapping[str, int] | None = None
+                   ) -> Table | None:
     """The budget-matched control: per group, Continuation - Plain (Stage II's extra epochs alone),
     each warm-started method - Continuation (the geometry effect at a matched budget) and
     GeoDistill-Refine - Plain, with the seed-aware CIs of the evaluate stage.
     None when no continuation run was evaluated.  Annotation-free methods only.  ``noise_floor``: the
-    stability benchmark's record (None = not measured), beside each difference with its claim."""
+    stability benchmark's record (None = not measured), beside each difference with its claim.
+    ``spacecraft``: as :func:`results_table`'s."""
     s = summary[summary["threshold_mode"] == mode]
     if CONTINUATION not in set(s["method"]) or f"gain_iou{VS_CONTINUATION}" not in s.columns:
         return None
@@ -418,7 +439,7 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
                  ["The continuation warm-starts from the same Stage-I checkpoint and trains with Stage II's schedule, "
                   "epochs and checkpoint selection on L_raw only: a method minus the continuation isolates its "
                   "geometry terms; the continuation minus Plain isolates the extra epochs.  95 % CIs over the seeds "
-                  f"both runs share: {interval_text(interval)}.",
+                  f"both runs share: {interval_text(interval, spacecraft, groups)}.",
                   noise_floor_note(noise_floor), multiplicity_note(holm)])
 
 
