@@ -31,7 +31,7 @@ CASES = {"one variant": [f"deploy.benchmark_variants=[{BASELINE_VARIANT}]"], "de
 
 def distill_argv(images: str, out: Path, teacher: Sequence[str], sets: Sequence[str]) -> list[str]:
     """The ``geodistill distill`` command line of one run."""
-    return [sys.executable, "-m", "stages.cli", "distill", images, "--out", str(out), *teacher,
+    return [sys.executable, "-m", "pipeline.cli", "distill", images, "--out", str(out), *teacher,
             *[a for kv in sets for a in ("--set", kv)]]
 
 

@@ -12,7 +12,7 @@
 * :func:`render_params_yaml` writes ``params.yaml`` for a profile (:mod:`pipeline.profiles`), with
   each key's description from the schema as a comment.
 
-``geodistill profile NAME`` and ``geodistill dag [--check]`` (stages/dag.py) call these.
+``geodistill profile NAME`` and ``geodistill dag [--check]`` (pipeline/cli/dag.py) call these.
 """
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ def upstream_stages() -> list[str]:
 
 def stage_modules() -> dict[str, str]:
     """Every stage of the DAG -> its script module, in DAG order (``train`` for all ``train_<method>``):
-    the pipeline's subcommands of ``geodistill`` (stages/cli.py)."""
+    the pipeline's subcommands of ``geodistill`` (pipeline/cli/main.py)."""
     up = upstream_stages()
     return {**{n: STAGES[n].module for n in up}, "train": TRAIN_MODULE,
             **{n: s.module for n, s in STAGES.items() if n not in up}}

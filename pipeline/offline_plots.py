@@ -11,7 +11,7 @@
   blank offline; this page inlines the same major versions (vega 5, vega-lite 5, vega-embed 6) read
   from the installed ``django-js-lib-vega-embed`` package (:func:`vega_scripts`; the package is
   the three upstream JS files and needs no Django at run time) and has no ``{scripts}`` placeholder,
-  so DVC adds no CDN tag.  ``geodistill plots`` (stages/plots.py) writes it to a temp file and runs
+  so DVC adds no CDN tag.  ``geodistill plots`` (pipeline/cli/plots.py) writes it to a temp file and runs
   ``dvc plots show`` / ``dvc plots diff`` with it.
 """
 

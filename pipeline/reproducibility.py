@@ -9,7 +9,7 @@ Keys are the metric names of the DVC metrics files (``reports/metrics/students/<
 ``iou`` = mean test Image IoU, ``bf1`` = mean test Boundary F1 (pipeline.metrics).
 
 :func:`compare_metrics` and :func:`difference_table` are CI's check (``geodistill reproduce-check``,
-stages/reproduce_check.py): the student metrics of a fresh ``make demo`` against the committed ones.
+pipeline/cli/reproduce_check.py): the student metrics of a fresh ``make demo`` against the committed ones.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """``geodistill segment``'s logic: binary masks for image files with a checkpoint or a deploy bundle
-(``stages/segment.py`` is wiring: its options, the params file, one-line errors).
+(``pipeline/cli/segment.py`` is wiring: its options, the params file, one-line errors).
 
 :func:`segment_images` checks the options, finds the inputs and plans every output before anything
 is written (pipeline.deploy.files), loads the model with one engine (:func:`pipeline.deploy.load_segmenter`),

@@ -155,7 +155,7 @@ def tiny_demo_run(lane: Lane, repo: Path) -> tuple[Path, dict, str]:
     params["protocol"]["runs"] = {m: seeds[:1] for m, seeds in params["protocol"]["runs"].items()}
     (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     env = tiny_demo_env(lane, repo)
-    for cmd in ([sys.executable, "-m", "stages.dag"],  # the demo's dvc.yaml lists its seeds: re-render
+    for cmd in ([sys.executable, "-m", "pipeline.cli.dag"],  # the demo's dvc.yaml lists its seeds: re-render
                 ["git", "init", "-q"], [sys.executable, "-m", "dvc", "config", "core.analytics", "false"]):
         r = lane.run(cmd, cwd=repo, env=env)
         assert r.returncode == 0, f"{cmd}: {r.stdout[-2000:]}{r.stderr[-2000:]}"
@@ -180,7 +180,7 @@ def distill_run(lane: Lane, images: Path, out: Path, sam3: Path, *extra) -> tupl
     """``geodistill distill IMAGES --out OUT --checkpoint SAM3 EXTRA`` with :data:`DISTILL_FAST`, as a
     command: (OUT, the finished process)."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    return out, lane.run([sys.executable, "-m", "stages.cli", "distill", images, "--out", out, "--checkpoint", sam3,
+    return out, lane.run([sys.executable, "-m", "pipeline.cli", "distill", images, "--out", out, "--checkpoint", sam3,
                      *extra, *DISTILL_FAST], cwd=out.parent, env={**bin_first(lane.env), "PYTHONPATH": str(REPO)},
                     timeout=900)
 

@@ -123,6 +123,6 @@ def make_image_folder(root: Path, n: int = 20, seed: int = 0, masks: bool = True
 
 def cli(*args):
     """``geodistill`` with ``args`` (str()-ed) through click's runner; exceptions propagate."""
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)

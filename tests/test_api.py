@@ -114,7 +114,7 @@ def test_label_and_distill_are_exported(tmp_path):
 
 
 def test_version_option():
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     res = CliRunner().invoke(main, ["--version"])
     assert res.exit_code == 0 and res.output.strip() == f"geodistill {pipeline.__version__}"

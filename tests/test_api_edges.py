@@ -17,7 +17,7 @@ from click.testing import CliRunner
 
 
 def cli(*args):
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     return CliRunner().invoke(main, [str(a) for a in args])
 
@@ -97,7 +97,7 @@ def test_segmenter_predict_takes_one_image_or_a_list(tmp_path):
 
 def test_command_names_use_hyphens_and_old_spellings_still_work():
     from pipeline.dag import stage_modules
-    from stages.cli import ALIASES, COMMANDS
+    from pipeline.cli.main import ALIASES, COMMANDS
 
     listed = cli("--help").output
     assert "analyze-teacher" in listed and "analyze_teacher" not in listed and "reproduce-check" in listed

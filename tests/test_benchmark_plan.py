@@ -33,7 +33,7 @@ def test_distill_plans_a_small_benchmark_and_the_dvc_stage_keeps_the_full_table(
 
 
 def _project(tmp_path, *flags):
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     images = tmp_path / "data" / "images"
     if not images.is_dir():

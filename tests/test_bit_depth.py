@@ -147,7 +147,7 @@ def _twelve_bit_folder(root):
 def test_label_warns_once_naming_the_flag_on_the_cli_and_the_keyword_in_python(tmp_path, caplog, tiny_sam3):
     import pipeline
     from click.testing import CliRunner
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     images = _twelve_bit_folder(tmp_path / "data")
     fast = ["--set", "data.resolution=32", "--set", "data.contact_sheet_images=2", "--device", "cpu"]
@@ -173,7 +173,7 @@ def test_label_warns_once_naming_the_flag_on_the_cli_and_the_keyword_in_python(t
 
 def test_segment_reads_frames_as_the_bundle_records_and_warns_only_when_no_depth_is_known(tmp_path, caplog, ckpts):
     from click.testing import CliRunner
-    from stages.cli import main
+    from pipeline.cli.main import main
     from tests._tiny_deploy import run_export
 
     bundle = tmp_path / "deploy"

@@ -104,7 +104,7 @@ def test_segment_and_distill_take_quiet_too(tmp_path, console, monkeypatch):
 
     from pipeline.progress import QUIET_ENV
     from pipeline.standalone import _env
-    from stages.cli import main
+    from pipeline.cli.main import main
     from tests._tiny_deploy import make_checkpoint
 
     ckpt = make_checkpoint(tmp_path / "ckpt")

@@ -22,7 +22,7 @@ pytestmark = pytest.mark.slow
 
 
 def cli(*args):
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     return CliRunner().invoke(main, [str(a) for a in args])
 

@@ -175,7 +175,7 @@ def test_no_efficiency_line_without_masks(tmp_path):
 
 def test_distill_prints_the_line_after_its_summary(tmp_path, monkeypatch):
     """The command's last lines, with the project's run replaced by the finished files."""
-    import stages.distill as distill
+    import pipeline.cli.distill as distill
 
     project = _project(tmp_path / "out")
     monkeypatch.setattr(distill, "write_project", lambda *a, **k: project)

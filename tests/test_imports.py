@@ -61,17 +61,19 @@ LAYERS = (
       "pipeline/thresholds.py")),  # tau calibration, and the tau candidates read from a thresholds table
     ("stage logic", "each stage's and tool's work, callable and tested without the CLI",
      ("pipeline/datasets/", "pipeline/prepare.py", "pipeline/teachers/", "pipeline/pseudo_labels.py",
-      "pipeline/training_inputs.py", "pipeline/training.py", "pipeline/supervised.py", "pipeline/inference.py",
+      "pipeline/training_inputs.py", "pipeline/training.py", "pipeline/budget.py", "pipeline/supervised.py",
+      "pipeline/inference.py",
       "pipeline/evaluation.py", "pipeline/exporting.py", "pipeline/segmenting.py", "pipeline/deploy/",
       "pipeline/report/", "pipeline/cluster/", "pipeline/labeling/", "pipeline/review/")),
     ("api", "the Python API of the user tools: label, distill, a standalone project",
      ("pipeline/standalone.py", "pipeline/api.py")),
-    ("stages", "the command line: options -> read artifacts -> call the logic -> write", ("stages/",)),
+    ("stages", "the DAG's stage scripts: options -> read artifacts -> call the logic -> write", ("stages/",)),
+    ("commands", "the user commands and the geodistill click group over them and the stages", ("pipeline/cli/",)),
     ("benchmarks", "measurements and developer tools; they run the stages as commands, never import them",
      ("benchmarks/", "tools/")),
 )
 #: the command line, which no file outside it (the library, the benchmarks) imports
-CLI = ("stages/",)
+CLI = ("stages/", "pipeline/cli/")
 #: the library's one package whose modules may run as scripts (``if __name__ == "__main__"``): the
 #: command line; every other script is a benchmark or a tool (:data:`LAYERS`)
 LIBRARY_SCRIPTS = ("pipeline/cli/",)
@@ -259,7 +261,7 @@ def test_the_layer_check_sees_an_upward_import_the_cli_and_an_unplaced_file(tmp_
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_text(text)
     assert layer_violations(tmp_path) == [
-        "benchmarks/bench_x.py:1 imports stages.prepare: only the command line imports it (stages/)",
+        "benchmarks/bench_x.py:1 imports stages.prepare: only the command line imports it (stages/, pipeline/cli/)",
         "pipeline/params.py:2 (core) imports pipeline.api (api, a higher layer)",
         "pipeline/unlisted.py is in no layer: add it to LAYERS in tests/test_imports.py (docs/decisions.md, Layers)"]
 

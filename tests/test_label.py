@@ -195,7 +195,7 @@ def test_label_errors_are_one_line_exit_2(tmp_path, folder, case, message):
             "no_teacher": [images, "--out", tmp_path / "o"],
             "no_reference": [images, "--out", tmp_path / "o", "--backend", "simulated"],
             "collision": [clash, "--out", tmp_path / "o", "--backend", "simulated", "--reference-masks", clash]}[case]
-    res = CliRunner().invoke(__import__("stages.cli", fromlist=["main"]).main, ["label", *map(str, args)])
+    res = CliRunner().invoke(__import__("pipeline.cli.main", fromlist=["main"]).main, ["label", *map(str, args)])
     assert res.exit_code == 2, res.output
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("geodistill label: error:") and message in lines[0], res.output

@@ -101,7 +101,7 @@ def test_readme_quick_start_runs_as_written_with_the_tiny_sam3(tmp_path, tiny_sa
     """The quick start copy-pasted: `make install` is a Makefile target, `hf download` writes the folder
     `--checkpoint` reads (the tiny SAM 3 stands in for it), `geodistill label` runs exactly as written,
     and `geodistill distill`'s command line parses (its run trains a student: tests/test_distill.py)."""
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     lines = _quick_start()
     assert lines[0].startswith("make install") and "make demo" not in "\n".join(lines)

@@ -28,7 +28,7 @@ CLI_SET, API_SET = "--set teacher.score_threshold=…", "overrides=['teacher.sco
 
 
 def cli(*args):
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     return CliRunner().invoke(main, [str(a) for a in args])
 
@@ -77,7 +77,7 @@ class Warnings(logging.Handler):
 
 def run_stage(project: Path, name: str, monkeypatch):
     """Stage ``name`` of the distill project as its dvc.yaml command says, in this process."""
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     cmd = yaml.safe_load((project / "dvc.yaml").read_text())["stages"][name]["cmd"]
     argv = shlex.split(cmd)

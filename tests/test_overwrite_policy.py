@@ -31,7 +31,7 @@ def images(tmp_path_factory):
 
 
 def cli(*args):
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     return CliRunner().invoke(main, [str(a) for a in args])
 
@@ -154,7 +154,7 @@ def test_profile_overwrite_never_replaces_a_users_params_file(tmp_path):
 
 def test_distill_refuses_a_users_file_inside_a_folder_dvc_replaces_whole_before_dvc_repro(tmp_path, images,
                                                                                          tiny_sam3, monkeypatch):
-    import stages.distill
+    import pipeline.cli.distill
 
     out = tmp_path / "run"
     distill = ("distill", images, "--out", out, "--checkpoint", tiny_sam3, *FAST)
@@ -165,7 +165,7 @@ def test_distill_refuses_a_users_file_inside_a_folder_dvc_replaces_whole_before_
     put(deploy / "deploy.json", json.dumps({"files": {"model.ts": "0"}}).encode())
     put(deploy / "model.ts", b"an earlier bundle's model")
     notes = put(deploy / "my_notes.txt")
-    monkeypatch.setattr(stages.distill, "run_project", lambda *a, **k: pytest.fail("dvc repro ran"))
+    monkeypatch.setattr(pipeline.cli.distill, "run_project", lambda *a, **k: pytest.fail("dvc repro ran"))
     for extra in ((), ("--overwrite",)):
         line = error_line(cli(*distill, *extra))
         assert str(notes) in line and "`dvc repro` replaces artifacts/deploy/ whole" in line, line

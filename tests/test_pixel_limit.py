@@ -210,7 +210,7 @@ def folder(tmp_path):
 
 
 def _cli(*args):
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     return CliRunner().invoke(main, [str(a) for a in args])
 
@@ -342,7 +342,7 @@ def test_no_stage_imports_a_sibling_stage():
 def test_segment_refuses_and_skips_the_bomb(tmp_path):
     """segment reads images through the same header check: one line naming the file and --max-pixels,
     exit 2, nothing written; --skip-bad lists it in skipped.csv and segments the rest."""
-    from stages.segment import main as segment_main
+    from pipeline.cli.segment import main as segment_main
     from tests._tiny_deploy import make_checkpoint
 
     ckpt = make_checkpoint(tmp_path / "ckpt")

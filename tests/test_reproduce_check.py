@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from pipeline.reproducibility import TOLERANCE, compare_metrics, difference_table, reproduced
-from stages.reproduce_check import main as reproduce_check
+from pipeline.cli.reproduce_check import main as reproduce_check
 
 COMMITTED = {"KCP/plain.json": {"iou": 0.4361, "bf1": 0.5208}, "KCP/geodistill.json": {"iou": 0.4537, "bf1": 0.563}}
 

@@ -215,12 +215,12 @@ def test_second_driver_refuses_and_missing_ray_is_one_line(tmp_path):
 
     repo = _project(tmp_path / "p")
     with RunLock(repo):
-        second = _sh(repo, sys.executable, "-m", "stages.cli", "run")
+        second = _sh(repo, sys.executable, "-m", "pipeline.cli", "run")
     lines = second.stderr.strip().splitlines()
     assert second.returncode == 2 and len(lines) == 1 and "another geodistill run" in lines[0], second.stderr
     no_ray = _sh(repo, sys.executable, "-c",
                  "import sys; sys.modules['ray'] = None; sys.argv = ['geodistill', 'run']; "
-                 "from stages.cli import main; main()")
+                 "from pipeline.cli.main import main; main()")
     lines = no_ray.stderr.strip().splitlines()
     assert no_ray.returncode == 2 and len(lines) == 1 and "[cluster]" in lines[0] and "dvc repro" in lines[0]
 
@@ -242,7 +242,7 @@ def test_dvc_status_works_during_a_run_and_a_sigkilled_driver_leaves_no_stage_pr
             "  done:\n    cmd: echo d > done.txt\n    outs: [done.txt]\n")
     repo = _project(tmp_path / "p", slow)
     assert _sh(repo, sys.executable, "-m", "dvc", "repro", "done").returncode == 0  # up to date before the run
-    driver = subprocess.Popen([sys.executable, "-m", "stages.cli", "run"], cwd=repo, env=_env(),
+    driver = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run"], cwd=repo, env=_env(),
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 180

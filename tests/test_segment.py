@@ -18,7 +18,7 @@ from pipeline import deploy
 from pipeline.datasets.loading import read_rgb, resize_image
 from pipeline.errors import InputError
 from pipeline.inference import load_student
-from stages.segment import main as segment_main
+from pipeline.cli.segment import main as segment_main
 from tests._tiny_deploy import HAS_ONNX, make_artifacts, make_checkpoint, make_thresholds, run_export
 
 RES = 32

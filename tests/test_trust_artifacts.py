@@ -178,7 +178,7 @@ def test_crafted_pickle_checkpoint_is_refused_before_it_runs(tmp_path):
     import cv2
 
     cv2.imwrite(str(imgs / "a.png"), np.zeros((32, 32, 3), np.uint8))
-    r = subprocess.run([sys.executable, "-m", "stages.segment", "--checkpoint", str(ckpt), "--input", str(imgs),
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli.segment", "--checkpoint", str(ckpt), "--input", str(imgs),
                         "--output", str(tmp_path / "out"), "--params", str(ROOT / "params.yaml")],
                        capture_output=True, text=True, cwd=ROOT)
     _one_error_line(r, "model.pt")

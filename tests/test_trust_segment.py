@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from stages.segment import main as segment_main
+from pipeline.cli.segment import main as segment_main
 from tests._tiny_deploy import RES
 
 

@@ -33,7 +33,7 @@ def quiet(monkeypatch):
 
 
 def cli(*args):
-    from stages.cli import main
+    from pipeline.cli.main import main
 
     return CliRunner().invoke(main, [str(a) for a in args])
 
@@ -299,7 +299,7 @@ def test_a_corrupt_png_gives_our_line_and_no_opencv_lines(tmp_path, ckpts):  # n
     (inp / "bad.png").write_bytes(CORRUPT_PNG)
     env = {**os.environ, "GEODISTILL_QUIET": "1", "GEODISTILL_LOG": "WARNING"}
     env.pop("OPENCV_LOG_LEVEL", None)
-    r = subprocess.run([sys.executable, "-m", "stages.segment", "--checkpoint", str(ckpts["with"]), "--input",
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli.segment", "--checkpoint", str(ckpts["with"]), "--input",
                         str(inp), "--output", str(tmp_path / "out"), "--device", "cpu"],
                        cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 2, r.stderr
@@ -322,7 +322,7 @@ def test_distill_reports_the_failing_stages_own_line_once(tmp_path, with_bad):
     env = {**os.environ, "GEODISTILL_QUIET": "1", "GEODISTILL_LOG": "WARNING",
            "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     env.pop("OPENCV_LOG_LEVEL", None)
-    cmd = [sys.executable, "-m", "stages.cli", "distill", str(with_bad), "--out", str(tmp_path / "run"),
+    cmd = [sys.executable, "-m", "pipeline.cli", "distill", str(with_bad), "--out", str(tmp_path / "run"),
            "--checkpoint", str(tiny_sam3_path[0]), *FAST, "--set", "train.epochs_stage1=1"]
     r = subprocess.run([*cmd, "--no-run"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -360,7 +360,7 @@ def test_segmenter_repr_is_short(ckpts):  # noqa: F811
 
 
 def test_plots_pages_go_to_different_folders():
-    from stages.plots import OFFLINE_PLOTS_DIR, main
+    from pipeline.cli.plots import OFFLINE_PLOTS_DIR, main
 
     out = next(p for p in main.params if p.name == "out")
     assert out.default == OFFLINE_PLOTS_DIR and OFFLINE_PLOTS_DIR != "dvc_plots"  # dvc plots show's own folder

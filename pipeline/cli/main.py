@@ -1,4 +1,5 @@
-"""The ``geodistill`` console script: one click group whose subcommands are the stage commands.
+"""The ``geodistill`` console script: one click group whose subcommands are the DAG's stage commands
+(``stages/``) and the user tools (this package).
 
 Subcommands are imported lazily so ``geodistill --help`` stays fast (torch is not imported).
 """
@@ -21,21 +22,21 @@ def command_name(stage: str) -> str:
     return stage.replace("_", "-")
 
 
-# subcommand -> module under stages/ exposing a click command named ``main`` (or ``module:command``): every
-# stage of the DAG (pipeline.dag.stage_modules, from the catalogue; a command is named like its stage with
+# subcommand -> module exposing a click command named ``main`` (or ``module:command``): every stage of the
+# DAG under stages/ (pipeline.dag.stage_modules, from the catalogue; a command is named like its stage with
 # "-" for "_", as every other command is spelled: `analyze-teacher` runs the DVC stage `analyze_teacher`),
-# then the tools
+# then the tools under pipeline/cli/
 COMMANDS = {
     **{command_name(stage): module for stage, module in stage_modules().items()},
-    "segment": "stages.segment",
-    "dag": "stages.dag:dag_main",
-    "profile": "stages.dag:profile_main",
-    "run": "stages.run",
-    "label": "stages.label",
-    "review": "stages.review",
-    "distill": "stages.distill",
-    "plots": "stages.plots",
-    "reproduce-check": "stages.reproduce_check",
+    "segment": "pipeline.cli.segment",
+    "dag": "pipeline.cli.dag:dag_main",
+    "profile": "pipeline.cli.dag:profile_main",
+    "run": "pipeline.cli.run",
+    "label": "pipeline.cli.label",
+    "review": "pipeline.cli.review",
+    "distill": "pipeline.cli.distill",
+    "plots": "pipeline.cli.plots",
+    "reproduce-check": "pipeline.cli.reproduce_check",
 }
 
 
