@@ -28,7 +28,7 @@ from pipeline.labeling import LabelResult, label_folder
 from pipeline.labeling.run import check_label_folder, parse_formats
 from pipeline.params import SAM3, deep_merge, validate
 from pipeline.profiles import load_params_or_profile
-from pipeline.standalone import project_outputs, run_project, write_project
+from pipeline.standalone import project_outputs, run_project, time_budget_params, write_project
 from pipeline.teachers.sam3 import check_checkpoint_dir
 
 LABEL_PROFILE = "paper"
@@ -163,7 +163,8 @@ def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None 
             imported_dir: str | Path | None = None, params: str | Path | None = None,
             overrides: Mapping | Iterable[str] | None = None, device: str = "auto", run: bool = True,
             skip_bad: bool = False, overwrite: bool = False, max_pixels: int | None = None,
-            labels: str | Path | None = None, bit_depth: str | int | None = None, benchmark: bool = True) -> dict:
+            labels: str | Path | None = None, bit_depth: str | int | None = None, benchmark: bool = True,
+            time: str | None = None) -> dict:
     """Train a deployable student on the images under ``input`` (``geodistill distill``;
     :mod:`pipeline.standalone`): ``out`` becomes a DVC project running the pipeline's DAG (rerun to
     resume).  Returns ``{"deploy", "report", "thresholds", "checkpoints"}`` paths; ``run=False`` only
@@ -172,9 +173,11 @@ def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None 
     ``labels``: an unmodified :func:`label` output folder of the same images -- its teacher, resolution,
     vote and gate are used and its teacher cache is read, so the teacher computes nothing again
     (:func:`params_from_labels`; no ``checkpoint`` needed).  ``benchmark=False``: no benchmark stage
-    (``--no-benchmark``)."""
+    (``--no-benchmark``).  ``time`` (e.g. ``"20m"``): Stage I's budget (``--time``;
+    :func:`pipeline.standalone.time_budget_params`)."""
     p = distill_params(effective_params(params, overrides, DISTILL_PROFILE), input, labels, backend, checkpoint,
                        imported_dir, skip_bad, max_pixels, bit_depth)
+    p = time_budget_params(p, time, out, device)
     project = write_project(input, out, p, val_masks=val_masks, overwrite=overwrite, labels=labels,
                             benchmark=benchmark)
     if run:

@@ -381,10 +381,11 @@ def method_epochs(method: Method, cfg: Mapping[str, Any]) -> int:
 
 
 def method_lr(method: Method, cfg: Mapping[str, Any]) -> float:
+    """The method's peak learning rate: ``train.<method.lr>``, times ``train.lr_scale`` for Stage I's rate."""
     v = _get(cfg, method.lr)
     if not isinstance(v, (int, float)) or isinstance(v, bool) or v <= 0:
         raise InputError(f"params: train.{method.lr}={v!r} must be a positive number")
-    return float(v)
+    return float(v) * (float(cfg.get("lr_scale") or 1.0) if method.lr == "lr_stage1" else 1.0)
 
 
 #: train params every method reads (model, optimiser, L_raw, validation selection, numerics).  The
@@ -394,7 +395,7 @@ COMMON_KEYS = ("channels", "norm", "bn_momentum", "precise_bn", "batch_size", "w
                "dice_weight", "pos_weight_max", "loss_eps", "recipe", "precision", "warmup_epochs", "average_last",
                "channels_last", "augment_hflip", "num_threads", "val_bf1_tolerance",
                "decay_fraction", "augment", "augmentation", "ema_decay", "soft_targets", "until", "step_budget",
-               "time_budget", "plateau_gain", "plateau_min_epochs", "holdout_fraction")
+               "time_budget", "plateau_gain", "plateau_min_epochs", "holdout_fraction", "lr_scale")
 #: extra train params per loss term (eq:refine-loss and the baselines' terms).
 TERM_KEYS = {
     "region": (),

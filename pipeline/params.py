@@ -248,16 +248,22 @@ class AdaptiveParams(_Section):
 RECIPES: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4,
                         "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False,
-                        "ema_decay": 0.0, "soft_targets": False, "until": "epochs"},
+                        "ema_decay": 0.0, "soft_targets": False, "until": "epochs", "lr_scale": 1.0},
               "calibrate": {"tau_rule": "argmax"}},
     "stable": {"train": {"precision": "fp32", "warmup_epochs": 0, "average_last": 5, "batch_size": 4,
                          "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False,
-                         "ema_decay": 0.0, "soft_targets": False, "until": "epochs"},
+                         "ema_decay": 0.0, "soft_targets": False, "until": "epochs", "lr_scale": 1.0},
                "calibrate": {"tau_rule": "smooth"}},
     "strong": {"train": {"precision": "fp32", "warmup_epochs": 2, "average_last": 4, "batch_size": 8,
                          "epochs_stage1": 80, "epochs_stage2": 20, "schedule": "wsd", "augment": True,
-                         "ema_decay": 0.0, "soft_targets": False, "until": "epochs"},
+                         "ema_decay": 0.0, "soft_targets": False, "until": "epochs", "lr_scale": 1.0},
                "calibrate": {"tau_rule": "smooth"}},
+    # the speedrun's adopted recipe (benchmarks/speedrun.py, docs/student.md): strong's parts at 4x the
+    # Stage-I peak rate after a 5-epoch warm-up, stopped at the plateau (at most 100 epochs, decay included)
+    "fast": {"train": {"precision": "fp32", "warmup_epochs": 5, "average_last": 4, "batch_size": 8,
+                       "epochs_stage1": 100, "epochs_stage2": 20, "schedule": "wsd", "augment": True,
+                       "ema_decay": 0.0, "soft_targets": False, "until": "plateau", "lr_scale": 4.0},
+             "calibrate": {"tau_rule": "smooth"}},
 }
 
 
@@ -346,7 +352,7 @@ class TrainParams(_Section):
     lambda_skel: float = _f(0.001, "eq:refine-loss", ge=0)
     lambda_area: float = _f(0.05, "eq:refine-loss", ge=0)
     stage2_select: Literal["last", "best_val"] = _f("last", "paper: the last Stage-II epoch")
-    recipe: Literal["paper", "stable", "strong"] = _f("paper", "training recipe: a bundle of the parts marked "
+    recipe: Literal["paper", "stable", "strong", "fast"] = _f("paper", "training recipe: a bundle of the parts marked "
                                             "'recipe part' (docs/stability.md); an explicit part value wins")
     precision: Literal["fp32", "bf16", "auto"] | None = _f(
         None, "recipe part: fp32 | bf16 | auto (bf16 autocast where the CPU/GPU supports it: host-dependent)")
@@ -360,6 +366,8 @@ class TrainParams(_Section):
     soft_targets: bool | None = _f(None, "recipe part: the region target is the agreement map A "
                                          "(eq:agreement-map) instead of the voted mask M^T in eq:raw-loss -- "
                                          "a departure from the paper, named in every table")
+    lr_scale: float | None = _f(None, "recipe part: multiplies train.lr_stage1, Stage I's peak learning rate",
+                                gt=0)
     until: Literal["epochs", "plateau"] | None = _f(
         None, "recipe part, Stage I: epochs = train epochs_stage1 epochs | plateau = stop the stable phase when "
               "the validation IoU stops improving (train.plateau_gain) or the step budget is spent, then decay "

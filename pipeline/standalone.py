@@ -72,14 +72,16 @@ import yaml
 
 from pipeline import __version__, catalog
 from pipeline.artifacts import write_text_if_changed
+from pipeline.budget import with_time_budget
 from pipeline.codeversion import ROOT
 from pipeline.dag import live_plots, render_dvc_yaml, render_params_yaml
+from pipeline.device import resolve_device
 from pipeline.dvc_results import path_component
 from pipeline.datasets.scan import scan_inputs
 from pipeline.errors import BACKEND, CHECKPOINT, INPUT, OUT, VAL_MASKS, InputError, Option, literal
 from pipeline.exporting import bundle_files
 from pipeline.labeling.run import find_images
-from pipeline.methods import PROPOSED, method_label
+from pipeline.methods import PROPOSED, STAGE_ONE, method_label
 from pipeline.offline_plots import template_path, template_text
 from pipeline.ownership import check_outputs, record_fields, refuse_foreign_files
 from pipeline.params import deep_merge, read_yaml_mapping
@@ -413,6 +415,25 @@ def efficiency_line(out: str | Path) -> str | None:
             f"held-out images with masks){why}")
 
 
+def training_line(out: str | Path) -> str | None:
+    """The summary line of a finished project's Stage I (the Plain Student of the first seed): optimizer
+    steps run, and why it stopped (``train.until: plateau``); None without its checkpoint record."""
+    out = Path(out)
+    runs = (read_yaml_mapping(out / "params.yaml").get("protocol") or {}).get("runs") or {}
+    seeds = runs.get(STAGE_ONE) or []
+    if not seeds:
+        return None
+    meta = catalog.path("checkpoints", out / catalog.ARTIFACTS_DIR) / STAGE_ONE / str(seeds[0]) / "meta.json"
+    try:
+        extra = json.loads(meta.read_text()).get("extra") or {}
+    except (OSError, ValueError):
+        return None
+    if "steps_run" not in extra:
+        return None
+    why = f", stopped at {extra['stopped']}" if extra.get("stopped") else " (its fixed length)"
+    return f"Stage I trained {int(extra['steps_run']):,} optimizer steps ({extra.get('epochs')} epochs){why}"
+
+
 def _metric(path: Path, key: str) -> float | None:
     """``key`` of the DVC metrics file ``path`` (pipeline.dvc_results), None when either is absent."""
     try:
@@ -420,6 +441,15 @@ def _metric(path: Path, key: str) -> float | None:
     except (OSError, ValueError):
         return None
     return float(value) if isinstance(value, (int, float)) else None
+
+
+def time_budget_params(params: dict, time_budget: str | None, out: str | Path, device: str = "auto") -> dict:
+    """``params`` with ``--time`` / ``time=`` as Stage I's step budget (:func:`pipeline.budget.with_time_budget`),
+    reusing the steps the project ``out`` already recorded for the same time."""
+    if time_budget is None:
+        return params
+    previous = read_yaml_mapping(Path(out) / "params.yaml") if (Path(out) / "params.yaml").is_file() else None
+    return with_time_budget(params, time_budget, previous, resolve_device(device).type)
 
 
 def distill_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, val_masks: str | Path | None = None,

@@ -126,3 +126,14 @@ def cli(*args):
     from pipeline.cli.main import main
 
     return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+
+
+def checkpoint_folder(path: Path) -> Path:
+    """A folder that passes the SAM 3 checkpoint check (config, weights and tokenizer files present) but
+    holds no model: for tests that only write a project (``--no-run``), never load the teacher."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    (path / "config.json").write_text('{"model_type": "sam3"}')
+    (path / "model.safetensors").write_bytes(b"")
+    (path / "tokenizer.json").write_text("{}")
+    return path

@@ -12,7 +12,7 @@ from pipeline.engine_table import BENCHMARK_VARIANTS
 from pipeline.params import PAPER
 from pipeline.profiles import DISTILL_BENCHMARK, PROFILES, load_profile
 from tests._tiny_lane import REPO
-from tests._tiny_teacher import make_image_folder
+from tests._tiny_teacher import checkpoint_folder, make_image_folder
 
 PLAN_KEYS = ("benchmark_variants", "benchmark_warmup", "benchmark_iters", "benchmark_batches")
 
@@ -38,8 +38,7 @@ def _project(tmp_path, *flags):
     images = tmp_path / "data" / "images"
     if not images.is_dir():
         make_image_folder(tmp_path / "data", n=3, masks=False)
-    sam3 = tmp_path / "sam3"
-    sam3.mkdir(exist_ok=True)  # only a path: the project is written, not run
+    sam3 = checkpoint_folder(tmp_path / "sam3")  # the project is written, not run
     out = tmp_path / "run"
     r = CliRunner().invoke(main, ["distill", str(images), "--out", str(out), "--checkpoint", str(sam3), "--no-run",
                                   *flags])

@@ -9,7 +9,8 @@ from pipeline.api import distill_params
 from pipeline.errors import LABELS
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
-from pipeline.standalone import efficiency_line, project_outputs, run_project, write_project
+from pipeline.standalone import (efficiency_line, project_outputs, run_project, time_budget_params, training_line,
+                                 write_project)
 from pipeline.progress import quiet_bars
 from stages._common import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option, skip_bad_option,
                             stage_command)
@@ -32,6 +33,10 @@ from stages._common import (bit_depth_option, max_pixels_option, overwrite_optio
               help="an unmodified `geodistill label` output of the same images: train from its pseudo-labels "
                    "(its teacher, resolution, vote and gate) and its teacher cache, so the teacher computes "
                    "nothing again; no --checkpoint needed")
+@click.option("--time", "time_budget", default=None, metavar="DURATION",
+              help="bound Stage I's training, e.g. 20m or 1h30m: converted once on this host into "
+                   "train.step_budget in the project's params (a rerun with the same --time does nothing; a "
+                   "longer one continues the saved run); the teacher, Stage II and export come on top")
 @click.option("--no-run", is_flag=True, help="only write the DVC project (run it later with `dvc repro` in --out)")
 @click.option("--no-benchmark", is_flag=True, help="leave out the efficiency benchmark of the deploy bundle "
               "(time it later: `geodistill benchmark --deploy artifacts/deploy` in --out)")
@@ -40,8 +45,8 @@ from stages._common import (bit_depth_option, max_pixels_option, overwrite_optio
 @bit_depth_option
 @overwrite_option
 @quiet_option
-def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, labels, no_run, no_benchmark,
-         skip_bad, max_pixels, bit_depth, overwrite, quiet):
+def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, labels, time_budget, no_run,
+         no_benchmark, skip_bad, max_pixels, bit_depth, overwrite, quiet):
     """Train a deployable student on a folder of images: SAM 3 pseudo-labels, Stage I (plain student),
     Stage II (GeoDistill-Refine), threshold, export, report.  --out becomes a DVC project running the
     pipeline's own DAG, so a rerun resumes where it stopped; distill.json there lists what distill
@@ -51,6 +56,7 @@ def main(params, device, input_dir, out, val_masks, checkpoint, backend, importe
     teacher answers; a changed mask there is refused (corrections go through `geodistill review import`)."""
     params = distill_params(params, input_dir, labels, backend, checkpoint, imported_dir, skip_bad, max_pixels,
                             bit_depth)
+    params = time_budget_params(params, time_budget, out, device)
     project = write_project(input_dir, out, params, val_masks=val_masks, overwrite=overwrite, labels=labels,
                             benchmark=not no_benchmark)
     if no_run:
@@ -60,6 +66,8 @@ def main(params, device, input_dir, out, val_masks, checkpoint, backend, importe
         run_project(project, device, quiet=quiet)
     res = project_outputs(project)
     click.echo(f"distill: deploy bundle {res['deploy']}\ndistill: report {res['report']}", err=True)
+    if (line := training_line(project)) is not None:
+        click.echo(f"distill: {line}", err=True)
     if (line := efficiency_line(project)) is not None:  # with --val-masks
         click.echo(f"distill: {line}", err=True)
 
