@@ -93,8 +93,8 @@ def read_label_folder(label_dir: str | Path):
     if not record.get("complete"):
         raise InputError("{}: that label run did not finish; rerun it (it resumes from its cache)", LABEL_DIR(d))
     if "png" not in record.get("formats", []):
-        raise InputError(f"{{}}: label wrote no {literal(LABEL_OUTPUTS['masks'])}/ PNGs there; rerun it with "
-                         f"--format png (plus any other format)", LABEL_DIR(d))
+        raise InputError(f"{{}}: label wrote no {literal(LABEL_OUTPUTS['masks'])}/ PNGs there; rerun geodistill "
+                         f"label with --format png (plus any other format)", LABEL_DIR(d))
     table = pd.read_parquet(d / LABEL_OUTPUTS["table"])
     return record, table
 
