@@ -322,18 +322,18 @@ def test_the_folder_reader_refuses_and_skips_the_bomb(folder, tmp_path):
 # shared options live in stages/_common.py
 # --------------------------------------------------------------------------------------------------
 def test_no_stage_imports_a_sibling_stage():
-    """A stage script imports shared options and helpers from stages/_common.py only, never from another
-    stage (``label`` took ``--workers`` from ``stages.teacher``)."""
+    """A stage script or a user command imports shared options and helpers from stages/_common.py only,
+    never from a stage (``label`` took ``--workers`` from ``stages.teacher``)."""
     import ast
 
     found = []
-    for path in sorted((REPO / "stages").glob("*.py")):
+    for path in sorted([*(REPO / "stages").glob("*.py"), *(REPO / "pipeline" / "cli").glob("*.py")]):
         for node in ast.walk(ast.parse(path.read_text())):
             names = ([a.name for a in node.names] if isinstance(node, ast.Import)
                      else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
             found += [(path.name, n) for n in names if n.startswith("stages.") and n != "stages._common"]
     assert found == []
-    from stages import label
+    from pipeline.cli import label
 
     flags = {o for p in label.main.params for o in p.opts}
     assert {"--workers", "--address", "--max-pixels", "--skip-bad", "--overwrite"} <= flags
