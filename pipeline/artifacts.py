@@ -174,22 +174,6 @@ def fingerprint(stage: str, code_version: str, params: Mapping[str, Any], input_
     return hashlib.sha256(payload.encode()).hexdigest()
 
 
-def code_version(*paths: str | Path) -> str:
-    """sha256 of the given source files (a stage script and the library modules it uses).
-
-    Directories are hashed recursively over their ``*.py`` files, in sorted order.
-    """
-    h = hashlib.sha256()
-    files: list[Path] = []
-    for p in paths:
-        p = Path(p)
-        files.extend(sorted(p.rglob("*.py")) if p.is_dir() else [p])
-    for f in files:
-        h.update(f.name.encode())
-        h.update(f.read_bytes())
-    return h.hexdigest()[:16]
-
-
 _LIBS = ("numpy", "scipy", "torch", "zarr", "pyarrow", "scikit-image", "opencv-python-headless")
 
 

@@ -299,17 +299,6 @@ def _small_region_ious_stacked(ps: np.ndarray, n: int, found) -> np.ndarray:
     return np.divide(inter, union, out=np.full(n, np.nan), where=n_small > 0)
 
 
-def small_region_mask(gt, max_fraction: float = DEFAULT_SMALL_FRACTION, margin: int = DEFAULT_SMALL_MARGIN):
-    """(region R, small components S) bool [H,W] each, for :func:`small_region_iou`; R is empty when
-    the ground truth has no small component."""
-    gt = _as_mask(gt, "gt")
-    h, w = gt.shape
-    found = _small_regions_stacked(_stack(gt[None], max(1, margin)), 1, h, w, max_fraction, margin)
-    if found is None:
-        return np.zeros_like(gt), np.zeros_like(gt)
-    return _unstack(found[0], 1, h)[0], _unstack(found[1], 1, h)[0]
-
-
 def small_region_iou(pred, gt, max_fraction: float = DEFAULT_SMALL_FRACTION,
                      margin: int = DEFAULT_SMALL_MARGIN) -> float:
     """IoU restricted to small ground-truth objects (a supplementary diagnostic of the paper).

@@ -452,10 +452,3 @@ def time_budget_params(params: dict, time_budget: str | None, out: str | Path, d
     return with_time_budget(params, time_budget, previous, resolve_device(device).type)
 
 
-def distill_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, val_masks: str | Path | None = None,
-                   device: str = "auto") -> dict[str, Path]:
-    """:func:`write_project` then :func:`run_project`; returns :func:`project_outputs`."""
-    project = write_project(input_dir, out, params, val_masks=val_masks)
-    log.info("distill: DVC project %s (params.yaml, dvc.yaml); running dvc repro", project)
-    run_project(project, device)
-    return project_outputs(project)

@@ -195,18 +195,6 @@ def _note(row) -> str | None:
     return value if isinstance(value, str) and value else None
 
 
-def lookup_tau_source(thresholds_df, method: str, seed: int) -> str | None:
-    """The ``tau_source`` note of (method, seed) in a thresholds table (e.g. :data:`NO_VALIDATION_MASKS`),
-    or None for a calibrated row, an absent row, or a table without the column."""
-    return _note(_run_row(thresholds_df, method, seed))
-
-
-def lookup_tau(thresholds_df, method: str, seed: int) -> float | None:
-    """The calibrated tau of (method, seed) in a thresholds table, or None when the row is absent."""
-    row = _run_row(thresholds_df, method, seed)
-    return None if row is None else float(row["tau"])
-
-
 # --------------------------------------------------------------------------------------------------
 # Which tau a deployed model runs with
 # --------------------------------------------------------------------------------------------------

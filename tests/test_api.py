@@ -10,7 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 import pipeline
-from tests._tiny_teacher import make_image_folder
+from tests._tiny_teacher import checkpoint_folder, make_image_folder
 
 
 @pytest.fixture(scope="module")
@@ -102,8 +102,7 @@ def test_label_and_distill_are_exported(tmp_path):
                          formats="png", overrides={"data.resolution": 32}, device="cpu")
     assert res.simulator and len(res.table) == 6 and res.formats == ("png",)
     assert len(list((tmp_path / "labels" / "masks").glob("*.png"))) == 6
-    sam3 = tmp_path / "sam3"
-    sam3.mkdir()  # only a path here: the project is written, not run
+    sam3 = checkpoint_folder(tmp_path / "sam3")  # the project is written, not run
     out = pipeline.distill(images, out=tmp_path / "proj", checkpoint=sam3, overrides=["train.epochs_stage1=2"],
                            run=False)
     params = yaml.safe_load((tmp_path / "proj" / "params.yaml").read_text())
@@ -131,8 +130,7 @@ def test_distill_project_has_the_plot_template_its_dvc_yaml_names(tmp_path):
     from pipeline.offline_plots import template_path, template_text
 
     images, masks = make_image_folder(tmp_path / "data", n=4)
-    sam3 = tmp_path / "sam3"
-    sam3.mkdir()
+    sam3 = checkpoint_folder(tmp_path / "sam3")
     pipeline.distill(images, out=tmp_path / "proj", val_masks=masks, checkpoint=sam3, run=False)
     doc = yaml.safe_load((tmp_path / "proj" / "dvc.yaml").read_text())
     names = {v["template"] for p in doc["plots"] for v in p.values()}

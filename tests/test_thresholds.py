@@ -73,14 +73,6 @@ def test_threshold_grid_contains_one_half_and_checks_the_params():
         T.threshold_grid({"grid_start": 0.6, "grid_stop": 0.4, "grid_step": 0.05})
 
 
-def test_lookup_tau_finds_the_run_or_none():
-    import pandas as pd
-
-    df = pd.DataFrame({"method": ["plain", "geodistill"], "seed": [42, 42], "tau": [0.4, 0.55]})
-    assert T.lookup_tau(df, "geodistill", 42) == 0.55
-    assert T.lookup_tau(df, "geodistill", 7) is None
-
-
 # ---- which tau ------------------------------------------------------------------------------------
 ALL = {"option": 0.1, "bundle": 0.2, "checkpoint": 0.3, "thresholds": 0.4, "fixed": 0.5}
 
