@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 from pipeline.errors import InputError
 
 
@@ -34,6 +36,17 @@ def cpu_flags() -> frozenset[str]:
 def cpu_supports_bf16() -> bool:
     """True where the CPU has native bf16 matrix units (:data:`BF16_FLAGS`), so bf16 autocast pays off."""
     return not cpu_flags().isdisjoint(BF16_FLAGS)
+
+
+def autocast(device, dtype, cache_enabled: bool = True):
+    """The autocast context of ``dtype`` on ``device`` (a null context for None = fp32): the one helper
+    for training, inference and the CUDA fast path.  ``cache_enabled=False`` where autocast's weight-cast
+    cache must not outlive a CUDA-graph capture."""
+    import torch
+
+    if dtype is None:
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=torch.device(device).type, dtype=dtype, cache_enabled=cache_enabled)
 
 
 def autocast_dtype(device, precision: str):

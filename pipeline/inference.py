@@ -13,7 +13,6 @@ Only the runs listed in params.yaml's ``protocol.runs`` exist (one DVC stage eac
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
 from typing import Iterator
 
@@ -23,7 +22,7 @@ from pipeline import catalog
 from pipeline.artifacts import (Artifact, artifact_dir, make_meta, open_artifact, read_chunk_rows, require_same_run,
     write_parquet)
 from pipeline.catalog import TRAINING_LOG_FILE
-from pipeline.device import autocast_dtype
+from pipeline.device import autocast, autocast_dtype
 from pipeline.errors import ArtifactError, InputError
 
 
@@ -85,17 +84,6 @@ def images_to_tensor(images: np.ndarray):
     return torch.from_numpy(np.ascontiguousarray(arr)).permute(0, 3, 1, 2).float().div_(255.0)
 
 
-@contextlib.contextmanager
-def _autocast(device, dtype):
-    import torch
-
-    if dtype is None:
-        yield
-    else:
-        with torch.autocast(device_type=device.type, dtype=dtype):
-            yield
-
-
 def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: str = "fp32",
                   channels_last: bool = True) -> np.ndarray:
     """Foreground probabilities P = sigmoid(Z) float32 [N,H,W] for uint8 images [N,H,W,3].
@@ -111,7 +99,7 @@ def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: 
         model = model.to(memory_format=torch.channels_last)
     n = images.shape[0]
     out = np.empty((n, images.shape[1], images.shape[2]), dtype=np.float32)
-    with torch.inference_mode(), _autocast(device, dtype):
+    with torch.inference_mode(), autocast(device, dtype):
         for s in range(0, n, batch_size):
             x = images_to_tensor(np.asarray(images[s:s + batch_size])).to(device)
             if channels_last:

@@ -51,7 +51,6 @@ Resilience
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import dataclasses
 import functools
@@ -67,7 +66,7 @@ import torch
 from pipeline import losses
 from pipeline.augment import AugmentSpec, GeometryConstants, augment_batch
 from pipeline.artifacts import Artifact, read_chunk_rows
-from pipeline.device import autocast_dtype
+from pipeline.device import autocast, autocast_dtype
 from pipeline.errors import ArtifactError, InputError, TrainingDiverged
 from pipeline.inference import predict_probs
 from pipeline.methods import (Method, Plan, afs_fuse, afs_keep, confidence_pass, input_artifacts, mean_valid_score,
@@ -645,12 +644,6 @@ class _Run:
         return self.until["epochs"] if self.until is not None else self.settings.epochs
 
 
-def _autocast(device: torch.device, dtype):
-    if dtype is None:
-        return contextlib.nullcontext()
-    return torch.autocast(device_type=device.type, dtype=dtype)
-
-
 def _cpu_state(model) -> dict:
     return {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}
 
@@ -899,7 +892,7 @@ def _precise_bn(run: _Run) -> int:
     inputs = {k: run.tensors[k] for k in ("image", "area", "gate")}  # the images only: no target is read
     batches = (_batch(inputs, torch.arange(i, min(i + bs, n), device=run.device), None,
                       run.settings.channels_last)["x"] for i in range(0, n, bs))
-    with _autocast(run.device, run.amp):
+    with autocast(run.device, run.amp):
         return recompute_bn_stats(run.model, batches)
 
 
@@ -927,7 +920,7 @@ def _step(run: _Run, b: Mapping[str, torch.Tensor], epoch: int, step: int) -> di
 
     Raises TrainingDiverged (naming the non-finite terms) before touching the weights.
     """
-    with _autocast(run.device, run.amp):
+    with autocast(run.device, run.amp):
         out = run.model.forward_train(b["x"])
     terms = losses.refine_loss(out, b, b["gate"], run.plan.weights, run.settings.constants)
     # CPU: checked every step (free there).  CUDA: reading the loss would stall the GPU every step, so

@@ -21,21 +21,12 @@ graphs, numerically the engine ``torch`` of pipeline.deploy.segmenter.
 
 from __future__ import annotations
 
-import contextlib
 
 import numpy as np
 
+from pipeline.device import autocast
 from pipeline.errors import InputError
 from pipeline.model import mask_path_model
-
-
-def _autocast(device, precision: str):
-    import torch
-
-    if precision == "bf16":
-        # cache_enabled=False: autocast's weight-cast cache must not outlive a CUDA-graph capture
-        return torch.autocast(device_type=device.type, dtype=torch.bfloat16, cache_enabled=False)
-    return contextlib.nullcontext()
 
 
 def uint8_to_input(images_u8, channels_last: bool = True):
@@ -75,7 +66,7 @@ class FastStudent:
     def _forward(self, x):
         import torch
 
-        with torch.inference_mode(), _autocast(self.device, self.precision):
+        with torch.inference_mode(), autocast(self.device, torch.bfloat16 if self.precision == "bf16" else None, cache_enabled=False):
             return self.net(x.contiguous(memory_format=torch.channels_last)).float()
 
     # -- CUDA graphs ------------------------------------------------------------------------------
