@@ -1,7 +1,7 @@
 """Segmenting a folder end to end against the engine alone, every CPU engine, in one run.
 
     python -m benchmarks.bench_segment                       # 64 photos at 640x480, 384^2 model
-    python -m benchmarks.bench_segment --images 200 --engines onnx,openvino_int8
+    python -m benchmarks.bench_segment --images 200 --engines onnxruntime_fp32,openvino_int8
 
 What a user of ``geodistill segment`` waits for is the folder, not the model: decode -> resize to R x R
 -> Z = f(x) -> P back to the photo's size -> M = [P >= tau] (eq:inference-mask) -> PNG.  This script
@@ -40,7 +40,7 @@ from pipeline.artifacts import make_meta
 from pipeline.datasets.loading import read_rgb, resize_image
 from pipeline.deploy import files as F
 from pipeline.deploy import load_segmenter
-from pipeline.engine_table import ENGINE_TABLE, SEGMENT_ENGINES
+from pipeline.engine_table import ENGINE_TABLE, SEGMENT_ENGINES, engine_name
 from pipeline.errors import InputError
 from pipeline.exporting import plan_export, write_export
 from pipeline.inference import save_checkpoint
@@ -107,7 +107,7 @@ def build_bundle(workdir: Path, resolution: int, channels, calibration: np.ndarr
 def load_engines(bundle: Path, names) -> tuple[dict, dict[str, str]]:
     """({engine: Segmenter}, {engine: why skipped}) on the CPU."""
     loaded, skipped = {}, {}
-    for name in names:
+    for name in dict.fromkeys(map(engine_name, names)):
         if name not in SEGMENT_ENGINES:
             raise InputError(f"--engines: unknown engine {name!r} (expected some of {', '.join(SEGMENT_ENGINES)})")
         if name == "cuda":

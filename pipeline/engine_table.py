@@ -1,4 +1,4 @@
-"""The deploy engines as data: one row per engine, the one list of engine names.
+"""The deploy engines as data: one row per engine, the one list of engine names and their old names.
 
 An engine is one way to run the deployed mask path Z = f(x) (eq:inference-mask).  Each row says what
 it is (``description``), how :mod:`pipeline.deploy.engines` loads it (``loader`` and its ``options``),
@@ -10,7 +10,8 @@ which file of the deploy bundle it runs (``reads``: a key of :data:`pipeline.cat
 This module is pure Python and imports nothing of the project, so the params schema (the variants'
 default and check), the catalogue (which engine reads each bundle file) and ``segment --help`` read it
 without starting torch.  The registry that loads the engines is :data:`pipeline.deploy.engines.ENGINES`,
-built from this table; every other list of engine names below is derived from it.
+built from this table; every other list of engine names below is derived from it.  Old names
+(:data:`ENGINE_ALIASES`) are accepted wherever an engine name is, through :func:`engine_name`.
 """
 
 from __future__ import annotations
@@ -38,17 +39,11 @@ class EngineSpec:
         return bool(self.options.get("bf16")) or self.options.get("precision") == "bf16"
 
 
-_ORT_INT8 = ("ONNX Runtime CPU int8 (static QDQ model.int8.onnx: u8 activations, s8 per-channel weights, ranges "
-             "calibrated on training images)")
-
 #: name -> engine.  The order is the order of segment's choices and of the benchmark's default variants.
 ENGINE_TABLE: dict[str, EngineSpec] = {
     "torch": EngineSpec("PyTorch eager fp32 (channels_last on a CPU): the fp32 reference", "eager",
                         {"channels_last": "cpu"}, segment=True),
     "torchscript": EngineSpec("the bundle's TorchScript model.ts", "torchscript_file", reads="torchscript", segment=True),
-    "onnx": EngineSpec("ONNX Runtime CPU fp32 on the bundle's model.onnx", "onnxruntime", reads="onnx",
-                       cpu_only=True, segment=True),
-    "int8": EngineSpec(_ORT_INT8, "onnxruntime", reads="int8", cpu_only=True, segment=True),
     "fp32_eager_nchw": EngineSpec("PyTorch eager fp32, NCHW (baseline)", "eager", {"channels_last": False},
                                   benchmark=True),
     "fp32_channels_last": EngineSpec("PyTorch eager fp32, channels_last", "eager", {"channels_last": True},
@@ -59,9 +54,12 @@ ENGINE_TABLE: dict[str, EngineSpec] = {
                                      {"channels_last": True, "bf16": True}, benchmark=True),
     "torchscript_frozen": EngineSpec("TorchScript traced + frozen + optimize_for_inference, fp32", "torchscript_frozen",
                                      benchmark=True),
-    "onnxruntime_fp32": EngineSpec("ONNX Runtime CPU fp32, graph optimisations ORT_ENABLE_ALL", "onnxruntime",
-                                   reads="onnx", cpu_only=True, benchmark=True),
-    "onnxruntime_int8": EngineSpec(_ORT_INT8, "onnxruntime", reads="int8", cpu_only=True, benchmark=True),
+    "onnxruntime_fp32": EngineSpec("ONNX Runtime CPU fp32 on the bundle's model.onnx (graph optimisations "
+                                   "ORT_ENABLE_ALL)", "onnxruntime", reads="onnx", cpu_only=True, segment=True,
+                                   benchmark=True),
+    "onnxruntime_int8": EngineSpec("ONNX Runtime CPU int8 (static QDQ model.int8.onnx: u8 activations, s8 "
+                                   "per-channel weights, ranges calibrated on training images)", "onnxruntime",
+                                   reads="int8", cpu_only=True, segment=True, benchmark=True),
     "openvino_int8": EngineSpec("OpenVINO CPU on the same static int8 QDQ model.int8.onnx", "openvino", reads="int8",
                                 cpu_only=True, segment=True, benchmark=True),
     "cuda": EngineSpec("GPU fast path: CUDA graphs, bf16 autocast, channels_last (eager fp32 on a CPU)", "fast",
@@ -69,6 +67,9 @@ ENGINE_TABLE: dict[str, EngineSpec] = {
     "cuda_graph_bf16": EngineSpec("CUDA graphs, bf16 autocast, channels_last (pipeline.deploy.cuda_engine)", "fast",
                                   {"precision": "bf16"}, cuda_only=True, benchmark=True),
 }
+
+#: old name -> engine name (docs/decisions.md, "One name per engine")
+ENGINE_ALIASES: dict[str, str] = {"onnx": "onnxruntime_fp32", "int8": "onnxruntime_int8"}
 
 #: what ``auto`` stands for (pipeline.deploy.segmenter.resolve_engine)
 AUTO = "auto"
@@ -85,3 +86,8 @@ BENCHMARK_VARIANTS: list[str] = [n for n, e in ENGINE_TABLE.items() if e.benchma
 def engines_reading(key: str) -> tuple[str, ...]:
     """The engines that run bundle file ``key`` (a :data:`pipeline.catalog.DEPLOY_BUNDLE` key)."""
     return tuple(n for n, e in ENGINE_TABLE.items() if e.reads == key)
+
+
+def engine_name(name: str) -> str:
+    """The engine name that ``name`` stands for: an old name's new one (:data:`ENGINE_ALIASES`), else ``name``."""
+    return ENGINE_ALIASES.get(name, name)

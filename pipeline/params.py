@@ -25,7 +25,7 @@ from typing import Annotated, Any, Iterable, Literal, Mapping
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from pipeline.engine_table import BENCHMARK_VARIANTS  # pure Python: the engine names, one list
+from pipeline.engine_table import BENCHMARK_VARIANTS, engine_name  # pure Python: the engine names, one list
 from pipeline.errors import InputError
 from pipeline.methods import METHODS, PROPOSED, STAGE_ONE  # pure Python, no torch: this module stays torch-free
 
@@ -518,6 +518,7 @@ class DeployParams(_Section):
     @field_validator("benchmark_variants")
     @classmethod
     def _variants(cls, v):
+        v = list(dict.fromkeys(map(engine_name, v)))  # an old name -> its engine (ENGINE_ALIASES)
         bad = [x for x in v if x not in BENCHMARK_VARIANTS]
         if bad:
             raise ValueError(f"unknown variant(s) {bad} (one of {', '.join(BENCHMARK_VARIANTS)})")

@@ -20,7 +20,7 @@ def test_bench_segment_prints_end_to_end_beside_model_only_for_every_engine(tmp_
                      "--repeats", "1", "--json", str(tmp_path / "r.json")])
     out = capsys.readouterr().out
     engines = set(result["engines"]) | set(result["skipped"])
-    assert engines == {"torch", "torchscript", "onnx", "int8", "openvino_int8", "cuda"}
+    assert engines == {"torch", "torchscript", "onnxruntime_fp32", "onnxruntime_int8", "openvino_int8", "cuda"}
     assert "torch" in result["engines"] and "needs a CUDA device" in result["skipped"]["cuda"]
     for name, row in result["engines"].items():
         assert row["model"]["median"] > 0 and row["overlapped"]["median"] > 0 and row["serial"]["best"] > 0
@@ -32,6 +32,7 @@ def test_bench_segment_prints_end_to_end_beside_model_only_for_every_engine(tmp_
     assert "Target: end to end >= 0.8 x model-only" in out and (tmp_path / "r.json").exists()
     with pytest.raises(InputError, match="unknown engine"):
         B.load_engines(tmp_path, ["tensorrt"])
+    assert B.load_engines(tmp_path / "nowhere", ["int8"])[1].keys() == {"onnxruntime_int8"}  # an old name
 
 
 def test_generated_images_are_photo_sized_and_not_flat(tmp_path):

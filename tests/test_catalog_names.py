@@ -115,7 +115,7 @@ def test_the_bundle_layout_is_one_table_that_the_writer_readers_and_engines_use(
         assert spec.reads in layout, name
         assert engines.ENGINES[name].needs == ("model" if spec.reads == "weights" else layout[spec.reads].name)
         assert name in catalog.bundle_readers(spec.reads)
-    assert set(catalog.bundle_readers("int8")) == {"int8", "onnxruntime_int8", "openvino_int8"}
+    assert set(catalog.bundle_readers("int8")) == {"onnxruntime_int8", "openvino_int8"}
     # the deploy schema checks the table's required files
     required = {f.name for f in layout.values() if f.required}
     files = get_schema("deploy").files

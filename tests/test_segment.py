@@ -1,5 +1,5 @@
 """``geodistill segment`` on files of odd sizes and formats, a corrupt file among good ones, both a
-checkpoint and a deploy bundle with every engine (torch, torchscript, onnx, int8), and the rule that
+checkpoint and a deploy bundle with every engine (torch, torchscript, onnxruntime_fp32 / _int8), and the rule that
 outputs never overwrite inputs."""
 
 from __future__ import annotations
@@ -149,7 +149,7 @@ def test_segment_deploy_bundle_engines_agree_and_use_bundle_tau(tmp_path):
     art = make_artifacts(tmp_path / "art")
     assert run_export(ckpt, tmp_path / "deploy", "--thresholds", str(thr), "--artifacts", str(art)).exit_code == 0
     sizes = write_inputs(tmp_path / "in")
-    engines = ["torch", "torchscript"] + (["onnx", "int8"] if HAS_ONNX else [])
+    engines = ["torch", "torchscript"] + (["onnxruntime_fp32", "onnxruntime_int8"] if HAS_ONNX else [])
     masks = {}
     for e in engines:
         r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in",
@@ -160,17 +160,23 @@ def test_segment_deploy_bundle_engines_agree_and_use_bundle_tau(tmp_path):
         assert {k: v.shape for k, v in masks[e].items()} == {f"{n}.mask.png": hw for n, hw in sizes.items()}
     fg = np.mean(np.concatenate([m.ravel() for m in masks["torch"].values()]))
     assert 0.05 < fg < 0.95, fg  # both classes present, so agreement below is not trivially 100 %
-    for e in ("torchscript", "onnx"):  # fp32 engines: identical masks
+    for e in ("torchscript", "onnxruntime_fp32"):  # fp32 engines: identical masks
         if e in masks:
             for name, m in masks["torch"].items():
                 assert np.array_equal(masks[e][name], m), (e, name)
     if HAS_ONNX:  # int8 is approximate: >= 99 % of all pixels agree with torch
-        same = sum(int(np.count_nonzero(masks["int8"][k] == m)) for k, m in masks["torch"].items())
+        same = sum(int(np.count_nonzero(masks["onnxruntime_int8"][k] == m)) for k, m in masks["torch"].items())
         assert same / sum(m.size for m in masks["torch"].values()) >= 0.99
-        # auto picks an exact engine (onnx) even when the bundle has int8: int8 must be asked for
+        # an old name (pipeline.engine_table.ENGINE_ALIASES) runs its engine: the same masks
+        r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in", "--output", tmp_path / "old",
+                    "--engine", "int8")
+        assert r.exit_code == 0 and "engine onnxruntime_int8," in r.output, r.output
+        assert read_masks(tmp_path / "old").keys() == masks["onnxruntime_int8"].keys()
+        assert all(np.array_equal(m, masks["onnxruntime_int8"][k]) for k, m in read_masks(tmp_path / "old").items())
+        # auto picks an exact engine (onnxruntime_fp32) even when the bundle has int8: int8 must be asked for
         r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in" / "odd.png",
                     "--output", tmp_path / "out_auto")
-        assert r.exit_code == 0 and "engine onnx (auto)" in r.output, r.output
+        assert r.exit_code == 0 and "engine onnxruntime_fp32 (auto)" in r.output, r.output
         assert np.array_equal(read_masks(tmp_path / "out_auto")["odd.png.mask.png"], masks["torch"]["odd.png.mask.png"])
     # --tau overrides the bundle's tau: tau = 0 keeps every pixel
     r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in" / "grey.png",
@@ -188,7 +194,7 @@ def test_segment_engine_choice_and_refusals(tmp_path):
     r = segment("--checkpoint", ckpt, "--input", img, "--output", tmp_path / "o1", "--tau", 0.5,
                 "--resolution", RES)
     assert r.exit_code == 0 and "engine torch (auto)" in r.output, r.output
-    for e in ("onnx", "int8", "torchscript"):
+    for e in ("onnxruntime_fp32", "int8", "torchscript"):  # int8: an old name
         r = segment("--checkpoint", ckpt, "--input", img, "--output", tmp_path / f"x_{e}", "--tau", 0.5,
                     "--resolution", RES, "--engine", e)
         lines = r.output.strip().splitlines()
@@ -196,11 +202,12 @@ def test_segment_engine_choice_and_refusals(tmp_path):
         assert not (tmp_path / f"x_{e}").exists()
     r = segment("--checkpoint", ckpt, "--input", img, "--output", tmp_path / "x", "--engine", "tpu")
     assert r.exit_code == 2 and "--engine" in r.output and len(r.output.strip().splitlines()) == 1
-    # a bundle without an int8 model (no --artifacts at export): auto = onnx, a forced int8 says why not
+    # a bundle without an int8 model (no --artifacts at export): auto = onnxruntime_fp32, a forced int8 says why not
     assert run_export(ckpt, tmp_path / "deploy", "--tau", "0.5").exit_code == 0
     r = segment("--checkpoint", tmp_path / "deploy", "--input", img, "--output", tmp_path / "o2")
-    assert r.exit_code == 0 and f"engine {'onnx' if HAS_ONNX else 'torch'} (auto)" in r.output, r.output
-    r = segment("--checkpoint", tmp_path / "deploy", "--input", img, "--output", tmp_path / "o3", "--engine", "int8")
+    assert r.exit_code == 0 and f"engine {'onnxruntime_fp32' if HAS_ONNX else 'torch'} (auto)" in r.output, r.output
+    r = segment("--checkpoint", tmp_path / "deploy", "--input", img, "--output", tmp_path / "o3",
+                "--engine", "onnxruntime_int8")
     lines = r.output.strip().splitlines()
     assert r.exit_code == 2 and len(lines) == 1 and (deploy.INT8_FILE in lines[0] or "onnx" in lines[0]), r.output
     # a bundle exported without onnx: auto = torch
@@ -220,7 +227,7 @@ def test_segment_never_overwrites_inputs_and_rejects_bad_options(tmp_path):
         (["--checkpoint", tmp_path / "missing", "--input", tmp_path / "in", "--output", tmp_path / "o"], "missing"),
         (["--input", tmp_path / "nowhere", "--output", tmp_path / "o"], "nowhere"),
         (["--input", tmp_path / "in", "--output", tmp_path / "o", "--tau", 2], "--tau"),
-        (["--input", tmp_path / "in", "--output", tmp_path / "o", "--engine", "onnx"], "deploy bundle"),
+        (["--input", tmp_path / "in", "--output", tmp_path / "o", "--engine", "onnxruntime_fp32"], "deploy bundle"),
     ]
     for extra, needle in cases:
         r = segment(*base, *extra)

@@ -18,10 +18,10 @@
 --max-pixels  refuse images above N pixels, read from the file header before decoding (default
               data.max_pixels); a bad file like any other under --skip-bad
 
---engine      auto | torch | cuda | torchscript | onnx | int8 | openvino_int8: what computes the logits.
+--engine      auto or an engine of pipeline.engine_table (``--help`` lists them): what computes the logits.
               ``auto`` = on a CUDA device ``cuda`` (bf16 + CUDA graphs, pipeline.deploy.cuda_engine),
-              else onnx when the bundle holds model.onnx and onnxruntime imports, else torch: on the
-              CPU only engines whose masks equal PyTorch's; int8 / openvino_int8 (faster,
+              else onnxruntime_fp32 when the bundle holds model.onnx and onnxruntime imports, else torch:
+              on the CPU only engines whose masks equal PyTorch's; the int8 engines (faster,
               approximate) must be asked for.  A checkpoint directory supports torch and cuda only.  Every engine gets the same
               preprocessed input and the same tau; the engine and its timings are printed on stderr
               (model ms/image includes the first, warm-up batch; not with --quiet).
@@ -49,7 +49,7 @@ from pathlib import Path
 import click
 
 from pipeline.catalog import dvc_path
-from pipeline.engine_table import AUTO, ENGINE_CHOICES, MODEL_ENGINES
+from pipeline.engine_table import AUTO, ENGINE_ALIASES, ENGINE_CHOICES, MODEL_ENGINES
 from pipeline.params import load_params
 from pipeline.segmenting import segment_images
 from pipeline.progress import quiet_bars
@@ -68,8 +68,9 @@ from stages._common import (bit_depth_option, max_pixels_option, one_line_errors
               help="thresholds table used to find a checkpoint's calibrated tau (when it exists)")
 @click.option("--engine", default=AUTO, show_default=True,
               help=f"{' | '.join(ENGINE_CHOICES)} (all but {' and '.join(MODEL_ENGINES)} need a deploy bundle); "
-                   "auto = cuda on a GPU, else onnx if available, else torch (exact engines only on the CPU; the "
-                   "int8 engines are faster but approximate)")
+                   "auto = cuda on a GPU, else onnxruntime_fp32 if available, else torch (exact engines only on "
+                   "the CPU; the int8 engines are faster but approximate); also accepted: "
+                   + ", ".join(f"{old} = {new}" for old, new in ENGINE_ALIASES.items()))
 @click.option("--batch-size", type=int, default=8, show_default=True)
 @click.option("--save-prob", is_flag=True, help="also write <input name>.prob.png (P x 255)")
 @click.option("--overlay", is_flag=True, help="also write <input name>.overlay.png")

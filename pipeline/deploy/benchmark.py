@@ -60,7 +60,7 @@ from pipeline.errors import InputError
 from pipeline.inference import images_to_tensor, load_student
 from pipeline.metrics import image_ious
 from pipeline.model import count_flops, count_parameters, mask_path_model
-from pipeline.engine_table import BENCHMARK_VARIANTS
+from pipeline.engine_table import BENCHMARK_VARIANTS, engine_name
 from pipeline.thresholds import mask_from_probs, resolve_tau, tau_candidates
 
 BASELINE_VARIANT = "fp32_eager_nchw"
@@ -179,7 +179,7 @@ def interleaved_times(variants: Sequence["Variant"], x, iters: int, block: int =
 def build_variants(model, device, resolution: int, names: Sequence[str], onnx_path: str | Path | None = None,
                    int8_path: str | Path | None = None) -> tuple[list[Variant], dict[str, str]]:
     """Variants of the mask path to compare; returns (variants, {skipped name: reason}).  Each name is
-    an engine of the registry (pipeline.deploy.engines.ENGINES: what it runs and how):
+    an engine of the registry (pipeline.deploy.engines.ENGINES: what it runs and how) or an old name of one:
 
     fp32_eager_nchw          plain PyTorch, contiguous NCHW (the baseline)
     fp32_channels_last       PyTorch, channels_last model and input
@@ -199,7 +199,7 @@ def build_variants(model, device, resolution: int, names: Sequence[str], onnx_pa
     src = Source(model, dev, resolution, {ONNX_FILE: onnx_path, INT8_FILE: int8_path}, spinning=False)
     skipped: dict[str, str] = {}
     variants: list[Variant] = []
-    for name in names:
+    for name in dict.fromkeys(map(engine_name, names)):
         if name not in VARIANTS or name not in ENGINES:
             raise InputError(f"deploy.benchmark_variants: unknown variant {name!r}")
         reason = unavailable(name, src)
@@ -505,7 +505,7 @@ def prepare_onnx_models(target: Target, variants: Sequence[str], workdir: str | 
     if reason is not None:
         return None, None, {"onnx": reason}
     onnx_path = target.onnx_path or export_onnx(target.model, Path(workdir) / ONNX_FILE, resolution, opset)
-    if not set(variants) & set(INT8_VARIANTS):
+    if not set(map(engine_name, variants)) & set(INT8_VARIANTS):
         return onnx_path, None, {}
     if target.int8_path is not None:
         return onnx_path, target.int8_path, {"int8_calibration": (

@@ -2,8 +2,9 @@
 
 Decision (the paper is silent on deployment formats): engines (segment ``--engine``; one registry with
 the benchmark, pipeline.deploy.engines): ``torch`` (the weights of a checkpoint or a bundle), ``cuda``
-(the same weights: the GPU fast path), ``torchscript``, ``onnx``, ``int8`` and ``openvino_int8`` (bundle
-only); ``auto`` = onnx when the bundle holds it and onnxruntime imports, else torch -- exact engines
+(the same weights: the GPU fast path), ``torchscript``, ``onnxruntime_fp32``, ``onnxruntime_int8`` and
+``openvino_int8`` (bundle only; old names: :data:`pipeline.engine_table.ENGINE_ALIASES`); ``auto`` =
+onnxruntime_fp32 when the bundle holds model.onnx and onnxruntime imports, else torch -- exact engines
 only -- and ``cuda`` on a CUDA device (:func:`resolve_engine`).
 Every engine receives the same preprocessed tensor and the same tau; only the function Z = f(x)
 differs.
@@ -27,7 +28,7 @@ from pipeline.deploy.engines import ENGINES, Source
 from pipeline.deploy.export import onnx_unavailable_reason
 from pipeline.errors import CHECKPOINT, ArtifactError, InputError
 from pipeline.inference import images_to_tensor, load_student
-from pipeline.engine_table import AUTO, ENGINE_CHOICES, MODEL_ENGINES
+from pipeline.engine_table import AUTO, ENGINE_CHOICES, MODEL_ENGINES, engine_name
 from pipeline.params import PAPER
 from pipeline.thresholds import mask_from_probs, resolve_resolution, resolve_tau, tau_candidates
 
@@ -36,7 +37,7 @@ from pipeline.thresholds import mask_from_probs, resolve_resolution, resolve_tau
 class Segmenter:
     """A loaded mask path: ``predict_probs(images uint8 [N,R,R,3]) -> P float32 [N,R,R]``.
 
-    ``engine`` is what computes Z = f(x): torch, torchscript, onnx or int8 (module docstring)."""
+    ``engine`` is what computes Z = f(x) (module docstring)."""
 
     engine: str
     resolution: int | None
@@ -144,20 +145,21 @@ class Segmenter:
 
 
 def resolve_engine(path: str | Path, engine: str, device=None) -> str:
-    """The engine ``auto`` stands for (module docstring), or ``engine`` itself after validation.
+    """The engine ``auto`` stands for (module docstring), or ``engine`` (an old name: its new one) after validation.
 
-    auto: bundle -> onnx when model.onnx exists and onnxruntime imports, else torch; checkpoint
+    auto: bundle -> onnxruntime_fp32 when model.onnx exists and onnxruntime imports, else torch; checkpoint
     directory -> torch (the only engine a checkpoint supports: anything else is an InputError naming
     --engine).  Decision: ``auto`` only picks engines whose masks are identical to PyTorch's; int8 is
     about 3x faster than ONNX fp32 but not exact (reduced synthetic protocol: validation Image IoU
     +0.002, yet a mean per-image IoU of 0.97 between its masks and fp32's), so it must be asked for
-    with ``--engine int8`` after checking ``geodistill benchmark``'s IoU columns on your data.
+    with ``--engine onnxruntime_int8`` after checking ``geodistill benchmark``'s IoU columns on your data.
     ``openvino_int8`` is the same int8 file on OpenVINO (pipeline.deploy.openvino_engine).  On a CUDA
     ``device``, ``auto`` = ``cuda`` (pipeline.deploy.cuda_engine: bf16 + channels_last + CUDA graphs):
     on a GPU no engine reproduces the CPU's fp32 masks bit for bit anyway, and its masks are checked
     against fp32 on the GPU (benchmark's ``mIoU fp32``); ``--engine torch`` stays the fp32 reference.
     """
     path = Path(path)
+    engine = engine_name(engine)
     if engine not in ENGINE_CHOICES:
         raise InputError(f"--engine {engine!r}: expected one of {', '.join(ENGINE_CHOICES)}")
     on_cuda = device is not None and str(device).startswith("cuda")
@@ -173,7 +175,7 @@ def resolve_engine(path: str | Path, engine: str, device=None) -> str:
     if on_cuda:
         return "cuda"
     if onnx_unavailable_reason() is None and (path / ONNX_FILE).exists():
-        return "onnx"
+        return "onnxruntime_fp32"
     return "torch"
 
 
