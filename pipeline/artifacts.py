@@ -44,7 +44,8 @@ from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
-from pipeline.catalog import DEPLOY_BUNDLE, LEGACY_WEIGHTS_FILE, TRAINING_LOG_FILE, WEIGHTS_FILE
+from pipeline.catalog import (DEPLOY_BUNDLE, LEGACY_WEIGHTS_FILE, META_FILE, TRAINING_LOG_FILE, WEIGHTS_FILE,
+                              output_file)
 from pipeline.errors import ArtifactError, InputError
 
 #: the program's name (the console script, pyproject.toml [project.scripts]), also the namespace of the
@@ -130,7 +131,7 @@ SCHEMAS: dict[str, Schema] = {
         _s("corrections", 1, "parquet", columns=("image_id", "file", "width", "height", "rle", "pixels", "source")),
         # the corrections at the working resolution, checked against a run (stage corrections; attrs image_ids, mode)
         _s("corrected", 1, "zarr", arrays={"mask": ("b", 3), "row": ("i", 1)}),
-        _s("report", 1, "dir", files=("report.md", "report.html")),
+        _s("report", 1, "dir", files=(output_file("report", "markdown"), output_file("report", "html"))),
         # exported mask path: the bundle's required files (pipeline.catalog.DEPLOY_BUNDLE; the weights as above)
         _s("deploy", 1, "dir", files=(WEIGHTS_FILES, *(f.name for k, f in DEPLOY_BUNDLE.items()
                                                        if f.required and k not in ("weights", "weights_config")))),
@@ -620,7 +621,7 @@ def artifact_dir(path: str | Path, meta: Meta) -> Iterator[Path]:
         missing = missing_files(tmp, schema.files)
         if missing:
             raise ArtifactError(f"{path}: schema {meta.schema!r} needs files {missing}")
-        (tmp / "meta.json").write_text(json.dumps(meta.to_dict(), indent=1, sort_keys=True))
+        (tmp / META_FILE).write_text(json.dumps(meta.to_dict(), indent=1, sort_keys=True))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -793,7 +794,7 @@ def open_artifact(path: str | Path, schema: str | None = None) -> Artifact:
                                         f"schema wants kind {kind!r} with {ndim} dims")
             return ZarrArtifact(path, meta, group)
         if path.is_dir():
-            mp = path / "meta.json"
+            mp = path / META_FILE
             meta = _validate(path, json.loads(mp.read_text()) if mp.exists() else None, schema)
             spec = get_schema(meta.schema)
             missing = missing_files(path, spec.files)

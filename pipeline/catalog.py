@@ -18,6 +18,7 @@ import dataclasses
 from pathlib import Path
 
 from pipeline.engine_table import engines_reading
+from pipeline.params import DEFAULT_PARAMS as PARAMS_FILE  # the params file's name, defined below the catalogue
 from pipeline.params import get_path
 
 ARTIFACTS_DIR = "artifacts"
@@ -30,6 +31,12 @@ WEIGHTS_CONFIG_FILE = "model.json"
 LEGACY_WEIGHTS_FILE = "model.pt"
 #: a checkpoint's training log (schema ``training_log``), beside its weights (pipeline.inference.save_checkpoint)
 TRAINING_LOG_FILE = "log.parquet"
+#: every folder artifact's metadata (schema, fingerprint, lineage; pipeline.artifacts.artifact_dir)
+META_FILE = "meta.json"
+#: train's per-epoch resume state in its resume folder (pipeline.checkpointing.FileCheckpointer)
+RESUME_STATE_FILE = "state.pt"
+#: the DAG file ``geodistill dag`` and ``geodistill distill`` write (pipeline.dag); ``geodistill run`` reads it
+DVC_FILE = "dvc.yaml"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -171,6 +178,91 @@ def bundle_file(key: str) -> str:
 def bundle_readers(key: str) -> tuple[str, ...]:
     """The engines that run bundle file ``key`` (:data:`pipeline.engine_table.ENGINE_TABLE`)."""
     return engines_reading(key)
+
+
+# --------------------------------------------------------------------------------------------------
+# The files inside output folders (artifacts and the user commands' outputs)
+# --------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class OutputFile:
+    """One file or folder in an output folder: its name (``{...}`` filled by the writer), what writes it,
+    and what it holds."""
+
+    key: str
+    name: str
+    written_by: str
+    description: str = ""
+
+
+def _files(*files: OutputFile) -> dict[str, OutputFile]:
+    return {f.key: f for f in files}
+
+
+_LABEL, _REVIEW, _SEGMENT = "pipeline.labeling.writing", "pipeline.review.export", "pipeline.deploy.files"
+#: one row per input left out, with the reason (pipeline.deploy.files.write_skipped_csv): label and segment
+SKIPPED_FILE = "skipped.csv"
+
+#: the files and folders of each output folder, by folder: an artifact's name or a command's
+OUTPUT_FILES: dict[str, dict[str, OutputFile]] = {
+    "synthetic_files": _files(
+        OutputFile("readme", "README.txt", "pipeline.datasets.build", "why no synthetic files were generated")),
+    "report": _files(
+        OutputFile("markdown", "report.md", "stages.report"),
+        OutputFile("html", "report.html", "stages.report", "self-contained (figures inlined)"),
+        OutputFile("environment", "environment.json", "stages.report", "host, libraries and the runs' records"),
+        OutputFile("figures", "figures", "stages.report", "the figures below, PNG and SVG"),
+        OutputFile("plots", "plots", "stages.report", "the figures' data as CSV: <name>.csv")),
+    "report_figures": _files(*(OutputFile(k, f"{k}.png", "pipeline.report.build") for k in (
+        "threshold_curves", "reliability", "area_vs_tau", "training_curves_calibrated", "training_curves",
+        "qualitative", "student_vs_pseudo_labels", "gate_distribution", "training_loss", "pseudo_targets"))),
+    "run_logs": _files(
+        OutputFile("timeline", "timeline.json", "pipeline.cluster.driver", "each stage's start, end and status"),
+        OutputFile("stage_log", "{stage}.log", "pipeline.cluster.driver", "a stage's stdout and stderr")),
+    "project": _files(  # a standalone project (geodistill distill)
+        OutputFile("params", PARAMS_FILE, "pipeline.standalone.write_project"),
+        OutputFile("dvc", DVC_FILE, "pipeline.standalone.write_project"),
+        OutputFile("protocol", "folder_protocol.yaml", "pipeline.standalone.write_project", "the input folder's split"),
+        OutputFile("record", "distill.json", "pipeline.standalone.write_project", "distill's record (pipeline.ownership)")),
+    "label": _files(
+        OutputFile("masks", "masks", _LABEL, "masks/<image_id>.png"),
+        OutputFile("coco", "coco.json", _LABEL),
+        OutputFile("yolo", "yolo", _LABEL, "the YOLO dataset (label_yolo)"),
+        OutputFile("table", "labels.parquet", _LABEL, "one row per image: the gate inputs and the gate"),
+        OutputFile("csv", "labels.csv", _LABEL, "the table as CSV"),
+        OutputFile("sheet", "contact_sheet.png", _LABEL),
+        OutputFile("record", "label.json", _LABEL, "label's record (pipeline.ownership)"),
+        OutputFile("skipped", SKIPPED_FILE, _LABEL)),
+    "label_yolo": _files(
+        OutputFile("train", "train.txt", _LABEL, "training image list"),
+        OutputFile("val", "val.txt", _LABEL, "validation image list (2 images or more)"),
+        OutputFile("data", "data.yaml", _LABEL),
+        OutputFile("readme", "README.txt", _LABEL)),
+    "review": _files(
+        OutputFile("record", "review.json", _REVIEW, "review export's record (pipeline.ownership)"),
+        OutputFile("csv", "ranked.csv", _REVIEW),
+        OutputFile("labelstudio", "labelstudio", _REVIEW),
+        OutputFile("cvat", "cvat", _REVIEW),
+        OutputFile("ls_tasks", "tasks.json", _REVIEW, "in labelstudio/"),
+        OutputFile("ls_config", "label_config.xml", _REVIEW, "in labelstudio/"),
+        OutputFile("cvat_coco", "instances_default.json", _REVIEW, "in cvat/")),
+    "segment": _files(  # <out>/<the input's relative path without its suffix><suffix> per image
+        OutputFile("mask", ".mask.png", _SEGMENT, "suffix of each input's mask"),
+        OutputFile("prob", ".prob.png", _SEGMENT, "suffix of each input's probability map (--save-prob)"),
+        OutputFile("overlay", ".overlay.png", _SEGMENT, "suffix of each input's overlay (--overlay)"),
+        OutputFile("skipped", SKIPPED_FILE, _SEGMENT),
+        OutputFile("confidence", "confidence.csv", _SEGMENT, "one row per mask: its path and the frame's confidence"),
+        OutputFile("record", "segment.json", _SEGMENT, "segment's record (pipeline.ownership)")),
+}
+
+
+def output_file(folder: str, key: str) -> str:
+    """The name of file ``key`` in output folder ``folder`` (:data:`OUTPUT_FILES`)."""
+    return OUTPUT_FILES[folder][key].name
+
+
+def output_names(folder: str, *keys: str) -> dict[str, str]:
+    """``{key: name}`` of ``keys`` (all when none) in output folder ``folder``, in the table's order."""
+    return {k: f.name for k, f in OUTPUT_FILES[folder].items() if not keys or k in keys}
 
 
 # --------------------------------------------------------------------------------------------------

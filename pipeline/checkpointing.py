@@ -13,7 +13,7 @@ import os
 from pathlib import Path
 from typing import Any, Mapping
 
-STATE_FILE = "state.pt"
+from pipeline.catalog import RESUME_STATE_FILE as STATE_FILE
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from pipeline.artifacts import artifact_dir, open_artifact
-from pipeline.catalog import bundle_file
+from pipeline.catalog import META_FILE, bundle_file
 from pipeline.inference import load_student
 from pipeline.params import section
 from pipeline.thresholds import resolve_resolution, resolve_tau, tau_candidates
@@ -27,7 +27,7 @@ from pipeline.thresholds import resolve_resolution, resolve_tau, tau_candidates
 def is_bundle_dir(path) -> bool:
     """Whether ``path`` is a folder holding a deploy artifact's meta.json (export's own output)."""
     try:
-        return json.loads((Path(path) / "meta.json").read_text()).get("schema") == "deploy"
+        return json.loads((Path(path) / META_FILE).read_text()).get("schema") == "deploy"
     except (OSError, ValueError, AttributeError):
         return False
 
@@ -41,7 +41,7 @@ def bundle_files(path) -> set[str]:
         listed = json.loads((Path(path) / bundle_file("deploy_json")).read_text()).get("files") or {}
     except (OSError, ValueError, AttributeError):
         listed = {}
-    return {str(f) for f in listed} | {bundle_file("deploy_json"), "meta.json"}
+    return {str(f) for f in listed} | {bundle_file("deploy_json"), META_FILE}
 
 
 @dataclasses.dataclass

@@ -21,7 +21,7 @@ import numpy as np
 from pipeline import catalog
 from pipeline.artifacts import (Artifact, artifact_dir, make_meta, open_artifact, read_chunk_rows, require_same_run,
     write_parquet)
-from pipeline.catalog import TRAINING_LOG_FILE
+from pipeline.catalog import META_FILE, TRAINING_LOG_FILE
 from pipeline.device import autocast, autocast_dtype
 from pipeline.errors import ArtifactError, InputError
 
@@ -34,7 +34,7 @@ def iter_runs(checkpoints_dir: str | Path) -> Iterator[tuple[str, int, Path]]:
     for mdir in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
         for sdir in sorted((p for p in mdir.iterdir() if p.is_dir() and not p.name.startswith(".")),
                            key=lambda p: p.name):
-            if (sdir / "meta.json").exists():
+            if (sdir / META_FILE).exists():
                 yield mdir.name, int(sdir.name), sdir
 
 

@@ -90,8 +90,7 @@ from pipeline.progress import QUIET_ENV, bars_quiet
 log = logging.getLogger(__name__)
 
 PROFILE = "distill"
-PROTOCOL_FILE = "folder_protocol.yaml"
-RECORD_FILE = "distill.json"
+PARAMS_FILE, DVC_FILE, PROTOCOL_FILE, RECORD_FILE = catalog.output_names("project").values()
 #: stages left out of a project without any mask: nothing to score (calibrate stays: it writes the fixed tau)
 NO_MASK_STAGES = ("evaluate", "analyze_teacher")
 #: the stage ``--no-benchmark`` leaves out (the report then says the efficiency table was not made)
@@ -99,14 +98,14 @@ BENCHMARK_STAGE = "benchmark"
 DVCIGNORE = "/.cache/\n__pycache__/\n*.pyc\n"
 #: what distill writes in --out (its record lists them; pipeline.ownership): the project files, DVC's
 #: folder and lock, the caches and the DAG's outputs (artifacts/, reports/)
-PROJECT_OUTPUTS = ("params.yaml", "dvc.yaml", "dvc.lock", PROTOCOL_FILE, ".dvcignore", ".dvc", ".cache",
+PROJECT_OUTPUTS = (PARAMS_FILE, DVC_FILE, "dvc.lock", PROTOCOL_FILE, ".dvcignore", ".dvc", ".cache",
                    "artifacts", "reports")
 #: what distill writes too when it makes a new project a git repository (:func:`git_outputs`)
 GIT_OUTPUTS = (".git", ".gitignore")
 #: the project's .gitignore (DVC adds its stage outputs to .gitignore files of their own folders)
 GITIGNORE = "/.cache/\n__pycache__/\n*.pyc\n/dvc_plots/\n/geodistill_plots/\n"
 #: the files of distill's first commit in a new git project (:func:`init_git`)
-GIT_TRACKED = ("params.yaml", "dvc.yaml", PROTOCOL_FILE, RECORD_FILE, ".dvcignore", ".gitignore", ".dvc")
+GIT_TRACKED = (PARAMS_FILE, DVC_FILE, PROTOCOL_FILE, RECORD_FILE, ".dvcignore", ".gitignore", ".dvc")
 #: the author of that commit: the command, not the user (unsigned: no key prompt)
 GIT_AUTHOR = ("-c", "user.name=geodistill distill", "-c", "user.email=geodistill@localhost", "-c", "commit.gpgsign=false")
 #: DVC's last line after `dvc repro` (dvc/commands/repro.py), left out: a distill project has no remote
@@ -215,13 +214,13 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
 
     text = render_params_yaml(PROFILE, deep_merge(dict(params), project_params(params, input_dir, masks)),
                               header=PARAMS_HEADER)
-    write_text_if_changed(out / "params.yaml", text)
+    write_text_if_changed(out / PARAMS_FILE, text)
     write_text_if_changed(out / PROTOCOL_FILE, protocol_text(input_dir, masks))
     data_deps = {"prepare": [PROTOCOL_FILE, str(input_dir)] + ([str(masks)] if masks is not None else [])}
     omit = (() if masks is not None else NO_MASK_STAGES) + (() if benchmark else (BENCHMARK_STAGE,))
     # without masks the evaluate stage's plots are omitted: `dvc plots show` shows the runs' DVCLive loss
     extra = live_plots(params["protocol"]["runs"]) if masks is None else []
-    write_text_if_changed(out / "dvc.yaml", render_dvc_yaml(code_root=ROOT, data_deps=data_deps, header=DVC_HEADER,
+    write_text_if_changed(out / DVC_FILE, render_dvc_yaml(code_root=ROOT, data_deps=data_deps, header=DVC_HEADER,
                                                         omit=omit, extra_plots=extra))
     write_text_if_changed(out / ".dvcignore", DVCIGNORE)
     new_git = bool(git) and init_git(out)
@@ -365,8 +364,8 @@ def project_outputs(out: str | Path) -> dict[str, Path]:
     """Where a finished project's results are: deploy bundle, report, thresholds, checkpoints."""
     out = Path(out)
     art = out / catalog.ARTIFACTS_DIR
-    profile = read_yaml_mapping(out / "params.yaml").get("profile", PROFILE)
-    return {"deploy": catalog.path("deploy", art), "report": catalog.path("report", art, profile=profile) / "report.html",
+    profile = read_yaml_mapping(out / PARAMS_FILE).get("profile", PROFILE)
+    return {"deploy": catalog.path("deploy", art), "report": catalog.path("report", art, profile=profile) / catalog.output_file("report", "html"),
             "thresholds": catalog.path("thresholds", art), "checkpoints": catalog.path("checkpoints", art)}
 
 
@@ -385,7 +384,7 @@ def efficiency_line(out: str | Path) -> str | None:
     is no such file (no masks, or no test image)."""
     out = Path(out)
     art = out / catalog.ARTIFACTS_DIR
-    method = str((read_yaml_mapping(out / "params.yaml").get("deploy") or {}).get("export_method", PROPOSED))
+    method = str((read_yaml_mapping(out / PARAMS_FILE).get("deploy") or {}).get("export_method", PROPOSED))
     found = []
     for f in sorted(catalog.path("metrics_efficiency", art).glob(f"*/{path_component(method)}.json")):
         group = f.parent.name
@@ -419,11 +418,11 @@ def training_line(out: str | Path) -> str | None:
     """The summary line of a finished project's Stage I (the Plain Student of the first seed): optimizer
     steps run, and why it stopped (``train.until: plateau``); None without its checkpoint record."""
     out = Path(out)
-    runs = (read_yaml_mapping(out / "params.yaml").get("protocol") or {}).get("runs") or {}
+    runs = (read_yaml_mapping(out / PARAMS_FILE).get("protocol") or {}).get("runs") or {}
     seeds = runs.get(STAGE_ONE) or []
     if not seeds:
         return None
-    meta = catalog.path("checkpoints", out / catalog.ARTIFACTS_DIR) / STAGE_ONE / str(seeds[0]) / "meta.json"
+    meta = catalog.path("checkpoints", out / catalog.ARTIFACTS_DIR) / STAGE_ONE / str(seeds[0]) / catalog.META_FILE
     try:
         extra = json.loads(meta.read_text()).get("extra") or {}
     except (OSError, ValueError):
@@ -448,7 +447,7 @@ def time_budget_params(params: dict, time_budget: str | None, out: str | Path, d
     reusing the steps the project ``out`` already recorded for the same time."""
     if time_budget is None:
         return params
-    previous = read_yaml_mapping(Path(out) / "params.yaml") if (Path(out) / "params.yaml").is_file() else None
+    previous = read_yaml_mapping(Path(out) / PARAMS_FILE) if (Path(out) / PARAMS_FILE).is_file() else None
     return with_time_budget(params, time_budget, previous, resolve_device(device).type)
 
 

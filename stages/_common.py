@@ -24,7 +24,7 @@ from typing import Any, Callable, Iterable, Mapping
 import click
 
 from pipeline.artifacts import Meta, make_meta
-from pipeline.catalog import STAGES, stage_params
+from pipeline.catalog import PARAMS_FILE, STAGES, stage_params
 from pipeline.codeversion import ROOT, _module_name, code_version_of
 from pipeline.errors import BIT_DEPTH, CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError, calling
 from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER, load_params
@@ -148,7 +148,7 @@ def stage_command(name: str, default_profile: str | None = None, profile_loader:
                            help="auto | cpu | cuda")(wrapper)
         cmd = click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
                            help="override a param, e.g. --set train.epochs_stage1=3 (repeatable)")(cmd)
-        cmd = click.option("--params", "params_file", default=None if default_profile else "params.yaml",
+        cmd = click.option("--params", "params_file", default=None if default_profile else PARAMS_FILE,
                            show_default=True, type=click.Path(dir_okay=False),
                            help=f"params file (default: the {default_profile!r} profile's values)"
                            if default_profile else "params file")(cmd)

@@ -55,17 +55,18 @@ def main(params, device, art, out, metrics_dir):
     meta = stage_context("report", __file__, params).meta("report", list(inp.found.values()),
                     missing_inputs=sorted(inp.missing))
     with artifact_dir(out, meta) as tmp:
-        (tmp / "figures").mkdir()
+        files = catalog.output_names("report")
+        (tmp / files["figures"]).mkdir()
         for fig in report.figures():
-            (tmp / "figures" / fig.filename).write_bytes(fig.png)
+            (tmp / files["figures"] / fig.filename).write_bytes(fig.png)
             if fig.svg is not None:
-                (tmp / "figures" / fig.svg_filename).write_bytes(fig.svg)
-        (tmp / "plots").mkdir()
+                (tmp / files["figures"] / fig.svg_filename).write_bytes(fig.svg)
+        (tmp / files["plots"]).mkdir()
         for name, df in plots.items():
-            df.to_csv(tmp / "plots" / f"{name}.csv", index=False)
-        (tmp / "report.md").write_text(render_markdown(report))
-        (tmp / "report.html").write_text(render_html(report))
-        write_json(tmp / "environment.json", environment_record(env, inp.runs))
+            df.to_csv(tmp / files["plots"] / f"{name}.csv", index=False)
+        (tmp / files["markdown"]).write_text(render_markdown(report))
+        (tmp / files["html"]).write_text(render_html(report))
+        write_json(tmp / files["environment"], environment_record(env, inp.runs))
     write_metrics_dir(metrics_dir or catalog.path("metrics_efficiency", art), efficiency_files(inp))
     from pipeline.report.build import MASK_INPUTS
 

@@ -44,7 +44,7 @@ import click
 
 from pipeline import catalog
 from pipeline.artifacts import open_artifact, run_as, write_json
-from pipeline.catalog import ARTIFACTS_DIR
+from pipeline.catalog import ARTIFACTS_DIR, META_FILE
 from pipeline.checkpointing import FileCheckpointer
 from pipeline.device import resolve_device
 from pipeline.dvc_results import write_live_log
@@ -60,7 +60,7 @@ from stages._common import stage_command, stage_context
 def load_init(path: str | Path):
     """Stage-I checkpoint for a warm start: (mask-path state dict, its artifact for the lineage)."""
     p = Path(path)
-    if not (p / "meta.json").exists():
+    if not (p / META_FILE).exists():
         raise ArtifactError(f"--init {p}: not a checkpoint directory (run train_plain first)")
     art = open_artifact(p, "checkpoint")
     model, _ = load_student(p)

@@ -10,6 +10,7 @@ import click
 import yaml
 
 from pipeline.artifacts import write_text_if_changed
+from pipeline.catalog import DVC_FILE, PARAMS_FILE
 from pipeline.dag import is_generated_params, project_dvc_yaml, render_params_yaml
 from pipeline.ownership import refuse_unowned
 from pipeline.profiles import PROFILES
@@ -18,12 +19,12 @@ from stages._common import one_line_errors
 
 @click.command(name="dag")
 @click.option("--check", is_flag=True, help="only check that dvc.yaml is up to date (exit 1 if not)")
-@click.option("--out", default="dvc.yaml", show_default=True, type=click.Path(dir_okay=False))
+@click.option("--out", default=DVC_FILE, show_default=True, type=click.Path(dir_okay=False))
 def dag_main(check: bool, out: str) -> None:
     """Write dvc.yaml from pipeline/catalog.py, pipeline/methods.py and the stages' imports (and the
     optional stages params.yaml switches on: the corrections stage with review.corrections; the
     training runs in groups of seeds with protocol.seeds_per_stage > 1)."""
-    raw = yaml.safe_load(Path("params.yaml").read_text()) if Path("params.yaml").is_file() else None
+    raw = yaml.safe_load(Path(PARAMS_FILE).read_text()) if Path(PARAMS_FILE).is_file() else None
     text = project_dvc_yaml(raw)
     path = Path(out)
     if check:
@@ -37,7 +38,7 @@ def dag_main(check: bool, out: str) -> None:
 
 @click.command(name="profile")
 @click.argument("name", type=click.Choice(list(PROFILES)))
-@click.option("--out", default="params.yaml", show_default=True, type=click.Path(dir_okay=False))
+@click.option("--out", default=PARAMS_FILE, show_default=True, type=click.Path(dir_okay=False))
 @click.option("--overwrite", is_flag=True,
               help="accepted like the other commands' --overwrite; a params file that `geodistill profile` did "
                    "not write is never replaced (refused by name)")

@@ -144,6 +144,11 @@ def read_costs(path: Path) -> dict[str, float]:
         return {}
 
 
+def stage_log(stage: str) -> str:
+    """The file name of ``stage``'s log in the run's log folder."""
+    return catalog.output_file("run_logs", "stage_log").format(stage=stage)
+
+
 def write_timeline(path: Path, results: dict[str, dict], resources: dict, wall_s: float,
                    costs: dict[str, float]) -> Path:
     """The run as JSON (atomic): per stage its result and Ray resources; ``costs`` updated with the
@@ -197,8 +202,8 @@ def run_pipeline(root: Path, targets: tuple[str, ...] = (), address: str | None 
     """``geodistill run`` without the CLI (None for a dry run).  Uses the Ray session of this process if
     one is initialised (tests), else starts an embedded local one, or joins ``address``/``RAY_ADDRESS``."""
     root = Path(root).resolve()
-    if not (root / "dvc.yaml").is_file():
-        raise InputError(f"{root / 'dvc.yaml'}: not found (run geodistill run in the project folder)")
+    if not (root / catalog.DVC_FILE).is_file():
+        raise InputError(f"{root / catalog.DVC_FILE}: not found (run geodistill run in the project folder)")
     with RunLock(root):
         try:
             import ray
@@ -208,7 +213,7 @@ def run_pipeline(root: Path, targets: tuple[str, ...] = (), address: str | None 
         chosen = plan.to_submit(needs, stale, targets)
         graph = plan.run_alone(plan.subgraph(needs, chosen))
         log_dir = catalog.path("run_logs", root / catalog.ARTIFACTS_DIR)
-        costs = read_costs(log_dir / "timeline.json")
+        costs = read_costs(log_dir / catalog.output_file("run_logs", "timeline"))
         sequence = plan.submission_order(graph, costs, order)
         echo(f"geodistill run: {len(order)} stages, {len(sequence)} to check with dvc repro: "
              + (", ".join(sequence) or "nothing to do"))
@@ -244,7 +249,7 @@ def _submit(ray, root: Path, sequence: list[str], graph: dict[str, set[str]], si
     for n in sequence:
         r = res[n]
         refs[n] = task.options(name=f"stage:{n}", max_retries=1, **r).remote(
-            str(root), n, extra, int(r["num_cpus"]), r["num_gpus"], str(log_dir / f"{n}.log"), t0,
+            str(root), n, extra, int(r["num_cpus"]), r["num_gpus"], str(log_dir / stage_log(n)), t0,
             *[refs[u] for u in sorted(graph[n])])
     results: dict[str, dict] = {}
     pending = {ref: n for n, ref in refs.items()}
@@ -253,9 +258,10 @@ def _submit(ray, root: Path, sequence: list[str], graph: dict[str, set[str]], si
         n = pending.pop(done[0])
         out = results[n] = {**ray.get(done[0]), **res[n]}
         if out["status"] == "failed":
-            echo(f"geodistill run: FAILED {n}: {out['error']} (log: {log_dir / (n + '.log')})")
+            echo(f"geodistill run: FAILED {n}: {out['error']} (log: {log_dir / stage_log(n)})")
         elif out["status"] != "not_run":
             echo(f"geodistill run: {n} {out['status']} in {out['end'] - out['start']:.1f} s")
     wall = time.time() - t0
-    write_timeline(log_dir / "timeline.json", results, {"node_cpus": size.node_cpus, "gpus": size.gpus}, wall, costs)
+    write_timeline(log_dir / catalog.output_file("run_logs", "timeline"), results,
+                   {"node_cpus": size.node_cpus, "gpus": size.gpus}, wall, costs)
     return RunResult(results, wall)

@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.artifacts import atomic_path
+from pipeline.catalog import output_file
 from pipeline.datasets import adapters
 from pipeline.datasets import synthetic as syn
 from pipeline.datasets.loading import BadFileError, DecodeCache, load_labels, load_mask, load_rgb, mask_kind
@@ -100,7 +101,7 @@ def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = 
     spec.bit_depth, spec.letterbox = cfg.get("bit_depth", "auto"), bool(cfg.get("letterbox", False))
     if out_dir is not None:
         with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:
-            (tmp / "README.txt").write_text(f"data.source={cfg['source']}: the synthetic benchmark was not "
+            (tmp / output_file("synthetic_files", "readme")).write_text(f"data.source={cfg['source']}: the synthetic benchmark was not "
                                             f"generated; the manifest points into {cfg['root']}\n")
     return spec
 

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.catalog import bundle_file
+from pipeline.catalog import META_FILE, bundle_file
 from pipeline.deploy.confidence import CONFIDENCE_BAND
 from pipeline.deploy import quantize as q8
 from pipeline.deploy.export import (ONNX_INPUT, ONNX_OUTPUT, check_parity, export_onnx, export_torchscript,
@@ -261,7 +261,7 @@ def checkpoint_resolution(path: str | Path, payload: dict) -> int | None:
     for key in ("resolution", "image_size"):
         if isinstance(payload.get(key), int):
             return int(payload[key])
-    mp = Path(path) / "meta.json"
+    mp = Path(path) / META_FILE
     if Path(path).is_dir() and mp.exists():
         try:
             extra = json.loads(mp.read_text()).get("extra", {}) or {}

@@ -49,6 +49,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
+from pipeline.catalog import output_file, output_names
 from pipeline.datasets.loading import probs_to_size, read_rgb, resize_image
 from pipeline.datasets.manifest import SKIPPED_COLUMNS
 from pipeline.datasets.scan import Inputs, _is_within, scan_inputs  # noqa: F401  (the folder scan, re-exported)
@@ -59,13 +60,10 @@ from pipeline.ownership import owned_outputs, refuse_unowned
 from pipeline.progress import progress
 from pipeline.thresholds import mask_from_probs
 
-MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX = ".mask.png", ".prob.png", ".overlay.png"
+#: segment's output names (pipeline.catalog.OUTPUT_FILES); the record lists the outputs a rerun may replace
+MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX = output_names("segment", "mask", "prob", "overlay").values()
 OUTPUT_SUFFIXES = (MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX)
-SKIPPED_CSV = "skipped.csv"
-#: one row per written mask: its path and the frame's confidence (pipeline.deploy.confidence)
-CONFIDENCE_CSV = "confidence.csv"
-#: segment's record (pipeline.ownership): the outputs a rerun may replace without --overwrite
-RECORD = "segment.json"
+SKIPPED_CSV, CONFIDENCE_CSV, RECORD = (output_file("segment", k) for k in ("skipped", "confidence", "record"))
 
 
 def output_path(stem: Path, suffix: str) -> Path:

@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.artifacts import atomic_path, write_json
+from pipeline.catalog import output_file, output_names
 from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
 from pipeline.datasets.loading import load_rgb
 from pipeline.deploy.files import write_png, write_skipped_csv
@@ -31,11 +32,11 @@ from pipeline.pseudo_labels import Gates, gate_columns, vote_block
 log = logging.getLogger("pipeline.labeling.run")  # label's one logger: callers listen to it
 
 FORMATS = ("png", "coco", "yolo")
-#: the files and folders written under ``out`` (module docstring), named once
-OUTPUTS = {"masks": "masks", "coco": "coco.json", "yolo": "yolo", "table": "labels.parquet", "csv": "labels.csv",
-           "sheet": "contact_sheet.png", "record": "label.json", "skipped": "skipped.csv"}
+#: the files and folders written under ``out`` (pipeline.catalog.OUTPUT_FILES)
+OUTPUTS = output_names("label")
 #: yolo/'s image lists: training, then validation (pipeline.labeling.formats.yolo_split)
-YOLO_LISTS = ("train.txt", "val.txt")
+YOLO_LISTS = (output_file("label_yolo", "train"), output_file("label_yolo", "val"))
+YOLO_DATA, YOLO_README = output_file("label_yolo", "data"), output_file("label_yolo", "readme")
 #: the outputs written whatever the formats (label.json lists them and the files of each format,
 #: :func:`label_targets`; pipeline.ownership); the caches under .cache/ only add files
 ALWAYS = tuple(OUTPUTS[k] for k in ("table", "csv", "sheet", "skipped"))
@@ -62,7 +63,7 @@ def label_targets(root: Path, files: Sequence[Path], ids: Sequence[str], fmts: S
         out += [f"{OUTPUTS['yolo']}/labels/{i}.txt" for i in ids]
         out += [f"{OUTPUTS['yolo']}/images/{f.relative_to(root).as_posix()}" for f in files]
         lists = YOLO_LISTS if len(ids) >= 2 else YOLO_LISTS[:1]  # no val.txt below 2 images (yolo_split)
-        out += [f"{OUTPUTS['yolo']}/{name}" for name in ("data.yaml", *lists, "README.txt")]
+        out += [f"{OUTPUTS['yolo']}/{name}" for name in (YOLO_DATA, *lists, YOLO_README)]
     return out
 
 
@@ -113,8 +114,8 @@ def _write_yolo_dataset(yolo_dir: Path, rels: Sequence[str], ids: Sequence[str],
         if rows:
             with atomic_path(yolo_dir / name) as tmp:
                 tmp.write_text(yolo_image_list([rels[i] for i in rows]))
-    for name, text in (("data.yaml", yolo_data_yaml(len(train), len(val), seed)),
-                       ("README.txt", yolo_readme(len(train), len(val), seed, copies))):
+    for name, text in ((YOLO_DATA, yolo_data_yaml(len(train), len(val), seed)),
+                       (YOLO_README, yolo_readme(len(train), len(val), seed, copies))):
         with atomic_path(yolo_dir / name) as tmp:
             tmp.write_text(text)
 

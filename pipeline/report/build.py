@@ -29,6 +29,8 @@ from pipeline.report.environment import environment_section, training_runs
 from pipeline.report.glossary import glossary_section
 from pipeline.thresholds import mask_from_probs
 
+#: the figures' file names (pipeline.catalog.OUTPUT_FILES)
+FIGURES = catalog.output_names("report_figures")
 # artifact file -> (schema, stage that produces it)
 #: the catalogue artifacts the report reads (paths, schemas and producing stages from pipeline.catalog)
 INPUTS = ("manifest", "images", "reference", "teacher", "consensus", "geometry", "gates", "thresholds", "metrics",
@@ -272,7 +274,7 @@ def threshold_section(inp: Inputs, plots: dict) -> Section:
         img = F.line_plot(series, "Validation Image IoU vs threshold", "tau", "mean val Image IoU")
         sec.blocks.append(Figure("fig:threshold-curves", "Threshold curves", "Mean validation Image IoU of [P >= tau] "
                                  "over the calibration grid (mean over seeds per method; dot: mean calibrated tau).",
-                                 F.png_bytes(img), "threshold_curves.png", F.svg_bytes(img)))
+                                 F.png_bytes(img), FIGURES["threshold_curves"], F.svg_bytes(img)))
     return sec
 
 
@@ -388,14 +390,14 @@ def calibration_blocks(thr: pd.DataFrame, plots: dict, fixed_tau: float | None =
     blocks.append(Figure("fig:reliability", "Reliability diagram (validation pixels)",
                          "Fraction of reference-foreground pixels against the mean predicted probability in each "
                          "equal-width probability bin (mean over seeds per method); below the diagonal = "
-                         "over-confident foreground.", F.png_bytes(rel_chart), "reliability.png",
+                         "over-confident foreground.", F.png_bytes(rel_chart), FIGURES["reliability"],
                          F.svg_bytes(rel_chart)))
     area_chart = F.line_plot(area, "Predicted / reference area vs threshold", "tau",
                              "median predicted / reference area")
     blocks.append(Figure("fig:area-vs-tau", "Predicted against reference foreground area across tau",
                          "Median over validation images of predicted / reference foreground area of [P >= tau] "
                          "(mean over seeds per method; dot: mean calibrated tau; dashed grey: no inflation).",
-                         F.png_bytes(area_chart), "area_vs_tau.png", F.svg_bytes(area_chart)))
+                         F.png_bytes(area_chart), FIGURES["area_vs_tau"], F.svg_bytes(area_chart)))
     return blocks
 
 
@@ -412,7 +414,7 @@ def epoch_calibrated_figure(logs: pd.DataFrame, fixed_tau: float | None = None) 
                   "Validation Image IoU per epoch at the tau maximising it at that epoch (mean over seeds per "
                   f"method); compare with the tau = {tau_text(fixed_tau)} curves in the training-curves section.",
                   F.png_bytes(img),
-                  "training_curves_calibrated.png", F.svg_bytes(img))
+                  FIGURES["training_curves_calibrated"], F.svg_bytes(img))
 
 
 def ablation_section(inp: Inputs) -> Section:
@@ -497,7 +499,7 @@ def stage_left_out(art: Path, stage: str) -> bool:
     dvc.yaml (beside ``art``) lists stages, but not this one (a distill project made with
     ``--no-benchmark``); False without a readable dvc.yaml."""
     try:
-        stages = (yaml.safe_load((Path(art).parent / "dvc.yaml").read_text()) or {}).get("stages")
+        stages = (yaml.safe_load((Path(art).parent / catalog.DVC_FILE).read_text()) or {}).get("stages")
     except (OSError, yaml.YAMLError, AttributeError):
         return False
     return isinstance(stages, dict) and bool(stages) and stage not in stages
@@ -541,7 +543,7 @@ def training_section(inp: Inputs, plots: dict) -> Section:
                       "val Image IoU")
     sec.blocks.append(Figure("fig:training-curves", "Training curves", "Validation Image IoU per epoch (mean over "
                              "seeds per method; warm-started Stage-II runs count their own epochs from 1).",
-                             F.png_bytes(img), "training_curves.png", F.svg_bytes(img)))
+                             F.png_bytes(img), FIGURES["training_curves"], F.svg_bytes(img)))
     return sec
 
 
@@ -596,7 +598,7 @@ def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str
         "fig:qualitative-results", f"{T.label(control)} vs {T.label(treatment)} on {group}",
         f"Seed {seed}, validation-calibrated thresholds. Green: true positives, red: false positives, blue: false "
         f"negatives; yellow: ground-truth contour. Rows ordered from the largest Image IoU gain to the largest loss "
-        f"of {T.label(treatment)}; metrics on full frames.", F.png_bytes(fig), "qualitative.png", F.svg_bytes(fig)))
+        f"of {T.label(treatment)}; metrics on full frames.", F.png_bytes(fig), FIGURES["qualitative"], F.svg_bytes(fig)))
     return sec
 
 
@@ -656,7 +658,7 @@ def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu", methods: tuple
         "vote the students were trained on), not a true mask.  Green: student and M agree on foreground, red: "
         "student only, blue: M only; IoU vs M is their agreement.  A low-gate row shows where the pseudo-label "
         "is least trusted; only masks (`--val-masks`) say which of the two is right.",
-        F.png_bytes(fig), "student_vs_pseudo_labels.png", F.svg_bytes(fig))]
+        F.png_bytes(fig), FIGURES["student_vs_pseudo_labels"], F.svg_bytes(fig))]
 
 
 def gate_distribution_blocks(inp: Inputs) -> list:
@@ -678,7 +680,7 @@ def gate_distribution_blocks(inp: Inputs) -> list:
                  f"{int((g >= 0.5).sum())} at g >= 0.5."),
             Figure("fig:gate-distribution", "Distribution of the reliability gate",
                    "Training images per gate bin (width 0.05); g = c-, v- and area-gate factors multiplied.  "
-                   "Computed without masks.", F.png_bytes(img), "gate_distribution.png",
+                   "Computed without masks.", F.png_bytes(img), FIGURES["gate_distribution"],
                    F.svg_bytes(img))]
 
 
@@ -693,7 +695,7 @@ def loss_figure(logs: pd.DataFrame) -> Figure:
     img = F.line_plot(series, "Training loss", "epoch (of the run's own schedule)", "loss")
     return Figure("fig:training-loss", "Training loss", "Training loss per epoch (mean over seeds per method; "
                   "Stage I and Stage II losses differ in their terms, so compare a method with itself).",
-                  F.png_bytes(img), "training_loss.png", F.svg_bytes(img))
+                  F.png_bytes(img), FIGURES["training_loss"], F.svg_bytes(img))
 
 
 def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
@@ -739,7 +741,7 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
         f"Training images (highest gate g first): the {tmasks.shape[1]} prompt masks with teacher scores s, the "
         f"agreement map A, the 50 % vote M, the normalised SDF D (red inside, blue outside) and the skeleton K; the "
         f"gate's factors c (agreement), v (valid-prompt ratio), a (pseudo area) and g.{sim} Prompts: {prompt_list}.",
-        F.png_bytes(fig), "pseudo_targets.png", F.svg_bytes(fig)))
+        F.png_bytes(fig), FIGURES["pseudo_targets"], F.svg_bytes(fig)))
     return sec
 
 

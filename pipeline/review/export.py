@@ -41,6 +41,7 @@ from typing import Callable
 import numpy as np
 
 from pipeline.artifacts import atomic_path, canonical_json, write_json
+from pipeline.catalog import output_names
 from pipeline.datasets.loading import probs_to_size, read_mask
 from pipeline.errors import OUT, InputError, Option, literal
 from pipeline.labeling.formats import SPACECRAFT_CATEGORY, rle_encode
@@ -56,10 +57,10 @@ TOP = Option("--top", "top")
 LS_SHAPE = Option("--ls-shape", "ls_shape")
 COCO_SHAPE = Option("--coco-shape", "coco_shape")
 LS_SHAPES, COCO_SHAPES = ("brush", "polygon"), ("rle", "polygon")
-#: the files and folders written under ``out`` (module docstring), named once
-OUTPUTS = {"record": "review.json", "csv": "ranked.csv", "labelstudio": "labelstudio", "cvat": "cvat"}
+#: the files and folders written under ``out`` (pipeline.catalog.OUTPUT_FILES)
+OUTPUTS = output_names("review", "record", "csv", "labelstudio", "cvat")
 OWN_OUTPUTS = tuple(v for k, v in OUTPUTS.items() if k != "record")
-LS_TASKS, LS_CONFIG, CVAT_COCO = "tasks.json", "label_config.xml", "instances_default.json"
+LS_TASKS, LS_CONFIG, CVAT_COCO = output_names("review", "ls_tasks", "ls_config", "cvat_coco").values()
 #: the files the export writes in each folder of OUTPUTS, which it replaces whole (atomic_path)
 FOLDER_FILES = {OUTPUTS["labelstudio"]: (LS_TASKS, LS_CONFIG), OUTPUTS["cvat"]: (CVAT_COCO,)}
 EXPORT_FIELD = "geodistill_export"   # the task data field naming the export (review import checks it)
