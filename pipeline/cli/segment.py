@@ -48,7 +48,7 @@ from pathlib import Path
 
 import click
 
-from pipeline.catalog import dvc_path
+from pipeline.catalog import PARAMS_FILE, dvc_path
 from pipeline.engine_table import AUTO, ENGINE_ALIASES, ENGINE_CHOICES, MODEL_ENGINES
 from pipeline.params import load_params
 from pipeline.segmenting import segment_images
@@ -80,7 +80,7 @@ from stages._common import (bit_depth_option, max_pixels_option, one_line_errors
 @bit_depth_option
 @quiet_option
 @click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
-@click.option("--params", "params_file", default="params.yaml", show_default=True,
+@click.option("--params", "params_file", default=PARAMS_FILE, show_default=True,
               help="params file, read only for the tau / resolution fallbacks")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="override a param (repeatable)")
 def main(checkpoint, input_path, output, tau, resolution, thresholds, engine, batch_size, save_prob, overlay,
