@@ -629,6 +629,9 @@ class _Run:
     until: dict | None = None
     #: the full state at the end of the stable phase (until plateau): a larger budget continues from it
     stable_state: dict | None = None
+    #: until plateau without validation masks: held-out pseudo-labelled images the rule scores (never a
+    #: validation set: the log's validation columns stay empty and selection is unchanged)
+    holdout: ValData | None = None
     #: the run's scratch directory (streamed anchors), removed when :func:`train` returns
     scratch: tempfile.TemporaryDirectory | None = None
     #: the geometry constants of the training data's SDF/skeleton (augmented rescales recompute them)
@@ -681,7 +684,7 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
         run.ema = [p.detach().clone() for p in model.parameters()]
     total = s.epochs * run.steps_per_epoch
     if s.until == "plateau":
-        run.until = {"stable_end": None, "epochs": stable_cap(s, run.steps_per_epoch), "reason": None}
+        run.until = {"stable_end": None, "epochs": stable_cap(s, run.steps_per_epoch), "reason": None, "scores": []}
         run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _until_lambda(run))
     else:
         run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(s.schedule, total, s.warmup_epochs * run.steps_per_epoch,
@@ -735,12 +738,17 @@ def _until_lambda(run: _Run) -> Callable[[int], float]:
     return factor
 
 
-def _stop_stable(run: _Run, epoch: int) -> None:
-    """After stable epoch ``epoch`` (until plateau): stop at the plateau or the cap, keep the stable state,
-    and schedule the decay."""
+def _stop_stable(run: _Run, epoch: int, row: Mapping) -> None:
+    """After stable epoch ``epoch`` (until plateau): score it (the validation masks' calibrated IoU in
+    ``row``, else the held-out pseudo-labels' against their vote), stop at the plateau or the cap, keep
+    the stable state, and schedule the decay."""
     u, s = run.until, run.settings
-    scores = [r["val_iou_cal"] for r in run.rows if r["epoch"] >= 1]
-    if plateau_reached(scores, s.plateau_gain, s.plateau_min_epochs):
+    score = row["val_iou_cal"]
+    if run.holdout is not None:
+        score = validation_scores(run.model, run.holdout, run.device, precision=s.precision,
+                                  channels_last=s.channels_last, tolerance=s.bf1_tolerance)["val_iou_cal"]
+    u["scores"] = [*u.get("scores", []), float(score)]
+    if plateau_reached(u["scores"], s.plateau_gain, s.plateau_min_epochs):
         u["reason"] = f"plateau: the last doubling gained less than {s.plateau_gain:g} validation IoU"
     elif epoch >= u["epochs"]:
         budget = s.step_budget and (epoch + 1 + decay_epochs(epoch + 1, s.decay_fraction)) * run.steps_per_epoch \
@@ -819,8 +827,8 @@ def _continued(run: _Run, state: dict) -> dict | None:
     stable = state.get("stable_state")
     if stable is None or stable["epoch"] >= stable_cap(run.settings, run.steps_per_epoch):
         return None  # a smaller budget: train again
-    return {**stable, "run_key": run.run_key, "until": {"stable_end": None, "reason": None,
-                                                        "epochs": stable_cap(run.settings, run.steps_per_epoch)}}
+    return {**stable, "run_key": run.run_key,
+            "until": {**stable["until"], "epochs": stable_cap(run.settings, run.steps_per_epoch)}}
 
 
 def _state(run: _Run, epoch: int) -> dict:
@@ -1058,9 +1066,11 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
     if s.num_threads > 0:
         torch.set_num_threads(s.num_threads)
     plan = resolve_plan(method, cfg, data.stats.get("confidence_pass_ratio"))
+    held = None
     if s.until == "plateau" and not _has_val(val):
-        data, val = holdout(data, s.holdout_fraction)
+        data, held = holdout(data, s.holdout_fraction)
     run = _setup(method, cfg, s, plan, data, seed, init_state, device)
+    run.holdout = held
     try:
         return _train_run(run, val, checkpointer, callback, show_progress, data.stats)
     finally:
@@ -1108,7 +1118,7 @@ def _train_run(run: _Run, val: ValData | None, checkpointer: Checkpointer,
         row = _train_epoch(run, epoch, val, bar)
         run.rows.append(row)
         if run.until is not None and run.until["stable_end"] is None:
-            _stop_stable(run, epoch)
+            _stop_stable(run, epoch, row)
             if bar is not None:  # the ETA follows the run's length once the decay is scheduled
                 bar.total = bar.n + (run.epochs - epoch) * run.steps_per_epoch
         run.best = select(run.best, plan, val, epoch, row, run.model, plan.select == "best_val" or epoch == run.epochs)

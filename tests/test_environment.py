@@ -99,7 +99,8 @@ def test_environment_section_renders_software_machine_and_runs():
     env = E.collect()
     sec = R.environment_section(env, [])
     md = render_markdown(Report("r", [sec]))
-    assert "## Environment" in md and "tab:environment-software" in md and "tab:environment-machine" in md
+    assert "## Environment" in md and "Software of the installation that built this report" in md
+    assert "Machine and torch build that built this report" in md and "tab:environment" not in md  # no raw keys
     assert f"| torch | {env['libraries']['torch']} |" in md
     assert "No training run was found" in md
     assert R.environment_record(env, [])["report"]["cpu"] == env["cpu"]

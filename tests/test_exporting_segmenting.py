@@ -93,7 +93,7 @@ def test_segment_images_writes_masks_with_the_bundle_tau(exported, tmp_path):
 
 def test_segment_options_and_resolution_are_checked_before_anything_is_written(exported, tmp_path):
     root, ckpt, *_ = exported
-    with pytest.raises(InputError, match="--checkpoint missing"):
+    with pytest.raises(InputError, match="checkpoint= missing"):  # Python's terms (click requires the flag itself)
         check_options(None, "x", "y", 8, None)
     with pytest.raises(InputError, match="--batch-size 0"):
         check_options("c", "x", "y", 0, None)

@@ -74,6 +74,9 @@ def test_without_validation_masks_it_scores_held_out_pseudo_labels(tiny):
     assert val.masks.dtype == bool and "against their vote" in rest.stats["plateau_scored_on"]
     res = _run(tiny, val=False, plateau_min_epochs=2, plateau_gain=1.0)
     assert res.info["stopped"].startswith("plateau") and "against their vote" in res.info["plateau_scored_on"]
+    assert res.log["val_iou"].isna().all()  # the held-out pseudo-labels are no validation set
+    never = _run(tiny, val=False, plateau_min_epochs=2, plateau_gain=-1.0, step_budget=8)
+    assert never.info["stopped"].startswith("the step budget")  # a rule that never fires: the budget stops it
 
 
 def test_the_paper_recipe_keeps_its_fixed_length(tiny):
