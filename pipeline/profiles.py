@@ -127,7 +127,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     # Stage II for one seed; the command sets data.source=folder and the teacher on top
     "distill": {
         "teacher": {"vflip_base_prompt": False},  # the flipped view only serves afs_control, not run here
-        "train": {"recipe": "fast"},  # stops Stage I at its plateau (train.until) or --time's step budget
+        "train": {"recipe": "plateau"},  # stops Stage I at its plateau (train.until) or --time's step budget
         "protocol": {"runs": {"plain": [42], "geodistill": [42]}},
         "deploy": DISTILL_BENCHMARK,
     },

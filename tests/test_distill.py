@@ -119,7 +119,7 @@ def test_distill_with_validation_masks(folder, distill_with_masks):
         assert f"distill: the student's test Image IoU is {eff['efficiency']:.2f} × the teacher vote's" in res.stderr
     else:
         assert "distill: no distillation efficiency" in res.stderr and f"{vote:.3f}" in res.stderr
-    # and Stage I's length: the steps it ran and why it stopped (the fast recipe stops at the plateau)
+    # and Stage I's length: the steps it ran and why it stopped (the plateau recipe stops there)
     meta = json.loads((out / "artifacts" / "checkpoints" / "plain" / "42" / "meta.json").read_text())["extra"]
     assert f"distill: Stage I trained {meta['steps_run']:,} optimizer steps" in res.stderr and meta["stopped"]
 
