@@ -36,19 +36,19 @@ COST_RESOLUTION = 128
 #: a candidate passes at no more than this share of the baseline's cost
 PASS_COST_SHARE = 0.25
 BASELINE = "baseline"
-#: candidate -> ``train.*`` changes of ``strong`` (``lr_mult`` multiplies ``lr_stage1``), and what it tests.
+#: candidate -> ``train.*`` changes of ``strong`` (``lr_scale`` multiplies Stage I's peak rate), and what it tests.
 #: One lever at a time, then combined; ``soft_targets`` departs from the paper's eq:raw-loss.
 CANDIDATES: dict[str, tuple[dict, str]] = {
     BASELINE: ({"epochs_stage1": 400}, "strong's schedule from scratch, 400 epochs"),
     "strong_100": ({"epochs_stage1": 100}, "strong at a quarter of the baseline's epochs (rate x1)"),
-    "lr2": ({"epochs_stage1": 100, "lr_mult": 2}, "peak rate x2"),
-    "lr4": ({"epochs_stage1": 100, "lr_mult": 4, "warmup_epochs": 5}, "peak rate x4, 5 warm-up epochs"),
-    "lr8": ({"epochs_stage1": 100, "lr_mult": 8, "warmup_epochs": 5}, "peak rate x8, 5 warm-up epochs"),
-    "b32_lr4": ({"epochs_stage1": 100, "batch_size": 32, "lr_mult": 4, "warmup_epochs": 5},
+    "lr2": ({"epochs_stage1": 100, "lr_scale": 2}, "peak rate x2"),
+    "lr4": ({"epochs_stage1": 100, "lr_scale": 4, "warmup_epochs": 5}, "peak rate x4, 5 warm-up epochs"),
+    "lr8": ({"epochs_stage1": 100, "lr_scale": 8, "warmup_epochs": 5}, "peak rate x8, 5 warm-up epochs"),
+    "b32_lr4": ({"epochs_stage1": 100, "batch_size": 32, "lr_scale": 4, "warmup_epochs": 5},
                 "batch 32 at 4x the rate (linear scaling from batch 8)"),
-    "ema_lr4": ({"epochs_stage1": 100, "lr_mult": 4, "warmup_epochs": 5, "ema_decay": 0.999, "average_last": 0},
+    "ema_lr4": ({"epochs_stage1": 100, "lr_scale": 4, "warmup_epochs": 5, "ema_decay": 0.999, "average_last": 0},
                 "peak rate x4 + a moving average of the weights instead of the mean of the last 4 epochs"),
-    "soft_lr4": ({"epochs_stage1": 100, "lr_mult": 4, "warmup_epochs": 5, "soft_targets": True},
+    "soft_lr4": ({"epochs_stage1": 100, "lr_scale": 4, "warmup_epochs": 5, "soft_targets": True},
                  "peak rate x4 + soft targets (the agreement map; departs from eq:raw-loss)"),
 }
 
@@ -61,9 +61,7 @@ def run_cost(epochs: int, n_train: int, resolution: int) -> float:
 def candidate_cfg(base: Mapping[str, Any], name: str) -> dict:
     """``strong``'s train section with candidate ``name``'s changes; final weights get their BN statistics
     recomputed (``average_last`` 1 when the candidate averages nothing)."""
-    changes = dict(CANDIDATES[name][0])
-    cfg = {**base, **{k: v for k, v in changes.items() if k != "lr_mult"}}
-    cfg["lr_stage1"] = float(base["lr_stage1"]) * float(changes.get("lr_mult", 1))
+    cfg = {**base, **CANDIDATES[name][0]}
     if not cfg.get("ema_decay") and not cfg.get("average_last"):
         cfg["average_last"] = 1
     return cfg

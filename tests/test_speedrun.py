@@ -21,8 +21,10 @@ def test_cost_and_pass_rule():
 
 
 def test_candidate_changes_one_lever_on_strong():
-    base = {"lr_stage1": 5e-4, "average_last": 4, "epochs_stage1": 80, "batch_size": 8}
-    assert speedrun.candidate_cfg(base, "lr4")["lr_stage1"] == pytest.approx(2e-3)
+    from pipeline.methods import get_method, method_lr
+
+    base = {"lr_stage1": 5e-4, "lr_scale": 1.0, "average_last": 4, "epochs_stage1": 80, "batch_size": 8}
+    assert method_lr(get_method("plain"), speedrun.candidate_cfg(base, "lr4")) == pytest.approx(2e-3)
     assert speedrun.candidate_cfg(base, "b32_lr4")["batch_size"] == 32
     assert speedrun.candidate_cfg(base, "ema_lr4")["average_last"] == 0
     assert speedrun.candidate_cfg({**base, "average_last": 0}, "strong_100")["average_last"] == 1
