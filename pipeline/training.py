@@ -757,7 +757,8 @@ def _stop_stable(run: _Run, epoch: int, row: Mapping) -> None:
     else:
         return
     run.stable_state = _state(run, epoch)
-    u["stable_end"], u["epochs"] = epoch, epoch + decay_epochs(epoch, s.decay_fraction)
+    # the cap holds even where it leaves no room for a decay (train.epochs_stage1 = 1: no decay)
+    u["stable_end"], u["epochs"] = epoch, min(s.epochs, epoch + decay_epochs(epoch, s.decay_fraction))
 
 
 #: images per forward pass of the frozen Stage-I model: the training batch of the paper (4), so the anchor

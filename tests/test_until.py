@@ -29,7 +29,8 @@ def test_stable_cap_fits_the_decay_into_the_budget():
 
 
 def _run(tiny, checkpointer=None, val=True, **over):
-    cfg = tiny_cfg(until="plateau", epochs_stage1=40, warmup_epochs=1, average_last=1, schedule="wsd", **over)
+    cfg = tiny_cfg(**{"until": "plateau", "epochs_stage1": 40, "warmup_epochs": 1, "average_last": 1,
+                      "schedule": "wsd", **over})
     data, v = load_arrays(tiny, "plain", cfg)
     return training.train(get_method("plain"), cfg, data, v if val else None, 5,
                           checkpointer=checkpointer or training.NoCheckpointer(), show_progress=False)
@@ -95,3 +96,8 @@ def test_until_is_checked(value):
 
     with pytest.raises(InputError, match="train.until"):
         load_profile("paper", [f"train.until={value}"])
+
+
+def test_the_epochs_cap_holds_without_room_for_a_decay(tiny):
+    res = _run(tiny, epochs_stage1=1)
+    assert res.info["epochs"] == 1 and res.info["steps_run"] == 2 and len(res.log) == 1
