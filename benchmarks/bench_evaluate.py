@@ -32,7 +32,7 @@ import numpy as np
 
 from benchmarks.bench_geometry import spacecraft_like_masks
 from pipeline.geometry import squared_distance
-from pipeline.inference import predict_probs
+from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import BASELINE
 from pipeline.metrics import _ratio, _region_counts, per_image_metrics, score_masks, scoring_reference
 from pipeline.profiles import FULL_PROTOCOL

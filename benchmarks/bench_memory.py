@@ -9,9 +9,9 @@ Every measurement runs in a fresh Python process (its peak resident set, ``ru_ma
 * ``train``: one epoch of each ``--methods`` (``plain`` = Stage I; ``geodistill`` = Stage II with the
   SDF/skeleton/area targets and gates, warm-started from a seeded Stage-I model;
   ``geodistill_adaptive`` = Stage II in the anchored mode, i.e. with the frozen Stage-I anchors) through
-  :func:`pipeline.training.train`, on synthetic images, masks and geometry targets stored as Zarr
+  :func:`pipeline.training.loop.train`, on synthetic images, masks and geometry targets stored as Zarr
   arrays shaped like the artifacts (one image per chunk, sharded), read either streaming
-  (:class:`pipeline.streaming.LazyRows`, what ``training_data`` returns) or loaded into memory first (the
+  (:class:`pipeline.training.streaming.LazyRows`, what ``training_data`` returns) or loaded into memory first (the
   previous path).  The paper recipe's epoch (``average_last`` 0: no weight averaging pass over all
   images), fp32, no validation set.  ``--max-batches K`` stops every epoch after K batches (a full
   epoch at 384^2 is slow on a shared CPU): the streaming loop's peak is reached within its first
@@ -48,7 +48,7 @@ from benchmarks.bench_train import synthetic_set
 from pipeline.datasets.params import check_data_params
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import load_params, section
-from pipeline.streaming import LazyRows, row_means
+from pipeline.training.streaming import LazyRows, row_means
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the synthetic view counts prepare scales by --factor (data.synthetic.*)
@@ -96,8 +96,7 @@ def child_train(folder: Path, mode: str, method_name: str, max_batches: int) -> 
     batches (0 = all); peak and pre-training RSS, seconds and batches."""
     import zarr
 
-    from pipeline import training
-
+    from pipeline.training import loop as training
     method = get_method(method_name)
     arrays = {"images": None, "mask": bool}
     if method.needs_geometry:
@@ -141,7 +140,7 @@ def child_prepare(out: Path, factor: int, size: int) -> dict:
     """The prepare stage on the synthetic source, every view count times ``factor``, at ``size``^2."""
     import zarr
 
-    from pipeline.prepare import prepare
+    from pipeline.datasets.prepare import prepare
 
     views = section(load_params(ROOT / "params.yaml"), "data")["synthetic"]
     sets = [f"data.synthetic.{k}={int(views[k]) * factor}" for k in PREPARE_VIEWS]

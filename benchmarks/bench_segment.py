@@ -9,10 +9,10 @@ What a user of ``geodistill segment`` waits for is the folder, not the model: de
 * writes ``--images`` generated photo-like images (smooth backgrounds, bright blobs, noise; JPEG by
   default) of ``--size`` into a temporary folder;
 * builds a deploy bundle of a randomly initialised TinyUNet (the student's architecture, ``--channels``)
-  with the project's own export code (:func:`pipeline.exporting.plan_export` /
-  :func:`~pipeline.exporting.write_export`: TorchScript, ONNX, and the int8 model calibrated on the
+  with the project's own export code (:func:`pipeline.deploy.export.plan_export` /
+  :func:`~pipeline.deploy.export.write_export`: TorchScript, ONNX, and the int8 model calibrated on the
   generated images -- its agreement gate is off: this measures speed, not masks);
-* for every engine of ``segment --engine`` (:data:`pipeline.engine_table.SEGMENT_ENGINES`; an engine whose
+* for every engine of ``segment --engine`` (:data:`pipeline.deploy.engine_table.SEGMENT_ENGINES`; an engine whose
   runtime is missing is skipped with the reason, and ``cuda`` needs a GPU) times, round-robin over
   ``--repeats`` rounds: the engine alone on the already resized images at the same batch
   (``Segmenter.predict_probs``, what segment's "ms/image in the model" counts), the serial loop
@@ -39,11 +39,11 @@ import numpy as np
 from pipeline.artifacts import make_meta
 from pipeline.datasets.loading import read_rgb, resize_image
 from pipeline.deploy import files as F
-from pipeline.deploy import load_segmenter
-from pipeline.engine_table import ENGINE_TABLE, SEGMENT_ENGINES, engine_name
-from pipeline.errors import InputError
-from pipeline.exporting import plan_export, write_export
-from pipeline.inference import save_checkpoint
+from pipeline.deploy.segmenter import load_segmenter
+from pipeline.deploy.engine_table import ENGINE_TABLE, SEGMENT_ENGINES, engine_name
+from pipeline.runtime.errors import InputError
+from pipeline.deploy.export import plan_export, write_export
+from pipeline.evaluation.inference import save_checkpoint
 from pipeline.model import TinyUNet
 from pipeline.params import PAPER
 

@@ -4,7 +4,7 @@
     python -m benchmarks.bench_train --quick         # 32 images at 256^2, 3 epochs
     python -m benchmarks.bench_train --images 64 --size 384 --epochs 2 --device cuda
 
-Both variants train the Stage-I ``plain`` method with ``pipeline.training.train`` (same seed, same
+Both variants train the Stage-I ``plain`` method with ``pipeline.training.loop.train`` (same seed, same
 synthetic images and pseudo-masks, same everything except memory format and autocast).
 
 * Timing: ``--reps`` rounds, each running one training epoch of each variant back to back
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.device import resolve_device
+from pipeline.runtime.device import resolve_device
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import load_params, section
 
@@ -54,8 +54,7 @@ def synthetic_set(n: int, size: int, seed: int):
 
 def train_variant(cfg: dict, data, val, device, seed: int) -> dict:
     """Train ``plain`` with ``cfg``; per-epoch training seconds (callback marks) and final val metrics."""
-    from pipeline import training
-
+    from pipeline.training import loop as training
     marks = [time.perf_counter()]
     res = training.train(get_method(STAGE_ONE), cfg, data, None, seed, checkpointer=training.NoCheckpointer(),
                          device=device, callback=lambda epoch, row: marks.append(time.perf_counter()),
@@ -87,7 +86,7 @@ def main(argv=None) -> dict:
 
     import torch
 
-    from pipeline.training import TrainData, ValData
+    from pipeline.training.loop import TrainData, ValData
 
     device = resolve_device(args.device)
     if args.threads:

@@ -2,7 +2,7 @@
 
 ``python -m benchmarks.convergence`` -- by default at 128^2 on the reduced profile's data, for
 the Plain Student and the supervised ceiling, one seed.  One run gives every training length: a
-warm-up / stable / decay schedule (``train.schedule: wsd``, :func:`pipeline.training._lr_lambda`)
+warm-up / stable / decay schedule (``train.schedule: wsd``, :func:`pipeline.training.loop._lr_lambda`)
 whose stable phase does not depend on the run's length, so
 
   1. one stable-phase run (linear warm-up, then the constant learning rate) saves its full state
@@ -37,8 +37,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from pipeline.artifacts import fingerprint
-from pipeline.checkpointing import FileCheckpointer
-from pipeline.device import resolve_device
+from pipeline.training.checkpointing import FileCheckpointer
+from pipeline.runtime.device import resolve_device
 from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.profiles import load_profile
 from benchmarks.study_recipe import build_artifacts, load_study_data, score_run
@@ -76,9 +76,9 @@ def store_key(method: str, seed: int, cfg: Mapping[str, Any], data_id: Mapping[s
 class BranchStore:
     """The stable-phase states at the branch epochs and the decay branches' final weights, on disk.
 
-    As a :class:`pipeline.training.Checkpointer` of the stable run it keeps the full state (weights,
+    As a :class:`pipeline.training.loop.Checkpointer` of the stable run it keeps the full state (weights,
     optimizer, RNG) after each branch epoch (``stable-EEEEE/``, written atomically by
-    :class:`pipeline.checkpointing.FileCheckpointer`), and resumes the stable run from the latest saved
+    :class:`pipeline.training.checkpointing.FileCheckpointer`), and resumes the stable run from the latest saved
     state: the stable phase does not depend on the run's length (constant rate after the warm-up; batch
     order and augmentation seeded per epoch), so a longer run continues a shorter one.  Only the run
     key's ``epochs`` may differ; a state of another method, seed, data or thread count is not used.
@@ -128,7 +128,7 @@ class _StartFrom:
     def __init__(self, state: Mapping[str, Any], lr: float) -> None:
         import torch
 
-        from pipeline.training import STATE_VERSION
+        from pipeline.training.loop import STATE_VERSION
 
         self.state, self.version = state, STATE_VERSION
         dummy = torch.optim.AdamW([torch.zeros(1, requires_grad=True)], lr=lr)
@@ -149,8 +149,7 @@ def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, bran
     """The curve of one method: for each branch epoch, the decay branch's validation scores.  Branches in
     ``done`` (by stable epochs) are kept as they are; the stable phase runs only if a new branch's state
     is not in ``store``, from the latest saved one."""
-    from pipeline import training
-
+    from pipeline.training import loop as training
     done = dict(done or {})
     spec = get_method(method)
     todo = [e for e in branches if e not in done]
@@ -187,7 +186,7 @@ def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, bran
 
 def branch_model(method: str, cfg: Mapping[str, Any], seed: int, state: Mapping) -> Any:
     """The student of a decay branch from its saved weights (eval mode)."""
-    from pipeline.training import build_model
+    from pipeline.training.loop import build_model
 
     model = build_model(get_method(method), cfg, seed)  # the study's methods train from scratch
     model.load_state_dict(state)

@@ -19,14 +19,14 @@ import numpy as np
 
 from pipeline import catalog
 from pipeline.deploy.confidence import confidence_rank_check
-from pipeline.inference import open_labelled_split
+from pipeline.evaluation.inference import open_labelled_split
 from pipeline.metrics import image_iou
 
 
 def frame_scores(artifacts, deploy=None, engine: str = "torch",
                  split: str = "test") -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """``{group: (confidence [n], Image IoU [n])}`` of the deployed student on the run's ``split`` frames."""
-    from pipeline.deploy import Segmenter
+    from pipeline.deploy.segmenter import Segmenter
 
     manifest, images, reference, test = open_labelled_split(artifacts, split, "nothing to score")
     seg = Segmenter.from_bundle(deploy or catalog.path("deploy", artifacts), engine=engine)

@@ -13,7 +13,7 @@ their reference masks (``review.mode: replace``), and the Stage-I student's test
   (``--draws`` draws per seed).  The scores are the ones ``review export`` uses: g from gates.parquet,
   h = :func:`pipeline.consensus.agreement_entropy` of the consensus agreement map.
 * The corrections: the images' reference masks replace their voted masks
-  (:func:`pipeline.training_inputs.replace_targets`, what the train stage does in replace mode): the
+  (:func:`pipeline.training.inputs.replace_targets`, what the train stage does in replace mode): the
   student is NOT annotation-free.  k = 0 is the Plain Student.
 * Scores: test Image IoU at the calibrated tau (:func:`benchmarks.study_recipe.score_run`),
   Stage I (``plain``), per seed; each selection's gain over k = 0 with a seed-aware interval
@@ -35,7 +35,7 @@ import numpy as np
 from pipeline import catalog
 from pipeline.artifacts import open_artifact
 from benchmarks.study_recipe import build_artifacts, score_run
-from pipeline.inference import predict_probs
+from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.metrics import image_ious
 from pipeline.params import load_params, section
@@ -43,7 +43,7 @@ from pipeline.consensus import agreement_entropy
 from pipeline.review.ranking import DEFAULT_RANKING, scores
 from pipeline.stats import paired_seed_image_t
 from pipeline.thresholds import mask_from_probs
-from pipeline.training_inputs import load_inputs, replace_targets
+from pipeline.training.inputs import load_inputs, replace_targets
 
 CAVEAT = ("on this benchmark the simulated teacher builds its bad masks from the gate's own factors "
           "(pipeline/teachers/simulated.py): a gate-based ranking (gate, and combined through g) wins partly by "
@@ -75,8 +75,8 @@ def select(table, how: str, k: int, rng: np.random.Generator) -> list[str]:
 
 def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "cpu") -> list[dict]:
     """Every (selection, k, seed[, draw]) run: its test IoUs per image (Stage I on replaced targets)."""
-    from pipeline import training
-    from pipeline.training import _rows
+    from pipeline.training import loop as training
+    from pipeline.training.loop import _rows
 
     method = get_method(STAGE_ONE)
     data, val, _ = load_inputs(artifacts, method, cfg)
@@ -114,7 +114,7 @@ def selected_label_quality(artifacts: Path, cfg: dict, ks, seeds, draws: int) ->
     """Per (selection, k > 0): the mean Image IoU of the chosen images' voted masks against their reference
     masks (how bad the pseudo-labels a selection hands the person are; seeds and draws averaged), after
     the whole training set's.  No training: the choices :func:`run_study` makes on the same ``cfg``."""
-    from pipeline.training import _rows
+    from pipeline.training.loop import _rows
 
     data, _, _ = load_inputs(artifacts, get_method(STAGE_ONE), cfg)
     ids = list(data.image_ids)

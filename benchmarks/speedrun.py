@@ -82,8 +82,7 @@ def _init(artifacts: str, cfg: dict, threads: int) -> None:
 
 def run_one(job: dict) -> dict:
     """Train one (candidate, seed) and score V."""
-    from pipeline import training
-
+    from pipeline.training import loop as training
     cfg = job["cfg"]
     data = _DATA["soft"] if cfg.get("soft_targets") else _DATA[STAGE_ONE]
     t0 = time.perf_counter()

@@ -13,7 +13,7 @@ What it does
      the project's stage commands at ``--resolution`` (default: the profile's) (:func:`benchmarks.study_recipe.build_artifacts`).
   2. Runs: for every (recipe, perturbation, seed) the demo's methods in-process --
      ``plain`` (Stage I), then ``geodistill`` and the budget-matched ``continuation`` warm-started
-     from that plain model -- with :func:`pipeline.training.train` (the DVC train stage's loop).
+     from that plain model -- with :func:`pipeline.training.loop.train` (the DVC train stage's loop).
      A recipe is a ``train.recipe`` (:data:`pipeline.params.RECIPES`) or a screening candidate
      (:data:`CANDIDATES`: one part changed).  Perturbations (:data:`PERTURBATIONS`): the default
      (``train.num_threads`` 2), ``threads1`` (1 thread), ``precision`` (the other precision: fp32 where
@@ -47,10 +47,10 @@ import numpy as np
 
 from pipeline.artifacts import write_json
 from benchmarks import study_recipe as sr
-from pipeline.device import autocast_dtype
-from pipeline.environment import cpu
-from pipeline.errors import InputError
-from pipeline.inference import predict_probs
+from pipeline.runtime.device import autocast_dtype
+from pipeline.runtime.environment import cpu
+from pipeline.runtime.errors import InputError
+from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, STAGE_ONE, get_method
 from pipeline.metrics import iou_curve, per_image_metrics
 from pipeline.params import RECIPES, validate_section
@@ -132,8 +132,7 @@ def _init_worker(artifacts: str, cfg: dict, threads: int) -> None:
 
 def run_one(job: dict) -> dict:
     """Train Stage I (plain), then the methods warm-started from it, for one (recipe, perturbation, seed)."""
-    from pipeline import training
-
+    from pipeline.training import loop as training
     t0 = time.perf_counter()
     cfg, seed = job["cfg"], job["seed"]
     out = {k: job[k] for k in ("recipe", "perturbation", "seed")}

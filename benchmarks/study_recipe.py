@@ -9,10 +9,10 @@ What it does
      commands (``prepare``, ``teacher``, ``consensus`` on ``<profile>``'s params file and the size
      overrides below) into ``--workdir`` -- or, with ``--artifacts DIR``, the artifacts of a run that
      exists (e.g. a DVC run of ``profile=paper``).  Training arrays come from the training API:
-     :func:`stages.train.load_inputs` -> :func:`pipeline.training.training_data` (``plain``: the voted
-     pseudo-masks) and :func:`pipeline.supervised.ceiling_training_data` (``supervised_ceiling``: the
+     :func:`stages.train.load_inputs` -> :func:`pipeline.training.loop.training_data` (``plain``: the voted
+     pseudo-masks) and :func:`pipeline.training.supervised.ceiling_training_data` (``supervised_ceiling``: the
      REFERENCE masks; NOT annotation-free, a diagnostic ceiling).
-  2. Runs: every (variant, method, seed) with :func:`pipeline.training.train` (Stage I, ``epochs_stage1``,
+  2. Runs: every (variant, method, seed) with :func:`pipeline.training.loop.train` (Stage I, ``epochs_stage1``,
      best validation IoU at tau 0.5, exactly as the DAG's train stage), at most ``--jobs`` processes
      with ``--threads`` torch threads each.  A variant is the paper recipe with ONE ``train.*`` change
      (:data:`VARIANTS`): fp32 instead of bf16 autocast, BatchNorm momentum, precise BN, GroupNorm, a
@@ -48,14 +48,14 @@ import numpy as np
 
 from pipeline import catalog
 from pipeline.artifacts import open_artifact, write_text_if_changed
-from pipeline.dag import render_params_yaml
-from pipeline.device import resolve_device
-from pipeline.inference import predict_probs
+from pipeline.orchestration.dag import render_params_yaml
+from pipeline.runtime.device import resolve_device
+from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.metrics import image_ious
 from pipeline.profiles import load_profile
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
-from pipeline.training_inputs import load_inputs
+from pipeline.training.inputs import load_inputs
 
 REPO = Path(__file__).resolve().parents[1]
 #: the Stage-I (Plain Student) recipe and the same recipe on reference masks (the supervised ceiling)
@@ -122,7 +122,7 @@ def build_artifacts(workdir: Path, profile: str, sets: list[str], device: str, g
 def load_study_data(artifacts: Path, cfg: Mapping[str, Any], methods=METHODS) -> dict:
     """Training arrays per method of ``methods`` (via the training API), validation and test images +
     reference masks (test: images, masks and groups)."""
-    from pipeline.training import _rows
+    from pipeline.training.loop import _rows
 
     out: dict[str, Any] = {}
     for m in methods:
@@ -208,8 +208,7 @@ def _init_worker(artifacts: str, cfg: dict, threads: int) -> None:
 
 def run_one(job: dict) -> dict:
     """Train (variant, method, seed) and score it; the process's study data come from :func:`_init_worker`."""
-    from pipeline import training
-
+    from pipeline.training import loop as training
     t0 = time.perf_counter()
     cfg = job["cfg"]
     res = training.train(get_method(job["method"]), cfg, _DATA[job["method"]], _DATA["val"], job["seed"],

@@ -31,7 +31,7 @@ __all__ = ["open_artifact", "label", "distill", "Segmenter"]
 __version__ = "0.1.0"
 
 # Loaded on first use: importing ``pipeline`` stays light (no torch), and -- because these are plain
-# strings, not import statements -- pipeline.dag's import scan does not make the API's modules a code
+# strings, not import statements -- pipeline.orchestration.dag's import scan does not make the API's modules a code
 # dependency of every DVC stage (each stage imports this package).
 _LAZY = {"label": ("pipeline.api", "label"), "distill": ("pipeline.api", "distill"),
          "Segmenter": ("pipeline.deploy.segmenter", "Segmenter")}

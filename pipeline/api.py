@@ -4,7 +4,7 @@ The same runs as the ``geodistill label`` / ``geodistill distill`` commands (whi
 with the same params rules: ``params`` is a params file (default: the command's profile -- ``paper``
 for label, ``distill`` for distill -- not ./params.yaml, since a notebook may run anywhere), and
 ``overrides`` are ``--set`` items, as ``["train.epochs_stage1=3"]`` or ``{"train.epochs_stage1": 3}``.
-Errors are :class:`pipeline.errors.InputError` with one line naming the file or option -- here by its
+Errors are :class:`pipeline.runtime.errors.InputError` with one line naming the file or option -- here by its
 keyword argument (``skip_bad=True``, ``max_pixels=``), on the command line by its flag (``--skip-bad``,
 ``--max-pixels``): the same error, rendered in the caller's terms (docs/own-data.md).
 
@@ -23,12 +23,12 @@ from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 from pipeline.datasets.loading import check_bit_depth, pixel_limit
-from pipeline.errors import BACKEND, CHECKPOINT, LABELS, InputError, literal
+from pipeline.runtime.errors import BACKEND, CHECKPOINT, LABELS, InputError, literal
 from pipeline.labeling import LabelResult, label_folder
 from pipeline.labeling.run import check_label_folder, parse_formats
 from pipeline.params import SAM3, deep_merge, validate
 from pipeline.profiles import load_params_or_profile
-from pipeline.standalone import project_outputs, run_project, time_budget_params, write_project
+from pipeline.orchestration.standalone import project_outputs, run_project, time_budget_params, write_project
 from pipeline.teachers.sam3 import check_checkpoint_dir
 
 LABEL_PROFILE = "paper"
@@ -166,7 +166,7 @@ def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None 
             labels: str | Path | None = None, bit_depth: str | int | None = None, benchmark: bool = True,
             time: str | None = None) -> dict:
     """Train a deployable student on the images under ``input`` (``geodistill distill``;
-    :mod:`pipeline.standalone`): ``out`` becomes a DVC project running the pipeline's DAG (rerun to
+    :mod:`pipeline.orchestration.standalone`): ``out`` becomes a DVC project running the pipeline's DAG (rerun to
     resume).  Returns ``{"deploy", "report", "thresholds", "checkpoints"}`` paths; ``run=False`` only
     writes the project.  Every argument but ``input`` is a keyword; ``out`` is required.  ``skip_bad``,
     ``overwrite``, ``max_pixels``, ``bit_depth``: as for :func:`label`.
@@ -174,7 +174,7 @@ def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None 
     vote and gate are used and its teacher cache is read, so the teacher computes nothing again
     (:func:`params_from_labels`; no ``checkpoint`` needed).  ``benchmark=False``: no benchmark stage
     (``--no-benchmark``).  ``time`` (e.g. ``"20m"``): Stage I's budget (``--time``;
-    :func:`pipeline.standalone.time_budget_params`)."""
+    :func:`pipeline.orchestration.standalone.time_budget_params`)."""
     p = distill_params(effective_params(params, overrides, DISTILL_PROFILE), input, labels, backend, checkpoint,
                        imported_dir, skip_bad, max_pixels, bit_depth)
     p = time_budget_params(p, time, out, device)

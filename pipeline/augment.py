@@ -2,7 +2,7 @@
 
 Pure functions on numpy arrays (no torch, no file): :func:`augment_sample` augments one training image
 and its targets, :func:`augment_batch` a batch with one seeded generator per image.  The training loop
-(:mod:`pipeline.training`, ``train.augment``; on in the ``strong`` recipe only) calls
+(:mod:`pipeline.training.loop`, ``train.augment``; on in the ``strong`` recipe only) calls
 :func:`augment_batch` on every batch; with augmentation off nothing here runs and the batches are the
 ones the paper and stable recipes always trained on.
 

@@ -1,7 +1,7 @@
 """The artifact catalogue: every artifact once (file name, schema, producing stage), and every stage once
 (script, the artifacts it reads and writes, the params keys it reads).
 
-``dvc.yaml`` is rendered from this table (:mod:`pipeline.dag`), the stage commands take their default
+``dvc.yaml`` is rendered from this table (:mod:`pipeline.orchestration.dag`), the stage commands take their default
 paths from it, and the report and notebooks look artifacts up here by name.  Library functions take
 arrays and opened artifacts, never file names.
 
@@ -9,7 +9,7 @@ Paths are relative to the artifacts directory (``ARTIFACTS_DIR``); ``{method}``/
 per-run checkpoint folders, ``{profile}`` the report folder.  Paths starting ``../`` lie outside it and
 are DVC outs with ``cache: false``: git tracks them (the report, and the metrics, plot tables and
 DVCLive logs that ``dvc metrics show|diff``, ``dvc plots`` and ``dvc exp show`` read;
-:mod:`pipeline.dvc_results`).  :data:`PLOTS` are dvc.yaml's top-level plots.
+:mod:`pipeline.report.dvc_results`).  :data:`PLOTS` are dvc.yaml's top-level plots.
 """
 
 from __future__ import annotations
@@ -17,25 +17,25 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from pipeline.engine_table import engines_reading
+from pipeline.deploy.engine_table import engines_reading
 from pipeline.params import DEFAULT_PARAMS as PARAMS_FILE  # the params file's name, defined below the catalogue
 from pipeline.params import get_path
 
 ARTIFACTS_DIR = "artifacts"
 
-#: a model's files in a checkpoint and in a deploy bundle (pipeline.weights): the tensors as safetensors
+#: a model's files in a checkpoint and in a deploy bundle (pipeline.artifacts.weights): the tensors as safetensors
 #: (nothing in it can execute on load) and the model config with the run's fields as JSON.
 WEIGHTS_FILE = "model.safetensors"
 WEIGHTS_CONFIG_FILE = "model.json"
 #: the torch-pickle weights file older runs wrote; still read (tensors and plain data only), never written
 LEGACY_WEIGHTS_FILE = "model.pt"
-#: a checkpoint's training log (schema ``training_log``), beside its weights (pipeline.inference.save_checkpoint)
+#: a checkpoint's training log (schema ``training_log``), beside its weights (pipeline.evaluation.inference.save_checkpoint)
 TRAINING_LOG_FILE = "log.parquet"
 #: every folder artifact's metadata (schema, fingerprint, lineage; pipeline.artifacts.artifact_dir)
 META_FILE = "meta.json"
-#: train's per-epoch resume state in its resume folder (pipeline.checkpointing.FileCheckpointer)
+#: train's per-epoch resume state in its resume folder (pipeline.training.checkpointing.FileCheckpointer)
 RESUME_STATE_FILE = "state.pt"
-#: the DAG file ``geodistill dag`` and ``geodistill distill`` write (pipeline.dag); ``geodistill run`` reads it
+#: the DAG file ``geodistill dag`` and ``geodistill distill`` write (pipeline.orchestration.dag); ``geodistill run`` reads it
 DVC_FILE = "dvc.yaml"
 
 
@@ -82,7 +82,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
     _a("metrics", "metrics.parquet", "metrics", "evaluate", "per image, calibrated and fixed tau"),
     _a("summary", "summary.parquet", "summary", "evaluate"),
     _a("metrics_students", "../reports/metrics/students", None, "evaluate",
-       "DVC metrics (git-tracked): <group>/<method>.json = iou, bf1 at the calibrated tau (pipeline.dvc_results)"),
+       "DVC metrics (git-tracked): <group>/<method>.json = iou, bf1 at the calibrated tau (pipeline.report.dvc_results)"),
     _a("plot_training_curves", "../reports/plots/training_curves.csv", None, "evaluate",
        "DVC plot (git-tracked): method, seed, epoch, val_iou, ... of every run's training log"),
     _a("plot_threshold_curves", "../reports/plots/threshold_curves.csv", None, "evaluate",
@@ -97,7 +97,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
     _a("report", "../reports/{profile}", "report", "report", "report.md, report.html, figures, plots"),
     _a("metrics_efficiency", "../reports/metrics/efficiency", None, "report",
        "DVC metrics (git-tracked): <group>/<method>.json = distillation efficiency (test Image IoU / the "
-       "teacher vote's) and its interval at the calibrated tau (pipeline.dvc_results.efficiency_metric_files)"),
+       "teacher vote's) and its interval at the calibrated tau (pipeline.report.dvc_results.efficiency_metric_files)"),
     _a("corrections", "corrections.parquet", "corrections", "review import",
        "masks a person corrected (geodistill review import; compressed COCO RLE at each image's own size): "
        "manual masks, never a loss of an annotation-free method; the corrections stage's dep when params "
@@ -140,14 +140,14 @@ class BundleFile:
 
 
 DEPLOY_BUNDLE: dict[str, BundleFile] = {f.key: f for f in [
-    BundleFile("weights", WEIGHTS_FILE, "pipeline.weights.write_weights",
-               "mask-path tensors (a checkpoint's format: pipeline.inference.load_student opens a bundle too; "
+    BundleFile("weights", WEIGHTS_FILE, "pipeline.artifacts.weights.write_weights",
+               "mask-path tensors (a checkpoint's format: pipeline.evaluation.inference.load_student opens a bundle too; "
                f"bundles of older versions hold {LEGACY_WEIGHTS_FILE} instead, still read)"),
-    BundleFile("weights_config", WEIGHTS_CONFIG_FILE, "pipeline.weights.write_weights",
+    BundleFile("weights_config", WEIGHTS_CONFIG_FILE, "pipeline.artifacts.weights.write_weights",
                "model config, method, seed, tau, resolution"),
-    BundleFile("torchscript", "model.ts", "pipeline.deploy.export.export_torchscript",
+    BundleFile("torchscript", "model.ts", "pipeline.deploy.mask_path.export_torchscript",
                "TorchScript (traced) mask path; shape-generic (any batch and size)"),
-    BundleFile("onnx", "model.onnx", "pipeline.deploy.export.export_onnx",
+    BundleFile("onnx", "model.onnx", "pipeline.deploy.mask_path.export_onnx",
                "ONNX mask path, dynamic batch/height/width (only when onnx + onnxruntime import)", required=False),
     BundleFile("int8", "model.int8.onnx", "pipeline.deploy.quantize.quantize_onnx_int8",
                "static int8 (QDQ) quantisation of the ONNX model, calibrated on training-split images (only "
@@ -176,7 +176,7 @@ def bundle_file(key: str) -> str:
 
 
 def bundle_readers(key: str) -> tuple[str, ...]:
-    """The engines that run bundle file ``key`` (:data:`pipeline.engine_table.ENGINE_TABLE`)."""
+    """The engines that run bundle file ``key`` (:data:`pipeline.deploy.engine_table.ENGINE_TABLE`)."""
     return engines_reading(key)
 
 
@@ -219,10 +219,10 @@ OUTPUT_FILES: dict[str, dict[str, OutputFile]] = {
         OutputFile("timeline", "timeline.json", "pipeline.cluster.driver", "each stage's start, end and status"),
         OutputFile("stage_log", "{stage}.log", "pipeline.cluster.driver", "a stage's stdout and stderr")),
     "project": _files(  # a standalone project (geodistill distill)
-        OutputFile("params", PARAMS_FILE, "pipeline.standalone.write_project"),
-        OutputFile("dvc", DVC_FILE, "pipeline.standalone.write_project"),
-        OutputFile("protocol", "folder_protocol.yaml", "pipeline.standalone.write_project", "the input folder's split"),
-        OutputFile("record", "distill.json", "pipeline.standalone.write_project", "distill's record (pipeline.ownership)")),
+        OutputFile("params", PARAMS_FILE, "pipeline.orchestration.standalone.write_project"),
+        OutputFile("dvc", DVC_FILE, "pipeline.orchestration.standalone.write_project"),
+        OutputFile("protocol", "folder_protocol.yaml", "pipeline.orchestration.standalone.write_project", "the input folder's split"),
+        OutputFile("record", "distill.json", "pipeline.orchestration.standalone.write_project", "distill's record (pipeline.artifacts.ownership)")),
     "label": _files(
         OutputFile("masks", "masks", _LABEL, "masks/<image_id>.png"),
         OutputFile("coco", "coco.json", _LABEL),
@@ -230,7 +230,7 @@ OUTPUT_FILES: dict[str, dict[str, OutputFile]] = {
         OutputFile("table", "labels.parquet", _LABEL, "one row per image: the gate inputs and the gate"),
         OutputFile("csv", "labels.csv", _LABEL, "the table as CSV"),
         OutputFile("sheet", "contact_sheet.png", _LABEL),
-        OutputFile("record", "label.json", _LABEL, "label's record (pipeline.ownership)"),
+        OutputFile("record", "label.json", _LABEL, "label's record (pipeline.artifacts.ownership)"),
         OutputFile("skipped", SKIPPED_FILE, _LABEL)),
     "label_yolo": _files(
         OutputFile("train", "train.txt", _LABEL, "training image list"),
@@ -238,7 +238,7 @@ OUTPUT_FILES: dict[str, dict[str, OutputFile]] = {
         OutputFile("data", "data.yaml", _LABEL),
         OutputFile("readme", "README.txt", _LABEL)),
     "review": _files(
-        OutputFile("record", "review.json", _REVIEW, "review export's record (pipeline.ownership)"),
+        OutputFile("record", "review.json", _REVIEW, "review export's record (pipeline.artifacts.ownership)"),
         OutputFile("csv", "ranked.csv", _REVIEW),
         OutputFile("labelstudio", "labelstudio", _REVIEW),
         OutputFile("cvat", "cvat", _REVIEW),
@@ -251,7 +251,7 @@ OUTPUT_FILES: dict[str, dict[str, OutputFile]] = {
         OutputFile("overlay", ".overlay.png", _SEGMENT, "suffix of each input's overlay (--overlay)"),
         OutputFile("skipped", SKIPPED_FILE, _SEGMENT),
         OutputFile("confidence", "confidence.csv", _SEGMENT, "one row per mask: its path and the frame's confidence"),
-        OutputFile("record", "segment.json", _SEGMENT, "segment's record (pipeline.ownership)")),
+        OutputFile("record", "segment.json", _SEGMENT, "segment's record (pipeline.artifacts.ownership)")),
 }
 
 
@@ -312,7 +312,7 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               ("consensus", "manifest"), ("geometry", "gates"),
               _keys("geometry", "sdf_quantile", "sdf_min_scale", "skeleton_min_distance", "n_prompts",
                     "conf_offset", "valid_offset", "area_temperature", "area_floor", "eps")),
-    # train_<method>: rendered per method from pipeline.methods (see pipeline.dag.train_stage)
+    # train_<method>: rendered per method from pipeline.methods (see pipeline.orchestration.dag.train_stage)
     StageSpec("calibrate", "stages.calibrate",
               "--artifacts {artifacts_dir} --checkpoints {checkpoints} --out {thresholds}",
               ("manifest", "images", "reference", "checkpoints"), ("thresholds",),
@@ -349,8 +349,8 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
                "thresholds", "metrics", "summary", "teacher_metrics", "efficiency"), ("report",),
               ("profile",) + _keys("report", "qualitative_images", "pseudo_target_images"),
               # a new floor changes the report's verdicts, so it reruns the report (a standalone
-              # project, which has no floor file, replaces the data deps: pipeline.dag.render_dvc_yaml)
-              data_deps=(dvc_path("noise_floor"),), metrics=("metrics_efficiency",)),    # optional: in dvc.yaml only when params review.corrections is set (pipeline.dag.OPTIONAL_STAGES)
+              # project, which has no floor file, replaces the data deps: pipeline.orchestration.dag.render_dvc_yaml)
+              data_deps=(dvc_path("noise_floor"),), metrics=("metrics_efficiency",)),    # optional: in dvc.yaml only when params review.corrections is set (pipeline.orchestration.dag.OPTIONAL_STAGES)
     StageSpec("corrections", "stages.corrections",
               "--corrections ${review.corrections} --artifacts {artifacts_dir} --out {corrected}",
               ("manifest", "images"), ("corrected",), _keys("review", "corrections", "mode") + ("data.source",),
@@ -370,7 +370,7 @@ EXTRA_PATHS = {
 # --------------------------------------------------------------------------------------------------
 # Plots (dvc.yaml top level)
 # --------------------------------------------------------------------------------------------------
-#: the Vega-Lite template of every plot below: ``.dvc/plots/<name>.json`` (pipeline.offline_plots),
+#: the Vega-Lite template of every plot below: ``.dvc/plots/<name>.json`` (pipeline.report.offline_plots),
 #: one line per value of the data's ``method`` column (mean over seeds), dashed per revision
 PLOT_TEMPLATE = "method_lines"
 

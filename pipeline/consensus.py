@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.params import PAPER
 
 DEFAULT_VOTE_THRESHOLD = PAPER.consensus.vote_threshold  # eq:majority-vote; the schema holds it

@@ -36,7 +36,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pipeline.errors import SET, InputError
+from pipeline.runtime.errors import SET, InputError
 
 from pipeline.params import PAPER
 
@@ -300,7 +300,7 @@ NO_FOREGROUND = ("The teacher found no spacecraft in any training image; the two
 class NoForeground(InputError):
     """No training image has a non-empty pseudo-mask (:func:`median_area`): said in the user's terms --
     no file, no equation (:data:`NO_FOREGROUND`); the params override is spelled for the caller (``--set
-    ...`` on the command line, ``overrides=[...]`` in Python: :class:`pipeline.errors.Option`)."""
+    ...`` on the command line, ``overrides=[...]`` in Python: :class:`pipeline.runtime.errors.Option`)."""
 
     def __init__(self):
         super().__init__(NO_FOREGROUND, SET(["teacher.score_threshold=…"]))

@@ -1,7 +1,7 @@
 """Training methods as data: one declarative table of which loss terms, gating, initialisation, epochs,
 data filter and checkpoint-selection rule each ``--method`` uses, plus the pseudo-label filters.
 
-The training loop (``pipeline.training``) reads a :class:`Method` and has no per-method branches of
+The training loop (``pipeline.training.loop``) reads a :class:`Method` and has no per-method branches of
 its own.  The table is also the one source of what each method is in the study -- its label, role,
 ablation tables, the reference point of its gains and its place in the tables (:data:`ROLES`,
 :data:`PROPOSED`, :data:`BASELINE`, :data:`CONTINUATION`, :data:`STAGE_ONE`): the profiles, the evaluation
@@ -39,7 +39,7 @@ Controls the paper lacks (issue 17):
   extra epochs alone.
 * ``supervised_ceiling`` -- NOT annotation-free: the Plain Student's recipe trained on the training
   split's REFERENCE (manual) masks.  It is the one method whose loss sees reference masks (its
-  targets come only from :func:`pipeline.supervised.ceiling_training_data`); it runs only with
+  targets come only from :func:`pipeline.training.supervised.ceiling_training_data`); it runs only with
   ``protocol.supervised_ceiling: true``, is labelled "(uses reference masks; not annotation-free)"
   in every table and is never among the annotation-free comparisons (:attr:`Method.annotation_free`).
 
@@ -68,7 +68,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 
 TERMS = ("region", "anchor", "sdf", "dist", "skel", "area", "boundary")
 

@@ -30,7 +30,7 @@ import dataclasses
 
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.params import PAPER
 
 DEFAULT_TOLERANCE = PAPER.evaluate.bf1_tolerance  # the params schema holds the defaults
@@ -420,7 +420,7 @@ def threshold_counts(probs, gts, grid, *, chunk: int = 16) -> tuple[np.ndarray, 
 
     One pass over the pixels: each probability is binned by the number of grid points it reaches,
     and cumulative counts give |M| and |M & G| at every tau (no per-tau loop).  The one counting
-    core of :func:`iou_curve` and :func:`pipeline.diagnostics.area_ratio_curve`.
+    core of :func:`iou_curve` and :func:`pipeline.evaluation.diagnostics.area_ratio_curve`.
     """
     probs = np.asarray(probs)
     gts = _as_mask(gts, "gts")

@@ -8,7 +8,7 @@ overrides (:mod:`pipeline.profiles`, which imports this module, never the revers
 
 Every stage validates the whole file once at start (:func:`load_params`): a value that is NaN or
 infinite, of the wrong type, out of range, or a key the schema does not know gives one
-:class:`~pipeline.errors.InputError` line naming the key (exit code 2 from the CLI) before anything
+:class:`~pipeline.runtime.errors.InputError` line naming the key (exit code 2 from the CLI) before anything
 is written.  Why pydantic: strict typed models with bounds, ``extra="forbid"`` and finite-number
 checks replace about seventy hand-written ``require`` calls and keep the default beside the bound.
 
@@ -25,8 +25,8 @@ from typing import Annotated, Any, Iterable, Literal, Mapping
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from pipeline.engine_table import BENCHMARK_VARIANTS, engine_name  # pure Python: the engine names, one list
-from pipeline.errors import InputError
+from pipeline.deploy.engine_table import BENCHMARK_VARIANTS, engine_name  # pure Python: the engine names, one list
+from pipeline.runtime.errors import InputError
 from pipeline.methods import METHODS, PROPOSED, STAGE_ONE  # pure Python, no torch: this module stays torch-free
 
 DEFAULT_PARAMS = "params.yaml"
@@ -407,7 +407,7 @@ class ProtocolParams(_Section):
 
     Only listed runs become DVC stages (``train_<method>@<seed>``); a warm-started method needs
     ``plain`` at the same seed.  ``seeds_per_stage`` > 1 groups a method's seeds into stages of that many
-    runs, each group one process (pipeline/dag.py, :func:`pipeline.dag.seed_groups`); it shapes dvc.yaml
+    runs, each group one process (pipeline/orchestration/dag.py, :func:`pipeline.orchestration.dag.seed_groups`); it shapes dvc.yaml
     only: every run's checkpoint is the same bytes either way.
     """
 

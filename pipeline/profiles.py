@@ -1,7 +1,7 @@
 """Profiles: named sets of overrides of the schema defaults (the paper's values, :mod:`pipeline.params`).
 
 ``geodistill profile NAME`` writes ``params.yaml`` = defaults + ``PROFILES[NAME]`` (:func:`profile_params`,
-rendered by :func:`pipeline.dag.render_params_yaml`); DVC then tracks each key of that file, so a later
+rendered by :func:`pipeline.orchestration.dag.render_params_yaml`); DVC then tracks each key of that file, so a later
 edit of one value reruns exactly the stages that read it.  Profiles are data read only by the commands
 that switch profile -- ``geodistill profile``, and ``label`` / ``distill`` / the notebook API, which start
 from a profile without ``--params`` and accept ``--set profile=NAME`` (:func:`load_params_or_profile`).
@@ -38,7 +38,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Iterable
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.methods import methods_with_role
 from pipeline.params import PAPER, PROFILE_KEY, deep_merge, load_params, parse_override, unresolved
 
@@ -123,7 +123,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "protocol": {"runs": {m: list(SEEDS) for m in STRONG_STUDY_METHODS}, "supervised_ceiling": True},
         "deploy": {"benchmark_resolution": 384},
     },
-    # `geodistill distill` (pipeline/standalone.py): your folder at the paper's sizes, Stage I then
+    # `geodistill distill` (pipeline/orchestration/standalone.py): your folder at the paper's sizes, Stage I then
     # Stage II for one seed; the command sets data.source=folder and the teacher on top
     "distill": {
         "teacher": {"vflip_base_prompt": False},  # the flipped view only serves afs_control, not run here

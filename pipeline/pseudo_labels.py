@@ -22,9 +22,9 @@ import pandas as pd
 
 from pipeline.artifacts import Meta, ZarrWriter, write_parquet
 from pipeline.consensus import Consensus, agreement_entropy, vote_batch
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.geometry import GateFactors, NoForeground, foreground_agreement, image_gates, median_area, pseudo_targets
-from pipeline.progress import progress
+from pipeline.runtime.progress import progress
 
 
 # --------------------------------------------------------------------------------------------------

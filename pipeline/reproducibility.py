@@ -25,7 +25,7 @@ TOLERANCE: dict[str, float] = {"iou": 0.01, "bf1": 0.02}
 # CI's check: a fresh demo run against the committed student metrics
 # --------------------------------------------------------------------------------------------------
 #: float slack when judging |fresh - committed| <= tolerance: the files hold 4-decimal values
-#: (pipeline.dvc_results.DECIMALS), whose difference is not exact in binary floating point
+#: (pipeline.report.dvc_results.DECIMALS), whose difference is not exact in binary floating point
 SLACK = 1e-9
 
 

@@ -23,7 +23,7 @@ from typing import Mapping
 import numpy as np
 
 from pipeline.artifacts import open_artifact
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.metrics import iou_curve
 from pipeline.params import PAPER, require
 

@@ -1,10 +1,10 @@
 """Conventions shared by every stage command.
 
 * ``--params FILE`` (default params.yaml), ``--set key.path=value`` (repeatable), ``--device``;
-* logs on stderr, progress bars on every loop a user waits on (``pipeline.progress``);
-* user errors (:class:`pipeline.errors.InputError`) -> one line on stderr, exit code 2, no traceback,
+* logs on stderr, progress bars on every loop a user waits on (``pipeline.runtime.progress``);
+* user errors (:class:`pipeline.runtime.errors.InputError`) -> one line on stderr, exit code 2, no traceback,
   naming options by their flags (``--max-pixels``; the Python API names the same options by their
-  keywords, ``max_pixels=``: :meth:`pipeline.errors.InputError.render`);
+  keywords, ``max_pixels=``: :meth:`pipeline.runtime.errors.InputError.render`);
 * operating-system failures (no space, no permission, read-only file system, path too long, ...) ->
   one line on stderr naming the path, exit code 1, no traceback (:func:`one_line_errors`, the one place
   both are handled; writes are atomic, so the previous complete output stays in place).
@@ -25,8 +25,8 @@ import click
 
 from pipeline.artifacts import Meta, make_meta
 from pipeline.catalog import PARAMS_FILE, STAGES, stage_params
-from pipeline.codeversion import ROOT, _module_name, code_version_of
-from pipeline.errors import BIT_DEPTH, CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError, calling
+from pipeline.runtime.codeversion import ROOT, _module_name, code_version_of
+from pipeline.runtime.errors import BIT_DEPTH, CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError, calling
 from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER, load_params
 
 def setup_logging() -> None:
@@ -59,7 +59,7 @@ def one_line_errors(command: str):
     """Run a command's body; an InputError ends it with ``geodistill <command>: error: <line>`` (options
     named by their flags: ``e.render(CLI)``) and exit code 2, an OSError with ``geodistill <command>:
     error: <path>: <what> (<ERRNO>)`` and exit code 1 -- one line on stderr each, no traceback.  Inside,
-    the library's warnings name options by their flags too (:func:`pipeline.errors.caller`)."""
+    the library's warnings name options by their flags too (:func:`pipeline.runtime.errors.caller`)."""
     try:
         with calling(CLI):
             yield
@@ -73,7 +73,7 @@ def one_line_errors(command: str):
         sys.exit(EXIT_OS)
 
 
-#: the shared options of the user tools (docs/own-data.md): one name (pipeline.errors, where the errors
+#: the shared options of the user tools (docs/own-data.md): one name (pipeline.runtime.errors, where the errors
 #: naming them take it from), one help text
 overwrite_option = click.option(
     OVERWRITE.flag, is_flag=True,
@@ -109,7 +109,7 @@ def teacher_workers_options(fn):
 
 def stage_code_version(stage_file: str) -> str:
     """Code version of a stage: every project file its script imports, found from the imports
-    themselves (:func:`pipeline.codeversion.module_files`, the same list dvc.yaml names as the stage's deps)."""
+    themselves (:func:`pipeline.runtime.codeversion.module_files`, the same list dvc.yaml names as the stage's deps)."""
     return code_version_of(_module_name(Path(stage_file).resolve(), ROOT))
 
 

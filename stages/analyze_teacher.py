@@ -8,7 +8,7 @@ a SIMULATOR of foundation-model errors, not SAM 3 -- the JSON and the report say
 
 Writes ``teacher_metrics.parquet`` (one row per image and source: prompt_<k>, vote, val_selected;
 see pipeline.report.analysis) and the DVC metrics ``reports/metrics/teacher/<group>.json`` (git-tracked;
-pipeline.dvc_results.teacher_metric_files: the vote's Image IoU and Boundary F1 on the group's test images
+pipeline.report.dvc_results.teacher_metric_files: the vote's Image IoU and Boundary F1 on the group's test images
 and the share of them with gate g > 0).  The report draws the prompt tables and the gate's Spearman
 rho from the parquet.
 """
@@ -22,11 +22,11 @@ import pandas as pd
 from pipeline import catalog
 from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run, write_parquet
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
-from pipeline.dvc_results import teacher_metric_files, write_metrics_dir
-from pipeline.errors import InputError
+from pipeline.report.dvc_results import teacher_metric_files, write_metrics_dir
+from pipeline.runtime.errors import InputError
 from pipeline.metrics import per_image_metrics
 from pipeline.params import SIMULATED, section
-from pipeline.progress import progress
+from pipeline.runtime.progress import progress
 from pipeline.report.analysis import prompt_source, select_prompt
 from stages._common import stage_command, stage_context
 

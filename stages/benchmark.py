@@ -7,7 +7,7 @@ mean validation Image IoU against the fp32 baseline at the deployed tau.  A vari
 more than ``pipeline.deploy.benchmark.SLOW_FACTOR`` x slower than the baseline is not fully timed: its
 ``status`` column says so.  The table goes to stdout with each variant's speed-up over the baseline
 measured in the same run; ``--json`` writes the same numbers, ``--metrics-json`` the one DVC metric
-(latency_ms of the deployed fast path; pipeline.dvc_results.deploy_metrics).
+(latency_ms of the deployed fast path; pipeline.report.dvc_results.deploy_metrics).
 
 Validation data: rows of images.zarr / reference.zarr with split == 'val' and a reference mask
 (reference masks here only measure accuracy, never train).  int8: the bundle's ``model.int8.onnx`` when
@@ -26,9 +26,9 @@ import click
 
 from pipeline.artifacts import write_json, write_parquet
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
-from pipeline.device import resolve_device
-from pipeline.dvc_results import deploy_metrics
-from pipeline.errors import InputError
+from pipeline.runtime.device import resolve_device
+from pipeline.report.dvc_results import deploy_metrics
+from pipeline.runtime.errors import InputError
 from pipeline.params import section
 from pipeline.thresholds import resolve_resolution
 from stages._common import stage_command, stage_context

@@ -9,7 +9,7 @@ P = sigmoid(Z) on the validation images, the mean Image IoU of [P >= tau] over t
 pipeline.thresholds.calibrate_threshold.  The whole curve is kept (list columns
 ``grid`` and ``curve``) for the report's threshold-curve figure, with the fixed tau = 0.5 alongside.
 
-Calibration diagnostics of the same validation probabilities (pipeline.diagnostics; issue 17):
+Calibration diagnostics of the same validation probabilities (pipeline.evaluation.diagnostics; issue 17):
 ``rel_confidence``, ``rel_frequency``, ``rel_count`` (list columns: the pixel-level reliability diagram
 over ``calibrate.reliability_bins`` equal-width bins) and ``ece`` (expected calibration error);
 ``area_curve`` (list, per grid tau: median over validation images of predicted / reference
@@ -17,7 +17,7 @@ foreground area) with ``area_ratio`` and ``fixed_area_ratio`` at the calibrated 
 
 Manual (reference) masks enter here ONLY to calibrate tau -- they are never a training target.  With
 ``review.mode: validate`` (and ``review.corrections`` set) the corrected training images are validation
-images too, with their corrected masks (pipeline.inference.validation_corrections; their count is
+images too, with their corrected masks (pipeline.evaluation.inference.validation_corrections; their count is
 recorded in the thresholds' meta, ``corrected_validation``, for the report).
 
 No validation image with a mask (``geodistill distill`` without ``--val-masks``): nothing to calibrate
@@ -32,14 +32,14 @@ import pandas as pd
 
 from pipeline.artifacts import open_artifact, read_chunk_rows, write_parquet
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
-from pipeline.device import resolve_device
-from pipeline.diagnostics import (area_ratio_curve, expected_calibration_error, median_area_ratio,
+from pipeline.runtime.device import resolve_device
+from pipeline.evaluation.diagnostics import (area_ratio_curve, expected_calibration_error, median_area_ratio,
     reliability_bins)
-from pipeline.inference import (CORRECTED_VALIDATION, active_runs, load_student, open_labelled_split, predict_probs,
+from pipeline.evaluation.inference import (CORRECTED_VALIDATION, active_runs, load_student, open_labelled_split, predict_probs,
     validation_corrections, with_validation_corrections)
 from pipeline.metrics import iou_curve
 from pipeline.params import section
-from pipeline.progress import progress
+from pipeline.runtime.progress import progress
 from pipeline.thresholds import NO_VALIDATION_MASKS, calibrate_threshold, rule_options, threshold_grid
 from stages._common import stage_command, stage_context
 

@@ -5,7 +5,7 @@ working resolution, for ``review.mode`` (validate | replace; pipeline/review/app
     python -m stages.corrections --corrections artifacts/corrections.parquet --artifacts artifacts \
         --out artifacts/corrected.zarr
 
-The training stages then read it (:func:`pipeline.training_inputs.load_inputs`).  Bad inputs (an image
+The training stages then read it (:func:`pipeline.training.inputs.load_inputs`).  Bad inputs (an image
 the manifest does not hold, a size mismatch, a validation or test image, ``validate`` on a benchmark
 source): one line, exit 2.  Wiring only: the work is :mod:`pipeline.review.apply`.
 """
@@ -17,7 +17,7 @@ import click
 from pipeline import catalog
 from pipeline.artifacts import open_artifact
 from pipeline.catalog import ARTIFACTS_DIR
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.params import get_path
 from pipeline.review.apply import CORRECTIONS, MODE_KEY, corrected_masks, write_corrected
 from stages._common import stage_command, stage_context

@@ -8,15 +8,15 @@
   IoU (pipeline.metrics);
 * per image also ``target_fraction`` (reference foreground / frame), ``target_size`` (``tiny`` under
   evaluate.tiny_target_max_fraction = 0.2 % of the frame, ``regular``, ``empty``;
-  pipeline.diagnostics) and ``area_vs_reference`` (predicted / reference foreground area; NaN for an
+  pipeline.evaluation.diagnostics) and ``area_vs_reference`` (predicted / reference foreground area; NaN for an
   empty reference) -- the size split and the foreground-inflation diagnostics;
 * ``summary.parquet``: mean and sample std over seeds of the per-seed means, plus the gain of each
   annotation-free method over ``plain`` with a paired hierarchical bootstrap CI (spacecraft, then
   images; evaluate.bootstrap_resamples, evaluate.ci, seeded by evaluate.bootstrap_seed), and of each
   warm-started Stage-II method over the budget-matched ``continuation`` (``gain_<m>_vs_continuation``
   columns; pipeline.methods.gain_treatments).  The supervised ceiling (NOT annotation-free) gets
-  means only: it is never in a gain or its CI (the rules: pipeline.evaluation);
-* DVC results (git-tracked; pipeline.dvc_results): ``reports/metrics/students/<group>/<method>.json`` (iou,
+  means only: it is never in a gain or its CI (the rules: pipeline.evaluation.evaluate);
+* DVC results (git-tracked; pipeline.report.dvc_results): ``reports/metrics/students/<group>/<method>.json`` (iou,
   bf1 at the calibrated tau: ``dvc metrics show``), ``reports/plots/training_curves.csv`` (every run's log) and
   ``reports/plots/threshold_curves.csv`` (calibrate's curves), drawn one line per method by ``dvc plots``.
 
@@ -27,12 +27,14 @@ from __future__ import annotations
 
 import click
 
-from pipeline import catalog, dvc_results
+from pipeline import catalog
+
+from pipeline.report import dvc_results
 from pipeline.artifacts import open_artifact, write_parquet
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
-from pipeline.device import resolve_device
-from pipeline.evaluation import score_runs, summarize
-from pipeline.inference import active_runs, open_labelled_split
+from pipeline.runtime.device import resolve_device
+from pipeline.evaluation.evaluate import score_runs, summarize
+from pipeline.evaluation.inference import active_runs, open_labelled_split
 from pipeline.methods import BASELINE
 from pipeline.params import section
 from stages._common import stage_command, stage_context
@@ -69,7 +71,7 @@ def main(params, device, art, checkpoints, thresholds, out, summary_out, metrics
     write_parquet(summary_out, summary, ctx.meta("summary", [open_artifact(out, "metrics")],
                                                  control=BASELINE, ci=ci, bootstrap_resamples=n_boot,
                                                  interval=cfg["interval"]))
-    # the DVC results (pipeline.dvc_results): metrics files and the plot tables of the runs' logs and curves
+    # the DVC results (pipeline.report.dvc_results): metrics files and the plot tables of the runs' logs and curves
     dvc_results.write_metrics_dir(metrics_dir or catalog.path("metrics_students", art),
                                   dvc_results.student_metric_files(summary))
     dvc_results.write_csv(training_curves or catalog.path("plot_training_curves", art), dvc_results.training_curves(

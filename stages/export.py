@@ -15,7 +15,7 @@ TRAINING-split images (images only, never reference masks) calibrate a static in
 (max |dZ|, per-image mask IoU at tau) goes into deploy.json; the stage fails only when the mean mask
 IoU is below ``deploy.int8_min_mask_iou``.  Without onnx, without
 the artifacts, or with ``--no-int8`` the bundle has no int8 model and deploy.json (and stderr) say why.
-The logic is :mod:`pipeline.exporting`'s; this script is wiring.
+The logic is :mod:`pipeline.deploy.export`'s; this script is wiring.
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ from __future__ import annotations
 import click
 
 from pipeline.catalog import dvc_path
-from pipeline.device import resolve_device
-from pipeline.exporting import bundle_files, export_lines, is_bundle_dir, plan_export, write_export
-from pipeline.ownership import refuse_foreign_files, refuse_unowned
+from pipeline.runtime.device import resolve_device
+from pipeline.deploy.export import bundle_files, export_lines, is_bundle_dir, plan_export, write_export
+from pipeline.artifacts.ownership import refuse_foreign_files, refuse_unowned
 from stages._common import overwrite_option, stage_command, stage_context
 
 

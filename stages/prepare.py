@@ -3,7 +3,7 @@
 Default source: the embedded synthetic spacecraft benchmark (PNG files under ``<out-dir>/synthetic``).
 Real sources: ``--source spacesense|spark|speedplus|tango|folder --root DIR [--protocol FILE]``.
 
-Wiring only: the work is :func:`pipeline.prepare.prepare`.
+Wiring only: the work is :func:`pipeline.datasets.prepare.prepare`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pipeline import catalog
 from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.datasets.params import check_data_params
 from pipeline.params import SOURCES, section
-from pipeline.prepare import prepare
+from pipeline.datasets.prepare import prepare
 from stages._common import stage_command, stage_context
 
 log = logging.getLogger("geodistill.prepare")

@@ -3,7 +3,7 @@
 Writes ``<out>/report.md``, ``<out>/report.html`` (ONE self-contained page: figures inline as base64
 PNG, no external resources), ``<out>/figures/*.png`` (and ``*.svg`` of every chart, for papers),
 ``<out>/environment.json`` (where the numbers were computed: this machine's software, torch build and
-CPU, and each training run's precision, threads and device; pipeline.environment; not fingerprinted)
+CPU, and each training run's precision, threads and device; pipeline.runtime.environment; not fingerprinted)
 and the DVC plot tables
 ``<out>/plots/training_curves.csv`` (epoch, val_iou, ..., method, seed) and
 ``<out>/plots/threshold_curve.csv`` (tau, val_iou, method, seed) and ``<out>/plots/area_curve.csv``
@@ -13,7 +13,7 @@ show about the fixed-tau reversal (pipeline.report.analysis.fixed_tau_findings).
 efficiency.parquet before the benchmark ran) are reported as missing in the page, not fatal.
 
 It also writes the DVC metrics ``reports/metrics/efficiency/<group>/<method>.json`` (git-tracked;
-pipeline.dvc_results.efficiency_metric_files): the distillation efficiency of every student and of the
+pipeline.report.dvc_results.efficiency_metric_files): the distillation efficiency of every student and of the
 supervised ceiling, test Image IoU at the calibrated tau / the teacher vote's on the same test images,
 with its per-seed ratio t interval -- the reference-points table's "IoU ÷ vote", from the same numbers.
 Without summary.parquet or teacher_metrics.parquet (no test masks) the folder is empty.
@@ -28,9 +28,9 @@ import click
 from pipeline import catalog
 from pipeline.artifacts import artifact_dir, write_json
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
-from pipeline.device import resolve_device
-from pipeline.dvc_results import efficiency_metric_files, write_metrics_dir
-from pipeline.environment import collect
+from pipeline.runtime.device import resolve_device
+from pipeline.report.dvc_results import efficiency_metric_files, write_metrics_dir
+from pipeline.runtime.environment import collect
 from pipeline.params import section
 from pipeline.report.document import render_html, render_markdown
 from pipeline.report.environment import environment_record

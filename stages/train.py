@@ -5,7 +5,7 @@
         [--init artifacts/checkpoints/plain/S ...] --out artifacts/checkpoints/M/S [--out ... ]
 
 * Which (M, S) runs exist is params.yaml's ``protocol.runs``; dvc.yaml has a stage for exactly those.
-  ``protocol.seeds_per_stage`` > 1 puts several seeds of a method in one stage (pipeline/dag.py): the
+  ``protocol.seeds_per_stage`` > 1 puts several seeds of a method in one stage (pipeline/orchestration/dag.py): the
   seeds come as repeated ``--seed``, each with its own ``--out`` (and ``--init``, ``--live-dir``) in the
   same order.  The artifacts are opened once (:func:`open_method`); each seed's run is then exactly the
   one a process of its own makes (:func:`train_seed`: seeded, threads set, nothing shared between the
@@ -18,19 +18,19 @@
   instantly.  The fingerprint holds every ``train.*`` key the method reads, the execution knobs
   ``train.num_threads`` and ``train.precision`` among them, so a changed thread count trains afresh.
 * The epoch rows are also logged with DVCLive into ``--live-dir`` (dvc.yaml: ``reports/dvclive/<M>/<S>``, a
-  git-tracked out; :func:`pipeline.dvc_results.write_live_log`): ``dvc plots show reports/dvclive/<M>/<S>/plots/metrics/val_iou.tsv``
+  git-tracked out; :func:`pipeline.report.dvc_results.write_live_log`): ``dvc plots show reports/dvclive/<M>/<S>/plots/metrics/val_iou.tsv``
   or any DVCLive-aware viewer reads it.  The checkpoint's log.parquet stays the typed artifact the
   report and evaluate read.
 * Exit codes: 0 ok; 2 bad input (one line naming the file or parameter); 1 training diverged
   (non-finite loss; one line, no checkpoint written).
 
 Wiring only: this module opens the artifacts under ``--artifacts``
-(:func:`pipeline.training_inputs.load_inputs`), the
+(:func:`pipeline.training.inputs.load_inputs`), the
 ``--init`` checkpoint (:func:`load_init`) and the resume state
-(:class:`pipeline.checkpointing.FileCheckpointer`), and logs the epoch rows
-(:func:`pipeline.dvc_results.write_live_log`);
-:func:`pipeline.training.train` gets arrays and a checkpointer.  Reference masks (reference.zarr)
-are opened only for :func:`pipeline.training.validation_data` (checkpoint selection).
+(:class:`pipeline.training.checkpointing.FileCheckpointer`), and logs the epoch rows
+(:func:`pipeline.report.dvc_results.write_live_log`);
+:func:`pipeline.training.loop.train` gets arrays and a checkpointer.  Reference masks (reference.zarr)
+are opened only for :func:`pipeline.training.loop.validation_data` (checkpoint selection).
 """
 
 from __future__ import annotations
@@ -45,15 +45,15 @@ import click
 from pipeline import catalog
 from pipeline.artifacts import open_artifact, run_as, write_json
 from pipeline.catalog import ARTIFACTS_DIR, META_FILE
-from pipeline.checkpointing import FileCheckpointer
-from pipeline.device import resolve_device
-from pipeline.dvc_results import write_live_log
-from pipeline.environment import training_runtime
-from pipeline.errors import ArtifactError, InputError, TrainingDiverged
-from pipeline.inference import load_student, save_checkpoint
+from pipeline.training.checkpointing import FileCheckpointer
+from pipeline.runtime.device import resolve_device
+from pipeline.report.dvc_results import write_live_log
+from pipeline.runtime.environment import training_runtime
+from pipeline.runtime.errors import ArtifactError, InputError, TrainingDiverged
+from pipeline.evaluation.inference import load_student, save_checkpoint
 from pipeline.methods import SELECTION_TAU_KEY, SUPERVISED_CEILING, fingerprint_params, get_method
 from pipeline.params import get_path, section
-from pipeline.training_inputs import load_inputs
+from pipeline.training.inputs import load_inputs
 from stages._common import stage_command, stage_context
 
 
@@ -84,7 +84,7 @@ class MethodInputs:
 
 def open_method(params: dict, stage: int, method: str, artifacts: str) -> MethodInputs:
     """Check the method against ``--stage`` and the params, then open what its runs read
-    (:func:`pipeline.training_inputs.load_inputs`)."""
+    (:func:`pipeline.training.inputs.load_inputs`)."""
     cfg = section(params, "train")
     spec = get_method(method)
     if spec.stage != stage:
@@ -99,7 +99,7 @@ def open_method(params: dict, stage: int, method: str, artifacts: str) -> Method
 def train_seed(m: MethodInputs, params: dict, device: str, seed: int, artifacts: str, init: str | None, out: str,
                resume_dir: str, live_dir: str | None = None) -> Path:
     """One (method, seed) run on the opened inputs: its checkpoint, DVCLive log and timings."""
-    from pipeline import training  # torch: imported once the options are checked
+    from pipeline.training import loop as training  # torch: imported once the options are checked
 
     spec, method, inputs = m.spec, m.spec.name, list(m.inputs)
     init_state = None
@@ -143,7 +143,7 @@ PER_SEED_FLAGS = ("--seed", "--init", "--out", "--live-dir")
 def seed_argv(argv: list[str], k: int) -> list[str]:
     """The command line of the ``k``-th seed's run alone: ``argv`` with only the ``k``-th value of each
     per-seed option (:data:`PER_SEED_FLAGS`).  For dvc.yaml's grouped command this is, word for word,
-    the per-seed stage's command (pipeline/dag.py), so the run id each checkpoint records under
+    the per-seed stage's command (pipeline/orchestration/dag.py), so the run id each checkpoint records under
     ``SOURCE_DATE_EPOCH`` -- derived from the command line -- is the one a process of its own records."""
     out, seen, i = [], dict.fromkeys(PER_SEED_FLAGS, 0), 0
     while i < len(argv):

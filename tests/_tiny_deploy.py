@@ -12,15 +12,15 @@ import pandas as pd
 import torch
 from click.testing import CliRunner
 
-from pipeline import deploy
+from pipeline.deploy.mask_path import onnx_unavailable_reason
 from pipeline.artifacts import make_meta, write_parquet, write_zarr
-from pipeline.inference import save_checkpoint
+from pipeline.evaluation.inference import save_checkpoint
 from pipeline.model import TinyUNet
 
 REPO = Path(__file__).resolve().parent.parent
 PARAMS = str(REPO / "params.yaml")
 RES = 32
-HAS_ONNX = deploy.onnx_unavailable_reason() is None
+HAS_ONNX = onnx_unavailable_reason() is None
 
 
 def tiny_model(seed: int = 0, geometry: bool = False) -> TinyUNet:

@@ -4,7 +4,7 @@ test modules (imported as ``tests._tiny_eval``; see tests/conftest.py for the fo
 ``build_tiny_artifacts`` writes every input artifact these stages (and the report) read -- a small
 manifest with train/val and two test groups, 32x32 images with one bright shape each, reference
 masks, a six-prompt teacher, consensus, geometry, gates -- and random TinyUNet checkpoints saved
-with ``pipeline.inference.save_checkpoint``.  No other helper's stage is run.
+with ``pipeline.evaluation.inference.save_checkpoint``.  No other helper's stage is run.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def build_tiny_artifacts(root: Path, methods=("plain", "geodistill"), seeds=(1, 
     """Write a complete tiny artifacts directory under ``root`` and return it."""
     import torch
 
-    from pipeline.inference import save_checkpoint
+    from pipeline.evaluation.inference import save_checkpoint
     from pipeline.methods import METHODS
     from pipeline.model import TinyUNet
 

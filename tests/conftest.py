@@ -170,7 +170,7 @@ def tiny(tmp_path_factory) -> Path:
 def stage1_state(tiny) -> dict:
     """The mask-path state of a one-epoch Stage-I ``plain`` run on ``tiny`` (seed 42): the warm start
     of the Stage-II methods."""
-    from pipeline import training
+    from pipeline.training import loop as training
     from pipeline.methods import get_method
     from tests._tiny_train import load_arrays, tiny_cfg
 
@@ -199,7 +199,7 @@ def ckpts(tmp_path_factory) -> dict[str, Path]:
     import pandas as pd
 
     from pipeline.artifacts import make_meta
-    from pipeline.inference import save_checkpoint
+    from pipeline.evaluation.inference import save_checkpoint
     from tests._tiny_deploy import RES, tiny_model
 
     root = tmp_path_factory.mktemp("ckpts")

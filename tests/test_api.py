@@ -84,7 +84,7 @@ def test_predict_a_path_equals_the_array(seg, tmp_path):
 
 
 def test_segmenter_errors_are_input_errors(seg, tmp_path):
-    from pipeline.errors import InputError
+    from pipeline.runtime.errors import InputError
 
     with pytest.raises(InputError, match="not found"):
         pipeline.Segmenter.from_bundle(tmp_path / "nope")
@@ -127,7 +127,7 @@ def test_distill_project_has_the_plot_template_its_dvc_yaml_names(tmp_path):
     """dvc.yaml's plots name .dvc/plots/<template>.json: a distill project without it fails `dvc plots show`."""
     import yaml
 
-    from pipeline.offline_plots import template_path, template_text
+    from pipeline.report.offline_plots import template_path, template_text
 
     images, masks = make_image_folder(tmp_path / "data", n=4)
     sam3 = checkpoint_folder(tmp_path / "sam3")

@@ -96,7 +96,7 @@ def test_segmenter_predict_takes_one_image_or_a_list(tmp_path):
 
 
 def test_command_names_use_hyphens_and_old_spellings_still_work():
-    from pipeline.dag import stage_modules
+    from pipeline.orchestration.dag import stage_modules
     from pipeline.cli.main import ALIASES, COMMANDS
 
     listed = cli("--help").output

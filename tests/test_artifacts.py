@@ -16,7 +16,7 @@ import pytest
 import pipeline
 from pipeline.artifacts import (ZarrWriter, artifact_dir, fingerprint, make_meta, open_artifact,
                                 write_parquet, write_zarr)
-from pipeline.errors import ArtifactError, InputError
+from pipeline.runtime.errors import ArtifactError, InputError
 
 
 def _meta(schema="consensus", params=None, inputs=()):

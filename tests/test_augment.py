@@ -148,7 +148,7 @@ def test_only_the_strong_recipe_augments_and_the_others_keep_their_values():
 
 
 def test_wsd_schedule_is_flat_then_decays_linearly_to_zero():
-    from pipeline.training import _lr_lambda, decay_steps
+    from pipeline.training.loop import _lr_lambda, decay_steps
 
     f = _lr_lambda("wsd", 100, 10, decay_steps(100, 0.2))
     assert f(0) == pytest.approx(0.1) and f(9) == 1.0 and f(50) == 1.0 and f(80) == 1.0
@@ -161,7 +161,7 @@ def test_wsd_schedule_is_flat_then_decays_linearly_to_zero():
 def test_augmented_training_is_seeded_and_differs_from_the_plain_batches(tiny):
     import torch
 
-    from pipeline import training
+    from pipeline.training import loop as training
     from pipeline.methods import get_method
     from tests._tiny_train import assert_same_state, clone_state, load_arrays, tiny_cfg
 

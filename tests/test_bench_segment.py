@@ -7,7 +7,7 @@ import cv2
 import pytest
 
 from benchmarks import bench_segment as B
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 
 
 @pytest.fixture(autouse=True)

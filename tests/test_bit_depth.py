@@ -16,7 +16,7 @@ from pipeline.datasets import loading
 from pipeline.datasets.build import iter_arrays
 from pipeline.datasets.manifest import DatasetSpec
 from pipeline.datasets.params import fingerprint_params
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.params import PAPER, validate_section
 
 

@@ -7,8 +7,8 @@ import yaml
 from click.testing import CliRunner
 
 import pipeline
-from pipeline import budget
-from pipeline.errors import InputError
+from pipeline.training import budget
+from pipeline.runtime.errors import InputError
 from pipeline.profiles import load_profile
 from tests._tiny_teacher import checkpoint_folder, make_image_folder
 

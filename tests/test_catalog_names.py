@@ -17,17 +17,17 @@ from pathlib import Path, PurePosixPath
 import pytest
 
 from pipeline import catalog
-from pipeline.codeversion import ROOT
-from pipeline.engine_table import ENGINE_CHOICES, ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES
+from pipeline.runtime.codeversion import ROOT
+from pipeline.deploy.engine_table import ENGINE_CHOICES, ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES
 
 #: the module that owns the file names
 OWNERS = ("pipeline/catalog.py",)
 
 #: (file, string) -> why that literal is not a catalogue lookup
 ALLOWED = {
-    ("pipeline/artifacts.py", ".parquet"): "open_artifact dispatches on the file format's suffix",
-    ("pipeline/artifacts.py", ".zarr"): "open_artifact dispatches on the file format's suffix",
-    ("pipeline/training.py", "/anchor.zarr"): "a scratch spill file in a temporary folder, not an artifact",
+    ("pipeline/artifacts/__init__.py", ".parquet"): "open_artifact dispatches on the file format's suffix",
+    ("pipeline/artifacts/__init__.py", ".zarr"): "open_artifact dispatches on the file format's suffix",
+    ("pipeline/training/loop.py", "/anchor.zarr"): "a scratch spill file in a temporary folder, not an artifact",
     ("benchmarks/bench_memory.py", ".zarr"): "the memory benchmark's own scratch arrays, not artifacts",
     ("pipeline/teachers/imported.py", "scores.parquet"): "the imported teacher's input layout (files a user brings)",
     ("pipeline/teachers/imported.py", ".parquet"): "the imported teacher's scores file: Parquet or CSV by suffix",

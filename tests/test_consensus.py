@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from pipeline.artifacts import make_meta, open_artifact, write_zarr
 from pipeline.consensus import Consensus, vote, vote_batch
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 
 PARAMS = Path(__file__).resolve().parent.parent / "params.yaml"
 PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",

@@ -10,7 +10,7 @@ import tomllib
 
 import pytest
 
-from pipeline.progress import library_bars_off, progress, quiet_bars
+from pipeline.runtime.progress import library_bars_off, progress, quiet_bars
 from tests._tiny_teacher import FAST, REPO, cli, make_image_folder
 
 N = 4
@@ -102,8 +102,8 @@ def test_segment_and_distill_take_quiet_too(tmp_path, console, monkeypatch):
     import numpy as np
     from click.testing import CliRunner
 
-    from pipeline.progress import QUIET_ENV
-    from pipeline.standalone import _env
+    from pipeline.runtime.progress import QUIET_ENV
+    from pipeline.orchestration.standalone import _env
     from pipeline.cli.main import main
     from tests._tiny_deploy import make_checkpoint
 

@@ -11,15 +11,14 @@ import pytest
 import torch
 
 from pipeline.artifacts import open_artifact, write_zarr
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.methods import (METHODS, SUPERVISED_CEILING, Method, check_reference_boundary, gain_treatments,
                               get_method, param_keys, resolve_plan)
 from tests._tiny_train import build_tiny_artifacts, load_arrays, tiny_cfg, train_cli, train_params_file
 
 
 def _train(tiny, name, cfg, init_state=None, art=None):
-    from pipeline import training
-
+    from pipeline.training import loop as training
     data, val = load_arrays(art or tiny, name, cfg)
     return training.train(get_method(name), cfg, data, val, 42, init_state=init_state,
                           checkpointer=training.NoCheckpointer(), show_progress=False)
@@ -67,8 +66,8 @@ def test_continuation_equals_geodistill_without_geometry_weights(tiny, stage1_st
 
 # ---- 2b: the supervised ceiling and the reference-mask boundary -----------------------------------
 def test_only_the_ceiling_may_train_on_reference_masks(tiny):
-    from pipeline import training
-    from pipeline.supervised import ceiling_training_data, require_supervised_ceiling
+    from pipeline.training import loop as training
+    from pipeline.training.supervised import ceiling_training_data, require_supervised_ceiling
 
     ceiling = get_method(SUPERVISED_CEILING)
     assert not ceiling.annotation_free and [m for m in METHODS if not METHODS[m].annotation_free] == [SUPERVISED_CEILING]
@@ -83,7 +82,7 @@ def test_only_the_ceiling_may_train_on_reference_masks(tiny):
     with pytest.raises(ValueError, match="reference masks enter a loss only"):
         ceiling_training_data(get_method("plain"), inputs, reference)
     # and the pseudo-target path refuses the ceiling
-    with pytest.raises(ValueError, match="pipeline.supervised"):
+    with pytest.raises(ValueError, match="pipeline.training.supervised"):
         training.training_data(ceiling, tiny_cfg(), inputs)
     # the ceiling's targets ARE the training split's reference masks (and nothing of the teacher)
     data = ceiling_training_data(ceiling, inputs, reference)
@@ -141,8 +140,8 @@ def test_ceiling_needs_the_explicit_flag(tiny, tmp_path):
 
 # ---- item 3: per-epoch validation IoU at 0.5 and at the calibrated tau ----------------------------
 def test_log_has_val_iou_at_half_and_at_the_epoch_calibrated_tau(tiny):
-    from pipeline import training
-    from pipeline.inference import predict_probs
+    from pipeline.training import loop as training
+    from pipeline.evaluation.inference import predict_probs
     from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold
 
     cfg = tiny_cfg(epochs_stage1=1)

@@ -15,10 +15,10 @@ from click.testing import CliRunner
 from pipeline import catalog
 from pipeline.artifacts import make_meta, open_artifact, write_parquet
 from pipeline.augment import recompute_geometry
-from pipeline.dag import optional_stages_on, render_dvc_yaml
+from pipeline.orchestration.dag import optional_stages_on, render_dvc_yaml
 from pipeline.labeling.formats import rle_encode
 from pipeline.methods import HUMAN_TARGETS_LABEL, get_method, run_annotation_free, run_label
-from pipeline.training_inputs import load_inputs
+from pipeline.training.inputs import load_inputs
 from stages.corrections import main as corrections_main
 from tests._tiny_train import REPO, tiny_cfg
 

@@ -10,7 +10,7 @@ import yaml
 from pipeline.datasets import adapters, build
 from pipeline.datasets.loading import DecodeCache
 from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec, spacecraft_split_violations
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 
 
 def _img(path, h=24, w=24, value=90):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.datasets import loading as L
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 
 
 def _write(path, arr):

@@ -12,12 +12,18 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from pipeline import deploy
+from pipeline.deploy.benchmark import Variant, interleaved_times
+
+from pipeline.deploy.bundle import INT8_FILE, file_sha256
+
+from pipeline.deploy.mask_path import ONNX_INPUT, ParityError, compare_logits, export_onnx, export_torchscript, load_torchscript, ort_session, parity_inputs, require_parity, torch_logits
+
+from pipeline.deploy.quantize import calibration_rows, int8_agreement, quantize_onnx_int8
 from pipeline.deploy import benchmark as bench
 from pipeline.deploy import quantize
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.artifacts import open_artifact
-from pipeline.inference import load_student
+from pipeline.evaluation.inference import load_student
 from tests._tiny_deploy import (HAS_ONNX, PARAMS, RES, make_artifacts, make_checkpoint, make_thresholds, run_export,
                                 tiny_model)
 
@@ -29,22 +35,22 @@ def quiet(monkeypatch):
 
 def test_compare_logits_detects_drift_and_mask_flips():
     ref = np.array([[-2.0, -0.5, 0.5, 2.0]])
-    same = deploy.compare_logits(ref, ref + 1e-7, tau=0.5, atol=1e-4)
+    same = compare_logits(ref, ref + 1e-7, tau=0.5, atol=1e-4)
     assert same["passed"] and same["masks_identical"] and same["mask_pixels_differ"] == 0
     flipped = ref.copy()
     flipped[0, 1] = 0.6  # across logit(0.5) = 0
-    bad = deploy.compare_logits(ref, flipped, tau=0.5, atol=1e-4)
+    bad = compare_logits(ref, flipped, tau=0.5, atol=1e-4)
     assert not bad["passed"] and not bad["masks_identical"] and bad["mask_pixels_differ"] == 1
     assert bad["max_abs_diff"] == pytest.approx(1.1)
     # a drift that flips nothing still fails the logit tolerance
-    drift = deploy.compare_logits(ref, ref + 0.01, tau=0.5, atol=1e-4)
+    drift = compare_logits(ref, ref + 0.01, tau=0.5, atol=1e-4)
     assert not drift["passed"] and drift["masks_identical"]
     # the threshold is logit(tau): at tau = 0.9 (logit 2.197) a shift of 0.3 flips the pixel at 2.0
-    shifted = deploy.compare_logits(ref, ref + 0.3, tau=0.9, atol=1.0)
+    shifted = compare_logits(ref, ref + 0.3, tau=0.9, atol=1.0)
     assert shifted["passed"] and shifted["mask_pixels_differ"] == 1
-    assert not deploy.compare_logits(ref, np.full_like(ref, np.nan), tau=0.5, atol=1.0)["passed"]
-    with pytest.raises(deploy.ParityError):
-        deploy.require_parity({"onnx": bad})
+    assert not compare_logits(ref, np.full_like(ref, np.nan), tau=0.5, atol=1.0)["passed"]
+    with pytest.raises(ParityError):
+        require_parity({"onnx": bad})
 
 
 # ---- export ---------------------------------------------------------------------------------------
@@ -75,7 +81,7 @@ def test_export_bundle_parity_and_tau_from_thresholds(tmp_path):
         assert par["onnx"]["passed"] and par["onnx"]["masks_identical"] and par["onnx"]["max_abs_diff"] <= 1e-4
         assert (tmp_path / "deploy" / "model.onnx").exists() and info["opset"] == 17
     for name, sha in info["files"].items():
-        assert deploy.file_sha256(tmp_path / "deploy" / name) == sha
+        assert file_sha256(tmp_path / "deploy" / name) == sha
 
 
 def test_exported_models_reproduce_pytorch_on_new_sizes_and_batches(tmp_path):
@@ -86,15 +92,15 @@ def test_exported_models_reproduce_pytorch_on_new_sizes_and_batches(tmp_path):
     x = torch.rand(3, 3, 24, 40, generator=torch.Generator().manual_seed(3))
     with torch.no_grad():
         ref = model(x).numpy()
-    ts = deploy.load_torchscript(tmp_path / "deploy" / "model.ts")
+    ts = load_torchscript(tmp_path / "deploy" / "model.ts")
     with torch.no_grad():
         got = ts(x).numpy()
     assert got.shape == (3, 1, 24, 40)
     np.testing.assert_allclose(got, ref, atol=1e-5)
     assert np.array_equal(got >= 0, ref >= 0)
     if HAS_ONNX:
-        sess = deploy.ort_session(tmp_path / "deploy" / "model.onnx")
-        got = sess.run(None, {deploy.ONNX_INPUT: x.numpy()})[0]
+        sess = ort_session(tmp_path / "deploy" / "model.onnx")
+        got = sess.run(None, {ONNX_INPUT: x.numpy()})[0]
         np.testing.assert_allclose(got, ref, atol=1e-4)
         assert np.array_equal(got >= 0, ref >= 0)
 
@@ -109,7 +115,7 @@ def test_export_falls_back_to_fixed_tau_and_refuses_bad_input(tmp_path):
     assert info["tau"] == 0.45 and info["tau_source"].startswith("calibrate.fixed_tau")
     assert not (tmp_path / "deploy" / "model.onnx").exists() and "onnx" not in info["parity"]
     assert info["int8"] is None and "int8" not in info["parity"] and info["int8_note"]
-    assert not (tmp_path / "deploy" / deploy.INT8_FILE).exists() and "int8 model skipped" in r.output
+    assert not (tmp_path / "deploy" / INT8_FILE).exists() and "int8 model skipped" in r.output
     # missing checkpoint, a directory that is not a checkpoint, bad tau: exit 2 with one line, nothing written
     r = run_export(tmp_path / "nope", tmp_path / "d2")
     assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1 and "nope" in r.output
@@ -124,30 +130,30 @@ def test_export_falls_back_to_fixed_tau_and_refuses_bad_input(tmp_path):
 
 def test_calibration_rows_are_training_rows_evenly_spaced():
     splits = np.array(["val", "train", "test", "train", "train", "val", "train", "train"])
-    assert deploy.calibration_rows(splits, 10).tolist() == [1, 3, 4, 6, 7]
-    rows = deploy.calibration_rows(splits, 3)
+    assert calibration_rows(splits, 10).tolist() == [1, 3, 4, 6, 7]
+    rows = calibration_rows(splits, 3)
     assert rows.tolist() == [1, 4, 7] and all(splits[rows] == "train")
-    assert deploy.calibration_rows(np.array(["val", "test"]), 4).size == 0
+    assert calibration_rows(np.array(["val", "test"]), 4).size == 0
 
 
 def test_int8_agreement_gates_on_per_image_mask_iou():
     ref = np.array([[-3.0, -0.2, 0.2, 3.0]] * 25)            # 25 images of 4 pixels, tau = 0.5 -> logit 0
     close = ref + 0.05                                         # no pixel crosses 0
-    rep = deploy.int8_agreement(ref, close, 0.5, 0.99)
+    rep = int8_agreement(ref, close, 0.5, 0.99)
     assert rep["passed"] and rep["mask_iou_mean"] == 1.0 and rep["mask_agreement"] == 1.0
     assert rep["max_abs_diff"] == pytest.approx(0.05)
     flipped = close.copy()
     flipped[:2, 1] = 0.1                                       # 2 images gain a pixel: IoU 2/3 each
-    rep = deploy.int8_agreement(ref, flipped, 0.5, 0.99)
+    rep = int8_agreement(ref, flipped, 0.5, 0.99)
     assert rep["mask_pixels_differ"] == 2 and rep["mask_agreement"] == pytest.approx(0.98)
     assert rep["mask_iou_mean"] == pytest.approx((23 + 2 * 2 / 3) / 25) and rep["mask_iou_min"] == pytest.approx(2 / 3)
-    assert not rep["passed"] and deploy.int8_agreement(ref, flipped, 0.5, 0.97)["passed"]
+    assert not rep["passed"] and int8_agreement(ref, flipped, 0.5, 0.97)["passed"]
     assert "deploy.int8_min_mask_iou = 0.99" in quantize.int8_miss(rep, "avx2") and "fp32 only" in quantize.int8_miss(rep, "avx2")
-    assert not deploy.int8_agreement(ref, np.full_like(ref, np.nan), 0.5, 0.0)["passed"]
+    assert not int8_agreement(ref, np.full_like(ref, np.nan), 0.5, 0.0)["passed"]
     # a small object that int8 loses: 99.9 % of the pixels agree, the mask does not
     small = np.full((1, 1, 40, 25), -4.0)
     small[0, 0, 7, 3] = 4.0
-    lost = deploy.int8_agreement(small, np.full_like(small, -4.0), 0.5, 0.9)
+    lost = int8_agreement(small, np.full_like(small, -4.0), 0.5, 0.9)
     assert lost["mask_agreement"] == pytest.approx(0.999) and lost["mask_iou_mean"] == 0.0 and not lost["passed"]
 
 
@@ -159,9 +165,9 @@ def test_export_writes_int8_model_calibrated_on_training_images(tmp_path):
                    "--set", "deploy.int8_calibration_images=3")
     assert r.exit_code == 0, r.output
     info = json.loads((tmp_path / "deploy" / "deploy.json").read_text())
-    q = tmp_path / "deploy" / deploy.INT8_FILE
-    assert q.exists() and info["int8"]["file"] == deploy.INT8_FILE and info["int8_note"] is None
-    assert info["int8"]["calibration_images"] == 3 and deploy.file_sha256(q) == info["files"][deploy.INT8_FILE]
+    q = tmp_path / "deploy" / INT8_FILE
+    assert q.exists() and info["int8"]["file"] == INT8_FILE and info["int8_note"] is None
+    assert info["int8"]["calibration_images"] == 3 and file_sha256(q) == info["files"][INT8_FILE]
     import onnx
 
     assert "QuantizeLinear" in {n.op_type for n in onnx.load(str(q)).graph.node}
@@ -169,16 +175,16 @@ def test_export_writes_int8_model_calibrated_on_training_images(tmp_path):
     # bundle's lineage names manifest + images but never the reference masks
     bundle = open_artifact(tmp_path / "deploy", "deploy")
     assert {i["schema"] for i in bundle.meta.inputs} == {"checkpoint", "manifest", "images"}
-    rows = deploy.calibration_rows(open_artifact(art / "manifest.parquet").df["split"].to_numpy(), 3)
+    rows = calibration_rows(open_artifact(art / "manifest.parquet").df["split"].to_numpy(), 3)
     assert rows.tolist() == [0, 4, 6]
     # the reported parity, recomputed independently on those images
-    from pipeline.inference import images_to_tensor
+    from pipeline.evaluation.inference import images_to_tensor
 
     x = images_to_tensor(open_artifact(art / "images.zarr").numpy("image")[rows])
     model, _ = load_student(ckpt)
     with torch.no_grad():
         ref = model(x).numpy()
-    got = deploy.ort_session(q).run(None, {deploy.ONNX_INPUT: x.numpy()})[0]
+    got = ort_session(q).run(None, {ONNX_INPUT: x.numpy()})[0]
     par = info["parity"]["int8"]
     assert par["images"] == 3 and par["pixels"] == ref.size
     assert par["max_abs_diff"] == pytest.approx(float(np.abs(got - ref).max()), rel=1e-5, abs=1e-7)
@@ -194,7 +200,7 @@ def test_export_writes_int8_model_calibrated_on_training_images(tmp_path):
     assert r.exit_code == 0, r.output
     info = json.loads((tmp_path / "d2" / "deploy.json").read_text())
     assert info["int8"] is None and "missing" in info["int8_note"] and "nowhere" in r.output
-    assert (tmp_path / "d2" / "model.onnx").exists() and not (tmp_path / "d2" / deploy.INT8_FILE).exists()
+    assert (tmp_path / "d2" / "model.onnx").exists() and not (tmp_path / "d2" / INT8_FILE).exists()
 
 
 @pytest.mark.skipif(not HAS_ONNX, reason="onnx/onnxruntime not installed (optional extra)")
@@ -203,17 +209,17 @@ def test_export_ships_fp32_when_the_int8_masks_stray(tmp_path, monkeypatch):
     which ships fp32 and says why (deploy.json, contract.json, the summary); the training is not wasted."""
     ckpt = make_checkpoint(tmp_path / "ckpt", seed=3)
     art = make_artifacts(tmp_path / "art")
-    real = deploy.quantize_onnx_int8
+    real = quantize_onnx_int8
 
     def quantise_the_wrong_model(onnx_path, out_path, calibration_images, *how):
-        wrong = deploy.export_onnx(tiny_model(seed=11), Path(out_path).with_suffix(".wrong.onnx"), RES, 17)
+        wrong = export_onnx(tiny_model(seed=11), Path(out_path).with_suffix(".wrong.onnx"), RES, 17)
         real(wrong, out_path, calibration_images, *how)
         Path(wrong).unlink()
         return Path(out_path)
 
     monkeypatch.setattr(quantize, "quantize_onnx_int8", quantise_the_wrong_model)
     # tau at the median PyTorch probability on the calibration images: about half the pixels are foreground
-    from pipeline.inference import predict_probs
+    from pipeline.evaluation.inference import predict_probs
 
     model, _ = load_student(ckpt)
     tau = float(np.median(predict_probs(model, open_artifact(art / "images.zarr").numpy("image")[0::2])))
@@ -222,7 +228,7 @@ def test_export_ships_fp32_when_the_int8_masks_stray(tmp_path, monkeypatch):
     assert "deploy.int8_min_mask_iou" in r.output and "fp32 only" in r.output
     info = json.loads((tmp_path / "deploy" / "deploy.json").read_text())
     assert info["int8"] is None and "deploy.int8_min_mask_iou" in info["int8_note"]
-    assert not (tmp_path / "deploy" / deploy.INT8_FILE).exists() and (tmp_path / "deploy" / "model.onnx").exists()
+    assert not (tmp_path / "deploy" / INT8_FILE).exists() and (tmp_path / "deploy" / "model.onnx").exists()
     contract = json.loads((tmp_path / "deploy" / "contract.json").read_text())
     assert contract["int8"] == {"model": None, "why": info["int8_note"]}
     shutil.rmtree(tmp_path / "deploy")
@@ -237,16 +243,16 @@ def test_export_ships_fp32_when_the_int8_masks_stray(tmp_path, monkeypatch):
 @pytest.mark.skipif(not HAS_ONNX, reason="onnx/onnxruntime not installed (optional extra)")
 def test_int8_quantisation_keeps_masks_close(tmp_path):
     model = tiny_model(2)
-    onnx_path = deploy.export_onnx(model, tmp_path / "m.onnx", RES, 17)
-    calib = (deploy.parity_inputs(RES, n=4, seed=5).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
-    q = deploy.quantize_onnx_int8(onnx_path, tmp_path / "q.onnx", calib)
+    onnx_path = export_onnx(model, tmp_path / "m.onnx", RES, 17)
+    calib = (parity_inputs(RES, n=4, seed=5).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    q = quantize_onnx_int8(onnx_path, tmp_path / "q.onnx", calib)
     import onnx
 
     ops = {n.op_type for n in onnx.load(str(q)).graph.node}
     assert "QuantizeLinear" in ops and "DequantizeLinear" in ops
-    x = deploy.parity_inputs(RES, n=2, seed=9)
-    ref = deploy.torch_logits(model, x)
-    got = deploy.ort_session(q).run(None, {deploy.ONNX_INPUT: x.numpy()})[0]
+    x = parity_inputs(RES, n=2, seed=9)
+    ref = torch_logits(model, x)
+    got = ort_session(q).run(None, {ONNX_INPUT: x.numpy()})[0]
     # int8 is an approximation: logits track fp32 closely relative to their spread
     assert np.corrcoef(ref.ravel(), got.ravel())[0, 1] > 0.98
     # the image enters exactly: the input's quantiser is pinned to scale 1/255, zero point 0, so every
@@ -255,7 +261,7 @@ def test_int8_quantisation_keeps_masks_close(tmp_path):
 
     graph = onnx.load(str(q)).graph
     init = {t.name: numpy_helper.to_array(t) for t in graph.initializer}
-    quant_in = [n for n in graph.node if n.op_type == "QuantizeLinear" and n.input[0] == deploy.ONNX_INPUT]
+    quant_in = [n for n in graph.node if n.op_type == "QuantizeLinear" and n.input[0] == ONNX_INPUT]
     assert len(quant_in) == 1
     assert init[quant_in[0].input[1]] == np.float32(1 / 255) and init[quant_in[0].input[2]] == 0
     # shapes are read off the integer tensors, so no dequantised feature map has a Shape consumer
@@ -263,14 +269,14 @@ def test_int8_quantisation_keeps_masks_close(tmp_path):
     shape_inputs = [producer.get(n.input[0]) for n in graph.node if n.op_type == "Shape"]
     assert "QuantizeLinear" in shape_inputs and "DequantizeLinear" not in shape_inputs
     # calibration is deterministic: the same images give the same file, for both range rules
-    again = deploy.quantize_onnx_int8(onnx_path, tmp_path / "q2.onnx", calib)
-    assert deploy.file_sha256(again) == deploy.file_sha256(q)
-    minmax = deploy.quantize_onnx_int8(onnx_path, tmp_path / "q3.onnx", calib, "minmax")
-    assert deploy.file_sha256(minmax) != deploy.file_sha256(q)
-    assert deploy.file_sha256(deploy.quantize_onnx_int8(onnx_path, tmp_path / "q4.onnx", calib, "minmax")) == \
-        deploy.file_sha256(minmax)
+    again = quantize_onnx_int8(onnx_path, tmp_path / "q2.onnx", calib)
+    assert file_sha256(again) == file_sha256(q)
+    minmax = quantize_onnx_int8(onnx_path, tmp_path / "q3.onnx", calib, "minmax")
+    assert file_sha256(minmax) != file_sha256(q)
+    assert file_sha256(quantize_onnx_int8(onnx_path, tmp_path / "q4.onnx", calib, "minmax")) == \
+        file_sha256(minmax)
     with pytest.raises(InputError, match="int8_calibration"):
-        deploy.quantize_onnx_int8(onnx_path, tmp_path / "q5.onnx", calib, "entropy")
+        quantize_onnx_int8(onnx_path, tmp_path / "q5.onnx", calib, "entropy")
 
 
 @pytest.mark.skipif(not HAS_ONNX, reason="onnx/onnxruntime not installed (optional extra)")
@@ -280,9 +286,9 @@ def test_int8_calibration_runs_in_bounded_passes(tmp_path, monkeypatch):
     from onnxruntime.quantization import calibrate
 
     model = tiny_model(2)
-    onnx_path = deploy.export_onnx(model, tmp_path / "m.onnx", RES, 17)
-    calib = (deploy.parity_inputs(RES, n=5, seed=5).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
-    whole = deploy.quantize_onnx_int8(onnx_path, tmp_path / "whole.onnx", calib, "minmax")
+    onnx_path = export_onnx(model, tmp_path / "m.onnx", RES, 17)
+    calib = (parity_inputs(RES, n=5, seed=5).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    whole = quantize_onnx_int8(onnx_path, tmp_path / "whole.onnx", calib, "minmax")
     passes = []
     real = calibrate.create_calibrator
 
@@ -305,9 +311,9 @@ def test_int8_calibration_runs_in_bounded_passes(tmp_path, monkeypatch):
         return cal
     monkeypatch.setattr(calibrate, "create_calibrator", counting_calibrator)
     monkeypatch.setattr(quantize, "CALIBRATION_CHUNK", 2)
-    split = deploy.quantize_onnx_int8(onnx_path, tmp_path / "split.onnx", calib, "minmax")
+    split = quantize_onnx_int8(onnx_path, tmp_path / "split.onnx", calib, "minmax")
     assert passes == [2, 2, 1]
-    assert deploy.file_sha256(split) == deploy.file_sha256(whole)
+    assert file_sha256(split) == file_sha256(whole)
 
 
 @pytest.mark.parametrize("size", [(32, 32), (37, 50), (9, 8)])
@@ -328,13 +334,13 @@ def test_export_module_computes_the_trained_function_at_any_size(size):
 @pytest.mark.skipif(not HAS_ONNX, reason="onnx/onnxruntime not installed (optional extra)")
 def test_exported_onnx_and_torchscript_run_at_sizes_other_than_the_traced_one(tmp_path):
     model = tiny_model(4)
-    sess = deploy.ort_session(deploy.export_onnx(model, tmp_path / "m.onnx", RES, 17))
-    ts = deploy.load_torchscript(deploy.export_torchscript(model, tmp_path / "m.ts", RES))
+    sess = ort_session(export_onnx(model, tmp_path / "m.onnx", RES, 17))
+    ts = load_torchscript(export_torchscript(model, tmp_path / "m.ts", RES))
     for size in [(37, 50), (9, 8)]:
         x = torch.rand(2, 3, *size, generator=torch.Generator().manual_seed(2))
-        ref = deploy.torch_logits(model, x)
-        assert np.abs(sess.run(None, {deploy.ONNX_INPUT: x.numpy()})[0] - ref).max() < 1e-4
-        assert np.abs(deploy.torch_logits(ts, x) - ref).max() < 1e-4
+        ref = torch_logits(model, x)
+        assert np.abs(sess.run(None, {ONNX_INPUT: x.numpy()})[0] - ref).max() < 1e-4
+        assert np.abs(torch_logits(ts, x) - ref).max() < 1e-4
 
 
 def test_torchscript_file_names_no_folder_of_this_machine(tmp_path):
@@ -345,7 +351,7 @@ def test_torchscript_file_names_no_folder_of_this_machine(tmp_path):
     import pipeline
 
     model = tiny_model(4)
-    path = deploy.export_torchscript(model, tmp_path / "m.ts", RES)
+    path = export_torchscript(model, tmp_path / "m.ts", RES)
     with zipfile.ZipFile(path) as z:
         names = z.namelist()
         blob = b"".join(z.read(n) for n in names)
@@ -354,13 +360,13 @@ def test_torchscript_file_names_no_folder_of_this_machine(tmp_path):
         assert str(folder).encode() not in blob, folder
     assert {n.split("/", 1)[1] for n in names} >= {"data.pkl", "version", "byteorder", ".data/serialization_id"}
     x = torch.rand(2, 3, RES, RES, generator=torch.Generator().manual_seed(3))
-    assert np.abs(deploy.torch_logits(deploy.load_torchscript(path), x) - deploy.torch_logits(model, x)).max() < 1e-4
+    assert np.abs(torch_logits(load_torchscript(path), x) - torch_logits(model, x)).max() < 1e-4
 
 
 def test_interleaved_times_measures_variants_round_robin():
     calls = []
-    variants = [deploy.Variant(n, n, lambda x, n=n: calls.append(n), "cpu") for n in ("a", "b")]
-    times = deploy.interleaved_times(variants, None, iters=5, block=2)
+    variants = [Variant(n, n, lambda x, n=n: calls.append(n), "cpu") for n in ("a", "b")]
+    times = interleaved_times(variants, None, iters=5, block=2)
     assert {k: len(v) for k, v in times.items()} == {"a": 5, "b": 5}
     # rounds: 1 untimed + 2 timed calls each, alternating; the last round tops up to 5
     assert calls == ["a"] * 3 + ["b"] * 3 + ["a"] * 3 + ["b"] * 3 + ["a"] * 2 + ["b"] * 2
@@ -384,9 +390,9 @@ def test_benchmark_tiny_model_writes_json_and_parquet(tmp_path, monkeypatch):
             "--set", "deploy.benchmark_batches=[1,2]", "--set", f"deploy.benchmark_variants={variants}",
             "--set", "deploy.int8_calibration_images=2"]
     monkeypatch.setattr(bench, "SLOW_FACTOR", 1e9)  # time every variant fully (the probe rule: below)
-    import pipeline.device  # a CPU with native bf16, whatever this host's (without, bf16 is skipped: test_fast_paths)
+    import pipeline.runtime.device  # a CPU with native bf16, whatever this host's (without, bf16 is skipped: test_fast_paths)
 
-    monkeypatch.setattr(pipeline.device, "cpu_flags", lambda: frozenset({"avx512_bf16"}))
+    monkeypatch.setattr(pipeline.runtime.device, "cpu_flags", lambda: frozenset({"avx512_bf16"}))
     r = CliRunner().invoke(bench_main, args)
     assert r.exit_code == 0, r.output
     res = json.loads((tmp_path / "eff.json").read_text())
@@ -397,7 +403,7 @@ def test_benchmark_tiny_model_writes_json_and_parquet(tmp_path, monkeypatch):
     assert {n for n, v in res["variants"].items() if v["status"] == "ok" and v["probe_ms"] > 0} == expected
     res["variants"] = {n: v for n, v in res["variants"].items() if n in expected}
     if HAS_ONNX:
-        assert res["notes"]["int8_calibration"].startswith(f"deploy bundle's {deploy.INT8_FILE}")
+        assert res["notes"]["int8_calibration"].startswith(f"deploy bundle's {INT8_FILE}")
     assert res["resolution"] == RES and res["n_val"] == 4 and res["baseline"] == "fp32_eager_nchw"
     # the 40 ms target is defined at 384 px: at 32 px it is reported as not judged, never as met
     assert res["target"]["resolution"] == 384 and res["fast_path"]["meets_latency_target"] is None
@@ -415,7 +421,7 @@ def test_benchmark_tiny_model_writes_json_and_parquet(tmp_path, monkeypatch):
     # fp32 variants compute the same masks up to round-off, so their IoU barely moves
     assert abs(res["variants"]["fp32_channels_last"]["iou_delta"]) < 0.02
     # the baseline IoU is the mean Image IoU of [P >= tau] on the val rows, computed independently here
-    from pipeline.inference import predict_probs
+    from pipeline.evaluation.inference import predict_probs
     from pipeline.metrics import image_iou
 
     imgs = open_artifact(art / "images.zarr").numpy("image")[1::2]

@@ -1,4 +1,4 @@
-"""Threshold and calibration diagnostics (issue 17 item 3): the pure functions of pipeline.diagnostics
+"""Threshold and calibration diagnostics (issue 17 item 3): the pure functions of pipeline.evaluation.diagnostics
 against hand-computed values, the per-epoch swing table, the findings stated in words (computed, not
 fixed), and the figure conventions (one colour per method, legends never cut)."""
 
@@ -8,9 +8,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.diagnostics import (area_ratio_curve, expected_calibration_error, median_area_ratio, reliability_bins,
+from pipeline.evaluation.diagnostics import (area_ratio_curve, expected_calibration_error, median_area_ratio, reliability_bins,
                                   target_fractions, target_size_class)
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.report import figures as F
 from pipeline.report.analysis import epoch_swings, fixed_tau_findings
 

@@ -110,8 +110,8 @@ def test_distill_with_validation_masks(folder, distill_with_masks):
     assert len(pd.read_parquet(out / "artifacts" / "metrics.parquet")) > 0
     assert "No validation or test masks" not in (out / "reports" / "distill" / "report.md").read_text()
     # the summary ends with the deployed student's distillation efficiency (the report stage's DVC metrics)
-    # (no ratio over a vote that found almost nothing: pipeline.standalone.MIN_VOTE_IOU)
-    from pipeline.standalone import MIN_VOTE_IOU
+    # (no ratio over a vote that found almost nothing: pipeline.orchestration.standalone.MIN_VOTE_IOU)
+    from pipeline.orchestration.standalone import MIN_VOTE_IOU
 
     eff = json.loads((out / "reports" / "metrics" / "efficiency" / "test" / "geodistill.json").read_text())
     vote = json.loads((out / "reports" / "metrics" / "teacher" / "test.json").read_text())["iou"]

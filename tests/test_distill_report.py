@@ -110,7 +110,7 @@ def test_distill_project_is_a_git_repository_and_repro_prints_no_dvc_push(tmp_pa
     """A new project is a git repository with one commit of distill's files (so `dvc exp` can start),
     listed in distill.json; `dvc repro` there prints neither DVC's "dvc push" line nor `git add` hints."""
     import pipeline
-    from pipeline.standalone import DVC_PUSH_HINT, run_project
+    from pipeline.orchestration.standalone import DVC_PUSH_HINT, run_project
     from tests._tiny_teacher import make_image_folder
 
     images, _ = make_image_folder(tmp_path / "data", n=3, masks=False)
@@ -136,7 +136,7 @@ def test_distill_project_is_a_git_repository_and_repro_prints_no_dvc_push(tmp_pa
 
 def test_distill_project_without_git_is_no_scm(tmp_path, monkeypatch):
     import pipeline
-    from pipeline import standalone
+    from pipeline.orchestration import standalone
     from tests._tiny_teacher import make_image_folder
 
     images, _ = make_image_folder(tmp_path / "data", n=3, masks=False)

@@ -1,7 +1,7 @@
 """DVC-native results (issue 18 item 4): metrics files, plot tables, the DVCLive run log, the offline
 plots page.
 
-Unit tests of pipeline.dvc_results (write_live_log among them) and pipeline.offline_plots; then a
+Unit tests of pipeline.report.dvc_results (write_live_log among them) and pipeline.report.offline_plots; then a
 tiny git + DVC project whose dvc.yaml holds the generated evaluate / analyze_teacher / benchmark
 stages and plots, and whose metrics and plot tables come from the real calibrate, evaluate and
 analyze_teacher commands on tests.test_evaluate's tiny artifacts: ``dvc metrics show`` fits 120
@@ -24,9 +24,8 @@ import pandas as pd
 import pytest
 import yaml
 
-from pipeline import dvc_results as R
-from pipeline import offline_plots as P
-
+from pipeline.report import dvc_results as R
+from pipeline.report import offline_plots as P
 ROOT = Path(__file__).resolve().parent.parent
 CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
 WIDTH = 120
@@ -111,7 +110,7 @@ def test_plot_tables_are_long_with_a_method_column():
 # DVCLive
 # --------------------------------------------------------------------------------------------------
 def test_train_log_written_with_dvclive_byte_identical(tmp_path):
-    from pipeline.dvc_results import write_live_log
+    from pipeline.report.dvc_results import write_live_log
 
     log = pd.DataFrame({"epoch": [1, 2, 3], "stage": 2, "loss": [0.9, 0.5, 0.4], "sdf": np.nan,
                         "val_iou": [0.5, 0.6, 0.7], "lr": 1e-3})
@@ -131,7 +130,7 @@ def test_dvclive_log_works_in_a_git_repo_without_commits_and_touches_no_repo(tmp
     without DVC it would `dvc init` the user's repository.  The stage's log needs neither."""
     if shutil.which("git") is None:
         pytest.skip("git not available")
-    from pipeline.dvc_results import write_live_log
+    from pipeline.report.dvc_results import write_live_log
 
     _git(tmp_path, "init", "-q")
     monkeypatch.chdir(tmp_path)
@@ -145,7 +144,7 @@ def test_dvclive_log_works_in_a_git_repo_without_commits_and_touches_no_repo(tmp
 # --------------------------------------------------------------------------------------------------
 def test_dvc_yaml_results_are_git_tracked_metrics_and_method_plots():
     from pipeline.catalog import PLOT_TEMPLATE
-    from pipeline.dag import dvc_stages
+    from pipeline.orchestration.dag import dvc_stages
 
     stages = dvc_stages()
     declared = {}
@@ -224,7 +223,7 @@ def _stage_results(repo: Path, art: Path, params: Path, deploy_ms: float) -> Non
 def dvc_project(tmp_path_factory):
     if shutil.which("git") is None:
         pytest.skip("git not available")
-    from pipeline.dag import dvc_plots, dvc_stages
+    from pipeline.orchestration.dag import dvc_plots, dvc_stages
     from tests._tiny_eval import calibrated_artifacts, write_params
 
     root = tmp_path_factory.mktemp("dvc_results")

@@ -1,5 +1,5 @@
 """Distillation efficiency: student Image IoU / teacher-vote Image IoU per test group, with a per-seed
-ratio t interval (pipeline/dvc_results.py), in the report's reference-points table and as metrics."""
+ratio t interval (pipeline/report/dvc_results.py), in the report's reference-points table and as metrics."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 import pandas as pd
 import pytest
 
-from pipeline.dvc_results import distillation_efficiency, efficiency_metric_files
+from pipeline.report.dvc_results import distillation_efficiency, efficiency_metric_files
 
 
 def test_efficiency_is_the_ratio_of_the_seed_mean_with_a_per_seed_ratio_t_interval():
@@ -43,7 +43,7 @@ def test_metric_files_hold_every_method_and_group_with_a_vote():
     files = efficiency_metric_files(_summary(), {"KCP": 0.6})
     assert sorted(files) == ["KCP/plain.json", "KCP/supervised_ceiling.json"]  # HJM has no vote here
     assert files["KCP/plain.json"]["efficiency"] == round(0.51 / 0.6, 4)
-    # the ratio only: the interval is the report's, so `dvc metrics show` stays narrow (pipeline.dvc_results)
+    # the ratio only: the interval is the report's, so `dvc metrics show` stays narrow (pipeline.report.dvc_results)
     assert files["KCP/supervised_ceiling.json"] == {"efficiency": round(0.57 / 0.6, 4)}
 
 
@@ -63,7 +63,7 @@ def test_reference_points_table_shows_the_efficiency_of_students_and_ceiling():
 
 
 def test_targets_judge_the_ratio_or_the_interval_and_the_table_says_how_many_groups_meet_them():
-    from pipeline.dvc_results import EFFICIENCY_TARGETS, efficiency_target_met
+    from pipeline.report.dvc_results import EFFICIENCY_TARGETS, efficiency_target_met
     from pipeline.report.tables import reference_points_table
 
     assert efficiency_target_met("plain", 0.96, 0.80) is True        # on the ratio

@@ -17,7 +17,7 @@ import pytest
 from click.testing import CliRunner
 
 from pipeline import catalog
-from pipeline import dvc_results as R
+from pipeline.report import dvc_results as R
 from pipeline.artifacts import write_json
 from pipeline.methods import BASELINE, METHODS, PROPOSED, method_label
 from tests._tiny_eval import build_tiny_artifacts, invoke, run_result_stages, write_params
@@ -78,7 +78,7 @@ def test_without_test_masks_the_efficiency_folder_is_empty_and_stale_files_go(re
 
 
 def test_the_report_stage_declares_the_folder_as_git_tracked_dvc_metrics():
-    from pipeline.dag import dvc_stages
+    from pipeline.orchestration.dag import dvc_stages
 
     spec = catalog.ARTIFACTS["metrics_efficiency"]
     assert spec.stage == "report" and spec.path.startswith("../") and spec.schema is None
@@ -102,7 +102,7 @@ def _summary(groups, methods) -> pd.DataFrame:
 def test_dvc_metrics_show_stays_under_120_characters_with_every_method(tmp_path):
     """Every method of the catalogue in three groups, students and efficiency: one row per file, six
     columns (the efficiency files hold the ratio only, not its interval)."""
-    from pipeline.dag import dvc_stages
+    from pipeline.orchestration.dag import dvc_stages
 
     groups = ("KCP", "CVI", "HJM")
     summary = _summary(groups, tuple(METHODS))
@@ -142,7 +142,7 @@ def _project(out: Path, groups=("test",), export=PROPOSED, efficiency=0.8712) ->
 
 
 def test_efficiency_line_names_the_deployed_students_ratio_and_both_ious(tmp_path):
-    from pipeline.standalone import efficiency_line
+    from pipeline.orchestration.standalone import efficiency_line
 
     line = efficiency_line(_project(tmp_path / "p"))
     assert line == (f"the student's test Image IoU is 0.87 × the teacher vote's Image IoU ({method_label(PROPOSED)}: "
@@ -154,7 +154,7 @@ def test_efficiency_line_names_the_deployed_students_ratio_and_both_ious(tmp_pat
 
 
 def test_no_efficiency_ratio_over_a_vote_that_found_almost_nothing_and_the_line_says_why(tmp_path):
-    from pipeline.standalone import MIN_VOTE_IOU, efficiency_line
+    from pipeline.orchestration.standalone import MIN_VOTE_IOU, efficiency_line
 
     # the issue's case: a student IoU of 0.19 over a vote of 0.004 (47.5 ×) is no ratio to print
     line = efficiency_line(_project(tmp_path / "p", efficiency=47.5))
@@ -165,7 +165,7 @@ def test_no_efficiency_ratio_over_a_vote_that_found_almost_nothing_and_the_line_
 def test_no_efficiency_line_without_masks(tmp_path):
     """No efficiency file (a project without --val-masks writes an empty folder), or none for the
     deployed method: no line."""
-    from pipeline.standalone import efficiency_line
+    from pipeline.orchestration.standalone import efficiency_line
 
     out = _project(tmp_path / "p")
     R.write_metrics_dir(catalog.path("metrics_efficiency", out / catalog.ARTIFACTS_DIR), {})
@@ -194,7 +194,7 @@ def test_distill_quiet_runs_dvc_quiet_and_the_stages_at_warning(tmp_path, monkey
     import io
     import subprocess
 
-    import pipeline.standalone as S
+    import pipeline.orchestration.standalone as S
 
     seen = []
 

@@ -32,7 +32,7 @@ def tiny_run(tiny_demo):
 def test_dag_runs_end_to_end_and_is_a_noop_the_second_time(tiny_run):
     repo, env, first, run = tiny_run
     import pipeline
-    from pipeline.inference import iter_runs
+    from pipeline.evaluation.inference import iter_runs
 
     art = repo / "artifacts"
     for name in ("manifest.parquet", "images.zarr", "reference.zarr", "teacher.zarr", "consensus.zarr",
@@ -59,7 +59,7 @@ def test_every_train_run_and_the_report_record_their_environment(tiny_run):
 
     import pipeline
     from pipeline.artifacts import fingerprint
-    from pipeline.inference import iter_runs
+    from pipeline.evaluation.inference import iter_runs
 
     repo = tiny_run[0]
     records = {}

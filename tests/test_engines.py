@@ -12,11 +12,11 @@ from click.testing import CliRunner
 from pipeline.deploy import benchmark as bench
 from pipeline.deploy.bundle import DEPLOY_JSON
 from pipeline.deploy.engines import ENGINES, MODEL_ENGINES, SEGMENT_ENGINES, Source, unavailable
-from pipeline.engine_table import ENGINE_ALIASES, ENGINE_TABLE, engine_name
-from pipeline.engine_table import ENGINE_CHOICES as SEGMENT_CHOICES
+from pipeline.deploy.engine_table import ENGINE_ALIASES, ENGINE_TABLE, engine_name
+from pipeline.deploy.engine_table import ENGINE_CHOICES as SEGMENT_CHOICES
 from pipeline.deploy.segmenter import load_segmenter, resolve_engine
-from pipeline.errors import InputError
-from pipeline.inference import images_to_tensor
+from pipeline.runtime.errors import InputError
+from pipeline.evaluation.inference import images_to_tensor
 from pipeline.params import BENCHMARK_VARIANTS, load_params
 from tests._tiny_deploy import HAS_ONNX, PARAMS, RES, make_checkpoint, tiny_model
 
@@ -43,7 +43,7 @@ def test_segmenter_and_benchmark_run_the_same_engine_alike(tmp_path):
 
 
 def seg_model(ckpt):
-    from pipeline.inference import load_student
+    from pipeline.evaluation.inference import load_student
 
     return load_student(ckpt)[0]
 
@@ -77,7 +77,7 @@ def test_an_old_engine_name_is_accepted_in_python_params_and_the_benchmark(tmp_p
     model = tiny_model()
     onnx = None
     if HAS_ONNX:
-        from pipeline.deploy.export import export_onnx
+        from pipeline.deploy.mask_path import export_onnx
 
         onnx = export_onnx(model, tmp_path / "m.onnx", RES, 17)
     old, skipped_old = bench.build_variants(model, "cpu", RES, ["onnx"], onnx)

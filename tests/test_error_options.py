@@ -5,7 +5,7 @@ The test walks the messages statically: every call of ``InputError``/``ArtifactE
 ``.fail(...)`` and ``exit(...)``/``SystemExit(...)`` in the project's packages (pyproject's
 ``packages.find``), and collects the options each suggests: the ``--flag``s in its string constants
 and f-string parts (a module-level string constant it names included), and the flags of the
-:class:`pipeline.errors.Option` objects it passes (on the command line they are spelled as flags).
+:class:`pipeline.runtime.errors.Option` objects it passes (on the command line they are spelled as flags).
 
 Who can print a message: the ``geodistill`` commands (the click group of pyproject's console script,
 every subcommand) and the project's own scripts (``python -m pkg.mod`` with their own argparse or
@@ -217,7 +217,7 @@ def script_options(mod: str) -> frozenset[str] | None:
 
 def dag_plumbing() -> frozenset[str]:
     """The flags dvc.yaml's stage commands pass (every optional stage on)."""
-    from pipeline.dag import OPTIONAL_STAGES, render_dvc_yaml
+    from pipeline.orchestration.dag import OPTIONAL_STAGES, render_dvc_yaml
 
     doc = yaml.safe_load(render_dvc_yaml(optional=tuple(OPTIONAL_STAGES)))
     return frozenset(FLAG.findall(str(doc["stages"])))
@@ -245,7 +245,7 @@ def relays_stages(mod: str) -> bool:
 
 def problems() -> list[str]:
     """One line per suggested option that breaks the module docstring's rule."""
-    from pipeline.dag import stage_modules
+    from pipeline.orchestration.dag import stage_modules
 
     commands = geodistill_commands()
     modules = project_modules()

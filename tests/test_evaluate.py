@@ -23,7 +23,7 @@ def calibrated(tmp_path_factory):
 
 
 def test_calibration_picks_the_best_grid_point(calibrated):
-    from pipeline.inference import load_student, predict_probs
+    from pipeline.evaluation.inference import load_student, predict_probs
     from pipeline.metrics import image_iou
     from pipeline.thresholds import threshold_grid
 
@@ -48,7 +48,7 @@ def test_calibration_picks_the_best_grid_point(calibrated):
 
 
 def test_evaluate_end_to_end(calibrated):
-    from pipeline.inference import load_student, predict_probs
+    from pipeline.evaluation.inference import load_student, predict_probs
     from pipeline.metrics import boundary_f1, image_iou
     from stages.evaluate import main as evaluate
 

@@ -1,4 +1,4 @@
-"""The export and segment stages' logic, called directly (pipeline.exporting, pipeline.segmenting): the
+"""The export and segment stages' logic, called directly (pipeline.deploy.export, pipeline.deploy.segmenting): the
 stage scripts only wire options to these functions."""
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ from PIL import Image
 
 from pipeline.artifacts import make_meta, open_artifact
 from pipeline.catalog import bundle_file
-from pipeline.errors import InputError
-from pipeline.exporting import export_lines, is_bundle_dir, plan_export, write_export
+from pipeline.runtime.errors import InputError
+from pipeline.deploy.export import export_lines, is_bundle_dir, plan_export, write_export
 from pipeline.params import load_params
-from pipeline.segmenting import check_options, model_resolution, segment_images
+from pipeline.deploy.segmenting import check_options, model_resolution, segment_images
 from tests._tiny_deploy import PARAMS, RES, make_checkpoint, make_thresholds
 
 
@@ -81,7 +81,7 @@ def test_segment_images_writes_masks_with_the_bundle_tau(exported, tmp_path):
     assert said[1].startswith(f"segment: wrote 2 mask(s) to {tmp_path / 'out'}; per-frame confidence in "
                               "confidence.csv (lowest ") and "ms/image" in said[-1]
     # the frame confidence of each mask: the Segmenter's own score of that image (flight software's "trust it?")
-    from pipeline.deploy import Segmenter
+    from pipeline.deploy.segmenter import Segmenter
 
     rows = list(csv.DictReader(open(tmp_path / "out" / "confidence.csv")))
     seg = Segmenter.from_bundle(root / "deploy", engine="torch")

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline import deploy
+from pipeline.deploy.mask_path import mask_path_model
 from pipeline.deploy import benchmark as bench
 from pipeline.deploy.cuda_engine import FastStudent
 from pipeline.metrics import mask_agreement
 from pipeline.deploy.segmenter import load_segmenter, predict_logits_torch, resolve_engine
-from pipeline.errors import InputError
-from pipeline.inference import images_to_tensor
+from pipeline.runtime.errors import InputError
+from pipeline.evaluation.inference import images_to_tensor
 from tests._tiny_deploy import HAS_ONNX, RES, make_checkpoint, tiny_model
 
 HAS_OPENVINO = __import__("pipeline.deploy.openvino_engine", fromlist=["x"]).openvino_unavailable_reason() is None
@@ -33,7 +33,7 @@ def test_fast_student_cpu_fallback_is_the_torch_engine_bit_for_bit():
     assert fast.precision == "fp32" and not fast.cuda_graphs        # auto on a CPU; graphs are CUDA-only
     images = _images()
     x = images_to_tensor(images)
-    ref_model = deploy.mask_path_model(model).to(memory_format=torch.channels_last)
+    ref_model = mask_path_model(model).to(memory_format=torch.channels_last)
     ref = predict_logits_torch(ref_model, x, torch.device("cpu"))
     np.testing.assert_array_equal(fast.logits(x).numpy(), ref)
     # uint8 in, conversion "on the device": the same logits
@@ -61,7 +61,7 @@ def test_auto_engine_is_cuda_on_a_gpu_and_the_cuda_engine_runs_on_a_cpu(tmp_path
 
 
 def test_device_parity_runs_on_the_cpu_and_reports_identical_masks(tmp_path):
-    from pipeline.deploy.export import check_parity, device_parity, export_torchscript
+    from pipeline.deploy.mask_path import check_parity, device_parity, export_torchscript
 
     model = tiny_model()
     ts = export_torchscript(model, tmp_path / "m.ts", RES)
@@ -84,7 +84,7 @@ def test_mask_agreement_is_mean_per_image_iou():
 @pytest.mark.skipif(not (HAS_OPENVINO and HAS_ONNX), reason="openvino / onnxruntime not installed")
 def test_openvino_runs_the_onnx_files_like_onnxruntime(tmp_path):
     from pipeline.deploy import quantize as q8
-    from pipeline.deploy.export import export_onnx, ort_session
+    from pipeline.deploy.mask_path import export_onnx, ort_session
     from pipeline.deploy.openvino_engine import OpenVinoRunner
 
     model = tiny_model()
@@ -115,7 +115,7 @@ def test_openvino_engine_needs_its_file_or_its_extra(tmp_path, monkeypatch):
         load_segmenter(tmp_path / "deploy", "openvino_int8", "cpu")
     monkeypatch.undo()
     if HAS_OPENVINO and HAS_ONNX:
-        from pipeline.errors import ArtifactError
+        from pipeline.runtime.errors import ArtifactError
 
         with pytest.raises(ArtifactError, match="model.int8.onnx"):
             load_segmenter(tmp_path / "deploy", "openvino_int8", "cpu")
@@ -168,9 +168,9 @@ def _counting_engines(monkeypatch, names):
 def test_a_bf16_variant_on_a_cpu_without_native_bf16_is_never_called(monkeypatch, flags, native):
     """Issue 44: bf16 on a CPU whose flags lack avx512_bf16 and amx_bf16 is decided from the flags -- never
     loaded, never called -- and is in the table as skipped with the reason; with either flag it is timed."""
-    import pipeline.device
+    import pipeline.runtime.device
 
-    monkeypatch.setattr(pipeline.device, "cpu_flags", lambda: frozenset(flags))
+    monkeypatch.setattr(pipeline.runtime.device, "cpu_flags", lambda: frozenset(flags))
     calls = _counting_engines(monkeypatch, ["bf16_autocast", "bf16_channels_last"])
     rows, info = bench.measure_variants(tiny_model(), resolution=RES, variants=list(bench.VARIANTS), warmup=1,
                                         iters=1, batches=[1], slow_factor=1e9)

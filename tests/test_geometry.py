@@ -13,7 +13,7 @@ from scipy import ndimage
 
 from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
 from pipeline.consensus import vote_batch
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.geometry import (GateFactors, area_ratio, area_ratios, distance_maps, foreground_agreement, gate_factors,
                                median_area, pseudo_targets, sdf_target, skeleton_target, valid_ratio)
 

@@ -22,7 +22,7 @@ import ast
 import sys
 from pathlib import Path
 
-from pipeline.codeversion import PROJECT_PACKAGES, ROOT, _module_name, _module_path
+from pipeline.runtime.codeversion import PROJECT_PACKAGES, ROOT, _module_name, _module_path
 
 #: The dependencies a module may import inside a function, and why.
 LAZY = {
@@ -50,23 +50,24 @@ LAZY = {
 #: ending in "/").  A module imports its own layer and those below, never one above.
 LAYERS = (
     ("core", "equations, tables and rules: params, methods, catalogue, DAG text; no artifact I/O",
-     ("pipeline/errors.py", "pipeline/progress.py", "pipeline/reproducibility.py", "pipeline/checkpointing.py",
-      "pipeline/codeversion.py", "pipeline/device.py", "pipeline/model.py", "pipeline/methods.py",
-      "pipeline/engine_table.py", "pipeline/params.py", "pipeline/profiles.py", "pipeline/catalog.py",
+     ("pipeline/runtime/", "pipeline/training/__init__.py", "pipeline/evaluation/__init__.py",
+      "pipeline/orchestration/__init__.py", "pipeline/reproducibility.py", "pipeline/training/checkpointing.py",
+      "pipeline/model.py", "pipeline/methods.py",
+      "pipeline/deploy/engine_table.py", "pipeline/params.py", "pipeline/profiles.py", "pipeline/catalog.py",
       "pipeline/stats.py", "pipeline/metrics.py", "pipeline/losses.py", "pipeline/geometry.py",
-      "pipeline/augment.py", "pipeline/consensus.py", "pipeline/diagnostics.py", "pipeline/dag.py")),
+      "pipeline/augment.py", "pipeline/consensus.py", "pipeline/evaluation/diagnostics.py", "pipeline/orchestration/dag.py")),
     ("artifacts", "typed artifacts and files: Zarr/Parquet I/O, weights, streaming, results, ownership",
-     ("pipeline/__init__.py", "pipeline/artifacts.py", "pipeline/weights.py", "pipeline/streaming.py",
-      "pipeline/offline_plots.py", "pipeline/dvc_results.py", "pipeline/environment.py", "pipeline/ownership.py",
+     ("pipeline/__init__.py", "pipeline/artifacts/", "pipeline/training/streaming.py",
+      "pipeline/report/offline_plots.py", "pipeline/report/dvc_results.py", "pipeline/runtime/environment.py",
       "pipeline/thresholds.py")),  # tau calibration, and the tau candidates read from a thresholds table
     ("stage logic", "each stage's and tool's work, callable and tested without the CLI",
-     ("pipeline/datasets/", "pipeline/prepare.py", "pipeline/teachers/", "pipeline/pseudo_labels.py",
-      "pipeline/training_inputs.py", "pipeline/training.py", "pipeline/budget.py", "pipeline/supervised.py",
-      "pipeline/inference.py",
-      "pipeline/evaluation.py", "pipeline/exporting.py", "pipeline/segmenting.py", "pipeline/deploy/",
+     ("pipeline/datasets/", "pipeline/datasets/prepare.py", "pipeline/teachers/", "pipeline/pseudo_labels.py",
+      "pipeline/training/inputs.py", "pipeline/training/loop.py", "pipeline/training/budget.py", "pipeline/training/supervised.py",
+      "pipeline/evaluation/inference.py",
+      "pipeline/evaluation/evaluate.py", "pipeline/deploy/export.py", "pipeline/deploy/segmenting.py", "pipeline/deploy/",
       "pipeline/report/", "pipeline/cluster/", "pipeline/labeling/", "pipeline/review/")),
     ("api", "the Python API of the user tools: label, distill, a standalone project",
-     ("pipeline/standalone.py", "pipeline/api.py")),
+     ("pipeline/orchestration/standalone.py", "pipeline/api.py")),
     ("stages", "the DAG's stage scripts: options -> read artifacts -> call the logic -> write", ("stages/",)),
     ("commands", "the user commands and the geodistill click group over them and the stages", ("pipeline/cli/",)),
     ("benchmarks", "measurements and developer tools; they run the stages as commands, never import them",

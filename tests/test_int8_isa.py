@@ -10,11 +10,15 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline import deploy
+from pipeline.deploy.bundle import INT8_FILE
+
+from pipeline.deploy.mask_path import ONNX_INPUT, export_onnx, ort_session
+
+from pipeline.deploy.quantize import quantize_onnx_int8
 from pipeline.deploy import quantize
 from pipeline.deploy.bundle import golden_frame
 from pipeline.deploy.openvino_engine import OpenVinoRunner, openvino_unavailable_reason
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.model import TinyUNet
 from tests._tiny_deploy import HAS_ONNX, make_artifacts, make_checkpoint, run_export
 
@@ -50,12 +54,12 @@ def models(tmp_path_factory):
         if isinstance(mod, torch.nn.BatchNorm2d):
             mod.running_mean.uniform_(-0.2, 0.2)
             mod.running_var.uniform_(0.5, 1.5)
-    fp32 = deploy.export_onnx(model, root / "m.onnx", RES, 17)
+    fp32 = export_onnx(model, root / "m.onnx", RES, 17)
     rng = np.random.default_rng(1)
     calib = np.stack([golden_frame(RES)] + [np.clip(rng.normal(120, 80, (RES, RES, 3)), 0, 255).astype(np.uint8)
                                             for _ in range(5)])
-    q7 = deploy.quantize_onnx_int8(fp32, root / "q7.onnx", calib)
-    q8 = deploy.quantize_onnx_int8(fp32, root / "q8.onnx", calib, weight_bits=8)
+    q7 = quantize_onnx_int8(fp32, root / "q7.onnx", calib)
+    q8 = quantize_onnx_int8(fp32, root / "q8.onnx", calib, weight_bits=8)
     x = calib.transpose(0, 3, 1, 2).astype(np.float32) / np.float32(255)
     return {"q7": q7, "q8": q8, "x": x}
 
@@ -76,7 +80,7 @@ def test_default_weights_cannot_saturate_an_int16_pair_sum(models):
     # the 8-bit setting uses the full range, which the check above would catch
     assert max(int(np.abs(w.astype(int)).max()) for w in conv_weights(models["q8"])) > 64
     with pytest.raises(InputError, match="int8_weight_bits"):
-        deploy.quantize_onnx_int8(models["q7"], models["q7"].with_suffix(".x"), np.zeros((1, 8, 8, 3), np.uint8),
+        quantize_onnx_int8(models["q7"], models["q7"].with_suffix(".x"), np.zeros((1, 8, 8, 3), np.uint8),
                                   weight_bits=6)
 
 
@@ -109,11 +113,11 @@ def test_the_bundle_states_and_meets_its_instruction_sets(tmp_path):
     bundle = tmp_path / "deploy"
     contract = json.loads((bundle / "contract.json").read_text())
     isas = [c["isa"] for c in contract["int8"]["verified_on"]]
-    assert isas == [quantize.host_isa(), "avx2"] and contract["int8"]["model"] == deploy.INT8_FILE
+    assert isas == [quantize.host_isa(), "avx2"] and contract["int8"]["model"] == INT8_FILE
     assert "7-bit" in contract["int8"]["quantization"]
     golden = np.load(bundle / "golden_input.npy")[None].transpose(0, 3, 1, 2).astype(np.float32) / np.float32(255)
-    z = quantize.openvino_logits(bundle / deploy.INT8_FILE, golden, "AVX2")
-    ort = deploy.ort_session(bundle / deploy.INT8_FILE).run(None, {deploy.ONNX_INPUT: golden})[0]
+    z = quantize.openvino_logits(bundle / INT8_FILE, golden, "AVX2")
+    ort = ort_session(bundle / INT8_FILE).run(None, {ONNX_INPUT: golden})[0]
     mask = np.load(bundle / "golden_mask.npy")
     rep = quantize.int8_agreement(mask[None, None].astype(np.float64) * 2 - 1, z, 0.5, 0.5)
     assert rep["passed"], rep

@@ -15,7 +15,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.geometry import NO_FOREGROUND
 from pipeline.teachers.sam3 import Sam3Teacher
 from tests._tiny_teacher import cache_files, make_image_folder

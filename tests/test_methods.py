@@ -9,7 +9,7 @@ import torch
 
 from pipeline import losses
 from pipeline.artifacts import make_meta, open_artifact
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.methods import (METHODS, adaptive_mode, afs_fuse, afs_keep, confidence_pass, get_method,
                               input_artifacts, mean_valid_score, param_keys, pass_ratio, resolve_plan)
 from tests._tiny_train import load_arrays, tiny_cfg
@@ -139,7 +139,7 @@ def test_no_gate_really_sets_g_to_one(tiny):
 def test_geodistill_objective_equals_refine_loss():
     """The geodistill plan's weights with the train params' constants are the paper's eq:refine-loss."""
     from pipeline.params import load_params
-    from pipeline.training import loss_constants
+    from pipeline.training.loop import loss_constants
 
     cfg = load_params()["train"]
     torch.manual_seed(1)
@@ -173,8 +173,7 @@ def test_adaptive_mode_switch_follows_r():
 
 @pytest.mark.parametrize("threshold,mode", [(0.0, "anchored"), (1.5, "geometry_only")])
 def test_adaptive_run_decides_mode_from_training_pseudo_labels(tiny, stage1_state, threshold, mode):
-    from pipeline import training
-
+    from pipeline.training import loop as training
     m = get_method("geodistill_adaptive")
     cfg = tiny_cfg(epochs_stage2=1, confidence={"criterion": "agreement", "threshold": threshold, "min_valid": 1})
     data, val = load_arrays(tiny, m.name, cfg)
@@ -198,8 +197,8 @@ def test_adaptive_run_decides_mode_from_training_pseudo_labels(tiny, stage1_stat
 # ---- every method: a few steps + a loadable checkpoint -------------------------------------------
 @pytest.mark.parametrize("name", sorted(METHODS))
 def test_every_method_trains_and_writes_a_loadable_checkpoint(tiny, stage1_state, tmp_path, name):
-    from pipeline import training
-    from pipeline.inference import load_student, predict_probs, save_checkpoint
+    from pipeline.training import loop as training
+    from pipeline.evaluation.inference import load_student, predict_probs, save_checkpoint
 
     m = get_method(name)
     cfg = tiny_cfg(epochs_stage1=1, epochs_stage2=1, gabi={"epochs": 1, "lambda_dist": 0.002, "lambda_boundary": 0.05})

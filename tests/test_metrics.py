@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 from scipy.spatial.distance import cdist
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.thresholds import calibrate_threshold
 from pipeline.metrics import (area_fraction, boundary_f1, image_iou, image_ious, iou_curve,
                               mask_boundary, per_image_metrics, precision_recall, small_region_iou)

@@ -1,4 +1,4 @@
-"""``--overwrite`` replaces only what the command wrote (pipeline/ownership.py, docs/own-data.md 1): a
+"""``--overwrite`` replaces only what the command wrote (pipeline/artifacts/ownership.py, docs/own-data.md 1): a
 user's file inside each command's output folder survives a run with ``--overwrite``, or is refused by
 name when it sits where an output must go (export, which replaces its bundle folder whole); label's
 own files of an earlier run in other formats are removed, nothing else.  Each run uses the tests'
@@ -11,7 +11,7 @@ import json
 import pytest
 from click.testing import CliRunner
 
-from pipeline.ownership import remove_stale
+from pipeline.artifacts.ownership import remove_stale
 from tests._tiny_teacher import make_image_folder
 
 FAST = ["--set", "data.resolution=32", "--set", "teacher.score_threshold=0", "--device", "cpu"]

@@ -14,7 +14,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.params import PAPER, load_params, parse_override, validate
 from pipeline.profiles import load_params_or_profile, load_profile
 from stages._common import stage_command
@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # schema
 # --------------------------------------------------------------------------------------------------
 def test_committed_params_yaml_is_the_demo_profile():
-    from pipeline.dag import render_params_yaml
+    from pipeline.orchestration.dag import render_params_yaml
 
     assert (ROOT / "params.yaml").read_text() == render_params_yaml("demo"), \
         "params.yaml is out of date: run `geodistill profile demo`"
@@ -151,9 +151,9 @@ def test_console_script_lists_stage_commands():
 
 
 def test_stages_holds_only_the_dags_stage_scripts():
-    """stages/ is the scripts dvc.yaml's stages run (pipeline.dag.stage_modules) and their shared
+    """stages/ is the scripts dvc.yaml's stages run (pipeline.orchestration.dag.stage_modules) and their shared
     conventions (_common); the user tools are pipeline/cli/."""
-    from pipeline.dag import stage_modules
+    from pipeline.orchestration.dag import stage_modules
 
     scripts = {p.stem for p in (ROOT / "stages").glob("*.py")} - {"__init__", "_common"}
     assert scripts == {m.removeprefix("stages.") for m in stage_modules().values()}
@@ -163,7 +163,7 @@ def test_stages_holds_only_the_dags_stage_scripts():
 # derived code deps
 # --------------------------------------------------------------------------------------------------
 def test_module_files_follow_imports_inside_functions_and_packages(tmp_path):
-    from pipeline.codeversion import code_version_of, module_files
+    from pipeline.runtime.codeversion import code_version_of, module_files
 
     (tmp_path / "stages").mkdir()
     (tmp_path / "pipeline" / "sub").mkdir(parents=True)
@@ -190,14 +190,14 @@ def _dvc_yaml() -> dict:
 
 
 def test_dvc_yaml_is_generated_and_current():
-    from pipeline.dag import project_dvc_yaml
+    from pipeline.orchestration.dag import project_dvc_yaml
 
     params = yaml.safe_load((ROOT / "params.yaml").read_text())  # the demo groups its seeds (protocol.seeds_per_stage)
     assert (ROOT / "dvc.yaml").read_text() == project_dvc_yaml(params), "dvc.yaml is out of date: run `geodistill dag`"
 
 
 def test_dvc_yaml_deps_cover_every_module_each_stage_imports():
-    from pipeline.codeversion import module_files
+    from pipeline.runtime.codeversion import module_files
 
     for name, stage in _dvc_yaml()["stages"].items():
         module = stage["cmd"].split()[2]
@@ -208,7 +208,7 @@ def test_dvc_yaml_deps_cover_every_module_each_stage_imports():
 
 
 #: Files that only render or choose params (dvc.yaml, params.yaml); editing them must mark no stage stale.
-NOT_CODE_DEPS = ("pipeline/dag.py", "pipeline/cli/dag.py")
+NOT_CODE_DEPS = ("pipeline/orchestration/dag.py", "pipeline/cli/dag.py")
 
 
 def test_the_dvc_yaml_renderer_is_no_code_dep_of_any_stage():
@@ -218,11 +218,11 @@ def test_the_dvc_yaml_renderer_is_no_code_dep_of_any_stage():
 
 
 def test_stage_code_version_is_the_derived_one():
-    from pipeline.codeversion import code_version_of
+    from pipeline.runtime.codeversion import code_version_of
     from stages._common import stage_code_version
 
     assert stage_code_version(str(ROOT / "stages" / "consensus.py")) == code_version_of("stages.consensus")
-    assert "pipeline/params.py" in __import__("pipeline.codeversion").codeversion.module_files("stages.consensus")
+    assert "pipeline/params.py" in __import__("pipeline.runtime.codeversion").runtime.codeversion.module_files("stages.consensus")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -239,7 +239,7 @@ def paper_repo(tmp_path_factory):
     separately from params)."""
     if shutil.which("git") is None:
         pytest.skip("git not available")
-    from pipeline.dag import dvc_stages, project_dvc_yaml, render_params_yaml
+    from pipeline.orchestration.dag import dvc_stages, project_dvc_yaml, render_params_yaml
 
     repo = tmp_path_factory.mktemp("paper_repo")
     subprocess.run(["git", "init", "-q"], cwd=repo, check=True)
@@ -379,7 +379,7 @@ def test_editing_profiles_or_the_dag_renderer_marks_no_stage_stale(code_repo):
     edit of a file the stages do run (pipeline/geometry.py) is reported."""
     before = _changed_code_deps(code_repo)
     assert "pipeline/geometry.py" not in before
-    edited = ["pipeline/profiles.py", "pipeline/dag.py"]
+    edited = ["pipeline/profiles.py", "pipeline/orchestration/dag.py"]
     for rel in edited:
         with open(code_repo / rel, "a") as f:
             f.write("# an edit\n")
@@ -398,7 +398,7 @@ def test_report_reruns_when_the_noise_floor_changes():
     import yaml
 
     from pipeline.catalog import dvc_path
-    from pipeline.dag import render_dvc_yaml
+    from pipeline.orchestration.dag import render_dvc_yaml
 
     floor = dvc_path("noise_floor")
     assert floor == "reports/noise_floor.json"

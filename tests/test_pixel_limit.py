@@ -1,5 +1,5 @@
 """The pixel limit before decoding (``data.max_pixels``, ``--max-pixels`` / ``max_pixels=``) and the
-convention that an error names a parameter in the caller's terms (pipeline/errors.py).
+convention that an error names a parameter in the caller's terms (pipeline/runtime/errors.py).
 
 The bombs are header-only files built here: a PNG whose IHDR declares 30,000 x 30,000 pixels with a
 tiny IDAT, a JPEG start-of-frame, a BMP header and a TIFF directory declaring huge sizes."""
@@ -22,7 +22,7 @@ from pipeline.datasets.image_header import header_size
 from pipeline.datasets.loading import (DEFAULT_MAX_PIXELS, BadFileError, DecodeCache, load_rgb, pixel_limit,
                                        read_mask, read_rgb)
 from pipeline.datasets.manifest import BadInputPolicy
-from pipeline.errors import API, CLI, MAX_PIXELS, SKIP_BAD, InputError
+from pipeline.runtime.errors import API, CLI, MAX_PIXELS, SKIP_BAD, InputError
 from pipeline.params import PAPER
 
 REPO = Path(__file__).resolve().parent.parent
@@ -374,7 +374,7 @@ def test_segment_refuses_and_skips_the_bomb(tmp_path):
 
 def test_segmenter_predict_refuses_the_bomb_naming_its_keyword(tmp_path):
     import pipeline
-    from pipeline.errors import InputError
+    from pipeline.runtime.errors import InputError
     from tests._tiny_deploy import make_checkpoint
 
     ckpt = make_checkpoint(tmp_path / "ckpt")

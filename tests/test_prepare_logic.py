@@ -1,4 +1,4 @@
-"""The prepare stage's work called directly (pipeline.prepare), and the stage as wiring."""
+"""The prepare stage's work called directly (pipeline.datasets.prepare), and the stage as wiring."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pipeline import catalog
 from pipeline.artifacts import make_meta, open_artifact
 from pipeline.datasets.params import check_data_params
 from pipeline.params import load_params, section
-from pipeline.prepare import REFERENCE_NOTE, prepare
+from pipeline.datasets.prepare import REFERENCE_NOTE, prepare
 from stages.prepare import main as prepare_main
 
 PARAMS = str(Path(__file__).resolve().parent.parent / "params.yaml")

@@ -9,7 +9,7 @@ from click.testing import CliRunner
 
 from pipeline.artifacts import make_meta, open_artifact, write_zarr
 from pipeline.consensus import vote
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.geometry import image_gates
 from pipeline.params import PAPER, load_params, section
 from pipeline.pseudo_labels import write_consensus, write_geometry

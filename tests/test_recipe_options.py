@@ -29,7 +29,7 @@ def test_defaults_are_the_paper_recipe_and_build_the_same_model():
     from pipeline.methods import get_method
     from pipeline.model import TinyUNet
     from pipeline.params import PAPER
-    from pipeline.training import build_model
+    from pipeline.training.loop import build_model
 
     assert (PAPER.train.norm, PAPER.train.bn_momentum, PAPER.train.precise_bn) == ("batch", 0.1, False)
     cfg = tiny_cfg()
@@ -44,7 +44,7 @@ def test_defaults_are_the_paper_recipe_and_build_the_same_model():
 
 
 def test_schema_bounds():
-    from pipeline.errors import InputError
+    from pipeline.runtime.errors import InputError
     from pipeline.profiles import load_profile
 
     assert load_profile("paper", ["train.norm=group"])["train"]["norm"] == "group"
@@ -90,7 +90,7 @@ def test_groupnorm_model_has_no_batch_statistics_and_reloads_from_its_config():
 
 def test_bn_momentum_reaches_every_batchnorm():
     from pipeline.methods import get_method
-    from pipeline.training import build_model
+    from pipeline.training.loop import build_model
 
     model = build_model(get_method("plain"), tiny_cfg(bn_momentum=0.01), seed=0)
     assert {bn.momentum for bn in _batchnorms(model)} == {0.01}
@@ -126,7 +126,7 @@ def test_recompute_bn_stats_is_the_average_of_batch_statistics():
 def test_precise_bn_changes_running_statistics_only(tiny):
     """Same training trajectory (weights) with and without precise BN; the selected model's BN
     statistics are the training set's average batch statistics."""
-    from pipeline import training
+    from pipeline.training import loop as training
     from pipeline.methods import get_method
     from pipeline.model import recompute_bn_stats
 
@@ -151,7 +151,7 @@ def test_precise_bn_changes_running_statistics_only(tiny):
 
 def test_precise_bn_in_the_train_stage_log_differs_from_ema(tiny):
     """With validation data, precise BN changes what validation sees (the log's val_iou)."""
-    from pipeline import training
+    from pipeline.training import loop as training
     from pipeline.methods import get_method
 
     cfg = tiny_cfg(epochs_stage1=1)
@@ -217,7 +217,7 @@ def test_study_runs_end_to_end_on_tiny_artifacts(tiny, tmp_path, capsys):
 # --------------------------------------------------------------------------------------------------
 def test_ema_final_model_is_the_moving_average_of_the_steps(tiny):
     """train.ema_decay d: e <- d e + (1 - d) w after every step; the final model holds e (BN recomputed)."""
-    from pipeline import training
+    from pipeline.training import loop as training
     from pipeline.methods import get_method
 
     cfg = tiny_cfg(ema_decay=0.5, epochs_stage1=1)

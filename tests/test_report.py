@@ -305,7 +305,7 @@ def test_report_records_its_environment(built):
     training run (the fixture's checkpoints predate extra.runtime, so the table says 'not recorded')."""
     import json
 
-    from pipeline.inference import iter_runs
+    from pipeline.evaluation.inference import iter_runs
 
     root, art, params, out = built
     env = json.loads((out / "environment.json").read_text())
@@ -357,10 +357,10 @@ def test_the_interval_footnote_states_the_spacecraft_the_data_table_shows(built)
 def test_efficiency_says_the_benchmark_was_skipped_on_purpose(tmp_path):
     """A distill project made with --no-benchmark (dvc.yaml without the benchmark stage) says so in the
     Efficiency section; with the stage, or outside a DVC project, it is the usual missing-input note."""
-    from pipeline.dag import render_dvc_yaml
+    from pipeline.orchestration.dag import render_dvc_yaml
     from pipeline.report.build import BENCHMARK_SKIPPED, efficiency_section, load_inputs
     from pipeline.report.document import Missing, Text
-    from pipeline.standalone import BENCHMARK_STAGE
+    from pipeline.orchestration.standalone import BENCHMARK_STAGE
 
     art = tmp_path / "artifacts"
     art.mkdir()

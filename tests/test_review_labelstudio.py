@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.review.corrections import coco_decode, correction_masks, import_corrections, read_review
 from tools.review_e2e import drawn_stroke, stroke_result, synthetic_export
 from pipeline.review.formats import ls_rle_decode

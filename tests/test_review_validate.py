@@ -11,8 +11,8 @@ import yaml
 
 from pipeline import catalog
 from pipeline.artifacts import make_meta, open_artifact, write_zarr
-from pipeline.dag import optional_stages_on, render_dvc_yaml
-from pipeline.inference import CORRECTED_VALIDATION, save_checkpoint
+from pipeline.orchestration.dag import optional_stages_on, render_dvc_yaml
+from pipeline.evaluation.inference import CORRECTED_VALIDATION, save_checkpoint
 from pipeline.methods import HUMAN_TARGETS_LABEL, get_method
 from pipeline.report import tables as T
 from pipeline.report.build import Inputs, corrections_note, load_inputs, recorded_review, threshold_section

@@ -11,7 +11,7 @@ from tests._tiny_train import tiny_cfg
 
 def test_selections_pick_the_lowest_gate_and_the_shipped_ranking(tiny):
     from pipeline.methods import get_method
-    from pipeline.training_inputs import load_inputs
+    from pipeline.training.inputs import load_inputs
 
     data, _, _ = load_inputs(tiny, get_method("plain"), tiny_cfg())
     table = rv.training_table(tiny, list(data.image_ids))

@@ -14,10 +14,12 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from pipeline import deploy
+from pipeline.deploy.bundle import INT8_FILE
+
+from pipeline.deploy.files import plan_outputs
 from pipeline.datasets.loading import read_rgb, resize_image
-from pipeline.errors import InputError
-from pipeline.inference import load_student
+from pipeline.runtime.errors import InputError
+from pipeline.evaluation.inference import load_student
 from pipeline.cli.segment import main as segment_main
 from tests._tiny_deploy import HAS_ONNX, make_artifacts, make_checkpoint, make_thresholds, run_export
 
@@ -108,7 +110,7 @@ def toy_trained_checkpoint(path: Path) -> Path:
     import pandas as pd
 
     from pipeline.artifacts import make_meta
-    from pipeline.inference import save_checkpoint
+    from pipeline.evaluation.inference import save_checkpoint
     from tests._tiny_deploy import tiny_model
 
     rng = np.random.default_rng(1)
@@ -167,7 +169,7 @@ def test_segment_deploy_bundle_engines_agree_and_use_bundle_tau(tmp_path):
     if HAS_ONNX:  # int8 is approximate: >= 99 % of all pixels agree with torch
         same = sum(int(np.count_nonzero(masks["onnxruntime_int8"][k] == m)) for k, m in masks["torch"].items())
         assert same / sum(m.size for m in masks["torch"].values()) >= 0.99
-        # an old name (pipeline.engine_table.ENGINE_ALIASES) runs its engine: the same masks
+        # an old name (pipeline.deploy.engine_table.ENGINE_ALIASES) runs its engine: the same masks
         r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in", "--output", tmp_path / "old",
                     "--engine", "int8")
         assert r.exit_code == 0 and "engine onnxruntime_int8," in r.output, r.output
@@ -209,7 +211,7 @@ def test_segment_engine_choice_and_refusals(tmp_path):
     r = segment("--checkpoint", tmp_path / "deploy", "--input", img, "--output", tmp_path / "o3",
                 "--engine", "onnxruntime_int8")
     lines = r.output.strip().splitlines()
-    assert r.exit_code == 2 and len(lines) == 1 and (deploy.INT8_FILE in lines[0] or "onnx" in lines[0]), r.output
+    assert r.exit_code == 2 and len(lines) == 1 and (INT8_FILE in lines[0] or "onnx" in lines[0]), r.output
     # a bundle exported without onnx: auto = torch
     assert run_export(ckpt, tmp_path / "ts_only", "--tau", "0.5", "--no-onnx").exit_code == 0
     r = segment("--checkpoint", tmp_path / "ts_only", "--input", img, "--output", tmp_path / "o4")
@@ -255,7 +257,7 @@ def test_segment_never_overwrites_inputs_and_rejects_bad_options(tmp_path):
     # with overwrite
     for overwrite in (False, True):
         with pytest.raises(InputError, match="overwrite the input"):
-            deploy.plan_outputs(flat, [flat / "a.png", flat / "a.png.mask.png"], tmp_path / "flat", False,
+            plan_outputs(flat, [flat / "a.png", flat / "a.png.mask.png"], tmp_path / "flat", False,
                                 overwrite=overwrite)
     assert (flat / "a.png.mask.png").read_bytes() == before
 

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from pipeline.deploy import files as F
-from pipeline.deploy import load_segmenter
-from pipeline.errors import InputError
-from pipeline.segmenting import segment_images
+from pipeline.deploy.segmenter import load_segmenter
+from pipeline.runtime.errors import InputError
+from pipeline.deploy.segmenting import segment_images
 from tests._tiny_deploy import make_checkpoint
 
 RES = 32

@@ -15,7 +15,7 @@ from pipeline.artifacts import open_artifact
 from pipeline.datasets import adapters, build
 from pipeline.datasets.loading import BadFileError, ColorTable, DecodeCache, load_labels, load_mask, parts_from_colors
 from pipeline.datasets.manifest import BadInputPolicy, spacecraft_split_violations
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from tests._tiny_teacher import REPO, cli
 
 S = 24                                           # image side (px)

@@ -33,7 +33,7 @@ def test_recipe_fills_the_null_parts_and_an_explicit_part_wins():
 
 
 def test_params_yaml_keeps_the_parts_null_so_the_recipe_switches_them():
-    from pipeline.dag import render_params_yaml
+    from pipeline.orchestration.dag import render_params_yaml
     from pipeline.params import recipe_parts
 
     text = render_params_yaml("paper")
@@ -46,7 +46,7 @@ def test_the_paper_recipe_is_the_published_behaviour():
     host has bf16, no warm-up (the schedule's own function), the method's selection, the argmax tau, no
     weight average, the voted mask, the fixed length and the paper's rate."""
     from pipeline.params import RECIPES
-    from pipeline.training import _lr_lambda
+    from pipeline.training.loop import _lr_lambda
 
     assert RECIPES["paper"] == {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4,
                                           "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine",
@@ -58,7 +58,7 @@ def test_the_paper_recipe_is_the_published_behaviour():
 
 
 def test_warmup_scales_the_first_epochs_then_follows_the_schedule():
-    from pipeline.training import _lr_lambda
+    from pipeline.training.loop import _lr_lambda
 
     f, base = _lr_lambda("cosine", 100, 10), _lr_lambda("cosine", 100)
     assert f(0) == pytest.approx(0.1 * base(0)) and f(4) == pytest.approx(0.5 * base(4))
@@ -66,7 +66,7 @@ def test_warmup_scales_the_first_epochs_then_follows_the_schedule():
 
 
 def test_average_update_is_the_running_mean():
-    from pipeline.training import average_update
+    from pipeline.training.loop import average_update
 
     states = [{"w": torch.tensor([float(i), 2.0 * i]), "n": torch.tensor(i)} for i in range(1, 5)]
     avg = None
@@ -78,7 +78,7 @@ def test_average_update_is_the_running_mean():
 
 
 def test_weight_averaging_gives_the_mean_of_the_last_epochs_with_bn_recomputed(tiny):
-    from pipeline import training
+    from pipeline.training import loop as training
     from pipeline.methods import get_method
 
     cfg = tiny_cfg(epochs_stage1=3, lr_stage1=2e-3, average_last=2)
@@ -118,9 +118,9 @@ def test_changing_num_threads_does_not_resume_the_old_state(tiny, tmp_path):
     """The train stage's FileCheckpointer lives under the checkpoint fingerprint (which now holds
     train.num_threads); and even a state handed back under the same directory is not resumed, because
     the run key holds the effective thread count and autocast dtype."""
-    from pipeline import training
+    from pipeline.training import loop as training
     from pipeline.methods import get_method
-    from pipeline.checkpointing import FileCheckpointer
+    from pipeline.training.checkpointing import FileCheckpointer
 
     before = torch.get_num_threads()
     try:
@@ -173,7 +173,7 @@ def test_smooth_curve_is_a_cut_window_moving_average():
 
 
 def test_unknown_tau_rule_is_an_input_error():
-    from pipeline.errors import InputError
+    from pipeline.runtime.errors import InputError
     from pipeline.profiles import load_profile
 
     with pytest.raises(InputError, match="tau_rule"):

@@ -62,8 +62,8 @@ def test_without_a_row_the_fixed_tau_comes_from_params_and_says_why(tmp_path):
 
 
 def test_evaluation_takes_both_taus_from_the_one_function():
-    from pipeline.errors import ArtifactError
-    from pipeline.evaluation import run_thresholds
+    from pipeline.runtime.errors import ArtifactError
+    from pipeline.evaluation.evaluate import run_thresholds
 
     assert run_thresholds(TABLE, "geodistill", 42, "ckpt") == (0.62, 0.5)
     with pytest.raises(ArtifactError, match="no calibrated threshold for geodistill/7"):

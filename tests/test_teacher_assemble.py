@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pipeline.artifacts import make_meta, open_artifact
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.params import BACKENDS, PAPER, load_params, section
 from pipeline.teachers import TEACHERS, check_teacher_params, make_teacher
 from pipeline.teachers.assemble import (SCORE_COLUMNS, check_alignment, fingerprint_params, open_teacher_run,

@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("transformers")
 
-from pipeline.errors import InputError  # noqa: E402
+from pipeline.runtime.errors import InputError  # noqa: E402
 from pipeline.params import PAPER_PROMPTS  # noqa: E402
 from pipeline.teachers.base import TeacherInput  # noqa: E402
 from pipeline.teachers.sam3 import Sam3Teacher, check_checkpoint_dir  # noqa: E402

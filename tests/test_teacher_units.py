@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.teachers.base import TeacherInput, finalize_answers
 from pipeline.teachers.cache import CorruptEntry, TeacherCache, decode_entry, encode_entry, entry_key
 from pipeline.teachers.runner import parse_shard, shard_rows

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline import thresholds as T
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 
 
 # ---- eq:inference-mask ----------------------------------------------------------------------------

@@ -1,5 +1,5 @@
 """Several seeds of one method in one training stage (params ``protocol.seeds_per_stage``): the DAG's two
-shapes (pipeline/dag.py) and the grouped train command (stages/train.py), whose checkpoints are the bytes
+shapes (pipeline/orchestration/dag.py) and the grouped train command (stages/train.py), whose checkpoints are the bytes
 a process of their own writes (docs/performance.md, "The demo's wall time")."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import shutil
 import pytest
 import yaml
 
-from pipeline.dag import project_dvc_yaml, seed_groups, train_stage, train_stage_name, train_stages
+from pipeline.orchestration.dag import project_dvc_yaml, seed_groups, train_stage, train_stage_name, train_stages
 from pipeline.methods import METHODS
 from pipeline.profiles import profile_params
 from tests._tiny_train import REPO, train_cli, train_params_file

@@ -16,18 +16,18 @@ import pytest
 import torch
 
 from pipeline.artifacts import open_artifact, write_zarr
-from pipeline.errors import TrainingDiverged
+from pipeline.runtime.errors import TrainingDiverged
 from pipeline.methods import SELECTION_TAU_KEY
 from pipeline.params import load_params
-from pipeline.streaming import spill_rows
+from pipeline.training.streaming import spill_rows
 from tests._tiny_train import (REPO, assert_same_state, build_tiny_artifacts, clone_state, load_arrays, shape_mask,
                                tiny_cfg, train_cli, train_params_file)
 
 
 def _run(method_name, art, cfg, seed=42, init_state=None, resume_dir=None, checkpointer=None, **kw):
-    from pipeline import training
+    from pipeline.training import loop as training
     from pipeline.methods import get_method
-    from pipeline.checkpointing import FileCheckpointer
+    from pipeline.training.checkpointing import FileCheckpointer
 
     data, val = load_arrays(art, method_name, cfg)
     if checkpointer is None:
@@ -96,7 +96,7 @@ def test_resume_after_interruption_gives_identicalclone_state(tiny, tmp_path, me
 
 def test_train_runs_from_arrays_with_an_in_memory_checkpointer_and_resumes():
     """No artifacts: arrays in, model and log out; a MemoryCheckpointer resumes an interrupted run."""
-    from pipeline import training
+    from pipeline.training import loop as training
     from pipeline.methods import get_method
 
     rng = np.random.default_rng(3)
@@ -138,7 +138,8 @@ def test_train_runs_from_arrays_with_an_in_memory_checkpointer_and_resumes():
 def test_training_loss_is_the_losses_module_objective(tiny, method):
     """The logged epoch-1 terms of a one-batch run (lr 0) equal losses.refine_loss (eq:refine-loss) with
     the plan's weights -- and, for Stage I, losses.raw_loss (eq:raw-loss) -- on the untrained model."""
-    from pipeline import losses, training
+    from pipeline import losses
+    from pipeline.training import loop as training
     from pipeline.methods import get_method, resolve_plan
 
     m = get_method(method)
@@ -186,7 +187,7 @@ def test_nan_loss_raises_training_diverged(tiny, tmp_path):
 
 def test_warm_start_copies_stage1_weights_and_adds_fresh_heads(tiny):
     from pipeline.methods import get_method
-    from pipeline.training import build_model
+    from pipeline.training.loop import build_model
 
     stage1 = _run("plain", tiny, tiny_cfg(epochs_stage1=1))
     init = stage1.model.mask_path_state_dict()
@@ -217,7 +218,7 @@ def test_reference_masks_of_training_rows_never_reach_a_loss(tmp_path):
     cfg = tiny_cfg(epochs_stage1=2)
     ra, rb = _run("plain", a, cfg), _run("plain", b, cfg)
     assert_same_state(clone_state(ra.model), clone_state(rb.model))
-    from pipeline import training
+    from pipeline.training import loop as training
     from pipeline.methods import get_method
 
     _, val = load_arrays(b, "plain", cfg)
@@ -250,7 +251,7 @@ def test_checkpoint_selection_scores_validation_at_the_selection_tau(tiny):
 
 
 def test_stage_command_trains_writes_checkpoint_and_warm_starts(tiny, tmp_path):
-    from pipeline.inference import load_student
+    from pipeline.evaluation.inference import load_student
 
     params = train_params_file(tmp_path)
     ck = tmp_path / "checkpoints"
@@ -342,9 +343,9 @@ def test_streaming_data_gives_the_in_memory_batches_andclone_state(tiny18, metho
     import dataclasses
     import tempfile
 
-    from pipeline import training
+    from pipeline.training import loop as training
     from pipeline.methods import get_method
-    from pipeline.streaming import MappedRows, RowSource
+    from pipeline.training.streaming import MappedRows, RowSource
 
     m = get_method(method)
     cfg = tiny_cfg(augment_hflip=True)
@@ -378,7 +379,7 @@ def test_streaming_data_gives_the_in_memory_batches_andclone_state(tiny18, metho
 
 
 def test_prefetch_keeps_order_and_raises_the_producers_error():
-    from pipeline.streaming import prefetch
+    from pipeline.training.streaming import prefetch
 
     assert list(prefetch(iter(range(50)), depth=2)) == list(range(50))
 

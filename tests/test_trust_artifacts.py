@@ -14,7 +14,7 @@ import pytest
 
 from pipeline.artifacts import (FAULT_ENV, ZarrWriter, make_meta, open_artifact, require_same_run, write_parquet,
                                 write_zarr)
-from pipeline.errors import ArtifactError
+from pipeline.runtime.errors import ArtifactError
 
 ROOT = Path(__file__).resolve().parent.parent
 PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",

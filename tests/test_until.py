@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 import torch
 
-from pipeline import training
+from pipeline.training import loop as training
 from pipeline.methods import get_method
 from tests._tiny_train import assert_same_state, clone_state, load_arrays, tiny_cfg
 
@@ -91,7 +91,7 @@ def test_the_paper_recipe_keeps_its_fixed_length(tiny):
 
 @pytest.mark.parametrize("value", ["sometimes", 3])
 def test_until_is_checked(value):
-    from pipeline.errors import InputError
+    from pipeline.runtime.errors import InputError
     from pipeline.profiles import load_profile
 
     with pytest.raises(InputError, match="train.until"):

@@ -307,7 +307,7 @@ def test_a_corrupt_png_gives_our_line_and_no_opencv_lines(tmp_path, ckpts):  # n
     assert [ln for ln in r.stderr.splitlines() if "error" in ln.lower()] == [
         f"geodistill segment: error: {inp / 'bad.png'}: corrupt or undecodable image (pass --skip-bad to leave it out)"]
     # Segmenter.predict (the notebook API), in a fresh interpreter that imports cv2 first
-    code = (f"import cv2, pipeline\nfrom pipeline.errors import InputError\n"
+    code = (f"import cv2, pipeline\nfrom pipeline.runtime.errors import InputError\n"
             f"seg = pipeline.Segmenter.from_bundle({str(ckpts['with'])!r}, device='cpu')\n"
             f"try:\n    seg.predict({str(inp / 'bad.png')!r})\nexcept InputError as e:\n    print('ours:', e)\n")
     r = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)

@@ -1,6 +1,6 @@
 """Errors and warnings in the user's terms: no internal file, equation label or command-line flag in what
 a Python caller reads; the params override named as ``--set key=value`` on the command line and
-``overrides=["key=value"]`` in the Python API (pipeline.errors.Option), including for a stage's line
+``overrides=["key=value"]`` in the Python API (pipeline.runtime.errors.Option), including for a stage's line
 read back from a subprocess (``InputError.from_line``, what distill's ``dvc repro`` does)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import logging
 import numpy as np
 import pytest
 
-from pipeline.errors import API, CLI, SET, InputError, caller, calling
+from pipeline.runtime.errors import API, CLI, SET, InputError, caller, calling
 from pipeline.geometry import NO_FOREGROUND, NoForeground, median_area
 from pipeline.labeling.run import folder_gates
 from pipeline.params import PAPER
@@ -78,7 +78,7 @@ def test_a_bad_checkpoint_is_named_as_the_user_gave_it(tmp_path):
     import pipeline
     from click.testing import CliRunner
     from pipeline.cli.main import main
-    from pipeline.segmenting import segment_images
+    from pipeline.deploy.segmenting import segment_images
     from tests._tiny_teacher import make_image_folder
 
     images, _ = make_image_folder(tmp_path / "data", n=2, masks=False)

@@ -1,4 +1,4 @@
-"""Weights as safetensors + JSON (pipeline.weights): what a checkpoint and a bundle hold, that the bytes are
+"""Weights as safetensors + JSON (pipeline.artifacts.weights): what a checkpoint and a bundle hold, that the bytes are
 the same for the same weights, and that checkpoints and bundles of older versions (one torch-pickle
 ``model.pt``) are still read by every reader: load_student, open_artifact, the Stage-II warm start, export
 and the Segmenter."""
@@ -15,9 +15,9 @@ from safetensors import safe_open
 import pipeline
 from pipeline import catalog
 from pipeline.artifacts import open_artifact
-from pipeline.errors import ArtifactError
-from pipeline.inference import load_student
-from pipeline.weights import read_weights, write_weights
+from pipeline.runtime.errors import ArtifactError
+from pipeline.evaluation.inference import load_student
+from pipeline.artifacts.weights import read_weights, write_weights
 from tests._tiny_deploy import RES, make_checkpoint, run_export, tiny_model
 
 

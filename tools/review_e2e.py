@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import catalog
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.review.corrections import coco_decode, correction_masks, import_corrections, read_review
 from pipeline.review.export import LS_RECORD_KEY, server_env, write_export
 from pipeline.review.formats import LABEL, LS_FROM_NAME, LS_TO_NAME, ls_brush_rgba, ls_rle_encode_values

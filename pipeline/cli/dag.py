@@ -1,5 +1,5 @@
 """``geodistill profile NAME`` and ``geodistill dag``: write params.yaml for a profile and dvc.yaml from the
-catalogue, the method table and the stages' imports (pipeline/dag.py)."""
+catalogue, the method table and the stages' imports (pipeline/orchestration/dag.py)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import yaml
 
 from pipeline.artifacts import write_text_if_changed
 from pipeline.catalog import DVC_FILE, PARAMS_FILE
-from pipeline.dag import is_generated_params, project_dvc_yaml, render_params_yaml
-from pipeline.ownership import refuse_unowned
+from pipeline.orchestration.dag import is_generated_params, project_dvc_yaml, render_params_yaml
+from pipeline.artifacts.ownership import refuse_unowned
 from pipeline.profiles import PROFILES
 from stages._common import one_line_errors
 

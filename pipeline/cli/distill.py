@@ -1,17 +1,17 @@
 """``geodistill distill INPUT --out DIR``: folder in, student + deploy bundle + report out, through the
-same DAG in a DVC project generated in DIR (pipeline/standalone.py)."""
+same DAG in a DVC project generated in DIR (pipeline/orchestration/standalone.py)."""
 
 from __future__ import annotations
 
 import click
 
 from pipeline.api import distill_params
-from pipeline.errors import LABELS
+from pipeline.runtime.errors import LABELS
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
-from pipeline.standalone import (efficiency_line, project_outputs, run_project, time_budget_params, training_line,
+from pipeline.orchestration.standalone import (efficiency_line, project_outputs, run_project, time_budget_params, training_line,
                                  write_project)
-from pipeline.progress import quiet_bars
+from pipeline.runtime.progress import quiet_bars
 from stages._common import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option, skip_bad_option,
                             stage_command)
 

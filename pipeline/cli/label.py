@@ -10,13 +10,13 @@ import os
 import click
 
 from pipeline.api import choose_teacher, with_data_options
-from pipeline.errors import CLI
+from pipeline.runtime.errors import CLI
 from pipeline.geometry import NoForeground
 from pipeline.labeling import label_folder
 from pipeline.labeling.run import OUTPUTS, YOLO_LISTS, parse_formats
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
-from pipeline.progress import quiet_bars
+from pipeline.runtime.progress import quiet_bars
 from stages._common import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option, skip_bad_option,
                             stage_command, teacher_workers_options)
 

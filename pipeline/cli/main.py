@@ -13,7 +13,7 @@ import click
 
 from pipeline import __version__
 from pipeline.artifacts import PROGRAM
-from pipeline.dag import stage_modules
+from pipeline.orchestration.dag import stage_modules
 from stages._common import one_line_errors
 
 def command_name(stage: str) -> str:
@@ -23,7 +23,7 @@ def command_name(stage: str) -> str:
 
 
 # subcommand -> module exposing a click command named ``main`` (or ``module:command``): every stage of the
-# DAG under stages/ (pipeline.dag.stage_modules, from the catalogue; a command is named like its stage with
+# DAG under stages/ (pipeline.orchestration.dag.stage_modules, from the catalogue; a command is named like its stage with
 # "-" for "_", as every other command is spelled: `analyze-teacher` runs the DVC stage `analyze_teacher`),
 # then the tools under pipeline/cli/
 COMMANDS = {

@@ -5,7 +5,7 @@
     geodistill plots training_curves -o out --open
 
 It runs DVC's own ``dvc plots show`` (``dvc plots diff`` with ``--rev``) with ``--html-template`` set
-to a page that inlines the chart library from an installed package (pipeline.offline_plots), so the
+to a page that inlines the chart library from an installed package (pipeline.report.offline_plots), so the
 page renders without network; DVC's default page loads it from a CDN and stays blank offline.  It
 first writes ``.dvc/plots/method_lines.json`` (the template of dvc.yaml's plots: one line per method)
 when the project lacks it.  Plain ``dvc plots show`` works too, online.
@@ -21,8 +21,8 @@ from pathlib import Path
 import click
 
 from pipeline.artifacts import write_text_if_changed
-from pipeline.errors import InputError
-from pipeline.offline_plots import dvc_plots_command, offline_page, template_path, template_text, vega_scripts
+from pipeline.runtime.errors import InputError
+from pipeline.report.offline_plots import dvc_plots_command, offline_page, template_path, template_text, vega_scripts
 
 #: the page folder of `geodistill plots`: not `dvc plots show`'s own dvc_plots/, so neither replaces the other
 OFFLINE_PLOTS_DIR = "geodistill_plots"

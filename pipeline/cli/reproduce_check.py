@@ -22,7 +22,7 @@ import click
 
 from pipeline import catalog
 from pipeline.catalog import ARTIFACTS_DIR
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.reproducibility import TOLERANCE, compare_metrics, difference_table, reproduced
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from pipeline.cluster.driver import run_pipeline
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from stages._common import setup_logging
 
 

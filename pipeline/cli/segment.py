@@ -12,13 +12,13 @@
               refused before anything is written.
 --overwrite   replace files in the way that an earlier segment run did not write; without it such a
               file stops the run before anything is written.  ``segment.json`` in --output lists what
-              segment wrote there, and a rerun replaces those without asking (pipeline.ownership)
+              segment wrote there, and a rerun replaces those without asking (pipeline.artifacts.ownership)
 --skip-bad    leave unreadable images out (listed in skipped.csv); without it the first one stops
               the run with one line naming it (the bad-file policy of label, distill and prepare)
 --max-pixels  refuse images above N pixels, read from the file header before decoding (default
               data.max_pixels); a bad file like any other under --skip-bad
 
---engine      auto or an engine of pipeline.engine_table (``--help`` lists them): what computes the logits.
+--engine      auto or an engine of pipeline.deploy.engine_table (``--help`` lists them): what computes the logits.
               ``auto`` = on a CUDA device ``cuda`` (bf16 + CUDA graphs, pipeline.deploy.cuda_engine),
               else onnxruntime_fp32 when the bundle holds model.onnx and onnxruntime imports, else torch:
               on the CPU only engines whose masks equal PyTorch's; the int8 engines (faster,
@@ -39,7 +39,7 @@ links pointing outside it, broken links and links to folders (never followed) --
 one line, or with --skip-bad are listed in skipped.csv and counted on stderr; the rest go on.  Inputs are never modified and outputs never
 overwrite inputs (an output folder inside the input folder is refused).  Bad options and refused
 outputs: one line on stderr naming the path, exit code 2, nothing written.  The logic is
-:func:`pipeline.segmenting.segment_images`; this script is wiring.
+:func:`pipeline.deploy.segmenting.segment_images`; this script is wiring.
 """
 
 from __future__ import annotations
@@ -49,10 +49,10 @@ from pathlib import Path
 import click
 
 from pipeline.catalog import PARAMS_FILE, dvc_path
-from pipeline.engine_table import AUTO, ENGINE_ALIASES, ENGINE_CHOICES, MODEL_ENGINES
+from pipeline.deploy.engine_table import AUTO, ENGINE_ALIASES, ENGINE_CHOICES, MODEL_ENGINES
 from pipeline.params import load_params
-from pipeline.segmenting import segment_images
-from pipeline.progress import quiet_bars
+from pipeline.deploy.segmenting import segment_images
+from pipeline.runtime.progress import quiet_bars
 from stages._common import (bit_depth_option, max_pixels_option, one_line_errors, overwrite_option, quiet_option,
                             setup_logging, skip_bad_option)
 

@@ -35,8 +35,8 @@ from typing import Callable
 
 from pipeline import catalog
 from pipeline.cluster import guard, plan
-from pipeline.environment import THREAD_ENV_VARS
-from pipeline.errors import InputError
+from pipeline.runtime.environment import THREAD_ENV_VARS
+from pipeline.runtime.errors import InputError
 from pipeline.params import DEFAULT_PARAMS, read_yaml_mapping
 
 #: The driver's lock file, inside DVC's own tmp folder (never committed).

@@ -75,7 +75,7 @@ from pipeline.datasets.loading import ColorTable
 from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec
 from pipeline.datasets.scan import scan_inputs
 from pipeline.datasets.synthetic import stable_hash
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.params import read_yaml_mapping
 
 log = logging.getLogger(__name__)

@@ -28,8 +28,8 @@ from pipeline.datasets import synthetic as syn
 from pipeline.datasets.loading import BadFileError, DecodeCache, load_labels, load_mask, load_rgb, mask_kind
 from pipeline.datasets.manifest import (BadInputPolicy, DatasetSpec, check_rows, drop_duplicate_ids,
                                         enforce_spacecraft_disjoint)
-from pipeline.errors import InputError
-from pipeline.progress import progress
+from pipeline.runtime.errors import InputError
+from pipeline.runtime.progress import progress
 
 log = logging.getLogger(__name__)
 

@@ -71,7 +71,7 @@ import cv2
 import numpy as np
 
 from pipeline.datasets.image_header import header_size
-from pipeline.errors import BIT_DEPTH, MAX_PIXELS, InputError, Option, caller, literal
+from pipeline.runtime.errors import BIT_DEPTH, MAX_PIXELS, InputError, Option, caller, literal
 from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER
 
 log = logging.getLogger(__name__)
@@ -89,7 +89,7 @@ class BadFileError(InputError):
 
     ``.path`` names it and ``.reason`` says why in words that name no option (what the skipped-file
     listings hold); ``fix`` is a template naming the ``options`` that would let the file in, spelled
-    in the caller's terms (:class:`pipeline.errors.InputError`): ``{path}: {reason} ({fix})``."""
+    in the caller's terms (:class:`pipeline.runtime.errors.InputError`): ``{path}: {reason} ({fix})``."""
 
     def __init__(self, path: str | Path, reason: str, fix: str = "", *options: Option):
         self.path = str(path)

@@ -20,7 +20,7 @@ import logging
 
 import pandas as pd
 
-from pipeline.errors import SKIP_BAD, InputError, Option, literal
+from pipeline.runtime.errors import SKIP_BAD, InputError, Option, literal
 from pipeline.params import SPLITS
 
 log = logging.getLogger(__name__)
@@ -59,7 +59,7 @@ class DatasetSpec:
 
 
 #: what a refusal suggests (a template naming ``--skip-bad`` / ``skip_bad=True`` in the caller's terms,
-#: pipeline.errors): both work for prepare and distill (and label, which reads data.skip_bad too)
+#: pipeline.runtime.errors): both work for prepare and distill (and label, which reads data.skip_bad too)
 SKIP_HINT = "pass {}, or set data.skip_bad: true in params.yaml, to leave it out"
 
 
@@ -72,7 +72,7 @@ class BadInputPolicy:
     ``skipped.csv``, columns :data:`SKIPPED_COLUMNS`) and counted in one stderr line
     (:meth:`summary`).  ``hint``: the refusal's suggestion (a command without params: only
     ``--skip-bad``).  ``hint_options``: the options of ``hint``'s ``{}`` (default: ``--skip-bad``),
-    spelled in the caller's terms (:class:`pipeline.errors.InputError`); a hint without options is
+    spelled in the caller's terms (:class:`pipeline.runtime.errors.InputError`); a hint without options is
     taken as it is."""
 
     def __init__(self, skip_bad: bool, hint: str = SKIP_HINT, hint_options: tuple[Option, ...] | None = None):

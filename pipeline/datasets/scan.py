@@ -8,7 +8,7 @@ import dataclasses
 import os
 from pathlib import Path
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 
 
 @dataclasses.dataclass

@@ -17,7 +17,7 @@ Decisions:
   this CPU (...)", and latency, throughput and the IoU columns are NaN (batch 0).  It can never be the
   fast path.  For the report, every row also has ``timed`` (fully timed) and ``remark``
   (:func:`variant_remark`: "not run: ...", "not timed: ... pathologically slow on this CPU" or "").
-* ONNX Runtime sessions used for timing do not spin (:func:`pipeline.deploy.export.ort_session`,
+* ONNX Runtime sessions used for timing do not spin (:func:`pipeline.deploy.mask_path.ort_session`,
   ``spinning=False``): an idle spinning pool would steal the cores the round-robin measures others on.
 * Throughput on CUDA: the batches sweep ``deploy.benchmark_batches`` and every power of two up to
   :data:`CUDA_MAX_BATCH` (256), stopping at the first batch that raises ``torch.cuda.OutOfMemoryError``;
@@ -54,13 +54,13 @@ from pipeline.artifacts import open_artifact, read_chunk_rows
 from pipeline.deploy import quantize as q8
 from pipeline.deploy.bundle import INT8_FILE, ONNX_FILE, read_deploy_info
 from pipeline.deploy.engines import ENGINES, Source, unavailable
-from pipeline.deploy.export import export_onnx, onnx_unavailable_reason, parity_inputs
+from pipeline.deploy.mask_path import export_onnx, onnx_unavailable_reason, parity_inputs
 from pipeline.deploy.segmenter import load_segmenter
-from pipeline.errors import InputError
-from pipeline.inference import images_to_tensor, load_student
+from pipeline.runtime.errors import InputError
+from pipeline.evaluation.inference import images_to_tensor, load_student
 from pipeline.metrics import image_ious
 from pipeline.model import count_flops, count_parameters, mask_path_model
-from pipeline.engine_table import BENCHMARK_VARIANTS, engine_name
+from pipeline.deploy.engine_table import BENCHMARK_VARIANTS, engine_name
 from pipeline.thresholds import mask_from_probs, resolve_tau, tau_candidates
 
 BASELINE_VARIANT = "fp32_eager_nchw"

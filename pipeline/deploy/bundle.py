@@ -3,11 +3,11 @@
 Deploy bundle (directory artifact, schema ``deploy``; its layout, one table: pipeline.catalog.DEPLOY_BUNDLE)::
 
     model.safetensors + model.json  mask-path weights; config, method, seed, tau, resolution
-                  -- the checkpoint format (pipeline.weights), so pipeline.inference.load_student() opens
+                  -- the checkpoint format (pipeline.artifacts.weights), so pipeline.evaluation.inference.load_student() opens
                   the bundle too (bundles of older versions hold model.pt instead; still read)
     model.ts      TorchScript (traced) mask path; shape-generic (any batch and size)
     model.onnx    ONNX mask path, dynamic batch/height/width (only when onnx + onnxruntime import)
-                  -- both traced from pipeline.model.ExportMaskPath (pipeline.deploy.export)
+                  -- both traced from pipeline.model.ExportMaskPath (pipeline.deploy.mask_path)
     model.int8.onnx  static int8 (QDQ) quantisation of model.onnx, calibrated on training-split images
                   (only when model.onnx exists and training images are given; the CPU fast path;
                   pipeline.deploy.quantize)
@@ -37,12 +37,12 @@ import numpy as np
 from pipeline.catalog import META_FILE, bundle_file
 from pipeline.deploy.confidence import CONFIDENCE_BAND
 from pipeline.deploy import quantize as q8
-from pipeline.deploy.export import (ONNX_INPUT, ONNX_OUTPUT, check_parity, export_onnx, export_torchscript,
+from pipeline.deploy.mask_path import (ONNX_INPUT, ONNX_OUTPUT, check_parity, export_onnx, export_torchscript,
                                     mask_path_model, onnx_unavailable_reason, require_parity, torch_logits)
-from pipeline.errors import ArtifactError
+from pipeline.runtime.errors import ArtifactError
 from pipeline.model import count_flops, count_parameters
 from pipeline.thresholds import logit_threshold
-from pipeline.weights import write_weights
+from pipeline.artifacts.weights import write_weights
 
 log = logging.getLogger(__name__)
 

@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.device import autocast
-from pipeline.errors import InputError
+from pipeline.runtime.device import autocast
+from pipeline.runtime.errors import InputError
 from pipeline.model import mask_path_model
 
 

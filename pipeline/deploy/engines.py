@@ -1,7 +1,7 @@
 """The engine registry: every way this project runs the deployed mask path Z = f(x), once.
 
 An engine is a name -> (what it needs, a loader that returns the runner).  The names and what each
-engine is are the engine table (:data:`pipeline.engine_table.ENGINE_TABLE`, torch-free); :data:`ENGINES`
+engine is are the engine table (:data:`pipeline.deploy.engine_table.ENGINE_TABLE`, torch-free); :data:`ENGINES`
 adds each row's loader (:data:`LOADERS`).  :class:`Segmenter` (``segment --engine``,
 pipeline.deploy.segmenter) and the efficiency benchmark (``deploy.benchmark_variants``,
 pipeline.deploy.benchmark) both look their names up in :data:`ENGINES`; the table derives the names
@@ -14,7 +14,7 @@ torch tensor (on the engine's device; a CUDA-graph output buffer is copied, so i
 (:data:`pipeline.catalog.DEPLOY_BUNDLE`).  ``requires``: why it cannot run here (a missing
 optional package) or None.  ``cpu_only``: runs on the CPU whatever the device (ONNX Runtime,
 OpenVINO); ``cuda_only``: needs a CUDA device; ``bf16``: computes in bf16, so on a CPU without native
-bf16 (:data:`pipeline.device.BF16_FLAGS`) it is unavailable, decided from the flags without a call.
+bf16 (:data:`pipeline.runtime.device.BF16_FLAGS`) it is unavailable, decided from the flags without a call.
 """
 
 from __future__ import annotations
@@ -31,9 +31,9 @@ import torch
 from pipeline.catalog import bundle_file
 from pipeline.deploy import openvino_engine
 from pipeline.deploy.cuda_engine import FastStudent
-from pipeline.deploy.export import ONNX_INPUT, load_torchscript, onnx_unavailable_reason, ort_session
-from pipeline.device import BF16_FLAGS, cpu_supports_bf16
-from pipeline.engine_table import ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES, EngineSpec  # noqa: F401
+from pipeline.deploy.mask_path import ONNX_INPUT, load_torchscript, onnx_unavailable_reason, ort_session
+from pipeline.runtime.device import BF16_FLAGS, cpu_supports_bf16
+from pipeline.deploy.engine_table import ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES, EngineSpec  # noqa: F401
 from pipeline.model import mask_path_model
 
 
@@ -180,7 +180,7 @@ def _engine(spec: EngineSpec) -> Engine:
                   cpu_only=spec.cpu_only, cuda_only=spec.cuda_only, bf16=spec.bf16)
 
 
-#: name -> engine: segment's engines and the benchmark's variants, one registry (pipeline.engine_table)
+#: name -> engine: segment's engines and the benchmark's variants, one registry (pipeline.deploy.engine_table)
 ENGINES: dict[str, Engine] = {name: _engine(spec) for name, spec in ENGINE_TABLE.items()}
 
 

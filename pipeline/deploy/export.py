@@ -1,253 +1,166 @@
-"""Export of the deployed mask path (TorchScript, ONNX) and its parity check against PyTorch.
+"""The export stage's logic: one checkpoint -> what its deploy bundle holds (``stages/export.py`` is wiring).
 
-The deployed function is Z = f(x), x float32 [B,3,H,W] RGB in [0, 1] (normalisation is inside the
-model), M = [Z >= logit(tau)] (eq:inference-mask).
-
-Decisions (the paper is silent on deployment formats):
-
-* TorchScript is produced by ``torch.jit.trace`` of the mask path (TinyUNet holds a class-level
-  normalisation constant and an optional training-only module, which ``torch.jit.script`` rejects);
-  the traced graph reads sizes from the input, so it is batch- and size-generic.  It is saved
-  unfrozen so that it still moves between devices.
-* ONNX uses the TorchScript-based exporter (``torch.onnx.export(..., dynamo=False)``): torch 2.13
-  defaults to the dynamo exporter, which needs ``onnxscript`` (not a dependency, not installed here).
-  Both are traced from :class:`pipeline.model.ExportMaskPath`: the same function with the input
-  normalisation folded into the first convolution (the graph input is the image).
-* Parity (export time and tests): PyTorch, TorchScript and ONNX Runtime logits on deterministic
-  smooth random images at the working resolution (batch 2, exercising the dynamic batch axis).
-  Passing needs finite logits with max |dZ| <= ``atol``; then a mask pixel can only differ where the
-  PyTorch logit lies within ``atol`` of logit(tau), i.e. by float round-off alone.  Strict mask
-  equality at tau (``masks_identical``) and the number of differing pixels are reported alongside
-  (and the tests require identical masks on their inputs).
+* :func:`plan_export` -- open the checkpoint, pick tau (:func:`pipeline.thresholds.tau_candidates` and
+  :func:`pipeline.thresholds.resolve_tau`: ``tau`` > the checkpoint's payload > its calibrated row in
+  ``thresholds`` > ``calibrate.fixed_tau``, eq:inference-mask), the working resolution (recorded with
+  the checkpoint, else ``data.resolution``) and the int8 calibration images (TRAINING split of
+  ``artifacts``, images only), and say what the bundle's fingerprint depends on;
+* :func:`write_export` -- write the bundle atomically (:func:`pipeline.deploy.write_bundle`, parity
+  checks first: a failure leaves nothing behind);
+* :func:`export_lines` -- the lines export prints about it.
 """
 
 from __future__ import annotations
 
-import io
-import warnings
+import dataclasses
+import json
 from pathlib import Path
+from typing import Any, Mapping
 
-import numpy as np
-
-from pipeline.deploy.cuda_engine import FastStudent
-from pipeline.metrics import mask_agreement
-from pipeline.model import ExportMaskPath, mask_path_model
-from pipeline.thresholds import logit_threshold
-
-ONNX_INPUT = "image"
-ONNX_OUTPUT = "logits"
+from pipeline.artifacts import artifact_dir, open_artifact
+from pipeline.catalog import META_FILE, bundle_file
+from pipeline.evaluation.inference import load_student
+from pipeline.params import section
+from pipeline.thresholds import resolve_resolution, resolve_tau, tau_candidates
 
 
-class ParityError(RuntimeError):
-    """An exported model does not reproduce the PyTorch mask path (a bug, not a user error)."""
-
-
-def export_module(model):
-    """The exported form of the mask path (:class:`pipeline.model.ExportMaskPath`: same function,
-    input normalisation folded into the first convolution), float32 CPU, eval mode."""
-    return ExportMaskPath(mask_path_model(model)).eval().requires_grad_(False)
-
-
-def parity_inputs(resolution: int, n: int = 2, seed: int = 0):
-    """Deterministic smooth random RGB images float32 [n,3,R,R] in [0,1] (blobs plus fine noise),
-    so that the parity check sees both foreground-like and background-like logits."""
-    import torch
-
-    g = torch.Generator().manual_seed(seed)
-    low = torch.rand(n, 3, max(2, resolution // 8), max(2, resolution // 8), generator=g)
-    x = torch.nn.functional.interpolate(low, size=(resolution, resolution), mode="bilinear",
-                                        align_corners=False)
-    x = 0.85 * x + 0.15 * torch.rand(n, 3, resolution, resolution, generator=g)
-    return x.clamp_(0, 1).contiguous()
-
-
-def onnx_unavailable_reason() -> str | None:
-    """None when ONNX export and ONNX Runtime work here, else a one-line reason (install the extra)."""
-    missing = []
-    for mod in ("onnx", "onnxruntime"):
-        try:
-            __import__(mod)
-        except Exception:  # noqa: BLE001 -- ImportError or a broken binary wheel
-            missing.append(mod)
-    if missing:
-        return (f"{' and '.join(missing)} not importable; ONNX export/benchmark skipped "
-                f"(install the extra: pip install 'geodistill-refine[onnx]')")
-    return None
-
-
-def export_torchscript(model, path: str | Path, resolution: int) -> Path:
-    """Trace the mask path on a [1,3,R,R] example and save it (unfrozen, CPU weights), without debug
-    records (:func:`save_without_debug_records`): the same model gives the same bytes in any folder."""
-    import torch
-
-    deployed = export_module(model)
-    example = torch.zeros(1, deployed.config["in_channels"], resolution, resolution)
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # TracerWarning; torch 2.13's deprecation notice for torch.jit
-        traced = torch.jit.trace(deployed, example, check_trace=False)
-    return save_without_debug_records(traced, path)
-
-
-# Records torch's own writer adds at the end of every archive (copying them would write them twice).
-_WRITER_RECORDS = ("version", "byteorder", ".data/serialization_id")
-
-
-def save_without_debug_records(module, path: str | Path) -> Path:
-    """``torch.jit.save`` of ``module`` to ``path`` minus its ``*.debug_pkl`` records.
-
-    Those records hold the source ranges of the traced code: absolute paths of our files and of
-    torch's (in the virtual environment), so the same model exported from two clones gave two files
-    (and a DVC output that moved with the checkout's folder).  They serve error messages only;
-    ``torch.jit.load`` does without them.  The archive is rewritten by torch's own zip writer
-    (``torch._C.PyTorchFileWriter``, the one ``torch.jit.save`` uses: aligned records, its own
-    version and serialization id), record for record in the original order.
-    """
-    import torch
-
-    buf = io.BytesIO()
-    torch.jit.save(module, buf)
-    buf.seek(0)
-    reader = torch._C.PyTorchFileReader(buf)
-    writer = torch._C.PyTorchFileWriter(str(path))
-    for name in reader.get_all_records():
-        if name.endswith(".debug_pkl") or name in _WRITER_RECORDS:
-            continue
-        data = reader.get_record(name)
-        writer.write_record(name, data, len(data))
-    writer.write_end_of_file()
-    del writer  # closes the file
-    return Path(path)
-
-
-def export_onnx(model, path: str | Path, resolution: int, opset: int) -> Path:
-    """Export the mask path to ONNX (input ``image`` [B,3,H,W] float32, output ``logits`` [B,1,H,W]),
-    batch, height and width dynamic, with the TorchScript-based exporter (module docstring)."""
-    import torch
-
-    deployed = export_module(model)
-    example = torch.zeros(1, deployed.config["in_channels"], resolution, resolution)
-    axes = {0: "batch", 2: "height", 3: "width"}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # deprecation notice of the TorchScript-based exporter
-        torch.onnx.export(deployed, (example,), str(path), opset_version=int(opset), dynamo=False,
-                          input_names=[ONNX_INPUT], output_names=[ONNX_OUTPUT],
-                          dynamic_axes={ONNX_INPUT: axes, ONNX_OUTPUT: axes}, do_constant_folding=True)
-    return Path(path)
-
-
-def ort_session(path: str | Path, threads: int | None = None, optimize: bool = True, spinning: bool = True):
-    """ONNX Runtime CPU session; ``threads`` defaults to torch's intra-op thread count (same budget).
-
-    ``spinning=False`` stops ORT's idle thread pools from busy-waiting between calls (session config
-    ``session.intra_op.allow_spinning`` / ``session.inter_op.allow_spinning`` = 0): for timing, where an
-    idle spinning pool would steal the cores that the other variants are measured on."""
-    import onnxruntime as ort
-    import torch
-
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = int(threads or torch.get_num_threads())
-    so.inter_op_num_threads = 1
-    so.log_severity_level = 3
-    if not spinning:
-        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        so.add_session_config_entry("session.inter_op.allow_spinning", "0")
-    so.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_ENABLE_ALL if optimize
-                                   else ort.GraphOptimizationLevel.ORT_DISABLE_ALL)
-    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-
-
-def load_torchscript(path: str | Path, device="cpu"):
-    """torch.jit.load in eval mode (torch 2.13 marks TorchScript deprecated; the notice is silenced)."""
-    import torch
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        return torch.jit.load(str(path), map_location=device).eval()
-
-
-def torch_logits(model, x) -> np.ndarray:
-    import torch
-
-    with torch.inference_mode():
-        return model(x).float().cpu().numpy()
-
-
-def compare_logits(reference: np.ndarray, logits: np.ndarray, tau: float, atol: float) -> dict:
-    """Parity of exported ``logits`` against the PyTorch ``reference`` at threshold tau (module docstring).
-
-    Masks at tau are [Z >= logit(tau)] (eq:inference-mask)."""
-    reference = np.asarray(reference, np.float64)
-    logits = np.asarray(logits, np.float64)
-    if reference.shape != logits.shape:
-        return {"passed": False, "max_abs_diff": float("inf"), "atol": float(atol), "masks_identical": False,
-                "mask_pixels_differ": -1, "note": f"shape {logits.shape} != {reference.shape}"}
-    finite = bool(np.isfinite(logits).all())
-    diff = float(np.max(np.abs(reference - logits))) if reference.size and finite else (0.0 if finite else float("inf"))
-    z_tau = logit_threshold(tau)
-    differ = (reference >= z_tau) != (logits >= z_tau)
-    return {"passed": bool(finite and diff <= atol), "max_abs_diff": diff, "atol": float(atol),
-            "masks_identical": bool(not differ.any()), "mask_pixels_differ": int(np.count_nonzero(differ)),
-            "pixels": int(reference.size)}
-
-
-def check_parity(model, tau: float, resolution: int, atol: float, torchscript: str | Path | None = None,
-                 onnx: str | Path | None = None, device=None) -> dict:
-    """Run the parity check of the exported files against the PyTorch mask path (module docstring).
-
-    Returns ``{"inputs": ..., "torchscript": {...}, "onnx": {...}}`` (a format's entry is absent when its
-    file is not given).  With a CUDA ``device`` also ``"device"``: :func:`device_parity` there (reported,
-    not required: the GPU's fp32 is not the CPU's bit for bit).  Does not raise; see :func:`require_parity`.
-    """
-    import torch
-
-    x = parity_inputs(resolution)
-    ref = torch_logits(mask_path_model(model), x)
-    out: dict = {"inputs": f"{x.shape[0]} deterministic smooth random images {resolution}x{resolution} (seed 0)",
-                 "tau": float(tau)}
-    if torchscript is not None:
-        ts = load_torchscript(torchscript, "cpu")
-        out["torchscript"] = compare_logits(ref, torch_logits(ts, x), tau, atol)
-    if onnx is not None:
-        sess = ort_session(onnx)
-        out["onnx"] = compare_logits(ref, sess.run(None, {ONNX_INPUT: x.numpy()})[0], tau, atol)
-    if device is not None and torch.device(device).type == "cuda":
-        out["device"] = device_parity(model, tau, resolution, atol, device, torchscript)
-    return out
-
-
-def device_parity(model, tau: float, resolution: int, atol: float, device, torchscript=None) -> dict:
-    """Parity on the device the model will run on: the fp32 PyTorch mask path there (TF32 off) is the
-    reference; compared with it, the TorchScript file on that device and the fast engine
-    (pipeline.deploy.cuda_engine, bf16 + CUDA graphs): max |dZ|, masks identical, and ``mask_iou`` =
-    mean per-image IoU of the masks at tau (:func:`pipeline.metrics.mask_agreement`).
-    TF32 is switched off for the fp32 comparisons: with it (PyTorch's cuDNN default) two fp32 engines
-    disagree on about 2 % of a mask's pixels.  Runs on a CPU too (then the fast engine is fp32 eager)."""
-    import torch
-
-    dev = torch.device(device)
-    x = parity_inputs(resolution)
-    z_tau = logit_threshold(tau)
-    out: dict = {"device": str(dev)}
-    tf32 = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+def is_bundle_dir(path) -> bool:
+    """Whether ``path`` is a folder holding a deploy artifact's meta.json (export's own output)."""
     try:
-        ref = torch_logits(mask_path_model(model).to(dev), x.to(dev))
-        if torchscript is not None:
-            ts_z = torch_logits(load_torchscript(torchscript, dev), x.to(dev))
-            out["torchscript"] = {**compare_logits(ref, ts_z, tau, atol), "mask_iou": mask_agreement(ts_z, ref, z_tau)}
-    finally:
-        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = tf32
-    fast = FastStudent(model, dev)
-    fz = fast.logits(x).float().cpu().numpy()
-    out["fast_engine"] = {**compare_logits(ref, fz, tau, atol), "precision": fast.precision,
-                          "cuda_graphs": fast.cuda_graphs, "mask_iou": mask_agreement(fz, ref, z_tau)}
-    return out
+        return json.loads((Path(path) / META_FILE).read_text()).get("schema") == "deploy"
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
-def require_parity(parity: dict) -> None:
-    """Raise :class:`ParityError` when a checked format failed its parity check."""
-    for fmt in ("torchscript", "onnx"):
-        res = parity.get(fmt)
-        if res is not None and not res["passed"]:
-            raise ParityError(f"{fmt} export differs from PyTorch: max |dZ| = {res['max_abs_diff']:.3g} "
-                              f"(atol {res.get('atol')}), {res['mask_pixels_differ']} mask pixels differ at tau")
+def bundle_files(path) -> set[str]:
+    """The files of the deploy bundle in ``path`` (its deploy.json's ``files``, deploy.json, meta.json);
+    empty when ``path`` holds no bundle: what export may replace there (pipeline.artifacts.ownership)."""
+    if not is_bundle_dir(path):
+        return set()
+    try:
+        listed = json.loads((Path(path) / bundle_file("deploy_json")).read_text()).get("files") or {}
+    except (OSError, ValueError, AttributeError):
+        listed = {}
+    return {str(f) for f in listed} | {bundle_file("deploy_json"), META_FILE}
+
+
+@dataclasses.dataclass
+class ExportPlan:
+    """What :func:`write_export` writes, and the fingerprint's inputs and params (``inputs``, ``params``)."""
+
+    model: Any
+    payload: dict
+    checkpoint: str
+    checkpoint_fingerprint: str
+    tau: float
+    tau_source: str
+    resolution: int
+    resolution_source: str
+    onnx: bool
+    calibration_images: Any
+    calibration_note: str | None
+    settings: dict          # deploy.* as write_bundle takes them (and ``frames``: data.bit_depth, data.letterbox)
+    inputs: list            # opened artifacts (lineage)
+    params: dict            # the fingerprint's params
+    thresholds: str | None
+
+    @property
+    def method(self):
+        return self.payload.get("method")
+
+    @property
+    def seed(self):
+        return self.payload.get("seed")
+
+    def source(self, fingerprint: str) -> dict:
+        """deploy.json's ``source``: the checkpoint, tau's table, the resolution's origin, the bundle's fingerprint."""
+        return {"checkpoint": self.checkpoint, "checkpoint_fingerprint": self.checkpoint_fingerprint,
+                "selected_epoch": self.payload.get("selected_epoch"), "stage": self.payload.get("stage"),
+                "thresholds": self.thresholds, "resolution_source": self.resolution_source,
+                "bundle_fingerprint": fingerprint}
+
+
+def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | None = None, artifacts=None,
+                onnx: bool = True, int8: bool = True) -> ExportPlan:
+    """Everything export decides before writing (module docstring).  ``onnx=False`` (``--no-onnx``)
+    writes TorchScript only; ``int8=False`` (``--no-int8``) or no ``artifacts`` (``--artifacts``): no
+    int8 model, and the plan's ``calibration_note`` says why."""
+    from pipeline.deploy.bundle import checkpoint_resolution  # torch
+    from pipeline.deploy.mask_path import onnx_unavailable_reason
+    from pipeline.deploy.quantize import int8_params, read_calibration_images
+    from pipeline.deploy.bundle import frame_reading
+
+    cfg = section(params, "deploy")
+    q8 = int8_params(cfg)
+    ckpt = open_artifact(checkpoint, "checkpoint")
+    model, payload = load_student(checkpoint, "cpu")
+    inputs = [ckpt]
+    table = open_artifact(thresholds, "thresholds") if thresholds is not None and tau is None else None
+    inputs += [table] if table is not None else []
+    value, source = resolve_tau(option=tau, **tau_candidates(payload=payload, thresholds=table, params=params))
+    resolution, res_source = resolve_resolution(recorded=(checkpoint_resolution(checkpoint, payload), "checkpoint"),
+                                                params=params["data"]["resolution"])
+    calib, calib_note = None, None
+    if not onnx or not int8:
+        calib_note = "--no-onnx" if not onnx else "--no-int8"
+    elif artifacts is None:
+        calib_note = "no --artifacts given (training images calibrate the int8 model)"
+    elif (reason := onnx_unavailable_reason()) is not None:
+        calib_note = reason
+    else:
+        calib, calib_inputs, calib_note = read_calibration_images(artifacts, cfg["int8_calibration_images"],
+                                                                         int(resolution))
+        inputs += calib_inputs
+    frames = frame_reading({k: params["data"].get(k) for k in ("bit_depth", "letterbox")
+                                   if params["data"].get(k) is not None})
+    settings = {"opset": cfg["opset"], "atol": cfg["parity_atol"], "int8_min_mask_iou": cfg["int8_min_mask_iou"],
+                "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"],
+                "int8_weight_bits": q8["weight_bits"], "frames": frames}
+    deploy_params = {"opset": cfg["opset"], "parity_atol": cfg["parity_atol"], "onnx": onnx, "int8": calib is not None,
+                     "int8_calibration_images": cfg["int8_calibration_images"],
+                     "int8_min_mask_iou": cfg["int8_min_mask_iou"],
+                     "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"],
+                     "int8_weight_bits": q8["weight_bits"]}
+    fingerprinted = {"deploy": deploy_params, "tau": value, "tau_source": source, "resolution": int(resolution)}
+    if frames != frame_reading():  # in the fingerprint when set (earlier bundles' fingerprints stay)
+        fingerprinted["frames"] = frames
+    return ExportPlan(model, payload, str(checkpoint), ckpt.fingerprint, value, source, int(resolution), res_source,
+                      onnx, calib, calib_note, settings, inputs, fingerprinted,
+                      str(thresholds) if thresholds else None)
+
+
+def write_export(plan: ExportPlan, out, meta, device=None) -> dict:
+    """Write the bundle of ``plan`` to ``out`` (replaced whole) with artifact metadata ``meta``; its
+    deploy.json content."""
+    from pipeline.deploy.bundle import write_bundle  # torch
+
+    with artifact_dir(out, meta) as tmp:
+        return write_bundle(tmp, plan.model, plan.payload, tau=plan.tau, tau_source=plan.tau_source,
+                                   resolution=plan.resolution, onnx=plan.onnx, source=plan.source(meta.fingerprint),
+                                   calibration_images=plan.calibration_images, calibration_note=plan.calibration_note,
+                                   device=device, **plan.settings)
+
+
+def export_lines(plan: ExportPlan, info: Mapping, out) -> list[str]:
+    """What export prints about the bundle it wrote: tau, size and parity; the ONNX note; device parity;
+    the int8 model's agreement (or why it was skipped)."""
+    from pipeline.deploy.bundle import INT8_FILE
+
+    par = info["parity"]
+    summary = ", ".join(f"{fmt}: max|dZ|={par[fmt]['max_abs_diff']:.2e}, masks identical={par[fmt]['masks_identical']}"
+                        for fmt in ("torchscript", "onnx") if fmt in par)
+    lines = [f"export: {plan.method} seed {plan.seed}, tau={plan.tau:.4g}, {plan.resolution}px -> {out} ({summary})"]
+    if info.get("onnx_note") and plan.onnx:
+        lines.append(f"export: {info['onnx_note']}")
+    for name, d in (par.get("device") or {}).items():
+        if isinstance(d, dict):
+            lines.append(f"export: parity on {par['device']['device']}: {name} max|dZ|={d['max_abs_diff']:.2e}, "
+                         f"mask IoU vs fp32 {d['mask_iou']:.4f}")
+    if "int8" in par and info.get("int8"):
+        q = par["int8"]
+        lines.append(f"export: int8 model {INT8_FILE}: {q['images']} calibration images, "
+                     f"max|dZ|={q['max_abs_diff']:.3g}, mask IoU vs PyTorch mean {q['mask_iou_mean']:.4f} "
+                     f"(gate {q['min_mask_iou']:g}), min {q['mask_iou_min']:.4f}")
+    else:
+        lines.append(f"export: int8 model skipped: {info['int8_note']}")
+    return lines

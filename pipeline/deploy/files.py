@@ -21,7 +21,7 @@ letter case (``b.png`` / ``b.PNG``: one would replace the other on a case-insens
 any disk the folder could not be copied to one), when an output would be a file where another output
 needs a folder, when ``--output`` (or a folder on the way) is a file, when an output would replace an
 input, and -- unless ``overwrite`` -- when an output file or skipped.csv already exists that no
-``segment.json`` of an earlier run lists (:mod:`pipeline.ownership`: a rerun replaces its own outputs,
+``segment.json`` of an earlier run lists (:mod:`pipeline.artifacts.ownership`: a rerun replaces its own outputs,
 never a file it did not write).
 
 Symbolic links inside an input folder (decision): a link to an image inside the input folder is
@@ -55,9 +55,9 @@ from pipeline.datasets.manifest import SKIPPED_COLUMNS
 from pipeline.datasets.scan import Inputs, _is_within, scan_inputs  # noqa: F401  (the folder scan, re-exported)
 from pipeline.deploy.confidence import frame_confidence
 from pipeline.deploy.segmenter import Segmenter
-from pipeline.errors import InputError
-from pipeline.ownership import owned_outputs, refuse_unowned
-from pipeline.progress import progress
+from pipeline.runtime.errors import InputError
+from pipeline.artifacts.ownership import owned_outputs, refuse_unowned
+from pipeline.runtime.progress import progress
 from pipeline.thresholds import mask_from_probs
 
 #: segment's output names (pipeline.catalog.OUTPUT_FILES); the record lists the outputs a rerun may replace
@@ -74,12 +74,6 @@ def output_path(stem: Path, suffix: str) -> Path:
 def output_suffixes(save_prob: bool = False, overlay: bool = False) -> tuple[str, ...]:
     """The output kinds one run writes: the mask, and the probability map / overlay when asked for."""
     return (MASK_SUFFIX,) + ((PROB_SUFFIX,) if save_prob else ()) + ((OVERLAY_SUFFIX,) if overlay else ())
-
-
-def discover_images(input_path: str | Path) -> tuple[Path, list[Path]]:
-    """(root, image files) of :func:`scan_inputs` (the skipped entries are dropped: use scan_inputs)."""
-    found = scan_inputs(input_path)
-    return found.root, found.files
 
 
 def _relative(f: Path, root: Path, root_r: Path) -> Path:
@@ -115,7 +109,7 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
     or one output file would be a folder another output needs; an output would be one of the inputs;
     an output is an existing folder; ``overwrite`` is False and an output file of the kinds
     ``suffixes``, ``skipped.csv`` or ``segment.json`` already exists that the ``segment.json`` of an
-    earlier run does not list (the first one is named; :mod:`pipeline.ownership`).
+    earlier run does not list (the first one is named; :mod:`pipeline.artifacts.ownership`).
     """
     out = Path(out_dir).absolute()
     cache: dict[Path, Path | None] = {}
@@ -396,7 +390,7 @@ def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size,
 
     def fill() -> None:
         while len(pending) < ahead and (job := next(jobs, None)) is not None:
-            # in this context: a reader's warning names options in the caller's terms (pipeline.errors.caller)
+            # in this context: a reader's warning names options in the caller's terms (pipeline.runtime.errors.caller)
             pending.append((*job, pool.submit(contextvars.copy_context().run, _load, job[0], resolution, max_pixels,
                                               overlay, segmenter.bit_depth, segmenter.letterbox)))
 

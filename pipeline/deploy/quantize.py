@@ -53,10 +53,10 @@ from pipeline import catalog
 from pipeline.artifacts import open_artifact, read_chunk_rows
 from pipeline.datasets.loading import resize_image
 from pipeline.deploy import openvino_engine
-from pipeline.deploy.export import ONNX_INPUT, mask_path_model, ort_session, torch_logits
-from pipeline.environment import cpu
-from pipeline.errors import InputError
-from pipeline.inference import images_to_tensor
+from pipeline.deploy.mask_path import ONNX_INPUT, mask_path_model, ort_session, torch_logits
+from pipeline.runtime.environment import cpu
+from pipeline.runtime.errors import InputError
+from pipeline.evaluation.inference import images_to_tensor
 from pipeline.metrics import image_ious
 from pipeline.params import INT8_CALIBRATIONS
 from pipeline.thresholds import logit_threshold

@@ -3,7 +3,7 @@
 Decision (the paper is silent on deployment formats): engines (segment ``--engine``; one registry with
 the benchmark, pipeline.deploy.engines): ``torch`` (the weights of a checkpoint or a bundle), ``cuda``
 (the same weights: the GPU fast path), ``torchscript``, ``onnxruntime_fp32``, ``onnxruntime_int8`` and
-``openvino_int8`` (bundle only; old names: :data:`pipeline.engine_table.ENGINE_ALIASES`); ``auto`` =
+``openvino_int8`` (bundle only; old names: :data:`pipeline.deploy.engine_table.ENGINE_ALIASES`); ``auto`` =
 onnxruntime_fp32 when the bundle holds model.onnx and onnxruntime imports, else torch -- exact engines
 only -- and ``cuda`` on a CUDA device (:func:`resolve_engine`).
 Every engine receives the same preprocessed tensor and the same tau; only the function Z = f(x)
@@ -25,10 +25,10 @@ from pipeline.datasets.loading import check_bit_depth, pixel_limit, probs_to_siz
 from pipeline.deploy.confidence import CONFIDENCE_BAND, confidence_rank_check, frame_confidence  # noqa: F401
 from pipeline.deploy.bundle import INT8_FILE, ONNX_FILE, checkpoint_resolution, is_deploy_bundle, read_deploy_info
 from pipeline.deploy.engines import ENGINES, Source
-from pipeline.deploy.export import onnx_unavailable_reason
-from pipeline.errors import CHECKPOINT, ArtifactError, InputError
-from pipeline.inference import images_to_tensor, load_student
-from pipeline.engine_table import AUTO, ENGINE_CHOICES, MODEL_ENGINES, engine_name
+from pipeline.deploy.mask_path import onnx_unavailable_reason
+from pipeline.runtime.errors import CHECKPOINT, ArtifactError, InputError
+from pipeline.evaluation.inference import images_to_tensor, load_student
+from pipeline.deploy.engine_table import AUTO, ENGINE_CHOICES, MODEL_ENGINES, engine_name
 from pipeline.params import PAPER
 from pipeline.thresholds import mask_from_probs, resolve_resolution, resolve_tau, tau_candidates
 
@@ -183,7 +183,7 @@ def load_segmenter(path: str | Path, engine: str = AUTO, device="cpu", threshold
                    params: dict | None = None) -> Segmenter:
     """Open a checkpoint directory or a deploy bundle for inference with one engine.
 
-    ``engine``: ``auto`` (:func:`resolve_engine`) or a name of :data:`pipeline.engine_table.SEGMENT_ENGINES`
+    ``engine``: ``auto`` (:func:`resolve_engine`) or a name of :data:`pipeline.deploy.engine_table.SEGMENT_ENGINES`
     (the registry says what each runs).  tau candidates (``Segmenter.taus``, resolved
     by :meth:`Segmenter.resolve_tau`): :func:`pipeline.thresholds.tau_candidates` -- deploy.json's tau for
     a bundle; for a checkpoint its payload's tau, else its (method, seed) row in ``thresholds`` (a
@@ -229,7 +229,7 @@ def load_segmenter(path: str | Path, engine: str = AUTO, device="cpu", threshold
 
 def predict_logits_torch(model, x, device) -> np.ndarray:
     """fp32 logits of a PyTorch TinyUNet; on CPU the input goes channels_last (as in
-    pipeline.inference.predict_probs, which calibrate uses), the model is converted by the caller."""
+    pipeline.evaluation.inference.predict_probs, which calibrate uses), the model is converted by the caller."""
     import torch
 
     with torch.inference_mode():

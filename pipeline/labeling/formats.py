@@ -32,7 +32,7 @@ from typing import Sequence
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 
 SPACECRAFT_CATEGORY = {"id": 1, "name": "spacecraft", "supercategory": "object"}
 YOLO_CLASS = 0  # the one class of the YOLO labels (data.yaml names it "spacecraft")

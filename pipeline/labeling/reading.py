@@ -18,11 +18,11 @@ from pipeline.datasets.loading import (SUPPORTED_SUFFIXES, BadFileError, DecodeC
                                        reset_frame_warnings)
 from pipeline.datasets.manifest import BadInputPolicy
 from pipeline.datasets.scan import scan_inputs
-from pipeline.errors import BACKEND, CHECKPOINT, INPUT, LABELS, OUT, OVERWRITE, REFERENCE_MASKS, InputError, literal
+from pipeline.runtime.errors import BACKEND, CHECKPOINT, INPUT, LABELS, OUT, OVERWRITE, REFERENCE_MASKS, InputError, literal
 from pipeline.labeling.writing import FORMATS, OUTPUTS, SIMULATOR_NOTE, label_targets, labels_of_gone_images
-from pipeline.ownership import check_outputs, claim_outputs, owned_outputs, read_record
+from pipeline.artifacts.ownership import check_outputs, claim_outputs, owned_outputs, read_record
 from pipeline.params import section
-from pipeline.progress import progress
+from pipeline.runtime.progress import progress
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.jobs import in_view

@@ -53,7 +53,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from pipeline.errors import FORMAT, InputError, caller
+from pipeline.runtime.errors import FORMAT, InputError, caller
 from pipeline.geometry import NoForeground
 from pipeline.labeling.reading import check_label_folder, find_images, open_folder, teacher_answers
 from pipeline.labeling.writing import FORMATS, OUTPUTS, SIMULATOR_NOTE, YOLO_LISTS, vote_and_export, write_outputs
@@ -132,7 +132,7 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
     (0: the serial loop; same answers either way).  ``copy_images``: ``yolo/images`` holds copies of the
     inputs instead of relative links (``--copy-images``).
 
-    Ownership (:mod:`pipeline.ownership`): ``label.json`` lists the files written; a user's file where
+    Ownership (:mod:`pipeline.artifacts.ownership`): ``label.json`` lists the files written; a user's file where
     one goes (``coco.json``, ``masks/a.png``) is refused before anything is written, ``overwrite`` or
     not; a user's folder (``masks/``) is refused unless ``overwrite``, and the files in it stay; label's
     own files of an earlier run that this run does not write are removed."""

@@ -24,9 +24,9 @@ from pipeline.deploy.files import write_png, write_skipped_csv
 from pipeline.geometry import area_ratios, foreground_agreement
 from pipeline.labeling.formats import (coco_annotation, coco_document, yolo_data_yaml, yolo_image_list,
                                        yolo_lines, yolo_readme, yolo_split)
-from pipeline.ownership import OUTPUTS as RECORD_OUTPUTS
-from pipeline.ownership import WRITTEN_BY, owned_outputs, remove_stale, signature
-from pipeline.progress import progress
+from pipeline.artifacts.ownership import OUTPUTS as RECORD_OUTPUTS
+from pipeline.artifacts.ownership import WRITTEN_BY, owned_outputs, remove_stale, signature
+from pipeline.runtime.progress import progress
 from pipeline.pseudo_labels import Gates, gate_columns, vote_block
 
 log = logging.getLogger("pipeline.labeling.run")  # label's one logger: callers listen to it
@@ -38,7 +38,7 @@ OUTPUTS = output_names("label")
 YOLO_LISTS = (output_file("label_yolo", "train"), output_file("label_yolo", "val"))
 YOLO_DATA, YOLO_README = output_file("label_yolo", "data"), output_file("label_yolo", "readme")
 #: the outputs written whatever the formats (label.json lists them and the files of each format,
-#: :func:`label_targets`; pipeline.ownership); the caches under .cache/ only add files
+#: :func:`label_targets`; pipeline.artifacts.ownership); the caches under .cache/ only add files
 ALWAYS = tuple(OUTPUTS[k] for k in ("table", "csv", "sheet", "skipped"))
 SIMULATOR_NOTE = ("teacher.backend=simulated is a SIMULATOR of foundation-model errors that reads the "
                   "reference masks given with --reference-masks; these are not a real teacher's labels")
@@ -147,7 +147,7 @@ def vote_and_export(job, runner, fmts: tuple[str, ...], vote_threshold: float, c
     sheet_rows = set(sample_for_sheet(pd.DataFrame({"split": ["train"] * n, "group": ["label"] * n}),
                                       int(job.data_cfg["contact_sheet_images"]), int(rng.integers(2**31))).tolist())
     v = Votes(np.zeros(n), np.zeros(n), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n))
-    # file by file, never a folder swapped in whole: what label did not write there stays (pipeline.ownership)
+    # file by file, never a folder swapped in whole: what label did not write there stays (pipeline.artifacts.ownership)
     masks_dir, yolo_dir = out / OUTPUTS["masks"], out / OUTPUTS["yolo"]
     for row in progress(range(n), desc="label: vote + export", unit="img"):
         masks, scores, _, _ = runner.answers(row)

@@ -16,8 +16,8 @@ import yaml
 
 from pipeline import catalog
 from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run
-from pipeline.errors import ArtifactError
-from pipeline.inference import CORRECTED_VALIDATION, iter_runs, load_student, predict_probs
+from pipeline.runtime.errors import ArtifactError
+from pipeline.evaluation.inference import CORRECTED_VALIDATION, iter_runs, load_student, predict_probs
 from pipeline.methods import BASELINE, PROPOSED
 from pipeline.metrics import image_iou
 from pipeline.report import figures as F
@@ -95,7 +95,7 @@ def load_inputs(art: str | Path, profile: str | None = None) -> Inputs:
 def recorded_review(checkpoints: Path) -> dict[str, dict]:
     """{method: ``review`` params} of the runs whose checkpoint records human corrections in the loss
     (``annotation_free: false`` with ``corrections_mode``, written by
-    :func:`pipeline.training_inputs.replace_targets`); {} when none did or there are no checkpoints."""
+    :func:`pipeline.training.inputs.replace_targets`); {} when none did or there are no checkpoints."""
     try:
         extras = [(method, _meta_extra(path)) for method, _, path in iter_runs(checkpoints)]
     except ArtifactError:
@@ -756,7 +756,7 @@ def provenance_section(inp: Inputs) -> Section:
 def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu",
                  environment: dict | None = None) -> tuple[Report, dict, Inputs]:
     """-> (report, plot tables {name: DataFrame}, opened inputs).  ``environment``: the report machine's
-    record (:func:`pipeline.environment.collect`) for the Environment section (None: not recorded)."""
+    record (:func:`pipeline.runtime.environment.collect`) for the Environment section (None: not recorded)."""
     inp = load_inputs(art, profile or None)
     plots: dict[str, pd.DataFrame] = {}
     n_qual = int(cfg.get("qualitative_images", 4))

@@ -1,7 +1,7 @@
 """The report's "Environment" section and its machine-readable twin (``environment.json``): where the
-published numbers were computed (pipeline.environment collects it; nothing here is fingerprinted).
+published numbers were computed (pipeline.runtime.environment collects it; nothing here is fingerprinted).
 
-* the machine and installation that built the report (:func:`pipeline.environment.collect`);
+* the machine and installation that built the report (:func:`pipeline.runtime.environment.collect`);
 * every training run's own record from its checkpoint's ``meta.json``: the precision it actually used
   (``extra.autocast``), its device, torch threads, CPU and torch build (``extra.runtime``).
 """
@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from pipeline.artifacts import open_artifact
-from pipeline.errors import ArtifactError
-from pipeline.inference import iter_runs
+from pipeline.runtime.errors import ArtifactError
+from pipeline.evaluation.inference import iter_runs
 from pipeline.report.document import Section, Table, Text
 
 #: ``extra.autocast`` of a checkpoint -> the precision as the report names it

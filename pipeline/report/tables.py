@@ -11,7 +11,7 @@ from typing import Iterator, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from pipeline.dvc_results import EFFICIENCY_TARGETS, distillation_efficiency, efficiency_target_met
+from pipeline.report.dvc_results import EFFICIENCY_TARGETS, distillation_efficiency, efficiency_target_met
 from pipeline.methods import (BASELINE, CONTINUATION, METHODS, PROPOSED, STAGE_ONE, ablation_table_rows,
                               annotation_free_methods, in_table_order, method_label, methods_with_role, run_label)
 from pipeline.report.analysis import PRIMARY_ENDPOINT, gain_noise_floor, noise_floor_note, tau_text
@@ -484,7 +484,7 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
 
 
 def efficiency_targets_note(verdicts: Sequence[tuple[str, bool | None]]) -> str:
-    """The distillation-efficiency targets (:data:`pipeline.dvc_results.EFFICIENCY_TARGETS`) and, per method,
+    """The distillation-efficiency targets (:data:`pipeline.report.dvc_results.EFFICIENCY_TARGETS`) and, per method,
     on how many of the table's groups they are met: ``verdicts`` = (method, met or None) per row."""
     parts = []
     for m, (target, on_interval) in EFFICIENCY_TARGETS.items():
@@ -497,7 +497,7 @@ def efficiency_targets_note(verdicts: Sequence[tuple[str, bool | None]]) -> str:
 
 
 def efficiency_text(e: float, lo: float, hi: float) -> str:
-    """``0.84 [0.80, 0.88]`` from :func:`pipeline.dvc_results.distillation_efficiency`'s (ratio, low, high);
+    """``0.84 [0.80, 0.88]`` from :func:`pipeline.report.dvc_results.distillation_efficiency`'s (ratio, low, high);
     ``--`` without a vote."""
     if not math.isfinite(e):
         return "--"
@@ -523,7 +523,7 @@ def calibration_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Tabl
                  ["Method", "Calibrated tau", "Val IoU at tau", f"Val IoU at {tau_text(fixed_tau)}", "ECE (pixels)",
                   "Pred./ref. area at tau", f"Pred./ref. area at {tau_text(fixed_tau)}", "Seeds"], rows,
                  ["ECE: expected calibration error of the pixel probabilities over equal-width bins "
-                  "(pipeline.diagnostics).  Pred./ref. area: median over validation images of predicted / reference "
+                  "(pipeline.evaluation.diagnostics).  Pred./ref. area: median over validation images of predicted / reference "
                   "foreground area (1 = no inflation).  Mean ± sample std over seeds."])
 
 

@@ -7,13 +7,13 @@ manifest and brings them to the working resolution: the ``corrected`` artifact (
 is not the manifest's for that image, an image outside the training split (a validation or test
 image's mask is already a reference mask, or is evaluation), and ``validate`` on a benchmark source.
 
-The train stage then reads it in the mode ``review.mode`` (:func:`pipeline.training_inputs.apply_to_training`,
-:func:`~pipeline.training_inputs.apply_to_validation`, called by its ``load_inputs``; they live there so
+The train stage then reads it in the mode ``review.mode`` (:func:`pipeline.training.inputs.apply_to_training`,
+:func:`~pipeline.training.inputs.apply_to_validation`, called by its ``load_inputs``; they live there so
 that the training stages' code deps -- and the default dvc.yaml -- do not move):
 
 ``validate``  the corrected images leave the training set and become validation images with the
               corrected masks -- checkpoint selection (the train stage), tau (the calibrate stage,
-              :func:`pipeline.inference.validation_corrections`) and the report, which says how many --
+              :func:`pipeline.evaluation.inference.validation_corrections`) and the report, which says how many --
               so the student stays annotation-free: a person's masks select and calibrate, never enter
               the loss.  The test split is untouched (corrections of test images are refused).  Meant for a folder of one's own
               (``data.source: folder``), whose validation split is drawn from the same pool; on a
@@ -36,9 +36,9 @@ import numpy as np
 
 from pipeline.artifacts import write_zarr
 from pipeline.datasets.loading import resize_nearest
-from pipeline.errors import InputError, Option
+from pipeline.runtime.errors import InputError, Option
 from pipeline.review.corrections import correction_masks
-from pipeline.training_inputs import MODE_KEY, MODES
+from pipeline.training.inputs import MODE_KEY, MODES
 
 STAGE = "corrections"
 #: the data sources whose validation split is drawn from the same pool as training (validate is meant for them)

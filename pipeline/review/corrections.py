@@ -43,10 +43,10 @@ import numpy as np
 from pipeline.artifacts import make_meta, open_artifact, write_parquet
 from pipeline.datasets.loading import SUPPORTED_SUFFIXES, read_mask
 from pipeline.datasets.scan import scan_inputs
-from pipeline.errors import ArtifactError, InputError, Option, literal
+from pipeline.runtime.errors import ArtifactError, InputError, Option, literal
 from pipeline.labeling.formats import rle_encode
 from pipeline.metrics import image_iou
-from pipeline.ownership import read_record, refuse_unowned
+from pipeline.artifacts.ownership import read_record, refuse_unowned
 from pipeline.review.export import COMMAND as EXPORT_COMMAND
 from pipeline.review.export import EXPORT_FIELD, OUTPUTS as EXPORT_OUTPUTS
 from pipeline.review.formats import (LS_FROM_NAME, FormatError, coco_segmentation_mask, ls_rle_decode,

@@ -6,7 +6,7 @@ Reads ``LABEL_DIR/label.json`` (it must be a complete run of ``geodistill label`
 of label); with a student (``predict``: the CLI's ``--student BUNDLE``) also the input images, for the
 student-teacher disagreement.  Writes under ``out`` only, and nothing else::
 
-    review.json                         the record (pipeline.ownership), written first: the export id,
+    review.json                         the record (pipeline.artifacts.ownership), written first: the export id,
                                         ranking, and per exported image its id, file, size, rank,
                                         score and voted mask (compressed COCO RLE) -- what review
                                         import checks the corrections against
@@ -43,10 +43,10 @@ import numpy as np
 from pipeline.artifacts import atomic_path, canonical_json, write_json
 from pipeline.catalog import output_names
 from pipeline.datasets.loading import probs_to_size, read_mask
-from pipeline.errors import OUT, InputError, Option, literal
+from pipeline.runtime.errors import OUT, InputError, Option, literal
 from pipeline.labeling.formats import SPACECRAFT_CATEGORY, rle_encode
 from pipeline.labeling.run import OUTPUTS as LABEL_OUTPUTS
-from pipeline.ownership import (check_outputs, claim_outputs, read_record, record_fields,
+from pipeline.artifacts.ownership import (check_outputs, claim_outputs, read_record, record_fields,
                                 refuse_foreign_files, signature)
 from pipeline.review.formats import coco_review_annotation, ls_label_config, ls_results
 from pipeline.review.ranking import DEFAULT_RANKING, STUDENT_COLUMN, rank, student_disagreement
@@ -168,7 +168,7 @@ def _check_options(top, ls_shape: str, coco_shape: str) -> None:
 def check_export_outputs(out: Path, overwrite: bool) -> None:
     """Refuse (InputError, one line) before anything is written: a file of the user's inside a folder
     the export swaps in whole (``labelstudio/``, ``cvat/``), ``overwrite`` or not, then what else is
-    in the way (:func:`pipeline.ownership.check_outputs`).  ``out``: the export folder."""
+    in the way (:func:`pipeline.artifacts.ownership.check_outputs`).  ``out``: the export folder."""
     for folder, files in FOLDER_FILES.items():  # first: --overwrite would not save such a file either
         refuse_foreign_files(out / folder, files, command=COMMAND, option=OUT, where=out,
                              why=f"not a file {signature(COMMAND)} writes in {folder}/, which it replaces whole")

@@ -23,7 +23,7 @@ import urllib.request
 from pathlib import Path
 from typing import Callable
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.review.corrections import read_review
 from pipeline.review.export import LS_CONFIG, LS_RECORD_KEY, LS_TASKS, OUTPUTS, server_env
 

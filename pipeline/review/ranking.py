@@ -32,7 +32,7 @@ import dataclasses
 
 import numpy as np
 
-from pipeline.errors import InputError, Option
+from pipeline.runtime.errors import InputError, Option
 from pipeline.metrics import image_iou
 
 RANKING = Option("--ranking", "ranking")

@@ -21,9 +21,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.artifacts import Meta, ZarrWriter, open_artifact, require_same_run, write_parquet
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.params import SIMULATED
-from pipeline.progress import progress
+from pipeline.runtime.progress import progress
 from pipeline.teachers.base import manifest_extras
 from pipeline.teachers.inputs import ArtifactInputs
 from pipeline.teachers.runner import RunStats, TeacherRunner, open_runner

@@ -31,7 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.teachers.cache import TeacherCache
 from pipeline.teachers.jobs import InputLoader, TeacherJob, TeacherSpec, answer_job
 

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.params import IMPORTED as BACKEND
 from pipeline.teachers.base import TeacherInput, finalize_answers
 

@@ -38,8 +38,8 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.progress import progress
+from pipeline.runtime.errors import InputError
+from pipeline.runtime.progress import progress
 from pipeline.teachers import teacher_fingerprint
 from pipeline.teachers.base import VIEWS, Teacher
 from pipeline.teachers.cache import TeacherCache

@@ -47,10 +47,10 @@ from fsspec.core import url_to_fs
 from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.artifacts import atomic_path
-from pipeline.device import resolve_device
-from pipeline.errors import InputError, Option, literal
+from pipeline.runtime.device import resolve_device
+from pipeline.runtime.errors import InputError, Option, literal
 from pipeline.params import SAM3 as BACKEND
-from pipeline.progress import library_bars_off
+from pipeline.runtime.progress import library_bars_off
 from pipeline.teachers.base import TeacherInput, finalize_answers
 
 log = logging.getLogger(__name__)

@@ -50,7 +50,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.metrics import image_iou
 from pipeline.params import SIMULATED as BACKEND
 from pipeline.teachers.base import TeacherInput, finalize_answers

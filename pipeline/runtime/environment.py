@@ -8,7 +8,7 @@ their caches valid.  Two records use it:
 
 * every train run stores :func:`training_runtime` in its checkpoint's ``meta.json`` (``extra.runtime``:
   device, torch threads, CPU, torch build), next to ``extra.autocast``, the precision it actually used
-  (``bfloat16`` autocast or ``fp32``, pipeline.device.autocast_dtype of ``train.precision``);
+  (``bfloat16`` autocast or ``fp32``, pipeline.runtime.device.autocast_dtype of ``train.precision``);
 * the report writes :func:`collect` (the machine that built it) and those per-run records to
   ``environment.json`` and renders them as its "Environment" section (pipeline.report.build).
 
@@ -29,7 +29,7 @@ from typing import Any, Mapping
 
 from pipeline.artifacts import library_versions
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: the lock file in the project root (the Makefile's ``LOCK`` names the same file)
 LOCK_FILE = ROOT / "requirements" / "lock.txt"
 

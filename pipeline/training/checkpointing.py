@@ -1,4 +1,4 @@
-"""Per-epoch resume state on disk: the :class:`pipeline.training.Checkpointer` the train stage uses.
+"""Per-epoch resume state on disk: the :class:`pipeline.training.loop.Checkpointer` the train stage uses.
 
 The state lives in ``<directory>/state.pt``, ``directory`` being the resume folder under the run's
 checkpoint fingerprint (stages/train.py), so a run whose training params changed starts afresh; a

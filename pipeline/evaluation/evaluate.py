@@ -6,7 +6,7 @@ gains over the reference points of the method table (the ``evaluate`` stage is i
 * :func:`score_runs` -- ``metrics.parquet``: one row per (group, method, seed, image, threshold_mode) with
   Image IoU, Boundary F1, precision, recall, predicted area ratio and small-region IoU
   (:func:`pipeline.metrics.score_masks`), the target fraction and size class
-  (:mod:`pipeline.diagnostics`) and the predicted / reference area;
+  (:mod:`pipeline.evaluation.diagnostics`) and the predicted / reference area;
 * :func:`summarize` -- ``summary.parquet``: mean and sample std over seeds of the per-seed means
   (:func:`pipeline.stats.seed_summary`) and, for every reference point of the method table
   (:data:`pipeline.methods.GAIN_CONTROLS`), the gains of the methods it covers
@@ -26,12 +26,12 @@ import pandas as pd
 
 from pipeline import catalog
 from pipeline.artifacts import read_chunk_rows
-from pipeline.diagnostics import target_fractions, target_size_class
-from pipeline.errors import ArtifactError
-from pipeline.inference import load_student, predict_probs
+from pipeline.evaluation.diagnostics import target_fractions, target_size_class
+from pipeline.runtime.errors import ArtifactError
+from pipeline.evaluation.inference import load_student, predict_probs
 from pipeline.methods import BASELINE, GAIN_CONTROLS, gain_treatments
 from pipeline.metrics import score_masks, scoring_reference
-from pipeline.progress import progress
+from pipeline.runtime.progress import progress
 from pipeline.stats import DEFAULT_INTERVAL, method_gains, seed_summary, vs_column
 from pipeline.thresholds import mask_from_probs, tau_candidates
 

@@ -26,7 +26,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from pipeline.catalog import LEGACY_WEIGHTS_FILE, WEIGHTS_CONFIG_FILE, WEIGHTS_FILE
-from pipeline.errors import ArtifactError
+from pipeline.runtime.errors import ArtifactError
 
 GEOMETRY_PREFIX = "geometry_heads."
 #: the safetensors header's metadata: ONE key, since safetensors writes the metadata map in hash order

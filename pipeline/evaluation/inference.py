@@ -4,7 +4,7 @@ Checkpoint directory (schema ``checkpoint``)::
 
     model.safetensors  mask-path weights + the training-only geometry heads (``geometry_heads.*``)
     model.json         TinyUNet config and the run's fields: method, seed, stage, selected_epoch, ...
-                       (both: pipeline.weights; older checkpoints hold one ``model.pt`` instead, still read)
+                       (both: pipeline.artifacts.weights; older checkpoints hold one ``model.pt`` instead, still read)
     log.parquet        training log (schema ``training_log``)
     meta.json          artifact metadata (fingerprint, lineage)
 
@@ -22,8 +22,8 @@ from pipeline import catalog
 from pipeline.artifacts import (Artifact, artifact_dir, make_meta, open_artifact, read_chunk_rows, require_same_run,
     write_parquet)
 from pipeline.catalog import META_FILE, TRAINING_LOG_FILE
-from pipeline.device import autocast, autocast_dtype
-from pipeline.errors import ArtifactError, InputError
+from pipeline.runtime.device import autocast, autocast_dtype
+from pipeline.runtime.errors import ArtifactError, InputError
 
 
 def iter_runs(checkpoints_dir: str | Path) -> Iterator[tuple[str, int, Path]]:
@@ -39,13 +39,13 @@ def iter_runs(checkpoints_dir: str | Path) -> Iterator[tuple[str, int, Path]]:
 
 
 def load_payload(path: str | Path) -> dict:
-    """The payload of a checkpoint/bundle directory or weights file (:func:`pipeline.weights.read_weights`):
+    """The payload of a checkpoint/bundle directory or weights file (:func:`pipeline.artifacts.weights.read_weights`):
     ``state_dict``, ``geometry_state_dict``, ``config`` and the run's fields.  Nothing in the files can
     execute code: safetensors + JSON, or a legacy ``model.pt`` read with ``weights_only=True`` (a file
     that needs anything but tensors and plain data is refused with an :class:`ArtifactError` naming it).
     Checkpoints travel between labs, so this is the only way the project reads them.
     """
-    from pipeline.weights import read_weights
+    from pipeline.artifacts.weights import read_weights
 
     return read_weights(path)
 
@@ -57,7 +57,7 @@ def load_student(path: str | Path, device="cpu"):
     """
 
     from pipeline.model import TinyUNet
-    from pipeline.weights import weights_path
+    from pipeline.artifacts.weights import weights_path
 
     pt = weights_path(path)
     payload = load_payload(pt)
@@ -110,13 +110,13 @@ def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: 
 
 def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
     """Write a checkpoint directory atomically: model.safetensors + model.json (mask path + optional
-    geometry heads, config; :func:`pipeline.weights.write_weights`), log.parquet (the training log
+    geometry heads, config; :func:`pipeline.artifacts.weights.write_weights`), log.parquet (the training log
     DataFrame, schema ``training_log``) and meta.json.
 
     ``meta`` is the checkpoint's :class:`pipeline.artifacts.Meta` (schema ``checkpoint``);
     ``payload`` adds fields to model.json (method, seed, stage, selected_epoch, ...; JSON values).
     """
-    from pipeline.weights import write_weights
+    from pipeline.artifacts.weights import write_weights
 
     geo = model.geometry_heads.state_dict() if getattr(model, "geometry_heads", None) is not None else None
     with artifact_dir(path, meta) as tmp:

@@ -13,7 +13,7 @@ import re
 import time
 from typing import Any, Mapping
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.methods import STAGE_ONE, get_method
 
 _UNITS = {"s": 1, "m": 60, "h": 3600}
@@ -40,7 +40,7 @@ def step_seconds(cfg: Mapping[str, Any], resolution: int, device: str = "cpu", s
     import torch
 
     from pipeline.losses import raw_terms
-    from pipeline.training import build_model
+    from pipeline.training.loop import build_model
 
     if int(cfg.get("num_threads") or 0) > 0:
         torch.set_num_threads(int(cfg["num_threads"]))

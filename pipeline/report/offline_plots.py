@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Sequence
 
 from pipeline.catalog import PLOT_TEMPLATE
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 
 #: the installed package whose files are the chart library, and its files in load order
 VEGA_PACKAGE = "js_lib_vega_embed"

@@ -24,7 +24,7 @@ from pipeline.datasets.loading import DecodeCache
 from pipeline.datasets.manifest import BadInputPolicy
 from pipeline.datasets.params import fingerprint_params
 from pipeline.datasets.synthetic import PART_NAMES
-from pipeline.progress import progress
+from pipeline.runtime.progress import progress
 
 #: the reference artifact's note: what its masks may be used for
 REFERENCE_NOTE = ("reference masks: checkpoint selection, calibration, evaluation and the simulated teacher only "

@@ -19,7 +19,7 @@ The policy -- a command replaces only what it wrote, ``--overwrite`` or not -- i
   run no longer makes them, exactly the listed files (:func:`remove_stale`).  A folder listed by a
   record of an earlier version owns the files at the paths this run writes inside it, nothing else;
 * a **file** the command did not write, where one of its outputs would go, is refused before anything
-  is written: one line naming it (exit code 2, :class:`~pipeline.errors.InputError`) -- with
+  is written: one line naming it (exit code 2, :class:`~pipeline.runtime.errors.InputError`) -- with
   ``--overwrite`` too, since the command can neither leave it in place nor replace it;
 * a **folder** in the way that no record of the command claims (the user's ``masks/``) is refused
   unless ``--overwrite``: the user's yes to write the command's files into it;
@@ -35,7 +35,7 @@ from pathlib import Path, PurePosixPath
 from typing import Iterable, Mapping
 
 from pipeline.artifacts import write_json
-from pipeline.errors import OUT, OVERWRITE, InputError, Option, literal
+from pipeline.runtime.errors import OUT, OVERWRITE, InputError, Option, literal
 
 WRITTEN_BY = "written_by"
 OUTPUTS = "outputs"
@@ -105,7 +105,7 @@ def refuse_unowned(paths: Iterable[str | Path], owned: Iterable[str | Path], *, 
     output (e.g. "not listed in its label.json"); ``option``/``where``: the option and value that
     named the output location (``--out run/``)."""
     mine = {Path(p).absolute() for p in owned}
-    opt = _option(option)  # named in the caller's terms (pipeline.errors)
+    opt = _option(option)  # named in the caller's terms (pipeline.runtime.errors)
     for p in paths:
         p = Path(p)
         if not (p.is_symlink() or p.exists()) or p.absolute() in mine:

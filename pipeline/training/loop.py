@@ -45,7 +45,7 @@ Resilience
     epoch, log so far, best state) goes to the run's :class:`Checkpointer`; a rerun whose
     checkpointer returns that state continues after the last finished epoch and produces the same
     weights as an uninterrupted run; a finished state makes a rerun instant;
-  * a non-finite loss raises :class:`pipeline.errors.TrainingDiverged` naming epoch, step and term;
+  * a non-finite loss raises :class:`pipeline.runtime.errors.TrainingDiverged` naming epoch, step and term;
     nothing is saved for that epoch.
 """
 
@@ -66,16 +66,16 @@ import torch
 from pipeline import losses
 from pipeline.augment import AugmentSpec, GeometryConstants, augment_batch
 from pipeline.artifacts import Artifact, read_chunk_rows
-from pipeline.device import autocast, autocast_dtype
-from pipeline.errors import ArtifactError, InputError, TrainingDiverged
-from pipeline.inference import predict_probs
+from pipeline.runtime.device import autocast, autocast_dtype
+from pipeline.runtime.errors import ArtifactError, InputError, TrainingDiverged
+from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import (Method, Plan, afs_fuse, afs_keep, confidence_pass, input_artifacts, mean_valid_score,
                               method_epochs, method_lr, pass_ratio, resolve_plan, uses_confidence)
 from pipeline.metrics import boundary_f1, image_ious
 from pipeline.model import TinyUNet, model_options, recompute_bn_stats
 from pipeline.params import PAPER
-from pipeline.progress import progress
-from pipeline.streaming import LazyRows, MappedRows, RowSource, prefetch, row_means, select_rows, spill_rows
+from pipeline.runtime.progress import progress
+from pipeline.training.streaming import LazyRows, MappedRows, RowSource, prefetch, row_means, select_rows, spill_rows
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 
 log = logging.getLogger(__name__)
@@ -103,7 +103,7 @@ class TrainData:
     """Training data for the rows a method trains on (manifest order).
 
     ``images``/``mask``/``sdf``/``skeleton`` are numpy arrays (in memory) or row sources
-    (:class:`pipeline.streaming.LazyRows`, :class:`~pipeline.streaming.MappedRows`: read from the Zarr
+    (:class:`pipeline.training.streaming.LazyRows`, :class:`~pipeline.training.streaming.MappedRows`: read from the Zarr
     artifacts per batch while training -- what :func:`training_data` returns, so memory does not grow
     with N); both give the same batches and weights for a seed.  Per image only scalars stay in memory
     (``image_ids``, ``area``, ``gate``).
@@ -188,9 +188,9 @@ def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, A
     """
     if "reference" in inputs:
         raise ValueError("training_data: reference masks never enter training (use validation_data)")
-    if not method.annotation_free:  # the supervised ceiling: pipeline.supervised, the one exception
+    if not method.annotation_free:  # the supervised ceiling: pipeline.training.supervised, the one exception
         raise ValueError(f"training_data: --method {method.name} trains on reference masks; "
-                         f"its targets come only from pipeline.supervised.ceiling_training_data")
+                         f"its targets come only from pipeline.training.supervised.ceiling_training_data")
     missing = [n for n in training_inputs(method, cfg) if n not in inputs]
     if missing:
         raise ValueError(f"training_data: --method {method.name} needs the artifacts {missing}")
@@ -485,7 +485,7 @@ def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: M
 def _tensors(data: TrainData, device: torch.device, anchor: np.ndarray | RowSource | None
              ) -> dict[str, torch.Tensor | RowSource]:
     """The training set per key (uint8 images NHWC, targets), once per run: in-memory arrays as tensors
-    on ``device``; a :class:`pipeline.streaming.RowSource` stays on disk and :func:`_batch` reads a batch's rows.
+    on ``device``; a :class:`pipeline.training.streaming.RowSource` stays on disk and :func:`_batch` reads a batch's rows.
     Built from :class:`TrainData` only: pseudo-targets, never reference masks."""
     arrays = {"image": (data.images, None), "mask": (data.mask, None), "area": (data.area, np.float32),
               "gate": (data.gate, np.float32)}
@@ -774,7 +774,7 @@ def _anchor_probs(frozen, images: np.ndarray | RowSource, device: torch.device, 
     """The frozen Stage-I probabilities of every training image (the target of L_anchor,
     :func:`pipeline.losses.anchor_loss`), computed once per run, ``ANCHOR_BATCH`` images at a time.
     Without ``scratch``: one in-memory array.  With it: written block by block to a Zarr array in that
-    directory and read back per training batch (:func:`pipeline.streaming.spill_rows`) -- 0.6 MB per
+    directory and read back per training batch (:func:`pipeline.training.streaming.spill_rows`) -- 0.6 MB per
     image at 384^2 otherwise held for the whole run."""
     def blocks():
         for start in range(0, len(images), ANCHOR_BATCH):

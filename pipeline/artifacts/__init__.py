@@ -46,7 +46,7 @@ import numpy as np
 
 from pipeline.catalog import (DEPLOY_BUNDLE, LEGACY_WEIGHTS_FILE, META_FILE, TRAINING_LOG_FILE, WEIGHTS_FILE,
                               output_file)
-from pipeline.errors import ArtifactError, InputError
+from pipeline.runtime.errors import ArtifactError, InputError
 
 #: the program's name (the console script, pyproject.toml [project.scripts]), also the namespace of the
 #: artifacts' metadata.  It equals the proposed method's name by coincidence: tests/test_method_table.py
@@ -82,7 +82,7 @@ def _s(name, version, kind, **kw) -> Schema:
     return Schema(name=name, version=version, kind=kind, **kw)
 
 
-#: a model's weights: safetensors, or the torch pickle of older runs (pipeline.weights)
+#: a model's weights: safetensors, or the torch pickle of older runs (pipeline.artifacts.weights)
 WEIGHTS_FILES = f"{WEIGHTS_FILE}|{LEGACY_WEIGHTS_FILE}"
 
 
@@ -113,7 +113,7 @@ SCHEMAS: dict[str, Schema] = {
         _s("geometry", 1, "zarr", arrays={"sdf": ("f", 3), "skeleton": ("b", 3)}),
         _s("gates", 1, "parquet", columns=(
             "image_id", "split", "c", "v", "a", "a0", "g_conf", "g_valid", "g_area", "g", "n_valid")),
-        # weights: model.safetensors (+ model.json), or model.pt of older runs (pipeline.weights)
+        # weights: model.safetensors (+ model.json), or model.pt of older runs (pipeline.artifacts.weights)
         _s("checkpoint", 1, "dir", files=(WEIGHTS_FILES, TRAINING_LOG_FILE)),
         _s("training_log", 2, "parquet", columns=("epoch", "stage", "loss", "val_iou", "val_bf1", "lr")),
         _s("thresholds", 1, "parquet", columns=("method", "seed", "tau", "val_iou")),

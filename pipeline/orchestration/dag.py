@@ -1,6 +1,6 @@
 """The DVC DAG, derived rather than typed: code deps from imports, params key by key, active runs only.
 
-* code deps: :func:`pipeline.codeversion.code_deps` (the files a stage script imports, the same list
+* code deps: :func:`pipeline.runtime.codeversion.code_deps` (the files a stage script imports, the same list
   that makes its code version);
 * :func:`render_dvc_yaml` writes ``dvc.yaml`` from the catalogue (:mod:`pipeline.catalog`) and the
   method table (:mod:`pipeline.methods`): one ``train_<method>`` stage per method whose
@@ -24,7 +24,7 @@ from typing import Any
 import yaml
 
 from pipeline.catalog import ARTIFACTS, EXTRA_PATHS, PLOTS, PLOT_TEMPLATE, STAGES, StageSpec, dvc_path
-from pipeline.codeversion import code_deps
+from pipeline.runtime.codeversion import code_deps
 from pipeline.methods import METHODS, STAGE_ONE, input_artifacts, param_keys
 from pipeline.params import Params, deep_merge, unresolved, validate
 from pipeline.profiles import profile_params
@@ -156,7 +156,7 @@ OPTIONAL_STAGES = {"corrections": "review.corrections"}
 REVIEW_TRAIN_DEPS = ("corrected",)
 REVIEW_TRAIN_PARAMS = ("review.corrections", "review.mode", "review.human_targets")
 #: the stages past training that read the ``corrections`` stage's out when it exists (validate mode: the
-#: corrected images are validation images, pipeline.inference.validation_corrections), and their params
+#: corrected images are validation images, pipeline.evaluation.inference.validation_corrections), and their params
 REVIEW_VALIDATION_STAGES = ("calibrate",)
 REVIEW_VALIDATION_PARAMS = ("review.corrections", "review.mode")
 
@@ -227,7 +227,7 @@ def dvc_plots(omit: tuple[str, ...] = ()) -> list[dict]:
             for p in PLOTS if ARTIFACTS[p.data].stage not in omit]
 
 
-#: the DVCLive column a run always logs (pipeline.dvc_results.write_live_log), plotted where no validation curve is
+#: the DVCLive column a run always logs (pipeline.report.dvc_results.write_live_log), plotted where no validation curve is
 LIVE_PLOT_METRIC = "loss"
 
 
@@ -306,7 +306,7 @@ def _emit(model_cls, values: dict, indent: int, lines: list[str]) -> None:
 
 
 #: how every generated params file begins (PARAMS_HEADER, a distill project's header): how `profile`
-#: recognises its own output (pipeline.ownership)
+#: recognises its own output (pipeline.artifacts.ownership)
 GENERATED_PARAMS_MARK = "# GeoDistill-Refine params"
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import contextlib
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 
 
 def resolve_device(name: str = "auto"):

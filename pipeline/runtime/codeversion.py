@@ -2,7 +2,7 @@
 
 :func:`module_files` follows a stage script's imports (transitively, including imports inside
 functions) to the project files it runs.  They are the stage's code deps in ``dvc.yaml``
-(:func:`code_deps`, rendered by :mod:`pipeline.dag`) and its code version in every artifact fingerprint
+(:func:`code_deps`, rendered by :mod:`pipeline.orchestration.dag`) and its code version in every artifact fingerprint
 (:func:`code_version_of`), so the two cannot disagree.
 
 This module imports nothing of the project: every stage reads its own code version through it, so
@@ -17,7 +17,7 @@ import functools
 import hashlib
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 PROJECT_PACKAGES = ("pipeline", "stages", "benchmarks", "tools")
 
 

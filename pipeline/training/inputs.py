@@ -1,7 +1,7 @@
 """What a training run reads, opened from an artifacts directory: the train stage's inputs, callable
 without the CLI (the train stage and the recipe study both call :func:`load_inputs`).
 
-This module stays torch-free: :mod:`pipeline.training` (torch) is imported when a run loads its arrays.
+This module stays torch-free: :mod:`pipeline.training.loop` (torch) is imported when a run loads its arrays.
 """
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ import numpy as np
 from pipeline import catalog
 from pipeline.artifacts import open_artifact, require_same_run
 from pipeline.augment import recompute_geometry
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.geometry import area_ratio
-from pipeline.inference import REVIEW_MODE_KEY, corrected_validation, require_mode
-from pipeline.streaming import RowSource, select_rows
+from pipeline.evaluation.inference import REVIEW_MODE_KEY, corrected_validation, require_mode
+from pipeline.training.streaming import RowSource, select_rows
 
 
 def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any], review: Mapping[str, Any] | None = None
@@ -34,10 +34,10 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any], review: Map
 
     Returns (TrainData, ValData or None, the artifacts opened -- the checkpoint's lineage).
     reference.zarr is opened only when the manifest has validation rows, and goes only to
-    :func:`pipeline.training.validation_data` -- except for the supervised ceiling (NOT
-    annotation-free), whose targets :func:`pipeline.supervised.ceiling_training_data` builds from it.
+    :func:`pipeline.training.loop.validation_data` -- except for the supervised ceiling (NOT
+    annotation-free), whose targets :func:`pipeline.training.supervised.ceiling_training_data` builds from it.
     """
-    from pipeline import training  # torch: imported when a run trains, not with the stage module
+    from pipeline.training import loop as training  # torch: imported when a run trains, not with the stage module
 
     def opened_artifact(name: str):
         return open_artifact(catalog.path(name, artifacts), catalog.ARTIFACTS[name].schema)
@@ -50,7 +50,7 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any], review: Map
     if spec.annotation_free:
         data = training.training_data(spec, cfg, inputs)
     else:  # the supervised ceiling: the one method whose loss sees reference masks (NOT annotation-free)
-        from pipeline.supervised import ceiling_training_data  # imports pipeline.training (torch)
+        from pipeline.training.supervised import ceiling_training_data  # imports pipeline.training.loop (torch)
 
         reference = opened_artifact("reference")
         opened.append(reference)
@@ -114,7 +114,7 @@ def _positions(data, ids: list[str]) -> dict[int, str]:
 
 
 def apply_to_training(data, corrected, mode: str):
-    """``data`` (a :class:`pipeline.training.TrainData`) with the opened ``corrected`` artifact applied
+    """``data`` (a :class:`pipeline.training.loop.TrainData`) with the opened ``corrected`` artifact applied
     in ``mode``: ``validate`` drops the corrected images, ``replace`` patches their targets (module
     docstring).  Records ``human_corrections`` (how many applied), ``corrections_mode`` and, in replace
     mode, ``annotation_free: False`` and the targets in ``data.stats``."""
@@ -166,7 +166,7 @@ def replace_targets(data, masks: Mapping[str, np.ndarray], stats: Mapping[str, A
 
 def apply_to_validation(val, corrected, images, val_cls):
     """Validation data with the corrected images appended (``validate`` mode): ``val`` (a
-    :class:`pipeline.training.ValData`, or None when the run has no validation masks) plus the corrected
+    :class:`pipeline.training.loop.ValData`, or None when the run has no validation masks) plus the corrected
     images (read from the opened ``images`` artifact at the ``corrected`` artifact's rows) and their
     corrected masks; ``val_cls`` builds it (ValData)."""
     ids, imgs, masks = corrected_validation(corrected, images)

@@ -33,7 +33,7 @@ efficiency's per-seed interval is the report's (reference-points table: two more
 widen ``dvc metrics show`` to 145 characters with every method of the catalogue).
 
 Plot tables (evaluate; git-tracked CSVs drawn by the ``method_lines`` template, one line per
-method, see :mod:`pipeline.offline_plots`): :func:`training_curves` (epoch rows of every run's
+method, see :mod:`pipeline.report.offline_plots`): :func:`training_curves` (epoch rows of every run's
 training log) and :func:`threshold_curves` (calibrate's validation IoU over the tau grid).
 
 Training logs for DVCLive viewers (train): :func:`write_live_log` writes a run's epoch rows as DVCLive
@@ -272,12 +272,12 @@ LIVE_SKIP = ("epoch", "stage")
 def write_live_log(log, directory: str | Path, selected_epoch: int | None = None) -> Path:
     """Log the run's epoch rows with DVCLive into ``directory`` (replaced atomically).
 
-    Step = ``epoch``; every other numeric column of the training log (pipeline.training.LOG_COLUMNS
+    Step = ``epoch``; every other numeric column of the training log (pipeline.training.loop.LOG_COLUMNS
     minus :data:`LIVE_SKIP`) is a metric, a non-finite value (a loss term the method does not use)
     is left out.  DVCLive writes ``plots/metrics/<column>.tsv`` (step, value) and ``metrics.json``
     (the last epoch's values, plus ``selected_epoch``), without timestamps: the files are
     byte-identical on a rerun.  No DVC experiment is saved and no dvc.yaml written (the DVC stage is
-    the experiment; dvc.yaml comes from pipeline/dag.py).  DVCLive is imported here only: an optional
+    the experiment; dvc.yaml comes from pipeline/orchestration/dag.py).  DVCLive is imported here only: an optional
     dependency of the train stage.
     """
     from dvclive import Live

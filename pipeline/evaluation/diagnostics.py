@@ -25,7 +25,7 @@ import dataclasses
 
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.metrics import threshold_counts
 
 SIZE_CLASSES = ("tiny", "regular", "empty")

@@ -7,7 +7,7 @@ annotation-free: it measures how far this student and recipe can go with perfect
 reader can tell whether the pseudo-labels or the student bound the quality.  It runs only with
 ``protocol.supervised_ceiling: true`` and is never part of the annotation-free comparisons.
 
-Every other method gets its targets from :func:`pipeline.training.training_data`, which refuses
+Every other method gets its targets from :func:`pipeline.training.loop.training_data`, which refuses
 reference masks; :func:`ceiling_training_data` refuses every method but the ceiling
 (:func:`require_supervised_ceiling`).  Plumbing on opened artifacts; opens no file.
 """
@@ -18,10 +18,10 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.runtime.errors import InputError
 from pipeline.methods import SUPERVISED_CEILING, Method
-from pipeline.streaming import LazyRows, row_means
-from pipeline.training import TrainData, _check_order, _rows, _train_rows
+from pipeline.training.streaming import LazyRows, row_means
+from pipeline.training.loop import TrainData, _check_order, _rows, _train_rows
 
 
 def require_supervised_ceiling(method: Method) -> None:
@@ -29,13 +29,13 @@ def require_supervised_ceiling(method: Method) -> None:
     method allowed to train on reference masks)."""
     if method.name != SUPERVISED_CEILING or method.annotation_free:
         raise ValueError(f"--method {method.name}: reference masks enter a loss only for {SUPERVISED_CEILING!r} "
-                         f"(annotation-free methods train on pseudo-targets: pipeline.training.training_data)")
+                         f"(annotation-free methods train on pseudo-targets: pipeline.training.loop.training_data)")
 
 
 def ceiling_training_data(method: Method, inputs: Mapping[str, Any], reference) -> Any:
     """The supervised ceiling's training arrays: images and REFERENCE masks of the ``split == "train"``
-    rows that have a mask (manifest order), as a :class:`pipeline.training.TrainData` whose images and
-    masks are read per batch (:class:`pipeline.streaming.LazyRows`).
+    rows that have a mask (manifest order), as a :class:`pipeline.training.loop.TrainData` whose images and
+    masks are read per batch (:class:`pipeline.training.streaming.LazyRows`).
 
     ``inputs``: opened ``manifest`` and ``images``; ``reference``: the opened reference.zarr.
     ``area`` is each mask's foreground fraction and ``gate`` is 1 (L_raw uses neither).  Raises

@@ -6,7 +6,7 @@ is written (pipeline.deploy.files), loads the model with one engine (:func:`pipe
 picks tau (:func:`pipeline.thresholds.tau_candidates` then :func:`pipeline.thresholds.resolve_tau`:
 ``tau`` > the bundle's > the checkpoint's payload > its row in ``thresholds`` > ``calibrate.fixed_tau``
 of ``params``) and the working resolution (``resolution`` > the one recorded with the model; never
-guessed), claims the output folder (pipeline.ownership), writes M = [P >= tau] (eq:inference-mask) at
+guessed), claims the output folder (pipeline.artifacts.ownership), writes M = [P >= tau] (eq:inference-mask) at
 each image's own size and skipped.csv, and reports on ``echo``.  A user error is an InputError naming
 the option.
 """
@@ -19,10 +19,10 @@ from typing import Callable, Mapping
 
 from pipeline.datasets.loading import BadFileError, check_bit_depth, pixel_limit, reset_frame_warnings
 from pipeline.datasets.manifest import BadInputPolicy
-from pipeline.device import resolve_device
-from pipeline.engine_table import AUTO
-from pipeline.errors import CHECKPOINT, InputError
-from pipeline.ownership import claim_outputs
+from pipeline.runtime.device import resolve_device
+from pipeline.deploy.engine_table import AUTO
+from pipeline.runtime.errors import CHECKPOINT, InputError
+from pipeline.artifacts.ownership import claim_outputs
 from pipeline.thresholds import MIN_RESOLUTION, RESOLUTION_LABELS, resolve_resolution
 
 
@@ -56,7 +56,8 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
     loop; the same bytes either way).  ``bit_depth`` (``--bit-depth``): how 16-bit frames are read
     (None: what the bundle records, else auto).  ``quiet`` (``--quiet``): only warnings, errors and the
     summary line on ``echo`` (no engine and timing lines)."""
-    from pipeline import deploy  # torch
+    from pipeline.deploy.files import segment_files, write_skipped_csv  # torch
+    from pipeline.deploy.segmenter import load_segmenter
     from pipeline.deploy import files as F
 
     check_options(checkpoint, input_path, output, batch_size, resolution)
@@ -86,7 +87,7 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
     for path, reason in found.unused:  # not images (hidden files, other types): listed, not an error
         policy.record(image_id(path), path, reason)
 
-    seg = deploy.load_segmenter(checkpoint, engine, resolve_device(device), thresholds, params=params)
+    seg = load_segmenter(checkpoint, engine, resolve_device(device), thresholds, params=params)
     if bit_depth is not None:
         seg.bit_depth = check_bit_depth(bit_depth)
     reset_frame_warnings()  # each run says once how it reads 16-bit frames
@@ -104,11 +105,11 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
          + f", {len(files)} image(s), {resolution}px ({res_source}), tau={tau:.4g} ({source})")
     claim_outputs(output, F.relative_outputs(output, stems, suffixes), F.RECORD, "segment",
                   {"input": str(Path(input_path).absolute()), "checkpoint": str(Path(checkpoint).absolute())})
-    result = deploy.segment_files(seg, files, stems, tau=tau, resolution=resolution, batch_size=batch_size,
+    result = segment_files(seg, files, stems, tau=tau, resolution=resolution, batch_size=batch_size,
                                   save_prob=save_prob, overlay=overlay, on_skip=report, max_pixels=max_pixels,
                                   **({} if workers is None else {"workers": workers}))
     listing = Path(output) / F.SKIPPED_CSV
-    deploy.write_skipped_csv(listing, policy.rows())
+    write_skipped_csv(listing, policy.rows())
     F.write_confidence_csv(Path(output) / F.CONFIDENCE_CSV, Path(output).absolute().resolve(), result.written,
                            result.scores)
     lowest = (f" (lowest {min(result.scores):.3f}: {result.written[result.scores.index(min(result.scores))].name})"
@@ -132,7 +133,7 @@ def model_resolution(trained: int | None, option: int | None, checkpoint,
     """The working resolution segment runs at and where it came from: ``option`` (--resolution) > the
     one recorded with the model (``trained``), never guessed; a recorded one is checked even when the
     option overrides it, and an option other than it is used with a warning on ``echo``."""
-    from pipeline.deploy import DEPLOY_JSON, is_deploy_bundle
+    from pipeline.deploy.bundle import DEPLOY_JSON, is_deploy_bundle
 
     recorded_in = f"{Path(checkpoint) / DEPLOY_JSON}" if is_deploy_bundle(checkpoint) else f"checkpoint {checkpoint}"
     if trained is not None:  # a recorded resolution is checked even when --resolution overrides it

@@ -1,0 +1,1 @@
+"""The pipeline composed: the DVC DAG, the prepare stage, and the standalone distill lane."""

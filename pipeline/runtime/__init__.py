@@ -1,0 +1,1 @@
+"""Host and process: code versions, device and precision, the environment record, error types, progress."""
