@@ -1,17 +1,5 @@
-"""Thresholds: eq:inference-mask, M = [P >= tau] <=> [Z >= logit(tau)], how tau is calibrated, and
-where tau comes from.
-
-One module owns the three rules; calibrate, evaluate, export, segment, benchmark and the report
-import it:
-
-* the inference mask (eq:inference-mask): :func:`mask_from_probs`, :func:`logit_threshold`;
-* calibration (paper, Training Details: "The binarization threshold is selected by Image IoU on the
-  corresponding validation set and then applied unchanged to the test set"): :func:`threshold_grid`,
-  :func:`select_tau` (the tie rule), :func:`calibrate_threshold`;
-* resolution of the tau a deployed model runs with: :func:`resolve_tau` (precedence
-  option > bundle > checkpoint > thresholds file > fixed tau), and beside it the working resolution
-  it runs at: :func:`resolve_resolution` (option > benchmark size > recorded with the model > params).
-"""
+"""The inference mask M = [P >= tau] <=> [Z >= logit(tau)] (eq:inference-mask), tau's calibration on the
+validation split, and which tau and working resolution a deployed model runs with."""
 
 from __future__ import annotations
 
@@ -22,7 +10,7 @@ from typing import Mapping
 
 import numpy as np
 
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from pipeline.runtime.errors import InputError
 from pipeline.metrics import iou_curve
 from pipeline.params import PAPER, require
@@ -32,14 +20,8 @@ log = logging.getLogger(__name__)
 TIE_TOLERANCE = 1e-12  # mean IoUs closer than this are a tie (select_tau)
 
 
-# --------------------------------------------------------------------------------------------------
-# eq:inference-mask
-# --------------------------------------------------------------------------------------------------
 def logit_threshold(tau: float) -> float:
-    """logit(tau) = log(tau / (1 - tau)): [sigmoid(Z) >= tau] == [Z >= logit(tau)] (eq:inference-mask).
-
-    tau = 0 -> -inf (everything foreground), tau = 1 -> +inf (nothing).
-    """
+    """logit(tau): [sigmoid(Z) >= tau] == [Z >= logit(tau)] (eq:inference-mask); -inf at 0, +inf at 1."""
     tau = float(tau)
     if not 0.0 <= tau <= 1.0:
         raise InputError(f"tau={tau}: must lie in [0, 1]")
@@ -66,12 +48,8 @@ def check_tau(tau, where: str) -> float:
     return t
 
 
-# --------------------------------------------------------------------------------------------------
-# Calibration on the validation split
-# --------------------------------------------------------------------------------------------------
 def threshold_grid(cfg: dict) -> np.ndarray:
-    """tau grid from calibrate.grid_start .. grid_stop (inclusive) in steps of grid_step, rounded to
-    1e-9 so that 0.5 is exactly on the default grid.  InputError names the param."""
+    """calibrate.grid_start .. grid_stop (inclusive) by grid_step, rounded to 1e-9 (0.5 exactly on the grid)."""
     start = require(cfg, "grid_start", "calibrate", kind=(int, float), lo=0.0, hi=1.0)
     stop = require(cfg, "grid_stop", "calibrate", kind=(int, float), lo=0.0, hi=1.0)
     step = require(cfg, "grid_step", "calibrate", kind=(int, float), lo=1e-6, hi=1.0)
@@ -85,24 +63,19 @@ def _default_grid() -> np.ndarray:
     return threshold_grid(PAPER.calibrate.model_dump())
 
 
-#: The grid of the training log's per-epoch calibrated tau (``val_tau_cal``): the schema's default
-#: calibration grid (0.05..0.95 by 0.01).  Fixed rather than read from ``calibrate.*``: the training
-#: log is part of a checkpoint, and editing the calibrate stage's grid must not retrain every student.
+#: the training log's per-epoch tau grid: the default one, so that editing ``calibrate.*`` retrains nothing
 EPOCH_TAU_GRID = _default_grid()
 
 
 def select_tau(grid, curve) -> float:
-    """The calibrated tau: argmax over ``grid`` of ``curve`` (mean validation Image IoU per tau).
-
-    Ties (mean IoUs within :data:`TIE_TOLERANCE` of the maximum) go to the tau closest to 0.5, then to
-    the smaller tau.  ``grid`` and ``curve`` are 1-D of equal, non-zero length.
-    """
+    """argmax over ``grid`` of ``curve`` (mean validation Image IoU); ties within :data:`TIE_TOLERANCE` go to
+    the tau closest to 0.5, then to the smaller."""
     grid = np.asarray(grid, dtype=np.float64)
     curve = np.asarray(curve, dtype=np.float64)
     if grid.ndim != 1 or grid.shape != curve.shape or grid.size == 0:
         raise InputError(f"select_tau: grid {grid.shape} and curve {curve.shape} must be equal non-empty 1-D")
     best = np.flatnonzero(curve >= curve.max() - TIE_TOLERANCE)
-    order = np.lexsort((grid[best], np.abs(grid[best] - 0.5)))  # closest to 0.5, then smaller tau
+    order = np.lexsort((grid[best], np.abs(grid[best] - 0.5)))
     return float(grid[best[order[0]]])
 
 
@@ -111,13 +84,8 @@ TAU_RULES = ("argmax", "plateau", "smooth")
 
 
 def plateau_tau(grid, curve, tolerance: float) -> float:
-    """Centre of the near-optimal plateau: the contiguous run of grid points around the argmax
-    (:func:`select_tau`) whose curve is >= max - ``tolerance``; tau = its middle grid point
-    (lower middle for an even count).
-
-    Why: on a flat curve (mean validation IoU over few images) the argmax wanders over the whole
-    plateau with tiny numeric changes; its centre does not.  ``tolerance`` 0 -> the argmax's run of
-    exact ties (normally the argmax itself)."""
+    """The middle grid point (lower middle) of the contiguous run around the argmax whose curve is within
+    ``tolerance`` of the maximum: it does not wander over a flat curve as the argmax does."""
     grid = np.asarray(grid, dtype=np.float64)
     curve = np.asarray(curve, dtype=np.float64)
     best = int(np.flatnonzero(grid == select_tau(grid, curve))[0])
@@ -132,8 +100,7 @@ def plateau_tau(grid, curve, tolerance: float) -> float:
 
 
 def smooth_curve(curve, halfwidth: int) -> np.ndarray:
-    """Centred moving average of ``curve`` over 2 * ``halfwidth`` + 1 grid points; near the ends the
-    window is cut to the points that exist (no padding).  ``halfwidth`` 0 -> the curve itself."""
+    """Centred moving average over 2 * ``halfwidth`` + 1 points, the window cut at the ends."""
     c = np.asarray(curve, dtype=np.float64)
     h = int(halfwidth)
     if h <= 0:
@@ -145,9 +112,7 @@ def smooth_curve(curve, halfwidth: int) -> np.ndarray:
 
 
 def tau_by_rule(grid, curve, rule: str = "argmax", *, tolerance: float = 0.005, halfwidth: int = 5) -> float:
-    """The calibrated tau of ``curve`` (mean validation Image IoU over ``grid``) by ``rule``:
-    ``argmax`` (:func:`select_tau`, the paper), ``plateau`` (:func:`plateau_tau` with ``tolerance``)
-    or ``smooth`` (argmax of :func:`smooth_curve` with ``halfwidth``).  InputError for another rule."""
+    """The calibrated tau of ``curve`` by ``rule`` (:data:`TAU_RULES`; argmax is the paper's)."""
     if rule == "argmax":
         return select_tau(grid, curve)
     if rule == "plateau":
@@ -164,13 +129,8 @@ def rule_options(cfg) -> dict:
 
 def calibrate_threshold(probs, gts, grid, rule: str = "argmax", *, tolerance: float = 0.005,
                         halfwidth: int = 5) -> tuple[float, np.ndarray]:
-    """Choose tau on validation images by mean Image IoU over ``grid`` (eq:inference-mask).
-
-    probs float [N,H,W] in [0,1]; gts bool [N,H,W]; grid strictly increasing taus.  Returns
-    (best_tau, curve) with curve float64 [G] = mean Image IoU of [P >= tau] at each grid point
-    (pipeline.metrics.iou_curve); best_tau by :func:`tau_by_rule` (``argmax``, the paper's rule, by
-    default: :func:`select_tau`, ties -> closest to 0.5, then smaller).
-    """
+    """(tau by :func:`tau_by_rule`, curve float64 [G] = mean Image IoU of [P >= tau] at each grid point) on
+    validation probs [N,H,W] and masks (eq:inference-mask)."""
     grid = np.asarray(grid, dtype=np.float64)
     if np.ndim(probs) != 3 or np.shape(probs)[0] == 0:
         raise InputError(f"calibrate_threshold: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
@@ -178,13 +138,12 @@ def calibrate_threshold(probs, gts, grid, rule: str = "argmax", *, tolerance: fl
     return tau_by_rule(grid, curve, rule, tolerance=tolerance, halfwidth=halfwidth), curve
 
 
-#: thresholds.parquet ``tau_source`` of a run that could not be calibrated (no validation image has a
-#: mask): its tau is ``calibrate.fixed_tau``.  Calibrated rows have no ``tau_source`` (or a null one).
+#: thresholds.parquet ``tau_source`` of a run without validation masks (its tau is ``calibrate.fixed_tau``)
 NO_VALIDATION_MASKS = "fixed tau: no validation masks"
 
 
 def _run_row(thresholds_df, method: str, seed: int):
-    """The (method, seed) row of a thresholds table (a pandas Series), or None when it is absent."""
+    """The (method, seed) row of a thresholds table, or None."""
     df = thresholds_df
     rows = df[(df["method"].astype(str) == str(method)) & (df["seed"].astype(int) == int(seed))]
     return None if rows.empty else rows.iloc[0]
@@ -195,31 +154,15 @@ def _note(row) -> str | None:
     return value if isinstance(value, str) and value else None
 
 
-# --------------------------------------------------------------------------------------------------
-# Which tau a deployed model runs with
-# --------------------------------------------------------------------------------------------------
-TAU_SOURCES = ("option", "bundle", "checkpoint", "thresholds", "fixed")
 TAU_LABELS = {"option": "--tau", "bundle": "deploy bundle", "checkpoint": "checkpoint payload",
               "thresholds": "thresholds table", "fixed": "calibrate.fixed_tau"}
+TAU_SOURCES = tuple(TAU_LABELS)
 
 
 def resolve_tau(option=None, bundle=None, checkpoint=None, thresholds=None, fixed=None) -> tuple[float, str]:
-    """The tau to binarise with (eq:inference-mask) and where it came from: ``(tau, source)``.
-
-    Rule: the first candidate that is given, in the order
-    ``option`` (--tau) > ``bundle`` (deploy.json) > ``checkpoint`` (its payload's tau) >
-    ``thresholds`` (the run's row of a thresholds.parquet, calibrated on the validation split) >
-    ``fixed`` (calibrate.fixed_tau: uncalibrated, logged as a warning).  Each candidate is None
-    (absent), a number, or ``(number, source text)``; a bare number's source is its
-    :data:`TAU_LABELS` entry.  The chosen value must lie in [0, 1] (InputError naming its source);
-    InputError when none is given.
-    """
-    given = dict(zip(TAU_SOURCES, (option, bundle, checkpoint, thresholds, fixed)))
-    for name in TAU_SOURCES:
-        cand = given[name]
-        if cand is None or (isinstance(cand, tuple) and cand[0] is None):
-            continue
-        value, source = cand if isinstance(cand, tuple) else (cand, TAU_LABELS[name])
+    """``(tau, source)``: the first candidate given, in :data:`TAU_LABELS` order (eq:inference-mask); each None,
+    a number or ``(number, text)``; a fixed tau is logged as a warning."""
+    for name, value, source in _given(TAU_LABELS, option, bundle, checkpoint, thresholds, fixed):
         tau = check_tau(value, TAU_LABELS[name])
         if name == "fixed":
             log.warning("tau = %s from %s (no calibrated tau)", tau, source)
@@ -227,26 +170,22 @@ def resolve_tau(option=None, bundle=None, checkpoint=None, thresholds=None, fixe
     raise InputError("tau: no calibrated tau found; pass --tau or a thresholds table (--thresholds)")
 
 
-#: the text of a thresholds row's calibrated tau when the row has no ``tau_source`` note
+def _given(labels: Mapping[str, str], *candidates):
+    """(name, value, source text) of each candidate given (None, a number or ``(number, text)``), in order."""
+    for name, cand in zip(labels, candidates):
+        if cand is not None and not (isinstance(cand, tuple) and cand[0] is None):
+            yield (name, *cand) if isinstance(cand, tuple) else (name, cand, labels[name])
+
+
+#: the text of a calibrated thresholds row without a ``tau_source`` note
 CALIBRATED = "calibrated on the validation split"
 
 
 def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = None, thresholds=None,
                    params: Mapping | None = None) -> dict[str, tuple[float, str]]:
-    """The tau candidates of one model, calibrated and fixed: ``{source: (tau, text)}``, the keyword
-    arguments of :func:`resolve_tau` (eq:inference-mask binarises with the one it picks).
-
-    * a deploy bundle (``bundle``: its deploy.json): ``bundle`` = the tau it was exported with;
-    * a checkpoint (``payload``: its model.json fields, at least method and seed): ``checkpoint`` = the
-      payload's tau when it records one, else ``thresholds`` = the run's row of ``thresholds`` (a
-      thresholds.parquet: a path, read only when it exists, an opened artifact or a DataFrame), text
-      :data:`CALIBRATED` or the row's ``tau_source`` note (:data:`NO_VALIDATION_MASKS`);
-    * ``fixed``: ``calibrate.fixed_tau``, the one fixed tau: as calibrate recorded it in the run's
-      thresholds row, else of ``params`` (validated params; None: no fixed candidate).
-
-    Export, segment, benchmark, evaluation (both taus) and :class:`pipeline.Segmenter` take their tau
-    from here.
-    """
+    """One model's tau candidates ``{source: (tau, text)}`` for :func:`resolve_tau`: the bundle's (its deploy.json);
+    a checkpoint's payload tau, else its row of ``thresholds`` (a path, artifact or DataFrame); the fixed
+    tau calibrate recorded there, else ``calibrate.fixed_tau`` of ``params``."""
     found: dict[str, tuple[float, str]] = {}
     if bundle is not None and bundle.get("tau") is not None:
         found["bundle"] = (float(bundle["tau"]), f"deploy bundle ({bundle.get('tau_source', '?')})")
@@ -272,14 +211,14 @@ def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = N
 
 
 def _thresholds_name(thresholds) -> str | None:
-    """How messages name ``thresholds`` (a path, an opened artifact or a DataFrame)."""
+    """How messages name ``thresholds``."""
     if thresholds is None:
         return None
     return "thresholds table" if hasattr(thresholds, "columns") else str(getattr(thresholds, "path", thresholds))
 
 
 def _thresholds_table(thresholds):
-    """The DataFrame of ``thresholds`` (a path, read only when it exists; an opened artifact; a DataFrame)."""
+    """The DataFrame of ``thresholds`` (a path is read only when it exists)."""
     if thresholds is None or hasattr(thresholds, "columns"):
         return thresholds
     if hasattr(thresholds, "df"):
@@ -287,10 +226,6 @@ def _thresholds_table(thresholds):
     return open_artifact(thresholds, "thresholds").df if Path(thresholds).exists() else None
 
 
-# --------------------------------------------------------------------------------------------------
-# Which working resolution a deployed model runs at
-# --------------------------------------------------------------------------------------------------
-RESOLUTION_SOURCES = ("option", "benchmark", "recorded", "params")
 RESOLUTION_LABELS = {"option": "--resolution", "benchmark": "deploy.benchmark_resolution",
                      "recorded": "the model's recorded resolution", "params": "data.resolution"}
 #: the smallest working resolution a model runs at (the student's four 2x poolings need 8 pixels)
@@ -299,23 +234,9 @@ MIN_RESOLUTION = 8
 
 def resolve_resolution(option=None, benchmark=None, recorded=None, params=None,
                        missing: str = "resolution: none given or recorded; pass --resolution N") -> tuple[int, str]:
-    """The working resolution (square, pixels) and where it came from: ``(resolution, source)``.
-
-    Rule: the first candidate that is given, in the order ``option`` (--resolution, or the notebook
-    API's ``resolution=``) > ``benchmark`` (deploy.benchmark_resolution: the benchmark stage times at
-    that size) > ``recorded`` (the size the model was trained at: the bundle's deploy.json, the
-    checkpoint's payload or meta.json) > ``params`` (data.resolution).  Callers pass only the
-    candidates their command knows (segment and the notebook API never guess from params; export has no
-    option).  Each candidate is None (absent), a number, or ``(number, source text)``; a bare number's
-    source is its :data:`RESOLUTION_LABELS` entry.  The chosen value must be an int >= 8 (InputError
-    naming its source); InputError ``missing`` when none is given.
-    """
-    given = dict(zip(RESOLUTION_SOURCES, (option, benchmark, recorded, params)))
-    for name in RESOLUTION_SOURCES:
-        cand = given[name]
-        if cand is None or (isinstance(cand, tuple) and cand[0] is None):
-            continue
-        value, source = cand if isinstance(cand, tuple) else (cand, RESOLUTION_LABELS[name])
+    """``(resolution, source)``: the first candidate given, in :data:`RESOLUTION_LABELS` order;
+    an int >= :data:`MIN_RESOLUTION`, InputError ``missing`` when none is given."""
+    for _, value, source in _given(RESOLUTION_LABELS, option, benchmark, recorded, params):
         if not isinstance(value, int) or isinstance(value, bool) or value < MIN_RESOLUTION:
             raise InputError(f"{source}: invalid resolution {value!r} (an integer >= {MIN_RESOLUTION})")
         return int(value), source
