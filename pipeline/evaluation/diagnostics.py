@@ -1,23 +1,5 @@
-"""Threshold and calibration diagnostics (issue 17 item 3): why a student's fixed-tau and calibrated-tau
-results can disagree.
-
-Pure numpy functions on arrays (no I/O); the calibrate stage applies them to every run's validation
-probabilities, the evaluate stage labels test images by target size, the report draws and explains
-the results.
-
-* :func:`reliability_bins` / :func:`expected_calibration_error` -- the pixel-level reliability diagram
-  of P = sigmoid(Z): pixels binned by P into ``n_bins`` equal-width bins of [0, 1]; per bin the mean P
-  (confidence), the fraction of reference-foreground pixels (frequency) and the pixel count.
-  ECE = sum_b (n_b / N) |frequency_b - confidence_b| over the non-empty bins (Naeini et al. 2015,
-  here over pixels).  A student whose probabilities are too high has frequency < confidence in the
-  upper bins; its IoU-optimal tau then lies above 0.5.
-* :func:`area_ratio_curve` / :func:`median_area_ratio` -- predicted foreground area of [P >= tau]
-  (eq:inference-mask) divided by the reference area, per image and tau; the median over images.
-  A ratio above 1 is foreground inflation.
-* :func:`target_fractions` / :func:`target_size_class` -- the reference foreground fraction of each
-  image and its size class: ``tiny`` (0 < fraction < ``evaluate.tiny_target_max_fraction``, 0.2 % of
-  the frame), ``regular``, or ``empty`` (no reference foreground).
-"""
+"""Threshold diagnostics: the pixel reliability diagram and ECE of P = sigmoid(Z), the predicted over
+reference foreground area across tau, and the target size classes."""
 
 from __future__ import annotations
 
@@ -27,8 +9,6 @@ import numpy as np
 
 from pipeline.runtime.errors import InputError
 from pipeline.metrics import threshold_counts
-
-SIZE_CLASSES = ("tiny", "regular", "empty")
 
 
 def _probs_and_masks(probs, gts) -> tuple[np.ndarray, np.ndarray]:
@@ -41,16 +21,10 @@ def _probs_and_masks(probs, gts) -> tuple[np.ndarray, np.ndarray]:
     return p, g
 
 
-# --------------------------------------------------------------------------------------------------
-# Reliability diagram and ECE
-# --------------------------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class Reliability:
-    """Per-bin statistics of a reliability diagram; ``edges`` float64 [B+1], the others [B].
-
-    ``confidence``: mean predicted probability of the bin's pixels; ``frequency``: fraction of them
-    that are reference foreground (both NaN for an empty bin); ``count``: pixels in the bin.
-    """
+    """A reliability diagram: per bin the mean P (``confidence``), the reference-foreground fraction
+    (``frequency``; both NaN when empty) and the pixel ``count``; ``edges`` [B+1]."""
 
     edges: np.ndarray
     confidence: np.ndarray
@@ -59,12 +33,8 @@ class Reliability:
 
 
 def reliability_bins(probs, gts, n_bins: int = 10, *, chunk: int = 16) -> Reliability:
-    """Pixel-level reliability diagram of ``probs`` float [N,H,W] in [0, 1] against ``gts`` bool [N,H,W].
-
-    Bin b holds the pixels with b/B <= P < (b+1)/B; P = 1 falls in the last bin.  Computed in chunks
-    of ``chunk`` images (bounded memory).  InputError for mismatched shapes, non-finite or
-    out-of-range probabilities, or ``n_bins < 1``.
-    """
+    """Reliability diagram of ``probs`` [N,H,W] in [0, 1] against ``gts`` in ``n_bins`` equal-width bins (P = 1 in
+    the last), ``chunk`` images at a time."""
     p_all, g_all = _probs_and_masks(probs, gts)
     n_bins = int(n_bins)
     if n_bins < 1:
@@ -88,10 +58,7 @@ def reliability_bins(probs, gts, n_bins: int = 10, *, chunk: int = 16) -> Reliab
 
 
 def expected_calibration_error(confidence, frequency, count) -> float:
-    """ECE = sum_b (n_b / N) |frequency_b - confidence_b| over bins with n_b > 0 (N = sum n_b).
-
-    In [0, 1]; 0 for a perfectly calibrated predictor; NaN when every bin is empty.
-    """
+    """ECE = sum_b (n_b / N) |frequency_b - confidence_b| over the non-empty bins; NaN when all are empty."""
     conf = np.asarray(confidence, dtype=np.float64)
     freq = np.asarray(frequency, dtype=np.float64)
     n = np.asarray(count, dtype=np.float64)
@@ -102,16 +69,9 @@ def expected_calibration_error(confidence, frequency, count) -> float:
     return float(np.sum(n[ok] / total * np.abs(freq[ok] - conf[ok])))
 
 
-# --------------------------------------------------------------------------------------------------
-# Foreground area across tau
-# --------------------------------------------------------------------------------------------------
 def area_ratio_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
-    """Predicted over reference foreground area, |[P >= tau]| / |G|, for every image and every tau of
-    ``grid`` (strictly increasing): float64 [N, G]; NaN for an image whose reference is empty.
-
-    The counts come from :func:`pipeline.metrics.threshold_counts` (one pass over the pixels).
-    """
-    _probs_and_masks(probs, gts)
+    """|[P >= tau]| / |G| (eq:inference-mask) for every image and tau of ``grid`` -> float64 [N, G]; NaN where
+    the reference is empty."""
     n_pred, _, n_ref = threshold_counts(probs, gts, grid, chunk=chunk)
     ref = n_ref[:, None]
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -119,8 +79,7 @@ def area_ratio_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
 
 
 def median_area_ratio(ratios) -> np.ndarray:
-    """Median over images (axis 0) of an :func:`area_ratio_curve`, skipping NaN (empty references);
-    NaN at a tau where no image has a reference foreground."""
+    """Median over images of an :func:`area_ratio_curve`, NaN skipped (NaN where every image is)."""
     r = np.asarray(ratios, dtype=np.float64)
     out = np.full(r.shape[1:], np.nan)
     ok = np.isfinite(r).any(axis=0)
@@ -129,11 +88,8 @@ def median_area_ratio(ratios) -> np.ndarray:
     return out
 
 
-# --------------------------------------------------------------------------------------------------
-# Target size
-# --------------------------------------------------------------------------------------------------
 def target_fractions(gts) -> np.ndarray:
-    """Reference foreground fraction |G| / (H W) of each mask of ``gts`` bool [N,H,W] -> float64 [N]."""
+    """|G| / (H W) of each mask of ``gts`` [N,H,W] -> float64 [N]."""
     g = np.asarray(gts)
     if g.ndim != 3:
         raise InputError(f"target_fractions: expected [N,H,W] masks, got shape {g.shape}")
@@ -143,8 +99,7 @@ def target_fractions(gts) -> np.ndarray:
 
 
 def target_size_class(fraction, max_fraction: float) -> np.ndarray:
-    """Size class of each target fraction: ``"tiny"`` when 0 < f < ``max_fraction`` (strict),
-    ``"empty"`` when f = 0, ``"regular"`` otherwise -> str array of the input's shape."""
+    """``"empty"`` (f = 0), ``"tiny"`` (0 < f < ``max_fraction``) or ``"regular"``, per target fraction."""
     f = np.asarray(fraction, dtype=np.float64)
     if not 0 <= float(max_fraction) <= 1:
         raise InputError(f"target_size_class: max_fraction={max_fraction} must lie in [0, 1]")
