@@ -43,7 +43,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import catalog
-from pipeline.artifacts import make_meta, read_chunk_rows
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import read_chunk_rows
 from benchmarks.bench_train import synthetic_set
 from pipeline.datasets.params import check_data_params
 from pipeline.methods import STAGE_ONE, get_method

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.artifacts import make_meta
+from pipeline.artifacts.lineage import make_meta
 from pipeline.datasets.loading import read_rgb, resize_image
 from pipeline.deploy import files as F
 from pipeline.deploy.segmenter import load_segmenter

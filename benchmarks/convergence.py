@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 from typing import Any, Mapping
 
-from pipeline.artifacts import fingerprint
+from pipeline.artifacts.lineage import fingerprint
 from pipeline.training.checkpointing import FileCheckpointer
 from pipeline.runtime.device import resolve_device
 from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from benchmarks.study_recipe import build_artifacts, score_run
 from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import STAGE_ONE, get_method

@@ -29,7 +29,7 @@ import numpy as np
 import yaml
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from pipeline.consensus import vote_batch
 from pipeline.geometry import area_ratios, foreground_agreement, gate_factors, median_area, valid_ratio
 from pipeline.metrics import boundary_f1, per_image_metrics

@@ -45,7 +45,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from pipeline.artifacts import write_json
+from pipeline.artifacts.atomic import write_json
 from benchmarks import study_recipe as sr
 from pipeline.runtime.device import autocast_dtype
 from pipeline.runtime.environment import cpu

@@ -47,7 +47,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact, write_text_if_changed
+from pipeline.artifacts.atomic import write_text_if_changed
+from pipeline.artifacts.store import open_artifact
 from pipeline.orchestration.dag import render_params_yaml
 from pipeline.runtime.device import resolve_device
 from pipeline.evaluation.inference import predict_probs

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Mapping
 
 from pipeline.deploy.engine_table import engines_reading
 from pipeline.params import DEFAULT_PARAMS as PARAMS_FILE  # the params file's name, defined below the catalogue
@@ -31,84 +32,12 @@ WEIGHTS_CONFIG_FILE = "model.json"
 LEGACY_WEIGHTS_FILE = "model.pt"
 #: a checkpoint's training log (schema ``training_log``), beside its weights (pipeline.evaluation.inference.save_checkpoint)
 TRAINING_LOG_FILE = "log.parquet"
-#: every folder artifact's metadata (schema, fingerprint, lineage; pipeline.artifacts.artifact_dir)
+#: every folder artifact's metadata (schema, fingerprint, lineage; pipeline.artifacts.store.artifact_dir)
 META_FILE = "meta.json"
 #: train's per-epoch resume state in its resume folder (pipeline.training.checkpointing.FileCheckpointer)
 RESUME_STATE_FILE = "state.pt"
 #: the DAG file ``geodistill dag`` and ``geodistill distill`` write (pipeline.orchestration.dag); ``geodistill run`` reads it
 DVC_FILE = "dvc.yaml"
-
-
-@dataclasses.dataclass(frozen=True)
-class ArtifactSpec:
-    name: str
-    path: str            # relative to the artifacts directory ("../" for outside it)
-    schema: str | None   # schema name in pipeline.artifacts.SCHEMAS (None: a plain file or folder)
-    stage: str           # the producing stage
-    description: str = ""
-
-
-def _a(name, path, schema, stage, description=""):
-    return ArtifactSpec(name, path, schema, stage, description)
-
-
-ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
-    _a("manifest", "manifest.parquet", "manifest", "prepare", "one row per image: split, group, paths, sha256"),
-    _a("images", "images.zarr", "images", "prepare", "uint8 [N,H,W,3] at the working resolution"),
-    _a("reference", "reference.zarr", "reference", "prepare",
-       "manual masks: selection, calibration and evaluation ONLY (never a loss of an annotation-free method)"),
-    _a("skipped_files", "skipped_files.parquet", "skipped_files", "prepare", "files left out, with the reason"),
-    _a("contact_sheet", "figures/contact_sheet.png", None, "prepare"),
-    _a("synthetic_files", "synthetic", None, "prepare", "synthetic benchmark PNGs the manifest points at"),
-    _a("teacher", "teacher.zarr", "teacher", "teacher", "masks [N,K,H,W], scores [N,K]"),
-    _a("teacher_scores", "teacher_scores.parquet", "teacher_scores", "teacher"),
-    _a("consensus", "consensus.zarr", "consensus", "consensus", "agreement, voted, n_valid, h (prompt disagreement)"),
-    _a("geometry", "geometry.zarr", "geometry", "geometry", "sdf, skeleton"),
-    _a("gates", "gates.parquet", "gates", "geometry", "c, v, a, a0, g_conf, g_valid, g_area, g"),
-    _a("checkpoints", "checkpoints", None, "train", "all runs: checkpoints/<method>/<seed>/"),
-    _a("checkpoint", "checkpoints/{method}/{seed}", "checkpoint", "train", "one (method, seed) run"),
-    _a("train_live", "../reports/dvclive/{method}/{seed}", None, "train",
-       "DVCLive log of the run's epoch rows (metrics.json, plots/metrics/*.tsv): a git-tracked DVC out"),
-    _a("train_timings", "timings/train/{method}/{seed}.json", None, "train",
-       "per-epoch wall-clock seconds: NOT a DVC out and not fingerprinted (checkpoints stay byte-identical)"),
-    _a("noise_floor", "../reports/noise_floor.json", None, "stability benchmark",
-       "perturbation and seed spreads of the published numbers, one record per configuration "
-       "({recipes: {key: record}}; python -m benchmarks.stability --noise-floor adds or replaces "
-       "its own); the report applies the record measured in its own configuration when there is one: a "
-       "DVC dep of report in this repository's DAG (not a DVC out: the benchmark writes it)"),
-    _a("run_logs", "logs/run", None, "run",
-       "`geodistill run`: <stage>.log (stdout+stderr) per stage and timeline.json; NOT a DVC out"),
-    _a("thresholds", "thresholds.parquet", "thresholds", "calibrate"),
-    _a("metrics", "metrics.parquet", "metrics", "evaluate", "per image, calibrated and fixed tau"),
-    _a("summary", "summary.parquet", "summary", "evaluate"),
-    _a("metrics_students", "../reports/metrics/students", None, "evaluate",
-       "DVC metrics (git-tracked): <group>/<method>.json = iou, bf1 at the calibrated tau (pipeline.report.dvc_results)"),
-    _a("plot_training_curves", "../reports/plots/training_curves.csv", None, "evaluate",
-       "DVC plot (git-tracked): method, seed, epoch, val_iou, ... of every run's training log"),
-    _a("plot_threshold_curves", "../reports/plots/threshold_curves.csv", None, "evaluate",
-       "DVC plot (git-tracked): method, seed, tau, val_iou of calibrate's curves"),
-    _a("teacher_metrics", "teacher_metrics.parquet", "teacher_metrics", "analyze_teacher"),
-    _a("metrics_teacher", "../reports/metrics/teacher", None, "analyze_teacher",
-       "DVC metrics (git-tracked): <group>.json = the vote's iou, bf1 and the gate_share g > 0"),
-    _a("deploy", "deploy", "deploy", "export", "exported mask path (TorchScript, ONNX, int8, tau)"),
-    _a("efficiency", "efficiency.parquet", "efficiency", "benchmark"),
-    _a("metrics_deploy", "../reports/metrics/deploy.json", None, "benchmark",
-       "DVC metrics (git-tracked): latency_ms of the deployed fast path"),
-    _a("report", "../reports/{profile}", "report", "report", "report.md, report.html, figures, plots"),
-    _a("metrics_efficiency", "../reports/metrics/efficiency", None, "report",
-       "DVC metrics (git-tracked): <group>/<method>.json = distillation efficiency (test Image IoU / the "
-       "teacher vote's) and its interval at the calibrated tau (pipeline.report.dvc_results.efficiency_metric_files)"),
-    _a("corrections", "corrections.parquet", "corrections", "review import",
-       "masks a person corrected (geodistill review import; compressed COCO RLE at each image's own size): "
-       "manual masks, never a loss of an annotation-free method; the corrections stage's dep when params "
-       "review.corrections names it"),
-    _a("corrected", "corrected.zarr", "corrected", "corrections",
-       "the corrections checked against this run and at the working resolution, for review.mode (validate: "
-       "validation masks; replace: training targets, NOT annotation-free); only when review.corrections is set"),
-    _a("review", "review", None, "review_export",
-       "the training images a person should check first (review.top, ranked by review.ranking): ranked.csv, "
-       "labelstudio/, cvat/ and review.json, as geodistill review export writes them"),
-]}
 
 
 def path(name: str, root: str | Path = ARTIFACTS_DIR, **fmt) -> Path:
@@ -263,6 +192,128 @@ def output_file(folder: str, key: str) -> str:
 def output_names(folder: str, *keys: str) -> dict[str, str]:
     """``{key: name}`` of ``keys`` (all when none) in output folder ``folder``, in the table's order."""
     return {k: f.name for k, f in OUTPUT_FILES[folder].items() if not keys or k in keys}
+
+
+@dataclasses.dataclass(frozen=True)
+class Schema:
+    """What an artifact must hold: Zarr ``arrays`` (name -> (numpy dtype kind, ndim); ``optional`` ones may be
+    absent), Parquet ``columns``, or a folder's ``files`` (``"a|b"``: either file)."""
+
+    kind: str  # "zarr" | "parquet" | "dir"
+    version: int = 1
+    arrays: Mapping[str, tuple[str, int]] = dataclasses.field(default_factory=dict)
+    optional: Mapping[str, tuple[str, int]] = dataclasses.field(default_factory=dict)
+    columns: tuple[str, ...] = ()
+    files: tuple[str, ...] = ()
+
+
+def _table(*columns: str, version: int = 1) -> Schema:
+    return Schema("parquet", version, columns=columns)
+
+
+def _zarr(optional: Mapping[str, tuple[str, int]] | None = None, **arrays: tuple[str, int]) -> Schema:
+    return Schema("zarr", arrays=arrays, optional=optional or {})
+
+
+def _folder(*files: str) -> Schema:
+    return Schema("dir", files=files)
+
+
+@dataclasses.dataclass(frozen=True)
+class ArtifactSpec:
+    name: str
+    path: str              # relative to the artifacts directory ("../" for outside it)
+    schema: Schema | None  # the schema named like the artifact (None: a plain file or folder)
+    stage: str             # the producing stage
+    description: str = ""
+
+
+def _a(name, path, schema, stage, description=""):
+    return ArtifactSpec(name, path, schema, stage, description)
+
+
+#: a model's weights: safetensors, or the torch pickle of older runs (pipeline.artifacts.weights)
+_WEIGHTS = f"{WEIGHTS_FILE}|{LEGACY_WEIGHTS_FILE}"
+
+
+ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
+    _a("manifest", "manifest.parquet", _table(
+        "image_id", "dataset", "domain", "split", "group", "spacecraft", "image_path", "mask_path", "part_path",
+        "width", "height", "sha256"), "prepare", "one row per image: split, group, paths, sha256"),
+    _a("images", "images.zarr", _zarr(image=("u", 4)), "prepare", "uint8 [N,H,W,3] at the working resolution"),
+    _a("reference", "reference.zarr", _zarr({"parts": ("u", 3)}, mask=("b", 3), has_mask=("b", 1)), "prepare",
+       "manual masks: selection, calibration and evaluation ONLY (never a loss of an annotation-free method)"),
+    _a("skipped_files", "skipped_files.parquet", _table("path", "reason"), "prepare",
+       "files left out, with the reason"),
+    _a("contact_sheet", "figures/contact_sheet.png", None, "prepare"),
+    _a("synthetic_files", "synthetic", None, "prepare", "synthetic benchmark PNGs the manifest points at"),
+    _a("teacher", "teacher.zarr", _zarr({"vflip_masks": ("b", 3), "vflip_scores": ("f", 1)}, masks=("b", 4),
+                                       scores=("f", 2)), "teacher", "masks [N,K,H,W], scores [N,K]"),
+    _a("teacher_scores", "teacher_scores.parquet", _table(
+        "image_id", "prompt_index", "prompt", "score", "valid", "mask_area"), "teacher"),
+    _a("consensus", "consensus.zarr", _zarr({"h": ("f", 1)}, agreement=("f", 3), voted=("b", 3), n_valid=("i", 1)),
+       "consensus", "agreement, voted, n_valid, h (prompt disagreement)"),
+    _a("geometry", "geometry.zarr", _zarr(sdf=("f", 3), skeleton=("b", 3)), "geometry", "sdf, skeleton"),
+    _a("gates", "gates.parquet", _table(
+        "image_id", "split", "c", "v", "a", "a0", "g_conf", "g_valid", "g_area", "g", "n_valid"), "geometry",
+       "c, v, a, a0, g_conf, g_valid, g_area, g"),
+    _a("checkpoints", "checkpoints", None, "train", "all runs: checkpoints/<method>/<seed>/"),
+    _a("checkpoint", "checkpoints/{method}/{seed}", _folder(_WEIGHTS, TRAINING_LOG_FILE), "train",
+       "one (method, seed) run"),
+    _a("training_log", f"checkpoints/{{method}}/{{seed}}/{TRAINING_LOG_FILE}",
+       _table("epoch", "stage", "loss", "val_iou", "val_bf1", "lr", version=2), "train", "the run's per-epoch log"),
+    _a("train_live", "../reports/dvclive/{method}/{seed}", None, "train",
+       "DVCLive log of the run's epoch rows (metrics.json, plots/metrics/*.tsv): a git-tracked DVC out"),
+    _a("train_timings", "timings/train/{method}/{seed}.json", None, "train",
+       "per-epoch wall-clock seconds: NOT a DVC out and not fingerprinted (checkpoints stay byte-identical)"),
+    _a("noise_floor", "../reports/noise_floor.json", None, "stability benchmark",
+       "perturbation and seed spreads of the published numbers, one record per configuration "
+       "({recipes: {key: record}}; python -m benchmarks.stability --noise-floor adds or replaces "
+       "its own); the report applies the record measured in its own configuration when there is one: a "
+       "DVC dep of report in this repository's DAG (not a DVC out: the benchmark writes it)"),
+    _a("run_logs", "logs/run", None, "run",
+       "`geodistill run`: <stage>.log (stdout+stderr) per stage and timeline.json; NOT a DVC out"),
+    _a("thresholds", "thresholds.parquet", _table("method", "seed", "tau", "val_iou"), "calibrate"),
+    _a("metrics", "metrics.parquet", _table(
+        "dataset", "group", "method", "seed", "image_id", "threshold_mode", "tau", "iou", "bf1", "precision", "recall",
+        "area_ratio"), "evaluate", "per image, calibrated and fixed tau"),
+    _a("summary", "summary.parquet", _table(
+        "dataset", "group", "method", "threshold_mode", "n_seeds", "n_images", "iou_mean", "iou_std", "bf1_mean",
+        "bf1_std"), "evaluate"),
+    _a("metrics_students", "../reports/metrics/students", None, "evaluate",
+       "DVC metrics (git-tracked): <group>/<method>.json = iou, bf1 at the calibrated tau (pipeline.report.dvc_results)"),
+    _a("plot_training_curves", "../reports/plots/training_curves.csv", None, "evaluate",
+       "DVC plot (git-tracked): method, seed, epoch, val_iou, ... of every run's training log"),
+    _a("plot_threshold_curves", "../reports/plots/threshold_curves.csv", None, "evaluate",
+       "DVC plot (git-tracked): method, seed, tau, val_iou of calibrate's curves"),
+    _a("teacher_metrics", "teacher_metrics.parquet", _table(
+        "image_id", "group", "source", "iou", "bf1", "precision", "recall"), "analyze_teacher"),
+    _a("metrics_teacher", "../reports/metrics/teacher", None, "analyze_teacher",
+       "DVC metrics (git-tracked): <group>.json = the vote's iou, bf1 and the gate_share g > 0"),
+    _a("deploy", "deploy", _folder(_WEIGHTS, *(f.name for k, f in DEPLOY_BUNDLE.items()
+                                           if f.required and k not in ("weights", "weights_config"))),
+       "export", "exported mask path (TorchScript, ONNX, int8, tau)"),
+    _a("efficiency", "efficiency.parquet", _table(
+        "variant", "params", "gflops", "latency_ms", "throughput", "peak_mb"), "benchmark"),
+    _a("metrics_deploy", "../reports/metrics/deploy.json", None, "benchmark",
+       "DVC metrics (git-tracked): latency_ms of the deployed fast path"),
+    _a("report", "../reports/{profile}", _folder(output_file("report", "markdown"), output_file("report", "html")),
+       "report", "report.md, report.html, figures, plots"),
+    _a("metrics_efficiency", "../reports/metrics/efficiency", None, "report",
+       "DVC metrics (git-tracked): <group>/<method>.json = distillation efficiency (test Image IoU / the "
+       "teacher vote's) and its interval at the calibrated tau (pipeline.report.dvc_results.efficiency_metric_files)"),
+    _a("corrections", "corrections.parquet", _table(
+        "image_id", "file", "width", "height", "rle", "pixels", "source"), "review import",
+       "masks a person corrected (geodistill review import; compressed COCO RLE at each image's own size): "
+       "manual masks, never a loss of an annotation-free method; the corrections stage's dep when params "
+       "review.corrections names it"),
+    _a("corrected", "corrected.zarr", _zarr(mask=("b", 3), row=("i", 1)), "corrections",
+       "the corrections checked against this run and at the working resolution, for review.mode (validate: "
+       "validation masks; replace: training targets, NOT annotation-free); only when review.corrections is set"),
+    _a("review", "review", None, "review_export",
+       "the training images a person should check first (review.top, ranked by review.ranking): ranked.csv, "
+       "labelstudio/, cvat/ and review.json, as geodistill review export writes them"),
+]}
 
 
 # --------------------------------------------------------------------------------------------------

@@ -20,7 +20,8 @@ from typing import Any, Callable, Mapping, NamedTuple
 import numpy as np
 import pandas as pd
 
-from pipeline.artifacts import Meta, ZarrWriter, write_parquet
+from pipeline.artifacts.lineage import Meta
+from pipeline.artifacts.store import ZarrWriter, write_parquet
 from pipeline.consensus import Consensus, agreement_entropy, vote_batch
 from pipeline.runtime.errors import InputError
 from pipeline.geometry import GateFactors, NoForeground, foreground_agreement, image_gates, median_area, pseudo_targets

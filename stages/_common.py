@@ -23,7 +23,7 @@ from typing import Any, Callable, Iterable, Mapping
 
 import click
 
-from pipeline.artifacts import Meta, make_meta
+from pipeline.artifacts.lineage import Meta, make_meta
 from pipeline.catalog import PARAMS_FILE, STAGES, stage_params
 from pipeline.runtime.codeversion import ROOT, _module_name, code_version_of
 from pipeline.runtime.errors import BIT_DEPTH, CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError, calling
@@ -174,7 +174,7 @@ class StageContext:
     params: dict
 
     def meta(self, schema: str, inputs: Iterable = (), params: Mapping[str, Any] | None = None, **extra) -> Meta:
-        """The :class:`~pipeline.artifacts.Meta` of one output; ``params`` replaces the declared params
+        """The :class:`~pipeline.artifacts.lineage.Meta` of one output; ``params`` replaces the declared params
         where a stage fingerprints a finer view of them (prepare: the files' content, train: the
         method's keys, teacher: without the cache's location)."""
         return make_meta(schema, self.stage, self.code, self.params if params is None else params, inputs, **extra)

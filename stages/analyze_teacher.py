@@ -20,7 +20,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run, write_parquet
+from pipeline.artifacts.lineage import require_same_run
+from pipeline.artifacts.store import open_artifact, read_chunk_rows, write_parquet
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.report.dvc_results import teacher_metric_files, write_metrics_dir
 from pipeline.runtime.errors import InputError

@@ -24,7 +24,8 @@ from pathlib import Path
 
 import click
 
-from pipeline.artifacts import write_json, write_parquet
+from pipeline.artifacts.atomic import write_json
+from pipeline.artifacts.store import write_parquet
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.runtime.device import resolve_device
 from pipeline.report.dvc_results import deploy_metrics

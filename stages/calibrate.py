@@ -30,7 +30,7 @@ import click
 import numpy as np
 import pandas as pd
 
-from pipeline.artifacts import open_artifact, read_chunk_rows, write_parquet
+from pipeline.artifacts.store import open_artifact, read_chunk_rows, write_parquet
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.runtime.device import resolve_device
 from pipeline.evaluation.diagnostics import (area_ratio_curve, expected_calibration_error, median_area_ratio,

@@ -15,7 +15,7 @@ from __future__ import annotations
 import click
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.runtime.errors import InputError
 from pipeline.params import get_path

@@ -30,7 +30,7 @@ import click
 from pipeline import catalog
 
 from pipeline.report import dvc_results
-from pipeline.artifacts import open_artifact, write_parquet
+from pipeline.artifacts.store import open_artifact, write_parquet
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.runtime.device import resolve_device
 from pipeline.evaluation.evaluate import score_runs, summarize

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import click
 
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from pipeline.catalog import dvc_path
 from pipeline.params import section
 from pipeline.pseudo_labels import write_geometry

@@ -26,7 +26,8 @@ from pathlib import Path
 import click
 
 from pipeline import catalog
-from pipeline.artifacts import artifact_dir, write_json
+from pipeline.artifacts.atomic import write_json
+from pipeline.artifacts.store import artifact_dir
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.runtime.device import resolve_device
 from pipeline.report.dvc_results import efficiency_metric_files, write_metrics_dir

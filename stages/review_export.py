@@ -11,7 +11,8 @@ from __future__ import annotations
 import click
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact, require_same_run
+from pipeline.artifacts.lineage import require_same_run
+from pipeline.artifacts.store import open_artifact
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.params import SIMULATED, section
 from pipeline.review.export import export_run

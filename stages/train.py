@@ -43,7 +43,9 @@ from typing import Any
 import click
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact, run_as, write_json
+from pipeline.artifacts.atomic import write_json
+from pipeline.artifacts.lineage import run_as
+from pipeline.artifacts.store import open_artifact
 from pipeline.catalog import ARTIFACTS_DIR, META_FILE
 from pipeline.training.checkpointing import FileCheckpointer
 from pipeline.runtime.device import resolve_device

@@ -13,7 +13,8 @@ import torch
 from click.testing import CliRunner
 
 from pipeline.deploy.mask_path import onnx_unavailable_reason
-from pipeline.artifacts import make_meta, write_parquet, write_zarr
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import write_parquet, write_zarr
 from pipeline.evaluation.inference import save_checkpoint
 from pipeline.model import TinyUNet
 

@@ -18,7 +18,8 @@ import pandas as pd
 import yaml
 from click.testing import CliRunner
 
-from pipeline.artifacts import make_meta, write_parquet, write_zarr
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import write_parquet, write_zarr
 
 SIZE = 32
 PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",

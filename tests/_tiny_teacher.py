@@ -13,7 +13,8 @@ import numpy as np
 import pandas as pd
 from click.testing import CliRunner
 
-from pipeline.artifacts import make_meta, write_parquet, write_zarr
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import write_parquet, write_zarr
 from pipeline.teachers.base import TeacherInput
 from stages.teacher import main as teacher_main
 

@@ -16,7 +16,8 @@ import pandas as pd
 import torch
 from scipy import ndimage
 
-from pipeline.artifacts import make_meta, write_parquet, write_zarr
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import write_parquet, write_zarr
 from pipeline.params import RECIPES, load_params, section
 
 REPO = Path(__file__).resolve().parent.parent

@@ -198,7 +198,7 @@ def ckpts(tmp_path_factory) -> dict[str, Path]:
     weights without it (an older checkpoint)."""
     import pandas as pd
 
-    from pipeline.artifacts import make_meta
+    from pipeline.artifacts.lineage import make_meta
     from pipeline.evaluation.inference import save_checkpoint
     from tests._tiny_deploy import RES, tiny_model
 

@@ -13,9 +13,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import pipeline
-from pipeline.artifacts import (ZarrWriter, artifact_dir, fingerprint, make_meta, open_artifact,
-                                write_parquet, write_zarr)
+import pipeline.artifacts.lineage
+from pipeline.artifacts.lineage import fingerprint, make_meta
+from pipeline.artifacts.store import ZarrWriter, artifact_dir, open_artifact, write_parquet, write_zarr
 from pipeline.runtime.errors import ArtifactError, InputError
 
 
@@ -54,7 +54,7 @@ def test_source_date_epoch_makes_reruns_byte_identical(tmp_path, monkeypatch):
         return hashlib.sha256(Path(path).read_bytes()).hexdigest()
     df = pd.DataFrame({"method": ["plain"], "seed": [42], "tau": [0.5], "val_iou": [0.7]})
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
-    assert pipeline.artifacts.creation_time() == "2023-11-14T22:13:20+00:00"
+    assert pipeline.artifacts.lineage.creation_time() == "2023-11-14T22:13:20+00:00"
     write_parquet(tmp_path / "a.parquet", df, make_meta("thresholds", "calibrate", "v1", {}))
     write_parquet(tmp_path / "b.parquet", df, make_meta("thresholds", "calibrate", "v1", {}))
     assert digest(tmp_path / "a.parquet") == digest(tmp_path / "b.parquet")
@@ -116,7 +116,8 @@ def test_kill_mid_write_leaves_no_complete_artifact(tmp_path):
     """A real SIGKILL mid-write: only a hidden temp dir may remain, and the final path is absent."""
     script = textwrap.dedent(f"""
         import os, signal, numpy as np
-        from pipeline.artifacts import ZarrWriter, make_meta
+        from pipeline.artifacts.lineage import make_meta
+        from pipeline.artifacts.store import ZarrWriter
         m = make_meta("consensus", "s", "c", {{}}, [])
         with ZarrWriter({str(tmp_path / 'c.zarr')!r}, m, shard_images=2) as w:
             w.create("agreement", (6, 4, 4), np.float32)
@@ -204,7 +205,7 @@ def test_read_chunk_rows_slices_equal_zarrs_orthogonal_selection(tmp_path):
     gives, for sorted, unsorted and gapped rows of a sharded one-row-per-chunk array."""
     import zarr
 
-    from pipeline.artifacts import read_chunk_rows, row_runs
+    from pipeline.artifacts.store import read_chunk_rows, row_runs
 
     rng = np.random.default_rng(0)
     data = rng.integers(0, 255, size=(23, 5, 4), dtype=np.uint8)

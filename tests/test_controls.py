@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.artifacts import open_artifact, write_zarr
+from pipeline.artifacts.store import open_artifact, write_zarr
 from pipeline.runtime.errors import InputError
 from pipeline.methods import (METHODS, SUPERVISED_CEILING, Method, check_reference_boundary, gain_treatments,
                               get_method, param_keys, resolve_plan)

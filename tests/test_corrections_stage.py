@@ -13,7 +13,8 @@ import yaml
 from click.testing import CliRunner
 
 from pipeline import catalog
-from pipeline.artifacts import make_meta, open_artifact, write_parquet
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact, write_parquet
 from pipeline.augment import recompute_geometry
 from pipeline.orchestration.dag import optional_stages_on, render_dvc_yaml
 from pipeline.labeling.formats import rle_encode

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from stages.prepare import main as prepare
 
 REPO = Path(__file__).resolve().parents[1]

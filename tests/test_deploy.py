@@ -22,7 +22,7 @@ from pipeline.deploy.quantize import calibration_rows, int8_agreement, quantize_
 from pipeline.deploy import benchmark as bench
 from pipeline.deploy import quantize
 from pipeline.runtime.errors import InputError
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from pipeline.evaluation.inference import load_student
 from tests._tiny_deploy import (HAS_ONNX, PARAMS, RES, make_artifacts, make_checkpoint, make_thresholds, run_export,
                                 tiny_model)

@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.artifacts import make_meta, open_artifact, write_zarr
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact, write_zarr
 from pipeline.report import figures as F
 from tests._tiny_eval import build_tiny_artifacts, invoke, write_params
 

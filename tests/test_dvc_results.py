@@ -198,7 +198,7 @@ def _git(cwd, *args):
 def _stage_results(repo: Path, art: Path, params: Path, deploy_ms: float) -> None:
     """Run the real evaluate and analyze_teacher commands with their DVC outputs in ``repo`` (the
     paths of the generated dvc.yaml), and the benchmark's metrics function."""
-    from pipeline.artifacts import write_json
+    from pipeline.artifacts.atomic import write_json
     from pipeline.catalog import path as apath
     from stages.analyze_teacher import main as analyze
     from stages.evaluate import main as evaluate

@@ -18,7 +18,7 @@ from click.testing import CliRunner
 
 from pipeline import catalog
 from pipeline.report import dvc_results as R
-from pipeline.artifacts import write_json
+from pipeline.artifacts.atomic import write_json
 from pipeline.methods import BASELINE, METHODS, PROPOSED, method_label
 from tests._tiny_eval import build_tiny_artifacts, invoke, run_result_stages, write_params
 

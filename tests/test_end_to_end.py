@@ -58,7 +58,7 @@ def test_every_train_run_and_the_report_record_their_environment(tiny_run):
     import json
 
     import pipeline
-    from pipeline.artifacts import fingerprint
+    from pipeline.artifacts.lineage import fingerprint
     from pipeline.evaluation.inference import iter_runs
 
     repo = tiny_run[0]

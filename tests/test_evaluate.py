@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from pipeline.artifacts import open_artifact, write_parquet
+from pipeline.artifacts.store import open_artifact, write_parquet
 from tests._tiny_eval import PARAMS, calibrated_artifacts, invoke, write_params
 
 

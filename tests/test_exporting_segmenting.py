@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline.artifacts import make_meta, open_artifact
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact
 from pipeline.catalog import bundle_file
 from pipeline.runtime.errors import InputError
 from pipeline.deploy.export import export_lines, is_bundle_dir, plan_export, write_export

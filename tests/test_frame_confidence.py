@@ -118,7 +118,7 @@ def test_the_frame_confidence_benchmark_scores_a_runs_frames(tmp_path, capsys):
     assert [r["group"] for r in table] == ["val", "all"] and table[0]["n"] == 4 and "IoU lowest 25%" in out
     scores, ious = bench.frame_scores(art, tmp_path / "deploy", split="val")["val"]
     seg = Segmenter.from_bundle(tmp_path / "deploy", engine="torch")
-    from pipeline.artifacts import open_artifact
+    from pipeline.artifacts.store import open_artifact
 
     images = open_artifact(art / "images.zarr", "images")
     assert scores[0] == pytest.approx(seg.score(np.asarray(images["image"][1])))   # val rows: 1, 3, 5, 7

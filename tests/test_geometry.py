@@ -11,7 +11,8 @@ import pytest
 from click.testing import CliRunner
 from scipy import ndimage
 
-from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact, write_parquet, write_zarr
 from pipeline.consensus import vote_batch
 from pipeline.runtime.errors import InputError
 from pipeline.geometry import (GateFactors, area_ratio, area_ratios, distance_maps, foreground_agreement, gate_factors,

@@ -9,7 +9,8 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from pipeline.artifacts import make_meta, open_artifact, write_parquet, write_zarr
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact, write_parquet, write_zarr
 from pipeline.datasets.loading import load_mask, load_rgb
 from pipeline.pseudo_labels import reliability_gates
 from pipeline.params import PAPER

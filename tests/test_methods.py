@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from pipeline import losses
-from pipeline.artifacts import make_meta, open_artifact
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact
 from pipeline.runtime.errors import InputError
 from pipeline.methods import (METHODS, adaptive_mode, afs_fuse, afs_keep, confidence_pass, get_method,
                               input_artifacts, mean_valid_score, param_keys, pass_ratio, resolve_plan)

@@ -307,7 +307,7 @@ def test_the_folder_reader_refuses_and_skips_the_bomb(folder, tmp_path):
         "data.skip_bad: true in params.yaml, to leave it out)"], res.output
     res = _prepare(tmp_path / "b", images.parent, "--skip-bad")
     assert res.exit_code == 0, res.output
-    from pipeline.artifacts import open_artifact
+    from pipeline.artifacts.store import open_artifact
 
     skipped = open_artifact(tmp_path / "b" / "skipped_files.parquet", "skipped_files").df
     reasons = dict(zip(skipped["path"].map(lambda p: Path(p).name), skipped["reason"]))

@@ -8,7 +8,8 @@ import numpy as np
 from click.testing import CliRunner
 
 from pipeline import catalog
-from pipeline.artifacts import make_meta, open_artifact
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact
 from pipeline.datasets.params import check_data_params
 from pipeline.params import load_params, section
 from pipeline.datasets.prepare import REFERENCE_NOTE, prepare

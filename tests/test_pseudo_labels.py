@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from pipeline.artifacts import make_meta, open_artifact, write_zarr
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact, write_zarr
 from pipeline.consensus import vote
 from pipeline.runtime.errors import InputError
 from pipeline.geometry import image_gates

@@ -249,7 +249,7 @@ def test_ema_final_model_is_the_moving_average_of_the_steps(tiny):
 
 def test_soft_targets_train_on_the_agreement_map(tiny):
     """train.soft_targets: the region target is A (eq:agreement-map), float in [0, 1], not M^T."""
-    from pipeline.artifacts import open_artifact
+    from pipeline.artifacts.store import open_artifact
 
     data, _ = load_arrays(tiny, "plain", tiny_cfg(soft_targets=True))
     hard, _ = load_arrays(tiny, "plain", tiny_cfg())

@@ -15,7 +15,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.artifacts import make_meta, open_artifact, write_parquet
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact, write_parquet
 from pipeline.report import figures as F
 from pipeline.report import tables as T
 from tests._tiny_eval import build_tiny_artifacts, invoke, run_result_stages, write_params

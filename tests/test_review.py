@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from pipeline.review.corrections import correction_masks
 from pipeline.consensus import agreement_entropy
 from pipeline.review.formats import (coco_uncompressed_rle, ls_brush_rgba, ls_rle_decode, ls_rle_encode,

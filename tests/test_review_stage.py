@@ -13,7 +13,8 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from pipeline.artifacts import make_meta, open_artifact
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact
 from pipeline.consensus import vote_batch
 from pipeline.pseudo_labels import write_consensus
 from pipeline.consensus import agreement_entropy

@@ -10,7 +10,8 @@ import pytest
 import yaml
 
 from pipeline import catalog
-from pipeline.artifacts import make_meta, open_artifact, write_zarr
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact, write_zarr
 from pipeline.orchestration.dag import optional_stages_on, render_dvc_yaml
 from pipeline.evaluation.inference import CORRECTED_VALIDATION, save_checkpoint
 from pipeline.methods import HUMAN_TARGETS_LABEL, get_method

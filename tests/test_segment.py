@@ -109,7 +109,7 @@ def toy_trained_checkpoint(path: Path) -> Path:
     """
     import pandas as pd
 
-    from pipeline.artifacts import make_meta
+    from pipeline.artifacts.lineage import make_meta
     from pipeline.evaluation.inference import save_checkpoint
     from tests._tiny_deploy import tiny_model
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from pipeline.datasets import adapters, build
 from pipeline.datasets.loading import BadFileError, ColorTable, DecodeCache, load_labels, load_mask, parts_from_colors
 from pipeline.datasets.manifest import BadInputPolicy, spacecraft_split_violations

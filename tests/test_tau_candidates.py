@@ -6,7 +6,8 @@ from __future__ import annotations
 import pandas as pd
 import pytest
 
-from pipeline.artifacts import make_meta, open_artifact, write_parquet
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact, write_parquet
 from pipeline.params import PAPER
 from pipeline.thresholds import NO_VALIDATION_MASKS, resolve_tau, tau_candidates
 

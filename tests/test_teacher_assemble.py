@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.artifacts import make_meta, open_artifact
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact
 from pipeline.runtime.errors import InputError
 from pipeline.params import BACKENDS, PAPER, load_params, section
 from pipeline.teachers import TEACHERS, check_teacher_params, make_teacher

@@ -159,7 +159,7 @@ def test_not_a_checkpoint_is_an_input_error(tmp_path, ckpt):
 
 
 def test_stage_with_sam3_backend(ckpt, tmp_path, monkeypatch):
-    from pipeline.artifacts import open_artifact
+    from pipeline.artifacts.store import open_artifact
     from tests._tiny_teacher import build_artifacts, cache_files, run_stage
 
     monkeypatch.setenv("GEODISTILL_QUIET", "1")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from fsspec.core import url_to_fs
 
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.cache import TeacherCache
 from pipeline.teachers.distributed import JOBS_PER_BLOCK, TeacherWorker, decode_jobs, job_blocks

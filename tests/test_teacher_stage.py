@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from tests._tiny_teacher import PARAMS, H, W, build_artifacts, cache_files, run_stage
 
 

@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline.artifacts import open_artifact, write_zarr
+from pipeline.artifacts.store import open_artifact, write_zarr
 from pipeline.runtime.errors import TrainingDiverged
 from pipeline.methods import SELECTION_TAU_KEY
 from pipeline.params import load_params

@@ -12,8 +12,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.artifacts import (FAULT_ENV, ZarrWriter, make_meta, open_artifact, require_same_run, write_parquet,
-                                write_zarr)
+from pipeline.artifacts.atomic import FAULT_ENV
+from pipeline.artifacts.lineage import make_meta, require_same_run
+from pipeline.artifacts.store import ZarrWriter, open_artifact, write_parquet, write_zarr
 from pipeline.runtime.errors import ArtifactError
 
 ROOT = Path(__file__).resolve().parent.parent

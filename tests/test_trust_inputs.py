@@ -19,7 +19,7 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from pipeline.datasets import loading as L
 from pipeline.teachers.cache import TeacherCache, decode_entry, entry_key
 from stages.prepare import main as prepare_main

@@ -14,7 +14,7 @@ from safetensors import safe_open
 
 import pipeline
 from pipeline import catalog
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from pipeline.runtime.errors import ArtifactError
 from pipeline.evaluation.inference import load_student
 from pipeline.artifacts.weights import read_weights, write_weights

@@ -34,7 +34,7 @@ import json
 from pathlib import Path, PurePosixPath
 from typing import Iterable, Mapping
 
-from pipeline.artifacts import write_json
+from pipeline.artifacts.atomic import write_json
 from pipeline.runtime.errors import OUT, OVERWRITE, InputError, Option, literal
 
 WRITTEN_BY = "written_by"

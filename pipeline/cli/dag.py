@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 import yaml
 
-from pipeline.artifacts import write_text_if_changed
+from pipeline.artifacts.atomic import write_text_if_changed
 from pipeline.catalog import DVC_FILE, PARAMS_FILE
 from pipeline.orchestration.dag import is_generated_params, project_dvc_yaml, render_params_yaml
 from pipeline.artifacts.ownership import refuse_unowned

@@ -12,7 +12,7 @@ import importlib.util
 import click
 
 from pipeline import __version__
-from pipeline.artifacts import PROGRAM
+from pipeline.artifacts.lineage import PROGRAM
 from pipeline.orchestration.dag import stage_modules
 from stages._common import one_line_errors
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import click
 
-from pipeline.artifacts import write_text_if_changed
+from pipeline.artifacts.atomic import write_text_if_changed
 from pipeline.runtime.errors import InputError
 from pipeline.report.offline_plots import dvc_plots_command, offline_page, template_path, template_text, vega_scripts
 

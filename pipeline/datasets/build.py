@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from pipeline.artifacts import atomic_path
+from pipeline.artifacts.atomic import atomic_path
 from pipeline.catalog import output_file
 from pipeline.datasets import adapters
 from pipeline.datasets import synthetic as syn

@@ -17,7 +17,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline import catalog
-from pipeline.artifacts import Meta, ZarrWriter, atomic_path, write_parquet
+from pipeline.artifacts.atomic import atomic_path
+from pipeline.artifacts.lineage import Meta
+from pipeline.artifacts.store import ZarrWriter, write_parquet
 from pipeline.datasets import build
 from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
 from pipeline.datasets.loading import DecodeCache

@@ -50,7 +50,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact, read_chunk_rows
+from pipeline.artifacts.store import open_artifact, read_chunk_rows
 from pipeline.deploy import quantize as q8
 from pipeline.deploy.bundle import INT8_FILE, ONNX_FILE, read_deploy_info
 from pipeline.deploy.engines import ENGINES, Source, unavailable

@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 from typing import Any, Mapping
 
-from pipeline.artifacts import artifact_dir, open_artifact
+from pipeline.artifacts.store import artifact_dir, open_artifact
 from pipeline.catalog import META_FILE, bundle_file
 from pipeline.evaluation.inference import load_student
 from pipeline.params import section

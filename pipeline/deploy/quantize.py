@@ -50,7 +50,7 @@ from typing import Sequence
 import numpy as np
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact, read_chunk_rows
+from pipeline.artifacts.store import open_artifact, read_chunk_rows
 from pipeline.datasets.loading import resize_image
 from pipeline.deploy import openvino_engine
 from pipeline.deploy.mask_path import ONNX_INPUT, mask_path_model, ort_session, torch_logits

@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline import catalog
-from pipeline.artifacts import read_chunk_rows
+from pipeline.artifacts.store import read_chunk_rows
 from pipeline.evaluation.diagnostics import target_fractions, target_size_class
 from pipeline.runtime.errors import ArtifactError
 from pipeline.evaluation.inference import load_student, predict_probs

@@ -1,15 +1,5 @@
-"""Student checkpoints and batched inference on the deployed mask path.
-
-Checkpoint directory (schema ``checkpoint``)::
-
-    model.safetensors  mask-path weights + the training-only geometry heads (``geometry_heads.*``)
-    model.json         TinyUNet config and the run's fields: method, seed, stage, selected_epoch, ...
-                       (both: pipeline.artifacts.weights; older checkpoints hold one ``model.pt`` instead, still read)
-    log.parquet        training log (schema ``training_log``)
-    meta.json          artifact metadata (fingerprint, lineage)
-
-Only the runs listed in params.yaml's ``protocol.runs`` exist (one DVC stage each).
-"""
+"""Student checkpoints (saving, loading, the runs under ``checkpoints/``), batched inference of the mask
+path, and the validation images a run reads."""
 
 from __future__ import annotations
 
@@ -19,8 +9,8 @@ from typing import Iterator
 import numpy as np
 
 from pipeline import catalog
-from pipeline.artifacts import (Artifact, artifact_dir, make_meta, open_artifact, read_chunk_rows, require_same_run,
-    write_parquet)
+from pipeline.artifacts.lineage import make_meta, require_same_run
+from pipeline.artifacts.store import Artifact, artifact_dir, open_artifact, read_chunk_rows, write_parquet
 from pipeline.catalog import META_FILE, TRAINING_LOG_FILE
 from pipeline.runtime.device import autocast, autocast_dtype
 from pipeline.runtime.errors import ArtifactError, InputError
@@ -38,34 +28,16 @@ def iter_runs(checkpoints_dir: str | Path) -> Iterator[tuple[str, int, Path]]:
                 yield mdir.name, int(sdir.name), sdir
 
 
-def load_payload(path: str | Path) -> dict:
-    """The payload of a checkpoint/bundle directory or weights file (:func:`pipeline.artifacts.weights.read_weights`):
-    ``state_dict``, ``geometry_state_dict``, ``config`` and the run's fields.  Nothing in the files can
-    execute code: safetensors + JSON, or a legacy ``model.pt`` read with ``weights_only=True`` (a file
-    that needs anything but tensors and plain data is refused with an :class:`ArtifactError` naming it).
-    Checkpoints travel between labs, so this is the only way the project reads them.
-    """
-    from pipeline.artifacts.weights import read_weights
-
-    return read_weights(path)
-
-
 def load_student(path: str | Path, device="cpu"):
-    """Load a checkpoint directory (or a bare weights file) -> (TinyUNet in eval mode, payload dict).
-
-    Only the mask path is loaded; geometry heads are training-only.
-    """
-
+    """(TinyUNet mask path in eval mode, payload) of a checkpoint or bundle directory or a weights file."""
     from pipeline.model import TinyUNet
-    from pipeline.artifacts.weights import weights_path
+    from pipeline.artifacts.weights import read_weights, weights_path
 
     pt = weights_path(path)
-    payload = load_payload(pt)
+    payload = read_weights(pt)
     try:
         model = TinyUNet(**payload["config"])
         model.load_state_dict(payload["state_dict"])
-    except ArtifactError:
-        raise
     except Exception as e:
         raise ArtifactError(f"{pt}: unreadable checkpoint ({type(e).__name__})") from None
     model.to(device).eval()
@@ -86,10 +58,7 @@ def images_to_tensor(images: np.ndarray):
 
 def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: str = "fp32",
                   channels_last: bool = True) -> np.ndarray:
-    """Foreground probabilities P = sigmoid(Z) float32 [N,H,W] for uint8 images [N,H,W,3].
-
-    ``images`` may be a numpy array or a lazily indexed zarr array; it is read one batch at a time.
-    """
+    """P = sigmoid(Z) float32 [N,H,W] of uint8 images [N,H,W,3] (an array or a zarr, read a batch at a time)."""
     import torch
 
     device = torch.device(device)
@@ -109,13 +78,8 @@ def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: 
 
 
 def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
-    """Write a checkpoint directory atomically: model.safetensors + model.json (mask path + optional
-    geometry heads, config; :func:`pipeline.artifacts.weights.write_weights`), log.parquet (the training log
-    DataFrame, schema ``training_log``) and meta.json.
-
-    ``meta`` is the checkpoint's :class:`pipeline.artifacts.Meta` (schema ``checkpoint``);
-    ``payload`` adds fields to model.json (method, seed, stage, selected_epoch, ...; JSON values).
-    """
+    """Write a checkpoint directory atomically (``meta``: its schema ``checkpoint`` metadata); ``payload`` adds
+    JSON fields to model.json (method, seed, stage, ...)."""
     from pipeline.artifacts.weights import write_weights
 
     geo = model.geometry_heads.state_dict() if getattr(model, "geometry_heads", None) is not None else None
@@ -128,13 +92,8 @@ def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
 
 
 def open_labelled_split(artifacts: str | Path, split: str, purpose: str, allow_empty: bool = False):
-    """Open manifest, images and reference of a run and pick the ``split`` rows that have a reference mask.
-
-    Returns ``(manifest, images, reference, indices)`` (artifacts opened and validated; indices in
-    manifest order).  Reference masks serve selection, calibration and evaluation only.  InputError
-    naming the manifest when no such row exists (``purpose`` completes the message), unless
-    ``allow_empty`` (the indices are then empty).
-    """
+    """``(manifest, images, reference, indices)``: the ``split`` rows with a reference mask; InputError when
+    there are none (``purpose`` completes the message) unless ``allow_empty``."""
     manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
     images = open_artifact(catalog.path("images", artifacts), "images")
     reference = open_artifact(catalog.path("reference", artifacts), "reference")
@@ -146,23 +105,18 @@ def open_labelled_split(artifacts: str | Path, split: str, purpose: str, allow_e
     return manifest, images, reference, idx
 
 
-#: the params key of the review mode (params ``review``; the modes: :mod:`pipeline.review.apply`)
 REVIEW_MODE_KEY = "review.mode"
 #: the review mode whose corrected images are validation masks (checkpoint selection, tau, the report)
 VALIDATE = "validate"
-#: the thresholds artifact's meta field (extra) counting the corrected training images calibrate used as
-#: validation images (recorded only in ``validate`` mode; the report reads it)
+#: the thresholds artifact's meta field counting the corrected images calibrate validated on
 CORRECTED_VALIDATION = "corrected_validation"
 
 
 def validation_corrections(artifacts: str | Path, review) -> Artifact | None:
-    """The opened ``corrected`` artifact (stage corrections) when the ``review`` params section makes the
-    corrected training images validation images (``review.mode: validate`` with ``review.corrections``
-    set); None otherwise (the default: nothing else is opened, the run reads what it read before).
-    InputError when the artifact was written for the other mode (``mode`` also names the params' mode)."""
+    """The opened ``corrected`` artifact when ``review.mode: validate`` with ``review.corrections`` set, else None."""
     if not (review and review.get("corrections") and review.get("mode") == VALIDATE):
         return None
-    corrected = open_artifact(catalog.path("corrected", artifacts), catalog.ARTIFACTS["corrected"].schema)
+    corrected = open_artifact(catalog.path("corrected", artifacts), "corrected")
     require_mode(corrected, VALIDATE)
     return corrected
 
@@ -175,10 +129,7 @@ def require_mode(corrected, mode: str) -> None:
 
 
 def corrected_validation(corrected, images) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """(image ids, images [M,R,R,C], masks bool [M,R,R]) of the corrected images in ascending manifest
-    row: the opened ``images`` artifact's rows of the opened ``corrected`` artifact, with their
-    corrected masks -- the validation images ``validate`` mode adds (the validation masks' one reader
-    besides the reference: :func:`with_validation_corrections`, and the train stage's checkpoint selection)."""
+    """(image ids, images [M,R,R,C], masks bool [M,R,R]) of the corrected images, in ascending manifest row."""
     rows = np.asarray(corrected["row"], dtype=np.int64)
     order = np.argsort(rows, kind="stable")  # chunk reads want ascending rows; keep ids in step
     ids = [list(corrected.attrs["image_ids"])[i] for i in order]
@@ -187,8 +138,7 @@ def corrected_validation(corrected, images) -> tuple[list[str], np.ndarray, np.n
 
 def with_validation_corrections(val_images: np.ndarray, val_masks: np.ndarray, corrected, images
                                 ) -> tuple[np.ndarray, np.ndarray]:
-    """The validation arrays (images, bool masks; reference rows of split ``val``) with the corrected
-    images appended (:func:`corrected_validation`); unchanged when ``corrected`` is None."""
+    """The validation images and masks with the corrected ones appended (none when ``corrected`` is None)."""
     if corrected is None:
         return val_images, val_masks
     _, imgs, masks = corrected_validation(corrected, images)

@@ -13,7 +13,7 @@ from typing import Mapping, Sequence
 
 import pandas as pd
 
-from pipeline.artifacts import folders_gone_on_failure
+from pipeline.artifacts.atomic import folders_gone_on_failure
 from pipeline.datasets.loading import (SUPPORTED_SUFFIXES, BadFileError, DecodeCache, load_mask, load_rgb,
                                        reset_frame_warnings)
 from pipeline.datasets.manifest import BadInputPolicy

@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from pipeline.artifacts import atomic_path, write_json
+from pipeline.artifacts.atomic import atomic_path, write_json
 from pipeline.catalog import output_file, output_names
 from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
 from pipeline.datasets.loading import load_rgb

@@ -71,7 +71,7 @@ from typing import Mapping
 import yaml
 
 from pipeline import __version__, catalog
-from pipeline.artifacts import write_text_if_changed
+from pipeline.artifacts.atomic import write_text_if_changed
 from pipeline.training.budget import with_time_budget
 from pipeline.runtime.codeversion import ROOT
 from pipeline.orchestration.dag import live_plots, render_dvc_yaml, render_params_yaml

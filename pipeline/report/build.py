@@ -15,7 +15,8 @@ import pandas as pd
 import yaml
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact, read_chunk_rows, require_same_run
+from pipeline.artifacts.lineage import require_same_run
+from pipeline.artifacts.store import open_artifact, read_chunk_rows
 from pipeline.runtime.errors import ArtifactError
 from pipeline.evaluation.inference import CORRECTED_VALIDATION, iter_runs, load_student, predict_probs
 from pipeline.methods import BASELINE, PROPOSED
@@ -75,7 +76,7 @@ def load_inputs(art: str | Path, profile: str | None = None) -> Inputs:
     for name in INPUTS:
         spec = catalog.ARTIFACTS[name]
         try:
-            found[name] = open_artifact(catalog.path(name, art), spec.schema)
+            found[name] = open_artifact(catalog.path(name, art), name)
         except ArtifactError as e:
             missing[name] = Missing(f"`{spec.path}`", f"{e} -- produced by the `{spec.stage}` stage.")
     require_same_run(*found.values())

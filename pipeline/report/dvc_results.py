@@ -53,7 +53,7 @@ from typing import Any, Iterable, Mapping
 
 import pandas as pd
 
-from pipeline.artifacts import atomic_path, write_json
+from pipeline.artifacts.atomic import atomic_path, write_json
 from pipeline.methods import BASELINE, PROPOSED, SUPERVISED_CEILING
 
 #: decimals of every metric value (4: a 1e-4 change of a mean IoU is below any effect we report)

@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from pipeline.artifacts import open_artifact
+from pipeline.artifacts.store import open_artifact
 from pipeline.runtime.errors import ArtifactError
 from pipeline.evaluation.inference import iter_runs
 from pipeline.report.document import Section, Table, Text

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.artifacts import write_zarr
+from pipeline.artifacts.store import write_zarr
 from pipeline.datasets.loading import resize_nearest
 from pipeline.runtime.errors import InputError, Option
 from pipeline.review.corrections import correction_masks

@@ -40,7 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.artifacts import make_meta, open_artifact, write_parquet
+from pipeline.artifacts.lineage import make_meta
+from pipeline.artifacts.store import open_artifact, write_parquet
 from pipeline.datasets.loading import SUPPORTED_SUFFIXES, read_mask
 from pipeline.datasets.scan import scan_inputs
 from pipeline.runtime.errors import ArtifactError, InputError, Option, literal

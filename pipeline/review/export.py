@@ -40,7 +40,8 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline.artifacts import atomic_path, canonical_json, write_json
+from pipeline.artifacts.atomic import atomic_path, write_json
+from pipeline.artifacts.lineage import canonical_json
 from pipeline.catalog import output_names
 from pipeline.datasets.loading import probs_to_size, read_mask
 from pipeline.runtime.errors import OUT, InputError, Option, literal

@@ -2,7 +2,7 @@
 model and the flags that change numerics, thread settings, and whether the installed packages are the
 lock file's (``requirements/lock.txt``, docs/environment.md).
 
-Provenance only, like ``Meta.library_versions`` (:func:`pipeline.artifacts.library_versions`, which
+Provenance only, like ``Meta.library_versions`` (:func:`pipeline.artifacts.lineage.library_versions`, which
 :func:`collect` extends): nothing here enters a fingerprint, so artifacts stay machine-independent and
 their caches valid.  Two records use it:
 
@@ -27,13 +27,13 @@ import re
 from pathlib import Path
 from typing import Any, Mapping
 
-from pipeline.artifacts import library_versions
+from pipeline.artifacts.lineage import library_versions
 
 ROOT = Path(__file__).resolve().parents[2]
 #: the lock file in the project root (the Makefile's ``LOCK`` names the same file)
 LOCK_FILE = ROOT / "requirements" / "lock.txt"
 
-#: libraries recorded beyond those every artifact records (pipeline.artifacts.library_versions)
+#: libraries recorded beyond those every artifact records (pipeline.artifacts.lineage.library_versions)
 EXTRA_LIBRARIES = ("pandas", "pydantic", "click", "dvc", "dvclive", "onnx", "onnxruntime", "openvino",
                    "transformers")
 

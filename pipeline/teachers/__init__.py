@@ -13,7 +13,7 @@ from __future__ import annotations
 import hashlib
 from typing import Any, Mapping
 
-from pipeline.artifacts import canonical_json
+from pipeline.artifacts.lineage import canonical_json
 from pipeline.params import BACKENDS, validate_section
 from pipeline.teachers.base import VIEWS, Teacher, TeacherInput, finalize_answers
 from pipeline.teachers.imported import ImportedTeacher

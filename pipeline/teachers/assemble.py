@@ -20,7 +20,8 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from pipeline.artifacts import Meta, ZarrWriter, open_artifact, require_same_run, write_parquet
+from pipeline.artifacts.lineage import Meta, require_same_run
+from pipeline.artifacts.store import ZarrWriter, open_artifact, write_parquet
 from pipeline.runtime.errors import InputError
 from pipeline.params import SIMULATED
 from pipeline.runtime.progress import progress

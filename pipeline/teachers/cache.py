@@ -56,7 +56,7 @@ import numpy as np
 from fsspec.core import url_to_fs
 from fsspec.implementations.local import LocalFileSystem
 
-from pipeline.artifacts import canonical_json
+from pipeline.artifacts.lineage import canonical_json
 
 log = logging.getLogger(__name__)
 

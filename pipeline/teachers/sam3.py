@@ -46,7 +46,7 @@ import numpy as np
 from fsspec.core import url_to_fs
 from fsspec.implementations.local import LocalFileSystem
 
-from pipeline.artifacts import atomic_path
+from pipeline.artifacts.atomic import atomic_path
 from pipeline.runtime.device import resolve_device
 from pipeline.runtime.errors import InputError, Option, literal
 from pipeline.params import SAM3 as BACKEND

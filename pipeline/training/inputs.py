@@ -13,7 +13,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from pipeline import catalog
-from pipeline.artifacts import open_artifact, require_same_run
+from pipeline.artifacts.lineage import require_same_run
+from pipeline.artifacts.store import open_artifact
 from pipeline.augment import recompute_geometry
 from pipeline.runtime.errors import InputError
 from pipeline.geometry import area_ratio
@@ -40,7 +41,7 @@ def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any], review: Map
     from pipeline.training import loop as training  # torch: imported when a run trains, not with the stage module
 
     def opened_artifact(name: str):
-        return open_artifact(catalog.path(name, artifacts), catalog.ARTIFACTS[name].schema)
+        return open_artifact(catalog.path(name, artifacts), name)
 
     inputs = {name: opened_artifact(name) for name in training.training_inputs(spec, cfg)}
     # outputs of one stage must come from one run (a kill between geometry.zarr and gates.parquet)

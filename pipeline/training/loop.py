@@ -65,7 +65,7 @@ import torch
 
 from pipeline import losses
 from pipeline.augment import AugmentSpec, GeometryConstants, augment_batch
-from pipeline.artifacts import Artifact, read_chunk_rows
+from pipeline.artifacts.store import Artifact, read_chunk_rows
 from pipeline.runtime.device import autocast, autocast_dtype
 from pipeline.runtime.errors import ArtifactError, InputError, TrainingDiverged
 from pipeline.evaluation.inference import predict_probs

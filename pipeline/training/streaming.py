@@ -1,7 +1,7 @@
 """Training data that stays on disk: rows of Zarr artifacts read per batch, one batch ahead.
 
 * :class:`LazyRows` -- a row subset of a Zarr array (one image per chunk), read only when indexed
-  (:func:`pipeline.artifacts.read_chunk_rows`: plain slices per contiguous run), cast to a dtype.
+  (:func:`pipeline.artifacts.store.read_chunk_rows`: plain slices per contiguous run), cast to a dtype.
   ``np.asarray(rows)`` reads them all (the in-memory path).
 * :class:`MappedRows` -- a target computed per read from the same rows of other sources (the AFS
   control's fused mask); :class:`RowSource` is what both are (``isinstance`` tells streaming data).
@@ -20,7 +20,7 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from pipeline.artifacts import read_chunk_rows
+from pipeline.artifacts.store import read_chunk_rows
 
 
 class RowSource:

@@ -1,0 +1,151 @@
+"""Atomic replacement of files and folders, and the fault points the kill tests use.
+
+Everything is written to a hidden sibling temporary, then renamed into place, so a process killed at any
+instant leaves the old or the new output at the final path, never a partial one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import json
+import os
+import re
+import shutil
+import signal
+import uuid
+from pathlib import Path
+from typing import Any, Iterator
+
+FAULT_ENV = "GEODISTILL_FAULT"
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def fault_point(name: str) -> None:
+    """``GEODISTILL_FAULT=<name>`` makes the process SIGKILL itself here (the kill tests)."""
+    if os.environ.get(FAULT_ENV) == name:
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _sibling(path: Path, kind: str) -> Path:
+    return path.with_name(f".{path.name}.{kind}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Atomically swap two paths (Linux ``renameat2(RENAME_EXCHANGE)``); False where unsupported."""
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    return fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _remove(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p, ignore_errors=True)
+    else:
+        p.unlink(missing_ok=True)
+
+
+def clean_leftovers(path: Path) -> None:
+    """Remove temporaries of earlier writes of ``path`` whose writer process is gone (a killed stage)."""
+    prefix = f".{path.name}."
+    if not path.parent.is_dir():
+        return
+    for p in path.parent.iterdir():
+        kind, _, tail = p.name[len(prefix):].partition("-")
+        if not p.name.startswith(prefix) or kind not in ("tmp", "old"):
+            continue
+        pid = tail.split("-")[0]
+        if pid.isdigit() and _pid_alive(int(pid)) and int(pid) != os.getpid():
+            continue  # another live writer
+        _remove(p)
+
+
+def _replace(tmp: Path, path: Path) -> None:
+    """Move ``tmp`` onto ``path``: a file by ``os.replace``, an existing folder by an atomic exchange.
+
+    Where the kernel lacks the exchange, the old folder is first moved aside to ``.<name>.old-PID-*``, which the
+    next write removes if a kill strands it there.
+    """
+    fault_point("before_replace")
+    if not path.is_dir() or path.is_symlink():
+        os.replace(tmp, path)
+    elif _exchange(tmp, path):
+        fault_point("after_exchange")
+        shutil.rmtree(tmp, ignore_errors=True)
+    else:
+        old = _sibling(path, "old")
+        os.replace(path, old)
+        os.replace(tmp, path)
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _errno_of(e: OSError) -> int | None:
+    """``e.errno``, or the ``[errno N]`` that libraries (pyarrow) put in the message only."""
+    if e.errno:
+        return e.errno
+    m = re.search(r"\[errno (\d+)\]", str(e), re.I)
+    return int(m.group(1)) if m else None
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path, is_dir: bool = False) -> Iterator[Path]:
+    """Yield a hidden temp sibling of ``path``; on success rename it onto ``path``, else delete it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    clean_leftovers(path)
+    tmp = _sibling(path, "tmp")
+    if is_dir:
+        tmp.mkdir()
+    try:
+        yield tmp
+    except BaseException as e:
+        _remove(tmp)
+        if isinstance(e, OSError) and e.filename in (None, str(tmp)) and (code := _errno_of(e)):
+            # the error names no file or the hidden temporary: name the output the user asked for
+            raise OSError(code, os.strerror(code), str(path)) from e
+        raise
+    _replace(tmp, path)
+
+
+def write_text_if_changed(path: str | Path, text: str) -> bool:
+    """Replace ``path`` atomically when its text differs from ``text`` (else keep its mtime); whether it changed."""
+    path = Path(path)
+    if path.is_file() and path.read_text() == text:
+        return False
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return True
+
+
+def write_json(path: str | Path, obj: Any) -> Path:
+    """Write ``obj`` as indented, key-sorted JSON atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
+    return Path(path)
+
+
+@contextlib.contextmanager
+def folders_gone_on_failure(*folders: str | Path) -> Iterator[None]:
+    """When the block fails, remove each of ``folders`` that did not exist before it (folders that existed stay)."""
+    new = [Path(f) for f in folders if not Path(f).exists()]
+    try:
+        yield
+    except BaseException:
+        for f in new:
+            if f.is_dir() and not f.is_symlink():
+                shutil.rmtree(f, ignore_errors=True)
+        raise
