@@ -1,20 +1,5 @@
-"""The evaluation on the test split: every run's per-image scores at both taus, the seed summaries and the
-gains over the reference points of the method table (the ``evaluate`` stage is its wiring).
-
-* :func:`run_thresholds` -- a run's validation-calibrated tau and the fixed tau (``calibrate.fixed_tau``),
-  both as calibrate recorded them in thresholds.parquet;
-* :func:`score_runs` -- ``metrics.parquet``: one row per (group, method, seed, image, threshold_mode) with
-  Image IoU, Boundary F1, precision, recall, predicted area ratio and small-region IoU
-  (:func:`pipeline.metrics.score_masks`), the target fraction and size class
-  (:mod:`pipeline.evaluation.diagnostics`) and the predicted / reference area;
-* :func:`summarize` -- ``summary.parquet``: mean and sample std over seeds of the per-seed means
-  (:func:`pipeline.stats.seed_summary`) and, for every reference point of the method table
-  (:data:`pipeline.methods.GAIN_CONTROLS`), the gains of the methods it covers
-  (:func:`pipeline.methods.gain_treatments`) with the seed-aware paired hierarchical bootstrap CI
-  (:func:`pipeline.stats.method_gains`).  The supervised ceiling gets means only.
-
-Reference masks are used here only to score predictions.
-"""
+"""The evaluation on the test split: every run's per-image scores at its calibrated and the fixed tau,
+the seed summaries, and the gains over the method table's reference points (the ``evaluate`` stage's logic)."""
 
 from __future__ import annotations
 
@@ -35,25 +20,18 @@ from pipeline.runtime.progress import progress
 from pipeline.stats import DEFAULT_INTERVAL, method_gains, seed_summary, vs_column
 from pipeline.thresholds import mask_from_probs, tau_candidates
 
-#: metrics whose gains are bootstrapped
 GAIN_METRICS = ("iou", "bf1", "precision", "recall")
-#: metrics of the seed summary
 SUMMARY_METRICS = ("iou", "bf1", "precision", "recall", "area_ratio", "small_iou", "area_vs_reference")
-#: the per-image table's leading columns (the scores follow)
 METRICS_KEY = ["dataset", "domain", "group", "spacecraft", "method", "seed", "image_id", "threshold_mode", "tau"]
-#: the seed summary's and the gains' grouping
 SUMMARY_BY = ["dataset", "group", "method", "threshold_mode"]
-#: the test images' manifest columns copied into every row
 INFO_COLUMNS = ["image_id", "dataset", "domain", "group", "spacecraft"]
-CHUNK = 64  # test images predicted and scored per batch (bounded memory for large test sets)
-#: the reference masks' scoring geometry (pipeline.metrics.ScoringReference, ~5 bytes a pixel) is built
-#: once and reused by every run while the test set has at most this many pixels, else once per run
+CHUNK = 64  # test images per batch: bounded memory
+#: the reference side (~5 bytes a pixel) is kept for every run up to this many test pixels, else rebuilt per run
 REFERENCE_CACHE_PIXELS = 1 << 26
 
 
 def run_thresholds(thresholds: pd.DataFrame, method: str, seed: int, path) -> tuple[float, float]:
-    """(calibrated tau, fixed tau) of one run, both as calibrate recorded them in its thresholds row
-    (:func:`pipeline.thresholds.tau_candidates`); ArtifactError when calibrate did not see the run."""
+    """(calibrated tau, fixed tau) of one run as calibrate recorded them."""
     taus = tau_candidates(payload={"method": method, "seed": seed}, thresholds=thresholds)
     if "thresholds" not in taus:
         raise ArtifactError(f"{path}: no calibrated threshold for {method}/{seed} in {catalog.ARTIFACTS['thresholds'].path}; "
@@ -62,8 +40,7 @@ def run_thresholds(thresholds: pd.DataFrame, method: str, seed: int, path) -> tu
 
 
 class _ChunkReferences:
-    """The test chunks' reference side (target fractions, :class:`pipeline.metrics.ScoringReference`):
-    read and prepared once, and reused by every run while the test set fits :data:`REFERENCE_CACHE_PIXELS`."""
+    """Each test chunk's target fractions and :class:`pipeline.metrics.ScoringReference`."""
 
     def __init__(self, reference_masks, test: np.ndarray, tolerance: float, small_fraction: float):
         self.masks, self.test, self.tolerance, self.small_fraction = reference_masks, test, tolerance, small_fraction
@@ -81,7 +58,7 @@ class _ChunkReferences:
 
 def _score_chunk(probs: np.ndarray, info: pd.DataFrame, target: np.ndarray, ref, method: str, seed: int,
                  taus: Mapping[str, float], tiny_fraction: float) -> list[pd.DataFrame]:
-    """The rows of one chunk of one run, one frame per threshold mode (``taus``: mode -> tau)."""
+    """One chunk of one run's rows, a frame per threshold mode (``taus``: mode -> tau)."""
     frames = []
     for mode, tau in taus.items():
         scores = score_masks(mask_from_probs(probs, tau), ref)  # eq:inference-mask
@@ -99,11 +76,7 @@ def _score_chunk(probs: np.ndarray, info: pd.DataFrame, target: np.ndarray, ref,
 
 def score_runs(runs: Sequence[tuple[str, int, Path]], manifest: pd.DataFrame, images, reference, test: np.ndarray,
                thresholds: pd.DataFrame, cfg: Mapping, device) -> pd.DataFrame:
-    """The per-image metrics table of every run (``(method, seed, checkpoint)``) on the test rows ``test``
-    of ``manifest``, at the run's calibrated and at the fixed tau (``threshold_mode`` calibrated | fixed).
-
-    ``images``/``reference``: the opened images and reference zarrs; ``cfg``: the ``evaluate`` params
-    (``bf1_tolerance``, ``small_region_max_fraction``, ``tiny_target_max_fraction``)."""
+    """metrics.parquet: every run ``(method, seed, checkpoint)`` on the ``test`` rows at both taus (``cfg``: evaluate.*)."""
     info = manifest.iloc[test][INFO_COLUMNS].reset_index(drop=True)
     refs = _ChunkReferences(reference["mask"], test, cfg["bf1_tolerance"], cfg["small_region_max_fraction"])
     frames = []
@@ -122,8 +95,7 @@ def score_runs(runs: Sequence[tuple[str, int, Path]], manifest: pd.DataFrame, im
 
 def control_gains(metrics: pd.DataFrame, control: str, n_boot: int, ci: float, seed: int,
                   interval: str = DEFAULT_INTERVAL) -> pd.DataFrame:
-    """Gains over ``control`` (pipeline.stats.method_gains with ``interval``, evaluate.interval) of the
-    methods :func:`pipeline.methods.gain_treatments` compares with it -- never the supervised ceiling."""
+    """Gains over ``control`` of the methods :func:`pipeline.methods.gain_treatments` compares with it."""
     keep = [*gain_treatments(control, metrics["method"].unique()), control]
     return method_gains(metrics[metrics["method"].isin(keep)], GAIN_METRICS, control=control,
                         by=[c for c in SUMMARY_BY if c != "method"], n_resamples=n_boot, ci=ci, seed=seed,
@@ -131,11 +103,8 @@ def control_gains(metrics: pd.DataFrame, control: str, n_boot: int, ci: float, s
 
 
 def summarize(metrics: pd.DataFrame, n_boot: int, ci: float, seed: int, interval: str = DEFAULT_INTERVAL) -> pd.DataFrame:
-    """The seed summary of ``metrics`` with the gains over every reference point of the method table:
-    ``gain_<metric>...`` over :data:`pipeline.methods.BASELINE` (always: the results tables' columns) and
-    ``gain_<metric>_vs_<control>...`` over each other reference point that was evaluated
-    (:func:`pipeline.stats.vs_column`).  ``n_boot``/``ci``/``seed``/``interval``: evaluate.bootstrap_resamples,
-    ci, bootstrap_seed, interval."""
+    """summary.parquet: the seed summary with the gains over BASELINE (always) and over every other evaluated
+    reference point (:func:`pipeline.stats.vs_column`)."""
     summary = seed_summary(metrics, SUMMARY_BY, SUMMARY_METRICS)
     present = set(metrics["method"])
     for control in GAIN_CONTROLS:
