@@ -1,6 +1,5 @@
-"""What ``geodistill label`` reads: the input folder (scanned and checked before anything is written,
-then every file read once), the teacher's inputs from it, and a finished label folder (for ``distill
---labels``)."""
+"""What ``geodistill label`` reads and plans before writing: the input folder (checked, then every file
+read once), the outputs it will own, the teacher's answers, and a finished label folder (``distill --labels``)."""
 
 from __future__ import annotations
 
@@ -14,14 +13,15 @@ from typing import Mapping, Sequence
 import pandas as pd
 
 from pipeline.artifacts.atomic import folders_gone_on_failure
+from pipeline.artifacts.ownership import check_outputs, claim_outputs, owned_outputs, read_record
+from pipeline.catalog import output_file, output_names
 from pipeline.datasets.loading import (SUPPORTED_SUFFIXES, BadFileError, DecodeCache, load_mask, load_rgb,
                                        reset_frame_warnings)
 from pipeline.datasets.manifest import BadInputPolicy
 from pipeline.datasets.scan import scan_inputs
-from pipeline.runtime.errors import BACKEND, CHECKPOINT, INPUT, LABELS, OUT, OVERWRITE, REFERENCE_MASKS, InputError, literal
-from pipeline.labeling.writing import FORMATS, OUTPUTS, SIMULATOR_NOTE, label_targets, labels_of_gone_images
-from pipeline.artifacts.ownership import check_outputs, claim_outputs, owned_outputs, read_record
 from pipeline.params import section
+from pipeline.runtime.errors import (BACKEND, CHECKPOINT, INPUT, LABELS, OUT, OVERWRITE, REFERENCE_MASKS, InputError,
+                                     literal)
 from pipeline.runtime.progress import progress
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
@@ -30,10 +30,20 @@ from pipeline.teachers.runner import open_runner
 
 log = logging.getLogger("pipeline.labeling.run")  # label's one logger: callers listen to it
 
+FORMATS = ("png", "coco", "yolo")
+OUTPUTS = output_names("label")
+#: yolo/'s image lists: training, then validation
+YOLO_LISTS = (output_file("label_yolo", "train"), output_file("label_yolo", "val"))
+YOLO_DATA, YOLO_README = output_file("label_yolo", "data"), output_file("label_yolo", "readme")
+#: written whatever the formats; the caches under .cache/ are not label's outputs
+ALWAYS = tuple(OUTPUTS[k] for k in ("table", "csv", "sheet", "skipped"))
+SIMULATOR_NOTE = ("teacher.backend=simulated is a SIMULATOR of foundation-model errors that reads the "
+                  "reference masks given with --reference-masks; these are not a real teacher's labels")
+
+
 def find_images(input_dir: str | Path):
-    """The :class:`pipeline.datasets.scan.Inputs` of ``input_dir`` (images sorted, bad entries, files
-    that are not images), recursively (:func:`pipeline.datasets.scan.scan_inputs`, the one scan of
-    label, distill and segment); InputError when it is not a folder or has no image."""
+    """The :class:`pipeline.datasets.scan.Inputs` of ``input_dir``, recursively; InputError when it is not
+    a folder or holds no image."""
     root = Path(input_dir)
     if not root.is_dir():
         raise InputError(f"{root}: input folder not found" if not root.exists() else
@@ -53,9 +63,8 @@ def _id_of(root: Path, path: str | Path) -> str:
 
 
 def image_ids(root: Path, files: Sequence[Path]) -> list[str]:
-    """Each file's path relative to ``root`` without its suffix (posix): the label files' names.
-    InputError when two inputs would get the same name (ignoring letter case)."""
-    ids = [f.relative_to(root).with_suffix("").as_posix() for f in files]
+    """Each file's label name (:func:`_id_of`); InputError when two would be equal ignoring letter case."""
+    ids = [_id_of(root, f) for f in files]
     seen: dict[str, Path] = {}
     for iid, f in zip(ids, files):
         other = seen.setdefault(iid.lower(), f)
@@ -65,9 +74,24 @@ def image_ids(root: Path, files: Sequence[Path]) -> list[str]:
     return ids
 
 
+def label_targets(root: Path, files: Sequence[Path], ids: Sequence[str], fmts: Sequence[str]) -> list[str]:
+    """The files a run writes under ``out`` (relative, posix; the record left out): what label.json lists."""
+    out = list(ALWAYS)
+    if "png" in fmts:
+        out += [f"{OUTPUTS['masks']}/{i}.png" for i in ids]
+    if "coco" in fmts:
+        out.append(OUTPUTS["coco"])
+    if "yolo" in fmts:
+        out += [f"{OUTPUTS['yolo']}/labels/{i}.txt" for i in ids]
+        out += [f"{OUTPUTS['yolo']}/images/{f.relative_to(root).as_posix()}" for f in files]
+        lists = YOLO_LISTS if len(ids) >= 2 else YOLO_LISTS[:1]  # no val.txt below 2 images (yolo_split)
+        out += [f"{OUTPUTS['yolo']}/{name}" for name in (YOLO_DATA, *lists, YOLO_README)]
+    return out
+
+
 def find_reference_masks(mask_dir: str | Path, ids: Sequence[str]) -> list[Path]:
-    """The reference mask of every image id in ``mask_dir`` (``<id>.<png|jpg|tif|bmp>``); InputError
-    naming the first image without one (the simulated teacher needs all of them)."""
+    """The reference mask ``<id>.<suffix>`` of every image id in ``mask_dir``; InputError naming the first
+    image without one."""
     d = Path(mask_dir)
     if not d.is_dir():
         raise InputError("{}: folder not found", REFERENCE_MASKS(d))
@@ -82,20 +106,17 @@ def find_reference_masks(mask_dir: str | Path, ids: Sequence[str]) -> list[Path]
 
 
 def _inside(path: str | None, out: Path) -> str | None:
-    """A relative cache folder is taken inside the output folder (so a rerun there resumes)."""
+    """A relative cache folder is taken inside the output folder, so a rerun there resumes."""
     if path is None:
         return None
     return str(path) if Path(path).is_absolute() else str(out / path)
 
 
 def check_label_folder(label_dir: str | Path, input_dir: str | Path) -> dict:
-    """The record (label.json) of an UNMODIFIED, complete ``label`` output folder of the images in
-    ``input_dir``, for ``distill --labels`` / ``distill(labels=...)``; InputError, one line naming the
-    option, when it is not one: no label.json of label's, a run that did not finish, other images (a
-    labelled image gone, an image added since, neither labelled nor listed in skipped.csv), the
-    SIMULATOR's labels, or a file label wrote (masks, tables, COCO, YOLO) missing or changed since --
-    its sha256 differs from the one label.json records.  Corrected masks enter only through review
-    import, where they are marked as corrections, never by editing a label folder."""
+    """The record (label.json) of an unmodified, complete ``label`` output folder of the images in
+    ``input_dir`` (``distill --labels``); otherwise InputError, one line naming the option: no record,
+    an unfinished run, other images, the SIMULATOR's labels, or a written file missing or changed (its
+    sha256 differs from the record's)."""
     d, root = Path(label_dir), Path(input_dir).resolve()
     record = read_record(d / OUTPUTS["record"], "label")
     if record is None:
@@ -136,28 +157,32 @@ def check_label_folder(label_dir: str | Path, input_dir: str | Path) -> dict:
 
 @dataclasses.dataclass
 class LabelJob:
-    """One ``label`` run, checked before anything is written (:func:`plan_folder`)."""
+    """One ``label`` run: its inputs, checked before anything is written, then read, then answered."""
 
     root: Path
     out: Path
     files: list
     ids: list
-    policy: object          # pipeline.datasets.manifest.BadInputPolicy
+    policy: BadInputPolicy
     data_cfg: dict
     geo: dict
     tcfg: dict
     size: int
     simulated: bool
     ref_files: list | None
-    cache: object           # pipeline.datasets.loading.DecodeCache | None
+    cache: DecodeCache | None
     shas: list = dataclasses.field(default_factory=list)
     sizes: list = dataclasses.field(default_factory=list)
     previous: set = dataclasses.field(default_factory=set)  # label's files of an earlier run (its label.json)
+    targets: list = dataclasses.field(default_factory=list)  # the files this run writes (label_targets)
+    runner: object = None  # pipeline.teachers.runner.TeacherRunner, with every answer cached
+    fingerprint: str = ""  # the teacher's
+    stats: object = None   # the runner's RunStats
 
 
-def plan_folder(input_dir, out, params: Mapping, reference_masks, overwrite: bool, fmts: Sequence[str] = FORMATS) -> LabelJob:
+def plan_folder(input_dir, out, params: Mapping, reference_masks, overwrite: bool, fmts: Sequence[str]) -> LabelJob:
     """Scan the folder, apply the bad-file policy to links and non-images, refuse outputs the user owns
-    and check the teacher and reference-mask options -- all before anything is written."""
+    and check the teacher and reference-mask options: all before anything is written."""
     found = find_images(input_dir)
     root, files = found.root, found.files
     out = Path(out)
@@ -165,13 +190,17 @@ def plan_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
         raise InputError("{}: must not be the input folder or inside it", OUT(out))
     ids = image_ids(root, files)
     policy = BadInputPolicy(section(params, "data")["skip_bad"])
-    for path, reason in found.skipped:  # links leaving the folder, broken links: before anything is written
-        policy.report(_id_of(root, path), path, reason)
-    for path, reason in found.unused:  # not images (hidden files, other types): listed, not an error
-        policy.record(_id_of(root, path), path, reason)
-    check_outputs(out, label_targets(root, files, ids, fmts), OUTPUTS["record"], "label", overwrite=overwrite)
-    gone = labels_of_gone_images(out, root, files, ids)
-    if gone and not overwrite:  # adding images is fine; losing the labels of images no longer here is not
+    # bad entries (links leaving the folder, broken links) are reported; non-images only listed
+    for tell, entries in ((policy.report, found.skipped), (policy.record, found.unused)):
+        for path, reason in entries:
+            tell(_id_of(root, path), path, reason)
+    planned, every_format = label_targets(root, files, ids, fmts), set(label_targets(root, files, ids, FORMATS))
+    check_outputs(out, planned, OUTPUTS["record"], "label", overwrite=overwrite)
+    # adding images is fine; losing the labels of images no longer here is not, unless asked
+    per_image = (f"{OUTPUTS['masks']}/", f"{OUTPUTS['yolo']}/labels/", f"{OUTPUTS['yolo']}/images/")
+    gone = sorted(p for p in owned_outputs(out, OUTPUTS["record"], "label") - every_format
+                  if p.startswith(per_image) and ((out / p).is_symlink() or (out / p).is_file()))
+    if gone and not overwrite:
         raise InputError(f"{{}}: holds the labels of {len(gone)} image(s) no longer in {literal(root)} (first: "
                          f"{literal(gone[0])}), which this run would remove; pass {{}} to remove them, or choose "
                          "another {}", OUT(out), OVERWRITE, OUT)
@@ -188,15 +217,15 @@ def plan_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
         raise InputError(f"{{}}: only the simulated teacher reads masks; teacher.backend="
                          f"{literal(tcfg['backend'])} never does", REFERENCE_MASKS)
     ref_files = find_reference_masks(reference_masks, ids) if simulated else None
-    cache = DecodeCache(_inside(data_cfg["cache_dir"], out)) if data_cfg["cache_dir"] else None
+    # absolute: Ray workers need not share this process's working directory
+    cache = DecodeCache(os.path.abspath(_inside(data_cfg["cache_dir"], out))) if data_cfg["cache_dir"] else None
     return LabelJob(root, out, list(files), list(ids), policy, data_cfg, geo, tcfg, int(data_cfg["resolution"]),
-                simulated, ref_files, cache)
+                    simulated, ref_files, cache)
 
 
 def read_images(job: LabelJob) -> None:
-    """Pass 1: read every file once (sha256 for the teacher cache, native size); bad files -- and files
-    above ``data.max_pixels``, refused on their header before decoding -- go to the policy and leave
-    ``job``'s lists."""
+    """Read every file once (sha256 for the teacher cache, native size); bad files, and files above
+    ``data.max_pixels`` (refused on their header), go to the policy and leave ``job``'s lists."""
     keep = []
     limit = job.data_cfg["max_pixels"]
     for i, f in enumerate(progress(job.files, desc="label: reading", unit="img")):
@@ -223,18 +252,16 @@ def read_images(job: LabelJob) -> None:
 
 
 class FolderInputs:
-    """``(row, view) -> TeacherInput`` of a labelled folder's image files, decoded and resized to the
-    working resolution (:func:`pipeline.datasets.loading.load_rgb`, through the decode cache); for the
-    SIMULATOR also the reference masks.  Picklable: Ray's CPU workers decode with it."""
+    """``(row, view) -> TeacherInput`` of the job's image files at the working resolution (and for the
+    SIMULATOR its reference masks).  Picklable: Ray's CPU workers decode with it."""
 
     def __init__(self, job: LabelJob):
         absolute = lambda paths: None if paths is None else [Path(os.path.abspath(p)) for p in paths]  # noqa: E731
         # absolute paths: Ray workers need not share this process's working directory
         self.files, self.ref_files = absolute(job.files), absolute(job.ref_files)
         self.ids, self.shas, self.size = job.ids, job.shas, job.size
-        self.max_pixels = job.data_cfg["max_pixels"]
-        self.bit_depth = job.data_cfg.get("bit_depth", "auto")
-        self.cache = DecodeCache(os.path.abspath(job.cache.root)) if job.cache is not None else None
+        self.max_pixels, self.bit_depth = job.data_cfg["max_pixels"], job.data_cfg.get("bit_depth", "auto")
+        self.cache = job.cache
 
     def __call__(self, row: int, view: str) -> TeacherInput:
         image = load_rgb(self.files[row], self.size, self.cache, max_pixels=self.max_pixels,
@@ -247,30 +274,23 @@ class FolderInputs:
                             view=view, reference=reference)
 
 
-
-
-def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: bool, fmts: Sequence[str]) -> LabelJob:
-    """:func:`plan_folder`, then :func:`read_images` (a bad image stops the run before any output: no
-    folder of it stays), then the outputs claimed in label.json as an unfinished run."""
+def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: bool, fmts: Sequence[str],
+                device: str = "auto", workers: int = 0, address: str | None = None) -> LabelJob:
+    """Plan the run, read every image (a bad one stops it before any output folder stays), claim the
+    outputs in label.json as an unfinished run, then fill the teacher cache with every answer through
+    the teacher stage's runner (serial, or a Ray Data pool of ``workers``)."""
     job = plan_folder(input_dir, out, params, reference_masks, overwrite, fmts)
     reset_frame_warnings()  # each run says once how it reads 16-bit frames
     made = [job.out, job.out / ".cache"] + ([job.cache.root] if job.cache is not None else [])
     with folders_gone_on_failure(*made):
         read_images(job)
+    job.targets, inputs = label_targets(job.root, job.files, job.ids, fmts), FolderInputs(job)
     job.previous = owned_outputs(job.out, OUTPUTS["record"], "label")
-    claim_outputs(job.out, label_targets(job.root, job.files, job.ids, fmts), OUTPUTS["record"], "label",
-                  {"input": str(job.root.resolve()), "complete": False})
-    return job
-
-
-def teacher_answers(job: LabelJob, device: str, workers: int = 0, address: str | None = None):
-    """The prompts on every image through the teacher stage's runner and cache
-    (:func:`pipeline.teachers.runner.open_runner`; serial, or a Ray Data pool of ``workers``);
-    (runner, teacher fingerprint, stats)."""
-    runner, t_fp = open_runner(job.tcfg, (job.size, job.size), device, FolderInputs(job), job.shas)
+    claim_outputs(job.out, job.targets, OUTPUTS["record"], "label", {"input": str(job.root.resolve()), "complete": False})
+    job.runner, job.fingerprint = open_runner(job.tcfg, (job.size, job.size), device, inputs, job.shas)
     if job.simulated:
         log.warning("label: %s", SIMULATOR_NOTE)
-    stats = runner.fill(range(len(job.files)), workers=workers, address=address)
+    job.stats = job.runner.fill(range(len(job.files)), workers=workers, address=address)
     log.info("label: teacher computed %d answers on %d images; %d cached answers reused",
-             stats.answers_computed, stats.images_computed, stats.cache_hits)
-    return runner, t_fp, stats
+             job.stats.answers_computed, job.stats.images_computed, job.stats.cache_hits)
+    return job
