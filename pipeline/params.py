@@ -1,18 +1,7 @@
-"""The typed params schema: every knob of the pipeline, its default and its bounds, written once.
+"""The typed params schema: every knob of the pipeline, its default (the paper's value) and its bounds, once.
 
-``params.yaml`` is the *effective* parameter set that DVC tracks key by key.  It is generated from
-this schema's defaults (the paper's values, eq labels refer to the paper) plus one profile's
-overrides (:mod:`pipeline.profiles`, which imports this module, never the reverse):
-``geodistill profile demo|reduced|reduced-strong|paper`` writes it, and a user then edits single values in it
-(``dvc exp run -S train.lr_stage2=2e-4`` works the same way).
-
-Every stage validates the whole file once at start (:func:`load_params`): a value that is NaN or
-infinite, of the wrong type, out of range, or a key the schema does not know gives one
-:class:`~pipeline.runtime.errors.InputError` line naming the key (exit code 2 from the CLI) before anything
-is written.  Why pydantic: strict typed models with bounds, ``extra="forbid"`` and finite-number
-checks replace about seventy hand-written ``require`` calls and keep the default beside the bound.
-
-Library code reads the paper's constants from here (``PAPER``), never from its own copies.
+Every stage validates the whole params file at start (:func:`load_params`); a bad value or an unknown key
+is one InputError line naming the key.  Library code reads the paper's constants from ``PAPER``.
 """
 
 from __future__ import annotations
@@ -33,9 +22,7 @@ DEFAULT_PARAMS = "params.yaml"
 
 
 class _Loader(yaml.SafeLoader):
-    """YAML with YAML 1.2's numbers: ``1e-4`` and ``5E-4`` (no dot) are floats, as people write learning
-    rates; PyYAML's YAML 1.1 reader takes them for strings.  The one reader of params, protocol files
-    and ``--set`` values (:func:`load_yaml`)."""
+    """YAML with YAML 1.2's numbers: ``1e-4`` (no dot) is a float, not PyYAML's string."""
 
 
 _Loader.add_implicit_resolver(
@@ -67,9 +54,6 @@ def _f(default, description: str = "", **bounds):
     return Field(default, description=description, **bounds)
 
 
-# --------------------------------------------------------------------------------------------------
-# data (stage prepare)
-# --------------------------------------------------------------------------------------------------
 class SyntheticParams(_Section):
     """The embedded synthetic benchmark: a SpaceSense-Bench-like spacecraft-disjoint split."""
 
@@ -111,14 +95,11 @@ class SyntheticParams(_Section):
 
 
 SOURCES = ("synthetic", "spacesense", "spark", "speedplus", "tango", "folder")
-#: the teacher backends, each name once: the schema's choices here, and the keys of the registry
-#: pipeline.teachers.TEACHERS (name -> class; each class takes its ``backend`` from these constants)
+#: the teacher backends: the keys of the registry pipeline.teachers.TEACHERS
 SIMULATED, SAM3, IMPORTED = BACKENDS = ("simulated", "sam3", "imported")
-#: the evaluate stage's gain intervals (pipeline.stats.INTERVALS; docs/intervals.md): the effect on these
-#: test spacecraft (t), the former seed-aware bootstrap, and the effect on spacecraft like these (cluster t)
+#: the evaluate stage's gain intervals (docs/intervals.md)
 SEED_IMAGE_T, SEED_BOOTSTRAP, SEED_CLUSTER_T = GAIN_INTERVALS = ("seed_image_t", "seed_bootstrap", "seed_cluster_t")
 SPLITS = ("train", "val", "test")
-#: ``data.bit_depth``: how many of a 16-bit file's bits carry the signal (pipeline.datasets.loading.scale_16bit)
 AUTO_BIT_DEPTH = "auto"
 BIT_DEPTHS = (AUTO_BIT_DEPTH, 10, 12, 14, 16)
 
@@ -149,9 +130,6 @@ class DataParams(_Section):
         return self
 
 
-# --------------------------------------------------------------------------------------------------
-# teacher, consensus, geometry
-# --------------------------------------------------------------------------------------------------
 PAPER_PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
                  "spacecraft with rigid body and appendages",
                  "artificial object in space with panels and antennas"]
@@ -206,9 +184,6 @@ class GeometryParams(_Section):
     eps: float = _f(1e-6, ge=0)
 
 
-# --------------------------------------------------------------------------------------------------
-# train (stages train_<method>)
-# --------------------------------------------------------------------------------------------------
 class ConfidenceParams(_Section):
     criterion: Literal["agreement", "mean_score"] = _f("agreement", "eq:foreground-agreement c_i | mean valid score")
     threshold: float = _f(0.80, ge=0, le=1)
@@ -233,37 +208,17 @@ class AdaptiveParams(_Section):
     anchor_geometry_only: bool = _f(False, "keep the weak anchor in geometry_only mode (paper: no anchoring)")
 
 
-# --------------------------------------------------------------------------------------------------
-# Recipes (issue 24): named bundles of "recipe part" values
-# --------------------------------------------------------------------------------------------------
-#: recipe -> section -> part -> value.  ``paper`` is the published recipe (every part at the paper's /
-#: the original implementation's value); ``stable`` is what docs/stability.md measured to make the
-#: published numbers hold under thread-count and precision changes.  Rule: a part left ``null`` (the
-#: schema default) takes the value of ``train.recipe``'s bundle; a part given a value keeps it.
-#: ``strong`` (docs/student.md) trains the same model longer on augmented images: target-consistent
-#: augmentation (pipeline.augment), a warm-up / stable / decay learning rate, the mean weights of the
-#: decay phase's last epochs and a batch of 8 (twice the images per step: fewer, fuller steps on a CPU
-#: or a GPU).  Its lengths are a first choice, below the plateau: the convergence study
-#: (benchmarks.convergence, docs/student.md) found none within 400 epochs.
+_PAPER_TRAIN = {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4, "epochs_stage1": 20,
+                "epochs_stage2": 10, "schedule": "cosine", "augment": False, "ema_decay": 0.0, "soft_targets": False,
+                "until": "epochs", "lr_scale": 1.0}
+_STRONG_TRAIN = {**_PAPER_TRAIN, "precision": "fp32", "warmup_epochs": 2, "average_last": 4, "batch_size": 8,
+                 "epochs_stage1": 80, "epochs_stage2": 20, "schedule": "wsd", "augment": True}
+#: recipe -> section -> part -> value; a part left null takes ``train.recipe``'s value (docs/decisions.md)
 RECIPES: dict[str, dict[str, dict[str, Any]]] = {
-    "paper": {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4,
-                        "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False,
-                        "ema_decay": 0.0, "soft_targets": False, "until": "epochs", "lr_scale": 1.0},
-              "calibrate": {"tau_rule": "argmax"}},
-    "stable": {"train": {"precision": "fp32", "warmup_epochs": 0, "average_last": 5, "batch_size": 4,
-                         "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine", "augment": False,
-                         "ema_decay": 0.0, "soft_targets": False, "until": "epochs", "lr_scale": 1.0},
-               "calibrate": {"tau_rule": "smooth"}},
-    "strong": {"train": {"precision": "fp32", "warmup_epochs": 2, "average_last": 4, "batch_size": 8,
-                         "epochs_stage1": 80, "epochs_stage2": 20, "schedule": "wsd", "augment": True,
-                         "ema_decay": 0.0, "soft_targets": False, "until": "epochs", "lr_scale": 1.0},
-               "calibrate": {"tau_rule": "smooth"}},
-    # distill's recipe: strong's parts, Stage I stopped at its plateau (at most 100 epochs, decay included).
-    # The speedrun (benchmarks/speedrun.py, docs/student.md) measured no faster lever: 4x the rate lost
-    # 0.047 validation IoU at a quarter of the baseline's cost, soft targets nothing on top of it
-    "plateau": {"train": {"precision": "fp32", "warmup_epochs": 2, "average_last": 4, "batch_size": 8,
-                          "epochs_stage1": 100, "epochs_stage2": 20, "schedule": "wsd", "augment": True,
-                          "ema_decay": 0.0, "soft_targets": False, "until": "plateau", "lr_scale": 1.0},
+    "paper": {"train": _PAPER_TRAIN, "calibrate": {"tau_rule": "argmax"}},
+    "stable": {"train": {**_PAPER_TRAIN, "precision": "fp32", "average_last": 5}, "calibrate": {"tau_rule": "smooth"}},
+    "strong": {"train": _STRONG_TRAIN, "calibrate": {"tau_rule": "smooth"}},
+    "plateau": {"train": {**_STRONG_TRAIN, "epochs_stage1": 100, "until": "plateau"},
                 "calibrate": {"tau_rule": "smooth"}},
 }
 
@@ -274,9 +229,8 @@ def recipe_parts() -> list[str]:
 
 
 def fill_recipe(data, section: str, recipe: str):
-    """``data`` (a raw section mapping) with every recipe part that is absent or None set to
-    ``RECIPES[recipe][section]``'s value; an unknown recipe or a non-mapping is returned as is (the
-    schema's own check names it)."""
+    """Raw section ``data`` with every absent or None recipe part set to ``recipe``'s value (anything
+    else is returned as is, for the schema to name)."""
     if not isinstance(data, Mapping) or recipe not in RECIPES:
         return data
     out = dict(data)
@@ -287,9 +241,7 @@ def fill_recipe(data, section: str, recipe: str):
 
 
 def unresolved(values: Mapping[str, Any], raw: Mapping[str, Any]) -> dict:
-    """Validated ``values`` with every recipe part that ``raw`` left absent/None set back to None: what
-    params.yaml shows (``null`` = the recipe's value), so that editing ``train.recipe`` alone switches
-    the bundle."""
+    """Validated ``values`` with the recipe parts ``raw`` left null set back to None, as params.yaml shows them."""
     out = copy.deepcopy(dict(values))
     for dotted in recipe_parts():
         sec, key = dotted.split(".")
@@ -299,9 +251,7 @@ def unresolved(values: Mapping[str, Any], raw: Mapping[str, Any]) -> dict:
 
 
 class AugmentParams(_Section):
-    """Target-consistent augmentation (pipeline.augment), used when ``train.augment`` is on: probabilities
-    and magnitudes.  Flips and 90-degree rotations move every target exactly; a rescale recomputes the
-    SDF, skeleton and area from the augmented pseudo-mask; the gate is unchanged."""
+    """Target-consistent augmentation (pipeline.augment) when ``train.augment`` is on."""
 
     hflip: float = _f(0.5, "probability of a left-right flip", ge=0, le=1)
     vflip: float = _f(0.5, "probability of an up-down flip", ge=0, le=1)
@@ -401,15 +351,8 @@ class TrainParams(_Section):
         return fill_recipe(data, "train", data.get("recipe", "paper") if isinstance(data, Mapping) else "paper")
 
 
-
 class ProtocolParams(_Section):
-    """Which (method, seed) training runs exist in the DAG: ``runs[method]`` lists its seeds.
-
-    Only listed runs become DVC stages (``train_<method>@<seed>``); a warm-started method needs
-    ``plain`` at the same seed.  ``seeds_per_stage`` > 1 groups a method's seeds into stages of that many
-    runs, each group one process (pipeline/orchestration/dag.py, :func:`pipeline.orchestration.dag.seed_groups`); it shapes dvc.yaml
-    only: every run's checkpoint is the same bytes either way.
-    """
+    """Which (method, seed) training runs exist in the DAG; a warm-started method needs Stage I at its seed."""
 
     runs: dict[str, list[int]] = _f({STAGE_ONE: [42], PROPOSED: [42]}, "method -> seeds; [] = no run")
     supervised_ceiling: bool = _f(False, "allow runs of supervised_ceiling: trained on REFERENCE masks, "
@@ -431,7 +374,6 @@ class ProtocolParams(_Section):
                 missing = sorted(set(seeds) - set(v.get(STAGE_ONE, [])))
                 if missing:
                     raise ValueError(f"{m} warm-starts from {STAGE_ONE}, which has no run for seed(s) {missing}")
-        # every method appears (an empty list: no run), in the method table's order
         return {m: list(v.get(m, [])) for m in METHODS}
 
     @model_validator(mode="after")
@@ -443,9 +385,6 @@ class ProtocolParams(_Section):
         return self
 
 
-# --------------------------------------------------------------------------------------------------
-# calibrate, evaluate, report, deploy
-# --------------------------------------------------------------------------------------------------
 class CalibrateParams(_Section):
     tau_rule: Literal["argmax", "plateau", "smooth"] | None = _f(
         None, "recipe part (train.recipe): argmax of the validation IoU curve | plateau = centre of the "
@@ -461,7 +400,7 @@ class CalibrateParams(_Section):
 
     @model_validator(mode="before")
     @classmethod
-    def _recipe_parts(cls, data):  # standalone section: the paper recipe (Params fills it from train.recipe)
+    def _recipe_parts(cls, data):
         return fill_recipe(data, "calibrate", "paper")
 
     @model_validator(mode="after")
@@ -515,7 +454,6 @@ class DeployParams(_Section):
     target_resolution: int = _f(384, "the size the latency target is judged at", ge=1)
     target_iou_drop: float = _f(0.005, "a fast path may lose at most this much validation Image IoU", ge=0)
 
-
     @field_validator("benchmark_variants")
     @classmethod
     def _variants(cls, v):
@@ -526,15 +464,8 @@ class DeployParams(_Section):
         return v
 
 
-# --------------------------------------------------------------------------------------------------
-# review (stages review_export and corrections; pipeline/review/export.py, apply.py)
-# --------------------------------------------------------------------------------------------------
 class ReviewParams(_Section):
-    """Masks a person corrected (``geodistill review import``) and how the DAG uses them.
-
-    ``corrections: null`` (the default) is today's pipeline: no ``corrections`` stage in dvc.yaml and
-    no artifact of it read by any stage.
-    """
+    """Masks a person corrected (``geodistill review import``) and how the DAG uses them (null: not at all)."""
 
     corrections: str | None = _f(None, "a corrections artifact (geodistill review import --out); null = none")
     mode: Literal["validate", "replace"] = _f(
@@ -563,7 +494,7 @@ class Params(_Section):
     @model_validator(mode="before")
     @classmethod
     def _recipe_parts(cls, data):
-        """Recipe parts of other sections follow ``train.recipe`` (sections validate after this)."""
+        """Recipe parts of other sections follow ``train.recipe``."""
         if not isinstance(data, Mapping):
             return data
         train = data.get("train")
@@ -591,13 +522,9 @@ class Params(_Section):
         return self
 
 
-#: The paper's values: the schema defaults.  Library code takes its default constants from here.
 PAPER = Params()
 
 
-# --------------------------------------------------------------------------------------------------
-# Validation and loading
-# --------------------------------------------------------------------------------------------------
 def _error_line(err: ValidationError, origin: str) -> str:
     e = err.errors()[0]
     key = ".".join(str(p) for p in e["loc"])
@@ -610,24 +537,21 @@ def _error_line(err: ValidationError, origin: str) -> str:
     return f"{origin}: {key}{shown}: {msg}" if key else f"{origin}: {msg}"
 
 
-def validate(raw: Mapping[str, Any], origin: str = "params") -> dict:
-    """Validate a whole params mapping against the schema; the effective dict (defaults filled in).
-
-    Raises InputError with one line naming the first bad key.
-    """
+def _validated(model: type[BaseModel], raw: Mapping[str, Any], origin: str) -> dict:
     try:
-        return Params.model_validate(dict(raw)).model_dump(mode="python")
+        return model.model_validate(dict(raw)).model_dump(mode="python")
     except ValidationError as e:
         raise InputError(_error_line(e, origin)) from None
 
 
+def validate(raw: Mapping[str, Any], origin: str = "params") -> dict:
+    """The effective params (defaults filled in) of a whole mapping; InputError naming the first bad key."""
+    return _validated(Params, raw, origin)
+
+
 def validate_section(name: str, cfg: Mapping[str, Any]) -> dict:
     """Validate one section on its own (library entry points called outside a stage)."""
-    model = Params.model_fields[name].annotation
-    try:
-        return model.model_validate(dict(cfg)).model_dump(mode="python")
-    except ValidationError as e:
-        raise InputError(_error_line(e, f"params: {name}")) from None
+    return _validated(Params.model_fields[name].annotation, cfg, f"params: {name}")
 
 
 def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict:
@@ -687,17 +611,14 @@ def read_yaml_mapping(path: str | Path, what: str = "params file") -> dict:
 
 
 #: the override key that names a profile: only the commands that switch profile accept it
-#: (:func:`pipeline.profiles.load_profile` and its callers: ``label``, ``distill``, the notebook API)
 PROFILE_KEY = "profile"
 
 
 def load_params(path: str | Path = DEFAULT_PARAMS, overrides: Iterable[str] = (),
                 base: Mapping[str, Any] | None = None) -> dict:
-    """The validated params of ``path`` (or of ``base``, raw values already read, with ``path`` naming
-    them in messages) with ``--set key.path=value`` overrides applied.
+    """The validated params of ``path`` (or of raw ``base``, ``path`` naming it) with ``--set`` overrides.
 
-    ``--set profile=NAME`` is refused here: profiles are data that only the commands switching profile
-    read (:func:`pipeline.profiles.load_profile`); this module does not import them.
+    ``--set profile=NAME`` is refused: only the commands that switch profile read profiles.
     """
     parsed = [parse_override(o) for o in overrides]
     if any(keys == [PROFILE_KEY] for keys, _ in parsed):
@@ -718,11 +639,7 @@ def section(params: Mapping[str, Any], name: str) -> dict:
 
 def require(cfg: Mapping[str, Any], key: str, where: str, *, kind: type | tuple = object,
             lo: float | None = None, hi: float | None = None) -> Any:
-    """Fetch ``cfg[key]`` and check its type and range; InputError names ``where.key``.
-
-    For mappings the schema does not cover (dataset protocol files, bundles); params are validated
-    by :func:`validate`.
-    """
+    """``cfg[key]`` checked for type and range (mappings the schema does not cover); InputError names ``where.key``."""
     if key not in cfg:
         raise InputError(f"params: {where}.{key} missing")
     v = cfg[key]

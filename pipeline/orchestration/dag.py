@@ -1,19 +1,5 @@
-"""The DVC DAG, derived rather than typed: code deps from imports, params key by key, active runs only.
-
-* code deps: :func:`pipeline.runtime.codeversion.code_deps` (the files a stage script imports, the same list
-  that makes its code version);
-* :func:`render_dvc_yaml` writes ``dvc.yaml`` from the catalogue (:mod:`pipeline.catalog`) and the
-  method table (:mod:`pipeline.methods`): one ``train_<method>`` stage per method whose
-  ``matrix.seed`` is ``${protocol.runs.<method>}`` -- an empty list in params.yaml means no stage,
-  so only the active (method, seed) runs exist.  With ``protocol.seeds_per_stage`` > 1
-  (:func:`seed_groups`) a stage trains a group of seeds in one process instead: the process start, the
-  imports and the data load are paid once per group (docs/performance.md, "The demo's wall time"),
-  and each (method, seed) keeps its own outs; the seeds are then written into dvc.yaml.
-* :func:`render_params_yaml` writes ``params.yaml`` for a profile (:mod:`pipeline.profiles`), with
-  each key's description from the schema as a comment.
-
-``geodistill profile NAME`` and ``geodistill dag [--check]`` (pipeline/cli/dag.py) call these.
-"""
+"""The DVC DAG, derived rather than typed: dvc.yaml from the catalogue, the method table and the stages'
+imports (one ``train_<method>`` stage per method, active runs only), and params.yaml for a profile."""
 
 from __future__ import annotations
 
@@ -30,9 +16,6 @@ from pipeline.params import Params, deep_merge, unresolved, validate
 from pipeline.profiles import profile_params
 
 
-# --------------------------------------------------------------------------------------------------
-# dvc.yaml
-# --------------------------------------------------------------------------------------------------
 def _fill(template: str) -> str:
     """Replace ``{artifact}`` placeholders by catalogue paths; ``${...}`` stays a DVC template."""
     values = {n: dvc_path(n, method="${item.method}", seed="${item.seed}", profile="${profile}") for n in ARTIFACTS}
@@ -40,39 +23,32 @@ def _fill(template: str) -> str:
     return re.sub(r"(?<!\$)\{(\w+)\}", lambda m: values[m.group(1)], template)
 
 
+def _paths(names) -> list[str]:
+    return [_fill("{" + n + "}") for n in names]
+
+
 def _stage_entry(spec, matrix: dict | None = None, code_root: Path | None = None,
                  data_deps: dict[str, list[str]] | None = None) -> dict:
-    """The dvc.yaml entry of a :class:`pipeline.catalog.StageSpec`: derived code deps, then data deps,
-    then input artifacts; params key by key; outs and DVC metrics files (those outside artifacts/ --
-    reports, metrics, plot tables -- uncached, so git tracks them and ``dvc metrics diff`` works).
-
-    ``code_root`` / ``data_deps`` ({stage: paths}, replacing the spec's data deps): a standalone project
-    (:func:`render_dvc_yaml`)."""
+    """The dvc.yaml entry of a stage: code deps, data deps, input artifacts; params; outs and metrics (those
+    outside artifacts/ uncached, so git tracks them).  ``data_deps`` ({stage: paths}) replace the spec's."""
     entry: dict[str, Any] = {"matrix": matrix} if matrix else {}
     entry["cmd"] = f"python -m {spec.module} {_fill(spec.args)}"
     own_data = list(spec.data_deps) if data_deps is None else list(data_deps.get(spec.name, []))
-    entry["deps"] = code_deps(spec.module, code_root=code_root) + own_data + [_fill("{" + d + "}") for d in spec.deps]
+    entry["deps"] = code_deps(spec.module, code_root=code_root) + own_data + _paths(spec.deps)
     entry["params"] = list(spec.params)
-    entry["outs"] = [_out_entry(o) for o in spec.outs]
+    entry["outs"] = [{p: {"cache": False}} if ARTIFACTS[o].path.startswith("../") else p
+                     for o, p in zip(spec.outs, _paths(spec.outs))]
     if spec.metrics:
-        entry["metrics"] = [{_fill("{" + m + "}"): {"cache": False}} for m in spec.metrics]
+        entry["metrics"] = [{p: {"cache": False}} for p in _paths(spec.metrics)]
     return entry
 
 
-def _out_entry(name: str) -> str | dict:
-    """A catalogue artifact as a dvc.yaml out: outside artifacts/ (``../`` paths) ``cache: false``."""
-    p = _fill("{" + name + "}")
-    return {p: {"cache": False}} if ARTIFACTS[name].path.startswith("../") else p
-
-
-#: the script of the per-method training stages (``train_<method>``, :func:`train_stage`; the catalogue
-#: lists the other stages, :data:`pipeline.catalog.STAGES`)
+#: the script of every ``train_<method>`` stage (the catalogue lists the other stages)
 TRAIN_MODULE = "stages.train"
 
 
 def upstream_stages() -> list[str]:
-    """The catalogue stages the training stages need (the producers of the artifacts any method reads,
-    and theirs), in catalogue order: the stages that come before ``train_<method>`` in the DAG."""
+    """The catalogue stages upstream of the training stages, in catalogue order."""
     producer = {a: s.name for s in STAGES.values() for a in s.outs}
     todo = [a for m in METHODS.values() for a in input_artifacts(m)]
     need: set[str] = set()
@@ -85,18 +61,15 @@ def upstream_stages() -> list[str]:
 
 
 def stage_modules() -> dict[str, str]:
-    """Every stage of the DAG -> its script module, in DAG order (``train`` for all ``train_<method>``):
-    the pipeline's subcommands of ``geodistill`` (pipeline/cli/main.py)."""
+    """Every stage of the DAG -> its script module, in DAG order (``train`` for all ``train_<method>``)."""
     up = upstream_stages()
     return {**{n: STAGES[n].module for n in up}, "train": TRAIN_MODULE,
             **{n: s.module for n, s in STAGES.items() if n not in up}}
 
 
 def train_stage(method_name: str, code_root: Path | None = None, seeds: list[int] | None = None) -> dict:
-    """A training stage of ``method_name``: with ``seeds`` None the ``train_<method>`` matrix stage, one
-    run per seed listed in ``protocol.runs.<method>`` (DVC names them ``train_<method>@<seed>``); with
-    ``seeds`` one stage that trains those seeds in one process (``--seed`` repeated, each seed with its
-    own ``--out``/``--init``/``--live-dir``, so each (method, seed) keeps its own outs)."""
+    """The ``train_<method>`` matrix stage over ``protocol.runs.<method>`` (``seeds`` None), or one stage
+    training ``seeds`` in one process, each seed with its own outs."""
     m = METHODS[method_name]
     items = ["${item.seed}"] if seeds is None else [str(s) for s in seeds]
     outs = [dvc_path("checkpoint", method=m.name, seed=s) for s in items]
@@ -113,23 +86,20 @@ def train_stage(method_name: str, code_root: Path | None = None, seeds: list[int
     return entry
 
 
-#: the params key that groups the training runs (pipeline.params.ProtocolParams.seeds_per_stage)
 SEEDS_PER_STAGE_KEY = "protocol.seeds_per_stage"
 
 
 def train_stage_name(method_name: str, seeds: list[int] | None = None, all_seeds: list[int] | None = None) -> str:
-    """The dvc.yaml name of a training stage: ``train_<method>`` for the matrix stage (``seeds`` None;
-    DVC adds ``@<seed>``) and for a group holding all the method's seeds (``all_seeds`` None: the group is
-    all of them); ``train_<method>-<seed>-<seed>...`` for a group of some of them."""
+    """``train_<method>`` for the matrix stage or a group of all the method's seeds, else
+    ``train_<method>-<seed>-<seed>...``."""
     if seeds is None or all_seeds is None or list(seeds) == list(all_seeds):
         return f"train_{method_name}"
     return f"train_{method_name}-" + "-".join(str(s) for s in seeds)
 
 
 def seed_groups(params: dict | None) -> dict[str, list[list[int]]] | None:
-    """{method: its seeds in groups of ``protocol.seeds_per_stage``, in ``protocol.runs`` order} for the
-    methods with runs, from a params dict (params.yaml as read); None when the key is 1 or absent: one
-    stage per (method, seed), templated from ``protocol.runs`` (the default)."""
+    """{method: its seeds in groups of ``protocol.seeds_per_stage``} from params.yaml as read; None when
+    the key is 1 or absent (one templated stage per run)."""
     protocol = (params or {}).get("protocol") or {}
     per_stage = protocol.get(SEEDS_PER_STAGE_KEY.split(".")[-1]) or 1
     if per_stage <= 1:
@@ -139,8 +109,7 @@ def seed_groups(params: dict | None) -> dict[str, list[list[int]]] | None:
 
 
 def train_stages(code_root: Path | None = None, groups: dict[str, list[list[int]]] | None = None) -> dict[str, dict]:
-    """The training stages, in method-table order: one matrix stage per method (``groups`` None), or
-    one stage per group of seeds (:func:`seed_groups`; methods without a group have no stage)."""
+    """The training stages in method-table order: a matrix stage per method, or a stage per group of seeds."""
     if groups is None:
         return {f"train_{name}": train_stage(name, code_root) for name in METHODS}
     everyone = {m: [s for g in gs for s in g] for m, gs in groups.items()}
@@ -148,21 +117,18 @@ def train_stages(code_root: Path | None = None, groups: dict[str, list[list[int]
             for name in METHODS for g in groups.get(name, [])}
 
 
-#: Catalogue stages that exist in dvc.yaml only when a param is set (the stage -> the dotted key): the
-#: ``corrections`` stage with ``review.corrections`` (pipeline/review/apply.py).  Unset, dvc.yaml and
-#: every fingerprint are what they were without the stage.
+#: catalogue stages in dvc.yaml only when a param is set (stage -> dotted key); unset, nothing changes
 OPTIONAL_STAGES = {"corrections": "review.corrections"}
-#: what the training stages read from the ``corrections`` stage when it exists (its out and params)
+#: what the training stages read from the ``corrections`` stage when it exists
 REVIEW_TRAIN_DEPS = ("corrected",)
 REVIEW_TRAIN_PARAMS = ("review.corrections", "review.mode", "review.human_targets")
-#: the stages past training that read the ``corrections`` stage's out when it exists (validate mode: the
-#: corrected images are validation images, pipeline.evaluation.inference.validation_corrections), and their params
+#: the stages past training that read the corrected masks as validation masks
 REVIEW_VALIDATION_STAGES = ("calibrate",)
 REVIEW_VALIDATION_PARAMS = ("review.corrections", "review.mode")
 
 
 def optional_stages_on(params: dict | None) -> tuple[str, ...]:
-    """The :data:`OPTIONAL_STAGES` whose key is set (not null/empty) in ``params`` (a params dict)."""
+    """The :data:`OPTIONAL_STAGES` whose key is set in ``params``."""
     def get(key):
         cur = params or {}
         for k in key.split("."):
@@ -175,9 +141,7 @@ def optional_stages_on(params: dict | None) -> tuple[str, ...]:
 def dvc_stages(code_root: Path | None = None, data_deps: dict[str, list[str]] | None = None,
                omit: tuple[str, ...] = (), optional: tuple[str, ...] = (),
                groups: dict[str, list[list[int]]] | None = None) -> dict[str, dict]:
-    """Every stage of dvc.yaml, in DAG order: the catalogue's data stages, the training stages (one per
-    method, or per group of seeds: :func:`train_stages`), then the catalogue's downstream stages.
-    ``code_root``/``data_deps``/``omit``/``optional``/``groups``: see :func:`render_dvc_yaml`."""
+    """Every stage of dvc.yaml in DAG order (arguments: :func:`render_dvc_yaml`)."""
     upstream = upstream_stages()
     out = {n: _stage_entry(STAGES[n], code_root=code_root, data_deps=data_deps) for n in upstream}
     if "corrections" in optional:  # before the training stages, which read its out
@@ -185,17 +149,17 @@ def dvc_stages(code_root: Path | None = None, data_deps: dict[str, list[str]] | 
     trains = train_stages(code_root, groups)
     if "corrections" in optional:
         for e in trains.values():
-            e["deps"] += [_fill("{" + d + "}") for d in REVIEW_TRAIN_DEPS]
+            e["deps"] += _paths(REVIEW_TRAIN_DEPS)
             e["params"] += list(REVIEW_TRAIN_PARAMS)
     out.update(trains)
     out.update({n: _stage_entry(s, code_root=code_root, data_deps=data_deps)
                 for n, s in STAGES.items() if n not in upstream and n not in OPTIONAL_STAGES})
     if "corrections" in optional:
         for n in REVIEW_VALIDATION_STAGES:
-            out[n]["deps"] += [_fill("{" + d + "}") for d in REVIEW_TRAIN_DEPS]
+            out[n]["deps"] += _paths(REVIEW_TRAIN_DEPS)
             out[n]["params"] += list(REVIEW_VALIDATION_PARAMS)
     if omit:  # the omitted stages' outputs are no one's deps any more (their readers cope without them)
-        gone = {_fill("{" + o + "}") for n in omit for o in STAGES[n].outs + STAGES[n].metrics}
+        gone = set(_paths(o for n in omit for o in STAGES[n].outs + STAGES[n].metrics))
         out = {n: {**e, "deps": [d for d in e["deps"] if d not in gone]} for n, e in out.items() if n not in omit}
     return out
 
@@ -220,21 +184,18 @@ DVC_HEADER = """\
 
 
 def dvc_plots(omit: tuple[str, ...] = ()) -> list[dict]:
-    """dvc.yaml's top-level plots (:data:`pipeline.catalog.PLOTS`), leaving out those whose data's
-    producing stage is omitted."""
+    """dvc.yaml's top-level plots, without those of omitted stages."""
     return [{p.name: {"template": PLOT_TEMPLATE, "x": p.x, "y": {dvc_path(p.data): p.y}, "title": p.title,
                       "x_label": p.x_label, "y_label": p.y_label}}
             for p in PLOTS if ARTIFACTS[p.data].stage not in omit]
 
 
-#: the DVCLive column a run always logs (pipeline.report.dvc_results.write_live_log), plotted where no validation curve is
+#: the DVCLive column a run always logs, plotted where no validation curve is
 LIVE_PLOT_METRIC = "loss"
 
 
 def live_plots(runs: dict[str, list[int]], metric: str = LIVE_PLOT_METRIC) -> list[dict]:
-    """A top-level plot of the runs' DVCLive logs (``<train_live>/plots/metrics/<metric>.tsv``, one line
-    per run, x = epoch step): what ``dvc plots show`` shows in a project without validation masks,
-    whose validation-curve plots (from the evaluate stage) do not exist."""
+    """A top-level plot of the runs' DVCLive logs, one line per run: a project without validation masks."""
     y = {f"{dvc_path('train_live', method=m, seed=s)}/plots/metrics/{metric}.tsv": metric
          for m, seeds in runs.items() for s in seeds}
     if not y:
@@ -247,31 +208,22 @@ def live_plots(runs: dict[str, list[int]], metric: str = LIVE_PLOT_METRIC) -> li
 def render_dvc_yaml(code_root: Path | None = None, data_deps: dict[str, list[str]] | None = None,
                     header: str = DVC_HEADER, omit: tuple[str, ...] = (), extra_plots: list[dict] = (),
                     optional: tuple[str, ...] = (), groups: dict[str, list[list[int]]] | None = None) -> str:
-    """dvc.yaml text.  Default: this repository's DAG.  A standalone project (``geodistill distill``'s
-    output folder) passes ``code_root`` (code deps become absolute paths of the installed code, so a
-    code change still reruns exactly the stages that run it) and ``data_deps`` ({stage: paths}, e.g.
-    the input image folder and the generated protocol file instead of data_manifests/) and may
-    ``omit`` catalogue stages that have nothing to do there (``evaluate`` and ``analyze_teacher``
-    without any reference mask; ``extra_plots`` then take the place of the plots of omitted stages,
-    e.g. :func:`live_plots`); the report reads whatever exists.  ``optional``: the
-    :data:`OPTIONAL_STAGES` to render (:func:`optional_stages_on` of the params; none by default).
-    ``groups``: the training runs grouped several seeds to a stage (:func:`seed_groups` of the params;
-    None by default: one templated stage per (method, seed))."""
+    """dvc.yaml text; by default this repository's DAG.
+
+    A distill project passes ``code_root`` (code deps as absolute paths of the installed code),
+    ``data_deps`` ({stage: paths}), the stages to ``omit`` and ``extra_plots``.  ``optional``: the
+    :data:`OPTIONAL_STAGES` to render; ``groups``: :func:`seed_groups`.
+    """
     doc = {"stages": dvc_stages(code_root, data_deps, omit, optional, groups),
            "plots": dvc_plots(omit) + list(extra_plots)}
     return header + yaml.safe_dump(doc, sort_keys=False, width=110, default_flow_style=False)
 
 
 def project_dvc_yaml(params: dict | None) -> str:
-    """This repository's dvc.yaml for ``params`` (params.yaml as read; None without one): the
-    :data:`OPTIONAL_STAGES` it switches on and its training runs' grouping (:func:`seed_groups`) --
-    what ``geodistill dag`` writes and ``geodistill dag --check`` compares."""
+    """This repository's dvc.yaml for ``params`` (params.yaml as read, or None), as ``geodistill dag`` writes it."""
     return render_dvc_yaml(optional=optional_stages_on(params), groups=seed_groups(params))
 
 
-# --------------------------------------------------------------------------------------------------
-# params.yaml
-# --------------------------------------------------------------------------------------------------
 PARAMS_HEADER = """\
 # GeoDistill-Refine params -- the effective values of profile {profile!r}, written by
 # `geodistill profile {profile}` from the schema defaults (pipeline/params.py, the paper's values) and the
@@ -305,13 +257,12 @@ def _emit(model_cls, values: dict, indent: int, lines: list[str]) -> None:
             lines.append(f"{pad}{key}: {_flow(value)}{' ' if desc else ''}{desc}")
 
 
-#: how every generated params file begins (PARAMS_HEADER, a distill project's header): how `profile`
-#: recognises its own output (pipeline.artifacts.ownership)
+#: how every generated params file begins: how `profile` recognises its own output
 GENERATED_PARAMS_MARK = "# GeoDistill-Refine params"
 
 
 def is_generated_params(path: str | Path) -> bool:
-    """Whether ``path`` is a params file written by ``geodistill profile`` / ``distill`` (its first line)."""
+    """Whether ``path`` is a params file written by ``geodistill profile`` / ``distill``."""
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
             return f.readline().startswith(GENERATED_PARAMS_MARK)
@@ -320,8 +271,7 @@ def is_generated_params(path: str | Path) -> bool:
 
 
 def render_params_yaml(profile: str, overrides: dict | None = None, header: str | None = None) -> str:
-    """params.yaml text of ``profile``; ``overrides`` (a nested mapping, e.g. a standalone project's
-    data source) are merged over it and ``header`` replaces the standard comment block."""
+    """params.yaml text of ``profile`` with nested ``overrides`` merged over it; ``header`` replaces the standard one."""
     raw = deep_merge(profile_params(profile), overrides or {})
     values = unresolved(validate(raw, f"profile {profile}"), raw)  # recipe parts: null = the recipe's value
     lines: list[str] = []

@@ -1,60 +1,6 @@
-"""``geodistill distill``: a folder of images in, a trained student, deploy bundle and report out -- by
-running THE SAME DAG in a self-contained DVC project generated in the output folder.
-
-Design (decision; the issue asks for "the same DAG ... reproducible and resumable"):
-
-* ``OUT`` becomes a DVC project of its own (``dvc init --no-scm``, analytics off) holding
-
-  - ``params.yaml``: the ``distill`` profile (:mod:`pipeline.profiles`: paper sizes, Plain Student
-    then GeoDistill-Refine for seed 42) + the command's ``--params``/``--set`` + what points the data
-    at the folder: ``data.source=folder``, ``data.root=INPUT``, ``data.protocol=folder_protocol.yaml``
-    and the teacher (``--checkpoint`` -> backend sam3, or ``--backend imported --imported-dir``);
-  - ``folder_protocol.yaml``: the ``folder`` adapter's protocol with ``images_dir`` = INPUT (read
-    recursively, as label and segment read it) and ``masks_dir`` = ``--val-masks`` (absolute) or null;
-  - ``dvc.yaml``: rendered by :func:`pipeline.orchestration.dag.render_dvc_yaml` from the catalogue, exactly as the
-    repository's, except that code deps are the absolute paths of the installed code files (a code
-    change reruns exactly the stages that import it) and the ``prepare`` stage depends on INPUT, the
-    mask folder and the protocol file instead of ``data_manifests/`` (adding an image reruns it);
-  - ``distill.json``: what the project was made from (input, masks, teacher, version) and the record
-    of what distill writes there (:mod:`pipeline.artifacts.ownership`), written first: a rerun into the same
-    folder resumes; a user's file where a project file goes (say, their own params.yaml) is refused
-    before anything is written, ``overwrite`` or not, and a user's folder in the way (``artifacts/``)
-    unless ``overwrite`` (``--overwrite``); files of the user's stay;
-  - ``.cache/`` (decode cache, teacher cache, per-epoch training state; DVC-ignored): why a rerun, or a
-    run killed half-way, resumes -- DVC skips finished stages, the teacher stage computes only the
-    missing answers, a training stage continues from its last epoch.
-
-* then ``python -m dvc repro`` runs in ``OUT`` with this interpreter's folder first on PATH (the
-  stage commands are ``python -m stages.<name>``).  ``--device cpu`` hides CUDA from the stages
-  (``CUDA_VISIBLE_DEVICES=""``); the default ``auto`` lets each stage use a GPU when there is one.
-  Later, ``cd OUT && dvc repro`` works the same way: edit a value in params.yaml, run ``dvc repro``,
-  and exactly the stages that read it rerun.  When a stage fails, its own one-line message is
-  the one distill prints (DVC's "failed to reproduce" line is left out, :func:`run_project`), and
-  DVC's closing "Use `dvc push` ..." is left out too (a distill project has no remote).
-
-* git: where ``git`` is installed, a new project is a git repository of its own (:func:`init_git`:
-  ``git init``, a ``.gitignore`` for the caches, ``dvc init`` with git, ``core.autostage`` on so DVC
-  stages what it changes instead of printing ``git add`` hints, and one commit of the project files by
-  "geodistill distill"), so ``dvc exp run -S key=value`` and ``dvc exp show`` work there.  Without
-  git (or in a project made before) it is ``--no-scm``: ``dvc repro`` only, ``dvc exp`` needs git.
-
-Validation masks (``--val-masks DIR``, named like the images): the ``folder`` protocol puts the images
-that have a mask into validation and test (seeded halves, ``val_fraction`` 0.5) and trains on the
-rest; validation masks select checkpoints and calibrate tau, test masks score the report.  Without
-them: no image is held out, Stage II keeps its last epoch (``train.stage2_select`` is ``last``
-anyway; Stage I selects the last epoch when there is no validation mask), tau is the fixed
-``calibrate.fixed_tau`` = 0.5, and the report says that no masks were available.
-
-The teacher: SAM 3 needs ``--checkpoint`` (a local ``save_pretrained`` folder); ``--backend imported``
-reads masks made elsewhere.  ``--labels LABEL_DIR`` (``labels=``) takes the teacher and everything
-else that made a ``label`` folder's pseudo-labels (resolution, vote, gate) from its label.json, after
-checking the folder against the checksums recorded there, and points ``teacher.cache_dir`` at label's
-teacher cache: the teacher stage finds every answer cached and computes none
-(:func:`pipeline.api.params_from_labels`).  A ``label`` run and a ``distill`` run of the same images
-share the answers this way only; the project's own ``.cache/teacher`` is used otherwise.  The simulated teacher cannot label a folder of your images for training:
-it is a SIMULATOR that reads ground-truth masks of every training image, which a folder has not
-(the ``folder`` protocol never gives a training image a mask) -- refused with one line.
-"""
+"""``geodistill distill``: a folder of images in, a trained student, deploy bundle and report out, by running
+the same DAG in a DVC project of its own in the output folder (docs/own-data.md: what it writes, git,
+validation masks, ``--labels``)."""
 
 from __future__ import annotations
 
@@ -91,26 +37,21 @@ log = logging.getLogger(__name__)
 
 PROFILE = "distill"
 PARAMS_FILE, DVC_FILE, PROTOCOL_FILE, RECORD_FILE = catalog.output_names("project").values()
-#: stages left out of a project without any mask: nothing to score (calibrate stays: it writes the fixed tau)
+#: nothing to score without any mask (calibrate stays: it writes the fixed tau)
 NO_MASK_STAGES = ("evaluate", "analyze_teacher")
-#: the stage ``--no-benchmark`` leaves out (the report then says the efficiency table was not made)
 BENCHMARK_STAGE = "benchmark"
 DVCIGNORE = "/.cache/\n__pycache__/\n*.pyc\n"
-#: what distill writes in --out (its record lists them; pipeline.artifacts.ownership): the project files, DVC's
-#: folder and lock, the caches and the DAG's outputs (artifacts/, reports/)
+#: what distill writes in --out (its record lists them; pipeline.artifacts.ownership)
 PROJECT_OUTPUTS = (PARAMS_FILE, DVC_FILE, "dvc.lock", PROTOCOL_FILE, ".dvcignore", ".dvc", ".cache",
                    "artifacts", "reports")
-#: what distill writes too when it makes a new project a git repository (:func:`git_outputs`)
 GIT_OUTPUTS = (".git", ".gitignore")
-#: the project's .gitignore (DVC adds its stage outputs to .gitignore files of their own folders)
 GITIGNORE = "/.cache/\n__pycache__/\n*.pyc\n/dvc_plots/\n/geodistill_plots/\n"
-#: the files of distill's first commit in a new git project (:func:`init_git`)
 GIT_TRACKED = (PARAMS_FILE, DVC_FILE, PROTOCOL_FILE, RECORD_FILE, ".dvcignore", ".gitignore", ".dvc")
-#: the author of that commit: the command, not the user (unsigned: no key prompt)
+#: the command commits, not the user (unsigned: no key prompt)
 GIT_AUTHOR = ("-c", "user.name=geodistill distill", "-c", "user.email=geodistill@localhost", "-c", "commit.gpgsign=false")
-#: DVC's last line after `dvc repro` (dvc/commands/repro.py), left out: a distill project has no remote
+#: DVC's last line after `dvc repro`, left out: a distill project has no remote
 DVC_PUSH_HINT = "Use `dvc push` to send your updates to remote storage."
-#: a distill.json written before records named their writer: recognised by these keys
+#: how a distill.json written before records named their writer is recognised
 LEGACY = {"legacy_outputs": PROJECT_OUTPUTS, "legacy_keys": ("input", "code", "geodistill_version")}
 DVC_HEADER = """\
 # The GeoDistill-Refine DAG of a `geodistill distill` project, GENERATED by that command from the
@@ -126,7 +67,7 @@ PARAMS_HEADER = """\
 
 
 def check_folder(path: str | Path, what: Option) -> Path:
-    """An existing folder as an absolute path; InputError naming the option ``what`` otherwise."""
+    """An existing folder as an absolute path; InputError naming option ``what`` otherwise."""
     p = Path(path)
     if not p.exists():
         raise InputError("{}: folder not found", what(p))
@@ -135,13 +76,8 @@ def check_folder(path: str | Path, what: Option) -> Path:
     return p.resolve()
 
 
-def project_params(params: Mapping, input_dir: Path, val_masks: Path | None) -> dict:
-    """The nested overrides that point a params set at the folder (module docstring)."""
-    return {"data": {"source": "folder", "root": str(input_dir), "protocol": PROTOCOL_FILE}}
-
-
 def protocol_text(input_dir: Path, val_masks: Path | None) -> str:
-    """``folder_protocol.yaml``: the folder adapter's protocol (data_manifests/folder.yaml) for INPUT."""
+    """``folder_protocol.yaml``: the folder adapter's protocol for INPUT."""
     proto = {"dataset": "folder", "images_dir": str(input_dir),
              "masks_dir": str(val_masks) if val_masks is not None else None,
              "val_fraction": 0.5, "mask_threshold": None, "spacecraft": input_dir.name, "domain": "folder"}
@@ -151,9 +87,8 @@ def protocol_text(input_dir: Path, val_masks: Path | None) -> str:
 
 
 def check_val_masks(input_dir: Path, masks: Path) -> int:
-    """How many images of ``input_dir`` have a mask (same id: relative path without the suffix) in
-    ``masks``; InputError under 2 (the folder protocol needs one validation and one test image)."""
-    def ids(folder: Path) -> set[str]:  # the folder adapter's image ids: relative path without suffix
+    """How many images of ``input_dir`` have a mask in ``masks``; InputError under 2 (one val, one test image)."""
+    def ids(folder: Path) -> set[str]:  # the folder adapter's image ids
         return {f.relative_to(folder).with_suffix("").as_posix() for f in scan_inputs(folder).files}
 
     n = len(ids(input_dir) & ids(masks))
@@ -173,7 +108,7 @@ def _env(device: str = "auto") -> dict:
            "DVC_NO_ANALYTICS": "1"}
     if device == "cpu":
         env["CUDA_VISIBLE_DEVICES"] = ""
-    if bars_quiet():  # distill --quiet: the stages DVC runs draw no bars either
+    if bars_quiet():
         env[QUIET_ENV] = "1"
     return env
 
@@ -181,13 +116,10 @@ def _env(device: str = "auto") -> dict:
 def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
                   val_masks: str | Path | None = None, overwrite: bool = False,
                   labels: str | Path | None = None, benchmark: bool = True) -> Path:
-    """Create or update the DVC project in ``out`` for ``input_dir`` (module docstring); returns ``out``.
-    ``labels``: the label folder ``params`` were taken from (:func:`pipeline.api.params_from_labels`),
-    recorded in distill.json.  ``benchmark=False`` (``--no-benchmark``): no benchmark stage in dvc.yaml.
+    """Create or update the DVC project in ``out`` for ``input_dir`` from validated ``params``; returns ``out``.
 
-    ``params``: validated params (the distill profile with the user's overrides and the teacher).  In
-    an existing ``out``, every path of :data:`PROJECT_OUTPUTS` that exists must be listed by a
-    ``distill.json`` of an earlier run, unless ``overwrite`` (:mod:`pipeline.artifacts.ownership`)."""
+    ``labels``: the label folder ``params`` came from (recorded); ``benchmark=False``: no benchmark stage.
+    """
     input_dir = check_folder(input_dir, INPUT)
     find_images(input_dir)  # one line when there is no image at all
     masks = check_folder(val_masks, VAL_MASKS) if val_masks is not None else None
@@ -212,8 +144,8 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
               **record_fields(out, RECORD_FILE, "distill", PROJECT_OUTPUTS + git, **LEGACY)}
     write_text_if_changed(out / RECORD_FILE, json.dumps(record, indent=1, sort_keys=True) + "\n")  # first
 
-    text = render_params_yaml(PROFILE, deep_merge(dict(params), project_params(params, input_dir, masks)),
-                              header=PARAMS_HEADER)
+    folder = {"data": {"source": "folder", "root": str(input_dir), "protocol": PROTOCOL_FILE}}
+    text = render_params_yaml(PROFILE, deep_merge(dict(params), folder), header=PARAMS_HEADER)
     write_text_if_changed(out / PARAMS_FILE, text)
     write_text_if_changed(out / PROTOCOL_FILE, protocol_text(input_dir, masks))
     data_deps = {"prepare": [PROTOCOL_FILE, str(input_dir)] + ([str(masks)] if masks is not None else [])}
@@ -232,8 +164,7 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
             if res.returncode != 0:
                 raise InputError(f"{{}}: `dvc {literal(' '.join(args))}` failed: "
                                  f"{literal((res.stderr or res.stdout).strip().splitlines()[-1:])}", OUT(out))
-    # after `dvc init` (which a pre-made .dvc/ would skip): dvc.yaml's plots name this template, and
-    # without it `dvc plots show` fails in the project
+    # after `dvc init`, which a pre-made .dvc/ would skip: without it `dvc plots show` fails
     write_text_if_changed(template_path(out), template_text())
     if new_git:
         commit_project(out)
@@ -241,8 +172,7 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
 
 
 def dvc_folder_files(project: Path, lock: Mapping, rel: str) -> set[str] | None:
-    """The files (relative, posix) DVC recorded in the output folder ``rel`` of ``project``: its dvc.lock
-    entry's ``.dir`` listing in the project's cache; None when DVC recorded none (no entry, not cached)."""
+    """The files DVC recorded in the output folder ``rel`` (its ``.dir`` listing in the cache), or None."""
     for stage in (lock.get("stages") or {}).values():
         for o in stage.get("outs") or []:
             md5 = str(o.get("md5", ""))
@@ -258,12 +188,11 @@ def dvc_folder_files(project: Path, lock: Mapping, rel: str) -> set[str] | None:
 
 
 def refuse_foreign_outputs(out: str | Path) -> None:
-    """Refuse (InputError naming it, ``--overwrite`` or not) a file inside an output folder of the DAG
-    that the DAG did not write: ``dvc repro`` replaces such a folder whole, so the file would be lost.
-    The DAG's own files are those DVC recorded there (:func:`dvc_folder_files`); for the deploy bundle,
-    without a record, those export recognises as its bundle's (:func:`pipeline.deploy.export.bundle_files`,
-    export's own check: :func:`pipeline.artifacts.ownership.refuse_foreign_files`).  Other folders without a record
-    are left to DVC (a run killed half-way leaves the stage's own files there)."""
+    """Refuse a file the DAG did not write inside one of its output folders, which ``dvc repro`` replaces whole.
+
+    Folders without DVC's record are left to DVC (a killed run leaves the stage's own files there), except
+    the deploy bundle, whose files export recognises.
+    """
     out = Path(out)
     try:
         lock = yaml.safe_load((out / "dvc.lock").read_text()) or {}
@@ -282,17 +211,15 @@ def refuse_foreign_outputs(out: str | Path) -> None:
 
 
 def git_outputs(out: Path) -> tuple[str, ...]:
-    """:data:`GIT_OUTPUTS` when ``out`` is to become a new git project (git is installed and ``out`` has
-    none of ``.dvc``, ``.git``, ``.gitignore``: a project made before stays ``--no-scm``, a repository or
-    .gitignore of the user's is left alone), else ()."""
+    """:data:`GIT_OUTPUTS` when ``out`` is to become a new git project (git installed, no .dvc, .git or
+    .gitignore there), else ()."""
     if shutil.which("git") is None or any((Path(out) / f).exists() for f in (".dvc", *GIT_OUTPUTS)):
         return ()
     return GIT_OUTPUTS
 
 
 def init_git(out: Path) -> bool:
-    """``git init`` in the new project folder ``out`` and its ``.gitignore``; True when done (False,
-    with a warning, when git fails: the project is then ``--no-scm``)."""
+    """``git init`` and a ``.gitignore`` in ``out``; False, with a warning, when git fails (``--no-scm``)."""
     res = subprocess.run(["git", "init", "-q", str(out)], capture_output=True, text=True)
     if res.returncode != 0:
         log.warning("distill: `git init` failed in %s (%s); the project is --no-scm", out, res.stderr.strip())
@@ -302,8 +229,7 @@ def init_git(out: Path) -> bool:
 
 
 def commit_project(out: Path) -> None:
-    """One commit of distill's project files (:data:`GIT_TRACKED`) in the git repository :func:`init_git`
-    made, by "geodistill distill": ``dvc exp`` needs a commit to start from."""
+    """One commit of the project files (:data:`GIT_TRACKED`): ``dvc exp`` needs a commit to start from."""
     tracked = [f for f in GIT_TRACKED if (out / f).exists()]
     for args in (("add", "--", *tracked), (*GIT_AUTHOR, "commit", "-q", "--no-verify", "-m",
                                            "geodistill distill: the project")):
@@ -314,21 +240,16 @@ def commit_project(out: Path) -> None:
             return
 
 
-#: a stage's own one-line error (stages._common.one_line_errors) and DVC's lines about a failed stage
 _STAGE_ERROR = re.compile(r"^geodistill [\w-]+: error: (.*)$")
 _DVC_ERROR = re.compile(r"^ERROR: ")
 
 
 def run_project(out: str | Path, device: str = "auto", quiet: bool = False) -> None:
-    """``dvc repro`` in the project ``out``, its output streamed.  When a stage fails, its own one-line
-    message is held back and raised once (InputError, the flags it names spelled again in the caller's
-    terms: :meth:`pipeline.runtime.errors.InputError.from_line`), with DVC's ``ERROR: failed to reproduce ...``
-    left out; a stage that failed without such a line (a bug: its traceback is shown) is reported by
-    DVC's line.  ``quiet`` (``--quiet``): ``dvc repro -q`` and the stages' step log at WARNING (unless
-    ``GEODISTILL_LOG`` says otherwise)."""
+    """``dvc repro`` in the project ``out``, its output streamed.  A failed stage's own one-line error is
+    raised once as an InputError in the caller's terms, instead of DVC's "failed to reproduce"."""
     out = Path(out)
     env = _env(device)
-    if quiet:  # --quiet: warnings, errors and the summary only -- no DVC stage lines, no INFO step log
+    if quiet:
         env.setdefault("GEODISTILL_LOG", "WARNING")
     proc = subprocess.Popen([sys.executable, "-m", "dvc", "repro", *(["-q"] if quiet else [])], cwd=out, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, errors="replace")
@@ -353,7 +274,7 @@ def run_project(out: str | Path, device: str = "auto", quiet: bool = False) -> N
 
 
 def _relay_stdout(stream) -> None:
-    """``dvc repro``'s standard output to ours, line by line, without :data:`DVC_PUSH_HINT`."""
+    """``dvc repro``'s standard output to ours, without :data:`DVC_PUSH_HINT`."""
     for line in stream:
         if line.strip() != DVC_PUSH_HINT:
             sys.stdout.write(line)
@@ -369,19 +290,13 @@ def project_outputs(out: str | Path) -> dict[str, Path]:
             "thresholds": catalog.path("thresholds", art), "checkpoints": catalog.path("checkpoints", art)}
 
 
-#: below this teacher-vote Image IoU distill prints no efficiency ratio: over a vote that found almost
-#: nothing, the ratio is large and means nothing (47.5 x a vote of IoU 0.004)
+#: below this teacher-vote Image IoU a ratio to it means nothing (47.5 x a vote of IoU 0.004)
 MIN_VOTE_IOU = 0.05
 
 
 def efficiency_line(out: str | Path) -> str | None:
-    """The summary line of a finished project whose held-out images have masks (``--val-masks``): the
-    deployed student's (``deploy.export_method``) distillation efficiency as a ratio with its meaning,
-    "0.93 × the teacher vote's Image IoU" -- its test Image IoU at the calibrated tau over the teacher
-    vote's on the same images (the report stage's ``metrics_efficiency`` files,
-    :func:`pipeline.report.dvc_results.efficiency_metric_files`), per group when there are several.  A group
-    whose vote IoU is below :data:`MIN_VOTE_IOU` gets no ratio, and the line says why.  None when there
-    is no such file (no masks, or no test image)."""
+    """The deployed student's distillation efficiency ("0.93 × the teacher vote's Image IoU") per group, from
+    the report's ``metrics_efficiency`` files; None without them (no masks)."""
     out = Path(out)
     art = out / catalog.ARTIFACTS_DIR
     method = str((read_yaml_mapping(out / PARAMS_FILE).get("deploy") or {}).get("export_method", PROPOSED))
@@ -415,8 +330,7 @@ def efficiency_line(out: str | Path) -> str | None:
 
 
 def training_line(out: str | Path) -> str | None:
-    """The summary line of a finished project's Stage I (the Plain Student of the first seed): optimizer
-    steps run, and why it stopped (``train.until: plateau``); None without its checkpoint record."""
+    """Stage I's optimizer steps and why it stopped (first seed); None without its checkpoint record."""
     out = Path(out)
     runs = (read_yaml_mapping(out / PARAMS_FILE).get("protocol") or {}).get("runs") or {}
     seeds = runs.get(STAGE_ONE) or []
@@ -434,7 +348,7 @@ def training_line(out: str | Path) -> str | None:
 
 
 def _metric(path: Path, key: str) -> float | None:
-    """``key`` of the DVC metrics file ``path`` (pipeline.report.dvc_results), None when either is absent."""
+    """``key`` of the DVC metrics file ``path``, None when either is absent."""
     try:
         value = json.loads(path.read_text()).get(key)
     except (OSError, ValueError):
@@ -443,8 +357,7 @@ def _metric(path: Path, key: str) -> float | None:
 
 
 def time_budget_params(params: dict, time_budget: str | None, out: str | Path, device: str = "auto") -> dict:
-    """``params`` with ``--time`` / ``time=`` as Stage I's step budget (:func:`pipeline.training.budget.with_time_budget`),
-    reusing the steps the project ``out`` already recorded for the same time."""
+    """``params`` with ``--time`` as Stage I's step budget, reusing what ``out`` recorded for the same time."""
     if time_budget is None:
         return params
     previous = read_yaml_mapping(Path(out) / PARAMS_FILE) if (Path(out) / PARAMS_FILE).is_file() else None
