@@ -1,17 +1,8 @@
-"""Multi-prompt consensus vote (paper, section "Multi-Prompt Consensus-Based Pseudo-Mask Construction").
+"""Multi-prompt consensus vote (paper, "Multi-Prompt Consensus-Based Pseudo-Mask Construction").
 
-For image i with K prompt masks M_ik and scores s_ik:
-
-* valid set (text before eq:agreement-map): V_i = {k : s_ik > 0};
-* agreement map (eq:agreement-map): A_i(x) = (1/|V_i|) * sum_{k in V_i} M_ik(x);
-* voted pseudo-mask (eq:majority-vote): M_i^T(x) = [A_i(x) >= 0.5]; a tie is foreground
-  (3 of 6 valid prompts suffice);
-* no valid prompt (|V_i| = 0): A_i = 0 and M_i^T = 0 (the geometry gate is then 0 too, because
-  g_valid(v=0) = 0, see :mod:`pipeline.geometry`).
-
-Scores only decide validity; they never weight pixels.  The vote compares the float64 agreement
-``count / |V|`` with the threshold, i.e. the equation literally (``3/6 >= 0.5`` is exact in floating
-point); the stored agreement map is float32.
+For image i with K prompt masks M_ik and scores s_ik: V_i = {k : s_ik > 0} (text before eq:agreement-map),
+A_i(x) = (1/|V_i|) sum_{k in V_i} M_ik(x) (eq:agreement-map), M_i^T(x) = [A_i(x) >= 0.5] (eq:majority-vote);
+with no valid prompt A_i = M_i^T = 0.  Scores only decide validity; they never weight pixels.
 """
 
 from __future__ import annotations
@@ -27,8 +18,7 @@ DEFAULT_VOTE_THRESHOLD = PAPER.consensus.vote_threshold  # eq:majority-vote; the
 
 
 class Consensus(NamedTuple):
-    """Result of the vote.  Single image: agreement float32 [H,W], voted bool [H,W], valid bool [K].
-    Batched (:func:`vote_batch`): agreement [N,H,W], voted [N,H,W], valid [N,K]."""
+    """Agreement float32, voted bool ([H,W], or [N,H,W] from :func:`vote_batch`) and valid bool ([K] or [N,K])."""
 
     agreement: np.ndarray
     voted: np.ndarray
@@ -36,13 +26,13 @@ class Consensus(NamedTuple):
 
     @property
     def n_valid(self) -> np.ndarray | int:
-        """|V|: number of valid prompts (int for one image, int16 [N] for a batch)."""
+        """|V|: int for one image, int16 [N] for a batch."""
         n = np.count_nonzero(self.valid, axis=-1)
         return int(n) if np.ndim(n) == 0 else n.astype(np.int16)
 
 
 def check_binary_masks(masks: np.ndarray, name: str = "masks") -> np.ndarray:
-    """Return ``masks`` as a bool array; InputError naming ``name`` unless every value is 0 or 1."""
+    """``masks`` as bool; InputError naming ``name`` unless every value is 0 or 1."""
     masks = np.asarray(masks)
     if masks.dtype == bool:
         return masks
@@ -55,7 +45,7 @@ def check_binary_masks(masks: np.ndarray, name: str = "masks") -> np.ndarray:
 
 
 def check_scores(scores: np.ndarray, name: str = "scores") -> np.ndarray:
-    """Return ``scores`` as float64; InputError naming ``name`` on NaN / inf."""
+    """``scores`` as float64; InputError naming ``name`` on NaN / inf."""
     scores = np.asarray(scores, dtype=np.float64)
     if not np.isfinite(scores).all():
         raise InputError(f"{name} contain NaN or infinite values")
@@ -68,19 +58,8 @@ def valid_prompts(scores: np.ndarray) -> np.ndarray:
 
 
 def vote(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT_VOTE_THRESHOLD) -> Consensus:
-    """Consensus of K prompt masks of one image (eq:agreement-map, eq:majority-vote).
-
-    Parameters
-    ----------
-    masks : bool [K,H,W]   teacher masks M_k (0/1 integers accepted; anything else -> InputError).
-    scores : float [K]     teacher scores s_k; s_k > 0 makes prompt k valid.  NaN -> InputError.
-    threshold : float      vote threshold (the paper's 0.5); M = [A >= threshold].
-
-    Returns
-    -------
-    Consensus(agreement float32 [H,W] in [0,1], voted bool [H,W], valid bool [K]).
-    With no valid prompt, agreement and voted are all zero.
-    """
+    """Consensus of K prompt masks [K,H,W] with scores [K] of one image (eq:agreement-map, eq:majority-vote):
+    A = mean of the valid masks, M = [A >= threshold]."""
     masks = np.asarray(masks)
     if masks.ndim != 3:
         raise InputError(f"masks: expected [K,H,W], got shape {masks.shape}")
@@ -92,10 +71,7 @@ def vote(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT_VOTE_
 
 
 def vote_batch(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT_VOTE_THRESHOLD) -> Consensus:
-    """Vectorised :func:`vote` over N images: masks bool [N,K,H,W], scores float [N,K].
-
-    Returns Consensus(agreement float32 [N,H,W], voted bool [N,H,W], valid bool [N,K]).
-    """
+    """:func:`vote` of N images: masks [N,K,H,W], scores [N,K]."""
     masks = np.asarray(masks)
     scores = np.asarray(scores)
     if masks.ndim != 4:
@@ -107,16 +83,15 @@ def vote_batch(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT
     masks = check_binary_masks(masks)
     valid = valid_prompts(scores)
     n, k, h, w = masks.shape
-    # count of valid foreground votes per pixel; uint8 is enough for K <= 255 prompts
-    if k > 255:
+    if k > 255:  # the vote counts are uint8
         raise InputError(f"masks: at most 255 prompts supported, got {k}")
     counts = np.zeros((n, h, w), dtype=np.uint8)
     masks8 = masks.view(np.uint8)  # bool -> 0/1 bytes without a copy
-    for i, j in zip(*np.nonzero(valid)):  # add the valid prompts' masks only (in-place, no temporaries)
+    for i, j in zip(*np.nonzero(valid)):
         counts[i] += masks8[i, j]
     n_valid = valid.sum(axis=1)
-    # A takes only the values c / |V| (c = 0..K): per image, a lookup table of the float64 ratio
-    # (rounded to float32 for storage) and of its comparison with the threshold, indexed by counts.
+    # A takes only the values c / |V|: the vote compares the float64 ratio (3/6 >= 0.5 exactly), the
+    # stored map is float32
     c = np.arange(k + 1, dtype=np.float64)
     ratio = np.divide(c[None, :], n_valid[:, None], out=np.zeros((n, k + 1)), where=n_valid[:, None] > 0)
     agree_lut = ratio.astype(np.float32)
@@ -129,9 +104,6 @@ def vote_batch(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT
     return Consensus(agreement, voted, valid)
 
 
-# --------------------------------------------------------------------------------------------------
-# The per-image prompt disagreement (what label records and consensus.zarr's ``h`` holds)
-# --------------------------------------------------------------------------------------------------
 def binary_entropy(p: np.ndarray) -> np.ndarray:
     """h(p) = -p log2 p - (1-p) log2 (1-p) elementwise (float64), with h(0) = h(1) = 0."""
     p = np.clip(np.asarray(p, np.float64), 0.0, 1.0)
@@ -143,26 +115,10 @@ def binary_entropy(p: np.ndarray) -> np.ndarray:
 
 
 def agreement_entropy(agreement: np.ndarray) -> float | np.ndarray:
-    """The per-image prompt disagreement H_i of one agreement map [H,W] (a float) or of a stack [N,H,W]
-    (float64 [N]): the agreement map's mean binary entropy over the union of the prompt masks.
+    """The prompt disagreement of an agreement map [H,W] (float) or a stack [N,H,W] (float64 [N]):
 
-    For image i with valid prompt set V_i and agreement map A_i (eq:agreement-map,
-    A_i(x) = (1/|V_i|) sum_{k in V_i} M_ik(x)):
-
-        U_i = {x : A_i(x) > 0}                          the union of the valid prompts' masks
-        h(p) = -p log2 p - (1 - p) log2 (1 - p)         binary entropy in bits, h(0) = h(1) = 0
-        H_i = (1 / |U_i|) sum_{x in U_i} h(A_i(x))      in [0, 1];  H_i = 0 when U_i is empty
-
-    H_i = 0: every valid prompt drew the same mask; H_i = 1: every pixel any prompt claimed got exactly half
-    of the votes (the tie eq:majority-vote keeps as foreground).  Averaging over the union rather than the
-    frame makes the statistic independent of the object's size and of the background (a small spacecraft
-    on a large black frame is not "agreed on" because of its empty sky); averaging over the union rather
-    than the voted mask also counts the pixels a minority of prompts claimed (the outvoted panel, the
-    glare blob), which eq:foreground-agreement's c_i does not see.  An image where no prompt is valid, or
-    every valid prompt is empty, has U_i empty and H_i = 0: the reliability gate (g_valid, g_area) is what
-    flags it.  The union is read off A_i itself (A_i(x) > 0 exactly where some valid prompt voted), so the
-    statistic needs only the stored agreement map.
-    """
+    U_i = {x : A_i(x) > 0},  H_i = (1 / |U_i|) sum_{x in U_i} h(A_i(x)),  H_i = 0 when U_i is empty
+    (docs/decisions.md, "The prompt disagreement h")."""
     a = np.asarray(agreement)
     if a.ndim not in (2, 3):
         raise ValueError(f"agreement: expected [H,W] or [N,H,W], got shape {a.shape}")

@@ -1,34 +1,8 @@
-"""Pseudo-geometry targets and the reliability gate (paper, section "Reliability-Aware Pseudo-Geometry
-Refinement": eq:sdf-target, skeleton, eq:pseudo-area, eq:foreground-agreement .. eq:reliability-gate).
-
-All targets derive from the voted pseudo-mask M = M_i^T of :mod:`pipeline.consensus`.
-
-Distance convention (eq:sdf-target)
-    d_in(x)  = Euclidean distance from a foreground pixel x to the nearest *background* pixel
-               (0 on background); d_out(x) = Euclidean distance from a background pixel x to the
-               nearest *foreground* pixel (0 on foreground).  Distances are between pixel centres, in
-               pixels, computed exactly by OpenCV (``cv2.distanceTransform(..., cv2.DIST_L2,
-               cv2.DIST_MASK_PRECISE)``; squared distances rounded back to their exact integers
-               before the square root, see :func:`squared_distance`).  Hence D~ = d_in - d_out is >= 1 on M and <= -1 off M:
-               the sign of D~ (and of D) always agrees with M and no pixel has D~ = 0.
-    The image border is NOT background: pixels outside the frame do not exist, so a mask touching
-    the border gets its d_in from the real background pixels inside the frame only (a spacecraft cut
-    by the frame is not thinner than it looks).  OpenCV's precise transform already behaves this way
-    (verified in tests/test_geometry.py against scipy's ``distance_transform_edt``, which has the
-    same semantics), so no padding is needed.
-
-Skeleton ("Skel" in the text after eq:sdf-target)
-    K = {x : d_in(x) > t  and  d_in(x) >= max_{y in N8(x)} d_in(y)} with t = 1 px, i.e. the
-    non-strict local maxima of d_in over the 3x3 neighbourhood (the pixel itself and its 8
-    neighbours; neighbours outside the frame are ignored), after removing points whose distance
-    does not exceed one pixel.  Non-strict so that the two-pixel-wide ridges of even-width bars
-    are kept.  A non-empty M with an empty K falls back to K = M: this happens when every pixel of
-    M lies within 1 px of the background (d_in = 1 everywhere on 1- and 2-px thick structures), and
-    for a full frame (no background, d_in undefined).  K is always inside M.
-
-Gate constants are keyword arguments whose defaults are the paper's values from the params schema
-(``pipeline.params.PAPER.geometry``); params.yaml ``geometry:`` holds the values a run uses.
-"""
+"""Pseudo-geometry targets and the reliability gate of the voted pseudo-mask M (paper, "Reliability-Aware
+Pseudo-Geometry Refinement": eq:sdf-target, the skeleton, eq:pseudo-area, eq:foreground-agreement ..
+eq:reliability-gate).  Distances are exact Euclidean distances between pixel centres to the nearest pixel of
+the other set, and the image border is not background (docs/decisions.md, "Distances", "Skeleton").  The
+gate constants default to the paper's values (``pipeline.params.PAPER.geometry``)."""
 
 from __future__ import annotations
 
@@ -70,14 +44,10 @@ def _as_mask(mask: np.ndarray, name: str = "mask") -> np.ndarray:
 
 
 def squared_distance(nonzero: np.ndarray) -> np.ndarray:
-    """Exact squared Euclidean distance (float32, integer-valued) from every non-zero pixel of the
-    uint8 image ``nonzero`` to its nearest zero pixel; 0 on zero pixels.  Pixels outside the frame
-    do not exist (the frame is not a zero pixel).
-
-    OpenCV's DIST_MASK_PRECISE transform is exact in squared distance, but its final square root
-    differs by one float32 ulp between calls (it depends on the buffer's alignment); rounding the
-    square back to its integer makes results bit-for-bit deterministic.  Exact while d^2 < 2^22.
-    """
+    """Exact squared distance (float32, integer-valued) from every non-zero pixel of ``nonzero`` to its
+    nearest zero pixel; 0 on zero pixels.  Exact while d^2 < 2^22."""
+    # OpenCV's precise transform is exact in d^2 but its square root differs by one ulp with the buffer's
+    # alignment: rounding d^2 back to its integer makes the result deterministic
     cv2 = _cv2()
     d = cv2.distanceTransform(np.ascontiguousarray(nonzero, dtype=np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     np.multiply(d, d, out=d)
@@ -90,9 +60,7 @@ def exact_distance(nonzero: np.ndarray) -> np.ndarray:
 
 
 def distance_maps(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(d_in, d_out) float32 [H,W]: exact Euclidean distances (pixels) to the nearest pixel of the
-    other set; see the module docstring.  Only meaningful when M is neither empty nor full (OpenCV
-    returns ~1.8e19 where the other set is empty)."""
+    """(d_in, d_out) float32 [H,W]; meaningful only when M is neither empty nor full."""
     m8 = np.ascontiguousarray(mask, dtype=np.uint8)
     return exact_distance(m8), exact_distance(1 - m8)
 
@@ -111,15 +79,10 @@ def _sdf_from_distances(d_in: np.ndarray, d_out: np.ndarray, quantile: float, mi
 
 
 def sdf_target(mask: np.ndarray, *, quantile: float = SDF_QUANTILE, min_scale: float = SDF_MIN_SCALE) -> np.ndarray:
-    """Normalised signed distance target D (eq:sdf-target), float32 [H,W] in [-1, 1].
+    """Normalised signed distance target, float32 [H,W] (eq:sdf-target):
 
-    D~ = d_in - d_out (module docstring: exact Euclidean distances to the nearest pixel of the other
-    set, pixel centres, image border not background); s = q_0.95(|D~|) over all H*W pixels (numpy's
-    linear interpolation) when s >= 1e-6, else s = 1; D = clip(D~ / s, -1, 1).
-    Edge cases: empty M -> 0 everywhere; full M -> 1 everywhere.  sign(D) agrees with M.
-    With pixel-centre distances |D~| >= 1 on every pixel of a non-degenerate mask, so q >= 1 and the
-    paper's s = 1 fallback (q < 1e-6) is kept for fidelity but only reachable through ``min_scale``.
-    """
+    D~ = d_in - d_out, s = q_0.95(|D~|) (s = 1 when q < ``min_scale``), D = clip(D~ / s, -1, 1);
+    empty M -> 0, full M -> 1."""
     mask = _as_mask(mask)
     if not mask.any():
         return np.zeros(mask.shape, np.float32)
@@ -130,8 +93,7 @@ def sdf_target(mask: np.ndarray, *, quantile: float = SDF_QUANTILE, min_scale: f
 
 def _skeleton_from_distance(mask: np.ndarray, d_in: np.ndarray, min_distance: float) -> np.ndarray:
     cv2 = _cv2()
-    # 3x3 grey dilation = max over the 8-neighbourhood and the pixel; OpenCV's default border for
-    # dilation is the minimum value, so pixels outside the frame never win the comparison.
+    # OpenCV's dilation border is the minimum value: pixels outside the frame never win
     neighbourhood_max = cv2.dilate(d_in, np.ones((3, 3), np.uint8))
     skel = (d_in > min_distance) & (d_in >= neighbourhood_max)
     if not skel.any():
@@ -140,14 +102,10 @@ def _skeleton_from_distance(mask: np.ndarray, d_in: np.ndarray, min_distance: fl
 
 
 def skeleton_target(mask: np.ndarray, *, min_distance: float = SKELETON_MIN_DISTANCE) -> np.ndarray:
-    """Skeleton target K (text after eq:sdf-target), bool [H,W].
+    """Skeleton target K, bool [H,W] (text after eq:sdf-target):
 
-    K = non-strict 3x3 local maxima of d_in with d_in > ``min_distance`` (1 px); see the module
-    docstring for the exact definition.  Empty M -> empty K; a non-empty M without such maxima
-    (every pixel within 1 px of the background, e.g. lines 1-2 px thick) -> K = M.
-    Full M: d_in is undefined (no background); we take K = M (no finite interior maxima exist, and
-    the fallback rule applies).  K is always a subset of M.
-    """
+    K = {x : d_in(x) > ``min_distance`` and d_in(x) >= max_{N8(x)} d_in}; K = M when that is empty
+    (thin structures, a full M); empty M -> empty K."""
     mask = _as_mask(mask)
     if not mask.any():
         return np.zeros(mask.shape, bool)
@@ -164,12 +122,8 @@ def area_ratio(mask: np.ndarray) -> float:
 
 def pseudo_targets(masks: np.ndarray, *, quantile: float = SDF_QUANTILE, min_scale: float = SDF_MIN_SCALE,
                    min_distance: float = SKELETON_MIN_DISTANCE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """SDF, skeleton and area of a batch of voted masks bool [N,H,W] in one pass (the distance
-    transforms are shared between SDF and skeleton).
-
-    Returns (sdf float32 [N,H,W], skeleton bool [N,H,W], area float64 [N]); identical to calling
-    :func:`sdf_target`, :func:`skeleton_target` and :func:`area_ratio` per image.
-    """
+    """(sdf, skeleton, area) of voted masks [N,H,W]: :func:`sdf_target`, :func:`skeleton_target` and
+    :func:`area_ratio` per image, sharing the distance transforms."""
     masks = np.asarray(masks)
     if masks.ndim != 3:
         raise InputError(f"masks: expected [N,H,W], got shape {masks.shape}")
@@ -202,10 +156,8 @@ def area_ratios(masks: np.ndarray) -> np.ndarray:
 
 
 def foreground_agreement(agreement: np.ndarray, voted: np.ndarray) -> float | np.ndarray:
-    """c = sum_x A(x) M(x) / sum_x M(x), 0 when M is empty (eq:foreground-agreement).
-
-    ``agreement`` float [H,W] and ``voted`` bool [H,W] -> float; or [N,H,W] each -> float64 [N].
-    """
+    """c = sum_x A(x) M(x) / sum_x M(x), 0 when M is empty (eq:foreground-agreement); [H,W] -> float,
+    [N,H,W] -> [N]."""
     agreement = np.asarray(agreement)
     if agreement.dtype.kind != "f":
         agreement = agreement.astype(np.float64)
@@ -232,8 +184,7 @@ def valid_ratio(n_valid, n_prompts: int = N_PROMPTS):
 
 
 class GateFactors(NamedTuple):
-    """Gate factors (eq:confidence-gate, eq:validity-gate, eq:area-gate) and their product g
-    (eq:reliability-gate); floats for scalar inputs, float64 arrays for array inputs."""
+    """Gate factors (eq:confidence-gate, eq:validity-gate, eq:area-gate) and g (eq:reliability-gate)."""
 
     conf: float | np.ndarray
     valid: float | np.ndarray
@@ -251,8 +202,7 @@ def gate_factors(c, v, a, a0, *, conf_offset: float = CONF_OFFSET, valid_offset:
     g_area  = clip(exp(-|log((a + eps) / (a0 + eps))| / 0.9), 0.05, 1)  (eq:area-gate)
     g       = clip(g_conf * g_valid * g_area, 0, 1)                     (eq:reliability-gate)
 
-    c, v, a, a0: scalars or broadcastable arrays (c, v, a in [0, 1]; a0 the training median area).
-    No valid prompt (v = 0) gives g_valid = 0 hence g = 0; an empty pseudo-mask has c = 0 hence g = 0.
+    c, v, a, a0: scalars or broadcastable arrays (a0 the training median area).
     """
     arrays = [np.asarray(x, dtype=np.float64) for x in (c, v, a, a0)]
     for name, x in zip(("c", "v", "a", "a0"), arrays):
@@ -272,14 +222,8 @@ def gate_factors(c, v, a, a0, *, conf_offset: float = CONF_OFFSET, valid_offset:
 
 
 def median_area(a, is_train) -> float:
-    """a0 = median of a_i over NON-EMPTY TRAINING pseudo-masks (text before eq:confidence-gate).
-
-    ``a`` float [N] pseudo-area ratios, ``is_train`` bool [N].  Numpy's median (mean of the two
-    middle values for an even count).  Decision for the degenerate case: when no training image has
-    a non-empty pseudo-mask there is no reference area, and any fallback would silently change what
-    the area gate means, so this raises :class:`NoForeground`, an InputError in the user's terms (the
-    teacher produced nothing usable to train on).
-    """
+    """a0 = median{a_i : i in the training split, a_i > 0} (text before eq:confidence-gate);
+    :class:`NoForeground` when there is none (docs/decisions.md, "The area reference a0")."""
     a = np.asarray(a, dtype=np.float64)
     is_train = np.asarray(is_train, dtype=bool)
     if a.shape != is_train.shape:
@@ -290,17 +234,14 @@ def median_area(a, is_train) -> float:
     return float(np.median(sel))
 
 
-#: what label's summary and distill's error say when every pseudo-mask is empty, with the two likely
-#: causes (the ``{}``: the params override, spelled for the caller)
+#: the ``{}``: the params override, spelled for the caller
 NO_FOREGROUND = ("The teacher found no spacecraft in any training image; the two likely causes: the checkpoint "
                  "is not a trained SAM 3 (random or other weights), or the teacher's scores are below "
                  "teacher.score_threshold on these images (try a lower `{}`; or check the prompts)")
 
 
 class NoForeground(InputError):
-    """No training image has a non-empty pseudo-mask (:func:`median_area`): said in the user's terms --
-    no file, no equation (:data:`NO_FOREGROUND`); the params override is spelled for the caller (``--set
-    ...`` on the command line, ``overrides=[...]`` in Python: :class:`pipeline.runtime.errors.Option`)."""
+    """No training image has a non-empty pseudo-mask, said in the user's terms."""
 
     def __init__(self):
         super().__init__(NO_FOREGROUND, SET(["teacher.score_threshold=…"]))
@@ -310,10 +251,8 @@ class NoForeground(InputError):
 
 
 def image_gates(c, n_valid, a, a0, geo) -> tuple[np.ndarray, GateFactors]:
-    """(v, :class:`GateFactors`) of images with agreement ``c``, valid-prompt counts ``n_valid`` and
-    areas ``a`` against the reference area ``a0`` (eq:valid-prompt-ratio, eq:confidence-gate ..
-    eq:reliability-gate) with the constants of the params ``geometry`` section ``geo``: the gate of the
-    geometry stage and of ``geodistill label``."""
+    """(v, :class:`GateFactors`) at the reference area ``a0`` with the params ``geometry`` section ``geo``
+    (eq:valid-prompt-ratio, eq:confidence-gate .. eq:reliability-gate)."""
     v = valid_ratio(n_valid, geo["n_prompts"])
     return v, gate_factors(c, v, a, a0, conf_offset=geo["conf_offset"], valid_offset=geo["valid_offset"],
                            area_temperature=geo["area_temperature"], area_floor=geo["area_floor"], eps=geo["eps"])

@@ -92,8 +92,8 @@ def write_votes(job: LabelJob, fmts: tuple[str, ...], votes: Iterable, copy_imag
         if "coco" in fmts:
             v.annotations.append(coco_annotation(full, row + 1, row + 1))
         if "yolo" in fmts:
-            _save(yolo_dir / "labels" / f"{job.ids[row]}.txt", "".join(line + "\n" for line in yolo_lines(full)))
             _link_or_copy(job.files[row], yolo_dir / "images" / rels[row], copy_images)
+            _save(yolo_dir / "labels" / f"{job.ids[row]}.txt", "".join(line + "\n" for line in yolo_lines(full)))
         if row in sheet_rows:
             v.sheet[row] = (load_rgb(job.files[row], job.size, job.cache, max_pixels=job.data_cfg["max_pixels"],
                                      bit_depth=job.data_cfg.get("bit_depth", "auto")).array, voted)
