@@ -1,14 +1,6 @@
-"""Code versions, derived from imports: which project files a stage runs, and their hash.
-
-:func:`module_files` follows a stage script's imports (transitively, including imports inside
-functions) to the project files it runs.  They are the stage's code deps in ``dvc.yaml``
-(:func:`code_deps`, rendered by :mod:`pipeline.orchestration.dag`) and its code version in every artifact fingerprint
-(:func:`code_version_of`), so the two cannot disagree.
-
-This module imports nothing of the project: every stage reads its own code version through it, so
-whatever it imported would become a code dep of every stage (editing the dvc.yaml renderer or a
-profile would mark the whole DAG stale).
-"""
+"""Code versions derived from imports: the project files a stage runs are both its code deps in dvc.yaml
+and its code version in every fingerprint, so the two cannot disagree.  It imports nothing of the project:
+whatever it imported would be a code dep of every stage."""
 
 from __future__ import annotations
 
@@ -42,8 +34,7 @@ def _module_name(path: Path, root: Path = ROOT) -> str:
 
 
 def _imports(path: Path, root: Path = ROOT) -> set[str]:
-    """Project modules imported anywhere in ``path`` (top level or inside functions), plus the
-    packages they live in (importing ``a.b.c`` runs ``a/__init__`` and ``a/b/__init__``)."""
+    """Project modules imported anywhere in ``path`` (inside functions too), with their parent packages."""
     tree = ast.parse(path.read_text(), filename=str(path))
     me = _module_name(path, root)
     is_pkg = path.name == "__init__.py"
@@ -87,12 +78,11 @@ def module_files(module: str, root: Path = ROOT) -> tuple[str, ...]:
 
 
 def code_deps(module: str, root: Path = ROOT, code_root: Path | None = None) -> list[str]:
-    """:func:`module_files` as dvc.yaml lists them: a sub-package whose every ``*.py`` is used is named
-    by its folder (shorter; DVC hashes the folder, and .dvcignore leaves bytecode out).
+    """:func:`module_files` as dvc.yaml lists them: a sub-package whose every file is used by its folder.
 
-    ``code_root`` (a standalone project outside this repository, :mod:`pipeline.distill`): every file
-    by its absolute path under ``code_root`` -- no folders, since that project's .dvcignore cannot keep
-    the installed code's bytecode out of a folder hash."""
+    ``code_root`` (a distill project): every file by its absolute path, since that project's .dvcignore
+    cannot keep the installed code's bytecode out of a folder hash.
+    """
     files = module_files(module, root)
     if code_root is not None:
         return [(Path(code_root) / rel).as_posix() for rel in files]

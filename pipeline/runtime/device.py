@@ -20,7 +20,7 @@ def resolve_device(name: str = "auto"):
     return torch.device(name)
 
 
-#: the CPU flags (/proc/cpuinfo) of native bf16 arithmetic; without one, bf16 is emulated in fp32 and far slower
+#: the CPU flags of native bf16 arithmetic; without one, bf16 is emulated and far slower
 BF16_FLAGS = ("avx512_bf16", "amx_bf16")
 
 
@@ -39,9 +39,8 @@ def cpu_supports_bf16() -> bool:
 
 
 def autocast(device, dtype, cache_enabled: bool = True):
-    """The autocast context of ``dtype`` on ``device`` (a null context for None = fp32): the one helper
-    for training, inference and the CUDA fast path.  ``cache_enabled=False`` where autocast's weight-cast
-    cache must not outlive a CUDA-graph capture."""
+    """The autocast context of ``dtype`` on ``device`` (None: fp32).  ``cache_enabled=False`` where the
+    weight-cast cache must not outlive a CUDA-graph capture."""
     import torch
 
     if dtype is None:

@@ -1,21 +1,6 @@
-"""The environment a published number came from: Python, library versions, the torch build, the CPU
-model and the flags that change numerics, thread settings, and whether the installed packages are the
-lock file's (``requirements/lock.txt``, docs/environment.md).
-
-Provenance only, like ``Meta.library_versions`` (:func:`pipeline.artifacts.lineage.library_versions`, which
-:func:`collect` extends): nothing here enters a fingerprint, so artifacts stay machine-independent and
-their caches valid.  Two records use it:
-
-* every train run stores :func:`training_runtime` in its checkpoint's ``meta.json`` (``extra.runtime``:
-  device, torch threads, CPU, torch build), next to ``extra.autocast``, the precision it actually used
-  (``bfloat16`` autocast or ``fp32``, pipeline.runtime.device.autocast_dtype of ``train.precision``);
-* the report writes :func:`collect` (the machine that built it) and those per-run records to
-  ``environment.json`` and renders them as its "Environment" section (pipeline.report.build).
-
-The parsers (:func:`parse_cpuinfo`, :func:`parse_torch_config`, :func:`parse_lock`,
-:func:`lock_status`, :func:`numerics_env`) are pure functions of text and mappings; the readers call
-them on this machine's files.
-"""
+"""The environment a published number came from: Python, libraries, the torch build, the CPU and its
+numeric flags, threads, and whether the installed packages are the lock file's (docs/environment.md).
+Provenance only: nothing here enters a fingerprint."""
 
 from __future__ import annotations
 
@@ -30,42 +15,29 @@ from typing import Any, Mapping
 from pipeline.artifacts.lineage import library_versions
 
 ROOT = Path(__file__).resolve().parents[2]
-#: the lock file in the project root (the Makefile's ``LOCK`` names the same file)
 LOCK_FILE = ROOT / "requirements" / "lock.txt"
-
-#: libraries recorded beyond those every artifact records (pipeline.artifacts.lineage.library_versions)
+#: libraries recorded beyond those every artifact records
 EXTRA_LIBRARIES = ("pandas", "pydantic", "click", "dvc", "dvclive", "onnx", "onnxruntime", "openvino",
                    "transformers")
 
-#: CPU flags that select different kernels (so possibly different rounding) in torch/oneDNN, ONNX
-#: Runtime and OpenVINO: vector width, fused multiply-add, native bf16/int8 dot products, AMX tiles
+#: CPU flags that select different kernels, so possibly different rounding
 NUMERIC_CPU_FLAGS = ("avx", "avx2", "fma", "f16c", "avx512f", "avx512bw", "avx512vl", "avx512_vnni",
                      "avx512_bf16", "avx512_fp16", "avx_vnni", "amx_tile", "amx_bf16", "amx_int8")
 
-#: environment variables that size the thread pools of torch (OpenMP), BLAS and numexpr
-#: (pipeline.cluster.driver sets them for each stage it starts)
 THREAD_ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
                    "VECLIB_MAXIMUM_THREADS")
 
-#: environment variables that change numerics besides the thread counts
 NUMERIC_ENV_VARS = ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE", "ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA",
                     "DNNL_MAX_CPU_ISA", "ONEDNN_DEFAULT_FPMATH_MODE", "MKL_CBWR", "CUBLAS_WORKSPACE_CONFIG",
                     "NVIDIA_TF32_OVERRIDE")
 
-#: torch build settings worth a line in a report (from ``torch.__config__.show()``)
+#: torch build settings worth a line in a report
 TORCH_SETTINGS = ("TORCH_VERSION", "COMMIT_SHA", "USE_CUDA", "CUDA_VERSION", "CUDNN_VERSION", "BLAS_INFO",
                   "LAPACK_INFO", "USE_MKL", "USE_MKLDNN", "USE_OPENMP")
 
 
-# --------------------------------------------------------------------------------------------------
-# Pure parsers
-# --------------------------------------------------------------------------------------------------
 def parse_cpuinfo(text: str) -> dict[str, Any]:
-    """``/proc/cpuinfo`` -> ``{"model", "logical_cpus", "flags"}``.
-
-    ``model``: the first ``model name`` (None when absent, e.g. on ARM); ``logical_cpus``: the number of
-    ``processor`` entries; ``flags``: the :data:`NUMERIC_CPU_FLAGS` the first CPU has, in that order.
-    """
+    """``/proc/cpuinfo`` -> ``{"model", "logical_cpus", "flags"}`` (the first CPU's :data:`NUMERIC_CPU_FLAGS`)."""
     model, flags, n = None, set(), 0
     for line in text.splitlines():
         key, _, value = line.partition(":")
@@ -80,12 +52,7 @@ def parse_cpuinfo(text: str) -> dict[str, Any]:
 
 
 def parse_torch_config(text: str) -> dict[str, Any]:
-    """``torch.__config__.show()`` -> ``{"components": [...], "settings": {...}}``.
-
-    ``components``: the "PyTorch built with" lines (compiler, MKL, oneDNN (MKL-DNN), OpenMP, CPU
-    capability, ...) except the long build-settings line; ``settings``: the :data:`TORCH_SETTINGS`
-    found in that line.
-    """
+    """``torch.__config__.show()`` -> ``{"components": [...], "settings": {...}}`` (:data:`TORCH_SETTINGS`)."""
     components, settings = [], {}
     for line in text.splitlines():
         item = line.strip()
@@ -108,8 +75,7 @@ def normalize_name(name: str) -> str:
 
 
 def parse_lock(text: str) -> dict[str, str]:
-    """``{normalized name: version}`` of the ``name==version`` lines of a requirements/constraints file
-    (comments, options and annotations ignored)."""
+    """``{normalized name: version}`` of the ``name==version`` lines of a requirements file."""
     out = {}
     for line in text.splitlines():
         m = re.match(r"^\s*([A-Za-z0-9][A-Za-z0-9._-]*)(?:\[[^\]]*\])?\s*==\s*([^\s;#]+)", line)
@@ -124,14 +90,8 @@ def public_version(version: str) -> str:
 
 
 def lock_status(pins: Mapping[str, str], installed: Mapping[str, str]) -> dict[str, Any]:
-    """How the installed distributions compare with the lock's pins.
-
-    ``pins``: :func:`parse_lock`'s result; ``installed``: ``{normalized name: version}``.  A pin matches
-    when the installed public version equals it (the local label of a torch build, ``+cpu`` or
-    ``+cu128``, is the build, not the version).  Pinned packages that are not installed (e.g. the
-    CUDA wheels of PyPI's torch on a CPU machine) are counted, not flagged.  Returns ``pinned``,
-    ``matching``, ``not_installed`` and ``differ`` (``[{"package", "lock", "installed"}]``, sorted).
-    """
+    """``pinned``, ``matching``, ``not_installed`` and ``differ`` of the installed distributions against the
+    lock's pins; public versions compare (``+cpu`` is the build, not the version)."""
     differ, matching, absent = [], 0, 0
     for name, version in sorted(pins.items()):
         have = installed.get(name)
@@ -149,9 +109,6 @@ def numerics_env(environ: Mapping[str, str]) -> dict[str, str]:
     return {k: environ[k] for k in THREAD_ENV_VARS + NUMERIC_ENV_VARS if k in environ}
 
 
-# --------------------------------------------------------------------------------------------------
-# Readers (this machine)
-# --------------------------------------------------------------------------------------------------
 def cpu() -> dict[str, Any]:
     """:func:`parse_cpuinfo` of this machine (model from :mod:`platform` where /proc is absent)."""
     try:
@@ -177,9 +134,7 @@ def installed_versions() -> dict[str, str]:
 
 
 def torch_build() -> dict[str, Any]:
-    """The torch build: version (with its local label), git commit, CUDA version (None: a CPU build),
-    the CPU kernel level it dispatches to, MKL/oneDNN availability, the build's components and settings,
-    and the visible GPUs."""
+    """The torch build: version, commit, CUDA, CPU kernel level, MKL/oneDNN, components, settings, GPUs."""
     import torch
 
     out = {"version": torch.__version__, "git": getattr(torch.version, "git_version", None),
@@ -192,8 +147,7 @@ def torch_build() -> dict[str, Any]:
 
 
 def lock_record(path: str | Path = LOCK_FILE, installed: Mapping[str, str] | None = None) -> dict[str, Any]:
-    """The lock file (path, sha256) and :func:`lock_status` of the installed packages against it;
-    ``{"file": path, "found": False}`` when there is no lock file (e.g. an installed copy)."""
+    """The lock file (path, sha256) and :func:`lock_status` against it; ``found: False`` without one."""
     path = Path(path)
     try:
         data = path.read_bytes()
@@ -206,13 +160,7 @@ def lock_record(path: str | Path = LOCK_FILE, installed: Mapping[str, str] | Non
 
 
 def collect(lock: str | Path = LOCK_FILE) -> dict[str, Any]:
-    """Everything about this machine and installation that can change a published number.
-
-    ``python``, ``platform``, ``libraries`` (name -> version; the artifacts' list plus
-    :data:`EXTRA_LIBRARIES`), ``torch`` (:func:`torch_build`), ``cpu`` (:func:`cpu`), ``threads``
-    (torch intra-/inter-op threads of this process), ``env`` (:func:`numerics_env`) and ``lock``
-    (:func:`lock_record`).  Reads only; deterministic on one machine and installation.
-    """
+    """Everything about this machine and installation that can change a published number."""
     import torch
 
     libs = {k: v for k, v in library_versions().items() if k != "python"}
@@ -227,9 +175,7 @@ def collect(lock: str | Path = LOCK_FILE) -> dict[str, Any]:
 
 
 def training_runtime(device) -> dict[str, Any]:
-    """What a train run ran on, for its checkpoint's ``meta.json`` (``extra.runtime``): device (and GPU
-    name), torch's intra-op thread count at the end of training (``train.num_threads`` when set, else
-    torch's default), the torch build and CPU kernel level, and the CPU model and numeric flags."""
+    """What a train run ran on (device, threads, torch, CPU), for its checkpoint's ``extra.runtime``."""
     import torch
 
     dev = torch.device(device)

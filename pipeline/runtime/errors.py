@@ -1,18 +1,6 @@
-"""Error types shared by the library and the stage commands.
-
-`InputError` is the one type for *user* mistakes (a missing file, a bad parameter, a corrupt or
-mismatched artifact).  Stage commands turn it into a one-line message and exit code 2; anything
-else is a bug and keeps its traceback.
-
-The naming convention of every error (docs/own-data.md): **an error names a parameter in the caller's
-terms** -- the flag on the command line (``--max-pixels``, ``--skip-bad``), the keyword argument in
-the Python API (``max_pixels=``, ``skip_bad=True``).  The library does not know its caller, so an
-error names a parameter through an :class:`Option`, which carries both spellings, and is rendered
-where the caller is known: ``stages._common.one_line_errors`` renders :data:`CLI`, ``str(error)`` (what
-a Python caller sees) renders :data:`API`.  A message that is not an error (a warning logged by the
-library) is rendered for :func:`caller`: :data:`CLI` inside a command (``one_line_errors`` sets it with
-:func:`calling`), :data:`API` otherwise.
-"""
+"""Error types.  :class:`InputError` is the one type for user mistakes: one line, exit code 2 from a command,
+naming each parameter in the caller's terms (a flag on the command line, a keyword in Python:
+docs/own-data.md, section 3a); anything else is a bug and keeps its traceback."""
 
 from __future__ import annotations
 
@@ -22,18 +10,13 @@ import dataclasses
 import re
 from typing import Any, Iterator
 
-#: the two callers an error is rendered for (:meth:`InputError.render`)
 CLI, API = "command line", "python"
 
 
 @dataclasses.dataclass(frozen=True)
 class Option:
-    """A user parameter as each caller spells it: ``flag`` on the command line (``--max-pixels``,
-    ``INPUT`` for a positional argument) and ``keyword`` in the Python API (``max_pixels``).
-
-    ``OPTION(value)`` binds the value the caller gave: ``--out run/`` / ``out='run/'``.  A boolean
-    ``is_flag`` option is spelled ``--skip-bad`` / ``skip_bad=True``.  A ``many`` option takes a list,
-    one item per use of the flag: ``SET(["a=1"])`` is ``--set a=1`` / ``overrides=['a=1']``."""
+    """A user parameter as each caller spells it: ``flag`` (``--max-pixels``, ``INPUT``) and ``keyword``
+    (``max_pixels``).  ``OPTION(value)`` binds a value; a ``many`` option takes a list, one item per flag."""
 
     flag: str
     keyword: str
@@ -61,8 +44,7 @@ class Option:
         return f"{self.keyword}={str(v)!r}" if not isinstance(v, (bool, int, float)) else f"{self.keyword}={v!r}"
 
 
-#: the options the library's errors name (one table: the click options of stages/_common.py and the
-#: keyword arguments of pipeline/api.py take their names from here)
+#: the options the library's errors name; the click options and the API's keywords take their names from here
 INPUT = Option("INPUT", "input")
 OUT = Option("--out", "out")
 CHECKPOINT = Option("--checkpoint", "checkpoint")
@@ -75,9 +57,7 @@ SKIP_BAD = Option("--skip-bad", "skip_bad", is_flag=True)
 OVERWRITE = Option("--overwrite", "overwrite", is_flag=True)
 MAX_PIXELS = Option("--max-pixels", "max_pixels")
 LABELS = Option("--labels", "labels")
-#: the bits a 16-bit frame's sensor fills (params ``data.bit_depth``; label, distill, segment)
 BIT_DEPTH = Option("--bit-depth", "bit_depth")
-#: a params override: ``--set key=value`` on the command line, ``overrides=["key=value"]`` in Python
 SET = Option("--set", "overrides", many=True)
 OPTIONS = (INPUT, OUT, CHECKPOINT, BACKEND, IMPORTED_DIR, REFERENCE_MASKS, VAL_MASKS, FORMAT, SKIP_BAD, OVERWRITE,
            MAX_PIXELS, LABELS, BIT_DEPTH, SET)
@@ -86,7 +66,7 @@ _CALLER: contextvars.ContextVar[str] = contextvars.ContextVar("geodistill_caller
 
 
 def caller() -> str:
-    """Who reads the library's messages now: :data:`CLI` inside :func:`calling` (a command), else :data:`API`."""
+    """Who reads the library's messages now: :data:`CLI` inside :func:`calling`, else :data:`API`."""
     return _CALLER.get()
 
 
@@ -106,14 +86,11 @@ def literal(text: Any) -> str:
 
 
 class InputError(ValueError):
-    """Bad input from the user: the message is one line and names the file or parameter.
+    """Bad input from the user: one line naming the file or parameter.
 
-    ``InputError(template, *options)``: each ``{}`` of ``template`` is an :class:`Option`, spelled
-    in the caller's terms by :meth:`render` -- ``InputError("{}: must be >= 1", MAX_PIXELS(0))`` reads
-    ``--max-pixels 0: must be >= 1`` on the command line and ``max_pixels=0: must be >= 1`` in
-    Python (``str(error)``).  Without options the message is taken as it is (no placeholders); with
-    options, literal text goes through :func:`literal`.  Every new error naming a parameter the user
-    sets follows this convention (docs/own-data.md)."""
+    ``InputError(template, *options)``: each ``{}`` is an :class:`Option`, spelled for the caller by
+    :meth:`render`; with options, literal text goes through :func:`literal`.
+    """
 
     def __init__(self, message: str = "", *options: Option):
         super().__init__(message, *options)
@@ -131,9 +108,7 @@ class InputError(ValueError):
 
     @classmethod
     def from_line(cls, line: str, known: tuple[Option, ...] = OPTIONS) -> "InputError":
-        """An error from a command's rendered one line (a stage run in a subprocess): the flags of
-        ``known`` it names become options again, so a Python caller reads their keywords; a ``many``
-        option's ``key=value`` item after its flag (``--set teacher.score_threshold=0.1``) is bound."""
+        """An error from a command's rendered line (a stage run in a subprocess), its flags options again."""
         by_flag = {o.flag: o for o in known if o.flag.startswith("--")}
         if not by_flag:
             return cls(line)

@@ -1,13 +1,5 @@
-"""Progress bars (stderr) for every loop a user waits on.
-
-* A bar stays on screen when its loop ends (its final count is the record of what was done); bars count
-  the user's units (``unit="img"`` for images, never batches).
-* Quiet -- no bar at all -- when ``GEODISTILL_QUIET=1`` or inside :func:`quiet_bars` (a command's
-  ``--quiet``).
-* ``tqdm.auto``: widgets in Jupyter (ipywidgets, the ``notebook`` extra), text bars elsewhere.
-* Third-party bars (transformers' "Loading weights" at a checkpoint load) are switched off around the
-  call that would draw them (:func:`library_bars_off`).
-"""
+"""Progress bars on stderr for every loop a user waits on, counting the user's units; none under
+``GEODISTILL_QUIET=1`` or :func:`quiet_bars` (a command's ``--quiet``)."""
 
 from __future__ import annotations
 
@@ -19,7 +11,7 @@ import sys
 from tqdm.auto import tqdm
 
 _QUIET = contextvars.ContextVar("geodistill_quiet_bars", default=False)
-#: the environment variable that turns every bar off (a command's --quiet hands it to its child processes)
+#: how a command's --quiet reaches its child processes
 QUIET_ENV = "GEODISTILL_QUIET"
 
 
@@ -47,9 +39,7 @@ def progress(iterable=None, desc: str = "", total: int | None = None, **kw):
 
 @contextlib.contextmanager
 def library_bars_off():
-    """transformers' and huggingface_hub's own progress bars off inside (its "Loading weights" bar of
-    ``from_pretrained``), restored after; transformers is imported here, lazily, only by its callers'
-    code paths (the sam3 extra).  Their warnings still show: only the bars go."""
+    """transformers' own progress bars (``from_pretrained``'s "Loading weights") off inside; warnings stay."""
     from transformers.utils import logging as hf_logging
 
     was_on = hf_logging.is_progress_bar_enabled()
