@@ -1,16 +1,7 @@
-"""The consensus and geometry stages' work, callable without the CLI: the pseudo-label artifacts.
-
-* :func:`write_consensus`: teacher.zarr -> consensus.zarr (agreement, voted, n_valid, and the prompt
-  disagreement h of :func:`pipeline.consensus.agreement_entropy`; eq:agreement-map,
-  eq:majority-vote, :mod:`pipeline.consensus`);
-* :func:`write_geometry`: consensus.zarr + manifest -> geometry.zarr (sdf, skeleton; eq:sdf-target) and
-  the gates table (eq:foreground-agreement .. eq:reliability-gate, :mod:`pipeline.geometry`).
-
-Both stream blocks of images, so memory is flat in N; the block size changes nothing in the results.
-Each takes opened artifacts and ``meta(schema)``, the stamp of each output (the stage's provenance).
-``geodistill label`` (:mod:`pipeline.labeling.run`) calls the same :func:`vote_block` and
-:func:`reliability_gates` on a folder, so its masks and gates are the DAG's.
-"""
+"""The consensus and geometry stages' work, callable without the CLI: teacher.zarr -> consensus.zarr
+(:func:`write_consensus`) and consensus.zarr + manifest -> geometry.zarr and the gates table
+(:func:`write_geometry`), streamed in blocks of images.  ``geodistill label`` calls the same
+:func:`vote_block` and :func:`reliability_gates`, so its masks and gates are the DAG's."""
 
 from __future__ import annotations
 
@@ -28,9 +19,6 @@ from pipeline.geometry import GateFactors, NoForeground, foreground_agreement, i
 from pipeline.runtime.progress import progress
 
 
-# --------------------------------------------------------------------------------------------------
-# consensus
-# --------------------------------------------------------------------------------------------------
 def check_teacher(teacher) -> tuple[int, int, int, int]:
     """Shape and attribute checks of a teacher artifact; returns (N, K, H, W)."""
     masks, scores = teacher["masks"], teacher["scores"]
@@ -49,25 +37,21 @@ def check_teacher(teacher) -> tuple[int, int, int, int]:
 
 
 def vote_block(masks: np.ndarray, scores: np.ndarray, threshold: float) -> tuple[Consensus, np.ndarray]:
-    """The vote of a block of images and its prompt disagreement: A, M = [A >= threshold]
-    (eq:agreement-map, eq:majority-vote) and H_i (:func:`pipeline.consensus.agreement_entropy`, of the
-    float32 map consensus.zarr stores).
-
-    ``masks`` bool [N,K,H,W], ``scores`` float [N,K], ``threshold`` ``consensus.vote_threshold``;
-    returns (Consensus with [N,...] fields, h float64 [N])."""
+    """The vote of a block of images (eq:agreement-map, eq:majority-vote) and its prompt disagreement h
+    (:func:`pipeline.consensus.agreement_entropy` of the stored float32 map)."""
     c = vote_batch(masks, scores, threshold)
     return c, agreement_entropy(c.agreement)
 
 
 def write_consensus(teacher, threshold: float, out: str | Path, meta: Callable[[str], Meta],
                     chunk_images: int = 32) -> None:
-    """consensus.zarr from the opened teacher artifact: the vote at ``threshold`` (``consensus.vote_threshold``)."""
+    """consensus.zarr from the opened teacher artifact: the vote at ``threshold``."""
     n, k, h, w = check_teacher(teacher)
     with ZarrWriter(out, meta("consensus")) as wr:
         wr.create("agreement", (n, h, w), np.float32)
         wr.create("voted", (n, h, w), bool)
         wr.create("n_valid", (n,), np.int16)
-        wr.create("h", (n,), np.float64)   # the prompt disagreement label records (pipeline.consensus.agreement_entropy)
+        wr.create("h", (n,), np.float64)
         for s in progress(range(0, n, chunk_images), desc="consensus", total=-(-n // chunk_images)):
             e = min(s + chunk_images, n)
             try:
@@ -83,9 +67,6 @@ def write_consensus(teacher, threshold: float, out: str | Path, meta: Callable[[
         wr.attrs.update({"image_ids": list(teacher.attrs["image_ids"]), "prompts": list(teacher.attrs["prompts"])})
 
 
-# --------------------------------------------------------------------------------------------------
-# geometry
-# --------------------------------------------------------------------------------------------------
 def check_consensus(cons, manifest, n_prompts: int) -> tuple[int, int, int]:
     """Consistency of consensus.zarr with the manifest and params; returns (N, H, W)."""
     agreement, voted, n_valid = cons["agreement"], cons["voted"], cons["n_valid"]
@@ -108,8 +89,7 @@ def check_consensus(cons, manifest, n_prompts: int) -> tuple[int, int, int]:
 
 
 class Gates(NamedTuple):
-    """The reliability gates of a set of images (:func:`reliability_gates`): ``a0`` the reference area
-    (0.0 when ``missing``), ``v`` the valid-prompt ratios and ``factors`` (g_conf, g_valid, g_area, g)."""
+    """The reliability gates of a set of images; ``a0`` is 0.0 when ``missing``."""
 
     a0: float
     v: np.ndarray
@@ -118,18 +98,12 @@ class Gates(NamedTuple):
 
 
 def reliability_gates(c, n_valid, a, is_train, geo: Mapping[str, Any]) -> Gates:
-    """The gate of every image, with a0 by the one rule of docs/decisions.md ("The area reference a0").
+    """The gate of every image (docs/decisions.md, "The area reference a0"):
 
     a0 = median{a_i : i in the training split, a_i > 0}        (text before eq:confidence-gate)
     g_i = clip(g_conf * g_valid * g_area, 0, 1) at a0          (eq:confidence-gate .. eq:reliability-gate)
 
-    When no training image has a non-empty vote, a0 is missing: the gates are those of a0 = 0 (g_area
-    1 on an empty mask, the floor ``area_floor`` once a > 1.4e-5; every training g is 0 since its c is 0)
-    and ``missing`` is set, for the caller to say so (:class:`pipeline.geometry.NoForeground`).
-
-    ``c`` eq:foreground-agreement, ``n_valid`` valid-prompt counts, ``a`` eq:pseudo-area, all [N];
-    ``is_train`` bool [N] (all true for a folder: every image is a training image); ``geo`` the
-    params ``geometry`` section."""
+    Without such an a_i, the gates of a0 = 0 and ``missing`` set, for the caller to say so."""
     a = np.asarray(a, np.float64)
     try:
         a0, missing = median_area(a, is_train), False
@@ -140,7 +114,7 @@ def reliability_gates(c, n_valid, a, is_train, geo: Mapping[str, Any]) -> Gates:
 
 
 def gate_columns(c, a, gates: Gates) -> dict[str, np.ndarray]:
-    """The gate columns of the gates table and of label's table: c, v, a, a0, g_conf, g_valid, g_area, g."""
+    """The gate columns of the gates table and of label's table."""
     f = gates.factors
     return {"c": c, "v": gates.v, "a": a, "a0": np.full(len(c), gates.a0),
             "g_conf": f.conf, "g_valid": f.valid, "g_area": f.area, "g": f.g}
@@ -148,11 +122,8 @@ def gate_columns(c, a, gates: Gates) -> dict[str, np.ndarray]:
 
 def write_geometry(cons, manifest, cfg: Mapping[str, Any], out: str | Path, gates: str | Path,
                    meta: Callable[[str], Meta], chunk_images: int = 64) -> pd.DataFrame:
-    """geometry.zarr (sdf, skeleton of each voted mask) and the gates table from the opened consensus
-    and manifest artifacts; ``cfg`` is the ``geometry:`` section.  Returns the gates table.
-
-    The gates are :func:`reliability_gates` over the manifest's training split; a missing a0 stops
-    the stage with :class:`pipeline.geometry.NoForeground` (nothing to train on)."""
+    """geometry.zarr (sdf, skeleton; eq:sdf-target) and the gates table (returned) from the opened
+    consensus and manifest artifacts; a missing a0 stops the stage (nothing to train on)."""
     n_prompts = cfg["n_prompts"]
     n, h, w = check_consensus(cons, manifest, n_prompts)
     c = np.zeros(n)
