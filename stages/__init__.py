@@ -1,1 +1,1 @@
-"""Stage commands: thin click wrappers (read artifacts -> call pipeline -> write artifacts)."""
+"""The DAG's stage scripts: read artifacts -> call pipeline -> write artifacts."""

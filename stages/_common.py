@@ -1,14 +1,5 @@
-"""Conventions shared by every stage command.
-
-* ``--params FILE`` (default params.yaml), ``--set key.path=value`` (repeatable), ``--device``;
-* logs on stderr, progress bars on every loop a user waits on (``pipeline.runtime.progress``);
-* user errors (:class:`pipeline.runtime.errors.InputError`) -> one line on stderr, exit code 2, no traceback,
-  naming options by their flags (``--max-pixels``; the Python API names the same options by their
-  keywords, ``max_pixels=``: :meth:`pipeline.runtime.errors.InputError.render`);
-* operating-system failures (no space, no permission, read-only file system, path too long, ...) ->
-  one line on stderr naming the path, exit code 1, no traceback (:func:`one_line_errors`, the one place
-  both are handled; writes are atomic, so the previous complete output stays in place).
-"""
+"""Conventions shared by every stage command: ``--params``, ``--set``, ``--device``; logs on stderr; a user
+error is one line and exit code 2, an operating-system failure one line naming the path and exit code 1."""
 
 from __future__ import annotations
 
@@ -29,13 +20,13 @@ from pipeline.runtime.codeversion import ROOT, _module_name, code_version_of
 from pipeline.runtime.errors import BIT_DEPTH, CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError, calling
 from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER, load_params
 
+
 def setup_logging() -> None:
     level = os.environ.get("GEODISTILL_LOG", "INFO").upper()
     logging.basicConfig(stream=sys.stderr, level=getattr(logging, level, logging.INFO),
                         format="%(asctime)s %(name)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
 
 
-#: exit codes of :func:`one_line_errors`
 EXIT_INPUT, EXIT_OS = 2, 1
 _OS_WHAT = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quota exceeded",
             errno.EACCES: "permission denied", errno.EPERM: "operation not permitted",
@@ -43,8 +34,7 @@ _OS_WHAT = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quo
 
 
 def os_error_line(e: OSError) -> str:
-    """One line for an operating-system failure: the path, what happened in words, the errno name
-    (``out/masks: no space left on the device (ENOSPC)``)."""
+    """One line for an operating-system failure: ``out/masks: no space left on the device (ENOSPC)``."""
     what = _OS_WHAT.get(e.errno) or (e.strerror or str(e) or type(e).__name__)
     name = errno.errorcode.get(e.errno) if e.errno else None
     path = e.filename if e.filename is not None else None
@@ -56,10 +46,8 @@ def os_error_line(e: OSError) -> str:
 
 @contextlib.contextmanager
 def one_line_errors(command: str):
-    """Run a command's body; an InputError ends it with ``geodistill <command>: error: <line>`` (options
-    named by their flags: ``e.render(CLI)``) and exit code 2, an OSError with ``geodistill <command>:
-    error: <path>: <what> (<ERRNO>)`` and exit code 1 -- one line on stderr each, no traceback.  Inside,
-    the library's warnings name options by their flags too (:func:`pipeline.runtime.errors.caller`)."""
+    """Run a command's body; an InputError ends it with ``geodistill <command>: error: <line>`` and exit
+    code 2, an OSError with one line naming the path and exit code 1.  Inside, messages name flags."""
     try:
         with calling(CLI):
             yield
@@ -73,8 +61,6 @@ def one_line_errors(command: str):
         sys.exit(EXIT_OS)
 
 
-#: the shared options of the user tools (docs/own-data.md): one name (pipeline.runtime.errors, where the errors
-#: naming them take it from), one help text
 overwrite_option = click.option(
     OVERWRITE.flag, is_flag=True,
     help="write into an existing output folder this command did not make; files of yours there stay, and "
@@ -82,7 +68,6 @@ overwrite_option = click.option(
 skip_bad_option = click.option(
     SKIP_BAD.flag, is_flag=True,
     help="leave unreadable images out and list them with the reason (default: stop at the first, naming it)")
-#: no progress bars (label, distill, segment): warnings, errors and the summary lines stay
 quiet_option = click.option("--quiet", "-q", is_flag=True,
                             help="no progress bars (warnings, errors and the summary line stay)")
 max_pixels_option = click.option(
@@ -108,14 +93,11 @@ def teacher_workers_options(fn):
 
 
 def stage_code_version(stage_file: str) -> str:
-    """Code version of a stage: every project file its script imports, found from the imports
-    themselves (:func:`pipeline.runtime.codeversion.module_files`, the same list dvc.yaml names as the stage's deps)."""
+    """Code version of a stage script: the hash of every project file it imports."""
     return code_version_of(_module_name(Path(stage_file).resolve(), ROOT))
 
 
-#: ``load(params_file, overrides, default_profile) -> params`` of a command that switches profile
-#: (:func:`pipeline.profiles.load_params_or_profile`, passed by ``label``/``distill``: this module, imported
-#: by every stage, does not import the profiles)
+#: ``load(params_file, overrides, default_profile) -> params``: passed in, since no stage may import profiles
 ProfileLoader = Callable[[Any, Iterable[str], str], dict]
 
 
@@ -123,10 +105,8 @@ def stage_command(name: str, default_profile: str | None = None, profile_loader:
                   ) -> Callable:
     """Decorate ``fn(params, device, **options)`` into a click command with the shared options.
 
-    ``params`` is the effective params dict (overrides applied).  ``default_profile`` with its
-    ``profile_loader`` (commands meant to run outside a project, e.g. ``label``): without ``--params``
-    the params are that profile's values rather than ./params.yaml, and ``--set profile=NAME`` picks
-    another profile; every other command reads its params file and refuses ``--set profile=``.
+    ``default_profile`` with its ``profile_loader``: without ``--params`` the params are that profile's
+    (commands that run outside a project, e.g. ``label``).
     """
     if (default_profile is None) != (profile_loader is None):
         raise TypeError(f"stage_command({name!r}): default_profile and profile_loader go together")
@@ -158,30 +138,24 @@ def stage_command(name: str, default_profile: str | None = None, profile_loader:
 
 
 def declared_params(params: Mapping[str, Any], stage: str) -> dict:
-    """``{dotted key: value}`` of the params ``stage`` declares in the catalogue: exactly what DVC tracks
-    for it (dvc.yaml) and what enters its artifacts' fingerprints."""
+    """``{dotted key: value}`` of the params ``stage`` declares in the catalogue (what DVC tracks)."""
     return stage_params(params, STAGES[stage].params)
 
 
 @dataclasses.dataclass(frozen=True)
 class StageContext:
-    """What every artifact of one stage run is stamped with, computed once per run: the stage's name,
-    its code version (:func:`stage_code_version`) and the params it declares in the catalogue
-    (:func:`declared_params`, what DVC tracks for it)."""
+    """What every artifact of one stage run is stamped with: stage name, code version, declared params."""
 
     stage: str
     code: str
     params: dict
 
     def meta(self, schema: str, inputs: Iterable = (), params: Mapping[str, Any] | None = None, **extra) -> Meta:
-        """The :class:`~pipeline.artifacts.lineage.Meta` of one output; ``params`` replaces the declared params
-        where a stage fingerprints a finer view of them (prepare: the files' content, train: the
-        method's keys, teacher: without the cache's location)."""
+        """The Meta of one output; ``params`` replaces the declared ones where a stage fingerprints a finer view."""
         return make_meta(schema, self.stage, self.code, self.params if params is None else params, inputs, **extra)
 
 
 def stage_context(stage: str, stage_file: str, params: Mapping[str, Any]) -> StageContext:
-    """The :class:`StageContext` of stage ``stage`` whose script is ``stage_file`` (its ``__file__``); a
-    stage the catalogue does not list (``train``: its params are the method's keys) declares none."""
+    """The :class:`StageContext` of ``stage`` run by ``stage_file``; ``train`` declares no params here."""
     declared = declared_params(params, stage) if stage in STAGES else {}
     return StageContext(stage, stage_code_version(stage_file), declared)

@@ -1,17 +1,5 @@
-"""Stage analyze_teacher: how good are the teacher's pseudo-masks, per prompt and voted, and does the
-reliability gate g separate poor from good ones?
-
-Post-hoc analysis only: reference masks of the validation and test splits *measure* teacher quality
-here; the validation split alone chooses the "validation-selected single prompt".  Nothing here feeds
-training.  When the teacher backend is ``simulated`` (the synthetic benchmark), every number describes
-a SIMULATOR of foundation-model errors, not SAM 3 -- the JSON and the report say so.
-
-Writes ``teacher_metrics.parquet`` (one row per image and source: prompt_<k>, vote, val_selected;
-see pipeline.report.analysis) and the DVC metrics ``reports/metrics/teacher/<group>.json`` (git-tracked;
-pipeline.report.dvc_results.teacher_metric_files: the vote's Image IoU and Boundary F1 on the group's test images
-and the share of them with gate g > 0).  The report draws the prompt tables and the gate's Spearman
-rho from the parquet.
-"""
+"""Stage analyze_teacher: the quality of the teacher's pseudo-masks per prompt and voted, and whether the gate
+separates poor from good ones.  Post-hoc only: reference masks measure here, nothing feeds training."""
 
 from __future__ import annotations
 

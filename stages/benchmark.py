@@ -1,21 +1,5 @@
-"""Stage benchmark: efficiency of the deployed mask path on this machine (pipeline.deploy.benchmark).
-
-For every variant in ``deploy.benchmark_variants`` (fp32 eager NCHW = the plain baseline, channels_last,
-bf16 autocast, TorchScript frozen, ONNX Runtime fp32 and int8, ...): parameters and GFLOPs counted on the
-graph, batch-1 latency (median after warm-up), best-batch throughput, peak memory, and the change of the
-mean validation Image IoU against the fp32 baseline at the deployed tau.  A variant whose short probe is
-more than ``pipeline.deploy.benchmark.SLOW_FACTOR`` x slower than the baseline is not fully timed: its
-``status`` column says so.  The table goes to stdout with each variant's speed-up over the baseline
-measured in the same run; ``--json`` writes the same numbers, ``--metrics-json`` the one DVC metric
-(latency_ms of the deployed fast path; pipeline.report.dvc_results.deploy_metrics).
-
-Validation data: rows of images.zarr / reference.zarr with split == 'val' and a reference mask
-(reference masks here only measure accuracy, never train).  int8: the bundle's ``model.int8.onnx`` when
-it has one, else quantised here on training-split images (pipeline.deploy.benchmark.prepare_onnx_models).
-Standalone: ``--checkpoint C`` instead of ``--deploy``, ``--resolution 384`` to time another size; without
-artifacts the IoU columns are NaN.  Policy (tau, fallbacks, verdicts) lives in pipeline.deploy.benchmark
-and pipeline.thresholds; this script is wiring.
-"""
+"""Stage benchmark: latency, throughput, memory and IoU change of the deployed mask path's variants on this
+machine (pipeline.deploy.benchmark; reference masks only measure accuracy)."""
 
 from __future__ import annotations
 

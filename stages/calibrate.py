@@ -1,28 +1,5 @@
-"""Stage calibrate: choose every student's binarisation threshold tau on the VALIDATION split.
-
-Paper (Training Details): "The binarization threshold is selected by Image IoU on the corresponding
-validation set and then applied unchanged to the test set."  For each active run (method, seed):
-P = sigmoid(Z) on the validation images, the mean Image IoU of [P >= tau] over the grid
-(eq:inference-mask), and tau by ``calibrate.tau_rule`` (a recipe part, docs/stability.md): ``argmax``
-(the paper; ties -> closest to 0.5), ``plateau`` (centre of the taus within
-``calibrate.plateau_tolerance`` of the best) or ``smooth`` (argmax of the moving-average curve):
-pipeline.thresholds.calibrate_threshold.  The whole curve is kept (list columns
-``grid`` and ``curve``) for the report's threshold-curve figure, with the fixed tau = 0.5 alongside.
-
-Calibration diagnostics of the same validation probabilities (pipeline.evaluation.diagnostics; issue 17):
-``rel_confidence``, ``rel_frequency``, ``rel_count`` (list columns: the pixel-level reliability diagram
-over ``calibrate.reliability_bins`` equal-width bins) and ``ece`` (expected calibration error);
-``area_curve`` (list, per grid tau: median over validation images of predicted / reference
-foreground area) with ``area_ratio`` and ``fixed_area_ratio`` at the calibrated and the fixed tau.
-
-Manual (reference) masks enter here ONLY to calibrate tau -- they are never a training target.  With
-``review.mode: validate`` (and ``review.corrections`` set) the corrected training images are validation
-images too, with their corrected masks (pipeline.evaluation.inference.validation_corrections; their count is
-recorded in the thresholds' meta, ``corrected_validation``, for the report).
-
-No validation image with a mask (``geodistill distill`` without ``--val-masks``): nothing to calibrate
-on, so every run gets the fixed tau with ``tau_source`` = pipeline.thresholds.NO_VALIDATION_MASKS (:func:`fixed_thresholds`).
-"""
+"""Stage calibrate: each run's tau on the VALIDATION split by mean Image IoU over the grid (eq:inference-mask,
+``calibrate.tau_rule``), the whole curve and calibration diagnostics; reference masks only calibrate here."""
 
 from __future__ import annotations
 

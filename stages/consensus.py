@@ -1,7 +1,5 @@
-"""Stage `consensus`: teacher.zarr -> consensus.zarr (agreement, voted, n_valid), eq:agreement-map and
-eq:majority-vote, streamed in blocks of images so memory is flat in N.
-
-Wiring only: the work is :func:`pipeline.pseudo_labels.write_consensus`."""
+"""Stage consensus: teacher.zarr -> consensus.zarr (eq:agreement-map, eq:majority-vote), in blocks of images
+so memory is flat in N."""
 
 from __future__ import annotations
 

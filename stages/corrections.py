@@ -1,14 +1,5 @@
-"""Stage ``corrections`` (in dvc.yaml only when params ``review.corrections`` is set): a ``corrections``
-artifact (``geodistill review import``) -> ``corrected.zarr``, checked against this run and at the
-working resolution, for ``review.mode`` (validate | replace; pipeline/review/apply.py).
-
-    python -m stages.corrections --corrections artifacts/corrections.parquet --artifacts artifacts \
-        --out artifacts/corrected.zarr
-
-The training stages then read it (:func:`pipeline.training.inputs.load_inputs`).  Bad inputs (an image
-the manifest does not hold, a size mismatch, a validation or test image, ``validate`` on a benchmark
-source): one line, exit 2.  Wiring only: the work is :mod:`pipeline.review.apply`.
-"""
+"""Stage corrections (only when params ``review.corrections`` is set): the corrections artifact checked
+against this run and at the working resolution -> corrected.zarr, for ``review.mode``."""
 
 from __future__ import annotations
 

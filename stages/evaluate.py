@@ -1,27 +1,5 @@
-"""Stage evaluate: per-image metrics of every student on every test group, seed summaries and gains.
-
-* thresholds: the validation-calibrated tau of each (method, seed), applied unchanged, and the fixed
-  tau (``calibrate.fixed_tau`` recorded in thresholds.parquet, 0.5) -- ``threshold_mode`` =
-  calibrated | fixed;
-* ``metrics.parquet``: one row per (group, method, seed, image, threshold_mode) with Image IoU,
-  Boundary F1 (evaluate.bf1_tolerance px), precision, recall, predicted area ratio and small-region
-  IoU (pipeline.metrics);
-* per image also ``target_fraction`` (reference foreground / frame), ``target_size`` (``tiny`` under
-  evaluate.tiny_target_max_fraction = 0.2 % of the frame, ``regular``, ``empty``;
-  pipeline.evaluation.diagnostics) and ``area_vs_reference`` (predicted / reference foreground area; NaN for an
-  empty reference) -- the size split and the foreground-inflation diagnostics;
-* ``summary.parquet``: mean and sample std over seeds of the per-seed means, plus the gain of each
-  annotation-free method over ``plain`` with a paired hierarchical bootstrap CI (spacecraft, then
-  images; evaluate.bootstrap_resamples, evaluate.ci, seeded by evaluate.bootstrap_seed), and of each
-  warm-started Stage-II method over the budget-matched ``continuation`` (``gain_<m>_vs_continuation``
-  columns; pipeline.methods.gain_treatments).  The supervised ceiling (NOT annotation-free) gets
-  means only: it is never in a gain or its CI (the rules: pipeline.evaluation.evaluate);
-* DVC results (git-tracked; pipeline.report.dvc_results): ``reports/metrics/students/<group>/<method>.json`` (iou,
-  bf1 at the calibrated tau: ``dvc metrics show``), ``reports/plots/training_curves.csv`` (every run's log) and
-  ``reports/plots/threshold_curves.csv`` (calibrate's curves), drawn one line per method by ``dvc plots``.
-
-Reference masks are used here only to score predictions.
-"""
+"""Stage evaluate: per-image metrics of every student on every test group at the calibrated and the fixed
+tau, seed summaries with the gains' intervals, and the DVC metrics and plot tables; reference masks only score."""
 
 from __future__ import annotations
 

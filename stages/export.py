@@ -1,22 +1,5 @@
-"""Stage export: the deployed mask path of one checkpoint -> artifacts/deploy/ (TorchScript, ONNX, tau).
-
-tau is the validation-calibrated threshold of the checkpoint's (method, seed) in thresholds.parquet
-(eq:inference-mask).  Fallback, recorded as ``tau_source`` in deploy.json with a warning: without
-``--thresholds`` or without a row for that run, ``calibrate.fixed_tau`` (the paper's fixed-threshold
-setting, 0.5); ``--tau`` overrides both (pipeline.thresholds.tau_candidates, resolve_tau).  The working resolution comes from the checkpoint when it
-records one, else ``data.resolution``.  The parity check (pipeline.deploy.check_parity) runs here and a
-failure stops the stage before anything is written.  ONNX needs the ``onnx`` extra; without it the
-bundle holds TorchScript only and deploy.json says why.
-
-int8: with ``--artifacts DIR`` (manifest.parquet + images.zarr), up to ``deploy.int8_calibration_images``
-TRAINING-split images (images only, never reference masks) calibrate a static int8 ONNX model,
-``model.int8.onnx`` (pipeline.deploy.quantize_onnx_int8, the same code the benchmark uses; ranges by
-``deploy.int8_calibration`` / ``deploy.int8_percentile``).  Its agreement with PyTorch on those images
-(max |dZ|, per-image mask IoU at tau) goes into deploy.json; the stage fails only when the mean mask
-IoU is below ``deploy.int8_min_mask_iou``.  Without onnx, without
-the artifacts, or with ``--no-int8`` the bundle has no int8 model and deploy.json (and stderr) say why.
-The logic is :mod:`pipeline.deploy.export`'s; this script is wiring.
-"""
+"""Stage export: the deployed mask path of one checkpoint with its calibrated tau -> artifacts/deploy/
+(TorchScript, ONNX, int8 calibrated on training images; pipeline.deploy.export)."""
 
 from __future__ import annotations
 

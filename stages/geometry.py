@@ -1,7 +1,5 @@
-"""Stage `geometry`: consensus.zarr + manifest -> geometry.zarr (sdf, skeleton) and gates.parquet
-(eq:sdf-target .. eq:reliability-gate), streamed in blocks of images so memory is flat in N.
-
-Wiring only: the work is :func:`pipeline.pseudo_labels.write_geometry`."""
+"""Stage geometry: consensus.zarr -> geometry.zarr (sdf, skeleton) and gates.parquet (eq:sdf-target ..
+eq:reliability-gate), in blocks of images so memory is flat in N."""
 
 from __future__ import annotations
 

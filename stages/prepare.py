@@ -1,10 +1,4 @@
-"""Stage `prepare`: dataset -> manifest.parquet, images.zarr, reference.zarr, skipped_files.parquet, contact sheet.
-
-Default source: the embedded synthetic spacecraft benchmark (PNG files under ``<out-dir>/synthetic``).
-Real sources: ``--source spacesense|spark|speedplus|tango|folder --root DIR [--protocol FILE]``.
-
-Wiring only: the work is :func:`pipeline.datasets.prepare.prepare`.
-"""
+"""Stage prepare: dataset -> manifest.parquet, images.zarr, reference.zarr, skipped_files.parquet, contact sheet."""
 
 from __future__ import annotations
 

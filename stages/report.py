@@ -1,23 +1,5 @@
-"""Stage report: the paper's tables and figures from the evaluation artifacts.
-
-Writes ``<out>/report.md``, ``<out>/report.html`` (ONE self-contained page: figures inline as base64
-PNG, no external resources), ``<out>/figures/*.png`` (and ``*.svg`` of every chart, for papers),
-``<out>/environment.json`` (where the numbers were computed: this machine's software, torch build and
-CPU, and each training run's precision, threads and device; pipeline.runtime.environment; not fingerprinted)
-and the DVC plot tables
-``<out>/plots/training_curves.csv`` (epoch, val_iou, ..., method, seed) and
-``<out>/plots/threshold_curve.csv`` (tau, val_iou, method, seed) and ``<out>/plots/area_curve.csv``
-(tau, area_ratio, method, seed: median predicted / reference foreground area on the validation split).
-The controls and threshold-diagnostics section states in words, computed from the numbers, what they
-show about the fixed-tau reversal (pipeline.report.analysis.fixed_tau_findings).  Inputs that do not exist (e.g.
-efficiency.parquet before the benchmark ran) are reported as missing in the page, not fatal.
-
-It also writes the DVC metrics ``reports/metrics/efficiency/<group>/<method>.json`` (git-tracked;
-pipeline.report.dvc_results.efficiency_metric_files): the distillation efficiency of every student and of the
-supervised ceiling, test Image IoU at the calibrated tau / the teacher vote's on the same test images,
-with its per-seed ratio t interval -- the reference-points table's "IoU ÷ vote", from the same numbers.
-Without summary.parquet or teacher_metrics.parquet (no test masks) the folder is empty.
-"""
+"""Stage report: the paper's tables and figures (report.md, a self-contained report.html, figures, plot CSVs,
+environment.json) and the distillation-efficiency DVC metrics; missing inputs are reported, not fatal."""
 
 from __future__ import annotations
 

@@ -1,10 +1,5 @@
-"""Stage `review_export`: manifest + consensus (with h) + gates -> artifacts/review/, the training images a
-person should check first, ranked (``review.ranking``, the first ``review.top``), as ``geodistill review
-export`` writes them for a label folder: ranked.csv, labelstudio/, cvat/ and review.json.
-
-Wiring only: the work is :func:`pipeline.review.export.export_run`.  It reads no reference mask and
-feeds no other stage; the corrections come back through ``geodistill review import`` and params
-``review.corrections``."""
+"""Stage review_export: the training images a person should check first, ranked, as ``geodistill review
+export`` writes them; it reads no reference mask and feeds no other stage."""
 
 from __future__ import annotations
 

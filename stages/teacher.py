@@ -1,40 +1,6 @@
-"""Stage teacher: six-prompt teacher masks and scores for every image (eq:prompt-set, eq:teacher-prediction).
-
-Normal run (what ``dvc repro`` calls): fill the content-addressed cache with whatever is missing, then
-assemble ``teacher.zarr`` + ``teacher_scores.parquet`` from it::
-
-    python -m stages.teacher --manifest artifacts/manifest.parquet --images artifacts/images.zarr \\
-        --reference artifacts/reference.zarr --out artifacts/teacher.zarr --scores artifacts/teacher_scores.parquet
-
-``--workers N`` runs the teacher as a Ray Data pipeline (:mod:`pipeline.teachers.distributed`, the
-``cluster`` extra): CPU workers read the images, an actor pool of N teachers (one per GPU, or per CPU
-worker without GPUs) fills the cache with the same per-batch function as the serial loop, then this
-process assembles the artifacts; ``--address`` joins a running Ray cluster (e.g. on SLURM, see
-docs/real-data.md), otherwise Ray runs embedded and local.  Without ``--workers`` (or with 0) the
-serial loop runs in this process, no Ray needed; both give the same cache and the same artifacts.
-
-``--shard i/n`` (0 <= i < n) only fills the cache for shard i's images and writes no artifact (the
-former way to split the work over a SLURM array; Ray with ``--workers`` replaces it)::
-
-    srun python -m stages.teacher --shard ${SLURM_ARRAY_TASK_ID}/${SLURM_ARRAY_TASK_COUNT} --device cuda
-    # afterwards, once (computes nothing that the shards cached, writes the artifacts):
-    dvc repro teacher
-
-Artifacts (manifest row order, N = all manifest rows):
-  teacher.zarr  ``masks`` bool [N,K,H,W], ``scores`` float32 [N,K]; with ``teacher.vflip_base_prompt``
-  also ``vflip_masks`` bool [N,H,W] / ``vflip_scores`` float32 [N] (base prompt on the vertically
-  flipped image, mask flipped back; annotation-free-style control).  attrs: prompts, image_ids,
-  backend, teacher_fingerprint, simulator (true for the simulated backend), splits_run, base_prompt_index.
-  teacher_scores.parquet  one row per (image, prompt): image_id, prompt_index, prompt, score, valid,
-  mask_area (foreground fraction of the frame, eq:pseudo-area applied to M_ik), plus split and ran.
-
-Rows whose split is not in ``teacher.splits`` are not sent to the teacher: their masks are empty,
-their scores 0 (all prompts invalid, so eq:valid-set is empty and the gate is 0) and ``ran`` is false
-in teacher_scores.parquet.  By default all three splits run: train images for distillation,
-validation and test images for the teacher-quality analysis.
-
-Wiring only: the work is :mod:`pipeline.teachers.assemble` (open the run, fill the cache, write).
-"""
+"""Stage teacher: six-prompt teacher masks and scores for every image (eq:prompt-set, eq:teacher-prediction),
+through a content-addressed cache; ``--workers`` runs it on Ray, ``--shard i/n`` only fills the cache
+(docs/real-data.md)."""
 
 from __future__ import annotations
 

@@ -1,37 +1,6 @@
-"""Stage ``train`` (DVC: ``train_<method>@<seed>``, or ``train_<method>`` for a group of seeds): train
-(method, seed) students, one or several seeds of one method in one process.
-
-    python -m stages.train --stage 1|2 --method M --seed S [--seed S2 ...] --artifacts artifacts \
-        [--init artifacts/checkpoints/plain/S ...] --out artifacts/checkpoints/M/S [--out ... ]
-
-* Which (M, S) runs exist is params.yaml's ``protocol.runs``; dvc.yaml has a stage for exactly those.
-  ``protocol.seeds_per_stage`` > 1 puts several seeds of a method in one stage (pipeline/orchestration/dag.py): the
-  seeds come as repeated ``--seed``, each with its own ``--out`` (and ``--init``, ``--live-dir``) in the
-  same order.  The artifacts are opened once (:func:`open_method`); each seed's run is then exactly the
-  one a process of its own makes (:func:`train_seed`: seeded, threads set, nothing shared between the
-  runs but the read-only arrays), so its checkpoint is byte-identical either way.
-* ``--init`` is the Stage-I checkpoint for warm-started methods (``geodistill``, ``sdf_*_gated``,
-  ``no_gate``, ``geodistill_adaptive``); methods trained from scratch (``gabi``, ``*_scratch*``,
-  Stage-I methods) ignore it and do not record it in their lineage.
-* Per-epoch resume state lives under ``--resume-dir``/<checkpoint fingerprint> (default
-  ``.cache/train``, outside DVC outs): a killed run continues where it stopped; a finished one reruns
-  instantly.  The fingerprint holds every ``train.*`` key the method reads, the execution knobs
-  ``train.num_threads`` and ``train.precision`` among them, so a changed thread count trains afresh.
-* The epoch rows are also logged with DVCLive into ``--live-dir`` (dvc.yaml: ``reports/dvclive/<M>/<S>``, a
-  git-tracked out; :func:`pipeline.report.dvc_results.write_live_log`): ``dvc plots show reports/dvclive/<M>/<S>/plots/metrics/val_iou.tsv``
-  or any DVCLive-aware viewer reads it.  The checkpoint's log.parquet stays the typed artifact the
-  report and evaluate read.
-* Exit codes: 0 ok; 2 bad input (one line naming the file or parameter); 1 training diverged
-  (non-finite loss; one line, no checkpoint written).
-
-Wiring only: this module opens the artifacts under ``--artifacts``
-(:func:`pipeline.training.inputs.load_inputs`), the
-``--init`` checkpoint (:func:`load_init`) and the resume state
-(:class:`pipeline.training.checkpointing.FileCheckpointer`), and logs the epoch rows
-(:func:`pipeline.report.dvc_results.write_live_log`);
-:func:`pipeline.training.loop.train` gets arrays and a checkpointer.  Reference masks (reference.zarr)
-are opened only for :func:`pipeline.training.loop.validation_data` (checkpoint selection).
-"""
+"""Stage ``train`` (``train_<method>@<seed>``, or ``train_<method>`` for a group of seeds): one or several
+seeds of one method in one process, each run exactly as a process of its own would make it; per-epoch
+resume state under ``--resume-dir``/<fingerprint>.  Exit code 1 when training diverged."""
 
 from __future__ import annotations
 
@@ -71,9 +40,7 @@ def load_init(path: str | Path):
 
 @dataclasses.dataclass(frozen=True)
 class MethodInputs:
-    """What every seed of one method reads, opened once (:func:`open_method`): the checked method, the
-    train params, the arrays (read-only to the runs), the opened artifacts (the lineage; each run copies
-    the list) and the stage's context (its code version)."""
+    """What every seed of one method reads, opened once: method, train params, arrays, lineage, context."""
 
     spec: Any
     stage: int
@@ -85,8 +52,7 @@ class MethodInputs:
 
 
 def open_method(params: dict, stage: int, method: str, artifacts: str) -> MethodInputs:
-    """Check the method against ``--stage`` and the params, then open what its runs read
-    (:func:`pipeline.training.inputs.load_inputs`)."""
+    """Check the method against ``--stage`` and the params, then open what its runs read."""
     cfg = section(params, "train")
     spec = get_method(method)
     if spec.stage != stage:
@@ -110,27 +76,28 @@ def train_seed(m: MethodInputs, params: dict, device: str, seed: int, artifacts:
             raise InputError(f"--init missing: method {method!r} warm-starts from a Stage-I checkpoint")
         init_state, init_art = load_init(init)
         inputs.append(init_art)
+    def meta_of(fp: dict):
+        return m.context.meta("checkpoint", inputs, params={"params": fp, "method": method, "seed": seed,
+                                                            "stage": m.stage}, **m.data.stats)
+
     fp = fingerprint_params(spec, params)
-    meta = m.context.meta("checkpoint", inputs, params={"params": fp, "method": method, "seed": seed,
-                                                        "stage": m.stage}, **m.data.stats)
+    meta = meta_of(fp)
     # the resume folder's key leaves the budget out: a larger train.step_budget continues the same run
-    resume = m.context.meta("checkpoint", inputs, params={
-        "params": {k: v for k, v in fp.items() if k not in training.BUDGET_PARAMS}, "method": method,
-        "seed": seed, "stage": m.stage}, **m.data.stats).fingerprint
-    result = training.train(spec, m.cfg, m.data, m.val, seed, init_state=init_state, device=resolve_device(device),
+    resume = meta_of({k: v for k, v in fp.items() if k not in training.BUDGET_PARAMS}).fingerprint
+    dev = resolve_device(device)
+    result = training.train(spec, m.cfg, m.data, m.val, seed, init_state=init_state, device=dev,
                             checkpointer=FileCheckpointer(Path(resume_dir) / resume),
                             selection_tau=get_path(params, SELECTION_TAU_KEY))
-    meta.extra.update(result.info)  # info["autocast"]: the precision actually used
-    meta.extra["runtime"] = training_runtime(resolve_device(device))  # provenance, not fingerprinted
+    meta.extra.update(result.info)
+    meta.extra["runtime"] = training_runtime(dev)  # provenance, not fingerprinted
     save_checkpoint(out, result.model, meta, result.log, method=method, seed=seed, stage=m.stage,
                     selected_epoch=result.selected_epoch, selection=result.info["selection"],
-                    resolution=int(m.data.images.shape[1]),
-                    mode=result.info["mode"], fingerprint=meta.fingerprint)
+                    resolution=int(m.data.images.shape[1]), mode=result.info["mode"], fingerprint=meta.fingerprint)
     write_live_log(result.log, live_dir or catalog.path("train_live", artifacts, method=method, seed=seed),
                    result.selected_epoch)
     # wall clock beside, not inside, the checkpoint: the checkpoint is byte-identical on a rerun
     write_json(catalog.path("train_timings", artifacts, method=method, seed=seed),
-               {"method": method, "seed": seed, "device": str(resolve_device(device)), "epochs": result.timings})
+               {"method": method, "seed": seed, "device": str(dev), "epochs": result.timings})
     stopped = f", {result.info['steps_run']} steps, stopped at {result.info['stopped']}" \
         if result.info.get("stopped") else ""
     click.echo(f"train: {method} seed {seed}: selected epoch {result.selected_epoch} "
@@ -138,15 +105,12 @@ def train_seed(m: MethodInputs, params: dict, device: str, seed: int, artifacts:
     return Path(out)
 
 
-#: the options given once per ``--seed`` (:func:`per_seed`, :func:`seed_argv`)
 PER_SEED_FLAGS = ("--seed", "--init", "--out", "--live-dir")
 
 
 def seed_argv(argv: list[str], k: int) -> list[str]:
-    """The command line of the ``k``-th seed's run alone: ``argv`` with only the ``k``-th value of each
-    per-seed option (:data:`PER_SEED_FLAGS`).  For dvc.yaml's grouped command this is, word for word,
-    the per-seed stage's command (pipeline/orchestration/dag.py), so the run id each checkpoint records under
-    ``SOURCE_DATE_EPOCH`` -- derived from the command line -- is the one a process of its own records."""
+    """The ``k``-th seed's own command line: its run id, derived from the command line, is then the one a
+    process of its own records."""
     out, seen, i = [], dict.fromkeys(PER_SEED_FLAGS, 0), 0
     while i < len(argv):
         flag, eq, _ = argv[i].partition("=")
@@ -163,8 +127,7 @@ def seed_argv(argv: list[str], k: int) -> list[str]:
 
 
 def per_seed(seeds: tuple[int, ...], flag: str, values: tuple[str, ...], required: bool) -> list[str | None]:
-    """The values of a repeatable per-seed option, one per ``--seed`` in the same order (none given and
-    not ``required``: None for every seed)."""
+    """The values of a per-seed option, one per ``--seed`` (None each when absent and not ``required``)."""
     if not values and not required:
         return [None] * len(seeds)
     if len(values) != len(seeds):
@@ -175,10 +138,7 @@ def per_seed(seeds: tuple[int, ...], flag: str, values: tuple[str, ...], require
 def run_seeds(params: dict, device: str, stage: int, method: str, seeds: tuple[int, ...], artifacts: str,
               inits: tuple[str, ...], outs: tuple[str, ...], resume_dir: str, live_dirs: tuple[str, ...] = ()
               ) -> list[Path]:
-    """Several seeds of one method in this process: the artifacts opened once, then each seed's run as
-    a process of its own would make it (:func:`train_seed`; with several seeds each records the run id
-    of its own command line, :func:`seed_argv` of this process's).  A finished seed's rerun trains no
-    epoch (its resume state), so a stage killed midway retrains only what was left."""
+    """Several seeds of one method in this process, the artifacts opened once."""
     if not seeds:
         raise InputError("--seed missing: give one or more")
     if len(set(seeds)) != len(seeds):
