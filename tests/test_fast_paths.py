@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.deploy.mask_path import mask_path_model
 from pipeline.deploy import benchmark as bench
 from pipeline.deploy.cuda_engine import FastStudent
 from pipeline.metrics import mask_agreement
-from pipeline.deploy.segmenter import load_segmenter, predict_logits_torch, resolve_engine
+from pipeline.deploy.engines import ENGINES, Source
+from pipeline.deploy.segmenter import load_segmenter, resolve_engine
 from pipeline.runtime.errors import InputError
 from pipeline.evaluation.inference import images_to_tensor
 from tests._tiny_deploy import HAS_ONNX, RES, make_checkpoint, tiny_model
@@ -33,8 +33,7 @@ def test_fast_student_cpu_fallback_is_the_torch_engine_bit_for_bit():
     assert fast.precision == "fp32" and not fast.cuda_graphs        # auto on a CPU; graphs are CUDA-only
     images = _images()
     x = images_to_tensor(images)
-    ref_model = mask_path_model(model).to(memory_format=torch.channels_last)
-    ref = predict_logits_torch(ref_model, x, torch.device("cpu"))
+    ref = ENGINES["torch"].load(Source(model, torch.device("cpu"))).run(x).numpy()  # eager, channels_last
     np.testing.assert_array_equal(fast.logits(x).numpy(), ref)
     # uint8 in, conversion "on the device": the same logits
     np.testing.assert_array_equal(fast.logits_uint8(images).numpy(), ref)

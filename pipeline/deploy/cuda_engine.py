@@ -1,26 +1,7 @@
-"""GPU fast path of the deployed mask path (issue 19 item 1): :class:`FastStudent`.
-
-On CUDA, one call of the 0.26 M-parameter TinyUNet at 384^2 is a few hundred small kernels: at batch 1
-the GPU waits on the CPU launching them, and at large batches on memory traffic.  The fast path:
-
-* **CUDA graphs**: the forward pass (and the input normalisation) is captured once per input shape and
-  replayed as one launch; inputs and outputs live in static device buffers.
-* **bf16 autocast + channels_last** (``precision="bf16"``, the default on CUDA): tensor-core
-  convolutions in NHWC; fp32 accumulation and fp32 logits out.  Not bit-exact: the masks are checked
-  against fp32 on the device they run on (``geodistill benchmark``'s ``mIoU fp32`` column,
-  :func:`pipeline.metrics.mask_agreement`).
-* **uint8 host input**: images cross the bus as uint8 NHWC (4x fewer bytes than float32) through a
-  pinned staging buffer (asynchronous copy); the conversion to float [0, 1] NCHW happens on the device,
-  inside the graph (the model's own normalisation follows, as in every other engine).
-* ``compile=True`` additionally wraps the model in ``torch.compile`` (optional: minutes of compilation
-  pay only for long jobs).
-
-CPU fallback (no GPU, and what the tests run): the same class runs eager fp32 channels_last without
-graphs, numerically the engine ``torch`` of pipeline.deploy.segmenter.
-"""
+"""GPU fast path of the mask path: CUDA graphs captured per input shape, bf16 autocast with channels_last,
+uint8 images converted on the device; on a CPU, eager fp32 channels_last (numerically the engine ``torch``)."""
 
 from __future__ import annotations
-
 
 import numpy as np
 
@@ -30,8 +11,7 @@ from pipeline.model import mask_path_model
 
 
 def uint8_to_input(images_u8, channels_last: bool = True):
-    """uint8 [N,H,W,3] tensor (any device) -> float32 [N,3,H,W] in [0, 1] on that device, NHWC-strided
-    when ``channels_last`` (permute only: no copy before the division)."""
+    """uint8 [N,H,W,3] tensor -> float32 [N,3,H,W] in [0, 1] on its device."""
     x = images_u8.permute(0, 3, 1, 2).float().div_(255.0)
     import torch
 
@@ -39,13 +19,8 @@ def uint8_to_input(images_u8, channels_last: bool = True):
 
 
 class FastStudent:
-    """The mask path (a TinyUNet or its mask-path copy) as a fast inference function.
-
-    ``logits(x)``: float32 [N,3,H,W] in [0, 1] (a CPU or device tensor) -> float32 logits tensor
-    [N,1,H,W] on the device.  ``logits_uint8(images)``: uint8 [N,H,W,3] numpy -> the same, with the
-    conversion on the device.  ``precision``: "bf16" | "fp32" | "auto" (bf16 on CUDA, fp32 on CPU);
-    ``cuda_graphs`` (CUDA only, default on) and ``compile`` as in the module docstring.
-    """
+    """The mask path as a fast inference function; ``precision`` auto = bf16 on CUDA, fp32 on a CPU;
+    ``compile``: torch.compile (minutes of compilation: for long jobs)."""
 
     def __init__(self, model, device="cuda", *, precision: str = "auto", cuda_graphs: bool = True,
                  compile: bool = False):
@@ -62,17 +37,14 @@ class FastStudent:
         self._graphs: dict[tuple, tuple] = {}      # shape -> (graph, static input, static output)
         self._pinned: dict[tuple, object] = {}     # shape -> pinned uint8 host buffer
 
-    # -- eager ------------------------------------------------------------------------------------
     def _forward(self, x):
         import torch
 
         with torch.inference_mode(), autocast(self.device, torch.bfloat16 if self.precision == "bf16" else None, cache_enabled=False):
             return self.net(x.contiguous(memory_format=torch.channels_last)).float()
 
-    # -- CUDA graphs ------------------------------------------------------------------------------
     def _graph(self, shape: tuple, uint8: bool):
-        """(graph, static input, static output) for ``shape``, captured on first use (3 warm-up
-        calls on a side stream first, as CUDA graph capture requires)."""
+        """(graph, static input, static output) for ``shape``, captured on first use after 3 warm-up calls."""
         import torch
 
         key = (shape, uint8)
@@ -96,8 +68,7 @@ class FastStudent:
         return self._graphs[key]
 
     def logits(self, x):
-        """float32 [N,3,H,W] in [0, 1] -> logits float32 [N,1,H,W] on the device (a graph's output
-        buffer on CUDA: copy it before the next call with the same shape)."""
+        """float32 [N,3,H,W] in [0, 1] -> logits [N,1,H,W] on the device (on CUDA a graph's output buffer)."""
         x = x.to(self.device, non_blocking=True)
         if not self.cuda_graphs:
             return self._forward(x)
@@ -107,7 +78,7 @@ class FastStudent:
         return static_out
 
     def logits_uint8(self, images: np.ndarray):
-        """uint8 [N,H,W,3] numpy -> logits float32 [N,1,H,W] on the device (module docstring)."""
+        """uint8 [N,H,W,3] numpy -> logits [N,1,H,W] on the device, through a pinned staging buffer."""
         import torch
 
         images = np.ascontiguousarray(images)
@@ -128,7 +99,7 @@ class FastStudent:
         return static_out
 
     def probs_uint8(self, images: np.ndarray, batch_size: int = 64) -> np.ndarray:
-        """P = sigmoid(Z) float32 [N,H,W] for uint8 images [N,H,W,3], in batches."""
+        """P = sigmoid(Z) float32 [N,H,W] of uint8 images [N,H,W,3]."""
         import torch
 
         images = np.asarray(images)

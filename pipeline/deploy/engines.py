@@ -1,21 +1,6 @@
-"""The engine registry: every way this project runs the deployed mask path Z = f(x), once.
-
-An engine is a name -> (what it needs, a loader that returns the runner).  The names and what each
-engine is are the engine table (:data:`pipeline.deploy.engine_table.ENGINE_TABLE`, torch-free); :data:`ENGINES`
-adds each row's loader (:data:`LOADERS`).  :class:`Segmenter` (``segment --engine``,
-pipeline.deploy.segmenter) and the efficiency benchmark (``deploy.benchmark_variants``,
-pipeline.deploy.benchmark) both look their names up in :data:`ENGINES`; the table derives the names
-segment accepts (``SEGMENT_ENGINES``) and the benchmark's variants (``BENCHMARK_VARIANTS``).
-
-A runner takes x float32 [N,3,H,W] RGB in [0, 1] (a CPU tensor) and returns the logits [N,1,H,W] as a
-torch tensor (on the engine's device; a CUDA-graph output buffer is copied, so it survives the next call).
-
-``needs``: ``model`` (the PyTorch mask path: a checkpoint or a bundle), or the bundle file it runs
-(:data:`pipeline.catalog.DEPLOY_BUNDLE`).  ``requires``: why it cannot run here (a missing
-optional package) or None.  ``cpu_only``: runs on the CPU whatever the device (ONNX Runtime,
-OpenVINO); ``cuda_only``: needs a CUDA device; ``bf16``: computes in bf16, so on a CPU without native
-bf16 (:data:`pipeline.runtime.device.BF16_FLAGS`) it is unavailable, decided from the flags without a call.
-"""
+"""The engine registry: each row of :data:`pipeline.deploy.engine_table.ENGINE_TABLE` with its loader,
+shared by the Segmenter and the benchmark.  A runner maps x float32 [N,3,H,W] RGB in [0, 1] (CPU) to
+the logits [N,1,H,W], a torch tensor that survives the next call."""
 
 from __future__ import annotations
 
@@ -39,9 +24,8 @@ from pipeline.model import mask_path_model
 
 @dataclasses.dataclass
 class Source:
-    """What an engine is loaded from: the PyTorch model (CPU; None when only files are used), the
-    device, the working resolution, and the bundle files found (file name -> path, None if absent).
-    ``spinning``: ONNX Runtime's idle threads spin (segment) or sleep (benchmark timing)."""
+    """What an engine loads: the PyTorch model (None when only files are used), the device, the working
+    resolution, the bundle files (name -> path or None); ``spinning``: ONNX Runtime's idle threads spin."""
 
     model: Any
     device: torch.device
@@ -52,7 +36,7 @@ class Source:
 
 @dataclasses.dataclass
 class Runner:
-    """A loaded engine: ``run(x) -> logits`` and what it reports about itself (``info``)."""
+    """A loaded engine: ``run(x) -> logits`` and what it reports about itself."""
 
     run: Callable
     info: dict = dataclasses.field(default_factory=dict)
@@ -60,27 +44,23 @@ class Runner:
 
 @dataclasses.dataclass(frozen=True)
 class Engine:
-    """One registry entry (module docstring)."""
+    """One registry entry; ``needs``: ``model`` or the bundle file it runs."""
 
     description: str
     load: Callable[[Source], Runner]
     needs: str = "model"
-    requires: Callable[[], str | None] = lambda: None  # why it cannot run here, or None
+    requires: Callable[[], str | None] = lambda: None  # why it cannot run here
     cpu_only: bool = False
     cuda_only: bool = False
-    bf16: bool = False  # computes in bf16 (EngineSpec.bf16)
+    bf16: bool = False
 
     def device(self, device: torch.device) -> str:
         """Where it runs for a requested ``device``."""
         return "cpu" if self.cpu_only else device.type
 
 
-# --------------------------------------------------------------------------------------------------
-# Loaders
-# --------------------------------------------------------------------------------------------------
 def _eager(channels_last: bool | str, bf16: bool = False) -> Callable[[Source], Runner]:
-    """PyTorch eager mask path on the source's device; ``channels_last``: True, False or ``"cpu"``
-    (on the CPU only: the layout calibrate ran with); ``bf16``: under bf16 autocast."""
+    """PyTorch eager; ``channels_last``: True, False or ``"cpu"`` (on the CPU only, as calibrate ran)."""
     def load(src: Source) -> Runner:
         dev = src.device
         cl = channels_last is True or (channels_last == "cpu" and dev.type == "cpu")
@@ -100,7 +80,7 @@ def _eager(channels_last: bool | str, bf16: bool = False) -> Callable[[Source], 
 
 
 def _torchscript_frozen(src: Source) -> Runner:
-    """The mask path traced, frozen and (CPU) optimised for inference here (not the bundle's file)."""
+    """The mask path traced, frozen and (CPU) optimised for inference here."""
     dev = src.device
     example = torch.zeros(1, src.model.config["in_channels"], src.resolution, src.resolution, device=dev)
     with torch.no_grad(), warnings.catch_warnings():
@@ -112,7 +92,6 @@ def _torchscript_frozen(src: Source) -> Runner:
 
 
 def _torchscript_file(file: str) -> Callable[[Source], Runner]:
-    """A bundle's TorchScript file on the source's device."""
     def load(src: Source) -> Runner:
         return _eager_module(load_torchscript(src.files[file], src.device), src.device)
     return load
@@ -126,7 +105,6 @@ def _eager_module(module, dev: torch.device) -> Runner:
 
 
 def _fast(precision: str) -> Callable[[Source], Runner]:
-    """pipeline.deploy.cuda_engine.FastStudent (CUDA graphs + channels_last; eager fp32 on a CPU)."""
     def load(src: Source) -> Runner:
         fast = FastStudent(src.model, src.device, precision=precision)
         return Runner(lambda x: fast.logits(x).clone(), {"precision": fast.precision, "cuda_graphs": fast.cuda_graphs})
@@ -134,7 +112,6 @@ def _fast(precision: str) -> Callable[[Source], Runner]:
 
 
 def _onnxruntime(file: str) -> Callable[[Source], Runner]:
-    """ONNX Runtime (CPU, all graph optimisations) on a bundle file."""
     def load(src: Source) -> Runner:
         sess = ort_session(src.files[file], spinning=src.spinning)
 
@@ -145,42 +122,34 @@ def _onnxruntime(file: str) -> Callable[[Source], Runner]:
 
 
 def _openvino(file: str) -> Callable[[Source], Runner]:
-    """OpenVINO's CPU plugin on a bundle file (pipeline.deploy.openvino_engine)."""
     def load(src: Source) -> Runner:
         runner = openvino_engine.OpenVinoRunner(src.files[file])
         return Runner(lambda x: torch.from_numpy(runner(x.cpu().numpy())))
     return load
 
 
-def _runs_anywhere() -> None:
-    return None
-
-
 def _openvino_reason() -> str | None:
     return openvino_engine.openvino_unavailable_reason() or onnx_unavailable_reason()
 
 
-#: the engine table's ``loader`` -> (a factory: (the bundle file it reads or None, **options) -> loader,
-#: why it cannot run here or None)
+#: the engine table's ``loader`` -> (factory(bundle file or None, **options) -> loader, why it cannot run here)
 LOADERS: dict[str, tuple[Callable[..., Callable[[Source], Runner]], Callable[[], str | None]]] = {
-    "eager": (lambda file, **o: _eager(**o), _runs_anywhere),
-    "fast": (lambda file, **o: _fast(**o), _runs_anywhere),
-    "torchscript_file": (_torchscript_file, _runs_anywhere),
-    "torchscript_frozen": (lambda file: _torchscript_frozen, _runs_anywhere),
+    "eager": (lambda file, **o: _eager(**o), lambda: None),
+    "fast": (lambda file, **o: _fast(**o), lambda: None),
+    "torchscript_file": (_torchscript_file, lambda: None),
+    "torchscript_frozen": (lambda file: _torchscript_frozen, lambda: None),
     "onnxruntime": (_onnxruntime, onnx_unavailable_reason),
     "openvino": (_openvino, _openvino_reason),
 }
 
 
 def _engine(spec: EngineSpec) -> Engine:
-    """The registry entry of an engine table row."""
     factory, requires = LOADERS[spec.loader]
     file = None if spec.reads == "weights" else bundle_file(spec.reads)
     return Engine(spec.description, factory(file, **spec.options), needs=file or "model", requires=requires,
                   cpu_only=spec.cpu_only, cuda_only=spec.cuda_only, bf16=spec.bf16)
 
 
-#: name -> engine: segment's engines and the benchmark's variants, one registry (pipeline.deploy.engine_table)
 ENGINES: dict[str, Engine] = {name: _engine(spec) for name, spec in ENGINE_TABLE.items()}
 
 
@@ -189,7 +158,7 @@ def unavailable(name: str, src: Source) -> str | None:
     engine = ENGINES[name]
     if engine.cuda_only and src.device.type != "cuda":
         return "needs a CUDA device (--device cuda)"
-    # decided from the flags, never by a call: emulated bf16 costs up to a minute per 384² image
+    # from the flags, never by a call: emulated bf16 costs up to a minute per 384² image
     if engine.bf16 and engine.device(src.device) == "cpu" and not cpu_supports_bf16():
         return f"bf16 is emulated on this CPU (none of the flags {', '.join(BF16_FLAGS)})"
     reason = engine.requires()

@@ -1,22 +1,5 @@
-"""OpenVINO runtime for the exported ONNX mask path: the CPU fast path of the int8 model.
-
-Why (issue 19 item 5): on the 2-core Xeon (AVX-512 VNNI, AMX) the bundle's static int8 QDQ model
-(``model.int8.onnx``, pipeline.deploy.quantize) runs faster under OpenVINO's CPU plugin than under ONNX
-Runtime -- same file, same quantisation parameters, OpenVINO's low-precision transformations fuse the
-QDQ pairs into int8 convolutions.  Measured by ``geodistill benchmark`` (variant ``openvino_int8``,
-round-robin against the other variants in the same run); the segment engine ``openvino_int8`` runs it.
-
-Decisions:
-
-* Optional dependency (extra ``openvino``): the wheel is ~40 MB and only this fast path uses it; without
-  it the variant is skipped with the reason and the engine is an InputError naming the extra.
-* The model is compiled for a static input shape (OpenVINO plans memory per shape): one compiled model
-  per (batch, height, width) seen, cached on the runner.
-* ``INFERENCE_PRECISION_HINT`` = f32: OpenVINO would otherwise run the float parts in bf16 on AMX CPUs;
-  the int8 model's float parts (the input scaling, the sigmoid-free logits) stay fp32 as in ONNX Runtime.
-* Threads: torch's intra-op count (the same budget as every other variant), one stream, latency hint;
-  no pinning (the machine may be shared).
-"""
+"""OpenVINO's CPU plugin for the bundle's int8 ONNX model (the optional extra ``openvino``): it fuses the QDQ
+pairs into int8 convolutions, faster than ONNX Runtime on the same file."""
 
 from __future__ import annotations
 
@@ -26,7 +9,7 @@ import numpy as np
 
 
 def openvino_unavailable_reason() -> str | None:
-    """None when OpenVINO imports, else a one-line reason naming the extra to install."""
+    """None when OpenVINO imports, else why not (naming the extra)."""
     try:
         import openvino  # noqa: F401
     except Exception:  # noqa: BLE001 -- ImportError or a broken binary wheel
@@ -35,8 +18,7 @@ def openvino_unavailable_reason() -> str | None:
 
 
 class OpenVinoRunner:
-    """``runner(x float32 [B,3,H,W]) -> logits float32 [B,1,H,W]`` for an ONNX file on OpenVINO's CPU
-    plugin (module docstring); compiled once per input shape."""
+    """``runner(x float32 [B,3,H,W]) -> logits [B,1,H,W]``, compiled once per input shape (static shapes)."""
 
     def __init__(self, path: str | Path, threads: int | None = None):
         import openvino as ov
@@ -48,6 +30,7 @@ class OpenVinoRunner:
         self.path = Path(path)
         self.core = ov.Core()
         self.model = self.core.read_model(str(self.path))
+        # torch's thread budget, like every variant; f32 keeps the float parts out of bf16 on AMX CPUs
         self.config = {"INFERENCE_NUM_THREADS": int(threads), "NUM_STREAMS": 1,
                        "PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32",
                        "ENABLE_CPU_PINNING": False}

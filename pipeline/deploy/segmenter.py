@@ -1,17 +1,5 @@
-"""Loading a checkpoint or a deploy bundle for inference: :class:`Segmenter` and its engines.
-
-Decision (the paper is silent on deployment formats): engines (segment ``--engine``; one registry with
-the benchmark, pipeline.deploy.engines): ``torch`` (the weights of a checkpoint or a bundle), ``cuda``
-(the same weights: the GPU fast path), ``torchscript``, ``onnxruntime_fp32``, ``onnxruntime_int8`` and
-``openvino_int8`` (bundle only; old names: :data:`pipeline.deploy.engine_table.ENGINE_ALIASES`); ``auto`` =
-onnxruntime_fp32 when the bundle holds model.onnx and onnxruntime imports, else torch -- exact engines
-only -- and ``cuda`` on a CUDA device (:func:`resolve_engine`).
-Every engine receives the same preprocessed tensor and the same tau; only the function Z = f(x)
-differs.
-
-Per-frame confidence: :func:`pipeline.deploy.confidence.frame_confidence` (``score`` and
-``predict(..., return_score=True)``).
-"""
+"""A checkpoint or a deploy bundle loaded for inference with one engine: :class:`Segmenter`.  Every engine
+receives the same preprocessed tensor and the same tau; only Z = f(x) differs."""
 
 from __future__ import annotations
 
@@ -22,7 +10,7 @@ from typing import Callable
 import numpy as np
 
 from pipeline.datasets.loading import check_bit_depth, pixel_limit, probs_to_size, read_rgb, resize_image, to_rgb8
-from pipeline.deploy.confidence import CONFIDENCE_BAND, confidence_rank_check, frame_confidence  # noqa: F401
+from pipeline.deploy.confidence import confidence_rank_check, frame_confidence  # noqa: F401
 from pipeline.deploy.bundle import INT8_FILE, ONNX_FILE, checkpoint_resolution, is_deploy_bundle, read_deploy_info
 from pipeline.deploy.engines import ENGINES, Source
 from pipeline.deploy.mask_path import onnx_unavailable_reason
@@ -35,28 +23,22 @@ from pipeline.thresholds import mask_from_probs, resolve_resolution, resolve_tau
 
 @dataclasses.dataclass
 class Segmenter:
-    """A loaded mask path: ``predict_probs(images uint8 [N,R,R,3]) -> P float32 [N,R,R]``.
-
-    ``engine`` is what computes Z = f(x) (module docstring)."""
+    """A loaded mask path: ``predict_probs(images uint8 [N,R,R,3]) -> P float32 [N,R,R]``; frames are read
+    and resized as the model's training images were (``bit_depth``, ``letterbox``)."""
 
     engine: str
     resolution: int | None
-    taus: dict  # tau candidates of the model (pipeline.thresholds.tau_candidates): {source: (tau, text)}
+    taus: dict  # {source: (tau, text)}: pipeline.thresholds.tau_candidates
     predict_logits: Callable  # float32 tensor [N,3,R,R] -> numpy float32 [N,1,R,R]
     info: dict
-    tau: float | None = None  # the tau :meth:`predict` binarises with (set by :meth:`from_bundle`)
+    tau: float | None = None  # what predict binarises with (set by from_bundle)
     tau_source: str = ""
-    #: image files above this many pixels are refused on their header before decoding (None:
-    #: ``data.max_pixels``'s default; :func:`pipeline.datasets.loading.read_rgb`)
-    max_pixels: int | None = None
-    #: how frames are read and resized, as the model's training images were (params ``data.bit_depth`` and
-    #: ``data.letterbox``; a bundle records both, :meth:`from_bundle`): 16-bit frames' stated bit depth
-    #: (:func:`pipeline.datasets.loading.scale_16bit`), and squash (False, the paper) or letterbox
+    max_pixels: int | None = None  # larger image files are refused on their header (None: data.max_pixels)
     bit_depth: str | int = "auto"
     letterbox: bool = False
 
     def __repr__(self) -> str:
-        """One short line (the dataclass default would print the whole deploy.json in ``info``)."""
+        """One short line, without the deploy.json in ``info``."""
         tau = "unset" if self.tau is None else f"{self.tau:.4g}"
         return f"Segmenter(engine={self.engine!r}, resolution={self.resolution}, tau={tau})"
 
@@ -64,56 +46,45 @@ class Segmenter:
     def from_bundle(cls, path: str | Path, *, engine: str = "auto", device="cpu", tau: float | None = None,
                     resolution: int | None = None, max_pixels: int | None = None, bit_depth=None,
                     letterbox: bool | None = None) -> "Segmenter":
-        """A segmenter for notebooks: a deploy bundle (``geodistill export`` / ``distill``) or a
-        checkpoint directory (image files above ``max_pixels`` pixels are refused on their header; None =
-        ``data.max_pixels``'s default), with its tau resolved once (:func:`pipeline.thresholds.resolve_tau`:
-        ``tau`` > the bundle's > the checkpoint's > ``calibrate.fixed_tau`` 0.5 with a warning).
-        ``bit_depth`` (auto, 10, 12, 14, 16) and ``letterbox`` default to what the bundle records
-        (its ``frames``; a checkpoint or an older bundle: auto and squash).
+        """A segmenter for notebooks from a deploy bundle or a checkpoint directory, tau resolved once
+        (``tau`` > the bundle's > the checkpoint's > ``calibrate.fixed_tau`` with a warning); ``bit_depth``
+        and ``letterbox`` default to what the bundle records.
 
         >>> seg = Segmenter.from_bundle("out/artifacts/deploy")          # doctest: +SKIP
         >>> mask = seg.predict("image.png")  # bool [H, W] at the image's own size   # doctest: +SKIP
         """
         seg = load_segmenter(path, engine, device, params=PAPER.model_dump())
         seg.max_pixels = pixel_limit(max_pixels)
-        frames = seg.info.get("frames") or {}
-        seg.bit_depth = check_bit_depth(frames.get("bit_depth", "auto") if bit_depth is None else bit_depth)
-        seg.letterbox = bool(frames.get("letterbox", False) if letterbox is None else letterbox)
+        seg.bit_depth = check_bit_depth(seg.bit_depth if bit_depth is None else bit_depth)
+        seg.letterbox = seg.letterbox if letterbox is None else bool(letterbox)
         seg.tau, seg.tau_source = seg.resolve_tau(option=tau)
         seg.resolution, _ = resolve_resolution(option=(resolution, "resolution="), recorded=(seg.resolution, str(path)),
                                                missing=f"{path}: no working resolution recorded; pass resolution=...")
         return seg
 
     def probabilities(self, image) -> np.ndarray:
-        """P float32 [H,W] in [0,1] at the ORIGINAL size of ``image``: a file path, or an array of any
-        size -- grey [H,W] / [H,W,1], RGB [H,W,3], RGBA [H,W,4] (alpha dropped); uint8, uint16 (/257),
-        other integers (clipped to 0..255) or float in [0,1] -- read by the dataset loader's rules
-        (:func:`pipeline.datasets.loading.to_rgb8`, 16-bit under :attr:`bit_depth`), resized to the
-        working resolution like the training images (area; :attr:`letterbox`: padded to a square first),
-        P resized back bilinearly (:func:`pipeline.datasets.loading.probs_to_size`, the pad cropped)."""
+        """P float32 [H,W] at the original size of ``image``: a file path or an array (grey, RGB or RGBA; uint8,
+        uint16, other integers or float in [0, 1]) read by the dataset loader's rules, P resized back bilinearly."""
         probs, (h, w) = self.working_probabilities(image)
         return probs_to_size(probs, h, w, self.letterbox)
 
     def working_probabilities(self, image) -> tuple[np.ndarray, tuple[int, int]]:
-        """(P float32 [R,R] at the working resolution, the frame's (height, width)): :meth:`probabilities`
-        before the way back."""
+        """(P float32 [R,R] at the working resolution, the frame's (height, width))."""
         if self.resolution is None:
             raise InputError("Segmenter: no working resolution; set .resolution or use Segmenter.from_bundle")
         if isinstance(image, (str, Path)):
             rgb = read_rgb(image, max_pixels=self.max_pixels, bit_depth=self.bit_depth)
         else:
             arr = np.asarray(image)
-            if arr.ndim == 3 and arr.shape[2] in (3, 4):  # RGB(A) -> the BGR(A) order to_rgb8 takes from OpenCV
+            if arr.ndim == 3 and arr.shape[2] in (3, 4):  # to_rgb8 takes OpenCV's BGR(A) order
                 arr = arr[..., [2, 1, 0, 3][:arr.shape[2]]]
             rgb = to_rgb8(arr, bit_depth=self.bit_depth)
         probs = self.predict_probs(resize_image(rgb, self.resolution, self.letterbox)[None], batch_size=1)[0]
         return probs, rgb.shape[:2]
 
     def predict(self, image, *, return_score: bool = False):
-        """The spacecraft mask M = [P >= tau] (eq:inference-mask), bool [H,W] at the ORIGINAL size of
-        ``image`` (a path or an array, see :meth:`probabilities`); for a list or tuple of images, the
-        list of their masks.  ``return_score``: ``(mask, score)`` (a list of them for a list) with the
-        frame's confidence in [0, 1] (:func:`frame_confidence`, module docstring; low = don't trust it)."""
+        """M = [P >= tau] (eq:inference-mask), bool [H,W] at the original size of ``image`` (a list for a list);
+        ``return_score``: ``(mask, frame confidence)``."""
         tau = self._tau()
         if isinstance(image, (list, tuple)):
             return [self.predict(one, return_score=return_score) for one in image]
@@ -122,7 +93,7 @@ class Segmenter:
         return (mask, frame_confidence(probs, tau)) if return_score else mask
 
     def score(self, image) -> float:
-        """The frame's confidence in [0, 1] (:func:`frame_confidence`; low = don't trust this frame)."""
+        """The frame's confidence in [0, 1] (:func:`frame_confidence`)."""
         return frame_confidence(self.working_probabilities(image)[0], self._tau())
 
     def _tau(self) -> float:
@@ -131,8 +102,7 @@ class Segmenter:
         return self.tau
 
     def resolve_tau(self, option=None) -> tuple[float, str]:
-        """(tau, source) by :func:`pipeline.thresholds.resolve_tau` over ``option`` (--tau) and the
-        model's candidates (:attr:`taus`, calibrated and fixed)."""
+        """(tau, source) over ``option`` (--tau) and the model's candidates."""
         return resolve_tau(option=option, **self.taus)
 
     def predict_probs(self, images: np.ndarray, batch_size: int = 8) -> np.ndarray:
@@ -145,19 +115,9 @@ class Segmenter:
 
 
 def resolve_engine(path: str | Path, engine: str, device=None) -> str:
-    """The engine ``auto`` stands for (module docstring), or ``engine`` (an old name: its new one) after validation.
-
-    auto: bundle -> onnxruntime_fp32 when model.onnx exists and onnxruntime imports, else torch; checkpoint
-    directory -> torch (the only engine a checkpoint supports: anything else is an InputError naming
-    --engine).  Decision: ``auto`` only picks engines whose masks are identical to PyTorch's; int8 is
-    about 3x faster than ONNX fp32 but not exact (reduced synthetic protocol: validation Image IoU
-    +0.002, yet a mean per-image IoU of 0.97 between its masks and fp32's), so it must be asked for
-    with ``--engine onnxruntime_int8`` after checking ``geodistill benchmark``'s IoU columns on your data.
-    ``openvino_int8`` is the same int8 file on OpenVINO (pipeline.deploy.openvino_engine).  On a CUDA
-    ``device``, ``auto`` = ``cuda`` (pipeline.deploy.cuda_engine: bf16 + channels_last + CUDA graphs):
-    on a GPU no engine reproduces the CPU's fp32 masks bit for bit anyway, and its masks are checked
-    against fp32 on the GPU (benchmark's ``mIoU fp32``); ``--engine torch`` stays the fp32 reference.
-    """
+    """``engine`` validated (an old name: its new one), or what ``auto`` stands for: ``cuda`` on a CUDA device,
+    else onnxruntime_fp32 for a bundle with model.onnx and onnxruntime, else torch -- engines whose masks
+    are PyTorch's, never int8 (docs/performance.md)."""
     path = Path(path)
     engine = engine_name(engine)
     if engine not in ENGINE_CHOICES:
@@ -181,17 +141,9 @@ def resolve_engine(path: str | Path, engine: str, device=None) -> str:
 
 def load_segmenter(path: str | Path, engine: str = AUTO, device="cpu", thresholds: str | Path | None = None,
                    params: dict | None = None) -> Segmenter:
-    """Open a checkpoint directory or a deploy bundle for inference with one engine.
-
-    ``engine``: ``auto`` (:func:`resolve_engine`) or a name of :data:`pipeline.deploy.engine_table.SEGMENT_ENGINES`
-    (the registry says what each runs).  tau candidates (``Segmenter.taus``, resolved
-    by :meth:`Segmenter.resolve_tau`): :func:`pipeline.thresholds.tau_candidates` -- deploy.json's tau for
-    a bundle; for a checkpoint its payload's tau, else its (method, seed) row in ``thresholds`` (a
-    thresholds.parquet); and ``calibrate.fixed_tau`` of ``params`` (None: no fixed tau).  The resolution comes
-    from deploy.json, or the checkpoint's payload (``payload["resolution"]``) or metadata -- the size the
-    model was trained at; it stays None when none is recorded, and segment then asks for
-    ``--resolution`` rather than guessing one.  ONNX engines run on the CPU.
-    """
+    """A checkpoint directory or a deploy bundle opened with one engine (:func:`resolve_engine`); tau candidates
+    by :func:`pipeline.thresholds.tau_candidates` (``thresholds``: a checkpoint's table; ``params``: the fixed
+    tau); the resolution recorded with the model, else None (never guessed)."""
     import torch
 
     path = Path(path)
@@ -221,19 +173,7 @@ def load_segmenter(path: str | Path, engine: str = AUTO, device="cpu", threshold
 
     def run(x):
         return runner.run(x).float().cpu().numpy()
-    frames = info.get("frames") or {}  # read frames as the model's training images were (segment and from_bundle)
+    frames = info.get("frames") or {}
     return Segmenter(engine, resolution, taus, run, {**info, **runner.info},
                      bit_depth=check_bit_depth(frames.get("bit_depth", "auto")),
                      letterbox=bool(frames.get("letterbox", False)))
-
-
-def predict_logits_torch(model, x, device) -> np.ndarray:
-    """fp32 logits of a PyTorch TinyUNet; on CPU the input goes channels_last (as in
-    pipeline.evaluation.inference.predict_probs, which calibrate uses), the model is converted by the caller."""
-    import torch
-
-    with torch.inference_mode():
-        x = x.to(device)
-        if device.type == "cpu":
-            x = x.contiguous(memory_format=torch.channels_last)
-        return model(x).float().cpu().numpy()
