@@ -1,62 +1,10 @@
 """One image/mask loader for every source, with a content-addressed decode cache.
 
-``read_rgb(path)``
-    Any supported file (png, jpg/jpeg, tif/tiff, bmp) -> RGB uint8 [H, W, 3] at native size.
-    Grey is replicated to three channels; RGBA drops alpha (spacecraft imagery has no meaningful
-    transparency; compositing on black would equal dropping it for premultiplied black
-    backgrounds); 16-bit is scaled to 8-bit by :func:`scale_16bit` under the stated bit depth
-    (``bit_depth``); float images are taken as [0, 1] and clipped.  OpenCV decodes BGR, so channels are reversed.
-    Raises :class:`InputError` naming the file for a missing, zero-byte, corrupt or unsupported file,
-    a broken symbolic link or a directory.
-
-The pixel limit (every reader below, ``max_pixels``; params ``data.max_pixels``, default
-:data:`DEFAULT_MAX_PIXELS` = 2**26, an 8192 x 8192 image)
-    Width and height are read from the file header (:func:`pipeline.datasets.image_header.header_size`)
-    before anything is decoded or looked up in the cache; above ``max_pixels`` the file is a bad file
-    (:class:`BadFileError` naming it, its size and the option), so a few-megabyte PNG whose header
-    declares 30,000 x 30,000 pixels never reaches the decoder.  Bytes that carry no PNG, JPEG, TIFF or
-    BMP header are "corrupt or undecodable" before decoding too.
-
-Bit depth (params ``data.bit_depth``; every reader below takes ``bit_depth``, the one helper is
-:func:`scale_16bit`)
-    ``auto`` (the default) takes a 16-bit file as full range: rounding ``v / 257`` (the exact
-    65535 -> 255 map).  A sensor of 10, 12 or 14 bits stored in 16-bit files fills only the low bits, and
-    its frames come out nearly black that way: under ``auto`` a 16-bit frame whose brightest value is
-    below 1/8 of the range (< 8192) gets one warning per file naming it and the option.  ``bit_depth`` =
-    10/12/14/16 maps ``v * 255 / (2**bits - 1)`` (rounded; values above ``2**bits - 1`` clip to 255, with
-    one warning per file).  8-bit and float files are not affected.
-
-Aspect ratio (params ``data.letterbox``; ``letterbox=`` of the resizers below)
-    False (the paper): every frame is squashed to the square working resolution.  True: the frame is
-    first padded with black to a square (centred: :func:`letterbox_box`), then resized; the way back
-    (:func:`probs_to_size`) samples only working pixels that hold some of the frame and crops the pad, so
-    a prediction comes back at the frame's own size and the pad never reaches it.
-
-``read_mask(path, threshold)``
-    Any mask file -> bool [H, W].  THE rule (this module is the only place a mask file is binarised:
-    the dataset adapters and the imported teacher all come here): foreground = max over channels
-    > ``threshold``, and the default ``threshold=None`` means **foreground = value > 0** -- 0/1,
-    0/255 and 0/65535 masks, float probability masks and multi-valued label masks (0 = background,
-    1..K = classes or instances) alike.  A multi-valued mask (non-zero pixels with more than one
-    value, e.g. labels 0..3 or an anti-aliased 0..255 edge) gets one warning naming the file, since
-    "value > 0" may not be what its author meant; a protocol that knows better sets an explicit
-    ``mask_threshold`` (SPEED+ 128, TANGO 127), which is used as given without a warning.
-
-``parts_from_colors(rgb, table)`` (colour-coded part masks: SpaceSense-Bench, SPARK)
-    Each pixel takes the label of the :class:`ColorTable` colour it matches within the table's
-    tolerance (black = background); with ``blends`` a JPEG blend of two table colours takes the nearer
-    one's.  A colour outside the table refuses the file (:class:`BadFileError`, so ``--skip-bad``
-    leaves it out), never silently background.
-
-``load_rgb / load_mask / load_labels`` (the pipeline's entry points)
-    Read the file bytes once, hash them (sha256), and return the array resized to the working
-    resolution -- area interpolation for images, nearest for masks and labels -- through a decode
-    cache keyed by ``(sha256, kind, resolution)`` under ``.cache/decode/`` so no stage decodes the
-    same file twice.  Cache entries are ``.npz`` files (array + native height/width + their own key +
-    the mask warning, if any) written to a temp name then renamed (atomic; survive a kill); they are
-    read with ``allow_pickle=False``, and an unreadable entry, or one whose stored key is not the key
-    asked for (e.g. a file copied over another), is treated as a miss and rewritten.
-"""
+Images come out RGB uint8 (grey replicated, alpha dropped, 16-bit scaled under ``bit_depth``), masks
+bool by the one rule ``foreground = value > 0`` unless a protocol sets a threshold; the header's size is
+checked against ``max_pixels`` before anything is decoded or looked up (docs/real-data.md, docs/own-data.md).
+:func:`load_rgb` / :func:`load_mask` / :func:`load_labels` hash the bytes and resize to the working
+resolution through a :class:`DecodeCache` keyed by (sha256, kind, resolution)."""
 
 from __future__ import annotations
 
@@ -85,11 +33,8 @@ UNDECODABLE = "corrupt or undecodable image"
 
 
 class BadFileError(InputError):
-    """A file that cannot be used (missing, zero-byte, corrupt, unsupported, too large, size mismatch).
-
-    ``.path`` names it and ``.reason`` says why in words that name no option (what the skipped-file
-    listings hold); ``fix`` is a template naming the ``options`` that would let the file in, spelled
-    in the caller's terms (:class:`pipeline.runtime.errors.InputError`): ``{path}: {reason} ({fix})``."""
+    """A file that cannot be used: ``{path}: {reason} ({fix})``; ``reason`` names no option (the
+    skipped-file listings hold it), ``fix`` names the ``options`` that would let the file in."""
 
     def __init__(self, path: str | Path, reason: str, fix: str = "", *options: Option):
         self.path = str(path)
@@ -102,9 +47,6 @@ class BadFileError(InputError):
         return type(self), (self.path, self.reason, self.fix, *self.options)
 
 
-# ---------------------------------------------------------------------------------------------------
-# Decoding (no resizing, no cache)
-# ---------------------------------------------------------------------------------------------------
 def broken_link_reason(p: Path) -> str:
     """The one wording of a broken symbolic link (the folder scan and the decode pass say the same)."""
     try:
@@ -135,8 +77,7 @@ def read_bytes(path: str | Path) -> bytes:
 
 
 def pixel_limit(max_pixels: int | None = None) -> int:
-    """``max_pixels`` checked (a whole number >= 1; InputError naming the option in the caller's terms),
-    or :data:`DEFAULT_MAX_PIXELS` when None."""
+    """``max_pixels`` checked (a whole number >= 1), or :data:`DEFAULT_MAX_PIXELS` when None."""
     if max_pixels is None:
         return DEFAULT_MAX_PIXELS
     if isinstance(max_pixels, bool) or not isinstance(max_pixels, (int, np.integer)) or max_pixels < 1:
@@ -146,9 +87,8 @@ def pixel_limit(max_pixels: int | None = None) -> int:
 
 
 def check_header(data: bytes, path: str | Path, max_pixels: int | None = None) -> tuple[int, int]:
-    """``(width, height)`` from the file header (:func:`pipeline.datasets.image_header.header_size`),
-    before any decoding; :class:`BadFileError` when there is no PNG/JPEG/TIFF/BMP header or the image
-    is above ``max_pixels`` (None: :data:`DEFAULT_MAX_PIXELS`)."""
+    """``(width, height)`` from the file header; :class:`BadFileError` when there is none or the image
+    is above ``max_pixels``."""
     limit = pixel_limit(max_pixels)
     size = header_size(data)
     if size is None:
@@ -174,19 +114,15 @@ def _decode(data: bytes, path: str | Path) -> np.ndarray:
     return arr
 
 
-#: under ``bit_depth="auto"``, a 16-bit frame whose brightest value is below this (1/8 of the range) is
-#: warned about: it is most likely a 10-14-bit sensor's frame, which full range makes nearly black
+#: under ``auto``, a 16-bit frame darker than this is most likely a 10-14-bit sensor's: warned about
 LOW_RANGE_16BIT = 1 << 13
-#: where a bit-depth note names the option: spelled for the caller when warned (:func:`warn_frame_once`:
-#: ``--bit-depth 12`` on the command line, ``bit_depth=12`` in Python), so the decode cache keeps one text
+#: spelled for the caller when warned, so the decode cache keeps one text
 BIT_DEPTH_HINT = "<bit depth option>"
-#: the start of the note of a frame that uses under 1/8 of the 16-bit range (warned once per run)
 LOW_RANGE_NOTE = "16-bit frame whose brightest value is"
 
 
 def check_bit_depth(bit_depth) -> str | int:
-    """``bit_depth`` checked against :data:`pipeline.params.BIT_DEPTHS` (params validate ``data.bit_depth``
-    on load; this guards the Python API's ``bit_depth=``)."""
+    """``bit_depth`` checked against :data:`pipeline.params.BIT_DEPTHS` (the Python API's ``bit_depth=``)."""
     if not isinstance(bit_depth, bool) and bit_depth in BIT_DEPTHS:
         return bit_depth
     raise InputError(f"{{}}: expected one of {', '.join(map(str, BIT_DEPTHS))} (bits of a "
@@ -194,10 +130,8 @@ def check_bit_depth(bit_depth) -> str | int:
 
 
 def scale_16bit(arr: np.ndarray, bit_depth="auto") -> tuple[np.ndarray, str | None]:
-    """``(uint8 array, note)`` of a uint16 array under the stated ``bit_depth`` (module docstring):
-    ``auto``/16 = ``round(v / 257)``; 10/12/14 = ``round(min(v, 2**bits - 1) * 255 / (2**bits - 1))``.
-    ``note`` (None when there is nothing to say) is the warning's text: a frame under 1/8 of the range
-    under ``auto``, or values above the stated depth."""
+    """``(uint8 array, warning or None)`` of a uint16 array: ``auto``/16 = ``round(v / 257)``;
+    10/12/14 = ``round(min(v, 2**bits - 1) * 255 / (2**bits - 1))``."""
     bit_depth = check_bit_depth(bit_depth)
     peak = int(arr.max()) if arr.size else 0
     if bit_depth in (AUTO_BIT_DEPTH, 16):
@@ -217,8 +151,8 @@ def scale_16bit(arr: np.ndarray, bit_depth="auto") -> tuple[np.ndarray, str | No
 
 
 def rgb8_and_note(arr: np.ndarray, path: str | Path = "<array>", bit_depth="auto") -> tuple[np.ndarray, str | None]:
-    """:func:`to_rgb8` without its warning: ``(RGB uint8 [H, W, 3], note or None)`` (the decode cache
-    keeps the note with the entry, so a cached frame is warned about too)."""
+    """:func:`to_rgb8` without its warning: ``(RGB uint8 [H, W, 3], note or None)``; the decode cache
+    keeps the note, so a cached frame is warned about too."""
     note = None
     if arr.dtype == np.uint8:
         a8 = arr
@@ -245,17 +179,14 @@ def rgb8_and_note(arr: np.ndarray, path: str | Path = "<array>", bit_depth="auto
 
 
 def to_rgb8(arr: np.ndarray, path: str | Path = "<array>", bit_depth="auto") -> np.ndarray:
-    """Decoded OpenCV array (grey, BGR, BGRA; 8/16-bit or float) -> RGB uint8 [H, W, 3]; a 16-bit array
-    by :func:`scale_16bit` under ``bit_depth`` (its note warned once per ``path``)."""
+    """Decoded OpenCV array (grey, BGR, BGRA; 8/16-bit or float) -> RGB uint8 [H, W, 3]."""
     rgb, note = rgb8_and_note(arr, path, bit_depth)
     warn_frame_once(path, note)
     return rgb
 
 
 def read_rgb(path: str | Path, *, max_pixels: int | None = None, bit_depth="auto") -> np.ndarray:
-    """Read any supported image file as RGB uint8 [H, W, 3] at native size (see module docstring);
-    refused before decoding above ``max_pixels`` (None: :data:`DEFAULT_MAX_PIXELS`); 16-bit files under
-    ``bit_depth`` (``data.bit_depth``)."""
+    """Any supported image file as RGB uint8 [H, W, 3] at native size."""
     return to_rgb8(_decode(read_image_bytes(path, max_pixels), path), path, bit_depth)
 
 
@@ -264,10 +195,8 @@ _warned_frames: set[tuple[str, str]] = set()
 
 
 def warn_frame_once(path: str | Path, note: str | None) -> None:
-    """The one warning per (file, note) about how a frame's pixel values were read -- the file by its
-    absolute path, so a run reading it by two spellings warns once; a frame under 1/8 of the 16-bit range
-    (no bit depth stated) once per run (:func:`reset_frame_warnings`).  The option is named in the
-    caller's terms (:data:`BIT_DEPTH_HINT`)."""
+    """The one warning per (absolute file path, note) about how a frame's values were read; a dark
+    16-bit frame's once per run (:func:`reset_frame_warnings`)."""
     if not note:
         return
     key = ("", LOW_RANGE_NOTE) if note.startswith(LOW_RANGE_NOTE) else (os.path.abspath(path), note)
@@ -279,7 +208,7 @@ def warn_frame_once(path: str | Path, note: str | None) -> None:
 
 
 def reset_frame_warnings() -> None:
-    """A new run (label, segment): its frames are warned about again (:func:`warn_frame_once`)."""
+    """A new run's frames are warned about again."""
     _warned_frames.clear()
 
 
@@ -302,8 +231,8 @@ def warn_mask_once(path: str | Path, note: str | None) -> None:
 
 
 def binarize_mask(arr: np.ndarray, threshold: float | None = None) -> tuple[np.ndarray, str | None]:
-    """``(bool mask, note)``: foreground = max over channels > ``threshold`` (None: > 0, see module
-    docstring); ``note`` describes a multi-valued mask under the default rule, else None."""
+    """``(bool mask, note)``: foreground = max over channels > ``threshold`` (None: > 0); ``note``
+    describes a multi-valued mask under the default rule."""
     a = arr.max(axis=2) if arr.ndim == 3 else arr
     if threshold is None:
         return a > 0, multi_valued_note(a)
@@ -311,8 +240,7 @@ def binarize_mask(arr: np.ndarray, threshold: float | None = None) -> tuple[np.n
 
 
 def mask_from_array(arr: np.ndarray, threshold: float | None = None, path: str | Path | None = None) -> np.ndarray:
-    """Foreground = max over channels > ``threshold``; ``None`` = value > 0 (warns once per ``path``
-    for a multi-valued mask)."""
+    """:func:`binarize_mask`, warning once per ``path`` about a multi-valued mask."""
     mask, note = binarize_mask(arr, threshold)
     if path is not None:
         warn_mask_once(path, note)
@@ -320,8 +248,7 @@ def mask_from_array(arr: np.ndarray, threshold: float | None = None, path: str |
 
 
 def read_mask(path: str | Path, threshold: float | None = None, *, max_pixels: int | None = None) -> np.ndarray:
-    """Read a mask file as bool [H, W] at native size; InputError naming the file on bad input (and
-    above ``max_pixels``, before decoding)."""
+    """A mask file as bool [H, W] at native size."""
     return mask_from_array(_decode(read_image_bytes(path, max_pixels), path), threshold, path)
 
 
@@ -331,16 +258,10 @@ BACKGROUND_RGB = (0, 0, 0)
 
 @dataclasses.dataclass(frozen=True)
 class ColorTable:
-    """A colour-coded part mask's class table: ``colors`` ``{(r, g, b): label}`` (RGB), with black
-    (:data:`BACKGROUND_RGB`) = background (label 0) unless listed.
+    """A colour-coded part mask's class table ``{(r, g, b): label}``, black = background unless listed.
 
-    ``tolerance``: a pixel takes a colour's label when every channel is within ``tolerance`` of it
-    (0: exact colours, for PNG masks; JPEG masks need more).  ``blends``: a pixel matching no colour
-    that lies within ``tolerance`` (every channel) of the straight line between two table colours --
-    what JPEG's chroma subsampling and ringing make of a boundary between two classes -- takes the
-    label of the nearer of the two.  Any other pixel is a colour outside the class table: the file is
-    refused (:func:`parts_from_colors`).  The adapters check that no two colours are within
-    ``2 * tolerance`` of each other, so a pixel never matches two."""
+    ``tolerance``: per channel, for a pixel to take a colour; ``blends``: a pixel within ``tolerance`` of
+    the line between two colours (a JPEG boundary between two classes) takes the nearer one's label."""
 
     colors: dict
     tolerance: int = 0
@@ -353,8 +274,7 @@ class ColorTable:
         return {BACKGROUND_RGB: 0, **{tuple(int(v) for v in k): int(lbl) for k, lbl in self.colors.items()}}
 
     def kind(self) -> str:
-        """Decode-cache kind: the table, its tolerance and the rule (entries made under the former rule,
-        which made unknown colours background, are never read)."""
+        """Decode-cache kind: the table, its tolerance and the rule ("refuse-unknown")."""
         key = repr((sorted(self.entries().items()), int(self.tolerance), bool(self.blends), "refuse-unknown"))
         return f"parts{hashlib.sha256(key.encode()).hexdigest()[:10]}"
 
@@ -364,10 +284,8 @@ def as_color_table(colors: dict | ColorTable) -> ColorTable:
 
 
 def parts_from_colors(rgb: np.ndarray, colors: dict | ColorTable, path: str | Path = "<array>") -> np.ndarray:
-    """Colour-coded part mask (RGB uint8) -> part labels uint8 by the :class:`ColorTable` (a plain
-    dict: exact colours).  A pixel matching no colour (nor, with ``blends``, a blend of two) is a
-    colour outside the class table: :class:`BadFileError` naming ``path`` and the most frequent such
-    colour, never silently background."""
+    """Colour-coded part mask (RGB uint8) -> part labels uint8 by the table (a dict: exact colours); a
+    colour outside it is a :class:`BadFileError` naming the most frequent one."""
     table = as_color_table(colors)
     entries = table.entries()
     cols = np.array(list(entries), np.int32)                               # K, 3
@@ -401,19 +319,14 @@ def parts_from_colors(rgb: np.ndarray, colors: dict | ColorTable, path: str | Pa
     return ulab[inverse].reshape(rgb.shape[:2])
 
 
-# ---------------------------------------------------------------------------------------------------
-# Resizing
-# ---------------------------------------------------------------------------------------------------
 def letterbox_box(height: int, width: int) -> tuple[int, int, int]:
-    """``(side, top, left)``: a [height, width] frame padded to the square ``side = max(height, width)``
-    sits at rows ``top:top + height`` and columns ``left:left + width`` (centred, the odd pixel of pad
-    below / right)."""
+    """``(side, top, left)`` of a frame centred in its padded square (the odd pixel of pad below / right)."""
     side = max(int(height), int(width))
     return side, (side - int(height)) // 2, (side - int(width)) // 2
 
 
 def pad_to_square(img: np.ndarray) -> np.ndarray:
-    """``img`` [H, W, ...] padded with zeros (black; background) to [side, side, ...] (:func:`letterbox_box`)."""
+    """``img`` [H, W, ...] padded with zeros to its square (:func:`letterbox_box`)."""
     side, top, left = letterbox_box(*img.shape[:2])
     if img.shape[0] == img.shape[1]:
         return img
@@ -422,8 +335,7 @@ def pad_to_square(img: np.ndarray) -> np.ndarray:
 
 
 def resize_image(img: np.ndarray, size: int, letterbox: bool = False) -> np.ndarray:
-    """Square working resolution, area interpolation (the paper resizes every image to 384 x 384);
-    ``letterbox``: padded to a square with black first (:func:`pad_to_square`)."""
+    """Square working resolution, area interpolation; ``letterbox``: padded to a square first."""
     if letterbox:
         img = pad_to_square(img)
     if img.shape[0] == size and img.shape[1] == size:
@@ -432,9 +344,8 @@ def resize_image(img: np.ndarray, size: int, letterbox: bool = False) -> np.ndar
 
 
 def _frame_samples(n: int, offset: int, side: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Bilinear taps along one axis from a frame's ``n`` pixels (at ``offset`` in the padded square of
-    ``side``) into the working grid of ``size``: ``(i0, i1, weight of i1)``.  Sample positions are
-    clamped to the working pixels that hold some of the frame, so no tap lands on pure pad."""
+    """Bilinear taps ``(i0, i1, weight of i1)`` along one axis of a frame's ``n`` pixels at ``offset`` in the
+    padded square, clamped to the working pixels holding some of the frame (no tap on pure pad)."""
     scale = size / side
     lo = int(np.floor(offset * scale))
     hi = max(lo, int(np.ceil((offset + n) * scale)) - 1)
@@ -445,10 +356,8 @@ def _frame_samples(n: int, offset: int, side: int, size: int) -> tuple[np.ndarra
 
 
 def probs_to_size(probs: np.ndarray, height: int, width: int, letterbox: bool = False) -> np.ndarray:
-    """Bilinear resize of a probability map [R,R] back to the original [height, width] (values stay in
-    [0,1]): the way back from :func:`resize_image`'s working resolution.  ``letterbox``: the pad is
-    cropped -- each frame pixel is sampled bilinearly at its own place in the padded square, from the
-    working pixels that hold some of the frame only (module docstring)."""
+    """Bilinear resize of a probability map [R,R] back to [height, width]; ``letterbox``: the pad is cropped
+    and never sampled (:func:`_frame_samples`)."""
     if not letterbox:
         if probs.shape == (height, width):
             return probs
@@ -463,8 +372,7 @@ def probs_to_size(probs: np.ndarray, height: int, width: int, letterbox: bool = 
 
 
 def resize_nearest(lbl: np.ndarray, size: int, letterbox: bool = False) -> np.ndarray:
-    """Nearest-neighbour resize of a label/mask array (bool or uint8) to size x size (``letterbox``:
-    padded with background first, as :func:`resize_image`)."""
+    """Nearest-neighbour resize of a label/mask array to size x size (``letterbox`` as :func:`resize_image`)."""
     if letterbox:
         lbl = pad_to_square(lbl)
     if lbl.shape[0] == size and lbl.shape[1] == size:
@@ -473,15 +381,9 @@ def resize_nearest(lbl: np.ndarray, size: int, letterbox: bool = False) -> np.nd
     return out.astype(lbl.dtype)
 
 
-# ---------------------------------------------------------------------------------------------------
-# Decode cache
-# ---------------------------------------------------------------------------------------------------
 class DecodeCache:
-    """Content-addressed cache of decoded, resized arrays: ``<root>/<sha[:2]>/<sha>-<kind>-<size>.npz``,
-    deflate-compressed (``np.savez_compressed``; uncompressed entries of earlier versions still read).
-
-    ``root=None`` disables caching (every call decodes).
-    """
+    """Content-addressed cache of decoded, resized arrays (``<sha[:2]>/<sha>-<kind>-<size>.npz``);
+    ``root=None`` disables it."""
 
     def __init__(self, root: str | Path | None = DEFAULT_CACHE_DIR):
         self.root = Path(root) if root is not None else None
@@ -544,10 +446,8 @@ class Loaded:
 
 def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pixels: int | None,
           letterbox: bool = False) -> Loaded:
-    """``decode(array) -> array`` or ``(array, note)``; a note (multi-valued mask; a frame's bit depth)
-    is cached with the entry and warned about once per file, whether decoded now or read from the
-    cache.  The pixel limit is checked on the header first, so a cached entry made under a higher limit
-    is refused too.  ``letterbox`` (:func:`resize_image`) gets its own cache kind."""
+    """``decode(array) -> array`` or ``(array, note)``; the note is cached with the entry and warned about
+    once per file.  The pixel limit is checked first, so a cached entry made under a higher limit is refused."""
     data = read_image_bytes(path, max_pixels)
     sha = hashlib.sha256(data).hexdigest()
     rgb = kind.startswith("rgb")
@@ -569,30 +469,26 @@ def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pix
 
 
 def rgb_kind(bit_depth="auto") -> str:
-    """Decode-cache kind of a frame read under ``bit_depth`` (``rgb`` for ``auto``, as before)."""
+    """Decode-cache kind of a frame read under ``bit_depth``."""
     bit_depth = check_bit_depth(bit_depth)
     return "rgb" if bit_depth == AUTO_BIT_DEPTH else f"rgb{int(bit_depth)}bit"
 
 
 def load_rgb(path, size: int, cache: DecodeCache | None = None, *, max_pixels: int | None = None,
              bit_depth="auto", letterbox: bool = False) -> Loaded:
-    """RGB uint8 [size, size, 3] (area interpolation), its sha256 and native size; cached.  Refused
-    above ``max_pixels`` (None: :data:`DEFAULT_MAX_PIXELS`) before decoding; 16-bit files read under
-    ``bit_depth`` (:func:`scale_16bit`); ``letterbox``: padded to a square first (:func:`resize_image`)."""
+    """RGB uint8 [size, size, 3] (area interpolation), its sha256 and native size; cached."""
     return _load(path, size, rgb_kind(bit_depth), cache, lambda a: rgb8_and_note(a, path, bit_depth), max_pixels,
                  letterbox)
 
 
 def mask_kind(threshold: float | None) -> str:
-    """Decode-cache kind of a mask read with ``threshold`` (``maskgt0`` for the default rule; the old
-    ``maskauto`` entries, made under an earlier rule, are never read)."""
+    """Decode-cache kind of a mask read with ``threshold``."""
     return "maskgt0" if threshold is None else f"mask{threshold}"
 
 
 def load_mask(path, size: int, cache: DecodeCache | None = None, threshold: float | None = None, *,
               max_pixels: int | None = None, letterbox: bool = False) -> Loaded:
-    """bool [size, size] (nearest), binarised by :func:`binarize_mask`; cached per threshold;
-    ``letterbox`` as :func:`load_rgb`'s."""
+    """bool [size, size] (nearest), binarised by :func:`binarize_mask`; cached per threshold."""
     return _load(path, size, mask_kind(threshold), cache, lambda a: binarize_mask(a, threshold), max_pixels,
                  letterbox)
 
@@ -600,9 +496,7 @@ def load_mask(path, size: int, cache: DecodeCache | None = None, threshold: floa
 def load_labels(path, size: int, cache: DecodeCache | None = None,
                 colors: dict | ColorTable | None = None, *, max_pixels: int | None = None,
                 letterbox: bool = False) -> Loaded:
-    """Part labels uint8 [size, size] (nearest): a label image, or a colour-coded one mapped by ``colors``
-    (:func:`parts_from_colors`: a colour outside the table refuses the file); ``letterbox`` as
-    :func:`load_rgb`'s."""
+    """Part labels uint8 [size, size] (nearest): a label image, or a colour-coded one mapped by ``colors``."""
     if colors:
         table = as_color_table(colors)
         return _load(path, size, table.kind(), cache,
