@@ -1,28 +1,6 @@
-"""Pseudo-mask export formats: COCO run-length encoding, COCO instance records, YOLO segmentation lines.
-
-Pure functions on arrays (no I/O).  Conventions, chosen to load in the standard readers:
-
-COCO (``pycocotools``)
-    ``rle_encode(mask)`` is COCO's *compressed* RLE (``{"size": [h, w], "counts": str}``) as
-    ``pycocotools.mask.encode`` writes it (on the Fortran-order uint8 mask; the counts bytes decoded
-    to a JSON string), so ``COCO.annToMask`` and ``maskUtils.area`` read it back.
-    One annotation per image: the whole voted pseudo-mask is one spacecraft instance (``iscrowd`` 0;
-    a mask split into several parts, e.g. panels cut off by a thin strut, stays one object).  ``area``
-    is the pixel count of the mask, ``bbox`` ``[x, y, width, height]`` its tight box in pixels.
-YOLO segmentation (Ultralytics' ``labels/*.txt``)
-    One line per object, ``class x1 y1 x2 y2 ...`` with coordinates normalised by the image width and
-    height.  An object is a connected foreground region: its outer contour (OpenCV
-    ``findContours(RETR_EXTERNAL, CHAIN_APPROX_SIMPLE)``: boundary pixel indices, corners only on
-    straight runs) divided by (width, height) -- Ultralytics' own mask-to-polygon convention, so its
-    ``polygon2mask`` (``fillPoly`` of the denormalised points) gives the region back.  Regions whose
-    contour has fewer than 3 points (1-2 px specks) are left out, as Ultralytics' converter does;
-    holes cannot be expressed in the format and are filled.  An empty mask gives no line (an empty
-    label file: a background image).
-YOLO dataset files (``data.yaml``, ``train.txt``, ``val.txt``, ``README.txt``)
-    Text only: the image lists hold ``./images/<path>`` lines (relative to the list file), ``data.yaml``
-    has no ``path:`` key (Ultralytics then takes its folder as the root), so the folder can be moved; the
-    validation split is a seeded, hash-ranked share of the images (:func:`yolo_split`).
-"""
+"""Pseudo-mask export formats, pure functions on arrays: COCO compressed RLE and instance records (one
+spacecraft instance per image), YOLO segmentation lines and the YOLO dataset's text files, chosen to load
+in pycocotools and Ultralytics (docs/decisions.md, "label's export formats")."""
 
 from __future__ import annotations
 
@@ -46,12 +24,8 @@ def _as_mask(mask: np.ndarray) -> np.ndarray:
     return mask.astype(bool, copy=False)
 
 
-# --------------------------------------------------------------------------------------------------
-# COCO
-# --------------------------------------------------------------------------------------------------
 def rle_encode(mask: np.ndarray) -> dict:
-    """Compressed COCO RLE ``{"size": [h, w], "counts": str}`` of a bool [H,W] mask, by pycocotools'
-    own encoder (``pycocotools.mask.encode`` of the Fortran-order uint8 mask)."""
+    """Compressed COCO RLE ``{"size": [h, w], "counts": str}`` of a bool [H,W] mask (pycocotools' encoder)."""
     mask = _as_mask(mask)
     rle = mask_utils.encode(np.asfortranarray(mask.astype(np.uint8)))
     return {"size": [int(mask.shape[0]), int(mask.shape[1])], "counts": rle["counts"].decode("ascii")}
@@ -67,9 +41,7 @@ def mask_bbox(mask: np.ndarray) -> list[float]:
 
 
 def coco_annotation(mask: np.ndarray, annotation_id: int, image_id: int, **extra) -> dict | None:
-    """One COCO instance record for the voted mask of an image (None for an empty mask: no object).
-
-    ``extra`` fields (e.g. the reliability gate) are stored alongside; COCO readers ignore them."""
+    """One COCO instance record of an image's voted mask (None when empty), with ``extra`` fields."""
     mask = _as_mask(mask)
     area = int(np.count_nonzero(mask))
     if area == 0:
@@ -79,18 +51,13 @@ def coco_annotation(mask: np.ndarray, annotation_id: int, image_id: int, **extra
 
 
 def coco_document(images: list[dict], annotations: list[dict], **info) -> dict:
-    """A COCO instances file: ``images`` (id, file_name, width, height), ``annotations``
-    (:func:`coco_annotation`), the one spacecraft category, ``info`` fields (description, backend...)."""
+    """A COCO instances file of ``images``, ``annotations`` and the one spacecraft category."""
     return {"info": {"version": "1.0", **info}, "licenses": [], "images": images, "annotations": annotations,
             "categories": [dict(SPACECRAFT_CATEGORY)]}
 
 
-# --------------------------------------------------------------------------------------------------
-# YOLO segmentation
-# --------------------------------------------------------------------------------------------------
 def yolo_polygons(mask: np.ndarray) -> list[np.ndarray]:
-    """Outer contours of the connected foreground regions as float64 [P,2] arrays of normalised
-    (x / width, y / height) points, P >= 3 (module docstring)."""
+    """Outer contours of the connected foreground regions, float64 [P,2] of (x / width, y / height), P >= 3."""
     import cv2
 
     mask = _as_mask(mask)
@@ -107,7 +74,7 @@ def yolo_polygons(mask: np.ndarray) -> list[np.ndarray]:
 
 
 def yolo_lines(mask: np.ndarray, class_id: int = YOLO_CLASS) -> list[str]:
-    """The label file's lines for one image: ``class x1 y1 x2 y2 ...`` per region (module docstring)."""
+    """The label file's lines for one image: ``class x1 y1 x2 y2 ...`` per region."""
     lines = []
     for poly in yolo_polygons(mask):
         coords = " ".join(f"{v:.{YOLO_DECIMALS}f}" for v in poly.ravel())
@@ -115,19 +82,14 @@ def yolo_lines(mask: np.ndarray, class_id: int = YOLO_CLASS) -> list[str]:
     return lines
 
 
-# --------------------------------------------------------------------------------------------------
-# YOLO dataset files (data.yaml, image lists, README.txt): text only, written by pipeline.labeling.run
-# --------------------------------------------------------------------------------------------------
-#: the share of the images ``yolo/val.txt`` holds out for validation (at least one image, when there are
-#: two or more; none of a single image)
+#: the share of the images ``yolo/val.txt`` holds out (at least one of two or more; none of one)
 YOLO_VAL_SHARE = 0.2
 
 
 def yolo_split(ids: Sequence[str], seed: int, share: float = YOLO_VAL_SHARE) -> tuple[list[int], list[int]]:
-    """(train rows, val rows) of the images ``ids``, disjoint and deterministic: the images are ranked by
-    ``sha256("<seed>:<id>")`` and the first ``max(1, round(share * n))`` are held out for validation
-    (none when ``n < 2``: nothing would be left to train on).  Ranking by the id's hash, not by position,
-    keeps an image's side when other images are added or removed, unless it sits at the cut."""
+    """(train rows, val rows): the first ``max(1, round(share * n))`` images ranked by
+    ``sha256("<seed>:<id>")`` are held out (none when ``n < 2``); an image keeps its side when others
+    are added or removed, unless it sits at the cut."""
     n = len(ids)
     n_val = 0 if n < 2 else min(max(1, round(share * n)), n - 1)
     ranked = sorted(range(n), key=lambda i: hashlib.sha256(f"{int(seed)}:{ids[i]}".encode()).hexdigest())
@@ -137,16 +99,12 @@ def yolo_split(ids: Sequence[str], seed: int, share: float = YOLO_VAL_SHARE) -> 
 
 
 def yolo_image_list(image_paths: Sequence[str]) -> str:
-    """An Ultralytics image-list file (``train.txt`` / ``val.txt``): one ``./images/<path>`` per line --
-    Ultralytics reads a leading ``./`` relative to the list file's own folder, so the list survives the
-    folder being moved."""
+    """An image-list file: ``./images/<path>`` lines, relative to the list's own folder."""
     return "".join(f"./images/{p}\n" for p in image_paths)
 
 
 def yolo_data_yaml(n_train: int, n_val: int, seed: int, share: float = YOLO_VAL_SHARE) -> str:
-    """``data.yaml``: train/val image lists relative to the file (no ``path:`` key, so Ultralytics takes the
-    file's own folder as the dataset root); without a validation split no ``val:`` key, and the reason
-    (:func:`yolo_split`) in a comment and in README.txt."""
+    """``data.yaml``: the image lists relative to the file (no ``path:`` key); no ``val:`` without a split."""
     head = ("# Ultralytics dataset of geodistill label pseudo-masks (README.txt beside this file).\n"
             "# No `path:` key: the paths below are relative to this file's folder.\n")
     split = (f"# val: {n_val} of {n_train + n_val} images held out ({share:.0%}, ranked by sha256 of seed {seed} "
@@ -157,7 +115,7 @@ def yolo_data_yaml(n_train: int, n_val: int, seed: int, share: float = YOLO_VAL_
 
 
 def yolo_readme(n_train: int, n_val: int, seed: int, copies: bool, share: float = YOLO_VAL_SHARE) -> str:
-    """``yolo/README.txt``: the layout, how the images got there and the validation split or why none."""
+    """``yolo/README.txt``."""
     images = ("copies of the input images (--copy-images)" if copies else
               "relative symbolic links to the input images: move the label folder and the input folder "
               "together (their common parent), or label again with --copy-images to get copies that go "
