@@ -1,46 +1,7 @@
-"""Content-addressed cache of teacher answers: one small file per (image, prompt, view).
-
-Teacher inference is the most expensive step of the method (paper: 447.9 ms per image for six SAM 3
-prompts on an RTX 4090), so an answer is computed once and reused by every later run.
-
-Key
-  ``sha256(canonical JSON {image: image sha256 from the manifest, teacher: teacher fingerprint
-  (backend, checkpoint hash, resolution, dtype, simulator seed/version ...), prompt: text,
-  view: identity | vflip})``.  Consequences: adding images or prompts computes only the new
-  entries; a param the teacher does not read is not in the fingerprint and recomputes nothing;
-  any change to what the teacher reads gives new keys (old entries stay, unused, until the cache
-  directory is deleted).
-
-Location
-  ``<cache_dir>/v2/<key[:2]>/<key>.tce`` (``teacher.cache_dir``, default ``.cache/teacher``), outside
-  the DVC outputs so ``dvc repro`` removing ``teacher.zarr`` does not remove it.  ``cache_dir`` is a
-  local path or any fsspec URL (:func:`fsspec.core.url_to_fs`): NFS through its mount, ``s3://bucket/
-  prefix`` or ``gs://...`` with the matching fsspec package (s3fs, gcsfs) installed, ``memory://`` in
-  tests.
-
-Entry format (little endian)
-  ``b"GDTCE02\\n"`` magic (8 bytes) | sha256 of the payload (32 bytes) | payload, where payload =
-  ``key (32 raw bytes) | height u32 | width u32 | score f32 | np.packbits(mask)``.  Plain bytes
-  parsed by :func:`decode_entry` -- never pickle, never ``np.load``.  Entries are written to a temp
-  file in the same directory and renamed into place, so a kill -9 leaves either the whole entry or
-  none.  A reader verifies the checksum AND that the key stored in the entry is the key it asked for
-  (an entry copied or renamed over another key's file is not that key's answer); a corrupt,
-  truncated or misplaced entry is reported (logged, counted), deleted and treated as a miss, so it
-  is recomputed.  Layout ``v1`` entries (no stored key) are in another directory and never read.
-
-Existence
-  Which answers exist is decided by listing the cache (:meth:`TeacherCache.listed`, one recursive
-  listing of the layout folder: names only), never by reading entries; an entry is read once, when
-  the artifact is assembled, and a corrupt one found then is recomputed there.
-
-Atomic writes, concurrency, retries
-  Locally an entry is written to a temp file in its directory and renamed into place; on object
-  storage it is one PUT (``fs.pipe``), which a store publishes whole or not at all.  Several
-  processes (Ray workers, ``--shard i/n`` on several machines) may write the same cache, and a task
-  Ray retries may write an entry again: the key names the file and two writers of one key write
-  identical bytes, so a retry replaces an entry by itself and never adds a second one.  Temp names
-  start with a dot and are never listed.
-"""
+"""Content-addressed cache of teacher answers: one small file per (image, prompt, view), under
+``<teacher.cache_dir>/v2/<key[:2]>/<key>.tce`` on any fsspec location (docs/decisions.md, "The teacher
+cache").  The key is the sha256 of {image sha256, teacher fingerprint, prompt, view}: new images or
+prompts compute only new entries, and a change to what the teacher reads gives new keys."""
 
 from __future__ import annotations
 
@@ -126,12 +87,7 @@ class CacheStats:
 
 
 class TeacherCache:
-    """Answers of one teacher fingerprint under ``root`` (a local path or an fsspec URL).
-
-    >>> cache = TeacherCache(".cache/teacher", teacher_fp)          # doctest: +SKIP
-    >>> key = cache.key(sha, "spacecraft")                          # doctest: +SKIP
-    >>> key in cache.listed()  # existence: a listing, no entry read # doctest: +SKIP
-    """
+    """Answers of one teacher fingerprint under ``root`` (a local path or an fsspec URL)."""
 
     def __init__(self, root: str | Path, teacher_fingerprint: str):
         self.root = str(root)
