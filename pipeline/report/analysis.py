@@ -1,11 +1,8 @@
-"""Teacher and gate analyses on the per-image teacher table (paper section "Multi-Prompt Teacher and
-Pseudo-Label Quality Analysis").  Pure functions on DataFrames; no I/O.
+"""Teacher, gate, diagnostics and noise-floor analyses for the report: pure functions on DataFrames.
 
-The per-image teacher table (``teacher_metrics.parquet``) has one row per (image, source) with
-``source`` one of ``prompt_<k>`` (the k-th fixed prompt's raw teacher mask, k = 0..K-1 in the
-teacher's prompt order), ``vote`` (the consensus mask M, eq:majority-vote) and ``val_selected`` (a copy
-of the prompt chosen on the VALIDATION split by mean Image IoU; test annotations play no part in the
-choice).  Reference masks enter here only to *measure* teacher quality post hoc.
+The per-image teacher table (``teacher_metrics.parquet``) has one row per (image, source): ``prompt_<k>``
+(the k-th prompt's mask), ``vote`` (eq:majority-vote) and ``val_selected`` (the prompt chosen on the
+validation split).  Reference masks enter only to measure teacher quality post hoc.
 """
 
 from __future__ import annotations
@@ -28,14 +25,12 @@ def prompt_source(k: int) -> str:
 
 
 def prompt_sources(tm: pd.DataFrame) -> list[str]:
-    """The ``prompt_<k>`` sources present, in k order."""
     ks = sorted(int(s.split("_", 1)[1]) for s in tm["source"].unique() if str(s).startswith("prompt_"))
     return [prompt_source(k) for k in ks]
 
 
 def select_prompt(tm: pd.DataFrame, split: str = "val", metric: str = "iou") -> tuple[str | None, pd.Series]:
-    """The single prompt with the highest mean ``metric`` on ``split`` (ties: lowest k), and the
-    per-prompt means.  (None, empty) when ``split`` has no scored image."""
+    """(the prompt with the highest mean ``metric`` on ``split``, ties to the lowest k; the per-prompt means)."""
     sub = tm[(tm["split"] == split) & tm["source"].isin(prompt_sources(tm))]
     if sub.empty:
         return None, pd.Series(dtype=float)
@@ -46,12 +41,9 @@ def select_prompt(tm: pd.DataFrame, split: str = "val", metric: str = "iou") -> 
 
 def teacher_prompt_quality(tm: pd.DataFrame, group: str, base_source: str, selected_source: str | None,
                            prompts: list[str] | None = None) -> pd.DataFrame:
-    """Paper Table teacher-prompt-quality for one evaluation group.
-
-    Rows: base prompt; validation-selected single prompt; mean +- sample std (ddof = 1, n = K) over
-    the K single prompts' mean metrics (an average of separately evaluated prompts, not a fusion);
-    K-prompt majority vote.  Columns: config, <metric>, <metric>_std (NaN except for the mean row), n.
-    """
+    """Paper Table teacher-prompt-quality for one group: base prompt, validation-selected prompt, mean ± std
+    over the K separately evaluated prompts (not a fusion), K-prompt vote; columns config, <metric>,
+    <metric>_std (the mean row only), n."""
     g = tm[tm["group"] == group]
     srcs = prompt_sources(tm)
 
@@ -62,11 +54,10 @@ def teacher_prompt_quality(tm: pd.DataFrame, group: str, base_source: str, selec
 
     rows = []
 
-    def add(config, part, std=None):
+    def add(config, part):
         r = {"config": config, "n": int(part["image_id"].nunique()) if len(part) else 0}
         for m in METRICS:
-            r[m] = float(part[m].mean()) if len(part) else np.nan
-            r[f"{m}_std"] = np.nan if std is None else float(std[m])
+            r[m], r[f"{m}_std"] = float(part[m].mean()) if len(part) else np.nan, np.nan
         rows.append(r)
 
     add(f"Base prompt: {label(base_source)}", g[g["source"] == base_source])
@@ -85,9 +76,8 @@ def teacher_prompt_quality(tm: pd.DataFrame, group: str, base_source: str, selec
 
 
 def teacher_domain_quality(tm: pd.DataFrame, source: str = "vote", split: str = "test") -> pd.DataFrame:
-    """Paper Table teacher-domain-quality: mean teacher metrics per dataset / domain / group of
-    ``split`` for ``source`` (the vote by default), plus an ``all`` row per dataset/domain when it
-    has several groups."""
+    """Paper Table teacher-domain-quality: mean metrics of ``source`` per dataset / domain / group of ``split``,
+    plus an ``all`` row per dataset/domain with several groups."""
     sub = tm[(tm["source"] == source) & (tm["split"] == split)]
     keys = ["dataset", "domain", "group"]
     per = sub.groupby(keys, sort=True)[list(METRICS)].mean()
@@ -105,13 +95,9 @@ def teacher_domain_quality(tm: pd.DataFrame, source: str = "vote", split: str = 
 
 def gate_analysis(tm: pd.DataFrame, gates: pd.DataFrame, group: str | None = None,
                   split: str = "test") -> dict:
-    """Paper section "Pseudo-Label Quality and Reliability Analysis" for one group (None: all of
-    ``split``): Spearman rho (and p) between the gate g and the vote's Image IoU / Boundary F1, and the
-    table of g = 0 (geometry suppressed) against g > 0 (geometry enabled) images.
-
-    Returns {"group", "n", "rho_iou", "p_iou", "rho_bf1", "p_bf1", "table": DataFrame[state, images,
-    iou, bf1]}; a state with no image has NaN means.
-    """
+    """Spearman rho (and p) between the gate g and the vote's Image IoU / Boundary F1 on one group (None: all
+    of ``split``), and the g = 0 against g > 0 table: {"group", "n", "rho_iou", "p_iou", "rho_bf1", "p_bf1",
+    "table": DataFrame[state, images, iou, bf1]}."""
     v = tm[(tm["source"] == "vote") & (tm["split"] == split)]
     if group is not None:
         v = v[v["group"] == group]
@@ -129,12 +115,8 @@ def gate_analysis(tm: pd.DataFrame, gates: pd.DataFrame, group: str | None = Non
             "table": pd.DataFrame(rows)}
 
 
-# --------------------------------------------------------------------------------------------------
-# Controls and threshold diagnostics (issue 17): tables' inputs and the findings stated in words
-# --------------------------------------------------------------------------------------------------
 def teacher_vote_means(tm: pd.DataFrame, split: str = "test") -> pd.DataFrame:
-    """The teacher vote scored as a predictor: mean Image IoU, Boundary F1, precision and recall of the
-    voted mask per group of ``split`` (index: group; columns METRICS and n)."""
+    """The teacher vote scored as a predictor: its mean :data:`METRICS` and n per group of ``split``."""
     v = tm[(tm["source"] == "vote") & (tm["split"] == split)]
     out = v.groupby("group", sort=False)[list(METRICS)].mean()
     out["n"] = v.groupby("group", sort=False)["image_id"].nunique()
@@ -142,11 +124,9 @@ def teacher_vote_means(tm: pd.DataFrame, split: str = "test") -> pd.DataFrame:
 
 
 def epoch_swings(logs: pd.DataFrame) -> pd.DataFrame:
-    """Per (method, stage): the largest and the median absolute change of validation Image IoU between
-    adjacent logged epochs of one run, at the fixed tau of checkpoint selection (``val_iou``) and at each
-    epoch's calibrated tau (``val_iou_cal``; NaN for logs without it), where the largest ``val_iou`` change
-    happened (seed, later
-    epoch), and the range of the per-epoch calibrated tau."""
+    """Per (method, stage): the largest (with its seed and epoch) and the median change of validation Image
+    IoU between adjacent epochs of a run, at the fixed tau and at each epoch's calibrated tau, and that
+    tau's range."""
     rows = []
     has_cal = "val_iou_cal" in logs.columns
     for (method, stage), part in logs.groupby(["method", "stage"], sort=False):
@@ -172,20 +152,18 @@ def epoch_swings(logs: pd.DataFrame) -> pd.DataFrame:
 
 
 def size_split(metrics: pd.DataFrame) -> pd.DataFrame:
-    """Seed summary (pipeline.stats.seed_summary) of Image IoU, Boundary F1 and predicted/reference area
-    per method, threshold mode and target size class, pooled over the test groups."""
+    """Seed summary of Image IoU, Boundary F1 and area per method, threshold mode and target size."""
     return seed_summary(metrics, ["method", "threshold_mode", "target_size"], ["iou", "bf1", "area_vs_reference"])
 
 
 def tau_text(tau: float | None) -> str:
-    """The fixed tau in the report's words: its value (``:g`` format), or its param's name when unknown (None)."""
+    """The fixed tau in the report's words: its value, or its param's name when unknown."""
     return "`calibrate.fixed_tau`" if tau is None else f"{tau:g}"
 
 
 @dataclasses.dataclass(frozen=True)
 class Endpoint:
-    """One difference a report can test: ``treatment`` - ``control`` in ``metric`` on test ``group`` at
-    ``threshold_mode``."""
+    """One difference a report can test: ``treatment`` - ``control`` in ``metric`` on ``group`` at ``threshold_mode``."""
 
     group: str
     treatment: str
@@ -194,11 +172,7 @@ class Endpoint:
     threshold_mode: str
 
 
-#: The one primary endpoint of every report (issue 33): the paper's own lockbox comparison -- HJM is
-#: "reserved as a lockbox set after the method has been frozen" (paper, SpaceSense-Bench) -- of
-#: GeoDistill-Refine against Plain Student in Image IoU at the validation-calibrated tau.  It is tested
-#: alone at alpha; every other difference is exploratory, Holm-adjusted within its table
-#: (pipeline.report.tables.family_holm).
+#: the one primary endpoint of every report: the paper's lockbox comparison (docs/decisions.md)
 PRIMARY_ENDPOINT = Endpoint(group="HJM", treatment=PROPOSED, control=BASELINE, metric="iou",
                             threshold_mode="calibrated")
 
@@ -213,8 +187,7 @@ def _signed(x, digits=3) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class _Cast:
-    """Who is compared in :func:`fixed_tau_findings`: method names, their display labels, the groups, and
-    the fixed tau in words (:func:`tau_text`)."""
+    """Who is compared in :func:`fixed_tau_findings`, the groups, the labels and the fixed tau in words."""
 
     treatment: str
     control: str
@@ -242,8 +215,7 @@ def _mean_tau(thresholds: pd.DataFrame, method: str, column: str = "tau") -> flo
 
 
 def _per_seed_difference(table: pd.DataFrame, treatment: str, control: str, column: str) -> list[float]:
-    """``column`` of ``treatment`` minus ``control``, one value per seed both have (seed means); [] when
-    the table records no seeds."""
+    """``column`` of ``treatment`` minus ``control``, one per seed both have; [] without seeds."""
     if "seed" not in table.columns:
         return []
     per = table[table["method"].isin([treatment, control])].groupby(["method", "seed"])[column].mean()
@@ -273,9 +245,7 @@ def _threshold_findings(thresholds: pd.DataFrame | None, c: _Cast) -> tuple[list
     return out, tau_t, tau_c
 
 
-#: a per-comparison interval in words: :func:`pipeline.stats.claim_status` without a noise floor or a
-#: multiplicity adjustment says only which side of 0 the CI lies on, so a sentence built from it must not
-#: use the verdict words, which the claim tables reserve for the full rule (floor on the bound, Holm)
+#: the side of 0 an unadjusted CI lies on: the verdict words are reserved for the claim tables' full rule
 INTERVAL_SIDE = {GAIN_SUPPORTED: "CI above 0", LOSS_SUPPORTED: "CI below 0", NO_DIFFERENCE: "CI covers 0",
                  ONE_SEED: ONE_SEED, NOT_ESTIMATED: NOT_ESTIMATED}
 
@@ -399,7 +369,7 @@ def _ceiling_finding(summary: pd.DataFrame | None, c: _Cast) -> list[str]:
 
 
 def _vote_finding(vote: pd.DataFrame | None, summary: pd.DataFrame | None, c: _Cast) -> list[str]:
-    """The teacher vote scored as a predictor, minus the treatment, per group."""
+    """The teacher vote's Image IoU minus the treatment's, per group."""
     if vote is None or summary is None or not len(vote):
         return []
     s = summary[summary["threshold_mode"] == "calibrated"].set_index(["method", "group"])
@@ -434,8 +404,7 @@ def _size_finding(metrics: pd.DataFrame | None, c: _Cast) -> list[str]:
 
 
 def _swing_finding(logs: pd.DataFrame | None, c: _Cast) -> list[str]:
-    """The largest per-epoch change of validation IoU at the fixed tau (checkpoint selection's) against that
-    at each epoch's calibrated tau."""
+    """The largest per-epoch change of validation IoU at the fixed tau against that at the calibrated tau."""
     if logs is None or "val_iou_cal" not in logs.columns:
         return []
     sw = epoch_swings(logs)
@@ -455,17 +424,8 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
                        treatment: str = PROPOSED, control: str = BASELINE, continuation: str = CONTINUATION,
                        ceiling: str = SUPERVISED_CEILING, label=lambda m: m, noise_floor: dict | None = None,
                        fixed_tau: float | None = None) -> list[str]:
-    """What the diagnostics show about the fixed-tau reversal, in sentences computed from the numbers
-    (no conclusion is fixed in advance: every verdict is a comparison of the numbers it quotes).
-
-    Covers, where the inputs exist, one finding per function: the calibrated tau of ``treatment`` against
-    ``control`` (:func:`_threshold_findings`); the sign of the Boundary F1 / Image IoU gain per group at
-    the calibrated and at the fixed tau (:func:`_gain_findings`); foreground inflation at both taus
-    (:func:`_area_findings`); the verdict from those three (:func:`_reading`); the budget-matched
-    continuation; the supervised ceiling and the teacher vote; target size; per-epoch swings.  Who is
-    compared comes from the method table's roles (pipeline.methods); ``fixed_tau`` is calibrate.fixed_tau
-    as the run recorded it (None: unknown, named by its param).
-    """
+    """What the diagnostics show about the fixed-tau reversal, in sentences whose every verdict compares the
+    numbers it quotes: one finding per ``_*_finding(s)`` function, where its inputs exist."""
     c = _Cast(treatment, control, continuation, ceiling, list(groups), label, tau_text(fixed_tau))
     thresholds_out, tau_t, tau_c = _threshold_findings(thresholds, c)
     gains_out, reversal = _gain_findings(summary, c)
@@ -475,18 +435,13 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
             + _vote_finding(vote, summary, c) + _size_finding(metrics, c) + _swing_finding(logs, c))
 
 
-# --------------------------------------------------------------------------------------------------
-# Noise floor (issue 24): the stability benchmark's spreads beside the gains
-# --------------------------------------------------------------------------------------------------
 NOISE_FLOOR_NOT_MEASURED = ("noise floor not measured in this report's configuration (recipe, resolution, data sizes): "
                             "the verdicts rest on the CI and the multiplicity rule alone; a floor measured elsewhere is "
                             "never applied (python -m benchmarks.stability --noise-floor measures one)")
 
 
 def noise_floor_records(doc: dict | None) -> dict[str, dict]:
-    """key -> record of a noise-floor file (``{"recipes": {key: record}}``; a key is the recipe, or
-    :func:`noise_floor_key` for a record measured on another profile's sizes); a file of the former
-    single-record form (``{"info": ..., "numbers": ...}``) is the record of its ``info.recipe``."""
+    """key -> record of a noise-floor file (a former single-record file: the record of its ``info.recipe``)."""
     if not doc:
         return {}
     if "numbers" in doc:
@@ -495,10 +450,7 @@ def noise_floor_records(doc: dict | None) -> dict[str, dict]:
 
 
 def noise_floor_key(recipe: str, profile: str | None = None, resolution: int | None = None) -> str:
-    """The key of a noise-floor record in reports/noise_floor.json: the recipe alone for the demo
-    profile's sizes (the file's first records), ``<recipe>@<profile>-<resolution>`` otherwise -- one
-    file holds a floor per configuration, and :func:`select_noise_floor` picks by the record's ``info``,
-    not by its key."""
+    """A record's key in reports/noise_floor.json: the recipe for the demo profile, else ``<recipe>@<profile>-<res>``."""
     if profile in (None, "demo"):
         return recipe
     return f"{recipe}@{profile}-{resolution}"
@@ -506,16 +458,8 @@ def noise_floor_key(recipe: str, profile: str | None = None, resolution: int | N
 
 def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | None = None,
                        profile: str | None = None) -> dict | None:
-    """The noise-floor record measured in the report's own configuration, from the stability benchmark's
-    file (reports/noise_floor.json: ``{"recipes": {key: {"info": ..., "numbers": {key: {"floor",
-    "pert", "seed_sd"}}}}}``), with ``applies_to`` = the configuration it is printed beside.
-
-    A floor from another configuration is never used (issue 33): None when ``doc`` or ``recipe`` is
-    None (runs of several recipes: no one floor applies), when the file holds no record of that recipe,
-    or when every record of it was measured at another resolution or on another profile's data sizes
-    (``info.resolution`` / ``info.profile`` against ``resolution`` / ``profile``; an unknown side is not
-    compared).  A record's recipe is its ``info.recipe`` (else its key); a file of the former
-    single-record form counts as the record of its ``info.recipe``."""
+    """The record of ``doc`` measured in the report's own configuration (recipe, resolution, profile; an
+    unknown side is not compared), with ``applies_to``; None when there is none or ``recipe`` is None."""
     if recipe is None:
         return None
     for key, rec in noise_floor_records(doc).items():
@@ -531,12 +475,7 @@ def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | N
 
 
 def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
-    """Noise floor of a gain in ``metric`` on test ``group``: the largest ``floor`` (the move of the
-    benchmark's seed-mean under the numerical perturbations its recipe is exposed to:
-    benchmarks.stability.noise_floor_record) of any published gain
-    (``<treatment>-<control>/<group>/<metric>``) of that group and metric; NaN when the record is None
-    or has no such gain.  One floor per (group, metric): the benchmark measures the demo's comparisons,
-    and a numerical perturbation moves every method's number alike."""
+    """The largest ``floor`` of any gain ``<treatment>-<control>/<group>/<metric>`` in ``record``; NaN without."""
     if not record:
         return float("nan")
     vals = [v.get("floor", v.get("pert")) for k, v in record.get("numbers", {}).items()
@@ -546,8 +485,7 @@ def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
 
 
 def noise_floor_note(record: dict | None) -> str:
-    """One sentence naming where the floor comes from -- always the report's own configuration
-    (:func:`select_noise_floor`) -- or that it was not measured there."""
+    """One sentence naming where the floor comes from, or that it was not measured in this configuration."""
     if not record:
         return NOISE_FLOOR_NOT_MEASURED + "."
     i = record.get("info", {})

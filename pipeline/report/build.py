@@ -1,6 +1,5 @@
-"""Gather the evaluation artifacts into one :class:`Report` (tables, figures, honest statements) and
-the plot tables DVC shows.  A missing input never fails the report: its section says what is missing
-and which stage produces it."""
+"""Gather the evaluation artifacts into one :class:`Report` and the plot tables DVC shows; a missing input
+never fails the report: its section names the stage that produces it."""
 
 from __future__ import annotations
 
@@ -18,7 +17,7 @@ from pipeline import catalog
 from pipeline.artifacts.lineage import require_same_run
 from pipeline.artifacts.store import open_artifact, read_chunk_rows
 from pipeline.runtime.errors import ArtifactError
-from pipeline.evaluation.inference import CORRECTED_VALIDATION, iter_runs, load_student, predict_probs
+from pipeline.evaluation.inference import CORRECTED_VALIDATION, load_student, predict_probs
 from pipeline.methods import BASELINE, PROPOSED
 from pipeline.metrics import image_iou
 from pipeline.report import figures as F
@@ -26,16 +25,17 @@ from pipeline.report import tables as T
 from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_analysis, select_noise_floor, size_split,
                                       tau_text, teacher_domain_quality, teacher_prompt_quality, teacher_vote_means)
 from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
-from pipeline.report.environment import environment_section, training_runs
+from pipeline.report.environment import environment_section, opened_runs, training_runs
 from pipeline.report.glossary import glossary_section
 from pipeline.thresholds import mask_from_probs
 
 #: the figures' file names (pipeline.catalog.OUTPUT_FILES)
 FIGURES = catalog.output_names("report_figures")
-# artifact file -> (schema, stage that produces it)
-#: the catalogue artifacts the report reads (paths, schemas and producing stages from pipeline.catalog)
+#: the catalogue artifacts the report reads
 INPUTS = ("manifest", "images", "reference", "teacher", "consensus", "geometry", "gates", "thresholds", "metrics",
           "summary", "teacher_metrics", "efficiency")
+MODES = ("calibrated", "fixed")
+EPOCH_AXIS = "epoch (of the run's own schedule)"
 
 
 @dataclasses.dataclass
@@ -46,31 +46,23 @@ class Inputs:
     logs: pd.DataFrame | None = None
     runs: list = dataclasses.field(default_factory=list)  # pipeline.report.environment.training_runs
     no_masks: bool = False  # no validation or test image has a mask (a distill project without --val-masks)
-    #: the stability benchmark's noise-floor record of the runs' recipe (reports/noise_floor.json), None when
-    #: not measured
-    noise_floor: dict | None = None
-    #: calibrate.fixed_tau as the run recorded it (:func:`recorded_fixed_tau`), None when unknown
-    fixed_tau: float | None = None
-    #: {method: the review params its runs recorded} for runs trained on human corrections
-    #: (:func:`recorded_review`; labels: :func:`pipeline.report.tables.human_trained`)
-    run_review: dict = dataclasses.field(default_factory=dict)
-    #: corrected training images calibrate used as validation images (review.mode validate), 0 if none
-    corrected_validation: int = 0
+    noise_floor: dict | None = None  # the record measured in this configuration (:func:`noise_floor_for_runs`)
+    fixed_tau: float | None = None  # :func:`recorded_fixed_tau`
+    run_review: dict = dataclasses.field(default_factory=dict)  # :func:`recorded_review`
+    corrected_validation: int = 0  # corrected training images calibrate used as validation images
 
     def get(self, name):
         return self.found.get(name)
 
     def need(self, *names) -> list:
-        """A note per missing input; without any mask, inputs that need masks are not missing but not
-        computed, and one plain sentence says so (:data:`NOT_COMPUTED`)."""
+        """A note per missing input; without any mask, one :data:`NOT_COMPUTED` sentence instead."""
         if self.no_masks and any(n in MASK_INPUTS for n in names):
             return [Text(NOT_COMPUTED)]
         return [self.missing[n] for n in names if n in self.missing]
 
 
 def load_inputs(art: str | Path, profile: str | None = None) -> Inputs:
-    """Open every input that exists; record a :class:`Missing` note for each one that does not.
-    ``profile``: the params profile of the runs (the noise floor must come from its data sizes)."""
+    """Open every input that exists, a :class:`Missing` note for each other; ``profile``: the runs' params profile."""
     art = Path(art)
     found, missing = {}, {}
     for name in INPUTS:
@@ -80,41 +72,27 @@ def load_inputs(art: str | Path, profile: str | None = None) -> Inputs:
         except ArtifactError as e:
             missing[name] = Missing(f"`{spec.path}`", f"{e} -- produced by the `{spec.stage}` stage.")
     require_same_run(*found.values())
-    inp = Inputs(art, found, missing)
-    inp.logs = training_logs(art / "checkpoints")
-    inp.runs = training_runs(catalog.path("checkpoints", art))
+    checkpoints = catalog.path("checkpoints", art)
+    inp = Inputs(art, found, missing, logs=training_logs(checkpoints), runs=training_runs(checkpoints))
     if found.get("manifest") is not None:
         inp.no_masks = no_reference_masks(found["manifest"].df, found.get("reference"))
     inp.noise_floor = noise_floor_for_runs(catalog.path("noise_floor", art), inp.runs, found.get("images"), profile)
     inp.fixed_tau = recorded_fixed_tau(found.get("thresholds"), found.get("metrics"))
-    inp.run_review = recorded_review(catalog.path("checkpoints", art))
+    inp.run_review = recorded_review(checkpoints)
     thr = found.get("thresholds")
     inp.corrected_validation = int((thr.meta.extra or {}).get(CORRECTED_VALIDATION, 0)) if thr is not None else 0
     return inp
 
 
 def recorded_review(checkpoints: Path) -> dict[str, dict]:
-    """{method: ``review`` params} of the runs whose checkpoint records human corrections in the loss
-    (``annotation_free: false`` with ``corrections_mode``, written by
-    :func:`pipeline.training.inputs.replace_targets`); {} when none did or there are no checkpoints."""
-    try:
-        extras = [(method, _meta_extra(path)) for method, _, path in iter_runs(checkpoints)]
-    except ArtifactError:
-        return {}
+    """{method: {"corrections", "mode"}} of the runs whose checkpoint records human corrections in the loss."""
+    extras = [(method, ckpt.meta.extra or {}) for method, _, ckpt in opened_runs(checkpoints)]
     return {method: {"corrections": int(e.get("human_corrections", 0)), "mode": e["corrections_mode"]}
             for method, e in extras if e.get("annotation_free") is False and e.get("corrections_mode")}
 
 
-def _meta_extra(path: Path) -> dict:
-    """The ``extra`` fields of the artifact at ``path`` ({} when it cannot be read)."""
-    try:
-        return open_artifact(path).meta.extra or {}
-    except ArtifactError:
-        return {}
-
-
 def corrections_note(inp: Inputs) -> str | None:
-    """A sentence on the human corrections this run used (review params; pipeline/review/apply.py), None without."""
+    """A sentence on the human corrections this run used, None without."""
     parts = []
     if inp.corrected_validation:
         parts.append(f"**{inp.corrected_validation} training images a person corrected are validation images** "
@@ -128,9 +106,7 @@ def corrections_note(inp: Inputs) -> str | None:
 
 
 def noise_floor_for_runs(path: Path, runs: list, images, profile: str | None = None) -> dict | None:
-    """The stability benchmark's noise-floor record (``path``, absent = not measured) measured in this
-    report's configuration: the recipe the training ``runs`` used, the resolution of ``images`` and the
-    ``profile``'s data sizes (:func:`pipeline.report.analysis.select_noise_floor`)."""
+    """The noise-floor record at ``path`` measured with the runs' recipe, the images' resolution and ``profile``."""
     doc = json.loads(path.read_text()) if path.is_file() else None
     recipes = {r["recipe"] for r in runs if r.get("recipe")}
     resolution = int(images["image"].shape[1]) if images is not None and "image" in images else None
@@ -138,15 +114,12 @@ def noise_floor_for_runs(path: Path, runs: list, images, profile: str | None = N
 
 
 def gain_interval(summary) -> str | None:
-    """The gain interval (evaluate.interval) the evaluate stage recorded in ``summary``'s meta; None for a
-    summary written before it was recorded (then the former seed-aware bootstrap)."""
+    """evaluate.interval as ``summary`` recorded it (None: recorded before it was)."""
     return ((summary.meta.extra or {}).get("interval")) if summary is not None else None
 
 
 def recorded_fixed_tau(thresholds, metrics) -> float | None:
-    """The fixed tau of this run (``calibrate.fixed_tau``) as its artifacts recorded it: thresholds.parquet's
-    ``fixed_tau`` column, else the tau of metrics.parquet's fixed-mode rows; None when neither holds exactly
-    one value.  The report's words about the fixed threshold quote it."""
+    """calibrate.fixed_tau of this run: thresholds' ``fixed_tau``, else the fixed-mode rows' tau; None unless one value."""
     for art, column, rows in ((thresholds, "fixed_tau", None), (metrics, "tau", "fixed")):
         if art is None or column not in art.df.columns:
             continue
@@ -160,13 +133,9 @@ def recorded_fixed_tau(thresholds, metrics) -> float | None:
 def training_logs(checkpoints: Path) -> pd.DataFrame | None:
     """All active runs' training logs stacked, with method and seed columns (None when none)."""
     frames = []
-    try:
-        runs = list(iter_runs(checkpoints))
-    except ArtifactError:
-        return None
-    for method, seed, path in runs:
+    for method, seed, ckpt in opened_runs(checkpoints):
         try:
-            log = open_artifact(path).table(catalog.TRAINING_LOG_FILE).copy()
+            log = ckpt.table(catalog.TRAINING_LOG_FILE).copy()
         except ArtifactError:
             continue
         log["method"], log["seed"] = method, seed
@@ -188,9 +157,7 @@ NO_MASKS_NOTE = (
     "image is a training image, Stage I and Stage II keep their last epoch, the threshold is the fixed "
     "tau = `calibrate.fixed_tau` ({tau}, not calibrated), and there are no accuracy numbers -- the student's "
     "quality on this data is unmeasured.  Pass a few masks (`--val-masks DIR`) to select, calibrate and score.")
-
-
-#: inputs computed only from validation/test masks (the scores; the teacher scored against the masks)
+#: inputs computed only from validation/test masks
 MASK_INPUTS = ("summary", "metrics", "teacher_metrics")
 NOT_COMPUTED = ("**Not computed: no validation or test masks.** Scores need reference masks, and none were "
                 "given (`geodistill distill` without `--val-masks`), so nothing here was measured.  Rerun with "
@@ -200,7 +167,7 @@ FIXED_TAU_NOTE = ("**Threshold: the fixed tau = {tau:g}** (`calibrate.fixed_tau`
 
 
 def no_reference_masks(manifest_df: pd.DataFrame, reference) -> bool:
-    """True when no validation or test image has a reference mask (nothing was selected, calibrated or scored)."""
+    """True when no validation or test image has a reference mask."""
     if reference is None:
         return False
     held_out = manifest_df["split"].isin(["val", "test"]).to_numpy()
@@ -212,9 +179,39 @@ def test_groups(manifest_df: pd.DataFrame) -> list[str]:
     return list(dict.fromkeys(manifest_df.loc[manifest_df["split"] == "test", "group"]))
 
 
-# --------------------------------------------------------------------------------------------------
-# Sections
-# --------------------------------------------------------------------------------------------------
+def _modes(df: pd.DataFrame) -> list[str]:
+    return [mode for mode in MODES if (df["threshold_mode"] == mode).any()]
+
+
+def _figure(key: str, title: str, caption: str, chart, name: str) -> Figure:
+    """A report figure of ``chart`` (PNG and SVG) saved as :data:`FIGURES` ``[name]``."""
+    return Figure(key, title, caption, F.png_bytes(chart), FIGURES[name], F.svg_bytes(chart))
+
+
+def _mean_curves(df: pd.DataFrame, x: str, y: str, marker=None) -> list[dict]:
+    """One line-plot series per method: ``y`` averaged over the seeds at each ``x`` (``marker(method)``: a dot)."""
+    series = []
+    for method, part in df.groupby("method", sort=False):
+        mean = part.groupby(x)[y].mean()
+        series.append({"x": mean.index.to_numpy(float), "y": mean.to_numpy(float), "label": T.label(method),
+                       **({"marker": float(marker(method))} if marker else {}), **F.method_style(method)})
+    return series
+
+
+def _spread(n_total: int, n: int) -> np.ndarray:
+    """``min(n, n_total)`` positions evenly spaced over ``range(n_total)``."""
+    return np.unique(np.linspace(0, n_total - 1, min(n, n_total)).round().astype(int))
+
+
+def _student_masks(inp: Inputs, methods, seed: int, images: np.ndarray, tau, device) -> dict:
+    """{method: its seed's student masks of ``images`` at ``tau(method)``} (eq:inference-mask)."""
+    out = {}
+    for method in methods:
+        model, _ = load_student(inp.art / "checkpoints" / method / str(seed), device)
+        out[method] = mask_from_probs(predict_probs(model, images, device=device), tau(method))
+    return out
+
+
 def data_section(inp: Inputs) -> Section:
     sec = Section("Data, teacher and protocol")
     m = inp.get("manifest")
@@ -241,9 +238,9 @@ def data_section(inp: Inputs) -> Section:
         sec.blocks.append(Text(NO_MASKS_NOTE.format(tau=tau_text(inp.fixed_tau))))
     if (note := corrections_note(inp)) is not None:
         sec.blocks.append(Text(note))
-    rows, spacecraft = [], T.spacecraft_per_group(df)  # the footnotes state the same counts
-    for (ds, split, group), part in df.groupby(["dataset", "split", "group"], sort=False):
-        rows.append([str(ds), str(split), str(group), str(len(part)), str(spacecraft[str(group)])])
+    spacecraft = T.spacecraft_per_group(df)  # the interval footnotes state the same counts
+    rows = [[str(ds), str(split), str(group), str(len(part)), str(spacecraft[str(group)])]
+            for (ds, split, group), part in df.groupby(["dataset", "split", "group"], sort=False)]
     sec.blocks.append(Table("tab:data", "Images per split and group", ["Dataset", "Split", "Group", "Images",
                                                                       "Spacecraft"], rows))
     return sec
@@ -261,21 +258,15 @@ def threshold_section(inp: Inputs, plots: dict) -> Section:
         sec.blocks.append(Text(FIXED_TAU_NOTE.format(tau=taus[0] if len(taus) == 1 else float("nan"))))
         return sec
     sec.blocks.append(T.thresholds_table(df, inp.fixed_tau))
-    long = [pd.DataFrame({"tau": r["grid"], "val_iou": r["curve"], "method": r["method"], "seed": r["seed"]})
-            for _, r in df.iterrows() if "grid" in df.columns]
-    if long:
-        curves = pd.concat(long, ignore_index=True)
+    if "grid" in df.columns and len(df):
+        curves = pd.concat([pd.DataFrame({"tau": r["grid"], "val_iou": r["curve"], "method": r["method"],
+                                          "seed": r["seed"]}) for _, r in df.iterrows()], ignore_index=True)
         plots["threshold_curve"] = curves
-        series = []
-        for method, part in curves.groupby("method", sort=False):
-            mean = part.groupby("tau")["val_iou"].mean()
-            taus = df[df["method"] == method]["tau"]
-            series.append({"x": mean.index.to_numpy(), "y": mean.to_numpy(), "label": T.label(method),
-                           "marker": float(taus.mean()), **F.method_style(method)})
+        series = _mean_curves(curves, "tau", "val_iou", lambda m: df.loc[df["method"] == m, "tau"].mean())
         img = F.line_plot(series, "Validation Image IoU vs threshold", "tau", "mean val Image IoU")
-        sec.blocks.append(Figure("fig:threshold-curves", "Threshold curves", "Mean validation Image IoU of [P >= tau] "
-                                 "over the calibration grid (mean over seeds per method; dot: mean calibrated tau).",
-                                 F.png_bytes(img), FIGURES["threshold_curves"], F.svg_bytes(img)))
+        sec.blocks.append(_figure("fig:threshold-curves", "Threshold curves", "Mean validation Image IoU of [P >= "
+                                  "tau] over the calibration grid (mean over seeds per method; dot: mean calibrated "
+                                  "tau).", img, "threshold_curves"))
     return sec
 
 
@@ -285,28 +276,16 @@ def results_section(inp: Inputs) -> Section:
     if s is None:
         sec.blocks += inp.need("summary")
         return sec
-    groups = list(dict.fromkeys(s.df["group"]))
-    if inp.get("manifest") is not None:
-        order = test_groups(inp.get("manifest").df)
-        groups = [g for g in order if g in groups] + [g for g in groups if g not in order]
-    for mode in ("calibrated", "fixed"):
-        if (s.df["threshold_mode"] == mode).any():
-            sec.blocks.append(T.results_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s),
-                                              spacecraft_counts(inp)))
-    for mode in ("calibrated", "fixed"):
-        if (s.df["threshold_mode"] == mode).any():
-            sec.blocks.append(T.diagnostics_table(s.df, mode, groups, inp.fixed_tau))
-    vote = vote_means(inp)
-    for mode in ("calibrated", "fixed"):
-        if (s.df["threshold_mode"] == mode).any():
-            tab = T.reference_points_table(s.df, vote, mode, groups, inp.fixed_tau)
-            if tab is not None:
-                sec.blocks.append(tab)
+    groups, modes, vote = ordered_groups(inp, s.df["group"]), _modes(s.df), vote_means(inp)
+    sec.blocks += [T.results_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s),
+                                   spacecraft_counts(inp)) for mode in modes]
+    sec.blocks += [T.diagnostics_table(s.df, mode, groups, inp.fixed_tau) for mode in modes]
+    sec.blocks += [t for mode in modes
+                   if (t := T.reference_points_table(s.df, vote, mode, groups, inp.fixed_tau)) is not None]
     return sec
 
 
 def spacecraft_counts(inp: Inputs) -> dict[str, int] | None:
-    """{group: spacecraft} of the manifest (the data table's column), None without a manifest."""
     m = inp.get("manifest")
     return T.spacecraft_per_group(m.df) if m is not None else None
 
@@ -327,8 +306,8 @@ def ordered_groups(inp: Inputs, present) -> list[str]:
 
 
 def diagnostics_section(inp: Inputs, plots: dict) -> Section:
-    """Controls and threshold/calibration diagnostics (issue 17): what the numbers say about the
-    fixed-tau reversal, the budget-matched control, calibration, per-epoch stability, target size."""
+    """Controls and threshold/calibration diagnostics: the fixed-tau reversal, the budget-matched control,
+    calibration, per-epoch stability, target size."""
     sec = Section("Controls and threshold diagnostics")
     if inp.no_masks:
         sec.blocks.append(Text(NOT_COMPUTED))
@@ -338,16 +317,13 @@ def diagnostics_section(inp: Inputs, plots: dict) -> Section:
         sec.blocks += inp.need("summary", "thresholds")
         return sec
     groups = ordered_groups(inp, s.df["group"] if s is not None else [])
-    findings = fixed_tau_findings(s.df if s is not None else None, thr.df if thr is not None else None,
-                                  m.df if m is not None else None, inp.logs, vote_means(inp), groups, label=T.label,
-                                  noise_floor=inp.noise_floor, fixed_tau=inp.fixed_tau)
-    sec.blocks += [Text(f) for f in findings]
+    frames = [a.df if a is not None else None for a in (s, thr, m)]
+    sec.blocks += [Text(f) for f in fixed_tau_findings(*frames, inp.logs, vote_means(inp), groups, label=T.label,
+                                                       noise_floor=inp.noise_floor, fixed_tau=inp.fixed_tau)]
     if s is not None:
-        for mode in ("calibrated", "fixed"):
-            tab = T.controls_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s),
-                                   spacecraft_counts(inp))
-            if tab is not None:
-                sec.blocks.append(tab)
+        tables = [T.controls_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s),
+                                   spacecraft_counts(inp)) for mode in MODES]
+        sec.blocks += [t for t in tables if t is not None]
     if thr is not None and "ece" in thr.df.columns:
         sec.blocks += calibration_blocks(thr.df, plots, inp.fixed_tau)
     if inp.logs is not None and "val_iou_cal" in inp.logs.columns and inp.logs["val_iou"].notna().any():
@@ -356,31 +332,31 @@ def diagnostics_section(inp: Inputs, plots: dict) -> Section:
     if m is not None and "target_size" in m.df.columns:
         split = size_split(m.df)
         frac = (m.meta.params or {}).get("evaluate.tiny_target_max_fraction")
-        for mode in ("calibrated", "fixed"):
-            if (split["threshold_mode"] == mode).any():
-                sec.blocks.append(T.size_split_table(split, mode, frac, inp.fixed_tau))
+        sec.blocks += [T.size_split_table(split, mode, frac, inp.fixed_tau) for mode in _modes(split)]
     return sec
 
 
+def _seed_mean(part: pd.DataFrame, column: str) -> np.ndarray:
+    """The element-wise mean over the rows (seeds) of a list column, NaN-aware."""
+    return np.nanmean(np.stack([np.asarray(v, float) for v in part[column]]), axis=0)
+
+
 def calibration_blocks(thr: pd.DataFrame, plots: dict, fixed_tau: float | None = None) -> list:
-    """The calibration table, the reliability diagram and the area-vs-tau figure (validation split;
-    mean over seeds per method)."""
+    """The calibration table, the reliability diagram and the area-vs-tau figure (mean over seeds per method)."""
     blocks = [T.calibration_table(thr, fixed_tau)]
-    rel, area = [], []
+    rel, area, long = [], [], []
     for method, part in thr.groupby("method", sort=False):
         with warnings.catch_warnings():  # a bin empty in every seed stays NaN (not drawn)
             warnings.simplefilter("ignore", RuntimeWarning)
-            conf = np.nanmean(np.stack([np.asarray(c, float) for c in part["rel_confidence"]]), axis=0)
-            freq = np.nanmean(np.stack([np.asarray(f, float) for f in part["rel_frequency"]]), axis=0)
+            conf, freq = _seed_mean(part, "rel_confidence"), _seed_mean(part, "rel_frequency")
         rel.append({"x": conf, "y": freq, "label": f"{T.label(method)} (ECE {part['ece'].mean():.3f})",
                     **F.method_style(method)})
-        curve = np.nanmean(np.stack([np.asarray(a, float) for a in part["area_curve"]]), axis=0)
-        area.append({"x": np.asarray(part["grid"].iloc[0], float), "y": curve, "label": T.label(method),
+        area.append({"x": np.asarray(part["grid"].iloc[0], float), "y": _seed_mean(part, "area_curve"),
+                     "label": T.label(method),
                      "marker": float(part["tau"].mean()), **F.method_style(method)})
-        for _, r in part.iterrows():
-            plots.setdefault("_area", []).append(pd.DataFrame({"tau": r["grid"], "area_ratio": r["area_curve"],
-                                                               "method": method, "seed": r["seed"]}))
-    plots["area_curve"] = pd.concat(plots.pop("_area"), ignore_index=True)
+        long += [pd.DataFrame({"tau": r["grid"], "area_ratio": r["area_curve"], "method": method, "seed": r["seed"]})
+                 for _, r in part.iterrows()]
+    plots["area_curve"] = pd.concat(long, ignore_index=True)
     rel.append({"x": [0.0, 1.0], "y": [0.0, 1.0], "label": "perfect calibration", "color": F.REFERENCE_LINE,
                 "style": "dashed"})
     grid = np.asarray(thr["grid"].iloc[0], float)
@@ -388,34 +364,27 @@ def calibration_blocks(thr: pd.DataFrame, plots: dict, fixed_tau: float | None =
                  "style": "dashed"})
     rel_chart = F.line_plot(rel, "Reliability diagram", "mean predicted probability", "foreground frequency",
                             ylim=(0.0, 1.0))
-    blocks.append(Figure("fig:reliability", "Reliability diagram (validation pixels)",
-                         "Fraction of reference-foreground pixels against the mean predicted probability in each "
-                         "equal-width probability bin (mean over seeds per method); below the diagonal = "
-                         "over-confident foreground.", F.png_bytes(rel_chart), FIGURES["reliability"],
-                         F.svg_bytes(rel_chart)))
+    blocks.append(_figure("fig:reliability", "Reliability diagram (validation pixels)",
+                          "Fraction of reference-foreground pixels against the mean predicted probability in each "
+                          "equal-width probability bin (mean over seeds per method); below the diagonal = "
+                          "over-confident foreground.", rel_chart, "reliability"))
     area_chart = F.line_plot(area, "Predicted / reference area vs threshold", "tau",
                              "median predicted / reference area")
-    blocks.append(Figure("fig:area-vs-tau", "Predicted against reference foreground area across tau",
-                         "Median over validation images of predicted / reference foreground area of [P >= tau] "
-                         "(mean over seeds per method; dot: mean calibrated tau; dashed grey: no inflation).",
-                         F.png_bytes(area_chart), FIGURES["area_vs_tau"], F.svg_bytes(area_chart)))
+    blocks.append(_figure("fig:area-vs-tau", "Predicted against reference foreground area across tau",
+                          "Median over validation images of predicted / reference foreground area of [P >= tau] "
+                          "(mean over seeds per method; dot: mean calibrated tau; dashed grey: no inflation).",
+                          area_chart, "area_vs_tau"))
     return blocks
 
 
 def epoch_calibrated_figure(logs: pd.DataFrame, fixed_tau: float | None = None) -> Figure:
     """Per-epoch validation Image IoU at each epoch's calibrated tau (mean over seeds per method)."""
-    series = []
-    for method, part in logs.groupby("method", sort=False):
-        mean = part.groupby("epoch")["val_iou_cal"].mean()
-        series.append({"x": mean.index.to_numpy(float), "y": mean.to_numpy(float), "label": T.label(method),
-                       **F.method_style(method)})
-    img = F.line_plot(series, "Validation Image IoU at the per-epoch calibrated tau", "epoch (of the run's own "
-                      "schedule)", "val Image IoU at calibrated tau")
-    return Figure("fig:training-curves-calibrated", "Training curves at the calibrated tau",
-                  "Validation Image IoU per epoch at the tau maximising it at that epoch (mean over seeds per "
-                  f"method); compare with the tau = {tau_text(fixed_tau)} curves in the training-curves section.",
-                  F.png_bytes(img),
-                  FIGURES["training_curves_calibrated"], F.svg_bytes(img))
+    img = F.line_plot(_mean_curves(logs, "epoch", "val_iou_cal"), "Validation Image IoU at the per-epoch "
+                      "calibrated tau", EPOCH_AXIS, "val Image IoU at calibrated tau")
+    return _figure("fig:training-curves-calibrated", "Training curves at the calibrated tau",
+                   "Validation Image IoU per epoch at the tau maximising it at that epoch (mean over seeds per "
+                   f"method); compare with the tau = {tau_text(fixed_tau)} curves in the training-curves section.",
+                   img, "training_curves_calibrated")
 
 
 def ablation_section(inp: Inputs) -> Section:
@@ -431,20 +400,17 @@ def ablation_section(inp: Inputs) -> Section:
                                "warm-start and component tables need them."))
         return sec
     seed = int(abl["seed"].mode().iloc[0])
-    groups = test_groups(inp.get("manifest").df) if inp.get("manifest") else sorted(df["group"].unique())
-    group = groups[0]
+    group = (test_groups(inp.get("manifest").df) if inp.get("manifest") else sorted(df["group"].unique()))[0]
     epochs = {}
     if inp.logs is not None:
         for method, part in inp.logs[inp.logs["seed"] == seed].groupby("method"):
             epochs[method] = int(part.loc[part["epoch"] > 0, "epoch"].nunique())
     sec.blocks.append(Text(f"Mechanistic ablations: seed {seed} on {group} (the first test group), same data, "
                            f"pseudo-labels, architecture and calibration protocol. Single-seed evidence only."))
-    for mode in ("calibrated", "fixed"):
+    for mode in MODES:
         means = T.ablation_means(df, group, seed, mode)
-        for tab in (T.warm_start_table(means, epochs, group, seed, mode, inp.fixed_tau),
-                    T.component_table(means, group, seed, mode, inp.fixed_tau)):
-            if tab is not None:
-                sec.blocks.append(tab)
+        sec.blocks += [t for t in (T.warm_start_table(means, epochs, group, seed, mode, inp.fixed_tau),
+                                   T.component_table(means, group, seed, mode, inp.fixed_tau)) if t is not None]
     return sec
 
 
@@ -462,8 +428,6 @@ def teacher_section(inp: Inputs) -> Section:
     extra = tmart.meta.extra or {}
     backend = str(extra.get("teacher_backend", "unknown"))
     note = teacher_note(backend)
-    prompts = list(extra.get("prompts") or [])
-    base = extra.get("base_source", "prompt_0")
     selected = extra.get("selected_source")
     if backend == "simulated":
         sec.blocks.append(Text("**All teacher numbers in this section describe the teacher SIMULATOR of the "
@@ -475,16 +439,15 @@ def teacher_section(inp: Inputs) -> Section:
     if selected is None:
         sec.blocks.append(Text("No validation image has a reference mask: no validation-selected prompt."))
     groups = list(dict.fromkeys(tm.loc[tm["split"] == "test", "group"]))
-    for g in groups:
-        sec.blocks.append(T.teacher_prompt_table(teacher_prompt_quality(tm, g, base, selected, prompts), g, note))
+    sec.blocks += [T.teacher_prompt_table(teacher_prompt_quality(tm, g, extra.get("base_source", "prompt_0"), selected,
+                                                                 list(extra.get("prompts") or [])), g, note)
+                   for g in groups]
     sec.blocks.append(T.teacher_domain_table(teacher_domain_quality(tm), note))
     gates = inp.get("gates")
     if gates is None:
         sec.blocks += inp.need("gates")
     else:
-        analyses = [gate_analysis(tm, gates.df, g) for g in groups]
-        if len(groups) > 1:
-            analyses.append(gate_analysis(tm, gates.df, None))
+        analyses = [gate_analysis(tm, gates.df, g) for g in groups + ([None] if len(groups) > 1 else [])]
         sec.blocks.append(T.gate_table(analyses, note))
     return sec
 
@@ -496,9 +459,7 @@ BENCHMARK_SKIPPED = ("**The efficiency benchmark was skipped on purpose** (`geod
 
 
 def stage_left_out(art: Path, stage: str) -> bool:
-    """Whether the DVC project of the artifacts folder ``art`` leaves ``stage`` out on purpose: its
-    dvc.yaml (beside ``art``) lists stages, but not this one (a distill project made with
-    ``--no-benchmark``); False without a readable dvc.yaml."""
+    """Whether the dvc.yaml beside ``art`` lists stages but not ``stage``; False without a readable dvc.yaml."""
     try:
         stages = (yaml.safe_load((Path(art).parent / catalog.DVC_FILE).read_text()) or {}).get("stages")
     except (OSError, yaml.YAMLError, AttributeError):
@@ -534,28 +495,18 @@ def training_section(inp: Inputs, plots: dict) -> Section:
     cols = [c for c in ("epoch", "val_iou", "val_bf1", "val_iou_cal", "val_tau_cal", "loss", "stage", "method", "seed")
             if c in logs.columns]
     plots["training_curves"] = logs[cols].reset_index(drop=True)
-    series = []
-    for method, part in logs.groupby("method", sort=False):
-        mean = part.groupby("epoch")["val_iou"].mean()
-        series.append({"x": mean.index.to_numpy(float), "y": mean.to_numpy(float), "label": T.label(method),
-                       **F.method_style(method)})
-    img = F.line_plot(series, f"Validation Image IoU during training (tau {tau_text(inp.fixed_tau)})",
-                      "epoch (of the run's own schedule)",
-                      "val Image IoU")
-    sec.blocks.append(Figure("fig:training-curves", "Training curves", "Validation Image IoU per epoch (mean over "
-                             "seeds per method; warm-started Stage-II runs count their own epochs from 1).",
-                             F.png_bytes(img), FIGURES["training_curves"], F.svg_bytes(img)))
+    img = F.line_plot(_mean_curves(logs, "epoch", "val_iou"), f"Validation Image IoU during training "
+                      f"(tau {tau_text(inp.fixed_tau)})", EPOCH_AXIS, "val Image IoU")
+    sec.blocks.append(_figure("fig:training-curves", "Training curves", "Validation Image IoU per epoch (mean over "
+                              "seeds per method; warm-started Stage-II runs count their own epochs from 1).", img,
+                              "training_curves"))
     return sec
 
 
-# --------------------------------------------------------------------------------------------------
-# Figures from images and predictions
-# --------------------------------------------------------------------------------------------------
 def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str = PROPOSED,
                         control: str = BASELINE) -> Section:
-    """Paper Fig. qualitative-results: control vs treatment on the first test group, same seed,
-    validation-calibrated thresholds.  Images are chosen by rank of the per-image IoU gain, evenly
-    spaced from the largest gain to the largest loss (so failures are shown too)."""
+    """Paper Fig. qualitative-results: control vs treatment on the first test group, same seed, calibrated
+    thresholds; images evenly spaced by rank of the per-image IoU gain, from the largest gain to the largest loss."""
     sec = Section("Qualitative results")
     if inp.no_masks:
         sec.blocks += pseudo_label_panels(inp, n_images, device, (control, treatment))
@@ -578,34 +529,29 @@ def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str
     b = sub[sub.method == treatment].set_index("image_id")
     common = a.index.intersection(b.index)
     gain = (b.loc[common, "iou"] - a.loc[common, "iou"]).sort_values(ascending=False, kind="mergesort")
-    pick = gain.index[np.unique(np.linspace(0, len(gain) - 1, min(n_images, len(gain))).round().astype(int))]
-    mdf = inp.get("manifest").df
-    rows_idx = np.array([int(np.flatnonzero(mdf["image_id"].to_numpy() == i)[0]) for i in pick])
+    pick = gain.index[_spread(len(gain), n_images)]
+    ids = inp.get("manifest").df["image_id"].to_numpy()
+    rows_idx = np.array([int(np.flatnonzero(ids == i)[0]) for i in pick])
     images = read_chunk_rows(inp.get("images")["image"], rows_idx)
     gts = read_chunk_rows(inp.get("reference")["mask"], rows_idx).astype(bool)
-    preds = {}
-    for method in (control, treatment):
-        model, _ = load_student(inp.art / "checkpoints" / method / str(seed), device)
-        tau = float(sub[sub.method == method]["tau"].iloc[0])
-        preds[method] = mask_from_probs(predict_probs(model, images, device=device), tau)  # eq:inference-mask
+    preds = _student_masks(inp, (control, treatment), seed, images,
+                           lambda method: float(sub[sub.method == method]["tau"].iloc[0]), device)
     rows = []
     for j, iid in enumerate(pick):
         scores = {T.label(mm): f"IoU {r['iou']:.3f}  BF1 {r['bf1']:.3f}"
                   for mm, r in ((control, a.loc[iid]), (treatment, b.loc[iid]))}
         rows.append(F.qualitative_row(images[j], gts[j], {T.label(mm): preds[mm][j] for mm in (control, treatment)},
                                       scores, f"({chr(97 + j)}) {iid}"))
-    fig = F.image_grid(rows)
-    sec.blocks.append(Figure(
+    sec.blocks.append(_figure(
         "fig:qualitative-results", f"{T.label(control)} vs {T.label(treatment)} on {group}",
         f"Seed {seed}, validation-calibrated thresholds. Green: true positives, red: false positives, blue: false "
         f"negatives; yellow: ground-truth contour. Rows ordered from the largest Image IoU gain to the largest loss "
-        f"of {T.label(treatment)}; metrics on full frames.", F.png_bytes(fig), FIGURES["qualitative"], F.svg_bytes(fig)))
+        f"of {T.label(treatment)}; metrics on full frames.", F.image_grid(rows), "qualitative"))
     return sec
 
 
 def gate_extremes(g: np.ndarray, n_images: int) -> np.ndarray:
-    """Positions into ``g`` of the ``max(1, n_images // 2)`` lowest gates (lowest first) then as many
-    highest (highest first), each image once; ties in the given order."""
+    """Positions of the ``max(1, n_images // 2)`` lowest gates (lowest first), then as many highest, each once."""
     k = max(1, n_images // 2)
     order = np.argsort(np.asarray(g, float), kind="mergesort")
     low = order[:k]
@@ -614,10 +560,8 @@ def gate_extremes(g: np.ndarray, n_images: int) -> np.ndarray:
 
 
 def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu", methods: tuple[str, ...] = (BASELINE, PROPOSED)) -> list:
-    """Without any mask: the students' masks beside the pseudo-labels they were trained on (the 50 %
-    vote M) for the lowest- and the highest-gate training images (:func:`gate_extremes`), at each run's
-    threshold (thresholds.parquet: the fixed tau).  The colours and the IoU compare a student with the
-    pseudo-label, not with a true mask: agreement with the teacher, not accuracy."""
+    """Without any mask: the students' masks beside their pseudo-labels (the vote M) for the lowest- and the
+    highest-gate training images (:func:`gate_extremes`), at each run's fixed tau; agreement, not accuracy."""
     miss = [inp.missing[n] for n in ("thresholds", "images", "consensus", "gates", "manifest") if n in inp.missing]
     if miss:
         return miss
@@ -638,33 +582,28 @@ def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu", methods: tuple
     rows_idx = train[pos]
     images = read_chunk_rows(inp.get("images")["image"], rows_idx)
     voted = read_chunk_rows(inp.get("consensus")["voted"], rows_idx).astype(bool)
-    preds, taus = {}, {}
-    for method in present:
-        model, _ = load_student(inp.art / "checkpoints" / method / str(seed), device)
-        taus[method] = float(thr.loc[(thr["method"] == method) & (thr["seed"] == seed), "tau"].iloc[0])
-        preds[method] = mask_from_probs(predict_probs(model, images, device=device), taus[method])  # eq:inference-mask
+    taus = {m: float(thr.loc[(thr["method"] == m) & (thr["seed"] == seed), "tau"].iloc[0]) for m in present}
+    preds = _student_masks(inp, present, seed, images, taus.get, device)
     rows = []
     for j, i in enumerate(rows_idx):
         scores = {T.label(m): f"IoU vs M {image_iou(preds[m][j], voted[j]):.2f}" for m in present}
         rows.append(F.qualitative_row(images[j], voted[j], {T.label(m): preds[m][j] for m in present}, scores,
                                       f"({chr(97 + j)}) g={g[pos[j]]:.2f} {ids[i]}",
                                       reference=("pseudo-label M", "(yellow contour)")))
-    fig = F.image_grid(rows)
     n_low = max(1, n_images // 2)
     tau_words = ", ".join(f"{T.label(m)} tau = {taus[m]:g}" for m in present)
-    return [Figure(
+    return [_figure(
         "fig:student-vs-pseudo-labels", "Students beside their pseudo-labels (no masks: agreement, not accuracy)",
         f"Seed {seed}; the {min(n_low, len(pos))} training image(s) with the lowest reliability gate g first, then "
         f"the highest ({tau_words}: the fixed threshold).  Yellow contour: the pseudo-label M (the teacher's 50 % "
         "vote the students were trained on), not a true mask.  Green: student and M agree on foreground, red: "
         "student only, blue: M only; IoU vs M is their agreement.  A low-gate row shows where the pseudo-label "
         "is least trusted; only masks (`--val-masks`) say which of the two is right.",
-        F.png_bytes(fig), FIGURES["student_vs_pseudo_labels"], F.svg_bytes(fig))]
+        F.image_grid(rows), "student_vs_pseudo_labels")]
 
 
 def gate_distribution_blocks(inp: Inputs) -> list:
-    """The reliability gate g of the training images (gates.parquet) as a histogram with one sentence of
-    counts; shown where the teacher's scores need masks that are absent."""
+    """The training images' reliability gate g as a histogram with one sentence of counts."""
     gates = inp.get("gates")
     if gates is None:
         return inp.need("gates")
@@ -679,24 +618,17 @@ def gate_distribution_blocks(inp: Inputs) -> list:
     return [Text(f"Gate g over the {g.size} training images: median {np.median(g):.2f}, {zero} "
                  f"({zero / g.size:.0%}) at g = 0 (their pseudo-geometry terms get no weight in Stage II), "
                  f"{int((g >= 0.5).sum())} at g >= 0.5."),
-            Figure("fig:gate-distribution", "Distribution of the reliability gate",
-                   "Training images per gate bin (width 0.05); g = c-, v- and area-gate factors multiplied.  "
-                   "Computed without masks.", F.png_bytes(img), FIGURES["gate_distribution"],
-                   F.svg_bytes(img))]
+            _figure("fig:gate-distribution", "Distribution of the reliability gate",
+                    "Training images per gate bin (width 0.05); g = c-, v- and area-gate factors multiplied.  "
+                    "Computed without masks.", img, "gate_distribution")]
 
 
 def loss_figure(logs: pd.DataFrame) -> Figure:
-    """The training loss per epoch (mean over seeds per method): what a run without validation masks
-    has to show of its training."""
-    series = []
-    for method, part in logs.groupby("method", sort=False):
-        mean = part.groupby("epoch")["loss"].mean()
-        series.append({"x": mean.index.to_numpy(float), "y": mean.to_numpy(float), "label": T.label(method),
-                       **F.method_style(method)})
-    img = F.line_plot(series, "Training loss", "epoch (of the run's own schedule)", "loss")
-    return Figure("fig:training-loss", "Training loss", "Training loss per epoch (mean over seeds per method; "
-                  "Stage I and Stage II losses differ in their terms, so compare a method with itself).",
-                  F.png_bytes(img), FIGURES["training_loss"], F.svg_bytes(img))
+    """The training loss per epoch (mean over seeds per method), for a run without validation masks."""
+    img = F.line_plot(_mean_curves(logs, "epoch", "loss"), "Training loss", EPOCH_AXIS, "loss")
+    return _figure("fig:training-loss", "Training loss", "Training loss per epoch (mean over seeds per method; "
+                   "Stage I and Stage II losses differ in their terms, so compare a method with itself).", img,
+                   "training_loss")
 
 
 def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
@@ -715,17 +647,13 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
     ids = mdf["image_id"].to_numpy()
     g = gates.reindex(ids[train])["g"].to_numpy(float)
     ranked = train[np.argsort(-np.nan_to_num(g, nan=-1), kind="mergesort")]
-    pick = np.sort(ranked[np.unique(np.linspace(0, len(ranked) - 1, min(n_images, len(ranked))).round().astype(int))])
-    teacher = inp.get("teacher")
-    backend = str(teacher.attrs.get("backend", "unknown"))
+    pick = np.sort(ranked[_spread(len(ranked), n_images)])
+    teacher, consensus, geometry = inp.get("teacher"), inp.get("consensus"), inp.get("geometry")
     prompts = list(teacher.attrs.get("prompts", []))
-    images = read_chunk_rows(inp.get("images")["image"], pick)
-    tmasks = read_chunk_rows(teacher["masks"], pick)
-    scores = read_chunk_rows(teacher["scores"], pick)
-    agreement = read_chunk_rows(inp.get("consensus")["agreement"], pick)
-    voted = read_chunk_rows(inp.get("consensus")["voted"], pick)
-    sdf = read_chunk_rows(inp.get("geometry")["sdf"], pick)
-    skel = read_chunk_rows(inp.get("geometry")["skeleton"], pick)
+    images, tmasks, scores, agreement, voted, sdf, skel = (
+        read_chunk_rows(a, pick) for a in (inp.get("images")["image"], teacher["masks"], teacher["scores"],
+                                           consensus["agreement"], consensus["voted"], geometry["sdf"],
+                                           geometry["skeleton"]))
     rows = []
     for j, i in enumerate(pick):
         gr = gates.loc[ids[i]] if ids[i] in gates.index else None
@@ -734,15 +662,15 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
         labels = [f"p{k + 1} s={scores[j, k]:.2f}" for k in range(tmasks.shape[1])]
         rows.append(F.pseudo_target_row(images[j], tmasks[j], labels, agreement[j], voted[j], sdf[j], skel[j],
                                         gate_text, str(ids[i])))
-    fig = F.image_grid(rows)
     prompt_list = "; ".join(f"p{k + 1} = `{p}`" for k, p in enumerate(prompts))
-    sim = " The prompt masks come from the teacher SIMULATOR, not SAM 3." if backend == "simulated" else ""
-    sec.blocks.append(Figure(
+    sim = (" The prompt masks come from the teacher SIMULATOR, not SAM 3."
+           if str(teacher.attrs.get("backend", "unknown")) == "simulated" else "")
+    sec.blocks.append(_figure(
         "fig:pseudo-geometry", "Multi-prompt pseudo-target construction",
         f"Training images (highest gate g first): the {tmasks.shape[1]} prompt masks with teacher scores s, the "
         f"agreement map A, the 50 % vote M, the normalised SDF D (red inside, blue outside) and the skeleton K; the "
         f"gate's factors c (agreement), v (valid-prompt ratio), a (pseudo area) and g.{sim} Prompts: {prompt_list}.",
-        F.png_bytes(fig), FIGURES["pseudo_targets"], F.svg_bytes(fig)))
+        F.image_grid(rows), "pseudo_targets"))
     return sec
 
 
@@ -756,33 +684,15 @@ def provenance_section(inp: Inputs) -> Section:
 
 def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu",
                  environment: dict | None = None) -> tuple[Report, dict, Inputs]:
-    """-> (report, plot tables {name: DataFrame}, opened inputs).  ``environment``: the report machine's
-    record (:func:`pipeline.runtime.environment.collect`) for the Environment section (None: not recorded)."""
+    """-> (report, plot tables {name: DataFrame}, opened inputs); ``environment``: the report machine's record."""
     inp = load_inputs(art, profile or None)
     plots: dict[str, pd.DataFrame] = {}
-    n_qual = int(cfg.get("qualitative_images", 4))
-    n_pseudo = int(cfg.get("pseudo_target_images", 3))
     with T.human_trained(inp.run_review):
-        sections = build_sections(inp, plots, n_qual, n_pseudo, environment, device)
+        sections = [glossary_section(), data_section(inp), results_section(inp),
+                    qualitative_section(inp, int(cfg.get("qualitative_images", 4)), device),
+                    threshold_section(inp, plots), diagnostics_section(inp, plots), teacher_section(inp),
+                    pseudo_target_section(inp, int(cfg.get("pseudo_target_images", 3))), ablation_section(inp),
+                    efficiency_section(inp), training_section(inp, plots), environment_section(environment, inp.runs),
+                    provenance_section(inp)]
     title = "GeoDistill-Refine report" + (f" ({profile} profile)" if profile else "")
     return Report(title, sections), plots, inp
-
-
-def build_sections(inp: Inputs, plots: dict, n_qual: int, n_pseudo: int, environment: dict | None,
-                   device="cpu") -> list[Section]:
-    """The report's sections in order (labels: :func:`build_report`'s :func:`pipeline.report.tables.human_trained`)."""
-    return [
-        glossary_section(),
-        data_section(inp),
-        results_section(inp),
-        qualitative_section(inp, n_qual, device),
-        threshold_section(inp, plots),
-        diagnostics_section(inp, plots),
-        teacher_section(inp),
-        pseudo_target_section(inp, n_pseudo),
-        ablation_section(inp),
-        efficiency_section(inp),
-        training_section(inp, plots),
-        environment_section(environment, inp.runs),
-        provenance_section(inp),
-    ]

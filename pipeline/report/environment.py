@@ -1,10 +1,5 @@
-"""The report's "Environment" section and its machine-readable twin (``environment.json``): where the
-published numbers were computed (pipeline.runtime.environment collects it; nothing here is fingerprinted).
-
-* the machine and installation that built the report (:func:`pipeline.runtime.environment.collect`);
-* every training run's own record from its checkpoint's ``meta.json``: the precision it actually used
-  (``extra.autocast``), its device, torch threads, CPU and torch build (``extra.runtime``).
-"""
+"""The report's "Environment" section and ``environment.json``: the machine that built the report and where
+each training run ran (provenance only; nothing here is fingerprinted)."""
 
 from __future__ import annotations
 
@@ -21,11 +16,8 @@ PRECISION_TEXT = {"bfloat16": "bf16 autocast", "float16": "fp16 autocast", "fp32
 NOT_RECORDED = "not recorded"
 
 
-def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
-    """One record per active run under ``checkpoints/<method>/<seed>/``: method, seed, ``recipe``
-    (``train.recipe`` as the run's fingerprinted params recorded it), ``precision``
-    (the autocast it actually used), ``runtime`` (``extra.runtime``; None for a checkpoint written
-    before it was recorded) and ``torch`` (the checkpoint's library_versions).  [] without checkpoints."""
+def opened_runs(checkpoints: str | Path) -> list:
+    """(method, seed, opened checkpoint) of every active run that opens; [] without checkpoints."""
     try:
         runs = list(iter_runs(checkpoints))
     except ArtifactError:
@@ -33,9 +25,18 @@ def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
     out = []
     for method, seed, path in runs:
         try:
-            meta = open_artifact(path).meta
+            out.append((method, seed, open_artifact(path)))
         except ArtifactError:
             continue
+    return out
+
+
+def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
+    """One record per active run: method, seed, ``recipe`` (train.recipe), ``precision`` (the autocast it used),
+    ``runtime`` (``extra.runtime``, None before it was recorded) and ``torch``."""
+    out = []
+    for method, seed, ckpt in opened_runs(checkpoints):
+        meta = ckpt.meta
         extra = meta.extra or {}
         out.append({"method": method, "seed": int(seed), "recipe": (meta.params.get("params") or {}).get("train.recipe"),
                     "precision": extra.get("autocast"),
@@ -117,8 +118,7 @@ def lock_text(lock: Mapping[str, Any]) -> str:
 
 
 def environment_section(env: Mapping[str, Any] | None, runs: Sequence[Mapping[str, Any]]) -> Section:
-    """The "Environment" section: the report machine's software, torch build and CPU, and each training
-    run's precision, threads, device and CPU."""
+    """The "Environment" section: the report machine's software, torch build and CPU, and each run's record."""
     sec = Section("Environment", [Text(
         "Where these numbers were computed. Provenance only: none of it enters an artifact's fingerprint. "
         "The same record, machine-readable: `environment.json` beside this page.")])

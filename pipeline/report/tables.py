@@ -1,5 +1,4 @@
-"""Tables shaped like the paper's, built from the evaluation artifacts (pure functions: DataFrames in,
-:class:`pipeline.report.document.Table` out; numbers formatted to 4 decimals like the paper)."""
+"""Tables shaped like the paper's: DataFrames in, :class:`pipeline.report.document.Table` out."""
 
 from __future__ import annotations
 
@@ -19,34 +18,31 @@ from pipeline.report.document import Table
 from pipeline.stats import (ALPHA, DEFAULT_INTERVAL, INTERVAL_TEXT, NOT_ESTIMATED, SEED_BOOTSTRAP, claim_status,
                             holm_adjust, vs_column)
 
-#: the main comparison's rows (results tables): every annotation-free method but the ablations, in table order
+#: the main comparison's rows: every annotation-free method but the ablations, in table order
 MAIN_ORDER = in_table_order(n for n in annotation_free_methods(METHODS) if METHODS[n].role != "ablation")
 WARM_START_ROWS = ablation_table_rows("warm_start")
 COMPONENT_ROWS = ablation_table_rows("component")
 ABLATIONS = set(methods_with_role("ablation"))
 #: the teacher vote scored as a predictor (a row of the reference-points table; not a method)
 TEACHER_VOTE_LABEL = "Teacher vote (6-prompt majority, its own binary mask)"
-#: the gain columns' suffix of the budget-matched control (pipeline.stats.vs_column)
 VS_CONTINUATION = vs_column("", CONTINUATION)
+#: the gain metrics a claim speaks of, with their names in a claim cell
+CLAIM_METRICS = (("iou", "IoU"), ("bf1", "BF1"))
+QUALITY = ("iou", "bf1", "precision", "recall")
 
 
 def mode_text(mode: str, fixed_tau: float | None) -> str:
-    """A threshold mode in words: the validation-calibrated tau, or the fixed tau with its value
-    (``fixed_tau``: calibrate.fixed_tau as the run recorded it; None: unknown, named by its param)."""
+    """A threshold mode in words (``fixed_tau``: calibrate.fixed_tau as recorded; None names the param)."""
     return {"calibrated": "validation-calibrated tau", "fixed": f"fixed tau = {tau_text(fixed_tau)}"}.get(mode, mode)
 
 
-#: {method: the ``review`` params its runs trained under, as their checkpoints recorded them} while a report is
-#: built (:func:`human_trained`); empty otherwise
+#: {method: the ``review`` params its runs trained under} while a report is built (:func:`human_trained`)
 _RUN_REVIEW: contextvars.ContextVar[Mapping] = contextvars.ContextVar("run_review", default={})
 
 
 @contextlib.contextmanager
 def human_trained(run_review: Mapping[str, Mapping]) -> Iterator[None]:
-    """Within the block, :func:`label` labels each method by its runs' recorded ``review`` params
-    (``run_review``: {method: {"corrections": ..., "mode": ...}}): a run trained on human corrections
-    (``replace``) is marked NOT annotation-free in every table, figure and sentence
-    (:func:`pipeline.methods.run_label`), as the supervised ceiling's label says it trains on reference masks."""
+    """Within the block, :func:`label` marks the runs trained on human corrections NOT annotation-free."""
     token = _RUN_REVIEW.set(dict(run_review))
     try:
         yield
@@ -60,7 +56,6 @@ def label(method: str) -> str:
 
 
 def not_annotation_free(methods: Sequence[str]) -> list[str]:
-    """The methods of ``methods`` that train on reference masks (the supervised ceiling), in order."""
     free = set(annotation_free_methods(methods))
     return [m for m in dict.fromkeys(methods) if m not in free]
 
@@ -82,20 +77,26 @@ def fmt_ci(gain, lo, hi, digits: int = 4) -> str:
     return f"{gain:+.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
 
 
+def fmt_p(p) -> str:
+    if p is None or not np.isfinite(p):
+        return "--"
+    return f"{p:.2e}" if p < 1e-3 else f"{p:.4f}"
+
+
+def _ms(r, key: str, digits: int = 4) -> str:
+    """``<key>_mean ± <key>_std`` of a summary row."""
+    return fmt_pm(r.get(f"{key}_mean"), r.get(f"{key}_std"), digits)
+
+
 def main_methods(methods: Sequence[str]) -> list[str]:
-    """Annotation-free methods of the main comparison in the paper's order, then the continuation
-    control (ablations and the supervised ceiling excluded; unknown names last)."""
+    """The main comparison's methods present, in the paper's order (unknown names last, ablations out)."""
     present = annotation_free_methods(list(dict.fromkeys(methods)))
     known = [m for m in MAIN_ORDER if m in present]
     return known + sorted(m for m in present if m not in MAIN_ORDER and m not in ABLATIONS)
 
 
-# --------------------------------------------------------------------------------------------------
-# Student results
-# --------------------------------------------------------------------------------------------------
 def group_method_rows(summary: pd.DataFrame, mode: str, groups: Sequence[str]):
-    """(group, method, summary row) at threshold ``mode``, groups in the given order, main methods in
-    the paper's order within each group."""
+    """(group, method, summary row) at threshold ``mode``, groups in the given order, main methods in order."""
     s = summary[summary["threshold_mode"] == mode]
     for g in groups:
         part = s[s["group"] == g].set_index("method")
@@ -103,22 +104,15 @@ def group_method_rows(summary: pd.DataFrame, mode: str, groups: Sequence[str]):
             yield g, m, part.loc[m]
 
 
-#: the gain metrics a claim speaks of, with their names in a claim cell
-CLAIM_METRICS = (("iou", "IoU"), ("bf1", "BF1"))
-
-
-def is_primary(group: str, treatment: str, control: str, metric: str, mode: str) -> bool:
-    """Whether this difference is the report's one primary endpoint (:data:`PRIMARY_ENDPOINT`)."""
+def is_primary(group: str, treatment: str, control: str, mode: str) -> bool:
+    """Whether this Image IoU difference is the report's one primary endpoint."""
     e = PRIMARY_ENDPOINT
-    return (group, treatment, control, metric, mode) == (e.group, e.treatment, e.control, e.metric, e.threshold_mode)
+    return (group, treatment, control, mode) == (e.group, e.treatment, e.control, e.threshold_mode)
 
 
 def family_holm(entries) -> dict:
-    """Holm-adjusted p-values of one table's family (issue 33: every exploratory difference a table
-    shows is one member).  ``entries``: (key, summary row, suffix, is_primary) per shown difference;
-    each contributes its ``gain_<metric><suffix>_p`` per :data:`CLAIM_METRICS` (absent = not in the
-    family).  The primary endpoint is tested alone at alpha, outside every family.  Returns
-    ``{(key, metric): adjusted p}``."""
+    """{(key, metric): Holm-adjusted p} over one table's family; ``entries``: (key, summary row, suffix,
+    is_primary) per shown difference.  The primary endpoint is tested alone, outside every family."""
     keys, ps = [], []
     for key, r, suffix, primary in entries:
         for k, _ in CLAIM_METRICS:
@@ -131,13 +125,9 @@ def family_holm(entries) -> dict:
 
 def claim(r, suffix: str, group: str, noise_floor=None, p_adjusted: Mapping | None = None,
           primary_metric: str | None = None) -> str:
-    """The claim column of a gain row: :func:`pipeline.stats.claim_status` -- a signed verdict -- of the
-    Image IoU and the Boundary F1 gain (``gain_<metric><suffix>`` with its CI) against the group's noise
-    floor (:func:`pipeline.report.analysis.gain_noise_floor` of ``noise_floor``, the record measured in
-    this run's configuration, or None), on the row's ``gain_seeds<suffix>`` seeds (one seed never
-    supports a difference), with ``p_adjusted[metric]`` the Holm-adjusted p-value of the table's family
-    (:func:`family_holm`).  ``primary_metric``: that metric is the primary endpoint (unadjusted,
-    marked "primary")."""
+    """The claim cell of a gain row: :func:`pipeline.stats.claim_status` of each :data:`CLAIM_METRICS` gain
+    (``gain_<metric><suffix>``) against the group's noise floor, with ``p_adjusted[metric]`` from
+    :func:`family_holm`; ``primary_metric``: that one is the primary endpoint."""
     out = []
     p_adjusted = p_adjusted or {}
     for k, name in CLAIM_METRICS:
@@ -149,15 +139,21 @@ def claim(r, suffix: str, group: str, noise_floor=None, p_adjusted: Mapping | No
     return "; ".join(out) or "--"
 
 
+def _gain_cells(r, suffix: str, group: str, key, holm: Mapping, primary: bool, noise_floor) -> list[str]:
+    """The Image IoU and Boundary F1 differences with their CIs, the noise floor and the claim of one row."""
+    cis = [fmt_ci(*(r.get(f"gain_{k}{suffix}{x}") for x in ("", "_lo", "_hi"))) for k, _ in CLAIM_METRICS]
+    return cis + [floor_cell(group, noise_floor),
+                  claim(r, suffix, group, noise_floor, {k: holm.get((key, k)) for k, _ in CLAIM_METRICS},
+                        PRIMARY_ENDPOINT.metric if primary else None)]
+
+
 def spacecraft_per_group(manifest: pd.DataFrame) -> dict[str, int]:
-    """{group: distinct spacecraft} of a manifest's images: the data table's column and the count the
-    interval footnotes state (:func:`interval_text`), from the same rows."""
+    """{group: distinct spacecraft} of a manifest's images (the data table and the interval footnotes)."""
     return {str(g): int(n) for g, n in manifest.groupby("group", sort=False)["spacecraft"].nunique().items()}
 
 
 def spacecraft_words(spacecraft: Mapping[str, int] | None, groups: Sequence[str]) -> str:
-    """"3 spacecraft" (or "1-3 spacecraft") in ``groups`` by ``spacecraft`` (:func:`spacecraft_per_group`);
-    "few spacecraft" when unknown."""
+    """"3 spacecraft" (or "1-3 spacecraft") in ``groups``; "few spacecraft" when unknown."""
     counts = sorted({int(spacecraft[g]) for g in groups if g in spacecraft}) if spacecraft else []
     if not counts:
         return "few spacecraft"
@@ -166,15 +162,12 @@ def spacecraft_words(spacecraft: Mapping[str, int] | None, groups: Sequence[str]
 
 def interval_text(interval: str | None, spacecraft: Mapping[str, int] | None = None,
                   groups: Sequence[str] = ()) -> str:
-    """How a table's CIs were made, in words (``interval``: evaluate.interval as the summary recorded it;
-    None: a summary from before it was recorded, made with the former seed-aware bootstrap), with the
-    spacecraft count of the table's ``groups`` (:func:`spacecraft_words`)."""
+    """How a table's CIs were made (``interval``: evaluate.interval as recorded; None: the former bootstrap)."""
     return INTERVAL_TEXT[interval or SEED_BOOTSTRAP].format(spacecraft=spacecraft_words(spacecraft, groups))
 
 
 def multiplicity_note(holm: Mapping) -> str:
-    """The sentence every claim table carries: the primary endpoint, the family and the procedure
-    (``holm``: :func:`family_holm` of the table; a summary without p-values says it was not adjusted)."""
+    """The primary endpoint, the family and the procedure (a summary without p-values: not adjusted)."""
     e = PRIMARY_ENDPOINT
     family_size = sum(np.isfinite(p) for p in holm.values())
     if holm and not family_size:
@@ -198,24 +191,19 @@ def floor_cell(group: str, noise_floor) -> str:
 def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise_floor: dict | None = None,
                   fixed_tau: float | None = None, interval: str | None = DEFAULT_INTERVAL,
                   spacecraft: Mapping[str, int] | None = None) -> Table:
-    """Paper Table spacesense-results: per group and method, Image IoU and Boundary F1 (mean ± sample
-    std over seeds) and the gains against Plain Student with seed-aware 95 % CIs, the group's noise
-    floor (``noise_floor``: the stability benchmark's record, None = not measured) and the claim.
-    ``fixed_tau`` (every table's): calibrate.fixed_tau as the run recorded it (:func:`mode_text`).
-    ``spacecraft``: {group: spacecraft} of the data (:func:`spacecraft_per_group`; None: unknown)."""
-    shown = [(g, m, r) for g, m, r in group_method_rows(summary, mode, groups)]
-    gains = [((g, m), r, "", is_primary(g, m, BASELINE, PRIMARY_ENDPOINT.metric, mode))
+    """Paper Table spacesense-results: per group and method, Image IoU and Boundary F1 over seeds, the gains
+    against Plain Student with their CIs, the noise floor (None: not measured) and the claim."""
+    shown = list(group_method_rows(summary, mode, groups))
+    gains = [((g, m), r, "", is_primary(g, m, BASELINE, mode))
              for g, m, r in shown if np.isfinite(r.get("gain_iou", np.nan))]
     holm = family_holm(gains)
     primary = {key for key, _, _, p in gains if p}
-    rows = [[g, label(m), fmt_pm(r["iou_mean"], r["iou_std"]), fmt_pm(r["bf1_mean"], r["bf1_std"]),
-             fmt_ci(r.get("gain_iou"), r.get("gain_iou_lo"), r.get("gain_iou_hi")),
-             fmt_ci(r.get("gain_bf1"), r.get("gain_bf1_lo"), r.get("gain_bf1_hi")),
-             floor_cell(g, noise_floor) if np.isfinite(r.get("gain_iou", np.nan)) else "--",
-             claim(r, "", g, noise_floor, {k: holm.get(((g, m), k)) for k, _ in CLAIM_METRICS},
-                   PRIMARY_ENDPOINT.metric if (g, m) in primary else None)
-             if np.isfinite(r.get("gain_iou", np.nan)) else "--",
-             str(int(r["n_seeds"]))] for g, m, r in shown]
+    rows = []
+    for g, m, r in shown:
+        cells = _gain_cells(r, "", g, (g, m), holm, (g, m) in primary, noise_floor)
+        if not np.isfinite(r.get("gain_iou", np.nan)):
+            cells[2:] = ["--", "--"]
+        rows.append([g, label(m), _ms(r, "iou"), _ms(r, "bf1"), *cells, str(int(r["n_seeds"]))])
     return Table("tab:spacesense-results", f"Segmentation results on the test groups ({mode_text(mode, fixed_tau)})",
                  ["Evaluation set", "Method", "Image IoU", "Boundary F1", "Image IoU gain [95% CI]",
                   "Boundary F1 gain [95% CI]", "Noise floor (IoU / BF1)", "Claim", "Seeds"], rows,
@@ -226,10 +214,8 @@ def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise
 
 
 def diagnostics_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], fixed_tau: float | None = None) -> Table:
-    """Precision, recall, predicted foreground fraction and small-region IoU (the paper's supplementary
-    diagnostics, shaped like tab:external-results)."""
-    rows = [[g, label(m)] + [fmt_pm(r.get(f"{k}_mean"), r.get(f"{k}_std"))
-                             for k in ("precision", "recall", "area_ratio", "small_iou")]
+    """Precision, recall, predicted foreground fraction and small-region IoU (shaped like tab:external-results)."""
+    rows = [[g, label(m)] + [_ms(r, k) for k in ("precision", "recall", "area_ratio", "small_iou")]
             for g, m, r in group_method_rows(summary, mode, groups)]
     return Table("tab:diagnostics", f"Foreground precision, recall and diagnostics ({mode_text(mode, fixed_tau)})",
                  ["Evaluation set", "Method", "Precision", "Recall", "Foreground fraction", "Small-region IoU"], rows,
@@ -251,12 +237,8 @@ def thresholds_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Table
                   "selection), never in a training loss."])
 
 
-# --------------------------------------------------------------------------------------------------
-# Ablations
-# --------------------------------------------------------------------------------------------------
 def ablation_means(metrics: pd.DataFrame, group: str, seed: int, mode: str) -> pd.DataFrame:
-    """Mean Image IoU / Boundary F1 per method on one group for one seed (the paper's single-seed
-    mechanistic ablations)."""
+    """Mean Image IoU / Boundary F1 per method on one group for one seed (single-seed mechanistic ablations)."""
     sub = metrics[(metrics["group"] == group) & (metrics["seed"] == seed) & (metrics["threshold_mode"] == mode)]
     return sub.groupby("method")[["iou", "bf1"]].mean()
 
@@ -275,16 +257,18 @@ def _epochs(m: str, epochs: Mapping[str, int]):
     return "--", str(own), str(own)
 
 
+def _ablation_rows(order: Sequence[str], means: pd.DataFrame) -> list[str] | None:
+    """The rows of ``order`` present in ``means``; None when no ablation ran."""
+    present = [m for m in order if m in means.index]
+    return present if any(m in ABLATIONS for m in present) else None
+
+
 def warm_start_table(means: pd.DataFrame, epochs: Mapping[str, int], group: str, seed: int, mode: str,
                      fixed_tau: float | None = None) -> Table | None:
     """Paper Table warm-start-ablation (rows present in ``means`` only); None when no ablation ran."""
-    present = [m for m in WARM_START_ROWS if m in means.index]
-    if not any(m in ABLATIONS for m in present):
+    if (present := _ablation_rows(WARM_START_ROWS, means)) is None:
         return None
-    rows = []
-    for m in present:
-        s1, s2, tot = _epochs(m, epochs)
-        rows.append([label(m), s1, s2, tot, fmt(means.loc[m, "iou"]), fmt(means.loc[m, "bf1"])])
+    rows = [[label(m), *_epochs(m, epochs), fmt(means.loc[m, "iou"]), fmt(means.loc[m, "bf1"])] for m in present]
     return Table("tab:warm-start-ablation",
                  f"Warm-start ablation on {group}, seed {seed} ({mode_text(mode, fixed_tau)})",
                  ["Training configuration", "Stage I", "Stage II", "Total epochs", "Image IoU", "Boundary F1"], rows,
@@ -295,27 +279,20 @@ def warm_start_table(means: pd.DataFrame, epochs: Mapping[str, int], group: str,
 def component_table(means: pd.DataFrame, group: str, seed: int, mode: str,
                     fixed_tau: float | None = None) -> Table | None:
     """Paper Table component-ablation; check marks come from the method definitions (pipeline.methods)."""
-    present = [m for m in COMPONENT_ROWS if m in means.index]
-    if not any(m in ABLATIONS for m in present):
+    if (present := _ablation_rows(COMPONENT_ROWS, means)) is None:
         return None
     rows = []
     for m in present:
         spec = METHODS.get(m)
         terms = spec.terms if spec else ()
-        tick = lambda b: "✓" if b else ""  # noqa: E731
-        rows.append([label(m), tick("sdf" in terms), tick("skel" in terms), tick("area" in terms),
-                     tick(spec is not None and spec.gate == "g"), fmt(means.loc[m, "iou"]), fmt(means.loc[m, "bf1"])])
+        ticks = ["sdf" in terms, "skel" in terms, "area" in terms, spec is not None and spec.gate == "g"]
+        rows.append([label(m), *("✓" if t else "" for t in ticks), fmt(means.loc[m, "iou"]), fmt(means.loc[m, "bf1"])])
     return Table("tab:component-ablation", f"Component ablation on {group}, seed {seed} ({mode_text(mode, fixed_tau)})",
                  ["Refinement configuration", "SDF", "Skel.", "Area", "Gate", "IoU", "BF1"], rows)
 
 
-# --------------------------------------------------------------------------------------------------
-# Teacher
-# --------------------------------------------------------------------------------------------------
 def teacher_prompt_table(q: pd.DataFrame, group: str, teacher_note: str) -> Table:
-    rows = []
-    for _, r in q.iterrows():
-        rows.append([r["config"]] + [fmt_pm(r[m], r[f"{m}_std"]) for m in ("iou", "bf1", "precision", "recall")])
+    rows = [[r["config"]] + [fmt_pm(r[m], r[f"{m}_std"]) for m in QUALITY] for _, r in q.iterrows()]
     return Table("tab:teacher-prompt-quality", f"Pseudo-mask quality of teacher prompting configurations on {group}",
                  ["Teacher configuration", "Image IoU", "Boundary F1", "Precision", "Recall"], rows,
                  [teacher_note, "The single prompt is selected on the validation split by mean Image IoU; the mean row "
@@ -323,18 +300,16 @@ def teacher_prompt_table(q: pd.DataFrame, group: str, teacher_note: str) -> Tabl
 
 
 def teacher_domain_table(d: pd.DataFrame, teacher_note: str) -> Table:
-    rows = [[f"{r['dataset']} / {r['domain']} ({r['group']})", str(int(r["n"]))]
-            + [fmt(r[m]) for m in ("iou", "bf1", "precision", "recall")] for _, r in d.iterrows()]
+    rows = [[f"{r['dataset']} / {r['domain']} ({r['group']})", str(int(r["n"]))] + [fmt(r[m]) for m in QUALITY]
+            for _, r in d.iterrows()]
     return Table("tab:teacher-domain-quality", "Multi-prompt (voted) teacher pseudo-mask quality per dataset / domain",
                  ["Dataset / domain (group)", "Images", "Image IoU", "Boundary F1", "Precision", "Recall"], rows,
                  [teacher_note])
 
 
 def gate_table(analyses: Sequence[dict], teacher_note: str) -> Table:
-    rows = []
-    for a in analyses:
-        for _, r in a["table"].iterrows():
-            rows.append([a["group"], r["state"], str(int(r["images"])), fmt(r["iou"]), fmt(r["bf1"])])
+    rows = [[a["group"], r["state"], str(int(r["images"])), fmt(r["iou"]), fmt(r["bf1"])]
+            for a in analyses for _, r in a["table"].iterrows()]
     notes = [f"Spearman rho between g and the voted teacher mask's quality on {a['group']} (n = {a['n']}): "
              f"Image IoU {fmt(a['rho_iou'])} (p = {fmt_p(a['p_iou'])}), Boundary F1 {fmt(a['rho_bf1'])} "
              f"(p = {fmt_p(a['p_bf1'])})." for a in analyses]
@@ -344,19 +319,8 @@ def gate_table(analyses: Sequence[dict], teacher_note: str) -> Table:
                           "the gate never sees them."])
 
 
-def fmt_p(p) -> str:
-    if p is None or not np.isfinite(p):
-        return "--"
-    return f"{p:.2e}" if p < 1e-3 else f"{p:.4f}"
-
-
-# --------------------------------------------------------------------------------------------------
-# Efficiency
-# --------------------------------------------------------------------------------------------------
 def efficiency_table(eff: pd.DataFrame) -> Table:
-    """Paper Table efficiency from efficiency.parquet, plus the speed-up against the fp32 eager baseline of
-    the same run, the Image IoU change against fp32 on the validation split, the mean per-image IoU of the
-    variant's masks with fp32's (1 = identical masks), resolution and device."""
+    """Paper Table efficiency from efficiency.parquet, with the speed-up and the mask agreement against fp32."""
     labels = {"speedup": "Speed-up vs fp32 eager", "iou_delta": "Val Image IoU change vs fp32",
               "iou_vs_fp32": "Mask IoU with fp32 (val)", "resolution": "Resolution", "device": "Device"}
     # a column with no value at all (the IoU columns without validation masks) is left out, not shown as "--"
@@ -364,20 +328,17 @@ def efficiency_table(eff: pd.DataFrame) -> Table:
     rows = []
     for _, r in eff.iterrows():
         params = r["params"]
-        # a variant the benchmark did not time (unsupported, or pathologically slow on this CPU) shows why
-        # instead of numbers; a timed one with a caveat (e.g. bf16 emulated) carries it beside its name
+        # an untimed variant (unsupported, or pathologically slow here) shows why instead of numbers;
+        # a timed one with a caveat (e.g. bf16 emulated) carries it beside its name
         timed = bool(r["timed"]) if "timed" in eff.columns else True
         remark = str(r["remark"]) if "remark" in eff.columns and isinstance(r["remark"], str) else ""
         name = str(r["variant"]) + (f" ({remark})" if timed and remark else "")
         speed = ([fmt(r["latency_ms"], 2), fmt(r["throughput"], 1), fmt(r["peak_mb"], 1)] if timed
                  else [remark or "not timed", "--", "--"])
-        row = [name,
-               f"{params / 1e6:.3f} M" if isinstance(params, (int, float, np.number)) and np.isfinite(params) else str(params),
-               fmt(r["gflops"], 2), *speed]
-        for c in extra:
-            v = r[c]
-            row.append(fmt(v) if isinstance(v, (float, np.floating)) else str(v))
-        rows.append(row)
+        n_params = (f"{params / 1e6:.3f} M" if isinstance(params, (int, float, np.number)) and np.isfinite(params)
+                    else str(params))
+        rows.append([name, n_params, fmt(r["gflops"], 2), *speed,
+                     *(fmt(r[c]) if isinstance(r[c], (float, np.floating)) else str(r[c]) for c in extra)])
     return Table("tab:efficiency", "Computational efficiency of the deployed student",
                  ["Variant", "Parameters", "GFLOPs", "Latency (ms/image)", "Throughput (image/s)", "Peak memory (MB)"]
                  + [labels[c] for c in extra], rows, ["Measured by the benchmark stage on this machine; latency (batch 1, median, timed round-robin "
@@ -386,9 +347,6 @@ def efficiency_table(eff: pd.DataFrame) -> Table:
                   + ("." if "iou_delta" in extra else " (left out: no validation images with masks).")])
 
 
-# --------------------------------------------------------------------------------------------------
-# Controls, reference points and diagnostics (issue 17)
-# --------------------------------------------------------------------------------------------------
 def _ordered_with_ceiling_last(methods: Sequence[str]) -> list[str]:
     """Annotation-free methods (main order, then ablations by name), then the not-annotation-free ones."""
     present = list(dict.fromkeys(methods))
@@ -403,16 +361,13 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
                    noise_floor: dict | None = None, fixed_tau: float | None = None,
                    interval: str | None = DEFAULT_INTERVAL, spacecraft: Mapping[str, int] | None = None
                    ) -> Table | None:
-    """The budget-matched control: per group, Continuation - Plain (Stage II's extra epochs alone),
-    each warm-started method - Continuation (the geometry effect at a matched budget) and
-    GeoDistill-Refine - Plain, with the seed-aware CIs of the evaluate stage.
-    None when no continuation run was evaluated.  Annotation-free methods only.  ``noise_floor``: the
-    stability benchmark's record (None = not measured), beside each difference with its claim.
-    ``spacecraft``: as :func:`results_table`'s."""
+    """The budget-matched control per group: Continuation - Plain (the extra epochs alone), each warm-started
+    method - Continuation (geometry at a matched budget) and GeoDistill-Refine - Plain; None without a
+    continuation run."""
     s = summary[summary["threshold_mode"] == mode]
     if CONTINUATION not in set(s["method"]) or f"gain_iou{VS_CONTINUATION}" not in s.columns:
         return None
-    shown = []  # (group, comparison in words, summary row, suffix, control)
+    shown = []  # (group, comparison in words, summary row, suffix, is_primary)
     for g in groups:
         part = s[s["group"] == g].set_index("method")
         warm = [PROPOSED] + sorted(m for m in part.index if m != PROPOSED)
@@ -422,17 +377,10 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
                     CONTINUATION) for m in warm]
                 + [(f"{label(PROPOSED)} − {label(BASELINE)} (the paper's comparison)", PROPOSED, "", BASELINE)]):
             if m in part.index and np.isfinite(part.loc[m].get(f"gain_iou{suffix}", np.nan)):
-                shown.append((g, what, part.loc[m], suffix, control, m))
-    entries = [((g, what), r, suffix, is_primary(g, m, control, PRIMARY_ENDPOINT.metric, mode))
-               for g, what, r, suffix, control, m in shown]
-    holm = family_holm(entries)
-    rows = [[g, what, fmt_ci(r[f"gain_iou{suffix}"], r[f"gain_iou{suffix}_lo"], r[f"gain_iou{suffix}_hi"]),
-             fmt_ci(r[f"gain_bf1{suffix}"], r[f"gain_bf1{suffix}_lo"], r[f"gain_bf1{suffix}_hi"]),
-             floor_cell(g, noise_floor),
-             claim(r, suffix, g, noise_floor, {k: holm.get(((g, what), k)) for k, _ in CLAIM_METRICS},
-                   PRIMARY_ENDPOINT.metric if primary else None),
-             str(int(r[f"gain_seeds{suffix}"]))]
-            for (g, what, r, suffix, _, _), (_, _, _, primary) in zip(shown, entries)]
+                shown.append((g, what, part.loc[m], suffix, is_primary(g, m, control, mode)))
+    holm = family_holm([((g, what), r, suffix, p) for g, what, r, suffix, p in shown])
+    rows = [[g, what, *_gain_cells(r, suffix, g, (g, what), holm, p, noise_floor), str(int(r[f"gain_seeds{suffix}"]))]
+            for g, what, r, suffix, p in shown]
     return Table("tab:controls", f"Budget-matched control: where the gain comes from ({mode_text(mode, fixed_tau)})",
                  ["Evaluation set", "Comparison", "Image IoU difference [95% CI]", "Boundary F1 difference [95% CI]",
                   "Noise floor (IoU / BF1)", "Claim", "Seeds"], rows,
@@ -445,9 +393,8 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
 
 def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mode: str,
                            groups: Sequence[str], fixed_tau: float | None = None) -> Table | None:
-    """Reference points beside the students, never compared with CIs: the teacher vote scored as a
-    predictor at its own binary mask (``vote``: per-group means from teacher_metrics.parquet) and the
-    supervised ceiling (uses reference masks; not annotation-free), with Plain Student for context."""
+    """Reference points beside the students, never compared with CIs: the teacher vote scored as a predictor
+    (``vote``: per-group means) and the supervised ceiling, with Plain Student for context."""
     s = summary[summary["threshold_mode"] == mode]
     ceiling = not_annotation_free(s["method"].unique())
     if not ceiling and (vote is None or vote.empty):
@@ -460,15 +407,12 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
             if m in part.index:
                 r = part.loc[m]
                 e, lo, hi = distillation_efficiency(r["iou_mean"], r["iou_std"], r["n_seeds"], vote_iou)
-                rows.append([g, label(m), fmt_pm(r["iou_mean"], r["iou_std"]), fmt_pm(r["bf1_mean"], r["bf1_std"]),
-                             fmt_pm(r.get("precision_mean"), r.get("precision_std")),
-                             fmt_pm(r.get("recall_mean"), r.get("recall_std")), str(int(r["n_seeds"])),
+                rows.append([g, label(m), *(_ms(r, k) for k in QUALITY), str(int(r["n_seeds"])),
                              efficiency_text(e, lo, hi)])
                 verdicts.append((m, efficiency_target_met(m, e, lo)))
         if vote is not None and g in vote.index:
             v = vote.loc[g]
-            rows.append([g, TEACHER_VOTE_LABEL, fmt(v["iou"]), fmt(v["bf1"]), fmt(v["precision"]),
-                         fmt(v["recall"]), "--", "1"])
+            rows.append([g, TEACHER_VOTE_LABEL, *(fmt(v[k]) for k in QUALITY), "--", "1"])
     return Table("tab:reference-points", f"Reference points: the teacher vote and the supervised ceiling "
                  f"({mode_text(mode, fixed_tau)} for the students)",
                  ["Evaluation set", "Predictor", "Image IoU", "Boundary F1", "Precision", "Recall", "Seeds",
@@ -484,8 +428,7 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
 
 
 def efficiency_targets_note(verdicts: Sequence[tuple[str, bool | None]]) -> str:
-    """The distillation-efficiency targets (:data:`pipeline.report.dvc_results.EFFICIENCY_TARGETS`) and, per method,
-    on how many of the table's groups they are met: ``verdicts`` = (method, met or None) per row."""
+    """The distillation-efficiency targets and on how many groups each is met (``verdicts``: (method, met or None))."""
     parts = []
     for m, (target, on_interval) in EFFICIENCY_TARGETS.items():
         judged = [v for mm, v in verdicts if mm == m and v is not None]
@@ -497,16 +440,14 @@ def efficiency_targets_note(verdicts: Sequence[tuple[str, bool | None]]) -> str:
 
 
 def efficiency_text(e: float, lo: float, hi: float) -> str:
-    """``0.84 [0.80, 0.88]`` from :func:`pipeline.report.dvc_results.distillation_efficiency`'s (ratio, low, high);
-    ``--`` without a vote."""
+    """``0.84 [0.80, 0.88]`` from a (ratio, low, high); ``--`` without a vote."""
     if not math.isfinite(e):
         return "--"
     return f"{e:.2f}" + (f" [{lo:.2f}, {hi:.2f}]" if math.isfinite(lo) else "")
 
 
 def calibration_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Table:
-    """Per method, mean ± std over seeds of the validation-split calibration diagnostics: calibrated tau,
-    val Image IoU at tau and at the fixed tau, ECE, and median predicted/reference area at both taus."""
+    """Per method, mean ± std over seeds of the validation-split calibration diagnostics."""
     rows = []
     for m in _ordered_with_ceiling_last(thr["method"].unique()):
         part = thr[thr["method"] == m]
@@ -528,9 +469,7 @@ def calibration_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Tabl
 
 
 def epoch_swing_table(swings: pd.DataFrame, fixed_tau: float | None = None) -> Table:
-    """Per method and stage: the largest and the median change of validation Image IoU between adjacent
-    epochs at the fixed tau (checkpoint selection's) and at each epoch's calibrated tau, and the range of
-    that tau (training logs)."""
+    """Per method and stage: the changes of validation Image IoU between adjacent epochs (:func:`epoch_swings`)."""
     rows = []
     for m in _ordered_with_ceiling_last(swings["method"].unique()):
         for _, r in swings[swings["method"] == m].iterrows():
@@ -549,8 +488,7 @@ def epoch_swing_table(swings: pd.DataFrame, fixed_tau: float | None = None) -> T
 
 def size_split_table(split: pd.DataFrame, mode: str, max_fraction: float | None,
                      fixed_tau: float | None = None) -> Table:
-    """Metrics split by target size (``split``: seed_summary rows by method, threshold_mode,
-    target_size), pooled over the test groups."""
+    """Metrics split by target size, pooled over the test groups (``split``: :func:`size_split`)."""
     s = split[split["threshold_mode"] == mode]
     rows = []
     for m in _ordered_with_ceiling_last(s["method"].unique()):
