@@ -43,7 +43,7 @@ from pipeline.consensus import agreement_entropy
 from pipeline.review.ranking import DEFAULT_RANKING, scores
 from pipeline.stats import paired_seed_image_t
 from pipeline.thresholds import mask_from_probs
-from pipeline.training.inputs import load_inputs, replace_targets
+from pipeline.training.inputs import _rows, load_inputs, replace_targets
 
 CAVEAT = ("on this benchmark the simulated teacher builds its bad masks from the gate's own factors "
           "(pipeline/teachers/simulated.py): a gate-based ranking (gate, and combined through g) wins partly by "
@@ -76,7 +76,6 @@ def select(table, how: str, k: int, rng: np.random.Generator) -> list[str]:
 def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "cpu") -> list[dict]:
     """Every (selection, k, seed[, draw]) run: its test IoUs per image (Stage I on replaced targets)."""
     from pipeline.training import loop as training
-    from pipeline.training.loop import _rows
 
     method = get_method(STAGE_ONE)
     data, val, _ = load_inputs(artifacts, method, cfg)
@@ -114,8 +113,6 @@ def selected_label_quality(artifacts: Path, cfg: dict, ks, seeds, draws: int) ->
     """Per (selection, k > 0): the mean Image IoU of the chosen images' voted masks against their reference
     masks (how bad the pseudo-labels a selection hands the person are; seeds and draws averaged), after
     the whole training set's.  No training: the choices :func:`run_study` makes on the same ``cfg``."""
-    from pipeline.training.loop import _rows
-
     data, _, _ = load_inputs(artifacts, get_method(STAGE_ONE), cfg)
     ids = list(data.image_ids)
     manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")

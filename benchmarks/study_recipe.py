@@ -56,7 +56,7 @@ from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.metrics import image_ious
 from pipeline.profiles import load_profile
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
-from pipeline.training.inputs import load_inputs
+from pipeline.training.inputs import _rows, load_inputs
 
 REPO = Path(__file__).resolve().parents[1]
 #: the Stage-I (Plain Student) recipe and the same recipe on reference masks (the supervised ceiling)
@@ -123,8 +123,6 @@ def build_artifacts(workdir: Path, profile: str, sets: list[str], device: str, g
 def load_study_data(artifacts: Path, cfg: Mapping[str, Any], methods=METHODS) -> dict:
     """Training arrays per method of ``methods`` (via the training API), validation and test images +
     reference masks (test: images, masks and groups)."""
-    from pipeline.training.loop import _rows
-
     out: dict[str, Any] = {}
     for m in methods:
         data, val, _ = load_inputs(artifacts, get_method(m), cfg)

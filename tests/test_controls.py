@@ -66,8 +66,7 @@ def test_continuation_equals_geodistill_without_geometry_weights(tiny, stage1_st
 
 # ---- 2b: the supervised ceiling and the reference-mask boundary -----------------------------------
 def test_only_the_ceiling_may_train_on_reference_masks(tiny):
-    from pipeline.training import loop as training
-    from pipeline.training.supervised import ceiling_training_data, require_supervised_ceiling
+    from pipeline.training.inputs import ceiling_training_data, require_supervised_ceiling, training_data
 
     ceiling = get_method(SUPERVISED_CEILING)
     assert not ceiling.annotation_free and [m for m in METHODS if not METHODS[m].annotation_free] == [SUPERVISED_CEILING]
@@ -82,8 +81,8 @@ def test_only_the_ceiling_may_train_on_reference_masks(tiny):
     with pytest.raises(ValueError, match="reference masks enter a loss only"):
         ceiling_training_data(get_method("plain"), inputs, reference)
     # and the pseudo-target path refuses the ceiling
-    with pytest.raises(ValueError, match="pipeline.training.supervised"):
-        training.training_data(ceiling, tiny_cfg(), inputs)
+    with pytest.raises(ValueError, match="ceiling_training_data"):
+        training_data(ceiling, tiny_cfg(), inputs)
     # the ceiling's targets ARE the training split's reference masks (and nothing of the teacher)
     data = ceiling_training_data(ceiling, inputs, reference)
     split = inputs["manifest"].df["split"].to_numpy()

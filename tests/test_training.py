@@ -218,7 +218,7 @@ def test_reference_masks_of_training_rows_never_reach_a_loss(tmp_path):
     cfg = tiny_cfg(epochs_stage1=2)
     ra, rb = _run("plain", a, cfg), _run("plain", b, cfg)
     assert_same_state(clone_state(ra.model), clone_state(rb.model))
-    from pipeline.training import loop as training
+    from pipeline.training import inputs as training
     from pipeline.methods import get_method
 
     _, val = load_arrays(b, "plain", cfg)

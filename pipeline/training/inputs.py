@@ -1,12 +1,10 @@
-"""What a training run reads, opened from an artifacts directory: the train stage's inputs, callable
-without the CLI (the train stage and the recipe study both call :func:`load_inputs`).
-
-This module stays torch-free: :mod:`pipeline.training.loop` (torch) is imported when a run loads its arrays.
-"""
+"""What a training run reads, torch-free: pseudo-targets for training, reference masks for validation (and for the
+supervised ceiling only), and human corrections; from opened artifacts or an artifacts directory."""
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -14,77 +12,304 @@ import numpy as np
 
 from pipeline import catalog
 from pipeline.artifacts.lineage import require_same_run
-from pipeline.artifacts.store import open_artifact
-from pipeline.augment import recompute_geometry
-from pipeline.runtime.errors import InputError
-from pipeline.geometry import area_ratio
+from pipeline.artifacts.store import open_artifact, read_chunk_rows
+from pipeline.augment import GeometryConstants, recompute_geometry
 from pipeline.evaluation.inference import REVIEW_MODE_KEY, corrected_validation, require_mode
-from pipeline.training.streaming import RowSource, select_rows
+from pipeline.geometry import area_ratio
+from pipeline.methods import (SUPERVISED_CEILING, Method, afs_fuse, afs_keep, confidence_pass, input_artifacts,
+                              mean_valid_score, pass_ratio, uses_confidence)
+from pipeline.runtime.errors import ArtifactError, InputError
+from pipeline.training.streaming import LazyRows, MappedRows, RowSource, row_means, select_rows
 
-
-def load_inputs(artifacts: str | Path, spec, cfg: Mapping[str, Any], review: Mapping[str, Any] | None = None
-                ) -> tuple[Any, Any, list]:
-    """Open what the method's training reads and the validation reference; build the arrays.
-
-    ``review``: the params' ``review`` section.  With ``review.corrections`` set, the ``corrected``
-    artifact (stage corrections) is opened too and applied in ``review.mode``
-    (:func:`apply_to_training` / :func:`apply_to_validation`; the modes: :mod:`pipeline.review.apply`):
-    ``validate`` moves the corrected training images to validation; ``replace`` puts the corrected masks
-    in the loss (NOT annotation-free: :func:`pipeline.methods.run_annotation_free`).  Unset (the
-    default), nothing else is opened and the run is what it was.
-
-    Returns (TrainData, ValData or None, the artifacts opened -- the checkpoint's lineage).
-    reference.zarr is opened only when the manifest has validation rows, and goes only to
-    :func:`pipeline.training.loop.validation_data` -- except for the supervised ceiling (NOT
-    annotation-free), whose targets :func:`pipeline.training.supervised.ceiling_training_data` builds from it.
-    """
-    from pipeline.training import loop as training  # torch: imported when a run trains, not with the stage module
-
-    def opened_artifact(name: str):
-        return open_artifact(catalog.path(name, artifacts), name)
-
-    inputs = {name: opened_artifact(name) for name in training.training_inputs(spec, cfg)}
-    # outputs of one stage must come from one run (a kill between geometry.zarr and gates.parquet)
-    require_same_run(*inputs.values())
-    opened = list(inputs.values())
-    reference = None
-    if spec.annotation_free:
-        data = training.training_data(spec, cfg, inputs)
-    else:  # the supervised ceiling: the one method whose loss sees reference masks (NOT annotation-free)
-        from pipeline.training.supervised import ceiling_training_data  # imports pipeline.training.loop (torch)
-
-        reference = opened_artifact("reference")
-        opened.append(reference)
-        require_same_run(*opened)
-        data = ceiling_training_data(spec, inputs, reference)
-    corrected = None
-    if review and review.get("corrections") and spec.annotation_free:
-        corrected = opened_artifact("corrected")
-        opened.append(corrected)
-        data = apply_to_training(data, corrected, review["mode"])
-    val = None
-    if len(training.validation_rows(inputs["manifest"])):
-        if reference is None:
-            reference = opened_artifact("reference")
-            opened.append(reference)
-            require_same_run(*opened)
-        val = training.validation_data(inputs["manifest"], inputs["images"], reference)
-    if corrected is not None and review["mode"] == "validate":
-        val = apply_to_validation(val, corrected, inputs["images"], training.ValData)
-    return data, val, opened
-
-
-# --------------------------------------------------------------------------------------------------
-# Human corrections (params review; the stage corrections writes the corrected artifact)
-# --------------------------------------------------------------------------------------------------
 #: how the corrected artifact enters a run (:mod:`pipeline.review.apply` says what each means)
 MODES = ("validate", "replace")
 MODE_KEY = REVIEW_MODE_KEY
 
 
+@dataclasses.dataclass
+class TrainData:
+    """The training rows of a method (manifest order): arrays in memory or row sources read per batch.
+
+    ``mask`` is the region target (M^T, or the AFS-fused mask), ``sdf``/``skeleton`` the pseudo-geometry targets
+    (None without geometry.zarr), ``area`` a_i and ``gate`` g_i per image, ``stats`` the filter outcome.
+    """
+
+    image_ids: list
+    images: np.ndarray | RowSource
+    mask: np.ndarray | RowSource
+    area: np.ndarray
+    gate: np.ndarray
+    sdf: np.ndarray | RowSource | None = None
+    skeleton: np.ndarray | RowSource | None = None
+    stats: dict = dataclasses.field(default_factory=dict)
+    #: the constants ``sdf``/``skeleton`` were computed with: an augmented rescale recomputes them alike
+    geometry: GeometryConstants = dataclasses.field(default_factory=GeometryConstants)
+
+    def __len__(self) -> int:
+        return len(self.image_ids)
+
+
+@dataclasses.dataclass
+class ValData:
+    """Validation images and their reference masks (``split == "val"`` rows with a mask), in memory."""
+
+    image_ids: list
+    images: np.ndarray
+    masks: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.image_ids)
+
+
+def _check_order(art, ids: list, what: str) -> None:
+    got = getattr(art, "attrs", {}).get("image_ids")
+    if got is not None and list(got) != list(ids):
+        raise ArtifactError(f"{art.path}: image order differs from the manifest ({what}); rerun the stages after prepare")
+
+
+def _rows(art, name: str, idx: np.ndarray) -> np.ndarray:
+    arr = art[name]
+    if len(idx) == 0:
+        return np.zeros((0, *arr.shape[1:]), dtype=arr.dtype)
+    return read_chunk_rows(arr, idx)
+
+
+def training_inputs(method: Method, cfg: Mapping[str, Any]) -> tuple[str, ...]:
+    """The artifacts :func:`training_data` reads for ``method`` (never ``reference``)."""
+    return tuple(n for n in input_artifacts(method, cfg["confidence"]["criterion"]) if n != "reference")
+
+
+def _train_rows(manifest) -> tuple[list, np.ndarray]:
+    """Manifest image ids (all rows) and the indices of the ``split == "train"`` rows."""
+    df = manifest.df
+    train_idx = np.flatnonzero((df["split"] == "train").to_numpy())
+    if len(train_idx) == 0:
+        raise InputError(f"{manifest.path}: no rows with split == 'train'")
+    return df["image_id"].astype(str).tolist(), train_idx
+
+
+def _gate_table(gates, train_ids: list):
+    """gates.parquet rows of the training images, indexed by image id, in ``train_ids`` order."""
+    gdf = gates.df.assign(image_id=gates.df["image_id"].astype(str)).set_index("image_id")
+    missing = [i for i in train_ids if i not in gdf.index]
+    if missing:
+        raise ArtifactError(f"{gates.path}: no gate row for {len(missing)} training images (e.g. {missing[0]})")
+    return gdf.loc[train_ids]
+
+
+def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Any]) -> TrainData:
+    """The pseudo-targets of the training rows ``method`` keeps after its data filter, from opened artifacts.
+
+    ``inputs``: artifact name -> opened artifact for every name in :func:`training_inputs`; a ``reference`` among
+    them is refused.
+    """
+    if "reference" in inputs:
+        raise ValueError("training_data: reference masks never enter training (use validation_data)")
+    if not method.annotation_free:
+        raise ValueError(f"training_data: --method {method.name} trains on reference masks; "
+                         f"its targets come only from pipeline.training.inputs.ceiling_training_data")
+    missing = [n for n in training_inputs(method, cfg) if n not in inputs]
+    if missing:
+        raise ValueError(f"training_data: --method {method.name} needs the artifacts {missing}")
+    ids, train_idx = _train_rows(inputs["manifest"])
+    for name in ("images", "teacher", "consensus", "geometry"):
+        if name in inputs:
+            _check_order(inputs[name], ids, name)
+    train_ids = [ids[i] for i in train_idx]
+    gates_df = _gate_table(inputs["gates"], train_ids) if "gates" in inputs else None
+    stats: dict[str, Any] = {"n_train_rows": int(len(train_idx))}
+    mask, keep = _region_targets(method, cfg, inputs, train_idx, stats)
+    sel = np.flatnonzero(keep & _confidence_keep(method, cfg, inputs, gates_df, train_idx, stats))
+    if len(sel) == 0:
+        raise InputError(f"--method {method.name}: no training image passes the method's filter "
+                         f"(train.{'afs' if method.data == 'afs' else 'confidence'}); loosen it")
+    rows = train_idx[sel]
+    mask = select_rows(mask, sel)
+    data = TrainData(
+        image_ids=[train_ids[i] for i in sel], images=LazyRows(inputs["images"]["image"], rows), mask=mask,
+        area=gates_df["a"].to_numpy(np.float32)[sel] if gates_df is not None else row_means(mask),  # eq:pseudo-area
+        gate=gate_values(method, gates_df, sel), stats=stats)
+    if method.needs_geometry:
+        data.sdf = LazyRows(inputs["geometry"]["sdf"], rows, np.float32)
+        data.skeleton = LazyRows(inputs["geometry"]["skeleton"], rows, bool)
+        data.geometry = geometry_constants(inputs["geometry"])
+    stats["n_train"] = len(data)
+    return data
+
+
+def geometry_constants(geometry) -> GeometryConstants:
+    """The ``geometry.*`` constants recorded in geometry.zarr's params (the defaults where it records none)."""
+    params = getattr(getattr(geometry, "meta", None), "params", None) or {}
+    nested = params.get("geometry") if isinstance(params.get("geometry"), Mapping) else {}
+
+    def get(key: str, default: float) -> float:
+        return float(params.get(f"geometry.{key}", nested.get(key, default)))
+
+    d = GeometryConstants()
+    return GeometryConstants(quantile=get("sdf_quantile", d.quantile), min_scale=get("sdf_min_scale", d.min_scale),
+                             min_distance=get("skeleton_min_distance", d.min_distance))
+
+
+def _region_targets(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Any],
+                    train_idx: np.ndarray, stats: dict) -> tuple[RowSource, np.ndarray]:
+    """Region target of every training row and the rows the AFS filter keeps: M^T (eq:majority-vote), A
+    (eq:agreement-map) with ``train.soft_targets``, or the AFS control's fused base-prompt mask."""
+    if method.data == "afs":
+        mask, keep, r = _afs_targets(inputs["teacher"], train_idx, cfg["afs"])
+        stats["afs_pass_ratio"] = r
+        return mask, keep
+    keep = np.ones(len(train_idx), dtype=bool)
+    if cfg.get("soft_targets"):
+        return LazyRows(inputs["consensus"]["agreement"], train_idx, np.float32), keep
+    return LazyRows(inputs["consensus"]["voted"], train_idx, bool), keep
+
+
+def _confidence_keep(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Any], gates_df,
+                     train_idx: np.ndarray, stats: dict) -> np.ndarray:
+    """Rows the confidence filter keeps (all unless ``data == "confidence"``); records its pass ratio r wherever
+    the method evaluates the criterion."""
+    keep = np.ones(len(train_idx), dtype=bool)
+    if uses_confidence(method):
+        passed = _confidence_pass(gates_df, inputs.get("teacher"), train_idx, cfg["confidence"])
+        stats["confidence_pass_ratio"] = pass_ratio(passed)
+        if method.data == "confidence":
+            keep &= passed
+    return keep
+
+
+def gate_values(method: Method, gates_df, sel: np.ndarray) -> np.ndarray:
+    """Per-image gate g_i (eq:reliability-gate) of the selected rows; 1 for ``gate="one"`` or without gates."""
+    if method.gate == "one" or gates_df is None:
+        return np.ones(len(sel), dtype=np.float32)
+    g = gates_df["g"].to_numpy(np.float32)[sel]
+    if not np.all(np.isfinite(g)) or g.min(initial=0) < 0 or g.max(initial=0) > 1:
+        raise ArtifactError("gates.parquet: column g must be finite and in [0, 1]")
+    return g
+
+
+def _confidence_pass(gates_df, teacher, train_idx, c: Mapping[str, Any]) -> np.ndarray:
+    """The confidence criterion (``train.confidence``) of every training row, from teacher outputs only."""
+    criterion = c["criterion"]
+    mean_score = mean_valid_score(_rows(teacher, "scores", train_idx)) if criterion == "mean_score" else None
+    return confidence_pass(gates_df["c"].to_numpy(), gates_df["n_valid"].to_numpy(), mean_score,
+                           criterion, float(c["threshold"]), int(c["min_valid"]))
+
+
+def _afs_targets(teacher, train_idx, a: Mapping[str, Any]) -> tuple[MappedRows, np.ndarray, float]:
+    """AFS control targets (``train.afs``): the base prompt's mask fused with its vertical flip's, fused per batch;
+    the rows whose base score reaches the threshold; their pass ratio."""
+    if "vflip_masks" not in teacher or "vflip_scores" not in teacher:
+        raise InputError(f"{teacher.path}: no vflip_masks/vflip_scores; the afs_control method needs "
+                         f"teacher.vflip_base_prompt: true")
+    prompts = list(teacher.attrs.get("prompts") or [])
+    base = a["base_prompt"]
+    if base not in prompts:
+        raise InputError(f"params: train.afs.base_prompt={base!r} is not one of {teacher.path}'s prompts {prompts}")
+    k = prompts.index(base)
+    rows = np.sort(train_idx)
+    afs_fuse(np.zeros(1, bool), np.zeros(1, bool), a["fusion"])  # a bad train.afs.fusion fails here, not mid-epoch
+    fused = MappedRows(functools.partial(_afs_fuse_prompt, k=k, fusion=a["fusion"]),
+                       [LazyRows(teacher["masks"], rows, bool), LazyRows(teacher["vflip_masks"], rows, bool)],
+                       bool, teacher["vflip_masks"].shape[1:])
+    scores = np.asarray(teacher["scores"].get_orthogonal_selection((rows, k)), dtype=np.float64)
+    keep = afs_keep(scores, float(a["score_threshold"]))
+    return fused, keep, pass_ratio(keep)
+
+
+def _afs_fuse_prompt(masks: np.ndarray, vflip_masks: np.ndarray, k: int, fusion: str) -> np.ndarray:
+    return afs_fuse(masks[:, k], vflip_masks, fusion)
+
+
+def validation_rows(manifest) -> np.ndarray:
+    """Indices of the manifest's ``split == "val"`` rows (the only rows whose reference masks are read)."""
+    return np.flatnonzero((manifest.df["split"] == "val").to_numpy())
+
+
+def validation_data(manifest, images, reference) -> ValData | None:
+    """Validation images and reference masks for checkpoint selection, the ``split == "val"`` rows with a mask;
+    None when there are none."""
+    ids = manifest.df["image_id"].astype(str).tolist()
+    val_idx = validation_rows(manifest)
+    if len(val_idx) == 0:
+        return None
+    _check_order(reference, ids, "reference")
+    val_idx = val_idx[_rows(reference, "has_mask", val_idx).astype(bool)]
+    if len(val_idx) == 0:
+        return None
+    return ValData(image_ids=[ids[i] for i in val_idx], images=_rows(images, "image", val_idx),
+                   masks=_rows(reference, "mask", val_idx).astype(bool))
+
+
+def require_supervised_ceiling(method: Method) -> None:
+    """ValueError unless ``method`` is the supervised ceiling, the only method trained on reference masks."""
+    if method.name != SUPERVISED_CEILING or method.annotation_free:
+        raise ValueError(f"--method {method.name}: reference masks enter a loss only for {SUPERVISED_CEILING!r} "
+                         f"(annotation-free methods train on pseudo-targets: pipeline.training.inputs.training_data)")
+
+
+def ceiling_training_data(method: Method, inputs: Mapping[str, Any], reference) -> TrainData:
+    """The supervised ceiling's training rows with a reference mask: images and REFERENCE masks, read per batch.
+
+    The one place reference masks enter a loss (NOT annotation-free).  ``inputs``: opened ``manifest`` and
+    ``images``; ``area`` is each mask's foreground fraction, ``gate`` 1.
+    """
+    require_supervised_ceiling(method)
+    ids, train_idx = _train_rows(inputs["manifest"])
+    for art in (inputs["images"], reference):
+        _check_order(art, ids, art.meta.schema)
+    n_rows = int(len(train_idx))
+    train_idx = train_idx[_rows(reference, "has_mask", train_idx).astype(bool)]
+    if len(train_idx) == 0:
+        raise InputError(f"{reference.path}: no training image has a reference mask; "
+                         f"the supervised ceiling needs them")
+    mask = LazyRows(reference["mask"], train_idx, bool)
+    data = TrainData(image_ids=[ids[i] for i in train_idx], images=LazyRows(inputs["images"]["image"], train_idx),
+                     mask=mask, area=row_means(mask), gate=np.ones(len(mask), dtype=np.float32),
+                     stats={"n_train_rows": n_rows, "targets": "reference masks (NOT annotation-free)"})
+    data.stats["n_train"] = len(data)
+    return data
+
+
+def load_inputs(artifacts: str | Path, spec: Method, cfg: Mapping[str, Any], review: Mapping[str, Any] | None = None
+                ) -> tuple[TrainData, ValData | None, list]:
+    """(TrainData, ValData or None, the opened artifacts: the checkpoint's lineage) of a run of method ``spec``.
+
+    ``review``: the params' ``review`` section; with ``review.corrections`` set, the ``corrected`` artifact is
+    applied in ``review.mode`` (:func:`apply_to_training`, :func:`apply_to_validation`).
+    """
+
+    def opened(name: str):
+        lineage.append(open_artifact(catalog.path(name, artifacts), name))
+        return lineage[-1]
+
+    lineage: list = []
+    inputs = {name: opened(name) for name in training_inputs(spec, cfg)}
+    # outputs of one stage must come from one run (a kill between geometry.zarr and gates.parquet)
+    require_same_run(*lineage)
+    reference = None
+    if spec.annotation_free:
+        data = training_data(spec, cfg, inputs)
+    else:
+        reference = opened("reference")
+        require_same_run(*lineage)
+        data = ceiling_training_data(spec, inputs, reference)
+    corrected = None
+    if review and review.get("corrections") and spec.annotation_free:
+        corrected = opened("corrected")
+        data = apply_to_training(data, corrected, review["mode"])
+    val = None
+    if len(validation_rows(inputs["manifest"])):
+        if reference is None:
+            reference = opened("reference")
+            require_same_run(*lineage)
+        val = validation_data(inputs["manifest"], inputs["images"], reference)
+    if corrected is not None and review["mode"] == "validate":
+        val = apply_to_validation(val, corrected, inputs["images"])
+    return data, val, lineage
+
+
 class PatchedRows(RowSource):
-    """The rows of ``base`` with some replaced: ``patch`` maps a position in ``base`` to its row (a
-    corrected target), read like any row source (nothing else is read until indexed)."""
+    """The rows of ``base`` with those in ``patch`` (position -> row) replaced, read like any row source."""
 
     def __init__(self, base, patch: Mapping[int, np.ndarray]):
         self.base = base
@@ -95,7 +320,7 @@ class PatchedRows(RowSource):
     def shape(self) -> tuple[int, ...]:
         return tuple(self.base.shape)
 
-    def select(self, sel) -> "PatchedRows":
+    def select(self, sel) -> PatchedRows:
         pos = np.arange(len(self))[sel]
         return PatchedRows(select_rows(self.base, pos), {k: self.patch[p] for k, p in enumerate(pos)
                                                          if p in self.patch})
@@ -109,79 +334,65 @@ class PatchedRows(RowSource):
         return out
 
 
-def _positions(data, ids: list[str]) -> dict[int, str]:
+def _positions(data: TrainData, ids: list[str]) -> dict[int, str]:
     want = set(ids)
     return {k: iid for k, iid in enumerate(data.image_ids) if iid in want}
 
 
-def apply_to_training(data, corrected, mode: str):
-    """``data`` (a :class:`pipeline.training.loop.TrainData`) with the opened ``corrected`` artifact applied
-    in ``mode``: ``validate`` drops the corrected images, ``replace`` patches their targets (module
-    docstring).  Records ``human_corrections`` (how many applied), ``corrections_mode`` and, in replace
-    mode, ``annotation_free: False`` and the targets in ``data.stats``."""
+def apply_to_training(data: TrainData, corrected, mode: str) -> TrainData:
+    """``data`` with the opened ``corrected`` artifact applied: ``validate`` drops the corrected images,
+    ``replace`` trains on their corrected masks (:func:`replace_targets`)."""
     require_mode(corrected, mode)
     ids = list(corrected.attrs["image_ids"])
-    masks = np.asarray(corrected["mask"], dtype=bool)
-    by_id = dict(zip(ids, masks))
+    by_id = dict(zip(ids, np.asarray(corrected["mask"], dtype=bool)))
     pos = _positions(data, ids)
     stats = {**data.stats, "corrections_mode": mode, "human_corrections": len(pos),
              "human_corrections_not_applied": len(ids) - len(pos)}
-    if mode == "validate":
-        keep = np.array([k not in pos for k in range(len(data))])
-        if not keep.any():
-            raise InputError(f"{corrected.path}: every training image is corrected; {MODE_KEY}=validate would "
-                             f"leave nothing to train on")
-        sel = np.flatnonzero(keep)
-        out = type(data)(**{**_fields(data), "image_ids": [data.image_ids[k] for k in sel],
-                            "images": select_rows(data.images, sel), "mask": select_rows(data.mask, sel),
-                            "area": data.area[sel], "gate": data.gate[sel],
-                            "sdf": None if data.sdf is None else select_rows(data.sdf, sel),
-                            "skeleton": None if data.skeleton is None else select_rows(data.skeleton, sel),
-                            "stats": stats})
-        out.stats["n_train"] = len(out)
-        return out
-    return replace_targets(data, by_id, stats)
+    if mode != "validate":
+        return replace_targets(data, by_id, stats)
+    sel = np.flatnonzero([k not in pos for k in range(len(data))])
+    if not len(sel):
+        raise InputError(f"{corrected.path}: every training image is corrected; {MODE_KEY}=validate would "
+                         f"leave nothing to train on")
+    rows = {f: select_rows(getattr(data, f), sel) for f in ("images", "mask", "sdf", "skeleton")
+            if getattr(data, f) is not None}
+    out = dataclasses.replace(data, image_ids=[data.image_ids[k] for k in sel], area=data.area[sel],
+                              gate=data.gate[sel], stats=stats, **rows)
+    out.stats["n_train"] = len(out)
+    return out
 
 
-def replace_targets(data, masks: Mapping[str, np.ndarray], stats: Mapping[str, Any] | None = None):
-    """``data`` (TrainData) whose images in ``masks`` ({image id: bool [R,R]}) train on those masks
-    (``replace``, :mod:`pipeline.review.apply`): region target, g = 1, a and the geometry targets
-    recomputed; ``stats`` (default ``data.stats``) gains ``annotation_free: False``.  Images of
-    ``masks`` that ``data`` lacks are left out."""
+def replace_targets(data: TrainData, masks: Mapping[str, np.ndarray], stats: Mapping[str, Any] | None = None
+                    ) -> TrainData:
+    """``data`` whose images in ``masks`` ({image id: bool [R,R]}) train on those masks (NOT annotation-free):
+    region target, g = 1, a and the geometry targets recomputed; images ``data`` lacks are left out."""
     pos = _positions(data, list(masks))
     stats = dict(data.stats if stats is None else stats)
     stats.setdefault("human_corrections", len(pos))
     new = {k: np.asarray(masks[iid], bool) for k, iid in pos.items()}
     area, gate = np.array(data.area, copy=True), np.array(data.gate, copy=True)
-    fields = {**_fields(data), "mask": PatchedRows(_as_rows(data.mask), new), "area": area, "gate": gate}
-    geo = {k: recompute_geometry(m, data.geometry) for k, m in new.items()} if data.sdf is not None else {}
     for k, m in new.items():
         area[k], gate[k] = area_ratio(m), 1.0
-    if geo:
+    fields = {"mask": PatchedRows(_as_rows(data.mask), new), "area": area, "gate": gate}
+    if data.sdf is not None and new:
+        geo = {k: recompute_geometry(m, data.geometry) for k, m in new.items()}
         fields["sdf"] = PatchedRows(_as_rows(data.sdf), {k: g[0] for k, g in geo.items()})
         fields["skeleton"] = PatchedRows(_as_rows(data.skeleton), {k: g[1] for k, g in geo.items()})
     stats.update(annotation_free=False,
                  targets=f"voted masks, {len(pos)} replaced by human corrections (NOT annotation-free)")
-    return type(data)(**{**fields, "stats": stats})
+    return dataclasses.replace(data, stats=stats, **fields)
 
 
-def apply_to_validation(val, corrected, images, val_cls):
-    """Validation data with the corrected images appended (``validate`` mode): ``val`` (a
-    :class:`pipeline.training.loop.ValData`, or None when the run has no validation masks) plus the corrected
-    images (read from the opened ``images`` artifact at the ``corrected`` artifact's rows) and their
-    corrected masks; ``val_cls`` builds it (ValData)."""
+def apply_to_validation(val: ValData | None, corrected, images) -> ValData:
+    """``val`` (None: no validation masks) with the corrected images, read from ``images``, and masks appended."""
     ids, imgs, masks = corrected_validation(corrected, images)
     if val is None:
-        return val_cls(image_ids=ids, images=imgs, masks=masks)
-    return val_cls(image_ids=list(val.image_ids) + ids, images=np.concatenate([val.images, imgs]),
+        return ValData(image_ids=ids, images=imgs, masks=masks)
+    return ValData(image_ids=list(val.image_ids) + ids, images=np.concatenate([val.images, imgs]),
                    masks=np.concatenate([val.masks, masks]))
 
 
-def _fields(data) -> dict[str, Any]:
-    return {f.name: getattr(data, f.name) for f in dataclasses.fields(data)}
-
-
-def _as_rows(x):
+def _as_rows(x) -> RowSource:
     """A row source over ``x`` (an in-memory array is wrapped so :class:`PatchedRows` reads it alike)."""
     return x if isinstance(x, RowSource) else _ArrayRows(np.asarray(x))
 
@@ -195,7 +406,7 @@ class _ArrayRows(RowSource):
     def shape(self) -> tuple[int, ...]:
         return self.arr.shape
 
-    def select(self, sel) -> "_ArrayRows":
+    def select(self, sel) -> _ArrayRows:
         return _ArrayRows(self.arr[sel])
 
     def read(self, key) -> np.ndarray:

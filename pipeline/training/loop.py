@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import functools
 import logging
 import math
 import tempfile
@@ -65,17 +64,16 @@ import torch
 
 from pipeline import losses
 from pipeline.augment import AugmentSpec, GeometryConstants, augment_batch
-from pipeline.artifacts.store import Artifact, read_chunk_rows
 from pipeline.runtime.device import autocast, autocast_dtype
-from pipeline.runtime.errors import ArtifactError, InputError, TrainingDiverged
+from pipeline.runtime.errors import InputError, TrainingDiverged
 from pipeline.evaluation.inference import predict_probs
-from pipeline.methods import (Method, Plan, afs_fuse, afs_keep, confidence_pass, input_artifacts, mean_valid_score,
-                              method_epochs, method_lr, pass_ratio, resolve_plan, uses_confidence)
+from pipeline.methods import Method, Plan, method_epochs, method_lr, resolve_plan
 from pipeline.metrics import boundary_f1, image_ious
 from pipeline.model import TinyUNet, model_options, recompute_bn_stats
 from pipeline.params import PAPER
 from pipeline.runtime.progress import progress
-from pipeline.training.streaming import LazyRows, MappedRows, RowSource, prefetch, row_means, select_rows, spill_rows
+from pipeline.training.inputs import TrainData, ValData
+from pipeline.training.streaming import LazyRows, RowSource, prefetch, select_rows, spill_rows
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 
 log = logging.getLogger(__name__)
@@ -93,249 +91,6 @@ TIMING_COLUMNS = ("epoch", "seconds")
 #: resume state (its folder's key leaves them out; stages/train.py)
 BUDGET_PARAMS = ("train.step_budget", "train.time_budget")
 STATE_VERSION = 1
-
-
-# --------------------------------------------------------------------------------------------------
-# Data: pseudo-targets for training, reference masks for validation only
-# --------------------------------------------------------------------------------------------------
-@dataclasses.dataclass
-class TrainData:
-    """Training data for the rows a method trains on (manifest order).
-
-    ``images``/``mask``/``sdf``/``skeleton`` are numpy arrays (in memory) or row sources
-    (:class:`pipeline.training.streaming.LazyRows`, :class:`~pipeline.training.streaming.MappedRows`: read from the Zarr
-    artifacts per batch while training -- what :func:`training_data` returns, so memory does not grow
-    with N); both give the same batches and weights for a seed.  Per image only scalars stay in memory
-    (``image_ids``, ``area``, ``gate``).
-    ``mask`` is the region pseudo-target (M^T, or the AFS-fused base-prompt mask); ``sdf``/``skeleton``
-    the pseudo-geometry targets (None when the method does not read geometry.zarr); ``area`` a_i and
-    ``gate`` g_i per image (g = 1 for ``gate="one"`` methods).  ``stats`` records the filter outcome.
-    """
-
-    image_ids: list
-    images: np.ndarray | RowSource
-    mask: np.ndarray | RowSource
-    area: np.ndarray
-    gate: np.ndarray
-    sdf: np.ndarray | RowSource | None = None
-    skeleton: np.ndarray | RowSource | None = None
-    stats: dict = dataclasses.field(default_factory=dict)
-    #: the constants the geometry stage computed ``sdf``/``skeleton`` with: an augmented rescale
-    #: recomputes them with the same (``train.augment``; :mod:`pipeline.augment`)
-    geometry: GeometryConstants = dataclasses.field(default_factory=GeometryConstants)
-
-    def __len__(self) -> int:
-        return len(self.image_ids)
-
-
-@dataclasses.dataclass
-class ValData:
-    """Validation images and their reference masks (split == "val" rows with a mask only), in memory:
-    every epoch scores all of them (the paper's 60 validation images at 384^2 are 35 MB; a validation
-    split that grows with N would grow this too)."""
-
-    image_ids: list
-    images: np.ndarray
-    masks: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.image_ids)
-
-
-def _check_order(art: Artifact, ids: list, what: str) -> None:
-    got = art.attrs.get("image_ids") if hasattr(art, "attrs") else None
-    if got is not None and list(got) != list(ids):
-        raise ArtifactError(f"{art.path}: image order differs from the manifest ({what}); rerun the stages after prepare")
-
-
-def _rows(art, name: str, idx: np.ndarray) -> np.ndarray:
-    arr = art[name]
-    if len(idx) == 0:
-        return np.zeros((0, *arr.shape[1:]), dtype=arr.dtype)
-    return read_chunk_rows(arr, idx)
-
-
-def training_inputs(method: Method, cfg: Mapping[str, Any]) -> tuple[str, ...]:
-    """Schemas of the artifacts :func:`training_data` reads for ``method``:
-    :func:`pipeline.methods.input_artifacts` for the configured criterion, never ``reference``."""
-    return tuple(n for n in input_artifacts(method, cfg["confidence"]["criterion"]) if n != "reference")
-
-
-def _train_rows(manifest) -> tuple[list, np.ndarray]:
-    """Manifest image ids (all rows) and the indices of the ``split == "train"`` rows."""
-    df = manifest.df
-    train_idx = np.flatnonzero((df["split"] == "train").to_numpy())
-    if len(train_idx) == 0:
-        raise InputError(f"{manifest.path}: no rows with split == 'train'")
-    return df["image_id"].astype(str).tolist(), train_idx
-
-
-def _gate_table(gates, train_ids: list):
-    """gates.parquet rows of the training images, indexed by image id, in ``train_ids`` order."""
-    gdf = gates.df.assign(image_id=gates.df["image_id"].astype(str)).set_index("image_id")
-    missing = [i for i in train_ids if i not in gdf.index]
-    if missing:
-        raise ArtifactError(f"{gates.path}: no gate row for {len(missing)} training images (e.g. {missing[0]})")
-    return gdf.loc[train_ids]
-
-
-def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Artifact]) -> TrainData:
-    """The pseudo-targets of the ``split == "train"`` rows a method trains on, from opened artifacts.
-
-    ``inputs`` maps schema -> opened artifact for every name in :func:`training_inputs`.  Applies the
-    method's data filter (confidence criterion or AFS score filter) and records the pass ratio r in
-    ``stats``.  Reference masks are refused: they enter only :func:`validation_data`.
-    """
-    if "reference" in inputs:
-        raise ValueError("training_data: reference masks never enter training (use validation_data)")
-    if not method.annotation_free:  # the supervised ceiling: pipeline.training.supervised, the one exception
-        raise ValueError(f"training_data: --method {method.name} trains on reference masks; "
-                         f"its targets come only from pipeline.training.supervised.ceiling_training_data")
-    missing = [n for n in training_inputs(method, cfg) if n not in inputs]
-    if missing:
-        raise ValueError(f"training_data: --method {method.name} needs the artifacts {missing}")
-    ids, train_idx = _train_rows(inputs["manifest"])
-    for name in ("images", "teacher", "consensus", "geometry"):
-        if name in inputs:
-            _check_order(inputs[name], ids, name)
-    train_ids = [ids[i] for i in train_idx]
-    gates_df = _gate_table(inputs["gates"], train_ids) if "gates" in inputs else None
-    stats: dict[str, Any] = {"n_train_rows": int(len(train_idx))}
-    mask, keep = _region_targets(method, cfg, inputs, train_idx, stats)
-    sel = np.flatnonzero(keep & _confidence_keep(method, cfg, inputs, gates_df, train_idx, stats))
-    if len(sel) == 0:
-        raise InputError(f"--method {method.name}: no training image passes the method's filter "
-                         f"(train.{'afs' if method.data == 'afs' else 'confidence'}); loosen it")
-    rows = train_idx[sel]
-    mask = select_rows(mask, sel)
-    data = TrainData(
-        image_ids=[train_ids[i] for i in sel],
-        images=LazyRows(inputs["images"]["image"], rows),
-        mask=mask,
-        area=(gates_df["a"].to_numpy(np.float32)[sel] if gates_df is not None  # a_i (eq:pseudo-area)
-              else row_means(mask)),
-        gate=gate_values(method, gates_df, sel),
-        stats=stats,
-    )
-    if method.needs_geometry:
-        data.sdf = LazyRows(inputs["geometry"]["sdf"], rows, np.float32)
-        data.skeleton = LazyRows(inputs["geometry"]["skeleton"], rows, bool)
-        data.geometry = geometry_constants(inputs["geometry"])
-    stats["n_train"] = len(data)
-    return data
-
-
-def geometry_constants(geometry: Artifact) -> GeometryConstants:
-    """The ``geometry.*`` constants recorded in geometry.zarr's params (the values its SDF and skeleton
-    were computed with); the schema defaults where the artifact records none."""
-    params = getattr(getattr(geometry, "meta", None), "params", None) or {}
-    nested = params.get("geometry") if isinstance(params.get("geometry"), Mapping) else {}
-
-    def get(key: str, default: float) -> float:
-        return float(params.get(f"geometry.{key}", nested.get(key, default)))
-
-    d = GeometryConstants()
-    return GeometryConstants(quantile=get("sdf_quantile", d.quantile), min_scale=get("sdf_min_scale", d.min_scale),
-                             min_distance=get("skeleton_min_distance", d.min_distance))
-
-
-def _region_targets(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Artifact],
-                    train_idx: np.ndarray, stats: dict) -> tuple[RowSource, np.ndarray]:
-    """Region pseudo-target of every training row and the rows the AFS filter keeps (all otherwise):
-    the voted mask M^T (eq:majority-vote), the agreement map A (eq:agreement-map, float in [0, 1]) with
-    ``train.soft_targets``, or the AFS control's fused base-prompt mask."""
-    if method.data == "afs":
-        mask, keep, r = _afs_targets(inputs["teacher"], train_idx, cfg["afs"])
-        stats["afs_pass_ratio"] = r
-        return mask, keep
-    keep = np.ones(len(train_idx), dtype=bool)
-    if cfg.get("soft_targets"):  # train.soft_targets: A (eq:agreement-map) in eq:raw-loss, not M^T
-        return LazyRows(inputs["consensus"]["agreement"], train_idx, np.float32), keep
-    return LazyRows(inputs["consensus"]["voted"], train_idx, bool), keep
-
-
-def _confidence_keep(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Artifact], gates_df,
-                     train_idx: np.ndarray, stats: dict) -> np.ndarray:
-    """Rows the confidence filter keeps (all rows unless ``data == "confidence"``); records the pass
-    ratio r of the criterion in ``stats`` wherever the method evaluates it (filter or adaptive mode)."""
-    keep = np.ones(len(train_idx), dtype=bool)
-    if uses_confidence(method):
-        passed = _confidence_pass(gates_df, inputs.get("teacher"), train_idx, cfg["confidence"])
-        stats["confidence_pass_ratio"] = pass_ratio(passed)
-        if method.data == "confidence":
-            keep &= passed
-    return keep
-
-
-def gate_values(method: Method, gates_df, sel: np.ndarray) -> np.ndarray:
-    """Per-image gate g_i (eq:reliability-gate) for the selected rows; exactly 1 for ``gate="one"``
-    methods (the ``no_gate`` ablation) and for methods that read no gates."""
-    if method.gate == "one" or gates_df is None:
-        return np.ones(len(sel), dtype=np.float32)
-    g = gates_df["g"].to_numpy(np.float32)[sel]
-    if not np.all(np.isfinite(g)) or g.min(initial=0) < 0 or g.max(initial=0) > 1:
-        raise ArtifactError("gates.parquet: column g must be finite and in [0, 1]")
-    return g
-
-
-def _confidence_pass(gates_df, teacher, train_idx, c: Mapping[str, Any]) -> np.ndarray:
-    """Confidence criterion (``train.confidence``) of every training row, from teacher outputs only."""
-    criterion = c["criterion"]
-    mean_score = mean_valid_score(_rows(teacher, "scores", train_idx)) if criterion == "mean_score" else None
-    return confidence_pass(gates_df["c"].to_numpy(), gates_df["n_valid"].to_numpy(), mean_score,
-                           criterion, float(c["threshold"]), int(c["min_valid"]))
-
-
-def _afs_targets(teacher, train_idx, a: Mapping[str, Any]) -> tuple[MappedRows, np.ndarray, float]:
-    """AFS control targets (``train.afs``): base prompt on the image and on its vertical flip (flipped
-    back, stored by the teacher stage as ``vflip_masks``), fused by agreement; keep images with base
-    score >= threshold."""
-    if "vflip_masks" not in teacher or "vflip_scores" not in teacher:
-        raise InputError(f"{teacher.path}: no vflip_masks/vflip_scores; the afs_control method needs "
-                         f"teacher.vflip_base_prompt: true")
-    prompts = list(teacher.attrs.get("prompts") or [])
-    base = a["base_prompt"]
-    if base not in prompts:
-        raise InputError(f"params: train.afs.base_prompt={base!r} is not one of {teacher.path}'s prompts {prompts}")
-    k = prompts.index(base)
-    rows = np.sort(train_idx)  # manifest order (flatnonzero is sorted already)
-    afs_fuse(np.zeros(1, bool), np.zeros(1, bool), a["fusion"])  # a bad train.afs.fusion fails here, not mid-epoch
-    # fused per batch from the stored masks (streaming.MappedRows): nothing held per image
-    fused = MappedRows(functools.partial(_afs_fuse_prompt, k=k, fusion=a["fusion"]),
-                       [LazyRows(teacher["masks"], rows, bool), LazyRows(teacher["vflip_masks"], rows, bool)],
-                       bool, teacher["vflip_masks"].shape[1:])
-    scores = np.asarray(teacher["scores"].get_orthogonal_selection((rows, k)), dtype=np.float64)
-    keep = afs_keep(scores, float(a["score_threshold"]))
-    return fused, keep, pass_ratio(keep)
-
-
-def _afs_fuse_prompt(masks: np.ndarray, vflip_masks: np.ndarray, k: int, fusion: str) -> np.ndarray:
-    """The AFS control's target of a batch: prompt ``k`` of the teacher masks [B,K,H,W] fused with the
-    vflip masks [B,H,W] (:func:`pipeline.methods.afs_fuse`)."""
-    return afs_fuse(masks[:, k], vflip_masks, fusion)
-
-
-def validation_rows(manifest) -> np.ndarray:
-    """Indices of the manifest's ``split == "val"`` rows (the only rows whose reference masks are read)."""
-    return np.flatnonzero((manifest.df["split"] == "val").to_numpy())
-
-
-def validation_data(manifest, images: Artifact, reference: Artifact) -> ValData | None:
-    """Validation images + reference masks for checkpoint selection -- the ONLY consumer of reference masks.
-
-    Returns only rows with ``split == "val"`` and ``has_mask``; None when there are none.  Reference
-    masks of any other split are never read.
-    """
-    ids = manifest.df["image_id"].astype(str).tolist()
-    val_idx = validation_rows(manifest)
-    if len(val_idx) == 0:
-        return None
-    _check_order(reference, ids, "reference")
-    val_idx = val_idx[_rows(reference, "has_mask", val_idx).astype(bool)]
-    if len(val_idx) == 0:
-        return None
-    return ValData(image_ids=[ids[i] for i in val_idx], images=_rows(images, "image", val_idx),
-                   masks=_rows(reference, "mask", val_idx).astype(bool))
 
 
 # --------------------------------------------------------------------------------------------------
