@@ -1,32 +1,9 @@
 """Plan, shard, compute and collect teacher answers through the content-addressed cache.
 
-The runner is backend-agnostic: it asks a :class:`~pipeline.teachers.base.Teacher` only for the
-(image, prompt, view) answers that are not in the cache, in image batches (:class:`TeacherJob`), and
-writes each batch's answers to the cache as soon as they exist (a kill -9 loses at most the batches
-in flight).  The teacher stage (``dvc repro teacher``) and ``geodistill label`` both run it
-(:func:`open_runner`), so there is one teacher loop.
-
-One loop, two executors
-  :func:`pipeline.teachers.jobs.answer_job` is the one per-batch function: it predicts one job's images, enforces the
-  invalid-prompt convention, flips ``vflip`` answers back and writes the job's missing entries.
-  :meth:`TeacherRunner.fill` runs it either in this process, job after job (``workers=0``, the
-  default, no Ray needed), or as a Ray Data pipeline (``workers >= 1``,
-  :mod:`pipeline.teachers.distributed`: decode on CPU workers, then an actor pool of teachers, one per
-  GPU or CPU worker, each calling :func:`answer_job`).  The jobs are the same in both, so the cache --
-  and the artifact assembled from it -- is the same.
-
-Work units
-  For every manifest row in the teacher splits: the K prompts on the image as is (view ``identity``),
-  and, when ``vflip_prompt`` is set, that one prompt on the vertically flipped image (view ``vflip``,
-  answer flipped back) for the annotation-free-style control.  Which answers exist is decided by
-  listing the cache (:meth:`pipeline.teachers.cache.TeacherCache.listed`), never by reading entries;
-  entries are read once, by :meth:`TeacherRunner.answers` at assembly, where a corrupt one is
-  recomputed.
-
-Sharding (``--shard i/n``, 0 <= i < n)
-  Shard i owns the rows at positions i, i+n, i+2n, ... of the teacher-split rows in manifest order
-  (round robin: balanced, and the same partition no matter when or where each shard starts or how
-  much of the cache is already filled).  Within its rows a shard computes only what is missing.
+The teacher stage and ``geodistill label`` both run it (:func:`open_runner`): the teacher is asked only
+for the (image, prompt, view) answers the cache lacks, in image batches written to the cache as they
+finish, by one per-batch function (:func:`pipeline.teachers.jobs.answer_job`) in this process or on a Ray
+Data actor pool.  Shard i of n owns the rows at positions i, i+n, ... (docs/decisions.md, "Teacher runs").
 """
 
 from __future__ import annotations
@@ -82,11 +59,8 @@ class RunStats:
 class TeacherRunner:
     """Fill the cache for some rows, then read every row's answers back.
 
-    ``image_sha`` maps a row to its manifest sha256; ``load`` builds the :class:`TeacherInput` of a
-    row in a view.  With ``teacher.use_cache`` false (imported masks) the cache is bypassed and
-    :meth:`answers` asks the teacher directly.  ``spec`` (how to build the teacher again) is needed
-    only by the Ray executor.
-    """
+    ``image_sha``: row -> sha256; ``load``: (row, view) -> :class:`TeacherInput`; ``spec``: how the Ray
+    executor builds the teacher again.  A teacher without ``use_cache`` is asked directly."""
 
     def __init__(self, teacher: Teacher, cache: TeacherCache, prompts: Sequence[str],
                  image_sha: Callable[[int], str], load: InputLoader, vflip_prompt: str | None = None,
@@ -101,7 +75,6 @@ class TeacherRunner:
         self.spec = spec
         self.stats = RunStats()
 
-    # ---- planning -----------------------------------------------------------------------------
     def requests(self) -> list[tuple[str, str]]:
         """(prompt, view) pairs answered per image."""
         req = [(p, "identity") for p in self.prompts]
@@ -136,10 +109,8 @@ class TeacherRunner:
                 jobs.append(TeacherJob(view, tuple(rows), prompts, tuple(tuple(todo[view][r]) for r in rows)))
         return jobs
 
-    # ---- computing ----------------------------------------------------------------------------
     def fill(self, rows: Sequence[int], workers: int = 0, address: str | None = None) -> RunStats:
-        """Compute and cache every missing answer of ``rows``: in this process (``workers=0``) or on a
-        Ray Data actor pool of ``workers`` teachers (:mod:`pipeline.teachers.distributed`)."""
+        """Compute and cache every missing answer of ``rows``, here (``workers=0``) or on a Ray pool."""
         if not self.teacher.use_cache:
             return self.stats
         todo = self.missing(rows)
@@ -162,13 +133,9 @@ class TeacherRunner:
         self.stats.images_computed += n_images
         return self.stats
 
-    # ---- collecting ---------------------------------------------------------------------------
     def answers(self, row: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, float | None]:
-        """(masks bool [K,H,W], scores float32 [K], vflip mask or None, vflip score or None) of one row.
-
-        Reads the cache; an entry missing or corrupt here (removed since :meth:`fill`, damaged on disk,
-        or a cache-less backend) is computed on the spot and cached.
-        """
+        """(masks bool [K,H,W], scores float32 [K], vflip mask or None, vflip score or None) of one row;
+        an entry missing or corrupt here is computed on the spot."""
         results: dict[tuple[str, str], tuple[np.ndarray, float]] = {}
         if self.teacher.use_cache:
             sha = self.image_sha(row)
@@ -202,11 +169,8 @@ class TeacherRunner:
 
 def open_runner(cfg: Mapping[str, Any], resolution: tuple[int, int], device: str, load: InputLoader,
                 shas: Sequence[str], vflip_prompt: str | None = None) -> tuple[TeacherRunner, str]:
-    """The teacher of the validated ``teacher:`` section ``cfg`` behind its cache: (runner, fingerprint).
-
-    Used by the teacher stage and by ``geodistill label``; images per job: ``teacher.batch_size``, or
-    with 0 (auto) the backend's own unit (``runner_batch_size``, SAM 3) or 2.
-    """
+    """(runner, fingerprint) of the teacher of the validated ``teacher:`` section ``cfg``; images per job:
+    ``teacher.batch_size``, or with 0 the backend's own unit or 2."""
     spec = TeacherSpec(dict(cfg), tuple(resolution), device)
     teacher = spec.build()
     t_fp = teacher_fingerprint(teacher)
