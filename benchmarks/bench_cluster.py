@@ -1,13 +1,9 @@
-"""A two-node Ray cluster on one host runs the DAG; its outputs against a serial ``dvc repro``'s.
+"""Does a two-node Ray cluster on one host run the DAG to the outputs of a serial ``dvc repro``?  Runs
+``geodistill run`` on ``ray.cluster_utils.Cluster`` (two nodes of ``--cpus`` CPUs and ``--gpus`` fake GPUs) in
+a fresh project copy and compares every output hash of the two ``dvc.lock`` files (benchmark and report
+outputs embed time, so they differ).
 
     python -m benchmarks.bench_cluster --repo COPY --serial DONE [--targets teacher ...]
-
-``COPY`` is a fresh copy of a project (nothing run yet); ``DONE`` the same project after a serial
-``dvc repro``.  Starts ``ray.cluster_utils.Cluster`` with two nodes of ``--cpus`` CPUs each (and
-``--gpus`` fake GPUs on each, so the teacher and training tasks are placed as on a GPU cluster), runs
-``geodistill run`` (:func:`pipeline.cluster.driver.run_pipeline`) on it, then compares every output's
-hash in the two ``dvc.lock`` files.  Prints which node ran each stage, the outputs that differ, and one
-JSON line.  Stages that measure time (benchmark) or embed it (report) are expected to differ.
 """
 
 from __future__ import annotations
@@ -21,7 +17,7 @@ import yaml
 
 
 def lock_outs(repo: Path) -> dict[tuple[str, str], str]:
-    """{(stage, out path): md5} of a project's dvc.lock."""
+    """``{(stage, out path): md5}`` of a project's dvc.lock."""
     stages = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]
     return {(s, o["path"]): o.get("md5", "") for s, e in stages.items() for o in e.get("outs", [])}
 

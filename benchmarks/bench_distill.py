@@ -1,63 +1,43 @@
-"""What the benchmark stage costs a ``geodistill distill`` run (issue 44: "a tiny distill with default
-settings takes <= 1.5x the same run with one benchmark variant").
+"""What the benchmark stage costs a ``geodistill distill`` run: the same distill with the distill profile's
+benchmark plan and with one variant (:data:`pipeline.deploy.benchmark.BASELINE_VARIANT`), each into a fresh
+project, round-robin; medians, minima and their ratio against the 1.5x target.
 
-Runs the same ``geodistill distill INPUT`` twice per round, round-robin (the order alternates every
-round): with the distill profile's benchmark plan (:data:`pipeline.profiles.DISTILL_BENCHMARK`) and with
-one variant (the baseline, :data:`pipeline.deploy.benchmark.BASELINE_VARIANT`), each into a fresh
-project folder, so every run computes the whole DAG.  Prints each case's wall-time median and minimum
-and the ratio default / one variant of both, against the 1.5x target.
-
-    python -m benchmarks.bench_distill IMAGES --checkpoint SAM3_DIR --reps 3 \\
-        --set train.epochs_stage1=1 --set train.epochs_stage2=1
+    python -m benchmarks.bench_distill IMAGES --checkpoint SAM3_DIR --reps 3 --set train.epochs_stage1=1
 """
 
 from __future__ import annotations
 
 import argparse
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 from typing import Callable, Sequence
 
+from benchmarks.common import medians, minima, round_robin, seconds
 from pipeline.deploy.benchmark import BASELINE_VARIANT
 
-TARGET = 1.5  # issue 44: default distill wall time / the one-variant run's
+TARGET = 1.5  # default distill wall time / the one-variant run's
 #: the cases: name -> the extra --set items of the distill command
 CASES = {"one variant": [f"deploy.benchmark_variants=[{BASELINE_VARIANT}]"], "default": []}
 
 
 def distill_argv(images: str, out: Path, teacher: Sequence[str], sets: Sequence[str]) -> list[str]:
-    """The ``geodistill distill`` command line of one run."""
     return [sys.executable, "-m", "pipeline.cli", "distill", images, "--out", str(out), *teacher,
             *[a for kv in sets for a in ("--set", kv)]]
 
 
 def run_command(argv: list[str]) -> float:
-    """Wall seconds of ``argv`` (its failure is an error: a failed run times nothing)."""
-    t0 = time.perf_counter()
-    r = subprocess.run(argv, capture_output=True, text=True)
-    if r.returncode != 0:
-        raise SystemExit(f"bench_distill: {' '.join(argv[3:6])} ... failed:\n{r.stderr[-2000:]}")
-    return time.perf_counter() - t0
-
-
-def round_robin(reps: int, cases: dict[str, Callable[[int], float]]) -> dict[str, list[float]]:
-    """Seconds of every case per round; the order of the cases alternates from one round to the next."""
-    times: dict[str, list[float]] = {name: [] for name in cases}
-    names = list(cases)
-    for i in range(reps):
-        for name in names if i % 2 == 0 else names[::-1]:
-            times[name].append(cases[name](i))
-    return times
+    """Wall seconds of ``argv``; a failed run is an error (it times nothing)."""
+    def call():
+        r = subprocess.run(argv, capture_output=True, text=True)
+        if r.returncode != 0:
+            raise SystemExit(f"bench_distill: {' '.join(argv[3:6])} ... failed:\n{r.stderr[-2000:]}")
+    return seconds(call)
 
 
 def summary(times: dict[str, list[float]]) -> str:
-    """Medians, minima and the ratios default / one variant, with the verdict against :data:`TARGET`."""
-    med = {n: statistics.median(t) for n, t in times.items()}
-    low = {n: min(t) for n, t in times.items()}
+    med, low = medians(times), minima(times)
     lines = [f"{n:12s} median {med[n]:7.1f} s  min {low[n]:7.1f} s  ({len(t)} runs)" for n, t in times.items()]
     ratio, ratio_min = med["default"] / med["one variant"], low["default"] / low["one variant"]
     lines.append(f"default / one variant: {ratio:.2f}x (medians), {ratio_min:.2f}x (minima); target <= {TARGET:g}x: "
@@ -66,7 +46,6 @@ def summary(times: dict[str, list[float]]) -> str:
 
 
 def main(argv: Sequence[str] | None = None, run: Callable[[list[str]], float] = run_command) -> dict[str, list[float]]:
-    """Parse the options, time the cases round-robin, print :func:`summary`; returns the seconds per case."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("images", help="the input folder of `geodistill distill`")
     ap.add_argument("--checkpoint", help="SAM 3 folder (or give --labels / --backend imported --imported-dir)")
@@ -77,15 +56,14 @@ def main(argv: Sequence[str] | None = None, run: Callable[[list[str]], float] = 
     ap.add_argument("--reps", type=int, default=3, help="round-robin rounds")
     ap.add_argument("--workdir", default=None, help="where the projects go (default: a temporary folder)")
     args = ap.parse_args(argv)
-    teacher = [a for flag, v in (("--checkpoint", args.checkpoint), ("--labels", args.labels),
-                                 ("--backend", args.backend), ("--imported-dir", args.imported_dir)) if v
-               for a in (flag, v)] + ["--device", "cpu", "--quiet"]
+    teacher = [a for flag in ("checkpoint", "labels", "backend", "imported_dir") if getattr(args, flag)
+               for a in ("--" + flag.replace("_", "-"), getattr(args, flag))] + ["--device", "cpu", "--quiet"]
     with tempfile.TemporaryDirectory() as td:
         work = Path(args.workdir or td)
         cases = {name: (lambda i, name=name, extra=extra: run(distill_argv(
             args.images, work / f"{name.replace(' ', '_')}_{i}", teacher, [*args.sets, *extra])))
             for name, extra in CASES.items()}
-        times = round_robin(args.reps, cases)
+        times = round_robin(cases, args.reps, order="alternate")
     print(f"bench_distill: {args.images}, {args.reps} round(s), round-robin; settings: "
           + (", ".join(args.sets) or "the distill profile's"))
     print(summary(times))

@@ -1,24 +1,9 @@
-"""Evaluation speed (issue 19 item 3): per-image metrics and bootstrap gains, old vs new, same run.
+"""Evaluation speed: the ``evaluate`` stage's per-image metrics and bootstrap gains on spacecraft-like masks of
+the paper's size, the baseline (the per-image loop and one bootstrap per comparison of main at 9c46380, kept
+below; the tests check the new code against it) against ``per_image_metrics`` / ``method_gains``, round-robin
+after checking both give the same numbers; medians, minima, the ratio and the projected ``evaluate`` time.
 
-    python -m benchmarks.bench_evaluate                  # paper protocol: 22 runs x 180 images at 384^2
-    python -m benchmarks.bench_evaluate --device cuda    # Boundary-F1 morphology and the student on the GPU
-
-The ``evaluate`` stage does, per run (method, seed): predict the test images, threshold at two taus
-(calibrated, fixed), score every image (``per_image_metrics``); then seed summaries and the paired
-hierarchical bootstrap gains of every method over ``plain`` (``method_gains``).  This script times
-the scoring and the gains on spacecraft-like masks of the paper's size with
-
-* the baseline: the implementation of main at 9c46380, kept below verbatim in spirit (per image: two
-  OpenCV erosions, two exact distance transforms, a connected-component labelling and a dilation;
-  one bootstrap per (method, metric) with a [resamples, clusters, images, k] gather), and
-* the new path: ``pipeline.metrics.per_image_metrics`` (stacked morphology, a tolerance-disk dilation
-  instead of distance transforms) and ``pipeline.stats.method_gains`` (one counts-matrix bootstrap per
-  set of paired images),
-
-round-robin (``--repeats`` rounds, each timing baseline then new), checks that both give the same
-numbers, and prints medians, minima, the ratio, and the projected ``evaluate`` time for the protocol
-(scoring x runs x 2 threshold modes + gains + the student's inference measured on ``--device``).
-The tests import the baseline functions from here to check the new code against them.
+    python -m benchmarks.bench_evaluate [--device cuda]     # paper protocol: 22 runs x 180 images at 384^2
 """
 
 from __future__ import annotations
@@ -26,11 +11,11 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import time
 
 import numpy as np
 
 from benchmarks.bench_geometry import spacecraft_like_masks
+from benchmarks.common import medians, minima, round_robin, seconds
 from pipeline.geometry import squared_distance
 from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import BASELINE
@@ -42,9 +27,6 @@ PAPER_RUNS = 22          # 5 methods x 3 seeds + 7 seed-42 ablations (pipeline.p
 PAPER_TEST_IMAGES = 180  # 3 groups x 3 spacecraft x 20 views
 
 
-# --------------------------------------------------------------------------------------------------
-# Baseline: the implementation of main at 9c46380 (per-image loop, one bootstrap per comparison)
-# --------------------------------------------------------------------------------------------------
 def baseline_boundary_f1(pred: np.ndarray, gt: np.ndarray, tolerance: float) -> float:
     """Boundary F1 of one pair with two exact OpenCV distance transforms (the old per-image code)."""
     import cv2
@@ -166,12 +148,9 @@ def baseline_method_gains(df, metrics, control=BASELINE, by=("dataset", "group",
     return pd.DataFrame(rows, columns=cols)
 
 
-# --------------------------------------------------------------------------------------------------
-# Synthetic protocol
-# --------------------------------------------------------------------------------------------------
 def predicted_masks(gts: np.ndarray, seed: int) -> np.ndarray:
-    """A student's masks: the references grown or shrunk by a pixel, shifted, with speckle (so that
-    boundaries mismatch and small spurious components exist, as in real predictions)."""
+    """A student's masks: the references grown or shrunk by a pixel, shifted, with speckle (boundaries that
+    mismatch and small spurious components, as in real predictions)."""
     import cv2
 
     rng = np.random.default_rng(seed)
@@ -186,8 +165,7 @@ def predicted_masks(gts: np.ndarray, seed: int) -> np.ndarray:
 
 
 def protocol_table(scores: dict, n_images: int, groups=("KCP", "CVI", "HJM"), per_group_spacecraft: int = 3):
-    """The per-image table ``evaluate`` writes, for the paper's runs, from per-run scores
-    {(method, seed, mode): {metric: float[N]}}."""
+    """The per-image table ``evaluate`` writes from per-run scores ``{(method, seed, mode): {metric: float[N]}}``."""
     import pandas as pd
 
     per_group = max(1, n_images // len(groups))
@@ -203,15 +181,9 @@ def protocol_table(scores: dict, n_images: int, groups=("KCP", "CVI", "HJM"), pe
     return pd.concat(frames, ignore_index=True)
 
 
-def _rounds(fns: dict, repeats: int) -> dict:
-    """Round-robin timing: each round calls every function once in order; seconds per call."""
-    times = {k: [] for k in fns}
-    for _ in range(repeats):
-        for k, fn in fns.items():
-            t0 = time.perf_counter()
-            fn()
-            times[k].append(time.perf_counter() - t0)
-    return times
+def timed_rounds(fns: dict, repeats: int) -> dict[str, list[float]]:
+    """Seconds per call of every function, round-robin."""
+    return round_robin({k: (lambda i, fn=fn: seconds(fn)) for k, fn in fns.items()}, repeats)
 
 
 def student_seconds_per_image(size: int, device: str, n: int) -> float:
@@ -224,14 +196,9 @@ def student_seconds_per_image(size: int, device: str, n: int) -> float:
     model = TinyUNet().eval()
     images = np.random.default_rng(0).integers(0, 255, (n, size, size, 3), dtype=np.uint8)
     predict_probs(model, images[:min(n, 2)], device=device)
-    ts = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        predict_probs(model, images, device=device)
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        ts.append((time.perf_counter() - t0) / n)
-    return statistics.median(ts)
+    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+    return statistics.median(seconds(lambda: (predict_probs(model, images, device=device), sync())) / n
+                             for _ in range(3))
 
 
 def main(argv=None) -> int:
@@ -251,45 +218,39 @@ def main(argv=None) -> int:
     gts = spacecraft_like_masks(args.images, args.size, seed=0)
     preds = predicted_masks(gts, seed=1)
 
-    # -- per-image metrics: one run's images at one threshold ------------------------------------
     old = baseline_per_image_metrics(preds, gts)
     new = per_image_metrics(preds, gts, device=metric_device)
     for k in old:
         np.testing.assert_array_equal(new[k], old[k], err_msg=f"per_image_metrics {k} differs from the baseline")
     ref = scoring_reference(gts)
-    t_metrics = _rounds({"baseline": lambda: baseline_per_image_metrics(preds, gts),
-                         "new": lambda: per_image_metrics(preds, gts, device=metric_device),
-                         "reference": lambda: scoring_reference(gts),
-                         "scored": lambda: score_masks(preds, ref, device=metric_device)}, args.repeats)
+    t_metrics = timed_rounds({"baseline": lambda: baseline_per_image_metrics(preds, gts),
+                              "new": lambda: per_image_metrics(preds, gts, device=metric_device),
+                              "reference": lambda: scoring_reference(gts),
+                              "scored": lambda: score_masks(preds, ref, device=metric_device)}, args.repeats)
 
-    # -- gains: the paper protocol's per-image table ---------------------------------------------
     runs = [(m, s) for m, seeds in FULL_PROTOCOL["runs"].items() for s in seeds][:args.runs]
-    scores = {}
-    for r, (m, s) in enumerate(runs):
-        for mode in ("calibrated", "fixed"):
-            sc = {k: v.copy() for k, v in new.items()}
-            jitter = np.random.default_rng(r).normal(0, 0.02, len(gts))
-            for k in ("iou", "bf1", "precision", "recall"):
-                sc[k] = np.clip(sc[k] + jitter, 0, 1)
-            scores[(m, s, mode)] = sc
-    table = protocol_table(scores, args.images)
     gm = ("iou", "bf1", "precision", "recall")
-    # same numbers: on one seed (the seed-aware bootstrap of issue 24 reduces to the old one there;
-    # with several seeds it adds the seed level, which the baseline lacks)
+    scores = {}
+    for r, (m, s) in enumerate(runs):  # every run: the same scores jittered by its own seed
+        jitter = np.random.default_rng(r).normal(0, 0.02, len(gts))
+        sc = {**new, **{k: np.clip(new[k] + jitter, 0, 1) for k in gm}}
+        scores.update({(m, s, mode): sc for mode in ("calibrated", "fixed")})
+    table = protocol_table(scores, args.images)
+    # same numbers on one seed only: with several seeds the seed-aware bootstrap adds a level the baseline lacks
     one = table[table["seed"] == table["seed"].iloc[0]]
     g_old = baseline_method_gains(one, gm, n_resamples=args.resamples)
     g_new = method_gains(one, gm, n_resamples=args.resamples, interval=SEED_BOOTSTRAP)
     num = [c for c in g_old.columns if c.startswith("gain_")]
     np.testing.assert_allclose(g_new[num].to_numpy(float), g_old[num].to_numpy(float), rtol=1e-9, atol=1e-12)
-    t_gains = _rounds({"baseline": lambda: baseline_method_gains(table, gm, n_resamples=args.resamples),
-                       "new": lambda: method_gains(table, gm, n_resamples=args.resamples, interval=SEED_BOOTSTRAP)},
-                      args.repeats)
+    t_gains = timed_rounds({"baseline": lambda: baseline_method_gains(table, gm, n_resamples=args.resamples),
+                            "new": lambda: method_gains(table, gm, n_resamples=args.resamples, interval=SEED_BOOTSTRAP)},
+                           args.repeats)
 
     infer = student_seconds_per_image(args.size, args.device, args.student_images) if args.student_images else 0.0
 
     calls = len(runs) * 2
-    med = {k: {p: statistics.median(v) for p, v in t.items()} for k, t in (("metrics", t_metrics), ("gains", t_gains))}
-    mins = {k: {p: min(v) for p, v in t.items()} for k, t in (("metrics", t_metrics), ("gains", t_gains))}
+    med = {"metrics": medians(t_metrics), "gains": medians(t_gains)}
+    mins = {"metrics": minima(t_metrics), "gains": minima(t_gains)}
     infer_total = infer * len(runs) * args.images
     # evaluate builds the references' geometry once (cached across runs) and scores 2 x runs mask sets
     proj = {"baseline": calls * med["metrics"]["baseline"] + med["gains"]["baseline"],

@@ -1,31 +1,11 @@
-"""Memory against N: peak RSS of training epochs, ``label`` and ``prepare`` at N and 10N images (issue 25).
+"""Memory against N: peak RSS at N and 10N images, each figure from a fresh process, of one training epoch per
+``--methods`` on Zarr arrays shaped like the artifacts, read streaming (``LazyRows``) or loaded into memory
+first (with the epoch seconds at 10N of both, interleaved: median, minimum, ratio), of ``label`` with the
+simulated teacher, of ``prepare`` with every view count scaled, and of ``read_chunk_rows`` against zarr's
+orthogonal selection; the 10N / N ratios (target 1.3x) and the streaming peak extrapolated to 100,000 images
+(target 8 GiB).
 
-    python -m benchmarks.bench_memory                       # N = 24 at 192^2 (train), 64^2 (label)
-    python -m benchmarks.bench_memory --n 27 --size 384 --methods plain,geodistill \
-        --max-batches 12 --check-batches 24 --reps 3 --skip label,prepare,read
-
-Every measurement runs in a fresh Python process (its peak resident set, ``ru_maxrss``, is its own):
-
-* ``train``: one epoch of each ``--methods`` (``plain`` = Stage I; ``geodistill`` = Stage II with the
-  SDF/skeleton/area targets and gates, warm-started from a seeded Stage-I model;
-  ``geodistill_adaptive`` = Stage II in the anchored mode, i.e. with the frozen Stage-I anchors) through
-  :func:`pipeline.training.loop.train`, on synthetic images, masks and geometry targets stored as Zarr
-  arrays shaped like the artifacts (one image per chunk, sharded), read either streaming
-  (:class:`pipeline.training.streaming.LazyRows`, what ``training_data`` returns) or loaded into memory first (the
-  previous path).  The paper recipe's epoch (``average_last`` 0: no weight averaging pass over all
-  images), fp32, no validation set.  ``--max-batches K`` stops every epoch after K batches (a full
-  epoch at 384^2 is slow on a shared CPU): the streaming loop's peak is reached within its first
-  batches, which ``--check-batches`` (one more streaming run at 10N with that many batches) checks.
-  Also seconds per epoch at 10N, stream and in-memory interleaved (A B A B ..., ``--reps`` each):
-  median and minimum, and their ratio.
-* ``label``: ``pipeline.api.label`` with the simulated teacher on a folder of synthetic PNGs.
-* ``prepare``: the prepare stage on the synthetic source with every view count scaled (N = 168 at the
-  params' counts, 10N = 1680) at ``--label-size``^2.
-* ``read``: ``read_chunk_rows`` of 200 rows at ``--read-size``^2 (plain slices) against zarr's orthogonal
-  selection (what it used to do) -- peak RSS and seconds.
-
-Prints a table, the 10N / N ratios (target: within 1.3x), the per-image slope of the streaming peak and
-its extrapolation to ``--extrapolate`` images (target: 8 GiB at 100,000), and one JSON line.
+    python -m benchmarks.bench_memory [--n 27 --size 384 --methods plain,geodistill --max-batches 12 --check-batches 24]
 """
 
 from __future__ import annotations
@@ -46,6 +26,7 @@ from pipeline import catalog
 from pipeline.artifacts.lineage import make_meta
 from pipeline.artifacts.store import read_chunk_rows
 from benchmarks.bench_train import synthetic_set
+from benchmarks.common import round_robin, seconds
 from pipeline.datasets.params import check_data_params
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import load_params, section
@@ -70,10 +51,9 @@ def rss_mb() -> float:
 
 
 def write_zarr_set(folder: Path, n: int, size: int, seed: int = 0, geometry: bool = False) -> Path:
-    """``folder/images.zarr`` uint8 [n,size,size,3] and ``folder/mask.zarr`` bool [n,size,size]: one image per
-    chunk, 256 per shard (as the artifacts); written 16 images at a time.  ``geometry``: also
-    ``sdf.zarr`` float32 (+-0.5 inside/outside: a stand-in of the artifact's dtype and size, not an SDF)
-    and ``skeleton.zarr`` bool (the mask)."""
+    """``folder/images.zarr`` uint8 [n,size,size,3] and ``mask.zarr`` bool, one image per chunk and 256 per shard
+    (as the artifacts); ``geometry``: also ``sdf.zarr`` float32 (+-0.5: the artifact's dtype and size, not an
+    SDF) and ``skeleton.zarr`` bool (the mask)."""
     import zarr
 
     def create(name, shape, dtype):
@@ -93,8 +73,8 @@ def write_zarr_set(folder: Path, n: int, size: int, seed: int = 0, geometry: boo
 
 
 def child_train(folder: Path, mode: str, method_name: str, max_batches: int) -> dict:
-    """One epoch of ``method_name`` on the Zarr set, ``mode`` = stream | memory, at most ``max_batches``
-    batches (0 = all); peak and pre-training RSS, seconds and batches."""
+    """One epoch of ``method_name`` on the Zarr set (``mode``: stream | memory), at most ``max_batches`` batches
+    (0 = all): peak and pre-training RSS, seconds and batches."""
     import zarr
 
     from pipeline.training import loop as training
@@ -118,23 +98,20 @@ def child_train(folder: Path, mode: str, method_name: str, max_batches: int) -> 
         in_order = training._epoch_batches_in_order
         training._epoch_batches_in_order = lambda run, epoch: itertools.islice(in_order(run, epoch), max_batches)
     before = rss_mb()
-    t = time.perf_counter()
-    training.train(method, cfg, data, None, 42, checkpointer=training.NoCheckpointer(), init_state=init,
-                   device="cpu", show_progress=False)
-    seconds = time.perf_counter() - t
+    t = seconds(lambda: training.train(method, cfg, data, None, 42, checkpointer=training.NoCheckpointer(),
+                                       init_state=init, device="cpu", show_progress=False))
     steps = -(-n // int(cfg["batch_size"]))
     steps = min(max_batches, steps) if max_batches > 0 else steps
-    return {"peak_mb": peak_mb(), "rss_before_mb": before, "seconds": seconds, "batches": steps}
+    return {"peak_mb": peak_mb(), "rss_before_mb": before, "seconds": t, "batches": steps}
 
 
 def child_label(folder: Path, out: Path, size: int) -> dict:
     """``label`` on ``folder/images`` with the simulated teacher (reference masks ``folder/masks``)."""
     from pipeline.api import label
 
-    t = time.perf_counter()
-    label(folder / "images", out=out, formats=("png",), backend="simulated", reference_masks=folder / "masks",
-          overrides=[f"data.resolution={size}"], device="cpu")
-    return {"peak_mb": peak_mb(), "seconds": time.perf_counter() - t}
+    t = seconds(lambda: label(folder / "images", out=out, formats=("png",), backend="simulated",
+                              reference_masks=folder / "masks", overrides=[f"data.resolution={size}"], device="cpu"))
+    return {"peak_mb": peak_mb(), "seconds": t}
 
 
 def child_prepare(out: Path, factor: int, size: int) -> dict:
@@ -146,11 +123,9 @@ def child_prepare(out: Path, factor: int, size: int) -> dict:
     views = section(load_params(ROOT / "params.yaml"), "data")["synthetic"]
     sets = [f"data.synthetic.{k}={int(views[k]) * factor}" for k in PREPARE_VIEWS]
     params = load_params(ROOT / "params.yaml", [f"data.resolution={size}", f"data.cache_dir={out / 'cache'}", *sets])
-    t = time.perf_counter()
-    prepare(check_data_params(section(params, "data")), out,
-            lambda schema, params, **extra: make_meta(schema, "prepare", "bench_memory", params, **extra))
-    n = zarr.open_group(str(catalog.path("images", out)))["image"].shape[0]
-    return {"peak_mb": peak_mb(), "seconds": time.perf_counter() - t, "n": n}
+    t = seconds(lambda: prepare(check_data_params(section(params, "data")), out, lambda schema, params, **extra:
+                                make_meta(schema, "prepare", "bench_memory", params, **extra)))
+    return {"peak_mb": peak_mb(), "seconds": t, "n": zarr.open_group(str(catalog.path("images", out)))["image"].shape[0]}
 
 
 def child_read(folder: Path, mode: str) -> dict:
@@ -192,13 +167,14 @@ def _train_part(tmp: Path, args, sizes: tuple[int, int], methods: list[str]) -> 
     out: dict = {}
     geometry = any(m != STAGE_ONE for m in methods)
     folders = {n: write_zarr_set(tmp / f"train{n}", n, args.size, geometry=geometry) for n in sizes}
+
+    def child(n: int, mode: str, method: str):
+        return lambda i: run_child("train", str(folders[n]), mode, method, str(args.max_batches))
+
     for method in methods:
         rows: dict = {}
-        for n in sizes:
-            runs: dict[str, list] = {"stream": [], "memory": []}
-            for _ in range(args.reps if n == sizes[1] else 1):  # interleaved A B A B: load hits both alike
-                for m in runs:
-                    runs[m].append(run_child("train", str(folders[n]), m, method, str(args.max_batches)))
+        for n in sizes:  # interleaved A B A B at 10N: load hits both alike
+            runs = round_robin({m: child(n, m, method) for m in ("stream", "memory")}, args.reps if n == sizes[1] else 1)
             rows[n] = {m: {"peak_mb": max(r["peak_mb"] for r in rs), "rss_before_mb": rs[0]["rss_before_mb"],
                            "seconds": [r["seconds"] for r in rs], "batches": rs[0]["batches"]}
                        for m, rs in runs.items()}

@@ -1,26 +1,10 @@
-"""Segmenting a folder end to end against the engine alone, every CPU engine, in one run.
+"""Segmenting a folder end to end against the engine alone, every CPU engine of ``segment --engine``, in one
+run: a deploy bundle of a random TinyUNet written by the export code (int8 calibrated on the images, its
+agreement gate off), generated photo-like images, and round-robin rounds of the engine alone on the resized
+images, the serial loop and the overlapped loop; images/s (median, best round) and end to end / model-only
+against the target (>= 0.8 on 2 cores at 384^2 from 640x480), printed, never asserted.
 
-    python -m benchmarks.bench_segment                       # 64 photos at 640x480, 384^2 model
-    python -m benchmarks.bench_segment --images 200 --engines onnxruntime_fp32,openvino_int8
-
-What a user of ``geodistill segment`` waits for is the folder, not the model: decode -> resize to R x R
--> Z = f(x) -> P back to the photo's size -> M = [P >= tau] (eq:inference-mask) -> PNG.  This script
-
-* writes ``--images`` generated photo-like images (smooth backgrounds, bright blobs, noise; JPEG by
-  default) of ``--size`` into a temporary folder;
-* builds a deploy bundle of a randomly initialised TinyUNet (the student's architecture, ``--channels``)
-  with the project's own export code (:func:`pipeline.deploy.export.plan_export` /
-  :func:`~pipeline.deploy.export.write_export`: TorchScript, ONNX, and the int8 model calibrated on the
-  generated images -- its agreement gate is off: this measures speed, not masks);
-* for every engine of ``segment --engine`` (:data:`pipeline.deploy.engine_table.SEGMENT_ENGINES`; an engine whose
-  runtime is missing is skipped with the reason, and ``cuda`` needs a GPU) times, round-robin over
-  ``--repeats`` rounds: the engine alone on the already resized images at the same batch
-  (``Segmenter.predict_probs``, what segment's "ms/image in the model" counts), the serial loop
-  (``segment_files(workers=0)``) and the overlapped loop (``workers=--workers``: reads ahead and writes
-  behind the inference), each over the whole folder;
-* prints images/s (median and best round) and end to end / model-only; the target (end to end >= 0.8 x
-  the model alone for every engine on 2 cores at 384^2 from 640x480) is printed with each engine's
-  verdict, never asserted: timings belong to the machine and its load.
+    python -m benchmarks.bench_segment [--images 200 --engines onnxruntime_fp32,openvino_int8]
 """
 
 from __future__ import annotations
@@ -29,13 +13,12 @@ import argparse
 import dataclasses
 import json
 import os
-import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import medians, minima, round_robin, seconds
 from pipeline.artifacts.lineage import make_meta
 from pipeline.datasets.loading import read_rgb, resize_image
 from pipeline.deploy import files as F
@@ -53,7 +36,7 @@ MODES = ("model", "serial", "overlapped")
 
 def photo_like_images(folder: Path, n: int, width: int, height: int, fmt: str = "jpg", seed: int = 0) -> list[Path]:
     """``n`` files ``img000.<fmt>`` of ``width`` x ``height``: a smooth random background, one to three
-    bright ellipses and sensor noise (content a JPEG encoder and the model treat like a photo)."""
+    bright ellipses and sensor noise (treated like a photo by a JPEG encoder and the model)."""
     import cv2
 
     rng = np.random.default_rng(seed)
@@ -88,8 +71,8 @@ def random_student(channels, seed: int = 0) -> TinyUNet:
 
 
 def build_bundle(workdir: Path, resolution: int, channels, calibration: np.ndarray) -> Path:
-    """A deploy bundle of :func:`random_student` at ``resolution``, written by the export stage's logic;
-    int8 calibrated on ``calibration`` (uint8 [N,R,R,3]) with the agreement gate off (speed only)."""
+    """A deploy bundle of :func:`random_student` written by the export stage's logic; int8 calibrated on
+    ``calibration`` (uint8 [N,R,R,3]) with the agreement gate off (speed only)."""
     import pandas as pd
 
     ckpt = workdir / "checkpoint"
@@ -123,9 +106,7 @@ def load_engines(bundle: Path, names) -> tuple[dict, dict[str, str]]:
 def time_round(seg, files, stems, work: np.ndarray, *, tau: float, resolution: int, batch: int,
                workers: int) -> dict[str, float]:
     """Seconds of one pass over the folder per mode (:data:`MODES`)."""
-    t0 = time.perf_counter()
-    seg.predict_probs(work, batch_size=batch)
-    out = {"model": time.perf_counter() - t0}
+    out = {"model": seconds(lambda: seg.predict_probs(work, batch_size=batch))}
     for mode, w in (("serial", 0), ("overlapped", workers)):
         r = F.segment_files(seg, files, stems, tau=tau, resolution=resolution, batch_size=batch, workers=w)
         out[mode] = r.total_seconds
@@ -133,12 +114,10 @@ def time_round(seg, files, stems, work: np.ndarray, *, tau: float, resolution: i
 
 
 def summarise(times: dict[str, list[float]], n: int) -> dict:
-    """images/s per mode (median and best round) and the end-to-end / model-only ratios: of the medians
-    (``<mode>_ratio``, the verdict's) and of the best rounds (``<mode>_best_ratio``: on a loaded machine
-    the quietest rounds)."""
-    row = {}
-    for mode in MODES:
-        row[mode] = {"median": n / statistics.median(times[mode]), "best": n / min(times[mode])}
+    """images/s per mode (median and best round) and the end to end / model-only ratios of the medians
+    (``<mode>_ratio``, the verdict's) and of the best rounds (``<mode>_best_ratio``)."""
+    med, low = medians(times), minima(times)
+    row = {mode: {"median": n / med[mode], "best": n / low[mode]} for mode in MODES}
     for mode in ("serial", "overlapped"):
         row[f"{mode}_ratio"] = row[mode]["median"] / row["model"]["median"]
         row[f"{mode}_best_ratio"] = row[mode]["best"] / row["model"]["best"]
@@ -191,14 +170,12 @@ def main(argv=None) -> dict:
         bundle = build_bundle(td, args.resolution, channels, work[:32])
         segs, skipped = load_engines(bundle, names)
         stems = F.plan_outputs(td / "in", files, td / "out", True)
-        times = {name: {m: [] for m in MODES} for name in segs}
         for seg in segs.values():  # warm-up: sessions, oneDNN primitives, allocators
             seg.predict_probs(work[:args.batch], batch_size=args.batch)
-        for _ in range(max(1, args.repeats)):
-            for name, seg in segs.items():
-                for mode, t in time_round(seg, files, stems, work, tau=0.5, resolution=args.resolution,
-                                          batch=args.batch, workers=args.workers).items():
-                    times[name][mode].append(t)
+        rounds = round_robin({name: (lambda i, seg=seg: time_round(
+            seg, files, stems, work, tau=0.5, resolution=args.resolution, batch=args.batch, workers=args.workers))
+            for name, seg in segs.items()}, max(1, args.repeats))
+    times = {name: {m: [r[m] for r in rs] for m in MODES} for name, rs in rounds.items()}
     rows = {name: summarise(t, len(files)) for name, t in times.items()}
     setting = (f"bench_segment: {len(files)} {args.format} images {width}x{height} -> {args.resolution}^2, batch "
                f"{args.batch}, {args.workers} reader thread(s) + 1 writer, {args.repeats} round(s), "

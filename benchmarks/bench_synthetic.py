@@ -1,13 +1,7 @@
-"""Synthetic spacecraft generator throughput at 384x384 (target: >= 20 images/s on 2 CPU cores).
+"""Synthetic spacecraft generator throughput (target: >= 20 images/s at 384x384 on 2 CPU cores): the OpenCV
+rasteriser against the numpy per-pixel baseline (``rasterizer="numpy"``) on the same views, end to end and
+the rasterisation alone, plus the fast path with PNG encoding (what ``prepare`` writes) and in 2 processes.
 
-Measures, in one run and on the same views:
-  * fast path   -- OpenCV rasteriser (cv2.fillConvexPoly / cv2.line into the record-id buffer);
-  * baseline    -- the same generator with ``rasterizer="numpy"`` (plain per-pixel half-plane and
-                   segment-distance tests over each primitive's bounding box), end to end and for
-                   the rasterisation step alone (``synthetic.rasterize``, same views);
-  * prepare path -- fast path + PNG encoding of image, mask and part labels (what `prepare` writes);
-  * 2 workers   -- the fast path in a 2-process pool (the project's 2-core machines).
-Prints images/s and the fast/baseline ratio.  Usage:
     python -m benchmarks.bench_synthetic [--size 384] [--views 60] [--baseline-views 30]
 """
 
@@ -18,20 +12,13 @@ import multiprocessing as mp
 import os
 import time
 
+import cv2
+import numpy as np
 
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
-
-from pipeline.datasets import synthetic as syn  # noqa: E402
+from benchmarks.common import seconds
+from pipeline.datasets import synthetic as syn
 
 SEED = 2026
-
-
-def _jobs(n):
-    names = [f"syn-train-{k:02d}" for k in range(6)]
-    return [(names[i % len(names)], i) for i in range(n)]
-
-
 #: spacecraft models built once per process (their build is not what the benchmark times)
 _MODELS: dict = {}
 
@@ -44,8 +31,7 @@ def _spacecraft(name):
 
 def _render(job, size, rasterizer="cv2", encode=False):
     name, view = job
-    model = _spacecraft(name)
-    v = syn.generate_view(model, view, size, SEED, rasterizer=rasterizer)
+    v = syn.generate_view(_spacecraft(name), view, size, SEED, rasterizer=rasterizer)
     if encode:
         for a in (v.image[..., ::-1], v.mask.astype(np.uint8) * 255, v.parts):
             cv2.imencode(".png", np.ascontiguousarray(a), [cv2.IMWRITE_PNG_COMPRESSION, 1])
@@ -53,27 +39,22 @@ def _render(job, size, rasterizer="cv2", encode=False):
 
 
 def _rate(jobs, cpu=None, **kw):
-    """Images per wall-clock second; ``cpu`` (a dict) also receives images per CPU second of this
-    process, which stays meaningful when other jobs share the cores."""
+    """Images per wall second; ``cpu`` (a dict) also gets images per CPU second of this process, which
+    stays meaningful when other jobs share the cores."""
     _render(jobs[0], **kw)  # warm-up (imports, model build)
-    t, c = time.perf_counter(), time.process_time()
-    for j in jobs:
-        _render(j, **kw)
+    c = time.process_time()
+    wall = seconds(lambda: [_render(j, **kw) for j in jobs])
     if cpu is not None:
         cpu["rate"] = len(jobs) / max(time.process_time() - c, 1e-9)
-    return len(jobs) / (time.perf_counter() - t)
+    return len(jobs) / wall
 
 
 def _raster_rate(jobs, size, rasterizer):
     specs = []
     for name, view in jobs:
-        model = _spacecraft(name)
         rng = syn.view_rng(SEED, name, view)
-        specs.append((model, syn.sample_view(rng), rng))
-    t = time.perf_counter()
-    for model, spec, rng in specs:
-        syn.rasterize(model, spec, size, rng, rasterizer)
-    return len(specs) / (time.perf_counter() - t)
+        specs.append((_spacecraft(name), syn.sample_view(rng), rng))
+    return len(specs) / seconds(lambda: [syn.rasterize(m, spec, size, rng, rasterizer) for m, spec, rng in specs])
 
 
 def _worker(args):
@@ -81,13 +62,14 @@ def _worker(args):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=384)
     ap.add_argument("--views", type=int, default=60)
     ap.add_argument("--baseline-views", type=int, default=30)
     a = ap.parse_args()
     cv2.setNumThreads(1)
-    jobs = _jobs(a.views)
+    names = [f"syn-train-{k:02d}" for k in range(6)]
+    jobs = [(names[i % len(names)], i) for i in range(a.views)]
     cpu = {}
     fast = _rate(jobs, cpu=cpu, size=a.size)
     base_jobs = jobs[: a.baseline_views]
@@ -98,9 +80,7 @@ def main():
     r_base = _raster_rate(base_jobs, a.size, "numpy")
     with mp.get_context("fork").Pool(2) as pool:
         pool.map(_worker, [(jobs[0], a.size)] * 2)
-        t = time.perf_counter()
-        pool.map(_worker, [(j, a.size) for j in jobs], chunksize=4)
-        two = len(jobs) / (time.perf_counter() - t)
+        two = len(jobs) / seconds(lambda: pool.map(_worker, [(j, a.size) for j in jobs], chunksize=4))
     print(f"synthetic generator at {a.size}x{a.size}, {os.cpu_count()} CPUs visible")
     print(f"  fast path (OpenCV rasteriser), 1 process : {fast:7.1f} images/s  ({a.views} views)")
     print(f"  fast path per CPU-second of the process  : {cpu['rate']:7.1f} images/s  "

@@ -1,28 +1,10 @@
-"""Teacher speed: seconds per image and the encoder-reuse speed-up of the SAM 3 backend.
+"""Teacher speed of the SAM 3 backend, in one run on the same images: the former params defaults (fp32, 2
+images per forward, eager) against ``--dtype`` / ``--batch-size`` / ``--compile`` with the agreement of their
+answers, the encoder reused across the six prompts against six separate calls, and the SIMULATOR; or, with
+``--ray-workers``, the teacher runner's whole fill as the serial loop against Ray Data pools (round-robin,
+medians and minima, the pools' steady rates and start-up).
 
-    python -m benchmarks.bench_teacher                       # tiny random SAM 3 on CPU (no download)
-    python -m benchmarks.bench_teacher --size real --device cuda --dtype bf16 --images 8   # GPU, full-size random weights
-
-Today's path beside the new one (issue 19 item 4), same run, same images: ``today`` = the former
-params defaults (fp32, 2 images per forward, eager) against ``new`` = ``--dtype`` (default auto: bf16 on
-CUDA, fp32 on a CPU), ``--batch-size`` (default 0 = from free GPU memory) and ``--compile``, with the
-agreement of their answers (mean per-image mask IoU, max score difference; bf16 tolerance on CUDA).
-
-    python -m benchmarks.bench_teacher --size real --device cuda --images 16 --compile
-
-Also measured in the same run: six separate calls per image (vision encoder + heads for each
-prompt, :meth:`Sam3Teacher.predict_one_prompt_at_a_time`) against the backend's path (vision encoder
-once per image batch, features repeated to the six prompts, text encoded once per run).  Also
-prints the SIMULATOR's seconds per image for orientation.  Paper: 447.9 ms per image for six prompts
-on an RTX 4090 (840.5 M parameters).
-
-Teacher throughput on Ray (``--ray-workers 1,2``): the teacher runner's whole fill (plan by listing,
-jobs, cache writes) into a fresh cache, as the serial loop in this process (the baseline, torch on
-``--serial-threads`` threads) and as the Ray Data pipeline with 1 and 2 teacher actors (one CPU each),
-in one run, round robin (the order rotates every repeat), medians and minima of the wall times.  A Ray
-fill includes starting its actor pool (each actor loads the model)::
-
-    python -m benchmarks.bench_teacher --ray-workers 1,2 --images 48 --repeats 3
+    python -m benchmarks.bench_teacher [--size real --device cuda --images 16 --compile] [--ray-workers 1,2]
 """
 
 from __future__ import annotations
@@ -31,13 +13,13 @@ import argparse
 import hashlib
 import os
 import platform
-import statistics
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import best_of, medians, round_robin
 from pipeline.metrics import image_ious
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
@@ -52,17 +34,8 @@ PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
            "spacecraft with rigid body and appendages", "artificial object in space with panels and antennas"]
 
 
-def _time(fn, repeats: int) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
-
-
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", choices=["tiny", "real"], default="tiny")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dtype", choices=["auto", "fp32", "bf16"], default="auto")
@@ -90,8 +63,8 @@ def sam3_checkpoint(args, tmp: str) -> Path:
 
 
 def _synced(predict, items, sync):
-    """A timed call: ``predict(items, PROMPTS)`` and then ``sync()`` (a CUDA synchronise, or nothing), so
-    that the clock stops when the device is done."""
+    """``predict(items, PROMPTS)`` then ``sync()`` (a CUDA synchronise, or nothing): the clock stops when the
+    device is done."""
     def call():
         predict(items, PROMPTS)
         sync()
@@ -99,7 +72,7 @@ def _synced(predict, items, sync):
 
 
 def encoder_reuse(args) -> None:
-    """Today's path vs the new one, encoder reuse vs six separate calls, the SIMULATOR (module docstring)."""
+    """Today's path against the new one, encoder reuse against six separate calls, the SIMULATOR."""
     import torch
 
     rng = np.random.default_rng(0)
@@ -117,42 +90,34 @@ def encoder_reuse(args) -> None:
         teacher.predict(items[:1], PROMPTS)  # warm-up (text features cached here, as in a run)
         sync = torch.cuda.synchronize if teacher.device.type == "cuda" else (lambda: None)
 
-        batched = _synced(teacher.predict, items, sync)
-        separate = _synced(teacher.predict_one_prompt_at_a_time, items, sync)
-        todays = _synced(today.predict, items, sync)
-
-        batched()   # warm-up of every path: CPU kernels and CUDA graphs are built per tensor shape
-        separate()
-        todays()
-        t_batched = _time(batched, args.repeats)
-        t_separate = _time(separate, args.repeats)
-        t_today = _time(todays, args.repeats)
-
+        paths = {"batched": teacher.predict, "separate": teacher.predict_one_prompt_at_a_time, "today": today.predict}
+        calls = {k: _synced(f, items, sync) for k, f in paths.items()}
+        for call in calls.values():  # warm-up of every path: CPU kernels and CUDA graphs are built per tensor shape
+            call()
+        t = {k: best_of(call, args.repeats) for k, call in calls.items()}
         m_new, s_new = teacher.predict(items, PROMPTS)
         m_old, s_old = today.predict(items, PROMPTS)
         agree = float(np.mean(image_ious(m_new.reshape(-1, r, r), m_old.reshape(-1, r, r))))
         score_diff = float(np.max(np.abs(s_new - s_old))) if s_new.size else 0.0
-        del today, todays  # frees the fp32 model before the simulator's timing
-    sim_items = []
-    for it in items:
-        m = np.zeros((r, r), bool)
-        m[r // 4: r // 2, r // 4: 3 * r // 4] = True
-        sim_items.append(TeacherInput(it.image_id, it.image_sha256, it.image, reference={"mask": m}))
+        del today, paths, calls  # frees the fp32 model before the simulator's timing
+    m = np.zeros((r, r), bool)
+    m[r // 4: r // 2, r // 4: 3 * r // 4] = True
+    sim_items = [TeacherInput(it.image_id, it.image_sha256, it.image, reference={"mask": m}) for it in items]
     sim = SimulatedFoundationTeacher(resolution=(r, r))
-    t_sim = _time(lambda: sim.predict(sim_items, PROMPTS), args.repeats)
+    t_sim = best_of(lambda: sim.predict(sim_items, PROMPTS), args.repeats)
 
     n = args.images
     print(f"SAM 3 ({args.size}, {n_params / 1e6:.2f} M parameters, random weights) on {teacher.device} "
           f"{teacher.dtype_name}{'+tf32' if teacher.tf32 else ''} (--dtype {args.dtype}), {n} images {r}x{r}, "
           f"6 prompts, batch {teacher.batch_size}, compile {teacher.compile}, best of {args.repeats}")
-    print(f"  today's path (fp32, batch 2, eager):  {t_today / n * 1e3:9.1f} ms/image")
-    print(f"  new path:                             {t_batched / n * 1e3:9.1f} ms/image")
-    print(f"  new / today speed-up:                 {t_today / t_batched:9.2f} x  (target 25 ms/image on an H100)")
+    print(f"  today's path (fp32, batch 2, eager):  {t['today'] / n * 1e3:9.1f} ms/image")
+    print(f"  new path:                             {t['batched'] / n * 1e3:9.1f} ms/image")
+    print(f"  new / today speed-up:                 {t['today'] / t['batched']:9.2f} x  (target 25 ms/image on an H100)")
     print(f"  answers vs today: mean mask IoU {agree:.4f}, max |score difference| {score_diff:.3g}")
-    print(f"  encoder reused (one pass, 6 prompts): {t_batched / n * 1e3:9.1f} ms/image")
-    print(f"  six separate calls (baseline):        {t_separate / n * 1e3:9.1f} ms/image")
-    print(f"  encoder-reuse speed-up:               {t_separate / t_batched:9.2f} x")
-    print(f"  teacher seconds per image:            {t_batched / n:9.4f} s")
+    print(f"  encoder reused (one pass, 6 prompts): {t['batched'] / n * 1e3:9.1f} ms/image")
+    print(f"  six separate calls (baseline):        {t['separate'] / n * 1e3:9.1f} ms/image")
+    print(f"  encoder-reuse speed-up:               {t['separate'] / t['batched']:9.2f} x")
+    print(f"  teacher seconds per image:            {t['batched'] / n:9.4f} s")
     print(f"SIMULATOR (simulated backend):          {t_sim / n * 1e3:9.2f} ms/image")
     print("paper: SAM 3 teacher 447.9 ms/image (six prompts, RTX 4090)")
 
@@ -169,7 +134,7 @@ class ArrayInputs:
 
 
 def ray_throughput(args) -> None:
-    """Serial loop vs Ray Data pools of teachers, round robin, medians and minima (module docstring)."""
+    """The serial loop against Ray Data pools of teachers, round-robin (the order rotates every repeat)."""
     import torch
 
     pools = [int(w) for w in str(args.ray_workers).split(",")]
@@ -178,51 +143,48 @@ def ray_throughput(args) -> None:
     load = ArrayInputs(images)
     torch.set_num_threads(args.serial_threads)
     variants = ["serial"] + [f"ray x{w}" for w in pools]
-    times: dict[str, list[float]] = {v: [] for v in variants}
-    steady: dict[str, list[float]] = {v: [] for v in variants}
-    startup: dict[str, list[float]] = {v: [] for v in variants}
     with tempfile.TemporaryDirectory() as tmp, ray_session() as ray:
         ckpt = sam3_checkpoint(args, tmp)
         base = check_teacher_params({"backend": "sam3", "checkpoint": str(ckpt), "dtype": args.dtype,
                                      "batch_size": args.batch_size or 2, "prompts": PROMPTS,
                                      "vflip_base_prompt": False})
-        for rep in range(args.repeats):
-            for v in variants[rep % len(variants):] + variants[:rep % len(variants)]:
-                cfg = {**base, "cache_dir": str(Path(tmp) / f"cache-{rep}-{v.replace(' ', '')}")}
-                t0, t0_wall = time.perf_counter(), time.time()  # wall clock: compared with file times
-                runner, _ = open_runner(cfg, (r, r), args.device, load, load.shas)
-                stats = runner.fill(range(n), workers=0 if v == "serial" else int(v.split("x")[1]))
-                times[v].append(time.perf_counter() - t0)
-                assert stats.answers_computed == n * len(PROMPTS), stats
-                stamps = write_times(Path(cfg["cache_dir"]))
-                steady[v].append(steady_rate(stamps, len(PROMPTS)))
-                startup[v].append(stamps[0] - t0_wall)
+
+        def fill(rep: int, v: str) -> tuple[float, float, float]:
+            """(wall seconds, steady images/s, start-up seconds) of one fill into a fresh cache."""
+            cfg = {**base, "cache_dir": str(Path(tmp) / f"cache-{rep}-{v.replace(' ', '')}")}
+            t0, t0_wall = time.perf_counter(), time.time()  # wall clock: compared with file times
+            runner, _ = open_runner(cfg, (r, r), args.device, load, load.shas)
+            stats = runner.fill(range(n), workers=0 if v == "serial" else int(v.split("x")[1]))
+            wall = time.perf_counter() - t0
+            assert stats.answers_computed == n * len(PROMPTS), stats
+            stamps = write_times(Path(cfg["cache_dir"]))
+            return wall, steady_rate(stamps, len(PROMPTS)), stamps[0] - t0_wall
+
+        res = round_robin({v: (lambda rep, v=v: fill(rep, v)) for v in variants}, args.repeats, order="rotate")
         cpus = ray.cluster_resources().get("CPU", 0)
-    one = statistics.median(times[variants[1]]) if len(variants) > 1 else None
+    times, steady, startup = ({v: [x[k] for x in res[v]] for v in variants} for k in range(3))
+    med, steady_med, startup_med = medians(times), medians(steady), medians(startup)
+    one = variants[1] if len(variants) > 1 else None
     print(f"teacher throughput, SAM 3 {args.size} (random weights, input {args.input_size}) on {args.device}, "
-          f"{n} images {r}x{r}, "
-          f"{len(PROMPTS)} prompts, {args.repeats} round-robin repeats; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
-          f"{platform.node()}, {os.cpu_count()} cores, Ray sees {cpus:g} CPUs, load average "
-          f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}")
+          f"{n} images {r}x{r}, {len(PROMPTS)} prompts, {args.repeats} round-robin repeats; "
+          f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {platform.node()}, {os.cpu_count()} cores, "
+          f"Ray sees {cpus:g} CPUs, load average {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
     for v in variants:
-        med, low = statistics.median(times[v]), min(times[v])
-        rel = f"  {one / med:5.2f}x the 1-worker pool" if one and v.startswith("ray") else ""
-        print(f"  {v:9s} wall median {med:7.2f} s ({n / med:6.1f} images/s), min {low:7.2f} s{rel}  "
+        rel = f"  {med[one] / med[v]:5.2f}x the 1-worker pool" if one and v.startswith("ray") else ""
+        print(f"  {v:9s} wall median {med[v]:7.2f} s ({n / med[v]:6.1f} images/s), min {min(times[v]):7.2f} s{rel}  "
               f"[{', '.join(f'{t:.2f}' for t in times[v])}]")
     for v in variants:
-        rate = steady[v]
-        rel = (f"  {statistics.median(rate) / statistics.median(steady[variants[1]]):5.2f}x the 1-worker pool"
-               if len(variants) > 1 and v.startswith("ray") else "")
-        print(f"  {v:9s} steady median {statistics.median(rate):6.1f} images/s, max {max(rate):6.1f}{rel}  "
-              f"[{', '.join(f'{x:.1f}' for x in rate)}]")
+        rel = f"  {steady_med[v] / steady_med[one]:5.2f}x the 1-worker pool" if one and v.startswith("ray") else ""
+        print(f"  {v:9s} steady median {steady_med[v]:6.1f} images/s, max {max(steady[v]):6.1f}{rel}  "
+              f"[{', '.join(f'{x:.1f}' for x in steady[v])}]")
     for v in variants:
-        print(f"  {v:9s} start-up median {statistics.median(startup[v]):6.2f} s (fill start to first entry)  "
+        print(f"  {v:9s} start-up median {startup_med[v]:6.2f} s (fill start to first entry)  "
               f"[{', '.join(f'{x:.2f}' for x in startup[v])}]")
     if len(variants) > 2:
         print("  projected whole fill, start-up + images / steady rate (medians above; a model, not a measurement):")
         for images in (n, 10 * n, 100_000):
-            walls = {v: statistics.median(startup[v]) + images / statistics.median(steady[v]) for v in variants[1:]}
-            print(f"    {images:7d} images: " + ", ".join(f"{v} {walls[variants[1]] / w:4.2f}x" for v, w in
+            walls = {v: startup_med[v] + images / steady_med[v] for v in variants[1:]}
+            print(f"    {images:7d} images: " + ", ".join(f"{v} {walls[one] / w:4.2f}x" for v, w in
                                                      list(walls.items())[1:]) + " the 1-worker pool")
     print("wall: the whole fill (a Ray fill includes starting its actors, which import torch and transformers and "
           "load the model); steady: images whose entries were written after the first entry, over the time from "

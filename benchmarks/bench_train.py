@@ -1,20 +1,9 @@
-"""Training speed: plain fp32 eager NCHW vs the fast path (channels_last + bf16 autocast), same run.
+"""Training speed: plain fp32 eager NCHW against the fast path (channels_last + bf16 autocast) in the same
+run: seconds per epoch of the Stage-I ``plain`` method (interleaved one-epoch rounds, median and minimum, and
+the ratio), then one ``--epochs`` run of each for validation Image IoU / Boundary F1 on held-out images of an
+in-memory synthetic set (ellipse + panel bar on noise).
 
-    python -m benchmarks.bench_train                 # paper protocol size: 270 images at 384^2, 2 epochs
-    python -m benchmarks.bench_train --quick         # 32 images at 256^2, 3 epochs
-    python -m benchmarks.bench_train --images 64 --size 384 --epochs 2 --device cuda
-
-Both variants train the Stage-I ``plain`` method with ``pipeline.training.loop.train`` (same seed, same
-synthetic images and pseudo-masks, same everything except memory format and autocast).
-
-* Timing: ``--reps`` rounds, each running one training epoch of each variant back to back
-  (interleaved, so that load from other processes on a shared machine hits both alike); seconds per
-  epoch = median over the rounds (training only, no validation), also extrapolated to 270 images.
-* Accuracy: one ``--epochs``-epoch run per variant; final validation Image IoU / Boundary F1 at
-  tau 0.5 on held-out synthetic images (should agree within noise).
-
-The data is a synthetic stand-in (ellipse + panel bar on noise) generated in memory, so the
-benchmark needs no artifacts.  Prints a table and one JSON line.
+    python -m benchmarks.bench_train [--quick] [--images 270 --size 384 --epochs 2 --device cuda]
 """
 
 from __future__ import annotations
@@ -26,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import round_robin
 from pipeline.runtime.device import resolve_device
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import load_params, section
-
 
 PAPER_IMAGES = 270
 
@@ -101,12 +90,10 @@ def main(argv=None) -> dict:
 
     variants = {"fp32 eager NCHW": {**base, "precision": "fp32", "channels_last": False},
                 "channels_last + autocast": {**base, "precision": args.fast_precision, "channels_last": True}}
-    timing: dict[str, list[float]] = {name: [] for name in variants}
-    for name, cfg in variants.items():  # warm-up: oneDNN primitive creation, allocator
-        train_variant({**cfg, "epochs_stage1": 1}, data, None, device, args.seed)
-    for _ in range(max(args.reps, 1)):
-        for name, cfg in variants.items():
-            timing[name] += train_variant({**cfg, "epochs_stage1": 1}, data, None, device, args.seed)["epoch_seconds"]
+    one_epoch = {name: (lambda i, cfg=cfg: train_variant({**cfg, "epochs_stage1": 1}, data, None, device,
+                                                        args.seed)["epoch_seconds"][0]) for name, cfg in variants.items()}
+    round_robin(one_epoch, 1)  # warm-up: oneDNN primitive creation, allocator
+    timing = round_robin(one_epoch, max(args.reps, 1))
     results = []
     for name, cfg in variants.items():
         acc = train_variant({**cfg, "epochs_stage1": args.epochs}, data, val, device, args.seed)

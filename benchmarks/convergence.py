@@ -1,31 +1,10 @@
-"""Convergence study: where does the student's validation Image IoU plateau?
+"""Where does the student's validation Image IoU plateau?  One stable-phase run of the warm-up / stable / decay
+schedule (``train.schedule: wsd``) saves its state at E0, 2 E0, 4 E0, ... epochs; from each a decay branch
+gives the run of that length, scored on the validation images at their calibrated tau.  The plateau is the
+first length whose next doubling gains less than ``--plateau-gain``; the test images are scored once, at
+that length.  States and finished branches are kept, so a rerun with more ``--doublings`` continues.
 
-``python -m benchmarks.convergence`` -- by default at 128^2 on the reduced profile's data, for
-the Plain Student and the supervised ceiling, one seed.  One run gives every training length: a
-warm-up / stable / decay schedule (``train.schedule: wsd``, :func:`pipeline.training.loop._lr_lambda`)
-whose stable phase does not depend on the run's length, so
-
-  1. one stable-phase run (linear warm-up, then the constant learning rate) saves its full state
-     (weights, optimizer, RNG) after each branch epoch E = E0, 2 E0, 4 E0, ... (doublings);
-  2. from each saved state a decay branch runs ``decay_fraction / (1 - decay_fraction)`` x E more epochs
-     (at least one) with the learning rate falling linearly to 0 -- the run of total length
-     E / (1 - decay_fraction) epochs without training it from scratch: its learning-rate schedule
-     exactly; its batch order and augmentation are seeded by the branch's own epochs 1..D, so they
-     repeat the first epochs' (deterministic, not the single run's order);
-  3. each branch's final weights (BN statistics recomputed) are scored on the VALIDATION images at the
-     tau calibrated on them (the calibrate stage's rule on the epoch grid) and at tau 0.5.
-
-Plateau: the first length whose next doubling gains less than ``--plateau-gain`` (0.005) validation
-Image IoU at the calibrated tau.  Everything is chosen on validation images; the TEST images are scored
-once, for the plateau length of each method only, at the validation-calibrated tau (``test_iou``).
-With ``--recipe strong`` the branches train on augmented batches (``train.augment``).
-
-Writes one JSON (``--out``): per method, the curve (optimizer steps, epochs, validation IoU) and the
-plateau.  Resumable and extensible: the stable-phase states at the branch epochs and each branch's final
-weights are kept on disk (``--states``, default ``<workdir>/branch_states``, one folder per method, seed
-and training config), and the curve in ``--out`` keeps every finished branch.  A rerun with more
-``--doublings`` continues the stable phase from its last saved state and trains only the new branches;
-a killed run loses at most the epochs since the last saved branch state.
+    python -m benchmarks.convergence --profile reduced --recipe paper --seed 42 --out convergence.json
 """
 
 from __future__ import annotations
@@ -48,19 +27,17 @@ PLATEAU_GAIN = 0.005
 
 
 def branch_epochs(first: int, doublings: int) -> list[int]:
-    """Stable-phase epochs where the decay branches start: first, 2 first, ..., 2^doublings first."""
+    """The stable-phase epochs where decay branches start: first x 2^k, k = 0..doublings."""
     return [int(first) * 2 ** k for k in range(int(doublings) + 1)]
 
 
 def decay_epochs(stable: int, fraction: float) -> int:
-    """Epochs of the decay branch after ``stable`` stable-phase epochs: the decay is ``fraction`` of the
-    whole run, at least one epoch."""
+    """Epochs of the decay after ``stable`` epochs: ``fraction`` of the whole run, at least one."""
     return max(1, int(round(stable * fraction / (1.0 - fraction))))
 
 
 def plateau(values: list[float], gain: float = PLATEAU_GAIN) -> int | None:
-    """Index of the first length whose next doubling gains less than ``gain`` (values: one per
-    doubling, in order); None when every doubling still gains that much."""
+    """Index of the first of ``values`` (one per doubling) whose next gains less than ``gain``; None if none."""
     for i in range(len(values) - 1):
         if values[i + 1] - values[i] < gain:
             return i
@@ -68,21 +45,18 @@ def plateau(values: list[float], gain: float = PLATEAU_GAIN) -> int | None:
 
 
 def store_key(method: str, seed: int, cfg: Mapping[str, Any], data_id: Mapping[str, Any]) -> str:
-    """Folder name of one study run's saved states: the method, the seed and a digest of everything that
-    makes them (the training config and where the data came from)."""
+    """Folder name of one study run's states: method, seed and a digest of the training config and the data."""
     return f"{method}-s{int(seed)}-{fingerprint('convergence', '', {'cfg': cfg, 'data': data_id}, [])[:12]}"
 
 
-class BranchStore:
-    """The stable-phase states at the branch epochs and the decay branches' final weights, on disk.
+def _but_epochs(run_key: Mapping[str, Any]) -> dict:
+    return {k: v for k, v in run_key.items() if k != "epochs"}
 
-    As a :class:`pipeline.training.loop.Checkpointer` of the stable run it keeps the full state (weights,
-    optimizer, RNG) after each branch epoch (``stable-EEEEE/``, written atomically by
-    :class:`pipeline.training.checkpointing.FileCheckpointer`), and resumes the stable run from the latest saved
-    state: the stable phase does not depend on the run's length (constant rate after the warm-up; batch
-    order and augmentation seeded per epoch), so a longer run continues a shorter one.  Only the run
-    key's ``epochs`` may differ; a state of another method, seed, data or thread count is not used.
-    """
+
+class BranchStore:
+    """The stable run's checkpointer: its full state at each branch epoch, on disk, and the decay branches'
+    final weights.  A longer stable run resumes from the latest state of a shorter one (the stable phase
+    does not depend on the run's length): only the run key's ``epochs`` may differ."""
 
     def __init__(self, directory: str | Path, epochs: list[int]) -> None:
         self.directory, self.epochs = Path(directory), sorted(int(e) for e in epochs)
@@ -94,26 +68,20 @@ class BranchStore:
         return FileCheckpointer(self.directory / f"decay-{int(epoch):05d}")
 
     def state(self, epoch: int) -> dict | None:
-        """The stable-phase state after ``epoch`` (None when not saved)."""
         return self._states(epoch).load(None)
 
     def load(self, run_key):
-        for e in reversed([e for e in self.epochs if e <= int(run_key["epochs"])]):
-            state = self.state(e)
-            if state is None:
-                continue
-            if {k: v for k, v in state["run_key"].items() if k != "epochs"} != \
-                    {k: v for k, v in run_key.items() if k != "epochs"}:
-                return None
-            return {**state, "run_key": dict(run_key)}
-        return None
+        saved = (self.state(e) for e in reversed(self.epochs) if e <= int(run_key["epochs"]))
+        state = next((s for s in saved if s is not None), None)
+        if state is None or _but_epochs(state["run_key"]) != _but_epochs(run_key):
+            return None
+        return {**state, "run_key": dict(run_key)}
 
     def save(self, state: dict) -> None:
         if state["epoch"] in self.epochs:
             self._states(state["epoch"]).save(state)
 
     def save_weights(self, epoch: int, model) -> None:
-        """The final weights of the decay branch from ``epoch``."""
         self._weights(epoch).save({"epoch": int(epoch), "model": {k: v.detach().cpu() for k, v in model.state_dict().items()}})
 
     def weights(self, epoch: int) -> dict | None:
@@ -122,8 +90,7 @@ class BranchStore:
 
 
 class _StartFrom:
-    """A checkpointer that starts a run from a saved stable-phase state: weights, optimizer and RNG,
-    with a fresh schedule (the decay) and log."""
+    """A checkpointer that starts a run from a saved stable-phase state with a fresh schedule and log."""
 
     def __init__(self, state: Mapping[str, Any], lr: float) -> None:
         import torch
@@ -146,9 +113,8 @@ class _StartFrom:
 
 def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, branches: list[int],
                  fraction: float, device: str, store: BranchStore, done: Mapping[int, dict] | None = None) -> list[dict]:
-    """The curve of one method: for each branch epoch, the decay branch's validation scores.  Branches in
-    ``done`` (by stable epochs) are kept as they are; the stable phase runs only if a new branch's state
-    is not in ``store``, from the latest saved one."""
+    """One method's curve: each branch's validation scores (those in ``done`` kept); the stable phase runs
+    only when a new branch's state is not in ``store``."""
     from pipeline.training import loop as training
     done = dict(done or {})
     spec = get_method(method)
@@ -185,7 +151,6 @@ def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, bran
 
 
 def branch_model(method: str, cfg: Mapping[str, Any], seed: int, state: Mapping) -> Any:
-    """The student of a decay branch from its saved weights (eval mode)."""
     from pipeline.training.loop import build_model
 
     model = build_model(get_method(method), cfg, seed)  # the study's methods train from scratch

@@ -1,32 +1,14 @@
-"""Known-truth coverage of the gain intervals in the evaluation's design (docs/intervals.md).
-
-    python -m benchmarks.coverage [--replicates 5000] [--resamples 1000] [--seeds 3 5 10]
-
-Simulates one test group as the reports see it: C spacecraft (default 3) x n images each (default 20),
-scored by S seeds of both methods (seeds and images crossed), paired per-image differences
+"""Known-truth coverage of the gain intervals (docs/intervals.md): one test group of C spacecraft x n images,
+scored by S seeds of both methods, with paired per-image differences
 
     d[s, i] = theta + b_c(i) + u_s + e_i + e_si
 
-with b_c ~ N(0, spacecraft_sd^2) (the spacecraft effect), u_s ~ N(0, seed_sd^2) (a seed moves the whole
-difference), e_i ~ N(0, image_sd^2) (image effect, shared by the seeds) and e_si ~ N(0, seed_image_sd^2)
-(a seed moves one image), in the :data:`SCENARIOS`.  Every replicate draws all of them anew.  Two
-estimands:
+(spacecraft, seed, image and seed-by-image effects, normal with the :data:`SCENARIOS`' sds).  For every
+interval of :data:`pipeline.stats.INTERVALS`, called with the replicates as columns, it prints the coverage of
+"these spacecraft" (theta + mean_c b_c) and of "spacecraft like these" (theta) at 0.95, the median width, the
+power at :data:`TRUE_GAIN` and ``kept`` (the share of the reference interval's detections it keeps).
 
-* "these spacecraft": theta + mean_c b_c -- the effect on these test spacecraft (their images and the
-  training seeds are the samples); the truth of a replicate is conditional on its b_c;
-* "spacecraft like these": theta -- the spacecraft are a sample too.
-
-For every interval of :data:`pipeline.stats.INTERVALS` (today's ``paired_seed_bootstrap`` with
-``--resamples`` resamples -- 1,000 here against the reports' 10,000, which changes only the Monte Carlo
-error of its quantiles -- and the two t intervals of ``paired_seed_image_t``) it prints the coverage of
-each estimand at nominal 0.95, the median width, the power (share of replicates whose interval excludes
-0 when the true gain on these spacecraft is :data:`TRUE_GAIN`) and ``kept`` = the share of the
-replicates where today's interval detects that gain that this interval detects too.  Every interval is
-the real function of ``pipeline.stats`` called with the replicates as columns (so the bootstrap draws
-are shared within a block of replicates, as the reports share them across comparisons; each block has
-its own bootstrap seed).  Intervals are translation-equivariant, so one simulation at theta = 0 gives
-coverage, and the same intervals shifted by TRUE_GAIN - truth give power.  Fixed RNG seeds; nothing
-timed.
+    python -m benchmarks.coverage [--replicates 5000] [--resamples 1000] [--seeds 3 5 10]
 """
 
 from __future__ import annotations
@@ -41,29 +23,27 @@ from pipeline.stats import INTERVALS, SEED_BOOTSTRAP, SEED_CLUSTER_T, SEED_IMAGE
 
 #: the reports' nominal level
 NOMINAL = 0.95
-#: the gain whose detection "power" measures (an IoU difference worth reporting)
+#: the gain whose detection "power" measures
 TRUE_GAIN = 0.03
-#: the acceptance rule for the reports' interval: coverage of its estimand in every scenario and S ...
+#: the acceptance rule: coverage of its estimand in every scenario and S, and this share of the reference's
+#: detections of TRUE_GAIN kept (an interval cannot pass by being wide)
 MIN_COVERAGE = 0.93
-#: ... and it keeps at least this share of today's detections of TRUE_GAIN (an interval cannot pass by being wide)
 MIN_KEPT = 0.5
-#: the interval the reports should use, and its estimand
+#: the interval the reports use
 CHOSEN = SEED_IMAGE_T
 #: the reference of "kept": the reports' interval before this benchmark (not whatever the default is now)
 REFERENCE = SEED_BOOTSTRAP
-#: the estimand of each interval (today's bootstrap states none; its power is read against "these")
 ESTIMAND = {REFERENCE: "these", SEED_IMAGE_T: "these", SEED_CLUSTER_T: "like"}
 SEEDS = (3, 5, 10)
 N_SPACECRAFT = 3
 N_IMAGES = 20
-#: replicates per block (one bootstrap seed per block)
+#: replicates per block (one bootstrap seed each)
 BLOCK = 250
 
 
 @dataclasses.dataclass(frozen=True)
 class Scenario:
     """Standard deviations of the components of a paired per-image IoU difference."""
-
     image_sd: float
     seed_sd: float = 0.0
     seed_image_sd: float = 0.0
@@ -126,7 +106,7 @@ def evaluate(sc: Scenario, n_seeds: int, n_reps: int, n_resamples: int, seed: in
 
 def run(n_reps: int = 5000, n_resamples: int = 1000, seeds=SEEDS, scenarios=None, intervals=None,
         n_spacecraft: int = N_SPACECRAFT, n_images: int = N_IMAGES) -> list[dict]:
-    """One row per (scenario, S, interval); the RNG seed of a (scenario, S) cell is fixed by its position."""
+    """One row per (scenario, S, interval); each cell's RNG seed is fixed by its position."""
     rows = []
     every = {**SCENARIOS, **STRESS}
     for name in scenarios or SCENARIOS:
@@ -139,14 +119,13 @@ def run(n_reps: int = 5000, n_resamples: int = 1000, seeds=SEEDS, scenarios=None
 
 
 def passes(row: dict) -> bool:
-    """The acceptance rule: coverage of the interval's estimand >= MIN_COVERAGE and kept >= MIN_KEPT (today's
-    interval is the reference of ``kept``: coverage only)."""
+    """The acceptance rule (the reference interval: coverage only)."""
     cov = row["cov_these"] if ESTIMAND.get(row["interval"], "these") == "these" else row["cov_like"]
     return cov >= MIN_COVERAGE and (row["interval"] == REFERENCE or row["kept"] >= MIN_KEPT)
 
 
 def format_table(rows: list[dict]) -> str:
-    """The printed (and docs/intervals.md's) Markdown table."""
+    """The Markdown table of docs/intervals.md."""
     head = ("| scenario | S | interval | estimand | coverage (these) | coverage (like) | median width | "
             f"power at {TRUE_GAIN} | kept | meets rule |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]

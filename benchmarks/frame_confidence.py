@@ -1,14 +1,8 @@
-"""Does the per-frame confidence rank bad frames?  Spearman's rho between the deployed student's frame
-confidence (:func:`pipeline.deploy.confidence.frame_confidence`, :meth:`pipeline.Segmenter.score`) and
-its Image IoU against the reference masks, per test group of a run's artifacts.
+"""Does the per-frame confidence (:func:`pipeline.deploy.confidence.frame_confidence`) rank bad frames?  Per
+test group of a run and pooled: Spearman's rho between the deployed student's frame confidence and its Image
+IoU against the reference masks, and the mean IoU of the lowest-confidence quarter against the rest.
 
     python -m benchmarks.frame_confidence --artifacts artifacts [--deploy artifacts/deploy]
-
-Reads the run's test images at the working resolution (images.zarr), the reference masks and the deploy
-bundle; prints, per test group and pooled, the number of frames, rho with its p-value (t approximation,
-:func:`pipeline.stats.spearman`), the mean IoU of the lowest-confidence quarter of the frames against the
-rest, and writes nothing.  A positive rho means low scores go with poor masks.  Reference masks are used
-to *measure* the score here, never to make it.
 """
 
 from __future__ import annotations
@@ -41,8 +35,7 @@ def frame_scores(artifacts, deploy=None, engine: str = "torch",
 
 
 def rows(scores: dict[str, tuple[np.ndarray, np.ndarray]]) -> list[dict]:
-    """One row per group and one pooled: n, rho, p, and the mean IoU of the lowest-confidence quarter
-    against the other frames."""
+    """One row per group and one pooled: n, rho, p, the mean IoU of the lowest-confidence quarter and the rest's."""
     pooled = (np.concatenate([s for s, _ in scores.values()]), np.concatenate([v for _, v in scores.values()]))
     out = []
     for name, (s, v) in [*scores.items(), ("all", pooled)]:
@@ -55,7 +48,7 @@ def rows(scores: dict[str, tuple[np.ndarray, np.ndarray]]) -> list[dict]:
 
 
 def main(argv=None) -> list[dict]:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--artifacts", default=catalog.ARTIFACTS_DIR)
     ap.add_argument("--deploy", default=None, help="deploy bundle (default: the run's, artifacts/deploy)")
     ap.add_argument("--engine", default="torch")

@@ -1,27 +1,10 @@
-"""What a person's corrections buy: a simulated person corrects the k top-ranked training images with
-their reference masks (``review.mode: replace``), and the Stage-I student's test Image IoU is measured.
+"""What a person's corrections buy: the reference masks of the k top-ranked training images replace their votes
+(``review.mode: replace``; NOT annotation-free), and the Stage-I student's test Image IoU is measured for the
+shipped ranking, the lowest gate first and random selections, with each one's seed-aware gain over k = 0 and the
+ranking minus random.  On this benchmark the simulated teacher builds its bad masks from the gate's own factors,
+so a gate-based ranking wins partly by construction (printed beside the numbers).
 
-    python -m benchmarks.review_value --resolution 64 --seeds 42 43 44          # the study
-    python -m benchmarks.review_value --resolution 32 --ks 0 2 --seeds 42 --draws 1 \
-        --set data.synthetic.train_spacecraft=2 ...                                     # a smoke run
-    python -m benchmarks.review_value --runs seed42.json seed43.json --figure curve.png  # summarize
-
-* Data: the synthetic benchmark and its simulated teacher, built by the project's stage commands
-  (:func:`benchmarks.study_recipe.build_artifacts`, with the geometry stage for the gates).
-* Selections of the same k training images: ``combined`` (the ranking ``review export`` ships,
-  :data:`pipeline.review.ranking.DEFAULT_RANKING`), ``gate`` (lowest g first) and ``random``
-  (``--draws`` draws per seed).  The scores are the ones ``review export`` uses: g from gates.parquet,
-  h = :func:`pipeline.consensus.agreement_entropy` of the consensus agreement map.
-* The corrections: the images' reference masks replace their voted masks
-  (:func:`pipeline.training.inputs.replace_targets`, what the train stage does in replace mode): the
-  student is NOT annotation-free.  k = 0 is the Plain Student.
-* Scores: test Image IoU at the calibrated tau (:func:`benchmarks.study_recipe.score_run`),
-  Stage I (``plain``), per seed; each selection's gain over k = 0 with a seed-aware interval
-  (:func:`pipeline.stats.paired_seed_image_t`, spacecraft fixed), and the ranking minus random.
-
-CAVEAT, printed beside the numbers: the simulated teacher builds its bad masks from the gate's own
-factors (pipeline/teachers/simulated.py), so on this benchmark a gate-based ranking finds them partly by
-construction; a real teacher's failures need not line up with g.
+    python -m benchmarks.review_value --resolution 64 --seeds 42 43 44 [--runs seed42.json ... --figure curve.png]
 """
 
 from __future__ import annotations
@@ -35,7 +18,7 @@ import numpy as np
 from pipeline import catalog
 from pipeline.artifacts.store import open_artifact
 from benchmarks.study_recipe import build_artifacts, score_run
-from pipeline.evaluation.inference import predict_probs
+from pipeline.evaluation.inference import open_labelled_split, predict_probs
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.metrics import image_ious
 from pipeline.params import load_params, section
@@ -79,13 +62,8 @@ def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "
 
     method = get_method(STAGE_ONE)
     data, val, _ = load_inputs(artifacts, method, cfg)
-    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
-    images = open_artifact(catalog.path("images", artifacts), "images")
-    reference = open_artifact(catalog.path("reference", artifacts), "reference")
-    ids = manifest.df["image_id"].astype(str).tolist()
-    row = {iid: i for i, iid in enumerate(ids)}
-    test = np.flatnonzero((manifest.df["split"] == "test").to_numpy())
-    test = test[_rows(reference, "has_mask", test).astype(bool)]
+    manifest, images, reference, test = open_labelled_split(artifacts, "test", "nothing to score", allow_empty=True)
+    row = {iid: i for i, iid in enumerate(manifest.df["image_id"].astype(str))}
     test_images, test_masks = _rows(images, "image", test), _rows(reference, "mask", test).astype(bool)
     table = training_table(artifacts, list(data.image_ids))
     groups = manifest.df["spacecraft"].astype(str).to_numpy()[test]
@@ -97,9 +75,8 @@ def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "
                     chosen = select(table, how, k, np.random.default_rng([seed, k, d]))
                     truth = {i: _rows(reference, "mask", np.array([row[i]]))[0].astype(bool) for i in chosen}
                     train_data = replace_targets(data, truth) if chosen else data
-                    res = training.train(method, cfg, train_data, val, seed, checkpointer=training.NoCheckpointer(),
-                                         device=device, show_progress=False)
-                    model = res.model
+                    model = training.train(method, cfg, train_data, val, seed, checkpointer=training.NoCheckpointer(),
+                                           device=device, show_progress=False).model
                     s = score_run(model, val, test_images, test_masks, device)
                     ious = image_ious(mask_from_probs(predict_probs(model, test_images, device=device,
                                                                     precision="fp32"), s["tau_cal"]), test_masks)
@@ -110,9 +87,8 @@ def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "
 
 
 def selected_label_quality(artifacts: Path, cfg: dict, ks, seeds, draws: int) -> list[dict]:
-    """Per (selection, k > 0): the mean Image IoU of the chosen images' voted masks against their reference
-    masks (how bad the pseudo-labels a selection hands the person are; seeds and draws averaged), after
-    the whole training set's.  No training: the choices :func:`run_study` makes on the same ``cfg``."""
+    """The mean Image IoU of the voted masks against the reference of the whole training set, then of the
+    images each (selection, k > 0) of :func:`run_study` hands the person (seeds and draws averaged)."""
     data, _, _ = load_inputs(artifacts, get_method(STAGE_ONE), cfg)
     ids = list(data.image_ids)
     manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
@@ -133,14 +109,11 @@ def selected_label_quality(artifacts: Path, cfg: dict, ks, seeds, draws: int) ->
 
 
 def summarize(runs: list[dict], ks, seeds) -> list[dict]:
-    """Per (selection, k): mean test IoU over seeds (random: over draws too) and the gain over k = 0 with
-    its seed-aware interval; for the ranking also its difference from random (draws averaged per seed)."""
+    """Per (selection, k): mean test IoU over seeds and draws, the gain over k = 0 with its seed-aware interval,
+    and for the rankings their difference from random."""
     def per_image(how, k):
-        out = []
-        for s in seeds:
-            rs = [r["ious"] for r in runs if r["selection"] == how and r["k"] == k and r["seed"] == s]
-            out.append(np.mean(rs, axis=0))
-        return np.asarray(out)
+        return np.asarray([np.mean([r["ious"] for r in runs if r["selection"] == how and r["k"] == k
+                                    and r["seed"] == s], axis=0) for s in seeds])
 
     base = per_image("none", ks[0]) if ks and ks[0] == 0 else None
     groups = np.asarray(runs[0]["groups"])
@@ -178,19 +151,18 @@ SELECTION_TEXT = {DEFAULT_RANKING: f"shipped ranking ({DEFAULT_RANKING})", "gate
 
 
 def curve_figure(rows: list[dict], title: str):
-    """Test Image IoU against the images corrected, one line per selection (from the k = 0 Plain Student),
-    each with the seed-aware 95 % interval of its gain over k = 0 as a band around k = 0's IoU."""
+    """Test Image IoU against the images corrected, one line per selection, each with the 95 % interval of its
+    gain over k = 0 as a band."""
     from pipeline.report import figures as F  # matplotlib: figures only
 
     base = next(r["iou"] for r in rows if r["k"] == 0)
     series, bands = [], []
-    for i, how in enumerate(SELECTIONS):
+    for how, color in zip(SELECTIONS, F.PALETTE):
         part = [r for r in rows if r["selection"] == how]
-        color = F.PALETTE[i]
-        series.append({"x": [0] + [r["k"] for r in part], "y": [base] + [r["iou"] for r in part],
-                       "label": SELECTION_TEXT[how], "color": color, "key": how, "symbol": "o"})
-        bands.append(([0] + [r["k"] for r in part], [base] + [base + r["low"] for r in part],
-                      [base] + [base + r["high"] for r in part], color))
+        x = [0] + [r["k"] for r in part]
+        series.append({"x": x, "y": [base] + [r["iou"] for r in part], "label": SELECTION_TEXT[how], "color": color,
+                       "key": how, "symbol": "o"})
+        bands.append((x, [base] + [base + r["low"] for r in part], [base] + [base + r["high"] for r in part], color))
     fig = F.line_plot(series, title, "training images corrected (k)", "test Image IoU (Stage I)")
     ax = fig.axes[0]
     for x, lo, hi, color in bands:

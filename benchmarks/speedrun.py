@@ -1,20 +1,9 @@
-"""Speedrun: the training cost to reach the validation Image IoU of a converged baseline (issue 43).
+"""Speedrun: the training cost (images x (resolution / 128)^2) at which a candidate recipe reaches the
+validation Image IoU V of a converged baseline (``strong``, 400 epochs).  Each candidate trains the Plain
+Student from scratch on the reduced profile's data; V is the seed mean at the calibrated tau of the final
+weights.  Pass: V >= the baseline's at <= 1/4 of its cost.  ``--out`` keeps every finished run.
 
     python -m benchmarks.speedrun --resolution 64 --seeds 42 3407 2026 --jobs 2 --out reports/speedrun/speedrun-64.json
-
-Data: the reduced profile's synthetic benchmark (simulated teacher; 270 training, 60 validation images),
-built by the project's stage commands into ``--workdir``.  Each run trains the Plain Student (Stage I,
-pseudo-labels only) under ``strong`` with one candidate's changes (:data:`CANDIDATES`), without
-validation during training, from scratch.
-
-* Score V: validation Image IoU at the tau calibrated on the validation images (the calibrate stage's
-  rule on the epoch grid) and at tau 0.5, from the final weights with BN statistics recomputed (or the
-  candidate's own weight average); the seed mean is the candidate's V.
-* Cost: sum of training images x (resolution / 128)^2 -- forward and backward passes only.
-* Pass: V >= the baseline's V at a cost <= 1/4 of the baseline's (27,000 images at 128^2).
-
-The manual masks of the validation split only score and calibrate; they never enter a loss.
-``--out`` keeps every finished run; a rerun trains only the missing ones.
 """
 
 from __future__ import annotations
@@ -31,13 +20,12 @@ from benchmarks.study_recipe import _run_jobs, build_artifacts, load_study_data
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.profiles import load_profile
 
-#: the resolution the cost is counted at (issue 43)
+#: the resolution the cost is counted at
 COST_RESOLUTION = 128
 #: a candidate passes at no more than this share of the baseline's cost
 PASS_COST_SHARE = 0.25
 BASELINE = "baseline"
-#: candidate -> ``train.*`` changes of ``strong`` (``lr_scale`` multiplies Stage I's peak rate), and what it tests.
-#: One lever at a time, then combined; ``soft_targets`` departs from the paper's eq:raw-loss.
+#: candidate -> (``train.*`` changes of ``strong``, what it tests); ``soft_targets`` departs from eq:raw-loss
 CANDIDATES: dict[str, tuple[dict, str]] = {
     BASELINE: ({"epochs_stage1": 400}, "strong's schedule from scratch, 400 epochs"),
     "strong_100": ({"epochs_stage1": 100}, "strong at a quarter of the baseline's epochs (rate x1)"),
@@ -59,8 +47,7 @@ def run_cost(epochs: int, n_train: int, resolution: int) -> float:
 
 
 def candidate_cfg(base: Mapping[str, Any], name: str) -> dict:
-    """``strong``'s train section with candidate ``name``'s changes; final weights get their BN statistics
-    recomputed (``average_last`` 1 when the candidate averages nothing)."""
+    """``strong``'s train section with candidate ``name``'s changes (``average_last`` 1 when it averages nothing)."""
     cfg = {**base, **CANDIDATES[name][0]}
     if not cfg.get("ema_decay") and not cfg.get("average_last"):
         cfg["average_last"] = 1
@@ -100,8 +87,7 @@ def run_one(job: dict) -> dict:
 
 
 def summarize(runs: list[dict]) -> list[dict]:
-    """Per candidate: the seed mean and std of V (and V at 0.5), its cost, the cost ratio to the baseline,
-    and whether it passes (V >= the baseline's V at <= PASS_COST_SHARE of its cost)."""
+    """Per candidate: V's seed mean and std, V at 0.5, the cost and its ratio to the baseline's, and the verdict."""
     by: dict[str, list[dict]] = {}
     for r in runs:
         by.setdefault(r["candidate"], []).append(r)

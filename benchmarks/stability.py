@@ -1,37 +1,10 @@
-"""Stability benchmark (issue 24 item 1): do the demo's published numbers hold under numerical
-perturbations, and how do they compare with the seed-to-seed spread?
+"""Do the demo's published numbers (docs/stability.md) hold under numerical perturbations -- 1 thread, the other
+precision -- compared with the seed-to-seed spread?  Per (recipe, perturbation, seed) it trains ``plain``, then
+``geodistill`` and ``continuation`` warm-started from it, on the profile's synthetic benchmark, scores every group
+at the tau of each rule, and prints each number's perturbation and seed spreads and whether the target holds;
+``--noise-floor`` records the first recipe's spreads for the report.
 
-    python -m benchmarks.stability                                   # screening: 64², 5 seeds
-    python -m benchmarks.stability --resolution 128 --recipes paper stable --seeds 42 3407 2026 7 11
-    # the reduced report's own floor: its sizes, 128², its recipe (paper), 20 + 10 epochs
-    python -m benchmarks.stability --profile reduced --recipes paper --seeds 42 3407 2026 --jobs 1 \
-        --noise-floor reports/noise_floor.json
-
-What it does
-  1. Data: the ``--profile``'s synthetic benchmark (default: the demo's sizes; ``--profile reduced``
-     for the reduced report's 270/60/3x60 images; its simulated teacher is a SIMULATOR), built with
-     the project's stage commands at ``--resolution`` (default: the profile's) (:func:`benchmarks.study_recipe.build_artifacts`).
-  2. Runs: for every (recipe, perturbation, seed) the demo's methods in-process --
-     ``plain`` (Stage I), then ``geodistill`` and the budget-matched ``continuation`` warm-started
-     from that plain model -- with :func:`pipeline.training.loop.train` (the DVC train stage's loop).
-     A recipe is a ``train.recipe`` (:data:`pipeline.params.RECIPES`) or a screening candidate
-     (:data:`CANDIDATES`: one part changed).  Perturbations (:data:`PERTURBATIONS`): the default
-     (``train.num_threads`` 2), ``threads1`` (1 thread), ``precision`` (the other precision: fp32 where
-     the recipe resolves to bf16 autocast on this host, bf16 otherwise -- a host with / without native
-     bf16 under ``precision: auto``).
-  3. Scores, with the project's functions: tau calibrated on the validation split by each rule of
-     :data:`pipeline.thresholds.TAU_RULES` (argmax = the paper's, plateau, smooth), then per test
-     group the mean Image IoU and Boundary F1 (``evaluate.bf1_tolerance``) at that tau (predictions
-     in fp32, as the evaluate stage).
-  4. Prints per (recipe, tau rule): every published metric (method x group x IoU/BF1) with its
-     perturbation spread (max over seeds of max - min over the perturbations of one seed) and its
-     seed spread (sd over seeds, default perturbation); every gain (geodistill - plain, geodistill -
-     continuation) with the same two spreads; and whether the target holds: every group's mean over
-     seeds moves by at most :data:`pipeline.reproducibility.TOLERANCE` under each perturbation.
-
-Writes every run to ``<out>.runs.jsonl`` (a rerun skips the runs found there) and the summary to
-``--out``; ``--noise-floor PATH`` (reports/noise_floor.json) puts the first recipe's spreads into that
-file as the record of that recipe in this configuration (other records are kept), in the form the report reads (:func:`noise_floor_record`, :func:`pipeline.report.analysis.gain_noise_floor`).  No timing is asserted.
+    python -m benchmarks.stability --profile reduced --recipes paper --seeds 42 3407 2026 --noise-floor reports/noise_floor.json
 """
 
 from __future__ import annotations
@@ -67,8 +40,7 @@ METHODS = tuple(dict.fromkeys((STAGE_ONE, BASELINE, PROPOSED, CONTINUATION)))
 GAINS = ((PROPOSED, BASELINE), (PROPOSED, CONTINUATION))
 #: perturbation -> train overrides (``precision`` is resolved per recipe: the other precision)
 PERTURBATIONS = {"default": {"num_threads": 2}, "threads1": {"num_threads": 1}, "precision": {"num_threads": 2}}
-#: screening candidates: one recipe part (or a bundle of them) on top of ``train.recipe: paper`` (or of
-#: the recipe the candidate names)
+#: screening candidates: recipe parts on top of ``train.recipe: paper`` (or of the recipe the candidate names)
 CANDIDATES: dict[str, dict] = {
     "fp32": {"precision": "fp32"},
     "fp32_avg5": {"precision": "fp32", "average_last": 5},
@@ -83,8 +55,7 @@ METRICS = ("iou", "bf1")
 
 
 def recipe_train(name: str, base: Mapping[str, Any]) -> dict:
-    """The train section of recipe ``name``: a :data:`pipeline.params.RECIPES` name (its bundle with
-    the parts null, as a params file leaves them) or a :data:`CANDIDATES` name, over ``base``."""
+    """The train section of a :data:`pipeline.params.RECIPES` or :data:`CANDIDATES` name over ``base``."""
     raw = {**base, **{k: None for k in RECIPES[PAPER_RECIPE]["train"]}}
     if name in RECIPES:
         raw["recipe"] = name
@@ -131,7 +102,7 @@ def _init_worker(artifacts: str, cfg: dict, threads: int) -> None:
 
 
 def run_one(job: dict) -> dict:
-    """Train Stage I (plain), then the methods warm-started from it, for one (recipe, perturbation, seed)."""
+    """Stage I, then the methods warm-started from it, for one (recipe, perturbation, seed)."""
     from pipeline.training import loop as training
     t0 = time.perf_counter()
     cfg, seed = job["cfg"], job["seed"]
@@ -150,12 +121,8 @@ def run_one(job: dict) -> dict:
     return out
 
 
-# --------------------------------------------------------------------------------------------------
-# Summary
-# --------------------------------------------------------------------------------------------------
 def published(run: Mapping[str, Any], rule: str) -> dict[str, float]:
-    """Every published number of one run under a tau rule: ``<method>/<group>/<metric>`` and the gains
-    ``<treatment>-<control>/<group>/<metric>``."""
+    """One run's ``<method>/<group>/<metric>`` and gains ``<treatment>-<control>/<group>/<metric>`` under a tau rule."""
     out = {}
     for m in METHODS:
         for g, v in run[m][rule]["groups"].items():
@@ -169,11 +136,9 @@ def published(run: Mapping[str, Any], rule: str) -> dict[str, float]:
 
 
 def spreads(runs: list[dict], rule: str) -> dict[str, dict]:
-    """Per published number: ``mean`` over seeds (default perturbation), ``seed_sd`` (sd over seeds,
-    ddof 1; NaN for one seed), ``pert`` (max over seeds of the range over that seed's perturbations:
-    what a one-seed publication risks), ``pert_mean`` (range over perturbations of the mean over the
-    seeds run under every perturbation) and ``move_<p>`` (|seed-mean under perturbation p - seed-mean
-    under the default|, same seeds: what the target judges)."""
+    """Per published number: ``mean`` and ``seed_sd`` over seeds (default perturbation), ``pert`` (the largest
+    range over one seed's perturbations), ``pert_mean`` (the range of the seed-means over perturbations) and
+    ``move_<p>`` (|seed-mean under p - under the default|, the seeds run under every perturbation)."""
     seeds = sorted({r["seed"] for r in runs})
     perts = [p for p in PERTURBATIONS if any(r["perturbation"] == p for r in runs)]
     val = {(r["perturbation"], r["seed"]): published(r, rule) for r in runs}
@@ -196,9 +161,7 @@ def spreads(runs: list[dict], rule: str) -> dict[str, dict]:
 
 
 def exposed(cfg: Mapping[str, Any]) -> list[str]:
-    """The perturbations a recipe is exposed to between hosts: the thread count always (a proxy for
-    another CPU's kernels too), the precision only when ``train.precision`` is ``auto`` (host-dependent);
-    a pinned precision cannot change between hosts."""
+    """The perturbations a recipe is exposed to between hosts: threads always, the precision when ``auto``."""
     return ["threads1"] + (["precision"] if cfg["precision"] == "auto" else [])
 
 
@@ -207,11 +170,9 @@ NON_INFERIORITY_Z = 1.6449
 
 
 def no_worse_than(sp: Mapping[str, dict], reference: Mapping[str, dict] | None, metric: str = "iou") -> bool | None:
-    """The documented second condition of the target (docs/stability.md): every student's seed-mean
-    ``metric`` (method x group, calibrated tau) is no worse than under the ``reference`` recipe's runs
-    -- non-inferiority, not a point comparison: the one-sided 95 % lower bound of (mean - reference mean),
-    with the standard error sqrt(sd^2/n + sd_ref^2/n_ref) from the seeds, must lie above
-    -TOLERANCE[metric].  None when there is no reference to compare with (not shown either way)."""
+    """Non-inferiority of every student seed-mean ``metric`` to the ``reference`` recipe's: the one-sided 95 %
+    lower bound of the difference, standard error sqrt(sd^2/n + sd_ref^2/n_ref), above -TOLERANCE[metric];
+    None without a reference."""
     if reference is None:
         return None
     ok = []
@@ -228,15 +189,10 @@ def no_worse_than(sp: Mapping[str, dict], reference: Mapping[str, dict] | None, 
 
 def target_met(sp: Mapping[str, dict], perturbations=("threads1", "precision"),
                reference: Mapping[str, dict] | None = None, check_reference: bool = False) -> tuple[bool, float, float]:
-    """Target (issue 24): under each of ``perturbations`` every student metric's seed-mean (method x
-    group) moves by at most :data:`pipeline.reproducibility.TOLERANCE` of its metric, and, with
-    ``check_reference`` (a recipe other than the paper's), its calibrated IoU is no worse than the
-    ``reference`` (the paper recipe's spreads in the same configuration) by :func:`no_worse_than` -- every
-    condition docs/stability.md promises; with no reference to compare, the target is not met (not shown).
-    Returns (met, worst IoU move, worst BF1 move)."""
-    worst = {k: max((v.get(f"move_{p}", float("nan")) for n, v in sp.items() for p in perturbations
-                     if "-" not in n.split("/")[0] and n.endswith("/" + k)), default=float("nan"))
-             for k in METRICS}
+    """(met, worst IoU move, worst BF1 move): every student seed-mean moves by at most
+    :data:`pipeline.reproducibility.TOLERANCE` under each of ``perturbations`` and, with ``check_reference``,
+    is :func:`no_worse_than` the ``reference`` recipe's."""
+    worst = {k: max((_worst(sp, f"move_{p}", k) for p in perturbations), default=float("nan")) for k in METRICS}
     met = all(worst[k] <= TOLERANCE[k] for k in METRICS)
     if check_reference:
         met = met and no_worse_than(sp, reference) is True
@@ -260,9 +216,8 @@ def _worst(sp, key: str, metric: str, gains: bool = False) -> float:
 
 
 def recipe_table(summary: Mapping[str, Mapping[str, dict]], exposure: Mapping[str, list] | None = None) -> list[dict]:
-    """One row per (recipe, rule): mean plain/geodistill/continuation IoU and BF1 over groups, the worst
-    move of a student seed-mean under each perturbation and of a single seed (``pert1``), the median
-    seed sd, and whether the target holds under the recipe's ``exposure`` (default: every perturbation)."""
+    """One row per (recipe, rule): the methods' mean IoU and BF1, the worst moves, the median seed sd, and
+    whether the target holds under the recipe's ``exposure`` (default: every perturbation)."""
     rows = []
     for key, sp in summary.items():
         recipe, rule = key.split("|")
@@ -276,51 +231,50 @@ def recipe_table(summary: Mapping[str, Mapping[str, dict]], exposure: Mapping[st
                 row[f"move_{p}_{k}"] = _worst(sp, f"move_{p}", k)
             row[f"pert1_{k}"] = _worst(sp, "pert", k)
             row[f"gain_pert1_{k}"] = _worst(sp, "pert", k, gains=True)
-        for m in METHODS:
-            for k in METRICS:
+            for m in METHODS:
                 row[f"{m}_{k}"] = float(np.mean([v["mean"] for n, v in sp.items()
                                                  if n.startswith(m + "/") and n.endswith("/" + k)]))
-        for k in METRICS:
             row[f"seed_sd_{k}"] = float(np.median([v["seed_sd"] for n, v in sp.items()
                                                    if "-" not in n.split("/")[0] and n.endswith("/" + k)]))
         rows.append(row)
     return rows
 
 
+#: the printed recipe table's columns: (header, row key)
+TABLE = (("plainIoU", "plain_iou"), ("geoIoU", "geodistill_iou"), ("contIoU", "continuation_iou"),
+         ("plainBF1", "plain_bf1"), ("geoBF1", "geodistill_bf1"), ("thrIoU", "move_threads1_iou"),
+         ("thrBF1", "move_threads1_bf1"), ("prcIoU", "move_precision_iou"), ("prcBF1", "move_precision_bf1"),
+         ("1sIoU", "pert1_iou"), ("1sBF1", "pert1_bf1"), ("sdIoU", "seed_sd_iou"), ("sdBF1", "seed_sd_bf1"))
+
+
 def print_recipe_table(rows: list[dict]) -> None:
-    print(f"\n{'recipe':18s} {'rule':8s} {'plainIoU':>8s} {'geoIoU':>6s} {'contIoU':>7s} {'plainBF1':>8s} {'geoBF1':>6s} "
-          f"{'thrIoU':>6s} {'thrBF1':>6s} {'prcIoU':>6s} {'prcBF1':>6s} {'1sIoU':>6s} {'1sBF1':>6s} {'sdIoU':>6s} "
-          f"{'sdBF1':>6s} target")
+    print(f"\n{'recipe':18s} {'rule':8s} " + " ".join(f"{h:>{max(6, len(h))}s}" for h, _ in TABLE) + " target")
     for r in rows:
-        print(f"{r['recipe']:18s} {r['rule']:8s} {r['plain_iou']:8.3f} {r['geodistill_iou']:6.3f} "
-              f"{r['continuation_iou']:7.3f} {r['plain_bf1']:8.3f} {r['geodistill_bf1']:6.3f} "
-              f"{r['move_threads1_iou']:6.3f} {r['move_threads1_bf1']:6.3f} {r['move_precision_iou']:6.3f} "
-              f"{r['move_precision_bf1']:6.3f} {r['pert1_iou']:6.3f} {r['pert1_bf1']:6.3f} {r['seed_sd_iou']:6.3f} "
-              f"{r['seed_sd_bf1']:6.3f} {'yes' if r['target'] else 'no'} ({'+'.join(r['exposed'])})")
+        print(f"{r['recipe']:18s} {r['rule']:8s} " + " ".join(f"{r[k]:{max(6, len(h))}.3f}" for h, k in TABLE)
+              + f" {'yes' if r['target'] else 'no'} ({'+'.join(r['exposed'])})")
 
 
 def noise_floor_record(sp: Mapping[str, dict], info: Mapping[str, Any], perturbations) -> dict:
-    """What the report reads (reports/noise_floor.json, :func:`pipeline.report.analysis.gain_noise_floor`):
-    per published number (``<method>/<group>/<metric>`` and the gains ``<treatment>-<control>/<group>/<metric>``)
-    ``floor`` = the largest move of its seed-mean under the ``perturbations`` the recipe is exposed to,
-    ``pert`` = the largest range over every perturbation of one seed, ``seed_sd``."""
+    """The record the report reads (:func:`pipeline.report.analysis.gain_noise_floor`): per published number,
+    ``floor`` (its largest seed-mean move under ``perturbations``), ``pert`` and ``seed_sd``."""
     nums = {k: {"floor": max((v.get(f"move_{p}", float("nan")) for p in perturbations), default=float("nan")),
                 "pert": v["pert"], "seed_sd": v["seed_sd"]} for k, v in sp.items()}
     return {"info": {**dict(info), "perturbations": list(perturbations)}, "numbers": nums}
 
 
 def write_noise_floor(path: str | Path, key: str, record: dict) -> dict:
-    """Put ``record`` into the noise-floor file ``path`` under ``key`` (``{"recipes": {key: record}}``,
-    the key from :func:`pipeline.report.analysis.noise_floor_key`: one record per configuration -- recipe,
-    profile sizes, resolution; the other records are kept, and the report applies the one measured in
-    its own configuration, :func:`pipeline.report.analysis.select_noise_floor`).  Replaced atomically.
-    Returns the whole document."""
+    """Put ``record`` into the noise-floor file under ``key`` (one per configuration,
+    :func:`pipeline.report.analysis.noise_floor_key`), keeping the others; returns the whole document."""
     path = Path(path)
     old = json.loads(path.read_text()) if path.is_file() else {}
     doc = {"recipes": {**noise_floor_records(old), key: record}}
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path, doc)
     return doc
+
+
+def _key(run: Mapping[str, Any]) -> tuple:
+    return run["recipe"], run["perturbation"], run["seed"]
 
 
 def main(argv=None) -> dict:
@@ -340,10 +294,11 @@ def main(argv=None) -> dict:
                     help="train.recipe names and/or screening candidates: " + ", ".join(CANDIDATES))
     ap.add_argument("--jobs", type=int, default=2, help="training processes at a time")
     ap.add_argument("--out", default="bench_stability.json")
-    ap.add_argument("--noise-floor", default=None, help="put the first recipe's spreads into this file as its record (reports/noise_floor.json; the report reads the record of its runs' recipe)")
+    ap.add_argument("--noise-floor", default=None,
+                    help="put the first recipe's spreads into this file as its record (reports/noise_floor.json)")
     args = ap.parse_args(argv)
     # idle OpenMP threads sleep instead of spinning: on a shared 2-core machine a spinning thread of a
-    # 2-thread run stalls the other (9x slower measured); no effect on the numbers
+    # 2-thread run stalls the other; no effect on the numbers
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
     bad = [r for r in args.recipes if r not in RECIPES and r not in CANDIDATES]
@@ -351,10 +306,7 @@ def main(argv=None) -> dict:
         raise InputError(f"--recipes {bad}: expected one of {', '.join([*RECIPES, *CANDIDATES])}")
     if args.resolution is None:
         args.resolution = int(load_profile(args.profile)["data"]["resolution"])
-    ns = argparse.Namespace(profile=args.profile, resolution=args.resolution,
-                            **{k: None for k in ("train_spacecraft", "train_views", "val_spacecraft", "val_views",
-                                                 "test_spacecraft_per_group", "test_views")})
-    sets = sr.data_overrides(ns)
+    sets = [f"data.resolution={args.resolution}"]
     params = load_profile(args.profile, sets)
     artifacts = sr.build_artifacts(Path(args.workdir).resolve(), args.profile, sets, "cpu", geometry=True)
     base = dict(params["train"])
@@ -364,21 +316,16 @@ def main(argv=None) -> dict:
         base["epochs_stage2"] = args.epochs_stage2
     tolerance = params["evaluate"]["bf1_tolerance"]
     pert_seeds = args.seeds[:args.pert_seeds] if args.pert_seeds else args.seeds
-    jobs = []
-    for rname in args.recipes:
-        cfg = recipe_train(rname, base)
-        cal = {**params["calibrate"]}
-        for s in args.seeds:
-            for p in dict.fromkeys(["default", *args.perturbations]):
-                if p == "default" or s in pert_seeds:
-                    jobs.append({"recipe": rname, "perturbation": p, "seed": s, "cfg": perturbed(cfg, p),
-                                 "cal": cal, "tolerance": tolerance})
+    jobs = [{"recipe": rname, "perturbation": p, "seed": s, "cfg": perturbed(recipe_train(rname, base), p),
+             "cal": params["calibrate"], "tolerance": tolerance}
+            for rname in args.recipes for s in args.seeds for p in dict.fromkeys(["default", *args.perturbations])
+            if p == "default" or s in pert_seeds]
     info = {"artifacts": str(artifacts), "device": "cpu", "resolution": args.resolution, "profile": args.profile,
             "epochs": [base["epochs_stage1"], base["epochs_stage2"]], "n_train": None}
     partial = Path(str(args.out) + ".runs.jsonl")
     done = sr._finished_runs(partial, info)  # keyed (variant, method, seed): here (recipe, perturbation, seed)
-    done = {(r["recipe"], r["perturbation"], r["seed"]): r for r in done.values()} if done else {}
-    todo = [j for j in jobs if (j["recipe"], j["perturbation"], j["seed"]) not in done]
+    done = {_key(r): r for r in done.values()}
+    todo = [j for j in jobs if _key(j) not in done]
     results = dict(done)
     t0 = time.perf_counter()
     with partial.open("a") as sink:
@@ -388,11 +335,11 @@ def main(argv=None) -> dict:
                               str(artifacts), base, args.jobs, 1, init=_init_worker, run=run_one):
             sink.write(json.dumps({**r, "variant": r["recipe"], "method": r["perturbation"]}) + "\n")
             sink.flush()
-            results[(r["recipe"], r["perturbation"], r["seed"])] = r
+            results[_key(r)] = r
     summary = {}
     exposure = {r: exposed(recipe_train(r, base)) for r in args.recipes}
     for rname in args.recipes:
-        runs = [results[(j["recipe"], j["perturbation"], j["seed"])] for j in jobs if j["recipe"] == rname]
+        runs = [results[_key(j)] for j in jobs if j["recipe"] == rname]
         for rule in TAU_RULES:
             summary[f"{rname}|{rule}"] = sp = spreads(runs, rule)
             print_summary(rname, rule, sp, exposure[rname])

@@ -1,35 +1,10 @@
-"""Recipe study (issue 17, item 4): why the supervised ceiling is no better than pseudo-labels and why
-validation IoU swings between epochs -- one candidate at a time against the paper recipe.
+"""Recipe study: why is the supervised ceiling no better than pseudo-labels, and why does validation IoU swing
+between epochs?  Trains Plain (voted pseudo-masks) and the supervised ceiling (reference masks; NOT
+annotation-free) under the paper recipe and under each one-change variant (:data:`VARIANTS`), and prints the
+test IoU at the calibrated tau and at 0.5, the largest epoch-to-epoch jump, area ratios and tiny-target IoU
+(means over seeds, differences to the paper recipe).  Finished runs in ``<out>.runs.jsonl`` are skipped.
 
-    python -m benchmarks.study_recipe --resolution 96 --seeds 42 --jobs 2          # CPU, small
-    python -m benchmarks.study_recipe --device cuda --resolution 384 --jobs 8      # paper size
-
-What it does
-  1. Data: the synthetic benchmark with its simulated teacher, built by the project's own stage
-     commands (``prepare``, ``teacher``, ``consensus`` on ``<profile>``'s params file and the size
-     overrides below) into ``--workdir`` -- or, with ``--artifacts DIR``, the artifacts of a run that
-     exists (e.g. a DVC run of ``profile=paper``).  Training arrays come from the training API:
-     :func:`stages.train.load_inputs` -> :func:`pipeline.training.loop.training_data` (``plain``: the voted
-     pseudo-masks) and :func:`pipeline.training.supervised.ceiling_training_data` (``supervised_ceiling``: the
-     REFERENCE masks; NOT annotation-free, a diagnostic ceiling).
-  2. Runs: every (variant, method, seed) with :func:`pipeline.training.loop.train` (Stage I, ``epochs_stage1``,
-     best validation IoU at tau 0.5, exactly as the DAG's train stage), at most ``--jobs`` processes
-     with ``--threads`` torch threads each.  A variant is the paper recipe with ONE ``train.*`` change
-     (:data:`VARIANTS`): fp32 instead of bf16 autocast, BatchNorm momentum, precise BN, GroupNorm, a
-     lower clip of the positive-class weight, a lower / higher learning rate, a constant schedule.
-  3. Scores, with the project's functions (``predict_probs`` in fp32, ``calibrate_threshold`` on the
-     validation split over the epoch tau grid, ``image_ious``) on the test split:
-       * ``iou_cal`` / ``iou_05`` -- mean test Image IoU at the calibrated tau and at tau 0.5;
-       * ``max_jump`` -- the largest |val IoU(e) - val IoU(e-1)| at tau 0.5 over epochs 1..E of the log;
-         ``max_jump_cal`` the same for the log's per-epoch calibrated IoU (``val_iou_cal``);
-       * ``area_cal`` / ``area_05`` -- median over test images of predicted / reference foreground;
-       * ``iou_tiny`` -- mean test IoU at calibrated tau on targets under 0.2 % of the frame;
-     and, once per data set, how often the positive-class weight pi (eq:positive-weight) sits at its
-     clip in the seeded training batches (:func:`pos_weight_stats`).
-Every finished run is appended to ``<out>.runs.jsonl``; rerunning the same command skips the runs
-found there.  Prints one table (means over seeds; ``d`` columns = variant minus the paper recipe, same method) and
-writes every run's numbers to ``--out`` (JSON).  No timing is asserted; per-run seconds are recorded
-for orientation only (the machine may be shared).
+    python -m benchmarks.study_recipe --resolution 96 --seeds 42 --jobs 2
 """
 
 from __future__ import annotations
@@ -61,7 +36,7 @@ from pipeline.training.inputs import _rows, load_inputs
 REPO = Path(__file__).resolve().parents[1]
 #: the Stage-I (Plain Student) recipe and the same recipe on reference masks (the supervised ceiling)
 METHODS = (STAGE_ONE, SUPERVISED_CEILING)
-#: targets under this fraction of the frame count as "tiny" (issue 17 item 3's split)
+#: targets under this fraction of the frame count as "tiny"
 TINY_FRACTION = 0.002
 
 #: variant name -> (``train.*`` overrides of the paper recipe, the candidate it tests).  One change each.
@@ -78,9 +53,6 @@ VARIANTS: dict[str, tuple[dict, str]] = {
 }
 
 
-# --------------------------------------------------------------------------------------------------
-# Data
-# --------------------------------------------------------------------------------------------------
 def data_overrides(args) -> list[str]:
     """``--set`` overrides of the profile's params for the data stages: resolution and (optionally) split sizes."""
     sets = [f"data.resolution={args.resolution}"]
@@ -93,10 +65,8 @@ def data_overrides(args) -> list[str]:
 
 
 def build_artifacts(workdir: Path, profile: str, sets: list[str], device: str, geometry: bool = False) -> Path:
-    """Run prepare -> teacher -> consensus (-> geometry with ``geometry``: the Stage-II methods' targets
-    and gates) with the project's stage commands, on ``workdir/params.yaml`` (``profile``'s, as
-    ``geodistill profile`` writes it) with ``sets`` applied, into ``workdir/artifacts`` unless the last
-    one's output is there already; returns the artifacts directory."""
+    """prepare -> teacher -> consensus (-> geometry) by the stage commands on ``profile``'s params with ``sets``,
+    into ``workdir/artifacts`` unless the last one's output is there; returns that directory."""
     art = workdir / "artifacts"
     if catalog.path("gates" if geometry else "consensus", art).exists():
         return art
@@ -121,8 +91,7 @@ def build_artifacts(workdir: Path, profile: str, sets: list[str], device: str, g
 
 
 def load_study_data(artifacts: Path, cfg: Mapping[str, Any], methods=METHODS) -> dict:
-    """Training arrays per method of ``methods`` (via the training API), validation and test images +
-    reference masks (test: images, masks and groups)."""
+    """Training arrays per method (the training API), the validation data, test images, masks and groups."""
     out: dict[str, Any] = {}
     for m in methods:
         data, val, _ = load_inputs(artifacts, get_method(m), cfg)
@@ -140,9 +109,8 @@ def load_study_data(artifacts: Path, cfg: Mapping[str, Any], methods=METHODS) ->
 
 
 def pos_weight_stats(mask: np.ndarray, batch_size: int, seed: int, epochs: int, max_weight: float) -> dict:
-    """How the batch-shared positive-class weight pi (eq:positive-weight, :func:`pipeline.losses.positive_weight`)
-    behaves over the training batches of ``epochs`` epochs in the training loop's seeded order
-    (``default_rng([seed, epoch])``): median pi and the share of batches whose pi is at the clip."""
+    """The positive-class weight pi (eq:positive-weight) over ``epochs`` epochs of the loop's seeded batches:
+    median pi and the share of batches at the clip."""
     import torch
 
     from pipeline.losses import positive_weight
@@ -159,9 +127,6 @@ def pos_weight_stats(mask: np.ndarray, batch_size: int, seed: int, epochs: int, 
             "share_tiny_targets": float(np.mean(frac < TINY_FRACTION)), "n_batches": int(len(pis))}
 
 
-# --------------------------------------------------------------------------------------------------
-# One run
-# --------------------------------------------------------------------------------------------------
 def max_adjacent_jump(val_iou: np.ndarray) -> float:
     """Largest |v[e] - v[e-1]| over adjacent logged epochs (NaN entries skipped); 0 for < 2 values."""
     v = np.asarray(val_iou, dtype=np.float64)
@@ -178,8 +143,7 @@ def area_ratios(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
 
 
 def score_run(model, val, test_images, test_masks, device) -> dict:
-    """Test scores of a trained model: tau calibrated on validation (the calibrate stage's rule on the
-    epoch tau grid) and tau 0.5; predictions in fp32."""
+    """Test scores at the tau calibrated on validation (the epoch grid) and at 0.5; predictions in fp32."""
     vp = predict_probs(model, val.images, device=device, precision="fp32")
     tau, _ = calibrate_threshold(vp, val.masks, EPOCH_TAU_GRID)
     tp = predict_probs(model, test_images, device=device, precision="fp32")
@@ -225,15 +189,11 @@ def run_one(job: dict) -> dict:
     return out
 
 
-# --------------------------------------------------------------------------------------------------
-# Table
-# --------------------------------------------------------------------------------------------------
 COLUMNS = ("iou_cal", "iou_05", "max_jump", "max_jump_cal", "area_cal", "area_05", "iou_cal_tiny", "tau_cal")
 
 
 def _with_derived(r: Mapping[str, Any]) -> dict:
-    """A run's numbers plus ``max_jump_cal``: the largest adjacent-epoch change of the validation IoU
-    at each epoch's own calibrated tau (separates a moving probability scale from a moving ranking)."""
+    """A run's numbers plus ``max_jump_cal``, the largest epoch-to-epoch change of the calibrated validation IoU."""
     return {**r, "max_jump_cal": max_adjacent_jump(np.asarray(r["val_iou_cal_curve"], dtype=np.float64))}
 
 
@@ -271,8 +231,7 @@ def _run_settings(info: Mapping[str, Any]) -> dict:
 
 
 def _finished_runs(partial: Path, info: Mapping[str, Any]) -> dict:
-    """Runs already in ``partial`` (JSON lines) when it was written with the same settings, else none
-    (and the file is started afresh)."""
+    """Runs already in ``partial`` (JSON lines) written with the same settings, else none (the file restarts)."""
     if not partial.exists():
         return {}
     lines = [json.loads(x) for x in partial.read_text().splitlines() if x.strip()]
@@ -283,9 +242,8 @@ def _finished_runs(partial: Path, info: Mapping[str, Any]) -> dict:
 
 
 def _run_jobs(jobs: list[dict], artifacts: str, base: dict, n_jobs: int, threads: int, init=None, run=None):
-    """Yield the results of ``jobs`` as they finish: in this process (``n_jobs`` <= 1) or in a pool of
-    ``n_jobs`` spawned processes (each loads the study data once with ``init``; default
-    :func:`_init_worker`, jobs run by ``run``, default :func:`run_one`)."""
+    """Yield the results of ``jobs`` as they finish, here or in ``n_jobs`` spawned processes (each loading the
+    study data once with ``init``; jobs run by ``run``)."""
     init, run = init or _init_worker, run or run_one
     if not jobs:
         return
@@ -339,8 +297,7 @@ def main(argv=None) -> dict:
     print(json.dumps({k: v for k, v in info.items()}, indent=None))
     jobs = [{"variant": v, "method": m, "seed": s, "device": device, "cfg": {**base, **VARIANTS[v][0]}}
             for s in args.seeds for v in args.variants for m in args.methods]
-    # every finished run is appended to <out>.runs.jsonl at once; a rerun with the same settings skips
-    # the runs found there (a long study survives an interruption)
+    # a long study survives an interruption: a rerun skips the runs found in <out>.runs.jsonl
     partial = Path(str(args.out) + ".runs.jsonl")
     done = _finished_runs(partial, info)
     todo = [j for j in jobs if (j["variant"], j["method"], j["seed"]) not in done]

@@ -1,24 +1,10 @@
-"""The opt-in end-to-end check of the Label Studio review loop (``make review-e2e``; never in CI, never
-needed at run time): start a real Label Studio server serving local files, upload a review export
-through its HTTP API (project, Local files storage connection, tasks:
-:func:`pipeline.review.labelstudio.upload_review`), fetch every task's image URL and compare its bytes
-with the file, draw a correction on every task, export the project as JSON and read it back with
-``review import`` (:func:`pipeline.review.corrections.import_corrections`).
+"""The opt-in end-to-end check of the Label Studio review loop against a real server (docs/review.md; never in
+CI): upload a review export, compare every served image with its file, draw an anti-aliased brush stroke on every
+task, export the project and check that ``review import`` gives each image its vote united with the stroke, bit
+for bit.  Without ``--review`` a small synthetic export is written.  Exit 0 when every check passes, 1 naming
+the first failure, 2 on bad input.
 
     python -m tools.review_e2e --label-studio /path/to/venv/bin/label-studio [--review DIR] [--keep]
-
-The correction is drawn as Label Studio's editor draws a brush stroke: an anti-aliased round-capped
-line (``cv2.line``, ``LINE_AA``) whose soft alpha is copied into R, G and B and packed as rle-pack
-(:func:`pipeline.review.formats.ls_brush_rgba`, :func:`~pipeline.review.formats.ls_rle_encode_values`),
-submitted as a second brush result beside the task's pre-annotation (a task without one gets the stroke
-only).  Checked: the export holds the stroke's bytes exactly as submitted, and ``review import`` gives
-each image the vote united with every pixel the stroke touched (alpha > 0), bit for bit.
-
-``--review DIR``: a ``review export`` folder made with the default image URLs and ``--ls-shape
-brush``.  Without it, a small export is written from synthetic images and masks (an ellipse, one with
-a hole, one touching the edge, one with an empty vote, in a sub-folder).
-
-Exit 0 when every check passes; 1 naming the first failure; 2 on bad input.
 """
 
 from __future__ import annotations
@@ -124,8 +110,8 @@ def start_server(label_studio: str, layout: dict, workdir: Path) -> tuple[subpro
 
 
 def round_trip(client: Client, review_dir: Path, workdir: Path) -> list[str]:
-    """Upload, check every image URL, annotate every task with its pre-annotation plus a drawn stroke,
-    export and import; returns the failures (empty: all passed)."""
+    """Upload, check every image URL, annotate every task with its pre-annotation plus a drawn stroke, export
+    and import; returns the failures."""
     rec = read_review(review_dir)
     res = upload_review(client, review_dir, "geodistill review-e2e")
     files = {im["image_id"]: Path(rec.get("input") or "") / im["file"] for im in rec["images"]}
