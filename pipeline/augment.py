@@ -1,50 +1,6 @@
-"""Target-consistent augmentation: an image and every target trained on it move together.
-
-Pure functions on numpy arrays (no torch, no file): :func:`augment_sample` augments one training image
-and its targets, :func:`augment_batch` a batch with one seeded generator per image.  The training loop
-(:mod:`pipeline.training.loop`, ``train.augment``; on in the ``strong`` recipe only) calls
-:func:`augment_batch` on every batch; with augmentation off nothing here runs and the batches are the
-ones the paper and stable recipes always trained on.
-
-Targets (``targets`` mapping; each is optional except ``mask``)
-  * ``mask`` bool [H,W]: the region target (the voted pseudo-mask M^T, eq:majority-vote; the AFS
-    control's fused mask; the supervised ceiling's reference mask);
-  * ``sdf`` float32 [H,W] (eq:sdf-target) and ``skeleton`` bool [H,W]: the pseudo-geometry targets;
-  * ``anchor`` float32 [H,W]: the frozen Stage-I probabilities of the adaptive method's L_anchor;
-  * ``area`` float (eq:pseudo-area) and ``gate`` float (eq:reliability-gate): per-image scalars.
-
-Geometric augmentation, in this order:
-  1. **flips and 90 degree rotations** (``hflip``, ``vflip``, ``rot90``): applied to the image and to
-     ``mask``, ``sdf``, ``skeleton`` and ``anchor`` alike.  These are exact: the distance transform of
-     eq:sdf-target is exact Euclidean between pixel centres and its 0.95 quantile runs over all pixels,
-     and the skeleton's 3x3 neighbourhood is symmetric, so flipping/rotating the stored targets gives
-     bit for bit ``sdf_target`` / ``skeleton_target`` of the flipped mask (tests/test_augment.py checks
-     it).  No target is recomputed; area is unchanged.  A 90 degree rotation of a non-square image would
-     change its shape: only the 180 degree one is drawn there.
-  2. **scale / crop jitter** (``scale_probability``, ``scale_range``): a window of (H/s, W/s) pixels with
-     s log-uniform in ``scale_range``, placed uniformly at random (s > 1 zooms in on part of the frame;
-     s < 1 zooms out and the frame is padded with black -- space, the dark lab), resized back to [H,W]:
-     the image and ``anchor`` bilinearly, ``mask`` by nearest neighbour.  Distances do not survive a
-     resampling, so ``sdf`` and ``skeleton`` are **recomputed** from the augmented mask
-     (:func:`pipeline.geometry.pseudo_targets` with the geometry stage's constants) and ``area`` is the
-     augmented mask's area ratio (:func:`pipeline.geometry.area_ratio`).
-
-Photometric augmentation of the image only (``photometric_probability`` per image, then each part with
-its own draw), for spacecraft imagery: brightness (additive), contrast (about the image mean), gamma
-(log-uniform), saturated glare (a bright Gaussian spot added and clipped at 255, as the sun on foil or
-a lens flare does), blur (Gaussian, defocus or motion), sensor noise (Gaussian, read noise).  The
-targets do not change: the object is where it was.
-
-The gate (decision, docs/decisions.md): ``gate`` is passed through unchanged.  g_i (eq:reliability-gate)
-is the reliability of the teacher's pseudo-label of image i -- from the prompts' agreement, their
-validity and the area against the training median -- and no augmentation changes what the teacher said
-or how much to trust it: an image flipped, cropped or darkened carries the same label with the same
-reliability.  (The area factor of the gate is computed once from the un-augmented image; a crop that
-changes the visible area does not re-open that question.)
-
-Seeding: each image draws from ``numpy.random.default_rng(seed_i)``; :func:`augment_batch` takes one
-seed per image (the training loop uses ``[run seed, epoch, image index]``), so the same seeds give the
-same augmented batch, whatever else the batch holds.
+"""Target-consistent augmentation (``train.augment``; docs/decisions.md, "Augmentation"): an image and every target
+trained on it move together, flips exactly, a rescale with its SDF, skeleton and area recomputed; the gate is
+passed through.  Numpy only, one seeded generator per image.
 """
 
 from __future__ import annotations
@@ -102,12 +58,8 @@ class GeometryConstants:
     min_distance: float = PAPER.geometry.skeleton_min_distance
 
 
-# --------------------------------------------------------------------------------------------------
-# geometric
-# --------------------------------------------------------------------------------------------------
 def dihedral(x: np.ndarray, k: int, hflip: bool, vflip: bool) -> np.ndarray:
-    """``x`` [H,W,...] rotated by k x 90 degrees (counter-clockwise, ``numpy.rot90``), then flipped
-    left-right and up-down as asked; a contiguous copy."""
+    """``x`` [H,W,...] rotated by k x 90 degrees counter-clockwise, then flipped as asked; a contiguous copy."""
     out = np.rot90(x, k % 4, axes=(0, 1))
     if hflip:
         out = out[:, ::-1]
@@ -117,8 +69,7 @@ def dihedral(x: np.ndarray, k: int, hflip: bool, vflip: bool) -> np.ndarray:
 
 
 def crop_window(shape: tuple[int, int], scale: float, rng: np.random.Generator) -> tuple[float, float, float, float]:
-    """A window (x0, y0, w, h) in input pixels for zoom factor ``scale`` (window = frame / scale),
-    placed uniformly: inside the frame when it is smaller, around the frame when it is larger."""
+    """A window (x0, y0, w, h) of frame / ``scale`` input pixels, placed uniformly inside (or around) the frame."""
     h, w = shape
     wh, ww = h / scale, w / scale
     y0 = rng.uniform(min(0.0, h - wh), max(0.0, h - wh))
@@ -127,8 +78,7 @@ def crop_window(shape: tuple[int, int], scale: float, rng: np.random.Generator) 
 
 
 def resample(x: np.ndarray, window: tuple[float, float, float, float], nearest: bool) -> np.ndarray:
-    """``x`` [H,W] or [H,W,C] resampled so that ``window`` (x0, y0, w, h) fills the [H,W] frame:
-    bilinear, or nearest neighbour for masks; outside the input is 0 (black, background)."""
+    """``x`` [H,W(,C)] resampled so that ``window`` fills the frame, bilinear or nearest; 0 outside the input."""
     import cv2
 
     h, w = x.shape[:2]
@@ -146,19 +96,14 @@ def resample(x: np.ndarray, window: tuple[float, float, float, float], nearest: 
 
 
 def recompute_geometry(mask: np.ndarray, geometry: GeometryConstants) -> tuple[np.ndarray, np.ndarray, float]:
-    """(sdf, skeleton, area) of ``mask``: eq:sdf-target, the skeleton and eq:pseudo-area, exactly as the
-    geometry stage computes them (:func:`pipeline.geometry.pseudo_targets`)."""
+    """(sdf, skeleton, area) of ``mask`` as the geometry stage computes them (eq:sdf-target, eq:pseudo-area)."""
     sdf, skel, _ = pseudo_targets(mask[None], quantile=geometry.quantile, min_scale=geometry.min_scale,
                                   min_distance=geometry.min_distance)
     return sdf[0], skel[0], area_ratio(mask)
 
 
-# --------------------------------------------------------------------------------------------------
-# photometric
-# --------------------------------------------------------------------------------------------------
 def photometric(image: np.ndarray, spec: AugmentSpec, rng: np.random.Generator) -> np.ndarray:
-    """``image`` uint8 [H,W,C] with brightness, contrast, gamma, glare, blur and sensor noise, each
-    drawn from ``rng`` (the order of the draws is fixed); uint8 out."""
+    """``image`` uint8 [H,W,C] with brightness, contrast, gamma, glare, blur and sensor noise drawn from ``rng``."""
     x = image.astype(np.float32) / 255.0
     h, w = x.shape[:2]
     b = rng.uniform(-spec.brightness, spec.brightness)
@@ -182,17 +127,11 @@ def photometric(image: np.ndarray, spec: AugmentSpec, rng: np.random.Generator) 
     return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
 
 
-# --------------------------------------------------------------------------------------------------
-# one image, one batch
-# --------------------------------------------------------------------------------------------------
 def augment_sample(image: np.ndarray, targets: Mapping[str, Any], rng: np.random.Generator,
                    spec: AugmentSpec = DEFAULT_SPEC, geometry: GeometryConstants = GeometryConstants()
                    ) -> tuple[np.ndarray, dict]:
-    """One image uint8 [H,W,C] and its ``targets`` (module docstring) augmented with draws from ``rng``.
-
-    Returns (image, targets): new arrays, the inputs untouched; ``gate`` and any key this module does
-    not know are passed through unchanged.
-    """
+    """(image, targets) of one image uint8 [H,W,C] and its targets (``mask``; optional ``sdf``, ``skeleton``,
+    ``anchor``, ``area``; others pass through) augmented with draws from ``rng``; new arrays."""
     h, w = image.shape[:2]
     out = dict(targets)
     pixel = {k: np.asarray(targets[k]) for k in PIXEL_TARGETS if targets.get(k) is not None}
@@ -230,9 +169,7 @@ def augment_sample(image: np.ndarray, targets: Mapping[str, Any], rng: np.random
 def augment_batch(images: np.ndarray, targets: Mapping[str, np.ndarray], seeds: Sequence,
                   spec: AugmentSpec = DEFAULT_SPEC, geometry: GeometryConstants = GeometryConstants()
                   ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """A batch: ``images`` uint8 [B,H,W,C], ``targets`` name -> [B,...] arrays (pixel targets [B,H,W],
-    scalars [B]), ``seeds`` one ``numpy.random.default_rng`` seed per image.  Returns new arrays of the
-    same shapes and dtypes."""
+    """:func:`augment_sample` of every image of a batch (``targets``: name -> [B,...]) with one seed per image."""
     if len(seeds) != len(images):
         raise ValueError(f"augment_batch: {len(seeds)} seeds for {len(images)} images")
     out_images = np.empty_like(images)

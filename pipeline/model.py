@@ -1,29 +1,5 @@
-"""TinyUNet student (paper: "Compact Student Distillation for Stable Silhouette Learning").
-
-Architecture at a glance (channels (24, 48, 96), 384x384 input)::
-
-    x [B,3,H,W] in [0,1] -> normalise
-    enc1  ConvBNReLU(3->24),  ConvBNReLU(24->24)          H   x W
-    enc2  maxpool, ConvBNReLU(24->48), ConvBNReLU(48->48)  H/2 x W/2
-    enc3  maxpool, ConvBNReLU(48->96), ConvBNReLU(96->96)  H/4 x W/4
-    dec2  bilinear x2, concat enc2, ConvBNReLU(144->48), ConvBNReLU(48->48)
-    dec1  bilinear x2, concat enc1, ConvBNReLU(72->24),  ConvBNReLU(24->24)   -> decoded features F
-    mask_head  Conv1x1(24->1)           -> Z (mask logits), P = sigmoid(Z)          [deployed]
-    --- training only (Stage II; created by add_geometry_heads) ---
-    geometry_heads.sdf       Conv1x1(24->1) + tanh -> D^S in [-1,1]
-    geometry_heads.skeleton  Conv1x1(24->1)        -> Z^K (skeleton logits)
-
-Normalisation (issue 17, item 4; the paper names BatchNorm only): ``norm="batch"`` (default, the
-paper's ConvBNReLU) with ``bn_momentum`` for the running statistics (PyTorch's 0.1 by default), or
-``norm="group"`` -- GroupNorm with :data:`GROUP_CHANNELS` channels per group, which has no batch or
-running statistics, so training and evaluation normalise alike.  :func:`recompute_bn_stats` is
-"precise BN": the running statistics re-estimated over a fixed set of batches with the current weights.
-
-``forward(x)`` is the deployed path and returns mask logits only; :class:`ExportMaskPath` is the same
-function in the form that is exported and quantised (normalisation folded into the first conv).  ``forward_train(x)`` returns a dict
-with ``mask`` logits and, when the geometry heads exist, ``sdf`` and ``skeleton``.  The area term
-(eq:predicted-area) uses P and has no head.
-"""
+"""The TinyUNet student: a three-level U-Net (channels 24, 48, 96) whose mask head gives the deployed logits Z, plus
+the training-only SDF (tanh) and skeleton heads of Stage II on the same decoded features."""
 
 from __future__ import annotations
 
@@ -36,16 +12,12 @@ from torch import nn
 
 #: normalisation layers of :class:`TinyUNet` (``train.norm``); "batch" is the paper's
 NORMS = ("batch", "group")
-#: channels per GroupNorm group (``norm="group"``): 24/48/96 channels -> 3/6/12 groups
-GROUP_CHANNELS = 8
-#: PyTorch's BatchNorm momentum, the default of ``train.bn_momentum``
-DEFAULT_BN_MOMENTUM = 0.1
+GROUP_CHANNELS = 8  # channels per GroupNorm group: 24/48/96 channels -> 3/6/12 groups
+DEFAULT_BN_MOMENTUM = 0.1  # PyTorch's
 
 
 def norm_layer(kind: str, channels: int, bn_momentum: float = DEFAULT_BN_MOMENTUM) -> nn.Module:
-    """The normalisation after each 3x3 convolution: ``BatchNorm2d(channels, momentum=bn_momentum)``
-    for ``"batch"``; ``GroupNorm`` with :data:`GROUP_CHANNELS` channels per group for ``"group"`` (one
-    group per channel below that width, never fewer than one group)."""
+    """The normalisation after each 3x3 convolution: BatchNorm, or GroupNorm of :data:`GROUP_CHANNELS` per group."""
     if kind == "batch":
         return nn.BatchNorm2d(channels, momentum=bn_momentum)
     if kind == "group":
@@ -57,7 +29,7 @@ def norm_layer(kind: str, channels: int, bn_momentum: float = DEFAULT_BN_MOMENTU
 
 
 def model_options(cfg: Mapping[str, Any]) -> dict:
-    """TinyUNet keyword arguments from the ``train`` params: ``norm`` and ``bn_momentum``."""
+    """TinyUNet keyword arguments from the ``train`` params."""
     return {"norm": str(cfg["norm"]), "bn_momentum": float(cfg["bn_momentum"])}
 
 
@@ -84,9 +56,20 @@ class GeometryHeads(nn.Module):
         return {"sdf": torch.tanh(self.sdf(feats)), "skeleton": self.skeleton(feats)}
 
 
+def _unet(m: nn.Module, x: torch.Tensor, sizes=None) -> torch.Tensor:
+    """The decoded features of ``m``'s encoder-decoder; ``sizes``: the two upsampling sizes (default: the skips')."""
+    e1 = m.enc1(x)
+    e2 = m.enc2(F.max_pool2d(e1, 2))
+    e3 = m.enc3(F.max_pool2d(e2, 2))
+    s2, s1 = sizes or (e2.shape[-2:], e1.shape[-2:])
+    d2 = F.interpolate(e3, size=s2, mode="bilinear", align_corners=False)
+    d2 = m.dec2(torch.cat([d2, e2], dim=1))
+    d1 = F.interpolate(d2, size=s1, mode="bilinear", align_corners=False)
+    return m.dec1(torch.cat([d1, e1], dim=1))
+
+
 class TinyUNet(nn.Module):
-    # input normalisation: images are float in [0, 1]; centre and scale inside the model so that
-    # exported models take the same input as the PyTorch one.
+    # images are float in [0, 1], normalised inside the model so that exported models take the same input
     MEAN = 0.5
     STD = 0.25
 
@@ -108,23 +91,13 @@ class TinyUNet(nn.Module):
         self.mask_head = nn.Conv2d(c1, 1, 1)
         self.geometry_heads: GeometryHeads | None = None  # training only, Stage II
 
-    # ---- shared trunk -------------------------------------------------------------------------
     def decode(self, x: torch.Tensor) -> torch.Tensor:
-        x = (x - self.MEAN) / self.STD
-        e1 = self.enc1(x)
-        e2 = self.enc2(F.max_pool2d(e1, 2))
-        e3 = self.enc3(F.max_pool2d(e2, 2))
-        d2 = F.interpolate(e3, size=e2.shape[-2:], mode="bilinear", align_corners=False)
-        d2 = self.dec2(torch.cat([d2, e2], dim=1))
-        d1 = F.interpolate(d2, size=e1.shape[-2:], mode="bilinear", align_corners=False)
-        return self.dec1(torch.cat([d1, e1], dim=1))
+        return _unet(self, (x - self.MEAN) / self.STD)
 
-    # ---- deployed path ------------------------------------------------------------------------
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Mask logits Z [B,1,H,W] (the only output at inference, eq:inference-mask thresholds sigmoid(Z))."""
+        """Mask logits Z [B,1,H,W], the deployed output (eq:inference-mask thresholds sigmoid(Z))."""
         return self.mask_head(self.decode(x))
 
-    # ---- training-only ------------------------------------------------------------------------
     def add_geometry_heads(self) -> "TinyUNet":
         """Create fresh SDF and skeleton heads (start of Stage II); the mask path is untouched."""
         ref = self.mask_head.weight
@@ -151,26 +124,10 @@ def mask_path_model(model: TinyUNet) -> TinyUNet:
 
 
 class ExportMaskPath(nn.Module):
-    """The deployed mask path of a TinyUNet, rearranged for export and integer inference.
+    """A copy of a TinyUNet's mask path computing ``forward`` for export and int8 inference (docs/decisions.md).
 
-    Computes the same function as ``TinyUNet.forward`` (Z = f(x), eq:inference-mask), with two
-    rearrangements that change no value beyond float round-off:
-
-    * the input normalisation is folded into the first convolution::
-
-          conv(W, pad_0((x - m) / s)) = conv(W / s, pad_m(x)) - (m / s) * sum(W)     per output channel
-
-      (zero padding in normalised space is padding with m in image space).  The graph input is then
-      the image itself, x = k / 255 for 8-bit images, which an int8 model represents exactly
-      (scale 1/255, zero point 0); quantising the normalised input instead puts every pixel half a
-      grey level off, which moved the validation IoU of a trained student by 0.0075.
-    * the decoder's upsampling sizes are read from the input's shape (H // 2, H), which equals the
-      skip tensors' sizes after the floor-dividing max-pools, so the exported graph takes the shape of
-      the input only and no feature map is consumed by a Shape node (ONNX Runtime then keeps the
-      quantised feature maps in int8).
-
-    The training-only geometry heads are not part of it.  Built from a trained model by copying
-    (the source module is not modified).
+    The input normalisation is folded into the first convolution, conv(W, pad_0((x - m) / s)) =
+    conv(W / s, pad_m(x)) - (m / s) sum(W), and the upsampling sizes come from the input's shape.
     """
 
     def __init__(self, unet: TinyUNet):
@@ -192,26 +149,13 @@ class ExportMaskPath(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h, w = x.shape[-2], x.shape[-1]
-        e1 = self.enc1(F.pad(x, self.padding, value=self.pad_value))
-        e2 = self.enc2(F.max_pool2d(e1, 2))
-        e3 = self.enc3(F.max_pool2d(e2, 2))
-        d2 = F.interpolate(e3, size=(h // 2, w // 2), mode="bilinear", align_corners=False)
-        d2 = self.dec2(torch.cat([d2, e2], dim=1))
-        d1 = F.interpolate(d2, size=(h, w), mode="bilinear", align_corners=False)
-        return self.mask_head(self.dec1(torch.cat([d1, e1], dim=1)))
+        return self.mask_head(_unet(self, F.pad(x, self.padding, value=self.pad_value), ((h // 2, w // 2), (h, w))))
 
 
 @torch.no_grad()
 def recompute_bn_stats(model: nn.Module, batches: Iterable[torch.Tensor]) -> int:
-    """Precise BN: replace every BatchNorm's running mean/variance by the plain average of the batch
-    statistics over ``batches`` (forward passes in training mode, no gradient, current weights).
-
-    The EMA of training (``momentum`` 0.1) weights the last ~10 batches of 4 images, taken while the
-    weights still move; this estimate weights every batch alike with the final weights.  Each BN
-    layer's input is produced as in training (earlier layers normalise by batch statistics).
-    ``num_batches_tracked`` and each layer's momentum are restored; the model's mode is restored.
-    Returns the number of batches used (0: no BatchNorm layer or no batch -- nothing changed).
-    """
+    """Precise BN: every BatchNorm's running statistics become the plain average of the batch statistics over
+    ``batches`` with the current weights; the number of batches used (0: nothing changed)."""
     bns = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm) and m.track_running_stats]
     if not bns:
         return 0
@@ -243,8 +187,7 @@ def count_parameters(model: nn.Module, deployed_only: bool = True) -> int:
 
 
 def count_flops(model: nn.Module, height: int = 384, width: int = 384) -> int:
-    """FLOPs of one forward pass of the deployed path, counted from the graph by
-    ``torch.utils.flop_counter.FlopCounterMode`` (a multiply-add counts as 2 FLOPs)."""
+    """FLOPs of one forward pass of the deployed path (torch's FlopCounterMode: a multiply-add is 2)."""
     from torch.utils.flop_counter import FlopCounterMode
 
     ref = next(model.parameters())
