@@ -1,39 +1,21 @@
-"""What "the same published number" means: the reproducibility tolerance, written once.
-
-A rerun of a published protocol -- another machine of the same kind, another thread count, fp32 instead
-of bf16 -- reproduces a student metric when every test group's mean metric is within these absolute
-tolerances of the published one.  The stability benchmark judges a training recipe against them, and CI
-judges a fresh demo run against the committed metrics with them.
-
-Keys are the metric names of the DVC metrics files (``reports/metrics/students/<group>/<method>.json``):
-``iou`` = mean test Image IoU, ``bf1`` = mean test Boundary F1 (pipeline.metrics).
-
-:func:`compare_metrics` and :func:`difference_table` are CI's check (``geodistill reproduce-check``,
-pipeline/cli/reproduce_check.py): the student metrics of a fresh ``make demo`` against the committed ones.
-"""
+"""What "the same published number" means: a rerun reproduces a student metric when every test group's mean
+is within :data:`TOLERANCE` of the published one (keys: the DVC metrics files' ``iou`` and ``bf1``), and
+CI's check of a fresh demo against the committed metrics."""
 
 from __future__ import annotations
 
 import dataclasses
 from typing import Mapping, Sequence
 
-#: Absolute tolerance per published student metric (mean over a test group's images).
 TOLERANCE: dict[str, float] = {"iou": 0.01, "bf1": 0.02}
-
-
-# --------------------------------------------------------------------------------------------------
-# CI's check: a fresh demo run against the committed student metrics
-# --------------------------------------------------------------------------------------------------
-#: float slack when judging |fresh - committed| <= tolerance: the files hold 4-decimal values
-#: (pipeline.report.dvc_results.DECIMALS), whose difference is not exact in binary floating point
+#: the files hold 4-decimal values, whose difference is not exact in binary floating point
 SLACK = 1e-9
 
 
 @dataclasses.dataclass(frozen=True)
 class MetricDiff:
-    """One (metrics file, key) compared: ``status`` is ``ok``, ``over`` (|fresh - committed| above the
-    tolerance), ``missing`` (committed, but the fresh run has no such file or key) or ``extra`` (in the
-    fresh run, not committed)."""
+    """One (metrics file, key) compared; ``status``: ok | over (the tolerance) | missing (in the fresh run) |
+    extra (not committed)."""
 
     file: str
     key: str
@@ -49,13 +31,8 @@ class MetricDiff:
 
 def compare_metrics(committed: Mapping[str, Mapping[str, float]], fresh: Mapping[str, Mapping[str, float]],
                     tolerance: Mapping[str, float] = TOLERANCE) -> list[MetricDiff]:
-    """Compare every ``tolerance`` key of every metrics file, ``{relative path: {key: value}}`` on both
-    sides (``<group>/<method>.json`` under reports/metrics/students).
-
-    A value reproduces when ``|fresh - committed| <= tolerance[key]`` (+ :data:`SLACK`).  A file or key
-    only committed is ``missing``; a file only in the fresh run is ``extra`` (the committed results no
-    longer describe what the DAG produces).  Rows sorted by file, then key order of ``tolerance``.
-    """
+    """Every ``tolerance`` key of every metrics file (``{relative path: {key: value}}`` on both sides)
+    compared, sorted by file, then key."""
     rows = []
     for file in sorted(set(committed) | set(fresh)):
         c, f = committed.get(file), fresh.get(file)
@@ -85,8 +62,7 @@ STATUS_TEXT = {"ok": "ok", "over": "DIFFERS", "missing": "MISSING in the fresh r
 
 
 def difference_table(rows: Sequence[MetricDiff]) -> str:
-    """The comparison as a Markdown table (metrics file, metric, committed, fresh, difference,
-    tolerance, status)."""
+    """The comparison as a Markdown table."""
     def num(v, sign=False):
         return "--" if v is None else (f"{v:+.4f}" if sign else f"{v:.4f}")
 

@@ -155,7 +155,7 @@ def tiny_demo_run(lane: Lane, repo: Path) -> tuple[Path, dict, str]:
     params["protocol"]["runs"] = {m: seeds[:1] for m, seeds in params["protocol"]["runs"].items()}
     (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     env = tiny_demo_env(lane, repo)
-    for cmd in ([sys.executable, "-m", "pipeline.cli.dag"],  # the demo's dvc.yaml lists its seeds: re-render
+    for cmd in ([sys.executable, "-m", "pipeline.cli.generate"],  # the demo's dvc.yaml lists its seeds: re-render
                 ["git", "init", "-q"], [sys.executable, "-m", "dvc", "config", "core.analytics", "false"]):
         r = lane.run(cmd, cwd=repo, env=env)
         assert r.returncode == 0, f"{cmd}: {r.stdout[-2000:]}{r.stderr[-2000:]}"

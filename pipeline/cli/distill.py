@@ -1,5 +1,4 @@
-"""``geodistill distill INPUT --out DIR``: folder in, student + deploy bundle + report out, through the
-same DAG in a DVC project generated in DIR (pipeline/orchestration/standalone.py)."""
+"""``geodistill distill INPUT --out DIR``: a folder in, a student, deploy bundle and report out."""
 
 from __future__ import annotations
 
@@ -47,13 +46,10 @@ from stages._common import (bit_depth_option, max_pixels_option, overwrite_optio
 @quiet_option
 def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, labels, time_budget, no_run,
          no_benchmark, skip_bad, max_pixels, bit_depth, overwrite, quiet):
-    """Train a deployable student on a folder of images: SAM 3 pseudo-labels, Stage I (plain student),
-    Stage II (GeoDistill-Refine), threshold, export, report.  --out becomes a DVC project running the
-    pipeline's own DAG, so a rerun resumes where it stopped; distill.json there lists what distill
-    wrote; a file of yours where a project file goes is refused by name (--overwrite or not), and
-    --overwrite writes into a folder of yours; your files there stay (docs/own-data.md).
-    --labels LABEL_DIR trains from a `geodistill label` output of the same images, reusing its
-    teacher answers; a changed mask there is refused (corrections go through `geodistill review import`)."""
+    """Train a deployable student on a folder of images: SAM 3 pseudo-labels, Stage I, Stage II, threshold,
+    export, report.  --out becomes a DVC project running the pipeline's own DAG, so a rerun resumes; a file
+    of yours where a project file goes is refused by name (docs/own-data.md).  --labels LABEL_DIR reuses an
+    unmodified `geodistill label` output's teacher answers."""
     params = distill_params(params, input_dir, labels, backend, checkpoint, imported_dir, skip_bad, max_pixels,
                             bit_depth)
     params = time_budget_params(params, time_budget, out, device)
@@ -62,13 +58,13 @@ def main(params, device, input_dir, out, val_masks, checkpoint, backend, importe
     if no_run:
         click.echo(f"distill: wrote the DVC project {project}; run `dvc repro` there", err=True)
         return
-    with quiet_bars(quiet):  # --quiet: no bars in this process nor in the stages DVC runs
+    with quiet_bars(quiet):
         run_project(project, device, quiet=quiet)
     res = project_outputs(project)
     click.echo(f"distill: deploy bundle {res['deploy']}\ndistill: report {res['report']}", err=True)
     if (line := training_line(project)) is not None:
         click.echo(f"distill: {line}", err=True)
-    if (line := efficiency_line(project)) is not None:  # with --val-masks
+    if (line := efficiency_line(project)) is not None:
         click.echo(f"distill: {line}", err=True)
 
 

@@ -44,15 +44,10 @@ from stages._common import (bit_depth_option, max_pixels_option, overwrite_optio
 @teacher_workers_options
 def main(params, device, input_dir, out, checkpoint, backend, imported_dir, reference_masks, formats, copy_images,
          quiet, skip_bad, max_pixels, bit_depth, overwrite, workers, address):
-    """Label a folder of images with the multi-prompt teacher: voted pseudo-masks as PNG, COCO (RLE)
-    and YOLO segmentation files, a table of agreement c, valid ratio v, area a and gate g per image,
-    and a contact sheet.  Without --params the paper's values are used (working resolution 384).
-    --workers N runs the teacher on a Ray Data pool of N (same labels).
-    Reruns resume from the teacher cache inside OUT; label.json there lists what label wrote, and
-    a file of yours where an output goes is refused by name (--overwrite or not); your other files stay;
-    --overwrite writes into a folder of yours such as your own masks/ (docs/own-data.md).
-    The console: progress bars (none with --quiet), warnings and one summary line; the step log with
-    GEODISTILL_LOG=INFO."""
+    """Label a folder of images with the multi-prompt teacher: voted pseudo-masks as PNG, COCO (RLE) and
+    YOLO files, a table of agreement c, valid ratio v, area a and gate g per image, and a contact sheet.
+    Without --params the paper's values are used.  Reruns resume from the teacher cache inside OUT; a file
+    of yours where an output goes is refused by name (docs/own-data.md).  The step log: GEODISTILL_LOG=INFO."""
     fmts = parse_formats(formats)  # checked before any work
     params = with_data_options(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad, max_pixels,
                                bit_depth)
@@ -68,8 +63,7 @@ def main(params, device, input_dir, out, checkpoint, backend, imported_dir, refe
 
 @contextlib.contextmanager
 def _step_log_off():
-    """The project's INFO step log off for the command (its warnings stay), unless GEODISTILL_LOG names a
-    level: the summary line says what the steps did."""
+    """The INFO step log off (warnings stay) unless GEODISTILL_LOG names a level: the summary line says it."""
     logger = logging.getLogger("pipeline")
     before = logger.level
     if "GEODISTILL_LOG" not in os.environ:
@@ -81,16 +75,14 @@ def _step_log_off():
 
 
 def empty_line(result) -> str | None:
-    """The summary's plain word when every mask is empty (the run still succeeds: exit 0), with the two
-    likely causes in distill's words (:data:`pipeline.geometry.NO_FOREGROUND`); None otherwise."""
+    """The summary's plain word when every mask is empty (still exit 0), with the likely causes; else None."""
     if len(result.table) and not (result.table["mask_pixels"] > 0).any():
         return f"label: all {len(result.table)} masks are empty. {NoForeground().render(CLI)}"
     return None
 
 
 def summary_line(result) -> str:
-    """The command's one line: images, where, formats, the teacher's work (computed / from the cache, from
-    label.json), the gates and the YOLO validation share."""
+    """The command's one summary line: images, formats, the teacher's work, the gates, the YOLO split."""
     record = json.loads((result.out / OUTPUTS["record"]).read_text())
     g = result.table["g"]
     parts = [f"label: {len(result.table)} images -> {result.out} ({', '.join(result.formats)})",

@@ -1,8 +1,5 @@
-"""The ``geodistill`` console script: one click group whose subcommands are the DAG's stage commands
-(``stages/``) and the user tools (this package).
-
-Subcommands are imported lazily so ``geodistill --help`` stays fast (torch is not imported).
-"""
+"""The ``geodistill`` console script: the DAG's stage commands and the user tools, imported lazily so that
+``geodistill --help`` starts no torch."""
 
 from __future__ import annotations
 
@@ -16,22 +13,19 @@ from pipeline.artifacts.lineage import PROGRAM
 from pipeline.orchestration.dag import stage_modules
 from stages._common import one_line_errors
 
+
 def command_name(stage: str) -> str:
-    """The ``geodistill`` command of a DVC stage: its name with "-" for "_" (the stage keeps its name in
-    dvc.yaml and dvc.lock)."""
+    """The ``geodistill`` command of a DVC stage: its name with "-" for "_" (dvc.yaml keeps the stage's)."""
     return stage.replace("_", "-")
 
 
-# subcommand -> module exposing a click command named ``main`` (or ``module:command``): every stage of the
-# DAG under stages/ (pipeline.orchestration.dag.stage_modules, from the catalogue; a command is named like its stage with
-# "-" for "_", as every other command is spelled: `analyze-teacher` runs the DVC stage `analyze_teacher`),
-# then the tools under pipeline/cli/
+#: subcommand -> module exposing a click command ``main`` (or ``module:command``)
 COMMANDS = {
     **{command_name(stage): module for stage, module in stage_modules().items()},
     "segment": "pipeline.cli.segment",
-    "dag": "pipeline.cli.dag:dag_main",
-    "profile": "pipeline.cli.dag:profile_main",
-    "run": "pipeline.cli.run",
+    "dag": "pipeline.cli.generate:dag_main",
+    "profile": "pipeline.cli.generate:profile_main",
+    "run": "pipeline.cli.run_on_ray",
     "label": "pipeline.cli.label",
     "review": "pipeline.cli.review",
     "distill": "pipeline.cli.distill",
@@ -58,16 +52,13 @@ class LazyGroup(click.Group):
         return getattr(importlib.import_module(mod), attr or "main")
 
     def invoke(self, ctx):
-        """Every subcommand under :func:`stages._common.one_line_errors` (the stage commands also use it
-        themselves, for ``python -m stages.<name>``): an InputError or OSError the command did not turn
-        into its line still ends in one line, never a traceback."""
+        """Every subcommand under :func:`stages._common.one_line_errors`: one line, never a traceback."""
         args = [*getattr(ctx, "_protected_args", []), *ctx.args] or [""]
         with one_line_errors(args[0] or PROGRAM):
             return super().invoke(ctx)
 
 
 def _print_version(ctx, _param, value):
-    """``--version``: pipeline.__version__."""
     if not value or ctx.resilient_parsing:
         return
     click.echo(f"geodistill {__version__}")

@@ -1,15 +1,5 @@
-"""``geodistill plots``: DVC's plots of this project as a page that works offline.
-
-    geodistill plots                       # dvc plots show: every plot of dvc.yaml -> geodistill_plots/index.html (dvc plots show alone writes dvc_plots/)
-    geodistill plots --rev HEAD~1          # dvc plots diff HEAD~1: the workspace against a commit
-    geodistill plots training_curves -o out --open
-
-It runs DVC's own ``dvc plots show`` (``dvc plots diff`` with ``--rev``) with ``--html-template`` set
-to a page that inlines the chart library from an installed package (pipeline.report.offline_plots), so the
-page renders without network; DVC's default page loads it from a CDN and stays blank offline.  It
-first writes ``.dvc/plots/method_lines.json`` (the template of dvc.yaml's plots: one line per method)
-when the project lacks it.  Plain ``dvc plots show`` works too, online.
-"""
+"""``geodistill plots``: DVC's own ``dvc plots show|diff`` with a page template that inlines the chart library,
+so the page renders without network (DVC's default page loads it from a CDN)."""
 
 from __future__ import annotations
 
@@ -24,7 +14,7 @@ from pipeline.artifacts.atomic import write_text_if_changed
 from pipeline.runtime.errors import InputError
 from pipeline.report.offline_plots import dvc_plots_command, offline_page, template_path, template_text, vega_scripts
 
-#: the page folder of `geodistill plots`: not `dvc plots show`'s own dvc_plots/, so neither replaces the other
+#: not `dvc plots show`'s own dvc_plots/, so neither replaces the other
 OFFLINE_PLOTS_DIR = "geodistill_plots"
 
 

@@ -1,15 +1,5 @@
-"""``geodistill reproduce-check``: do the student metrics of this run reproduce the committed ones?
-
-    make demo && geodistill reproduce-check              # CI (.ci/run), in a fresh clone
-    geodistill reproduce-check --ref v1.2                # against another commit
-
-Compares every committed ``reports/metrics/students/<group>/<method>.json`` (``git show REF:...``)
-with the file the run just wrote, key by key (``iou``, ``bf1``), with the tolerance of
-:data:`pipeline.reproducibility.TOLERANCE` (:func:`pipeline.reproducibility.compare_metrics`).  Prints
-the table of differences either way.  Exit codes: 0 every metric reproduces; 1 a metric differs by more
-than its tolerance, or a metrics file is missing from the run or not committed; 2 bad input (not a git
-checkout, unknown REF, no committed student metrics, an unreadable metrics file).
-"""
+"""``geodistill reproduce-check``: do this run's student metrics reproduce the ones committed at ``--ref``,
+within :data:`pipeline.reproducibility.TOLERANCE`?  Exit 0 yes, 1 no, 2 bad input."""
 
 from __future__ import annotations
 
@@ -27,7 +17,7 @@ from pipeline.reproducibility import TOLERANCE, compare_metrics, difference_tabl
 
 
 def _git(args: list[str], cwd: Path) -> str:
-    """stdout of ``git args`` in ``cwd``; InputError (one line) when git fails."""
+    """stdout of ``git args`` in ``cwd``; InputError when git fails."""
     try:
         out = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True)
     except FileNotFoundError:

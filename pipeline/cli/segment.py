@@ -1,46 +1,5 @@
-"""``geodistill segment``: binary spacecraft masks for image files with a trained or exported student.
-
---checkpoint  a checkpoint directory (artifacts/checkpoints/<method>/<seed>) or a deploy bundle
-              (artifacts/deploy, from ``geodistill export``)
---input       one image file or a folder (searched recursively for png/jpg/jpeg/tif/tiff/bmp)
---output      folder for ``<input name>.mask.png`` (0/255, at the image's original size), optional
-              ``<input name>.prob.png`` (--save-prob) and ``<input name>.overlay.png`` (--overlay), and
-              skipped.csv and confidence.csv (each mask's per-frame confidence in [0, 1], low = don't trust
-              this frame: pipeline.deploy.confidence).  The whole input name is kept and sub-folders are mirrored:
-              ``photos/sub/a.png`` -> ``masks/sub/a.png.mask.png``, so a.png, a.jpg and a_png.png get
-              distinct outputs.  Two inputs whose outputs differ only in letter case (b.png, b.PNG) are
-              refused before anything is written.
---overwrite   replace files in the way that an earlier segment run did not write; without it such a
-              file stops the run before anything is written.  ``segment.json`` in --output lists what
-              segment wrote there, and a rerun replaces those without asking (pipeline.artifacts.ownership)
---skip-bad    leave unreadable images out (listed in skipped.csv); without it the first one stops
-              the run with one line naming it (the bad-file policy of label, distill and prepare)
---max-pixels  refuse images above N pixels, read from the file header before decoding (default
-              data.max_pixels); a bad file like any other under --skip-bad
-
---engine      auto or an engine of pipeline.deploy.engine_table (``--help`` lists them): what computes the logits.
-              ``auto`` = on a CUDA device ``cuda`` (bf16 + CUDA graphs, pipeline.deploy.cuda_engine),
-              else onnxruntime_fp32 when the bundle holds model.onnx and onnxruntime imports, else torch:
-              on the CPU only engines whose masks equal PyTorch's; the int8 engines (faster,
-              approximate) must be asked for.  A checkpoint directory supports torch and cuda only.  Every engine gets the same
-              preprocessed input and the same tau; the engine and its timings are printed on stderr
-              (model ms/image includes the first, warm-up batch; not with --quiet).
-
-tau (pipeline.thresholds.resolve_tau): ``--tau`` > the bundle's deploy.json > the checkpoint's payload >
-its row in ``--thresholds`` (default artifacts/thresholds.parquet when it exists) > ``calibrate.fixed_tau``
-of the params file (with a warning).  Working resolution: ``--resolution`` > the one the model was
-trained at (the bundle's deploy.json, the checkpoint's payload or meta.json); never guessed from the
-params file: a checkpoint that records none is refused with a request for ``--resolution N``, and a
-``--resolution`` other than the recorded one is used with a warning.
-
-Unlike the pipeline stages this is a user tool: it runs anywhere, and reads the params file only
-for the tau fallback, when that file exists.  Unreadable images -- and, in an input folder, symbolic
-links pointing outside it, broken links and links to folders (never followed) -- stop the run with
-one line, or with --skip-bad are listed in skipped.csv and counted on stderr; the rest go on.  Inputs are never modified and outputs never
-overwrite inputs (an output folder inside the input folder is refused).  Bad options and refused
-outputs: one line on stderr naming the path, exit code 2, nothing written.  The logic is
-:func:`pipeline.deploy.segmenting.segment_images`; this script is wiring.
-"""
+"""``geodistill segment``: binary spacecraft masks at each image's original size, with a trained or exported
+student (docs/own-data.md); the logic is :func:`pipeline.deploy.segmenting.segment_images`."""
 
 from __future__ import annotations
 

@@ -26,18 +26,9 @@ from stages._common import setup_logging
 def main(targets, address, stage_cpus, train_gpu_fraction, dry_run):
     """Run the DVC pipeline (or TARGETS and their upstream stages) with the stale stages as Ray tasks.
 
-    Each stale stage, and every stage downstream of one, runs `dvc --wait-for-lock repro --single-item
-    STAGE` as a Ray task once its upstream stages are done, so DVC decides what is stale and records
-    every stage (dvc.lock, cache, run cache): afterwards `dvc status` is clean and `dvc repro` does
-    nothing, and `dvc status` works while it runs (a running stage's outputs are busy, as
-    during `dvc repro`).  With GPUs the teacher takes one GPU and each
-    training run a fraction of one; CPU stages take cores (OMP_NUM_THREADS); the benchmark runs last
-    and alone (it measures time).  Logs and a timeline: artifacts/logs/run/.
-
-    A failing stage prints its error line; its dependents do not run, independent stages finish and
-    stay recorded (a rerun resumes); exit code 1.  One driver per repository (a second one exits 2);
-    killing the driver, even with SIGKILL, ends every stage process.  Needs the `cluster` extra
-    (Ray); without it use `dvc repro`.  Scaling out: docs/scaling.md.
+    Each runs `dvc repro --single-item STAGE` once its upstream stages are done, so DVC records every
+    stage as `dvc repro` would.  A failing stage's dependents do not run (exit code 1).  Logs and a
+    timeline: artifacts/logs/run/.  Needs the `cluster` extra (Ray); docs/scaling.md.
     """
     setup_logging()
     # SIGTERM (scancel, kill) as Ctrl-C: Ray shuts down and the stage processes end with their workers

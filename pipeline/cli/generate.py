@@ -1,5 +1,4 @@
-"""``geodistill profile NAME`` and ``geodistill dag``: write params.yaml for a profile and dvc.yaml from the
-catalogue, the method table and the stages' imports (pipeline/orchestration/dag.py)."""
+"""``geodistill profile NAME`` and ``geodistill dag``: generate params.yaml and dvc.yaml."""
 
 from __future__ import annotations
 
@@ -21,9 +20,7 @@ from stages._common import one_line_errors
 @click.option("--check", is_flag=True, help="only check that dvc.yaml is up to date (exit 1 if not)")
 @click.option("--out", default=DVC_FILE, show_default=True, type=click.Path(dir_okay=False))
 def dag_main(check: bool, out: str) -> None:
-    """Write dvc.yaml from pipeline/catalog.py, pipeline/methods.py and the stages' imports (and the
-    optional stages params.yaml switches on: the corrections stage with review.corrections; the
-    training runs in groups of seeds with protocol.seeds_per_stage > 1)."""
+    """Write dvc.yaml from pipeline/catalog.py, pipeline/methods.py, the stages' imports and params.yaml."""
     raw = yaml.safe_load(Path(PARAMS_FILE).read_text()) if Path(PARAMS_FILE).is_file() else None
     text = project_dvc_yaml(raw)
     path = Path(out)
@@ -43,9 +40,7 @@ def dag_main(check: bool, out: str) -> None:
               help="accepted like the other commands' --overwrite; a params file that `geodistill profile` did "
                    "not write is never replaced (refused by name)")
 def profile_main(name: str, out: str, overwrite: bool) -> None:
-    """Write params.yaml with the effective values of profile NAME (one of the choices above,
-    pipeline/profiles.py).  A rerun rewrites its own file (recognised by the generated header); any
-    other file is refused."""
+    """Write params.yaml with the effective values of profile NAME; a params file it did not write is refused."""
     with one_line_errors("profile"):
         text = render_params_yaml(name)
         path = Path(out)
