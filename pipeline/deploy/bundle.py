@@ -1,32 +1,9 @@
-"""The deploy bundle: writing and reading it (deploy.json), and a checkpoint's working resolution.
-
-Deploy bundle (directory artifact, schema ``deploy``; its layout, one table: pipeline.catalog.DEPLOY_BUNDLE)::
-
-    model.safetensors + model.json  mask-path weights; config, method, seed, tau, resolution
-                  -- the checkpoint format (pipeline.artifacts.weights), so pipeline.evaluation.inference.load_student() opens
-                  the bundle too (bundles of older versions hold model.pt instead; still read)
-    model.ts      TorchScript (traced) mask path; shape-generic (any batch and size)
-    model.onnx    ONNX mask path, dynamic batch/height/width (only when onnx + onnxruntime import)
-                  -- both traced from pipeline.model.ExportMaskPath (pipeline.deploy.mask_path)
-    model.int8.onnx  static int8 (QDQ) quantisation of model.onnx, calibrated on training-split images
-                  (only when model.onnx exists and training images are given; the CPU fast path;
-                  pipeline.deploy.quantize)
-    contract.json the written input/output contract (:func:`write_contract`): how a frame becomes the
-                  model's input (bit depth, squash or letterbox, size, channel order, normalisation,
-                  dtype, layout), what the output means (logits, tau, the mask, the way back to the
-                  frame, the per-frame confidence), and the golden pair with its tolerance -- enough to
-                  run model.onnx with onnxruntime and numpy alone
-    golden_input.npy, golden_probs.npy, golden_mask.npy  the golden pair: one working-resolution RGB
-                  uint8 frame, its probabilities P = sigmoid(Z) (PyTorch fp32 on the CPU) and its mask
-    deploy.json   tau (+ where it came from, pipeline.thresholds.resolve_tau), working resolution, model
-                  config, parameters, GFLOPs, exporter, parity results (int8: agreement report), file
-                  sha256s, source checkpoint and its fingerprint, the int8 file and its calibration image
-                  count (or why skipped)
-    meta.json     artifact metadata (fingerprint, lineage)
-"""
+"""The deploy bundle (its files: :data:`pipeline.catalog.DEPLOY_BUNDLE`): writing it with its contract and
+golden pair, reading deploy.json, and a checkpoint's working resolution."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -46,7 +23,6 @@ from pipeline.artifacts.weights import write_weights
 
 log = logging.getLogger(__name__)
 
-#: the bundle's files as its writer and readers name them (the layout: pipeline.catalog.DEPLOY_BUNDLE)
 DEPLOY_JSON = bundle_file("deploy_json")
 TORCHSCRIPT_FILE = bundle_file("torchscript")
 ONNX_FILE = bundle_file("onnx")
@@ -71,18 +47,10 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
                  int8_min_mask_iou: float = 0.9, int8_calibration: str = "percentile",
                  int8_percentile: float = 99.999, int8_weight_bits: int = 7, device=None,
                  frames: dict | None = None) -> dict:
-    """Fill a deploy bundle directory ``tmp`` (module docstring) and return its deploy.json content.
-
-    Raises :class:`ParityError` when an exported format fails its parity check.  When the int8 model's
-    mean mask IoU against PyTorch is below ``int8_min_mask_iou`` on any checked instruction set, the
-    bundle ships without it and ``int8_note`` says why.  ``onnx=False`` (or
-    onnx/onnxruntime missing) writes no model.onnx and records why in deploy.json.  model.int8.onnx
-    is written when model.onnx exists and ``calibration_images`` (uint8 [N,R,R,3], training split,
-    no masks) are given; otherwise ``int8_note`` says why not (``calibration_note`` when the caller
-    found no images).  ``frames`` (``bit_depth``, ``letterbox``: params ``data.bit_depth`` and
-    ``data.letterbox``, how the training frames were read and resized; default auto and squash) is
-    recorded so that :meth:`pipeline.Segmenter.from_bundle` and ``segment`` read frames the same way.
-    """
+    """Fill the bundle folder ``tmp``; its deploy.json content.  :class:`ParityError` when an export fails its
+    parity check; the int8 model only with model.onnx and ``calibration_images`` (training split), and left
+    out when it misses ``int8_min_mask_iou`` on a checked instruction set (``int8_note`` says why).
+    ``frames``: how training frames were read (data.bit_depth, data.letterbox)."""
     import torch
 
     tmp = Path(tmp)
@@ -120,7 +88,7 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
                 "weight_bits": int(int8_weight_bits),
                 "quantization": q8.int8_description(int8_calibration, int8_percentile, int8_weight_bits),
                 "verified_on": [c for c in parity["int8"]["isas"] if c["passed"]]}
-        if missed:  # an approximation that misses its gate is left out; the fp32 bundle still ships
+        if missed:  # the fp32 bundle still ships
             (tmp / INT8_FILE).unlink()
             log.warning("export: int8 model left out: %s", int8_note)
             int8 = None
@@ -158,8 +126,7 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
 
 
 def golden_frame(resolution: int) -> np.ndarray:
-    """The golden input: a fixed RGB uint8 frame [R,R,3] (a lit ellipse with panels on a dark, noisy
-    background; seeded, so every export of the same model writes the same bytes)."""
+    """The golden input, RGB uint8 [R,R,3]: a lit ellipse with panels on a dark noisy background, seeded."""
     rng = np.random.default_rng(20261126)
     r = int(resolution)
     yy, xx = np.mgrid[0:r, 0:r] / max(r - 1, 1)
@@ -174,11 +141,8 @@ def golden_frame(resolution: int) -> np.ndarray:
 def write_contract(tmp: str | Path, deployed, *, tau: float, resolution: int, frames: dict | None = None,
                    atol: float = 1e-4, onnx_file: str | None = ONNX_FILE, int8: dict | None = None,
                    int8_note: str | None = None) -> dict:
-    """Write contract.json and the golden pair into the bundle folder ``tmp`` (module docstring); the
-    contract's content.  The golden output is the deployed PyTorch mask path's in fp32 on the CPU; an
-    ONNX runtime reproduces P within ``atol`` (the export's parity tolerance on the logits, which bounds
-    P's: |dP| <= |dZ| / 4) and the mask except at pixels with |P - tau| <= atol.  ``int8``: deploy.json's
-    int8 record (its file, weights and the instruction sets it was verified on), or None with ``int8_note``."""
+    """Write contract.json (enough to run model.onnx with numpy alone) and the golden pair (PyTorch fp32 on
+    the CPU); the contract.  ``atol``: the logits' parity tolerance, which bounds P's (|dP| <= |dZ| / 4)."""
     tmp = Path(tmp)
     r = int(resolution)
     frames = frame_reading(frames)
@@ -236,8 +200,7 @@ def write_contract(tmp: str | Path, deployed, *, tau: float, resolution: int, fr
 
 
 def frame_reading(frames: dict | None = None) -> dict:
-    """deploy.json's ``frames``: ``{"bit_depth": auto|10|12|14|16, "letterbox": bool}`` (absent keys:
-    auto, squash -- what bundles without the record were made with)."""
+    """deploy.json's ``frames``, absent keys as older bundles were made: auto, squash."""
     frames = frames or {}
     return {"bit_depth": frames.get("bit_depth", "auto"), "letterbox": bool(frames.get("letterbox", False))}
 
@@ -257,17 +220,12 @@ def read_deploy_info(path: str | Path) -> dict:
 
 
 def checkpoint_resolution(path: str | Path, payload: dict) -> int | None:
-    """Working resolution recorded with a checkpoint (payload or meta.json extra), else None."""
-    for key in ("resolution", "image_size"):
-        if isinstance(payload.get(key), int):
-            return int(payload[key])
-    mp = Path(path) / META_FILE
-    if Path(path).is_dir() and mp.exists():
-        try:
-            extra = json.loads(mp.read_text()).get("extra", {}) or {}
-        except ValueError:
-            extra = {}
+    """The working resolution recorded with a checkpoint (payload or meta.json extra), else None."""
+    records = [payload]
+    with contextlib.suppress(OSError, ValueError):
+        records.append(json.loads((Path(path) / META_FILE).read_text()).get("extra", {}) or {})
+    for record in records:
         for key in ("resolution", "image_size"):
-            if isinstance(extra.get(key), int):
-                return int(extra[key])
+            if isinstance(record.get(key), int):
+                return int(record[key])
     return None

@@ -1,14 +1,5 @@
-"""The export stage's logic: one checkpoint -> what its deploy bundle holds (``stages/export.py`` is wiring).
-
-* :func:`plan_export` -- open the checkpoint, pick tau (:func:`pipeline.thresholds.tau_candidates` and
-  :func:`pipeline.thresholds.resolve_tau`: ``tau`` > the checkpoint's payload > its calibrated row in
-  ``thresholds`` > ``calibrate.fixed_tau``, eq:inference-mask), the working resolution (recorded with
-  the checkpoint, else ``data.resolution``) and the int8 calibration images (TRAINING split of
-  ``artifacts``, images only), and say what the bundle's fingerprint depends on;
-* :func:`write_export` -- write the bundle atomically (:func:`pipeline.deploy.write_bundle`, parity
-  checks first: a failure leaves nothing behind);
-* :func:`export_lines` -- the lines export prints about it.
-"""
+"""The export stage's logic: one checkpoint -> what its deploy bundle holds, written atomically (parity
+checks first: a failure leaves nothing behind), and the lines export prints about it."""
 
 from __future__ import annotations
 
@@ -25,7 +16,7 @@ from pipeline.thresholds import resolve_resolution, resolve_tau, tau_candidates
 
 
 def is_bundle_dir(path) -> bool:
-    """Whether ``path`` is a folder holding a deploy artifact's meta.json (export's own output)."""
+    """Whether ``path`` holds a deploy artifact's meta.json."""
     try:
         return json.loads((Path(path) / META_FILE).read_text()).get("schema") == "deploy"
     except (OSError, ValueError, AttributeError):
@@ -33,8 +24,7 @@ def is_bundle_dir(path) -> bool:
 
 
 def bundle_files(path) -> set[str]:
-    """The files of the deploy bundle in ``path`` (its deploy.json's ``files``, deploy.json, meta.json);
-    empty when ``path`` holds no bundle: what export may replace there (pipeline.artifacts.ownership)."""
+    """The files of the deploy bundle in ``path`` (none without one): what export may replace there."""
     if not is_bundle_dir(path):
         return set()
     try:
@@ -46,7 +36,7 @@ def bundle_files(path) -> set[str]:
 
 @dataclasses.dataclass
 class ExportPlan:
-    """What :func:`write_export` writes, and the fingerprint's inputs and params (``inputs``, ``params``)."""
+    """What :func:`write_export` writes, and the fingerprint's ``inputs`` and ``params``."""
 
     model: Any
     payload: dict
@@ -59,9 +49,9 @@ class ExportPlan:
     onnx: bool
     calibration_images: Any
     calibration_note: str | None
-    settings: dict          # deploy.* as write_bundle takes them (and ``frames``: data.bit_depth, data.letterbox)
-    inputs: list            # opened artifacts (lineage)
-    params: dict            # the fingerprint's params
+    settings: dict          # write_bundle's keyword arguments
+    inputs: list
+    params: dict
     thresholds: str | None
 
     @property
@@ -73,7 +63,7 @@ class ExportPlan:
         return self.payload.get("seed")
 
     def source(self, fingerprint: str) -> dict:
-        """deploy.json's ``source``: the checkpoint, tau's table, the resolution's origin, the bundle's fingerprint."""
+        """deploy.json's ``source``."""
         return {"checkpoint": self.checkpoint, "checkpoint_fingerprint": self.checkpoint_fingerprint,
                 "selected_epoch": self.payload.get("selected_epoch"), "stage": self.payload.get("stage"),
                 "thresholds": self.thresholds, "resolution_source": self.resolution_source,
@@ -82,16 +72,15 @@ class ExportPlan:
 
 def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | None = None, artifacts=None,
                 onnx: bool = True, int8: bool = True) -> ExportPlan:
-    """Everything export decides before writing (module docstring).  ``onnx=False`` (``--no-onnx``)
-    writes TorchScript only; ``int8=False`` (``--no-int8``) or no ``artifacts`` (``--artifacts``): no
-    int8 model, and the plan's ``calibration_note`` says why."""
-    from pipeline.deploy.bundle import checkpoint_resolution  # torch
+    """Everything export decides before writing: tau (``tau`` > the payload's > ``thresholds`` > the fixed tau,
+    eq:inference-mask), the resolution (recorded, else data.resolution) and the int8 calibration images
+    (the training split of ``artifacts``; ``calibration_note`` says why there are none)."""
+    from pipeline.deploy.bundle import checkpoint_resolution, frame_reading  # torch
     from pipeline.deploy.mask_path import onnx_unavailable_reason
     from pipeline.deploy.quantize import int8_params, read_calibration_images
-    from pipeline.deploy.bundle import frame_reading
 
     cfg = section(params, "deploy")
-    q8 = int8_params(cfg)
+    q8 = {f"int8_{k}": v for k, v in int8_params(cfg).items()}
     ckpt = open_artifact(checkpoint, "checkpoint")
     model, payload = load_student(checkpoint, "cpu")
     inputs = [ckpt]
@@ -109,20 +98,17 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
         calib_note = reason
     else:
         calib, calib_inputs, calib_note = read_calibration_images(artifacts, cfg["int8_calibration_images"],
-                                                                         int(resolution))
+                                                                  int(resolution))
         inputs += calib_inputs
     frames = frame_reading({k: params["data"].get(k) for k in ("bit_depth", "letterbox")
-                                   if params["data"].get(k) is not None})
+                            if params["data"].get(k) is not None})
     settings = {"opset": cfg["opset"], "atol": cfg["parity_atol"], "int8_min_mask_iou": cfg["int8_min_mask_iou"],
-                "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"],
-                "int8_weight_bits": q8["weight_bits"], "frames": frames}
+                **q8, "frames": frames}
     deploy_params = {"opset": cfg["opset"], "parity_atol": cfg["parity_atol"], "onnx": onnx, "int8": calib is not None,
                      "int8_calibration_images": cfg["int8_calibration_images"],
-                     "int8_min_mask_iou": cfg["int8_min_mask_iou"],
-                     "int8_calibration": q8["calibration"], "int8_percentile": q8["percentile"],
-                     "int8_weight_bits": q8["weight_bits"]}
+                     "int8_min_mask_iou": cfg["int8_min_mask_iou"], **q8}
     fingerprinted = {"deploy": deploy_params, "tau": value, "tau_source": source, "resolution": int(resolution)}
-    if frames != frame_reading():  # in the fingerprint when set (earlier bundles' fingerprints stay)
+    if frames != frame_reading():  # only when set: earlier bundles' fingerprints stay
         fingerprinted["frames"] = frames
     return ExportPlan(model, payload, str(checkpoint), ckpt.fingerprint, value, source, int(resolution), res_source,
                       onnx, calib, calib_note, settings, inputs, fingerprinted,
@@ -130,20 +116,18 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
 
 
 def write_export(plan: ExportPlan, out, meta, device=None) -> dict:
-    """Write the bundle of ``plan`` to ``out`` (replaced whole) with artifact metadata ``meta``; its
-    deploy.json content."""
+    """Write the bundle of ``plan`` to ``out`` (replaced whole); its deploy.json content."""
     from pipeline.deploy.bundle import write_bundle  # torch
 
     with artifact_dir(out, meta) as tmp:
         return write_bundle(tmp, plan.model, plan.payload, tau=plan.tau, tau_source=plan.tau_source,
-                                   resolution=plan.resolution, onnx=plan.onnx, source=plan.source(meta.fingerprint),
-                                   calibration_images=plan.calibration_images, calibration_note=plan.calibration_note,
-                                   device=device, **plan.settings)
+                            resolution=plan.resolution, onnx=plan.onnx, source=plan.source(meta.fingerprint),
+                            calibration_images=plan.calibration_images, calibration_note=plan.calibration_note,
+                            device=device, **plan.settings)
 
 
 def export_lines(plan: ExportPlan, info: Mapping, out) -> list[str]:
-    """What export prints about the bundle it wrote: tau, size and parity; the ONNX note; device parity;
-    the int8 model's agreement (or why it was skipped)."""
+    """What export prints about the bundle it wrote."""
     from pipeline.deploy.bundle import INT8_FILE
 
     par = info["parity"]

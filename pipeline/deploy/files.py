@@ -1,34 +1,7 @@
-"""Segmenting image files: discover the inputs, plan the outputs, write the mask/prob/overlay PNGs and
-skipped.csv.
-
-Decision (the paper is silent on deployment): images are read by
-:func:`pipeline.datasets.loading.read_rgb` (16-bit under the segmenter's ``bit_depth``) and resized to
-the working resolution exactly as the training images were (:func:`~pipeline.datasets.loading.resize_image`,
-area interpolation, square; padded to a square first when the segmenter letterboxes, the pad cropped on
-the way back);
-the probability map is resized back to the original size (bilinear) and thresholded there
-(eq:inference-mask, :func:`pipeline.thresholds.mask_from_probs`), which keeps boundaries smoother than
-resizing a binary mask.  Reading and writing overlap the inference (reader threads ahead, one writer
-thread behind, bounded queues) without changing a byte of the outputs (:func:`segment_files`,
-``workers``; ``workers=0`` is the serial loop).
-
-Output names (decision): an input keeps its whole name, extension included, and its sub-folder
-relative to the input folder; a fixed suffix is appended: ``sub/a.png`` -> ``<out>/sub/a.png.mask.png``
-(and ``a.png.prob.png``, ``a.png.overlay.png``).  Distinct input paths therefore give distinct output
-paths (``a.png``, ``a.jpg`` and ``a_png.png`` cannot meet).  Before anything is written
-(:func:`plan_outputs`) the run is refused (InputError, one line) when two inputs' outputs differ only in
-letter case (``b.png`` / ``b.PNG``: one would replace the other on a case-insensitive disk, and on
-any disk the folder could not be copied to one), when an output would be a file where another output
-needs a folder, when ``--output`` (or a folder on the way) is a file, when an output would replace an
-input, and -- unless ``overwrite`` -- when an output file or skipped.csv already exists that no
-``segment.json`` of an earlier run lists (:mod:`pipeline.artifacts.ownership`: a rerun replaces its own outputs,
-never a file it did not write).
-
-Symbolic links inside an input folder (decision): a link to an image inside the input folder is
-segmented under the link's own name; a link whose target lies outside the input folder, a broken link
-and a link to a folder (never followed) are skipped and reported like unreadable files -- a stderr line
-and a row of skipped.csv -- so the run neither escapes the folder nor drops anything silently.
-"""
+"""Segmenting image files: the outputs planned (and refused) before anything is written, the images read and
+resized as the training images were, P resized back to each frame and thresholded there (eq:inference-mask),
+the PNGs, skipped.csv and confidence.csv written; reading and writing overlap the inference.  Output names
+and refusals: docs/real-data.md."""
 
 from __future__ import annotations
 
@@ -52,7 +25,7 @@ import numpy as np
 from pipeline.catalog import output_file, output_names
 from pipeline.datasets.loading import probs_to_size, read_rgb, resize_image
 from pipeline.datasets.manifest import SKIPPED_COLUMNS
-from pipeline.datasets.scan import Inputs, _is_within, scan_inputs  # noqa: F401  (the folder scan, re-exported)
+from pipeline.datasets.scan import _is_within
 from pipeline.deploy.confidence import frame_confidence
 from pipeline.deploy.segmenter import Segmenter
 from pipeline.runtime.errors import InputError
@@ -60,19 +33,18 @@ from pipeline.artifacts.ownership import owned_outputs, refuse_unowned
 from pipeline.runtime.progress import progress
 from pipeline.thresholds import mask_from_probs
 
-#: segment's output names (pipeline.catalog.OUTPUT_FILES); the record lists the outputs a rerun may replace
 MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX = output_names("segment", "mask", "prob", "overlay").values()
 OUTPUT_SUFFIXES = (MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX)
 SKIPPED_CSV, CONFIDENCE_CSV, RECORD = (output_file("segment", k) for k in ("skipped", "confidence", "record"))
 
 
 def output_path(stem: Path, suffix: str) -> Path:
-    """``<stem><suffix>``: the stem is the output folder joined with the input's relative path."""
+    """``<stem><suffix>``; the stem is the output folder joined with the input's relative path."""
     return stem.with_name(stem.name + suffix)
 
 
 def output_suffixes(save_prob: bool = False, overlay: bool = False) -> tuple[str, ...]:
-    """The output kinds one run writes: the mask, and the probability map / overlay when asked for."""
+    """The output kinds one run writes."""
     return (MASK_SUFFIX,) + ((PROB_SUFFIX,) if save_prob else ()) + ((OVERLAY_SUFFIX,) if overlay else ())
 
 
@@ -101,16 +73,10 @@ def _blocking_file(folder: Path, cache: dict[Path, Path | None]) -> Path | None:
 
 def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_is_dir: bool, *,
                  suffixes: Sequence[str] = (MASK_SUFFIX,), overwrite: bool = False) -> list[Path]:
-    """Output stem per input, ``<out>/<relative folder>/<whole input name>`` (module docstring), after
-    every check that can refuse the run, so that a refused run writes nothing.
-
-    InputError (one line naming the path) when: ``out_dir`` or a folder on its way is a file; the
-    output folder is, or is inside, the input folder; two inputs' outputs differ only in letter case,
-    or one output file would be a folder another output needs; an output would be one of the inputs;
-    an output is an existing folder; ``overwrite`` is False and an output file of the kinds
-    ``suffixes``, ``skipped.csv`` or ``segment.json`` already exists that the ``segment.json`` of an
-    earlier run does not list (the first one is named; :mod:`pipeline.artifacts.ownership`).
-    """
+    """The output stem per input, ``<out>/<relative folder>/<whole input name>``, after every check that can
+    refuse the run (one InputError line): a file in the way, outputs inside the input folder, differing only
+    in letter case, replacing an input or a folder, or (unless ``overwrite``) files no earlier run's record
+    lists (:mod:`pipeline.artifacts.ownership`)."""
     out = Path(out_dir).absolute()
     cache: dict[Path, Path | None] = {}
     blocked = _blocking_file(out, cache)
@@ -123,7 +89,6 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
         raise InputError(f"--output {out_dir}: inside the input folder {root}; outputs must not mix with inputs")
     rel = [_relative(f, root, root_r) if input_is_dir else Path(f.name) for f in files]
 
-    # distinct input paths give distinct names; letter case and file/folder clashes are checked here
     by_key: dict[str, Path] = {}
     for f, r in zip(files, rel):
         key = r.as_posix().casefold()
@@ -165,8 +130,7 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
 
 
 def relative_outputs(out_dir: str | Path, stems: Sequence[Path], suffixes: Sequence[str]) -> list[str]:
-    """The output files of ``stems`` (from :func:`plan_outputs`), skipped.csv and confidence.csv, relative
-    to ``out_dir`` (posix): what ``segment.json`` lists."""
+    """What ``segment.json`` lists: the output files, skipped.csv and confidence.csv, relative to ``out_dir``."""
     out = Path(out_dir).absolute().resolve()
     return ([output_path(s, x).relative_to(out).as_posix() for s in stems for x in suffixes]
             + [SKIPPED_CSV, CONFIDENCE_CSV])
@@ -185,55 +149,60 @@ def overlay_image(image: np.ndarray, mask: np.ndarray, color=(255, 40, 40), alph
 
 
 def write_png(path: Path, array: np.ndarray) -> None:
-    """Write a PNG atomically (temp name, then rename); RGB arrays are converted to OpenCV's BGR."""
+    """Write a PNG atomically; RGB arrays are converted to OpenCV's BGR."""
     import cv2
 
     arr = array[..., ::-1] if array.ndim == 3 else array
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr))
     if not ok:
         raise InputError(f"{path}: PNG encoding failed")
+    _replace_file(path, lambda tmp: tmp.write_bytes(buf.tobytes()))
+
+
+def _replace_file(path: Path, write: Callable[[Path], object]) -> Path:
+    """``write`` a temporary sibling of ``path`` and rename it into place; an OSError is one InputError line."""
     tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp.write_bytes(buf.tobytes())
+        write(tmp)
         os.replace(tmp, path)
     except OSError as e:
         with contextlib.suppress(OSError):
             tmp.unlink(missing_ok=True)
         raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
+    return path
 
 
 @dataclasses.dataclass
 class SegmentResult:
     written: list[Path]
     skipped: list[tuple[str, str]]  # (input path, reason)
-    model_seconds: float = 0.0      # wall time inside the engine (Z = f(x) and sigmoid), all batches
-    total_seconds: float = 0.0      # wall time of the whole loop (reading, resizing, PNG writing included)
+    model_seconds: float = 0.0      # inside the engine
+    total_seconds: float = 0.0      # the whole loop
     scores: list[float] = dataclasses.field(default_factory=list)  # frame confidence of each written mask
 
 
-#: segment_files' default: one reader thread (decode + resize) beside the inference; 0 = the serial loop
+#: segment_files' reader threads (decode + resize) beside the inference; 0 = the serial loop
 IO_WORKERS = 1
 
 
 def _skip_reason(f: Path, e: InputError) -> str:
-    """The reason skipped.csv gives for ``f``: the error's first line without the leading path."""
+    """The error's first line without the leading path."""
     reason = str(e).splitlines()[0] if str(e) else type(e).__name__
     return reason[len(f"{f}: "):] if reason.startswith(f"{f}: ") else reason
 
 
 def _load(f: Path, resolution: int, max_pixels: int | None, keep_image: bool, bit_depth="auto",
           letterbox: bool = False):
-    """(the R x R working image, the original (h, w), the original image when ``keep_image`` else None);
-    16-bit files under ``bit_depth``, ``letterbox`` as the model was trained (the segmenter's)."""
+    """(the R x R working image, the original (h, w), the original image when ``keep_image``)."""
     img = read_rgb(f, max_pixels=max_pixels, bit_depth=bit_depth)
     return resize_image(img, resolution, letterbox), img.shape[:2], img if keep_image else None
 
 
 def _save(stem: Path, p: np.ndarray, shape: tuple[int, int], img: np.ndarray | None, tau: float,
           save_prob: bool, overlay: bool, letterbox: bool = False) -> tuple[Path, float]:
-    """P back to the original size, M = [P >= tau] (eq:inference-mask), the PNGs of one image; (its mask
-    path, the frame's confidence from the working-resolution P, as :meth:`Segmenter.score`)."""
+    """P back to the original size, M = [P >= tau] (eq:inference-mask) and the PNGs of one image; (its mask
+    path, the frame's confidence from the working-resolution P)."""
     h, w = shape
     p_full = probs_to_size(p, h, w, letterbox)
     mask = mask_from_probs(p_full, tau)
@@ -247,9 +216,8 @@ def _save(stem: Path, p: np.ndarray, shape: tuple[int, int], img: np.ndarray | N
 
 
 class _Writer:
-    """A thread that runs :func:`_save` on jobs in the order they are put, through a queue of at most
-    ``depth`` jobs (a full queue blocks :meth:`put`: memory stays flat).  The first error stops the
-    writing (later jobs are dropped) and :meth:`flush` / :meth:`close` raise it in the caller's thread."""
+    """A thread running :func:`_save` on jobs in order through a queue of ``depth`` (memory stays flat); the
+    first error drops later jobs and :meth:`flush` raises it in the caller's thread."""
 
     def __init__(self, depth: int, done: Callable[[], None]):
         self.written: list[tuple[Path, float]] = []  # (mask path, frame confidence) per written image
@@ -280,13 +248,13 @@ class _Writer:
         self._q.put(job)
 
     def flush(self) -> None:
-        """Wait until every job put so far is written; raise the writer's error if there is one."""
+        """Wait until every job put so far is written; raise the writer's error."""
         self._q.join()
         if self.error is not None:
             raise self.error
 
     def close(self, abort: bool = False) -> None:
-        """Stop the thread after the jobs put so far (``abort``: drop them); does not raise."""
+        """Stop the thread after the jobs put so far (``abort``: drop them)."""
         self.abort = self.abort or abort
         self._q.put(None)
         self._thread.join()
@@ -296,26 +264,10 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
                   resolution: int, batch_size: int = 8, save_prob: bool = False, overlay: bool = False,
                   on_skip: Callable[[str, str, InputError], None] | None = None,
                   max_pixels: int | None = None, workers: int = IO_WORKERS) -> SegmentResult:
-    """Segment image files in batches: read -> resize to R x R -> P = sigmoid(f(x)) -> resize P back
-    to the original size -> M = [P >= tau] (eq:inference-mask) -> ``<stem>.mask.png`` (0/255), and
-    optionally ``<stem>.prob.png`` (P as uint8, 255 = 1.0) and ``<stem>.overlay.png`` (stems from
-    :func:`plan_outputs`, which has already refused collisions and unwanted overwrites).
-
-    A file the reader rejects (InputError; above ``max_pixels`` on its header, None = ``data.max_pixels``'s
-    default, before decoding) is recorded in ``skipped``, handed to ``on_skip(path, reason, error)``, and
-    the rest go on.
-
-    ``workers`` (decision: I/O overlaps inference): ``workers`` >= 1 threads read and resize the next
-    images while the engine runs a batch, and one writer thread resizes P back, thresholds and writes
-    the PNGs of the previous batch (:class:`_Writer`), both through bounded queues (at most two batches
-    read ahead, one batch waiting to be written), so memory does not grow with the number of files.
-    ``workers=0`` is the serial loop.  Both give the same bytes in the same files: every step is the
-    same function of the same image (the threads change when, never what); files are written, skipped
-    (``on_skip``, in the main thread) and listed in input order; and an error -- of ``on_skip``, the
-    engine or the writer -- is raised only after every output the serial loop would have written
-    before it is written (the writer is flushed first), so a run stopped by a bad file leaves the
-    same files behind.
-    """
+    """Segment image files in batches into ``<stem>.mask.png`` (and ``.prob.png``, ``.overlay.png``); a file the
+    reader rejects is skipped and handed to ``on_skip(path, reason, error)``.  ``workers`` >= 1 threads read
+    ahead and one writes behind (bounded queues); ``workers=0``, the serial loop, gives the same bytes in the
+    same files, even when an error stops the run (the writer is flushed before it is raised)."""
     if workers < 0:
         raise InputError(f"workers={workers}: must be >= 0 (0 = the serial loop)")
     loop = _segment_serial if workers == 0 else functools.partial(_segment_overlapped, workers=workers)
@@ -348,7 +300,7 @@ def _infer(segmenter: Segmenter, batch: list, batch_size: int) -> tuple[np.ndarr
 
 def _segment_serial(segmenter, files, stems, *, tau, resolution, batch_size, save_prob, overlay, on_skip,
                     max_pixels, bar):
-    """The serial loop (``workers=0``): read a batch, run it, write it, then the next."""
+    """Read a batch, run it, write it, then the next."""
     written: list[Path] = []
     skipped: list[tuple[str, str]] = []
     model_s = 0.0
@@ -373,7 +325,7 @@ def _segment_serial(segmenter, files, stems, *, tau, resolution, batch_size, sav
 
 def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size, save_prob, overlay, on_skip,
                         max_pixels, bar, workers):
-    """The overlapped loop (``workers`` >= 1): reads run ahead in a pool, writes behind in a thread."""
+    """Reads run ahead in a pool, writes behind in a thread."""
     skipped: list[tuple[str, str]] = []
     model_s = 0.0
     lock = threading.Lock()
@@ -390,7 +342,7 @@ def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size,
 
     def fill() -> None:
         while len(pending) < ahead and (job := next(jobs, None)) is not None:
-            # in this context: a reader's warning names options in the caller's terms (pipeline.runtime.errors.caller)
+            # in this context: a reader's warning names options in the caller's terms
             pending.append((*job, pool.submit(contextvars.copy_context().run, _load, job[0], resolution, max_pixels,
                                               overlay, segmenter.bit_depth, segmenter.letterbox)))
 
@@ -434,34 +386,22 @@ def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size,
 
 def write_confidence_csv(path: str | Path, out_dir: str | Path, written: Sequence[Path],
                          scores: Sequence[float]) -> Path:
-    """``confidence.csv``: one row per written mask -- ``mask`` (relative to ``out_dir``) and
-    ``confidence``, the frame's confidence in [0, 1] (:func:`pipeline.deploy.confidence.frame_confidence`:
-    low = don't trust this frame) -- written atomically."""
+    """``confidence.csv``: each written mask (relative to ``out_dir``) and its frame confidence."""
     out = Path(out_dir)
     return _write_csv(path, ["mask", "confidence"],
                       [(Path(m).relative_to(out).as_posix(), f"{c:.6f}") for m, c in zip(written, scores)])
 
 
 def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str, str]]) -> Path:
-    """``skipped.csv`` (columns image_id, path, reason: those of skipped_files.parquet,
-    :data:`pipeline.datasets.manifest.SKIPPED_COLUMNS`), written atomically; header only when nothing
-    was skipped."""
+    """``skipped.csv`` (the columns of skipped_files.parquet)."""
     return _write_csv(path, list(SKIPPED_COLUMNS), skipped)
 
 
 def _write_csv(path: str | Path, header: list[str], rows: Iterable) -> Path:
-    """A CSV file with ``header`` and ``rows``, replaced atomically; an OSError is one InputError line."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+    """A CSV file with ``header`` and ``rows``, replaced atomically."""
+    def write(tmp: Path) -> None:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(header)
             w.writerows(rows)
-        os.replace(tmp, path)
-    except OSError as e:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
-    return path
+    return _replace_file(Path(path), write)

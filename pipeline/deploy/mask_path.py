@@ -1,25 +1,5 @@
-"""Export of the deployed mask path (TorchScript, ONNX) and its parity check against PyTorch.
-
-The deployed function is Z = f(x), x float32 [B,3,H,W] RGB in [0, 1] (normalisation is inside the
-model), M = [Z >= logit(tau)] (eq:inference-mask).
-
-Decisions (the paper is silent on deployment formats):
-
-* TorchScript is produced by ``torch.jit.trace`` of the mask path (TinyUNet holds a class-level
-  normalisation constant and an optional training-only module, which ``torch.jit.script`` rejects);
-  the traced graph reads sizes from the input, so it is batch- and size-generic.  It is saved
-  unfrozen so that it still moves between devices.
-* ONNX uses the TorchScript-based exporter (``torch.onnx.export(..., dynamo=False)``): torch 2.13
-  defaults to the dynamo exporter, which needs ``onnxscript`` (not a dependency, not installed here).
-  Both are traced from :class:`pipeline.model.ExportMaskPath`: the same function with the input
-  normalisation folded into the first convolution (the graph input is the image).
-* Parity (export time and tests): PyTorch, TorchScript and ONNX Runtime logits on deterministic
-  smooth random images at the working resolution (batch 2, exercising the dynamic batch axis).
-  Passing needs finite logits with max |dZ| <= ``atol``; then a mask pixel can only differ where the
-  PyTorch logit lies within ``atol`` of logit(tau), i.e. by float round-off alone.  Strict mask
-  equality at tau (``masks_identical``) and the number of differing pixels are reported alongside
-  (and the tests require identical masks on their inputs).
-"""
+"""The deployed mask path Z = f(x) (x float32 [B,3,H,W] RGB in [0, 1]; M = [Z >= logit(tau)],
+eq:inference-mask) exported to TorchScript and ONNX, and its parity with PyTorch (docs/decisions.md)."""
 
 from __future__ import annotations
 
@@ -43,14 +23,12 @@ class ParityError(RuntimeError):
 
 
 def export_module(model):
-    """The exported form of the mask path (:class:`pipeline.model.ExportMaskPath`: same function,
-    input normalisation folded into the first convolution), float32 CPU, eval mode."""
+    """The mask path with its normalisation folded into the first convolution, float32 CPU, eval mode."""
     return ExportMaskPath(mask_path_model(model)).eval().requires_grad_(False)
 
 
 def parity_inputs(resolution: int, n: int = 2, seed: int = 0):
-    """Deterministic smooth random RGB images float32 [n,3,R,R] in [0,1] (blobs plus fine noise),
-    so that the parity check sees both foreground-like and background-like logits."""
+    """Deterministic smooth random RGB images float32 [n,3,R,R] in [0,1]: blobs plus fine noise."""
     import torch
 
     g = torch.Generator().manual_seed(seed)
@@ -62,7 +40,7 @@ def parity_inputs(resolution: int, n: int = 2, seed: int = 0):
 
 
 def onnx_unavailable_reason() -> str | None:
-    """None when ONNX export and ONNX Runtime work here, else a one-line reason (install the extra)."""
+    """None when ONNX export and ONNX Runtime work here, else why not (naming the extra)."""
     missing = []
     for mod in ("onnx", "onnxruntime"):
         try:
@@ -76,8 +54,7 @@ def onnx_unavailable_reason() -> str | None:
 
 
 def export_torchscript(model, path: str | Path, resolution: int) -> Path:
-    """Trace the mask path on a [1,3,R,R] example and save it (unfrozen, CPU weights), without debug
-    records (:func:`save_without_debug_records`): the same model gives the same bytes in any folder."""
+    """The traced mask path saved unfrozen (it still moves between devices), without debug records."""
     import torch
 
     deployed = export_module(model)
@@ -88,20 +65,13 @@ def export_torchscript(model, path: str | Path, resolution: int) -> Path:
     return save_without_debug_records(traced, path)
 
 
-# Records torch's own writer adds at the end of every archive (copying them would write them twice).
+# records torch's own writer adds to every archive (copied, they would be written twice)
 _WRITER_RECORDS = ("version", "byteorder", ".data/serialization_id")
 
 
 def save_without_debug_records(module, path: str | Path) -> Path:
-    """``torch.jit.save`` of ``module`` to ``path`` minus its ``*.debug_pkl`` records.
-
-    Those records hold the source ranges of the traced code: absolute paths of our files and of
-    torch's (in the virtual environment), so the same model exported from two clones gave two files
-    (and a DVC output that moved with the checkout's folder).  They serve error messages only;
-    ``torch.jit.load`` does without them.  The archive is rewritten by torch's own zip writer
-    (``torch._C.PyTorchFileWriter``, the one ``torch.jit.save`` uses: aligned records, its own
-    version and serialization id), record for record in the original order.
-    """
+    """``torch.jit.save`` minus the ``*.debug_pkl`` records: they hold absolute source paths, so the same model
+    gave other bytes in another folder.  Rewritten record for record by torch's own zip writer."""
     import torch
 
     buf = io.BytesIO()
@@ -120,8 +90,7 @@ def save_without_debug_records(module, path: str | Path) -> Path:
 
 
 def export_onnx(model, path: str | Path, resolution: int, opset: int) -> Path:
-    """Export the mask path to ONNX (input ``image`` [B,3,H,W] float32, output ``logits`` [B,1,H,W]),
-    batch, height and width dynamic, with the TorchScript-based exporter (module docstring)."""
+    """The mask path in ONNX, batch, height and width dynamic (the TorchScript-based exporter)."""
     import torch
 
     deployed = export_module(model)
@@ -136,11 +105,7 @@ def export_onnx(model, path: str | Path, resolution: int, opset: int) -> Path:
 
 
 def ort_session(path: str | Path, threads: int | None = None, optimize: bool = True, spinning: bool = True):
-    """ONNX Runtime CPU session; ``threads`` defaults to torch's intra-op thread count (same budget).
-
-    ``spinning=False`` stops ORT's idle thread pools from busy-waiting between calls (session config
-    ``session.intra_op.allow_spinning`` / ``session.inter_op.allow_spinning`` = 0): for timing, where an
-    idle spinning pool would steal the cores that the other variants are measured on."""
+    """ONNX Runtime CPU session with torch's thread count unless ``threads``; ``spinning=False``: idle pools sleep."""
     import onnxruntime as ort
     import torch
 
@@ -157,7 +122,7 @@ def ort_session(path: str | Path, threads: int | None = None, optimize: bool = T
 
 
 def load_torchscript(path: str | Path, device="cpu"):
-    """torch.jit.load in eval mode (torch 2.13 marks TorchScript deprecated; the notice is silenced)."""
+    """torch.jit.load in eval mode, torch 2.13's deprecation notice silenced."""
     import torch
 
     with warnings.catch_warnings():
@@ -173,9 +138,8 @@ def torch_logits(model, x) -> np.ndarray:
 
 
 def compare_logits(reference: np.ndarray, logits: np.ndarray, tau: float, atol: float) -> dict:
-    """Parity of exported ``logits`` against the PyTorch ``reference`` at threshold tau (module docstring).
-
-    Masks at tau are [Z >= logit(tau)] (eq:inference-mask)."""
+    """Parity of ``logits`` with the PyTorch ``reference``: finite and max |dZ| <= ``atol``; the masks
+    [Z >= logit(tau)] (eq:inference-mask) compared too."""
     reference = np.asarray(reference, np.float64)
     logits = np.asarray(logits, np.float64)
     if reference.shape != logits.shape:
@@ -192,12 +156,8 @@ def compare_logits(reference: np.ndarray, logits: np.ndarray, tau: float, atol: 
 
 def check_parity(model, tau: float, resolution: int, atol: float, torchscript: str | Path | None = None,
                  onnx: str | Path | None = None, device=None) -> dict:
-    """Run the parity check of the exported files against the PyTorch mask path (module docstring).
-
-    Returns ``{"inputs": ..., "torchscript": {...}, "onnx": {...}}`` (a format's entry is absent when its
-    file is not given).  With a CUDA ``device`` also ``"device"``: :func:`device_parity` there (reported,
-    not required: the GPU's fp32 is not the CPU's bit for bit).  Does not raise; see :func:`require_parity`.
-    """
+    """:func:`compare_logits` of each given file on :func:`parity_inputs`; on a CUDA ``device`` also
+    :func:`device_parity` (reported only).  Does not raise (:func:`require_parity`)."""
     import torch
 
     x = parity_inputs(resolution)
@@ -216,18 +176,15 @@ def check_parity(model, tau: float, resolution: int, atol: float, torchscript: s
 
 
 def device_parity(model, tau: float, resolution: int, atol: float, device, torchscript=None) -> dict:
-    """Parity on the device the model will run on: the fp32 PyTorch mask path there (TF32 off) is the
-    reference; compared with it, the TorchScript file on that device and the fast engine
-    (pipeline.deploy.cuda_engine, bf16 + CUDA graphs): max |dZ|, masks identical, and ``mask_iou`` =
-    mean per-image IoU of the masks at tau (:func:`pipeline.metrics.mask_agreement`).
-    TF32 is switched off for the fp32 comparisons: with it (PyTorch's cuDNN default) two fp32 engines
-    disagree on about 2 % of a mask's pixels.  Runs on a CPU too (then the fast engine is fp32 eager)."""
+    """The TorchScript file and the fast engine on ``device`` against the fp32 PyTorch mask path there, with
+    ``mask_iou`` (:func:`pipeline.metrics.mask_agreement`)."""
     import torch
 
     dev = torch.device(device)
     x = parity_inputs(resolution)
     z_tau = logit_threshold(tau)
     out: dict = {"device": str(dev)}
+    # with TF32 (cuDNN's default) two fp32 engines disagree on about 2 % of a mask's pixels
     tf32 = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
     torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
     try:

@@ -1,39 +1,5 @@
-"""int8 deployment: static ONNX Runtime quantisation of the exported mask path, its calibration images,
-and its agreement gate against PyTorch.
-
-Decisions (the paper is silent on deployment formats):
-
-* int8: ONNX Runtime static quantisation (QDQ format, uint8 asymmetric activations, symmetric
-  per-channel weights; activation ranges from TRAINING-split images -- images only, no masks --
-  clipped at the ``deploy.int8_percentile`` of their histograms, or MinMax).
-* The convolutions that write the logits (the mask head) stay fp32 (:func:`output_convolutions`).
-* Weights in 7 bits by default (``deploy.int8_weight_bits``; ORT's ``reduce_range``), so that every x86
-  CPU computes the same integers: without VNNI (SSE, AVX2, AVX-512 without VNNI) ORT's and oneDNN's
-  u8*s8 kernels add two products into a saturating int16 (``vpmaddubsw``), and 2 * 255 * 127 = 64770
-  overflows it, while 2 * 255 * 64 = 32640 does not.  Measured on an AVX2-only host: 8-bit weights
-  gave a mean mask IoU of 0.83 against fp32, 7-bit 0.95; on VNNI hosts 8-bit gave 0.97.  Chosen over
-  u8u8, which oneDNN (OpenVINO) does not run in int8.  The export checks the masks on the host's own
-  instruction set and, with OpenVINO installed, under ``ONEDNN_MAX_CPU_ISA=AVX2`` (:func:`isa_checks`),
-  and records both in contract.json.  The graph input is pinned to scale 1/255, zero point 0: with the
-  normalisation folded into the first convolution (ExportMaskPath) 8-bit images enter exactly.
-  Measured on the reduced protocol's student (validation Image IoU change vs fp32): quantising the
-  normalised input instead cost 0.035 (the model reacts to half-grey-level shifts of its black
-  background); MinMax ranges gave a mean int8-vs-fp32 mask IoU of 0.949, 99.999th-percentile ranges
-  0.970.  Chosen over ``torch.ao`` eager/FX quantisation, which
-  is deprecated in torch 2.x, and over dynamic quantisation, which does not quantise convolutions
-  in ORT's CPU kernels.  The export writes it into the bundle (``model.int8.onnx``), so that segment
-  and the benchmark use the same file.  Calibration images: up to ``deploy.int8_calibration_images``
-  training-split rows of images.zarr, evenly spaced in manifest order (:func:`calibration_rows`),
-  resized to the working resolution like every other input.  Manual/reference masks are never read.
-* int8 parity: int8 is an approximation, never bit-exact, so it is held to a mask gate, not to
-  ``parity_atol``: on the calibration images, max and mean |Z_int8 - Z_torch|, the fraction of
-  agreeing mask pixels, and the per-image IoU between the int8 and the PyTorch mask at tau (mean and
-  minimum).  When the mean mask IoU is below ``deploy.int8_min_mask_iou`` (0.9 by default) on any
-  checked instruction set, the bundle ships without the int8 model (fp32 only) and says why: the
-  training already spent is never wasted on an approximation.  The images are in-sample for the activation
-  ranges; the held-out effect (validation Image IoU change, and mask IoU against fp32) is measured by
-  the benchmark.
-"""
+"""The int8 mask path: ONNX Runtime static QDQ quantisation calibrated on training images (never masks),
+and its agreement gate against PyTorch on every checked instruction set (docs/decisions.md, "int8")."""
 
 from __future__ import annotations
 
@@ -63,8 +29,7 @@ from pipeline.thresholds import logit_threshold
 
 
 def calibration_rows(splits: Sequence[str], n: int) -> np.ndarray:
-    """Row indices of up to ``n`` TRAINING-split images, evenly spaced over the training rows in
-    manifest order (deterministic; all of them when there are at most ``n``).  Empty when none."""
+    """Up to ``n`` training-split rows, evenly spaced in manifest order."""
     train = np.flatnonzero(np.asarray(splits).astype(str) == "train")
     if len(train) <= n:
         return train
@@ -72,13 +37,8 @@ def calibration_rows(splits: Sequence[str], n: int) -> np.ndarray:
 
 
 def read_calibration_images(art: str | Path, n: int, resolution: int | None = None):
-    """``(images uint8 [M,R,R,3] or None, opened artifacts, note)`` for int8 calibration.
-
-    Reads ``art/manifest.parquet`` and ``art/images.zarr`` only -- images, never masks (the
-    reference masks are not an input of quantisation).  ``resolution`` resizes with the segment
-    preprocessing (area interpolation) when images.zarr is at another size.  None (with the reason
-    in ``note``) when the artifacts are absent or hold no training rows.
-    """
+    """``(images uint8 [M,R,R,3] or None, opened artifacts, note)``: :func:`calibration_rows` of images.zarr,
+    resized to ``resolution`` as segment does; None with the reason when there are none."""
     paths = (catalog.path("manifest", art), catalog.path("images", art))
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
@@ -95,14 +55,9 @@ def read_calibration_images(art: str | Path, n: int, resolution: int | None = No
 
 
 def int8_agreement(reference: np.ndarray, logits: np.ndarray, tau: float, min_mask_iou: float) -> dict:
-    """int8 parity report (module docstring, "int8 parity") of logits [N,...] against the PyTorch ``reference``.
-
-    Masks are M = [Z >= logit(tau)] (eq:inference-mask).  Reports max/mean |Z - Z_ref|, the fraction of
-    pixels whose mask agrees, and the per-image mask IoU between the two models (image_iou; both
-    empty -> 1): its mean and minimum.  ``passed`` = finite logits and mean mask IoU >= ``min_mask_iou``
-    -- a gate on masks rather than pixels, because a pixel fraction hides a small object that int8
-    loses (it is 0.1 % of the pixels and 100 % of that image's mask).
-    """
+    """int8 logits [N,...] against the PyTorch ``reference`` at tau (eq:inference-mask): max and mean |dZ|, the
+    agreeing mask pixels, and the per-image mask IoU; ``passed`` = finite and mean IoU >= ``min_mask_iou``.
+    A gate on masks, not pixels: a small object int8 loses is 0.1 % of the pixels and all of its mask."""
     reference = np.asarray(reference, np.float64)
     logits = np.asarray(logits, np.float64)
     if reference.shape != logits.shape or reference.size == 0:
@@ -115,7 +70,7 @@ def int8_agreement(reference: np.ndarray, logits: np.ndarray, tau: float, min_ma
     z_tau = logit_threshold(tau)
     ref_mask, mask = reference >= z_tau, logits >= z_tau
     differ = int(np.count_nonzero(ref_mask != mask))
-    per_image = (len(mask), 1, -1)  # each image's mask as one 2-D row: same IoU, any layout [N,(1,)H,W]
+    per_image = (len(mask), 1, -1)  # each image one 2-D row: the same IoU for any layout
     ious = image_ious(mask.reshape(per_image), ref_mask.reshape(per_image))
     iou_mean = float(ious.mean()) if finite else 0.0
     return {"passed": bool(finite and iou_mean >= min_mask_iou),
@@ -128,9 +83,7 @@ def int8_agreement(reference: np.ndarray, logits: np.ndarray, tau: float, min_ma
 
 def check_int8_parity(model, int8_path: str | Path, images: np.ndarray, tau: float, min_mask_iou: float,
                       batch_size: int = 8) -> dict:
-    """:func:`int8_agreement` of the int8 ONNX model against the PyTorch mask path on uint8 images
-    [N,R,R,3] (the calibration images at export), with ``isas``: the same check on every instruction
-    set of :func:`isa_checks`.  Does not raise."""
+    """:func:`int8_agreement` of the int8 model on uint8 images [N,R,R,3], with ``isas`` (:func:`isa_checks`)."""
     deployed = mask_path_model(model)
     sess = ort_session(int8_path)
     ref, got = [], []
@@ -147,23 +100,22 @@ def check_int8_parity(model, int8_path: str | Path, images: np.ndarray, tau: flo
 
 
 def int8_miss(report: dict, where: str) -> str:
-    """Why the int8 model is left out of a bundle: its masks missed the gate ``deploy.int8_min_mask_iou``."""
+    """Why the int8 model is left out of a bundle."""
     return (f"its masks overlap PyTorch's with a mean IoU of {report['mask_iou_mean']:.4f} on {where}, below "
             f"deploy.int8_min_mask_iou = {report['min_mask_iou']:g} (max |dZ| = {report['max_abs_diff']:.3g}): "
             "the bundle ships fp32 only")
 
 
 def host_isa(flags=None) -> str:
-    """The widest integer dot-product instruction set of this CPU: amx_int8, avx512_vnni, avx_vnni, avx2 or
-    baseline (``flags``: /proc/cpuinfo flags; default this machine's)."""
+    """The widest integer dot-product instruction set of the CPU ``flags`` (default this one's)."""
     if flags is None:
         flags = cpu()["flags"]
     flags = set(flags)
     return next((isa for isa in ("amx_int8", "avx512_vnni", "avx_vnni", "avx2") if isa in flags), "baseline")
 
 
-#: instruction sets a bundle's int8 model is checked on besides the host's (oneDNN ISA names, set through
-#: ONEDNN_MAX_CPU_ISA for OpenVINO in a child process: oneDNN reads it once, when it loads)
+#: oneDNN instruction sets the int8 model is checked on besides the host's (a child process: oneDNN reads
+#: ONEDNN_MAX_CPU_ISA once, when it loads)
 EMULATED_ISAS = ("AVX2",)
 
 # the child loads openvino_engine.py by its path: importing the pipeline.deploy package would load torch
@@ -177,8 +129,7 @@ np.save(sys.argv[3], np.concatenate([run(x[i:i + 8]) for i in range(0, len(x), 8
 
 
 def openvino_logits(int8_path: str | Path, x: np.ndarray, isa: str) -> np.ndarray:
-    """The int8 model's logits on OpenVINO's CPU plugin restricted to the oneDNN instruction set ``isa``
-    (a child process with ``ONEDNN_MAX_CPU_ISA=isa``); x float32 [N,3,H,W]."""
+    """The int8 model's logits of x [N,3,H,W] on OpenVINO restricted to the oneDNN instruction set ``isa``."""
     with tempfile.TemporaryDirectory() as td:
         xin, out = Path(td) / "x.npy", Path(td) / "z.npy"
         np.save(xin, np.asarray(x, np.float32))
@@ -192,9 +143,7 @@ def openvino_logits(int8_path: str | Path, x: np.ndarray, isa: str) -> np.ndarra
 
 def isa_checks(native: dict, int8_path: str | Path, x: np.ndarray, reference: np.ndarray, tau: float,
                min_mask_iou: float) -> list[dict]:
-    """The instruction sets the int8 model's masks were checked on: the host's (ONNX Runtime, the
-    ``native`` :func:`int8_agreement` report) and each of :data:`EMULATED_ISAS` (OpenVINO, when it is
-    installed), each with its mean mask IoU against PyTorch's ``reference`` logits on the inputs ``x``."""
+    """The host's check (``native``, ONNX Runtime) and one per :data:`EMULATED_ISAS` (OpenVINO, if installed)."""
     import onnxruntime
 
     checks = [{"isa": host_isa(), "runtime": f"onnxruntime {onnxruntime.__version__}", "how": "this host",
@@ -215,25 +164,14 @@ def isa_checks(native: dict, int8_path: str | Path, x: np.ndarray, reference: np
     return checks
 
 
-CALIBRATION_CHUNK = 4  # images per calibration pass: ORT keeps every activation of a pass in memory
-                       # (about 375 MB per 384x384 image for TinyUNet), so passes bound the memory
+CALIBRATION_CHUNK = 4  # images per pass: ORT holds every activation of a pass (~375 MB per 384² image)
 
 
 def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_images: np.ndarray,
                        calibration: str = "percentile", percentile: float = 99.999, weight_bits: int = 7) -> Path:
-    """Static int8 quantisation of an exported ONNX mask path (module docstring, "int8").
-
-    QDQ format, uint8 asymmetric activations, symmetric per-channel weights in ``weight_bits`` bits (7:
-    [-64, 64], ORT's ``reduce_range``, no saturation without VNNI; 8: [-127, 127]).  The graph input
-    (the image, x = k/255, :class:`pipeline.model.ExportMaskPath`) is pinned to scale 1/255 and zero
-    point 0, so 8-bit images enter the integer model exactly.  Every other activation range comes from
-    ``calibration_images`` (uint8 [N,H,W,3], training images only -- never masks), fed in order in
-    passes of :data:`CALIBRATION_CHUNK` images to ORT's calibrator, whose statistics merge over the
-    passes (memory stays that of one pass): ``calibration="percentile"`` clips each range at the
-    ``percentile`` of its histogram (a few outlier activations no longer stretch the 256 levels),
-    ``"minmax"`` uses the observed extremes.  The ranges then enter ``quantize_static`` as
-    per-tensor overrides.  Both are deterministic for the same images.
-    """
+    """Static QDQ int8 model of an ONNX mask path: the input pinned to scale 1/255 (8-bit images enter exactly),
+    u8 activation ranges from ``calibration_images`` (``percentile`` or ``minmax``, merged over passes),
+    s8 per-channel weights in ``weight_bits`` bits (7: no int16 saturation without VNNI), the head fp32."""
     from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
                                           quantize_static)
     from onnxruntime.quantization.calibrate import create_calibrator
@@ -280,7 +218,7 @@ def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_
                 overrides.setdefault(name, [{"rmin": np.array(lo, np.float32).reshape(()),
                                              "rmax": np.array(hi, np.float32).reshape(())}])
             del calibrator
-            # every range is overridden: quantize_static's own calibration pass only has to run the graph
+            # every range is overridden: quantize_static's own pass only runs the graph
             quantize_static(str(pre), str(out_path), _Reader(images[:1]), quant_format=QuantFormat.QDQ,
                             nodes_to_exclude=output_convolutions(pre),
                             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
@@ -298,12 +236,7 @@ def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_
 
 
 def output_convolutions(onnx_path: str | Path) -> list[str]:
-    """Names of the convolutions that write a graph output (TinyUNet's 1x1 mask head): they stay fp32.
-
-    Why: the logits are what the mask thresholds, and the head's 8-bit output grid and 7-bit weights cost
-    most of the int8 error; in fp32 it is 0.03 % of the FLOPs.  Measured on the demo's Plain Student (64^2,
-    64 training images): mean mask IoU against fp32 0.888 with every convolution in int8, 0.965 with the
-    head in fp32 (7-bit weights, the same on AVX-512-VNNI and under AVX2)."""
+    """The convolutions that write a graph output (the mask head): they stay fp32."""
     import onnx
 
     graph = onnx.load(str(onnx_path)).graph
@@ -312,13 +245,8 @@ def output_convolutions(onnx_path: str | Path) -> list[str]:
 
 
 def shapes_from_quantized(graph) -> int:
-    """Let every Shape node that reads a DequantizeLinear output read the DQ's integer input instead.
-
-    Same values (quantise/dequantise keep the shape), one consumer fewer: the exporter's bilinear
-    Resize takes the shape of its own input, and a DQ with two consumers is not fused into the int8
-    kernels, so ONNX Runtime dequantised and transposed those feature maps just to read their shape
-    (about 2 ms of 40 at 384x384).  Edits ``graph`` in place; returns the number of Shape nodes moved.
-    """
+    """Every Shape node reading a DequantizeLinear output reads its integer input instead (same shape): a DQ
+    with two consumers is not fused into the int8 kernels.  In place; the number of nodes moved."""
     producer = {out: node for node in graph.node for out in node.output}
     moved = 0
     for node in graph.node:
@@ -330,9 +258,7 @@ def shapes_from_quantized(graph) -> int:
 
 
 def int8_params(cfg: dict) -> dict:
-    """The int8 settings of the (schema-validated) ``deploy`` params: ``calibration``
-    (deploy.int8_calibration), ``percentile`` (deploy.int8_percentile), ``weight_bits``
-    (deploy.int8_weight_bits)."""
+    """The int8 settings of the ``deploy`` params."""
     return {"calibration": cfg["int8_calibration"], "percentile": float(cfg["int8_percentile"]),
             "weight_bits": int(cfg["int8_weight_bits"])}
 

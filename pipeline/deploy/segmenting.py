@@ -1,15 +1,5 @@
-"""``geodistill segment``'s logic: binary masks for image files with a checkpoint or a deploy bundle
-(``pipeline/cli/segment.py`` is wiring: its options, the params file, one-line errors).
-
-:func:`segment_images` checks the options, finds the inputs and plans every output before anything
-is written (pipeline.deploy.files), loads the model with one engine (:func:`pipeline.deploy.load_segmenter`),
-picks tau (:func:`pipeline.thresholds.tau_candidates` then :func:`pipeline.thresholds.resolve_tau`:
-``tau`` > the bundle's > the checkpoint's payload > its row in ``thresholds`` > ``calibrate.fixed_tau``
-of ``params``) and the working resolution (``resolution`` > the one recorded with the model; never
-guessed), claims the output folder (pipeline.artifacts.ownership), writes M = [P >= tau] (eq:inference-mask) at
-each image's own size and skipped.csv, and reports on ``echo``.  A user error is an InputError naming
-the option.
-"""
+"""``geodistill segment``'s logic: binary masks M = [P >= tau] (eq:inference-mask) for image files, each at
+its own size, with a checkpoint or a deploy bundle (``pipeline/cli/segment.py`` is its wiring)."""
 
 from __future__ import annotations
 
@@ -19,6 +9,7 @@ from typing import Callable, Mapping
 
 from pipeline.datasets.loading import BadFileError, check_bit_depth, pixel_limit, reset_frame_warnings
 from pipeline.datasets.manifest import BadInputPolicy
+from pipeline.datasets.scan import scan_inputs
 from pipeline.runtime.device import resolve_device
 from pipeline.deploy.engine_table import AUTO
 from pipeline.runtime.errors import CHECKPOINT, InputError
@@ -49,21 +40,18 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
                    overlay: bool = False, device="auto", params: Mapping | None = None, overwrite: bool = False,
                    skip_bad: bool = False, max_pixels: int | None = None, echo: Callable[[str], None] = _stderr,
                    workers: int | None = None, bit_depth: str | int | None = None, quiet: bool = False):
-    """Segment one image file or a folder (module docstring); the result of
-    :func:`pipeline.deploy.segment_files` (``written``, timings).  ``params``: validated params, read
-    for ``calibrate.fixed_tau`` only (None: no fixed tau fallback).  ``workers``: reader threads that
-    overlap decoding and PNG writing with inference (None: segment_files' default; 0 = the serial
-    loop; the same bytes either way).  ``bit_depth`` (``--bit-depth``): how 16-bit frames are read
-    (None: what the bundle records, else auto).  ``quiet`` (``--quiet``): only warnings, errors and the
-    summary line on ``echo`` (no engine and timing lines)."""
-    from pipeline.deploy.files import segment_files, write_skipped_csv  # torch
+    """Segment one image file or a folder; :func:`pipeline.deploy.files.segment_files`' result.  The inputs are
+    found and every output planned before anything is written; tau as :func:`pipeline.thresholds.resolve_tau`
+    (``params``: the fixed tau); the resolution given or recorded, never guessed; ``workers``: reader threads
+    (0: the serial loop, the same bytes); ``bit_depth``: None = what the bundle records; ``quiet``: only
+    warnings, errors and the summary line on ``echo``."""
+    from pipeline.deploy import files as F  # torch
     from pipeline.deploy.segmenter import load_segmenter
-    from pipeline.deploy import files as F
 
     check_options(checkpoint, input_path, output, batch_size, resolution)
     if workers is not None and workers < 0:
         raise InputError(f"workers={workers}: must be >= 0 (0 = the serial loop)")
-    found = F.scan_inputs(input_path)
+    found = scan_inputs(input_path)
     if not found.files:
         extra = f"; skipped {found.skipped[0][0]}: {found.skipped[0][1]}" if found.skipped else ""
         raise InputError(f"--input {input_path}: no image files (png, jpg, jpeg, tif, tiff, bmp){extra}")
@@ -81,7 +69,7 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
         except ValueError:
             return p.stem
 
-    max_pixels = pixel_limit(max_pixels)  # images above it are refused on their header (data.max_pixels)
+    max_pixels = pixel_limit(max_pixels)
     for path, reason in found.skipped:  # links and special files: before anything is written
         policy.report(image_id(path), path, reason)
     for path, reason in found.unused:  # not images (hidden files, other types): listed, not an error
@@ -90,7 +78,7 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
     seg = load_segmenter(checkpoint, engine, resolve_device(device), thresholds, params=params)
     if bit_depth is not None:
         seg.bit_depth = check_bit_depth(bit_depth)
-    reset_frame_warnings()  # each run says once how it reads 16-bit frames
+    reset_frame_warnings()  # once per run
     tau, source = seg.resolve_tau(option=tau)
     resolution, res_source = model_resolution(seg.resolution, resolution, checkpoint, echo)
 
@@ -100,16 +88,16 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
         else:
             policy.report(image_id(path), path, reason)
 
-    info = (lambda line: None) if quiet else echo  # what is neither a warning nor the summary
+    info = (lambda line: None) if quiet else echo
     info(f"segment: engine {seg.engine}" + (" (auto)" if engine == AUTO else "")
          + f", {len(files)} image(s), {resolution}px ({res_source}), tau={tau:.4g} ({source})")
     claim_outputs(output, F.relative_outputs(output, stems, suffixes), F.RECORD, "segment",
                   {"input": str(Path(input_path).absolute()), "checkpoint": str(Path(checkpoint).absolute())})
-    result = segment_files(seg, files, stems, tau=tau, resolution=resolution, batch_size=batch_size,
-                                  save_prob=save_prob, overlay=overlay, on_skip=report, max_pixels=max_pixels,
-                                  **({} if workers is None else {"workers": workers}))
+    result = F.segment_files(seg, files, stems, tau=tau, resolution=resolution, batch_size=batch_size,
+                             save_prob=save_prob, overlay=overlay, on_skip=report, max_pixels=max_pixels,
+                             **({} if workers is None else {"workers": workers}))
     listing = Path(output) / F.SKIPPED_CSV
-    write_skipped_csv(listing, policy.rows())
+    F.write_skipped_csv(listing, policy.rows())
     F.write_confidence_csv(Path(output) / F.CONFIDENCE_CSV, Path(output).absolute().resolve(), result.written,
                            result.scores)
     lowest = (f" (lowest {min(result.scores):.3f}: {result.written[result.scores.index(min(result.scores))].name})"
@@ -118,21 +106,18 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
          f"{F.CONFIDENCE_CSV}{lowest}")
     if (line := policy.summary("segment", listing)) is not None:
         echo(line)
-    if result.written:
-        n = len(result.written)
-        info(f"segment: timing: engine {seg.engine}, {1e3 * result.model_seconds / n:.2f} ms/image in the model, "
-             f"{1e3 * result.total_seconds / n:.2f} ms/image end to end ({n} images, batch {batch_size}, "
-             f"{resolution}px)")
     if not result.written:
         raise InputError(f"--input {input_path}: none of the {len(files)} file(s) could be read")
+    n = len(result.written)
+    info(f"segment: timing: engine {seg.engine}, {1e3 * result.model_seconds / n:.2f} ms/image in the model, "
+         f"{1e3 * result.total_seconds / n:.2f} ms/image end to end ({n} images, batch {batch_size}, "
+         f"{resolution}px)")
     return result
 
 
 def model_resolution(trained: int | None, option: int | None, checkpoint,
                      echo: Callable[[str], None] = _stderr) -> tuple[int, str]:
-    """The working resolution segment runs at and where it came from: ``option`` (--resolution) > the
-    one recorded with the model (``trained``), never guessed; a recorded one is checked even when the
-    option overrides it, and an option other than it is used with a warning on ``echo``."""
+    """(resolution, source): ``option`` (--resolution, with a warning when it differs) > the recorded one."""
     from pipeline.deploy.bundle import DEPLOY_JSON, is_deploy_bundle
 
     recorded_in = f"{Path(checkpoint) / DEPLOY_JSON}" if is_deploy_bundle(checkpoint) else f"checkpoint {checkpoint}"
