@@ -1,15 +1,6 @@
-"""The artifact catalogue: every artifact once (file name, schema, producing stage), and every stage once
-(script, the artifacts it reads and writes, the params keys it reads).
-
-``dvc.yaml`` is rendered from this table (:mod:`pipeline.orchestration.dag`), the stage commands take their default
-paths from it, and the report and notebooks look artifacts up here by name.  Library functions take
-arrays and opened artifacts, never file names.
-
-Paths are relative to the artifacts directory (``ARTIFACTS_DIR``); ``{method}``/``{seed}`` fill the
-per-run checkpoint folders, ``{profile}`` the report folder.  Paths starting ``../`` lie outside it and
-are DVC outs with ``cache: false``: git tracks them (the report, and the metrics, plot tables and
-DVCLive logs that ``dvc metrics show|diff``, ``dvc plots`` and ``dvc exp show`` read;
-:mod:`pipeline.report.dvc_results`).  :data:`PLOTS` are dvc.yaml's top-level plots.
+"""The catalogue: every artifact (file name, schema, producing stage), output file and stage (script, what
+it reads and writes, its params keys) once; dvc.yaml is rendered from it.  Paths are relative to
+``ARTIFACTS_DIR``; those starting ``../`` lie outside it and are git-tracked DVC outs (``cache: false``).
 """
 
 from __future__ import annotations
@@ -19,24 +10,19 @@ from pathlib import Path
 from typing import Mapping
 
 from pipeline.deploy.engine_table import engines_reading
-from pipeline.params import DEFAULT_PARAMS as PARAMS_FILE  # the params file's name, defined below the catalogue
+from pipeline.params import DEFAULT_PARAMS as PARAMS_FILE
 from pipeline.params import get_path
 
 ARTIFACTS_DIR = "artifacts"
 
-#: a model's files in a checkpoint and in a deploy bundle (pipeline.artifacts.weights): the tensors as safetensors
-#: (nothing in it can execute on load) and the model config with the run's fields as JSON.
+#: a model's tensors as safetensors (nothing in it can execute on load), and its config as JSON
 WEIGHTS_FILE = "model.safetensors"
 WEIGHTS_CONFIG_FILE = "model.json"
-#: the torch-pickle weights file older runs wrote; still read (tensors and plain data only), never written
+#: the torch-pickle weights file older runs wrote; still read, never written
 LEGACY_WEIGHTS_FILE = "model.pt"
-#: a checkpoint's training log (schema ``training_log``), beside its weights (pipeline.evaluation.inference.save_checkpoint)
 TRAINING_LOG_FILE = "log.parquet"
-#: every folder artifact's metadata (schema, fingerprint, lineage; pipeline.artifacts.store.artifact_dir)
 META_FILE = "meta.json"
-#: train's per-epoch resume state in its resume folder (pipeline.training.checkpointing.FileCheckpointer)
 RESUME_STATE_FILE = "state.pt"
-#: the DAG file ``geodistill dag`` and ``geodistill distill`` write (pipeline.orchestration.dag); ``geodistill run`` reads it
 DVC_FILE = "dvc.yaml"
 
 
@@ -47,19 +33,14 @@ def path(name: str, root: str | Path = ARTIFACTS_DIR, **fmt) -> Path:
 
 
 def dvc_path(name: str, **fmt) -> str:
-    """The path as dvc.yaml spells it (relative to the repository root; DVC templates stay templates)."""
+    """The path as dvc.yaml spells it (DVC templates stay templates)."""
     p = path(name, ARTIFACTS_DIR, **fmt)
     return p.as_posix()
 
 
-# --------------------------------------------------------------------------------------------------
-# The deploy bundle's layout (artifact ``deploy``)
-# --------------------------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class BundleFile:
-    """One file of the deploy bundle: its name, what writes it, and what it holds.  Which engines run it
-    is :func:`bundle_readers` (the engine table's ``reads``); ``required``: every bundle has it (the
-    ``deploy`` schema checks it), else only when the export could write it."""
+    """One file of the deploy bundle; ``required``: every bundle has it, else only when the export could write it."""
 
     key: str
     name: str
@@ -84,7 +65,7 @@ DEPLOY_BUNDLE: dict[str, BundleFile] = {f.key: f for f in [
     BundleFile("deploy_json", "deploy.json", "pipeline.deploy.bundle.write_bundle",
                "tau and its source, working resolution, config, parity, file sha256s, source checkpoint "
                "(pipeline.deploy.bundle.read_deploy_info: every reader)"),
-    # the input/output contract and its golden pair (bundles of older versions have none: not required)
+    # bundles of older versions have no contract: not required
     BundleFile("contract", "contract.json", "pipeline.deploy.bundle.write_contract",
                "the written input/output contract for software that runs the ONNX model without this project: "
                "frame reading, size, channel order, normalisation, dtype, tau, output meaning, confidence, "
@@ -100,22 +81,18 @@ DEPLOY_BUNDLE: dict[str, BundleFile] = {f.key: f for f in [
 
 
 def bundle_file(key: str) -> str:
-    """The file name of bundle file ``key`` (:data:`DEPLOY_BUNDLE`)."""
+    """The file name of bundle file ``key``."""
     return DEPLOY_BUNDLE[key].name
 
 
 def bundle_readers(key: str) -> tuple[str, ...]:
-    """The engines that run bundle file ``key`` (:data:`pipeline.deploy.engine_table.ENGINE_TABLE`)."""
+    """The engines that run bundle file ``key``."""
     return engines_reading(key)
 
 
-# --------------------------------------------------------------------------------------------------
-# The files inside output folders (artifacts and the user commands' outputs)
-# --------------------------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class OutputFile:
-    """One file or folder in an output folder: its name (``{...}`` filled by the writer), what writes it,
-    and what it holds."""
+    """One file or folder in an output folder (``{...}`` in its name filled by the writer)."""
 
     key: str
     name: str
@@ -128,10 +105,10 @@ def _files(*files: OutputFile) -> dict[str, OutputFile]:
 
 
 _LABEL, _REVIEW, _SEGMENT = "pipeline.labeling.writing", "pipeline.review.export", "pipeline.deploy.files"
-#: one row per input left out, with the reason (pipeline.deploy.files.write_skipped_csv): label and segment
+#: one row per input left out, with the reason (label and segment)
 SKIPPED_FILE = "skipped.csv"
 
-#: the files and folders of each output folder, by folder: an artifact's name or a command's
+#: the files and folders of each output folder, keyed by an artifact's name or a command's
 OUTPUT_FILES: dict[str, dict[str, OutputFile]] = {
     "synthetic_files": _files(
         OutputFile("readme", "README.txt", "pipeline.datasets.build", "why no synthetic files were generated")),
@@ -316,18 +293,10 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
 ]}
 
 
-# --------------------------------------------------------------------------------------------------
-# Stages
-# --------------------------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class StageSpec:
-    """One DVC stage: ``python -m <module> <args>``.
-
-    ``args`` is the command line after the module with ``{artifact}`` placeholders; ``deps`` /
-    ``outs`` name catalogue artifacts; ``params`` the dotted params keys the stage reads (DVC tracks
-    them key by key and they are the params of the artifacts' fingerprint); ``data_deps`` extra
-    non-code paths (dataset protocol files).
-    """
+    """One DVC stage, ``python -m <module> <args>`` (``{artifact}`` placeholders); ``deps``/``outs`` name
+    artifacts, ``params`` the dotted keys DVC tracks and the fingerprint holds."""
 
     name: str
     module: str
@@ -363,7 +332,7 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               ("consensus", "manifest"), ("geometry", "gates"),
               _keys("geometry", "sdf_quantile", "sdf_min_scale", "skeleton_min_distance", "n_prompts",
                     "conf_offset", "valid_offset", "area_temperature", "area_floor", "eps")),
-    # train_<method>: rendered per method from pipeline.methods (see pipeline.orchestration.dag.train_stage)
+    # train_<method>: rendered per method (pipeline.orchestration.dag.train_stage)
     StageSpec("calibrate", "stages.calibrate",
               "--artifacts {artifacts_dir} --checkpoints {checkpoints} --out {thresholds}",
               ("manifest", "images", "reference", "checkpoints"), ("thresholds",),
@@ -399,9 +368,9 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               ("manifest", "images", "reference", "teacher", "consensus", "geometry", "gates", "checkpoints",
                "thresholds", "metrics", "summary", "teacher_metrics", "efficiency"), ("report",),
               ("profile",) + _keys("report", "qualitative_images", "pseudo_target_images"),
-              # a new floor changes the report's verdicts, so it reruns the report (a standalone
-              # project, which has no floor file, replaces the data deps: pipeline.orchestration.dag.render_dvc_yaml)
-              data_deps=(dvc_path("noise_floor"),), metrics=("metrics_efficiency",)),    # optional: in dvc.yaml only when params review.corrections is set (pipeline.orchestration.dag.OPTIONAL_STAGES)
+              # a new floor changes the report's verdicts
+              data_deps=(dvc_path("noise_floor"),), metrics=("metrics_efficiency",)),
+    # in dvc.yaml only when params review.corrections is set (pipeline.orchestration.dag.OPTIONAL_STAGES)
     StageSpec("corrections", "stages.corrections",
               "--corrections ${review.corrections} --artifacts {artifacts_dir} --out {corrected}",
               ("manifest", "images"), ("corrected",), _keys("review", "corrections", "mode") + ("data.source",),
@@ -411,25 +380,20 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               _keys("review", "top", "ranking") + ("data.letterbox", "teacher.backend")),
 ]}
 
-#: The path placeholders of stage commands that are not single artifacts.
+#: the path placeholders of stage commands that are not single artifacts
 EXTRA_PATHS = {
     "artifacts_dir": ARTIFACTS_DIR,
     "export_checkpoint": f"{ARTIFACTS_DIR}/checkpoints/${{deploy.export_method}}/${{deploy.export_seed}}",
 }
 
 
-# --------------------------------------------------------------------------------------------------
-# Plots (dvc.yaml top level)
-# --------------------------------------------------------------------------------------------------
-#: the Vega-Lite template of every plot below: ``.dvc/plots/<name>.json`` (pipeline.report.offline_plots),
-#: one line per value of the data's ``method`` column (mean over seeds), dashed per revision
+#: the Vega-Lite template of every plot below (pipeline.report.offline_plots): one line per method
 PLOT_TEMPLATE = "method_lines"
 
 
 @dataclasses.dataclass(frozen=True)
 class PlotSpec:
-    """One top-level plot of dvc.yaml: ``y`` of artifact ``data`` (a CSV with a ``method`` column)
-    against ``x``, drawn with :data:`PLOT_TEMPLATE`."""
+    """One top-level plot of dvc.yaml: ``y`` of artifact ``data`` (a CSV with a ``method`` column) against ``x``."""
 
     name: str
     data: str
