@@ -1,63 +1,8 @@
-"""Real-dataset adapters: a root directory + a protocol file (``data_manifests/*.yaml``) -> manifest rows.
+"""Real-dataset readers: a root directory + a protocol file (``data_manifests/*.yaml``) -> manifest rows.
 
-Every adapter returns a :class:`DatasetSpec` (rows with ``image_id, dataset, domain, split, group,
-spacecraft, image_path, mask_path, part_path``); files are not opened here -- the decode pass in
-``build.decode_rows`` reads each one once and applies the bad-input policy.  Annotation-free
-training: training rows never list a mask path, even where the dataset ships one.  Sampling is
-seeded by ``data.seed`` (``np.random.default_rng([seed, stable_hash(key)])`` per spacecraft or
-domain) so adding a spacecraft does not reshuffle another's images.
-
-SpaceSense-Bench (``spacesense``)
-    ``<root>/<Satellite>/[<Satellite>/]<trajectory>/{image,seg}/<timestamp>.png``; depth/lidar folders
-    are ignored.  Any directory named ``image`` under a satellite folder is a trajectory (its parent's
-    name); its mask is ``../seg/<same name>``.  Identity = the satellite folder name with only a
-    leading all-digit timestamp token removed (``20240101_Lunar_Reconnaissance_Orbiter`` ->
-    ``Lunar_Reconnaissance_Orbiter``; never split on the first underscore).  ``seg`` is 8-bit RGB with
-    background (0, 0, 0): binary foreground = any non-black pixel.  Part classes come from the
-    protocol's colour table (RGB, since the loader converts OpenCV's BGR); an empty table means no
-    part labels.  With a table, a seg colour outside it refuses the file (one line naming the file
-    and the colour; ``skip_bad`` leaves it out), never silently background.  Split
-    (:func:`_disjoint_plan`): protocol test groups (named spacecraft, or a count drawn seeded), then
-    validation and training spacecraft (named, or ``null`` + ``count``: seeded draw from the
-    remaining ones), ``images_per_spacecraft`` seeded per spacecraft.  eq:spacecraft-disjoint is
-    enforced.
-SPARK 2024 stream 1 (``spark``)
-    ``<root>/images/<Class>/<split>/*_img.jpg`` and ``<root>/mask/<Class>/<split>/*_layer.jpg``, listed
-    by ``<root>/train.csv`` / ``val.csv`` (columns ``Class``, ``Image name``, ``Mask name``; names are
-    file names in those folders).  The class is the spacecraft identity; both official lists are
-    pooled and re-split spacecraft-disjoint by the SpaceSense machinery above (the official split is
-    kept in the ``spark_split`` column and the image id ``<Class>__<split>__<stem>``).  Masks are RGB
-    JPEG (red body, blue panels, black background): binary foreground = max channel >
-    ``mask_threshold`` (127), part labels through the colour table with the protocol's stated
-    ``color_tolerance`` and ``color_blends`` (pipeline.datasets.loading.ColorTable), never exact
-    colours; a colour that is neither a table colour nor a blend of two refuses the file.
-SPEED+ (``speedplus``)
-    ``<root>/<domain>/images/*.jpg`` listed by ``<root>/<domain>/{train,validation,test}.json`` (lists of
-    ``{filename, q_vbs2tango_true, r_Vo2To_vbs_true}``); masks ``<root>/<domain>/masks/<same name>`` (or
-    the same stem as ``.png``), greyscale, foreground > 128.  Per domain: the listed images are
-    shuffled (seeded); the first ``train_images`` (500) are unlabeled training images, then
-    validation and test subsets are drawn, disjoint, from the remaining images that have masks.
-TANGO (``tango``)
-    The public layout could not be checked, so the mapping is entirely the protocol file's:
-    ``images_dir``, ``masks_dir``, ``mask_suffix``, ``train_list`` and ``test_list`` (text, one file
-    name per line, or JSON list of names / of ``{filename}``).  Training: ``train_images`` (500)
-    seeded from the official training list; validation: a disjoint ``val_images`` (500) from the rest
-    of it (masked); test: the official test list unchanged.
-Any folder (``folder``)
-    ``<root>/images/**`` plus optional ``<root>/masks/**`` matched by the path relative to the folder
-    without its suffix (the image id: ``sub/a.png`` <-> ``masks/sub/a.png``; png, jpg, tif, bmp);
-    sub-folders are read recursively, as label and segment do (pipeline.datasets.scan);
-    the protocol's ``images_dir``/``masks_dir`` rename them (absolute paths allowed; ``masks_dir: null``
-    = no masks).
-    Images without a mask are training images; masked images are split into validation and test
-    (seeded, ``val_fraction``).  Every entry of ``images/`` and ``masks/`` is either used or goes
-    through the bad-input policy (an error naming the file, or with ``skip_bad`` a row of
-    ``skipped_files.parquet`` with its reason), never silently ignored: broken symbolic links are
-    kept so the decode pass reports them; links leaving the folder or to folders, masks without an
-    image of the same id, and
-    several masks for one stem (``a.png`` + ``a.jpg``: ambiguous -- every one of them and the image
-    are left out) are reported here.  Hidden files (``.DS_Store``) and files that are not images
-    (``notes.txt``) are listed as not used, not an error.  Masks are binarised by the one rule of ``pipeline.datasets.loading`` (default: value > 0).
+One reader per source (SpaceSense-Bench, SPARK 2024 stream 1, SPEED+, TANGO, any folder); the layouts
+are in docs/real-data.md and the protocol files, the choices in docs/decisions.md ("Dataset readers").
+Files are not opened here: ``build.decode_rows`` reads each once under the bad-input policy.
 """
 
 from __future__ import annotations
@@ -90,9 +35,6 @@ DEFAULT_PROTOCOLS = {
 }
 
 
-# ---------------------------------------------------------------------------------------------------
-# Helpers
-# ---------------------------------------------------------------------------------------------------
 def load_protocol(source: str, path: str | None) -> tuple[dict, Path]:
     """Read a protocol YAML (default: ``data_manifests/<source's file>``); InputError naming the file."""
     p = Path(path) if path else MANIFEST_DIR / DEFAULT_PROTOCOLS[source]
@@ -144,8 +86,8 @@ def _frame(rows: list[dict]) -> pd.DataFrame:
 
 
 def _parse_colors(proto: dict, where: Path) -> ColorTable | None:
-    """The protocol's ``part_colors`` ("R,G,B": label), ``color_tolerance`` (0) and ``color_blends``
-    (false) as a :class:`~pipeline.datasets.loading.ColorTable`; None when the table is empty."""
+    """The protocol's ``part_colors`` ("R,G,B": label), ``color_tolerance`` and ``color_blends`` as a
+    :class:`~pipeline.datasets.loading.ColorTable`; None when the table is empty."""
     out = {}
     for key, label in (proto.get("part_colors") or {}).items():
         try:
@@ -174,9 +116,7 @@ def _parse_colors(proto: dict, where: Path) -> ColorTable | None:
 def _disjoint_plan(found: dict[str, list], splits: dict, where: Path, root: Path, seed: int, name: str
                    ) -> list[tuple[str, str, str, int]]:
     """eq:spacecraft-disjoint plan ``[(spacecraft, split, group, images)]`` from a protocol's ``splits``:
-    ``test_groups`` (group -> list of named spacecraft, or a count drawn seeded from the ones no other
-    group names), then ``val`` and ``train`` (``spacecraft``: a list, or null + ``count``: seeded draw from
-    the remaining ones).  A spacecraft named twice or absent under ``root`` is an InputError."""
+    test groups, then val and train, each named spacecraft or a seeded draw of ``count`` from the rest."""
     groups = _get(splits, "test_groups", where, dict)
     used: set[str] = set()
     plan: list[tuple[str, str, str, int]] = []
@@ -216,10 +156,8 @@ def _disjoint_plan(found: dict[str, list], splits: dict, where: Path, root: Path
 
 def _disjoint_source(name: str, found: dict[str, list[tuple[str, Path, Path]]], cfg: dict, proto: dict,
                      where: Path, root: Path, column: str, mask_threshold: float) -> DatasetSpec:
-    """A spacecraft-disjoint dataset (SpaceSense-Bench, SPARK): ``found`` {spacecraft: [(sub, image,
-    mask)]} -> :func:`_disjoint_plan`, then ``images_per_spacecraft`` items sampled seeded per spacecraft
-    (in their listed order), id ``<spacecraft>__<sub>__<image stem>``, ``sub`` kept in ``column``; masks
-    (and, with a colour table, part labels from the same file) on validation and test rows only."""
+    """Rows of a spacecraft-disjoint dataset from ``found`` {spacecraft: [(sub, image, mask)]}: id
+    ``<spacecraft>__<sub>__<image stem>``, ``sub`` kept in ``column``; masks on validation and test rows."""
     seed = int(cfg["seed"])
     plan = _disjoint_plan(found, _get(proto, "splits", where, dict), where, root, seed, name)
     colors = _parse_colors(proto, where)
@@ -236,9 +174,6 @@ def _disjoint_source(name: str, found: dict[str, list[tuple[str, Path, Path]]], 
                        spacecraft_disjoint=True, protocol={"name": name, "file": str(where), "plan": [list(p) for p in plan]})
 
 
-# ---------------------------------------------------------------------------------------------------
-# SpaceSense-Bench
-# ---------------------------------------------------------------------------------------------------
 _TIMESTAMP = re.compile(r"^(\d+)_(.+)$")
 
 
@@ -272,15 +207,11 @@ def spacesense_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
                             int(proto.get("mask_threshold", 0)))
 
 
-# ---------------------------------------------------------------------------------------------------
-# SPARK 2024, stream 1
-# ---------------------------------------------------------------------------------------------------
 SPARK_COLUMNS = ("Class", "Image name", "Mask name")
 
 
 def _read_spark_csv(path: Path) -> list[dict]:
-    """The rows of a SPARK list (``train.csv`` / ``val.csv``: columns :data:`SPARK_COLUMNS`, others
-    ignored); InputError naming the file when a column is missing or a row has an empty cell."""
+    """The rows of a SPARK list (columns :data:`SPARK_COLUMNS`, others ignored)."""
     try:
         with path.open(newline="", encoding="utf-8-sig") as f:
             reader = csv.DictReader(f)
@@ -302,9 +233,7 @@ def _read_spark_csv(path: Path) -> list[dict]:
 
 
 def scan_spark(root: Path, lists: dict[str, str], where: Path) -> dict[str, list[tuple[str, Path, Path]]]:
-    """{class: [(official split, image path, mask path), ...]} from the lists that exist (``lists``:
-    official split -> CSV name under ``root``): ``images/<Class>/<split>/<Image name>`` and
-    ``mask/<Class>/<split>/<Mask name>``; files are not opened (the decode pass reports missing ones)."""
+    """{class: [(official split, image path, mask path), ...]} from the lists (split -> CSV name) that exist."""
     found: dict[str, list] = {}
     present = {str(split): root / str(name) for split, name in lists.items() if (root / str(name)).is_file()}
     if not present:
@@ -318,17 +247,13 @@ def scan_spark(root: Path, lists: dict[str, str], where: Path) -> dict[str, list
 
 
 def spark_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
-    """SPARK 2024 stream 1: the classes are the spacecraft; both official lists are pooled and re-split
-    spacecraft-disjoint by the protocol (:func:`_disjoint_plan`, as SpaceSense-Bench)."""
+    """SPARK 2024 stream 1: the classes are the spacecraft, re-split spacecraft-disjoint."""
     root = _root(cfg)
     found = scan_spark(root, dict(_get(proto, "lists", where, dict)), where)
     return _disjoint_source("spark", found, cfg, proto, where, root, "spark_split",
                             int(_get(proto, "mask_threshold", where, int)))
 
 
-# ---------------------------------------------------------------------------------------------------
-# SPEED+
-# ---------------------------------------------------------------------------------------------------
 def _read_list(path: Path) -> list[str]:
     """File names from a JSON list (of names or of ``{filename: ...}``) or a text file (one per line)."""
     try:
@@ -411,9 +336,6 @@ def speedplus_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
                                  "lists": [str(p) for p in lists]})
 
 
-# ---------------------------------------------------------------------------------------------------
-# TANGO
-# ---------------------------------------------------------------------------------------------------
 def tango_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
     root = _root(cfg)
     img_dir = root / _get(proto, "images_dir", where, str)
@@ -450,15 +372,9 @@ def tango_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
                        protocol={"name": "tango", "file": str(where)})
 
 
-# ---------------------------------------------------------------------------------------------------
-# Any folder
-# ---------------------------------------------------------------------------------------------------
-def _folder_entries(d: Path, what: str, policy: BadInputPolicy) -> list[tuple[str, Path]]:
-    """(id, path) of the image files under ``d``, sub-folders included (:func:`pipeline.datasets.scan.
-    scan_inputs`, the scan label and segment use); id = the path relative to ``d`` without its suffix
-    (posix).  Bad entries (links leaving ``d``, links to folders, special files) go through the
-    policy; hidden files and files that are not images are listed, not an error; broken links are
-    kept for the decode pass to report."""
+def _folder_entries(d: Path, policy: BadInputPolicy) -> list[tuple[str, Path]]:
+    """(id, path) of the image files under ``d`` (:func:`pipeline.datasets.scan.scan_inputs`); id = the
+    posix path relative to ``d`` without its suffix.  Bad entries go through the policy."""
     found = scan_inputs(d, keep_broken_links=True)
 
     def rel_id(p) -> str:
@@ -482,14 +398,13 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
     mask_dir = root / str(masks_name) if masks_name is not None else None
     if not img_dir.is_dir():
         raise InputError(f"{img_dir}: images folder not found")
-    # broken links are kept: the decode pass reports them
-    entries = _folder_entries(img_dir, "images", policy)
+    entries = _folder_entries(img_dir, policy)
     images = [p for _, p in entries]
     id_of = {p: i for i, p in entries}
     image_stems = set(id_of.values())
     by_stem: dict[str, list[Path]] = {}
     if mask_dir is not None and mask_dir.is_dir():
-        for stem, m in _folder_entries(mask_dir, "masks", policy):
+        for stem, m in _folder_entries(mask_dir, policy):
             by_stem.setdefault(stem, []).append(m)
     masks: dict[str, Path] = {}
     ambiguous: dict[str, list[Path]] = {}
@@ -504,15 +419,11 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
             policy.report(stem, ms[0], f"mask without an image: no file with stem {stem!r} in {img_dir}")
         else:
             masks[stem] = ms[0]
-    if ambiguous:
-        kept = []
-        for p in images:
-            if id_of[p] in ambiguous:
-                policy.report(id_of[p], p, f"left out: its mask is ambiguous ({len(ambiguous[id_of[p]])} mask "
-                                           f"files for stem {id_of[p]!r} in {mask_dir})")
-            else:
-                kept.append(p)
-        images = kept
+    for p in images:
+        if id_of[p] in ambiguous:
+            policy.report(id_of[p], p, f"left out: its mask is ambiguous ({len(ambiguous[id_of[p]])} mask "
+                                       f"files for stem {id_of[p]!r} in {mask_dir})")
+    images = [p for p in images if id_of[p] not in ambiguous]
     sc = str(proto.get("spacecraft") or root.resolve().name)
     val_fraction = float(proto.get("val_fraction", 0.5))
     if not 0 <= val_fraction <= 1:

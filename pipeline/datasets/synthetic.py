@@ -1,38 +1,7 @@
 """Embedded synthetic spacecraft benchmark: procedural spacecraft, rendered views, exact ground truth.
 
-The benchmark lets the whole pipeline run with no download.  It is a *synthetic* stand-in for
-SpaceSense-Bench, not a claim about real imagery.
-
-Spacecraft identity (``make_spacecraft``)
-    Fixed by ``(seed, name)``: a bus (box, cylinder or prism; gold foil, silver foil, white, grey or
-    dark surfaces), zero to four solar-panel wings made of cells (so a cell grid shows), thin booms,
-    whip antennas and wire trusses, dish antennas with feed and struts, payload boxes.  Geometry is
-    in metres-like object units; the bus is ~1-2 units across.
-
-View (``render_view``)
-    A uniformly random 3-D rotation, a sun direction, a perspective pinhole camera whose distance is
-    chosen so the convex hull of the projected spacecraft covers a sampled fraction of the frame
-    (log-uniform; a ``tiny_probability`` share of approach-shot views below ~0.1 % of the frame and
-    the rest up to beyond 30 %), a background (star field, Earth limb with clouds and atmosphere,
-    dark laboratory) and optionally one hard case (glare + bloom, lens flare, under-exposure, sensor
-    noise, blur).
-
-Rasterisation
-    Deferred shading.  Every primitive (a convex face or a thick line segment) is drawn, far to near
-    (painter's algorithm on per-face distance; panels are split into cells and long segments into
-    pieces so the ordering holds locally), into one int32 *record-id* buffer at the working
-    resolution with OpenCV (``cv2.fillConvexPoly`` with 1/16-px fixed point, ``cv2.line`` with a
-    thickness for 1-3 px structures).  Ground-truth mask and part labels are lookups of that same
-    buffer, so thin structures present in the image are present in the masks by construction.
-    Shading is then per pixel and vectorised: Lambertian term ``albedo * (ambient + max(n.l, 0))``
-    plus Blinn-Phong specular ``k_s * max(n.h, 0)^shininess`` with a per-pixel view ray (which makes
-    the specular hot spot a spot on a flat face); foil gets a crinkle normal perturbation.  A small
-    optical PSF (Gaussian) anti-aliases edges.  Hard cases change the image only, never the ground
-    truth.  ``rasterizer="numpy"`` swaps OpenCV for a plain per-pixel half-plane / segment-distance
-    rasteriser (same primitives, same buffer): the baseline of ``python -m benchmarks.bench_synthetic``.
-
-Everything is deterministic for a seed: each view draws from its own
-``np.random.default_rng([seed, stable_hash(name), view_index])``.
+A synthetic stand-in for SpaceSense-Bench so the pipeline runs with no download.  Every view is
+deterministic for ``(seed, spacecraft name, view index)``; the renderer's design is in docs/decisions.md.
 """
 
 from __future__ import annotations
@@ -45,9 +14,6 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-# ---------------------------------------------------------------------------------------------------
-# Part labels (reference.zarr `parts`) and materials
-# ---------------------------------------------------------------------------------------------------
 PART_BACKGROUND, PART_BUS, PART_PANEL, PART_BOOM, PART_DISH, PART_PAYLOAD = range(6)
 PART_NAMES = ("background", "bus", "panel", "antenna/boom/truss", "dish", "payload")
 
@@ -81,18 +47,12 @@ def stable_hash(text: str) -> int:
     return int.from_bytes(hashlib.sha256(text.encode()).digest()[:4], "little")
 
 
-# ---------------------------------------------------------------------------------------------------
-# Spacecraft model
-# ---------------------------------------------------------------------------------------------------
 @dataclasses.dataclass
 class SpacecraftModel:
-    """Object-frame geometry of one spacecraft identity.
+    """Object-frame geometry of one spacecraft identity: convex faces (k, 3) and thick segments (S, 2, 3).
 
-    faces: list of (k, 3) convex planar polygons; face_normal (F, 3) outward (closed solids) or
-    front side (two-sided); face_mat / face_back_mat / face_part (F,) ints; face_two_sided (F,)
-    bools; face_edge_mat (F,) material of a 1-px outline (cell gaps; -1 = none); face_jitter (F,)
-    albedo multipliers.  segments: (S, 2, 3) end points; seg_width (S,) physical width in object
-    units; seg_max_px (S,) width cap in px at 384 (1-3); seg_mat, seg_part (S,).
+    ``seg_width`` is in object units, ``seg_max_px`` a width cap in px at 384; ``face_edge_mat`` is the
+    material of a 1-px outline (cell gaps; -1 = none); ``face_jitter`` multiplies the albedo.
     """
 
     name: str
@@ -116,30 +76,31 @@ class SpacecraftModel:
         return float(np.linalg.norm(pts, axis=1).max())
 
 
+_DTYPES = {"face_normal": np.float64, "face_mat": np.int32, "face_back_mat": np.int32, "face_part": np.uint8,
+           "face_two_sided": bool, "face_edge_mat": np.int32, "face_jitter": np.float32, "segments": np.float64,
+           "seg_width": np.float64, "seg_max_px": np.float64, "seg_mat": np.int32, "seg_part": np.uint8}
+
+
 class _Builder:
     def __init__(self, rng: np.random.Generator):
         self.rng = rng
-        self.faces, self.normals, self.mat, self.back, self.part = [], [], [], [], []
-        self.two_sided, self.edge, self.jitter = [], [], []
-        self.segs, self.seg_w, self.seg_px, self.seg_mat, self.seg_part = [], [], [], [], []
+        self.faces: list = []
+        self.cols: dict[str, list] = {k: [] for k in _DTYPES}
+
+    def _add(self, **values):
+        for k, v in values.items():
+            self.cols[k].append(v)
 
     def face(self, verts, normal, mat, part, *, two_sided=False, back=None, edge=None, jitter=0.08):
         self.faces.append(np.asarray(verts, np.float64))
         n = np.asarray(normal, np.float64)
-        self.normals.append(n / (np.linalg.norm(n) + 1e-12))
-        self.mat.append(_MAT[mat])
-        self.back.append(_MAT[back] if back else _MAT[mat])
-        self.part.append(part)
-        self.two_sided.append(two_sided)
-        self.edge.append(_MAT[edge] if edge else -1)
-        self.jitter.append(1.0 + self.rng.uniform(-jitter, jitter))
+        self._add(face_normal=n / (np.linalg.norm(n) + 1e-12), face_mat=_MAT[mat],
+                  face_back_mat=_MAT[back] if back else _MAT[mat], face_part=part, face_two_sided=two_sided,
+                  face_edge_mat=_MAT[edge] if edge else -1, face_jitter=1.0 + self.rng.uniform(-jitter, jitter))
 
     def segment(self, p0, p1, width, max_px, mat, part):
-        self.segs.append(np.array([p0, p1], np.float64))
-        self.seg_w.append(width)
-        self.seg_px.append(max_px)
-        self.seg_mat.append(_MAT[mat])
-        self.seg_part.append(part)
+        self._add(segments=np.array([p0, p1], np.float64), seg_width=width, seg_max_px=max_px, seg_mat=_MAT[mat],
+                  seg_part=part)
 
     def box(self, center, axes, half, mats, part):
         """Closed box: ``axes`` (3, 3) orthonormal rows, ``half`` half-sizes, ``mats`` 6 materials (+x,-x,+y,-y,+z,-z)."""
@@ -198,15 +159,9 @@ class _Builder:
             self.segment(rim[(k * n) // 3], tip, 0.01, 1, "metal", PART_DISH)
 
     def build(self, name: str) -> SpacecraftModel:
-        segs = np.array(self.segs, np.float64).reshape(-1, 2, 3)
-        return SpacecraftModel(
-            name=name, faces=self.faces, face_normal=np.array(self.normals),
-            face_mat=np.array(self.mat, np.int32), face_back_mat=np.array(self.back, np.int32),
-            face_part=np.array(self.part, np.uint8), face_two_sided=np.array(self.two_sided, bool),
-            face_edge_mat=np.array(self.edge, np.int32), face_jitter=np.array(self.jitter, np.float32),
-            segments=segs, seg_width=np.array(self.seg_w, np.float64),
-            seg_max_px=np.array(self.seg_px, np.float64), seg_mat=np.array(self.seg_mat, np.int32),
-            seg_part=np.array(self.seg_part, np.uint8))
+        arrays = {k: np.array(v, _DTYPES[k]) for k, v in self.cols.items()}
+        arrays["segments"] = arrays["segments"].reshape(-1, 2, 3)
+        return SpacecraftModel(name=name, faces=self.faces, **arrays)
 
 
 def _perpendicular(v: np.ndarray) -> np.ndarray:
@@ -233,7 +188,7 @@ def _surface_point(kind: str, dims: tuple, direction: np.ndarray) -> np.ndarray:
 
 
 def make_spacecraft(name: str, seed: int) -> SpacecraftModel:
-    """Procedural spacecraft identity fixed by ``(seed, name)`` (see module docstring)."""
+    """Procedural spacecraft identity fixed by ``(seed, name)``: bus, solar wings, booms, dishes, payloads."""
     rng = np.random.default_rng([int(seed), stable_hash(name)])
     b = _Builder(rng)
     eye = np.eye(3)
@@ -344,9 +299,6 @@ def make_spacecraft(name: str, seed: int) -> SpacecraftModel:
     return b.build(name)
 
 
-# ---------------------------------------------------------------------------------------------------
-# View sampling
-# ---------------------------------------------------------------------------------------------------
 @dataclasses.dataclass
 class ViewSpec:
     rotation: np.ndarray          # (3, 3) object -> camera rotation
@@ -374,10 +326,8 @@ def sample_view(rng: np.random.Generator, *, tiny_range: Sequence[float] = (3e-4
                 background_weights: Sequence[float] = (0.45, 0.35, 0.2)) -> ViewSpec:
     """Draw a view: rotation, sun, apparent size, background, hard case.
 
-    Apparent size is the fraction of the frame covered by the convex hull of the projected solid
-    parts (bus, panels, dishes, payloads), log-uniform in ``tiny_range`` with probability
-    ``tiny_probability`` (approach shots; mask area typically < 0.1 %) and in ``regular_range``
-    otherwise (up to well over 30 % mask area).
+    Apparent size (the projected solid parts' convex hull over the frame) is log-uniform in ``tiny_range``
+    with probability ``tiny_probability`` (approach shots), else in ``regular_range``.
     """
     a, b = tiny_range if rng.random() < tiny_probability else regular_range
     frac = math.exp(rng.uniform(math.log(float(a)), math.log(float(b))))
@@ -391,9 +341,6 @@ def sample_view(rng: np.random.Generator, *, tiny_range: Sequence[float] = (3e-4
                     fov_deg=float(rng.uniform(28, 50)), background=background, hard_case=hard)
 
 
-# ---------------------------------------------------------------------------------------------------
-# Rasterisers: OpenCV (fast path) and a plain per-pixel numpy baseline
-# ---------------------------------------------------------------------------------------------------
 _SHIFT = 4
 _ONE = 1 << _SHIFT
 
@@ -469,9 +416,6 @@ class _NumpyRaster:
 RASTERIZERS = {"cv2": _CvRaster, "numpy": _NumpyRaster}
 
 
-# ---------------------------------------------------------------------------------------------------
-# Rendering
-# ---------------------------------------------------------------------------------------------------
 @dataclasses.dataclass
 class SyntheticView:
     image: np.ndarray     # uint8 [H, W, 3] RGB
@@ -500,27 +444,20 @@ def _smoothstep(x, lo, hi):
 
 
 def render_background(kind: str, rng: np.random.Generator, size: int, sun: np.ndarray) -> np.ndarray:
-    """Background radiance, float32 [size, size, 3] in [0, ~1]: stars | earth | lab.
-
-    Smooth backgrounds (earth, lab) are computed at half resolution and upsampled (bilinear): they
-    have no detail at the pixel scale, and it halves the generator's cost.
-    """
-    if kind != "stars" and size >= 64:
-        half = _background_smooth(kind, rng, (size + 1) // 2, sun, size / 384.0)
+    """Background radiance, float32 [size, size, 3] in [0, ~1]: stars | earth | lab."""
+    s = size / 384.0
+    if kind != "stars" and size >= 64:  # smooth: half resolution, upsampled
+        half = _background_smooth(kind, rng, (size + 1) // 2, sun, s)
         return cv2.resize(half, (size, size), interpolation=cv2.INTER_LINEAR)
     if kind != "stars":
-        return _background_smooth(kind, rng, size, sun, size / 384.0)
-    h = w = size
-    s = size / 384.0
-    if kind == "stars":
-        img = np.full((h, w, 3), 0.004, np.float32)
-        n = int(rng.integers(60, 500) * s * s) + 5
-        ys, xs = rng.integers(0, h, n), rng.integers(0, w, n)
-        mag = np.minimum(0.04 + 0.5 * rng.pareto(2.2, n), 1.0).astype(np.float32)
-        tint = 1.0 + 0.15 * rng.standard_normal((n, 3)).astype(np.float32)
-        img[ys, xs] = mag[:, None] * tint
-        return np.clip(img, 0, 1)
-    raise ValueError(f"unknown background {kind!r}")
+        return _background_smooth(kind, rng, size, sun, s)
+    img = np.full((size, size, 3), 0.004, np.float32)
+    n = int(rng.integers(60, 500) * s * s) + 5
+    ys, xs = rng.integers(0, size, n), rng.integers(0, size, n)
+    mag = np.minimum(0.04 + 0.5 * rng.pareto(2.2, n), 1.0).astype(np.float32)
+    tint = 1.0 + 0.15 * rng.standard_normal((n, 3)).astype(np.float32)
+    img[ys, xs] = mag[:, None] * tint
+    return np.clip(img, 0, 1)
 
 
 def _background_smooth(kind: str, rng: np.random.Generator, size: int, sun: np.ndarray, s: float) -> np.ndarray:
@@ -629,6 +566,12 @@ def rasterize(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.
     scale384 = size / 384.0
     prims = []  # (distance, kind, index, payload)
     rec_albedo, rec_normal, rec_mat, rec_part = [np.zeros(3)], [np.zeros(3)], [0], [0]
+
+    def record(albedo, normal, mat, part) -> int:
+        for lst, v in zip((rec_albedo, rec_normal, rec_mat, rec_part), (albedo, normal, mat, part)):
+            lst.append(v)
+        return len(rec_mat) - 1
+
     for i in range(len(model.faces)):
         qv = q[starts[i]:starts[i + 1]]
         cen = qv.mean(0)
@@ -656,18 +599,10 @@ def rasterize(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.
         if kind == 0:
             mat, n = payload
             pts = uv[starts[i]:starts[i + 1]]
-            rec_albedo.append(_MAT_ALBEDO[mat] * model.face_jitter[i])
-            rec_normal.append(n)
-            rec_mat.append(mat)
-            rec_part.append(model.face_part[i])
-            rast.fill(ids, pts, len(rec_mat) - 1)
+            rast.fill(ids, pts, record(_MAT_ALBEDO[mat] * model.face_jitter[i], n, mat, model.face_part[i]))
             em = model.face_edge_mat[i]
             if em >= 0 and np.ptp(pts, axis=0).min() > 6:
-                rec_albedo.append(_MAT_ALBEDO[em])
-                rec_normal.append(n)
-                rec_mat.append(em)
-                rec_part.append(model.face_part[i])
-                rast.outline(ids, pts, len(rec_mat) - 1)
+                rast.outline(ids, pts, record(_MAT_ALBEDO[em], n, em, model.face_part[i]))
         else:
             t0, t1, zmid = payload
             a, b = seg_q[i]
@@ -679,15 +614,12 @@ def rasterize(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.
             n = want - (want @ axis) * axis
             n = n / (np.linalg.norm(n) + 1e-12)
             mat = model.seg_mat[i]
-            rec_albedo.append(_MAT_ALBEDO[mat])
-            rec_normal.append(n)
-            rec_mat.append(mat)
-            rec_part.append(model.seg_part[i])
+            rec = record(_MAT_ALBEDO[mat], n, mat, model.seg_part[i])
             width = f * model.seg_width[i] / zmid
             width = int(round(min(max(width, 1.0), max(1.0, model.seg_max_px[i] * scale384))))
             p0 = seg_uv[i, 0] + (seg_uv[i, 1] - seg_uv[i, 0]) * t0
             p1 = seg_uv[i, 0] + (seg_uv[i, 1] - seg_uv[i, 0]) * t1
-            rast.line(ids, p0, p1, len(rec_mat) - 1, width)
+            rast.line(ids, p0, p1, rec, width)
 
     return Rasterized(ids=ids, albedo=np.asarray(rec_albedo, np.float32), normal=np.asarray(rec_normal, np.float32),
                       material=np.asarray(rec_mat, np.int32), part=np.asarray(rec_part, np.uint8), focal=f, centre=c)
@@ -695,7 +627,7 @@ def rasterize(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.
 
 def render_view(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.Generator,
                 rasterizer: str = "cv2") -> SyntheticView:
-    """Render one view of ``model`` at ``size`` x ``size`` (see module docstring)."""
+    """Render one view of ``model`` at ``size`` x ``size``: rasterise, shade, blur, hard case, sensor noise."""
     r = rasterize(model, spec, size, rng, rasterizer)
     ids, f, c = r.ids, r.focal, r.centre
     scale384 = size / 384.0
@@ -802,9 +734,6 @@ def apply_hard_case(img: np.ndarray, case: str, rng: np.random.Generator, mask: 
     raise ValueError(f"unknown hard case {case!r}")
 
 
-# ---------------------------------------------------------------------------------------------------
-# Benchmark plan (spacecraft-disjoint split) and the per-view entry point
-# ---------------------------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class PlannedSpacecraft:
     name: str
@@ -814,12 +743,7 @@ class PlannedSpacecraft:
 
 
 def synthetic_plan(cfg: dict) -> list[PlannedSpacecraft]:
-    """Spacecraft-disjoint split mirroring SpaceSense-Bench (eq:spacecraft-disjoint).
-
-    Identity names encode their group (``syn-train-00``, ``syn-val-00``, ``syn-KCP-0``), so each
-    spacecraft belongs to exactly one split by construction; ``check_spacecraft_disjoint`` still
-    verifies it on the manifest.
-    """
+    """Spacecraft-disjoint split mirroring SpaceSense-Bench (eq:spacecraft-disjoint): names encode the group."""
     plan = [PlannedSpacecraft(f"syn-train-{i:02d}", "train", "train", int(cfg["train_views"]))
             for i in range(int(cfg["train_spacecraft"]))]
     plan += [PlannedSpacecraft(f"syn-val-{i:02d}", "val", "val", int(cfg["val_views"]))
