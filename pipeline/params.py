@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Annotated, Any, Iterable, Literal, Mapping
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipeline.deploy.engine_table import BENCHMARK_VARIANTS, engine_name  # pure Python: the engine names, one list
 from pipeline.runtime.errors import InputError
@@ -54,6 +54,18 @@ def _f(default, description: str = "", **bounds):
     return Field(default, description=description, **bounds)
 
 
+def _must(test, message: str) -> AfterValidator:
+    """A field check: ValueError ``message`` where ``test(value)`` fails."""
+    def check(v):
+        if not test(v):
+            raise ValueError(message)
+        return v
+    return AfterValidator(check)
+
+
+_FRACTION_RANGE = _must(lambda v: 0 < v[0] < v[1] <= 1, "must be [lo, hi] with 0 < lo < hi <= 1")
+
+
 class SyntheticParams(_Section):
     """The embedded synthetic benchmark: a SpaceSense-Bench-like spacecraft-disjoint split."""
 
@@ -61,37 +73,20 @@ class SyntheticParams(_Section):
     train_views: int = _f(30, "views per training identity", ge=1, le=100000)
     val_spacecraft: int = _f(3, "validation identities", ge=0, le=10000)
     val_views: int = _f(20, "views per validation identity", ge=0, le=100000)
-    test_groups: list[str] = _f(["KCP", "CVI", "HJM"], "test group names", min_length=0)
+    test_groups: Annotated[list[str], _must(lambda v: all(g and g.isidentifier() for g in v) and len(set(v)) == len(v),
+                                            "must be distinct names (letters, digits, _)")] = _f(
+        ["KCP", "CVI", "HJM"], "test group names", min_length=0)
     test_spacecraft_per_group: int = _f(3, ge=0, le=10000)
     test_views: int = _f(20, ge=0, le=100000)
     tiny_probability: float = _f(0.15, "approach shots (mask area mostly < 0.1 % of the frame)", ge=0, le=1)
-    tiny_range: list[float] = _f([0.0003, 0.002], "apparent size range of tiny views (frame fraction)",
-                                 min_length=2, max_length=2)
-    regular_range: list[float] = _f([0.005, 0.6], "apparent size range of other views", min_length=2, max_length=2)
+    tiny_range: Annotated[list[float], _FRACTION_RANGE] = _f(
+        [0.0003, 0.002], "apparent size range of tiny views (frame fraction)", min_length=2, max_length=2)
+    regular_range: Annotated[list[float], _FRACTION_RANGE] = _f(
+        [0.005, 0.6], "apparent size range of other views", min_length=2, max_length=2)
     hard_case_probability: float = _f(0.35, "glare | flare | underexposed | noise | blur", ge=0, le=1)
-    background_weights: list[float] = _f([0.45, 0.35, 0.2], "stars, earth limb, dark lab",
-                                         min_length=3, max_length=3)
-
-    @field_validator("test_groups")
-    @classmethod
-    def _groups(cls, v):
-        if not all(g and g.isidentifier() for g in v) or len(set(v)) != len(v):
-            raise ValueError("must be distinct names (letters, digits, _)")
-        return v
-
-    @field_validator("tiny_range", "regular_range")
-    @classmethod
-    def _range(cls, v):
-        if not 0 < v[0] < v[1] <= 1:
-            raise ValueError("must be [lo, hi] with 0 < lo < hi <= 1")
-        return v
-
-    @field_validator("background_weights")
-    @classmethod
-    def _weights(cls, v):
-        if any(x < 0 for x in v) or sum(v) <= 0:
-            raise ValueError("must be 3 non-negative weights with a positive sum")
-        return v
+    background_weights: Annotated[list[float], _must(lambda v: all(x >= 0 for x in v) and sum(v) > 0,
+                                                     "must be 3 non-negative weights with a positive sum")] = _f(
+        [0.45, 0.35, 0.2], "stars, earth limb, dark lab", min_length=3, max_length=3)
 
 
 SOURCES = ("synthetic", "spacesense", "spark", "speedplus", "tango", "folder")
@@ -257,8 +252,8 @@ class AugmentParams(_Section):
     vflip: float = _f(0.5, "probability of an up-down flip", ge=0, le=1)
     rot90: bool = _f(True, "a uniformly drawn multiple of 90 degrees (square images; 180 otherwise)")
     scale_probability: float = _f(0.5, "probability of a scale/crop jitter", ge=0, le=1)
-    scale_range: list[float] = _f([0.75, 1.33], "zoom factor range (log-uniform; < 1 zooms out, padding black)",
-                                  min_length=2, max_length=2)
+    scale_range: Annotated[list[float], _must(lambda v: 0 < v[0] <= v[1], "must be [lo, hi] with 0 < lo <= hi")] = _f(
+        [0.75, 1.33], "zoom factor range (log-uniform; < 1 zooms out, padding black)", min_length=2, max_length=2)
     photometric_probability: float = _f(0.8, "probability of the photometric part", ge=0, le=1)
     brightness: float = _f(0.15, "additive brightness shift up to this (fraction of full scale)", ge=0, le=1)
     contrast: float = _f(0.3, "contrast factor in [1/(1+x)..1+x] about the image mean", ge=0, le=10)
@@ -267,13 +262,6 @@ class AugmentParams(_Section):
     blur_probability: float = _f(0.2, "probability of a Gaussian blur", ge=0, le=1)
     blur_sigma: float = _f(1.5, "largest blur sigma (px)", ge=0, le=50)
     noise_std: float = _f(0.03, "largest Gaussian sensor-noise std (fraction of full scale)", ge=0, le=1)
-
-    @field_validator("scale_range")
-    @classmethod
-    def _scale(cls, v):
-        if not 0 < v[0] <= v[1]:
-            raise ValueError("must be [lo, hi] with 0 < lo <= hi")
-        return v
 
 
 class TrainParams(_Section):
