@@ -93,15 +93,11 @@ def evaluate(sc: Scenario, n_seeds: int, n_reps: int, n_resamples: int, seed: in
     shift = TRUE_GAIN - these
     detect = {k: (lo[k] + shift > 0) | (hi[k] + shift < 0) for k in intervals}
     ref = detect.get(REFERENCE)
-    out = {}
-    for k in intervals:
-        kept = (float(detect[k][ref].mean()) if ref is not None and ref.any() else float("nan"))
-        out[k] = {"cov_these": float(((lo[k] <= these) & (these <= hi[k])).mean()),
-                  "cov_like": float(((lo[k] <= 0.0) & (0.0 <= hi[k])).mean()),
-                  "width": float(np.median(hi[k] - lo[k])),
-                  "power": float(detect[k].mean()),
-                  "kept": kept}
-    return out
+    return {k: {"cov_these": float(((lo[k] <= these) & (these <= hi[k])).mean()),
+                "cov_like": float(((lo[k] <= 0.0) & (0.0 <= hi[k])).mean()),
+                "width": float(np.median(hi[k] - lo[k])), "power": float(detect[k].mean()),
+                "kept": float(detect[k][ref].mean()) if ref is not None and ref.any() else float("nan")}
+            for k in intervals}
 
 
 def run(n_reps: int = 5000, n_resamples: int = 1000, seeds=SEEDS, scenarios=None, intervals=None,
