@@ -1,41 +1,6 @@
-"""Efficiency benchmark of the deployed mask path on this machine: variants, timing, peak memory, the
-fast path and its verdicts.
-
-Per variant (:func:`build_variants`): parameters and GFLOPs counted on the graph, batch-1 latency
-(median, timed round-robin across the variants), best-batch throughput, peak memory, and the change of
-the mean validation Image IoU against the fp32 baseline at the deployed tau (eq:inference-mask).
-
-Decisions:
-
-* Never call what the host cannot run natively.  A variant the host cannot run (a missing package or
-  file, CUDA on a CPU, bf16 on a CPU without the native-bf16 flags -- emulated, up to a minute per
-  384² image: :func:`pipeline.deploy.engines.unavailable`) is decided before any call and gets a row
-  whose ``status`` is "skipped: <why>" (:data:`SKIPPED`), every number NaN.
-* Probe first.  Every other variant gets its warm-up and :data:`PROBE_CALLS` timed batch-1 calls before
-  any full timing.  A variant whose probe median is more than :data:`SLOW_FACTOR` times the
-  baseline's is not timed further: its row keeps the probe (``probe_ms``), ``status`` says "slow on
-  this CPU (...)", and latency, throughput and the IoU columns are NaN (batch 0).  It can never be the
-  fast path.  For the report, every row also has ``timed`` (fully timed) and ``remark``
-  (:func:`variant_remark`: "not run: ...", "not timed: ... pathologically slow on this CPU" or "").
-* ONNX Runtime sessions used for timing do not spin (:func:`pipeline.deploy.mask_path.ort_session`,
-  ``spinning=False``): an idle spinning pool would steal the cores the round-robin measures others on.
-* Throughput on CUDA: the batches sweep ``deploy.benchmark_batches`` and every power of two up to
-  :data:`CUDA_MAX_BATCH` (256), stopping at the first batch that raises ``torch.cuda.OutOfMemoryError``;
-  the best is reported (:func:`throughput_batches`, :func:`throughput_sweep`).  A small model fills a
-  GPU only at large batches; on a CPU the configured batches are kept as they are.
-* Peak memory: CPU -- growth of the process's peak resident set (Linux ``/proc/self/clear_refs``
-  reset of VmHWM, then VmHWM - VmRSS before the run, after ``malloc_trim``); CUDA --
-  ``torch.cuda.max_memory_allocated`` after ``reset_peak_memory_stats``.  Where neither is
-  available, NaN.
-* The latency target (``deploy.target_latency_ms``) is defined at ``deploy.target_resolution``, batch 1:
-  at another size it is "not judged", never "met" (:func:`fast_path_summary`).  Timings are
-  measurements of this machine and its load: nothing asserts a target, the results record whether it
-  was met.
-* int8: the bundle's ``model.int8.onnx`` (calibrated at export) when it has one -- the very file
-  segment runs; otherwise the ONNX model is quantised here with the same code
-  (pipeline.deploy.quantize) on training-split images only (no masks), or on synthetic smooth noise
-  when there are none (:func:`prepare_onnx_models`).
-"""
+"""Efficiency benchmark of the deployed mask path on this machine: per variant, parameters and GFLOPs,
+batch-1 latency (timed round-robin), best-batch throughput, peak memory and the validation IoU change at
+the deployed tau (eq:inference-mask); the fast path and its verdicts (docs/decisions.md)."""
 
 from __future__ import annotations
 
@@ -64,20 +29,19 @@ from pipeline.deploy.engine_table import BENCHMARK_VARIANTS, engine_name
 from pipeline.thresholds import mask_from_probs, resolve_tau, tau_candidates
 
 BASELINE_VARIANT = "fp32_eager_nchw"
-VARIANTS = tuple(BENCHMARK_VARIANTS)  # the engine table's benchmark variants (deploy.benchmark_variants)
+VARIANTS = tuple(BENCHMARK_VARIANTS)
 SLOW_FACTOR = 4.0  # a variant probed more than this many times slower than the baseline is not fully timed
-PROBE_CALLS = 2    # timed batch-1 calls of the probe (after the warm-up)
+PROBE_CALLS = 2    # timed batch-1 calls of the probe
 OK = "ok"
 SKIPPED = "skipped"  # the status of a variant never called on this host: "skipped: <why>"
-#: the timer of every measurement (a module attribute so that a test can put a fake clock in its place)
-clock = time.perf_counter
-CUDA_MAX_BATCH = 256  # on CUDA the throughput sweep goes up to this batch, or to the first out-of-memory one
-INT8_VARIANTS = tuple(n for n in VARIANTS if ENGINES[n].needs == INT8_FILE)  # run the bundle's int8 model
+clock = time.perf_counter  # a module attribute: a test puts a fake clock in its place
+CUDA_MAX_BATCH = 256  # the CUDA throughput sweep's largest batch
+INT8_VARIANTS = tuple(n for n in VARIANTS if ENGINES[n].needs == INT8_FILE)
 
 
 @dataclasses.dataclass
 class Variant:
-    """One way of running the mask path: ``run(x float32 NCHW tensor) -> logits`` (tensor or array)."""
+    """One way of running the mask path: ``run(x float32 NCHW tensor) -> logits``."""
 
     name: str
     description: str
@@ -105,7 +69,7 @@ def _status_kb(field: str) -> int | None:
 
 
 class PeakMemory:
-    """Peak memory growth (MiB) over a block: CPU via VmHWM reset, CUDA via max_memory_allocated."""
+    """Peak memory growth (MiB) over a block: the CPU's VmHWM after a reset, CUDA's max_memory_allocated."""
 
     def __init__(self, device: str):
         self.device = device
@@ -160,13 +124,8 @@ def time_calls(fn: Callable, x, warmup: int, iters: int, sync: Callable[[], None
 
 
 def interleaved_times(variants: Sequence["Variant"], x, iters: int, block: int = 3) -> dict[str, list[float]]:
-    """Call times (s) of every variant on ``x``, measured round-robin until each has ``iters``.
-
-    Each round gives every variant one untimed call (its caches refill after the others ran) and then
-    up to ``block`` timed calls.  Measuring variant after variant instead lets a slow drift of the
-    machine's load -- other tenants of a shared CPU -- fall on some variants and not on others; in
-    rounds it falls on all alike, which keeps the ratios to the baseline fair.
-    """
+    """Call times (s) of every variant on ``x``, round-robin until each has ``iters``: per round one untimed
+    call and up to ``block`` timed ones, so a drift of the machine's load falls on all variants alike."""
     times: dict[str, list[float]] = {v.name: [] for v in variants}
     while any(len(t) < iters for t in times.values()):
         for v in variants:
@@ -178,19 +137,7 @@ def interleaved_times(variants: Sequence["Variant"], x, iters: int, block: int =
 
 def build_variants(model, device, resolution: int, names: Sequence[str], onnx_path: str | Path | None = None,
                    int8_path: str | Path | None = None) -> tuple[list[Variant], dict[str, str]]:
-    """Variants of the mask path to compare; returns (variants, {skipped name: reason}).  Each name is
-    an engine of the registry (pipeline.deploy.engines.ENGINES: what it runs and how) or an old name of one:
-
-    fp32_eager_nchw          plain PyTorch, contiguous NCHW (the baseline)
-    fp32_channels_last       PyTorch, channels_last model and input
-    bf16_autocast            PyTorch NCHW under bf16 autocast
-    bf16_channels_last       bf16 autocast + channels_last
-    torchscript_frozen       traced, frozen, torch.jit.optimize_for_inference (CPU: oneDNN fusions)
-    onnxruntime_fp32         ONNX Runtime CPU, all graph optimisations
-    onnxruntime_int8         ONNX Runtime CPU on the static int8 QDQ model (quantize_onnx_int8)
-    openvino_int8            the same int8 file on OpenVINO's CPU plugin (pipeline.deploy.openvino_engine)
-    cuda_graph_bf16          CUDA only: bf16 + channels_last + CUDA graphs (pipeline.deploy.cuda_engine)
-    """
+    """(variants, {skipped name: why}): the engines ``names`` (old names too) that can run here."""
     import torch
 
     dev = torch.device(device)
@@ -214,7 +161,7 @@ def build_variants(model, device, resolution: int, names: Sequence[str], onnx_pa
 
 
 def mean_image_iou(masks: np.ndarray, reference: np.ndarray) -> float:
-    """Mean over images of image_iou(masks[i], reference[i]) (pipeline.metrics; both empty -> 1); NaN if none."""
+    """Mean per-image IoU; NaN without images."""
     return float(np.mean(image_ious(masks, reference))) if len(masks) else float("nan")
 
 
@@ -230,9 +177,7 @@ def variant_probs(variant: Variant, images: np.ndarray, batch_size: int) -> np.n
 
 
 def slow_status(probe_ms: float, baseline_probe_ms: float | None, factor: float = SLOW_FACTOR) -> str | None:
-    """The status of a variant whose probe is more than ``factor`` x the baseline's probe
-    ("slow on this CPU (probe: X ms, Y x the baseline)"), else None (time it fully; also when there is
-    no baseline probe to compare with)."""
+    """The status of a variant probed more than ``factor`` x the baseline's probe, else None (time it fully)."""
     if baseline_probe_ms is None or not baseline_probe_ms > 0 or not probe_ms > factor * baseline_probe_ms:
         return None
     return (f"slow on this CPU (probe: {probe_ms:.1f} ms, {probe_ms / baseline_probe_ms:.1f}x the "
@@ -240,8 +185,7 @@ def slow_status(probe_ms: float, baseline_probe_ms: float | None, factor: float 
 
 
 def variant_remark(status: str, probe_ms: float, baseline_probe_ms: float | None) -> str:
-    """A short note for the efficiency table ("" when there is nothing to say): why a variant was not
-    run (``status`` "skipped: <why>") or not fully timed."""
+    """The efficiency table's note on why a variant was not run or not fully timed ("" otherwise)."""
     if status.startswith(SKIPPED):
         return "not run: " + status.split(": ", 1)[-1]
     if status == OK:
@@ -251,14 +195,14 @@ def variant_remark(status: str, probe_ms: float, baseline_probe_ms: float | None
             f"(pathologically slow on this CPU)")
 
 
-def skipped_row(name: str, why: str, device: str, params: int, gflops: float, resolution: int) -> dict:
-    """The row of a variant never called on this host (``status`` "skipped: <why>", every measurement NaN)."""
+def _row(name: str, description: str, device: str, params: int, gflops: float, resolution: int, status: str,
+         probe: float = float("nan"), base_probe: float | None = None, mem: PeakMemory | None = None) -> dict:
+    """A variant's row before its timing (every measurement NaN)."""
     nan = float("nan")
-    status = f"{SKIPPED}: {why}"
-    return {"variant": name, "description": ENGINES[name].description if name in ENGINES else name,
-            "device": device, "params": params, "gflops": gflops, "throughput": nan, "batch": 0, "peak_mb": nan,
-            "peak_method": "", "iou": nan, "resolution": int(resolution), "probe_ms": nan, "status": status,
-            "timed": False, "remark": variant_remark(status, nan, None)}
+    return {"variant": name, "description": description, "device": device, "params": params, "gflops": gflops,
+            "throughput": nan, "batch": 0, "peak_mb": mem.peak_mb if mem else nan,
+            "peak_method": mem.method if mem else "", "iou": nan, "resolution": int(resolution), "probe_ms": probe,
+            "status": status, "timed": status == OK, "remark": variant_remark(status, probe, base_probe)}
 
 
 def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence[str], warmup: int, iters: int,
@@ -266,25 +210,13 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
                      val_masks: np.ndarray | None = None, onnx_path=None, int8_path=None, seed: int = 0,
                      on_variant: Callable[[str], None] | None = None,
                      slow_factor: float | None = None) -> tuple[list[dict], dict]:
-    """Measure every variant; returns (rows in the order of ``variants``, info).
-
-    A variant the host cannot run is never called: its row is :func:`skipped_row` (``info["skipped"]``:
-    name -> why).  Per other variant: ``peak_mb`` = peak memory growth during ``max(1, warmup)`` warm-up calls
-    (:class:`PeakMemory`); ``probe_ms`` = median of :data:`PROBE_CALLS` batch-1 calls right after (the
-    baseline is probed first).  A variant probed more than ``slow_factor`` x the baseline stops there
-    (``status`` from :func:`slow_status`; latency, throughput and IoU columns NaN, batch 0).  The
-    others (``status`` = "ok"): ``latency_ms`` = median of ``iters`` batch-1 calls on a random input at
-    ``resolution``, timed round-robin across them (:func:`interleaved_times`); ``throughput``
-    (images/s) = best over ``batches`` -- on CUDA, over the sweep of :func:`throughput_batches` up to
-    :data:`CUDA_MAX_BATCH` or the first out-of-memory batch -- of b / median call time (1 warm-up, then
-    max(2, ceil(iters / b)) calls; :func:`throughput_sweep`; every batch's images/s in
-    ``info["throughput_sweep"]``; batches of 1 alone: 1 / latency, no extra calls); ``iou`` = mean Image IoU of [P >= tau] (eq:inference-mask) on the validation images and
-    ``iou_delta`` = iou - iou of the fp32 baseline; ``iou_vs_fp32`` = mean per-image IoU between the
-    variant's mask and the baseline's (1 = the same masks; NaN without validation data or baseline);
-    ``speedup`` = baseline latency / latency.  params and GFLOPs are counted on the PyTorch graph
-    (pipeline.model.count_parameters / count_flops) and shared by every variant: they compute the
-    same function (int8 replaces multiply-adds by integer ones, it does not remove them).
-    """
+    """(rows in the order of ``variants``, info).  A variant the host cannot run is never called ("skipped");
+    the others get ``max(1, warmup)`` warm-up calls (``peak_mb``) and :data:`PROBE_CALLS` probe calls, the
+    baseline first; one probed over ``slow_factor`` x the baseline is timed no further.  The rest: latency
+    (median of ``iters`` batch-1 calls, round-robin), throughput (best of :func:`throughput_sweep` over
+    ``batches``; batch 1 alone: 1 / latency), ``iou`` of [P >= tau] on the validation images (eq:inference-mask),
+    ``iou_delta`` and ``iou_vs_fp32`` against the baseline, ``speedup``.  params and GFLOPs are the PyTorch
+    graph's for every variant: int8 replaces multiply-adds, it does not remove them."""
     import torch
 
     slow_factor = SLOW_FACTOR if slow_factor is None else float(slow_factor)
@@ -300,30 +232,27 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
     masks: dict[str, np.ndarray] = {}
     sweeps: dict[str, Sweep] = {}
     base_probe = None
-    for v in sorted(built, key=lambda v: v.name != BASELINE_VARIANT):  # the baseline's probe comes first
+    for v in sorted(built, key=lambda v: v.name != BASELINE_VARIANT):  # the baseline is probed first
         if on_variant is not None:
             on_variant(v.name)
         with PeakMemory(v.device) as mem:
             time_calls(v.run, x1, max(1, warmup), 0, v.sync)
         probe = statistics.median(time_calls(v.run, x1, 0, PROBE_CALLS, v.sync)) * 1e3
         base_probe = probe if v.name == BASELINE_VARIANT else base_probe
-        row = {"variant": v.name, "description": v.description, "device": v.device, "params": params,
-               "gflops": gflops, "throughput": float("nan"), "batch": 0, "peak_mb": mem.peak_mb,
-               "peak_method": mem.method, "iou": float("nan"), "resolution": int(resolution), "probe_ms": probe,
-               "status": slow_status(probe, base_probe, slow_factor) or OK}
-        row["timed"], row["remark"] = row["status"] == OK, variant_remark(row["status"], probe, base_probe)
-        rows[v.name] = row
+        rows[v.name] = row = _row(v.name, v.description, v.device, params, gflops, resolution,
+                                  slow_status(probe, base_probe, slow_factor) or OK, probe, base_probe, mem)
         if row["status"] != OK:
             continue
         tried = throughput_batches(batches, v.device)
-        if tried != [1]:  # at batch 1 alone, throughput is 1 / latency: the round-robin below measures it
+        if tried != [1]:  # at batch 1 alone the round-robin below measures it
             sweeps[v.name] = throughput_sweep(v, x1.shape[1], resolution, tried, iters, g)
             row["throughput"], row["batch"] = sweeps[v.name].best, sweeps[v.name].batch
         if have_val:
             masks[v.name] = mask_from_probs(variant_probs(v, val_images, max(batches)), tau)
             row["iou"] = mean_image_iou(masks[v.name], val_masks)
     for name, why in skipped.items():
-        rows[name] = skipped_row(name, why, ENGINES[name].device(dev), params, gflops, resolution)
+        rows[name] = _row(name, ENGINES[name].description, ENGINES[name].device(dev), params, gflops, resolution,
+                          f"{SKIPPED}: {why}")
     timed = [v for v in built if rows[v.name]["status"] == OK]
     times = interleaved_times(timed, x1, iters)
     base = rows.get(BASELINE_VARIANT)
@@ -331,7 +260,7 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
         t = times.get(name)
         r["latency_ms"] = statistics.median(t) * 1e3 if t else float("nan")
         r["latency_min_ms"] = min(t) * 1e3 if t else float("nan")
-        if t and name not in sweeps:  # batch 1 only: images/s from the latency calls
+        if t and name not in sweeps:
             sweeps[name] = Sweep({1: 1e3 / r["latency_ms"]}, 1e3 / r["latency_ms"], 1)
             r["throughput"], r["batch"] = sweeps[name].best, 1
     base_masks = masks.get(BASELINE_VARIANT)
@@ -347,14 +276,13 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
             "probe": {"calls": PROBE_CALLS, "slow_factor": float(slow_factor)},
             "slow": {n: r["status"] for n, r in rows.items() if r["status"] != OK and n not in skipped},
             "tau": tau, "n_val": int(len(val_images)) if have_val else 0, "skipped": skipped}
-    order = dict.fromkeys([*variants, *(v.name for v in built), *skipped])  # the given order, then the rest
+    order = dict.fromkeys([*variants, *(v.name for v in built), *skipped])
     return [rows[n] for n in order if n in rows], info
 
 
 @dataclasses.dataclass
 class Sweep:
-    """A throughput sweep: images/s per batch tried (ascending), the best, and the batch that ran out of
-    memory (None: every batch ran)."""
+    """A throughput sweep: images/s per batch tried, the best, and the batch that ran out of memory."""
 
     images_per_s: dict[int, float]
     best: float
@@ -368,13 +296,8 @@ class Sweep:
 
 
 def throughput_batches(batches: Sequence[int], device: str) -> list[int]:
-    """The batches the throughput of a variant running on ``device`` is measured at, ascending.
-
-    Decision: on a CPU, ``deploy.benchmark_batches`` as given (a CPU is busy from batch 1 or 4 on, and
-    every large batch costs seconds per call).  On CUDA, those and every power of two up to
-    :data:`CUDA_MAX_BATCH`: a 0.26 M-parameter model keeps a GPU busy only at batches of hundreds
-    (at 16 the launches, not the arithmetic, set the pace); the sweep stops at the first batch that
-    runs out of GPU memory (:func:`throughput_sweep`)."""
+    """The batches of a throughput sweep on ``device``: ``batches``, and on CUDA every power of two up to
+    :data:`CUDA_MAX_BATCH` (a small model fills a GPU only at batches of hundreds)."""
     tried = {int(b) for b in batches}
     if str(device).startswith("cuda"):
         tried |= {2 ** k for k in range(CUDA_MAX_BATCH.bit_length()) if 2 ** k <= CUDA_MAX_BATCH}
@@ -382,7 +305,7 @@ def throughput_batches(batches: Sequence[int], device: str) -> list[int]:
 
 
 def _release_after_oom() -> None:
-    """Give the cached blocks of a failed large batch back, so that the variant can go on at small ones."""
+    """Give the cached blocks of a failed large batch back."""
     import torch
 
     if torch.cuda.is_available():
@@ -392,10 +315,8 @@ def _release_after_oom() -> None:
 
 def throughput_sweep(variant: Variant, channels: int, resolution: int, batches: Sequence[int], iters: int,
                      generator) -> Sweep:
-    """Images/s of ``variant`` at each of ``batches`` in ascending order: b / median call time on random
-    inputs (1 warm-up, then max(2, ceil(iters / b)) calls per batch size); the best of them.  A batch
-    raising ``torch.cuda.OutOfMemoryError`` ends the sweep (no larger batch is tried) and is recorded
-    as ``oom_batch``; when even the first batch runs out of memory the OOM error is raised."""
+    """Images/s of ``variant`` at each of ``batches`` (b / median of max(2, ceil(iters / b)) calls); the first
+    batch out of GPU memory ends the sweep (raised when it is the first)."""
     import torch
 
     tps: dict[int, float] = {}
@@ -417,18 +338,14 @@ def throughput_sweep(variant: Variant, channels: int, resolution: int, batches: 
 
 
 def fastest_within(rows: Sequence[dict], max_iou_drop: float) -> dict | None:
-    """The lowest-latency fully timed variant (status "ok") whose |iou_delta| <= ``max_iou_drop``
-    (any such variant without IoU data: NaN passes, there is nothing to judge)."""
+    """The lowest-latency fully timed variant with |iou_delta| <= ``max_iou_drop`` (NaN passes)."""
     ok = [r for r in rows if r.get("status", OK) == OK and math.isfinite(r["latency_ms"])
           and not (abs(r["iou_delta"]) > max_iou_drop)]
     return min(ok, key=lambda r: r["latency_ms"]) if ok else None
 
 
-# --------------------------------------------------------------------------------------------------
-# What the benchmark stage runs: settings, the model under test, data, ONNX models, verdicts, results
-# --------------------------------------------------------------------------------------------------
 def benchmark_settings(cfg: dict) -> dict:
-    """The benchmark's ``deploy`` params (validated by the params schema before any stage runs)."""
+    """The benchmark's ``deploy`` params."""
     return {"warmup": cfg["benchmark_warmup"], "iters": cfg["benchmark_iters"], "batches": cfg["benchmark_batches"],
             "variants": cfg["benchmark_variants"], "n_calib": cfg["int8_calibration_images"],
             "int8": q8.int8_params(cfg), "target_ms": float(cfg["target_latency_ms"]),
@@ -443,18 +360,15 @@ class Target:
     model: object
     tau: float
     tau_source: str
-    resolution: int | None      # its working resolution, when recorded
-    onnx_path: Path | None      # the bundle's model.onnx
-    int8_path: Path | None      # the bundle's model.int8.onnx
+    resolution: int | None
+    onnx_path: Path | None
+    int8_path: Path | None
     int8_info: dict
-    inputs: list                # opened artifacts (lineage)
+    inputs: list
 
 
 def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, params=None) -> Target:
-    """Open exactly one of a deploy bundle or a checkpoint directory on the CPU.  tau by
-    :func:`pipeline.thresholds.tau_candidates` and :func:`pipeline.thresholds.resolve_tau`: ``tau``
-    (--tau) > the bundle's > the checkpoint's payload > its row in ``thresholds`` > ``calibrate.fixed_tau``
-    of ``params``."""
+    """Exactly one of a deploy bundle or a checkpoint directory on the CPU, with its tau (eq:inference-mask)."""
     if (deploy_dir is None) == (checkpoint is None):
         raise InputError("give exactly one of --deploy (a bundle) or --checkpoint")
     if deploy_dir is not None:
@@ -472,11 +386,8 @@ def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, par
 
 
 def read_benchmark_data(art: str | Path, n_calib: int):
-    """(val images, val masks, int8 calibration images, opened artifacts) from ``art``; Nones (and no
-    artifacts) when manifest.parquet, images.zarr or reference.zarr is absent.
-
-    Validation: split == 'val' rows with a reference mask (reference masks only measure accuracy here,
-    never train).  Calibration: the export's selection of training rows (:func:`q8.calibration_rows`)."""
+    """(val images and masks, int8 calibration images as export picks them, opened artifacts); Nones without
+    the artifacts.  The reference masks only measure accuracy here."""
     paths = [catalog.path(name, art) for name in ("manifest", "images", "reference")]
     if not all(p.exists() for p in paths):
         return None, None, None, []
@@ -494,13 +405,8 @@ def read_benchmark_data(art: str | Path, n_calib: int):
 
 def prepare_onnx_models(target: Target, variants: Sequence[str], workdir: str | Path, *, resolution: int,
                         opset: int, calibration_images: np.ndarray | None, int8: dict) -> tuple:
-    """(onnx_path, int8_path, notes): the ONNX models the ORT variants run (module docstring).
-
-    model.onnx: the bundle's, else exported into ``workdir``.  int8 (only when ``onnxruntime_int8`` is
-    asked for, or ``openvino_int8``): the bundle's model.int8.onnx, else quantised into ``workdir`` on
-    the training-split ``calibration_images`` or, without any, on synthetic smooth noise.  ``notes`` holds
-    ``int8_calibration`` (how) or ``onnx`` (why there is no ONNX model: onnx not importable).
-    """
+    """(onnx_path, int8_path, notes): the bundle's models, else exported or quantised into ``workdir`` (int8 on
+    ``calibration_images``, else smooth noise; only for an int8 variant); ``notes`` say how, or why none."""
     reason = onnx_unavailable_reason()
     if reason is not None:
         return None, None, {"onnx": reason}
@@ -528,11 +434,8 @@ def clean(v):
 
 def fast_path_summary(rows: Sequence[dict], resolution: int, *, target_ms: float, target_res: int,
                       max_drop: float) -> dict | None:
-    """The fast path (:func:`fastest_within`) and its verdicts, or None when no variant qualifies.
-
-    ``meets_latency_target``: latency_ms <= target_ms at ``target_res`` -- None ("not judged") at any
-    other resolution; ``within_iou_drop``: |iou_delta| <= max_drop (None without IoU data);
-    ``verdict``: "met" | "NOT met" | "not judged at this size"."""
+    """The fast path (:func:`fastest_within`) and its verdicts, or None; the latency target is judged only at
+    ``target_res``."""
     fast = fastest_within(rows, max_drop)
     if fast is None:
         return None
@@ -544,7 +447,7 @@ def fast_path_summary(rows: Sequence[dict], resolution: int, *, target_ms: float
 
 
 def fast_path_line(summary: dict, rows: Sequence[dict], resolution: int, target_ms: float, target_res: int) -> str:
-    """One line: the fast path, its speed-up over the baseline and the latency verdict."""
+    """The fast path, its speed-up over the baseline and the latency verdict."""
     base = next((r for r in rows if r["variant"] == BASELINE_VARIANT), None)
     return (f"fast path: {summary['variant']} {summary['latency_ms']:.1f} ms/image at {resolution}px batch 1 "
             f"({summary['speedup']:.1f}x the {BASELINE_VARIANT} baseline"
@@ -553,7 +456,7 @@ def fast_path_line(summary: dict, rows: Sequence[dict], resolution: int, target_
 
 
 def _cell(v, spec: str, width: int) -> str:
-    """``v`` formatted by ``spec``, or ``--`` (right-aligned to ``width``) when it is missing or not finite."""
+    """``v`` formatted by ``spec``, or ``--`` when it is missing or not finite."""
     try:
         ok = v is not None and math.isfinite(float(v))
     except (TypeError, ValueError):
@@ -562,9 +465,8 @@ def _cell(v, spec: str, width: int) -> str:
 
 
 def format_table(rows: Sequence[dict]) -> str:
-    """The efficiency table for stdout; a variant that was skipped or only probed shows its status instead.  The
-    IoU columns are left out when no variant has one (no validation masks: nothing was scored), and a
-    single missing number shows as ``--``, never ``nan``."""
+    """The efficiency table for stdout: a variant skipped or only probed shows its status; no IoU columns
+    without any IoU."""
     timed = [r for r in rows if r.get("status", OK) == OK]
     scored = any(_cell(r.get("iou"), ".4f", 1) != "--" for r in timed)
     head = (f"{'variant':22s} {'latency ms':>10s} {'x base':>7s} {'img/s':>8s} {'batch':>5s} {'peak MB':>8s}"
@@ -586,8 +488,7 @@ def format_table(rows: Sequence[dict]) -> str:
 
 
 def format_sweep(run_info: dict) -> str:
-    """One line per variant whose throughput was measured at more batches than ``deploy.benchmark_batches``
-    (the CUDA sweep): images/s per batch, the best, and the batch that ran out of memory; "" when none was."""
+    """One line per variant swept beyond ``deploy.benchmark_batches`` (CUDA); "" when none was."""
     configured = {str(b) for b in run_info["batches"]}
     lines = []
     for name, sw in run_info.get("throughput_sweep", {}).items():
