@@ -1,33 +1,7 @@
-"""Teacher answers produced elsewhere (e.g. SAM 3 on a GPU cluster), read from a documented layout.
+"""Teacher answers produced elsewhere (e.g. SAM 3 on a GPU cluster), read from the layout of docs/real-data.md.
 
-Layout of ``teacher.imported_dir``::
-
-    <dir>/scores.parquet  (or scores.csv)   one row per (image, prompt[, view]):
-        image_id      str    the manifest's image_id
-        prompt_index  int    names the mask file: an integer in [0, 32767] (2.0 is fine, 2.5 or "two"
-                             are not); need not match teacher.prompts order; unique per (image,
-                             view) among valid rows; may be empty on a row with score 0
-        prompt        str    the prompt text (non-empty); answers are matched to teacher.prompts by it
-        score         float  the teacher score s_ik: a finite number in [0, 1]; 0 (or an empty cell /
-                             null) means no candidate -> invalid answer
-        view          str    optional: identity (default) | vflip
-    <dir>/masks/<image_id>/<prompt_index>.png          identity view
-    <dir>/masks/<image_id>/vflip_<prompt_index>.png    vflip view (base prompt on the vertically
-                                                        flipped image, mask already flipped BACK)
-
-Every row is checked when the table is read: a non-numeric, non-finite or out-of-range score or
-prompt_index, an empty prompt or image_id, a duplicate row is a one-line InputError naming the
-table and the row (``row i`` counts data rows from 0; for a CSV also its ``line``).
-
-Masks are 8- or 16-bit PNGs, grey or colour, read by the dataset loader's one mask rule
-(``pipeline.datasets.loading.read_mask``): foreground = value > 0, with one warning for a
-multi-valued mask.  A mask whose size differs from the working resolution of images.zarr is resized
-with nearest-neighbour interpolation.  An invalid answer (score 0) needs no PNG.  A requested
-(image, prompt, view) without a row, or a valid row without its PNG, is an InputError naming the
-missing file or row.
-
-The masks are already a cache of the real teacher, so this backend bypasses the content-addressed
-cache (``use_cache = False``); its fingerprint hashes the scores table and every mask file.
+The masks are already a cache of the real teacher, so this backend bypasses the teacher cache; its
+fingerprint hashes the scores table and every mask file.
 """
 
 from __future__ import annotations
@@ -42,10 +16,8 @@ from pipeline.runtime.errors import InputError
 from pipeline.params import IMPORTED as BACKEND
 from pipeline.teachers.base import TeacherInput, finalize_answers
 
-if TYPE_CHECKING:  # pandas is imported where a scores table is read (it is heavy, and only this backend needs it)
+if TYPE_CHECKING:
     import pandas as pd
-
-
 
 MAX_PROMPT_INDEX = 32767
 
@@ -63,7 +35,7 @@ def read_mask_png(path: Path, shape: tuple[int, int]) -> np.ndarray:
 
 
 class ImportedTeacher:
-    """Reads masks and scores from ``root`` in the layout of the module docstring."""
+    """Reads masks and scores from ``root`` (layout: docs/real-data.md)."""
 
     backend = BACKEND
     needs_reference = False
@@ -92,7 +64,7 @@ class ImportedTeacher:
                 self.scores_path = p
                 break
         if table is None:
-            raise InputError(f"{self.root}: no scores.parquet or scores.csv (see pipeline/teachers/imported.py)")
+            raise InputError(f"{self.root}: no scores.parquet or scores.csv (layout: docs/real-data.md)")
         missing = [c for c in ("image_id", "prompt_index", "prompt", "score") if c not in table.columns]
         if missing:
             raise InputError(f"{self.scores_path}: missing columns {missing}")
@@ -107,62 +79,52 @@ class ImportedTeacher:
             what = f" (image {table.at[i, 'image_id']!r}, prompt {table.at[i, 'prompt']!r})"
         return f"{self.scores_path}: row {i}{line}{what}"
 
+    def _refuse_first(self, bad, table: pd.DataFrame | None, why) -> None:
+        """InputError naming the first row where ``bad`` holds; ``why(i)`` says what is wrong with row i."""
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(f"{self._where(i, table)}: {why(i)}")
+
     def _checked(self, table: pd.DataFrame) -> pd.DataFrame:
-        """Validate every row (see the module docstring); scores -> float (missing = 0), indices -> int."""
+        """Validate every row; scores -> float (missing = 0), indices -> int (missing = -1)."""
         import pandas as pd
 
         if "view" not in table.columns:
             table["view"] = "identity"
         for col in ("image_id", "prompt"):
             empty = table[col].isna() | (table[col].astype(str).str.strip() == "")
-            if empty.any():
-                raise InputError(f"{self._where(int(np.flatnonzero(empty)[0]))}: empty {col}")
+            self._refuse_first(empty, None, lambda i, col=col: f"empty {col}")
         table["image_id"] = table["image_id"].astype(str)
         table["prompt"] = table["prompt"].astype(str)
         table["view"] = table["view"].fillna("identity").astype(str)
-        bad = ~table["view"].isin(["identity", "vflip"])
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise InputError(f"{self._where(i, table)}: unknown view {table.at[i, 'view']!r} (identity | vflip)")
+        self._refuse_first(~table["view"].isin(["identity", "vflip"]), table,
+                           lambda i: f"unknown view {table.at[i, 'view']!r} (identity | vflip)")
 
         def numeric(col: str) -> pd.Series:
             raw = table[col]
             num = pd.to_numeric(raw.where(raw.map(lambda v: not isinstance(v, bool)), "x"), errors="coerce")
-            bad = raw.notna() & num.isna()
-            if bad.any():
-                i = int(np.flatnonzero(bad)[0])
-                raise InputError(f"{self._where(i, table)}: {col} {raw.iloc[i]!r} is not a number")
+            self._refuse_first(raw.notna() & num.isna(), table, lambda i: f"{col} {raw.iloc[i]!r} is not a number")
             return num.astype(float)
 
         score = numeric("score")
-        bad = score.notna() & ~(np.isfinite(score) & (score >= 0) & (score <= 1))
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise InputError(f"{self._where(i, table)}: score {score.iloc[i]!r} must be a finite number in [0, 1]")
+        self._refuse_first(score.notna() & ~(np.isfinite(score) & (score >= 0) & (score <= 1)), table,
+                           lambda i: f"score {score.iloc[i]!r} must be a finite number in [0, 1]")
         score = score.fillna(0.0)
         index = numeric("prompt_index")
         bad = index.notna() & ~(np.isfinite(index) & (index == np.floor(index))
                                 & (index >= 0) & (index <= MAX_PROMPT_INDEX))
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise InputError(f"{self._where(i, table)}: prompt_index {table['prompt_index'].iloc[i]!r} must be "
-                             f"an integer in [0, {MAX_PROMPT_INDEX}]")
-        bad = index.isna() & (score > 0)
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise InputError(f"{self._where(i, table)}: prompt_index missing (score > 0 needs a mask file)")
+        self._refuse_first(bad, table, lambda i: f"prompt_index {table['prompt_index'].iloc[i]!r} must be "
+                                                 f"an integer in [0, {MAX_PROMPT_INDEX}]")
+        self._refuse_first(index.isna() & (score > 0), table,
+                           lambda i: "prompt_index missing (score > 0 needs a mask file)")
         table["score"] = score
         table["prompt_index"] = index.fillna(-1).astype(np.int64)
-        dup = table.duplicated(["image_id", "prompt", "view"])
-        if dup.any():
-            i = int(np.flatnonzero(dup)[0])
-            raise InputError(f"{self._where(i, table)}: duplicate row for this image, prompt and view")
+        self._refuse_first(table.duplicated(["image_id", "prompt", "view"]), table,
+                           lambda i: "duplicate row for this image, prompt and view")
         valid = table["score"] > 0
         dup = valid & table[valid].duplicated(["image_id", "view", "prompt_index"]).reindex(table.index, fill_value=False)
-        if dup.any():
-            i = int(np.flatnonzero(dup)[0])
-            raise InputError(f"{self._where(i, table)}: prompt_index {int(table.at[i, 'prompt_index'])} is used "
-                             f"by another prompt of this image and view (both would read one mask file)")
+        self._refuse_first(dup, table, lambda i: f"prompt_index {int(table.at[i, 'prompt_index'])} is used "
+                                                 f"by another prompt of this image and view (both would read one mask file)")
         return table
 
     def content_hash(self) -> str:
@@ -193,8 +155,7 @@ class ImportedTeacher:
         return read_mask_png(path, self.resolution), score
 
     def predict(self, batch: Sequence[TeacherInput], prompts: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        """Imported answers.  For the ``vflip`` view the stored mask is already in the original frame,
-        so it is flipped here once more and the runner's flip-back restores it."""
+        """Imported answers; a ``vflip`` mask is stored flipped back, so it is flipped here for the runner to undo."""
         masks = np.zeros((len(batch), len(prompts), *self.resolution), bool)
         scores = np.zeros((len(batch), len(prompts)), np.float32)
         for b, item in enumerate(batch):

@@ -1,36 +1,9 @@
 """SAM 3 text-prompt teacher through Hugging Face transformers (>= 5: ``Sam3Model`` + CLIP tokenizer).
 
-eq:teacher-prediction with SAM 3: for image :math:`I_i` and prompt :math:`p_k` every DETR query q
-gets the score :math:`\\sigma(\\ell_q)\\,\\sigma(\\ell_{presence})` (query logit x presence logit, as
-transformers' ``post_process_instance_segmentation``); the teacher's answer is the best query's
-mask and score.  Queries scoring <= ``teacher.score_threshold`` (default 0.3, the processor's
-default detection threshold) are not candidates; no candidate means the prompt is invalid (score 0,
-empty mask).  Only the chosen query's mask is resized to the working resolution (bilinear on the
-sigmoid probabilities, then ``> teacher.mask_threshold`` = 0.5, as the processor does).
-
-Efficiency (paper: 447.9 ms per image for six prompts on an RTX 4090)
-  * the fixed prompts are tokenised and text-encoded once per run (:meth:`Sam3Teacher.text_features`);
-  * the vision encoder runs once per image batch; its FPN features are repeated to the
-    (image x prompt) batch, because ``Sam3Model.forward`` needs vision and text batches of equal size
-    (a batch-1 vision embedding with a 6-prompt text batch fails);
-  * ``teacher.batch_size`` images per forward (0 = from free GPU memory, :func:`auto_batch_size`);
-    ``teacher.dtype`` auto | fp32 | bf16 (:func:`resolve_teacher_dtype`: auto = bf16 on CUDA, fp32 with
-    TF32 on CUDA without bf16, fp32 on a CPU); ``teacher.compile`` torch.compiles the vision encoder
-    on CUDA (pays after warm-up on long runs); cpu or cuda.
-
-Preprocessing without torchvision
-  transformers' SAM 3 image processor needs torchvision, which is CUDA-only on the registry and does
-  not import with the CPU torch build, so this module does the processor's work itself from the
-  checkpoint's ``preprocessor_config.json`` (or the ``image_processor`` entry of
-  ``processor_config.json``): resize to ``size`` (bilinear, antialiased, like torchvision's tensor
-  resize), multiply by ``rescale_factor``, normalise with ``image_mean`` / ``image_std``.  Resizing
-  happens in float32 rather than on uint8, so values differ from the processor by at most uint8
-  rounding.  Text: the CLIP tokenizer with ``padding="max_length", max_length=32``, as
-  ``Sam3Processor``.
-
-Loading is local only (``local_files_only=True``): ``teacher.checkpoint`` must be a directory saved
-with ``save_pretrained`` holding ``config.json`` (model_type ``sam3``), the weights, the tokenizer
-files and the processor config.  Anything else is an InputError naming the directory.
+eq:teacher-prediction: a query's score is :math:`\\sigma(\\ell_q)\\,\\sigma(\\ell_{presence})`; the answer is
+the best query's mask and score, and no query above ``teacher.score_threshold`` makes the prompt
+invalid.  Loaded from a local ``save_pretrained`` directory only; the preprocessing and batching
+choices are in docs/decisions.md ("The SAM 3 teacher").
 """
 
 from __future__ import annotations
@@ -85,15 +58,8 @@ def checkpoint_stat(directory: Path) -> list[list]:
 
 
 def memoised_checkpoint_hash(directory: Path, memo: Path | None) -> str:
-    """:func:`checkpoint_hash`, remembered in the JSON file ``memo`` while no file's size or mtime changes.
-
-    A SAM 3 checkpoint is 3.4 GB; reading it on every run only to rebuild the cache key cost seconds
-    each time.  Decision (as DVC's own state database does): a file whose size and modification time
-    are unchanged is taken as unchanged, so the memo is keyed on (path, size, mtime_ns) of every file.
-    Editing a file in place while forging its mtime would defeat it; delete ``memo`` to force a rehash.
-    The memo is written atomically and an unreadable one is ignored (recomputed).  ``memo=None``
-    always hashes.
-    """
+    """:func:`checkpoint_hash`, remembered in the JSON file ``memo`` (None: always hash) while no file's
+    size or mtime changes; an unreadable memo is recomputed."""
     if memo is None:
         return checkpoint_hash(directory)
     memo = Path(memo)
@@ -132,8 +98,7 @@ def read_processor_config(directory: Path) -> dict:
 
 def check_checkpoint_dir(directory: str | Path, option: Option | None = None) -> Path:
     """The checkpoint directory, or an InputError saying why it is not a local SAM 3 checkpoint.
-    ``option``: the user option that named it (``--checkpoint`` / ``checkpoint=``), named in the
-    caller's terms; None: the params key ``teacher.checkpoint``."""
+    ``option``: the user option that named it; None: the params key ``teacher.checkpoint``."""
     d = Path(directory).expanduser()
 
     def refuse(where: Path | None, why: str) -> InputError:  # where: a file in it (None: the folder itself)
@@ -162,13 +127,8 @@ def check_checkpoint_dir(directory: str | Path, option: Option | None = None) ->
 
 
 def resolve_teacher_dtype(dtype: str, device) -> tuple[str, bool]:
-    """(weights dtype "fp32" | "bf16", TF32 on) for ``teacher.dtype`` on ``device``.
-
-    ``auto``: bf16 on a CUDA GPU that supports it (3x faster than fp32 on an H100), else fp32 with TF32
-    matmuls on CUDA (1.8x), fp32 on a CPU (no TF32 there; the answers of the former fp32 default).
-    ``fp32`` / ``bf16``: as asked, without TF32.  The teacher cache key records the result
-    ("bf16", "fp32", "fp32+tf32"), so answers computed at one precision are never served for another.
-    """
+    """(weights dtype "fp32" | "bf16", TF32 on) for ``teacher.dtype`` on ``device``: ``auto`` is bf16 on a
+    CUDA GPU that supports it, else fp32 with TF32 on CUDA, fp32 on a CPU."""
     import torch
 
     if dtype not in ("auto", "fp32", "bf16"):
@@ -198,17 +158,14 @@ def allow_tf32(on: bool):
     return ctx()
 
 
-#: at most this many images per forward: an H100 gains nothing beyond 8 at full size (46.8 ms/image at
-#: 8, bf16), and a larger batch only delays the first answers
+#: at most this many images per forward: a larger batch only delays the first answers
 MAX_AUTO_BATCH = 16
 
 
 def auto_batch_size(device, used_bytes: int | None = None, free_bytes: int | None = None,
                     headroom: float = 0.7) -> int:
-    """Images per forward from free GPU memory: after one image has run, peak memory of that forward
-    above the model (``used_bytes``, default torch.cuda.max_memory_allocated - memory_allocated) is the
-    per-image cost; the batch fills ``headroom`` of the free memory (default torch.cuda.mem_get_info),
-    between 1 and :data:`MAX_AUTO_BATCH`.  2 on a CPU (the former default)."""
+    """Images per forward filling ``headroom`` of the free GPU memory, the peak memory of one image's
+    forward above the model (``used_bytes``) being the per-image cost; in [1, :data:`MAX_AUTO_BATCH`], 2 on a CPU."""
     import torch
 
     if torch.device(device).type != "cuda" and (used_bytes is None or free_bytes is None):
@@ -222,14 +179,13 @@ def auto_batch_size(device, used_bytes: int | None = None, free_bytes: int | Non
 
 
 def local_hash_memo(cache_dir: str) -> Path | None:
-    """Where the checkpoint-hash memo lives: beside a local teacher cache; none for a cache on object
-    storage (the checkpoint is then hashed once per run)."""
+    """Where the checkpoint-hash memo lives: beside a local teacher cache; None for object storage."""
     fs, path = url_to_fs(str(cache_dir))
     return Path(path) / "checkpoint_hashes.json" if isinstance(fs, LocalFileSystem) else None
 
 
 class Sam3Teacher:
-    """Frozen SAM 3 answering text prompts (see the module docstring)."""
+    """Frozen SAM 3 answering text prompts: vision encoder once per image batch, text features once per run."""
 
     backend = BACKEND
     needs_reference = False
@@ -237,8 +193,7 @@ class Sam3Teacher:
 
     @classmethod
     def from_params(cls, cfg, resolution: tuple[int, int], device: str = "auto") -> "Sam3Teacher":
-        """From the validated ``teacher:`` section (:func:`pipeline.teachers.make_teacher`); the
-        checkpoint-hash memo lives beside a local cache (:func:`local_hash_memo`)."""
+        """From the validated ``teacher:`` section (:func:`pipeline.teachers.make_teacher`)."""
         return cls(cfg["checkpoint"], device=device, dtype=cfg["dtype"], batch_size=cfg["batch_size"],
                    resolution=resolution, score_threshold=cfg["score_threshold"],
                    mask_threshold=cfg["mask_threshold"], compile=cfg["compile"],
@@ -253,7 +208,6 @@ class Sam3Teacher:
         self.device = resolve_device(device)
         self.dtype_name, self.tf32 = resolve_teacher_dtype(dtype, self.device)
         self.torch_dtype = torch.bfloat16 if self.dtype_name == "bf16" else torch.float32
-        # 0 = from free GPU memory at the first batch (auto_batch_size); on a CPU the former default, 2
         self.batch_size = int(batch_size) if int(batch_size) > 0 else (0 if self.device.type == "cuda" else 2)
         self.compile = bool(compile) and self.device.type == "cuda"  # torch.compile pays on a GPU only
         # images handed over per call by the teacher stage's runner (the cache's unit of work)
@@ -317,8 +271,7 @@ class Sam3Teacher:
         return self._model
 
     def _precision(self):
-        """TF32 matmuls/convolutions for an fp32 teacher on CUDA when ``dtype`` resolved to fp32+tf32
-        (:func:`resolve_teacher_dtype`), restored afterwards (no global side effect)."""
+        """TF32 while ``dtype`` resolved to fp32+tf32 (:func:`resolve_teacher_dtype`), restored afterwards."""
         return allow_tf32(self.tf32)
 
     def text_features(self, prompts: Sequence[str]):
@@ -426,8 +379,8 @@ class Sam3Teacher:
         return np.concatenate(masks), np.concatenate(scores)
 
     def predict_one_prompt_at_a_time(self, batch: Sequence[TeacherInput], prompts: Sequence[str]):
-        """Reference path for tests and the benchmark: one full forward (vision encoder included)
-        per image and prompt, no feature reuse.  Same answers as :meth:`predict`."""
+        """Reference path for tests and the benchmark: one full forward per image and prompt, no feature
+        reuse; the same answers as :meth:`predict`."""
         out_size = tuple(batch[0].image.shape[:2])
         masks = np.zeros((len(batch), len(prompts), *out_size), bool)
         scores = np.zeros((len(batch), len(prompts)), np.float32)

@@ -1,44 +1,9 @@
-"""SIMULATOR of a text-prompted foundation teacher's errors, for the synthetic benchmark only.
+"""A SIMULATOR of a six-prompt foundation teacher's errors (eq:teacher-prediction), for the synthetic benchmark only.
 
-This is **not a teacher**: :class:`SimulatedFoundationTeacher` (backend name ``simulated``) reads the
-synthetic scene's ground truth -- ``reference.zarr`` ``mask`` and ``parts`` and the manifest extras
-``background``, ``hard_case``, ``area_fraction`` -- and degrades it the way a six-prompt SAM 3 teacher
-degrades on spacecraft images.  It exists so that the whole DAG runs without a download; a real run
-uses the ``sam3`` or ``imported`` backend.  Artifacts it produces say ``backend: simulated`` and
-``simulator: true`` in their attrs.
-
-What it simulates (eq:teacher-prediction: one mask and one score per image and prompt)
-  * image difficulty ``d`` in [0, 1] from the object scale (``area_fraction``; small is hard), the
-    scene's ``hard_case`` flag, a bright (Earth) background and a little image-level noise;
-  * a *teacher breakdown* on hard images (probability grows with ``d``): each prompt survives only
-    with a small persona-dependent probability (usually zero or one prompt answers, score > 0) and a
-    survivor answers badly -- these are the images whose reliability gate is 0 (v <= 1/6; paper,
-    table gate-groups: ~30 % of KCP, teacher IoU 0.29 vs 0.85);
-  * six prompt *personas* (one per prompt of eq:prompt-set; an unknown prompt gets a generic one),
-    each with its own miss rate and mixture of failure modes, whose weights grow with ``d``:
-    ``miss`` (no candidate, score 0), ``dilate`` / ``erode`` (boundary bias of a few pixels),
-    ``drop_thin`` (antennas, booms and trusses dropped -- likelier at small scale), ``bus_only`` (only
-    the bus and payload), ``false_positive`` (glare or the bright Earth limb added to the object) and
-    ``wrong_object`` (a glare blob or the Earth limb instead of the spacecraft); the scene's hard case
-    (glare, flare, underexposed, blur, noise) adds weight to the matching modes;
-  * errors *shared* by several prompts, drawn once per image -- thin structures lost by most prompts
-    on small targets, a glare / Earth-limb region several prompts include -- which the majority vote
-    cannot remove (paper, text after table teacher-prompt-quality: "prompt-consistent teacher errors
-    can still remain");
-  * a score that loosely tracks the answer's quality (IoU with the ground truth) plus noise.
-
-Calibration (``python -m benchmarks.simulator_stats``): on a synthetic test group the mean
-single-prompt Image IoU should sit near 0.35 with a spread across prompts near 0.24, the best
-(validation-selected) prompt near 0.57, the six-prompt vote near 0.68 (paper, table
-teacher-prompt-quality), and ~30 % of images should get gate 0 with far lower teacher IoU (table
-gate-groups).
-
-Determinism: every random draw comes from a numpy Generator seeded by sha256 of (image sha256, prompt
-*text*, ``teacher.seed``, view, simulator version); image-level draws (difficulty noise, breakdown,
-shared errors) omit the prompt and the view.  The prompt text rather than its index is hashed so that
-reordering or extending the prompt list leaves every other prompt's answer -- and its cache entry,
-which is keyed by prompt text -- unchanged.  The ``vflip`` view reuses the image-level draws (the
-same scene is as hard upside down) with fresh prompt-level draws.
+Not a teacher: it reads the synthetic scene's ground truth (``reference.zarr`` and the manifest extras)
+and degrades it the way a text-prompted SAM 3 degrades on spacecraft images, one persona per prompt, so
+the whole DAG runs without a download.  Its artifacts say ``simulator: true``; its design and
+calibration (``python -m benchmarks.simulator_stats``) are in docs/decisions.md ("The simulated teacher").
 """
 
 from __future__ import annotations
@@ -69,13 +34,10 @@ MODES = ("clean", "dilate", "erode", "drop_thin", "bus_only", "false_positive", 
 class Persona:
     """Failure profile of one prompt.
 
-    ``miss`` + ``miss_slope * d``: probability of a total miss (score 0).  ``modes``: relative weight
-    of each failure mode on an easy image; ``hard_modes``: weight added per unit difficulty.
-    ``boundary_frac``: typical boundary bias of ``dilate`` / ``erode`` as a fraction of the object's
-    equivalent radius sqrt(area / pi) (stochastically rounded to whole pixels, so a tiny object is
-    often traced exactly and a large one is off by a few pixels).
-    ``survivor``: probability that this prompt still answers during a breakdown.
-    ``shares``: probability that this prompt takes part in an image's shared error.
+    P(miss) = ``miss + miss_slope * d``; ``modes`` weigh the failure modes on an easy image, ``hard_modes``
+    add weight per unit difficulty; ``boundary_frac``: boundary bias of dilate/erode as a fraction of the
+    object's equivalent radius; ``survivor``: P(still answers in a breakdown); ``shares``: P(takes part
+    in an image's shared error).
     """
 
     name: str
@@ -93,10 +55,8 @@ def _m(**kw) -> dict[str, float]:
     return {m: float(kw.get(m, 0.0)) for m in MODES}
 
 
-# One persona per prompt of eq:prompt-set.  The category-level prompts ("satellite", "space probe")
-# are the least specific: they often find nothing or latch onto another bright object; the
-# structural prompts describe the full silhouette best; "artificial object ... panels and antennas"
-# also likes glare and the Earth limb.
+# One persona per prompt of eq:prompt-set: the category-level prompts are the least specific, the
+# structural ones describe the full silhouette best.
 PERSONAS: dict[str, Persona] = {
     "spacecraft": Persona(
         "spacecraft", miss=0.06, miss_slope=0.15,
@@ -168,32 +128,24 @@ def _rng(*parts: Any) -> np.random.Generator:
     return np.random.Generator(np.random.PCG64(int.from_bytes(h[:16], "little")))
 
 
-# --------------------------------------------------------------------------------------------------
-# Pure mask operations (bool [H,W] in, bool [H,W] out)
-# --------------------------------------------------------------------------------------------------
-def _disk(radius: int) -> np.ndarray:
+def _morph(op: str, mask: np.ndarray, radius: int) -> np.ndarray:
     import cv2
 
+    if radius <= 0:
+        return mask.copy()
     r = max(int(radius), 1)
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return getattr(cv2, op)(mask.astype(np.uint8), disk).astype(bool)
 
 
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     """Boundary pushed outwards by ``radius`` px (elliptical structuring element); radius 0 = identity."""
-    import cv2
-
-    if radius <= 0:
-        return mask.copy()
-    return cv2.dilate(mask.astype(np.uint8), _disk(radius)).astype(bool)
+    return _morph("dilate", mask, radius)
 
 
 def erode(mask: np.ndarray, radius: int) -> np.ndarray:
     """Boundary pulled inwards by ``radius`` px; radius 0 = identity."""
-    import cv2
-
-    if radius <= 0:
-        return mask.copy()
-    return cv2.erode(mask.astype(np.uint8), _disk(radius)).astype(bool)
+    return _morph("erode", mask, radius)
 
 
 def open_mask(mask: np.ndarray, radius: int) -> np.ndarray:
@@ -202,9 +154,8 @@ def open_mask(mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 def drop_thin(mask: np.ndarray, parts: np.ndarray | None, radius: int, drop_dish: bool) -> np.ndarray:
-    """Mask without thin appendages: parts code 3 (antenna/boom/truss) and optionally 4 (dish)
-    removed; without part labels, an opening of ``radius`` px removes structures thinner than
-    ~2*radius px instead."""
+    """Mask without thin appendages (booms and, with ``drop_dish``, dishes); without part labels, an
+    opening of ``radius`` px instead."""
     if parts is not None and (parts == THIN).any():
         out = mask & (parts != THIN)
         if drop_dish:
@@ -227,11 +178,8 @@ def bus_only(mask: np.ndarray, parts: np.ndarray | None) -> np.ndarray:
 
 
 def bright_region(image: np.ndarray, exclude: np.ndarray, min_fraction: float = 0.01) -> np.ndarray:
-    """Largest bright connected region outside ``exclude`` (the Earth limb or a glare patch).
-
-    Bright = luminance >= max(120, 90th percentile of the pixels outside ``exclude``).  Returns an
-    empty mask when that region covers less than ``min_fraction`` of the frame (e.g. a black sky).
-    """
+    """Largest connected region outside ``exclude`` with luminance >= max(120, its 90th percentile)
+    (the Earth limb or a glare patch); empty when it covers less than ``min_fraction`` of the frame."""
     import cv2
 
     lum = image.astype(np.float32).mean(axis=-1)
@@ -269,9 +217,6 @@ def glare_blob(mask: np.ndarray, rng: np.random.Generator, attached: bool) -> np
     return ((yy - cy) / max(ry, 1.0)) ** 2 + ((xx - cx) / max(rx, 1.0)) ** 2 <= 1.0
 
 
-# --------------------------------------------------------------------------------------------------
-# Scene difficulty
-# --------------------------------------------------------------------------------------------------
 def _truthy(x: Any) -> bool:
     if x is None:
         return False
@@ -310,11 +255,8 @@ class SceneDraw:
     shared_fp_seed: int
 
 
-# --------------------------------------------------------------------------------------------------
-# The simulator
-# --------------------------------------------------------------------------------------------------
 class SimulatedFoundationTeacher:
-    """SIMULATOR of a six-prompt foundation teacher (see the module docstring).  Reads ground truth."""
+    """SIMULATOR of a six-prompt foundation teacher: answers from the synthetic ground truth, degraded."""
 
     backend = BACKEND
     needs_reference = True
@@ -355,9 +297,7 @@ class SimulatedFoundationTeacher:
         return SceneDraw(d, scale, bool(breakdown), bool(shared_thin), bool(shared_fp), int(rng.integers(2**31)))
 
     def _prompt_draw(self, item: TeacherInput, prompt: str, what: str) -> float:
-        """A view-independent uniform draw for (image, prompt): membership in shared errors and
-        survival of a breakdown are decided per prompt, so adding or removing other prompts never
-        changes this prompt's answer (its cache entry stays valid)."""
+        """A view-independent uniform draw for (image, prompt): other prompts never change this one's answer."""
         return float(_rng(what, item.image_sha256, prompt, self.seed, SIMULATOR_VERSION).random())
 
     # ---- prompt level -------------------------------------------------------------------------
