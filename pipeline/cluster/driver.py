@@ -1,24 +1,4 @@
-"""``geodistill run`` on Ray: each stale stage is a Ray task running DVC's own command for it.
-
-1. One driver per repository: :class:`RunLock` (``fcntl.flock`` on ``.dvc/tmp/geodistill-run.lock``,
-   released by the kernel however the driver ends).  DVC's own lock is NOT held by the driver, so
-   ``dvc status`` works during a run.
-2. The plan comes from DVC's public commands: ``dvc dag --dot`` (stages, edges) and ``dvc status
-   --json`` (stale stages); the stale stages and their downstream stages are submitted
-   (:mod:`pipeline.cluster.plan`).
-3. Each submitted stage is a Ray task whose arguments are its upstream stages' tasks (ObjectRefs), so
-   it starts when they are done; submitted longest remaining path first; the exclusive ``benchmark``
-   after everything that does not depend on it.  Resources are Ray's: the teacher takes a GPU, a
-   training run a fraction of one, CPU stages cores (``OMP_NUM_THREADS`` follows the task's CPUs).
-4. The task runs ``dvc --wait-for-lock repro --single-item <stage>`` under :mod:`pipeline.cluster.guard`
-   (the process group dies with the worker), so DVC decides if the stage is stale, restores it from its
-   run cache or runs it, and records it (dvc.lock, cache).  Its output goes to
-   ``artifacts/logs/run/<stage>.log``; a failed stage's dependents are not run, independent stages go
-   on; a rerun resumes.
-
-Ray runs embedded and local by default (``ray.init(address="local")``); ``--address`` or
-``RAY_ADDRESS`` joins a cluster, whose nodes must see the repository at the same path (shared storage).
-"""
+"""``geodistill run`` on Ray: each stale stage is a Ray task running DVC's own command for it (docs/scaling.md)."""
 
 from __future__ import annotations
 
@@ -39,15 +19,14 @@ from pipeline.runtime.environment import THREAD_ENV_VARS
 from pipeline.runtime.errors import InputError
 from pipeline.params import DEFAULT_PARAMS, read_yaml_mapping
 
-#: The driver's lock file, inside DVC's own tmp folder (never committed).
 LOCK_FILE = ".dvc/tmp/geodistill-run.lock"
 NO_RAY = ("geodistill run needs Ray: pip install -e '.[cluster]' "
           "(or run the DAG one stage at a time with dvc repro)")
 
 
 class RunLock:
-    """Exclusive, non-blocking ``flock`` on the repository's :data:`LOCK_FILE` for one driver.  A second
-    driver gets :class:`InputError`; the kernel releases the lock when the holder dies (even SIGKILL)."""
+    """Exclusive, non-blocking ``flock`` on :data:`LOCK_FILE`: a second driver gets :class:`InputError`; the
+    kernel releases it however the holder dies."""
 
     def __init__(self, root: Path):
         self.path = Path(root) / LOCK_FILE
@@ -95,8 +74,7 @@ def read_plan(root: Path, targets: tuple[str, ...] = ()) -> tuple[list[str], dic
 
 
 def child_env(extra: dict[str, str], threads: int, gpus: float) -> dict[str, str]:
-    """The stage process's environment: this worker's, ``extra`` (the driver's PATH ...), ``threads``
-    for every thread pool, and no GPU for a task that holds none."""
+    """The stage process's environment: this worker's, ``extra``, ``threads`` per pool, no GPU unless it holds one."""
     env = {**os.environ, **extra}
     env.update({k: str(max(1, threads)) for k in THREAD_ENV_VARS})
     if gpus <= 0:
@@ -106,10 +84,8 @@ def child_env(extra: dict[str, str], threads: int, gpus: float) -> dict[str, str
 
 def run_stage(root: str, stage: str, extra_env: dict, threads: int, gpus: float, log_path: str, t0: float,
               *upstream: dict) -> dict:
-    """The body of a stage's Ray task: ``dvc --wait-for-lock repro --single-item STAGE`` under the guard,
-    output to ``log_path``.  ``upstream``: the results of the stages it waits for; when one of them did
-    not succeed this stage is ``not_run``.  Returns {stage, status, start, end, returncode, error, node,
-    node_id}."""
+    """A stage's Ray task: ``dvc --wait-for-lock repro --single-item STAGE`` under the guard, output to
+    ``log_path``; ``not_run`` when an ``upstream`` result did not succeed."""
     import ray
 
     failed = [u["stage"] for u in upstream if u["status"] in ("failed", "not_run")]
@@ -129,15 +105,14 @@ def run_stage(root: str, stage: str, extra_env: dict, threads: int, gpus: float,
 
 
 def driver_env() -> dict[str, str]:
-    """What the stage processes take from the driver: PATH with this interpreter's folder first (stage
-    commands say ``python``), PYTHONPATH and the GEODISTILL_* settings."""
+    """PATH with this interpreter's folder first (stage commands say ``python``), PYTHONPATH, GEODISTILL_*."""
     env = {"PATH": os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])}
     env.update({k: v for k, v in os.environ.items() if k == "PYTHONPATH" or k.startswith("GEODISTILL_")})
     return env
 
 
 def read_costs(path: Path) -> dict[str, float]:
-    """Seconds each stage took when it last ran (the previous timeline's ``costs``; {} without one)."""
+    """Seconds each stage took when it last ran ({} without a previous timeline)."""
     try:
         return {str(n): float(v) for n, v in json.loads(Path(path).read_text())["costs"].items()}
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
@@ -145,14 +120,12 @@ def read_costs(path: Path) -> dict[str, float]:
 
 
 def stage_log(stage: str) -> str:
-    """The file name of ``stage``'s log in the run's log folder."""
     return catalog.output_file("run_logs", "stage_log").format(stage=stage)
 
 
 def write_timeline(path: Path, results: dict[str, dict], resources: dict, wall_s: float,
                    costs: dict[str, float]) -> Path:
-    """The run as JSON (atomic): per stage its result and Ray resources; ``costs`` updated with the
-    seconds of the stages that ran."""
+    """The run as JSON (atomic), ``costs`` updated with the seconds of the stages that ran."""
     ran = {n: r["end"] - r["start"] for n, r in results.items() if r.get("status") == "ran"}
     obj = {"wall_s": wall_s, "resources": resources, "stages": results, "costs": {**costs, **ran}}
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -163,9 +136,7 @@ def write_timeline(path: Path, results: dict[str, dict], resources: dict, wall_s
 
 
 def sizing(ray, stage_cpus: float | None, train_gpu_fraction: float, train_threads: int = 0) -> plan.Sizing:
-    """What the connected Ray cluster offers: the largest node's CPUs, all GPUs; a CPU stage takes
-    ``stage_cpus`` (default: half the largest node, at least 1); a training run at least its pinned
-    ``train_threads`` (:func:`pipeline.cluster.plan.stage_resources`)."""
+    """What the connected Ray cluster offers (a CPU stage's default: half the largest node, at least 1)."""
     nodes = [n for n in ray.nodes() if n.get("Alive")]
     node_cpus = max((n["Resources"].get("CPU", 0.0) for n in nodes), default=1.0) or 1.0
     gpus = float(ray.cluster_resources().get("GPU", 0.0))
@@ -174,8 +145,7 @@ def sizing(ray, stage_cpus: float | None, train_gpu_fraction: float, train_threa
 
 
 def pinned_train_threads(root: Path) -> int:
-    """``train.num_threads`` of the project's params.yaml (0 when absent or unreadable: DVC reports a bad
-    params file itself when the stage runs)."""
+    """``train.num_threads`` of params.yaml; 0 when unreadable (DVC reports a bad params file itself)."""
     try:
         value = read_yaml_mapping(root / DEFAULT_PARAMS).get("train", {}).get("num_threads", 0)
         return max(0, int(value or 0))
@@ -199,8 +169,8 @@ class RunResult:
 def run_pipeline(root: Path, targets: tuple[str, ...] = (), address: str | None = None,
                  stage_cpus: float | None = None, train_gpu_fraction: float = 0.25, dry_run: bool = False,
                  echo: Callable[[str], None] = print) -> RunResult | None:
-    """``geodistill run`` without the CLI (None for a dry run).  Uses the Ray session of this process if
-    one is initialised (tests), else starts an embedded local one, or joins ``address``/``RAY_ADDRESS``."""
+    """``geodistill run`` without the CLI (None for a dry run): in this process's Ray session if there is one,
+    else an embedded local one, or ``address``/``RAY_ADDRESS``."""
     root = Path(root).resolve()
     if not (root / catalog.DVC_FILE).is_file():
         raise InputError(f"{root / catalog.DVC_FILE}: not found (run geodistill run in the project folder)")
@@ -235,7 +205,7 @@ def run_pipeline(root: Path, targets: tuple[str, ...] = (), address: str | None 
 
 def _submit(ray, root: Path, sequence: list[str], graph: dict[str, set[str]], size: plan.Sizing, log_dir: Path,
             costs: dict[str, float], dry_run: bool, echo) -> RunResult | None:
-    """Submit the stages as Ray tasks in ``sequence``, each waiting for its upstream tasks; wait for all."""
+    """Submit the stages in ``sequence``, each task waiting for its upstream tasks; wait for all."""
     res = {n: plan.stage_resources(n, size) for n in sequence}
     echo(f"geodistill run: Ray cluster with {size.node_cpus:g} CPUs on its largest node, {size.gpus:g} GPUs")
     if dry_run:

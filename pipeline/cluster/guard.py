@@ -1,19 +1,8 @@
-"""Run CMD so that its whole process group dies with PARENT_PID: :func:`command` is the command line
-(``python -c`` calling :func:`main`; the library runs no module as a script).
+"""Run CMD so that its whole process group dies with PARENT_PID (docs/scaling.md, "No orphans").
 
-A Ray task starts the guard as the leader of a new process group (``start_new_session``); the guard
-starts CMD (``dvc repro``, which starts the stage's shell and Python) in that group.  Two ways the
-group dies with the Ray worker:
-
-* the worker crashes (SIGKILL, out of memory): the kernel sends the guard SIGTERM
-  (``PR_SET_PDEATHSIG``, Linux) and the guard SIGKILLs its group;
-* the worker exits because its raylet or driver is gone: Ray SIGKILLs the worker's direct children
-  (``kill_child_processes_on_worker_exit``, not recursive), i.e. the guard itself, so the guard also
-  forks a watchdog whose parent-death signal is SIGTERM and which SIGKILLs the group when the guard
-  dies.
-
-SIGTERM/SIGINT/SIGHUP to the guard (``ray.cancel``, ``scancel``) end the group too.  Without ``prctl``
-(not Linux) only that last way works.
+The guard leads a new process group; it SIGKILLs the group on SIGTERM/SIGINT/SIGHUP and when its parent
+dies (``PR_SET_PDEATHSIG``), and a forked watchdog does the same when the guard itself is SIGKILLed (Ray
+kills a worker's direct children only).
 """
 
 from __future__ import annotations
@@ -24,12 +13,11 @@ import signal
 import subprocess
 import sys
 
-#: linux/prctl.h
-PR_SET_PDEATHSIG = 1
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
 def set_parent_death_signal(sig: int = signal.SIGTERM) -> bool:
-    """Ask the kernel to send ``sig`` to this process when its parent dies (Linux); False elsewhere."""
+    """Ask the kernel for ``sig`` when this process's parent dies (Linux); False elsewhere."""
     if not sys.platform.startswith("linux"):
         return False
     try:
@@ -40,12 +28,11 @@ def set_parent_death_signal(sig: int = signal.SIGTERM) -> bool:
 
 
 def kill_group(*_args) -> None:
-    """SIGKILL this process's group: the guard, CMD and everything CMD started."""
     os.killpg(os.getpgrp(), signal.SIGKILL)
 
 
 def watchdog(guard_pid: int) -> int:
-    """Fork a process that SIGKILLs this process group when ``guard_pid`` (this process) dies; its pid."""
+    """Fork a process that SIGKILLs this group when ``guard_pid`` dies; its pid."""
     pid = os.fork()
     if pid:
         return pid
@@ -61,12 +48,11 @@ def watchdog(guard_pid: int) -> int:
         os._exit(0)
 
 
-#: the guard's entry, run by :func:`command` as ``python -c``
 ENTRY = "import sys; from pipeline.cluster.guard import main; sys.exit(main())"
 
 
 def command(parent_pid: int, cmd: list[str]) -> list[str]:
-    """The command line that runs ``cmd`` under the guard, its group dying with ``parent_pid``."""
+    """The command line that runs ``cmd`` under the guard."""
     return [sys.executable, "-c", ENTRY, str(parent_pid), "--", *cmd]
 
 

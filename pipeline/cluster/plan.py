@@ -1,9 +1,5 @@
-"""What ``geodistill run`` submits, in which order, with which Ray resources -- pure functions.
-
-Inputs are the outputs of DVC's public commands: ``dvc dag --dot`` (stages and edges, ``matrix``
-stages expanded to ``train_plain@42`` ...) and ``dvc status --json`` (stages whose deps, outs, params or
-command changed since their dvc.lock entry).
-"""
+"""What ``geodistill run`` submits, in which order, with which Ray resources: pure functions of the outputs of
+``dvc dag --dot`` and ``dvc status --json``."""
 
 from __future__ import annotations
 
@@ -13,18 +9,14 @@ from typing import Iterable, Mapping
 
 from pipeline.catalog import STAGES
 
-#: ``"a" -> "b";`` and ``"a";`` lines of ``dvc dag --dot``.
 _EDGE = re.compile(r'^\s*"([^"]+)"\s*->\s*"([^"]+)"\s*;?\s*$')
 _NODE = re.compile(r'^\s*"([^"]+)"\s*;?\s*$')
-#: The stage whose command runs SAM 3 (or another teacher): one whole GPU per task.
-TEACHER_STAGE = "teacher"
-#: Stages named ``train_<method>@<seed>`` run the training loops: a fraction of a GPU each.
-TRAIN_PREFIX = "train_"
+TEACHER_STAGE = "teacher"  # one whole GPU per task
+TRAIN_PREFIX = "train_"  # train_<method>@<seed>: a fraction of a GPU each
 
 
 def parse_dot(text: str) -> tuple[list[str], dict[str, set[str]]]:
-    """``dvc dag --dot`` -> (stages in DVC's order, {stage: its upstream stages}).  Nodes that are
-    ``.dvc`` files (imported data, not stages) are dropped."""
+    """``dvc dag --dot`` -> (stages in DVC's order, {stage: its upstream stages}), ``.dvc`` file nodes dropped."""
     order: list[str] = []
     needs: dict[str, set[str]] = {}
 
@@ -43,60 +35,55 @@ def parse_dot(text: str) -> tuple[list[str], dict[str, set[str]]]:
     return keep, {n: {u for u in needs[n] if u in needs and not u.endswith(".dvc")} for n in keep}
 
 
-def downstream(needs: Mapping[str, set[str]], roots: Iterable[str]) -> set[str]:
-    """``roots`` and every stage that depends on one of them, directly or not."""
+def _children(needs: Mapping[str, set[str]]) -> dict[str, set[str]]:
     children: dict[str, set[str]] = {n: set() for n in needs}
     for n, ups in needs.items():
         for u in ups:
             children[u].add(n)
-    seen, todo = set(), [r for r in roots if r in needs]
-    while todo:
-        n = todo.pop()
-        if n not in seen:
-            seen.add(n)
-            todo.extend(children[n])
-    return seen
+    return children
 
 
-def upstream(needs: Mapping[str, set[str]], roots: Iterable[str]) -> set[str]:
-    """``roots`` and every stage they depend on, directly or not."""
+def _reach(edges: Mapping[str, Iterable[str]], roots: Iterable[str]) -> set[str]:
     seen, todo = set(), list(roots)
     while todo:
         n = todo.pop()
         if n not in seen:
             seen.add(n)
-            todo.extend(needs.get(n, ()))
+            todo.extend(edges.get(n, ()))
     return seen
 
 
+def downstream(needs: Mapping[str, set[str]], roots: Iterable[str]) -> set[str]:
+    """``roots`` and every stage that depends on one of them, directly or not."""
+    return _reach(_children(needs), [r for r in roots if r in needs])
+
+
+def upstream(needs: Mapping[str, set[str]], roots: Iterable[str]) -> set[str]:
+    """``roots`` and every stage they depend on, directly or not."""
+    return _reach(needs, roots)
+
+
 def to_submit(needs: Mapping[str, set[str]], stale: Iterable[str], targets: Iterable[str] = ()) -> set[str]:
-    """The stages to hand to ``dvc repro --single-item``: the stale ones and everything downstream of
-    them (a rerun upstream stage may change their deps; DVC decides when each one's turn comes),
-    within ``targets`` and their upstream stages when targets are given."""
+    """The stale stages and everything downstream of them (DVC decides at each one's turn), within
+    ``targets`` and their upstream stages when given."""
     chosen = downstream(needs, stale)
     targets = list(targets)
     return chosen & upstream(needs, targets) if targets else chosen
 
 
 def subgraph(needs: Mapping[str, set[str]], keep: set[str]) -> dict[str, set[str]]:
-    """``needs`` restricted to ``keep``, keeping order constraints through dropped stages (a kept
-    stage waits for every kept stage upstream of it)."""
-    out = {}
-    for n in keep:
-        ups = upstream(needs, needs[n]) & keep
-        out[n] = ups
-    return out
+    """``needs`` restricted to ``keep``: a kept stage waits for every kept stage upstream of it."""
+    return {n: upstream(needs, needs[n]) & keep for n in keep}
 
 
 def exclusive_stage(name: str) -> bool:
-    """True for a stage that measures wall time (the catalogue's ``exclusive``: ``benchmark``)."""
+    """True for a stage that measures wall time (the catalogue's ``exclusive``)."""
     spec = STAGES.get(name.split("@", 1)[0])
     return bool(spec and spec.exclusive)
 
 
 def run_alone(needs: Mapping[str, set[str]]) -> dict[str, set[str]]:
-    """Exclusive stages after every stage that does not depend on them: nothing runs beside them
-    (their own downstream stages wait for them anyway)."""
+    """Exclusive stages after every stage that does not depend on them, so nothing runs beside them."""
     out = {n: set(u) for n, u in needs.items()}
     for x in (n for n in needs if exclusive_stage(n)):
         after = downstream(needs, [x])
@@ -123,13 +110,9 @@ def topological(needs: Mapping[str, set[str]], order: Iterable[str] = ()) -> lis
 
 
 def remaining_path(needs: Mapping[str, set[str]], costs: Mapping[str, float] | None = None) -> dict[str, float]:
-    """Per stage: its cost plus the longest chain of costs downstream of it (``costs``: seconds it
-    took last time, 1 per stage without)."""
+    """Per stage: its cost (seconds last time, else 1) plus the longest chain of costs downstream of it."""
     costs = costs or {}
-    children: dict[str, set[str]] = {n: set() for n in needs}
-    for n, ups in needs.items():
-        for u in ups:
-            children[u].add(n)
+    children = _children(needs)
     path: dict[str, float] = {}
     for n in reversed(topological(needs)):
         path[n] = float(costs.get(n, 1.0)) + max((path[c] for c in children[n]), default=0.0)
@@ -138,8 +121,7 @@ def remaining_path(needs: Mapping[str, set[str]], costs: Mapping[str, float] | N
 
 def submission_order(needs: Mapping[str, set[str]], costs: Mapping[str, float] | None = None,
                      order: Iterable[str] = ()) -> list[str]:
-    """Upstream stages first; among stages whose upstream stages are all earlier, the longest remaining
-    path first (Ray starts ready tasks roughly in submission order), then DVC's order."""
+    """Upstream stages first; among the ready ones the longest remaining path first, then DVC's order."""
     path = remaining_path(needs, costs)
     rank = {n: i for i, n in enumerate(order)}
     left = {n: set(u) for n, u in needs.items()}
@@ -158,10 +140,7 @@ def submission_order(needs: Mapping[str, set[str]], costs: Mapping[str, float] |
 
 @dataclasses.dataclass(frozen=True)
 class Sizing:
-    """What the cluster offers and what a stage may take: ``node_cpus`` (the largest node's CPUs),
-    ``gpus`` (in all), ``stage_cpus`` (a CPU stage), ``train_gpu_fraction``, ``train_threads`` (params
-    ``train.num_threads``: the torch threads a training run pins whatever OMP_NUM_THREADS says; 0 = not
-    pinned)."""
+    """What the cluster offers and what a stage may take (``train_threads``: train.num_threads, 0 = not pinned)."""
 
     node_cpus: float
     gpus: float = 0.0
@@ -171,14 +150,7 @@ class Sizing:
 
 
 def stage_resources(name: str, size: Sizing) -> dict[str, float]:
-    """Ray resources of one stage's task: ``{"num_cpus": c, "num_gpus": g}``.
-
-    With GPUs in the cluster: the teacher takes one GPU and one CPU, a training run
-    ``train_gpu_fraction`` of a GPU and one CPU.  Every other stage (and every stage without GPUs) takes
-    ``stage_cpus`` cores; an exclusive stage takes a whole node's cores (it runs alone anyway).  Without
-    GPUs a training run takes at least its pinned ``train_threads`` cores (at most a node's): the
-    published profiles pin 2 threads, and two such runs on the two cores a default ``stage_cpus`` of 1
-    would give them ran four busy threads on two cores, each run several times slower."""
+    """Ray resources of one stage's task, ``{"num_cpus", "num_gpus"}`` (the rules: docs/scaling.md)."""
     base = name.split("@", 1)[0]
     if size.gpus > 0 and base == TEACHER_STAGE:
         return {"num_cpus": 1.0, "num_gpus": 1.0}
@@ -193,8 +165,7 @@ def stage_resources(name: str, size: Sizing) -> dict[str, float]:
 
 
 def outcome(log_text: str) -> str:
-    """What ``dvc repro --single-item`` did, from its output: ``ran`` | ``restored`` (DVC's run
-    cache) | ``up_to_date``."""
+    """What ``dvc repro --single-item`` did: ``ran`` | ``restored`` (run cache) | ``up_to_date``."""
     if "Running stage" in log_text:
         return "ran"
     if "is cached" in log_text:

@@ -163,7 +163,7 @@ def tau_text(tau: float | None) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class Endpoint:
-    """One difference a report can test: ``treatment`` - ``control`` in ``metric`` on ``group`` at ``threshold_mode``."""
+    """One difference a report can test: ``treatment`` - ``control`` in ``metric`` on ``group``."""
 
     group: str
     treatment: str
@@ -435,9 +435,9 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
             + _vote_finding(vote, summary, c) + _size_finding(metrics, c) + _swing_finding(logs, c))
 
 
-NOISE_FLOOR_NOT_MEASURED = ("noise floor not measured in this report's configuration (recipe, resolution, data sizes): "
-                            "the verdicts rest on the CI and the multiplicity rule alone; a floor measured elsewhere is "
-                            "never applied (python -m benchmarks.stability --noise-floor measures one)")
+NOISE_FLOOR_NOT_MEASURED = ("noise floor not measured in this report's configuration (recipe, resolution, data "
+                            "sizes): the verdicts rest on the CI and the multiplicity rule alone; a floor measured "
+                            "elsewhere is never applied (python -m benchmarks.stability --noise-floor measures one)")
 
 
 def noise_floor_records(doc: dict | None) -> dict[str, dict]:
@@ -450,7 +450,7 @@ def noise_floor_records(doc: dict | None) -> dict[str, dict]:
 
 
 def noise_floor_key(recipe: str, profile: str | None = None, resolution: int | None = None) -> str:
-    """A record's key in reports/noise_floor.json: the recipe for the demo profile, else ``<recipe>@<profile>-<res>``."""
+    """A record's key in reports/noise_floor.json: the recipe (demo profile), else ``<recipe>@<profile>-<res>``."""
     if profile in (None, "demo"):
         return recipe
     return f"{recipe}@{profile}-{resolution}"

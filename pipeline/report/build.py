@@ -119,7 +119,7 @@ def gain_interval(summary) -> str | None:
 
 
 def recorded_fixed_tau(thresholds, metrics) -> float | None:
-    """calibrate.fixed_tau of this run: thresholds' ``fixed_tau``, else the fixed-mode rows' tau; None unless one value."""
+    """calibrate.fixed_tau as recorded in thresholds, else in the fixed-mode metrics; None unless one value."""
     for art, column, rows in ((thresholds, "fixed_tau", None), (metrics, "tau", "fixed")):
         if art is None or column not in art.df.columns:
             continue
@@ -559,7 +559,8 @@ def gate_extremes(g: np.ndarray, n_images: int) -> np.ndarray:
     return np.asarray([*low, *high], dtype=np.int64)
 
 
-def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu", methods: tuple[str, ...] = (BASELINE, PROPOSED)) -> list:
+def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu",
+                        methods: tuple[str, ...] = (BASELINE, PROPOSED)) -> list:
     """Without any mask: the students' masks beside their pseudo-labels (the vote M) for the lowest- and the
     highest-gate training images (:func:`gate_extremes`), at each run's fixed tau; agreement, not accuracy."""
     miss = [inp.missing[n] for n in ("thresholds", "images", "consensus", "gates", "manifest") if n in inp.missing]
@@ -675,7 +676,8 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
 
 
 def provenance_section(inp: Inputs) -> Section:
-    rows = [[f"`{catalog.ARTIFACTS[n].path}`", a.meta.schema, a.meta.stage, a.fingerprint[:16]] for n, a in inp.found.items()]
+    rows = [[f"`{catalog.ARTIFACTS[n].path}`", a.meta.schema, a.meta.stage, a.fingerprint[:16]]
+            for n, a in inp.found.items()]
     rows += [[f"`{catalog.ARTIFACTS[n].path}`", "--", "--",
               "not computed (no masks)" if inp.no_masks and n in MASK_INPUTS else "missing"] for n in inp.missing]
     return Section("Provenance", [Table("tab:provenance", "Input artifacts", ["Artifact", "Schema", "Stage",

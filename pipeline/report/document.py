@@ -144,7 +144,8 @@ def render_html(report: Report) -> str:
                 parts.append(f'<div class="missing"><b>Missing: {html.escape(b.what)}.</b> {_inline(b.detail)}</div>')
             elif isinstance(b, Table):
                 parts.append(f'<table data-key="{html.escape(b.key)}"><caption>{_inline(b.title)}</caption>')
-                parts.append("<thead><tr>" + "".join(f"<th>{_inline(h)}</th>" for h in b.header) + "</tr></thead><tbody>")
+                parts.append("<thead><tr>" + "".join(f"<th>{_inline(h)}</th>" for h in b.header)
+                             + "</tr></thead><tbody>")
                 for r in b.rows:
                     parts.append("<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>")
                 parts.append("</tbody></table>")

@@ -38,8 +38,8 @@ def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
     for method, seed, ckpt in opened_runs(checkpoints):
         meta = ckpt.meta
         extra = meta.extra or {}
-        out.append({"method": method, "seed": int(seed), "recipe": (meta.params.get("params") or {}).get("train.recipe"),
-                    "precision": extra.get("autocast"),
+        out.append({"method": method, "seed": int(seed),
+                    "recipe": (meta.params.get("params") or {}).get("train.recipe"), "precision": extra.get("autocast"),
                     "runtime": extra.get("runtime"), "torch": (meta.library_versions or {}).get("torch")})
     return out
 

@@ -1,30 +1,15 @@
-"""Figures drawn with matplotlib (PNG for the HTML page, SVG for papers): line charts and grids of image
-panels.  Both are ``matplotlib.figure.Figure`` objects on the Agg canvas (no pyplot, no global figure
-state); :func:`png_bytes` and :func:`svg_bytes` encode them.  The pixels inside an image panel (error
-overlays, agreement and SDF colour maps, skeletons) are computed with numpy and OpenCV as RGB uint8
-tiles -- they are image content, raster by nature -- and laid out, captioned and titled by matplotlib
-(:func:`image_grid`), so the captions are text in the SVG.
+"""Figures drawn with matplotlib on the Agg canvas (PNG for the page, SVG for papers), byte-identical across
+renders; image panels are numpy/OpenCV RGB tiles captioned by matplotlib.
 
-Series styles come from the method table (:class:`pipeline.methods.Method` ``color``, ``dash``,
-``symbol``) through :func:`method_style`.  No series hides another: each method has its own colour,
-line style and marker; earlier series are drawn wider and under later ones, and every line is slightly
-transparent, so two identical curves (e.g. the budget-matched continuation under GeoDistill-Refine)
-show as a coloured band with both markers.
-
-Determinism: the SVG carries no date (``metadata={"Date": None}``) and its element ids are salted
-with a fixed ``svg.hashsalt``; the PNG carries no software tag.  Two renders of the same data are
-byte-identical (with or without SOURCE_DATE_EPOCH).
-
-Colour conventions of the image panels (paper Fig. qualitative-results / prompt-comparison):
-  true positive green, false positive red, false negative blue (alpha-blended over the image),
-  ground-truth contour yellow.  Agreement map: viridis in [0, 1].  SDF (eq:sdf-target, D = d_in - d_out
-  normalised): red inside (positive) - white (boundary) - blue outside (negative), symmetric around 0.
+Panel colours (paper Fig. qualitative-results): true positive green, false positive red, false negative
+blue, ground-truth contour yellow; agreement map viridis; SDF (eq:sdf-target) red inside, blue outside.
 """
 
 from __future__ import annotations
 
+import contextlib
 import io
-from typing import Mapping, Sequence
+from typing import Iterator, Mapping, Sequence
 
 import cv2
 import matplotlib
@@ -42,22 +27,18 @@ FN = (40, 90, 240)
 GT_CONTOUR = (255, 230, 0)
 WHITE = (255, 255, 255)
 BLACK = (0, 0, 0)
-# distinct line colours (RGB) for plots of series that are not methods
 PALETTE = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189),
            (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
 UNKNOWN_METHOD = {"color": "#5a5a5a", "style": "solid", "symbol": "."}
 REFERENCE_LINE = (170, 170, 170)  # diagonals and "ratio = 1" lines
-#: chart text sizes (points): legible at the page's width and in a two-column paper
 CHART_FONT = {"font.size": 10, "axes.titlesize": 11, "axes.labelsize": 10, "xtick.labelsize": 9,
               "ytick.labelsize": 9, "legend.fontsize": 8.5}
-#: fixed salt of the SVG's element ids (matplotlib otherwise draws them at random)
 SVG_RC = {"svg.hashsalt": "geodistill-refine", "svg.fonttype": "path"}
 PNG_DPI = 120
 
 
 def method_style(method: str) -> dict:
-    """``{"color", "style", "symbol"}`` of a method's series, read from the method table
-    (:data:`pipeline.methods.METHODS`); names not in it (e.g. the teacher vote): grey dots."""
+    """A method's series style from the method table; grey dots for other names (e.g. the teacher vote)."""
     m = METHODS.get(method)
     if m is None:
         return dict(UNKNOWN_METHOD)
@@ -65,8 +46,6 @@ def method_style(method: str) -> dict:
 
 
 def png_bytes(fig: Chart) -> bytes:
-    """PNG bytes of a figure (:func:`line_plot`, :func:`image_grid`): no software tag (byte-identical
-    across renders)."""
     return _save(fig, "png")
 
 
@@ -85,13 +64,12 @@ def to_rgb(image: np.ndarray) -> np.ndarray:
 
 
 def mask_tile(mask: np.ndarray, size: int) -> np.ndarray:
-    """A binary mask as a white-on-black tile."""
     m = _resize(np.asarray(mask, dtype=np.uint8) * 255, size, nearest=True)
     return np.repeat(m[..., None], 3, axis=2)
 
 
 def draw_contour(rgb: np.ndarray, mask: np.ndarray, color=GT_CONTOUR, thickness: int = 1) -> np.ndarray:
-    """Draw the outer and hole contours of a binary mask (already at ``rgb``'s size) in place."""
+    """Draw the outer and hole contours of a binary mask (at ``rgb``'s size) in place."""
     contours, _ = cv2.findContours(np.asarray(mask, dtype=np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     cv2.drawContours(rgb, contours, -1, color, thickness, lineType=cv2.LINE_8)
     return rgb
@@ -99,7 +77,6 @@ def draw_contour(rgb: np.ndarray, mask: np.ndarray, color=GT_CONTOUR, thickness:
 
 def error_overlay(image: np.ndarray, pred: np.ndarray, gt: np.ndarray, size: int, alpha: float = 0.55,
                   contour: bool = True) -> np.ndarray:
-    """Image with TP green, FP red, FN blue blended in and the ground-truth contour in yellow."""
     img = _resize(to_rgb(image), size, nearest=False).astype(np.float32)
     p = _resize(np.asarray(pred, dtype=np.uint8), size, nearest=True).astype(bool)
     g = _resize(np.asarray(gt, dtype=np.uint8), size, nearest=True).astype(bool)
@@ -112,7 +89,7 @@ def error_overlay(image: np.ndarray, pred: np.ndarray, gt: np.ndarray, size: int
 
 
 def colorize(values: np.ndarray, size: int, vmin: float, vmax: float, kind: str = "viridis") -> np.ndarray:
-    """Map a float array to RGB: ``viridis`` (sequential) or ``diverging`` (blue-white-red around 0)."""
+    """A float array as RGB: ``viridis`` or ``diverging`` (blue-white-red around 0)."""
     v = np.asarray(values, dtype=np.float32)
     t = np.clip((v - vmin) / max(vmax - vmin, 1e-12), 0.0, 1.0)
     t = _resize(t, size, nearest=False)
@@ -129,7 +106,6 @@ def colorize(values: np.ndarray, size: int, vmin: float, vmax: float, kind: str 
 
 
 def skeleton_overlay(image: np.ndarray, mask: np.ndarray, skeleton: np.ndarray, size: int) -> np.ndarray:
-    """Image darkened outside the mask, with the skeleton drawn in magenta (dilated to stay visible)."""
     img = _resize(to_rgb(image), size, nearest=False).astype(np.float32)
     m = _resize(np.asarray(mask, dtype=np.uint8), size, nearest=True).astype(bool)
     img[~m] *= 0.35
@@ -142,9 +118,6 @@ def skeleton_overlay(image: np.ndarray, mask: np.ndarray, skeleton: np.ndarray, 
     return out
 
 
-# --------------------------------------------------------------------------------------------------
-# Composite panels
-# --------------------------------------------------------------------------------------------------
 #: one tile of :func:`image_grid`: an RGB uint8 image and its caption lines
 Tile = tuple[np.ndarray, Sequence[str]]
 
@@ -152,9 +125,7 @@ Tile = tuple[np.ndarray, Sequence[str]]
 def qualitative_row(image: np.ndarray, gt: np.ndarray, preds: Mapping[str, np.ndarray],
                     scores: Mapping[str, str], title: str, size: int = 160,
                     reference: Sequence[str] = ("ground truth", "(yellow contour)")) -> list[Tile]:
-    """One row of :func:`image_grid`: image | image + reference contour | one TP/FP/FN overlay per
-    method (caption: its metrics).  ``reference``: the caption of the mask ``gt`` (a pseudo-label when
-    there is no true mask)."""
+    """One row of :func:`image_grid`: image | reference contour | a TP/FP/FN overlay per method."""
     img = _resize(to_rgb(image), size, nearest=False)
     gt_view = draw_contour(img.copy(), _resize(np.asarray(gt, np.uint8), size, nearest=True))
     tiles = [(img, [title]), (gt_view, list(reference))]
@@ -166,9 +137,7 @@ def qualitative_row(image: np.ndarray, gt: np.ndarray, preds: Mapping[str, np.nd
 def pseudo_target_row(image: np.ndarray, prompt_masks: np.ndarray, prompt_labels: Sequence[str],
                       agreement: np.ndarray, voted: np.ndarray, sdf: np.ndarray, skeleton: np.ndarray,
                       gate_text: Sequence[str], title: str, size: int = 128) -> list[Tile]:
-    """One row of :func:`image_grid` (paper Fig. pseudo-geometry): image, K prompt masks, agreement A,
-    voted M, SDF D, skeleton K over the image, and the gate's numbers (c, v, a, g) in the image tile's
-    caption."""
+    """One row of :func:`image_grid` (paper Fig. pseudo-geometry): image, prompt masks, A, M, D and K."""
     tiles = [(_resize(to_rgb(image), size, nearest=False), [title, *gate_text])]
     for m, lab in zip(prompt_masks, prompt_labels):
         tiles.append((mask_tile(m, size), [lab]))
@@ -179,21 +148,18 @@ def pseudo_target_row(image: np.ndarray, prompt_masks: np.ndarray, prompt_labels
     return tiles
 
 
-#: image panels: least inches per tile, caption size (points; legible at the page's width) and the widest
-#: a tile grows for its caption (a longer caption line wraps: :func:`wrap_caption`)
+#: image panels: least inches per tile, caption points and the widest a tile grows before a caption wraps
 TILE_INCHES = 1.45
 CAPTION_FONT = 8.5
 MAX_TILE_INCHES = 2.4
 
 
 def caption_inches(line: str) -> float:
-    """The width of ``line`` at the caption font, in inches."""
     return TextPath((0, 0), line, size=CAPTION_FONT).get_extents().width / 72.0 if line.strip() else 0.0
 
 
 def wrap_caption(line: str, width: float = MAX_TILE_INCHES) -> list[str]:
-    """``line`` as lines of at most ``width`` inches at the caption font, broken at spaces and, where one
-    word alone is wider than a line, inside it: the whole text, never cut."""
+    """``line`` wrapped to ``width`` inches at the caption font (inside a word wider than a line): never cut."""
     def fits(text: str) -> bool:
         return caption_inches(text) <= width
 
@@ -215,10 +181,8 @@ def wrap_caption(line: str, width: float = MAX_TILE_INCHES) -> list[str]:
 
 
 def image_grid(rows: Sequence[Sequence[Tile]], tile_inches: float = TILE_INCHES) -> Chart:
-    """Rows of image tiles as one figure: each tile shown pixel for pixel (nearest interpolation, no
-    axes), its caption lines above it as text; rows of unequal length leave the right cells empty.
-    Tiles are at least ``tile_inches`` wide, and wider where a caption line needs it (up to
-    :data:`MAX_TILE_INCHES`, beyond which the line wraps), so no caption is cut or runs into the next tile's."""
+    """Rows of image tiles as one figure, each pixel for pixel with its caption above; tiles widen (up to
+    :data:`MAX_TILE_INCHES`, then captions wrap) so no caption is cut or runs into the next."""
     rows = [[(tile, [part for line in cap for part in wrap_caption(line)]) for tile, cap in row] for row in rows]
     nrows = len(rows)
     ncols = max((len(r) for r in rows), default=1)
@@ -248,12 +212,11 @@ def image_grid(rows: Sequence[Sequence[Tile]], tile_inches: float = TILE_INCHES)
 
 
 def svg_bytes(fig: Chart) -> bytes:
-    """SVG bytes of a chart: no date, fixed element ids (byte-identical across renders)."""
     return _save(fig, "svg")
 
 
 def _save(fig: Chart, fmt: str) -> bytes:
-    """Render ``fig`` in ``fmt`` (png | svg | pdf) without any timestamp or random id."""
+    """``fig`` in ``fmt`` (png | svg | pdf) without any timestamp or random id."""
     metadata = {"png": {"Software": None}, "svg": {"Date": None}, "pdf": {"CreationDate": None}}[fmt]
     buf = io.BytesIO()
     with matplotlib.rc_context({**CHART_FONT, **SVG_RC}):
@@ -262,27 +225,32 @@ def _save(fig: Chart, fmt: str) -> bytes:
 
 
 def _mpl_color(color) -> str | tuple:
-    """A colour as matplotlib takes it: hex strings pass, RGB 0..255 tuples are scaled to 0..1."""
     if isinstance(color, str):
         return color
     return tuple(float(c) / 255.0 for c in color)
 
 
-def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, width: int = 640,
-              height: int = 380, ylim: tuple[float, float] | None = None) -> Chart:
-    """A line chart (matplotlib, Agg canvas).  ``series``: dicts with ``x``, ``y``, ``label`` and
-    optional ``marker`` (an x value to mark with a large dot, e.g. the selected threshold), ``color``
-    (hex or RGB 0..255), ``style`` (matplotlib line style: solid, dashed, dashdot, dotted) and
-    ``symbol`` (matplotlib marker drawn along the line), ``key`` (the series' SVG id is
-    ``series-<key>``; default ``series-<i>``).  The axes are ``width`` x ``height`` px at
-    100 px per inch; the legend sits right of them and the saved image grows to hold it in full.
-
-    Series ``i`` of ``n`` is drawn wider than the ones after it and below them, and all lines are
-    slightly transparent, so a series that coincides with a later one still shows around it."""
+@contextlib.contextmanager
+def _chart(width: int, height: int, title: str, xlabel: str, ylabel: str, **grid) -> Iterator[tuple[Chart, object]]:
+    """(figure, axes) of ``width`` x ``height`` px axes, titled and gridded after the body draws."""
     with matplotlib.rc_context(CHART_FONT):
         fig = Chart(figsize=(width / 100.0, height / 100.0), dpi=100)
         FigureCanvasAgg(fig)
         ax = fig.add_subplot()
+        yield fig, ax
+        ax.set_title(title)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(True, color="#dddddd", linewidth=0.6, **grid)
+        ax.set_axisbelow(True)
+
+
+def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, width: int = 640,
+              height: int = 380, ylim: tuple[float, float] | None = None) -> Chart:
+    """A line chart of ``series`` (dicts: ``x``, ``y``, ``label``, optional ``marker`` (an x to dot), ``color``,
+    ``style``, ``symbol``, ``key`` (SVG id ``series-<key>``)), axes ``width`` x ``height`` px, legend at the
+    right.  Earlier series are drawn wider and under later ones, so coinciding curves both show."""
+    with _chart(width, height, title, xlabel, ylabel) as (fig, ax):
         n = len(series)
         for i, s in enumerate(series):
             _draw_series(ax, s, i, n)
@@ -290,11 +258,6 @@ def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, widt
             ax.set_ylim(*ylim)
         if series and all(_integral(s["x"]) for s in series):      # epochs: whole-number ticks
             ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-        ax.set_title(title)
-        ax.set_xlabel(xlabel)
-        ax.set_ylabel(ylabel)
-        ax.grid(True, color="#dddddd", linewidth=0.6)
-        ax.set_axisbelow(True)
         if n:
             ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, frameon=False,
                       handlelength=3.0)
@@ -302,34 +265,23 @@ def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, widt
 
 
 def histogram(values, bins, title: str, xlabel: str, ylabel: str, width: int = 640, height: int = 300) -> Chart:
-    """A histogram of ``values`` over the bin edges ``bins`` (matplotlib, Agg canvas; axes ``width`` x
-    ``height`` px at 100 px per inch), whole-number counts on the y axis."""
+    """A histogram of ``values`` over the bin edges ``bins``, whole-number counts on the y axis."""
     counts, edges = np.histogram(np.asarray(values, float), bins=np.asarray(bins, float))
-    with matplotlib.rc_context(CHART_FONT):
-        fig = Chart(figsize=(width / 100.0, height / 100.0), dpi=100)
-        FigureCanvasAgg(fig)
-        ax = fig.add_subplot()
+    with _chart(width, height, title, xlabel, ylabel, axis="y") as (fig, ax):
         ax.bar(edges[:-1], counts, width=np.diff(edges), align="edge", color=_mpl_color(PALETTE[0]),
                edgecolor="white", linewidth=0.6, gid="histogram")
         ax.yaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_xlim(float(edges[0]), float(edges[-1]))
-        ax.set_title(title)
-        ax.set_xlabel(xlabel)
-        ax.set_ylabel(ylabel)
-        ax.grid(True, axis="y", color="#dddddd", linewidth=0.6)
-        ax.set_axisbelow(True)
     return fig
 
 
 def _integral(values) -> bool:
-    """Whether every finite value is a whole number (e.g. epochs)."""
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
     return bool(v.size) and bool(np.all(v == np.round(v)))
 
 
 def _draw_series(ax, s: dict, i: int, n: int) -> None:
-    """One series of :func:`line_plot`: its line with symbols every few points, and its marked point."""
     color = _mpl_color(s.get("color", PALETTE[i % len(PALETTE)]))
     x = np.asarray(s["x"], float)
     y = np.asarray(s["y"], float)

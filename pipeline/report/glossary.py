@@ -23,8 +23,8 @@ TERMS = (
                     "claimed only when its confidence interval clears it."),
     ("primary endpoint", f"The one comparison fixed before the results were seen: {_E.group}, "
                          f"{method_label(_E.treatment)} − {method_label(_E.control)}, Image IoU at the "
-                         "threshold calibrated on the validation images.  It is tested on its own; every other difference is "
-                         "exploratory and corrected for the number of comparisons."),
+                         "threshold calibrated on the validation images.  It is tested on its own; every other "
+                         "difference is exploratory and corrected for the number of comparisons."),
     ("lockbox", "A test group kept aside until the method is frozen and then evaluated once, so that no choice "
                 "was tuned on it."),
     (_E.group, "A test group of spacecraft seen in neither training nor validation, named as in "

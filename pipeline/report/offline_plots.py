@@ -1,18 +1,8 @@
 """DVC plots that draw one line per method and render without network.
 
-* :data:`METHOD_LINES` is the Vega-Lite template that the ``plots:`` of dvc.yaml name
-  (``template: method_lines``; DVC looks for ``.dvc/plots/method_lines.json``, committed, written by
-  :func:`template_text`).  It colours by the data's ``method`` column and averages ``y`` over the
-  other rows at the same ``x`` (the seeds), so each method is ONE line, and it dashes by DVC's
-  ``rev`` field, so ``dvc plots diff HEAD~1`` shows each method once per revision.  It asks
-  vega-embed for the SVG renderer (the marks are then elements of the page, which tests count).
-* :func:`offline_page` is the HTML page for ``dvc plots show --html-template``.  DVC's own page
-  loads vega, vega-lite and vega-embed from a CDN (``dvc_render.vega.VegaRenderer.SCRIPTS``) and is
-  blank offline; this page inlines the same major versions (vega 5, vega-lite 5, vega-embed 6) read
-  from the installed ``django-js-lib-vega-embed`` package (:func:`vega_scripts`; the package is
-  the three upstream JS files and needs no Django at run time) and has no ``{scripts}`` placeholder,
-  so DVC adds no CDN tag.  ``geodistill plots`` (pipeline/cli/plots.py) writes it to a temp file and runs
-  ``dvc plots show`` / ``dvc plots diff`` with it.
+:data:`METHOD_LINES` is the Vega-Lite template dvc.yaml's ``plots:`` name (committed as
+``.dvc/plots/method_lines.json``); :func:`offline_page` is a ``dvc plots show --html-template`` page that
+inlines the chart library from an installed package, where DVC's own page loads it from a CDN.
 """
 
 from __future__ import annotations
@@ -25,12 +15,11 @@ from typing import Sequence
 from pipeline.catalog import PLOT_TEMPLATE
 from pipeline.runtime.errors import InputError
 
-#: the installed package whose files are the chart library, and its files in load order
+#: the installed package whose files are the chart library (vega 5, vega-lite 5, vega-embed 6), in load order
 VEGA_PACKAGE = "js_lib_vega_embed"
 VEGA_FILES = ("vega5.js", "vega-lite5.js", "vega-embed6.js")
 
-#: 20 distinct line colours: Vega's tableau20 with its ten saturated colours first, then their light
-#: partners (the scheme itself alternates dark/light pairs, so two methods would get two blues)
+#: Vega's tableau20, saturated colours first (the scheme alternates dark/light pairs: two methods, two blues)
 COLOURS = ("#4c78a8", "#f58518", "#54a24b", "#b79a20", "#439894", "#e45756", "#79706e", "#d67195", "#b279a2",
            "#9e765f", "#9ecae9", "#ffbf79", "#88d27a", "#f2cf5b", "#83bcb6", "#ff9d98", "#bab0ac", "#fcbfd2",
            "#d6a5c9", "#d8b5a5")
@@ -63,8 +52,7 @@ def template_path(repo_root: str | Path) -> Path:
 
 
 def vega_scripts() -> list[tuple[str, str]]:
-    """``[(file name, JavaScript)]`` of :data:`VEGA_FILES` from the installed :data:`VEGA_PACKAGE`;
-    InputError when it is not installed."""
+    """``[(file name, JavaScript)]`` of :data:`VEGA_FILES`; InputError when the package is not installed."""
     spec = importlib.util.find_spec(VEGA_PACKAGE)
     if spec is None or not spec.submodule_search_locations:
         raise InputError(f"{VEGA_PACKAGE}: not installed (pip install django-js-lib-vega-embed); "
@@ -80,13 +68,12 @@ def vega_scripts() -> list[tuple[str, str]]:
 
 
 def _inline(code: str) -> str:
+    # the same string to JavaScript, but it cannot end the element early
     return code.replace("</script", "<\\/script")
 
 
 def offline_page(scripts: Sequence[tuple[str, str]], title: str = "GeoDistill-Refine plots") -> str:
-    """A ``dvc plots show --html-template`` page: ``scripts`` inlined in order, DVC's plots at
-    ``{plot_divs}``.  A ``</script`` inside the code is written ``<\\/script`` (the same string to
-    JavaScript) so that it cannot end the element early."""
+    """A ``dvc plots show --html-template`` page: ``scripts`` inlined (no ``{scripts}``: DVC adds no CDN tag)."""
     blocks = "\n".join(f"<script>/* {name} */\n{_inline(code)}\n</script>" for name, code in scripts)
     return ("<!DOCTYPE html>\n<html>\n<head>\n<meta charset=\"utf-8\">\n"
             f"<title>{title}</title>\n{blocks}\n"
@@ -96,9 +83,7 @@ def offline_page(scripts: Sequence[tuple[str, str]], title: str = "GeoDistill-Re
 
 def dvc_plots_command(page: str | Path, out: str | Path, revs: Sequence[str] = (),
                       targets: Sequence[str] = (), open_browser: bool = False) -> list[str]:
-    """The ``dvc plots show`` (no ``revs``) or ``dvc plots diff REV...`` arguments (after ``dvc``)
-    that render ``targets`` (all plots of dvc.yaml when empty) with the page template ``page``
-    into ``out``/index.html."""
+    """The ``dvc plots show`` (no ``revs``) or ``dvc plots diff REV...`` arguments rendering into ``out``."""
     cmd = ["plots", "diff", *revs] if revs else ["plots", "show"]
     if targets:
         cmd += ["--targets", *targets] if revs else list(targets)

@@ -341,7 +341,8 @@ def efficiency_table(eff: pd.DataFrame) -> Table:
                      *(fmt(r[c]) if isinstance(r[c], (float, np.floating)) else str(r[c]) for c in extra)])
     return Table("tab:efficiency", "Computational efficiency of the deployed student",
                  ["Variant", "Parameters", "GFLOPs", "Latency (ms/image)", "Throughput (image/s)", "Peak memory (MB)"]
-                 + [labels[c] for c in extra], rows, ["Measured by the benchmark stage on this machine; latency (batch 1, median, timed round-robin "
+                 + [labels[c] for c in extra], rows,
+                 ["Measured by the benchmark stage on this machine; latency (batch 1, median, timed round-robin "
                   "across the variants), throughput and memory at the Resolution column, excluding disk input; "
                   "the IoU columns on the validation images at the model's working resolution"
                   + ("." if "iou_delta" in extra else " (left out: no validation images with masks).")])
@@ -417,10 +418,10 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
                  f"({mode_text(mode, fixed_tau)} for the students)",
                  ["Evaluation set", "Predictor", "Image IoU", "Boundary F1", "Precision", "Recall", "Seeds",
                   "IoU ÷ vote"], rows,
-                 [n for n in ["The supervised ceiling is the Plain Student's recipe trained on the training split's REFERENCE "
-                  "masks: it is not annotation-free and is never part of a gain or its confidence interval.  The "
-                  "teacher vote is the pseudo-label every annotation-free student learns from, scored at its own "
-                  "binary mask (no threshold), identical in both threshold modes.",
+                 [n for n in ["The supervised ceiling is the Plain Student's recipe trained on the training split's "
+                  "REFERENCE masks: it is not annotation-free and is never part of a gain or its confidence "
+                  "interval.  The teacher vote is the pseudo-label every annotation-free student learns from, scored "
+                  "at its own binary mask (no threshold), identical in both threshold modes.",
                   "IoU ÷ vote is the distillation efficiency: the seed-mean Image IoU divided by the teacher vote's "
                   "on the same test images, with a 95 % per-seed ratio t interval (the vote has no seed; the "
                   "interval covers training noise, not the sampling of the images).",
@@ -428,7 +429,7 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
 
 
 def efficiency_targets_note(verdicts: Sequence[tuple[str, bool | None]]) -> str:
-    """The distillation-efficiency targets and on how many groups each is met (``verdicts``: (method, met or None))."""
+    """The distillation-efficiency targets and on how many groups each is met (``verdicts``: (method, met))."""
     parts = []
     for m, (target, on_interval) in EFFICIENCY_TARGETS.items():
         judged = [v for mm, v in verdicts if mm == m and v is not None]
@@ -464,8 +465,8 @@ def calibration_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Tabl
                  ["Method", "Calibrated tau", "Val IoU at tau", f"Val IoU at {tau_text(fixed_tau)}", "ECE (pixels)",
                   "Pred./ref. area at tau", f"Pred./ref. area at {tau_text(fixed_tau)}", "Seeds"], rows,
                  ["ECE: expected calibration error of the pixel probabilities over equal-width bins "
-                  "(pipeline.evaluation.diagnostics).  Pred./ref. area: median over validation images of predicted / reference "
-                  "foreground area (1 = no inflation).  Mean ± sample std over seeds."])
+                  "(pipeline.evaluation.diagnostics).  Pred./ref. area: median over validation images of predicted / "
+                  "reference foreground area (1 = no inflation).  Mean ± sample std over seeds."])
 
 
 def epoch_swing_table(swings: pd.DataFrame, fixed_tau: float | None = None) -> Table:

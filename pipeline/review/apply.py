@@ -1,33 +1,8 @@
-"""Apply a ``corrections`` artifact to a run (stage ``corrections``; params ``review``).
+"""Apply a ``corrections`` artifact to a run (stage ``corrections``; params ``review``; docs/own-data.md).
 
-The stage (:func:`corrected_masks`, :func:`write_corrected`) checks the corrections against this run's
-manifest and brings them to the working resolution: the ``corrected`` artifact (Zarr: ``mask`` bool
-[M,R,R] and ``row`` int [M], the manifest rows; attrs ``image_ids`` and ``mode``).  Refused, one line
-(exit 2): an image the manifest does not hold (a corrections artifact from another run), a size that
-is not the manifest's for that image, an image outside the training split (a validation or test
-image's mask is already a reference mask, or is evaluation), and ``validate`` on a benchmark source.
-
-The train stage then reads it in the mode ``review.mode`` (:func:`pipeline.training.inputs.apply_to_training`,
-:func:`~pipeline.training.inputs.apply_to_validation`, called by its ``load_inputs``; they live there so
-that the training stages' code deps -- and the default dvc.yaml -- do not move):
-
-``validate``  the corrected images leave the training set and become validation images with the
-              corrected masks -- checkpoint selection (the train stage), tau (the calibrate stage,
-              :func:`pipeline.evaluation.inference.validation_corrections`) and the report, which says how many --
-              so the student stays annotation-free: a person's masks select and calibrate, never enter
-              the loss.  The test split is untouched (corrections of test images are refused).  Meant for a folder of one's own
-              (``data.source: folder``), whose validation split is drawn from the same pool; on a
-              benchmark source the validation split is spacecraft-disjoint from training, and moving
-              training spacecraft into it would select checkpoints on spacecraft the student trains on
-              -- refused.
-``replace``   the corrected masks replace those images' voted masks as the region target; their gate
-              is g = 1 (the gate measures the teacher's reliability, and the mask is no longer the
-              teacher's), their pseudo-area a and, for the geometry methods, their SDF and skeleton are
-              recomputed from the corrected mask exactly as the geometry stage computes them
-              (:func:`pipeline.augment.recompute_geometry`).  Those students are NOT annotation-free:
-              ``review.human_targets: true`` must allow it, and the checkpoint records it
-              (:func:`pipeline.methods.run_annotation_free`, :data:`pipeline.methods.HUMAN_TARGETS_LABEL`).
-              A corrected image a method's data filter drops stays dropped (counted in the stats).
+The stage checks the corrections against this run's manifest (training images of the right size only)
+and writes them at the working resolution as the ``corrected`` artifact; the train stage reads it in
+``review.mode`` (:mod:`pipeline.training.inputs`).
 """
 
 from __future__ import annotations
@@ -41,16 +16,15 @@ from pipeline.review.corrections import correction_masks
 from pipeline.training.inputs import MODE_KEY, MODES
 
 STAGE = "corrections"
-#: the data sources whose validation split is drawn from the same pool as training (validate is meant for them)
+#: the data sources whose validation split comes from the training pool (``validate`` is meant for them)
 OWN_FOLDER_SOURCES = ("folder",)
 CORRECTIONS = Option("--corrections", "corrections")
 
 
 def corrected_masks(corrections, manifest, resolution: int, mode: str, source: str
                     ) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """(image ids, manifest rows int64 [M], masks bool [M,R,R]) of an opened ``corrections`` artifact
-    checked against an opened ``manifest`` (module docstring) and resized to ``resolution`` by nearest
-    neighbour, as prepare sizes the reference masks; in the artifact's order (the export's rank)."""
+    """(image ids, manifest rows int64 [M], masks bool [M,R,R]) of a ``corrections`` artifact checked against
+    the ``manifest`` and resized to ``resolution`` (nearest, as prepare sizes the reference masks)."""
     if mode not in MODES:
         raise InputError(f"params: {MODE_KEY}={mode!r}: expected one of {', '.join(MODES)}")
     if mode == "validate" and source not in OWN_FOLDER_SOURCES:
@@ -84,6 +58,6 @@ def corrected_masks(corrections, manifest, resolution: int, mode: str, source: s
 
 
 def write_corrected(out, ids: list[str], rows: np.ndarray, masks: np.ndarray, mode: str, meta):
-    """Write the ``corrected`` artifact (module docstring) to ``out``; returns its path."""
+    """Write the ``corrected`` artifact (``mask`` [M,R,R], ``row`` [M]; attrs image_ids, mode); its path."""
     return write_zarr(out, {"mask": masks, "row": rows}, meta, attrs={"image_ids": list(ids), "mode": mode})
 

@@ -1,34 +1,11 @@
 """``geodistill review import SOURCE --review DIR``: corrected masks -> the versioned ``corrections`` artifact.
 
-SOURCE is one of (``fmt="auto"`` tells them apart):
-
-``labelstudio``  Label Studio's JSON export (a list of tasks).  A task belongs to the export when its
-                 ``data.geodistill_export`` is the export id of ``DIR/review.json``; its mask is the
-                 union of the brush (:func:`pipeline.review.formats.ls_rle_decode`) and polygon results
-                 of its last annotation that was not cancelled; a task nobody annotated is not a
-                 correction and is left out (counted).
-``cvat``         CVAT's COCO 1.0 export (``instances_default.json``): images matched by ``file_name``
-                 (the image's path relative to the labelled folder, as exported); an image's mask is the
-                 union of its annotations (polygons, uncompressed or compressed RLE, decoded by
-                 pycocotools).  CVAT lists every image of its task, drawn or not: an image without
-                 annotations is not a correction and is left out (counted), as is one the export does
-                 not hold (a task made of the whole folder).
-``png``          a folder of masks ``<image id>.<png|jpg|tif|bmp>`` (sub-folders as in the image ids),
-                 binarised by the loader's one rule (value > 0).
-
-Refused, with one line naming the file and the image (exit code 2): a task from another export, an
-image the export does not hold (annotated), a mask whose size is not the image's, an empty mask (a spacecraft
-image with no spacecraft is not a correction this pipeline can use), a file that is not one of the
-formats, and no correction at all.
-
-The artifact (schema ``corrections``, catalogue entry ``corrections``) is a Parquet table, one row per
-corrected image: ``image_id, file, width, height``, ``rle`` (compressed COCO RLE counts of the mask at
-the image's own size, :func:`pipeline.labeling.formats.rle_encode`), ``pixels``, ``source`` (the
-format), and ``iou_to_voted`` (Image IoU of the correction and the voted mask it started from: 1 =
-the person changed nothing), with the artifact's meta and fingerprint (stage ``review import``; params:
-the format, the export id and the sha256 of the source's bytes).  These are MANUAL masks: like the
-reference masks they may select, calibrate and evaluate, and never enter the loss of an annotation-free
-method.
+SOURCE is a Label Studio JSON export (tasks of this export: the last annotation not cancelled), a CVAT COCO
+1.0 export (images matched by ``file_name``) or a folder of ``<image id>.png`` masks.  A task or image nobody
+annotated is left out; refused in one line: a task of another export, an unknown image, a mask of another
+size, an empty mask.  The artifact holds one row per corrected image (its mask as compressed COCO RLE at the
+image's size, the source format, ``iou_to_voted``).  These are MANUAL masks: like reference masks they may
+select, calibrate and evaluate, never enter an annotation-free method's loss.
 """
 
 from __future__ import annotations
@@ -73,7 +50,7 @@ def read_review(review_dir: str | Path) -> dict:
 
 
 def detect_format(source: Path) -> str:
-    """``png`` for a folder, else ``labelstudio`` (a JSON list) or ``cvat`` (a JSON object with images)."""
+    """``png`` for a folder, ``labelstudio`` for a JSON list, ``cvat`` for a COCO object."""
     if source.is_dir():
         return "png"
     doc = _read_json(source)
@@ -204,7 +181,7 @@ READERS = {"labelstudio": _labelstudio, "cvat": _cvat, "png": _png}
 
 
 def source_digest(source: Path) -> str:
-    """sha256 of the source's bytes (a folder: of its files' relative paths and bytes, sorted)."""
+    """sha256 of the source's bytes (a folder: its files' relative paths and bytes, sorted)."""
     h = hashlib.sha256()
     files = sorted(p for p in source.rglob("*") if p.is_file()) if source.is_dir() else [source]
     for p in files:
@@ -215,10 +192,8 @@ def source_digest(source: Path) -> str:
 
 def import_corrections(source: str | Path, review_dir: str | Path, out: str | Path, *, fmt: str = "auto",
                        code_version: str = "", overwrite: bool = False):
-    """Read the corrections in ``source`` (module docstring), check them against the export in
-    ``review_dir`` and write the ``corrections`` artifact to ``out``; returns it opened.  ``out`` is
-    replaced only when it is a corrections artifact (this command's own earlier output) or with
-    ``overwrite``."""
+    """Read the corrections in ``source``, check them against the export in ``review_dir`` and write the
+    ``corrections`` artifact to ``out`` (replacing only an earlier one, or with ``overwrite``); it, opened."""
     import pandas as pd
 
     source, out = Path(source), Path(out)
@@ -260,11 +235,10 @@ def import_corrections(source: str | Path, review_dir: str | Path, out: str | Pa
 
 
 def coco_decode(rle: dict) -> np.ndarray:
-    """bool [H,W] of a compressed COCO RLE ``{"size", "counts": str}`` (pycocotools)."""
+    """bool [H,W] of a compressed COCO RLE ``{"size", "counts": str}``."""
     return coco_segmentation_mask(rle, *rle["size"])
 
 
 def correction_masks(artifact) -> dict[str, np.ndarray]:
-    """{image id: bool [H,W]} of an opened corrections artifact."""
     return {r.image_id: coco_decode({"size": [int(r.height), int(r.width)], "counts": r.rle})
             for r in artifact.table.itertuples(index=False)}

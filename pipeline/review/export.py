@@ -1,31 +1,9 @@
-"""``geodistill review export LABEL_DIR --out DIR``: the images of a ``label`` output folder that most
-need a person, ranked (:mod:`pipeline.review.ranking`), as a Label Studio import, a CVAT import and a CSV.
+"""``geodistill review export LABEL_DIR --out DIR`` and the DAG stage ``review_export``: the images that most
+need a person, ranked (:mod:`pipeline.review.ranking`), as a Label Studio import, a CVAT import and a CSV,
+with ``review.json`` (the export id and each image's voted mask) that ``review import`` checks against.
 
-Reads ``LABEL_DIR/label.json`` (it must be a complete run of ``geodistill label``), ``labels.parquet``
-(with its disagreement column ``h``) and the voted masks ``masks/<image id>.png`` (the ``png`` format
-of label); with a student (``predict``: the CLI's ``--student BUNDLE``) also the input images, for the
-student-teacher disagreement.  Writes under ``out`` only, and nothing else::
-
-    review.json                         the record (pipeline.artifacts.ownership), written first: the export id,
-                                        ranking, and per exported image its id, file, size, rank,
-                                        score and voted mask (compressed COCO RLE) -- what review
-                                        import checks the corrections against
-    ranked.csv                          the exported images, best candidate first: rank, score, image
-                                        id, file, width, height and the label table's columns
-    labelstudio/tasks.json              Label Studio tasks: data.image (by default a Label Studio
-                                        local-files URL, :func:`local_files_layout`; with
-                                        ``image_url``, it + the image's path relative to the labelled
-                                        folder), data.image_id, data.
-                                        geodistill_export (the export id), rank and scores, and the
-                                        voted mask as a prediction (brush RLE, or polygons)
-    labelstudio/label_config.xml        the labelling interface those results name
-    cvat/instances_default.json         COCO 1.0 for CVAT's "Import annotations": file_name = the image's
-                                        path relative to the labelled folder, the voted mask as
-                                        uncompressed RLE (iscrowd 1), or polygons
-
-The formats are :mod:`pipeline.review.formats`.  An image whose vote is empty gets a task without a
-prediction (and no COCO annotation): the person draws it.  The export id is a hash of the label run's
-teacher fingerprint, the options and the exported rows, so the same inputs give the same files.
+An image whose vote is empty gets a task without a prediction (the person draws it).  The export id hashes
+the teacher fingerprint, the options and the rows, so the same inputs give the same files.
 """
 
 from __future__ import annotations
@@ -58,15 +36,13 @@ TOP = Option("--top", "top")
 LS_SHAPE = Option("--ls-shape", "ls_shape")
 COCO_SHAPE = Option("--coco-shape", "coco_shape")
 LS_SHAPES, COCO_SHAPES = ("brush", "polygon"), ("rle", "polygon")
-#: the files and folders written under ``out`` (pipeline.catalog.OUTPUT_FILES)
 OUTPUTS = output_names("review", "record", "csv", "labelstudio", "cvat")
 OWN_OUTPUTS = tuple(v for k, v in OUTPUTS.items() if k != "record")
 LS_TASKS, LS_CONFIG, CVAT_COCO = output_names("review", "ls_tasks", "ls_config", "cvat_coco").values()
-#: the files the export writes in each folder of OUTPUTS, which it replaces whole (atomic_path)
+#: the files the export writes in each folder it replaces whole
 FOLDER_FILES = {OUTPUTS["labelstudio"]: (LS_TASKS, LS_CONFIG), OUTPUTS["cvat"]: (CVAT_COCO,)}
 EXPORT_FIELD = "geodistill_export"   # the task data field naming the export (review import checks it)
 MODEL_VERSION = "geodistill-vote"    # the predictions' model_version in Label Studio
-#: Label Studio's local-files URLs and the two variables that let it serve them (pipeline.review.labelstudio)
 LOCAL_FILES_URL = "/data/local-files/?d="
 ENV_SERVING, ENV_ROOT = "LABEL_STUDIO_LOCAL_FILES_SERVING_ENABLED", "LABEL_STUDIO_LOCAL_FILES_DOCUMENT_ROOT"
 LS_RECORD_KEY = "label_studio"   # review.json: {"document_root", "storage_path"} of the local-files URLs
@@ -74,8 +50,6 @@ LS_RECORD_KEY = "label_studio"   # review.json: {"document_root", "storage_path"
 
 @dataclasses.dataclass
 class ReviewExport:
-    """What :func:`export_review` wrote: the folder, the ranked rows, the export id and the ranking."""
-
     out: Path
     table: object   # pandas.DataFrame, ranked
     export_id: str
@@ -83,8 +57,7 @@ class ReviewExport:
 
 
 def read_label_folder(label_dir: str | Path):
-    """(record, table) of a complete ``geodistill label`` output folder with its PNG masks; InputError
-    (one line naming LABEL_DIR) otherwise."""
+    """(record, table) of a complete ``geodistill label`` output folder with PNG masks; InputError otherwise."""
     import pandas as pd
 
     d = Path(label_dir)
@@ -102,7 +75,7 @@ def read_label_folder(label_dir: str | Path):
 
 
 def voted_mask(label_dir: Path, image_id: str, width: int, height: int) -> np.ndarray:
-    """The voted mask label wrote for ``image_id`` (bool [H,W]); InputError when its size is not the image's."""
+    """The voted mask label wrote for ``image_id``; InputError when its size is not the image's."""
     path = Path(label_dir) / LABEL_OUTPUTS["masks"] / f"{image_id}.png"
     mask = read_mask(path)
     if mask.shape != (height, width):
@@ -116,17 +89,11 @@ def mask_digest(mask: np.ndarray) -> str:
     return hashlib.sha256(f"{m.shape[0]}x{m.shape[1]}:".encode() + np.packbits(m).tobytes()).hexdigest()
 
 
-# --------------------------------------------------------------------------------------------------
-# Label Studio local files: Label Studio (1.23.2, io_storages/localfiles/) serves /data/local-files/?d=PATH
-# only with both variables set, PATH relative to the document root, and under a project's Local files
-# storage whose path -- a strict sub-folder of the document root -- contains the file
-# --------------------------------------------------------------------------------------------------
+# Label Studio (1.23.2) serves /data/local-files/?d=PATH only with both ENV_* variables set, PATH relative to
+# the document root, under a Local files storage whose path (a strict sub-folder of that root) holds the file
 def local_files_layout(image_paths: list[Path], image_root: Path | None = None) -> dict:
-    """``{"document_root", "storage_path"}`` serving ``image_paths`` as Label Studio local files: the
-    storage path is ``image_root`` (default: the folder the images share), the document root its parent.
-    Relative image paths give relative folders (a run's manifest names its images from the project
-    root, so its DAG output does not depend on where the project lies); InputError when the folder is
-    the file-system root (Label Studio needs a folder above it)."""
+    """``{"document_root", "storage_path"}`` serving ``image_paths``: the storage path is ``image_root`` (default:
+    the folder they share; relative paths stay relative), the document root its parent."""
     if image_root is not None:
         storage = Path(image_root)
     else:
@@ -145,15 +112,13 @@ def local_files_layout(image_paths: list[Path], image_root: Path | None = None) 
 
 
 def local_files_url(path: Path, layout: dict) -> str:
-    """The task URL of image ``path`` under ``layout``: LOCAL_FILES_URL + its path from the document
-    root, percent-encoded (a ``+``, ``&`` or ``#`` in a file name would otherwise change the query)."""
+    """The task URL of ``path``: its path from the document root, percent-encoded (``+&#`` would change the query)."""
     rel = Path(path).resolve().relative_to(Path(layout["document_root"]).resolve()).as_posix()
     return LOCAL_FILES_URL + urllib.parse.quote(rel, safe="/")
 
 
 def server_env(layout: dict) -> dict:
-    """The environment variables Label Studio must start with to serve ``layout``'s images (relative
-    folders taken from the working directory)."""
+    """The environment variables Label Studio must start with to serve ``layout``'s images."""
     return {ENV_SERVING: "true", ENV_ROOT: str(Path(layout["document_root"]).resolve())}
 
 
@@ -167,9 +132,8 @@ def _check_options(top, ls_shape: str, coco_shape: str) -> None:
 
 
 def check_export_outputs(out: Path, overwrite: bool) -> None:
-    """Refuse (InputError, one line) before anything is written: a file of the user's inside a folder
-    the export swaps in whole (``labelstudio/``, ``cvat/``), ``overwrite`` or not, then what else is
-    in the way (:func:`pipeline.artifacts.ownership.check_outputs`).  ``out``: the export folder."""
+    """Refuse before anything is written: a user's file inside a folder the export replaces whole
+    (``overwrite`` or not), then what else is in the way."""
     for folder, files in FOLDER_FILES.items():  # first: --overwrite would not save such a file either
         refuse_foreign_files(out / folder, files, command=COMMAND, option=OUT, where=out,
                              why=f"not a file {signature(COMMAND)} writes in {folder}/, which it replaces whole")
@@ -179,12 +143,8 @@ def check_export_outputs(out: Path, overwrite: bool) -> None:
 def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = None, ranking: str = DEFAULT_RANKING,
                   ls_shape: str = "brush", coco_shape: str = "rle", image_url: str | None = None,
                   predict: Callable[[Path], np.ndarray] | None = None, overwrite: bool = False) -> ReviewExport:
-    """Rank the images of ``label_dir`` and write the top ``top`` (None: all) under ``out`` (module
-    docstring).  ``image_url``: the prefix of the tasks' image URLs (None: Label Studio's local files,
-    :func:`local_files_layout`).  ``predict(image_path) -> bool [H,W]``: a student, for the ``student``
-    ranking (and the ``combined`` one).  Everything is checked -- options, the label folder, the ranking's columns, files
-    in the way that this command did not write (refused unless ``overwrite``) -- before anything is
-    written."""
+    """``geodistill review export``: rank the images of ``label_dir`` and write the top ``top`` (None: all) under
+    ``out``; ``image_url``: the tasks' URL prefix (None: local files); ``predict(path) -> bool [H,W]``: a student."""
     _check_options(top, ls_shape, coco_shape)
     label_dir, out = Path(label_dir), Path(out)
     record, table = read_label_folder(label_dir)
@@ -205,15 +165,10 @@ def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = N
 def write_export(out: Path, table, mask_of: Callable[[str], np.ndarray], *, top: int | None, ranking: str,
                  ls_shape: str, coco_shape: str, image_url: str | None, identity: dict, options: dict | None = None,
                  record: dict | None = None, image_root: Path | None = None) -> ReviewExport:
-    """The export itself, shared by ``review export`` (a label folder) and the DAG stage ``review_export``
-    (a run's artifacts): rank ``table`` (columns image_id, file, width, height, g, h, ...; :func:`rank`),
-    take each exported image's voted mask from ``mask_of(image id)`` (bool [height, width]) and write
-    the files of the module docstring under ``out``.  ``image_root``: the folder the ``file`` column is
-    relative to (None: the paths as they are); with ``image_url`` None the tasks' URLs are Label Studio
-    local files of that folder (:func:`local_files_layout`, recorded in ``review.json``).  ``identity``
-    (the teacher's fingerprint) and the options enter the export id; ``record``: the record's fields about the source.  The caller has
-    checked the options and the outputs (:func:`_check_options`, ``check_outputs``); the ranking refuses
-    an unknown name or a missing column before anything is written."""
+    """The export shared by ``review export`` and the DAG stage: rank ``table`` (image_id, file, width, height,
+    g, h, ...), take each voted mask from ``mask_of(image id)`` and write review.json, ranked.csv, the Label
+    Studio tasks and the CVAT COCO file under ``out``.  ``image_root``: the folder ``file`` is relative to;
+    ``identity`` and the options make the export id; ``record``: the record's fields about the source."""
     ranked = rank(table, ranking, top)
     masks = {i: mask_of(i) for i in ranked["image_id"]}
     rows = [{"image_id": str(r.image_id), "file": str(r.file), "width": int(r.width), "height": int(r.height),
@@ -258,17 +213,12 @@ def write_export(out: Path, table, mask_of: Callable[[str], np.ndarray], *, top:
     return ReviewExport(out, ranked, export_id, ranking)
 
 
-# --------------------------------------------------------------------------------------------------
-# the DAG stage review_export: the same export on a run's artifacts
-# --------------------------------------------------------------------------------------------------
-#: the split the DAG stage exports: corrections are accepted for training images only (pipeline.review.apply)
+#: the split the DAG stage exports: corrections are accepted for training images only
 RUN_SPLIT = "train"
 
 
 def run_table(manifest_df, gates_df, h: np.ndarray):
-    """The label-table view of a run's training images: image_id, file (the manifest's image_path),
-    width, height (the image's own size), the gates table's columns and h (consensus.zarr, manifest
-    order); InputError when the gates table is not in the manifest's order."""
+    """The label-table view of a run's training images (image_id, file, width, height, the gates' columns, h)."""
     ids = manifest_df["image_id"].astype(str).to_numpy()
     if list(gates_df["image_id"].astype(str)) != list(ids) or len(h) != len(ids):
         raise InputError("gates and consensus do not follow the manifest's images (artifacts of different runs?)")
@@ -283,13 +233,8 @@ def run_table(manifest_df, gates_df, h: np.ndarray):
 def export_run(manifest, consensus, gates, out: str | Path, *, top: int | None, ranking: str = DEFAULT_RANKING,
                letterbox: bool = False, ls_shape: str = "brush", coco_shape: str = "rle",
                image_url: str | None = None, simulator: bool = False, overwrite: bool = False) -> ReviewExport:
-    """The DAG stage ``review_export``: :func:`write_export` on a run's opened manifest, consensus (with
-    its ``h``) and gates -- the training images (the ones a correction can enter), each voted mask
-    brought from the working resolution to the image's own size as the deployed student's mask is
-    (:func:`pipeline.datasets.loading.probs_to_size`, then >= 0.5; ``letterbox``: ``data.letterbox``), so
-    that ``review import`` and the ``corrections`` stage read the corrections back.  Task image paths
-    are Label Studio local files of the manifest's ``image_path``s (the storage path: the folder they
-    share, relative as the manifest names it); ``simulator``: the teacher is the simulator (``teacher.backend``), recorded as label records it."""
+    """The DAG stage ``review_export``: :func:`write_export` of a run's training images, each voted mask brought
+    to the image's own size as the deployed student's is (``letterbox``: data.letterbox)."""
     _check_options(top, ls_shape, coco_shape)
     if "h" not in consensus:
         raise InputError(f"{consensus.path}: no prompt disagreement h (written by an older consensus stage); "

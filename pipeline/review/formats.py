@@ -1,31 +1,11 @@
 """The review formats, pure functions on arrays: Label Studio brush RLE and polygons, COCO 1.0 for CVAT.
 
-Label Studio brush RLE (``BrushLabels`` results, ``value.format: "rle"``)
-    The mask is an RGBA image flattened row by row (pixel (y, x) -> values ``4 * (y * W + x) .. + 3``)
-    and packed with thi.ng's ``rle-pack`` bit format, as label-studio-converter's ``brush.encode_rle``
-    writes it and Label Studio's front end decodes it: a 32-bit value count, the word size minus one (5
-    bits: 8), four run-length field widths minus one (4 bits each: 3, 4, 8, 16), then segments -- a
-    run ``1, size index (2 bits), length - 1, value (word)`` or a literal stretch ``0, size index,
-    length - 1, value, value, ...`` -- most significant bit first, zero-padded to whole bytes (and, as
-    the converter does, one more zero byte when already whole).  :func:`ls_rle_encode` writes runs
-    only (a mask repeats every pixel over its four channels, so no run is shorter than 4) with the
-    value 255 in all four channels: an opaque mask, as ``brush.mask2rle`` of a 0/255 mask gives --
-    a 0/1 mask would be stored with alpha 1, drawn invisible, the common reason pre-annotations "do
-    not render".  ``result.original_width`` / ``original_height`` are the image's own size.  A brush
-    stroke drawn in Label Studio's editor is anti-aliased: its RLE holds the layer's soft alpha copied
-    into R, G and B (:func:`ls_brush_rgba`, packed by :func:`ls_rle_encode_values`).
-    :func:`ls_rle_decode` reads the whole format (literal stretches included: Label Studio's own
-    exports use them), and a pixel is foreground when its alpha is > 0 (label-studio-converter's
-    ``ls_rle_to_coco_rle`` rule).
-Label Studio polygons (``PolygonLabels``, ``--ls-shape polygon``)
-    One result per connected region, its outer contour (the YOLO writer's
-    :func:`pipeline.labeling.formats.yolo_polygons`) in per cent of the width and height; holes are
-    filled, and specks of 1-2 px are left out -- so a polygon round trip is not pixel-exact, a brush one is.
-COCO 1.0 for CVAT (``--coco-shape rle``, the default)
-    One annotation per image with the whole mask as *uncompressed* RLE (``counts`` a list of run
-    lengths, column-major, starting with background) and ``iscrowd: 1`` -- the form CVAT's own COCO
-    1.0 export uses for masks, so its importer reads it back as a mask.  ``--coco-shape polygon``:
-    ``iscrowd: 0`` with one ``[x1, y1, x2, y2, ...]`` outer contour per region in pixels (holes filled).
+Label Studio brush RLE: the mask as an RGBA image flattened row by row, packed in thi.ng's ``rle-pack``
+bit format (a 32-bit value count, word size - 1 in 5 bits, four run-length field widths - 1 in 4 bits each,
+then run or literal segments, MSB first, zero-padded to whole bytes plus one zero byte when aligned) as
+label-studio-converter writes it.  Polygons (Label Studio per cent, COCO pixels) are each region's outer
+contour, so a polygon round trip is not pixel-exact.  COCO for CVAT: the whole mask as uncompressed RLE with
+``iscrowd: 1``, the form CVAT's own export uses for masks.
 """
 
 from __future__ import annotations
@@ -35,10 +15,9 @@ from pycocotools import mask as mask_utils
 
 from pipeline.labeling.formats import SPACECRAFT_CATEGORY, mask_bbox, yolo_polygons
 
-#: rle-pack parameters label-studio-converter writes (word size 8; run-length field widths)
 LS_WORD_SIZE = 8
 LS_RLE_SIZES = (3, 4, 8, 16)
-LS_OPAQUE = 255   # the value of a foreground pixel in each of R, G, B, A
+LS_OPAQUE = 255   # alpha 1 would be drawn invisible: why pre-annotations often "do not render"
 LS_FROM_NAME, LS_TO_NAME = "mask", "image"   # the control and object tag names of :func:`ls_label_config`
 LABEL = SPACECRAFT_CATEGORY["name"]
 
@@ -47,13 +26,9 @@ class FormatError(ValueError):
     """A corrupt or inconsistent annotation (the importer turns it into a one-line InputError)."""
 
 
-# --------------------------------------------------------------------------------------------------
-# Label Studio brush RLE
-# --------------------------------------------------------------------------------------------------
 def _run_bits(length: int, value: int) -> str:
-    """One run segment of ``length`` values, field for field as label-studio-converter's ``encode_rle``
-    writes it (so the bytes match too): the narrowest of the 3-, 4- and 8-bit length fields, else
-    16-bit fields, in pieces of 2**16 values while more than 2**16 remain."""
+    """One run segment as label-studio-converter's ``encode_rle`` writes it: the narrowest length field, else
+    16-bit fields in pieces of 2**16 values."""
     word = format(value, f"0{LS_WORD_SIZE}b")
     for index, width in enumerate(LS_RLE_SIZES[:3]):
         if length <= 2 ** width:
@@ -67,7 +42,7 @@ def _run_bits(length: int, value: int) -> str:
 
 
 def ls_rle_encode(mask: np.ndarray) -> list[int]:
-    """Label Studio brush RLE (a list of byte values) of a bool [H,W] mask (module docstring)."""
+    """Label Studio brush RLE (byte values) of a bool [H,W] mask, opaque in all four channels."""
     mask = np.asarray(mask, bool)
     if mask.ndim != 2:
         raise FormatError(f"mask: expected [H,W], got shape {mask.shape}")
@@ -75,9 +50,7 @@ def ls_rle_encode(mask: np.ndarray) -> list[int]:
 
 
 def ls_brush_rgba(alpha: np.ndarray) -> np.ndarray:
-    """The RGBA values [H*W*4] Label Studio's editor encodes for a drawn brush region whose layer has
-    the uint8 [H,W] ``alpha`` (anti-aliased edges included): its ``exportRLE`` copies each pixel's alpha
-    into R, G and B."""
+    """The RGBA values Label Studio's editor encodes for a brush layer of ``alpha`` (copied into R, G and B)."""
     alpha = np.asarray(alpha, np.uint8)
     if alpha.ndim != 2:
         raise FormatError(f"alpha: expected [H,W], got shape {alpha.shape}")
@@ -85,8 +58,7 @@ def ls_brush_rgba(alpha: np.ndarray) -> np.ndarray:
 
 
 def ls_rle_encode_values(values: np.ndarray) -> list[int]:
-    """rle-pack bytes of any uint8 values (an RGBA image flattened row by row), runs only -- byte for
-    byte what label-studio-converter's ``brush.encode_rle`` writes for the same values."""
+    """rle-pack bytes of uint8 values, runs only: byte for byte label-studio-converter's ``brush.encode_rle``."""
     flat = np.asarray(values, np.uint8).ravel()
     n = flat.size
     bits = [format(n, "032b"), format(LS_WORD_SIZE - 1, "05b"), "".join(format(s - 1, "04b") for s in LS_RLE_SIZES)]
@@ -102,8 +74,7 @@ def ls_rle_encode_values(values: np.ndarray) -> list[int]:
 
 
 def ls_rle_decode(rle, height: int, width: int) -> np.ndarray:
-    """bool [H,W] of a Label Studio brush RLE (alpha > 0); FormatError when it is not valid RLE or does
-    not hold H x W x 4 values."""
+    """bool [H,W] (alpha > 0) of a Label Studio brush RLE, literal stretches included; FormatError if invalid."""
     try:
         data = np.asarray(rle, np.int64)
         if data.ndim != 1 or data.size < 5 or (data < 0).any() or (data > 255).any():
@@ -140,7 +111,7 @@ def ls_rle_decode(rle, height: int, width: int) -> np.ndarray:
 
 
 def ls_label_config(shape: str = "brush") -> str:
-    """The Label Studio labelling interface (XML) the tasks' results name: an image and one label."""
+    """The Label Studio labelling interface (XML): an image and one label."""
     tag = {"brush": "BrushLabels", "polygon": "PolygonLabels"}[shape]
     return (f'<View>\n  <Image name="{LS_TO_NAME}" value="$image" zoom="true"/>\n'
             f'  <{tag} name="{LS_FROM_NAME}" toName="{LS_TO_NAME}">\n'
@@ -148,7 +119,7 @@ def ls_label_config(shape: str = "brush") -> str:
 
 
 def ls_results(mask: np.ndarray, shape: str = "brush", result_id: str = "r0") -> list[dict]:
-    """The ``result`` list of one prediction: one brush result, or one polygon result per region."""
+    """The ``result`` list of one prediction: one brush result, or one polygon per region (holes filled)."""
     mask = np.asarray(mask, bool)
     h, w = mask.shape
     common = {"from_name": LS_FROM_NAME, "to_name": LS_TO_NAME, "original_width": int(w), "original_height": int(h),
@@ -164,8 +135,7 @@ def ls_results(mask: np.ndarray, shape: str = "brush", result_id: str = "r0") ->
 
 
 def polygon_mask(polygons, height: int, width: int, scale=(1.0, 1.0)) -> np.ndarray:
-    """bool [H,W]: the union of filled polygons (lists of [x, y] points, or flat [x1, y1, ...]) with
-    coordinates multiplied by ``scale`` (x, y) -- (W/100, H/100) for Label Studio's per cent."""
+    """bool [H,W]: the union of filled polygons with coordinates times ``scale`` (W/100, H/100 for per cent)."""
     import cv2
 
     out = np.zeros((height, width), np.uint8)
@@ -176,11 +146,8 @@ def polygon_mask(polygons, height: int, width: int, scale=(1.0, 1.0)) -> np.ndar
     return out.astype(bool)
 
 
-# --------------------------------------------------------------------------------------------------
-# COCO 1.0 (CVAT)
-# --------------------------------------------------------------------------------------------------
 def coco_uncompressed_rle(mask: np.ndarray) -> dict:
-    """``{"size": [h, w], "counts": [run lengths]}``: column-major runs starting with background."""
+    """``{"size": [h, w], "counts": [...]}``: column-major runs starting with background."""
     mask = np.asarray(mask, bool)
     flat = mask.ravel(order="F")
     change = np.flatnonzero(flat[1:] != flat[:-1]) + 1
@@ -191,8 +158,9 @@ def coco_uncompressed_rle(mask: np.ndarray) -> dict:
     return {"size": [int(mask.shape[0]), int(mask.shape[1])], "counts": [int(c) for c in counts]}
 
 
-def coco_review_annotation(mask: np.ndarray, annotation_id: int, image_id: int, shape: str = "rle", **extra) -> dict | None:
-    """One COCO annotation of a mask for CVAT (module docstring); None for an empty mask."""
+def coco_review_annotation(mask: np.ndarray, annotation_id: int, image_id: int, shape: str = "rle",
+                           **extra) -> dict | None:
+    """One COCO annotation of a mask for CVAT; None for an empty mask."""
     mask = np.asarray(mask, bool)
     area = int(np.count_nonzero(mask))
     if area == 0:
@@ -208,8 +176,7 @@ def coco_review_annotation(mask: np.ndarray, annotation_id: int, image_id: int, 
 
 
 def coco_segmentation_mask(segmentation, height: int, width: int) -> np.ndarray:
-    """bool [H,W] of a COCO segmentation -- polygons, uncompressed or compressed RLE -- by pycocotools'
-    own decoder (``frPyObjects`` / ``merge`` / ``decode``); FormatError when it cannot be read."""
+    """bool [H,W] of a COCO segmentation (polygons, uncompressed or compressed RLE); FormatError if unreadable."""
     try:
         if isinstance(segmentation, list):
             polys = [p for p in segmentation if len(p) >= 6]

@@ -1,29 +1,9 @@
 """Which images a person should check first: the rankings of ``geodistill review export --ranking``.
 
-Every ranking gives each image a score in [0, 1], higher = more in need of a person; images are listed
-by score, highest first, ties broken by image id (the same table gives the same order).
-
-``gate``          1 - g: the reliability gate (eq:reliability-gate) -- low agreement c, few valid prompts
-                  v, or an implausible area a against the folder's median a0.
-``disagreement``  h: the prompts' disagreement (:func:`pipeline.consensus.agreement_entropy`, the agreement map's
-                  mean binary entropy over the union of the prompt masks; eq:agreement-map).
-``student``       1 - IoU(student mask, voted mask) at the image's own size: where the distilled student
-                  and its teacher's vote part ways (only with a student: ``--student BUNDLE``).
-``combined``      the DEFAULT: the mean of the percentile ranks of 1 - g and h (and of the student
-                  disagreement when a student is given).
-
-Why ``combined`` is the default.  The two annotation-free signals see different failures: the gate sees
-a vote that agrees with itself but is implausible (too few valid prompts, an area far from the
-folder's median) -- where h can be 0 (every valid prompt empty, or all prompts wrong in the same way);
-h sees disagreement on pixels the vote dropped (the outvoted panel, the glare blob a minority claimed),
-which the gate's c (agreement inside the voted mask only, eq:foreground-agreement) does not.  The
-gate also has a long tie at g = 0 (g_valid and g_conf floor to 0), which h orders.  Percentile ranks
-combine them without calibrating one scale against the other.  The choice is argued; the one
-measurement (``python -m benchmarks.review_value``, docs/review.md) does not settle it: on the
-synthetic benchmark no selection of up to 50 corrected images moves the Plain Student's test IoU beyond
-the seed noise, ``combined`` does not beat random at k = 25, and past its top ~10 its picks are no
-worse-labelled than random's while ``gate`` keeps finding the simulator's breakdowns (which it finds
-by construction there; a real teacher's failures need not line up with g).
+Each ranking scores an image in [0, 1], higher = more in need of a person; ties go by image id.  ``gate``:
+1 - g (eq:reliability-gate); ``disagreement``: h, the prompts' disagreement (eq:agreement-map);
+``student``: 1 - IoU(student, vote); ``combined`` (the default): the mean percentile rank of 1 - g and h
+(and the student's when given) -- why: docs/decisions.md.
 """
 
 from __future__ import annotations
@@ -43,7 +23,7 @@ STUDENT_COLUMN = "student_disagreement"
 class Ranking:
     name: str
     description: str
-    needs: tuple[str, ...]   # columns of the label table (plus the student column) it reads
+    needs: tuple[str, ...]   # the label table's columns it reads
 
 
 RANKINGS = {r.name: r for r in (
@@ -63,8 +43,7 @@ def _pct(values) -> np.ndarray:
 
 
 def scores(table, ranking: str = DEFAULT_RANKING) -> np.ndarray:
-    """The score of every row of ``table`` (a label table, with the student column when there is one)
-    under ``ranking`` (module docstring); InputError on an unknown ranking or a missing column."""
+    """The score of every row of a label ``table`` under ``ranking``; InputError on an unknown one or column."""
     if ranking not in RANKINGS:
         raise InputError(f"{{}}: unknown ranking (choose one of {', '.join(RANKINGS)})", RANKING(ranking))
     missing = [c for c in RANKINGS[ranking].needs if c not in table.columns]
@@ -87,8 +66,7 @@ def scores(table, ranking: str = DEFAULT_RANKING) -> np.ndarray:
 
 
 def rank(table, ranking: str = DEFAULT_RANKING, top: int | None = None):
-    """``table`` sorted by :func:`scores` (highest first, then by image id), with columns ``rank``
-    (1 = check first) and ``score`` in front; the first ``top`` rows (None: all)."""
+    """The first ``top`` rows (None: all) of ``table`` by :func:`scores`, then image id, with ``rank`` and ``score``."""
     out = table.copy()
     out.insert(0, "score", scores(table, ranking))
     out = out.sort_values(["score", "image_id"], ascending=[False, True], kind="mergesort").reset_index(drop=True)
@@ -97,5 +75,5 @@ def rank(table, ranking: str = DEFAULT_RANKING, top: int | None = None):
 
 
 def student_disagreement(student: np.ndarray, voted: np.ndarray) -> float:
-    """1 - Image IoU (:func:`pipeline.metrics.image_iou`) of the student's and the vote's masks."""
+    """1 - Image IoU of the student's and the vote's masks."""
     return 1.0 - image_iou(student, voted)
