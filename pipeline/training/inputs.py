@@ -48,6 +48,13 @@ class TrainData:
     def __len__(self) -> int:
         return len(self.image_ids)
 
+    def subset(self, sel: np.ndarray, **changes) -> TrainData:
+        """The rows ``sel`` (nothing read from disk), with ``changes``."""
+        rows = {f: select_rows(getattr(self, f), sel) for f in ("images", "mask", "sdf", "skeleton")
+                if getattr(self, f) is not None}
+        return dataclasses.replace(self, image_ids=[self.image_ids[k] for k in sel], area=self.area[sel],
+                                   gate=self.gate[sel], **{**rows, **changes})
+
 
 @dataclasses.dataclass
 class ValData:
@@ -64,7 +71,8 @@ class ValData:
 def _check_order(art, ids: list, what: str) -> None:
     got = getattr(art, "attrs", {}).get("image_ids")
     if got is not None and list(got) != list(ids):
-        raise ArtifactError(f"{art.path}: image order differs from the manifest ({what}); rerun the stages after prepare")
+        raise ArtifactError(f"{art.path}: image order differs from the manifest ({what}); "
+                            "rerun the stages after prepare")
 
 
 def _rows(art, name: str, idx: np.ndarray) -> np.ndarray:
@@ -354,10 +362,7 @@ def apply_to_training(data: TrainData, corrected, mode: str) -> TrainData:
     if not len(sel):
         raise InputError(f"{corrected.path}: every training image is corrected; {MODE_KEY}=validate would "
                          f"leave nothing to train on")
-    rows = {f: select_rows(getattr(data, f), sel) for f in ("images", "mask", "sdf", "skeleton")
-            if getattr(data, f) is not None}
-    out = dataclasses.replace(data, image_ids=[data.image_ids[k] for k in sel], area=data.area[sel],
-                              gate=data.gate[sel], stats=stats, **rows)
+    out = data.subset(sel, stats=stats)
     out.stats["n_train"] = len(out)
     return out
 

@@ -1,52 +1,6 @@
-"""Student training: Stage I silhouette learning, Stage II gated geometry refinement, and every
-comparison method of :mod:`pipeline.methods` -- one loop, driven by the declarative method table.
-Arrays in, model and log out: this module opens no file (``stages/train.py`` opens the artifacts and
-owns the on-disk resume state).
-
-Data boundary (the paper's "annotation-free" rule, kept visible here)
-  * :func:`training_data` builds every training batch source from *pseudo-targets only*, out of the
-    opened artifacts :func:`training_inputs` names: images, consensus (``voted`` = M^T), geometry
-    (D^T, K^T), gates (g_i, a_i), teacher (the confidence filter and the AFS control) and manifest
-    (split).  Reference masks are not among them; it refuses a ``reference`` input.
-  * :func:`validation_data` is the ONLY consumer of reference masks and returns masks of
-    ``split == "val"`` rows only (:class:`ValData`); they serve checkpoint selection (validation
-    Image IoU, Boundary F1 tie-break, at tau = ``calibrate.fixed_tau``, :func:`select`) and never reach a loss --
-    :func:`train` passes only :class:`TrainData` to :func:`pipeline.losses.refine_loss`.
-
-Objective: :func:`pipeline.losses.refine_loss` (eq:refine-loss, with eq:raw-loss inside it) with the
-method's term weights (:func:`pipeline.methods.resolve_plan`) and the ``train.*`` loss constants.
-
-Schedule and numerics (decisions; the paper gives AdamW, batch 4, weight decay 1e-4 and the initial
-learning rates only)
-  * learning rate: ``train.schedule`` = ``cosine`` (per optimizer step, from the initial rate to 0)
-    or ``constant``;
-  * every epoch visits all training images once in a seeded order (``numpy`` generator seeded with
-    ``[seed, epoch]``, so a resumed run sees the same order); the last batch may be smaller;
-  * channels_last memory format and bf16 autocast where supported (``train.precision``); losses are
-    always computed in float32 from the logits;
-  * normalisation (issue 17 item 4; defaults = PyTorch's BatchNorm, momentum 0.1): ``train.norm``
-    (batch | group), ``train.bn_momentum``, and ``train.precise_bn`` -- BN running statistics
-    re-estimated over the training images before each validation (:func:`_precise_bn`), which at
-    batch 4 steadies the validation IoU at tau 0.5 (``benchmarks/study_recipe.py``);
-  * Stage-II warm start: encoder, decoder and mask head copied from the Stage-I checkpoint, SDF and
-    skeleton heads freshly initialised from ``torch.manual_seed(seed)``;
-  * recipe parts (issue 24, ``train.recipe``; docs/stability.md): ``train.warmup_epochs`` (linear
-    learning-rate warm-up, :func:`_lr_lambda`) and ``train.average_last`` K -- the final model is the
-    mean of the weights after each of the last K epochs (:func:`average_update`) with the BN running
-    statistics recomputed for those averaged weights (:func:`_precise_bn`), instead of the method's
-    selection (an argmax over a noisy validation curve, or the last epoch).  0 = the paper's behaviour;
-  * execution knobs that change numerics -- ``train.num_threads`` and the autocast dtype that
-    ``train.precision`` resolves to on this host -- are in the run key: a resume state saved under
-    other numerics is not resumed (and both params are in the checkpoint fingerprint, the resume
-    directory of ``stages/train.py``).
-
-Resilience
-  * after every epoch the full state (model incl. geometry heads, optimizer, scheduler, torch RNG,
-    epoch, log so far, best state) goes to the run's :class:`Checkpointer`; a rerun whose
-    checkpointer returns that state continues after the last finished epoch and produces the same
-    weights as an uninterrupted run; a finished state makes a rerun instant;
-  * a non-finite loss raises :class:`pipeline.runtime.errors.TrainingDiverged` naming epoch, step and term;
-    nothing is saved for that epoch.
+"""Student training: Stage I, Stage II and every comparison method of :mod:`pipeline.methods` in one loop driven by
+the method table.  Arrays in (:class:`TrainData`; reference masks only in :class:`ValData`, for selection), model
+and log out; it opens no file.  Schedule, numerics and resumption: docs/decisions.md, "Training".
 """
 
 from __future__ import annotations
@@ -73,31 +27,24 @@ from pipeline.model import TinyUNet, model_options, recompute_bn_stats
 from pipeline.params import PAPER
 from pipeline.runtime.progress import progress
 from pipeline.training.inputs import TrainData, ValData
-from pipeline.training.streaming import LazyRows, RowSource, prefetch, select_rows, spill_rows
+from pipeline.training.streaming import LazyRows, RowSource, prefetch, spill_rows
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 
 log = logging.getLogger(__name__)
 
 #: loss-term columns of the training log (NaN where a method does not use the term)
 LOG_TERMS = ("bbce", "dice", "raw", "sdf", "dist", "skel", "area", "boundary", "anchor")
-#: ``val_iou``/``val_bf1`` at tau = ``calibrate.fixed_tau`` (checkpoint selection); ``val_iou_cal`` at
-#: ``val_tau_cal``, the tau maximising that epoch's mean validation IoU (pipeline.thresholds.calibrate_threshold on
-#: thresholds.EPOCH_TAU_GRID) -- a diagnostic of the fixed-tau reversal, never used for selection
+#: ``val_iou``/``val_bf1`` at the selection tau; ``val_iou_cal`` at ``val_tau_cal``, the epoch's best tau (a diagnostic)
 LOG_COLUMNS = ("epoch", "stage", "loss", *LOG_TERMS, "val_iou", "val_bf1", "val_iou_cal", "val_tau_cal", "lr")
-#: wall-clock columns: kept out of the log (a checkpoint must be byte-identical on a rerun under
-#: SOURCE_DATE_EPOCH) and returned as ``TrainResult.timings`` for a separate, non-fingerprinted file
+#: wall-clock columns: out of the log, so that a rerun under SOURCE_DATE_EPOCH writes a byte-identical checkpoint
 TIMING_COLUMNS = ("epoch", "seconds")
-#: params that only bound a ``train.until: plateau`` run: a run under another budget continues from the same
-#: resume state (its folder's key leaves them out; stages/train.py)
+#: params that only bound a ``train.until: plateau`` run: a run under another budget resumes the same state
 BUDGET_PARAMS = ("train.step_budget", "train.time_budget")
 STATE_VERSION = 1
 
 
-# --------------------------------------------------------------------------------------------------
-# Settings, model, checkpointer
-# --------------------------------------------------------------------------------------------------
 def loss_constants(cfg: Mapping[str, Any]) -> losses.LossConstants:
-    """The loss constants from the train params (eq:raw-loss .. eq:area-loss)."""
+    """The losses' constants from the train params."""
     return losses.LossConstants(dice_weight=float(cfg["dice_weight"]), max_weight=float(cfg["pos_weight_max"]),
                                 sdf_band=float(cfg["sdf_band"]), sdf_base_weight=float(cfg["sdf_base_weight"]),
                                 area_eps=float(cfg["area_eps"]), eps=float(cfg["loss_eps"]))
@@ -118,18 +65,18 @@ class Settings:
     num_threads: int
     bf1_tolerance: float
     constants: losses.LossConstants
-    selection_tau: float  # tau of the validation masks in checkpoint selection (calibrate.fixed_tau)
-    precise_bn: bool = False  # re-estimate BN statistics before each validation (train.precise_bn)
-    warmup_epochs: int = 0  # linear learning-rate warm-up (train.warmup_epochs; 0 = none, the paper)
-    average_last: int = 0  # final model = mean weights of the last K epochs (train.average_last; 0 = selection)
-    decay_fraction: float = 0.2  # schedule wsd: share of the steps in the decay phase (train.decay_fraction)
-    augment: AugmentSpec | None = None  # target-consistent augmentation (train.augment; None = off)
-    ema_decay: float = 0.0  # final model = EMA of the weights (train.ema_decay; 0 = off)
-    until: str = "epochs"  # Stage I: the fixed length, or stop at the plateau (train.until)
-    step_budget: int = 0  # until plateau: optimizer steps at most (train.step_budget; 0 = none)
-    plateau_gain: float = 0.005  # until plateau: the stopping rule's gain (train.plateau_gain)
-    plateau_min_epochs: int = 8  # until plateau: stable epochs before the rule may stop
-    holdout_fraction: float = 0.1  # until plateau without validation masks: pseudo-labelled share held out
+    selection_tau: float  # calibrate.fixed_tau
+    precise_bn: bool = False
+    warmup_epochs: int = 0
+    average_last: int = 0
+    decay_fraction: float = 0.2
+    augment: AugmentSpec | None = None  # None: off
+    ema_decay: float = 0.0
+    until: str = "epochs"  # Stage I only
+    step_budget: int = 0
+    plateau_gain: float = 0.005
+    plateau_min_epochs: int = 8
+    holdout_fraction: float = 0.1
 
     @classmethod
     def from_params(cls, method: Method, cfg: Mapping[str, Any], selection_tau: float) -> "Settings":
@@ -154,11 +101,7 @@ class Settings:
 
 
 class Checkpointer(Protocol):
-    """Where a run's per-epoch resume state lives (:func:`train` talks only to this).
-
-    ``load(run_key)`` returns the last saved state for the run (or None); :func:`train` checks its
-    version and run key itself.  ``save(state)`` stores a complete state (atomically, for a durable one).
-    """
+    """Where a run's per-epoch resume state lives: ``load(run_key)`` the last saved (or None), ``save(state)``."""
 
     def load(self, run_key: Mapping[str, Any]) -> dict | None: ...
 
@@ -189,13 +132,9 @@ class MemoryCheckpointer:
 
 
 def _lr_lambda(schedule: str, total_steps: int, warmup_steps: int = 0, decay_steps: int = 0) -> Callable[[int], float]:
-    """Learning-rate factor of optimizer step ``step`` (0-based): ``constant`` 1, ``cosine``
-    0.5 (1 + cos(pi min(step, T) / T)) with T = ``total_steps``, or ``wsd`` (warm-up / stable / decay)
-    1 until the last D = ``decay_steps`` steps, then linear to 0: min(1, max(0, T - step) / D); times
-    the linear warm-up min(1, (step + 1) / W) when ``warmup_steps`` W > 0 (``train.warmup_epochs``).
-    W = 0 returns the schedule's own function (the paper recipe, unchanged).  The stable phase of
-    ``wsd`` does not depend on T, so a run branched off it into a decay of D steps at any point is
-    the run of that length (benchmarks.convergence)."""
+    """Learning-rate factor of step ``step`` (0-based): ``constant`` 1, ``cosine`` 0.5 (1 + cos(pi min(step, T) / T)),
+    or ``wsd`` min(1, max(0, T - step) / D) with T = ``total_steps``, D = ``decay_steps``; times the warm-up
+    min(1, (step + 1) / W) when W = ``warmup_steps`` > 0."""
     if schedule == "constant":
         base = lambda step: 1.0  # noqa: E731
     elif schedule == "cosine":
@@ -211,37 +150,31 @@ def _lr_lambda(schedule: str, total_steps: int, warmup_steps: int = 0, decay_ste
 
 
 def decay_steps(total_steps: int, fraction: float) -> int:
-    """Optimizer steps in the decay phase of the ``wsd`` schedule: ``fraction`` of ``total_steps``,
-    rounded, at least 1."""
+    """Optimizer steps in the decay phase of the ``wsd`` schedule: ``fraction`` of ``total_steps``, at least 1."""
     return max(1, int(round(total_steps * fraction)))
 
 
 def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: Mapping | None = None):
-    """TinyUNet for a method: random init from ``torch.manual_seed(seed)``, or (``init="stage1"``)
-    the Stage-I mask path copied from ``init_state``; then fresh geometry heads (seeded) if needed."""
+    """TinyUNet for a method: seeded, or the Stage-I mask path of ``init_state``; fresh seeded geometry heads."""
     torch.manual_seed(int(seed))
-    model = TinyUNet(channels=tuple(cfg["channels"]), **model_options(cfg))  # train.norm, train.bn_momentum
+    model = TinyUNet(channels=tuple(cfg["channels"]), **model_options(cfg))
     if method.init == "stage1":
         if init_state is None:
             raise InputError(f"--method {method.name}: needs --init (the Stage-I checkpoint)")
         try:
             model.load_state_dict(init_state, strict=True)
         except RuntimeError as e:
-            raise InputError(f"--init: checkpoint does not match train.channels ({str(e).splitlines()[0][:120]})") from None
+            detail = str(e).splitlines()[0][:120]
+            raise InputError(f"--init: checkpoint does not match train.channels ({detail})") from None
         torch.manual_seed(int(seed))
     if method.geometry_heads:
         model.add_geometry_heads()
     return model
 
 
-# --------------------------------------------------------------------------------------------------
-# Batches and validation
-# --------------------------------------------------------------------------------------------------
 def _tensors(data: TrainData, device: torch.device, anchor: np.ndarray | RowSource | None
              ) -> dict[str, torch.Tensor | RowSource]:
-    """The training set per key (uint8 images NHWC, targets), once per run: in-memory arrays as tensors
-    on ``device``; a :class:`pipeline.training.streaming.RowSource` stays on disk and :func:`_batch` reads a batch's rows.
-    Built from :class:`TrainData` only: pseudo-targets, never reference masks."""
+    """The training set per key, once per run: arrays as tensors on ``device``, row sources left on disk."""
     arrays = {"image": (data.images, None), "mask": (data.mask, None), "area": (data.area, np.float32),
               "gate": (data.gate, np.float32)}
     if data.sdf is not None:
@@ -253,12 +186,12 @@ def _tensors(data: TrainData, device: torch.device, anchor: np.ndarray | RowSour
 
 
 def _streaming(t: Mapping[str, torch.Tensor | RowSource]) -> bool:
-    """True when some training arrays are read from disk per batch."""
+    """Whether some training arrays are read from disk per batch."""
     return any(isinstance(v, RowSource) for v in t.values())
 
 
 def _take(v: torch.Tensor | RowSource, idx: torch.Tensor) -> torch.Tensor:
-    """``v[idx]``: indexed on its device, or the rows read from disk and moved to ``idx``'s device."""
+    """``v[idx]`` on ``idx``'s device."""
     if isinstance(v, RowSource):
         return torch.from_numpy(v[idx.cpu().numpy()]).to(idx.device)
     return v[idx]
@@ -266,15 +199,14 @@ def _take(v: torch.Tensor | RowSource, idx: torch.Tensor) -> torch.Tensor:
 
 def _batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor | None,
            channels_last: bool) -> dict[str, torch.Tensor]:
-    """One batch: images uint8 NHWC -> float [B,3,H,W] in [0,1] (NHWC strides = channels_last),
-    pixel targets [B,1,H,W] float, per-sample ``area``/``gate`` [B]."""
+    """One batch: images float [B,3,H,W] in [0,1], pixel targets float [B,1,H,W], ``area`` and ``gate`` [B]."""
     x = _take(t["image"], idx).permute(0, 3, 1, 2).float().div_(255.0)
     x = x.contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
     b = {"x": x, "area": t["area"][idx], "gate": t["gate"][idx]}
     for k in ("mask", "sdf", "skeleton", "anchor"):
         if k in t:
             b[k] = _take(t[k], idx).unsqueeze(1).float()
-    if flip is not None:  # (callers pass None when the batch has no flip: no device sync here)
+    if flip is not None:  # None when no image flips: deciding that here would sync the device
         for k in ("x", "mask", "sdf", "skeleton", "anchor"):
             if k in b:
                 b[k] = torch.where(flip.view(-1, 1, 1, 1), b[k].flip(-1), b[k])
@@ -282,16 +214,14 @@ def _batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor 
 
 
 def _host_rows(v: torch.Tensor | RowSource, idx: np.ndarray) -> np.ndarray:
-    """Rows ``idx`` of a training array as numpy (read from disk, or copied from the device)."""
+    """Rows ``idx`` of a training array as numpy."""
     if isinstance(v, RowSource):
         return np.asarray(v[idx])
     return v[torch.from_numpy(idx).to(v.device)].cpu().numpy()
 
 
 def _augmented_batch(run: _Run, idx: np.ndarray, epoch: int) -> dict[str, torch.Tensor]:
-    """The batch of training rows ``idx`` augmented (:func:`pipeline.augment.augment_batch`; image ``i``
-    seeded with ``[seed, epoch, i]``, so a resumed run and any batch size see the same augmentation of
-    an image in an epoch), then as :func:`_batch` builds it."""
+    """The batch of rows ``idx``, each image augmented with the seed ``[seed, epoch, row]``."""
     t = run.tensors
     keys = [k for k in ("mask", "sdf", "skeleton", "anchor", "area", "gate") if k in t]
     images, targets = augment_batch(_host_rows(t["image"], idx), {k: _host_rows(t[k], idx) for k in keys},
@@ -309,13 +239,10 @@ def _has_val(val: ValData | None) -> bool:
 def validation_scores(model, val: ValData | None, device, *, precision: str, channels_last: bool,
                       tolerance: float, tau: float = PAPER.calibrate.fixed_tau,
                       calibrated: bool = True) -> dict[str, float]:
-    """Validation scores of one epoch against the reference masks (``pipeline.metrics``).
+    """An epoch's validation scores (all NaN without validation data); leaves the model in train mode.
 
-    ``val_iou``/``val_bf1``: mean Image IoU and Boundary F1 (``tolerance`` px) of ``[P >= tau]``
-    (eq:inference-mask; tau = ``calibrate.fixed_tau`` in checkpoint selection).  With ``calibrated``:
-    ``val_tau_cal`` = the tau of :data:`pipeline.thresholds.EPOCH_TAU_GRID` maximising the mean validation Image IoU
-    (:func:`pipeline.thresholds.calibrate_threshold`, the calibrate stage's rule) and ``val_iou_cal``
-    that maximum.  All NaN without validation data.  Leaves the model in train mode.
+    ``val_iou``/``val_bf1``: mean Image IoU and Boundary F1 of [P >= tau] (eq:inference-mask); with ``calibrated``,
+    ``val_tau_cal``: the calibrate stage's tau on :data:`pipeline.thresholds.EPOCH_TAU_GRID`, ``val_iou_cal`` its IoU.
     """
     nan = float("nan")
     out = {"val_iou": nan, "val_bf1": nan, "val_iou_cal": nan, "val_tau_cal": nan}
@@ -335,16 +262,12 @@ def validation_scores(model, val: ValData | None, device, *, precision: str, cha
 
 def validate(model, val: ValData | None, device, *, precision: str, channels_last: bool, tolerance: float,
              tau: float = PAPER.calibrate.fixed_tau) -> tuple[float, float]:
-    """Mean validation Image IoU and Boundary F1 (``tolerance`` px) of ``[P >= tau]`` (eq:inference-mask)
-    against the reference masks; (nan, nan) without validation data (:func:`validation_scores`)."""
+    """(``val_iou``, ``val_bf1``) of :func:`validation_scores`."""
     s = validation_scores(model, val, device, precision=precision, channels_last=channels_last,
                           tolerance=tolerance, tau=tau, calibrated=False)
     return s["val_iou"], s["val_bf1"]
 
 
-# --------------------------------------------------------------------------------------------------
-# Training loop
-# --------------------------------------------------------------------------------------------------
 @dataclasses.dataclass
 class TrainResult:
     """The selected model (eval mode, CPU), the training log and what was selected and why."""
@@ -353,7 +276,6 @@ class TrainResult:
     log: Any  # pandas.DataFrame (schema training_log)
     selected_epoch: int
     info: dict
-    #: per-epoch wall-clock seconds (TIMING_COLUMNS): not part of the checkpoint, see LOG_COLUMNS
     timings: list = dataclasses.field(default_factory=list)
 
 
@@ -375,21 +297,14 @@ class _Run:
     run_key: dict
     rows: list = dataclasses.field(default_factory=list)
     best: dict | None = None
-    #: running mean of the weights over the last ``average_last`` epochs: {"n": epochs in it, "state": {...}}
-    avg: dict | None = None
-    #: exponential moving average of the parameters (``train.ema_decay`` > 0), on the run's device
-    ema: list | None = None
-    #: ``train.until: plateau``: {"stable_end": the last stable epoch or None, "epochs": the run's length
-    #: so far, "reason": why the stable phase stopped}; None = the fixed length
+    avg: dict | None = None  # the running mean of the weights: {"n", "state"}
+    ema: list | None = None  # the parameters' moving average, on the device
+    #: until plateau: {"stable_end": the last stable epoch or None, "epochs": the length so far, "reason", "scores"}
     until: dict | None = None
-    #: the full state at the end of the stable phase (until plateau): a larger budget continues from it
-    stable_state: dict | None = None
-    #: until plateau without validation masks: held-out pseudo-labelled images the rule scores (never a
-    #: validation set: the log's validation columns stay empty and selection is unchanged)
+    stable_state: dict | None = None  # the state at the end of the stable phase: a larger budget continues from it
+    #: until plateau without validation masks: pseudo-labelled images the rule scores (never a validation set)
     holdout: ValData | None = None
-    #: the run's scratch directory (streamed anchors), removed when :func:`train` returns
-    scratch: tempfile.TemporaryDirectory | None = None
-    #: the geometry constants of the training data's SDF/skeleton (augmented rescales recompute them)
+    scratch: tempfile.TemporaryDirectory | None = None  # streamed anchors
     geometry: GeometryConstants = dataclasses.field(default_factory=GeometryConstants)
 
     @property
@@ -398,7 +313,7 @@ class _Run:
 
     @property
     def epochs(self) -> int:
-        """The run's length: ``train.epochs_*``, or (until plateau) the stable phase plus its decay."""
+        """``train.epochs_*``, or (until plateau) the stable phase plus its decay."""
         return self.until["epochs"] if self.until is not None else self.settings.epochs
 
 
@@ -408,26 +323,24 @@ def _cpu_state(model) -> dict:
 
 def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data: TrainData, seed: int,
            init_state: Mapping | None, device: torch.device) -> _Run:
-    """Model (warm-started or seeded), the frozen Stage-I anchor if the plan uses one, AdamW, the
-    schedule and the training tensors, in this order (the order fixes the torch RNG stream)."""
+    """Model, the frozen Stage-I anchor if the plan uses one, AdamW, schedule and tensors, in the order that fixes
+    the torch RNG stream."""
     amp = autocast_dtype(device, s.precision)
     model = build_model(method, cfg, seed, init_state)
     anchor, scratch = None, None
     if "anchor" in plan.weights:
         frozen = build_model(dataclasses.replace(method, terms=("region",)), cfg, seed, init_state)
-        if isinstance(data.images, RowSource):  # streaming: the anchors go to a scratch Zarr store
+        if isinstance(data.images, RowSource):
             scratch = tempfile.TemporaryDirectory(prefix="geodistill_anchor_")
         anchor = _anchor_probs(frozen, data.images, device, s, scratch)
     model = model.to(device)
     if s.channels_last:
         model = model.to(memory_format=torch.channels_last)
     model.train()
-    # CUDA: the fused AdamW kernel (one launch for all parameters); CPU: the default implementation,
-    # whose numerics the CPU tests pin down bit for bit
+    # CUDA: the fused AdamW kernel; CPU: the default one, whose numerics the tests pin down bit for bit
     fused = {"fused": True} if device.type == "cuda" else {}
     opt = torch.optim.AdamW(model.parameters(), lr=s.lr, weight_decay=s.weight_decay, **fused)
-    # the effective numerics are part of the key: a state saved under another thread count or autocast
-    # dtype (``precision: auto`` resolves per host) is not resumed
+    # a state saved under other numerics (threads, the autocast dtype ``auto`` resolved to) is not resumed
     run_key = {"method": method.name, "seed": int(seed), "epochs": s.epochs, "n_train": len(data),
                **({"until": s.until, "step_budget": s.step_budget} if s.until != "epochs" else {}),
                "train_ids": list(data.image_ids), "num_threads": int(torch.get_num_threads()),
@@ -442,20 +355,18 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
         run.until = {"stable_end": None, "epochs": stable_cap(s, run.steps_per_epoch), "reason": None, "scores": []}
         run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _until_lambda(run))
     else:
-        run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(s.schedule, total, s.warmup_epochs * run.steps_per_epoch,
-                                                                      decay_steps(total, s.decay_fraction)))
+        run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(
+            s.schedule, total, s.warmup_epochs * run.steps_per_epoch, decay_steps(total, s.decay_fraction)))
     return run
 
 
 def decay_epochs(stable: int, fraction: float) -> int:
-    """Epochs of the decay after ``stable`` stable-phase epochs: the decay is ``fraction`` of the whole run,
-    D = max(1, round(E f / (1 - f)))."""
+    """Decay epochs after E = ``stable`` stable ones, ``fraction`` f of the whole run: max(1, round(E f / (1 - f)))."""
     return max(1, int(round(stable * fraction / (1.0 - fraction))))
 
 
 def stable_cap(s: Settings, steps_per_epoch: int) -> int:
-    """The most stable-phase epochs E of a ``train.until: plateau`` run: E + D(E) <= ``epochs_stage1`` and,
-    with a step budget B, (E + D(E)) x steps per epoch <= B (at least one epoch)."""
+    """The most stable epochs E (at least 1) with E + D(E) <= ``epochs_stage1`` and within the step budget."""
     best = 1
     for e in range(1, s.epochs + 1):
         total = e + decay_epochs(e, s.decay_fraction)
@@ -466,10 +377,8 @@ def stable_cap(s: Settings, steps_per_epoch: int) -> int:
 
 
 def plateau_reached(scores: list[float], gain: float, min_epochs: int) -> bool:
-    """The stopping rule of ``train.until: plateau`` (docs/student.md) on the stable phase's validation IoU
-    per epoch: after E >= ``min_epochs`` epochs, stop when the best of epochs (E/2, E] beats the best of
-    epochs [1, E/2] by less than ``gain`` -- the last doubling of the optimizer steps gained less than
-    ``gain``, the convergence study's plateau (benchmarks.convergence) on one running curve."""
+    """``train.until: plateau``'s rule (docs/student.md): after E >= ``min_epochs`` epochs, the best score of epochs
+    (E/2, E] beats the best of [1, E/2] by less than ``gain``."""
     e = len(scores)
     if e < max(2, int(min_epochs)) or not all(math.isfinite(v) for v in scores):
         return False
@@ -478,8 +387,7 @@ def plateau_reached(scores: list[float], gain: float, min_epochs: int) -> bool:
 
 
 def _until_lambda(run: _Run) -> Callable[[int], float]:
-    """Learning-rate factor of step ``step`` under ``train.until: plateau``: the warm-up, 1 through the stable
-    phase, then linear to 0 over the decay that follows the stop (``run.until``, read at every step)."""
+    """The learning-rate factor under ``train.until: plateau``: warm-up, 1, then linear to 0 over the decay."""
     spe, warm = run.steps_per_epoch, run.settings.warmup_epochs * run.steps_per_epoch
 
     def factor(step: int) -> float:
@@ -494,9 +402,8 @@ def _until_lambda(run: _Run) -> Callable[[int], float]:
 
 
 def _stop_stable(run: _Run, epoch: int, row: Mapping) -> None:
-    """After stable epoch ``epoch`` (until plateau): score it (the validation masks' calibrated IoU in
-    ``row``, else the held-out pseudo-labels' against their vote), stop at the plateau or the cap, keep
-    the stable state, and schedule the decay."""
+    """After stable epoch ``epoch``: score it (else the held-out images), and at the plateau or the cap keep the
+    stable state and schedule the decay."""
     u, s = run.until, run.settings
     score = row["val_iou_cal"]
     if run.holdout is not None:
@@ -516,21 +423,15 @@ def _stop_stable(run: _Run, epoch: int, row: Mapping) -> None:
     u["stable_end"], u["epochs"] = epoch, min(s.epochs, epoch + decay_epochs(epoch, s.decay_fraction))
 
 
-#: images per forward pass of the frozen Stage-I model: the training batch of the paper (4), so the anchor
-#: pass is no larger than a training step -- at 384^2 a pass over 16 images set the adaptive method's peak
-#: (2.7 GB against 1.8 GB for training).  Eval mode (BatchNorm running statistics) makes each image's
-#: probabilities independent of its batch; batches of 4 and 16 gave bit-identical float32 probabilities
-#: in fp32 and under bf16 autocast (2026-11-25, Intel Xeon with AMX; docs/scaling.md)
+#: images per forward pass of the frozen Stage-I model: the paper's training batch, so that the pass is no larger
+#: than a training step (docs/scaling.md); in eval mode each image's probabilities do not depend on the batch
 ANCHOR_BATCH = PAPER.train.batch_size
 
 
 def _anchor_probs(frozen, images: np.ndarray | RowSource, device: torch.device, s: Settings,
                   scratch: tempfile.TemporaryDirectory | None) -> np.ndarray | LazyRows:
-    """The frozen Stage-I probabilities of every training image (the target of L_anchor,
-    :func:`pipeline.losses.anchor_loss`), computed once per run, ``ANCHOR_BATCH`` images at a time.
-    Without ``scratch``: one in-memory array.  With it: written block by block to a Zarr array in that
-    directory and read back per training batch (:func:`pipeline.training.streaming.spill_rows`) -- 0.6 MB per
-    image at 384^2 otherwise held for the whole run."""
+    """The frozen Stage-I probabilities of every training image (L_anchor's target), in memory or spilled to
+    ``scratch`` and read back per batch."""
     def blocks():
         for start in range(0, len(images), ANCHOR_BATCH):
             yield predict_probs(frozen, images[start:start + ANCHOR_BATCH], device=device, batch_size=ANCHOR_BATCH,
@@ -543,12 +444,9 @@ def _anchor_probs(frozen, images: np.ndarray | RowSource, device: torch.device, 
 
 
 def _resume(run: _Run, checkpointer: Checkpointer) -> int:
-    """Restore the checkpointer's state of this run (same version and run key) and return the first
-    epoch still to train (1 without a usable state)."""
+    """Restore this run's saved state; the first epoch still to train (1 without one)."""
     state = checkpointer.load(run.run_key)
-    if state is None:
-        return 1
-    if state.get("version") != STATE_VERSION:
+    if state is None or state.get("version") != STATE_VERSION:
         return 1
     if state.get("run_key") != run.run_key:
         state = _continued(run, state)
@@ -571,9 +469,10 @@ def _resume(run: _Run, checkpointer: Checkpointer) -> int:
 
 
 def _continued(run: _Run, state: dict) -> dict | None:
-    """A state of the same until-plateau run under another step budget, as this run resumes it: a run the
-    budget stopped continues its stable phase from the saved stable state; one the plateau stopped is
-    finished; anything else None (not this run)."""
+    """A state of this until-plateau run under another step budget, as this run resumes it (None: another run).
+
+    A run the budget stopped continues from its stable state; one the plateau stopped is finished.
+    """
     key = {k: v for k, v in state.get("run_key", {}).items() if k != "step_budget"}
     if run.until is None or key != {k: v for k, v in run.run_key.items() if k != "step_budget"}:
         return None
@@ -599,12 +498,8 @@ def _state(run: _Run, epoch: int) -> dict:
 
 def select(best: dict | None, plan: Plan, val: ValData | None, epoch: int, row: Mapping, model,
            eligible: bool) -> dict | None:
-    """Checkpoint selection: the new best candidate ``{"epoch", "score", "state"}`` after ``epoch``.
-
-    Ineligible epochs change nothing.  ``select == "last"`` or no validation masks: the latest
-    eligible epoch.  ``best_val``: the highest validation (Image IoU, Boundary F1) pair -- IoU first,
-    BF1 breaking ties; an earlier epoch wins a full tie.
-    """
+    """The best candidate ``{"epoch", "score", "state"}`` after ``epoch``: the latest eligible one (``select ==
+    "last"`` or no validation masks), else the highest (val IoU, val BF1), an earlier epoch winning a tie."""
     if not eligible:
         return best
     if plan.select == "last" or not _has_val(val):
@@ -616,9 +511,7 @@ def select(best: dict | None, plan: Plan, val: ValData | None, epoch: int, row: 
 
 
 def average_update(avg: dict | None, state: Mapping[str, torch.Tensor]) -> dict:
-    """Running mean of weights: ``avg`` {"n": k, "state": mean of k states} -> the mean of k + 1 states,
-    mean_{k+1} = mean_k + (w - mean_k) / (k + 1) for every floating-point tensor; other tensors
-    (BN's ``num_batches_tracked``) take the newest value.  ``avg`` None starts the mean at ``state``."""
+    """The running mean ``{"n", "state"}`` with ``state`` folded in, m + (w - m) / (n + 1) (non-float: the newest)."""
     new = {k: v.detach().to("cpu", copy=True) for k, v in state.items()}
     if avg is None:
         return {"n": 1, "state": new}
@@ -631,9 +524,7 @@ def average_update(avg: dict | None, state: Mapping[str, torch.Tensor]) -> dict:
 
 
 def _average(run: _Run, epoch: int) -> None:
-    """Weight averaging (``train.average_last`` K > 0): fold the weights after ``epoch`` into the
-    running mean when ``epoch`` is one of the last K (SWA-style; with the cosine schedule the last
-    epochs move little, so their mean is a low-noise point that needs no argmax over epochs)."""
+    """Fold the weights after ``epoch`` into the mean when it is one of the last ``train.average_last``."""
     k = run.settings.average_last
     if run.until is not None and run.until["stable_end"] is None:
         return  # until plateau: only the decay's epochs are averaged (the run's end is not known before)
@@ -647,11 +538,7 @@ def _empty_row(run: _Run, epoch: int) -> dict:
 
 
 def _precise_bn(run: _Run) -> int:
-    """Precise BN (``train.precise_bn``; :func:`pipeline.model.recompute_bn_stats`): BN running statistics
-    = the average batch statistics over all training images in manifest order, in training batches
-    and under the training autocast.  Changes no weight and draws no random number, so the training
-    trajectory is that of the run without it; only evaluation-mode outputs (selection, the checkpoint's
-    buffers) change."""
+    """Precise BN over the training images in manifest order and training batches (no weight, no random draw)."""
     n, bs = run.n_train, run.settings.batch_size
     inputs = {k: run.tensors[k] for k in ("image", "area", "gate")}  # the images only: no target is read
     batches = (_batch(inputs, torch.arange(i, min(i + bs, n), device=run.device), None,
@@ -661,9 +548,7 @@ def _precise_bn(run: _Run) -> int:
 
 
 def _validated(run: _Run, row: dict, val: ValData | None, t0: float) -> dict:
-    """``row`` with the validation scores (:func:`validation_scores`: at the selection tau and at the epoch's
-    calibrated tau) and the epoch's seconds (since ``t0``) filled in.  With ``train.precise_bn`` the BN
-    running statistics are first re-estimated over the training images (:func:`_precise_bn`)."""
+    """``row`` with the validation scores and the seconds since ``t0`` (after precise BN, when asked)."""
     s = run.settings
     if s.precise_bn:
         _precise_bn(run)
@@ -673,22 +558,12 @@ def _validated(run: _Run, row: dict, val: ValData | None, t0: float) -> dict:
     return row
 
 
-def _warm_start_row(run: _Run, val: ValData | None) -> dict:
-    """Epoch 0 = the warm start itself: logged for every Stage-II warm-started method, a selection
-    candidate only where the plan says so (quality-adaptive ``geometry_only`` mode)."""
-    return _validated(run, _empty_row(run, 0), val, time.perf_counter())
-
-
 def _step(run: _Run, b: Mapping[str, torch.Tensor], epoch: int, step: int) -> dict[str, torch.Tensor]:
-    """One optimizer step on batch ``b``; returns the loss terms (eq:refine-loss with the plan's weights).
-
-    Raises TrainingDiverged (naming the non-finite terms) before touching the weights.
-    """
+    """One optimizer step on batch ``b`` (eq:refine-loss with the plan's weights); its loss terms."""
     with autocast(run.device, run.amp):
         out = run.model.forward_train(b["x"])
     terms = losses.refine_loss(out, b, b["gate"], run.plan.weights, run.settings.constants)
-    # CPU: checked every step (free there).  CUDA: reading the loss would stall the GPU every step, so
-    # the epoch's summed loss and the weights are checked once at its end (_train_epoch) instead
+    # CUDA: reading the loss would stall the GPU every step; the epoch's end checks it instead
     if run.device.type != "cuda" and not math.isfinite(float(terms["loss"].detach())):
         bad = [k for k, v in terms.items() if k != "loss" and not torch.isfinite(v).all()]
         raise TrainingDiverged(f"{run.method.name} seed {run.seed}: non-finite loss at epoch {epoch}, "
@@ -704,12 +579,7 @@ def _step(run: _Run, b: Mapping[str, torch.Tensor], epoch: int, step: int) -> di
 
 
 def _epoch_batches(run: _Run, epoch: int):
-    """The epoch's batches: a seeded order over all images (``[seed, epoch]``), optional seeded hflip.
-
-    The order and flips go to the device once per epoch (a host-to-device copy per step would wait for
-    the GPU every step); whether a batch has a flip at all is decided on the host.  Streaming data
-    (:class:`LazyRows`) is read by a background thread two batches ahead (:func:`prefetch`): the same
-    batches in the same order."""
+    """The epoch's (size, batch) pairs in a ``[seed, epoch]`` order; streamed data read two batches ahead."""
     if _streaming(run.tensors):
         yield from prefetch(_epoch_batches_in_order(run, epoch), depth=2)
     else:
@@ -717,10 +587,10 @@ def _epoch_batches(run: _Run, epoch: int):
 
 
 def _epoch_batches_in_order(run: _Run, epoch: int):
-    """:func:`_epoch_batches` without the prefetching thread."""
+    """:func:`_epoch_batches` without the prefetching thread; the order and flips go to the device once."""
     n, bs = run.n_train, run.settings.batch_size
     order = np.random.default_rng([run.seed, epoch]).permutation(n)
-    if run.settings.augment is not None:  # train.augment: replaces augment_hflip (its flips are part of it)
+    if run.settings.augment is not None:  # it replaces augment_hflip
         for s in range(0, n, bs):
             yield min(bs, n - s), _augmented_batch(run, order[s:s + bs], epoch)
         return
@@ -733,7 +603,7 @@ def _epoch_batches_in_order(run: _Run, epoch: int):
 
 
 def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
-    """Train one epoch and return its log row (sample-weighted mean terms, start lr, validation)."""
+    """Train one epoch; its log row (sample-weighted mean terms, the starting lr, validation)."""
     t0 = time.perf_counter()
     lr_epoch = run.opt.param_groups[0]["lr"]
     last_val = run.rows[-1]["val_iou"] if run.rows else float("nan")
@@ -744,7 +614,7 @@ def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
             sums[k] = sums.get(k, 0.0) + v.detach().float() * n
         if bar is not None:
             bar.update(1)
-            if run.device.type != "cuda":  # on CUDA the loss is shown per epoch: no per-step sync
+            if run.device.type != "cuda":  # no per-step sync on CUDA
                 bar.set_postfix(epoch=epoch, loss=f"{float(terms['loss'].detach()):.4f}", val_iou=f"{last_val:.3f}",
                                 refresh=False)
     if run.device.type == "cuda" and "loss" in sums and not math.isfinite(float(sums["loss"])):
@@ -753,8 +623,7 @@ def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
     if bar is not None and run.device.type == "cuda" and "loss" in sums:
         bar.set_postfix(epoch=epoch, loss=f"{float(sums['loss']) / run.n_train:.4f}", val_iou=f"{last_val:.3f}",
                         refresh=False)
-    # a finite loss can still leave non-finite weights after the last step (e.g. an inf gradient);
-    # one device-to-host read for all parameters
+    # a finite loss can still leave non-finite weights (an inf gradient in the last step)
     if not bool(torch.stack([torch.isfinite(p).all() for p in run.model.parameters()]).all()):
         raise TrainingDiverged(f"{run.method.name} seed {run.seed}: non-finite weights after epoch {epoch}; "
                                f"no checkpoint written -- lower the learning rate or check the inputs")
@@ -766,19 +635,17 @@ def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
 
 
 def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainResult:
-    """The selected model (CPU, eval mode), the log table and the run's info."""
+    """The selected (or averaged) model on the CPU in eval mode, the log table and the run's info."""
     import pandas as pd
 
-    if run.best is None:  # cannot happen with epochs >= 1; kept as a guard against a silent wrong pick
+    if run.best is None:  # cannot happen with epochs >= 1: a guard against a silent wrong pick
         raise RuntimeError("no checkpoint candidate")
-    if run.ema is not None:  # train.ema_decay: the averaged parameters, BN statistics recomputed for them
-        with torch.no_grad():
-            for p, e in zip(run.model.parameters(), run.ema):
-                p.copy_(e)
-        _precise_bn(run)
-        run.best = {"epoch": run.epochs, "score": None, "state": None}
-    elif run.avg is not None:  # train.average_last: the averaged weights, BN statistics recomputed for them
-        run.model.load_state_dict(run.avg["state"])
+    if run.ema is not None or run.avg is not None:  # averaged weights, BN statistics recomputed for them
+        if run.ema is not None:
+            with torch.no_grad():
+                torch._foreach_copy_(list(run.model.parameters()), run.ema)
+        else:
+            run.model.load_state_dict(run.avg["state"])
         _precise_bn(run)
         run.best = {"epoch": run.epochs, "score": None, "state": None}
     else:
@@ -806,16 +673,11 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
           checkpointer: Checkpointer, init_state: Mapping | None = None, device="cpu",
           callback: Callable[[int, dict], None] | None = None, show_progress: bool = True,
           selection_tau: float = PAPER.calibrate.fixed_tau) -> TrainResult:
-    """Train one (method, seed) run on in-memory arrays and return the selected model and its log.
+    """Train one (method, seed) run; the selected model and its log.
 
-    ``data``: pseudo-targets (the only source of every loss term).  ``val``: validation images and
-    reference masks, used only by :func:`select` (None: the last epoch is selected).
-    ``checkpointer``: the per-epoch resume state (:class:`NoCheckpointer` for none).
-    ``init_state``: Stage-I mask-path state dict for warm-started methods.  ``callback(epoch, row)``
-    runs after each epoch's state is saved (tests use it to interrupt a run).  ``selection_tau``: the
-    tau of the validation masks in checkpoint selection (params ``calibrate.fixed_tau``, the one fixed
-    tau of the project; :data:`pipeline.methods.SELECTION_TAU_KEY`).
-    Raises TrainingDiverged on a non-finite loss or weights; nothing is saved for that epoch.
+    ``data``: the pseudo-targets, every loss term's only source; ``val``: for :func:`select` only.
+    ``init_state``: the Stage-I mask path of warm-started methods; ``callback(epoch, row)`` runs after each saved
+    epoch.  Raises TrainingDiverged on a non-finite loss or weights, saving nothing for that epoch.
     """
     s = Settings.from_params(method, cfg, selection_tau)
     device = torch.device(device)
@@ -835,10 +697,8 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
 
 
 def holdout(data: TrainData, fraction: float) -> tuple[TrainData, ValData | None]:
-    """Without validation masks, the plateau rule scores a held-out ``fraction`` of the pseudo-labelled
-    training images against their vote (evenly spaced in manifest order, at least 2, at most half):
-    (the rest to train on, those as :class:`ValData` whose masks are the vote M^T, or A >= 0.5 for soft
-    targets).  Fewer than 8 images: nothing is held out and the rule has nothing to score (None)."""
+    """(the rest, the held-out images as ValData scored against their vote): ``fraction`` of ``data``, evenly
+    spaced, at least 2 and at most half; nothing held out below 8 images."""
     n = len(data)
     if n < 8:
         return data, None
@@ -848,23 +708,18 @@ def holdout(data: TrainData, fraction: float) -> tuple[TrainData, ValData | None
     masks = np.asarray(data.mask[held])
     val = ValData([f"holdout:{data.image_ids[i]}" for i in held], np.asarray(data.images[held]),
                   masks >= 0.5 if masks.dtype.kind == "f" else masks.astype(bool))
-    sub = dataclasses.replace(
-        data, image_ids=[data.image_ids[i] for i in rest], images=select_rows(data.images, rest),
-        mask=select_rows(data.mask, rest), area=data.area[rest], gate=data.gate[rest],
-        sdf=None if data.sdf is None else select_rows(data.sdf, rest),
-        skeleton=None if data.skeleton is None else select_rows(data.skeleton, rest),
-        stats={**data.stats, "plateau_scored_on": f"{len(held)} held-out pseudo-labelled training images "
-                                                  "against their vote (no validation masks)"})
-    return sub, val
+    return data.subset(rest, stats={**data.stats, "plateau_scored_on": f"{len(held)} held-out pseudo-labelled "
+                                   "training images against their vote (no validation masks)"}), val
 
 
 def _train_run(run: _Run, val: ValData | None, checkpointer: Checkpointer,
-               callback: Callable[[int, dict], None] | None, show_progress: bool, stats: Mapping[str, Any]) -> TrainResult:
-    """:func:`train` after the setup: resume, the warm-start row, the epochs, the selected result."""
+               callback: Callable[[int, dict], None] | None, show_progress: bool, stats: Mapping[str, Any]
+               ) -> TrainResult:
+    """:func:`train` after the setup: resume, the warm-start row (epoch 0), the epochs, the selected result."""
     method, plan, seed = run.method, run.plan, run.seed
     start = _resume(run, checkpointer)
     if start == 1 and not run.rows and method.init == "stage1":
-        row = _warm_start_row(run, val)
+        row = _validated(run, _empty_row(run, 0), val, time.perf_counter())
         run.rows.append(row)
         run.best = select(run.best, plan, val, 0, row, run.model, plan.epoch0_eligible)
     total = (run.epochs - start + 1) * run.steps_per_epoch
@@ -875,7 +730,7 @@ def _train_run(run: _Run, val: ValData | None, checkpointer: Checkpointer,
         run.rows.append(row)
         if run.until is not None and run.until["stable_end"] is None:
             _stop_stable(run, epoch, row)
-            if bar is not None:  # the ETA follows the run's length once the decay is scheduled
+            if bar is not None:
                 bar.total = bar.n + (run.epochs - epoch) * run.steps_per_epoch
         run.best = select(run.best, plan, val, epoch, row, run.model, plan.select == "best_val" or epoch == run.epochs)
         _average(run, epoch)
