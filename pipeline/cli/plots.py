@@ -11,8 +11,8 @@ from pathlib import Path
 import click
 
 from pipeline.artifacts.atomic import write_text_if_changed
-from pipeline.runtime.errors import InputError
 from pipeline.report.offline_plots import dvc_plots_command, offline_page, template_path, template_text, vega_scripts
+from stages._common import one_line_errors
 
 #: not `dvc plots show`'s own dvc_plots/, so neither replaces the other
 OFFLINE_PLOTS_DIR = "geodistill_plots"
@@ -27,11 +27,8 @@ OFFLINE_PLOTS_DIR = "geodistill_plots"
 @click.option("--open", "open_browser", is_flag=True, help="open the page in a browser")
 def main(targets, revs, out, open_browser):
     """Render DVC's plots (one line per method) as a page that needs no network."""
-    try:
+    with one_line_errors("plots"):
         scripts = vega_scripts()
-    except InputError as e:
-        click.echo(f"geodistill plots: error: {e}", err=True)
-        sys.exit(2)
     template = template_path(".")
     if not template.is_file() and write_text_if_changed(template, template_text()):
         click.echo(f"plots: wrote {template}", err=True)

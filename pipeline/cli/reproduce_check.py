@@ -14,6 +14,7 @@ from pipeline import catalog
 from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.runtime.errors import InputError
 from pipeline.reproducibility import TOLERANCE, compare_metrics, difference_table, reproduced
+from stages._common import one_line_errors
 
 
 def _git(args: list[str], cwd: Path) -> str:
@@ -68,12 +69,8 @@ def fresh_metrics(metrics_dir: Path) -> dict[str, dict[str, float]]:
 def main(ref, artifacts):
     """Compare this run's student metrics with the committed ones; exit 1 when one differs beyond tolerance."""
     metrics_dir = catalog.path("metrics_students", artifacts)
-    try:
-        committed = committed_metrics(metrics_dir, ref)
-        fresh = fresh_metrics(metrics_dir)
-    except InputError as e:
-        click.echo(f"geodistill reproduce-check: error: {str(e).splitlines()[0]}", err=True)
-        sys.exit(2)
+    with one_line_errors("reproduce-check"):
+        committed, fresh = committed_metrics(metrics_dir, ref), fresh_metrics(metrics_dir)
     rows = compare_metrics(committed, fresh)
     tol = ", ".join(f"{k} {v}" for k, v in TOLERANCE.items())
     click.echo(f"Student metrics of this run ({metrics_dir}) against {ref} (tolerance: {tol})\n")

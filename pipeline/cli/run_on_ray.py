@@ -9,8 +9,7 @@ from pathlib import Path
 import click
 
 from pipeline.cluster.driver import run_pipeline
-from pipeline.runtime.errors import InputError
-from stages._common import setup_logging
+from stages._common import one_line_errors, setup_logging
 
 
 @click.command(name="run")
@@ -33,12 +32,9 @@ def main(targets, address, stage_cpus, train_gpu_fraction, dry_run):
     setup_logging()
     # SIGTERM (scancel, kill) as Ctrl-C: Ray shuts down and the stage processes end with their workers
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    try:
+    with one_line_errors("run"):
         result = run_pipeline(Path.cwd(), tuple(targets), address, stage_cpus, train_gpu_fraction, dry_run,
                               echo=click.echo)
-    except InputError as e:
-        click.echo(f"geodistill run: error: {str(e).splitlines()[0]}", err=True)
-        sys.exit(2)
     if result is None:
         return
     click.echo(f"geodistill run: {result.count('ran')} ran, {result.count('restored')} restored from DVC's run "
