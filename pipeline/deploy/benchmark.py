@@ -4,6 +4,7 @@ the deployed tau (eq:inference-mask); the fast path and its verdicts (docs/decis
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import dataclasses
 import math
@@ -13,6 +14,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+import torch
 
 from pipeline import catalog
 from pipeline.artifacts.store import open_artifact, read_chunk_rows
@@ -50,21 +52,11 @@ class Variant:
     sync: Callable[[], None] = lambda: None
 
 
-def _malloc_trim() -> None:
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except Exception:  # noqa: BLE001 -- not glibc: nothing to trim
-        pass
-
-
 def _status_kb(field: str) -> int | None:
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith(field + ":"):
-                    return int(line.split()[1])
-    except OSError:
-        return None
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
     return None
 
 
@@ -77,15 +69,14 @@ class PeakMemory:
         self.method = "unavailable"
 
     def __enter__(self):
-        import torch
-
         if self.device.startswith("cuda"):
             torch.cuda.synchronize()
             torch.cuda.reset_peak_memory_stats()
             self._base = torch.cuda.memory_allocated()
             self.method = "torch.cuda.max_memory_allocated - allocated before"
             return self
-        _malloc_trim()
+        with contextlib.suppress(Exception):  # not glibc: nothing to trim
+            ctypes.CDLL("libc.so.6").malloc_trim(0)
         self._base = None
         try:
             with open("/proc/self/clear_refs", "w") as f:
@@ -97,8 +88,6 @@ class PeakMemory:
         return self
 
     def __exit__(self, *exc):
-        import torch
-
         if self.device.startswith("cuda"):
             torch.cuda.synchronize()
             self.peak_mb = (torch.cuda.max_memory_allocated() - self._base) / 2**20
@@ -138,8 +127,6 @@ def interleaved_times(variants: Sequence["Variant"], x, iters: int, block: int =
 def build_variants(model, device, resolution: int, names: Sequence[str], onnx_path: str | Path | None = None,
                    int8_path: str | Path | None = None) -> tuple[list[Variant], dict[str, str]]:
     """(variants, {skipped name: why}): the engines ``names`` (old names too) that can run here."""
-    import torch
-
     dev = torch.device(device)
     sync = (lambda: torch.cuda.synchronize()) if dev.type == "cuda" else (lambda: None)
     # ONNX Runtime sessions used for timing do not spin: idle pools must not steal the timed cores
@@ -167,8 +154,6 @@ def mean_image_iou(masks: np.ndarray, reference: np.ndarray) -> float:
 
 def variant_probs(variant: Variant, images: np.ndarray, batch_size: int) -> np.ndarray:
     """P = sigmoid(Z) float32 [N,H,W] of a variant on uint8 images [N,H,W,3]."""
-    import torch
-
     out = np.empty(images.shape[:3], np.float32)
     for s in range(0, len(images), batch_size):
         z = variant.run(images_to_tensor(np.asarray(images[s:s + batch_size])))
@@ -217,8 +202,6 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
     ``batches``; batch 1 alone: 1 / latency), ``iou`` of [P >= tau] on the validation images (eq:inference-mask),
     ``iou_delta`` and ``iou_vs_fp32`` against the baseline, ``speedup``.  params and GFLOPs are the PyTorch
     graph's for every variant: int8 replaces multiply-adds, it does not remove them."""
-    import torch
-
     slow_factor = SLOW_FACTOR if slow_factor is None else float(slow_factor)
     dev = torch.device(device)
     deployed = mask_path_model(model)
@@ -306,8 +289,6 @@ def throughput_batches(batches: Sequence[int], device: str) -> list[int]:
 
 def _release_after_oom() -> None:
     """Give the cached blocks of a failed large batch back."""
-    import torch
-
     if torch.cuda.is_available():
         torch.cuda.synchronize()
         torch.cuda.empty_cache()
@@ -317,8 +298,6 @@ def throughput_sweep(variant: Variant, channels: int, resolution: int, batches: 
                      generator) -> Sweep:
     """Images/s of ``variant`` at each of ``batches`` (b / median of max(2, ceil(iters / b)) calls); the first
     batch out of GPU memory ends the sweep (raised when it is the first)."""
-    import torch
-
     tps: dict[int, float] = {}
     oom = None
     for b in sorted(int(b) for b in batches):

@@ -10,6 +10,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from pipeline.catalog import META_FILE, bundle_file
 from pipeline.deploy.confidence import CONFIDENCE_BAND
@@ -51,8 +52,6 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
     parity check; the int8 model only with model.onnx and ``calibration_images`` (training split), and left
     out when it misses ``int8_min_mask_iou`` on a checked instruction set (``int8_note`` says why).
     ``frames``: how training frames were read (data.bit_depth, data.letterbox)."""
-    import torch
-
     tmp = Path(tmp)
     deployed = mask_path_model(model)
     method, seed = payload.get("method"), payload.get("seed")
@@ -148,8 +147,6 @@ def write_contract(tmp: str | Path, deployed, *, tau: float, resolution: int, fr
     frames = frame_reading(frames)
     golden = golden_frame(r)
     x = golden[None].transpose(0, 3, 1, 2).astype(np.float32) / np.float32(255.0)
-    import torch
-
     z = torch_logits(deployed, torch.from_numpy(x))[0, 0]
     probs = (1.0 / (1.0 + np.exp(-z.astype(np.float64)))).astype(np.float32)
     np.save(tmp / GOLDEN_FILES["input"], golden)

@@ -4,6 +4,7 @@ uint8 images converted on the device; on a CPU, eager fp32 channels_last (numeri
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from pipeline.runtime.device import autocast
 from pipeline.runtime.errors import InputError
@@ -13,8 +14,6 @@ from pipeline.model import mask_path_model
 def uint8_to_input(images_u8, channels_last: bool = True):
     """uint8 [N,H,W,3] tensor -> float32 [N,3,H,W] in [0, 1] on its device."""
     x = images_u8.permute(0, 3, 1, 2).float().div_(255.0)
-    import torch
-
     return x.contiguous(memory_format=torch.channels_last) if channels_last else x.contiguous()
 
 
@@ -24,8 +23,6 @@ class FastStudent:
 
     def __init__(self, model, device="cuda", *, precision: str = "auto", cuda_graphs: bool = True,
                  compile: bool = False):
-        import torch
-
         self.device = torch.device(device)
         if precision not in ("auto", "bf16", "fp32"):
             raise InputError(f"precision {precision!r}: expected auto, bf16 or fp32")
@@ -38,15 +35,11 @@ class FastStudent:
         self._pinned: dict[tuple, object] = {}     # shape -> pinned uint8 host buffer
 
     def _forward(self, x):
-        import torch
-
         with torch.inference_mode(), autocast(self.device, torch.bfloat16 if self.precision == "bf16" else None, cache_enabled=False):
             return self.net(x.contiguous(memory_format=torch.channels_last)).float()
 
     def _graph(self, shape: tuple, uint8: bool):
         """(graph, static input, static output) for ``shape``, captured on first use after 3 warm-up calls."""
-        import torch
-
         key = (shape, uint8)
         if key not in self._graphs:
             static_in = torch.zeros(shape, dtype=torch.uint8 if uint8 else torch.float32, device=self.device)
@@ -70,17 +63,16 @@ class FastStudent:
     def logits(self, x):
         """float32 [N,3,H,W] in [0, 1] -> logits [N,1,H,W] on the device (on CUDA a graph's output buffer)."""
         x = x.to(self.device, non_blocking=True)
-        if not self.cuda_graphs:
-            return self._forward(x)
-        graph, static_in, static_out = self._graph(tuple(x.shape), uint8=False)
-        static_in.copy_(x)
+        return self._replay(x, uint8=False) if self.cuda_graphs else self._forward(x)
+
+    def _replay(self, x, uint8: bool):
+        graph, static_in, static_out = self._graph(tuple(x.shape), uint8)
+        static_in.copy_(x, non_blocking=uint8)
         graph.replay()
         return static_out
 
     def logits_uint8(self, images: np.ndarray):
         """uint8 [N,H,W,3] numpy -> logits [N,1,H,W] on the device, through a pinned staging buffer."""
-        import torch
-
         images = np.ascontiguousarray(images)
         if images.dtype != np.uint8 or images.ndim != 4:
             raise InputError(f"logits_uint8: expected uint8 [N,H,W,3], got {images.dtype} {images.shape}")
@@ -93,15 +85,10 @@ class FastStudent:
         host.numpy()[...] = images
         if not self.cuda_graphs:
             return self._forward(uint8_to_input(host.to(self.device, non_blocking=True)))
-        graph, static_in, static_out = self._graph(tuple(shape), uint8=True)
-        static_in.copy_(host, non_blocking=True)
-        graph.replay()
-        return static_out
+        return self._replay(host, uint8=True)
 
     def probs_uint8(self, images: np.ndarray, batch_size: int = 64) -> np.ndarray:
         """P = sigmoid(Z) float32 [N,H,W] of uint8 images [N,H,W,3]."""
-        import torch
-
         images = np.asarray(images)
         out = np.empty(images.shape[:3], np.float32)
         for s in range(0, len(images), batch_size):

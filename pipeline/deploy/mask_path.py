@@ -8,6 +8,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from pipeline.deploy.cuda_engine import FastStudent
 from pipeline.metrics import mask_agreement
@@ -29,8 +30,6 @@ def export_module(model):
 
 def parity_inputs(resolution: int, n: int = 2, seed: int = 0):
     """Deterministic smooth random RGB images float32 [n,3,R,R] in [0,1]: blobs plus fine noise."""
-    import torch
-
     g = torch.Generator().manual_seed(seed)
     low = torch.rand(n, 3, max(2, resolution // 8), max(2, resolution // 8), generator=g)
     x = torch.nn.functional.interpolate(low, size=(resolution, resolution), mode="bilinear",
@@ -55,8 +54,6 @@ def onnx_unavailable_reason() -> str | None:
 
 def export_torchscript(model, path: str | Path, resolution: int) -> Path:
     """The traced mask path saved unfrozen (it still moves between devices), without debug records."""
-    import torch
-
     deployed = export_module(model)
     example = torch.zeros(1, deployed.config["in_channels"], resolution, resolution)
     with torch.no_grad(), warnings.catch_warnings():
@@ -72,8 +69,6 @@ _WRITER_RECORDS = ("version", "byteorder", ".data/serialization_id")
 def save_without_debug_records(module, path: str | Path) -> Path:
     """``torch.jit.save`` minus the ``*.debug_pkl`` records: they hold absolute source paths, so the same model
     gave other bytes in another folder.  Rewritten record for record by torch's own zip writer."""
-    import torch
-
     buf = io.BytesIO()
     torch.jit.save(module, buf)
     buf.seek(0)
@@ -91,8 +86,6 @@ def save_without_debug_records(module, path: str | Path) -> Path:
 
 def export_onnx(model, path: str | Path, resolution: int, opset: int) -> Path:
     """The mask path in ONNX, batch, height and width dynamic (the TorchScript-based exporter)."""
-    import torch
-
     deployed = export_module(model)
     example = torch.zeros(1, deployed.config["in_channels"], resolution, resolution)
     axes = {0: "batch", 2: "height", 3: "width"}
@@ -107,7 +100,6 @@ def export_onnx(model, path: str | Path, resolution: int, opset: int) -> Path:
 def ort_session(path: str | Path, threads: int | None = None, optimize: bool = True, spinning: bool = True):
     """ONNX Runtime CPU session with torch's thread count unless ``threads``; ``spinning=False``: idle pools sleep."""
     import onnxruntime as ort
-    import torch
 
     so = ort.SessionOptions()
     so.intra_op_num_threads = int(threads or torch.get_num_threads())
@@ -123,16 +115,12 @@ def ort_session(path: str | Path, threads: int | None = None, optimize: bool = T
 
 def load_torchscript(path: str | Path, device="cpu"):
     """torch.jit.load in eval mode, torch 2.13's deprecation notice silenced."""
-    import torch
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         return torch.jit.load(str(path), map_location=device).eval()
 
 
 def torch_logits(model, x) -> np.ndarray:
-    import torch
-
     with torch.inference_mode():
         return model(x).float().cpu().numpy()
 
@@ -158,8 +146,6 @@ def check_parity(model, tau: float, resolution: int, atol: float, torchscript: s
                  onnx: str | Path | None = None, device=None) -> dict:
     """:func:`compare_logits` of each given file on :func:`parity_inputs`; on a CUDA ``device`` also
     :func:`device_parity` (reported only).  Does not raise (:func:`require_parity`)."""
-    import torch
-
     x = parity_inputs(resolution)
     ref = torch_logits(mask_path_model(model), x)
     out: dict = {"inputs": f"{x.shape[0]} deterministic smooth random images {resolution}x{resolution} (seed 0)",
@@ -178,8 +164,6 @@ def check_parity(model, tau: float, resolution: int, atol: float, torchscript: s
 def device_parity(model, tau: float, resolution: int, atol: float, device, torchscript=None) -> dict:
     """The TorchScript file and the fast engine on ``device`` against the fp32 PyTorch mask path there, with
     ``mask_iou`` (:func:`pipeline.metrics.mask_agreement`)."""
-    import torch
-
     dev = torch.device(device)
     x = parity_inputs(resolution)
     z_tau = logit_threshold(tau)

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import torch
 
 from pipeline.datasets.loading import check_bit_depth, pixel_limit, probs_to_size, read_rgb, resize_image, to_rgb8
 from pipeline.deploy.confidence import confidence_rank_check, frame_confidence  # noqa: F401
@@ -122,19 +123,15 @@ def resolve_engine(path: str | Path, engine: str, device=None) -> str:
     engine = engine_name(engine)
     if engine not in ENGINE_CHOICES:
         raise InputError(f"--engine {engine!r}: expected one of {', '.join(ENGINE_CHOICES)}")
-    on_cuda = device is not None and str(device).startswith("cuda")
-    if not is_deploy_bundle(path):
-        if engine == AUTO:
-            return "cuda" if on_cuda else "torch"
-        if engine not in MODEL_ENGINES:
+    bundle = is_deploy_bundle(path)
+    if engine != AUTO:
+        if not bundle and engine not in MODEL_ENGINES:
             raise InputError(f"--engine {engine}: needs a deploy bundle (geodistill export); {path} is a "
                              f"checkpoint directory, which supports --engine torch or cuda only")
         return engine
-    if engine != AUTO:
-        return engine
-    if on_cuda:
+    if device is not None and str(device).startswith("cuda"):
         return "cuda"
-    if onnx_unavailable_reason() is None and (path / ONNX_FILE).exists():
+    if bundle and onnx_unavailable_reason() is None and (path / ONNX_FILE).exists():
         return "onnxruntime_fp32"
     return "torch"
 
@@ -144,8 +141,6 @@ def load_segmenter(path: str | Path, engine: str = AUTO, device="cpu", threshold
     """A checkpoint directory or a deploy bundle opened with one engine (:func:`resolve_engine`); tau candidates
     by :func:`pipeline.thresholds.tau_candidates` (``thresholds``: a checkpoint's table; ``params``: the fixed
     tau); the resolution recorded with the model, else None (never guessed)."""
-    import torch
-
     path = Path(path)
     if not path.exists():
         raise InputError("{}: not found", CHECKPOINT(path))
