@@ -1,13 +1,8 @@
 """Assemble a dataset for the ``prepare`` stage: source rows -> checked manifest -> arrays.
 
-``synthetic_source``   renders the embedded benchmark to PNG files (image, GT mask, part labels) in
-                       ``<out_dir>/synthetic/`` (written atomically) and pre-fills the decode cache
-                       with the rendered arrays, so nothing is decoded back.
-``real_source``        dispatches to an adapter (``pipeline.datasets.adapters``).
-``check_manifest``     duplicate ids and eq:spacecraft-disjoint, under the bad-input policy.
-``decode_rows``        first pass: read every file once (filling the decode cache), check masks
-                       against their images, fill width/height/sha256; bad files raise or are skipped.
-``iter_arrays``        second pass (cache hits): working-resolution arrays in manifest order.
+:func:`synthetic_source` renders the benchmark to PNG files (pre-filling the decode cache),
+:func:`real_source` calls a reader; :func:`decode_rows` reads every file once under the bad-input policy
+and :func:`iter_arrays` then yields working-resolution arrays from the cache.
 """
 
 from __future__ import annotations
@@ -94,10 +89,10 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
 
 
 def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = None) -> DatasetSpec:
-    """Rows of a real dataset.  ``<out_dir>/synthetic`` (a declared DVC output) is replaced by a
-    directory holding only a note, so no stale synthetic files survive a switch of source."""
+    """Rows of a real dataset; ``<out_dir>/synthetic`` (a DVC output) is replaced by a note, so no stale
+    synthetic files survive a switch of source."""
     spec = adapters.build_source(cfg, policy)
-    spec.max_pixels = cfg.get("max_pixels")  # data.max_pixels: checked on every file's header (decode_rows)
+    spec.max_pixels = cfg.get("max_pixels")
     spec.bit_depth, spec.letterbox = cfg.get("bit_depth", "auto"), bool(cfg.get("letterbox", False))
     if out_dir is not None:
         with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:
@@ -123,10 +118,8 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
                 policy: BadInputPolicy) -> pd.DataFrame:
     """First pass over the files: decode (into the cache), check, and fill width/height/sha256.
 
-    A row is left out (skip_bad) or raises when its image is missing, zero-byte, corrupt or
-    unsupported or above ``spec.max_pixels`` (read from its header, before decoding), when its mask or
-    part file is, or when a mask/part file's size differs from the image's.  Rows without a mask (unlabeled training images) are fine.  When a row is left out, its
-    other files (image, mask, part file) are listed too, so every file that is not used is listed.
+    A row whose image, mask or part file is bad, or whose mask/part size differs from the image's, goes
+    through the policy; its other files are then listed too.
     """
     keep, width, height, sha = [], [], [], []
     for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):

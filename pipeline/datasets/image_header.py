@@ -1,21 +1,5 @@
-"""Width and height of an image file from its header, without decoding a pixel.
-
-:func:`header_size` reads the four formats the loader takes (``loading.SUPPORTED_SUFFIXES``) by their
-content, as OpenCV does (not by the suffix):
-
-* PNG  -- the IHDR chunk, which the format requires first;
-* JPEG -- the first start-of-frame marker (SOF0..SOF15 but DHT, JPG and DAC), walking the segments;
-* TIFF -- classic (42) and BigTIFF (43), either byte order: ImageWidth / ImageLength of the first
-  directory (OpenCV decodes the first page);
-* BMP  -- the DIB header (BITMAPCOREHEADER's 16-bit sizes, or the 32-bit ones of every later header;
-  a negative height is a top-down bitmap).
-
-Decision (docs/dependencies.md): our own ~80 lines rather than Pillow (installed, through
-scikit-image, imageio and matplotlib).  Pillow's lazy ``Image.open`` reads only the header too, but
-it refuses to identify some layouts OpenCV decodes (e.g. multi-channel float TIFFs), and its own
-bomb guard raises during ``open`` above 2 x 89 M pixels -- a process-wide setting we would have to
-change.  These readers parse the bytes the loader already holds, know nothing about pixel types, and
-are exercised by tests against files OpenCV writes and against hand-built headers.
+"""Width and height of a PNG, JPEG, TIFF (classic and BigTIFF) or BMP file from its header, without
+decoding a pixel; the format is told by the content, as OpenCV does.  Why not Pillow: docs/dependencies.md.
 """
 
 from __future__ import annotations
@@ -23,7 +7,7 @@ from __future__ import annotations
 import struct
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-#: JPEG start-of-frame markers: C0..CF except C4 (DHT), C8 (JPG, reserved) and CC (DAC)
+# JPEG start-of-frame markers: C0..CF except C4 (DHT), C8 (JPG, reserved) and CC (DAC)
 _SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 
 

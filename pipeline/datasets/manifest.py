@@ -1,16 +1,8 @@
-"""Manifest rows, protocol checks and the bad-input policy.
+"""Manifest rows (:class:`DatasetSpec`), protocol checks and the one bad-input policy (:class:`BadInputPolicy`).
 
-A dataset source (synthetic generator or a real-dataset adapter) yields a :class:`DatasetSpec`: the
-manifest rows (without the decode-time columns width/height/sha256), how to read its masks, and
-whether its protocol is spacecraft-disjoint.  Problems found anywhere -- a duplicate image id, a
-spacecraft in two splits, a missing/zero-byte/corrupt/unsupported file, a broken symbolic link, a
-directory where a file belongs, a mask without an image, several masks for one image, a mask whose
-size differs from its image -- go through one policy (:class:`BadInputPolicy`): raise a one-line
-:class:`InputError` naming the file, or with ``skip_bad`` leave the row out and record
-``(image_id, path, reason)`` for ``skipped_files.parquet``.  Never silent: a file a source finds
-and does not use is either an error or a row of that table.  The only files recorded without
-being an error are hidden ones (name starting with ``.``, e.g. ``.DS_Store``) and the other files
-of a row already left out (:meth:`BadInputPolicy.record`).
+A problem found anywhere raises a one-line :class:`InputError` naming the file or, with ``skip_bad``,
+leaves the row out and lists ``(image_id, path, reason)``; a file a source finds and does not use is
+never silently ignored.
 """
 
 from __future__ import annotations
@@ -33,19 +25,11 @@ SKIPPED_COLUMNS = ("image_id", "path", "reason")
 
 @dataclasses.dataclass
 class DatasetSpec:
-    """A source's manifest rows plus how to read them.
+    """A source's manifest rows (at least ``ROW_COLUMNS``; extra columns are kept) plus how to read them.
 
-    rows: DataFrame with at least ``ROW_COLUMNS`` (extra columns are kept in the manifest).
-    mask_threshold: foreground = max channel > threshold (None: auto, see loading.mask_from_array).
-    part_colors: colour table for colour-coded part masks ``{(r, g, b): label}`` or a
-        :class:`pipeline.datasets.loading.ColorTable` (with a tolerance); None = part files
-        are label images (synthetic) or there are no part files.
-    spacecraft_disjoint: enforce eq:spacecraft-disjoint (SpaceSense-Bench-like protocols).
-    protocol: a small dict describing the protocol used (kept in the manifest metadata).
-    max_pixels: the pixel limit its files are read under (params ``data.max_pixels``; None: the
-        default, :data:`pipeline.datasets.loading.DEFAULT_MAX_PIXELS`), checked on each file's header.
-    bit_depth, letterbox: how frames are read and resized (params ``data.bit_depth``, ``data.letterbox``;
-        :func:`pipeline.datasets.loading.load_rgb`).
+    ``mask_threshold``: foreground = max channel > threshold (None: the loader's rule); ``part_colors``:
+    the colour table of colour-coded part masks (None: label images or none); ``protocol``: kept in the
+    manifest metadata; ``max_pixels``, ``bit_depth``, ``letterbox``: the ``data`` params of the same name.
     """
 
     rows: pd.DataFrame
@@ -58,22 +42,16 @@ class DatasetSpec:
     letterbox: bool = False
 
 
-#: what a refusal suggests (a template naming ``--skip-bad`` / ``skip_bad=True`` in the caller's terms,
-#: pipeline.runtime.errors): both work for prepare and distill (and label, which reads data.skip_bad too)
+#: what a refusal suggests, ``{}`` naming ``--skip-bad`` / ``skip_bad=True`` in the caller's terms
 SKIP_HINT = "pass {}, or set data.skip_bad: true in params.yaml, to leave it out"
 
 
 class BadInputPolicy:
-    """Raise on the first problem, or (``skip_bad``) record it and let the caller drop the row.
+    """The one bad-file policy (docs/own-data.md): raise on the first problem, or (``skip_bad``) list it
+    with its reason and let the caller drop the row.
 
-    The one bad-file policy of prepare (folder source), label, distill and segment (docs/own-data.md):
-    without ``--skip-bad`` the first bad file stops the run with one line naming it and the option;
-    with it, bad files are left out, listed with their reason (``skipped_files.parquet`` /
-    ``skipped.csv``, columns :data:`SKIPPED_COLUMNS`) and counted in one stderr line
-    (:meth:`summary`).  ``hint``: the refusal's suggestion (a command without params: only
-    ``--skip-bad``).  ``hint_options``: the options of ``hint``'s ``{}`` (default: ``--skip-bad``),
-    spelled in the caller's terms (:class:`pipeline.runtime.errors.InputError`); a hint without options is
-    taken as it is."""
+    ``hint``: the refusal's suggestion; ``hint_options``: the options of its ``{}`` (default ``--skip-bad``).
+    """
 
     def __init__(self, skip_bad: bool, hint: str = SKIP_HINT, hint_options: tuple[Option, ...] | None = None):
         self.skip_bad = bool(skip_bad)
@@ -83,9 +61,8 @@ class BadInputPolicy:
 
     def report(self, image_id: str | None, path: str, reason: str, fix: str = "", options: tuple[Option, ...] = ()
                ) -> None:
-        """Refuse ``path`` (InputError: ``path: reason (fix; hint)``) or, with ``skip_bad``, list it
-        with ``reason``.  ``fix``: a template naming ``options`` that would let the file in (a
-        :class:`pipeline.datasets.loading.BadFileError`'s ``fix``)."""
+        """Refuse ``path`` (``path: reason (fix; hint)``) or, with ``skip_bad``, list it with ``reason``;
+        ``fix`` names ``options`` that would let the file in."""
         msg = f"{path}: {reason}" if not reason.startswith(str(path)) else reason
         if not self.skip_bad:
             opts = (*options, *self.hint_options)
@@ -99,22 +76,23 @@ class BadInputPolicy:
         """:meth:`report` of a :class:`pipeline.datasets.loading.BadFileError` (its path, reason, fix)."""
         self.report(image_id, error.path, error.reason, error.fix, error.options)
 
+    def _bad(self) -> list[dict]:
+        return [r for r in self.skipped if not r.get("listed_only")]
+
     def bad_count(self) -> int:
         """Files left out by :meth:`report` (not the ones merely listed by :meth:`record`)."""
-        return sum(1 for r in self.skipped if not r.get("listed_only"))
+        return len(self._bad())
 
     def summary(self, command: str, listing) -> str | None:
-        """The one stderr line every command prints at its end when bad files were left out: how
-        many, the first one, and where all are listed; None when there were none."""
-        bad = [r for r in self.skipped if not r.get("listed_only")]
+        """The one stderr line a command prints at its end when bad files were left out (None: none were)."""
+        bad = self._bad()
         if not bad:
             return None
         return (f"{command}: skipped {len(bad)} bad file(s) (first: {bad[0]['path']}: {bad[0]['reason']}); "
                 f"all are listed with the reason in {listing}")
 
     def record(self, image_id: str | None, path: str, reason: str) -> None:
-        """List a file that is not used without it being an error (hidden files; the other files of a
-        row already reported)."""
+        """List a file that is not used without it being an error (hidden files, a dropped row's other files)."""
         log.info("not using %s: %s", path, reason)
         self.skipped.append({"image_id": image_id or "", "path": str(path), "reason": reason, "listed_only": True})
 
@@ -146,11 +124,8 @@ def spacecraft_split_violations(rows: pd.DataFrame) -> dict[str, list[str]]:
 
 
 def enforce_spacecraft_disjoint(rows: pd.DataFrame, policy: BadInputPolicy) -> pd.DataFrame:
-    """Error on a spacecraft in two splits; with skip_bad keep it only in its highest-priority split.
-
-    Priority test > val > train: the evaluation groups are the protocol's fixed sets, so the
-    contaminating copies are removed from the split that would otherwise leak them (training).
-    """
+    """Error on a spacecraft in two splits; with skip_bad keep it only in its highest-priority split
+    (test > val > train: the evaluation groups are the protocol's fixed sets)."""
     bad = spacecraft_split_violations(rows)
     if not bad:
         return rows

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 from pipeline.params import SOURCES, validate_section  # noqa: F401  (SOURCES: re-exported)
 
-# keys that change where things are cached, not what the stage produces: not fingerprinted.  max_pixels
-# is a guard: the files it leaves out (under skip_bad) change the selected files' content digest, which
-# is fingerprinted (stages/prepare.py), so its value need not be
+# not fingerprinted: where things are cached, and a guard whose effect shows in the content digest
 NON_CONTENT_KEYS = ("cache_dir", "contact_sheet_images", "max_pixels")
 
 

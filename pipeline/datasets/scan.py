@@ -1,6 +1,5 @@
-"""The one folder scan of the user tools: label, distill / prepare (folder source) and segment
-(docs/own-data.md).  Sub-folders are walked recursively; links are never followed out of the folder.
-See :func:`scan_inputs`."""
+"""The one folder scan of label, distill / prepare (folder source) and segment (docs/own-data.md):
+recursive, never following links out of the folder."""
 
 from __future__ import annotations
 
@@ -21,16 +20,11 @@ class Inputs:
 
 
 def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> Inputs:
-    """The images under ``input_path`` and the entries skipped on the way (module docstring): the one
-    folder scan of label, distill/prepare (folder source) and segment (docs/own-data.md).
+    """The images under ``input_path`` (a single file is taken as given) and the entries skipped on the way.
 
-    A single file is taken as given (any suffix; the reader decides).  A folder is walked recursively
-    (sub-folders included) without following links.  Hidden entries (name starting with ``.``) and
-    files without a supported image suffix are not images: listed in ``unused``, never an error.
-    Among the others, regular files and links to files inside the folder are kept; broken links,
-    links leaving the folder, links to folders and special files are bad entries (``skipped``).
-    ``keep_broken_links``: keep broken links in ``files`` instead (the caller's decode pass reports
-    them, with the same wording, :func:`broken_link_reason`).
+    Hidden entries and non-images are listed in ``unused``, never an error; broken links, links leaving
+    the folder, links to folders and special files are bad (``skipped``), unless ``keep_broken_links``
+    keeps broken links in ``files`` for the caller's decode pass to report.
     """
     from pipeline.datasets.loading import SUPPORTED_SUFFIXES, broken_link_reason
 

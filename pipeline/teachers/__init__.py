@@ -1,11 +1,7 @@
 """Teachers of eq:teacher-prediction: SAM 3 (transformers), imported masks, and a SIMULATOR.
 
-:data:`TEACHERS` is the registry, backend name -> class (like :data:`pipeline.deploy.engines.ENGINES`):
-each class names itself with its constant of :data:`pipeline.params.BACKENDS` (the schema's choices,
-torch-free) and builds itself from the ``teacher:`` section (``from_params``).
-``make_teacher(cfg, resolution, device)`` builds the backend named by ``teacher.backend``;
-``check_teacher_params(cfg)`` validates the ``teacher:`` section; ``teacher_fingerprint(t)`` is the
-sha256 that keys the content-addressed cache (:mod:`pipeline.teachers.cache`).
+:data:`TEACHERS` maps each backend name of :data:`pipeline.params.BACKENDS` to its class, which builds
+itself from the ``teacher:`` section (``from_params``).
 """
 
 from __future__ import annotations
@@ -23,7 +19,6 @@ from pipeline.teachers.simulated import SimulatedFoundationTeacher
 __all__ = ["BACKENDS", "TEACHERS", "VIEWS", "Teacher", "TeacherInput", "finalize_answers", "check_teacher_params",
            "make_teacher", "teacher_fingerprint"]
 
-#: backend name -> teacher class; the names are :data:`pipeline.params.BACKENDS` (one class each)
 TEACHERS: dict[str, type] = {cls.backend: cls for cls in (SimulatedFoundationTeacher, Sam3Teacher, ImportedTeacher)}
 
 

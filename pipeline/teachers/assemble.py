@@ -1,12 +1,8 @@
 """The teacher stage's work (eq:prompt-set, eq:teacher-prediction), callable without the CLI.
 
-:func:`open_teacher_run` puts the teacher of a validated ``teacher:`` section behind its cache over the
-rows of a manifest (:class:`TeacherRun`); :meth:`TeacherRun.fill` computes what the cache lacks and
-:meth:`TeacherRun.write` assembles ``teacher.zarr`` and the score table from the cache, in manifest
-row order (the layout is in ``stages/teacher.py``'s docstring).
-
-Rows whose split is not in ``teacher.splits`` are not sent to the teacher: their masks are empty,
-their scores 0 (all prompts invalid, so eq:valid-set is empty and the gate is 0) and ``ran`` is false.
+:func:`open_teacher_run` puts a teacher behind its cache over a manifest's rows; :meth:`TeacherRun.fill`
+computes what the cache lacks and :meth:`TeacherRun.write` assembles ``teacher.zarr`` and the score
+table.  Rows outside ``teacher.splits`` get empty masks and score 0 (docs/decisions.md).
 """
 
 from __future__ import annotations
@@ -50,7 +46,7 @@ def check_alignment(manifest: pd.DataFrame, images, reference) -> None:
 
 
 def vflip_prompt(cfg: Mapping[str, Any]) -> str | None:
-    """The base prompt, run on the flipped image too (annotation-free-style control), if ``vflip_base_prompt``."""
+    """The base prompt if ``vflip_base_prompt`` (also run on the flipped image: the annotation-free-style control)."""
     return cfg["prompts"][cfg["base_prompt_index"]] if cfg["vflip_base_prompt"] else None
 
 
@@ -61,9 +57,8 @@ def fingerprint_params(cfg: Mapping[str, Any]) -> dict:
 
 def score_rows(image_id: str, prompts: Sequence[str], masks: np.ndarray, scores: np.ndarray, split: str,
                ran: bool) -> list[tuple]:
-    """One image's rows of the score table (:data:`SCORE_COLUMNS`): per prompt its score, validity
-    (score > 0, eq:valid-set) and mask area (foreground fraction of the frame, eq:pseudo-area applied
-    to M_ik); ``masks`` bool [K,H,W], ``scores`` float32 [K]."""
+    """One image's rows of the score table: per prompt its score, validity (score > 0, eq:valid-set) and
+    mask area (eq:pseudo-area applied to M_ik)."""
     k = len(prompts)
     areas = masks.reshape(k, -1).mean(axis=1)
     return [(image_id, j, prompts[j], float(scores[j]), bool(scores[j] > 0), float(areas[j]), split, ran)
@@ -106,8 +101,7 @@ class TeacherRun:
         return stats
 
     def write(self, out: str | Path, scores: str | Path, meta: Callable[[str], Meta]) -> pd.DataFrame:
-        """Assemble ``out`` (teacher.zarr) and ``scores`` (teacher_scores.parquet) from the cache, every
-        manifest row in order; ``meta(schema)`` stamps each.  Returns the score table."""
+        """Assemble teacher.zarr and teacher_scores.parquet from the cache in manifest order; returns the table."""
         n, h, w = self.shape
         prompts, vflip, k = self.prompts, vflip_prompt(self.cfg), len(self.prompts)
         ids = self.manifest["image_id"].astype(str).tolist()
@@ -150,9 +144,8 @@ class TeacherRun:
 
 def open_teacher_run(cfg: Mapping[str, Any], manifest, images, reference: str | Path,
                      device: str = "auto") -> TeacherRun:
-    """The teacher of the validated ``teacher:`` section ``cfg`` over the opened ``manifest`` and
-    ``images`` artifacts; ``reference`` (reference.zarr's path) is opened only for a teacher that reads
-    it (the SIMULATOR).  Checks that the artifacts come from one run and share the manifest's rows."""
+    """The teacher of the validated ``teacher:`` section over the opened ``manifest`` and ``images``, checked
+    to come from one run; ``reference`` (a path) is opened only for the SIMULATOR."""
     df = manifest.df.reset_index(drop=True)
     n, h, w = images["image"].shape[:3]
     rows = [i for i, s in enumerate(df["split"].astype(str)) if s in cfg["splits"]]

@@ -1,20 +1,8 @@
 """The teacher interface shared by every backend (eq:teacher-prediction).
 
-For image :math:`I_i` and prompt :math:`p_k` a teacher returns its highest-scoring candidate mask
-:math:`M_{ik} \\in \\{0,1\\}^{H\\times W}` and score :math:`s_{ik}` (eq:teacher-prediction).  A prompt
-with no candidate, or a score :math:`\\le 0`, is *invalid*: its score is 0 and its mask is empty, so
-it drops out of the valid-prompt set :math:`\\mathcal{V}_i` of eq:valid-set downstream.
-
-Backends (``teacher.backend``):
-
-* ``sam3``      -- :class:`pipeline.teachers.sam3.Sam3Teacher`, SAM 3 through transformers;
-* ``imported``  -- :class:`pipeline.teachers.imported.ImportedTeacher`, masks produced elsewhere;
-* ``simulated`` -- :class:`pipeline.teachers.simulated.SimulatedFoundationTeacher`, a SIMULATOR of a
-  foundation model's prompt-dependent errors for the synthetic benchmark; it reads the synthetic
-  scene's ground truth and is therefore never a real teacher.
-
-Every backend works at the working resolution of ``images.zarr``: inputs are uint8 [H,W,3] images,
-outputs bool [K,H,W] masks at the same H,W.
+A teacher answers each (image, prompt) with its best candidate mask and score at the working
+resolution of ``images.zarr``; no candidate or a score <= 0 is *invalid* (score 0, empty mask) and
+drops out of eq:valid-set.
 """
 
 from __future__ import annotations
@@ -31,12 +19,9 @@ MANIFEST_EXTRAS = ("background", "hard_case", "area_fraction")
 
 @dataclasses.dataclass
 class TeacherInput:
-    """One image as a teacher sees it.
+    """One image as a teacher sees it: uint8 [H,W,3], already in ``view`` (the runner flips answers back).
 
-    ``image`` is uint8 [H,W,3] at the working resolution, already transformed to ``view`` (for
-    ``vflip`` the rows are reversed; the runner flips the answer back).  ``reference`` (``mask``
-    bool [H,W], optional ``parts`` uint8 [H,W]) and ``extras`` (manifest extra columns) are filled
-    only for a teacher whose ``needs_reference`` is true -- the simulator.
+    ``reference`` (``mask``, optional ``parts``) and ``extras`` are filled only for the SIMULATOR.
     """
 
     image_id: str
@@ -63,10 +48,7 @@ class Teacher(Protocol):
 
 
 def finalize_answers(masks: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Enforce the invalid-prompt convention: score <= 0 (or NaN) -> score 0 and an empty mask.
-
-    ``masks`` bool [..., H, W], ``scores`` float [...]; returns copies (bool, float32).
-    """
+    """Enforce the invalid-prompt convention on copies: score <= 0 (or NaN) -> score 0 and an empty mask."""
     masks = np.asarray(masks, dtype=bool).copy()
     scores = np.asarray(scores, dtype=np.float32).copy()
     invalid = ~(scores > 0)  # catches NaN too

@@ -1,25 +1,7 @@
-"""The teacher as a Ray Data pipeline (the ``cluster`` extra): image rows -> CPU decode -> teachers -> cache.
+"""The teacher as a Ray Data pipeline (the ``cluster`` extra): jobs -> CPU decode -> teacher actors -> cache.
 
-:func:`fill_with_ray` runs the jobs :class:`pipeline.teachers.runner.TeacherRunner` planned:
-
-1. ``ray.data.from_items`` -- one row per :class:`~pipeline.teachers.jobs.TeacherJob` (a batch of
-   image rows in one view), :data:`JOBS_PER_BLOCK` jobs to a block (one actor task), the block count
-   a multiple of the pool's size (:func:`job_blocks`);
-2. ``map_batches(decode_jobs)`` -- tasks on CPU workers read and resize the job's images (the
-   runner's ``load``: an artifact row or an image file) into :class:`TeacherInput` objects (on a
-   CPU-only cluster Ray Data fuses this step into the teacher actors: same resources, no copy);
-3. ``map_batches(TeacherWorker, compute=ActorPoolStrategy(size=workers))`` -- an actor pool with one
-   teacher per GPU (``num_gpus=1`` when the cluster has GPUs and the device is not ``cpu``) or per CPU
-   worker; each actor builds the teacher once (SAM 3 loaded once, the text features encoded once, the
-   vision encoder reused by the six prompts inside ``predict``) and calls
-   :func:`pipeline.teachers.jobs.answer_job` -- the serial loop's own per-batch function -- which
-   writes the job's entries into the content-addressed cache (:mod:`pipeline.teachers.cache`,
-   a local folder, NFS or object storage).
-
-A task Ray retries recomputes its job and rewrites the same keys with the same bytes (atomic writes):
-no duplicate, no torn entry.  Ray runs embedded and local unless ``address`` (or ``RAY_ADDRESS``)
-names a cluster, whose workers must reach the cache's storage and the inputs.  Ray is imported here
-only; without it the runner's serial loop does the same work.
+Every actor calls :func:`pipeline.teachers.jobs.answer_job`, the serial loop's own per-batch function, so a
+retried task rewrites the same cache entries; the pipeline is described in docs/scaling.md.
 """
 
 from __future__ import annotations
@@ -62,18 +44,14 @@ class TeacherWorker:
         return {"job": batch["job"], "written": np.asarray(written, np.int64)}
 
 
-# Jobs per Ray Data block (one actor task).  One job per block paid Ray's per-task cost (scheduling,
-# object-store round trips, a driver-side step of the streaming executor) on every image batch: a
-# 1-teacher pool ran at 13.3 images/s beside the serial loop's 14.1, 2 teachers at 24.2.  With 4 jobs
-# per block: 14.5 (serial 14.8) and 26.6 (bench_teacher, docs/scaling.md).  Much larger blocks leave
-# one teacher working alone on the last one (16 jobs in one check: 2 teachers 1.77x one, 4 jobs 1.93x).
+# Jobs per Ray Data block (one actor task): amortises Ray's per-task cost without leaving one teacher
+# alone on a large last block (measured in docs/scaling.md)
 JOBS_PER_BLOCK = 4
 
 
 def job_blocks(n_jobs: int, workers: int, jobs_per_block: int = JOBS_PER_BLOCK) -> int:
-    """How many blocks to cut ``n_jobs`` jobs into for a pool of ``workers`` teachers: about
-    ``jobs_per_block`` jobs each, a multiple of ``workers`` (every teacher gets as many blocks, so none
-    idles while another finishes an extra one), never more blocks than jobs, at least one."""
+    """Blocks for ``n_jobs`` jobs on ``workers`` teachers: about ``jobs_per_block`` jobs each, a multiple of
+    ``workers`` (none idles while another finishes an extra one), between one and ``n_jobs``."""
     if n_jobs < 1:
         return 1
     workers = max(int(workers), 1)
@@ -115,8 +93,7 @@ def fill_with_ray(jobs: Sequence[TeacherJob], load: InputLoader, spec: TeacherSp
                  "one GPU each" if gpus else "one CPU each", len(jobs))
         ds = ray.data.from_items([{"job": i} for i in range(len(jobs))],
                                  override_num_blocks=job_blocks(len(jobs), workers))
-        # one CPU per decode task; Ray Data fuses decode into the teacher actors when both ask for the
-        # same resources (CPU-only), and runs it as tasks on the other CPUs beside GPU actors
+        # Ray Data fuses decode into the teacher actors when both ask for the same resources (CPU-only)
         ds = ds.map_batches(decode_jobs, fn_kwargs={"jobs": jobs, "load": load}, batch_size=1, num_cpus=1.0)
         ds = ds.map_batches(TeacherWorker, fn_constructor_kwargs={"spec": spec, "cache_root": cache_root,
                                                                   "fingerprint": fingerprint, "jobs": jobs},

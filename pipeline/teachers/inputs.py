@@ -1,10 +1,5 @@
-"""The teacher stage's input loader: a row of ``images.zarr`` (and, for the SIMULATOR only, of
-``reference.zarr``) as a :class:`~pipeline.teachers.base.TeacherInput` in a view.
-
-A loader is handed to :class:`pipeline.teachers.runner.TeacherRunner` and, for the Ray executor, to
-CPU workers (:mod:`pipeline.teachers.distributed`), so it is picklable: it carries the artifact paths
-and per-row metadata, and opens the artifacts on first use in each process.
-"""
+"""The teacher stage's input loader: a row of ``images.zarr`` (and, for the SIMULATOR, ``reference.zarr``)
+as a :class:`~pipeline.teachers.base.TeacherInput`, picklable for Ray workers (artifacts reopened lazily)."""
 
 from __future__ import annotations
 
@@ -20,11 +15,7 @@ from pipeline.teachers.jobs import in_view
 
 
 class ArtifactInputs:
-    """``(row, view) -> TeacherInput`` over ``images.zarr`` (uint8 [N,H,W,3] at the working resolution).
-
-    ``reference`` (``reference.zarr``) is read only when given, i.e. for a teacher whose
-    ``needs_reference`` is true; ``extras[row]`` are that row's manifest extra columns.
-    """
+    """``(row, view) -> TeacherInput`` over ``images.zarr``; ``reference.zarr`` is read only when given."""
 
     def __init__(self, images: str | Path, reference: str | Path | None, ids: Sequence[str],
                  shas: Sequence[str], extras: Sequence[Mapping[str, Any]]):

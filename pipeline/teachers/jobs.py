@@ -1,10 +1,5 @@
-"""The teacher's unit of work, shared by the serial loop and the Ray executor.
-
-:class:`TeacherJob` is a batch of image rows in one view with the prompts each row lacks;
-:func:`answer_job` computes one job and writes its cache entries -- the one per-batch function of
-:meth:`pipeline.teachers.runner.TeacherRunner.fill` and of the Ray actors
-(:mod:`pipeline.teachers.distributed`).  :class:`TeacherSpec` rebuilds the same teacher in a worker.
-"""
+"""The teacher's unit of work (:class:`TeacherJob`) and its one per-batch function (:func:`answer_job`),
+shared by the serial loop and the Ray actors."""
 
 from __future__ import annotations
 
@@ -48,8 +43,7 @@ class TeacherSpec:
 @dataclasses.dataclass(frozen=True)
 class TeacherJob:
     """One batch of work: ``rows`` in ``view``, one forward over ``prompts`` (the union of the rows'
-    missing prompts); ``missing[b]`` are the prompts whose entries row ``rows[b]`` lacks (only those are
-    written, so a cached answer is never overwritten by a recomputation)."""
+    missing prompts); only ``missing[b]`` is written for ``rows[b]``, never overwriting a cached answer."""
 
     view: str
     rows: tuple[int, ...]
@@ -62,8 +56,7 @@ class TeacherJob:
 
 def predict_view(teacher: Teacher, inputs: Sequence[TeacherInput], prompts: Sequence[str],
                  view: str) -> tuple[np.ndarray, np.ndarray]:
-    """masks bool [B,K,H,W] and scores float32 [B,K] of ``inputs`` (already in ``view``), answers of
-    the ``vflip`` view flipped back; invalid answers per :func:`pipeline.teachers.base.finalize_answers`."""
+    """masks bool [B,K,H,W] and scores float32 [B,K] of ``inputs`` (already in ``view``), flipped back."""
     masks, scores = teacher.predict(list(inputs), list(prompts))
     masks, scores = finalize_answers(masks, scores)
     if masks.shape[:2] != (len(inputs), len(prompts)):
@@ -75,9 +68,7 @@ def predict_view(teacher: Teacher, inputs: Sequence[TeacherInput], prompts: Sequ
 
 
 def answer_job(teacher: Teacher, cache: TeacherCache, job: TeacherJob, inputs: Sequence[TeacherInput]) -> int:
-    """Compute one job and write its missing entries; returns how many were written.  The one per-batch
-    function of the serial loop and of the Ray actors; running it twice (a retried task) rewrites the
-    same entries with the same bytes."""
+    """Compute one job and write its missing entries (a retry rewrites the same bytes); returns how many."""
     masks, scores = predict_view(teacher, inputs, job.prompts, job.view)
     written = 0
     for b, (item, want) in enumerate(zip(inputs, job.missing)):

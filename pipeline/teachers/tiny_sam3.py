@@ -1,14 +1,7 @@
 """A tiny, randomly initialised SAM 3 checkpoint for offline tests and the teacher benchmark.
 
-Nothing is downloaded: the config mirrors the small ``Sam3Config`` of transformers' own SAM 3 tests
-(``tests/models/sam3/test_modeling_sam3.py``: 2-layer ViT with hidden size 32 and patch 14, one
-DETR encoder / decoder layer, a 2-stage mask decoder), the CLIP tokenizer is built from a byte-level
-vocabulary written to disk here, and the image-processor config is written as
-``preprocessor_config.json``.  The weights are random, so the masks mean nothing; what the tests
-check is the plumbing (loading, preprocessing, encoder reuse, batching, best-query selection).
-
-``size="real"`` builds the full-size SAM 3 architecture (random weights, ~840 M parameters) for GPU
-timing in ``python -m benchmarks.bench_teacher``.
+The config mirrors transformers' own SAM 3 tests and the tokenizer vocabulary is written here, so
+nothing is downloaded; ``size="real"`` builds the full architecture (random weights) for GPU timing.
 """
 
 from __future__ import annotations
@@ -31,11 +24,8 @@ def _bytes_to_unicode() -> dict[int, str]:
 
 
 def write_clip_vocab(directory: str | Path, words: tuple[str, ...] = ()) -> tuple[Path, Path]:
-    """Write a minimal CLIP BPE vocabulary (``vocab.json`` + ``merges.txt``) into ``directory``.
-
-    Vocabulary: the 256 byte symbols, each also with the end-of-word suffix ``</w>``, the two special
-    tokens, plus whole-word merges for ``words`` (so the prompts become few tokens).  < 1000 entries.
-    """
+    """Write a minimal CLIP BPE vocabulary (``vocab.json`` + ``merges.txt``): the byte symbols, with and
+    without ``</w>``, the two special tokens, and whole-word merges for ``words``."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     symbols = list(_bytes_to_unicode().values())
@@ -62,9 +52,8 @@ def write_clip_vocab(directory: str | Path, words: tuple[str, ...] = ()) -> tupl
 def tiny_sam3_config(image_size: int = 56, num_queries: int = 5, initializer_range: float = 0.2):
     """The small Sam3Config of transformers' SAM 3 tests (image 56 = 4 x 14 patches).
 
-    ``initializer_range`` is 10x the default so that the random model's scores and masks depend
-    visibly on the image and the prompt (with 0.02 every query scores ~0.253 on every image, and a
-    test could not tell images or prompts apart).
+    ``initializer_range`` is 10x the default so that the random model's answers depend visibly on the
+    image and the prompt.
     """
     from transformers.models.sam3.configuration_sam3 import (
         Sam3Config, Sam3DETRDecoderConfig, Sam3DETREncoderConfig, Sam3GeometryEncoderConfig,
