@@ -1,18 +1,7 @@
-"""A model's weights on disk, in the format the ecosystem shares: ``model.safetensors`` (tensors only)
-plus ``model.json`` (the TinyUNet config and the run's fields: method, seed, tau, resolution, ...).
-File names: :data:`pipeline.catalog.WEIGHTS_FILE`, :data:`~pipeline.catalog.WEIGHTS_CONFIG_FILE`.
-
-Nothing read here can execute code: safetensors holds a JSON header and raw tensor bytes, the config
-is JSON.  Older checkpoints and bundles hold one ``model.pt`` (a torch pickle,
-:data:`~pipeline.catalog.LEGACY_WEIGHTS_FILE`); it is still read, with ``torch.load(weights_only=True)``,
-which unpickles only tensors and plain containers and refuses anything else.
-
-Both forms read into the same *payload* dict: ``state_dict`` (the mask path), ``geometry_state_dict``
-(the training-only heads, or None), ``config`` and the run's fields.  In the safetensors file the
-heads' tensors carry the prefix ``geometry_heads.`` (as in the full model's state dict).
-
-Determinism: the safetensors header lists the tensors in a fixed order with fixed metadata, and the
-JSON is written with sorted keys, so the same weights give the same bytes.
+"""A model's weights on disk: ``model.safetensors`` (tensors only, the geometry heads' prefixed ``geometry_heads.``)
+plus ``model.json`` (the TinyUNet config and the run's fields), or the ``model.pt`` torch pickle of older runs, read
+with ``weights_only=True``; nothing read here can execute code.  Both read into one payload dict: ``state_dict``,
+``geometry_state_dict`` (or None), ``config`` and the run's fields.
 """
 
 from __future__ import annotations
@@ -29,15 +18,13 @@ from pipeline.catalog import LEGACY_WEIGHTS_FILE, WEIGHTS_CONFIG_FILE, WEIGHTS_F
 from pipeline.runtime.errors import ArtifactError
 
 GEOMETRY_PREFIX = "geometry_heads."
-#: the safetensors header's metadata: ONE key, since safetensors writes the metadata map in hash order
-#: (two keys come out in either order, and the bytes would differ between runs)
+#: ONE key: safetensors writes the metadata map in hash order, so two would make the bytes differ between runs
 HEADER = {"format": "pt"}
 
 
 def write_weights(directory: str | Path, state_dict: dict, config: dict,
                   geometry_state_dict: dict | None = None, **fields) -> None:
-    """Write ``model.safetensors`` and ``model.json`` into ``directory`` (a temp folder of an atomic
-    artifact write).  ``fields`` (method, seed, tau, ...) must be JSON values."""
+    """Write ``model.safetensors`` and ``model.json`` into ``directory``; ``fields``: the run's JSON values."""
     directory = Path(directory)
     tensors = {k: _plain(v) for k, v in state_dict.items()}
     for k, v in (geometry_state_dict or {}).items():
@@ -53,8 +40,7 @@ def _plain(t: torch.Tensor) -> torch.Tensor:
 
 
 def weights_path(path: str | Path) -> Path:
-    """The weights file of a checkpoint/bundle directory (safetensors first, else the legacy
-    ``model.pt``), or ``path`` itself when it is a file; ArtifactError when there is none."""
+    """The weights file of a checkpoint or bundle folder (safetensors first), or ``path`` when it is a file."""
     path = Path(path)
     if not path.is_dir():
         if path.is_file():
@@ -67,9 +53,7 @@ def weights_path(path: str | Path) -> Path:
 
 
 def read_weights(path: str | Path) -> dict:
-    """The payload (module docstring) of a checkpoint/bundle directory or of one weights file
-    (``*.safetensors`` with its ``model.json`` beside it, or a legacy ``model.pt``).  ArtifactError
-    naming the file when it is unreadable, refused or not a GeoDistill model."""
+    """The payload of a checkpoint or bundle folder or of one weights file; ArtifactError naming a bad file."""
     f = weights_path(path)
     payload = _read_legacy(f) if f.suffix == ".pt" else _read_safetensors(f)
     if not isinstance(payload, dict) or "state_dict" not in payload or not isinstance(payload.get("config"), dict):
@@ -78,7 +62,7 @@ def read_weights(path: str | Path) -> dict:
 
 
 def _read_safetensors(f: Path) -> dict:
-    """Payload of ``model.safetensors`` + the ``model.json`` beside it."""
+    """The payload of ``model.safetensors`` and the ``model.json`` beside it."""
     cfg_path = f.with_name(WEIGHTS_CONFIG_FILE)
     try:
         tensors = load_file(f, device="cpu")
@@ -99,7 +83,7 @@ def _read_safetensors(f: Path) -> dict:
 
 
 def _read_legacy(f: Path) -> dict:
-    """The dict of a legacy ``model.pt``, unpickling tensors and plain data only (weights_only=True)."""
+    """The dict of a legacy ``model.pt``, unpickling tensors and plain data only."""
     try:
         return torch.load(f, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:

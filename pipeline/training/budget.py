@@ -1,11 +1,5 @@
-"""A wall-clock budget for Stage I as optimizer steps (``distill --time``; ``train.step_budget``).
-
-The time is converted once, on this host, into steps: :func:`step_seconds` times a few training steps of
-the run's TinyUNet at its working resolution and batch, and :func:`steps_for` divides.  The steps go into
-the run's params (``train.step_budget``, beside ``train.time_budget`` = the text given), so the DAG
-stays exact: a rerun with the same ``--time`` reuses them and does nothing.  The budget bounds Stage I
-only; the teacher, Stage II, calibration and export come on top.
-"""
+"""A wall-clock budget for Stage I (``distill --time``), converted once on this host into optimizer steps
+(``train.step_budget``, kept in the run's params so that a rerun with the same ``--time`` does nothing)."""
 
 from __future__ import annotations
 
@@ -28,15 +22,13 @@ def parse_duration(text: str) -> float:
     return float(seconds)
 
 
-#: images per probe step: the step's cost is linear in the batch, so a small probe batch scaled up keeps
-#: the measurement short (at 384^2 a batch of 8 takes 10-50 s a step on 2 cores)
+#: images per probe step: a step's cost is linear in the batch, so a small probe scaled up keeps the measurement short
 PROBE_BATCH = 2
 
 
 def step_seconds(cfg: Mapping[str, Any], resolution: int, device: str = "cpu", steps: int = 2) -> float:
-    """Seconds of one Stage-I optimizer step (forward, backward, AdamW) of the run's TinyUNet at
-    ``resolution``: the median of ``steps`` steps on :data:`PROBE_BATCH` random images after one warm-up
-    step, times ``train.batch_size`` / PROBE_BATCH."""
+    """Seconds of one Stage-I optimizer step at ``resolution``: the median of ``steps`` probe steps after a warm-up,
+    scaled to ``train.batch_size``."""
     import torch
 
     from pipeline.losses import raw_terms
@@ -69,9 +61,8 @@ def steps_for(seconds: float, per_step: float) -> int:
 
 
 def with_time_budget(params: dict, text: str | None, previous: Mapping | None = None, device: str = "cpu") -> dict:
-    """``params`` with ``train.time_budget`` = ``text`` and ``train.step_budget`` = that time in steps on this
-    host; ``previous`` (the project's params.yaml) already holding the same ``text`` gives its steps again
-    (no new measurement: a rerun is a no-op).  ``text`` None returns ``params`` unchanged."""
+    """``params`` with ``train.time_budget`` = ``text`` and ``train.step_budget`` its steps on this host (those of
+    ``previous`` params holding the same ``text``: no new measurement); ``text`` None: unchanged."""
     if text is None:
         return params
     seconds = parse_duration(text)

@@ -1,10 +1,5 @@
-"""Per-epoch resume state on disk: the :class:`pipeline.training.loop.Checkpointer` the train stage uses.
-
-The state lives in ``<directory>/state.pt``, ``directory`` being the resume folder under the run's
-checkpoint fingerprint (stages/train.py), so a run whose training params changed starts afresh; a
-killed run continues where it stopped.  torch stays a lazy import: the stage scripts import this
-module at their top and start (``--help``) without torch.
-"""
+"""Per-epoch resume state on disk, in the train stage's resume folder (torch imported lazily: the stages start
+without it)."""
 
 from __future__ import annotations
 
@@ -19,7 +14,7 @@ log = logging.getLogger(__name__)
 
 
 class FileCheckpointer:
-    """Per-epoch resume state in ``<directory>/state.pt`` (written atomically: temp file + os.replace)."""
+    """Per-epoch resume state in ``<directory>/state.pt``, replaced atomically."""
 
     def __init__(self, directory: str | Path):
         self.directory = Path(directory)
@@ -28,16 +23,15 @@ class FileCheckpointer:
         return str(self.directory)
 
     def load(self, run_key: Mapping[str, Any]) -> dict | None:
-        """The saved state, or None when there is none or it cannot be read (train checks the run key)."""
+        """The saved state, or None when there is none or it cannot be read."""
         import torch
 
         path = self.directory / STATE_FILE
         if not path.exists():
             return None
         try:
-            # tensors and plain containers only: nothing in a state file can execute code
             return torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as e:  # a state cut off by a kill during torch.save cannot happen (os.replace)
+        except Exception as e:
             log.warning("ignoring unreadable resume state %s (%s)", self.directory, type(e).__name__)
             return None
 

@@ -1,16 +1,5 @@
-"""Training data that stays on disk: rows of Zarr artifacts read per batch, one batch ahead.
-
-* :class:`LazyRows` -- a row subset of a Zarr array (one image per chunk), read only when indexed
-  (:func:`pipeline.artifacts.store.read_chunk_rows`: plain slices per contiguous run), cast to a dtype.
-  ``np.asarray(rows)`` reads them all (the in-memory path).
-* :class:`MappedRows` -- a target computed per read from the same rows of other sources (the AFS
-  control's fused mask); :class:`RowSource` is what both are (``isinstance`` tells streaming data).
-* :func:`prefetch` -- iterate a generator in a background thread, ``depth`` items ahead, so the next
-  batch is read and decoded while the current one trains (Zarr's codecs release the GIL).
-
-Memory of a training run is then the model, the per-image scalars (ids, gates, areas, the epoch's
-order) and ``depth + 1`` batches, whatever the number of images (issue 25).
-"""
+"""Training data that stays on disk: rows of Zarr arrays read per batch (:class:`RowSource`), one batch ahead
+(:func:`prefetch`), so a run's memory does not grow with the number of images."""
 
 from __future__ import annotations
 
@@ -24,10 +13,8 @@ from pipeline.artifacts.store import read_chunk_rows
 
 
 class RowSource:
-    """Rows read from disk only when indexed (the base of :class:`LazyRows` and :class:`MappedRows`).
-
-    ``x[i]`` (an int, slice or integer array over the rows) reads those rows; ``x.select(sel)`` is the
-    sub-subset without reading; ``np.asarray(x)`` reads everything (the in-memory path)."""
+    """Rows read only when indexed: ``x[i]`` reads rows, ``x.select(sel)`` narrows without reading, ``np.asarray(x)``
+    reads all."""
 
     dtype: np.dtype
 
@@ -60,7 +47,7 @@ class RowSource:
 
 
 class LazyRows(RowSource):
-    """Rows ``rows`` (unique manifest indices) of the Zarr array ``arr``, as ``dtype`` when read."""
+    """Rows ``rows`` (unique) of the Zarr array ``arr``, as ``dtype`` when read."""
 
     def __init__(self, arr, rows: np.ndarray, dtype=None):
         self.arr = arr
@@ -72,7 +59,6 @@ class LazyRows(RowSource):
         return (len(self.rows),) + tuple(self.arr.shape[1:])
 
     def select(self, sel) -> "LazyRows":
-        """The rows ``sel`` (indices or a boolean mask over this subset), still unread."""
         return LazyRows(self.arr, self.rows[sel], self.dtype)
 
     def read(self, key) -> np.ndarray:
@@ -83,10 +69,8 @@ class LazyRows(RowSource):
 
 
 class MappedRows(RowSource):
-    """``fn`` applied to the same rows of several row sources, per read: a target derived from stored
-    arrays (e.g. the AFS control's fused mask, :func:`pipeline.methods.afs_fuse`, from the teacher's
-    two masks) is computed per batch instead of held for every image.  ``fn`` must work row by row
-    (its output for a row depends on that row only), so a batch gives the rows of the whole array."""
+    """``fn`` of the same rows of several row sources, per read (``fn`` must work row by row): a target derived from
+    stored arrays, such as the AFS control's fused mask."""
 
     def __init__(self, fn: Callable[..., np.ndarray], sources: Sequence[RowSource], dtype, shape: tuple[int, ...]):
         self.fn = fn
@@ -116,8 +100,7 @@ def select_rows(x, sel):
 
 
 def row_means(x, block: int = 64) -> np.ndarray:
-    """Mean over each row's elements as float32 (e.g. a mask's foreground fraction), reading ``block``
-    rows at a time; the same numbers as ``x.reshape(len(x), -1).mean(1).astype(np.float32)``."""
+    """Each row's mean as float32 (a mask's foreground fraction), reading ``block`` rows at a time."""
     n = len(x)
     out = np.empty(n, dtype=np.float32)
     for s in range(0, n, block):
@@ -127,11 +110,8 @@ def row_means(x, block: int = 64) -> np.ndarray:
 
 
 def spill_rows(path, blocks: Iterable[np.ndarray], shape: tuple[int, ...], dtype) -> LazyRows:
-    """Consecutive row blocks written to a scratch Zarr array at ``path`` (one row per chunk, zarr's
-    default codec) and returned as :class:`LazyRows` over all its rows: a per-image intermediate (the
-    frozen Stage-I anchor probabilities) kept on disk, one block in memory at a time.  The caller owns
-    ``path`` (a temporary directory) and removes it."""
-    import zarr  # as the artifacts: opened lazily
+    """Row blocks written to a scratch Zarr array at ``path`` (the caller removes it), read as :class:`LazyRows`."""
+    import zarr
 
     shape = tuple(int(v) for v in shape)
     arr = zarr.create_array(store=str(path), shape=shape, chunks=(1,) + shape[1:], dtype=np.dtype(dtype))
@@ -148,8 +128,7 @@ _DONE = object()
 
 
 def prefetch(items: Iterable, depth: int = 2) -> Iterator:
-    """Yield ``items`` in order, produced by a background thread up to ``depth`` ahead.  An exception
-    in the producer is raised here; closing this generator early stops the producer."""
+    """``items`` in order, produced by a thread up to ``depth`` ahead (its exception raised here; closing stops it)."""
     q: queue.Queue = queue.Queue(maxsize=max(1, depth))
     stop = threading.Event()
 
