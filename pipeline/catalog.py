@@ -205,8 +205,7 @@ class ArtifactSpec:
     description: str = ""
 
 
-def _a(name, path, schema, stage, description=""):
-    return ArtifactSpec(name, path, schema, stage, description)
+_a = ArtifactSpec
 
 
 #: a model's weights: safetensors, or the torch pickle of older runs (pipeline.artifacts.weights)

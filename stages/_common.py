@@ -137,11 +137,6 @@ def stage_command(name: str, default_profile: str | None = None, profile_loader:
     return deco
 
 
-def declared_params(params: Mapping[str, Any], stage: str) -> dict:
-    """``{dotted key: value}`` of the params ``stage`` declares in the catalogue (what DVC tracks)."""
-    return stage_params(params, STAGES[stage].params)
-
-
 @dataclasses.dataclass(frozen=True)
 class StageContext:
     """What every artifact of one stage run is stamped with: stage name, code version, declared params."""
@@ -156,6 +151,7 @@ class StageContext:
 
 
 def stage_context(stage: str, stage_file: str, params: Mapping[str, Any]) -> StageContext:
-    """The :class:`StageContext` of ``stage`` run by ``stage_file``; ``train`` declares no params here."""
-    declared = declared_params(params, stage) if stage in STAGES else {}
+    """The :class:`StageContext` of ``stage`` run by ``stage_file``, with the params the catalogue declares for
+    it (what DVC tracks); ``train`` declares none here."""
+    declared = stage_params(params, STAGES[stage].params) if stage in STAGES else {}
     return StageContext(stage, stage_code_version(stage_file), declared)

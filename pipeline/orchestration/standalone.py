@@ -98,9 +98,9 @@ def check_val_masks(input_dir: Path, masks: Path) -> int:
     return n
 
 
-def _dvc(out: Path, *args: str, env: Mapping[str, str] | None = None, capture: bool = True):
+def _dvc(out: Path, *args: str, env: Mapping[str, str] | None = None):
     return subprocess.run([sys.executable, "-m", "dvc", *args], cwd=out, env=dict(env or _env()),
-                          capture_output=capture, text=True)
+                          capture_output=True, text=True)
 
 
 def _env(device: str = "auto") -> dict:
