@@ -114,6 +114,16 @@ def _has(v) -> bool:
     return isinstance(v, str) and v != ""
 
 
+def _load(spec: DatasetSpec, col: str, path: str, size: int, cache: DecodeCache | None):
+    """The file of column ``col`` read by its rule (image, mask or part labels) at ``size``."""
+    kw = {"max_pixels": spec.max_pixels, "letterbox": spec.letterbox}
+    if col == "image_path":
+        return load_rgb(path, size, cache, bit_depth=spec.bit_depth, **kw)
+    if col == "mask_path":
+        return load_mask(path, size, cache, spec.mask_threshold, **kw)
+    return load_labels(path, size, cache, spec.part_colors, **kw)
+
+
 def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeCache | None,
                 policy: BadInputPolicy) -> pd.DataFrame:
     """First pass over the files: decode (into the cache), check, and fill width/height/sha256.
@@ -124,18 +134,12 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
     keep, width, height, sha = [], [], [], []
     for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):
         try:
-            img = load_rgb(r.image_path, size, cache, max_pixels=spec.max_pixels, bit_depth=spec.bit_depth,
-                           letterbox=spec.letterbox)
+            img = _load(spec, "image_path", r.image_path, size, cache)
             for col in ("mask_path", "part_path"):
                 path = getattr(r, col)
                 if not _has(path):
                     continue
-                if col == "mask_path":
-                    got = load_mask(path, size, cache, spec.mask_threshold, max_pixels=spec.max_pixels,
-                                    letterbox=spec.letterbox)
-                else:
-                    got = load_labels(path, size, cache, spec.part_colors, max_pixels=spec.max_pixels,
-                                      letterbox=spec.letterbox)
+                got = _load(spec, col, path, size, cache)
                 if got.native_hw != img.native_hw:
                     raise BadFileError(path, f"{col.split('_')[0]} size {got.native_hw[1]}x{got.native_hw[0]} differs "
                                              f"from image {r.image_path} size {img.native_hw[1]}x{img.native_hw[0]}")
@@ -169,12 +173,9 @@ def iter_arrays(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
                 ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]]:
     """Yield ``(row, image uint8 [S,S,3], mask bool [S,S] | None, parts uint8 [S,S] | None)``."""
     for i, r in enumerate(rows.itertuples(index=False)):
-        img = load_rgb(r.image_path, size, cache, max_pixels=spec.max_pixels, bit_depth=spec.bit_depth,
-                       letterbox=spec.letterbox).array
-        mask = (load_mask(r.mask_path, size, cache, spec.mask_threshold, max_pixels=spec.max_pixels,
-                          letterbox=spec.letterbox).array if _has(r.mask_path) else None)
-        parts = (load_labels(r.part_path, size, cache, spec.part_colors, max_pixels=spec.max_pixels,
-                             letterbox=spec.letterbox).array if _has(r.part_path) else None)
+        img, mask, parts = (_load(spec, col, p, size, cache).array if _has(p) else None
+                            for col, p in (("image_path", r.image_path), ("mask_path", r.mask_path),
+                                           ("part_path", r.part_path)))
         yield i, img, mask, parts
 
 

@@ -140,22 +140,18 @@ def resolve_teacher_dtype(dtype: str, device) -> tuple[str, bool]:
     return ("bf16", False) if torch.cuda.is_bf16_supported() else ("fp32", True)
 
 
+@contextlib.contextmanager
 def allow_tf32(on: bool):
     """Context: TF32 matmuls and cuDNN convolutions while ``on`` (restored after); a no-op when off."""
     import torch
 
-    if not on:
-        return contextlib.nullcontext()
-
-    @contextlib.contextmanager
-    def ctx():
-        old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    if on:
         torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
-        try:
-            yield
-        finally:
-            torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
-    return ctx()
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
 
 
 #: at most this many images per forward: a larger batch only delays the first answers
@@ -235,7 +231,6 @@ class Sam3Teacher:
         self._tokenizer = None
         self._text: dict[tuple[str, ...], tuple] = {}
 
-    # ---- identity -----------------------------------------------------------------------------
     def fingerprint(self) -> dict:
         if self._hash is None:
             log.info("sam3: hashing checkpoint %s for the cache key", self.checkpoint)
@@ -246,7 +241,6 @@ class Sam3Teacher:
                 "score_threshold": self.score_threshold, "mask_threshold": self.mask_threshold,
                 "text_max_length": TEXT_MAX_LENGTH}
 
-    # ---- model --------------------------------------------------------------------------------
     def load(self):
         """Load model and tokenizer once (local files only)."""
         if self._model is None:
@@ -269,10 +263,6 @@ class Sam3Teacher:
                 model.vision_encoder = torch.compile(model.vision_encoder)
             self._model = model
         return self._model
-
-    def _precision(self):
-        """TF32 while ``dtype`` resolved to fp32+tf32 (:func:`resolve_teacher_dtype`), restored afterwards."""
-        return allow_tf32(self.tf32)
 
     def text_features(self, prompts: Sequence[str]):
         """(projected text features [K,L,D], attention mask [K,L]) of ``prompts``; computed once per run."""
@@ -357,24 +347,21 @@ class Sam3Teacher:
             raise InputError("sam3: images of one batch differ in size")
         masks, scores = [], []
         i = 0
-        with self._precision():
-            if self.batch_size == 0:  # measure one image, then size the batches to the free memory
-                import torch
-
-                self.load()
-                self.text_features(prompts)
-                torch.cuda.reset_peak_memory_stats(self.device)
-                m, s = self.heads(self.encode_images([batch[0].image]), prompts, 1, out_size)
-                masks.append(m)
-                scores.append(s)
-                self.batch_size = auto_batch_size(self.device)
-                i = 1
+        with allow_tf32(self.tf32):
             while i < len(batch):
-                chunk = [it.image for it in batch[i:i + self.batch_size]]
-                vision = self.encode_images(chunk)
-                m, s = self.heads(vision, prompts, len(chunk), out_size)
+                measure = self.batch_size == 0  # one image, then batches sized to the free memory
+                if measure:
+                    import torch
+
+                    self.load()
+                    self.text_features(prompts)
+                    torch.cuda.reset_peak_memory_stats(self.device)
+                chunk = [it.image for it in batch[i:i + (self.batch_size or 1)]]
+                m, s = self.heads(self.encode_images(chunk), prompts, len(chunk), out_size)
                 masks.append(m)
                 scores.append(s)
+                if measure:
+                    self.batch_size = auto_batch_size(self.device)
                 i += len(chunk)
         return np.concatenate(masks), np.concatenate(scores)
 

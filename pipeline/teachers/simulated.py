@@ -277,7 +277,6 @@ class SimulatedFoundationTeacher:
         return {"backend": BACKEND, "simulator": True, "simulator_version": SIMULATOR_VERSION,
                 "seed": self.seed, "resolution": list(self.resolution) if self.resolution else None}
 
-    # ---- image level --------------------------------------------------------------------------
     def scene(self, item: TeacherInput) -> SceneDraw:
         cfg = self.config
         gt = np.asarray(item.reference["mask"], dtype=bool)
@@ -300,7 +299,6 @@ class SimulatedFoundationTeacher:
         """A view-independent uniform draw for (image, prompt): other prompts never change this one's answer."""
         return float(_rng(what, item.image_sha256, prompt, self.seed, SIMULATOR_VERSION).random())
 
-    # ---- prompt level -------------------------------------------------------------------------
     def answer(self, item: TeacherInput, prompt: str, scene: SceneDraw) -> tuple[np.ndarray, float]:
         """One (mask, score) answer of the simulated teacher; score 0 and an empty mask for a miss."""
         gt = np.asarray(item.reference["mask"], dtype=bool)

@@ -10,25 +10,14 @@ import json
 from pathlib import Path
 
 
-def _bytes_to_unicode() -> dict[int, str]:
-    """GPT-2 / CLIP byte -> printable unicode map (the alphabet of CLIP's byte-level BPE)."""
-    bs = list(range(ord("!"), ord("~") + 1)) + list(range(ord("¡"), ord("¬") + 1)) + list(range(ord("®"), ord("ÿ") + 1))
-    cs = bs[:]
-    n = 0
-    for b in range(256):
-        if b not in bs:
-            bs.append(b)
-            cs.append(256 + n)
-            n += 1
-    return dict(zip(bs, (chr(c) for c in cs)))
-
-
 def write_clip_vocab(directory: str | Path, words: tuple[str, ...] = ()) -> tuple[Path, Path]:
     """Write a minimal CLIP BPE vocabulary (``vocab.json`` + ``merges.txt``): the byte symbols, with and
     without ``</w>``, the two special tokens, and whole-word merges for ``words``."""
+    from transformers.convert_slow_tokenizer import bytes_to_unicode  # GPT-2 / CLIP byte-level alphabet
+
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    symbols = list(_bytes_to_unicode().values())
+    symbols = list(bytes_to_unicode().values())
     vocab: dict[str, int] = {"<|startoftext|>": 0, "<|endoftext|>": 1}  # ids the text config names
     for s in symbols + [s + "</w>" for s in symbols]:
         vocab.setdefault(s, len(vocab))
