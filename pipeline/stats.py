@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Iterable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -110,8 +110,9 @@ def paired_hierarchical_bootstrap(treatment: np.ndarray, control: np.ndarray, cl
 SEED_STREAM = 1
 
 
-def seed_differences(treatment, control, ci: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(d, d3)``: d = treatment - control ([S, n] or [S, n, k]) checked, d3 its [S, n, k] view."""
+def seed_differences(treatment, control, ci: float) -> tuple[np.ndarray, Callable]:
+    """``(d3, squeeze)``: treatment - control ([S, n] or [S, n, k]) checked as [S, n, k], and what gives a
+    per-column result the inputs' shape back."""
     t = np.asarray(treatment, dtype=np.float64)
     c = np.asarray(control, dtype=np.float64)
     if t.shape != c.shape or t.ndim not in (2, 3) or t.shape[0] == 0:
@@ -122,14 +123,14 @@ def seed_differences(treatment, control, ci: float) -> tuple[np.ndarray, np.ndar
     d3 = d[..., None] if d.ndim == 2 else d
     if np.isnan(d3).any():
         raise ValueError("paired differences contain NaN; drop undefined images before the interval")
-    return d, d3
+    return d3, (lambda a: a[0]) if d.ndim == 2 else (lambda a: a)
 
 
 def paired_seed_bootstrap(treatment: np.ndarray, control: np.ndarray, clusters: np.ndarray,
                           n_resamples: int = 10_000, ci: float = 0.95, seed: int = 0) -> BootstrapCI:
     """Seed-aware percentile CI of the mean paired difference ([S, n] or [S, n, k], row s = seed s): seeds
     with replacement, then spacecraft and images (one draw for every seed); one seed draws no seed."""
-    d, d3 = seed_differences(treatment, control, ci)
+    d3, squeeze = seed_differences(treatment, control, ci)
     n_seeds, n, k = d3.shape
     # image level: every seed's column block resampled with the same draws -> [R, S, k]
     per_seed = hierarchical_resample_means(d3.transpose(1, 0, 2).reshape(n, n_seeds * k), clusters,
@@ -144,7 +145,6 @@ def paired_seed_bootstrap(treatment: np.ndarray, control: np.ndarray, clusters: 
     alpha = (1.0 - ci) / 2.0
     lo, hi = np.quantile(boot, [alpha, 1.0 - alpha], axis=0)
     est = d3.reshape(n_seeds * n, k).mean(axis=0)
-    squeeze = (lambda a: a[0]) if d.ndim == 2 else (lambda a: a)
     return BootstrapCI(estimate=squeeze(est), low=squeeze(lo), high=squeeze(hi), n_resamples=int(n_resamples),
                        n_clusters=len(np.unique(clusters)), n_items=n)
 
@@ -183,7 +183,7 @@ def paired_seed_image_t(treatment: np.ndarray, control: np.ndarray, clusters: np
 
     if spacecraft not in (SPACECRAFT_FIXED, SPACECRAFT_RANDOM):
         raise ValueError(f"spacecraft={spacecraft!r}: one of {SPACECRAFT_FIXED!r}, {SPACECRAFT_RANDOM!r}")
-    d, d3 = seed_differences(treatment, control, ci)
+    d3, squeeze = seed_differences(treatment, control, ci)
     clusters = np.asarray(clusters)
     n_seeds, n, k = d3.shape
     if len(clusters) != n:
@@ -226,7 +226,6 @@ def paired_seed_image_t(treatment: np.ndarray, control: np.ndarray, clusters: np
         p = np.where(v > 0, 2.0 * stdtr(df, -np.abs(est) / se), np.where(est == 0, 1.0, 0.0))
     half = np.where(np.isnan(v), np.nan, half)
     p = np.where(np.isnan(v), np.nan, p)
-    squeeze = (lambda x: x[0]) if d.ndim == 2 else (lambda x: x)
     return TInterval(estimate=squeeze(est), low=squeeze(est - half), high=squeeze(est + half), se=squeeze(se),
                      df=squeeze(df), pvalue=squeeze(p), n_seeds=n_seeds, n_clusters=len(sizes), n_items=n)
 
@@ -366,6 +365,7 @@ INTERVAL_TEXT = {
                     "freedom; pipeline.stats.paired_seed_image_t with spacecraft random; docs/intervals.md)",
 }
 DEFAULT_INTERVAL = PAPER.evaluate.interval
+_GAIN_SUFFIXES = ("", "_lo", "_hi", "_seed_sd", "_p")
 
 
 def method_gains(df, metrics: Sequence[str], control: str = BASELINE, by: Sequence[str] = ("dataset", "group", "threshold_mode"),
@@ -406,8 +406,7 @@ def method_gains(df, metrics: Sequence[str], control: str = BASELINE, by: Sequen
                 cols_c = [f"{m}_c{s_}" for s_ in seeds]
                 sub = both[both[cols_t + cols_c].notna().all(axis=1)]
                 if sub.empty:
-                    row.update({f"gain_{m}": np.nan, f"gain_{m}_lo": np.nan, f"gain_{m}_hi": np.nan,
-                                f"gain_{m}_seed_sd": np.nan, f"gain_{m}_p": np.nan})
+                    row.update({f"gain_{m}{s_}": np.nan for s_ in _GAIN_SUFFIXES})
                     continue
                 tv, cv = sub[cols_t].to_numpy().T, sub[cols_c].to_numpy().T  # [S, n]
                 per_seed = (tv - cv).mean(axis=1)
@@ -425,8 +424,7 @@ def method_gains(df, metrics: Sequence[str], control: str = BASELINE, by: Sequen
                             f"gain_{m}_hi": float(res.high[j]),
                             f"gain_{m}_p": float(pvalue[j]) if pvalue is not None else np.nan})
         rows.extend(group_rows)
-    cols = by + ["method", "gain_seeds", "gain_images"] + [f"gain_{m}{s}" for m in metrics
-                                                           for s in ("", "_lo", "_hi", "_seed_sd", "_p")]
+    cols = by + ["method", "gain_seeds", "gain_images"] + [f"gain_{m}{s}" for m in metrics for s in _GAIN_SUFFIXES]
     return pd.DataFrame(rows, columns=cols)
 
 

@@ -59,12 +59,8 @@ def threshold_grid(cfg: dict) -> np.ndarray:
     return np.round(start + step * np.arange(n), 9)
 
 
-def _default_grid() -> np.ndarray:
-    return threshold_grid(PAPER.calibrate.model_dump())
-
-
 #: the training log's per-epoch tau grid: the default one, so that editing ``calibrate.*`` retrains nothing
-EPOCH_TAU_GRID = _default_grid()
+EPOCH_TAU_GRID = threshold_grid(PAPER.calibrate.model_dump())
 
 
 def select_tau(grid, curve) -> float:
@@ -149,11 +145,6 @@ def _run_row(thresholds_df, method: str, seed: int):
     return None if rows.empty else rows.iloc[0]
 
 
-def _note(row) -> str | None:
-    value = row.get("tau_source") if row is not None else None
-    return value if isinstance(value, str) and value else None
-
-
 TAU_LABELS = {"option": "--tau", "bundle": "deploy bundle", "checkpoint": "checkpoint payload",
               "thresholds": "thresholds table", "fixed": "calibrate.fixed_tau"}
 TAU_SOURCES = tuple(TAU_LABELS)
@@ -198,7 +189,9 @@ def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = N
             row = _run_row(table, method, seed)
     where = _thresholds_name(thresholds)
     if row is not None:
-        found["thresholds"] = (float(row["tau"]), f"{_note(row) or CALIBRATED} ({where}: {method}, seed {seed})")
+        note = row.get("tau_source")
+        note = note if isinstance(note, str) and note else CALIBRATED
+        found["thresholds"] = (float(row["tau"]), f"{note} ({where}: {method}, seed {seed})")
     label = TAU_LABELS["fixed"]
     if row is not None and row.get("fixed_tau") is not None:
         found["fixed"] = (float(row["fixed_tau"]), f"{label} (recorded by calibrate in {where})")

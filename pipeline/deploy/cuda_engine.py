@@ -11,10 +11,9 @@ from pipeline.runtime.errors import InputError
 from pipeline.model import mask_path_model
 
 
-def uint8_to_input(images_u8, channels_last: bool = True):
-    """uint8 [N,H,W,3] tensor -> float32 [N,3,H,W] in [0, 1] on its device."""
-    x = images_u8.permute(0, 3, 1, 2).float().div_(255.0)
-    return x.contiguous(memory_format=torch.channels_last) if channels_last else x.contiguous()
+def uint8_to_input(images_u8):
+    """uint8 [N,H,W,3] tensor -> float32 [N,3,H,W] in [0, 1], channels_last, on its device."""
+    return images_u8.permute(0, 3, 1, 2).float().div_(255.0).contiguous(memory_format=torch.channels_last)
 
 
 class FastStudent:

@@ -186,12 +186,6 @@ class SegmentResult:
 IO_WORKERS = 1
 
 
-def _skip_reason(f: Path, e: InputError) -> str:
-    """The error's first line without the leading path."""
-    reason = str(e).splitlines()[0] if str(e) else type(e).__name__
-    return reason[len(f"{f}: "):] if reason.startswith(f"{f}: ") else reason
-
-
 def _load(f: Path, resolution: int, max_pixels: int | None, keep_image: bool, bit_depth="auto",
           letterbox: bool = False):
     """(the R x R working image, the original (h, w), the original image when ``keep_image``)."""
@@ -284,7 +278,9 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
 
 
 def _skip(f: Path, e: InputError, skipped: list, on_skip) -> None:
-    reason = _skip_reason(f, e)
+    """Record ``f`` with the error's first line, without the leading path."""
+    reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+    reason = reason.removeprefix(f"{f}: ")
     skipped.append((str(f), reason))
     if on_skip is not None:
         on_skip(str(f), reason, e)

@@ -11,16 +11,6 @@ from pipeline.runtime.errors import InputError
 from pipeline.metrics import threshold_counts
 
 
-def _probs_and_masks(probs, gts) -> tuple[np.ndarray, np.ndarray]:
-    p = np.asarray(probs)
-    g = np.asarray(gts)
-    if p.shape != g.shape or p.ndim != 3:
-        raise InputError(f"probs {p.shape} and gts {g.shape} must be equal [N,H,W] shapes")
-    if g.dtype != bool:
-        g = g.astype(bool)
-    return p, g
-
-
 @dataclasses.dataclass(frozen=True)
 class Reliability:
     """A reliability diagram: per bin the mean P (``confidence``), the reference-foreground fraction
@@ -35,7 +25,9 @@ class Reliability:
 def reliability_bins(probs, gts, n_bins: int = 10, *, chunk: int = 16) -> Reliability:
     """Reliability diagram of ``probs`` [N,H,W] in [0, 1] against ``gts`` in ``n_bins`` equal-width bins (P = 1 in
     the last), ``chunk`` images at a time."""
-    p_all, g_all = _probs_and_masks(probs, gts)
+    p_all, g_all = np.asarray(probs), np.asarray(gts, dtype=bool)
+    if p_all.shape != g_all.shape or p_all.ndim != 3:
+        raise InputError(f"probs {p_all.shape} and gts {g_all.shape} must be equal [N,H,W] shapes")
     n_bins = int(n_bins)
     if n_bins < 1:
         raise InputError(f"reliability_bins: n_bins={n_bins} must be >= 1")
