@@ -39,21 +39,19 @@ def run_thresholds(thresholds: pd.DataFrame, method: str, seed: int, path) -> tu
     return taus["thresholds"][0], taus["fixed"][0]
 
 
-class _ChunkReferences:
-    """Each test chunk's target fractions and :class:`pipeline.metrics.ScoringReference`."""
+def _chunk_references(reference_masks, test: np.ndarray, tolerance: float, small_fraction: float):
+    """``get(start, idx)``: a test chunk's target fractions and :class:`pipeline.metrics.ScoringReference`."""
+    cache: dict[int, tuple] = {}
 
-    def __init__(self, reference_masks, test: np.ndarray, tolerance: float, small_fraction: float):
-        self.masks, self.test, self.tolerance, self.small_fraction = reference_masks, test, tolerance, small_fraction
-        self.cache: dict[int, tuple] = {}
-
-    def get(self, start: int, idx: np.ndarray) -> tuple:
-        if start in self.cache:
-            return self.cache[start]
-        gts = read_chunk_rows(self.masks, idx).astype(bool)
-        entry = target_fractions(gts), scoring_reference(gts, self.tolerance, max_fraction=self.small_fraction)
-        if self.test.size * gts[0].size <= REFERENCE_CACHE_PIXELS:
-            self.cache[start] = entry
+    def get(start: int, idx: np.ndarray) -> tuple:
+        if start in cache:
+            return cache[start]
+        gts = read_chunk_rows(reference_masks, idx).astype(bool)
+        entry = target_fractions(gts), scoring_reference(gts, tolerance, max_fraction=small_fraction)
+        if test.size * gts[0].size <= REFERENCE_CACHE_PIXELS:
+            cache[start] = entry
         return entry
+    return get
 
 
 def _score_chunk(probs: np.ndarray, info: pd.DataFrame, target: np.ndarray, ref, method: str, seed: int,
@@ -62,10 +60,7 @@ def _score_chunk(probs: np.ndarray, info: pd.DataFrame, target: np.ndarray, ref,
     frames = []
     for mode, tau in taus.items():
         scores = score_masks(mask_from_probs(probs, tau), ref)  # eq:inference-mask
-        part = info.copy()
-        part["method"], part["seed"], part["threshold_mode"], part["tau"] = method, int(seed), mode, tau
-        for k, v in scores.items():
-            part[k] = v
+        part = info.assign(method=method, seed=int(seed), threshold_mode=mode, tau=tau, **scores)
         part["target_fraction"], part["target_size"] = target, target_size_class(target, tiny_fraction)
         with np.errstate(invalid="ignore", divide="ignore"):
             part["area_vs_reference"] = np.where(target > 0, scores["area_ratio"] / np.maximum(target, 1e-300),
@@ -78,7 +73,7 @@ def score_runs(runs: Sequence[tuple[str, int, Path]], manifest: pd.DataFrame, im
                thresholds: pd.DataFrame, cfg: Mapping, device) -> pd.DataFrame:
     """metrics.parquet: every run ``(method, seed, checkpoint)`` on the ``test`` rows at both taus (``cfg``: evaluate.*)."""
     info = manifest.iloc[test][INFO_COLUMNS].reset_index(drop=True)
-    refs = _ChunkReferences(reference["mask"], test, cfg["bf1_tolerance"], cfg["small_region_max_fraction"])
+    refs = _chunk_references(reference["mask"], test, cfg["bf1_tolerance"], cfg["small_region_max_fraction"])
     frames = []
     for method, seed, path in progress(runs, desc="evaluate"):
         tau_cal, tau_fixed = run_thresholds(thresholds, method, seed, path)
@@ -86,7 +81,7 @@ def score_runs(runs: Sequence[tuple[str, int, Path]], manifest: pd.DataFrame, im
         for s in range(0, test.size, CHUNK):
             idx = test[s:s + CHUNK]
             probs = predict_probs(model, read_chunk_rows(images["image"], idx), device=device)
-            target, ref = refs.get(s, idx)
+            target, ref = refs(s, idx)
             frames += _score_chunk(probs, info.iloc[s:s + len(idx)], target, ref, method, seed,
                                    {"calibrated": tau_cal, "fixed": tau_fixed}, cfg["tiny_target_max_fraction"])
     metrics = pd.concat(frames, ignore_index=True)
