@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Callable
 
 from pipeline import catalog
+from pipeline.artifacts.atomic import write_json
 from pipeline.cluster import guard, plan
 from pipeline.runtime.environment import THREAD_ENV_VARS
 from pipeline.runtime.errors import InputError
@@ -127,12 +128,7 @@ def write_timeline(path: Path, results: dict[str, dict], resources: dict, wall_s
                    costs: dict[str, float]) -> Path:
     """The run as JSON (atomic), ``costs`` updated with the seconds of the stages that ran."""
     ran = {n: r["end"] - r["start"] for n, r in results.items() if r.get("status") == "ran"}
-    obj = {"wall_s": wall_s, "resources": resources, "stages": results, "costs": {**costs, **ran}}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True))
-    os.replace(tmp, path)
-    return path
+    return write_json(path, {"wall_s": wall_s, "resources": resources, "stages": results, "costs": {**costs, **ran}})
 
 
 def sizing(ray, stage_cpus: float | None, train_gpu_fraction: float, train_threads: int = 0) -> plan.Sizing:

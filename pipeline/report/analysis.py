@@ -196,18 +196,9 @@ class _Cast:
     groups: list
     label: Callable
     tau0: str
-
-    @property
-    def T(self) -> str:
-        return self.label(self.treatment)
-
-    @property
-    def C(self) -> str:
-        return self.label(self.control)
-
-    @property
-    def K(self) -> str:
-        return self.label(self.continuation)
+    T: str  # the labels of treatment, control and continuation
+    C: str
+    K: str
 
 
 def _mean_tau(thresholds: pd.DataFrame, method: str, column: str = "tau") -> float:
@@ -426,7 +417,8 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
                        fixed_tau: float | None = None) -> list[str]:
     """What the diagnostics show about the fixed-tau reversal, in sentences whose every verdict compares the
     numbers it quotes: one finding per ``_*_finding(s)`` function, where its inputs exist."""
-    c = _Cast(treatment, control, continuation, ceiling, list(groups), label, tau_text(fixed_tau))
+    c = _Cast(treatment, control, continuation, ceiling, list(groups), label, tau_text(fixed_tau), label(treatment),
+              label(control), label(continuation))
     thresholds_out, tau_t, tau_c = _threshold_findings(thresholds, c)
     gains_out, reversal = _gain_findings(summary, c)
     area_out, inflation = _area_findings(metrics, c)

@@ -183,19 +183,15 @@ def coco_segmentation_mask(segmentation, height: int, width: int) -> np.ndarray:
             if not polys:
                 return np.zeros((height, width), bool)
             rle = mask_utils.merge(mask_utils.frPyObjects(polys, height, width))
-        elif isinstance(segmentation, dict) and isinstance(segmentation.get("counts"), list):
+        elif isinstance(segmentation, dict) and isinstance(counts := segmentation.get("counts"), (list, str, bytes)):
             if list(segmentation.get("size", [])) != [height, width]:
                 raise FormatError(f"RLE size {segmentation.get('size')} is not the image's [{height}, {width}]")
-            rle = mask_utils.frPyObjects(segmentation, height, width)
-        elif isinstance(segmentation, dict) and isinstance(segmentation.get("counts"), (str, bytes)):
-            if list(segmentation.get("size", [])) != [height, width]:
-                raise FormatError(f"RLE size {segmentation.get('size')} is not the image's [{height}, {width}]")
-            counts = segmentation["counts"]
-            rle = {"size": [height, width], "counts": counts.encode("ascii") if isinstance(counts, str) else counts}
+            rle = (mask_utils.frPyObjects(segmentation, height, width) if isinstance(counts, list) else
+                   {"size": [height, width], "counts": counts.encode("ascii") if isinstance(counts, str) else counts})
         else:
             raise FormatError("segmentation is neither polygons nor RLE")
         return mask_utils.decode(rle).astype(bool)
+    except FormatError:
+        raise
     except (TypeError, ValueError, KeyError) as e:
-        if isinstance(e, FormatError):
-            raise
         raise FormatError(f"segmentation cannot be decoded ({e})") from None
