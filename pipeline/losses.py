@@ -30,11 +30,8 @@ def _per_pixel_weights(weights: torch.Tensor | None, like: torch.Tensor) -> torc
 
 def positive_weight(targets: torch.Tensor, weights: torch.Tensor | None = None,
                     max_weight: float = _PAPER.pos_weight_max) -> torch.Tensor:
-    """Batch-shared positive-class weight (eq:positive-count, eq:negative-count, eq:positive-weight), no gradient.
-
-    N+ = max(sum_i sum_x w_i M_i(x), 1), N- = max(sum_i sum_x w_i (1 - M_i(x)), 1), pi = clip(N- / N+, 1, max_weight);
-    w_i = 1 without ``weights``, the gates in eq:skeleton-loss.
-    """
+    """pi = clip(N- / N+, 1, max_weight), N+ = max(sum_i sum_x w_i M_i(x), 1), N- = max(sum_i sum_x w_i (1 - M_i(x)), 1)
+    (eq:positive-count, eq:negative-count, eq:positive-weight); w_i = 1 without ``weights``; no gradient."""
     with torch.no_grad():
         t = targets.float()
         w = _per_pixel_weights(weights, t)
@@ -44,11 +41,8 @@ def positive_weight(targets: torch.Tensor, weights: torch.Tensor | None = None,
 
 def balanced_bce(logits: torch.Tensor, targets: torch.Tensor, weights: torch.Tensor | None = None,
                  max_weight: float = _PAPER.pos_weight_max) -> torch.Tensor:
-    """Balanced BCE (eq:bbce; with ``weights``, the gated form of eq:skeleton-loss).
-
-    L = -1/(BHW) sum_i sum_x w_i [pi M_i(x) log P_i(x) + (1 - M_i(x)) log(1 - P_i(x))], P = sigmoid(logits), pi from
-    :func:`positive_weight`; the gates are not renormalised (all zero: 0).
-    """
+    """L = -1/(BHW) sum_i sum_x w_i [pi M_i(x) log P_i(x) + (1 - M_i(x)) log(1 - P_i(x))] (eq:bbce; with ``weights``,
+    eq:skeleton-loss's gated form, not renormalised)."""
     z = logits.float()
     t = targets.float().reshape(z.shape)
     pi = positive_weight(t, weights, max_weight)
@@ -67,10 +61,7 @@ def dice_loss(probs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
 
 def raw_terms(logits: torch.Tensor, targets: torch.Tensor, dice_weight: float = _PAPER.dice_weight,
               max_weight: float = _PAPER.pos_weight_max, probs: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """L_raw = L_BBCE + 0.2 L_Dice (eq:raw-loss), ungated, with its parts: ``{"raw", "bbce", "dice"}``.
-
-    ``probs``: ``sigmoid(logits)`` when the caller has it already.
-    """
+    """L_raw = L_BBCE + 0.2 L_Dice (eq:raw-loss) with its parts; ``probs``: sigmoid(logits) when known."""
     bbce = balanced_bce(logits, targets, None, max_weight)
     dice = dice_loss(torch.sigmoid(logits.float()) if probs is None else probs, targets)
     return {"raw": bbce + dice_weight * dice, "bbce": bbce, "dice": dice}
@@ -195,11 +186,8 @@ def refine_loss(outputs: Mapping[str, torch.Tensor], targets: Mapping[str, torch
                 gates: torch.Tensor, weights: Mapping[str, float] = PAPER_REFINE_WEIGHTS,
                 constants: LossConstants = LossConstants()) -> dict[str, torch.Tensor]:
     """L_refine = L_raw + lambda_SDF L_SDF + lambda_skel L_skel + lambda_area L_area (eq:refine-loss), every method's
-    objective: L = sum_t weights[t] L_t over the terms of ``weights`` (:data:`TERM_KEYS`).
-
-    ``outputs``: ``mask`` (Z), ``sdf`` (D^S), ``skeleton`` (Z^K); ``targets``: ``mask`` (M^T), ``sdf`` (D^T),
-    ``skeleton`` (K^T), ``area`` (a_i), ``anchor``; as the terms need.  Returns ``loss`` and every term computed.
-    """
+    objective as L = sum_t weights[t] L_t; ``loss`` and every term computed, from the model's ``outputs`` (Z, D^S,
+    Z^K) and the ``targets`` (M^T, D^T, K^T, a_i, the anchor)."""
     z = outputs["mask"].float()  # one cast (and one sigmoid) shared by the terms: one gradient path
     p = torch.sigmoid(z)
     t: dict[str, torch.Tensor] = {}

@@ -124,11 +124,8 @@ def mask_path_model(model: TinyUNet) -> TinyUNet:
 
 
 class ExportMaskPath(nn.Module):
-    """A copy of a TinyUNet's mask path computing ``forward`` for export and int8 inference (docs/decisions.md).
-
-    The input normalisation is folded into the first convolution, conv(W, pad_0((x - m) / s)) =
-    conv(W / s, pad_m(x)) - (m / s) sum(W), and the upsampling sizes come from the input's shape.
-    """
+    """A TinyUNet's mask path for export and int8 inference (docs/decisions.md): the normalisation folded into the
+    first conv, conv(W, pad_0((x - m) / s)) = conv(W / s, pad_m(x)) - (m / s) sum(W); sizes from the input's shape."""
 
     def __init__(self, unet: TinyUNet):
         super().__init__()

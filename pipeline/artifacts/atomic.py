@@ -1,8 +1,5 @@
-"""Atomic replacement of files and folders, and the fault points the kill tests use.
-
-Everything is written to a hidden sibling temporary, then renamed into place, so a process killed at any
-instant leaves the old or the new output at the final path, never a partial one.
-"""
+"""Atomic replacement of files and folders through a hidden sibling temporary (a kill at any instant leaves the old
+or the new output, never a partial one), and the fault points the kill tests use."""
 
 from __future__ import annotations
 
@@ -75,11 +72,8 @@ def clean_leftovers(path: Path) -> None:
 
 
 def _replace(tmp: Path, path: Path) -> None:
-    """Move ``tmp`` onto ``path``: a file by ``os.replace``, an existing folder by an atomic exchange.
-
-    Where the kernel lacks the exchange, the old folder is first moved aside to ``.<name>.old-PID-*``, which the
-    next write removes if a kill strands it there.
-    """
+    """Move ``tmp`` onto ``path``: a file by ``os.replace``, a folder by an atomic exchange (else moved aside first to
+    ``.<name>.old-PID-*``, which the next write removes)."""
     fault_point("before_replace")
     if not path.is_dir() or path.is_symlink():
         os.replace(tmp, path)

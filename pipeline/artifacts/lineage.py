@@ -1,9 +1,5 @@
-"""An artifact's metadata record (``Meta``): schema, producing stage, params, input lineage, fingerprint and run id.
-
-``fingerprint`` = sha256(stage, code version, canonical params, input fingerprints); library versions, creation
-time and run id are provenance only.  Under ``SOURCE_DATE_EPOCH`` the time and run id are pinned, so a rerun
-writes byte-identical artifacts.
-"""
+"""An artifact's metadata record (``Meta``): schema, stage, params, lineage, fingerprint and run id; under
+``SOURCE_DATE_EPOCH`` the creation time and run id are pinned, so that a rerun writes byte-identical artifacts."""
 
 from __future__ import annotations
 
@@ -99,8 +95,7 @@ def run_as(argv: list[str]):
 
 
 def require_same_run(*artifacts) -> None:
-    """ArtifactError unless the opened outputs of each stage among ``artifacts`` (None: skipped) carry one run id
-    (train's excepted)."""
+    """ArtifactError unless the outputs of each stage among ``artifacts`` carry one run id (train's excepted)."""
     first = {}  # stage -> its first artifact
     for a in artifacts:
         if a is None or a.meta.stage == "train":  # each (method, seed) checkpoint is its own run

@@ -1,9 +1,5 @@
-"""Writing and reading artifacts: Zarr v3 groups, Parquet tables and folders, atomic and validated.
-
-Zarr arrays hold one image per chunk, ``SHARD_IMAGES`` per shard file, with a CRC32C checksum on every chunk.  The
-metadata lives under the ``geodistill`` key: in ``zarr.json``, in the Parquet schema metadata, or in a folder's
-``meta.json``.  Reads validate the schema and raise one-line :class:`ArtifactError` naming the path.
-"""
+"""Writing and reading artifacts (Zarr v3 groups, Parquet tables, folders), atomic and checksummed; reads validate
+the schema and raise a one-line :class:`ArtifactError` naming the path (layout: docs/artifacts.md)."""
 
 from __future__ import annotations
 
@@ -43,15 +39,8 @@ def _expected_chunk_files(arr) -> int:
 
 
 class ZarrWriter:
-    """Streamed, atomic writer of a Zarr v3 group.
-
-    >>> with ZarrWriter("x.zarr", meta) as w:                 # doctest: +SKIP
-    ...     w.create("voted", shape=(n, h, w), dtype=bool)
-    ...     for i in range(n): w.write("voted", i, mask_i)     # buffered per shard: memory flat in N
-    ...     w.attrs["prompts"] = [...]
-
-    Nothing is visible at the final path until ``__exit__`` succeeds; the metadata goes in last.
-    """
+    """Streamed, atomic writer of a Zarr v3 group (``create`` arrays, ``write`` rows, fill ``attrs``): rows are buffered
+    per shard, and nothing is at the final path until ``__exit__`` succeeds."""
 
     def __init__(self, path: str | Path, meta: Meta, shard_images: int = SHARD_IMAGES):
         self.path = Path(path)
@@ -124,7 +113,7 @@ class ZarrWriter:
                     raise ArtifactError(f"{self.path}: schema {self.meta.schema!r} needs arrays {sorted(missing)}")
                 chunk_files = {n: _expected_chunk_files(a) for n, a in self._arrays.items()}
                 self._group.attrs.update({**self.attrs, CHUNKS_KEY: chunk_files, META_KEY: self.meta.to_dict()})
-        except BaseException as e:  # noqa: BLE001 -- make sure the temp dir is removed
+        except BaseException as e:  # the temp dir must go, whatever failed
             self._ctx.__exit__(type(e), e, e.__traceback__)
             raise
         return self._ctx.__exit__(exc_type, exc, tb)
@@ -339,11 +328,7 @@ def _open_dir(path: Path, expect: str | None) -> DirArtifact:
 
 
 def open_artifact(path: str | Path, schema: str | None = None) -> Artifact:
-    """Open and validate a ``.zarr`` group, ``.parquet`` table or folder with ``meta.json``.
-
-    ``schema``: the expected schema's name.  Raises :class:`ArtifactError` naming the path when the artifact is
-    missing, incomplete, corrupt or of another schema.
-    """
+    """Open and validate a ``.zarr`` group, ``.parquet`` table or folder artifact, of schema ``schema`` if given."""
     path = Path(path)
     if not path.exists():
         raise ArtifactError(f"{path}: artifact not found (run the stage that produces it)")

@@ -1,8 +1,5 @@
-"""A model's weights on disk: ``model.safetensors`` (tensors only, the geometry heads' prefixed ``geometry_heads.``)
-plus ``model.json`` (the TinyUNet config and the run's fields), or the ``model.pt`` torch pickle of older runs, read
-with ``weights_only=True``; nothing read here can execute code.  Both read into one payload dict: ``state_dict``,
-``geometry_state_dict`` (or None), ``config`` and the run's fields.
-"""
+"""A model's weights: ``model.safetensors`` and ``model.json`` (config, the run's fields), or an older run's
+``model.pt`` read tensors-only; both read into one payload (``state_dict``, ``geometry_state_dict``, ``config``)."""
 
 from __future__ import annotations
 

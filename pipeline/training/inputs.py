@@ -28,11 +28,8 @@ MODE_KEY = REVIEW_MODE_KEY
 
 @dataclasses.dataclass
 class TrainData:
-    """The training rows of a method (manifest order): arrays in memory or row sources read per batch.
-
-    ``mask`` is the region target (M^T, or the AFS-fused mask), ``sdf``/``skeleton`` the pseudo-geometry targets
-    (None without geometry.zarr), ``area`` a_i and ``gate`` g_i per image, ``stats`` the filter outcome.
-    """
+    """A method's training rows (manifest order) as arrays or row sources: region target ``mask``, pseudo-geometry
+    ``sdf``/``skeleton`` (or None), a_i ``area`` and g_i ``gate``; ``stats``: the filter's outcome."""
 
     image_ids: list
     images: np.ndarray | RowSource
@@ -106,11 +103,8 @@ def _gate_table(gates, train_ids: list):
 
 
 def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Any]) -> TrainData:
-    """The pseudo-targets of the training rows ``method`` keeps after its data filter, from opened artifacts.
-
-    ``inputs``: artifact name -> opened artifact for every name in :func:`training_inputs`; a ``reference`` among
-    them is refused.
-    """
+    """The pseudo-targets of the training rows ``method``'s data filter keeps, from the opened ``inputs`` (by name;
+    a ``reference`` among them is refused)."""
     if "reference" in inputs:
         raise ValueError("training_data: reference masks never enter training (use validation_data)")
     if not method.annotation_free:
@@ -126,8 +120,23 @@ def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, A
     train_ids = [ids[i] for i in train_idx]
     gates_df = _gate_table(inputs["gates"], train_ids) if "gates" in inputs else None
     stats: dict[str, Any] = {"n_train_rows": int(len(train_idx))}
-    mask, keep = _region_targets(method, cfg, inputs, train_idx, stats)
-    sel = np.flatnonzero(keep & _confidence_keep(method, cfg, inputs, gates_df, train_idx, stats))
+    keep = np.ones(len(train_idx), dtype=bool)
+    if method.data == "afs":
+        mask, keep, stats["afs_pass_ratio"] = _afs_targets(inputs["teacher"], train_idx, cfg["afs"])
+    elif cfg.get("soft_targets"):  # A (eq:agreement-map) in eq:raw-loss instead of M^T (eq:majority-vote)
+        mask = LazyRows(inputs["consensus"]["agreement"], train_idx, np.float32)
+    else:
+        mask = LazyRows(inputs["consensus"]["voted"], train_idx, bool)
+    if uses_confidence(method):  # the pass ratio r wherever the method evaluates the criterion
+        c = cfg["confidence"]
+        score = (mean_valid_score(_rows(inputs["teacher"], "scores", train_idx)) if c["criterion"] == "mean_score"
+                 else None)
+        passed = confidence_pass(gates_df["c"].to_numpy(), gates_df["n_valid"].to_numpy(), score, c["criterion"],
+                                 float(c["threshold"]), int(c["min_valid"]))
+        stats["confidence_pass_ratio"] = pass_ratio(passed)
+        if method.data == "confidence":
+            keep &= passed
+    sel = np.flatnonzero(keep)
     if len(sel) == 0:
         raise InputError(f"--method {method.name}: no training image passes the method's filter "
                          f"(train.{'afs' if method.data == 'afs' else 'confidence'}); loosen it")
@@ -158,33 +167,6 @@ def geometry_constants(geometry) -> GeometryConstants:
                              min_distance=get("skeleton_min_distance", d.min_distance))
 
 
-def _region_targets(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Any],
-                    train_idx: np.ndarray, stats: dict) -> tuple[RowSource, np.ndarray]:
-    """Region target of every training row and the rows the AFS filter keeps: M^T (eq:majority-vote), A
-    (eq:agreement-map) with ``train.soft_targets``, or the AFS control's fused base-prompt mask."""
-    if method.data == "afs":
-        mask, keep, r = _afs_targets(inputs["teacher"], train_idx, cfg["afs"])
-        stats["afs_pass_ratio"] = r
-        return mask, keep
-    keep = np.ones(len(train_idx), dtype=bool)
-    if cfg.get("soft_targets"):
-        return LazyRows(inputs["consensus"]["agreement"], train_idx, np.float32), keep
-    return LazyRows(inputs["consensus"]["voted"], train_idx, bool), keep
-
-
-def _confidence_keep(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Any], gates_df,
-                     train_idx: np.ndarray, stats: dict) -> np.ndarray:
-    """Rows the confidence filter keeps (all unless ``data == "confidence"``); records its pass ratio r wherever
-    the method evaluates the criterion."""
-    keep = np.ones(len(train_idx), dtype=bool)
-    if uses_confidence(method):
-        passed = _confidence_pass(gates_df, inputs.get("teacher"), train_idx, cfg["confidence"])
-        stats["confidence_pass_ratio"] = pass_ratio(passed)
-        if method.data == "confidence":
-            keep &= passed
-    return keep
-
-
 def gate_values(method: Method, gates_df, sel: np.ndarray) -> np.ndarray:
     """Per-image gate g_i (eq:reliability-gate) of the selected rows; 1 for ``gate="one"`` or without gates."""
     if method.gate == "one" or gates_df is None:
@@ -195,17 +177,8 @@ def gate_values(method: Method, gates_df, sel: np.ndarray) -> np.ndarray:
     return g
 
 
-def _confidence_pass(gates_df, teacher, train_idx, c: Mapping[str, Any]) -> np.ndarray:
-    """The confidence criterion (``train.confidence``) of every training row, from teacher outputs only."""
-    criterion = c["criterion"]
-    mean_score = mean_valid_score(_rows(teacher, "scores", train_idx)) if criterion == "mean_score" else None
-    return confidence_pass(gates_df["c"].to_numpy(), gates_df["n_valid"].to_numpy(), mean_score,
-                           criterion, float(c["threshold"]), int(c["min_valid"]))
-
-
 def _afs_targets(teacher, train_idx, a: Mapping[str, Any]) -> tuple[MappedRows, np.ndarray, float]:
-    """AFS control targets (``train.afs``): the base prompt's mask fused with its vertical flip's, fused per batch;
-    the rows whose base score reaches the threshold; their pass ratio."""
+    """AFS control (``train.afs``): the base prompt's masks fused with their vflip's, the rows kept, the pass ratio."""
     if "vflip_masks" not in teacher or "vflip_scores" not in teacher:
         raise InputError(f"{teacher.path}: no vflip_masks/vflip_scores; the afs_control method needs "
                          f"teacher.vflip_base_prompt: true")
@@ -234,8 +207,7 @@ def validation_rows(manifest) -> np.ndarray:
 
 
 def validation_data(manifest, images, reference) -> ValData | None:
-    """Validation images and reference masks for checkpoint selection, the ``split == "val"`` rows with a mask;
-    None when there are none."""
+    """Validation images and reference masks of the ``split == "val"`` rows with a mask (None: no such row)."""
     ids = manifest.df["image_id"].astype(str).tolist()
     val_idx = validation_rows(manifest)
     if len(val_idx) == 0:
@@ -256,11 +228,8 @@ def require_supervised_ceiling(method: Method) -> None:
 
 
 def ceiling_training_data(method: Method, inputs: Mapping[str, Any], reference) -> TrainData:
-    """The supervised ceiling's training rows with a reference mask: images and REFERENCE masks, read per batch.
-
-    The one place reference masks enter a loss (NOT annotation-free).  ``inputs``: opened ``manifest`` and
-    ``images``; ``area`` is each mask's foreground fraction, ``gate`` 1.
-    """
+    """The supervised ceiling's training rows with their REFERENCE masks: the one place such masks enter a loss (NOT
+    annotation-free).  ``inputs``: opened ``manifest`` and ``images``."""
     require_supervised_ceiling(method)
     ids, train_idx = _train_rows(inputs["manifest"])
     for art in (inputs["images"], reference):
@@ -280,11 +249,8 @@ def ceiling_training_data(method: Method, inputs: Mapping[str, Any], reference) 
 
 def load_inputs(artifacts: str | Path, spec: Method, cfg: Mapping[str, Any], review: Mapping[str, Any] | None = None
                 ) -> tuple[TrainData, ValData | None, list]:
-    """(TrainData, ValData or None, the opened artifacts: the checkpoint's lineage) of a run of method ``spec``.
-
-    ``review``: the params' ``review`` section; with ``review.corrections`` set, the ``corrected`` artifact is
-    applied in ``review.mode`` (:func:`apply_to_training`, :func:`apply_to_validation`).
-    """
+    """(TrainData, ValData or None, the opened artifacts) of a run of ``spec``; ``review`` (params) with
+    ``corrections`` set applies the ``corrected`` artifact in its ``mode``."""
 
     def opened(name: str):
         lineage.append(open_artifact(catalog.path(name, artifacts), name))
@@ -398,21 +364,5 @@ def apply_to_validation(val: ValData | None, corrected, images) -> ValData:
 
 
 def _as_rows(x) -> RowSource:
-    """A row source over ``x`` (an in-memory array is wrapped so :class:`PatchedRows` reads it alike)."""
-    return x if isinstance(x, RowSource) else _ArrayRows(np.asarray(x))
-
-
-class _ArrayRows(RowSource):
-    def __init__(self, arr: np.ndarray):
-        self.arr = arr
-        self.dtype = arr.dtype
-
-    @property
-    def shape(self) -> tuple[int, ...]:
-        return self.arr.shape
-
-    def select(self, sel) -> _ArrayRows:
-        return _ArrayRows(self.arr[sel])
-
-    def read(self, key) -> np.ndarray:
-        return self.arr[key]
+    """A row source over ``x`` (an array too, so that :class:`PatchedRows` reads it alike)."""
+    return x if isinstance(x, RowSource) else LazyRows(np.asarray(x), np.arange(len(x)))

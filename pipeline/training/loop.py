@@ -136,12 +136,12 @@ def _lr_lambda(schedule: str, total_steps: int, warmup_steps: int = 0, decay_ste
     or ``wsd`` min(1, max(0, T - step) / D) with T = ``total_steps``, D = ``decay_steps``; times the warm-up
     min(1, (step + 1) / W) when W = ``warmup_steps`` > 0."""
     if schedule == "constant":
-        base = lambda step: 1.0  # noqa: E731
+        base = lambda step: 1.0
     elif schedule == "cosine":
-        base = lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1)))  # noqa: E731
+        base = lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1)))
     elif schedule == "wsd":
         d = max(int(decay_steps), 1)
-        base = lambda step: min(1.0, max(0, total_steps - step) / d)  # noqa: E731
+        base = lambda step: min(1.0, max(0, total_steps - step) / d)
     else:
         raise InputError(f"params: train.schedule={schedule!r}: expected cosine, constant or wsd")
     if warmup_steps <= 0:
@@ -239,11 +239,8 @@ def _has_val(val: ValData | None) -> bool:
 def validation_scores(model, val: ValData | None, device, *, precision: str, channels_last: bool,
                       tolerance: float, tau: float = PAPER.calibrate.fixed_tau,
                       calibrated: bool = True) -> dict[str, float]:
-    """An epoch's validation scores (all NaN without validation data); leaves the model in train mode.
-
-    ``val_iou``/``val_bf1``: mean Image IoU and Boundary F1 of [P >= tau] (eq:inference-mask); with ``calibrated``,
-    ``val_tau_cal``: the calibrate stage's tau on :data:`pipeline.thresholds.EPOCH_TAU_GRID`, ``val_iou_cal`` its IoU.
-    """
+    """Mean val Image IoU and Boundary F1 of [P >= tau] (eq:inference-mask) and, with ``calibrated``, the IoU at the
+    epoch's best tau of :data:`pipeline.thresholds.EPOCH_TAU_GRID` (NaN without validation data); model: train mode."""
     nan = float("nan")
     out = {"val_iou": nan, "val_bf1": nan, "val_iou_cal": nan, "val_tau_cal": nan}
     if not _has_val(val):
@@ -469,10 +466,8 @@ def _resume(run: _Run, checkpointer: Checkpointer) -> int:
 
 
 def _continued(run: _Run, state: dict) -> dict | None:
-    """A state of this until-plateau run under another step budget, as this run resumes it (None: another run).
-
-    A run the budget stopped continues from its stable state; one the plateau stopped is finished.
-    """
+    """A state of this until-plateau run under another step budget, as this run resumes it (None: another run): the
+    budget's stop continues from its stable state, the plateau's is finished."""
     key = {k: v for k, v in state.get("run_key", {}).items() if k != "step_budget"}
     if run.until is None or key != {k: v for k, v in run.run_key.items() if k != "step_budget"}:
         return None
@@ -673,12 +668,8 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
           checkpointer: Checkpointer, init_state: Mapping | None = None, device="cpu",
           callback: Callable[[int, dict], None] | None = None, show_progress: bool = True,
           selection_tau: float = PAPER.calibrate.fixed_tau) -> TrainResult:
-    """Train one (method, seed) run; the selected model and its log.
-
-    ``data``: the pseudo-targets, every loss term's only source; ``val``: for :func:`select` only.
-    ``init_state``: the Stage-I mask path of warm-started methods; ``callback(epoch, row)`` runs after each saved
-    epoch.  Raises TrainingDiverged on a non-finite loss or weights, saving nothing for that epoch.
-    """
+    """Train one (method, seed) run on ``data`` (``val`` serves selection only); the selected model and its log.
+    ``init_state``: the Stage-I mask path of warm-started methods; ``callback(epoch, row)``: after each saved epoch."""
     s = Settings.from_params(method, cfg, selection_tau)
     device = torch.device(device)
     if s.num_threads > 0:
