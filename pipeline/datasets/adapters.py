@@ -171,7 +171,8 @@ def _disjoint_source(name: str, found: dict[str, list[tuple[str, Path, Path]]], 
             rows.append(_row(f"{sc}__{sub}__{Path(img).stem}", name, name, split, group, sc, img,
                              mask if labeled else None, mask if labeled and colors else None, **{column: sub}))
     return DatasetSpec(rows=_frame(rows), mask_threshold=mask_threshold, part_colors=colors,
-                       spacecraft_disjoint=True, protocol={"name": name, "file": str(where), "plan": [list(p) for p in plan]})
+                       spacecraft_disjoint=True,
+                       protocol={"name": name, "file": str(where), "plan": [list(p) for p in plan]})
 
 
 _TIMESTAMP = re.compile(r"^(\d+)_(.+)$")
@@ -311,13 +312,7 @@ def speedplus_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
     lists = [ddir / f for f in _get(proto, "lists", where, list) if (ddir / f).is_file()]
     if not lists:
         raise InputError(f"{ddir}: none of the SPEED+ lists {proto['lists']} found")
-    names: list[str] = []
-    seen = set()
-    for lst in lists:
-        for n in _read_list(lst):
-            if n not in seen:
-                seen.add(n)
-                names.append(n)
+    names = list(dict.fromkeys(n for lst in lists for n in _read_list(lst)))
     mask_dir = ddir / "masks"
     masks = {n: _find_mask(mask_dir, n) for n in names}
     if not any(masks.values()):
@@ -331,8 +326,7 @@ def speedplus_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
         rows.append(_row(f"{domain}__{Path(n).stem}", "speedplus", domain, split, group, sc,
                          ddir / "images" / n, masks[n] if split != "train" else None))
     return DatasetSpec(rows=_frame(rows), mask_threshold=float(proto.get("mask_threshold", 128)),
-                       part_colors=None, spacecraft_disjoint=False,
-                       protocol={"name": "speedplus", "file": str(where), "domain": domain,
+                       spacecraft_disjoint=False, protocol={"name": "speedplus", "file": str(where), "domain": domain,
                                  "lists": [str(p) for p in lists]})
 
 
@@ -368,8 +362,7 @@ def tango_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
         rows.append(_row(f"tango__{Path(n).stem}", "tango", "tango", "test", "test", sc, img_dir / n,
                          mask_of(n) or mask_dir / (Path(n).stem + suffix)))
     return DatasetSpec(rows=_frame(rows), mask_threshold=float(proto.get("mask_threshold", 127)),
-                       part_colors=None, spacecraft_disjoint=False,
-                       protocol={"name": "tango", "file": str(where)})
+                       spacecraft_disjoint=False, protocol={"name": "tango", "file": str(where)})
 
 
 def _folder_entries(d: Path, policy: BadInputPolicy) -> list[tuple[str, Path]]:
@@ -394,7 +387,7 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
     policy = policy or BadInputPolicy(False)
     root = _root(cfg)
     img_dir = root / str(proto.get("images_dir", "images"))
-    masks_name = proto.get("masks_dir", "masks")  # null: no masks at all (e.g. `geodistill distill` without --val-masks)
+    masks_name = proto.get("masks_dir", "masks")  # null: no masks at all (distill without --val-masks)
     mask_dir = root / str(masks_name) if masks_name is not None else None
     if not img_dir.is_dir():
         raise InputError(f"{img_dir}: images folder not found")
@@ -440,12 +433,12 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
                          m if split != "train" else None))
     if not rows:
         raise InputError(f"{img_dir}: no files")
-    return DatasetSpec(rows=_frame(rows), mask_threshold=proto.get("mask_threshold"), part_colors=None,
-                       spacecraft_disjoint=False, protocol={"name": "folder", "file": str(where)})
+    return DatasetSpec(rows=_frame(rows), mask_threshold=proto.get("mask_threshold"), spacecraft_disjoint=False,
+                       protocol={"name": "folder", "file": str(where)})
 
 
-ADAPTERS = {"spacesense": spacesense_source, "spark": spark_source, "speedplus": speedplus_source, "tango": tango_source,
-            "folder": folder_source}
+ADAPTERS = {"spacesense": spacesense_source, "spark": spark_source, "speedplus": speedplus_source,
+            "tango": tango_source, "folder": folder_source}
 SCANNING_ADAPTERS = {"folder"}   # adapters that report unused files themselves (take the policy)
 
 

@@ -84,8 +84,8 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
                 bar.update(1)
     return DatasetSpec(rows=pd.DataFrame(rows), mask_threshold=None, part_colors=None,
                        spacecraft_disjoint=True,
-                       protocol={"name": "synthetic", "plan": [vars(p) for p in plan]}, max_pixels=cfg.get("max_pixels"),
-                       letterbox=bool(cfg.get("letterbox", False)))
+                       protocol={"name": "synthetic", "plan": [vars(p) for p in plan]},
+                       max_pixels=cfg.get("max_pixels"), letterbox=bool(cfg.get("letterbox", False)))
 
 
 def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = None) -> DatasetSpec:
@@ -96,8 +96,9 @@ def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = 
     spec.bit_depth, spec.letterbox = cfg.get("bit_depth", "auto"), bool(cfg.get("letterbox", False))
     if out_dir is not None:
         with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:
-            (tmp / output_file("synthetic_files", "readme")).write_text(f"data.source={cfg['source']}: the synthetic benchmark was not "
-                                            f"generated; the manifest points into {cfg['root']}\n")
+            (tmp / output_file("synthetic_files", "readme")).write_text(
+                f"data.source={cfg['source']}: the synthetic benchmark was not generated; the manifest points "
+                f"into {cfg['root']}\n")
     return spec
 
 

@@ -66,7 +66,7 @@ def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> I
                     else:
                         skipped.append((str(f), broken_link_reason(f)))
                     continue
-                if not _is_within(target, root_r):
+                if not target.is_relative_to(root_r):
                     skipped.append((str(f), f"symbolic link pointing outside the input folder (to {target})"))
                     continue
             if not f.is_file():
@@ -74,13 +74,3 @@ def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> I
                 continue
             files.append(f)
     return Inputs(p, sorted(files), sorted(skipped), True, sorted(unused))
-
-
-def _is_within(child: Path, parent: Path) -> bool:
-    try:
-        child.relative_to(parent)
-        return True
-    except ValueError:
-        return False
-
-

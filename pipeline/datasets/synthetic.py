@@ -103,7 +103,7 @@ class _Builder:
                   seg_part=part)
 
     def box(self, center, axes, half, mats, part):
-        """Closed box: ``axes`` (3, 3) orthonormal rows, ``half`` half-sizes, ``mats`` 6 materials (+x,-x,+y,-y,+z,-z)."""
+        """Closed box: ``axes`` orthonormal rows, ``half`` half-sizes, ``mats`` 6 materials (+x,-x,+y,-y,+z,-z)."""
         c = np.asarray(center, float)
         ax = np.asarray(axes, float)
         for k, (i, s) in enumerate([(0, 1), (0, -1), (1, 1), (1, -1), (2, 1), (2, -1)]):
@@ -494,8 +494,8 @@ def _background_smooth(kind: str, rng: np.random.Generator, size: int, sun: np.n
     layer = np.zeros((h, w), np.float32)
     for _ in range(int(rng.integers(1, 5))):
         x0, y0 = rng.integers(0, w), rng.integers(0, h)
-        cv2.rectangle(layer, (int(x0), int(y0)), (int(x0 + rng.integers(w // 8, w // 2)), int(y0 + rng.integers(h // 16, h // 3))),
-                      float(rng.uniform(0.02, 0.08)), -1)
+        corner = (int(x0 + rng.integers(w // 8, w // 2)), int(y0 + rng.integers(h // 16, h // 3)))
+        cv2.rectangle(layer, (int(x0), int(y0)), corner, float(rng.uniform(0.02, 0.08)), -1)
     layer = cv2.GaussianBlur(layer, (0, 0), 1.5 * s + 0.5)
     img += layer[..., None] * np.array([1.0, 0.97, 0.92], np.float32)
     img += 0.01 * _smooth_noise(rng, h, w, [8, 24])[..., None]
@@ -565,12 +565,11 @@ def rasterize(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.
     normals = model.face_normal @ R.T
     scale384 = size / 384.0
     prims = []  # (distance, kind, index, payload)
-    rec_albedo, rec_normal, rec_mat, rec_part = [np.zeros(3)], [np.zeros(3)], [0], [0]
+    records = [(np.zeros(3), np.zeros(3), 0, 0)]  # (albedo, normal, material, part); record 0 = background
 
-    def record(albedo, normal, mat, part) -> int:
-        for lst, v in zip((rec_albedo, rec_normal, rec_mat, rec_part), (albedo, normal, mat, part)):
-            lst.append(v)
-        return len(rec_mat) - 1
+    def record(*rec) -> int:
+        records.append(rec)
+        return len(records) - 1
 
     for i in range(len(model.faces)):
         qv = q[starts[i]:starts[i + 1]]
@@ -621,8 +620,9 @@ def rasterize(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.
             p1 = seg_uv[i, 0] + (seg_uv[i, 1] - seg_uv[i, 0]) * t1
             rast.line(ids, p0, p1, rec, width)
 
-    return Rasterized(ids=ids, albedo=np.asarray(rec_albedo, np.float32), normal=np.asarray(rec_normal, np.float32),
-                      material=np.asarray(rec_mat, np.int32), part=np.asarray(rec_part, np.uint8), focal=f, centre=c)
+    albedo, normal, material, part = zip(*records)
+    return Rasterized(ids=ids, albedo=np.asarray(albedo, np.float32), normal=np.asarray(normal, np.float32),
+                      material=np.asarray(material, np.int32), part=np.asarray(part, np.uint8), focal=f, centre=c)
 
 
 def render_view(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.Generator,
@@ -693,11 +693,13 @@ def apply_hard_case(img: np.ndarray, case: str, rng: np.random.Generator, mask: 
         r2 = (xx - src[0]) ** 2 + (yy - src[1]) ** 2
         if case == "glare":
             sigma = rng.uniform(0.12, 0.3) * size
-            img = img * rng.uniform(1.2, 1.8) + (rng.uniform(0.4, 1.0) * np.exp(-r2 / (2 * sigma ** 2)))[..., None] * np.array([1.0, 0.97, 0.9], np.float32)
+            img = (img * rng.uniform(1.2, 1.8) + (rng.uniform(0.4, 1.0) * np.exp(-r2 / (2 * sigma ** 2)))[..., None]
+                   * np.array([1.0, 0.97, 0.9], np.float32))
             bright = np.clip(img - 0.8, 0, None)
             img = img + 2.0 * cv2.GaussianBlur(bright, (0, 0), 8 * s + 1)
         else:
-            img = img + (np.exp(-r2 / (2 * (0.03 * size) ** 2)) * 1.5 + np.exp(-r2 / (2 * (0.12 * size) ** 2)) * 0.25)[..., None]
+            img = img + (np.exp(-r2 / (2 * (0.03 * size) ** 2)) * 1.5
+                         + np.exp(-r2 / (2 * (0.12 * size) ** 2)) * 0.25)[..., None]
             layer = np.zeros_like(img)
             centre = np.array([size / 2, size / 2])
             for _ in range(int(rng.integers(4, 7))):  # ghosts along the line through the image centre

@@ -25,7 +25,6 @@ import numpy as np
 from pipeline.catalog import output_file, output_names
 from pipeline.datasets.loading import probs_to_size, read_rgb, resize_image
 from pipeline.datasets.manifest import SKIPPED_COLUMNS
-from pipeline.datasets.scan import _is_within
 from pipeline.deploy.confidence import frame_confidence
 from pipeline.deploy.segmenter import Segmenter
 from pipeline.runtime.errors import InputError
@@ -85,7 +84,7 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
         raise InputError(f"--output {out_dir}: {what}, not a folder")
     out = out.resolve()
     root_r = root.resolve()
-    if input_is_dir and (out == root_r or _is_within(out, root_r)):
+    if input_is_dir and out.is_relative_to(root_r):
         raise InputError(f"--output {out_dir}: inside the input folder {root}; outputs must not mix with inputs")
     rel = [_relative(f, root, root_r) if input_is_dir else Path(f.name) for f in files]
 

@@ -122,9 +122,10 @@ class ImportedTeacher:
         self._refuse_first(table.duplicated(["image_id", "prompt", "view"]), table,
                            lambda i: "duplicate row for this image, prompt and view")
         valid = table["score"] > 0
-        dup = valid & table[valid].duplicated(["image_id", "view", "prompt_index"]).reindex(table.index, fill_value=False)
-        self._refuse_first(dup, table, lambda i: f"prompt_index {int(table.at[i, 'prompt_index'])} is used "
-                                                 f"by another prompt of this image and view (both would read one mask file)")
+        dup = table[valid].duplicated(["image_id", "view", "prompt_index"]).reindex(table.index, fill_value=False)
+        self._refuse_first(valid & dup, table, lambda i: f"prompt_index {int(table.at[i, 'prompt_index'])} is used by "
+                                                         f"another prompt of this image and view (both would read one "
+                                                         f"mask file)")
         return table
 
     def content_hash(self) -> str:
@@ -144,7 +145,8 @@ class ImportedTeacher:
         try:
             row = self.table.loc[(image_id, prompt, view)]
         except KeyError:
-            raise InputError(f"{self.scores_path}: no row for image {image_id!r}, prompt {prompt!r}, view {view}") from None
+            raise InputError(f"{self.scores_path}: no row for image {image_id!r}, prompt {prompt!r}, "
+                             f"view {view}") from None
         score = float(row["score"])
         if score <= 0:
             return np.zeros(self.resolution, bool), 0.0

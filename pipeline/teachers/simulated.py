@@ -302,7 +302,7 @@ class SimulatedFoundationTeacher:
     def answer(self, item: TeacherInput, prompt: str, scene: SceneDraw) -> tuple[np.ndarray, float]:
         """One (mask, score) answer of the simulated teacher; score 0 and an empty mask for a miss."""
         gt = np.asarray(item.reference["mask"], dtype=bool)
-        parts = item.reference.get("parts") if item.reference is not None else None
+        parts = item.reference.get("parts")
         parts = None if parts is None else np.asarray(parts)
         empty = np.zeros_like(gt)
         persona = persona_for(prompt)
@@ -390,9 +390,9 @@ class SimulatedFoundationTeacher:
                 raise InputError(f"simulated teacher: reference mask {gt.shape} and image {item.image.shape[:2]} "
                                  f"of {item.image_id!r} differ in size")
             scene = self.scene(item)
-            answers = [self.answer(item, p, scene) for p in prompts]
-            out_masks.append(np.stack([a[0] for a in answers]))
-            out_scores.append(np.array([a[1] for a in answers], np.float32))
+            masks, scores = zip(*(self.answer(item, p, scene) for p in prompts))
+            out_masks.append(np.stack(masks))
+            out_scores.append(np.array(scores, np.float32))
         return finalize_answers(np.stack(out_masks), np.stack(out_scores))
 
 
