@@ -392,44 +392,41 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
     if not img_dir.is_dir():
         raise InputError(f"{img_dir}: images folder not found")
     entries = _folder_entries(img_dir, policy)
-    images = [p for _, p in entries]
-    id_of = {p: i for i, p in entries}
-    image_stems = set(id_of.values())
+    image_ids = {i for i, _ in entries}
     by_stem: dict[str, list[Path]] = {}
     if mask_dir is not None and mask_dir.is_dir():
         for stem, m in _folder_entries(mask_dir, policy):
             by_stem.setdefault(stem, []).append(m)
     masks: dict[str, Path] = {}
-    ambiguous: dict[str, list[Path]] = {}
+    ambiguous: dict[str, int] = {}
     for stem, ms in by_stem.items():
         if len(ms) > 1:
-            ambiguous[stem] = ms
+            ambiguous[stem] = len(ms)
             for m in ms:
                 others = ", ".join(o.name for o in ms if o != m)
                 policy.report(stem, m, f"{len(ms)} mask files for stem {stem!r} (also {others}): "
                                        f"ambiguous, none is used")
-        elif stem not in image_stems:
+        elif stem not in image_ids:
             policy.report(stem, ms[0], f"mask without an image: no file with stem {stem!r} in {img_dir}")
         else:
             masks[stem] = ms[0]
-    for p in images:
-        if id_of[p] in ambiguous:
-            policy.report(id_of[p], p, f"left out: its mask is ambiguous ({len(ambiguous[id_of[p]])} mask "
-                                       f"files for stem {id_of[p]!r} in {mask_dir})")
-    images = [p for p in images if id_of[p] not in ambiguous]
+    for iid, p in entries:
+        if iid in ambiguous:
+            policy.report(iid, p, f"left out: its mask is ambiguous ({ambiguous[iid]} mask "
+                                  f"files for stem {iid!r} in {mask_dir})")
+    entries = [(iid, p) for iid, p in entries if iid not in ambiguous]
     sc = str(proto.get("spacecraft") or root.resolve().name)
     val_fraction = float(proto.get("val_fraction", 0.5))
     if not 0 <= val_fraction <= 1:
         raise InputError(f"{where}: val_fraction={val_fraction} must be in [0, 1]")
-    labeled = [p for p in images if id_of[p] in masks]
+    labeled = [iid for iid, _ in entries if iid in masks]
     order = _rng(int(cfg["seed"]), "folder-val").permutation(len(labeled))
-    n_val = int(round(val_fraction * len(labeled)))
-    val = {id_of[labeled[i]] for i in order[:n_val]}
+    val = {labeled[i] for i in order[:int(round(val_fraction * len(labeled)))]}
     rows = []
-    for p in images:
-        m = masks.get(id_of[p])
-        split = "train" if m is None else ("val" if id_of[p] in val else "test")
-        rows.append(_row(id_of[p], "folder", str(proto.get("domain", "folder")), split, split, sc, p,
+    for iid, p in entries:
+        m = masks.get(iid)
+        split = "train" if m is None else ("val" if iid in val else "test")
+        rows.append(_row(iid, "folder", str(proto.get("domain", "folder")), split, split, sc, p,
                          m if split != "train" else None))
     if not rows:
         raise InputError(f"{img_dir}: no files")

@@ -50,11 +50,8 @@ def _checkpoint_files(directory: Path) -> list[Path]:
 
 def checkpoint_stat(directory: Path) -> list[list]:
     """[relative path, size, mtime_ns] of every checkpoint file, sorted: what the hash memo is keyed on."""
-    out = []
-    for p in _checkpoint_files(directory):
-        st = p.stat()
-        out.append([str(p.relative_to(directory)), int(st.st_size), int(st.st_mtime_ns)])
-    return out
+    stats = [(p, p.stat()) for p in _checkpoint_files(directory)]
+    return [[str(p.relative_to(directory)), int(st.st_size), int(st.st_mtime_ns)] for p, st in stats]
 
 
 def memoised_checkpoint_hash(directory: Path, memo: Path | None) -> str:
@@ -66,10 +63,9 @@ def memoised_checkpoint_hash(directory: Path, memo: Path | None) -> str:
     key, stat = str(Path(directory).resolve()), checkpoint_stat(directory)
     try:
         table = json.loads(memo.read_text())
-        if not isinstance(table, dict):
-            table = {}
     except (OSError, ValueError):
         table = {}
+    table = table if isinstance(table, dict) else {}
     entry = table.get(key)
     if isinstance(entry, dict) and entry.get("files") == stat and isinstance(entry.get("sha256"), str):
         return entry["sha256"]
