@@ -23,7 +23,7 @@ from pipeline.artifacts.lineage import make_meta
 from pipeline.datasets.loading import read_rgb, resize_image
 from pipeline.deploy import files as F
 from pipeline.deploy.segmenter import load_segmenter
-from pipeline.deploy.engine_table import ENGINE_TABLE, SEGMENT_ENGINES, engine_name
+from pipeline.engine_table import ENGINE_TABLE, SEGMENT_ENGINES, engine_name
 from pipeline.runtime.errors import InputError
 from pipeline.deploy.export import plan_export, write_export
 from pipeline.evaluation.inference import save_checkpoint

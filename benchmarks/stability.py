@@ -21,7 +21,7 @@ import numpy as np
 from pipeline.artifacts.atomic import write_json
 from benchmarks import study_recipe as sr
 from pipeline.runtime.device import autocast_dtype
-from pipeline.runtime.environment import cpu
+from pipeline.artifacts.provenance import cpu
 from pipeline.runtime.errors import InputError
 from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, STAGE_ONE, get_method

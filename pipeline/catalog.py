@@ -9,7 +9,7 @@ import dataclasses
 from pathlib import Path
 from typing import Mapping
 
-from pipeline.deploy.engine_table import engines_reading
+from pipeline.engine_table import engines_reading
 from pipeline.params import DEFAULT_PARAMS as PARAMS_FILE
 from pipeline.params import get_path
 

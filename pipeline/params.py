@@ -14,7 +14,7 @@ from typing import Annotated, Any, Iterable, Literal, Mapping
 import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from pipeline.deploy.engine_table import BENCHMARK_VARIANTS, engine_name  # pure Python: the engine names, one list
+from pipeline.engine_table import BENCHMARK_VARIANTS, engine_name  # pure Python: the engine names, one list
 from pipeline.runtime.errors import InputError
 from pipeline.methods import METHODS, PROPOSED, STAGE_ONE  # pure Python, no torch: this module stays torch-free
 

@@ -13,7 +13,7 @@ from pipeline.artifacts.store import artifact_dir
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.runtime.device import resolve_device
 from pipeline.report.dvc_results import efficiency_metric_files, write_metrics_dir
-from pipeline.runtime.environment import collect
+from pipeline.artifacts.provenance import collect
 from pipeline.params import section
 from pipeline.report.document import render_html, render_markdown
 from pipeline.report.environment import environment_record

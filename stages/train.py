@@ -19,7 +19,7 @@ from pipeline.catalog import ARTIFACTS_DIR, META_FILE
 from pipeline.training.checkpointing import FileCheckpointer
 from pipeline.runtime.device import resolve_device
 from pipeline.report.dvc_results import write_live_log
-from pipeline.runtime.environment import training_runtime
+from pipeline.artifacts.provenance import training_runtime
 from pipeline.runtime.errors import ArtifactError, InputError, TrainingDiverged
 from pipeline.evaluation.inference import load_student, save_checkpoint
 from pipeline.methods import SELECTION_TAU_KEY, SUPERVISED_CEILING, fingerprint_params, get_method

@@ -8,7 +8,7 @@ import yaml
 from click.testing import CliRunner
 
 import pipeline
-from pipeline.deploy.engine_table import BENCHMARK_VARIANTS
+from pipeline.engine_table import BENCHMARK_VARIANTS
 from pipeline.params import PAPER
 from pipeline.profiles import DISTILL_BENCHMARK, PROFILES, load_profile
 from tests._tiny_lane import REPO

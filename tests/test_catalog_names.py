@@ -18,7 +18,7 @@ import pytest
 
 from pipeline import catalog
 from pipeline.runtime.codeversion import ROOT
-from pipeline.deploy.engine_table import ENGINE_CHOICES, ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES
+from pipeline.engine_table import ENGINE_CHOICES, ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES
 
 #: the module that owns the file names
 OWNERS = ("pipeline/catalog.py",)

@@ -1,9 +1,9 @@
-"""The environment record (pipeline.runtime.environment) and the report's Environment section: parsers on fixed
+"""The environment record (pipeline.artifacts.provenance) and the report's Environment section: parsers on fixed
 text, the lock comparison, this installation against requirements/lock.txt, and the rendering."""
 
 from __future__ import annotations
 
-from pipeline.runtime import environment as E
+from pipeline.artifacts import provenance as E
 from pipeline.report import environment as R
 from pipeline.report.document import Report, render_markdown
 

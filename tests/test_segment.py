@@ -169,7 +169,7 @@ def test_segment_deploy_bundle_engines_agree_and_use_bundle_tau(tmp_path):
     if HAS_ONNX:  # int8 is approximate: >= 99 % of all pixels agree with torch
         same = sum(int(np.count_nonzero(masks["onnxruntime_int8"][k] == m)) for k, m in masks["torch"].items())
         assert same / sum(m.size for m in masks["torch"].values()) >= 0.99
-        # an old name (pipeline.deploy.engine_table.ENGINE_ALIASES) runs its engine: the same masks
+        # an old name (pipeline.engine_table.ENGINE_ALIASES) runs its engine: the same masks
         r = segment("--checkpoint", tmp_path / "deploy", "--input", tmp_path / "in", "--output", tmp_path / "old",
                     "--engine", "int8")
         assert r.exit_code == 0 and "engine onnxruntime_int8," in r.output, r.output

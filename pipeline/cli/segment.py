@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from pipeline.catalog import PARAMS_FILE, dvc_path
-from pipeline.deploy.engine_table import AUTO, ENGINE_ALIASES, ENGINE_CHOICES, MODEL_ENGINES
+from pipeline.engine_table import AUTO, ENGINE_ALIASES, ENGINE_CHOICES, MODEL_ENGINES
 from pipeline.params import load_params
 from pipeline.deploy.segmenting import segment_images
 from pipeline.runtime.progress import quiet_bars

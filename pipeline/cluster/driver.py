@@ -16,7 +16,7 @@ from typing import Callable
 from pipeline import catalog
 from pipeline.artifacts.atomic import write_json
 from pipeline.cluster import guard, plan
-from pipeline.runtime.environment import THREAD_ENV_VARS
+from pipeline.artifacts.provenance import THREAD_ENV_VARS
 from pipeline.runtime.errors import InputError
 from pipeline.params import DEFAULT_PARAMS, read_yaml_mapping
 

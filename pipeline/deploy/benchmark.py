@@ -27,7 +27,7 @@ from pipeline.runtime.errors import InputError
 from pipeline.evaluation.inference import images_to_tensor, load_student
 from pipeline.metrics import image_ious
 from pipeline.model import count_flops, count_parameters, mask_path_model
-from pipeline.deploy.engine_table import BENCHMARK_VARIANTS, engine_name
+from pipeline.engine_table import BENCHMARK_VARIANTS, engine_name
 from pipeline.thresholds import mask_from_probs, resolve_tau, tau_candidates
 
 BASELINE_VARIANT = "fp32_eager_nchw"

@@ -1,4 +1,4 @@
-"""The engine registry: each row of :data:`pipeline.deploy.engine_table.ENGINE_TABLE` with its loader,
+"""The engine registry: each row of :data:`pipeline.engine_table.ENGINE_TABLE` with its loader,
 shared by the Segmenter and the benchmark.  A runner maps x float32 [N,3,H,W] RGB in [0, 1] (CPU) to
 the logits [N,1,H,W], a torch tensor that survives the next call."""
 
@@ -18,7 +18,7 @@ from pipeline.deploy import openvino_engine
 from pipeline.deploy.cuda_engine import FastStudent
 from pipeline.deploy.mask_path import ONNX_INPUT, load_torchscript, onnx_unavailable_reason, ort_session
 from pipeline.runtime.device import BF16_FLAGS, cpu_supports_bf16
-from pipeline.deploy.engine_table import ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES, EngineSpec  # noqa: F401
+from pipeline.engine_table import ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES, EngineSpec  # noqa: F401
 from pipeline.model import mask_path_model
 
 

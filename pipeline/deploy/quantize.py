@@ -20,7 +20,7 @@ from pipeline.artifacts.store import open_artifact, read_chunk_rows
 from pipeline.datasets.loading import resize_image
 from pipeline.deploy import openvino_engine
 from pipeline.deploy.mask_path import ONNX_INPUT, mask_path_model, ort_session, torch_logits
-from pipeline.runtime.environment import cpu
+from pipeline.artifacts.provenance import cpu
 from pipeline.runtime.errors import InputError
 from pipeline.evaluation.inference import images_to_tensor
 from pipeline.metrics import image_ious

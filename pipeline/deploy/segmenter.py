@@ -17,7 +17,7 @@ from pipeline.deploy.engines import ENGINES, Source
 from pipeline.deploy.mask_path import onnx_unavailable_reason
 from pipeline.runtime.errors import CHECKPOINT, ArtifactError, InputError
 from pipeline.evaluation.inference import images_to_tensor, load_student
-from pipeline.deploy.engine_table import AUTO, ENGINE_CHOICES, MODEL_ENGINES, engine_name
+from pipeline.engine_table import AUTO, ENGINE_CHOICES, MODEL_ENGINES, engine_name
 from pipeline.params import PAPER
 from pipeline.thresholds import mask_from_probs, resolve_resolution, resolve_tau, tau_candidates
 

@@ -11,7 +11,7 @@ from pipeline.datasets.loading import BadFileError, check_bit_depth, pixel_limit
 from pipeline.datasets.manifest import BadInputPolicy
 from pipeline.datasets.scan import scan_inputs
 from pipeline.runtime.device import resolve_device
-from pipeline.deploy.engine_table import AUTO
+from pipeline.engine_table import AUTO
 from pipeline.runtime.errors import CHECKPOINT, InputError
 from pipeline.artifacts.ownership import claim_outputs
 from pipeline.thresholds import MIN_RESOLUTION, RESOLUTION_LABELS, resolve_resolution
