@@ -3,21 +3,21 @@ student checkpoints, each built once per module (or once per session) for every 
 
 The rule of this folder: **no test module imports another test module** (``test_*.py``; a test module
 imported by another would be collected twice and share its fixtures by import, which pyflakes reports as
-redefinitions).  What several modules share lives here (fixtures) or in a helper module ``tests/_*.py``
+redefinitions).  What several modules share lives here (fixtures) or in a builder module under ``tests/builders/``
 (plain functions and constants), imported as ``tests._name``:
 
-- ``tests/_tiny_train.py``  -- the training tests' tiny artifacts and helpers (``build_tiny_artifacts``,
+- ``tests/builders/training.py``  -- the training tests' tiny artifacts and helpers (``build_tiny_artifacts``,
   ``tiny_cfg``, ``load_arrays``, the train-stage subprocess);
-- ``tests/_tiny_eval.py``   -- the result stages' tiny artifacts with random checkpoints, their params
+- ``tests/builders/evaluation.py``   -- the result stages' tiny artifacts with random checkpoints, their params
   and command runner;
-- ``tests/_tiny_deploy.py`` -- a tiny random student, its checkpoint, thresholds, artifacts, export;
-- ``tests/_tiny_teacher.py`` -- the teacher stage's tiny artifacts and runner, a folder of images and the
+- ``tests/builders/deploy.py`` -- a tiny random student, its checkpoint, thresholds, artifacts, export;
+- ``tests/builders/teacher.py`` -- the teacher stage's tiny artifacts and runner, a folder of images and the
   ``geodistill`` command runner.
 
-- ``tests/_tiny_lane.py``  -- the second lane: the long subprocess-only runs (the tiny demo DAG, the two
+- ``tests/builders/lane.py``  -- the second lane: the long subprocess-only runs (the tiny demo DAG, the two
   ``distill`` runs, the benchmark scripts) started in the background when the session starts.
 
-Helper modules import no test module either; tests/test_test_layout.py checks both.  The fixtures
+Helper modules import no test module either; tests/house/test_test_layout.py checks both.  The fixtures
 import their helpers when first used, so that a run of a light test module does not load them.
 
 **The lane** (wall time on CI's two cores): a test that checks a long run asks for a fixture that
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import pytest
 
-#: the fixtures that wait for a run on the lane (tests/_tiny_lane.py), and the run's key
+#: the fixtures that wait for a run on the lane (tests/builders/lane.py), and the run's key
 LANE_FIXTURES = {"tiny_demo": "tiny_demo", "distill_without_masks": "distill_nomasks",
                  "distill_with_masks": "distill_masks", "bench_teacher_ray": "bench:bench_teacher_ray"}
 
@@ -60,8 +60,8 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture(scope="session")
 def lane():
-    """The second lane (tests/_tiny_lane.py); its runs are killed when the session ends."""
-    from tests._tiny_lane import Lane
+    """The second lane (tests/builders/lane.py); its runs are killed when the session ends."""
+    from tests.builders.lane import Lane
 
     lane = Lane()
     yield lane
@@ -116,14 +116,14 @@ def _lane_prefetch(request):
 @pytest.fixture(scope="session")
 def tiny_demo(request) -> tuple[Path, dict, str]:
     """(repo, env, stdout of the first ``dvc repro``) of the tiny demo DAG run in a copy of the repository
-    (tests._tiny_lane.tiny_demo_run), on the lane."""
+    (tests.builders.lane.tiny_demo_run), on the lane."""
     return _lane_result(request, "tiny_demo")
 
 
 @pytest.fixture(scope="session")
 def distill_folder(tmp_path_factory) -> tuple[Path, Path]:
     """The distill tests' folder of 20 images and a folder of 8 of their masks (4 validation, 4 test)."""
-    from tests._tiny_teacher import make_image_folder
+    from tests.builders.teacher import make_image_folder
 
     images, masks = make_image_folder(tmp_path_factory.mktemp("data"))
     val = masks.parent / "val_masks"
@@ -148,7 +148,7 @@ def distill_with_masks(request):
 @pytest.fixture
 def bench_script(request):
     """(name, finished process) of the benchmark script case ``request.param`` (indirect
-    parametrization; tests._tiny_lane.BENCH_CASES), on the lane."""
+    parametrization; tests.builders.lane.BENCH_CASES), on the lane."""
     return request.param, _lane_result(request, f"bench:{request.param}")
 
 
@@ -160,8 +160,8 @@ def bench_teacher_ray(request):
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> Path:
-    """The training tests' tiny artifacts (tests/_tiny_train.py), built once per module."""
-    from tests._tiny_train import build_tiny_artifacts
+    """The training tests' tiny artifacts (tests/builders/training.py), built once per module."""
+    from tests.builders.training import build_tiny_artifacts
 
     return build_tiny_artifacts(tmp_path_factory.mktemp("tiny") / "artifacts")
 
@@ -172,7 +172,7 @@ def stage1_state(tiny) -> dict:
     of the Stage-II methods."""
     from pipeline.training import loop as training
     from pipeline.methods import get_method
-    from tests._tiny_train import load_arrays, tiny_cfg
+    from tests.builders.training import load_arrays, tiny_cfg
 
     cfg = tiny_cfg(epochs_stage1=1)
     data, val = load_arrays(tiny, "plain", cfg)
@@ -200,7 +200,7 @@ def ckpts(tmp_path_factory) -> dict[str, Path]:
 
     from pipeline.artifacts.lineage import make_meta
     from pipeline.evaluation.inference import save_checkpoint
-    from tests._tiny_deploy import RES, tiny_model
+    from tests.builders.deploy import RES, tiny_model
 
     root = tmp_path_factory.mktemp("ckpts")
     log = pd.DataFrame({"epoch": [1], "stage": [1], "loss": [0.1], "val_iou": [0.5], "val_bf1": [0.5],

@@ -21,7 +21,7 @@ from pipeline.artifacts.schemas import get_schema
 from pipeline.runtime.errors import ArtifactError, InputError
 
 #: the program's name (the console script), also the namespace of the artifacts' metadata.  It equals the
-#: proposed method's name by coincidence: tests/test_method_table.py exempts exactly this assignment.
+#: proposed method's name by coincidence: tests/core/test_method_table.py exempts exactly this assignment.
 PROGRAM = "geodistill"
 _LIBS = ("numpy", "scipy", "torch", "zarr", "pyarrow", "scikit-image", "opencv-python-headless")
 

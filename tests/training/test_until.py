@@ -1,0 +1,103 @@
+"""Stage I that stops at the plateau or a step budget (train.until: plateau; issue 43 item 2)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from pipeline.training import loop as training
+from pipeline.methods import get_method
+from tests.builders.training import assert_same_state, clone_state, load_arrays, tiny_cfg
+
+
+def test_plateau_rule_is_a_doubling_that_gains_too_little():
+    rising = [0.1 * i for i in range(1, 9)]
+    assert not training.plateau_reached(rising, 0.005, 4)
+    flat = [0.5, 0.6, 0.62, 0.62, 0.621, 0.622, 0.623, 0.624]  # best of 5..8 vs best of 1..4: +0.004
+    assert training.plateau_reached(flat, 0.005, 4) and not training.plateau_reached(flat, 0.003, 4)
+    assert not training.plateau_reached(flat[:3], 0.005, 4)  # too early to tell
+    assert not training.plateau_reached([float("nan")] * 8, 0.005, 4)  # nothing scored: no stop
+
+
+def test_stable_cap_fits_the_decay_into_the_budget():
+    s = training.Settings.from_params(get_method("plain"), tiny_cfg(epochs_stage1=100, step_budget=500, until="plateau",
+                                                                      decay_fraction=0.2), 0.5)
+    assert training.stable_cap(s, 10) == 40 and training.decay_epochs(40, 0.2) == 10  # 50 epochs = 500 steps
+    assert training.stable_cap(dataclasses.replace(s, step_budget=0), 10) == 80  # the epochs cap alone: 80 + 20
+
+
+def _run(tiny, checkpointer=None, val=True, **over):
+    cfg = tiny_cfg(**{"until": "plateau", "epochs_stage1": 40, "warmup_epochs": 1, "average_last": 1,
+                      "schedule": "wsd", **over})
+    data, v = load_arrays(tiny, "plain", cfg)
+    return training.train(get_method("plain"), cfg, data, v if val else None, 5,
+                          checkpointer=checkpointer or training.NoCheckpointer(), show_progress=False)
+
+
+def test_stops_at_the_plateau_then_decays(tiny):
+    res = _run(tiny, plateau_min_epochs=2, plateau_gain=1.0)  # any doubling gains less than 1.0
+    assert res.info["stable_epochs"] == 2 and res.info["stopped"].startswith("plateau")
+    assert res.info["epochs"] == 3 and res.info["steps_run"] == 3 * 2  # 8 images, batch 4
+    assert len(res.log) == 3
+    from types import SimpleNamespace
+
+    run = SimpleNamespace(steps_per_epoch=2, settings=SimpleNamespace(warmup_epochs=1),
+                          until={"stable_end": None, "epochs": 40})
+    factor = training._until_lambda(run)
+    assert [factor(i) for i in (0, 1, 5)] == [0.5, 1.0, 1.0]  # warm-up, then the stable rate
+    run.until.update(stable_end=2, epochs=3)  # stopped after epoch 2: one decay epoch, linear to 0
+    assert [factor(i) for i in (3, 4, 5, 6)] == [1.0, 1.0, 0.5, 0.0]
+
+
+def test_a_budget_stops_it_and_a_larger_one_continues_the_saved_run(tiny):
+    ckpt = training.MemoryCheckpointer()
+    short = _run(tiny, ckpt, plateau_gain=-1.0, step_budget=8)  # never a plateau: the budget binds
+    assert short.info["stopped"].startswith("the step budget") and short.info["steps_run"] == 8
+    assert short.info["stable_epochs"] == 3
+    again = _run(tiny, ckpt, plateau_gain=-1.0, step_budget=8)  # a rerun: the finished state, no training
+    assert_same_state(clone_state(again.model), clone_state(short.model))
+    longer = _run(tiny, ckpt, plateau_gain=-1.0, step_budget=16)  # continues the stable phase from epoch 3
+    fresh = _run(tiny, None, plateau_gain=-1.0, step_budget=16)
+    assert longer.info["steps_run"] == fresh.info["steps_run"] == 16 and longer.info["stable_epochs"] == 6
+    assert_same_state(clone_state(longer.model), clone_state(fresh.model))
+    assert not all(torch.equal(a, b) for a, b in zip(longer.model.state_dict().values(),
+                                                      short.model.state_dict().values()))
+
+
+def test_without_validation_masks_it_scores_held_out_pseudo_labels(tiny):
+    cfg = tiny_cfg(until="plateau")
+    data, _ = load_arrays(tiny, "plain", cfg)
+    rest, val = training.holdout(data, 0.25)
+    assert len(val) == 2 and len(rest) == len(data) - 2
+    assert not set(val.image_ids) & {f"holdout:{i}" for i in rest.image_ids}
+    assert val.masks.dtype == bool and "against their vote" in rest.stats["plateau_scored_on"]
+    res = _run(tiny, val=False, plateau_min_epochs=2, plateau_gain=1.0)
+    assert res.info["stopped"].startswith("plateau") and "against their vote" in res.info["plateau_scored_on"]
+    assert res.log["val_iou"].isna().all()  # the held-out pseudo-labels are no validation set
+    never = _run(tiny, val=False, plateau_min_epochs=2, plateau_gain=-1.0, step_budget=8)
+    assert never.info["stopped"].startswith("the step budget")  # a rule that never fires: the budget stops it
+
+
+def test_the_paper_recipe_keeps_its_fixed_length(tiny):
+    cfg = tiny_cfg()
+    assert cfg["until"] == "epochs"
+    data, val = load_arrays(tiny, "plain", cfg)
+    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
+                         show_progress=False)
+    assert "stopped" not in res.info and res.info["epochs"] == cfg["epochs_stage1"]
+
+
+@pytest.mark.parametrize("value", ["sometimes", 3])
+def test_until_is_checked(value):
+    from pipeline.runtime.errors import InputError
+    from pipeline.profiles import load_profile
+
+    with pytest.raises(InputError, match="train.until"):
+        load_profile("paper", [f"train.until={value}"])
+
+
+def test_the_epochs_cap_holds_without_room_for_a_decay(tiny):
+    res = _run(tiny, epochs_stage1=1)
+    assert res.info["epochs"] == 1 and res.info["steps_run"] == 2 and len(res.log) == 1
