@@ -11,7 +11,7 @@ from typing import Mapping
 
 from pipeline.engine_table import engines_reading
 from pipeline.params import DEFAULT_PARAMS as PARAMS_FILE
-from pipeline.params import get_path
+from pipeline.params import Params, get_path
 
 ARTIFACTS_DIR = "artifacts"
 
@@ -34,8 +34,7 @@ def path(name: str, root: str | Path = ARTIFACTS_DIR, **fmt) -> Path:
 
 def dvc_path(name: str, **fmt) -> str:
     """The path as dvc.yaml spells it (DVC templates stay templates)."""
-    p = path(name, ARTIFACTS_DIR, **fmt)
-    return p.as_posix()
+    return path(name, ARTIFACTS_DIR, **fmt).as_posix()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,8 +50,8 @@ class BundleFile:
 
 DEPLOY_BUNDLE: dict[str, BundleFile] = {f.key: f for f in [
     BundleFile("weights", WEIGHTS_FILE, "pipeline.artifacts.weights.write_weights",
-               "mask-path tensors (a checkpoint's format: pipeline.evaluation.inference.load_student opens a bundle too; "
-               f"bundles of older versions hold {LEGACY_WEIGHTS_FILE} instead, still read)"),
+               "mask-path tensors (a checkpoint's format: pipeline.evaluation.inference.load_student opens a "
+               f"bundle too; bundles of older versions hold {LEGACY_WEIGHTS_FILE} instead, still read)"),
     BundleFile("weights_config", WEIGHTS_CONFIG_FILE, "pipeline.artifacts.weights.write_weights",
                "model config, method, seed, tau, resolution"),
     BundleFile("torchscript", "model.ts", "pipeline.deploy.mask_path.export_torchscript",
@@ -100,64 +99,54 @@ class OutputFile:
     description: str = ""
 
 
-def _files(*files: OutputFile) -> dict[str, OutputFile]:
-    return {f.key: f for f in files}
+def _files(written_by: str, *rows: tuple[str, ...]) -> dict[str, OutputFile]:
+    """The files of one output folder, all written by ``written_by``: rows of (key, name[, description])."""
+    return {key: OutputFile(key, name, written_by, *desc) for key, name, *desc in rows}
 
 
-_LABEL, _REVIEW, _SEGMENT = "pipeline.labeling.writing", "pipeline.review.export", "pipeline.deploy.files"
 #: one row per input left out, with the reason (label and segment)
 SKIPPED_FILE = "skipped.csv"
 
 #: the files and folders of each output folder, keyed by an artifact's name or a command's
 OUTPUT_FILES: dict[str, dict[str, OutputFile]] = {
     "synthetic_files": _files(
-        OutputFile("readme", "README.txt", "pipeline.datasets.build", "why no synthetic files were generated")),
+        "pipeline.datasets.build", ("readme", "README.txt", "why no synthetic files were generated")),
     "report": _files(
-        OutputFile("markdown", "report.md", "stages.report"),
-        OutputFile("html", "report.html", "stages.report", "self-contained (figures inlined)"),
-        OutputFile("environment", "environment.json", "stages.report", "host, libraries and the runs' records"),
-        OutputFile("figures", "figures", "stages.report", "the figures below, PNG and SVG"),
-        OutputFile("plots", "plots", "stages.report", "the figures' data as CSV: <name>.csv")),
-    "report_figures": _files(*(OutputFile(k, f"{k}.png", "pipeline.report.build") for k in (
+        "stages.report", ("markdown", "report.md"), ("html", "report.html", "self-contained (figures inlined)"),
+        ("environment", "environment.json", "host, libraries and the runs' records"),
+        ("figures", "figures", "the figures below, PNG and SVG"),
+        ("plots", "plots", "the figures' data as CSV: <name>.csv")),
+    "report_figures": _files("pipeline.report.build", *((k, f"{k}.png") for k in (
         "threshold_curves", "reliability", "area_vs_tau", "training_curves_calibrated", "training_curves",
         "qualitative", "student_vs_pseudo_labels", "gate_distribution", "training_loss", "pseudo_targets"))),
     "run_logs": _files(
-        OutputFile("timeline", "timeline.json", "pipeline.cluster.driver", "each stage's start, end and status"),
-        OutputFile("stage_log", "{stage}.log", "pipeline.cluster.driver", "a stage's stdout and stderr")),
+        "pipeline.cluster.driver", ("timeline", "timeline.json", "each stage's start, end and status"),
+        ("stage_log", "{stage}.log", "a stage's stdout and stderr")),
     "project": _files(  # a standalone project (geodistill distill)
-        OutputFile("params", PARAMS_FILE, "pipeline.orchestration.standalone.write_project"),
-        OutputFile("dvc", DVC_FILE, "pipeline.orchestration.standalone.write_project"),
-        OutputFile("protocol", "folder_protocol.yaml", "pipeline.orchestration.standalone.write_project", "the input folder's split"),
-        OutputFile("record", "distill.json", "pipeline.orchestration.standalone.write_project", "distill's record (pipeline.artifacts.ownership)")),
+        "pipeline.orchestration.standalone.write_project", ("params", PARAMS_FILE), ("dvc", DVC_FILE),
+        ("protocol", "folder_protocol.yaml", "the input folder's split"),
+        ("record", "distill.json", "distill's record (pipeline.artifacts.ownership)")),
     "label": _files(
-        OutputFile("masks", "masks", _LABEL, "masks/<image_id>.png"),
-        OutputFile("coco", "coco.json", _LABEL),
-        OutputFile("yolo", "yolo", _LABEL, "the YOLO dataset (label_yolo)"),
-        OutputFile("table", "labels.parquet", _LABEL, "one row per image: the gate inputs and the gate"),
-        OutputFile("csv", "labels.csv", _LABEL, "the table as CSV"),
-        OutputFile("sheet", "contact_sheet.png", _LABEL),
-        OutputFile("record", "label.json", _LABEL, "label's record (pipeline.artifacts.ownership)"),
-        OutputFile("skipped", SKIPPED_FILE, _LABEL)),
+        "pipeline.labeling.writing", ("masks", "masks", "masks/<image_id>.png"), ("coco", "coco.json"),
+        ("yolo", "yolo", "the YOLO dataset (label_yolo)"),
+        ("table", "labels.parquet", "one row per image: the gate inputs and the gate"),
+        ("csv", "labels.csv", "the table as CSV"), ("sheet", "contact_sheet.png"),
+        ("record", "label.json", "label's record (pipeline.artifacts.ownership)"), ("skipped", SKIPPED_FILE)),
     "label_yolo": _files(
-        OutputFile("train", "train.txt", _LABEL, "training image list"),
-        OutputFile("val", "val.txt", _LABEL, "validation image list (2 images or more)"),
-        OutputFile("data", "data.yaml", _LABEL),
-        OutputFile("readme", "README.txt", _LABEL)),
+        "pipeline.labeling.writing", ("train", "train.txt", "training image list"),
+        ("val", "val.txt", "validation image list (2 images or more)"), ("data", "data.yaml"),
+        ("readme", "README.txt")),
     "review": _files(
-        OutputFile("record", "review.json", _REVIEW, "review export's record (pipeline.artifacts.ownership)"),
-        OutputFile("csv", "ranked.csv", _REVIEW),
-        OutputFile("labelstudio", "labelstudio", _REVIEW),
-        OutputFile("cvat", "cvat", _REVIEW),
-        OutputFile("ls_tasks", "tasks.json", _REVIEW, "in labelstudio/"),
-        OutputFile("ls_config", "label_config.xml", _REVIEW, "in labelstudio/"),
-        OutputFile("cvat_coco", "instances_default.json", _REVIEW, "in cvat/")),
+        "pipeline.review.export", ("record", "review.json", "review export's record (pipeline.artifacts.ownership)"),
+        ("csv", "ranked.csv"), ("labelstudio", "labelstudio"), ("cvat", "cvat"),
+        ("ls_tasks", "tasks.json", "in labelstudio/"), ("ls_config", "label_config.xml", "in labelstudio/"),
+        ("cvat_coco", "instances_default.json", "in cvat/")),
     "segment": _files(  # <out>/<the input's relative path without its suffix><suffix> per image
-        OutputFile("mask", ".mask.png", _SEGMENT, "suffix of each input's mask"),
-        OutputFile("prob", ".prob.png", _SEGMENT, "suffix of each input's probability map (--save-prob)"),
-        OutputFile("overlay", ".overlay.png", _SEGMENT, "suffix of each input's overlay (--overlay)"),
-        OutputFile("skipped", SKIPPED_FILE, _SEGMENT),
-        OutputFile("confidence", "confidence.csv", _SEGMENT, "one row per mask: its path and the frame's confidence"),
-        OutputFile("record", "segment.json", _SEGMENT, "segment's record (pipeline.artifacts.ownership)")),
+        "pipeline.deploy.files", ("mask", ".mask.png", "suffix of each input's mask"),
+        ("prob", ".prob.png", "suffix of each input's probability map (--save-prob)"),
+        ("overlay", ".overlay.png", "suffix of each input's overlay (--overlay)"), ("skipped", SKIPPED_FILE),
+        ("confidence", "confidence.csv", "one row per mask: its path and the frame's confidence"),
+        ("record", "segment.json", "segment's record (pipeline.artifacts.ownership)")),
 }
 
 
@@ -206,11 +195,8 @@ class ArtifactSpec:
 
 
 _a = ArtifactSpec
-
-
 #: a model's weights: safetensors, or the torch pickle of older runs (pipeline.artifacts.weights)
 _WEIGHTS = f"{WEIGHTS_FILE}|{LEGACY_WEIGHTS_FILE}"
-
 
 ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
     _a("manifest", "manifest.parquet", _table(
@@ -257,7 +243,8 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
         "dataset", "group", "method", "threshold_mode", "n_seeds", "n_images", "iou_mean", "iou_std", "bf1_mean",
         "bf1_std"), "evaluate"),
     _a("metrics_students", "../reports/metrics/students", None, "evaluate",
-       "DVC metrics (git-tracked): <group>/<method>.json = iou, bf1 at the calibrated tau (pipeline.report.dvc_results)"),
+       "DVC metrics (git-tracked): <group>/<method>.json = iou, bf1 at the calibrated tau "
+       "(pipeline.report.dvc_results)"),
     _a("plot_training_curves", "../reports/plots/training_curves.csv", None, "evaluate",
        "DVC plot (git-tracked): method, seed, epoch, val_iou, ... of every run's training log"),
     _a("plot_threshold_curves", "../reports/plots/threshold_curves.csv", None, "evaluate",
@@ -308,43 +295,40 @@ class StageSpec:
     exclusive: bool = False  # it measures wall time: `geodistill run` runs it with nothing beside it
 
 
-def _keys(section: str, *names: str) -> tuple[str, ...]:
+def _keys(section: str, *names: str, but: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """The dotted keys of ``names`` in params ``section``; none named: of all its fields but ``but``."""
+    names = names or tuple(k for k in Params.model_fields[section].annotation.model_fields if k not in but)
     return tuple(f"{section}.{n}" for n in names)
 
 
 STAGES: dict[str, StageSpec] = {s.name: s for s in [
     StageSpec("prepare", "stages.prepare", "--out-dir {artifacts_dir}", (),
               ("manifest", "images", "reference", "skipped_files", "contact_sheet", "synthetic_files"),
-              _keys("data", "source", "root", "protocol", "domain", "resolution", "seed", "skip_bad",
-                    "max_pixels", "bit_depth", "letterbox", "synthetic", "contact_sheet_images"),
+              _keys("data", but=("cache_dir",)),
               data_deps=("data_manifests",)),
     StageSpec("teacher", "stages.teacher",
               "--manifest {manifest} --images {images} --reference {reference} --out {teacher} "
               "--scores {teacher_scores}",
               ("manifest", "images", "reference"), ("teacher", "teacher_scores"),
-              _keys("teacher", "backend", "prompts", "base_prompt_index", "vflip_base_prompt", "splits",
-                    "checkpoint", "imported_dir", "dtype", "score_threshold", "mask_threshold", "seed")),
+              _keys("teacher", but=("batch_size", "compile", "cache_dir"))),  # speed and cache only
     StageSpec("consensus", "stages.consensus", "--teacher {teacher} --out {consensus}",
               ("teacher",), ("consensus",), _keys("consensus", "vote_threshold")),
     StageSpec("geometry", "stages.geometry",
               "--consensus {consensus} --manifest {manifest} --out {geometry} --gates {gates}",
               ("consensus", "manifest"), ("geometry", "gates"),
-              _keys("geometry", "sdf_quantile", "sdf_min_scale", "skeleton_min_distance", "n_prompts",
-                    "conf_offset", "valid_offset", "area_temperature", "area_floor", "eps")),
+              _keys("geometry")),
     # train_<method>: rendered per method (pipeline.orchestration.dag.train_stage)
     StageSpec("calibrate", "stages.calibrate",
               "--artifacts {artifacts_dir} --checkpoints {checkpoints} --out {thresholds}",
               ("manifest", "images", "reference", "checkpoints"), ("thresholds",),
-              _keys("calibrate", "tau_rule", "plateau_tolerance", "smooth_halfwidth", "grid_start", "grid_stop",
-                    "grid_step", "fixed_tau", "reliability_bins") + ("train.recipe",)),
+              _keys("calibrate") + ("train.recipe",)),
     StageSpec("evaluate", "stages.evaluate",
               "--artifacts {artifacts_dir} --checkpoints {checkpoints} --thresholds {thresholds} "
               "--out {metrics} --summary {summary} --metrics-dir {metrics_students} "
               "--training-curves {plot_training_curves} --threshold-curves {plot_threshold_curves}",
               ("manifest", "images", "reference", "checkpoints", "thresholds"),
               ("metrics", "summary", "plot_training_curves", "plot_threshold_curves"),
-              _keys("evaluate", "bf1_tolerance", "small_region_max_fraction", "tiny_target_max_fraction",
-                    "bootstrap_resamples", "bootstrap_seed", "ci", "interval"), metrics=("metrics_students",)),
+              _keys("evaluate"), metrics=("metrics_students",)),
     StageSpec("analyze_teacher", "stages.analyze_teacher",
               "--artifacts {artifacts_dir} --out {teacher_metrics} --metrics-dir {metrics_teacher}",
               ("manifest", "reference", "teacher", "consensus", "gates"), ("teacher_metrics",),

@@ -86,21 +86,20 @@ METHODS: dict[str, Method] = {m.name: m for m in [
     Method("afs_control", 1, "scratch", ("epochs_stage1",), "lr_stage1", data="afs", uses=("afs",),
            description="annotation-free-style control: base prompt, image+vflip fused, score filter",
            label="Annotation-Free-style Control", table_order=30, color="#9467bd", symbol="^"),
-    Method("geodistill", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=_FULL, select="stage2",
-           description="Stage I -> gated SDF + skeleton + area refinement (eq:refine-loss)",
-           label="GeoDistill-Refine", role="proposed", ablation_tables=("warm_start", "component"),
-           table_order=120, color="#d62728", symbol="D"),
+    Method("geodistill", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=_FULL, select="stage2", role="proposed",
+           description="Stage I -> gated SDF + skeleton + area refinement (eq:refine-loss)", label="GeoDistill-Refine",
+           ablation_tables=("warm_start", "component"), table_order=120, color="#d62728", symbol="D"),
     Method("gabi", 2, "scratch", ("gabi.epochs",), "lr_stage1", terms=("region", "dist", "boundary"), uses=("gabi",),
            description="GABI-inspired: joint from scratch, ungated distance regression + boundary BCE",
            label="GABI-inspired Pseudo-Geometry", table_order=40, color="#8c564b", symbol="P"),
-    Method("full_scratch_10", 2, "scratch", ("epochs_stage2",), "lr_stage1", terms=_FULL,
+    Method("full_scratch_10", 2, "scratch", ("epochs_stage2",), "lr_stage1", terms=_FULL, role="ablation",
            description="ablation: full gated geometry from scratch, 10 epochs",
-           label="Full geometry, from scratch (10)", role="ablation", ablation_tables=("warm_start",),
-           table_order=50, color="#bcbd22", dash="dashed", symbol="<"),
+           label="Full geometry, from scratch (10)", ablation_tables=("warm_start",), table_order=50,
+           color="#bcbd22", dash="dashed", symbol="<"),
     Method("full_scratch_30", 2, "scratch", ("epochs_stage1", "epochs_stage2"), "lr_stage1", terms=_FULL,
-           description="ablation: full gated geometry from scratch, 30 epochs",
-           label="Full geometry, from scratch (30)", role="ablation", ablation_tables=("warm_start",),
-           table_order=60, color="#17becf", dash="dashed", symbol=">"),
+           role="ablation", description="ablation: full gated geometry from scratch, 30 epochs",
+           label="Full geometry, from scratch (30)", ablation_tables=("warm_start",), table_order=60,
+           color="#17becf", dash="dashed", symbol=">"),
     Method("sdf_scratch", 2, "scratch", ("epochs_stage2",), "lr_stage1", terms=("region", "sdf"),
            description="ablation: L_raw + gated SDF from scratch", label="SDF only, from scratch", role="ablation",
            ablation_tables=("warm_start",), table_order=70, color="#000080", dash="dashed", symbol="x"),
@@ -109,25 +108,21 @@ METHODS: dict[str, Method] = {m.name: m for m in [
            ablation_tables=("warm_start", "component"), table_order=80, color="#008080", dash="dashed", symbol="+"),
     Method("sdf_skel_gated", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=("region", "sdf", "skel"),
            select="stage2", description="ablation: Stage I -> gated SDF + skeleton", label="Gated SDF + skeleton",
-           role="ablation", ablation_tables=("component",), table_order=90, color="#800000", dash="dashed",
-           symbol="*"),
+           role="ablation", ablation_tables=("component",), table_order=90, color="#800000", dash="dashed", symbol="*"),
     Method("sdf_area_gated", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=("region", "sdf", "area"),
            select="stage2", description="ablation: Stage I -> gated SDF + area", label="Gated SDF + area",
            role="ablation", ablation_tables=("component",), table_order=100, color="#f032e6", dash="dashed",
            symbol="h"),
     Method("no_gate", 2, "stage1", ("epochs_stage2",), "lr_stage2", terms=_FULL, gate="one", select="stage2",
-           description="ablation: full refinement with g = 1", label="SDF + skeleton + area, no gate",
-           role="ablation", ablation_tables=("component",), table_order=110, color="#6464ff", dash="dashed",
-           symbol="X"),
+           description="ablation: full refinement with g = 1", label="SDF + skeleton + area, no gate", role="ablation",
+           ablation_tables=("component",), table_order=110, color="#6464ff", dash="dashed", symbol="X"),
     Method("geodistill_adaptive", 2, "stage1", ("epochs_stage2",), "lr_stage2",
            terms=("region", "anchor", "sdf", "skel", "area"), adaptive=True, uses=("confidence", "adaptive"),
-           description="quality-adaptive external mode (switch on the pass ratio r)",
-           label="GeoDistill-Refine (quality-adaptive)", role="external", table_order=130, color="#e377c2",
-           symbol="d"),
-    Method("continuation", 2, "stage1", ("epochs_stage2",), "lr_stage2", select="stage2",
+           description="quality-adaptive external mode (switch on the pass ratio r)", role="external",
+           label="GeoDistill-Refine (quality-adaptive)", table_order=130, color="#e377c2", symbol="d"),
+    Method("continuation", 2, "stage1", ("epochs_stage2",), "lr_stage2", select="stage2", role="control",
            description="control: Stage I -> Stage II's schedule, epochs and selection with L_raw only "
-                       "(budget-matched, no geometry)",
-           label="Budget-matched continuation (Stage II, L_raw only)", role="control",
+                       "(budget-matched, no geometry)", label="Budget-matched continuation (Stage II, L_raw only)",
            reference_for="warm_started", table_order=140, color="#ff7f0e", dash="dashdot", symbol="s"),
     Method("supervised_ceiling", 1, "scratch", ("epochs_stage1",), "lr_stage1", data="reference",
            description="NOT annotation-free: the Plain Student's recipe on the training split's REFERENCE masks",
@@ -285,12 +280,8 @@ SELECTION_TAU_KEY = "calibrate.fixed_tau"
 
 def param_keys(method: Method) -> tuple[str, ...]:
     """The dotted params keys a run of ``method`` reads: what DVC tracks for its stage and its fingerprint holds."""
-    keys = list(COMMON_KEYS) + list(method.epochs) + [method.lr]
-    for t in method.terms:
-        keys += TERM_KEYS[t]
-    if method.select == "stage2":
-        keys.append("stage2_select")
-    keys += list(method.uses)
+    keys = [*COMMON_KEYS, *method.epochs, method.lr, *(k for t in method.terms for k in TERM_KEYS[t]),
+            *(["stage2_select"] if method.select == "stage2" else []), *method.uses]
     # a whole sub-section (``uses``) covers its own keys
     keys = [k for k in dict.fromkeys(keys) if not any(k.startswith(u + ".") for u in method.uses)]
     return tuple(f"train.{k}" for k in keys) + (SELECTION_TAU_KEY,)
@@ -335,16 +326,12 @@ def confidence_pass(agreement: np.ndarray, n_valid: np.ndarray, mean_score: np.n
                     criterion: str, threshold: float, min_valid: int) -> np.ndarray:
     """bool [N]: at least ``min_valid`` valid prompts and a confidence >= ``threshold``, the confidence being
     c_i (eq:foreground-agreement, ``agreement``) or the mean valid-prompt score (``mean_score``)."""
-    n_valid = np.asarray(n_valid)
-    if criterion == "agreement":
-        conf = np.asarray(agreement, dtype=np.float64)
-    elif criterion == "mean_score":
-        if mean_score is None:
-            raise ValueError("criterion 'mean_score' needs mean_score")
-        conf = np.asarray(mean_score, dtype=np.float64)
-    else:
+    if criterion not in ("agreement", "mean_score"):
         raise InputError(f"params: train.confidence.criterion={criterion!r}: expected agreement or mean_score")
-    return (n_valid >= int(min_valid)) & (conf >= float(threshold))
+    if criterion == "mean_score" and mean_score is None:
+        raise ValueError("criterion 'mean_score' needs mean_score")
+    conf = np.asarray(agreement if criterion == "agreement" else mean_score, dtype=np.float64)
+    return (np.asarray(n_valid) >= int(min_valid)) & (conf >= float(threshold))
 
 
 def pass_ratio(passed: np.ndarray) -> float:
@@ -360,13 +347,10 @@ def adaptive_mode(r: float, boundary: float = 0.5) -> str:
 
 def afs_fuse(mask_image: np.ndarray, mask_vflip: np.ndarray, fusion: str = "intersection") -> np.ndarray:
     """The base-prompt masks of the image and of its vertical flip (flipped back), fused."""
-    a = np.asarray(mask_image, dtype=bool)
-    b = np.asarray(mask_vflip, dtype=bool)
-    if fusion == "intersection":
-        return a & b
-    if fusion == "union":
-        return a | b
-    raise InputError(f"params: train.afs.fusion={fusion!r}: expected intersection or union")
+    fuse = {"intersection": np.logical_and, "union": np.logical_or}.get(fusion)
+    if fuse is None:
+        raise InputError(f"params: train.afs.fusion={fusion!r}: expected intersection or union")
+    return fuse(np.asarray(mask_image, dtype=bool), np.asarray(mask_vflip, dtype=bool))
 
 
 def afs_keep(score: np.ndarray, threshold: float = 0.60) -> np.ndarray:

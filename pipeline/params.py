@@ -125,8 +125,7 @@ class DataParams(_Section):
         return self
 
 
-PAPER_PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
-                 "spacecraft with rigid body and appendages",
+PAPER_PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle", "spacecraft with rigid body and appendages",
                  "artificial object in space with panels and antennas"]
 
 
@@ -139,7 +138,8 @@ class TeacherParams(_Section):
     splits: list[Literal[SPLITS]] = _f(list(SPLITS), min_length=1)
     checkpoint: str | None = _f(None, "sam3: local SAM 3 directory (save_pretrained layout)")
     imported_dir: str | None = _f(None, "imported: directory in the documented layout")
-    dtype: Literal["auto", "fp32", "bf16"] = _f("auto", "sam3: auto = bf16 on CUDA (fp32+TF32 without bf16), fp32 on CPU")
+    dtype: Literal["auto", "fp32", "bf16"] = _f(
+        "auto", "sam3: auto = bf16 on CUDA (fp32+TF32 without bf16), fp32 on CPU")
     batch_size: int = _f(0, "images per SAM 3 forward; 0 = from free GPU memory (2 on a CPU)", ge=0, le=4096)
     compile: bool = _f(False, "sam3: torch.compile the vision encoder on CUDA (pays after warm-up)")
     score_threshold: float = _f(0.3, "sam3: queries scoring <= this are no candidate", ge=0, le=1)
@@ -291,8 +291,8 @@ class TrainParams(_Section):
     lambda_skel: float = _f(0.001, "eq:refine-loss", ge=0)
     lambda_area: float = _f(0.05, "eq:refine-loss", ge=0)
     stage2_select: Literal["last", "best_val"] = _f("last", "paper: the last Stage-II epoch")
-    recipe: Literal["paper", "stable", "strong", "plateau"] = _f("paper", "training recipe: a bundle of the parts marked "
-                                            "'recipe part' (docs/stability.md); an explicit part value wins")
+    recipe: Literal[tuple(RECIPES)] = _f("paper", "training recipe: a bundle of the parts marked 'recipe part' "
+                                                  "(docs/stability.md); an explicit part value wins")
     precision: Literal["fp32", "bf16", "auto"] | None = _f(
         None, "recipe part: fp32 | bf16 | auto (bf16 autocast where the CPU/GPU supports it: host-dependent)")
     warmup_epochs: int | None = _f(None, "recipe part: linear learning-rate warm-up over this many epochs "
@@ -305,8 +305,7 @@ class TrainParams(_Section):
     soft_targets: bool | None = _f(None, "recipe part: the region target is the agreement map A "
                                          "(eq:agreement-map) instead of the voted mask M^T in eq:raw-loss -- "
                                          "a departure from the paper, named in every table")
-    lr_scale: float | None = _f(None, "recipe part: multiplies train.lr_stage1, Stage I's peak learning rate",
-                                gt=0)
+    lr_scale: float | None = _f(None, "recipe part: multiplies train.lr_stage1, Stage I's peak learning rate", gt=0)
     until: Literal["epochs", "plateau"] | None = _f(
         None, "recipe part, Stage I: epochs = train epochs_stage1 epochs | plateau = stop the stable phase when "
               "the validation IoU stops improving (train.plateau_gain) or the step budget is spent, then decay "
@@ -568,13 +567,11 @@ def parse_override(item: str) -> tuple[list[str], Any]:
 
 
 def set_path(d: dict, keys: list[str], value: Any) -> None:
-    cur = d
     for k in keys[:-1]:
-        nxt = cur.get(k)
-        if not isinstance(nxt, dict):
-            nxt = cur[k] = {}
-        cur = nxt
-    cur[keys[-1]] = value
+        if not isinstance(d.get(k), dict):
+            d[k] = {}
+        d = d[k]
+    d[keys[-1]] = value
 
 
 def get_path(d: Mapping[str, Any], dotted: str) -> Any:
@@ -620,7 +617,7 @@ def load_params(path: str | Path = DEFAULT_PARAMS, overrides: Iterable[str] = ()
 
 def section(params: Mapping[str, Any], name: str) -> dict:
     """One section of validated params (a copy); InputError if absent."""
-    if name not in params or not isinstance(params[name], Mapping):
+    if not isinstance(params.get(name), Mapping):
         raise InputError(f"params: section {name!r} missing")
     return copy.deepcopy(dict(params[name]))
 
