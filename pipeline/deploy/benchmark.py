@@ -78,13 +78,10 @@ class PeakMemory:
         with contextlib.suppress(Exception):  # not glibc: nothing to trim
             ctypes.CDLL("libc.so.6").malloc_trim(0)
         self._base = None
-        try:
-            with open("/proc/self/clear_refs", "w") as f:
-                f.write("5")  # resets VmHWM to the current RSS
+        with contextlib.suppress(OSError), open("/proc/self/clear_refs", "w") as f:
+            f.write("5")  # resets VmHWM to the current RSS
             self._base = _status_kb("VmRSS")
             self.method = "peak RSS growth (VmHWM after - VmRSS before, /proc/self/clear_refs)"
-        except OSError:
-            pass
         return self
 
     def __exit__(self, *exc):
@@ -287,13 +284,6 @@ def throughput_batches(batches: Sequence[int], device: str) -> list[int]:
     return sorted(tried)
 
 
-def _release_after_oom() -> None:
-    """Give the cached blocks of a failed large batch back."""
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
-        torch.cuda.empty_cache()
-
-
 def throughput_sweep(variant: Variant, channels: int, resolution: int, batches: Sequence[int], iters: int,
                      generator) -> Sweep:
     """Images/s of ``variant`` at each of ``batches`` (b / median of max(2, ceil(iters / b)) calls); the first
@@ -308,7 +298,9 @@ def throughput_sweep(variant: Variant, channels: int, resolution: int, batches: 
             if not tps:
                 raise
             del xb
-            _release_after_oom()
+            if torch.cuda.is_available():  # give the cached blocks of the failed batch back
+                torch.cuda.synchronize()
+                torch.cuda.empty_cache()
             oom = b
             break
         tps[b] = b / statistics.median(tb)
@@ -367,12 +359,11 @@ def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, par
 def read_benchmark_data(art: str | Path, n_calib: int):
     """(val images and masks, int8 calibration images as export picks them, opened artifacts); Nones without
     the artifacts.  The reference masks only measure accuracy here."""
-    paths = [catalog.path(name, art) for name in ("manifest", "images", "reference")]
+    names = ("manifest", "images", "reference")
+    paths = [catalog.path(name, art) for name in names]
     if not all(p.exists() for p in paths):
         return None, None, None, []
-    manifest = open_artifact(paths[0], "manifest")
-    images = open_artifact(paths[1], "images")
-    reference = open_artifact(paths[2], "reference")
+    manifest, images, reference = (open_artifact(p, n) for p, n in zip(paths, names))
     splits = manifest.df["split"].to_numpy()
     val = np.flatnonzero((splits == "val") & np.asarray(reference.numpy("has_mask"), bool))
     train = q8.calibration_rows(splits, n_calib)

@@ -35,11 +35,8 @@ CONTRACT_VERSION = 1
 
 
 def file_sha256(path: str | Path) -> str:
-    h = hashlib.sha256()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_source: str, resolution: int,
@@ -97,28 +94,18 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
                    onnx_file=ONNX_FILE if has_onnx else None, int8=int8, int8_note=int8_note)
     files = sorted(p.name for p in tmp.iterdir() if p.is_file())
     info = {
-        "format_version": 1,
-        "method": method, "seed": seed,
-        "tau": float(tau), "tau_source": tau_source,
-        "resolution": int(resolution),
-        "frames": frame_reading(frames),
+        "format_version": 1, "method": method, "seed": seed, "tau": float(tau), "tau_source": tau_source,
+        "resolution": int(resolution), "frames": frame_reading(frames),
         "input": {"name": ONNX_INPUT, "dtype": "float32", "layout": "NCHW", "channels": "RGB",
                   "range": [0.0, 1.0], "size": "any (the model runs at the working resolution; "
                   "resize images to resolution x resolution with area interpolation)"},
         "output": {"name": ONNX_OUTPUT, "meaning": "mask logits Z [B,1,H,W]; mask = sigmoid(Z) >= tau "
                    "<=> Z >= logit(tau) (eq:inference-mask)", "logit_tau": logit_threshold(tau)},
-        "config": dict(deployed.config),
-        "params": count_parameters(deployed),
-        "gflops": count_flops(deployed, resolution, resolution) / 1e9,
-        "opset": int(opset) if has_onnx else None,
+        "config": dict(deployed.config), "params": count_parameters(deployed),
+        "gflops": count_flops(deployed, resolution, resolution) / 1e9, "opset": int(opset) if has_onnx else None,
         "onnx_exporter": "torch.onnx.export(dynamo=False) (TorchScript-based)" if has_onnx else None,
-        "onnx_note": onnx_note,
-        "int8": int8,
-        "int8_note": int8_note,
-        "torch_version": torch.__version__,
-        "parity": parity,
-        "files": {f: file_sha256(tmp / f) for f in files},
-        "source": source or {},
+        "onnx_note": onnx_note, "int8": int8, "int8_note": int8_note, "torch_version": torch.__version__,
+        "parity": parity, "files": {f: file_sha256(tmp / f) for f in files}, "source": source or {},
     }
     (tmp / DEPLOY_JSON).write_text(json.dumps(info, indent=1, sort_keys=True))
     return info

@@ -11,27 +11,18 @@ from pipeline.stats import SpearmanResult, spearman
 CONFIDENCE_BAND = 2
 
 
-def _dilate(mask: np.ndarray, band: int) -> np.ndarray:
-    """``mask`` [H,W] grown by ``band`` pixels (a square neighbourhood)."""
-    if band <= 0:
-        return mask
-    h, w = mask.shape
-    padded = np.pad(mask, band)
-    out = np.zeros_like(mask)
-    for dy in range(2 * band + 1):
-        for dx in range(2 * band + 1):
-            out |= padded[dy:dy + h, dx:dx + w]
-    return out
-
-
 def frame_confidence(probs: np.ndarray, tau: float, band: int = CONFIDENCE_BAND) -> float:
     """Mean normalised margin of P [H,W] from tau, ``|P - tau| / (1 - tau)`` (P >= tau) or ``|P - tau| / tau``,
     over the mask [P >= tau] grown by ``band`` pixels (the whole frame when it is empty)."""
+    import cv2
+
     p = np.asarray(probs, np.float64)
     tau = float(tau)
     fg = p >= tau
     margin = np.where(fg, (p - tau) / max(1.0 - tau, 1e-12), (tau - p) / max(tau, 1e-12))
-    region = _dilate(fg, int(band)) if fg.any() else np.ones_like(fg)
+    side = 2 * max(int(band), 0) + 1  # the mask grown by ``band`` pixels: a square neighbourhood
+    region = cv2.dilate(fg.astype(np.uint8), np.ones((side, side), np.uint8)).astype(bool) if fg.any() else \
+        np.ones_like(fg)
     return float(np.clip(margin[region].mean(), 0.0, 1.0))
 
 

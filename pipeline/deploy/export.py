@@ -15,22 +15,25 @@ from pipeline.params import section
 from pipeline.thresholds import resolve_resolution, resolve_tau, tau_candidates
 
 
+def read_json(path) -> dict:
+    """The JSON object in ``path``; {} when it is unreadable or not an object."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+    return doc if isinstance(doc, dict) else {}
+
+
 def is_bundle_dir(path) -> bool:
     """Whether ``path`` holds a deploy artifact's meta.json."""
-    try:
-        return json.loads((Path(path) / META_FILE).read_text()).get("schema") == "deploy"
-    except (OSError, ValueError, AttributeError):
-        return False
+    return read_json(Path(path) / META_FILE).get("schema") == "deploy"
 
 
 def bundle_files(path) -> set[str]:
     """The files of the deploy bundle in ``path`` (none without one): what export may replace there."""
     if not is_bundle_dir(path):
         return set()
-    try:
-        listed = json.loads((Path(path) / bundle_file("deploy_json")).read_text()).get("files") or {}
-    except (OSError, ValueError, AttributeError):
-        listed = {}
+    listed = read_json(Path(path) / bundle_file("deploy_json")).get("files") or {}
     return {str(f) for f in listed} | {bundle_file("deploy_json"), META_FILE}
 
 
@@ -40,8 +43,7 @@ class ExportPlan:
 
     model: Any
     payload: dict
-    checkpoint: str
-    checkpoint_fingerprint: str
+    source: dict            # deploy.json's ``source``, less the bundle's fingerprint
     tau: float
     tau_source: str
     resolution: int
@@ -52,22 +54,6 @@ class ExportPlan:
     settings: dict          # write_bundle's keyword arguments
     inputs: list
     params: dict
-    thresholds: str | None
-
-    @property
-    def method(self):
-        return self.payload.get("method")
-
-    @property
-    def seed(self):
-        return self.payload.get("seed")
-
-    def source(self, fingerprint: str) -> dict:
-        """deploy.json's ``source``."""
-        return {"checkpoint": self.checkpoint, "checkpoint_fingerprint": self.checkpoint_fingerprint,
-                "selected_epoch": self.payload.get("selected_epoch"), "stage": self.payload.get("stage"),
-                "thresholds": self.thresholds, "resolution_source": self.resolution_source,
-                "bundle_fingerprint": fingerprint}
 
 
 def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | None = None, artifacts=None,
@@ -110,9 +96,11 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
     fingerprinted = {"deploy": deploy_params, "tau": value, "tau_source": source, "resolution": int(resolution)}
     if frames != frame_reading():  # only when set: earlier bundles' fingerprints stay
         fingerprinted["frames"] = frames
-    return ExportPlan(model, payload, str(checkpoint), ckpt.fingerprint, value, source, int(resolution), res_source,
-                      onnx, calib, calib_note, settings, inputs, fingerprinted,
-                      str(thresholds) if thresholds else None)
+    origin = {"checkpoint": str(checkpoint), "checkpoint_fingerprint": ckpt.fingerprint,
+              "selected_epoch": payload.get("selected_epoch"), "stage": payload.get("stage"),
+              "thresholds": str(thresholds) if thresholds else None, "resolution_source": res_source}
+    return ExportPlan(model, payload, origin, value, source, int(resolution), res_source, onnx, calib, calib_note,
+                      settings, inputs, fingerprinted)
 
 
 def write_export(plan: ExportPlan, out, meta, device=None) -> dict:
@@ -121,7 +109,8 @@ def write_export(plan: ExportPlan, out, meta, device=None) -> dict:
 
     with artifact_dir(out, meta) as tmp:
         return write_bundle(tmp, plan.model, plan.payload, tau=plan.tau, tau_source=plan.tau_source,
-                            resolution=plan.resolution, onnx=plan.onnx, source=plan.source(meta.fingerprint),
+                            resolution=plan.resolution, onnx=plan.onnx,
+                            source={**plan.source, "bundle_fingerprint": meta.fingerprint},
                             calibration_images=plan.calibration_images, calibration_note=plan.calibration_note,
                             device=device, **plan.settings)
 
@@ -133,7 +122,8 @@ def export_lines(plan: ExportPlan, info: Mapping, out) -> list[str]:
     par = info["parity"]
     summary = ", ".join(f"{fmt}: max|dZ|={par[fmt]['max_abs_diff']:.2e}, masks identical={par[fmt]['masks_identical']}"
                         for fmt in ("torchscript", "onnx") if fmt in par)
-    lines = [f"export: {plan.method} seed {plan.seed}, tau={plan.tau:.4g}, {plan.resolution}px -> {out} ({summary})"]
+    lines = [f"export: {plan.payload.get('method')} seed {plan.payload.get('seed')}, tau={plan.tau:.4g}, "
+             f"{plan.resolution}px -> {out} ({summary})"]
     if info.get("onnx_note") and plan.onnx:
         lines.append(f"export: {info['onnx_note']}")
     for name, d in (par.get("device") or {}).items():

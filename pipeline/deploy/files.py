@@ -57,15 +57,11 @@ def _relative(f: Path, root: Path, root_r: Path) -> Path:
 
 def _blocking_file(folder: Path, cache: dict[Path, Path | None]) -> Path | None:
     """The first existing non-folder among ``folder`` and its parents (mkdir would fail on it), else None."""
+    found = None
     for p in (folder, *folder.parents):
-        if p in cache:
-            found = cache[p]
+        if p in cache or p.is_symlink() or p.exists():
+            found = cache[p] if p in cache else None if p.is_dir() else p
             break
-        if p.is_symlink() or p.exists():
-            found = None if p.is_dir() else p
-            break
-    else:
-        found = None
     cache[folder] = found
     return found
 
@@ -97,25 +93,21 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
         by_key[key] = f
     folders: dict[str, Path] = {}
     for f, r in zip(files, rel):
-        for parent in r.parents:
-            if parent != Path("."):
-                folders.setdefault(parent.as_posix().casefold(), f)
+        for parent in r.parents[:-1]:  # not "."
+            folders.setdefault(parent.as_posix().casefold(), f)
     for f, r in zip(files, rel):
         for suffix in OUTPUT_SUFFIXES:
-            key = (r.as_posix() + suffix).casefold()
-            if key in folders:
+            if (key := (r.as_posix() + suffix).casefold()) in folders:
                 raise InputError(f"--input: the output {out / r}{suffix} of {f} would be the folder holding "
                                  f"the output of {folders[key]}; rename one")
 
     stems = [out / r for r in rel]
     inputs = {f.resolve() for f in files}
-    for s in stems:
-        for suffix in OUTPUT_SUFFIXES:
-            target = output_path(s, suffix)
-            if target.resolve() in inputs:
-                raise InputError(f"--output {out_dir}: would overwrite the input {target}")
-    targets = [output_path(s, suffix) for s in stems for suffix in suffixes] + [out / SKIPPED_CSV, out / CONFIDENCE_CSV,
-                                                                               out / RECORD]
+    for target in (output_path(s, suffix) for s in stems for suffix in OUTPUT_SUFFIXES):
+        if target.resolve() in inputs:
+            raise InputError(f"--output {out_dir}: would overwrite the input {target}")
+    targets = [*(output_path(s, x) for s in stems for x in suffixes), out / SKIPPED_CSV, out / CONFIDENCE_CSV,
+               out / RECORD]
     for t in targets:
         blocked = _blocking_file(t.parent, cache)
         if blocked is not None:

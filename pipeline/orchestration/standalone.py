@@ -25,7 +25,7 @@ from pipeline.runtime.device import resolve_device
 from pipeline.report.dvc_results import path_component
 from pipeline.datasets.scan import scan_inputs
 from pipeline.runtime.errors import BACKEND, CHECKPOINT, INPUT, OUT, VAL_MASKS, InputError, Option, literal
-from pipeline.deploy.export import bundle_files
+from pipeline.deploy.export import bundle_files, read_json
 from pipeline.labeling.run import find_images
 from pipeline.methods import PROPOSED, STAGE_ONE, method_label
 from pipeline.report.offline_plots import template_path, template_text
@@ -337,10 +337,7 @@ def training_line(out: str | Path) -> str | None:
     if not seeds:
         return None
     meta = catalog.path("checkpoints", out / catalog.ARTIFACTS_DIR) / STAGE_ONE / str(seeds[0]) / catalog.META_FILE
-    try:
-        extra = json.loads(meta.read_text()).get("extra") or {}
-    except (OSError, ValueError):
-        return None
+    extra = read_json(meta).get("extra") or {}
     if "steps_run" not in extra:
         return None
     why = f", stopped at {extra['stopped']}" if extra.get("stopped") else " (its fixed length)"
@@ -349,10 +346,7 @@ def training_line(out: str | Path) -> str | None:
 
 def _metric(path: Path, key: str) -> float | None:
     """``key`` of the DVC metrics file ``path``, None when either is absent."""
-    try:
-        value = json.loads(path.read_text()).get(key)
-    except (OSError, ValueError):
-        return None
+    value = read_json(path).get(key)
     return float(value) if isinstance(value, (int, float)) else None
 
 
