@@ -54,23 +54,19 @@ def teacher_prompt_quality(tm: pd.DataFrame, group: str, base_source: str, selec
 
     rows = []
 
-    def add(config, part):
-        r = {"config": config, "n": int(part["image_id"].nunique()) if len(part) else 0}
+    def add(config, part, per_prompt=False):
+        """A row of ``part``'s means (NaN std), or (``per_prompt``) the mean ± std of its prompts' means."""
+        means = part.groupby("source")[list(METRICS)].mean() if per_prompt else part
+        r = {"config": config, "n": int(part["image_id"].nunique())}
         for m in METRICS:
-            r[m], r[f"{m}_std"] = float(part[m].mean()) if len(part) else np.nan, np.nan
+            r[m], r[f"{m}_std"] = float(means[m].mean()), float(means[m].std(ddof=1)) if per_prompt else np.nan
         rows.append(r)
 
     add(f"Base prompt: {label(base_source)}", g[g["source"] == base_source])
     if selected_source is not None:
         add(f"Validation-selected single prompt: {label(selected_source)}", g[g["source"] == selected_source])
-    per_prompt = g[g["source"].isin(srcs)].groupby("source")[list(METRICS)].mean()
-    if len(per_prompt):
-        r = {"config": f"Mean over {len(per_prompt)} single prompts",
-             "n": int(g[g["source"].isin(srcs)]["image_id"].nunique())}
-        for m in METRICS:
-            r[m] = float(per_prompt[m].mean())
-            r[f"{m}_std"] = float(per_prompt[m].std(ddof=1)) if len(per_prompt) > 1 else np.nan
-        rows.append(r)
+    if len(prompted := g[g["source"].isin(srcs)]):
+        add(f"Mean over {prompted['source'].nunique()} single prompts", prompted, per_prompt=True)
     add(f"{len(srcs)}-prompt majority vote", g[g["source"] == "vote"])
     return pd.DataFrame(rows)
 
@@ -83,13 +79,9 @@ def teacher_domain_quality(tm: pd.DataFrame, source: str = "vote", split: str = 
     per = sub.groupby(keys, sort=True)[list(METRICS)].mean()
     per["n"] = sub.groupby(keys, sort=True)["image_id"].nunique()
     per = per.reset_index()
-    pooled = []
-    for (ds, dom), part in sub.groupby(["dataset", "domain"], sort=True):
-        if part["group"].nunique() > 1:
-            r = {"dataset": ds, "domain": dom, "group": "all"}
-            r.update({m: float(part[m].mean()) for m in METRICS})
-            r["n"] = int(part["image_id"].nunique())
-            pooled.append(r)
+    pooled = [{"dataset": ds, "domain": dom, "group": "all", **{m: float(part[m].mean()) for m in METRICS},
+               "n": int(part["image_id"].nunique())}
+              for (ds, dom), part in sub.groupby(["dataset", "domain"], sort=True) if part["group"].nunique() > 1]
     return pd.concat([per, pd.DataFrame(pooled)], ignore_index=True) if pooled else per
 
 
@@ -102,17 +94,13 @@ def gate_analysis(tm: pd.DataFrame, gates: pd.DataFrame, group: str | None = Non
     if group is not None:
         v = v[v["group"] == group]
     d = v.merge(gates[["image_id", "g"]], on="image_id", how="inner")
-    r_iou = spearman(d["g"].to_numpy(float), d["iou"].to_numpy(float))
-    r_bf1 = spearman(d["g"].to_numpy(float), d["bf1"].to_numpy(float))
-    rows = []
-    for state, sel in (("g = 0: geometry suppressed", d["g"] <= 0), ("g > 0: geometry enabled", d["g"] > 0)):
-        part = d[sel]
-        rows.append({"state": state, "images": int(len(part)),
-                     "iou": float(part["iou"].mean()) if len(part) else np.nan,
-                     "bf1": float(part["bf1"].mean()) if len(part) else np.nan})
+    rho = {k: spearman(d["g"].to_numpy(float), d[k].to_numpy(float)) for k in ("iou", "bf1")}
+    states = (("g = 0: geometry suppressed", d[d["g"] <= 0]), ("g > 0: geometry enabled", d[d["g"] > 0]))
+    rows = [{"state": state, "images": int(len(part)), "iou": float(part["iou"].mean()),
+             "bf1": float(part["bf1"].mean())} for state, part in states]
     return {"group": group if group is not None else "all", "n": int(len(d)),
-            "rho_iou": r_iou.rho, "p_iou": r_iou.pvalue, "rho_bf1": r_bf1.rho, "p_bf1": r_bf1.pvalue,
-            "table": pd.DataFrame(rows)}
+            "rho_iou": rho["iou"].rho, "p_iou": rho["iou"].pvalue, "rho_bf1": rho["bf1"].rho,
+            "p_bf1": rho["bf1"].pvalue, "table": pd.DataFrame(rows)}
 
 
 def teacher_vote_means(tm: pd.DataFrame, split: str = "test") -> pd.DataFrame:

@@ -4,6 +4,7 @@ never fails the report: its section names the stage that produces it."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import warnings
 from pathlib import Path
@@ -72,16 +73,14 @@ def load_inputs(art: str | Path, profile: str | None = None) -> Inputs:
         except ArtifactError as e:
             missing[name] = Missing(f"`{spec.path}`", f"{e} -- produced by the `{spec.stage}` stage.")
     require_same_run(*found.values())
-    checkpoints = catalog.path("checkpoints", art)
-    inp = Inputs(art, found, missing, logs=training_logs(checkpoints), runs=training_runs(checkpoints))
-    if found.get("manifest") is not None:
-        inp.no_masks = no_reference_masks(found["manifest"].df, found.get("reference"))
-    inp.noise_floor = noise_floor_for_runs(catalog.path("noise_floor", art), inp.runs, found.get("images"), profile)
-    inp.fixed_tau = recorded_fixed_tau(found.get("thresholds"), found.get("metrics"))
-    inp.run_review = recorded_review(checkpoints)
-    thr = found.get("thresholds")
-    inp.corrected_validation = int((thr.meta.extra or {}).get(CORRECTED_VALIDATION, 0)) if thr is not None else 0
-    return inp
+    checkpoints, manifest, thr = catalog.path("checkpoints", art), found.get("manifest"), found.get("thresholds")
+    runs, images = training_runs(checkpoints), found.get("images")
+    thr_extra = (thr.meta.extra or {}) if thr is not None else {}
+    return Inputs(art, found, missing, logs=training_logs(checkpoints), runs=runs,
+                  no_masks=manifest is not None and no_reference_masks(manifest.df, found.get("reference")),
+                  noise_floor=noise_floor_for_runs(catalog.path("noise_floor", art), runs, images, profile),
+                  fixed_tau=recorded_fixed_tau(thr, found.get("metrics")), run_review=recorded_review(checkpoints),
+                  corrected_validation=int(thr_extra.get(CORRECTED_VALIDATION, 0)))
 
 
 def recorded_review(checkpoints: Path) -> dict[str, dict]:
@@ -143,13 +142,13 @@ def training_logs(checkpoints: Path) -> pd.DataFrame | None:
     return pd.concat(frames, ignore_index=True) if frames else None
 
 
+TEACHER_NOTES = {"simulated": "Teacher = a SIMULATOR of prompt-dependent foundation-model errors (synthetic "
+                              "benchmark), not SAM 3: these teacher numbers describe the simulator.",
+                 "sam3": "Teacher = SAM 3 with the six fixed text prompts (backend `sam3`)."}
+
+
 def teacher_note(backend: str) -> str:
-    if backend == "simulated":
-        return ("Teacher = a SIMULATOR of prompt-dependent foundation-model errors (synthetic benchmark), "
-                "not SAM 3: these teacher numbers describe the simulator.")
-    if backend == "sam3":
-        return "Teacher = SAM 3 with the six fixed text prompts (backend `sam3`)."
-    return f"Teacher backend: `{backend}`."
+    return TEACHER_NOTES.get(backend, f"Teacher backend: `{backend}`.")
 
 
 NO_MASKS_NOTE = (
@@ -212,77 +211,79 @@ def _student_masks(inp: Inputs, methods, seed: int, images: np.ndarray, tau, dev
     return out
 
 
-def data_section(inp: Inputs) -> Section:
-    sec = Section("Data, teacher and protocol")
+def _section(title: str):
+    """Make a function that returns a section's blocks return the :class:`Section` ``title`` of them."""
+    def decorate(blocks):
+        @functools.wraps(blocks)
+        def section(*args, **kwargs) -> Section:
+            return Section(title, blocks(*args, **kwargs))
+        return section
+    return decorate
+
+
+@_section("Data, teacher and protocol")
+def data_section(inp: Inputs) -> list:
     m = inp.get("manifest")
     if m is None:
-        sec.blocks += inp.need("manifest")
-        return sec
+        return inp.need("manifest")
     df = m.df
     datasets = sorted(df["dataset"].unique())
     backend = str(inp.get("teacher").attrs.get("backend", "unknown")) if inp.get("teacher") else "unknown"
     if "synthetic" in datasets:
-        sec.blocks.append(Text(
+        blocks = [Text(
             "**Dataset: the embedded SYNTHETIC spacecraft benchmark** (rendered spacecraft with a spacecraft-disjoint "
             "split shaped like SpaceSense-Bench), not SpaceSense-Bench, SPEED+ or TANGO. Its teacher is a "
             "**SIMULATOR** of prompt-dependent foundation-model errors, not SAM 3. The numbers below test the "
-            "pipeline's behaviour on this benchmark; they are not comparable to the paper's."))
+            "pipeline's behaviour on this benchmark; they are not comparable to the paper's.")]
     else:
-        sec.blocks.append(Text(f"Dataset(s): {', '.join(f'`{d}`' for d in datasets)}."))
-    sec.blocks.append(Text(teacher_note(backend)))
-    sec.blocks.append(Text(
+        blocks = [Text(f"Dataset(s): {', '.join(f'`{d}`' for d in datasets)}.")]
+    blocks += [Text(teacher_note(backend)), Text(
         "Manual (reference) masks are used only for validation-time checkpoint selection, threshold calibration "
         "and evaluation (and, on the synthetic benchmark, inside the teacher simulator); they never enter a "
-        "student's training loss."))
+        "student's training loss.")]
     if no_reference_masks(df, inp.get("reference")) and not inp.corrected_validation:
-        sec.blocks.append(Text(NO_MASKS_NOTE.format(tau=tau_text(inp.fixed_tau))))
+        blocks.append(Text(NO_MASKS_NOTE.format(tau=tau_text(inp.fixed_tau))))
     if (note := corrections_note(inp)) is not None:
-        sec.blocks.append(Text(note))
+        blocks.append(Text(note))
     spacecraft = T.spacecraft_per_group(df)  # the interval footnotes state the same counts
     rows = [[str(ds), str(split), str(group), str(len(part)), str(spacecraft[str(group)])]
             for (ds, split, group), part in df.groupby(["dataset", "split", "group"], sort=False)]
-    sec.blocks.append(Table("tab:data", "Images per split and group", ["Dataset", "Split", "Group", "Images",
-                                                                      "Spacecraft"], rows))
-    return sec
+    return blocks + [Table("tab:data", "Images per split and group",
+                           ["Dataset", "Split", "Group", "Images", "Spacecraft"], rows)]
 
 
-def threshold_section(inp: Inputs, plots: dict) -> Section:
-    sec = Section("Threshold calibration")
+@_section("Threshold calibration")
+def threshold_section(inp: Inputs, plots: dict) -> list:
     thr = inp.get("thresholds")
     if thr is None:
-        sec.blocks += inp.need("thresholds")
-        return sec
+        return inp.need("thresholds")
     df = thr.df
     if inp.no_masks and not inp.corrected_validation:
         taus = sorted({float(t) for t in df["tau"]})
-        sec.blocks.append(Text(FIXED_TAU_NOTE.format(tau=taus[0] if len(taus) == 1 else float("nan"))))
-        return sec
-    sec.blocks.append(T.thresholds_table(df, inp.fixed_tau))
+        return [Text(FIXED_TAU_NOTE.format(tau=taus[0] if len(taus) == 1 else float("nan")))]
+    blocks = [T.thresholds_table(df, inp.fixed_tau)]
     if "grid" in df.columns and len(df):
         curves = pd.concat([pd.DataFrame({"tau": r["grid"], "val_iou": r["curve"], "method": r["method"],
                                           "seed": r["seed"]}) for _, r in df.iterrows()], ignore_index=True)
         plots["threshold_curve"] = curves
         series = _mean_curves(curves, "tau", "val_iou", lambda m: df.loc[df["method"] == m, "tau"].mean())
         img = F.line_plot(series, "Validation Image IoU vs threshold", "tau", "mean val Image IoU")
-        sec.blocks.append(_figure("fig:threshold-curves", "Threshold curves", "Mean validation Image IoU of [P >= "
-                                  "tau] over the calibration grid (mean over seeds per method; dot: mean calibrated "
-                                  "tau).", img, "threshold_curves"))
-    return sec
+        blocks.append(_figure("fig:threshold-curves", "Threshold curves", "Mean validation Image IoU of [P >= "
+                              "tau] over the calibration grid (mean over seeds per method; dot: mean calibrated "
+                              "tau).", img, "threshold_curves"))
+    return blocks
 
 
-def results_section(inp: Inputs) -> Section:
-    sec = Section("Student results on the test groups")
+@_section("Student results on the test groups")
+def results_section(inp: Inputs) -> list:
     s = inp.get("summary")
     if s is None:
-        sec.blocks += inp.need("summary")
-        return sec
+        return inp.need("summary")
     groups, modes, vote = ordered_groups(inp, s.df["group"]), _modes(s.df), vote_means(inp)
-    sec.blocks += [T.results_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s),
-                                   spacecraft_counts(inp)) for mode in modes]
-    sec.blocks += [T.diagnostics_table(s.df, mode, groups, inp.fixed_tau) for mode in modes]
-    sec.blocks += [t for mode in modes
-                   if (t := T.reference_points_table(s.df, vote, mode, groups, inp.fixed_tau)) is not None]
-    return sec
+    return ([T.results_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s),
+                             spacecraft_counts(inp)) for mode in modes]
+            + [T.diagnostics_table(s.df, mode, groups, inp.fixed_tau) for mode in modes]
+            + [t for mode in modes if (t := T.reference_points_table(s.df, vote, mode, groups, inp.fixed_tau))])
 
 
 def spacecraft_counts(inp: Inputs) -> dict[str, int] | None:
@@ -305,35 +306,32 @@ def ordered_groups(inp: Inputs, present) -> list[str]:
     return [g for g in order if g in present] + [g for g in present if g not in order]
 
 
-def diagnostics_section(inp: Inputs, plots: dict) -> Section:
+@_section("Controls and threshold diagnostics")
+def diagnostics_section(inp: Inputs, plots: dict) -> list:
     """Controls and threshold/calibration diagnostics: the fixed-tau reversal, the budget-matched control,
     calibration, per-epoch stability, target size."""
-    sec = Section("Controls and threshold diagnostics")
     if inp.no_masks:
-        sec.blocks.append(Text(NOT_COMPUTED))
-        return sec
+        return [Text(NOT_COMPUTED)]
     s, thr, m = inp.get("summary"), inp.get("thresholds"), inp.get("metrics")
     if s is None and thr is None:
-        sec.blocks += inp.need("summary", "thresholds")
-        return sec
+        return inp.need("summary", "thresholds")
     groups = ordered_groups(inp, s.df["group"] if s is not None else [])
     frames = [a.df if a is not None else None for a in (s, thr, m)]
-    sec.blocks += [Text(f) for f in fixed_tau_findings(*frames, inp.logs, vote_means(inp), groups, label=T.label,
-                                                       noise_floor=inp.noise_floor, fixed_tau=inp.fixed_tau)]
+    blocks = [Text(f) for f in fixed_tau_findings(*frames, inp.logs, vote_means(inp), groups, label=T.label,
+                                                  noise_floor=inp.noise_floor, fixed_tau=inp.fixed_tau)]
     if s is not None:
-        tables = [T.controls_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau, gain_interval(s),
-                                   spacecraft_counts(inp)) for mode in MODES]
-        sec.blocks += [t for t in tables if t is not None]
+        blocks += [t for mode in MODES if (t := T.controls_table(s.df, mode, groups, inp.noise_floor, inp.fixed_tau,
+                                                                 gain_interval(s), spacecraft_counts(inp)))]
     if thr is not None and "ece" in thr.df.columns:
-        sec.blocks += calibration_blocks(thr.df, plots, inp.fixed_tau)
+        blocks += calibration_blocks(thr.df, plots, inp.fixed_tau)
     if inp.logs is not None and "val_iou_cal" in inp.logs.columns and inp.logs["val_iou"].notna().any():
-        sec.blocks.append(T.epoch_swing_table(epoch_swings(inp.logs), inp.fixed_tau))
-        sec.blocks.append(epoch_calibrated_figure(inp.logs, inp.fixed_tau))
+        blocks += [T.epoch_swing_table(epoch_swings(inp.logs), inp.fixed_tau),
+                   epoch_calibrated_figure(inp.logs, inp.fixed_tau)]
     if m is not None and "target_size" in m.df.columns:
         split = size_split(m.df)
         frac = (m.meta.params or {}).get("evaluate.tiny_target_max_fraction")
-        sec.blocks += [T.size_split_table(split, mode, frac, inp.fixed_tau) for mode in _modes(split)]
-    return sec
+        blocks += [T.size_split_table(split, mode, frac, inp.fixed_tau) for mode in _modes(split)]
+    return blocks
 
 
 def _seed_mean(part: pd.DataFrame, column: str) -> np.ndarray:
@@ -387,69 +385,62 @@ def epoch_calibrated_figure(logs: pd.DataFrame, fixed_tau: float | None = None) 
                    img, "training_curves_calibrated")
 
 
-def ablation_section(inp: Inputs) -> Section:
-    sec = Section("Ablations of the geometry refinement")
+@_section("Ablations of the geometry refinement")
+def ablation_section(inp: Inputs) -> list:
     m = inp.get("metrics")
     if m is None:
-        sec.blocks += inp.need("metrics")
-        return sec
+        return inp.need("metrics")
     df = m.df
     abl = df[df["method"].isin(T.ABLATIONS)]
     if abl.empty:
-        sec.blocks.append(Text("No ablation run is listed in this profile (protocol.runs); the "
-                               "warm-start and component tables need them."))
-        return sec
+        return [Text("No ablation run is listed in this profile (protocol.runs); the "
+                     "warm-start and component tables need them.")]
     seed = int(abl["seed"].mode().iloc[0])
     group = (test_groups(inp.get("manifest").df) if inp.get("manifest") else sorted(df["group"].unique()))[0]
-    epochs = {}
-    if inp.logs is not None:
-        for method, part in inp.logs[inp.logs["seed"] == seed].groupby("method"):
-            epochs[method] = int(part.loc[part["epoch"] > 0, "epoch"].nunique())
-    sec.blocks.append(Text(f"Mechanistic ablations: seed {seed} on {group} (the first test group), same data, "
-                           f"pseudo-labels, architecture and calibration protocol. Single-seed evidence only."))
+    epochs = {} if inp.logs is None else {
+        method: int(part.loc[part["epoch"] > 0, "epoch"].nunique())
+        for method, part in inp.logs[inp.logs["seed"] == seed].groupby("method")}
+    blocks = [Text(f"Mechanistic ablations: seed {seed} on {group} (the first test group), same data, "
+                   f"pseudo-labels, architecture and calibration protocol. Single-seed evidence only.")]
     for mode in MODES:
         means = T.ablation_means(df, group, seed, mode)
-        sec.blocks += [t for t in (T.warm_start_table(means, epochs, group, seed, mode, inp.fixed_tau),
-                                   T.component_table(means, group, seed, mode, inp.fixed_tau)) if t is not None]
-    return sec
+        blocks += [t for t in (T.warm_start_table(means, epochs, group, seed, mode, inp.fixed_tau),
+                               T.component_table(means, group, seed, mode, inp.fixed_tau)) if t is not None]
+    return blocks
 
 
-def teacher_section(inp: Inputs) -> Section:
-    sec = Section("Multi-prompt teacher and reliability gate")
+@_section("Multi-prompt teacher and reliability gate")
+def teacher_section(inp: Inputs) -> list:
     tmart = inp.get("teacher_metrics")
     if inp.no_masks:
-        sec.blocks.append(Text(NOT_COMPUTED.replace("Scores need", "The teacher's scores need")))
-        sec.blocks += gate_distribution_blocks(inp)
-        return sec
+        return [Text(NOT_COMPUTED.replace("Scores need", "The teacher's scores need")), *gate_distribution_blocks(inp)]
     if tmart is None:
-        sec.blocks += inp.need("teacher_metrics")
-        return sec
+        return inp.need("teacher_metrics")
     tm = tmart.df
     extra = tmart.meta.extra or {}
     backend = str(extra.get("teacher_backend", "unknown"))
     note = teacher_note(backend)
     selected = extra.get("selected_source")
+    blocks = []
     if backend == "simulated":
-        sec.blocks.append(Text("**All teacher numbers in this section describe the teacher SIMULATOR of the "
+        blocks.append(Text("**All teacher numbers in this section describe the teacher SIMULATOR of the "
                                "synthetic benchmark, not SAM 3.**  Two of its findings are true by construction "
                                "and are not agreement with the paper: the six-prompt vote beating single prompts "
                                "(the simulator's errors are mostly prompt-specific, calibrated to the paper's "
                                "prompt table) and the gate separating poor from good pseudo-masks (its breakdown "
-                               "on hard images leaves at most one valid prompt, so g = 0 there)."))
+                           "on hard images leaves at most one valid prompt, so g = 0 there)."))
     if selected is None:
-        sec.blocks.append(Text("No validation image has a reference mask: no validation-selected prompt."))
+        blocks.append(Text("No validation image has a reference mask: no validation-selected prompt."))
     groups = list(dict.fromkeys(tm.loc[tm["split"] == "test", "group"]))
-    sec.blocks += [T.teacher_prompt_table(teacher_prompt_quality(tm, g, extra.get("base_source", "prompt_0"), selected,
-                                                                 list(extra.get("prompts") or [])), g, note)
-                   for g in groups]
-    sec.blocks.append(T.teacher_domain_table(teacher_domain_quality(tm), note))
+    blocks += [T.teacher_prompt_table(teacher_prompt_quality(tm, g, extra.get("base_source", "prompt_0"), selected,
+                                                             list(extra.get("prompts") or [])), g, note)
+               for g in groups]
+    blocks.append(T.teacher_domain_table(teacher_domain_quality(tm), note))
     gates = inp.get("gates")
     if gates is None:
-        sec.blocks += inp.need("gates")
-    else:
-        analyses = [gate_analysis(tm, gates.df, g) for g in groups + ([None] if len(groups) > 1 else [])]
-        sec.blocks.append(T.gate_table(analyses, note))
-    return sec
+        return blocks + inp.need("gates")
+    analyses = [gate_analysis(tm, gates.df, g) for g in groups + ([None] if len(groups) > 1 else [])]
+    return blocks + [T.gate_table(analyses, note)]
 
 
 #: the Efficiency section of a project made without its benchmark stage (``distill --no-benchmark``)
@@ -467,61 +458,49 @@ def stage_left_out(art: Path, stage: str) -> bool:
     return isinstance(stages, dict) and bool(stages) and stage not in stages
 
 
-def efficiency_section(inp: Inputs) -> Section:
-    sec = Section("Efficiency")
+@_section("Efficiency")
+def efficiency_section(inp: Inputs) -> list:
     eff = inp.get("efficiency")
     stage = catalog.ARTIFACTS["efficiency"].stage
-    if eff is None and stage_left_out(inp.art, stage):
-        sec.blocks.append(Text(BENCHMARK_SKIPPED.format(stage=stage)))
-    elif eff is None:
-        sec.blocks += inp.need("efficiency")
-    else:
-        sec.blocks.append(T.efficiency_table(eff.df))
-    return sec
+    if eff is not None:
+        return [T.efficiency_table(eff.df)]
+    return [Text(BENCHMARK_SKIPPED.format(stage=stage))] if stage_left_out(inp.art, stage) else inp.need("efficiency")
 
 
-def training_section(inp: Inputs, plots: dict) -> Section:
-    sec = Section("Training curves")
+@_section("Training curves")
+def training_section(inp: Inputs, plots: dict) -> list:
     logs = inp.logs
     if inp.no_masks:
-        sec.blocks.append(Text(NOT_COMPUTED.replace("Scores need", "Validation curves need")))
-        if logs is not None and "loss" in logs.columns:
-            sec.blocks.append(loss_figure(logs))
-        return sec
+        return [Text(NOT_COMPUTED.replace("Scores need", "Validation curves need")),
+                *([loss_figure(logs)] if logs is not None and "loss" in logs.columns else [])]
     if logs is None or "val_iou" not in logs.columns:
-        sec.blocks.append(Missing("training logs", "no active checkpoint with a log.parquet under "
-                                  f"`{inp.art / 'checkpoints'}` -- produced by the `train` stages."))
-        return sec
+        return [Missing("training logs", "no active checkpoint with a log.parquet under "
+                        f"`{inp.art / 'checkpoints'}` -- produced by the `train` stages.")]
     cols = [c for c in ("epoch", "val_iou", "val_bf1", "val_iou_cal", "val_tau_cal", "loss", "stage", "method", "seed")
             if c in logs.columns]
     plots["training_curves"] = logs[cols].reset_index(drop=True)
     img = F.line_plot(_mean_curves(logs, "epoch", "val_iou"), f"Validation Image IoU during training "
                       f"(tau {tau_text(inp.fixed_tau)})", EPOCH_AXIS, "val Image IoU")
-    sec.blocks.append(_figure("fig:training-curves", "Training curves", "Validation Image IoU per epoch (mean over "
-                              "seeds per method; warm-started Stage-II runs count their own epochs from 1).", img,
-                              "training_curves"))
-    return sec
+    return [_figure("fig:training-curves", "Training curves", "Validation Image IoU per epoch (mean over "
+                    "seeds per method; warm-started Stage-II runs count their own epochs from 1).", img,
+                    "training_curves")]
 
 
+@_section("Qualitative results")
 def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str = PROPOSED,
-                        control: str = BASELINE) -> Section:
+                        control: str = BASELINE) -> list:
     """Paper Fig. qualitative-results: control vs treatment on the first test group, same seed, calibrated
     thresholds; images evenly spaced by rank of the per-image IoU gain, from the largest gain to the largest loss."""
-    sec = Section("Qualitative results")
     if inp.no_masks:
-        sec.blocks += pseudo_label_panels(inp, n_images, device, (control, treatment))
-        return sec
-    miss = inp.need("metrics", "thresholds", "images", "reference", "manifest")
-    if miss:
-        sec.blocks += miss
-        return sec
+        return pseudo_label_panels(inp, n_images, device, (control, treatment))
+    if miss := inp.need("metrics", "thresholds", "images", "reference", "manifest"):
+        return miss
     m = inp.get("metrics").df
     cal = m[m["threshold_mode"] == "calibrated"]
     seeds = sorted(set(cal.loc[cal.method == treatment, "seed"]) & set(cal.loc[cal.method == control, "seed"]))
     if not seeds or n_images <= 0:
-        sec.blocks.append(Missing(f"runs of both `{control}` and `{treatment}`",
-                                  "the qualitative panels compare them on the same seed."))
-        return sec
+        return [Missing(f"runs of both `{control}` and `{treatment}`",
+                        "the qualitative panels compare them on the same seed.")]
     seed = seeds[0]
     group = test_groups(inp.get("manifest").df)[0]
     sub = cal[(cal.group == group) & (cal.seed == seed)]
@@ -542,12 +521,11 @@ def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str
                   for mm, r in ((control, a.loc[iid]), (treatment, b.loc[iid]))}
         rows.append(F.qualitative_row(images[j], gts[j], {T.label(mm): preds[mm][j] for mm in (control, treatment)},
                                       scores, f"({chr(97 + j)}) {iid}"))
-    sec.blocks.append(_figure(
+    return [_figure(
         "fig:qualitative-results", f"{T.label(control)} vs {T.label(treatment)} on {group}",
         f"Seed {seed}, validation-calibrated thresholds. Green: true positives, red: false positives, blue: false "
         f"negatives; yellow: ground-truth contour. Rows ordered from the largest Image IoU gain to the largest loss "
-        f"of {T.label(treatment)}; metrics on full frames.", F.image_grid(rows), "qualitative"))
-    return sec
+        f"of {T.label(treatment)}; metrics on full frames.", F.image_grid(rows), "qualitative")]
 
 
 def gate_extremes(g: np.ndarray, n_images: int) -> np.ndarray:
@@ -563,8 +541,7 @@ def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu",
                         methods: tuple[str, ...] = (BASELINE, PROPOSED)) -> list:
     """Without any mask: the students' masks beside their pseudo-labels (the vote M) for the lowest- and the
     highest-gate training images (:func:`gate_extremes`), at each run's fixed tau; agreement, not accuracy."""
-    miss = [inp.missing[n] for n in ("thresholds", "images", "consensus", "gates", "manifest") if n in inp.missing]
-    if miss:
+    if miss := [inp.missing[n] for n in ("thresholds", "images", "consensus", "gates", "manifest") if n in inp.missing]:
         return miss
     thr = inp.get("thresholds").df
     present = [m for m in methods if m in set(thr["method"])]
@@ -632,19 +609,16 @@ def loss_figure(logs: pd.DataFrame) -> Figure:
                    "training_loss")
 
 
-def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
+@_section("Pseudo-target construction")
+def pseudo_target_section(inp: Inputs, n_images: int) -> list:
     """Paper Fig. pseudo-geometry for training images spread over the gate's range (highest g first)."""
-    sec = Section("Pseudo-target construction")
-    miss = inp.need("manifest", "images", "teacher", "consensus", "geometry", "gates")
-    if miss:
-        sec.blocks += miss
-        return sec
+    if miss := inp.need("manifest", "images", "teacher", "consensus", "geometry", "gates"):
+        return miss
     mdf = inp.get("manifest").df
     gates = inp.get("gates").df.set_index("image_id")
     train = mdf.index[mdf["split"] == "train"].to_numpy()
     if train.size == 0 or n_images <= 0:
-        sec.blocks.append(Text("No training image to show."))
-        return sec
+        return [Text("No training image to show.")]
     ids = mdf["image_id"].to_numpy()
     g = gates.reindex(ids[train])["g"].to_numpy(float)
     ranked = train[np.argsort(-np.nan_to_num(g, nan=-1), kind="mergesort")]
@@ -666,13 +640,12 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> Section:
     prompt_list = "; ".join(f"p{k + 1} = `{p}`" for k, p in enumerate(prompts))
     sim = (" The prompt masks come from the teacher SIMULATOR, not SAM 3."
            if str(teacher.attrs.get("backend", "unknown")) == "simulated" else "")
-    sec.blocks.append(_figure(
+    return [_figure(
         "fig:pseudo-geometry", "Multi-prompt pseudo-target construction",
         f"Training images (highest gate g first): the {tmasks.shape[1]} prompt masks with teacher scores s, the "
         f"agreement map A, the 50 % vote M, the normalised SDF D (red inside, blue outside) and the skeleton K; the "
         f"gate's factors c (agreement), v (valid-prompt ratio), a (pseudo area) and g.{sim} Prompts: {prompt_list}.",
-        F.image_grid(rows), "pseudo_targets"))
-    return sec
+        F.image_grid(rows), "pseudo_targets")]
 
 
 def provenance_section(inp: Inputs) -> Section:

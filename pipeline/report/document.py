@@ -74,8 +74,8 @@ class Report:
 # --------------------------------------------------------------------------------------------------
 # Markdown
 # --------------------------------------------------------------------------------------------------
-def _md_cell(s: str) -> str:
-    return str(s).replace("|", "\\|").replace("\n", " ")
+def _md_row(cells) -> str:
+    return "| " + " | ".join(str(c).replace("|", "\\|").replace("\n", " ") for c in cells) + " |"
 
 
 def render_markdown(report: Report, figure_dir: str = "figures") -> str:
@@ -88,14 +88,8 @@ def render_markdown(report: Report, figure_dir: str = "figures") -> str:
             elif isinstance(b, Missing):
                 out += [f"> **Missing: {b.what}.** {b.detail}", ""]
             elif isinstance(b, Table):
-                out += [f"**{b.title}**", ""]
-                out.append("| " + " | ".join(_md_cell(h) for h in b.header) + " |")
-                out.append("|" + "|".join("---" for _ in b.header) + "|")
-                out += ["| " + " | ".join(_md_cell(c) for c in r) + " |" for r in b.rows]
-                out.append("")
-                out += [f"*{n}*" for n in b.notes]
-                if b.notes:
-                    out.append("")
+                out += [f"**{b.title}**", "", _md_row(b.header), "|" + "|".join("---" for _ in b.header) + "|",
+                        *map(_md_row, b.rows), "", *(f"*{n}*" for n in b.notes), *([""] if b.notes else [])]
             elif isinstance(b, Figure):
                 vector = f" Vector: [{b.svg_filename}]({figure_dir}/{b.svg_filename})." if b.svg else ""
                 out += [f"**{b.title}**", "", f"![{b.title}]({figure_dir}/{b.filename})", "",

@@ -55,10 +55,8 @@ def _run_config(run: Mapping[str, Any]) -> tuple[str, ...]:
     device = rt.get("device", NOT_RECORDED) + (f" ({rt['gpu']})" if rt.get("gpu") else "")
     precision = PRECISION_TEXT.get(run.get("precision"), run.get("precision") or NOT_RECORDED)
     threads = str(rt["num_threads"]) if "num_threads" in rt else NOT_RECORDED
-    cpu = rt.get("cpu_model") or NOT_RECORDED
-    flags = " ".join(rt.get("cpu_flags") or []) or NOT_RECORDED
-    kernels = rt.get("cpu_capability") or NOT_RECORDED
-    return device, precision, threads, cpu, kernels, flags, str(run.get("torch") or NOT_RECORDED)
+    return (device, precision, threads, rt.get("cpu_model") or NOT_RECORDED, rt.get("cpu_capability") or NOT_RECORDED,
+            " ".join(rt.get("cpu_flags") or []) or NOT_RECORDED, str(run.get("torch") or NOT_RECORDED))
 
 
 def training_table(runs: Sequence[Mapping[str, Any]]) -> Table:
@@ -66,10 +64,8 @@ def training_table(runs: Sequence[Mapping[str, Any]]) -> Table:
     groups: dict[tuple[str, ...], list[str]] = {}
     for r in runs:
         groups.setdefault(_run_config(r), []).append(f"{r['method']} s{r['seed']}")
-    rows = []
-    for config, names in groups.items():
-        who = f"all {len(runs)} runs" if len(groups) == 1 else ", ".join(names)
-        rows.append([who, *config])
+    rows = [[f"all {len(runs)} runs" if len(groups) == 1 else ", ".join(names), *config]
+            for config, names in groups.items()]
     return Table("tab:environment-training", "Where each training run ran (from its checkpoint's meta.json)",
                  ["Runs", "Device", "Precision", "torch threads", "CPU", "torch CPU kernels", "CPU flags", "torch"],
                  rows, notes=["Precision = the autocast actually used (train.precision resolved on that device); "
@@ -122,10 +118,8 @@ def environment_section(env: Mapping[str, Any] | None, runs: Sequence[Mapping[st
     sec = Section("Environment", [Text(
         "Where these numbers were computed. Provenance only: none of it enters an artifact's fingerprint. "
         "The same record, machine-readable: `environment.json` beside this page.")])
-    if runs:
-        sec.blocks.append(training_table(runs))
-    else:
-        sec.blocks.append(Text("No training run was found, so no run's precision or threads are recorded."))
+    sec.blocks.append(training_table(runs) if runs else
+                      Text("No training run was found, so no run's precision or threads are recorded."))
     if env is None:
         sec.blocks.append(Text("The environment of the report process was not recorded."))
         return sec

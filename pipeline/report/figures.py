@@ -25,8 +25,6 @@ TP = (40, 200, 60)
 FP = (230, 40, 40)
 FN = (40, 90, 240)
 GT_CONTOUR = (255, 230, 0)
-WHITE = (255, 255, 255)
-BLACK = (0, 0, 0)
 PALETTE = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189),
            (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
 UNKNOWN_METHOD = {"color": "#5a5a5a", "style": "solid", "symbol": "."}
@@ -50,7 +48,7 @@ def png_bytes(fig: Chart) -> bytes:
 
 
 def _resize(arr: np.ndarray, size: int, nearest: bool) -> np.ndarray:
-    if arr.shape[0] == size and arr.shape[1] == size:
+    if arr.shape[:2] == (size, size):
         return arr
     interp = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA
     return cv2.resize(arr, (size, size), interpolation=interp)
@@ -128,24 +126,20 @@ def qualitative_row(image: np.ndarray, gt: np.ndarray, preds: Mapping[str, np.nd
     """One row of :func:`image_grid`: image | reference contour | a TP/FP/FN overlay per method."""
     img = _resize(to_rgb(image), size, nearest=False)
     gt_view = draw_contour(img.copy(), _resize(np.asarray(gt, np.uint8), size, nearest=True))
-    tiles = [(img, [title]), (gt_view, list(reference))]
-    for name, pred in preds.items():
-        tiles.append((error_overlay(image, pred, gt, size), [name, scores.get(name, "")]))
-    return tiles
+    return [(img, [title]), (gt_view, list(reference)),
+            *((error_overlay(image, pred, gt, size), [name, scores.get(name, "")]) for name, pred in preds.items())]
 
 
 def pseudo_target_row(image: np.ndarray, prompt_masks: np.ndarray, prompt_labels: Sequence[str],
                       agreement: np.ndarray, voted: np.ndarray, sdf: np.ndarray, skeleton: np.ndarray,
                       gate_text: Sequence[str], title: str, size: int = 128) -> list[Tile]:
     """One row of :func:`image_grid` (paper Fig. pseudo-geometry): image, prompt masks, A, M, D and K."""
-    tiles = [(_resize(to_rgb(image), size, nearest=False), [title, *gate_text])]
-    for m, lab in zip(prompt_masks, prompt_labels):
-        tiles.append((mask_tile(m, size), [lab]))
-    tiles.append((colorize(agreement, size, 0.0, 1.0, "viridis"), ["agreement A"]))
-    tiles.append((mask_tile(voted, size), ["voted M (A>=0.5)"]))
-    tiles.append((colorize(sdf, size, -1.0, 1.0, "diverging"), ["SDF D (in>0>out)"]))
-    tiles.append((skeleton_overlay(image, voted, skeleton, size), ["skeleton K"]))
-    return tiles
+    return [(_resize(to_rgb(image), size, nearest=False), [title, *gate_text]),
+            *((mask_tile(m, size), [lab]) for m, lab in zip(prompt_masks, prompt_labels)),
+            (colorize(agreement, size, 0.0, 1.0, "viridis"), ["agreement A"]),
+            (mask_tile(voted, size), ["voted M (A>=0.5)"]),
+            (colorize(sdf, size, -1.0, 1.0, "diverging"), ["SDF D (in>0>out)"]),
+            (skeleton_overlay(image, voted, skeleton, size), ["skeleton K"])]
 
 
 #: image panels: least inches per tile, caption points and the widest a tile grows before a caption wraps
@@ -225,9 +219,7 @@ def _save(fig: Chart, fmt: str) -> bytes:
 
 
 def _mpl_color(color) -> str | tuple:
-    if isinstance(color, str):
-        return color
-    return tuple(float(c) / 255.0 for c in color)
+    return color if isinstance(color, str) else tuple(float(c) / 255.0 for c in color)
 
 
 @contextlib.contextmanager
