@@ -4,7 +4,7 @@ student checkpoints, each built once per module (or once per session) for every 
 The rule of this folder: **no test module imports another test module** (``test_*.py``; a test module
 imported by another would be collected twice and share its fixtures by import, which pyflakes reports as
 redefinitions).  What several modules share lives here (fixtures) or in a builder module under ``tests/builders/``
-(plain functions and constants), imported as ``tests._name``:
+(plain functions and constants), imported as ``tests.builders.name``:
 
 - ``tests/builders/training.py``  -- the training tests' tiny artifacts and helpers (``build_tiny_artifacts``,
   ``tiny_cfg``, ``load_arrays``, the train-stage subprocess);
@@ -70,7 +70,7 @@ def lane():
 
 def _submit(request, lane, key: str) -> None:
     """Queue the lane run ``key`` (once), with what it needs from this session (folders, the tiny SAM 3)."""
-    from tests import _tiny_lane as tl
+    from tests.builders import lane as tl
 
     if key in lane.jobs:
         return
