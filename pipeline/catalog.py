@@ -38,43 +38,44 @@ def dvc_path(name: str, **fmt) -> str:
 
 
 @dataclasses.dataclass(frozen=True)
-class BundleFile:
-    """One file of the deploy bundle; ``required``: every bundle has it, else only when the export could write it."""
+class OutputFile:
+    """One file or folder in an output folder (``{...}`` in its name filled by the writer) or in the deploy bundle;
+    ``required`` (bundle files): every bundle has it, else only when the export could write it."""
 
     key: str
     name: str
     written_by: str
-    description: str
+    description: str = ""
     required: bool = True
 
 
-DEPLOY_BUNDLE: dict[str, BundleFile] = {f.key: f for f in [
-    BundleFile("weights", WEIGHTS_FILE, "pipeline.artifacts.weights.write_weights",
+DEPLOY_BUNDLE: dict[str, OutputFile] = {f.key: f for f in [
+    OutputFile("weights", WEIGHTS_FILE, "pipeline.artifacts.weights.write_weights",
                "mask-path tensors (a checkpoint's format: pipeline.evaluation.inference.load_student opens a "
                f"bundle too; bundles of older versions hold {LEGACY_WEIGHTS_FILE} instead, still read)"),
-    BundleFile("weights_config", WEIGHTS_CONFIG_FILE, "pipeline.artifacts.weights.write_weights",
+    OutputFile("weights_config", WEIGHTS_CONFIG_FILE, "pipeline.artifacts.weights.write_weights",
                "model config, method, seed, tau, resolution"),
-    BundleFile("torchscript", "model.ts", "pipeline.deploy.mask_path.export_torchscript",
+    OutputFile("torchscript", "model.ts", "pipeline.deploy.mask_path.export_torchscript",
                "TorchScript (traced) mask path; shape-generic (any batch and size)"),
-    BundleFile("onnx", "model.onnx", "pipeline.deploy.mask_path.export_onnx",
+    OutputFile("onnx", "model.onnx", "pipeline.deploy.mask_path.export_onnx",
                "ONNX mask path, dynamic batch/height/width (only when onnx + onnxruntime import)", required=False),
-    BundleFile("int8", "model.int8.onnx", "pipeline.deploy.quantize.quantize_onnx_int8",
+    OutputFile("int8", "model.int8.onnx", "pipeline.deploy.quantize.quantize_onnx_int8",
                "static int8 (QDQ) quantisation of the ONNX model, calibrated on training-split images (only "
                "when the ONNX model exists and training images are given)", required=False),
-    BundleFile("deploy_json", "deploy.json", "pipeline.deploy.bundle.write_bundle",
+    OutputFile("deploy_json", "deploy.json", "pipeline.deploy.bundle.write_bundle",
                "tau and its source, working resolution, config, parity, file sha256s, source checkpoint "
                "(pipeline.deploy.bundle.read_deploy_info: every reader)"),
     # bundles of older versions have no contract: not required
-    BundleFile("contract", "contract.json", "pipeline.deploy.bundle.write_contract",
+    OutputFile("contract", "contract.json", "pipeline.deploy.bundle.write_contract",
                "the written input/output contract for software that runs the ONNX model without this project: "
                "frame reading, size, channel order, normalisation, dtype, tau, output meaning, confidence, "
                "the golden pair and its tolerance", required=False),
-    BundleFile("golden_input", "golden_input.npy", "pipeline.deploy.bundle.write_contract",
+    OutputFile("golden_input", "golden_input.npy", "pipeline.deploy.bundle.write_contract",
                "a golden model input: one RGB uint8 frame [R,R,3] at the working resolution", required=False),
-    BundleFile("golden_probs", "golden_probs.npy", "pipeline.deploy.bundle.write_contract",
+    OutputFile("golden_probs", "golden_probs.npy", "pipeline.deploy.bundle.write_contract",
                "the golden output: P = sigmoid(Z) float32 [R,R] of the golden input (PyTorch fp32, CPU)",
                required=False),
-    BundleFile("golden_mask", "golden_mask.npy", "pipeline.deploy.bundle.write_contract",
+    OutputFile("golden_mask", "golden_mask.npy", "pipeline.deploy.bundle.write_contract",
                "the golden mask [P >= tau], bool [R,R]", required=False),
 ]}
 
@@ -87,16 +88,6 @@ def bundle_file(key: str) -> str:
 def bundle_readers(key: str) -> tuple[str, ...]:
     """The engines that run bundle file ``key``."""
     return engines_reading(key)
-
-
-@dataclasses.dataclass(frozen=True)
-class OutputFile:
-    """One file or folder in an output folder (``{...}`` in its name filled by the writer)."""
-
-    key: str
-    name: str
-    written_by: str
-    description: str = ""
 
 
 def _files(written_by: str, *rows: tuple[str, ...]) -> dict[str, OutputFile]:
@@ -350,7 +341,7 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               "--artifacts {artifacts_dir} --out {report} --metrics-dir {metrics_efficiency}",
               ("manifest", "images", "reference", "teacher", "consensus", "geometry", "gates", "checkpoints",
                "thresholds", "metrics", "summary", "teacher_metrics", "efficiency"), ("report",),
-              ("profile",) + _keys("report", "qualitative_images", "pseudo_target_images"),
+              ("profile",) + _keys("report"),
               # a new floor changes the report's verdicts
               data_deps=(dvc_path("noise_floor"),), metrics=("metrics_efficiency",)),
     # in dvc.yaml only when params review.corrections is set (pipeline.orchestration.dag.OPTIONAL_STAGES)

@@ -261,19 +261,13 @@ def method_lr(method: Method, cfg: Mapping[str, Any]) -> float:
 #: train params every method reads; ``precision`` and ``num_threads`` change numerics, so they are among them
 COMMON_KEYS = ("channels", "norm", "bn_momentum", "precise_bn", "batch_size", "weight_decay", "schedule",
                "dice_weight", "pos_weight_max", "loss_eps", "recipe", "precision", "warmup_epochs", "average_last",
-               "channels_last", "augment_hflip", "num_threads", "val_bf1_tolerance",
-               "decay_fraction", "augment", "augmentation", "ema_decay", "soft_targets", "until", "step_budget",
-               "time_budget", "plateau_gain", "plateau_min_epochs", "holdout_fraction", "lr_scale")
+               "channels_last", "augment_hflip", "num_threads", "val_bf1_tolerance", "decay_fraction", "augment",
+               "augmentation", "ema_decay", "soft_targets", "until", "step_budget", "time_budget", "plateau_gain",
+               "plateau_min_epochs", "holdout_fraction", "lr_scale")
 #: extra train params per loss term; the last key of a term is its weight (:func:`resolve_plan`)
-TERM_KEYS = {
-    "region": (),
-    "sdf": ("sdf_band", "sdf_base_weight", "lambda_sdf"),
-    "skel": ("lambda_skel",),
-    "area": ("area_eps", "lambda_area"),
-    "dist": ("gabi.lambda_dist",),
-    "boundary": ("sdf_band", "gabi.lambda_boundary"),
-    "anchor": ("adaptive.anchor_weight",),
-}
+TERM_KEYS = {"region": (), "sdf": ("sdf_band", "sdf_base_weight", "lambda_sdf"), "skel": ("lambda_skel",),
+             "area": ("area_eps", "lambda_area"), "dist": ("gabi.lambda_dist",),
+             "boundary": ("sdf_band", "gabi.lambda_boundary"), "anchor": ("adaptive.anchor_weight",)}
 #: the one key outside ``train.*`` every run reads: the tau of checkpoint selection, the project's fixed tau
 SELECTION_TAU_KEY = "calibrate.fixed_tau"
 
@@ -302,16 +296,10 @@ def input_artifacts(method: Method, criterion: str | None = None) -> tuple[str, 
 
     ``criterion``: ``train.confidence.criterion``; None means either (the superset dvc.yaml tracks).
     """
-    names = ["manifest", "images", "reference"]
-    if method.needs_gates:
-        names.append("gates")
-    if method.data == "afs" or (uses_confidence(method) and criterion in (None, "mean_score")):
-        names.append("teacher")
-    if method.data not in ("afs", "reference"):
-        names.append("consensus")
-    if method.needs_geometry:
-        names.append("geometry")
-    return tuple(names)
+    wanted = {"gates": method.needs_gates,
+              "teacher": method.data == "afs" or (uses_confidence(method) and criterion in (None, "mean_score")),
+              "consensus": method.data not in ("afs", "reference"), "geometry": method.needs_geometry}
+    return ("manifest", "images", "reference", *(name for name, needed in wanted.items() if needed))
 
 
 def mean_valid_score(scores: np.ndarray) -> np.ndarray:

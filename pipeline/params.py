@@ -512,33 +512,24 @@ class Params(_Section):
 PAPER = Params()
 
 
-def _error_line(err: ValidationError, origin: str) -> str:
-    e = err.errors()[0]
+def validate(raw: Mapping[str, Any], origin: str = "params", model: type[BaseModel] = Params) -> dict:
+    """The effective params (defaults filled in) of a whole mapping (or of one section's ``model``);
+    InputError naming the first bad key."""
+    try:
+        return model.model_validate(dict(raw)).model_dump(mode="python")
+    except ValidationError as err:
+        e = err.errors()[0]
     key = ".".join(str(p) for p in e["loc"])
-    msg = e["msg"].removeprefix("Value error, ")
-    if e["type"] == "extra_forbidden":
-        msg = "unknown key"
+    msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
     # a whole section's (or mapping's) value is too long to repeat; its validator's message names the key
     shown = "" if e["type"] in ("extra_forbidden", "missing") or isinstance(e.get("input"), Mapping) \
         else f"={e.get('input')!r}"
-    return f"{origin}: {key}{shown}: {msg}" if key else f"{origin}: {msg}"
-
-
-def _validated(model: type[BaseModel], raw: Mapping[str, Any], origin: str) -> dict:
-    try:
-        return model.model_validate(dict(raw)).model_dump(mode="python")
-    except ValidationError as e:
-        raise InputError(_error_line(e, origin)) from None
-
-
-def validate(raw: Mapping[str, Any], origin: str = "params") -> dict:
-    """The effective params (defaults filled in) of a whole mapping; InputError naming the first bad key."""
-    return _validated(Params, raw, origin)
+    raise InputError(f"{origin}: {key}{shown}: {msg}" if key else f"{origin}: {msg}")
 
 
 def validate_section(name: str, cfg: Mapping[str, Any]) -> dict:
     """Validate one section on its own (library entry points called outside a stage)."""
-    return _validated(Params.model_fields[name].annotation, cfg, f"params: {name}")
+    return validate(cfg, f"params: {name}", Params.model_fields[name].annotation)
 
 
 def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict:

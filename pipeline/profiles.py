@@ -94,8 +94,6 @@ def load_params_or_profile(params_file: str | Path | None, overrides: Iterable[s
     parsed = [parse_override(i) for i in items]
     named = next((value for keys, value in parsed if keys == [PROFILE_KEY]), None)
     rest = [i for i, (keys, _) in zip(items, parsed) if keys != [PROFILE_KEY]]
-    if named is not None:
-        return load_profile(str(named), rest)
-    if params_file is None:
-        return load_profile(default_profile, rest)
-    return load_params(params_file, rest)
+    if named is None and params_file is not None:
+        return load_params(params_file, rest)
+    return load_profile(default_profile if named is None else str(named), rest)
