@@ -8,6 +8,7 @@ Files are not opened here: ``build.decode_rows`` reads each once under the bad-i
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import logging
 import re
@@ -17,7 +18,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.datasets.loading import ColorTable
-from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec
+from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec, relative_id
 from pipeline.datasets.scan import scan_inputs
 from pipeline.datasets.synthetic import stable_hash
 from pipeline.runtime.errors import InputError
@@ -73,7 +74,7 @@ def _root(cfg: dict) -> Path:
     return root
 
 
-def _row(image_id, dataset, domain, split, group, spacecraft, image_path, mask_path=None, part_path=None, **extra):
+def row(image_id, dataset, domain, split, group, spacecraft, image_path, mask_path=None, part_path=None, **extra):
     return {"image_id": image_id, "dataset": dataset, "domain": domain, "split": split, "group": group,
             "spacecraft": spacecraft, "image_path": str(image_path),
             "mask_path": str(mask_path) if mask_path else None,
@@ -104,12 +105,10 @@ def _parse_colors(proto: dict, where: Path) -> ColorTable | None:
     if not out:
         return None
     table = ColorTable(out, tol, blends)
-    cols = list(table.entries())
-    for k, a in enumerate(cols):
-        for b in cols[k + 1:]:
-            if max(abs(x - y) for x, y in zip(a, b)) <= 2 * tol:
-                raise InputError(f"{where}: part colours {a} and {b} are within 2 x color_tolerance={tol} of "
-                                 f"each other (a pixel could match both)")
+    for a, b in itertools.combinations(table.entries(), 2):
+        if max(abs(x - y) for x, y in zip(a, b)) <= 2 * tol:
+            raise InputError(f"{where}: part colours {a} and {b} are within 2 x color_tolerance={tol} of "
+                             f"each other (a pixel could match both)")
     return table
 
 
@@ -168,7 +167,7 @@ def _disjoint_source(name: str, found: dict[str, list[tuple[str, Path, Path]]], 
             log.warning("%s: spacecraft %s has %d images, protocol asks %d", root, sc, len(items), per)
         labeled = split != "train"
         for sub, img, mask in items:
-            rows.append(_row(f"{sc}__{sub}__{Path(img).stem}", name, name, split, group, sc, img,
+            rows.append(row(f"{sc}__{sub}__{Path(img).stem}", name, name, split, group, sc, img,
                              mask if labeled else None, mask if labeled and colors else None, **{column: sub}))
     return DatasetSpec(rows=_frame(rows), mask_threshold=mask_threshold, part_colors=colors,
                        spacecraft_disjoint=True,
@@ -268,25 +267,18 @@ def _read_list(path: Path) -> list[str]:
             raise InputError(f"{path}: invalid JSON ({e.msg} at line {e.lineno})") from None
         if not isinstance(data, list):
             raise InputError(f"{path}: expected a JSON list of image entries")
-        names = []
-        for k, item in enumerate(data):
-            name = item.get("filename") if isinstance(item, dict) else item
-            if not isinstance(name, str) or not name:
-                raise InputError(f"{path}: entry {k} has no 'filename'")
-            names.append(name)
+        names = [item.get("filename") if isinstance(item, dict) else item for item in data]
+        bad = next((k for k, name in enumerate(names) if not isinstance(name, str) or not name), None)
+        if bad is not None:
+            raise InputError(f"{path}: entry {bad} has no 'filename'")
         return names
     return [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
 
 
 def _find_mask(mask_dir: Path, name: str, suffixes=(".png",)) -> Path | None:
-    p = mask_dir / name
-    if p.is_file() or p.is_symlink():  # a broken link is returned: the decode pass reports it
-        return p
-    for s in suffixes:
-        q = mask_dir / (Path(name).stem + s)
-        if q.is_file() or q.is_symlink():
-            return q
-    return None
+    candidates = [mask_dir / name] + [mask_dir / (Path(name).stem + s) for s in suffixes]
+    # a broken link is returned: the decode pass reports it
+    return next((p for p in candidates if p.is_file() or p.is_symlink()), None)
 
 
 def _split_pool(names: list[str], masks: dict[str, Path | None], n_train: int, n_val: int | None,
@@ -318,13 +310,10 @@ def speedplus_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
     if not any(masks.values()):
         raise InputError(f"{mask_dir}: no masks found for {domain} (validation and test need masks)")
     sc = str(proto.get("spacecraft", "Tango"))
-    rows = []
-    for n, split in _split_pool(names, masks, int(_get(proto, "train_images", where, int)),
-                                proto.get("val_images"), proto.get("test_images"), int(cfg["seed"]),
-                                f"speedplus-{domain}"):
-        group = {"train": "train", "val": "val"}.get(split, domain)
-        rows.append(_row(f"{domain}__{Path(n).stem}", "speedplus", domain, split, group, sc,
-                         ddir / "images" / n, masks[n] if split != "train" else None))
+    pool = _split_pool(names, masks, int(_get(proto, "train_images", where, int)), proto.get("val_images"),
+                       proto.get("test_images"), int(cfg["seed"]), f"speedplus-{domain}")
+    rows = [row(f"{domain}__{Path(n).stem}", "speedplus", domain, split, domain if split == "test" else split, sc,
+                 ddir / "images" / n, masks[n] if split != "train" else None) for n, split in pool]
     return DatasetSpec(rows=_frame(rows), mask_threshold=float(proto.get("mask_threshold", 128)),
                        spacecraft_disjoint=False, protocol={"name": "speedplus", "file": str(where), "domain": domain,
                                  "lists": [str(p) for p in lists]})
@@ -352,15 +341,14 @@ def tango_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
     train_names = lists["train_list"]
     masks = {n: mask_of(n) for n in train_names}
     sc = str(proto.get("spacecraft", "TANGO"))
-    rows = []
-    for n, split in _split_pool(train_names, masks, int(_get(proto, "train_images", where, int)),
-                                int(_get(proto, "val_images", where, int)), 0, int(cfg["seed"]), "tango"):
-        rows.append(_row(f"tango__{Path(n).stem}", "tango", "tango", split, split, sc, img_dir / n,
-                         masks[n] if split == "val" else None))
-    for n in lists["test_list"]:
-        # the official test set is used unchanged: a missing mask is bad input, not a reason to drop
-        rows.append(_row(f"tango__{Path(n).stem}", "tango", "tango", "test", "test", sc, img_dir / n,
-                         mask_of(n) or mask_dir / (Path(n).stem + suffix)))
+    pool = _split_pool(train_names, masks, int(_get(proto, "train_images", where, int)),
+                       int(_get(proto, "val_images", where, int)), 0, int(cfg["seed"]), "tango")
+    # the official test set is used unchanged: a missing mask is bad input, not a reason to drop
+    pool += [(n, "test") for n in lists["test_list"]]
+    rows = [row(f"tango__{Path(n).stem}", "tango", "tango", split, split, sc, img_dir / n,
+                 None if split == "train" else masks[n] if split == "val" else
+                 mask_of(n) or mask_dir / (Path(n).stem + suffix))
+            for n, split in pool]
     return DatasetSpec(rows=_frame(rows), mask_threshold=float(proto.get("mask_threshold", 127)),
                        spacecraft_disjoint=False, protocol={"name": "tango", "file": str(where)})
 
@@ -369,18 +357,8 @@ def _folder_entries(d: Path, policy: BadInputPolicy) -> list[tuple[str, Path]]:
     """(id, path) of the image files under ``d`` (:func:`pipeline.datasets.scan.scan_inputs`); id = the
     posix path relative to ``d`` without its suffix.  Bad entries go through the policy."""
     found = scan_inputs(d, keep_broken_links=True)
-
-    def rel_id(p) -> str:
-        try:
-            return Path(p).relative_to(d).with_suffix("").as_posix()
-        except ValueError:
-            return Path(p).stem
-
-    for p, reason in found.skipped:
-        policy.report(rel_id(p), p, reason)
-    for p, reason in found.unused:
-        policy.record(rel_id(p), p, reason)
-    return [(rel_id(p), p) for p in found.files]
+    policy.report_scan(found)
+    return [(relative_id(d, p), p) for p in found.files]
 
 
 def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | None = None) -> DatasetSpec:
@@ -422,12 +400,9 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
     labeled = [iid for iid, _ in entries if iid in masks]
     order = _rng(int(cfg["seed"]), "folder-val").permutation(len(labeled))
     val = {labeled[i] for i in order[:int(round(val_fraction * len(labeled)))]}
-    rows = []
-    for iid, p in entries:
-        m = masks.get(iid)
-        split = "train" if m is None else ("val" if iid in val else "test")
-        rows.append(_row(iid, "folder", str(proto.get("domain", "folder")), split, split, sc, p,
-                         m if split != "train" else None))
+    splits = {iid: "train" if iid not in masks else "val" if iid in val else "test" for iid, _ in entries}
+    rows = [row(iid, "folder", str(proto.get("domain", "folder")), splits[iid], splits[iid], sc, p, masks.get(iid))
+            for iid, p in entries]
     if not rows:
         raise InputError(f"{img_dir}: no files")
     return DatasetSpec(rows=_frame(rows), mask_threshold=proto.get("mask_threshold"), spacecraft_disjoint=False,
@@ -442,7 +417,5 @@ SCANNING_ADAPTERS = {"folder"}   # adapters that report unused files themselves 
 def build_source(cfg: dict, policy: BadInputPolicy | None = None) -> DatasetSpec:
     """Rows of the real dataset named by ``data.source`` under ``data.root`` with its protocol file."""
     source = cfg["source"]
-    proto, where = load_protocol(source, cfg.get("protocol"))
-    if source in SCANNING_ADAPTERS:
-        return ADAPTERS[source](cfg, proto, where, policy or BadInputPolicy(False))
-    return ADAPTERS[source](cfg, proto, where)
+    extra = (policy or BadInputPolicy(False),) if source in SCANNING_ADAPTERS else ()
+    return ADAPTERS[source](cfg, *load_protocol(source, cfg.get("protocol")), *extra)

@@ -20,7 +20,7 @@ from pipeline.artifacts.atomic import atomic_path
 from pipeline.catalog import output_file
 from pipeline.datasets import adapters
 from pipeline.datasets import synthetic as syn
-from pipeline.datasets.loading import BadFileError, DecodeCache, load_labels, load_mask, load_rgb, mask_kind
+from pipeline.datasets.loading import BadFileError, DecodeCache, Loaded, load_labels, load_mask, load_rgb, mask_kind
 from pipeline.datasets.manifest import (BadInputPolicy, DatasetSpec, check_rows, drop_duplicate_ids,
                                         enforce_spacecraft_disjoint)
 from pipeline.runtime.errors import InputError
@@ -68,19 +68,13 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
                 for sub, data in files.items():
                     (tmp / sub / f"{iid}.png").write_bytes(data)
                 if cache is not None:  # the arrays are in hand: cache them under the bytes' hashes
-                    hw = (size, size)
-                    cache.put(hashlib.sha256(files["images"]).hexdigest(), "rgb", size, view.image, hw)
-                    cache.put(hashlib.sha256(files["masks"]).hexdigest(), mask_kind(None), size, view.mask, hw)
-                    cache.put(hashlib.sha256(files["parts"]).hexdigest(), "labels", size, view.parts, hw)
-                rows.append({
-                    "image_id": iid, "dataset": "synthetic", "domain": "synthetic", "split": sc.split,
-                    "group": sc.group, "spacecraft": sc.name,
-                    "image_path": str(final / "images" / f"{iid}.png"),
-                    "mask_path": str(final / "masks" / f"{iid}.png"),
-                    "part_path": str(final / "parts" / f"{iid}.png"),
-                    "view_index": v, "background": view.background, "hard_case": view.hard_case,
-                    "area_fraction": view.area_fraction,
-                })
+                    for data, kind, arr in zip(files.values(), ("rgb", mask_kind(None), "labels"),
+                                               (view.image, view.mask, view.parts)):
+                        cache.put(hashlib.sha256(data).hexdigest(), kind, size, arr, (size, size))
+                rows.append(adapters.row(iid, "synthetic", "synthetic", sc.split, sc.group, sc.name,
+                                         *(final / sub / f"{iid}.png" for sub in files), view_index=v,
+                                         background=view.background, hard_case=view.hard_case,
+                                         area_fraction=view.area_fraction))
                 bar.update(1)
     return DatasetSpec(rows=pd.DataFrame(rows), mask_threshold=None, part_colors=None,
                        spacecraft_disjoint=True,
@@ -132,7 +126,7 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
     A row whose image, mask or part file is bad, or whose mask/part size differs from the image's, goes
     through the policy; its other files are then listed too.
     """
-    keep, width, height, sha = [], [], [], []
+    kept: dict[int, Loaded] = {}   # row -> its image
     for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):
         try:
             img = _load(spec, "image_path", r.image_path, size, cache)
@@ -152,14 +146,11 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
                     policy.record(r.image_id, other, f"not used: image {r.image_id!r} was left out "
                                                      f"({Path(e.path).name}: {e.reason})")
             continue
-        keep.append(i)
-        height.append(img.native_hw[0])
-        width.append(img.native_hw[1])
-        sha.append(img.sha256)
-    out = rows.iloc[keep].reset_index(drop=True).copy()
-    out["width"] = np.asarray(width, np.int64)
-    out["height"] = np.asarray(height, np.int64)
-    out["sha256"] = sha
+        kept[i] = img
+    out = rows.iloc[list(kept)].reset_index(drop=True).copy()
+    out["width"] = np.asarray([im.native_hw[1] for im in kept.values()], np.int64)
+    out["height"] = np.asarray([im.native_hw[0] for im in kept.values()], np.int64)
+    out["sha256"] = [im.sha256 for im in kept.values()]
     for col in ("mask_path", "part_path"):
         out[col] = [p if _has(p) else None for p in out[col]]
     if out.empty:

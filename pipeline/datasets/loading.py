@@ -164,18 +164,13 @@ def rgb8_and_note(arr: np.ndarray, path: str | Path = "<array>", bit_depth="auto
         a8 = np.clip(arr, 0, 255).astype(np.uint8)
     else:
         raise BadFileError(path, f"unsupported pixel type {arr.dtype}")
-    if a8.ndim == 2:
-        return np.repeat(a8[..., None], 3, axis=2), note
+    a8 = a8[..., None] if a8.ndim == 2 else a8
     if a8.ndim != 3:
         raise BadFileError(path, f"unsupported image shape {arr.shape}")
     ch = a8.shape[2]
-    if ch == 1:
-        return np.repeat(a8, 3, axis=2), note
-    if ch == 3:
-        return np.ascontiguousarray(a8[..., ::-1]), note
-    if ch == 4:
-        return np.ascontiguousarray(a8[..., 2::-1]), note
-    raise BadFileError(path, f"unsupported channel count {ch}")
+    if ch not in (1, 3, 4):
+        raise BadFileError(path, f"unsupported channel count {ch}")
+    return (np.repeat(a8, 3, axis=2) if ch == 1 else np.ascontiguousarray(a8[..., 2::-1])), note
 
 
 def to_rgb8(arr: np.ndarray, path: str | Path = "<array>", bit_depth="auto") -> np.ndarray:
@@ -212,16 +207,6 @@ def reset_frame_warnings() -> None:
     _warned_frames.clear()
 
 
-def multi_valued_note(a: np.ndarray) -> str | None:
-    """None for a binary mask (one non-zero value at most), else a short description of its values."""
-    nz = a[a != 0]
-    if nz.size == 0 or not (nz != nz.flat[0]).any():
-        return None
-    values = np.unique(nz)
-    shown = ", ".join(f"{v:g}" for v in values[:6].tolist()) + (", ..." if values.size > 6 else "")
-    return f"multi-valued label mask (non-zero values {shown}; {values.size} distinct)"
-
-
 def warn_mask_once(path: str | Path, note: str | None) -> None:
     """The one warning per file (per process) for a multi-valued mask read with the default rule."""
     if note and str(path) not in _warned:
@@ -232,24 +217,23 @@ def warn_mask_once(path: str | Path, note: str | None) -> None:
 
 def binarize_mask(arr: np.ndarray, threshold: float | None = None) -> tuple[np.ndarray, str | None]:
     """``(bool mask, note)``: foreground = max over channels > ``threshold`` (None: > 0); ``note``
-    describes a multi-valued mask under the default rule."""
+    describes a multi-valued mask under the default rule (more than one non-zero value)."""
     a = arr.max(axis=2) if arr.ndim == 3 else arr
-    if threshold is None:
-        return a > 0, multi_valued_note(a)
-    return a > threshold, None
-
-
-def mask_from_array(arr: np.ndarray, threshold: float | None = None, path: str | Path | None = None) -> np.ndarray:
-    """:func:`binarize_mask`, warning once per ``path`` about a multi-valued mask."""
-    mask, note = binarize_mask(arr, threshold)
-    if path is not None:
-        warn_mask_once(path, note)
-    return mask
+    if threshold is not None:
+        return a > threshold, None
+    nz = a[a != 0]
+    if nz.size == 0 or not (nz != nz.flat[0]).any():
+        return a > 0, None
+    values = np.unique(nz)
+    shown = ", ".join(f"{v:g}" for v in values[:6].tolist()) + (", ..." if values.size > 6 else "")
+    return a > 0, f"multi-valued label mask (non-zero values {shown}; {values.size} distinct)"
 
 
 def read_mask(path: str | Path, threshold: float | None = None, *, max_pixels: int | None = None) -> np.ndarray:
-    """A mask file as bool [H, W] at native size."""
-    return mask_from_array(_decode(read_image_bytes(path, max_pixels), path), threshold, path)
+    """A mask file as bool [H, W] at native size, warning once per file about a multi-valued mask."""
+    mask, note = binarize_mask(_decode(read_image_bytes(path, max_pixels), path), threshold)
+    warn_mask_once(path, note)
+    return mask
 
 
 #: the colour of background in every colour-coded part mask (label 0 unless a table maps it)
@@ -314,8 +298,9 @@ def parts_from_colors(rgb: np.ndarray, colors: dict | ColorTable, path: str | Pa
         worst = np.flatnonzero(unmatched)[counts[unmatched].argmax()]
         r, g, b = (int(v) for v in u[worst])
         within = f" within {table.tolerance}" if table.tolerance else ""
-        raise BadFileError(path, f"seg colour ({r}, {g}, {b}) is outside the class table ({int(counts[unmatched].sum())} "
-                                 f"pixel(s) match no part_colors entry{within}; black is background)")
+        raise BadFileError(path, f"seg colour ({r}, {g}, {b}) is outside the class table "
+                                 f"({int(counts[unmatched].sum())} pixel(s) match no part_colors entry{within}; "
+                                 "black is background)")
     return ulab[inverse].reshape(rgb.shape[:2])
 
 
@@ -334,13 +319,14 @@ def pad_to_square(img: np.ndarray) -> np.ndarray:
     return np.pad(img, pad)
 
 
-def resize_image(img: np.ndarray, size: int, letterbox: bool = False) -> np.ndarray:
+def resize_image(img: np.ndarray, size: int, letterbox: bool = False, interpolation: int = cv2.INTER_AREA
+                 ) -> np.ndarray:
     """Square working resolution, area interpolation; ``letterbox``: padded to a square first."""
     if letterbox:
         img = pad_to_square(img)
     if img.shape[0] == size and img.shape[1] == size:
         return img
-    return cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
+    return cv2.resize(img, (size, size), interpolation=interpolation)
 
 
 def _frame_samples(n: int, offset: int, side: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -373,12 +359,7 @@ def probs_to_size(probs: np.ndarray, height: int, width: int, letterbox: bool = 
 
 def resize_nearest(lbl: np.ndarray, size: int, letterbox: bool = False) -> np.ndarray:
     """Nearest-neighbour resize of a label/mask array to size x size (``letterbox`` as :func:`resize_image`)."""
-    if letterbox:
-        lbl = pad_to_square(lbl)
-    if lbl.shape[0] == size and lbl.shape[1] == size:
-        return lbl
-    out = cv2.resize(lbl.astype(np.uint8), (size, size), interpolation=cv2.INTER_NEAREST)
-    return out.astype(lbl.dtype)
+    return resize_image(lbl.astype(np.uint8), size, letterbox, cv2.INTER_NEAREST).astype(lbl.dtype)
 
 
 class DecodeCache:
@@ -397,25 +378,17 @@ class DecodeCache:
     def path(self, sha: str, kind: str, size: int) -> Path:
         return self.root / sha[:2] / f"{self.key(sha, kind, size)}.npz"
 
-    def get(self, sha: str, kind: str, size: int) -> tuple[np.ndarray, tuple[int, int]] | None:
-        hit = self.get_entry(sha, kind, size)
-        return None if hit is None else hit[:2]
-
-    def get_entry(self, sha: str, kind: str, size: int) -> tuple[np.ndarray, tuple[int, int], str | None] | None:
+    def get(self, sha: str, kind: str, size: int) -> tuple[np.ndarray, tuple[int, int], str | None] | None:
         """``(array, native_hw, note)`` or None (miss, unreadable entry, or an entry of another key)."""
         if self.root is None:
             return None
-        p = self.path(sha, kind, size)
-        if not p.exists():
-            self.misses += 1
-            return None
         try:
-            with np.load(p, allow_pickle=False) as z:
+            with np.load(self.path(sha, kind, size), allow_pickle=False) as z:
                 if str(z["k"]) != self.key(sha, kind, size):
                     raise ValueError("entry of another key")
                 arr, hw = z["a"], tuple(int(v) for v in z["hw"])
                 note = str(z["w"]) or None
-        except Exception:  # noqa: BLE001 -- a torn, foreign or misplaced entry is a miss; it is rewritten
+        except Exception:  # noqa: BLE001 -- a missing, torn, foreign or misplaced entry is a miss; it is rewritten
             self.misses += 1
             return None
         self.hits += 1
@@ -454,7 +427,7 @@ def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pix
     warn = warn_frame_once if rgb else warn_mask_once
     kind = f"{kind}-letterbox" if letterbox else kind
     if cache is not None:
-        hit = cache.get_entry(sha, kind, size)
+        hit = cache.get(sha, kind, size)
         if hit is not None:
             warn(path, hit[2])
             return Loaded(hit[0], sha, hit[1])
@@ -468,16 +441,13 @@ def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pix
     return Loaded(arr, sha, hw)
 
 
-def rgb_kind(bit_depth="auto") -> str:
-    """Decode-cache kind of a frame read under ``bit_depth``."""
-    bit_depth = check_bit_depth(bit_depth)
-    return "rgb" if bit_depth == AUTO_BIT_DEPTH else f"rgb{int(bit_depth)}bit"
-
-
 def load_rgb(path, size: int, cache: DecodeCache | None = None, *, max_pixels: int | None = None,
              bit_depth="auto", letterbox: bool = False) -> Loaded:
-    """RGB uint8 [size, size, 3] (area interpolation), its sha256 and native size; cached."""
-    return _load(path, size, rgb_kind(bit_depth), cache, lambda a: rgb8_and_note(a, path, bit_depth), max_pixels,
+    """RGB uint8 [size, size, 3] (area interpolation), its sha256 and native size; cached (kind ``rgb``, or
+    ``rgb<bits>bit`` under a stated bit depth)."""
+    bit_depth = check_bit_depth(bit_depth)
+    kind = "rgb" if bit_depth == AUTO_BIT_DEPTH else f"rgb{int(bit_depth)}bit"
+    return _load(path, size, kind, cache, lambda a: rgb8_and_note(a, path, bit_depth), max_pixels,
                  letterbox)
 
 
@@ -501,12 +471,5 @@ def load_labels(path, size: int, cache: DecodeCache | None = None,
         table = as_color_table(colors)
         return _load(path, size, table.kind(), cache,
                      lambda a: parts_from_colors(rgb8_and_note(a, path)[0], table, path), max_pixels, letterbox)
-
-    def as_labels(a):
-        if a.ndim == 3:
-            a = a[..., 0]
-        if a.dtype != np.uint8:
-            a = np.clip(a, 0, 255).astype(np.uint8)
-        return a
-
-    return _load(path, size, "labels", cache, as_labels, max_pixels, letterbox)
+    return _load(path, size, "labels", cache, lambda a: np.clip(a[..., 0] if a.ndim == 3 else a, 0, 255)
+                 .astype(np.uint8), max_pixels, letterbox)

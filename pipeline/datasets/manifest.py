@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from pathlib import Path
 
 import pandas as pd
 
@@ -76,6 +77,13 @@ class BadInputPolicy:
         """:meth:`report` of a :class:`pipeline.datasets.loading.BadFileError` (its path, reason, fix)."""
         self.report(image_id, error.path, error.reason, error.fix, error.options)
 
+    def report_scan(self, found) -> None:
+        """:meth:`report` the bad entries of a :class:`pipeline.datasets.scan.Inputs` and :meth:`record` its
+        unused files, each under its id in ``found.root`` (:func:`relative_id`)."""
+        for tell, entries in ((self.report, found.skipped), (self.record, found.unused)):
+            for path, reason in entries:
+                tell(relative_id(found.root, path), path, reason)
+
     def _bad(self) -> list[dict]:
         return [r for r in self.skipped if not r.get("listed_only")]
 
@@ -112,6 +120,15 @@ def drop_duplicate_ids(rows: pd.DataFrame, policy: BadInputPolicy) -> pd.DataFra
         policy.report(r["image_id"], r["image_path"],
                       f"duplicate image id {r['image_id']!r} (also used by {first})")
     return rows[~dup].reset_index(drop=True)
+
+
+def relative_id(root: Path, path: str | Path) -> str:
+    """The image id of ``path``: its posix path relative to ``root`` without the suffix, or its stem outside
+    ``root``."""
+    try:
+        return Path(path).relative_to(root).with_suffix("").as_posix()
+    except ValueError:
+        return Path(path).stem
 
 
 SPLIT_PRIORITY = {"test": 0, "val": 1, "train": 2}
