@@ -71,7 +71,6 @@ def with_time_budget(params: dict, text: str | None, previous: Mapping | None = 
         steps = int(old["step_budget"])
     else:
         steps = steps_for(seconds, step_seconds(params["train"], int(params["data"]["resolution"]), device))
-    train = {**params["train"], "time_budget": text, "step_budget": steps}
-    if train.get("until") != "plateau":
-        train["until"] = "plateau"  # a budget needs the stop-and-decay schedule
+    # a budget needs the stop-and-decay schedule
+    train = {**params["train"], "time_budget": text, "step_budget": steps, "until": "plateau"}
     return {**params, "train": train}

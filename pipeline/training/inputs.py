@@ -4,7 +4,6 @@ supervised ceiling only), and human corrections; from opened artifacts or an art
 from __future__ import annotations
 
 import dataclasses
-import functools
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -12,7 +11,7 @@ import numpy as np
 
 from pipeline import catalog
 from pipeline.artifacts.lineage import require_same_run
-from pipeline.artifacts.store import open_artifact, read_chunk_rows
+from pipeline.artifacts.store import open_artifact
 from pipeline.augment import GeometryConstants, recompute_geometry
 from pipeline.evaluation.inference import REVIEW_MODE_KEY, corrected_validation, require_mode
 from pipeline.geometry import area_ratio
@@ -73,10 +72,7 @@ def _check_order(art, ids: list, what: str) -> None:
 
 
 def _rows(art, name: str, idx: np.ndarray) -> np.ndarray:
-    arr = art[name]
-    if len(idx) == 0:
-        return np.zeros((0, *arr.shape[1:]), dtype=arr.dtype)
-    return read_chunk_rows(arr, idx)
+    return np.asarray(LazyRows(art[name], idx))
 
 
 def training_inputs(method: Method, cfg: Mapping[str, Any]) -> tuple[str, ...]:
@@ -158,13 +154,10 @@ def geometry_constants(geometry) -> GeometryConstants:
     """The ``geometry.*`` constants recorded in geometry.zarr's params (the defaults where it records none)."""
     params = getattr(getattr(geometry, "meta", None), "params", None) or {}
     nested = params.get("geometry") if isinstance(params.get("geometry"), Mapping) else {}
-
-    def get(key: str, default: float) -> float:
-        return float(params.get(f"geometry.{key}", nested.get(key, default)))
-
+    keys = {"quantile": "sdf_quantile", "min_scale": "sdf_min_scale", "min_distance": "skeleton_min_distance"}
     d = GeometryConstants()
-    return GeometryConstants(quantile=get("sdf_quantile", d.quantile), min_scale=get("sdf_min_scale", d.min_scale),
-                             min_distance=get("skeleton_min_distance", d.min_distance))
+    return GeometryConstants(**{f: float(params.get(f"geometry.{k}", nested.get(k, getattr(d, f))))
+                                for f, k in keys.items()})
 
 
 def gate_values(method: Method, gates_df, sel: np.ndarray) -> np.ndarray:
@@ -189,16 +182,12 @@ def _afs_targets(teacher, train_idx, a: Mapping[str, Any]) -> tuple[MappedRows, 
     k = prompts.index(base)
     rows = np.sort(train_idx)
     afs_fuse(np.zeros(1, bool), np.zeros(1, bool), a["fusion"])  # a bad train.afs.fusion fails here, not mid-epoch
-    fused = MappedRows(functools.partial(_afs_fuse_prompt, k=k, fusion=a["fusion"]),
+    fused = MappedRows(lambda masks, vflip_masks: afs_fuse(masks[:, k], vflip_masks, a["fusion"]),
                        [LazyRows(teacher["masks"], rows, bool), LazyRows(teacher["vflip_masks"], rows, bool)],
                        bool, teacher["vflip_masks"].shape[1:])
     scores = np.asarray(teacher["scores"].get_orthogonal_selection((rows, k)), dtype=np.float64)
     keep = afs_keep(scores, float(a["score_threshold"]))
     return fused, keep, pass_ratio(keep)
-
-
-def _afs_fuse_prompt(masks: np.ndarray, vflip_masks: np.ndarray, k: int, fusion: str) -> np.ndarray:
-    return afs_fuse(masks[:, k], vflip_masks, fusion)
 
 
 def validation_rows(manifest) -> np.ndarray:

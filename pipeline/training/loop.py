@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import logging
 import math
 import tempfile
@@ -135,15 +136,13 @@ def _lr_lambda(schedule: str, total_steps: int, warmup_steps: int = 0, decay_ste
     """Learning-rate factor of step ``step`` (0-based): ``constant`` 1, ``cosine`` 0.5 (1 + cos(pi min(step, T) / T)),
     or ``wsd`` min(1, max(0, T - step) / D) with T = ``total_steps``, D = ``decay_steps``; times the warm-up
     min(1, (step + 1) / W) when W = ``warmup_steps`` > 0."""
-    if schedule == "constant":
-        base = lambda step: 1.0
-    elif schedule == "cosine":
-        base = lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1)))
-    elif schedule == "wsd":
-        d = max(int(decay_steps), 1)
-        base = lambda step: min(1.0, max(0, total_steps - step) / d)
-    else:
+    d = max(int(decay_steps), 1)
+    bases = {"constant": lambda step: 1.0,
+             "cosine": lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1))),
+             "wsd": lambda step: min(1.0, max(0, total_steps - step) / d)}
+    if schedule not in bases:
         raise InputError(f"params: train.schedule={schedule!r}: expected cosine, constant or wsd")
+    base = bases[schedule]
     if warmup_steps <= 0:
         return base
     return lambda step: min(1.0, (step + 1) / warmup_steps) * base(step)
@@ -213,18 +212,12 @@ def _batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor 
     return b
 
 
-def _host_rows(v: torch.Tensor | RowSource, idx: np.ndarray) -> np.ndarray:
-    """Rows ``idx`` of a training array as numpy."""
-    if isinstance(v, RowSource):
-        return np.asarray(v[idx])
-    return v[torch.from_numpy(idx).to(v.device)].cpu().numpy()
-
-
 def _augmented_batch(run: _Run, idx: np.ndarray, epoch: int) -> dict[str, torch.Tensor]:
     """The batch of rows ``idx``, each image augmented with the seed ``[seed, epoch, row]``."""
-    t = run.tensors
-    keys = [k for k in ("mask", "sdf", "skeleton", "anchor", "area", "gate") if k in t]
-    images, targets = augment_batch(_host_rows(t["image"], idx), {k: _host_rows(t[k], idx) for k in keys},
+    idx_dev = torch.from_numpy(idx).to(run.device)
+    rows = {k: _take(v, idx_dev).cpu().numpy() for k, v in run.tensors.items()}
+    images = rows.pop("image")
+    images, targets = augment_batch(images, rows,
                                     [[run.seed, epoch, int(i)] for i in idx], run.settings.augment,
                                     run.geometry)
     dev = {"image": torch.from_numpy(images).to(run.device),
@@ -241,8 +234,7 @@ def validation_scores(model, val: ValData | None, device, *, precision: str, cha
                       calibrated: bool = True) -> dict[str, float]:
     """Mean val Image IoU and Boundary F1 of [P >= tau] (eq:inference-mask) and, with ``calibrated``, the IoU at the
     epoch's best tau of :data:`pipeline.thresholds.EPOCH_TAU_GRID` (NaN without validation data); model: train mode."""
-    nan = float("nan")
-    out = {"val_iou": nan, "val_bf1": nan, "val_iou_cal": nan, "val_tau_cal": nan}
+    out = dict.fromkeys(("val_iou", "val_bf1", "val_iou_cal", "val_tau_cal"), float("nan"))
     if not _has_val(val):
         return out
     probs = predict_probs(model, val.images, device=device, batch_size=16, precision=precision,
@@ -364,13 +356,14 @@ def decay_epochs(stable: int, fraction: float) -> int:
 
 def stable_cap(s: Settings, steps_per_epoch: int) -> int:
     """The most stable epochs E (at least 1) with E + D(E) <= ``epochs_stage1`` and within the step budget."""
-    best = 1
-    for e in range(1, s.epochs + 1):
-        total = e + decay_epochs(e, s.decay_fraction)
-        if total > s.epochs or (s.step_budget and total * steps_per_epoch > s.step_budget):
-            break
-        best = e
-    return best
+    fits = [e for e in range(1, s.epochs + 1)
+            if e + decay_epochs(e, s.decay_fraction) <= s.epochs and not _over_budget(s, e, steps_per_epoch)]
+    return max(fits, default=1)
+
+
+def _over_budget(s: Settings, stable: int, steps_per_epoch: int) -> bool:
+    """Whether ``stable`` stable epochs and their decay exceed ``train.step_budget`` (never without one)."""
+    return bool(s.step_budget) and (stable + decay_epochs(stable, s.decay_fraction)) * steps_per_epoch > s.step_budget
 
 
 def plateau_reached(scores: list[float], gain: float, min_epochs: int) -> bool:
@@ -387,13 +380,9 @@ def _until_lambda(run: _Run) -> Callable[[int], float]:
     """The learning-rate factor under ``train.until: plateau``: warm-up, 1, then linear to 0 over the decay."""
     spe, warm = run.steps_per_epoch, run.settings.warmup_epochs * run.steps_per_epoch
 
-    def factor(step: int) -> float:
-        w = min(1.0, (step + 1) / warm) if warm > 0 else 1.0
-        end = run.until["stable_end"]
-        if end is None:
-            return w
-        total, start = run.until["epochs"] * spe, end * spe
-        return w * min(1.0, max(0, total - step) / max(total - start, 1))
+    def factor(step: int) -> float:  # the wsd schedule once the stable phase has ended: its decay ends the run
+        end, total = run.until["stable_end"], run.until["epochs"] * spe
+        return _lr_lambda("constant" if end is None else "wsd", total, warm, total - (end or 0) * spe)(step)
 
     return factor
 
@@ -410,8 +399,7 @@ def _stop_stable(run: _Run, epoch: int, row: Mapping) -> None:
     if plateau_reached(u["scores"], s.plateau_gain, s.plateau_min_epochs):
         u["reason"] = f"plateau: the last doubling gained less than {s.plateau_gain:g} validation IoU"
     elif epoch >= u["epochs"]:
-        budget = s.step_budget and (epoch + 1 + decay_epochs(epoch + 1, s.decay_fraction)) * run.steps_per_epoch \
-            > s.step_budget
+        budget = _over_budget(s, epoch + 1, run.steps_per_epoch)
         u["reason"] = "the step budget (train.step_budget)" if budget else "the epochs cap (train.epochs_stage1)"
     else:
         return
@@ -429,15 +417,12 @@ def _anchor_probs(frozen, images: np.ndarray | RowSource, device: torch.device, 
                   scratch: tempfile.TemporaryDirectory | None) -> np.ndarray | LazyRows:
     """The frozen Stage-I probabilities of every training image (L_anchor's target), in memory or spilled to
     ``scratch`` and read back per batch."""
-    def blocks():
-        for start in range(0, len(images), ANCHOR_BATCH):
-            yield predict_probs(frozen, images[start:start + ANCHOR_BATCH], device=device, batch_size=ANCHOR_BATCH,
-                                precision=s.precision, channels_last=s.channels_last)
-
+    probs = functools.partial(predict_probs, frozen, device=device, batch_size=ANCHOR_BATCH, precision=s.precision,
+                              channels_last=s.channels_last)
     if scratch is None:
-        return predict_probs(frozen, images, device=device, batch_size=ANCHOR_BATCH, precision=s.precision,
-                             channels_last=s.channels_last)
-    return spill_rows(f"{scratch.name}/anchor.zarr", blocks(), images.shape[:3], np.float32)
+        return probs(images)
+    blocks = (probs(images[i:i + ANCHOR_BATCH]) for i in range(0, len(images), ANCHOR_BATCH))
+    return spill_rows(f"{scratch.name}/anchor.zarr", blocks, images.shape[:3], np.float32)
 
 
 def _resume(run: _Run, checkpointer: Checkpointer) -> int:
@@ -495,12 +480,8 @@ def select(best: dict | None, plan: Plan, val: ValData | None, epoch: int, row: 
            eligible: bool) -> dict | None:
     """The best candidate ``{"epoch", "score", "state"}`` after ``epoch``: the latest eligible one (``select ==
     "last"`` or no validation masks), else the highest (val IoU, val BF1), an earlier epoch winning a tie."""
-    if not eligible:
-        return best
-    if plan.select == "last" or not _has_val(val):
-        return {"epoch": epoch, "score": None, "state": _cpu_state(model)}
-    score = (row["val_iou"], row["val_bf1"])
-    if best is None or best["score"] is None or score > tuple(best["score"]):
+    score = None if plan.select == "last" or not _has_val(val) else (row["val_iou"], row["val_bf1"])
+    if eligible and (score is None or best is None or best["score"] is None or score > tuple(best["score"])):
         return {"epoch": epoch, "score": score, "state": _cpu_state(model)}
     return best
 
@@ -510,12 +491,8 @@ def average_update(avg: dict | None, state: Mapping[str, torch.Tensor]) -> dict:
     new = {k: v.detach().to("cpu", copy=True) for k, v in state.items()}
     if avg is None:
         return {"n": 1, "state": new}
-    n = int(avg["n"]) + 1
-    out = {}
-    for k, v in new.items():
-        m = avg["state"][k]
-        out[k] = m + (v - m) / n if v.is_floating_point() else v
-    return {"n": n, "state": out}
+    n, old = int(avg["n"]) + 1, avg["state"]
+    return {"n": n, "state": {k: old[k] + (v - old[k]) / n if v.is_floating_point() else v for k, v in new.items()}}
 
 
 def _average(run: _Run, epoch: int) -> None:
@@ -575,10 +552,8 @@ def _step(run: _Run, b: Mapping[str, torch.Tensor], epoch: int, step: int) -> di
 
 def _epoch_batches(run: _Run, epoch: int):
     """The epoch's (size, batch) pairs in a ``[seed, epoch]`` order; streamed data read two batches ahead."""
-    if _streaming(run.tensors):
-        yield from prefetch(_epoch_batches_in_order(run, epoch), depth=2)
-    else:
-        yield from _epoch_batches_in_order(run, epoch)
+    batches = _epoch_batches_in_order(run, epoch)
+    return prefetch(batches, depth=2) if _streaming(run.tensors) else batches
 
 
 def _epoch_batches_in_order(run: _Run, epoch: int):
@@ -622,10 +597,7 @@ def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
     if not bool(torch.stack([torch.isfinite(p).all() for p in run.model.parameters()]).all()):
         raise TrainingDiverged(f"{run.method.name} seed {run.seed}: non-finite weights after epoch {epoch}; "
                                f"no checkpoint written -- lower the learning rate or check the inputs")
-    row = _empty_row(run, epoch)
-    for k, v in sums.items():
-        row[k] = float(v) / run.n_train
-    row["lr"] = float(lr_epoch)
+    row = {**_empty_row(run, epoch), **{k: float(v) / run.n_train for k, v in sums.items()}, "lr": float(lr_epoch)}
     return _validated(run, row, val, t0)
 
 
@@ -635,28 +607,25 @@ def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainRe
 
     if run.best is None:  # cannot happen with epochs >= 1: a guard against a silent wrong pick
         raise RuntimeError("no checkpoint candidate")
-    if run.ema is not None or run.avg is not None:  # averaged weights, BN statistics recomputed for them
-        if run.ema is not None:
-            with torch.no_grad():
-                torch._foreach_copy_(list(run.model.parameters()), run.ema)
-        else:
-            run.model.load_state_dict(run.avg["state"])
-        _precise_bn(run)
-        run.best = {"epoch": run.epochs, "score": None, "state": None}
-    else:
-        run.model.load_state_dict(run.best["state"])
-    model = run.model.to("cpu").to(memory_format=torch.contiguous_format).eval()
     plan, s = run.plan, run.settings
     selection = plan.select if _has_val(val) or plan.select == "last" else "last (no validation masks)"
     if run.ema is not None:
+        with torch.no_grad():
+            torch._foreach_copy_(list(run.model.parameters()), run.ema)
         selection = f"moving average of the weights, decay {s.ema_decay:g} per step (BN statistics recomputed)"
     elif run.avg is not None:
+        run.model.load_state_dict(run.avg["state"])
         selection = f"mean weights of the last {run.avg['n']} epochs (BN statistics recomputed)"
+    else:
+        run.model.load_state_dict(run.best["state"])
+    if run.ema is not None or run.avg is not None:  # averaged weights, BN statistics recomputed for them
+        _precise_bn(run)
+        run.best = {"epoch": run.epochs, "score": None, "state": None}
+    model = run.model.to("cpu").to(memory_format=torch.contiguous_format).eval()
     info = {"selected_epoch": int(run.best["epoch"]), "selection": selection, "epochs": run.epochs, "lr": s.lr,
             "steps_run": int(run.epochs * run.steps_per_epoch),
             "mode": plan.mode, "loss_weights": dict(plan.weights), "epoch0_eligible": plan.epoch0_eligible,
-            "autocast": str(run.amp).replace("torch.", "") if run.amp is not None else "fp32",
-            "channels_last": s.channels_last, **stats}
+            "autocast": run.run_key["autocast"], "channels_last": s.channels_last, **stats}
     if run.until is not None:
         info.update(stable_epochs=run.until["stable_end"], stopped=run.until["reason"])
     return TrainResult(model=model, log=pd.DataFrame(run.rows, columns=list(LOG_COLUMNS)),
@@ -675,9 +644,7 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
     if s.num_threads > 0:
         torch.set_num_threads(s.num_threads)
     plan = resolve_plan(method, cfg, data.stats.get("confidence_pass_ratio"))
-    held = None
-    if s.until == "plateau" and not _has_val(val):
-        data, held = holdout(data, s.holdout_fraction)
+    data, held = holdout(data, s.holdout_fraction) if s.until == "plateau" and not _has_val(val) else (data, None)
     run = _setup(method, cfg, s, plan, data, seed, init_state, device)
     run.holdout = held
     try:

@@ -135,12 +135,7 @@ def prefetch(items: Iterable, depth: int = 2) -> Iterator:
     def produce() -> None:
         try:
             for item in items:
-                while not stop.is_set():
-                    try:
-                        q.put((True, item), timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
+                q.put((True, item))  # a full queue blocks until the consumer (or its closing drain) takes one
                 if stop.is_set():
                     return
             q.put((True, _DONE))
