@@ -204,11 +204,8 @@ def _spread(n_total: int, n: int) -> np.ndarray:
 
 def _student_masks(inp: Inputs, methods, seed: int, images: np.ndarray, tau, device) -> dict:
     """{method: its seed's student masks of ``images`` at ``tau(method)``} (eq:inference-mask)."""
-    out = {}
-    for method in methods:
-        model, _ = load_student(inp.art / "checkpoints" / method / str(seed), device)
-        out[method] = mask_from_probs(predict_probs(model, images, device=device), tau(method))
-    return out
+    students = {m: load_student(inp.art / "checkpoints" / m / str(seed), device)[0] for m in methods}
+    return {m: mask_from_probs(predict_probs(model, images, device=device), tau(m)) for m, model in students.items()}
 
 
 def _section(title: str):
@@ -360,19 +357,17 @@ def calibration_blocks(thr: pd.DataFrame, plots: dict, fixed_tau: float | None =
     grid = np.asarray(thr["grid"].iloc[0], float)
     area.append({"x": grid, "y": np.ones_like(grid), "label": "no inflation (ratio 1)", "color": F.REFERENCE_LINE,
                  "style": "dashed"})
-    rel_chart = F.line_plot(rel, "Reliability diagram", "mean predicted probability", "foreground frequency",
-                            ylim=(0.0, 1.0))
-    blocks.append(_figure("fig:reliability", "Reliability diagram (validation pixels)",
-                          "Fraction of reference-foreground pixels against the mean predicted probability in each "
-                          "equal-width probability bin (mean over seeds per method); below the diagonal = "
-                          "over-confident foreground.", rel_chart, "reliability"))
-    area_chart = F.line_plot(area, "Predicted / reference area vs threshold", "tau",
-                             "median predicted / reference area")
-    blocks.append(_figure("fig:area-vs-tau", "Predicted against reference foreground area across tau",
-                          "Median over validation images of predicted / reference foreground area of [P >= tau] "
-                          "(mean over seeds per method; dot: mean calibrated tau; dashed grey: no inflation).",
-                          area_chart, "area_vs_tau"))
-    return blocks
+    return blocks + [
+        _figure("fig:reliability", "Reliability diagram (validation pixels)",
+                "Fraction of reference-foreground pixels against the mean predicted probability in each equal-width "
+                "probability bin (mean over seeds per method); below the diagonal = over-confident foreground.",
+                F.line_plot(rel, "Reliability diagram", "mean predicted probability", "foreground frequency",
+                            ylim=(0.0, 1.0)), "reliability"),
+        _figure("fig:area-vs-tau", "Predicted against reference foreground area across tau",
+                "Median over validation images of predicted / reference foreground area of [P >= tau] "
+                "(mean over seeds per method; dot: mean calibrated tau; dashed grey: no inflation).",
+                F.line_plot(area, "Predicted / reference area vs threshold", "tau",
+                            "median predicted / reference area"), "area_vs_tau")]
 
 
 def epoch_calibrated_figure(logs: pd.DataFrame, fixed_tau: float | None = None) -> Figure:

@@ -137,13 +137,10 @@ def render_html(report: Report) -> str:
             elif isinstance(b, Missing):
                 parts.append(f'<div class="missing"><b>Missing: {html.escape(b.what)}.</b> {_inline(b.detail)}</div>')
             elif isinstance(b, Table):
-                parts.append(f'<table data-key="{html.escape(b.key)}"><caption>{_inline(b.title)}</caption>')
-                parts.append("<thead><tr>" + "".join(f"<th>{_inline(h)}</th>" for h in b.header)
-                             + "</tr></thead><tbody>")
-                for r in b.rows:
-                    parts.append("<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>")
-                parts.append("</tbody></table>")
-                parts += [f'<p class="note">{_inline(n)}</p>' for n in b.notes]
+                parts += [f'<table data-key="{html.escape(b.key)}"><caption>{_inline(b.title)}</caption>',
+                          "<thead><tr>" + "".join(f"<th>{_inline(h)}</th>" for h in b.header) + "</tr></thead><tbody>",
+                          *("<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>" for r in b.rows),
+                          "</tbody></table>", *(f'<p class="note">{_inline(n)}</p>' for n in b.notes)]
             elif isinstance(b, Figure):
                 data = base64.b64encode(b.png).decode("ascii")
                 parts.append(f'<figure data-key="{html.escape(b.key)}"><img alt="{html.escape(b.title)}" '

@@ -145,11 +145,8 @@ def training_curves(logs: Iterable[tuple[str, int, pd.DataFrame]]) -> pd.DataFra
     """Long table (method, seed, epoch, :data:`CURVE_COLUMNS` present) of ``(method, seed, log)`` triples."""
     frames = []
     for method, seed, log in logs:
-        cols = [c for c in CURVE_COLUMNS if c in log.columns]
-        part = log[["epoch", *cols]].copy()
-        part.insert(0, "seed", int(seed))
-        part.insert(0, "method", str(method))
-        frames.append(part)
+        cols = ["epoch", *(c for c in CURVE_COLUMNS if c in log.columns)]
+        frames.append(log[cols].assign(method=str(method), seed=int(seed))[["method", "seed", *cols]])
     if not frames:
         return pd.DataFrame(columns=["method", "seed", "epoch", *CURVE_COLUMNS])
     df = pd.concat(frames, ignore_index=True)

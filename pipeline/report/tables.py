@@ -197,10 +197,9 @@ def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise
     gains = [((g, m), r, "", is_primary(g, m, BASELINE, mode))
              for g, m, r in shown if np.isfinite(r.get("gain_iou", np.nan))]
     holm = family_holm(gains)
-    primary = {key for key, _, _, p in gains if p}
     rows = []
     for g, m, r in shown:
-        cells = _gain_cells(r, "", g, (g, m), holm, (g, m) in primary, noise_floor)
+        cells = _gain_cells(r, "", g, (g, m), holm, is_primary(g, m, BASELINE, mode), noise_floor)
         if not np.isfinite(r.get("gain_iou", np.nan)):
             cells[2:] = ["--", "--"]
         rows.append([g, label(m), _ms(r, "iou"), _ms(r, "bf1"), *cells, str(int(r["n_seeds"]))])
@@ -327,7 +326,6 @@ def efficiency_table(eff: pd.DataFrame) -> Table:
     extra = [c for c in labels if c in eff.columns and not (eff[c].dtype.kind == "f" and eff[c].isna().all())]
     rows = []
     for _, r in eff.iterrows():
-        params = r["params"]
         # an untimed variant (unsupported, or pathologically slow here) shows why instead of numbers;
         # a timed one with a caveat (e.g. bf16 emulated) carries it beside its name
         timed = bool(r["timed"]) if "timed" in eff.columns else True
@@ -335,6 +333,7 @@ def efficiency_table(eff: pd.DataFrame) -> Table:
         name = str(r["variant"]) + (f" ({remark})" if timed and remark else "")
         speed = ([fmt(r["latency_ms"], 2), fmt(r["throughput"], 1), fmt(r["peak_mb"], 1)] if timed
                  else [remark or "not timed", "--", "--"])
+        params = r["params"]
         n_params = (f"{params / 1e6:.3f} M" if isinstance(params, (int, float, np.number)) and np.isfinite(params)
                     else str(params))
         rows.append([name, n_params, fmt(r["gflops"], 2), *speed,
@@ -471,13 +470,12 @@ def calibration_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Tabl
 
 def epoch_swing_table(swings: pd.DataFrame, fixed_tau: float | None = None) -> Table:
     """Per method and stage: the changes of validation Image IoU between adjacent epochs (:func:`epoch_swings`)."""
-    rows = []
-    for m in _ordered_with_ceiling_last(swings["method"].unique()):
-        for _, r in swings[swings["method"] == m].iterrows():
-            rows.append([label(m), str(int(r["stage"])), f"{fmt(r['max_swing'], 3)} (seed {int(r['max_seed'])}, "
-                         f"epochs {int(r['max_epoch']) - 1}->{int(r['max_epoch'])})", fmt(r["median_swing"], 3),
-                         fmt(r["max_swing_cal"], 3), fmt(r["median_swing_cal"], 3),
-                         f"{fmt(r['tau_min'], 2)}–{fmt(r['tau_max'], 2)}"])
+    rows = [[label(m), str(int(r["stage"])), f"{fmt(r['max_swing'], 3)} (seed {int(r['max_seed'])}, "
+             f"epochs {int(r['max_epoch']) - 1}->{int(r['max_epoch'])})", fmt(r["median_swing"], 3),
+             fmt(r["max_swing_cal"], 3), fmt(r["median_swing_cal"], 3),
+             f"{fmt(r['tau_min'], 2)}–{fmt(r['tau_max'], 2)}"]
+            for m in _ordered_with_ceiling_last(swings["method"].unique())
+            for _, r in swings[swings["method"] == m].iterrows()]
     return Table("tab:epoch-swings", "Validation Image IoU between adjacent epochs (training logs)",
                  ["Method", "Stage", f"Largest change at tau {tau_text(fixed_tau)}",
                   f"Median change at {tau_text(fixed_tau)}",
