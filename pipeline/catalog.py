@@ -9,7 +9,6 @@ import dataclasses
 from pathlib import Path
 from typing import Mapping
 
-from pipeline.engine_table import engines_reading
 from pipeline.params import DEFAULT_PARAMS as PARAMS_FILE
 from pipeline.params import Params, get_path
 
@@ -83,11 +82,6 @@ DEPLOY_BUNDLE: dict[str, OutputFile] = {f.key: f for f in [
 def bundle_file(key: str) -> str:
     """The file name of bundle file ``key``."""
     return DEPLOY_BUNDLE[key].name
-
-
-def bundle_readers(key: str) -> tuple[str, ...]:
-    """The engines that run bundle file ``key``."""
-    return engines_reading(key)
 
 
 def _files(written_by: str, *rows: tuple[str, ...]) -> dict[str, OutputFile]:
@@ -295,8 +289,7 @@ def _keys(section: str, *names: str, but: tuple[str, ...] = ()) -> tuple[str, ..
 STAGES: dict[str, StageSpec] = {s.name: s for s in [
     StageSpec("prepare", "stages.prepare", "--out-dir {artifacts_dir}", (),
               ("manifest", "images", "reference", "skipped_files", "contact_sheet", "synthetic_files"),
-              _keys("data", but=("cache_dir",)),
-              data_deps=("data_manifests",)),
+              _keys("data", but=("cache_dir",)), data_deps=("data_manifests",)),
     StageSpec("teacher", "stages.teacher",
               "--manifest {manifest} --images {images} --reference {reference} --out {teacher} "
               "--scores {teacher_scores}",
@@ -306,8 +299,7 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               ("teacher",), ("consensus",), _keys("consensus", "vote_threshold")),
     StageSpec("geometry", "stages.geometry",
               "--consensus {consensus} --manifest {manifest} --out {geometry} --gates {gates}",
-              ("consensus", "manifest"), ("geometry", "gates"),
-              _keys("geometry")),
+              ("consensus", "manifest"), ("geometry", "gates"), _keys("geometry")),
     # train_<method>: rendered per method (pipeline.orchestration.dag.train_stage)
     StageSpec("calibrate", "stages.calibrate",
               "--artifacts {artifacts_dir} --checkpoints {checkpoints} --out {thresholds}",
