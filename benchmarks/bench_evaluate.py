@@ -8,14 +8,13 @@ after checking both give the same numbers; medians, minima, the ratio and the pr
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 
 import numpy as np
 
 from benchmarks.bench_geometry import spacecraft_like_masks
-from benchmarks.common import medians, minima, round_robin, seconds
+from benchmarks.common import medians, minima, parser, round_robin, seconds
 from pipeline.geometry import squared_distance
 from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import BASELINE
@@ -202,12 +201,11 @@ def student_seconds_per_image(size: int, device: str, n: int) -> float:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = parser(__doc__, repeats=3)
     ap.add_argument("--runs", type=int, default=PAPER_RUNS)
     ap.add_argument("--images", type=int, default=PAPER_TEST_IMAGES)
     ap.add_argument("--size", type=int, default=384)
     ap.add_argument("--resamples", type=int, default=10_000)
-    ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--device", default="cpu", help="cpu | cuda: where the new path's Boundary-F1 morphology "
                                                     "and the student's inference run")
     ap.add_argument("--student-images", type=int, default=4, help="images timed for the inference estimate "

@@ -7,13 +7,12 @@ give the same targets on every mask.
 
 from __future__ import annotations
 
-import argparse
 import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from benchmarks.common import best_of
+from benchmarks.common import best_of, parser
 from pipeline.geometry import pseudo_targets
 
 
@@ -62,10 +61,9 @@ def scipy_targets(mask: np.ndarray, q: float = 0.95, min_distance: float = 1.0):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = parser(__doc__, repeats=3)
     ap.add_argument("--n", type=int, default=200)
     ap.add_argument("--size", type=int, default=384)
-    ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--workers", type=int, default=2, help="threads for the parallel OpenCV run (cores)")
     args = ap.parse_args()
     import cv2

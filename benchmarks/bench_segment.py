@@ -9,7 +9,6 @@ against the target (>= 0.8 on 2 cores at 384^2 from 640x480), printed, never ass
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
@@ -18,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import medians, minima, round_robin, seconds
+from benchmarks.common import medians, minima, parser, round_robin, seconds
 from pipeline.artifacts.lineage import make_meta
 from pipeline.datasets.loading import read_rgb, resize_image
 from pipeline.deploy import files as F
@@ -144,7 +143,7 @@ def format_table(rows: dict[str, dict], skipped: dict[str, str], setting: str) -
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__, repeats=3)
     ap.add_argument("--images", type=int, default=64, help="generated images in the folder")
     ap.add_argument("--size", default="640x480", help="WIDTHxHEIGHT of the generated images")
     ap.add_argument("--format", default="jpg", choices=("jpg", "png"))
@@ -152,7 +151,6 @@ def main(argv=None) -> dict:
     ap.add_argument("--channels", default="24,48,96", help="TinyUNet channels (the student's by default)")
     ap.add_argument("--batch", type=int, default=8, help="segment --batch-size (model-only uses the same)")
     ap.add_argument("--workers", type=int, default=F.IO_WORKERS, help="reader threads of the overlapped loop")
-    ap.add_argument("--repeats", type=int, default=3, help="round-robin rounds")
     ap.add_argument("--engines", default=",".join(n for n in SEGMENT_ENGINES if not ENGINE_TABLE[n].cuda_only),
                     help="comma-separated segment engines")
     ap.add_argument("--json", default=None, help="write the results here")

@@ -8,6 +8,7 @@ the rasterisation alone, plus the fast path with PNG encoding (what ``prepare`` 
 from __future__ import annotations
 
 import argparse
+import functools
 import multiprocessing as mp
 import os
 import time
@@ -19,14 +20,12 @@ from benchmarks.common import seconds
 from pipeline.datasets import synthetic as syn
 
 SEED = 2026
-#: spacecraft models built once per process (their build is not what the benchmark times)
-_MODELS: dict = {}
 
 
+@functools.cache
 def _spacecraft(name):
-    if name not in _MODELS:
-        _MODELS[name] = syn.make_spacecraft(name, SEED)
-    return _MODELS[name]
+    """A spacecraft model, built once per process (its build is not what the benchmark times)."""
+    return syn.make_spacecraft(name, SEED)
 
 
 def _render(job, size, rasterizer="cv2", encode=False):

@@ -9,7 +9,6 @@ medians and minima, the pools' steady rates and start-up).
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import os
 import platform
@@ -19,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import best_of, medians, round_robin
+from benchmarks.common import best_of, medians, parser, round_robin
 from pipeline.metrics import image_ious
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
@@ -35,15 +34,13 @@ PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = parser(__doc__, device="cpu", repeats=3)
     ap.add_argument("--size", choices=["tiny", "real"], default="tiny")
-    ap.add_argument("--device", default="cpu")
     ap.add_argument("--dtype", choices=["auto", "fp32", "bf16"], default="auto")
     ap.add_argument("--images", type=int, default=6)
     ap.add_argument("--resolution", type=int, default=128, help="working resolution of the input images")
     ap.add_argument("--batch-size", type=int, default=0, help="0 = from free GPU memory (2 on a CPU)")
     ap.add_argument("--compile", action="store_true", help="torch.compile the vision encoder (CUDA only)")
-    ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--checkpoint", default=None, help="use this SAM 3 directory instead of building a random one")
     ap.add_argument("--ray-workers", default=None, metavar="N,M",
                     help="teacher throughput instead: serial loop vs a Ray Data pool of N, M ... teachers")
@@ -60,15 +57,6 @@ def sam3_checkpoint(args, tmp: str) -> Path:
         return Path(args.checkpoint)
     return build_tiny_sam3(Path(tmp) / "sam3", size=args.size, image_size=args.input_size,
                            words=tuple(w for p in PROMPTS for w in p.split()))
-
-
-def _synced(predict, items, sync):
-    """``predict(items, PROMPTS)`` then ``sync()`` (a CUDA synchronise, or nothing): the clock stops when the
-    device is done."""
-    def call():
-        predict(items, PROMPTS)
-        sync()
-    return call
 
 
 def encoder_reuse(args) -> None:
@@ -91,7 +79,7 @@ def encoder_reuse(args) -> None:
         sync = torch.cuda.synchronize if teacher.device.type == "cuda" else (lambda: None)
 
         paths = {"batched": teacher.predict, "separate": teacher.predict_one_prompt_at_a_time, "today": today.predict}
-        calls = {k: _synced(f, items, sync) for k, f in paths.items()}
+        calls = {k: (lambda f=f: (f(items, PROMPTS), sync())) for k, f in paths.items()}  # timed to the device's end
         for call in calls.values():  # warm-up of every path: CPU kernels and CUDA graphs are built per tensor shape
             call()
         t = {k: best_of(call, args.repeats) for k, call in calls.items()}
@@ -157,7 +145,7 @@ def ray_throughput(args) -> None:
             stats = runner.fill(range(n), workers=0 if v == "serial" else int(v.split("x")[1]))
             wall = time.perf_counter() - t0
             assert stats.answers_computed == n * len(PROMPTS), stats
-            stamps = write_times(Path(cfg["cache_dir"]))
+            stamps = sorted(p.stat().st_mtime for p in Path(cfg["cache_dir"]).rglob("*.tce"))  # entries written
             return wall, steady_rate(stamps, len(PROMPTS)), stamps[0] - t0_wall
 
         res = round_robin({v: (lambda rep, v=v: fill(rep, v)) for v in variants}, args.repeats, order="rotate")
@@ -191,11 +179,6 @@ def ray_throughput(args) -> None:
           "the first to the last write (the pool's throughput); start-up: paid once per fill, the actors starting "
           "side by side, so the whole-fill ratio approaches the steady one as the number of images grows")
     print("target: 2 workers >= 1.7x one worker")
-
-
-def write_times(cache_dir: Path) -> list[float]:
-    """The modification times of a cache's entries, sorted (wall clock, seconds)."""
-    return sorted(p.stat().st_mtime for p in cache_dir.rglob("*.tce"))
 
 
 def steady_rate(stamps: list[float], per_image: int) -> float:

@@ -8,14 +8,13 @@ in-memory synthetic set (ellipse + panel bar on noise).
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import round_robin
+from benchmarks.common import parser, round_robin
 from pipeline.runtime.device import resolve_device
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import load_params, section
@@ -58,14 +57,13 @@ def train_variant(cfg: dict, data, val, device, seed: int) -> dict:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__, device="auto")
     ap.add_argument("--images", type=int, default=PAPER_IMAGES)
     ap.add_argument("--size", type=int, default=384)
     ap.add_argument("--epochs", type=int, default=2)
     ap.add_argument("--val-images", type=int, default=16)
     ap.add_argument("--reps", type=int, default=3, help="interleaved one-epoch timing rounds")
     ap.add_argument("--quick", action="store_true", help="32 images at 256^2, 3 epochs, 2 timing rounds")
-    ap.add_argument("--device", default="auto")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
     ap.add_argument("--seed", type=int, default=42)
     ap.add_argument("--fast-precision", default="auto", help="precision of the fast path (auto|bf16)")

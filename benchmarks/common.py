@@ -1,10 +1,41 @@
-"""What the benchmark scripts share: round-robin timing, its medians and minima, the study data's test split."""
+"""What the benchmark scripts share: round-robin timing, its medians and minima; the studies' JSON output and
+their training jobs, resumed from the runs already finished."""
 
 from __future__ import annotations
 
+import argparse
+import json
+import multiprocessing as mp
 import statistics
 import time
-from typing import Callable
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+
+#: the options the benchmarks share: name -> ``add_argument`` keywords (each script gives the default)
+OPTIONS: dict[str, dict] = {
+    "artifacts": {"help": "an artifacts directory with prepare .. consensus done (else built in --workdir)"},
+    "workdir": {"help": "where the data stages write without --artifacts"},
+    "profile": {"help": "the params profile: data sizes and training settings"},
+    "resolution": {"type": int, "help": "data.resolution"},
+    "set": {"dest": "sets", "action": "append", "metavar": "KEY=VALUE", "help": "a params override (repeatable)"},
+    "seeds": {"type": int, "nargs": "+"},
+    "epochs": {"type": int, "help": "train.epochs_stage1 (default: the profile's)"},
+    "device": {},
+    "jobs": {"type": int, "help": "training processes at a time"},
+    "threads": {"type": int, "help": "torch threads per process"},
+    "repeats": {"type": int, "help": "round-robin rounds"},
+    "out": {"help": "the JSON output"},
+}
+
+
+def parser(doc: str, **defaults: Any) -> argparse.ArgumentParser:
+    """A benchmark's parser, its docstring as the help, with the :data:`OPTIONS` named in ``defaults``, each
+    with its default."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    for name, default in defaults.items():
+        ap.add_argument(f"--{name}", default=default, **OPTIONS[name])
+    return ap
 
 
 def seconds(fn: Callable[[], object]) -> float:
@@ -38,3 +69,52 @@ def medians(times: dict[str, list[float]]) -> dict[str, float]:
 
 def minima(times: dict[str, list[float]]) -> dict[str, float]:
     return {k: min(v) for k, v in times.items()}
+
+
+def read_json(path: Path, default: Any = None) -> Any:
+    """The JSON document at ``path``; ``default`` (else ``{}``) when there is none, None when it cannot be read."""
+    try:
+        return json.loads(path.read_text()) if path.exists() else ({} if default is None else default)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+
+
+def run_jobs(jobs: list[dict], artifacts: str, base: dict, n_jobs: int, threads: int, init, run):
+    """Yield the results of ``jobs`` as they finish, here or in ``n_jobs`` spawned processes (each loading the
+    study data once with ``init``; jobs run by ``run``)."""
+    if not jobs:
+        return
+    if n_jobs <= 1:
+        init(artifacts, base, threads)
+        yield from map(run, jobs)
+        return
+
+    with mp.get_context("spawn").Pool(n_jobs, initializer=init, initargs=(artifacts, base, threads)) as pool:
+        yield from pool.imap_unordered(run, jobs, chunksize=1)
+        pool.close()  # let the workers exit on their own (terminate() leaves a semaphore behind)
+        pool.join()
+
+
+def _run_key(run: Mapping[str, Any]) -> tuple:
+    return run["variant"], run["method"], run["seed"]
+
+
+def resumed_runs(out: str | Path, info: Mapping[str, Any], jobs: list[dict], run_all) -> dict:
+    """``{(variant, method, seed): run}`` of ``jobs``: those in ``<out>.runs.jsonl`` (JSON lines after a line of
+    ``info``'s settings) when it was written with the same settings (else the file restarts), the others run by
+    ``run_all(todo)`` and appended as they finish: a long study survives an interruption."""
+    partial = Path(str(out) + ".runs.jsonl")
+    settings = {k: info[k] for k in ("artifacts", "device", "resolution", "profile", "epochs", "n_train")}
+    lines = [json.loads(x) for x in partial.read_text().splitlines() if x.strip()] if partial.exists() else []
+    if lines and lines[0].get("info") != json.loads(json.dumps(settings)):
+        partial.unlink()
+        lines = []
+    done = {_run_key(r): r for r in lines[1:]}
+    with partial.open("a") as sink:
+        if not done:
+            sink.write(json.dumps({"info": settings}) + "\n")
+        for r in run_all([j for j in jobs if _run_key(j) not in done]):
+            sink.write(json.dumps(r) + "\n")
+            sink.flush()
+            done[_run_key(r)] = r
+    return done

@@ -9,7 +9,6 @@ that length.  States and finished branches are kept, so a rerun with more ``--do
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
@@ -20,6 +19,7 @@ from pipeline.training.checkpointing import FileCheckpointer
 from pipeline.runtime.device import resolve_device
 from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.profiles import load_profile
+from benchmarks.common import parser, read_json, seconds
 from benchmarks.study_recipe import build_artifacts, load_study_data, score_run
 
 #: a doubling of the optimizer steps that gains less validation Image IoU than this is the plateau
@@ -44,11 +44,6 @@ def plateau(values: list[float], gain: float = PLATEAU_GAIN) -> int | None:
     return None
 
 
-def store_key(method: str, seed: int, cfg: Mapping[str, Any], data_id: Mapping[str, Any]) -> str:
-    """Folder name of one study run's states: method, seed and a digest of the training config and the data."""
-    return f"{method}-s{int(seed)}-{fingerprint('convergence', '', {'cfg': cfg, 'data': data_id}, [])[:12]}"
-
-
 def _but_epochs(run_key: Mapping[str, Any]) -> dict:
     return {k: v for k, v in run_key.items() if k != "epochs"}
 
@@ -61,14 +56,11 @@ class BranchStore:
     def __init__(self, directory: str | Path, epochs: list[int]) -> None:
         self.directory, self.epochs = Path(directory), sorted(int(e) for e in epochs)
 
-    def _states(self, epoch: int) -> FileCheckpointer:
-        return FileCheckpointer(self.directory / f"stable-{int(epoch):05d}")
-
-    def _weights(self, epoch: int) -> FileCheckpointer:
-        return FileCheckpointer(self.directory / f"decay-{int(epoch):05d}")
+    def _file(self, phase: str, epoch: int) -> FileCheckpointer:
+        return FileCheckpointer(self.directory / f"{phase}-{int(epoch):05d}")
 
     def state(self, epoch: int) -> dict | None:
-        return self._states(epoch).load(None)
+        return self._file("stable", epoch).load(None)
 
     def load(self, run_key):
         saved = (self.state(e) for e in reversed(self.epochs) if e <= int(run_key["epochs"]))
@@ -79,13 +71,14 @@ class BranchStore:
 
     def save(self, state: dict) -> None:
         if state["epoch"] in self.epochs:
-            self._states(state["epoch"]).save(state)
+            self._file("stable", state["epoch"]).save(state)
 
     def save_weights(self, epoch: int, model) -> None:
-        self._weights(epoch).save({"epoch": int(epoch), "model": {k: v.detach().cpu() for k, v in model.state_dict().items()}})
+        weights = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+        self._file("decay", epoch).save({"epoch": int(epoch), "model": weights})
 
     def weights(self, epoch: int) -> dict | None:
-        s = self._weights(epoch).load(None)
+        s = self._file("decay", epoch).load(None)
         return None if s is None else s["model"]
 
 
@@ -123,9 +116,8 @@ def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, bran
     stable_s = None
     if any(store.state(e) is None for e in todo):
         stable = {**cfg, "epochs_stage1": max(todo), "schedule": "constant", "average_last": 0}
-        t0 = time.perf_counter()
-        training.train(spec, stable, data, val, seed, checkpointer=store, device=device, show_progress=False)
-        stable_s = time.perf_counter() - t0
+        stable_s = seconds(lambda: training.train(spec, stable, data, val, seed, checkpointer=store, device=device,
+                                                  show_progress=False))
     curve = []
     for e in branches:
         if e in done:
@@ -150,33 +142,21 @@ def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, bran
     return curve
 
 
-def branch_model(method: str, cfg: Mapping[str, Any], seed: int, state: Mapping) -> Any:
-    from pipeline.training.loop import build_model
-
-    model = build_model(get_method(method), cfg, seed)  # the study's methods train from scratch
-    model.load_state_dict(state)
-    return model.eval()
-
-
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--artifacts", default=None, help="an artifacts directory with prepare .. consensus done")
-    ap.add_argument("--workdir", default="convergence", help="where the data stages write without --artifacts")
-    ap.add_argument("--profile", default="reduced")
+    ap = parser(__doc__, artifacts=None, workdir="convergence", profile="reduced", set=[], threads=2, device="cpu",
+                out="convergence.json")
     ap.add_argument("--recipe", default="paper", help="train.recipe of the branches (paper | stable | strong)")
-    ap.add_argument("--set", dest="sets", action="append", default=[], help="a params override (repeatable)")
     ap.add_argument("--methods", nargs="+", default=[STAGE_ONE, SUPERVISED_CEILING])
     ap.add_argument("--seed", type=int, default=42)
     ap.add_argument("--first", type=int, default=5, help="stable epochs of the shortest branch")
     ap.add_argument("--doublings", type=int, default=5, help="branches at first x 2^k, k = 0..doublings")
     ap.add_argument("--decay-fraction", type=float, default=None, help="default: train.decay_fraction")
     ap.add_argument("--plateau-gain", type=float, default=PLATEAU_GAIN)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--out", default="convergence.json")
     ap.add_argument("--states", default=None,
                     help="where the branch states and weights are kept (default: <workdir>/branch_states)")
     args = ap.parse_args(argv)
+
+    from pipeline.training.loop import build_model
 
     device = str(resolve_device(args.device))
     params = load_profile(args.profile, [f"train.recipe={args.recipe}", *args.sets])
@@ -186,10 +166,7 @@ def main(argv=None) -> dict:
     fraction = float(args.decay_fraction if args.decay_fraction is not None else cfg["decay_fraction"])
     branches = branch_epochs(args.first, args.doublings)
     out_path = Path(args.out)
-    try:
-        doc = json.loads(out_path.read_text()) if out_path.exists() else {}
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        doc = None
+    doc = read_json(out_path)
     if not isinstance(doc, dict) or (doc and not isinstance(doc.get("info"), dict)):
         ap.error(f"--out {out_path}: exists and is not a convergence study; give another --out")
     info = {"profile": args.profile, "recipe": args.recipe, "sets": args.sets, "seed": args.seed,
@@ -207,7 +184,9 @@ def main(argv=None) -> dict:
         if all(e in done for e in branches) and prev.get("branches") == branches:
             print(f"{m}: done already in {out_path}", flush=True)
             continue
-        store = BranchStore(states / store_key(m, args.seed, cfg, data_id), branches)
+        # a run's states: method, seed and a digest of the training config and the data
+        digest = fingerprint("convergence", "", {"cfg": cfg, "data": data_id}, [])[:12]
+        store = BranchStore(states / f"{m}-s{args.seed}-{digest}", branches)
         curve = study_method(m, cfg, data[m], data["val"], args.seed, branches, fraction, device, store, done)
         i = plateau([c["val_iou_cal"] for c in curve], args.plateau_gain)
         chosen = curve[i if i is not None else -1]
@@ -215,7 +194,9 @@ def main(argv=None) -> dict:
         if weights is None:  # a branch scored before its weights were kept: run that decay again
             study_method(m, cfg, data[m], data["val"], args.seed, [chosen["stable_epochs"]], fraction, device, store)
             weights = store.weights(chosen["stable_epochs"])
-        model = branch_model(m, cfg, args.seed, weights)
+        model = build_model(get_method(m), cfg, args.seed)  # the study's methods train from scratch
+        model.load_state_dict(weights)
+        model.eval()
         test = score_run(model, data["val"], data["test_images"], data["test_masks"], device)  # the chosen length only
         doc.setdefault("methods", {})[m] = {
             "branches": branches, "curve": [dict(c) for c in curve],

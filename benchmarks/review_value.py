@@ -9,7 +9,6 @@ so a gate-based ranking wins partly by construction (printed beside the numbers)
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -17,6 +16,7 @@ import numpy as np
 
 from pipeline import catalog
 from pipeline.artifacts.store import open_artifact
+from benchmarks.common import parser
 from benchmarks.study_recipe import build_artifacts, score_run
 from pipeline.evaluation.inference import open_labelled_split, predict_probs
 from pipeline.methods import STAGE_ONE, get_method
@@ -172,17 +172,10 @@ def curve_figure(rows: list[dict], title: str):
 
 
 def main(argv=None) -> list[dict]:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = parser(__doc__, profile="paper", resolution=64, seeds=[42, 43, 44], epochs=None, set=[], device="cpu")
     ap.add_argument("--workdir", type=Path, default=Path(".cache/review_value"))
-    ap.add_argument("--profile", default="paper")
-    ap.add_argument("--resolution", type=int, default=64)
     ap.add_argument("--ks", type=int, nargs="+", default=[0, 10, 25, 50])
-    ap.add_argument("--seeds", type=int, nargs="+", default=[42, 43, 44])
     ap.add_argument("--draws", type=int, default=3, help="random selections per (k, seed)")
-    ap.add_argument("--epochs", type=int, default=None, help="train.epochs_stage1 (default: the profile's)")
-    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
-                    help="extra params overrides for the data stages and training")
-    ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", type=Path, default=None, help="write the runs and the table as JSON")
     ap.add_argument("--runs", type=Path, nargs="+", default=None, metavar="JSON",
                     help="summarize the runs of earlier --out files (e.g. one per seed) instead of training "

@@ -8,7 +8,6 @@ weights.  Pass: V >= the baseline's at <= 1/4 of its cost.  ``--out`` keeps ever
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
@@ -16,7 +15,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from benchmarks.study_recipe import _run_jobs, build_artifacts, load_study_data
+from benchmarks.common import parser, read_json, run_jobs
+from benchmarks.study_recipe import build_artifacts, load_study_data
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.profiles import load_profile
 
@@ -121,18 +121,9 @@ def table(rows: list[dict]) -> str:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--workdir", default="speedrun")
-    ap.add_argument("--artifacts", default=None, help="artifacts with prepare .. consensus done (else built)")
-    ap.add_argument("--profile", default="reduced")
-    ap.add_argument("--resolution", type=int, default=128)
-    ap.add_argument("--set", dest="sets", action="append", default=[], help="a params override (repeatable)")
+    ap = parser(__doc__, workdir="speedrun", artifacts=None, profile="reduced", resolution=128, set=[],
+                seeds=[42, 3407, 2026], jobs=1, threads=1, device="cpu", out="speedrun.json")
     ap.add_argument("--candidates", nargs="+", default=list(CANDIDATES), choices=list(CANDIDATES))
-    ap.add_argument("--seeds", nargs="+", type=int, default=[42, 3407, 2026])
-    ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--out", default="speedrun.json")
     args = ap.parse_args(argv)
 
     sets = [f"data.resolution={args.resolution}", *args.sets]
@@ -143,10 +134,7 @@ def main(argv=None) -> dict:
     out = Path(args.out)
     info = {"profile": args.profile, "resolution": args.resolution, "sets": sets, "device": args.device,
             "threads": args.threads, "artifacts": str(artifacts.resolve())}
-    try:
-        doc = json.loads(out.read_text()) if out.exists() else {"info": info, "runs": []}
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        doc = None
+    doc = read_json(out, {"info": info, "runs": []})
     if not isinstance(doc, dict) or doc.get("info") != info:
         ap.error(f"--out {out}: exists and is not a speedrun with these settings; give another --out")
     done = {(r["candidate"], r["seed"]) for r in doc["runs"]}
@@ -154,7 +142,7 @@ def main(argv=None) -> dict:
              "resolution": args.resolution} for c in args.candidates for s in args.seeds if (c, s) not in done]
     jobs.sort(key=lambda j: -j["cfg"]["epochs_stage1"])  # the longest first: the pool ends together
     init_cfg = {**base, "soft": any(j["cfg"].get("soft_targets") for j in jobs)}
-    for r in _run_jobs(jobs, str(artifacts), init_cfg, args.jobs, args.threads, init=_init, run=run_one):
+    for r in run_jobs(jobs, str(artifacts), init_cfg, args.jobs, args.threads, _init, run_one):
         doc["runs"].append(r)
         doc["summary"] = summarize(doc["runs"])
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -9,7 +9,6 @@ at the tau of each rule, and prints each number's perturbation and seed spreads 
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import time
@@ -20,6 +19,7 @@ import numpy as np
 
 from pipeline.artifacts.atomic import write_json
 from benchmarks import study_recipe as sr
+from benchmarks.common import parser, resumed_runs, run_jobs
 from pipeline.runtime.device import autocast_dtype
 from pipeline.artifacts.provenance import cpu
 from pipeline.runtime.errors import InputError
@@ -75,22 +75,19 @@ def perturbed(cfg: Mapping[str, Any], perturbation: str) -> dict:
     return out
 
 
-def group_scores(probs, masks, groups, tau: float, tolerance: float) -> dict:
-    """{group: {"iou", "bf1"}} means of [P >= tau] (eq:inference-mask) per test group."""
-    m = per_image_metrics(mask_from_probs(probs, tau), masks, tolerance)
-    return {str(g): {k: float(np.mean(m[k][groups == g])) for k in METRICS} for g in dict.fromkeys(groups)}
-
-
 def score(model, data: Mapping[str, Any], cal: Mapping[str, Any], tolerance: float) -> dict:
-    """Per tau rule: the calibrated tau and the per-group test scores (predictions in fp32)."""
+    """Per tau rule: the calibrated tau and the per-group test scores, the means of [P >= tau]
+    (eq:inference-mask) per test group (predictions in fp32)."""
     grid = threshold_grid(cal)
     val = data["val"]
     curve = iou_curve(predict_probs(model, val.images), val.masks, grid).mean(axis=0)
-    tp = predict_probs(model, data["test_images"])
+    tp, groups = predict_probs(model, data["test_images"]), data["test_groups"]
     out = {}
     for rule in TAU_RULES:
         tau = tau_by_rule(grid, curve, rule, tolerance=cal["plateau_tolerance"], halfwidth=cal["smooth_halfwidth"])
-        out[rule] = {"tau": tau, "groups": group_scores(tp, data["test_masks"], data["test_groups"], tau, tolerance)}
+        m = per_image_metrics(mask_from_probs(tp, tau), data["test_masks"], tolerance)
+        out[rule] = {"tau": tau, "groups": {str(g): {k: float(np.mean(m[k][groups == g])) for k in METRICS}
+                                            for g in dict.fromkeys(groups)}}
     return out
 
 
@@ -106,7 +103,7 @@ def run_one(job: dict) -> dict:
     from pipeline.training import loop as training
     t0 = time.perf_counter()
     cfg, seed = job["cfg"], job["seed"]
-    out = {k: job[k] for k in ("recipe", "perturbation", "seed")}
+    out = {k: job[k] for k in ("recipe", "perturbation", "seed", "variant", "method")}
     init = None
     for m in METHODS:
         data = _DATA[PROPOSED if m == PROPOSED else STAGE_ONE]  # the continuation reads Stage I's pseudo-masks
@@ -123,15 +120,9 @@ def run_one(job: dict) -> dict:
 
 def published(run: Mapping[str, Any], rule: str) -> dict[str, float]:
     """One run's ``<method>/<group>/<metric>`` and gains ``<treatment>-<control>/<group>/<metric>`` under a tau rule."""
-    out = {}
-    for m in METHODS:
-        for g, v in run[m][rule]["groups"].items():
-            for k in METRICS:
-                out[f"{m}/{g}/{k}"] = v[k]
-    for t, c in GAINS:
-        for g in run[t][rule]["groups"]:
-            for k in METRICS:
-                out[f"{t}-{c}/{g}/{k}"] = out[f"{t}/{g}/{k}"] - out[f"{c}/{g}/{k}"]
+    out = {f"{m}/{g}/{k}": v[k] for m in METHODS for g, v in run[m][rule]["groups"].items() for k in METRICS}
+    out.update({f"{t}-{c}/{g}/{k}": out[f"{t}/{g}/{k}"] - out[f"{c}/{g}/{k}"]
+                for t, c in GAINS for g in run[t][rule]["groups"] for k in METRICS})
     return out
 
 
@@ -273,27 +264,18 @@ def write_noise_floor(path: str | Path, key: str, record: dict) -> dict:
     return doc
 
 
-def _key(run: Mapping[str, Any]) -> tuple:
-    return run["recipe"], run["perturbation"], run["seed"]
-
-
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--workdir", default="bench_stability", help="where the data stages write")
+    ap = parser(__doc__, workdir="bench_stability", resolution=None, epochs=None, seeds=FIVE_SEEDS, jobs=2,
+                out="bench_stability.json")
     ap.add_argument("--profile", default="demo", choices=["demo", "reduced", "paper"],
                     help="whose data sizes and epochs (e.g. reduced: 270/60/3x60 images, 20 + 10 epochs)")
-    ap.add_argument("--resolution", type=int, default=None, help="default: the profile's data.resolution")
-    ap.add_argument("--epochs", type=int, default=None, help="train.epochs_stage1 (default: the profile's)")
     ap.add_argument("--epochs-stage2", type=int, default=None, help="train.epochs_stage2 (default: the profile's)")
-    ap.add_argument("--seeds", type=int, nargs="+", default=FIVE_SEEDS)
     ap.add_argument("--pert-seeds", type=int, default=None,
                     help="run the perturbations for the first N seeds only (default: all)")
     ap.add_argument("--perturbations", nargs="+", default=list(PERTURBATIONS), choices=list(PERTURBATIONS),
                     help="default is always run; e.g. --perturbations default threads1 for pinned-precision recipes")
     ap.add_argument("--recipes", nargs="+", default=list(RECIPES),
                     help="train.recipe names and/or screening candidates: " + ", ".join(CANDIDATES))
-    ap.add_argument("--jobs", type=int, default=2, help="training processes at a time")
-    ap.add_argument("--out", default="bench_stability.json")
     ap.add_argument("--noise-floor", default=None,
                     help="put the first recipe's spreads into this file as its record (reports/noise_floor.json)")
     args = ap.parse_args(argv)
@@ -316,30 +298,21 @@ def main(argv=None) -> dict:
         base["epochs_stage2"] = args.epochs_stage2
     tolerance = params["evaluate"]["bf1_tolerance"]
     pert_seeds = args.seeds[:args.pert_seeds] if args.pert_seeds else args.seeds
-    jobs = [{"recipe": rname, "perturbation": p, "seed": s, "cfg": perturbed(recipe_train(rname, base), p),
+    # a run's (variant, method) of the resumable jobs are its (recipe, perturbation)
+    jobs = [{"recipe": rname, "perturbation": p, "seed": s, "variant": rname, "method": p,
+             "cfg": perturbed(recipe_train(rname, base), p),
              "cal": params["calibrate"], "tolerance": tolerance}
             for rname in args.recipes for s in args.seeds for p in dict.fromkeys(["default", *args.perturbations])
             if p == "default" or s in pert_seeds]
     info = {"artifacts": str(artifacts), "device": "cpu", "resolution": args.resolution, "profile": args.profile,
             "epochs": [base["epochs_stage1"], base["epochs_stage2"]], "n_train": None}
-    partial = Path(str(args.out) + ".runs.jsonl")
-    done = sr._finished_runs(partial, info)  # keyed (variant, method, seed): here (recipe, perturbation, seed)
-    done = {_key(r): r for r in done.values()}
-    todo = [j for j in jobs if _key(j) not in done]
-    results = dict(done)
     t0 = time.perf_counter()
-    with partial.open("a") as sink:
-        if not done:
-            sink.write(json.dumps({"info": sr._run_settings(info)}) + "\n")
-        for r in sr._run_jobs([{**j, "variant": j["recipe"], "method": j["perturbation"]} for j in todo],
-                              str(artifacts), base, args.jobs, 1, init=_init_worker, run=run_one):
-            sink.write(json.dumps({**r, "variant": r["recipe"], "method": r["perturbation"]}) + "\n")
-            sink.flush()
-            results[_key(r)] = r
+    results = resumed_runs(args.out, info, jobs, lambda todo: run_jobs(
+        todo, str(artifacts), base, args.jobs, 1, _init_worker, run_one))
     summary = {}
     exposure = {r: exposed(recipe_train(r, base)) for r in args.recipes}
     for rname in args.recipes:
-        runs = [results[_key(j)] for j in jobs if j["recipe"] == rname]
+        runs = [results[(rname, j["perturbation"], j["seed"])] for j in jobs if j["recipe"] == rname]
         for rule in TAU_RULES:
             summary[f"{rname}|{rule}"] = sp = spreads(runs, rule)
             print_summary(rname, rule, sp, exposure[rname])

@@ -9,9 +9,7 @@ test IoU at the calibrated tau and at 0.5, the largest epoch-to-epoch jump, area
 
 from __future__ import annotations
 
-import argparse
 import json
-import multiprocessing as mp
 import os
 import subprocess
 import sys
@@ -21,6 +19,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from benchmarks.common import parser, resumed_runs, run_jobs
 from pipeline import catalog
 from pipeline.artifacts.atomic import write_text_if_changed
 from pipeline.artifacts.store import open_artifact
@@ -38,6 +37,9 @@ REPO = Path(__file__).resolve().parents[1]
 METHODS = (STAGE_ONE, SUPERVISED_CEILING)
 #: targets under this fraction of the frame count as "tiny"
 TINY_FRACTION = 0.002
+#: the split sizes of the synthetic data (data.synthetic.*) the command line may set
+DATA_SIZES = ("train_spacecraft", "train_views", "val_spacecraft", "val_views", "test_spacecraft_per_group",
+              "test_views")
 
 #: variant name -> (``train.*`` overrides of the paper recipe, the candidate it tests).  One change each.
 VARIANTS: dict[str, tuple[dict, str]] = {
@@ -51,17 +53,6 @@ VARIANTS: dict[str, tuple[dict, str]] = {
     "lr_1e-3": ({"lr_stage1": 1e-3}, "higher learning rate"),
     "constant_lr": ({"schedule": "constant"}, "no cosine decay"),
 }
-
-
-def data_overrides(args) -> list[str]:
-    """``--set`` overrides of the profile's params for the data stages: resolution and (optionally) split sizes."""
-    sets = [f"data.resolution={args.resolution}"]
-    for key in ("train_spacecraft", "train_views", "val_spacecraft", "val_views", "test_spacecraft_per_group",
-                "test_views"):
-        v = getattr(args, key)
-        if v is not None:
-            sets.append(f"data.synthetic.{key}={v}")
-    return sets
 
 
 def build_artifacts(workdir: Path, profile: str, sets: list[str], device: str, geometry: bool = False) -> Path:
@@ -94,9 +85,7 @@ def load_study_data(artifacts: Path, cfg: Mapping[str, Any], methods=METHODS) ->
     """Training arrays per method (the training API), the validation data, test images, masks and groups."""
     out: dict[str, Any] = {}
     for m in methods:
-        data, val, _ = load_inputs(artifacts, get_method(m), cfg)
-        out[m] = data
-        out["val"] = val
+        out[m], out["val"], _ = load_inputs(artifacts, get_method(m), cfg)
     manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
     images = open_artifact(catalog.path("images", artifacts), "images")
     reference = open_artifact(catalog.path("reference", artifacts), "reference")
@@ -179,9 +168,8 @@ def run_one(job: dict) -> dict:
     log = res.log[res.log["epoch"] >= 1]
     out = {k: job[k] for k in ("variant", "method", "seed")}
     out.update(selected_epoch=res.selected_epoch, max_jump=max_adjacent_jump(log["val_iou"].to_numpy()),
-               val_iou_curve=[float(v) for v in log["val_iou"]],
-               val_iou_cal_curve=[float(v) for v in log["val_iou_cal"]],
-               loss_curve=[float(v) for v in log["loss"]], autocast=res.info["autocast"])
+               **{f"{c}_curve": [float(v) for v in log[c]] for c in ("val_iou", "val_iou_cal", "loss")},
+               autocast=res.info["autocast"])
     out.update(score_run(res.model, _DATA["val"], _DATA["test_images"], _DATA["test_masks"], job["device"]))
     out["seconds"] = time.perf_counter() - t0
     print(f"  done {out['variant']:18s} {out['method']:18s} s{out['seed']}: iou_cal {out['iou_cal']:.3f} "
@@ -192,15 +180,11 @@ def run_one(job: dict) -> dict:
 COLUMNS = ("iou_cal", "iou_05", "max_jump", "max_jump_cal", "area_cal", "area_05", "iou_cal_tiny", "tau_cal")
 
 
-def _with_derived(r: Mapping[str, Any]) -> dict:
-    """A run's numbers plus ``max_jump_cal``, the largest epoch-to-epoch change of the calibrated validation IoU."""
-    return {**r, "max_jump_cal": max_adjacent_jump(np.asarray(r["val_iou_cal_curve"], dtype=np.float64))}
-
-
 def summarize(results: list[dict]) -> list[dict]:
-    """Means over seeds per (variant, method), with differences to the paper recipe of the same method."""
+    """Means over seeds per (variant, method), with differences to the paper recipe of the same method; a run's
+    ``max_jump_cal`` is the largest epoch-to-epoch change of its calibrated validation IoU."""
     rows = []
-    results = [_with_derived(r) for r in results]
+    results = [{**r, "max_jump_cal": max_adjacent_jump(r["val_iou_cal_curve"])} for r in results]
     for v in dict.fromkeys(r["variant"] for r in results):
         for m in METHODS:
             rs = [r for r in results if r["variant"] == v and r["method"] == m]
@@ -225,61 +209,18 @@ def print_table(rows: list[dict], header: str) -> None:
               f"{r['area_05']:7.2f} {r['iou_cal_tiny']:7.3f} {r['tau_cal']:5.2f}")
 
 
-def _run_settings(info: Mapping[str, Any]) -> dict:
-    """The part of ``info`` that must match for finished runs to be reused."""
-    return {k: info[k] for k in ("artifacts", "device", "resolution", "profile", "epochs", "n_train")}
-
-
-def _finished_runs(partial: Path, info: Mapping[str, Any]) -> dict:
-    """Runs already in ``partial`` (JSON lines) written with the same settings, else none (the file restarts)."""
-    if not partial.exists():
-        return {}
-    lines = [json.loads(x) for x in partial.read_text().splitlines() if x.strip()]
-    if not lines or lines[0].get("info") != json.loads(json.dumps(_run_settings(info))):
-        partial.unlink()
-        return {}
-    return {(r["variant"], r["method"], r["seed"]): r for r in lines[1:]}
-
-
-def _run_jobs(jobs: list[dict], artifacts: str, base: dict, n_jobs: int, threads: int, init=None, run=None):
-    """Yield the results of ``jobs`` as they finish, here or in ``n_jobs`` spawned processes (each loading the
-    study data once with ``init``; jobs run by ``run``)."""
-    init, run = init or _init_worker, run or run_one
-    if not jobs:
-        return
-    if n_jobs <= 1:
-        init(artifacts, base, threads)
-        for j in jobs:
-            yield run(j)
-        return
-
-    with mp.get_context("spawn").Pool(n_jobs, initializer=init, initargs=(artifacts, base, threads)) as pool:
-        yield from pool.imap_unordered(run, jobs, chunksize=1)
-        pool.close()  # let the workers exit on their own (terminate() leaves a semaphore behind)
-        pool.join()
-
-
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--artifacts", default=None, help="use this artifacts directory (prepare/teacher/consensus done)")
-    ap.add_argument("--workdir", default="study_recipe", help="where the data stages write when --artifacts is not given")
-    ap.add_argument("--profile", default="paper")
-    ap.add_argument("--resolution", type=int, default=384)
-    for key in ("train_spacecraft", "train_views", "val_spacecraft", "val_views", "test_spacecraft_per_group",
-                "test_views"):
+    ap = parser(__doc__, artifacts=None, workdir="study_recipe", profile="paper", resolution=384, epochs=None,
+                seeds=[42], device="cpu", jobs=1, threads=1, out="study_recipe.json")
+    for key in DATA_SIZES:
         ap.add_argument("--" + key.replace("_", "-"), type=int, default=None, help=f"data.synthetic.{key}")
-    ap.add_argument("--epochs", type=int, default=None, help="train.epochs_stage1 (default: the profile's)")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[42])
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--jobs", type=int, default=1, help="training processes at a time")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads per process")
-    ap.add_argument("--out", default="study_recipe.json")
     args = ap.parse_args(argv)
 
     device = str(resolve_device(args.device))
-    sets = data_overrides(args)
+    sets = [f"data.resolution={args.resolution}"] + [f"data.synthetic.{k}={getattr(args, k)}" for k in DATA_SIZES
+                                                     if getattr(args, k) is not None]
     params = load_profile(args.profile, sets)
     artifacts = (Path(args.artifacts) if args.artifacts
                  else build_artifacts(Path(args.workdir).resolve(), args.profile, sets, device))
@@ -294,22 +235,12 @@ def main(argv=None) -> dict:
             "threads": args.threads, "jobs": args.jobs,
             "pos_weight": {m: pos_weight_stats(np.asarray(data[m].mask), base["batch_size"], args.seeds[0], base["epochs_stage1"],
                                                base["pos_weight_max"]) for m in METHODS}}
-    print(json.dumps({k: v for k, v in info.items()}, indent=None))
+    print(json.dumps(info))
     jobs = [{"variant": v, "method": m, "seed": s, "device": device, "cfg": {**base, **VARIANTS[v][0]}}
             for s in args.seeds for v in args.variants for m in args.methods]
-    # a long study survives an interruption: a rerun skips the runs found in <out>.runs.jsonl
-    partial = Path(str(args.out) + ".runs.jsonl")
-    done = _finished_runs(partial, info)
-    todo = [j for j in jobs if (j["variant"], j["method"], j["seed"]) not in done]
-    results_by_key = dict(done)
     t0 = time.perf_counter()
-    with partial.open("a") as sink:
-        if not done:
-            sink.write(json.dumps({"info": _run_settings(info)}) + "\n")
-        for r in _run_jobs(todo, str(artifacts), base, args.jobs, args.threads):
-            sink.write(json.dumps(r) + "\n")
-            sink.flush()
-            results_by_key[(r["variant"], r["method"], r["seed"])] = r
+    results_by_key = resumed_runs(args.out, info, jobs, lambda todo: run_jobs(
+        todo, str(artifacts), base, args.jobs, args.threads, _init_worker, run_one))
     results = [results_by_key[(j["variant"], j["method"], j["seed"])] for j in jobs]
     info["wall_seconds"] = time.perf_counter() - t0
     rows = summarize(results)
