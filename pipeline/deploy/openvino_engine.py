@@ -47,6 +47,5 @@ class OpenVinoRunner:
 
     def __call__(self, x) -> np.ndarray:
         x = np.ascontiguousarray(np.asarray(x), np.float32)
-        req = self._request(tuple(x.shape))
-        out = req.infer({0: x})
+        out = self._request(tuple(x.shape)).infer({0: x})
         return np.array(out[0], np.float32, copy=True)  # the request reuses its output buffer

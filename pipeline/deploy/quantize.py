@@ -24,6 +24,7 @@ from pipeline.artifacts.provenance import cpu
 from pipeline.runtime.errors import InputError
 from pipeline.evaluation.inference import images_to_tensor
 from pipeline.metrics import image_ious
+from pipeline.params import INT8_CALIBRATIONS
 from pipeline.thresholds import logit_threshold
 
 
@@ -178,8 +179,12 @@ def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_
     images = np.asarray(calibration_images)
     if images.ndim != 4 or len(images) == 0:
         raise InputError("int8 calibration needs at least one image (uint8 [N,H,W,3])")
+    if calibration not in INT8_CALIBRATIONS:
+        raise InputError(f"deploy.int8_calibration={calibration!r}: one of {', '.join(INT8_CALIBRATIONS)}")
     if not 50.0 < float(percentile) <= 100.0:
         raise InputError(f"deploy.int8_percentile={percentile!r}: must lie in (50, 100]")
+    if int(weight_bits) not in (7, 8):
+        raise InputError(f"deploy.int8_weight_bits={weight_bits!r}: 7 or 8")
 
     class _Reader(CalibrationDataReader):
         def __init__(self, batch: np.ndarray):

@@ -3,6 +3,7 @@ imports (one ``train_<method>`` stage per method, active runs only), and params.
 
 from __future__ import annotations
 
+import contextlib
 import re
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,7 @@ import yaml
 from pipeline.catalog import ARTIFACTS, EXTRA_PATHS, PLOTS, PLOT_TEMPLATE, STAGES, StageSpec, dvc_path
 from pipeline.runtime.codeversion import code_deps
 from pipeline.methods import METHODS, STAGE_ONE, input_artifacts, param_keys
-from pipeline.params import Params, deep_merge, unresolved, validate
+from pipeline.params import Params, deep_merge, get_path, unresolved, validate
 from pipeline.profiles import profile_params
 
 
@@ -130,10 +131,8 @@ REVIEW_VALIDATION_PARAMS = ("review.corrections", "review.mode")
 def optional_stages_on(params: dict | None) -> tuple[str, ...]:
     """The :data:`OPTIONAL_STAGES` whose key is set in ``params``."""
     def get(key):
-        cur = params or {}
-        for k in key.split("."):
-            cur = cur.get(k) if isinstance(cur, dict) else None
-        return cur
+        with contextlib.suppress(KeyError, TypeError):
+            return get_path(params or {}, key)
 
     return tuple(n for n, key in OPTIONAL_STAGES.items() if get(key))
 

@@ -48,7 +48,8 @@ GIT_OUTPUTS = (".git", ".gitignore")
 GITIGNORE = "/.cache/\n__pycache__/\n*.pyc\n/dvc_plots/\n/geodistill_plots/\n"
 GIT_TRACKED = (PARAMS_FILE, DVC_FILE, PROTOCOL_FILE, RECORD_FILE, ".dvcignore", ".gitignore", ".dvc")
 #: the command commits, not the user (unsigned: no key prompt)
-GIT_AUTHOR = ("-c", "user.name=geodistill distill", "-c", "user.email=geodistill@localhost", "-c", "commit.gpgsign=false")
+GIT_AUTHOR = ("-c", "user.name=geodistill distill", "-c", "user.email=geodistill@localhost",
+              "-c", "commit.gpgsign=false")
 #: DVC's last line after `dvc repro`, left out: a distill project has no remote
 DVC_PUSH_HINT = "Use `dvc push` to send your updates to remote storage."
 #: how a distill.json written before records named their writer is recognised
@@ -286,7 +287,8 @@ def project_outputs(out: str | Path) -> dict[str, Path]:
     out = Path(out)
     art = out / catalog.ARTIFACTS_DIR
     profile = read_yaml_mapping(out / PARAMS_FILE).get("profile", PROFILE)
-    return {"deploy": catalog.path("deploy", art), "report": catalog.path("report", art, profile=profile) / catalog.output_file("report", "html"),
+    return {"deploy": catalog.path("deploy", art),
+            "report": catalog.path("report", art, profile=profile) / catalog.output_file("report", "html"),
             "thresholds": catalog.path("thresholds", art), "checkpoints": catalog.path("checkpoints", art)}
 
 
