@@ -34,7 +34,8 @@ class FastStudent:
         self._pinned: dict[tuple, object] = {}     # shape -> pinned uint8 host buffer
 
     def _forward(self, x):
-        with torch.inference_mode(), autocast(self.device, torch.bfloat16 if self.precision == "bf16" else None, cache_enabled=False):
+        dtype = torch.bfloat16 if self.precision == "bf16" else None
+        with torch.inference_mode(), autocast(self.device, dtype, cache_enabled=False):
             return self.net(x.contiguous(memory_format=torch.channels_last)).float()
 
     def _graph(self, shape: tuple, uint8: bool):
