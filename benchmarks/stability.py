@@ -218,8 +218,7 @@ def recipe_table(summary: Mapping[str, Mapping[str, dict]], exposure: Mapping[st
         row = {"recipe": recipe, "rule": rule, "target": met, "exposed": list(perts), "pert_iou": wi, "pert_bf1": wb,
                "no_worse": no_worse_than(sp, reference) if recipe != PAPER_RECIPE else True}
         for k in METRICS:
-            for p in ("threads1", "precision"):
-                row[f"move_{p}_{k}"] = _worst(sp, f"move_{p}", k)
+            row.update({f"move_{p}_{k}": _worst(sp, f"move_{p}", k) for p in ("threads1", "precision")})
             row[f"pert1_{k}"] = _worst(sp, "pert", k)
             row[f"gain_pert1_{k}"] = _worst(sp, "pert", k, gains=True)
             for m in METHODS:
