@@ -40,14 +40,16 @@ def mask_bbox(mask: np.ndarray) -> list[float]:
     return [float(cols[0]), float(rows[0]), float(cols[-1] - cols[0] + 1), float(rows[-1] - rows[0] + 1)]
 
 
-def coco_annotation(mask: np.ndarray, annotation_id: int, image_id: int, **extra) -> dict | None:
-    """One COCO instance record of an image's voted mask (None when empty), with ``extra`` fields."""
+def coco_annotation(mask: np.ndarray, annotation_id: int, image_id: int, segment=rle_encode, iscrowd: int = 0,
+                    **extra) -> dict | None:
+    """One COCO instance record of an image's voted mask (None when empty), its segmentation ``segment(mask)``,
+    with ``extra`` fields."""
     mask = _as_mask(mask)
     area = int(np.count_nonzero(mask))
     if area == 0:
         return None
     return {"id": int(annotation_id), "image_id": int(image_id), "category_id": SPACECRAFT_CATEGORY["id"],
-            "segmentation": rle_encode(mask), "area": area, "bbox": mask_bbox(mask), "iscrowd": 0, **extra}
+            "segmentation": segment(mask), "area": area, "bbox": mask_bbox(mask), "iscrowd": iscrowd, **extra}
 
 
 def coco_document(images: list[dict], annotations: list[dict], **info) -> dict:
@@ -65,21 +67,13 @@ def yolo_polygons(mask: np.ndarray) -> list[np.ndarray]:
     if not mask.any():
         return []
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    out = []
-    for c in contours:
-        pts = c.reshape(-1, 2).astype(np.float64)
-        if len(pts) >= 3:
-            out.append(pts / np.array([w, h], np.float64))
-    return out
+    return [c.reshape(-1, 2).astype(np.float64) / np.array([w, h], np.float64) for c in contours if len(c) >= 3]
 
 
 def yolo_lines(mask: np.ndarray, class_id: int = YOLO_CLASS) -> list[str]:
     """The label file's lines for one image: ``class x1 y1 x2 y2 ...`` per region."""
-    lines = []
-    for poly in yolo_polygons(mask):
-        coords = " ".join(f"{v:.{YOLO_DECIMALS}f}" for v in poly.ravel())
-        lines.append(f"{int(class_id)} {coords}")
-    return lines
+    return [f"{int(class_id)} " + " ".join(f"{v:.{YOLO_DECIMALS}f}" for v in poly.ravel())
+            for poly in yolo_polygons(mask)]
 
 
 #: the share of the images ``yolo/val.txt`` holds out (at least one of two or more; none of one)

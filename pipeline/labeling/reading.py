@@ -17,7 +17,7 @@ from pipeline.artifacts.ownership import check_outputs, claim_outputs, owned_out
 from pipeline.catalog import output_file, output_names
 from pipeline.datasets.loading import (SUPPORTED_SUFFIXES, BadFileError, DecodeCache, load_mask, load_rgb,
                                        reset_frame_warnings)
-from pipeline.datasets.manifest import BadInputPolicy
+from pipeline.datasets.manifest import BadInputPolicy, relative_id
 from pipeline.datasets.scan import scan_inputs
 from pipeline.params import section
 from pipeline.runtime.errors import (BACKEND, CHECKPOINT, INPUT, LABELS, OUT, OVERWRITE, REFERENCE_MASKS, InputError,
@@ -54,17 +54,10 @@ def find_images(input_dir: str | Path):
     return found
 
 
-def _id_of(root: Path, path: str | Path) -> str:
-    """The label name of ``path`` (relative to ``root`` without the suffix), or its stem outside ``root``."""
-    try:
-        return Path(path).relative_to(root).with_suffix("").as_posix()
-    except ValueError:
-        return Path(path).stem
-
-
 def image_ids(root: Path, files: Sequence[Path]) -> list[str]:
-    """Each file's label name (:func:`_id_of`); InputError when two would be equal ignoring letter case."""
-    ids = [_id_of(root, f) for f in files]
+    """Each file's label name (:func:`~pipeline.datasets.manifest.relative_id`); InputError when two would be
+    equal ignoring letter case."""
+    ids = [relative_id(root, f) for f in files]
     seen: dict[str, Path] = {}
     for iid, f in zip(ids, files):
         other = seen.setdefault(iid.lower(), f)
@@ -191,9 +184,7 @@ def plan_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
     ids = image_ids(root, files)
     policy = BadInputPolicy(section(params, "data")["skip_bad"])
     # bad entries (links leaving the folder, broken links) are reported; non-images only listed
-    for tell, entries in ((policy.report, found.skipped), (policy.record, found.unused)):
-        for path, reason in entries:
-            tell(_id_of(root, path), path, reason)
+    policy.report_scan(found)
     planned, every_format = label_targets(root, files, ids, fmts), set(label_targets(root, files, ids, FORMATS))
     check_outputs(out, planned, OUTPUTS["record"], "label", overwrite=overwrite)
     # adding images is fine; losing the labels of images no longer here is not, unless asked
@@ -286,7 +277,8 @@ def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
         read_images(job)
     job.targets, inputs = label_targets(job.root, job.files, job.ids, fmts), FolderInputs(job)
     job.previous = owned_outputs(job.out, OUTPUTS["record"], "label")
-    claim_outputs(job.out, job.targets, OUTPUTS["record"], "label", {"input": str(job.root.resolve()), "complete": False})
+    claim_outputs(job.out, job.targets, OUTPUTS["record"], "label",
+                  {"input": str(job.root.resolve()), "complete": False})
     job.runner, job.fingerprint = open_runner(job.tcfg, (job.size, job.size), device, inputs, job.shas)
     if job.simulated:
         log.warning("label: %s", SIMULATOR_NOTE)

@@ -128,10 +128,9 @@ def write_outputs(job: LabelJob, fmts: tuple[str, ...], v: Votes, gates: Gates, 
         desc = "geodistill label: voted multi-prompt pseudo-masks" + (f" -- {SIMULATOR_NOTE}" if job.simulated else "")
         doc = coco_document(images, [x for x in v.annotations if x is not None], description=desc,
                             teacher_backend=job.tcfg["backend"], simulator=job.simulated)
+        _save(out / OUTPUTS["coco"], json.dumps(doc, separators=(",", ":")))
     _save(out / OUTPUTS["table"], lambda tmp: table.to_parquet(tmp, index=False))
     _save(out / OUTPUTS["csv"], lambda tmp: table.to_csv(tmp, index=False, float_format="%.6g"))
-    if "coco" in fmts:
-        _save(out / OUTPUTS["coco"], json.dumps(doc, separators=(",", ":")))
     tiles = [tile(img, voted, f"{job.ids[r]} g={g[r]:.2f}", max(job.size, 192)) for r, (img, voted) in
              sorted(v.sheet.items())]
     write_png(out / OUTPUTS["sheet"], contact_sheet(tiles, columns=4))

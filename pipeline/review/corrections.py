@@ -88,8 +88,8 @@ def _labelstudio(path: Path, review: dict) -> dict[str, np.ndarray]:
     by_id = {im["image_id"]: im for im in review["images"]}
     out, untouched = {}, 0
     for k, task in enumerate(tasks):
-        data = task.get("data", {}) if isinstance(task, dict) else {}
-        where = f"{path}: task {task.get('id', k) if isinstance(task, dict) else k}"
+        task = task if isinstance(task, dict) else {}
+        data, where = task.get("data", {}), f"{path}: task {task.get('id', k)}"
         if data.get(EXPORT_FIELD) != review["export_id"]:
             raise InputError(f"{where}: from another export ({EXPORT_FIELD}={data.get(EXPORT_FIELD)!r}, this "
                              f"export is {review['export_id']!r})")
@@ -217,15 +217,10 @@ def import_corrections(source: str | Path, review_dir: str | Path, out: str | Pa
     masks = READERS[fmt](source, review)
     if not masks:
         raise InputError(f"{{}}: no corrected mask in it ({literal(fmt)})", SOURCE(source))
-    rows = []
-    for im in review["images"]:   # the export's order: rank
-        if im["image_id"] not in masks:
-            continue
-        m = masks[im["image_id"]]
-        voted = coco_decode(im["voted_rle"])
-        rows.append({"image_id": im["image_id"], "file": im["file"], "width": im["width"], "height": im["height"],
-                     "rle": rle_encode(m)["counts"], "pixels": int(np.count_nonzero(m)), "source": fmt,
-                     "iou_to_voted": image_iou(m, voted), "rank": im["rank"]})
+    rows = [{"image_id": im["image_id"], "file": im["file"], "width": im["width"], "height": im["height"],
+             "rle": rle_encode(m)["counts"], "pixels": int(np.count_nonzero(m)), "source": fmt,
+             "iou_to_voted": image_iou(m, coco_decode(im["voted_rle"])), "rank": im["rank"]}
+            for im in review["images"] if (m := masks.get(im["image_id"])) is not None]   # the export's order: rank
     params = {"format": fmt, "export_id": review["export_id"], "source_sha256": source_digest(source)}
     meta = make_meta("corrections", STAGE, code_version, params, export_id=review["export_id"],
                      simulator=bool(review.get("simulator")))

@@ -125,10 +125,9 @@ def server_env(layout: dict) -> dict:
 def _check_options(top, ls_shape: str, coco_shape: str) -> None:
     if top is not None and int(top) < 1:
         raise InputError("{}: must be at least 1 (leave it out to export every image)", TOP(top))
-    if ls_shape not in LS_SHAPES:
-        raise InputError(f"{{}}: expected one of {', '.join(LS_SHAPES)}", LS_SHAPE(ls_shape))
-    if coco_shape not in COCO_SHAPES:
-        raise InputError(f"{{}}: expected one of {', '.join(COCO_SHAPES)}", COCO_SHAPE(coco_shape))
+    for option, value, allowed in ((LS_SHAPE, ls_shape, LS_SHAPES), (COCO_SHAPE, coco_shape, COCO_SHAPES)):
+        if value not in allowed:
+            raise InputError(f"{{}}: expected one of {', '.join(allowed)}", option(value))
 
 
 def check_export_outputs(out: Path, overwrite: bool) -> None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from pipeline.labeling.formats import SPACECRAFT_CATEGORY, mask_bbox, yolo_polygons
+from pipeline.labeling.formats import SPACECRAFT_CATEGORY, coco_annotation, yolo_polygons
 
 LS_WORD_SIZE = 8
 LS_RLE_SIZES = (3, 4, 8, 16)
@@ -43,10 +43,7 @@ def _run_bits(length: int, value: int) -> str:
 
 def ls_rle_encode(mask: np.ndarray) -> list[int]:
     """Label Studio brush RLE (byte values) of a bool [H,W] mask, opaque in all four channels."""
-    mask = np.asarray(mask, bool)
-    if mask.ndim != 2:
-        raise FormatError(f"mask: expected [H,W], got shape {mask.shape}")
-    return ls_rle_encode_values(np.repeat(mask.ravel().astype(np.uint8) * LS_OPAQUE, 4))
+    return ls_rle_encode_values(ls_brush_rgba(np.asarray(mask, bool).astype(np.uint8) * LS_OPAQUE))
 
 
 def ls_brush_rgba(alpha: np.ndarray) -> np.ndarray:
@@ -161,18 +158,10 @@ def coco_uncompressed_rle(mask: np.ndarray) -> dict:
 def coco_review_annotation(mask: np.ndarray, annotation_id: int, image_id: int, shape: str = "rle",
                            **extra) -> dict | None:
     """One COCO annotation of a mask for CVAT; None for an empty mask."""
-    mask = np.asarray(mask, bool)
-    area = int(np.count_nonzero(mask))
-    if area == 0:
-        return None
     if shape == "rle":
-        seg, crowd = coco_uncompressed_rle(mask), 1
-    else:
-        h, w = mask.shape
-        seg = [np.round(p * [w, h], 2).ravel().tolist() for p in yolo_polygons(mask)]
-        crowd = 0
-    return {"id": int(annotation_id), "image_id": int(image_id), "category_id": SPACECRAFT_CATEGORY["id"],
-            "segmentation": seg, "area": area, "bbox": mask_bbox(mask), "iscrowd": crowd, **extra}
+        return coco_annotation(mask, annotation_id, image_id, coco_uncompressed_rle, 1, **extra)
+    return coco_annotation(mask, annotation_id, image_id, lambda m: [
+        np.round(p * m.shape[::-1], 2).ravel().tolist() for p in yolo_polygons(m)], 0, **extra)
 
 
 def coco_segmentation_mask(segmentation, height: int, width: int) -> np.ndarray:

@@ -18,12 +18,6 @@ from pipeline.review.export import LS_CONFIG, LS_RECORD_KEY, LS_TASKS, OUTPUTS, 
 STORAGE_API = "/api/storages/localfiles"
 
 
-def storage_request(project_id: int, layout: dict, title: str = "geodistill review images") -> dict:
-    """The body of ``POST /api/storages/localfiles``: a Local files storage whose path covers the images."""
-    return {"project": int(project_id), "title": title, "path": str(Path(layout["storage_path"]).resolve()),
-            "regex_filter": "", "use_blob_urls": True, "recursive_scan": True}
-
-
 class Client:
     """A Label Studio server at ``url`` with ``token``: a legacy API token or a personal access token (a JWT)."""
 
@@ -57,8 +51,11 @@ def upload(client: Client, tasks: list[dict], label_config: str, layout: dict | 
     the first task's URL serves ``first_image``.  -> ``{"project", "storage", "tasks", "served"}``."""
     project = client.request("POST", "/api/projects", {"title": title, "label_config": label_config})
     storage = None
-    if layout is not None:
-        storage = client.request("POST", STORAGE_API, storage_request(project["id"], layout))["id"]
+    if layout is not None:   # a Local files storage whose path covers the images
+        storage = client.request("POST", STORAGE_API, {
+            "project": int(project["id"]), "title": "geodistill review images",
+            "path": str(Path(layout["storage_path"]).resolve()), "regex_filter": "", "use_blob_urls": True,
+            "recursive_scan": True})["id"]
     client.request("POST", f"/api/projects/{project['id']}/import", tasks)
     served = bool(first_image is not None and tasks and tasks[0]["data"]["image"].startswith("/"))  # on this server
     if served:

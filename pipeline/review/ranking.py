@@ -52,14 +52,10 @@ def scores(table, ranking: str = DEFAULT_RANKING) -> np.ndarray:
     if missing:
         raise InputError(f"{{}}: the label table has no column {missing[0]!r} (made by an older label; rerun "
                          f"geodistill label into the same folder: it resumes from its cache)", RANKING(ranking))
-    g = 1.0 - table["g"].to_numpy(np.float64) if "g" in table.columns else None
-    if ranking == "gate":
-        return g
-    if ranking == "disagreement":
-        return table["h"].to_numpy(np.float64)
-    if ranking == "student":
-        return table[STUDENT_COLUMN].to_numpy(np.float64)
-    parts = [_pct(g), _pct(table["h"])]
+    if ranking != "combined":   # one column: g (as 1 - g), h or the student's
+        values = table[RANKINGS[ranking].needs[0]].to_numpy(np.float64)
+        return 1.0 - values if ranking == "gate" else values
+    parts = [_pct(1.0 - table["g"].to_numpy(np.float64)), _pct(table["h"])]
     if STUDENT_COLUMN in table.columns:
         parts.append(_pct(table[STUDENT_COLUMN]))
     return np.mean(parts, axis=0)
