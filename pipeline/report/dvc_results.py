@@ -87,23 +87,31 @@ def teacher_metric_files(teacher_table: pd.DataFrame, gates: pd.DataFrame,
     return out
 
 
-def distillation_efficiency(student_mean: float, student_std: float, n_seeds: int, vote_iou: float,
-                            ci: float = 0.95) -> tuple[float, float, float]:
-    """Distillation efficiency = student Image IoU / teacher-vote Image IoU on the same test images, as
-    (ratio, low, high): ratio -+ t_{S-1, (1+ci)/2} student_std / (vote sqrt(S)), the per-seed ratio t
-    interval (the vote has no seed); the interval is nan with one seed, everything without a vote."""
+def seed_ratio(mean: float, std: float, n: int, ref_mean: float, ref_std: float = 0.0, ref_n: int | None = None,
+               ci: float = 0.95) -> tuple[float, float, float]:
+    """(ratio, low, high) of two seed means, r = mean / ref_mean, with the delta-method t interval
+    r -+ t_{d, (1+ci)/2} sqrt(std^2 / n + r^2 ref_std^2 / ref_n) / ref_mean, d = min(n, ref_n) - 1;
+    a reference without seeds (``ref_n`` None, e.g. the teacher vote) adds no variance.  nan interval below 2 seeds."""
     nan = float("nan")
-    vote, mean = float(vote_iou), float(student_mean)
-    if not (math.isfinite(vote) and math.isfinite(mean)) or vote <= 0:
+    ref, mean = float(ref_mean), float(mean)
+    if not (math.isfinite(ref) and math.isfinite(mean)) or ref <= 0:
         return nan, nan, nan
-    ratio = mean / vote
-    std = float(student_std)
-    if int(n_seeds) < 2 or not math.isfinite(std):
+    ratio = mean / ref
+    dof = min(int(n), int(ref_n) if ref_n is not None else int(n)) - 1
+    if dof < 1 or not math.isfinite(float(std)) or (ref_n is not None and not math.isfinite(float(ref_std))):
         return ratio, nan, nan
     from scipy.special import stdtrit
 
-    half = float(stdtrit(int(n_seeds) - 1, (1.0 + ci) / 2.0)) * std / (vote * math.sqrt(int(n_seeds)))
+    var = float(std) ** 2 / int(n) + (ratio ** 2 * float(ref_std) ** 2 / int(ref_n) if ref_n is not None else 0.0)
+    half = float(stdtrit(dof, (1.0 + ci) / 2.0)) * math.sqrt(var) / ref
     return ratio, ratio - half, ratio + half
+
+
+def distillation_efficiency(student_mean: float, student_std: float, n_seeds: int, vote_iou: float,
+                            ci: float = 0.95) -> tuple[float, float, float]:
+    """Distillation efficiency = student Image IoU / teacher-vote Image IoU, as (ratio, low, high):
+    :func:`seed_ratio` against the vote, which has no seed."""
+    return seed_ratio(student_mean, student_std, n_seeds, vote_iou, ci=ci)
 
 
 #: method -> (the distillation efficiency it should reach, whether its whole interval must): docs/decisions.md

@@ -10,7 +10,7 @@ from typing import Iterator, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from pipeline.report.dvc_results import EFFICIENCY_TARGETS, distillation_efficiency, efficiency_target_met
+from pipeline.report.dvc_results import EFFICIENCY_TARGETS, distillation_efficiency, efficiency_target_met, seed_ratio
 from pipeline.methods import (BASELINE, CONTINUATION, METHODS, PROPOSED, STAGE_ONE, ablation_table_rows,
                               annotation_free_methods, in_table_order, method_label, methods_with_role, run_label)
 from pipeline.report.analysis import PRIMARY_ENDPOINT, gain_noise_floor, noise_floor_note, tau_text
@@ -403,20 +403,23 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
     for g in groups:
         part = s[s["group"] == g].set_index("method")
         vote_iou = float(vote.loc[g, "iou"]) if vote is not None and g in vote.index else float("nan")
+        top = part.loc[ceiling[0]] if ceiling and ceiling[0] in part.index else None
         for m in [BASELINE, PROPOSED, *ceiling]:
             if m in part.index:
                 r = part.loc[m]
                 e, lo, hi = distillation_efficiency(r["iou_mean"], r["iou_std"], r["n_seeds"], vote_iou)
+                cost = ("--" if top is None or m in ceiling else efficiency_text(*seed_ratio(
+                    r["iou_mean"], r["iou_std"], r["n_seeds"], top["iou_mean"], top["iou_std"], top["n_seeds"])))
                 rows.append([g, label(m), *(_ms(r, k) for k in QUALITY), str(int(r["n_seeds"])),
-                             efficiency_text(e, lo, hi)])
+                             efficiency_text(e, lo, hi), cost])
                 verdicts.append((m, efficiency_target_met(m, e, lo)))
         if vote is not None and g in vote.index:
             v = vote.loc[g]
-            rows.append([g, TEACHER_VOTE_LABEL, *(fmt(v[k]) for k in QUALITY), "--", "1"])
+            rows.append([g, TEACHER_VOTE_LABEL, *(fmt(v[k]) for k in QUALITY), "--", "1", "--"])
     return Table("tab:reference-points", f"Reference points: the teacher vote and the supervised ceiling "
                  f"({mode_text(mode, fixed_tau)} for the students)",
                  ["Evaluation set", "Predictor", "Image IoU", "Boundary F1", "Precision", "Recall", "Seeds",
-                  "IoU ÷ vote"], rows,
+                  "IoU ÷ vote", "IoU ÷ ceiling"], rows,
                  [n for n in ["The supervised ceiling is the Plain Student's recipe trained on the training split's "
                   "REFERENCE masks: it is not annotation-free and is never part of a gain or its confidence "
                   "interval.  The teacher vote is the pseudo-label every annotation-free student learns from, scored "
@@ -424,6 +427,10 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
                   "IoU ÷ vote is the distillation efficiency: the seed-mean Image IoU divided by the teacher vote's "
                   "on the same test images, with a 95 % per-seed ratio t interval (the vote has no seed; the "
                   "interval covers training noise, not the sampling of the images).",
+                  "The split of the gap to the vote: label cost = Plain ÷ ceiling (the IoU ÷ ceiling column; what "
+                  "training on pseudo-labels instead of reference masks costs), generalization = ceiling ÷ vote (the "
+                  "ceiling's IoU ÷ vote: what the student's capacity and data leave).  The ceiling ratio's interval "
+                  "adds both runs' seed noise (delta method); both are meaningful only with each run at its plateau.",
                   efficiency_targets_note(verdicts)] if n])
 
 

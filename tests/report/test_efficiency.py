@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -86,3 +87,43 @@ def test_targets_judge_the_ratio_or_the_interval_and_the_table_says_how_many_gro
     assert "≥ 0.95 × the vote: met on 0 of 2 groups" in note
     assert "≥ 1.00 × the vote: met on 1 of 2 groups" in note
     assert "interval above 1.00 × the vote: met on 0 of 2 groups" in note
+
+
+def test_seed_ratio_against_a_seedless_reference_is_the_efficiency_and_reference_noise_widens_it():
+    from pipeline.report.dvc_results import seed_ratio
+
+    assert seed_ratio(0.5, 0.02, 5, 0.62) == pytest.approx(distillation_efficiency(0.5, 0.02, 5, 0.62))
+    r, lo, hi = seed_ratio(0.5, 0.02, 5, 0.6, 0.03, 4)
+    _, lo0, hi0 = seed_ratio(0.5, 0.02, 5, 0.6)
+    assert r == pytest.approx(0.5 / 0.6) and hi - lo > hi0 - lo0  # both runs' seed noise, t with 3 dof
+    t3 = 3.182446305284263  # t_{3, 0.975}
+    half = t3 * math.sqrt(0.02 ** 2 / 5 + r ** 2 * 0.03 ** 2 / 4) / 0.6
+    assert (lo, hi) == (pytest.approx(r - half), pytest.approx(r + half))
+    assert math.isnan(seed_ratio(0.5, 0.02, 5, 0.6, 0.03, 1)[1])  # a one-seed ceiling: no interval
+
+
+def test_seed_ratio_interval_covers_the_true_ratio_at_about_its_level():
+    from pipeline.report.dvc_results import seed_ratio
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(0.5, 0.03, (2000, 5))
+    b = rng.normal(0.6, 0.03, (2000, 5))
+    hits = [lo <= 0.5 / 0.6 <= hi for lo, hi in (seed_ratio(x.mean(), x.std(ddof=1), 5, y.mean(), y.std(ddof=1), 5)[1:]
+                                              for x, y in zip(a, b))]
+    assert 0.93 <= np.mean(hits) <= 0.995
+
+
+def test_reference_points_table_splits_the_gap_into_label_cost_and_generalization():
+    from pipeline.report.dvc_results import seed_ratio
+    from pipeline.report.tables import reference_points_table
+
+    vote = pd.DataFrame({"iou": [0.6, 0.7], "bf1": [0.5, 0.5], "precision": [0.6, 0.6], "recall": [0.7, 0.7]},
+                        index=["KCP", "HJM"])
+    tab = reference_points_table(_summary(), vote, "calibrated", ["KCP", "HJM"])
+    col = tab.header.index("IoU ÷ ceiling")
+    cells = {(r[0], r[1]): r[col] for r in tab.rows}
+    plain = next(v for (g, name), v in cells.items() if g == "KCP" and "Plain" in name)
+    r, lo, hi = seed_ratio(0.51, 0.02, 5, 0.57, 0.01, 5)
+    assert plain == f"{r:.2f} [{lo:.2f}, {hi:.2f}]"
+    assert all(v == "--" for (_, name), v in cells.items() if "Plain" not in name)  # ceiling and vote rows
+    assert any("label cost = Plain ÷ ceiling" in n and "generalization = ceiling ÷ vote" in n for n in tab.notes)
