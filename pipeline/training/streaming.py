@@ -101,11 +101,10 @@ def select_rows(x, sel):
 
 def row_means(x, block: int = 64) -> np.ndarray:
     """Each row's mean as float32 (a mask's foreground fraction), reading ``block`` rows at a time."""
-    n = len(x)
-    out = np.empty(n, dtype=np.float32)
-    for s in range(0, n, block):
-        part = np.asarray(x[np.arange(s, min(s + block, n))] if isinstance(x, RowSource) else x[s:s + block])
-        out[s:s + len(part)] = part.reshape(len(part), -1).mean(1).astype(np.float32)
+    out = np.empty(len(x), dtype=np.float32)
+    for s in range(0, len(x), block):
+        part = np.asarray(x[s:s + block])
+        out[s:s + len(part)] = part.reshape(len(part), -1).mean(1)
     return out
 
 
