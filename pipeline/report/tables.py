@@ -419,7 +419,7 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
     return Table("tab:reference-points", f"Reference points: the teacher vote and the supervised ceiling "
                  f"({mode_text(mode, fixed_tau)} for the students)",
                  ["Evaluation set", "Predictor", "Image IoU", "Boundary F1", "Precision", "Recall", "Seeds",
-                  "IoU ÷ vote", "IoU ÷ ceiling"], rows,
+                  "IoU ÷ vote", "Label cost"], rows,
                  [n for n in ["The supervised ceiling is the Plain Student's recipe trained on the training split's "
                   "REFERENCE masks: it is not annotation-free and is never part of a gain or its confidence "
                   "interval.  The teacher vote is the pseudo-label every annotation-free student learns from, scored "
@@ -427,7 +427,7 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
                   "IoU ÷ vote is the distillation efficiency: the seed-mean Image IoU divided by the teacher vote's "
                   "on the same test images, with a 95 % per-seed ratio t interval (the vote has no seed; the "
                   "interval covers training noise, not the sampling of the images).",
-                  "The split of the gap to the vote: label cost = Plain ÷ ceiling (the IoU ÷ ceiling column; what "
+                  "The split of the gap to the vote: label cost = Plain ÷ ceiling (the Label cost column; what "
                   "training on pseudo-labels instead of reference masks costs), generalization = ceiling ÷ vote (the "
                   "ceiling's IoU ÷ vote: what the student's capacity and data leave).  The ceiling ratio's interval "
                   "adds both runs' seed noise (delta method); both are meaningful only with each run at its plateau.",

@@ -206,12 +206,15 @@ def geodistill_commands() -> dict[str, tuple[str, frozenset[str]]]:
 
 def script_options(mod: str) -> frozenset[str] | None:
     """The options of ``python -m mod`` (argparse ``add_argument`` / ``click.option`` flags in the
-    module), None when it is not a script with options of its own."""
+    module, and the keywords of a ``benchmarks.common.parser(...)`` call), None when it is not a script with
+    options of its own."""
     t = tree(mod)
     is_main = any(isinstance(n, ast.If) and "__main__" in ast.unparse(n.test) for n in t.body)
     flags = {c.value for n in ast.walk(t) if isinstance(n, ast.Call)
              and (n.func.attr if isinstance(n.func, ast.Attribute) else getattr(n.func, "id", "")) in
              ("add_argument", "option") for c in n.args if isinstance(c, ast.Constant) and str(c.value).startswith("--")}
+    flags |= {f"--{k.arg.replace('_', '-')}" for n in ast.walk(t) if isinstance(n, ast.Call)  # benchmarks.common.parser
+              and getattr(n.func, "id", getattr(n.func, "attr", "")) == "parser" for k in n.keywords if k.arg}
     return frozenset(flags | {"--help"}) if is_main and flags else None
 
 

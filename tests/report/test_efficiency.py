@@ -120,7 +120,7 @@ def test_reference_points_table_splits_the_gap_into_label_cost_and_generalizatio
     vote = pd.DataFrame({"iou": [0.6, 0.7], "bf1": [0.5, 0.5], "precision": [0.6, 0.6], "recall": [0.7, 0.7]},
                         index=["KCP", "HJM"])
     tab = reference_points_table(_summary(), vote, "calibrated", ["KCP", "HJM"])
-    col = tab.header.index("IoU ÷ ceiling")
+    col = tab.header.index("Label cost")
     cells = {(r[0], r[1]): r[col] for r in tab.rows}
     plain = next(v for (g, name), v in cells.items() if g == "KCP" and "Plain" in name)
     r, lo, hi = seed_ratio(0.51, 0.02, 5, 0.57, 0.01, 5)
