@@ -13,7 +13,7 @@ LOCK_ARGS ?=
 # (2.13.0+cpu) on these machines; on a CUDA machine set TORCH_SPEC to that version's CUDA build.
 TORCH_VERSION := 2.13.0
 TORCH_SPEC ?= torch==$(TORCH_VERSION)
-# Artifact creation times and run ids come from SOURCE_DATE_EPOCH (pipeline/artifacts.py): pinned, a
+# Artifact creation times and run ids come from SOURCE_DATE_EPOCH (pipeline/artifacts/lineage.py): pinned, a
 # rerun writes the same bytes wherever and whenever it runs.  315532800 = 1980-01-01T00:00:00Z, the
 # reproducible-builds convention's floor (the earliest time a ZIP entry can hold).
 SOURCE_DATE_EPOCH ?= 315532800
