@@ -56,12 +56,8 @@ METRICS = ("iou", "bf1")
 
 def recipe_train(name: str, base: Mapping[str, Any]) -> dict:
     """The train section of a :data:`pipeline.params.RECIPES` or :data:`CANDIDATES` name over ``base``."""
-    raw = {**base, **{k: None for k in RECIPES[PAPER_RECIPE]["train"]}}
-    if name in RECIPES:
-        raw["recipe"] = name
-    else:
-        raw.update({"recipe": PAPER_RECIPE, **CANDIDATES[name]})
-    return validate_section("train", raw)
+    parts = {"recipe": name} if name in RECIPES else {"recipe": PAPER_RECIPE, **CANDIDATES[name]}
+    return validate_section("train", {**base, **{k: None for k in RECIPES[PAPER_RECIPE]["train"]}, **parts})
 
 
 def perturbed(cfg: Mapping[str, Any], perturbation: str) -> dict:
@@ -70,8 +66,7 @@ def perturbed(cfg: Mapping[str, Any], perturbation: str) -> dict:
 
     out = {**cfg, **PERTURBATIONS[perturbation]}
     if perturbation == "precision":
-        amp = autocast_dtype(torch.device("cpu"), cfg["precision"])
-        out["precision"] = "fp32" if amp is not None else "bf16"
+        out["precision"] = "bf16" if autocast_dtype(torch.device("cpu"), cfg["precision"]) is None else "fp32"
     return out
 
 
@@ -133,10 +128,9 @@ def spreads(runs: list[dict], rule: str) -> dict[str, dict]:
     seeds = sorted({r["seed"] for r in runs})
     perts = [p for p in PERTURBATIONS if any(r["perturbation"] == p for r in runs)]
     val = {(r["perturbation"], r["seed"]): published(r, rule) for r in runs}
-    keys = list(next(iter(val.values())))
     full = [s for s in seeds if all((p, s) in val for p in perts)]  # seeds run under every perturbation
     out = {}
-    for k in keys:
+    for k in next(iter(val.values())):
         d = [val[("default", s)][k] for s in seeds if ("default", s) in val]
         per_seed = [np.ptp([val[(p, s)][k] for p in perts if (p, s) in val]) for s in seeds
                     if sum((p, s) in val for p in perts) > 1]
@@ -164,18 +158,11 @@ def no_worse_than(sp: Mapping[str, dict], reference: Mapping[str, dict] | None, 
     """Non-inferiority of every student seed-mean ``metric`` to the ``reference`` recipe's: the one-sided 95 %
     lower bound of the difference, standard error sqrt(sd^2/n + sd_ref^2/n_ref), above -TOLERANCE[metric];
     None without a reference."""
-    if reference is None:
+    pairs = [(v, reference[k]) for k, v in _numbers(sp, metric).items() if k in reference] if reference else []
+    se = [np.sqrt(v["seed_sd"] ** 2 / v.get("n_seeds", 1) + r["seed_sd"] ** 2 / r.get("n_seeds", 1)) for v, r in pairs]
+    if not pairs or not np.all(np.isfinite(se)):
         return None
-    ok = []
-    for k, v in sp.items():
-        if "-" in k.split("/")[0] or not k.endswith("/" + metric) or k not in reference:
-            continue
-        r = reference[k]
-        se = float(np.sqrt(v["seed_sd"] ** 2 / v.get("n_seeds", 1) + r["seed_sd"] ** 2 / r.get("n_seeds", 1)))
-        if not np.isfinite(se):
-            return None
-        ok.append(v["mean"] - r["mean"] - NON_INFERIORITY_Z * se > -TOLERANCE[metric])
-    return all(ok) if ok else None
+    return all(v["mean"] - r["mean"] - NON_INFERIORITY_Z * e > -TOLERANCE[metric] for (v, r), e in zip(pairs, se))
 
 
 def target_met(sp: Mapping[str, dict], perturbations=("threads1", "precision"),
@@ -185,9 +172,7 @@ def target_met(sp: Mapping[str, dict], perturbations=("threads1", "precision"),
     is :func:`no_worse_than` the ``reference`` recipe's."""
     worst = {k: max((_worst(sp, f"move_{p}", k) for p in perturbations), default=float("nan")) for k in METRICS}
     met = all(worst[k] <= TOLERANCE[k] for k in METRICS)
-    if check_reference:
-        met = met and no_worse_than(sp, reference) is True
-    return met, worst["iou"], worst["bf1"]
+    return met and (not check_reference or no_worse_than(sp, reference) is True), worst["iou"], worst["bf1"]
 
 
 def print_summary(recipe: str, rule: str, sp: Mapping[str, dict], perturbations=("threads1", "precision")) -> None:
@@ -201,9 +186,13 @@ def print_summary(recipe: str, rule: str, sp: Mapping[str, dict], perturbations=
               + " ".join(f"{v[m]:14.4f}" for m in moves))
 
 
+def _numbers(sp: Mapping[str, dict], metric: str, gains: bool = False) -> dict[str, dict]:
+    """The published numbers of ``metric``: the gains', else the methods' own."""
+    return {n: v for n, v in sp.items() if ("-" in n.split("/")[0]) == gains and n.endswith("/" + metric)}
+
+
 def _worst(sp, key: str, metric: str, gains: bool = False) -> float:
-    return max((v.get(key, float("nan")) for n, v in sp.items()
-                if (("-" in n.split("/")[0]) == gains) and n.endswith("/" + metric)), default=float("nan"))
+    return max((v.get(key, float("nan")) for v in _numbers(sp, metric, gains).values()), default=float("nan"))
 
 
 def recipe_table(summary: Mapping[str, Mapping[str, dict]], exposure: Mapping[str, list] | None = None) -> list[dict]:
@@ -221,11 +210,9 @@ def recipe_table(summary: Mapping[str, Mapping[str, dict]], exposure: Mapping[st
             row.update({f"move_{p}_{k}": _worst(sp, f"move_{p}", k) for p in ("threads1", "precision")})
             row[f"pert1_{k}"] = _worst(sp, "pert", k)
             row[f"gain_pert1_{k}"] = _worst(sp, "pert", k, gains=True)
-            for m in METHODS:
-                row[f"{m}_{k}"] = float(np.mean([v["mean"] for n, v in sp.items()
-                                                 if n.startswith(m + "/") and n.endswith("/" + k)]))
-            row[f"seed_sd_{k}"] = float(np.median([v["seed_sd"] for n, v in sp.items()
-                                                   if "-" not in n.split("/")[0] and n.endswith("/" + k)]))
+            row.update({f"{m}_{k}": float(np.mean([v["mean"] for n, v in _numbers(sp, k).items()
+                                                   if n.startswith(m + "/")])) for m in METHODS})
+            row[f"seed_sd_{k}"] = float(np.median([v["seed_sd"] for v in _numbers(sp, k).values()]))
         rows.append(row)
     return rows
 
@@ -290,11 +277,8 @@ def main(argv=None) -> dict:
     sets = [f"data.resolution={args.resolution}"]
     params = load_profile(args.profile, sets)
     artifacts = sr.build_artifacts(Path(args.workdir).resolve(), args.profile, sets, "cpu", geometry=True)
-    base = dict(params["train"])
-    if args.epochs is not None:
-        base["epochs_stage1"] = args.epochs
-    if args.epochs_stage2 is not None:
-        base["epochs_stage2"] = args.epochs_stage2
+    epochs = {"epochs_stage1": args.epochs, "epochs_stage2": args.epochs_stage2}
+    base = {**params["train"], **{k: v for k, v in epochs.items() if v is not None}}
     tolerance = params["evaluate"]["bf1_tolerance"]
     pert_seeds = args.seeds[:args.pert_seeds] if args.pert_seeds else args.seeds
     # a run's (variant, method) of the resumable jobs are its (recipe, perturbation)
