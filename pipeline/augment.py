@@ -153,10 +153,7 @@ def augment_sample(image: np.ndarray, targets: Mapping[str, Any], rng: np.random
         if "anchor" in pixel:
             pixel["anchor"] = resample(pixel["anchor"].astype(np.float32), window, nearest=False)
         sdf, skel, area = recompute_geometry(pixel["mask"] >= 0.5 if soft else pixel["mask"], geometry)
-        if "sdf" in pixel:
-            pixel["sdf"] = sdf
-        if "skeleton" in pixel:
-            pixel["skeleton"] = skel
+        pixel.update({k: v for k, v in (("sdf", sdf), ("skeleton", skel)) if k in pixel})
         if "area" in out:
             out["area"] = area
     # 3. photometric: the image only

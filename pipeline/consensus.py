@@ -96,12 +96,8 @@ def vote_batch(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT
     ratio = np.divide(c[None, :], n_valid[:, None], out=np.zeros((n, k + 1)), where=n_valid[:, None] > 0)
     agree_lut = ratio.astype(np.float32)
     vote_lut = (ratio >= threshold) & (n_valid[:, None] > 0)  # no valid prompt: M = 0 (threshold 0 too)
-    agreement = np.empty((n, h, w), dtype=np.float32)
-    voted = np.empty((n, h, w), dtype=bool)
-    for i in range(n):
-        np.take(agree_lut[i], counts[i], out=agreement[i])
-        np.take(vote_lut[i], counts[i], out=voted[i])
-    return Consensus(agreement, voted, valid)
+    rows = np.arange(n)[:, None, None]
+    return Consensus(agree_lut[rows, counts], vote_lut[rows, counts], valid)
 
 
 def binary_entropy(p: np.ndarray) -> np.ndarray:
@@ -123,10 +119,5 @@ def agreement_entropy(agreement: np.ndarray) -> float | np.ndarray:
     if a.ndim not in (2, 3):
         raise ValueError(f"agreement: expected [H,W] or [N,H,W], got shape {a.shape}")
     stack = a.reshape((-1, *a.shape[-2:]))
-    out = np.zeros(len(stack))
-    for i, m in enumerate(stack):
-        union = m > 0
-        n = int(np.count_nonzero(union))
-        if n:
-            out[i] = float(binary_entropy(m[union]).sum() / n)
+    out = np.array([binary_entropy(m[m > 0]).mean() if (m > 0).any() else 0.0 for m in stack], dtype=np.float64)
     return float(out[0]) if a.ndim == 2 else out

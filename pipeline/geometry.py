@@ -26,12 +26,6 @@ AREA_FLOOR = PAPER.geometry.area_floor
 EPS = PAPER.geometry.eps
 
 
-def _cv2():
-    import cv2
-
-    return cv2
-
-
 def _as_mask(mask: np.ndarray, name: str = "mask") -> np.ndarray:
     mask = np.asarray(mask)
     if mask.ndim != 2:
@@ -48,7 +42,8 @@ def squared_distance(nonzero: np.ndarray) -> np.ndarray:
     nearest zero pixel; 0 on zero pixels.  Exact while d^2 < 2^22."""
     # OpenCV's precise transform is exact in d^2 but its square root differs by one ulp with the buffer's
     # alignment: rounding d^2 back to its integer makes the result deterministic
-    cv2 = _cv2()
+    import cv2
+
     d = cv2.distanceTransform(np.ascontiguousarray(nonzero, dtype=np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     np.multiply(d, d, out=d)
     return np.rint(d, out=d)
@@ -83,16 +78,12 @@ def sdf_target(mask: np.ndarray, *, quantile: float = SDF_QUANTILE, min_scale: f
 
     D~ = d_in - d_out, s = q_0.95(|D~|) (s = 1 when q < ``min_scale``), D = clip(D~ / s, -1, 1);
     empty M -> 0, full M -> 1."""
-    mask = _as_mask(mask)
-    if not mask.any():
-        return np.zeros(mask.shape, np.float32)
-    if mask.all():
-        return np.ones(mask.shape, np.float32)
-    return _sdf_from_distances(*distance_maps(mask), quantile, min_scale)
+    return pseudo_targets(_as_mask(mask)[None], quantile=quantile, min_scale=min_scale)[0][0]
 
 
 def _skeleton_from_distance(mask: np.ndarray, d_in: np.ndarray, min_distance: float) -> np.ndarray:
-    cv2 = _cv2()
+    import cv2
+
     # OpenCV's dilation border is the minimum value: pixels outside the frame never win
     neighbourhood_max = cv2.dilate(d_in, np.ones((3, 3), np.uint8))
     skel = (d_in > min_distance) & (d_in >= neighbourhood_max)
@@ -106,12 +97,7 @@ def skeleton_target(mask: np.ndarray, *, min_distance: float = SKELETON_MIN_DIST
 
     K = {x : d_in(x) > ``min_distance`` and d_in(x) >= max_{N8(x)} d_in}; K = M when that is empty
     (thin structures, a full M); empty M -> empty K."""
-    mask = _as_mask(mask)
-    if not mask.any():
-        return np.zeros(mask.shape, bool)
-    if mask.all():
-        return mask.copy()
-    return _skeleton_from_distance(mask, exact_distance(mask.view(np.uint8)), min_distance)
+    return pseudo_targets(_as_mask(mask)[None], min_distance=min_distance)[1][0]
 
 
 def area_ratio(mask: np.ndarray) -> float:

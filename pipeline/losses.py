@@ -162,24 +162,18 @@ TERM_KEYS = {"region": "raw", "anchor": "anchor", "sdf": "sdf", "dist": "dist", 
              "area": "area", "boundary": "boundary"}
 
 
-def _term(name: str, z: torch.Tensor, p: torch.Tensor, outputs: Mapping[str, torch.Tensor],
-          targets: Mapping[str, torch.Tensor], gates: torch.Tensor, c: LossConstants) -> dict[str, torch.Tensor]:
-    """One objective term (``region``: with its eq:raw-loss parts); ``z``: float32 mask logits, ``p``: sigmoid(z)."""
-    if name == "region":
-        return raw_terms(z, targets["mask"], c.dice_weight, c.max_weight, probs=p)
-    if name == "sdf":
-        return {"sdf": sdf_loss(outputs["sdf"], targets["sdf"], gates, c.sdf_band, c.sdf_base_weight, c.eps)}
-    if name == "skel":
-        return {"skel": skeleton_loss(outputs["skeleton"], targets["skeleton"], gates, c.max_weight)}
-    if name == "area":
-        return {"area": area_loss(p, targets["area"], gates, c.area_eps, c.eps)}
-    if name == "dist":
-        return {"dist": distance_regression_loss(outputs["sdf"], targets["sdf"])}
-    if name == "boundary":
-        return {"boundary": boundary_weighted_bce(z, targets["mask"], targets["sdf"], c.sdf_band, c.eps)}
-    if name == "anchor":
-        return {"anchor": anchor_loss(z, targets["anchor"])}
-    raise ValueError(f"unknown loss term {name!r}: expected one of {', '.join(TERM_KEYS)}")
+#: objective term name -> its loss(es) from (float32 mask logits z, p = sigmoid(z), the model's outputs, targets,
+#: gates, :class:`LossConstants`); ``region``: L_raw with its eq:raw-loss parts
+_TERMS = {
+    "region": lambda z, p, o, t, g, c: raw_terms(z, t["mask"], c.dice_weight, c.max_weight, probs=p),
+    "anchor": lambda z, p, o, t, g, c: {"anchor": anchor_loss(z, t["anchor"])},
+    "sdf": lambda z, p, o, t, g, c: {"sdf": sdf_loss(o["sdf"], t["sdf"], g, c.sdf_band, c.sdf_base_weight, c.eps)},
+    "dist": lambda z, p, o, t, g, c: {"dist": distance_regression_loss(o["sdf"], t["sdf"])},
+    "skel": lambda z, p, o, t, g, c: {"skel": skeleton_loss(o["skeleton"], t["skeleton"], g, c.max_weight)},
+    "area": lambda z, p, o, t, g, c: {"area": area_loss(p, t["area"], g, c.area_eps, c.eps)},
+    "boundary": lambda z, p, o, t, g, c: {"boundary": boundary_weighted_bce(z, t["mask"], t["sdf"], c.sdf_band,
+                                                                              c.eps)},
+}
 
 
 def refine_loss(outputs: Mapping[str, torch.Tensor], targets: Mapping[str, torch.Tensor],
@@ -192,7 +186,9 @@ def refine_loss(outputs: Mapping[str, torch.Tensor], targets: Mapping[str, torch
     p = torch.sigmoid(z)
     t: dict[str, torch.Tensor] = {}
     for name in weights:
-        t.update(_term(name, z, p, outputs, targets, gates, constants))
+        if name not in _TERMS:
+            raise ValueError(f"unknown loss term {name!r}: expected one of {', '.join(TERM_KEYS)}")
+        t.update(_TERMS[name](z, p, outputs, targets, gates, constants))
     total = z.new_zeros(())
     for name, w in weights.items():
         total = total + float(w) * t[TERM_KEYS[name]]

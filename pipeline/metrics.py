@@ -62,8 +62,7 @@ def _region_counts(pred: np.ndarray, gt: np.ndarray):
 def image_iou(pred, gt) -> float:
     """Image IoU = |P & G| / |P | G| in [0, 1]; both masks empty -> 1."""
     pred, gt = _pair(pred, gt)
-    inter, np_, ng = _region_counts(pred[None], gt[None])
-    return float(_ratio(inter, np_ + ng - inter, (np_ == 0) & (ng == 0))[0])
+    return float(image_ious(pred[None], gt[None])[0])
 
 
 def image_ious(preds, gts) -> np.ndarray:
@@ -144,14 +143,11 @@ def _near(boundary: np.ndarray, tolerance: float) -> np.ndarray:
     return _cv2().dilate(boundary, disk) if disk.shape[0] > 1 else boundary
 
 
-def _boundary_counts(ps: np.ndarray, gs: np.ndarray, n: int, h: int, tolerance: float, bg=None, near_g=None):
+def _boundary_counts(ps: np.ndarray, n: int, h: int, tolerance: float, bg: np.ndarray, near_g: np.ndarray):
     """(|P-boundary|, |G-boundary|, matched P-boundary, matched G-boundary) int64 [N] from stacks padded
-    by >= floor(tolerance) rows; ``bg``/``near_g``: G's boundary and its dilation when already known."""
+    by >= floor(tolerance) rows; ``bg``/``near_g``: G's boundary and its dilation."""
     cv2 = _cv2()
     bp = _boundaries(ps, n, h)
-    if bg is None:
-        bg = _boundaries(gs, n, h)
-        near_g = _near(bg, tolerance)
     return (_counts(bp, n), _counts(bg, n), _counts(cv2.bitwise_and(bp, near_g), n),
             _counts(cv2.bitwise_and(bg, _near(bp, tolerance)), n))
 
@@ -194,10 +190,7 @@ def boundary_f1(pred, gt, tolerance: float = DEFAULT_TOLERANCE) -> float:
     pred, gt = _pair(pred, gt)
     if tolerance < 0:
         raise InputError(f"boundary_f1: tolerance={tolerance!r} must be >= 0")
-    h = pred.shape[0]
-    pad = max(1, int(np.floor(tolerance)))
-    ps, gs = _stack(pred[None], pad), _stack(gt[None], pad)
-    return float(_bf1_from_counts(_counts(ps, 1), _counts(gs, 1), *_boundary_counts(ps, gs, 1, h, float(tolerance)))[0])
+    return float(per_image_metrics(pred[None], gt[None], tolerance)["bf1"][0])
 
 
 def _small_regions_stacked(gs: np.ndarray, n: int, h: int, w: int, max_fraction: float, margin: int):
@@ -217,13 +210,10 @@ def _small_regions_stacked(gs: np.ndarray, n: int, h: int, w: int, max_fraction:
             x, y, bw, bh = stats[k, :4]
             box = (slice(y, y + bh), slice(x, x + bw))
             small[box] |= (labels[box] == k).view(np.uint8)
-    large = cv2.subtract(gs, small)
+    region = small
     if margin > 0:
-        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
-        region = cv2.dilate(small, disk)
-    else:
-        region = small.copy()
-    return cv2.subtract(region, large), small, _counts(small, n)
+        region = cv2.dilate(small, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1,) * 2))
+    return cv2.subtract(region, cv2.subtract(gs, small)), small, _counts(small, n)
 
 
 def _small_region_ious_stacked(ps: np.ndarray, n: int, found) -> np.ndarray:
@@ -242,10 +232,7 @@ def small_region_iou(pred, gt, max_fraction: float = DEFAULT_SMALL_FRACTION,
     """IoU near small objects: S = G's 8-connected components under ``max_fraction`` of the frame, R = S
     dilated by ``margin`` px minus the larger components; |P & S| / |(P & R) | S|, NaN without S."""
     pred, gt = _pair(pred, gt)
-    h, w = gt.shape
-    pad = max(1, int(margin))
-    found = _small_regions_stacked(_stack(gt[None], pad), 1, h, w, max_fraction, margin)
-    return float(_small_region_ious_stacked(_stack(pred[None], pad), 1, found)[0])
+    return float(per_image_metrics(pred[None], gt[None], max_fraction=max_fraction, margin=margin)["small_iou"][0])
 
 
 METRIC_NAMES = ("iou", "bf1", "precision", "recall", "area_ratio", "small_iou")
@@ -303,8 +290,8 @@ def score_masks(preds, reference: ScoringReference, *, device=None) -> dict[str,
     inter = _counts(_cv2().bitwise_and(ps, reference.stacked), n)
     both = (np_ == 0) & (ng == 0)
     if device is None:
-        nbp, nbg, hit_p, hit_g = _boundary_counts(ps, reference.stacked, n, h, reference.tolerance,
-                                                  reference.boundary, reference.near_boundary)
+        nbp, nbg, hit_p, hit_g = _boundary_counts(ps, n, h, reference.tolerance, reference.boundary,
+                                                  reference.near_boundary)
     else:
         nbp, nbg, hit_p, hit_g = _boundary_counts_torch(preds, reference.gts, reference.tolerance, device)
     return {

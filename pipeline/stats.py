@@ -86,8 +86,6 @@ def hierarchical_resample_means(values: np.ndarray, clusters: np.ndarray, n_resa
     clusters = np.asarray(clusters)
     if len(values) != len(clusters):
         raise ValueError(f"values ({len(values)}) and clusters ({len(clusters)}) differ in length")
-    if len(values) == 0:
-        raise ValueError("no items to resample")
     out = np.empty((n_resamples, values.shape[1]), dtype=np.float64)
     b0 = 0
     for counts in hierarchical_resample_counts(clusters, n_resamples, rng):
@@ -189,11 +187,8 @@ def paired_seed_image_t(treatment: np.ndarray, control: np.ndarray, clusters: np
     if len(clusters) != n:
         raise ValueError(f"clusters ({len(clusters)}) and images ({n}) differ in length")
     est = d3.mean(axis=(0, 1))                                               # [k]
-    # seed term
-    if n_seeds > 1:
-        v_seed = d3.mean(axis=1).var(axis=0, ddof=1) / n_seeds                # [k]
-    else:
-        v_seed = np.zeros(k)
+    # seed term [k]
+    v_seed = d3.mean(axis=1).var(axis=0, ddof=1) / n_seeds if n_seeds > 1 else np.zeros(k)
     terms, dfs = [v_seed], [np.full(k, max(n_seeds - 1, 1), dtype=np.float64)]
     # image / spacecraft term, on the seed-averaged differences a_i, grouped by spacecraft
     order, starts, sizes = _cluster_layout(clusters)
@@ -224,8 +219,7 @@ def paired_seed_image_t(treatment: np.ndarray, control: np.ndarray, clusters: np
         se = np.sqrt(v)
         half = np.where(v > 0, stdtrit(df, (1.0 + ci) / 2.0) * se, 0.0)
         p = np.where(v > 0, 2.0 * stdtr(df, -np.abs(est) / se), np.where(est == 0, 1.0, 0.0))
-    half = np.where(np.isnan(v), np.nan, half)
-    p = np.where(np.isnan(v), np.nan, p)
+    half, p = (np.where(np.isnan(v), np.nan, x) for x in (half, p))
     return TInterval(estimate=squeeze(est), low=squeeze(est - half), high=squeeze(est + half), se=squeeze(se),
                      df=squeeze(df), pvalue=squeeze(p), n_seeds=n_seeds, n_clusters=len(sizes), n_items=n)
 
@@ -297,17 +291,9 @@ def holm_adjust(pvalues: Sequence[float]) -> np.ndarray:
 
 def average_ranks(x: np.ndarray) -> np.ndarray:
     """Ranks 1..n, ties averaged (``rankdata(method='average')``)."""
-    x = np.asarray(x, dtype=np.float64)
-    order = np.argsort(x, kind="mergesort")
-    xs = x[order]
-    new_run = np.concatenate([[True], xs[1:] != xs[:-1]])
-    run_id = np.cumsum(new_run) - 1
-    run_start = np.flatnonzero(new_run)
-    run_end = np.concatenate([run_start[1:], [len(x)]])       # exclusive
-    avg = (run_start + run_end + 1) / 2.0                       # mean of ranks start+1 .. end
-    ranks = np.empty(len(x), dtype=np.float64)
-    ranks[order] = avg[run_id]
-    return ranks
+    from scipy.stats import rankdata
+
+    return rankdata(np.asarray(x, dtype=np.float64), method="average")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -321,8 +307,7 @@ def spearman(x: Iterable[float], y: Iterable[float]) -> SpearmanResult:
     """Spearman's rho with its two-sided p (t with n - 2 df); NaN pairs dropped, NaN below 3 pairs or constant."""
     from scipy.special import stdtr
 
-    x = np.asarray(list(x) if not isinstance(x, np.ndarray) else x, dtype=np.float64)
-    y = np.asarray(list(y) if not isinstance(y, np.ndarray) else y, dtype=np.float64)
+    x, y = (np.asarray(v if isinstance(v, np.ndarray) else list(v), dtype=np.float64) for v in (x, y))
     if x.shape != y.shape:
         raise ValueError(f"x {x.shape} and y {y.shape} differ in shape")
     ok = ~(np.isnan(x) | np.isnan(y))
@@ -337,12 +322,10 @@ def spearman(x: Iterable[float], y: Iterable[float]) -> SpearmanResult:
     if denom == 0:
         return SpearmanResult(float("nan"), float("nan"), n)
     rho = float(np.clip((rx * ry).sum() / denom, -1.0, 1.0))
-    dof = n - 2
     if abs(rho) >= 1.0:
         return SpearmanResult(rho, 0.0, n)
-    t = rho * np.sqrt(dof / ((1.0 - rho) * (1.0 + rho)))
-    p = float(2.0 * stdtr(dof, -abs(t)))
-    return SpearmanResult(rho, p, n)
+    t = rho * np.sqrt((n - 2) / ((1.0 - rho) * (1.0 + rho)))
+    return SpearmanResult(rho, float(2.0 * stdtr(n - 2, -abs(t))), n)
 
 
 #: the gain intervals of :func:`method_gains` (``evaluate.interval``; docs/intervals.md)
