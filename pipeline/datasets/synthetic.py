@@ -36,10 +36,7 @@ _MATERIALS = {
 }
 MATERIAL_NAMES = tuple(_MATERIALS)
 _MAT = {n: i for i, n in enumerate(MATERIAL_NAMES)}
-_MAT_ALBEDO = np.array([m[0] for m in _MATERIALS.values()], np.float32)
-_MAT_KS = np.array([m[1] for m in _MATERIALS.values()], np.float32)
-_MAT_SHIN = np.array([m[2] for m in _MATERIALS.values()], np.float32)
-_MAT_CRINKLE = np.array([m[3] for m in _MATERIALS.values()], np.float32)
+_MAT_ALBEDO, _MAT_KS, _MAT_SHIN, _MAT_CRINKLE = (np.array(col, np.float32) for col in zip(*_MATERIALS.values()))
 
 
 def stable_hash(text: str) -> int:
@@ -358,8 +355,7 @@ class _CvRaster:
 
     @staticmethod
     def line(buf, p0, p1, value, thickness):
-        a = tuple(int(v) for v in np.round(np.asarray(p0) * _ONE))
-        b = tuple(int(v) for v in np.round(np.asarray(p1) * _ONE))
+        a, b = (tuple(int(v) for v in np.round(np.asarray(p) * _ONE)) for p in (p0, p1))
         cv2.line(buf, a, b, int(value), int(thickness), cv2.LINE_8, _SHIFT)
 
 
@@ -507,11 +503,6 @@ def _project(q: np.ndarray, f: float, c: float) -> np.ndarray:
     return f * q[:, :2] / q[:, 2:3] + c
 
 
-def _hull_fraction(uv: np.ndarray, size: int) -> float:
-    hull = cv2.convexHull(uv.astype(np.float32))
-    return float(cv2.contourArea(hull)) / (size * size)
-
-
 @dataclasses.dataclass
 class Rasterized:
     """Record-id buffer of one view and the per-record shading attributes (record 0 = background)."""
@@ -543,7 +534,7 @@ def rasterize(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.
     body = pc[:sum(face_sizes)] if face_sizes else pc  # size by the solid parts; booms may stick out
     for _ in range(3):
         q = body + np.array([0, 0, z])
-        frac = _hull_fraction(_project(q, f, c), size)
+        frac = float(cv2.contourArea(cv2.convexHull(_project(q, f, c).astype(np.float32)))) / (size * size)
         z = max(z * math.sqrt(frac / spec.hull_fraction), z_min)
     # placement: keep the projected bounding box inside the frame when it fits
     q = pc + np.array([0, 0, z])
@@ -578,9 +569,8 @@ def rasterize(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.
         back_facing = float(n @ cen) > 0
         if back_facing and not model.face_two_sided[i]:
             continue
-        mat = model.face_back_mat[i] if back_facing else model.face_mat[i]
-        n = -n if back_facing else n
-        prims.append((float(np.linalg.norm(cen)), 0, i, (mat, n)))
+        payload = (model.face_back_mat[i], -n) if back_facing else (model.face_mat[i], n)
+        prims.append((float(np.linalg.norm(cen)), 0, i, payload))
     seg_q = q[n_face_pts:].reshape(-1, 2, 3)
     seg_uv = uv[n_face_pts:].reshape(-1, 2, 2)
     for j in range(len(seg_q)):
@@ -613,12 +603,9 @@ def rasterize(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.
             n = want - (want @ axis) * axis
             n = n / (np.linalg.norm(n) + 1e-12)
             mat = model.seg_mat[i]
-            rec = record(_MAT_ALBEDO[mat], n, mat, model.seg_part[i])
-            width = f * model.seg_width[i] / zmid
-            width = int(round(min(max(width, 1.0), max(1.0, model.seg_max_px[i] * scale384))))
-            p0 = seg_uv[i, 0] + (seg_uv[i, 1] - seg_uv[i, 0]) * t0
-            p1 = seg_uv[i, 0] + (seg_uv[i, 1] - seg_uv[i, 0]) * t1
-            rast.line(ids, p0, p1, rec, width)
+            width = int(round(min(max(f * model.seg_width[i] / zmid, 1.0), max(1.0, model.seg_max_px[i] * scale384))))
+            p0, p1 = (seg_uv[i, 0] + (seg_uv[i, 1] - seg_uv[i, 0]) * t for t in (t0, t1))
+            rast.line(ids, p0, p1, record(_MAT_ALBEDO[mat], n, mat, model.seg_part[i]), width)
 
     albedo, normal, material, part = zip(*records)
     return Rasterized(ids=ids, albedo=np.asarray(albedo, np.float32), normal=np.asarray(normal, np.float32),
@@ -639,9 +626,7 @@ def render_view(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.rando
     ys, xs = np.nonzero(mask)
     if len(ys):
         idp = ids[ys, xs]                               # shade foreground pixels only (1-D)
-        alb = r.albedo[idp]
-        nrm = r.normal[idp]
-        matp = r.material[idp]
+        alb, nrm, matp = r.albedo[idp], r.normal[idp], r.material[idp]
         crinkle = _MAT_CRINKLE[matp]
         if crinkle.any():
             y0, x0 = ys.min(), xs.min()
@@ -668,10 +653,7 @@ def render_view(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.rando
     img = apply_hard_case(img, spec.hard_case, rng, mask)
     img += 0.006 * rng.standard_normal(img.shape, dtype=np.float32)  # baseline sensor noise
     np.clip(img, 0, 1, out=img)
-    img *= 255
-    img += 0.5
-    image = img.astype(np.uint8)
-    return SyntheticView(image=image, mask=mask, parts=parts, spacecraft=model.name,
+    return SyntheticView(image=(img * 255 + 0.5).astype(np.uint8), mask=mask, parts=parts, spacecraft=model.name,
                          background=spec.background, hard_case=spec.hard_case,
                          area_fraction=float(mask.mean()))
 

@@ -5,6 +5,7 @@ prompts compute only new entries, and a change to what the teacher reads gives n
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import logging
@@ -118,18 +119,8 @@ class TeacherCache:
             names = self.fs.find(self._layout())
         except FileNotFoundError:
             return set()
-        out = set()
-        for name in names:
-            base = name.rsplit("/", 1)[-1]
-            if base.endswith(SUFFIX) and not base.startswith("."):
-                out.add(base[:-len(SUFFIX)])
-        return out
-
-    def _remove(self, p) -> None:
-        try:
-            self.fs.rm_file(str(p))
-        except FileNotFoundError:
-            pass
+        bases = (name.rsplit("/", 1)[-1] for name in names)
+        return {b[:-len(SUFFIX)] for b in bases if b.endswith(SUFFIX) and not b.startswith(".")}
 
     def get(self, key: str) -> tuple[np.ndarray, float] | None:
         """The cached (mask, score), or None on a miss.  Corrupt entries are reported, removed, missed."""
@@ -145,7 +136,8 @@ class TeacherCache:
             log.warning("teacher cache: corrupt entry %s (%s); it will be recomputed", p, e)
             self.stats.corrupt += 1
             self.stats.misses += 1
-            self._remove(p)
+            with contextlib.suppress(FileNotFoundError):
+                self.fs.rm_file(str(p))
             return None
         self.stats.hits += 1
         return out

@@ -53,18 +53,14 @@ class ImportedTeacher:
             raise InputError(f"{self.root}: teacher.imported_dir is not a directory")
         import pandas as pd
 
-        table = None
-        for name in ("scores.parquet", "scores.csv"):
-            p = self.root / name
-            if p.exists():
-                try:
-                    table = pd.read_parquet(p) if p.suffix == ".parquet" else pd.read_csv(p)
-                except Exception as e:  # noqa: BLE001 -- any parse failure is a user input problem
-                    raise InputError(f"{p}: unreadable scores table ({type(e).__name__})") from None
-                self.scores_path = p
-                break
-        if table is None:
+        found = [p for p in (self.root / "scores.parquet", self.root / "scores.csv") if p.exists()]
+        if not found:
             raise InputError(f"{self.root}: no scores.parquet or scores.csv (layout: docs/real-data.md)")
+        p = self.scores_path = found[0]
+        try:
+            table = pd.read_parquet(p) if p.suffix == ".parquet" else pd.read_csv(p)
+        except Exception as e:  # noqa: BLE001 -- any parse failure is a user input problem
+            raise InputError(f"{p}: unreadable scores table ({type(e).__name__})") from None
         missing = [c for c in ("image_id", "prompt_index", "prompt", "score") if c not in table.columns]
         if missing:
             raise InputError(f"{self.scores_path}: missing columns {missing}")

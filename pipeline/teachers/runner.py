@@ -41,11 +41,7 @@ def parse_shard(text: str | None) -> tuple[int, int] | None:
 
 def shard_rows(rows: Sequence[int], shard: tuple[int, int] | None) -> list[int]:
     """The rows shard (i, n) owns: positions i, i+n, ... of ``rows`` (all rows when shard is None)."""
-    rows = list(rows)
-    if shard is None:
-        return rows
-    i, n = shard
-    return rows[i::n]
+    return list(rows) if shard is None else list(rows)[shard[0]::shard[1]]
 
 
 @dataclasses.dataclass

@@ -341,8 +341,7 @@ class Sam3Teacher:
         out_size = tuple(batch[0].image.shape[:2])
         if any(tuple(it.image.shape[:2]) != out_size for it in batch):
             raise InputError("sam3: images of one batch differ in size")
-        masks, scores = [], []
-        i = 0
+        answers, i = [], 0
         with allow_tf32(self.tf32):
             while i < len(batch):
                 measure = self.batch_size == 0  # one image, then batches sized to the free memory
@@ -353,12 +352,11 @@ class Sam3Teacher:
                     self.text_features(prompts)
                     torch.cuda.reset_peak_memory_stats(self.device)
                 chunk = [it.image for it in batch[i:i + (self.batch_size or 1)]]
-                m, s = self.heads(self.encode_images(chunk), prompts, len(chunk), out_size)
-                masks.append(m)
-                scores.append(s)
+                answers.append(self.heads(self.encode_images(chunk), prompts, len(chunk), out_size))
                 if measure:
                     self.batch_size = auto_batch_size(self.device)
                 i += len(chunk)
+        masks, scores = zip(*answers)
         return np.concatenate(masks), np.concatenate(scores)
 
     def predict_one_prompt_at_a_time(self, batch: Sequence[TeacherInput], prompts: Sequence[str]):

@@ -61,33 +61,27 @@ PERSONAS: dict[str, Persona] = {
     "spacecraft": Persona(
         "spacecraft", miss=0.06, miss_slope=0.15,
         modes=_m(clean=4.0, dilate=1.0, erode=1.0, drop_thin=1.0, bus_only=0.6, false_positive=0.6, wrong_object=0.5),
-        hard_modes=_m(drop_thin=1.5, bus_only=1.0, wrong_object=1.0, false_positive=0.5),
-        survivor=0.2),
+        hard_modes=_m(drop_thin=1.5, bus_only=1.0, wrong_object=1.0, false_positive=0.5), survivor=0.2),
     "satellite": Persona(
         "satellite", miss=0.50, miss_slope=0.30,
         modes=_m(clean=1.0, dilate=0.8, erode=0.8, drop_thin=1.0, bus_only=1.2, false_positive=0.6, wrong_object=1.6),
-        hard_modes=_m(bus_only=1.0, wrong_object=2.0),
-        survivor=0.06),
+        hard_modes=_m(bus_only=1.0, wrong_object=2.0), survivor=0.06),
     "space probe": Persona(
         "space probe", miss=0.82, miss_slope=0.15,
         modes=_m(clean=0.3, dilate=0.3, erode=0.3, drop_thin=0.6, bus_only=1.0, false_positive=0.3, wrong_object=2.5),
-        hard_modes=_m(wrong_object=2.0),
-        survivor=0.03),
+        hard_modes=_m(wrong_object=2.0), survivor=0.03),
     "space vehicle": Persona(
         "space vehicle", miss=0.25, miss_slope=0.35,
         modes=_m(clean=2.5, dilate=0.8, erode=1.0, drop_thin=1.2, bus_only=0.8, false_positive=0.5, wrong_object=0.8),
-        hard_modes=_m(drop_thin=1.5, wrong_object=1.2),
-        survivor=0.08),
+        hard_modes=_m(drop_thin=1.5, wrong_object=1.2), survivor=0.08),
     "spacecraft with rigid body and appendages": Persona(
         "rigid body and appendages", miss=0.02, miss_slope=0.10,
         modes=_m(clean=8.0, dilate=1.0, erode=0.8, drop_thin=0.5, bus_only=0.3, false_positive=0.4, wrong_object=0.2),
-        hard_modes=_m(drop_thin=1.0, erode=0.5, wrong_object=0.5),
-        survivor=0.2),
+        hard_modes=_m(drop_thin=1.0, erode=0.5, wrong_object=0.5), survivor=0.2),
     "artificial object in space with panels and antennas": Persona(
         "panels and antennas", miss=0.04, miss_slope=0.15,
         modes=_m(clean=6.0, dilate=1.5, erode=0.5, drop_thin=0.4, bus_only=0.2, false_positive=1.5, wrong_object=0.5),
-        hard_modes=_m(false_positive=1.5, wrong_object=0.8, drop_thin=0.5),
-        survivor=0.12),
+        hard_modes=_m(false_positive=1.5, wrong_object=0.8, drop_thin=0.5), survivor=0.12),
 }
 # Scene hard cases of the synthetic benchmark that favour particular failure modes (added weights).
 HARD_CASE_MODES: dict[str, dict[str, float]] = {
@@ -157,12 +151,10 @@ def drop_thin(mask: np.ndarray, parts: np.ndarray | None, radius: int, drop_dish
     """Mask without thin appendages (booms and, with ``drop_dish``, dishes); without part labels, an
     opening of ``radius`` px instead."""
     if parts is not None and (parts == THIN).any():
-        out = mask & (parts != THIN)
-        if drop_dish:
-            out &= parts != DISH
-        return out if out.any() else mask.copy()
-    opened = open_mask(mask, radius)
-    return opened if opened.any() else mask.copy()
+        out = mask & ~np.isin(parts, (THIN, DISH) if drop_dish else (THIN,))
+    else:
+        out = open_mask(mask, radius)
+    return out if out.any() else mask.copy()
 
 
 def bus_only(mask: np.ndarray, parts: np.ndarray | None) -> np.ndarray:
@@ -218,12 +210,10 @@ def glare_blob(mask: np.ndarray, rng: np.random.Generator, attached: bool) -> np
 
 
 def _truthy(x: Any) -> bool:
-    if x is None:
-        return False
     if isinstance(x, str):
         return x.strip().lower() not in ("", "0", "false", "no", "none", "nan")
     try:
-        return bool(x) and not (isinstance(x, float) and np.isnan(x))
+        return x is not None and bool(x) and not (isinstance(x, float) and np.isnan(x))
     except (TypeError, ValueError):
         return False
 
@@ -320,10 +310,8 @@ class SimulatedFoundationTeacher:
         else:
             if rng.random() < np.clip(persona.miss + persona.miss_slope * d, 0.0, 0.98):
                 return empty, 0.0
-            w = {m: persona.modes[m] + d * persona.hard_modes[m] for m in MODES}
-            for m, extra in HARD_CASE_MODES.get(hard, {}).items():
-                w[m] += extra
-            w = np.array([w[m] for m in MODES])
+            extra = HARD_CASE_MODES.get(hard, {})
+            w = np.array([persona.modes[m] + d * persona.hard_modes[m] + extra.get(m, 0.0) for m in MODES])
             mode = MODES[int(rng.choice(len(MODES), p=w / w.sum()))]
             boundary = persona.boundary_frac
         r_float = boundary * r_eq * rng.uniform(0.6, 1.4)
@@ -334,7 +322,10 @@ class SimulatedFoundationTeacher:
                     and self._prompt_draw(item, prompt, "shared_thin") < persona.shares):
                 mask = drop_thin(mask, parts, max(1, int(round(px))), drop_dish=scene.scale > 0.5)
             if scene.shared_fp and self._prompt_draw(item, prompt, "shared_fp") < persona.shares:
-                mask = mask | self._shared_region(item, gt, scene)
+                region = bright_region(item.image, dilate(gt, 1))
+                if not region.any():
+                    region = glare_blob(gt, np.random.default_rng(scene.shared_fp_seed), attached=True)
+                mask = mask | region
             # small independent boundary jitter on objects large enough to have a few-pixel contour
             # uncertainty: no two prompts trace the same contour
             j = int(rng.choice([-1, 0, 1], p=[0.15, 0.7, 0.15])) if r_eq >= 16 * px else 0
@@ -344,12 +335,6 @@ class SimulatedFoundationTeacher:
         q = image_iou(mask, gt)  # the quality the score loosely tracks
         score = float(np.clip(0.30 + 0.55 * q + persona.score_bias + rng.normal(0.0, 0.12), 0.02, 0.99))
         return mask, score
-
-    def _shared_region(self, item: TeacherInput, gt: np.ndarray, scene: SceneDraw) -> np.ndarray:
-        region = bright_region(item.image, dilate(gt, 1))
-        if region.any():
-            return region
-        return glare_blob(gt, np.random.default_rng(scene.shared_fp_seed), attached=True)
 
     @staticmethod
     def _apply(mode: str, gt, parts, image, rng: np.random.Generator, r: int, scene: SceneDraw) -> np.ndarray:
