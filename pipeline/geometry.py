@@ -120,17 +120,12 @@ def pseudo_targets(masks: np.ndarray, *, quantile: float = SDF_QUANTILE, min_sca
     skel = np.zeros((n, h, w), bool)
     counts = np.count_nonzero(masks.reshape(n, h * w), axis=1)  # (explicit size: -1 is ambiguous when n = 0)
     area = counts / float(h * w) if h * w else np.zeros(n)
-    for i in range(n):
-        m = masks[i]
-        if counts[i] == 0:
-            continue
-        if counts[i] == h * w:
-            sdf[i] = 1.0
-            skel[i] = True
-            continue
-        d_in, d_out = distance_maps(m)
+    full = counts == h * w
+    sdf[full], skel[full] = 1.0, True
+    for i in np.flatnonzero((counts > 0) & ~full):
+        d_in, d_out = distance_maps(masks[i])
         sdf[i] = _sdf_from_distances(d_in, d_out, quantile, min_scale)
-        skel[i] = _skeleton_from_distance(m, d_in, min_distance)
+        skel[i] = _skeleton_from_distance(masks[i], d_in, min_distance)
     return sdf, skel, area
 
 

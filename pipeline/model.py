@@ -164,9 +164,8 @@ def recompute_bn_stats(model: nn.Module, batches: Iterable[torch.Tensor]) -> int
         m.momentum = None  # cumulative average: running = mean over the batches seen
     model.train()
     n = 0
-    for x in batches:
+    for n, x in enumerate(batches, 1):
         model(x)
-        n += 1
     for m, (momentum, tracked, mean, var) in zip(bns, saved):
         m.momentum = momentum
         m.num_batches_tracked.copy_(tracked)

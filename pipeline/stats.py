@@ -252,11 +252,8 @@ def claim_status(gain: float, low: float, high: float, noise_floor: float | None
     if n_seeds is not None and np.isfinite(n_seeds) and n_seeds < 2:
         return ONE_SEED
     bound = bound_nearest_zero(low, high)
-    if not np.isfinite(bound):
-        return NO_DIFFERENCE
-    if noise_floor is not None and np.isfinite(noise_floor) and abs(bound) <= noise_floor:
-        return NO_DIFFERENCE
-    if p_adjusted is not None and np.isfinite(p_adjusted) and p_adjusted >= alpha:
+    if (not np.isfinite(bound) or (noise_floor is not None and np.isfinite(noise_floor) and abs(bound) <= noise_floor)
+            or (p_adjusted is not None and np.isfinite(p_adjusted) and p_adjusted >= alpha)):
         return NO_DIFFERENCE
     return GAIN_SUPPORTED if bound > 0.0 else LOSS_SUPPORTED
 

@@ -25,11 +25,7 @@ def logit_threshold(tau: float) -> float:
     tau = float(tau)
     if not 0.0 <= tau <= 1.0:
         raise InputError(f"tau={tau}: must lie in [0, 1]")
-    if tau == 0.0:
-        return -math.inf
-    if tau == 1.0:
-        return math.inf
-    return math.log(tau / (1.0 - tau))
+    return math.log(tau / (1.0 - tau)) if 0.0 < tau < 1.0 else (math.inf if tau == 1.0 else -math.inf)
 
 
 def mask_from_probs(probs: np.ndarray, tau: float) -> np.ndarray:
@@ -85,13 +81,9 @@ def plateau_tau(grid, curve, tolerance: float) -> float:
     grid = np.asarray(grid, dtype=np.float64)
     curve = np.asarray(curve, dtype=np.float64)
     best = int(np.flatnonzero(grid == select_tau(grid, curve))[0])
-    near = curve >= curve.max() - float(tolerance) - TIE_TOLERANCE
-    lo = best
-    while lo > 0 and near[lo - 1]:
-        lo -= 1
-    hi = best
-    while hi < len(grid) - 1 and near[hi + 1]:
-        hi += 1
+    far = np.flatnonzero(~(curve >= curve.max() - float(tolerance) - TIE_TOLERANCE))
+    lo = int(far[far < best].max(initial=-1)) + 1
+    hi = int(far[far > best].min(initial=len(grid))) - 1
     return float(grid[lo + (hi - lo) // 2])
 
 
@@ -138,13 +130,6 @@ def calibrate_threshold(probs, gts, grid, rule: str = "argmax", *, tolerance: fl
 NO_VALIDATION_MASKS = "fixed tau: no validation masks"
 
 
-def _run_row(thresholds_df, method: str, seed: int):
-    """The (method, seed) row of a thresholds table, or None."""
-    df = thresholds_df
-    rows = df[(df["method"].astype(str) == str(method)) & (df["seed"].astype(int) == int(seed))]
-    return None if rows.empty else rows.iloc[0]
-
-
 TAU_LABELS = {"option": "--tau", "bundle": "deploy bundle", "checkpoint": "checkpoint payload",
               "thresholds": "thresholds table", "fixed": "calibrate.fixed_tau"}
 TAU_SOURCES = tuple(TAU_LABELS)
@@ -185,8 +170,9 @@ def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = N
         method, seed = payload.get("method"), payload.get("seed")
         if payload.get("tau") is not None:
             found["checkpoint"] = (float(payload["tau"]), TAU_LABELS["checkpoint"])
-        elif (table := _thresholds_table(thresholds)) is not None:
-            row = _run_row(table, method, seed)
+        elif (df := _thresholds_table(thresholds)) is not None:
+            rows = df[(df["method"].astype(str) == str(method)) & (df["seed"].astype(int) == int(seed))]
+            row = None if rows.empty else rows.iloc[0]
     where = _thresholds_name(thresholds)
     if row is not None:
         note = row.get("tau_source")
