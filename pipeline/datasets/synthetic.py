@@ -208,8 +208,10 @@ def make_spacecraft(name: str, seed: int) -> SpacecraftModel:
         dims = (r_xy * math.cos(math.pi / n), half_h)
         b.prism((0, 0, 0), eye, r_xy, half_h, n, primary, secondary, PART_BUS)
 
-    def mount(direction):
-        return _surface_point(kind, dims, np.asarray(direction, float))
+    def random_mount() -> tuple[np.ndarray, np.ndarray]:
+        """A random unit direction and the point where it leaves the bus."""
+        d = _random_unit(rng)
+        return d, _surface_point(kind, dims, d)
 
     # --- solar wings ---------------------------------------------------------------------------
     n_wings = int(rng.choice([0, 1, 2, 3, 4], p=[0.08, 0.12, 0.5, 0.1, 0.2]))
@@ -229,7 +231,7 @@ def make_spacecraft(name: str, seed: int) -> SpacecraftModel:
         cell_mat = str(rng.choice(["solar_cell", "dark"], p=[0.8, 0.2]))
         for a in angles:
             d = np.array([math.cos(a), math.sin(a), 0.0])
-            root = mount(d) * np.array([1, 1, 0]) + np.array([0, 0, z_mount])
+            root = _surface_point(kind, dims, d) * np.array([1, 1, 0]) + np.array([0, 0, z_mount])
             start = root + d * yoke
             b.segment(root, start, 0.05, 2, "metal", PART_BOOM)
             up = math.cos(tilt) * eye[2] + math.sin(tilt) * np.cross(d, eye[2])
@@ -239,20 +241,17 @@ def make_spacecraft(name: str, seed: int) -> SpacecraftModel:
 
     # --- booms, whip antennas, trusses ---------------------------------------------------------
     for _ in range(int(rng.choice([0, 1, 2, 3], p=[0.3, 0.35, 0.25, 0.1]))):
-        d = _random_unit(rng)
-        root = mount(d)
+        d, root = random_mount()
         tip = root + d * rng.uniform(1.2, 3.5)
         b.segment(root, tip, 0.04, float(rng.choice([1, 2])), str(rng.choice(["metal", "black"])), PART_BOOM)
         if rng.random() < 0.5:  # magnetometer / sensor at the tip
             s = rng.uniform(0.05, 0.12)
             b.box(tip, eye, (s, s, s), ["grey"] * 6, PART_BOOM)
     for _ in range(int(rng.integers(0, 5))):
-        d = _random_unit(rng)
-        root = mount(d)
+        d, root = random_mount()
         b.segment(root, root + d * rng.uniform(0.3, 1.3), 0.01, 1, "metal", PART_BOOM)
     if rng.random() < 0.35:
-        d = _random_unit(rng)
-        root = mount(d)
+        d, root = random_mount()
         length = rng.uniform(1.5, 3.0)
         e1 = _perpendicular(d)
         e2 = np.cross(d, e1)
@@ -273,10 +272,8 @@ def make_spacecraft(name: str, seed: int) -> SpacecraftModel:
 
     # --- dishes ----------------------------------------------------------------------------------
     for _ in range(int(rng.choice([0, 1, 2], p=[0.35, 0.5, 0.15]))):
-        d = _random_unit(rng)
-        root = mount(d)
-        mast = rng.uniform(0.15, 0.7)
-        base = root + d * mast
+        d, root = random_mount()
+        base = root + d * rng.uniform(0.15, 0.7)
         b.segment(root, base, 0.05, 2, "metal", PART_BOOM)
         axis = d + 0.8 * _random_unit(rng)
         radius = rng.uniform(0.3, 0.95)
@@ -284,8 +281,7 @@ def make_spacecraft(name: str, seed: int) -> SpacecraftModel:
 
     # --- payload boxes / instruments ------------------------------------------------------------
     for _ in range(int(rng.choice([0, 1, 2, 3], p=[0.2, 0.35, 0.3, 0.15]))):
-        d = _random_unit(rng)
-        c = mount(d)
+        d, c = random_mount()
         s = rng.uniform(0.12, 0.4, 3)
         mat = str(rng.choice(["dark", "grey", "gold_foil", "white", "silver_foil"]))
         if rng.random() < 0.7:
@@ -380,8 +376,7 @@ class _NumpyRaster:
         if g is None:
             return
         sl, xs, ys = g
-        inside_pos = np.ones(xs.shape, bool)
-        inside_neg = np.ones(xs.shape, bool)
+        inside_pos, inside_neg = np.ones(xs.shape, bool), np.ones(xs.shape, bool)
         for i in range(len(pts)):
             (ax, ay), (bx, by) = pts[i], pts[(i + 1) % len(pts)]
             cross = (bx - ax) * (ys - ay) - (by - ay) * (xs - ax)
@@ -618,7 +613,6 @@ def render_view(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.rando
     r = rasterize(model, spec, size, rng, rasterizer)
     ids, f, c = r.ids, r.focal, r.centre
     scale384 = size / 384.0
-    parts = r.part[ids]
     mask = ids > 0
 
     # --- deferred shading on the object's bounding box -----------------------------------------
@@ -648,12 +642,11 @@ def render_view(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.rando
         spec_term = _MAT_KS[matp] * ndh ** _MAT_SHIN[matp] * (ndl > 0)
         img[ys, xs] = alb * (0.05 + 1.05 * ndl + fill)[:, None] + 1.4 * spec_term[:, None]
 
-    psf = 0.45 * scale384 + 0.25
-    img = cv2.GaussianBlur(img, (0, 0), psf)
+    img = cv2.GaussianBlur(img, (0, 0), 0.45 * scale384 + 0.25)  # optics PSF
     img = apply_hard_case(img, spec.hard_case, rng, mask)
     img += 0.006 * rng.standard_normal(img.shape, dtype=np.float32)  # baseline sensor noise
     np.clip(img, 0, 1, out=img)
-    return SyntheticView(image=(img * 255 + 0.5).astype(np.uint8), mask=mask, parts=parts, spacecraft=model.name,
+    return SyntheticView(image=(img * 255 + 0.5).astype(np.uint8), mask=mask, parts=r.part[ids], spacecraft=model.name,
                          background=spec.background, hard_case=spec.hard_case,
                          area_fraction=float(mask.mean()))
 

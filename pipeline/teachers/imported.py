@@ -70,9 +70,7 @@ class ImportedTeacher:
 
     def _where(self, i: int, table: pd.DataFrame | None = None) -> str:
         line = f", line {i + 2}" if self.scores_path.suffix == ".csv" else ""
-        what = ""
-        if table is not None:
-            what = f" (image {table.at[i, 'image_id']!r}, prompt {table.at[i, 'prompt']!r})"
+        what = f" (image {table.at[i, 'image_id']!r}, prompt {table.at[i, 'prompt']!r})" if table is not None else ""
         return f"{self.scores_path}: row {i}{line}{what}"
 
     def _refuse_first(self, bad, table: pd.DataFrame | None, why) -> None:

@@ -221,10 +221,8 @@ class Sam3Teacher:
         self.do_normalize = bool(proc.get("do_normalize", True))
         self.mean = torch.tensor(proc.get("image_mean", [0.5, 0.5, 0.5]), dtype=torch.float32).view(1, 3, 1, 1)
         self.std = torch.tensor(proc.get("image_std", [0.5, 0.5, 0.5]), dtype=torch.float32).view(1, 3, 1, 1)
-        self._hash = None
         self._hash_memo = Path(hash_memo) if hash_memo is not None else None  # memoised_checkpoint_hash
-        self._model = None
-        self._tokenizer = None
+        self._hash = self._model = self._tokenizer = None
         self._text: dict[tuple[str, ...], tuple] = {}
 
     def fingerprint(self) -> dict:
