@@ -196,10 +196,8 @@ def gate_factors(c, v, a, a0, *, conf_offset: float = CONF_OFFSET, valid_offset:
     g_valid = np.clip((v_ - valid_offset) / (1.0 - valid_offset), 0.0, 1.0)
     g_area = np.clip(np.exp(-np.abs(np.log((a_ + eps) / (a0_ + eps))) / area_temperature), area_floor, 1.0)
     g = np.clip(g_conf * g_valid * g_area, 0.0, 1.0)
-    out = np.broadcast_arrays(g_conf, g_valid, g_area, g)
-    if all(x.ndim == 0 for x in arrays):
-        return GateFactors(*(float(x) for x in out))
-    return GateFactors(*(np.array(x) for x in out))
+    scalar = all(x.ndim == 0 for x in arrays)
+    return GateFactors(*(float(x) if scalar else np.array(x) for x in np.broadcast_arrays(g_conf, g_valid, g_area, g)))
 
 
 def median_area(a, is_train) -> float:

@@ -86,14 +86,10 @@ def hierarchical_resample_means(values: np.ndarray, clusters: np.ndarray, n_resa
     clusters = np.asarray(clusters)
     if len(values) != len(clusters):
         raise ValueError(f"values ({len(values)}) and clusters ({len(clusters)}) differ in length")
-    out = np.empty((n_resamples, values.shape[1]), dtype=np.float64)
-    b0 = 0
-    for counts in hierarchical_resample_counts(clusters, n_resamples, rng):
-        b = len(counts)
-        # einsum, not BLAS: the summation order (every bit of the result) does not depend on the threads
-        out[b0:b0 + b] = np.einsum("rn,nk->rk", counts.astype(np.float64), values) / counts.sum(axis=1)[:, None]
-        b0 += b
-    return out
+    # einsum, not BLAS: the summation order (every bit of the result) does not depend on the threads
+    blocks = [np.einsum("rn,nk->rk", counts.astype(np.float64), values) / counts.sum(axis=1)[:, None]
+              for counts in hierarchical_resample_counts(clusters, n_resamples, rng)]
+    return np.concatenate(blocks) if blocks else np.empty((0, values.shape[1]))
 
 
 def paired_hierarchical_bootstrap(treatment: np.ndarray, control: np.ndarray, clusters: np.ndarray,
@@ -368,7 +364,6 @@ def method_gains(df, metrics: Sequence[str], control: str = BASELINE, by: Sequen
             continue
         # comparisons on the same images share one resample set: one interval call, one column each
         pending: dict[tuple, list] = {}
-        group_rows = []
         for method, treat in part[part["method"] != control].groupby("method", sort=True):
             seeds = sorted(set(treat["seed"]) & set(ctrl["seed"]))
             if not seeds:
@@ -392,7 +387,7 @@ def method_gains(df, metrics: Sequence[str], control: str = BASELINE, by: Sequen
                 per_seed = (tv - cv).mean(axis=1)
                 row[f"gain_{m}_seed_sd"] = float(np.std(per_seed, ddof=1)) if len(seeds) > 1 else np.nan
                 pending.setdefault((tuple(sub.index), len(seeds)), []).append((row, m, tv, cv))
-            group_rows.append(row)
+            rows.append(row)
         for (items, _), cols in pending.items():
             res = interval_fn(np.stack([t for _, _, t, _ in cols], axis=2),
                               np.stack([c for _, _, _, c in cols], axis=2),
@@ -403,7 +398,6 @@ def method_gains(df, metrics: Sequence[str], control: str = BASELINE, by: Sequen
                 row.update({f"gain_{m}": float(res.estimate[j]), f"gain_{m}_lo": float(res.low[j]),
                             f"gain_{m}_hi": float(res.high[j]),
                             f"gain_{m}_p": float(pvalue[j]) if pvalue is not None else np.nan})
-        rows.extend(group_rows)
     cols = by + ["method", "gain_seeds", "gain_images"] + [f"gain_{m}{s}" for m in metrics for s in _GAIN_SUFFIXES]
     return pd.DataFrame(rows, columns=cols)
 
