@@ -74,8 +74,7 @@ def image_ious(preds, gts) -> np.ndarray:
 
 def mask_agreement(fast_logits: np.ndarray, reference_logits: np.ndarray, z_tau: float) -> float:
     """Mean per-image IoU of the masks [Z >= z_tau] of two logit stacks [N,1,H,W] or [N,H,W]."""
-    a = np.asarray(fast_logits).reshape(len(fast_logits), *np.shape(fast_logits)[-2:]) >= z_tau
-    b = np.asarray(reference_logits).reshape(len(reference_logits), *np.shape(reference_logits)[-2:]) >= z_tau
+    a, b = (np.asarray(x).reshape(len(x), *np.shape(x)[-2:]) >= z_tau for x in (fast_logits, reference_logits))
     return float(np.mean(image_ious(a, b)))
 
 

@@ -259,9 +259,7 @@ def paired_seed_t_interval(differences: Sequence[float], ci: float = 1.0 - ALPHA
     from scipy.special import stdtrit
 
     d = np.asarray([x for x in differences if np.isfinite(x)], dtype=np.float64)
-    if len(d) == 0:
-        return float("nan"), float("nan"), float("nan")
-    mean = float(d.mean())
+    mean = float(d.mean()) if len(d) else float("nan")
     if len(d) < 2:
         return mean, float("nan"), float("nan")
     half = float(stdtrit(len(d) - 1, (1.0 + ci) / 2.0)) * float(d.std(ddof=1)) / np.sqrt(len(d))
@@ -274,8 +272,6 @@ def holm_adjust(pvalues: Sequence[float]) -> np.ndarray:
     out = np.full(p.shape, np.nan)
     ok = np.flatnonzero(np.isfinite(p))
     m = len(ok)
-    if not m:
-        return out
     order = ok[np.argsort(p[ok], kind="mergesort")]
     scaled = (m - np.arange(m)) * p[order]
     out[order] = np.minimum(1.0, np.maximum.accumulate(scaled))
