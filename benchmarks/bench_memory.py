@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import re
 import resource
 import subprocess
 import sys
@@ -44,10 +45,8 @@ def peak_mb() -> float:
 
 def rss_mb() -> float:
     """This process's current resident set size in MB (/proc/self/status VmRSS)."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024.0
-    return float("nan")
+    m = re.search(r"^VmRSS:\s+(\d+)", Path("/proc/self/status").read_text(), re.MULTILINE)
+    return int(m.group(1)) / 1024.0 if m else float("nan")
 
 
 def write_zarr_set(folder: Path, n: int, size: int, seed: int = 0, geometry: bool = False) -> Path:
@@ -79,9 +78,7 @@ def child_train(folder: Path, mode: str, method_name: str, max_batches: int) -> 
 
     from pipeline.training import loop as training
     method = get_method(method_name)
-    arrays = {"images": None, "mask": bool}
-    if method.needs_geometry:
-        arrays.update(sdf=np.float32, skeleton=bool)
+    arrays = {"images": None, "mask": bool, **({"sdf": np.float32, "skeleton": bool} if method.needs_geometry else {})}
     n = zarr.open_array(str(catalog.path("images", folder))).shape[0]
     lazy = {k: LazyRows(zarr.open_array(str(folder / f"{k}.zarr")), np.arange(n), dt) for k, dt in arrays.items()}
     if mode == "memory":
@@ -166,20 +163,18 @@ def _train_part(tmp: Path, args, sizes: tuple[int, int], methods: list[str]) -> 
     """Peak RSS of every (method, N, mode) and the interleaved timings at 10N."""
     out: dict = {}
     geometry = any(m != STAGE_ONE for m in methods)
-    folders = {n: write_zarr_set(tmp / f"train{n}", n, args.size, geometry=geometry) for n in sizes}
-
-    def child(n: int, mode: str, method: str):
-        return lambda i: run_child("train", str(folders[n]), mode, method, str(args.max_batches))
-
+    folders = {n: str(write_zarr_set(tmp / f"train{n}", n, args.size, geometry=geometry)) for n in sizes}
     for method in methods:
         rows: dict = {}
         for n in sizes:  # interleaved A B A B at 10N: load hits both alike
-            runs = round_robin({m: child(n, m, method) for m in ("stream", "memory")}, args.reps if n == sizes[1] else 1)
+            cmd = {m: ("train", folders[n], m, method, str(args.max_batches)) for m in ("stream", "memory")}
+            reps = args.reps if n == sizes[1] else 1
+            runs = round_robin({m: (lambda i, c=c: run_child(*c)) for m, c in cmd.items()}, reps)
             rows[n] = {m: {"peak_mb": max(r["peak_mb"] for r in rs), "rss_before_mb": rs[0]["rss_before_mb"],
                            "seconds": [r["seconds"] for r in rs], "batches": rs[0]["batches"]}
                        for m, rs in runs.items()}
         if args.check_batches:
-            rows["check"] = run_child("train", str(folders[sizes[1]]), "stream", method, str(args.check_batches))
+            rows["check"] = run_child("train", folders[sizes[1]], "stream", method, str(args.check_batches))
         out[method] = rows
     return out
 

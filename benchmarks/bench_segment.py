@@ -41,18 +41,15 @@ def photo_like_images(folder: Path, n: int, width: int, height: int, fmt: str = 
     rng = np.random.default_rng(seed)
     folder.mkdir(parents=True, exist_ok=True)
     yy, xx = np.mgrid[0:height, 0:width]
-    paths = []
-    for i in range(n):
+    paths = [folder / f"img{i:03d}.{fmt}" for i in range(n)]
+    for p in paths:
         low = rng.uniform(0, 90, (6, 8, 3)).astype(np.float32)
         img = cv2.resize(low, (width, height), interpolation=cv2.INTER_CUBIC)
         for _ in range(int(rng.integers(1, 4))):
             cy, cx = rng.uniform(0.2, 0.8) * height, rng.uniform(0.2, 0.8) * width
             ry, rx = rng.uniform(0.05, 0.3) * height, rng.uniform(0.05, 0.3) * width
             img[((yy - cy) / ry) ** 2 + ((xx - cx) / rx) ** 2 < 1] = rng.uniform(150, 250, 3)
-        img = np.clip(img + rng.normal(0, 6, img.shape), 0, 255).astype(np.uint8)
-        p = folder / f"img{i:03d}.{fmt}"
-        cv2.imwrite(str(p), img)
-        paths.append(p)
+        cv2.imwrite(str(p), np.clip(img + rng.normal(0, 6, img.shape), 0, 255).astype(np.uint8))
     return paths
 
 

@@ -44,10 +44,6 @@ def plateau(values: list[float], gain: float = PLATEAU_GAIN) -> int | None:
     return None
 
 
-def _but_epochs(run_key: Mapping[str, Any]) -> dict:
-    return {k: v for k, v in run_key.items() if k != "epochs"}
-
-
 class BranchStore:
     """The stable run's checkpointer: its full state at each branch epoch, on disk, and the decay branches'
     final weights.  A longer stable run resumes from the latest state of a shorter one (the stable phase
@@ -65,7 +61,7 @@ class BranchStore:
     def load(self, run_key):
         saved = (self.state(e) for e in reversed(self.epochs) if e <= int(run_key["epochs"]))
         state = next((s for s in saved if s is not None), None)
-        if state is None or _but_epochs(state["run_key"]) != _but_epochs(run_key):
+        if state is None or {**state["run_key"], "epochs": 0} != {**run_key, "epochs": 0}:  # epochs may differ
             return None
         return {**state, "run_key": dict(run_key)}
 
@@ -78,8 +74,7 @@ class BranchStore:
         self._file("decay", epoch).save({"epoch": int(epoch), "model": weights})
 
     def weights(self, epoch: int) -> dict | None:
-        s = self._file("decay", epoch).load(None)
-        return None if s is None else s["model"]
+        return (self._file("decay", epoch).load(None) or {}).get("model")
 
 
 class _StartFrom:
@@ -109,7 +104,7 @@ def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, bran
     """One method's curve: each branch's validation scores (those in ``done`` kept); the stable phase runs
     only when a new branch's state is not in ``store``."""
     from pipeline.training import loop as training
-    done = dict(done or {})
+    done = done or {}
     spec = get_method(method)
     todo = [e for e in branches if e not in done]
     steps_per_epoch = max(1, -(-len(data) // int(cfg["batch_size"])))

@@ -80,13 +80,11 @@ def evaluate(sc: Scenario, n_seeds: int, n_reps: int, n_resamples: int, seed: in
     intervals = list(intervals or INTERVALS)
     rng = np.random.default_rng(seed)
     d, clusters, these = simulate(sc, n_seeds, n_reps, rng, n_spacecraft, n_images)
-    lo = {k: np.empty(n_reps) for k in intervals}
-    hi = {k: np.empty(n_reps) for k in intervals}
-    zero = np.zeros_like(d[..., :BLOCK])
+    lo, hi = ({k: np.empty(n_reps) for k in intervals} for _ in range(2))
     for j, r0 in enumerate(range(0, n_reps, BLOCK)):
         part = d[..., r0:r0 + BLOCK]
         for k in intervals:
-            res = INTERVALS[k](part, zero[..., :part.shape[-1]], clusters, ci=NOMINAL, n_resamples=n_resamples,
+            res = INTERVALS[k](part, np.zeros_like(part), clusters, ci=NOMINAL, n_resamples=n_resamples,
                                seed=seed * 1000 + j)
             lo[k][r0:r0 + part.shape[-1]], hi[k][r0:r0 + part.shape[-1]] = res.low, res.high
     # power: the data shifted so that the replicate's true gain on these spacecraft is TRUE_GAIN

@@ -67,22 +67,20 @@ def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "
     test_images, test_masks = _rows(images, "image", test), _rows(reference, "mask", test).astype(bool)
     table = training_table(artifacts, list(data.image_ids))
     groups = manifest.df["spacecraft"].astype(str).to_numpy()[test]
+    plan = [(seed, k, how, d) for seed in seeds for k in ks for how in (SELECTIONS if k else ("none",))
+            for d in range(draws if how == "random" else 1)]
     runs = []
-    for seed in seeds:
-        for k in ks:
-            for how in (SELECTIONS if k else ("none",)):
-                for d in range(draws if how == "random" else 1):
-                    chosen = select(table, how, k, np.random.default_rng([seed, k, d]))
-                    truth = {i: _rows(reference, "mask", np.array([row[i]]))[0].astype(bool) for i in chosen}
-                    train_data = replace_targets(data, truth) if chosen else data
-                    model = training.train(method, cfg, train_data, val, seed, checkpointer=training.NoCheckpointer(),
-                                           device=device, show_progress=False).model
-                    s = score_run(model, val, test_images, test_masks, device)
-                    ious = image_ious(mask_from_probs(predict_probs(model, test_images, device=device,
-                                                                    precision="fp32"), s["tau_cal"]), test_masks)
-                    runs.append({"selection": how, "k": k, "seed": seed, "draw": d, "iou": float(ious.mean()),
-                                 "ious": [float(v) for v in ious], "groups": list(groups)})
-                    print(f"  {how:9s} k={k:3d} seed {seed} draw {d}: test IoU {ious.mean():.4f}", flush=True)
+    for seed, k, how, d in plan:
+        chosen = select(table, how, k, np.random.default_rng([seed, k, d]))
+        truth = {i: _rows(reference, "mask", np.array([row[i]]))[0].astype(bool) for i in chosen}
+        model = training.train(method, cfg, replace_targets(data, truth) if chosen else data, val, seed,
+                               checkpointer=training.NoCheckpointer(), device=device, show_progress=False).model
+        tau = score_run(model, val, test_images, test_masks, device)["tau_cal"]
+        ious = image_ious(mask_from_probs(predict_probs(model, test_images, device=device, precision="fp32"), tau),
+                          test_masks)
+        runs.append({"selection": how, "k": k, "seed": seed, "draw": d, "iou": float(ious.mean()),
+                     "ious": [float(v) for v in ious], "groups": list(groups)})
+        print(f"  {how:9s} k={k:3d} seed {seed} draw {d}: test IoU {ious.mean():.4f}", flush=True)
     return runs
 
 
@@ -123,17 +121,16 @@ def summarize(runs: list[dict], ks, seeds) -> list[dict]:
             x = per_image(how, k)
             row = {"selection": how, "k": k, "iou": float(x.mean())}
             if base is not None and k:
-                t = paired_seed_image_t(x, base, groups)
-                row.update(gain=_num(t.estimate), low=_num(t.low), high=_num(t.high))
+                row.update(_interval(paired_seed_image_t(x, base, groups), "gain", "low", "high"))
                 if how != "random":
-                    t = paired_seed_image_t(x, per_image("random", k), groups)
-                    row.update(vs_random=_num(t.estimate), vs_random_low=_num(t.low), vs_random_high=_num(t.high))
+                    row.update(_interval(paired_seed_image_t(x, per_image("random", k), groups), "vs_random",
+                                         "vs_random_low", "vs_random_high"))
             rows.append(row)
     return rows
 
 
-def _num(v) -> float:
-    return float(np.ravel(v)[0])
+def _interval(t, *names: str) -> dict[str, float]:
+    return {n: float(np.ravel(v)[0]) for n, v in zip(names, (t.estimate, t.low, t.high))}
 
 
 def print_table(rows: list[dict]) -> None:

@@ -84,11 +84,10 @@ def format_stats(s: dict) -> str:
     return "\n".join(out)
 
 
-def simulate(artifacts: Path, prompts: Sequence[str], seed: int, vflip: bool = False):
-    """The SIMULATOR over every image of an artifacts directory (no cache): masks, scores, gt, manifest."""
-    man = open_artifact(catalog.path("manifest", artifacts), "manifest").df.reset_index(drop=True)
+def simulate(artifacts: Path, man, ref, prompts: Sequence[str], seed: int):
+    """The SIMULATOR over every image of an artifacts directory (no cache), its manifest ``man`` and
+    reference ``ref``: masks, scores."""
     images = open_artifact(catalog.path("images", artifacts), "images").numpy("image")
-    ref = open_artifact(catalog.path("reference", artifacts), "reference")
     gt = ref.numpy("mask")
     parts = ref.numpy("parts") if "parts" in ref else None
     teacher = SimulatedFoundationTeacher(seed=seed, resolution=gt.shape[1:])
@@ -96,8 +95,7 @@ def simulate(artifacts: Path, prompts: Sequence[str], seed: int, vflip: bool = F
     items = [TeacherInput(str(r.image_id), str(r.sha256), images[i], "identity",
                           {"mask": gt[i], **({"parts": parts[i]} if parts is not None else {})},
                           extras[i]) for i, r in enumerate(man.itertuples())]
-    masks, scores = teacher.predict(items, prompts)
-    return masks, scores, gt, man
+    return teacher.predict(items, prompts)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -113,16 +111,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     prompts = cfg.get("prompts") or list(PAPER_PROMPTS)
     base = int(cfg.get("base_prompt_index", 0))
     seed = args.seed if args.seed is not None else int(cfg.get("seed", 0))
+    man = open_artifact(catalog.path("manifest", args.artifacts), "manifest").df.reset_index(drop=True)
+    ref = open_artifact(catalog.path("reference", args.artifacts), "reference")
     if args.teacher is not None:
         t = open_artifact(args.teacher, "teacher")
         masks, scores, prompts = t.numpy("masks"), t.numpy("scores"), list(t.attrs["prompts"])
-        man = open_artifact(catalog.path("manifest", args.artifacts), "manifest").df.reset_index(drop=True)
-        gt = open_artifact(catalog.path("reference", args.artifacts), "reference").numpy("mask")
         print(f"evaluating {args.teacher} (backend {t.attrs.get('backend')})")
     else:
-        masks, scores, gt, man = simulate(args.artifacts, prompts, seed)
+        masks, scores = simulate(args.artifacts, man, ref, prompts, seed)
         print(f"simulated teacher (SIMULATOR, seed {seed}) on {args.artifacts}")
-    stats = compute_teacher_stats(masks, scores, gt, man["split"], man["group"], prompts, base, args.group)
+    stats = compute_teacher_stats(masks, scores, ref.numpy("mask"), man["split"], man["group"], prompts, base,
+                                  args.group)
     print(format_stats(stats))
     return 0
 

@@ -279,12 +279,11 @@ def main(argv=None) -> dict:
     artifacts = sr.build_artifacts(Path(args.workdir).resolve(), args.profile, sets, "cpu", geometry=True)
     epochs = {"epochs_stage1": args.epochs, "epochs_stage2": args.epochs_stage2}
     base = {**params["train"], **{k: v for k, v in epochs.items() if v is not None}}
-    tolerance = params["evaluate"]["bf1_tolerance"]
     pert_seeds = args.seeds[:args.pert_seeds] if args.pert_seeds else args.seeds
     # a run's (variant, method) of the resumable jobs are its (recipe, perturbation)
     jobs = [{"recipe": rname, "perturbation": p, "seed": s, "variant": rname, "method": p,
              "cfg": perturbed(recipe_train(rname, base), p),
-             "cal": params["calibrate"], "tolerance": tolerance}
+             "cal": params["calibrate"], "tolerance": params["evaluate"]["bf1_tolerance"]}
             for rname in args.recipes for s in args.seeds for p in dict.fromkeys(["default", *args.perturbations])
             if p == "default" or s in pert_seeds]
     info = {"artifacts": str(artifacts), "device": "cpu", "resolution": args.resolution, "profile": args.profile,
@@ -315,11 +314,9 @@ def main(argv=None) -> dict:
         rule = RECIPES[base_recipe]["calibrate"]["tau_rule"]
         keep = {k: v for k, v in out["info"].items() if k not in ("artifacts", "wall_seconds", "n_train")}
         host = cpu()  # where the floor was measured: the report names it (another CPU has other kernels)
-        rec = noise_floor_record(summary[f"{first}|{rule}"], {**keep, "recipe": first, "tau_rule": rule,
-                                                               "cpu": host["model"], "cpu_flags": host["flags"]},
-                                 exposure[first])
+        keep.update(recipe=first, tau_rule=rule, cpu=host["model"], cpu_flags=host["flags"])
         key = noise_floor_key(first, args.profile, args.resolution)
-        write_noise_floor(args.noise_floor, key, rec)
+        write_noise_floor(args.noise_floor, key, noise_floor_record(summary[f"{first}|{rule}"], keep, exposure[first]))
         print(f"wrote {args.noise_floor} (record {key})")
     print(f"wrote {args.out}")
     return out
