@@ -68,15 +68,6 @@ def dihedral(x: np.ndarray, k: int, hflip: bool, vflip: bool) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
-def crop_window(shape: tuple[int, int], scale: float, rng: np.random.Generator) -> tuple[float, float, float, float]:
-    """A window (x0, y0, w, h) of frame / ``scale`` input pixels, placed uniformly inside (or around) the frame."""
-    h, w = shape
-    wh, ww = h / scale, w / scale
-    y0 = rng.uniform(min(0.0, h - wh), max(0.0, h - wh))
-    x0 = rng.uniform(min(0.0, w - ww), max(0.0, w - ww))
-    return x0, y0, ww, wh
-
-
 def resample(x: np.ndarray, window: tuple[float, float, float, float], nearest: bool) -> np.ndarray:
     """``x`` [H,W(,C)] resampled so that ``window`` fills the frame, bilinear or nearest; 0 outside the input."""
     import cv2
@@ -146,7 +137,9 @@ def augment_sample(image: np.ndarray, targets: Mapping[str, Any], rng: np.random
     if rng.random() < spec.scale_probability:
         lo, hi = spec.scale_range
         s = math.exp(rng.uniform(math.log(lo), math.log(hi)))
-        window = crop_window((h, w), s, rng)
+        wh, ww = h / s, w / s  # a window (x0, y0, w, h) of frame / s input pixels, uniformly inside or around it
+        y0 = rng.uniform(min(0.0, h - wh), max(0.0, h - wh))
+        window = (rng.uniform(min(0.0, w - ww), max(0.0, w - ww)), y0, ww, wh)
         image = resample(image, window, nearest=False)
         soft = pixel["mask"].dtype.kind == "f"  # train.soft_targets: the agreement map resamples bilinearly
         pixel["mask"] = resample(pixel["mask"] if soft else pixel["mask"].astype(bool), window, nearest=not soft)

@@ -44,17 +44,12 @@ def check_binary_masks(masks: np.ndarray, name: str = "masks") -> np.ndarray:
     return masks.astype(bool)
 
 
-def check_scores(scores: np.ndarray, name: str = "scores") -> np.ndarray:
-    """``scores`` as float64; InputError naming ``name`` on NaN / inf."""
-    scores = np.asarray(scores, dtype=np.float64)
-    if not np.isfinite(scores).all():
-        raise InputError(f"{name} contain NaN or infinite values")
-    return scores
-
-
 def valid_prompts(scores: np.ndarray) -> np.ndarray:
     """V = {k : s_k > 0} as a boolean mask over the last axis (text before eq:agreement-map)."""
-    return check_scores(scores) > 0
+    scores = np.asarray(scores, dtype=np.float64)
+    if not np.isfinite(scores).all():
+        raise InputError("scores contain NaN or infinite values")
+    return scores > 0
 
 
 def vote(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT_VOTE_THRESHOLD) -> Consensus:

@@ -49,15 +49,11 @@ def squared_distance(nonzero: np.ndarray) -> np.ndarray:
     return np.rint(d, out=d)
 
 
-def exact_distance(nonzero: np.ndarray) -> np.ndarray:
-    """sqrt of :func:`squared_distance`: exact, deterministic Euclidean distances (float32, pixels)."""
-    return np.sqrt(squared_distance(nonzero))
-
-
 def distance_maps(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(d_in, d_out) float32 [H,W]; meaningful only when M is neither empty nor full."""
+    """(d_in, d_out) float32 [H,W], the square roots of :func:`squared_distance`: exact, deterministic Euclidean
+    distances in pixels; meaningful only when M is neither empty nor full."""
     m8 = np.ascontiguousarray(mask, dtype=np.uint8)
-    return exact_distance(m8), exact_distance(1 - m8)
+    return np.sqrt(squared_distance(m8)), np.sqrt(squared_distance(1 - m8))
 
 
 def _sdf_from_distances(d_in: np.ndarray, d_out: np.ndarray, quantile: float, min_scale: float) -> np.ndarray:

@@ -231,13 +231,6 @@ ALPHA = 0.05
 VERDICTS = (GAIN_SUPPORTED, LOSS_SUPPORTED, NO_DIFFERENCE, ONE_SEED, NOT_ESTIMATED)
 
 
-def bound_nearest_zero(low: float, high: float) -> float:
-    """The end of [low, high] nearest 0 when it excludes 0; NaN when it covers 0 or is not finite."""
-    if not (np.isfinite(low) and np.isfinite(high)) or low <= 0.0 <= high:
-        return float("nan")
-    return float(low) if low > 0.0 else float(high)
-
-
 def claim_status(gain: float, low: float, high: float, noise_floor: float | None = None,
                  n_seeds: float | None = None, p_adjusted: float | None = None, alpha: float = ALPHA) -> str:
     """The signed verdict (:data:`VERDICTS`) on ``gain`` with its seed-aware CI [low, high]: supported only
@@ -247,8 +240,8 @@ def claim_status(gain: float, low: float, high: float, noise_floor: float | None
         return NOT_ESTIMATED
     if n_seeds is not None and np.isfinite(n_seeds) and n_seeds < 2:
         return ONE_SEED
-    bound = bound_nearest_zero(low, high)
-    if (not np.isfinite(bound) or (noise_floor is not None and np.isfinite(noise_floor) and abs(bound) <= noise_floor)
+    bound = float(low) if low > 0.0 else float(high)  # nearest 0 when [low, high] excludes it
+    if (low <= 0.0 <= high or (noise_floor is not None and np.isfinite(noise_floor) and abs(bound) <= noise_floor)
             or (p_adjusted is not None and np.isfinite(p_adjusted) and p_adjusted >= alpha)):
         return NO_DIFFERENCE
     return GAIN_SUPPORTED if bound > 0.0 else LOSS_SUPPORTED

@@ -173,7 +173,8 @@ def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = N
         elif (df := _thresholds_table(thresholds)) is not None:
             rows = df[(df["method"].astype(str) == str(method)) & (df["seed"].astype(int) == int(seed))]
             row = None if rows.empty else rows.iloc[0]
-    where = _thresholds_name(thresholds)
+    where = None if thresholds is None else \
+        "thresholds table" if hasattr(thresholds, "columns") else str(getattr(thresholds, "path", thresholds))
     if row is not None:
         note = row.get("tau_source")
         note = note if isinstance(note, str) and note else CALIBRATED
@@ -187,13 +188,6 @@ def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = N
             " (no --thresholds given)"
         found["fixed"] = (fixed, label + why)
     return found
-
-
-def _thresholds_name(thresholds) -> str | None:
-    """How messages name ``thresholds``."""
-    if thresholds is None:
-        return None
-    return "thresholds table" if hasattr(thresholds, "columns") else str(getattr(thresholds, "path", thresholds))
 
 
 def _thresholds_table(thresholds):
