@@ -31,19 +31,6 @@ class Consensus(NamedTuple):
         return int(n) if np.ndim(n) == 0 else n.astype(np.int16)
 
 
-def check_binary_masks(masks: np.ndarray, name: str = "masks") -> np.ndarray:
-    """``masks`` as bool; InputError naming ``name`` unless every value is 0 or 1."""
-    masks = np.asarray(masks)
-    if masks.dtype == bool:
-        return masks
-    if masks.dtype.kind not in "biuf":
-        raise InputError(f"{name}: masks must be binary (bool or 0/1), got dtype {masks.dtype}")
-    if masks.size and not np.isin(masks, (0, 1)).all():
-        bad = masks[~np.isin(masks, (0, 1))].flat[0]
-        raise InputError(f"{name}: masks must be binary (0/1); found value {bad!r}")
-    return masks.astype(bool)
-
-
 def valid_prompts(scores: np.ndarray) -> np.ndarray:
     """V = {k : s_k > 0} as a boolean mask over the last axis (text before eq:agreement-map)."""
     scores = np.asarray(scores, dtype=np.float64)
@@ -75,7 +62,12 @@ def vote_batch(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT
         raise InputError(f"scores: expected shape {masks.shape[:2]} to match masks {masks.shape}, got {scores.shape}")
     if not 0.0 <= float(threshold) <= 1.0 or not np.isfinite(threshold):
         raise InputError(f"consensus.vote_threshold={threshold!r} must lie in [0, 1]")
-    masks = check_binary_masks(masks)
+    if masks.dtype != bool:
+        if masks.dtype.kind not in "biuf":
+            raise InputError(f"masks: masks must be binary (bool or 0/1), got dtype {masks.dtype}")
+        if (bad := masks[~np.isin(masks, (0, 1))]).size:
+            raise InputError(f"masks: masks must be binary (0/1); found value {bad.flat[0]!r}")
+        masks = masks.astype(bool)
     valid = valid_prompts(scores)
     n, k = masks.shape[:2]
     if k > 255:  # the vote counts are uint8
