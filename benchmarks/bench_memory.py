@@ -229,35 +229,30 @@ def main(argv=None) -> dict:
     skip = set(filter(None, args.skip.split(",")))
     sizes = (args.n, args.n * args.factor)
     out: dict = {"n": sizes, "size": args.size, "label_size": args.label_size, "max_batches": args.max_batches}
-    with tempfile.TemporaryDirectory(prefix="bench_memory_") as tmp:
+    print(f"peak RSS (MB) at N = {sizes[0]} and {sizes[1]} images; each figure from a fresh process")
+    with tempfile.TemporaryDirectory(prefix="bench_memory_") as tmp:  # each part printed as it finishes
         tmp = Path(tmp)
         if "train" not in skip:
             out["train"] = _train_part(tmp, args, sizes, args.methods.split(","))
+            _print_train(out["train"], args, sizes)
         if "label" not in skip:
             out["label"] = {n: run_child("label", str(image_folder(tmp / f"label{n}", n, args.label_size)),
                                          str(tmp / f"label_out{n}"), str(args.label_size)) for n in sizes}
+            a, b = out["label"][sizes[0]]["peak_mb"], out["label"][sizes[1]]["peak_mb"]
+            print(f"label {args.label_size}^2:           {a:8.0f} {b:8.0f}  ratio {b / a:.2f}x  (target <= 1.3x)")
         if "prepare" not in skip:
             out["prepare"] = {f: run_child("prepare", str(tmp / f"prepare{f}"), str(f), str(args.label_size))
                               for f in (1, args.factor)}
+            a, b = out["prepare"][1], out["prepare"][args.factor]
+            print(f"prepare {args.label_size}^2 (N = {a['n']}, {b['n']}): {a['peak_mb']:8.0f} {b['peak_mb']:8.0f}  "
+                  f"ratio {b['peak_mb'] / a['peak_mb']:.2f}x  (target <= 1.3x)")
         if "read" not in skip:
             folder = write_zarr_set(tmp / "read", 200, args.read_size)
-            out["read"] = {m: run_child("read", str(folder), m) for m in ("slices", "orthogonal")}
-
-    print(f"peak RSS (MB) at N = {sizes[0]} and {sizes[1]} images; each figure from a fresh process")
-    if "train" in out:
-        _print_train(out["train"], args, sizes)
-    if "label" in out:
-        a, b = out["label"][sizes[0]]["peak_mb"], out["label"][sizes[1]]["peak_mb"]
-        print(f"label {args.label_size}^2:           {a:8.0f} {b:8.0f}  ratio {b / a:.2f}x  (target <= 1.3x)")
-    if "prepare" in out:
-        a, b = out["prepare"][1], out["prepare"][args.factor]
-        print(f"prepare {args.label_size}^2 (N = {a['n']}, {b['n']}): {a['peak_mb']:8.0f} {b['peak_mb']:8.0f}  "
-              f"ratio {b['peak_mb'] / a['peak_mb']:.2f}x  (target <= 1.3x)")
-    if "read" in out:
-        r = out["read"]
-        print(f"read 200 rows at {args.read_size}^2: slices {r['slices']['peak_mb']:.0f} MB {r['slices']['seconds']:.2f} s; "
-              f"orthogonal selection {r['orthogonal']['peak_mb']:.0f} MB {r['orthogonal']['seconds']:.2f} s; "
-              f"same data: {r['slices']['checksum'] == r['orthogonal']['checksum']}")
+            out["read"] = r = {m: run_child("read", str(folder), m) for m in ("slices", "orthogonal")}
+            same = r["slices"]["checksum"] == r["orthogonal"]["checksum"]
+            print(f"read 200 rows at {args.read_size}^2: slices {r['slices']['peak_mb']:.0f} MB "
+                  f"{r['slices']['seconds']:.2f} s; orthogonal selection {r['orthogonal']['peak_mb']:.0f} MB "
+                  f"{r['orthogonal']['seconds']:.2f} s; same data: {same}")
     print(json.dumps(out, default=str))
     return out
 

@@ -127,8 +127,7 @@ def ray_throughput(args) -> None:
 
     pools = [int(w) for w in str(args.ray_workers).split(",")]
     r, n = args.resolution, args.images
-    images = np.random.default_rng(0).integers(0, 255, (n, r, r, 3), dtype=np.uint8)
-    load = ArrayInputs(images)
+    load = ArrayInputs(np.random.default_rng(0).integers(0, 255, (n, r, r, 3), dtype=np.uint8))
     torch.set_num_threads(args.serial_threads)
     variants = ["serial"] + [f"ray x{w}" for w in pools]
     with tempfile.TemporaryDirectory() as tmp, ray_session() as ray:

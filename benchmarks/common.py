@@ -111,7 +111,7 @@ def resumed_runs(out: str | Path, info: Mapping[str, Any], jobs: list[dict], run
         lines = []
     done = {_run_key(r): r for r in lines[1:]}
     with partial.open("a") as sink:
-        if not done:
+        if not lines:  # a new file (one holding only its settings line has none to repeat)
             sink.write(json.dumps({"info": settings}) + "\n")
         for r in run_all([j for j in jobs if _run_key(j) not in done]):
             sink.write(json.dumps(r) + "\n")

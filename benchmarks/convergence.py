@@ -108,11 +108,11 @@ def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, bran
     spec = get_method(method)
     todo = [e for e in branches if e not in done]
     steps_per_epoch = max(1, -(-len(data) // int(cfg["batch_size"])))
-    stable_s = None
+    stable_s: dict = {}  # the stable phase this session ran, up to max(todo): on the first new branch
     if any(store.state(e) is None for e in todo):
         stable = {**cfg, "epochs_stage1": max(todo), "schedule": "constant", "average_last": 0}
-        stable_s = seconds(lambda: training.train(spec, stable, data, val, seed, checkpointer=store, device=device,
-                                                  show_progress=False))
+        stable_s["stable_seconds"] = seconds(lambda: training.train(spec, stable, data, val, seed, checkpointer=store,
+                                                                    device=device, show_progress=False))
     curve = []
     for e in branches:
         if e in done:
@@ -130,10 +130,8 @@ def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, bran
         curve.append({"stable_epochs": e, "decay_epochs": d, "epochs": e + d, "steps": (e + d) * steps_per_epoch,
                       "val_iou_cal": scores["val_iou_cal"], "val_tau_cal": scores["val_tau_cal"],
                       "val_iou_05": scores["val_iou"], "val_bf1_05": scores["val_bf1"],
-                      "decay_seconds": time.perf_counter() - t1})
-        if stable_s is not None:
-            curve[-1]["stable_seconds"] = stable_s  # the stable phase this session ran, up to max(todo)
-            stable_s = None
+                      "decay_seconds": time.perf_counter() - t1, **stable_s})
+        stable_s = {}
     return curve
 
 
