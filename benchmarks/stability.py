@@ -245,8 +245,7 @@ def write_noise_floor(path: str | Path, key: str, record: dict) -> dict:
     path = Path(path)
     old = json.loads(path.read_text()) if path.is_file() else {}
     doc = {"recipes": {**noise_floor_records(old), key: record}}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_json(path, doc)
+    write_json(path, doc)  # its folder made if missing
     return doc
 
 
