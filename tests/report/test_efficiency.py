@@ -40,6 +40,11 @@ def _summary():
     return pd.DataFrame(rows)
 
 
+def _vote():
+    return pd.DataFrame({"iou": [0.6, 0.7], "bf1": [0.5, 0.5], "precision": [0.6, 0.6], "recall": [0.7, 0.7]},
+                        index=["KCP", "HJM"])
+
+
 def test_metric_files_hold_every_method_and_group_with_a_vote():
     files = efficiency_metric_files(_summary(), {"KCP": 0.6})
     assert sorted(files) == ["KCP/plain.json", "KCP/supervised_ceiling.json"]  # HJM has no vote here
@@ -51,8 +56,7 @@ def test_metric_files_hold_every_method_and_group_with_a_vote():
 def test_reference_points_table_shows_the_efficiency_of_students_and_ceiling():
     from pipeline.report.tables import reference_points_table
 
-    vote = pd.DataFrame({"iou": [0.6, 0.7], "bf1": [0.5, 0.5], "precision": [0.6, 0.6], "recall": [0.7, 0.7]},
-                        index=["KCP", "HJM"])
+    vote = _vote()
     tab = reference_points_table(_summary(), vote, "calibrated", ["KCP", "HJM"])
     col = tab.header.index("IoU ÷ vote")
     cells = {(r[0], r[1]): r[col] for r in tab.rows}
@@ -77,8 +81,7 @@ def test_targets_judge_the_ratio_or_the_interval_and_the_table_says_how_many_gro
 
     summary = _summary()
     geo = summary[summary["method"] == "plain"].assign(method="geodistill", iou_mean=0.65)
-    vote = pd.DataFrame({"iou": [0.6, 0.7], "bf1": [0.5, 0.5], "precision": [0.6, 0.6], "recall": [0.7, 0.7]},
-                        index=["KCP", "HJM"])
+    vote = _vote()
     tab = reference_points_table(pd.concat([summary, geo]), vote, "calibrated", ["KCP", "HJM"])
     assert sum("GeoDistill" in r[1] for r in tab.rows) == 2           # the proposed student has its ratio too
     note = next(n for n in tab.notes if n.startswith("Targets"))
@@ -117,8 +120,7 @@ def test_reference_points_table_splits_the_gap_into_label_cost_and_generalizatio
     from pipeline.report.dvc_results import seed_ratio
     from pipeline.report.tables import reference_points_table
 
-    vote = pd.DataFrame({"iou": [0.6, 0.7], "bf1": [0.5, 0.5], "precision": [0.6, 0.6], "recall": [0.7, 0.7]},
-                        index=["KCP", "HJM"])
+    vote = _vote()
     tab = reference_points_table(_summary(), vote, "calibrated", ["KCP", "HJM"])
     col = tab.header.index("Label cost")
     cells = {(r[0], r[1]): r[col] for r in tab.rows}
