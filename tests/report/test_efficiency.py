@@ -45,6 +45,15 @@ def _vote():
                         index=["KCP", "HJM"])
 
 
+def _column(header: str):
+    """The calibrated reference-points table of :func:`_summary`, its ``header`` column as {(group, name): cell}."""
+    from pipeline.report.tables import reference_points_table
+
+    tab = reference_points_table(_summary(), _vote(), "calibrated", ["KCP", "HJM"])
+    col = tab.header.index(header)
+    return tab, {(r[0], r[1]): r[col] for r in tab.rows}
+
+
 def test_metric_files_hold_every_method_and_group_with_a_vote():
     files = efficiency_metric_files(_summary(), {"KCP": 0.6})
     assert sorted(files) == ["KCP/plain.json", "KCP/supervised_ceiling.json"]  # HJM has no vote here
@@ -54,12 +63,7 @@ def test_metric_files_hold_every_method_and_group_with_a_vote():
 
 
 def test_reference_points_table_shows_the_efficiency_of_students_and_ceiling():
-    from pipeline.report.tables import reference_points_table
-
-    vote = _vote()
-    tab = reference_points_table(_summary(), vote, "calibrated", ["KCP", "HJM"])
-    col = tab.header.index("IoU ÷ vote")
-    cells = {(r[0], r[1]): r[col] for r in tab.rows}
+    _, cells = _column("IoU ÷ vote")
     plain = next(v for (g, name), v in cells.items() if g == "HJM" and "Plain" in name)
     e, lo, hi = distillation_efficiency(0.49, 0.03, 5, 0.7)
     assert plain == f"{e:.2f} [{lo:.2f}, {hi:.2f}]"
@@ -118,12 +122,8 @@ def test_seed_ratio_interval_covers_the_true_ratio_at_about_its_level():
 
 def test_reference_points_table_splits_the_gap_into_label_cost_and_generalization():
     from pipeline.report.dvc_results import seed_ratio
-    from pipeline.report.tables import reference_points_table
 
-    vote = _vote()
-    tab = reference_points_table(_summary(), vote, "calibrated", ["KCP", "HJM"])
-    col = tab.header.index("Label cost")
-    cells = {(r[0], r[1]): r[col] for r in tab.rows}
+    tab, cells = _column("Label cost")
     plain = next(v for (g, name), v in cells.items() if g == "KCP" and "Plain" in name)
     r, lo, hi = seed_ratio(0.51, 0.02, 5, 0.57, 0.01, 5)
     assert plain == f"{r:.2f} [{lo:.2f}, {hi:.2f}]"
