@@ -125,6 +125,15 @@ def write_text_if_changed(path: str | Path, text: str) -> bool:
     return True
 
 
+def read_json(path: str | Path) -> dict:
+    """The JSON object in ``path``; {} when it is missing, unreadable or not an object."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+    return doc if isinstance(doc, dict) else {}
+
+
 def write_json(path: str | Path, obj: Any) -> Path:
     """Write ``obj`` as indented, key-sorted JSON atomically."""
     with atomic_path(path) as tmp:

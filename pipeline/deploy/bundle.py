@@ -3,7 +3,6 @@ golden pair, reading deploy.json, and a checkpoint's working resolution."""
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
@@ -20,6 +19,7 @@ from pipeline.deploy.mask_path import (ONNX_INPUT, ONNX_OUTPUT, check_parity, ex
 from pipeline.runtime.errors import ArtifactError
 from pipeline.model import count_flops, count_parameters
 from pipeline.thresholds import logit_threshold
+from pipeline.artifacts.atomic import read_json
 from pipeline.artifacts.weights import write_weights
 
 log = logging.getLogger(__name__)
@@ -205,9 +205,7 @@ def read_deploy_info(path: str | Path) -> dict:
 
 def checkpoint_resolution(path: str | Path, payload: dict) -> int | None:
     """The working resolution recorded with a checkpoint (payload or meta.json extra), else None."""
-    records = [payload]
-    with contextlib.suppress(OSError, ValueError):
-        records.append(json.loads((Path(path) / META_FILE).read_text()).get("extra", {}) or {})
+    records = [payload, read_json(Path(path) / META_FILE).get("extra") or {}]
     for record in records:
         for key in ("resolution", "image_size"):
             if isinstance(record.get(key), int):

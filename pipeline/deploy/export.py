@@ -4,24 +4,15 @@ checks first: a failure leaves nothing behind), and the lines export prints abou
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 from typing import Any, Mapping
 
+from pipeline.artifacts.atomic import read_json
 from pipeline.artifacts.store import artifact_dir, open_artifact
 from pipeline.catalog import META_FILE, bundle_file
 from pipeline.evaluation.inference import load_student
 from pipeline.params import section
 from pipeline.thresholds import resolve_resolution, resolve_tau, tau_candidates
-
-
-def read_json(path) -> dict:
-    """The JSON object in ``path``; {} when it is unreadable or not an object."""
-    try:
-        doc = json.loads(Path(path).read_text())
-    except (OSError, ValueError):
-        return {}
-    return doc if isinstance(doc, dict) else {}
 
 
 def is_bundle_dir(path) -> bool:

@@ -17,7 +17,7 @@ from typing import Mapping
 import yaml
 
 from pipeline import __version__, catalog
-from pipeline.artifacts.atomic import write_text_if_changed
+from pipeline.artifacts.atomic import read_json, write_text_if_changed
 from pipeline.training.budget import with_time_budget
 from pipeline.runtime.codeversion import ROOT
 from pipeline.orchestration.dag import live_plots, render_dvc_yaml, render_params_yaml
@@ -25,7 +25,7 @@ from pipeline.runtime.device import resolve_device
 from pipeline.report.dvc_results import path_component
 from pipeline.datasets.scan import scan_inputs
 from pipeline.runtime.errors import BACKEND, CHECKPOINT, INPUT, OUT, VAL_MASKS, InputError, Option, literal
-from pipeline.deploy.export import bundle_files, read_json
+from pipeline.deploy.export import bundle_files
 from pipeline.labeling.run import find_images
 from pipeline.methods import PROPOSED, STAGE_ONE, method_label
 from pipeline.report.offline_plots import template_path, template_text
