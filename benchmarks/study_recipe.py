@@ -5,6 +5,9 @@ test IoU at the calibrated tau and at 0.5, the largest epoch-to-epoch jump, area
 (means over seeds, differences to the paper recipe).  Finished runs in ``<out>.runs.jsonl`` are skipped.
 
     python -m benchmarks.study_recipe --resolution 96 --seeds 42 --jobs 2
+
+``--set train.recipe=plateau`` makes another recipe the base that variant ``paper`` (no override) names; with
+``--train-spacecraft``/``--train-views`` and ``--variants paper`` it gives the data-scaling curve (docs/student.md).
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ DATA_SIZES = ("train_spacecraft", "train_views", "val_spacecraft", "val_views", 
 
 #: variant name -> (``train.*`` overrides of the paper recipe, the candidate it tests).  One change each.
 VARIANTS: dict[str, tuple[dict, str]] = {
-    "paper": ({}, "the paper recipe (bf16 autocast where supported, BN momentum 0.1, pi clip 500, lr 5e-4 cosine)"),
+    "paper": ({}, "the profile's recipe, paper unless --set train.recipe (bf16 autocast where supported, BN momentum 0.1, pi clip 500, lr 5e-4 cosine)"),
     "fp32": ({"precision": "fp32"}, "bf16 autocast vs fp32"),
     "bn_momentum_0.01": ({"bn_momentum": 0.01}, "BN running statistics: slower running average"),
     "precise_bn": ({"precise_bn": True}, "BN running statistics recomputed over the training set before validation"),
@@ -211,7 +214,7 @@ def print_table(rows: list[dict], header: str) -> None:
 
 def main(argv=None) -> dict:
     ap = parser(__doc__, artifacts=None, workdir="study_recipe", profile="paper", resolution=384, epochs=None,
-                seeds=[42], device="cpu", jobs=1, threads=1, out="study_recipe.json")
+                seeds=[42], device="cpu", jobs=1, threads=1, out="study_recipe.json", set=[])
     for key in DATA_SIZES:
         ap.add_argument("--" + key.replace("_", "-"), type=int, default=None, help=f"data.synthetic.{key}")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
@@ -220,7 +223,7 @@ def main(argv=None) -> dict:
 
     device = str(resolve_device(args.device))
     sets = [f"data.resolution={args.resolution}"] + [f"data.synthetic.{k}={getattr(args, k)}" for k in DATA_SIZES
-                                                     if getattr(args, k) is not None]
+                                                     if getattr(args, k) is not None] + args.sets
     params = load_profile(args.profile, sets)
     artifacts = (Path(args.artifacts) if args.artifacts
                  else build_artifacts(Path(args.workdir).resolve(), args.profile, sets, device))

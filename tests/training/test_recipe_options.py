@@ -212,6 +212,16 @@ def test_study_runs_end_to_end_on_tiny_artifacts(tiny, tmp_path, capsys):
     assert len((tmp_path / "study.json.runs.jsonl").read_text().splitlines()) == 5
 
 
+def test_study_set_overrides_the_profile_recipe(tiny, tmp_path):
+    """``--set`` reaches the training settings: batch 2 gives ceil(n / 2) batches per epoch."""
+    from benchmarks import study_recipe as sr
+
+    res = sr.main(["--artifacts", str(tiny), "--resolution", "32", "--epochs", "1", "--seeds", "0", "--variants",
+                   "paper", "--methods", "plain", "--set", "train.batch_size=2", "--out", str(tmp_path / "s.json")])
+    n = res["info"]["n_train"]["plain"]
+    assert res["info"]["pos_weight"]["plain"]["n_batches"] == -(-n // 2)
+
+
 # --------------------------------------------------------------------------------------------------
 # issue 43: the weights' moving average and soft targets (recipe parts)
 # --------------------------------------------------------------------------------------------------
