@@ -367,13 +367,13 @@ def _over_budget(s: Settings, stable: int, steps_per_epoch: int) -> bool:
 
 
 def plateau_reached(scores: list[float], gain: float, min_epochs: int) -> bool:
-    """``train.until: plateau``'s rule (docs/student.md): after E >= ``min_epochs`` epochs, the best score of epochs
-    (E/2, E] beats the best of [1, E/2] by less than ``gain``."""
+    """``train.until: plateau``'s rule (docs/student.md): after E >= ``min_epochs`` epochs, the mean score of epochs
+    (E/2, E] beats the mean of [1, E/2] by less than ``gain`` (means, not maxima: docs/decisions.md)."""
     e = len(scores)
     if e < max(2, int(min_epochs)) or not all(math.isfinite(v) for v in scores):
         return False
     half = e // 2
-    return max(scores[half:]) - max(scores[:half]) < gain
+    return float(np.mean(scores[half:]) - np.mean(scores[:half])) < gain
 
 
 def _until_lambda(run: _Run) -> Callable[[int], float]:

@@ -15,8 +15,13 @@ from tests.builders.training import assert_same_state, clone_state, load_arrays,
 def test_plateau_rule_is_a_doubling_that_gains_too_little():
     rising = [0.1 * i for i in range(1, 9)]
     assert not training.plateau_reached(rising, 0.005, 4)
-    flat = [0.5, 0.6, 0.62, 0.62, 0.621, 0.622, 0.623, 0.624]  # best of 5..8 vs best of 1..4: +0.004
+    flat = [0.61, 0.62, 0.615, 0.62, 0.62, 0.61, 0.63, 0.624]  # mean of 5..8 vs mean of 1..4: +0.00475
     assert training.plateau_reached(flat, 0.005, 4) and not training.plateau_reached(flat, 0.003, 4)
+    # a 64^2 Plain run's stable phase (reduced profile, seed 42): one early spike (epoch 8) made the best of
+    # the halves equal (+0.002) while the curve still rose by +0.05 per doubling after the decay
+    noisy = [0.264, 0.322, 0.338, 0.341, 0.338, 0.394, 0.374, 0.437, 0.411, 0.357, 0.384, 0.352, 0.373, 0.379,
+             0.396, 0.439]
+    assert not training.plateau_reached(noisy, 0.005, 8)
     assert not training.plateau_reached(flat[:3], 0.005, 4)  # too early to tell
     assert not training.plateau_reached([float("nan")] * 8, 0.005, 4)  # nothing scored: no stop
 
