@@ -85,14 +85,13 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
     rel = [_relative(f, root, root_r) if input_is_dir else Path(f.name) for f in files]
 
     by_key: dict[str, Path] = {}
+    folders: dict[str, Path] = {}
     for f, r in zip(files, rel):
         key = r.as_posix().casefold()
         if key in by_key:
             raise InputError(f"--input: {by_key[key]} and {f} differ only in letter case, so their outputs "
                              f"would be one file on a case-insensitive disk (in {out}); rename one")
         by_key[key] = f
-    folders: dict[str, Path] = {}
-    for f, r in zip(files, rel):
         for parent in r.parents[:-1]:  # not "."
             folders.setdefault(parent.as_posix().casefold(), f)
     for f, r in zip(files, rel):
@@ -201,8 +200,9 @@ def _save(stem: Path, p: np.ndarray, shape: tuple[int, int], img: np.ndarray | N
 
 
 class _Writer:
-    """A thread running :func:`_save` on jobs in order through a queue of ``depth`` (memory stays flat); the
-    first error drops later jobs and :meth:`flush` raises it in the caller's thread."""
+    """Runs :func:`_save` on jobs in order: in the caller's thread (``depth`` 0), else in a thread through a
+    queue of ``depth`` (memory stays flat), where the first error drops later jobs and :meth:`flush` raises it
+    in the caller's thread."""
 
     def __init__(self, depth: int, done: Callable[[], None]):
         self.written: list[tuple[Path, float]] = []  # (mask path, frame confidence) per written image
@@ -210,8 +210,13 @@ class _Writer:
         self.abort = False
         self._done = done
         self._q: queue.Queue = queue.Queue(maxsize=depth)
-        self._thread = threading.Thread(target=self._run, name="segment-write", daemon=True)
-        self._thread.start()
+        self._thread = threading.Thread(target=self._run, name="segment-write", daemon=True) if depth else None
+        if self._thread is not None:
+            self._thread.start()
+
+    def _write(self, job) -> None:
+        self.written.append(_save(*job))
+        self._done()
 
     def _run(self) -> None:
         while True:
@@ -220,8 +225,7 @@ class _Writer:
                 if job is None:
                     return
                 if self.error is None and not self.abort:
-                    self.written.append(_save(*job))
-                    self._done()
+                    self._write(job)
             except BaseException as e:  # noqa: BLE001 -- handed to the caller's thread by flush/close
                 self.error = e
             finally:
@@ -230,7 +234,10 @@ class _Writer:
     def put(self, job) -> None:
         if self.error is not None:
             raise self.error
-        self._q.put(job)
+        if self._thread is None:
+            self._write(job)
+        else:
+            self._q.put(job)
 
     def flush(self) -> None:
         """Wait until every job put so far is written; raise the writer's error."""
@@ -238,11 +245,11 @@ class _Writer:
         if self.error is not None:
             raise self.error
 
-    def close(self, abort: bool = False) -> None:
-        """Stop the thread after the jobs put so far (``abort``: drop them)."""
-        self.abort = self.abort or abort
-        self._q.put(None)
-        self._thread.join()
+    def close(self) -> None:
+        """Stop the thread after the jobs put so far (dropped after :attr:`abort`)."""
+        if self._thread is not None:
+            self._q.put(None)
+            self._thread.join()
 
 
 def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[Path], *, tau: float,
@@ -255,64 +262,8 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
     same files, even when an error stops the run (the writer is flushed before it is raised)."""
     if workers < 0:
         raise InputError(f"workers={workers}: must be >= 0 (0 = the serial loop)")
-    loop = _segment_serial if workers == 0 else functools.partial(_segment_overlapped, workers=workers)
     bar = progress(total=len(files), desc="segment", unit="img")
     t_start = time.perf_counter()
-    try:
-        written, skipped, model_s = loop(segmenter, files, stems, tau=tau, resolution=resolution,
-                                         batch_size=batch_size, save_prob=save_prob, overlay=overlay,
-                                         on_skip=on_skip, max_pixels=max_pixels, bar=bar)
-    finally:
-        bar.close()
-    return SegmentResult([w for w, _ in written], skipped, model_s, time.perf_counter() - t_start,
-                         [c for _, c in written])
-
-
-def _skip(f: Path, e: InputError, skipped: list, on_skip) -> None:
-    """Record ``f`` with the error's first line, without the leading path."""
-    reason = str(e).splitlines()[0] if str(e) else type(e).__name__
-    reason = reason.removeprefix(f"{f}: ")
-    skipped.append((str(f), reason))
-    if on_skip is not None:
-        on_skip(str(f), reason, e)
-
-
-def _infer(segmenter: Segmenter, batch: list, batch_size: int) -> tuple[np.ndarray, float]:
-    """(P of the batch's working images, seconds in the engine)."""
-    work = np.stack([item[0] for _, item in batch])
-    t0 = time.perf_counter()
-    probs = segmenter.predict_probs(work, batch_size=batch_size)
-    return probs, time.perf_counter() - t0
-
-
-def _segment_serial(segmenter, files, stems, *, tau, resolution, batch_size, save_prob, overlay, on_skip,
-                    max_pixels, bar):
-    """Read a batch, run it, write it, then the next."""
-    written: list[Path] = []
-    skipped: list[tuple[str, str]] = []
-    model_s = 0.0
-    for s in range(0, len(files), batch_size):
-        batch = []
-        for f, stem in zip(files[s:s + batch_size], stems[s:s + batch_size]):
-            try:
-                batch.append((stem, _load(f, resolution, max_pixels, overlay, segmenter.bit_depth,
-                                          segmenter.letterbox)))
-            except InputError as e:
-                _skip(f, e, skipped, on_skip)
-                bar.update(1)
-        if not batch:
-            continue
-        probs, dt = _infer(segmenter, batch, batch_size)
-        model_s += dt
-        for (stem, (_, shape, img)), p in zip(batch, probs):
-            written.append(_save(stem, p, shape, img, tau, save_prob, overlay, segmenter.letterbox))
-            bar.update(1)
-    return written, skipped, model_s
-
-
-def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size, save_prob, overlay, on_skip,
-                        max_pixels, bar, workers):
-    """Reads run ahead in a pool, writes behind in a thread."""
     skipped: list[tuple[str, str]] = []
     model_s = 0.0
     lock = threading.Lock()
@@ -321,41 +272,42 @@ def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size,
         with lock:
             bar.update(1)
 
+    options = (resolution, max_pixels, overlay, segmenter.bit_depth, segmenter.letterbox)
     ahead = 2 * batch_size  # reads in flight: the next two batches
     jobs = iter(zip(files, stems))
-    pending: collections.deque = collections.deque()
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="segment-read")
-    writer = _Writer(depth=batch_size, done=done)
+    pending: collections.deque = collections.deque()  # (file, stem, read() -> _load's result)
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="segment-read") if workers else None
+    writer = _Writer(depth=batch_size if workers else 0, done=done)
 
     def fill() -> None:
         while len(pending) < ahead and (job := next(jobs, None)) is not None:
             # in this context: a reader's warning names options in the caller's terms
-            pending.append((*job, pool.submit(contextvars.copy_context().run, _load, job[0], resolution, max_pixels,
-                                              overlay, segmenter.bit_depth, segmenter.letterbox)))
+            read = (functools.partial(_load, job[0], *options) if pool is None
+                    else pool.submit(contextvars.copy_context().run, _load, job[0], *options).result)
+            pending.append((*job, read))
 
     try:
         fill()
         while pending:
             batch = []
             while pending and len(batch) < batch_size:
-                f, stem, fut = pending.popleft()
+                f, stem, read = pending.popleft()
                 fill()
                 try:
-                    batch.append((stem, fut.result()))
+                    batch.append((stem, read()))
                 except InputError as e:
                     writer.flush()  # the serial loop has written everything before this file
                     _skip(f, e, skipped, on_skip)
                     done()
             if not batch:
                 continue
-            probs, dt = _infer(segmenter, batch, batch_size)
-            model_s += dt
+            t0 = time.perf_counter()
+            probs = segmenter.predict_probs(np.stack([item[0] for _, item in batch]), batch_size=batch_size)
+            model_s += time.perf_counter() - t0
             for (stem, (_, shape, img)), p in zip(batch, probs):
                 writer.put((stem, p, shape, img, tau, save_prob, overlay, segmenter.letterbox))
         writer.flush()
     except Exception as e:
-        for *_, fut in pending:
-            fut.cancel()
         try:
             writer.flush()  # what the serial loop had written before the error
         except Exception as first:  # noqa: BLE001 -- a write failed on an earlier file: the serial loop stopped there
@@ -367,8 +319,20 @@ def _segment_overlapped(segmenter, files, stems, *, tau, resolution, batch_size,
         raise
     finally:
         writer.close()
-        pool.shutdown(wait=True, cancel_futures=True)
-    return writer.written, skipped, model_s
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+        bar.close()
+    return SegmentResult([w for w, _ in writer.written], skipped, model_s, time.perf_counter() - t_start,
+                         [c for _, c in writer.written])
+
+
+def _skip(f: Path, e: InputError, skipped: list, on_skip) -> None:
+    """Record ``f`` with the error's first line, without the leading path."""
+    reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+    reason = reason.removeprefix(f"{f}: ")
+    skipped.append((str(f), reason))
+    if on_skip is not None:
+        on_skip(str(f), reason, e)
 
 
 def write_confidence_csv(path: str | Path, out_dir: str | Path, written: Sequence[Path],
