@@ -8,12 +8,13 @@ outputs embed time, so they differ).
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
 
 import yaml
+
+from benchmarks.common import parser
 
 
 def lock_outs(repo: Path) -> dict[tuple[str, str], str]:
@@ -23,7 +24,7 @@ def lock_outs(repo: Path) -> dict[tuple[str, str], str]:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__)
     ap.add_argument("--repo", required=True, type=Path)
     ap.add_argument("--serial", required=True, type=Path)
     ap.add_argument("--targets", nargs="*", default=[])

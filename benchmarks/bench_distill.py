@@ -7,14 +7,13 @@ project, round-robin; medians, minima and their ratio against the 1.5x target.
 
 from __future__ import annotations
 
-import argparse
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 from typing import Callable, Sequence
 
-from benchmarks.common import medians, minima, round_robin, seconds
+from benchmarks.common import medians, minima, parser, round_robin, seconds
 from pipeline.deploy.benchmark import BASELINE_VARIANT
 
 TARGET = 1.5  # default distill wall time / the one-variant run's
@@ -46,13 +45,12 @@ def summary(times: dict[str, list[float]]) -> str:
 
 
 def main(argv: Sequence[str] | None = None, run: Callable[[list[str]], float] = run_command) -> dict[str, list[float]]:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = parser(__doc__, set=[])
     ap.add_argument("images", help="the input folder of `geodistill distill`")
     ap.add_argument("--checkpoint", help="SAM 3 folder (or give --labels / --backend imported --imported-dir)")
     ap.add_argument("--labels", help="a `geodistill label` output of the same images")
     ap.add_argument("--backend")
     ap.add_argument("--imported-dir")
-    ap.add_argument("--set", dest="sets", action="append", default=[], help="KEY=VALUE for every run (repeatable)")
     ap.add_argument("--reps", type=int, default=3, help="round-robin rounds")
     ap.add_argument("--workdir", default=None, help="where the projects go (default: a temporary folder)")
     args = ap.parse_args(argv)

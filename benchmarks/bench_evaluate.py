@@ -35,23 +35,16 @@ def baseline_boundary_f1(pred: np.ndarray, gt: np.ndarray, tolerance: float) -> 
     def boundary(m):
         return m & ~cv2.erode(np.ascontiguousarray(m, dtype=np.uint8), k3).astype(bool)
 
-    p_any, g_any = pred.any(), gt.any()
-    if not p_any and not g_any:
-        return 1.0
-    if p_any != g_any:
-        return 0.0
+    if not (pred.any() and gt.any()):  # 1 when both are empty, 0 when one is
+        return float(pred.any() == gt.any())
     bp, bg = boundary(pred), boundary(gt)
     np_, ng = np.count_nonzero(bp), np.count_nonzero(bg)
-    if np_ == 0 and ng == 0:
-        return 1.0
     if np_ == 0 or ng == 0:
-        return 0.0
+        return float(np_ == ng)
     t2 = tolerance * tolerance
     precision = np.count_nonzero(squared_distance(~bg)[bp] <= t2) / np_
     recall = np.count_nonzero(squared_distance(~bp)[bg] <= t2) / ng
-    if precision + recall == 0:
-        return 0.0
-    return float(2 * precision * recall / (precision + recall))
+    return float(2 * precision * recall / (precision + recall)) if precision + recall else 0.0
 
 
 def baseline_small_region_iou(pred: np.ndarray, gt: np.ndarray, max_fraction: float, margin: int) -> float:
@@ -68,12 +61,11 @@ def baseline_small_region_iou(pred: np.ndarray, gt: np.ndarray, max_fraction: fl
     is_small[small_ids] = True
     small = is_small[labels]
     large = gt & ~small
+    region = small
     if margin > 0:
         disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
         region = cv2.dilate(small.astype(np.uint8), disk).astype(bool)
-    else:
-        region = small.copy()
-    p = pred & (region & ~large)
+    p = pred & region & ~large
     return float(np.count_nonzero(p & small) / np.count_nonzero(p | small))
 
 

@@ -1,9 +1,8 @@
-"""Memory against N: peak RSS at N and 10N images, each figure from a fresh process, of one training epoch per
-``--methods`` on Zarr arrays shaped like the artifacts, read streaming (``LazyRows``) or loaded into memory
-first (with the epoch seconds at 10N of both, interleaved: median, minimum, ratio), of ``label`` with the
-simulated teacher, of ``prepare`` with every view count scaled, and of ``read_chunk_rows`` against zarr's
-orthogonal selection; the 10N / N ratios (target 1.3x) and the streaming peak extrapolated to 100,000 images
-(target 8 GiB).
+"""Memory against N: peak RSS at N and 10N images (each figure from a fresh process) of one training epoch per
+``--methods`` on artifact-shaped Zarr arrays, streaming (``LazyRows``) or loaded into memory (with both epochs'
+seconds at 10N, interleaved), of ``label`` (simulated teacher), of ``prepare`` (every view count scaled) and of
+``read_chunk_rows`` against zarr's orthogonal selection; the 10N / N ratios (target 1.3x) and the streaming
+peak extrapolated to 100,000 images (target 8 GiB).
 
     python -m benchmarks.bench_memory [--n 27 --size 384 --methods plain,geodistill --max-batches 12 --check-batches 24]
 """
@@ -97,8 +96,7 @@ def child_train(folder: Path, mode: str, method_name: str, max_batches: int) -> 
     before = rss_mb()
     t = seconds(lambda: training.train(method, cfg, data, None, 42, checkpointer=training.NoCheckpointer(),
                                        init_state=init, device="cpu", show_progress=False))
-    steps = -(-n // int(cfg["batch_size"]))
-    steps = min(max_batches, steps) if max_batches > 0 else steps
+    steps = min(max_batches or n, -(-n // int(cfg["batch_size"])))
     return {"peak_mb": peak_mb(), "rss_before_mb": before, "seconds": t, "batches": steps}
 
 

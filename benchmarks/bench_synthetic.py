@@ -7,7 +7,6 @@ the rasterisation alone, plus the fast path with PNG encoding (what ``prepare`` 
 
 from __future__ import annotations
 
-import argparse
 import functools
 import multiprocessing as mp
 import os
@@ -16,7 +15,7 @@ import time
 import cv2
 import numpy as np
 
-from benchmarks.common import seconds
+from benchmarks.common import parser, seconds
 from pipeline.datasets import synthetic as syn
 
 SEED = 2026
@@ -37,15 +36,12 @@ def _render(job, size, rasterizer="cv2", encode=False):
     return v.area_fraction
 
 
-def _rate(jobs, cpu=None, **kw):
-    """Images per wall second; ``cpu`` (a dict) also gets images per CPU second of this process, which
-    stays meaningful when other jobs share the cores."""
+def _rate(jobs, **kw):
+    """(images per wall second, images per CPU second of this process: meaningful on shared cores)."""
     _render(jobs[0], **kw)  # warm-up (imports, model build)
     c = time.process_time()
     wall = seconds(lambda: [_render(j, **kw) for j in jobs])
-    if cpu is not None:
-        cpu["rate"] = len(jobs) / max(time.process_time() - c, 1e-9)
-    return len(jobs) / wall
+    return len(jobs) / wall, len(jobs) / max(time.process_time() - c, 1e-9)
 
 
 def _raster_rate(jobs, size, rasterizer):
@@ -56,12 +52,8 @@ def _raster_rate(jobs, size, rasterizer):
     return len(specs) / seconds(lambda: [syn.rasterize(m, spec, size, rng, rasterizer) for m, spec, rng in specs])
 
 
-def _worker(args):
-    return _render(*args)
-
-
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--size", type=int, default=384)
     ap.add_argument("--views", type=int, default=60)
     ap.add_argument("--baseline-views", type=int, default=30)
@@ -69,20 +61,19 @@ def main():
     cv2.setNumThreads(1)
     names = [f"syn-train-{k:02d}" for k in range(6)]
     jobs = [(names[i % len(names)], i) for i in range(a.views)]
-    cpu = {}
-    fast = _rate(jobs, cpu=cpu, size=a.size)
+    fast, cpu_rate = _rate(jobs, size=a.size)
     base_jobs = jobs[: a.baseline_views]
-    fast_same = _rate(base_jobs, size=a.size)
-    base = _rate(base_jobs, size=a.size, rasterizer="numpy")
-    prep = _rate(jobs, size=a.size, encode=True)
+    fast_same = _rate(base_jobs, size=a.size)[0]
+    base = _rate(base_jobs, size=a.size, rasterizer="numpy")[0]
+    prep = _rate(jobs, size=a.size, encode=True)[0]
     r_fast = _raster_rate(base_jobs, a.size, "cv2")
     r_base = _raster_rate(base_jobs, a.size, "numpy")
     with mp.get_context("fork").Pool(2) as pool:
-        pool.map(_worker, [(jobs[0], a.size)] * 2)
-        two = len(jobs) / seconds(lambda: pool.map(_worker, [(j, a.size) for j in jobs], chunksize=4))
+        pool.starmap(_render, [(jobs[0], a.size)] * 2)
+        two = len(jobs) / seconds(lambda: pool.starmap(_render, [(j, a.size) for j in jobs], chunksize=4))
     print(f"synthetic generator at {a.size}x{a.size}, {os.cpu_count()} CPUs visible")
     print(f"  fast path (OpenCV rasteriser), 1 process : {fast:7.1f} images/s  ({a.views} views)")
-    print(f"  fast path per CPU-second of the process  : {cpu['rate']:7.1f} images/s  "
+    print(f"  fast path per CPU-second of the process  : {cpu_rate:7.1f} images/s  "
           f"(load average {os.getloadavg()[0]:.1f}; wall rates drop when the cores are shared)")
     print(f"  fast path + PNG encode (prepare), 1 proc : {prep:7.1f} images/s")
     print(f"  fast path, 2 worker processes            : {two:7.1f} images/s")

@@ -13,12 +13,12 @@ power at :data:`TRUE_GAIN` and ``kept`` (the share of the reference interval's d
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 
 import numpy as np
 
+from benchmarks.common import parser
 from pipeline.stats import INTERVALS, SEED_BOOTSTRAP, SEED_CLUSTER_T, SEED_IMAGE_T
 
 #: the reports' nominal level
@@ -132,7 +132,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def main(argv=None) -> list[dict]:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__)
     ap.add_argument("--replicates", type=int, default=5000, help="replicates per scenario and S")
     ap.add_argument("--resamples", type=int, default=1000, help="bootstrap resamples of the bootstrap interval")
     ap.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
