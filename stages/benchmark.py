@@ -19,7 +19,6 @@ from pipeline.thresholds import resolve_resolution
 from stages._common import stage_command, stage_context
 
 
-
 @stage_command("benchmark")
 @click.option("--deploy", "deploy_dir", default=None, type=click.Path(file_okay=False),
               help="deploy bundle (geodistill export); or use --checkpoint")
@@ -72,8 +71,7 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
     if summary is not None:
         click.echo(B.fast_path_line(summary, rows, resolution, st["target_ms"], st["target_res"]))
     if json_out:
-        result = B.benchmark_result(rows, run_info, st, tau=target.tau, summary=summary, notes=notes)
-        write_json(json_out, result)
+        write_json(json_out, B.benchmark_result(rows, run_info, st, tau=target.tau, summary=summary, notes=notes))
     if metrics_json:
         write_json(metrics_json, deploy_metrics(summary, rows, B.BASELINE_VARIANT))
     if out:

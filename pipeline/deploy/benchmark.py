@@ -192,13 +192,10 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
                      val_masks: np.ndarray | None = None, onnx_path=None, int8_path=None, seed: int = 0,
                      on_variant: Callable[[str], None] | None = None,
                      slow_factor: float | None = None) -> tuple[list[dict], dict]:
-    """(rows in the order of ``variants``, info).  A variant the host cannot run is never called ("skipped");
-    the others get ``max(1, warmup)`` warm-up calls (``peak_mb``) and :data:`PROBE_CALLS` probe calls, the
-    baseline first; one probed over ``slow_factor`` x the baseline is timed no further.  The rest: latency
-    (median of ``iters`` batch-1 calls, round-robin), throughput (best of :func:`throughput_sweep` over
-    ``batches``; batch 1 alone: 1 / latency), ``iou`` of [P >= tau] on the validation images (eq:inference-mask),
-    ``iou_delta`` and ``iou_vs_fp32`` against the baseline, ``speedup``.  params and GFLOPs are the PyTorch
-    graph's for every variant: int8 replaces multiply-adds, it does not remove them."""
+    """(rows in the order of ``variants``, info): per variant ``peak_mb`` over ``max(1, warmup)`` warm-up calls,
+    the probe, latency (median of ``iters`` batch-1 calls), throughput (best of :func:`throughput_sweep`),
+    ``iou`` of [P >= tau] (eq:inference-mask) and against the baseline ``iou_delta``, ``iou_vs_fp32``,
+    ``speedup``; params and GFLOPs are the PyTorch graph's for every variant."""
     slow_factor = SLOW_FACTOR if slow_factor is None else float(slow_factor)
     dev = torch.device(device)
     deployed = mask_path_model(model)
@@ -276,8 +273,7 @@ class Sweep:
 
 
 def throughput_batches(batches: Sequence[int], device: str) -> list[int]:
-    """The batches of a throughput sweep on ``device``: ``batches``, and on CUDA every power of two up to
-    :data:`CUDA_MAX_BATCH` (a small model fills a GPU only at batches of hundreds)."""
+    """``batches``, and on CUDA every power of two up to :data:`CUDA_MAX_BATCH` too."""
     tried = {int(b) for b in batches}
     if str(device).startswith("cuda"):
         tried |= {2 ** k for k in range(CUDA_MAX_BATCH.bit_length()) if 2 ** k <= CUDA_MAX_BATCH}

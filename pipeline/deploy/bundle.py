@@ -55,13 +55,12 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
     write_weights(tmp, deployed.mask_path_state_dict(), deployed.config, None, method=method, seed=seed,
                   tau=float(tau), resolution=int(resolution))
     export_torchscript(deployed, tmp / TORCHSCRIPT_FILE, resolution)
-    onnx_note = None if onnx else "disabled"
-    if onnx and (reason := onnx_unavailable_reason()) is None:
+    onnx_note = onnx_unavailable_reason() if onnx else "disabled"
+    has_onnx = onnx_note is None
+    if has_onnx:
         export_onnx(deployed, tmp / ONNX_FILE, resolution, opset)
     elif onnx:
-        onnx_note = reason
-        log.warning("export: %s", reason)
-    has_onnx = (tmp / ONNX_FILE).exists()
+        log.warning("export: %s", onnx_note)
     parity = check_parity(deployed, tau, resolution, atol, torchscript=tmp / TORCHSCRIPT_FILE,
                           onnx=tmp / ONNX_FILE if has_onnx else None, device=device)
     require_parity(parity)
@@ -74,20 +73,20 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
         q8.quantize_onnx_int8(tmp / ONNX_FILE, tmp / INT8_FILE, calibration_images, int8_calibration, int8_percentile,
                               int8_weight_bits)
         parity["int8"] = q8.check_int8_parity(deployed, tmp / INT8_FILE, calibration_images, tau, int8_min_mask_iou)
-        missed = [c for c in parity["int8"]["isas"] if c["passed"] is False]
-        int8_note = q8.int8_miss({**parity["int8"], "mask_iou_mean": min(c["mask_iou_mean"] for c in missed)},
-                                 ", ".join(c["isa"] for c in missed)) if missed else None
-        int8 = {"file": INT8_FILE, "calibration_images": int(len(calibration_images)),
-                "calibration": calibration_note or "training-split images (no masks)",
-                "calibration_method": int8_calibration,
-                "percentile": float(int8_percentile) if int8_calibration == "percentile" else None,
-                "weight_bits": int(int8_weight_bits),
-                "quantization": q8.int8_description(int8_calibration, int8_percentile, int8_weight_bits),
-                "verified_on": [c for c in parity["int8"]["isas"] if c["passed"]]}
-        if missed:  # the fp32 bundle still ships
+        int8_note = None
+        if missed := [c for c in parity["int8"]["isas"] if c["passed"] is False]:  # the fp32 bundle still ships
+            int8_note = q8.int8_miss({**parity["int8"], "mask_iou_mean": min(c["mask_iou_mean"] for c in missed)},
+                                     ", ".join(c["isa"] for c in missed))
             (tmp / INT8_FILE).unlink()
             log.warning("export: int8 model left out: %s", int8_note)
-            int8 = None
+        else:
+            int8 = {"file": INT8_FILE, "calibration_images": int(len(calibration_images)),
+                    "calibration": calibration_note or "training-split images (no masks)",
+                    "calibration_method": int8_calibration,
+                    "percentile": float(int8_percentile) if int8_calibration == "percentile" else None,
+                    "weight_bits": int(int8_weight_bits),
+                    "quantization": q8.int8_description(int8_calibration, int8_percentile, int8_weight_bits),
+                    "verified_on": [c for c in parity["int8"]["isas"] if c["passed"]]}
     if int8_note is not None:
         log.info("export: int8 model skipped: %s", int8_note)
     write_contract(tmp, deployed, tau=tau, resolution=resolution, frames=frames, atol=atol,
@@ -205,8 +204,7 @@ def read_deploy_info(path: str | Path) -> dict:
 
 def checkpoint_resolution(path: str | Path, payload: dict) -> int | None:
     """The working resolution recorded with a checkpoint (payload or meta.json extra), else None."""
-    records = [payload, read_json(Path(path) / META_FILE).get("extra") or {}]
-    for record in records:
+    for record in (payload, read_json(Path(path) / META_FILE).get("extra") or {}):
         for key in ("resolution", "image_size"):
             if isinstance(record.get(key), int):
                 return int(record[key])

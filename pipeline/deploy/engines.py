@@ -128,10 +128,6 @@ def _openvino(file: str) -> Callable[[Source], Runner]:
     return load
 
 
-def _openvino_reason() -> str | None:
-    return openvino_engine.openvino_unavailable_reason() or onnx_unavailable_reason()
-
-
 #: the engine table's ``loader`` -> (factory(bundle file or None, **options) -> loader, why it cannot run here)
 LOADERS: dict[str, tuple[Callable[..., Callable[[Source], Runner]], Callable[[], str | None]]] = {
     "eager": (lambda file, **o: _eager(**o), lambda: None),
@@ -139,7 +135,7 @@ LOADERS: dict[str, tuple[Callable[..., Callable[[Source], Runner]], Callable[[],
     "torchscript_file": (_torchscript_file, lambda: None),
     "torchscript_frozen": (lambda file: _torchscript_frozen, lambda: None),
     "onnxruntime": (_onnxruntime, onnx_unavailable_reason),
-    "openvino": (_openvino, _openvino_reason),
+    "openvino": (_openvino, lambda: openvino_engine.openvino_unavailable_reason() or onnx_unavailable_reason()),
 }
 
 

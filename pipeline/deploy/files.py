@@ -1,6 +1,5 @@
-"""Segmenting image files: the outputs planned (and refused) before anything is written, the images read and
-resized as the training images were, P resized back to each frame and thresholded there (eq:inference-mask),
-the PNGs, skipped.csv and confidence.csv written; reading and writing overlap the inference.  Output names
+"""Segmenting image files: the outputs planned (and refused) before anything is written, P resized back to each
+frame and thresholded there (eq:inference-mask), reading and writing overlapping the inference.  Output names
 and refusals: docs/real-data.md."""
 
 from __future__ import annotations
@@ -258,8 +257,7 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
                   max_pixels: int | None = None, workers: int = IO_WORKERS) -> SegmentResult:
     """Segment image files in batches into ``<stem>.mask.png`` (and ``.prob.png``, ``.overlay.png``); a file the
     reader rejects is skipped and handed to ``on_skip(path, reason, error)``.  ``workers`` >= 1 threads read
-    ahead and one writes behind (bounded queues); ``workers=0``, the serial loop, gives the same bytes in the
-    same files, even when an error stops the run (the writer is flushed before it is raised)."""
+    ahead and one writes behind; ``workers=0``, the serial loop, leaves the same bytes, even after an error."""
     if workers < 0:
         raise InputError(f"workers={workers}: must be >= 0 (0 = the serial loop)")
     bar = progress(total=len(files), desc="segment", unit="img")
@@ -295,9 +293,12 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
                 fill()
                 try:
                     batch.append((stem, read()))
-                except InputError as e:
+                except InputError as e:  # skipped with the error's first line, without the leading path
                     writer.flush()  # the serial loop has written everything before this file
-                    _skip(f, e, skipped, on_skip)
+                    reason = (str(e).splitlines()[0] if str(e) else type(e).__name__).removeprefix(f"{f}: ")
+                    skipped.append((str(f), reason))
+                    if on_skip is not None:
+                        on_skip(str(f), reason, e)
                     done()
             if not batch:
                 continue
@@ -324,15 +325,6 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
         bar.close()
     return SegmentResult([w for w, _ in writer.written], skipped, model_s, time.perf_counter() - t_start,
                          [c for _, c in writer.written])
-
-
-def _skip(f: Path, e: InputError, skipped: list, on_skip) -> None:
-    """Record ``f`` with the error's first line, without the leading path."""
-    reason = str(e).splitlines()[0] if str(e) else type(e).__name__
-    reason = reason.removeprefix(f"{f}: ")
-    skipped.append((str(f), reason))
-    if on_skip is not None:
-        on_skip(str(f), reason, e)
 
 
 def write_confidence_csv(path: str | Path, out_dir: str | Path, written: Sequence[Path],

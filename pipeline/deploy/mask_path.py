@@ -67,8 +67,7 @@ _WRITER_RECORDS = ("version", "byteorder", ".data/serialization_id")
 
 
 def save_without_debug_records(module, path: str | Path) -> Path:
-    """``torch.jit.save`` minus the ``*.debug_pkl`` records: they hold absolute source paths, so the same model
-    gave other bytes in another folder.  Rewritten record for record by torch's own zip writer."""
+    """``torch.jit.save`` minus the ``*.debug_pkl`` records (absolute source paths), by torch's own zip writer."""
     buf = io.BytesIO()
     torch.jit.save(module, buf)
     buf.seek(0)

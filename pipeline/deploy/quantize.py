@@ -56,8 +56,7 @@ def read_calibration_images(art: str | Path, n: int, resolution: int | None = No
 
 def int8_agreement(reference: np.ndarray, logits: np.ndarray, tau: float, min_mask_iou: float) -> dict:
     """int8 logits [N,...] against the PyTorch ``reference`` at tau (eq:inference-mask): max and mean |dZ|, the
-    agreeing mask pixels, and the per-image mask IoU; ``passed`` = finite and mean IoU >= ``min_mask_iou``.
-    A gate on masks, not pixels: a small object int8 loses is 0.1 % of the pixels and all of its mask."""
+    agreeing mask pixels, and the per-image mask IoU; ``passed`` = finite and mean IoU >= ``min_mask_iou``."""
     reference = np.asarray(reference, np.float64)
     logits = np.asarray(logits, np.float64)
     if reference.shape != logits.shape or reference.size == 0:
@@ -167,9 +166,9 @@ CALIBRATION_CHUNK = 4  # images per pass: ORT holds every activation of a pass (
 
 def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_images: np.ndarray,
                        calibration: str = "percentile", percentile: float = 99.999, weight_bits: int = 7) -> Path:
-    """Static QDQ int8 model of an ONNX mask path: the input pinned to scale 1/255 (8-bit images enter exactly),
-    u8 activation ranges from ``calibration_images`` (``percentile`` or ``minmax``, merged over passes),
-    s8 per-channel weights in ``weight_bits`` bits (7: no int16 saturation without VNNI), the head fp32."""
+    """Static QDQ int8 model of an ONNX mask path: the input pinned to scale 1/255, u8 activation ranges from
+    ``calibration_images`` (``percentile`` or ``minmax``), s8 per-channel weights in ``weight_bits`` bits, the
+    head fp32."""
     from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
                                           quantize_static)
     from onnxruntime.quantization.calibrate import create_calibrator

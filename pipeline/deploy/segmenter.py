@@ -12,7 +12,8 @@ import torch
 
 from pipeline.datasets.loading import check_bit_depth, pixel_limit, probs_to_size, read_rgb, resize_image, to_rgb8
 from pipeline.deploy.confidence import confidence_rank_check, frame_confidence  # noqa: F401
-from pipeline.deploy.bundle import INT8_FILE, ONNX_FILE, checkpoint_resolution, is_deploy_bundle, read_deploy_info
+from pipeline.deploy.bundle import (INT8_FILE, ONNX_FILE, checkpoint_resolution, frame_reading, is_deploy_bundle,
+                                   read_deploy_info)
 from pipeline.deploy.engines import ENGINES, Source
 from pipeline.deploy.mask_path import onnx_unavailable_reason
 from pipeline.runtime.errors import CHECKPOINT, ArtifactError, InputError
@@ -168,7 +169,6 @@ def load_segmenter(path: str | Path, engine: str = AUTO, device="cpu", threshold
 
     def run(x):
         return runner.run(x).float().cpu().numpy()
-    frames = info.get("frames") or {}
+    frames = frame_reading(info.get("frames"))
     return Segmenter(engine, resolution, taus, run, {**info, **runner.info},
-                     bit_depth=check_bit_depth(frames.get("bit_depth", "auto")),
-                     letterbox=bool(frames.get("letterbox", False)))
+                     bit_depth=check_bit_depth(frames["bit_depth"]), letterbox=frames["letterbox"])
