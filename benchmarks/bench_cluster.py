@@ -1,7 +1,6 @@
-"""Does a two-node Ray cluster on one host run the DAG to the outputs of a serial ``dvc repro``?  Runs
-``geodistill run`` on ``ray.cluster_utils.Cluster`` (two nodes of ``--cpus`` CPUs and ``--gpus`` fake GPUs) in
-a fresh project copy and compares every output hash of the two ``dvc.lock`` files (benchmark and report
-outputs embed time, so they differ).
+"""Does a two-node Ray cluster on one host run the DAG to the outputs of a serial ``dvc repro``?  ``geodistill
+run`` on ``ray.cluster_utils.Cluster`` (two nodes of ``--cpus`` CPUs, ``--gpus`` fake GPUs) in a project copy, then
+every output hash of the two ``dvc.lock`` files compared (benchmark and report outputs embed time: they differ).
 
     python -m benchmarks.bench_cluster --repo COPY --serial DONE [--targets teacher ...]
 """

@@ -1,7 +1,6 @@
-"""Evaluation speed: the ``evaluate`` stage's per-image metrics and bootstrap gains on spacecraft-like masks of
-the paper's size, the baseline (the per-image loop and one bootstrap per comparison of main at 9c46380, kept
-below; the tests check the new code against it) against ``per_image_metrics`` / ``method_gains``, round-robin
-after checking both give the same numbers; medians, minima, the ratio and the projected ``evaluate`` time.
+"""Evaluation speed of the ``evaluate`` stage's per-image metrics and bootstrap gains on paper-sized spacecraft-like
+masks: the per-image references below (the tests check the library against them) against ``per_image_metrics`` /
+``method_gains``, round-robin once both agree; medians, minima, ratios and the projected ``evaluate`` time.
 
     python -m benchmarks.bench_evaluate [--device cuda]     # paper protocol: 22 runs x 180 images at 384^2
 """
@@ -125,15 +124,13 @@ def baseline_method_gains(df, metrics, control=BASELINE, by=("dataset", "group",
             row = dict(zip(by, key), method=method, gain_seeds=len(seeds), gain_images=len(both))
             for m in metrics:
                 sub = both[both[[f"{m}_t", f"{m}_c"]].notna().all(axis=1)]
-                if sub.empty:
-                    row.update({f"gain_{m}": np.nan, f"gain_{m}_lo": np.nan, f"gain_{m}_hi": np.nan})
-                    continue
                 diff = (sub[f"{m}_t"] - sub[f"{m}_c"]).to_numpy()
-                boot = baseline_resample_means(diff, sub.index.get_level_values(cluster_col).to_numpy(),
-                                               n_resamples, np.random.default_rng(seed))
-                lo, hi = np.quantile(boot, [alpha, 1.0 - alpha], axis=0)
-                row.update({f"gain_{m}": float(diff.mean()), f"gain_{m}_lo": float(lo[0]),
-                            f"gain_{m}_hi": float(hi[0])})
+                mean = lo = hi = np.nan
+                if len(diff):
+                    boot = baseline_resample_means(diff, sub.index.get_level_values(cluster_col).to_numpy(),
+                                                   n_resamples, np.random.default_rng(seed))
+                    mean, (lo, hi) = diff.mean(), np.quantile(boot[:, 0], [alpha, 1.0 - alpha])
+                row.update({f"gain_{m}": float(mean), f"gain_{m}_lo": float(lo), f"gain_{m}_hi": float(hi)})
             rows.append(row)
     cols = by + ["method", "gain_seeds", "gain_images"] + [f"gain_{m}{s}" for m in metrics for s in ("", "_lo", "_hi")]
     return pd.DataFrame(rows, columns=cols)
@@ -160,16 +157,13 @@ def protocol_table(scores: dict, n_images: int, groups=("KCP", "CVI", "HJM"), pe
     import pandas as pd
 
     per_group = max(1, n_images // len(groups))
-    frames = []
-    for (method, seed, mode), sc in scores.items():
-        i = np.arange(n_images)
-        g = np.asarray(groups)[np.minimum(i // per_group, len(groups) - 1)]
-        sc_id = (i % per_group) * per_group_spacecraft // per_group
-        frames.append(pd.DataFrame({"dataset": "synthetic", "group": g,
-                                    "spacecraft": [f"{a}{b}" for a, b in zip(g, sc_id)],
-                                    "image_id": [f"img{k:05d}" for k in i], "method": method, "seed": seed,
-                                    "threshold_mode": mode, **sc}))
-    return pd.concat(frames, ignore_index=True)
+    i = np.arange(n_images)
+    g = np.asarray(groups)[np.minimum(i // per_group, len(groups) - 1)]
+    sc_id = (i % per_group) * per_group_spacecraft // per_group
+    images = {"dataset": "synthetic", "group": g, "spacecraft": [f"{a}{b}" for a, b in zip(g, sc_id)],
+              "image_id": [f"img{k:05d}" for k in i]}
+    return pd.concat([pd.DataFrame({**images, "method": method, "seed": seed, "threshold_mode": mode, **sc})
+                      for (method, seed, mode), sc in scores.items()], ignore_index=True)
 
 
 def timed_rounds(fns: dict, repeats: int) -> dict[str, list[float]]:

@@ -1,8 +1,7 @@
-"""Segmenting a folder end to end against the engine alone, every CPU engine of ``segment --engine``, in one
-run: a deploy bundle of a random TinyUNet written by the export code (int8 calibrated on the images, its
-agreement gate off), generated photo-like images, and round-robin rounds of the engine alone on the resized
-images, the serial loop and the overlapped loop; images/s (median, best round) and end to end / model-only
-against the target (>= 0.8 on 2 cores at 384^2 from 640x480), printed, never asserted.
+"""Segmenting a folder end to end against the engine alone, for every CPU engine of ``segment --engine``: a deploy
+bundle of a random TinyUNet (int8 calibrated on the images, agreement gate off), generated photo-like images, and
+round-robin rounds of the engine alone, the serial loop and the overlapped loop; images/s (median, best round) and
+end to end / model-only against the target (>= 0.8 on 2 cores at 384^2 from 640x480), printed, not asserted.
 
     python -m benchmarks.bench_segment [--images 200 --engines onnxruntime_fp32,openvino_int8]
 """
@@ -130,8 +129,7 @@ def format_table(rows: dict[str, dict], skipped: dict[str, str], setting: str) -
         ratios = [f"{r[f'{m}_ratio']:.2f} ({r[f'{m}_best_ratio']:.2f})" for m in ("serial", "overlapped")]
         lines.append(f"{name:14s} {cells[0]:>16s} {cells[1]:>16s} {cells[2]:>17s} {ratios[0]:>13s} {ratios[1]:>13s}"
                      f"  {'met' if r['meets_target'] else 'NOT met'}")
-    for name, why in skipped.items():
-        lines.append(f"{name:14s} skipped: {why}")
+    lines += [f"{name:14s} skipped: {why}" for name, why in skipped.items()]
     lines.append(f"(images/s: median over rounds (best round); ratios of the medians (of the best rounds); the "
                  f"verdict reads the medians.  Target: end to end >= "
                  f"{TARGET_RATIO:g} x model-only for every engine, on 2 cores at 384^2 from 640x480 -- printed, "

@@ -45,10 +45,8 @@ def _rate(jobs, **kw):
 
 
 def _raster_rate(jobs, size, rasterizer):
-    specs = []
-    for name, view in jobs:
-        rng = syn.view_rng(SEED, name, view)
-        specs.append((_spacecraft(name), syn.sample_view(rng), rng))
+    rngs = [(name, syn.view_rng(SEED, name, view)) for name, view in jobs]
+    specs = [(_spacecraft(name), syn.sample_view(rng), rng) for name, rng in rngs]
     return len(specs) / seconds(lambda: [syn.rasterize(m, spec, size, rng, rasterizer) for m, spec, rng in specs])
 
 

@@ -1,8 +1,7 @@
-"""Teacher speed of the SAM 3 backend, in one run on the same images: the former params defaults (fp32, 2
-images per forward, eager) against ``--dtype`` / ``--batch-size`` / ``--compile`` with the agreement of their
-answers, the encoder reused across the six prompts against six separate calls, and the SIMULATOR; or, with
-``--ray-workers``, the teacher runner's whole fill as the serial loop against Ray Data pools (round-robin,
-medians and minima, the pools' steady rates and start-up).
+"""Teacher speed of the SAM 3 backend on the same images: the former params defaults (fp32, 2 images per forward,
+eager) against ``--dtype`` / ``--batch-size`` / ``--compile`` and their answers' agreement, the encoder reused
+across the six prompts against six separate calls, and the SIMULATOR; or, with ``--ray-workers``, the runner's
+whole fill, serial loop against Ray Data pools (round-robin: medians, minima, steady rates and start-up).
 
     python -m benchmarks.bench_teacher [--size real --device cuda --images 16 --compile] [--ray-workers 1,2]
 """

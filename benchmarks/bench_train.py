@@ -1,7 +1,6 @@
-"""Training speed: plain fp32 eager NCHW against the fast path (channels_last + bf16 autocast) in the same
-run: seconds per epoch of the Stage-I ``plain`` method (interleaved one-epoch rounds, median and minimum, and
-the ratio), then one ``--epochs`` run of each for validation Image IoU / Boundary F1 on held-out images of an
-in-memory synthetic set (ellipse + panel bar on noise).
+"""Training speed of Stage-I ``plain``: fp32 eager NCHW against the fast path (channels_last + bf16 autocast),
+seconds per epoch (interleaved one-epoch rounds: median, minimum, ratio), then an ``--epochs`` run of each for
+validation Image IoU / Boundary F1 on held-out images of an in-memory synthetic set (ellipse + bar on noise).
 
     python -m benchmarks.bench_train [--quick] [--images 270 --size 384 --epochs 2 --device cuda]
 """

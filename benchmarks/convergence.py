@@ -1,8 +1,7 @@
-"""Where does the student's validation Image IoU plateau?  One stable-phase run of the warm-up / stable / decay
-schedule (``train.schedule: wsd``) saves its state at E0, 2 E0, 4 E0, ... epochs; from each a decay branch
-gives the run of that length, scored on the validation images at their calibrated tau.  The plateau is the
-first length whose next doubling gains less than ``--plateau-gain``; the test images are scored once, at
-that length.  States and finished branches are kept, so a rerun with more ``--doublings`` continues.
+"""Where does the student's validation Image IoU plateau?  One stable-phase run of the ``wsd`` schedule saves its
+state at E0, 2 E0, 4 E0, ... epochs; a decay branch from each gives the run of that length, scored on the
+validation images at their calibrated tau.  The plateau is the first length whose next doubling gains less than
+``--plateau-gain``; the test images are scored once, there.  States and branches are kept: more doublings continue.
 
     python -m benchmarks.convergence --profile reduced --recipe paper --seed 42 --out convergence.json
 """

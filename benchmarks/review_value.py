@@ -1,8 +1,7 @@
 """What a person's corrections buy: the reference masks of the k top-ranked training images replace their votes
-(``review.mode: replace``; NOT annotation-free), and the Stage-I student's test Image IoU is measured for the
-shipped ranking, the lowest gate first and random selections, with each one's seed-aware gain over k = 0 and the
-ranking minus random.  On this benchmark the simulated teacher builds its bad masks from the gate's own factors,
-so a gate-based ranking wins partly by construction (printed beside the numbers).
+(``review.mode: replace``; NOT annotation-free); the Stage-I student's test Image IoU for the shipped ranking, the
+lowest gate first and random selections, each one's seed-aware gain over k = 0 and the ranking minus random (the
+simulated teacher builds its bad masks from the gate's factors: a gate-based ranking wins partly by construction).
 
     python -m benchmarks.review_value --resolution 64 --seeds 42 43 44 [--runs seed42.json ... --figure curve.png]
 """
@@ -93,9 +92,9 @@ def selected_label_quality(artifacts: Path, cfg: dict, ks, seeds, draws: int) ->
     consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
     reference = open_artifact(catalog.path("reference", artifacts), "reference")
     row = {iid: i for i, iid in enumerate(manifest.df["image_id"].astype(str))}
-    rows = np.array(sorted(row[i] for i in ids))
-    by_row = image_ious(_rows(consensus, "voted", rows).astype(bool), _rows(reference, "mask", rows).astype(bool))
-    iou = {iid: by_row[int(np.searchsorted(rows, row[iid]))] for iid in ids}
+    rows = np.array([row[i] for i in ids])
+    iou = dict(zip(ids, image_ious(_rows(consensus, "voted", rows).astype(bool),
+                                   _rows(reference, "mask", rows).astype(bool))))
     table = training_table(artifacts, ids)
     out = [{"selection": "all", "k": len(ids), "voted_iou": float(np.mean(list(iou.values())))}]
     for k in (k for k in ks if k):
