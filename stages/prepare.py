@@ -24,21 +24,15 @@ log = logging.getLogger("geodistill.prepare")
 @click.option("--skip-bad", is_flag=True, help="leave bad files out (recorded in skipped_files.parquet)")
 def main(params, device, out_dir, source, root, protocol, skip_bad):
     """Build the manifest and working-resolution image/reference arrays (synthetic benchmark by default)."""
-    cfg = section(params, "data")
-    for key, value in (("source", source), ("root", root), ("protocol", protocol)):
-        if value is not None:
-            cfg[key] = value
-    if skip_bad:
-        cfg["skip_bad"] = True
-    cfg = check_data_params(cfg)
+    given = {"source": source, "root": root, "protocol": protocol, "skip_bad": skip_bad or None}
+    cfg = check_data_params({**section(params, "data"), **{k: v for k, v in given.items() if v is not None}})
     done = prepare(cfg, out_dir, stage_context("prepare", __file__, params).meta)
-    rows, policy, cache = done.rows, done.policy, done.cache
-    if (line := policy.summary("prepare", catalog.path("skipped_files", out_dir))) is not None:
+    if (line := done.policy.summary("prepare", catalog.path("skipped_files", out_dir))) is not None:
         click.echo(line, err=True)
-    counts = rows.groupby(["split", "group"]).size().to_dict()
+    counts = done.rows.groupby(["split", "group"]).size().to_dict()
     log.info("prepared %d images (%s) at %dpx; skipped %d; decode cache hits %d misses %d",
-             len(rows), ", ".join(f"{s}/{g}: {c}" for (s, g), c in counts.items()), cfg["resolution"],
-             len(policy.skipped), cache.hits, cache.misses)
+             len(done.rows), ", ".join(f"{s}/{g}: {c}" for (s, g), c in counts.items()), cfg["resolution"],
+             len(done.policy.skipped), done.cache.hits, done.cache.misses)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,5 @@
-"""Real-dataset readers: a root directory + a protocol file (``data_manifests/*.yaml``) -> manifest rows.
-
-One reader per source (SpaceSense-Bench, SPARK 2024 stream 1, SPEED+, TANGO, any folder); the layouts
-are in docs/real-data.md and the protocol files, the choices in docs/decisions.md ("Dataset readers").
-Files are not opened here: ``build.decode_rows`` reads each once under the bad-input policy.
-"""
+"""Real-dataset readers: a root directory + a protocol file (``data_manifests/*.yaml``) -> manifest rows, files
+unopened (layouts: docs/real-data.md; choices: docs/decisions.md, "Dataset readers")."""
 
 from __future__ import annotations
 
@@ -18,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.datasets.loading import ColorTable
-from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec, relative_id
+from pipeline.datasets.manifest import ROW_COLUMNS, BadInputPolicy, DatasetSpec, relative_id
 from pipeline.datasets.scan import scan_inputs
 from pipeline.datasets.synthetic import stable_hash
 from pipeline.runtime.errors import InputError
@@ -82,8 +78,7 @@ def row(image_id, dataset, domain, split, group, spacecraft, image_path, mask_pa
 
 
 def _frame(rows: list[dict]) -> pd.DataFrame:
-    cols = ["image_id", "dataset", "domain", "split", "group", "spacecraft", "image_path", "mask_path", "part_path"]
-    return pd.DataFrame(rows, columns=cols if not rows else None)
+    return pd.DataFrame(rows, columns=None if rows else list(ROW_COLUMNS))
 
 
 def _parse_colors(proto: dict, where: Path) -> ColorTable | None:

@@ -1,9 +1,5 @@
-"""Assemble a dataset for the ``prepare`` stage: source rows -> checked manifest -> arrays.
-
-:func:`synthetic_source` renders the benchmark to PNG files (pre-filling the decode cache),
-:func:`real_source` calls a reader; :func:`decode_rows` reads every file once under the bad-input policy
-and :func:`iter_arrays` then yields working-resolution arrays from the cache.
-"""
+"""Assemble a dataset for the ``prepare`` stage: source rows -> checked manifest -> every file decoded once
+(under the bad-input policy, into the decode cache) -> working-resolution arrays."""
 
 from __future__ import annotations
 
@@ -76,9 +72,7 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
                                          background=view.background, hard_case=view.hard_case,
                                          area_fraction=view.area_fraction))
                 bar.update(1)
-    return DatasetSpec(rows=pd.DataFrame(rows), mask_threshold=None, part_colors=None,
-                       spacecraft_disjoint=True,
-                       protocol={"name": "synthetic", "plan": [vars(p) for p in plan]},
+    return DatasetSpec(rows=pd.DataFrame(rows), protocol={"name": "synthetic", "plan": [vars(p) for p in plan]},
                        max_pixels=cfg.get("max_pixels"), letterbox=bool(cfg.get("letterbox", False)))
 
 
@@ -121,11 +115,8 @@ def _load(spec: DatasetSpec, col: str, path: str, size: int, cache: DecodeCache 
 
 def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeCache | None,
                 policy: BadInputPolicy) -> pd.DataFrame:
-    """First pass over the files: decode (into the cache), check, and fill width/height/sha256.
-
-    A row whose image, mask or part file is bad, or whose mask/part size differs from the image's, goes
-    through the policy; its other files are then listed too.
-    """
+    """First pass: decode every file (into the cache) and fill width/height/sha256; a row with a bad file, or a
+    mask/part of another size than its image, goes through the policy and its other files are listed."""
     kept: dict[int, Loaded] = {}   # row -> its image
     for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):
         try:

@@ -1,6 +1,5 @@
-"""Width and height of a PNG, JPEG, TIFF (classic and BigTIFF) or BMP file from its header, without
-decoding a pixel; the format is told by the content, as OpenCV does.  Why not Pillow: docs/dependencies.md.
-"""
+"""Width and height of a PNG, JPEG, TIFF (classic and BigTIFF) or BMP file from its header, the format told by
+the content as OpenCV does (why not Pillow: docs/dependencies.md)."""
 
 from __future__ import annotations
 

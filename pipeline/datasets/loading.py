@@ -1,10 +1,6 @@
-"""One image/mask loader for every source, with a content-addressed decode cache.
-
-Images come out RGB uint8 (grey replicated, alpha dropped, 16-bit scaled under ``bit_depth``), masks
-bool by the one rule ``foreground = value > 0`` unless a protocol sets a threshold; the header's size is
-checked against ``max_pixels`` before anything is decoded or looked up (docs/real-data.md, docs/own-data.md).
-:func:`load_rgb` / :func:`load_mask` / :func:`load_labels` hash the bytes and resize to the working
-resolution through a :class:`DecodeCache` keyed by (sha256, kind, resolution)."""
+"""One image/mask loader for every source: RGB uint8 images, bool masks by ``foreground = value > 0`` unless a
+protocol sets a threshold, the header's size checked against ``max_pixels`` before decoding, and a decode
+cache keyed by (sha256, kind, resolution) (docs/decisions.md, "Image and mask decoding")."""
 
 from __future__ import annotations
 

@@ -1,9 +1,5 @@
-"""Manifest rows (:class:`DatasetSpec`), protocol checks and the one bad-input policy (:class:`BadInputPolicy`).
-
-A problem found anywhere raises a one-line :class:`InputError` naming the file or, with ``skip_bad``,
-leaves the row out and lists ``(image_id, path, reason)``; a file a source finds and does not use is
-never silently ignored.
-"""
+"""Manifest rows (:class:`DatasetSpec`), protocol checks and the one bad-input policy (:class:`BadInputPolicy`):
+a bad file is a one-line :class:`InputError`, or with ``skip_bad`` a listed ``(image_id, path, reason)``."""
 
 from __future__ import annotations
 
@@ -48,11 +44,9 @@ SKIP_HINT = "pass {}, or set data.skip_bad: true in params.yaml, to leave it out
 
 
 class BadInputPolicy:
-    """The one bad-file policy (docs/own-data.md): raise on the first problem, or (``skip_bad``) list it
-    with its reason and let the caller drop the row.
-
-    ``hint``: the refusal's suggestion; ``hint_options``: the options of its ``{}`` (default ``--skip-bad``).
-    """
+    """The one bad-file policy (docs/own-data.md): raise on the first problem, or (``skip_bad``) list it with
+    its reason and let the caller drop the row; ``hint``: the refusal's suggestion, ``hint_options`` the
+    options of its ``{}`` (default ``--skip-bad``)."""
 
     def __init__(self, skip_bad: bool, hint: str = SKIP_HINT, hint_options: tuple[Option, ...] | None = None):
         self.skip_bad = bool(skip_bad)

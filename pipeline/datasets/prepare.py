@@ -1,10 +1,5 @@
-"""The prepare stage's work, callable without the CLI: a dataset -> manifest.parquet, images.zarr,
-reference.zarr, skipped_files.parquet and the contact sheet under one artifacts directory
-(eq:spacecraft-disjoint holds for the synthetic benchmark and the protocols of :mod:`pipeline.datasets`).
-
-The files are named by the catalogue (:mod:`pipeline.catalog`); the sources, decoding and the bad-file
-policy are :mod:`pipeline.datasets`.
-"""
+"""The prepare stage's work without the CLI: a dataset -> manifest.parquet, images.zarr, reference.zarr,
+skipped_files.parquet and the contact sheet (eq:spacecraft-disjoint where the protocol requires it)."""
 
 from __future__ import annotations
 
@@ -12,12 +7,10 @@ import dataclasses
 from pathlib import Path
 from typing import Callable
 
-import cv2
 import numpy as np
 import pandas as pd
 
 from pipeline import catalog
-from pipeline.artifacts.atomic import atomic_path
 from pipeline.artifacts.lineage import Meta
 from pipeline.artifacts.store import ZarrWriter, write_parquet
 from pipeline.datasets import build
@@ -26,6 +19,7 @@ from pipeline.datasets.loading import DecodeCache
 from pipeline.datasets.manifest import BadInputPolicy
 from pipeline.datasets.params import fingerprint_params
 from pipeline.datasets.synthetic import PART_NAMES
+from pipeline.deploy.files import write_png
 from pipeline.runtime.progress import progress
 
 #: the reference artifact's note: what its masks may be used for
@@ -43,11 +37,8 @@ class Prepared:
 
 
 def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
-    """Build every prepare artifact under ``out`` from the validated ``data:`` section ``cfg``.
-
-    ``meta(schema, params=..., **extra)`` stamps each artifact; its params are the fingerprint of the
-    content: the data params, the protocol actually applied and the selected files' content.
-    """
+    """Every prepare artifact under ``out`` from the validated ``data:`` section ``cfg``, each stamped by
+    ``meta(schema, params=..., **extra)`` with params = the data params, the protocol applied, the files' content."""
     out = Path(out)
     size = cfg["resolution"]
     cache = DecodeCache(cfg["cache_dir"])
@@ -98,7 +89,4 @@ def write_contact_sheet(path: Path, rows: pd.DataFrame, spec, cfg: dict, cache: 
         r = rows.iloc[int(i)]
         img, mask, _ = next(build.iter_arrays(rows.iloc[[int(i)]], spec, size, cache))[1:]
         tiles.append(tile(img, mask, f"{r['group']} {r['spacecraft']}", tsize))
-    sheet = contact_sheet(tiles, columns=4)
-    with atomic_path(path) as tmp:
-        ok, buf = cv2.imencode(".png", sheet[..., ::-1])
-        tmp.write_bytes(buf.tobytes())
+    write_png(path, contact_sheet(tiles, columns=4))

@@ -20,12 +20,9 @@ class Inputs:
 
 
 def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> Inputs:
-    """The images under ``input_path`` (a single file is taken as given) and the entries skipped on the way.
-
-    Hidden entries and non-images are listed in ``unused``, never an error; broken links, links leaving
-    the folder, links to folders and special files are bad (``skipped``), unless ``keep_broken_links``
-    keeps broken links in ``files`` for the caller's decode pass to report.
-    """
+    """The images under ``input_path`` (a file: as given); hidden entries and non-images are ``unused``, bad
+    ones ``skipped``: links leaving the folder or to folders, special files, broken links (unless
+    ``keep_broken_links``: in ``files``, for the caller's decode pass to report)."""
     from pipeline.datasets.loading import SUPPORTED_SUFFIXES, broken_link_reason
 
     p = Path(input_path)

@@ -1,10 +1,6 @@
-"""``geodistill label``: a folder of images -> voted, gated pseudo-masks in standard formats.
-
-The DAG's teacher, consensus and geometry steps, composed of the functions those stages call, on a plain
-folder without a DVC project: read and plan (:mod:`pipeline.labeling.reading`), vote and gate
-(:mod:`pipeline.pseudo_labels`), write (:mod:`pipeline.labeling.writing`).  The vote happens at the working
-resolution and the voted mask is brought to each image's own size by nearest-neighbour resizing.
-"""
+"""``geodistill label``: a folder of images -> voted, gated pseudo-masks in standard formats, by the functions
+of the DAG's teacher, consensus and geometry stages; the vote at the working resolution, resized (nearest)
+to each image's own size."""
 
 from __future__ import annotations
 

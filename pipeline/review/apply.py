@@ -1,9 +1,5 @@
-"""Apply a ``corrections`` artifact to a run (stage ``corrections``; params ``review``; docs/own-data.md).
-
-The stage checks the corrections against this run's manifest (training images of the right size only)
-and writes them at the working resolution as the ``corrected`` artifact; the train stage reads it in
-``review.mode`` (:mod:`pipeline.training.inputs`).
-"""
+"""Stage ``corrections``: a ``corrections`` artifact checked against this run's manifest (training images of
+the right size) -> the ``corrected`` artifact at the working resolution, which the train stage reads."""
 
 from __future__ import annotations
 

@@ -1,12 +1,7 @@
-"""``geodistill review import SOURCE --review DIR``: corrected masks -> the versioned ``corrections`` artifact.
-
-SOURCE is a Label Studio JSON export (tasks of this export: the last annotation not cancelled), a CVAT COCO
-1.0 export (images matched by ``file_name``) or a folder of ``<image id>.png`` masks.  A task or image nobody
-annotated is left out; refused in one line: a task of another export, an unknown image, a mask of another
-size, an empty mask.  The artifact holds one row per corrected image (its mask as compressed COCO RLE at the
-image's size, the source format, ``iou_to_voted``).  These are MANUAL masks: like reference masks they may
-select, calibrate and evaluate, never enter an annotation-free method's loss.
-"""
+"""``geodistill review import SOURCE --review DIR``: corrected masks (a Label Studio JSON export, a CVAT COCO 1.0
+export or a folder of ``<image id>.png``) -> the ``corrections`` artifact, one row per corrected image.  These
+are MANUAL masks: like reference masks they may select, calibrate and evaluate, never enter an
+annotation-free method's loss."""
 
 from __future__ import annotations
 
@@ -27,6 +22,7 @@ from pipeline.metrics import image_iou
 from pipeline.artifacts.ownership import read_record, refuse_unowned
 from pipeline.review.export import COMMAND as EXPORT_COMMAND
 from pipeline.review.export import EXPORT_FIELD, OUTPUTS as EXPORT_OUTPUTS
+from pipeline.teachers.base import files_digest
 from pipeline.review.formats import (LS_FROM_NAME, FormatError, coco_segmentation_mask, ls_rle_decode,
                                      polygon_mask)
 
@@ -182,12 +178,9 @@ READERS = {"labelstudio": _labelstudio, "cvat": _cvat, "png": _png}
 
 def source_digest(source: Path) -> str:
     """sha256 of the source's bytes (a folder: its files' relative paths and bytes, sorted)."""
-    h = hashlib.sha256()
-    files = sorted(p for p in source.rglob("*") if p.is_file()) if source.is_dir() else [source]
-    for p in files:
-        h.update(p.relative_to(source).as_posix().encode() if source.is_dir() else b"")
-        h.update(p.read_bytes())
-    return h.hexdigest()
+    if source.is_dir():
+        return files_digest(source, sorted(p for p in source.rglob("*") if p.is_file()))
+    return hashlib.sha256(source.read_bytes()).hexdigest()
 
 
 def import_corrections(source: str | Path, review_dir: str | Path, out: str | Path, *, fmt: str = "auto",
@@ -205,13 +198,10 @@ def import_corrections(source: str | Path, review_dir: str | Path, out: str | Pa
     fmt = detect_format(source) if fmt == "auto" else fmt
     if (fmt == "png") != source.is_dir():
         raise InputError(f"{{}}: {literal(fmt)} reads a {'folder' if fmt == 'png' else 'JSON file'}", SOURCE(source))
-    owned = []
-    try:
-        if out.exists():
-            open_artifact(out, "corrections")
-            owned = [out]
+    try:   # a missing or foreign one is not ours
+        owned = [open_artifact(out, "corrections").path]
     except ArtifactError:
-        pass
+        owned = []
     refuse_unowned([out], owned, command=STAGE, option="--out", where=out,
                    why="not a corrections artifact", overwrite=overwrite)
     masks = READERS[fmt](source, review)

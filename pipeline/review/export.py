@@ -1,10 +1,6 @@
 """``geodistill review export LABEL_DIR --out DIR`` and the DAG stage ``review_export``: the images that most
-need a person, ranked (:mod:`pipeline.review.ranking`), as a Label Studio import, a CVAT import and a CSV,
-with ``review.json`` (the export id and each image's voted mask) that ``review import`` checks against.
-
-An image whose vote is empty gets a task without a prediction (the person draws it).  The export id hashes
-the teacher fingerprint, the options and the rows, so the same inputs give the same files.
-"""
+need a person, ranked, as a Label Studio import, a CVAT import and a CSV, with ``review.json`` (the export id,
+a hash of the teacher, options and rows, and each image's voted mask) that ``review import`` checks against."""
 
 from __future__ import annotations
 

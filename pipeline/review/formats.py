@@ -1,12 +1,6 @@
-"""The review formats, pure functions on arrays: Label Studio brush RLE and polygons, COCO 1.0 for CVAT.
-
-Label Studio brush RLE: the mask as an RGBA image flattened row by row, packed in thi.ng's ``rle-pack``
-bit format (a 32-bit value count, word size - 1 in 5 bits, four run-length field widths - 1 in 4 bits each,
-then run or literal segments, MSB first, zero-padded to whole bytes plus one zero byte when aligned) as
-label-studio-converter writes it.  Polygons (Label Studio per cent, COCO pixels) are each region's outer
-contour, so a polygon round trip is not pixel-exact.  COCO for CVAT: the whole mask as uncompressed RLE with
-``iscrowd: 1``, the form CVAT's own export uses for masks.
-"""
+"""The review formats, pure functions on arrays: Label Studio brush RLE (thi.ng ``rle-pack`` bits, as
+label-studio-converter writes them) and polygons, COCO 1.0 for CVAT (uncompressed RLE with ``iscrowd: 1``, as
+CVAT exports masks).  A polygon is each region's outer contour, so its round trip is not pixel-exact."""
 
 from __future__ import annotations
 

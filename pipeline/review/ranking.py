@@ -1,10 +1,5 @@
-"""Which images a person should check first: the rankings of ``geodistill review export --ranking``.
-
-Each ranking scores an image in [0, 1], higher = more in need of a person; ties go by image id.  ``gate``:
-1 - g (eq:reliability-gate); ``disagreement``: h, the prompts' disagreement (eq:agreement-map);
-``student``: 1 - IoU(student, vote); ``combined`` (the default): the mean percentile rank of 1 - g and h
-(and the student's when given) -- why: docs/decisions.md.
-"""
+"""The rankings of ``review export --ranking``: each scores an image in [0, 1], higher = more in need of a
+person, ties by image id (the default ``combined``: docs/decisions.md)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,4 @@
-"""Teachers of eq:teacher-prediction: SAM 3 (transformers), imported masks, and a SIMULATOR.
-
-:data:`TEACHERS` maps each backend name of :data:`pipeline.params.BACKENDS` to its class, which builds
-itself from the ``teacher:`` section (``from_params``).
-"""
+"""Teachers of eq:teacher-prediction: SAM 3 (transformers), imported masks, and a SIMULATOR, by backend name."""
 
 from __future__ import annotations
 

@@ -1,9 +1,5 @@
-"""The teacher stage's work (eq:prompt-set, eq:teacher-prediction), callable without the CLI.
-
-:func:`open_teacher_run` puts a teacher behind its cache over a manifest's rows; :meth:`TeacherRun.fill`
-computes what the cache lacks and :meth:`TeacherRun.write` assembles ``teacher.zarr`` and the score
-table.  Rows outside ``teacher.splits`` get empty masks and score 0 (docs/decisions.md).
-"""
+"""The teacher stage's work (eq:prompt-set, eq:teacher-prediction) without the CLI: a teacher behind its cache
+over a manifest's rows -> ``teacher.zarr`` and the score table."""
 
 from __future__ import annotations
 

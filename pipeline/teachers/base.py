@@ -1,13 +1,11 @@
-"""The teacher interface shared by every backend (eq:teacher-prediction).
-
-A teacher answers each (image, prompt) with its best candidate mask and score at the working
-resolution of ``images.zarr``; no candidate or a score <= 0 is *invalid* (score 0, empty mask) and
-drops out of eq:valid-set.
-"""
+"""The teacher interface (eq:teacher-prediction): per (image, prompt) the best candidate mask and score at
+the working resolution; no candidate or a score <= 0 is *invalid* (score 0, empty mask, out of eq:valid-set)."""
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+from pathlib import Path
 from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
@@ -19,10 +17,8 @@ MANIFEST_EXTRAS = ("background", "hard_case", "area_fraction")
 
 @dataclasses.dataclass
 class TeacherInput:
-    """One image as a teacher sees it: uint8 [H,W,3], already in ``view`` (the runner flips answers back).
-
-    ``reference`` (``mask``, optional ``parts``) and ``extras`` are filled only for the SIMULATOR.
-    """
+    """One image as a teacher sees it: uint8 [H,W,3], already in ``view`` (the runner flips answers back);
+    ``reference`` (``mask``, optional ``parts``) and ``extras`` only for the SIMULATOR."""
 
     image_id: str
     image_sha256: str
@@ -61,3 +57,14 @@ def manifest_extras(manifest) -> list[dict[str, Any]]:
     """Per row of the manifest frame (index 0..N-1), its :data:`MANIFEST_EXTRAS` values (those it has)."""
     cols = [c for c in MANIFEST_EXTRAS if c in manifest.columns]
     return [{c: manifest.at[row, c] for c in cols} for row in range(len(manifest))]
+
+
+def files_digest(root: Path, files: Sequence[Path], h=None) -> str:
+    """sha256 (continuing ``h``) over each file's path relative to ``root`` and its bytes, in the given order."""
+    h = h or hashlib.sha256()
+    for p in files:
+        h.update(Path(p).relative_to(root).as_posix().encode())
+        with open(p, "rb") as f:
+            for block in iter(lambda: f.read(1 << 22), b""):
+                h.update(block)
+    return h.hexdigest()

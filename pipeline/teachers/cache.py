@@ -1,7 +1,6 @@
-"""Content-addressed cache of teacher answers: one small file per (image, prompt, view), under
-``<teacher.cache_dir>/v2/<key[:2]>/<key>.tce`` on any fsspec location (docs/decisions.md, "The teacher
-cache").  The key is the sha256 of {image sha256, teacher fingerprint, prompt, view}: new images or
-prompts compute only new entries, and a change to what the teacher reads gives new keys."""
+"""Content-addressed cache of teacher answers on any fsspec location: one file per (image, prompt, view),
+``<teacher.cache_dir>/v2/<key[:2]>/<key>.tce``, keyed by the sha256 of {image sha256, teacher fingerprint,
+prompt, view} (docs/decisions.md, "The teacher cache")."""
 
 from __future__ import annotations
 

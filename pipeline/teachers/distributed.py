@@ -1,8 +1,5 @@
-"""The teacher as a Ray Data pipeline (the ``cluster`` extra): jobs -> CPU decode -> teacher actors -> cache.
-
-Every actor calls :func:`pipeline.teachers.jobs.answer_job`, the serial loop's own per-batch function, so a
-retried task rewrites the same cache entries; the pipeline is described in docs/scaling.md.
-"""
+"""The teacher as a Ray Data pipeline (the ``cluster`` extra): jobs -> CPU decode -> teacher actors
+(:func:`pipeline.teachers.jobs.answer_job`, as the serial loop) -> cache; docs/scaling.md."""
 
 from __future__ import annotations
 

@@ -1,8 +1,5 @@
-"""Teacher answers produced elsewhere (e.g. SAM 3 on a GPU cluster), read from the layout of docs/real-data.md.
-
-The masks are already a cache of the real teacher, so this backend bypasses the teacher cache; its
-fingerprint hashes the scores table and every mask file.
-"""
+"""Teacher answers produced elsewhere (e.g. SAM 3 on a GPU cluster) in the layout of docs/real-data.md; already
+a cache of the real teacher, so this backend bypasses the teacher cache."""
 
 from __future__ import annotations
 
@@ -14,7 +11,7 @@ import numpy as np
 
 from pipeline.runtime.errors import InputError
 from pipeline.params import IMPORTED as BACKEND
-from pipeline.teachers.base import TeacherInput, finalize_answers
+from pipeline.teachers.base import TeacherInput, files_digest, finalize_answers
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -125,11 +122,8 @@ class ImportedTeacher:
     def content_hash(self) -> str:
         """sha256 over the scores table and every mask file (relative path + bytes), sorted."""
         if self._fp is None:
-            h = hashlib.sha256(self.scores_path.read_bytes())
-            for p in sorted((self.root / "masks").rglob("*.png")) if (self.root / "masks").is_dir() else []:
-                h.update(str(p.relative_to(self.root)).encode())
-                h.update(p.read_bytes())
-            self._fp = h.hexdigest()
+            masks = sorted((self.root / "masks").rglob("*.png")) if (self.root / "masks").is_dir() else []
+            self._fp = files_digest(self.root, masks, hashlib.sha256(self.scores_path.read_bytes()))
         return self._fp
 
     def fingerprint(self) -> dict:

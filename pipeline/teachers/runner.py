@@ -1,10 +1,5 @@
-"""Plan, shard, compute and collect teacher answers through the content-addressed cache.
-
-The teacher stage and ``geodistill label`` both run it (:func:`open_runner`): the teacher is asked only
-for the (image, prompt, view) answers the cache lacks, in image batches written to the cache as they
-finish, by one per-batch function (:func:`pipeline.teachers.jobs.answer_job`) in this process or on a Ray
-Data actor pool.  Shard i of n owns the rows at positions i, i+n, ... (docs/decisions.md, "Teacher runs").
-"""
+"""Plan, shard, compute and collect teacher answers through the cache (the teacher stage and ``geodistill
+label``): only the answers the cache lacks are computed, here or on Ray (docs/decisions.md, "Teacher runs")."""
 
 from __future__ import annotations
 
@@ -157,10 +152,8 @@ class TeacherRunner:
                     results[(prompt, view)] = (masks[0, k], float(scores[0, k]))
         masks = np.stack([results[(p, "identity")][0] for p in self.prompts])
         scores = np.array([results[(p, "identity")][1] for p in self.prompts], np.float32)
-        if self.vflip_prompt is None:
-            return masks, scores, None, None
-        vm, vs = results[(self.vflip_prompt, "vflip")]
-        return masks, scores, vm, float(vs)
+        vm, vs = results.get((self.vflip_prompt, "vflip"), (None, None))
+        return masks, scores, vm, None if vs is None else float(vs)
 
 
 def open_runner(cfg: Mapping[str, Any], resolution: tuple[int, int], device: str, load: InputLoader,

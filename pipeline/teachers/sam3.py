@@ -1,15 +1,11 @@
-"""SAM 3 text-prompt teacher through Hugging Face transformers (>= 5: ``Sam3Model`` + CLIP tokenizer).
+"""SAM 3 text-prompt teacher through transformers (>= 5), from a local ``save_pretrained`` directory only.
 
 eq:teacher-prediction: a query's score is :math:`\\sigma(\\ell_q)\\,\\sigma(\\ell_{presence})`; the answer is
-the best query's mask and score, and no query above ``teacher.score_threshold`` makes the prompt
-invalid.  Loaded from a local ``save_pretrained`` directory only; the preprocessing and batching
-choices are in docs/decisions.md ("The SAM 3 teacher").
-"""
+the best query's mask and score, invalid when no query is above ``teacher.score_threshold``."""
 
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import logging
 from pathlib import Path
@@ -19,12 +15,12 @@ import numpy as np
 from fsspec.core import url_to_fs
 from fsspec.implementations.local import LocalFileSystem
 
-from pipeline.artifacts.atomic import atomic_path
+from pipeline.artifacts.atomic import read_json, write_json
 from pipeline.runtime.device import resolve_device
 from pipeline.runtime.errors import InputError, Option, literal
 from pipeline.params import SAM3 as BACKEND
 from pipeline.runtime.progress import library_bars_off
-from pipeline.teachers.base import TeacherInput, finalize_answers
+from pipeline.teachers.base import TeacherInput, files_digest, finalize_answers
 
 log = logging.getLogger(__name__)
 
@@ -35,13 +31,7 @@ _WEIGHT_SUFFIXES = (".safetensors", ".bin", ".pt", ".pth")
 
 def checkpoint_hash(directory: Path) -> str:
     """sha256 over the checkpoint's files (name + bytes, sorted): weights, configs and tokenizer."""
-    h = hashlib.sha256()
-    for p in _checkpoint_files(directory):
-        h.update(str(p.relative_to(directory)).encode())
-        with open(p, "rb") as f:
-            for block in iter(lambda: f.read(1 << 22), b""):
-                h.update(block)
-    return h.hexdigest()
+    return files_digest(directory, _checkpoint_files(directory))
 
 
 def _checkpoint_files(directory: Path) -> list[Path]:
@@ -50,8 +40,8 @@ def _checkpoint_files(directory: Path) -> list[Path]:
 
 def checkpoint_stat(directory: Path) -> list[list]:
     """[relative path, size, mtime_ns] of every checkpoint file, sorted: what the hash memo is keyed on."""
-    stats = [(p, p.stat()) for p in _checkpoint_files(directory)]
-    return [[str(p.relative_to(directory)), int(st.st_size), int(st.st_mtime_ns)] for p, st in stats]
+    return [[str(p.relative_to(directory)), int((st := p.stat()).st_size), int(st.st_mtime_ns)]
+            for p in _checkpoint_files(directory)]
 
 
 def memoised_checkpoint_hash(directory: Path, memo: Path | None) -> str:
@@ -60,19 +50,13 @@ def memoised_checkpoint_hash(directory: Path, memo: Path | None) -> str:
     if memo is None:
         return checkpoint_hash(directory)
     memo = Path(memo)
-    key, stat = str(Path(directory).resolve()), checkpoint_stat(directory)
-    try:
-        table = json.loads(memo.read_text())
-    except (OSError, ValueError):
-        table = {}
-    table = table if isinstance(table, dict) else {}
+    key, stat, table = str(Path(directory).resolve()), checkpoint_stat(directory), read_json(memo)
     entry = table.get(key)
     if isinstance(entry, dict) and entry.get("files") == stat and isinstance(entry.get("sha256"), str):
         return entry["sha256"]
     digest = checkpoint_hash(directory)
     table[key] = {"files": stat, "sha256": digest}
-    with atomic_path(memo) as tmp:
-        tmp.write_text(json.dumps(table, indent=1, sort_keys=True))
+    write_json(memo, table)
     return digest
 
 
@@ -85,9 +69,7 @@ def read_processor_config(directory: Path) -> dict:
                 cfg = json.loads(p.read_text())
             except json.JSONDecodeError:
                 raise InputError(f"{p}: not valid JSON") from None
-            if "image_processor" in cfg and isinstance(cfg["image_processor"], dict):
-                cfg = cfg["image_processor"]
-            return cfg
+            return cfg["image_processor"] if isinstance(cfg.get("image_processor"), dict) else cfg
     raise InputError(f"{directory}: no preprocessor_config.json / processor_config.json "
                      "(save the Sam3Processor with the model)")
 

@@ -1,10 +1,5 @@
-"""A SIMULATOR of a six-prompt foundation teacher's errors (eq:teacher-prediction), for the synthetic benchmark only.
-
-Not a teacher: it reads the synthetic scene's ground truth (``reference.zarr`` and the manifest extras)
-and degrades it the way a text-prompted SAM 3 degrades on spacecraft images, one persona per prompt, so
-the whole DAG runs without a download.  Its artifacts say ``simulator: true``; its design and
-calibration (``python -m benchmarks.simulator_stats``) are in docs/decisions.md ("The simulated teacher").
-"""
+"""A SIMULATOR of a six-prompt foundation teacher's errors (eq:teacher-prediction), for the synthetic benchmark
+only: it degrades the synthetic ground truth one persona per prompt (docs/decisions.md, "The simulated teacher")."""
 
 from __future__ import annotations
 

@@ -1,8 +1,5 @@
-"""A tiny, randomly initialised SAM 3 checkpoint for offline tests and the teacher benchmark.
-
-The config mirrors transformers' own SAM 3 tests and the tokenizer vocabulary is written here, so
-nothing is downloaded; ``size="real"`` builds the full architecture (random weights) for GPU timing.
-"""
+"""A tiny, randomly initialised SAM 3 checkpoint (transformers' test config, a tokenizer written here) for
+offline tests and the teacher benchmark; ``size="real"`` builds the full architecture for GPU timing."""
 
 from __future__ import annotations
 
@@ -39,11 +36,8 @@ def write_clip_vocab(directory: str | Path, words: tuple[str, ...] = ()) -> tupl
 
 
 def tiny_sam3_config(image_size: int = 56, num_queries: int = 5, initializer_range: float = 0.2):
-    """The small Sam3Config of transformers' SAM 3 tests (image 56 = 4 x 14 patches).
-
-    ``initializer_range`` is 10x the default so that the random model's answers depend visibly on the
-    image and the prompt.
-    """
+    """The small Sam3Config of transformers' SAM 3 tests (image 56 = 4 x 14 patches); ``initializer_range``
+    10x the default, so the random model's answers depend visibly on the image and the prompt."""
     from transformers.models.sam3.configuration_sam3 import (
         Sam3Config, Sam3DETRDecoderConfig, Sam3DETREncoderConfig, Sam3GeometryEncoderConfig,
         Sam3MaskDecoderConfig, Sam3VisionConfig, Sam3ViTConfig)
