@@ -20,7 +20,6 @@ from pipeline.report.environment import environment_record
 from stages._common import stage_command, stage_context
 
 
-
 @stage_command("report")
 @click.option("--artifacts", "art", default=ARTIFACTS_DIR, show_default=True, type=click.Path(file_okay=False))
 @click.option("--out", default=dvc_path("report", profile="demo"), show_default=True, type=click.Path(file_okay=False),
@@ -30,7 +29,7 @@ from stages._common import stage_command, stage_context
                    "[default: reports/metrics/efficiency beside --artifacts]")
 def main(params, device, art, out, metrics_dir):
     """Write report.md, a self-contained report.html, figures and plot CSVs."""
-    from pipeline.report.build import build_report
+    from pipeline.report.build import MASK_INPUTS, build_report, vote_means
     cfg = section(params, "report")
     profile = str(params.get("profile", ""))
     env = collect()
@@ -50,26 +49,16 @@ def main(params, device, art, out, metrics_dir):
         (tmp / files["markdown"]).write_text(render_markdown(report))
         (tmp / files["html"]).write_text(render_html(report))
         write_json(tmp / files["environment"], environment_record(env, inp.runs))
-    write_metrics_dir(metrics_dir or catalog.path("metrics_efficiency", art), efficiency_files(inp))
-    from pipeline.report.build import MASK_INPUTS
-
+    summary, vote = inp.get("summary"), vote_means(inp)
+    efficiency = {} if summary is None or vote is None else efficiency_metric_files(
+        summary.df, {str(g): float(v) for g, v in vote["iou"].items()})
+    write_metrics_dir(metrics_dir or catalog.path("metrics_efficiency", art), efficiency)
     not_computed = sorted(n for n in inp.missing if inp.no_masks and n in MASK_INPUTS)
     absent = sorted(n for n in inp.missing if n not in not_computed)
     missing = (f" (not computed without validation/test masks: {', '.join(not_computed)})" if not_computed else "") \
         + (f" (missing inputs: {', '.join(absent)})" if absent else "")
     click.echo(f"report: {len(report.tables())} tables, {len(report.figures())} figures -> {Path(out)}{missing}",
                err=True)
-
-
-def efficiency_files(inp) -> dict[str, dict[str, float]]:
-    """The efficiency metrics files of the report's inputs ``inp`` (pipeline.report.build.Inputs): the
-    summary's students over the vote means the reference-points table uses; ``{}`` without either."""
-    from pipeline.report.build import vote_means
-
-    summary, vote = inp.get("summary"), vote_means(inp)
-    if summary is None or vote is None:
-        return {}
-    return efficiency_metric_files(summary.df, {str(g): float(v) for g, v in vote["iou"].items()})
 
 
 if __name__ == "__main__":

@@ -1,9 +1,6 @@
-"""Teacher, gate, diagnostics and noise-floor analyses for the report: pure functions on DataFrames.
-
-The per-image teacher table (``teacher_metrics.parquet``) has one row per (image, source): ``prompt_<k>``
-(the k-th prompt's mask), ``vote`` (eq:majority-vote) and ``val_selected`` (the prompt chosen on the
-validation split).  Reference masks enter only to measure teacher quality post hoc.
-"""
+"""Teacher, gate, diagnostics and noise-floor analyses for the report: pure functions on DataFrames.  The
+teacher table (``teacher_metrics.parquet``) has a row per image and source: ``prompt_<k>``, ``vote``
+(eq:majority-vote) or ``val_selected`` (the prompt chosen on the validation split)."""
 
 from __future__ import annotations
 
@@ -75,14 +72,17 @@ def teacher_domain_quality(tm: pd.DataFrame, source: str = "vote", split: str = 
     """Paper Table teacher-domain-quality: mean metrics of ``source`` per dataset / domain / group of ``split``,
     plus an ``all`` row per dataset/domain with several groups."""
     sub = tm[(tm["source"] == source) & (tm["split"] == split)]
-    keys = ["dataset", "domain", "group"]
-    per = sub.groupby(keys, sort=True)[list(METRICS)].mean()
-    per["n"] = sub.groupby(keys, sort=True)["image_id"].nunique()
-    per = per.reset_index()
-    pooled = [{"dataset": ds, "domain": dom, "group": "all", **{m: float(part[m].mean()) for m in METRICS},
-               "n": int(part["image_id"].nunique())}
-              for (ds, dom), part in sub.groupby(["dataset", "domain"], sort=True) if part["group"].nunique() > 1]
-    return pd.concat([per, pd.DataFrame(pooled)], ignore_index=True) if pooled else per
+    per = _means(sub, ["dataset", "domain", "group"], sort=True).reset_index()
+    pooled = _means(sub, ["dataset", "domain"], sort=True)
+    pooled = pooled[sub.groupby(["dataset", "domain"], sort=True)["group"].nunique() > 1]
+    return pd.concat([per, pooled.assign(group="all").reset_index()], ignore_index=True) if len(pooled) else per
+
+
+def _means(df: pd.DataFrame, keys, sort: bool) -> pd.DataFrame:
+    """The mean :data:`METRICS` and the number of images ``n`` per ``keys``."""
+    out = df.groupby(keys, sort=sort)[list(METRICS)].mean()
+    out["n"] = df.groupby(keys, sort=sort)["image_id"].nunique()
+    return out
 
 
 def gate_analysis(tm: pd.DataFrame, gates: pd.DataFrame, group: str | None = None,
@@ -105,10 +105,7 @@ def gate_analysis(tm: pd.DataFrame, gates: pd.DataFrame, group: str | None = Non
 
 def teacher_vote_means(tm: pd.DataFrame, split: str = "test") -> pd.DataFrame:
     """The teacher vote scored as a predictor: its mean :data:`METRICS` and n per group of ``split``."""
-    v = tm[(tm["source"] == "vote") & (tm["split"] == split)]
-    out = v.groupby("group", sort=False)[list(METRICS)].mean()
-    out["n"] = v.groupby("group", sort=False)["image_id"].nunique()
-    return out
+    return _means(tm[(tm["source"] == "vote") & (tm["split"] == split)], "group", sort=False)
 
 
 def epoch_swings(logs: pd.DataFrame) -> pd.DataFrame:

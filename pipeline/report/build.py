@@ -208,22 +208,20 @@ def _student_masks(inp: Inputs, methods, seed: int, images: np.ndarray, tau, dev
     return {m: mask_from_probs(predict_probs(model, images, device=device), tau(m)) for m, model in students.items()}
 
 
-def _section(title: str):
-    """Make a function that returns a section's blocks return the :class:`Section` ``title`` of them."""
+def _section(title: str, needs: tuple[str, ...] = ()):
+    """Make a function that returns a section's blocks return the :class:`Section` ``title`` of them; without
+    an input of ``needs``, the section holds :meth:`Inputs.need`'s notes instead."""
     def decorate(blocks):
         @functools.wraps(blocks)
-        def section(*args, **kwargs) -> Section:
-            return Section(title, blocks(*args, **kwargs))
+        def section(inp: Inputs, *args, **kwargs) -> Section:
+            return Section(title, inp.need(*needs) or blocks(inp, *args, **kwargs))
         return section
     return decorate
 
 
-@_section("Data, teacher and protocol")
+@_section("Data, teacher and protocol", needs=("manifest",))
 def data_section(inp: Inputs) -> list:
-    m = inp.get("manifest")
-    if m is None:
-        return inp.need("manifest")
-    df = m.df
+    df = inp.get("manifest").df
     datasets = sorted(df["dataset"].unique())
     backend = str(inp.get("teacher").attrs.get("backend", "unknown")) if inp.get("teacher") else "unknown"
     if "synthetic" in datasets:
@@ -249,12 +247,9 @@ def data_section(inp: Inputs) -> list:
                            ["Dataset", "Split", "Group", "Images", "Spacecraft"], rows)]
 
 
-@_section("Threshold calibration")
+@_section("Threshold calibration", needs=("thresholds",))
 def threshold_section(inp: Inputs, plots: dict) -> list:
-    thr = inp.get("thresholds")
-    if thr is None:
-        return inp.need("thresholds")
-    df = thr.df
+    df = inp.get("thresholds").df
     if inp.no_masks and not inp.corrected_validation:
         taus = sorted({float(t) for t in df["tau"]})
         return [Text(FIXED_TAU_NOTE.format(tau=taus[0] if len(taus) == 1 else float("nan")))]
@@ -536,7 +531,7 @@ def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu",
                         methods: tuple[str, ...] = (BASELINE, PROPOSED)) -> list:
     """Without any mask: the students' masks beside their pseudo-labels (the vote M) for the lowest- and the
     highest-gate training images (:func:`gate_extremes`), at each run's fixed tau; agreement, not accuracy."""
-    if miss := [inp.missing[n] for n in ("thresholds", "images", "consensus", "gates", "manifest") if n in inp.missing]:
+    if miss := inp.need("thresholds", "images", "consensus", "gates", "manifest"):
         return miss
     thr = inp.get("thresholds").df
     present = [m for m in methods if m in set(thr["method"])]
@@ -604,11 +599,9 @@ def loss_figure(logs: pd.DataFrame) -> Figure:
                    "training_loss")
 
 
-@_section("Pseudo-target construction")
+@_section("Pseudo-target construction", needs=("manifest", "images", "teacher", "consensus", "geometry", "gates"))
 def pseudo_target_section(inp: Inputs, n_images: int) -> list:
     """Paper Fig. pseudo-geometry for training images spread over the gate's range (highest g first)."""
-    if miss := inp.need("manifest", "images", "teacher", "consensus", "geometry", "gates"):
-        return miss
     mdf = inp.get("manifest").df
     gates = inp.get("gates").df.set_index("image_id")
     train = mdf.index[mdf["split"] == "train"].to_numpy()

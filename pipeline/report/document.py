@@ -71,9 +71,6 @@ class Report:
         return [b for s in self.sections for b in s.blocks if isinstance(b, Table)]
 
 
-# --------------------------------------------------------------------------------------------------
-# Markdown
-# --------------------------------------------------------------------------------------------------
 def _md_row(cells) -> str:
     return "| " + " | ".join(str(c).replace("|", "\\|").replace("\n", " ") for c in cells) + " |"
 
@@ -97,9 +94,6 @@ def render_markdown(report: Report, figure_dir: str = "figures") -> str:
     return "\n".join(out).rstrip() + "\n"
 
 
-# --------------------------------------------------------------------------------------------------
-# HTML
-# --------------------------------------------------------------------------------------------------
 CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1200px;margin:2em auto;
 padding:0 1em;color:#222;line-height:1.45}

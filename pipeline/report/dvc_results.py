@@ -1,9 +1,5 @@
-"""Results where DVC users look for them: short numeric metrics files, per-method plot tables and DVCLive
-training logs (docs/pipeline.md, "Results where DVC users look for them").
-
-Every metrics file holds at most three of a few shared keys, so ``dvc metrics show`` stays six columns wide
-however many groups and methods a run has; the detailed numbers stay in the Parquet artifacts.
-"""
+"""Results where DVC users look for them: short numeric metrics files (a few shared keys each, so ``dvc metrics
+show`` stays narrow), per-method plot tables and DVCLive training logs (docs/pipeline.md)."""
 
 from __future__ import annotations
 
@@ -45,8 +41,7 @@ def path_component(name: Any) -> str:
 
 def _group_dirs(df: pd.DataFrame) -> dict[tuple, str]:
     """(dataset, group) -> the group's folder: ``<dataset>.<group>`` when a run evaluates several datasets."""
-    keys = sorted({(str(d), str(g)) for d, g in zip(df["dataset"], df["group"])}) if "dataset" in df else \
-        sorted({("", str(g)) for g in df["group"]})
+    keys = sorted(set(zip(_dataset_col(df), df["group"].astype(str))))
     several = len({d for d, _ in keys}) > 1
     return {(d, g): path_component(f"{d}.{g}" if several else g) for d, g in keys}
 

@@ -1,9 +1,5 @@
 """Figures drawn with matplotlib on the Agg canvas (PNG for the page, SVG for papers), byte-identical across
-renders; image panels are numpy/OpenCV RGB tiles captioned by matplotlib.
-
-Panel colours (paper Fig. qualitative-results): true positive green, false positive red, false negative
-blue, ground-truth contour yellow; agreement map viridis; SDF (eq:sdf-target) red inside, blue outside.
-"""
+renders; image panels (paper Fig. qualitative-results, eq:sdf-target) are numpy/OpenCV RGB tiles."""
 
 from __future__ import annotations
 

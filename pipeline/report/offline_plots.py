@@ -1,9 +1,5 @@
-"""DVC plots that draw one line per method and render without network.
-
-:data:`METHOD_LINES` is the Vega-Lite template dvc.yaml's ``plots:`` name (committed as
-``.dvc/plots/method_lines.json``); :func:`offline_page` is a ``dvc plots show --html-template`` page that
-inlines the chart library from an installed package, where DVC's own page loads it from a CDN.
-"""
+"""DVC plots that draw one line per method (:data:`METHOD_LINES`, the Vega-Lite template dvc.yaml's ``plots:``
+name) and render without network (:func:`offline_page` inlines the chart library DVC's own page loads from a CDN)."""
 
 from __future__ import annotations
 

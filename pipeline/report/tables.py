@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-import math
 from typing import Iterator, Mapping, Sequence
 
 import numpy as np
@@ -60,27 +59,25 @@ def not_annotation_free(methods: Sequence[str]) -> list[str]:
     return [m for m in dict.fromkeys(methods) if m not in free]
 
 
+def _finite(x) -> bool:
+    return x is not None and bool(np.isfinite(x))
+
+
 def fmt(x, digits: int = 4) -> str:
-    return "--" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
+    return f"{x:.{digits}f}" if _finite(x) else "--"
 
 
 def fmt_pm(mean, std, digits: int = 4) -> str:
     """"m ± s"; the std is omitted where undefined (one seed)."""
-    if mean is None or not np.isfinite(mean):
-        return "--"
-    return f"{mean:.{digits}f} ± {std:.{digits}f}" if std is not None and np.isfinite(std) else f"{mean:.{digits}f}"
+    return fmt(mean, digits) + (f" ± {std:.{digits}f}" if _finite(mean) and _finite(std) else "")
 
 
 def fmt_ci(gain, lo, hi, digits: int = 4) -> str:
-    if gain is None or not np.isfinite(gain):
-        return "--"
-    return f"{gain:+.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+    return f"{gain:+.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]" if _finite(gain) else "--"
 
 
 def fmt_p(p) -> str:
-    if p is None or not np.isfinite(p):
-        return "--"
-    return f"{p:.2e}" if p < 1e-3 else f"{p:.4f}"
+    return (f"{p:.2e}" if p < 1e-3 else f"{p:.4f}") if _finite(p) else "--"
 
 
 def _ms(r, key: str, digits: int = 4) -> str:
@@ -123,28 +120,19 @@ def family_holm(entries) -> dict:
     return dict(zip(keys, holm_adjust(ps)))
 
 
-def claim(r, suffix: str, group: str, noise_floor=None, p_adjusted: Mapping | None = None,
-          primary_metric: str | None = None) -> str:
-    """The claim cell of a gain row: :func:`pipeline.stats.claim_status` of each :data:`CLAIM_METRICS` gain
-    (``gain_<metric><suffix>``) against the group's noise floor, with ``p_adjusted[metric]`` from
-    :func:`family_holm`; ``primary_metric``: that one is the primary endpoint."""
-    out = []
-    p_adjusted = p_adjusted or {}
-    for k, name in CLAIM_METRICS:
-        st = claim_status(*(float(r.get(f"gain_{k}{suffix}{x}", np.nan)) for x in ("", "_lo", "_hi")),
-                          gain_noise_floor(noise_floor, group, k) if noise_floor else None,
-                          r.get(f"gain_seeds{suffix}"), p_adjusted.get(k))
-        if st != NOT_ESTIMATED:
-            out.append(f"{name}: {st}" + (" (primary endpoint)" if k == primary_metric else ""))
-    return "; ".join(out) or "--"
-
-
 def _gain_cells(r, suffix: str, group: str, key, holm: Mapping, primary: bool, noise_floor) -> list[str]:
-    """The Image IoU and Boundary F1 differences with their CIs, the noise floor and the claim of one row."""
-    cis = [fmt_ci(*(r.get(f"gain_{k}{suffix}{x}") for x in ("", "_lo", "_hi"))) for k, _ in CLAIM_METRICS]
-    return cis + [floor_cell(group, noise_floor),
-                  claim(r, suffix, group, noise_floor, {k: holm.get((key, k)) for k, _ in CLAIM_METRICS},
-                        PRIMARY_ENDPOINT.metric if primary else None)]
+    """The CI of each :data:`CLAIM_METRICS` gain ``gain_<metric><suffix>`` of a summary row, the group's noise
+    floor and the claim: :func:`pipeline.stats.claim_status` of each gain against the floor, with the p-value
+    ``holm[(key, metric)]`` (:func:`family_holm`); ``primary``: the row holds the primary endpoint."""
+    cis, claims = [], []
+    for k, name in CLAIM_METRICS:
+        gain = [float(r.get(f"gain_{k}{suffix}{x}", np.nan)) for x in ("", "_lo", "_hi")]
+        cis.append(fmt_ci(*gain))
+        st = claim_status(*gain, gain_noise_floor(noise_floor, group, k) if noise_floor else None,
+                          r.get(f"gain_seeds{suffix}"), holm.get((key, k)))
+        if st != NOT_ESTIMATED:
+            claims.append(f"{name}: {st}" + (" (primary endpoint)" if primary and k == PRIMARY_ENDPOINT.metric else ""))
+    return [*cis, floor_cell(group, noise_floor), "; ".join(claims) or "--"]
 
 
 def spacecraft_per_group(manifest: pd.DataFrame) -> dict[str, int]:
@@ -448,9 +436,7 @@ def efficiency_targets_note(verdicts: Sequence[tuple[str, bool | None]]) -> str:
 
 def efficiency_text(e: float, lo: float, hi: float) -> str:
     """``0.84 [0.80, 0.88]`` from a (ratio, low, high); ``--`` without a vote."""
-    if not math.isfinite(e):
-        return "--"
-    return f"{e:.2f}" + (f" [{lo:.2f}, {hi:.2f}]" if math.isfinite(lo) else "")
+    return fmt(e, 2) + (f" [{lo:.2f}, {hi:.2f}]" if _finite(e) and _finite(lo) else "")
 
 
 def calibration_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Table:
@@ -459,11 +445,9 @@ def calibration_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Tabl
     for m in _ordered_with_ceiling_last(thr["method"].unique()):
         part = thr[thr["method"] == m]
 
-        def ms(col, digits=4, part=part):
-            if col not in part.columns:
-                return "--"
-            v = part[col].astype(float)
-            return fmt_pm(v.mean(), v.std(ddof=1) if len(v) > 1 else np.nan, digits)
+        def ms(col, digits=4, part=part):  # a single seed's std is NaN: no "±"
+            v = part[col].astype(float) if col in part.columns else None
+            return "--" if v is None else fmt_pm(v.mean(), v.std(), digits)
 
         rows.append([label(m), ms("tau", 2), ms("val_iou"), ms("fixed_val_iou"), ms("ece"), ms("area_ratio", 2),
                      ms("fixed_area_ratio", 2), str(len(part))])
@@ -502,9 +486,8 @@ def size_split_table(split: pd.DataFrame, mode: str, max_fraction: float | None,
         for size in ("tiny", "regular", "empty"):
             if size in part.index:
                 r = part.loc[size]
-                rows.append([label(m), size, str(int(r["n_images"])), fmt_pm(r["iou_mean"], r["iou_std"]),
-                             fmt_pm(r["bf1_mean"], r["bf1_std"]),
-                             fmt_pm(r.get("area_vs_reference_mean"), r.get("area_vs_reference_std"), 2)])
+                rows.append([label(m), size, str(int(r["n_images"])), _ms(r, "iou"), _ms(r, "bf1"),
+                             _ms(r, "area_vs_reference", 2)])
     lim = f"{100 * max_fraction:g} %" if max_fraction is not None else "evaluate.tiny_target_max_fraction"
     return Table("tab:size-split", f"Metrics split by target size, all test groups ({mode_text(mode, fixed_tau)})",
                  ["Method", "Target size", "Images per seed", "Image IoU", "Boundary F1", "Mean area vs reference"],
