@@ -137,8 +137,7 @@ def baseline_method_gains(df, metrics, control=BASELINE, by=("dataset", "group",
 
 
 def predicted_masks(gts: np.ndarray, seed: int) -> np.ndarray:
-    """A student's masks: the references grown or shrunk by a pixel, shifted, with speckle (boundaries that
-    mismatch and small spurious components, as in real predictions)."""
+    """A student's masks: the references grown or shrunk by a pixel, shifted, with speckle (as real predictions)."""
     import cv2
 
     rng = np.random.default_rng(seed)

@@ -49,9 +49,8 @@ def rss_mb() -> float:
 
 
 def write_zarr_set(folder: Path, n: int, size: int, seed: int = 0, geometry: bool = False) -> Path:
-    """``folder/images.zarr`` uint8 [n,size,size,3] and ``mask.zarr`` bool, one image per chunk and 256 per shard
-    (as the artifacts); ``geometry``: also ``sdf.zarr`` float32 (+-0.5: the artifact's dtype and size, not an
-    SDF) and ``skeleton.zarr`` bool (the mask)."""
+    """``folder/images.zarr`` uint8 [n,size,size,3] and ``mask.zarr`` bool, chunked as the artifacts; ``geometry``:
+    also ``sdf.zarr`` float32 (+-0.5: the artifact's dtype, not an SDF) and ``skeleton.zarr`` bool (the mask)."""
     import zarr
 
     def create(name, shape, dtype):
@@ -71,8 +70,7 @@ def write_zarr_set(folder: Path, n: int, size: int, seed: int = 0, geometry: boo
 
 
 def child_train(folder: Path, mode: str, method_name: str, max_batches: int) -> dict:
-    """One epoch of ``method_name`` on the Zarr set (``mode``: stream | memory), at most ``max_batches`` batches
-    (0 = all): peak and pre-training RSS, seconds and batches."""
+    """One epoch (``max_batches`` at most, 0 = all) of ``method_name``, ``mode`` stream | memory: RSS, seconds."""
     import zarr
 
     from pipeline.training import loop as training

@@ -33,8 +33,7 @@ MODES = ("model", "serial", "overlapped")
 
 
 def photo_like_images(folder: Path, n: int, width: int, height: int, fmt: str = "jpg", seed: int = 0) -> list[Path]:
-    """``n`` files ``img000.<fmt>`` of ``width`` x ``height``: a smooth random background, one to three
-    bright ellipses and sensor noise (treated like a photo by a JPEG encoder and the model)."""
+    """``n`` files ``img000.<fmt>``: a smooth random background, one to three bright ellipses, sensor noise."""
     import cv2
 
     rng = np.random.default_rng(seed)
@@ -66,8 +65,7 @@ def random_student(channels, seed: int = 0) -> TinyUNet:
 
 
 def build_bundle(workdir: Path, resolution: int, channels, calibration: np.ndarray) -> Path:
-    """A deploy bundle of :func:`random_student` written by the export stage's logic; int8 calibrated on
-    ``calibration`` (uint8 [N,R,R,3]) with the agreement gate off (speed only)."""
+    """A deploy bundle of :func:`random_student` by the export code, int8 calibrated on ``calibration``, gate off."""
     import pandas as pd
 
     ckpt = workdir / "checkpoint"

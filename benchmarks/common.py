@@ -30,8 +30,7 @@ OPTIONS: dict[str, dict] = {
 
 
 def parser(doc: str, **defaults: Any) -> argparse.ArgumentParser:
-    """A benchmark's parser, its docstring as the help, with the :data:`OPTIONS` named in ``defaults``, each
-    with its default."""
+    """A benchmark's parser, its docstring as the help, with the :data:`OPTIONS` named in ``defaults``."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     for name, default in defaults.items():
         ap.add_argument(f"--{name}", default=default, **OPTIONS[name])

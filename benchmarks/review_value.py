@@ -84,8 +84,7 @@ def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "
 
 
 def selected_label_quality(artifacts: Path, cfg: dict, ks, seeds, draws: int) -> list[dict]:
-    """The mean Image IoU of the voted masks against the reference of the whole training set, then of the
-    images each (selection, k > 0) of :func:`run_study` hands the person (seeds and draws averaged)."""
+    """Mean voted-mask Image IoU against the reference: the whole training set, then each (selection, k > 0)'s picks."""
     data, _, _ = load_inputs(artifacts, get_method(STAGE_ONE), cfg)
     ids = list(data.image_ids)
     manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
@@ -147,8 +146,7 @@ SELECTION_TEXT = {DEFAULT_RANKING: f"shipped ranking ({DEFAULT_RANKING})", "gate
 
 
 def curve_figure(rows: list[dict], title: str):
-    """Test Image IoU against the images corrected, one line per selection, each with the 95 % interval of its
-    gain over k = 0 as a band."""
+    """Test Image IoU against the images corrected, a line per selection, its gain's 95 % interval as a band."""
     from pipeline.report import figures as F  # matplotlib: figures only
 
     base = next(r["iou"] for r in rows if r["k"] == 0)

@@ -85,8 +85,7 @@ def format_stats(s: dict) -> str:
 
 
 def simulate(artifacts: Path, man, ref, prompts: Sequence[str], seed: int):
-    """The SIMULATOR over every image of an artifacts directory (no cache), its manifest ``man`` and
-    reference ``ref``: masks, scores."""
+    """(masks, scores) of the SIMULATOR over every image of ``artifacts`` (no cache)."""
     images = open_artifact(catalog.path("images", artifacts), "images").numpy("image")
     gt = ref.numpy("mask")
     parts = ref.numpy("parts") if "parts" in ref else None
