@@ -188,14 +188,12 @@ _warned_frames: set[tuple[str, str]] = set()
 def warn_frame_once(path: str | Path, note: str | None) -> None:
     """The one warning per (absolute file path, note) about how a frame's values were read; a dark
     16-bit frame's once per run (:func:`reset_frame_warnings`)."""
-    if not note:
-        return
-    key = ("", LOW_RANGE_NOTE) if note.startswith(LOW_RANGE_NOTE) else (os.path.abspath(path), note)
-    if key in _warned_frames:
-        return
-    _warned_frames.add(key)
-    hint = BIT_DEPTH(12) if note.startswith(LOW_RANGE_NOTE) else BIT_DEPTH
-    log.warning("%s: %s", path, note.replace(BIT_DEPTH_HINT, hint.spell(caller())))
+    dark = bool(note) and note.startswith(LOW_RANGE_NOTE)
+    key = ("", LOW_RANGE_NOTE) if dark else (os.path.abspath(path), note)
+    if note and key not in _warned_frames:
+        _warned_frames.add(key)
+        hint = (BIT_DEPTH(12) if dark else BIT_DEPTH).spell(caller())
+        log.warning("%s: %s", path, note.replace(BIT_DEPTH_HINT, hint))
 
 
 def reset_frame_warnings() -> None:

@@ -85,8 +85,7 @@ class ImportedTeacher:
         for col in ("image_id", "prompt"):
             empty = table[col].isna() | (table[col].astype(str).str.strip() == "")
             self._refuse_first(empty, None, lambda i, col=col: f"empty {col}")
-        table["image_id"] = table["image_id"].astype(str)
-        table["prompt"] = table["prompt"].astype(str)
+            table[col] = table[col].astype(str)
         table["view"] = table["view"].fillna("identity").astype(str)
         self._refuse_first(~table["view"].isin(["identity", "vflip"]), table,
                            lambda i: f"unknown view {table.at[i, 'view']!r} (identity | vflip)")
