@@ -133,8 +133,7 @@ def build_variants(model, device, resolution: int, names: Sequence[str], onnx_pa
     for name in dict.fromkeys(map(engine_name, names)):
         if name not in VARIANTS or name not in ENGINES:
             raise InputError(f"deploy.benchmark_variants: unknown variant {name!r}")
-        reason = unavailable(name, src)
-        if reason is not None:
+        if (reason := unavailable(name, src)) is not None:
             skipped[name] = reason
             continue
         engine = ENGINES[name]
@@ -190,13 +189,12 @@ def _row(name: str, description: str, device: str, params: int, gflops: float, r
 def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence[str], warmup: int, iters: int,
                      batches: Sequence[int], tau: float | None = None, val_images: np.ndarray | None = None,
                      val_masks: np.ndarray | None = None, onnx_path=None, int8_path=None, seed: int = 0,
-                     on_variant: Callable[[str], None] | None = None,
-                     slow_factor: float | None = None) -> tuple[list[dict], dict]:
+                     on_variant: Callable[[str], None] = lambda name: None,
+                     slow_factor: float = SLOW_FACTOR) -> tuple[list[dict], dict]:
     """(rows in the order of ``variants``, info): per variant ``peak_mb`` over ``max(1, warmup)`` warm-up calls,
     the probe, latency (median of ``iters`` batch-1 calls), throughput (best of :func:`throughput_sweep`),
     ``iou`` of [P >= tau] (eq:inference-mask) and against the baseline ``iou_delta``, ``iou_vs_fp32``,
     ``speedup``; params and GFLOPs are the PyTorch graph's for every variant."""
-    slow_factor = SLOW_FACTOR if slow_factor is None else float(slow_factor)
     dev = torch.device(device)
     deployed = mask_path_model(model)
     params = count_parameters(deployed)
@@ -210,8 +208,7 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
     sweeps: dict[str, Sweep] = {}
     base_probe = None
     for v in sorted(built, key=lambda v: v.name != BASELINE_VARIANT):  # the baseline is probed first
-        if on_variant is not None:
-            on_variant(v.name)
+        on_variant(v.name)
         with PeakMemory(v.device) as mem:
             time_calls(v.run, x1, max(1, warmup), 0, v.sync)
         probe = statistics.median(time_calls(v.run, x1, 0, PROBE_CALLS, v.sync)) * 1e3
@@ -355,17 +352,14 @@ def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, par
 def read_benchmark_data(art: str | Path, n_calib: int):
     """(val images and masks, int8 calibration images as export picks them, opened artifacts); Nones without
     the artifacts.  The reference masks only measure accuracy here."""
-    names = ("manifest", "images", "reference")
-    paths = [catalog.path(name, art) for name in names]
-    if not all(p.exists() for p in paths):
+    reference_path = catalog.path("reference", art)
+    calib, opened, _ = q8.read_calibration_images(art, n_calib) if reference_path.exists() else (None, [], "")
+    if not opened:
         return None, None, None, []
-    manifest, images, reference = (open_artifact(p, n) for p, n in zip(paths, names))
-    splits = manifest.df["split"].to_numpy()
-    val = np.flatnonzero((splits == "val") & np.asarray(reference.numpy("has_mask"), bool))
-    train = q8.calibration_rows(splits, n_calib)
+    (manifest, images), reference = opened, open_artifact(reference_path, "reference")
+    val = np.flatnonzero((manifest.df["split"].to_numpy() == "val") & np.asarray(reference.numpy("has_mask"), bool))
     val_images = read_chunk_rows(images["image"], val) if val.size else None
     val_masks = read_chunk_rows(reference["mask"], val).astype(bool) if val.size else None
-    calib = read_chunk_rows(images["image"], train) if train.size else None
     return val_images, val_masks, calib, [manifest, images, reference]
 
 
@@ -423,11 +417,7 @@ def fast_path_line(summary: dict, rows: Sequence[dict], resolution: int, target_
 
 def _cell(v, spec: str, width: int) -> str:
     """``v`` formatted by ``spec``, or ``--`` when it is missing or not finite."""
-    try:
-        ok = v is not None and math.isfinite(float(v))
-    except (TypeError, ValueError):
-        ok = False
-    return format(v, spec) if ok else f"{'--':>{width}s}"
+    return format(v, spec) if v is not None and math.isfinite(v) else f"{'--':>{width}s}"
 
 
 def format_table(rows: Sequence[dict]) -> str:

@@ -92,9 +92,7 @@ def _torchscript_frozen(src: Source) -> Runner:
 
 
 def _torchscript_file(file: str) -> Callable[[Source], Runner]:
-    def load(src: Source) -> Runner:
-        return _eager_module(load_torchscript(src.files[file], src.device), src.device)
-    return load
+    return lambda src: _eager_module(load_torchscript(src.files[file], src.device), src.device)
 
 
 def _eager_module(module, dev: torch.device) -> Runner:

@@ -60,9 +60,8 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
     q8 = {f"int8_{k}": v for k, v in int8_params(cfg).items()}
     ckpt = open_artifact(checkpoint, "checkpoint")
     model, payload = load_student(checkpoint, "cpu")
-    inputs = [ckpt]
     table = open_artifact(thresholds, "thresholds") if thresholds is not None and tau is None else None
-    inputs += [table] if table is not None else []
+    inputs = [ckpt] + ([table] if table is not None else [])
     value, source = resolve_tau(option=tau, **tau_candidates(payload=payload, thresholds=table, params=params))
     resolution, res_source = resolve_resolution(recorded=(checkpoint_resolution(checkpoint, payload), "checkpoint"),
                                                 params=params["data"]["resolution"])

@@ -43,8 +43,7 @@ def read_calibration_images(art: str | Path, n: int, resolution: int | None = No
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
         return None, [], f"no training images for int8 calibration ({', '.join(missing)} missing)"
-    manifest = open_artifact(paths[0], "manifest")
-    images = open_artifact(paths[1], "images")
+    manifest, images = open_artifact(paths[0], "manifest"), open_artifact(paths[1], "images")
     rows = calibration_rows(manifest.df["split"].to_numpy(), n)
     if rows.size == 0:
         return None, [manifest, images], f"no training-split rows in {paths[0]} for int8 calibration"
