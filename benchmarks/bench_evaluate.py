@@ -51,8 +51,7 @@ def baseline_small_region_iou(pred: np.ndarray, gt: np.ndarray, max_fraction: fl
     import cv2
 
     h, w = gt.shape
-    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(np.ascontiguousarray(gt, dtype=np.uint8),
-                                                               connectivity=8)
+    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(np.ascontiguousarray(gt, dtype=np.uint8), connectivity=8)
     small_ids = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < max_fraction * h * w) + 1
     if small_ids.size == 0:
         return float("nan")

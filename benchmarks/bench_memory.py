@@ -33,8 +33,6 @@ from pipeline.params import load_params, section
 from pipeline.training.streaming import LazyRows, row_means
 
 ROOT = Path(__file__).resolve().parents[1]
-#: the synthetic view counts prepare scales by --factor (data.synthetic.*)
-PREPARE_VIEWS = ("train_views", "val_views", "test_views")
 
 
 def peak_mb() -> float:
@@ -114,7 +112,7 @@ def child_prepare(out: Path, factor: int, size: int) -> dict:
     from pipeline.datasets.prepare import prepare
 
     views = section(load_params(ROOT / "params.yaml"), "data")["synthetic"]
-    sets = [f"data.synthetic.{k}={int(views[k]) * factor}" for k in PREPARE_VIEWS]
+    sets = [f"data.synthetic.{k}={int(views[k]) * factor}" for k in ("train_views", "val_views", "test_views")]
     params = load_params(ROOT / "params.yaml", [f"data.resolution={size}", f"data.cache_dir={out / 'cache'}", *sets])
     t = seconds(lambda: prepare(check_data_params(section(params, "data")), out, lambda schema, params, **extra:
                                 make_meta(schema, "prepare", "bench_memory", params, **extra)))

@@ -172,8 +172,7 @@ def main(argv=None) -> dict:
                f"{args.batch}, {args.workers} reader thread(s) + 1 writer, {args.repeats} round(s), "
                f"{os.cpu_count()} CPU(s), torch {torch.get_num_threads()} thread(s)")
     print(format_table(rows, skipped, setting))
-    result = {"setting": setting, "target_ratio": TARGET_RATIO, "engines": rows, "skipped": skipped,
-              "seconds": times}
+    result = {"setting": setting, "target_ratio": TARGET_RATIO, "engines": rows, "skipped": skipped, "seconds": times}
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))
     return result

@@ -19,6 +19,7 @@ import numpy as np
 
 from benchmarks.common import best_of, medians, parser, round_robin
 from pipeline.metrics import image_ious
+from pipeline.params import PAPER_PROMPTS as PROMPTS
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.distributed import ray_session
@@ -27,9 +28,6 @@ from pipeline.teachers.runner import open_runner
 from pipeline.teachers.sam3 import Sam3Teacher
 from pipeline.teachers.simulated import SimulatedFoundationTeacher
 from pipeline.teachers.tiny_sam3 import build_tiny_sam3
-
-PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle",
-           "spacecraft with rigid body and appendages", "artificial object in space with panels and antennas"]
 
 
 def main(argv: list[str] | None = None) -> None:
