@@ -292,9 +292,7 @@ def vote_means(inp: Inputs) -> pd.DataFrame | None:
 def ordered_groups(inp: Inputs, present) -> list[str]:
     """``present`` groups in the manifest's test-group order (unknown ones last)."""
     present = list(dict.fromkeys(present))
-    if inp.get("manifest") is None:
-        return present
-    order = test_groups(inp.get("manifest").df)
+    order = test_groups(inp.get("manifest").df) if inp.get("manifest") is not None else []
     return [g for g in order if g in present] + [g for g in present if g not in order]
 
 

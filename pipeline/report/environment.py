@@ -34,14 +34,9 @@ def opened_runs(checkpoints: str | Path) -> list:
 def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
     """One record per active run: method, seed, ``recipe`` (train.recipe), ``precision`` (the autocast it used),
     ``runtime`` (``extra.runtime``, None before it was recorded) and ``torch``."""
-    out = []
-    for method, seed, ckpt in opened_runs(checkpoints):
-        meta = ckpt.meta
-        extra = meta.extra or {}
-        out.append({"method": method, "seed": int(seed),
-                    "recipe": (meta.params.get("params") or {}).get("train.recipe"), "precision": extra.get("autocast"),
-                    "runtime": extra.get("runtime"), "torch": (meta.library_versions or {}).get("torch")})
-    return out
+    return [{"method": method, "seed": int(seed), "recipe": (c.meta.params.get("params") or {}).get("train.recipe"),
+             "precision": (c.meta.extra or {}).get("autocast"), "runtime": (c.meta.extra or {}).get("runtime"),
+             "torch": (c.meta.library_versions or {}).get("torch")} for method, seed, c in opened_runs(checkpoints)]
 
 
 def environment_record(env: Mapping[str, Any] | None, runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -115,13 +110,10 @@ def lock_text(lock: Mapping[str, Any]) -> str:
 
 def environment_section(env: Mapping[str, Any] | None, runs: Sequence[Mapping[str, Any]]) -> Section:
     """The "Environment" section: the report machine's software, torch build and CPU, and each run's record."""
-    sec = Section("Environment", [Text(
-        "Where these numbers were computed. Provenance only: none of it enters an artifact's fingerprint. "
-        "The same record, machine-readable: `environment.json` beside this page.")])
-    sec.blocks.append(training_table(runs) if runs else
-                      Text("No training run was found, so no run's precision or threads are recorded."))
-    if env is None:
-        sec.blocks.append(Text("The environment of the report process was not recorded."))
-        return sec
-    sec.blocks += [Text(lock_text(env["lock"])), software_table(env), machine_table(env)]
-    return sec
+    blocks = [Text("Where these numbers were computed. Provenance only: none of it enters an artifact's fingerprint. "
+                   "The same record, machine-readable: `environment.json` beside this page."),
+              training_table(runs) if runs else
+              Text("No training run was found, so no run's precision or threads are recorded.")]
+    blocks += ([Text(lock_text(env["lock"])), software_table(env), machine_table(env)] if env is not None
+               else [Text("The environment of the report process was not recorded.")])
+    return Section("Environment", blocks)
