@@ -82,14 +82,13 @@ def main() -> None:
     print("check: OpenCV and scipy targets agree on every mask")
 
     t_cv = best_of(lambda: pseudo_targets(masks), args.repeats)
+    t_sp = best_of(lambda: [scipy_targets(m) for m in masks], max(1, args.repeats - 1))
     chunks = np.array_split(masks, args.workers * 4)
     cv2.setNumThreads(1)  # one OpenCV thread per worker: parallel over images instead
     with ThreadPoolExecutor(args.workers) as ex:
         t_cv_par = best_of(lambda: list(ex.map(pseudo_targets, chunks)), args.repeats)
-    cv2.setNumThreads(-1)
-    t_sp = best_of(lambda: [scipy_targets(m) for m in masks], max(1, args.repeats - 1))
-    with ThreadPoolExecutor(args.workers) as ex:
         t_sp_par = best_of(lambda: list(ex.map(lambda c: [scipy_targets(m) for m in c], chunks)), 1)
+    cv2.setNumThreads(-1)
 
     print(f"{'implementation':<48}{'masks/s':>10}{'ms/mask':>10}")
     rows = [("scipy EDT + quantile + maximum_filter (serial)", t_sp),
