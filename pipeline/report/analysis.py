@@ -46,8 +46,7 @@ def teacher_prompt_quality(tm: pd.DataFrame, group: str, base_source: str, selec
 
     def label(src):
         k = int(src.split("_", 1)[1])
-        text = prompts[k] if prompts and k < len(prompts) else src
-        return f"`{text}`"
+        return f"`{prompts[k] if prompts and k < len(prompts) else src}`"
 
     rows = []
 

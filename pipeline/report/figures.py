@@ -150,20 +150,17 @@ def caption_inches(line: str) -> float:
 
 def wrap_caption(line: str, width: float = MAX_TILE_INCHES) -> list[str]:
     """``line`` wrapped to ``width`` inches at the caption font (inside a word wider than a line): never cut."""
-    def fits(text: str) -> bool:
-        return caption_inches(text) <= width
-
     lines = [""]
     for word in line.split(" "):
         joined = f"{lines[-1]} {word}" if lines[-1] else word
-        if fits(joined):
+        if caption_inches(joined) <= width:
             lines[-1] = joined
             continue
-        if fits(word):
+        if caption_inches(word) <= width:
             lines.append(word)
             continue
-        while not fits(joined):  # a word wider than a line fills this one, then lines of its own
-            k = max(k for k in range(1, len(joined)) if k == 1 or fits(joined[:k]))
+        while caption_inches(joined) > width:  # a word wider than a line fills this one, then lines of its own
+            k = max(k for k in range(1, len(joined)) if k == 1 or caption_inches(joined[:k]) <= width)
             lines[-1], joined = joined[:k].rstrip(), joined[k:].lstrip()
             lines.append("")
         lines[-1] = joined
