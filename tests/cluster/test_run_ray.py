@@ -137,7 +137,15 @@ stages:
 """.format(
     teacher=_STEP.format(sleep=0) + "open('teacher.txt', 'w').write(open('seed.txt').read() * 2); "
             "open('teacher_gpu.txt', 'w').write(os.environ.get('CUDA_VISIBLE_DEVICES', '-'))",
-    train=_STEP.format(sleep=3) + "s = sys.argv[1]; open(f'train_{s}.txt', 'w').write(open('teacher.txt').read() + s)",
+    # with GEODISTILL_TEST_MEET (forwarded by the driver), each run waits up to 120 s for the other to start and
+    # marks that it met it: overlap without timing, which a loaded machine's worker start-up breaks ("lambda:" without
+    # a space: ": " would end a YAML plain scalar)
+    train=_STEP.format(sleep=3) + "s = sys.argv[1]; d = os.environ.get('GEODISTILL_TEST_MEET'); "
+          "d and open(os.path.join(d, 'in_' + s), 'w').close(); t = time.time(); "
+          "seen = lambda:sum(n.startswith('in_') for n in os.listdir(d)) if d else 2; "
+          "[time.sleep(0.05) for _ in iter(lambda:seen() < 2 and time.time() - t < 120, False)]; "
+          "d and seen() == 2 and open(os.path.join(d, 'met_' + s), 'w').close(); "
+          "open(f'train_{s}.txt', 'w').write(open('teacher.txt').read() + s)",
     bench=_STEP.format(sleep=0) + "open('bench.txt', 'w').write(open('train_1.txt').read()[::-1]); "
           "open('bench_threads.txt', 'w').write(os.environ.get('OMP_NUM_THREADS', '-'))")
 OUTS = ("teacher.txt", "train_1.txt", "train_2.txt", "bench.txt", "report.txt")
@@ -181,12 +189,15 @@ def test_run_on_ray_equals_serial_dvc_repro_and_dvc_records_it(ray_session, tmp_
     from pipeline.cluster.driver import run_pipeline
 
     monkeypatch.setenv("PATH", _env()["PATH"])
+    meet = tmp_path / "meet"
+    meet.mkdir()
+    monkeypatch.setenv("GEODISTILL_TEST_MEET", str(meet))
     repo, serial = _project(tmp_path / "ray"), _project(tmp_path / "serial")
     result = run_pipeline(repo, echo=lambda s: None)
+    monkeypatch.delenv("GEODISTILL_TEST_MEET")
     assert result.ok and result.count("ran") == 5, result.results
     t = json.loads((repo / "artifacts" / "logs" / "run" / "timeline.json").read_text())["stages"]
-    a, b = t["train_plain@1"], t["train_plain@2"]
-    assert a["start"] < b["end"] and b["start"] < a["end"], (a, b)  # the two training runs overlapped
+    assert sorted(os.listdir(meet)) == ["in_1", "in_2", "met_1", "met_2"]  # the two training runs overlapped
     assert t["train_plain@1"]["num_gpus"] == 0.25 and t["teacher"]["num_gpus"] == 1.0
     assert (repo / "teacher_gpu.txt").read_text() not in ("", "-")  # Ray gave the teacher a (fake) GPU
     bench = t["benchmark"]
