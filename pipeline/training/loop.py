@@ -366,14 +366,20 @@ def _over_budget(s: Settings, stable: int, steps_per_epoch: int) -> bool:
     return bool(s.step_budget) and (stable + decay_epochs(stable, s.decay_fraction)) * steps_per_epoch > s.step_budget
 
 
+#: one-sided 95 % normal quantile: the plateau rule stops only when the last doubling's gain is surely small
+PLATEAU_Z = 1.6449
+
+
 def plateau_reached(scores: list[float], gain: float, min_epochs: int) -> bool:
-    """``train.until: plateau``'s rule (docs/student.md): after E >= ``min_epochs`` epochs, the mean score of epochs
-    (E/2, E] beats the mean of [1, E/2] by less than ``gain`` (means, not maxima: docs/decisions.md)."""
+    """``train.until: plateau``'s rule (docs/student.md): after E >= ``min_epochs`` epochs, with a = scores of
+    [1, E/2] and b = those of (E/2, E], stop when mean(b) - mean(a) + z sqrt(var(a)/|a| + var(b)/|b|) < ``gain``
+    (the upper one-sided 95 % bound of the doubling's gain; docs/decisions.md)."""
     e = len(scores)
-    if e < max(2, int(min_epochs)) or not all(math.isfinite(v) for v in scores):
+    if e < max(4, int(min_epochs)) or not all(math.isfinite(v) for v in scores):
         return False
-    half = e // 2
-    return float(np.mean(scores[half:]) - np.mean(scores[:half])) < gain
+    a, b = np.asarray(scores[:e // 2]), np.asarray(scores[e // 2:])
+    se = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
+    return float(b.mean() - a.mean()) + PLATEAU_Z * se < gain
 
 
 def _until_lambda(run: _Run) -> Callable[[int], float]:

@@ -15,15 +15,17 @@ from tests.builders.training import assert_same_state, clone_state, load_arrays,
 def test_plateau_rule_is_a_doubling_that_gains_too_little():
     rising = [0.1 * i for i in range(1, 9)]
     assert not training.plateau_reached(rising, 0.005, 4)
-    flat = [0.61, 0.62, 0.615, 0.62, 0.62, 0.61, 0.63, 0.624]  # mean of 5..8 vs mean of 1..4: +0.00475
-    assert training.plateau_reached(flat, 0.005, 4) and not training.plateau_reached(flat, 0.003, 4)
-    # a 64^2 Plain run's stable phase (reduced profile, seed 42): one early spike (epoch 8) made the best of
-    # the halves equal (+0.002) while the curve still rose by +0.05 per doubling after the decay
-    noisy = [0.264, 0.322, 0.338, 0.341, 0.338, 0.394, 0.374, 0.437, 0.411, 0.357, 0.384, 0.352, 0.373, 0.379,
-             0.396, 0.439]
-    assert not training.plateau_reached(noisy, 0.005, 8)
+    flat = [0.62, 0.621, 0.619, 0.62, 0.62, 0.619, 0.621, 0.6205]  # gain +0.0001, its 95 % bound +0.0013
+    assert training.plateau_reached(flat, 0.005, 4) and not training.plateau_reached(flat, 0.001, 4)
     assert not training.plateau_reached(flat[:3], 0.005, 4)  # too early to tell
     assert not training.plateau_reached([float("nan")] * 8, 0.005, 4)  # nothing scored: no stop
+    # 64^2 Plain runs' stable phases (reduced profile): the best of each half (seed 42, an early spike at epoch 8)
+    # and the mean of each half (seed 2026, 4 noisy epochs a side) both called these a plateau, yet the decayed
+    # weights gained +0.05 to +0.08 within two epochs; the noise (about 0.03 an epoch) keeps the bound above 0.005
+    spiky = [0.264, 0.322, 0.338, 0.341, 0.338, 0.394, 0.374, 0.437, 0.411, 0.357, 0.384, 0.352, 0.373, 0.379,
+             0.396, 0.439]
+    early = [0.274, 0.313, 0.329, 0.326, 0.276, 0.317, 0.347, 0.307]
+    assert not training.plateau_reached(spiky, 0.005, 8) and not training.plateau_reached(early, 0.005, 8)
 
 
 def test_stable_cap_fits_the_decay_into_the_budget():
@@ -43,9 +45,9 @@ def _run(tiny, checkpointer=None, val=True, **over):
 
 def test_stops_at_the_plateau_then_decays(tiny):
     res = _run(tiny, plateau_min_epochs=2, plateau_gain=1.0)  # any doubling gains less than 1.0
-    assert res.info["stable_epochs"] == 2 and res.info["stopped"].startswith("plateau")
-    assert res.info["epochs"] == 3 and res.info["steps_run"] == 3 * 2  # 8 images, batch 4
-    assert len(res.log) == 3
+    assert res.info["stable_epochs"] == 4 and res.info["stopped"].startswith("plateau")  # 2 epochs a half at least
+    assert res.info["epochs"] == 5 and res.info["steps_run"] == 5 * 2  # 8 images, batch 4
+    assert len(res.log) == 5
     from types import SimpleNamespace
 
     run = SimpleNamespace(steps_per_epoch=2, settings=SimpleNamespace(warmup_epochs=1),
