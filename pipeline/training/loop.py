@@ -331,7 +331,8 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
     opt = torch.optim.AdamW(model.parameters(), lr=s.lr, weight_decay=s.weight_decay, **fused)
     # a state saved under other numerics (threads, the autocast dtype ``auto`` resolved to) is not resumed
     run_key = {"method": method.name, "seed": int(seed), "epochs": s.epochs, "n_train": len(data),
-               **({"until": s.until, "step_budget": s.step_budget} if s.until != "epochs" else {}),
+               **({"until": s.until, "step_budget": s.step_budget,  # a finished stop is kept only under its rule
+                   "plateau_rule": [s.plateau_gain, s.plateau_min_epochs, PLATEAU_Z]} if s.until != "epochs" else {}),
                "train_ids": list(data.image_ids), "num_threads": int(torch.get_num_threads()),
                "autocast": str(amp).replace("torch.", "") if amp is not None else "fp32"}
     run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,

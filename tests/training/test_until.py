@@ -58,6 +58,13 @@ def test_stops_at_the_plateau_then_decays(tiny):
     assert [factor(i) for i in (3, 4, 5, 6)] == [1.0, 1.0, 0.5, 0.0]
 
 
+def test_a_stop_at_the_plateau_is_not_resumed_under_another_rule(tiny):
+    ckpt = training.MemoryCheckpointer()
+    assert _run(tiny, ckpt, plateau_min_epochs=2, plateau_gain=1.0).info["stopped"].startswith("plateau")
+    other = _run(tiny, ckpt, plateau_gain=-1.0, step_budget=8)  # another plateau_gain: trained, not the saved stop
+    assert other.info["stopped"].startswith("the step budget") and other.info["steps_run"] == 8
+
+
 def test_a_budget_stops_it_and_a_larger_one_continues_the_saved_run(tiny):
     ckpt = training.MemoryCheckpointer()
     short = _run(tiny, ckpt, plateau_gain=-1.0, step_budget=8)  # never a plateau: the budget binds
