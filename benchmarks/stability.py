@@ -276,17 +276,18 @@ def main(argv=None) -> dict:
     sets = [f"data.resolution={args.resolution}"]
     params = load_profile(args.profile, sets)
     artifacts = sr.build_artifacts(Path(args.workdir).resolve(), args.profile, sets, "cpu", geometry=True)
-    epochs = {"epochs_stage1": args.epochs, "epochs_stage2": args.epochs_stage2}
-    base = {**params["train"], **{k: v for k, v in epochs.items() if v is not None}}
+    epochs = {k: v for k, v in (("epochs_stage1", args.epochs), ("epochs_stage2", args.epochs_stage2)) if v is not None}
+    base = {**params["train"], **epochs}
+    cfgs = {r: {**recipe_train(r, base), **epochs} for r in args.recipes}  # the epochs are recipe parts: set after
     pert_seeds = args.seeds[:args.pert_seeds] if args.pert_seeds else args.seeds
     # a run's (variant, method) of the resumable jobs are its (recipe, perturbation)
     jobs = [{"recipe": rname, "perturbation": p, "seed": s, "variant": rname, "method": p,
-             "cfg": perturbed(recipe_train(rname, base), p),
+             "cfg": perturbed(cfgs[rname], p),
              "cal": params["calibrate"], "tolerance": params["evaluate"]["bf1_tolerance"]}
             for rname in args.recipes for s in args.seeds for p in dict.fromkeys(["default", *args.perturbations])
             if p == "default" or s in pert_seeds]
     info = {"artifacts": str(artifacts), "device": "cpu", "resolution": args.resolution, "profile": args.profile,
-            "epochs": [base["epochs_stage1"], base["epochs_stage2"]], "n_train": None}
+            "epochs": {r: [c["epochs_stage1"], c["epochs_stage2"]] for r, c in cfgs.items()}, "n_train": None}
     t0 = time.perf_counter()
     results = resumed_runs(args.out, info, jobs, lambda todo: run_jobs(
         todo, str(artifacts), base, args.jobs, 1, _init_worker, run_one))

@@ -70,6 +70,7 @@ def test_stability_main_on_tiny_artifacts_prints_and_writes_its_summary(tmp_path
     assert f"wrote {floor} (record paper)" in text and f"wrote {out}" in text
     saved = json.loads(out.read_text())
     assert saved["info"]["seeds"] == saved["info"]["pert_seeds"] == [0]
+    assert saved["info"]["epochs"] == {"paper": [1, 1]}  # --epochs wins over the recipe's lengths
     assert [(r["recipe"], r["rule"]) for r in saved["table"]] == [("paper", rule) for rule in TAU_RULES]
     for r in res["table"]:  # the moves under 1 thread: measured
         assert math.isfinite(r["move_threads1_iou"]) and math.isfinite(r["pert1_bf1"]), r
