@@ -7,10 +7,12 @@ import dataclasses
 from pathlib import Path
 from typing import Callable
 
+import cv2
 import numpy as np
 import pandas as pd
 
 from pipeline import catalog
+from pipeline.artifacts.atomic import atomic_path
 from pipeline.artifacts.lineage import Meta
 from pipeline.artifacts.store import ZarrWriter, write_parquet
 from pipeline.datasets import build
@@ -19,7 +21,6 @@ from pipeline.datasets.loading import DecodeCache
 from pipeline.datasets.manifest import BadInputPolicy
 from pipeline.datasets.params import fingerprint_params
 from pipeline.datasets.synthetic import PART_NAMES
-from pipeline.deploy.files import write_png
 from pipeline.runtime.progress import progress
 
 #: the reference artifact's note: what its masks may be used for
@@ -89,4 +90,6 @@ def write_contact_sheet(path: Path, rows: pd.DataFrame, spec, cfg: dict, cache: 
         r = rows.iloc[int(i)]
         img, mask, _ = next(build.iter_arrays(rows.iloc[[int(i)]], spec, size, cache))[1:]
         tiles.append(tile(img, mask, f"{r['group']} {r['spacecraft']}", tsize))
-    write_png(path, contact_sheet(tiles, columns=4))
+    # its own writer, not deploy.files.write_png: the data layer sits below deploy
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(cv2.imencode(".png", contact_sheet(tiles, columns=4)[..., ::-1])[1].tobytes())
