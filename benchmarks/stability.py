@@ -30,6 +30,7 @@ from pipeline.params import RECIPES, validate_section
 from pipeline.profiles import FIVE_SEEDS, load_profile
 from pipeline.report.analysis import noise_floor_key, noise_floor_records
 from pipeline.reproducibility import TOLERANCE
+from pipeline.stats import ONE_SIDED_95_Z
 from pipeline.thresholds import TAU_RULES, mask_from_probs, tau_by_rule, threshold_grid
 
 #: the RECIPES key of the paper's own recipe: the reference of every other recipe's "no worse" condition
@@ -151,7 +152,7 @@ def exposed(cfg: Mapping[str, Any]) -> list[str]:
 
 
 #: one-sided 95 % normal quantile of the non-inferiority check (:func:`no_worse_than`)
-NON_INFERIORITY_Z = 1.6449
+NON_INFERIORITY_Z = ONE_SIDED_95_Z
 
 
 def no_worse_than(sp: Mapping[str, dict], reference: Mapping[str, dict] | None, metric: str = "iou") -> bool | None:

@@ -15,6 +15,9 @@ from pipeline.params import PAPER, SEED_BOOTSTRAP, SEED_CLUSTER_T, SEED_IMAGE_T
 # resample index arrays are generated in blocks of at most this many int64 entries (bounded memory)
 _BLOCK_ENTRIES = 4_000_000
 
+#: one-sided 95 % normal quantile (the plateau rule's bound, the non-inferiority checks)
+ONE_SIDED_95_Z = 1.6449
+
 
 def seed_summary(df, by: Sequence[str], metrics: Sequence[str], seed_col: str = "seed"):
     """Per ``by`` group: ``<metric>_mean`` and ``<metric>_std`` (ddof 1, NaN for one seed) over seeds of the

@@ -20,6 +20,7 @@ import torch
 from pipeline import losses
 from pipeline.augment import AugmentSpec, GeometryConstants, augment_batch
 from pipeline.runtime.device import autocast, autocast_dtype
+from pipeline.stats import ONE_SIDED_95_Z
 from pipeline.runtime.errors import InputError, TrainingDiverged
 from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import Method, Plan, method_epochs, method_lr, resolve_plan
@@ -367,8 +368,8 @@ def _over_budget(s: Settings, stable: int, steps_per_epoch: int) -> bool:
     return bool(s.step_budget) and (stable + decay_epochs(stable, s.decay_fraction)) * steps_per_epoch > s.step_budget
 
 
-#: one-sided 95 % normal quantile: the plateau rule stops only when the last doubling's gain is surely small
-PLATEAU_Z = 1.6449
+#: the plateau rule stops only when the last doubling's gain is surely small: its one-sided 95 % bound
+PLATEAU_Z = ONE_SIDED_95_Z
 
 
 def plateau_reached(scores: list[float], gain: float, min_epochs: int) -> bool:
