@@ -55,8 +55,12 @@ def select(table, how: str, k: int, rng: np.random.Generator) -> list[str]:
     return list(table["image_id"].to_numpy()[order[:k]])
 
 
-def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "cpu") -> list[dict]:
-    """Every (selection, k, seed[, draw]) run: its test IoUs per image (Stage I on replaced targets)."""
+def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "cpu", selections=SELECTIONS,
+              done=lambda runs: None) -> list[dict]:
+    """Every (selection, k, seed[, draw]) run: its test IoUs per image (Stage I on replaced targets).
+
+    ``done(runs)`` is called after each run, so a long study can keep what it has finished.
+    """
     from pipeline.training import loop as training
 
     method = get_method(STAGE_ONE)
@@ -66,7 +70,7 @@ def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "
     test_images, test_masks = _rows(images, "image", test), _rows(reference, "mask", test).astype(bool)
     table = training_table(artifacts, list(data.image_ids))
     groups = manifest.df["spacecraft"].astype(str).to_numpy()[test]
-    plan = [(seed, k, how, d) for seed in seeds for k in ks for how in (SELECTIONS if k else ("none",))
+    plan = [(seed, k, how, d) for seed in seeds for k in ks for how in (selections if k else ("none",))
             for d in range(draws if how == "random" else 1)]
     runs = []
     for seed, k, how, d in plan:
@@ -80,10 +84,11 @@ def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "
         runs.append({"selection": how, "k": k, "seed": seed, "draw": d, "iou": float(ious.mean()),
                      "ious": [float(v) for v in ious], "groups": list(groups)})
         print(f"  {how:9s} k={k:3d} seed {seed} draw {d}: test IoU {ious.mean():.4f}", flush=True)
+        done(runs)
     return runs
 
 
-def selected_label_quality(artifacts: Path, cfg: dict, ks, seeds, draws: int) -> list[dict]:
+def selected_label_quality(artifacts: Path, cfg: dict, ks, seeds, draws: int, selections=SELECTIONS) -> list[dict]:
     """Mean voted-mask Image IoU against the reference: the whole training set, then each (selection, k > 0)'s picks."""
     data, _, _ = load_inputs(artifacts, get_method(STAGE_ONE), cfg)
     ids = list(data.image_ids)
@@ -97,14 +102,14 @@ def selected_label_quality(artifacts: Path, cfg: dict, ks, seeds, draws: int) ->
     table = training_table(artifacts, ids)
     out = [{"selection": "all", "k": len(ids), "voted_iou": float(np.mean(list(iou.values())))}]
     for k in (k for k in ks if k):
-        for how in SELECTIONS:
+        for how in selections:
             picks = [select(table, how, k, np.random.default_rng([seed, k, d]))
                      for seed in seeds for d in range(draws if how == "random" else 1)]
             out.append({"selection": how, "k": k, "voted_iou": float(np.mean([[iou[i] for i in p] for p in picks]))})
     return out
 
 
-def summarize(runs: list[dict], ks, seeds) -> list[dict]:
+def summarize(runs: list[dict], ks, seeds, selections=SELECTIONS) -> list[dict]:
     """Per (selection, k): mean test IoU over seeds and draws, the gain over k = 0 with its seed-aware interval,
     and for the rankings their difference from random."""
     def per_image(how, k):
@@ -115,12 +120,12 @@ def summarize(runs: list[dict], ks, seeds) -> list[dict]:
     groups = np.asarray(runs[0]["groups"])
     rows = []
     for k in ks:
-        for how in (SELECTIONS if k else ("none",)):
+        for how in (selections if k else ("none",)):
             x = per_image(how, k)
             row = {"selection": how, "k": k, "iou": float(x.mean())}
             if base is not None and k:
                 row.update(_interval(paired_seed_image_t(x, base, groups), "gain", "low", "high"))
-                if how != "random":
+                if how != "random" and "random" in selections:
                     row.update(_interval(paired_seed_image_t(x, per_image("random", k), groups), "vs_random",
                                          "vs_random_low", "vs_random_high"))
             rows.append(row)
@@ -153,6 +158,8 @@ def curve_figure(rows: list[dict], title: str):
     series, bands = [], []
     for how, color in zip(SELECTIONS, F.PALETTE):
         part = [r for r in rows if r["selection"] == how]
+        if not part:  # a selection the study did not train (--selections)
+            continue
         x = [0] + [r["k"] for r in part]
         series.append({"x": x, "y": [base] + [r["iou"] for r in part], "label": SELECTION_TEXT[how], "color": color,
                        "key": how, "symbol": "o"})
@@ -170,6 +177,8 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--workdir", type=Path, default=Path(".cache/review_value"))
     ap.add_argument("--ks", type=int, nargs="+", default=[0, 10, 25, 50])
     ap.add_argument("--draws", type=int, default=3, help="random selections per (k, seed)")
+    ap.add_argument("--selections", nargs="+", choices=SELECTIONS, default=list(SELECTIONS),
+                    help="the selections to train (each k > 0 trains one run per selection, seed and draw)")
     ap.add_argument("--out", type=Path, default=None, help="write the runs and the table as JSON")
     ap.add_argument("--runs", type=Path, nargs="+", default=None, metavar="JSON",
                     help="summarize the runs of earlier --out files (e.g. one per seed) instead of training "
@@ -187,12 +196,15 @@ def main(argv=None) -> list[dict]:
         runs = [r for f in args.runs for r in json.loads(f.read_text())["runs"]]
         ks, seeds = sorted({r["k"] for r in runs}), sorted({r["seed"] for r in runs})
         draws = 1 + max(r["draw"] for r in runs)
+        selections = tuple(h for h in SELECTIONS if any(r["selection"] == h for r in runs))
     else:
-        ks, seeds, draws = sorted(set(args.ks)), args.seeds, args.draws
-        runs = run_study(art, cfg, ks, seeds, draws, args.device)
-    rows = summarize(runs, ks, seeds)
+        ks, seeds, draws, selections = sorted(set(args.ks)), args.seeds, args.draws, tuple(args.selections)
+        partial = (lambda done: args.out.write_text(json.dumps({"runs": done, "partial": True}, indent=1))
+                   ) if args.out is not None else (lambda done: None)
+        runs = run_study(art, cfg, ks, seeds, draws, args.device, selections, partial)
+    rows = summarize(runs, ks, seeds, selections)
     print_table(rows)
-    quality = selected_label_quality(art, cfg, ks, seeds, draws) if cfg is not None else []
+    quality = selected_label_quality(art, cfg, ks, seeds, draws, selections) if cfg is not None else []
     if quality:
         print("voted-mask Image IoU (against the reference) of the images each selection corrects:")
     for q in quality:

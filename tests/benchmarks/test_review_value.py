@@ -31,3 +31,13 @@ def test_smoke_study_on_tiny_artifacts(tiny, capsys):
     assert "vs_random" not in by[("random", 2)]
     rv.print_table(rows)
     assert "by construction" in capsys.readouterr().out
+
+
+def test_a_subset_of_selections_trains_only_those_and_reports_each_finished_run(tiny):
+    seen = []
+    runs = rv.run_study(tiny, tiny_cfg(epochs_stage1=1), [0, 2], [42], draws=1, selections=(rv.DEFAULT_RANKING,),
+                        done=lambda done: seen.append(len(done)))
+    assert [(r["selection"], r["k"]) for r in runs] == [("none", 0), (rv.DEFAULT_RANKING, 2)]
+    assert seen == [1, 2]  # a killed study keeps what it finished
+    (row,) = [r for r in rv.summarize(runs, [0, 2], [42], (rv.DEFAULT_RANKING,)) if r["k"] == 2]
+    assert "gain" in row and "vs_random" not in row  # no random run, so no ranking-minus-random
