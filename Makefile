@@ -22,11 +22,14 @@ SOURCE_DATE_EPOCH ?= 315532800
 
 install: $(VENV)/.installed
 
+# torch through pip (its configured indexes and links pick the build: TORCH_SPEC), without compiling its
+# 2,300 modules to bytecode up front (Python compiles the few hundred it imports, once); the rest of the
+# lock through uv, which installs the same pins in parallel, in a fraction of pip's time (docs/environment.md).
 $(VENV)/.installed: pyproject.toml Makefile $(LOCK)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -c $(LOCK) "$(TORCH_SPEC)"
-	$(BIN)/python -m pip install -q -c $(LOCK) -e ".[dev,sam3]"
+	$(BIN)/python -m pip install -q -c $(LOCK) "$(UV_SPEC)"
+	$(BIN)/python -m pip install -q --no-compile -c $(LOCK) "$(TORCH_SPEC)"
+	$(BIN)/uv pip install -q --python $(BIN)/python -c $(LOCK) -e ".[dev,sam3]"
 	touch $@
 
 # Re-resolve the lock from pyproject.toml (+ torch==$(TORCH_VERSION)) with uv; then `make test`.

@@ -190,11 +190,12 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
                      batches: Sequence[int], tau: float | None = None, val_images: np.ndarray | None = None,
                      val_masks: np.ndarray | None = None, onnx_path=None, int8_path=None, seed: int = 0,
                      on_variant: Callable[[str], None] = lambda name: None,
-                     slow_factor: float = SLOW_FACTOR) -> tuple[list[dict], dict]:
+                     slow_factor: float | None = None) -> tuple[list[dict], dict]:
     """(rows in the order of ``variants``, info): per variant ``peak_mb`` over ``max(1, warmup)`` warm-up calls,
     the probe, latency (median of ``iters`` batch-1 calls), throughput (best of :func:`throughput_sweep`),
     ``iou`` of [P >= tau] (eq:inference-mask) and against the baseline ``iou_delta``, ``iou_vs_fp32``,
     ``speedup``; params and GFLOPs are the PyTorch graph's for every variant."""
+    slow_factor = SLOW_FACTOR if slow_factor is None else slow_factor  # None: the constant as it is at call time
     dev = torch.device(device)
     deployed = mask_path_model(model)
     params = count_parameters(deployed)

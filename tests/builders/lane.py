@@ -129,13 +129,25 @@ TINY_DEMO = {
 }
 
 
+#: what `dvc repro` rewrites in the repository (CI runs the demo beside the tests): never copied half-written
+DEMO_WRITES = ("dvc.lock", "reports/metrics/", "reports/plots/", "reports/dvclive/")
+
+
+def committed_text(path: str) -> str:
+    """The repository file ``path`` as committed (HEAD), not as a running demo may be rewriting it; the file
+    itself outside a git checkout."""
+    r = subprocess.run(["git", "show", f"HEAD:{path}"], cwd=REPO, capture_output=True, text=True)
+    return r.stdout if r.returncode == 0 else (REPO / path).read_text()
+
+
 def copy_repo(dst: Path) -> None:
-    """The repository's files (tracked and untracked, not ignored), without tests/ and reports/reduced."""
+    """The repository's files (tracked and untracked, not ignored), without tests/, reports/reduced and what
+    the demo rewrites (:data:`DEMO_WRITES`)."""
     files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO, capture_output=True,
                            text=True, check=True).stdout.split()
     for f in files:
         src = REPO / f
-        if src.is_file() and not f.startswith(("reports/reduced", "tests/")):
+        if src.is_file() and not f.startswith(("reports/reduced", "tests/", *DEMO_WRITES)):
             (dst / f).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src, dst / f)
 

@@ -18,6 +18,7 @@ from pipeline.runtime.errors import InputError
 from pipeline.params import PAPER, load_params, parse_override, validate
 from pipeline.profiles import load_params_or_profile, load_profile
 from stages._common import stage_command
+from tests.builders.lane import committed_text
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -336,7 +337,7 @@ def code_repo(tmp_path_factory):
     assert _dvc(repo, "init", "--no-scm", "-q").returncode == 0
     _dvc(repo, "config", "core.analytics", "false")
     declared = yaml.safe_load((repo / "dvc.yaml").read_text())["stages"]
-    committed = yaml.safe_load((ROOT / "dvc.lock").read_text())
+    committed = yaml.safe_load(committed_text("dvc.lock"))
     lock = {"schema": committed["schema"], "stages": {}}
     for name, entry in committed["stages"].items():
         base, _, seed = name.partition("@")
