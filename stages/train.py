@@ -1,10 +1,13 @@
 """Stage ``train`` (``train_<method>@<seed>``, or ``train_<method>`` for a group of seeds): one or several
-seeds of one method in one process, each run exactly as a process of its own would make it; per-epoch
-resume state under ``--resume-dir``/<fingerprint>.  Exit code 1 when training diverged."""
+seeds of one method, one after another in a process (``--jobs`` processes side by side), each run exactly as
+a process of its own would make it; per-epoch resume state under ``--resume-dir``/<fingerprint>.  Exit code 1
+when training diverged."""
 
 from __future__ import annotations
 
 import dataclasses
+import os
+import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -106,24 +109,52 @@ def train_seed(m: MethodInputs, params: dict, device: str, seed: int, artifacts:
 
 
 PER_SEED_FLAGS = ("--seed", "--init", "--out", "--live-dir")
+#: options that change how the seeds are scheduled, never what they write: left out of the recorded command line
+SCHEDULING_FLAGS = ("--jobs",)
 
 
-def seed_argv(argv: list[str], k: int) -> list[str]:
-    """The ``k``-th seed's own command line: its run id, derived from the command line, is then the one a
-    process of its own records."""
+def seeds_argv(argv: list[str], keep) -> list[str]:
+    """The command line of the seeds at positions ``keep`` alone, without :data:`SCHEDULING_FLAGS`: for one
+    seed, its run id (derived from the command line) is then the one a process of its own records."""
     out, seen, i = [], dict.fromkeys(PER_SEED_FLAGS, 0), 0
     while i < len(argv):
         flag, eq, _ = argv[i].partition("=")
+        width = 1 if eq else 2
+        if flag in SCHEDULING_FLAGS:
+            i += width
+            continue
         if flag not in PER_SEED_FLAGS:
             out.append(argv[i])
             i += 1
             continue
-        width = 1 if eq else 2
-        if seen[flag] == k:
+        if seen[flag] in keep:
             out += argv[i:i + width]
         seen[flag] += 1
         i += width
     return out
+
+
+def seed_argv(argv: list[str], k: int) -> list[str]:
+    """The ``k``-th seed's own command line (:func:`seeds_argv`)."""
+    return seeds_argv(argv, {k})
+
+
+def auto_jobs(cfg: dict, device: str, n_seeds: int) -> int:
+    """Processes for a group of ``n_seeds`` runs: on a CPU, the cores over ``train.num_threads`` (a run's bytes
+    depend on its thread count, never on what runs beside it); 1 on a GPU or with ``num_threads`` 0 (torch's
+    default: every core)."""
+    threads = int(cfg.get("num_threads") or 0)
+    if device != "cpu" or threads <= 0:
+        return 1
+    return max(1, min(n_seeds, (os.cpu_count() or 1) // threads))
+
+
+def run_in_processes(argv: list[str], n_seeds: int, jobs: int) -> int:
+    """This stage's command for the seeds ``k, k + jobs, ...`` in each of ``jobs`` processes, side by side: the
+    worst exit code (each prints its own lines)."""
+    procs = [subprocess.Popen([sys.executable, "-m", "stages.train", *seeds_argv(argv, set(range(j, n_seeds, jobs))),
+                               "--jobs", "1"]) for j in range(jobs)]
+    return max(p.wait() for p in procs)
 
 
 def per_seed(seeds: tuple[int, ...], flag: str, values: tuple[str, ...], required: bool) -> list[str | None]:
@@ -147,8 +178,6 @@ def run_seeds(params: dict, device: str, stage: int, method: str, seeds: tuple[i
     init_of = per_seed(seeds, "--init", inits, required=False)
     live_of = per_seed(seeds, "--live-dir", live_dirs, required=False)
     m = open_method(params, stage, method, artifacts)
-    if len(seeds) == 1:
-        return [train_seed(m, params, device, seeds[0], artifacts, init_of[0], out_of[0], resume_dir, live_of[0])]
     done = []
     for k, (s, i, o, lv) in enumerate(zip(seeds, init_of, out_of, live_of)):
         with run_as(seed_argv(sys.argv[1:], k)):  # the run id its own process records (not fingerprinted)
@@ -170,8 +199,17 @@ def run_seeds(params: dict, device: str, stage: int, method: str, seeds: tuple[i
 @click.option("--live-dir", "live_dirs", multiple=True,
               help="DVCLive log of the epoch rows, one per --seed (default: reports/dvclive/<method>/<seed> "
                    "beside the artifacts dir)")
-def main(params, device, stage, method, seeds, artifacts, inits, outs, resume_dir, live_dirs):
+@click.option("--jobs", type=click.IntRange(0), default=0, show_default=True,
+              help="processes training the seeds side by side (the same bytes as one); 0 = the cores over "
+                   "train.num_threads on a CPU, 1 on a GPU")
+def main(params, device, stage, method, seeds, artifacts, inits, outs, resume_dir, live_dirs, jobs):
     """Train (method, seed) students on pseudo-targets; write checkpoint + training log per seed."""
+    jobs = jobs or auto_jobs(section(params, "train"), str(resolve_device(device)), len(seeds))
+    if jobs > 1 and len(seeds) > 1 and len(set(seeds)) == len(seeds):
+        per_seed(seeds, "--out", outs, required=True)  # a bad group is refused here, once, not in every process
+        per_seed(seeds, "--init", inits, required=False)
+        per_seed(seeds, "--live-dir", live_dirs, required=False)
+        sys.exit(run_in_processes(sys.argv[1:], len(seeds), min(jobs, len(seeds))))
     try:
         run_seeds(params, device, stage, method, seeds, artifacts, inits, outs, resume_dir, live_dirs)
     except TrainingDiverged as e:

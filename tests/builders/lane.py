@@ -129,7 +129,7 @@ TINY_DEMO = {
 }
 
 
-#: what `dvc repro` rewrites in the repository (CI runs the demo beside the tests): never copied half-written
+#: what `dvc repro` rewrites in the repository (a demo may be running beside the tests): never copied half-written
 DEMO_WRITES = ("dvc.lock", "reports/metrics/", "reports/plots/", "reports/dvclive/")
 
 

@@ -39,11 +39,11 @@ def test_committed_params_yaml_is_the_demo_profile():
 def test_profiles_validate_and_paper_is_the_schema_default(profile):
     from pipeline.profiles import profile_params
 
-    from pipeline.profiles import PUBLISHED_THREADS
+    from pipeline.profiles import DEMO_THREADS, PUBLISHED_THREADS
 
     p = validate(profile_params(profile))
-    if profile in ("demo", "reduced", "reduced-strong", "paper"):   # profiles that publish numbers pin threads
-        assert p["train"]["num_threads"] == PUBLISHED_THREADS > 0
+    # profiles that publish numbers pin threads
+    assert p["train"]["num_threads"] == (DEMO_THREADS if profile == "demo" else PUBLISHED_THREADS) > 0
     if profile == "reduced-strong":  # the geometry question at convergence: four runs, three seeds, strong
         assert p["train"]["recipe"] == "strong" and p["train"]["augment"] is True
         assert {m for m, s in p["protocol"]["runs"].items() if s} == \

@@ -131,8 +131,9 @@ def test_grouped_seeds_write_the_bytes_of_separate_processes_and_resume(tiny, tm
     ck, live = tmp_path / "ck", tmp_path / "live"
     common = ["--params", str(params), "--artifacts", str(tiny), "--device", "cpu"]
 
-    def train(stage, method, seeds):
-        args = [*common, "--stage", str(stage), "--method", method, "--resume-dir", str(tmp_path / "resume")]
+    def train(stage, method, seeds, jobs=1):
+        args = [*common, "--stage", str(stage), "--method", method, "--resume-dir", str(tmp_path / "resume"),
+                "--jobs", str(jobs)]
         for s in seeds:
             args += ["--seed", str(s), "--out", str(ck / method / str(s)), "--live-dir", str(live / method / str(s))]
             if stage == 2:
@@ -154,3 +155,21 @@ def test_grouped_seeds_write_the_bytes_of_separate_processes_and_resume(tiny, tm
     log = train(2, "geodistill", [42, 7])
     assert "resuming geodistill seed 42 after epoch 1" in log and "resuming geodistill seed 7 after epoch 1" in log
     assert {s: _files(ck / "geodistill" / str(s)) for s in (42, 7)} == before
+    # the group in two processes side by side (--jobs 2): the same bytes, run ids included
+    for d in [*(ck / "geodistill" / str(s) for s in (42, 7)), tmp_path / "resume"]:
+        shutil.rmtree(d)
+    log = train(2, "geodistill", [42, 7], jobs=2)
+    assert "resuming" not in log and {s: _files(ck / "geodistill" / str(s)) for s in (42, 7)} == before
+
+
+def test_a_group_runs_in_the_cores_over_its_threads_and_the_recorded_command_leaves_jobs_out():
+    from stages.train import auto_jobs, seeds_argv
+
+    cores = __import__("os").cpu_count()
+    assert auto_jobs({"num_threads": 1}, "cpu", 10) == min(10, cores)
+    assert auto_jobs({"num_threads": 1}, "cpu", 1) == 1
+    assert auto_jobs({"num_threads": 0}, "cpu", 10) == 1 and auto_jobs({"num_threads": 1}, "cuda", 10) == 1
+    argv = ["--stage", "2", "--jobs", "2", "--seed", "42", "--init", "a", "--out", "x", "--seed", "7",
+            "--init=b", "--out", "y"]
+    assert seeds_argv(argv, {1}) == ["--stage", "2", "--seed", "7", "--init=b", "--out", "y"]
+    assert seeds_argv(argv, {0, 1}) == argv[:2] + argv[4:]
