@@ -206,9 +206,11 @@ def main(params, device, stage, method, seeds, artifacts, inits, outs, resume_di
     """Train (method, seed) students on pseudo-targets; write checkpoint + training log per seed."""
     jobs = jobs or auto_jobs(section(params, "train"), str(resolve_device(device)), len(seeds))
     if jobs > 1 and len(seeds) > 1 and len(set(seeds)) == len(seeds):
-        per_seed(seeds, "--out", outs, required=True)  # a bad group is refused here, once, not in every process
+        # bad options or inputs are refused here, in one line, not once in every process
+        per_seed(seeds, "--out", outs, required=True)
         per_seed(seeds, "--init", inits, required=False)
         per_seed(seeds, "--live-dir", live_dirs, required=False)
+        open_method(params, stage, method, artifacts)
         sys.exit(run_in_processes(sys.argv[1:], len(seeds), min(jobs, len(seeds))))
     try:
         run_seeds(params, device, stage, method, seeds, artifacts, inits, outs, resume_dir, live_dirs)

@@ -173,3 +173,12 @@ def test_a_group_runs_in_the_cores_over_its_threads_and_the_recorded_command_lea
             "--init=b", "--out", "y"]
     assert seeds_argv(argv, {1}) == ["--stage", "2", "--seed", "7", "--init=b", "--out", "y"]
     assert seeds_argv(argv, {0, 1}) == argv[:2] + argv[4:]
+
+
+def test_a_group_in_processes_refuses_a_wrong_method_in_one_line(tiny, tmp_path):
+    params = train_params_file(tmp_path)
+    r = train_cli("--params", str(params), "--stage", "2", "--method", "plain", "--seed", "42", "--seed", "7",
+                  "--jobs", "2", "--artifacts", str(tiny), "--out", str(tmp_path / "a"), "--out", str(tmp_path / "b"),
+                  cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.count("belongs to --stage 1") == 1, r.stderr
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
