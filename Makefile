@@ -22,14 +22,19 @@ SOURCE_DATE_EPOCH ?= 315532800
 
 install: $(VENV)/.installed
 
-# torch through pip (its configured indexes and links pick the build: TORCH_SPEC), without compiling its
-# 2,300 modules to bytecode up front (Python compiles the few hundred it imports, once); the rest of the
-# lock through uv, which installs the same pins in parallel, in a fraction of pip's time (docs/environment.md).
+# torch through pip (its configured indexes and links pick the build: TORCH_SPEC); the rest of the lock
+# through uv, which installs the same pins in parallel, in a fraction of pip's time; then the bytecode of
+# the installed packages, compiled once on all cores.  Without it every process compiles what it imports,
+# each time, where PYTHONDONTWRITEBYTECODE is set (it is on these machines): +1.8 s per process for torch
+# alone (docs/environment.md).  Left out: packages' own tests and torch's one file written for Python 3.12.
+SITE_PACKAGES = $$($(BIN)/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
 $(VENV)/.installed: pyproject.toml Makefile $(LOCK)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q -c $(LOCK) "$(UV_SPEC)"
 	$(BIN)/python -m pip install -q --no-compile -c $(LOCK) "$(TORCH_SPEC)"
 	$(BIN)/uv pip install -q --python $(BIN)/python -c $(LOCK) -e ".[dev,sam3]"
+	$(BIN)/python -m compileall -q -j 0 -x '/tests?/|/py312_' $(SITE_PACKAGES) >/dev/null \
+	  || echo "some installed files did not compile to bytecode; Python compiles them when imported"
 	touch $@
 
 # Re-resolve the lock from pyproject.toml (+ torch==$(TORCH_VERSION)) with uv; then `make test`.
