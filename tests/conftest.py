@@ -39,7 +39,16 @@ import pytest
 
 #: the fixtures that wait for a run on the lane (tests/builders/lane.py), and the run's key
 LANE_FIXTURES = {"tiny_demo": "tiny_demo", "distill_without_masks": "distill_nomasks",
-                 "distill_with_masks": "distill_masks", "bench_teacher_ray": "bench:bench_teacher_ray"}
+                 "distill_with_masks": "distill_masks", "bench_teacher_ray": "bench:bench_teacher_ray",
+                 "lane_modules": "modules"}
+#: whole test modules the lane runs in a pytest process of its own, last, when the session also selects
+#: their collector (tests/house/test_lane_modules.py): subprocess-heavy training tests, about 70 s that the
+#: main process would otherwise run while the lane sits idle (docs/performance.md).  Set in that process.
+LANE_MODULES = ("tests/training/test_training.py", "tests/training/test_train_grouped.py")
+LANE_COLLECTOR = "tests/house/test_lane_modules.py"
+ON_LANE = "GEODISTILL_TESTS_ON_LANE"
+_MODULES_ON_LANE = pytest.StashKey[list]()
+_LANE_MODULES_RUN = pytest.StashKey[object]()
 
 
 def _lane_keys(item) -> list[str]:
@@ -51,11 +60,25 @@ def _lane_keys(item) -> list[str]:
     return keys
 
 
+def _relative(item) -> str:
+    return item.path.relative_to(Path(__file__).resolve().parents[1]).as_posix()
+
+
+@pytest.hookimpl(trylast=True)  # after -k / -m deselection: the lane runs exactly what is selected
 def pytest_collection_modifyitems(config, items):
-    """The modules with a test that waits for a lane run go last, in their order (their runs have the
-    rest of the session to finish in the background)."""
+    """The :data:`LANE_MODULES` leave this process for the lane when their collector is selected too (not
+    inside the lane's own pytest); the modules with a test that waits for a lane run go last, in their
+    order (their runs have the rest of the session to finish in the background), the collector at the end."""
+    import os
+
+    moved = [i for i in items if _relative(i) in LANE_MODULES]
+    if moved and not os.environ.get(ON_LANE) and any(_relative(i) == LANE_COLLECTOR for i in items):
+        config.stash[_MODULES_ON_LANE] = [i.nodeid for i in moved]
+        config.hook.pytest_deselected(items=moved)
+        items[:] = [i for i in items if i not in moved]
     last = {item.path for item in items if _lane_keys(item)}
-    items[:] = [i for i in items if i.path not in last] + [i for i in items if i.path in last]
+    items[:] = ([i for i in items if i.path not in last] + [i for i in items if i.path in last and "lane_modules"
+                not in getattr(i, "fixturenames", ())] + [i for i in items if "lane_modules" in getattr(i, "fixturenames", ())])
 
 
 @pytest.fixture(scope="session")
@@ -86,6 +109,11 @@ def _submit(request, lane, key: str) -> None:
             lane.submit(key, tl.distill_run, images, factory.mktemp("distill") / "nomasks", sam3)
         else:
             lane.submit(key, tl.distill_run, images, factory.mktemp("distill") / "masks", sam3, "--val-masks", val)
+    elif key == "modules":
+        nodeids = request.config.stash.get(_MODULES_ON_LANE, [])
+        if not nodeids:
+            pytest.skip("the lane runs no modules in this session (their collector runs them only with the rest)")
+        lane.submit(key, tl.pytest_run, nodeids, ON_LANE)
     elif key.startswith("bench:"):
         if key.endswith("_ray") and importlib.util.find_spec("ray") is None:
             pytest.skip("ray not installed")
@@ -156,6 +184,22 @@ def bench_script(request):
 def bench_teacher_ray(request):
     """The teacher benchmark's run with Ray pools of 1 and 2 workers (finished process), on the lane."""
     return _lane_result(request, "bench:bench_teacher_ray")
+
+
+@pytest.fixture(scope="session")
+def lane_modules(request):
+    """(node ids, finished process) of the pytest process the lane ran :data:`LANE_MODULES` in."""
+    proc = _lane_result(request, "modules")
+    request.config.stash[_LANE_MODULES_RUN] = proc
+    return request.config.stash[_MODULES_ON_LANE], proc
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    """The summary line of the lane's pytest process, below this one's."""
+    proc = config.stash.get(_LANE_MODULES_RUN, None)
+    if proc is not None:
+        last = (proc.stdout.strip().splitlines() or ["no output"])[-1]
+        terminalreporter.write_line(f"the lane's pytest process ({', '.join(LANE_MODULES)}): {last}")
 
 
 @pytest.fixture(scope="module")

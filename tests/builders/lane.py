@@ -219,3 +219,12 @@ def bench_run(lane: Lane, case: str) -> subprocess.CompletedProcess:
     script = case.removesuffix("_ray")
     return lane.run([sys.executable, "-m", f"benchmarks.{script}", *BENCH_CASES[case]], cwd=REPO,
                     timeout=600 if case.endswith("_ray") else 300)
+
+
+# ------------------------------------------------------------------------------------------------------
+# tests/house/test_lane_modules.py: whole test modules in a pytest process of their own (conftest.LANE_MODULES)
+# ------------------------------------------------------------------------------------------------------
+def pytest_run(lane: Lane, nodeids: list[str], on_lane: str) -> subprocess.CompletedProcess:
+    """``python -m pytest -q NODEIDS`` in the repository, with ``on_lane`` set so that process runs them itself."""
+    return lane.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *nodeids], cwd=REPO,
+                    env={**lane.env, on_lane: "1"}, timeout=1200)
