@@ -26,7 +26,9 @@ import their helpers when first used, so that a run of a light test module does 
 the selected tests will wait for, in the order they will wait, on one background thread that starts
 the same commands as subprocesses; meanwhile the other tests run.  The modules holding such a test
 run last (``pytest_collection_modifyitems``), so their runs are usually done when they are reached.  A
-run of one such module alone takes as long as before: its test waits at once.
+run of one such module alone takes as long as before: its test waits at once.  Last, the lane runs whole
+modules (``LANE_MODULES``) in a pytest process of its own when their collector
+(tests/house/test_lane_modules.py) is selected too, which then asserts that they all passed.
 """
 
 from __future__ import annotations
@@ -42,9 +44,9 @@ LANE_FIXTURES = {"tiny_demo": "tiny_demo", "distill_without_masks": "distill_nom
                  "distill_with_masks": "distill_masks", "bench_teacher_ray": "bench:bench_teacher_ray",
                  "lane_modules": "modules"}
 #: whole test modules the lane runs in a pytest process of its own, last, when the session also selects
-#: their collector (tests/house/test_lane_modules.py): subprocess-heavy training tests, about 70 s that the
+#: their collector (tests/house/test_lane_modules.py): subprocess-heavy training tests, about 45 s that the
 #: main process would otherwise run while the lane sits idle (docs/performance.md).  Set in that process.
-LANE_MODULES = ("tests/training/test_training.py", "tests/training/test_train_grouped.py")
+LANE_MODULES = ("tests/training/test_training.py",)
 LANE_COLLECTOR = "tests/house/test_lane_modules.py"
 ON_LANE = "GEODISTILL_TESTS_ON_LANE"
 _MODULES_ON_LANE = pytest.StashKey[list]()
