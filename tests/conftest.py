@@ -34,6 +34,7 @@ modules (``LANE_MODULES``) in a pytest process of its own when their collector
 from __future__ import annotations
 
 import importlib.util
+import os
 import shutil
 from pathlib import Path
 
@@ -62,25 +63,19 @@ def _lane_keys(item) -> list[str]:
     return keys
 
 
-def _relative(item) -> str:
-    return item.path.relative_to(Path(__file__).resolve().parents[1]).as_posix()
-
-
 @pytest.hookimpl(trylast=True)  # after -k / -m deselection: the lane runs exactly what is selected
 def pytest_collection_modifyitems(config, items):
     """The :data:`LANE_MODULES` leave this process for the lane when their collector is selected too (not
     inside the lane's own pytest); the modules with a test that waits for a lane run go last, in their
     order (their runs have the rest of the session to finish in the background), the collector at the end."""
-    import os
-
-    moved = [i for i in items if _relative(i) in LANE_MODULES]
-    if moved and not os.environ.get(ON_LANE) and any(_relative(i) == LANE_COLLECTOR for i in items):
+    module = lambda item: item.nodeid.split("::")[0]  # noqa: E731 -- relative to the repository (rootdir)
+    moved = [i for i in items if module(i) in LANE_MODULES]
+    if moved and not os.environ.get(ON_LANE) and any(module(i) == LANE_COLLECTOR for i in items):
         config.stash[_MODULES_ON_LANE] = [i.nodeid for i in moved]
         config.hook.pytest_deselected(items=moved)
         items[:] = [i for i in items if i not in moved]
     last = {item.path for item in items if _lane_keys(item)}
-    items[:] = ([i for i in items if i.path not in last] + [i for i in items if i.path in last and "lane_modules"
-                not in getattr(i, "fixturenames", ())] + [i for i in items if "lane_modules" in getattr(i, "fixturenames", ())])
+    items.sort(key=lambda i: 2 if "lane_modules" in getattr(i, "fixturenames", ()) else int(i.path in last))
 
 
 @pytest.fixture(scope="session")
