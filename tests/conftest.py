@@ -40,14 +40,20 @@ from pathlib import Path
 
 import pytest
 
+# One CPU thread per process: the suite runs as two lanes on CI's two cores (below), and torch's OpenMP
+# threads spin-wait when two processes of two threads share them (the teacher benchmark's smoke run took
+# 34 s beside the other lane, 6 s with a thread each; docs/performance.md).  Set before torch is imported
+# here; the lane's subprocesses inherit it (``Lane.env``); a test that needs another count sets its own.
+os.environ["OMP_NUM_THREADS"] = "1"
+
 #: the fixtures that wait for a run on the lane (tests/builders/lane.py), and the run's key
 LANE_FIXTURES = {"tiny_demo": "tiny_demo", "distill_without_masks": "distill_nomasks",
                  "distill_with_masks": "distill_masks", "bench_teacher_ray": "bench:bench_teacher_ray",
                  "lane_modules": "modules"}
 #: whole test modules the lane runs in a pytest process of its own, last, when the session also selects
-#: their collector (tests/house/test_lane_modules.py): subprocess-heavy training tests, about 45 s that the
+#: their collector (tests/house/test_lane_modules.py): subprocess-heavy training tests, about 80 s that the
 #: main process would otherwise run while the lane sits idle (docs/performance.md).  Set in that process.
-LANE_MODULES = ("tests/training/test_training.py",)
+LANE_MODULES = ("tests/training/test_training.py", "tests/training/test_train_grouped.py")
 LANE_COLLECTOR = "tests/house/test_lane_modules.py"
 ON_LANE = "GEODISTILL_TESTS_ON_LANE"
 _MODULES_ON_LANE = pytest.StashKey[list]()
