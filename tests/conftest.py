@@ -41,9 +41,9 @@ from pathlib import Path
 import pytest
 
 # One CPU thread per process: the suite runs as two lanes on CI's two cores (below), and torch's OpenMP
-# threads spin-wait when two processes of two threads share them (the teacher benchmark's smoke run took
-# 34 s beside the other lane, 6 s with a thread each; docs/performance.md).  Set before torch is imported
-# here; the lane's subprocesses inherit it (``Lane.env``); a test that needs another count sets its own.
+# threads spin-wait when two processes of two threads share them (docs/performance.md).  Set before torch
+# is imported here; the lane's subprocesses inherit it (``Lane.env``); a test that needs another count sets
+# its own.
 os.environ["OMP_NUM_THREADS"] = "1"
 
 #: the fixtures that wait for a run on the lane (tests/builders/lane.py), and the run's key

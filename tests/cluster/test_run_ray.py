@@ -113,7 +113,7 @@ def test_stage_resources_follow_the_cluster():
 # --------------------------------------------------------------------------------------------------
 # a tiny DVC project with our stage names, on one shared Ray session
 # --------------------------------------------------------------------------------------------------
-_STEP = "import os, sys, time; "
+_IMPORTS = "import os, sys, time; "
 DVC_YAML = """\
 stages:
   teacher:
@@ -135,18 +135,18 @@ stages:
     deps: [teacher.txt, train_1.txt, train_2.txt, bench.txt]
     outs: [report.txt]
 """.format(
-    teacher=_STEP + "open('teacher.txt', 'w').write(open('seed.txt').read() * 2); "
+    teacher=_IMPORTS + "open('teacher.txt', 'w').write(open('seed.txt').read() * 2); "
             "open('teacher_gpu.txt', 'w').write(os.environ.get('CUDA_VISIBLE_DEVICES', '-'))",
     # with GEODISTILL_TEST_MEET (forwarded by the driver), each run waits up to 120 s for the other to start and
     # marks that it met it: overlap without timing, which a loaded machine's worker start-up breaks ("lambda:" without
     # a space: ": " would end a YAML plain scalar)
-    train=_STEP + "s = sys.argv[1]; d = os.environ.get('GEODISTILL_TEST_MEET'); "
+    train=_IMPORTS + "s = sys.argv[1]; d = os.environ.get('GEODISTILL_TEST_MEET'); "
           "d and open(os.path.join(d, 'in_' + s), 'w').close(); t = time.time(); "
           "seen = lambda:sum(n.startswith('in_') for n in os.listdir(d)) if d else 2; "
           "[time.sleep(0.05) for _ in iter(lambda:seen() < 2 and time.time() - t < 120, False)]; "
           "d and seen() == 2 and open(os.path.join(d, 'met_' + s), 'w').close(); "
           "open(f'train_{s}.txt', 'w').write(open('teacher.txt').read() + s)",
-    bench=_STEP + "open('bench.txt', 'w').write(open('train_1.txt').read()[::-1]); "
+    bench=_IMPORTS + "open('bench.txt', 'w').write(open('train_1.txt').read()[::-1]); "
           "open('bench_threads.txt', 'w').write(os.environ.get('OMP_NUM_THREADS', '-'))")
 OUTS = ("teacher.txt", "train_1.txt", "train_2.txt", "bench.txt", "report.txt")
 
