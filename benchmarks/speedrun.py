@@ -19,6 +19,7 @@ from benchmarks.common import parser, read_json, run_jobs
 from benchmarks.study_recipe import build_artifacts, load_study_data
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.profiles import load_profile
+from pipeline.training import loop as training
 
 #: the resolution the cost is counted at
 COST_RESOLUTION = 128
@@ -36,14 +37,18 @@ CANDIDATES: dict[str, tuple[dict, str]] = {
                 "batch 32 at 4x the rate (linear scaling from batch 8)"),
     "ema_lr4": ({"epochs_stage1": 100, "lr_scale": 4, "warmup_epochs": 5, "ema_decay": 0.999, "average_last": 0},
                 "peak rate x4 + a moving average of the weights instead of the mean of the last 4 epochs"),
+    "half_res_first": ({"epochs_stage1": 220, "low_res_epochs": 160},
+                       "a resolution schedule: the first 160 of 220 epochs at half the side (a quarter of the cost)"),
     "soft_lr4": ({"epochs_stage1": 100, "lr_scale": 4, "warmup_epochs": 5, "soft_targets": True},
                  "peak rate x4 + soft targets (the agreement map; departs from eq:raw-loss)"),
 }
 
 
-def run_cost(epochs: int, n_train: int, resolution: int) -> float:
-    """Training images x (resolution / 128)^2 of a run of ``epochs`` over ``n_train`` images."""
-    return float(epochs) * int(n_train) * (int(resolution) / COST_RESOLUTION) ** 2
+def run_cost(epochs: int, n_train: int, resolution: int, low_res_epochs: int = 0) -> float:
+    """Training images x (side / 128)^2 of a run of ``epochs`` over ``n_train`` images at ``resolution``, its first
+    ``low_res_epochs`` at 1 / LOW_RES_FACTOR of the side (``train.low_res_epochs``)."""
+    full = float(epochs - low_res_epochs) + float(low_res_epochs) / training.LOW_RES_FACTOR ** 2
+    return full * int(n_train) * (int(resolution) / COST_RESOLUTION) ** 2
 
 
 def candidate_cfg(base: Mapping[str, Any], name: str) -> dict:
@@ -69,7 +74,6 @@ def _init(artifacts: str, cfg: dict, threads: int) -> None:
 
 def run_one(job: dict) -> dict:
     """Train one (candidate, seed) and score V."""
-    from pipeline.training import loop as training
     cfg = job["cfg"]
     data = _DATA["soft"] if cfg.get("soft_targets") else _DATA[STAGE_ONE]
     t0 = time.perf_counter()
@@ -80,7 +84,8 @@ def run_one(job: dict) -> dict:
                                         channels_last=False, tolerance=float(cfg["val_bf1_tolerance"]))
     out = {"candidate": job["candidate"], "seed": job["seed"], "V": scores["val_iou_cal"],
            "tau": scores["val_tau_cal"], "V_05": scores["val_iou"],
-           "cost": run_cost(cfg["epochs_stage1"], len(data), job["resolution"]), "seconds": seconds}
+           "cost": run_cost(cfg["epochs_stage1"], len(data), job["resolution"], int(cfg.get("low_res_epochs") or 0)),
+           "seconds": seconds}
     print(f"  {out['candidate']:10s} s{out['seed']}: V {out['V']:.3f} (tau {out['tau']:.2f}), at 0.5 "
           f"{out['V_05']:.3f}, cost {out['cost']:.0f}, {seconds:.0f} s", flush=True)
     return out

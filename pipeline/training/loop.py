@@ -16,6 +16,7 @@ from typing import Any, Callable, Mapping, Protocol
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from pipeline import losses
 from pipeline.augment import AugmentSpec, GeometryConstants, augment_batch
@@ -79,6 +80,7 @@ class Settings:
     plateau_gain: float = 0.005
     plateau_min_epochs: int = 8
     holdout_fraction: float = 0.1
+    low_res_epochs: int = 0  # Stage I only
 
     @classmethod
     def from_params(cls, method: Method, cfg: Mapping[str, Any], selection_tau: float) -> "Settings":
@@ -86,6 +88,14 @@ class Settings:
         batch_size = int(cfg["batch_size"])
         if batch_size < 1:
             raise InputError(f"params: train.batch_size={batch_size} must be >= 1")
+        low_res = int(cfg.get("low_res_epochs") or 0) if method.stage == 1 else 0
+        until = str(cfg.get("until") or "epochs") if method.stage == 1 else "epochs"
+        if low_res and until != "epochs":
+            raise InputError("params: train.low_res_epochs needs train.until: epochs (the plateau rule would score "
+                             "the low-resolution epochs)")
+        if low_res >= method_epochs(method, cfg):
+            raise InputError(f"params: train.low_res_epochs={low_res} must be below train.epochs_stage1, so that "
+                             "the last epochs train at full resolution")
         return cls(epochs=method_epochs(method, cfg), lr=method_lr(method, cfg), batch_size=batch_size,
                    weight_decay=float(cfg["weight_decay"]), schedule=str(cfg["schedule"]),
                    precision=str(cfg["precision"]), channels_last=bool(cfg["channels_last"]),
@@ -96,7 +106,7 @@ class Settings:
                    average_last=int(cfg["average_last"]), decay_fraction=float(cfg.get("decay_fraction", 0.2)),
                    augment=AugmentSpec.from_params(cfg["augmentation"]) if cfg.get("augment") else None,
                    ema_decay=float(cfg.get("ema_decay") or 0.0),
-                   until=str(cfg.get("until") or "epochs") if method.stage == 1 else "epochs",
+                   until=until, low_res_epochs=low_res,
                    step_budget=int(cfg.get("step_budget") or 0), plateau_gain=float(cfg.get("plateau_gain", 0.005)),
                    plateau_min_epochs=int(cfg.get("plateau_min_epochs", 8)),
                    holdout_fraction=float(cfg.get("holdout_fraction", 0.1)))
@@ -224,6 +234,22 @@ def _augmented_batch(run: _Run, idx: np.ndarray, epoch: int) -> dict[str, torch.
     dev = {"image": torch.from_numpy(images).to(run.device),
            **{k: torch.from_numpy(np.ascontiguousarray(v)).to(run.device) for k, v in targets.items()}}
     return _batch(dev, torch.arange(len(idx), device=run.device), None, run.settings.channels_last)
+
+
+#: the resolution schedule (``train.low_res_epochs``) trains its first epochs at 1 / this of the side
+LOW_RES_FACTOR = 2
+
+
+def low_resolution(b: Mapping[str, torch.Tensor], factor: int = LOW_RES_FACTOR) -> dict[str, torch.Tensor]:
+    """Batch ``b`` at 1/``factor`` of its side: the image and a soft target by area mean, a hard voted mask
+    M^T (eq:majority-vote) as [area mean >= 1/2], so eq:raw-loss keeps a binary target; ``area``, ``gate`` kept."""
+    out = dict(b)
+    size = (b["x"].shape[-2] // factor, b["x"].shape[-1] // factor)
+    out["x"] = F.adaptive_avg_pool2d(b["x"], size)
+    m = F.adaptive_avg_pool2d(b["mask"], size)
+    hard = bool(((b["mask"] == 0) | (b["mask"] == 1)).all())
+    out["mask"] = (m >= 0.5).to(m.dtype) if hard else m
+    return out
 
 
 def _has_val(val: ValData | None) -> bool:
@@ -586,8 +612,9 @@ def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
     lr_epoch = run.opt.param_groups[0]["lr"]
     last_val = run.rows[-1]["val_iou"] if run.rows else float("nan")
     sums: dict[str, torch.Tensor] = {}
+    low_res = epoch <= run.settings.low_res_epochs
     for step, (n, b) in enumerate(_epoch_batches(run, epoch)):
-        terms = _step(run, b, epoch, step)
+        terms = _step(run, low_resolution(b) if low_res else b, epoch, step)
         for k, v in terms.items():
             sums[k] = sums.get(k, 0.0) + v.detach().float() * n
         if bar is not None:

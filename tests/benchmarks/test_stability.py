@@ -44,14 +44,14 @@ def test_params_yaml_keeps_the_parts_null_so_the_recipe_switches_them():
 def test_the_paper_recipe_is_the_published_behaviour():
     """The paper recipe's parts are what the paper run did before they existed: autocast where the
     host has bf16, no warm-up (the schedule's own function), the method's selection, the argmax tau, no
-    weight average, the voted mask, the fixed length and the paper's rate."""
+    weight average, the voted mask, the fixed length, the paper's rate and its resolution throughout."""
     from pipeline.params import RECIPES
     from pipeline.training.loop import _lr_lambda
 
     assert RECIPES["paper"] == {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4,
                                           "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine",
                                           "augment": False, "ema_decay": 0.0, "soft_targets": False,
-                                          "until": "epochs", "lr_scale": 1.0},
+                                          "until": "epochs", "lr_scale": 1.0, "low_res_epochs": 0},
                                 "calibrate": {"tau_rule": "argmax"}}
     f0, f = _lr_lambda("cosine", 100), _lr_lambda("cosine", 100, 0)
     assert [f0(s) for s in range(0, 101, 7)] == [f(s) for s in range(0, 101, 7)]
