@@ -2,6 +2,7 @@
 validation Image IoU V of a converged baseline (``strong``, 400 epochs).  Each candidate trains the Plain
 Student from scratch on the reduced profile's data; V is the seed mean at the calibrated tau of the final
 weights.  Pass: V >= the baseline's at <= 1/4 of its cost.  ``--out`` keeps every finished run.
+``--score-test`` scores the test images too (once, for the winner's confirmation on fresh seeds).
 
     python -m benchmarks.speedrun --resolution 64 --seeds 42 3407 2026 --jobs 2 --out reports/speedrun/speedrun-64.json
 """
@@ -16,7 +17,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from benchmarks.common import parser, read_json, run_jobs
-from benchmarks.study_recipe import build_artifacts, load_study_data
+from benchmarks.study_recipe import build_artifacts, load_study_data, score_run
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.profiles import load_profile
 from pipeline.training import loop as training
@@ -86,6 +87,9 @@ def run_one(job: dict) -> dict:
            "tau": scores["val_tau_cal"], "V_05": scores["val_iou"],
            "cost": run_cost(cfg["epochs_stage1"], len(data), job["resolution"], int(cfg.get("low_res_epochs") or 0)),
            "seconds": seconds}
+    if job.get("score_test"):  # test IoU at the tau calibrated on validation, and at 0.5
+        test = score_run(res.model, _DATA["val"], _DATA["test_images"], _DATA["test_masks"], job["device"])
+        out.update(test_iou=test["iou_cal"], test_iou_05=test["iou_05"])
     print(f"  {out['candidate']:10s} s{out['seed']}: V {out['V']:.3f} (tau {out['tau']:.2f}), at 0.5 "
           f"{out['V_05']:.3f}, cost {out['cost']:.0f}, {seconds:.0f} s", flush=True)
     return out
@@ -109,19 +113,22 @@ def summarize(runs: list[dict]) -> list[dict]:
                      "V_05": float(np.mean([r["V_05"] for r in rs])), "cost": cost, "cost_ratio": ratio,
                      "passes": (None if base_v is None or name == BASELINE
                                 else bool(v.mean() >= base_v and ratio <= PASS_COST_SHARE)),
-                     "what": CANDIDATES[name][1] if name in CANDIDATES else ""})
+                     "what": CANDIDATES[name][1] if name in CANDIDATES else "",
+                     "test_iou": (float(np.mean([r["test_iou"] for r in rs])) if all("test_iou" in r for r in rs)
+                                  else None)})
     return sorted(rows, key=lambda r: (r["candidate"] != BASELINE, r["cost"], -r["V"]))
 
 
 def table(rows: list[dict]) -> str:
     """The summary as a Markdown table."""
-    out = ["| candidate | seeds | V (calibrated tau) | V at 0.5 | cost | cost / baseline | passes |",
-           "|---|---|---|---|---|---|---|"]
+    out = ["| candidate | seeds | V (calibrated tau) | V at 0.5 | cost | cost / baseline | passes | test IoU |",
+           "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         v = f"{r['V']:.3f}" + (f" ± {r['V_std']:.3f}" if r["V_std"] is not None else "")
         ratio = f"{r['cost_ratio']:.2f}" if r["cost_ratio"] is not None else "n/a"
         out.append(f"| {r['candidate']} | {len(r['seeds'])} | {v} | {r['V_05']:.3f} | {r['cost']:,.0f} | {ratio} "
-                   f"| {'n/a' if r['passes'] is None else ('yes' if r['passes'] else 'no')} |")
+                   f"| {'n/a' if r['passes'] is None else ('yes' if r['passes'] else 'no')} "
+                   f"| {'not scored' if r.get('test_iou') is None else format(r['test_iou'], '.3f')} |")
     return "\n".join(out)
 
 
@@ -129,6 +136,7 @@ def main(argv=None) -> dict:
     ap = parser(__doc__, workdir="speedrun", artifacts=None, profile="reduced", resolution=128, set=[],
                 seeds=[42, 3407, 2026], jobs=1, threads=1, device="cpu", out="speedrun.json")
     ap.add_argument("--candidates", nargs="+", default=list(CANDIDATES), choices=list(CANDIDATES))
+    ap.add_argument("--score-test", action="store_true", help="score the test images too (the confirmation)")
     args = ap.parse_args(argv)
 
     sets = [f"data.resolution={args.resolution}", *args.sets]
@@ -144,7 +152,7 @@ def main(argv=None) -> dict:
         ap.error(f"--out {out}: exists and is not a speedrun with these settings; give another --out")
     done = {(r["candidate"], r["seed"]) for r in doc["runs"]}
     jobs = [{"candidate": c, "seed": s, "cfg": candidate_cfg(base, c), "device": args.device,
-             "resolution": args.resolution} for c in args.candidates for s in args.seeds if (c, s) not in done]
+             "resolution": args.resolution, "score_test": args.score_test} for c in args.candidates for s in args.seeds if (c, s) not in done]
     jobs.sort(key=lambda j: -j["cfg"]["epochs_stage1"])  # the longest first: the pool ends together
     init_cfg = {**base, "soft": any(j["cfg"].get("soft_targets") for j in jobs)}
     for r in run_jobs(jobs, str(artifacts), init_cfg, args.jobs, args.threads, _init, run_one):

@@ -41,8 +41,19 @@ def test_speedrun_runs_and_resumes_on_tiny_artifacts(tiny, tmp_path, monkeypatch
     doc = speedrun.main(argv)
     rows = {r["candidate"]: r for r in doc["summary"]}
     assert set(rows) == {"baseline", "soft_lr4"} and rows["soft_lr4"]["cost_ratio"] == pytest.approx(0.25)
+    assert rows["baseline"]["test_iou"] is None and "not scored" in speedrun.table(doc["summary"])
     assert all(0 <= r["V"] <= 1 for r in doc["runs"]) and len(doc["runs"]) == 4
     assert json.loads(out.read_text())["summary"] == doc["summary"]
     capsys.readouterr()
     again = speedrun.main(argv)  # every run is in --out: nothing trains again
     assert again["runs"] == doc["runs"] and "s1:" not in capsys.readouterr().out
+
+
+def test_the_confirmation_scores_the_test_images_and_the_schedule_trains(tiny, tmp_path, monkeypatch):
+    small = {"half_res_first": ({"epochs_stage1": 2, "low_res_epochs": 1}, "the schedule, tiny")}
+    monkeypatch.setattr(speedrun, "CANDIDATES", small)
+    doc = speedrun.main(["--artifacts", str(tiny), "--resolution", "32", "--candidates", "half_res_first",
+                         "--seeds", "3", "--score-test", "--out", str(tmp_path / "c.json")])
+    (run,), (row,) = doc["runs"], doc["summary"]
+    assert 0 <= run["test_iou"] <= 1 and 0 <= run["test_iou_05"] <= 1 and row["test_iou"] == run["test_iou"]
+    assert run["cost"] == speedrun.run_cost(2, 8, 32, low_res_epochs=1)
