@@ -307,7 +307,8 @@ class TrainParams(_Section):
                                          "a departure from the paper, named in every table")
     lr_scale: float | None = _f(None, "recipe part: multiplies train.lr_stage1, Stage I's peak learning rate", gt=0)
     low_res_epochs: int | None = _f(None, "recipe part, Stage I: the first this many epochs train at half the side "
-                                          "(a resolution schedule; docs/decisions.md); 0 = none", ge=0)
+                                          "(a resolution schedule; until: plateau scores the later ones; "
+                                          "docs/decisions.md); 0 = none", ge=0)
     until: Literal["epochs", "plateau"] | None = _f(
         None, "recipe part, Stage I: epochs = train epochs_stage1 epochs | plateau = stop the stable phase when "
               "the validation IoU stops improving (train.plateau_gain) or the step budget is spent, then decay "

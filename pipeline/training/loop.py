@@ -90,9 +90,6 @@ class Settings:
             raise InputError(f"params: train.batch_size={batch_size} must be >= 1")
         low_res = int(cfg.get("low_res_epochs") or 0) if method.stage == 1 else 0
         until = str(cfg.get("until") or "epochs") if method.stage == 1 else "epochs"
-        if low_res and until != "epochs":
-            raise InputError("params: train.low_res_epochs needs train.until: epochs (the plateau rule would score "
-                             "the low-resolution epochs)")
         if low_res >= method_epochs(method, cfg):
             raise InputError(f"params: train.low_res_epochs={low_res} must be below train.epochs_stage1, so that "
                              "the last epochs train at full resolution")
@@ -425,6 +422,8 @@ def _stop_stable(run: _Run, epoch: int, row: Mapping) -> None:
     """After stable epoch ``epoch``: score it (else the held-out images), and at the plateau or the cap keep the
     stable state and schedule the decay."""
     u, s = run.until, run.settings
+    if epoch <= s.low_res_epochs and epoch < u["epochs"]:  # the rule scores full-resolution epochs only
+        return
     score = row["val_iou_cal"]
     if run.holdout is not None:
         score = validation_scores(run.model, run.holdout, run.device, precision=s.precision,
@@ -612,7 +611,8 @@ def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
     lr_epoch = run.opt.param_groups[0]["lr"]
     last_val = run.rows[-1]["val_iou"] if run.rows else float("nan")
     sums: dict[str, torch.Tensor] = {}
-    low_res = epoch <= run.settings.low_res_epochs
+    # until plateau: the decay trains at full resolution even when the stable phase ended early
+    low_res = epoch <= run.settings.low_res_epochs and (run.until is None or run.until["stable_end"] is None)
     for step, (n, b) in enumerate(_epoch_batches(run, epoch)):
         terms = _step(run, low_resolution(b) if low_res else b, epoch, step)
         for k, v in terms.items():

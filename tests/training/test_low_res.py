@@ -45,11 +45,44 @@ def test_the_first_epochs_train_at_half_the_side_then_full(tiny, monkeypatch):
     assert s2.low_res_epochs == 0 and training.Settings.from_params(get_method("plain"), cfg, 0.5).low_res_epochs == 2
 
 
-@pytest.mark.parametrize("over, match", [({"until": "plateau", "low_res_epochs": 1}, "until"),
-                                         ({"low_res_epochs": 2}, "below train.epochs_stage1")])
-def test_the_schedule_is_checked(over, match):
-    with pytest.raises(InputError, match=match):
-        training.Settings.from_params(get_method("plain"), tiny_cfg(**over), 0.5)
+def test_the_schedule_is_checked():
+    with pytest.raises(InputError, match="low_res_epochs=2 must be below train.epochs_stage1"):
+        training.Settings.from_params(get_method("plain"), tiny_cfg(low_res_epochs=2), 0.5)
+
+
+def test_under_until_plateau_the_rule_scores_the_epochs_after_the_schedule(tiny, monkeypatch):
+    cfg = tiny_cfg(until="plateau", epochs_stage1=40, warmup_epochs=1, average_last=1, schedule="wsd",
+                   plateau_min_epochs=2, plateau_gain=1.0, low_res_epochs=3)  # any doubling gains less than 1.0
+    data, val = load_arrays(tiny, "plain", cfg)
+    sides = {}
+    step = training._step
+
+    def spy(run, b, epoch, i):
+        sides[epoch] = b["x"].shape[-1]
+        return step(run, b, epoch, i)
+
+    monkeypatch.setattr(training, "_step", spy)
+    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
+                         show_progress=False)
+    # the rule waits for 4 scored epochs (4-7) after the 3 at half the side; then 2 decay epochs at full side
+    assert res.info["stable_epochs"] == 7 and res.info["stopped"].startswith("plateau") and res.info["epochs"] == 9
+    side = data.images.shape[1]
+    assert sides == {e: side // 2 if e <= 3 else side for e in range(1, 10)}
+
+
+def test_a_cap_inside_the_schedule_decays_at_full_resolution(tiny, monkeypatch):
+    cfg = tiny_cfg(until="plateau", epochs_stage1=5, average_last=1, schedule="wsd", low_res_epochs=4,
+                   step_budget=6)  # 2 steps an epoch: 2 stable epochs and 1 decay epoch fit
+    data, val = load_arrays(tiny, "plain", cfg)
+    sides = {}
+    step = training._step
+    monkeypatch.setattr(training, "_step", lambda run, b, e, i: (sides.__setitem__(e, b["x"].shape[-1]),
+                                                                 step(run, b, e, i))[1])
+    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
+                         show_progress=False)
+    side = data.images.shape[1]  # the budget ends the stable phase inside the schedule; epoch 3 is the decay
+    assert res.info["stable_epochs"] == 2 and res.info["epochs"] == 3
+    assert sides == {1: side // 2, 2: side // 2, 3: side}
 
 
 def test_the_schedule_is_a_recipe_part_every_method_tracks():
