@@ -38,7 +38,7 @@ CANDIDATES: dict[str, tuple[dict, str]] = {
                 "batch 32 at 4x the rate (linear scaling from batch 8)"),
     "ema_lr4": ({"epochs_stage1": 100, "lr_scale": 4, "warmup_epochs": 5, "ema_decay": 0.999, "average_last": 0},
                 "peak rate x4 + a moving average of the weights instead of the mean of the last 4 epochs"),
-    "half_res_first": ({"epochs_stage1": 220, "low_res_epochs": 160},
+    "half_res_first": ({"epochs_stage1": 220, "low_res_fraction": 8 / 11},
                        "a resolution schedule: the first 160 of 220 epochs at half the side (a quarter of the cost)"),
     "soft_lr4": ({"epochs_stage1": 100, "lr_scale": 4, "warmup_epochs": 5, "soft_targets": True},
                  "peak rate x4 + soft targets (the agreement map; departs from eq:raw-loss)"),
@@ -47,7 +47,7 @@ CANDIDATES: dict[str, tuple[dict, str]] = {
 
 def run_cost(epochs: int, n_train: int, resolution: int, low_res_epochs: int = 0) -> float:
     """Training images x (side / 128)^2 of a run of ``epochs`` over ``n_train`` images at ``resolution``, its first
-    ``low_res_epochs`` at 1 / LOW_RES_FACTOR of the side (``train.low_res_epochs``)."""
+    ``low_res_epochs`` at 1 / LOW_RES_FACTOR of the side (``train.low_res_fraction``)."""
     full = float(epochs - low_res_epochs) + float(low_res_epochs) / training.LOW_RES_FACTOR ** 2
     return full * int(n_train) * (int(resolution) / COST_RESOLUTION) ** 2
 
@@ -85,7 +85,7 @@ def run_one(job: dict) -> dict:
                                         channels_last=False, tolerance=float(cfg["val_bf1_tolerance"]))
     out = {"candidate": job["candidate"], "seed": job["seed"], "V": scores["val_iou_cal"],
            "tau": scores["val_tau_cal"], "V_05": scores["val_iou"],
-           "cost": run_cost(cfg["epochs_stage1"], len(data), job["resolution"], int(cfg.get("low_res_epochs") or 0)),
+           "cost": run_cost(cfg["epochs_stage1"], len(data), job["resolution"], res.info["low_res_epochs"]),
            "seconds": seconds}
     if job.get("score_test"):  # test IoU at the tau calibrated on validation, and at 0.5
         test = score_run(res.model, _DATA["val"], _DATA["test_images"], _DATA["test_masks"], job["device"])

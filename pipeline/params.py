@@ -205,7 +205,7 @@ class AdaptiveParams(_Section):
 
 _PAPER_TRAIN = {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4, "epochs_stage1": 20,
                 "epochs_stage2": 10, "schedule": "cosine", "augment": False, "ema_decay": 0.0, "soft_targets": False,
-                "until": "epochs", "lr_scale": 1.0, "low_res_epochs": 0}
+                "until": "epochs", "lr_scale": 1.0, "low_res_fraction": 0.0}
 _STRONG_TRAIN = {**_PAPER_TRAIN, "precision": "fp32", "warmup_epochs": 2, "average_last": 4, "batch_size": 8,
                  "epochs_stage1": 80, "epochs_stage2": 20, "schedule": "wsd", "augment": True}
 #: recipe -> section -> part -> value; a part left null takes ``train.recipe``'s value (docs/decisions.md)
@@ -306,9 +306,10 @@ class TrainParams(_Section):
                                          "(eq:agreement-map) instead of the voted mask M^T in eq:raw-loss -- "
                                          "a departure from the paper, named in every table")
     lr_scale: float | None = _f(None, "recipe part: multiplies train.lr_stage1, Stage I's peak learning rate", gt=0)
-    low_res_epochs: int | None = _f(None, "recipe part, Stage I: the first this many epochs train at half the side "
-                                          "(a resolution schedule; until: plateau scores the later ones; "
-                                          "docs/decisions.md); 0 = none", ge=0)
+    low_res_fraction: float | None = _f(None, "recipe part, Stage I: the first round(this x epochs_stage1) epochs "
+                                              "train at half the side, the last at full side (a resolution schedule; "
+                                              "until: plateau scores the later ones; docs/decisions.md); 0 = none",
+                                        ge=0, lt=1)
     until: Literal["epochs", "plateau"] | None = _f(
         None, "recipe part, Stage I: epochs = train epochs_stage1 epochs | plateau = stop the stable phase when "
               "the validation IoU stops improving (train.plateau_gain) or the step budget is spent, then decay "

@@ -88,11 +88,9 @@ class Settings:
         batch_size = int(cfg["batch_size"])
         if batch_size < 1:
             raise InputError(f"params: train.batch_size={batch_size} must be >= 1")
-        low_res = int(cfg.get("low_res_epochs") or 0) if method.stage == 1 else 0
+        low_res = (low_res_epochs(method_epochs(method, cfg), float(cfg.get("low_res_fraction") or 0.0))
+                   if method.stage == 1 else 0)
         until = str(cfg.get("until") or "epochs") if method.stage == 1 else "epochs"
-        if low_res >= method_epochs(method, cfg):
-            raise InputError(f"params: train.low_res_epochs={low_res} must be below train.epochs_stage1, so that "
-                             "the last epochs train at full resolution")
         return cls(epochs=method_epochs(method, cfg), lr=method_lr(method, cfg), batch_size=batch_size,
                    weight_decay=float(cfg["weight_decay"]), schedule=str(cfg["schedule"]),
                    precision=str(cfg["precision"]), channels_last=bool(cfg["channels_last"]),
@@ -233,8 +231,14 @@ def _augmented_batch(run: _Run, idx: np.ndarray, epoch: int) -> dict[str, torch.
     return _batch(dev, torch.arange(len(idx), device=run.device), None, run.settings.channels_last)
 
 
-#: the resolution schedule (``train.low_res_epochs``) trains its first epochs at 1 / this of the side
+#: the resolution schedule (``train.low_res_fraction``) trains its first epochs at 1 / this of the side
 LOW_RES_FACTOR = 2
+
+
+def low_res_epochs(epochs: int, fraction: float) -> int:
+    """The resolution schedule's epochs at 1/LOW_RES_FACTOR of the side: min(round(``fraction`` E), E - 1), so the
+    last epoch trains at full side."""
+    return max(0, min(int(round(float(fraction) * int(epochs))), int(epochs) - 1))
 
 
 def low_resolution(b: Mapping[str, torch.Tensor], factor: int = LOW_RES_FACTOR) -> dict[str, torch.Tensor]:
@@ -659,6 +663,8 @@ def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainRe
     model = run.model.to("cpu").to(memory_format=torch.contiguous_format).eval()
     info = {"selected_epoch": int(run.best["epoch"]), "selection": selection, "epochs": run.epochs, "lr": s.lr,
             "steps_run": int(run.epochs * run.steps_per_epoch),
+            # epochs at half the side: the schedule's, cut where until plateau ended the stable phase inside it
+            "low_res_epochs": min(s.low_res_epochs, run.until["stable_end"] if run.until else s.low_res_epochs),
             "mode": plan.mode, "loss_weights": dict(plan.weights), "epoch0_eligible": plan.epoch0_eligible,
             "autocast": run.run_key["autocast"], "channels_last": s.channels_last, **stats}
     if run.until is not None:

@@ -7,12 +7,14 @@ import json
 import pytest
 
 from benchmarks import speedrun
+from pipeline.training import loop as training
 
 
 def test_cost_and_pass_rule():
     assert speedrun.run_cost(400, 270, 128) == 108_000 and speedrun.run_cost(100, 270, 64) == 6_750
     # 160 epochs at half the side cost 40: the resolution schedule's candidate matches a quarter of the baseline
     assert speedrun.run_cost(220, 270, 64, low_res_epochs=160) == 6_750
+    assert training.low_res_epochs(220, speedrun.CANDIDATES["half_res_first"][0]["low_res_fraction"]) == 160
     runs = [{"candidate": "baseline", "seed": s, "V": v, "V_05": v, "cost": 100.0} for s, v in ((1, 0.5), (2, 0.6))]
     runs += [{"candidate": "lr4", "seed": s, "V": v, "V_05": v, "cost": 25.0} for s, v in ((1, 0.56), (2, 0.56))]
     runs += [{"candidate": "lr2", "seed": s, "V": v, "V_05": v, "cost": 25.0} for s, v in ((1, 0.5), (2, 0.54))]
@@ -50,7 +52,7 @@ def test_speedrun_runs_and_resumes_on_tiny_artifacts(tiny, tmp_path, monkeypatch
 
 
 def test_the_confirmation_scores_the_test_images_and_the_schedule_trains(tiny, tmp_path, monkeypatch):
-    small = {"half_res_first": ({"epochs_stage1": 2, "low_res_epochs": 1}, "the schedule, tiny")}
+    small = {"half_res_first": ({"epochs_stage1": 2, "low_res_fraction": 0.5}, "the schedule, tiny")}
     monkeypatch.setattr(speedrun, "CANDIDATES", small)
     doc = speedrun.main(["--artifacts", str(tiny), "--resolution", "32", "--candidates", "half_res_first",
                          "--seeds", "3", "--score-test", "--out", str(tmp_path / "c.json")])

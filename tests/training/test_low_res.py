@@ -1,4 +1,4 @@
-"""The resolution schedule (train.low_res_epochs, a recipe part of Stage I; docs/decisions.md, Training)."""
+"""The resolution schedule (train.low_res_fraction, a recipe part of Stage I; docs/decisions.md, Training)."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ def test_a_batch_at_half_the_side_keeps_a_hard_mask_hard():
 
 
 def test_the_first_epochs_train_at_half_the_side_then_full(tiny, monkeypatch):
-    cfg = tiny_cfg(epochs_stage1=3, low_res_epochs=2)
+    cfg = tiny_cfg(epochs_stage1=3, low_res_fraction=0.67)  # round(2.01): 2 epochs
     data, val = load_arrays(tiny, "plain", cfg)
     seen = []
     step = training._step
@@ -39,20 +39,25 @@ def test_the_first_epochs_train_at_half_the_side_then_full(tiny, monkeypatch):
                          show_progress=False)
     side = data.images.shape[1]
     assert {e: s for e, s, _ in seen} == {1: side // 2, 2: side // 2, 3: side}
-    assert all(s == m for _, s, m in seen) and len(res.log) == 3
+    assert all(s == m for _, s, m in seen) and len(res.log) == 3 and res.info["low_res_epochs"] == 2
     # Stage II keeps its resolution: the part is Stage I's
     s2 = training.Settings.from_params(get_method("geodistill"), cfg, 0.5)
     assert s2.low_res_epochs == 0 and training.Settings.from_params(get_method("plain"), cfg, 0.5).low_res_epochs == 2
 
 
-def test_the_schedule_is_checked():
-    with pytest.raises(InputError, match="low_res_epochs=2 must be below train.epochs_stage1"):
-        training.Settings.from_params(get_method("plain"), tiny_cfg(low_res_epochs=2), 0.5)
+def test_the_schedule_scales_with_the_cap_and_keeps_the_last_epoch_at_full_side():
+    from pipeline.profiles import load_profile
+
+    assert [training.low_res_epochs(e, f) for e, f in ((220, 8 / 11), (40, 0.5), (2, 0.9), (1, 0.5), (10, 0))] \
+        == [160, 20, 1, 0, 0]
+    for bad in ("1", "-0.1"):
+        with pytest.raises(InputError, match="low_res_fraction"):
+            load_profile("paper", [f"train.low_res_fraction={bad}"])
 
 
 def test_under_until_plateau_the_rule_scores_the_epochs_after_the_schedule(tiny, monkeypatch):
     cfg = tiny_cfg(until="plateau", epochs_stage1=40, warmup_epochs=1, average_last=1, schedule="wsd",
-                   plateau_min_epochs=2, plateau_gain=1.0, low_res_epochs=3)  # any doubling gains less than 1.0
+                   plateau_min_epochs=2, plateau_gain=1.0, low_res_fraction=0.075)  # 3 epochs  # any doubling gains less than 1.0
     data, val = load_arrays(tiny, "plain", cfg)
     sides = {}
     step = training._step
@@ -71,7 +76,7 @@ def test_under_until_plateau_the_rule_scores_the_epochs_after_the_schedule(tiny,
 
 
 def test_a_cap_inside_the_schedule_decays_at_full_resolution(tiny, monkeypatch):
-    cfg = tiny_cfg(until="plateau", epochs_stage1=5, average_last=1, schedule="wsd", low_res_epochs=4,
+    cfg = tiny_cfg(until="plateau", epochs_stage1=5, average_last=1, schedule="wsd", low_res_fraction=0.8,
                    step_budget=6)  # 2 steps an epoch: 2 stable epochs and 1 decay epoch fit
     data, val = load_arrays(tiny, "plain", cfg)
     sides = {}
@@ -81,7 +86,7 @@ def test_a_cap_inside_the_schedule_decays_at_full_resolution(tiny, monkeypatch):
     res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
                          show_progress=False)
     side = data.images.shape[1]  # the budget ends the stable phase inside the schedule; epoch 3 is the decay
-    assert res.info["stable_epochs"] == 2 and res.info["epochs"] == 3
+    assert res.info["stable_epochs"] == 2 and res.info["epochs"] == 3 and res.info["low_res_epochs"] == 2
     assert sides == {1: side // 2, 2: side // 2, 3: side}
 
 
@@ -89,5 +94,5 @@ def test_the_schedule_is_a_recipe_part_every_method_tracks():
     from pipeline.methods import METHODS, param_keys
     from pipeline.params import RECIPES
 
-    assert all(r["train"]["low_res_epochs"] == 0 for r in RECIPES.values())
-    assert all("train.low_res_epochs" in param_keys(m) for m in METHODS.values())
+    assert all(r["train"]["low_res_fraction"] == 0 for r in RECIPES.values())
+    assert all("train.low_res_fraction" in param_keys(m) for m in METHODS.values())
