@@ -19,6 +19,7 @@ import numpy as np
 from benchmarks.common import parser, read_json, run_jobs
 from benchmarks.study_recipe import build_artifacts, load_study_data, score_run
 from pipeline.methods import STAGE_ONE, get_method
+from pipeline.params import RECIPES
 from pipeline.profiles import load_profile
 from pipeline.training import loop as training
 
@@ -38,7 +39,7 @@ CANDIDATES: dict[str, tuple[dict, str]] = {
                 "batch 32 at 4x the rate (linear scaling from batch 8)"),
     "ema_lr4": ({"epochs_stage1": 100, "lr_scale": 4, "warmup_epochs": 5, "ema_decay": 0.999, "average_last": 0},
                 "peak rate x4 + a moving average of the weights instead of the mean of the last 4 epochs"),
-    "half_res_first": ({"epochs_stage1": 220, "low_res_fraction": 8 / 11},
+    "half_res_first": ({k: RECIPES["progressive"]["train"][k] for k in ("epochs_stage1", "low_res_fraction")},
                        "a resolution schedule: the first 160 of 220 epochs at half the side (a quarter of the cost)"),
     "soft_lr4": ({"epochs_stage1": 100, "lr_scale": 4, "warmup_epochs": 5, "soft_targets": True},
                  "peak rate x4 + soft targets (the agreement map; departs from eq:raw-loss)"),

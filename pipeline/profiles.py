@@ -69,7 +69,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     },
     "distill": {
         "teacher": {"vflip_base_prompt": False},  # the flipped view only serves afs_control, not run here
-        "train": {"recipe": "plateau"},
+        "train": {"recipe": "progressive"},  # the speedrun's winner, stopped at its plateau (docs/student.md)
         "protocol": {"runs": {"plain": [42], "geodistill": [42]}},
         "deploy": DISTILL_BENCHMARK,
     },

@@ -343,7 +343,8 @@ def training_line(out: str | Path) -> str | None:
     if "steps_run" not in extra:
         return None
     why = f", stopped at {extra['stopped']}" if extra.get("stopped") else " (its fixed length)"
-    return f"Stage I trained {int(extra['steps_run']):,} optimizer steps ({extra.get('epochs')} epochs){why}"
+    low = f", the first {extra['low_res_epochs']} at half the side" if extra.get("low_res_epochs") else ""
+    return f"Stage I trained {int(extra['steps_run']):,} optimizer steps ({extra.get('epochs')} epochs{low}){why}"
 
 
 def _metric(path: Path, key: str) -> float | None:

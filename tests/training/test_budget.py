@@ -51,7 +51,7 @@ def test_distill_time_writes_the_budget_into_the_project(tmp_path, monkeypatch):
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 0, r.output
     train = yaml.safe_load((out / "params.yaml").read_text())["train"]
-    assert train["step_budget"] == 600 and train["time_budget"] == "20m" and train["recipe"] == "plateau"
+    assert train["step_budget"] == 600 and train["time_budget"] == "20m" and train["recipe"] == "progressive"
     text = (out / "params.yaml").read_text()
     monkeypatch.setattr(budget, "step_seconds", lambda cfg, res, device="cpu": 1.0)  # another measurement ...
     assert CliRunner().invoke(main, args).exit_code == 0

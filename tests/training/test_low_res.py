@@ -94,5 +94,24 @@ def test_the_schedule_is_a_recipe_part_every_method_tracks():
     from pipeline.methods import METHODS, param_keys
     from pipeline.params import RECIPES
 
-    assert all(r["train"]["low_res_fraction"] == 0 for r in RECIPES.values())
+    assert {k for k, r in RECIPES.items() if r["train"]["low_res_fraction"]} == {"progressive"}
     assert all("train.low_res_fraction" in param_keys(m) for m in METHODS.values())
+
+
+def test_distills_summary_says_how_many_epochs_ran_at_half_the_side(tmp_path):
+    import json
+
+    import yaml
+
+    from pipeline import catalog
+    from pipeline.orchestration.standalone import PARAMS_FILE, training_line
+
+    (tmp_path / PARAMS_FILE).write_text(yaml.safe_dump({"protocol": {"runs": {"plain": [42]}}}))
+    meta = catalog.path("checkpoints", tmp_path / catalog.ARTIFACTS_DIR) / "plain" / "42" / catalog.META_FILE
+    meta.parent.mkdir(parents=True)
+    extra = {"steps_run": 7480, "epochs": 220, "low_res_epochs": 160, "stopped": "the epochs cap (train.epochs_stage1)"}
+    meta.write_text(json.dumps({"extra": extra}))
+    assert training_line(tmp_path) == ("Stage I trained 7,480 optimizer steps (220 epochs, the first 160 at half the "
+                                       "side), stopped at the epochs cap (train.epochs_stage1)")
+    meta.write_text(json.dumps({"extra": {**extra, "low_res_epochs": 0}}))
+    assert "half the side" not in training_line(tmp_path)
