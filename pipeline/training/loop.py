@@ -241,15 +241,19 @@ def low_res_epochs(epochs: int, fraction: float) -> int:
     return max(0, min(int(round(float(fraction) * int(epochs))), int(epochs) - 1))
 
 
-def low_resolution(b: Mapping[str, torch.Tensor], factor: int = LOW_RES_FACTOR) -> dict[str, torch.Tensor]:
-    """Batch ``b`` at 1/``factor`` of its side: the image and a soft target by area mean, a hard voted mask
-    M^T (eq:majority-vote) as [area mean >= 1/2], so eq:raw-loss keeps a binary target; ``area``, ``gate`` kept."""
+def low_resolution(b: Mapping[str, torch.Tensor], soft: bool = False, factor: int = LOW_RES_FACTOR
+                   ) -> dict[str, torch.Tensor]:
+    """Batch ``b`` at 1/``factor`` of its side: the image and, with ``soft`` (the agreement map A of
+    ``train.soft_targets``), the target by area mean; a hard voted mask M^T (eq:majority-vote) as [area mean >= 1/2],
+    so eq:raw-loss keeps a binary target; ``area``, ``gate`` kept.
+
+    ``soft`` is the training data's mask type, read once per run (as the augmentation does): a per-batch test
+    of the values would synchronise a GPU every step."""
     out = dict(b)
     size = (b["x"].shape[-2] // factor, b["x"].shape[-1] // factor)
     out["x"] = F.adaptive_avg_pool2d(b["x"], size)
     m = F.adaptive_avg_pool2d(b["mask"], size)
-    hard = bool(((b["mask"] == 0) | (b["mask"] == 1)).all())
-    out["mask"] = (m >= 0.5).to(m.dtype) if hard else m
+    out["mask"] = m if soft else (m >= 0.5).to(m.dtype)
     return out
 
 
@@ -322,6 +326,7 @@ class _Run:
     #: until plateau without validation masks: pseudo-labelled images the rule scores (never a validation set)
     holdout: ValData | None = None
     scratch: tempfile.TemporaryDirectory | None = None  # streamed anchors
+    soft_mask: bool = False  # the region target is soft (train.soft_targets): the resolution schedule averages it
     geometry: GeometryConstants = dataclasses.field(default_factory=GeometryConstants)
 
     @property
@@ -365,7 +370,7 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
                "autocast": str(amp).replace("torch.", "") if amp is not None else "fp32"}
     run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,
                opt=opt, sched=None, tensors=_tensors(data, device, anchor), n_train=len(data), run_key=run_key,
-               scratch=scratch, geometry=data.geometry)
+               scratch=scratch, geometry=data.geometry, soft_mask=np.dtype(data.mask.dtype).kind == "f")
     if s.ema_decay > 0:
         run.ema = [p.detach().clone() for p in model.parameters()]
     total = s.epochs * run.steps_per_epoch
@@ -618,7 +623,7 @@ def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
     # until plateau: the decay trains at full resolution even when the stable phase ended early
     low_res = epoch <= run.settings.low_res_epochs and (run.until is None or run.until["stable_end"] is None)
     for step, (n, b) in enumerate(_epoch_batches(run, epoch)):
-        terms = _step(run, low_resolution(b) if low_res else b, epoch, step)
+        terms = _step(run, low_resolution(b, run.soft_mask) if low_res else b, epoch, step)
         for k, v in terms.items():
             sums[k] = sums.get(k, 0.0) + v.detach().float() * n
         if bar is not None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -20,8 +21,27 @@ def test_a_batch_at_half_the_side_keeps_a_hard_mask_hard():
     # quarters hold 3, 0, 0 and 3 of 4 foreground pixels: [3/4 >= 1/2]
     assert low["mask"].view(-1).tolist() == [1.0, 0.0, 0.0, 1.0]
     assert low["area"] is b["area"] and low["gate"] is b["gate"] and b["x"].shape[-1] == 4  # b is not changed
-    soft = training.low_resolution({**b, "mask": mask * 0.5})  # an agreement map stays soft: its area mean
+    soft = training.low_resolution({**b, "mask": mask * 0.5}, soft=True)  # an agreement map stays soft: its area mean
     assert soft["mask"].view(-1).tolist() == [0.375, 0.0, 0.0, 0.375]
+    # soft by its type, not by its values: an agreement map whose pixels happen to be 0 or 1 is averaged too
+    assert training.low_resolution(b, soft=True)["mask"].view(-1).tolist() == [0.75, 0.0, 0.0, 0.75]
+
+
+def test_a_soft_target_run_trains_its_half_side_epochs_on_the_averaged_map(tiny, monkeypatch):
+    cfg = tiny_cfg(epochs_stage1=2, low_res_fraction=0.5, soft_targets=True)
+    data, val = load_arrays(tiny, "plain", cfg)
+    assert np.dtype(data.mask.dtype).kind == "f"  # the agreement map A (eq:agreement-map)
+    seen = []
+    step = training._step
+
+    def spy(run, b, epoch, i):
+        seen.append((epoch, bool(((b["mask"] > 0) & (b["mask"] < 1)).any())))
+        return step(run, b, epoch, i)
+
+    monkeypatch.setattr(training, "_step", spy)
+    training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
+                   show_progress=False)
+    assert any(fractional for epoch, fractional in seen if epoch == 1)  # not thresholded at half the side
 
 
 def test_the_first_epochs_train_at_half_the_side_then_full(tiny, monkeypatch):
