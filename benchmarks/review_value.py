@@ -17,7 +17,7 @@ from pipeline import catalog
 from pipeline.artifacts.store import open_artifact
 from benchmarks.common import parser
 from benchmarks.study_recipe import build_artifacts, score_run
-from pipeline.evaluation.inference import open_labelled_split, predict_probs
+from pipeline.evaluation.inference import load_student, open_labelled_split, predict_probs
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.metrics import image_ious
 from pipeline.params import load_params, section
@@ -56,10 +56,12 @@ def select(table, how: str, k: int, rng: np.random.Generator) -> list[str]:
 
 
 def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "cpu", selections=SELECTIONS,
-              done=lambda runs: None) -> list[dict]:
+              done=lambda runs: None, k0_checkpoints: Path | None = None) -> list[dict]:
     """Every (selection, k, seed[, draw]) run: its test IoUs per image (Stage I on replaced targets).
 
     ``done(runs)`` is called after each run, so a long study can keep what it has finished.
+    ``k0_checkpoints``: score k = 0 from the Plain Student checkpoints ``<dir>/<seed>`` (a DAG run on the same
+    data and params: the same training) instead of training it again.
     """
     from pipeline.training import loop as training
 
@@ -76,8 +78,11 @@ def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "
     for seed, k, how, d in plan:
         chosen = select(table, how, k, np.random.default_rng([seed, k, d]))
         truth = {i: _rows(reference, "mask", np.array([row[i]]))[0].astype(bool) for i in chosen}
-        model = training.train(method, cfg, replace_targets(data, truth) if chosen else data, val, seed,
-                               checkpointer=training.NoCheckpointer(), device=device, show_progress=False).model
+        if not chosen and k0_checkpoints is not None:
+            model = load_student(Path(k0_checkpoints) / str(seed), device)[0]
+        else:
+            model = training.train(method, cfg, replace_targets(data, truth) if chosen else data, val, seed,
+                                   checkpointer=training.NoCheckpointer(), device=device, show_progress=False).model
         tau = score_run(model, val, test_images, test_masks, device)["tau_cal"]
         ious = image_ious(mask_from_probs(predict_probs(model, test_images, device=device, precision="fp32"), tau),
                           test_masks)
@@ -184,6 +189,9 @@ def main(argv=None) -> list[dict]:
                     help="summarize the runs of earlier --out files (e.g. one per seed) instead of training "
                          "(--workdir and the data options must be theirs)")
     ap.add_argument("--figure", type=Path, default=None, help="write the curve as a PNG")
+    ap.add_argument("--k0-checkpoints", type=Path, default=None, metavar="DIR",
+                    help="score k = 0 from the Plain Student checkpoints DIR/<seed> (e.g. a DAG run's "
+                         "artifacts/checkpoints/plain on the same data and params) instead of training it")
     args = ap.parse_args(argv)
     sets = [f"data.resolution={args.resolution}", *args.sets]
     art = args.workdir / "artifacts"
@@ -201,7 +209,7 @@ def main(argv=None) -> list[dict]:
         ks, seeds, draws, selections = sorted(set(args.ks)), args.seeds, args.draws, tuple(args.selections)
         partial = (lambda done: args.out.write_text(json.dumps({"runs": done, "partial": True}, indent=1))
                    ) if args.out is not None else (lambda done: None)
-        runs = run_study(art, cfg, ks, seeds, draws, args.device, selections, partial)
+        runs = run_study(art, cfg, ks, seeds, draws, args.device, selections, partial, args.k0_checkpoints)
     rows = summarize(runs, ks, seeds, selections)
     print_table(rows)
     quality = selected_label_quality(art, cfg, ks, seeds, draws, selections) if cfg is not None else []

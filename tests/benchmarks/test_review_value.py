@@ -41,3 +41,21 @@ def test_a_subset_of_selections_trains_only_those_and_reports_each_finished_run(
     assert seen == [1, 2]  # a killed study keeps what it finished
     (row,) = [r for r in rv.summarize(runs, [0, 2], [42], (rv.DEFAULT_RANKING,)) if r["k"] == 2]
     assert "gain" in row and "vs_random" not in row  # no random run, so no ranking-minus-random
+
+
+def test_k0_can_be_scored_from_existing_plain_checkpoints(tiny, tmp_path):
+    from pipeline.artifacts.weights import write_weights
+    from pipeline.methods import get_method
+    from pipeline.training import loop as training
+    from pipeline.training.inputs import load_inputs
+
+    cfg = tiny_cfg(epochs_stage1=1)
+    data, val, _ = load_inputs(tiny, get_method("plain"), cfg)
+    other = training.train(get_method("plain"), cfg, data, val, 43, checkpointer=training.NoCheckpointer(),
+                           show_progress=False).model
+    (tmp_path / "42").mkdir()  # seed 43's weights under seed 42's name: the scores must be seed 43's
+    write_weights(tmp_path / "42", other.mask_path_state_dict(), other.config)
+    (scored,) = rv.run_study(tiny, cfg, [0], [42], draws=1, k0_checkpoints=tmp_path)
+    (trained_43,) = rv.run_study(tiny, cfg, [0], [43], draws=1)
+    (trained_42,) = rv.run_study(tiny, cfg, [0], [42], draws=1)
+    assert scored["ious"] == trained_43["ious"] != trained_42["ious"] and scored["seed"] == 42
