@@ -245,10 +245,7 @@ def low_resolution(b: Mapping[str, torch.Tensor], soft: bool = False, factor: in
                    ) -> dict[str, torch.Tensor]:
     """Batch ``b`` at 1/``factor`` of its side: the image and, with ``soft`` (the agreement map A of
     ``train.soft_targets``), the target by area mean; a hard voted mask M^T (eq:majority-vote) as [area mean >= 1/2],
-    so eq:raw-loss keeps a binary target; ``area``, ``gate`` kept.
-
-    ``soft`` is the training data's mask type, read once per run (as the augmentation does): a per-batch test
-    of the values would synchronise a GPU every step."""
+    so eq:raw-loss keeps a binary target; ``area``, ``gate`` kept."""
     out = dict(b)
     size = (b["x"].shape[-2] // factor, b["x"].shape[-1] // factor)
     out["x"] = F.adaptive_avg_pool2d(b["x"], size)
@@ -326,7 +323,9 @@ class _Run:
     #: until plateau without validation masks: pseudo-labelled images the rule scores (never a validation set)
     holdout: ValData | None = None
     scratch: tempfile.TemporaryDirectory | None = None  # streamed anchors
-    soft_mask: bool = False  # the region target is soft (train.soft_targets): the resolution schedule averages it
+    # the region target is soft (train.soft_targets): read once from the data's type, as the augmentation does,
+    # since a per-batch test of the values would synchronise a GPU every step
+    soft_mask: bool = False
     geometry: GeometryConstants = dataclasses.field(default_factory=GeometryConstants)
 
     @property
