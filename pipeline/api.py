@@ -150,7 +150,7 @@ def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None 
     budget.  The other keywords are the command's options."""
     p = distill_params(effective_params(params, overrides, DISTILL_PROFILE), input, labels, backend, checkpoint,
                        imported_dir, skip_bad, max_pixels, bit_depth)
-    p = time_budget_params(p, time, out, device)
+    p = time_budget_params(p, time, out, device, input, val_masks)
     project = write_project(input, out, p, val_masks=val_masks, overwrite=overwrite, labels=labels,
                             benchmark=benchmark)
     if run:

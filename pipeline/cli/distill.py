@@ -52,7 +52,7 @@ def main(params, device, input_dir, out, val_masks, checkpoint, backend, importe
     unmodified `geodistill label` output's teacher answers."""
     params = distill_params(params, input_dir, labels, backend, checkpoint, imported_dir, skip_bad, max_pixels,
                             bit_depth)
-    params = time_budget_params(params, time_budget, out, device)
+    params = time_budget_params(params, time_budget, out, device, input_dir, val_masks)
     project = write_project(input_dir, out, params, val_masks=val_masks, overwrite=overwrite, labels=labels,
                             benchmark=not no_benchmark)
     if no_run:

@@ -18,7 +18,7 @@ import yaml
 
 from pipeline import __version__, catalog
 from pipeline.artifacts.atomic import read_json, write_text_if_changed
-from pipeline.training.budget import with_time_budget
+from pipeline.training.budget import training_images, with_time_budget
 from pipeline.runtime.codeversion import ROOT
 from pipeline.orchestration.dag import live_plots, render_dvc_yaml, render_params_yaml
 from pipeline.runtime.device import resolve_device
@@ -353,11 +353,15 @@ def _metric(path: Path, key: str) -> float | None:
     return float(value) if isinstance(value, (int, float)) else None
 
 
-def time_budget_params(params: dict, time_budget: str | None, out: str | Path, device: str = "auto") -> dict:
-    """``params`` with ``--time`` as Stage I's step budget, reusing what ``out`` recorded for the same time."""
+def time_budget_params(params: dict, time_budget: str | None, out: str | Path, device: str = "auto",
+                       input_dir: str | Path | None = None, val_masks: str | Path | None = None) -> dict:
+    """``params`` with ``--time`` as Stage I's step budget, reusing what ``out`` recorded for the same time; the
+    steps are priced over the training images of ``input_dir`` (:func:`pipeline.training.budget.training_images`)."""
     if time_budget is None:
         return params
     previous = read_yaml_mapping(Path(out) / PARAMS_FILE) if (Path(out) / PARAMS_FILE).is_file() else None
-    return with_time_budget(params, time_budget, previous, resolve_device(device).type)
+    n_train = (training_images(input_dir, val_masks, float(params["train"].get("holdout_fraction") or 0.0))
+               if input_dir is not None else None)
+    return with_time_budget(params, time_budget, previous, resolve_device(device).type, n_train)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 import time
+from pathlib import Path
 from typing import Any, Mapping
 
 from pipeline.runtime.errors import InputError
@@ -60,17 +61,76 @@ def steps_for(seconds: float, per_step: float) -> int:
     return max(1, int(seconds // max(per_step, 1e-9)))
 
 
-def with_time_budget(params: dict, text: str | None, previous: Mapping | None = None, device: str = "cpu") -> dict:
+def scheduled_steps(seconds: float, full_step: float, half_step: float, cfg: Mapping[str, Any],
+                    steps_per_epoch: int) -> int:
+    """Optimizer steps B of the longest Stage-I run under ``until: plateau`` whose planned time fits ``seconds``,
+    with the resolution schedule (``train.low_res_fraction``) priced in.
+
+    E stable epochs, their first min(E, L) at half the side (t_h a step), the rest and the decay D(E) at full
+    side (t_f): spe (min(E, L) t_h + (max(E - L, 0) + D(E)) t_f) <= ``seconds``, B = (E + D(E)) spe, so the run's
+    stable cap (:func:`pipeline.training.loop.stable_cap`) is that E.  When the epochs cap fits, the time left
+    buys full-side steps on top (a later, longer ``--time`` continues the run).
+
+    full_step, half_step: t_f and t_h (:func:`step_seconds`); cfg: the train section; steps_per_epoch: spe, from
+    the training images (:func:`training_images`)."""
+    from pipeline.training.loop import Settings, decay_epochs
+
+    s = Settings.from_params(get_method(STAGE_ONE), cfg, 0.5)
+    spe = max(1, int(steps_per_epoch))
+    best, cap_fits = None, True
+    for e in range(1, s.epochs + 1):
+        d = decay_epochs(e, s.decay_fraction)
+        if e + d > s.epochs:
+            continue
+        cost = spe * (min(e, s.low_res_epochs) * half_step + (max(e - s.low_res_epochs, 0) + d) * full_step)
+        if cost > seconds:
+            cap_fits = False
+            break
+        best = (e + d, cost)
+    if best is None:  # not one stable epoch and its decay: the run trains that one anyway
+        return steps_for(seconds, full_step)
+    return best[0] * spe + (int((seconds - best[1]) // max(full_step, 1e-9)) if cap_fits else 0)
+
+
+def training_images(input_dir: str | Path, val_masks: str | Path | None, holdout_fraction: float) -> int:
+    """The images Stage I of ``distill`` trains on: those under ``input_dir`` without a mask in ``val_masks``
+    (matched by relative path without suffix, as the folder reader does), less the held-out share the plateau
+    rule scores when there are no validation masks (:func:`pipeline.training.loop.holdout_size`).  Unreadable
+    files still count: an estimate for pricing the time, not the split."""
+    from pipeline.datasets.manifest import relative_id
+    from pipeline.datasets.scan import scan_inputs
+    from pipeline.training.loop import holdout_size
+
+    root = Path(input_dir)
+    ids = {relative_id(root, f) for f in scan_inputs(root).files}
+    if val_masks is not None:
+        masked = {relative_id(Path(val_masks), f) for f in scan_inputs(Path(val_masks)).files}
+        return len(ids - masked)
+    return len(ids) - holdout_size(len(ids), holdout_fraction)
+
+
+def with_time_budget(params: dict, text: str | None, previous: Mapping | None = None, device: str = "cpu",
+                     n_train: int | None = None) -> dict:
     """``params`` with ``train.time_budget`` = ``text`` and ``train.step_budget`` its steps on this host (those of
-    ``previous`` params holding the same ``text``: no new measurement); ``text`` None: unchanged."""
+    ``previous`` params holding the same ``text``: no new measurement); ``text`` None: unchanged.
+
+    Under a resolution schedule the steps are priced by :func:`scheduled_steps`, the half-side ones at their
+    own probed time, over ``n_train`` training images (:func:`training_images`); without ``n_train`` every
+    step is priced at full side (fewer steps than the time allows)."""
     if text is None:
         return params
     seconds = parse_duration(text)
     old = (previous or {}).get("train") or {}
+    train, res = params["train"], int(params["data"]["resolution"])
     if old.get("time_budget") == text and int(old.get("step_budget") or 0) > 0:
         steps = int(old["step_budget"])
+    elif float(train.get("low_res_fraction") or 0.0) > 0 and n_train:
+        from pipeline.training.loop import LOW_RES_FACTOR, steps_per_epoch
+
+        full, half = step_seconds(train, res, device), step_seconds(train, max(1, res // LOW_RES_FACTOR), device)
+        steps = scheduled_steps(seconds, full, half, train, steps_per_epoch(n_train, int(train["batch_size"])))
     else:
-        steps = steps_for(seconds, step_seconds(params["train"], int(params["data"]["resolution"]), device))
+        steps = steps_for(seconds, step_seconds(train, res, device))
     # a budget needs the stop-and-decay schedule
     train = {**params["train"], "time_budget": text, "step_budget": steps, "until": "plateau"}
     return {**params, "train": train}

@@ -330,12 +330,17 @@ class _Run:
 
     @property
     def steps_per_epoch(self) -> int:
-        return max(1, math.ceil(self.n_train / self.settings.batch_size))
+        return steps_per_epoch(self.n_train, self.settings.batch_size)
 
     @property
     def epochs(self) -> int:
         """``train.epochs_*``, or (until plateau) the stable phase plus its decay."""
         return self.until["epochs"] if self.until is not None else self.settings.epochs
+
+
+def steps_per_epoch(n_train: int, batch_size: int) -> int:
+    """Optimizer steps of one epoch: max(1, ceil(n / batch)), the last batch short."""
+    return max(1, math.ceil(int(n_train) / int(batch_size)))
 
 
 def _cpu_state(model) -> dict:
@@ -699,13 +704,18 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
             run.scratch.cleanup()
 
 
+def holdout_size(n: int, fraction: float) -> int:
+    """Images :func:`holdout` takes from ``n``: k = min(n // 2, max(2, round(``fraction`` n))), 0 below 8."""
+    return 0 if n < 8 else min(n // 2, max(2, int(round(fraction * n))))
+
+
 def holdout(data: TrainData, fraction: float) -> tuple[TrainData, ValData | None]:
     """(the rest, the held-out images as ValData scored against their vote): ``fraction`` of ``data``, evenly
     spaced, at least 2 and at most half; nothing held out below 8 images."""
     n = len(data)
-    if n < 8:
+    k = holdout_size(n, fraction)
+    if not k:
         return data, None
-    k = min(n // 2, max(2, int(round(fraction * n))))
     held = np.unique(np.linspace(0, n - 1, k).round().astype(int))
     rest = np.setdiff1d(np.arange(n), held)
     masks = np.asarray(data.mask[held])

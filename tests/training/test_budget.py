@@ -41,6 +41,43 @@ def test_time_is_converted_once_and_reused(monkeypatch):
     assert budget.with_time_budget(params, None) is params
 
 
+def test_half_side_epochs_are_priced_at_their_own_step_time():
+    """Under `progressive` (160 of 220 epochs at half the side, decay 0.2): with t_f = 1 s, t_h = 0.25 s and 2
+    steps an epoch, 100 s buy E = 100 stable epochs and D = 25 decay epochs: 2 (100 x 0.25 + 25 x 1) = 100 s,
+    so 250 steps where pricing every step at full side gave 100 (a run of 40 s)."""
+    from pipeline.methods import STAGE_ONE, get_method
+    from pipeline.training.loop import Settings, stable_cap
+
+    train = load_profile("distill")["train"]
+    assert budget.scheduled_steps(100, 1.0, 0.25, train, 2) == 250
+    assert budget.scheduled_steps(100, 1.0, 1.0, train, 2) == 100  # no cheaper side: the old price
+    run = Settings.from_params(get_method(STAGE_ONE), {**train, "step_budget": 250}, 0.5)
+    assert stable_cap(run, 2) == 100  # the run plans exactly the epochs that were priced
+    # past the epochs cap (176 stable + 44 decay = 2 (160 x 0.25 + 60 x 1) = 200 s), the rest buys full-side steps
+    assert budget.scheduled_steps(300, 1.0, 0.25, train, 2) == 440 + 100
+
+
+def test_distill_time_prices_the_schedule_over_the_folder_s_training_images(tmp_path, monkeypatch):
+    make_image_folder(tmp_path / "data", n=10, masks=True)
+    images, masks = tmp_path / "data" / "images", tmp_path / "data" / "masks"
+    (masks / sorted(p.name for p in masks.iterdir())[0]).unlink()  # 9 masked images: 1 trains
+    assert budget.training_images(images, masks, 0.1) == 1
+    assert budget.training_images(images, None, 0.1) == 10 - 2  # the plateau rule holds 2 of 10 out
+    sides = []
+
+    def probe(cfg, res, device="cpu"):
+        sides.append(res)
+        return 1.0 if res == 384 else 0.25
+
+    monkeypatch.setattr(budget, "step_seconds", probe)
+    pipeline.distill(images, out=tmp_path / "run", checkpoint=checkpoint_folder(tmp_path / "sam3"), run=False,
+                     time="90s")
+    assert sorted(sides) == [192, 384]  # the distill profile's side, and its half
+    # 8 training images, batch 8: one step an epoch.  E = 168 stable epochs (160 at half side) and D = 42:
+    # 160 x 0.25 + (8 + 42) x 1 = 90 s; E = 169 takes 91 s.  Priced at full side, 90 s gave 90 steps.
+    assert yaml.safe_load((tmp_path / "run" / "params.yaml").read_text())["train"]["step_budget"] == 168 + 42
+
+
 def test_distill_time_writes_the_budget_into_the_project(tmp_path, monkeypatch):
     from pipeline.cli.main import main
 
