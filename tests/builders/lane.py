@@ -179,9 +179,10 @@ def tiny_demo_run(lane: Lane, repo: Path) -> tuple[Path, dict, str]:
 # ------------------------------------------------------------------------------------------------------
 # tests/cli/test_distill.py: ``geodistill distill`` with the tests' tiny random SAM 3, with and without masks
 # ------------------------------------------------------------------------------------------------------
-#: demo-like tiny sizes: 32 px, one epoch per stage, one benchmark variant
+#: demo-like tiny sizes: 32 px, Stage I 3 epochs (the recipe's resolution schedule trains the first 2 at 16 px,
+#: the last, the decay, at 32 px), Stage II 1, one benchmark variant
 DISTILL_FAST = ["--device", "cpu"] + [a for kv in (
-    "data.resolution=32", "data.contact_sheet_images=2", "teacher.score_threshold=0", "train.epochs_stage1=1",
+    "data.resolution=32", "data.contact_sheet_images=2", "teacher.score_threshold=0", "train.epochs_stage1=3",
     "train.epochs_stage2=1", "train.num_threads=1", "deploy.benchmark_variants=[fp32_eager_nchw]",
     "deploy.benchmark_iters=1", "deploy.benchmark_warmup=0", "deploy.benchmark_batches=[1]",
     "deploy.int8_calibration_images=4", "evaluate.bootstrap_resamples=20", "report.qualitative_images=1",

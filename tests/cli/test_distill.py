@@ -4,6 +4,7 @@ project generated in --out -- with the tests' tiny random SAM 3, with and withou
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import subprocess
@@ -16,7 +17,8 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from tests.builders.lane import DISTILL_FAST as FAST  # demo-like tiny sizes: 32 px, one epoch per stage
+from pipeline import catalog
+from tests.builders.lane import DISTILL_FAST as FAST  # demo-like tiny sizes: 32 px, 3 + 1 epochs
 
 pytestmark = pytest.mark.slow
 
@@ -80,7 +82,11 @@ def test_distill_without_masks_fixed_tau_last_epoch_and_said_so(folder, without_
     assert code and all(Path(d).is_absolute() and Path(d).is_file() for d in code)
     params = yaml.safe_load((out / "params.yaml").read_text())
     assert params["data"]["source"] == "folder" and params["teacher"]["backend"] == "sam3"
-    assert params["train"]["epochs_stage1"] == 1 and params["protocol"]["runs"]["geodistill"] == [42]
+    assert params["train"]["epochs_stage1"] == 3 and params["protocol"]["runs"]["geodistill"] == [42]
+    # the shipped recipe's resolution schedule ran end to end: 2 stable epochs at half the side, the decay at full
+    stage_one = json.loads((out / "artifacts" / "checkpoints" / "plain" / "42" / catalog.META_FILE).read_text())["extra"]
+    assert params["train"]["recipe"] == "progressive" and stage_one["low_res_epochs"] == 2
+    assert stage_one["epochs"] == 3 and stage_one["steps_run"] == 3 * math.ceil(18 / params["train"]["batch_size"])
     # the bundle predicts at the original size
     img = sorted(images.iterdir())[1]
     mask = Segmenter.from_bundle(out / "artifacts" / "deploy").predict(img)
