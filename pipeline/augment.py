@@ -58,6 +58,17 @@ class GeometryConstants:
     min_distance: float = PAPER.geometry.skeleton_min_distance
 
 
+def soft_region(mask: Any) -> bool:
+    """Whether a region target is the agreement map A (eq:agreement-map, floats: ``train.soft_targets``), not the
+    voted mask M^T (eq:majority-vote, booleans): read from the dtype, never the values (no GPU sync per batch)."""
+    return np.dtype(mask.dtype).kind == "f"
+
+
+def hard_region(mask: np.ndarray) -> np.ndarray:
+    """The boolean region of a target: M = [A >= 1/2] (eq:majority-vote) for a soft one, else the mask itself."""
+    return mask >= 0.5 if soft_region(mask) else mask.astype(bool)
+
+
 def dihedral(x: np.ndarray, k: int, hflip: bool, vflip: bool) -> np.ndarray:
     """``x`` [H,W,...] rotated by k x 90 degrees counter-clockwise, then flipped as asked; a contiguous copy."""
     out = np.rot90(x, k % 4, axes=(0, 1))
@@ -141,11 +152,11 @@ def augment_sample(image: np.ndarray, targets: Mapping[str, Any], rng: np.random
         y0 = rng.uniform(min(0.0, h - wh), max(0.0, h - wh))
         window = (rng.uniform(min(0.0, w - ww), max(0.0, w - ww)), y0, ww, wh)
         image = resample(image, window, nearest=False)
-        soft = pixel["mask"].dtype.kind == "f"  # train.soft_targets: the agreement map resamples bilinearly
+        soft = soft_region(pixel["mask"])  # train.soft_targets: the agreement map resamples bilinearly
         pixel["mask"] = resample(pixel["mask"] if soft else pixel["mask"].astype(bool), window, nearest=not soft)
         if "anchor" in pixel:
             pixel["anchor"] = resample(pixel["anchor"].astype(np.float32), window, nearest=False)
-        sdf, skel, area = recompute_geometry(pixel["mask"] >= 0.5 if soft else pixel["mask"], geometry)
+        sdf, skel, area = recompute_geometry(hard_region(pixel["mask"]), geometry)
         pixel.update({k: v for k, v in (("sdf", sdf), ("skeleton", skel)) if k in pixel})
         if "area" in out:
             out["area"] = area

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from pipeline import losses
-from pipeline.augment import AugmentSpec, GeometryConstants, augment_batch
+from pipeline.augment import AugmentSpec, GeometryConstants, augment_batch, hard_region, soft_region
 from pipeline.runtime.device import autocast, autocast_dtype
 from pipeline.stats import ONE_SIDED_95_Z
 from pipeline.runtime.errors import InputError, TrainingDiverged
@@ -323,9 +323,7 @@ class _Run:
     #: until plateau without validation masks: pseudo-labelled images the rule scores (never a validation set)
     holdout: ValData | None = None
     scratch: tempfile.TemporaryDirectory | None = None  # streamed anchors
-    # the region target is soft (train.soft_targets): read once from the data's type, as the augmentation does,
-    # since a per-batch test of the values would synchronise a GPU every step
-    soft_mask: bool = False
+    soft_mask: bool = False  # train.soft_targets (pipeline.augment.soft_region), read once per run
     geometry: GeometryConstants = dataclasses.field(default_factory=GeometryConstants)
 
     @property
@@ -374,7 +372,7 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
                "autocast": str(amp).replace("torch.", "") if amp is not None else "fp32"}
     run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,
                opt=opt, sched=None, tensors=_tensors(data, device, anchor), n_train=len(data), run_key=run_key,
-               scratch=scratch, geometry=data.geometry, soft_mask=np.dtype(data.mask.dtype).kind == "f")
+               scratch=scratch, geometry=data.geometry, soft_mask=soft_region(data.mask))
     if s.ema_decay > 0:
         run.ema = [p.detach().clone() for p in model.parameters()]
     total = s.epochs * run.steps_per_epoch
@@ -718,9 +716,8 @@ def holdout(data: TrainData, fraction: float) -> tuple[TrainData, ValData | None
         return data, None
     held = np.unique(np.linspace(0, n - 1, k).round().astype(int))
     rest = np.setdiff1d(np.arange(n), held)
-    masks = np.asarray(data.mask[held])
     val = ValData([f"holdout:{data.image_ids[i]}" for i in held], np.asarray(data.images[held]),
-                  masks >= 0.5 if masks.dtype.kind == "f" else masks.astype(bool))
+                  hard_region(np.asarray(data.mask[held])))
     return data.subset(rest, stats={**data.stats, "plateau_scored_on": f"{len(held)} held-out pseudo-labelled "
                                    "training images against their vote (no validation masks)"}), val
 

@@ -12,7 +12,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.augment import (DEFAULT_SPEC, GeometryConstants, augment_batch, augment_sample, dihedral,
+from pipeline.augment import (DEFAULT_SPEC, GeometryConstants, augment_batch, augment_sample, dihedral, hard_region, soft_region,
                               photometric)
 from pipeline.geometry import area_ratio, sdf_target, skeleton_target
 
@@ -87,6 +87,13 @@ def test_scale_and_crop_recompute_sdf_skeleton_and_area_from_the_augmented_mask(
         # the image moved with the mask: bright on it, dark off it
         assert img[t["mask"]].mean() > img[~t["mask"]].mean() + 60
     assert changed >= 6  # the rescale really changes the frame
+
+
+def test_a_region_target_is_soft_by_its_type_and_its_region_is_the_vote_of_it():
+    agreement = np.array([[0.0, 0.49], [0.5, 1.0]], np.float32)  # A (eq:agreement-map)
+    assert soft_region(agreement) and not soft_region(agreement >= 0.5) and not soft_region(np.ones(2, np.uint8))
+    assert hard_region(agreement).tolist() == [[False, False], [True, True]]  # M = [A >= 1/2], a tie is foreground
+    assert hard_region(np.array([0, 1, 2], np.uint8)).tolist() == [False, True, True]
 
 
 def test_photometric_changes_the_image_only():
