@@ -166,17 +166,22 @@ def per_seed(seeds: tuple[int, ...], flag: str, values: tuple[str, ...], require
     return list(values)
 
 
-def run_seeds(params: dict, device: str, stage: int, method: str, seeds: tuple[int, ...], artifacts: str,
-              inits: tuple[str, ...], outs: tuple[str, ...], resume_dir: str, live_dirs: tuple[str, ...] = ()
-              ) -> list[Path]:
-    """Several seeds of one method in this process, the artifacts opened once."""
+def seed_options(seeds: tuple[int, ...], inits: tuple[str, ...], outs: tuple[str, ...],
+                 live_dirs: tuple[str, ...] = ()) -> tuple[list, list, list]:
+    """(``--init``, ``--out``, ``--live-dir``) of each ``--seed``, checked: InputError naming the option."""
     if not seeds:
         raise InputError("--seed missing: give one or more")
     if len(set(seeds)) != len(seeds):
         raise InputError(f"--seed: {', '.join(str(s) for s in seeds)} names a seed twice")
-    out_of = per_seed(seeds, "--out", outs, required=True)
-    init_of = per_seed(seeds, "--init", inits, required=False)
-    live_of = per_seed(seeds, "--live-dir", live_dirs, required=False)
+    return (per_seed(seeds, "--init", inits, required=False), per_seed(seeds, "--out", outs, required=True),
+            per_seed(seeds, "--live-dir", live_dirs, required=False))
+
+
+def run_seeds(params: dict, device: str, stage: int, method: str, seeds: tuple[int, ...], artifacts: str,
+              inits: tuple[str, ...], outs: tuple[str, ...], resume_dir: str, live_dirs: tuple[str, ...] = ()
+              ) -> list[Path]:
+    """Several seeds of one method in this process, the artifacts opened once."""
+    init_of, out_of, live_of = seed_options(seeds, inits, outs, live_dirs)
     m = open_method(params, stage, method, artifacts)
     done = []
     for k, (s, i, o, lv) in enumerate(zip(seeds, init_of, out_of, live_of)):
@@ -205,11 +210,9 @@ def run_seeds(params: dict, device: str, stage: int, method: str, seeds: tuple[i
 def main(params, device, stage, method, seeds, artifacts, inits, outs, resume_dir, live_dirs, jobs):
     """Train (method, seed) students on pseudo-targets; write checkpoint + training log per seed."""
     jobs = jobs or auto_jobs(section(params, "train"), str(resolve_device(device)), len(seeds))
-    if jobs > 1 and len(seeds) > 1 and len(set(seeds)) == len(seeds):
+    if jobs > 1 and len(seeds) > 1:
         # bad options or inputs are refused here, in one line, not once in every process
-        per_seed(seeds, "--out", outs, required=True)
-        per_seed(seeds, "--init", inits, required=False)
-        per_seed(seeds, "--live-dir", live_dirs, required=False)
+        seed_options(seeds, inits, outs, live_dirs)
         open_method(params, stage, method, artifacts)
         sys.exit(run_in_processes(sys.argv[1:], len(seeds), min(jobs, len(seeds))))
     try:
