@@ -6,7 +6,6 @@ when training diverged."""
 from __future__ import annotations
 
 import dataclasses
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -20,7 +19,7 @@ from pipeline.artifacts.lineage import run_as
 from pipeline.artifacts.store import open_artifact
 from pipeline.catalog import ARTIFACTS_DIR, META_FILE
 from pipeline.training.checkpointing import FileCheckpointer
-from pipeline.runtime.device import resolve_device
+from pipeline.runtime.device import resolve_device, stage_cores
 from pipeline.report.dvc_results import write_live_log
 from pipeline.artifacts.provenance import training_runtime
 from pipeline.runtime.errors import ArtifactError, InputError, TrainingDiverged
@@ -140,13 +139,14 @@ def seed_argv(argv: list[str], k: int) -> list[str]:
 
 
 def auto_jobs(cfg: dict, device: str, n_seeds: int) -> int:
-    """Processes for a group of ``n_seeds`` runs: on a CPU, the cores over ``train.num_threads`` (a run's bytes
-    depend on its thread count, never on what runs beside it); 1 on a GPU or with ``num_threads`` 0 (torch's
-    default: every core)."""
+    """Processes for a group of ``n_seeds`` runs: on a CPU, the stage's cores (under ``geodistill run``, those
+    Ray gave it: :func:`pipeline.runtime.device.stage_cores`) over ``train.num_threads`` (a run's bytes depend on
+    its thread count, never on what runs beside it); 1 on a GPU or with ``num_threads`` 0 (torch's default:
+    every core)."""
     threads = int(cfg.get("num_threads") or 0)
     if device != "cpu" or threads <= 0:
         return 1
-    return max(1, min(n_seeds, (os.cpu_count() or 1) // threads))
+    return max(1, min(n_seeds, stage_cores() // threads))
 
 
 def run_in_processes(argv: list[str], n_seeds: int, jobs: int) -> int:

@@ -17,6 +17,7 @@ from pipeline import catalog
 from pipeline.artifacts.atomic import write_json
 from pipeline.cluster import guard, plan
 from pipeline.artifacts.provenance import THREAD_ENV_VARS
+from pipeline.runtime.device import STAGE_CPUS_ENV
 from pipeline.runtime.errors import InputError
 from pipeline.params import DEFAULT_PARAMS, read_yaml_mapping
 
@@ -77,7 +78,7 @@ def read_plan(root: Path, targets: tuple[str, ...] = ()) -> tuple[list[str], dic
 def child_env(extra: dict[str, str], threads: int, gpus: float) -> dict[str, str]:
     """The stage process's environment: this worker's, ``extra``, ``threads`` per pool, no GPU unless it holds one."""
     env = {**os.environ, **extra}
-    env.update({k: str(max(1, threads)) for k in THREAD_ENV_VARS})
+    env.update({k: str(max(1, threads)) for k in (*THREAD_ENV_VARS, STAGE_CPUS_ENV)})
     if gpus <= 0:
         env["CUDA_VISIBLE_DEVICES"] = ""
     return env

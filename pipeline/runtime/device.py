@@ -20,6 +20,22 @@ def resolve_device(name: str = "auto"):
     return torch.device(name)
 
 
+#: the cores a scheduler gave this process (``geodistill run`` sets it for each stage's process): what a stage
+#: may fill with processes of its own; unset, the machine's cores
+STAGE_CPUS_ENV = "GEODISTILL_STAGE_CPUS"
+
+
+def stage_cores() -> int:
+    """The cores this stage may use: :data:`STAGE_CPUS_ENV` where a scheduler set it, else ``os.cpu_count()``."""
+    import os
+
+    try:
+        given = int(float(os.environ.get(STAGE_CPUS_ENV) or 0))
+    except ValueError:
+        given = 0
+    return max(1, given or os.cpu_count() or 1)
+
+
 #: the CPU flags of native bf16 arithmetic; without one, bf16 is emulated and far slower
 BF16_FLAGS = ("avx512_bf16", "amx_bf16")
 

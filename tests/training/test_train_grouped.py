@@ -162,13 +162,19 @@ def test_grouped_seeds_write_the_bytes_of_separate_processes_and_resume(tiny, tm
     assert "resuming" not in log and {s: _files(ck / "geodistill" / str(s)) for s in (42, 7)} == before
 
 
-def test_a_group_runs_in_the_cores_over_its_threads_and_the_recorded_command_leaves_jobs_out():
+def test_a_group_runs_in_the_cores_over_its_threads_and_the_recorded_command_leaves_jobs_out(monkeypatch):
+    from pipeline.cluster.driver import child_env
+    from pipeline.runtime.device import STAGE_CPUS_ENV
     from stages.train import auto_jobs, seeds_argv
 
+    monkeypatch.delenv(STAGE_CPUS_ENV, raising=False)
     cores = __import__("os").cpu_count()
     assert auto_jobs({"num_threads": 1}, "cpu", 10) == min(10, cores)
     assert auto_jobs({"num_threads": 1}, "cpu", 1) == 1
     assert auto_jobs({"num_threads": 0}, "cpu", 10) == 1 and auto_jobs({"num_threads": 1}, "cuda", 10) == 1
+    # under geodistill run a stage fills the cores Ray gave it, not the node's
+    monkeypatch.setenv(STAGE_CPUS_ENV, child_env({}, 3, 0.0)[STAGE_CPUS_ENV])
+    assert auto_jobs({"num_threads": 1}, "cpu", 10) == 3 and auto_jobs({"num_threads": 2}, "cpu", 10) == 1
     argv = ["--stage", "2", "--jobs", "2", "--seed", "42", "--init", "a", "--out", "x", "--seed", "7",
             "--init=b", "--out", "y"]
     assert seeds_argv(argv, {1}) == ["--stage", "2", "--seed", "7", "--init=b", "--out", "y"]
