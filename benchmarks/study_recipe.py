@@ -172,7 +172,7 @@ def run_one(job: dict) -> dict:
     out = {k: job[k] for k in ("variant", "method", "seed")}
     out.update(selected_epoch=res.selected_epoch, max_jump=max_adjacent_jump(log["val_iou"].to_numpy()),
                **{f"{c}_curve": [float(v) for v in log[c]] for c in ("val_iou", "val_iou_cal", "loss")},
-               autocast=res.info["autocast"])
+               autocast=res.info["autocast"], stopped=res.info.get("stopped"), steps_run=res.info.get("steps_run"))
     out.update(score_run(res.model, _DATA["val"], _DATA["test_images"], _DATA["test_masks"], job["device"]))
     out["seconds"] = time.perf_counter() - t0
     print(f"  done {out['variant']:18s} {out['method']:18s} s{out['seed']}: iou_cal {out['iou_cal']:.3f} "

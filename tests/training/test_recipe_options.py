@@ -203,6 +203,7 @@ def test_study_runs_end_to_end_on_tiny_artifacts(tiny, tmp_path, capsys):
         (v, m) for v in ("paper", "precise_bn") for m in ("plain", "supervised_ceiling")}
     for r in res["runs"]:
         assert 0.0 <= r["iou_cal"] <= 1.0 and 0.05 <= r["tau_cal"] <= 0.95 and len(r["val_iou_curve"]) == 1
+        assert r["steps_run"] >= 1 and r["stopped"] is None  # a fixed length: no stopping rule ran
     # a rerun reuses the finished runs of <out>.runs.jsonl (no training: same numbers, same seconds)
     lines = (tmp_path / "study.json.runs.jsonl").read_text().splitlines()
     assert len(lines) == 5
