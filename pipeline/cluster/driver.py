@@ -138,7 +138,8 @@ def sizing(ray, stage_cpus: float | None, train_gpu_fraction: float, train_threa
     node_cpus = max((n["Resources"].get("CPU", 0.0) for n in nodes), default=1.0) or 1.0
     gpus = float(ray.cluster_resources().get("GPU", 0.0))
     return plan.Sizing(node_cpus=node_cpus, gpus=gpus, stage_cpus=stage_cpus or max(1.0, node_cpus // 2),
-                       train_gpu_fraction=train_gpu_fraction, train_threads=train_threads)
+                       train_gpu_fraction=train_gpu_fraction, train_threads=train_threads,
+                       cluster_cpus=float(ray.cluster_resources().get("CPU", node_cpus)))
 
 
 def pinned_train_threads(root: Path) -> int:
@@ -202,7 +203,8 @@ def run_pipeline(root: Path, targets: tuple[str, ...] = (), address: str | None 
 
 def _submit(ray, root: Path, sequence: list[str], graph: dict[str, set[str]], size: plan.Sizing, log_dir: Path,
             costs: dict[str, float], dry_run: bool, echo) -> RunResult | None:
-    """Submit the stages in ``sequence``, each task waiting for its upstream tasks; wait for all."""
+    """Run the stages of ``sequence`` as Ray tasks, each handed to Ray when its upstream stages have finished and
+    the cluster has room (:func:`pipeline.cluster.plan.startable`, in ``sequence``'s priority); wait for all."""
     res = {n: plan.stage_resources(n, size) for n in sequence}
     echo(f"geodistill run: Ray cluster with {size.node_cpus:g} CPUs on its largest node, {size.gpus:g} GPUs")
     if dry_run:
@@ -212,15 +214,15 @@ def _submit(ray, root: Path, sequence: list[str], graph: dict[str, set[str]], si
         return None
     task = ray.remote(run_stage)
     extra, t0 = driver_env(), time.time()
-    refs: dict[str, object] = {}
-    for n in sequence:
-        r = res[n]
-        refs[n] = task.options(name=f"stage:{n}", max_retries=1, **r).remote(
-            str(root), n, extra, int(r["num_cpus"]), r["num_gpus"], str(log_dir / stage_log(n)), t0,
-            *[refs[u] for u in sorted(graph[n])])
     results: dict[str, dict] = {}
-    pending = {ref: n for n, ref in refs.items()}
-    while pending:
+    pending: dict[object, str] = {}
+    while len(results) < len(sequence):
+        for n in plan.startable(sequence, graph, results, {m: res[m] for m in pending.values()}, res,
+                                size.capacity):
+            r = res[n]
+            pending[task.options(name=f"stage:{n}", max_retries=1, **r).remote(
+                str(root), n, extra, int(r["num_cpus"]), r["num_gpus"], str(log_dir / stage_log(n)), t0,
+                *[results[u] for u in sorted(graph[n])])] = n
         done, _ = ray.wait(list(pending), num_returns=1)
         n = pending.pop(done[0])
         out = results[n] = {**ray.get(done[0]), **res[n]}

@@ -138,15 +138,43 @@ def submission_order(needs: Mapping[str, set[str]], costs: Mapping[str, float] |
     return out
 
 
+def startable(sequence: Iterable[str], needs: Mapping[str, set[str]], finished: Iterable[str],
+              running: Mapping[str, Mapping[str, float]], res: Mapping[str, Mapping[str, float]],
+              capacity: Mapping[str, float]) -> list[str]:
+    """The stages to start now, in ``sequence``'s priority (:func:`submission_order`): each not started, its
+    upstream finished, and its resources (``res``) within ``capacity`` beside those ``running`` and those picked
+    before it (a lower-priority stage that fits may pass one that does not); with nothing running, the first
+    ready stage starts even when larger than the cluster.  A stage is handed to Ray only once it may run, so a
+    stage ready early (a ceiling needs only the data) does not hold the cores a critical-path stage needs next."""
+    done, taken = set(finished), dict(running)
+    out: list[str] = []
+    for n in sequence:
+        if n in done or n in taken or not set(needs.get(n, ())) <= done:
+            continue
+        used = {k: sum(float(r.get(k, 0.0)) for r in taken.values()) for k in capacity}
+        if taken and any(used[k] + float(res[n].get(k, 0.0)) > float(capacity[k]) + 1e-9 for k in capacity):
+            continue
+        taken[n] = res[n]
+        out.append(n)
+    return out
+
+
 @dataclasses.dataclass(frozen=True)
 class Sizing:
-    """What the cluster offers and what a stage may take (``train_threads``: train.num_threads, 0 = not pinned)."""
+    """What the cluster offers and what a stage may take (``train_threads``: train.num_threads, 0 = not pinned;
+    ``cluster_cpus``: all nodes' CPUs, 0 = ``node_cpus``)."""
 
     node_cpus: float
     gpus: float = 0.0
     stage_cpus: float = 1.0
     train_gpu_fraction: float = 0.25
     train_threads: int = 0
+    cluster_cpus: float = 0.0
+
+    @property
+    def capacity(self) -> dict[str, float]:
+        """What the running stages may hold together: ``{"num_cpus", "num_gpus"}``."""
+        return {"num_cpus": float(self.cluster_cpus or self.node_cpus), "num_gpus": float(self.gpus)}
 
 
 def stage_resources(name: str, size: Sizing) -> dict[str, float]:

@@ -64,6 +64,34 @@ def test_plan_from_dvc_dag_and_status():
         plan.topological({"a": {"b"}, "b": {"a"}})
 
 
+def test_a_stage_ready_early_does_not_take_the_core_the_critical_path_needs_next():
+    """Two cores; the ceilings need only the data, Plain needs teacher -> consensus -> geometry.  Handed to Ray
+    all at once, ceiling@7 (ready since prepare) took the core the teacher freed before consensus (FIFO)."""
+    needs = {"prepare": set(), "teacher": {"prepare"}, "consensus": {"teacher"}, "geometry": {"consensus"},
+             **{f"train_supervised_ceiling@{s}": {"prepare"} for s in (42, 7)},
+             **{f"train_plain@{s}": {"geometry"} for s in (42, 7)},
+             **{f"train_geodistill@{s}": {f"train_plain@{s}"} for s in (42, 7)},
+             "evaluate": {f"train_{m}@{s}" for m in ("geodistill", "supervised_ceiling") for s in (42, 7)}}
+    seq = plan.submission_order(needs, costs={"teacher": 10, **{f"train_{m}@{s}": 600 for m in
+                                                                 ("plain", "supervised_ceiling") for s in (42, 7)}})
+    res = {n: {"num_cpus": 1.0, "num_gpus": 0.0} for n in needs}
+    cap = plan.Sizing(node_cpus=2).capacity
+    one = {"num_cpus": 1.0, "num_gpus": 0.0}
+    assert plan.startable(seq, needs, [], {}, res, cap) == ["prepare"]
+    # prepare done: the teacher and one ceiling fill the two cores
+    assert plan.startable(seq, needs, ["prepare"], {}, res, cap) == ["teacher", "train_supervised_ceiling@42"]
+    # the teacher done: its core goes to consensus, not to the other ceiling
+    running = {"train_supervised_ceiling@42": one}
+    assert plan.startable(seq, needs, ["prepare", "teacher"], running, res, cap) == ["consensus"]
+    # geometry done: Plain before the waiting ceiling
+    assert plan.startable(seq, needs, ["prepare", "teacher", "consensus", "geometry"], running, res, cap)[0] \
+        == "train_plain@42"
+    # a stage larger than the cluster still runs, alone
+    big = {**res, "prepare": {"num_cpus": 8.0, "num_gpus": 0.0}}
+    assert plan.startable(seq, needs, [], {}, big, cap) == ["prepare"]
+    assert plan.Sizing(node_cpus=2, cluster_cpus=6).capacity["num_cpus"] == 6
+
+
 def test_pinned_train_threads_read_from_params(tmp_path):
     from pipeline.cluster.driver import pinned_train_threads
 
