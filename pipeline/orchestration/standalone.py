@@ -360,8 +360,11 @@ def time_budget_params(params: dict, time_budget: str | None, out: str | Path, d
     if time_budget is None:
         return params
     previous = read_yaml_mapping(Path(out) / PARAMS_FILE) if (Path(out) / PARAMS_FILE).is_file() else None
-    n_train = (training_images(input_dir, val_masks, float(params["train"].get("holdout_fraction") or 0.0))
-               if input_dir is not None else None)
+    n_train = None
+    if input_dir is not None:  # the folders are checked here first, naming the option, as write_project does
+        masks = check_folder(val_masks, VAL_MASKS) if val_masks is not None else None
+        n_train = training_images(check_folder(input_dir, INPUT), masks,
+                                  float(params["train"].get("holdout_fraction") or 0.0))
     return with_time_budget(params, time_budget, previous, resolve_device(device).type, n_train)
 
 

@@ -97,3 +97,5 @@ def test_distill_time_writes_the_budget_into_the_project(tmp_path, monkeypatch):
     assert yaml.safe_load((out / "params.yaml").read_text())["train"]["step_budget"] == 2400
     r = CliRunner().invoke(main, [*args[:-1], "later"])
     assert r.exit_code == 2 and "--time 'later'" in r.output
+    r = CliRunner().invoke(main, [*args, "--val-masks", str(tmp_path / "none")])  # the images are counted first
+    assert r.exit_code == 2 and "--val-masks" in r.output and "Traceback" not in r.output
