@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 
 from pipeline.runtime.errors import InputError
 
@@ -27,8 +28,6 @@ STAGE_CPUS_ENV = "GEODISTILL_STAGE_CPUS"
 
 def stage_cores() -> int:
     """The cores this stage may use: :data:`STAGE_CPUS_ENV` where a scheduler set it, else ``os.cpu_count()``."""
-    import os
-
     try:
         given = int(float(os.environ.get(STAGE_CPUS_ENV) or 0))
     except ValueError:

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 from typing import Any, Mapping
 
+from pipeline.datasets.scan import scan_inputs
 from pipeline.runtime.errors import InputError
 from pipeline.methods import STAGE_ONE, get_method
 
@@ -98,7 +99,6 @@ def training_images(input_dir: str | Path, val_masks: str | Path | None, holdout
     rule scores when there are no validation masks (:func:`pipeline.training.loop.holdout_size`).  Unreadable
     files still count: an estimate for pricing the time, not the split."""
     from pipeline.datasets.manifest import relative_id
-    from pipeline.datasets.scan import scan_inputs
     from pipeline.training.loop import holdout_size
 
     root = Path(input_dir)
