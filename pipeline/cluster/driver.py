@@ -136,10 +136,10 @@ def sizing(ray, stage_cpus: float | None, train_gpu_fraction: float, train_threa
     """What the connected Ray cluster offers (a CPU stage's default: half the largest node, at least 1)."""
     nodes = [n for n in ray.nodes() if n.get("Alive")]
     node_cpus = max((n["Resources"].get("CPU", 0.0) for n in nodes), default=1.0) or 1.0
-    gpus = float(ray.cluster_resources().get("GPU", 0.0))
-    return plan.Sizing(node_cpus=node_cpus, gpus=gpus, stage_cpus=stage_cpus or max(1.0, node_cpus // 2),
-                       train_gpu_fraction=train_gpu_fraction, train_threads=train_threads,
-                       cluster_cpus=float(ray.cluster_resources().get("CPU", node_cpus)))
+    total = ray.cluster_resources()
+    return plan.Sizing(node_cpus=node_cpus, gpus=float(total.get("GPU", 0.0)),
+                       stage_cpus=stage_cpus or max(1.0, node_cpus // 2), train_gpu_fraction=train_gpu_fraction,
+                       train_threads=train_threads, cluster_cpus=float(total.get("CPU", node_cpus)))
 
 
 def pinned_train_threads(root: Path) -> int:

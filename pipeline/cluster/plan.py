@@ -146,15 +146,16 @@ def startable(sequence: Iterable[str], needs: Mapping[str, set[str]], finished: 
     before it (a lower-priority stage that fits may pass one that does not); with nothing running, the first
     ready stage starts even when larger than the cluster.  A stage is handed to Ray only once it may run, so a
     stage ready early (a ceiling needs only the data) does not hold the cores a critical-path stage needs next."""
-    done, taken = set(finished), dict(running)
+    done, taken = set(finished), set(running)
+    used = {k: sum(float(r.get(k, 0.0)) for r in running.values()) for k in capacity}
     out: list[str] = []
     for n in sequence:
         if n in done or n in taken or not set(needs.get(n, ())) <= done:
             continue
-        used = {k: sum(float(r.get(k, 0.0)) for r in taken.values()) for k in capacity}
         if taken and any(used[k] + float(res[n].get(k, 0.0)) > float(capacity[k]) + 1e-9 for k in capacity):
             continue
-        taken[n] = res[n]
+        taken.add(n)
+        used = {k: used[k] + float(res[n].get(k, 0.0)) for k in capacity}
         out.append(n)
     return out
 
