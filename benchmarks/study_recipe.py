@@ -229,6 +229,7 @@ def main(argv=None) -> dict:
                  else build_artifacts(Path(args.workdir).resolve(), args.profile, sets, device))
     base = dict(params["train"])
     base["num_threads"] = args.threads
+    base["validate_low_res"] = True  # the study reads the whole validation curve (max_jump), half-side epochs too
     if args.epochs is not None:
         base["epochs_stage1"] = args.epochs
     data = load_study_data(artifacts, base)

@@ -314,6 +314,11 @@ class TrainParams(_Section):
                                               "train at half the side, the last at full side (a resolution schedule; "
                                               "until: plateau scores the later ones; docs/decisions.md); 0 = none",
                                         ge=0, lt=1)
+    validate_low_res: bool = _f(False, "Stage I with low_res_fraction: validate after the half-side epochs too "
+                                       "(the full validation curve, for studies). Off: no rule or selection reads "
+                                       "them -- until: plateau scores full-side epochs, a weight average or the "
+                                       "last epoch is kept -- so they are skipped and logged as NaN; the weights "
+                                       "are the same (docs/decisions.md)")
     until: Literal["epochs", "plateau"] | None = _f(
         None, "recipe part, Stage I: epochs = train epochs_stage1 epochs | plateau = stop the stable phase when "
               "the validation IoU stops improving (train.plateau_gain) or the step budget is spent, then decay "

@@ -81,6 +81,7 @@ class Settings:
     plateau_min_epochs: int = 8
     holdout_fraction: float = 0.1
     low_res_epochs: int = 0  # Stage I only
+    validate_low_res: bool = True
 
     @classmethod
     def from_params(cls, method: Method, cfg: Mapping[str, Any], selection_tau: float) -> "Settings":
@@ -104,7 +105,8 @@ class Settings:
                    until=until, low_res_epochs=low_res,
                    step_budget=int(cfg.get("step_budget") or 0), plateau_gain=float(cfg.get("plateau_gain", 0.005)),
                    plateau_min_epochs=int(cfg.get("plateau_min_epochs", 8)),
-                   holdout_fraction=float(cfg.get("holdout_fraction", 0.1)))
+                   holdout_fraction=float(cfg.get("holdout_fraction", 0.1)),
+                   validate_low_res=bool(cfg["validate_low_res"]))
 
 
 class Checkpointer(Protocol):
@@ -563,6 +565,18 @@ def _precise_bn(run: _Run) -> int:
         return recompute_bn_stats(run.model, batches)
 
 
+def validation_read(run: _Run, epoch: int) -> bool:
+    """Whether a rule reads epoch ``epoch``'s validation scores. Only a half-side epoch of Stage I can go unread
+    (``train.validate_low_res`` off): not the run's last, not the cap ``until: plateau`` scores, not the decay
+    after a stable phase cut inside the schedule, and not under a best-validation pick without a weight average."""
+    s = run.settings
+    if s.validate_low_res or epoch > s.low_res_epochs or epoch >= run.epochs:
+        return True
+    if run.until is not None and (run.until["stable_end"] is not None or epoch >= run.until["epochs"]):
+        return True
+    return run.plan.select == "best_val" and s.average_last == 0 and s.ema_decay == 0
+
+
 def _validated(run: _Run, row: dict, val: ValData | None, t0: float) -> dict:
     """``row`` with the validation scores and the seconds since ``t0`` (after precise BN, when asked)."""
     s = run.settings
@@ -620,7 +634,8 @@ def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
     """Train one epoch; its log row (sample-weighted mean terms, the starting lr, validation)."""
     t0 = time.perf_counter()
     lr_epoch = run.opt.param_groups[0]["lr"]
-    last_val = run.rows[-1]["val_iou"] if run.rows else float("nan")
+    # the last scored epoch's (half-side epochs may go unvalidated: train.validate_low_res)
+    last_val = next((r["val_iou"] for r in reversed(run.rows) if math.isfinite(r["val_iou"])), float("nan"))
     sums: dict[str, torch.Tensor] = {}
     # until plateau: the decay trains at full resolution even when the stable phase ended early
     low_res = epoch <= run.settings.low_res_epochs and (run.until is None or run.until["stable_end"] is None)
@@ -644,7 +659,7 @@ def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
         raise TrainingDiverged(f"{run.method.name} seed {run.seed}: non-finite weights after epoch {epoch}; "
                                f"no checkpoint written -- lower the learning rate or check the inputs")
     row = {**_empty_row(run, epoch), **{k: float(v) / run.n_train for k, v in sums.items()}, "lr": float(lr_epoch)}
-    return _validated(run, row, val, t0)
+    return _validated(run, row, val if validation_read(run, epoch) else None, t0)
 
 
 def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainResult:

@@ -135,3 +135,26 @@ def test_distills_summary_says_how_many_epochs_ran_at_half_the_side(tmp_path):
                                        "side), stopped at the epochs cap (train.epochs_stage1)")
     meta.write_text(json.dumps({"extra": {**extra, "low_res_epochs": 0}}))
     assert "half the side" not in training_line(tmp_path)
+
+
+def test_half_side_epochs_go_unvalidated_unless_asked_and_the_weights_are_the_same(tiny):
+    # until plateau with a weight average (progressive's parts): 3 of the 6 epochs at half the side, read by no rule
+    cfg = tiny_cfg(until="plateau", epochs_stage1=6, average_last=1, schedule="wsd", low_res_fraction=0.5)
+    data, val = load_arrays(tiny, "plain", cfg)
+    runs = {on: training.train(get_method("plain"), {**cfg, "validate_low_res": on}, data, val, 5,
+                               checkpointer=training.NoCheckpointer(), show_progress=False) for on in (False, True)}
+    fast, full = runs[False], runs[True]
+    assert fast.info["low_res_epochs"] == 3 and fast.info["epochs"] == full.info["epochs"] == 6
+    assert all(torch.equal(a, b) for a, b in zip(fast.model.state_dict().values(), full.model.state_dict().values()))
+    half = (fast.log["epoch"] <= 3).to_numpy()
+    assert fast.log.loc[half, "val_iou"].isna().all() and fast.log.loc[~half, "val_iou"].notna().all()
+    assert full.log["val_iou"].notna().all()
+    np.testing.assert_array_equal(fast.log.loc[~half, "val_iou_cal"], full.log.loc[~half, "val_iou_cal"])
+
+
+def test_a_best_validation_pick_without_an_average_still_validates_every_epoch(tiny):
+    cfg = tiny_cfg(epochs_stage1=3, low_res_fraction=0.67, validate_low_res=False)  # Plain picks its best val epoch
+    data, val = load_arrays(tiny, "plain", cfg)
+    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
+                         show_progress=False)
+    assert res.info["low_res_epochs"] == 2 and res.log["val_iou"].notna().all()
