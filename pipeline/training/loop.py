@@ -81,7 +81,7 @@ class Settings:
     plateau_min_epochs: int = 8
     holdout_fraction: float = 0.1
     low_res_epochs: int = 0  # Stage I only
-    validate_low_res: bool = True
+    validate_low_res: bool = False  # train.validate_low_res; from_params always sets it
 
     @classmethod
     def from_params(cls, method: Method, cfg: Mapping[str, Any], selection_tau: float) -> "Settings":
