@@ -72,7 +72,7 @@ def main(argv=None) -> dict:
 
     import torch
 
-    from pipeline.training.loop import TrainData, ValData
+    from pipeline.training.inputs import TrainData, ValData
 
     device = resolve_device(args.device)
     if args.threads:

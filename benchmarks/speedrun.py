@@ -22,6 +22,7 @@ from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import RECIPES
 from pipeline.profiles import load_profile
 from pipeline.training import loop as training
+from pipeline.training import schedule
 
 #: the resolution the cost is counted at
 COST_RESOLUTION = 128
@@ -49,7 +50,7 @@ CANDIDATES: dict[str, tuple[dict, str]] = {
 def run_cost(epochs: int, n_train: int, resolution: int, low_res_epochs: int = 0) -> float:
     """Training images x (side / 128)^2 of a run of ``epochs`` over ``n_train`` images at ``resolution``, its first
     ``low_res_epochs`` at 1 / LOW_RES_FACTOR of the side (``train.low_res_fraction``)."""
-    full = float(epochs - low_res_epochs) + float(low_res_epochs) / training.LOW_RES_FACTOR ** 2
+    full = float(epochs - low_res_epochs) + float(low_res_epochs) / schedule.LOW_RES_FACTOR ** 2
     return full * int(n_train) * (int(resolution) / COST_RESOLUTION) ** 2
 
 

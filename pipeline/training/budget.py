@@ -69,12 +69,13 @@ def scheduled_steps(seconds: float, full_step: float, half_step: float, cfg: Map
 
     E stable epochs, their first min(E, L) at half the side (t_h a step), the rest and the decay D(E) at full
     side (t_f): spe (min(E, L) t_h + (max(E - L, 0) + D(E)) t_f) <= ``seconds``, B = (E + D(E)) spe, so the run's
-    stable cap (:func:`pipeline.training.loop.stable_cap`) is that E.  When the epochs cap fits, the time left
+    stable cap (:func:`pipeline.training.schedule.stable_cap`) is that E.  When the epochs cap fits, the time left
     buys full-side steps on top (a later, longer ``--time`` continues the run).
 
     full_step, half_step: t_f and t_h (:func:`step_seconds`); cfg: the train section; steps_per_epoch: spe, from
     the training images (:func:`training_images`)."""
-    from pipeline.training.loop import Settings, decay_epochs
+    from pipeline.training.schedule import decay_epochs
+    from pipeline.training.settings import Settings
 
     s = Settings.from_params(get_method(STAGE_ONE), cfg, 0.5)
     spe = max(1, int(steps_per_epoch))
@@ -96,10 +97,10 @@ def scheduled_steps(seconds: float, full_step: float, half_step: float, cfg: Map
 def training_images(input_dir: str | Path, val_masks: str | Path | None, holdout_fraction: float) -> int:
     """The images Stage I of ``distill`` trains on: those under ``input_dir`` without a mask in ``val_masks``
     (matched by relative path without suffix, as the folder reader does), less the held-out share the plateau
-    rule scores when there are no validation masks (:func:`pipeline.training.loop.holdout_size`).  Unreadable
+    rule scores when there are no validation masks (:func:`pipeline.training.schedule.holdout_size`).  Unreadable
     files still count: an estimate for pricing the time, not the split."""
     from pipeline.datasets.manifest import relative_id
-    from pipeline.training.loop import holdout_size
+    from pipeline.training.schedule import holdout_size
 
     root = Path(input_dir)
     ids = {relative_id(root, f) for f in scan_inputs(root).files}
@@ -125,7 +126,7 @@ def with_time_budget(params: dict, text: str | None, previous: Mapping | None = 
     if old.get("time_budget") == text and int(old.get("step_budget") or 0) > 0:
         steps = int(old["step_budget"])
     elif float(train.get("low_res_fraction") or 0.0) > 0 and n_train:
-        from pipeline.training.loop import LOW_RES_FACTOR, steps_per_epoch
+        from pipeline.training.schedule import LOW_RES_FACTOR, steps_per_epoch
 
         full, half = step_seconds(train, res, device), step_seconds(train, max(1, res // LOW_RES_FACTOR), device)
         steps = scheduled_steps(seconds, full, half, train, steps_per_epoch(n_train, int(train["batch_size"])))

@@ -16,20 +16,22 @@ from typing import Any, Callable, Mapping, Protocol
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from pipeline import losses
-from pipeline.augment import AugmentSpec, GeometryConstants, augment_batch, hard_region, soft_region
+from pipeline.augment import GeometryConstants, augment_batch, soft_region
 from pipeline.runtime.device import autocast, autocast_dtype
-from pipeline.stats import ONE_SIDED_95_Z
 from pipeline.runtime.errors import InputError, TrainingDiverged
 from pipeline.evaluation.inference import predict_probs
-from pipeline.methods import Method, Plan, method_epochs, method_lr, resolve_plan
+from pipeline.methods import Method, Plan, resolve_plan
 from pipeline.metrics import boundary_f1, image_ious
 from pipeline.model import TinyUNet, model_options, recompute_bn_stats
 from pipeline.params import PAPER
 from pipeline.runtime.progress import progress
+from pipeline.training.averaging import average_update, ema_update, in_average
 from pipeline.training.inputs import TrainData, ValData
+from pipeline.training.schedule import (PLATEAU_Z, decay_epochs, decay_steps, holdout, low_resolution, lr_lambda,
+                                        over_budget, plateau_reached, stable_cap, steps_per_epoch, until_lambda)
+from pipeline.training.settings import Settings
 from pipeline.training.streaming import LazyRows, RowSource, prefetch, spill_rows
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 
@@ -44,69 +46,6 @@ TIMING_COLUMNS = ("epoch", "seconds")
 #: params that only bound a ``train.until: plateau`` run: a run under another budget resumes the same state
 BUDGET_PARAMS = ("train.step_budget", "train.time_budget")
 STATE_VERSION = 1
-
-
-def loss_constants(cfg: Mapping[str, Any]) -> losses.LossConstants:
-    """The losses' constants from the train params."""
-    return losses.LossConstants(dice_weight=float(cfg["dice_weight"]), max_weight=float(cfg["pos_weight_max"]),
-                                sdf_band=float(cfg["sdf_band"]), sdf_base_weight=float(cfg["sdf_base_weight"]),
-                                area_eps=float(cfg["area_eps"]), eps=float(cfg["loss_eps"]))
-
-
-@dataclasses.dataclass(frozen=True)
-class Settings:
-    """The ``train.*`` values one run uses, read once from the params (no defaults here)."""
-
-    epochs: int
-    lr: float
-    batch_size: int
-    weight_decay: float
-    schedule: str
-    precision: str
-    channels_last: bool
-    hflip: bool
-    num_threads: int
-    bf1_tolerance: float
-    constants: losses.LossConstants
-    selection_tau: float  # calibrate.fixed_tau
-    precise_bn: bool = False
-    warmup_epochs: int = 0
-    average_last: int = 0
-    decay_fraction: float = 0.2
-    augment: AugmentSpec | None = None  # None: off
-    ema_decay: float = 0.0
-    until: str = "epochs"  # Stage I only
-    step_budget: int = 0
-    plateau_gain: float = 0.005
-    plateau_min_epochs: int = 8
-    holdout_fraction: float = 0.1
-    low_res_epochs: int = 0  # Stage I only
-    validate_low_res: bool = False  # train.validate_low_res; from_params always sets it
-
-    @classmethod
-    def from_params(cls, method: Method, cfg: Mapping[str, Any], selection_tau: float) -> "Settings":
-        """Read and check the train section for ``method`` (epochs and lr per the method table)."""
-        batch_size = int(cfg["batch_size"])
-        if batch_size < 1:
-            raise InputError(f"params: train.batch_size={batch_size} must be >= 1")
-        low_res = (low_res_epochs(method_epochs(method, cfg), float(cfg.get("low_res_fraction") or 0.0))
-                   if method.stage == 1 else 0)
-        until = str(cfg.get("until") or "epochs") if method.stage == 1 else "epochs"
-        return cls(epochs=method_epochs(method, cfg), lr=method_lr(method, cfg), batch_size=batch_size,
-                   weight_decay=float(cfg["weight_decay"]), schedule=str(cfg["schedule"]),
-                   precision=str(cfg["precision"]), channels_last=bool(cfg["channels_last"]),
-                   hflip=bool(cfg["augment_hflip"]), num_threads=int(cfg["num_threads"]),
-                   bf1_tolerance=float(cfg["val_bf1_tolerance"]), constants=loss_constants(cfg),
-                   selection_tau=float(selection_tau),
-                   precise_bn=bool(cfg["precise_bn"]), warmup_epochs=int(cfg["warmup_epochs"]),
-                   average_last=int(cfg["average_last"]), decay_fraction=float(cfg.get("decay_fraction", 0.2)),
-                   augment=AugmentSpec.from_params(cfg["augmentation"]) if cfg.get("augment") else None,
-                   ema_decay=float(cfg.get("ema_decay") or 0.0),
-                   until=until, low_res_epochs=low_res,
-                   step_budget=int(cfg.get("step_budget") or 0), plateau_gain=float(cfg.get("plateau_gain", 0.005)),
-                   plateau_min_epochs=int(cfg.get("plateau_min_epochs", 8)),
-                   holdout_fraction=float(cfg.get("holdout_fraction", 0.1)),
-                   validate_low_res=bool(cfg["validate_low_res"]))
 
 
 class Checkpointer(Protocol):
@@ -138,27 +77,6 @@ class MemoryCheckpointer:
 
     def save(self, state: dict) -> None:
         self.state = copy.deepcopy(state)
-
-
-def _lr_lambda(schedule: str, total_steps: int, warmup_steps: int = 0, decay_steps: int = 0) -> Callable[[int], float]:
-    """Learning-rate factor of step ``step`` (0-based): ``constant`` 1, ``cosine`` 0.5 (1 + cos(pi min(step, T) / T)),
-    or ``wsd`` min(1, max(0, T - step) / D) with T = ``total_steps``, D = ``decay_steps``; times the warm-up
-    min(1, (step + 1) / W) when W = ``warmup_steps`` > 0."""
-    d = max(int(decay_steps), 1)
-    bases = {"constant": lambda step: 1.0,
-             "cosine": lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1))),
-             "wsd": lambda step: min(1.0, max(0, total_steps - step) / d)}
-    if schedule not in bases:
-        raise InputError(f"params: train.schedule={schedule!r}: expected cosine, constant or wsd")
-    base = bases[schedule]
-    if warmup_steps <= 0:
-        return base
-    return lambda step: min(1.0, (step + 1) / warmup_steps) * base(step)
-
-
-def decay_steps(total_steps: int, fraction: float) -> int:
-    """Optimizer steps in the decay phase of the ``wsd`` schedule: ``fraction`` of ``total_steps``, at least 1."""
-    return max(1, int(round(total_steps * fraction)))
 
 
 def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: Mapping | None = None):
@@ -231,29 +149,6 @@ def _augmented_batch(run: _Run, idx: np.ndarray, epoch: int) -> dict[str, torch.
     dev = {"image": torch.from_numpy(images).to(run.device),
            **{k: torch.from_numpy(np.ascontiguousarray(v)).to(run.device) for k, v in targets.items()}}
     return _batch(dev, torch.arange(len(idx), device=run.device), None, run.settings.channels_last)
-
-
-#: the resolution schedule (``train.low_res_fraction``) trains its first epochs at 1 / this of the side
-LOW_RES_FACTOR = 2
-
-
-def low_res_epochs(epochs: int, fraction: float) -> int:
-    """The resolution schedule's epochs at 1/LOW_RES_FACTOR of the side: min(round(``fraction`` E), E - 1), so the
-    last epoch trains at full side."""
-    return max(0, min(int(round(float(fraction) * int(epochs))), int(epochs) - 1))
-
-
-def low_resolution(b: Mapping[str, torch.Tensor], soft: bool = False, factor: int = LOW_RES_FACTOR
-                   ) -> dict[str, torch.Tensor]:
-    """Batch ``b`` at 1/``factor`` of its side: the image and, with ``soft`` (the agreement map A of
-    ``train.soft_targets``), the target by area mean; a hard voted mask M^T (eq:majority-vote) as [area mean >= 1/2],
-    so eq:raw-loss keeps a binary target; ``area``, ``gate`` kept."""
-    out = dict(b)
-    size = (b["x"].shape[-2] // factor, b["x"].shape[-1] // factor)
-    out["x"] = F.adaptive_avg_pool2d(b["x"], size)
-    m = F.adaptive_avg_pool2d(b["mask"], size)
-    out["mask"] = m if soft else (m >= 0.5).to(m.dtype)
-    return out
 
 
 def _has_val(val: ValData | None) -> bool:
@@ -338,11 +233,6 @@ class _Run:
         return self.until["epochs"] if self.until is not None else self.settings.epochs
 
 
-def steps_per_epoch(n_train: int, batch_size: int) -> int:
-    """Optimizer steps of one epoch: max(1, ceil(n / batch)), the last batch short."""
-    return max(1, math.ceil(int(n_train) / int(batch_size)))
-
-
 def _cpu_state(model) -> dict:
     return {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}
 
@@ -380,55 +270,11 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
     total = s.epochs * run.steps_per_epoch
     if s.until == "plateau":
         run.until = {"stable_end": None, "epochs": stable_cap(s, run.steps_per_epoch), "reason": None, "scores": []}
-        run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _until_lambda(run))
+        run.sched = torch.optim.lr_scheduler.LambdaLR(opt, until_lambda(run.until, run.steps_per_epoch, s.warmup_epochs * run.steps_per_epoch))
     else:
-        run.sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(
+        run.sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda(
             s.schedule, total, s.warmup_epochs * run.steps_per_epoch, decay_steps(total, s.decay_fraction)))
     return run
-
-
-def decay_epochs(stable: int, fraction: float) -> int:
-    """Decay epochs after E = ``stable`` stable ones, ``fraction`` f of the whole run: max(1, round(E f / (1 - f)))."""
-    return max(1, int(round(stable * fraction / (1.0 - fraction))))
-
-
-def stable_cap(s: Settings, steps_per_epoch: int) -> int:
-    """The most stable epochs E (at least 1) with E + D(E) <= ``epochs_stage1`` and within the step budget."""
-    fits = [e for e in range(1, s.epochs + 1)
-            if e + decay_epochs(e, s.decay_fraction) <= s.epochs and not _over_budget(s, e, steps_per_epoch)]
-    return max(fits, default=1)
-
-
-def _over_budget(s: Settings, stable: int, steps_per_epoch: int) -> bool:
-    """Whether ``stable`` stable epochs and their decay exceed ``train.step_budget`` (never without one)."""
-    return bool(s.step_budget) and (stable + decay_epochs(stable, s.decay_fraction)) * steps_per_epoch > s.step_budget
-
-
-#: the plateau rule stops only when the last doubling's gain is surely small: its one-sided 95 % bound
-PLATEAU_Z = ONE_SIDED_95_Z
-
-
-def plateau_reached(scores: list[float], gain: float, min_epochs: int) -> bool:
-    """``train.until: plateau``'s rule (docs/student.md): after E >= ``min_epochs`` epochs, with a = scores of
-    [1, E/2] and b = those of (E/2, E], stop when mean(b) - mean(a) + z sqrt(var(a)/|a| + var(b)/|b|) < ``gain``
-    (the upper one-sided 95 % bound of the doubling's gain; docs/decisions.md)."""
-    e = len(scores)
-    if e < max(4, int(min_epochs)) or not all(math.isfinite(v) for v in scores):
-        return False
-    a, b = np.asarray(scores[:e // 2]), np.asarray(scores[e // 2:])
-    se = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
-    return float(b.mean() - a.mean()) + PLATEAU_Z * se < gain
-
-
-def _until_lambda(run: _Run) -> Callable[[int], float]:
-    """The learning-rate factor under ``train.until: plateau``: warm-up, 1, then linear to 0 over the decay."""
-    spe, warm = run.steps_per_epoch, run.settings.warmup_epochs * run.steps_per_epoch
-
-    def factor(step: int) -> float:  # the wsd schedule once the stable phase has ended: its decay ends the run
-        end, total = run.until["stable_end"], run.until["epochs"] * spe
-        return _lr_lambda("constant" if end is None else "wsd", total, warm, total - (end or 0) * spe)(step)
-
-    return factor
 
 
 def _stop_stable(run: _Run, epoch: int, row: Mapping) -> None:
@@ -445,7 +291,7 @@ def _stop_stable(run: _Run, epoch: int, row: Mapping) -> None:
     if plateau_reached(u["scores"], s.plateau_gain, s.plateau_min_epochs):
         u["reason"] = f"plateau: the last doubling gained less than {s.plateau_gain:g} validation IoU"
     elif epoch >= u["epochs"]:
-        budget = _over_budget(s, epoch + 1, run.steps_per_epoch)
+        budget = over_budget(s, epoch + 1, run.steps_per_epoch)
         u["reason"] = "the step budget (train.step_budget)" if budget else "the epochs cap (train.epochs_stage1)"
     else:
         return
@@ -532,21 +378,10 @@ def select(best: dict | None, plan: Plan, val: ValData | None, epoch: int, row: 
     return best
 
 
-def average_update(avg: dict | None, state: Mapping[str, torch.Tensor]) -> dict:
-    """The running mean ``{"n", "state"}`` with ``state`` folded in, m + (w - m) / (n + 1) (non-float: the newest)."""
-    new = {k: v.detach().to("cpu", copy=True) for k, v in state.items()}
-    if avg is None:
-        return {"n": 1, "state": new}
-    n, old = int(avg["n"]) + 1, avg["state"]
-    return {"n": n, "state": {k: old[k] + (v - old[k]) / n if v.is_floating_point() else v for k, v in new.items()}}
-
-
 def _average(run: _Run, epoch: int) -> None:
     """Fold the weights after ``epoch`` into the mean when it is one of the last ``train.average_last``."""
-    k = run.settings.average_last
-    if run.until is not None and run.until["stable_end"] is None:
-        return  # until plateau: only the decay's epochs are averaged (the run's end is not known before)
-    if k > 0 and epoch > run.epochs - k:
+    if in_average(epoch, run.epochs, run.settings.average_last,
+                  run.until is None or run.until["stable_end"] is not None):
         run.avg = average_update(run.avg, run.model.state_dict())
 
 
@@ -604,7 +439,7 @@ def _step(run: _Run, b: Mapping[str, torch.Tensor], epoch: int, step: int) -> di
     run.opt.step()
     run.sched.step()
     if run.ema is not None:  # e <- d e + (1 - d) w after every step
-        torch._foreach_lerp_(run.ema, [p.detach() for p in run.model.parameters()], 1.0 - run.settings.ema_decay)
+        ema_update(run.ema, run.model.parameters(), run.settings.ema_decay)
     return terms
 
 
@@ -700,8 +535,54 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
           checkpointer: Checkpointer, init_state: Mapping | None = None, device="cpu",
           callback: Callable[[int, dict], None] | None = None, show_progress: bool = True,
           selection_tau: float = PAPER.calibrate.fixed_tau) -> TrainResult:
-    """Train one (method, seed) run on ``data`` (``val`` serves selection only); the selected model and its log.
-    ``init_state``: the Stage-I mask path of warm-started methods; ``callback(epoch, row)``: after each saved epoch."""
+    """Train one (method, seed) run and return the selected model and its log.
+
+    Stage I minimises eq:raw-loss on the voted masks; Stage II eq:refine-loss with the reliability gate
+    (eq:reliability-gate) on the geometry terms; the other methods follow their row of the method table
+    (:func:`pipeline.methods.resolve_plan`).  Reference masks, when given, only select the checkpoint (and the
+    ``until: plateau`` stop): they never enter the loss of an annotation-free method.  Every epoch's state goes
+    to ``checkpointer``; a run with the same key resumes after its last saved epoch and gives the same weights.
+
+    Parameters
+    ----------
+    method : pipeline.methods.Method
+        The method (its stage, loss terms, epochs, learning rate and selection rule).
+    cfg : Mapping
+        The ``train`` params section (validated through the schema here: :class:`Settings`).
+    data : TrainData
+        The training images and their targets.
+    val : ValData or None
+        Images with reference masks for checkpoint selection; None or empty: the method's rule without them
+        (``until: plateau`` then scores held-out pseudo-labelled images, :func:`schedule.holdout`).
+    seed : int
+        Seeds the model's initialisation, the batch order and the augmentation.
+    checkpointer : Checkpointer
+        Where the per-epoch resume state is saved and loaded (:class:`NoCheckpointer`: none).
+    init_state : Mapping or None
+        The Stage-I mask path that warm-started methods start from (``method.init == "stage1"``).
+    device : str or torch.device
+        Where to train (``"cpu"``, ``"cuda"``).
+    callback : callable or None
+        ``callback(epoch, row)`` after each saved epoch, with the epoch's log row.
+    show_progress : bool
+        Show a progress bar of the optimizer steps.
+    selection_tau : float
+        The threshold of eq:inference-mask at which validation scores select checkpoints (``calibrate.fixed_tau``).
+
+    Returns
+    -------
+    TrainResult
+        The selected (or weight-averaged) model on the CPU in eval mode, the log (one row per epoch,
+        :data:`LOG_COLUMNS`), the selected epoch, what was selected and why, and the epochs' wall times.
+
+    Raises
+    ------
+    TrainingDiverged
+        A non-finite loss or non-finite weights; nothing of that epoch is saved.
+    InputError
+        A params value the schema refuses, or a warm-started method without ``init_state`` (or with one that
+        does not match ``train.channels``).
+    """
     s = Settings.from_params(method, cfg, selection_tau)
     device = torch.device(device)
     if s.num_threads > 0:
@@ -715,26 +596,6 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
     finally:
         if run.scratch is not None:
             run.scratch.cleanup()
-
-
-def holdout_size(n: int, fraction: float) -> int:
-    """Images :func:`holdout` takes from ``n``: k = min(n // 2, max(2, round(``fraction`` n))), 0 below 8."""
-    return 0 if n < 8 else min(n // 2, max(2, int(round(fraction * n))))
-
-
-def holdout(data: TrainData, fraction: float) -> tuple[TrainData, ValData | None]:
-    """(the rest, the held-out images as ValData scored against their vote): ``fraction`` of ``data``, evenly
-    spaced, at least 2 and at most half; nothing held out below 8 images."""
-    n = len(data)
-    k = holdout_size(n, fraction)
-    if not k:
-        return data, None
-    held = np.unique(np.linspace(0, n - 1, k).round().astype(int))
-    rest = np.setdiff1d(np.arange(n), held)
-    val = ValData([f"holdout:{data.image_ids[i]}" for i in held], np.asarray(data.images[held]),
-                  hard_region(np.asarray(data.mask[held])))
-    return data.subset(rest, stats={**data.stats, "plateau_scored_on": f"{len(held)} held-out pseudo-labelled "
-                                   "training images against their vote (no validation masks)"}), val
 
 
 def _train_run(run: _Run, val: ValData | None, checkpointer: Checkpointer,

@@ -7,14 +7,14 @@ import json
 import pytest
 
 from benchmarks import speedrun
-from pipeline.training import loop as training
+from pipeline.training import schedule
 
 
 def test_cost_and_pass_rule():
     assert speedrun.run_cost(400, 270, 128) == 108_000 and speedrun.run_cost(100, 270, 64) == 6_750
     # 160 epochs at half the side cost 40: the resolution schedule's candidate matches a quarter of the baseline
     assert speedrun.run_cost(220, 270, 64, low_res_epochs=160) == 6_750
-    assert training.low_res_epochs(220, speedrun.CANDIDATES["half_res_first"][0]["low_res_fraction"]) == 160
+    assert schedule.low_res_epochs(220, speedrun.CANDIDATES["half_res_first"][0]["low_res_fraction"]) == 160
     runs = [{"candidate": "baseline", "seed": s, "V": v, "V_05": v, "cost": 100.0} for s, v in ((1, 0.5), (2, 0.6))]
     runs += [{"candidate": "lr4", "seed": s, "V": v, "V_05": v, "cost": 25.0} for s, v in ((1, 0.56), (2, 0.56))]
     runs += [{"candidate": "lr2", "seed": s, "V": v, "V_05": v, "cost": 25.0} for s, v in ((1, 0.5), (2, 0.54))]

@@ -46,27 +46,27 @@ def test_the_paper_recipe_is_the_published_behaviour():
     host has bf16, no warm-up (the schedule's own function), the method's selection, the argmax tau, no
     weight average, the voted mask, the fixed length, the paper's rate and its resolution throughout."""
     from pipeline.params import RECIPES
-    from pipeline.training.loop import _lr_lambda
+    from pipeline.training.schedule import lr_lambda
 
     assert RECIPES["paper"] == {"train": {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4,
                                           "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine",
                                           "augment": False, "ema_decay": 0.0, "soft_targets": False,
                                           "until": "epochs", "lr_scale": 1.0, "low_res_fraction": 0.0},
                                 "calibrate": {"tau_rule": "argmax"}}
-    f0, f = _lr_lambda("cosine", 100), _lr_lambda("cosine", 100, 0)
+    f0, f = lr_lambda("cosine", 100), lr_lambda("cosine", 100, 0)
     assert [f0(s) for s in range(0, 101, 7)] == [f(s) for s in range(0, 101, 7)]
 
 
 def test_warmup_scales_the_first_epochs_then_follows_the_schedule():
-    from pipeline.training.loop import _lr_lambda
+    from pipeline.training.schedule import lr_lambda
 
-    f, base = _lr_lambda("cosine", 100, 10), _lr_lambda("cosine", 100)
+    f, base = lr_lambda("cosine", 100, 10), lr_lambda("cosine", 100)
     assert f(0) == pytest.approx(0.1 * base(0)) and f(4) == pytest.approx(0.5 * base(4))
     assert all(f(s) == base(s) for s in range(9, 100))
 
 
 def test_average_update_is_the_running_mean():
-    from pipeline.training.loop import average_update
+    from pipeline.training.averaging import average_update
 
     states = [{"w": torch.tensor([float(i), 2.0 * i]), "n": torch.tensor(i)} for i in range(1, 5)]
     avg = None

@@ -15,6 +15,7 @@ import pytest
 from pipeline.augment import (DEFAULT_SPEC, GeometryConstants, augment_batch, augment_sample, dihedral, hard_region, soft_region,
                               photometric)
 from pipeline.geometry import area_ratio, sdf_target, skeleton_target
+from pipeline.training.settings import Settings
 
 
 def _mask(h=40, w=40, seed=0) -> np.ndarray:
@@ -155,13 +156,13 @@ def test_only_the_strong_recipe_augments_and_the_others_keep_their_values():
 
 
 def test_wsd_schedule_is_flat_then_decays_linearly_to_zero():
-    from pipeline.training.loop import _lr_lambda, decay_steps
+    from pipeline.training.schedule import decay_steps, lr_lambda
 
-    f = _lr_lambda("wsd", 100, 10, decay_steps(100, 0.2))
+    f = lr_lambda("wsd", 100, 10, decay_steps(100, 0.2))
     assert f(0) == pytest.approx(0.1) and f(9) == 1.0 and f(50) == 1.0 and f(80) == 1.0
     assert f(90) == pytest.approx(0.5) and f(99) == pytest.approx(0.05) and f(100) == 0.0
     # the stable phase does not depend on the total: a longer run is the shorter one up to its decay
-    g = _lr_lambda("wsd", 200, 10, 20)
+    g = lr_lambda("wsd", 200, 10, 20)
     assert [f(s) for s in range(81)] == [g(s) for s in range(81)]
 
 
@@ -187,7 +188,7 @@ def test_augmented_training_is_seeded_and_differs_from_the_plain_batches(tiny):
     data = dataclasses.replace(data, mask=masks, images=np.asarray(data.images),
                                sdf=np.stack([sdf_target(x) for x in masks]),
                                skeleton=np.stack([skeleton_target(x) for x in masks]))
-    s = training.Settings.from_params(m, cfg, 0.5)
+    s = Settings.from_params(m, cfg, 0.5)
     run = training._setup(m, cfg, s, training.resolve_plan(m, cfg, None), data, 7, init, torch.device("cpu"))
     b = training._augmented_batch(run, np.arange(len(data)), 1)
     for i in range(len(data)):

@@ -46,7 +46,8 @@ def test_half_side_epochs_are_priced_at_their_own_step_time():
     steps an epoch, 100 s buy E = 100 stable epochs and D = 25 decay epochs: 2 (100 x 0.25 + 25 x 1) = 100 s,
     so 250 steps where pricing every step at full side gave 100 (a run of 40 s)."""
     from pipeline.methods import STAGE_ONE, get_method
-    from pipeline.training.loop import Settings, stable_cap
+    from pipeline.training.schedule import stable_cap
+    from pipeline.training.settings import Settings
 
     train = load_profile("distill")["train"]
     assert budget.scheduled_steps(100, 1.0, 0.25, train, 2) == 250

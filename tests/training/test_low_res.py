@@ -10,21 +10,23 @@ from pipeline.methods import get_method
 from pipeline.runtime.errors import InputError
 from pipeline.training import loop as training
 from tests.builders.training import load_arrays, tiny_cfg
+from pipeline.training import schedule
+from pipeline.training.settings import Settings
 
 
 def test_a_batch_at_half_the_side_keeps_a_hard_mask_hard():
     x = torch.arange(16, dtype=torch.float32).view(1, 1, 4, 4).expand(1, 3, 4, 4) / 16
     mask = torch.tensor([[1, 1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 1], [0, 0, 0, 1.0]]).view(1, 1, 4, 4)
     b = {"x": x, "mask": mask, "area": torch.tensor([0.4]), "gate": torch.tensor([1.0])}
-    low = training.low_resolution(b)
+    low = schedule.low_resolution(b)
     assert low["x"].shape == (1, 3, 2, 2) and low["x"][0, 0, 0, 0] == pytest.approx((0 + 1 + 4 + 5) / 64)
     # quarters hold 3, 0, 0 and 3 of 4 foreground pixels: [3/4 >= 1/2]
     assert low["mask"].view(-1).tolist() == [1.0, 0.0, 0.0, 1.0]
     assert low["area"] is b["area"] and low["gate"] is b["gate"] and b["x"].shape[-1] == 4  # b is not changed
-    soft = training.low_resolution({**b, "mask": mask * 0.5}, soft=True)  # an agreement map stays soft: its area mean
+    soft = schedule.low_resolution({**b, "mask": mask * 0.5}, soft=True)  # an agreement map stays soft: its area mean
     assert soft["mask"].view(-1).tolist() == [0.375, 0.0, 0.0, 0.375]
     # soft by its type, not by its values: an agreement map whose pixels happen to be 0 or 1 is averaged too
-    assert training.low_resolution(b, soft=True)["mask"].view(-1).tolist() == [0.75, 0.0, 0.0, 0.75]
+    assert schedule.low_resolution(b, soft=True)["mask"].view(-1).tolist() == [0.75, 0.0, 0.0, 0.75]
 
 
 def test_a_soft_target_run_trains_its_half_side_epochs_on_the_averaged_map(tiny, monkeypatch):
@@ -61,14 +63,14 @@ def test_the_first_epochs_train_at_half_the_side_then_full(tiny, monkeypatch):
     assert {e: s for e, s, _ in seen} == {1: side // 2, 2: side // 2, 3: side}
     assert all(s == m for _, s, m in seen) and len(res.log) == 3 and res.info["low_res_epochs"] == 2
     # Stage II keeps its resolution: the part is Stage I's
-    s2 = training.Settings.from_params(get_method("geodistill"), cfg, 0.5)
-    assert s2.low_res_epochs == 0 and training.Settings.from_params(get_method("plain"), cfg, 0.5).low_res_epochs == 2
+    s2 = Settings.from_params(get_method("geodistill"), cfg, 0.5)
+    assert s2.low_res_epochs == 0 and Settings.from_params(get_method("plain"), cfg, 0.5).low_res_epochs == 2
 
 
 def test_the_schedule_scales_with_the_cap_and_keeps_the_last_epoch_at_full_side():
     from pipeline.profiles import load_profile
 
-    assert [training.low_res_epochs(e, f) for e, f in ((220, 8 / 11), (40, 0.5), (2, 0.9), (1, 0.5), (10, 0))] \
+    assert [schedule.low_res_epochs(e, f) for e, f in ((220, 8 / 11), (40, 0.5), (2, 0.9), (1, 0.5), (10, 0))] \
         == [160, 20, 1, 0, 0]
     for bad in ("1", "-0.1"):
         with pytest.raises(InputError, match="low_res_fraction"):

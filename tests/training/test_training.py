@@ -21,7 +21,8 @@ from pipeline.methods import SELECTION_TAU_KEY
 from pipeline.params import load_params
 from pipeline.training.streaming import spill_rows
 from tests.builders.training import (REPO, assert_same_state, build_tiny_artifacts, clone_state, load_arrays, shape_mask,
-                               tiny_cfg, train_cli, train_params_file)
+                                     tiny_cfg, train_cli, train_params_file)
+from pipeline.training.settings import loss_constants
 
 
 def _run(method_name, art, cfg, seed=42, init_state=None, resume_dir=None, checkpointer=None, **kw):
@@ -161,7 +162,7 @@ def test_training_loss_is_the_losses_module_objective(tiny, method):
         out = model.forward_train(x)
     gates = torch.from_numpy(data.gate)
     weights = resolve_plan(m, cfg).weights
-    ref = losses.refine_loss(out, targets, gates, weights, training.loss_constants(cfg))
+    ref = losses.refine_loss(out, targets, gates, weights, loss_constants(cfg))
     for k, v in ref.items():
         assert row[k] == pytest.approx(v.item(), rel=1e-5), k
     assert row["raw"] == pytest.approx(losses.raw_loss(out["mask"], targets["mask"]).item(), rel=1e-5)
@@ -174,8 +175,10 @@ def test_training_loss_is_the_losses_module_objective(tiny, method):
                                            rel=1e-5)
 
 
-def test_nan_loss_raises_training_diverged(tiny, tmp_path):
-    cfg = tiny_cfg(epochs_stage1=1, lr_stage1=float("inf"), epochs_stage2=1)
+def test_nan_loss_raises_training_diverged(tiny, tmp_path, monkeypatch):
+    # an infinite learning rate, which the schema refuses in params: the first step makes the weights inf
+    monkeypatch.setattr("pipeline.training.settings.method_lr", lambda method, cfg: float("inf"))
+    cfg = tiny_cfg(epochs_stage1=1, epochs_stage2=1)
     with pytest.raises(TrainingDiverged, match="non-finite loss at epoch 1"):
         _run("plain", tiny, cfg, resume_dir=tmp_path / "nan")
     assert not (tmp_path / "nan" / "state.pt").exists()

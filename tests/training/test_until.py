@@ -10,29 +10,31 @@ import torch
 from pipeline.training import loop as training
 from pipeline.methods import get_method
 from tests.builders.training import assert_same_state, clone_state, load_arrays, tiny_cfg
+from pipeline.training import schedule
+from pipeline.training.settings import Settings
 
 
 def test_plateau_rule_is_a_doubling_that_gains_too_little():
     rising = [0.1 * i for i in range(1, 9)]
-    assert not training.plateau_reached(rising, 0.005, 4)
+    assert not schedule.plateau_reached(rising, 0.005, 4)
     flat = [0.62, 0.621, 0.619, 0.62, 0.62, 0.619, 0.621, 0.6205]  # gain +0.0001, its 95 % bound +0.0013
-    assert training.plateau_reached(flat, 0.005, 4) and not training.plateau_reached(flat, 0.001, 4)
-    assert not training.plateau_reached(flat[:3], 0.005, 4)  # too early to tell
-    assert not training.plateau_reached([float("nan")] * 8, 0.005, 4)  # nothing scored: no stop
+    assert schedule.plateau_reached(flat, 0.005, 4) and not schedule.plateau_reached(flat, 0.001, 4)
+    assert not schedule.plateau_reached(flat[:3], 0.005, 4)  # too early to tell
+    assert not schedule.plateau_reached([float("nan")] * 8, 0.005, 4)  # nothing scored: no stop
     # 64^2 Plain runs' stable phases (reduced profile): the best of each half (seed 42, an early spike at epoch 8)
     # and the mean of each half (seed 2026, 4 noisy epochs a side) both called these a plateau, yet the decayed
     # weights gained +0.05 to +0.08 within two epochs; the noise (about 0.03 an epoch) keeps the bound above 0.005
     spiky = [0.264, 0.322, 0.338, 0.341, 0.338, 0.394, 0.374, 0.437, 0.411, 0.357, 0.384, 0.352, 0.373, 0.379,
              0.396, 0.439]
     early = [0.274, 0.313, 0.329, 0.326, 0.276, 0.317, 0.347, 0.307]
-    assert not training.plateau_reached(spiky, 0.005, 8) and not training.plateau_reached(early, 0.005, 8)
+    assert not schedule.plateau_reached(spiky, 0.005, 8) and not schedule.plateau_reached(early, 0.005, 8)
 
 
 def test_stable_cap_fits_the_decay_into_the_budget():
-    s = training.Settings.from_params(get_method("plain"), tiny_cfg(epochs_stage1=100, step_budget=500, until="plateau",
+    s = Settings.from_params(get_method("plain"), tiny_cfg(epochs_stage1=100, step_budget=500, until="plateau",
                                                                       decay_fraction=0.2), 0.5)
-    assert training.stable_cap(s, 10) == 40 and training.decay_epochs(40, 0.2) == 10  # 50 epochs = 500 steps
-    assert training.stable_cap(dataclasses.replace(s, step_budget=0), 10) == 80  # the epochs cap alone: 80 + 20
+    assert schedule.stable_cap(s, 10) == 40 and schedule.decay_epochs(40, 0.2) == 10  # 50 epochs = 500 steps
+    assert schedule.stable_cap(dataclasses.replace(s, step_budget=0), 10) == 80  # the epochs cap alone: 80 + 20
 
 
 def _run(tiny, checkpointer=None, val=True, **over):
@@ -52,28 +54,32 @@ def test_stops_at_the_plateau_then_decays(tiny):
 
     run = SimpleNamespace(steps_per_epoch=2, settings=SimpleNamespace(warmup_epochs=1),
                           until={"stable_end": None, "epochs": 40})
-    factor = training._until_lambda(run)
+    factor = schedule.until_lambda(run.until, run.steps_per_epoch, run.settings.warmup_epochs * run.steps_per_epoch)
     assert [factor(i) for i in (0, 1, 5)] == [0.5, 1.0, 1.0]  # warm-up, then the stable rate
     run.until.update(stable_end=2, epochs=3)  # stopped after epoch 2: one decay epoch, linear to 0
     assert [factor(i) for i in (3, 4, 5, 6)] == [1.0, 1.0, 0.5, 0.0]
 
 
+#: plateau_min_epochs past any tiny run: the rule never fires, the budget stops the run
+NEVER = 10**6
+
+
 def test_a_stop_at_the_plateau_is_not_resumed_under_another_rule(tiny):
     ckpt = training.MemoryCheckpointer()
     assert _run(tiny, ckpt, plateau_min_epochs=2, plateau_gain=1.0).info["stopped"].startswith("plateau")
-    other = _run(tiny, ckpt, plateau_gain=-1.0, step_budget=8)  # another plateau_gain: trained, not the saved stop
+    other = _run(tiny, ckpt, plateau_min_epochs=NEVER, step_budget=8)  # another rule: trained, not the saved stop
     assert other.info["stopped"].startswith("the step budget") and other.info["steps_run"] == 8
 
 
 def test_a_budget_stops_it_and_a_larger_one_continues_the_saved_run(tiny):
     ckpt = training.MemoryCheckpointer()
-    short = _run(tiny, ckpt, plateau_gain=-1.0, step_budget=8)  # never a plateau: the budget binds
+    short = _run(tiny, ckpt, plateau_min_epochs=NEVER, step_budget=8)  # never a plateau: the budget binds
     assert short.info["stopped"].startswith("the step budget") and short.info["steps_run"] == 8
     assert short.info["stable_epochs"] == 3
-    again = _run(tiny, ckpt, plateau_gain=-1.0, step_budget=8)  # a rerun: the finished state, no training
+    again = _run(tiny, ckpt, plateau_min_epochs=NEVER, step_budget=8)  # a rerun: the finished state, no training
     assert_same_state(clone_state(again.model), clone_state(short.model))
-    longer = _run(tiny, ckpt, plateau_gain=-1.0, step_budget=16)  # continues the stable phase from epoch 3
-    fresh = _run(tiny, None, plateau_gain=-1.0, step_budget=16)
+    longer = _run(tiny, ckpt, plateau_min_epochs=NEVER, step_budget=16)  # continues the stable phase from epoch 3
+    fresh = _run(tiny, None, plateau_min_epochs=NEVER, step_budget=16)
     assert longer.info["steps_run"] == fresh.info["steps_run"] == 16 and longer.info["stable_epochs"] == 6
     assert_same_state(clone_state(longer.model), clone_state(fresh.model))
     assert not all(torch.equal(a, b) for a, b in zip(longer.model.state_dict().values(),
@@ -83,14 +89,14 @@ def test_a_budget_stops_it_and_a_larger_one_continues_the_saved_run(tiny):
 def test_without_validation_masks_it_scores_held_out_pseudo_labels(tiny):
     cfg = tiny_cfg(until="plateau")
     data, _ = load_arrays(tiny, "plain", cfg)
-    rest, val = training.holdout(data, 0.25)
+    rest, val = schedule.holdout(data, 0.25)
     assert len(val) == 2 and len(rest) == len(data) - 2
     assert not set(val.image_ids) & {f"holdout:{i}" for i in rest.image_ids}
     assert val.masks.dtype == bool and "against their vote" in rest.stats["plateau_scored_on"]
     res = _run(tiny, val=False, plateau_min_epochs=2, plateau_gain=1.0)
     assert res.info["stopped"].startswith("plateau") and "against their vote" in res.info["plateau_scored_on"]
     assert res.log["val_iou"].isna().all()  # the held-out pseudo-labels are no validation set
-    never = _run(tiny, val=False, plateau_min_epochs=2, plateau_gain=-1.0, step_budget=8)
+    never = _run(tiny, val=False, plateau_min_epochs=NEVER, step_budget=8)
     assert never.info["stopped"].startswith("the step budget")  # a rule that never fires: the budget stops it
 
 

@@ -1,0 +1,218 @@
+"""How long Stage I and Stage II train and at what rate: the learning-rate schedules, the resolution schedule
+(``train.low_res_fraction``), ``train.until: plateau``'s stopping rule and its budget, and the held-out images
+the rule scores without validation masks.  Pure functions of the settings and the step counts; the loop
+(:mod:`pipeline.training.loop`) calls them.  Rationale: docs/decisions.md, "Training"; the rule: docs/student.md.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Callable, Mapping
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pipeline.augment import hard_region
+from pipeline.runtime.errors import InputError
+from pipeline.stats import ONE_SIDED_95_Z
+from pipeline.training.inputs import TrainData, ValData
+
+if TYPE_CHECKING:
+    from pipeline.training.settings import Settings
+
+#: the resolution schedule (``train.low_res_fraction``) trains its first epochs at 1 / this of the side
+LOW_RES_FACTOR = 2
+#: the plateau rule stops only when the last doubling's gain is surely small: its one-sided 95 % bound
+PLATEAU_Z = ONE_SIDED_95_Z
+#: the schedules ``train.schedule`` names
+SCHEDULES = ("cosine", "constant", "wsd")
+
+
+def lr_lambda(schedule: str, total_steps: int, warmup_steps: int = 0, decay_steps: int = 0) -> Callable[[int], float]:
+    """The learning-rate factor of optimizer step ``step`` (0-based), for ``torch.optim.lr_scheduler.LambdaLR``.
+
+    With T = ``total_steps``, D = ``decay_steps`` and W = ``warmup_steps``:
+
+    - ``constant``: 1;
+    - ``cosine``: 0.5 (1 + cos(pi min(step, T) / T));
+    - ``wsd``: min(1, max(0, T - step) / D) (constant, then linear to 0 over the last D steps);
+
+    times the warm-up min(1, (step + 1) / W) when W > 0.  The paper gives initial rates only
+    (docs/decisions.md).
+
+    Parameters
+    ----------
+    schedule : str
+        One of :data:`SCHEDULES` (``train.schedule``).
+    total_steps : int
+        T, the run's optimizer steps.
+    warmup_steps : int
+        W; 0 = no warm-up.
+    decay_steps : int
+        D for ``wsd`` (at least 1 is used).
+
+    Returns
+    -------
+    callable
+        step -> factor of the peak learning rate.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        ``schedule`` is not one of :data:`SCHEDULES`.
+    """
+    d = max(int(decay_steps), 1)
+    bases = {"constant": lambda step: 1.0,
+             "cosine": lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1))),
+             "wsd": lambda step: min(1.0, max(0, total_steps - step) / d)}
+    if schedule not in bases:
+        raise InputError(f"params: train.schedule={schedule!r}: expected {', '.join(SCHEDULES)}")
+    base = bases[schedule]
+    if warmup_steps <= 0:
+        return base
+    return lambda step: min(1.0, (step + 1) / warmup_steps) * base(step)
+
+
+def decay_steps(total_steps: int, fraction: float) -> int:
+    """Optimizer steps in the decay phase of the ``wsd`` schedule: max(1, round(``fraction`` ``total_steps``))."""
+    return max(1, int(round(total_steps * fraction)))
+
+
+def steps_per_epoch(n_train: int, batch_size: int) -> int:
+    """Optimizer steps of one epoch: max(1, ceil(``n_train`` / ``batch_size``)), the last batch short."""
+    return max(1, math.ceil(int(n_train) / int(batch_size)))
+
+
+def low_res_epochs(epochs: int, fraction: float) -> int:
+    """The resolution schedule's epochs at 1/:data:`LOW_RES_FACTOR` of the side.
+
+    L = min(round(``fraction`` E), E - 1) with E = ``epochs``, at least 0, so the last epoch trains at full side.
+    """
+    return max(0, min(int(round(float(fraction) * int(epochs))), int(epochs) - 1))
+
+
+def low_resolution(b: Mapping[str, torch.Tensor], soft: bool = False, factor: int = LOW_RES_FACTOR
+                   ) -> dict[str, torch.Tensor]:
+    """Batch ``b`` at 1/``factor`` of its side, for the resolution schedule's epochs.
+
+    The image and, with ``soft`` (the agreement map A of ``train.soft_targets``), the target by area mean; a
+    hard voted mask M^T (eq:majority-vote) as [area mean >= 1/2], so eq:raw-loss keeps a binary target.
+
+    Parameters
+    ----------
+    b : Mapping
+        A training batch: ``x`` [B,3,H,W], ``mask`` [B,1,H,W], and per-image ``area``, ``gate`` (kept as they are).
+    soft : bool
+        Whether ``mask`` is a soft target (kept soft) or a voted mask (re-binarised).
+    factor : int
+        The side is divided by this (floor).
+
+    Returns
+    -------
+    dict
+        The batch at the lower resolution.
+    """
+    out = dict(b)
+    size = (b["x"].shape[-2] // factor, b["x"].shape[-1] // factor)
+    out["x"] = F.adaptive_avg_pool2d(b["x"], size)
+    m = F.adaptive_avg_pool2d(b["mask"], size)
+    out["mask"] = m if soft else (m >= 0.5).to(m.dtype)
+    return out
+
+
+def decay_epochs(stable: int, fraction: float) -> int:
+    """Decay epochs after E = ``stable`` stable ones, f = ``fraction`` of the whole run: max(1, round(E f / (1 - f)))."""
+    return max(1, int(round(stable * fraction / (1.0 - fraction))))
+
+
+def over_budget(s: Settings, stable: int, steps_per_epoch: int) -> bool:
+    """Whether ``stable`` stable epochs and their decay exceed ``train.step_budget`` (never without one)."""
+    return bool(s.step_budget) and (stable + decay_epochs(stable, s.decay_fraction)) * steps_per_epoch > s.step_budget
+
+
+def stable_cap(s: Settings, steps_per_epoch: int) -> int:
+    """The most stable epochs E (at least 1) with E + D(E) <= ``train.epochs_stage1`` and within the step budget,
+    D = :func:`decay_epochs`."""
+    fits = [e for e in range(1, s.epochs + 1)
+            if e + decay_epochs(e, s.decay_fraction) <= s.epochs and not over_budget(s, e, steps_per_epoch)]
+    return max(fits, default=1)
+
+
+def plateau_reached(scores: list[float], gain: float, min_epochs: int) -> bool:
+    """``train.until: plateau``'s stopping rule (docs/student.md, docs/decisions.md).
+
+    After E >= max(4, ``min_epochs``) scored epochs, with a = the scores of epochs [1, E/2] and b = those of
+    (E/2, E], stop when the upper one-sided 95 % bound of the last doubling's gain is below ``gain``:
+    mean(b) - mean(a) + z sqrt(var(a)/|a| + var(b)/|b|) < ``gain``, z = :data:`PLATEAU_Z`.
+
+    Parameters
+    ----------
+    scores : list of float
+        The scored epochs' validation Image IoU, oldest first.
+    gain : float
+        ``train.plateau_gain``.
+    min_epochs : int
+        ``train.plateau_min_epochs``.
+
+    Returns
+    -------
+    bool
+        False while fewer epochs are scored or any score is not finite.
+    """
+    e = len(scores)
+    if e < max(4, int(min_epochs)) or not all(math.isfinite(v) for v in scores):
+        return False
+    a, b = np.asarray(scores[:e // 2]), np.asarray(scores[e // 2:])
+    se = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
+    return float(b.mean() - a.mean()) + PLATEAU_Z * se < gain
+
+
+def until_lambda(until: Mapping, steps_per_epoch: int, warmup_steps: int) -> Callable[[int], float]:
+    """The learning-rate factor under ``train.until: plateau``: the warm-up, then 1 until the stable phase ends,
+    then the ``wsd`` decay to 0 at its end (:func:`lr_lambda`).
+
+    ``until`` is read at each step (the loop updates it): ``stable_end``, the last stable epoch or None while
+    the phase runs, and ``epochs``, the run's length so far."""
+    spe = int(steps_per_epoch)
+
+    def factor(step: int) -> float:
+        end, total = until["stable_end"], until["epochs"] * spe
+        return lr_lambda("constant" if end is None else "wsd", total, warmup_steps, total - (end or 0) * spe)(step)
+
+    return factor
+
+
+def holdout_size(n: int, fraction: float) -> int:
+    """Images :func:`holdout` takes from ``n``: k = min(n // 2, max(2, round(``fraction`` n))), 0 below 8."""
+    return 0 if n < 8 else min(n // 2, max(2, int(round(fraction * n))))
+
+
+def holdout(data: TrainData, fraction: float) -> tuple[TrainData, ValData | None]:
+    """The images ``until: plateau`` scores when there are no validation masks.
+
+    ``fraction`` of ``data`` (:func:`holdout_size`), evenly spaced in manifest order, scored against their vote
+    (eq:majority-vote): never a validation set, never reference masks.
+
+    Parameters
+    ----------
+    data : TrainData
+        The pseudo-labelled training images.
+    fraction : float
+        ``train.holdout_fraction``.
+
+    Returns
+    -------
+    (TrainData, ValData or None)
+        The rest, and the held-out images (None below 8 images: nothing is held out).
+    """
+    n = len(data)
+    k = holdout_size(n, fraction)
+    if not k:
+        return data, None
+    held = np.unique(np.linspace(0, n - 1, k).round().astype(int))
+    rest = np.setdiff1d(np.arange(n), held)
+    val = ValData([f"holdout:{data.image_ids[i]}" for i in held], np.asarray(data.images[held]),
+                  hard_region(np.asarray(data.mask[held])))
+    return data.subset(rest, stats={**data.stats, "plateau_scored_on": f"{len(held)} held-out pseudo-labelled "
+                                   "training images against their vote (no validation masks)"}), val
