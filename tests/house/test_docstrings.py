@@ -16,7 +16,6 @@ from __future__ import annotations
 import ast
 import glob
 import inspect
-import re
 import tomllib
 from pathlib import Path
 
