@@ -181,6 +181,11 @@ def area_fraction(pred) -> float:
     -------
     float
         The foreground fraction in [0, 1]; 0 for a mask without pixels.
+
+    Raises
+    ------
+    InputError
+        The mask is not binary.
     """
     pred = _as_mask(pred, "pred")
     return float(np.count_nonzero(pred)) / pred.size if pred.size else 0.0
