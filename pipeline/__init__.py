@@ -1,5 +1,8 @@
-"""GeoDistill-Refine: annotation-free spacecraft segmentation.  Notebook entry points: ``open_artifact``,
-``label``, ``distill`` and ``Segmenter`` (:mod:`pipeline.api`)."""
+"""GeoDistill-Refine: annotation-free spacecraft segmentation.
+
+Notebook entry points: ``open_artifact``, ``label``, ``distill`` and ``Segmenter`` (:mod:`pipeline.api`),
+loaded on first use.
+"""
 
 import importlib
 import os
@@ -7,8 +10,10 @@ import sys
 
 
 def quiet_opencv() -> None:
-    """Silence OpenCV's own log, which would precede our one-line message about a corrupt image; a user's
-    own OPENCV_LOG_LEVEL is kept.  Every cv2 user of the project imports ``pipeline`` first."""
+    """Silence OpenCV's own log, which would precede our one-line message about a corrupt image.
+
+    A user's own ``OPENCV_LOG_LEVEL`` is kept.  Every cv2 user of the project imports ``pipeline`` first.
+    """
     os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
     cv2 = sys.modules.get("cv2")
     if cv2 is not None and os.environ["OPENCV_LOG_LEVEL"].upper() in ("SILENT", "OFF", "0", "DISABLED"):
@@ -32,6 +37,23 @@ _LAZY = {"label": ("pipeline.api", "label"), "distill": ("pipeline.api", "distil
 
 
 def __getattr__(name):
+    """Load ``label``, ``distill`` and ``Segmenter`` on first use (importing ``pipeline`` starts no torch).
+
+    Parameters
+    ----------
+    name : str
+        The attribute asked for.
+
+    Returns
+    -------
+    object
+        The API function or class.
+
+    Raises
+    ------
+    AttributeError
+        ``name`` is not an attribute of ``pipeline``.
+    """
     if name in _LAZY:
         module, attr = _LAZY[name]
         return getattr(importlib.import_module(module), attr)

@@ -1,9 +1,10 @@
 """The notebook API: ``label(...)``, ``distill(...)`` and ``Segmenter.from_bundle(path).predict(image)``.
 
 The same runs as ``geodistill label`` / ``geodistill distill``, with the same params rules: ``params`` is a
-params file (default: the command's profile, not ./params.yaml) and ``overrides`` are ``--set`` items, as
-``["train.epochs_stage1=3"]`` or ``{"train.epochs_stage1": 3}``.  Errors are one-line InputErrors naming the
-keyword argument where the command names its flag.
+params file (default: the command's profile, ``paper`` for label and ``distill`` for distill, not
+./params.yaml) and ``overrides`` are ``--set`` items, as ``["train.epochs_stage1=3"]`` or
+``{"train.epochs_stage1": 3}``.  Errors are one-line :class:`pipeline.runtime.errors.InputError` naming the
+keyword argument (``skip_bad=True``) where the command names its flag (``--skip-bad``).
 
 >>> res = pipeline.label("images/", checkpoint="sam3/", out="labels/")               # doctest: +SKIP
 >>> out = pipeline.distill("images/", out="run/", labels="labels/")                  # doctest: +SKIP
@@ -33,7 +34,28 @@ TEACHER_RUN_KEYS = ("base_prompt_index", "vflip_base_prompt", "splits", "batch_s
 
 def effective_params(params: str | Path | None = None, overrides: Mapping | Iterable[str] | None = None,
                      default_profile: str = LABEL_PROFILE) -> dict:
-    """Validated params: the file ``params`` (None: ``default_profile``) with ``overrides`` applied."""
+    """Read validated params: a params file or a profile, with overrides applied.
+
+    Parameters
+    ----------
+    params : str or Path, optional
+        A params file; None: ``default_profile``'s values.
+    overrides : mapping or iterable of str, optional
+        ``--set`` items (``"key=value"``) or a mapping key -> value (values written as JSON, read as YAML);
+        ``profile=X`` picks another profile, as on the command line.
+    default_profile : str, optional
+        The profile used without ``params`` (default :data:`LABEL_PROFILE`).
+
+    Returns
+    -------
+    dict
+        The validated params.
+
+    Raises
+    ------
+    InputError
+        The file, a key or a value is invalid, naming it.
+    """
     if isinstance(overrides, Mapping):
         items = [f"{k}={json.dumps(v)}" for k, v in overrides.items()]  # JSON values are YAML
     else:
@@ -42,8 +64,30 @@ def effective_params(params: str | Path | None = None, overrides: Mapping | Iter
 
 
 def teacher_overrides(backend: str | None, checkpoint: str | Path | None, imported_dir: str | Path | None) -> dict:
-    """The ``teacher`` keys the options set: ``checkpoint`` means sam3 and ``imported_dir`` imported, unless
-    ``backend`` says otherwise."""
+    """Return the ``teacher`` keys the label/distill options set.
+
+    ``checkpoint`` means backend sam3 and ``imported_dir`` means imported, unless ``backend`` says otherwise; a
+    SAM 3 checkpoint folder is checked here, so the error names the option the user gave.
+
+    Parameters
+    ----------
+    backend : str, optional
+        ``sam3``, ``imported`` or ``simulated``; None: inferred from the other two.
+    checkpoint : str or Path, optional
+        A SAM 3 folder (save_pretrained layout); stored resolved.
+    imported_dir : str or Path, optional
+        A folder of imported teacher masks; stored resolved.
+
+    Returns
+    -------
+    dict
+        ``backend``, ``checkpoint`` and ``imported_dir`` as given; empty when none is.
+
+    Raises
+    ------
+    InputError
+        ``checkpoint`` is not a SAM 3 folder (backend sam3).
+    """
     if backend is None:
         backend = "sam3" if checkpoint else "imported" if imported_dir else None
     out = {} if backend is None else {"backend": backend}
@@ -58,8 +102,32 @@ def teacher_overrides(backend: str | None, checkpoint: str | Path | None, import
 
 def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | None,
                    imported_dir: str | Path | None) -> dict:
-    """``params`` with the chosen teacher, validated again; InputError when neither an option nor a params
-    file naming a SAM 3 checkpoint chose one (the schema's default, the SIMULATOR, is never picked silently)."""
+    """Return ``params`` with the chosen teacher, validated again.
+
+    Without ``checkpoint``, ``imported_dir`` or ``backend``, only a params file naming a SAM 3 checkpoint chooses
+    one: the schema's default backend, the synthetic benchmark's SIMULATOR, is never picked silently.
+
+    Parameters
+    ----------
+    params : dict
+        Validated params.
+    backend : str, optional
+        The teacher backend (:func:`teacher_overrides`).
+    checkpoint : str or Path, optional
+        A SAM 3 folder.
+    imported_dir : str or Path, optional
+        A folder of imported teacher masks.
+
+    Returns
+    -------
+    dict
+        The validated params.
+
+    Raises
+    ------
+    InputError
+        No teacher was chosen, a teacher option is invalid, or the merged params do not validate.
+    """
     chosen = teacher_overrides(backend, checkpoint, imported_dir)
     if not chosen and not (params["teacher"]["backend"] == "sam3" and params["teacher"]["checkpoint"]):
         raise InputError("{} is required (or {})", CHECKPOINT("SAM3_DIR"), BACKEND("imported|simulated"))
@@ -69,10 +137,38 @@ def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | N
 def params_from_labels(params: dict, labels: str | Path, input_dir: str | Path, backend: str | None = None,
                        checkpoint: str | Path | None = None, imported_dir: str | Path | None = None,
                        default_profile: str = DISTILL_PROFILE) -> dict:
-    """``params`` for a distill from the unmodified label folder ``labels`` of ``input_dir`` (``--labels``):
-    the teacher, ``data.resolution``, ``consensus.vote_threshold`` and ``geometry`` from its label.json (a
-    value the caller set otherwise is refused, naming both), and label's teacher cache unless the caller
-    chose one."""
+    """Return the params of a distill that trains from a ``label`` output folder (``--labels`` / ``labels=``).
+
+    The folder must be an unmodified, complete label output of ``input_dir``
+    (:func:`pipeline.labeling.run.check_label_folder`).  What made its pseudo-labels comes from its label.json:
+    the teacher (every key but :data:`TEACHER_RUN_KEYS`), ``data.resolution``, ``consensus.vote_threshold`` and
+    ``geometry``.  Unless the caller set ``teacher.cache_dir``, the teacher cache is label's, so the teacher
+    computes nothing again.
+
+    Parameters
+    ----------
+    params : dict
+        Validated params.
+    labels : str or Path
+        The label output folder.
+    input_dir : str or Path
+        The images it labelled.
+    backend, checkpoint, imported_dir : optional
+        The teacher options (:func:`teacher_overrides`); each must agree with label.json.
+    default_profile : str, optional
+        The profile whose values count as not set by the caller (default :data:`DISTILL_PROFILE`).
+
+    Returns
+    -------
+    dict
+        The validated params.
+
+    Raises
+    ------
+    InputError
+        The folder is not an unmodified label output of ``input_dir``, or a value the caller set differs from
+        the one label used (naming both).
+    """
     record = check_label_folder(labels, input_dir)
     base = load_params_or_profile(None, [], default_profile)
     chosen = teacher_overrides(backend, checkpoint, imported_dir)
@@ -95,8 +191,38 @@ def params_from_labels(params: dict, labels: str | Path, input_dir: str | Path, 
 def distill_params(params: dict, input_dir: str | Path, labels: str | Path | None, backend: str | None,
                    checkpoint: str | Path | None, imported_dir: str | Path | None, skip_bad: bool = False,
                    max_pixels: int | None = None, bit_depth: str | int | None = None) -> dict:
-    """The params of a distill project: the teacher from a label folder or the teacher options, then the
-    data options."""
+    """Return the params of a distill project (command and API).
+
+    The teacher from a label folder (:func:`params_from_labels`) or from the teacher options
+    (:func:`choose_teacher`), then the data options (:func:`with_data_options`).
+
+    Parameters
+    ----------
+    params : dict
+        Validated params.
+    input_dir : str or Path
+        The images to train on.
+    labels : str or Path or None
+        A label output folder of the same images, or None.
+    backend, checkpoint, imported_dir : optional
+        The teacher options.
+    skip_bad : bool, optional
+        Leave unreadable images out (listed) instead of stopping.
+    max_pixels : int, optional
+        Refuse images above this many pixels (None: the params' value).
+    bit_depth : str or int, optional
+        Bits a 16-bit frame's sensor fills (None: the params' value).
+
+    Returns
+    -------
+    dict
+        The validated params.
+
+    Raises
+    ------
+    InputError
+        As :func:`params_from_labels`, :func:`choose_teacher` and :func:`with_data_options`.
+    """
     if labels is not None:
         params = params_from_labels(params, labels, input_dir, backend, checkpoint, imported_dir)
     else:
@@ -106,8 +232,29 @@ def distill_params(params: dict, input_dir: str | Path, labels: str | Path | Non
 
 def with_data_options(params: dict, skip_bad: bool = False, max_pixels: int | None = None,
                       bit_depth: str | int | None = None) -> dict:
-    """``params`` with the data options of label and distill: ``skip_bad`` only turns ``data.skip_bad`` on;
-    ``max_pixels`` and ``bit_depth`` are checked, None keeps the params' value."""
+    """Return ``params`` with the data options of label and distill applied.
+
+    Parameters
+    ----------
+    params : dict
+        Validated params.
+    skip_bad : bool, optional
+        True sets ``data.skip_bad`` (``--skip-bad``); False never turns it off.
+    max_pixels : int, optional
+        ``data.max_pixels`` (``--max-pixels``), checked; None keeps the params' value.
+    bit_depth : str or int, optional
+        ``data.bit_depth`` (``--bit-depth``: auto, 10, 12, 14, 16), checked; None keeps the params' value.
+
+    Returns
+    -------
+    dict
+        The params (the same object when no option is given).
+
+    Raises
+    ------
+    InputError
+        ``max_pixels`` or ``bit_depth`` is invalid, naming the option.
+    """
     data: dict = {}
     if skip_bad:
         data["skip_bad"] = True
@@ -124,11 +271,57 @@ def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None =
           params: str | Path | None = None, overrides: Mapping | Iterable[str] | None = None,
           device: str = "auto", skip_bad: bool = False, overwrite: bool = False,
           max_pixels: int | None = None, bit_depth: str | int | None = None) -> LabelResult:
-    """Pseudo-label the images under ``input`` into ``out`` (``geodistill label``): voted masks as PNG /
-    COCO RLE / YOLO files, the gate table and a contact sheet.  A teacher is required: ``checkpoint``
-    (SAM 3), ``backend="imported"`` with ``imported_dir``, or a ``params`` file naming a checkpoint;
-    ``backend="simulated"`` (a SIMULATOR) needs ``reference_masks``.  The other keywords are the
-    command's options."""
+    """Pseudo-label the images under ``input`` into ``out`` (``geodistill label``).
+
+    Writes the voted masks (eq:majority-vote) as PNG / COCO RLE / YOLO files, the table of c, v, a and g per
+    image (eq:foreground-agreement .. eq:reliability-gate) and a contact sheet.  A teacher is required:
+    ``checkpoint`` (SAM 3), ``backend="imported"`` with ``imported_dir``, or a ``params`` file naming a
+    checkpoint.  Reruns resume from the teacher cache inside ``out``.
+
+    Parameters
+    ----------
+    input : str or Path
+        A folder of images, searched recursively.
+    out : str or Path
+        The output folder; it must not be ``input`` or inside it.
+    checkpoint : str or Path, optional
+        A SAM 3 folder (save_pretrained layout); implies ``backend="sam3"``.
+    formats : str or sequence of str, optional
+        A subset of ``png``, ``coco``, ``yolo`` (a comma-separated string or a list; default all three).
+    backend : str, optional
+        ``sam3``, ``imported`` (masks made elsewhere) or ``simulated`` (a SIMULATOR of teacher errors that needs
+        ``reference_masks``; its labels are not a real teacher's).
+    imported_dir : str or Path, optional
+        The imported teacher masks (README layout); implies ``backend="imported"``.
+    reference_masks : str or Path, optional
+        Simulated backend only: masks named like the images, read by the SIMULATOR.
+    params : str or Path, optional
+        A params file (default: the ``paper`` profile's values).
+    overrides : mapping or iterable of str, optional
+        ``--set`` items, as ``["teacher.score_threshold=0.3"]`` or ``{"teacher.score_threshold": 0.3}``.
+    device : str, optional
+        ``auto`` (default), ``cpu`` or ``cuda``: where the teacher runs.
+    skip_bad : bool, optional
+        Leave unreadable images out and list them with the reason (default: stop at the first, naming it).
+    overwrite : bool, optional
+        Write into an existing output folder this command did not make; a file of yours where an output goes
+        is refused by name either way.
+    max_pixels : int, optional
+        Refuse images above this many pixels, read from the file header (None: ``data.max_pixels``, 2**26).
+    bit_depth : str or int, optional
+        Bits a 16-bit frame's sensor fills: ``auto``, 10, 12, 14 or 16 (None: ``data.bit_depth``).
+
+    Returns
+    -------
+    pipeline.labeling.LabelResult
+        ``.table`` (c, v, a, g per image), ``.masks`` (image id -> mask PNG), ``.skipped``, ``.out``.
+
+    Raises
+    ------
+    InputError
+        One line naming the keyword or file: no teacher chosen, an invalid option or params value, an unreadable
+        image (without ``skip_bad``), or an output that belongs to the user.
+    """
     fmts = parse_formats(formats)
     p = choose_teacher(effective_params(params, overrides, LABEL_PROFILE), backend, checkpoint, imported_dir)
     p = with_data_options(p, skip_bad, max_pixels, bit_depth)
@@ -143,11 +336,62 @@ def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None 
             skip_bad: bool = False, overwrite: bool = False, max_pixels: int | None = None,
             labels: str | Path | None = None, bit_depth: str | int | None = None, benchmark: bool = True,
             time: str | None = None) -> dict:
-    """Train a deployable student on the images under ``input`` (``geodistill distill``): ``out`` becomes a
-    DVC project running the DAG (rerun to resume); returns the ``deploy``, ``report``, ``thresholds`` and
-    ``checkpoints`` paths.  ``run=False`` only writes the project; ``labels``: a :func:`label` output
-    folder of the same images, whose teacher answers are reused; ``time`` (e.g. ``"20m"``): Stage I's
-    budget.  The other keywords are the command's options."""
+    """Train a deployable student on the images under ``input`` (``geodistill distill``).
+
+    ``out`` becomes a DVC project running the pipeline's DAG, from the teacher to the deploy bundle and the
+    report; rerun to resume.
+
+    Parameters
+    ----------
+    input : str or Path
+        A folder of images, searched recursively.
+    out : str or Path
+        The project folder (created).
+    val_masks : str or Path, optional
+        Masks named like some of the images: those become validation/test images (threshold calibration,
+        checkpoint choice, report scores).  Without: tau = ``calibrate.fixed_tau`` (0.5) and the last epoch.
+    checkpoint : str or Path, optional
+        A SAM 3 folder; implies ``backend="sam3"``.
+    backend : str, optional
+        ``sam3`` or ``imported``; ``simulated`` is refused (it needs masks of every training image).
+    imported_dir : str or Path, optional
+        The imported teacher masks; implies ``backend="imported"``.
+    params : str or Path, optional
+        A params file (default: the ``distill`` profile's values).
+    overrides : mapping or iterable of str, optional
+        ``--set`` items, as for :func:`label`.
+    device : str, optional
+        ``auto`` (default), ``cpu`` or ``cuda``.
+    run : bool, optional
+        False: only write the project (run it later with ``dvc repro`` in ``out``).
+    skip_bad : bool, optional
+        As for :func:`label`.
+    overwrite : bool, optional
+        As for :func:`label`.
+    max_pixels : int, optional
+        As for :func:`label`.
+    labels : str or Path, optional
+        An unmodified :func:`label` output folder of the same images: its teacher, resolution, vote and gate are
+        used and its teacher cache read, so the teacher computes nothing again (no ``checkpoint`` needed).
+    bit_depth : str or int, optional
+        As for :func:`label`.
+    benchmark : bool, optional
+        False: no efficiency benchmark stage (``--no-benchmark``).
+    time : str, optional
+        Stage I's budget, e.g. ``"20m"`` or ``"1h30m"`` (``--time``), converted once on this host into
+        ``train.step_budget``.
+
+    Returns
+    -------
+    dict of str to Path
+        ``deploy``, ``report``, ``thresholds`` and ``checkpoints`` paths inside ``out``.
+
+    Raises
+    ------
+    InputError
+        One line naming the keyword or file: no teacher chosen, an invalid option, a label folder that does not
+        match, a failed stage's own error.
+    """
     p = distill_params(effective_params(params, overrides, DISTILL_PROFILE), input, labels, backend, checkpoint,
                        imported_dir, skip_bad, max_pixels, bit_depth)
     p = time_budget_params(p, time, out, device, input, val_masks)

@@ -1,8 +1,9 @@
 """Multi-prompt consensus vote (paper, "Multi-Prompt Consensus-Based Pseudo-Mask Construction").
 
-For image i with K prompt masks M_ik and scores s_ik: V_i = {k : s_ik > 0} (text before eq:agreement-map),
-A_i(x) = (1/|V_i|) sum_{k in V_i} M_ik(x) (eq:agreement-map), M_i^T(x) = [A_i(x) >= 0.5] (eq:majority-vote);
-with no valid prompt A_i = M_i^T = 0.  Scores only decide validity; they never weight pixels.
+For image i with K prompt masks M_ik and scores s_ik: V_i = {k : s_ik > 0} (the text before eq:agreement-map),
+A_i(x) = (1/|V_i|) sum_{k in V_i} M_ik(x) (eq:agreement-map), M_i^T(x) = [A_i(x) >= 0.5] (eq:majority-vote).
+A tie is foreground (3 of 6 valid votes suffice); with no valid prompt A_i = M_i^T = 0.  Scores only decide
+validity; they never weight pixels.
 """
 
 from __future__ import annotations
@@ -18,7 +19,17 @@ DEFAULT_VOTE_THRESHOLD = PAPER.consensus.vote_threshold  # eq:majority-vote; the
 
 
 class Consensus(NamedTuple):
-    """Agreement float32, voted bool ([H,W], or [N,H,W] from :func:`vote_batch`) and valid bool ([K] or [N,K])."""
+    """The vote of one image or of a batch.
+
+    Attributes
+    ----------
+    agreement : numpy.ndarray
+        A (eq:agreement-map), float32 [H,W], or [N,H,W] from :func:`vote_batch`; 0 without a valid prompt.
+    voted : numpy.ndarray
+        M^T (eq:majority-vote), bool [H,W] or [N,H,W].
+    valid : numpy.ndarray
+        V as bool [K] or [N,K].
+    """
 
     agreement: np.ndarray
     voted: np.ndarray
@@ -32,7 +43,23 @@ class Consensus(NamedTuple):
 
 
 def valid_prompts(scores: np.ndarray) -> np.ndarray:
-    """V = {k : s_k > 0} as a boolean mask over the last axis (text before eq:agreement-map)."""
+    """Mark the valid prompts V = {k : s_k > 0} (the text before eq:agreement-map).
+
+    Parameters
+    ----------
+    scores : array_like
+        Teacher scores, the prompts on the last axis.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool, the shape of ``scores``.
+
+    Raises
+    ------
+    InputError
+        A score is NaN or infinite.
+    """
     scores = np.asarray(scores, dtype=np.float64)
     if not np.isfinite(scores).all():
         raise InputError("scores contain NaN or infinite values")
@@ -40,8 +67,29 @@ def valid_prompts(scores: np.ndarray) -> np.ndarray:
 
 
 def vote(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT_VOTE_THRESHOLD) -> Consensus:
-    """Consensus of K prompt masks [K,H,W] with scores [K] of one image (eq:agreement-map, eq:majority-vote):
-    A = mean of the valid masks, M = [A >= threshold]."""
+    """Vote K prompt masks of one image (eq:agreement-map, eq:majority-vote).
+
+    A = mean of the valid masks, M = [A >= threshold]: a tie is foreground; no valid prompt gives A = M = 0.
+
+    Parameters
+    ----------
+    masks : array_like
+        Prompt masks, bool or 0/1 [K,H,W].
+    scores : array_like
+        Teacher scores [K]; a prompt is valid when its score is > 0.
+    threshold : float, optional
+        The vote threshold in [0, 1] (default ``consensus.vote_threshold``, 0.5).
+
+    Returns
+    -------
+    Consensus
+        A float32 [H,W], M bool [H,W], V bool [K].
+
+    Raises
+    ------
+    InputError
+        ``masks`` is not [K,H,W], ``scores`` is not [K], or as :func:`vote_batch`.
+    """
     masks = np.asarray(masks)
     if masks.ndim != 3:
         raise InputError(f"masks: expected [K,H,W], got shape {masks.shape}")
@@ -53,7 +101,31 @@ def vote(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT_VOTE_
 
 
 def vote_batch(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT_VOTE_THRESHOLD) -> Consensus:
-    """:func:`vote` of N images: masks [N,K,H,W], scores [N,K]."""
+    """Vote the prompt masks of N images (:func:`vote`, vectorised).
+
+    A takes only the values c / |V|: the vote compares the float64 ratio (3/6 >= 0.5 exactly); the stored map is
+    float32.
+
+    Parameters
+    ----------
+    masks : array_like
+        Prompt masks, bool or 0/1 [N,K,H,W], K <= 255.
+    scores : array_like
+        Teacher scores [N,K].
+    threshold : float, optional
+        The vote threshold in [0, 1] (default ``consensus.vote_threshold``, 0.5).
+
+    Returns
+    -------
+    Consensus
+        A float32 [N,H,W], M bool [N,H,W], V bool [N,K].
+
+    Raises
+    ------
+    InputError
+        Shapes do not match, ``threshold`` is outside [0, 1], a mask is not binary, K > 255, or a score is not
+        finite.
+    """
     masks = np.asarray(masks)
     scores = np.asarray(scores)
     if masks.ndim != 4:
@@ -86,7 +158,18 @@ def vote_batch(masks: np.ndarray, scores: np.ndarray, threshold: float = DEFAULT
 
 
 def binary_entropy(p: np.ndarray) -> np.ndarray:
-    """h(p) = -p log2 p - (1-p) log2 (1-p) elementwise (float64), with h(0) = h(1) = 0."""
+    """Binary entropy h(p) = -p log2 p - (1 - p) log2 (1 - p), elementwise.
+
+    Parameters
+    ----------
+    p : array_like
+        Probabilities; values outside [0, 1] are clipped.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 in [0, 1], with h(0) = h(1) = 0.
+    """
     p = np.clip(np.asarray(p, np.float64), 0.0, 1.0)
     out = np.zeros_like(p)
     inner = (p > 0) & (p < 1)
@@ -96,10 +179,26 @@ def binary_entropy(p: np.ndarray) -> np.ndarray:
 
 
 def agreement_entropy(agreement: np.ndarray) -> float | np.ndarray:
-    """The prompt disagreement of an agreement map [H,W] (float) or a stack [N,H,W] (float64 [N]):
+    """Prompt disagreement of an agreement map (docs/decisions.md, "The prompt disagreement h").
 
-    U_i = {x : A_i(x) > 0},  H_i = (1 / |U_i|) sum_{x in U_i} h(A_i(x)),  H_i = 0 when U_i is empty
-    (docs/decisions.md, "The prompt disagreement h")."""
+    U_i = {x : A_i(x) > 0}, H_i = (1/|U_i|) sum_{x in U_i} h(A_i(x)) with :func:`binary_entropy` h; H_i = 0 when
+    U_i is empty.
+
+    Parameters
+    ----------
+    agreement : array_like
+        A [H,W] or a stack [N,H,W].
+
+    Returns
+    -------
+    float or numpy.ndarray
+        A float for [H,W], float64 [N] for a stack.
+
+    Raises
+    ------
+    ValueError
+        ``agreement`` is neither 2-D nor 3-D.
+    """
     a = np.asarray(agreement)
     if a.ndim not in (2, 3):
         raise ValueError(f"agreement: expected [H,W] or [N,H,W], got shape {a.shape}")

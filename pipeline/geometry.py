@@ -1,8 +1,10 @@
-"""Pseudo-geometry targets and the reliability gate of the voted pseudo-mask M (paper, "Reliability-Aware
-Pseudo-Geometry Refinement": eq:sdf-target, the skeleton, eq:pseudo-area, eq:foreground-agreement ..
-eq:reliability-gate).  Distances are exact Euclidean distances between pixel centres to the nearest pixel of
-the other set, and the image border is not background (docs/decisions.md, "Distances", "Skeleton").  The
-gate constants default to the paper's values (``pipeline.params.PAPER.geometry``)."""
+"""Pseudo-geometry targets and the reliability gate of the voted pseudo-mask M.
+
+Paper, "Reliability-Aware Pseudo-Geometry Refinement": eq:sdf-target, the skeleton, eq:pseudo-area,
+eq:foreground-agreement .. eq:reliability-gate.  Distances are exact Euclidean distances in pixels between
+pixel centres, to the nearest pixel of the other set; the image border is not background (docs/decisions.md,
+"Distances", "Skeleton").  The constants default to the paper's values (``pipeline.params.PAPER.geometry``).
+"""
 
 from __future__ import annotations
 
@@ -38,8 +40,18 @@ def _as_mask(mask: np.ndarray, name: str = "mask") -> np.ndarray:
 
 
 def squared_distance(nonzero: np.ndarray) -> np.ndarray:
-    """Exact squared distance (float32, integer-valued) from every non-zero pixel of ``nonzero`` to its
-    nearest zero pixel; 0 on zero pixels.  Exact while d^2 < 2^22."""
+    """Exact squared Euclidean distance from every non-zero pixel to its nearest zero pixel.
+
+    Parameters
+    ----------
+    nonzero : array_like
+        A [H,W] array; non-zero pixels are measured.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 [H,W], integer-valued (exact while d^2 < 2^22, deterministic); 0 on zero pixels.
+    """
     # OpenCV's precise transform is exact in d^2 but its square root differs by one ulp with the buffer's
     # alignment: rounding d^2 back to its integer makes the result deterministic
     import cv2
@@ -50,8 +62,20 @@ def squared_distance(nonzero: np.ndarray) -> np.ndarray:
 
 
 def distance_maps(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(d_in, d_out) float32 [H,W], the square roots of :func:`squared_distance`: exact, deterministic Euclidean
-    distances in pixels; meaningful only when M is neither empty nor full."""
+    """Interior and exterior distance transforms of a mask.
+
+    Parameters
+    ----------
+    mask : array_like
+        A bool or 0/1 mask [H,W].
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        (d_in, d_out), float32 [H,W]: distance of a foreground pixel to the nearest background pixel, and of a
+        background pixel to the nearest foreground pixel (0 elsewhere); meaningful only when M is neither empty
+        nor full.
+    """
     m8 = np.ascontiguousarray(mask, dtype=np.uint8)
     return np.sqrt(squared_distance(m8)), np.sqrt(squared_distance(1 - m8))
 
@@ -70,10 +94,30 @@ def _sdf_from_distances(d_in: np.ndarray, d_out: np.ndarray, quantile: float, mi
 
 
 def sdf_target(mask: np.ndarray, *, quantile: float = SDF_QUANTILE, min_scale: float = SDF_MIN_SCALE) -> np.ndarray:
-    """Normalised signed distance target, float32 [H,W] (eq:sdf-target):
+    """Normalised signed distance target D^T (eq:sdf-target).
 
-    D~ = d_in - d_out, s = q_0.95(|D~|) (s = 1 when q < ``min_scale``), D = clip(D~ / s, -1, 1);
-    empty M -> 0, full M -> 1."""
+    D~ = d_in - d_out, q = q_0.95(|D~|) (linear interpolation), s = q when q >= ``min_scale`` else 1,
+    D = clip(D~ / s, -1, 1); an empty M gives 0 everywhere, a full M gives 1 everywhere.
+
+    Parameters
+    ----------
+    mask : array_like
+        The voted mask, bool or 0/1 [H,W].
+    quantile : float, optional
+        The scale's quantile (default ``geometry.sdf_quantile``, 0.95).
+    min_scale : float, optional
+        Below this q the scale is 1 (default ``geometry.sdf_min_scale``, 1e-6).
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 [H,W] in [-1, 1], positive inside.
+
+    Raises
+    ------
+    InputError
+        The mask is not 2-D or not binary.
+    """
     return pseudo_targets(_as_mask(mask)[None], quantile=quantile, min_scale=min_scale)[0][0]
 
 
@@ -89,23 +133,81 @@ def _skeleton_from_distance(mask: np.ndarray, d_in: np.ndarray, min_distance: fl
 
 
 def skeleton_target(mask: np.ndarray, *, min_distance: float = SKELETON_MIN_DISTANCE) -> np.ndarray:
-    """Skeleton target K, bool [H,W] (text after eq:sdf-target):
+    """Skeleton target K^T (the text after eq:sdf-target).
 
-    K = {x : d_in(x) > ``min_distance`` and d_in(x) >= max_{N8(x)} d_in}; K = M when that is empty
-    (thin structures, a full M); empty M -> empty K."""
+    K = {x : d_in(x) > ``min_distance`` and d_in(x) >= max over the 8-neighbourhood of d_in}; a non-empty mask
+    with no such pixel (thin structures, a full M) falls back to K = M; an empty M gives an empty K.
+
+    Parameters
+    ----------
+    mask : array_like
+        The voted mask, bool or 0/1 [H,W].
+    min_distance : float, optional
+        Points at or below this distance are removed (default ``geometry.skeleton_min_distance``, 1 px).
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W].
+
+    Raises
+    ------
+    InputError
+        The mask is not 2-D or not binary.
+    """
     return pseudo_targets(_as_mask(mask)[None], min_distance=min_distance)[1][0]
 
 
 def area_ratio(mask: np.ndarray) -> float:
-    """Pseudo-foreground area ratio a = (1/HW) sum_x M(x) (eq:pseudo-area), in [0, 1]."""
+    """Pseudo-foreground area ratio a = (1/HW) sum_x M(x) (eq:pseudo-area).
+
+    Parameters
+    ----------
+    mask : array_like
+        The voted mask, bool or 0/1 [H,W].
+
+    Returns
+    -------
+    float
+        a in [0, 1]; 0 for a mask without pixels.
+
+    Raises
+    ------
+    InputError
+        The mask is not 2-D or not binary.
+    """
     mask = _as_mask(mask)
     return float(np.count_nonzero(mask)) / mask.size if mask.size else 0.0
 
 
 def pseudo_targets(masks: np.ndarray, *, quantile: float = SDF_QUANTILE, min_scale: float = SDF_MIN_SCALE,
                    min_distance: float = SKELETON_MIN_DISTANCE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(sdf, skeleton, area) of voted masks [N,H,W]: :func:`sdf_target`, :func:`skeleton_target` and
-    :func:`area_ratio` per image, sharing the distance transforms."""
+    """Compute the SDF, skeleton and area targets of N voted masks, sharing the distance transforms.
+
+    Per image: :func:`sdf_target`, :func:`skeleton_target` and :func:`area_ratio`, with their empty- and
+    full-mask conventions.
+
+    Parameters
+    ----------
+    masks : array_like
+        Voted masks, bool or 0/1 [N,H,W].
+    quantile : float, optional
+        The SDF scale's quantile (default 0.95).
+    min_scale : float, optional
+        The SDF's smallest scale (default 1e-6).
+    min_distance : float, optional
+        The skeleton's distance floor (default 1 px).
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        (sdf float32 [N,H,W], skeleton bool [N,H,W], area float64 [N]).
+
+    Raises
+    ------
+    InputError
+        ``masks`` is not 3-D or not binary.
+    """
     masks = np.asarray(masks)
     if masks.ndim != 3:
         raise InputError(f"masks: expected [N,H,W], got shape {masks.shape}")
@@ -126,15 +228,45 @@ def pseudo_targets(masks: np.ndarray, *, quantile: float = SDF_QUANTILE, min_sca
 
 
 def area_ratios(masks: np.ndarray) -> np.ndarray:
-    """Vectorised :func:`area_ratio` over bool [N,H,W] -> float64 [N]."""
+    """Compute :func:`area_ratio` of every mask of a batch.
+
+    Parameters
+    ----------
+    masks : array_like
+        Masks [N,H,W] (non-zero is foreground).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 [N].
+    """
     masks = np.asarray(masks, dtype=bool)
     n, pixels = masks.shape[0], int(np.prod(masks.shape[1:]))
     return np.count_nonzero(masks.reshape(n, pixels), axis=1) / float(pixels)
 
 
 def foreground_agreement(agreement: np.ndarray, voted: np.ndarray) -> float | np.ndarray:
-    """c = sum_x A(x) M(x) / sum_x M(x), 0 when M is empty (eq:foreground-agreement); [H,W] -> float,
-    [N,H,W] -> [N]."""
+    """Mean agreement within the voted foreground (eq:foreground-agreement).
+
+    c = sum_x A(x) M(x) / sum_x M(x); c = 0 when M is empty.
+
+    Parameters
+    ----------
+    agreement : array_like
+        A, [H,W] or [N,H,W].
+    voted : array_like
+        M, the shape of ``agreement`` (non-zero is foreground).
+
+    Returns
+    -------
+    float or numpy.ndarray
+        A float for [H,W], float64 [N] for a batch.
+
+    Raises
+    ------
+    InputError
+        The shapes differ or are neither 2-D nor 3-D.
+    """
     agreement = np.asarray(agreement)
     if agreement.dtype.kind != "f":
         agreement = agreement.astype(np.float64)
@@ -153,7 +285,25 @@ def foreground_agreement(agreement: np.ndarray, voted: np.ndarray) -> float | np
 
 
 def valid_ratio(n_valid, n_prompts: int = N_PROMPTS):
-    """v = |V| / 6 (eq:valid-prompt-ratio); the denominator is the prompt-set size ``n_prompts``."""
+    """Valid-prompt ratio v = |V| / 6 (eq:valid-prompt-ratio).
+
+    Parameters
+    ----------
+    n_valid : int or array_like
+        |V| per image.
+    n_prompts : int, optional
+        The prompt-set size, the denominator (default ``geometry.n_prompts``, 6).
+
+    Returns
+    -------
+    float or numpy.ndarray
+        A float for a scalar, float64 otherwise.
+
+    Raises
+    ------
+    InputError
+        ``n_prompts`` is not positive.
+    """
     if n_prompts <= 0:
         raise InputError(f"geometry.n_prompts={n_prompts!r} must be positive")
     v = np.asarray(n_valid, dtype=np.float64) / float(n_prompts)
@@ -161,7 +311,19 @@ def valid_ratio(n_valid, n_prompts: int = N_PROMPTS):
 
 
 class GateFactors(NamedTuple):
-    """Gate factors (eq:confidence-gate, eq:validity-gate, eq:area-gate) and g (eq:reliability-gate)."""
+    """The gate factors and the reliability gate of one image or a batch.
+
+    Attributes
+    ----------
+    conf : float or numpy.ndarray
+        g_conf (eq:confidence-gate).
+    valid : float or numpy.ndarray
+        g_valid (eq:validity-gate).
+    area : float or numpy.ndarray
+        g_area (eq:area-gate).
+    g : float or numpy.ndarray
+        g (eq:reliability-gate).
+    """
 
     conf: float | np.ndarray
     valid: float | np.ndarray
@@ -179,7 +341,36 @@ def gate_factors(c, v, a, a0, *, conf_offset: float = CONF_OFFSET, valid_offset:
     g_area  = clip(exp(-|log((a + eps) / (a0 + eps))| / 0.9), 0.05, 1)  (eq:area-gate)
     g       = clip(g_conf * g_valid * g_area, 0, 1)                     (eq:reliability-gate)
 
-    c, v, a, a0: scalars or broadcastable arrays (a0 the training median area).
+    Parameters
+    ----------
+    c : float or array_like
+        Foreground agreement (eq:foreground-agreement).
+    v : float or array_like
+        Valid-prompt ratio (eq:valid-prompt-ratio).
+    a : float or array_like
+        Pseudo-foreground area ratio (eq:pseudo-area), >= 0.
+    a0 : float or array_like
+        The training median area (:func:`median_area`), >= 0.
+    conf_offset : float, optional
+        eq:confidence-gate's 0.35.
+    valid_offset : float, optional
+        eq:validity-gate's 0.20.
+    area_temperature : float, optional
+        eq:area-gate's 0.9.
+    area_floor : float, optional
+        eq:area-gate's 0.05.
+    eps : float, optional
+        eq:area-gate's epsilon, 1e-6.
+
+    Returns
+    -------
+    GateFactors
+        Floats when every input is a scalar, else arrays broadcast to a common shape.
+
+    Raises
+    ------
+    InputError
+        An input is NaN or infinite, or an area is negative.
     """
     arrays = [np.asarray(x, dtype=np.float64) for x in (c, v, a, a0)]
     for name, x in zip(("c", "v", "a", "a0"), arrays):
@@ -197,8 +388,27 @@ def gate_factors(c, v, a, a0, *, conf_offset: float = CONF_OFFSET, valid_offset:
 
 
 def median_area(a, is_train) -> float:
-    """a0 = median{a_i : i in the training split, a_i > 0} (text before eq:confidence-gate);
-    :class:`NoForeground` when there is none (docs/decisions.md, "The area reference a0")."""
+    """Area reference a0 = median{a_i : i in the training split, a_i > 0} (the text before eq:confidence-gate).
+
+    Parameters
+    ----------
+    a : array_like
+        Area ratio of every image.
+    is_train : array_like
+        bool, the shape of ``a``: whether the image is in the training split.
+
+    Returns
+    -------
+    float
+        a0.
+
+    Raises
+    ------
+    InputError
+        ``a`` and ``is_train`` differ in shape.
+    NoForeground
+        No training image has a non-empty pseudo-mask (docs/decisions.md, "The area reference a0").
+    """
     a = np.asarray(a, dtype=np.float64)
     is_train = np.asarray(is_train, dtype=bool)
     if a.shape != is_train.shape:
@@ -216,18 +426,42 @@ NO_FOREGROUND = ("The teacher found no spacecraft in any training image; the two
 
 
 class NoForeground(InputError):
-    """No training image has a non-empty pseudo-mask, said in the user's terms."""
+    """No training image has a non-empty pseudo-mask, said in the user's terms.
+
+    An :class:`InputError` whose message names the two likely causes and the params override to try.
+    """
 
     def __init__(self):
         super().__init__(NO_FOREGROUND, SET(["teacher.score_threshold=…"]))
 
     def __reduce__(self):  # pickles (a worker process) as itself: its message takes no arguments
+        """Pickle as itself (for worker processes): the message takes no arguments."""
         return (NoForeground, ())
 
 
 def image_gates(c, n_valid, a, a0, geo) -> tuple[np.ndarray, GateFactors]:
-    """(v, :class:`GateFactors`) at the reference area ``a0`` with the params ``geometry`` section ``geo``
-    (eq:valid-prompt-ratio, eq:confidence-gate .. eq:reliability-gate)."""
+    """Compute v and the gate factors of images at a given reference area.
+
+    eq:valid-prompt-ratio, then eq:confidence-gate .. eq:reliability-gate with the params' constants.
+
+    Parameters
+    ----------
+    c : float or array_like
+        Foreground agreement.
+    n_valid : int or array_like
+        |V| per image.
+    a : float or array_like
+        Area ratio per image.
+    a0 : float
+        The area reference (:func:`median_area`).
+    geo : mapping
+        The params ``geometry`` section.
+
+    Returns
+    -------
+    tuple
+        (v, :class:`GateFactors`).
+    """
     v = valid_ratio(n_valid, geo["n_prompts"])
     return v, gate_factors(c, v, a, a0, conf_offset=geo["conf_offset"], valid_offset=geo["valid_offset"],
                            area_temperature=geo["area_temperature"], area_floor=geo["area_floor"], eps=geo["eps"])

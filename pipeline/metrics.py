@@ -1,6 +1,21 @@
-"""Per-image segmentation metrics (paper, "Metrics and Statistical Analysis") on bool masks [H,W] or
-[N,H,W] (0/1 accepted).  Two empty masks score 1, exactly one empty 0; a boundary is the mask minus its
-3x3 erosion, so the frame edge is not boundary (docs/decisions.md)."""
+"""Per-image segmentation metrics (paper, "Metrics and Statistical Analysis").
+
+Masks are binary at the working resolution: ``pred`` and ``gt`` bool [H,W] (0/1 integers accepted), batches
+[N,H,W].  Conventions, chosen so that per-image means are well defined:
+
+* Image IoU = |P & G| / |P | G|; both masks empty -> 1, exactly one empty -> 0.
+* Foreground precision = |P & G| / |P|, recall = |P & G| / |G|: both masks empty -> (1, 1), exactly one
+  empty -> (0, 0).
+* Boundary F1: the boundary of a mask is the mask minus its 3x3 erosion (one pixel wide, 8-connected); the
+  frame edge is not boundary (outside the frame counts as foreground during the erosion).  A boundary pixel
+  is matched when its Euclidean distance to the other mask's boundary is <= t (inclusive; t = 2 px by
+  default).  Both masks empty -> 1, exactly one empty -> 0; two masks without a contour (both full-frame)
+  -> 1, exactly one without a contour -> 0; BF-precision + BF-recall = 0 -> 0.
+* Predicted foreground area ratio = (1/HW) sum_x P(x).
+* Small-region IoU: IoU near the reference's small components (:func:`small_region_iou`); NaN without one.
+* Calibration (eq:inference-mask): :func:`iou_curve` gives the Image IoU of [P >= tau] at every tau of a grid;
+  the selection rule lives in :mod:`pipeline.thresholds`.
+"""
 
 from __future__ import annotations
 
@@ -42,7 +57,7 @@ def _pair(pred, gt, ndim: int = 2) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _ratio(num: np.ndarray, den: np.ndarray, both_empty: np.ndarray) -> np.ndarray:
-    """num / den; 0/0 -> 1 where both masks are empty, else 0."""
+    """Return num / den, with 0/0 -> 1 where both masks are empty and 0 elsewhere."""
     num = np.asarray(num, dtype=np.float64)
     den = np.asarray(den, dtype=np.float64)
     out = np.divide(num, den, out=np.zeros(np.broadcast(num, den).shape), where=den > 0)
@@ -60,26 +75,94 @@ def _region_counts(pred: np.ndarray, gt: np.ndarray):
 
 
 def image_iou(pred, gt) -> float:
-    """Image IoU = |P & G| / |P | G| in [0, 1]; both masks empty -> 1."""
+    """Image IoU of one pair of masks.
+
+    IoU = |P & G| / |P | G|.
+
+    Parameters
+    ----------
+    pred, gt : array_like
+        Predicted and reference masks, bool or 0/1 [H,W], equal shapes.
+
+    Returns
+    -------
+    float
+        IoU in [0, 1]; 1 when both masks are empty, 0 when exactly one is.
+
+    Raises
+    ------
+    InputError
+        A mask is not binary, not 2-D, or the shapes differ.
+    """
     pred, gt = _pair(pred, gt)
     return float(image_ious(pred[None], gt[None])[0])
 
 
 def image_ious(preds, gts) -> np.ndarray:
-    """:func:`image_iou` of every pair of [N,H,W] -> float64 [N]."""
+    """Image IoU of every pair of a batch (:func:`image_iou`, vectorised).
+
+    Parameters
+    ----------
+    preds, gts : array_like
+        Predicted and reference masks, bool or 0/1 [N,H,W], equal shapes.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 [N]; 1 where both masks are empty, 0 where exactly one is.
+
+    Raises
+    ------
+    InputError
+        A mask is not binary, not 3-D, or the shapes differ.
+    """
     preds, gts = _pair(preds, gts, ndim=3)
     inter, np_, ng = _region_counts(preds, gts)
     return _ratio(inter, np_ + ng - inter, (np_ == 0) & (ng == 0))
 
 
 def mask_agreement(fast_logits: np.ndarray, reference_logits: np.ndarray, z_tau: float) -> float:
-    """Mean per-image IoU of the masks [Z >= z_tau] of two logit stacks [N,1,H,W] or [N,H,W]."""
+    """Mean per-image IoU of the masks two logit stacks give at one logit threshold.
+
+    Used to compare a fast engine's masks with the fp32 reference's: 1 means the same masks (two empty masks
+    agree, :func:`image_ious`).
+
+    Parameters
+    ----------
+    fast_logits, reference_logits : numpy.ndarray
+        Logits Z [N,1,H,W] or [N,H,W], equal N, H and W.
+    z_tau : float
+        The logit threshold: a mask is [Z >= z_tau] (eq:inference-mask, ``logit(tau)``).
+
+    Returns
+    -------
+    float
+        Mean Image IoU over the N images.
+    """
     a, b = (np.asarray(x).reshape(len(x), *np.shape(x)[-2:]) >= z_tau for x in (fast_logits, reference_logits))
     return float(np.mean(image_ious(a, b)))
 
 
 def precision_recall(pred, gt) -> tuple[float, float]:
-    """Foreground (precision, recall) = (|P & G| / |P|, |P & G| / |G|)."""
+    """Foreground precision and recall of one pair of masks.
+
+    precision = |P & G| / |P|, recall = |P & G| / |G|.
+
+    Parameters
+    ----------
+    pred, gt : array_like
+        Predicted and reference masks, bool or 0/1 [H,W], equal shapes.
+
+    Returns
+    -------
+    tuple of float
+        (precision, recall); (1, 1) when both masks are empty, (0, 0) when exactly one is.
+
+    Raises
+    ------
+    InputError
+        A mask is not binary, not 2-D, or the shapes differ.
+    """
     pred, gt = _pair(pred, gt)
     inter, np_, ng = _region_counts(pred[None], gt[None])
     both = (np_ == 0) & (ng == 0)
@@ -87,7 +170,23 @@ def precision_recall(pred, gt) -> tuple[float, float]:
 
 
 def area_fraction(pred) -> float:
-    """Predicted foreground area ratio = (1/HW) sum_x P(x)."""
+    """Predicted foreground area ratio (1/HW) sum_x P(x).
+
+    Parameters
+    ----------
+    pred : array_like
+        A bool or 0/1 mask of any shape.
+
+    Returns
+    -------
+    float
+        The foreground fraction in [0, 1]; 0 for a mask without pixels.
+
+    Raises
+    ------
+    InputError
+        The mask is not binary.
+    """
     pred = _as_mask(pred, "pred")
     return float(np.count_nonzero(pred)) / pred.size if pred.size else 0.0
 
@@ -99,7 +198,7 @@ _SMALL_LUT_ABOVE = 256  # more small components than this: label lookup table in
 
 
 def _stack(masks: np.ndarray, pad: int) -> np.ndarray:
-    """bool [N,H,W] -> uint8 0/1 [N*(H+pad), W] with ``pad`` zero rows after each mask."""
+    """Stack bool [N,H,W] into uint8 0/1 [N*(H+pad), W] with ``pad`` zero rows after each mask."""
     n, h, w = masks.shape
     buf = np.zeros((n, h + pad, w), np.uint8)
     buf[:, :h] = masks
@@ -123,15 +222,46 @@ def _boundaries(stacked: np.ndarray, n: int, h: int) -> np.ndarray:
 
 
 def tolerance_disk(tolerance: float) -> np.ndarray:
-    """uint8 [2r+1, 2r+1], r = floor(t): offsets with dy^2 + dx^2 <= t^2; a dilation by it marks exactly the
-    pixels within Euclidean distance t."""
+    """Return the disk of integer offsets within a Euclidean tolerance.
+
+    The offsets (dy, dx) with dy^2 + dx^2 <= t^2: dilating a set by it marks exactly the pixels whose
+    Euclidean distance to the set is <= t (inclusive), the Boundary-F1 match test without a distance transform.
+
+    Parameters
+    ----------
+    tolerance : float
+        The radius t in pixels, >= 0.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 0/1 [2r+1, 2r+1] with r = floor(t).
+    """
     r = int(np.floor(tolerance))
     d = np.arange(-r, r + 1)
     return ((d[:, None] ** 2 + d[None, :] ** 2) <= tolerance * tolerance).astype(np.uint8)
 
 
 def mask_boundary(mask) -> np.ndarray:
-    """One-pixel-wide inner boundary: mask minus its 3x3 erosion (frame edge is not boundary)."""
+    """Return the one-pixel-wide inner boundary of a mask.
+
+    The mask minus its 3x3 erosion; the frame edge is not boundary (a full-frame mask has none).
+
+    Parameters
+    ----------
+    mask : array_like
+        A bool or 0/1 mask [H,W].
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W].
+
+    Raises
+    ------
+    InputError
+        The mask is not binary.
+    """
     mask = _as_mask(mask, "mask")
     return _boundaries(_stack(mask[None], 1), 1, mask.shape[0])[:mask.shape[0]].astype(bool)
 
@@ -143,8 +273,11 @@ def _near(boundary: np.ndarray, tolerance: float) -> np.ndarray:
 
 
 def _boundary_counts(ps: np.ndarray, n: int, h: int, tolerance: float, bg: np.ndarray, near_g: np.ndarray):
-    """(|P-boundary|, |G-boundary|, matched P-boundary, matched G-boundary) int64 [N] from stacks padded
-    by >= floor(tolerance) rows; ``bg``/``near_g``: G's boundary and its dilation."""
+    """Count boundary pixels and matched boundary pixels of stacked predictions against a prepared reference.
+
+    Returns (|P-boundary|, |G-boundary|, matched P-boundary, matched G-boundary), int64 [N] each, from stacks
+    padded by >= floor(tolerance) rows; ``bg``/``near_g``: G's boundary and its dilation.
+    """
     cv2 = _cv2()
     bp = _boundaries(ps, n, h)
     return (_counts(bp, n), _counts(bg, n), _counts(cv2.bitwise_and(bp, near_g), n),
@@ -185,7 +318,30 @@ def _bf1_from_counts(np_: np.ndarray, ng: np.ndarray, nbp: np.ndarray, nbg: np.n
 
 
 def boundary_f1(pred, gt, tolerance: float = DEFAULT_TOLERANCE) -> float:
-    """Boundary F1, a boundary pixel matched within ``tolerance`` px (Euclidean, inclusive) of the other's."""
+    """Boundary F1 of one pair of masks.
+
+    A boundary (:func:`mask_boundary`) pixel of P is matched when its Euclidean distance to G's boundary is
+    <= ``tolerance``; BF-precision = matched P-boundary / |P-boundary|, BF-recall the same from G's side,
+    BF1 = 2 PR / (P + R).
+
+    Parameters
+    ----------
+    pred, gt : array_like
+        Predicted and reference masks, bool or 0/1 [H,W], equal shapes.
+    tolerance : float, optional
+        Matching radius in pixels (inclusive); default ``evaluate.bf1_tolerance`` (2 px at 384x384).
+
+    Returns
+    -------
+    float
+        BF1 in [0, 1].  Both masks empty -> 1, exactly one empty -> 0; no contour in either mask (both
+        full-frame) -> 1, no contour in exactly one -> 0; P + R = 0 -> 0.
+
+    Raises
+    ------
+    InputError
+        A mask is not binary, not 2-D, the shapes differ, or ``tolerance`` < 0.
+    """
     pred, gt = _pair(pred, gt)
     if tolerance < 0:
         raise InputError(f"boundary_f1: tolerance={tolerance!r} must be >= 0")
@@ -228,8 +384,33 @@ def _small_region_ious_stacked(ps: np.ndarray, n: int, found) -> np.ndarray:
 
 def small_region_iou(pred, gt, max_fraction: float = DEFAULT_SMALL_FRACTION,
                      margin: int = DEFAULT_SMALL_MARGIN) -> float:
-    """IoU near small objects: S = G's 8-connected components under ``max_fraction`` of the frame, R = S
-    dilated by ``margin`` px minus the larger components; |P & S| / |(P & R) | S|, NaN without S."""
+    """IoU restricted to small reference objects (a supplementary diagnostic of the paper).
+
+    S = the union of G's 8-connected components smaller than ``max_fraction`` * H * W pixels; R = S dilated by a
+    Euclidean disk of radius ``margin`` px, minus the larger components' pixels (they neither help nor hurt).
+    Small-region IoU = |P & S| / |(P & R) | S|: missed small parts and false positives within ``margin`` px of
+    them both count.
+
+    Parameters
+    ----------
+    pred, gt : array_like
+        Predicted and reference masks, bool or 0/1 [H,W], equal shapes.
+    max_fraction : float, optional
+        A component is small below this fraction of the frame; default ``evaluate.small_region_max_fraction``
+        (0.01).
+    margin : int, optional
+        Neighbourhood radius in pixels (default 3).
+
+    Returns
+    -------
+    float
+        The IoU in [0, 1]; NaN when G has no small component (the image does not enter a mean).
+
+    Raises
+    ------
+    InputError
+        A mask is not binary, not 2-D, or the shapes differ.
+    """
     pred, gt = _pair(pred, gt)
     return float(per_image_metrics(pred[None], gt[None], max_fraction=max_fraction, margin=margin)["small_iou"][0])
 
@@ -239,8 +420,34 @@ METRIC_NAMES = ("iou", "bf1", "precision", "recall", "area_ratio", "small_iou")
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class ScoringReference:
-    """The reference side of :func:`per_image_metrics`, prepared once for every prediction set scored
-    against the same masks."""
+    """The reference side of :func:`per_image_metrics`, prepared once by :func:`scoring_reference`.
+
+    Reused for every prediction set scored against the same masks (:func:`score_masks`).  Masks are stacked
+    into one uint8 image, each followed by ``pad`` zero rows, so one OpenCV call serves the whole batch.
+
+    Attributes
+    ----------
+    gts : numpy.ndarray
+        The reference masks, bool [N,H,W].
+    tolerance : float
+        Boundary-F1 matching radius (px).
+    max_fraction : float
+        Small-region threshold as a fraction of the frame.
+    margin : int
+        Small-region neighbourhood radius (px).
+    pad : int
+        Zero rows after each mask in the stacks.
+    stacked : numpy.ndarray
+        uint8 0/1 [N*(H+pad), W] stack of ``gts``.
+    count : numpy.ndarray
+        Foreground pixels of each reference, int64 [N].
+    boundary : numpy.ndarray
+        The stacked reference boundaries.
+    near_boundary : numpy.ndarray
+        The boundaries dilated by :func:`tolerance_disk`.
+    small : tuple or None
+        (region R, small components S, |S| per image) stacks; None when no reference has a small component.
+    """
 
     gts: np.ndarray
     tolerance: float
@@ -254,12 +461,35 @@ class ScoringReference:
     small: tuple | None
 
     def __len__(self) -> int:
+        """Return the number of reference masks N."""
         return len(self.gts)
 
 
 def scoring_reference(gts, tolerance: float = DEFAULT_TOLERANCE, *, max_fraction: float = DEFAULT_SMALL_FRACTION,
                       margin: int = DEFAULT_SMALL_MARGIN) -> ScoringReference:
-    """:class:`ScoringReference` of bool [N,H,W] reference masks (for :func:`score_masks`)."""
+    """Prepare a :class:`ScoringReference` of reference masks for :func:`score_masks`.
+
+    Parameters
+    ----------
+    gts : array_like
+        Reference masks, bool or 0/1 [N,H,W].
+    tolerance : float, optional
+        Boundary-F1 matching radius in pixels (default ``evaluate.bf1_tolerance``).
+    max_fraction : float, optional
+        Small-region threshold (default ``evaluate.small_region_max_fraction``).
+    margin : int, optional
+        Small-region neighbourhood radius in pixels (default 3).
+
+    Returns
+    -------
+    ScoringReference
+        The prepared reference.
+
+    Raises
+    ------
+    InputError
+        A mask is not binary, the masks are not 3-D, or ``tolerance`` < 0.
+    """
     gts = _as_mask(gts, "gts")
     if gts.ndim != 3:
         raise InputError(f"expected 3-D masks, got shape {gts.shape}")
@@ -277,7 +507,28 @@ def scoring_reference(gts, tolerance: float = DEFAULT_TOLERANCE, *, max_fraction
 
 
 def score_masks(preds, reference: ScoringReference, *, device=None) -> dict[str, np.ndarray]:
-    """:func:`per_image_metrics` of ``preds`` bool [N,H,W] against a prepared :class:`ScoringReference`."""
+    """Score predictions against a prepared reference: :func:`per_image_metrics` without redoing the reference side.
+
+    Parameters
+    ----------
+    preds : array_like
+        Predicted masks, bool or 0/1 [N,H,W], the reference's shape.
+    reference : ScoringReference
+        From :func:`scoring_reference`.
+    device : str or torch.device, optional
+        Where torch runs the Boundary-F1 morphology (same integers); None (default): OpenCV on the CPU.
+
+    Returns
+    -------
+    dict of str to numpy.ndarray
+        float64 [N] per name of :data:`METRIC_NAMES` (empty arrays for N = 0), with the single-image functions'
+        conventions.
+
+    Raises
+    ------
+    InputError
+        A mask is not binary or the shapes differ from the reference's.
+    """
     preds = _as_mask(preds, "preds")
     if preds.shape != reference.gts.shape:
         raise InputError(f"pred {preds.shape} and gt {reference.gts.shape} shapes differ")
@@ -306,16 +557,66 @@ def score_masks(preds, reference: ScoringReference, *, device=None) -> dict[str,
 def per_image_metrics(preds, gts, tolerance: float = DEFAULT_TOLERANCE, *,
                       max_fraction: float = DEFAULT_SMALL_FRACTION,
                       margin: int = DEFAULT_SMALL_MARGIN, device=None) -> dict[str, np.ndarray]:
-    """Every metric of :data:`METRIC_NAMES` for bool [N,H,W] pairs -> float64 [N] each, as the single-image
-    functions; ``device`` (torch) runs the Boundary-F1 morphology there instead of OpenCV."""
+    """Compute every metric of :data:`METRIC_NAMES` for N pairs of masks at once.
+
+    The values of :func:`image_iou`, :func:`boundary_f1`, :func:`precision_recall`, :func:`area_fraction` and
+    :func:`small_region_iou`, with their conventions.
+
+    Parameters
+    ----------
+    preds, gts : array_like
+        Predicted and reference masks, bool or 0/1 [N,H,W], equal shapes.
+    tolerance : float, optional
+        Boundary-F1 matching radius in pixels (default ``evaluate.bf1_tolerance``).
+    max_fraction : float, optional
+        Small-region threshold (default ``evaluate.small_region_max_fraction``).
+    margin : int, optional
+        Small-region neighbourhood radius in pixels (default 3).
+    device : str or torch.device, optional
+        Where torch runs the Boundary-F1 morphology; None (default): OpenCV.
+
+    Returns
+    -------
+    dict of str to numpy.ndarray
+        ``iou, bf1, precision, recall, area_ratio, small_iou``, each float64 [N].
+
+    Raises
+    ------
+    InputError
+        A mask is not binary, not 3-D, the shapes differ, or ``tolerance`` < 0.
+    """
     preds, gts = _pair(preds, gts, ndim=3)
     return score_masks(preds, scoring_reference(gts, tolerance, max_fraction=max_fraction, margin=margin),
                        device=device)
 
 
 def threshold_counts(probs, gts, grid, *, chunk: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(|M|, |M & G| float64 [N, G], |G| [N]) of M = [P >= tau] (eq:inference-mask) for every tau of the
-    increasing ``grid``, in one pass: each pixel binned by the grid points it reaches, then cumulated."""
+    """Count predicted and overlapping pixels of M = [P >= tau] (eq:inference-mask) at every tau of a grid.
+
+    One pass over the pixels: each pixel is binned by the grid points it reaches, then the bins are cumulated.
+
+    Parameters
+    ----------
+    probs : array_like
+        Probabilities P, float [N,H,W], finite.
+    gts : array_like
+        Reference masks, bool or 0/1 [N,H,W].
+    grid : array_like
+        The thresholds, a non-empty, finite, strictly increasing 1-D sequence of G values.
+    chunk : int, optional
+        Images per pass (bounds the memory; default 16).
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        (|M| float64 [N,G], |M & G| float64 [N,G], |G| float64 [N]).
+
+    Raises
+    ------
+    InputError
+        Shapes differ or are not [N,H,W], the grid is not as required, a mask is not binary, or ``probs``
+        holds NaN or infinity.
+    """
     probs = np.asarray(probs)
     gts = _as_mask(gts, "gts")
     grid = np.asarray(grid, dtype=np.float64)
@@ -343,7 +644,29 @@ def threshold_counts(probs, gts, grid, *, chunk: int = 16) -> tuple[np.ndarray, 
 
 
 def iou_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
-    """Image IoU of [P >= tau] (eq:inference-mask) for every image and tau of ``grid`` -> float64 [N, G]."""
+    """Image IoU of M = [P >= tau] (eq:inference-mask) for every image and every tau of a grid.
+
+    Parameters
+    ----------
+    probs : array_like
+        Probabilities P, float [N,H,W].
+    gts : array_like
+        Reference masks, bool or 0/1 [N,H,W].
+    grid : array_like
+        Strictly increasing thresholds, G values.
+    chunk : int, optional
+        Images per pass (default 16).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 [N,G]; 1 where both masks are empty, 0 where exactly one is.
+
+    Raises
+    ------
+    InputError
+        As :func:`threshold_counts`.
+    """
     n_pred, inter, n_ref = threshold_counts(probs, gts, grid, chunk=chunk)
     ng = n_ref[:, None]
     return _ratio(inter, n_pred + ng - inter, (n_pred == 0) & (ng == 0))

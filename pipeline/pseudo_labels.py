@@ -1,7 +1,9 @@
-"""The consensus and geometry stages' work, callable without the CLI: teacher.zarr -> consensus.zarr
-(:func:`write_consensus`) and consensus.zarr + manifest -> geometry.zarr and the gates table
-(:func:`write_geometry`), streamed in blocks of images.  ``geodistill label`` calls the same
-:func:`vote_block` and :func:`reliability_gates`, so its masks and gates are the DAG's."""
+"""The consensus and geometry stages' work, callable without the CLI.
+
+teacher.zarr -> consensus.zarr (:func:`write_consensus`), and consensus.zarr + manifest -> geometry.zarr and
+the gates table (:func:`write_geometry`), streamed in blocks of images.  ``geodistill label`` calls the same
+:func:`vote_block` and :func:`reliability_gates`, so its masks and gates are the DAG's.
+"""
 
 from __future__ import annotations
 
@@ -20,7 +22,23 @@ from pipeline.runtime.progress import progress
 
 
 def check_teacher(teacher) -> tuple[int, int, int, int]:
-    """Shape and attribute checks of a teacher artifact; returns (N, K, H, W)."""
+    """Check the shapes and attributes of a teacher artifact.
+
+    Parameters
+    ----------
+    teacher : pipeline.artifacts.store.ZarrArtifact
+        The opened teacher.zarr (``masks`` [N,K,H,W], ``scores`` [N,K], attrs ``prompts`` and ``image_ids``).
+
+    Returns
+    -------
+    tuple of int
+        (N, K, H, W).
+
+    Raises
+    ------
+    InputError
+        ``scores`` does not match ``masks``, or ``prompts`` or ``image_ids`` is missing or of the wrong length.
+    """
     masks, scores = teacher["masks"], teacher["scores"]
     n, k, h, w = masks.shape
     if scores.shape != (n, k):
@@ -37,15 +55,55 @@ def check_teacher(teacher) -> tuple[int, int, int, int]:
 
 
 def vote_block(masks: np.ndarray, scores: np.ndarray, threshold: float) -> tuple[Consensus, np.ndarray]:
-    """The vote of a block of images (eq:agreement-map, eq:majority-vote) and its prompt disagreement h
-    (:func:`pipeline.consensus.agreement_entropy` of the stored float32 map)."""
+    """Vote a block of images (eq:agreement-map, eq:majority-vote) and measure their prompt disagreement.
+
+    Parameters
+    ----------
+    masks : array_like
+        Prompt masks, bool or 0/1 [N,K,H,W].
+    scores : array_like
+        Teacher scores [N,K].
+    threshold : float
+        The vote threshold (``consensus.vote_threshold``).
+
+    Returns
+    -------
+    tuple
+        (:class:`pipeline.consensus.Consensus`, h float64 [N]): h is
+        :func:`pipeline.consensus.agreement_entropy` of the stored float32 map.
+
+    Raises
+    ------
+    InputError
+        As :func:`pipeline.consensus.vote_batch`.
+    """
     c = vote_batch(masks, scores, threshold)
     return c, agreement_entropy(c.agreement)
 
 
 def write_consensus(teacher, threshold: float, out: str | Path, meta: Callable[[str], Meta],
                     chunk_images: int = 32) -> None:
-    """consensus.zarr from the opened teacher artifact: the vote at ``threshold``."""
+    """Write consensus.zarr (``agreement``, ``voted``, ``n_valid``, ``h``) from the opened teacher artifact.
+
+    Parameters
+    ----------
+    teacher : pipeline.artifacts.store.ZarrArtifact
+        The opened teacher.zarr.
+    threshold : float
+        The vote threshold.
+    out : str or Path
+        The consensus.zarr path, replaced atomically.
+    meta : callable
+        Schema name -> :class:`pipeline.artifacts.lineage.Meta` of the artifact.
+    chunk_images : int, optional
+        Images per block (default 32).
+
+    Raises
+    ------
+    InputError
+        The teacher artifact is inconsistent (:func:`check_teacher`) or a block's vote fails, naming the
+        artifact and the block's images.
+    """
     n, k, h, w = check_teacher(teacher)
     with ZarrWriter(out, meta("consensus")) as wr:
         wr.create("agreement", (n, h, w), np.float32)
@@ -68,7 +126,28 @@ def write_consensus(teacher, threshold: float, out: str | Path, meta: Callable[[
 
 
 def check_consensus(cons, manifest, n_prompts: int) -> tuple[int, int, int]:
-    """Consistency of consensus.zarr with the manifest and params; returns (N, H, W)."""
+    """Check consensus.zarr against the manifest and the params.
+
+    Parameters
+    ----------
+    cons : pipeline.artifacts.store.ZarrArtifact
+        The opened consensus.zarr.
+    manifest : pipeline.artifacts.store.TableArtifact
+        The opened manifest (``image_id`` in the consensus's order).
+    n_prompts : int
+        ``geometry.n_prompts``, the denominator of eq:valid-prompt-ratio.
+
+    Returns
+    -------
+    tuple of int
+        (N, H, W).
+
+    Raises
+    ------
+    InputError
+        The arrays' shapes disagree, ``prompts`` is missing or not ``n_prompts`` long, or the manifest's image ids
+        differ from the consensus's.
+    """
     agreement, voted, n_valid = cons["agreement"], cons["voted"], cons["n_valid"]
     if agreement.shape != voted.shape or n_valid.shape != voted.shape[:1]:
         raise InputError(f"{cons.path}: agreement {agreement.shape}, voted {voted.shape} and "
@@ -89,7 +168,19 @@ def check_consensus(cons, manifest, n_prompts: int) -> tuple[int, int, int]:
 
 
 class Gates(NamedTuple):
-    """The reliability gates of a set of images; ``a0`` is 0.0 when ``missing``."""
+    """The reliability gates of a set of images.
+
+    Attributes
+    ----------
+    a0 : float
+        The area reference (0.0 when ``missing``).
+    v : numpy.ndarray
+        Valid-prompt ratio per image.
+    factors : pipeline.geometry.GateFactors
+        The gate factors and g per image.
+    missing : bool
+        Whether no training image had foreground (a0 could not be measured).
+    """
 
     a0: float
     v: np.ndarray
@@ -98,12 +189,35 @@ class Gates(NamedTuple):
 
 
 def reliability_gates(c, n_valid, a, is_train, geo: Mapping[str, Any]) -> Gates:
-    """The gate of every image (docs/decisions.md, "The area reference a0"):
+    """Compute the gate of every image (docs/decisions.md, "The area reference a0").
 
-    a0 = median{a_i : i in the training split, a_i > 0}        (text before eq:confidence-gate)
-    g_i = clip(g_conf * g_valid * g_area, 0, 1) at a0          (eq:confidence-gate .. eq:reliability-gate)
+    a0 = median{a_i : i in the training split, a_i > 0} (the text before eq:confidence-gate);
+    g_i = clip(g_conf * g_valid * g_area, 0, 1) at a0 (eq:confidence-gate .. eq:reliability-gate).  Without such
+    an a_i, the gates at a0 = 0 with ``missing`` set, for the caller to say so.
 
-    Without such an a_i, the gates of a0 = 0 and ``missing`` set, for the caller to say so."""
+    Parameters
+    ----------
+    c : array_like
+        Foreground agreement per image.
+    n_valid : array_like
+        |V| per image.
+    a : array_like
+        Area ratio per image.
+    is_train : array_like
+        bool per image: in the training split.
+    geo : mapping
+        The params ``geometry`` section.
+
+    Returns
+    -------
+    Gates
+        The gates.
+
+    Raises
+    ------
+    InputError
+        ``a`` and ``is_train`` differ in shape, or an input is not finite (:func:`pipeline.geometry.gate_factors`).
+    """
     a = np.asarray(a, np.float64)
     try:
         a0, missing = median_area(a, is_train), False
@@ -114,7 +228,22 @@ def reliability_gates(c, n_valid, a, is_train, geo: Mapping[str, Any]) -> Gates:
 
 
 def gate_columns(c, a, gates: Gates) -> dict[str, np.ndarray]:
-    """The gate columns of the gates table and of label's table."""
+    """Return the gate columns of the gates table and of label's table.
+
+    Parameters
+    ----------
+    c : array_like
+        Foreground agreement per image.
+    a : array_like
+        Area ratio per image.
+    gates : Gates
+        From :func:`reliability_gates`.
+
+    Returns
+    -------
+    dict of str to numpy.ndarray
+        ``c, v, a, a0, g_conf, g_valid, g_area, g``.
+    """
     f = gates.factors
     return {"c": c, "v": gates.v, "a": a, "a0": np.full(len(c), gates.a0),
             "g_conf": f.conf, "g_valid": f.valid, "g_area": f.area, "g": f.g}
@@ -122,8 +251,38 @@ def gate_columns(c, a, gates: Gates) -> dict[str, np.ndarray]:
 
 def write_geometry(cons, manifest, cfg: Mapping[str, Any], out: str | Path, gates: str | Path,
                    meta: Callable[[str], Meta], chunk_images: int = 64) -> pd.DataFrame:
-    """geometry.zarr (sdf, skeleton; eq:sdf-target) and the gates table (returned) from the opened
-    consensus and manifest artifacts; a missing a0 stops the stage (nothing to train on)."""
+    """Write geometry.zarr (``sdf``, ``skeleton``; eq:sdf-target) and the gates table.
+
+    Parameters
+    ----------
+    cons : pipeline.artifacts.store.ZarrArtifact
+        The opened consensus.zarr.
+    manifest : pipeline.artifacts.store.TableArtifact
+        The opened manifest (its ``split`` column decides the training images of a0).
+    cfg : mapping
+        The params ``geometry`` section.
+    out : str or Path
+        The geometry.zarr path, replaced atomically.
+    gates : str or Path
+        The gates table's path (Parquet).
+    meta : callable
+        Schema name -> :class:`pipeline.artifacts.lineage.Meta`.
+    chunk_images : int, optional
+        Images per block (default 64).
+
+    Returns
+    -------
+    pandas.DataFrame
+        The gates table: ``image_id``, ``split``, the :func:`gate_columns` and ``n_valid``.
+
+    Raises
+    ------
+    InputError
+        consensus.zarr is inconsistent (:func:`check_consensus`), ``n_valid`` lies outside [0, n_prompts], or an
+        image without a valid prompt has a non-empty voted mask.
+    NoForeground
+        No training image has foreground (nothing to train on).
+    """
     n_prompts = cfg["n_prompts"]
     n, h, w = check_consensus(cons, manifest, n_prompts)
     c = np.zeros(n)

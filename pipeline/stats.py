@@ -1,5 +1,8 @@
-"""Statistics of the evaluation (paper, "Metrics and Statistical Analysis"): seed summaries, paired
-seed-aware intervals (docs/intervals.md), signed verdicts with Holm's adjustment, Spearman's rho."""
+"""Statistics of the evaluation (paper, "Metrics and Statistical Analysis").
+
+Seed summaries, paired seed-aware intervals of a gain (docs/intervals.md), signed verdicts with Holm's
+adjustment, and Spearman's rho.  Every resampling is seeded: the same inputs and seed give the same numbers.
+"""
 
 from __future__ import annotations
 
@@ -20,8 +23,28 @@ ONE_SIDED_95_Z = 1.6449
 
 
 def seed_summary(df, by: Sequence[str], metrics: Sequence[str], seed_col: str = "seed"):
-    """Per ``by`` group: ``<metric>_mean`` and ``<metric>_std`` (ddof 1, NaN for one seed) over seeds of the
-    per-seed means (NaN skipped), ``n_seeds`` and ``n_images`` (the most images of a seed)."""
+    """Mean and sample standard deviation over seeds of the per-seed means, per group.
+
+    For every ``by`` group: each metric's mean over a seed's images (NaN values, such as an undefined
+    small-region IoU, skipped), then the mean and the standard deviation (ddof 1) of those per-seed means.
+
+    Parameters
+    ----------
+    df : pandas.DataFrame
+        Per-image table: one row per image and seed, with the ``by``, ``seed_col`` and metric columns.
+    by : sequence of str
+        Grouping columns.
+    metrics : sequence of str
+        Metric columns; names absent from ``df`` are skipped.
+    seed_col : str, optional
+        The seed column (default ``"seed"``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per group: the ``by`` columns, ``n_seeds``, ``n_images`` (the most images of a seed) and
+        ``<metric>_mean`` and ``<metric>_std`` (NaN for one seed) per metric.
+    """
     import pandas as pd
 
     by = list(by)
@@ -41,7 +64,21 @@ def seed_summary(df, by: Sequence[str], metrics: Sequence[str], seed_col: str = 
 
 @dataclasses.dataclass(frozen=True)
 class BootstrapCI:
-    """Point estimate and percentile interval, one entry per column."""
+    """A point estimate and its percentile interval, one entry per statistic.
+
+    Attributes
+    ----------
+    estimate : numpy.ndarray
+        The plain mean of the differences.
+    low, high : numpy.ndarray
+        The percentile interval's bounds.
+    n_resamples : int
+        Bootstrap resamples drawn.
+    n_clusters : int
+        Clusters (spacecraft) in the data.
+    n_items : int
+        Items (images) in the data.
+    """
 
     estimate: np.ndarray
     low: np.ndarray
@@ -61,8 +98,33 @@ def _cluster_layout(clusters: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
 
 def hierarchical_resample_counts(clusters: np.ndarray, n_resamples: int, rng: np.random.Generator,
                                  block_entries: int = _BLOCK_ENTRIES) -> Iterator[np.ndarray]:
-    """Two-stage cluster bootstrap (clusters with replacement, then items within each drawn cluster) as
-    int64 blocks [b, n] of multiplicities: entry [r, i] = how often item i was drawn in resample r."""
+    """Draw two-stage cluster-bootstrap resamples as multiplicity counts.
+
+    Each resample draws C clusters with replacement out of the C clusters, then, for every drawn cluster of size
+    n_c, n_c items with replacement within it.  The stream of ``rng`` is consumed block by block in a fixed
+    order: a given ``rng`` state always gives the same counts.
+
+    Parameters
+    ----------
+    clusters : array_like
+        Cluster label of each of the n items.
+    n_resamples : int
+        Resamples in all.
+    rng : numpy.random.Generator
+        The random stream.
+    block_entries : int, optional
+        Bound on the int64 entries of one block's index arrays (memory).
+
+    Yields
+    ------
+    numpy.ndarray
+        int64 [b, n] blocks; entry [r, i] = how often item i (input order) was drawn in resample r.
+
+    Raises
+    ------
+    ValueError
+        There is no item.
+    """
     clusters = np.asarray(clusters)
     if len(clusters) == 0:
         raise ValueError("no items to resample")
@@ -82,7 +144,32 @@ def hierarchical_resample_counts(clusters: np.ndarray, n_resamples: int, rng: np
 
 def hierarchical_resample_means(values: np.ndarray, clusters: np.ndarray, n_resamples: int,
                                 rng: np.random.Generator) -> np.ndarray:
-    """Means of ``values`` [n] or [n, k] under :func:`hierarchical_resample_counts` -> [n_resamples, k]."""
+    """Bootstrap distribution of the mean under :func:`hierarchical_resample_counts`.
+
+    Means = counts @ values / counts.sum(1), summed in a fixed order (``einsum``, not BLAS), so every bit of the
+    result is independent of the thread count.
+
+    Parameters
+    ----------
+    values : array_like
+        [n] or [n, k]: k statistics resampled with the same draws.
+    clusters : array_like
+        Cluster label of each item, length n.
+    n_resamples : int
+        Resamples.
+    rng : numpy.random.Generator
+        The random stream.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 [n_resamples, k].
+
+    Raises
+    ------
+    ValueError
+        ``values`` and ``clusters`` differ in length, or there is no item.
+    """
     values = np.asarray(values, dtype=np.float64)
     if values.ndim == 1:
         values = values[:, None]
@@ -97,8 +184,29 @@ def hierarchical_resample_means(values: np.ndarray, clusters: np.ndarray, n_resa
 
 def paired_hierarchical_bootstrap(treatment: np.ndarray, control: np.ndarray, clusters: np.ndarray,
                                   n_resamples: int = 10_000, ci: float = 0.95, seed: int = 0) -> BootstrapCI:
-    """Percentile CI of the mean paired difference of matched per-image values [n] or [n, k], resampling
-    spacecraft (``clusters``) then images (the paper's paired hierarchical bootstrap)."""
+    """Percentile CI of the mean paired difference of one seed's matched per-image values (the paper's bootstrap).
+
+    Spacecraft (``clusters``) are resampled, then images within them; resampling the per-image differences
+    resamples matched rows of both methods at once.  Equal to :func:`paired_seed_bootstrap` of one seed.
+
+    Parameters
+    ----------
+    treatment, control : array_like
+        Matched per-image values [n] or [n, k] (row i = the same image in both).
+    clusters : array_like
+        The spacecraft of each image, length n.
+    n_resamples : int, optional
+        Bootstrap resamples (default 10 000).
+    ci : float, optional
+        Coverage of the interval, in (0, 1) (default 0.95).
+    seed : int, optional
+        Seed of the resampling (default 0).
+
+    Returns
+    -------
+    BootstrapCI
+        The mean difference and the percentile interval [q_(1-ci)/2, q_(1+ci)/2] of the resampled means.
+    """
     t, c = np.asarray(treatment, dtype=np.float64), np.asarray(control, dtype=np.float64)
     return paired_seed_bootstrap(t[None], c[None], clusters, n_resamples, ci, seed)
 
@@ -108,8 +216,27 @@ SEED_STREAM = 1
 
 
 def seed_differences(treatment, control, ci: float) -> tuple[np.ndarray, Callable]:
-    """``(d3, squeeze)``: treatment - control ([S, n] or [S, n, k]) checked as [S, n, k], and what gives a
-    per-column result the inputs' shape back."""
+    """Check and return the paired differences of a seed-aware interval.
+
+    Parameters
+    ----------
+    treatment, control : array_like
+        Matched values [S, n] or [S, n, k]: row s = seed s, column i = image i.
+    ci : float
+        Coverage of the interval, in (0, 1).
+
+    Returns
+    -------
+    tuple
+        ``(d3, squeeze)``: treatment - control as float64 [S, n, k], and the function that gives a per-column
+        result the inputs' shape back (a scalar column for [S, n] inputs).
+
+    Raises
+    ------
+    ValueError
+        The inputs are not matched [S, n] or [S, n, k] with S >= 1, ``ci`` is not in (0, 1), or a difference is
+        NaN (drop undefined images first).
+    """
     t = np.asarray(treatment, dtype=np.float64)
     c = np.asarray(control, dtype=np.float64)
     if t.shape != c.shape or t.ndim not in (2, 3) or t.shape[0] == 0:
@@ -125,8 +252,36 @@ def seed_differences(treatment, control, ci: float) -> tuple[np.ndarray, Callabl
 
 def paired_seed_bootstrap(treatment: np.ndarray, control: np.ndarray, clusters: np.ndarray,
                           n_resamples: int = 10_000, ci: float = 0.95, seed: int = 0) -> BootstrapCI:
-    """Seed-aware percentile CI of the mean paired difference ([S, n] or [S, n, k], row s = seed s): seeds
-    with replacement, then spacecraft and images (one draw for every seed); one seed draws no seed."""
+    """Seed-aware percentile CI of the mean paired difference: seeds, then spacecraft, then images.
+
+    With d[s, i] = treatment - control, resample r draws seed multiplicities w_r (S draws with replacement) and
+    image multiplicities c_r (spacecraft with replacement, then images within them, one draw for every seed);
+    its value is sum_s w_rs (d[s] . c_r / sum c_r) / S.  The estimate is the plain mean of d.  S = 1 draws no
+    seed: exactly :func:`paired_hierarchical_bootstrap` of d[0] with the same ``seed``.
+
+    Parameters
+    ----------
+    treatment, control : array_like
+        Matched values [S, n] or [S, n, k]: row s = the same seed of both methods, column i = the same image.
+    clusters : array_like
+        The spacecraft of each image, length n.
+    n_resamples : int, optional
+        Bootstrap resamples (default 10 000).
+    ci : float, optional
+        Coverage, in (0, 1) (default 0.95).
+    seed : int, optional
+        Seed of the resampling (default 0); the seed level draws from ``default_rng([seed, SEED_STREAM])``.
+
+    Returns
+    -------
+    BootstrapCI
+        Estimate and percentile interval, scalars per entry for [S, n] inputs, [k] for [S, n, k].
+
+    Raises
+    ------
+    ValueError
+        As :func:`seed_differences`.
+    """
     d3, squeeze = seed_differences(treatment, control, ci)
     n_seeds, n, k = d3.shape
     # image level: every seed's column block resampled with the same draws -> [R, S, k]
@@ -153,7 +308,27 @@ SPACECRAFT_RANDOM = "random"
 
 @dataclasses.dataclass(frozen=True)
 class TInterval:
-    """Point estimate, t interval, standard error, degrees of freedom and two-sided p, one entry per column."""
+    """A point estimate with its t interval, one entry per statistic.
+
+    Attributes
+    ----------
+    estimate : numpy.ndarray
+        The mean paired difference.
+    low, high : numpy.ndarray
+        Interval bounds, estimate -+ t_((1+ci)/2, df) se.
+    se : numpy.ndarray
+        Standard error.
+    df : numpy.ndarray
+        Satterthwaite degrees of freedom (inf where se = 0).
+    pvalue : numpy.ndarray
+        Two-sided p-value of a zero difference.
+    n_seeds : int
+        Seeds S.
+    n_clusters : int
+        Spacecraft C.
+    n_items : int
+        Images n.
+    """
 
     estimate: np.ndarray
     low: np.ndarray
@@ -169,13 +344,44 @@ class TInterval:
 def paired_seed_image_t(treatment: np.ndarray, control: np.ndarray, clusters: np.ndarray, ci: float = 0.95,
                         spacecraft: str = SPACECRAFT_FIXED, n_resamples: int | None = None,
                         seed: int | None = None) -> TInterval:
-    """Seed-aware t interval of the mean paired difference, inputs as :func:`paired_seed_bootstrap`.
+    """Seed-aware t interval of the mean paired difference (docs/intervals.md).
 
-    SE^2 = V_seed + V_img: V_seed = var_s(per-seed mean) / S; ``fixed``: V_img = sum_c w_c^2 s_c^2 / n_c over
-    the seed-averaged differences within spacecraft (one-image spacecraft borrow the pooled variance);
-    ``random``: the CR1 cluster variance with C - 1 df.  df by Satterthwaite on median-unbiased terms
-    (docs/intervals.md).  ``n_resamples`` and ``seed`` are unused: every entry of :data:`INTERVALS` is
-    called alike."""
+    With d[s, i] = treatment - control and dbar its mean, SE^2 = V_seed + V_img:
+
+    * V_seed = var_s(m_s) / S (ddof 1, df S - 1) of the per-seed mean differences m_s; 0 for S = 1;
+    * ``spacecraft="fixed"`` (the effect on THESE spacecraft): with a_i the seed-averaged difference of image i,
+      V_img = sum_c w_c^2 s_c^2 / n_c, s_c^2 the variance of a_i within spacecraft c (df n_c - 1), w_c = n_c / n;
+      a spacecraft with one image borrows the pooled within-spacecraft variance and its df;
+    * ``spacecraft="random"`` (the effect on spacecraft LIKE these): the cluster-robust CR1 variance
+      C / (C - 1) sum_c w_c^2 (M_c - dbar)^2 of the spacecraft means M_c, df C - 1 (NaN interval for C = 1).
+
+    Interval dbar -+ t_((1+ci)/2, df) SE and p = 2 P(T_df > |dbar| / SE), df by Satterthwaite from the
+    median-unbiased terms V_k df_k / median(chi2_df_k).  A zero SE gives [dbar, dbar] (p = 1 when dbar = 0,
+    else 0).
+
+    Parameters
+    ----------
+    treatment, control : array_like
+        Matched values [S, n] or [S, n, k], as :func:`paired_seed_bootstrap`.
+    clusters : array_like
+        The spacecraft of each image, length n.
+    ci : float, optional
+        Coverage, in (0, 1) (default 0.95).
+    spacecraft : {"fixed", "random"}, optional
+        The estimand (:data:`SPACECRAFT_FIXED` by default).
+    n_resamples, seed : optional
+        Unused (an analytic interval); accepted so that every entry of :data:`INTERVALS` is called alike.
+
+    Returns
+    -------
+    TInterval
+        Scalars per entry for [S, n] inputs, [k] for [S, n, k].
+
+    Raises
+    ------
+    ValueError
+        ``spacecraft`` is unknown, ``clusters`` and the images differ in length, or as :func:`seed_differences`.
+    """
     from scipy.special import chdtri, stdtr, stdtrit
 
     if spacecraft not in (SPACECRAFT_FIXED, SPACECRAFT_RANDOM):
@@ -236,9 +442,33 @@ VERDICTS = (GAIN_SUPPORTED, LOSS_SUPPORTED, NO_DIFFERENCE, ONE_SEED, NOT_ESTIMAT
 
 def claim_status(gain: float, low: float, high: float, noise_floor: float | None = None,
                  n_seeds: float | None = None, p_adjusted: float | None = None, alpha: float = ALPHA) -> str:
-    """The signed verdict (:data:`VERDICTS`) on ``gain`` with its seed-aware CI [low, high]: supported only
-    with two seeds or more, a CI that excludes 0, its bound nearest 0 beyond ``noise_floor`` (None or NaN:
-    not measured) and the Holm-adjusted ``p_adjusted`` (None: not adjusted) below ``alpha``."""
+    """Return the signed verdict (one of :data:`VERDICTS`) on a gain with its seed-aware CI.
+
+    In order: a non-finite gain or bound -> "not estimated"; fewer than two seeds -> "one seed" (such an
+    interval holds no training noise); a CI covering 0, a bound nearest 0 with |bound| <= ``noise_floor``, or
+    ``p_adjusted`` >= ``alpha`` -> "no difference detected"; otherwise "gain supported" (CI above 0) or
+    "loss supported" (CI below 0).
+
+    Parameters
+    ----------
+    gain : float
+        The estimated difference.
+    low, high : float
+        Its CI bounds.
+    noise_floor : float, optional
+        The run-to-run noise floor the bound nearest 0 must clear; None or NaN: not measured (the CI decides).
+    n_seeds : float, optional
+        Seeds behind the interval; None or NaN: unknown.
+    p_adjusted : float, optional
+        Holm-adjusted p-value within the table's family (:func:`holm_adjust`); None or NaN: not adjusted.
+    alpha : float, optional
+        Significance level (default :data:`ALPHA`, 0.05).
+
+    Returns
+    -------
+    str
+        The verdict.
+    """
     if not all(np.isfinite(x) for x in (gain, low, high)):
         return NOT_ESTIMATED
     if n_seeds is not None and np.isfinite(n_seeds) and n_seeds < 2:
@@ -251,7 +481,23 @@ def claim_status(gain: float, low: float, high: float, noise_floor: float | None
 
 
 def paired_seed_t_interval(differences: Sequence[float], ci: float = 1.0 - ALPHA) -> tuple[float, float, float]:
-    """(mean, low, high): Student's t interval, S - 1 df, of per-seed paired differences (NaN bounds below 2)."""
+    """Student's t interval of per-seed paired differences, S - 1 degrees of freedom.
+
+    mean -+ t_((1+ci)/2, S-1) sd / sqrt(S), over the finite values: for a per-seed quantity without per-image
+    pairing.
+
+    Parameters
+    ----------
+    differences : sequence of float
+        One difference per seed both runs share; non-finite values are dropped.
+    ci : float, optional
+        Coverage (default 1 - :data:`ALPHA`).
+
+    Returns
+    -------
+    tuple of float
+        (mean, low, high); NaN bounds with fewer than two finite values, NaN mean with none.
+    """
     from scipy.special import stdtrit
 
     d = np.asarray([x for x in differences if np.isfinite(x)], dtype=np.float64)
@@ -263,7 +509,21 @@ def paired_seed_t_interval(differences: Sequence[float], ci: float = 1.0 - ALPHA
 
 
 def holm_adjust(pvalues: Sequence[float]) -> np.ndarray:
-    """Holm's step-down adjusted p-values: adj_(j) = min(1, max_{i <= j} (m - i + 1) p_(i)); NaN stays NaN."""
+    """Holm's step-down adjusted p-values.
+
+    With the m finite p-values sorted p_(1) <= ... <= p_(m): adj_(j) = min(1, max_{i <= j} (m - i + 1) p_(i)).
+    Calling a p-value significant when its adjusted value is below alpha controls the family-wise error rate.
+
+    Parameters
+    ----------
+    pvalues : sequence of float
+        The family's p-values; NaN entries are not in the family.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, the input's shape and order; NaN stays NaN.
+    """
     p = np.asarray(pvalues, dtype=np.float64)
     out = np.full(p.shape, np.nan)
     ok = np.flatnonzero(np.isfinite(p))
@@ -275,7 +535,18 @@ def holm_adjust(pvalues: Sequence[float]) -> np.ndarray:
 
 
 def average_ranks(x: np.ndarray) -> np.ndarray:
-    """Ranks 1..n, ties averaged (``rankdata(method='average')``)."""
+    """Rank 1..n with ties averaged (``scipy.stats.rankdata(method="average")``).
+
+    Parameters
+    ----------
+    x : array_like
+        Values, 1-D.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 ranks.
+    """
     from scipy.stats import rankdata
 
     return rankdata(np.asarray(x, dtype=np.float64), method="average")
@@ -283,13 +554,44 @@ def average_ranks(x: np.ndarray) -> np.ndarray:
 
 @dataclasses.dataclass(frozen=True)
 class SpearmanResult:
+    """Spearman's rho with its p-value.
+
+    Attributes
+    ----------
+    rho : float
+        The rank correlation (NaN when undefined).
+    pvalue : float
+        Two-sided p-value (NaN when undefined).
+    n : int
+        Pairs used.
+    """
+
     rho: float
     pvalue: float
     n: int
 
 
 def spearman(x: Iterable[float], y: Iterable[float]) -> SpearmanResult:
-    """Spearman's rho with its two-sided p (t with n - 2 df); NaN pairs dropped, NaN below 3 pairs or constant."""
+    """Spearman's rho with its two-sided p-value.
+
+    rho = the Pearson correlation of the average ranks; p from t = rho sqrt((n - 2) / (1 - rho^2)) with n - 2
+    degrees of freedom.
+
+    Parameters
+    ----------
+    x, y : iterable of float
+        Paired values; pairs with a NaN in either are dropped.
+
+    Returns
+    -------
+    SpearmanResult
+        rho = p = NaN with fewer than 3 pairs or a constant input; p = 0 when |rho| = 1.
+
+    Raises
+    ------
+    ValueError
+        ``x`` and ``y`` differ in shape.
+    """
     from scipy.special import stdtr
 
     x, y = (np.asarray(v if isinstance(v, np.ndarray) else list(v), dtype=np.float64) for v in (x, y))
@@ -339,9 +641,46 @@ _GAIN_SUFFIXES = ("", "_lo", "_hi", "_seed_sd", "_p")
 def method_gains(df, metrics: Sequence[str], control: str = BASELINE, by: Sequence[str] = ("dataset", "group", "threshold_mode"),
                  cluster_col: str = "spacecraft", n_resamples: int = 10_000, ci: float = 0.95, seed: int = 0,
                  interval: str = DEFAULT_INTERVAL):
-    """Per ``by`` group, the gain of every method over ``control`` on the seeds they share and the images
-    all of those seeds scored (NaN pairs left out per metric): ``gain_<m>`` with ``_lo``, ``_hi`` (the
-    ``interval``), ``_seed_sd`` and ``_p`` (NaN for the bootstrap), ``gain_seeds`` and ``gain_images``."""
+    """Gain of every method over ``control`` with paired seed-aware intervals, per ``by`` group.
+
+    Each method is paired with the control on the seeds both have, seed by seed, and on the images every one of
+    those seeds scored; images whose metric is NaN for either method are left out of that metric.
+    ``gain_<m>`` is the mean over seeds and images of the differences (the difference of the seed-averaged
+    means); its interval comes from ``interval``; comparisons on the same images share one resample set.
+
+    Parameters
+    ----------
+    df : pandas.DataFrame
+        Per-image metrics: ``method``, ``seed``, ``image_id``, ``cluster_col``, the ``by`` columns and the metrics.
+    metrics : sequence of str
+        Metric columns to compare.
+    control : str, optional
+        The control method (default :data:`pipeline.methods.BASELINE`); it gets no row.
+    by : sequence of str, optional
+        Grouping columns (default dataset, group, threshold_mode).
+    cluster_col : str, optional
+        The spacecraft column (default ``"spacecraft"``).
+    n_resamples : int, optional
+        Bootstrap resamples (default 10 000; unused by the t intervals).
+    ci : float, optional
+        Coverage (default 0.95).
+    seed : int, optional
+        Bootstrap seed, the same for every comparison (default 0).
+    interval : str, optional
+        A key of :data:`INTERVALS` (default :data:`DEFAULT_INTERVAL`, ``evaluate.interval``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per (by..., method): ``gain_seeds``, ``gain_images`` and per metric ``gain_<m>``,
+        ``gain_<m>_lo``, ``gain_<m>_hi``, ``gain_<m>_seed_sd`` (NaN for one seed) and ``gain_<m>_p`` (NaN for
+        the bootstrap).
+
+    Raises
+    ------
+    ValueError
+        ``interval`` is not a key of :data:`INTERVALS`.
+    """
     import pandas as pd
 
     if interval not in INTERVALS:
@@ -395,7 +734,21 @@ def method_gains(df, metrics: Sequence[str], control: str = BASELINE, by: Sequen
 
 
 def vs_column(column: str, control: str) -> str:
-    """``column`` of a gain over ``control``: unchanged over BASELINE, else ``_vs_<control>`` before the bound."""
+    """Name a :func:`method_gains` column for a gain over ``control``.
+
+    Parameters
+    ----------
+    column : str
+        A gain column, e.g. ``gain_iou_lo``.
+    control : str
+        The control method.
+
+    Returns
+    -------
+    str
+        ``column`` unchanged over :data:`pipeline.methods.BASELINE`; else ``_vs_<control>`` before the bound
+        suffix (``gain_iou_lo`` -> ``gain_iou_vs_continuation_lo``) or at the end.
+    """
     if control == BASELINE:
         return column
     for end in ("_lo", "_hi", "_p"):

@@ -1,5 +1,9 @@
-"""The inference mask M = [P >= tau] <=> [Z >= logit(tau)] (eq:inference-mask), tau's calibration on the
-validation split, and which tau and working resolution a deployed model runs with."""
+"""The inference mask and its threshold (eq:inference-mask).
+
+M = [P >= tau] <=> [Z >= logit(tau)]; tau's calibration on the validation split (mean Image IoU over a grid,
+:func:`calibrate_threshold`), and which tau and working resolution a deployed model runs with
+(:func:`resolve_tau`, :func:`resolve_resolution`).
+"""
 
 from __future__ import annotations
 
@@ -21,7 +25,26 @@ TIE_TOLERANCE = 1e-12  # mean IoUs closer than this are a tie (select_tau)
 
 
 def logit_threshold(tau: float) -> float:
-    """logit(tau): [sigmoid(Z) >= tau] == [Z >= logit(tau)] (eq:inference-mask); -inf at 0, +inf at 1."""
+    """Return the logit threshold logit(tau) = log(tau / (1 - tau)).
+
+    [sigmoid(Z) >= tau] == [Z >= logit(tau)] (eq:inference-mask), so engines that output logits binarise
+    without a sigmoid.
+
+    Parameters
+    ----------
+    tau : float
+        Probability threshold in [0, 1].
+
+    Returns
+    -------
+    float
+        logit(tau); -inf at tau = 0 (every pixel foreground), +inf at tau = 1.
+
+    Raises
+    ------
+    InputError
+        ``tau`` is outside [0, 1].
+    """
     tau = float(tau)
     if not 0.0 <= tau <= 1.0:
         raise InputError(f"tau={tau}: must lie in [0, 1]")
@@ -29,12 +52,43 @@ def logit_threshold(tau: float) -> float:
 
 
 def mask_from_probs(probs: np.ndarray, tau: float) -> np.ndarray:
-    """M = [P >= tau] (eq:inference-mask), bool with the shape of ``probs``."""
+    """Binarise probabilities: M = [P >= tau] (eq:inference-mask).
+
+    Parameters
+    ----------
+    probs : array_like
+        Probabilities P, any shape.
+    tau : float
+        The threshold; a pixel equal to tau is foreground.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool, the shape of ``probs``.
+    """
     return np.asarray(probs) >= float(tau)
 
 
 def check_tau(tau, where: str) -> float:
-    """``tau`` as a float in [0, 1]; InputError naming ``where`` (an option or param) otherwise."""
+    """Check a threshold given by a user.
+
+    Parameters
+    ----------
+    tau : object
+        The value given.
+    where : str
+        The option or param that gave it, named in the error.
+
+    Returns
+    -------
+    float
+        ``tau`` as a float in [0, 1].
+
+    Raises
+    ------
+    InputError
+        ``tau`` is not a number, is NaN or lies outside [0, 1].
+    """
     try:
         t = float(tau)
     except (TypeError, ValueError):
@@ -45,7 +99,25 @@ def check_tau(tau, where: str) -> float:
 
 
 def threshold_grid(cfg: dict) -> np.ndarray:
-    """calibrate.grid_start .. grid_stop (inclusive) by grid_step, rounded to 1e-9 (0.5 exactly on the grid)."""
+    """Build the calibration grid: grid_start .. grid_stop (inclusive) by grid_step.
+
+    Values are rounded to 1e-9, so 0.5 lies exactly on the paper's grid.
+
+    Parameters
+    ----------
+    cfg : dict
+        The params ``calibrate`` section (``grid_start``, ``grid_stop``, ``grid_step``).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, increasing.
+
+    Raises
+    ------
+    InputError
+        ``grid_stop`` < ``grid_start``, or a key is missing or out of range (:func:`pipeline.params.require`).
+    """
     start = require(cfg, "grid_start", "calibrate", kind=(int, float), lo=0.0, hi=1.0)
     stop = require(cfg, "grid_stop", "calibrate", kind=(int, float), lo=0.0, hi=1.0)
     step = require(cfg, "grid_step", "calibrate", kind=(int, float), lo=1e-6, hi=1.0)
@@ -60,8 +132,28 @@ EPOCH_TAU_GRID = threshold_grid(PAPER.calibrate.model_dump())
 
 
 def select_tau(grid, curve) -> float:
-    """argmax over ``grid`` of ``curve`` (mean validation Image IoU); ties within :data:`TIE_TOLERANCE` go to
-    the tau closest to 0.5, then to the smaller."""
+    """Select tau = argmax over ``grid`` of ``curve`` (the paper's rule).
+
+    Tie-break: values within :data:`TIE_TOLERANCE` (1e-12) of the maximum tie; among them the tau closest to 0.5
+    wins, then the smaller tau.
+
+    Parameters
+    ----------
+    grid : array_like
+        Thresholds, 1-D.
+    curve : array_like
+        Mean validation Image IoU at each grid point, the grid's shape.
+
+    Returns
+    -------
+    float
+        The selected tau.
+
+    Raises
+    ------
+    InputError
+        ``grid`` and ``curve`` are not equal-shaped, non-empty 1-D arrays.
+    """
     grid = np.asarray(grid, dtype=np.float64)
     curve = np.asarray(curve, dtype=np.float64)
     if grid.ndim != 1 or grid.shape != curve.shape or grid.size == 0:
@@ -76,8 +168,31 @@ TAU_RULES = ("argmax", "plateau", "smooth")
 
 
 def plateau_tau(grid, curve, tolerance: float) -> float:
-    """The middle grid point (lower middle) of the contiguous run around the argmax whose curve is within
-    ``tolerance`` of the maximum: it does not wander over a flat curve as the argmax does."""
+    """Select the middle of the plateau around the argmax.
+
+    The contiguous run of grid points around :func:`select_tau`'s tau whose curve lies within ``tolerance`` of the
+    maximum; its middle point (the lower middle for an even run).  It does not wander over a flat curve as the
+    argmax does.
+
+    Parameters
+    ----------
+    grid : array_like
+        Thresholds, 1-D.
+    curve : array_like
+        Mean validation Image IoU at each grid point.
+    tolerance : float
+        Width of the plateau below the maximum (``calibrate.plateau_tolerance``).
+
+    Returns
+    -------
+    float
+        The selected tau.
+
+    Raises
+    ------
+    InputError
+        As :func:`select_tau`.
+    """
     grid = np.asarray(grid, dtype=np.float64)
     curve = np.asarray(curve, dtype=np.float64)
     best = int(np.flatnonzero(grid == select_tau(grid, curve))[0])
@@ -88,7 +203,20 @@ def plateau_tau(grid, curve, tolerance: float) -> float:
 
 
 def smooth_curve(curve, halfwidth: int) -> np.ndarray:
-    """Centred moving average over 2 * ``halfwidth`` + 1 points, the window cut at the ends."""
+    """Centred moving average over 2 * ``halfwidth`` + 1 points, the window cut at the ends.
+
+    Parameters
+    ----------
+    curve : array_like
+        Values, 1-D.
+    halfwidth : int
+        Points on each side; <= 0 returns a copy.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, the curve's length.
+    """
     c = np.asarray(curve, dtype=np.float64)
     h = int(halfwidth)
     if h <= 0:
@@ -100,7 +228,32 @@ def smooth_curve(curve, halfwidth: int) -> np.ndarray:
 
 
 def tau_by_rule(grid, curve, rule: str = "argmax", *, tolerance: float = 0.005, halfwidth: int = 5) -> float:
-    """The calibrated tau of ``curve`` by ``rule`` (:data:`TAU_RULES`; argmax is the paper's)."""
+    """Calibrate tau from a curve by a named rule.
+
+    Parameters
+    ----------
+    grid : array_like
+        Thresholds, 1-D.
+    curve : array_like
+        Mean validation Image IoU at each grid point.
+    rule : {"argmax", "plateau", "smooth"}, optional
+        :func:`select_tau` (the paper's, default), :func:`plateau_tau`, or :func:`select_tau` of
+        :func:`smooth_curve`.
+    tolerance : float, optional
+        The plateau rule's tolerance (default 0.005).
+    halfwidth : int, optional
+        The smooth rule's half window (default 5).
+
+    Returns
+    -------
+    float
+        The calibrated tau.
+
+    Raises
+    ------
+    InputError
+        ``rule`` is not one of :data:`TAU_RULES`, or as :func:`select_tau`.
+    """
     if rule == "argmax":
         return select_tau(grid, curve)
     if rule == "plateau":
@@ -111,14 +264,54 @@ def tau_by_rule(grid, curve, rule: str = "argmax", *, tolerance: float = 0.005, 
 
 
 def rule_options(cfg) -> dict:
-    """Keyword arguments of :func:`tau_by_rule` from the calibrate params section."""
+    """Return the keyword arguments of :func:`tau_by_rule` from the params ``calibrate`` section.
+
+    Parameters
+    ----------
+    cfg : mapping
+        The ``calibrate`` section (``tau_rule``, ``plateau_tolerance``, ``smooth_halfwidth``).
+
+    Returns
+    -------
+    dict
+        ``rule``, ``tolerance`` and ``halfwidth``.
+    """
     return {"rule": cfg["tau_rule"], "tolerance": cfg["plateau_tolerance"], "halfwidth": cfg["smooth_halfwidth"]}
 
 
 def calibrate_threshold(probs, gts, grid, rule: str = "argmax", *, tolerance: float = 0.005,
                         halfwidth: int = 5) -> tuple[float, np.ndarray]:
-    """(tau by :func:`tau_by_rule`, curve float64 [G] = mean Image IoU of [P >= tau] at each grid point) on
-    validation probs [N,H,W] and masks (eq:inference-mask)."""
+    """Calibrate tau on the validation split (eq:inference-mask).
+
+    curve[g] = mean over images of the Image IoU of [P >= grid[g]]; tau = :func:`tau_by_rule` of the curve
+    (argmax: ties within :data:`TIE_TOLERANCE` go to the tau closest to 0.5, then to the smaller).
+
+    Parameters
+    ----------
+    probs : array_like
+        Validation probabilities, float [N,H,W], N >= 1.
+    gts : array_like
+        Validation reference masks, bool or 0/1 [N,H,W].
+    grid : array_like
+        Strictly increasing thresholds (:func:`threshold_grid`).
+    rule : str, optional
+        A rule of :data:`TAU_RULES` (default ``"argmax"``, the paper's).
+    tolerance : float, optional
+        The plateau rule's tolerance (default 0.005).
+    halfwidth : int, optional
+        The smooth rule's half window (default 5).
+
+    Returns
+    -------
+    tuple
+        (tau, curve float64 [G]).
+
+    Raises
+    ------
+    InputError
+        ``probs`` is not [N,H,W] with N >= 1, or as :func:`pipeline.metrics.threshold_counts` and
+        :func:`tau_by_rule`.
+    """
     grid = np.asarray(grid, dtype=np.float64)
     if np.ndim(probs) != 3 or np.shape(probs)[0] == 0:
         raise InputError(f"calibrate_threshold: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
@@ -136,8 +329,26 @@ TAU_SOURCES = tuple(TAU_LABELS)
 
 
 def resolve_tau(option=None, bundle=None, checkpoint=None, thresholds=None, fixed=None) -> tuple[float, str]:
-    """``(tau, source)``: the first candidate given, in :data:`TAU_LABELS` order (eq:inference-mask); each None,
-    a number or ``(number, text)``; a fixed tau is logged as a warning."""
+    """Choose the tau a model runs with: the first candidate given, in :data:`TAU_LABELS` order.
+
+    Order: the ``--tau`` option, the deploy bundle's, the checkpoint payload's, the thresholds table's, then
+    ``calibrate.fixed_tau`` (logged as a warning: not calibrated).
+
+    Parameters
+    ----------
+    option, bundle, checkpoint, thresholds, fixed : float or tuple, optional
+        Each None (not given), a number, or ``(number, source text)``; ``(None, text)`` counts as not given.
+
+    Returns
+    -------
+    tuple
+        (tau float in [0, 1], source text).
+
+    Raises
+    ------
+    InputError
+        No candidate is given, or the chosen one is not a number in [0, 1] (:func:`check_tau`).
+    """
     for name, value, source in _given(TAU_LABELS, option, bundle, checkpoint, thresholds, fixed):
         tau = check_tau(value, TAU_LABELS[name])
         if name == "fixed":
@@ -159,9 +370,32 @@ CALIBRATED = "calibrated on the validation split"
 
 def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = None, thresholds=None,
                    params: Mapping | None = None) -> dict[str, tuple[float, str]]:
-    """One model's tau candidates ``{source: (tau, text)}`` for :func:`resolve_tau`: the bundle's (its deploy.json);
-    a checkpoint's payload tau, else its row of ``thresholds`` (a path, artifact or DataFrame); the fixed
-    tau calibrate recorded there, else ``calibrate.fixed_tau`` of ``params``."""
+    """Collect one model's tau candidates for :func:`resolve_tau`.
+
+    The bundle's tau (its deploy.json); a checkpoint payload's tau, else its (method, seed) row of
+    ``thresholds``; the fixed tau calibrate recorded in that row, else ``calibrate.fixed_tau`` of ``params``.
+
+    Parameters
+    ----------
+    bundle : mapping, optional
+        A deploy bundle's deploy.json content.
+    payload : mapping, optional
+        A checkpoint's payload (``method``, ``seed``, maybe ``tau``).
+    thresholds : path, artifact or pandas.DataFrame, optional
+        The thresholds table; a path that does not exist is ignored.
+    params : mapping, optional
+        Params whose ``calibrate.fixed_tau`` is the last resort.
+
+    Returns
+    -------
+    dict
+        ``{source: (tau, text)}`` with sources among :data:`TAU_SOURCES`.
+
+    Raises
+    ------
+    ArtifactError
+        ``thresholds`` is a path to an existing file that is not a valid thresholds table.
+    """
     found: dict[str, tuple[float, str]] = {}
     if bundle is not None and bundle.get("tau") is not None:
         found["bundle"] = (float(bundle["tau"]), f"deploy bundle ({bundle.get('tau_source', '?')})")
@@ -191,7 +425,7 @@ def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = N
 
 
 def _thresholds_table(thresholds):
-    """The DataFrame of ``thresholds`` (a path is read only when it exists)."""
+    """Return the DataFrame of ``thresholds`` (a path is read only when it exists)."""
     if thresholds is None or hasattr(thresholds, "columns"):
         return thresholds
     if hasattr(thresholds, "df"):
@@ -207,8 +441,29 @@ MIN_RESOLUTION = 8
 
 def resolve_resolution(option=None, benchmark=None, recorded=None, params=None,
                        missing: str = "resolution: none given or recorded; pass --resolution N") -> tuple[int, str]:
-    """``(resolution, source)``: the first candidate given, in :data:`RESOLUTION_LABELS` order;
-    an int >= :data:`MIN_RESOLUTION`, InputError ``missing`` when none is given."""
+    """Choose the working resolution: the first candidate given, in :data:`RESOLUTION_LABELS` order.
+
+    Order: the ``--resolution`` option, ``deploy.benchmark_resolution``, the model's recorded resolution, then
+    ``data.resolution``.
+
+    Parameters
+    ----------
+    option, benchmark, recorded, params : int or tuple, optional
+        Each None, an int, or ``(value, source text)``; ``(None, text)`` counts as not given.
+    missing : str, optional
+        The error message when none is given.
+
+    Returns
+    -------
+    tuple
+        (resolution int >= :data:`MIN_RESOLUTION`, source text).
+
+    Raises
+    ------
+    InputError
+        The chosen value is not an int >= :data:`MIN_RESOLUTION` (naming its source), or none is given
+        (``missing``).
+    """
     for _, value, source in _given(RESOLUTION_LABELS, option, benchmark, recorded, params):
         if not isinstance(value, int) or isinstance(value, bool) or value < MIN_RESOLUTION:
             raise InputError(f"{source}: invalid resolution {value!r} (an integer >= {MIN_RESOLUTION})")

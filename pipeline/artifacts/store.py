@@ -1,5 +1,9 @@
-"""Writing and reading artifacts (Zarr v3 groups, Parquet tables, folders), atomic and checksummed; reads validate
-the schema and raise a one-line :class:`ArtifactError` naming the path (layout: docs/artifacts.md)."""
+"""Write and read artifacts: Zarr v3 groups, Parquet tables and folders, atomic and checksummed.
+
+Writers replace the artifact atomically (nothing is at the final path until the write succeeds) and record
+its :class:`pipeline.artifacts.lineage.Meta`; readers validate the schema and raise a one-line
+:class:`ArtifactError` naming the path (layout: docs/artifacts.md).  Nothing read executes code.
+"""
 
 from __future__ import annotations
 
@@ -31,7 +35,7 @@ def _compressor(dtype):
 
 
 def _expected_chunk_files(arr) -> int:
-    """Number of chunk (or shard) files a fully written array has: every one is written, empty or not."""
+    """Count the chunk (or shard) files a fully written array has: every one is written, empty or not."""
     n = 1
     for size, c in zip(arr.shape, arr.shards or arr.chunks):
         n *= -(-size // c) if size else 0
@@ -39,8 +43,26 @@ def _expected_chunk_files(arr) -> int:
 
 
 class ZarrWriter:
-    """Streamed, atomic writer of a Zarr v3 group (``create`` arrays, ``write`` rows, fill ``attrs``): rows are buffered
-    per shard, and nothing is at the final path until ``__exit__`` succeeds."""
+    """Streamed, atomic writer of a Zarr v3 group.
+
+    Use as a context manager: ``create`` arrays, ``write`` rows, fill ``attrs``.  Rows are buffered per shard;
+    every chunk file is written, empty or not, and their number recorded, so a missing file is detected on
+    read.  Nothing is at the final path until ``__exit__`` succeeds; on failure the temporary folder goes.
+
+    Parameters
+    ----------
+    path : str or Path
+        The group's final path.
+    meta : pipeline.artifacts.lineage.Meta
+        Its metadata; ``meta.schema`` must be a Zarr schema.
+    shard_images : int, optional
+        Images per shard file (default :data:`SHARD_IMAGES`).
+
+    Raises
+    ------
+    ArtifactError
+        On exit, when an array the schema requires was not created.
+    """
 
     def __init__(self, path: str | Path, meta: Meta, shard_images: int = SHARD_IMAGES):
         self.path = Path(path)
@@ -52,6 +74,7 @@ class ZarrWriter:
         self._buffers: dict[str, dict[int, np.ndarray]] = {}
 
     def __enter__(self) -> ZarrWriter:
+        """Open the temporary group."""
         import zarr
 
         self._ctx = atomic_path(self.path, is_dir=True)
@@ -59,6 +82,19 @@ class ZarrWriter:
         return self
 
     def create(self, name: str, shape: tuple[int, ...], dtype, fill_value=0) -> None:
+        """Create array ``name`` (chunks of one image, shards of ``shard_images``).
+
+        Parameters
+        ----------
+        name : str
+            The array's name.
+        shape : tuple of int
+            Its shape; axis 0 is the image axis.
+        dtype : numpy.dtype or type
+            Its dtype.
+        fill_value : scalar, optional
+            Fill of unwritten entries (default 0).
+        """
         shape = tuple(int(s) for s in shape)
         n = max(shape[0], 1) if shape else 1
         kw = {}
@@ -72,7 +108,17 @@ class ZarrWriter:
         self._buffers[name] = {}
 
     def write(self, name: str, index: int, value: np.ndarray) -> None:
-        """Write row ``index`` of array ``name`` (buffered until its shard is complete)."""
+        """Write row ``index`` of array ``name``, buffered until its shard is complete.
+
+        Parameters
+        ----------
+        name : str
+            A created array.
+        index : int
+            The row (image) index.
+        value : array_like
+            The row, cast to the array's dtype.
+        """
         arr, buf = self._arrays[name], self._buffers[name]
         buf[int(index)] = np.asarray(value, dtype=arr.dtype)
         if arr.ndim == 1:
@@ -83,7 +129,15 @@ class ZarrWriter:
             arr[start:stop] = np.stack([buf.pop(i) for i in range(start, stop)])
 
     def write_all(self, name: str, value: np.ndarray) -> None:
-        """Create array ``name`` from an in-memory array and write it whole."""
+        """Create array ``name`` from an in-memory array and write it whole.
+
+        Parameters
+        ----------
+        name : str
+            The array's name.
+        value : array_like
+            Its content.
+        """
         value = np.asarray(value)
         self.create(name, value.shape, value.dtype)
         if value.size:
@@ -105,6 +159,13 @@ class ZarrWriter:
                     arr[i] = buf.pop(i)
 
     def __exit__(self, exc_type, exc, tb):
+        """Flush the buffers, check the schema, record the attributes and move the group into place.
+
+        Raises
+        ------
+        ArtifactError
+            An array the schema requires was not created.
+        """
         try:
             if exc_type is None:
                 self._flush()
@@ -121,7 +182,24 @@ class ZarrWriter:
 
 def write_zarr(path: str | Path, arrays: Mapping[str, np.ndarray], meta: Meta,
                attrs: Mapping[str, Any] | None = None) -> Path:
-    """Write in-memory arrays as one atomic, fingerprinted Zarr v3 group."""
+    """Write in-memory arrays as one atomic, fingerprinted Zarr v3 group.
+
+    Parameters
+    ----------
+    path : str or Path
+        The group's path, replaced atomically.
+    arrays : mapping of str to numpy.ndarray
+        Array name -> content.
+    meta : pipeline.artifacts.lineage.Meta
+        Its metadata (a Zarr schema).
+    attrs : mapping, optional
+        Extra group attributes.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     with ZarrWriter(path, meta) as w:
         for name, value in arrays.items():
             w.write_all(name, value)
@@ -130,7 +208,27 @@ def write_zarr(path: str | Path, arrays: Mapping[str, np.ndarray], meta: Meta,
 
 
 def write_parquet(path: str | Path, table, meta: Meta) -> Path:
-    """Write a pandas DataFrame (or pyarrow Table) atomically with the metadata in its schema."""
+    """Write a table atomically as Parquet (zstd, page checksums) with its metadata in the schema.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file's path, replaced atomically.
+    table : pandas.DataFrame or pyarrow.Table
+        The table (a DataFrame's index is not written).
+    meta : pipeline.artifacts.lineage.Meta
+        Its metadata (a Parquet schema).
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    ArtifactError
+        The table lacks a column the schema requires.
+    """
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -149,7 +247,25 @@ def write_parquet(path: str | Path, table, meta: Meta) -> Path:
 
 @contextlib.contextmanager
 def artifact_dir(path: str | Path, meta: Meta) -> Iterator[Path]:
-    """Yield a temp directory to fill; on success ``meta.json`` is added and it is renamed onto ``path``."""
+    """Yield a temporary folder to fill; on success add ``meta.json`` and rename it onto ``path``.
+
+    Parameters
+    ----------
+    path : str or Path
+        The folder artifact's final path, replaced whole.
+    meta : pipeline.artifacts.lineage.Meta
+        Its metadata (a folder schema).
+
+    Yields
+    ------
+    Path
+        The temporary folder.
+
+    Raises
+    ------
+    ArtifactError
+        The folder lacks a file the schema requires (nothing is moved into place).
+    """
     schema = check_kind(meta.schema, "dir")
     with atomic_path(path, is_dir=True) as tmp:
         yield tmp
@@ -160,7 +276,15 @@ def artifact_dir(path: str | Path, meta: Meta) -> Iterator[Path]:
 
 
 class Artifact:
-    """A validated artifact opened for reading; ``.meta`` holds schema, fingerprint and lineage."""
+    """A validated artifact opened for reading (:func:`open_artifact`).
+
+    Parameters
+    ----------
+    path : Path
+        Where it lies.
+    meta : pipeline.artifacts.lineage.Meta
+        Its schema, fingerprint and lineage.
+    """
 
     def __init__(self, path: Path, meta: Meta):
         self.path = path
@@ -168,15 +292,27 @@ class Artifact:
 
     @property
     def fingerprint(self) -> str:
+        """The artifact's content fingerprint (from its metadata)."""
         return self.meta.fingerprint
 
     def __repr__(self) -> str:
+        """Return one line: kind, schema and version, path and short fingerprint."""
         m = self.meta
         return f"<{type(self).__name__} {m.schema} v{m.schema_version} {self.path} fp={self.fingerprint[:12]}>"
 
 
 class ZarrArtifact(Artifact):
-    """Zarr group: ``art["voted"]`` is a lazy zarr array, ``art.numpy("voted")`` loads it, ``art.attrs``."""
+    """An opened Zarr group: ``art["voted"]`` is a lazy, verified array, ``art.numpy("voted")`` loads it.
+
+    Parameters
+    ----------
+    path : Path
+        Where it lies.
+    meta : pipeline.artifacts.lineage.Meta
+        Its metadata.
+    group : zarr.Group
+        The opened group; ``attrs`` holds its attributes without the metadata.
+    """
 
     def __init__(self, path, meta, group):
         super().__init__(path, meta)
@@ -185,29 +321,61 @@ class ZarrArtifact(Artifact):
 
     @property
     def arrays(self) -> dict:
+        """Array name -> the raw zarr array (unverified reads)."""
         return dict(self.group.arrays())
 
     def __getitem__(self, name: str):
+        """Return array ``name`` as a :class:`VerifiedArray` (lazy).
+
+        Raises
+        ------
+        ArtifactError
+            The group has no such array.
+        """
         try:
             return VerifiedArray(self.group[name], f"{self.path}: array {name!r}")
         except KeyError:
             raise ArtifactError(f"{self.path}: no array {name!r}") from None
 
     def __contains__(self, name: str) -> bool:
+        """Whether the group holds ``name``."""
         return name in self.group
 
     def numpy(self, name: str) -> np.ndarray:
+        """Load array ``name`` whole.
+
+        Parameters
+        ----------
+        name : str
+            The array's name.
+
+        Returns
+        -------
+        numpy.ndarray
+            Its content.
+        """
         return np.asarray(self[name][...])
 
 
 class VerifiedArray:
-    """A zarr array whose reads turn a checksum mismatch or undecodable chunk into one ArtifactError line."""
+    """A zarr array whose reads turn a checksum mismatch or an undecodable chunk into one ArtifactError line.
+
+    Other attributes are the wrapped array's.
+
+    Parameters
+    ----------
+    arr : zarr.Array
+        The wrapped array.
+    where : str
+        The path and array name the error names.
+    """
 
     def __init__(self, arr, where: str):
         self._arr = arr
         self._where = where
 
     def __getattr__(self, name):
+        """Return the wrapped array's attribute ``name``."""
         return getattr(self._arr, name)
 
     def _read(self, fn, *args):
@@ -220,21 +388,57 @@ class VerifiedArray:
                                 "stage") from None
 
     def __getitem__(self, sel):
+        """Read a selection.
+
+        Raises
+        ------
+        ArtifactError
+            A chunk is corrupt or truncated.
+        """
         return self._read(self._arr.__getitem__, sel)
 
     def get_orthogonal_selection(self, sel):
+        """Read an orthogonal selection (zarr's).
+
+        Parameters
+        ----------
+        sel : tuple
+            The selection.
+
+        Returns
+        -------
+        numpy.ndarray
+            The values.
+
+        Raises
+        ------
+        ArtifactError
+            A chunk is corrupt or truncated.
+        """
         return self._read(self._arr.get_orthogonal_selection, sel)
 
     def __array__(self, dtype=None, copy=None):
+        """Read the whole array (numpy protocol), cast to ``dtype`` when given."""
         out = self[...]
         return out if dtype is None else out.astype(dtype)
 
     def __len__(self):
+        """Return the length of axis 0."""
         return len(self._arr)
 
 
 class TableArtifact(Artifact):
-    """Parquet table: ``art.df`` (also ``art.table``) is a pandas DataFrame."""
+    """An opened Parquet table: ``art.df`` (also ``art.table``) is a pandas DataFrame.
+
+    Parameters
+    ----------
+    path : Path
+        Where it lies.
+    meta : pipeline.artifacts.lineage.Meta
+        Its metadata.
+    df : pandas.DataFrame
+        The table.
+    """
 
     def __init__(self, path, meta, df):
         super().__init__(path, meta)
@@ -242,23 +446,54 @@ class TableArtifact(Artifact):
 
     @property
     def table(self):
+        """The table (``df``)."""
         return self.df
 
 
 class DirArtifact(Artifact):
-    """Directory artifact (checkpoint, report): ``art.files`` and ``art.file(name)``."""
+    """An opened folder artifact (checkpoint, report, deploy bundle): ``art.files`` and ``art.file(name)``."""
 
     @property
     def files(self) -> list[str]:
+        """The names of the folder's entries, sorted."""
         return sorted(p.name for p in self.path.iterdir())
 
     def file(self, name: str) -> Path:
+        """Return the path of the folder's file ``name``.
+
+        Parameters
+        ----------
+        name : str
+            A file name in the folder.
+
+        Returns
+        -------
+        Path
+            Its path.
+
+        Raises
+        ------
+        ArtifactError
+            There is no such file.
+        """
         p = self.path / name
         if not p.exists():
             raise ArtifactError(f"{self.path}: no file {name!r}")
         return p
 
     def table(self, name: str = TRAINING_LOG_FILE):
+        """Open a table artifact inside the folder.
+
+        Parameters
+        ----------
+        name : str, optional
+            Its file name (default the training log).
+
+        Returns
+        -------
+        pandas.DataFrame
+            The table.
+        """
         return open_artifact(self.path / name).df
 
 
@@ -328,7 +563,29 @@ def _open_dir(path: Path, expect: str | None) -> DirArtifact:
 
 
 def open_artifact(path: str | Path, schema: str | None = None) -> Artifact:
-    """Open and validate a ``.zarr`` group, ``.parquet`` table or folder artifact, of schema ``schema`` if given."""
+    """Open and validate an artifact: a ``.zarr`` group, a ``.parquet`` table or a folder.
+
+    Validation: the metadata is present, the schema (and ``schema`` when given) and its version match, required
+    arrays, columns and files exist with the right kinds, and every chunk file recorded at write time is there.
+
+    Parameters
+    ----------
+    path : str or Path
+        The artifact.
+    schema : str, optional
+        The schema it must have.
+
+    Returns
+    -------
+    Artifact
+        A :class:`ZarrArtifact`, :class:`TableArtifact` or :class:`DirArtifact`.
+
+    Raises
+    ------
+    ArtifactError
+        One line naming the path: not found, unknown type, not a geodistill artifact, another schema or
+        version, missing parts, or unreadable or corrupt.
+    """
     path = Path(path)
     if not path.exists():
         raise ArtifactError(f"{path}: artifact not found (run the stage that produces it)")
@@ -345,8 +602,19 @@ def open_artifact(path: str | Path, schema: str | None = None) -> Artifact:
 
 
 def row_runs(sorted_rows: np.ndarray) -> list[tuple[int, int, int]]:
-    """Contiguous runs of sorted, unique rows as (first row, stop row, position of the first in the list),
-    e.g. [2, 3, 4, 9] -> [(2, 5, 0), (9, 10, 3)]."""
+    """Split sorted, unique rows into contiguous runs.
+
+    Parameters
+    ----------
+    sorted_rows : array_like
+        Sorted, unique row indices.
+
+    Returns
+    -------
+    list of tuple of int
+        (first row, stop row, position of the first in the list) per run, e.g. [2, 3, 4, 9] ->
+        [(2, 5, 0), (9, 10, 3)]; empty for no rows.
+    """
     rows = np.asarray(sorted_rows, dtype=np.int64)
     if rows.size == 0:
         return []
@@ -357,7 +625,25 @@ def row_runs(sorted_rows: np.ndarray) -> list[tuple[int, int, int]]:
 
 
 def read_chunk_rows(arr, indices: np.ndarray) -> np.ndarray:
-    """Rows ``indices`` (unique, any order) of a zarr array, in that order, read as one slice per contiguous run."""
+    """Read rows of a zarr array in the given order, one slice per contiguous run.
+
+    Parameters
+    ----------
+    arr : zarr.Array or VerifiedArray
+        The array.
+    indices : array_like
+        Unique row indices, any order.
+
+    Returns
+    -------
+    numpy.ndarray
+        [len(indices), ...] in the order of ``indices``.
+
+    Raises
+    ------
+    IndexError
+        A row repeats or lies outside the array.
+    """
     indices = np.asarray(indices, dtype=np.int64).reshape(-1)
     order = np.argsort(indices, kind="stable")
     rows = indices[order]

@@ -1,5 +1,8 @@
-"""The export stage's logic: one checkpoint -> what its deploy bundle holds, written atomically (parity
-checks first: a failure leaves nothing behind), and the lines export prints about it."""
+"""The export stage's logic: one checkpoint -> its deploy bundle.
+
+The bundle is written atomically with its parity checks first (a failure leaves nothing behind), and
+:func:`export_lines` says what export prints about it.
+"""
 
 from __future__ import annotations
 
@@ -16,12 +19,34 @@ from pipeline.thresholds import resolve_resolution, resolve_tau, tau_candidates
 
 
 def is_bundle_dir(path) -> bool:
-    """Whether ``path`` holds a deploy artifact's meta.json."""
+    """Whether ``path`` holds a deploy artifact's meta.json.
+
+    Parameters
+    ----------
+    path : str or Path
+        A folder.
+
+    Returns
+    -------
+    bool
+        True for a deploy bundle.
+    """
     return read_json(Path(path) / META_FILE).get("schema") == "deploy"
 
 
 def bundle_files(path) -> set[str]:
-    """The files of the deploy bundle in ``path`` (none without one): what export may replace there."""
+    """List the files of the deploy bundle in ``path``: what export may replace there.
+
+    Parameters
+    ----------
+    path : str or Path
+        A folder.
+
+    Returns
+    -------
+    set of str
+        The files deploy.json lists, deploy.json and meta.json; empty when ``path`` holds no bundle.
+    """
     if not is_bundle_dir(path):
         return set()
     listed = read_json(Path(path) / bundle_file("deploy_json")).get("files") or {}
@@ -30,7 +55,38 @@ def bundle_files(path) -> set[str]:
 
 @dataclasses.dataclass
 class ExportPlan:
-    """What :func:`write_export` writes, and the fingerprint's ``inputs`` and ``params``."""
+    """What :func:`write_export` writes, decided by :func:`plan_export` before anything is written.
+
+    Attributes
+    ----------
+    model : torch.nn.Module
+        The student, on the CPU.
+    payload : dict
+        The checkpoint's payload.
+    source : dict
+        deploy.json's ``source`` (checkpoint, its fingerprint, epoch, stage, thresholds), less the bundle's
+        fingerprint.
+    tau : float
+        The threshold the bundle records (eq:inference-mask).
+    tau_source : str
+        Where ``tau`` came from.
+    resolution : int
+        The working resolution.
+    resolution_source : str
+        Where ``resolution`` came from.
+    onnx : bool
+        Whether to export ONNX.
+    calibration_images : numpy.ndarray or None
+        The int8 calibration images; None: no int8 model.
+    calibration_note : str or None
+        Why there are no calibration images.
+    settings : dict
+        ``write_bundle``'s keyword arguments (opset, parity tolerance, int8 settings, frame reading).
+    inputs : list
+        The artifacts read, for the fingerprint.
+    params : dict
+        The fingerprinted params.
+    """
 
     model: Any
     payload: dict
@@ -49,9 +105,41 @@ class ExportPlan:
 
 def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | None = None, artifacts=None,
                 onnx: bool = True, int8: bool = True) -> ExportPlan:
-    """Everything export decides before writing: tau (``tau`` > the payload's > ``thresholds`` > the fixed tau,
-    eq:inference-mask), the resolution (recorded, else data.resolution) and the int8 calibration images
-    (the training split of ``artifacts``; ``calibration_note`` says why there are none)."""
+    """Decide everything export writes, before writing.
+
+    tau: ``tau`` > the payload's > ``thresholds`` > the fixed tau (eq:inference-mask); the resolution: the
+    checkpoint's recorded one, else ``data.resolution``; the int8 calibration images: the training split of
+    ``artifacts``, read only when ONNX and int8 are on and onnxruntime is installed.
+
+    Parameters
+    ----------
+    checkpoint : str or Path
+        The checkpoint artifact.
+    params : mapping
+        Validated params (``deploy``, ``data``, ``calibrate`` sections).
+    thresholds : str or Path, optional
+        The thresholds table (read only when ``tau`` is None).
+    tau : float, optional
+        An explicit threshold.
+    artifacts : str or Path, optional
+        The artifacts folder whose training images calibrate the int8 model.
+    onnx : bool, optional
+        Export ONNX (default True).
+    int8 : bool, optional
+        Export the int8 model (default True).
+
+    Returns
+    -------
+    ExportPlan
+        The plan.
+
+    Raises
+    ------
+    InputError
+        No tau or resolution is found, or one is invalid.
+    ArtifactError
+        The checkpoint or thresholds table is missing or invalid.
+    """
     from pipeline.deploy.bundle import checkpoint_resolution, frame_reading  # torch
     from pipeline.deploy.mask_path import onnx_unavailable_reason
     from pipeline.deploy.quantize import int8_params, read_calibration_images
@@ -94,7 +182,24 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
 
 
 def write_export(plan: ExportPlan, out, meta, device=None) -> dict:
-    """Write the bundle of ``plan`` to ``out`` (replaced whole); its deploy.json content."""
+    """Write the bundle of ``plan`` to ``out``, replaced whole.
+
+    Parameters
+    ----------
+    plan : ExportPlan
+        From :func:`plan_export`.
+    out : str or Path
+        The bundle's folder.
+    meta : pipeline.artifacts.lineage.Meta
+        The bundle's metadata (its fingerprint is recorded in deploy.json).
+    device : str or torch.device, optional
+        A device for the parity check besides the CPU.
+
+    Returns
+    -------
+    dict
+        The deploy.json content.
+    """
     from pipeline.deploy.bundle import write_bundle  # torch
 
     with artifact_dir(out, meta) as tmp:
@@ -106,7 +211,22 @@ def write_export(plan: ExportPlan, out, meta, device=None) -> dict:
 
 
 def export_lines(plan: ExportPlan, info: Mapping, out) -> list[str]:
-    """What export prints about the bundle it wrote."""
+    """Say what export prints about the bundle it wrote.
+
+    Parameters
+    ----------
+    plan : ExportPlan
+        The plan written.
+    info : mapping
+        The deploy.json content (:func:`write_export`).
+    out : str or Path
+        The bundle's folder.
+
+    Returns
+    -------
+    list of str
+        The summary with parity figures, the ONNX note, device parity and the int8 model's line.
+    """
     from pipeline.deploy.bundle import INT8_FILE
 
     par = info["parity"]

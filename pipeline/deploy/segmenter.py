@@ -1,5 +1,7 @@
-"""A checkpoint or a deploy bundle loaded for inference with one engine: :class:`Segmenter`.  Every engine
-receives the same preprocessed tensor and the same tau; only Z = f(x) differs."""
+"""A checkpoint or a deploy bundle loaded for inference with one engine: :class:`Segmenter`.
+
+Every engine receives the same preprocessed tensor and the same tau; only Z = f(x) differs.
+"""
 
 from __future__ import annotations
 
@@ -25,8 +27,34 @@ from pipeline.thresholds import mask_from_probs, resolve_resolution, resolve_tau
 
 @dataclasses.dataclass
 class Segmenter:
-    """A loaded mask path: ``predict_probs(images uint8 [N,R,R,3]) -> P float32 [N,R,R]``; frames are read
-    and resized as the model's training images were (``bit_depth``, ``letterbox``)."""
+    """A loaded mask path: images in, probabilities or masks (eq:inference-mask) out.
+
+    Frames are read and resized as the model's training images were (``bit_depth``, ``letterbox``); results come
+    back at each image's own size.  Build one with :meth:`from_bundle`.
+
+    Attributes
+    ----------
+    engine : str
+        The engine's name (``pipeline.engine_table``).
+    resolution : int or None
+        The working resolution R (None: not recorded; :meth:`from_bundle` requires one).
+    taus : dict
+        The model's tau candidates ``{source: (tau, text)}`` (:func:`pipeline.thresholds.tau_candidates`).
+    predict_logits : callable
+        float32 tensor [N,3,R,R] -> numpy float32 logits [N,1,R,R].
+    info : dict
+        The bundle's deploy.json (for a checkpoint: its method and seed) with the engine's details.
+    tau : float or None
+        The threshold :meth:`predict` binarises with (set by :meth:`from_bundle`).
+    tau_source : str
+        Where ``tau`` came from.
+    max_pixels : int or None
+        Larger image files are refused on their header (None: ``data.max_pixels``).
+    bit_depth : str or int
+        Bits a 16-bit frame's sensor fills, or ``"auto"``.
+    letterbox : bool
+        Whether frames are letterboxed (aspect kept) rather than stretched to R x R.
+    """
 
     engine: str
     resolution: int | None
@@ -40,7 +68,7 @@ class Segmenter:
     letterbox: bool = False
 
     def __repr__(self) -> str:
-        """One short line, without the deploy.json in ``info``."""
+        """Return one short line, without the deploy.json in ``info``."""
         tau = "unset" if self.tau is None else f"{self.tau:.4g}"
         return f"Segmenter(engine={self.engine!r}, resolution={self.resolution}, tau={tau})"
 
@@ -48,10 +76,44 @@ class Segmenter:
     def from_bundle(cls, path: str | Path, *, engine: str = "auto", device="cpu", tau: float | None = None,
                     resolution: int | None = None, max_pixels: int | None = None, bit_depth=None,
                     letterbox: bool | None = None) -> "Segmenter":
-        """A segmenter for notebooks from a deploy bundle or a checkpoint directory, tau resolved once
-        (``tau`` > the bundle's > the checkpoint's > ``calibrate.fixed_tau`` with a warning); ``bit_depth``
-        and ``letterbox`` default to what the bundle records.
+        """Open a deploy bundle or a checkpoint folder for notebooks, tau and resolution resolved once.
 
+        tau: ``tau`` > the bundle's > the checkpoint's > ``calibrate.fixed_tau`` (with a warning).
+
+        Parameters
+        ----------
+        path : str or Path
+            A deploy bundle (``geodistill export``) or a checkpoint folder.
+        engine : str, optional
+            An engine of ``pipeline.engine_table.ENGINE_CHOICES``; ``"auto"`` (default) as :func:`resolve_engine`.
+        device : str or torch.device, optional
+            Where torch engines run (default ``"cpu"``).
+        tau : float, optional
+            A threshold in [0, 1] overriding the model's.
+        resolution : int, optional
+            A working resolution overriding the recorded one (>= 8).
+        max_pixels : int, optional
+            Refuse image files above this many pixels (None: ``data.max_pixels``).
+        bit_depth : str or int, optional
+            ``"auto"``, 10, 12, 14 or 16 (None: what the bundle records).
+        letterbox : bool, optional
+            None: what the bundle records.
+
+        Returns
+        -------
+        Segmenter
+            Ready to :meth:`predict`.
+
+        Raises
+        ------
+        InputError
+            The path is missing, the engine unknown or unavailable, an option invalid, no tau or no resolution
+            is found.
+        ArtifactError
+            The bundle lacks the engine's model file.
+
+        Examples
+        --------
         >>> seg = Segmenter.from_bundle("out/artifacts/deploy")          # doctest: +SKIP
         >>> mask = seg.predict("image.png")  # bool [H, W] at the image's own size   # doctest: +SKIP
         """
@@ -65,13 +127,45 @@ class Segmenter:
         return seg
 
     def probabilities(self, image) -> np.ndarray:
-        """P float32 [H,W] at the original size of ``image``: a file path or an array (grey, RGB or RGBA; uint8,
-        uint16, other integers or float in [0, 1]) read by the dataset loader's rules, P resized back bilinearly."""
+        """Return P at the original size of ``image``.
+
+        Parameters
+        ----------
+        image : str, Path or array_like
+            A file path, or an array (grey, RGB or RGBA; uint8, uint16, other integers, or float in [0, 1]) read by
+            the dataset loader's rules.
+
+        Returns
+        -------
+        numpy.ndarray
+            float32 [H,W], P resized back bilinearly.
+
+        Raises
+        ------
+        InputError
+            No working resolution, or the image is unreadable or too large.
+        """
         probs, (h, w) = self.working_probabilities(image)
         return probs_to_size(probs, h, w, self.letterbox)
 
     def working_probabilities(self, image) -> tuple[np.ndarray, tuple[int, int]]:
-        """(P float32 [R,R] at the working resolution, the frame's (height, width))."""
+        """Return P at the working resolution with the frame's size.
+
+        Parameters
+        ----------
+        image : str, Path or array_like
+            As :meth:`probabilities`.
+
+        Returns
+        -------
+        tuple
+            (P float32 [R,R], (height, width) of the frame).
+
+        Raises
+        ------
+        InputError
+            ``resolution`` is unset, or the image is unreadable or too large.
+        """
         if self.resolution is None:
             raise InputError("Segmenter: no working resolution; set .resolution or use Segmenter.from_bundle")
         if isinstance(image, (str, Path)):
@@ -85,8 +179,25 @@ class Segmenter:
         return probs, rgb.shape[:2]
 
     def predict(self, image, *, return_score: bool = False):
-        """M = [P >= tau] (eq:inference-mask), bool [H,W] at the original size of ``image`` (a list for a list);
-        ``return_score``: ``(mask, frame confidence)``."""
+        """Predict the mask M = [P >= tau] (eq:inference-mask) at the original size of ``image``.
+
+        Parameters
+        ----------
+        image : str, Path, array_like, or list of them
+            As :meth:`probabilities`; a list or tuple gives a list.
+        return_score : bool, optional
+            Also return the frame confidence (:func:`pipeline.deploy.confidence.frame_confidence`).
+
+        Returns
+        -------
+        numpy.ndarray or tuple or list
+            bool [H,W]; ``(mask, confidence)`` with ``return_score``; a list for a list.
+
+        Raises
+        ------
+        InputError
+            ``tau`` or ``resolution`` is unset, or an image is unreadable or too large.
+        """
         tau = self._tau()
         if isinstance(image, (list, tuple)):
             return [self.predict(one, return_score=return_score) for one in image]
@@ -95,7 +206,23 @@ class Segmenter:
         return (mask, frame_confidence(probs, tau)) if return_score else mask
 
     def score(self, image) -> float:
-        """The frame's confidence in [0, 1] (:func:`frame_confidence`)."""
+        """Return the frame's confidence in [0, 1] (:func:`pipeline.deploy.confidence.frame_confidence`).
+
+        Parameters
+        ----------
+        image : str, Path or array_like
+            As :meth:`probabilities`.
+
+        Returns
+        -------
+        float
+            The confidence.
+
+        Raises
+        ------
+        InputError
+            ``tau`` or ``resolution`` is unset, or the image is unreadable or too large.
+        """
         return frame_confidence(self.working_probabilities(image)[0], self._tau())
 
     def _tau(self) -> float:
@@ -104,10 +231,40 @@ class Segmenter:
         return self.tau
 
     def resolve_tau(self, option=None) -> tuple[float, str]:
-        """(tau, source) over ``option`` (--tau) and the model's candidates."""
+        """Resolve tau over ``option`` and the model's candidates (:func:`pipeline.thresholds.resolve_tau`).
+
+        Parameters
+        ----------
+        option : float, optional
+            A ``--tau`` value, first in order.
+
+        Returns
+        -------
+        tuple
+            (tau, source text).
+
+        Raises
+        ------
+        InputError
+            No candidate, or an invalid one.
+        """
         return resolve_tau(option=option, **self.taus)
 
     def predict_probs(self, images: np.ndarray, batch_size: int = 8) -> np.ndarray:
+        """Return P for images already at the working resolution, in batches.
+
+        Parameters
+        ----------
+        images : array_like
+            uint8 RGB [N,R,R,3].
+        batch_size : int, optional
+            Images per engine call (default 8).
+
+        Returns
+        -------
+        numpy.ndarray
+            float32 [N,R,R].
+        """
         images = np.asarray(images)
         out = np.empty(images.shape[:3], np.float32)
         for s in range(0, len(images), batch_size):
@@ -117,9 +274,31 @@ class Segmenter:
 
 
 def resolve_engine(path: str | Path, engine: str, device=None) -> str:
-    """``engine`` validated (an old name: its new one), or what ``auto`` stands for: ``cuda`` on a CUDA device,
-    else onnxruntime_fp32 for a bundle with model.onnx and onnxruntime, else torch -- engines whose masks
-    are PyTorch's, never int8 (docs/performance.md)."""
+    """Validate an engine name, or say what ``auto`` stands for.
+
+    ``auto``: ``cuda`` on a CUDA device, else ``onnxruntime_fp32`` for a bundle with model.onnx when
+    onnxruntime is installed, else ``torch`` -- engines whose masks are PyTorch's, never int8
+    (docs/performance.md).  An old engine name gives its new one.
+
+    Parameters
+    ----------
+    path : str or Path
+        The bundle or checkpoint folder.
+    engine : str
+        The requested engine, or ``"auto"``.
+    device : str or torch.device, optional
+        The device the caller runs on.
+
+    Returns
+    -------
+    str
+        The engine's name.
+
+    Raises
+    ------
+    InputError
+        The engine is unknown, or needs a deploy bundle and ``path`` is a checkpoint folder.
+    """
     path = Path(path)
     engine = engine_name(engine)
     if engine not in ENGINE_CHOICES:
@@ -139,9 +318,36 @@ def resolve_engine(path: str | Path, engine: str, device=None) -> str:
 
 def load_segmenter(path: str | Path, engine: str = AUTO, device="cpu", thresholds: str | Path | None = None,
                    params: dict | None = None) -> Segmenter:
-    """A checkpoint directory or a deploy bundle opened with one engine (:func:`resolve_engine`); tau candidates
-    by :func:`pipeline.thresholds.tau_candidates` (``thresholds``: a checkpoint's table; ``params``: the fixed
-    tau); the resolution recorded with the model, else None (never guessed)."""
+    """Open a checkpoint folder or a deploy bundle with one engine (:func:`resolve_engine`).
+
+    The tau candidates come from :func:`pipeline.thresholds.tau_candidates`; the resolution is the one recorded
+    with the model, else None (never guessed); tau is not resolved here.
+
+    Parameters
+    ----------
+    path : str or Path
+        A checkpoint folder or a deploy bundle.
+    engine : str, optional
+        An engine name or ``"auto"`` (default).
+    device : str or torch.device, optional
+        Where torch engines run (default ``"cpu"``).
+    thresholds : str or Path, optional
+        A checkpoint's thresholds table (a tau candidate).
+    params : dict, optional
+        Params whose ``calibrate.fixed_tau`` is the last tau candidate.
+
+    Returns
+    -------
+    Segmenter
+        Without ``tau`` set.
+
+    Raises
+    ------
+    InputError
+        ``path`` does not exist, the engine is unknown, or it is unavailable here.
+    ArtifactError
+        The bundle lacks the engine's model file.
+    """
     path = Path(path)
     if not path.exists():
         raise InputError("{}: not found", CHECKPOINT(path))

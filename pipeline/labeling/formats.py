@@ -1,6 +1,9 @@
-"""Pseudo-mask export formats, pure functions on arrays: COCO compressed RLE and instance records (one
-spacecraft instance per image), YOLO segmentation lines and the YOLO dataset's text files, chosen to load
-in pycocotools and Ultralytics (docs/decisions.md, "label's export formats")."""
+"""Pseudo-mask export formats, pure functions on arrays.
+
+COCO compressed RLE and instance records (one spacecraft instance per image), YOLO segmentation lines and the
+YOLO dataset's text files, chosen to load in pycocotools and Ultralytics (docs/decisions.md, "label's export
+formats").
+"""
 
 from __future__ import annotations
 
@@ -25,14 +28,46 @@ def _as_mask(mask: np.ndarray) -> np.ndarray:
 
 
 def rle_encode(mask: np.ndarray) -> dict:
-    """Compressed COCO RLE ``{"size": [h, w], "counts": str}`` of a bool [H,W] mask (pycocotools' encoder)."""
+    """Encode a mask as compressed COCO RLE (pycocotools' encoder).
+
+    Parameters
+    ----------
+    mask : array_like
+        A mask [H,W] (non-zero is foreground).
+
+    Returns
+    -------
+    dict
+        ``{"size": [h, w], "counts": str}``.
+
+    Raises
+    ------
+    InputError
+        The mask is not 2-D.
+    """
     mask = _as_mask(mask)
     rle = mask_utils.encode(np.asfortranarray(mask.astype(np.uint8)))
     return {"size": [int(mask.shape[0]), int(mask.shape[1])], "counts": rle["counts"].decode("ascii")}
 
 
 def mask_bbox(mask: np.ndarray) -> list[float]:
-    """Tight box ``[x, y, width, height]`` (pixels) of the foreground; ``[0, 0, 0, 0]`` when empty."""
+    """Return the tight box of the foreground in pixels.
+
+    Parameters
+    ----------
+    mask : array_like
+        A mask [H,W].
+
+    Returns
+    -------
+    list of float
+        ``[x, y, width, height]``; ``[0, 0, 0, 0]`` when the mask is empty.
+
+    Raises
+    ------
+    InputError
+        The mask is not 2-D.
+    """
     mask = _as_mask(mask)
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     if rows.size == 0:
@@ -42,8 +77,33 @@ def mask_bbox(mask: np.ndarray) -> list[float]:
 
 def coco_annotation(mask: np.ndarray, annotation_id: int, image_id: int, segment=rle_encode, iscrowd: int = 0,
                     **extra) -> dict | None:
-    """One COCO instance record of an image's voted mask (None when empty), its segmentation ``segment(mask)``,
-    with ``extra`` fields."""
+    """Build one COCO instance record of an image's voted mask.
+
+    Parameters
+    ----------
+    mask : array_like
+        The mask [H,W] at the image's own size.
+    annotation_id : int
+        The record's id.
+    image_id : int
+        The COCO image id.
+    segment : callable, optional
+        mask -> segmentation (default :func:`rle_encode`).
+    iscrowd : int, optional
+        COCO's ``iscrowd`` (default 0).
+    **extra
+        Further fields of the record.
+
+    Returns
+    -------
+    dict or None
+        The record (category spacecraft, ``area`` in pixels, ``bbox``); None for an empty mask.
+
+    Raises
+    ------
+    InputError
+        The mask is not 2-D.
+    """
     mask = _as_mask(mask)
     area = int(np.count_nonzero(mask))
     if area == 0:
@@ -53,13 +113,44 @@ def coco_annotation(mask: np.ndarray, annotation_id: int, image_id: int, segment
 
 
 def coco_document(images: list[dict], annotations: list[dict], **info) -> dict:
-    """A COCO instances file of ``images``, ``annotations`` and the one spacecraft category."""
+    """Build a COCO instances file of ``images``, ``annotations`` and the one spacecraft category.
+
+    Parameters
+    ----------
+    images : list of dict
+        COCO image records.
+    annotations : list of dict
+        COCO instance records.
+    **info
+        Fields of the ``info`` record besides ``version``.
+
+    Returns
+    -------
+    dict
+        The document.
+    """
     return {"info": {"version": "1.0", **info}, "licenses": [], "images": images, "annotations": annotations,
             "categories": [dict(SPACECRAFT_CATEGORY)]}
 
 
 def yolo_polygons(mask: np.ndarray) -> list[np.ndarray]:
-    """Outer contours of the connected foreground regions, float64 [P,2] of (x / width, y / height), P >= 3."""
+    """Return the outer contours of the connected foreground regions, normalised.
+
+    Parameters
+    ----------
+    mask : array_like
+        A mask [H,W].
+
+    Returns
+    -------
+    list of numpy.ndarray
+        float64 [P,2] of (x / width, y / height) per region, P >= 3; empty for an empty mask.
+
+    Raises
+    ------
+    InputError
+        The mask is not 2-D.
+    """
     import cv2
 
     mask = _as_mask(mask)
@@ -71,7 +162,20 @@ def yolo_polygons(mask: np.ndarray) -> list[np.ndarray]:
 
 
 def yolo_lines(mask: np.ndarray, class_id: int = YOLO_CLASS) -> list[str]:
-    """The label file's lines for one image: ``class x1 y1 x2 y2 ...`` per region."""
+    """Return the YOLO label file's lines for one image: ``class x1 y1 x2 y2 ...`` per region.
+
+    Parameters
+    ----------
+    mask : array_like
+        A mask [H,W].
+    class_id : int, optional
+        The class (default :data:`YOLO_CLASS`, 0).
+
+    Returns
+    -------
+    list of str
+        One line per region, coordinates with :data:`YOLO_DECIMALS` decimals; empty for an empty mask.
+    """
     return [f"{int(class_id)} " + " ".join(f"{v:.{YOLO_DECIMALS}f}" for v in poly.ravel())
             for poly in yolo_polygons(mask)]
 
@@ -81,9 +185,25 @@ YOLO_VAL_SHARE = 0.2
 
 
 def yolo_split(ids: Sequence[str], seed: int, share: float = YOLO_VAL_SHARE) -> tuple[list[int], list[int]]:
-    """(train rows, val rows): the first ``max(1, round(share * n))`` images ranked by
-    ``sha256("<seed>:<id>")`` are held out (none when ``n < 2``); an image keeps its side when others
-    are added or removed, unless it sits at the cut."""
+    """Split images into YOLO train and val rows, stable under adding or removing images.
+
+    The first ``max(1, round(share * n))`` images ranked by ``sha256("<seed>:<id>")`` are held out (at most
+    n - 1, none when n < 2); an image keeps its side when others are added or removed, unless it sits at the cut.
+
+    Parameters
+    ----------
+    ids : sequence of str
+        The image ids.
+    seed : int
+        ``data.seed``.
+    share : float, optional
+        The share held out (default :data:`YOLO_VAL_SHARE`, 0.2).
+
+    Returns
+    -------
+    tuple of list of int
+        (train rows, val rows), each in input order.
+    """
     n = len(ids)
     n_val = 0 if n < 2 else min(max(1, round(share * n)), n - 1)
     ranked = sorted(range(n), key=lambda i: hashlib.sha256(f"{int(seed)}:{ids[i]}".encode()).hexdigest())
@@ -93,12 +213,40 @@ def yolo_split(ids: Sequence[str], seed: int, share: float = YOLO_VAL_SHARE) -> 
 
 
 def yolo_image_list(image_paths: Sequence[str]) -> str:
-    """An image-list file: ``./images/<path>`` lines, relative to the list's own folder."""
+    """Write an image-list file: ``./images/<path>`` lines, relative to the list's own folder.
+
+    Parameters
+    ----------
+    image_paths : sequence of str
+        Posix paths relative to the input folder.
+
+    Returns
+    -------
+    str
+        The file's text.
+    """
     return "".join(f"./images/{p}\n" for p in image_paths)
 
 
 def yolo_data_yaml(n_train: int, n_val: int, seed: int, share: float = YOLO_VAL_SHARE) -> str:
-    """``data.yaml``: the image lists relative to the file (no ``path:`` key); no ``val:`` without a split."""
+    """Write ``data.yaml``: the image lists relative to the file (no ``path:`` key), no ``val:`` without a split.
+
+    Parameters
+    ----------
+    n_train : int
+        Training images.
+    n_val : int
+        Validation images (0: no split).
+    seed : int
+        The split's seed (stated in a comment).
+    share : float, optional
+        The share held out (stated in a comment).
+
+    Returns
+    -------
+    str
+        The file's text.
+    """
     head = ("# Ultralytics dataset of geodistill label pseudo-masks (README.txt beside this file).\n"
             "# No `path:` key: the paths below are relative to this file's folder.\n")
     split = (f"# val: {n_val} of {n_train + n_val} images held out ({share:.0%}, ranked by sha256 of seed {seed} "
@@ -109,7 +257,26 @@ def yolo_data_yaml(n_train: int, n_val: int, seed: int, share: float = YOLO_VAL_
 
 
 def yolo_readme(n_train: int, n_val: int, seed: int, copies: bool, share: float = YOLO_VAL_SHARE) -> str:
-    """``yolo/README.txt``."""
+    """Write ``yolo/README.txt``: the layout, how the images are linked, and the split.
+
+    Parameters
+    ----------
+    n_train : int
+        Training images.
+    n_val : int
+        Validation images (0: no split).
+    seed : int
+        The split's seed.
+    copies : bool
+        Whether yolo/images holds copies (else relative links).
+    share : float, optional
+        The share held out.
+
+    Returns
+    -------
+    str
+        The file's text.
+    """
     images = ("copies of the input images (--copy-images)" if copies else
               "relative symbolic links to the input images: move the label folder and the input folder "
               "together (their common parent), or label again with --copy-images to get copies that go "

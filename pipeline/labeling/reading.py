@@ -1,5 +1,8 @@
-"""What ``geodistill label`` reads and plans before writing: the input folder (checked, then every file
-read once), the outputs it will own, the teacher's answers, and a finished label folder (``distill --labels``)."""
+"""What ``geodistill label`` reads and plans before writing.
+
+The input folder (checked, then every file read once), the outputs it will own, the teacher's answers, and a
+finished label folder (``distill --labels``).
+"""
 
 from __future__ import annotations
 
@@ -42,8 +45,23 @@ SIMULATOR_NOTE = ("teacher.backend=simulated is a SIMULATOR of foundation-model 
 
 
 def find_images(input_dir: str | Path):
-    """The :class:`pipeline.datasets.scan.Inputs` of ``input_dir``, recursively; InputError when it is not
-    a folder or holds no image."""
+    """Find the images under ``input_dir``, recursively.
+
+    Parameters
+    ----------
+    input_dir : str or Path
+        The input folder.
+
+    Returns
+    -------
+    pipeline.datasets.scan.Inputs
+        The folder's images and the entries left out.
+
+    Raises
+    ------
+    InputError
+        ``input_dir`` does not exist, is not a folder, or holds no image.
+    """
     root = Path(input_dir)
     if not root.is_dir():
         raise InputError(f"{root}: input folder not found" if not root.exists() else
@@ -55,8 +73,25 @@ def find_images(input_dir: str | Path):
 
 
 def image_ids(root: Path, files: Sequence[Path]) -> list[str]:
-    """Each file's label name (:func:`~pipeline.datasets.manifest.relative_id`); InputError when two would be
-    equal ignoring letter case."""
+    """Return each file's label name (:func:`pipeline.datasets.manifest.relative_id`).
+
+    Parameters
+    ----------
+    root : Path
+        The input folder.
+    files : sequence of Path
+        Image files under it.
+
+    Returns
+    -------
+    list of str
+        The ids, in the files' order.
+
+    Raises
+    ------
+    InputError
+        Two ids are equal ignoring letter case.
+    """
     ids = [relative_id(root, f) for f in files]
     seen: dict[str, Path] = {}
     for iid, f in zip(ids, files):
@@ -68,7 +103,24 @@ def image_ids(root: Path, files: Sequence[Path]) -> list[str]:
 
 
 def label_targets(root: Path, files: Sequence[Path], ids: Sequence[str], fmts: Sequence[str]) -> list[str]:
-    """The files a run writes under ``out`` (relative, posix; the record left out): what label.json lists."""
+    """List the files a run writes under ``out``: what label.json lists (the record itself left out).
+
+    Parameters
+    ----------
+    root : Path
+        The input folder.
+    files : sequence of Path
+        The image files.
+    ids : sequence of str
+        Their ids.
+    fmts : sequence of str
+        The formats written.
+
+    Returns
+    -------
+    list of str
+        Relative posix paths.
+    """
     out = list(ALWAYS)
     if "png" in fmts:
         out += [f"{OUTPUTS['masks']}/{i}.png" for i in ids]
@@ -83,8 +135,25 @@ def label_targets(root: Path, files: Sequence[Path], ids: Sequence[str], fmts: S
 
 
 def find_reference_masks(mask_dir: str | Path, ids: Sequence[str]) -> list[Path]:
-    """The reference mask ``<id>.<suffix>`` of every image id in ``mask_dir``; InputError naming the first
-    image without one."""
+    """Find the reference mask ``<id>.<suffix>`` of every image id in ``mask_dir``.
+
+    Parameters
+    ----------
+    mask_dir : str or Path
+        The folder of reference masks (the simulated teacher's input).
+    ids : sequence of str
+        The image ids.
+
+    Returns
+    -------
+    list of Path
+        One mask per id, in order.
+
+    Raises
+    ------
+    InputError
+        The folder does not exist, or an image has no mask (naming the first).
+    """
     d = Path(mask_dir)
     if not d.is_dir():
         raise InputError("{}: folder not found", REFERENCE_MASKS(d))
@@ -99,17 +168,34 @@ def find_reference_masks(mask_dir: str | Path, ids: Sequence[str]) -> list[Path]
 
 
 def _inside(path: str | None, out: Path) -> str | None:
-    """A relative cache folder is taken inside the output folder, so a rerun there resumes."""
+    """Take a relative cache folder inside the output folder, so a rerun there resumes."""
     if path is None:
         return None
     return str(path) if Path(path).is_absolute() else str(out / path)
 
 
 def check_label_folder(label_dir: str | Path, input_dir: str | Path) -> dict:
-    """The record (label.json) of an unmodified, complete ``label`` output folder of the images in
-    ``input_dir`` (``distill --labels``); otherwise InputError, one line naming the option: no record,
-    an unfinished run, other images, the SIMULATOR's labels, or a written file missing or changed (its
-    sha256 differs from the record's)."""
+    """Return the record (label.json) of an unmodified, complete ``label`` output of the images in ``input_dir``.
+
+    Parameters
+    ----------
+    label_dir : str or Path
+        The label output folder (``distill --labels``).
+    input_dir : str or Path
+        The images it must have labelled.
+
+    Returns
+    -------
+    dict
+        The record.
+
+    Raises
+    ------
+    InputError
+        One line naming ``--labels``: no record, an unfinished run, labels of other images, the SIMULATOR's
+        labels, no checksums, a written file missing or changed (its sha256 differs), or an image added or gone
+        since.
+    """
     d, root = Path(label_dir), Path(input_dir).resolve()
     record = read_record(d / OUTPUTS["record"], "label")
     if record is None:
@@ -150,7 +236,49 @@ def check_label_folder(label_dir: str | Path, input_dir: str | Path) -> dict:
 
 @dataclasses.dataclass
 class LabelJob:
-    """One ``label`` run: its inputs, checked before anything is written, then read, then answered."""
+    """One ``label`` run: its inputs, checked before anything is written, then read, then answered.
+
+    Attributes
+    ----------
+    root : Path
+        The input folder.
+    out : Path
+        The output folder.
+    files : list of Path
+        The readable image files.
+    ids : list of str
+        Their ids.
+    policy : pipeline.datasets.manifest.BadInputPolicy
+        What happens to bad files, and the list of those left out.
+    data_cfg : dict
+        The params ``data`` section.
+    geo : dict
+        The params ``geometry`` section.
+    tcfg : dict
+        The checked params ``teacher`` section (absolute cache folder).
+    size : int
+        The working resolution.
+    simulated : bool
+        Whether the teacher is the SIMULATOR.
+    ref_files : list of Path or None
+        The SIMULATOR's reference masks, one per file.
+    cache : pipeline.datasets.loading.DecodeCache or None
+        The decoded-image cache.
+    shas : list of str
+        sha256 of each file.
+    sizes : list of tuple of int
+        (height, width) of each image.
+    previous : set of str
+        Label's files of an earlier run (its label.json).
+    targets : list of str
+        The files this run writes (:func:`label_targets`).
+    runner : pipeline.teachers.runner.TeacherRunner
+        The teacher runner, every answer cached.
+    fingerprint : str
+        The teacher's fingerprint.
+    stats : object
+        The runner's RunStats.
+    """
 
     root: Path
     out: Path
@@ -174,8 +302,38 @@ class LabelJob:
 
 
 def plan_folder(input_dir, out, params: Mapping, reference_masks, overwrite: bool, fmts: Sequence[str]) -> LabelJob:
-    """Scan the folder, apply the bad-file policy to links and non-images, refuse outputs the user owns
-    and check the teacher and reference-mask options: all before anything is written."""
+    """Plan a run before anything is written.
+
+    Scans the folder, applies the bad-file policy to links and non-images, refuses outputs the user owns, and
+    checks the teacher and reference-mask options.
+
+    Parameters
+    ----------
+    input_dir : str or Path
+        The input folder.
+    out : str or Path
+        The output folder; not the input folder or inside it.
+    params : mapping
+        Validated params.
+    reference_masks : str or Path or None
+        The SIMULATOR's reference masks (required for it, refused otherwise).
+    overwrite : bool
+        Write into a folder this command did not make, removing the labels of images no longer there.
+    fmts : sequence of str
+        The formats written.
+
+    Returns
+    -------
+    LabelJob
+        The planned job (nothing read yet).
+
+    Raises
+    ------
+    InputError
+        ``out`` is the input folder or inside it, it holds labels of images gone (without ``overwrite``), the
+        reference-mask option does not fit the teacher, or as :func:`find_images`, :func:`image_ids` and
+        :func:`find_reference_masks`.
+    """
     found = find_images(input_dir)
     root, files = found.root, found.files
     out = Path(out)
@@ -215,8 +373,21 @@ def plan_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
 
 
 def read_images(job: LabelJob) -> None:
-    """Read every file once (sha256 for the teacher cache, native size); bad files, and files above
-    ``data.max_pixels`` (refused on their header), go to the policy and leave ``job``'s lists."""
+    """Read every file once: its sha256 (the teacher cache's key) and native size.
+
+    Bad files, and files above ``data.max_pixels`` (refused on their header), go to the job's policy and leave
+    its lists.
+
+    Parameters
+    ----------
+    job : LabelJob
+        A planned job, updated in place.
+
+    Raises
+    ------
+    InputError
+        A SIMULATOR reference mask's size differs from its image's, or no image could be read.
+    """
     keep = []
     limit = job.data_cfg["max_pixels"]
     for i, f in enumerate(progress(job.files, desc="label: reading", unit="img")):
@@ -243,8 +414,15 @@ def read_images(job: LabelJob) -> None:
 
 
 class FolderInputs:
-    """``(row, view) -> TeacherInput`` of the job's image files at the working resolution (and for the
-    SIMULATOR its reference masks).  Picklable: Ray's CPU workers decode with it."""
+    """The teacher's input reader: ``(row, view) -> TeacherInput`` of a job's images at the working resolution.
+
+    For the SIMULATOR it also reads the reference masks.  Picklable: Ray's CPU workers decode with it.
+
+    Parameters
+    ----------
+    job : LabelJob
+        A job whose images were read (:func:`read_images`).
+    """
 
     def __init__(self, job: LabelJob):
         absolute = lambda paths: None if paths is None else [Path(os.path.abspath(p)) for p in paths]  # noqa: E731
@@ -255,6 +433,20 @@ class FolderInputs:
         self.cache = job.cache
 
     def __call__(self, row: int, view: str) -> TeacherInput:
+        """Read image ``row`` in ``view``.
+
+        Parameters
+        ----------
+        row : int
+            The image's row in the job.
+        view : str
+            The view (e.g. a flip) the teacher sees it in.
+
+        Returns
+        -------
+        pipeline.teachers.base.TeacherInput
+            The image, its id and sha256, and for the SIMULATOR its reference mask.
+        """
         image = load_rgb(self.files[row], self.size, self.cache, max_pixels=self.max_pixels,
                          bit_depth=self.bit_depth).array
         reference = None
@@ -267,9 +459,43 @@ class FolderInputs:
 
 def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: bool, fmts: Sequence[str],
                 device: str = "auto", workers: int = 0, address: str | None = None) -> LabelJob:
-    """Plan the run, read every image (a bad one stops it before any output folder stays), claim the
-    outputs in label.json as an unfinished run, then fill the teacher cache with every answer through
-    the teacher stage's runner (serial, or a Ray Data pool of ``workers``)."""
+    """Plan, read and answer a label run.
+
+    Plans the run, reads every image (a bad one stops it before any output folder stays), claims the outputs in
+    label.json as an unfinished run, then fills the teacher cache with every answer through the teacher stage's
+    runner.
+
+    Parameters
+    ----------
+    input_dir : str or Path
+        The input folder.
+    out : str or Path
+        The output folder.
+    params : mapping
+        Validated params.
+    reference_masks : str or Path or None
+        The SIMULATOR's reference masks.
+    overwrite : bool
+        As :func:`plan_folder`.
+    fmts : sequence of str
+        The formats written.
+    device : str, optional
+        ``auto`` (default), ``cpu`` or ``cuda``.
+    workers : int, optional
+        Teachers in a Ray Data pool; 0 (default): serial, the same answers.
+    address : str, optional
+        The Ray cluster to join with ``workers``.
+
+    Returns
+    -------
+    LabelJob
+        The job, every teacher answer cached.
+
+    Raises
+    ------
+    InputError
+        As :func:`plan_folder` and :func:`read_images`.
+    """
     job = plan_folder(input_dir, out, params, reference_masks, overwrite, fmts)
     reset_frame_warnings()  # each run says once how it reads 16-bit frames
     made = [job.out, job.out / ".cache"] + ([job.cache.root] if job.cache is not None else [])

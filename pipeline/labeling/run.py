@@ -1,6 +1,9 @@
-"""``geodistill label``: a folder of images -> voted, gated pseudo-masks in standard formats, by the functions
-of the DAG's teacher, consensus and geometry stages; the vote at the working resolution, resized (nearest)
-to each image's own size."""
+"""``geodistill label``: a folder of images -> voted, gated pseudo-masks in standard formats.
+
+The work of the DAG's teacher, consensus and geometry stages on one folder: the vote (eq:majority-vote) at the
+working resolution, resized (nearest) to each image's own size, and the gate (eq:reliability-gate) with every
+image counted as a training image.
+"""
 
 from __future__ import annotations
 
@@ -30,8 +33,24 @@ __all__ = ["FORMATS", "OUTPUTS", "YOLO_LISTS", "LabelResult", "check_label_folde
 
 @dataclasses.dataclass(repr=False)
 class LabelResult:
-    """What :func:`label_folder` wrote: the folder ``out``, the per-image ``table``, the ``skipped`` files
-    (path, reason), the ``formats`` and the teacher ``backend``.  Its repr is one line."""
+    """What :func:`label_folder` wrote.  Its repr is one line.
+
+    Attributes
+    ----------
+    out : Path
+        The output folder.
+    table : pandas.DataFrame
+        One row per labelled image: ``image_id``, ``file``, size, ``n_valid``, the gate columns
+        (c, v, a, a0, g_conf, g_valid, g_area, g), ``h``, ``mask_pixels``, ``teacher_backend``, ``simulator``.
+    skipped : list of tuple of str
+        (path, reason) of each file left out.
+    formats : tuple of str
+        The formats written.
+    backend : str
+        The teacher backend.
+    skipped_line : str or None
+        The bad-file summary line; None when no file was bad.
+    """
 
     out: Path
     table: pd.DataFrame
@@ -42,23 +61,40 @@ class LabelResult:
 
     @property
     def simulator(self) -> bool:
+        """Whether the labels come from the SIMULATOR (``backend == "simulated"``), not a real teacher."""
         return self.backend == "simulated"
 
     @property
     def masks(self) -> dict[str, Path]:
-        """image id -> its voted mask PNG; empty when ``png`` was not among the formats."""
+        """Image id -> its voted mask PNG; empty when ``png`` was not among the formats."""
         if "png" not in self.formats:
             return {}
         return {str(i): Path(self.out) / OUTPUTS["masks"] / f"{i}.png" for i in self.table["image_id"]}
 
     def __repr__(self) -> str:
+        """Return one line: folder, image count, formats, skipped count, backend."""
         return (f"LabelResult(out={str(self.out)!r}, images={len(self.table)}, formats={list(self.formats)}, "
                 f"skipped={len(self.skipped)}, backend={self.backend!r})")
 
 
 def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
-    """``"png,coco"`` or ``["png", "coco"]`` -> ("png", "coco") in the canonical order; InputError on an
-    unknown or empty list."""
+    """Parse the requested label formats.
+
+    Parameters
+    ----------
+    formats : str or sequence of str
+        ``"png,coco"`` or ``["png", "coco"]``; case and blanks ignored.
+
+    Returns
+    -------
+    tuple of str
+        The formats in the canonical order of :data:`FORMATS`.
+
+    Raises
+    ------
+    InputError
+        A format is unknown or none is given, naming ``--format``.
+    """
     items = [f.strip().lower() for f in (formats.split(",") if isinstance(formats, str) else formats)]
     items = [f for f in items if f]
     bad = [f for f in items if f not in FORMATS]
@@ -69,8 +105,20 @@ def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
 
 
 def folder_votes(job: LabelJob, threshold: float) -> Iterator[tuple]:
-    """Each image's vote (the consensus stage's :func:`pipeline.pseudo_labels.vote_block`, eq:majority-vote)
-    as (voted, c, a, n_valid, h): c eq:foreground-agreement, a eq:pseudo-area; one image at a time."""
+    """Vote each image of the job, one at a time (the consensus stage's :func:`pipeline.pseudo_labels.vote_block`).
+
+    Parameters
+    ----------
+    job : pipeline.labeling.reading.LabelJob
+        An opened job whose teacher answers are all cached.
+    threshold : float
+        The vote threshold (eq:majority-vote).
+
+    Yields
+    ------
+    tuple
+        (voted bool [R,R], c (eq:foreground-agreement), a (eq:pseudo-area), n_valid, h) per image.
+    """
     for row in progress(range(len(job.files)), desc="label: vote + export", unit="img"):
         masks, scores, _, _ = job.runner.answers(row)
         cons, h = vote_block(masks[None], scores[None], threshold)  # a block of one image
@@ -79,8 +127,27 @@ def folder_votes(job: LabelJob, threshold: float) -> Iterator[tuple]:
 
 
 def folder_gates(c: np.ndarray, n_valid: np.ndarray, a: np.ndarray, geo: Mapping) -> Gates:
-    """The geometry stage's :func:`pipeline.pseudo_labels.reliability_gates` (eq:reliability-gate), every
-    image a training image; a missing a0 is a warning here (the labels are still a result)."""
+    """Gate every image (eq:reliability-gate), each counted as a training image.
+
+    The geometry stage's :func:`pipeline.pseudo_labels.reliability_gates`; a missing a0 (no image with
+    foreground) is a warning here, every g being 0: the labels are still a result.
+
+    Parameters
+    ----------
+    c : numpy.ndarray
+        Foreground agreement per image.
+    n_valid : numpy.ndarray
+        |V| per image.
+    a : numpy.ndarray
+        Area ratio per image.
+    geo : mapping
+        The params ``geometry`` section.
+
+    Returns
+    -------
+    pipeline.pseudo_labels.Gates
+        The gates.
+    """
     gates = reliability_gates(c, n_valid, a, np.ones(len(a), bool), geo)
     if gates.missing:
         log.warning("label: %s (every gate g is 0)", NoForeground().render(caller()))
@@ -93,10 +160,43 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
                  copy_images: bool = False) -> LabelResult:
     """Label every image under ``input_dir`` into ``out`` with validated ``params``.
 
-    ``reference_masks``: the masks the simulated teacher reads (refused for real teachers); ``workers`` /
-    ``address``: the teacher's Ray Data executor (0: serial; same answers); ``copy_images``: yolo/images
-    holds copies instead of relative links.  A user's file where an output goes is refused, ``overwrite``
-    or not; a user's folder only without ``overwrite``."""
+    Plans and reads everything first (:func:`pipeline.labeling.reading.open_folder`), then writes each image's
+    files as its vote comes, the tables and last label.json.  A user's file where an output goes is refused,
+    ``overwrite`` or not; a user's folder only without ``overwrite``.
+
+    Parameters
+    ----------
+    input_dir : str or Path
+        A folder of images, searched recursively.
+    out : str or Path
+        The output folder.
+    params : mapping
+        Validated params with the teacher chosen.
+    device : str, optional
+        ``auto`` (default), ``cpu`` or ``cuda``.
+    formats : str or sequence of str, optional
+        A subset of :data:`FORMATS` (default all).
+    reference_masks : str or Path, optional
+        The masks the simulated teacher reads (refused for real teachers).
+    overwrite : bool, optional
+        Write into an existing folder this command did not make.
+    workers : int, optional
+        Teachers in a Ray Data pool; 0 (default): serial, the same answers.
+    address : str, optional
+        The Ray cluster to join with ``workers``.
+    copy_images : bool, optional
+        yolo/images holds copies instead of relative links.
+
+    Returns
+    -------
+    LabelResult
+        What was written.
+
+    Raises
+    ------
+    InputError
+        An invalid format, folder, option or image, or an output that belongs to the user (one line naming it).
+    """
     fmts = parse_formats(formats)
     job = open_folder(input_dir, out, params, reference_masks, overwrite, fmts, device, workers, address)
     vote_threshold = float(section(params, "consensus")["vote_threshold"])

@@ -1,5 +1,8 @@
-"""The files ``geodistill label`` writes under ``out``, each atomically: per image as its vote comes,
-then the tables, COCO, contact sheet, skipped.csv and last the record label.json."""
+"""The files ``geodistill label`` writes under ``out``, each atomically.
+
+Per image as its vote comes, then the tables, COCO, the contact sheet, skipped.csv, and last the record
+label.json.
+"""
 
 from __future__ import annotations
 
@@ -39,8 +42,11 @@ def _save(path: Path, content: str | Callable[[Path], object]) -> None:
 
 
 def _link_or_copy(src: Path, dst: Path, copy: bool) -> None:
-    """A relative symbolic link to ``src`` (it survives moving the input and output folders together), or
-    with ``copy``, or where links are refused, a copy.  An earlier run's file there is replaced."""
+    """Link ``dst`` to ``src`` by a relative symbolic link, or copy it.
+
+    The link survives moving the input and output folders together; with ``copy``, or where links are refused,
+    a copy.  An earlier run's file there is replaced.
+    """
     dst.parent.mkdir(parents=True, exist_ok=True)
     if dst.is_symlink() or dst.is_file():  # never written through
         dst.unlink()
@@ -55,9 +61,25 @@ def _link_or_copy(src: Path, dst: Path, copy: bool) -> None:
 
 @dataclasses.dataclass
 class Votes:
-    """Per image: the gate inputs c (eq:foreground-agreement), a (eq:pseudo-area) and n_valid, the prompt
-    disagreement h, the mask's pixels at the image's own size, the COCO annotations and the contact
-    sheet's (image, voted) pairs."""
+    """What the vote gave per image, collected while the per-image files are written.
+
+    Attributes
+    ----------
+    c : numpy.ndarray
+        Foreground agreement (eq:foreground-agreement).
+    a : numpy.ndarray
+        Area ratio (eq:pseudo-area) at the working resolution.
+    n_valid : numpy.ndarray
+        |V|.
+    pixels : numpy.ndarray
+        The mask's foreground pixels at the image's own size.
+    h : numpy.ndarray
+        The prompt disagreement.
+    annotations : list
+        The COCO records (None for an empty mask).
+    sheet : dict
+        Row -> (image, voted mask) of the contact sheet's sample.
+    """
 
     c: np.ndarray
     a: np.ndarray
@@ -69,9 +91,27 @@ class Votes:
 
 
 def write_votes(job: LabelJob, fmts: tuple[str, ...], votes: Iterable, copy_images: bool = False) -> Votes:
-    """Each image's files as its vote comes from ``votes`` ((voted, c, a, n_valid, h) per image), at the
-    image's own size: the PNG mask, the YOLO label and image (a relative link, or with ``copy_images`` or
-    where links are refused a copy), then yolo/'s lists, data.yaml and README.txt."""
+    """Write each image's files as its vote comes, at the image's own size (nearest-neighbour resize).
+
+    The PNG mask, the YOLO label and image (a relative link, or with ``copy_images`` or where links are refused a
+    copy), then yolo/'s lists, data.yaml and README.txt.
+
+    Parameters
+    ----------
+    job : pipeline.labeling.reading.LabelJob
+        An opened job.
+    fmts : tuple of str
+        The formats written.
+    votes : iterable
+        (voted, c, a, n_valid, h) per image, in the job's order (:func:`pipeline.labeling.run.folder_votes`).
+    copy_images : bool, optional
+        yolo/images holds copies instead of relative links.
+
+    Returns
+    -------
+    Votes
+        The per-image values.
+    """
     import cv2  # opencv: heavy, imported where used
 
     n, out, seed = len(job.files), job.out, int(job.data_cfg["seed"])
@@ -109,9 +149,29 @@ def write_votes(job: LabelJob, fmts: tuple[str, ...], votes: Iterable, copy_imag
 
 
 def write_outputs(job: LabelJob, fmts: tuple[str, ...], v: Votes, gates: Gates, record: dict) -> pd.DataFrame:
-    """The table (one row per image), COCO, the contact sheet (captioned with g), skipped.csv, the removal
-    of label's files of an earlier run that this one does not write, and last label.json (``record``, the
-    outputs and their sha256; links to the inputs left out).  Returns the table."""
+    """Write the tables, COCO, the contact sheet (captioned with g), skipped.csv and last label.json.
+
+    Label's files of an earlier run that this one does not write are removed before the record; the record holds
+    ``record``, the outputs and their sha256 (links to the inputs left out).
+
+    Parameters
+    ----------
+    job : pipeline.labeling.reading.LabelJob
+        The job.
+    fmts : tuple of str
+        The formats written.
+    v : Votes
+        From :func:`write_votes`.
+    gates : pipeline.pseudo_labels.Gates
+        The gates.
+    record : dict
+        label.json's content besides checksums and outputs.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The table, one row per image.
+    """
     out, g = job.out, gates.factors.g
     table = pd.DataFrame({
         "image_id": job.ids, "file": [f.relative_to(job.root).as_posix() for f in job.files],
