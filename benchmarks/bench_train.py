@@ -17,6 +17,7 @@ from benchmarks.common import parser, round_robin
 from pipeline.runtime.device import resolve_device
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import load_params, section
+from pipeline.training.inputs import TrainData, ValData
 
 PAPER_IMAGES = 270
 
@@ -72,7 +73,6 @@ def main(argv=None) -> dict:
 
     import torch
 
-    from pipeline.training.inputs import TrainData, ValData
 
     device = resolve_device(args.device)
     if args.threads:

@@ -20,10 +20,16 @@ _PAPER = PAPER.train  # the paper's constants: the defaults below
 
 
 def _per_pixel_weights(weights: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor | None:
-    """Per-sample weights ``[B]`` broadcast to ``like``'s shape ``[B, ...]``."""
+    """Broadcast per-sample weights ``[B]`` to ``like``'s shape ``[B, ...]``; pass per-pixel weights through.
+
+    Per-pixel weights hold as many values as ``like`` and more than one dimension.
+    """
     if weights is None:
         return None
-    w = torch.as_tensor(weights, dtype=torch.float32, device=like.device).reshape(-1)
+    w = torch.as_tensor(weights, dtype=torch.float32, device=like.device)
+    if w.dim() > 1 and w.numel() == like.numel():
+        return w.reshape(like.shape)
+    w = w.reshape(-1)
     if w.numel() != like.shape[0]:
         raise ValueError(f"weights: {w.numel()} values for a batch of {like.shape[0]}")
     return w.reshape(-1, *([1] * (like.dim() - 1))).expand_as(like)
@@ -438,6 +444,14 @@ class LossConstants:
         eq:area-error's 1e-5.
     eps : float
         The denominators' epsilon (eq:sdf-loss, eq:area-loss).
+    bootstrap_beta : float
+        ``train.bootstrap_beta`` (:func:`region_terms`); 1 = off.
+    ignore_band : float
+        ``train.ignore_band`` (:func:`region_terms`); 0 = off.
+    region_gate : bool
+        ``train.region_gate`` (:func:`region_terms`).
+    soft_targets : bool
+        ``train.soft_targets``: the region target is the agreement map itself.
     """
 
     dice_weight: float = _PAPER.dice_weight
@@ -446,6 +460,65 @@ class LossConstants:
     sdf_base_weight: float = _PAPER.sdf_base_weight
     area_eps: float = _PAPER.area_eps
     eps: float = _PAPER.loss_eps
+    bootstrap_beta: float = _PAPER.bootstrap_beta
+    ignore_band: float = _PAPER.ignore_band
+    region_gate: bool = _PAPER.region_gate
+    soft_targets: bool = _PAPER.soft_targets
+
+    @property
+    def robust_region(self) -> bool:
+        """Whether Stage I's region term departs from eq:raw-loss (:func:`region_terms`)."""
+        return self.bootstrap_beta < 1.0 or self.ignore_band > 0 or self.region_gate
+
+
+def region_terms(logits: torch.Tensor, targets: Mapping[str, torch.Tensor], gates: torch.Tensor,
+                 c: LossConstants, probs: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Compute the region term: L_raw (eq:raw-loss) on ``targets["mask"]``, with Stage I's label-noise levers.
+
+    With every lever off this is :func:`raw_terms`.  Otherwise, with A the agreement map (eq:agreement-map) that
+    ``mask`` then holds under ``ignore_band``, P = sigmoid(Z) and w the pixel weights:
+
+    - ``ignore_band`` b > 0: w(x) = [|A(x) - 1/2| >= b], pixels where the prompts split leave the loss; the
+      target is M = [A >= 1/2] (eq:majority-vote), or A itself under ``soft_targets``;
+    - ``bootstrap_beta`` beta < 1: the target is beta M + (1 - beta) P, P detached (Reed et al. 2015, soft);
+    - ``region_gate``: w_i(x) times the image's gate g_i (eq:reliability-gate).
+
+    L = L_BBCE(Z, T; w) + 0.2 L_Dice(P w, T w): the weighted BBCE of :func:`balanced_bce` (pi from the weighted
+    counts, the mean over all pixels) and Dice over the kept pixels.
+
+    Parameters
+    ----------
+    logits : torch.Tensor
+        Mask logits Z [B, 1, H, W] (float32).
+    targets : Mapping
+        ``mask``: the voted mask or the agreement map [B, 1, H, W].
+    gates : torch.Tensor
+        Gates g_i [B].
+    c : LossConstants
+        The constants and the levers.
+    probs : torch.Tensor
+        sigmoid(logits).
+
+    Returns
+    -------
+    dict of str to torch.Tensor
+        ``raw``, ``bbce`` and ``dice``, float32 scalars.
+    """
+    t = targets["mask"].float().reshape(logits.shape)
+    if not c.robust_region:
+        return raw_terms(logits, t, c.dice_weight, c.max_weight, probs=probs)
+    w = torch.ones_like(t)
+    if c.ignore_band > 0:
+        w = (torch.abs(t - 0.5) >= c.ignore_band).float()
+        if not c.soft_targets:
+            t = (t >= 0.5).float()
+    if c.bootstrap_beta < 1.0:
+        t = c.bootstrap_beta * t + (1.0 - c.bootstrap_beta) * probs.detach()
+    if c.region_gate:
+        w = w * gates.float().reshape(-1, *([1] * (t.dim() - 1)))
+    bbce = balanced_bce(logits, t, w, c.max_weight)
+    dice = dice_loss(probs * w, t * w)
+    return {"raw": bbce + c.dice_weight * dice, "bbce": bbce, "dice": dice}
 
 
 #: eq:refine-loss's weights with the paper's lambdas
@@ -460,7 +533,7 @@ TERM_KEYS = {"region": "raw", "anchor": "anchor", "sdf": "sdf", "dist": "dist", 
 #: objective term name -> its loss(es) from (float32 mask logits z, p = sigmoid(z), the model's outputs, targets,
 #: gates, :class:`LossConstants`); ``region``: L_raw with its eq:raw-loss parts
 _TERMS = {
-    "region": lambda z, p, o, t, g, c: raw_terms(z, t["mask"], c.dice_weight, c.max_weight, probs=p),
+    "region": lambda z, p, o, t, g, c: region_terms(z, t, g, c, p),
     "anchor": lambda z, p, o, t, g, c: {"anchor": anchor_loss(z, t["anchor"])},
     "sdf": lambda z, p, o, t, g, c: {"sdf": sdf_loss(o["sdf"], t["sdf"], g, c.sdf_band, c.sdf_base_weight, c.eps)},
     "dist": lambda z, p, o, t, g, c: {"dist": distance_regression_loss(o["sdf"], t["sdf"])},

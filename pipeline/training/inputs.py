@@ -98,6 +98,13 @@ def _gate_table(gates, train_ids: list):
     return gdf.loc[train_ids]
 
 
+def agreement_target(method: Method, cfg: Mapping[str, Any]) -> bool:
+    """Whether ``method``'s region target is read as the agreement map A (eq:agreement-map) rather than the voted
+    mask M^T (eq:majority-vote): ``train.soft_targets`` (A is the target), or Stage I's ``train.ignore_band``
+    (M^T = [A >= 1/2] is the target, A says which pixels leave the loss)."""
+    return bool(cfg["soft_targets"]) or (method.stage == 1 and float(cfg["ignore_band"]) > 0)
+
+
 def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Any]) -> TrainData:
     """The pseudo-targets of the training rows ``method``'s data filter keeps, from the opened ``inputs`` (by name;
     a ``reference`` among them is refused)."""
@@ -119,7 +126,7 @@ def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, A
     keep = np.ones(len(train_idx), dtype=bool)
     if method.data == "afs":
         mask, keep, stats["afs_pass_ratio"] = _afs_targets(inputs["teacher"], train_idx, cfg["afs"])
-    elif cfg.get("soft_targets"):  # A (eq:agreement-map) in eq:raw-loss instead of M^T (eq:majority-vote)
+    elif agreement_target(method, cfg):  # A (eq:agreement-map): the target, or where the prompts split
         mask = LazyRows(inputs["consensus"]["agreement"], train_idx, np.float32)
     else:
         mask = LazyRows(inputs["consensus"]["voted"], train_idx, bool)

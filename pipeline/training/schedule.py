@@ -7,7 +7,7 @@ the rule scores without validation masks.  Pure functions of the settings and th
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Callable, Mapping
+from typing import Callable, Mapping, Protocol
 
 import numpy as np
 import torch
@@ -18,8 +18,13 @@ from pipeline.runtime.errors import InputError
 from pipeline.stats import ONE_SIDED_95_Z
 from pipeline.training.inputs import TrainData, ValData
 
-if TYPE_CHECKING:
-    from pipeline.training.settings import Settings
+
+class StopSettings(Protocol):
+    """What the stopping rule's budget reads of :class:`pipeline.training.settings.Settings`."""
+
+    epochs: int
+    decay_fraction: float
+    step_budget: int
 
 #: the resolution schedule (``train.low_res_fraction``) trains its first epochs at 1 / this of the side
 LOW_RES_FACTOR = 2
@@ -126,12 +131,12 @@ def decay_epochs(stable: int, fraction: float) -> int:
     return max(1, int(round(stable * fraction / (1.0 - fraction))))
 
 
-def over_budget(s: Settings, stable: int, steps_per_epoch: int) -> bool:
+def over_budget(s: StopSettings, stable: int, steps_per_epoch: int) -> bool:
     """Whether ``stable`` stable epochs and their decay exceed ``train.step_budget`` (never without one)."""
     return bool(s.step_budget) and (stable + decay_epochs(stable, s.decay_fraction)) * steps_per_epoch > s.step_budget
 
 
-def stable_cap(s: Settings, steps_per_epoch: int) -> int:
+def stable_cap(s: StopSettings, steps_per_epoch: int) -> int:
     """The most stable epochs E (at least 1) with E + D(E) <= ``train.epochs_stage1`` and within the step budget,
     D = :func:`decay_epochs`."""
     fits = [e for e in range(1, s.epochs + 1)

@@ -17,13 +17,16 @@ from pipeline.params import validate_section
 from pipeline.training.schedule import low_res_epochs
 
 
-def loss_constants(cfg: Mapping[str, Any]) -> losses.LossConstants:
+def loss_constants(cfg: Mapping[str, Any], stage_one: bool = False) -> losses.LossConstants:
     """The losses' constants (eq:raw-loss, eq:positive-weight, eq:sdf-weight, eq:area-error) from the train params.
 
     Parameters
     ----------
     cfg : Mapping
         A validated ``train`` section.
+    stage_one : bool
+        Whether the run is Stage I, where the label-noise levers (``bootstrap_beta``, ``ignore_band``,
+        ``region_gate``) apply; elsewhere they are off.
 
     Returns
     -------
@@ -33,7 +36,11 @@ def loss_constants(cfg: Mapping[str, Any]) -> losses.LossConstants:
     """
     return losses.LossConstants(dice_weight=float(cfg["dice_weight"]), max_weight=float(cfg["pos_weight_max"]),
                                 sdf_band=float(cfg["sdf_band"]), sdf_base_weight=float(cfg["sdf_base_weight"]),
-                                area_eps=float(cfg["area_eps"]), eps=float(cfg["loss_eps"]))
+                                area_eps=float(cfg["area_eps"]), eps=float(cfg["loss_eps"]),
+                                soft_targets=bool(cfg["soft_targets"]),
+                                bootstrap_beta=float(cfg["bootstrap_beta"]) if stage_one else 1.0,
+                                ignore_band=float(cfg["ignore_band"]) if stage_one else 0.0,
+                                region_gate=bool(cfg["region_gate"]) and stage_one)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,7 +110,7 @@ class Settings:
                    weight_decay=float(cfg["weight_decay"]), schedule=str(cfg["schedule"]),
                    precision=str(cfg["precision"]), channels_last=bool(cfg["channels_last"]),
                    hflip=bool(cfg["augment_hflip"]), num_threads=int(cfg["num_threads"]),
-                   bf1_tolerance=float(cfg["val_bf1_tolerance"]), constants=loss_constants(cfg),
+                   bf1_tolerance=float(cfg["val_bf1_tolerance"]), constants=loss_constants(cfg, stage_one),
                    selection_tau=float(selection_tau), precise_bn=bool(cfg["precise_bn"]),
                    warmup_epochs=int(cfg["warmup_epochs"]), average_last=int(cfg["average_last"]),
                    decay_fraction=float(cfg["decay_fraction"]),
