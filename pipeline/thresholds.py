@@ -161,7 +161,7 @@ def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = N
                    params: Mapping | None = None) -> dict[str, tuple[float, str]]:
     """One model's tau candidates ``{source: (tau, text)}`` for :func:`resolve_tau`: the bundle's (its deploy.json);
     a checkpoint's payload tau, else its row of ``thresholds`` (a path, artifact or DataFrame); the fixed
-    tau calibrate recorded there, else ``calibrate.fixed_tau`` of ``params``."""
+    tau calibrate recorded there, else ``calibrate.fixed_tau`` of the validated ``params``."""
     found: dict[str, tuple[float, str]] = {}
     if bundle is not None and bundle.get("tau") is not None:
         found["bundle"] = (float(bundle["tau"]), f"deploy bundle ({bundle.get('tau_source', '?')})")
@@ -182,11 +182,11 @@ def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = N
     label = TAU_LABELS["fixed"]
     if row is not None and row.get("fixed_tau") is not None:
         found["fixed"] = (float(row["fixed_tau"]), f"{label} (recorded by calibrate in {where})")
-    elif params is not None and (fixed := (params.get("calibrate") or {}).get("fixed_tau")) is not None:
+    elif params is not None:
         why = "" if payload is None else \
             f" (no calibrated row for {method} seed {seed} in {where})" if thresholds is not None else \
             " (no --thresholds given)"
-        found["fixed"] = (fixed, label + why)
+        found["fixed"] = (params["calibrate"]["fixed_tau"], label + why)
     return found
 
 
