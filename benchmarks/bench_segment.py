@@ -74,7 +74,8 @@ def build_bundle(workdir: Path, resolution: int, channels, calibration: np.ndarr
                     method="random", seed=0, stage=1, selected_epoch=1, resolution=int(resolution))
     plan = plan_export(ckpt, PAPER.model_dump(), tau=0.5)
     plan = dataclasses.replace(plan, calibration_images=calibration, calibration_note=None,
-                               settings={**plan.settings, "int8_min_mask_iou": 0.0})
+                               settings={**plan.settings, "int8_settings": dataclasses.replace(
+                                   plan.settings["int8_settings"], int8_min_mask_iou=0.0)})
     out = workdir / "deploy"
     write_export(plan, out, make_meta("deploy", "export", "bench_segment", plan.params, plan.inputs))
     return out

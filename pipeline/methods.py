@@ -255,7 +255,7 @@ def method_epochs(method: Method, cfg: Mapping[str, Any]) -> int:
 
 def method_lr(method: Method, cfg: Mapping[str, Any]) -> float:
     """The peak learning rate ``train.<method.lr>``, times ``train.lr_scale`` for Stage I's rate."""
-    return float(_get(cfg, method.lr)) * (float(cfg.get("lr_scale") or 1.0) if method.lr == "lr_stage1" else 1.0)
+    return float(_get(cfg, method.lr)) * (float(_get(cfg, "lr_scale")) if method.lr == "lr_stage1" else 1.0)
 
 
 #: train params every method reads; ``precision`` and ``num_threads`` change numerics, so they are among them

@@ -443,6 +443,7 @@ class ReportParams(_Section):
 
 
 INT8_CALIBRATIONS = ("percentile", "minmax")
+INT8_WEIGHT_BITS = (7, 8)
 
 
 class DeployParams(_Section):
@@ -457,10 +458,10 @@ class DeployParams(_Section):
     benchmark_variants: list[str] = _f(BENCHMARK_VARIANTS, min_length=1)
     int8_calibration_images: int = _f(64, "training-split images (no masks) for int8 activation ranges", ge=1)
     int8_calibration: Literal[INT8_CALIBRATIONS] = _f("percentile")
-    int8_percentile: float = _f(99.999, ge=50, le=100)
-    int8_weight_bits: Literal[7, 8] = _f(7, "int8 weight range: 7 = [-64, 64], no u8*s8 pair sum saturates "
-                                         "int16 on CPUs without VNNI, so every x86 CPU gives the same masks; "
-                                         "8 = [-127, 127], those masks only on VNNI/AMX CPUs")
+    int8_percentile: float = _f(99.999, gt=50, le=100)
+    int8_weight_bits: Literal[INT8_WEIGHT_BITS] = _f(7, "int8 weight range: 7 = [-64, 64], no u8*s8 pair sum "
+                                                     "saturates int16 on CPUs without VNNI, so every x86 CPU gives "
+                                                     "the same masks; 8 = [-127, 127], those masks only on VNNI/AMX CPUs")
     int8_min_mask_iou: float = _f(0.9, "below this mean int8-vs-PyTorch mask IoU the bundle ships fp32 only "
                                        "(deploy.json and contract.json say why)", ge=0, le=1)
     target_latency_ms: float = _f(40, "CPU target at 384x384, batch 1 (reported, never asserted)", ge=0)

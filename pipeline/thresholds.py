@@ -384,7 +384,7 @@ def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = N
     thresholds : path, artifact or pandas.DataFrame, optional
         The thresholds table; a path that does not exist is ignored.
     params : mapping, optional
-        Params whose ``calibrate.fixed_tau`` is the last resort.
+        Validated params whose ``calibrate.fixed_tau`` is the last resort.
 
     Returns
     -------
@@ -416,11 +416,11 @@ def tau_candidates(*, bundle: Mapping | None = None, payload: Mapping | None = N
     label = TAU_LABELS["fixed"]
     if row is not None and row.get("fixed_tau") is not None:
         found["fixed"] = (float(row["fixed_tau"]), f"{label} (recorded by calibrate in {where})")
-    elif params is not None and (fixed := (params.get("calibrate") or {}).get("fixed_tau")) is not None:
+    elif params is not None:
         why = "" if payload is None else \
             f" (no calibrated row for {method} seed {seed} in {where})" if thresholds is not None else \
             " (no --thresholds given)"
-        found["fixed"] = (fixed, label + why)
+        found["fixed"] = (params["calibrate"]["fixed_tau"], label + why)
     return found
 
 

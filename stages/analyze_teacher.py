@@ -27,7 +27,7 @@ def base_prompt_index(teacher_meta) -> int:
     p1 = `spacecraft`)."""
     p = teacher_meta.params or {}
     cfg = p.get("teacher", p)
-    return int(cfg.get("base_prompt_index", 0)) if isinstance(cfg, dict) else 0
+    return int(cfg.get("base_prompt_index", 0)) if isinstance(cfg, dict) else 0  # unvalidated: as recorded
 
 
 @stage_command("analyze_teacher")

@@ -43,13 +43,14 @@ def main(params, device, deploy_dir, checkpoint, art, thresholds, tau, resolutio
     target = B.open_target(deploy_dir, checkpoint, thresholds, tau, params)
     resolution, _ = resolve_resolution(option=resolution, benchmark=st["resolution"], recorded=target.resolution,
                                        params=section(params, "data").get("resolution"))
-    val_images, val_masks, calib, data_inputs = B.read_benchmark_data(Path(art), st["n_calib"])
+    val_images, val_masks, calib, data_inputs = B.read_benchmark_data(
+        Path(art), st["int8_settings"].int8_calibration_images)
     notes = {} if val_images is not None else {
         "iou": f"no validation images with reference masks under {art}: IoU columns not computed"}
     with tempfile.TemporaryDirectory() as td:
         onnx_path, int8_path, onnx_notes = B.prepare_onnx_models(
             target, st["variants"], td, resolution=resolution, opset=st["opset"], calibration_images=calib,
-            int8=st["int8"])
+            int8_settings=st["int8_settings"])
         notes.update(onnx_notes)
         for key in ("iou", "onnx"):
             if key in notes:

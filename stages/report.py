@@ -31,7 +31,7 @@ def main(params, device, art, out, metrics_dir):
     """Write report.md, a self-contained report.html, figures and plot CSVs."""
     from pipeline.report.build import MASK_INPUTS, build_report, vote_means
     cfg = section(params, "report")
-    profile = str(params.get("profile", ""))
+    profile = params["profile"]
     env = collect()
     report, plots, inp = build_report(art, cfg, profile, resolve_device(device), environment=env)
     meta = stage_context("report", __file__, params).meta("report", list(inp.found.values()),

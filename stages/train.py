@@ -143,7 +143,7 @@ def auto_jobs(cfg: dict, device: str, n_seeds: int) -> int:
     Ray gave it: :func:`pipeline.runtime.device.stage_cores`) over ``train.num_threads`` (a run's bytes depend on
     its thread count, never on what runs beside it); 1 on a GPU or with ``num_threads`` 0 (torch's default:
     every core)."""
-    threads = int(cfg.get("num_threads") or 0)
+    threads = cfg["num_threads"]
     if device != "cpu" or threads <= 0:
         return 1
     return max(1, min(n_seeds, stage_cores() // threads))

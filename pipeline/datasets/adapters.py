@@ -291,7 +291,7 @@ def _split_pool(names: list[str], masks: dict[str, Path | None], n_train: int, n
 
 def speedplus_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
     root = _root(cfg)
-    domain = cfg.get("domain") or proto.get("domain")
+    domain = cfg["domain"] or proto.get("domain")
     domains = _get(proto, "domains", where, list)
     if domain not in domains:
         raise InputError(f"params: data.domain={domain!r} must be one of {domains} for SPEED+")

@@ -73,15 +73,14 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
                                          area_fraction=view.area_fraction))
                 bar.update(1)
     return DatasetSpec(rows=pd.DataFrame(rows), protocol={"name": "synthetic", "plan": [vars(p) for p in plan]},
-                       max_pixels=cfg.get("max_pixels"), letterbox=bool(cfg.get("letterbox", False)))
+                       max_pixels=cfg["max_pixels"], letterbox=cfg["letterbox"])
 
 
 def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = None) -> DatasetSpec:
     """Rows of a real dataset; ``<out_dir>/synthetic`` (a DVC output) is replaced by a note, so no stale
     synthetic files survive a switch of source."""
     spec = adapters.build_source(cfg, policy)
-    spec.max_pixels = cfg.get("max_pixels")
-    spec.bit_depth, spec.letterbox = cfg.get("bit_depth", "auto"), bool(cfg.get("letterbox", False))
+    spec.max_pixels, spec.bit_depth, spec.letterbox = cfg["max_pixels"], cfg["bit_depth"], cfg["letterbox"]
     if out_dir is not None:
         with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:
             (tmp / output_file("synthetic_files", "readme")).write_text(

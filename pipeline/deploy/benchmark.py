@@ -312,8 +312,8 @@ def fastest_within(rows: Sequence[dict], max_iou_drop: float) -> dict | None:
 def benchmark_settings(cfg: dict) -> dict:
     """The benchmark's ``deploy`` params."""
     return {"warmup": cfg["benchmark_warmup"], "iters": cfg["benchmark_iters"], "batches": cfg["benchmark_batches"],
-            "variants": cfg["benchmark_variants"], "n_calib": cfg["int8_calibration_images"],
-            "int8": q8.int8_params(cfg), "target_ms": float(cfg["target_latency_ms"]),
+            "variants": cfg["benchmark_variants"], "int8_settings": q8.Int8Settings.from_params(cfg),
+            "target_ms": float(cfg["target_latency_ms"]),
             "max_drop": float(cfg["target_iou_drop"]), "target_res": cfg["target_resolution"],
             "opset": cfg["opset"], "resolution": cfg["benchmark_resolution"]}
 
@@ -365,7 +365,7 @@ def read_benchmark_data(art: str | Path, n_calib: int):
 
 
 def prepare_onnx_models(target: Target, variants: Sequence[str], workdir: str | Path, *, resolution: int,
-                        opset: int, calibration_images: np.ndarray | None, int8: dict) -> tuple:
+                        opset: int, calibration_images: np.ndarray | None, int8_settings: q8.Int8Settings) -> tuple:
     """(onnx_path, int8_path, notes): the bundle's models, else exported or quantised into ``workdir`` (int8 on
     ``calibration_images``, else smooth noise; only for an int8 variant); ``notes`` say how, or why none."""
     reason = onnx_unavailable_reason()
@@ -383,8 +383,7 @@ def prepare_onnx_models(target: Target, variants: Sequence[str], workdir: str | 
         "no training images found: calibrated on synthetic smooth noise"
     if calib is None:
         calib = (parity_inputs(min(resolution, 128), n=4).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
-    int8_path = q8.quantize_onnx_int8(onnx_path, Path(workdir) / "model_int8.onnx", calib,
-                                      int8["calibration"], int8["percentile"], int8["weight_bits"])
+    int8_path = q8.quantize_onnx_int8(onnx_path, Path(workdir) / "model_int8.onnx", calib, int8_settings)
     return onnx_path, int8_path, {"int8_calibration": note}
 
 

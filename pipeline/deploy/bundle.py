@@ -41,13 +41,12 @@ def file_sha256(path: str | Path) -> str:
 
 def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_source: str, resolution: int,
                  opset: int, atol: float, onnx: bool = True, source: dict | None = None,
-                 calibration_images: np.ndarray | None = None, calibration_note: str | None = None,
-                 int8_min_mask_iou: float = 0.9, int8_calibration: str = "percentile",
-                 int8_percentile: float = 99.999, int8_weight_bits: int = 7, device=None,
-                 frames: dict | None = None) -> dict:
+                 int8_settings: q8.Int8Settings, calibration_images: np.ndarray | None = None,
+                 calibration_note: str | None = None, device=None, frames: dict | None = None) -> dict:
     """Fill the bundle folder ``tmp``; its deploy.json content.  :class:`ParityError` when an export fails its
-    parity check; the int8 model only with model.onnx and ``calibration_images`` (training split), and left
-    out when it misses ``int8_min_mask_iou`` on a checked instruction set (``int8_note`` says why).
+    parity check; the int8 model (``int8_settings``) only with model.onnx and ``calibration_images`` (training
+    split), and left out when it misses ``int8_settings.int8_min_mask_iou`` on a checked instruction set
+    (``int8_note`` says why).
     ``frames``: how training frames were read (data.bit_depth, data.letterbox)."""
     tmp = Path(tmp)
     deployed = mask_path_model(model)
@@ -70,9 +69,9 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
     elif calibration_images is None or len(calibration_images) == 0:
         int8_note = calibration_note or "no calibration images given"
     else:
-        q8.quantize_onnx_int8(tmp / ONNX_FILE, tmp / INT8_FILE, calibration_images, int8_calibration, int8_percentile,
-                              int8_weight_bits)
-        parity["int8"] = q8.check_int8_parity(deployed, tmp / INT8_FILE, calibration_images, tau, int8_min_mask_iou)
+        q8.quantize_onnx_int8(tmp / ONNX_FILE, tmp / INT8_FILE, calibration_images, int8_settings)
+        parity["int8"] = q8.check_int8_parity(deployed, tmp / INT8_FILE, calibration_images, tau,
+                                              int8_settings.int8_min_mask_iou)
         int8_note = None
         if missed := [c for c in parity["int8"]["isas"] if c["passed"] is False]:  # the fp32 bundle still ships
             int8_note = q8.int8_miss({**parity["int8"], "mask_iou_mean": min(c["mask_iou_mean"] for c in missed)},
@@ -82,10 +81,11 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
         else:
             int8 = {"file": INT8_FILE, "calibration_images": int(len(calibration_images)),
                     "calibration": calibration_note or "training-split images (no masks)",
-                    "calibration_method": int8_calibration,
-                    "percentile": float(int8_percentile) if int8_calibration == "percentile" else None,
-                    "weight_bits": int(int8_weight_bits),
-                    "quantization": q8.int8_description(int8_calibration, int8_percentile, int8_weight_bits),
+                    "calibration_method": int8_settings.int8_calibration,
+                    "percentile": float(int8_settings.int8_percentile)
+                    if int8_settings.int8_calibration == "percentile" else None,
+                    "weight_bits": int8_settings.int8_weight_bits,
+                    "quantization": q8.int8_description(int8_settings),
                     "verified_on": [c for c in parity["int8"]["isas"] if c["passed"]]}
     if int8_note is not None:
         log.info("export: int8 model skipped: %s", int8_note)

@@ -142,10 +142,10 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
     """
     from pipeline.deploy.bundle import checkpoint_resolution, frame_reading  # torch
     from pipeline.deploy.mask_path import onnx_unavailable_reason
-    from pipeline.deploy.quantize import int8_params, read_calibration_images
+    from pipeline.deploy.quantize import Int8Settings, read_calibration_images
 
     cfg = section(params, "deploy")
-    q8 = {f"int8_{k}": v for k, v in int8_params(cfg).items()}
+    int8_settings = Int8Settings.from_params(cfg)
     ckpt = open_artifact(checkpoint, "checkpoint")
     model, payload = load_student(checkpoint, "cpu")
     table = open_artifact(thresholds, "thresholds") if thresholds is not None and tau is None else None
@@ -161,16 +161,14 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
     elif (reason := onnx_unavailable_reason()) is not None:
         calib_note = reason
     else:
-        calib, calib_inputs, calib_note = read_calibration_images(artifacts, cfg["int8_calibration_images"],
+        calib, calib_inputs, calib_note = read_calibration_images(artifacts, int8_settings.int8_calibration_images,
                                                                   int(resolution))
         inputs += calib_inputs
     frames = frame_reading({k: params["data"].get(k) for k in ("bit_depth", "letterbox")
                             if params["data"].get(k) is not None})
-    settings = {"opset": cfg["opset"], "atol": cfg["parity_atol"], "int8_min_mask_iou": cfg["int8_min_mask_iou"],
-                **q8, "frames": frames}
+    settings = {"opset": cfg["opset"], "atol": cfg["parity_atol"], "int8_settings": int8_settings, "frames": frames}
     deploy_params = {"opset": cfg["opset"], "parity_atol": cfg["parity_atol"], "onnx": onnx, "int8": calib is not None,
-                     "int8_calibration_images": cfg["int8_calibration_images"],
-                     "int8_min_mask_iou": cfg["int8_min_mask_iou"], **q8}
+                     **dataclasses.asdict(int8_settings)}
     fingerprinted = {"deploy": deploy_params, "tau": value, "tau_source": source, "resolution": int(resolution)}
     if frames != frame_reading():  # only when set: earlier bundles' fingerprints stay
         fingerprinted["frames"] = frames

@@ -4,6 +4,7 @@ and its agreement gate against PyTorch on every checked instruction set (docs/de
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import logging
 import os
@@ -11,7 +12,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
-from typing import Sequence
+from typing import Literal, Mapping, Sequence
 
 import numpy as np
 
@@ -24,8 +25,35 @@ from pipeline.artifacts.provenance import cpu
 from pipeline.runtime.errors import InputError
 from pipeline.evaluation.inference import images_to_tensor
 from pipeline.metrics import image_ious
-from pipeline.params import INT8_CALIBRATIONS
+from pipeline.params import INT8_CALIBRATIONS, INT8_WEIGHT_BITS, validate
 from pipeline.thresholds import logit_threshold
+
+
+@dataclasses.dataclass(frozen=True)
+class Int8Settings:
+    """The int8 export settings: the ``deploy`` params named ``int8_*``, under the same names from params.yaml
+    down to :func:`quantize_onnx_int8`.  No defaults and no bounds here: both are the schema's
+    (:class:`pipeline.params.DeployParams`), which every instance is checked against.
+
+    Raises
+    ------
+    InputError
+        A value the schema refuses, naming ``params: deploy.<key>``.
+    """
+
+    int8_calibration_images: int
+    int8_calibration: Literal[INT8_CALIBRATIONS]
+    int8_percentile: float
+    int8_weight_bits: Literal[INT8_WEIGHT_BITS]
+    int8_min_mask_iou: float
+
+    def __post_init__(self):
+        validate({"deploy": dataclasses.asdict(self)})  # the schema's rules, the only ones
+
+    @classmethod
+    def from_params(cls, cfg: Mapping) -> Int8Settings:
+        """The settings of a validated ``deploy`` section."""
+        return cls(**{f.name: cfg[f.name] for f in dataclasses.fields(cls)})
 
 
 def calibration_rows(splits: Sequence[str], n: int) -> np.ndarray:
@@ -164,10 +192,10 @@ CALIBRATION_CHUNK = 4  # images per pass: ORT holds every activation of a pass (
 
 
 def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_images: np.ndarray,
-                       calibration: str = "percentile", percentile: float = 99.999, weight_bits: int = 7) -> Path:
+                       int8_settings: Int8Settings) -> Path:
     """Static QDQ int8 model of an ONNX mask path: the input pinned to scale 1/255, u8 activation ranges from
-    ``calibration_images`` (``percentile`` or ``minmax``), s8 per-channel weights in ``weight_bits`` bits, the
-    head fp32."""
+    ``calibration_images`` (``int8_settings.int8_calibration``: ``percentile`` or ``minmax``), s8 per-channel
+    weights in ``int8_settings.int8_weight_bits`` bits, the head fp32."""
     from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
                                           quantize_static)
     from onnxruntime.quantization.calibrate import create_calibrator
@@ -177,12 +205,6 @@ def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_
     images = np.asarray(calibration_images)
     if images.ndim != 4 or len(images) == 0:
         raise InputError("int8 calibration needs at least one image (uint8 [N,H,W,3])")
-    if calibration not in INT8_CALIBRATIONS:
-        raise InputError(f"deploy.int8_calibration={calibration!r}: one of {', '.join(INT8_CALIBRATIONS)}")
-    if not 50.0 < float(percentile) <= 100.0:
-        raise InputError(f"deploy.int8_percentile={percentile!r}: must lie in (50, 100]")
-    if int(weight_bits) not in (7, 8):
-        raise InputError(f"deploy.int8_weight_bits={weight_bits!r}: 7 or 8")
 
     class _Reader(CalibrationDataReader):
         def __init__(self, batch: np.ndarray):
@@ -203,8 +225,8 @@ def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_
             pre = Path(td) / "pre.onnx"
             quant_pre_process(str(onnx_path), str(pre))
             method, options = CalibrationMethod.MinMax, {}
-            if calibration == "percentile":
-                method, options = CalibrationMethod.Percentile, {"percentile": float(percentile)}
+            if int8_settings.int8_calibration == "percentile":
+                method, options = CalibrationMethod.Percentile, {"percentile": float(int8_settings.int8_percentile)}
             calibrator = create_calibrator(pre, op_types, augmented_model_path=Path(td) / "augmented.onnx",
                                            calibrate_method=method, extra_options=options)
             for s in range(0, len(images), CALIBRATION_CHUNK):  # ranges merge over the passes
@@ -218,7 +240,7 @@ def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_
             quantize_static(str(pre), str(out_path), _Reader(images[:1]), quant_format=QuantFormat.QDQ,
                             nodes_to_exclude=output_convolutions(pre),
                             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
-                            reduce_range=int(weight_bits) == 7,
+                            reduce_range=int8_settings.int8_weight_bits == 7,
                             calibrate_method=CalibrationMethod.MinMax, op_types_to_quantize=op_types,
                             extra_options={"TensorQuantOverrides": overrides})
     finally:
@@ -253,15 +275,11 @@ def shapes_from_quantized(graph) -> int:
     return moved
 
 
-def int8_params(cfg: dict) -> dict:
-    """The int8 settings of the ``deploy`` params."""
-    return {"calibration": cfg["int8_calibration"], "percentile": float(cfg["int8_percentile"]),
-            "weight_bits": int(cfg["int8_weight_bits"])}
-
-
-def int8_description(calibration: str, percentile: float, weight_bits: int = 7) -> str:
-    how = f"{percentile:g}th-percentile" if calibration == "percentile" else "MinMax"
+def int8_description(int8_settings: Int8Settings) -> str:
+    """How :func:`quantize_onnx_int8` quantises with ``int8_settings``, in words (deploy.json, contract.json)."""
+    how = f"{int8_settings.int8_percentile:g}th-percentile" if int8_settings.int8_calibration == "percentile" \
+        else "MinMax"
     weights = ("7-bit symmetric per-channel weights in [-64, 64] (no int16 saturation on CPUs without VNNI)"
-               if int(weight_bits) == 7 else "8-bit symmetric per-channel weights (exact on VNNI/AMX CPUs only)")
+               if int8_settings.int8_weight_bits == 7 else "8-bit symmetric per-channel weights (exact on VNNI/AMX CPUs only)")
     return ("ONNX Runtime static QDQ: input pinned to scale 1/255 (exact for 8-bit images), uint8 asymmetric "
             f"activations ({how} ranges on training images), {weights}")

@@ -392,7 +392,7 @@ def read_images(job: LabelJob) -> None:
     limit = job.data_cfg["max_pixels"]
     for i, f in enumerate(progress(job.files, desc="label: reading", unit="img")):
         try:
-            loaded = load_rgb(f, job.size, job.cache, max_pixels=limit, bit_depth=job.data_cfg.get("bit_depth", "auto"))
+            loaded = load_rgb(f, job.size, job.cache, max_pixels=limit, bit_depth=job.data_cfg["bit_depth"])
             if job.ref_files is not None:
                 ref = load_mask(job.ref_files[i], job.size, job.cache, max_pixels=limit)
                 if ref.native_hw != loaded.native_hw:
@@ -429,7 +429,7 @@ class FolderInputs:
         # absolute paths: Ray workers need not share this process's working directory
         self.files, self.ref_files = absolute(job.files), absolute(job.ref_files)
         self.ids, self.shas, self.size = job.ids, job.shas, job.size
-        self.max_pixels, self.bit_depth = job.data_cfg["max_pixels"], job.data_cfg.get("bit_depth", "auto")
+        self.max_pixels, self.bit_depth = job.data_cfg["max_pixels"], job.data_cfg["bit_depth"]
         self.cache = job.cache
 
     def __call__(self, row: int, view: str) -> TeacherInput:

@@ -136,7 +136,7 @@ def write_votes(job: LabelJob, fmts: tuple[str, ...], votes: Iterable, copy_imag
             _save(yolo_dir / "labels" / f"{job.ids[row]}.txt", "".join(line + "\n" for line in yolo_lines(full)))
         if row in sheet_rows:
             v.sheet[row] = (load_rgb(job.files[row], job.size, job.cache, max_pixels=job.data_cfg["max_pixels"],
-                                     bit_depth=job.data_cfg.get("bit_depth", "auto")).array, voted)
+                                     bit_depth=job.data_cfg["bit_depth"]).array, voted)
     if "yolo" in fmts:
         train, val = yolo_split(job.ids, seed)
         copies = copy_images or not (yolo_dir / "images" / rels[0]).is_symlink()

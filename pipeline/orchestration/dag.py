@@ -101,7 +101,7 @@ def train_stage_name(method_name: str, seeds: list[int] | None = None, all_seeds
 def seed_groups(params: dict | None) -> dict[str, list[list[int]]] | None:
     """{method: its seeds in groups of ``protocol.seeds_per_stage``} from params.yaml as read; None when
     the key is 1 or absent (one templated stage per run)."""
-    protocol = (params or {}).get("protocol") or {}
+    protocol = (params or {}).get("protocol") or {}  # unvalidated: params.yaml as read
     per_stage = protocol.get(SEEDS_PER_STAGE_KEY.split(".")[-1]) or 1
     if per_stage <= 1:
         return None

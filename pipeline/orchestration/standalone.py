@@ -364,7 +364,7 @@ def time_budget_params(params: dict, time_budget: str | None, out: str | Path, d
     if input_dir is not None:  # the folders are checked here first, naming the option, as write_project does
         masks = check_folder(val_masks, VAL_MASKS) if val_masks is not None else None
         n_train = training_images(check_folder(input_dir, INPUT), masks,
-                                  float(params["train"].get("holdout_fraction") or 0.0))
+                                  params["train"]["holdout_fraction"])
     return with_time_budget(params, time_budget, previous, resolve_device(device).type, n_train)
 
 

@@ -650,9 +650,9 @@ def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu",
     plots: dict[str, pd.DataFrame] = {}
     with T.human_trained(inp.run_review):
         sections = [glossary_section(), data_section(inp), results_section(inp),
-                    qualitative_section(inp, int(cfg.get("qualitative_images", 4)), device),
+                    qualitative_section(inp, cfg["qualitative_images"], device),
                     threshold_section(inp, plots), diagnostics_section(inp, plots), teacher_section(inp),
-                    pseudo_target_section(inp, int(cfg.get("pseudo_target_images", 3))), ablation_section(inp),
+                    pseudo_target_section(inp, cfg["pseudo_target_images"]), ablation_section(inp),
                     efficiency_section(inp), training_section(inp, plots), environment_section(environment, inp.runs),
                     provenance_section(inp)]
     title = "GeoDistill-Refine report" + (f" ({profile} profile)" if profile else "")

@@ -34,6 +34,7 @@ def opened_runs(checkpoints: str | Path) -> list:
 def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
     """One record per active run: method, seed, ``recipe`` (train.recipe), ``precision`` (the autocast it used),
     ``runtime`` (``extra.runtime``, None before it was recorded) and ``torch``."""
+    # unvalidated: the params each run recorded (a run before train.recipe has none)
     return [{"method": method, "seed": int(seed), "recipe": (c.meta.params.get("params") or {}).get("train.recipe"),
              "precision": (c.meta.extra or {}).get("autocast"), "runtime": (c.meta.extra or {}).get("runtime"),
              "torch": (c.meta.library_versions or {}).get("torch")} for method, seed, c in opened_runs(checkpoints)]

@@ -13,6 +13,8 @@ import torch
 from click.testing import CliRunner
 
 from pipeline.deploy.mask_path import onnx_unavailable_reason
+from pipeline.deploy.quantize import Int8Settings
+from pipeline.params import PAPER
 from pipeline.artifacts.lineage import make_meta
 from pipeline.artifacts.store import write_parquet, write_zarr
 from pipeline.evaluation.inference import save_checkpoint
@@ -22,6 +24,11 @@ REPO = Path(__file__).resolve().parents[2]
 PARAMS = str(REPO / "params.yaml")
 RES = 32
 HAS_ONNX = onnx_unavailable_reason() is None
+
+
+def int8_settings(**override) -> Int8Settings:
+    """The schema's int8 settings (its defaults, :data:`pipeline.params.PAPER`), ``override`` replacing some."""
+    return Int8Settings.from_params({**PAPER.deploy.model_dump(), **override})
 
 
 def tiny_model(seed: int = 0, geometry: bool = False) -> TinyUNet:

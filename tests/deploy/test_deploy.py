@@ -24,8 +24,8 @@ from pipeline.deploy import quantize
 from pipeline.runtime.errors import InputError
 from pipeline.artifacts.store import open_artifact
 from pipeline.evaluation.inference import load_student
-from tests.builders.deploy import (HAS_ONNX, PARAMS, RES, make_artifacts, make_checkpoint, make_thresholds, run_export,
-                                tiny_model)
+from tests.builders.deploy import (HAS_ONNX, PARAMS, RES, int8_settings, make_artifacts, make_checkpoint, make_thresholds,
+                                run_export, tiny_model)
 
 
 @pytest.fixture(autouse=True)
@@ -211,9 +211,9 @@ def test_export_ships_fp32_when_the_int8_masks_stray(tmp_path, monkeypatch):
     art = make_artifacts(tmp_path / "art")
     real = quantize_onnx_int8
 
-    def quantise_the_wrong_model(onnx_path, out_path, calibration_images, *how):
+    def quantise_the_wrong_model(onnx_path, out_path, calibration_images, settings):
         wrong = export_onnx(tiny_model(seed=11), Path(out_path).with_suffix(".wrong.onnx"), RES, 17)
-        real(wrong, out_path, calibration_images, *how)
+        real(wrong, out_path, calibration_images, settings)
         Path(wrong).unlink()
         return Path(out_path)
 
@@ -245,7 +245,7 @@ def test_int8_quantisation_keeps_masks_close(tmp_path):
     model = tiny_model(2)
     onnx_path = export_onnx(model, tmp_path / "m.onnx", RES, 17)
     calib = (parity_inputs(RES, n=4, seed=5).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
-    q = quantize_onnx_int8(onnx_path, tmp_path / "q.onnx", calib)
+    q = quantize_onnx_int8(onnx_path, tmp_path / "q.onnx", calib, int8_settings())
     import onnx
 
     ops = {n.op_type for n in onnx.load(str(q)).graph.node}
@@ -269,14 +269,34 @@ def test_int8_quantisation_keeps_masks_close(tmp_path):
     shape_inputs = [producer.get(n.input[0]) for n in graph.node if n.op_type == "Shape"]
     assert "QuantizeLinear" in shape_inputs and "DequantizeLinear" not in shape_inputs
     # calibration is deterministic: the same images give the same file, for both range rules
-    again = quantize_onnx_int8(onnx_path, tmp_path / "q2.onnx", calib)
+    again = quantize_onnx_int8(onnx_path, tmp_path / "q2.onnx", calib, int8_settings())
     assert file_sha256(again) == file_sha256(q)
-    minmax = quantize_onnx_int8(onnx_path, tmp_path / "q3.onnx", calib, "minmax")
+    minmax = quantize_onnx_int8(onnx_path, tmp_path / "q3.onnx", calib, int8_settings(int8_calibration="minmax"))
     assert file_sha256(minmax) != file_sha256(q)
-    assert file_sha256(quantize_onnx_int8(onnx_path, tmp_path / "q4.onnx", calib, "minmax")) == \
-        file_sha256(minmax)
-    with pytest.raises(InputError, match="int8_calibration"):
-        quantize_onnx_int8(onnx_path, tmp_path / "q5.onnx", calib, "entropy")
+    assert file_sha256(quantize_onnx_int8(onnx_path, tmp_path / "q4.onnx", calib,
+                                          int8_settings(int8_calibration="minmax"))) == file_sha256(minmax)
+
+
+def test_int8_settings_are_the_schemas(tmp_path):
+    """Int8Settings holds the deploy params named int8_*, under their names and types, and refuses what the
+    schema refuses, with the schema's line: a value validation lets through is one export can use (the
+    percentile's median, once accepted by the schema and refused at export, is refused by both now)."""
+    import dataclasses
+    import typing
+
+    from pipeline.params import DeployParams
+
+    names = [f.name for f in dataclasses.fields(quantize.Int8Settings)]
+    assert names == [k for k in DeployParams.model_fields if k.startswith("int8_")]
+    hints = typing.get_type_hints(quantize.Int8Settings)
+    assert all(hints[k] == DeployParams.model_fields[k].annotation for k in names)
+    assert int8_settings(int8_percentile=50.001).int8_percentile == 50.001
+    for key, bad in (("int8_calibration", "entropy"), ("int8_percentile", 50.0), ("int8_percentile", 100.5),
+                     ("int8_weight_bits", 6), ("int8_min_mask_iou", 1.5), ("int8_calibration_images", 0)):
+        with pytest.raises(InputError, match=f"params: deploy.{key}="):
+            int8_settings(**{key: bad})
+    r = run_export(tmp_path / "no-checkpoint", tmp_path / "deploy", "--set", "deploy.int8_percentile=50")
+    assert r.exit_code == 2 and "deploy.int8_percentile=50" in r.output and not (tmp_path / "deploy").exists()
 
 
 @pytest.mark.skipif(not HAS_ONNX, reason="onnx/onnxruntime not installed (optional extra)")
@@ -288,7 +308,7 @@ def test_int8_calibration_runs_in_bounded_passes(tmp_path, monkeypatch):
     model = tiny_model(2)
     onnx_path = export_onnx(model, tmp_path / "m.onnx", RES, 17)
     calib = (parity_inputs(RES, n=5, seed=5).permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
-    whole = quantize_onnx_int8(onnx_path, tmp_path / "whole.onnx", calib, "minmax")
+    whole = quantize_onnx_int8(onnx_path, tmp_path / "whole.onnx", calib, int8_settings(int8_calibration="minmax"))
     passes = []
     real = calibrate.create_calibrator
 
@@ -311,7 +331,7 @@ def test_int8_calibration_runs_in_bounded_passes(tmp_path, monkeypatch):
         return cal
     monkeypatch.setattr(calibrate, "create_calibrator", counting_calibrator)
     monkeypatch.setattr(quantize, "CALIBRATION_CHUNK", 2)
-    split = quantize_onnx_int8(onnx_path, tmp_path / "split.onnx", calib, "minmax")
+    split = quantize_onnx_int8(onnx_path, tmp_path / "split.onnx", calib, int8_settings(int8_calibration="minmax"))
     assert passes == [2, 2, 1]
     assert file_sha256(split) == file_sha256(whole)
 

@@ -17,7 +17,7 @@ from pipeline.deploy.engines import ENGINES, Source
 from pipeline.deploy.segmenter import load_segmenter, resolve_engine
 from pipeline.runtime.errors import InputError
 from pipeline.evaluation.inference import images_to_tensor
-from tests.builders.deploy import HAS_ONNX, RES, make_checkpoint, tiny_model
+from tests.builders.deploy import HAS_ONNX, RES, int8_settings, make_checkpoint, tiny_model
 
 HAS_OPENVINO = __import__("pipeline.deploy.openvino_engine", fromlist=["x"]).openvino_unavailable_reason() is None
 
@@ -92,7 +92,7 @@ def test_openvino_runs_the_onnx_files_like_onnxruntime(tmp_path):
     ov = OpenVinoRunner(fp32)
     np.testing.assert_allclose(ov(x), ort_session(fp32).run(None, {"image": x})[0], atol=1e-4)
     assert ov(x[:1]).shape == (1, 1, RES, RES)                     # another shape: compiled again
-    int8 = q8.quantize_onnx_int8(fp32, tmp_path / "m8.onnx", _images(8, seed=1), "percentile", 99.999)
+    int8 = q8.quantize_onnx_int8(fp32, tmp_path / "m8.onnx", _images(8, seed=1), int8_settings())
     z_ort = ort_session(int8).run(None, {"image": x})[0]
     z_ov = OpenVinoRunner(int8)(x)
     assert mask_agreement(z_ov, z_ort, 0.0) > 0.95                 # same int8 model, other kernels

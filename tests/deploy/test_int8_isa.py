@@ -20,7 +20,7 @@ from pipeline.deploy.bundle import golden_frame
 from pipeline.deploy.openvino_engine import OpenVinoRunner, openvino_unavailable_reason
 from pipeline.runtime.errors import InputError
 from pipeline.model import TinyUNet
-from tests.builders.deploy import HAS_ONNX, make_artifacts, make_checkpoint, run_export
+from tests.builders.deploy import HAS_ONNX, int8_settings, make_artifacts, make_checkpoint, run_export
 
 pytestmark = pytest.mark.skipif(not HAS_ONNX, reason="needs onnx + onnxruntime (the onnx extra)")
 HAS_OPENVINO = openvino_unavailable_reason() is None
@@ -58,8 +58,8 @@ def models(tmp_path_factory):
     rng = np.random.default_rng(1)
     calib = np.stack([golden_frame(RES)] + [np.clip(rng.normal(120, 80, (RES, RES, 3)), 0, 255).astype(np.uint8)
                                             for _ in range(5)])
-    q7 = quantize_onnx_int8(fp32, root / "q7.onnx", calib)
-    q8 = quantize_onnx_int8(fp32, root / "q8.onnx", calib, weight_bits=8)
+    q7 = quantize_onnx_int8(fp32, root / "q7.onnx", calib, int8_settings())
+    q8 = quantize_onnx_int8(fp32, root / "q8.onnx", calib, int8_settings(int8_weight_bits=8))
     x = calib.transpose(0, 3, 1, 2).astype(np.float32) / np.float32(255)
     return {"q7": q7, "q8": q8, "x": x}
 
@@ -79,9 +79,8 @@ def test_default_weights_cannot_saturate_an_int16_pair_sum(models):
     assert all(2 * 255 * int(np.abs(w.astype(int)).max()) <= np.iinfo(np.int16).max for w in w7)
     # the 8-bit setting uses the full range, which the check above would catch
     assert max(int(np.abs(w.astype(int)).max()) for w in conv_weights(models["q8"])) > 64
-    with pytest.raises(InputError, match="int8_weight_bits"):
-        quantize_onnx_int8(models["q7"], models["q7"].with_suffix(".x"), np.zeros((1, 8, 8, 3), np.uint8),
-                                  weight_bits=6)
+    with pytest.raises(InputError, match="deploy.int8_weight_bits=6"):  # the schema's rule, before any file
+        int8_settings(int8_weight_bits=6)
 
 
 def test_host_isa_reads_the_widest_dot_product_set():
