@@ -36,7 +36,7 @@ def step_seconds(cfg: Mapping[str, Any], resolution: int, device: str = "cpu", s
     from pipeline.losses import raw_terms
     from pipeline.training.loop import build_model
 
-    if int(cfg.get("num_threads") or 0) > 0:
+    if int(cfg["num_threads"]) > 0:
         torch.set_num_threads(int(cfg["num_threads"]))
     model = build_model(get_method(STAGE_ONE), cfg, 0).to(device).train()
     opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
@@ -125,7 +125,7 @@ def with_time_budget(params: dict, text: str | None, previous: Mapping | None = 
     train, res = params["train"], int(params["data"]["resolution"])
     if old.get("time_budget") == text and int(old.get("step_budget") or 0) > 0:
         steps = int(old["step_budget"])
-    elif float(train.get("low_res_fraction") or 0.0) > 0 and n_train:
+    elif float(train["low_res_fraction"]) > 0 and n_train:
         from pipeline.training.schedule import LOW_RES_FACTOR, steps_per_epoch
 
         full, half = step_seconds(train, res, device), step_seconds(train, max(1, res // LOW_RES_FACTOR), device)

@@ -163,6 +163,7 @@ def geometry_constants(geometry) -> GeometryConstants:
     nested = params.get("geometry") if isinstance(params.get("geometry"), Mapping) else {}
     keys = {"quantile": "sdf_quantile", "min_scale": "sdf_min_scale", "min_distance": "skeleton_min_distance"}
     d = GeometryConstants()
+    # unvalidated: the params geometry.zarr recorded (an older artifact records fewer keys)
     return GeometryConstants(**{f: float(params.get(f"geometry.{k}", nested.get(k, getattr(d, f))))
                                 for f, k in keys.items()})
 
