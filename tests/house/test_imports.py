@@ -63,7 +63,7 @@ LAYERS = (
     ("stage logic", "each stage's and tool's work, callable and tested without the CLI",
      ("pipeline/datasets/", "pipeline/datasets/prepare.py", "pipeline/teachers/", "pipeline/pseudo_labels.py",
       "pipeline/training/inputs.py", "pipeline/training/schedule.py", "pipeline/training/averaging.py",
-      "pipeline/training/settings.py", "pipeline/training/loop.py", "pipeline/training/budget.py",
+      "pipeline/training/settings.py", "pipeline/training/self_training.py", "pipeline/training/loop.py", "pipeline/training/budget.py",
       "pipeline/evaluation/inference.py",
       "pipeline/evaluation/evaluate.py", "pipeline/deploy/export.py", "pipeline/deploy/segmenting.py", "pipeline/deploy/",
       "pipeline/report/", "pipeline/cluster/", "pipeline/labeling/", "pipeline/review/")),

@@ -1,0 +1,226 @@
+"""Past the labels (issue 57): screen Stage-I levers that may learn past the voted masks, beside Plain and the
+supervised ceiling, on the synthetic benchmark (its teacher is a SIMULATOR).
+
+Each variant is Plain (Stage I) under the base recipe with one lever (:data:`VARIANTS`); ``self_training`` is a
+round of Noisy Student from the ``plain`` run of the same seed (:mod:`pipeline.training.self_training`).  The
+reference masks pick tau (on the validation images) and score the test images, once; they never enter an
+annotation-free variant's loss.  ``ceiling`` trains on them: NOT annotation-free, a reference point only.
+
+Cost is counted in training images seen (optimizer steps x batch) plus relabelling forward passes at
+:data:`RELABEL_WEIGHT` of a training image each (a forward pass is about a third of a forward and backward).
+
+    python -m benchmarks.past_labels --profile reduced --resolution 64 --set train.recipe=progressive \
+        --seeds 42 --variants plain self_training bootstrap ignore_band region_gate --out past_labels.json
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from benchmarks.common import parser, resumed_runs, run_jobs
+from benchmarks.study_recipe import DATA_SIZES, build_artifacts, load_study_data
+from pipeline import catalog
+from pipeline.artifacts.store import open_artifact
+from pipeline.evaluation.inference import predict_probs
+from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
+from pipeline.metrics import image_ious
+from pipeline.profiles import load_profile
+from pipeline.runtime.device import resolve_device
+from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
+from pipeline.training.inputs import _rows
+from pipeline.training.self_training import flip_tta_probs, fused_targets
+
+#: a relabelling forward pass, in training images (forward + backward ~ 3 forward passes)
+RELABEL_WEIGHT = 1.0 / 3.0
+#: flip test-time augmentation: two forward passes per image
+TTA_PASSES = 2
+
+#: variant -> (``train.*`` changes of the base recipe, which training data, what it is).  One lever each.
+VARIANTS: dict[str, tuple[dict, str, str]] = {
+    "plain": ({}, "voted", "Plain Student: the base recipe on the voted masks"),
+    "ceiling": ({}, "reference", "supervised ceiling: the reference masks, NOT annotation-free"),
+    "self_training": ({}, "self_training", "Plain + self-training: one Noisy Student round from plain, targets "
+                      "0.5 P_tta + 0.5 M (fusion mix) -- a departure from the two stages"),
+    "bootstrap": ({"bootstrap_beta": 0.8}, "voted", "Plain + bootstrapped targets, beta 0.8 -- departs from "
+                  "eq:raw-loss"),
+    "ignore_band": ({"ignore_band": 0.2}, "agreement", "Plain + ignore band: pixels where 2-4 of 6 prompts agree "
+                    "leave the loss -- departs from eq:raw-loss"),
+    "region_gate": ({"region_gate": True}, "voted", "Plain + gate-weighted region loss -- departs from "
+                    "eq:raw-loss"),
+    "soft": ({"soft_targets": True}, "agreement", "Plain + the agreement map as the target -- departs from "
+                                                  "eq:raw-loss"),
+}
+#: self-training's fusion (pipeline.training.self_training.fused_targets)
+FUSION, FUSION_WEIGHT = "mix", 0.5
+
+
+def load_data(artifacts: Path, cfg: Mapping[str, Any]) -> dict:
+    """The study data of :func:`benchmarks.study_recipe.load_study_data`, the agreement-map training data, and
+    the test images' voted masks (the vote's own test IoU)."""
+    out = load_study_data(artifacts, cfg, methods=(STAGE_ONE, SUPERVISED_CEILING))
+    out["agreement"] = load_study_data(artifacts, {**cfg, "soft_targets": True}, methods=(STAGE_ONE,))[STAGE_ONE]
+    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
+    reference = open_artifact(catalog.path("reference", artifacts), "reference")
+    consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
+    test = np.flatnonzero((manifest.df["split"] == "test").to_numpy())
+    test = test[_rows(reference, "has_mask", test).astype(bool)]
+    out["test_voted"] = _rows(consensus, "voted", test).astype(bool)
+    return out
+
+
+def scores(model, data: Mapping[str, Any], device) -> dict:
+    """Test Image IoU at the tau calibrated on the validation images, pooled and per group, and the vote's."""
+    vp = predict_probs(model, data["val"].images, device=device, precision="fp32")
+    tau, _ = calibrate_threshold(vp, data["val"].masks, EPOCH_TAU_GRID)
+    tp = predict_probs(model, data["test_images"], device=device, precision="fp32")
+    ious = image_ious(mask_from_probs(tp, tau), data["test_masks"])
+    vote = image_ious(data["test_voted"], data["test_masks"])
+    groups = data["test_groups"]
+    return {"tau_cal": float(tau), "iou_cal": float(ious.mean()), "image_ious": [float(v) for v in ious],
+            "groups": {g: float(ious[groups == g].mean()) for g in dict.fromkeys(groups)},
+            "vote_groups": {g: float(vote[groups == g].mean()) for g in dict.fromkeys(groups)}}
+
+
+_DATA: dict = {}
+
+
+def _init_worker(artifacts: str, cfg: dict, threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+    _DATA.update(load_data(Path(artifacts), cfg))
+    _DATA["workdir"] = Path(artifacts).parent
+
+
+def _train_data(job: Mapping[str, Any]):
+    """The variant's training data; ``self_training`` relabels with the ``plain`` run's saved model."""
+    import torch
+
+    from pipeline.training.loop import build_model
+
+    kind = VARIANTS[job["variant"]][1]
+    if kind == "reference":
+        return _DATA[SUPERVISED_CEILING], 0
+    if kind == "agreement":
+        return _DATA["agreement"], 0
+    data = _DATA[STAGE_ONE]
+    if kind == "voted":
+        return data, 0
+    saved = _DATA["workdir"] / f"plain-s{job['seed']}.pt"
+    if not saved.exists():
+        raise RuntimeError(f"{saved}: run variant plain at seed {job['seed']} first")
+    model = build_model(get_method(STAGE_ONE), job["cfg"], job["seed"])
+    model.load_state_dict(torch.load(saved, weights_only=True))
+    probs = flip_tta_probs(model, data.images, device=job["device"])
+    return data.subset(np.arange(len(data)), mask=fused_targets(probs, np.asarray(data.mask), FUSION,
+                                                                FUSION_WEIGHT)), len(data) * TTA_PASSES
+
+
+def run_one(job: dict) -> dict:
+    """Train one (variant, seed) and score it."""
+    import torch
+
+    from pipeline.training import loop as training
+
+    t0 = time.perf_counter()
+    data, relabel = _train_data(job)
+    method = SUPERVISED_CEILING if job["variant"] == "ceiling" else STAGE_ONE
+    res = training.train(get_method(method), job["cfg"], data, _DATA["val"], job["seed"],
+                         checkpointer=training.NoCheckpointer(), device=job["device"], show_progress=False)
+    if job["variant"] == "plain":  # self-training's starting point
+        torch.save(res.model.state_dict(), _DATA["workdir"] / f"plain-s{job['seed']}.pt")
+    images_seen = int(res.info["steps_run"]) * int(job["cfg"]["batch_size"])
+    out = {"variant": job["variant"], "method": job["method"], "trained": method, "seed": job["seed"], "steps_run": res.info["steps_run"],
+           "stopped": res.info.get("stopped"), "images_seen": images_seen, "relabel_passes": relabel,
+           "n_train": len(data),
+           "val_iou_cal_curve": [float(v) for v in res.log["val_iou_cal"]]}
+    out.update(scores(res.model, _DATA, job["device"]))
+    out["seconds"] = time.perf_counter() - t0
+    print(f"  done {job['variant']:14s} s{job['seed']}: test IoU {out['iou_cal']:.3f} {out['groups']} "
+          f"({out['steps_run']} steps, {out['seconds']:.0f} s)", flush=True)
+    return out
+
+
+def cost(run: Mapping[str, Any], runs: Mapping[tuple, Mapping[str, Any]]) -> float:
+    """Training images seen plus weighted relabelling passes, self-training's ``plain`` round included."""
+    own = run["images_seen"] + RELABEL_WEIGHT * run["relabel_passes"]
+    if run["variant"] == "self_training":
+        own += runs[("plain", run["seed"])]["images_seen"]
+    return float(own)
+
+
+def summarize(results: list[dict]) -> list[dict]:
+    """Per variant: mean test IoU per group over seeds, the ratio to the ceiling and to the vote, the cost."""
+    by = {(r["variant"], r["seed"]): r for r in results}
+    rows = []
+    for v in dict.fromkeys(r["variant"] for r in results):
+        rs = [r for r in results if r["variant"] == v]
+        groups = list(rs[0]["groups"])
+        row = {"variant": v, "n_seeds": len(rs), "iou_cal": float(np.mean([r["iou_cal"] for r in rs])),
+               "groups": {g: float(np.mean([r["groups"][g] for r in rs])) for g in groups},
+               "vote_groups": rs[0]["vote_groups"],
+               "cost": float(np.mean([cost(r, by) for r in rs if v != "self_training" or ("plain", r["seed"]) in by]
+                                     or [float("nan")]))}
+        rows.append(row)
+    ceiling = next((r for r in rows if r["variant"] == "ceiling"), None)
+    for r in rows:
+        r["of_vote"] = {g: r["groups"][g] / r["vote_groups"][g] for g in r["groups"]}
+        if ceiling is not None:
+            r["of_ceiling"] = {g: r["groups"][g] / ceiling["groups"][g] for g in r["groups"]}
+    return rows
+
+
+def main(argv=None) -> dict:
+    ap = parser(__doc__, artifacts=None, workdir="past_labels", profile="reduced", resolution=64, epochs=None,
+                seeds=[42], device="cpu", jobs=1, threads=2, out="past_labels.json", set=[])
+    for key in DATA_SIZES:
+        ap.add_argument("--" + key.replace("_", "-"), type=int, default=None, help=f"data.synthetic.{key}")
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    args = ap.parse_args(argv)
+    device = str(resolve_device(args.device))
+    sets = [f"data.resolution={args.resolution}", "protocol.supervised_ceiling=true"] + [
+        f"data.synthetic.{k}={getattr(args, k)}" for k in DATA_SIZES if getattr(args, k) is not None] + args.sets
+    params = load_profile(args.profile, sets)
+    artifacts = (Path(args.artifacts) if args.artifacts
+                 else build_artifacts(Path(args.workdir).resolve(), args.profile, sets, device))
+    base = {**params["train"], "num_threads": args.threads}
+    if args.epochs is not None:
+        base["epochs_stage1"] = args.epochs
+    info = {"artifacts": str(artifacts), "device": device, "resolution": args.resolution, "profile": args.profile,
+            "epochs": base["epochs_stage1"], "n_train": None, "recipe": base["recipe"], "seeds": args.seeds,
+            "threads": args.threads, "jobs": args.jobs, "simulator": "the teacher is the synthetic benchmark's SIMULATOR"}
+    # plain before self_training: a round starts from plain's saved model
+    order = sorted(args.variants, key=lambda v: VARIANTS[v][1] == "self_training")
+    jobs = [{"variant": v, "method": v, "seed": s, "device": device, "cfg": {**base, **VARIANTS[v][0]}}
+            for s in args.seeds for v in order]
+    t0 = time.perf_counter()
+
+    def run_all(todo):
+        first = [j for j in todo if VARIANTS[j["variant"]][1] != "self_training"]
+        yield from run_jobs(first, str(artifacts), base, args.jobs, args.threads, _init_worker, run_one)
+        yield from run_jobs([j for j in todo if j not in first], str(artifacts), base, 1, args.threads,
+                            _init_worker, run_one)
+
+    done = resumed_runs(args.out, info, jobs, run_all)
+    results = [done[(j["variant"], j["method"], j["seed"])] for j in jobs]
+    info["wall_seconds"] = time.perf_counter() - t0
+    rows = summarize(results)
+    for r in rows:
+        print(f"{r['variant']:14s} n={r['n_seeds']} IoU {r['iou_cal']:.3f} groups "
+              + " ".join(f"{g} {v:.3f}" for g, v in r["groups"].items())
+              + (" of ceiling " + " ".join(f"{v:.2f}" for v in r["of_ceiling"].values()) if "of_ceiling" in r else "")
+              + " of vote " + " ".join(f"{v:.2f}" for v in r["of_vote"].values()) + f" cost {r['cost']:.0f}")
+    out = {"info": info, "variants": {v: {"overrides": VARIANTS[v][0], "what": VARIANTS[v][2]} for v in args.variants},
+           "relabel_weight": RELABEL_WEIGHT, "summary": rows, "runs": results}
+    Path(args.out).write_text(json.dumps(out, indent=1))
+    print(f"wrote {args.out}")
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,32 @@
+"""Smoke test of the label-noise screening benchmark (benchmarks/past_labels.py) on the tiny artifacts."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from benchmarks import past_labels
+
+
+def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
+    out = tmp_path / "p.json"
+    argv = ["--artifacts", str(tiny), "--resolution", "32", "--epochs", "1", "--seeds", "1", "--threads", "1",
+            "--variants", *past_labels.VARIANTS, "--out", str(out)]
+    doc = past_labels.main(argv)
+    runs = {r["variant"]: r for r in doc["runs"]}
+    assert set(runs) == set(past_labels.VARIANTS)
+    assert all(0 <= r["iou_cal"] <= 1 and set(r["groups"]) == set(r["vote_groups"]) for r in runs.values())
+    assert runs["ceiling"]["trained"] == "supervised_ceiling" and runs["plain"]["trained"] == "plain"
+    # self-training relabels every training image twice (flip TTA) and counts plain's training in its cost
+    st = runs["self_training"]
+    assert st["relabel_passes"] == past_labels.TTA_PASSES * st["n_train"] and st["n_train"] == runs["plain"]["n_train"]
+    assert runs["plain"]["relabel_passes"] == 0
+    rows = {r["variant"]: r for r in doc["summary"]}
+    assert rows["self_training"]["cost"] == pytest.approx(
+        st["images_seen"] + runs["plain"]["images_seen"] + past_labels.RELABEL_WEIGHT * st["relabel_passes"])
+    assert rows["ceiling"]["of_ceiling"] == {g: 1.0 for g in rows["ceiling"]["groups"]}
+    assert json.loads(out.read_text())["summary"] == doc["summary"]
+    capsys.readouterr()
+    again = past_labels.main(argv)  # every run is in the runs file: nothing trains again
+    assert again["runs"] == doc["runs"] and "done" not in capsys.readouterr().out
