@@ -10,7 +10,7 @@ Cost is counted in training images seen (optimizer steps x batch) plus relabelli
 :data:`RELABEL_WEIGHT` of a training image each (a forward pass is about a third of a forward and backward).
 
     python -m benchmarks.past_labels --profile reduced --resolution 64 --set train.recipe=progressive \
-        --seeds 42 --variants plain self_training bootstrap ignore_band region_gate --out past_labels.json
+        --seeds 42 --variants plain ceiling self_training bootstrap ignore_band --out past_labels.json
 """
 
 from __future__ import annotations
@@ -50,8 +50,6 @@ VARIANTS: dict[str, tuple[dict, str, str]] = {
                   "eq:raw-loss"),
     "ignore_band": ({"ignore_band": 0.2}, "agreement", "Plain + ignore band: pixels where 2-4 of 6 prompts agree "
                     "leave the loss -- departs from eq:raw-loss"),
-    "region_gate": ({"region_gate": True}, "voted", "Plain + gate-weighted region loss -- departs from "
-                    "eq:raw-loss"),
     "soft": ({"soft_targets": True}, "agreement", "Plain + the agreement map as the target -- departs from "
                                                   "eq:raw-loss"),
 }

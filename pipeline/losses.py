@@ -448,8 +448,6 @@ class LossConstants:
         ``train.bootstrap_beta`` (:func:`region_terms`); 1 = off.
     ignore_band : float
         ``train.ignore_band`` (:func:`region_terms`); 0 = off.
-    region_gate : bool
-        ``train.region_gate`` (:func:`region_terms`).
     soft_targets : bool
         ``train.soft_targets``: the region target is the agreement map itself.
     """
@@ -462,13 +460,12 @@ class LossConstants:
     eps: float = _PAPER.loss_eps
     bootstrap_beta: float = _PAPER.bootstrap_beta
     ignore_band: float = _PAPER.ignore_band
-    region_gate: bool = _PAPER.region_gate
     soft_targets: bool = _PAPER.soft_targets
 
     @property
     def robust_region(self) -> bool:
         """Whether Stage I's region term departs from eq:raw-loss (:func:`region_terms`)."""
-        return self.bootstrap_beta < 1.0 or self.ignore_band > 0 or self.region_gate
+        return self.bootstrap_beta < 1.0 or self.ignore_band > 0
 
 
 def region_terms(logits: torch.Tensor, targets: Mapping[str, torch.Tensor], gates: torch.Tensor,
@@ -480,8 +477,7 @@ def region_terms(logits: torch.Tensor, targets: Mapping[str, torch.Tensor], gate
 
     - ``ignore_band`` b > 0: w(x) = [|A(x) - 1/2| >= b], pixels where the prompts split leave the loss; the
       target is M = [A >= 1/2] (eq:majority-vote), or A itself under ``soft_targets``;
-    - ``bootstrap_beta`` beta < 1: the target is beta M + (1 - beta) P, P detached (Reed et al. 2015, soft);
-    - ``region_gate``: w_i(x) times the image's gate g_i (eq:reliability-gate).
+    - ``bootstrap_beta`` beta < 1: the target is beta M + (1 - beta) P, P detached (Reed et al. 2015, soft).
 
     L = L_BBCE(Z, T; w) + 0.2 L_Dice(P w, T w): the weighted BBCE of :func:`balanced_bce` (pi from the weighted
     counts, the mean over all pixels) and Dice over the kept pixels.
@@ -493,7 +489,7 @@ def region_terms(logits: torch.Tensor, targets: Mapping[str, torch.Tensor], gate
     targets : Mapping
         ``mask``: the voted mask or the agreement map [B, 1, H, W].
     gates : torch.Tensor
-        Gates g_i [B].
+        Gates g_i [B] (unused: eq:raw-loss is ungated; the signature of every term).
     c : LossConstants
         The constants and the levers.
     probs : torch.Tensor
@@ -514,8 +510,6 @@ def region_terms(logits: torch.Tensor, targets: Mapping[str, torch.Tensor], gate
             t = (t >= 0.5).float()
     if c.bootstrap_beta < 1.0:
         t = c.bootstrap_beta * t + (1.0 - c.bootstrap_beta) * probs.detach()
-    if c.region_gate:
-        w = w * gates.float().reshape(-1, *([1] * (t.dim() - 1)))
     bbce = balanced_bce(logits, t, w, c.max_weight)
     dice = dice_loss(probs * w, t * w)
     return {"raw": bbce + c.dice_weight * dice, "bbce": bbce, "dice": dice}

@@ -205,8 +205,7 @@ class AdaptiveParams(_Section):
 
 _PAPER_TRAIN = {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4, "epochs_stage1": 20,
                 "epochs_stage2": 10, "schedule": "cosine", "augment": False, "ema_decay": 0.0, "soft_targets": False,
-                "until": "epochs", "lr_scale": 1.0, "low_res_fraction": 0.0, "bootstrap_beta": 1.0, "ignore_band": 0.0,
-                "region_gate": False}
+                "until": "epochs", "lr_scale": 1.0, "low_res_fraction": 0.0, "bootstrap_beta": 1.0, "ignore_band": 0.0}
 _STRONG_TRAIN = {**_PAPER_TRAIN, "precision": "fp32", "warmup_epochs": 2, "average_last": 4, "batch_size": 8,
                  "epochs_stage1": 80, "epochs_stage2": 20, "schedule": "wsd", "augment": True}
 #: recipe -> section -> part -> value; a part left null takes ``train.recipe``'s value (docs/decisions.md)
@@ -319,10 +318,6 @@ class TrainParams(_Section):
         None, "recipe part, Stage I: pixels whose agreement A (eq:agreement-map) lies within this of 1/2, where "
               "the prompts split, leave eq:raw-loss (weight 0); 0 = none (the paper) -- a departure from "
               "eq:raw-loss, named in every table", ge=0, le=0.5)
-    region_gate: bool | None = _f(
-        None, "recipe part, Stage I: weight each image's eq:raw-loss by its reliability gate g_i "
-              "(eq:reliability-gate), as Stage II weights its geometry terms -- a departure from eq:raw-loss, "
-              "named in every table")
     low_res_fraction: float | None = _f(None, "recipe part, Stage I: the first round(this x epochs_stage1) epochs "
                                               "train at half the side, the last at full side (a resolution schedule; "
                                               "until: plateau scores the later ones; docs/decisions.md); 0 = none",

@@ -25,8 +25,8 @@ def loss_constants(cfg: Mapping[str, Any], stage_one: bool = False) -> losses.Lo
     cfg : Mapping
         A validated ``train`` section.
     stage_one : bool
-        Whether the run is Stage I, where the label-noise levers (``bootstrap_beta``, ``ignore_band``,
-        ``region_gate``) apply; elsewhere they are off.
+        Whether the run is Stage I, where the label-noise levers (``bootstrap_beta``, ``ignore_band``) apply;
+        elsewhere they are off.
 
     Returns
     -------
@@ -39,8 +39,7 @@ def loss_constants(cfg: Mapping[str, Any], stage_one: bool = False) -> losses.Lo
                                 area_eps=float(cfg["area_eps"]), eps=float(cfg["loss_eps"]),
                                 soft_targets=bool(cfg["soft_targets"]),
                                 bootstrap_beta=float(cfg["bootstrap_beta"]) if stage_one else 1.0,
-                                ignore_band=float(cfg["ignore_band"]) if stage_one else 0.0,
-                                region_gate=bool(cfg["region_gate"]) and stage_one)
+                                ignore_band=float(cfg["ignore_band"]) if stage_one else 0.0)
 
 
 @dataclasses.dataclass(frozen=True)

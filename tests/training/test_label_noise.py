@@ -55,18 +55,11 @@ def test_bootstrapped_targets_mix_in_the_detached_prediction():
     assert not torch.allclose(got["bbce"], losses.raw_terms(z, m)["bbce"])
 
 
-def test_the_region_gate_silences_an_image_with_gate_zero():
-    z, a = _batch()
-    c = dataclasses.replace(losses.LossConstants(), region_gate=True)
-    losses.region_terms(z, {"mask": (a >= 0.5).float()}, torch.tensor([0.0, 0.7]), c, torch.sigmoid(z))["raw"].backward()
-    assert torch.all(z.grad[0] == 0) and torch.any(z.grad[1] != 0)
-
-
 def test_the_levers_apply_to_stage_one_only():
     from pipeline.training.settings import loss_constants
     from tests.builders.training import tiny_cfg
 
-    cfg = tiny_cfg(bootstrap_beta=0.5, ignore_band=0.1, region_gate=True)
+    cfg = tiny_cfg(bootstrap_beta=0.5, ignore_band=0.1)
     assert loss_constants(cfg, stage_one=True).robust_region
     assert not loss_constants(cfg, stage_one=False).robust_region
 
