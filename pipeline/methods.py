@@ -263,7 +263,7 @@ COMMON_KEYS = ("channels", "norm", "bn_momentum", "precise_bn", "batch_size", "w
                "dice_weight", "pos_weight_max", "loss_eps", "recipe", "precision", "warmup_epochs", "average_last",
                "channels_last", "augment_hflip", "num_threads", "val_bf1_tolerance", "decay_fraction", "augment",
                "augmentation", "ema_decay", "soft_targets", "until", "step_budget", "time_budget", "plateau_gain",
-               "plateau_min_epochs", "holdout_fraction", "lr_scale", "low_res_fraction", "validate_low_res",
+               "plateau_min_epochs", "plateau_min_steps", "holdout_fraction", "lr_scale", "low_res_fraction", "validate_low_res",
                "bootstrap_beta", "ignore_band")
 #: extra train params per loss term; the last key of a term is its weight (:func:`resolve_plan`)
 TERM_KEYS = {"region": (), "sdf": ("sdf_band", "sdf_base_weight", "lambda_sdf"), "skel": ("lambda_skel",),

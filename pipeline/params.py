@@ -338,6 +338,10 @@ class TrainParams(_Section):
     plateau_gain: float = _f(0.005, "until: plateau: the stable phase stops when its second half gains less "
                                     "than this validation Image IoU over its first half", ge=0)
     plateau_min_epochs: int = _f(8, "until: plateau: stable epochs before the rule may stop", ge=2)
+    plateau_min_steps: int = _f(256, "until: plateau: optimizer steps of scored epochs before the rule may stop, "
+                                     "so that few training images (few steps an epoch) do not stop the run on a "
+                                     "window shorter than its noise (256: the 8 epochs of the benchmark's 270 "
+                                     "images at batch 8; docs/decisions.md); 0 = epochs only", ge=0)
     holdout_fraction: float = _f(0.1, "until: plateau without validation masks: share of the pseudo-labelled "
                                       "training images held out and scored against their vote", gt=0, lt=1)
     channels_last: bool = _f(True)

@@ -30,7 +30,8 @@ from pipeline.runtime.progress import progress
 from pipeline.training.averaging import average_update, ema_update, in_average
 from pipeline.training.inputs import TrainData, ValData
 from pipeline.training.schedule import (PLATEAU_Z, decay_epochs, decay_steps, holdout, low_resolution, lr_lambda,
-                                        over_budget, plateau_reached, stable_cap, steps_per_epoch, until_lambda)
+                                        over_budget, plateau_reached, plateau_window, stable_cap, steps_per_epoch,
+                                        until_lambda)
 from pipeline.training.settings import Settings
 from pipeline.training.streaming import LazyRows, RowSource, prefetch, spill_rows
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
@@ -259,7 +260,7 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
     # a state saved under other numerics (threads, the autocast dtype ``auto`` resolved to) is not resumed
     run_key = {"method": method.name, "seed": int(seed), "epochs": s.epochs, "n_train": len(data),
                **({"until": s.until, "step_budget": s.step_budget,  # a finished stop is kept only under its rule
-                   "plateau_rule": [s.plateau_gain, s.plateau_min_epochs, PLATEAU_Z]} if s.until != "epochs" else {}),
+                   "plateau_rule": [s.plateau_gain, s.plateau_min_epochs, s.plateau_min_steps, PLATEAU_Z]} if s.until != "epochs" else {}),
                "train_ids": list(data.image_ids), "num_threads": int(torch.get_num_threads()),
                "autocast": str(amp).replace("torch.", "") if amp is not None else "fp32"}
     run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,
@@ -288,7 +289,8 @@ def _stop_stable(run: _Run, epoch: int, row: Mapping) -> None:
         score = validation_scores(run.model, run.holdout, run.device, precision=s.precision,
                                   channels_last=s.channels_last, tolerance=s.bf1_tolerance)["val_iou_cal"]
     u["scores"] = [*u.get("scores", []), float(score)]
-    if plateau_reached(u["scores"], s.plateau_gain, s.plateau_min_epochs):
+    if plateau_reached(u["scores"], s.plateau_gain, plateau_window(s.plateau_min_epochs, s.plateau_min_steps,
+                                                                   run.steps_per_epoch)):
         u["reason"] = f"plateau: the last doubling gained less than {s.plateau_gain:g} validation IoU"
     elif epoch >= u["epochs"]:
         budget = over_budget(s, epoch + 1, run.steps_per_epoch)

@@ -173,6 +173,15 @@ def plateau_reached(scores: list[float], gain: float, min_epochs: int) -> bool:
     return float(b.mean() - a.mean()) + PLATEAU_Z * se < gain
 
 
+def plateau_window(min_epochs: int, min_steps: int, steps_per_epoch: int) -> int:
+    """The scored epochs the plateau rule waits for: max(``min_epochs``, ceil(``min_steps`` / ``steps_per_epoch``)).
+
+    ``train.plateau_min_steps`` makes the least window one of optimizer steps: with 16 training images (2 steps
+    an epoch) eight epochs are 16 steps, a window over which the validation curve is flat within its noise.
+    """
+    return max(int(min_epochs), math.ceil(int(min_steps) / max(1, int(steps_per_epoch))))
+
+
 def until_lambda(until: Mapping, steps_per_epoch: int, warmup_steps: int) -> Callable[[int], float]:
     """The learning-rate factor under ``train.until: plateau``: the warm-up, then 1 until the stable phase ends,
     then the ``wsd`` decay to 0 at its end (:func:`lr_lambda`).

@@ -76,6 +76,7 @@ class Settings:
     step_budget: int
     plateau_gain: float
     plateau_min_epochs: int
+    plateau_min_steps: int
     holdout_fraction: float
     low_res_epochs: int
     validate_low_res: bool
@@ -117,6 +118,7 @@ class Settings:
                    ema_decay=float(cfg["ema_decay"]), until=str(cfg["until"]) if stage_one else "epochs",
                    step_budget=int(cfg["step_budget"]), plateau_gain=float(cfg["plateau_gain"]),
                    plateau_min_epochs=int(cfg["plateau_min_epochs"]),
+                   plateau_min_steps=int(cfg["plateau_min_steps"]),
                    holdout_fraction=float(cfg["holdout_fraction"]),
                    low_res_epochs=low_res_epochs(epochs, float(cfg["low_res_fraction"])) if stage_one else 0,
                    validate_low_res=bool(cfg["validate_low_res"]))

@@ -9,7 +9,7 @@ import torch
 
 from pipeline.training import loop as training
 from pipeline.methods import get_method
-from tests.builders.training import assert_same_state, clone_state, load_arrays, tiny_cfg
+from tests.builders.training import REPO, assert_same_state, clone_state, load_arrays, tiny_cfg
 from pipeline.training import schedule
 from pipeline.training.settings import Settings
 
@@ -38,8 +38,9 @@ def test_stable_cap_fits_the_decay_into_the_budget():
 
 
 def _run(tiny, checkpointer=None, val=True, **over):
+    # plateau_min_steps 0: the tiny runs test the rule's epochs (the window in steps: test_with_few_images_the_least_window_is_in_steps)
     cfg = tiny_cfg(**{"until": "plateau", "epochs_stage1": 40, "warmup_epochs": 1, "average_last": 1,
-                      "schedule": "wsd", **over})
+                      "schedule": "wsd", "plateau_min_steps": 0, **over})
     data, v = load_arrays(tiny, "plain", cfg)
     return training.train(get_method("plain"), cfg, data, v if val else None, 5,
                           checkpointer=checkpointer or training.NoCheckpointer(), show_progress=False)
@@ -121,3 +122,41 @@ def test_until_is_checked(value):
 def test_the_epochs_cap_holds_without_room_for_a_decay(tiny):
     res = _run(tiny, epochs_stage1=1)
     assert res.info["epochs"] == 1 and res.info["steps_run"] == 2 and len(res.log) == 1
+
+
+def _replayed_stop(curve: list[float], low_res: int, window: int, gain: float) -> int | None:
+    """The full-side stable epoch at which the rule stops, replaying a recorded validation curve (None: never)."""
+    scores = []
+    for v in curve[low_res:]:
+        scores.append(v)
+        if schedule.plateau_reached(scores, gain, window):
+            return len(scores)
+    return None
+
+
+def test_with_few_images_the_least_window_is_in_steps():
+    """Replay the committed 16-image curves (2 steps an epoch): the epochs-only rule stopped after 8-17 full-side
+    epochs; the least window in optimizer steps (train.plateau_min_steps) holds it to at least 256 steps."""
+    import json
+
+    from pipeline.params import PAPER, RECIPES
+
+    doc = json.loads((REPO / "reports/scaling/progressive-64-n16-seeds42-3407-2026.json").read_text())
+    n_train, epochs = doc["info"]["n_train"]["plain"], doc["info"]["epochs"]
+    train = PAPER.train
+    spe = schedule.steps_per_epoch(n_train, RECIPES["progressive"]["train"]["batch_size"])
+    low_res = schedule.low_res_epochs(epochs, RECIPES["progressive"]["train"]["low_res_fraction"])
+    assert spe == 2
+    old = schedule.plateau_window(train.plateau_min_epochs, 0, spe)
+    new = schedule.plateau_window(train.plateau_min_epochs, train.plateau_min_steps, spe)
+    assert (old, new) == (8, 128)
+    early = [_replayed_stop(r["val_iou_cal_curve"], low_res, old, train.plateau_gain) for r in doc["runs"]]
+    late = [_replayed_stop(r["val_iou_cal_curve"], low_res, new, train.plateau_gain) for r in doc["runs"]]
+    # the recorded runs: three stopped 8-17 full-side epochs after the schedule, as the replay does
+    stopped = [r["stopped"].startswith("plateau") for r in doc["runs"]]
+    assert [e is not None and e <= 17 for e in early] == stopped and sum(stopped) == 3
+    # the window in steps: no stop before 128 full-side epochs (256 steps)
+    assert all(e is None or e >= new for e in late)
+    # 270 images at batch 8 (34 steps an epoch): the window stays the 8 epochs it was
+    assert schedule.plateau_window(train.plateau_min_epochs, train.plateau_min_steps,
+                                   schedule.steps_per_epoch(270, 8)) == 8
