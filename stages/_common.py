@@ -1,140 +1,17 @@
-"""Conventions shared by every stage command: ``--params``, ``--set``, ``--device``; logs on stderr; a user
-error is one line and exit code 2, an operating-system failure one line naming the path and exit code 1."""
+"""What every stage script stamps its artifacts with (:class:`StageContext`); the options and conventions the
+stage scripts share with the user commands live in :mod:`pipeline.cli.conventions` and are handed on here."""
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import errno
-import logging
-import os
-import sys
-from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping
-
-import click
+from typing import Any, Iterable, Mapping
 
 from pipeline.artifacts.lineage import Meta, make_meta
-from pipeline.catalog import PARAMS_FILE, STAGES, stage_params
-from pipeline.runtime.codeversion import ROOT, _module_name, code_version_of
-from pipeline.runtime.errors import BIT_DEPTH, CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError, calling
-from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER, load_params
+from pipeline.catalog import STAGES, stage_params
+from pipeline.cli.conventions import overwrite_option, stage_code_version, stage_command, teacher_workers_options
 
-
-def setup_logging() -> None:
-    level = os.environ.get("GEODISTILL_LOG", "INFO").upper()
-    logging.basicConfig(stream=sys.stderr, level=getattr(logging, level, logging.INFO),
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
-
-
-EXIT_INPUT, EXIT_OS = 2, 1
-_OS_WHAT = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quota exceeded",
-            errno.EACCES: "permission denied", errno.EPERM: "operation not permitted",
-            errno.EROFS: "read-only file system", errno.ENAMETOOLONG: "path too long"}
-
-
-def os_error_line(e: OSError) -> str:
-    """One line for an operating-system failure: ``out/masks: no space left on the device (ENOSPC)``."""
-    what = _OS_WHAT.get(e.errno) or (e.strerror or str(e) or type(e).__name__)
-    name = errno.errorcode.get(e.errno) if e.errno else None
-    path = e.filename if e.filename is not None else None
-    if path is not None and e.filename2 is not None:
-        path = f"{path} -> {e.filename2}"
-    line = f"{what} ({name})" if name else what
-    return f"{path}: {line}" if path is not None else line
-
-
-@contextlib.contextmanager
-def one_line_errors(command: str):
-    """Run a command's body; an InputError ends it with ``geodistill <command>: error: <line>`` and exit
-    code 2, an OSError with one line naming the path and exit code 1.  Inside, messages name flags."""
-    try:
-        with calling(CLI):
-            yield
-    except InputError as e:
-        line = e.render(CLI)
-        msg = line.splitlines()[0] if line else type(e).__name__
-        click.echo(f"geodistill {command}: error: {msg}", err=True)
-        sys.exit(EXIT_INPUT)
-    except OSError as e:
-        click.echo(f"geodistill {command}: error: {os_error_line(e).splitlines()[0]}", err=True)
-        sys.exit(EXIT_OS)
-
-
-overwrite_option = click.option(
-    OVERWRITE.flag, is_flag=True,
-    help="write into an existing output folder this command did not make; files of yours there stay, and "
-         "a file of yours where an output goes is refused by name either way (docs/own-data.md)")
-skip_bad_option = click.option(
-    SKIP_BAD.flag, is_flag=True,
-    help="leave unreadable images out and list them with the reason (default: stop at the first, naming it)")
-quiet_option = click.option("--quiet", "-q", is_flag=True,
-                            help="no progress bars (warnings, errors and the summary line stay)")
-max_pixels_option = click.option(
-    MAX_PIXELS.flag, MAX_PIXELS.keyword, type=int, default=None, metavar="N",
-    help="refuse images above N pixels (width x height), read from the file header before decoding; "
-         f"with --skip-bad they are left out and listed (default: data.max_pixels, {PAPER.data.max_pixels:,})")
-
-bit_depth_option = click.option(
-    BIT_DEPTH.flag, BIT_DEPTH.keyword, type=click.Choice([str(b) for b in BIT_DEPTHS]), default=None, metavar="BITS",
-    callback=lambda ctx, param, v: v if v in (None, AUTO_BIT_DEPTH) else int(v),
-    help=f"bits a 16-bit frame's sensor fills: {', '.join(map(str, BIT_DEPTHS))} (default: what the bundle records, "
-         "else data.bit_depth, "
-         f"{PAPER.data.bit_depth!r}: the file's full range)")
-
-
-def teacher_workers_options(fn):
-    """``--workers`` / ``--address``: the teacher's Ray Data executor (teacher stage and label)."""
-    fn = click.option("--address", default=None, metavar="ADDRESS",
-                      help="Ray cluster to join with --workers (default: RAY_ADDRESS, else an embedded local Ray)")(fn)
-    return click.option("--workers", default=0, show_default=True, type=click.IntRange(0),
-                        help="teachers in a Ray Data actor pool (one per GPU or CPU worker); 0 = the serial "
-                             "loop in this process (same results)")(fn)
-
-
-def stage_code_version(stage_file: str) -> str:
-    """Code version of a stage script: the hash of every project file it imports."""
-    return code_version_of(_module_name(Path(stage_file).resolve(), ROOT))
-
-
-#: ``load(params_file, overrides, default_profile) -> params``: passed in, since no stage may import profiles
-ProfileLoader = Callable[[Any, Iterable[str], str], dict]
-
-
-def stage_command(name: str, default_profile: str | None = None, profile_loader: ProfileLoader | None = None
-                  ) -> Callable:
-    """Decorate ``fn(params, device, **options)`` into a click command with the shared options.
-
-    ``default_profile`` with its ``profile_loader``: without ``--params`` the params are that profile's
-    (commands that run outside a project, e.g. ``label``).
-    """
-    if (default_profile is None) != (profile_loader is None):
-        raise TypeError(f"stage_command({name!r}): default_profile and profile_loader go together")
-
-    def deco(fn: Callable) -> click.Command:
-        def wrapper(params_file: str | None, overrides: tuple[str, ...], device: str, **kw: Any):
-            setup_logging()
-            with one_line_errors(name):
-                if profile_loader is not None:
-                    params = profile_loader(params_file, overrides, default_profile)
-                else:
-                    params = load_params(params_file, overrides)
-                return fn(params=params, device=device, **kw)
-
-        wrapper.__click_params__ = list(getattr(fn, "__click_params__", []))
-        wrapper.__doc__ = fn.__doc__
-        wrapper.__name__ = fn.__name__
-        cmd = click.option("--device", default="auto", show_default=True,
-                           help="auto | cpu | cuda")(wrapper)
-        cmd = click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
-                           help="override a param, e.g. --set train.epochs_stage1=3 (repeatable)")(cmd)
-        cmd = click.option("--params", "params_file", default=None if default_profile else PARAMS_FILE,
-                           show_default=True, type=click.Path(dir_okay=False),
-                           help=f"params file (default: the {default_profile!r} profile's values)"
-                           if default_profile else "params file")(cmd)
-        return click.command(name=name, help=fn.__doc__)(cmd)
-
-    return deco
+__all__ = ["StageContext", "overwrite_option", "stage_code_version", "stage_command", "stage_context",
+           "teacher_workers_options"]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,9 +1,11 @@
 """Atomic replacement of files and folders through a hidden sibling temporary (a kill at any instant leaves the old
-or the new output, never a partial one), and the fault points the kill tests use."""
+or the new output, never a partial one), the fault points the kill tests use, and the per-file PNG and CSV writers
+of the user commands (``label``, ``segment``)."""
 
 from __future__ import annotations
 
 import contextlib
+import csv
 import ctypes
 import json
 import os
@@ -12,7 +14,11 @@ import shutil
 import signal
 import uuid
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterable, Iterator
+
+import numpy as np
+
+from pipeline.runtime.errors import InputError
 
 FAULT_ENV = "GEODISTILL_FAULT"
 _RENAME_EXCHANGE = 2
@@ -152,3 +158,42 @@ def folders_gone_on_failure(*folders: str | Path) -> Iterator[None]:
             if f.is_dir() and not f.is_symlink():
                 shutil.rmtree(f, ignore_errors=True)
         raise
+
+
+def write_png(path: Path, array: np.ndarray) -> None:
+    """Write a PNG atomically; RGB arrays are converted to OpenCV's BGR."""
+    import cv2
+
+    arr = array[..., ::-1] if array.ndim == 3 else array
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr))
+    if not ok:
+        raise InputError(f"{path}: PNG encoding failed")
+    _replace_file(path, lambda tmp: tmp.write_bytes(buf.tobytes()))
+
+
+def _replace_file(path: Path, write: Callable[[Path], object]) -> Path:
+    """``write`` a temporary sibling of ``path`` and rename it into place; an OSError is one InputError line.
+
+    Not :func:`atomic_path`: a command writes thousands of masks into one folder, and a scan of the folder for
+    leftovers (:func:`clean_leftovers`) before each would make the run quadratic in its images.
+    """
+    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write(tmp)
+        os.replace(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
+    return path
+
+
+def write_csv(path: str | Path, header: list[str], rows: Iterable) -> Path:
+    """A CSV file with ``header`` and ``rows``, replaced atomically."""
+    def write(tmp: Path) -> None:
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(header)
+            w.writerows(rows)
+    return _replace_file(Path(path), write)

@@ -11,8 +11,8 @@ from pipeline.profiles import load_params_or_profile
 from pipeline.orchestration.standalone import (efficiency_line, project_outputs, run_project, time_budget_params, training_line,
                                  write_project)
 from pipeline.runtime.progress import quiet_bars
-from stages._common import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option, skip_bad_option,
-                            stage_command)
+from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option,
+                                      skip_bad_option, stage_command)
 
 
 @stage_command("distill", default_profile="distill", profile_loader=load_params_or_profile)

@@ -13,7 +13,7 @@ from pipeline.catalog import DVC_FILE, PARAMS_FILE
 from pipeline.orchestration.dag import is_generated_params, project_dvc_yaml, render_params_yaml
 from pipeline.artifacts.ownership import refuse_unowned
 from pipeline.profiles import PROFILES
-from stages._common import one_line_errors
+from pipeline.cli.conventions import one_line_errors
 
 
 @click.command(name="dag")

@@ -17,8 +17,8 @@ from pipeline.labeling.run import OUTPUTS, YOLO_LISTS, parse_formats
 from pipeline.params import BACKENDS
 from pipeline.profiles import load_params_or_profile
 from pipeline.runtime.progress import quiet_bars
-from stages._common import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option, skip_bad_option,
-                            stage_command, teacher_workers_options)
+from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option,
+                                      skip_bad_option, stage_command, teacher_workers_options)
 
 
 @stage_command("label", default_profile="paper", profile_loader=load_params_or_profile)

@@ -11,7 +11,7 @@ import click
 from pipeline import __version__
 from pipeline.artifacts.lineage import PROGRAM
 from pipeline.orchestration.dag import stage_modules
-from stages._common import one_line_errors
+from pipeline.cli.conventions import one_line_errors
 
 
 def command_name(stage: str) -> str:
@@ -52,7 +52,7 @@ class LazyGroup(click.Group):
         return getattr(importlib.import_module(mod), attr or "main")
 
     def invoke(self, ctx):
-        """Every subcommand under :func:`stages._common.one_line_errors`: one line, never a traceback."""
+        """Every subcommand under :func:`pipeline.cli.conventions.one_line_errors`: one line, never a traceback."""
         args = [*getattr(ctx, "_protected_args", []), *ctx.args] or [""]
         with one_line_errors(args[0] or PROGRAM):
             return super().invoke(ctx)

@@ -12,7 +12,7 @@ import click
 
 from pipeline.artifacts.atomic import write_text_if_changed
 from pipeline.report.offline_plots import dvc_plots_command, offline_page, template_path, template_text, vega_scripts
-from stages._common import one_line_errors
+from pipeline.cli.conventions import one_line_errors
 
 #: not `dvc plots show`'s own dvc_plots/, so neither replaces the other
 OFFLINE_PLOTS_DIR = "geodistill_plots"

@@ -14,7 +14,7 @@ from pipeline import catalog
 from pipeline.catalog import ARTIFACTS_DIR
 from pipeline.runtime.errors import InputError
 from pipeline.reproducibility import TOLERANCE, compare_metrics, difference_table, reproduced
-from stages._common import one_line_errors
+from pipeline.cli.conventions import one_line_errors
 
 
 def _git(args: list[str], cwd: Path) -> str:

@@ -10,7 +10,7 @@ from pipeline.review.corrections import FORMATS, import_corrections, read_review
 from pipeline.review.export import COCO_SHAPES, LS_RECORD_KEY, LS_SHAPES, export_review, server_env
 from pipeline.review.labelstudio import Client, upload_review
 from pipeline.review.ranking import DEFAULT_RANKING, RANKINGS
-from stages._common import one_line_errors, overwrite_option, setup_logging, stage_code_version
+from pipeline.cli.conventions import one_line_errors, overwrite_option, setup_logging, stage_code_version
 
 
 @click.group(name="review")

@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from pipeline.cluster.driver import run_pipeline
-from stages._common import one_line_errors, setup_logging
+from pipeline.cli.conventions import one_line_errors, setup_logging
 
 
 @click.command(name="run")

@@ -12,8 +12,8 @@ from pipeline.engine_table import AUTO, ENGINE_ALIASES, ENGINE_CHOICES, MODEL_EN
 from pipeline.params import load_params
 from pipeline.deploy.segmenting import segment_images
 from pipeline.runtime.progress import quiet_bars
-from stages._common import (bit_depth_option, max_pixels_option, one_line_errors, overwrite_option, quiet_option,
-                            setup_logging, skip_bad_option)
+from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, one_line_errors, overwrite_option,
+                                      quiet_option, setup_logging, skip_bad_option)
 
 
 @click.command(name="segment", help="Binary spacecraft masks for image files with a trained or exported student (at each image's original size).")

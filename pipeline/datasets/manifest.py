@@ -6,9 +6,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
+from typing import Iterable
 
 import pandas as pd
 
+from pipeline.artifacts.atomic import write_csv
 from pipeline.runtime.errors import SKIP_BAD, InputError, Option, literal
 from pipeline.params import SPLITS
 
@@ -104,6 +106,11 @@ class BadInputPolicy:
     def rows(self) -> list[tuple[str, str, str]]:
         """(image_id, path, reason) per listed file: the rows of ``skipped.csv``."""
         return [(r["image_id"], r["path"], r["reason"]) for r in self.skipped]
+
+
+def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str, str]]) -> Path:
+    """``skipped.csv`` (the columns of skipped_files.parquet)."""
+    return write_csv(path, list(SKIPPED_COLUMNS), skipped)
 
 
 def drop_duplicate_ids(rows: pd.DataFrame, policy: BadInputPolicy) -> pd.DataFrame:

@@ -90,6 +90,6 @@ def write_contact_sheet(path: Path, rows: pd.DataFrame, spec, cfg: dict, cache: 
         r = rows.iloc[int(i)]
         img, mask, _ = next(build.iter_arrays(rows.iloc[[int(i)]], spec, size, cache))[1:]
         tiles.append(tile(img, mask, f"{r['group']} {r['spacecraft']}", tsize))
-    # its own writer, not deploy.files.write_png: the data layer sits below deploy
+    # atomic_path, not write_png: a stage's output, whose killed temporaries the next run removes
     with atomic_path(path) as tmp:
         tmp.write_bytes(cv2.imencode(".png", contact_sheet(tiles, columns=4)[..., ::-1])[1].tobytes())

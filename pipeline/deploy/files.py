@@ -5,25 +5,21 @@ and refusals: docs/real-data.md."""
 from __future__ import annotations
 
 import collections
-import contextlib
 import contextvars
-import csv
 import dataclasses
 import functools
-import os
 import queue
 import threading
 import time
-import uuid
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
+from pipeline.artifacts.atomic import write_csv, write_png
 from pipeline.catalog import output_file, output_names
 from pipeline.datasets.loading import probs_to_size, read_rgb, resize_image
-from pipeline.datasets.manifest import SKIPPED_COLUMNS
 from pipeline.deploy.confidence import frame_confidence
 from pipeline.deploy.segmenter import Segmenter
 from pipeline.runtime.errors import InputError
@@ -135,31 +131,6 @@ def overlay_image(image: np.ndarray, mask: np.ndarray, color=(255, 40, 40), alph
     edge = mask & ~cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     out[edge] = col
     return np.clip(out + 0.5, 0, 255).astype(np.uint8)
-
-
-def write_png(path: Path, array: np.ndarray) -> None:
-    """Write a PNG atomically; RGB arrays are converted to OpenCV's BGR."""
-    import cv2
-
-    arr = array[..., ::-1] if array.ndim == 3 else array
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr))
-    if not ok:
-        raise InputError(f"{path}: PNG encoding failed")
-    _replace_file(path, lambda tmp: tmp.write_bytes(buf.tobytes()))
-
-
-def _replace_file(path: Path, write: Callable[[Path], object]) -> Path:
-    """``write`` a temporary sibling of ``path`` and rename it into place; an OSError is one InputError line."""
-    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write(tmp)
-        os.replace(tmp, path)
-    except OSError as e:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
-    return path
 
 
 @dataclasses.dataclass
@@ -331,20 +302,5 @@ def write_confidence_csv(path: str | Path, out_dir: str | Path, written: Sequenc
                          scores: Sequence[float]) -> Path:
     """``confidence.csv``: each written mask (relative to ``out_dir``) and its frame confidence."""
     out = Path(out_dir)
-    return _write_csv(path, ["mask", "confidence"],
-                      [(Path(m).relative_to(out).as_posix(), f"{c:.6f}") for m, c in zip(written, scores)])
-
-
-def write_skipped_csv(path: str | Path, skipped: Iterable[tuple[str, str, str]]) -> Path:
-    """``skipped.csv`` (the columns of skipped_files.parquet)."""
-    return _write_csv(path, list(SKIPPED_COLUMNS), skipped)
-
-
-def _write_csv(path: str | Path, header: list[str], rows: Iterable) -> Path:
-    """A CSV file with ``header`` and ``rows``, replaced atomically."""
-    def write(tmp: Path) -> None:
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(header)
-            w.writerows(rows)
-    return _replace_file(Path(path), write)
+    return write_csv(path, ["mask", "confidence"],
+                     [(Path(m).relative_to(out).as_posix(), f"{c:.6f}") for m, c in zip(written, scores)])

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Callable, Mapping
 
 from pipeline.datasets.loading import BadFileError, check_bit_depth, pixel_limit, reset_frame_warnings
-from pipeline.datasets.manifest import BadInputPolicy
+from pipeline.datasets.manifest import BadInputPolicy, write_skipped_csv
 from pipeline.datasets.scan import scan_inputs
 from pipeline.runtime.device import resolve_device
 from pipeline.engine_table import AUTO
@@ -97,7 +97,7 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
                              save_prob=save_prob, overlay=overlay, on_skip=report, max_pixels=max_pixels,
                              **({} if workers is None else {"workers": workers}))
     listing = Path(output) / F.SKIPPED_CSV
-    F.write_skipped_csv(listing, policy.rows())
+    write_skipped_csv(listing, policy.rows())
     F.write_confidence_csv(Path(output) / F.CONFIDENCE_CSV, Path(output).absolute().resolve(), result.written,
                            result.scores)
     lowest = (f" (lowest {min(result.scores):.3f}: {result.written[result.scores.index(min(result.scores))].name})"

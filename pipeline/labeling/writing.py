@@ -18,12 +18,12 @@ from typing import Callable, Iterable
 import numpy as np
 import pandas as pd
 
-from pipeline.artifacts.atomic import atomic_path, write_json
+from pipeline.artifacts.atomic import atomic_path, write_json, write_png
 from pipeline.artifacts.ownership import OUTPUTS as RECORD_OUTPUTS
 from pipeline.artifacts.ownership import WRITTEN_BY, remove_stale, signature
 from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
 from pipeline.datasets.loading import load_rgb
-from pipeline.deploy.files import write_png, write_skipped_csv
+from pipeline.datasets.manifest import write_skipped_csv
 from pipeline.labeling.formats import (coco_annotation, coco_document, yolo_data_yaml, yolo_image_list,
                                        yolo_lines, yolo_readme, yolo_split)
 from pipeline.labeling.reading import OUTPUTS, SIMULATOR_NOTE, YOLO_DATA, YOLO_LISTS, YOLO_README, LabelJob

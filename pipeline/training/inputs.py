@@ -15,8 +15,8 @@ from pipeline.artifacts.store import open_artifact
 from pipeline.augment import GeometryConstants, recompute_geometry
 from pipeline.evaluation.inference import REVIEW_MODE_KEY, corrected_validation, require_mode
 from pipeline.geometry import area_ratio
-from pipeline.methods import (SUPERVISED_CEILING, Method, afs_fuse, afs_keep, confidence_pass, input_artifacts,
-                              mean_valid_score, pass_ratio, uses_confidence)
+from pipeline.methods import SUPERVISED_CEILING, Method, input_artifacts, uses_confidence
+from pipeline.training.filters import afs_fuse, afs_keep, confidence_pass, mean_valid_score, pass_ratio
 from pipeline.runtime.errors import ArtifactError, InputError
 from pipeline.training.streaming import LazyRows, MappedRows, RowSource, row_means, select_rows
 

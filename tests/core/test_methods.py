@@ -11,8 +11,8 @@ from pipeline import losses
 from pipeline.artifacts.lineage import make_meta
 from pipeline.artifacts.store import open_artifact
 from pipeline.runtime.errors import InputError
-from pipeline.methods import (METHODS, adaptive_mode, afs_fuse, afs_keep, confidence_pass, get_method,
-                              input_artifacts, mean_valid_score, param_keys, pass_ratio, resolve_plan)
+from pipeline.methods import METHODS, adaptive_mode, get_method, input_artifacts, param_keys, resolve_plan
+from pipeline.training.filters import afs_fuse, afs_keep, confidence_pass, mean_valid_score, pass_ratio
 from tests.builders.training import load_arrays, tiny_cfg
 
 

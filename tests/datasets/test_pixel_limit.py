@@ -319,11 +319,11 @@ def test_the_folder_reader_refuses_and_skips_the_bomb(folder, tmp_path):
 
 
 # --------------------------------------------------------------------------------------------------
-# shared options live in stages/_common.py
+# shared options live in pipeline/cli/conventions.py
 # --------------------------------------------------------------------------------------------------
 def test_no_stage_imports_a_sibling_stage():
-    """A stage script or a user command imports shared options and helpers from stages/_common.py only,
-    never from a stage (``label`` took ``--workers`` from ``stages.teacher``)."""
+    """A stage script or a user command imports shared options and helpers from pipeline/cli/conventions.py
+    (a stage also through stages/_common.py), never from a stage (``label`` took ``--workers`` from ``stages.teacher``)."""
     import ast
 
     found = []

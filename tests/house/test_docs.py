@@ -29,8 +29,17 @@ def test_every_relative_link_resolves():
         for link in _links(path.read_text()):
             target = (path.parent / link).resolve()
             if "shared/" in link and not target.exists():
-                continue  # the paper sits beside the checkout, not in it
+                continue  # measurements sit beside the checkout, not in it
             assert target.exists(), f"{path.name}: broken link {link}"
+
+
+def test_the_paper_is_cited_by_its_title_not_by_a_path_outside_the_repository():
+    """A user's clone has no ``../shared/paper/``: the README, docs and code name the paper by its title and
+    its equations by label (``eq:sdf-target``)."""
+    texts = [README, *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT / "pipeline").rglob("*.py")),
+             *sorted((ROOT / "stages").glob("*.py"))]
+    cited = [p.relative_to(ROOT).as_posix() for p in texts if "shared/paper" in p.read_text()]
+    assert not cited, f"a path to the paper outside the repository in {cited}"
 
 
 def test_the_methods_table_in_the_docs_names_exactly_the_method_table():

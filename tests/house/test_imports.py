@@ -53,6 +53,7 @@ LAYERS = (
      ("pipeline/runtime/", "pipeline/training/__init__.py", "pipeline/evaluation/__init__.py",
       "pipeline/orchestration/__init__.py", "pipeline/reproducibility.py", "pipeline/training/checkpointing.py",
       "pipeline/model.py", "pipeline/methods.py",
+      "pipeline/training/filters.py",
       "pipeline/engine_table.py", "pipeline/params.py", "pipeline/profiles.py", "pipeline/catalog.py",
       "pipeline/stats.py", "pipeline/metrics.py", "pipeline/losses.py", "pipeline/geometry.py",
       "pipeline/augment.py", "pipeline/consensus.py", "pipeline/evaluation/diagnostics.py", "pipeline/orchestration/dag.py")),
@@ -69,6 +70,8 @@ LAYERS = (
       "pipeline/report/", "pipeline/cluster/", "pipeline/labeling/", "pipeline/review/")),
     ("api", "the Python API of the user tools: label, distill, a standalone project",
      ("pipeline/orchestration/standalone.py", "pipeline/api.py")),
+    ("conventions", "what every command shares: the options, --params/--set/--device, one-line errors, logs",
+     ("pipeline/cli/conventions.py",)),
     ("stages", "the DAG's stage scripts: options -> read artifacts -> call the logic -> write", ("stages/",)),
     ("commands", "the user commands and the geodistill click group over them and the stages", ("pipeline/cli/",)),
     ("benchmarks", "measurements and developer tools; they run the stages as commands, never import them",
@@ -76,6 +79,9 @@ LAYERS = (
 )
 #: the command line, which no file outside it (the library, the benchmarks) imports
 CLI = ("stages/", "pipeline/cli/")
+#: the stage scripts, which nothing under the library's folder imports -- the user commands included: they
+#: wire the library, and what they share with the commands lives in pipeline/cli/conventions.py
+STAGE_SCRIPTS, LIBRARY = "stages/", "pipeline/"
 #: the library's one package whose modules may run as scripts (``if __name__ == "__main__"``): the
 #: command line; every other script is a benchmark or a tool (:data:`LAYERS`)
 LIBRARY_SCRIPTS = ("pipeline/cli/",)
@@ -90,7 +96,8 @@ def layer_of(rel: str) -> int | None:
 
 
 def layer_violations(root: Path = ROOT) -> list[str]:
-    """One line per file in no layer, per import of a higher layer, and per import of the CLI from outside it."""
+    """One line per file in no layer, per import of a higher layer, per import of the CLI from outside it, and
+    per import of a stage script from under pipeline/."""
     bad = []
     for path in _files(root):
         rel = path.relative_to(root).as_posix()
@@ -105,7 +112,10 @@ def layer_violations(root: Path = ROOT) -> list[str]:
                 continue
             trel = target.relative_to(root).as_posix()
             theirs = layer_of(trel)
-            if not rel.startswith(CLI) and trel.startswith(CLI):
+            if rel.startswith(LIBRARY) and trel.startswith(STAGE_SCRIPTS):
+                bad.append(f"{rel}:{line} imports {module}: nothing under {LIBRARY} imports {STAGE_SCRIPTS} (what the "
+                           "commands share with the stages lives in pipeline/cli/conventions.py)")
+            elif not rel.startswith(CLI) and trel.startswith(CLI):
                 bad.append(f"{rel}:{line} imports {module}: only the command line imports it ({', '.join(CLI)})")
             elif theirs is not None and theirs > mine:
                 bad.append(f"{rel}:{line} ({LAYERS[mine][0]}) imports {module} ({LAYERS[theirs][0]}, a higher layer)")
@@ -253,17 +263,21 @@ def test_every_module_is_in_a_layer_and_imports_none_above_it():
 
 def test_the_layer_check_sees_an_upward_import_the_cli_and_an_unplaced_file(tmp_path):
     """The layer check can fail: in a small tree, a core module importing the API (a lazy import too),
-    a benchmark importing a stage script, and a module no layer lists; a stage importing the core and
-    the API importing the core pass."""
+    a benchmark importing a stage script, a user command importing a stage script (a lazy import too),
+    and a module no layer lists; a stage importing the core and the API importing the core pass."""
     files = {"pipeline/__init__.py": "", "pipeline/params.py": "def f():\n    from pipeline import api\n",
              "pipeline/api.py": "from pipeline import params\n", "benchmarks/__init__.py": "",
              "benchmarks/bench_x.py": "import stages.prepare\n", "pipeline/unlisted.py": "",
+             "pipeline/cli/__init__.py": "",
+             "pipeline/cli/label.py": "from stages.prepare import f\ndef g():\n    import stages.prepare\n",
              "stages/__init__.py": "", "stages/prepare.py": "from pipeline.params import f\n"}
     for rel, text in files.items():
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_text(text)
     assert layer_violations(tmp_path) == [
         "benchmarks/bench_x.py:1 imports stages.prepare: only the command line imports it (stages/, pipeline/cli/)",
+        *(f"pipeline/cli/label.py:{n} imports stages.prepare: nothing under pipeline/ imports stages/ (what the "
+          "commands share with the stages lives in pipeline/cli/conventions.py)" for n in (1, 3)),
         "pipeline/params.py:2 (core) imports pipeline.api (api, a higher layer)",
         "pipeline/unlisted.py is in no layer: add it to LAYERS in tests/house/test_imports.py (docs/decisions.md, Layers)"]
 

@@ -17,7 +17,7 @@ from click.testing import CliRunner
 from pipeline.runtime.errors import InputError
 from pipeline.params import PAPER, load_params, parse_override, validate
 from pipeline.profiles import load_params_or_profile, load_profile
-from stages._common import stage_command
+from pipeline.cli.conventions import stage_command
 from tests.builders.lane import committed_text
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -220,7 +220,7 @@ def test_the_dvc_yaml_renderer_is_no_code_dep_of_any_stage():
 
 def test_stage_code_version_is_the_derived_one():
     from pipeline.runtime.codeversion import code_version_of
-    from stages._common import stage_code_version
+    from pipeline.cli.conventions import stage_code_version
 
     assert stage_code_version(str(ROOT / "stages" / "consensus.py")) == code_version_of("stages.consensus")
     assert "pipeline/params.py" in __import__("pipeline.runtime.codeversion").runtime.codeversion.module_files("stages.consensus")
