@@ -17,13 +17,13 @@ from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 from pipeline.datasets.loading import check_bit_depth, pixel_limit
-from pipeline.runtime.errors import BACKEND, CHECKPOINT, LABELS, InputError, literal
+from pipeline.runtime.errors import BACKEND, CHECKPOINT, IMPORTED_DIR, LABELS, InputError, literal
 from pipeline.labeling import LabelResult, label_folder
 from pipeline.labeling.run import check_label_folder, parse_formats
-from pipeline.params import SAM3, deep_merge, validate
+from pipeline.params import deep_merge, validate
 from pipeline.profiles import load_params_or_profile
 from pipeline.orchestration.standalone import project_outputs, run_project, time_budget_params, write_project
-from pipeline.teachers.sam3 import check_checkpoint_dir
+from pipeline.teacher_table import TEACHER_TABLE, is_simulator, load
 
 LABEL_PROFILE = "paper"
 DISTILL_PROFILE = "distill"
@@ -42,26 +42,29 @@ def effective_params(params: str | Path | None = None, overrides: Mapping | Iter
 
 
 def teacher_overrides(backend: str | None, checkpoint: str | Path | None, imported_dir: str | Path | None) -> dict:
-    """The ``teacher`` keys the options set: ``checkpoint`` means sam3 and ``imported_dir`` imported, unless
-    ``backend`` says otherwise."""
+    """The ``teacher`` keys the options set: a folder option means the first backend of
+    :data:`~pipeline.teacher_table.TEACHER_TABLE` that requires it (``checkpoint``: sam3, ``imported_dir``:
+    imported), unless ``backend`` says otherwise."""
+    given = {o: v for o, v in ((CHECKPOINT, checkpoint), (IMPORTED_DIR, imported_dir)) if v}
     if backend is None:
-        backend = "sam3" if checkpoint else "imported" if imported_dir else None
+        backend = next((name for name, spec in TEACHER_TABLE.items() for o in given if o.keyword in spec.settings[:1]),
+                       None)
     out = {} if backend is None else {"backend": backend}
-    if checkpoint and backend == SAM3:  # checked here: the error names the option the user gave
-        check_checkpoint_dir(checkpoint, CHECKPOINT)
-    if checkpoint:
-        out["checkpoint"] = str(Path(checkpoint).resolve())
-    if imported_dir:
-        out["imported_dir"] = str(Path(imported_dir).resolve())
+    spec = TEACHER_TABLE.get(backend)
+    for option, value in given.items():
+        if spec is not None and spec.check and option.keyword in spec.settings[:1]:
+            load(spec.check)(value, option)  # checked here: the error names the option the user gave
+        out[option.keyword] = str(Path(value).resolve())
     return out
 
 
 def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | None,
                    imported_dir: str | Path | None) -> dict:
     """``params`` with the chosen teacher, validated again; InputError when neither an option nor a params
-    file naming a SAM 3 checkpoint chose one (the schema's default, the SIMULATOR, is never picked silently)."""
+    file naming a real teacher (one with its settings, e.g. a SAM 3 checkpoint) chose one: a SIMULATOR,
+    the schema's default, is never picked silently."""
     chosen = teacher_overrides(backend, checkpoint, imported_dir)
-    if not chosen and not (params["teacher"]["backend"] == "sam3" and params["teacher"]["checkpoint"]):
+    if not chosen and is_simulator(params["teacher"]["backend"]):
         raise InputError("{} is required (or {})", CHECKPOINT("SAM3_DIR"), BACKEND("imported|simulated"))
     return validate(deep_merge(params, {"teacher": chosen}), "options")
 
@@ -119,7 +122,7 @@ def with_data_options(params: dict, skip_bad: bool = False, max_pixels: int | No
 
 
 def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None = None,
-          formats: str | Sequence[str] = ("png", "coco", "yolo"), backend: str | None = None,
+          formats: str | Sequence[str] | None = None, backend: str | None = None,
           imported_dir: str | Path | None = None, reference_masks: str | Path | None = None,
           params: str | Path | None = None, overrides: Mapping | Iterable[str] | None = None,
           device: str = "auto", skip_bad: bool = False, overwrite: bool = False,
@@ -127,8 +130,9 @@ def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None =
     """Pseudo-label the images under ``input`` into ``out`` (``geodistill label``): voted masks as PNG /
     COCO RLE / YOLO files, the gate table and a contact sheet.  A teacher is required: ``checkpoint``
     (SAM 3), ``backend="imported"`` with ``imported_dir``, or a ``params`` file naming a checkpoint;
-    ``backend="simulated"`` (a SIMULATOR) needs ``reference_masks``.  The other keywords are the
-    command's options."""
+    ``backend="simulated"`` (a SIMULATOR) needs ``reference_masks``; ``formats``: a subset of
+    :data:`~pipeline.labeling.formats.LABEL_FORMATS` (None: its default ones, png, coco and yolo).  The other
+    keywords are the command's options."""
     fmts = parse_formats(formats)
     p = choose_teacher(effective_params(params, overrides, LABEL_PROFILE), backend, checkpoint, imported_dir)
     p = with_data_options(p, skip_bad, max_pixels, bit_depth)

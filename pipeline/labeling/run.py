@@ -13,18 +13,19 @@ import numpy as np
 import pandas as pd
 
 from pipeline.geometry import NoForeground, area_ratios, foreground_agreement
-from pipeline.labeling.reading import (FORMATS, OUTPUTS, SIMULATOR_NOTE, YOLO_LISTS, LabelJob, check_label_folder,
-                                       find_images, open_folder)
+from pipeline.labeling.formats import LABEL_FORMATS
+from pipeline.labeling.reading import OUTPUTS, SIMULATOR_NOTE, LabelJob, check_label_folder, find_images, open_folder
 from pipeline.labeling.writing import write_outputs, write_votes
 from pipeline.params import section
 from pipeline.pseudo_labels import Gates, reliability_gates, vote_block
 from pipeline.runtime.errors import FORMAT, InputError, caller
 from pipeline.runtime.progress import progress
+from pipeline.teacher_table import is_simulator
 
 log = logging.getLogger(__name__)
 
 #: what callers import from here (the command, the API, review export, distill's project)
-__all__ = ["FORMATS", "OUTPUTS", "YOLO_LISTS", "LabelResult", "check_label_folder", "find_images", "label_folder",
+__all__ = ["LABEL_FORMATS", "OUTPUTS", "LabelResult", "check_label_folder", "find_images", "label_folder",
            "parse_formats"]
 
 
@@ -42,30 +43,35 @@ class LabelResult:
 
     @property
     def simulator(self) -> bool:
-        return self.backend == "simulated"
+        return is_simulator(self.backend)
 
     @property
     def masks(self) -> dict[str, Path]:
-        """image id -> its voted mask PNG; empty when ``png`` was not among the formats."""
-        if "png" not in self.formats:
+        """image id -> its voted mask as an image file (the first format with one, e.g. ``png``); empty when
+        no format written has one."""
+        mask_file = next((LABEL_FORMATS[f].mask_file for f in self.formats if LABEL_FORMATS[f].mask_file), None)
+        if mask_file is None:
             return {}
-        return {str(i): Path(self.out) / OUTPUTS["masks"] / f"{i}.png" for i in self.table["image_id"]}
+        return {str(i): Path(self.out) / mask_file(str(i)) for i in self.table["image_id"]}
 
     def __repr__(self) -> str:
         return (f"LabelResult(out={str(self.out)!r}, images={len(self.table)}, formats={list(self.formats)}, "
                 f"skipped={len(self.skipped)}, backend={self.backend!r})")
 
 
-def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
-    """``"png,coco"`` or ``["png", "coco"]`` -> ("png", "coco") in the canonical order; InputError on an
-    unknown or empty list."""
+def parse_formats(formats: str | Sequence[str] | None = None) -> tuple[str, ...]:
+    """``"png,coco"`` or ``["png", "coco"]`` -> ("png", "coco") in the canonical order of
+    :data:`~pipeline.labeling.formats.LABEL_FORMATS`; None: its default formats; InputError on an unknown or
+    empty list."""
+    if formats is None:
+        return tuple(name for name, f in LABEL_FORMATS.items() if f.default)
     items = [f.strip().lower() for f in (formats.split(",") if isinstance(formats, str) else formats)]
     items = [f for f in items if f]
-    bad = [f for f in items if f not in FORMATS]
+    bad = [f for f in items if f not in LABEL_FORMATS]
     if bad or not items:
-        raise InputError(f"{{}}: expected a comma-separated subset of {','.join(FORMATS)}",
+        raise InputError(f"{{}}: expected a comma-separated subset of {','.join(LABEL_FORMATS)}",
                          FORMAT(','.join(items) or repr(formats)))
-    return tuple(f for f in FORMATS if f in items)
+    return tuple(f for f in LABEL_FORMATS if f in items)
 
 
 def folder_votes(job: LabelJob, threshold: float) -> Iterator[tuple]:
@@ -88,19 +94,20 @@ def folder_gates(c: np.ndarray, n_valid: np.ndarray, a: np.ndarray, geo: Mapping
 
 
 def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, device: str = "auto",
-                 formats: str | Sequence[str] = FORMATS, reference_masks: str | Path | None = None,
+                 formats: str | Sequence[str] | None = None, reference_masks: str | Path | None = None,
                  overwrite: bool = False, workers: int = 0, address: str | None = None,
                  copy_images: bool = False) -> LabelResult:
     """Label every image under ``input_dir`` into ``out`` with validated ``params``.
 
     ``reference_masks``: the masks the simulated teacher reads (refused for real teachers); ``workers`` /
     ``address``: the teacher's Ray Data executor (0: serial; same answers); ``copy_images``: yolo/images
-    holds copies instead of relative links.  A user's file where an output goes is refused, ``overwrite``
+    holds copies instead of relative links; ``formats``: None writes the default ones (:func:`parse_formats`).  A user's file where an output goes is refused, ``overwrite``
     or not; a user's folder only without ``overwrite``."""
     fmts = parse_formats(formats)
     job = open_folder(input_dir, out, params, reference_masks, overwrite, fmts, device, workers, address)
+    job.copy_images = copy_images
     vote_threshold = float(section(params, "consensus")["vote_threshold"])
-    v = write_votes(job, fmts, folder_votes(job, vote_threshold), copy_images)
+    v = write_votes(job, fmts, folder_votes(job, vote_threshold))
     gates = folder_gates(v.c, v.n_valid, v.a, job.geo)
     tcfg, n, stats = job.tcfg, len(job.files), job.stats
     table = write_outputs(job, fmts, v, gates, {
