@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 
 #: what callers import from here (the command, the API, review export, distill's project)
 __all__ = ["LABEL_FORMATS", "OUTPUTS", "LabelResult", "check_label_folder", "find_images", "label_folder",
-           "parse_formats"]
+           "mask_file", "parse_formats"]
 
 
 @dataclasses.dataclass(repr=False)
@@ -49,14 +49,19 @@ class LabelResult:
     def masks(self) -> dict[str, Path]:
         """image id -> its voted mask as an image file (the first format with one, e.g. ``png``); empty when
         no format written has one."""
-        mask_file = next((LABEL_FORMATS[f].mask_file for f in self.formats if LABEL_FORMATS[f].mask_file), None)
-        if mask_file is None:
-            return {}
-        return {str(i): Path(self.out) / mask_file(str(i)) for i in self.table["image_id"]}
+        where = mask_file(self.formats)
+        return {} if where is None else {str(i): Path(self.out) / where(str(i)) for i in self.table["image_id"]}
 
     def __repr__(self) -> str:
         return (f"LabelResult(out={str(self.out)!r}, images={len(self.table)}, formats={list(self.formats)}, "
                 f"skipped={len(self.skipped)}, backend={self.backend!r})")
+
+
+def mask_file(formats: Sequence[str]):
+    """``image id -> path`` (relative to the output folder) of the voted mask as an image file, of the first of
+    ``formats`` that writes one (``png``); None when none does."""
+    return next((LABEL_FORMATS[f].mask_file for f in formats if f in LABEL_FORMATS and LABEL_FORMATS[f].mask_file),
+                None)
 
 
 def parse_formats(formats: str | Sequence[str] | None = None) -> tuple[str, ...]:
