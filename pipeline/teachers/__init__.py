@@ -10,6 +10,10 @@ from pipeline.params import validate_section
 from pipeline.teacher_table import TEACHER_TABLE, teacher_class
 from pipeline.teachers.base import VIEWS, Teacher, TeacherInput, finalize_answers
 
+# the built-in backends TEACHER_TABLE names as "module:Class", imported here too so that running a teacher
+# depends on their code (the stage's code version, dvc.yaml's deps: pipeline.runtime.codeversion)
+from pipeline.teachers import imported, sam3, simulated  # noqa: F401
+
 __all__ = ["TEACHER_TABLE", "VIEWS", "Teacher", "TeacherInput", "finalize_answers", "check_teacher_params",
            "make_teacher", "teacher_class", "teacher_fingerprint"]
 
