@@ -53,7 +53,7 @@ LAYERS = (
      ("pipeline/runtime/", "pipeline/training/__init__.py", "pipeline/evaluation/__init__.py",
       "pipeline/orchestration/__init__.py", "pipeline/reproducibility.py", "pipeline/training/checkpointing.py",
       "pipeline/model.py", "pipeline/methods.py",
-      "pipeline/engine_table.py", "pipeline/params.py", "pipeline/profiles.py", "pipeline/catalog.py",
+      "pipeline/engine_table.py", "pipeline/teacher_table.py", "pipeline/params.py", "pipeline/profiles.py", "pipeline/catalog.py",
       "pipeline/stats.py", "pipeline/metrics.py", "pipeline/losses.py", "pipeline/geometry.py",
       "pipeline/augment.py", "pipeline/consensus.py", "pipeline/evaluation/diagnostics.py", "pipeline/orchestration/dag.py")),
     ("artifacts", "typed artifacts and files: Zarr/Parquet I/O, weights, streaming, results, ownership",
