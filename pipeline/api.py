@@ -18,13 +18,13 @@ from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 from pipeline.datasets.loading import check_bit_depth, pixel_limit
-from pipeline.runtime.errors import BACKEND, CHECKPOINT, LABELS, InputError, literal
+from pipeline.runtime.errors import BACKEND, CHECKPOINT, IMPORTED_DIR, LABELS, InputError, literal
 from pipeline.labeling import LabelResult, label_folder
 from pipeline.labeling.run import check_label_folder, parse_formats
-from pipeline.params import SAM3, deep_merge, validate
+from pipeline.params import deep_merge, validate
 from pipeline.profiles import load_params_or_profile
 from pipeline.orchestration.standalone import project_outputs, run_project, time_budget_params, write_project
-from pipeline.teachers.sam3 import check_checkpoint_dir
+from pipeline.teacher_table import TEACHER_TABLE, is_simulator, load
 
 LABEL_PROFILE = "paper"
 DISTILL_PROFILE = "distill"
@@ -66,13 +66,16 @@ def effective_params(params: str | Path | None = None, overrides: Mapping | Iter
 def teacher_overrides(backend: str | None, checkpoint: str | Path | None, imported_dir: str | Path | None) -> dict:
     """Return the ``teacher`` keys the label/distill options set.
 
-    ``checkpoint`` means backend sam3 and ``imported_dir`` means imported, unless ``backend`` says otherwise; a
-    SAM 3 checkpoint folder is checked here, so the error names the option the user gave.
+    A folder option means the first backend of :data:`~pipeline.teacher_table.TEACHER_TABLE` whose first
+    required setting it is (``checkpoint``: sam3, ``imported_dir``: imported), unless ``backend`` says otherwise;
+    where that backend's row has a ``check`` (SAM 3's checkpoint folder), the folder is checked here, so the
+    error names the option the user gave.
 
     Parameters
     ----------
     backend : str, optional
-        ``sam3``, ``imported`` or ``simulated``; None: inferred from the other two.
+        A backend of :data:`~pipeline.teacher_table.TEACHER_TABLE` (``sam3``, ``imported``, ``simulated`` or a
+        registered one); None: inferred from the other two.
     checkpoint : str or Path, optional
         A SAM 3 folder (save_pretrained layout); stored resolved.
     imported_dir : str or Path, optional
@@ -81,22 +84,23 @@ def teacher_overrides(backend: str | None, checkpoint: str | Path | None, import
     Returns
     -------
     dict
-        ``backend``, ``checkpoint`` and ``imported_dir`` as given; empty when none is.
+        ``backend`` (given or inferred), ``checkpoint`` and ``imported_dir`` as given; empty when none is.
 
     Raises
     ------
     InputError
-        ``checkpoint`` is not a SAM 3 folder (backend sam3).
+        From the backend's ``check``: ``checkpoint`` is not a SAM 3 folder (backend sam3).
     """
+    given = {o: v for o, v in ((CHECKPOINT, checkpoint), (IMPORTED_DIR, imported_dir)) if v}
     if backend is None:
-        backend = "sam3" if checkpoint else "imported" if imported_dir else None
+        backend = next((name for name, spec in TEACHER_TABLE.items() for o in given if o.keyword in spec.settings[:1]),
+                       None)
     out = {} if backend is None else {"backend": backend}
-    if checkpoint and backend == SAM3:  # checked here: the error names the option the user gave
-        check_checkpoint_dir(checkpoint, CHECKPOINT)
-    if checkpoint:
-        out["checkpoint"] = str(Path(checkpoint).resolve())
-    if imported_dir:
-        out["imported_dir"] = str(Path(imported_dir).resolve())
+    spec = TEACHER_TABLE.get(backend)
+    for option, value in given.items():
+        if spec is not None and spec.check and option.keyword in spec.settings[:1]:
+            load(spec.check)(value, option)  # checked here: the error names the option the user gave
+        out[option.keyword] = str(Path(value).resolve())
     return out
 
 
@@ -104,8 +108,10 @@ def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | N
                    imported_dir: str | Path | None) -> dict:
     """Return ``params`` with the chosen teacher, validated again.
 
-    Without ``checkpoint``, ``imported_dir`` or ``backend``, only a params file naming a SAM 3 checkpoint chooses
-    one: the schema's default backend, the synthetic benchmark's SIMULATOR, is never picked silently.
+    Without ``checkpoint``, ``imported_dir`` or ``backend``, only a params file naming a real teacher (a backend of
+    :data:`~pipeline.teacher_table.TEACHER_TABLE` that is not a SIMULATOR, with its settings, e.g. a SAM 3
+    checkpoint or an imported folder) chooses one: the schema's default backend, the synthetic benchmark's
+    SIMULATOR, is never picked silently.
 
     Parameters
     ----------
@@ -129,7 +135,7 @@ def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | N
         No teacher was chosen, a teacher option is invalid, or the merged params do not validate.
     """
     chosen = teacher_overrides(backend, checkpoint, imported_dir)
-    if not chosen and not (params["teacher"]["backend"] == "sam3" and params["teacher"]["checkpoint"]):
+    if not chosen and is_simulator(params["teacher"]["backend"]):
         raise InputError("{} is required (or {})", CHECKPOINT("SAM3_DIR"), BACKEND("imported|simulated"))
     return validate(deep_merge(params, {"teacher": chosen}), "options")
 
@@ -266,17 +272,18 @@ def with_data_options(params: dict, skip_bad: bool = False, max_pixels: int | No
 
 
 def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None = None,
-          formats: str | Sequence[str] = ("png", "coco", "yolo"), backend: str | None = None,
+          formats: str | Sequence[str] | None = None, backend: str | None = None,
           imported_dir: str | Path | None = None, reference_masks: str | Path | None = None,
           params: str | Path | None = None, overrides: Mapping | Iterable[str] | None = None,
           device: str = "auto", skip_bad: bool = False, overwrite: bool = False,
           max_pixels: int | None = None, bit_depth: str | int | None = None) -> LabelResult:
     """Pseudo-label the images under ``input`` into ``out`` (``geodistill label``).
 
-    Writes the voted masks (eq:majority-vote) as PNG / COCO RLE / YOLO files, the table of c, v, a and g per
-    image (eq:foreground-agreement .. eq:reliability-gate) and a contact sheet.  A teacher is required:
-    ``checkpoint`` (SAM 3), ``backend="imported"`` with ``imported_dir``, or a ``params`` file naming a
-    checkpoint.  Reruns resume from the teacher cache inside ``out``.
+    Writes the voted masks (eq:majority-vote) in each of ``formats`` (by default PNG / COCO RLE / YOLO files),
+    the table of c, v, a and g per image (eq:foreground-agreement .. eq:reliability-gate) and a contact sheet.
+    A teacher is required: ``checkpoint`` (SAM 3), ``backend="imported"`` with ``imported_dir``, or a ``params``
+    file naming a real teacher with its settings (:func:`choose_teacher`).  Reruns resume from the teacher cache
+    inside ``out``.
 
     Parameters
     ----------
@@ -287,10 +294,12 @@ def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None =
     checkpoint : str or Path, optional
         A SAM 3 folder (save_pretrained layout); implies ``backend="sam3"``.
     formats : str or sequence of str, optional
-        A subset of ``png``, ``coco``, ``yolo`` (a comma-separated string or a list; default all three).
+        A subset of :data:`~pipeline.labeling.formats.LABEL_FORMATS` (a comma-separated string or a list); None
+        (default): its default formats, ``png``, ``coco`` and ``yolo`` unless a registered format says otherwise.
     backend : str, optional
-        ``sam3``, ``imported`` (masks made elsewhere) or ``simulated`` (a SIMULATOR of teacher errors that needs
-        ``reference_masks``; its labels are not a real teacher's).
+        A backend of :data:`~pipeline.teacher_table.TEACHER_TABLE`: ``sam3``, ``imported`` (masks made
+        elsewhere), ``simulated`` (a SIMULATOR of teacher errors that needs ``reference_masks``; its labels are
+        not a real teacher's) or a registered one.
     imported_dir : str or Path, optional
         The imported teacher masks (README layout); implies ``backend="imported"``.
     reference_masks : str or Path, optional
@@ -314,13 +323,14 @@ def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None =
     Returns
     -------
     pipeline.labeling.LabelResult
-        ``.table`` (c, v, a, g per image), ``.masks`` (image id -> mask PNG), ``.skipped``, ``.out``.
+        ``.table`` (c, v, a, g per image), ``.masks`` (image id -> voted mask image file, of the first format
+        written that has one, e.g. png; empty when none does), ``.skipped``, ``.out``.
 
     Raises
     ------
     InputError
-        One line naming the keyword or file: no teacher chosen, an invalid option or params value, an unreadable
-        image (without ``skip_bad``), or an output that belongs to the user.
+        One line naming the keyword or file: no teacher chosen, an invalid option, format or params value, an
+        unreadable image (without ``skip_bad``), or an output that belongs to the user.
     """
     fmts = parse_formats(formats)
     p = choose_teacher(effective_params(params, overrides, LABEL_PROFILE), backend, checkpoint, imported_dir)

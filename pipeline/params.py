@@ -17,6 +17,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 from pipeline.engine_table import BENCHMARK_VARIANTS, engine_name  # pure Python: the engine names, one list
 from pipeline.runtime.errors import InputError
 from pipeline.methods import METHODS, PROPOSED, STAGE_ONE  # pure Python, no torch: this module stays torch-free
+from pipeline.teacher_table import SIMULATED, teacher_spec  # pure Python: the teacher names, one table
 
 DEFAULT_PARAMS = "params.yaml"
 
@@ -90,8 +91,6 @@ class SyntheticParams(_Section):
 
 
 SOURCES = ("synthetic", "spacesense", "spark", "speedplus", "tango", "folder")
-#: the teacher backends: the keys of the registry pipeline.teachers.TEACHERS
-SIMULATED, SAM3, IMPORTED = BACKENDS = ("simulated", "sam3", "imported")
 #: the evaluate stage's gain intervals (docs/intervals.md)
 SEED_IMAGE_T, SEED_BOOTSTRAP, SEED_CLUSTER_T = GAIN_INTERVALS = ("seed_image_t", "seed_bootstrap", "seed_cluster_t")
 SPLITS = ("train", "val", "test")
@@ -130,7 +129,7 @@ PAPER_PROMPTS = ["spacecraft", "satellite", "space probe", "space vehicle", "spa
 
 
 class TeacherParams(_Section):
-    backend: Literal[BACKENDS] = _f(
+    backend: str = _f(  # one of pipeline.teacher_table.TEACHER_TABLE, registered ones included
         SIMULATED, "simulated (SIMULATOR of the synthetic benchmark only) | sam3 | imported")
     prompts: list[str] = _f(PAPER_PROMPTS, "eq:prompt-set, fixed order p1..p6", min_length=1)
     base_prompt_index: int = _f(0, "the annotation-free-style control's single prompt", ge=0)
@@ -156,11 +155,16 @@ class TeacherParams(_Section):
                 raise ValueError(f"teacher.prompts[{i}]={p!r} must be a non-empty string")
         if len({p.strip().lower() for p in self.prompts}) != len(self.prompts):
             raise ValueError(f"teacher.prompts has duplicates: {self.prompts}")
-        if self.backend == SAM3 and not self.checkpoint:
-            raise ValueError("teacher.checkpoint is required for backend sam3 (a local save_pretrained directory)")
-        if self.backend == IMPORTED and not self.imported_dir:
-            raise ValueError("teacher.imported_dir is required for backend imported")
+        for key in teacher_spec(self.backend).settings:  # each backend's required settings (teacher_table)
+            if not getattr(self, key):
+                raise ValueError(f"teacher.{key} is required for backend {self.backend}")
         return self
+
+    @field_validator("backend")
+    @classmethod
+    def _known(cls, v: str) -> str:
+        teacher_spec(v)  # ValueError naming the backends
+        return v
 
 
 class ConsensusParams(_Section):

@@ -14,7 +14,8 @@ from pipeline.catalog import ARTIFACTS_DIR, dvc_path
 from pipeline.report.dvc_results import teacher_metric_files, write_metrics_dir
 from pipeline.runtime.errors import InputError
 from pipeline.metrics import per_image_metrics
-from pipeline.params import SIMULATED, section
+from pipeline.params import section
+from pipeline.teacher_table import is_simulator
 from pipeline.runtime.progress import progress
 from pipeline.report.analysis import prompt_source, select_prompt
 from stages._common import stage_command, stage_context
@@ -80,14 +81,14 @@ def main(params, device, art, out, metrics_dir):
 
     meta = stage_context("analyze_teacher", __file__, params).meta(
                     "teacher_metrics", [manifest, reference, teacher, consensus, gates],
-                    teacher_backend=backend, simulator=backend == SIMULATED, base_source=base,
+                    teacher_backend=backend, simulator=is_simulator(backend), base_source=base,
                     selected_source=selected, prompts=prompts,
                     val_prompt_iou={k: float(v) for k, v in val_means.items()})
     write_parquet(out, tm, meta)
 
     write_metrics_dir(metrics_dir or catalog.path("metrics_teacher", art), teacher_metric_files(tm, gates.df))
     click.echo(f"analyze_teacher: {idx.size} images x {k_prompts + 1} sources -> {out} "
-               f"(teacher backend: {backend}{' = SIMULATOR' if backend == SIMULATED else ''})", err=True)
+               f"(teacher backend: {backend}{' = SIMULATOR' if is_simulator(backend) else ''})", err=True)
 
 
 if __name__ == "__main__":

@@ -9,7 +9,8 @@ from pipeline import catalog
 from pipeline.artifacts.lineage import require_same_run
 from pipeline.artifacts.store import open_artifact
 from pipeline.catalog import ARTIFACTS_DIR, dvc_path
-from pipeline.params import SIMULATED, section
+from pipeline.params import section
+from pipeline.teacher_table import is_simulator
 from pipeline.review.export import export_run
 from stages._common import stage_command
 
@@ -26,7 +27,7 @@ def main(params, device, art, out):
     cfg = section(params, "review")
     res = export_run(manifest, consensus, gates, out, top=cfg["top"], ranking=cfg["ranking"],
                      letterbox=bool(section(params, "data")["letterbox"]),
-                     simulator=section(params, "teacher")["backend"] == SIMULATED)
+                     simulator=is_simulator(section(params, "teacher")["backend"]))
     click.echo(f"review_export: {len(res.table)} training images ranked by {res.ranking} -> {res.out} "
                f"(export {res.export_id})", err=True)
 

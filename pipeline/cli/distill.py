@@ -6,7 +6,7 @@ import click
 
 from pipeline.api import distill_params
 from pipeline.runtime.errors import LABELS
-from pipeline.params import BACKENDS
+from pipeline.teacher_table import TEACHER_TABLE
 from pipeline.profiles import load_params_or_profile
 from pipeline.orchestration.standalone import (efficiency_line, project_outputs, run_project, time_budget_params, training_line,
                                  write_project)
@@ -24,7 +24,7 @@ from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overw
                    "(threshold, checkpoint choice, report scores); without: tau 0.5, last epoch")
 @click.option("--checkpoint", default=None, type=click.Path(),
               help="SAM 3 folder (save_pretrained layout); implies --backend sam3")
-@click.option("--backend", type=click.Choice(BACKENDS), default=None,
+@click.option("--backend", type=click.Choice(TEACHER_TABLE), default=None,
               help="teacher: sam3 (default with --checkpoint) | imported (masks made elsewhere); simulated is "
                    "refused (a SIMULATOR needing masks of every training image)")
 @click.option("--imported-dir", default=None, type=click.Path(), help="imported teacher masks (see the README layout)")

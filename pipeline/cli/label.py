@@ -13,8 +13,8 @@ from pipeline.api import choose_teacher, with_data_options
 from pipeline.runtime.errors import CLI
 from pipeline.geometry import NoForeground
 from pipeline.labeling import label_folder
-from pipeline.labeling.run import OUTPUTS, YOLO_LISTS, parse_formats
-from pipeline.params import BACKENDS
+from pipeline.labeling.run import LABEL_FORMATS, OUTPUTS, parse_formats
+from pipeline.teacher_table import TEACHER_TABLE
 from pipeline.profiles import load_params_or_profile
 from pipeline.runtime.progress import quiet_bars
 from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option,
@@ -26,13 +26,13 @@ from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overw
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
 @click.option("--checkpoint", default=None, type=click.Path(),
               help="SAM 3 folder (save_pretrained layout); implies --backend sam3")
-@click.option("--backend", type=click.Choice(BACKENDS), default=None,
-              help="teacher: sam3 | imported (masks made elsewhere) | simulated (a SIMULATOR; needs --reference-masks)")
+@click.option("--backend", type=click.Choice(TEACHER_TABLE), default=None,
+              help="teacher: " + " | ".join(f"{name} ({t.description})" for name, t in TEACHER_TABLE.items()))
 @click.option("--imported-dir", default=None, type=click.Path(), help="imported teacher masks (see the README layout)")
 @click.option("--reference-masks", default=None, type=click.Path(),
               help="simulated backend only: masks named like the images, read by the SIMULATOR")
-@click.option("--format", "formats", default="png,coco,yolo", show_default=True,
-              help="comma-separated: png, coco, yolo")
+@click.option("--format", "formats", default=None,
+              help=f"comma-separated, of {', '.join(LABEL_FORMATS)} (default: {','.join(parse_formats())})")
 @click.option("--copy-images", is_flag=True,
               help="yolo/images holds copies of the inputs (default: relative links, which survive moving the "
                    "input and output folders together)")
@@ -88,12 +88,10 @@ def summary_line(result) -> str:
     parts = [f"label: {len(result.table)} images -> {result.out} ({', '.join(result.formats)})",
              f"teacher answers {record['teacher_answers_computed']} computed, {record['teacher_cache_hits']} cached",
              f"gate g median {g.median():.3f}, {int((g > 0).sum())} with g > 0"]
-    val = result.out / OUTPUTS["yolo"] / YOLO_LISTS[1]
-    if "yolo" in result.formats:
-        parts.append(f"yolo val: {len(val.read_text().splitlines())} of {len(result.table)} images" if val.is_file()
-                     else "yolo: no val split (README.txt)")
+    parts += [LABEL_FORMATS[f].summary(result.out, len(result.table)) for f in result.formats
+              if LABEL_FORMATS[f].summary]
     if result.simulator:
-        parts.append("backend simulated is a SIMULATOR")
+        parts.append(f"backend {result.backend} is a SIMULATOR")
     return "; ".join(parts)
 
 

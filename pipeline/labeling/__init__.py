@@ -1,5 +1,5 @@
 """Pseudo-labels of a folder of images in standard formats (``geodistill label``, ``pipeline.label``)."""
 
-from pipeline.labeling.run import FORMATS, LabelResult, label_folder
+from pipeline.labeling.run import LABEL_FORMATS, LabelResult, label_folder
 
-__all__ = ["FORMATS", "LabelResult", "label_folder"]
+__all__ = ["LABEL_FORMATS", "LabelResult", "label_folder"]

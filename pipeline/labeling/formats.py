@@ -1,19 +1,109 @@
-"""Pseudo-mask export formats, pure functions on arrays.
+"""Pseudo-mask export formats: the registry of ``label``'s formats, and pure functions on arrays.
 
-COCO compressed RLE and instance records (one spacecraft instance per image), YOLO segmentation lines and the
-YOLO dataset's text files, chosen to load in pycocotools and Ultralytics (docs/decisions.md, "label's export
-formats").
+:class:`LabelFormat` and :data:`LABEL_FORMATS` (extended with :func:`register_format`) are the formats that
+``label`` plans, writes and summarises.  The functions build COCO compressed RLE and instance records (one
+spacecraft instance per image), YOLO segmentation lines and the YOLO dataset's text files, chosen to load in
+pycocotools and Ultralytics (docs/decisions.md, "label's export formats").
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
-from typing import Sequence
+from pathlib import Path
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from pycocotools import mask as mask_utils
 
+from pipeline.catalog import OUTPUT_FILES, OutputFile
 from pipeline.runtime.errors import InputError
+
+
+@dataclasses.dataclass(frozen=True)
+class LabelFormat:
+    """One output format of ``label``: the files it plans, its per-image write and its finishing step.
+
+    Parameters
+    ----------
+    name : str
+        The word of ``--format`` and of ``pipeline.label(formats=...)``.
+    files : callable
+        ``files(ids, paths) -> list[str]``: the files it writes for the images ``ids`` (``paths``: each
+        input's path relative to the input folder), relative POSIX paths under the output folder.
+    write_image : callable
+        ``write_image(job, row, mask) -> object``: image ``row``'s files of its voted mask, bool [H,W] at the
+        image's own size (``job``: the :class:`pipeline.labeling.reading.LabelJob`); what it returns is
+        handed to ``finish``.
+    finish : callable
+        ``finish(job, per_image, table)``: its other files, after the gates: ``per_image`` lists what
+        ``write_image`` returned, ``table`` is label's table (one row per image, the gate in column ``g``).
+    image_folders : tuple of str
+        The folders (``"masks/"``) of its per-image files: a rerun removes those of images gone from the
+        input folder only with ``--overwrite``.
+    outputs : tuple of OutputFile
+        Catalogue rows it adds to label's folder (``pipeline.catalog.OUTPUT_FILES["label"]``).
+    mask_file : callable or None
+        ``mask_file(id)``: the image's mask as an image file under the output folder
+        (``LabelResult.masks``).
+    summary : callable or None
+        ``summary(out, n) -> str``: its part of the command's summary line.
+    default : bool
+        Written when no format is named.
+    """
+
+    name: str
+    files: Callable[[Sequence[str], Sequence[str]], list[str]]
+    write_image: Callable[[Any, int, np.ndarray], Any]
+    finish: Callable[[Any, list, Any], None] = lambda job, per_image, table: None
+    image_folders: tuple[str, ...] = ()
+    outputs: tuple[OutputFile, ...] = ()
+    mask_file: Callable[[str], str] | None = None
+    summary: Callable[[Path, int], str] | None = None
+    default: bool = True
+
+
+#: name -> format, in the canonical order of the formats; extend with :func:`register_format`
+LABEL_FORMATS: dict[str, LabelFormat] = {}
+
+
+def register_format(fmt: LabelFormat) -> LabelFormat:
+    """Add ``fmt`` to :data:`LABEL_FORMATS` and its ``outputs`` to the catalogue.
+
+    Parameters
+    ----------
+    fmt : LabelFormat
+        The format; its name and its catalogue keys must be new.
+
+    Returns
+    -------
+    LabelFormat
+        ``fmt``.
+
+    Raises
+    ------
+    ValueError
+        When its name or one of its catalogue keys is taken.
+    """
+    taken = [f.key for f in fmt.outputs if f.key in OUTPUT_FILES["label"]]
+    if fmt.name in LABEL_FORMATS or taken:
+        raise ValueError(f"label format {fmt.name!r}: name or catalogue key {taken} registered already")
+    OUTPUT_FILES["label"].update({f.key: f for f in fmt.outputs})
+    LABEL_FORMATS[fmt.name] = fmt
+    return fmt
+
+
+def unregister_format(name: str) -> None:
+    """Remove format ``name`` and its catalogue rows (the inverse of :func:`register_format`).
+
+    Parameters
+    ----------
+    name : str
+        The format's name; an unknown name removes nothing.
+    """
+    fmt = LABEL_FORMATS.pop(name, None)
+    for f in fmt.outputs if fmt is not None else ():
+        OUTPUT_FILES["label"].pop(f.key, None)
 
 SPACECRAFT_CATEGORY = {"id": 1, "name": "spacecraft", "supercategory": "object"}
 YOLO_CLASS = 0  # the one class of the YOLO labels (data.yaml names it "spacecraft")

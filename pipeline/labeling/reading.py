@@ -17,15 +17,17 @@ import pandas as pd
 
 from pipeline.artifacts.atomic import folders_gone_on_failure
 from pipeline.artifacts.ownership import check_outputs, claim_outputs, owned_outputs, read_record
-from pipeline.catalog import output_file, output_names
+from pipeline.catalog import output_names
 from pipeline.datasets.loading import (SUPPORTED_SUFFIXES, BadFileError, DecodeCache, load_mask, load_rgb,
                                        reset_frame_warnings)
 from pipeline.datasets.manifest import BadInputPolicy, relative_id
 from pipeline.datasets.scan import scan_inputs
+from pipeline.labeling.formats import LABEL_FORMATS
 from pipeline.params import section
 from pipeline.runtime.errors import (BACKEND, CHECKPOINT, INPUT, LABELS, OUT, OVERWRITE, REFERENCE_MASKS, InputError,
                                      literal)
 from pipeline.runtime.progress import progress
+from pipeline.teacher_table import is_simulator
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.jobs import in_view
@@ -33,11 +35,7 @@ from pipeline.teachers.runner import open_runner
 
 log = logging.getLogger("pipeline.labeling.run")  # label's one logger: callers listen to it
 
-FORMATS = ("png", "coco", "yolo")
 OUTPUTS = output_names("label")
-#: yolo/'s image lists: training, then validation
-YOLO_LISTS = (output_file("label_yolo", "train"), output_file("label_yolo", "val"))
-YOLO_DATA, YOLO_README = output_file("label_yolo", "data"), output_file("label_yolo", "readme")
 #: written whatever the formats; the caches under .cache/ are not label's outputs
 ALWAYS = tuple(OUTPUTS[k] for k in ("table", "csv", "sheet", "skipped"))
 SIMULATOR_NOTE = ("teacher.backend=simulated is a SIMULATOR of foundation-model errors that reads the "
@@ -105,6 +103,8 @@ def image_ids(root: Path, files: Sequence[Path]) -> list[str]:
 def label_targets(root: Path, files: Sequence[Path], ids: Sequence[str], fmts: Sequence[str]) -> list[str]:
     """List the files a run writes under ``out``: what label.json lists (the record itself left out).
 
+    The files always written, then each format's own in the order of ``fmts`` (``LabelFormat.files``).
+
     Parameters
     ----------
     root : Path
@@ -114,24 +114,15 @@ def label_targets(root: Path, files: Sequence[Path], ids: Sequence[str], fmts: S
     ids : sequence of str
         Their ids.
     fmts : sequence of str
-        The formats written.
+        The formats written: names in :data:`pipeline.labeling.formats.LABEL_FORMATS`.
 
     Returns
     -------
     list of str
         Relative posix paths.
     """
-    out = list(ALWAYS)
-    if "png" in fmts:
-        out += [f"{OUTPUTS['masks']}/{i}.png" for i in ids]
-    if "coco" in fmts:
-        out.append(OUTPUTS["coco"])
-    if "yolo" in fmts:
-        out += [f"{OUTPUTS['yolo']}/labels/{i}.txt" for i in ids]
-        out += [f"{OUTPUTS['yolo']}/images/{f.relative_to(root).as_posix()}" for f in files]
-        lists = YOLO_LISTS if len(ids) >= 2 else YOLO_LISTS[:1]  # no val.txt below 2 images (yolo_split)
-        out += [f"{OUTPUTS['yolo']}/{name}" for name in (YOLO_DATA, *lists, YOLO_README)]
-    return out
+    rels = [f.relative_to(root).as_posix() for f in files]
+    return [*ALWAYS, *(p for name in fmts for p in LABEL_FORMATS[name].files(ids, rels))]
 
 
 def find_reference_masks(mask_dir: str | Path, ids: Sequence[str]) -> list[Path]:
@@ -264,6 +255,8 @@ class LabelJob:
         The SIMULATOR's reference masks, one per file.
     cache : pipeline.datasets.loading.DecodeCache or None
         The decoded-image cache.
+    copy_images : bool
+        Formats that place the inputs beside the labels (yolo/images) copy them; False: relative links.
     shas : list of str
         sha256 of each file.
     sizes : list of tuple of int
@@ -289,9 +282,10 @@ class LabelJob:
     geo: dict
     tcfg: dict
     size: int
-    simulated: bool
+    simulated: bool  # a SIMULATOR's labels (pipeline.teacher_table.is_simulator)
     ref_files: list | None
     cache: DecodeCache | None
+    copy_images: bool = False  # formats that place the inputs beside the labels copy them (else: relative links)
     shas: list = dataclasses.field(default_factory=list)
     sizes: list = dataclasses.field(default_factory=list)
     previous: set = dataclasses.field(default_factory=set)  # label's files of an earlier run (its label.json)
@@ -343,10 +337,10 @@ def plan_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
     policy = BadInputPolicy(section(params, "data")["skip_bad"])
     # bad entries (links leaving the folder, broken links) are reported; non-images only listed
     policy.report_scan(found)
-    planned, every_format = label_targets(root, files, ids, fmts), set(label_targets(root, files, ids, FORMATS))
+    planned, every_format = label_targets(root, files, ids, fmts), set(label_targets(root, files, ids, LABEL_FORMATS))
     check_outputs(out, planned, OUTPUTS["record"], "label", overwrite=overwrite)
     # adding images is fine; losing the labels of images no longer here is not, unless asked
-    per_image = (f"{OUTPUTS['masks']}/", f"{OUTPUTS['yolo']}/labels/", f"{OUTPUTS['yolo']}/images/")
+    per_image = tuple(folder for f in LABEL_FORMATS.values() for folder in f.image_folders)
     gone = sorted(p for p in owned_outputs(out, OUTPUTS["record"], "label") - every_format
                   if p.startswith(per_image) and ((out / p).is_symlink() or (out / p).is_file()))
     if gone and not overwrite:
@@ -357,13 +351,13 @@ def plan_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
     tcfg = section(params, "teacher")
     tcfg["cache_dir"] = _inside(tcfg["cache_dir"], out.resolve())  # absolute: label.json names it to distill
     tcfg = check_teacher_params(tcfg)
-    simulated = tcfg["backend"] == "simulated"
+    simulated = is_simulator(tcfg["backend"])
     if simulated and reference_masks is None:
         raise InputError("{} is a SIMULATOR that reads reference masks: pass {} (masks named like the images); "
-                         "use {} for real labels", BACKEND("simulated"), REFERENCE_MASKS("DIR"),
+                         "use {} for real labels", BACKEND(tcfg["backend"]), REFERENCE_MASKS("DIR"),
                          CHECKPOINT("SAM3_DIR"))
     if not simulated and reference_masks is not None:
-        raise InputError(f"{{}}: only the simulated teacher reads masks; teacher.backend="
+        raise InputError(f"{{}}: only the simulated teacher (a SIMULATOR) reads masks; teacher.backend="
                          f"{literal(tcfg['backend'])} never does", REFERENCE_MASKS)
     ref_files = find_reference_masks(reference_masks, ids) if simulated else None
     # absolute: Ray workers need not share this process's working directory

@@ -16,19 +16,20 @@ import numpy as np
 import pandas as pd
 
 from pipeline.geometry import NoForeground, area_ratios, foreground_agreement
-from pipeline.labeling.reading import (FORMATS, OUTPUTS, SIMULATOR_NOTE, YOLO_LISTS, LabelJob, check_label_folder,
-                                       find_images, open_folder)
+from pipeline.labeling.formats import LABEL_FORMATS
+from pipeline.labeling.reading import OUTPUTS, SIMULATOR_NOTE, LabelJob, check_label_folder, find_images, open_folder
 from pipeline.labeling.writing import write_outputs, write_votes
 from pipeline.params import section
 from pipeline.pseudo_labels import Gates, reliability_gates, vote_block
 from pipeline.runtime.errors import FORMAT, InputError, caller
 from pipeline.runtime.progress import progress
+from pipeline.teacher_table import is_simulator
 
 log = logging.getLogger(__name__)
 
 #: what callers import from here (the command, the API, review export, distill's project)
-__all__ = ["FORMATS", "OUTPUTS", "YOLO_LISTS", "LabelResult", "check_label_folder", "find_images", "label_folder",
-           "parse_formats"]
+__all__ = ["LABEL_FORMATS", "OUTPUTS", "LabelResult", "check_label_folder", "find_images", "label_folder",
+           "mask_file", "parse_formats"]
 
 
 @dataclasses.dataclass(repr=False)
@@ -61,15 +62,14 @@ class LabelResult:
 
     @property
     def simulator(self) -> bool:
-        """Whether the labels come from the SIMULATOR (``backend == "simulated"``), not a real teacher."""
-        return self.backend == "simulated"
+        """Whether the labels come from the SIMULATOR, not a real teacher (the teacher table's ``simulator``)."""
+        return is_simulator(self.backend)
 
     @property
     def masks(self) -> dict[str, Path]:
-        """Image id -> its voted mask PNG; empty when ``png`` was not among the formats."""
-        if "png" not in self.formats:
-            return {}
-        return {str(i): Path(self.out) / OUTPUTS["masks"] / f"{i}.png" for i in self.table["image_id"]}
+        """Image id -> its voted mask as an image file (:func:`mask_file`); empty when no format written has one."""
+        where = mask_file(self.formats)
+        return {} if where is None else {str(i): Path(self.out) / where(str(i)) for i in self.table["image_id"]}
 
     def __repr__(self) -> str:
         """Return one line: folder, image count, formats, skipped count, backend."""
@@ -77,31 +77,52 @@ class LabelResult:
                 f"skipped={len(self.skipped)}, backend={self.backend!r})")
 
 
-def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
+def mask_file(formats: Sequence[str]):
+    """Return where the voted mask is written as an image file, by the first of ``formats`` that writes one.
+
+    Parameters
+    ----------
+    formats : sequence of str
+        Format names; names not in :data:`~pipeline.labeling.formats.LABEL_FORMATS` are passed over.
+
+    Returns
+    -------
+    callable or None
+        ``image id -> path`` relative to the output folder (``LabelFormat.mask_file``, e.g. ``png``'s
+        ``masks/<id>.png``); None when no format of ``formats`` writes one.
+    """
+    return next((LABEL_FORMATS[f].mask_file for f in formats if f in LABEL_FORMATS and LABEL_FORMATS[f].mask_file),
+                None)
+
+
+def parse_formats(formats: str | Sequence[str] | None = None) -> tuple[str, ...]:
     """Parse the requested label formats.
 
     Parameters
     ----------
-    formats : str or sequence of str
-        ``"png,coco"`` or ``["png", "coco"]``; case and blanks ignored.
+    formats : str or sequence of str or None, optional
+        ``"png,coco"`` or ``["png", "coco"]``, names in :data:`~pipeline.labeling.formats.LABEL_FORMATS`;
+        case and blanks ignored.  None (default): the registry's default formats (``LabelFormat.default``).
 
     Returns
     -------
     tuple of str
-        The formats in the canonical order of :data:`FORMATS`.
+        The formats in the canonical order of :data:`~pipeline.labeling.formats.LABEL_FORMATS`.
 
     Raises
     ------
     InputError
         A format is unknown or none is given, naming ``--format``.
     """
+    if formats is None:
+        return tuple(name for name, f in LABEL_FORMATS.items() if f.default)
     items = [f.strip().lower() for f in (formats.split(",") if isinstance(formats, str) else formats)]
     items = [f for f in items if f]
-    bad = [f for f in items if f not in FORMATS]
+    bad = [f for f in items if f not in LABEL_FORMATS]
     if bad or not items:
-        raise InputError(f"{{}}: expected a comma-separated subset of {','.join(FORMATS)}",
+        raise InputError(f"{{}}: expected a comma-separated subset of {','.join(LABEL_FORMATS)}",
                          FORMAT(','.join(items) or repr(formats)))
-    return tuple(f for f in FORMATS if f in items)
+    return tuple(f for f in LABEL_FORMATS if f in items)
 
 
 def folder_votes(job: LabelJob, threshold: float) -> Iterator[tuple]:
@@ -155,7 +176,7 @@ def folder_gates(c: np.ndarray, n_valid: np.ndarray, a: np.ndarray, geo: Mapping
 
 
 def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, device: str = "auto",
-                 formats: str | Sequence[str] = FORMATS, reference_masks: str | Path | None = None,
+                 formats: str | Sequence[str] | None = None, reference_masks: str | Path | None = None,
                  overwrite: bool = False, workers: int = 0, address: str | None = None,
                  copy_images: bool = False) -> LabelResult:
     """Label every image under ``input_dir`` into ``out`` with validated ``params``.
@@ -174,8 +195,9 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
         Validated params with the teacher chosen.
     device : str, optional
         ``auto`` (default), ``cpu`` or ``cuda``.
-    formats : str or sequence of str, optional
-        A subset of :data:`FORMATS` (default all).
+    formats : str or sequence of str or None, optional
+        A subset of :data:`~pipeline.labeling.formats.LABEL_FORMATS`; None (default): its default formats
+        (:func:`parse_formats`).
     reference_masks : str or Path, optional
         The masks the simulated teacher reads (refused for real teachers).
     overwrite : bool, optional
@@ -199,8 +221,9 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
     """
     fmts = parse_formats(formats)
     job = open_folder(input_dir, out, params, reference_masks, overwrite, fmts, device, workers, address)
+    job.copy_images = copy_images
     vote_threshold = float(section(params, "consensus")["vote_threshold"])
-    v = write_votes(job, fmts, folder_votes(job, vote_threshold), copy_images)
+    v = write_votes(job, fmts, folder_votes(job, vote_threshold))
     gates = folder_gates(v.c, v.n_valid, v.a, job.geo)
     tcfg, n, stats = job.tcfg, len(job.files), job.stats
     table = write_outputs(job, fmts, v, gates, {

@@ -32,6 +32,7 @@ from pipeline.report.offline_plots import template_path, template_text
 from pipeline.artifacts.ownership import check_outputs, record_fields, refuse_foreign_files
 from pipeline.params import deep_merge, read_yaml_mapping
 from pipeline.runtime.progress import QUIET_ENV, bars_quiet
+from pipeline.teacher_table import is_simulator
 
 log = logging.getLogger(__name__)
 
@@ -129,9 +130,9 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     out = Path(out)
     if out.resolve() == input_dir or input_dir in out.resolve().parents:
         raise InputError("{}: must not be the input folder or inside it", OUT(out))
-    if params["teacher"]["backend"] == "simulated":
+    if is_simulator(params["teacher"]["backend"]):
         raise InputError("{}: the SIMULATOR reads ground-truth masks of the training images, which a folder of "
-                         "images has not; use {} or {}", BACKEND("simulated"), CHECKPOINT("SAM3_DIR"),
+                         "images has not; use {} or {}", BACKEND(params["teacher"]["backend"]), CHECKPOINT("SAM3_DIR"),
                          BACKEND("imported"))
     git = git_outputs(out)
     check_outputs(out, PROJECT_OUTPUTS + git, RECORD_FILE, "distill", overwrite=overwrite, **LEGACY)

@@ -28,6 +28,7 @@ from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_ana
 from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
 from pipeline.report.environment import environment_section, opened_runs, training_runs
 from pipeline.report.glossary import glossary_section
+from pipeline.teacher_table import TEACHER_TABLE, is_simulator
 from pipeline.thresholds import mask_from_probs
 
 #: the figures' file names (pipeline.catalog.OUTPUT_FILES)
@@ -142,13 +143,10 @@ def training_logs(checkpoints: Path) -> pd.DataFrame | None:
     return pd.concat(frames, ignore_index=True) if frames else None
 
 
-TEACHER_NOTES = {"simulated": "Teacher = a SIMULATOR of prompt-dependent foundation-model errors (synthetic "
-                              "benchmark), not SAM 3: these teacher numbers describe the simulator.",
-                 "sam3": "Teacher = SAM 3 with the six fixed text prompts (backend `sam3`)."}
-
-
 def teacher_note(backend: str) -> str:
-    return TEACHER_NOTES.get(backend, f"Teacher backend: `{backend}`.")
+    """The report's sentence on the teacher's numbers (its row of :data:`pipeline.teacher_table.TEACHER_TABLE`)."""
+    spec = TEACHER_TABLE.get(backend)
+    return spec.note if spec is not None and spec.note else f"Teacher backend: `{backend}`."
 
 
 NO_MASKS_NOTE = (
@@ -410,7 +408,7 @@ def teacher_section(inp: Inputs) -> list:
     note = teacher_note(backend)
     selected = extra.get("selected_source")
     blocks = []
-    if backend == "simulated":
+    if is_simulator(backend):
         blocks.append(Text("**All teacher numbers in this section describe the teacher SIMULATOR of the "
                                "synthetic benchmark, not SAM 3.**  Two of its findings are true by construction "
                                "and are not agreement with the paper: the six-prompt vote beating single prompts "
@@ -625,7 +623,7 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> list:
                                         gate_text, str(ids[i])))
     prompt_list = "; ".join(f"p{k + 1} = `{p}`" for k, p in enumerate(prompts))
     sim = (" The prompt masks come from the teacher SIMULATOR, not SAM 3."
-           if str(teacher.attrs.get("backend", "unknown")) == "simulated" else "")
+           if is_simulator(str(teacher.attrs.get("backend", "unknown"))) else "")
     return [_figure(
         "fig:pseudo-geometry", "Multi-prompt pseudo-target construction",
         f"Training images (highest gate g first): the {tmasks.shape[1]} prompt masks with teacher scores s, the "

@@ -21,6 +21,7 @@ from pipeline.datasets.loading import probs_to_size, read_mask
 from pipeline.runtime.errors import OUT, InputError, Option, literal
 from pipeline.labeling.formats import SPACECRAFT_CATEGORY, rle_encode
 from pipeline.labeling.run import OUTPUTS as LABEL_OUTPUTS
+from pipeline.labeling.run import mask_file
 from pipeline.artifacts.ownership import (check_outputs, claim_outputs, read_record, record_fields,
                                 refuse_foreign_files, signature)
 from pipeline.review.formats import coco_review_annotation, ls_label_config, ls_results
@@ -63,16 +64,16 @@ def read_label_folder(label_dir: str | Path):
                          f"of it there)", LABEL_DIR(d))
     if not record.get("complete"):
         raise InputError("{}: that label run did not finish; rerun it (it resumes from its cache)", LABEL_DIR(d))
-    if "png" not in record.get("formats", []):
+    if mask_file(record.get("formats", [])) is None:
         raise InputError(f"{{}}: label wrote no {literal(LABEL_OUTPUTS['masks'])}/ PNGs there; rerun geodistill "
                          f"label with --format png (plus any other format)", LABEL_DIR(d))
     table = pd.read_parquet(d / LABEL_OUTPUTS["table"])
     return record, table
 
 
-def voted_mask(label_dir: Path, image_id: str, width: int, height: int) -> np.ndarray:
-    """The voted mask label wrote for ``image_id``; InputError when its size is not the image's."""
-    path = Path(label_dir) / LABEL_OUTPUTS["masks"] / f"{image_id}.png"
+def voted_mask(path: Path, width: int, height: int) -> np.ndarray:
+    """The voted mask label wrote at ``path`` (:func:`pipeline.labeling.run.mask_file`); InputError when its size
+    is not the image's."""
     mask = read_mask(path)
     if mask.shape != (height, width):
         raise InputError(f"{path}: mask size {mask.shape[1]}x{mask.shape[0]} is not the image's {width}x{height}")
@@ -145,11 +146,13 @@ def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = N
     record, table = read_label_folder(label_dir)
     check_export_outputs(out, overwrite)
     sizes = dict(zip(table["image_id"], zip(table["width"].astype(int), table["height"].astype(int))))
+    where = mask_file(record["formats"])
+    voted = lambda i: voted_mask(label_dir / where(i), *sizes[i])  # noqa: E731
     if predict is not None:
         root = Path(record["input"])
-        table[STUDENT_COLUMN] = [student_disagreement(predict(root / f), voted_mask(label_dir, i, *sizes[i]))
+        table[STUDENT_COLUMN] = [student_disagreement(predict(root / f), voted(i))
                                  for i, f in zip(table["image_id"], table["file"])]
-    return write_export(out, table, lambda i: voted_mask(label_dir, i, *sizes[i]), top=top, ranking=ranking,
+    return write_export(out, table, voted, top=top, ranking=ranking,
                         ls_shape=ls_shape, coco_shape=coco_shape, image_url=image_url,
                         image_root=Path(record["input"]), identity={"teacher": record.get("teacher_fingerprint")},
                         options={"student": predict is not None},

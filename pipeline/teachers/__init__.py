@@ -6,16 +6,16 @@ import hashlib
 from typing import Any, Mapping
 
 from pipeline.artifacts.lineage import canonical_json
-from pipeline.params import BACKENDS, validate_section
+from pipeline.params import validate_section
+from pipeline.teacher_table import TEACHER_TABLE, teacher_class
 from pipeline.teachers.base import VIEWS, Teacher, TeacherInput, finalize_answers
-from pipeline.teachers.imported import ImportedTeacher
-from pipeline.teachers.sam3 import Sam3Teacher
-from pipeline.teachers.simulated import SimulatedFoundationTeacher
 
-__all__ = ["BACKENDS", "TEACHERS", "VIEWS", "Teacher", "TeacherInput", "finalize_answers", "check_teacher_params",
-           "make_teacher", "teacher_fingerprint"]
+# the built-in backends TEACHER_TABLE names as "module:Class", imported here too so that running a teacher
+# depends on their code (the stage's code version, dvc.yaml's deps: pipeline.runtime.codeversion)
+from pipeline.teachers import imported, sam3, simulated  # noqa: F401
 
-TEACHERS: dict[str, type] = {cls.backend: cls for cls in (SimulatedFoundationTeacher, Sam3Teacher, ImportedTeacher)}
+__all__ = ["TEACHER_TABLE", "VIEWS", "Teacher", "TeacherInput", "finalize_answers", "check_teacher_params",
+           "make_teacher", "teacher_class", "teacher_fingerprint"]
 
 
 def check_teacher_params(cfg: Mapping[str, Any]) -> dict:
@@ -24,9 +24,10 @@ def check_teacher_params(cfg: Mapping[str, Any]) -> dict:
 
 
 def make_teacher(cfg: Mapping[str, Any], resolution: tuple[int, int], device: str = "auto") -> Teacher:
-    """The backend named by ``cfg['backend']`` (:data:`TEACHERS`) working at ``resolution`` (H, W) of images.zarr."""
+    """The backend named by ``cfg['backend']`` (:data:`TEACHER_TABLE`) working at ``resolution`` (H, W) of
+    images.zarr."""
     cfg = check_teacher_params(cfg)
-    return TEACHERS[cfg["backend"]].from_params(cfg, resolution, device)
+    return teacher_class(cfg["backend"]).from_params(cfg, resolution, device)
 
 
 def teacher_fingerprint(teacher: Teacher) -> str:

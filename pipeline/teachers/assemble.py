@@ -15,8 +15,8 @@ import pandas as pd
 from pipeline.artifacts.lineage import Meta, require_same_run
 from pipeline.artifacts.store import ZarrWriter, open_artifact, write_parquet
 from pipeline.runtime.errors import InputError
-from pipeline.params import SIMULATED
 from pipeline.runtime.progress import progress
+from pipeline.teacher_table import is_simulator
 from pipeline.teachers.base import manifest_extras
 from pipeline.teachers.inputs import ArtifactInputs
 from pipeline.teachers.runner import RunStats, TeacherRunner, open_runner
@@ -124,7 +124,7 @@ class TeacherRun:
                 rows += score_rows(ids[row], prompts, masks, sc, splits[row], row in run_set)
             zw.attrs.update({
                 "prompts": prompts, "image_ids": ids, "backend": self.teacher.backend,
-                "simulator": self.teacher.backend == SIMULATED, "teacher_fingerprint": self.fingerprint,
+                "simulator": is_simulator(self.teacher.backend), "teacher_fingerprint": self.fingerprint,
                 "teacher": self.teacher.fingerprint(), "splits_run": list(self.cfg["splits"]),
                 "base_prompt_index": self.cfg["base_prompt_index"], "vflip_prompt": vflip,
             })
@@ -153,8 +153,8 @@ def open_teacher_run(cfg: Mapping[str, Any], manifest, images, reference: str | 
     check_alignment(df, images, ref)
     if ref is not None:
         load.reference = os.path.abspath(reference)
-    if runner.teacher.backend == SIMULATED:
-        log.info("teacher: backend 'simulated' is a SIMULATOR of foundation-model errors that reads the "
-                 "synthetic ground truth; it is not a real teacher")
+    if is_simulator(runner.teacher.backend):
+        log.info("teacher: backend %r is a SIMULATOR of foundation-model errors that reads the synthetic ground "
+                 "truth; it is not a real teacher", runner.teacher.backend)
     return TeacherRun(dict(cfg), runner, t_fp, df, (n, h, w), [manifest, images] + ([ref] if ref is not None else []),
                       rows)

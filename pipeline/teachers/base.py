@@ -10,6 +10,8 @@ from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
+from pipeline.teacher_table import teacher_spec
+
 VIEWS = ("identity", "vflip")
 #: the manifest columns a teacher that reads the reference (the SIMULATOR) also gets (``TeacherInput.extras``)
 MANIFEST_EXTRAS = ("background", "hard_case", "area_fraction")
@@ -41,6 +43,24 @@ class Teacher(Protocol):
 
     def predict(self, batch: Sequence[TeacherInput], prompts: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
         """Answer every prompt for every image: masks bool [B,K,H,W], scores float32 [B,K] (0 = invalid)."""
+
+
+class RegisteredTeacher:
+    """What the backends share: ``backend``, their name in :data:`pipeline.teacher_table.TEACHER_TABLE`, whose row
+    states their capabilities; a subclass sets ``backend`` and writes ``from_params(cfg, resolution, device)``
+    (from the validated ``teacher:`` section, :func:`pipeline.teachers.make_teacher`), ``fingerprint`` and
+    ``predict``."""
+
+    backend: str
+
+    @property
+    def needs_reference(self) -> bool:
+        """Only a SIMULATOR reads the reference masks."""
+        return teacher_spec(self.backend).simulator
+
+    @property
+    def use_cache(self) -> bool:
+        return teacher_spec(self.backend).use_cache
 
 
 def finalize_answers(masks: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from pipeline.runtime.errors import InputError
-from pipeline.params import IMPORTED as BACKEND
-from pipeline.teachers.base import TeacherInput, files_digest, finalize_answers
+from pipeline.teacher_table import IMPORTED as BACKEND
+from pipeline.teachers.base import RegisteredTeacher, TeacherInput, files_digest, finalize_answers
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -31,16 +31,13 @@ def read_mask_png(path: Path, shape: tuple[int, int]) -> np.ndarray:
     return mask
 
 
-class ImportedTeacher:
+class ImportedTeacher(RegisteredTeacher):
     """Reads masks and scores from ``root`` (layout: docs/real-data.md)."""
 
     backend = BACKEND
-    needs_reference = False
-    use_cache = False
 
     @classmethod
     def from_params(cls, cfg, resolution: tuple[int, int], device: str = "auto") -> "ImportedTeacher":
-        """From the validated ``teacher:`` section (:func:`pipeline.teachers.make_teacher`); no device."""
         return cls(cfg["imported_dir"], resolution=resolution)
 
     def __init__(self, root: str | Path, resolution: tuple[int, int]):

@@ -18,9 +18,9 @@ from fsspec.implementations.local import LocalFileSystem
 from pipeline.artifacts.atomic import read_json, write_json
 from pipeline.runtime.device import resolve_device
 from pipeline.runtime.errors import InputError, Option, literal
-from pipeline.params import SAM3 as BACKEND
+from pipeline.teacher_table import SAM3 as BACKEND
 from pipeline.runtime.progress import library_bars_off
-from pipeline.teachers.base import TeacherInput, files_digest, finalize_answers
+from pipeline.teachers.base import RegisteredTeacher, TeacherInput, files_digest, finalize_answers
 
 log = logging.getLogger(__name__)
 
@@ -158,16 +158,13 @@ def local_hash_memo(cache_dir: str) -> Path | None:
     return Path(path) / "checkpoint_hashes.json" if isinstance(fs, LocalFileSystem) else None
 
 
-class Sam3Teacher:
+class Sam3Teacher(RegisteredTeacher):
     """Frozen SAM 3 answering text prompts: vision encoder once per image batch, text features once per run."""
 
     backend = BACKEND
-    needs_reference = False
-    use_cache = True
 
     @classmethod
     def from_params(cls, cfg, resolution: tuple[int, int], device: str = "auto") -> "Sam3Teacher":
-        """From the validated ``teacher:`` section (:func:`pipeline.teachers.make_teacher`)."""
         return cls(cfg["checkpoint"], device=device, dtype=cfg["dtype"], batch_size=cfg["batch_size"],
                    resolution=resolution, score_threshold=cfg["score_threshold"],
                    mask_threshold=cfg["mask_threshold"], compile=cfg["compile"],

@@ -12,8 +12,8 @@ import numpy as np
 
 from pipeline.runtime.errors import InputError
 from pipeline.metrics import image_iou
-from pipeline.params import SIMULATED as BACKEND
-from pipeline.teachers.base import TeacherInput, finalize_answers
+from pipeline.teacher_table import SIMULATED as BACKEND
+from pipeline.teachers.base import RegisteredTeacher, TeacherInput, finalize_answers
 
 log = logging.getLogger(__name__)
 
@@ -240,16 +240,13 @@ class SceneDraw:
     shared_fp_seed: int
 
 
-class SimulatedFoundationTeacher:
+class SimulatedFoundationTeacher(RegisteredTeacher):
     """SIMULATOR of a six-prompt foundation teacher: answers from the synthetic ground truth, degraded."""
 
     backend = BACKEND
-    needs_reference = True
-    use_cache = True
 
     @classmethod
     def from_params(cls, cfg, resolution: tuple[int, int], device: str = "auto") -> "SimulatedFoundationTeacher":
-        """From the validated ``teacher:`` section (:func:`pipeline.teachers.make_teacher`); no device."""
         return cls(seed=cfg["seed"], resolution=resolution)
 
     def __init__(self, seed: int = 0, resolution: tuple[int, int] | None = None,

@@ -9,8 +9,10 @@ import pytest
 from pipeline.artifacts.lineage import make_meta
 from pipeline.artifacts.store import open_artifact
 from pipeline.runtime.errors import InputError
-from pipeline.params import BACKENDS, PAPER, load_params, section
-from pipeline.teachers import TEACHERS, check_teacher_params, make_teacher
+from pipeline.params import PAPER, load_params, section
+from pipeline.teacher_table import BACKENDS, TEACHER_TABLE, TeacherSpec, register_teacher, teacher_class, unregister_teacher
+from pipeline.teachers import check_teacher_params, make_teacher
+from pipeline.teachers.base import RegisteredTeacher
 from pipeline.teachers.assemble import (SCORE_COLUMNS, check_alignment, fingerprint_params, open_teacher_run,
                                         score_rows, score_table)
 from tests.builders.teacher import PARAMS, build_artifacts, run_stage
@@ -81,18 +83,28 @@ def test_alignment_refuses_another_row_order(tmp_path):
 
 
 def test_the_registry_holds_every_backend_name_once():
-    assert tuple(TEACHERS) == BACKENDS
-    assert all(cls.backend == name and callable(cls.from_params) for name, cls in TEACHERS.items())
+    assert tuple(TEACHER_TABLE) == BACKENDS
+    for name in BACKENDS:
+        cls = teacher_class(name)
+        assert cls.backend == name and all(callable(getattr(cls, m)) for m in ("from_params", "fingerprint", "predict"))
+    assert [n for n in BACKENDS if TEACHER_TABLE[n].simulator] == ["simulated"]
+    shared = {n: type("T", (RegisteredTeacher,), {"backend": n})() for n in BACKENDS}  # their capabilities' source
+    assert [n for n, t in shared.items() if t.needs_reference] == ["simulated"]
+    assert [n for n, t in shared.items() if not t.use_cache] == ["imported"]
+    with pytest.raises(ValueError, match="registered already"):
+        register_teacher("sam3", TEACHER_TABLE["sam3"])
+    unregister_teacher("sam3")  # a built-in backend stays
+    assert "sam3" in TEACHER_TABLE
 
 
 def test_make_teacher_builds_from_the_registry(tmp_path, monkeypatch):
     teacher = make_teacher(_cfg(tmp_path, seed=7), (32, 32))
-    assert type(teacher) is TEACHERS["simulated"] and teacher.seed == 7 and teacher.resolution == (32, 32)
+    assert type(teacher) is teacher_class("simulated") and teacher.seed == 7 and teacher.resolution == (32, 32)
 
     class Fake:
         @classmethod
         def from_params(cls, cfg, resolution, device):
             return ("fake", cfg["backend"], resolution, device)
 
-    monkeypatch.setitem(TEACHERS, "simulated", Fake)
+    monkeypatch.setitem(TEACHER_TABLE, "simulated", TeacherSpec(Fake, "a fake", simulator=True))
     assert make_teacher(_cfg(tmp_path), (8, 8), "cpu") == ("fake", "simulated", (8, 8), "cpu")
