@@ -6,7 +6,7 @@ no torch."""
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from pipeline.runtime.errors import InputError
 
@@ -206,6 +206,22 @@ def in_table_order(names) -> list[str]:
 def ablation_table_rows(table: str) -> list[str]:
     """The rows of ablation table ``table``, in table order."""
     return in_table_order(n for n, m in METHODS.items() if table in m.ablation_tables)
+
+
+#: recipe parts that depart from eq:raw-loss: dotted params key -> (whether a recorded value departs, its name in a
+#: table, formatted with the value ``v``)
+DEPARTURES: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "train.soft_targets": (bool, "agreement-map targets"),
+    "train.bootstrap_beta": (lambda v: float(v) < 1.0, "bootstrapped targets, beta {v:g}"),
+    "train.ignore_band": (lambda v: float(v) > 0.0, "ignore band {v:g}"),
+}
+
+
+def departures(recorded: Mapping[str, Any]) -> list[str]:
+    """The names of the departures from eq:raw-loss a run's recorded params hold (:data:`DEPARTURES`), in order;
+    a key the run did not record (an older run) departs from nothing."""
+    return [name.format(v=recorded[k]) for k, (on, name) in DEPARTURES.items()
+            if recorded.get(k) is not None and on(recorded[k])]
 
 
 def method_label(name: str) -> str:

@@ -19,7 +19,7 @@ from pipeline.artifacts.lineage import require_same_run
 from pipeline.artifacts.store import open_artifact, read_chunk_rows
 from pipeline.runtime.errors import ArtifactError
 from pipeline.evaluation.inference import CORRECTED_VALIDATION, load_student, predict_probs
-from pipeline.methods import BASELINE, PROPOSED
+from pipeline.methods import BASELINE, PROPOSED, departures
 from pipeline.metrics import image_iou
 from pipeline.report import figures as F
 from pipeline.report import tables as T
@@ -51,6 +51,7 @@ class Inputs:
     noise_floor: dict | None = None  # the record measured in this configuration (:func:`noise_floor_for_runs`)
     fixed_tau: float | None = None  # :func:`recorded_fixed_tau`
     run_review: dict = dataclasses.field(default_factory=dict)  # :func:`recorded_review`
+    departures: dict = dataclasses.field(default_factory=dict)  # :func:`recorded_departures`
     corrected_validation: int = 0  # corrected training images calibrate used as validation images
 
     def get(self, name):
@@ -81,6 +82,7 @@ def load_inputs(art: str | Path, profile: str | None = None) -> Inputs:
                   no_masks=manifest is not None and no_reference_masks(manifest.df, found.get("reference")),
                   noise_floor=noise_floor_for_runs(catalog.path("noise_floor", art), runs, images, profile),
                   fixed_tau=recorded_fixed_tau(thr, found.get("metrics")), run_review=recorded_review(checkpoints),
+                  departures=recorded_departures(checkpoints),
                   corrected_validation=int(thr_extra.get(CORRECTED_VALIDATION, 0)))
 
 
@@ -91,6 +93,17 @@ def recorded_review(checkpoints: Path) -> dict[str, dict]:
             for method, e in extras if e.get("annotation_free") is False and e.get("corrections_mode")}
 
 
+def recorded_departures(checkpoints: Path) -> dict[str, list[str]]:
+    """{method: the departures from eq:raw-loss its runs recorded} (:func:`pipeline.methods.departures`)."""
+    out: dict[str, list[str]] = {}
+    for method, _, ckpt in opened_runs(checkpoints):
+        # unvalidated: the params a run recorded (an older run records fewer keys)
+        names = departures((ckpt.meta.params or {}).get("params") or {})
+        if names:
+            out[method] = list(dict.fromkeys([*out.get(method, []), *names]))
+    return out
+
+
 def corrections_note(inp: Inputs) -> str | None:
     """A sentence on the human corrections this run used, None without."""
     parts = []
@@ -98,6 +111,10 @@ def corrections_note(inp: Inputs) -> str | None:
         parts.append(f"**{inp.corrected_validation} training images a person corrected are validation images** "
                      f"(`review.mode: validate`): their corrected masks select checkpoints and calibrate tau, and "
                      f"they left the training set, so the students stay annotation-free.")
+    if inp.departures:
+        names = ", ".join(T.label(m) for m in inp.departures)
+        parts.append(f"**Departures from eq:raw-loss (issue 57's label-noise levers), named in every table:** "
+                     f"{names}.")
     if inp.run_review:
         names = ", ".join(T.label(m) for m in inp.run_review)
         parts.append(f"**Trained on human corrections (`review.mode: replace`), NOT annotation-free:** {names}. "
@@ -646,7 +663,7 @@ def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu",
     """-> (report, plot tables {name: DataFrame}, opened inputs); ``environment``: the report machine's record."""
     inp = load_inputs(art, profile or None)
     plots: dict[str, pd.DataFrame] = {}
-    with T.human_trained(inp.run_review):
+    with T.human_trained(inp.run_review, inp.departures):
         sections = [glossary_section(), data_section(inp), results_section(inp),
                     qualitative_section(inp, cfg["qualitative_images"], device),
                     threshold_section(inp, plots), diagnostics_section(inp, plots), teacher_section(inp),

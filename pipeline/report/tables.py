@@ -39,19 +39,29 @@ def mode_text(mode: str, fixed_tau: float | None) -> str:
 _RUN_REVIEW: contextvars.ContextVar[Mapping] = contextvars.ContextVar("run_review", default={})
 
 
+#: {method: the names of its runs' departures from eq:raw-loss} while a report is built (:func:`human_trained`)
+_DEPARTURES: contextvars.ContextVar[Mapping] = contextvars.ContextVar("departures", default={})
+
+
 @contextlib.contextmanager
-def human_trained(run_review: Mapping[str, Mapping]) -> Iterator[None]:
-    """Within the block, :func:`label` marks the runs trained on human corrections NOT annotation-free."""
-    token = _RUN_REVIEW.set(dict(run_review))
+def human_trained(run_review: Mapping[str, Mapping], departures: Mapping[str, list] | None = None
+                  ) -> Iterator[None]:
+    """Within the block, :func:`label` marks the runs trained on human corrections NOT annotation-free, and names
+    the departures from eq:raw-loss a method's runs trained with (``departures``: {method: names})."""
+    tokens = _RUN_REVIEW.set(dict(run_review)), _DEPARTURES.set(dict(departures or {}))
     try:
         yield
     finally:
-        _RUN_REVIEW.reset(token)
+        _RUN_REVIEW.reset(tokens[0])
+        _DEPARTURES.reset(tokens[1])
 
 
 def label(method: str) -> str:
-    """The method's display label, for the run it names (:func:`human_trained`)."""
-    return run_label(METHODS[method], _RUN_REVIEW.get().get(method)) if method in METHODS else method_label(method)
+    """The method's display label, for the run it names (:func:`human_trained`): "Plain Student + bootstrapped
+    targets, beta 0.8" where its runs departed from eq:raw-loss."""
+    base = run_label(METHODS[method], _RUN_REVIEW.get().get(method)) if method in METHODS else method_label(method)
+    names = _DEPARTURES.get().get(method)
+    return f"{base} + {', '.join(names)}" if names else base
 
 
 def not_annotation_free(methods: Sequence[str]) -> list[str]:

@@ -76,3 +76,17 @@ def test_fused_targets_follow_their_rule():
         fused_targets(p, m, "vote", 0.5)
     with pytest.raises(ValueError, match="weight"):
         fused_targets(p, m, "mix", 1.5)
+
+
+def test_a_departure_from_eq_raw_loss_is_named_in_every_table():
+    from pipeline.methods import departures
+    from pipeline.report import tables as T
+
+    recorded = {"train.soft_targets": False, "train.bootstrap_beta": 0.8, "train.ignore_band": 0.0}
+    assert departures(recorded) == ["bootstrapped targets, beta 0.8"]
+    assert departures({"train.bootstrap_beta": 1.0, "train.ignore_band": 0.2}) == ["ignore band 0.2"]
+    assert departures({}) == []  # a run recorded before the levers departs from nothing
+    plain = T.label("plain")
+    with T.human_trained({}, {"plain": departures(recorded)}):
+        assert T.label("plain") == f"{plain} + bootstrapped targets, beta 0.8" and T.label("geodistill") != plain
+    assert T.label("plain") == plain
