@@ -23,7 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from benchmarks.common import parser, resumed_runs, run_jobs
-from benchmarks.study_recipe import DATA_SIZES, build_artifacts, load_study_data
+from benchmarks.study_recipe import add_data_size_options, build_artifacts, data_size_sets, load_study_data
 from pipeline import catalog
 from pipeline.artifacts.store import open_artifact
 from pipeline.evaluation.inference import predict_probs
@@ -176,13 +176,11 @@ def summarize(results: list[dict]) -> list[dict]:
 def main(argv=None) -> dict:
     ap = parser(__doc__, artifacts=None, workdir="past_labels", profile="reduced", resolution=64, epochs=None,
                 seeds=[42], device="cpu", jobs=1, threads=2, out="past_labels.json", set=[])
-    for key in DATA_SIZES:
-        ap.add_argument("--" + key.replace("_", "-"), type=int, default=None, help=f"data.synthetic.{key}")
+    add_data_size_options(ap)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     args = ap.parse_args(argv)
     device = str(resolve_device(args.device))
-    sets = [f"data.resolution={args.resolution}", "protocol.supervised_ceiling=true"] + [
-        f"data.synthetic.{k}={getattr(args, k)}" for k in DATA_SIZES if getattr(args, k) is not None] + args.sets
+    sets = [f"data.resolution={args.resolution}", "protocol.supervised_ceiling=true"] + data_size_sets(args) + args.sets
     params = load_profile(args.profile, sets)
     artifacts = (Path(args.artifacts) if args.artifacts
                  else build_artifacts(Path(args.workdir).resolve(), args.profile, sets, device))

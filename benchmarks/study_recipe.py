@@ -212,18 +212,27 @@ def print_table(rows: list[dict], header: str) -> None:
               f"{r['area_05']:7.2f} {r['iou_cal_tiny']:7.3f} {r['tau_cal']:5.2f}")
 
 
+def add_data_size_options(ap) -> None:
+    """``--train-spacecraft`` ... ``--test-views``: the data.synthetic sizes of :data:`DATA_SIZES`."""
+    for key in DATA_SIZES:
+        ap.add_argument("--" + key.replace("_", "-"), type=int, default=None, help=f"data.synthetic.{key}")
+
+
+def data_size_sets(args) -> list[str]:
+    """``--set`` items of the data sizes given on the command line (:func:`add_data_size_options`)."""
+    return [f"data.synthetic.{k}={getattr(args, k)}" for k in DATA_SIZES if getattr(args, k) is not None]
+
+
 def main(argv=None) -> dict:
     ap = parser(__doc__, artifacts=None, workdir="study_recipe", profile="paper", resolution=384, epochs=None,
                 seeds=[42], device="cpu", jobs=1, threads=1, out="study_recipe.json", set=[])
-    for key in DATA_SIZES:
-        ap.add_argument("--" + key.replace("_", "-"), type=int, default=None, help=f"data.synthetic.{key}")
+    add_data_size_options(ap)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
     args = ap.parse_args(argv)
 
     device = str(resolve_device(args.device))
-    sets = [f"data.resolution={args.resolution}"] + [f"data.synthetic.{k}={getattr(args, k)}" for k in DATA_SIZES
-                                                     if getattr(args, k) is not None] + args.sets
+    sets = [f"data.resolution={args.resolution}"] + data_size_sets(args) + args.sets
     params = load_profile(args.profile, sets)
     artifacts = (Path(args.artifacts) if args.artifacts
                  else build_artifacts(Path(args.workdir).resolve(), args.profile, sets, device))
