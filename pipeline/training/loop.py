@@ -1,6 +1,8 @@
-"""Student training: Stage I, Stage II and every comparison method of :mod:`pipeline.methods` in one loop driven by
-the method table.  Arrays in (:class:`TrainData`; reference masks only in :class:`ValData`, for selection), model
-and log out; it opens no file.  Schedule, numerics and resumption: docs/decisions.md, "Training".
+"""Student training: Stage I, Stage II and every comparison method of :mod:`pipeline.methods` in one loop.
+
+The loop is driven by the method table.  Arrays in (:class:`TrainData`; reference masks only in
+:class:`ValData`, for selection), model and log out; it opens no file.  Schedule, numerics and resumption:
+docs/decisions.md, "Training".
 """
 
 from __future__ import annotations
@@ -52,36 +54,133 @@ STATE_VERSION = 1
 class Checkpointer(Protocol):
     """Where a run's per-epoch resume state lives: ``load(run_key)`` the last saved (or None), ``save(state)``."""
 
-    def load(self, run_key: Mapping[str, Any]) -> dict | None: ...
+    def load(self, run_key: Mapping[str, Any]) -> dict | None:
+        """Load the last saved resume state.
 
-    def save(self, state: dict) -> None: ...
+        Parameters
+        ----------
+        run_key : Mapping
+            The run's key: what a state must have been saved under to be resumed (the method, seed, epochs,
+            training image ids, threads, autocast dtype and, under ``until: plateau``, the stopping rule).  A
+            checkpointer may return a state of another key; :func:`train` compares the keys.
+
+        Returns
+        -------
+        dict or None
+            The state :meth:`save` was last given, or None: there is none.
+        """
+        ...
+
+    def save(self, state: dict) -> None:
+        """Save the resume state after an epoch, replacing the one before.
+
+        Parameters
+        ----------
+        state : dict
+            The complete resume state (version, run key, epoch, model, optimizer, scheduler, torch RNG, log,
+            the selection candidate and, where used, the weight averages and the ``until: plateau`` state); its
+            weights on the CPU, the optimizer's state on the training device.
+        """
+        ...
 
 
 class NoCheckpointer:
     """No resume: nothing is loaded, saves are dropped."""
 
     def load(self, run_key: Mapping[str, Any]) -> dict | None:
+        """Load nothing.
+
+        Parameters
+        ----------
+        run_key : Mapping
+            The run's key (unread).
+
+        Returns
+        -------
+        None
+            Always: every run starts at epoch 1.
+        """
         return None
 
     def save(self, state: dict) -> None:
+        """Drop ``state``.
+
+        Parameters
+        ----------
+        state : dict
+            The resume state (discarded).
+        """
         pass
 
 
 class MemoryCheckpointer:
-    """Resume state held in memory (a deep copy of the last saved state); for tests and notebooks."""
+    """Resume state held in memory (a deep copy of the last saved state); for tests and notebooks.
+
+    Attributes
+    ----------
+    state : dict or None
+        The last saved state (None: nothing saved yet).
+    """
 
     def __init__(self) -> None:
         self.state: dict | None = None
 
     def load(self, run_key: Mapping[str, Any]) -> dict | None:
+        """Load a deep copy of the last saved state, whatever its key.
+
+        Parameters
+        ----------
+        run_key : Mapping
+            The run's key (unread here: :func:`train` compares it with the state's).
+
+        Returns
+        -------
+        dict or None
+            A deep copy of the last saved state, or None when nothing was saved.
+        """
         return copy.deepcopy(self.state)
 
     def save(self, state: dict) -> None:
+        """Keep a deep copy of ``state``, replacing the one before.
+
+        Parameters
+        ----------
+        state : dict
+            The resume state after an epoch.
+        """
         self.state = copy.deepcopy(state)
 
 
 def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: Mapping | None = None):
-    """TinyUNet for a method: seeded, or the Stage-I mask path of ``init_state``; fresh seeded geometry heads."""
+    """Build the TinyUNet a method trains: seeded, or the Stage-I mask path of ``init_state``.
+
+    The global torch RNG is seeded with ``seed`` before the mask path is built and, for a warm-started method,
+    again after ``init_state`` is loaded, so its geometry heads (added where the method has them) are fresh and
+    seeded rather than following the discarded initialisation's draws.
+
+    Parameters
+    ----------
+    method : pipeline.methods.Method
+        The method: ``init == "stage1"`` loads ``init_state``; ``geometry_heads`` adds the SDF and skeleton
+        heads.
+    cfg : Mapping
+        The ``train`` params section: ``channels`` and the model options (:func:`pipeline.model.model_options`).
+    seed : int
+        Seeds the global torch RNG (a side effect that the run's later draws follow).
+    init_state : Mapping or None
+        The Stage-I model's state dict (the mask path), for a warm-started method; ignored otherwise.
+
+    Returns
+    -------
+    pipeline.model.TinyUNet
+        On the CPU, in train mode.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        A warm-started method without ``init_state``, or an ``init_state`` that does not match
+        ``train.channels`` (strict loading).
+    """
     torch.manual_seed(int(seed))
     model = TinyUNet(channels=tuple(cfg["channels"]), **model_options(cfg))
     if method.init == "stage1":
@@ -100,7 +199,7 @@ def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: M
 
 def _tensors(data: TrainData, device: torch.device, anchor: np.ndarray | RowSource | None
              ) -> dict[str, torch.Tensor | RowSource]:
-    """The training set per key, once per run: arrays as tensors on ``device``, row sources left on disk."""
+    """Put the training set per key, once per run: arrays as tensors on ``device``, row sources left on disk."""
     arrays = {"image": (data.images, None), "mask": (data.mask, None), "area": (data.area, np.float32),
               "gate": (data.gate, np.float32)}
     if data.sdf is not None:
@@ -140,7 +239,7 @@ def _batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor 
 
 
 def _augmented_batch(run: _Run, idx: np.ndarray, epoch: int) -> dict[str, torch.Tensor]:
-    """The batch of rows ``idx``, each image augmented with the seed ``[seed, epoch, row]``."""
+    """Build the batch of rows ``idx``, each image augmented with the seed ``[seed, epoch, row]``."""
     idx_dev = torch.from_numpy(idx).to(run.device)
     rows = {k: _take(v, idx_dev).cpu().numpy() for k, v in run.tensors.items()}
     images = rows.pop("image")
@@ -159,8 +258,37 @@ def _has_val(val: ValData | None) -> bool:
 def validation_scores(model, val: ValData | None, device, *, precision: str, channels_last: bool,
                       tolerance: float, tau: float = PAPER.calibrate.fixed_tau,
                       calibrated: bool = True) -> dict[str, float]:
-    """Mean val Image IoU and Boundary F1 of [P >= tau] (eq:inference-mask) and, with ``calibrated``, the IoU at the
-    epoch's best tau of :data:`pipeline.thresholds.EPOCH_TAU_GRID` (NaN without validation data); model: train mode."""
+    """Score the model on the validation images: mean Image IoU and Boundary F1 of [P >= tau] (eq:inference-mask).
+
+    With ``calibrated``, also the mean Image IoU at the epoch's best tau of
+    :data:`pipeline.thresholds.EPOCH_TAU_GRID` (:func:`pipeline.thresholds.calibrate_threshold`, its tie-break
+    included).  Each image counts once; empty masks score as :func:`pipeline.metrics.image_ious` and
+    :func:`pipeline.metrics.boundary_f1` define.  The model is left in train mode.
+
+    Parameters
+    ----------
+    model : torch.nn.Module
+        The student; predicted in eval mode, then set back to train mode.
+    val : ValData or None
+        Images with reference masks; None or empty: nothing is predicted.
+    device : str or torch.device
+        Where to predict.
+    precision : str
+        ``fp32`` | ``bf16`` | ``auto`` (the autocast of :func:`pipeline.evaluation.inference.predict_probs`).
+    channels_last : bool
+        Predict in the channels-last memory format.
+    tolerance : float
+        The Boundary F1 tolerance in pixels (``train.val_bf1_tolerance``).
+    tau : float
+        The threshold of eq:inference-mask (``calibrate.fixed_tau`` by default).
+    calibrated : bool
+        Also compute ``val_iou_cal`` and ``val_tau_cal`` (NaN when False).
+
+    Returns
+    -------
+    dict
+        ``val_iou``, ``val_bf1``, ``val_iou_cal``, ``val_tau_cal``: floats, all NaN without validation data.
+    """
     out = dict.fromkeys(("val_iou", "val_bf1", "val_iou_cal", "val_tau_cal"), float("nan"))
     if not _has_val(val):
         return out
@@ -178,7 +306,30 @@ def validation_scores(model, val: ValData | None, device, *, precision: str, cha
 
 def validate(model, val: ValData | None, device, *, precision: str, channels_last: bool, tolerance: float,
              tau: float = PAPER.calibrate.fixed_tau) -> tuple[float, float]:
-    """(``val_iou``, ``val_bf1``) of :func:`validation_scores`."""
+    """Score the model at ``tau``: (``val_iou``, ``val_bf1``) of :func:`validation_scores`, uncalibrated.
+
+    Parameters
+    ----------
+    model : torch.nn.Module
+        The student; left in train mode.
+    val : ValData or None
+        Images with reference masks; None or empty: (NaN, NaN).
+    device : str or torch.device
+        Where to predict.
+    precision : str
+        ``fp32`` | ``bf16`` | ``auto``.
+    channels_last : bool
+        Predict in the channels-last memory format.
+    tolerance : float
+        The Boundary F1 tolerance in pixels.
+    tau : float
+        The threshold of eq:inference-mask.
+
+    Returns
+    -------
+    tuple of float
+        (mean Image IoU, mean Boundary F1) over the validation images.
+    """
     s = validation_scores(model, val, device, precision=precision, channels_last=channels_last,
                           tolerance=tolerance, tau=tau, calibrated=False)
     return s["val_iou"], s["val_bf1"]
@@ -186,7 +337,25 @@ def validate(model, val: ValData | None, device, *, precision: str, channels_las
 
 @dataclasses.dataclass
 class TrainResult:
-    """The selected model (eval mode, CPU), the training log and what was selected and why."""
+    """What :func:`train` returns: the selected model, the training log and what was selected and why.
+
+    Attributes
+    ----------
+    model : pipeline.model.TinyUNet
+        The selected (or weight-averaged) model, on the CPU in eval mode.
+    log : pandas.DataFrame
+        One row per epoch (epoch 0: a warm-started method's starting point), columns :data:`LOG_COLUMNS`
+        (schema ``training_log``); NaN where a method does not use a term or an epoch was not validated.
+    selected_epoch : int
+        The epoch whose weights ``model`` holds; with a weight average, the run's last epoch.
+    info : dict
+        ``selected_epoch``, ``selection`` (the rule, in words), ``epochs``, ``lr``, ``steps_run``,
+        ``low_res_epochs``, ``mode``, ``loss_weights``, ``epoch0_eligible``, ``autocast``, ``channels_last``,
+        the training data's stats and, under ``until: plateau``, ``stable_epochs`` and ``stopped`` (why).
+    timings : list of dict
+        ``{"epoch", "seconds"}`` per log row (:data:`TIMING_COLUMNS`): wall-clock seconds, kept out of the log so
+        that it is reproducible.
+    """
 
     model: Any
     log: Any  # pandas.DataFrame (schema training_log)
@@ -240,8 +409,10 @@ def _cpu_state(model) -> dict:
 
 def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data: TrainData, seed: int,
            init_state: Mapping | None, device: torch.device) -> _Run:
-    """Model, the frozen Stage-I anchor if the plan uses one, AdamW, schedule and tensors, in the order that fixes
-    the torch RNG stream."""
+    """Set up a run: the model, the frozen Stage-I anchor if the plan uses one, AdamW, schedule and tensors.
+
+    They are built in the order that fixes the torch RNG stream.
+    """
     amp = autocast_dtype(device, s.precision)
     model = build_model(method, cfg, seed, init_state)
     anchor, scratch = None, None
@@ -279,8 +450,11 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
 
 
 def _stop_stable(run: _Run, epoch: int, row: Mapping) -> None:
-    """After stable epoch ``epoch``: score it (else the held-out images), and at the plateau or the cap keep the
-    stable state and schedule the decay."""
+    """Score stable epoch ``epoch`` and, at the plateau or the cap, end the stable phase.
+
+    The score is the validation one, else the held-out images'; at the stop the stable state is kept and the
+    decay scheduled.
+    """
     u, s = run.until, run.settings
     if epoch <= s.low_res_epochs and epoch < u["epochs"]:  # the rule scores full-resolution epochs only
         return
@@ -309,8 +483,10 @@ ANCHOR_BATCH = PAPER.train.batch_size
 
 def _anchor_probs(frozen, images: np.ndarray | RowSource, device: torch.device, s: Settings,
                   scratch: tempfile.TemporaryDirectory | None) -> np.ndarray | LazyRows:
-    """The frozen Stage-I probabilities of every training image (L_anchor's target), in memory or spilled to
-    ``scratch`` and read back per batch."""
+    """Predict the frozen Stage-I probabilities of every training image (L_anchor's target).
+
+    They are held in memory, or spilled to ``scratch`` and read back per batch.
+    """
     probs = functools.partial(predict_probs, frozen, device=device, batch_size=ANCHOR_BATCH, precision=s.precision,
                               channels_last=s.channels_last)
     if scratch is None:
@@ -345,8 +521,10 @@ def _resume(run: _Run, checkpointer: Checkpointer) -> int:
 
 
 def _continued(run: _Run, state: dict) -> dict | None:
-    """A state of this until-plateau run under another step budget, as this run resumes it (None: another run): the
-    budget's stop continues from its stable state, the plateau's is finished."""
+    """Adapt a state of this until-plateau run saved under another step budget (None: another run).
+
+    The budget's stop continues from its stable state, the plateau's is finished.
+    """
     key = {k: v for k, v in state.get("run_key", {}).items() if k != "step_budget"}
     if run.until is None or key != {k: v for k, v in run.run_key.items() if k != "step_budget"}:
         return None
@@ -361,7 +539,7 @@ def _continued(run: _Run, state: dict) -> dict | None:
 
 
 def _state(run: _Run, epoch: int) -> dict:
-    """The complete resume state after ``epoch`` (CPU copies)."""
+    """Collect the complete resume state after ``epoch``: copies, the weights on the CPU, the optimizer's on device."""
     return {"version": STATE_VERSION, "run_key": run.run_key, "epoch": epoch, "model": _cpu_state(run.model),
             "optimizer": copy.deepcopy(run.opt.state_dict()), "scheduler": run.sched.state_dict(),
             "torch_rng": torch.get_rng_state(), "log": run.rows, "best": run.best,
@@ -372,8 +550,35 @@ def _state(run: _Run, epoch: int) -> dict:
 
 def select(best: dict | None, plan: Plan, val: ValData | None, epoch: int, row: Mapping, model,
            eligible: bool) -> dict | None:
-    """The best candidate ``{"epoch", "score", "state"}`` after ``epoch``: the latest eligible one (``select ==
-    "last"`` or no validation masks), else the highest (val IoU, val BF1), an earlier epoch winning a tie."""
+    """Return the checkpoint candidate ``{"epoch", "score", "state"}`` after ``epoch``.
+
+    Under ``select == "last"`` or without validation masks, the latest eligible epoch; else the highest
+    (val IoU, val BF1), compared as a tuple (BF1 breaks an IoU tie), an earlier epoch winning an exact tie.  Once
+    a scored candidate exists, a NaN score never replaces it, and one whose IoU is NaN is never replaced (tuple
+    comparison).
+
+    Parameters
+    ----------
+    best : dict or None
+        The candidate so far (None: none yet).
+    plan : pipeline.methods.Plan
+        The method's resolved plan; its ``select`` rule (``last`` | ``best_val``).
+    val : ValData or None
+        The validation images (only whether there are any is read).
+    epoch : int
+        The epoch just trained (0: a warm-started method's starting point).
+    row : Mapping
+        The epoch's log row: ``val_iou`` and ``val_bf1`` are read.
+    model : torch.nn.Module
+        The model after ``epoch``; its state is copied to the CPU if it becomes the candidate.
+    eligible : bool
+        Whether ``epoch`` may be selected at all.
+
+    Returns
+    -------
+    dict or None
+        The new candidate, or ``best`` unchanged.
+    """
     score = None if plan.select == "last" or not _has_val(val) else (row["val_iou"], row["val_bf1"])
     if eligible and (score is None or best is None or best["score"] is None or score > tuple(best["score"])):
         return {"epoch": epoch, "score": score, "state": _cpu_state(model)}
@@ -403,9 +608,24 @@ def _precise_bn(run: _Run) -> int:
 
 
 def validation_read(run: _Run, epoch: int) -> bool:
-    """Whether a rule reads epoch ``epoch``'s validation scores. Only a half-side epoch of Stage I can go unread
-    (``train.validate_low_res`` off): not the run's last, not the cap ``until: plateau`` scores, not the decay
-    after a stable phase cut inside the schedule, and not under a best-validation pick without a weight average."""
+    """Tell whether a rule reads epoch ``epoch``'s validation scores.
+
+    Only a half-side epoch of Stage I can go unread (``train.validate_low_res`` off): not the run's last, not the
+    cap ``until: plateau`` scores, not the decay after a stable phase cut inside the schedule, and not under a
+    best-validation pick without a weight average.
+
+    Parameters
+    ----------
+    run : _Run
+        The run: its settings, plan, length and ``until: plateau`` state.
+    epoch : int
+        The epoch just trained, 1-based.
+
+    Returns
+    -------
+    bool
+        False only for an epoch whose validation no rule or selection reads (it is skipped and logged as NaN).
+    """
     s = run.settings
     if s.validate_low_res or epoch > s.low_res_epochs or epoch >= run.epochs:
         return True
@@ -446,7 +666,7 @@ def _step(run: _Run, b: Mapping[str, torch.Tensor], epoch: int, step: int) -> di
 
 
 def _epoch_batches(run: _Run, epoch: int):
-    """The epoch's (size, batch) pairs in a ``[seed, epoch]`` order; streamed data read two batches ahead."""
+    """Yield the epoch's (size, batch) pairs in a ``[seed, epoch]`` order; streamed data read two batches ahead."""
     batches = _epoch_batches_in_order(run, epoch)
     return prefetch(batches, depth=2) if _streaming(run.tensors) else batches
 
@@ -500,7 +720,7 @@ def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
 
 
 def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainResult:
-    """The selected (or averaged) model on the CPU in eval mode, the log table and the run's info."""
+    """Assemble the selected (or averaged) model on the CPU in eval mode, the log table and the run's info."""
     import pandas as pd
 
     if run.best is None:  # cannot happen with epochs >= 1: a guard against a silent wrong pick

@@ -1,7 +1,8 @@
-"""Self-training rounds (Noisy Student, Xie et al. 2020) for Stage I: the trained student predicts its own training
-images with flip test-time augmentation, its prediction is fused with the vote per pixel, and a fresh student
-trains on the fused targets with augmentation.  A departure from the two stages (docs/student.md); the reference
-masks never enter it.
+"""Self-training rounds (Noisy Student, Xie et al. 2020) for Stage I.
+
+The trained student predicts its own training images with flip test-time augmentation, its prediction is fused
+with the vote per pixel, and a fresh student trains on the fused targets with augmentation.  A departure from
+the two stages (docs/student.md); the reference masks never enter it.
 """
 
 from __future__ import annotations
@@ -15,14 +16,18 @@ FUSIONS = ("mix", "mix_hard", "prediction")
 
 
 def flip_tta_probs(model, images, device="cpu", precision: str = "fp32", batch_size: int = 16) -> np.ndarray:
-    """The student's probability with left-right flip test-time augmentation: P = (P(x) + flip(P(flip(x)))) / 2.
+    """Predict the student's probability with left-right flip test-time augmentation.
+
+    P = (P(x) + flip(P(flip(x)))) / 2, flip mirroring the width axis; the model is left in eval mode
+    (:func:`pipeline.evaluation.inference.predict_probs`).
 
     Parameters
     ----------
     model : torch.nn.Module
         The trained student (its averaged weights where the recipe averages).
     images : array-like
-        uint8 images [N, H, W, 3] (an array or a row source, read a batch at a time).
+        uint8 images [N, H, W, 3]: an array, or a row source (the plain pass reads it a batch at a time, the
+        flipped pass as one array).
     device : str or torch.device
         Where to predict.
     precision : str
@@ -42,17 +47,18 @@ def flip_tta_probs(model, images, device="cpu", precision: str = "fp32", batch_s
 
 
 def fused_targets(probs: np.ndarray, voted: np.ndarray, fusion: str, weight: float) -> np.ndarray:
-    """A self-training round's region target from the student's probability P and the voted mask M.
+    """Fuse the student's probability P and the voted mask M into a self-training round's region target.
 
     - ``mix``: T = w P + (1 - w) M, a soft target (w = ``weight``);
-    - ``mix_hard``: T = [w P + (1 - w) M >= 1/2]; with w <= 1/2 this is M, above it the student overrules the
-      vote where it is confident enough;
+    - ``mix_hard``: T = [w P + (1 - w) M >= 1/2] (a tie at exactly 1/2 is foreground); with w < 1/2 this is M
+      (at w = 1/2, M except where P = 1), above it the student overrules the vote where it is confident enough;
     - ``prediction``: T = P, the student's own soft prediction (Noisy Student's soft pseudo-labels).
 
     Parameters
     ----------
     probs : numpy.ndarray
-        P, float [N, H, W] in [0, 1] (:func:`flip_tta_probs`).
+        P, float [N, H, W] in [0, 1] (:func:`flip_tta_probs`); expected finite (a NaN stays NaN in a soft target
+        and is background in ``mix_hard``).
     voted : numpy.ndarray
         M, bool [N, H, W] (eq:majority-vote).
     fusion : str

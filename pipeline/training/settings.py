@@ -18,7 +18,7 @@ from pipeline.training.schedule import low_res_epochs
 
 
 def loss_constants(cfg: Mapping[str, Any], stage_one: bool = False) -> losses.LossConstants:
-    """The losses' constants (eq:raw-loss, eq:positive-weight, eq:sdf-weight, eq:area-error) from the train params.
+    """Read the losses' constants (eq:raw-loss, eq:positive-weight, eq:sdf-weight, eq:area-error) from ``cfg``.
 
     Parameters
     ----------
@@ -31,8 +31,9 @@ def loss_constants(cfg: Mapping[str, Any], stage_one: bool = False) -> losses.Lo
     Returns
     -------
     pipeline.losses.LossConstants
-        ``dice_weight``, the positive-weight clip, the SDF band and base weight, the area epsilon and the
-        losses' numerical epsilon.
+        ``dice_weight``, the positive-weight clip, the SDF band (eq:pseudo-boundary-band) and base weight, the
+        area epsilon, the losses' numerical epsilon, ``soft_targets``, and ``bootstrap_beta`` / ``ignore_band``
+        (1.0 / 0.0, off, outside Stage I).
     """
     return losses.LossConstants(dice_weight=float(cfg["dice_weight"]), max_weight=float(cfg["pos_weight_max"]),
                                 sdf_band=float(cfg["sdf_band"]), sdf_base_weight=float(cfg["sdf_base_weight"]),
@@ -44,14 +45,74 @@ def loss_constants(cfg: Mapping[str, Any], stage_one: bool = False) -> losses.Lo
 
 @dataclasses.dataclass(frozen=True)
 class Settings:
-    """The ``train.*`` values one (method, seed) run uses; each field is the schema key of the same name unless
-    noted, and none has a default (the schema's is the only one).
+    """The ``train.*`` values one (method, seed) run uses, built by :meth:`from_params`.
 
-    ``epochs`` and ``lr`` follow the method table (:func:`pipeline.methods.method_epochs`, ``method_lr``);
-    ``hflip`` is ``train.augment_hflip``, ``bf1_tolerance`` ``train.val_bf1_tolerance``, ``selection_tau`` the
-    calibrate stage's fixed tau; ``augment`` is None when ``train.augment`` is off; ``until`` and
-    ``low_res_epochs`` (:func:`pipeline.training.schedule.low_res_epochs`) apply to Stage I only, other stages
-    get ``"epochs"`` and 0.
+    Each field is the schema key of the same name unless noted, and none has a default (the schema's is the only
+    one).  Epochs and steps count optimizer passes over the training set and optimizer steps; fractions are in
+    [0, 1].
+
+    Attributes
+    ----------
+    epochs : int
+        The run's epochs, at least 1: the sum of the method's epoch keys (:func:`pipeline.methods.method_epochs`;
+        Stage I ``train.epochs_stage1``, the cap under ``until: plateau``).
+    lr : float
+        The peak learning rate (:func:`pipeline.methods.method_lr`: ``train.lr_stage1`` times ``train.lr_scale``
+        for Stage I, ``train.lr_stage2`` otherwise).
+    batch_size : int
+        Images per optimizer step.
+    weight_decay : float
+        AdamW's decoupled weight decay.
+    schedule : str
+        The learning-rate schedule after the warm-up, one of :data:`pipeline.training.schedule.SCHEDULES`.
+    precision : str
+        ``fp32`` | ``bf16`` | ``auto`` (the autocast dtype; ``auto`` depends on the host).
+    channels_last : bool
+        Train in the channels-last memory format.
+    hflip : bool
+        ``train.augment_hflip``: flip each image left-right with probability 1/2 per epoch (unused when
+        ``augment`` is set).
+    num_threads : int
+        torch CPU threads; 0 = torch's default.
+    bf1_tolerance : float
+        ``train.val_bf1_tolerance``: the Boundary F1 tolerance in pixels of the validation tie-break.
+    constants : pipeline.losses.LossConstants
+        The losses' constants (:func:`loss_constants`).
+    selection_tau : float
+        The threshold of eq:inference-mask at which validation scores select checkpoints
+        (``calibrate.fixed_tau``; not a ``train`` key).
+    precise_bn : bool
+        Recompute the BN running statistics over the training images before each validation.
+    warmup_epochs : int
+        Epochs of linear learning-rate warm-up; 0 = none.
+    average_last : int
+        The final model is the mean weights of the last this many epochs (BN statistics recomputed); 0 = the
+        method's selection rule.
+    decay_fraction : float
+        The ``wsd`` schedule's (and ``until: plateau``'s) decay share of the run, in (0, 1].
+    augment : pipeline.augment.AugmentSpec or None
+        The target-consistent augmentation (``train.augmentation``); None when ``train.augment`` is off.
+    ema_decay : float
+        The final model is the moving average of the weights with this decay per optimizer step, in [0, 1);
+        0 = off.
+    until : str
+        ``epochs`` | ``plateau``; Stage I only, other stages get ``"epochs"``.
+    step_budget : int
+        Under ``until: plateau``, optimizer steps at most, warm-up and decay included; 0 = none.
+    plateau_gain : float
+        Under ``until: plateau``, the validation Image IoU gain below which the stable phase stops.
+    plateau_min_epochs : int
+        Under ``until: plateau``, the scored stable epochs before the rule may stop.
+    plateau_min_steps : int
+        Under ``until: plateau``, the optimizer steps of scored epochs before the rule may stop; 0 = epochs only.
+    holdout_fraction : float
+        Under ``until: plateau`` without validation masks, the share of the training images held out and scored
+        against their vote (:func:`pipeline.training.schedule.holdout`).
+    low_res_epochs : int
+        The first epochs trained at half the side (:func:`pipeline.training.schedule.low_res_epochs` of
+        ``train.low_res_fraction``); Stage I only, other stages get 0.
+    validate_low_res : bool
+        Validate after the half-side epochs too; off, those no rule reads are skipped and logged as NaN.
     """
 
     epochs: int
@@ -97,11 +158,13 @@ class Settings:
         Returns
         -------
         Settings
+            The run's values, read without a fallback from the validated section.
 
         Raises
         ------
         pipeline.runtime.errors.InputError
-            A value the schema refuses, named by its key.
+            A value the schema refuses, named by its key, or method epochs that sum to less than 1
+            (:func:`pipeline.methods.method_epochs`).
         """
         cfg = validate_section("train", cfg)
         stage_one = method.stage == 1
