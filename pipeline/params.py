@@ -366,6 +366,13 @@ class TrainParams(_Section):
     def _recipe_parts(cls, data):
         return fill_recipe(data, "train", data.get("recipe", "paper") if isinstance(data, Mapping) else "paper")
 
+    @model_validator(mode="after")
+    def _plateau_decay(self):
+        if self.until == "plateau" and self.decay_fraction >= 1:
+            raise ValueError("train.decay_fraction must be < 1 under until: plateau (its decay is f / (1 - f) of "
+                             "the stable phase)")
+        return self
+
 
 class ProtocolParams(_Section):
     """Which (method, seed) training runs exist in the DAG; a warm-started method needs Stage I at its seed."""

@@ -160,3 +160,12 @@ def test_with_few_images_the_least_window_is_in_steps():
     # 270 images at batch 8 (34 steps an epoch): the window stays the 8 epochs it was
     assert schedule.plateau_window(train.plateau_min_epochs, train.plateau_min_steps,
                                    schedule.steps_per_epoch(270, 8)) == 8
+
+
+def test_a_decay_of_the_whole_run_is_refused_under_plateau():
+    from pipeline.params import validate_section
+    from pipeline.runtime.errors import InputError
+
+    with pytest.raises(InputError, match="decay_fraction must be < 1 under until: plateau"):
+        validate_section("train", tiny_cfg(until="plateau", decay_fraction=1.0))
+    assert validate_section("train", tiny_cfg(until="epochs", decay_fraction=1.0))["decay_fraction"] == 1.0
