@@ -202,7 +202,7 @@ def decay_epochs(stable: int, fraction: float) -> int:
     Raises
     ------
     ZeroDivisionError
-        f = 1, which the schema allows (``train.decay_fraction`` <= 1): the decay would be the whole run.
+        f = 1: the decay would be the whole run (the schema refuses it under ``until: plateau``).
     """
     return max(1, int(round(stable * fraction / (1.0 - fraction))))
 
