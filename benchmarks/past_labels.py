@@ -33,6 +33,8 @@ from pipeline.profiles import load_profile
 from pipeline.runtime.device import resolve_device
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 from pipeline.training.inputs import _rows
+from pipeline.training import loop as training
+from pipeline.training.loop import build_model
 from pipeline.training.self_training import flip_tta_probs, fused_targets
 
 #: a relabelling forward pass, in training images (forward + backward ~ 3 forward passes)
@@ -99,8 +101,6 @@ def _train_data(job: Mapping[str, Any]):
     """The variant's training data; ``self_training`` relabels with the ``plain`` run's saved model."""
     import torch
 
-    from pipeline.training.loop import build_model
-
     kind = VARIANTS[job["variant"]][1]
     if kind == "reference":
         return _DATA[SUPERVISED_CEILING], 0
@@ -119,25 +119,42 @@ def _train_data(job: Mapping[str, Any]):
                                                                 FUSION_WEIGHT)), len(data) * TTA_PASSES
 
 
-def run_one(job: dict) -> dict:
-    """Train one (variant, seed) and score it."""
+def _trained(job: Mapping[str, Any], method: str, data):
+    """(model, steps run, stop reason, validation curve, where it came from): trained here, or the run of
+    ``job["imported"]``, a folder of :mod:`benchmarks.memorisation` (``final.pt``, ``done.json``) trained with the
+    same recipe, data and seed."""
     import torch
 
-    from pipeline.training import loop as training
+    if job.get("imported"):
+        run = Path(job["imported"])
+        record = json.loads((run / "done.json").read_text())
+        if (record["method"], record["seed"]) != (method, job["seed"]):
+            raise ValueError(f"{run}: a run of {record['method']} seed {record['seed']}, not {method} {job['seed']}")
+        model = build_model(get_method(method), job["cfg"], job["seed"])
+        model.load_state_dict(torch.load(run / "final.pt", map_location="cpu", weights_only=True))
+        curve = [float("nan") if v is None else float(v) for v in record["val_iou_cal"]]
+        return (model.eval(), record["steps_run"], record["stopped"], curve,
+                f"benchmarks.memorisation run {run.name} at commit {record['commit']}")
+    res = training.train(get_method(method), job["cfg"], data, _DATA["val"], job["seed"],
+                         checkpointer=training.NoCheckpointer(), device=job["device"], show_progress=False)
+    return (res.model, res.info["steps_run"], res.info.get("stopped"), [float(v) for v in res.log["val_iou_cal"]],
+            "trained here")
+
+
+def run_one(job: dict) -> dict:
+    """Train one (variant, seed), or import its run, and score it."""
+    import torch
 
     t0 = time.perf_counter()
     data, relabel = _train_data(job)
     method = SUPERVISED_CEILING if job["variant"] == "ceiling" else STAGE_ONE
-    res = training.train(get_method(method), job["cfg"], data, _DATA["val"], job["seed"],
-                         checkpointer=training.NoCheckpointer(), device=job["device"], show_progress=False)
+    model, steps, stopped, curve, source = _trained(job, method, data)
     if job["variant"] == "plain":  # self-training's starting point
-        torch.save(res.model.state_dict(), _DATA["workdir"] / f"plain-s{job['seed']}.pt")
-    images_seen = int(res.info["steps_run"]) * int(job["cfg"]["batch_size"])
-    out = {"variant": job["variant"], "method": job["method"], "trained": method, "seed": job["seed"], "steps_run": res.info["steps_run"],
-           "stopped": res.info.get("stopped"), "images_seen": images_seen, "relabel_passes": relabel,
-           "n_train": len(data),
-           "val_iou_cal_curve": [float(v) for v in res.log["val_iou_cal"]]}
-    out.update(scores(res.model, _DATA, job["device"]))
+        torch.save(model.state_dict(), _DATA["workdir"] / f"plain-s{job['seed']}.pt")
+    out = {"variant": job["variant"], "method": job["method"], "trained": method, "seed": job["seed"],
+           "steps_run": steps, "stopped": stopped, "images_seen": int(steps) * int(job["cfg"]["batch_size"]),
+           "relabel_passes": relabel, "n_train": len(data), "val_iou_cal_curve": curve, "source": source}
+    out.update(scores(model, _DATA, job["device"]))
     out["seconds"] = time.perf_counter() - t0
     print(f"  done {job['variant']:14s} s{job['seed']}: test IoU {out['iou_cal']:.3f} {out['groups']} "
           f"({out['steps_run']} steps, {out['seconds']:.0f} s)", flush=True)
@@ -178,7 +195,13 @@ def main(argv=None) -> dict:
                 seeds=[42], device="cpu", jobs=1, threads=2, out="past_labels.json", set=[])
     add_data_size_options(ap)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--import-run", nargs=2, action="append", default=[], metavar=("VARIANT", "DIR"),
+                    help="score the run in DIR (benchmarks.memorisation's final.pt and done.json, same recipe, "
+                         "data and seed) as VARIANT (plain or ceiling) instead of training it again")
     args = ap.parse_args(argv)
+    imported = dict(args.import_run)
+    if set(imported) - {"plain", "ceiling"}:
+        ap.error("--import-run: only plain and ceiling runs can be imported")
     device = str(resolve_device(args.device))
     sets = [f"data.resolution={args.resolution}", "protocol.supervised_ceiling=true"] + data_size_sets(args) + args.sets
     params = load_profile(args.profile, sets)
@@ -192,8 +215,8 @@ def main(argv=None) -> dict:
             "threads": args.threads, "jobs": args.jobs, "simulator": "the teacher is the synthetic benchmark's SIMULATOR"}
     # plain before self_training: a round starts from plain's saved model
     order = sorted(args.variants, key=lambda v: VARIANTS[v][1] == "self_training")
-    jobs = [{"variant": v, "method": v, "seed": s, "device": device, "cfg": {**base, **VARIANTS[v][0]}}
-            for s in args.seeds for v in order]
+    jobs = [{"variant": v, "method": v, "seed": s, "device": device, "cfg": {**base, **VARIANTS[v][0]},
+             "imported": imported.get(v)} for s in args.seeds for v in order]
     t0 = time.perf_counter()
 
     def run_all(todo):

@@ -30,3 +30,24 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
     capsys.readouterr()
     again = past_labels.main(argv)  # every run is in the runs file: nothing trains again
     assert again["runs"] == doc["runs"] and "done" not in capsys.readouterr().out
+
+
+def test_a_saved_run_is_scored_instead_of_trained(tiny, tmp_path):
+    import shutil
+
+    first = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--epochs", "1", "--seeds", "1",
+                              "--threads", "1", "--variants", "plain", "--out", str(tmp_path / "a.json")])
+    run = tmp_path / "plain-s1"
+    run.mkdir()
+    shutil.copy(tiny.parent / "plain-s1.pt", run / "final.pt")
+    (run / "done.json").write_text(json.dumps({"method": "plain", "seed": 1, "commit": "abc", "steps_run": 2,
+                                               "stopped": None, "val_iou_cal": [None, 0.5]}))
+    doc = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--epochs", "1", "--seeds", "1",
+                            "--threads", "1", "--variants", "plain", "--import-run", "plain", str(run),
+                            "--out", str(tmp_path / "b.json")])
+    (got,), (trained,) = doc["runs"], first["runs"]
+    assert got["iou_cal"] == trained["iou_cal"] and got["steps_run"] == 2 and "commit abc" in got["source"]
+    with pytest.raises(ValueError, match="not supervised_ceiling"):
+        past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1",
+                          "--variants", "ceiling", "--import-run", "ceiling", str(run),
+                          "--out", str(tmp_path / "c.json")])
