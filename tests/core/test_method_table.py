@@ -106,3 +106,12 @@ def test_a_new_method_is_one_row(monkeypatch):
     assert rows.index(row.name) == rows.index("sdf_area_gated") + 1
     assert row.name in M.gain_treatments(M.CONTINUATION, list(METHODS))
     assert M.method_label(row.name) == "Gated SDF, late"
+
+
+def test_every_recipe_part_is_in_every_runs_fingerprint():
+    """A recipe part changes what a run trains: a run's fingerprint (the DAG's rerun key) must hold it."""
+    from pipeline.methods import COMMON_KEYS
+    from pipeline.params import recipe_parts
+
+    train_parts = [p.split(".", 1)[1] for p in recipe_parts() if p.startswith("train.")]
+    assert train_parts and [p for p in train_parts if p not in COMMON_KEYS] == []
