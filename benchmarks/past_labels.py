@@ -190,6 +190,40 @@ def summarize(results: list[dict]) -> list[dict]:
     return rows
 
 
+def test_spacecraft(artifacts: Path) -> np.ndarray:
+    """The spacecraft of each scored test image, in the order of a run's ``image_ious`` (:func:`load_data`)."""
+    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
+    reference = open_artifact(catalog.path("reference", artifacts), "reference")
+    test = np.flatnonzero((manifest.df["split"] == "test").to_numpy())
+    test = test[_rows(reference, "has_mask", test).astype(bool)]
+    return manifest.df["spacecraft"].to_numpy()[test].astype(str)
+
+
+def gains(runs: list[dict], spacecraft: np.ndarray, groups: np.ndarray, floor: Mapping[str, float],
+          control: str = "plain", ci: float = 0.95) -> list[dict]:
+    """Each variant minus ``control`` per test group, paired by seed and image: the seed-aware t interval
+    (:func:`pipeline.stats.paired_seed_image_t`, the effect on these spacecraft) and the signed verdict against the
+    noise floor ``floor`` {group: IoU} (:func:`pipeline.stats.claim_status`)."""
+    from pipeline.stats import claim_status, paired_seed_image_t
+
+    by = {(r["variant"], r["seed"]): np.asarray(r["image_ious"]) for r in runs}
+    out = []
+    for v in dict.fromkeys(r["variant"] for r in runs):
+        seeds = sorted(s for (w, s) in by if w == v and (control, s) in by)
+        if v in (control, "ceiling") or not seeds:
+            continue
+        for g in dict.fromkeys(groups):
+            sel = groups == g
+            t = np.stack([by[(v, s)][sel] for s in seeds])
+            c = np.stack([by[(control, s)][sel] for s in seeds])
+            iv = paired_seed_image_t(t, c, spacecraft[sel], ci)
+            gain, lo, hi = float(np.mean(t - c)), float(iv.low), float(iv.high)
+            out.append({"variant": v, "group": str(g), "seeds": seeds, "gain": gain, "low": lo, "high": hi,
+                        "noise_floor": floor.get(str(g)),
+                        "verdict": claim_status(gain, lo, hi, floor.get(str(g)), n_seeds=len(seeds))})
+    return out
+
+
 def main(argv=None) -> dict:
     ap = parser(__doc__, artifacts=None, workdir="past_labels", profile="reduced", resolution=64, epochs=None,
                 seeds=[42], device="cpu", jobs=1, threads=2, out="past_labels.json", set=[])

@@ -51,3 +51,22 @@ def test_a_saved_run_is_scored_instead_of_trained(tiny, tmp_path):
         past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1",
                           "--variants", "ceiling", "--import-run", "ceiling", str(run),
                           "--out", str(tmp_path / "c.json")])
+
+
+def test_gains_pair_seeds_and_images_and_clear_the_noise_floor():
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    base = {s: rng.uniform(0.3, 0.7, 12) for s in (1, 2, 3)}
+    runs = [{"variant": "plain", "seed": s, "image_ious": list(v)} for s, v in base.items()]
+    runs += [{"variant": "bootstrap", "seed": s, "image_ious": list(v + 0.05 + rng.normal(0, 0.005, 12))}
+             for s, v in base.items()]
+    runs += [{"variant": "soft", "seed": 1, "image_ious": list(base[1])}]
+    craft = np.repeat(["a", "b", "c", "d"], 3)
+    groups = np.array(["G"] * 12)
+    rows = {r["variant"]: r for r in past_labels.gains(runs, craft, groups, {"G": 0.01})}
+    assert rows["bootstrap"]["seeds"] == [1, 2, 3] and rows["bootstrap"]["gain"] == pytest.approx(0.05, abs=0.005)
+    assert rows["bootstrap"]["low"] > 0.01 and rows["bootstrap"]["verdict"] == "gain supported"
+    assert rows["soft"]["gain"] == 0 and rows["soft"]["verdict"] == "one seed"  # one seed holds no training noise
+    rows = {r["variant"]: r for r in past_labels.gains(runs, craft, groups, {"G": 0.06})}
+    assert rows["bootstrap"]["verdict"] == "no difference detected"  # its bound does not clear the floor
