@@ -64,11 +64,8 @@ def load_data(artifacts: Path, cfg: Mapping[str, Any]) -> dict:
     the test images' voted masks (the vote's own test IoU)."""
     out = load_study_data(artifacts, cfg, methods=(STAGE_ONE, SUPERVISED_CEILING))
     out["agreement"] = load_study_data(artifacts, {**cfg, "soft_targets": True}, methods=(STAGE_ONE,))[STAGE_ONE]
-    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
-    reference = open_artifact(catalog.path("reference", artifacts), "reference")
     consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
-    test = np.flatnonzero((manifest.df["split"] == "test").to_numpy())
-    test = test[_rows(reference, "has_mask", test).astype(bool)]
+    _, test = _test_rows(artifacts)
     out["test_voted"] = _rows(consensus, "voted", test).astype(bool)
     return out
 
@@ -190,12 +187,17 @@ def summarize(results: list[dict]) -> list[dict]:
     return rows
 
 
-def test_spacecraft(artifacts: Path) -> np.ndarray:
-    """The spacecraft of each scored test image, in the order of a run's ``image_ious`` (:func:`load_data`)."""
+def _test_rows(artifacts: Path):
+    """(the manifest, the rows of the test images with a reference mask): the scored images, in order."""
     manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
     reference = open_artifact(catalog.path("reference", artifacts), "reference")
     test = np.flatnonzero((manifest.df["split"] == "test").to_numpy())
-    test = test[_rows(reference, "has_mask", test).astype(bool)]
+    return manifest, test[_rows(reference, "has_mask", test).astype(bool)]
+
+
+def test_spacecraft(artifacts: Path) -> np.ndarray:
+    """The spacecraft of each scored test image, in the order of a run's ``image_ious`` (:func:`load_data`)."""
+    manifest, test = _test_rows(artifacts)
     return manifest.df["spacecraft"].to_numpy()[test].astype(str)
 
 
@@ -224,6 +226,66 @@ def gains(runs: list[dict], spacecraft: np.ndarray, groups: np.ndarray, floor: M
     return out
 
 
+def noise_floor(path: Path, key: str) -> dict[str, float]:
+    """{group: Plain's test-IoU noise floor} of record ``key`` (``<recipe>@<profile>-<resolution>``) in
+    reports/noise_floor.json; empty when it is not measured there."""
+    doc = json.loads(path.read_text()) if path.is_file() else {}
+    numbers = (doc.get("recipes", {}).get(key) or {}).get("numbers", {})
+    return {k.split("/")[1]: float(v["floor"]) for k, v in numbers.items()
+            if k.startswith(f"{STAGE_ONE}/") and k.endswith("/iou")}
+
+
+def _runs_document(path: Path) -> dict:
+    """An output file of this benchmark, or the runs it has finished so far (its ``.runs.jsonl``)."""
+    if not path.name.endswith(".runs.jsonl"):
+        return json.loads(path.read_text())
+    lines = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+    runs = lines[1:]
+    return {"info": lines[0]["info"] if lines else {}, "runs": runs,
+            "variants": {r["variant"]: {"overrides": VARIANTS[r["variant"]][0], "what": VARIANTS[r["variant"]][2]}
+                         for r in runs}}
+
+
+def combine(paths: list[Path], floor_key: str, floors: Path) -> dict:
+    """One document from several runs files of this benchmark on the same artifacts: every run, the summary per
+    variant (:func:`summarize`) and each variant's paired gain over Plain (:func:`gains`)."""
+    docs = [_runs_document(Path(p)) for p in paths]
+    docs = [d for d in docs if d["runs"]]
+    artifacts = {d["info"]["artifacts"] for d in docs}
+    if len(artifacts) != 1:
+        raise ValueError(f"runs on different artifacts: {sorted(artifacts)}")
+    runs = list({(r["variant"], r["seed"]): r for d in docs for r in d["runs"]}.values())
+    art = Path(artifacts.pop())
+    manifest, test = _test_rows(art)
+    groups = manifest.df["group"].to_numpy()[test].astype(str)
+    floor = noise_floor(floors, floor_key)
+    return {"info": {**docs[0]["info"], "combined_from": [str(p) for p in paths], "noise_floor_key": floor_key,
+                     "noise_floor": floor},
+            "variants": {k: v for d in docs for k, v in d["variants"].items()},
+            "relabel_weight": RELABEL_WEIGHT, "summary": summarize(runs),
+            "gains": gains(runs, test_spacecraft(art), groups, floor), "runs": runs}
+
+
+def table(doc: Mapping[str, Any]) -> str:
+    """Markdown: per variant its test IoU per group, of the ceiling and of the vote, cost; then the gains."""
+    rows = doc["summary"]
+    groups = list(rows[0]["groups"])
+    head = ("| variant | seeds | " + " | ".join(f"{g} IoU" for g in groups) + " | of ceiling | of vote | cost |\n|"
+            + "---|" * (len(groups) + 5))
+    lines = [head]
+    for r in rows:
+        ratio = (lambda d: " / ".join(f"{d[g]:.2f}" for g in groups))
+        lines.append(f"| {r['variant']} | {r['n_seeds']} | " + " | ".join(f"{r['groups'][g]:.3f}" for g in groups)
+                     + f" | {ratio(r['of_ceiling']) if 'of_ceiling' in r else '--'} | {ratio(r['of_vote'])} | "
+                     f"{r['cost']:,.0f} |")
+    lines += ["", "| lever - Plain | group | seeds | gain [95 % CI] | noise floor | verdict |", "|---|---|---|---|---|---|"]
+    for g in doc["gains"]:
+        floor = "--" if g["noise_floor"] is None else f"{g['noise_floor']:.3f}"
+        lines.append(f"| {g['variant']} | {g['group']} | {len(g['seeds'])} | {g['gain']:+.3f} [{g['low']:+.3f}, "
+                     f"{g['high']:+.3f}] | {floor} | {g['verdict']} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> dict:
     ap = parser(__doc__, artifacts=None, workdir="past_labels", profile="reduced", resolution=64, epochs=None,
                 seeds=[42], device="cpu", jobs=1, threads=2, out="past_labels.json", set=[])
@@ -232,7 +294,17 @@ def main(argv=None) -> dict:
     ap.add_argument("--import-run", nargs=2, action="append", default=[], metavar=("VARIANT", "DIR"),
                     help="score the run in DIR (benchmarks.memorisation's final.pt and done.json, same recipe, "
                          "data and seed) as VARIANT (plain or ceiling) instead of training it again")
+    ap.add_argument("--combine", nargs="+", type=Path, default=None, metavar="RUNS_JSON",
+                    help="write one document (--out) from these output files of this benchmark (same artifacts): "
+                         "their runs, the summary and each lever's gain over Plain; nothing trains")
+    ap.add_argument("--noise-floor", type=Path, default=Path("reports/noise_floor.json"))
     args = ap.parse_args(argv)
+    if args.combine:
+        key = f"{load_profile(args.profile, args.sets)['train']['recipe']}@{args.profile}-{args.resolution}"
+        doc = combine(args.combine, key, args.noise_floor)
+        Path(args.out).write_text(json.dumps(doc, indent=1))
+        print(table(doc))
+        return doc
     imported = dict(args.import_run)
     if set(imported) - {"plain", "ceiling"}:
         ap.error("--import-run: only plain and ceiling runs can be imported")
