@@ -30,6 +30,13 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
     capsys.readouterr()
     again = past_labels.main(argv)  # every run is in the runs file: nothing trains again
     assert again["runs"] == doc["runs"] and "done" not in capsys.readouterr().out
+    both = past_labels.main(["--resolution", "32", "--combine", str(out), str(out) + ".runs.jsonl",
+                             "--out", str(tmp_path / "both.json"), "--noise-floor", str(tmp_path / "none.json")])
+    assert both["runs"] == doc["runs"] and both["info"]["noise_floor"] == {}
+    assert {g["variant"] for g in both["gains"]} == set(past_labels.VARIANTS) - {"plain", "ceiling"}
+    # one seed: no verdict speaks of support (a one-spacecraft group has no interval: not estimated)
+    assert {g["verdict"] for g in both["gains"]} <= {"one seed", "not estimated"}
+    assert "| bootstrap |" in capsys.readouterr().out
 
 
 def test_a_saved_run_is_scored_instead_of_trained(tiny, tmp_path):
