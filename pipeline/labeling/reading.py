@@ -231,7 +231,7 @@ def read_images(job: LabelJob) -> None:
             job.policy.report_error(job.ids[i] if e.path == str(f) else Path(e.path).stem, e)
             continue
         keep.append(i)
-        job.shas.append(loaded.sha256)
+        job.shas.append(loaded.content_sha256)  # the teacher cache keys on the pixels it sees
         job.sizes.append(loaded.native_hw)
     if not keep:
         first = job.policy.skipped[-1]
