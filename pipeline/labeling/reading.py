@@ -266,10 +266,11 @@ class FolderInputs:
 
 
 def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: bool, fmts: Sequence[str],
-                device: str = "auto", workers: int = 0, address: str | None = None) -> LabelJob:
+                device: str = "auto", workers: int = 0, address: str | None = None, on_batch=None) -> LabelJob:
     """Plan the run, read every image (a bad one stops it before any output folder stays), claim the
     outputs in label.json as an unfinished run, then fill the teacher cache with every answer through
-    the teacher stage's runner (serial, or a Ray Data pool of ``workers``)."""
+    the teacher stage's runner (serial, or a Ray Data pool of ``workers``); ``on_batch``: the runner's
+    callback after each batch (:meth:`~pipeline.teachers.runner.TeacherRunner.fill`)."""
     job = plan_folder(input_dir, out, params, reference_masks, overwrite, fmts)
     reset_frame_warnings()  # each run says once how it reads 16-bit frames
     made = [job.out, job.out / ".cache"] + ([job.cache.root] if job.cache is not None else [])
@@ -282,7 +283,7 @@ def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
     job.runner, job.fingerprint = open_runner(job.tcfg, (job.size, job.size), device, inputs, job.shas)
     if job.simulated:
         log.warning("label: %s", SIMULATOR_NOTE)
-    job.stats = job.runner.fill(range(len(job.files)), workers=workers, address=address)
+    job.stats = job.runner.fill(range(len(job.files)), workers=workers, address=address, on_batch=on_batch)
     log.info("label: teacher computed %d answers on %d images; %d cached answers reused",
              job.stats.answers_computed, job.stats.images_computed, job.stats.cache_hits)
     return job
