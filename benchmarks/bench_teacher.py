@@ -58,8 +58,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-warmup", action="store_true",
                     help="--roofline: no untimed call per path first (at real size a call takes minutes, oneDNN's "
                          "per-shape set-up milliseconds)")
+    ap.add_argument("--batch-sweep", default=None, metavar="1,2,4",
+                    help="the GPU rows instead: per batch size, first-call (compile) seconds, steady seconds per "
+                         "image and peak GPU memory of the default path (reports/gpu/teacher.sh)")
     args = ap.parse_args(argv)
-    (ray_throughput if args.ray_workers else roofline if args.roofline else encoder_reuse)(args)
+    mode = (ray_throughput if args.ray_workers else roofline if args.roofline else
+            batch_sweep if args.batch_sweep else encoder_reuse)
+    mode(args)
 
 
 def sam3_checkpoint(args, tmp: str) -> Path:
@@ -400,6 +405,63 @@ def fmt_load(load) -> str:
 
 def paths_dtype(paths, k) -> str:
     return paths[k].dtype_name
+
+
+def batch_sweep(args) -> None:
+    """Per batch size: a fresh teacher's first call (``--compile``: the compilation), then the steady seconds per
+    image (median of ``--repeats`` calls on ``--images`` images) and the peak memory above the model (CUDA; n/a on
+    a CPU, where this runs as the logic's test).  One JSON row per batch size with ``--json``."""
+    import json
+    import statistics
+
+    import torch
+
+    cuda = torch.device(args.device).type == "cuda"
+    r = args.resolution
+    rng = np.random.default_rng(0)
+    items = [TeacherInput(f"img{i}", f"sha{i}", rng.integers(0, 255, (r, r, 3), dtype=np.uint8))
+             for i in range(args.images)]
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        ckpt = sam3_checkpoint(args, tmp)
+        for bs in (int(b) for b in str(args.batch_sweep).split(",")):
+            teacher = Sam3Teacher(ckpt, device=args.device, dtype=args.dtype, batch_size=bs, resolution=(r, r),
+                                  score_threshold=0.0, compile=args.compile)
+            teacher.load()
+            teacher.text_features(PROMPTS)
+            if cuda:
+                torch.cuda.empty_cache()
+                torch.cuda.reset_peak_memory_stats()
+            base = torch.cuda.memory_allocated() if cuda else 0
+            t0 = time.perf_counter()
+            teacher.predict(items[:bs], PROMPTS)  # compiles (per batch shape) when --compile
+            sync()
+            first = time.perf_counter() - t0
+            ts = []
+            for _ in range(args.repeats):
+                t0 = time.perf_counter()
+                teacher.predict(items, PROMPTS)
+                sync()
+                ts.append((time.perf_counter() - t0) / len(items))
+            peak = (torch.cuda.max_memory_allocated() - base) / 2 ** 30 if cuda else None
+            rows.append({"batch_size": bs, "first_call_s": first, "s_per_image_median": statistics.median(ts),
+                         "s_per_image_min": min(ts), "peak_gib_above_model": peak, "dtype": teacher.dtype_name,
+                         "compile": teacher.compile})
+            print(f"  batch {bs:3d}: first call {first:8.2f} s{' (compiles)' if teacher.compile else ''}, "
+                  f"median {rows[-1]['s_per_image_median'] * 1e3:9.1f} ms/image, min {min(ts) * 1e3:9.1f}, peak "
+                  + (f"{peak:6.2f} GiB above the model" if peak is not None else "n/a (not CUDA)"))
+            del teacher
+    card = torch.cuda.get_device_name() if cuda else cpu_model()
+    print(f"teacher batch sweep: SAM 3 {args.size} (random weights), {args.dtype}, compile {args.compile}, "
+          f"{len(items)} images {r}x{r}, {len(PROMPTS)} prompts, {args.repeats} repeats on {card}, "
+          f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; batch {rows[-1]['batch_size']} / batch "
+          f"{rows[0]['batch_size']} time per image: "
+          + (f"{rows[-1]['s_per_image_median'] / rows[0]['s_per_image_median']:.2f} x" if len(rows) > 1 else "n/a"))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"card": card, "date": time.strftime("%Y-%m-%d", time.gmtime()),
+                                               "size": args.size, "rows": rows}, indent=1) + "\n")
 
 
 def cpu_model() -> str:
