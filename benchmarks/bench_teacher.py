@@ -251,12 +251,13 @@ def host_limits() -> dict:
     runs on the AMX tiles where the host has them, so the AMX row is the bf16 peak there, n/a elsewhere)."""
     import torch
 
-    from pipeline.runtime.device import cpu_flags
+    from pipeline.runtime.device import cpu_flags, teacher_cpu_dtype
 
     flags = cpu_flags()
     has = {f: f in flags for f in LIMIT_FLAGS}
     fp32 = matmul_peak(torch.float32)
-    bf16 = matmul_peak(torch.bfloat16) if has["avx512_bf16"] or has["amx_bf16"] else None
+    # native bf16 by the teacher's own rule (the flags, and an ONEDNN_MAX_CPU_ISA cap): emulated bf16 is no limit
+    bf16 = matmul_peak(torch.bfloat16) if teacher_cpu_dtype() == "bf16" else None
     return {"flags": has, "threads": torch.get_num_threads(),
             "fp32_gflops": fp32[0], "fp32_gflops_median": fp32[1],
             "bf16_gflops": bf16[0] if bf16 else None, "bf16_gflops_median": bf16[1] if bf16 else None,
@@ -368,7 +369,7 @@ def roofline(args) -> None:
     print(f"  limits (measured {2048}^3 matmul, best / median): fp32 {limits['fp32_gflops']:.0f} / "
           f"{limits['fp32_gflops_median']:.0f} GFLOP/s; bf16 "
           + (f"{limits['bf16_gflops']:.0f} / {limits['bf16_gflops_median']:.0f} GFLOP/s" if limits["bf16_gflops"]
-             else "n/a (no native bf16 flag)")
+             else "n/a (not native here)")
           + f"; AMX {'%.0f GFLOP/s' % limits['amx_gflops'] if limits['amx_gflops'] else 'n/a (no amx_bf16)'}")
     print(f"  FLOPs per image, {len(PROMPTS)} prompts: {image_flops / 1e12:.2f} TFLOP "
           + ", ".join(f"{k} {v / 1e9:.4g} G" for k, v in sorted(per_image.items(), key=lambda kv: -kv[1]))
