@@ -55,3 +55,19 @@ def test_label_prints_seconds_per_image_and_its_projection_with_q(tmp_path):
     again = cli(*args)                               # every answer cached: nothing to time or project
     assert again.exit_code == 0 and "first batch" not in again.output and "s per image" not in again.output
     assert json.loads((out / "label.json").read_text())["teacher_seconds_per_image"] is None
+
+
+def test_label_summary_says_why_cpu_caches_miss_under_auto_bf16(tmp_path, tiny_sam3, monkeypatch):
+    """On a CPU whose flags make ``auto`` bf16, label's summary says that fp32-cached answers are not reused and
+    how to keep them; with ``teacher.dtype: fp32`` pinned it says nothing of the kind."""
+    from pipeline.runtime import device
+
+    monkeypatch.setattr(device, "cpu_flags", lambda: frozenset({"avx2", "avx512_bf16"}))
+    images, _ = make_image_folder(tmp_path / "data", n=2, masks=False)
+    for dtype, said in (("auto", True), ("fp32", False)):
+        res = cli("label", images, "--out", tmp_path / dtype, "--checkpoint", tiny_sam3, "--format", "png", "-q",
+                  *FAST, "--set", f"teacher.dtype={dtype}")
+        assert res.exit_code == 0, res.output
+        summary = [line for line in res.output.splitlines() if line.startswith("label: 2 images")][0]
+        assert ("teacher.dtype auto is bf16 on this CPU" in summary) == said, summary
+        assert json.loads((tmp_path / dtype / "label.json").read_text())["teacher_dtype"] == ("bf16" if said else "fp32")
