@@ -3,14 +3,29 @@ eager) against ``--dtype`` / ``--batch-size`` / ``--compile`` and their answers'
 across the six prompts against six separate calls, and the SIMULATOR; or, with ``--ray-workers``, the runner's
 whole fill, serial loop against Ray Data pools (round-robin: medians, minima, steady rates and start-up).
 
+With ``--roofline``: the teacher at the CPU's limit -- FLOPs per image for six prompts by module (vision encoder
+once per image, text once per run, the six detector and mask-head passes), a per-module CPU time profile, the
+host's fp32 / bf16 / AMX limits from its flags and a measured matmul peak, fp32 eager against the default path
+(``teacher.dtype: auto``) round-robin with medians and minima, measured / limit, and the fidelity gate (mean mask
+IoU >= 0.99 against fp32 eager with score_threshold 0, pairs of two empty masks left out).  Random weights test
+the numerics only, not the masks of a trained SAM 3.
+
     python -m benchmarks.bench_teacher [--size real --device cuda --images 16 --compile] [--ray-workers 1,2]
+    python -m benchmarks.bench_teacher --roofline --size real --images 1 --repeats 2 --json reports/teacher/x.json
+    python -m benchmarks.bench_teacher --batch-sweep 1,2,4,8,16,32 --size real --device cuda --dtype bf16 \\
+        --paths compiled,eager --deadline 200 --json teacher_gpu.json
+
+With ``--batch-sweep`` (issue 58 item 4, reports/gpu/run.sh's ``teacher`` section): per batch size, each path's
+first call (the compilation), ms per image round-robin and peak GPU memory; see :func:`batch_sweep`.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import platform
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -18,8 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import best_of, medians, parser, round_robin
+from pipeline.artifacts.atomic import write_json
 from pipeline.metrics import image_ious
 from pipeline.params import PAPER_PROMPTS as PROMPTS
+from pipeline.runtime.device import cpu_flags, teacher_cpu_dtype
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.distributed import ray_session
@@ -44,8 +61,23 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--serial-threads", type=int, default=1, help="torch threads of the serial baseline")
     ap.add_argument("--input-size", type=int, default=56,
                     help="tiny SAM 3's input size (a multiple of 14); larger = more work per image")
+    ap.add_argument("--roofline", action="store_true",
+                    help="FLOPs, per-module profile, host limits, fp32 eager vs the default path, fidelity gate")
+    ap.add_argument("--json", default=None, help="--roofline, --batch-sweep: also write the table as JSON here")
+    ap.add_argument("--no-warmup", action="store_true",
+                    help="--roofline: no untimed call per path first (at real size a call takes minutes, oneDNN's "
+                         "per-shape set-up milliseconds)")
+    ap.add_argument("--batch-sweep", default=None, metavar="1,2,4",
+                    help="the GPU rows instead: per batch size, first-call (compile) seconds, ms per image and "
+                         "peak GPU memory of each of --paths, round-robin (reports/gpu/run.sh's teacher section)")
+    ap.add_argument("--paths", default=None, metavar="compiled,eager",
+                    help="--batch-sweep: the paths timed round-robin (default: compiled with --compile, else eager)")
+    ap.add_argument("--deadline", type=float, default=float("inf"),
+                    help="--batch-sweep: seconds from the start after which no new batch starts")
     args = ap.parse_args(argv)
-    (ray_throughput if args.ray_workers else encoder_reuse)(args)
+    mode = (ray_throughput if args.ray_workers else roofline if args.roofline else
+            batch_sweep if args.batch_sweep else encoder_reuse)
+    mode(args)
 
 
 def sam3_checkpoint(args, tmp: str) -> Path:
@@ -183,6 +215,339 @@ def steady_rate(stamps: list[float], per_image: int) -> float:
     later = sum(1 for t in stamps if t > stamps[0] + 1e-3)
     span = stamps[-1] - stamps[0]
     return later / per_image / span if span > 0 else float("nan")
+
+
+#: the fidelity gate of a faster teacher path against fp32 eager (issue 58): mean mask IoU over the pairs that are
+#: not both empty, and the largest score difference allowed (scores are products of two sigmoids, in [0, 1])
+GATE_IOU, GATE_SCORE = 0.99, 0.02
+
+
+def fidelity(masks, scores, ref_masks, ref_scores) -> dict:
+    """The fidelity gate of ``masks`` / ``scores`` against the reference path's (fp32 eager, score_threshold 0):
+    mean IoU over the (image, prompt) pairs where either mask has a pixel -- two empty masks agree trivially
+    and would inflate the figure, so they are counted apart --, the largest |score difference|, and pass."""
+    a = np.asarray(masks, bool).reshape(-1, *np.shape(masks)[-2:])
+    b = np.asarray(ref_masks, bool).reshape(a.shape)
+    inter = (a & b).sum(axis=(1, 2))
+    union = (a | b).sum(axis=(1, 2))
+    both_empty = union == 0
+    ious = inter[~both_empty] / union[~both_empty]
+    mean_iou = float(ious.mean()) if ious.size else float("nan")
+    score_diff = float(np.max(np.abs(np.asarray(scores, np.float64) - np.asarray(ref_scores, np.float64))))
+    return {"mean_iou": mean_iou, "min_iou": float(ious.min()) if ious.size else float("nan"),
+            "pairs": int(a.shape[0]), "pairs_both_empty": int(both_empty.sum()), "max_score_diff": score_diff,
+            "passes": bool(ious.size and mean_iou >= GATE_IOU and score_diff <= GATE_SCORE)}
+
+
+#: CPU flags that tell which matrix units a host has (/proc/cpuinfo names)
+LIMIT_FLAGS = ("avx2", "fma", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16")
+
+
+def matmul_peak(dtype, n: int = 2048, repeats: int = 5) -> tuple[float, float]:
+    """(best, median) GFLOP/s of an n x n matmul in ``dtype`` on this process's threads: the measured limit."""
+    import torch
+
+    a, b = torch.randn(n, n).to(dtype), torch.randn(n, n).to(dtype)
+    a @ b
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        a @ b
+        ts.append(time.perf_counter() - t0)
+    return 2 * n ** 3 / min(ts) / 1e9, 2 * n ** 3 / statistics.median(ts) / 1e9
+
+
+def host_limits() -> dict:
+    """The host's fp32 / bf16 / AMX limits: which its flags allow, and the measured matmul peaks (a bf16 matmul
+    runs on the AMX tiles where the host has them, so the AMX row is the bf16 peak there, n/a elsewhere)."""
+    import torch
+
+    flags = cpu_flags()
+    has = {f: f in flags for f in LIMIT_FLAGS}
+    fp32 = matmul_peak(torch.float32)
+    # native bf16 by the teacher's own rule (the flags, and an ONEDNN_MAX_CPU_ISA cap): emulated bf16 is no limit
+    bf16 = matmul_peak(torch.bfloat16) if teacher_cpu_dtype() == "bf16" else None
+    return {"flags": has, "threads": torch.get_num_threads(),
+            "fp32_gflops": fp32[0], "fp32_gflops_median": fp32[1],
+            "bf16_gflops": bf16[0] if bf16 else None, "bf16_gflops_median": bf16[1] if bf16 else None,
+            "amx_gflops": bf16[0] if bf16 and has["amx_bf16"] else None}
+
+
+def sdpa_cpu_flops(query_shape, key_shape, value_shape, *args, out_shape=None, **kwargs) -> int:
+    """FLOPs of the CPU flash-attention kernel, which torch's counter does not know: Q K^T and P V."""
+    from torch.utils.flop_counter import sdpa_flop_count
+
+    return sdpa_flop_count(query_shape, key_shape, value_shape)
+
+
+def module_flops_and_times(teacher, items, prompts) -> tuple[dict, dict, float]:
+    """One call of ``teacher.predict`` counted (FLOPs per top-level module, torch's counter plus CPU attention)
+    and, in a second call, timed per top-level module (wall seconds between each module's forward hooks);
+    text features are counted apart on a fresh tokenisation (once per run)."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    model = teacher.load()
+    mapping = {torch.ops.aten._scaled_dot_product_flash_attention_for_cpu: sdpa_cpu_flops}
+    teacher._text.clear()
+    with FlopCounterMode(display=False, custom_mapping=mapping) as counter:
+        teacher.text_features(prompts)
+    text = counter.get_total_flops()
+    with FlopCounterMode(display=False, custom_mapping=mapping) as counter:
+        teacher.predict(items, prompts)
+    top = {name for name, _ in model.named_children()}
+    flops = {}  # the tracker names a module by its call path: Sam3Model.detr_encoder, Sam3VisionModel.backbone
+    for k, v in counter.get_flop_counts().items():
+        parts = k.split(".")
+        if len(parts) == 2 and parts[1] in top | {"backbone", "neck"}:
+            flops[parts[1]] = int(sum(v.values()))
+    flops["total"] = int(counter.get_total_flops())
+    flops["text_encoder (once per run)"] = int(text)
+    times: dict[str, float] = {}
+    hooks = []
+    for name, child in model.named_children():
+        def pre(mod, args, name=name):
+            times[name] = times.get(name, 0.0) - time.perf_counter()
+
+        def post(mod, args, out, name=name):
+            times[name] += time.perf_counter()
+        hooks += [child.register_forward_pre_hook(pre), child.register_forward_hook(post)]
+    t0 = time.perf_counter()
+    try:
+        teacher.predict(items, prompts)
+    finally:
+        for h in hooks:
+            h.remove()
+    return flops, times, time.perf_counter() - t0
+
+
+def roofline(args) -> None:
+    """fp32 eager against the default path (round-robin, the same images, threads, batch and input size),
+    the FLOPs and per-module times of the default path, the host's limits, measured / limit, the gate."""
+    import torch
+
+    rng = np.random.default_rng(0)
+    r = args.resolution
+    items = [TeacherInput(f"img{i}", f"sha{i}", rng.integers(0, 255, (r, r, 3), dtype=np.uint8))
+             for i in range(args.images)]
+    load_before = os.getloadavg()
+    with tempfile.TemporaryDirectory() as tmp:
+        ckpt = sam3_checkpoint(args, tmp)
+        kw = dict(device=args.device, batch_size=args.batch_size or 1, resolution=(r, r), score_threshold=0.0)
+        paths = {"fp32 eager": Sam3Teacher(ckpt, dtype="fp32", **kw), "default": Sam3Teacher(ckpt, dtype=args.dtype, **kw)}
+        for t in paths.values():
+            t.load()
+            t.text_features(PROMPTS)  # once per run, as in a run
+            if not args.no_warmup:
+                t.predict(items[:1], PROMPTS)  # oneDNN primitives are made per shape and dtype
+        n_params = sum(p.numel() for p in paths["default"].load().parameters())
+        answers = {}
+
+        def call(name):
+            t0 = time.perf_counter()
+            answers[name] = paths[name].predict(items, PROMPTS)
+            return time.perf_counter() - t0
+
+        times = round_robin({k: (lambda rep, k=k: call(k)) for k in paths}, args.repeats, order="alternate")
+        gate = fidelity(*answers["default"], *answers["fp32 eager"])
+        flops, module_s, profiled_s = module_flops_and_times(paths["default"], items, PROMPTS)
+        limits = host_limits()
+        default_dtype = paths["default"].dtype_name
+        model_input = "x".join(map(str, paths["default"].input_size))  # the processor's size: 1008 at real size
+    n = args.images
+    med = {k: v / n for k, v in medians(times).items()}
+    low = {k: min(v) / n for k, v in times.items()}
+    per_image = {k: v / n for k, v in flops.items() if not k.startswith("text_encoder") and k != "total"}
+    image_flops = flops["total"] / n
+    peak = {"fp32 eager": limits["fp32_gflops"], "default": limits["bf16_gflops"] if default_dtype == "bf16"
+            else limits["fp32_gflops"]}
+    host = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "node": platform.node(),
+            "cpu": cpu_model(), "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+            "flags": sorted(f for f in cpu_flags() if f in LIMIT_FLAGS),
+            "load_average_before": load_before, "load_average_after": os.getloadavg()}
+    print(f"teacher roofline: SAM 3 {args.size} ({n_params / 1e6:.0f} M parameters, random weights: numerics "
+          f"only), {n} image(s) {r}x{r} -> input {model_input}, {len(PROMPTS)} prompts, batch "
+          f"{kw['batch_size']}, {args.repeats} round-robin repeats on {args.device}")
+    print(f"  host {host['cpu']}, {host['cores']} cores, torch threads {host['torch_threads']}, flags "
+          f"{' '.join(host['flags'])}; {host['date']}; load average {fmt_load(load_before)} before, "
+          f"{fmt_load(host['load_average_after'])} after (other processes share the cores)")
+    print(f"  limits (measured {2048}^3 matmul, best / median): fp32 {limits['fp32_gflops']:.0f} / "
+          f"{limits['fp32_gflops_median']:.0f} GFLOP/s; bf16 "
+          + (f"{limits['bf16_gflops']:.0f} / {limits['bf16_gflops_median']:.0f} GFLOP/s" if limits["bf16_gflops"]
+             else "n/a (not native here)")
+          + f"; AMX {'%.0f GFLOP/s' % limits['amx_gflops'] if limits['amx_gflops'] else 'n/a (no amx_bf16)'}")
+    print(f"  FLOPs per image, {len(PROMPTS)} prompts: {image_flops / 1e12:.2f} TFLOP "
+          + ", ".join(f"{k} {v / 1e9:.4g} G" for k, v in sorted(per_image.items(), key=lambda kv: -kv[1]))
+          + f"; text once per run {flops['text_encoder (once per run)'] / 1e9:.4g} G")
+    print(f"  per-module wall time of the default path ({default_dtype}), one profiled call of {profiled_s:.1f} s: "
+          + ", ".join(f"{k} {v:.1f} s" for k, v in sorted(module_s.items(), key=lambda kv: -kv[1])))
+    for k in paths:
+        att = image_flops / med[k] / 1e9
+        print(f"  {k:10s} ({paths_dtype(paths, k)}): median {med[k]:8.2f} s/image, min {low[k]:8.2f}  "
+              f"[{', '.join(f'{t / n:.2f}' for t in times[k])}]  {att:6.1f} GFLOP/s = "
+              f"{att / peak[k]:.2f} of the {paths_dtype(paths, k)} matmul peak")
+    ratio = med["default"] / med["fp32 eager"]
+    print(f"  default / fp32 eager (medians): {ratio:.3f}  (target <= 0.5 on avx512_bf16, <= 0.25 on AMX, <= 1 on AVX2)")
+    print(f"  fidelity vs fp32 eager: mean mask IoU {gate['mean_iou']:.4f} over {gate['pairs'] - gate['pairs_both_empty']}"
+          f" pairs (min {gate['min_iou']:.4f}; {gate['pairs_both_empty']} pairs both empty, left out), max |score "
+          f"difference| {gate['max_score_diff']:.2e}; gate (IoU >= {GATE_IOU}, scores within {GATE_SCORE}): "
+          f"{'passes' if gate['passes'] else 'FAILS'}")
+    if args.json:
+        doc = {"host": host, "limits": limits, "model": {"size": args.size, "parameters": n_params,
+               "weights": "random", "input": model_input}, "images": n, "resolution": r,
+               "prompts": len(PROMPTS), "batch_size": kw["batch_size"], "repeats": args.repeats,
+               "default_dtype": default_dtype, "seconds": times, "median_s_per_image": med, "min_s_per_image": low,
+               "default_over_fp32": ratio, "flops_per_image": per_image,
+               "text_flops_per_run": flops["text_encoder (once per run)"], "module_seconds": module_s,
+               "fidelity": gate}
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"  written {args.json}")
+
+
+def fmt_load(load) -> str:
+    return " ".join(f"{x:.1f}" for x in load)
+
+
+def paths_dtype(paths, k) -> str:
+    return paths[k].dtype_name
+
+
+def batch_sweep(args, clock=time.perf_counter) -> dict:
+    """The real-size teacher on a GPU (issue 58 item 4; reports/gpu/run.sh's ``teacher`` section): per batch size
+    ``b`` of ``--batch-sweep``, one call of ``b`` images (one forward, six prompts) per path of ``--paths``
+    (compiled = ``teacher.compile``, eager) untimed first -- its seconds are reported: they hold the compilation of
+    that shape -- then ``--repeats`` round-robin rounds of one call per path: medians and minima in ms per image,
+    and per path the peak memory (``torch.cuda.max_memory_allocated``, reset before each timed call) less the
+    memory held before the call (both paths' weights) as ``activation_peak_bytes``.
+
+    A batch that runs out of GPU memory stops the sweep; ``--deadline`` seconds from the start stop it before the
+    next batch (``stopped`` says which).  The ``--json`` document is rewritten atomically after every batch, so
+    a run killed from outside keeps what finished.  On a CPU there is no compile (Sam3Teacher turns it off, and
+    ``compile_active`` says so) and no peak memory: there it is the logic's test, not a measurement."""
+    import torch
+
+    t_start = clock()
+    cuda = torch.device(args.device).type == "cuda"
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    r = args.resolution
+    batches = [int(b) for b in str(args.batch_sweep).split(",")]
+    path_names = [p.strip() for p in str(args.paths or ("compiled" if args.compile else "eager")).split(",")]
+    bad = [p for p in path_names if p not in ("compiled", "eager")]
+    if bad or not path_names:
+        raise SystemExit(f"bench_teacher: --paths {args.paths!r}: expected a comma-separated subset of compiled,eager")
+    card = torch.cuda.get_device_name() if cuda else cpu_model()
+    record = {"what": "real-size SAM 3 teacher (random weights: cost only, not answers), six prompts, "
+                      f"{args.dtype}, Sam3Teacher.predict of b images per call at each batch b; medians and minima "
+                      f"of {args.repeats} round-robin calls per path",
+              "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "device": args.device, "card": card,
+              "host": platform.node(), "torch": torch.__version__, "cuda": torch.version.cuda, "size": args.size,
+              "dtype": args.dtype, "resolution": r, "repeats": args.repeats, "batches_asked": batches,
+              "paths_asked": path_names, "prompts": list(PROMPTS), "batches": {}, "stopped": None, "finished": False}
+    rng = np.random.default_rng(0)
+    with tempfile.TemporaryDirectory() as tmp:
+        tb = clock()
+        ckpt = sam3_checkpoint(args, tmp)
+        record["build_s"] = round(clock() - tb, 1)
+        teachers, tl = {}, clock()
+        for name in path_names:
+            t = Sam3Teacher(ckpt, device=args.device, dtype=args.dtype, batch_size=1, resolution=(r, r),
+                            score_threshold=0.0, compile=(name == "compiled"))
+            model = t.load()
+            t.text_features(PROMPTS)  # once per run, as in a run
+            teachers[name] = t
+            record.setdefault("compile_active", {})[name] = bool(t.compile)
+            record["parameters"] = sum(q.numel() for q in model.parameters())
+            record["weights_bytes"] = sum(q.numel() * q.element_size() for q in model.parameters())
+        record["dtype_used"] = {name: t.dtype_name for name, t in teachers.items()}
+        record["load_s"] = round(clock() - tl, 1)
+        for b in batches:
+            if clock() - t_start > args.deadline:
+                record["stopped"] = f"deadline ({args.deadline:.0f} s) before batch {b}"
+                break
+            items = [TeacherInput(f"img{i}", f"sha{i}", rng.integers(0, 255, (r, r, 3), dtype=np.uint8))
+                     for i in range(b)]
+            row: dict = {"paths": {}}
+
+            try:
+                for name, t in teachers.items():
+                    t.batch_size = b  # one forward of all b images
+                    t0 = clock()
+                    t.predict(items, PROMPTS)  # compiles this shape on the compiled path
+                    sync()
+                    row["paths"][name] = {"first_call_s": round(clock() - t0, 3), "peak_allocated_bytes": None,
+                                          "activation_peak_bytes": None}
+                times = round_robin({n: (lambda rep, n=n, items=items, row=row: timed_call(
+                    teachers[n], items, row["paths"][n], cuda, clock)) for n in teachers}, args.repeats,
+                    order="alternate")
+            except torch.cuda.OutOfMemoryError as e:
+                record["stopped"] = f"out of memory at batch {b}: {str(e).splitlines()[0][:160]}"
+                torch.cuda.empty_cache()
+                break
+            for name, p in row["paths"].items():
+                p["seconds"] = times[name]
+                p["ms_per_image_median"] = statistics.median(times[name]) / b * 1e3
+                p["ms_per_image_min"] = min(times[name]) / b * 1e3
+            if {"compiled", "eager"} <= set(row["paths"]):
+                row["eager_over_compiled_median"] = (row["paths"]["eager"]["ms_per_image_median"]
+                                                     / row["paths"]["compiled"]["ms_per_image_median"])
+            record["batches"][str(b)] = row
+            print(f"  batch {b:3d}: " + "; ".join(
+                f"{n} median {p['ms_per_image_median']:9.1f} ms/image, min {p['ms_per_image_min']:9.1f}, first call "
+                f"{p['first_call_s']:8.2f} s, peak {fmt_gib(p['activation_peak_bytes'])}"
+                for n, p in row["paths"].items()), flush=True)
+            if args.json:
+                write_json(args.json, record)
+    record["finished"] = record["stopped"] is None
+    done = sorted(int(b) for b in record["batches"])
+    print(f"teacher batch sweep: SAM 3 {args.size} (random weights), {args.dtype}, paths {', '.join(path_names)} "
+          f"(compile active: {record.get('compile_active')}), {len(PROMPTS)} prompts, {args.repeats} round-robin "
+          f"repeats on {card}, {record['date_utc']}; batches {done}"
+          + (f"; stopped: {record['stopped']}" if record["stopped"] else ""), flush=True)
+    for name in path_names:
+        if len(done) > 1:
+            first, last = (record["batches"][str(b)]["paths"][name]["ms_per_image_median"] for b in (done[0], done[-1]))
+            print(f"  {name}: batch {done[-1]} / batch {done[0]} time per image: {last / first:.2f} x")
+    if args.json:
+        write_json(args.json, record)
+    return record
+
+
+def timed_call(teacher, items, path: dict, cuda: bool, clock=time.perf_counter) -> float:
+    """Seconds of one ``teacher.predict(items)``; on CUDA, ``path``'s peak memory (total, and above what was held
+    before the call) raised to this call's."""
+    import torch
+
+    if cuda:
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+        before = torch.cuda.memory_allocated()
+    t0 = clock()
+    teacher.predict(items, PROMPTS)
+    if cuda:
+        torch.cuda.synchronize()
+    seconds = clock() - t0
+    if cuda:
+        peak = torch.cuda.max_memory_allocated()
+        path["peak_allocated_bytes"] = max(path["peak_allocated_bytes"] or 0, peak)
+        path["activation_peak_bytes"] = max(path["activation_peak_bytes"] or 0, peak - before)
+    return seconds
+
+
+def fmt_gib(n: int | None) -> str:
+    return "n/a (not CUDA)" if n is None else f"{n / 2 ** 30:.2f} GiB above the weights"
+
+
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo (platform's processor string elsewhere)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.metrics import image_ious
 from pipeline.profiles import load_profile
 from pipeline.runtime.device import resolve_device
+from pipeline.stats import claim_status, paired_seed_image_t
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 from pipeline.training.inputs import _rows
 from pipeline.training import loop as training
@@ -206,8 +207,6 @@ def gains(runs: list[dict], spacecraft: np.ndarray, groups: np.ndarray, floor: M
     """Each variant minus ``control`` per test group, paired by seed and image: the seed-aware t interval
     (:func:`pipeline.stats.paired_seed_image_t`, the effect on these spacecraft) and the signed verdict against the
     noise floor ``floor`` {group: IoU} (:func:`pipeline.stats.claim_status`)."""
-    from pipeline.stats import claim_status, paired_seed_image_t
-
     by = {(r["variant"], r["seed"]): np.asarray(r["image_ious"]) for r in runs}
     out = []
     for v in dict.fromkeys(r["variant"] for r in runs):

@@ -51,9 +51,10 @@ def main(params, device, input_dir, out, checkpoint, backend, imported_dir, refe
     fmts = parse_formats(formats)  # checked before any work
     params = with_data_options(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad, max_pixels,
                                bit_depth)
-    with quiet_bars(quiet), _step_log_off():
+    with quiet_bars(quiet), _step_log_off():  # -q keeps the cost lines: they are the summary's
         result = label_folder(input_dir, out, params, device=device, formats=fmts, reference_masks=reference_masks,
-                              overwrite=overwrite, workers=workers, address=address, copy_images=copy_images)
+                              overwrite=overwrite, workers=workers, address=address, copy_images=copy_images,
+                              report=lambda line: click.echo(line, err=True))
     click.echo(summary_line(result), err=True)
     if (line := empty_line(result)) is not None:
         click.echo(line, err=True)
@@ -86,10 +87,14 @@ def summary_line(result) -> str:
     record = json.loads((result.out / OUTPUTS["record"]).read_text())
     g = result.table["g"]
     parts = [f"label: {len(result.table)} images -> {result.out} ({', '.join(result.formats)})",
-             f"teacher answers {record['teacher_answers_computed']} computed, {record['teacher_cache_hits']} cached",
+             f"teacher answers {record['teacher_answers_computed']} computed, {record['teacher_cache_hits']} cached"
+             + (f" ({record['teacher_seconds_per_image']:.2f} s per image, measured on {record['teacher_images_timed']:.3g})"
+                if record.get("teacher_seconds_per_image") is not None else ""),
              f"gate g median {g.median():.3f}, {int((g > 0).sum())} with g > 0"]
     parts += [LABEL_FORMATS[f].summary(result.out, len(result.table)) for f in result.formats
               if LABEL_FORMATS[f].summary]
+    if record.get("teacher_note"):
+        parts.append(record["teacher_note"])
     if result.simulator:
         parts.append(f"backend {result.backend} is a SIMULATOR")
     return "; ".join(parts)

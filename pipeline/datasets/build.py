@@ -140,7 +140,7 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
     out = rows.iloc[list(kept)].reset_index(drop=True).copy()
     out["width"] = np.asarray([im.native_hw[1] for im in kept.values()], np.int64)
     out["height"] = np.asarray([im.native_hw[0] for im in kept.values()], np.int64)
-    out["sha256"] = [im.sha256 for im in kept.values()]
+    out["sha256"] = [im.content_sha256 for im in kept.values()]  # an EXIF-turned file: its pixels as shown
     for col in ("mask_path", "part_path"):
         out[col] = [p if _has(p) else None for p in out[col]]
     if out.empty:

@@ -101,3 +101,52 @@ def header_size(data: bytes) -> tuple[int, int] | None:
     if size is None or size[0] <= 0 or size[1] <= 0:
         return None
     return int(size[0]), int(size[1])
+
+
+#: the EXIF (TIFF) tag of the orientation a viewer applies before showing the stored pixels
+ORIENTATION_TAG = 0x0112
+
+
+def _exif_orientation(tiff: bytes) -> int:
+    """The Orientation tag of IFD0 of an EXIF block's TIFF structure (1 when absent or malformed)."""
+    e = {b"II": "<", b"MM": ">"}.get(tiff[:2])
+    if e is None or struct.unpack(e + "H", tiff[2:4])[0] != 42:
+        return 1
+    ifd = struct.unpack(e + "I", tiff[4:8])[0]
+    count = struct.unpack(e + "H", tiff[ifd:ifd + 2])[0]
+    for k in range(count):
+        at = ifd + 2 + 12 * k
+        tag, typ, n = struct.unpack(e + "HHI", tiff[at:at + 8])
+        if tag == ORIENTATION_TAG and typ == 3 and n == 1:  # one SHORT, held in the entry's value field
+            value = struct.unpack(e + "H", tiff[at + 8:at + 10])[0]
+            return value if 1 <= value <= 8 else 1
+    return 1
+
+
+def jpeg_orientation(data: bytes) -> int:
+    """The EXIF orientation (1-8, TIFF/EXIF convention) of a JPEG file's bytes: how a viewer turns or flips
+    the stored pixels to show them; 1 (shown as stored) for any other format, a JPEG without EXIF or
+    with a value outside 1-8, or a malformed header."""
+    if not data.startswith(b"\xff\xd8\xff"):
+        return 1
+    i, n = 2, len(data)
+    try:
+        while i + 4 <= n:
+            if data[i] != 0xFF:
+                return 1
+            marker = data[i + 1]
+            if marker == 0xFF:  # fill byte
+                i += 1
+                continue
+            if marker in (0x01, *range(0xD0, 0xD9)):  # TEM, RSTn, SOI, EOI: no length
+                i += 2
+                continue
+            length = struct.unpack(">H", data[i + 2:i + 4])[0]
+            if marker == 0xE1 and data[i + 4:i + 10] == b"Exif\x00\x00":  # APP1 with EXIF
+                return _exif_orientation(data[i + 10:i + 2 + length])
+            if marker == 0xDA or marker in _SOF or length < 2:  # EXIF comes first: none before the frame
+                return 1
+            i += 2 + length
+    except struct.error:  # cut short inside a field
+        return 1
+    return 1

@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.datasets.image_header import header_size
+from pipeline.datasets.image_header import header_size, jpeg_orientation
 from pipeline.runtime.errors import BIT_DEPTH, MAX_PIXELS, InputError, Option, caller, literal
 from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER
 
@@ -103,11 +103,26 @@ def read_image_bytes(path: str | Path, max_pixels: int | None = None) -> bytes:
     return data
 
 
+def as_displayed(arr: np.ndarray, orientation: int) -> np.ndarray:
+    """``arr`` [H, W, ...] as a viewer shows it under EXIF ``orientation`` (1-8; 1: as stored): 2 mirrored,
+    3 turned 180 degrees, 4 flipped top-bottom, 5 transposed, 6 turned 90 degrees clockwise, 7 transposed
+    across the other diagonal, 8 turned 90 degrees anticlockwise (what OpenCV's ``imread`` does by default)."""
+    o = int(orientation)
+    if o in (5, 6, 7, 8):
+        arr = arr.swapaxes(0, 1)  # 5; the others are the transpose flipped
+        arr = {5: arr, 6: arr[:, ::-1], 7: arr[::-1, ::-1], 8: arr[::-1]}[o]
+    else:
+        arr = {2: arr[:, ::-1], 3: arr[::-1, ::-1], 4: arr[::-1]}.get(o, arr)
+    return np.ascontiguousarray(arr)
+
+
 def _decode(data: bytes, path: str | Path) -> np.ndarray:
+    """The one decode of every image and mask file: its pixels as displayed, a JPEG's EXIF orientation
+    applied (``IMREAD_UNCHANGED`` keeps 16 bits and alpha but ignores the orientation, so it is applied here)."""
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None or arr.size == 0:
         raise BadFileError(path, UNDECODABLE)
-    return arr
+    return as_displayed(arr, jpeg_orientation(data))
 
 
 #: under ``auto``, a 16-bit frame darker than this is most likely a 10-14-bit sensor's: warned about
@@ -408,7 +423,17 @@ class DecodeCache:
 class Loaded:
     array: np.ndarray            # at the working resolution
     sha256: str                  # of the file bytes
-    native_hw: tuple[int, int]   # (height, width) of the file
+    native_hw: tuple[int, int]   # (height, width) of the file as displayed (EXIF orientation applied)
+    orientation: int = 1         # the file's EXIF orientation (1: shown as stored)
+
+    @property
+    def content_sha256(self) -> str:
+        """The key of the pixels a model sees: :attr:`sha256`, or for a file shown turned or flipped
+        (EXIF orientation other than 1) a sha256 over it and the orientation, so answers cached before
+        the orientation was applied are not reused."""
+        if self.orientation == 1:
+            return self.sha256
+        return hashlib.sha256(f"{self.sha256}-exif-orientation-{self.orientation}".encode()).hexdigest()
 
 
 def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pixels: int | None,
@@ -420,11 +445,14 @@ def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pix
     rgb = kind.startswith("rgb")
     warn = warn_frame_once if rgb else warn_mask_once
     kind = f"{kind}-letterbox" if letterbox else kind
+    orientation = jpeg_orientation(data)
+    if orientation != 1:  # entries decoded before the orientation was applied are not this one's
+        kind = f"{kind}-exif{orientation}"
     if cache is not None:
         hit = cache.get(sha, kind, size)
         if hit is not None:
             warn(path, hit[2])
-            return Loaded(hit[0], sha, hit[1])
+            return Loaded(hit[0], sha, hit[1], orientation)
     full = decode(_decode(data, path))
     full, note = full if isinstance(full, tuple) else (full, None)
     warn(path, note)
@@ -432,7 +460,7 @@ def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pix
     arr = resize_image(full, size, letterbox) if rgb else resize_nearest(full, size, letterbox)
     if cache is not None:
         cache.put(sha, kind, size, arr, hw, note)
-    return Loaded(arr, sha, hw)
+    return Loaded(arr, sha, hw, orientation)
 
 
 def load_rgb(path, size: int, cache: DecodeCache | None = None, *, max_pixels: int | None = None,

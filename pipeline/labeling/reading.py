@@ -396,7 +396,7 @@ def read_images(job: LabelJob) -> None:
             job.policy.report_error(job.ids[i] if e.path == str(f) else Path(e.path).stem, e)
             continue
         keep.append(i)
-        job.shas.append(loaded.sha256)
+        job.shas.append(loaded.content_sha256)  # the teacher cache keys on the pixels it sees
         job.sizes.append(loaded.native_hw)
     if not keep:
         first = job.policy.skipped[-1]
@@ -452,7 +452,7 @@ class FolderInputs:
 
 
 def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: bool, fmts: Sequence[str],
-                device: str = "auto", workers: int = 0, address: str | None = None) -> LabelJob:
+                device: str = "auto", workers: int = 0, address: str | None = None, on_batch=None) -> LabelJob:
     """Plan, read and answer a label run.
 
     Plans the run, reads every image (a bad one stops it before any output folder stays), claims the outputs in
@@ -479,6 +479,9 @@ def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
         Teachers in a Ray Data pool; 0 (default): serial, the same answers.
     address : str, optional
         The Ray cluster to join with ``workers``.
+    on_batch : callable, optional
+        The runner's callback after each batch (:meth:`~pipeline.teachers.runner.TeacherRunner.fill`), e.g.
+        :class:`~pipeline.labeling.run.TeacherClock`; None (default): none.
 
     Returns
     -------
@@ -502,7 +505,7 @@ def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
     job.runner, job.fingerprint = open_runner(job.tcfg, (job.size, job.size), device, inputs, job.shas)
     if job.simulated:
         log.warning("label: %s", SIMULATOR_NOTE)
-    job.stats = job.runner.fill(range(len(job.files)), workers=workers, address=address)
+    job.stats = job.runner.fill(range(len(job.files)), workers=workers, address=address, on_batch=on_batch)
     log.info("label: teacher computed %d answers on %d images; %d cached answers reused",
              job.stats.answers_computed, job.stats.images_computed, job.stats.cache_hits)
     return job

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from pathlib import Path
-from typing import Iterator, Mapping, Sequence
+from typing import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -93,6 +94,115 @@ def mask_file(formats: Sequence[str]):
     """
     return next((LABEL_FORMATS[f].mask_file for f in formats if f in LABEL_FORMATS and LABEL_FORMATS[f].mask_file),
                 None)
+
+
+def duration(seconds: float) -> str:
+    """Return ``seconds`` as people read a wait: 42 s, 7.5 min, 3.2 h, 2.1 days.
+
+    Parameters
+    ----------
+    seconds : float
+        A wait in seconds, >= 0.
+
+    Returns
+    -------
+    str
+        The largest unit of which the wait is at least two (days, h, min), one decimal; below 2 min, whole
+        seconds, and two significant digits below 10 s.
+    """
+    for unit, size in (("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
+        if seconds >= 2 * size:
+            return f"{seconds / size:.1f} {unit}"
+    return f"{seconds:.0f} s" if seconds >= 10 else f"{seconds:.2g} s"
+
+
+class TeacherClock:
+    """Measure what the teacher's fill costs: the runner's ``on_batch`` callback.
+
+    After the first batch it hands ``report`` one line projecting the whole fill (serial: seconds per image so
+    far x images to do; under ``workers`` Ray teachers, divided by the workers that finished batches side by
+    side -- a projection, which start-up and shared cores make optimistic); :attr:`seconds_per_image` at the
+    end.  Times include decoding and, under Ray, the pool's start-up: what the user waits for.
+
+    Parameters
+    ----------
+    report : callable or None
+        Receives the projection line; None: it is logged (INFO).
+    workers : int, optional
+        Ray teachers in the pool; 0 (default): serial.
+    clock : callable, optional
+        Wall seconds, :func:`time.perf_counter` by default (a test passes its own).
+
+    Attributes
+    ----------
+    start : float
+        ``clock()`` when the clock was made.
+    first : tuple of (int, float) or None
+        (images, seconds) at the first finished batch; None before it.
+    images : float
+        Images answered so far.
+    seconds : float
+        Wall seconds from ``start`` to the latest batch.
+    """
+
+    def __init__(self, report: Callable[[str], None] | None, workers: int = 0, clock=time.perf_counter):
+        self.report, self.workers, self.clock = report, int(workers), clock
+        self.start = clock()
+        self.first: tuple[int, float] | None = None   # (images, seconds) at the first finished batch
+        self.images = 0.0
+        self.seconds = 0.0
+
+    def __call__(self, done: float, todo: int) -> None:
+        """Record a finished batch; after the first, report the projected fill.
+
+        Parameters
+        ----------
+        done : float
+            Images answered so far.
+        todo : int
+            Images the fill answers in all.
+        """
+        self.images, self.seconds = done, self.clock() - self.start
+        if self.first is not None:
+            return
+        self.first = (done, self.seconds)
+        per_image = self.seconds / max(done, 1)
+        if self.workers > 0:
+            how = (f"about {duration(per_image * todo / self.workers)} under {self.workers} Ray workers "
+                   f"(the first batch's rate x {self.workers} workers keeping pace)")
+        else:
+            how = f"about {duration(per_image * todo)} serially"
+        line = (f"label: teacher's first batch: {done:.3g} image(s) in {self.seconds:.1f} s ({per_image:.2f} s per "
+                f"image); projected for the {todo} image(s) to label: {how}")
+        if self.report is not None:
+            self.report(line)
+        else:
+            log.info("%s", line)
+
+    @property
+    def seconds_per_image(self) -> float | None:
+        """Measured wall seconds per image the teacher answered (None: every answer was cached)."""
+        return self.seconds / self.images if self.images else None
+
+
+def teacher_note(teacher, computed: int) -> str | None:
+    """Return the teacher's word on why its answers were computed rather than reused.
+
+    Parameters
+    ----------
+    teacher : Teacher
+        The run's teacher; its optional ``cache_note()`` says why (a CPU whose ``auto`` dtype is bf16: answers
+        cached under fp32 miss).
+    computed : int
+        Teacher answers computed in this run.
+
+    Returns
+    -------
+    str or None
+        The note when the teacher has one and some answers were computed; else None.
+    """
+    note = getattr(teacher, "cache_note", None)
+    return note() if callable(note) and computed else None
 
 
 def parse_formats(formats: str | Sequence[str] | None = None) -> tuple[str, ...]:
@@ -178,7 +288,7 @@ def folder_gates(c: np.ndarray, n_valid: np.ndarray, a: np.ndarray, geo: Mapping
 def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, device: str = "auto",
                  formats: str | Sequence[str] | None = None, reference_masks: str | Path | None = None,
                  overwrite: bool = False, workers: int = 0, address: str | None = None,
-                 copy_images: bool = False) -> LabelResult:
+                 copy_images: bool = False, report: Callable[[str], None] | None = None) -> LabelResult:
     """Label every image under ``input_dir`` into ``out`` with validated ``params``.
 
     Plans and reads everything first (:func:`pipeline.labeling.reading.open_folder`), then writes each image's
@@ -208,6 +318,9 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
         The Ray cluster to join with ``workers``.
     copy_images : bool, optional
         yolo/images holds copies instead of relative links.
+    report : callable, optional
+        Receives the teacher's projected cost after its first batch (:class:`TeacherClock`); None (default):
+        logged.
 
     Returns
     -------
@@ -220,7 +333,9 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
         An invalid format, folder, option or image, or an output that belongs to the user (one line naming it).
     """
     fmts = parse_formats(formats)
-    job = open_folder(input_dir, out, params, reference_masks, overwrite, fmts, device, workers, address)
+    clock = TeacherClock(report, workers)
+    job = open_folder(input_dir, out, params, reference_masks, overwrite, fmts, device, workers, address,
+                      on_batch=clock)
     job.copy_images = copy_images
     vote_threshold = float(section(params, "consensus")["vote_threshold"])
     v = write_votes(job, fmts, folder_votes(job, vote_threshold))
@@ -232,7 +347,10 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
         "note": SIMULATOR_NOTE if job.simulated else None, "teacher_fingerprint": job.fingerprint,
         "prompts": list(tcfg["prompts"]), "resolution": job.size, "vote_threshold": vote_threshold, "a0": gates.a0,
         "geometry": job.geo, "teacher_answers_computed": stats.answers_computed,
-        "teacher_cache_hits": stats.cache_hits, "complete": True, "teacher": tcfg})
+        "teacher_cache_hits": stats.cache_hits, "teacher_seconds_per_image": clock.seconds_per_image,
+        "teacher_images_timed": clock.images, "teacher_dtype": getattr(job.runner.teacher, "dtype_name", None),
+        "teacher_note": teacher_note(job.runner.teacher, stats.answers_computed),
+        "complete": True, "teacher": tcfg})
     # the summary is the caller's one line (pipeline/cli/label.py), not also a log line
     log.debug("label: %d images -> %s (%s)", n, job.out, ", ".join(fmts))
     return LabelResult(job.out, table, [(r["path"], r["reason"]) for r in job.policy.skipped], fmts, tcfg["backend"],

@@ -53,6 +53,25 @@ def cpu_supports_bf16() -> bool:
     return not cpu_flags().isdisjoint(BF16_FLAGS)
 
 
+#: ``ONEDNN_MAX_CPU_ISA`` values (oneDNN's names) under which oneDNN still runs bf16 natively (avx512_bf16, AMX)
+ONEDNN_BF16_ISAS = ("AVX512_CORE_BF16", "AVX512_CORE_FP16", "AVX512_CORE_AMX", "AVX512_CORE_AMX_FP16",
+                    "AVX10_1_512", "AVX10_1_512_AMX", "AVX10_1_512_AMX_FP16", "AVX10_2_512", "AVX10_2_512_AMX_2",
+                    "ALL", "DEFAULT")
+
+
+def teacher_cpu_dtype() -> str:
+    """``teacher.dtype: auto`` on a CPU: ``bf16`` where the CPU has native bf16 units
+    (:func:`cpu_supports_bf16`, read from its flags, never a timing probe) and ``ONEDNN_MAX_CPU_ISA``, where set,
+    does not cap oneDNN below them; else ``fp32``, where bf16 would be emulated and slower.
+
+    Measured (docs/performance.md): on a 2-core avx512_bf16 host the real-size SAM 3 in bf16 takes a fraction
+    of fp32's time per image with the same masks (the fidelity gate of benchmarks/bench_teacher.py)."""
+    isa = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
+    if isa and isa not in ONEDNN_BF16_ISAS:
+        return "fp32"
+    return "bf16" if cpu_supports_bf16() else "fp32"
+
+
 def autocast(device, dtype, cache_enabled: bool = True):
     """The autocast context of ``dtype`` on ``device`` (None: fp32).  ``cache_enabled=False`` where the
     weight-cast cache must not outlive a CUDA-graph capture."""

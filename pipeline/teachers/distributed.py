@@ -6,7 +6,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -75,8 +75,10 @@ def ray_session(address: str | None = None):
 
 
 def fill_with_ray(jobs: Sequence[TeacherJob], load: InputLoader, spec: TeacherSpec, cache_root: str,
-                  fingerprint: str, workers: int, address: str | None = None) -> int:
-    """Run ``jobs`` on a Ray Data actor pool of ``workers`` teachers; returns the entries written."""
+                  fingerprint: str, workers: int, address: str | None = None,
+                  on_job: Callable[[int], None] | None = None) -> int:
+    """Run ``jobs`` on a Ray Data actor pool of ``workers`` teachers; returns the entries written.
+    ``on_job(job index)`` as each job's answers come back (in the order they finish)."""
     jobs = list(jobs)
     with ray_session(address) as ray:
         ctx = ray.data.DataContext.get_current()
@@ -96,4 +98,9 @@ def fill_with_ray(jobs: Sequence[TeacherJob], load: InputLoader, spec: TeacherSp
                                                                   "fingerprint": fingerprint, "jobs": jobs},
                             batch_size=1, compute=ray.data.ActorPoolStrategy(size=workers),
                             num_cpus=1.0, num_gpus=1.0 if gpus else 0.0)
-        return int(sum(int(row["written"]) for row in ds.iter_rows()))
+        written = 0
+        for row in ds.iter_rows():
+            written += int(row["written"])
+            if on_job is not None:
+                on_job(int(row["job"]))
+        return written

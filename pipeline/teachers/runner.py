@@ -100,12 +100,23 @@ class TeacherRunner:
                 jobs.append(TeacherJob(view, tuple(rows), prompts, tuple(tuple(todo[view][r]) for r in rows)))
         return jobs
 
-    def fill(self, rows: Sequence[int], workers: int = 0, address: str | None = None) -> RunStats:
-        """Compute and cache every missing answer of ``rows``, here (``workers=0``) or on a Ray pool."""
+    def fill(self, rows: Sequence[int], workers: int = 0, address: str | None = None,
+             on_batch: Callable[[int, int], None] | None = None) -> RunStats:
+        """Compute and cache every missing answer of ``rows``, here (``workers=0``) or on a Ray pool;
+        ``on_batch(images done, images to do)`` after each finished batch (a job: one view of its rows; an image
+        asked in two views counts half when one is done)."""
         if not self.teacher.use_cache:
             return self.stats
         todo = self.missing(rows)
         n_images = len(set().union(*(set(t) for t in todo.values())))
+        done, views = 0, sum(len(rows) for rows in todo.values())  # a row counts once per view it is asked in
+
+        def finished(job_rows: int) -> None:
+            nonlocal done
+            done += job_rows
+            if on_batch is not None:
+                on_batch(done * n_images / views, n_images)
+
         log.info("teacher[%s]: %d of %d images need answers (%d cached answers reused)",
                  self.teacher.backend, n_images, len(rows), self.stats.cache_hits)
         jobs = self.jobs(todo)
@@ -113,7 +124,8 @@ class TeacherRunner:
             if self.spec is None:
                 raise ValueError("TeacherRunner.fill(workers > 0) needs the runner's TeacherSpec")
             self.stats.answers_computed += fill_with_ray(jobs, self.load, self.spec, self.cache.location,
-                                                         self.cache.teacher_fingerprint, workers, address)
+                                                         self.cache.teacher_fingerprint, workers, address,
+                                                         on_job=lambda j: finished(len(jobs[j].rows)))
         elif jobs:
             # the bar counts images (a job is a batch of them, per view), not jobs
             with progress(total=sum(len(j.rows) for j in jobs), desc=f"teacher[{self.teacher.backend}]",
@@ -121,6 +133,7 @@ class TeacherRunner:
                 for job in jobs:
                     self.stats.answers_computed += answer_job(self.teacher, self.cache, job, job.inputs(self.load))
                     bar.update(len(job.rows))
+                    finished(len(job.rows))
         self.stats.images_computed += n_images
         return self.stats
 

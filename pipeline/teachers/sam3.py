@@ -16,7 +16,7 @@ from fsspec.core import url_to_fs
 from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.artifacts.atomic import read_json, write_json
-from pipeline.runtime.device import resolve_device
+from pipeline.runtime.device import resolve_device, teacher_cpu_dtype
 from pipeline.runtime.errors import InputError, Option, literal
 from pipeline.teacher_table import SAM3 as BACKEND
 from pipeline.runtime.progress import library_bars_off
@@ -106,7 +106,8 @@ def check_checkpoint_dir(directory: str | Path, option: Option | None = None) ->
 
 def resolve_teacher_dtype(dtype: str, device) -> tuple[str, bool]:
     """(weights dtype "fp32" | "bf16", TF32 on) for ``teacher.dtype`` on ``device``: ``auto`` is bf16 on a
-    CUDA GPU that supports it, else fp32 with TF32 on CUDA, fp32 on a CPU."""
+    CUDA GPU that supports it, else fp32 with TF32 on CUDA; on a CPU the rule on its flags,
+    :func:`pipeline.runtime.device.teacher_cpu_dtype` (bf16 with avx512_bf16 or AMX, else fp32)."""
     import torch
 
     if dtype not in ("auto", "fp32", "bf16"):
@@ -114,7 +115,7 @@ def resolve_teacher_dtype(dtype: str, device) -> tuple[str, bool]:
     if dtype != "auto":
         return dtype, False
     if torch.device(device).type != "cuda":
-        return "fp32", False
+        return teacher_cpu_dtype(), False
     return ("bf16", False) if torch.cuda.is_bf16_supported() else ("fp32", True)
 
 
@@ -177,6 +178,7 @@ class Sam3Teacher(RegisteredTeacher):
 
         self.checkpoint = check_checkpoint_dir(checkpoint)
         self.device = resolve_device(device)
+        self.dtype_asked = dtype
         self.dtype_name, self.tf32 = resolve_teacher_dtype(dtype, self.device)
         self.torch_dtype = torch.bfloat16 if self.dtype_name == "bf16" else torch.float32
         self.batch_size = int(batch_size) if int(batch_size) > 0 else (0 if self.device.type == "cuda" else 2)
@@ -213,6 +215,14 @@ class Sam3Teacher(RegisteredTeacher):
                 "resolution": list(self.resolution) if self.resolution else None,
                 "score_threshold": self.score_threshold, "mask_threshold": self.mask_threshold,
                 "text_max_length": TEXT_MAX_LENGTH}
+
+    def cache_note(self) -> str | None:
+        """Why a CPU's answers cached before ``auto`` chose bf16 there are computed again (the dtype is part of
+        the fingerprint); None where ``auto`` still means fp32 or the dtype was pinned."""
+        if self.dtype_asked == "auto" and self.device.type == "cpu" and self.dtype_name == "bf16":
+            return ("teacher.dtype auto is bf16 on this CPU (native bf16 units): answers cached under fp32 are not "
+                    "reused; set teacher.dtype: fp32 to keep them")
+        return None
 
     def load(self):
         """Load model and tokenizer once (local files only)."""

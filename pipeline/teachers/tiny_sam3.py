@@ -77,8 +77,9 @@ def preprocessor_config(image_size: int) -> dict:
 
 
 def build_tiny_sam3(directory: str | Path, *, image_size: int = 56, seed: int = 0, size: str = "tiny",
-                    words: tuple[str, ...] = ()) -> Path:
-    """Save a randomly initialised SAM 3 (``size`` tiny | real) with tokenizer and processor config."""
+                    words: tuple[str, ...] = (), initializer_range: float = 0.2) -> Path:
+    """Save a randomly initialised SAM 3 (``size`` tiny | real) with tokenizer and processor config;
+    ``initializer_range``: the tiny model's (:func:`tiny_sam3_config`)."""
     import torch
     from transformers import CLIPTokenizer, Sam3Config, Sam3Model
 
@@ -86,7 +87,7 @@ def build_tiny_sam3(directory: str | Path, *, image_size: int = 56, seed: int = 
     directory.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(seed)
     if size == "tiny":
-        config = tiny_sam3_config(image_size)
+        config = tiny_sam3_config(image_size, initializer_range=initializer_range)
     elif size == "real":
         config = Sam3Config()
         image_size = config.vision_config.backbone_config.image_size

@@ -244,7 +244,7 @@ def teacher_finished(work: Path) -> dict | None:
 
 
 def cut_by_own_deadline(finished: dict) -> bool:
-    """Whether a section stopped at the deadline it was given (dagrun.py's, teacher_gpu.py's) with work left."""
+    """Whether a section stopped at the deadline it was given (dagrun.py's, bench_teacher --batch-sweep's) with work left."""
     dag, teacher = finished.get("dag") or {}, finished.get("teacher") or {}
     return bool(dag.get("running_at_deadline") or dag.get("pending_at_deadline")
                 or str(teacher.get("stopped") or "").startswith("deadline"))

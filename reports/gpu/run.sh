@@ -12,7 +12,8 @@
 #
 # Sections (SECTIONS, in order; default "teacher past_labels"):
 #   teacher      issue 58 item 4: the real-size SAM 3 (random weights), bf16, compiled and eager, batches
-#                TEACHER_BATCHES: peak memory and ms per image (reports/gpu/teacher_gpu.py) -> teacher_gpu.json
+#                TEACHER_BATCHES: peak memory and ms per image (benchmarks/bench_teacher.py --batch-sweep; its logic
+#                tested on a CPU in tests/benchmarks/test_bench_teacher_roofline.py) -> teacher_gpu.json
 #   past_labels  issue 57 item 6: Stage I at RESOLUTION (384) on the reduced profile's data (the paper's sizes,
 #                270 / 60 / 3x60, as the plateau-384 run), recipe RECIPE (progressive), seed SEED: Plain, the
 #                ceiling and WINNER, a variant of benchmarks.past_labels (bootstrap, ignore_band, soft,
@@ -77,10 +78,10 @@ for section in $SECTIONS; do
   case $section in
     teacher)
       # shellcheck disable=SC2086
-      $GUARD --name teacher --budget "${TEACHER_S:-200}" --cwd "$SRC" -- $PY "$HERE/teacher_gpu.py" \
-        --device "$DEVICE" --size "${TEACHER_SIZE:-real}" --batches ${TEACHER_BATCHES:-1 2 4 8 16 32} \
-        --paths ${TEACHER_PATHS:-compiled eager} --repeats "${TEACHER_REPEATS:-5}" --deadline '{deadline}' \
-        --out "$WORK/teacher_gpu.json" ;;
+      $GUARD --name teacher --budget "${TEACHER_S:-200}" --cwd "$SRC" -- $PY -m benchmarks.bench_teacher \
+        --batch-sweep "$(echo ${TEACHER_BATCHES:-1 2 4 8 16 32} | tr ' ' ',')" --device "$DEVICE" \
+        --size "${TEACHER_SIZE:-real}" --dtype bf16 --paths "$(echo ${TEACHER_PATHS:-compiled eager} | tr ' ' ',')" \
+        --repeats "${TEACHER_REPEATS:-5}" --resolution 384 --deadline '{deadline}' --json "$WORK/teacher_gpu.json" ;;
     past_labels)
       # shellcheck disable=SC2086
       $GUARD --name past_labels ${PL_S:+--budget "$PL_S"} --cwd "$SRC" -- $PY -m benchmarks.past_labels \

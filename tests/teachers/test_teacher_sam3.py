@@ -110,7 +110,7 @@ def test_score_threshold_marks_prompts_invalid(ckpt, items):
 
 
 def test_bf16_runs_and_fingerprint_differs(ckpt, items):
-    t32 = Sam3Teacher(ckpt, device="cpu", resolution=(40, 40))
+    t32 = Sam3Teacher(ckpt, device="cpu", dtype="fp32", resolution=(40, 40))
     t16 = Sam3Teacher(ckpt, device="cpu", dtype="bf16", resolution=(40, 40), score_threshold=0.0)
     masks, scores = t16.predict(items[:2], PROMPTS)
     assert masks.shape == (2, 6, 40, 40) and np.isfinite(scores).all()

@@ -3,6 +3,7 @@ corrupt entries recomputed at assembly, retried jobs, and the Ray Data path agai
 
 from __future__ import annotations
 
+import re
 import uuid
 
 import numpy as np
@@ -168,6 +169,9 @@ def test_label_with_ray_workers_writes_the_serial_labels(tmp_path, monkeypatch, 
         r = cli("label", img_dir, "--out", outs[name], "--backend", "simulated", "--reference-masks", mask_dir,
                 *FAST, *extra)
         assert r.exit_code == 0, r.output
+        # label's cost: the projection after the first batch, under the Ray workers as serially
+        how = "under 2 Ray workers" if extra else "serially"
+        assert re.search(rf"first batch: [\d.]+ image\(s\) in .* 8 image\(s\) to label: about .* {how}", r.output), r.output
     files = lambda root: {p.relative_to(root): p.read_bytes() for p in root.rglob("*")  # noqa: E731
                           if p.is_file() and not p.is_symlink() and p.name not in ("label.json", "data.yaml")}
     serial, ray = files(outs["serial"]), files(outs["ray"])

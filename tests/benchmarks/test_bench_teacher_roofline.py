@@ -1,0 +1,79 @@
+"""Smoke test of ``benchmarks.bench_teacher --roofline`` on the tiny random SAM 3: every row of the table
+printed and written as JSON (FLOPs by module, per-module times, host limits, round-robin medians, ratio, gate)."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+pytest.importorskip("transformers")
+
+
+def test_roofline_prints_and_writes_its_table(tmp_path, capsys, tiny_sam3):
+    from benchmarks.bench_teacher import main
+
+    out = tmp_path / "roofline.json"
+    main(["--roofline", "--checkpoint", str(tiny_sam3), "--images", "1", "--repeats", "2", "--resolution", "32",
+          "--no-warmup", "--json", str(out)])
+    text = capsys.readouterr().out
+    for pattern in (r"limits \(measured 2048\^3 matmul, best / median\): fp32 \d+ / \d+ GFLOP/s",
+                    r"FLOPs per image, 6 prompts: .*backbone [\d.]+ G.*; text once per run [\d.e+-]+ G",
+                    r"per-module wall time of the default path", r"fp32 eager \(fp32\): median +[\d.]+ s/image",
+                    r"default / fp32 eager \(medians\): \d\.\d{3}", r"fidelity vs fp32 eager: mean mask IoU"):
+        assert re.search(pattern, text), (pattern, text)
+    doc = json.loads(out.read_text())
+    assert set(doc["seconds"]) == {"fp32 eager", "default"} and all(len(v) == 2 for v in doc["seconds"].values())
+    assert doc["default_over_fp32"] == pytest.approx(doc["median_s_per_image"]["default"]
+                                                     / doc["median_s_per_image"]["fp32 eager"])
+    flops = doc["flops_per_image"]
+    assert {"backbone", "detr_encoder", "detr_decoder", "mask_decoder"} <= set(flops) and min(flops.values()) >= 0
+    assert flops["backbone"] > 0 and flops["detr_encoder"] > 0 and doc["text_flops_per_run"] > 0
+    assert doc["limits"]["fp32_gflops"] > 0 and doc["host"]["load_average_before"]
+    assert doc["fidelity"]["pairs"] == 6 and "passes" in doc["fidelity"]
+
+
+def test_batch_sweep_times_each_batch_and_path_and_writes_it(tmp_path, capsys, tiny_sam3):
+    """The GPU script's rows (reports/gpu/run.sh, section teacher) computed on a CPU: per batch size each path's
+    first call and its round-robin times, the JSON rewritten per batch; compile is forced off on a CPU and the
+    JSON says so; peak memory is CUDA's only (None here)."""
+    from benchmarks.bench_teacher import main
+
+    out = tmp_path / "sweep.json"
+    main(["--batch-sweep", "1,2", "--checkpoint", str(tiny_sam3), "--paths", "compiled,eager", "--repeats", "2",
+          "--resolution", "28", "--dtype", "bf16", "--json", str(out)])
+    text = capsys.readouterr().out
+    assert re.search(r"batch   1: compiled median +[\d.]+ ms/image, min +[\d.]+, first call +[\d.]+ s, peak n/a "
+                     r"\(not CUDA\); eager median", text), text
+    assert re.search(r"eager: batch 2 / batch 1 time per image: \d+\.\d\d x", text), text
+    doc = json.loads(out.read_text())
+    assert doc["finished"] and doc["stopped"] is None and sorted(doc["batches"]) == ["1", "2"]
+    assert doc["compile_active"] == {"compiled": False, "eager": False}  # no compile off CUDA, and it says so
+    assert doc["dtype_used"] == {"compiled": "bf16", "eager": "bf16"}
+    for row in doc["batches"].values():
+        for p in row["paths"].values():
+            assert len(p["seconds"]) == 2 and 0 < p["ms_per_image_min"] <= p["ms_per_image_median"]
+            assert p["first_call_s"] > 0 and p["peak_allocated_bytes"] is None  # no CUDA memory to read on a CPU
+        assert row["eager_over_compiled_median"] > 0
+    assert doc["parameters"] > 0 and doc["weights_bytes"] == 2 * doc["parameters"]  # bf16
+
+
+def test_batch_sweep_deadline_stops_before_the_next_batch(tmp_path, capsys, tiny_sam3):
+    """run.sh's guard hands the sweep its budget as --deadline: past it no batch starts, and the JSON (read by
+    reports/gpu/collect.py) says the sweep stopped at its deadline."""
+    from benchmarks.bench_teacher import main
+
+    out = tmp_path / "sweep.json"
+    main(["--batch-sweep", "1", "--checkpoint", str(tiny_sam3), "--repeats", "1", "--resolution", "28",
+          "--deadline", "0", "--json", str(out)])
+    doc = json.loads(out.read_text())
+    assert not doc["finished"] and doc["batches"] == {} and doc["stopped"].startswith("deadline")
+    assert "stopped: deadline" in capsys.readouterr().out
+
+
+def test_batch_sweep_refuses_an_unknown_path(tiny_sam3):
+    from benchmarks.bench_teacher import main
+
+    with pytest.raises(SystemExit, match="--paths 'fast'"):
+        main(["--batch-sweep", "1", "--checkpoint", str(tiny_sam3), "--paths", "fast"])
