@@ -565,7 +565,8 @@ def main(argv=None) -> dict:
                           "curves": curves(scores, groups), "summary": summarize(scores, vote_iou, groups, rng)}
         print(f"{m}: final IoU {doc['runs'][m]['summary']['cal']['final']['iou_ref'][0]:.3f} (vote "
               f"{doc['vote']['iou_ref']:.3f}), peak epoch {doc['runs'][m]['summary']['cal']['peak_epoch']}", flush=True)
-        write_outputs(doc, Path(args.out), Path(args.figure) if args.figure else None)
+        last = m == args.methods[-1]  # the figure once, at the end (the JSON after each run: an early answer)
+        write_outputs(doc, Path(args.out), Path(args.figure) if args.figure and last else None)
     return doc
 
 
