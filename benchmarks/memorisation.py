@@ -339,32 +339,47 @@ def score_epoch(probs: np.ndarray, val_probs: np.ndarray, val_masks: np.ndarray,
     return out
 
 
-def score_run(method: str, cfg: Mapping[str, Any], seed: int, run_dir: Path, images: np.ndarray, gt: np.ndarray,
-              vote: np.ndarray, labels: np.ndarray, val, tau_rule: str) -> dict:
-    """Every kept epoch's (and the final model's, key 0 ... see ``final``) scores, cached in ``run_dir/scores.npz``
-    (numbers only) and reused while the epochs kept are the same."""
+def scored_epochs(epochs: Sequence[int], stride: int, low_res_epochs: int | None) -> list[int]:
+    """The kept epochs scored: every ``stride``-th, the last half-side one and the last one (scoring every epoch
+    costs a prediction over the training images each)."""
+    last = max(epochs) if epochs else 0
+    keep = {e for e in epochs if e % max(int(stride), 1) == 0 or e == last or e == (low_res_epochs or -1)}
+    return sorted(keep)
+
+
+def score_run(method: str, cfg: Mapping[str, Any], seed: int, run_dir: Path, epochs: Sequence[int],
+              images: np.ndarray, gt: np.ndarray, vote: np.ndarray, labels: np.ndarray, val, tau_rule: str) -> dict:
+    """The scores (:func:`score_epoch`) of ``epochs``' weights and, last (epoch -1), the run's returned (selected,
+    averaged) model, stacked; each model's cached in ``run_dir/scores/`` (numbers only, ``allow_pickle`` off) so
+    that a killed scoring resumes.  A cache of other training images (another count) is recomputed."""
     from pipeline.training import loop as training
 
-    cache = run_dir / "scores.npz"
-    epochs = EpochCheckpointer(run_dir).epochs()
-    if cache.exists():
-        with np.load(cache, allow_pickle=False) as z:
-            if list(z["epochs"]) == epochs and z["iou_ref_05"].shape[1] == len(gt):
-                return {k: z[k] for k in z.files}
-    model = training.build_model(get_method(method), cfg, seed)
+    model = None
     rows = []
-    for e in [*epochs, -1]:  # -1: the run's returned (selected, averaged) model
-        path = run_dir / "final.pt" if e == -1 else EpochCheckpointer(run_dir).epoch_path(e)
-        state = load_weights(path)
-        rows.append(score_epoch(predict(model, state, images), predict(model, state, val.images), val.masks, gt,
-                                vote, labels, tau_rule))
-    out = {"epochs": np.asarray(epochs, np.int64), "tau_cal": np.array([r["tau_cal"] for r in rows])}
-    for key in ("05", "cal"):
-        for f in ("iou_ref", "iou_vote", "counts"):
-            out[f"{f}_{key}"] = np.stack([r[key][f] for r in rows])
-    tmp = cache.with_name(f".{cache.name}.tmp-{os.getpid()}.npz")
-    np.savez_compressed(tmp, **out)
-    os.replace(tmp, cache)
+    for e in [*epochs, -1]:
+        cache = run_dir / "scores" / f"{'final' if e == -1 else f'e{e:04d}'}.npz"
+        row = None
+        if cache.exists():
+            with np.load(cache, allow_pickle=False) as z:
+                row = {k: z[k] for k in z.files}
+            if row["iou_ref_05"].shape != (len(gt),):
+                row = None
+        if row is None:
+            if model is None:
+                model = training.build_model(get_method(method), cfg, seed)
+            state = load_weights(run_dir / "final.pt" if e == -1 else EpochCheckpointer(run_dir).epoch_path(e))
+            r = score_epoch(predict(model, state, images), predict(model, state, val.images), val.masks, gt, vote,
+                            labels, tau_rule)
+            row = {"tau_cal": np.float64(r["tau_cal"]),
+                   **{f"{f}_{key}": r[key][f] for key in ("05", "cal") for f in ("iou_ref", "iou_vote", "counts")}}
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            tmp = cache.with_name(f".{cache.stem}.tmp-{os.getpid()}.npz")
+            np.savez_compressed(tmp, **row)
+            os.replace(tmp, cache)
+        rows.append(row)
+    out = {"epochs": np.asarray(list(epochs), np.int64)}
+    for k in rows[0]:
+        out[k] = np.stack([np.asarray(r[k]) for r in rows])
     return out
 
 
@@ -373,6 +388,21 @@ def score_run(method: str, cfg: Mapping[str, Any], seed: int, run_dir: Path, ima
 
 def _r(x: float, nd: int = 4):
     return None if x is None or not np.isfinite(x) else round(float(x), nd)
+
+
+def finite(obj: Any) -> Any:
+    """``obj`` with every float rounded to 4 places and NaN/inf as None (strict JSON), tuples as lists."""
+    if isinstance(obj, Mapping):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return _r(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
 
 
 def curves(scores: Mapping[str, np.ndarray], groups: Mapping[str, np.ndarray]) -> dict:
@@ -426,7 +456,7 @@ def summarize(scores: Mapping[str, np.ndarray], vote_iou: np.ndarray, groups: Ma
                                   for name_g, sel in groups.items() if sel.sum() >= MIN_GROUP}}
         s["peak_minus_final"] = bootstrap_mean(ref[peak] - ref[-1], rng)
         out[key] = s
-    return json.loads(json.dumps(out, default=float), parse_float=lambda x: round(float(x), 4))
+    return finite(out)
 
 
 def figure(doc: Mapping[str, Any]):
@@ -496,6 +526,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
     ap.add_argument("--figure", default=None, help="PNG of the curves (default: none)")
     ap.add_argument("--train-only", action="store_true", help="train (and keep) the runs, score nothing")
+    ap.add_argument("--score-stride", type=int, default=4,
+                    help="score every n-th epoch (and the last half-side and the last one); 1: every epoch")
     args = ap.parse_args(argv)
     sets = [f"data.resolution={args.resolution}", *args.sets]
     params = load_profile(args.profile, sets)
@@ -545,7 +577,7 @@ def main(argv=None) -> dict:
                  "simulator_version": SIMULATOR_VERSION, "teacher_seed": teacher_attrs["teacher"]["seed"],
                  "prompts": list(teacher_attrs["prompts"]), "replay_matches_teacher_zarr": True,
                  "band_px": band_px(side), "thin_opening_radius_px": thin_radius(side), "fixed_tau": FIXED_TAU,
-                 "tau_rule": tau_rule, "bootstrap": f"{BOOTSTRAP_RESAMPLES} resamples of the training images, "
+                 "tau_rule": tau_rule, "score_stride": args.score_stride, "bootstrap": f"{BOOTSTRAP_RESAMPLES} resamples of the training images, "
                                                     "95 % percentile intervals; one seed: no seed noise included",
                  "ceiling": "supervised_ceiling trains on the REFERENCE masks: NOT annotation-free"},
         "draws": {"summary": draw_summary(records, teacher_attrs["prompts"]),
@@ -559,15 +591,50 @@ def main(argv=None) -> dict:
     for m in args.methods:  # each run is written as it finishes: the first answer comes before the second run
         run_dir = runs_dir / f"{m}-s{args.seed}"
         trained = train_run(m, cfg, data[m], val, args.seed, run_dir, commit)
-        scores = score_run(m, cfg, args.seed, run_dir, images, gt, vote, labels, val, tau_rule)
+        epochs = scored_epochs(EpochCheckpointer(run_dir).epochs(), args.score_stride, trained.get("low_res_epochs"))
+        scores = score_run(m, cfg, args.seed, run_dir, epochs, images, gt, vote, labels, val, tau_rule)
         doc["runs"][m] = {**{k: v for k, v in trained.items() if k != "val_iou_cal"},
                           "annotation_free": get_method(m).annotation_free,
                           "curves": curves(scores, groups), "summary": summarize(scores, vote_iou, groups, rng)}
         print(f"{m}: final IoU {doc['runs'][m]['summary']['cal']['final']['iou_ref'][0]:.3f} (vote "
               f"{doc['vote']['iou_ref']:.3f}), peak epoch {doc['runs'][m]['summary']['cal']['peak_epoch']}", flush=True)
+        print(answer_table(doc), flush=True)
         last = m == args.methods[-1]  # the figure once, at the end (the JSON after each run: an early answer)
         write_outputs(doc, Path(args.out), Path(args.figure) if args.figure and last else None)
     return doc
+
+
+def _ci(v) -> str:
+    return f"{v[0]:.3f} [{v[1]:.3f}, {v[2]:.3f}]" if v and v[0] is not None else "n/a"
+
+
+def answer_table(doc: Mapping[str, Any], key: str = "cal") -> str:
+    """Markdown tables of each run's answer at threshold ``key``: IoU on the training images (peak, final, the
+    vote), the copied share of the vote's wrong pixels per region and, per image group, the final IoU minus the
+    vote's (95 % bootstrap intervals over the training images)."""
+    runs = doc["runs"]
+    lines = ["| run | peak epoch | IoU at the peak | final IoU | final - vote | peak - final | IoU with the vote (final) |",
+             "|---|---|---|---|---|---|---|"]
+    for m, r in runs.items():
+        s = r["summary"][key]
+        lines.append(f"| {m} | {s['peak_epoch']} | {_ci(s['peak']['iou_ref'])} | {_ci(s['final']['iou_ref'])} | "
+                     f"{_ci(s['final']['minus_vote'])} | {_ci(s['peak_minus_final'])} | "
+                     f"{s['final']['agreement_with_vote']:.3f} |")
+    lines += ["", "| region (vote's wrong px) | " + " | ".join(f"{m}: copied at the peak | {m}: copied, final"
+                                                          for m in runs) + " |",
+              "|---|" + "---|---|" * len(runs)]
+    for g in REGIONS:
+        cells = [f"{_ci(r['summary'][key]['peak']['copied'][g])} | {_ci(r['summary'][key]['final']['copied'][g])}"
+                 for r in runs.values()]
+        lines.append(f"| {g} ({doc['vote']['regions'][g]['vote_wrong_px']:,}) | " + " | ".join(cells) + " |")
+    groups = next(iter(runs.values()))["summary"][key]["final"]["groups"]
+    lines += ["", "| images (n) | vote IoU | " + " | ".join(f"{m}: final - vote | {m}: copied" for m in runs) + " |",
+              "|---|---|" + "---|---|" * len(runs)]
+    for g, v in groups.items():
+        cells = [f"{_ci(r['summary'][key]['final']['groups'][g]['minus_vote'])} | "
+                 f"{_ci(r['summary'][key]['final']['groups'][g]['copied'])}" for r in runs.values()]
+        lines.append(f"| {g} ({v['n']}) | {v['vote_iou']:.3f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def write_outputs(doc: Mapping[str, Any], out: Path, figure_path: Path | None) -> None:
@@ -575,7 +642,7 @@ def write_outputs(doc: Mapping[str, Any], out: Path, figure_path: Path | None) -
     from pipeline.report.figures import png_bytes
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_text_if_changed(out, json.dumps(doc, indent=1, default=float))
+    write_text_if_changed(out, json.dumps(finite(doc), indent=1, allow_nan=False))
     print(f"wrote {out}", flush=True)
     if figure_path is not None:
         figure_path.parent.mkdir(parents=True, exist_ok=True)

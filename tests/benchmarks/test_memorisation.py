@@ -36,6 +36,7 @@ def test_regions_partition_and_copy_rates():
     assert rates["fp_blob"]["copied"] == 1.0 and rates["fp_blob"]["vote_wrong_px"] == 4
     assert rates["background"]["own"] == pytest.approx(1 / rates["background"]["vote_right_px"])
     assert np.isnan(rates["interior"]["copied"])  # the vote is right on every interior pixel
+    assert memo.scored_epochs(list(range(1, 11)), 4, 6) == [4, 6, 8, 10]
     value, lo, hi = memo.bootstrap_ratio(np.array([1, 3]), np.array([2, 4]), np.random.default_rng(0), 200)
     assert value == pytest.approx(4 / 6) and 0.5 <= lo <= value <= hi <= 0.75
 
@@ -48,7 +49,7 @@ def test_memorisation_runs_and_resumes_on_tiny_simulator_artifacts(tmp_path, mon
     assert res.exit_code == 0, res.output
     argv = ["--artifacts", str(tmp_path / "art"), "--workdir", str(tmp_path / "work"), "--profile", "demo",
             "--resolution", "32", "--set", "train.recipe=progressive", "--set", "train.epochs_stage1=3",
-            "--set", "train.channels=[4,8,8]", "--out", str(tmp_path / "m.json")]
+            "--set", "train.channels=[4,8,8]", "--score-stride", "1", "--out", str(tmp_path / "m.json")]
     doc = memo.main(argv)
     assert doc["info"]["replay_matches_teacher_zarr"] and len(doc["draws"]["per_image"]) == 6
     assert set(doc["runs"]) == {"plain", "supervised_ceiling"}
