@@ -58,6 +58,9 @@ BAND_PX_AT_64 = 2
 #: the fixed threshold beside the calibrated one
 FIXED_TAU = PAPER.calibrate.fixed_tau
 BOOTSTRAP_RESAMPLES = 2000
+#: the simulator's scale difficulty (:func:`pipeline.teachers.simulated.scale_difficulty`) from which a target
+#: counts as small: about 2 % of the frame and less
+SMALL_SCALE = 0.5
 #: a group of images needs this many members to be reported
 MIN_GROUP = 5
 
@@ -116,13 +119,16 @@ def replay_draws(artifacts: Path, rows: np.ndarray) -> tuple[list[dict], np.ndar
 def image_groups(records: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:
     """Name -> bool [N]: every image; by the shared events (``breakdown``; ``shared_thin`` / ``shared_fp``: at least
     two prompts took part, enough to carry a six-prompt vote's minority; ``no shared event``); and, per failure
-    mode, the images where at least two valid answers drew it (``2+ prompts: <mode>``).  Groups overlap."""
+    mode, the images where at least two valid answers drew it (``2+ prompts: <mode>``); by the simulator's scale
+    difficulty (small targets: >= :data:`SMALL_SCALE`, 1 at 0.4 % of the frame and below).  Groups overlap."""
     n = len(records)
     out = {"all": np.ones(n, bool)}
     out["breakdown"] = np.array([r["breakdown"] for r in records], bool)
     out["shared_thin"] = np.array([r["thin_takers"] >= 2 for r in records], bool)
     out["shared_fp"] = np.array([r["fp_takers"] >= 2 for r in records], bool)
     out["no shared event"] = ~(out["breakdown"] | out["shared_thin"] | out["shared_fp"])
+    small = np.array([r["scale"] >= SMALL_SCALE for r in records], bool)
+    out["small target"], out["large target"] = small, ~small
     for m in MODES:
         out[f"2+ prompts: {m}"] = np.array([sum(md == m and v for md, v in zip(r["modes"], r["valid"])) >= 2
                                             for r in records], bool)
@@ -448,6 +454,8 @@ def summarize(scores: Mapping[str, np.ndarray], vote_iou: np.ndarray, groups: Ma
                                   for k, g in enumerate(REGIONS)},
                        "own": {g: bootstrap_ratio(counts[i][:, k, 3], counts[i][:, k, 2], rng)
                                for k, g in enumerate(REGIONS)},
+                       "pixels": {g: {"copied": int(counts[i][:, k, 1].sum()), "own": int(counts[i][:, k, 3].sum())}
+                                  for k, g in enumerate(REGIONS)},
                        "groups": {name_g: {"n": int(sel.sum()),
                                            "iou_ref": _r(ref[i][sel].mean()), "vote_iou": _r(vote_iou[sel].mean()),
                                            "minus_vote": bootstrap_mean(ref[i][sel] - vote_iou[sel], rng),
@@ -493,12 +501,17 @@ def figure(doc: Mapping[str, Any]):
                 ax.set_visible(False)
                 continue
             c = run["curves"]
-            for g in REGIONS[:4]:
-                ax.plot(c["epochs"], c["cal"]["copied"][g][:-1], lw=1.2,
-                        label=f"{g} ({doc['vote']['regions'][g]['vote_wrong_px']:,} px wrong in the vote)")
-            ax.set(title=f"{m}: share of the vote's wrong pixels copied (tau cal)", xlabel="epoch",
-                   ylabel="copied (1 - corrected)", ylim=(0, 1))
-            ax.legend(fontsize=7)
+            for j, g in enumerate(REGIONS):
+                color = f"C{j}" if g != "background" else "#777"
+                if g != "background":
+                    ax.plot(c["epochs"], c["cal"]["copied"][g][:-1], lw=1.2, color=color,
+                            label=f"{g}: copied ({doc['vote']['regions'][g]['vote_wrong_px']:,} px wrong in the vote)")
+                if g != "fp_blob":
+                    ax.plot(c["epochs"], c["cal"]["own"][g][:-1], "--", lw=0.9, color=color,
+                            label=f"{g}: own errors ({doc['vote']['regions'][g]['vote_right_px']:,} px right)")
+            ax.set(title=f"{m}: the vote's wrong pixels copied (solid), own errors (dashed); tau cal",
+                   xlabel="epoch", ylabel="share of the region's pixels", ylim=(0, 1))
+            ax.legend(fontsize=6.5, ncol=2)
         ax = axes[1, 1]
         for j, (m, run) in enumerate(doc["runs"].items()):
             groups = run["summary"]["cal"]["final"]["groups"]
