@@ -509,8 +509,8 @@ def figure(doc: Mapping[str, Any]):
                 if g != "fp_blob":
                     ax.plot(c["epochs"], c["cal"]["own"][g][:-1], "--", lw=0.9, color=color,
                             label=f"{g}: own errors ({doc['vote']['regions'][g]['vote_right_px']:,} px right)")
-            ax.set(title=f"{m}: the vote's wrong pixels copied (solid), own errors (dashed); tau cal",
-                   xlabel="epoch", ylabel="share of the region's pixels", ylim=(0, 1))
+            ax.set(title=f"{m}: vote errors copied (solid), own errors (dashed)", xlabel="epoch",
+                   ylabel="share of the region's pixels (tau cal)", ylim=(0, 1.3), yticks=np.linspace(0, 1, 6))
             ax.legend(fontsize=6.5, ncol=2)
         ax = axes[1, 1]
         for j, (m, run) in enumerate(doc["runs"].items()):
