@@ -36,6 +36,7 @@ from benchmarks.study_recipe import build_artifacts
 from pipeline import catalog
 from pipeline.artifacts.atomic import write_text_if_changed
 from pipeline.artifacts.store import open_artifact
+from pipeline.evaluation.inference import predict_probs
 from pipeline.metrics import image_ious
 from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.params import PAPER
@@ -44,6 +45,9 @@ from pipeline.runtime.errors import InputError
 from pipeline.teachers.base import TeacherInput, manifest_extras
 from pipeline.teachers.simulated import (MISS, MODES, SIMULATOR_VERSION, SimulatedFoundationTeacher, dilate, erode,
                                          open_mask)
+from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
+from pipeline.training.checkpointing import FileCheckpointer
+from pipeline.training.inputs import load_inputs
 
 REPO = Path(__file__).resolve().parents[1]
 #: Plain (Stage I on the vote) and the supervised ceiling (reference masks; NOT annotation-free)
@@ -243,8 +247,6 @@ class EpochCheckpointer:
     weights stay for scoring."""
 
     def __init__(self, directory: str | Path):
-        from pipeline.training.checkpointing import FileCheckpointer
-
         self.directory = Path(directory)
         self.resume = FileCheckpointer(self.directory)
 
@@ -323,8 +325,6 @@ def train_run(method: str, cfg: Mapping[str, Any], data, val, seed: int, run_dir
 
 
 def predict(model, state: Mapping[str, Any], images: np.ndarray) -> np.ndarray:
-    from pipeline.evaluation.inference import predict_probs
-
     model.load_state_dict(state)
     return predict_probs(model, images, device="cpu", precision="fp32")
 
@@ -334,8 +334,6 @@ def score_epoch(probs: np.ndarray, val_probs: np.ndarray, val_masks: np.ndarray,
     """One model's training-image scores: per threshold (``05``: :data:`FIXED_TAU`; ``cal``: calibrated on the
     validation images by ``tau_rule``) the per-image IoU against the reference and against the vote, and the
     :func:`error_counts`."""
-    from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
-
     tau, _ = calibrate_threshold(val_probs, val_masks, EPOCH_TAU_GRID, tau_rule)
     out: dict[str, Any] = {"tau_cal": float(tau)}
     for key, t in (("05", FIXED_TAU), ("cal", tau)):
@@ -547,8 +545,6 @@ def main(argv=None) -> dict:
     workdir = Path(args.workdir).resolve()
     artifacts = Path(args.artifacts) if args.artifacts else build_artifacts(workdir, args.profile, sets, args.device)
     cfg = {**params["train"], "num_threads": args.threads}
-
-    from pipeline.training.inputs import load_inputs
 
     commit = git_commit()  # the code this invocation runs (imported now; later edits do not reach it)
     data = {}
