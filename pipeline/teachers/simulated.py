@@ -240,6 +240,27 @@ class SceneDraw:
     shared_fp_seed: int
 
 
+#: :attr:`PromptDraw.mode` of a prompt that gave no answer (it missed, or did not survive a breakdown)
+MISS = "miss"
+
+
+@dataclasses.dataclass(frozen=True)
+class PromptDraw:
+    """What the SIMULATOR drew for one (image, prompt) answer, beside the answer itself.
+
+    ``mode``: one of :data:`MODES`, or :data:`MISS`; ``radius``: the dilate/erode radius in px (drawn for every
+    answered mode, used by ``dilate`` and ``erode`` only); ``shared_thin`` / ``shared_fp``: this answer took part in
+    the image's shared thin-structure loss / shared glare region (:class:`SceneDraw`); ``jitter``: the independent
+    boundary jitter in px (> 0 dilates, < 0 erodes, 0 none).  An answered mode may still end empty (score 0).
+    """
+
+    mode: str
+    radius: int = 0
+    shared_thin: bool = False
+    shared_fp: bool = False
+    jitter: int = 0
+
+
 class SimulatedFoundationTeacher(RegisteredTeacher):
     """SIMULATOR of a six-prompt foundation teacher: answers from the synthetic ground truth, degraded."""
 
@@ -283,6 +304,13 @@ class SimulatedFoundationTeacher(RegisteredTeacher):
 
     def answer(self, item: TeacherInput, prompt: str, scene: SceneDraw) -> tuple[np.ndarray, float]:
         """One (mask, score) answer of the simulated teacher; score 0 and an empty mask for a miss."""
+        mask, score, _ = self.answer_with_draw(item, prompt, scene)
+        return mask, score
+
+    def answer_with_draw(self, item: TeacherInput, prompt: str, scene: SceneDraw
+                         ) -> tuple[np.ndarray, float, PromptDraw]:
+        """:meth:`answer` and what it drew (:class:`PromptDraw`); the same random draws in the same order, so the
+        answer is the one :meth:`answer` gives."""
         gt = np.asarray(item.reference["mask"], dtype=bool)
         parts = item.reference.get("parts")
         parts = None if parts is None else np.asarray(parts)
@@ -295,13 +323,13 @@ class SimulatedFoundationTeacher(RegisteredTeacher):
         d = scene.difficulty
         if scene.breakdown:
             if self._prompt_draw(item, prompt, "survive") >= persona.survivor:
-                return empty, 0.0
+                return empty, 0.0, PromptDraw(MISS)
             mode = rng.choice(["bus_only", "wrong_object", "drop_thin", "false_positive", "erode"],
                               p=[0.25, 0.25, 0.20, 0.15, 0.15])
             boundary = 2.0 * persona.boundary_frac
         else:
             if rng.random() < np.clip(persona.miss + persona.miss_slope * d, 0.0, 0.98):
-                return empty, 0.0
+                return empty, 0.0, PromptDraw(MISS)
             extra = HARD_CASE_MODES.get(hard, {})
             w = np.array([persona.modes[m] + d * persona.hard_modes[m] + extra.get(m, 0.0) for m in MODES])
             mode = MODES[int(rng.choice(len(MODES), p=w / w.sum()))]
@@ -309,11 +337,15 @@ class SimulatedFoundationTeacher(RegisteredTeacher):
         r_float = boundary * r_eq * rng.uniform(0.6, 1.4)
         r = int(np.floor(r_float + rng.random()))  # stochastic rounding: E[r] = r_float
         mask = self._apply(mode, gt, parts, item.image, rng, r, scene)
+        thin = fp = False
+        j = 0
         if not scene.breakdown:
             if (scene.shared_thin and mode != "wrong_object"
                     and self._prompt_draw(item, prompt, "shared_thin") < persona.shares):
+                thin = True
                 mask = drop_thin(mask, parts, max(1, int(round(px))), drop_dish=scene.scale > 0.5)
             if scene.shared_fp and self._prompt_draw(item, prompt, "shared_fp") < persona.shares:
+                fp = True
                 region = bright_region(item.image, dilate(gt, 1))
                 if not region.any():
                     region = glare_blob(gt, np.random.default_rng(scene.shared_fp_seed), attached=True)
@@ -322,11 +354,12 @@ class SimulatedFoundationTeacher(RegisteredTeacher):
             # uncertainty: no two prompts trace the same contour
             j = int(rng.choice([-1, 0, 1], p=[0.15, 0.7, 0.15])) if r_eq >= 16 * px else 0
             mask = dilate(mask, j) if j > 0 else erode(mask, -j) if j < 0 else mask
+        draw = PromptDraw(str(mode), r, thin, fp, j)
         if not mask.any():
-            return empty, 0.0
+            return empty, 0.0, draw
         q = image_iou(mask, gt)  # the quality the score loosely tracks
         score = float(np.clip(0.30 + 0.55 * q + persona.score_bias + rng.normal(0.0, 0.12), 0.02, 0.99))
-        return mask, score
+        return mask, score, draw
 
     @staticmethod
     def _apply(mode: str, gt, parts, image, rng: np.random.Generator, r: int, scene: SceneDraw) -> np.ndarray:
@@ -355,9 +388,16 @@ class SimulatedFoundationTeacher(RegisteredTeacher):
 
     def predict(self, batch: Sequence[TeacherInput], prompts: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
         """Answers of the SIMULATOR: masks bool [B,K,H,W], scores float32 [B,K] (0 = invalid)."""
+        masks, scores, _ = self.predict_with_draws(batch, prompts)
+        return masks, scores
+
+    def predict_with_draws(self, batch: Sequence[TeacherInput], prompts: Sequence[str]
+                           ) -> tuple[np.ndarray, np.ndarray, list[tuple[SceneDraw, list[PromptDraw]]]]:
+        """:meth:`predict`'s (masks, scores) and, per image, its :class:`SceneDraw` and one :class:`PromptDraw` per
+        prompt (``prompts`` order): what each answer drew, for diagnostics (``benchmarks/memorisation.py``)."""
         if not batch:
-            return np.zeros((0, len(prompts), 0, 0), bool), np.zeros((0, len(prompts)), np.float32)
-        out_masks, out_scores = [], []
+            return np.zeros((0, len(prompts), 0, 0), bool), np.zeros((0, len(prompts)), np.float32), []
+        out_masks, out_scores, out_draws = [], [], []
         for item in batch:
             if item.reference is None or "mask" not in item.reference:
                 raise InputError(f"simulated teacher: no reference mask for image {item.image_id!r}; "
@@ -367,10 +407,11 @@ class SimulatedFoundationTeacher(RegisteredTeacher):
                 raise InputError(f"simulated teacher: reference mask {gt.shape} and image {item.image.shape[:2]} "
                                  f"of {item.image_id!r} differ in size")
             scene = self.scene(item)
-            masks, scores = zip(*(self.answer(item, p, scene) for p in prompts))
+            masks, scores, draws = zip(*(self.answer_with_draw(item, p, scene) for p in prompts))
             out_masks.append(np.stack(masks))
             out_scores.append(np.array(scores, np.float32))
-        return finalize_answers(np.stack(out_masks), np.stack(out_scores))
+            out_draws.append((scene, list(draws)))
+        return (*finalize_answers(np.stack(out_masks), np.stack(out_scores)), out_draws)
 
 
 def persona_for(prompt: str) -> Persona:

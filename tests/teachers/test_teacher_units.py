@@ -148,3 +148,46 @@ def test_imported_layout(tmp_path):
     with pytest.raises(InputError, match="2.png"):
         t.predict(items[:1], PROMPTS[2:3])
     assert len(t.fingerprint()["content"]) == 64
+
+
+#: sha256 of the masks and scores below, computed with the SIMULATOR before ``predict_with_draws`` was factored out
+#: (commit 7de09f3): the refactor must leave every answer byte-identical (SIMULATOR_VERSION unchanged)
+SIMULATOR_ANSWERS_SHA256 = "597ad9341d74e80b4dc9f97bea5d0228df5c22f402db5088c911d637a53e016d"
+
+
+def _varied_items():
+    """Inputs over every hard case and both backgrounds, some in the vflip view."""
+    import dataclasses
+
+    cases, backgrounds = ("none", "glare", "flare", "underexposed", "blur", "noise"), ("stars", "earth limb")
+    return [dataclasses.replace(it, view="vflip" if i % 5 == 4 else "identity",
+                                extras={**it.extras, "hard_case": cases[i % 6], "background": backgrounds[i % 2]})
+            for i, it in enumerate(teacher_items(48, seed=5))]
+
+
+def test_simulator_draws_leave_the_answers_byte_identical():
+    import hashlib
+
+    from pipeline.teachers.simulated import MISS, MODES, SIMULATOR_VERSION
+
+    items = _varied_items()
+    t = SimulatedFoundationTeacher(seed=7, resolution=(32, 32))
+    masks, scores = t.predict(items, PROMPTS)
+    assert SIMULATOR_VERSION == 1
+    assert hashlib.sha256(masks.tobytes() + scores.tobytes()).hexdigest() == SIMULATOR_ANSWERS_SHA256
+    m2, s2, draws = t.predict_with_draws(items, PROMPTS)
+    np.testing.assert_array_equal(m2, masks)
+    np.testing.assert_array_equal(s2, scores)
+    assert len(draws) == len(items) and all(len(d) == len(PROMPTS) for _, d in draws)
+    modes = np.array([[d.mode for d in per] for _, per in draws])
+    assert set(modes.ravel()) <= {MISS, *MODES} and {MISS, "clean"} <= set(modes.ravel())
+    assert not masks[modes == MISS].any() and (scores[modes == MISS] == 0).all()
+    gt = np.stack([it.reference["mask"] for it in items])
+    for i, (scene, per) in enumerate(draws):
+        assert scene == t.scene(items[i])
+        for k, d in enumerate(per):
+            if d.mode == "clean" and not (d.shared_thin or d.shared_fp or d.jitter) and scores[i, k] > 0:
+                np.testing.assert_array_equal(masks[i, k], gt[i])  # a clean draw answers the reference itself
+            assert not (scene.breakdown and (d.shared_thin or d.shared_fp))  # shared events skip a breakdown
+            assert not d.shared_thin or scene.shared_thin
+            assert not d.shared_fp or scene.shared_fp
