@@ -57,7 +57,7 @@ exec > >(tee -a "$WORK/run.log") 2>&1
 C="$PY $HERE/collect.py"
 GUARD="$C run --work $WORK --end $END --reserve $COLLECT_S --min-budget ${MIN_SECTION_S:-20}"
 settings=$(printf '{"WINNER":"%s","RESOLUTION":"%s","RECIPE":"%s","SEED":"%s","PL_PROFILE":"%s","PL_ARGS":"%s","TEACHER_BATCHES":"%s","TEACHER_SIZE":"%s","DEVICE":"%s","PROJ":"%s","GD_PAR":"%s"}' \
-  "${WINNER:-}" "${RESOLUTION:-384}" "${RECIPE:-progressive}" "${SEED:-42}" "${PL_PROFILE:-reduced}" "${PL_ARGS:-}" \
+  "${WINNER:-bootstrap}" "${RESOLUTION:-384}" "${RECIPE:-progressive}" "${SEED:-42}" "${PL_PROFILE:-reduced}" "${PL_ARGS:-}" \
   "${TEACHER_BATCHES:-1 2 4 8 16 32}" "${TEACHER_SIZE:-real}" "$DEVICE" "$PROJ" "${GD_PAR:-8}")
 $C begin --out "$OUT" --work "$WORK" --src "$SRC" --python "$PY" --deadline "$DEADLINE" --reserve "$COLLECT_S" \
   --started "$T0" --sections "$SECTIONS" --settings "$settings"
@@ -72,7 +72,7 @@ export PYTHONPATH=$GPU_DIR/stub:$SRC:${PYTHONPATH:-} PYTHONUNBUFFERED=1 SOURCE_D
 
 # Plain and the ceiling, then each WINNER variant once (a lever not in benchmarks.past_labels.VARIANTS goes there)
 VARIANTS="plain ceiling"
-for w in ${WINNER:-}; do case " $VARIANTS " in *" $w "*) ;; *) VARIANTS="$VARIANTS $w" ;; esac; done
+for w in ${WINNER:-bootstrap}; do case " $VARIANTS " in *" $w "*) ;; *) VARIANTS="$VARIANTS $w" ;; esac; done
 
 for section in $SECTIONS; do
   case $section in
