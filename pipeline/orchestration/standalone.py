@@ -27,7 +27,7 @@ from pipeline.datasets.scan import scan_inputs
 from pipeline.runtime.errors import BACKEND, CHECKPOINT, INPUT, OUT, VAL_MASKS, InputError, Option, literal
 from pipeline.deploy.export import bundle_files
 from pipeline.labeling.run import find_images
-from pipeline.methods import PROPOSED, STAGE_ONE, method_label
+from pipeline.methods import PROPOSED, STAGE_ONE, departures, method_label
 from pipeline.report.offline_plots import template_path, template_text
 from pipeline.artifacts.ownership import check_outputs, record_fields, refuse_foreign_files
 from pipeline.params import deep_merge, read_yaml_mapping
@@ -340,12 +340,17 @@ def training_line(out: str | Path) -> str | None:
     if not seeds:
         return None
     meta = catalog.path("checkpoints", out / catalog.ARTIFACTS_DIR) / STAGE_ONE / str(seeds[0]) / catalog.META_FILE
-    extra = read_json(meta).get("extra") or {}
+    record = read_json(meta)
+    extra = record.get("extra") or {}
     if "steps_run" not in extra:
         return None
     why = f", stopped at {extra['stopped']}" if extra.get("stopped") else " (its fixed length)"
     low = f", the first {extra['low_res_epochs']} at half the side" if extra.get("low_res_epochs") else ""
-    return f"Stage I trained {int(extra['steps_run']):,} optimizer steps ({extra.get('epochs')} epochs{low}){why}"
+    # unvalidated: the params the checkpoint recorded
+    lever = departures((record.get("params") or {}).get("params") or {})
+    lever_text = f"; with {', '.join(lever)} (a departure from eq:raw-loss)" if lever else ""
+    return (f"Stage I trained {int(extra['steps_run']):,} optimizer steps ({extra.get('epochs')} epochs{low}){why}"
+            f"{lever_text}")
 
 
 def _metric(path: Path, key: str) -> float | None:

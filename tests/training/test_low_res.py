@@ -137,6 +137,9 @@ def test_distills_summary_says_how_many_epochs_ran_at_half_the_side(tmp_path):
                                        "side), stopped at the epochs cap (train.epochs_stage1)")
     meta.write_text(json.dumps({"extra": {**extra, "low_res_epochs": 0}}))
     assert "half the side" not in training_line(tmp_path)
+    # a Stage I that departed from eq:raw-loss says so (its recorded params)
+    meta.write_text(json.dumps({"extra": extra, "params": {"params": {"train.bootstrap_beta": 0.8}}}))
+    assert training_line(tmp_path).endswith("; with bootstrapped targets, beta 0.8 (a departure from eq:raw-loss)")
 
 
 def test_half_side_epochs_go_unvalidated_unless_asked_and_the_weights_are_the_same(tiny):
