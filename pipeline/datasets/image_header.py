@@ -16,11 +16,13 @@ def _png(data: bytes) -> tuple[int, int] | None:
     return struct.unpack(">II", data[16:24])
 
 
-def _jpeg(data: bytes) -> tuple[int, int] | None:
+def _jpeg_segments(data: bytes):
+    """Yield (marker, offset, length) of a JPEG's marker segments with a length field, in file order; stop at
+    bytes that are not a marker or a segment shorter than its length field."""
     i, n = 2, len(data)
     while i + 4 <= n:
         if data[i] != 0xFF:
-            return None
+            return
         marker = data[i + 1]
         if marker == 0xFF:  # fill byte
             i += 1
@@ -29,14 +31,21 @@ def _jpeg(data: bytes) -> tuple[int, int] | None:
             i += 2
             continue
         length = struct.unpack(">H", data[i + 2:i + 4])[0]
+        yield marker, i, length
+        if length < 2:
+            return
+        i += 2 + length
+
+
+def _jpeg(data: bytes) -> tuple[int, int] | None:
+    for marker, i, length in _jpeg_segments(data):
         if marker in _SOF:
-            if i + 9 > n:
+            if i + 9 > len(data):
                 return None
             h, w = struct.unpack(">HH", data[i + 5:i + 9])
             return w, h
         if marker == 0xDA or length < 2:  # start of scan before any frame header: not a valid file
             return None
-        i += 2 + length
     return None
 
 
@@ -129,24 +138,12 @@ def jpeg_orientation(data: bytes) -> int:
     with a value outside 1-8, or a malformed header."""
     if not data.startswith(b"\xff\xd8\xff"):
         return 1
-    i, n = 2, len(data)
     try:
-        while i + 4 <= n:
-            if data[i] != 0xFF:
-                return 1
-            marker = data[i + 1]
-            if marker == 0xFF:  # fill byte
-                i += 1
-                continue
-            if marker in (0x01, *range(0xD0, 0xD9)):  # TEM, RSTn, SOI, EOI: no length
-                i += 2
-                continue
-            length = struct.unpack(">H", data[i + 2:i + 4])[0]
+        for marker, i, length in _jpeg_segments(data):
             if marker == 0xE1 and data[i + 4:i + 10] == b"Exif\x00\x00":  # APP1 with EXIF
                 return _exif_orientation(data[i + 10:i + 2 + length])
             if marker == 0xDA or marker in _SOF or length < 2:  # EXIF comes first: none before the frame
                 return 1
-            i += 2 + length
     except struct.error:  # cut short inside a field
         return 1
     return 1
