@@ -16,7 +16,7 @@ from typing import Any, Mapping
 from pipeline.artifacts.lineage import fingerprint
 from pipeline.training.checkpointing import FileCheckpointer
 from pipeline.runtime.device import resolve_device
-from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
+from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method, method_lr
 from pipeline.profiles import load_profile
 from benchmarks.common import parser, read_json, seconds
 from benchmarks.study_recipe import build_artifacts, load_study_data, score_run
@@ -121,7 +121,7 @@ def study_method(method: str, cfg: Mapping[str, Any], data, val, seed: int, bran
         decay = {**cfg, "epochs_stage1": d, "schedule": "wsd", "decay_fraction": 1.0, "warmup_epochs": 0,
                  "average_last": 1}  # the branch's last weights, BN statistics recomputed
         t1 = time.perf_counter()
-        res = training.train(spec, decay, data, val, seed, checkpointer=_StartFrom(store.state(e), training.method_lr(spec, cfg)),
+        res = training.train(spec, decay, data, val, seed, checkpointer=_StartFrom(store.state(e), method_lr(spec, cfg)),
                              device=device, show_progress=False)
         store.save_weights(e, res.model)
         scores = training.validation_scores(res.model, val, device, precision="fp32", channels_last=False,

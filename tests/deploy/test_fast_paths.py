@@ -186,9 +186,11 @@ def test_a_bf16_variant_on_a_cpu_without_native_bf16_is_never_called(monkeypatch
 
 
 # ---- SAM 3 teacher: dtype auto, batch size from memory -----------------------------------------------
-def test_teacher_dtype_auto_and_batch_size_rules():
+def test_teacher_dtype_auto_and_batch_size_rules(monkeypatch):
     from pipeline.teachers.sam3 import MAX_AUTO_BATCH, auto_batch_size, resolve_teacher_dtype
 
+    # a CPU without bf16 units (the rule on the flags: tests/teachers/test_teacher_cpu_dtype.py)
+    monkeypatch.setattr("pipeline.teachers.sam3.teacher_cpu_dtype", lambda: "fp32")
     assert resolve_teacher_dtype("auto", "cpu") == ("fp32", False)
     assert resolve_teacher_dtype("fp32", "cuda") == ("fp32", False)   # as asked: no TF32
     assert resolve_teacher_dtype("bf16", "cpu") == ("bf16", False)
@@ -201,8 +203,10 @@ def test_teacher_dtype_auto_and_batch_size_rules():
     assert auto_batch_size("cpu") == 2
 
 
-def test_teacher_auto_defaults_answer_like_fp32_on_the_cpu(tmp_path):
+def test_teacher_auto_defaults_answer_like_fp32_on_the_cpu(tmp_path, monkeypatch):
+    """On a CPU without bf16 units, ``auto`` is fp32 eager: the same answers and cache entries."""
     pytest.importorskip("transformers")
+    monkeypatch.setattr("pipeline.teachers.sam3.teacher_cpu_dtype", lambda: "fp32")
     from pipeline.teachers.base import TeacherInput
     from pipeline.teachers.sam3 import Sam3Teacher
     from pipeline.teachers.tiny_sam3 import build_tiny_sam3

@@ -79,7 +79,7 @@ def test_the_schedule_scales_with_the_cap_and_keeps_the_last_epoch_at_full_side(
 
 def test_under_until_plateau_the_rule_scores_the_epochs_after_the_schedule(tiny, monkeypatch):
     cfg = tiny_cfg(until="plateau", epochs_stage1=40, warmup_epochs=1, average_last=1, schedule="wsd",
-                   plateau_min_epochs=2, plateau_gain=1.0, low_res_fraction=0.075)  # 3 epochs  # any doubling gains less than 1.0
+                   plateau_min_epochs=2, plateau_min_steps=0, plateau_gain=1.0, low_res_fraction=0.075)  # 3 epochs  # any doubling gains less than 1.0
     data, val = load_arrays(tiny, "plain", cfg)
     sides = {}
     step = training._step
