@@ -23,7 +23,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from benchmarks.common import parser, resumed_runs, run_jobs
-from benchmarks.study_recipe import add_data_size_options, build_artifacts, data_size_sets, load_study_data
+from benchmarks.study_recipe import (add_data_size_options, build_artifacts, data_size_sets, load_study_data,
+                                     scored_test_rows)
 from pipeline import catalog
 from pipeline.artifacts.store import open_artifact
 from pipeline.evaluation.inference import predict_probs
@@ -66,7 +67,7 @@ def load_data(artifacts: Path, cfg: Mapping[str, Any]) -> dict:
     out = load_study_data(artifacts, cfg, methods=(STAGE_ONE, SUPERVISED_CEILING))
     out["agreement"] = load_study_data(artifacts, {**cfg, "soft_targets": True}, methods=(STAGE_ONE,))[STAGE_ONE]
     consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
-    _, test = _test_rows(artifacts)
+    _, test = scored_test_rows(artifacts)
     out["test_voted"] = _rows(consensus, "voted", test).astype(bool)
     return out
 
@@ -188,17 +189,9 @@ def summarize(results: list[dict]) -> list[dict]:
     return rows
 
 
-def _test_rows(artifacts: Path):
-    """(the manifest, the rows of the test images with a reference mask): the scored images, in order."""
-    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
-    reference = open_artifact(catalog.path("reference", artifacts), "reference")
-    test = np.flatnonzero((manifest.df["split"] == "test").to_numpy())
-    return manifest, test[_rows(reference, "has_mask", test).astype(bool)]
-
-
 def test_spacecraft(artifacts: Path) -> np.ndarray:
     """The spacecraft of each scored test image, in the order of a run's ``image_ious`` (:func:`load_data`)."""
-    manifest, test = _test_rows(artifacts)
+    manifest, test = scored_test_rows(artifacts)
     return manifest.df["spacecraft"].to_numpy()[test].astype(str)
 
 
@@ -255,7 +248,7 @@ def combine(paths: list[Path], floor_key: str, floors: Path) -> dict:
         raise ValueError(f"runs on different artifacts: {sorted(artifacts)}")
     runs = list({(r["variant"], r["seed"]): r for d in docs for r in d["runs"]}.values())
     art = Path(artifacts.pop())
-    manifest, test = _test_rows(art)
+    manifest, test = scored_test_rows(art)
     groups = manifest.df["group"].to_numpy()[test].astype(str)
     floor = noise_floor(floors, floor_key)
     return {"info": {**docs[0]["info"], "combined_from": [str(p) for p in paths], "noise_floor_key": floor_key,

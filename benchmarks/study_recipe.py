@@ -84,16 +84,22 @@ def build_artifacts(workdir: Path, profile: str, sets: list[str], device: str, g
     return art
 
 
+def scored_test_rows(artifacts: Path):
+    """(the manifest, the rows of the test images with a reference mask): the images a study scores, in order."""
+    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
+    reference = open_artifact(catalog.path("reference", artifacts), "reference")
+    test = np.flatnonzero((manifest.df["split"] == "test").to_numpy())
+    return manifest, test[_rows(reference, "has_mask", test).astype(bool)]
+
+
 def load_study_data(artifacts: Path, cfg: Mapping[str, Any], methods=METHODS) -> dict:
     """Training arrays per method (the training API), the validation data, test images, masks and groups."""
     out: dict[str, Any] = {}
     for m in methods:
         out[m], out["val"], _ = load_inputs(artifacts, get_method(m), cfg)
-    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
+    manifest, test = scored_test_rows(artifacts)
     images = open_artifact(catalog.path("images", artifacts), "images")
     reference = open_artifact(catalog.path("reference", artifacts), "reference")
-    test = np.flatnonzero((manifest.df["split"] == "test").to_numpy())
-    test = test[_rows(reference, "has_mask", test).astype(bool)]
     out["test_images"] = _rows(images, "image", test)
     out["test_masks"] = _rows(reference, "mask", test).astype(bool)
     out["test_groups"] = manifest.df["group"].to_numpy()[test].astype(str)
