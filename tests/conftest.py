@@ -239,6 +239,17 @@ def tiny_sam3(tmp_path_factory) -> Path:
     return build_tiny_sam3(tmp_path_factory.mktemp("sam3") / "tiny-sam3", words=words)
 
 
+@pytest.fixture(scope="session")
+def fitted_tiny_sam3(tmp_path_factory) -> Path:
+    """A tiny SAM 3 fitted to bright-box scenes under the paper's prompts (``fit_tiny_sam3``: a trained
+    model's logit margins, for numerics tests), saved once per session (skipped without transformers)."""
+    pytest.importorskip("transformers")
+    from pipeline.params import PAPER_PROMPTS
+    from pipeline.teachers.tiny_sam3 import fit_tiny_sam3
+
+    return fit_tiny_sam3(tmp_path_factory.mktemp("sam3") / "fitted-tiny-sam3", tuple(PAPER_PROMPTS))
+
+
 @pytest.fixture(scope="module")
 def ckpts(tmp_path_factory) -> dict[str, Path]:
     """A tiny checkpoint recording its training resolution (as the train stage writes it) and the same

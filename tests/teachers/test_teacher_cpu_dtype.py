@@ -61,24 +61,42 @@ def test_fidelity_leaves_pairs_of_empty_masks_out():
     assert not fidelity(none, s[:1, :1], none, s[:1, :1])["passes"]   # only empty pairs: nothing measured
 
 
-def test_bf16_on_the_tiny_sam3_agrees_with_fp32_eager(tiny_sam3):
-    """The default CPU path (bf16) against fp32 eager on the suite's tiny random SAM 3, score_threshold 0.
-    Random weights test the numerics only.  The tiny model's masks come from 14 x 14 logits upsampled to
-    the image, so a bf16 rounding moves whole boundary cells: its agreement is about 0.96, under the 0.99
-    gate that the real-size model meets (docs/performance.md, reports/teacher/); this test bounds it at 0.9 and
-    the scores at 0.03 so that a wrong layout, a lost prompt or an unconverted input fails it."""
-    rng = np.random.default_rng(0)
+def test_bf16_on_the_random_tiny_sam3_keeps_layout_and_prompts(tiny_sam3):
+    """The default CPU path (bf16) against fp32 eager on the suite's tiny *random* SAM 3, score_threshold 0.
+    A random model amplifies any rounding (its mask logits sit near the threshold over whole 14 x 14 cells):
+    its agreement is about 0.96 whatever the bf16 path (all bf16, the mask decoder or every head in fp32, or
+    autocast: 0.95-0.98 alike), so this test bounds it at 0.9 and the scores at 0.03 -- a wrong layout, a lost
+    prompt or an unconverted input fails it. The 0.99 gate is tested on the fitted model below."""
     from pipeline.params import PAPER_PROMPTS
     from pipeline.teachers.base import TeacherInput
+    from pipeline.teachers.tiny_sam3 import box_scenes
 
-    items = []
-    for i in range(4):
-        img = np.full((40, 40, 3), 15, np.uint8)
-        y, x = rng.integers(5, 25, size=2)
-        img[y:y + 12, x:x + 10] = rng.integers(120, 255, size=3)
-        items.append(TeacherInput(f"img{i}", f"sha{i}", img + rng.integers(0, 20, img.shape, dtype=np.uint8)))
+    items = [TeacherInput(f"img{i}", f"sha{i}", img) for i, (img, _) in enumerate(box_scenes(
+        np.random.default_rng(0), 4))]
     kw = dict(device="cpu", resolution=(40, 40), score_threshold=0.0)
     ref = Sam3Teacher(tiny_sam3, dtype="fp32", **kw).predict(items, PAPER_PROMPTS)
     got = Sam3Teacher(tiny_sam3, dtype="bf16", **kw).predict(items, PAPER_PROMPTS)
     g = fidelity(*got, *ref)
     assert g["pairs_both_empty"] < g["pairs"] and 0.9 <= g["mean_iou"] <= 1.0 and g["max_score_diff"] <= 0.03, g
+
+
+def test_bf16_passes_the_fidelity_gate_on_a_fitted_tiny_sam3(fitted_tiny_sam3):
+    """The fidelity gate (mean mask IoU >= 0.99 against fp32 eager, score_threshold 0, pairs of two empty masks
+    left out; scores within 0.02) on held-out box scenes, for the tiny SAM 3 fitted so that its logits have a
+    trained model's margins (weights fitted to synthetic boxes: numerics only). The fp32 answers must find the
+    boxes (IoU >= 0.7; 0.85 here), so a model that learned nothing cannot pass by agreeing on noise. Measured
+    on an avx512_bf16 host: 0.997, scores within 0.002 (0.995-0.998 over fitting seeds 0-2)."""
+    from pipeline.params import PAPER_PROMPTS
+    from pipeline.teachers.base import TeacherInput
+    from pipeline.teachers.tiny_sam3 import box_scenes
+
+    scenes = box_scenes(np.random.default_rng(7), 24)
+    items = [TeacherInput(f"img{i}", f"sha{i}", img) for i, (img, _) in enumerate(scenes)]
+    kw = dict(device="cpu", resolution=(40, 40), score_threshold=0.0)
+    ref = Sam3Teacher(fitted_tiny_sam3, dtype="fp32", **kw).predict(items, PAPER_PROMPTS)
+    got = Sam3Teacher(fitted_tiny_sam3, dtype="bf16", **kw).predict(items, PAPER_PROMPTS)
+    boxes = np.stack([m for _, m in scenes])[:, None]
+    found = ((ref[0] & boxes).sum(axis=(2, 3)) / (ref[0] | boxes).sum(axis=(2, 3))).mean()
+    assert found >= 0.7, found
+    g = fidelity(*got, *ref)
+    assert g["pairs_both_empty"] == 0 and g["passes"], g
