@@ -1,5 +1,6 @@
 """Smoke test of ``benchmarks.bench_teacher --roofline`` on the tiny random SAM 3: every row of the table
-printed and written as JSON (FLOPs by module, per-module times, host limits, round-robin medians, ratio, gate)."""
+printed and written as JSON (FLOPs by module, per-module times, host limits, round-robin medians of the three
+paths, the ratios, the gate, and whether the once-per-image first attention kept the fp32 answers)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ pytest.importorskip("transformers")
 
 
 def test_roofline_prints_and_writes_its_table(tmp_path, capsys, tiny_sam3):
-    from benchmarks.bench_teacher import main
+    from benchmarks.bench_teacher import BEFORE, main
 
     out = tmp_path / "roofline.json"
     main(["--roofline", "--checkpoint", str(tiny_sam3), "--images", "1", "--repeats", "2", "--resolution", "32",
@@ -24,9 +25,11 @@ def test_roofline_prints_and_writes_its_table(tmp_path, capsys, tiny_sam3):
                     r"default / fp32 eager \(medians\): \d\.\d{3}", r"fidelity vs fp32 eager: mean mask IoU"):
         assert re.search(pattern, text), (pattern, text)
     doc = json.loads(out.read_text())
-    assert set(doc["seconds"]) == {"fp32 eager", "default"} and all(len(v) == 2 for v in doc["seconds"].values())
-    assert doc["default_over_fp32"] == pytest.approx(doc["median_s_per_image"]["default"]
-                                                     / doc["median_s_per_image"]["fp32 eager"])
+    assert set(doc["seconds"]) == {"fp32 eager", "default", BEFORE} and all(len(v) == 2 for v in doc["seconds"].values())
+    med = doc["median_s_per_image"]
+    assert doc["default_over_fp32"] == pytest.approx(med["default"] / med["fp32 eager"])
+    assert doc["default_over_fp32_before"] == pytest.approx(med["default"] / med[BEFORE])
+    assert doc["first_attention_once_per_image_identical"] is True  # the same fp32 answers either way
     flops = doc["flops_per_image"]
     assert {"backbone", "detr_encoder", "detr_decoder", "mask_decoder"} <= set(flops) and min(flops.values()) >= 0
     assert flops["backbone"] > 0 and flops["detr_encoder"] > 0 and doc["text_flops_per_run"] > 0

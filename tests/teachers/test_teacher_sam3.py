@@ -175,3 +175,30 @@ def test_stage_with_sam3_backend(ckpt, tmp_path, monkeypatch):
     assert n_entries == 4 * 7
     r = run_stage(paths, tmp_path / "cache", sets=sets)
     assert r.exit_code == 0 and len(cache_files(tmp_path / "cache")) == n_entries
+
+
+def test_first_self_attention_runs_once_per_image_with_the_same_answers(ckpt, items, monkeypatch):
+    """The DETR encoder's first self-attention sees the image only, so it runs on one row per image (its
+    q_proj sees 3 rows for 3 images x 6 prompts; the cross-attention after it sees 18) and the answers equal those of the
+    model run as transformers runs it, once per (image, prompt)."""
+    import contextlib
+
+    from pipeline.teachers import sam3
+
+    teacher = Sam3Teacher(ckpt, device="cpu", batch_size=3, resolution=(40, 40), score_threshold=0.0)
+    layers = teacher.load().detr_encoder.layers
+    rows = {"self": [], "cross": []}
+    hooks = [getattr(layers[0], f"{k}_attn").q_proj.register_forward_hook(
+        lambda mod, args, out, k=k: rows[k].append(args[0].shape[0])) for k in rows]
+    try:
+        masks, scores = teacher.predict(items, PROMPTS)
+        assert rows == {"self": [3], "cross": [18]}, rows
+        monkeypatch.setattr(sam3, "first_self_attention_once_per_image", lambda model, copies: contextlib.nullcontext())
+        ref_masks, ref_scores = teacher.predict(items, PROMPTS)
+        assert rows == {"self": [3, 18], "cross": [18, 18]}, rows
+    finally:
+        for h in hooks:
+            h.remove()
+    np.testing.assert_array_equal(masks, ref_masks)
+    np.testing.assert_allclose(scores, ref_scores, rtol=1e-6, atol=1e-7)
+    assert "forward" not in vars(layers[0].self_attn)  # unwrapped after the call
