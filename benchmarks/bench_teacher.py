@@ -233,10 +233,8 @@ def fidelity(masks, scores, ref_masks, ref_scores) -> dict:
     and would inflate the figure, so they are counted apart --, the largest |score difference|, and pass."""
     a = np.asarray(masks, bool).reshape(-1, *np.shape(masks)[-2:])
     b = np.asarray(ref_masks, bool).reshape(a.shape)
-    inter = (a & b).sum(axis=(1, 2))
-    union = (a | b).sum(axis=(1, 2))
-    both_empty = union == 0
-    ious = inter[~both_empty] / union[~both_empty]
+    both_empty = ~(a | b).any(axis=(1, 2))
+    ious = image_ious(a, b)[~both_empty]
     mean_iou = float(ious.mean()) if ious.size else float("nan")
     score_diff = float(np.max(np.abs(np.asarray(scores, np.float64) - np.asarray(ref_scores, np.float64))))
     return {"mean_iou": mean_iou, "min_iou": float(ious.min()) if ious.size else float("nan"),

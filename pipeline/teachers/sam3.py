@@ -166,7 +166,7 @@ def first_self_attention_once_per_image(model, copies: int):
     Its input is the image's features and position encoding only (the prompt enters at the cross-attention that
     follows), and :meth:`Sam3Teacher.heads` repeats each image's features ``copies`` times image-major, so rows
     ``b * copies ... (b + 1) * copies - 1`` of its query, key and value are equal: computing row ``b * copies``
-    and repeating it gives the same answer for (copies - 1) / copies less of that layer's attention (about 0.9 s
+    and repeating it gives the same answer for (copies - 1) / copies less of that layer's attention (about 1-2 s
     of 25 s per image for six prompts, real size, 2 avx512_bf16 cores). Any other call (an attention mask, a
     batch that ``copies`` does not divide) runs unchanged, as does a model whose encoder is laid out otherwise.
 
