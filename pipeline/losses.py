@@ -14,6 +14,7 @@ from typing import Mapping
 import torch
 import torch.nn.functional as F
 
+from pipeline.methods import off_value, with_part_fields
 from pipeline.params import PAPER
 
 _PAPER = PAPER.train  # the paper's constants: the defaults below
@@ -427,8 +428,11 @@ def boundary_weighted_bce(logits: torch.Tensor, targets: torch.Tensor, target_sd
 
 
 @dataclasses.dataclass(frozen=True)
-class LossConstants:
-    """The losses' constants, the paper's by default.
+class _LossConstants:
+    """The losses' constants, the paper's by default, and the recipe parts read here.
+
+    :func:`pipeline.methods.with_part_fields` adds the parts of :data:`pipeline.methods.PARTS` with home
+    ``losses``, each by default at its off value.
 
     Attributes
     ----------
@@ -444,12 +448,6 @@ class LossConstants:
         eq:area-error's 1e-5.
     eps : float
         The denominators' epsilon (eq:sdf-loss, eq:area-loss).
-    bootstrap_beta : float
-        ``train.bootstrap_beta`` (:func:`region_terms`); 1 = off.
-    ignore_band : float
-        ``train.ignore_band`` (:func:`region_terms`); 0 = off.
-    soft_targets : bool
-        ``train.soft_targets``: the region target is the agreement map itself.
     """
 
     dice_weight: float = _PAPER.dice_weight
@@ -458,14 +456,15 @@ class LossConstants:
     sdf_base_weight: float = _PAPER.sdf_base_weight
     area_eps: float = _PAPER.area_eps
     eps: float = _PAPER.loss_eps
-    bootstrap_beta: float = _PAPER.bootstrap_beta
-    ignore_band: float = _PAPER.ignore_band
-    soft_targets: bool = _PAPER.soft_targets
 
     @property
     def robust_region(self) -> bool:
         """Whether Stage I's region term departs from eq:raw-loss (:func:`region_terms`)."""
-        return self.bootstrap_beta < 1.0 or self.ignore_band > 0
+        return self.bootstrap_beta != _BETA_OFF or self.ignore_band != _BAND_OFF
+
+
+LossConstants = with_part_fields(_LossConstants, "losses", defaults=True)
+_BETA_OFF, _BAND_OFF = off_value("train.bootstrap_beta"), off_value("train.ignore_band")
 
 
 def region_terms(logits: torch.Tensor, targets: Mapping[str, torch.Tensor], gates: torch.Tensor,
@@ -504,11 +503,11 @@ def region_terms(logits: torch.Tensor, targets: Mapping[str, torch.Tensor], gate
     if not c.robust_region:
         return raw_terms(logits, t, c.dice_weight, c.max_weight, probs=probs)
     w = torch.ones_like(t)
-    if c.ignore_band > 0:
+    if c.ignore_band != _BAND_OFF:
         w = (torch.abs(t - 0.5) >= c.ignore_band).float()
         if not c.soft_targets:
             t = (t >= 0.5).float()
-    if c.bootstrap_beta < 1.0:
+    if c.bootstrap_beta != _BETA_OFF:
         t = c.bootstrap_beta * t + (1.0 - c.bootstrap_beta) * probs.detach()
     bbce = balanced_bce(logits, t, w, c.max_weight)
     dice = dice_loss(probs * w, t * w)

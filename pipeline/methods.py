@@ -1,12 +1,13 @@
 """Training methods as data: the loss terms, gating, initialisation, epochs, data filter and checkpoint
 selection of each ``--method`` and what it is in the study (docs/pipeline.md, "Methods"); the data filters
-themselves are :mod:`pipeline.training.filters`.  The training loop has no per-method branch; this module imports
-no torch."""
+themselves are :mod:`pipeline.training.filters`.  The training loop has no per-method branch.  Also the recipe
+parts, each declared once (:class:`RecipePart`, :data:`PARTS`), and the recipes that bundle them (:data:`RECIPES`).
+This module imports no torch and no pydantic."""
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Literal, Mapping
 
 from pipeline.runtime.errors import InputError
 
@@ -208,13 +209,398 @@ def ablation_table_rows(table: str) -> list[str]:
     return in_table_order(n for n, m in METHODS.items() if table in m.ablation_tables)
 
 
-#: recipe parts that depart from eq:raw-loss: dotted params key -> (whether a recorded value departs, its name in a
-#: table, formatted with the value ``v``)
-DEPARTURES: dict[str, tuple[Callable[[Any], bool], str]] = {
-    "train.soft_targets": (bool, "agreement-map targets"),
-    "train.bootstrap_beta": (lambda v: float(v) < 1.0, "bootstrapped targets, beta {v:g}"),
-    "train.ignore_band": (lambda v: float(v) > 0.0, "ignore band {v:g}"),
+# ------------------------------------------------------------------------------------------------ recipe parts
+# A recipe part is a training knob whose value comes from ``train.recipe`` unless params.yaml sets it.  Its
+# :class:`RecipePart` declaration is the one place that names it: the params schema's field (type, range, doc line;
+# :func:`pipeline.params.with_recipe_parts`), the paper recipe's value (the part's "off" value), whether every run's
+# fingerprint tracks it (:data:`COMMON_KEYS`), its departure label in the report tables (:data:`DEPARTURES`) and
+# where a run reads it (a field of ``pipeline.training.settings.Settings`` or of ``pipeline.losses.LossConstants``)
+# all derive from it.  Adding a part touches its declaration here and the code that consumes it (docs/pipeline.md,
+# "How to extend").  They live in this torch-free module because the schema, the method table and the losses all
+# read them.
+
+#: where a run reads a part: a field of ``Settings`` or of ``LossConstants`` of the same name, or "" = its consumer
+#: reads the validated section itself (a part that is transformed first: the epochs, the augmentation spec)
+HOMES = ("settings", "losses", "")
+#: a part's ``schema_after`` / ``common_after`` that places it first
+FIRST = "^"
+
+
+@dataclasses.dataclass(frozen=True)
+class RecipePart:
+    """One recipe part, declared once.
+
+    Attributes
+    ----------
+    key : str
+        The dotted params key, ``section.name`` (``train.bootstrap_beta``).
+    type : Any
+        The value's type as the schema checks it (``float``, ``bool``, a ``Literal``); the schema field is
+        ``type | None``, None taking the recipe's value.
+    off : Any
+        The paper recipe's value: where the part changes nothing (for a lever, its "off" value).  Outside Stage I,
+        a ``stage_one`` part takes this value.
+    doc : str
+        The schema's description (params.yaml's comment), without the "recipe part:" prefix the schema adds.
+    bounds : Mapping
+        Pydantic bounds of the value (``ge``, ``gt``, ``le``, ``lt``); empty = none.
+    departure : str
+        Non-empty for a part that departs from the paper's loss when not ``off``: its name in every report table,
+        formatted with the value ``v`` (:func:`pipeline.methods.departures`).
+    stage_one : bool
+        The part applies to Stage I only; other stages read ``off``.
+    home : str
+        One of :data:`HOMES`: where a run reads the value.
+    common : bool
+        Every method reads it, so every run's fingerprint holds it (:data:`pipeline.methods.COMMON_KEYS`); False
+        for a part only some methods read (the Stage-I and Stage-II epochs: :attr:`pipeline.methods.Method.epochs`).
+    schema_after : str
+        The section's field this part follows in the schema (params.yaml's order): "" = the section's end,
+        :data:`FIRST` = its start (:func:`interleave`).
+    common_after : str
+        The ``COMMON_KEYS`` key it follows (the order of the DAG's tracked params), as ``schema_after``.
+    """
+
+    key: str
+    type: Any
+    off: Any
+    doc: str
+    bounds: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    departure: str = ""
+    stage_one: bool = False
+    home: str = ""
+    common: bool = True
+    schema_after: str = ""
+    common_after: str = ""
+
+    def __post_init__(self):
+        if self.home not in HOMES:
+            raise ValueError(f"recipe part {self.key}: home {self.home!r} is not one of {HOMES}")
+        if self.key.count(".") != 1:
+            raise ValueError(f"recipe part {self.key}: the key must be section.name")
+
+    @property
+    def section(self) -> str:
+        """The params section (``train``)."""
+        return self.key.split(".")[0]
+
+    @property
+    def name(self) -> str:
+        """The key within its section (``bootstrap_beta``)."""
+        return self.key.split(".")[1]
+
+    @property
+    def description(self) -> str:
+        """The schema field's description: the prefix that marks a recipe part (and, outside ``train``, that
+        ``train.recipe`` sets it), then :attr:`doc`."""
+        where = ", Stage I" if self.stage_one else "" if self.section == "train" else " (train.recipe)"
+        return f"recipe part{where}: {self.doc}"
+
+    def departs(self, value: Any) -> bool:
+        """Whether ``value`` departs from the paper's loss (False for a part that is no departure).
+
+        Parameters
+        ----------
+        value : Any
+            A recorded value of the part.
+
+        Returns
+        -------
+        bool
+            ``departure`` is set and ``value`` is not :attr:`off`.
+        """
+        return bool(self.departure) and value != self.off
+
+    def value_for(self, cfg: Mapping[str, Any], stage_one: bool) -> Any:
+        """The part's value in a run: ``cfg``'s, or :attr:`off` outside Stage I for a Stage-I part.
+
+        Parameters
+        ----------
+        cfg : Mapping
+            The validated section (recipe parts filled in).
+        stage_one : bool
+            Whether the run is Stage I.
+
+        Returns
+        -------
+        Any
+            The value.
+        """
+        return cfg[self.name] if stage_one or not self.stage_one else self.off
+
+
+_FRACTION = {"ge": 0, "le": 1}
+#: every recipe part, in declaration order (the order of :func:`recipe_parts`)
+PARTS: tuple[RecipePart, ...] = (
+    RecipePart("train.precision", Literal["fp32", "bf16", "auto"], "auto",
+               "fp32 | bf16 | auto (bf16 autocast where the CPU/GPU supports it: host-dependent)", home="settings",
+               schema_after="recipe", common_after="recipe"),
+    RecipePart("train.warmup_epochs", int, 0, "linear learning-rate warm-up over this many epochs (0 = none)",
+               {"ge": 0}, home="settings", schema_after="precision", common_after="precision"),
+    RecipePart("train.average_last", int, 0, "final model = mean weights of the last K epochs with BN statistics "
+               "recomputed (0 = the method's selection rule)", {"ge": 0}, home="settings",
+               schema_after="warmup_epochs", common_after="warmup_epochs"),
+    RecipePart("train.batch_size", int, 4, "images per optimizer step", {"ge": 1}, home="settings",
+               schema_after="precise_bn", common_after="precise_bn"),
+    RecipePart("train.epochs_stage1", int, 20, "Stage-I epochs", {"ge": 0}, common=False,
+               schema_after="weight_decay"),
+    RecipePart("train.epochs_stage2", int, 10, "Stage-II epochs", {"ge": 0}, common=False,
+               schema_after="lr_stage1"),
+    RecipePart("train.schedule", Literal["cosine", "constant", "wsd"], "cosine",
+               "learning rate after the warm-up (paper gives initial rates only): cosine to 0 | constant | wsd = "
+               "constant, then linear to 0 over the last decay_fraction of the steps", home="settings",
+               schema_after="lr_stage2", common_after="weight_decay"),
+    RecipePart("train.augment", bool, False, "target-consistent augmentation (train.augmentation; "
+               "pipeline.augment); replaces augment_hflip when on", schema_after="augment_hflip",
+               common_after="decay_fraction"),
+    RecipePart("train.ema_decay", float, 0.0, "final model = exponential moving average of the weights (this decay "
+               "per optimizer step) with BN statistics recomputed; 0 = off", {"ge": 0, "lt": 1}, home="settings",
+               schema_after="average_last", common_after="augmentation"),
+    RecipePart("train.soft_targets", bool, False, "the region target is the agreement map A (eq:agreement-map) "
+               "instead of the voted mask M^T in eq:raw-loss -- a departure from the paper, named in every table",
+               departure="agreement-map targets", home="losses", schema_after="ema_decay",
+               common_after="ema_decay"),
+    RecipePart("train.until", Literal["epochs", "plateau"], "epochs", "epochs = train epochs_stage1 epochs | "
+               "plateau = stop the stable phase when the validation IoU stops improving (train.plateau_gain) or the "
+               "step budget is spent, then decay (docs/student.md); epochs_stage1 caps the run", stage_one=True,
+               home="settings", schema_after="validate_low_res", common_after="soft_targets"),
+    RecipePart("train.lr_scale", float, 1.0, "multiplies train.lr_stage1, Stage I's peak learning rate", {"gt": 0},
+               schema_after="soft_targets", common_after="holdout_fraction"),
+    RecipePart("train.low_res_fraction", float, 0.0, "the first round(this x epochs_stage1) epochs train at half the "
+               "side, the last at full side (a resolution schedule; until: plateau scores the later ones; "
+               "docs/decisions.md); 0 = none", {"ge": 0, "lt": 1}, stage_one=True, schema_after="ignore_band",
+               common_after="lr_scale"),
+    RecipePart("train.bootstrap_beta", float, 1.0, "soft bootstrapped targets (Reed et al. 2015): eq:raw-loss's "
+               "target is beta M + (1 - beta) P, P the student's own detached probability; 1 = the paper's M -- "
+               "below 1 a departure from eq:raw-loss, named in every table", {"gt": 0, "le": 1},
+               departure="bootstrapped targets, beta {v:g}", stage_one=True, home="losses",
+               schema_after="lr_scale", common_after="validate_low_res"),
+    RecipePart("train.ignore_band", float, 0.0, "pixels whose agreement A (eq:agreement-map) lies within this of "
+               "1/2, where the prompts split, leave eq:raw-loss (weight 0); 0 = none (the paper) -- a departure from "
+               "eq:raw-loss, named in every table", {"ge": 0, "le": 0.5}, departure="ignore band {v:g}",
+               stage_one=True, home="losses", schema_after="bootstrap_beta", common_after="bootstrap_beta"),
+    RecipePart("calibrate.tau_rule", Literal["argmax", "plateau", "smooth"], "argmax",
+               "argmax of the validation IoU curve | plateau = centre of the near-optimal plateau | smooth = argmax "
+               "of the smoothed curve (pipeline.thresholds)", schema_after=FIRST, common=False),
+)
+
+_BY_KEY = {p.key: p for p in PARTS}
+if len(_BY_KEY) != len(PARTS):
+    raise ValueError("two recipe parts share a key")
+
+
+def interleave(keys, placed: Mapping[str, str]) -> list[str]:
+    """``keys`` with each of ``placed`` inserted after the key it names (recursively: a part may follow a part).
+
+    Parameters
+    ----------
+    keys : iterable of str
+        The fixed keys, in order.
+    placed : Mapping
+        Key to insert -> the key it follows; :data:`FIRST` = first, "" = last (in ``placed``'s order).
+
+    Returns
+    -------
+    list of str
+        Every key once.
+
+    Raises
+    ------
+    ValueError
+        A key follows a key that is neither fixed nor placed.
+    """
+    out: list[str] = []
+
+    def put(k: str) -> None:
+        out.append(k)
+        for p, after in placed.items():
+            if after == k:
+                put(p)
+
+    for p, after in placed.items():
+        if after == FIRST:
+            put(p)
+    for k in keys:
+        put(k)
+    for p, after in placed.items():
+        if after == "":
+            put(p)
+    missing = [p for p in placed if p not in out]
+    if missing:
+        raise ValueError(f"recipe parts {missing} follow a key that does not exist")
+    return out
+
+
+def part(key: str) -> RecipePart:
+    """The declaration of recipe part ``key``.
+
+    Parameters
+    ----------
+    key : str
+        A dotted key (``train.bootstrap_beta``).
+
+    Returns
+    -------
+    RecipePart
+        Its declaration.
+
+    Raises
+    ------
+    KeyError
+        ``key`` is not a recipe part.
+    """
+    return _BY_KEY[key]
+
+
+def parts_of(section: str, home: str | None = None) -> tuple[RecipePart, ...]:
+    """The parts of one params section, in declaration order; with ``home``, only those read there.
+
+    Parameters
+    ----------
+    section : str
+        A params section (``train``, ``calibrate``).
+    home : str or None
+        One of :data:`HOMES`, or None for every part of the section.
+
+    Returns
+    -------
+    tuple of RecipePart
+        The parts.
+    """
+    return tuple(p for p in PARTS if p.section == section and (home is None or p.home == home))
+
+
+def off_value(key: str) -> Any:
+    """The paper recipe's value of part ``key``: where it is off.
+
+    Parameters
+    ----------
+    key : str
+        A dotted key.
+
+    Returns
+    -------
+    Any
+        :attr:`RecipePart.off`.
+
+    Raises
+    ------
+    KeyError
+        ``key`` is not a recipe part.
+    """
+    return part(key).off
+
+
+def recipe_parts() -> list[str]:
+    """Dotted keys of every recipe part (``train.precision``, ``calibrate.tau_rule``, ...), by section.
+
+    Returns
+    -------
+    list of str
+        The keys, the sections in first-declared order.
+    """
+    return [p.key for s in dict.fromkeys(p.section for p in PARTS) for p in parts_of(s)]
+
+
+def recipe_values(**changes: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """A recipe: section -> part -> value, every part at its :attr:`RecipePart.off` unless ``changes`` sets it.
+
+    Parameters
+    ----------
+    **changes : Mapping
+        Per section, the parts that differ from the paper recipe.
+
+    Returns
+    -------
+    dict
+        The whole recipe.
+
+    Raises
+    ------
+    KeyError
+        A change names no recipe part.
+    """
+    out = {s: {p.name: p.off for p in parts_of(s)} for s in dict.fromkeys(p.section for p in PARTS)}
+    for sec, values in changes.items():
+        for k, v in values.items():
+            part(f"{sec}.{k}")  # KeyError naming an unknown part
+            out[sec][k] = v
+    return out
+
+
+def departs(key: str, value: Any) -> bool:
+    """Whether recorded ``value`` of part ``key`` departs from the paper's loss (:meth:`RecipePart.departs`).
+
+    Parameters
+    ----------
+    key : str
+        A dotted key.
+    value : Any
+        Its recorded value.
+
+    Returns
+    -------
+    bool
+        The part is a departure and ``value`` is not its off value.
+
+    Raises
+    ------
+    KeyError
+        ``key`` is not a recipe part.
+    """
+    return part(key).departs(value)
+
+
+def with_part_fields(base: type, home: str, *, defaults: bool = False) -> type:
+    """A frozen dataclass: ``base``'s fields, then a field for each ``train`` part read at ``home``, named as the
+    part, its docstring's Attributes extended with the parts' doc lines.
+
+    Parameters
+    ----------
+    base : type
+        A frozen dataclass whose docstring ends with its Attributes section.
+    home : str
+        One of :data:`HOMES` but "": ``settings`` or ``losses``.
+    defaults : bool
+        Give each part field the part's :attr:`RecipePart.off` as its default (``base``'s fields must then have
+        defaults too).
+
+    Returns
+    -------
+    type
+        The dataclass, named as ``base`` without its leading underscore, in ``base``'s module.
+    """
+    parts = parts_of("train", home)
+    fields = [(p.name, p.type, dataclasses.field(default=p.off)) if defaults else (p.name, p.type) for p in parts]
+    name = base.__name__.lstrip("_")
+    doc = (base.__doc__ or "").rstrip() + "".join(
+        f"\n    {p.name} : {getattr(p.type, '__name__', 'str')}\n        ``{p.key}``"
+        f"{' (Stage I; ' + repr(p.off) + ' elsewhere)' if p.stage_one else ''}: {p.doc}." for p in parts) + "\n    "
+    cls = dataclasses.make_dataclass(name, fields, bases=(base,), frozen=True, namespace={"__doc__": doc})
+    cls.__module__, cls.__qualname__ = base.__module__, name
+    return cls
+
+
+_STRONG = {"precision": "fp32", "warmup_epochs": 2, "average_last": 4, "batch_size": 8, "epochs_stage1": 80,
+           "epochs_stage2": 20, "schedule": "wsd", "augment": True}
+#: recipe -> section -> part -> value; a part left null takes ``train.recipe``'s value (docs/decisions.md)
+RECIPES: dict[str, dict[str, dict[str, Any]]] = {
+    "paper": recipe_values(),
+    "stable": recipe_values(train={"precision": "fp32", "average_last": 5}, calibrate={"tau_rule": "smooth"}),
+    "strong": recipe_values(train=_STRONG, calibrate={"tau_rule": "smooth"}),
+    "plateau": recipe_values(train={**_STRONG, "epochs_stage1": 100, "until": "plateau"},
+                             calibrate={"tau_rule": "smooth"}),
+    # the speedrun's winner (docs/student.md): the first 160 of at most 220 epochs at half the side, the same
+    # training cost as plateau's 100 epochs at full side
+    "progressive": recipe_values(train={**_STRONG, "epochs_stage1": 220, "low_res_fraction": 8 / 11,
+                                        "until": "plateau"}, calibrate={"tau_rule": "smooth"}),
 }
+
+
+#: recipe parts that depart from eq:raw-loss: dotted params key -> (whether a recorded value departs, its name in a
+#: table, formatted with the value ``v``), from the declarations (:data:`PARTS`)
+DEPARTURES: dict[str, tuple[Callable[[Any], bool], str]] = {p.key: (p.departs, p.departure) for p in PARTS
+                                                               if p.departure}
 
 
 def departures(recorded: Mapping[str, Any]) -> list[str]:
@@ -273,13 +659,14 @@ def method_lr(method: Method, cfg: Mapping[str, Any]) -> float:
     return float(_get(cfg, method.lr)) * (float(_get(cfg, "lr_scale")) if method.lr == "lr_stage1" else 1.0)
 
 
-#: train params every method reads; ``precision`` and ``num_threads`` change numerics, so they are among them
-COMMON_KEYS = ("channels", "norm", "bn_momentum", "precise_bn", "batch_size", "weight_decay", "schedule",
-               "dice_weight", "pos_weight_max", "loss_eps", "recipe", "precision", "warmup_epochs", "average_last",
-               "channels_last", "augment_hflip", "num_threads", "val_bf1_tolerance", "decay_fraction", "augment",
-               "augmentation", "ema_decay", "soft_targets", "until", "step_budget", "time_budget", "plateau_gain",
-               "plateau_min_epochs", "plateau_min_steps", "holdout_fraction", "lr_scale", "low_res_fraction", "validate_low_res",
-               "bootstrap_beta", "ignore_band")
+#: train params every method reads; ``precision`` and ``num_threads`` change numerics, so they are among them; the
+#: recipe parts every method reads are placed by their declarations (:attr:`RecipePart.common_after`)
+COMMON_KEYS = tuple(interleave(
+    ("channels", "norm", "bn_momentum", "precise_bn", "weight_decay", "dice_weight", "pos_weight_max", "loss_eps",
+     "recipe", "channels_last", "augment_hflip", "num_threads", "val_bf1_tolerance", "decay_fraction",
+     "augmentation", "step_budget", "time_budget", "plateau_gain", "plateau_min_epochs", "plateau_min_steps",
+     "holdout_fraction", "validate_low_res"),
+    {p.name: p.common_after for p in parts_of("train") if p.common}))
 #: extra train params per loss term; the last key of a term is its weight (:func:`resolve_plan`)
 TERM_KEYS = {"region": (), "sdf": ("sdf_band", "sdf_base_weight", "lambda_sdf"), "skel": ("lambda_skel",),
              "area": ("area_eps", "lambda_area"), "dist": ("gabi.lambda_dist",),

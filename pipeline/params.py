@@ -12,11 +12,13 @@ from pathlib import Path
 from typing import Annotated, Any, Iterable, Literal, Mapping
 
 import yaml
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator,
+                      model_validator)
 
 from pipeline.engine_table import BENCHMARK_VARIANTS, engine_name  # pure Python: the engine names, one list
 from pipeline.runtime.errors import InputError
 from pipeline.methods import METHODS, PROPOSED, STAGE_ONE  # pure Python, no torch: this module stays torch-free
+from pipeline.methods import RECIPES, interleave, parts_of, recipe_parts  # each recipe part, declared once
 from pipeline.teacher_table import SIMULATED, teacher_spec  # pure Python: the teacher names, one table
 
 DEFAULT_PARAMS = "params.yaml"
@@ -207,28 +209,29 @@ class AdaptiveParams(_Section):
     anchor_geometry_only: bool = _f(False, "keep the weak anchor in geometry_only mode (paper: no anchoring)")
 
 
-_PAPER_TRAIN = {"precision": "auto", "warmup_epochs": 0, "average_last": 0, "batch_size": 4, "epochs_stage1": 20,
-                "epochs_stage2": 10, "schedule": "cosine", "augment": False, "ema_decay": 0.0, "soft_targets": False,
-                "until": "epochs", "lr_scale": 1.0, "low_res_fraction": 0.0, "bootstrap_beta": 1.0, "ignore_band": 0.0}
-_STRONG_TRAIN = {**_PAPER_TRAIN, "precision": "fp32", "warmup_epochs": 2, "average_last": 4, "batch_size": 8,
-                 "epochs_stage1": 80, "epochs_stage2": 20, "schedule": "wsd", "augment": True}
-#: recipe -> section -> part -> value; a part left null takes ``train.recipe``'s value (docs/decisions.md)
-RECIPES: dict[str, dict[str, dict[str, Any]]] = {
-    "paper": {"train": _PAPER_TRAIN, "calibrate": {"tau_rule": "argmax"}},
-    "stable": {"train": {**_PAPER_TRAIN, "precision": "fp32", "average_last": 5}, "calibrate": {"tau_rule": "smooth"}},
-    "strong": {"train": _STRONG_TRAIN, "calibrate": {"tau_rule": "smooth"}},
-    "plateau": {"train": {**_STRONG_TRAIN, "epochs_stage1": 100, "until": "plateau"},
-                "calibrate": {"tau_rule": "smooth"}},
-    # the speedrun's winner (docs/student.md): the first 160 of at most 220 epochs at half the side, the same
-    # training cost as plateau's 100 epochs at full side
-    "progressive": {"train": {**_STRONG_TRAIN, "epochs_stage1": 220, "low_res_fraction": 8 / 11, "until": "plateau"},
-                    "calibrate": {"tau_rule": "smooth"}},
-}
+def with_recipe_parts(fields: type[_Section], section: str) -> type[_Section]:
+    """A section model: ``fields``'s fields with ``section``'s recipe parts (:data:`pipeline.methods.PARTS`) placed among
+    them, each ``type | None`` defaulting to None (the recipe's value) with its declared bounds and doc line.
 
+    Parameters
+    ----------
+    fields : type
+        A section model holding the section's other fields, in params.yaml's order (its validators are not kept:
+        subclass the result to add them).
+    section : str
+        The params section whose recipe parts to add.
 
-def recipe_parts() -> list[str]:
-    """Dotted keys of every recipe part (``train.precision``, ``calibrate.tau_rule``, ...)."""
-    return [f"{sec}.{k}" for sec, parts in RECIPES["paper"].items() for k in parts]
+    Returns
+    -------
+    type
+        A pydantic model to subclass.
+    """
+    parts = {p.name: p for p in parts_of(section)}
+    specs = {k: (info.annotation, copy.copy(info)) for k, info in fields.model_fields.items()}
+    specs |= {n: (p.type | None, Field(None, description=p.description, **p.bounds)) for n, p in parts.items()}
+    order = interleave(fields.model_fields, {n: p.schema_after for n, p in parts.items()})
+    return create_model(f"_{fields.__name__.strip('_')}WithParts", __base__=_Section, __module__=__name__,
+                        **{k: specs[k] for k in order})
 
 
 def fill_recipe(data, section: str, recipe: str):
@@ -272,22 +275,18 @@ class AugmentParams(_Section):
     noise_std: float = _f(0.03, "largest Gaussian sensor-noise std (fraction of full scale)", ge=0, le=1)
 
 
-class TrainParams(_Section):
+class _TrainFields(_Section):
+    """``train``'s fields that are no recipe part (:class:`TrainParams` adds those)."""
+
     channels: list[PositiveInt] = _f([24, 48, 96], "TinyUNet encoder widths", min_length=1)
     norm: Literal["batch", "group"] = _f("batch", "TinyUNet normalisation: batch (paper) | group (GroupNorm, "
                                          "8 channels per group: no batch statistics)")
     bn_momentum: float = _f(0.1, "BatchNorm running-statistics momentum (PyTorch's; paper silent)", gt=0, le=1)
     precise_bn: bool = _f(False, "re-estimate BN running statistics over the training set before each "
                                  "validation (precise BN; not in the paper)")
-    batch_size: int | None = _f(None, "recipe part: images per optimizer step", ge=1)
     weight_decay: float = _f(1e-4, ge=0)
-    epochs_stage1: int | None = _f(None, "recipe part: Stage-I epochs", ge=0)
     lr_stage1: float = _f(5e-4, gt=0)
-    epochs_stage2: int | None = _f(None, "recipe part: Stage-II epochs", ge=0)
     lr_stage2: float = _f(1e-4, gt=0)
-    schedule: Literal["cosine", "constant", "wsd"] | None = _f(
-        None, "recipe part: learning rate after the warm-up (paper gives initial rates only): cosine to 0 | "
-              "constant | wsd = constant, then linear to 0 over the last decay_fraction of the steps")
     decay_fraction: float = _f(0.2, "schedule wsd: share of the optimizer steps in the decay phase", gt=0, le=1)
     dice_weight: float = _f(0.2, "eq:raw-loss", ge=0)
     pos_weight_max: float = _f(500.0, "eq:positive-weight clip", gt=0)
@@ -301,40 +300,11 @@ class TrainParams(_Section):
     stage2_select: Literal["last", "best_val"] = _f("last", "paper: the last Stage-II epoch")
     recipe: Literal[tuple(RECIPES)] = _f("paper", "training recipe: a bundle of the parts marked 'recipe part' "
                                                   "(docs/stability.md); an explicit part value wins")
-    precision: Literal["fp32", "bf16", "auto"] | None = _f(
-        None, "recipe part: fp32 | bf16 | auto (bf16 autocast where the CPU/GPU supports it: host-dependent)")
-    warmup_epochs: int | None = _f(None, "recipe part: linear learning-rate warm-up over this many epochs "
-                                         "(0 = none)", ge=0)
-    average_last: int | None = _f(None, "recipe part: final model = mean weights of the last K epochs with BN "
-                                        "statistics recomputed (0 = the method's selection rule)", ge=0)
-    ema_decay: float | None = _f(None, "recipe part: final model = exponential moving average of the weights "
-                                       "(this decay per optimizer step) with BN statistics recomputed; 0 = off",
-                                 ge=0, lt=1)
-    soft_targets: bool | None = _f(None, "recipe part: the region target is the agreement map A "
-                                         "(eq:agreement-map) instead of the voted mask M^T in eq:raw-loss -- "
-                                         "a departure from the paper, named in every table")
-    lr_scale: float | None = _f(None, "recipe part: multiplies train.lr_stage1, Stage I's peak learning rate", gt=0)
-    bootstrap_beta: float | None = _f(
-        None, "recipe part, Stage I: soft bootstrapped targets (Reed et al. 2015): eq:raw-loss's target is "
-              "beta M + (1 - beta) P, P the student's own detached probability; 1 = the paper's M -- below 1 a "
-              "departure from eq:raw-loss, named in every table", gt=0, le=1)
-    ignore_band: float | None = _f(
-        None, "recipe part, Stage I: pixels whose agreement A (eq:agreement-map) lies within this of 1/2, where "
-              "the prompts split, leave eq:raw-loss (weight 0); 0 = none (the paper) -- a departure from "
-              "eq:raw-loss, named in every table", ge=0, le=0.5)
-    low_res_fraction: float | None = _f(None, "recipe part, Stage I: the first round(this x epochs_stage1) epochs "
-                                              "train at half the side, the last at full side (a resolution schedule; "
-                                              "until: plateau scores the later ones; docs/decisions.md); 0 = none",
-                                        ge=0, lt=1)
     validate_low_res: bool = _f(False, "Stage I with low_res_fraction: validate after the half-side epochs too "
                                        "(the full validation curve, for studies). Off: no rule or selection reads "
                                        "them -- until: plateau scores full-side epochs, a weight average or the "
                                        "last epoch is kept -- so they are skipped and logged as NaN; the weights "
                                        "are the same (docs/decisions.md)")
-    until: Literal["epochs", "plateau"] | None = _f(
-        None, "recipe part, Stage I: epochs = train epochs_stage1 epochs | plateau = stop the stable phase when "
-              "the validation IoU stops improving (train.plateau_gain) or the step budget is spent, then decay "
-              "(docs/student.md); epochs_stage1 caps the run")
     step_budget: int = _f(0, "Stage I with until: plateau: optimizer steps at most, warm-up and decay included "
                              "(0 = none; distill --time writes it)", ge=0)
     time_budget: str | None = _f(None, "what distill --time converted into train.step_budget (a record; not read "
@@ -350,8 +320,6 @@ class TrainParams(_Section):
                                       "training images held out and scored against their vote", gt=0, lt=1)
     channels_last: bool = _f(True)
     augment_hflip: bool = _f(False, "the paper states no augmentation")
-    augment: bool | None = _f(None, "recipe part: target-consistent augmentation (train.augmentation; "
-                                    "pipeline.augment); replaces augment_hflip when on")
     augmentation: AugmentParams = Field(default_factory=AugmentParams)
     num_threads: int = _f(0, "torch CPU threads (changes numerics: tracked and in the resume key); "
                              "0 = torch default", ge=0)
@@ -360,6 +328,10 @@ class TrainParams(_Section):
     afs: AfsParams = Field(default_factory=AfsParams)
     gabi: GabiParams = Field(default_factory=GabiParams)
     adaptive: AdaptiveParams = Field(default_factory=AdaptiveParams)
+
+
+class TrainParams(with_recipe_parts(_TrainFields, "train")):
+    """The ``train`` section: :class:`_TrainFields` and the recipe parts of :data:`pipeline.methods.PARTS`."""
 
     @model_validator(mode="before")
     @classmethod
@@ -408,10 +380,9 @@ class ProtocolParams(_Section):
         return self
 
 
-class CalibrateParams(_Section):
-    tau_rule: Literal["argmax", "plateau", "smooth"] | None = _f(
-        None, "recipe part (train.recipe): argmax of the validation IoU curve | plateau = centre of the "
-              "near-optimal plateau | smooth = argmax of the smoothed curve (pipeline.thresholds)")
+class _CalibrateFields(_Section):
+    """``calibrate``'s fields that are no recipe part."""
+
     plateau_tolerance: float = _f(0.005, "tau_rule plateau: taus within this much mean IoU of the best", ge=0, le=1)
     smooth_halfwidth: int = _f(5, "tau_rule smooth: moving-average half-width in grid points", ge=0, le=1000)
     grid_start: float = _f(0.05, ge=0, le=1)
@@ -420,6 +391,10 @@ class CalibrateParams(_Section):
     fixed_tau: float = _f(0.5, "eq:inference-mask fallback / fixed-threshold comparisons", ge=0, le=1)
     reliability_bins: int = _f(10, "equal-width probability bins of the validation reliability diagram and ECE",
                                ge=2, le=1000)
+
+
+class CalibrateParams(with_recipe_parts(_CalibrateFields, "calibrate")):
+    """The ``calibrate`` section: :class:`_CalibrateFields` and its recipe part (``tau_rule``)."""
 
     @model_validator(mode="before")
     @classmethod

@@ -12,7 +12,7 @@ from typing import Any, Mapping
 
 from pipeline import losses
 from pipeline.augment import AugmentSpec
-from pipeline.methods import Method, method_epochs, method_lr
+from pipeline.methods import Method, method_epochs, method_lr, parts_of, with_part_fields
 from pipeline.params import validate_section
 from pipeline.training.schedule import low_res_epochs
 
@@ -32,19 +32,17 @@ def loss_constants(cfg: Mapping[str, Any], stage_one: bool = False) -> losses.Lo
     -------
     pipeline.losses.LossConstants
         ``dice_weight``, the positive-weight clip, the SDF band (eq:pseudo-boundary-band) and base weight, the
-        area epsilon, the losses' numerical epsilon, ``soft_targets``, and ``bootstrap_beta`` / ``ignore_band``
-        (1.0 / 0.0, off, outside Stage I).
+        area epsilon, the losses' numerical epsilon, and the recipe parts read by the losses
+        (:data:`pipeline.methods.PARTS` with home ``losses``; a Stage-I part is off outside Stage I).
     """
     return losses.LossConstants(dice_weight=float(cfg["dice_weight"]), max_weight=float(cfg["pos_weight_max"]),
                                 sdf_band=float(cfg["sdf_band"]), sdf_base_weight=float(cfg["sdf_base_weight"]),
                                 area_eps=float(cfg["area_eps"]), eps=float(cfg["loss_eps"]),
-                                soft_targets=bool(cfg["soft_targets"]),
-                                bootstrap_beta=float(cfg["bootstrap_beta"]) if stage_one else 1.0,
-                                ignore_band=float(cfg["ignore_band"]) if stage_one else 0.0)
+                                **{p.name: p.value_for(cfg, stage_one) for p in parts_of("train", "losses")})
 
 
 @dataclasses.dataclass(frozen=True)
-class Settings:
+class _Settings:
     """The ``train.*`` values one (method, seed) run uses, built by :meth:`from_params`.
 
     Each field is the schema key of the same name unless noted, and none has a default (the schema's is the only
@@ -59,14 +57,8 @@ class Settings:
     lr : float
         The peak learning rate (:func:`pipeline.methods.method_lr`: ``train.lr_stage1`` times ``train.lr_scale``
         for Stage I, ``train.lr_stage2`` otherwise).
-    batch_size : int
-        Images per optimizer step.
     weight_decay : float
         AdamW's decoupled weight decay.
-    schedule : str
-        The learning-rate schedule after the warm-up, one of :data:`pipeline.training.schedule.SCHEDULES`.
-    precision : str
-        ``fp32`` | ``bf16`` | ``auto`` (the autocast dtype; ``auto`` depends on the host).
     channels_last : bool
         Train in the channels-last memory format.
     hflip : bool
@@ -83,20 +75,10 @@ class Settings:
         (``calibrate.fixed_tau``; not a ``train`` key).
     precise_bn : bool
         Recompute the BN running statistics over the training images before each validation.
-    warmup_epochs : int
-        Epochs of linear learning-rate warm-up; 0 = none.
-    average_last : int
-        The final model is the mean weights of the last this many epochs (BN statistics recomputed); 0 = the
-        method's selection rule.
     decay_fraction : float
         The ``wsd`` schedule's (and ``until: plateau``'s) decay share of the run, in (0, 1].
     augment : pipeline.augment.AugmentSpec or None
         The target-consistent augmentation (``train.augmentation``); None when ``train.augment`` is off.
-    ema_decay : float
-        The final model is the moving average of the weights with this decay per optimizer step, in [0, 1);
-        0 = off.
-    until : str
-        ``epochs`` | ``plateau``; Stage I only, other stages get ``"epochs"``.
     step_budget : int
         Under ``until: plateau``, optimizer steps at most, warm-up and decay included; 0 = none.
     plateau_gain : float
@@ -117,10 +99,7 @@ class Settings:
 
     epochs: int
     lr: float
-    batch_size: int
     weight_decay: float
-    schedule: str
-    precision: str
     channels_last: bool
     hflip: bool
     num_threads: int
@@ -128,12 +107,8 @@ class Settings:
     constants: losses.LossConstants
     selection_tau: float
     precise_bn: bool
-    warmup_epochs: int
-    average_last: int
     decay_fraction: float
     augment: AugmentSpec | None
-    ema_decay: float
-    until: str
     step_budget: int
     plateau_gain: float
     plateau_min_epochs: int
@@ -143,7 +118,7 @@ class Settings:
     validate_low_res: bool
 
     @classmethod
-    def from_params(cls, method: Method, cfg: Mapping[str, Any], selection_tau: float) -> "Settings":
+    def from_params(cls, method: Method, cfg: Mapping[str, Any], selection_tau: float) -> "_Settings":
         """Read the train section for ``method``.
 
         Parameters
@@ -169,19 +144,22 @@ class Settings:
         cfg = validate_section("train", cfg)
         stage_one = method.stage == 1
         epochs = method_epochs(method, cfg)
-        return cls(epochs=epochs, lr=method_lr(method, cfg), batch_size=int(cfg["batch_size"]),
-                   weight_decay=float(cfg["weight_decay"]), schedule=str(cfg["schedule"]),
-                   precision=str(cfg["precision"]), channels_last=bool(cfg["channels_last"]),
+        return cls(epochs=epochs, lr=method_lr(method, cfg),
+                   weight_decay=float(cfg["weight_decay"]), channels_last=bool(cfg["channels_last"]),
                    hflip=bool(cfg["augment_hflip"]), num_threads=int(cfg["num_threads"]),
                    bf1_tolerance=float(cfg["val_bf1_tolerance"]), constants=loss_constants(cfg, stage_one),
                    selection_tau=float(selection_tau), precise_bn=bool(cfg["precise_bn"]),
-                   warmup_epochs=int(cfg["warmup_epochs"]), average_last=int(cfg["average_last"]),
                    decay_fraction=float(cfg["decay_fraction"]),
                    augment=AugmentSpec.from_params(cfg["augmentation"]) if cfg["augment"] else None,
-                   ema_decay=float(cfg["ema_decay"]), until=str(cfg["until"]) if stage_one else "epochs",
                    step_budget=int(cfg["step_budget"]), plateau_gain=float(cfg["plateau_gain"]),
                    plateau_min_epochs=int(cfg["plateau_min_epochs"]),
                    plateau_min_steps=int(cfg["plateau_min_steps"]),
                    holdout_fraction=float(cfg["holdout_fraction"]),
                    low_res_epochs=low_res_epochs(epochs, float(cfg["low_res_fraction"])) if stage_one else 0,
-                   validate_low_res=bool(cfg["validate_low_res"]))
+                   validate_low_res=bool(cfg["validate_low_res"]),
+                   **{p.name: p.value_for(cfg, stage_one) for p in parts_of("train", "settings")})
+
+
+#: the run's values: :class:`_Settings` and the recipe parts read here (:data:`pipeline.methods.PARTS` with home
+#: ``settings``)
+Settings = with_part_fields(_Settings, "settings")
