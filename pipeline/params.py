@@ -178,7 +178,7 @@ class TeacherParams(_Section):
             return v
         model = teacher_spec(info.data["backend"]).options
         if model is None and v:
-            raise ValueError(f"backend {info.data['backend']} takes no options")
+            raise ValueError(f"backend {info.data['backend']} takes none (set teacher.backend to the plug-in's name too)")
         return validate(v, f"backend {info.data['backend']}", load(model)) if model is not None else v
 
     @model_serializer(mode="wrap")
