@@ -126,12 +126,13 @@ def find_format(name: str) -> LabelFormat | None:
         From :func:`pipeline.teacher_table.plugin`, or the plug-in's name or catalogue keys are not its own.
     """
     if name not in LABEL_FORMATS and (found := plugin(FORMAT_GROUP, name, LABEL_FORMATS, LabelFormat)) is not None:
+        fmt, where = found[0], f"plug-in {name!r} of {found[1]} ({FORMAT_GROUP})"
+        if fmt.name != name:
+            raise InputError(f"{where}: its LabelFormat is named {fmt.name!r}")
         try:
-            if found[0].name != name:
-                raise ValueError(f"its LabelFormat is named {found[0].name!r}")
-            register_format(found[0])
-        except ValueError as e:
-            raise InputError(f"plug-in {name!r} of {found[1]} ({FORMAT_GROUP}): {e}") from None
+            register_format(fmt)
+        except ValueError as e:  # a catalogue key taken
+            raise InputError(f"{where}: {e}") from None
     return LABEL_FORMATS.get(name)
 
 SPACECRAFT_CATEGORY = {"id": 1, "name": "spacecraft", "supercategory": "object"}
