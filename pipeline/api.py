@@ -294,7 +294,7 @@ def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None =
     backend : str, optional
         A backend of :data:`~pipeline.teacher_table.TEACHER_TABLE`: ``sam3``, ``imported`` (masks made
         elsewhere), ``simulated`` (a SIMULATOR of teacher errors that needs ``reference_masks``; its labels are
-        not a real teacher's) or a registered one.
+        not a real teacher's), a registered one or an installed plug-in's name.
     imported_dir : str or Path, optional
         The imported teacher masks (README layout); implies ``backend="imported"``.
     reference_masks : str or Path, optional

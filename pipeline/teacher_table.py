@@ -124,10 +124,10 @@ def find_teacher(name: str) -> TeacherSpec | None:
 
 
 def teacher_spec(name: str) -> TeacherSpec:
-    """The row of backend ``name`` (a plug-in's loaded now); ValueError naming the backends when there is none."""
+    """The row of backend ``name`` (a plug-in's loaded now); ValueError naming the backends when there is none (the
+    params check names ``teacher.backend``)."""
     if (spec := find_teacher(name)) is None:
-        raise ValueError(f"teacher.backend={name!r}: expected one of {', '.join(TEACHER_TABLE)} or a plug-in's "
-                         f"name ({TEACHER_GROUP})")
+        raise ValueError(f"expected one of {', '.join(TEACHER_TABLE)} or an installed plug-in's name ({TEACHER_GROUP})")
     return spec
 
 
