@@ -18,13 +18,13 @@ from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 from pipeline.datasets.loading import check_bit_depth, pixel_limit
-from pipeline.runtime.errors import BACKEND, CHECKPOINT, IMPORTED_DIR, LABELS, InputError, literal
+from pipeline.runtime.errors import BACKEND, CHECKPOINT, LABELS, InputError, literal
 from pipeline.labeling import LabelResult, label_folder
 from pipeline.labeling.run import check_label_folder, parse_formats
 from pipeline.params import deep_merge, validate
 from pipeline.profiles import load_params_or_profile
 from pipeline.orchestration.standalone import project_outputs, run_project, time_budget_params, write_project
-from pipeline.teacher_table import TEACHER_TABLE, is_simulator, load
+from pipeline.teacher_table import find_teacher, folder_options, is_simulator, load
 
 LABEL_PROFILE = "paper"
 DISTILL_PROFILE = "distill"
@@ -63,40 +63,38 @@ def effective_params(params: str | Path | None = None, overrides: Mapping | Iter
     return load_params_or_profile(params, items, default_profile)
 
 
-def teacher_overrides(backend: str | None, checkpoint: str | Path | None, imported_dir: str | Path | None) -> dict:
+def teacher_overrides(backend: str | None, folders: Mapping[str, str | Path | None]) -> dict:
     """Return the ``teacher`` keys the label/distill options set.
 
-    A folder option means the first backend of :data:`~pipeline.teacher_table.TEACHER_TABLE` whose first
-    required setting it is (``checkpoint``: sam3, ``imported_dir``: imported), unless ``backend`` says otherwise;
-    where that backend's row has a ``check`` (SAM 3's checkpoint folder), the folder is checked here, so the
-    error names the option the user gave.
+    A folder option (a backend row's ``folder``: ``--checkpoint``, ``--imported-dir``) sets that row's first
+    setting and means the first backend of :data:`~pipeline.teacher_table.TEACHER_TABLE` whose folder it is,
+    unless ``backend`` says otherwise; where that backend's row has a ``check`` (SAM 3's checkpoint folder),
+    the folder is checked here, so the error names the option the user gave.
 
     Parameters
     ----------
     backend : str, optional
-        A backend of :data:`~pipeline.teacher_table.TEACHER_TABLE` (``sam3``, ``imported``, ``simulated`` or a
-        registered one); None: inferred from the other two.
-    checkpoint : str or Path, optional
-        A SAM 3 folder (save_pretrained layout); stored resolved.
-    imported_dir : str or Path, optional
-        A folder of imported teacher masks; stored resolved.
+        A backend of :data:`~pipeline.teacher_table.TEACHER_TABLE` or an installed plug-in's name; None:
+        inferred from ``folders``.
+    folders : mapping of str to (str or Path or None)
+        The folder options by setting (``{"checkpoint": "sam3/"}``); None is not given.  Stored resolved.
 
     Returns
     -------
     dict
-        ``backend`` (given or inferred), ``checkpoint`` and ``imported_dir`` as given; empty when none is.
+        ``backend`` (given or inferred) and the folders given; empty when none is.
 
     Raises
     ------
     InputError
-        From the backend's ``check``: ``checkpoint`` is not a SAM 3 folder (backend sam3).
+        From the backend's ``check`` (``checkpoint`` is not a SAM 3 folder), or a plug-in fails to load.
     """
-    given = {o: v for o, v in ((CHECKPOINT, checkpoint), (IMPORTED_DIR, imported_dir)) if v}
+    options = folder_options()
+    given = {o: folders[o.keyword] for o, _ in options.values() if folders.get(o.keyword)}
     if backend is None:
-        backend = next((name for name, spec in TEACHER_TABLE.items() for o in given if o.keyword in spec.settings[:1]),
-                       None)
+        backend = next((name for name, (o, _) in options.items() if o in given), None)
     out = {} if backend is None else {"backend": backend}
-    spec = TEACHER_TABLE.get(backend)
+    spec = find_teacher(backend) if backend is not None else None
     for option, value in given.items():
         if spec is not None and spec.check and option.keyword in spec.settings[:1]:
             load(spec.check)(value, option)  # checked here: the error names the option the user gave
@@ -104,8 +102,7 @@ def teacher_overrides(backend: str | None, checkpoint: str | Path | None, import
     return out
 
 
-def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | None,
-                   imported_dir: str | Path | None) -> dict:
+def choose_teacher(params: dict, backend: str | None, folders: Mapping[str, str | Path | None]) -> dict:
     """Return ``params`` with the chosen teacher, validated again.
 
     Without ``checkpoint``, ``imported_dir`` or ``backend``, only a params file naming a real teacher (a backend of
@@ -119,10 +116,8 @@ def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | N
         Validated params.
     backend : str, optional
         The teacher backend (:func:`teacher_overrides`).
-    checkpoint : str or Path, optional
-        A SAM 3 folder.
-    imported_dir : str or Path, optional
-        A folder of imported teacher masks.
+    folders : mapping of str to (str or Path or None)
+        The folder options by setting (:func:`teacher_overrides`).
 
     Returns
     -------
@@ -134,14 +129,14 @@ def choose_teacher(params: dict, backend: str | None, checkpoint: str | Path | N
     InputError
         No teacher was chosen, a teacher option is invalid, or the merged params do not validate.
     """
-    chosen = teacher_overrides(backend, checkpoint, imported_dir)
+    chosen = teacher_overrides(backend, folders)
     if not chosen and is_simulator(params["teacher"]["backend"]):
         raise InputError("{} is required (or {})", CHECKPOINT("SAM3_DIR"), BACKEND("imported|simulated"))
     return validate(deep_merge(params, {"teacher": chosen}), "options")
 
 
 def params_from_labels(params: dict, labels: str | Path, input_dir: str | Path, backend: str | None = None,
-                       checkpoint: str | Path | None = None, imported_dir: str | Path | None = None,
+                       folders: Mapping[str, str | Path | None] | None = None,
                        default_profile: str = DISTILL_PROFILE) -> dict:
     """Return the params of a distill that trains from a ``label`` output folder (``--labels`` / ``labels=``).
 
@@ -159,7 +154,7 @@ def params_from_labels(params: dict, labels: str | Path, input_dir: str | Path, 
         The label output folder.
     input_dir : str or Path
         The images it labelled.
-    backend, checkpoint, imported_dir : optional
+    backend, folders : optional
         The teacher options (:func:`teacher_overrides`); each must agree with label.json.
     default_profile : str, optional
         The profile whose values count as not set by the caller (default :data:`DISTILL_PROFILE`).
@@ -177,7 +172,7 @@ def params_from_labels(params: dict, labels: str | Path, input_dir: str | Path, 
     """
     record = check_label_folder(labels, input_dir)
     base = load_params_or_profile(None, [], default_profile)
-    chosen = teacher_overrides(backend, checkpoint, imported_dir)
+    chosen = teacher_overrides(backend, folders or {})
     taken = {("teacher", k): v for k, v in record["teacher"].items() if k not in TEACHER_RUN_KEYS}
     taken.update({("geometry", k): v for k, v in record["geometry"].items()})
     taken.update({("data", "resolution"): record["resolution"], ("consensus", "vote_threshold"): record["vote_threshold"]})
@@ -195,7 +190,7 @@ def params_from_labels(params: dict, labels: str | Path, input_dir: str | Path, 
 
 
 def distill_params(params: dict, input_dir: str | Path, labels: str | Path | None, backend: str | None,
-                   checkpoint: str | Path | None, imported_dir: str | Path | None, skip_bad: bool = False,
+                   folders: Mapping[str, str | Path | None], skip_bad: bool = False,
                    max_pixels: int | None = None, bit_depth: str | int | None = None) -> dict:
     """Return the params of a distill project (command and API).
 
@@ -210,8 +205,8 @@ def distill_params(params: dict, input_dir: str | Path, labels: str | Path | Non
         The images to train on.
     labels : str or Path or None
         A label output folder of the same images, or None.
-    backend, checkpoint, imported_dir : optional
-        The teacher options.
+    backend, folders : optional
+        The teacher options (:func:`teacher_overrides`).
     skip_bad : bool, optional
         Leave unreadable images out (listed) instead of stopping.
     max_pixels : int, optional
@@ -230,9 +225,9 @@ def distill_params(params: dict, input_dir: str | Path, labels: str | Path | Non
         As :func:`params_from_labels`, :func:`choose_teacher` and :func:`with_data_options`.
     """
     if labels is not None:
-        params = params_from_labels(params, labels, input_dir, backend, checkpoint, imported_dir)
+        params = params_from_labels(params, labels, input_dir, backend, folders)
     else:
-        params = choose_teacher(params, backend, checkpoint, imported_dir)
+        params = choose_teacher(params, backend, folders)
     return with_data_options(params, skip_bad, max_pixels, bit_depth)
 
 
@@ -299,7 +294,7 @@ def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None =
     backend : str, optional
         A backend of :data:`~pipeline.teacher_table.TEACHER_TABLE`: ``sam3``, ``imported`` (masks made
         elsewhere), ``simulated`` (a SIMULATOR of teacher errors that needs ``reference_masks``; its labels are
-        not a real teacher's) or a registered one.
+        not a real teacher's), a registered one or an installed plug-in's name.
     imported_dir : str or Path, optional
         The imported teacher masks (README layout); implies ``backend="imported"``.
     reference_masks : str or Path, optional
@@ -333,7 +328,8 @@ def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None =
         unreadable image (without ``skip_bad``), or an output that belongs to the user.
     """
     fmts = parse_formats(formats)
-    p = choose_teacher(effective_params(params, overrides, LABEL_PROFILE), backend, checkpoint, imported_dir)
+    p = choose_teacher(effective_params(params, overrides, LABEL_PROFILE), backend,
+                       {"checkpoint": checkpoint, "imported_dir": imported_dir})
     p = with_data_options(p, skip_bad, max_pixels, bit_depth)
     return label_folder(input, out, p, device=device, formats=fmts, reference_masks=reference_masks,
                         overwrite=overwrite)
@@ -402,8 +398,8 @@ def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None 
         One line naming the keyword or file: no teacher chosen, an invalid option, a label folder that does not
         match, a failed stage's own error.
     """
-    p = distill_params(effective_params(params, overrides, DISTILL_PROFILE), input, labels, backend, checkpoint,
-                       imported_dir, skip_bad, max_pixels, bit_depth)
+    p = distill_params(effective_params(params, overrides, DISTILL_PROFILE), input, labels, backend,
+                       {"checkpoint": checkpoint, "imported_dir": imported_dir}, skip_bad, max_pixels, bit_depth)
     p = time_budget_params(p, time, out, device, input, val_masks)
     project = write_project(input, out, p, val_masks=val_masks, overwrite=overwrite, labels=labels,
                             benchmark=benchmark)

@@ -294,7 +294,7 @@ STAGES: dict[str, StageSpec] = {s.name: s for s in [
               "--manifest {manifest} --images {images} --reference {reference} --out {teacher} "
               "--scores {teacher_scores}",
               ("manifest", "images", "reference"), ("teacher", "teacher_scores"),
-              _keys("teacher", but=("batch_size", "compile", "cache_dir"))),  # speed and cache only
+              _keys("teacher", but=("batch_size", "compile", "cache_dir", "options"))),  # speed, cache; options: when set
     StageSpec("consensus", "stages.consensus", "--teacher {teacher} --out {consensus}",
               ("teacher",), ("consensus",), _keys("consensus", "vote_threshold")),
     StageSpec("geometry", "stages.geometry",

@@ -12,14 +12,14 @@ from pathlib import Path
 from typing import Annotated, Any, Iterable, Literal, Mapping
 
 import yaml
-from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator,
-                      model_validator)
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, create_model,
+                      field_validator, model_serializer, model_validator)
 
 from pipeline.engine_table import BENCHMARK_VARIANTS, engine_name  # pure Python: the engine names, one list
 from pipeline.runtime.errors import InputError
 from pipeline.methods import METHODS, PROPOSED, STAGE_ONE  # pure Python, no torch: this module stays torch-free
 from pipeline.methods import RECIPES, interleave, parts_of, recipe_parts  # each recipe part, declared once
-from pipeline.teacher_table import SIMULATED, teacher_spec  # pure Python: the teacher names, one table
+from pipeline.teacher_table import SIMULATED, load, teacher_spec  # pure Python: the teacher names, one table
 
 DEFAULT_PARAMS = "params.yaml"
 
@@ -147,6 +147,8 @@ class TeacherParams(_Section):
     mask_threshold: float = _f(0.5, "sam3: binarise the chosen query's mask probability", ge=0, le=1)
     seed: int = _f(0, "simulated teacher (SIMULATOR) seed", ge=0)
     cache_dir: str = _f(".cache/teacher", "content-addressed cache outside DVC outs")
+    options: dict[str, Any] = _f({}, "a plug-in backend's own settings, checked by its spec's model (written only "
+                                     "when set)")
 
     @model_validator(mode="after")
     def _base(self):
@@ -167,6 +169,26 @@ class TeacherParams(_Section):
     def _known(cls, v: str) -> str:
         teacher_spec(v)  # ValueError naming the backends
         return v
+
+    @field_validator("options")
+    @classmethod
+    def _options(cls, v: dict, info: ValidationInfo) -> dict:
+        """The backend's own settings through its spec's model (``TeacherSpec.options``); a spec without one takes none."""
+        if "backend" not in info.data:  # refused already
+            return v
+        model = teacher_spec(info.data["backend"]).options
+        if model is None and v:
+            raise ValueError(f"backend {info.data['backend']} takes none (set teacher.backend to the plug-in's name too)")
+        return validate(v, f"backend {info.data['backend']}", load(model)) if model is not None else v
+
+    @model_serializer(mode="wrap")
+    def _unset_options_unwritten(self, dump):
+        """No ``options`` key while empty: params.yaml, label.json and the fingerprints of the built-in backends
+        stay as they were."""
+        out = dump(self)
+        if not out.get("options"):
+            out.pop("options", None)
+        return out
 
 
 class ConsensusParams(_Section):

@@ -19,6 +19,7 @@ from pipeline.catalog import PARAMS_FILE
 from pipeline.runtime.codeversion import ROOT, _module_name, code_version_of
 from pipeline.runtime.errors import BIT_DEPTH, CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError, calling
 from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER, load_params
+from pipeline.teacher_table import TEACHER_GROUP, TEACHER_TABLE, folder_options
 
 
 def setup_logging() -> None:
@@ -90,6 +91,19 @@ def teacher_workers_options(fn):
     return click.option("--workers", default=0, show_default=True, type=click.IntRange(0),
                         help="teachers in a Ray Data actor pool (one per GPU or CPU worker); 0 = the serial "
                              "loop in this process (same results)")(fn)
+
+
+def teacher_choice_options(refused: str = ""):
+    """``--backend`` and each backend row's folder option (``--checkpoint``, ``--imported-dir``: the table's
+    ``folder``), handed to the command as keyword arguments; ``refused``: the end of ``--backend``'s help."""
+    def add(fn):
+        for name, (option, help_) in reversed(folder_options().items()):
+            fn = click.option(option.flag, option.keyword, default=None, type=click.Path(),
+                              help=f"{help_}; implies --backend {name}")(fn)
+        return click.option("--backend", default=None, metavar="NAME", help="teacher: " + " | ".join(
+            f"{name} ({t.description})" for name, t in TEACHER_TABLE.items())
+            + f" | an installed plug-in's name (entry points {TEACHER_GROUP}){refused}")(fn)
+    return add
 
 
 def stage_code_version(stage_file: str) -> str:

@@ -6,13 +6,12 @@ import click
 
 from pipeline.api import distill_params
 from pipeline.runtime.errors import LABELS
-from pipeline.teacher_table import TEACHER_TABLE
 from pipeline.profiles import load_params_or_profile
 from pipeline.orchestration.standalone import (efficiency_line, project_outputs, run_project, time_budget_params, training_line,
                                  write_project)
 from pipeline.runtime.progress import quiet_bars
 from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option,
-                                      skip_bad_option, stage_command)
+                                      skip_bad_option, stage_command, teacher_choice_options)
 
 
 @stage_command("distill", default_profile="distill", profile_loader=load_params_or_profile)
@@ -22,12 +21,7 @@ from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overw
 @click.option("--val-masks", default=None, type=click.Path(),
               help="masks named like some of the images: those images become validation/test images "
                    "(threshold, checkpoint choice, report scores); without: tau 0.5, last epoch")
-@click.option("--checkpoint", default=None, type=click.Path(),
-              help="SAM 3 folder (save_pretrained layout); implies --backend sam3")
-@click.option("--backend", type=click.Choice(TEACHER_TABLE), default=None,
-              help="teacher: sam3 (default with --checkpoint) | imported (masks made elsewhere); simulated is "
-                   "refused (a SIMULATOR needing masks of every training image)")
-@click.option("--imported-dir", default=None, type=click.Path(), help="imported teacher masks (see the README layout)")
+@teacher_choice_options("; a SIMULATOR is refused (it needs masks of every training image)")
 @click.option(LABELS.flag, LABELS.keyword, default=None, type=click.Path(), metavar="LABEL_DIR",
               help="an unmodified `geodistill label` output of the same images: train from its pseudo-labels "
                    "(its teacher, resolution, vote and gate) and its teacher cache, so the teacher computes "
@@ -44,14 +38,13 @@ from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overw
 @bit_depth_option
 @overwrite_option
 @quiet_option
-def main(params, device, input_dir, out, val_masks, checkpoint, backend, imported_dir, labels, time_budget, no_run,
-         no_benchmark, skip_bad, max_pixels, bit_depth, overwrite, quiet):
+def main(params, device, input_dir, out, val_masks, backend, labels, time_budget, no_run, no_benchmark, skip_bad,
+         max_pixels, bit_depth, overwrite, quiet, **folders):
     """Train a deployable student on a folder of images: SAM 3 pseudo-labels, Stage I, Stage II, threshold,
     export, report.  --out becomes a DVC project running the pipeline's own DAG, so a rerun resumes; a file
     of yours where a project file goes is refused by name (docs/own-data.md).  --labels LABEL_DIR reuses an
     unmodified `geodistill label` output's teacher answers."""
-    params = distill_params(params, input_dir, labels, backend, checkpoint, imported_dir, skip_bad, max_pixels,
-                            bit_depth)
+    params = distill_params(params, input_dir, labels, backend, folders, skip_bad, max_pixels, bit_depth)
     params = time_budget_params(params, time_budget, out, device, input_dir, val_masks)
     project = write_project(input_dir, out, params, val_masks=val_masks, overwrite=overwrite, labels=labels,
                             benchmark=not no_benchmark)

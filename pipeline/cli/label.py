@@ -14,25 +14,22 @@ from pipeline.runtime.errors import CLI
 from pipeline.geometry import NoForeground
 from pipeline.labeling import label_folder
 from pipeline.labeling.run import LABEL_FORMATS, OUTPUTS, parse_formats
-from pipeline.teacher_table import TEACHER_TABLE
+from pipeline.teacher_table import FORMAT_GROUP
 from pipeline.profiles import load_params_or_profile
 from pipeline.runtime.progress import quiet_bars
 from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option,
-                                      skip_bad_option, stage_command, teacher_workers_options)
+                                      skip_bad_option, stage_command, teacher_choice_options, teacher_workers_options)
 
 
 @stage_command("label", default_profile="paper", profile_loader=load_params_or_profile)
 @click.argument("input_dir", metavar="INPUT", type=click.Path())
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
-@click.option("--checkpoint", default=None, type=click.Path(),
-              help="SAM 3 folder (save_pretrained layout); implies --backend sam3")
-@click.option("--backend", type=click.Choice(TEACHER_TABLE), default=None,
-              help="teacher: " + " | ".join(f"{name} ({t.description})" for name, t in TEACHER_TABLE.items()))
-@click.option("--imported-dir", default=None, type=click.Path(), help="imported teacher masks (see the README layout)")
+@teacher_choice_options()
 @click.option("--reference-masks", default=None, type=click.Path(),
               help="simulated backend only: masks named like the images, read by the SIMULATOR")
 @click.option("--format", "formats", default=None,
-              help=f"comma-separated, of {', '.join(LABEL_FORMATS)} (default: {','.join(parse_formats())})")
+              help=f"comma-separated, of {', '.join(LABEL_FORMATS)} or a plug-in's (entry points {FORMAT_GROUP}) "
+                   f"(default: {','.join(parse_formats())})")
 @click.option("--copy-images", is_flag=True,
               help="yolo/images holds copies of the inputs (default: relative links, which survive moving the "
                    "input and output folders together)")
@@ -42,15 +39,14 @@ from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overw
 @bit_depth_option
 @overwrite_option
 @teacher_workers_options
-def main(params, device, input_dir, out, checkpoint, backend, imported_dir, reference_masks, formats, copy_images,
-         quiet, skip_bad, max_pixels, bit_depth, overwrite, workers, address):
+def main(params, device, input_dir, out, backend, reference_masks, formats, copy_images, quiet, skip_bad, max_pixels,
+         bit_depth, overwrite, workers, address, **folders):
     """Label a folder of images with the multi-prompt teacher: voted pseudo-masks as PNG, COCO (RLE) and
     YOLO files, a table of agreement c, valid ratio v, area a and gate g per image, and a contact sheet.
     Without --params the paper's values are used.  Reruns resume from the teacher cache inside OUT; a file
     of yours where an output goes is refused by name (docs/own-data.md).  The step log: GEODISTILL_LOG=INFO."""
     fmts = parse_formats(formats)  # checked before any work
-    params = with_data_options(choose_teacher(params, backend, checkpoint, imported_dir), skip_bad, max_pixels,
-                               bit_depth)
+    params = with_data_options(choose_teacher(params, backend, folders), skip_bad, max_pixels, bit_depth)
     with quiet_bars(quiet), _step_log_off():  # -q keeps the cost lines: they are the summary's
         result = label_folder(input_dir, out, params, device=device, formats=fmts, reference_masks=reference_masks,
                               overwrite=overwrite, workers=workers, address=address, copy_images=copy_images,

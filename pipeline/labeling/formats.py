@@ -18,6 +18,7 @@ from pycocotools import mask as mask_utils
 
 from pipeline.catalog import OUTPUT_FILES, OutputFile
 from pipeline.runtime.errors import InputError
+from pipeline.teacher_table import FORMAT_GROUP, plugin
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,6 +105,35 @@ def unregister_format(name: str) -> None:
     fmt = LABEL_FORMATS.pop(name, None)
     for f in fmt.outputs if fmt is not None else ():
         OUTPUT_FILES["label"].pop(f.key, None)
+
+
+def find_format(name: str) -> LabelFormat | None:
+    """Return format ``name``, a plug-in's registered now (entry-point group ``geodistill.label_formats``).
+
+    Parameters
+    ----------
+    name : str
+        The format's name.
+
+    Returns
+    -------
+    LabelFormat or None
+        The format; None when neither the registry nor an installed package has it.
+
+    Raises
+    ------
+    InputError
+        From :func:`pipeline.teacher_table.plugin`, or the plug-in's name or catalogue keys are not its own.
+    """
+    if name not in LABEL_FORMATS and (found := plugin(FORMAT_GROUP, name, LABEL_FORMATS, LabelFormat)) is not None:
+        fmt, where = found[0], f"plug-in {name!r} of {found[1]} ({FORMAT_GROUP})"
+        if fmt.name != name:
+            raise InputError(f"{where}: its LabelFormat is named {fmt.name!r}")
+        try:
+            register_format(fmt)
+        except ValueError as e:  # a catalogue key taken
+            raise InputError(f"{where}: {e}") from None
+    return LABEL_FORMATS.get(name)
 
 SPACECRAFT_CATEGORY = {"id": 1, "name": "spacecraft", "supercategory": "object"}
 YOLO_CLASS = 0  # the one class of the YOLO labels (data.yaml names it "spacecraft")

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.geometry import NoForeground, area_ratios, foreground_agreement
-from pipeline.labeling.formats import LABEL_FORMATS
+from pipeline.labeling.formats import LABEL_FORMATS, find_format
 from pipeline.labeling.reading import OUTPUTS, SIMULATOR_NOTE, LabelJob, check_label_folder, find_images, open_folder
 from pipeline.labeling.writing import write_outputs, write_votes
 from pipeline.params import section
@@ -211,8 +211,9 @@ def parse_formats(formats: str | Sequence[str] | None = None) -> tuple[str, ...]
     Parameters
     ----------
     formats : str or sequence of str or None, optional
-        ``"png,coco"`` or ``["png", "coco"]``, names in :data:`~pipeline.labeling.formats.LABEL_FORMATS`;
-        case and blanks ignored.  None (default): the registry's default formats (``LabelFormat.default``).
+        ``"png,coco"`` or ``["png", "coco"]``, names in :data:`~pipeline.labeling.formats.LABEL_FORMATS` or of
+        installed plug-ins (:func:`~pipeline.labeling.formats.find_format`); case and blanks ignored.  None
+        (default): the registry's default formats (``LabelFormat.default``).
 
     Returns
     -------
@@ -222,13 +223,13 @@ def parse_formats(formats: str | Sequence[str] | None = None) -> tuple[str, ...]
     Raises
     ------
     InputError
-        A format is unknown or none is given, naming ``--format``.
+        A format is unknown or none is given, naming ``--format``; a plug-in fails to load.
     """
     if formats is None:
         return tuple(name for name, f in LABEL_FORMATS.items() if f.default)
     items = [f.strip().lower() for f in (formats.split(",") if isinstance(formats, str) else formats)]
     items = [f for f in items if f]
-    bad = [f for f in items if f not in LABEL_FORMATS]
+    bad = [f for f in items if find_format(f) is None]  # a plug-in's format is loaded here
     if bad or not items:
         raise InputError(f"{{}}: expected a comma-separated subset of {','.join(LABEL_FORMATS)}",
                          FORMAT(','.join(items) or repr(formats)))

@@ -120,6 +120,8 @@ def train_stages(code_root: Path | None = None, groups: dict[str, list[list[int]
 
 #: catalogue stages in dvc.yaml only when a param is set (stage -> dotted key); unset, nothing changes
 OPTIONAL_STAGES = {"corrections": "review.corrections"}
+#: params keys in dvc.yaml only when set (key -> the stage reading it): a plug-in teacher's own settings
+OPTIONAL_PARAMS = {"teacher.options": "teacher"}
 #: what the training stages read from the ``corrections`` stage when it exists
 REVIEW_TRAIN_DEPS = ("corrected",)
 REVIEW_TRAIN_PARAMS = ("review.corrections", "review.mode", "review.human_targets")
@@ -129,12 +131,12 @@ REVIEW_VALIDATION_PARAMS = ("review.corrections", "review.mode")
 
 
 def optional_stages_on(params: dict | None) -> tuple[str, ...]:
-    """The :data:`OPTIONAL_STAGES` whose key is set in ``params``."""
+    """The :data:`OPTIONAL_STAGES` whose key is set in ``params``, and the :data:`OPTIONAL_PARAMS` set there."""
     def get(key):
         with contextlib.suppress(KeyError, TypeError):
             return get_path(params or {}, key)
 
-    return tuple(n for n, key in OPTIONAL_STAGES.items() if get(key))
+    return tuple(n for n, key in OPTIONAL_STAGES.items() if get(key)) + tuple(k for k in OPTIONAL_PARAMS if get(k))
 
 
 def dvc_stages(code_root: Path | None = None, data_deps: dict[str, list[str]] | None = None,
@@ -157,6 +159,9 @@ def dvc_stages(code_root: Path | None = None, data_deps: dict[str, list[str]] | 
         for n in REVIEW_VALIDATION_STAGES:
             out[n]["deps"] += _paths(REVIEW_TRAIN_DEPS)
             out[n]["params"] += list(REVIEW_VALIDATION_PARAMS)
+    for key, stage in OPTIONAL_PARAMS.items():
+        if key in optional:
+            out[stage]["params"].append(key)
     if omit:  # the omitted stages' outputs are no one's deps any more (their readers cope without them)
         gone = set(_paths(o for n in omit for o in STAGES[n].outs + STAGES[n].metrics))
         out = {n: {**e, "deps": [d for d in e["deps"] if d not in gone]} for n, e in out.items() if n not in omit}
@@ -211,7 +216,7 @@ def render_dvc_yaml(code_root: Path | None = None, data_deps: dict[str, list[str
 
     A distill project passes ``code_root`` (code deps as absolute paths of the installed code),
     ``data_deps`` ({stage: paths}), the stages to ``omit`` and ``extra_plots``.  ``optional``: the
-    :data:`OPTIONAL_STAGES` to render; ``groups``: :func:`seed_groups`.
+    :data:`OPTIONAL_STAGES` to render and the :data:`OPTIONAL_PARAMS` to track; ``groups``: :func:`seed_groups`.
     """
     doc = {"stages": dvc_stages(code_root, data_deps, omit, optional, groups),
            "plots": dvc_plots(omit) + list(extra_plots)}

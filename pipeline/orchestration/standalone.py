@@ -20,7 +20,8 @@ from pipeline import __version__, catalog
 from pipeline.artifacts.atomic import read_json, write_text_if_changed
 from pipeline.training.budget import training_images, with_time_budget
 from pipeline.runtime.codeversion import ROOT
-from pipeline.orchestration.dag import live_plots, render_dvc_yaml, render_params_yaml
+from pipeline.orchestration.dag import (OPTIONAL_PARAMS, live_plots, optional_stages_on, render_dvc_yaml,
+                                        render_params_yaml)
 from pipeline.runtime.device import resolve_device
 from pipeline.report.dvc_results import path_component
 from pipeline.datasets.scan import scan_inputs
@@ -154,8 +155,9 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
     omit = (() if masks is not None else NO_MASK_STAGES) + (() if benchmark else (BENCHMARK_STAGE,))
     # without masks the evaluate stage's plots are omitted: `dvc plots show` shows the runs' DVCLive loss
     extra = live_plots(params["protocol"]["runs"]) if masks is None else []
+    tracked = tuple(k for k in optional_stages_on(params) if k in OPTIONAL_PARAMS)  # a plug-in teacher's options
     write_text_if_changed(out / DVC_FILE, render_dvc_yaml(code_root=ROOT, data_deps=data_deps, header=DVC_HEADER,
-                                                        omit=omit, extra_plots=extra))
+                                                        omit=omit, extra_plots=extra, optional=tracked))
     write_text_if_changed(out / ".dvcignore", DVCIGNORE)
     new_git = bool(git) and init_git(out)
     if not (out / ".dvc").is_dir():

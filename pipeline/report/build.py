@@ -28,7 +28,7 @@ from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_ana
 from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
 from pipeline.report.environment import environment_section, opened_runs, training_runs
 from pipeline.report.glossary import glossary_section
-from pipeline.teacher_table import TEACHER_TABLE, is_simulator
+from pipeline.teacher_table import find_teacher, is_simulator
 from pipeline.thresholds import mask_from_probs
 
 #: the figures' file names (pipeline.catalog.OUTPUT_FILES)
@@ -162,7 +162,7 @@ def training_logs(checkpoints: Path) -> pd.DataFrame | None:
 
 def teacher_note(backend: str) -> str:
     """The report's sentence on the teacher's numbers (its row of :data:`pipeline.teacher_table.TEACHER_TABLE`)."""
-    spec = TEACHER_TABLE.get(backend)
+    spec = find_teacher(backend)
     return spec.note if spec is not None and spec.note else f"Teacher backend: `{backend}`."
 
 

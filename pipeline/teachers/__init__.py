@@ -7,7 +7,7 @@ from typing import Any, Mapping
 
 from pipeline.artifacts.lineage import canonical_json
 from pipeline.params import validate_section
-from pipeline.teacher_table import TEACHER_TABLE, teacher_class
+from pipeline.teacher_table import TEACHER_TABLE, teacher_class, teacher_spec
 from pipeline.teachers.base import VIEWS, Teacher, TeacherInput, finalize_answers
 
 # the built-in backends TEACHER_TABLE names as "module:Class", imported here too so that running a teacher
@@ -15,7 +15,7 @@ from pipeline.teachers.base import VIEWS, Teacher, TeacherInput, finalize_answer
 from pipeline.teachers import imported, sam3, simulated  # noqa: F401
 
 __all__ = ["TEACHER_TABLE", "VIEWS", "Teacher", "TeacherInput", "finalize_answers", "check_teacher_params",
-           "make_teacher", "teacher_class", "teacher_fingerprint"]
+           "make_teacher", "teacher_class", "teacher_fingerprint", "teacher_record"]
 
 
 def check_teacher_params(cfg: Mapping[str, Any]) -> dict:
@@ -30,6 +30,13 @@ def make_teacher(cfg: Mapping[str, Any], resolution: tuple[int, int], device: st
     return teacher_class(cfg["backend"]).from_params(cfg, resolution, device)
 
 
+def teacher_record(teacher: Teacher) -> dict:
+    """``teacher.fingerprint()``, with a plug-in's ``"distribution"`` (its package's name and version: DVC and the
+    code version do not see its code); a built-in backend's is its own fingerprint, unchanged."""
+    dist = teacher_spec(teacher.backend).distribution
+    return teacher.fingerprint() | ({"distribution": dist} if dist else {})
+
+
 def teacher_fingerprint(teacher: Teacher) -> str:
-    """sha256 of the canonical JSON of ``teacher.fingerprint()`` (the cache's teacher component)."""
-    return hashlib.sha256(canonical_json(teacher.fingerprint()).encode()).hexdigest()
+    """sha256 of the canonical JSON of :func:`teacher_record` (the cache's teacher component)."""
+    return hashlib.sha256(canonical_json(teacher_record(teacher)).encode()).hexdigest()

@@ -17,6 +17,7 @@ from pipeline.artifacts.store import ZarrWriter, open_artifact, write_parquet
 from pipeline.runtime.errors import InputError
 from pipeline.runtime.progress import progress
 from pipeline.teacher_table import is_simulator
+from pipeline.teachers import teacher_record
 from pipeline.teachers.base import manifest_extras
 from pipeline.teachers.inputs import ArtifactInputs
 from pipeline.teachers.runner import RunStats, TeacherRunner, open_runner
@@ -125,7 +126,7 @@ class TeacherRun:
             zw.attrs.update({
                 "prompts": prompts, "image_ids": ids, "backend": self.teacher.backend,
                 "simulator": is_simulator(self.teacher.backend), "teacher_fingerprint": self.fingerprint,
-                "teacher": self.teacher.fingerprint(), "splits_run": list(self.cfg["splits"]),
+                "teacher": teacher_record(self.teacher), "splits_run": list(self.cfg["splits"]),
                 "base_prompt_index": self.cfg["base_prompt_index"], "vflip_prompt": vflip,
             })
         table = score_table(rows)
@@ -141,19 +142,21 @@ class TeacherRun:
 def open_teacher_run(cfg: Mapping[str, Any], manifest, images, reference: str | Path,
                      device: str = "auto") -> TeacherRun:
     """The teacher of the validated ``teacher:`` section over the opened ``manifest`` and ``images``, checked
-    to come from one run; ``reference`` (a path) is opened only for the SIMULATOR."""
+    to come from one run; ``reference`` (a path) is opened only for a backend whose row is marked ``simulator``."""
     df = manifest.df.reset_index(drop=True)
     n, h, w = images["image"].shape[:3]
     rows = [i for i, s in enumerate(df["split"].astype(str)) if s in cfg["splits"]]
     shas = df["sha256"].astype(str).tolist()
-    load = ArtifactInputs(images.path, None, df["image_id"].astype(str).tolist(), shas, manifest_extras(df))
+    simulator = is_simulator(cfg["backend"])  # only a row marked simulator reads the reference and its extras
+    load = ArtifactInputs(images.path, None, df["image_id"].astype(str).tolist(), shas,
+                          manifest_extras(df) if simulator else [{}] * len(df))
     runner, t_fp = open_runner(cfg, (h, w), device, load, shas, vflip_prompt(cfg))
-    ref = open_artifact(reference, "reference") if runner.teacher.needs_reference else None
+    ref = open_artifact(reference, "reference") if simulator else None
     require_same_run(manifest, images, ref)
     check_alignment(df, images, ref)
     if ref is not None:
         load.reference = os.path.abspath(reference)
-    if is_simulator(runner.teacher.backend):
+    if simulator:
         log.info("teacher: backend %r is a SIMULATOR of foundation-model errors that reads the synthetic ground "
                  "truth; it is not a real teacher", runner.teacher.backend)
     return TeacherRun(dict(cfg), runner, t_fp, df, (n, h, w), [manifest, images] + ([ref] if ref is not None else []),
