@@ -14,6 +14,8 @@ from typing import Any, Mapping
 
 from pipeline.artifacts.lineage import library_versions
 
+__all__ = ["THREAD_ENV_VARS", "cpu", "collect", "training_runtime"]
+
 ROOT = Path(__file__).resolve().parents[2]
 LOCK_FILE = ROOT / "requirements" / "lock.txt"
 #: libraries recorded beyond those every artifact records

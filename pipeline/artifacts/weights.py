@@ -14,6 +14,8 @@ from safetensors.torch import load_file, save_file
 from pipeline.catalog import LEGACY_WEIGHTS_FILE, WEIGHTS_CONFIG_FILE, WEIGHTS_FILE
 from pipeline.runtime.errors import ArtifactError
 
+__all__ = ["write_weights", "weights_path", "read_weights"]
+
 GEOMETRY_PREFIX = "geometry_heads."
 #: ONE key: safetensors writes the metadata map in hash order, so two would make the bytes differ between runs
 HEADER = {"format": "pt"}

@@ -13,6 +13,8 @@ import signal
 import subprocess
 import sys
 
+__all__ = ["command"]
+
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 

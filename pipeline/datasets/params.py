@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pipeline.params import SOURCES, validate_section  # noqa: F401  (SOURCES: re-exported)
 
+__all__ = ["check_data_params", "fingerprint_params"]
+
 # not fingerprinted: where things are cached, and a guard whose effect shows in the content digest
 NON_CONTENT_KEYS = ("cache_dir", "contact_sheet_images", "max_pixels")
 

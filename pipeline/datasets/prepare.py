@@ -1,5 +1,6 @@
 """The prepare stage's work without the CLI: a dataset -> manifest.parquet, images.zarr, reference.zarr,
-skipped_files.parquet and the contact sheet (eq:spacecraft-disjoint where the protocol requires it)."""
+skipped_files.parquet and the contact sheet (eq:spacecraft-disjoint where the protocol requires it).
+"""
 
 from __future__ import annotations
 
@@ -23,6 +24,8 @@ from pipeline.datasets.params import fingerprint_params
 from pipeline.datasets.synthetic import PART_NAMES
 from pipeline.runtime.progress import progress
 
+__all__ = ["prepare"]
+
 #: the reference artifact's note: what its masks may be used for
 REFERENCE_NOTE = ("reference masks: checkpoint selection, calibration, evaluation and the simulated teacher only "
                   "-- never a training loss")
@@ -39,7 +42,8 @@ class Prepared:
 
 def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
     """Every prepare artifact under ``out`` from the validated ``data:`` section ``cfg``, each stamped by
-    ``meta(schema, params=..., **extra)`` with params = the data params, the protocol applied, the files' content."""
+    ``meta(schema, params=..., **extra)`` with params = the data params, the protocol applied, the files' content.
+    """
     out = Path(out)
     size = cfg["resolution"]
     cache = DecodeCache(cfg["cache_dir"])

@@ -1,5 +1,6 @@
 """The one folder scan of label, distill / prepare (folder source) and segment (docs/own-data.md):
-recursive, never following links out of the folder."""
+recursive, never following links out of the folder.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ import os
 from pathlib import Path
 
 from pipeline.runtime.errors import InputError
+
+__all__ = ["scan_inputs"]
 
 
 @dataclasses.dataclass
@@ -22,7 +25,8 @@ class Inputs:
 def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> Inputs:
     """The images under ``input_path`` (a file: as given); hidden entries and non-images are ``unused``, bad
     ones ``skipped``: links leaving the folder or to folders, special files, broken links (unless
-    ``keep_broken_links``: in ``files``, for the caller's decode pass to report)."""
+    ``keep_broken_links``: in ``files``, for the caller's decode pass to report).
+    """
     from pipeline.datasets.loading import SUPPORTED_SUFFIXES, broken_link_reason
 
     p = Path(input_path)

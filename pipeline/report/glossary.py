@@ -1,11 +1,14 @@
 """The report's glossary: the terms its tables and sentences use, each in one or two plain sentences,
-written once here and rendered as the report's "Terms used in this report" section."""
+written once here and rendered as the report's "Terms used in this report" section.
+"""
 
 from __future__ import annotations
 
 from pipeline.methods import method_label
 from pipeline.report.analysis import PRIMARY_ENDPOINT
 from pipeline.report.document import Section, Table
+
+__all__ = ["glossary_section"]
 
 _E = PRIMARY_ENDPOINT
 

@@ -1,5 +1,6 @@
 """Progress bars on stderr for every loop a user waits on, counting the user's units; none under
-``GEODISTILL_QUIET=1`` or :func:`quiet_bars` (a command's ``--quiet``)."""
+``GEODISTILL_QUIET=1`` or :func:`quiet_bars` (a command's ``--quiet``).
+"""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ import os
 import sys
 
 from tqdm.auto import tqdm
+
+__all__ = ["QUIET_ENV", "bars_quiet", "quiet_bars", "progress", "library_bars_off"]
 
 _QUIET = contextvars.ContextVar("geodistill_quiet_bars", default=False)
 #: how a command's --quiet reaches its child processes
@@ -39,7 +42,7 @@ def progress(iterable=None, desc: str = "", total: int | None = None, **kw):
 
 @contextlib.contextmanager
 def library_bars_off():
-    """transformers' own progress bars (``from_pretrained``'s "Loading weights") off inside; warnings stay."""
+    """Transformers' own progress bars (``from_pretrained``'s "Loading weights") off inside; warnings stay."""
     from transformers.utils import logging as hf_logging
 
     was_on = hf_logging.is_progress_bar_enabled()
