@@ -1,6 +1,8 @@
-"""Code versions derived from imports: the project files a stage runs are both its code deps in dvc.yaml
-and its code version in every fingerprint, so the two cannot disagree.  It imports nothing of the project:
-whatever it imported would be a code dep of every stage.
+"""Code versions derived from imports.
+
+The project files a stage runs are both its code deps in dvc.yaml and its code version in every fingerprint,
+so the two cannot disagree.  It imports nothing of the project: whatever it imported would be a code dep of
+every stage.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ PROJECT_PACKAGES = ("pipeline", "stages", "benchmarks", "tools")
 
 
 def module_path(name: str, root: Path = ROOT) -> Path | None:
-    """The file of a project module (``pipeline.geometry`` -> pipeline/geometry.py), or None."""
+    """Find the file of a project module (``pipeline.geometry`` -> pipeline/geometry.py), or None."""
     parts = name.split(".")
     if parts[0] not in PROJECT_PACKAGES:
         return None
@@ -29,6 +31,20 @@ def module_path(name: str, root: Path = ROOT) -> Path | None:
 
 
 def module_name(path: Path, root: Path = ROOT) -> str:
+    """Name the module of a project file (pipeline/geometry.py -> ``pipeline.geometry``; a package by its folder).
+
+    Parameters
+    ----------
+    path : Path
+        The file, under ``root``.
+    root : Path
+        The repository root.
+
+    Returns
+    -------
+    str
+        The dotted module name.
+    """
     rel = path.relative_to(root).with_suffix("")
     parts = list(rel.parts)
     if parts[-1] == "__init__":
@@ -81,10 +97,22 @@ def module_files(module: str, root: Path = ROOT) -> tuple[str, ...]:
 
 
 def code_deps(module: str, root: Path = ROOT, code_root: Path | None = None) -> list[str]:
-    """:func:`module_files` as dvc.yaml lists them: a sub-package whose every file is used by its folder.
+    """List :func:`module_files` as dvc.yaml lists them: a sub-package whose every file is used by its folder.
 
-    ``code_root`` (a distill project): every file by its absolute path, since that project's .dvcignore
-    cannot keep the installed code's bytecode out of a folder hash.
+    Parameters
+    ----------
+    module : str
+        The stage's module (``stages.train``).
+    root : Path
+        The repository root.
+    code_root : Path, optional
+        A distill project's installed code: every file by its absolute path under it, since that project's
+        .dvcignore cannot keep the installed code's bytecode out of a folder hash.
+
+    Returns
+    -------
+    list of str
+        The dependency paths, in :func:`module_files` order.
     """
     files = module_files(module, root)
     if code_root is not None:
@@ -108,7 +136,22 @@ def code_deps(module: str, root: Path = ROOT, code_root: Path | None = None) -> 
 
 
 def code_version_of(module: str, root: Path = ROOT) -> str:
-    """sha256 (16 hex) over the names and bytes of :func:`module_files` -- the stage's code version."""
+    """Hash the code a stage runs: its code version.
+
+    sha256 (16 hex) over the names and bytes of :func:`module_files`.
+
+    Parameters
+    ----------
+    module : str
+        The stage's module.
+    root : Path
+        The repository root.
+
+    Returns
+    -------
+    str
+        16 hex digits.
+    """
     h = hashlib.sha256()
     for rel in module_files(module, root):
         h.update(rel.encode())
