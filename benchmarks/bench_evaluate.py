@@ -17,9 +17,9 @@ from benchmarks.common import medians, minima, parser, round_robin, seconds
 from pipeline.geometry import squared_distance
 from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import BASELINE
-from pipeline.metrics import _ratio, _region_counts, per_image_metrics, score_masks, scoring_reference
+from pipeline.metrics import mask_ratio, region_counts, per_image_metrics, score_masks, scoring_reference
 from pipeline.profiles import FULL_PROTOCOL
-from pipeline.stats import SEED_BOOTSTRAP, _cluster_layout, method_gains
+from pipeline.stats import SEED_BOOTSTRAP, cluster_layout, method_gains
 
 PAPER_RUNS = 22          # the paper protocol when the ratios in docs were measured (FULL_PROTOCOL has 28 runs now)
 PAPER_TEST_IMAGES = 180  # 3 groups x 3 spacecraft x 20 views
@@ -70,12 +70,12 @@ def baseline_small_region_iou(pred: np.ndarray, gt: np.ndarray, max_fraction: fl
 def baseline_per_image_metrics(preds, gts, tolerance=2.0, max_fraction=0.01, margin=3) -> dict:
     """The old ``per_image_metrics``: region metrics vectorised, the rest one image at a time."""
     n = len(preds)
-    inter, np_, ng = _region_counts(preds, gts)
+    inter, np_, ng = region_counts(preds, gts)
     both = (np_ == 0) & (ng == 0)
     hw = float(np.prod(preds.shape[1:])) if n else 1.0
-    return {"iou": _ratio(inter, np_ + ng - inter, both),
+    return {"iou": mask_ratio(inter, np_ + ng - inter, both),
             "bf1": np.array([baseline_boundary_f1(p, g, tolerance) for p, g in zip(preds, gts)]),
-            "precision": _ratio(inter, np_, both), "recall": _ratio(inter, ng, both), "area_ratio": np_ / hw,
+            "precision": mask_ratio(inter, np_, both), "recall": mask_ratio(inter, ng, both), "area_ratio": np_ / hw,
             "small_iou": np.array([baseline_small_region_iou(p, g, max_fraction, margin) for p, g in zip(preds, gts)])}
 
 
@@ -83,7 +83,7 @@ def baseline_resample_means(values, clusters, n_resamples, rng, block_entries=4_
     """The old two-level bootstrap means: a [b, C, n_max, k] gather per block of resamples."""
     values = np.asarray(values, dtype=np.float64)
     values = values[:, None] if values.ndim == 1 else values
-    order, starts, sizes = _cluster_layout(np.asarray(clusters))
+    order, starts, sizes = cluster_layout(np.asarray(clusters))
     vals = values[order]
     n_clusters, n_max, k = len(sizes), int(sizes.max()), values.shape[1]
     block = max(1, block_entries // (n_clusters * n_max))

@@ -34,7 +34,7 @@ from pipeline.profiles import load_profile
 from pipeline.runtime.device import resolve_device
 from pipeline.stats import claim_status, paired_seed_image_t
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
-from pipeline.training.inputs import _rows
+from pipeline.training.inputs import read_rows
 from pipeline.training import loop as training
 from pipeline.training.loop import build_model
 from pipeline.training.self_training import flip_tta_probs, fused_targets
@@ -68,7 +68,7 @@ def load_data(artifacts: Path, cfg: Mapping[str, Any]) -> dict:
     out["agreement"] = load_study_data(artifacts, {**cfg, "soft_targets": True}, methods=(STAGE_ONE,))[STAGE_ONE]
     consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
     _, test = scored_test_rows(artifacts)
-    out["test_voted"] = _rows(consensus, "voted", test).astype(bool)
+    out["test_voted"] = read_rows(consensus, "voted", test).astype(bool)
     return out
 
 

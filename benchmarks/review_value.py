@@ -25,7 +25,7 @@ from pipeline.consensus import agreement_entropy
 from pipeline.review.ranking import DEFAULT_RANKING, scores
 from pipeline.stats import paired_seed_image_t
 from pipeline.thresholds import mask_from_probs
-from pipeline.training.inputs import _rows, load_inputs, replace_targets
+from pipeline.training.inputs import read_rows, load_inputs, replace_targets
 
 CAVEAT = ("on this benchmark the simulated teacher builds its bad masks from the gate's own factors "
           "(pipeline/teachers/simulated.py): a gate-based ranking (gate, and combined through g) wins partly by "
@@ -69,7 +69,7 @@ def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "
     data, val, _ = load_inputs(artifacts, method, cfg)
     manifest, images, reference, test = open_labelled_split(artifacts, "test", "nothing to score", allow_empty=True)
     row = {iid: i for i, iid in enumerate(manifest.df["image_id"].astype(str))}
-    test_images, test_masks = _rows(images, "image", test), _rows(reference, "mask", test).astype(bool)
+    test_images, test_masks = read_rows(images, "image", test), read_rows(reference, "mask", test).astype(bool)
     table = training_table(artifacts, list(data.image_ids))
     groups = manifest.df["spacecraft"].astype(str).to_numpy()[test]
     plan = [(seed, k, how, d) for seed in seeds for k in ks for how in (selections if k else ("none",))
@@ -77,7 +77,7 @@ def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "
     runs = []
     for seed, k, how, d in plan:
         chosen = select(table, how, k, np.random.default_rng([seed, k, d]))
-        truth = {i: _rows(reference, "mask", np.array([row[i]]))[0].astype(bool) for i in chosen}
+        truth = {i: read_rows(reference, "mask", np.array([row[i]]))[0].astype(bool) for i in chosen}
         if not chosen and k0_checkpoints is not None:
             model = load_student(Path(k0_checkpoints) / str(seed), device)[0]
         else:
@@ -102,8 +102,8 @@ def selected_label_quality(artifacts: Path, cfg: dict, ks, seeds, draws: int, se
     reference = open_artifact(catalog.path("reference", artifacts), "reference")
     row = {iid: i for i, iid in enumerate(manifest.df["image_id"].astype(str))}
     rows = np.array([row[i] for i in ids])
-    iou = dict(zip(ids, image_ious(_rows(consensus, "voted", rows).astype(bool),
-                                   _rows(reference, "mask", rows).astype(bool))))
+    iou = dict(zip(ids, image_ious(read_rows(consensus, "voted", rows).astype(bool),
+                                   read_rows(reference, "mask", rows).astype(bool))))
     table = training_table(artifacts, ids)
     out = [{"selection": "all", "k": len(ids), "voted_iou": float(np.mean(list(iou.values())))}]
     for k in (k for k in ks if k):

@@ -33,7 +33,7 @@ from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.metrics import image_ious
 from pipeline.profiles import load_profile
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
-from pipeline.training.inputs import _rows, load_inputs
+from pipeline.training.inputs import read_rows, load_inputs
 
 REPO = Path(__file__).resolve().parents[1]
 #: the Stage-I (Plain Student) recipe and the same recipe on reference masks (the supervised ceiling)
@@ -89,7 +89,7 @@ def scored_test_rows(artifacts: Path):
     manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
     reference = open_artifact(catalog.path("reference", artifacts), "reference")
     test = np.flatnonzero((manifest.df["split"] == "test").to_numpy())
-    return manifest, test[_rows(reference, "has_mask", test).astype(bool)]
+    return manifest, test[read_rows(reference, "has_mask", test).astype(bool)]
 
 
 def load_study_data(artifacts: Path, cfg: Mapping[str, Any], methods=METHODS) -> dict:
@@ -100,8 +100,8 @@ def load_study_data(artifacts: Path, cfg: Mapping[str, Any], methods=METHODS) ->
     manifest, test = scored_test_rows(artifacts)
     images = open_artifact(catalog.path("images", artifacts), "images")
     reference = open_artifact(catalog.path("reference", artifacts), "reference")
-    out["test_images"] = _rows(images, "image", test)
-    out["test_masks"] = _rows(reference, "mask", test).astype(bool)
+    out["test_images"] = read_rows(images, "image", test)
+    out["test_masks"] = read_rows(reference, "mask", test).astype(bool)
     out["test_groups"] = manifest.df["group"].to_numpy()[test].astype(str)
     return out
 

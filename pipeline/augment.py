@@ -14,6 +14,8 @@ import numpy as np
 from pipeline.geometry import area_ratio, pseudo_targets
 from pipeline.params import PAPER
 
+__all__ = ["AugmentSpec", "GeometryConstants", "soft_region", "hard_region", "recompute_geometry", "augment_batch"]
+
 #: the pixel targets that move with the image; ``sdf``/``skeleton`` are recomputed after a rescale
 PIXEL_TARGETS = ("mask", "sdf", "skeleton", "anchor")
 
@@ -60,7 +62,8 @@ class GeometryConstants:
 
 def soft_region(mask: Any) -> bool:
     """Whether a region target is the agreement map A (eq:agreement-map, floats: ``train.soft_targets``), not the
-    voted mask M^T (eq:majority-vote, booleans): read from the dtype, never the values (no GPU sync per batch)."""
+    voted mask M^T (eq:majority-vote, booleans): read from the dtype, never the values (no GPU sync per batch).
+    """
     return np.dtype(mask.dtype).kind == "f"
 
 
@@ -133,7 +136,8 @@ def augment_sample(image: np.ndarray, targets: Mapping[str, Any], rng: np.random
                    spec: AugmentSpec = DEFAULT_SPEC, geometry: GeometryConstants = GeometryConstants()
                    ) -> tuple[np.ndarray, dict]:
     """(image, targets) of one image uint8 [H,W,C] and its targets (``mask``; optional ``sdf``, ``skeleton``,
-    ``anchor``, ``area``; others pass through) augmented with draws from ``rng``; new arrays."""
+    ``anchor``, ``area``; others pass through) augmented with draws from ``rng``; new arrays.
+    """
     h, w = image.shape[:2]
     out = dict(targets)
     pixel = {k: np.asarray(targets[k]) for k in PIXEL_TARGETS if targets.get(k) is not None}

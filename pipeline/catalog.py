@@ -12,6 +12,11 @@ from typing import Mapping
 from pipeline.params import DEFAULT_PARAMS as PARAMS_FILE
 from pipeline.params import Params, get_path
 
+__all__ = ["PARAMS_FILE", "ARTIFACTS_DIR", "WEIGHTS_FILE", "WEIGHTS_CONFIG_FILE", "LEGACY_WEIGHTS_FILE",
+           "TRAINING_LOG_FILE", "META_FILE", "RESUME_STATE_FILE", "DVC_FILE", "path", "dvc_path", "OutputFile",
+           "bundle_file", "OUTPUT_FILES", "output_file", "output_names", "Schema", "ARTIFACTS", "StageSpec", "STAGES",
+           "EXTRA_PATHS", "PLOT_TEMPLATE", "PLOTS", "stage_params"]
+
 ARTIFACTS_DIR = "artifacts"
 
 #: a model's tensors as safetensors (nothing in it can execute on load), and its config as JSON
@@ -39,7 +44,8 @@ def dvc_path(name: str, **fmt) -> str:
 @dataclasses.dataclass(frozen=True)
 class OutputFile:
     """One file or folder in an output folder (``{...}`` in its name filled by the writer) or in the deploy bundle;
-    ``required`` (bundle files): every bundle has it, else only when the export could write it."""
+    ``required`` (bundle files): every bundle has it, else only when the export could write it.
+    """
 
     key: str
     name: str
@@ -148,7 +154,8 @@ def output_names(folder: str, *keys: str) -> dict[str, str]:
 @dataclasses.dataclass(frozen=True)
 class Schema:
     """What an artifact must hold: Zarr ``arrays`` (name -> (numpy dtype kind, ndim); ``optional`` ones may be
-    absent), Parquet ``columns``, or a folder's ``files`` (``"a|b"``: either file)."""
+    absent), Parquet ``columns``, or a folder's ``files`` (``"a|b"``: either file).
+    """
 
     kind: str  # "zarr" | "parquet" | "dir"
     version: int = 1
@@ -267,7 +274,8 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
 @dataclasses.dataclass(frozen=True)
 class StageSpec:
     """One DVC stage, ``python -m <module> <args>`` (``{artifact}`` placeholders); ``deps``/``outs`` name
-    artifacts, ``params`` the dotted keys DVC tracks and the fingerprint holds."""
+    artifacts, ``params`` the dotted keys DVC tracks and the fingerprint holds.
+    """
 
     name: str
     module: str

@@ -15,6 +15,8 @@ import numpy as np
 from pipeline.runtime.errors import InputError
 from pipeline.params import PAPER
 
+__all__ = ["Consensus", "vote", "vote_batch", "agreement_entropy"]
+
 DEFAULT_VOTE_THRESHOLD = PAPER.consensus.vote_threshold  # eq:majority-vote; the schema holds it
 
 

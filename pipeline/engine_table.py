@@ -1,11 +1,15 @@
 """The deploy engines as data, one row per way to run the mask path Z = f(x) (eq:inference-mask); the one
 list of engine names.  Pure Python, so the params schema, the catalogue and ``segment --help`` read it
-without starting torch; :data:`pipeline.deploy.engines.ENGINES` loads them."""
+without starting torch; :data:`pipeline.deploy.engines.ENGINES` loads them.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 from typing import Mapping
+
+__all__ = ["EngineSpec", "ENGINE_TABLE", "ENGINE_ALIASES", "AUTO", "SEGMENT_ENGINES", "ENGINE_CHOICES",
+           "MODEL_ENGINES", "BENCHMARK_VARIANTS", "engine_name"]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -16,6 +16,10 @@ from pipeline.runtime.errors import SET, InputError
 
 from pipeline.params import PAPER
 
+__all__ = ["squared_distance", "sdf_target", "skeleton_target", "area_ratio", "pseudo_targets", "area_ratios",
+           "foreground_agreement", "valid_ratio", "GateFactors", "gate_factors", "median_area", "NoForeground",
+           "image_gates"]
+
 # the paper's constants, from the params schema (their one place)
 SDF_QUANTILE = PAPER.geometry.sdf_quantile
 SDF_MIN_SCALE = PAPER.geometry.sdf_min_scale

@@ -17,6 +17,9 @@ import torch.nn.functional as F
 from pipeline.methods import off_value, with_part_fields
 from pipeline.params import PAPER
 
+__all__ = ["positive_weight", "balanced_bce", "dice_loss", "raw_terms", "sdf_loss", "area_loss", "LossConstants",
+           "refine_loss"]
+
 _PAPER = PAPER.train  # the paper's constants: the defaults below
 
 

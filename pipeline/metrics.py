@@ -26,6 +26,9 @@ import numpy as np
 from pipeline.runtime.errors import InputError
 from pipeline.params import PAPER
 
+__all__ = ["mask_ratio", "region_counts", "image_iou", "image_ious", "mask_agreement", "precision_recall",
+           "boundary_f1", "scoring_reference", "score_masks", "per_image_metrics", "threshold_counts", "iou_curve"]
+
 DEFAULT_TOLERANCE = PAPER.evaluate.bf1_tolerance
 DEFAULT_SMALL_FRACTION = PAPER.evaluate.small_region_max_fraction
 DEFAULT_SMALL_MARGIN = 3
@@ -56,15 +59,42 @@ def _pair(pred, gt, ndim: int = 2) -> tuple[np.ndarray, np.ndarray]:
     return pred, gt
 
 
-def _ratio(num: np.ndarray, den: np.ndarray, both_empty: np.ndarray) -> np.ndarray:
-    """Return num / den, with 0/0 -> 1 where both masks are empty and 0 elsewhere."""
+def mask_ratio(num: np.ndarray, den: np.ndarray, both_empty: np.ndarray) -> np.ndarray:
+    """Divide ``num`` by ``den`` per image, with 0/0 = 1 where both masks are empty and 0 elsewhere.
+
+    The convention of every ratio metric here: an empty prediction of an empty reference is perfect.
+
+    Parameters
+    ----------
+    num, den : numpy.ndarray
+        Pixel counts, broadcastable (e.g. |P & G| and |P | G| for IoU).
+    both_empty : numpy.ndarray
+        bool, True where prediction and reference are both empty.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 ratios, the broadcast shape of ``num`` and ``den``.
+    """
     num = np.asarray(num, dtype=np.float64)
     den = np.asarray(den, dtype=np.float64)
     out = np.divide(num, den, out=np.zeros(np.broadcast(num, den).shape), where=den > 0)
     return np.where(den > 0, out, np.where(both_empty, 1.0, 0.0))
 
 
-def _region_counts(pred: np.ndarray, gt: np.ndarray):
+def region_counts(pred: np.ndarray, gt: np.ndarray):
+    """Count |P & G|, |P| and |G| of each pair of masks.
+
+    Parameters
+    ----------
+    pred, gt : numpy.ndarray
+        bool masks [N,...] of one shape (N may be 0).
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        (intersection, predicted, reference) pixel counts, int [N] each.
+    """
     n, pixels = pred.shape[0], int(np.prod(pred.shape[1:]))  # not -1: ambiguous when n = 0
     p = pred.reshape(n, pixels)
     g = gt.reshape(n, pixels)
@@ -117,8 +147,8 @@ def image_ious(preds, gts) -> np.ndarray:
         A mask is not binary, not 3-D, or the shapes differ.
     """
     preds, gts = _pair(preds, gts, ndim=3)
-    inter, np_, ng = _region_counts(preds, gts)
-    return _ratio(inter, np_ + ng - inter, (np_ == 0) & (ng == 0))
+    inter, np_, ng = region_counts(preds, gts)
+    return mask_ratio(inter, np_ + ng - inter, (np_ == 0) & (ng == 0))
 
 
 def mask_agreement(fast_logits: np.ndarray, reference_logits: np.ndarray, z_tau: float) -> float:
@@ -164,9 +194,9 @@ def precision_recall(pred, gt) -> tuple[float, float]:
         A mask is not binary, not 2-D, or the shapes differ.
     """
     pred, gt = _pair(pred, gt)
-    inter, np_, ng = _region_counts(pred[None], gt[None])
+    inter, np_, ng = region_counts(pred[None], gt[None])
     both = (np_ == 0) & (ng == 0)
-    return float(_ratio(inter, np_, both)[0]), float(_ratio(inter, ng, both)[0])
+    return float(mask_ratio(inter, np_, both)[0]), float(mask_ratio(inter, ng, both)[0])
 
 
 def area_fraction(pred) -> float:
@@ -545,10 +575,10 @@ def score_masks(preds, reference: ScoringReference, *, device=None) -> dict[str,
     else:
         nbp, nbg, hit_p, hit_g = _boundary_counts_torch(preds, reference.gts, reference.tolerance, device)
     return {
-        "iou": _ratio(inter, np_ + ng - inter, both),
+        "iou": mask_ratio(inter, np_ + ng - inter, both),
         "bf1": _bf1_from_counts(np_, ng, nbp, nbg, hit_p, hit_g),
-        "precision": _ratio(inter, np_, both),
-        "recall": _ratio(inter, ng, both),
+        "precision": mask_ratio(inter, np_, both),
+        "recall": mask_ratio(inter, ng, both),
         "area_ratio": np_ / float(h * w),
         "small_iou": _small_region_ious_stacked(ps, n, reference.small),
     }
@@ -669,5 +699,5 @@ def iou_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
     """
     n_pred, inter, n_ref = threshold_counts(probs, gts, grid, chunk=chunk)
     ng = n_ref[:, None]
-    return _ratio(inter, n_pred + ng - inter, (n_pred == 0) & (ng == 0))
+    return mask_ratio(inter, n_pred + ng - inter, (n_pred == 0) & (ng == 0))
 

@@ -21,6 +21,11 @@ from pipeline.methods import METHODS, PROPOSED, STAGE_ONE  # pure Python, no tor
 from pipeline.methods import RECIPES, interleave, parts_of, recipe_parts  # each recipe part, declared once
 from pipeline.teacher_table import SIMULATED, load, teacher_spec  # pure Python: the teacher names, one table
 
+__all__ = ["RECIPES", "DEFAULT_PARAMS", "SOURCES", "SPLITS", "AUTO_BIT_DEPTH", "BIT_DEPTHS", "PAPER_PROMPTS",
+           "unresolved", "INT8_CALIBRATIONS", "INT8_WEIGHT_BITS", "Params", "PAPER", "validate", "validate_section",
+           "deep_merge", "parse_override", "get_path", "read_yaml_mapping", "PROFILE_KEY", "load_params", "section",
+           "require"]
+
 DEFAULT_PARAMS = "params.yaml"
 
 
@@ -258,7 +263,8 @@ def with_recipe_parts(fields: type[_Section], section: str) -> type[_Section]:
 
 def fill_recipe(data, section: str, recipe: str):
     """Raw section ``data`` with every absent or None recipe part set to ``recipe``'s value (anything
-    else is returned as is, for the schema to name)."""
+    else is returned as is, for the schema to name).
+    """
     if not isinstance(data, Mapping) or recipe not in RECIPES:
         return data
     out = dict(data)
@@ -548,7 +554,8 @@ PAPER = Params()
 
 def validate(raw: Mapping[str, Any], origin: str = "params", model: type[BaseModel] = Params) -> dict:
     """The effective params (defaults filled in) of a whole mapping (or of one section's ``model``);
-    InputError naming the first bad key."""
+    InputError naming the first bad key.
+    """
     try:
         return model.model_validate(dict(raw)).model_dump(mode="python")
     except ValidationError as err:

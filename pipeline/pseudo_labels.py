@@ -20,6 +20,8 @@ from pipeline.runtime.errors import InputError
 from pipeline.geometry import GateFactors, NoForeground, foreground_agreement, image_gates, median_area, pseudo_targets
 from pipeline.runtime.progress import progress
 
+__all__ = ["vote_block", "write_consensus", "Gates", "reliability_gates", "gate_columns", "write_geometry"]
+
 
 def check_teacher(teacher) -> tuple[int, int, int, int]:
     """Check the shapes and attributes of a teacher artifact.

@@ -1,11 +1,14 @@
 """What "the same published number" means: a rerun reproduces a student metric when every test group's mean
 is within :data:`TOLERANCE` of the published one (keys: the DVC metrics files' ``iou`` and ``bf1``), and
-CI's check of a fresh demo against the committed metrics."""
+CI's check of a fresh demo against the committed metrics.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 from typing import Mapping, Sequence
+
+__all__ = ["TOLERANCE", "compare_metrics", "reproduced", "difference_table"]
 
 TOLERANCE: dict[str, float] = {"iou": 0.01, "bf1": 0.02}
 #: the files hold 4-decimal values, whose difference is not exact in binary floating point
@@ -15,7 +18,8 @@ SLACK = 1e-9
 @dataclasses.dataclass(frozen=True)
 class MetricDiff:
     """One (metrics file, key) compared; ``status``: ok | over (the tolerance) | missing (in the fresh run) |
-    extra (not committed)."""
+    extra (not committed).
+    """
 
     file: str
     key: str
@@ -32,7 +36,8 @@ class MetricDiff:
 def compare_metrics(committed: Mapping[str, Mapping[str, float]], fresh: Mapping[str, Mapping[str, float]],
                     tolerance: Mapping[str, float] = TOLERANCE) -> list[MetricDiff]:
     """Every ``tolerance`` key of every metrics file (``{relative path: {key: value}}`` on both sides)
-    compared, sorted by file, then key."""
+    compared, sorted by file, then key.
+    """
     rows = []
     for file in sorted(set(committed) | set(fresh)):
         c, f = committed.get(file), fresh.get(file)

@@ -15,6 +15,11 @@ import numpy as np
 from pipeline.methods import BASELINE
 from pipeline.params import PAPER, SEED_BOOTSTRAP, SEED_CLUSTER_T, SEED_IMAGE_T
 
+__all__ = ["SEED_BOOTSTRAP", "SEED_CLUSTER_T", "SEED_IMAGE_T", "ONE_SIDED_95_Z", "seed_summary", "cluster_layout",
+           "paired_seed_image_t", "GAIN_SUPPORTED", "LOSS_SUPPORTED", "NO_DIFFERENCE", "ONE_SEED", "NOT_ESTIMATED",
+           "ALPHA", "claim_status", "paired_seed_t_interval", "holm_adjust", "SpearmanResult", "spearman",
+           "INTERVALS", "INTERVAL_TEXT", "DEFAULT_INTERVAL", "method_gains", "vs_column"]
+
 # resample index arrays are generated in blocks of at most this many int64 entries (bounded memory)
 _BLOCK_ENTRIES = 4_000_000
 
@@ -88,8 +93,20 @@ class BootstrapCI:
     n_items: int
 
 
-def _cluster_layout(clusters: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """-> (order that sorts items by cluster, cluster start offsets, cluster sizes)."""
+def cluster_layout(clusters: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lay items out by cluster: the order that groups them, and each cluster's start and size in that order.
+
+    Parameters
+    ----------
+    clusters : numpy.ndarray
+        The cluster label of each item [n] (spacecraft names or ids).
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        (order, starts, sizes): the stable argsort of the items by cluster [n], each cluster's offset in that order
+        [C] and its item count [C], clusters in sorted label order.
+    """
     _, inverse, sizes = np.unique(clusters, return_inverse=True, return_counts=True)
     order = np.argsort(inverse, kind="stable")
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
@@ -128,7 +145,7 @@ def hierarchical_resample_counts(clusters: np.ndarray, n_resamples: int, rng: np
     clusters = np.asarray(clusters)
     if len(clusters) == 0:
         raise ValueError("no items to resample")
-    order, starts, sizes = _cluster_layout(clusters)
+    order, starts, sizes = cluster_layout(clusters)
     n, n_clusters, n_max = len(clusters), len(sizes), int(sizes.max())
     block = max(1, block_entries // (n_clusters * n_max))
     for b0 in range(0, n_resamples, block):
@@ -183,7 +200,7 @@ def hierarchical_resample_means(values: np.ndarray, clusters: np.ndarray, n_resa
 
 
 def paired_hierarchical_bootstrap(treatment: np.ndarray, control: np.ndarray, clusters: np.ndarray,
-                                  n_resamples: int = 10_000, ci: float = 0.95, seed: int = 0) -> BootstrapCI:
+                                  n_resamples: int = 10_000, ci: float = PAPER.evaluate.ci, seed: int = 0) -> BootstrapCI:  # not a param: the resampling stream
     """Percentile CI of the mean paired difference of one seed's matched per-image values (the paper's bootstrap).
 
     Spacecraft (``clusters``) are resampled, then images within them; resampling the per-image differences
@@ -251,7 +268,7 @@ def seed_differences(treatment, control, ci: float) -> tuple[np.ndarray, Callabl
 
 
 def paired_seed_bootstrap(treatment: np.ndarray, control: np.ndarray, clusters: np.ndarray,
-                          n_resamples: int = 10_000, ci: float = 0.95, seed: int = 0) -> BootstrapCI:
+                          n_resamples: int = 10_000, ci: float = PAPER.evaluate.ci, seed: int = 0) -> BootstrapCI:  # not a param: the resampling stream
     """Seed-aware percentile CI of the mean paired difference: seeds, then spacecraft, then images.
 
     With d[s, i] = treatment - control, resample r draws seed multiplicities w_r (S draws with replacement) and
@@ -341,7 +358,7 @@ class TInterval:
     n_items: int
 
 
-def paired_seed_image_t(treatment: np.ndarray, control: np.ndarray, clusters: np.ndarray, ci: float = 0.95,
+def paired_seed_image_t(treatment: np.ndarray, control: np.ndarray, clusters: np.ndarray, ci: float = PAPER.evaluate.ci,
                         spacecraft: str = SPACECRAFT_FIXED, n_resamples: int | None = None,
                         seed: int | None = None) -> TInterval:
     """Seed-aware t interval of the mean paired difference (docs/intervals.md).
@@ -396,7 +413,7 @@ def paired_seed_image_t(treatment: np.ndarray, control: np.ndarray, clusters: np
     v_seed = d3.mean(axis=1).var(axis=0, ddof=1) / n_seeds if n_seeds > 1 else np.zeros(k)
     terms, dfs = [v_seed], [np.full(k, max(n_seeds - 1, 1), dtype=np.float64)]
     # image / spacecraft term, on the seed-averaged differences a_i, grouped by spacecraft
-    order, starts, sizes = _cluster_layout(clusters)
+    order, starts, sizes = cluster_layout(clusters)
     a = d3.mean(axis=0)[order]                                               # [n, k], sorted by spacecraft
     w = sizes / n                                                            # [C]
     means = np.add.reduceat(a, starts, axis=0) / sizes[:, None]              # [C, k]
@@ -639,7 +656,7 @@ _GAIN_SUFFIXES = ("", "_lo", "_hi", "_seed_sd", "_p")
 
 
 def method_gains(df, metrics: Sequence[str], control: str = BASELINE, by: Sequence[str] = ("dataset", "group", "threshold_mode"),
-                 cluster_col: str = "spacecraft", n_resamples: int = 10_000, ci: float = 0.95, seed: int = 0,
+                 cluster_col: str = "spacecraft", n_resamples: int = 10_000, ci: float = PAPER.evaluate.ci, seed: int = 0,  # not a param: resampling
                  interval: str = DEFAULT_INTERVAL):
     """Gain of every method over ``control`` with paired seed-aware intervals, per ``by`` group.
 

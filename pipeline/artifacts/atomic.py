@@ -1,6 +1,9 @@
-"""Atomic replacement of files and folders through a hidden sibling temporary (a kill at any instant leaves the old
-or the new output, never a partial one), the fault points the kill tests use, and the per-file PNG and CSV writers
-of the user commands (``label``, ``segment``)."""
+"""Atomic replacement of files and folders, and the per-file PNG and CSV writers of the user commands.
+
+A write goes through a hidden sibling temporary: a kill at any instant leaves the old or the new output, never a
+partial one.  The fault points here are where the kill tests stop a process (``label``, ``segment`` write
+through :func:`write_png` and :func:`write_csv`).
+"""
 
 from __future__ import annotations
 
@@ -19,6 +22,9 @@ from typing import Any, Callable, Iterable, Iterator
 import numpy as np
 
 from pipeline.runtime.errors import InputError
+
+__all__ = ["atomic_path", "write_text_if_changed", "read_json", "write_json", "folders_gone_on_failure", "write_png",
+           "write_csv"]
 
 FAULT_ENV = "GEODISTILL_FAULT"
 _RENAME_EXCHANGE = 2
@@ -78,8 +84,11 @@ def clean_leftovers(path: Path) -> None:
 
 
 def _replace(tmp: Path, path: Path) -> None:
-    """Move ``tmp`` onto ``path``: a file by ``os.replace``, a folder by an atomic exchange (else moved aside first to
-    ``.<name>.old-PID-*``, which the next write removes)."""
+    """Move ``tmp`` onto ``path``: a file by ``os.replace``, a folder by an atomic exchange.
+
+    Where the exchange is unsupported the old folder is first moved aside to ``.<name>.old-PID-*``, which the
+    next write removes.
+    """
     fault_point("before_replace")
     if not path.is_dir() or path.is_symlink():
         os.replace(tmp, path)
@@ -103,7 +112,25 @@ def _errno_of(e: OSError) -> int | None:
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path, is_dir: bool = False) -> Iterator[Path]:
-    """Yield a hidden temp sibling of ``path``; on success rename it onto ``path``, else delete it."""
+    """Yield a hidden temporary sibling of ``path``; on success rename it onto ``path``, else delete it.
+
+    Parameters
+    ----------
+    path : str or Path
+        The output file or folder; its parent is created.
+    is_dir : bool
+        Whether the temporary is a folder (created empty) rather than a file name to write.
+
+    Yields
+    ------
+    Path
+        The temporary to write; it replaces ``path`` when the block ends without an error.
+
+    Raises
+    ------
+    OSError
+        The block failed with an OSError naming no file or the temporary: the same error, naming ``path``.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     clean_leftovers(path)
@@ -122,7 +149,20 @@ def atomic_path(path: str | Path, is_dir: bool = False) -> Iterator[Path]:
 
 
 def write_text_if_changed(path: str | Path, text: str) -> bool:
-    """Replace ``path`` atomically when its text differs from ``text`` (else keep its mtime); whether it changed."""
+    """Replace ``path`` atomically when its text differs from ``text`` (else keep it and its mtime).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file to write.
+    text : str
+        Its new text.
+
+    Returns
+    -------
+    bool
+        Whether the file was written.
+    """
     path = Path(path)
     if path.is_file() and path.read_text() == text:
         return False
@@ -132,7 +172,18 @@ def write_text_if_changed(path: str | Path, text: str) -> bool:
 
 
 def read_json(path: str | Path) -> dict:
-    """The JSON object in ``path``; {} when it is missing, unreadable or not an object."""
+    """Read the JSON object in ``path``, or {} when it is missing, unreadable or not an object.
+
+    Parameters
+    ----------
+    path : str or Path
+        The JSON file.
+
+    Returns
+    -------
+    dict
+        Its object, or {}.
+    """
     try:
         doc = json.loads(Path(path).read_text())
     except (OSError, ValueError):
@@ -141,7 +192,20 @@ def read_json(path: str | Path) -> dict:
 
 
 def write_json(path: str | Path, obj: Any) -> Path:
-    """Write ``obj`` as indented, key-sorted JSON atomically."""
+    """Write ``obj`` as indented, key-sorted JSON atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file to write.
+    obj : Any
+        A JSON-serialisable value.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
     return Path(path)
@@ -149,7 +213,18 @@ def write_json(path: str | Path, obj: Any) -> Path:
 
 @contextlib.contextmanager
 def folders_gone_on_failure(*folders: str | Path) -> Iterator[None]:
-    """When the block fails, remove each of ``folders`` that did not exist before it (folders that existed stay)."""
+    """Remove, when the block fails, each of ``folders`` that did not exist before it (folders that existed stay).
+
+    Parameters
+    ----------
+    *folders : str or Path
+        The folders the block may create.
+
+    Yields
+    ------
+    None
+        Control to the block; its error is re-raised after the clean-up.
+    """
     new = [Path(f) for f in folders if not Path(f).exists()]
     try:
         yield
@@ -161,7 +236,20 @@ def folders_gone_on_failure(*folders: str | Path) -> Iterator[None]:
 
 
 def write_png(path: Path, array: np.ndarray) -> None:
-    """Write a PNG atomically; RGB arrays are converted to OpenCV's BGR."""
+    """Write a PNG atomically; an RGB array is converted to OpenCV's BGR.
+
+    Parameters
+    ----------
+    path : Path
+        The PNG file.
+    array : numpy.ndarray
+        uint8 or uint16 [H,W] or RGB [H,W,3].
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        OpenCV could not encode the array, or the file could not be written (one line naming ``path``).
+    """
     import cv2
 
     arr = array[..., ::-1] if array.ndim == 3 else array
@@ -190,7 +278,22 @@ def _replace_file(path: Path, write: Callable[[Path], object]) -> Path:
 
 
 def write_csv(path: str | Path, header: list[str], rows: Iterable) -> Path:
-    """A CSV file with ``header`` and ``rows``, replaced atomically."""
+    """Write a CSV file of ``header`` and ``rows``, replaced atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        The CSV file.
+    header : list of str
+        The column names.
+    rows : Iterable
+        The rows, each a sequence of cells.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     def write(tmp: Path) -> None:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)

@@ -20,6 +20,9 @@ import numpy as np
 from pipeline.artifacts.schemas import get_schema
 from pipeline.runtime.errors import ArtifactError, InputError
 
+__all__ = ["PROGRAM", "canonical_json", "fingerprint", "library_versions", "run_as", "require_same_run", "Meta",
+           "make_meta"]
+
 #: the program's name (the console script), also the namespace of the artifacts' metadata.  It equals the
 #: proposed method's name by coincidence: tests/core/test_method_table.py exempts exactly this assignment.
 PROGRAM = "geodistill"

@@ -10,6 +10,9 @@ from typing import Iterable, Mapping
 from pipeline.artifacts.atomic import write_json
 from pipeline.runtime.errors import OUT, OVERWRITE, InputError, Option, literal
 
+__all__ = ["WRITTEN_BY", "OUTPUTS", "signature", "read_record", "owned_outputs", "refuse_unowned",
+           "refuse_foreign_files", "check_outputs", "remove_stale", "record_fields", "claim_outputs"]
+
 WRITTEN_BY = "written_by"
 OUTPUTS = "outputs"
 

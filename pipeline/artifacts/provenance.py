@@ -1,6 +1,8 @@
-"""The environment a published number came from: Python, libraries, the torch build, the CPU and its
-numeric flags, threads, and whether the installed packages are the lock file's (docs/environment.md).
-Provenance only: nothing here enters a fingerprint."""
+"""The environment a published number came from (docs/environment.md).
+
+Python, libraries, the torch build, the CPU and its numeric flags, threads, and whether the installed
+packages are the lock file's.  Provenance only: nothing here enters a fingerprint.
+"""
 
 from __future__ import annotations
 
@@ -13,6 +15,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from pipeline.artifacts.lineage import library_versions
+
+__all__ = ["THREAD_ENV_VARS", "cpu", "collect", "training_runtime"]
 
 ROOT = Path(__file__).resolve().parents[2]
 LOCK_FILE = ROOT / "requirements" / "lock.txt"
@@ -70,12 +74,12 @@ def parse_torch_config(text: str) -> dict[str, Any]:
 
 
 def normalize_name(name: str) -> str:
-    """A distribution name in PEP 503 normal form (``Ruamel.YAML`` -> ``ruamel-yaml``)."""
+    """Put a distribution name in PEP 503 normal form (``Ruamel.YAML`` -> ``ruamel-yaml``)."""
     return re.sub(r"[-_.]+", "-", name).lower()
 
 
 def parse_lock(text: str) -> dict[str, str]:
-    """``{normalized name: version}`` of the ``name==version`` lines of a requirements file."""
+    """Read ``{normalized name: version}`` of the ``name==version`` lines of a requirements file."""
     out = {}
     for line in text.splitlines():
         m = re.match(r"^\s*([A-Za-z0-9][A-Za-z0-9._-]*)(?:\[[^\]]*\])?\s*==\s*([^\s;#]+)", line)
@@ -85,13 +89,15 @@ def parse_lock(text: str) -> dict[str, str]:
 
 
 def public_version(version: str) -> str:
-    """A version without its local label (``2.13.0+cpu`` -> ``2.13.0``): the part a ``==`` pin compares."""
+    """Drop a version's local label (``2.13.0+cpu`` -> ``2.13.0``): keep the part a ``==`` pin compares."""
     return version.split("+", 1)[0]
 
 
 def lock_status(pins: Mapping[str, str], installed: Mapping[str, str]) -> dict[str, Any]:
-    """``pinned``, ``matching``, ``not_installed`` and ``differ`` of the installed distributions against the
-    lock's pins; public versions compare (``+cpu`` is the build, not the version)."""
+    """Compare the installed distributions with the lock's pins: ``pinned``, ``matching``, ``not_installed``, ``differ``.
+
+    Public versions compare (``+cpu`` is the build, not the version).
+    """
     differ, matching, absent = [], 0, 0
     for name, version in sorted(pins.items()):
         have = installed.get(name)
@@ -105,12 +111,18 @@ def lock_status(pins: Mapping[str, str], installed: Mapping[str, str]) -> dict[s
 
 
 def numerics_env(environ: Mapping[str, str]) -> dict[str, str]:
-    """The thread-count and numerics environment variables that are set (name -> value)."""
+    """Select the thread-count and numerics environment variables that are set (name -> value)."""
     return {k: environ[k] for k in THREAD_ENV_VARS + NUMERIC_ENV_VARS if k in environ}
 
 
 def cpu() -> dict[str, Any]:
-    """:func:`parse_cpuinfo` of this machine (model from :mod:`platform` where /proc is absent)."""
+    """Describe this machine's CPU: :func:`parse_cpuinfo` of it (model from :mod:`platform` where /proc is absent).
+
+    Returns
+    -------
+    dict
+        ``model``, ``logical_cpus`` and ``flags`` (those of :data:`NUMERIC_CPU_FLAGS` the CPU has).
+    """
     try:
         text = Path("/proc/cpuinfo").read_text()
     except OSError:
@@ -124,7 +136,7 @@ def cpu() -> dict[str, Any]:
 
 
 def installed_versions() -> dict[str, str]:
-    """``{normalized name: version}`` of every distribution importable here."""
+    """Map every distribution importable here: ``{normalized name: version}``."""
     out = {}
     for dist in importlib.metadata.distributions():
         name = dist.metadata["Name"]
@@ -134,7 +146,7 @@ def installed_versions() -> dict[str, str]:
 
 
 def torch_build() -> dict[str, Any]:
-    """The torch build: version, commit, CUDA, CPU kernel level, MKL/oneDNN, components, settings, GPUs."""
+    """Describe the torch build: version, commit, CUDA, CPU kernel level, MKL/oneDNN, components, settings, GPUs."""
     import torch
 
     out = {"version": torch.__version__, "git": getattr(torch.version, "git_version", None),
@@ -147,7 +159,7 @@ def torch_build() -> dict[str, Any]:
 
 
 def lock_record(path: str | Path = LOCK_FILE, installed: Mapping[str, str] | None = None) -> dict[str, Any]:
-    """The lock file (path, sha256) and :func:`lock_status` against it; ``found: False`` without one."""
+    """Record the lock file (path, sha256) and :func:`lock_status` against it; ``found: False`` without one."""
     path = Path(path)
     try:
         data = path.read_bytes()
@@ -160,7 +172,19 @@ def lock_record(path: str | Path = LOCK_FILE, installed: Mapping[str, str] | Non
 
 
 def collect(lock: str | Path = LOCK_FILE) -> dict[str, Any]:
-    """Everything about this machine and installation that can change a published number."""
+    """Collect everything about this machine and installation that can change a published number.
+
+    Parameters
+    ----------
+    lock : str or Path
+        The lock file the installation is compared with.
+
+    Returns
+    -------
+    dict
+        ``python``, ``platform``, ``libraries`` (the project's and :data:`EXTRA_LIBRARIES`), ``torch`` (its build),
+        ``cpu``, ``threads`` (torch's intra- and inter-op), ``env`` (the numerics variables set) and ``lock``.
+    """
     import torch
 
     libs = {k: v for k, v in library_versions().items() if k != "python"}
@@ -175,7 +199,18 @@ def collect(lock: str | Path = LOCK_FILE) -> dict[str, Any]:
 
 
 def training_runtime(device) -> dict[str, Any]:
-    """What a train run ran on (device, threads, torch, CPU), for its checkpoint's ``extra.runtime``."""
+    """Record what a train run ran on (device, threads, torch, CPU), for its checkpoint's ``extra.runtime``.
+
+    Parameters
+    ----------
+    device : str or torch.device
+        The device the run trained on.
+
+    Returns
+    -------
+    dict
+        The runtime record.
+    """
     import torch
 
     dev = torch.device(device)

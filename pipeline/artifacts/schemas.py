@@ -7,6 +7,8 @@ from pathlib import Path
 from pipeline.catalog import ARTIFACTS, Schema
 from pipeline.runtime.errors import ArtifactError
 
+__all__ = ["get_schema", "check_kind", "missing_files"]
+
 
 def get_schema(name: str) -> Schema:
     spec = ARTIFACTS.get(name)

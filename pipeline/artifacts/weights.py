@@ -1,5 +1,8 @@
-"""A model's weights: ``model.safetensors`` and ``model.json`` (config, the run's fields), or an older run's
-``model.pt`` read tensors-only; both read into one payload (``state_dict``, ``geometry_state_dict``, ``config``)."""
+"""A model's weights: ``model.safetensors`` and ``model.json`` (config, the run's fields).
+
+An older run's ``model.pt`` is read tensors-only; both read into one payload (``state_dict``,
+``geometry_state_dict``, ``config``).
+"""
 
 from __future__ import annotations
 
@@ -14,6 +17,8 @@ from safetensors.torch import load_file, save_file
 from pipeline.catalog import LEGACY_WEIGHTS_FILE, WEIGHTS_CONFIG_FILE, WEIGHTS_FILE
 from pipeline.runtime.errors import ArtifactError
 
+__all__ = ["write_weights", "weights_path", "read_weights"]
+
 GEOMETRY_PREFIX = "geometry_heads."
 #: ONE key: safetensors writes the metadata map in hash order, so two would make the bytes differ between runs
 HEADER = {"format": "pt"}
@@ -21,7 +26,21 @@ HEADER = {"format": "pt"}
 
 def write_weights(directory: str | Path, state_dict: dict, config: dict,
                   geometry_state_dict: dict | None = None, **fields) -> None:
-    """Write ``model.safetensors`` and ``model.json`` into ``directory``; ``fields``: the run's JSON values."""
+    """Write ``model.safetensors`` and ``model.json`` into ``directory``.
+
+    Parameters
+    ----------
+    directory : str or Path
+        An existing folder (a checkpoint's temporary, written atomically by the caller).
+    state_dict : dict
+        The TinyUNet's tensors.
+    config : dict
+        The model config (``model.json``'s ``config``).
+    geometry_state_dict : dict, optional
+        The training-only geometry heads' tensors, stored under their own prefix.
+    **fields
+        The run's JSON values, stored in ``model.json`` beside the config.
+    """
     directory = Path(directory)
     tensors = {k: _plain(v) for k, v in state_dict.items()}
     for k, v in (geometry_state_dict or {}).items():
@@ -32,12 +51,28 @@ def write_weights(directory: str | Path, state_dict: dict, config: dict,
 
 
 def _plain(t: torch.Tensor) -> torch.Tensor:
-    """A tensor safetensors can write: detached, on the CPU, contiguous, its own storage."""
+    """Make a tensor safetensors can write: detached, on the CPU, contiguous, its own storage."""
     return t.detach().to("cpu").contiguous().clone()
 
 
 def weights_path(path: str | Path) -> Path:
-    """The weights file of a checkpoint or bundle folder (safetensors first), or ``path`` when it is a file."""
+    """Find the weights file of a checkpoint or bundle folder (safetensors first), or ``path`` when it is a file.
+
+    Parameters
+    ----------
+    path : str or Path
+        A checkpoint or bundle folder, or a weights file.
+
+    Returns
+    -------
+    Path
+        ``model.safetensors``, else the legacy ``model.pt``.
+
+    Raises
+    ------
+    pipeline.runtime.errors.ArtifactError
+        ``path`` is a missing file, or a folder with neither weights file.
+    """
     path = Path(path)
     if not path.is_dir():
         if path.is_file():
@@ -50,7 +85,24 @@ def weights_path(path: str | Path) -> Path:
 
 
 def read_weights(path: str | Path) -> dict:
-    """The payload of a checkpoint or bundle folder or of one weights file; ArtifactError naming a bad file."""
+    """Read the payload of a checkpoint or bundle folder, or of one weights file.
+
+    Parameters
+    ----------
+    path : str or Path
+        A checkpoint or bundle folder, or a weights file.
+
+    Returns
+    -------
+    dict
+        ``state_dict``, ``config`` and the run's fields (a legacy ``model.pt`` unpickles tensors and plain data
+        only).
+
+    Raises
+    ------
+    pipeline.runtime.errors.ArtifactError
+        One line naming the bad file: missing, unreadable, refused, or no ``state_dict``/``config``.
+    """
     f = weights_path(path)
     payload = _read_legacy(f) if f.suffix == ".pt" else _read_safetensors(f)
     if not isinstance(payload, dict) or "state_dict" not in payload or not isinstance(payload.get("config"), dict):
@@ -59,7 +111,7 @@ def read_weights(path: str | Path) -> dict:
 
 
 def _read_safetensors(f: Path) -> dict:
-    """The payload of ``model.safetensors`` and the ``model.json`` beside it."""
+    """Read the payload of ``model.safetensors`` and the ``model.json`` beside it."""
     cfg_path = f.with_name(WEIGHTS_CONFIG_FILE)
     try:
         tensors = load_file(f, device="cpu")
@@ -80,7 +132,7 @@ def _read_safetensors(f: Path) -> dict:
 
 
 def _read_legacy(f: Path) -> dict:
-    """The dict of a legacy ``model.pt``, unpickling tensors and plain data only."""
+    """Read the dict of a legacy ``model.pt``, unpickling tensors and plain data only."""
     try:
         return torch.load(f, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:

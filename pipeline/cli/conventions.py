@@ -1,7 +1,8 @@
 """Conventions shared by every command, the stage scripts' and the user tools': ``--params``, ``--set``,
 ``--device``; logs on stderr; a user error is one line and exit code 2, an operating-system failure one line
 naming the path and exit code 1.  The stage scripts (``stages/``) import them from here; nothing under
-``pipeline/`` imports ``stages/``."""
+``pipeline/`` imports ``stages/``.
+"""
 
 from __future__ import annotations
 
@@ -16,10 +17,13 @@ from typing import Any, Callable, Iterable
 import click
 
 from pipeline.catalog import PARAMS_FILE
-from pipeline.runtime.codeversion import ROOT, _module_name, code_version_of
+from pipeline.runtime.codeversion import ROOT, module_name, code_version_of
 from pipeline.runtime.errors import BIT_DEPTH, CLI, MAX_PIXELS, OVERWRITE, SKIP_BAD, InputError, calling
 from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER, load_params
 from pipeline.teacher_table import TEACHER_GROUP, TEACHER_TABLE, folder_options
+
+__all__ = ["setup_logging", "one_line_errors", "overwrite_option", "skip_bad_option", "quiet_option",
+           "max_pixels_option", "bit_depth_option", "teacher_workers_options", "stage_code_version", "stage_command"]
 
 
 def setup_logging() -> None:
@@ -48,7 +52,8 @@ def os_error_line(e: OSError) -> str:
 @contextlib.contextmanager
 def one_line_errors(command: str):
     """Run a command's body; an InputError ends it with ``geodistill <command>: error: <line>`` and exit
-    code 2, an OSError with one line naming the path and exit code 1.  Inside, messages name flags."""
+    code 2, an OSError with one line naming the path and exit code 1.  Inside, messages name flags.
+    """
     try:
         with calling(CLI):
             yield
@@ -108,7 +113,7 @@ def teacher_choice_options(refused: str = ""):
 
 def stage_code_version(stage_file: str) -> str:
     """Code version of a stage script: the hash of every project file it imports."""
-    return code_version_of(_module_name(Path(stage_file).resolve(), ROOT))
+    return code_version_of(module_name(Path(stage_file).resolve(), ROOT))
 
 
 #: ``load(params_file, overrides, default_profile) -> params``: passed in, since no stage may import profiles

@@ -15,6 +15,8 @@ from pipeline.artifacts.ownership import refuse_unowned
 from pipeline.profiles import PROFILES
 from pipeline.cli.conventions import one_line_errors
 
+__all__ = ["dag_main", "profile_main"]
+
 
 @click.command(name="dag")
 @click.option("--check", is_flag=True, help="only check that dvc.yaml is up to date (exit 1 if not)")

@@ -1,5 +1,6 @@
 """The ``geodistill`` console script: the DAG's stage commands and the user tools, imported lazily so that
-``geodistill --help`` starts no torch."""
+``geodistill --help`` starts no torch.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ from pipeline import __version__
 from pipeline.artifacts.lineage import PROGRAM
 from pipeline.orchestration.dag import stage_modules
 from pipeline.cli.conventions import one_line_errors
+
+__all__ = ["main"]
 
 
 def command_name(stage: str) -> str:

@@ -1,5 +1,6 @@
 """``geodistill plots``: DVC's own ``dvc plots show|diff`` with a page template that inlines the chart library,
-so the page renders without network (DVC's default page loads it from a CDN)."""
+so the page renders without network (DVC's default page loads it from a CDN).
+"""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ import click
 from pipeline.artifacts.atomic import write_text_if_changed
 from pipeline.report.offline_plots import dvc_plots_command, offline_page, template_path, template_text, vega_scripts
 from pipeline.cli.conventions import one_line_errors
+
+__all__ = ["main"]
 
 #: not `dvc plots show`'s own dvc_plots/, so neither replaces the other
 OFFLINE_PLOTS_DIR = "geodistill_plots"

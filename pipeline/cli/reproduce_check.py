@@ -1,5 +1,6 @@
 """``geodistill reproduce-check``: do this run's student metrics reproduce the ones committed at ``--ref``,
-within :data:`pipeline.reproducibility.TOLERANCE`?  Exit 0 yes, 1 no, 2 bad input."""
+within :data:`pipeline.reproducibility.TOLERANCE`?  Exit 0 yes, 1 no, 2 bad input.
+"""
 
 from __future__ import annotations
 
@@ -16,9 +17,11 @@ from pipeline.runtime.errors import InputError
 from pipeline.reproducibility import TOLERANCE, compare_metrics, difference_table, reproduced
 from pipeline.cli.conventions import one_line_errors
 
+__all__ = ["main"]
+
 
 def _git(args: list[str], cwd: Path) -> str:
-    """stdout of ``git args`` in ``cwd``; InputError when git fails."""
+    """Stdout of ``git args`` in ``cwd``; InputError when git fails."""
     try:
         out = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True)
     except FileNotFoundError:

@@ -12,6 +12,8 @@ from pipeline.review.labelstudio import Client, upload_review
 from pipeline.review.ranking import DEFAULT_RANKING, RANKINGS
 from pipeline.cli.conventions import one_line_errors, overwrite_option, setup_logging, stage_code_version
 
+__all__ = ["main"]
+
 
 @click.group(name="review")
 def review():
@@ -39,7 +41,8 @@ def review():
 def export_main(label_dir, out, top, ranking, student, ls_shape, coco_shape, image_url, overwrite):
     """Write the images of a label output folder that most need a person, best first: a Label Studio
     import (labelstudio/tasks.json + label_config.xml), a CVAT import (cvat/instances_default.json, COCO
-    1.0) and ranked.csv, under --out only."""
+    1.0) and ranked.csv, under --out only.
+    """
     setup_logging()
     with one_line_errors("review export"):
         predict = None
@@ -66,7 +69,8 @@ def export_main(label_dir, out, top, ranking, student, ls_shape, coco_shape, ima
 def upload_main(review_dir, url, token, title):
     """Create a Label Studio project for a review export through the API: its labelling interface, the
     Local files storage connection that serves the images, and the tasks; then check the first image
-    is served.  Label Studio must run with the two variables review export printed."""
+    is served.  Label Studio must run with the two variables review export printed.
+    """
     setup_logging()
     with one_line_errors("review upload"):
         res = upload_review(Client(url, token), review_dir, title)
@@ -85,7 +89,8 @@ def upload_main(review_dir, url, token, title):
 @overwrite_option
 def import_main(source, review_dir, out, fmt, overwrite):
     """Read corrected masks (a Label Studio JSON export, a CVAT COCO 1.0 export or a folder of PNGs) into
-    the versioned corrections artifact."""
+    the versioned corrections artifact.
+    """
     setup_logging()
     with one_line_errors("review import"):
         art = import_corrections(source, review_dir, out, fmt=fmt, code_version=stage_code_version(__file__),

@@ -11,6 +11,8 @@ import click
 from pipeline.cluster.driver import run_pipeline
 from pipeline.cli.conventions import one_line_errors, setup_logging
 
+__all__ = ["main"]
+
 
 @click.command(name="run")
 @click.argument("targets", nargs=-1)

@@ -1,5 +1,6 @@
 """``geodistill segment``: binary spacecraft masks at each image's original size, with a trained or exported
-student (docs/own-data.md); the logic is :func:`pipeline.deploy.segmenting.segment_images`."""
+student (docs/own-data.md); the logic is :func:`pipeline.deploy.segmenting.segment_images`.
+"""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ from pipeline.deploy.segmenting import segment_images
 from pipeline.runtime.progress import quiet_bars
 from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, one_line_errors, overwrite_option,
                                       quiet_option, setup_logging, skip_bad_option)
+
+__all__ = ["main"]
 
 
 @click.command(name="segment", help="Binary spacecraft masks for image files with a trained or exported student (at each image's original size).")

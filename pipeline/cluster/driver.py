@@ -21,6 +21,8 @@ from pipeline.runtime.device import STAGE_CPUS_ENV
 from pipeline.runtime.errors import InputError
 from pipeline.params import DEFAULT_PARAMS, read_yaml_mapping
 
+__all__ = ["run_pipeline"]
+
 LOCK_FILE = ".dvc/tmp/geodistill-run.lock"
 NO_RAY = ("geodistill run needs Ray: pip install -e '.[cluster]' "
           "(or run the DAG one stage at a time with dvc repro)")
@@ -28,7 +30,8 @@ NO_RAY = ("geodistill run needs Ray: pip install -e '.[cluster]' "
 
 class RunLock:
     """Exclusive, non-blocking ``flock`` on :data:`LOCK_FILE`: a second driver gets :class:`InputError`; the
-    kernel releases it however the holder dies."""
+    kernel releases it however the holder dies.
+    """
 
     def __init__(self, root: Path):
         self.path = Path(root) / LOCK_FILE
@@ -57,7 +60,7 @@ class RunLock:
 
 
 def dvc(root: Path, *args: str, env: dict | None = None) -> str:
-    """stdout of ``python -m dvc ARGS`` in ``root``; DVC's first error line as :class:`InputError`."""
+    """Stdout of ``python -m dvc ARGS`` in ``root``; DVC's first error line as :class:`InputError`."""
     proc = subprocess.run([sys.executable, "-m", "dvc", *args], cwd=root, env=env, capture_output=True, text=True)
     if proc.returncode != 0:
         raise InputError(f"dvc {' '.join(args)}: {plan.error_line(proc.stderr + proc.stdout)}")
@@ -87,7 +90,8 @@ def child_env(extra: dict[str, str], threads: int, gpus: float) -> dict[str, str
 def run_stage(root: str, stage: str, extra_env: dict, threads: int, gpus: float, log_path: str, t0: float,
               *upstream: dict) -> dict:
     """A stage's Ray task: ``dvc --wait-for-lock repro --single-item STAGE`` under the guard, output to
-    ``log_path``; ``not_run`` when an ``upstream`` result did not succeed."""
+    ``log_path``; ``not_run`` when an ``upstream`` result did not succeed.
+    """
     import ray
 
     failed = [u["stage"] for u in upstream if u["status"] in ("failed", "not_run")]
@@ -168,7 +172,8 @@ def run_pipeline(root: Path, targets: tuple[str, ...] = (), address: str | None 
                  stage_cpus: float | None = None, train_gpu_fraction: float = 0.25, dry_run: bool = False,
                  echo: Callable[[str], None] = print) -> RunResult | None:
     """``geodistill run`` without the CLI (None for a dry run): in this process's Ray session if there is one,
-    else an embedded local one, or ``address``/``RAY_ADDRESS``."""
+    else an embedded local one, or ``address``/``RAY_ADDRESS``.
+    """
     root = Path(root).resolve()
     if not (root / catalog.DVC_FILE).is_file():
         raise InputError(f"{root / catalog.DVC_FILE}: not found (run geodistill run in the project folder)")
@@ -204,7 +209,8 @@ def run_pipeline(root: Path, targets: tuple[str, ...] = (), address: str | None 
 def _submit(ray, root: Path, sequence: list[str], graph: dict[str, set[str]], size: plan.Sizing, log_dir: Path,
             costs: dict[str, float], dry_run: bool, echo) -> RunResult | None:
     """Run the stages of ``sequence`` as Ray tasks, each handed to Ray when its upstream stages have finished and
-    the cluster has room (:func:`pipeline.cluster.plan.startable`, in ``sequence``'s priority); wait for all."""
+    the cluster has room (:func:`pipeline.cluster.plan.startable`, in ``sequence``'s priority); wait for all.
+    """
     res = {n: plan.stage_resources(n, size) for n in sequence}
     echo(f"geodistill run: Ray cluster with {size.node_cpus:g} CPUs on its largest node, {size.gpus:g} GPUs")
     if dry_run:

@@ -13,6 +13,8 @@ import signal
 import subprocess
 import sys
 
+__all__ = ["command"]
+
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
@@ -52,7 +54,20 @@ ENTRY = "import sys; from pipeline.cluster.guard import main; sys.exit(main())"
 
 
 def command(parent_pid: int, cmd: list[str]) -> list[str]:
-    """The command line that runs ``cmd`` under the guard."""
+    """Build the command line that runs ``cmd`` under the guard.
+
+    Parameters
+    ----------
+    parent_pid : int
+        The process whose death kills ``cmd``'s process group.
+    cmd : list of str
+        The command to run.
+
+    Returns
+    -------
+    list of str
+        ``python -c ENTRY PARENT_PID -- CMD...``.
+    """
     return [sys.executable, "-c", ENTRY, str(parent_pid), "--", *cmd]
 
 

@@ -1,5 +1,6 @@
 """What ``geodistill run`` submits, in which order, with which Ray resources: pure functions of the outputs of
-``dvc dag --dot`` and ``dvc status --json``."""
+``dvc dag --dot`` and ``dvc status --json``.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +9,9 @@ import re
 from typing import Iterable, Mapping
 
 from pipeline.catalog import STAGES
+
+__all__ = ["parse_dot", "to_submit", "subgraph", "run_alone", "submission_order", "startable", "Sizing",
+           "stage_resources", "outcome", "error_line"]
 
 _EDGE = re.compile(r'^\s*"([^"]+)"\s*->\s*"([^"]+)"\s*;?\s*$')
 _NODE = re.compile(r'^\s*"([^"]+)"\s*;?\s*$')
@@ -65,7 +69,8 @@ def upstream(needs: Mapping[str, set[str]], roots: Iterable[str]) -> set[str]:
 
 def to_submit(needs: Mapping[str, set[str]], stale: Iterable[str], targets: Iterable[str] = ()) -> set[str]:
     """The stale stages and everything downstream of them (DVC decides at each one's turn), within
-    ``targets`` and their upstream stages when given."""
+    ``targets`` and their upstream stages when given.
+    """
     chosen = downstream(needs, stale)
     targets = list(targets)
     return chosen & upstream(needs, targets) if targets else chosen
@@ -145,7 +150,8 @@ def startable(sequence: Iterable[str], needs: Mapping[str, set[str]], finished: 
     upstream finished, and its resources (``res``) within ``capacity`` beside those ``running`` and those picked
     before it (a lower-priority stage that fits may pass one that does not); with nothing running, the first
     ready stage starts even when larger than the cluster.  A stage is handed to Ray only once it may run, so a
-    stage ready early (a ceiling needs only the data) does not hold the cores a critical-path stage needs next."""
+    stage ready early (a ceiling needs only the data) does not hold the cores a critical-path stage needs next.
+    """
     done, taken = set(finished), set(running)
     used = {k: sum(float(r.get(k, 0.0)) for r in running.values()) for k in capacity}
     out: list[str] = []
@@ -163,7 +169,8 @@ def startable(sequence: Iterable[str], needs: Mapping[str, set[str]], finished: 
 @dataclasses.dataclass(frozen=True)
 class Sizing:
     """What the cluster offers and what a stage may take (``train_threads``: train.num_threads, 0 = not pinned;
-    ``cluster_cpus``: all nodes' CPUs, 0 = ``node_cpus``)."""
+    ``cluster_cpus``: all nodes' CPUs, 0 = ``node_cpus``).
+    """
 
     node_cpus: float
     gpus: float = 0.0

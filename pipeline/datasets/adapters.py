@@ -1,5 +1,6 @@
 """Real-dataset readers: a root directory + a protocol file (``data_manifests/*.yaml``) -> manifest rows, files
-unopened (layouts: docs/real-data.md; choices: docs/decisions.md, "Dataset readers")."""
+unopened (layouts: docs/real-data.md; choices: docs/decisions.md, "Dataset readers").
+"""
 
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ from pipeline.datasets.scan import scan_inputs
 from pipeline.datasets.synthetic import stable_hash
 from pipeline.runtime.errors import InputError
 from pipeline.params import read_yaml_mapping
+
+__all__ = ["row", "build_source"]
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +86,8 @@ def _frame(rows: list[dict]) -> pd.DataFrame:
 
 def _parse_colors(proto: dict, where: Path) -> ColorTable | None:
     """The protocol's ``part_colors`` ("R,G,B": label), ``color_tolerance`` and ``color_blends`` as a
-    :class:`~pipeline.datasets.loading.ColorTable`; None when the table is empty."""
+    :class:`~pipeline.datasets.loading.ColorTable`; None when the table is empty.
+    """
     out = {}
     for key, label in (proto.get("part_colors") or {}).items():
         try:
@@ -110,7 +114,8 @@ def _parse_colors(proto: dict, where: Path) -> ColorTable | None:
 def _disjoint_plan(found: dict[str, list], splits: dict, where: Path, root: Path, seed: int, name: str
                    ) -> list[tuple[str, str, str, int]]:
     """eq:spacecraft-disjoint plan ``[(spacecraft, split, group, images)]`` from a protocol's ``splits``:
-    test groups, then val and train, each named spacecraft or a seeded draw of ``count`` from the rest."""
+    test groups, then val and train, each named spacecraft or a seeded draw of ``count`` from the rest.
+    """
     groups = _get(splits, "test_groups", where, dict)
     used: set[str] = set()
     plan: list[tuple[str, str, str, int]] = []
@@ -151,7 +156,8 @@ def _disjoint_plan(found: dict[str, list], splits: dict, where: Path, root: Path
 def _disjoint_source(name: str, found: dict[str, list[tuple[str, Path, Path]]], cfg: dict, proto: dict,
                      where: Path, root: Path, column: str, mask_threshold: float) -> DatasetSpec:
     """Rows of a spacecraft-disjoint dataset from ``found`` {spacecraft: [(sub, image, mask)]}: id
-    ``<spacecraft>__<sub>__<image stem>``, ``sub`` kept in ``column``; masks on validation and test rows."""
+    ``<spacecraft>__<sub>__<image stem>``, ``sub`` kept in ``column``; masks on validation and test rows.
+    """
     seed = int(cfg["seed"])
     plan = _disjoint_plan(found, _get(proto, "splits", where, dict), where, root, seed, name)
     colors = _parse_colors(proto, where)
@@ -350,7 +356,8 @@ def tango_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
 
 def _folder_entries(d: Path, policy: BadInputPolicy) -> list[tuple[str, Path]]:
     """(id, path) of the image files under ``d`` (:func:`pipeline.datasets.scan.scan_inputs`); id = the
-    posix path relative to ``d`` without its suffix.  Bad entries go through the policy."""
+    posix path relative to ``d`` without its suffix.  Bad entries go through the policy.
+    """
     found = scan_inputs(d, keep_broken_links=True)
     policy.report_scan(found)
     return [(relative_id(d, p), p) for p in found.files]

@@ -1,5 +1,6 @@
 """Assemble a dataset for the ``prepare`` stage: source rows -> checked manifest -> every file decoded once
-(under the bad-input policy, into the decode cache) -> working-resolution arrays."""
+(under the bad-input policy, into the decode cache) -> working-resolution arrays.
+"""
 
 from __future__ import annotations
 
@@ -21,6 +22,8 @@ from pipeline.datasets.manifest import (BadInputPolicy, DatasetSpec, check_rows,
                                         enforce_spacecraft_disjoint)
 from pipeline.runtime.errors import InputError
 from pipeline.runtime.progress import progress
+
+__all__ = ["synthetic_source", "real_source", "check_manifest", "decode_rows", "iter_arrays", "content_digest"]
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +81,8 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
 
 def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = None) -> DatasetSpec:
     """Rows of a real dataset; ``<out_dir>/synthetic`` (a DVC output) is replaced by a note, so no stale
-    synthetic files survive a switch of source."""
+    synthetic files survive a switch of source.
+    """
     spec = adapters.build_source(cfg, policy)
     spec.max_pixels, spec.bit_depth, spec.letterbox = cfg["max_pixels"], cfg["bit_depth"], cfg["letterbox"]
     if out_dir is not None:
@@ -115,7 +119,8 @@ def _load(spec: DatasetSpec, col: str, path: str, size: int, cache: DecodeCache 
 def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeCache | None,
                 policy: BadInputPolicy) -> pd.DataFrame:
     """First pass: decode every file (into the cache) and fill width/height/sha256; a row with a bad file, or a
-    mask/part of another size than its image, goes through the policy and its other files are listed."""
+    mask/part of another size than its image, goes through the policy and its other files are listed.
+    """
     kept: dict[int, Loaded] = {}   # row -> its image
     for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):
         try:

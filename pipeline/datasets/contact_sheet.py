@@ -6,6 +6,8 @@ import cv2
 import numpy as np
 import pandas as pd
 
+__all__ = ["sample_for_sheet", "tile", "contact_sheet"]
+
 CONTOUR_RGB = (0, 255, 0)
 
 
@@ -41,7 +43,8 @@ def tile(image: np.ndarray, mask: np.ndarray | None, label: str, size: int) -> n
 def caption_lines(label: str, width: int, scale: float, min_scale: float = 0.25) -> tuple[list[str], float]:
     """``label`` wrapped at spaces and ``/`` into lines of at most ``width`` pixels at font ``scale`` --
     shrunk (down to ``min_scale``) while a single word is wider, then broken inside the word -- so that
-    a caption is never cut: (lines, scale)."""
+    a caption is never cut: (lines, scale).
+    """
     def fits(text: str, sc: float) -> bool:
         return cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, sc, 1)[0][0] <= width
 

@@ -1,9 +1,12 @@
 """Width and height of a PNG, JPEG, TIFF (classic and BigTIFF) or BMP file from its header, the format told by
-the content as OpenCV does (why not Pillow: docs/dependencies.md)."""
+the content as OpenCV does (why not Pillow: docs/dependencies.md).
+"""
 
 from __future__ import annotations
 
 import struct
+
+__all__ = ["header_size", "jpeg_orientation"]
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # JPEG start-of-frame markers: C0..CF except C4 (DHT), C8 (JPG, reserved) and CC (DAC)
@@ -18,7 +21,8 @@ def _png(data: bytes) -> tuple[int, int] | None:
 
 def _jpeg_segments(data: bytes):
     """Yield (marker, offset, length) of a JPEG's marker segments with a length field, in file order; stop at
-    bytes that are not a marker or a segment shorter than its length field."""
+    bytes that are not a marker or a segment shorter than its length field.
+    """
     i, n = 2, len(data)
     while i + 4 <= n:
         if data[i] != 0xFF:
@@ -93,7 +97,8 @@ def _bmp(data: bytes) -> tuple[int, int] | None:
 
 def header_size(data: bytes) -> tuple[int, int] | None:
     """``(width, height)`` declared by the header of a PNG, JPEG, TIFF or BMP file's bytes; None when
-    the bytes start with none of them, or the header is cut short, malformed or declares a zero size."""
+    the bytes start with none of them, or the header is cut short, malformed or declares a zero size.
+    """
     try:
         if data.startswith(PNG_SIGNATURE):
             size = _png(data)
@@ -135,7 +140,8 @@ def _exif_orientation(tiff: bytes) -> int:
 def jpeg_orientation(data: bytes) -> int:
     """The EXIF orientation (1-8, TIFF/EXIF convention) of a JPEG file's bytes: how a viewer turns or flips
     the stored pixels to show them; 1 (shown as stored) for any other format, a JPEG without EXIF or
-    with a value outside 1-8, or a malformed header."""
+    with a value outside 1-8, or a malformed header.
+    """
     if not data.startswith(b"\xff\xd8\xff"):
         return 1
     try:

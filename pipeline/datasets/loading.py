@@ -1,6 +1,7 @@
 """One image/mask loader for every source: RGB uint8 images, bool masks by ``foreground = value > 0`` unless a
 protocol sets a threshold, the header's size checked against ``max_pixels`` before decoding, and a decode
-cache keyed by (sha256, kind, resolution) (docs/decisions.md, "Image and mask decoding")."""
+cache keyed by (sha256, kind, resolution) (docs/decisions.md, "Image and mask decoding").
+"""
 
 from __future__ import annotations
 
@@ -18,6 +19,10 @@ from pipeline.datasets.image_header import header_size, jpeg_orientation
 from pipeline.runtime.errors import BIT_DEPTH, MAX_PIXELS, InputError, Option, caller, literal
 from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER
 
+__all__ = ["SUPPORTED_SUFFIXES", "BadFileError", "broken_link_reason", "pixel_limit", "check_bit_depth", "to_rgb8",
+           "read_rgb", "reset_frame_warnings", "read_mask", "ColorTable", "resize_image", "probs_to_size",
+           "resize_nearest", "DecodeCache", "Loaded", "load_rgb", "mask_kind", "load_mask", "load_labels"]
+
 log = logging.getLogger(__name__)
 
 SUPPORTED_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -30,7 +35,8 @@ UNDECODABLE = "corrupt or undecodable image"
 
 class BadFileError(InputError):
     """A file that cannot be used: ``{path}: {reason} ({fix})``; ``reason`` names no option (the
-    skipped-file listings hold it), ``fix`` names the ``options`` that would let the file in."""
+    skipped-file listings hold it), ``fix`` names the ``options`` that would let the file in.
+    """
 
     def __init__(self, path: str | Path, reason: str, fix: str = "", *options: Option):
         self.path = str(path)
@@ -84,7 +90,8 @@ def pixel_limit(max_pixels: int | None = None) -> int:
 
 def check_header(data: bytes, path: str | Path, max_pixels: int | None = None) -> tuple[int, int]:
     """``(width, height)`` from the file header; :class:`BadFileError` when there is none or the image
-    is above ``max_pixels``."""
+    is above ``max_pixels``.
+    """
     limit = pixel_limit(max_pixels)
     size = header_size(data)
     if size is None:
@@ -106,7 +113,8 @@ def read_image_bytes(path: str | Path, max_pixels: int | None = None) -> bytes:
 def as_displayed(arr: np.ndarray, orientation: int) -> np.ndarray:
     """``arr`` [H, W, ...] as a viewer shows it under EXIF ``orientation`` (1-8; 1: as stored): 2 mirrored,
     3 turned 180 degrees, 4 flipped top-bottom, 5 transposed, 6 turned 90 degrees clockwise, 7 transposed
-    across the other diagonal, 8 turned 90 degrees anticlockwise (what OpenCV's ``imread`` does by default)."""
+    across the other diagonal, 8 turned 90 degrees anticlockwise (what OpenCV's ``imread`` does by default).
+    """
     o = int(orientation)
     if o in (5, 6, 7, 8):
         arr = arr.swapaxes(0, 1)  # 5; the others are the transpose flipped
@@ -118,7 +126,8 @@ def as_displayed(arr: np.ndarray, orientation: int) -> np.ndarray:
 
 def _decode(data: bytes, path: str | Path) -> np.ndarray:
     """The one decode of every image and mask file: its pixels as displayed, a JPEG's EXIF orientation
-    applied (``IMREAD_UNCHANGED`` keeps 16 bits and alpha but ignores the orientation, so it is applied here)."""
+    applied (``IMREAD_UNCHANGED`` keeps 16 bits and alpha but ignores the orientation, so it is applied here).
+    """
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None or arr.size == 0:
         raise BadFileError(path, UNDECODABLE)
@@ -140,9 +149,10 @@ def check_bit_depth(bit_depth) -> str | int:
                      "16-bit frame's sensor; auto = the file's full range)", BIT_DEPTH(bit_depth))
 
 
-def scale_16bit(arr: np.ndarray, bit_depth="auto") -> tuple[np.ndarray, str | None]:
+def scale_16bit(arr: np.ndarray, bit_depth=PAPER.data.bit_depth) -> tuple[np.ndarray, str | None]:
     """``(uint8 array, warning or None)`` of a uint16 array: ``auto``/16 = ``round(v / 257)``;
-    10/12/14 = ``round(min(v, 2**bits - 1) * 255 / (2**bits - 1))``."""
+    10/12/14 = ``round(min(v, 2**bits - 1) * 255 / (2**bits - 1))``.
+    """
     bit_depth = check_bit_depth(bit_depth)
     peak = int(arr.max()) if arr.size else 0
     if bit_depth in (AUTO_BIT_DEPTH, 16):
@@ -161,9 +171,10 @@ def scale_16bit(arr: np.ndarray, bit_depth="auto") -> tuple[np.ndarray, str | No
     return a8, note
 
 
-def rgb8_and_note(arr: np.ndarray, path: str | Path = "<array>", bit_depth="auto") -> tuple[np.ndarray, str | None]:
+def rgb8_and_note(arr: np.ndarray, path: str | Path = "<array>", bit_depth=PAPER.data.bit_depth) -> tuple[np.ndarray, str | None]:
     """:func:`to_rgb8` without its warning: ``(RGB uint8 [H, W, 3], note or None)``; the decode cache
-    keeps the note, so a cached frame is warned about too."""
+    keeps the note, so a cached frame is warned about too.
+    """
     note = None
     if arr.dtype == np.uint8:
         a8 = arr
@@ -184,14 +195,14 @@ def rgb8_and_note(arr: np.ndarray, path: str | Path = "<array>", bit_depth="auto
     return (np.repeat(a8, 3, axis=2) if ch == 1 else np.ascontiguousarray(a8[..., 2::-1])), note
 
 
-def to_rgb8(arr: np.ndarray, path: str | Path = "<array>", bit_depth="auto") -> np.ndarray:
+def to_rgb8(arr: np.ndarray, path: str | Path = "<array>", bit_depth=PAPER.data.bit_depth) -> np.ndarray:
     """Decoded OpenCV array (grey, BGR, BGRA; 8/16-bit or float) -> RGB uint8 [H, W, 3]."""
     rgb, note = rgb8_and_note(arr, path, bit_depth)
     warn_frame_once(path, note)
     return rgb
 
 
-def read_rgb(path: str | Path, *, max_pixels: int | None = None, bit_depth="auto") -> np.ndarray:
+def read_rgb(path: str | Path, *, max_pixels: int | None = None, bit_depth=PAPER.data.bit_depth) -> np.ndarray:
     """Any supported image file as RGB uint8 [H, W, 3] at native size."""
     return to_rgb8(_decode(read_image_bytes(path, max_pixels), path), path, bit_depth)
 
@@ -202,7 +213,8 @@ _warned_frames: set[tuple[str, str]] = set()
 
 def warn_frame_once(path: str | Path, note: str | None) -> None:
     """The one warning per (absolute file path, note) about how a frame's values were read; a dark
-    16-bit frame's once per run (:func:`reset_frame_warnings`)."""
+    16-bit frame's once per run (:func:`reset_frame_warnings`).
+    """
     dark = bool(note) and note.startswith(LOW_RANGE_NOTE)
     key = ("", LOW_RANGE_NOTE) if dark else (os.path.abspath(path), note)
     if note and key not in _warned_frames:
@@ -226,7 +238,8 @@ def warn_mask_once(path: str | Path, note: str | None) -> None:
 
 def binarize_mask(arr: np.ndarray, threshold: float | None = None) -> tuple[np.ndarray, str | None]:
     """``(bool mask, note)``: foreground = max over channels > ``threshold`` (None: > 0); ``note``
-    describes a multi-valued mask under the default rule (more than one non-zero value)."""
+    describes a multi-valued mask under the default rule (more than one non-zero value).
+    """
     a = arr.max(axis=2) if arr.ndim == 3 else arr
     if threshold is not None:
         return a > threshold, None
@@ -254,7 +267,8 @@ class ColorTable:
     """A colour-coded part mask's class table ``{(r, g, b): label}``, black = background unless listed.
 
     ``tolerance``: per channel, for a pixel to take a colour; ``blends``: a pixel within ``tolerance`` of
-    the line between two colours (a JPEG boundary between two classes) takes the nearer one's label."""
+    the line between two colours (a JPEG boundary between two classes) takes the nearer one's label.
+    """
 
     colors: dict
     tolerance: int = 0
@@ -278,7 +292,8 @@ def as_color_table(colors: dict | ColorTable) -> ColorTable:
 
 def parts_from_colors(rgb: np.ndarray, colors: dict | ColorTable, path: str | Path = "<array>") -> np.ndarray:
     """Colour-coded part mask (RGB uint8) -> part labels uint8 by the table (a dict: exact colours); a
-    colour outside it is a :class:`BadFileError` naming the most frequent one."""
+    colour outside it is a :class:`BadFileError` naming the most frequent one.
+    """
     table = as_color_table(colors)
     entries = table.entries()
     cols = np.array(list(entries), np.int32)                               # K, 3
@@ -328,7 +343,7 @@ def pad_to_square(img: np.ndarray) -> np.ndarray:
     return np.pad(img, pad)
 
 
-def resize_image(img: np.ndarray, size: int, letterbox: bool = False, interpolation: int = cv2.INTER_AREA
+def resize_image(img: np.ndarray, size: int, letterbox: bool = PAPER.data.letterbox, interpolation: int = cv2.INTER_AREA
                  ) -> np.ndarray:
     """Square working resolution, area interpolation; ``letterbox``: padded to a square first."""
     if letterbox:
@@ -340,7 +355,8 @@ def resize_image(img: np.ndarray, size: int, letterbox: bool = False, interpolat
 
 def _frame_samples(n: int, offset: int, side: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Bilinear taps ``(i0, i1, weight of i1)`` along one axis of a frame's ``n`` pixels at ``offset`` in the
-    padded square, clamped to the working pixels holding some of the frame (no tap on pure pad)."""
+    padded square, clamped to the working pixels holding some of the frame (no tap on pure pad).
+    """
     scale = size / side
     lo = int(np.floor(offset * scale))
     hi = max(lo, int(np.ceil((offset + n) * scale)) - 1)
@@ -350,9 +366,10 @@ def _frame_samples(n: int, offset: int, side: int, size: int) -> tuple[np.ndarra
     return i0, i1, (c - i0).astype(np.float32)
 
 
-def probs_to_size(probs: np.ndarray, height: int, width: int, letterbox: bool = False) -> np.ndarray:
+def probs_to_size(probs: np.ndarray, height: int, width: int, letterbox: bool = PAPER.data.letterbox) -> np.ndarray:
     """Bilinear resize of a probability map [R,R] back to [height, width]; ``letterbox``: the pad is cropped
-    and never sampled (:func:`_frame_samples`)."""
+    and never sampled (:func:`_frame_samples`).
+    """
     if not letterbox:
         if probs.shape == (height, width):
             return probs
@@ -366,14 +383,15 @@ def probs_to_size(probs: np.ndarray, height: int, width: int, letterbox: bool = 
     return np.clip(out, 0.0, 1.0)
 
 
-def resize_nearest(lbl: np.ndarray, size: int, letterbox: bool = False) -> np.ndarray:
+def resize_nearest(lbl: np.ndarray, size: int, letterbox: bool = PAPER.data.letterbox) -> np.ndarray:
     """Nearest-neighbour resize of a label/mask array to size x size (``letterbox`` as :func:`resize_image`)."""
     return resize_image(lbl.astype(np.uint8), size, letterbox, cv2.INTER_NEAREST).astype(lbl.dtype)
 
 
 class DecodeCache:
     """Content-addressed cache of decoded, resized arrays (``<sha[:2]>/<sha>-<kind>-<size>.npz``);
-    ``root=None`` disables it."""
+    ``root=None`` disables it.
+    """
 
     def __init__(self, root: str | Path | None = DEFAULT_CACHE_DIR):
         self.root = Path(root) if root is not None else None
@@ -430,16 +448,18 @@ class Loaded:
     def content_sha256(self) -> str:
         """The key of the pixels a model sees: :attr:`sha256`, or for a file shown turned or flipped
         (EXIF orientation other than 1) a sha256 over it and the orientation, so answers cached before
-        the orientation was applied are not reused."""
+        the orientation was applied are not reused.
+        """
         if self.orientation == 1:
             return self.sha256
         return hashlib.sha256(f"{self.sha256}-exif-orientation-{self.orientation}".encode()).hexdigest()
 
 
 def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pixels: int | None,
-          letterbox: bool = False) -> Loaded:
+          letterbox: bool = PAPER.data.letterbox) -> Loaded:
     """``decode(array) -> array`` or ``(array, note)``; the note is cached with the entry and warned about
-    once per file.  The pixel limit is checked first, so a cached entry made under a higher limit is refused."""
+    once per file.  The pixel limit is checked first, so a cached entry made under a higher limit is refused.
+    """
     data = read_image_bytes(path, max_pixels)
     sha = hashlib.sha256(data).hexdigest()
     rgb = kind.startswith("rgb")
@@ -464,9 +484,10 @@ def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pix
 
 
 def load_rgb(path, size: int, cache: DecodeCache | None = None, *, max_pixels: int | None = None,
-             bit_depth="auto", letterbox: bool = False) -> Loaded:
+             bit_depth=PAPER.data.bit_depth, letterbox: bool = PAPER.data.letterbox) -> Loaded:
     """RGB uint8 [size, size, 3] (area interpolation), its sha256 and native size; cached (kind ``rgb``, or
-    ``rgb<bits>bit`` under a stated bit depth)."""
+    ``rgb<bits>bit`` under a stated bit depth).
+    """
     bit_depth = check_bit_depth(bit_depth)
     kind = "rgb" if bit_depth == AUTO_BIT_DEPTH else f"rgb{int(bit_depth)}bit"
     return _load(path, size, kind, cache, lambda a: rgb8_and_note(a, path, bit_depth), max_pixels,
@@ -479,15 +500,15 @@ def mask_kind(threshold: float | None) -> str:
 
 
 def load_mask(path, size: int, cache: DecodeCache | None = None, threshold: float | None = None, *,
-              max_pixels: int | None = None, letterbox: bool = False) -> Loaded:
-    """bool [size, size] (nearest), binarised by :func:`binarize_mask`; cached per threshold."""
+              max_pixels: int | None = None, letterbox: bool = PAPER.data.letterbox) -> Loaded:
+    """Bool [size, size] (nearest), binarised by :func:`binarize_mask`; cached per threshold."""
     return _load(path, size, mask_kind(threshold), cache, lambda a: binarize_mask(a, threshold), max_pixels,
                  letterbox)
 
 
 def load_labels(path, size: int, cache: DecodeCache | None = None,
                 colors: dict | ColorTable | None = None, *, max_pixels: int | None = None,
-                letterbox: bool = False) -> Loaded:
+                letterbox: bool = PAPER.data.letterbox) -> Loaded:
     """Part labels uint8 [size, size] (nearest): a label image, or a colour-coded one mapped by ``colors``."""
     if colors:
         table = as_color_table(colors)

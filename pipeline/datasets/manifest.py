@@ -1,5 +1,6 @@
 """Manifest rows (:class:`DatasetSpec`), protocol checks and the one bad-input policy (:class:`BadInputPolicy`):
-a bad file is a one-line :class:`InputError`, or with ``skip_bad`` a listed ``(image_id, path, reason)``."""
+a bad file is a one-line :class:`InputError`, or with ``skip_bad`` a listed ``(image_id, path, reason)``.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +13,10 @@ import pandas as pd
 
 from pipeline.artifacts.atomic import write_csv
 from pipeline.runtime.errors import SKIP_BAD, InputError, Option, literal
-from pipeline.params import SPLITS
+from pipeline.params import PAPER, SPLITS
+
+__all__ = ["ROW_COLUMNS", "DatasetSpec", "BadInputPolicy", "write_skipped_csv", "drop_duplicate_ids", "relative_id",
+           "enforce_spacecraft_disjoint", "check_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -37,8 +41,8 @@ class DatasetSpec:
     spacecraft_disjoint: bool = True
     protocol: dict = dataclasses.field(default_factory=dict)
     max_pixels: int | None = None
-    bit_depth: str | int = "auto"
-    letterbox: bool = False
+    bit_depth: str | int = PAPER.data.bit_depth
+    letterbox: bool = PAPER.data.letterbox
 
 
 #: what a refusal suggests, ``{}`` naming ``--skip-bad`` / ``skip_bad=True`` in the caller's terms
@@ -48,7 +52,8 @@ SKIP_HINT = "pass {}, or set data.skip_bad: true in params.yaml, to leave it out
 class BadInputPolicy:
     """The one bad-file policy (docs/own-data.md): raise on the first problem, or (``skip_bad``) list it with
     its reason and let the caller drop the row; ``hint``: the refusal's suggestion, ``hint_options`` the
-    options of its ``{}`` (default ``--skip-bad``)."""
+    options of its ``{}`` (default ``--skip-bad``).
+    """
 
     def __init__(self, skip_bad: bool, hint: str = SKIP_HINT, hint_options: tuple[Option, ...] | None = None):
         self.skip_bad = bool(skip_bad)
@@ -59,7 +64,8 @@ class BadInputPolicy:
     def report(self, image_id: str | None, path: str, reason: str, fix: str = "", options: tuple[Option, ...] = ()
                ) -> None:
         """Refuse ``path`` (``path: reason (fix; hint)``) or, with ``skip_bad``, list it with ``reason``;
-        ``fix`` names ``options`` that would let the file in."""
+        ``fix`` names ``options`` that would let the file in.
+        """
         msg = f"{path}: {reason}" if not reason.startswith(str(path)) else reason
         if not self.skip_bad:
             opts = (*options, *self.hint_options)
@@ -75,7 +81,8 @@ class BadInputPolicy:
 
     def report_scan(self, found) -> None:
         """:meth:`report` the bad entries of a :class:`pipeline.datasets.scan.Inputs` and :meth:`record` its
-        unused files, each under its id in ``found.root`` (:func:`relative_id`)."""
+        unused files, each under its id in ``found.root`` (:func:`relative_id`).
+        """
         for tell, entries in ((self.report, found.skipped), (self.record, found.unused)):
             for path, reason in entries:
                 tell(relative_id(found.root, path), path, reason)
@@ -125,7 +132,8 @@ def drop_duplicate_ids(rows: pd.DataFrame, policy: BadInputPolicy) -> pd.DataFra
 
 def relative_id(root: Path, path: str | Path) -> str:
     """The image id of ``path``: its posix path relative to ``root`` without the suffix, or its stem outside
-    ``root``."""
+    ``root``.
+    """
     try:
         return Path(path).relative_to(root).with_suffix("").as_posix()
     except ValueError:
@@ -143,7 +151,8 @@ def spacecraft_split_violations(rows: pd.DataFrame) -> dict[str, list[str]]:
 
 def enforce_spacecraft_disjoint(rows: pd.DataFrame, policy: BadInputPolicy) -> pd.DataFrame:
     """Error on a spacecraft in two splits; with skip_bad keep it only in its highest-priority split
-    (test > val > train: the evaluation groups are the protocol's fixed sets)."""
+    (test > val > train: the evaluation groups are the protocol's fixed sets).
+    """
     bad = spacecraft_split_violations(rows)
     if not bad:
         return rows

@@ -1,5 +1,8 @@
-"""The prepare stage's work without the CLI: a dataset -> manifest.parquet, images.zarr, reference.zarr,
-skipped_files.parquet and the contact sheet (eq:spacecraft-disjoint where the protocol requires it)."""
+"""The prepare stage's work without the CLI: a dataset to the prepared artifacts.
+
+It writes manifest.parquet, images.zarr, reference.zarr, skipped_files.parquet and the contact sheet, with
+eq:spacecraft-disjoint checked where the protocol requires it.
+"""
 
 from __future__ import annotations
 
@@ -23,6 +26,8 @@ from pipeline.datasets.params import fingerprint_params
 from pipeline.datasets.synthetic import PART_NAMES
 from pipeline.runtime.progress import progress
 
+__all__ = ["prepare"]
+
 #: the reference artifact's note: what its masks may be used for
 REFERENCE_NOTE = ("reference masks: checkpoint selection, calibration, evaluation and the simulated teacher only "
                   "-- never a training loss")
@@ -38,8 +43,23 @@ class Prepared:
 
 
 def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
-    """Every prepare artifact under ``out`` from the validated ``data:`` section ``cfg``, each stamped by
-    ``meta(schema, params=..., **extra)`` with params = the data params, the protocol applied, the files' content."""
+    """Write every prepare artifact under ``out`` from the validated ``data:`` section ``cfg``.
+
+    Parameters
+    ----------
+    cfg : dict
+        The validated ``data:`` section.
+    out : str or Path
+        The artifacts folder.
+    meta : Callable[..., Meta]
+        Stamps each artifact: called as ``meta(schema, params=..., **extra)`` with params = the data params, the
+        protocol applied and the files' content digest.
+
+    Returns
+    -------
+    Prepared
+        The manifest rows, the bad-file policy's record and the decode cache.
+    """
     out = Path(out)
     size = cfg["resolution"]
     cache = DecodeCache(cfg["cache_dir"])
@@ -81,7 +101,7 @@ def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
 
 
 def write_contact_sheet(path: Path, rows: pd.DataFrame, spec, cfg: dict, cache: DecodeCache) -> None:
-    """The contact sheet PNG: ``data.contact_sheet_images`` seeded picks, each with its mask outline."""
+    """Write the contact sheet PNG: ``data.contact_sheet_images`` seeded picks, each with its mask outline."""
     size = cfg["resolution"]
     pick = sample_for_sheet(rows, cfg["contact_sheet_images"], cfg["seed"])
     tsize = max(size, 192)

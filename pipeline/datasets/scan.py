@@ -1,5 +1,7 @@
-"""The one folder scan of label, distill / prepare (folder source) and segment (docs/own-data.md):
-recursive, never following links out of the folder."""
+"""The one folder scan of label, distill / prepare (folder source) and segment (docs/own-data.md).
+
+Recursive, never following links out of the folder.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +10,8 @@ import os
 from pathlib import Path
 
 from pipeline.runtime.errors import InputError
+
+__all__ = ["scan_inputs"]
 
 
 @dataclasses.dataclass
@@ -20,9 +24,29 @@ class Inputs:
 
 
 def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> Inputs:
-    """The images under ``input_path`` (a file: as given); hidden entries and non-images are ``unused``, bad
-    ones ``skipped``: links leaving the folder or to folders, special files, broken links (unless
-    ``keep_broken_links``: in ``files``, for the caller's decode pass to report)."""
+    """List the images under ``input_path`` (a file: as given), sorting out the entries that are not.
+
+    Hidden entries and non-images are ``unused``; bad ones are ``skipped``: links leaving the folder or to
+    folders, special files, broken links.
+
+    Parameters
+    ----------
+    input_path : str or Path
+        An image file or a folder.
+    keep_broken_links : bool
+        Put broken links in ``files`` instead, for the caller's decode pass to report.
+
+    Returns
+    -------
+    Inputs
+        The folder (or the file's parent), the image files sorted, the skipped and unused entries with their
+        reasons, and whether ``input_path`` is a folder.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        ``input_path`` does not exist.
+    """
     from pipeline.datasets.loading import SUPPORTED_SUFFIXES, broken_link_reason
 
     p = Path(input_path)

@@ -14,6 +14,11 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from pipeline.params import PAPER
+
+__all__ = ["PART_NAMES", "stable_hash", "make_spacecraft", "sample_view", "rasterize", "synthetic_plan", "view_rng",
+           "generate_view"]
+
 PART_BACKGROUND, PART_BUS, PART_PANEL, PART_BOOM, PART_DISH, PART_PAYLOAD = range(6)
 PART_NAMES = ("background", "bus", "panel", "antenna/boom/truss", "dish", "payload")
 
@@ -313,10 +318,11 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
-def sample_view(rng: np.random.Generator, *, tiny_range: Sequence[float] = (3e-4, 2e-3),
-                regular_range: Sequence[float] = (5e-3, 0.6), tiny_probability: float = 0.15,
-                hard_case_probability: float = 0.35,
-                background_weights: Sequence[float] = (0.45, 0.35, 0.2)) -> ViewSpec:
+def sample_view(rng: np.random.Generator, *, tiny_range: Sequence[float] = PAPER.data.synthetic.tiny_range,
+                regular_range: Sequence[float] = PAPER.data.synthetic.regular_range,
+                tiny_probability: float = PAPER.data.synthetic.tiny_probability,
+                hard_case_probability: float = PAPER.data.synthetic.hard_case_probability,
+                background_weights: Sequence[float] = PAPER.data.synthetic.background_weights) -> ViewSpec:
     """Draw a view: rotation, sun, apparent size, background, hard case.
 
     Apparent size (the projected solid parts' convex hull over the frame) is log-uniform in ``tiny_range``

@@ -1,5 +1,6 @@
 """Threshold diagnostics: the pixel reliability diagram and ECE of P = sigmoid(Z), the predicted over
-reference foreground area across tau, and the target size classes."""
+reference foreground area across tau, and the target size classes.
+"""
 
 from __future__ import annotations
 
@@ -10,11 +11,15 @@ import numpy as np
 from pipeline.runtime.errors import InputError
 from pipeline.metrics import threshold_counts
 
+__all__ = ["reliability_bins", "expected_calibration_error", "area_ratio_curve", "median_area_ratio",
+           "target_fractions", "target_size_class"]
+
 
 @dataclasses.dataclass(frozen=True)
 class Reliability:
     """A reliability diagram: per bin the mean P (``confidence``), the reference-foreground fraction
-    (``frequency``; both NaN when empty) and the pixel ``count``; ``edges`` [B+1]."""
+    (``frequency``; both NaN when empty) and the pixel ``count``; ``edges`` [B+1].
+    """
 
     edges: np.ndarray
     confidence: np.ndarray
@@ -24,7 +29,8 @@ class Reliability:
 
 def reliability_bins(probs, gts, n_bins: int = 10, *, chunk: int = 16) -> Reliability:
     """Reliability diagram of ``probs`` [N,H,W] in [0, 1] against ``gts`` in ``n_bins`` equal-width bins (P = 1 in
-    the last), ``chunk`` images at a time."""
+    the last), ``chunk`` images at a time.
+    """
     p_all, g_all = np.asarray(probs), np.asarray(gts, dtype=bool)
     if p_all.shape != g_all.shape or p_all.ndim != 3:
         raise InputError(f"probs {p_all.shape} and gts {g_all.shape} must be equal [N,H,W] shapes")
@@ -63,7 +69,8 @@ def expected_calibration_error(confidence, frequency, count) -> float:
 
 def area_ratio_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
     """|[P >= tau]| / |G| (eq:inference-mask) for every image and tau of ``grid`` -> float64 [N, G]; NaN where
-    the reference is empty."""
+    the reference is empty.
+    """
     n_pred, _, n_ref = threshold_counts(probs, gts, grid, chunk=chunk)
     ref = n_ref[:, None]
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -1,5 +1,6 @@
 """The evaluation on the test split: every run's per-image scores at its calibrated and the fixed tau,
-the seed summaries, and the gains over the method table's reference points (the ``evaluate`` stage's logic)."""
+the seed summaries, and the gains over the method table's reference points (the ``evaluate`` stage's logic).
+"""
 
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ from pipeline.metrics import score_masks, scoring_reference
 from pipeline.runtime.progress import progress
 from pipeline.stats import DEFAULT_INTERVAL, method_gains, seed_summary, vs_column
 from pipeline.thresholds import mask_from_probs, tau_candidates
+
+__all__ = ["score_runs", "summarize"]
 
 GAIN_METRICS = ("iou", "bf1", "precision", "recall")
 SUMMARY_METRICS = ("iou", "bf1", "precision", "recall", "area_ratio", "small_iou", "area_vs_reference")
@@ -99,7 +102,8 @@ def control_gains(metrics: pd.DataFrame, control: str, n_boot: int, ci: float, s
 
 def summarize(metrics: pd.DataFrame, n_boot: int, ci: float, seed: int, interval: str = DEFAULT_INTERVAL) -> pd.DataFrame:
     """summary.parquet: the seed summary with the gains over BASELINE (always) and over every other evaluated
-    reference point (:func:`pipeline.stats.vs_column`)."""
+    reference point (:func:`pipeline.stats.vs_column`).
+    """
     summary = seed_summary(metrics, SUMMARY_BY, SUMMARY_METRICS)
     present = set(metrics["method"])
     for control in GAIN_CONTROLS:

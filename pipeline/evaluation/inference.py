@@ -1,5 +1,6 @@
 """Student checkpoints (saving, loading, the runs under ``checkpoints/``), batched inference of the mask
-path, and the validation images a run reads."""
+path, and the validation images a run reads.
+"""
 
 from __future__ import annotations
 
@@ -12,8 +13,13 @@ from pipeline import catalog
 from pipeline.artifacts.lineage import make_meta, require_same_run
 from pipeline.artifacts.store import Artifact, artifact_dir, open_artifact, read_chunk_rows, write_parquet
 from pipeline.catalog import META_FILE, TRAINING_LOG_FILE
+from pipeline.params import PAPER
 from pipeline.runtime.device import autocast, autocast_dtype
 from pipeline.runtime.errors import ArtifactError, InputError
+
+__all__ = ["iter_runs", "load_student", "images_to_tensor", "predict_probs", "save_checkpoint", "open_labelled_split",
+           "REVIEW_MODE_KEY", "CORRECTED_VALIDATION", "validation_corrections", "require_mode",
+           "corrected_validation", "with_validation_corrections", "active_runs"]
 
 
 def iter_runs(checkpoints_dir: str | Path) -> Iterator[tuple[str, int, Path]]:
@@ -57,7 +63,7 @@ def images_to_tensor(images: np.ndarray):
 
 
 def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: str = "fp32",
-                  channels_last: bool = True) -> np.ndarray:
+                  channels_last: bool = PAPER.train.channels_last) -> np.ndarray:
     """P = sigmoid(Z) float32 [N,H,W] of uint8 images [N,H,W,3] (an array or a zarr, read a batch at a time)."""
     import torch
 
@@ -79,7 +85,8 @@ def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: 
 
 def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
     """Write a checkpoint directory atomically (``meta``: its schema ``checkpoint`` metadata); ``payload`` adds
-    JSON fields to model.json (method, seed, stage, ...)."""
+    JSON fields to model.json (method, seed, stage, ...).
+    """
     from pipeline.artifacts.weights import write_weights
 
     geo = model.geometry_heads.state_dict() if getattr(model, "geometry_heads", None) is not None else None
@@ -93,7 +100,8 @@ def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
 
 def open_labelled_split(artifacts: str | Path, split: str, purpose: str, allow_empty: bool = False):
     """``(manifest, images, reference, indices)``: the ``split`` rows with a reference mask; InputError when
-    there are none (``purpose`` completes the message) unless ``allow_empty``."""
+    there are none (``purpose`` completes the message) unless ``allow_empty``.
+    """
     manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
     images = open_artifact(catalog.path("images", artifacts), "images")
     reference = open_artifact(catalog.path("reference", artifacts), "reference")

@@ -33,6 +33,8 @@ from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.jobs import in_view
 from pipeline.teachers.runner import open_runner
 
+__all__ = ["OUTPUTS", "SIMULATOR_NOTE", "find_images", "check_label_folder", "LabelJob", "open_folder"]
+
 log = logging.getLogger("pipeline.labeling.run")  # label's one logger: callers listen to it
 
 OUTPUTS = output_names("label")

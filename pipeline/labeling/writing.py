@@ -31,6 +31,8 @@ from pipeline.labeling.formats import (LABEL_FORMATS, LabelFormat, coco_annotati
 from pipeline.labeling.reading import OUTPUTS, SIMULATOR_NOTE, LabelJob
 from pipeline.pseudo_labels import Gates, gate_columns
 
+__all__ = ["write_votes", "write_outputs"]
+
 log = logging.getLogger("pipeline.labeling.run")  # label's one logger: callers listen to it
 
 

@@ -1,5 +1,6 @@
 """The DVC DAG, derived rather than typed: dvc.yaml from the catalogue, the method table and the stages'
-imports (one ``train_<method>`` stage per method, active runs only), and params.yaml for a profile."""
+imports (one ``train_<method>`` stage per method, active runs only), and params.yaml for a profile.
+"""
 
 from __future__ import annotations
 
@@ -16,6 +17,9 @@ from pipeline.methods import METHODS, STAGE_ONE, input_artifacts, param_keys
 from pipeline.params import Params, deep_merge, get_path, unresolved, validate
 from pipeline.profiles import profile_params
 
+__all__ = ["stage_modules", "live_plots", "render_dvc_yaml", "project_dvc_yaml", "is_generated_params",
+           "render_params_yaml"]
+
 
 def _fill(template: str) -> str:
     """Replace ``{artifact}`` placeholders by catalogue paths; ``${...}`` stays a DVC template."""
@@ -31,7 +35,8 @@ def _paths(names) -> list[str]:
 def _stage_entry(spec, matrix: dict | None = None, code_root: Path | None = None,
                  data_deps: dict[str, list[str]] | None = None) -> dict:
     """The dvc.yaml entry of a stage: code deps, data deps, input artifacts; params; outs and metrics (those
-    outside artifacts/ uncached, so git tracks them).  ``data_deps`` ({stage: paths}) replace the spec's."""
+    outside artifacts/ uncached, so git tracks them).  ``data_deps`` ({stage: paths}) replace the spec's.
+    """
     entry: dict[str, Any] = {"matrix": matrix} if matrix else {}
     entry["cmd"] = f"python -m {spec.module} {_fill(spec.args)}"
     own_data = list(spec.data_deps) if data_deps is None else list(data_deps.get(spec.name, []))
@@ -70,7 +75,8 @@ def stage_modules() -> dict[str, str]:
 
 def train_stage(method_name: str, code_root: Path | None = None, seeds: list[int] | None = None) -> dict:
     """The ``train_<method>`` matrix stage over ``protocol.runs.<method>`` (``seeds`` None), or one stage
-    training ``seeds`` in one process, each seed with its own outs."""
+    training ``seeds`` in one process, each seed with its own outs.
+    """
     m = METHODS[method_name]
     items = ["${item.seed}"] if seeds is None else [str(s) for s in seeds]
     outs = [dvc_path("checkpoint", method=m.name, seed=s) for s in items]
@@ -92,7 +98,8 @@ SEEDS_PER_STAGE_KEY = "protocol.seeds_per_stage"
 
 def train_stage_name(method_name: str, seeds: list[int] | None = None, all_seeds: list[int] | None = None) -> str:
     """``train_<method>`` for the matrix stage or a group of all the method's seeds, else
-    ``train_<method>-<seed>-<seed>...``."""
+    ``train_<method>-<seed>-<seed>...``.
+    """
     if seeds is None or all_seeds is None or list(seeds) == list(all_seeds):
         return f"train_{method_name}"
     return f"train_{method_name}-" + "-".join(str(s) for s in seeds)
@@ -100,7 +107,8 @@ def train_stage_name(method_name: str, seeds: list[int] | None = None, all_seeds
 
 def seed_groups(params: dict | None) -> dict[str, list[list[int]]] | None:
     """{method: its seeds in groups of ``protocol.seeds_per_stage``} from params.yaml as read; None when
-    the key is 1 or absent (one templated stage per run)."""
+    the key is 1 or absent (one templated stage per run).
+    """
     protocol = (params or {}).get("protocol") or {}  # unvalidated: params.yaml as read
     per_stage = protocol.get(SEEDS_PER_STAGE_KEY.split(".")[-1]) or 1
     if per_stage <= 1:

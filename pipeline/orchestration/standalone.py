@@ -1,6 +1,7 @@
 """``geodistill distill``: a folder of images in, a trained student, deploy bundle and report out, by running
 the same DAG in a DVC project of its own in the output folder (docs/own-data.md: what it writes, git,
-validation masks, ``--labels``)."""
+validation masks, ``--labels``).
+"""
 
 from __future__ import annotations
 
@@ -34,6 +35,9 @@ from pipeline.artifacts.ownership import check_outputs, record_fields, refuse_fo
 from pipeline.params import deep_merge, read_yaml_mapping
 from pipeline.runtime.progress import QUIET_ENV, bars_quiet
 from pipeline.teacher_table import is_simulator
+
+__all__ = ["write_project", "run_project", "project_outputs", "efficiency_line", "training_line",
+           "time_budget_params"]
 
 log = logging.getLogger(__name__)
 
@@ -216,7 +220,8 @@ def refuse_foreign_outputs(out: str | Path) -> None:
 
 def git_outputs(out: Path) -> tuple[str, ...]:
     """:data:`GIT_OUTPUTS` when ``out`` is to become a new git project (git installed, no .dvc, .git or
-    .gitignore there), else ()."""
+    .gitignore there), else ().
+    """
     if shutil.which("git") is None or any((Path(out) / f).exists() for f in (".dvc", *GIT_OUTPUTS)):
         return ()
     return GIT_OUTPUTS
@@ -250,7 +255,8 @@ _DVC_ERROR = re.compile(r"^ERROR: ")
 
 def run_project(out: str | Path, device: str = "auto", quiet: bool = False) -> None:
     """``dvc repro`` in the project ``out``, its output streamed.  A failed stage's own one-line error is
-    raised once as an InputError in the caller's terms, instead of DVC's "failed to reproduce"."""
+    raised once as an InputError in the caller's terms, instead of DVC's "failed to reproduce".
+    """
     out = Path(out)
     env = _env(device)
     if quiet:
@@ -301,7 +307,8 @@ MIN_VOTE_IOU = 0.05
 
 def efficiency_line(out: str | Path) -> str | None:
     """The deployed student's distillation efficiency ("0.93 × the teacher vote's Image IoU") per group, from
-    the report's ``metrics_efficiency`` files; None without them (no masks)."""
+    the report's ``metrics_efficiency`` files; None without them (no masks).
+    """
     out = Path(out)
     art = out / catalog.ARTIFACTS_DIR
     method = str((read_yaml_mapping(out / PARAMS_FILE).get("deploy") or {}).get("export_method", PROPOSED))
@@ -364,7 +371,8 @@ def _metric(path: Path, key: str) -> float | None:
 def time_budget_params(params: dict, time_budget: str | None, out: str | Path, device: str = "auto",
                        input_dir: str | Path | None = None, val_masks: str | Path | None = None) -> dict:
     """``params`` with ``--time`` as Stage I's step budget, reusing what ``out`` recorded for the same time; the
-    steps are priced over the training images of ``input_dir`` (:func:`pipeline.training.budget.training_images`)."""
+    steps are priced over the training images of ``input_dir`` (:func:`pipeline.training.budget.training_images`).
+    """
     if time_budget is None:
         return params
     previous = read_yaml_mapping(Path(out) / PARAMS_FILE) if (Path(out) / PARAMS_FILE).is_file() else None

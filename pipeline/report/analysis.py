@@ -1,6 +1,7 @@
 """Teacher, gate, diagnostics and noise-floor analyses for the report: pure functions on DataFrames.  The
 teacher table (``teacher_metrics.parquet``) has a row per image and source: ``prompt_<k>``, ``vote``
-(eq:majority-vote) or ``val_selected`` (the prompt chosen on the validation split)."""
+(eq:majority-vote) or ``val_selected`` (the prompt chosen on the validation split).
+"""
 
 from __future__ import annotations
 
@@ -13,6 +14,10 @@ import pandas as pd
 from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, SUPERVISED_CEILING
 from pipeline.stats import (GAIN_SUPPORTED, LOSS_SUPPORTED, NO_DIFFERENCE, NOT_ESTIMATED, ONE_SEED, claim_status,
                             paired_seed_t_interval, seed_summary, spearman, vs_column)
+
+__all__ = ["prompt_source", "select_prompt", "teacher_prompt_quality", "teacher_domain_quality", "gate_analysis",
+           "teacher_vote_means", "epoch_swings", "size_split", "tau_text", "PRIMARY_ENDPOINT", "fixed_tau_findings",
+           "noise_floor_records", "noise_floor_key", "select_noise_floor", "gain_noise_floor", "noise_floor_note"]
 
 METRICS = ("iou", "bf1", "precision", "recall")
 
@@ -40,7 +45,8 @@ def teacher_prompt_quality(tm: pd.DataFrame, group: str, base_source: str, selec
                            prompts: list[str] | None = None) -> pd.DataFrame:
     """Paper Table teacher-prompt-quality for one group: base prompt, validation-selected prompt, mean ± std
     over the K separately evaluated prompts (not a fusion), K-prompt vote; columns config, <metric>,
-    <metric>_std (the mean row only), n."""
+    <metric>_std (the mean row only), n.
+    """
     g = tm[tm["group"] == group]
     srcs = prompt_sources(tm)
 
@@ -69,7 +75,8 @@ def teacher_prompt_quality(tm: pd.DataFrame, group: str, base_source: str, selec
 
 def teacher_domain_quality(tm: pd.DataFrame, source: str = "vote", split: str = "test") -> pd.DataFrame:
     """Paper Table teacher-domain-quality: mean metrics of ``source`` per dataset / domain / group of ``split``,
-    plus an ``all`` row per dataset/domain with several groups."""
+    plus an ``all`` row per dataset/domain with several groups.
+    """
     sub = tm[(tm["source"] == source) & (tm["split"] == split)]
     per = _means(sub, ["dataset", "domain", "group"], sort=True).reset_index()
     pooled = _means(sub, ["dataset", "domain"], sort=True)
@@ -88,7 +95,8 @@ def gate_analysis(tm: pd.DataFrame, gates: pd.DataFrame, group: str | None = Non
                   split: str = "test") -> dict:
     """Spearman rho (and p) between the gate g and the vote's Image IoU / Boundary F1 on one group (None: all
     of ``split``), and the g = 0 against g > 0 table: {"group", "n", "rho_iou", "p_iou", "rho_bf1", "p_bf1",
-    "table": DataFrame[state, images, iou, bf1]}."""
+    "table": DataFrame[state, images, iou, bf1]}.
+    """
     v = tm[(tm["source"] == "vote") & (tm["split"] == split)]
     if group is not None:
         v = v[v["group"] == group]
@@ -110,7 +118,8 @@ def teacher_vote_means(tm: pd.DataFrame, split: str = "test") -> pd.DataFrame:
 def epoch_swings(logs: pd.DataFrame) -> pd.DataFrame:
     """Per (method, stage): the largest (with its seed and epoch) and the median change of validation Image
     IoU between adjacent epochs of a run, at the fixed tau and at each epoch's calibrated tau, and that
-    tau's range."""
+    tau's range.
+    """
     rows = []
     has_cal = "val_iou_cal" in logs.columns
     for (method, stage), part in logs.groupby(["method", "stage"], sort=False):
@@ -400,7 +409,8 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
                        ceiling: str = SUPERVISED_CEILING, label=lambda m: m, noise_floor: dict | None = None,
                        fixed_tau: float | None = None) -> list[str]:
     """What the diagnostics show about the fixed-tau reversal, in sentences whose every verdict compares the
-    numbers it quotes: one finding per ``_*_finding(s)`` function, where its inputs exist."""
+    numbers it quotes: one finding per ``_*_finding(s)`` function, where its inputs exist.
+    """
     c = _Cast(treatment, control, continuation, ceiling, list(groups), label, tau_text(fixed_tau), label(treatment),
               label(control), label(continuation))
     thresholds_out, tau_t, tau_c = _threshold_findings(thresholds, c)
@@ -417,7 +427,7 @@ NOISE_FLOOR_NOT_MEASURED = ("noise floor not measured in this report's configura
 
 
 def noise_floor_records(doc: dict | None) -> dict[str, dict]:
-    """key -> record of a noise-floor file (a former single-record file: the record of its ``info.recipe``)."""
+    """Key -> record of a noise-floor file (a former single-record file: the record of its ``info.recipe``)."""
     if not doc:
         return {}
     if "numbers" in doc:
@@ -435,7 +445,8 @@ def noise_floor_key(recipe: str, profile: str | None = None, resolution: int | N
 def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | None = None,
                        profile: str | None = None) -> dict | None:
     """The record of ``doc`` measured in the report's own configuration (recipe, resolution, profile; an
-    unknown side is not compared), with ``applies_to``; None when there is none or ``recipe`` is None."""
+    unknown side is not compared), with ``applies_to``; None when there is none or ``recipe`` is None.
+    """
     if recipe is None:
         return None
     for key, rec in noise_floor_records(doc).items():

@@ -1,5 +1,6 @@
 """Gather the evaluation artifacts into one :class:`Report` and the plot tables DVC shows; a missing input
-never fails the report: its section names the stage that produces it."""
+never fails the report: its section names the stage that produces it.
+"""
 
 from __future__ import annotations
 
@@ -30,6 +31,8 @@ from pipeline.report.environment import environment_section, opened_runs, traini
 from pipeline.report.glossary import glossary_section
 from pipeline.teacher_table import find_teacher, is_simulator
 from pipeline.thresholds import mask_from_probs
+
+__all__ = ["MASK_INPUTS", "vote_means", "build_report"]
 
 #: the figures' file names (pipeline.catalog.OUTPUT_FILES)
 FIGURES = catalog.output_names("report_figures")
@@ -225,7 +228,8 @@ def _student_masks(inp: Inputs, methods, seed: int, images: np.ndarray, tau, dev
 
 def _section(title: str, needs: tuple[str, ...] = ()):
     """Make a function that returns a section's blocks return the :class:`Section` ``title`` of them; without
-    an input of ``needs``, the section holds :meth:`Inputs.need`'s notes instead."""
+    an input of ``needs``, the section holds :meth:`Inputs.need`'s notes instead.
+    """
     def decorate(blocks):
         @functools.wraps(blocks)
         def section(inp: Inputs, *args, **kwargs) -> Section:
@@ -314,7 +318,8 @@ def ordered_groups(inp: Inputs, present) -> list[str]:
 @_section("Controls and threshold diagnostics")
 def diagnostics_section(inp: Inputs, plots: dict) -> list:
     """Controls and threshold/calibration diagnostics: the fixed-tau reversal, the budget-matched control,
-    calibration, per-epoch stability, target size."""
+    calibration, per-epoch stability, target size.
+    """
     if inp.no_masks:
         return [Text(NOT_COMPUTED)]
     s, thr, m = inp.get("summary"), inp.get("thresholds"), inp.get("metrics")
@@ -493,7 +498,8 @@ def training_section(inp: Inputs, plots: dict) -> list:
 def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str = PROPOSED,
                         control: str = BASELINE) -> list:
     """Paper Fig. qualitative-results: control vs treatment on the first test group, same seed, calibrated
-    thresholds; images evenly spaced by rank of the per-image IoU gain, from the largest gain to the largest loss."""
+    thresholds; images evenly spaced by rank of the per-image IoU gain, from the largest gain to the largest loss.
+    """
     if inp.no_masks:
         return pseudo_label_panels(inp, n_images, device, (control, treatment))
     if miss := inp.need("metrics", "thresholds", "images", "reference", "manifest"):
@@ -543,7 +549,8 @@ def gate_extremes(g: np.ndarray, n_images: int) -> np.ndarray:
 def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu",
                         methods: tuple[str, ...] = (BASELINE, PROPOSED)) -> list:
     """Without any mask: the students' masks beside their pseudo-labels (the vote M) for the lowest- and the
-    highest-gate training images (:func:`gate_extremes`), at each run's fixed tau; agreement, not accuracy."""
+    highest-gate training images (:func:`gate_extremes`), at each run's fixed tau; agreement, not accuracy.
+    """
     if miss := inp.need("thresholds", "images", "consensus", "gates", "manifest"):
         return miss
     thr = inp.get("thresholds").df

@@ -1,6 +1,7 @@
 """A tiny document model (sections of text, tables, figures, "missing input" notes) rendered to
 Markdown and to ONE self-contained HTML page (CSS inline, figures as base64 PNG data URIs, no
-scripts, no external requests)."""
+scripts, no external requests).
+"""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ import dataclasses
 import html
 import re
 from typing import Union
+
+__all__ = ["Text", "Table", "Figure", "Missing", "Section", "Report", "render_markdown", "render_html"]
 
 
 @dataclasses.dataclass

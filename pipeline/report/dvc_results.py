@@ -1,5 +1,6 @@
 """Results where DVC users look for them: short numeric metrics files (a few shared keys each, so ``dvc metrics
-show`` stays narrow), per-method plot tables and DVCLive training logs (docs/pipeline.md)."""
+show`` stays narrow), per-method plot tables and DVCLive training logs (docs/pipeline.md).
+"""
 
 from __future__ import annotations
 
@@ -13,6 +14,11 @@ import pandas as pd
 
 from pipeline.artifacts.atomic import atomic_path, write_json
 from pipeline.methods import BASELINE, PROPOSED, SUPERVISED_CEILING
+from pipeline.params import PAPER
+
+__all__ = ["path_component", "student_metric_files", "teacher_metric_files", "seed_ratio", "distillation_efficiency",
+           "EFFICIENCY_TARGETS", "efficiency_target_met", "efficiency_metric_files", "deploy_metrics",
+           "training_curves", "threshold_curves", "write_metrics_dir", "write_csv", "write_live_log"]
 
 DECIMALS = 4  # a 1e-4 change of a mean IoU is below any effect we report
 PLOT_DECIMALS = 6  # finer than a pixel at any plot size
@@ -69,7 +75,8 @@ def student_metric_files(summary: pd.DataFrame) -> dict[str, dict[str, float]]:
 def teacher_metric_files(teacher_table: pd.DataFrame, gates: pd.DataFrame,
                          split: str = "test") -> dict[str, dict[str, float]]:
     """``{"<group>.json": {"iou", "bf1", "gate_share"}}`` per group of ``split``: the voted pseudo-masks'
-    (eq:majority-vote) mean scores and the share of the group's images with g > 0 (eq:reliability-gate)."""
+    (eq:majority-vote) mean scores and the share of the group's images with g > 0 (eq:reliability-gate).
+    """
     vote = teacher_table[(teacher_table["source"] == "vote") & (teacher_table["split"] == split)]
     dirs = _group_dirs(vote)
     g = gates.drop_duplicates("image_id").set_index("image_id")["g"]
@@ -83,10 +90,11 @@ def teacher_metric_files(teacher_table: pd.DataFrame, gates: pd.DataFrame,
 
 
 def seed_ratio(mean: float, std: float, n: int, ref_mean: float, ref_std: float = 0.0, ref_n: int | None = None,
-               ci: float = 0.95) -> tuple[float, float, float]:
+               ci: float = PAPER.evaluate.ci) -> tuple[float, float, float]:
     """(ratio, low, high) of two seed means, r = mean / ref_mean, with the delta-method t interval
     r -+ t_{d, (1+ci)/2} sqrt(std^2 / n + r^2 ref_std^2 / ref_n) / ref_mean, d = min(n, ref_n) - 1;
-    a reference without seeds (``ref_n`` None, e.g. the teacher vote) adds no variance.  nan interval below 2 seeds."""
+    a reference without seeds (``ref_n`` None, e.g. the teacher vote) adds no variance.  nan interval below 2 seeds.
+    """
     nan = float("nan")
     ref, mean = float(ref_mean), float(mean)
     if not (math.isfinite(ref) and math.isfinite(mean)) or ref <= 0:
@@ -103,9 +111,10 @@ def seed_ratio(mean: float, std: float, n: int, ref_mean: float, ref_std: float 
 
 
 def distillation_efficiency(student_mean: float, student_std: float, n_seeds: int, vote_iou: float,
-                            ci: float = 0.95) -> tuple[float, float, float]:
+                            ci: float = PAPER.evaluate.ci) -> tuple[float, float, float]:
     """Distillation efficiency = student Image IoU / teacher-vote Image IoU, as (ratio, low, high):
-    :func:`seed_ratio` against the vote, which has no seed."""
+    :func:`seed_ratio` against the vote, which has no seed.
+    """
     return seed_ratio(student_mean, student_std, n_seeds, vote_iou, ci=ci)
 
 
@@ -125,7 +134,8 @@ def efficiency_target_met(method: str, ratio: float, low: float) -> bool | None:
 
 def efficiency_metric_files(summary: pd.DataFrame, vote: Mapping[str, float]) -> dict[str, dict[str, float]]:
     """``{"<group>/<method>.json": {"efficiency"}}``: every method's :func:`distillation_efficiency` ratio at
-    the calibrated tau on the groups in ``vote`` (group -> the vote's Image IoU); the interval stays in the report."""
+    the calibrated tau on the groups in ``vote`` (group -> the vote's Image IoU); the interval stays in the report.
+    """
     def efficiency(r):
         if str(r["group"]) not in vote:
             return None
@@ -184,7 +194,8 @@ LIVE_SKIP = ("epoch", "stage")
 
 def write_live_log(log, directory: str | Path, selected_epoch: int | None = None) -> Path:
     """Log the run's epoch rows with DVCLive into ``directory`` (replaced atomically): step = ``epoch``, every
-    other finite numeric column a metric, no experiment and no dvc.yaml (the DVC stage is the experiment)."""
+    other finite numeric column a metric, no experiment and no dvc.yaml (the DVC stage is the experiment).
+    """
     from dvclive import Live
 
     logging.getLogger("dvclive").setLevel(logging.WARNING)  # its INFO line names a random experiment

@@ -1,5 +1,6 @@
 """The report's "Environment" section and ``environment.json``: the machine that built the report and where
-each training run ran (provenance only; nothing here is fingerprinted)."""
+each training run ran (provenance only; nothing here is fingerprinted).
+"""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ from pipeline.artifacts.store import open_artifact
 from pipeline.runtime.errors import ArtifactError
 from pipeline.evaluation.inference import iter_runs
 from pipeline.report.document import Section, Table, Text
+
+__all__ = ["opened_runs", "training_runs", "environment_record", "environment_section"]
 
 #: ``extra.autocast`` of a checkpoint -> the precision as the report names it
 PRECISION_TEXT = {"bfloat16": "bf16 autocast", "float16": "fp16 autocast", "fp32": "fp32"}
@@ -33,7 +36,8 @@ def opened_runs(checkpoints: str | Path) -> list:
 
 def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
     """One record per active run: method, seed, ``recipe`` (train.recipe), ``precision`` (the autocast it used),
-    ``runtime`` (``extra.runtime``, None before it was recorded) and ``torch``."""
+    ``runtime`` (``extra.runtime``, None before it was recorded) and ``torch``.
+    """
     # unvalidated: the params each run recorded (a run before train.recipe has none)
     return [{"method": method, "seed": int(seed), "recipe": (c.meta.params.get("params") or {}).get("train.recipe"),
              "precision": (c.meta.extra or {}).get("autocast"), "runtime": (c.meta.extra or {}).get("runtime"),

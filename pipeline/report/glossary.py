@@ -1,11 +1,15 @@
-"""The report's glossary: the terms its tables and sentences use, each in one or two plain sentences,
-written once here and rendered as the report's "Terms used in this report" section."""
+"""The report's glossary: the terms its tables and sentences use, each in one or two plain sentences.
+
+Written once here and rendered as the report's "Terms used in this report" section.
+"""
 
 from __future__ import annotations
 
 from pipeline.methods import method_label
 from pipeline.report.analysis import PRIMARY_ENDPOINT
 from pipeline.report.document import Section, Table
+
+__all__ = ["glossary_section"]
 
 _E = PRIMARY_ENDPOINT
 
@@ -33,6 +37,12 @@ TERMS = (
 
 
 def glossary_section() -> Section:
-    """The report's glossary (:data:`TERMS`) as one two-column table."""
+    """Render the report's glossary (:data:`TERMS`) as one two-column table.
+
+    Returns
+    -------
+    Section
+        The "Terms used in this report" section.
+    """
     return Section("Terms used in this report",
                    [Table("tab:glossary", "Terms", ["Term", "Meaning"], [[t, m] for t, m in TERMS])])

@@ -17,6 +17,11 @@ from pipeline.report.document import Table
 from pipeline.stats import (ALPHA, DEFAULT_INTERVAL, INTERVAL_TEXT, NOT_ESTIMATED, SEED_BOOTSTRAP, claim_status,
                             holm_adjust, vs_column)
 
+__all__ = ["ABLATIONS", "human_trained", "label", "spacecraft_per_group", "results_table", "diagnostics_table",
+           "thresholds_table", "ablation_means", "warm_start_table", "component_table", "teacher_prompt_table",
+           "teacher_domain_table", "gate_table", "efficiency_table", "controls_table", "reference_points_table",
+           "calibration_table", "epoch_swing_table", "size_split_table"]
+
 #: the main comparison's rows: every annotation-free method but the ablations, in table order
 MAIN_ORDER = in_table_order(n for n in annotation_free_methods(METHODS) if METHODS[n].role != "ablation")
 WARM_START_ROWS = ablation_table_rows("warm_start")
@@ -47,7 +52,8 @@ _DEPARTURES: contextvars.ContextVar[Mapping] = contextvars.ContextVar("departure
 def human_trained(run_review: Mapping[str, Mapping], departures: Mapping[str, list] | None = None
                   ) -> Iterator[None]:
     """Within the block, :func:`label` marks the runs trained on human corrections NOT annotation-free, and names
-    the departures from eq:raw-loss a method's runs trained with (``departures``: {method: names})."""
+    the departures from eq:raw-loss a method's runs trained with (``departures``: {method: names}).
+    """
     tokens = _RUN_REVIEW.set(dict(run_review)), _DEPARTURES.set(dict(departures or {}))
     try:
         yield
@@ -58,7 +64,8 @@ def human_trained(run_review: Mapping[str, Mapping], departures: Mapping[str, li
 
 def label(method: str) -> str:
     """The method's display label, for the run it names (:func:`human_trained`): "Plain Student + bootstrapped
-    targets, beta 0.8" where its runs departed from eq:raw-loss."""
+    targets, beta 0.8" where its runs departed from eq:raw-loss.
+    """
     base = run_label(METHODS[method], _RUN_REVIEW.get().get(method)) if method in METHODS else method_label(method)
     names = _DEPARTURES.get().get(method)
     return f"{base} + {', '.join(names)}" if names else base
@@ -119,7 +126,8 @@ def is_primary(group: str, treatment: str, control: str, mode: str) -> bool:
 
 def family_holm(entries) -> dict:
     """{(key, metric): Holm-adjusted p} over one table's family; ``entries``: (key, summary row, suffix,
-    is_primary) per shown difference.  The primary endpoint is tested alone, outside every family."""
+    is_primary) per shown difference.  The primary endpoint is tested alone, outside every family.
+    """
     keys, ps = [], []
     for key, r, suffix, primary in entries:
         for k, _ in CLAIM_METRICS:
@@ -133,7 +141,8 @@ def family_holm(entries) -> dict:
 def _gain_cells(r, suffix: str, group: str, key, holm: Mapping, primary: bool, noise_floor) -> list[str]:
     """The CI of each :data:`CLAIM_METRICS` gain ``gain_<metric><suffix>`` of a summary row, the group's noise
     floor and the claim: :func:`pipeline.stats.claim_status` of each gain against the floor, with the p-value
-    ``holm[(key, metric)]`` (:func:`family_holm`); ``primary``: the row holds the primary endpoint."""
+    ``holm[(key, metric)]`` (:func:`family_holm`); ``primary``: the row holds the primary endpoint.
+    """
     cis, claims = [], []
     for k, name in CLAIM_METRICS:
         gain = [float(r.get(f"gain_{k}{suffix}{x}", np.nan)) for x in ("", "_lo", "_hi")]
@@ -190,7 +199,8 @@ def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise
                   fixed_tau: float | None = None, interval: str | None = DEFAULT_INTERVAL,
                   spacecraft: Mapping[str, int] | None = None) -> Table:
     """Paper Table spacesense-results: per group and method, Image IoU and Boundary F1 over seeds, the gains
-    against Plain Student with their CIs, the noise floor (None: not measured) and the claim."""
+    against Plain Student with their CIs, the noise floor (None: not measured) and the claim.
+    """
     shown = list(group_method_rows(summary, mode, groups))
     gains = [((g, m), r, "", is_primary(g, m, BASELINE, mode))
              for g, m, r in shown if np.isfinite(r.get("gain_iou", np.nan))]
@@ -361,7 +371,8 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
                    ) -> Table | None:
     """The budget-matched control per group: Continuation - Plain (the extra epochs alone), each warm-started
     method - Continuation (geometry at a matched budget) and GeoDistill-Refine - Plain; None without a
-    continuation run."""
+    continuation run.
+    """
     s = summary[summary["threshold_mode"] == mode]
     if CONTINUATION not in set(s["method"]) or f"gain_iou{VS_CONTINUATION}" not in s.columns:
         return None
@@ -392,7 +403,8 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
 def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mode: str,
                            groups: Sequence[str], fixed_tau: float | None = None) -> Table | None:
     """Reference points beside the students, never compared with CIs: the teacher vote scored as a predictor
-    (``vote``: per-group means) and the supervised ceiling, with Plain Student for context."""
+    (``vote``: per-group means) and the supervised ceiling, with Plain Student for context.
+    """
     s = summary[summary["threshold_mode"] == mode]
     ceiling = not_annotation_free(s["method"].unique())
     if not ceiling and (vote is None or vote.empty):

@@ -1,5 +1,6 @@
 """Stage ``corrections``: a ``corrections`` artifact checked against this run's manifest (training images of
-the right size) -> the ``corrected`` artifact at the working resolution, which the train stage reads."""
+the right size) -> the ``corrected`` artifact at the working resolution, which the train stage reads.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from pipeline.runtime.errors import InputError, Option
 from pipeline.review.corrections import correction_masks
 from pipeline.training.inputs import MODE_KEY, MODES
 
+__all__ = ["MODE_KEY", "CORRECTIONS", "corrected_masks", "write_corrected"]
+
 STAGE = "corrections"
 #: the data sources whose validation split comes from the training pool (``validate`` is meant for them)
 OWN_FOLDER_SOURCES = ("folder",)
@@ -20,7 +23,8 @@ CORRECTIONS = Option("--corrections", "corrections")
 def corrected_masks(corrections, manifest, resolution: int, mode: str, source: str
                     ) -> tuple[list[str], np.ndarray, np.ndarray]:
     """(image ids, manifest rows int64 [M], masks bool [M,R,R]) of a ``corrections`` artifact checked against
-    the ``manifest`` and resized to ``resolution`` (nearest, as prepare sizes the reference masks)."""
+    the ``manifest`` and resized to ``resolution`` (nearest, as prepare sizes the reference masks).
+    """
     if mode not in MODES:
         raise InputError(f"params: {MODE_KEY}={mode!r}: expected one of {', '.join(MODES)}")
     if mode == "validate" and source not in OWN_FOLDER_SOURCES:

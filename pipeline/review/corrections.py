@@ -1,7 +1,8 @@
 """``geodistill review import SOURCE --review DIR``: corrected masks (a Label Studio JSON export, a CVAT COCO 1.0
 export or a folder of ``<image id>.png``) -> the ``corrections`` artifact, one row per corrected image.  These
 are MANUAL masks: like reference masks they may select, calibrate and evaluate, never enter an
-annotation-free method's loss."""
+annotation-free method's loss.
+"""
 
 from __future__ import annotations
 
@@ -25,6 +26,8 @@ from pipeline.review.export import EXPORT_FIELD, OUTPUTS as EXPORT_OUTPUTS
 from pipeline.teachers.base import files_digest
 from pipeline.review.formats import (LS_FROM_NAME, FormatError, coco_segmentation_mask, ls_rle_decode,
                                      polygon_mask)
+
+__all__ = ["FORMATS", "read_review", "import_corrections", "coco_decode", "correction_masks"]
 
 log = logging.getLogger(__name__)
 
@@ -186,7 +189,8 @@ def source_digest(source: Path) -> str:
 def import_corrections(source: str | Path, review_dir: str | Path, out: str | Path, *, fmt: str = "auto",
                        code_version: str = "", overwrite: bool = False):
     """Read the corrections in ``source``, check them against the export in ``review_dir`` and write the
-    ``corrections`` artifact to ``out`` (replacing only an earlier one, or with ``overwrite``); it, opened."""
+    ``corrections`` artifact to ``out`` (replacing only an earlier one, or with ``overwrite``); it, opened.
+    """
     import pandas as pd
 
     source, out = Path(source), Path(out)
@@ -220,7 +224,7 @@ def import_corrections(source: str | Path, review_dir: str | Path, out: str | Pa
 
 
 def coco_decode(rle: dict) -> np.ndarray:
-    """bool [H,W] of a compressed COCO RLE ``{"size", "counts": str}``."""
+    """Bool [H,W] of a compressed COCO RLE ``{"size", "counts": str}``."""
     return coco_segmentation_mask(rle, *rle["size"])
 
 

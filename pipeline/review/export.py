@@ -1,6 +1,7 @@
 """``geodistill review export LABEL_DIR --out DIR`` and the DAG stage ``review_export``: the images that most
 need a person, ranked, as a Label Studio import, a CVAT import and a CSV, with ``review.json`` (the export id,
-a hash of the teacher, options and rows, and each image's voted mask) that ``review import`` checks against."""
+a hash of the teacher, options and rows, and each image's voted mask) that ``review import`` checks against.
+"""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import numpy as np
 from pipeline.artifacts.atomic import atomic_path, write_json
 from pipeline.artifacts.lineage import canonical_json
 from pipeline.catalog import output_names
+from pipeline.params import PAPER
 from pipeline.datasets.loading import probs_to_size, read_mask
 from pipeline.runtime.errors import OUT, InputError, Option, literal
 from pipeline.labeling.formats import SPACECRAFT_CATEGORY, rle_encode
@@ -26,6 +28,9 @@ from pipeline.artifacts.ownership import (check_outputs, claim_outputs, read_rec
                                 refuse_foreign_files, signature)
 from pipeline.review.formats import coco_review_annotation, ls_label_config, ls_results
 from pipeline.review.ranking import DEFAULT_RANKING, STUDENT_COLUMN, rank, student_disagreement
+
+__all__ = ["COMMAND", "COCO_SHAPES", "LS_SHAPES", "OUTPUTS", "EXPORT_FIELD", "LS_RECORD_KEY", "server_env",
+           "export_review", "write_export", "export_run"]
 
 COMMAND = "review export"
 LABEL_DIR = Option("LABEL_DIR", "label_dir")
@@ -73,7 +78,8 @@ def read_label_folder(label_dir: str | Path):
 
 def voted_mask(path: Path, width: int, height: int) -> np.ndarray:
     """The voted mask label wrote at ``path`` (:func:`pipeline.labeling.run.mask_file`); InputError when its size
-    is not the image's."""
+    is not the image's.
+    """
     mask = read_mask(path)
     if mask.shape != (height, width):
         raise InputError(f"{path}: mask size {mask.shape[1]}x{mask.shape[0]} is not the image's {width}x{height}")
@@ -90,7 +96,8 @@ def mask_digest(mask: np.ndarray) -> str:
 # the document root, under a Local files storage whose path (a strict sub-folder of that root) holds the file
 def local_files_layout(image_paths: list[Path], image_root: Path | None = None) -> dict:
     """``{"document_root", "storage_path"}`` serving ``image_paths``: the storage path is ``image_root`` (default:
-    the folder they share; relative paths stay relative), the document root its parent."""
+    the folder they share; relative paths stay relative), the document root its parent.
+    """
     if image_root is not None:
         storage = Path(image_root)
     else:
@@ -129,7 +136,8 @@ def _check_options(top, ls_shape: str, coco_shape: str) -> None:
 
 def check_export_outputs(out: Path, overwrite: bool) -> None:
     """Refuse before anything is written: a user's file inside a folder the export replaces whole
-    (``overwrite`` or not), then what else is in the way."""
+    (``overwrite`` or not), then what else is in the way.
+    """
     for folder, files in FOLDER_FILES.items():  # first: --overwrite would not save such a file either
         refuse_foreign_files(out / folder, files, command=COMMAND, option=OUT, where=out,
                              why=f"not a file {signature(COMMAND)} writes in {folder}/, which it replaces whole")
@@ -140,7 +148,8 @@ def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = N
                   ls_shape: str = "brush", coco_shape: str = "rle", image_url: str | None = None,
                   predict: Callable[[Path], np.ndarray] | None = None, overwrite: bool = False) -> ReviewExport:
     """``geodistill review export``: rank the images of ``label_dir`` and write the top ``top`` (None: all) under
-    ``out``; ``image_url``: the tasks' URL prefix (None: local files); ``predict(path) -> bool [H,W]``: a student."""
+    ``out``; ``image_url``: the tasks' URL prefix (None: local files); ``predict(path) -> bool [H,W]``: a student.
+    """
     _check_options(top, ls_shape, coco_shape)
     label_dir, out = Path(label_dir), Path(out)
     record, table = read_label_folder(label_dir)
@@ -166,7 +175,8 @@ def write_export(out: Path, table, mask_of: Callable[[str], np.ndarray], *, top:
     """The export shared by ``review export`` and the DAG stage: rank ``table`` (image_id, file, width, height,
     g, h, ...), take each voted mask from ``mask_of(image id)`` and write review.json, ranked.csv, the Label
     Studio tasks and the CVAT COCO file under ``out``.  ``image_root``: the folder ``file`` is relative to;
-    ``identity`` and the options make the export id; ``record``: the record's fields about the source."""
+    ``identity`` and the options make the export id; ``record``: the record's fields about the source.
+    """
     ranked = rank(table, ranking, top)
     masks = {i: mask_of(i) for i in ranked["image_id"]}
     rows = [{"image_id": str(r.image_id), "file": str(r.file), "width": int(r.width), "height": int(r.height),
@@ -229,10 +239,11 @@ def run_table(manifest_df, gates_df, h: np.ndarray):
 
 
 def export_run(manifest, consensus, gates, out: str | Path, *, top: int | None, ranking: str = DEFAULT_RANKING,
-               letterbox: bool = False, ls_shape: str = "brush", coco_shape: str = "rle",
+               letterbox: bool = PAPER.data.letterbox, ls_shape: str = "brush", coco_shape: str = "rle",
                image_url: str | None = None, simulator: bool = False, overwrite: bool = False) -> ReviewExport:
     """The DAG stage ``review_export``: :func:`write_export` of a run's training images, each voted mask brought
-    to the image's own size as the deployed student's is (``letterbox``: data.letterbox)."""
+    to the image's own size as the deployed student's is (``letterbox``: data.letterbox).
+    """
     _check_options(top, ls_shape, coco_shape)
     if "h" not in consensus:
         raise InputError(f"{consensus.path}: no prompt disagreement h (written by an older consensus stage); "

@@ -1,6 +1,7 @@
 """The review formats, pure functions on arrays: Label Studio brush RLE (thi.ng ``rle-pack`` bits, as
 label-studio-converter writes them) and polygons, COCO 1.0 for CVAT (uncompressed RLE with ``iscrowd: 1``, as
-CVAT exports masks).  A polygon is each region's outer contour, so its round trip is not pixel-exact."""
+CVAT exports masks).  A polygon is each region's outer contour, so its round trip is not pixel-exact.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +9,10 @@ import numpy as np
 from pycocotools import mask as mask_utils
 
 from pipeline.labeling.formats import SPACECRAFT_CATEGORY, coco_annotation, yolo_polygons
+
+__all__ = ["LS_FROM_NAME", "LS_TO_NAME", "LABEL", "FormatError", "ls_brush_rgba", "ls_rle_encode_values",
+           "ls_rle_decode", "ls_label_config", "ls_results", "polygon_mask", "coco_review_annotation",
+           "coco_segmentation_mask"]
 
 LS_WORD_SIZE = 8
 LS_RLE_SIZES = (3, 4, 8, 16)
@@ -22,7 +27,8 @@ class FormatError(ValueError):
 
 def _run_bits(length: int, value: int) -> str:
     """One run segment as label-studio-converter's ``encode_rle`` writes it: the narrowest length field, else
-    16-bit fields in pieces of 2**16 values."""
+    16-bit fields in pieces of 2**16 values.
+    """
     word = format(value, f"0{LS_WORD_SIZE}b")
     for index, width in enumerate(LS_RLE_SIZES[:3]):
         if length <= 2 ** width:
@@ -65,7 +71,7 @@ def ls_rle_encode_values(values: np.ndarray) -> list[int]:
 
 
 def ls_rle_decode(rle, height: int, width: int) -> np.ndarray:
-    """bool [H,W] (alpha > 0) of a Label Studio brush RLE, literal stretches included; FormatError if invalid."""
+    """Bool [H,W] (alpha > 0) of a Label Studio brush RLE, literal stretches included; FormatError if invalid."""
     try:
         data = np.asarray(rle, np.int64)
         if data.ndim != 1 or data.size < 5 or (data < 0).any() or (data > 255).any():
@@ -126,7 +132,7 @@ def ls_results(mask: np.ndarray, shape: str = "brush", result_id: str = "r0") ->
 
 
 def polygon_mask(polygons, height: int, width: int, scale=(1.0, 1.0)) -> np.ndarray:
-    """bool [H,W]: the union of filled polygons with coordinates times ``scale`` (W/100, H/100 for per cent)."""
+    """Bool [H,W]: the union of filled polygons with coordinates times ``scale`` (W/100, H/100 for per cent)."""
     import cv2
 
     out = np.zeros((height, width), np.uint8)
@@ -159,7 +165,7 @@ def coco_review_annotation(mask: np.ndarray, annotation_id: int, image_id: int, 
 
 
 def coco_segmentation_mask(segmentation, height: int, width: int) -> np.ndarray:
-    """bool [H,W] of a COCO segmentation (polygons, uncompressed or compressed RLE); FormatError if unreadable."""
+    """Bool [H,W] of a COCO segmentation (polygons, uncompressed or compressed RLE); FormatError if unreadable."""
     try:
         if isinstance(segmentation, list):
             polys = [p for p in segmentation if len(p) >= 6]

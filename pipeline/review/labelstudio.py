@@ -15,6 +15,8 @@ from pipeline.runtime.errors import InputError
 from pipeline.review.corrections import read_review
 from pipeline.review.export import LS_CONFIG, LS_RECORD_KEY, LS_TASKS, OUTPUTS, server_env
 
+__all__ = ["Client", "upload_review", "check_served"]
+
 STORAGE_API = "/api/storages/localfiles"
 
 
@@ -48,7 +50,8 @@ class Client:
 def upload(client: Client, tasks: list[dict], label_config: str, layout: dict | None, title: str,
            first_image: Path | None = None) -> dict:
     """Create a project, its Local files storage for ``layout`` (None: served elsewhere) and ``tasks``; check
-    the first task's URL serves ``first_image``.  -> ``{"project", "storage", "tasks", "served"}``."""
+    the first task's URL serves ``first_image``.  -> ``{"project", "storage", "tasks", "served"}``.
+    """
     project = client.request("POST", "/api/projects", {"title": title, "label_config": label_config})
     storage = None
     if layout is not None:   # a Local files storage whose path covers the images

@@ -1,5 +1,6 @@
 """The rankings of ``review export --ranking``: each scores an image in [0, 1], higher = more in need of a
-person, ties by image id (the default ``combined``: docs/decisions.md)."""
+person, ties by image id (the default ``combined``: docs/decisions.md).
+"""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ import numpy as np
 
 from pipeline.runtime.errors import InputError, Option
 from pipeline.metrics import image_iou
+
+__all__ = ["STUDENT_COLUMN", "RANKINGS", "DEFAULT_RANKING", "scores", "rank", "student_disagreement"]
 
 RANKING = Option("--ranking", "ranking")
 STUDENT_COLUMN = "student_disagreement"

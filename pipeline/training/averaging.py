@@ -11,6 +11,8 @@ from typing import Mapping, Sequence
 
 import torch
 
+__all__ = ["average_update", "in_average", "ema_update"]
+
 
 def average_update(avg: dict | None, state: Mapping[str, torch.Tensor]) -> dict:
     """Fold ``state`` into the running mean ``{"n", "state"}``: m <- m + (w - m) / (n + 1).

@@ -1,12 +1,16 @@
 """The data filters of the training methods (``Method.data``, :mod:`pipeline.methods`), torch-free: the
 confidence filter on c_i (eq:foreground-agreement) or the mean valid-prompt score, the annotation-free-style
-control's fused base-prompt masks and score filter, and the pass ratio r of a filter."""
+control's fused base-prompt masks and score filter, and the pass ratio r of a filter.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
+from pipeline.params import PAPER
 from pipeline.runtime.errors import InputError
+
+__all__ = ["mean_valid_score", "confidence_pass", "pass_ratio", "afs_fuse", "afs_keep"]
 
 
 def mean_valid_score(scores: np.ndarray) -> np.ndarray:
@@ -19,8 +23,9 @@ def mean_valid_score(scores: np.ndarray) -> np.ndarray:
 
 def confidence_pass(agreement: np.ndarray, n_valid: np.ndarray, mean_score: np.ndarray | None,
                     criterion: str, threshold: float, min_valid: int) -> np.ndarray:
-    """bool [N]: at least ``min_valid`` valid prompts and a confidence >= ``threshold``, the confidence being
-    c_i (eq:foreground-agreement, ``agreement``) or the mean valid-prompt score (``mean_score``)."""
+    """Bool [N]: at least ``min_valid`` valid prompts and a confidence >= ``threshold``, the confidence being
+    c_i (eq:foreground-agreement, ``agreement``) or the mean valid-prompt score (``mean_score``).
+    """
     if criterion not in ("agreement", "mean_score"):
         raise InputError(f"params: train.confidence.criterion={criterion!r}: expected agreement or mean_score")
     if criterion == "mean_score" and mean_score is None:
@@ -35,7 +40,7 @@ def pass_ratio(passed: np.ndarray) -> float:
     return float(passed.mean()) if passed.size else 0.0
 
 
-def afs_fuse(mask_image: np.ndarray, mask_vflip: np.ndarray, fusion: str = "intersection") -> np.ndarray:
+def afs_fuse(mask_image: np.ndarray, mask_vflip: np.ndarray, fusion: str = PAPER.train.afs.fusion) -> np.ndarray:
     """The base-prompt masks of the image and of its vertical flip (flipped back), fused."""
     fuse = {"intersection": np.logical_and, "union": np.logical_or}.get(fusion)
     if fuse is None:

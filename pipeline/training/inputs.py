@@ -1,5 +1,6 @@
 """What a training run reads, torch-free: pseudo-targets for training, reference masks for validation (and for the
-supervised ceiling only), and human corrections; from opened artifacts or an artifacts directory."""
+supervised ceiling only), and human corrections; from opened artifacts or an artifacts directory.
+"""
 
 from __future__ import annotations
 
@@ -20,6 +21,8 @@ from pipeline.training.filters import afs_fuse, afs_keep, confidence_pass, mean_
 from pipeline.runtime.errors import ArtifactError, InputError
 from pipeline.training.streaming import LazyRows, MappedRows, RowSource, row_means, select_rows
 
+__all__ = ["MODES", "MODE_KEY", "TrainData", "ValData", "read_rows", "load_inputs", "replace_targets"]
+
 #: how the corrected artifact enters a run (:mod:`pipeline.review.apply` says what each means)
 MODES = ("validate", "replace")
 MODE_KEY = REVIEW_MODE_KEY
@@ -28,7 +31,8 @@ MODE_KEY = REVIEW_MODE_KEY
 @dataclasses.dataclass
 class TrainData:
     """A method's training rows (manifest order) as arrays or row sources: region target ``mask``, pseudo-geometry
-    ``sdf``/``skeleton`` (or None), a_i ``area`` and g_i ``gate``; ``stats``: the filter's outcome."""
+    ``sdf``/``skeleton`` (or None), a_i ``area`` and g_i ``gate``; ``stats``: the filter's outcome.
+    """
 
     image_ids: list
     images: np.ndarray | RowSource
@@ -71,7 +75,7 @@ def _check_order(art, ids: list, what: str) -> None:
                             "rerun the stages after prepare")
 
 
-def _rows(art, name: str, idx: np.ndarray) -> np.ndarray:
+def read_rows(art, name: str, idx: np.ndarray) -> np.ndarray:
     return np.asarray(LazyRows(art[name], idx))
 
 
@@ -101,13 +105,15 @@ def _gate_table(gates, train_ids: list):
 def agreement_target(method: Method, cfg: Mapping[str, Any]) -> bool:
     """Whether ``method``'s region target is read as the agreement map A (eq:agreement-map) rather than the voted
     mask M^T (eq:majority-vote): ``train.soft_targets`` (A is the target), or Stage I's ``train.ignore_band``
-    (M^T = [A >= 1/2] is the target, A says which pixels leave the loss)."""
+    (M^T = [A >= 1/2] is the target, A says which pixels leave the loss).
+    """
     return bool(cfg["soft_targets"]) or (method.stage == 1 and float(cfg["ignore_band"]) > 0)
 
 
 def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Any]) -> TrainData:
     """The pseudo-targets of the training rows ``method``'s data filter keeps, from the opened ``inputs`` (by name;
-    a ``reference`` among them is refused)."""
+    a ``reference`` among them is refused).
+    """
     if "reference" in inputs:
         raise ValueError("training_data: reference masks never enter training (use validation_data)")
     if not method.annotation_free:
@@ -132,7 +138,7 @@ def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, A
         mask = LazyRows(inputs["consensus"]["voted"], train_idx, bool)
     if uses_confidence(method):  # the pass ratio r wherever the method evaluates the criterion
         c = cfg["confidence"]
-        score = (mean_valid_score(_rows(inputs["teacher"], "scores", train_idx)) if c["criterion"] == "mean_score"
+        score = (mean_valid_score(read_rows(inputs["teacher"], "scores", train_idx)) if c["criterion"] == "mean_score"
                  else None)
         passed = confidence_pass(gates_df["c"].to_numpy(), gates_df["n_valid"].to_numpy(), score, c["criterion"],
                                  float(c["threshold"]), int(c["min_valid"]))
@@ -210,11 +216,11 @@ def validation_data(manifest, images, reference) -> ValData | None:
     if len(val_idx) == 0:
         return None
     _check_order(reference, ids, "reference")
-    val_idx = val_idx[_rows(reference, "has_mask", val_idx).astype(bool)]
+    val_idx = val_idx[read_rows(reference, "has_mask", val_idx).astype(bool)]
     if len(val_idx) == 0:
         return None
-    return ValData(image_ids=[ids[i] for i in val_idx], images=_rows(images, "image", val_idx),
-                   masks=_rows(reference, "mask", val_idx).astype(bool))
+    return ValData(image_ids=[ids[i] for i in val_idx], images=read_rows(images, "image", val_idx),
+                   masks=read_rows(reference, "mask", val_idx).astype(bool))
 
 
 def require_supervised_ceiling(method: Method) -> None:
@@ -226,13 +232,14 @@ def require_supervised_ceiling(method: Method) -> None:
 
 def ceiling_training_data(method: Method, inputs: Mapping[str, Any], reference) -> TrainData:
     """The supervised ceiling's training rows with their REFERENCE masks: the one place such masks enter a loss (NOT
-    annotation-free).  ``inputs``: opened ``manifest`` and ``images``."""
+    annotation-free).  ``inputs``: opened ``manifest`` and ``images``.
+    """
     require_supervised_ceiling(method)
     ids, train_idx = _train_rows(inputs["manifest"])
     for art in (inputs["images"], reference):
         _check_order(art, ids, art.meta.schema)
     n_rows = int(len(train_idx))
-    train_idx = train_idx[_rows(reference, "has_mask", train_idx).astype(bool)]
+    train_idx = train_idx[read_rows(reference, "has_mask", train_idx).astype(bool)]
     if len(train_idx) == 0:
         raise InputError(f"{reference.path}: no training image has a reference mask; "
                          f"the supervised ceiling needs them")
@@ -247,7 +254,8 @@ def ceiling_training_data(method: Method, inputs: Mapping[str, Any], reference) 
 def load_inputs(artifacts: str | Path, spec: Method, cfg: Mapping[str, Any], review: Mapping[str, Any] | None = None
                 ) -> tuple[TrainData, ValData | None, list]:
     """(TrainData, ValData or None, the opened artifacts) of a run of ``spec``; ``review`` (params) with
-    ``corrections`` set applies the ``corrected`` artifact in its ``mode``."""
+    ``corrections`` set applies the ``corrected`` artifact in its ``mode``.
+    """
 
     def opened(name: str):
         lineage.append(open_artifact(catalog.path(name, artifacts), name))
@@ -312,7 +320,8 @@ def _positions(data: TrainData, ids: list[str]) -> dict[int, str]:
 
 def apply_to_training(data: TrainData, corrected, mode: str) -> TrainData:
     """``data`` with the opened ``corrected`` artifact applied: ``validate`` drops the corrected images,
-    ``replace`` trains on their corrected masks (:func:`replace_targets`)."""
+    ``replace`` trains on their corrected masks (:func:`replace_targets`).
+    """
     require_mode(corrected, mode)
     ids = list(corrected.attrs["image_ids"])
     by_id = dict(zip(ids, np.asarray(corrected["mask"], dtype=bool)))
@@ -333,7 +342,8 @@ def apply_to_training(data: TrainData, corrected, mode: str) -> TrainData:
 def replace_targets(data: TrainData, masks: Mapping[str, np.ndarray], stats: Mapping[str, Any] | None = None
                     ) -> TrainData:
     """``data`` whose images in ``masks`` ({image id: bool [R,R]}) train on those masks (NOT annotation-free):
-    region target, g = 1, a and the geometry targets recomputed; images ``data`` lacks are left out."""
+    region target, g = 1, a and the geometry targets recomputed; images ``data`` lacks are left out.
+    """
     pos = _positions(data, list(masks))
     stats = dict(data.stats if stats is None else stats)
     stats.setdefault("human_corrections", len(pos))

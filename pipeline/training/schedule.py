@@ -20,6 +20,10 @@ from pipeline.runtime.errors import InputError
 from pipeline.stats import ONE_SIDED_95_Z
 from pipeline.training.inputs import TrainData, ValData
 
+__all__ = ["LOW_RES_FACTOR", "PLATEAU_Z", "lr_lambda", "decay_steps", "steps_per_epoch", "low_res_epochs",
+           "low_resolution", "decay_epochs", "over_budget", "stable_cap", "plateau_reached", "plateau_window",
+           "until_lambda", "holdout_size", "holdout"]
+
 
 class StopSettings(Protocol):
     """What the stopping rule's budget reads of :class:`pipeline.training.settings.Settings`.

@@ -11,6 +11,8 @@ import numpy as np
 
 from pipeline.evaluation.inference import predict_probs
 
+__all__ = ["flip_tta_probs", "fused_targets"]
+
 #: how a round's target T fuses the student's probability P with the voted mask M (:func:`fused_targets`)
 FUSIONS = ("mix", "mix_hard", "prediction")
 

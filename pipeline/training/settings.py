@@ -16,6 +16,8 @@ from pipeline.methods import Method, method_epochs, method_lr, parts_of, with_pa
 from pipeline.params import validate_section
 from pipeline.training.schedule import low_res_epochs
 
+__all__ = ["Settings"]
+
 
 def loss_constants(cfg: Mapping[str, Any], stage_one: bool = False) -> losses.LossConstants:
     """Read the losses' constants (eq:raw-loss, eq:positive-weight, eq:sdf-weight, eq:area-error) from ``cfg``.

@@ -1,5 +1,6 @@
 """Training data that stays on disk: rows of Zarr arrays read per batch (:class:`RowSource`), one batch ahead
-(:func:`prefetch`), so a run's memory does not grow with the number of images."""
+(:func:`prefetch`), so a run's memory does not grow with the number of images.
+"""
 
 from __future__ import annotations
 
@@ -11,10 +12,13 @@ import numpy as np
 
 from pipeline.artifacts.store import read_chunk_rows
 
+__all__ = ["RowSource", "LazyRows", "MappedRows", "select_rows", "row_means", "spill_rows", "prefetch"]
+
 
 class RowSource:
     """Rows read only when indexed: ``x[i]`` reads rows, ``x.select(sel)`` narrows without reading, ``np.asarray(x)``
-    reads all."""
+    reads all.
+    """
 
     dtype: np.dtype
 
@@ -70,7 +74,8 @@ class LazyRows(RowSource):
 
 class MappedRows(RowSource):
     """``fn`` of the same rows of several row sources, per read (``fn`` must work row by row): a target derived from
-    stored arrays, such as the AFS control's fused mask."""
+    stored arrays, such as the AFS control's fused mask.
+    """
 
     def __init__(self, fn: Callable[..., np.ndarray], sources: Sequence[RowSource], dtype, shape: tuple[int, ...]):
         self.fn = fn

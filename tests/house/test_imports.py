@@ -22,7 +22,7 @@ import ast
 import sys
 from pathlib import Path
 
-from pipeline.runtime.codeversion import PROJECT_PACKAGES, ROOT, _module_name, _module_path
+from pipeline.runtime.codeversion import PROJECT_PACKAGES, ROOT, module_name, module_path
 
 #: The dependencies a module may import inside a function, and why.
 LAZY = {
@@ -133,13 +133,13 @@ def _targets(node: ast.AST, path: Path, root: Path) -> list[str]:
     if isinstance(node, ast.Import):
         return [a.name for a in node.names]
     if node.level:
-        me = _module_name(path, root)
+        me = module_name(path, root)
         base = me.split(".") if path.name == "__init__.py" else me.split(".")[:-1]
         base = base[: len(base) - (node.level - 1)]
         module = ".".join(base + ([node.module] if node.module else []))
     else:
         module = node.module or ""
-    subs = [f"{module}.{a.name}" for a in node.names if _module_path(f"{module}.{a.name}", root) is not None]
+    subs = [f"{module}.{a.name}" for a in node.names if module_path(f"{module}.{a.name}", root) is not None]
     return subs if len(subs) == len(node.names) else [module] + subs
 
 
@@ -160,7 +160,7 @@ def _imports(path: Path, root: Path = ROOT) -> tuple[list[tuple[str, int]], list
 def _project_file(module: str, root: Path = ROOT) -> Path | None:
     parts = module.split(".")
     for i in range(len(parts), 0, -1):  # ``from pipeline.x import name``: the longest module prefix
-        p = _module_path(".".join(parts[:i]), root)
+        p = module_path(".".join(parts[:i]), root)
         if p is not None:
             return p
     return None
@@ -317,3 +317,15 @@ def test_the_script_check_sees_a_main_block_in_the_library_only(tmp_path):
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_text(text)
     assert [line.split(" ")[0] for line in library_scripts(tmp_path)] == ["pipeline/flipped.py:1", "pipeline/tool.py:2"]
+
+
+def test_the_torch_free_core_imports_without_torch():
+    """Importing the params schema, the recipes and the catalogue (what ``--help`` and the DAG text read) starts no
+    torch, in a fresh process: package ``__init__`` files stay light (issue 64)."""
+    import os
+    import subprocess
+
+    code = "import sys, pipeline.params, pipeline.methods, pipeline.catalog; print('torch' in sys.modules)"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True)
+    assert run.stdout.strip() == "False"
