@@ -1,6 +1,7 @@
-"""Target-consistent augmentation (``train.augment``; docs/decisions.md, "Augmentation"): an image and every target
-trained on it move together, flips exactly, a rescale with its SDF, skeleton and area recomputed; the gate is
-passed through.  Numpy only, one seeded generator per image.
+"""Target-consistent augmentation (``train.augment``; docs/decisions.md, "Augmentation").
+
+An image and every target trained on it move together: flips exactly, a rescale with its SDF, skeleton and area
+recomputed; the gate is passed through.  Numpy only, one seeded generator per image.
 """
 
 from __future__ import annotations
@@ -22,7 +23,42 @@ PIXEL_TARGETS = ("mask", "sdf", "skeleton", "anchor")
 
 @dataclasses.dataclass(frozen=True)
 class AugmentSpec:
-    """The augmentation's probabilities and magnitudes (the ``train.augmentation`` params section)."""
+    """The augmentation's probabilities and magnitudes (the ``train.augmentation`` params section).
+
+    Each field is the params key of its name; its range and default live in
+    :class:`pipeline.params.AugmentParams`.
+
+    Attributes
+    ----------
+    hflip : float
+        Probability of a left-right flip (``train.augmentation.hflip``).
+    vflip : float
+        Probability of an up-down flip (``train.augmentation.vflip``).
+    rot90 : bool
+        Rotate by a uniformly drawn multiple of 90 degrees (``train.augmentation.rot90``; 0 or 180 for a
+        non-square frame).
+    scale_probability : float
+        Probability of a scale/crop jitter (``train.augmentation.scale_probability``).
+    scale_range : tuple[float, float]
+        The zoom factor's range, drawn log-uniform; < 1 zooms out, padding black
+        (``train.augmentation.scale_range``).
+    photometric_probability : float
+        Probability of the photometric part (``train.augmentation.photometric_probability``).
+    brightness : float
+        Largest additive brightness shift, a fraction of full scale (``train.augmentation.brightness``).
+    contrast : float
+        x: the contrast factor about the image mean is drawn in [1/(1+x), 1+x] (``train.augmentation.contrast``).
+    gamma : float
+        x: gamma is drawn in [1/(1+x), 1+x], log-uniform (``train.augmentation.gamma``).
+    glare_probability : float
+        Probability of a saturated glare spot (``train.augmentation.glare_probability``).
+    blur_probability : float
+        Probability of a Gaussian blur (``train.augmentation.blur_probability``).
+    blur_sigma : float
+        Largest blur sigma in pixels (``train.augmentation.blur_sigma``).
+    noise_std : float
+        Largest Gaussian sensor-noise std, a fraction of full scale (``train.augmentation.noise_std``).
+    """
 
     hflip: float
     vflip: float
@@ -40,7 +76,25 @@ class AugmentSpec:
 
     @classmethod
     def from_params(cls, section: Mapping[str, Any]) -> "AugmentSpec":
-        """From a validated ``train.augmentation`` mapping."""
+        """Build the spec from a validated ``train.augmentation`` mapping.
+
+        Parameters
+        ----------
+        section : Mapping[str, Any]
+            The section's values (keys that are no field are ignored).
+
+        Returns
+        -------
+        AugmentSpec
+            The spec, ``scale_range`` as a tuple of floats.
+
+        Raises
+        ------
+        KeyError
+            ``section`` lacks ``scale_range``.
+        TypeError
+            ``section`` lacks another field.
+        """
         fields = {f.name for f in dataclasses.fields(cls)}
         values = {k: v for k, v in section.items() if k in fields}
         values["scale_range"] = tuple(float(x) for x in values["scale_range"])
@@ -53,7 +107,20 @@ DEFAULT_SPEC = AugmentSpec.from_params(PAPER.train.augmentation.model_dump())
 
 @dataclasses.dataclass(frozen=True)
 class GeometryConstants:
-    """The constants the geometry stage computed the SDF and skeleton with (``geometry.*`` params)."""
+    """The constants the geometry stage computed the SDF and skeleton with (``geometry.*`` params).
+
+    The defaults are the schema's (:data:`pipeline.params.PAPER`).
+
+    Attributes
+    ----------
+    quantile : float
+        q of the SDF's scale s = q-quantile of |D~| (eq:sdf-target; ``geometry.sdf_quantile``).
+    min_scale : float
+        s = 1 when the quantile is below this (eq:sdf-target; ``geometry.sdf_min_scale``).
+    min_distance : float
+        Skeleton points with an interior distance d_in at most this (px) are dropped
+        (``geometry.skeleton_min_distance``).
+    """
 
     quantile: float = PAPER.geometry.sdf_quantile
     min_scale: float = PAPER.geometry.sdf_min_scale
@@ -61,19 +128,42 @@ class GeometryConstants:
 
 
 def soft_region(mask: Any) -> bool:
-    """Whether a region target is the agreement map A (eq:agreement-map, floats: ``train.soft_targets``), not the
-    voted mask M^T (eq:majority-vote, booleans): read from the dtype, never the values (no GPU sync per batch).
+    """Tell whether a region target is the agreement map A, not the voted mask M^T.
+
+    A (eq:agreement-map) is floats (``train.soft_targets``), M^T (eq:majority-vote) booleans.  Read from the dtype,
+    never the values: no GPU sync per batch.
+
+    Parameters
+    ----------
+    mask : array-like
+        A region target with a ``dtype`` (numpy array or torch tensor).
+
+    Returns
+    -------
+    bool
+        True for a floating-point target.
     """
     return np.dtype(mask.dtype).kind == "f"
 
 
 def hard_region(mask: np.ndarray) -> np.ndarray:
-    """The boolean region of a target: M = [A >= 1/2] (eq:majority-vote) for a soft one, else the mask itself."""
+    """Return the boolean region of a target: M = [A >= 1/2] (eq:majority-vote) for a soft one, else the mask.
+
+    Parameters
+    ----------
+    mask : np.ndarray
+        The agreement map A (floats) or a mask (booleans or integers).
+
+    Returns
+    -------
+    np.ndarray
+        The boolean region, of ``mask``'s shape.
+    """
     return mask >= 0.5 if soft_region(mask) else mask.astype(bool)
 
 
 def dihedral(x: np.ndarray, k: int, hflip: bool, vflip: bool) -> np.ndarray:
-    """``x`` [H,W,...] rotated by k x 90 degrees counter-clockwise, then flipped as asked; a contiguous copy."""
+    """Rotate ``x`` [H,W,...] by k x 90 degrees counter-clockwise, then flip it as asked; a contiguous copy."""
     out = np.rot90(x, k % 4, axes=(0, 1))
     if hflip:
         out = out[:, ::-1]
@@ -83,7 +173,7 @@ def dihedral(x: np.ndarray, k: int, hflip: bool, vflip: bool) -> np.ndarray:
 
 
 def resample(x: np.ndarray, window: tuple[float, float, float, float], nearest: bool) -> np.ndarray:
-    """``x`` [H,W(,C)] resampled so that ``window`` fills the frame, bilinear or nearest; 0 outside the input."""
+    """Resample ``x`` [H,W(,C)] so that ``window`` fills the frame, bilinear or nearest; 0 outside the input."""
     import cv2
 
     h, w = x.shape[:2]
@@ -101,14 +191,34 @@ def resample(x: np.ndarray, window: tuple[float, float, float, float], nearest: 
 
 
 def recompute_geometry(mask: np.ndarray, geometry: GeometryConstants) -> tuple[np.ndarray, np.ndarray, float]:
-    """(sdf, skeleton, area) of ``mask`` as the geometry stage computes them (eq:sdf-target, eq:pseudo-area)."""
+    """Compute the SDF, skeleton and area of ``mask`` as the geometry stage does.
+
+    D = clip(D~ / s, -1, 1), D~ = d_in - d_out (eq:sdf-target); K = Skel(M); a = 1/(HW) sum_x M(x)
+    (eq:pseudo-area).
+
+    Parameters
+    ----------
+    mask : np.ndarray
+        The boolean region M [H,W].
+    geometry : GeometryConstants
+        The constants the geometry stage used.
+
+    Returns
+    -------
+    sdf : np.ndarray
+        The normalised SDF target D [H,W].
+    skeleton : np.ndarray
+        The skeleton target K [H,W].
+    area : float
+        The area ratio a.
+    """
     sdf, skel, _ = pseudo_targets(mask[None], quantile=geometry.quantile, min_scale=geometry.min_scale,
                                   min_distance=geometry.min_distance)
     return sdf[0], skel[0], area_ratio(mask)
 
 
 def photometric(image: np.ndarray, spec: AugmentSpec, rng: np.random.Generator) -> np.ndarray:
-    """``image`` uint8 [H,W,C] with brightness, contrast, gamma, glare, blur and sensor noise drawn from ``rng``."""
+    """Apply brightness, contrast, gamma, glare, blur and sensor noise drawn from ``rng`` to uint8 [H,W,C]."""
     x = image.astype(np.float32) / 255.0
     h, w = x.shape[:2]
     b = rng.uniform(-spec.brightness, spec.brightness)
@@ -135,8 +245,28 @@ def photometric(image: np.ndarray, spec: AugmentSpec, rng: np.random.Generator) 
 def augment_sample(image: np.ndarray, targets: Mapping[str, Any], rng: np.random.Generator,
                    spec: AugmentSpec = DEFAULT_SPEC, geometry: GeometryConstants = GeometryConstants()
                    ) -> tuple[np.ndarray, dict]:
-    """(image, targets) of one image uint8 [H,W,C] and its targets (``mask``; optional ``sdf``, ``skeleton``,
-    ``anchor``, ``area``; others pass through) augmented with draws from ``rng``; new arrays.
+    """Augment one image and its targets together with draws from ``rng``; new arrays.
+
+    Parameters
+    ----------
+    image : np.ndarray
+        uint8 [H,W,C].
+    targets : Mapping[str, Any]
+        ``mask`` (A or M^T), and optionally ``sdf``, ``skeleton``, ``anchor`` [H,W,...] and ``area``; any other
+        target passes through.
+    rng : np.random.Generator
+        The image's own generator.
+    spec : AugmentSpec, optional
+        Probabilities and magnitudes (default: the schema's ``train.augmentation``).
+    geometry : GeometryConstants, optional
+        The constants SDF and skeleton are recomputed with after a rescale.
+
+    Returns
+    -------
+    image : np.ndarray
+        The augmented image, uint8 [H,W,C].
+    targets : dict
+        The augmented targets, the same keys.
     """
     h, w = image.shape[:2]
     out = dict(targets)
@@ -174,7 +304,38 @@ def augment_sample(image: np.ndarray, targets: Mapping[str, Any], rng: np.random
 def augment_batch(images: np.ndarray, targets: Mapping[str, np.ndarray], seeds: Sequence,
                   spec: AugmentSpec = DEFAULT_SPEC, geometry: GeometryConstants = GeometryConstants()
                   ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """:func:`augment_sample` of every image of a batch (``targets``: name -> [B,...]) with one seed per image."""
+    """Augment every image of a batch and its targets, each with a generator of its own seed.
+
+    Flips and rotations move every pixel target exactly; a rescale resamples image, mask and anchor and
+    recomputes SDF, skeleton (eq:sdf-target) and area (eq:pseudo-area) from the mask; the photometric part
+    changes the image only.
+
+    Parameters
+    ----------
+    images : np.ndarray
+        uint8 [B,H,W,C].
+    targets : Mapping[str, np.ndarray]
+        Target name -> [B,...]: ``mask`` (A or M^T), optional ``sdf``, ``skeleton``, ``anchor``, ``area``; any
+        other passes through.
+    seeds : Sequence
+        One seed per image (``numpy.random.default_rng``'s), so that an image's draws do not depend on its batch.
+    spec : AugmentSpec, optional
+        Probabilities and magnitudes (default: the schema's ``train.augmentation``).
+    geometry : GeometryConstants, optional
+        The constants SDF and skeleton are recomputed with after a rescale (default: the schema's ``geometry.*``).
+
+    Returns
+    -------
+    images : np.ndarray
+        The augmented images, ``images``' shape and dtype.
+    targets : dict[str, np.ndarray]
+        The augmented targets, the same keys and shapes.
+
+    Raises
+    ------
+    ValueError
+        ``seeds`` does not hold one seed per image.
+    """
     if len(seeds) != len(images):
         raise ValueError(f"augment_batch: {len(seeds)} seeds for {len(images)} images")
     out_images = np.empty_like(images)

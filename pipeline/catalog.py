@@ -1,6 +1,8 @@
-"""The catalogue: every artifact (file name, schema, producing stage), output file and stage (script, what
-it reads and writes, its params keys) once; dvc.yaml is rendered from it.  Paths are relative to
-``ARTIFACTS_DIR``; those starting ``../`` lie outside it and are git-tracked DVC outs (``cache: false``).
+"""The catalogue: every artifact, output file and stage, written once; dvc.yaml is rendered from it.
+
+An artifact has its file name, schema and producing stage; a stage its script, what it reads and writes and its
+params keys.  Paths are relative to ``ARTIFACTS_DIR``; those starting ``../`` lie outside it and are git-tracked
+DVC outs (``cache: false``).
 """
 
 from __future__ import annotations
@@ -31,20 +33,65 @@ DVC_FILE = "dvc.yaml"
 
 
 def path(name: str, root: str | Path = ARTIFACTS_DIR, **fmt) -> Path:
-    """Where artifact ``name`` lives under ``root`` (``fmt`` fills ``{method}``/``{seed}``/``{profile}``)."""
+    """Locate artifact ``name`` under ``root``.
+
+    Parameters
+    ----------
+    name : str
+        An :data:`ARTIFACTS` key.
+    root : str or Path, optional
+        The artifacts folder (default :data:`ARTIFACTS_DIR`); a path starting ``../`` resolves beside it.
+    **fmt
+        Values of the path's placeholders (``method``, ``seed``, ``profile``); none: the path keeps them.
+
+    Returns
+    -------
+    Path
+        The artifact's path.
+
+    Raises
+    ------
+    KeyError
+        ``name`` is not in :data:`ARTIFACTS`, or ``fmt`` lacks one of the path's placeholders.
+    """
     rel = ARTIFACTS[name].path.format(**fmt) if fmt else ARTIFACTS[name].path
     return Path(root) / rel if not rel.startswith("../") else Path(root).parent / rel[3:]
 
 
 def dvc_path(name: str, **fmt) -> str:
-    """The path as dvc.yaml spells it (DVC templates stay templates)."""
+    """Spell artifact ``name``'s path as dvc.yaml does: under :data:`ARTIFACTS_DIR`, posix.
+
+    Parameters
+    ----------
+    name : str
+        An :data:`ARTIFACTS` key.
+    **fmt
+        Values of the path's placeholders, as for :func:`path`; DVC templates (``${...}``) stay templates.
+
+    Returns
+    -------
+    str
+        The posix path.
+    """
     return path(name, ARTIFACTS_DIR, **fmt).as_posix()
 
 
 @dataclasses.dataclass(frozen=True)
 class OutputFile:
-    """One file or folder in an output folder (``{...}`` in its name filled by the writer) or in the deploy bundle;
-    ``required`` (bundle files): every bundle has it, else only when the export could write it.
+    """One file or folder in an output folder or in the deploy bundle.
+
+    Attributes
+    ----------
+    key : str
+        Its key in its folder's table.
+    name : str
+        Its file name; ``{...}`` in it is filled by the writer.
+    written_by : str
+        The dotted name of the module or function that writes it.
+    description : str
+        What it holds ("": nothing to add to the name).
+    required : bool
+        Bundle files: every bundle has it; False: only when the export could write it.
     """
 
     key: str
@@ -86,12 +133,28 @@ DEPLOY_BUNDLE: dict[str, OutputFile] = {f.key: f for f in [
 
 
 def bundle_file(key: str) -> str:
-    """The file name of bundle file ``key``."""
+    """Return the file name of deploy bundle file ``key``.
+
+    Parameters
+    ----------
+    key : str
+        A :data:`DEPLOY_BUNDLE` key (``"weights"``, ``"onnx"``, ...).
+
+    Returns
+    -------
+    str
+        Its file name.
+
+    Raises
+    ------
+    KeyError
+        ``key`` is not in the bundle table.
+    """
     return DEPLOY_BUNDLE[key].name
 
 
 def _files(written_by: str, *rows: tuple[str, ...]) -> dict[str, OutputFile]:
-    """The files of one output folder, all written by ``written_by``: rows of (key, name[, description])."""
+    """Build the table of one output folder, all written by ``written_by``: rows of (key, name[, description])."""
     return {key: OutputFile(key, name, written_by, *desc) for key, name, *desc in rows}
 
 
@@ -142,19 +205,69 @@ OUTPUT_FILES: dict[str, dict[str, OutputFile]] = {
 
 
 def output_file(folder: str, key: str) -> str:
-    """The name of file ``key`` in output folder ``folder`` (:data:`OUTPUT_FILES`)."""
+    """Return the name of file ``key`` in output folder ``folder``.
+
+    Parameters
+    ----------
+    folder : str
+        An :data:`OUTPUT_FILES` key (an artifact's name or a command's).
+    key : str
+        The file's key in that folder.
+
+    Returns
+    -------
+    str
+        Its file name (a suffix, for segment's per-image files).
+
+    Raises
+    ------
+    KeyError
+        ``folder`` or ``key`` is not in the table.
+    """
     return OUTPUT_FILES[folder][key].name
 
 
 def output_names(folder: str, *keys: str) -> dict[str, str]:
-    """``{key: name}`` of ``keys`` (all when none) in output folder ``folder``, in the table's order."""
+    """Map the keys of output folder ``folder`` to their file names.
+
+    Parameters
+    ----------
+    folder : str
+        An :data:`OUTPUT_FILES` key.
+    *keys : str
+        The keys wanted; none: all of the folder's.
+
+    Returns
+    -------
+    dict[str, str]
+        ``{key: name}`` in the table's order; a key not in the folder is left out.
+
+    Raises
+    ------
+    KeyError
+        ``folder`` is not in the table.
+    """
     return {k: f.name for k, f in OUTPUT_FILES[folder].items() if not keys or k in keys}
 
 
 @dataclasses.dataclass(frozen=True)
 class Schema:
-    """What an artifact must hold: Zarr ``arrays`` (name -> (numpy dtype kind, ndim); ``optional`` ones may be
-    absent), Parquet ``columns``, or a folder's ``files`` (``"a|b"``: either file).
+    """What an artifact must hold: Zarr arrays, Parquet columns or a folder's files.
+
+    Attributes
+    ----------
+    kind : str
+        The storage: ``"zarr"``, ``"parquet"`` or ``"dir"``.
+    version : int
+        The schema's version, recorded in each artifact's :class:`pipeline.artifacts.lineage.Meta`.
+    arrays : Mapping[str, tuple[str, int]]
+        Zarr: array name -> (numpy dtype kind, ndim), each required.
+    optional : Mapping[str, tuple[str, int]]
+        Zarr: the arrays that may be absent, likewise.
+    columns : tuple[str, ...]
+        Parquet: the required columns.
+    files : tuple[str, ...]
+        Folder: the required files (``"a|b"``: either).
     """
 
     kind: str  # "zarr" | "parquet" | "dir"
@@ -179,6 +292,8 @@ def _folder(*files: str) -> Schema:
 
 @dataclasses.dataclass(frozen=True)
 class ArtifactSpec:
+    """One artifact of the catalogue: where it lives, its schema and the stage that writes it."""
+
     name: str
     path: str              # relative to the artifacts directory ("../" for outside it)
     schema: Schema | None  # the schema named like the artifact (None: a plain file or folder)
@@ -273,8 +388,28 @@ ARTIFACTS: dict[str, ArtifactSpec] = {a.name: a for a in [
 
 @dataclasses.dataclass(frozen=True)
 class StageSpec:
-    """One DVC stage, ``python -m <module> <args>`` (``{artifact}`` placeholders); ``deps``/``outs`` name
-    artifacts, ``params`` the dotted keys DVC tracks and the fingerprint holds.
+    """One DVC stage: the command ``python -m <module> <args>``, what it reads and writes and its params.
+
+    Attributes
+    ----------
+    name : str
+        The stage's name in dvc.yaml.
+    module : str
+        The stage script's module (``stages.<name>``).
+    args : str
+        Its arguments, with ``{artifact}`` placeholders (:data:`ARTIFACTS` keys or :data:`EXTRA_PATHS`).
+    deps : tuple[str, ...]
+        The artifacts it reads.
+    outs : tuple[str, ...]
+        The artifacts it writes.
+    params : tuple[str, ...]
+        The dotted params keys DVC tracks and the artifacts' fingerprint holds.
+    data_deps : tuple[str, ...]
+        Deps that are no artifact: paths or params templates.
+    metrics : tuple[str, ...]
+        The artifacts it writes as DVC metrics (git-tracked, uncached).
+    exclusive : bool
+        It measures wall time: ``geodistill run`` runs it with nothing beside it.
     """
 
     name: str
@@ -289,7 +424,7 @@ class StageSpec:
 
 
 def _keys(section: str, *names: str, but: tuple[str, ...] = ()) -> tuple[str, ...]:
-    """The dotted keys of ``names`` in params ``section``; none named: of all its fields but ``but``."""
+    """List the dotted keys of ``names`` in params ``section``; none named: of all its fields but ``but``."""
     names = names or tuple(k for k in Params.model_fields[section].annotation.model_fields if k not in but)
     return tuple(f"{section}.{n}" for n in names)
 
@@ -388,5 +523,23 @@ PLOTS: tuple[PlotSpec, ...] = (
 
 
 def stage_params(params: dict, keys) -> dict:
-    """``{dotted key: value}`` of ``keys`` in validated params: what a stage fingerprints."""
+    """Pick the values of ``keys`` from validated params: what a stage fingerprints.
+
+    Parameters
+    ----------
+    params : dict
+        Validated params, as nested mappings.
+    keys : Iterable[str]
+        Dotted keys (a :class:`StageSpec`'s ``params``).
+
+    Returns
+    -------
+    dict
+        ``{dotted key: value}`` in ``keys``' order.
+
+    Raises
+    ------
+    KeyError
+        A key is not in ``params``.
+    """
     return {k: get_path(params, k) for k in keys}

@@ -1,6 +1,8 @@
-"""The deploy engines as data, one row per way to run the mask path Z = f(x) (eq:inference-mask); the one
-list of engine names.  Pure Python, so the params schema, the catalogue and ``segment --help`` read it
-without starting torch; :data:`pipeline.deploy.engines.ENGINES` loads them.
+"""The deploy engines as data: the one list of engine names.
+
+One row per way to run the mask path that gives P = sigmoid(Z) for M^ = [P >= tau] (eq:inference-mask).  Pure
+Python, so the params schema, the catalogue and ``segment --help`` read it without starting torch;
+:data:`pipeline.deploy.engines.ENGINES` loads them.
 """
 
 from __future__ import annotations
@@ -14,7 +16,28 @@ __all__ = ["EngineSpec", "ENGINE_TABLE", "ENGINE_ALIASES", "AUTO", "SEGMENT_ENGI
 
 @dataclasses.dataclass(frozen=True)
 class EngineSpec:
-    """One engine: how :mod:`pipeline.deploy.engines` loads it, the bundle file it runs, where and for whom."""
+    """One engine: how :mod:`pipeline.deploy.engines` loads it, the bundle file it runs, where and for whom.
+
+    Attributes
+    ----------
+    description : str
+        What it runs, for ``--help`` and the benchmark's table.
+    loader : str
+        The loader of :mod:`pipeline.deploy.engines` (its ``LOADERS`` key) that builds it.
+    options : Mapping
+        The loader's keyword options (``channels_last``, ``bf16``, ``precision``).
+    reads : str
+        The bundle file it runs (a :data:`pipeline.catalog.DEPLOY_BUNDLE` key); ``"weights"`` runs from a
+        checkpoint too.
+    cpu_only : bool
+        It runs on the CPU only.
+    cuda_only : bool
+        It needs a CUDA GPU.
+    segment : bool
+        Offered by ``segment --engine`` and the Segmenter.
+    benchmark : bool
+        A benchmark variant (:data:`BENCHMARK_VARIANTS`).
+    """
 
     description: str
     loader: str                          # a loader of pipeline.deploy.engines (LOADERS)
@@ -27,7 +50,7 @@ class EngineSpec:
 
     @property
     def bf16(self) -> bool:
-        """Computes in bf16 whatever the hardware (``auto`` precision falls back to fp32)."""
+        """Whether it computes in bf16 whatever the hardware (``auto`` precision falls back to fp32)."""
         return bool(self.options.get("bf16")) or self.options.get("precision") == "bf16"
 
 
@@ -63,20 +86,33 @@ ENGINE_TABLE: dict[str, EngineSpec] = {
 #: old name -> engine name (docs/decisions.md, "One name per engine")
 ENGINE_ALIASES: dict[str, str] = {"onnx": "onnxruntime_fp32", "int8": "onnxruntime_int8"}
 
+#: the ``segment --engine`` choice that picks an engine for the hardware
 AUTO = "auto"
 #: the engines ``segment --engine`` accepts besides ``auto``
 SEGMENT_ENGINES: tuple[str, ...] = tuple(n for n, e in ENGINE_TABLE.items() if e.segment)
 ENGINE_CHOICES: tuple[str, ...] = (AUTO, *SEGMENT_ENGINES)
 #: segment engines that a checkpoint directory supports too
 MODEL_ENGINES: tuple[str, ...] = tuple(n for n in SEGMENT_ENGINES if ENGINE_TABLE[n].reads == "weights")
+#: the benchmark's default variants, in the table's order
 BENCHMARK_VARIANTS: list[str] = [n for n, e in ENGINE_TABLE.items() if e.benchmark]
 
 
 def engines_reading(key: str) -> tuple[str, ...]:
-    """The engines that run bundle file ``key`` (a :data:`pipeline.catalog.DEPLOY_BUNDLE` key)."""
+    """List the engines that run bundle file ``key`` (a :data:`pipeline.catalog.DEPLOY_BUNDLE` key)."""
     return tuple(n for n, e in ENGINE_TABLE.items() if e.reads == key)
 
 
 def engine_name(name: str) -> str:
-    """The engine name ``name`` stands for (:data:`ENGINE_ALIASES`)."""
+    """Resolve an old engine name to the one it stands for (:data:`ENGINE_ALIASES`).
+
+    Parameters
+    ----------
+    name : str
+        An engine name or an alias.
+
+    Returns
+    -------
+    str
+        The engine name; any name that is no alias, unchanged.
+    """
     return ENGINE_ALIASES.get(name, name)

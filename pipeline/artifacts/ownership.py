@@ -1,5 +1,8 @@
-"""Whose file is it: the user tools replace or remove only what they wrote, recognised by a JSON *record* in their
-output folder that lists those files, written before any output (the policy: docs/own-data.md)."""
+"""Whose file is it: the user tools replace or remove only what they wrote.
+
+What a tool wrote is recognised by a JSON *record* in its output folder that lists those files, written before
+any output (the policy: docs/own-data.md).
+"""
 
 from __future__ import annotations
 
@@ -13,18 +16,46 @@ from pipeline.runtime.errors import OUT, OVERWRITE, InputError, Option, literal
 __all__ = ["WRITTEN_BY", "OUTPUTS", "signature", "read_record", "owned_outputs", "refuse_unowned",
            "refuse_foreign_files", "check_outputs", "remove_stale", "record_fields", "claim_outputs"]
 
+#: the record's key holding its writer (:func:`signature`)
 WRITTEN_BY = "written_by"
+#: the record's key listing the relative paths its writer owns
 OUTPUTS = "outputs"
 
 
 def signature(command: str) -> str:
-    """The ``written_by`` value of ``command``'s records."""
+    """Return the ``written_by`` value of ``command``'s records.
+
+    Parameters
+    ----------
+    command : str
+        The ``geodistill`` subcommand (``"label"``, ``"segment"``, ...).
+
+    Returns
+    -------
+    str
+        ``"geodistill COMMAND"``.
+    """
     return f"geodistill {command}"
 
 
 def read_record(path: str | Path, command: str, legacy_keys: Iterable[str] = ()) -> dict | None:
-    """The record at ``path`` when ``command`` wrote it, else None; ``legacy_keys``: those of a record from before
-    ``written_by`` (all present: it is one)."""
+    """Read the record at ``path`` when ``command`` wrote it.
+
+    Parameters
+    ----------
+    path : str or Path
+        The record file.
+    command : str
+        The subcommand whose record it must be (:func:`signature`).
+    legacy_keys : Iterable[str], optional
+        The keys of a record from before ``written_by``: one without ``written_by`` that holds them all counts as
+        ``command``'s.  Empty: no legacy record is recognised.
+
+    Returns
+    -------
+    dict or None
+        The record; None when the file is absent, unreadable, not a JSON object or another writer's.
+    """
     try:
         doc = json.loads(Path(path).read_text())
     except (OSError, ValueError, UnicodeDecodeError):
@@ -38,8 +69,26 @@ def read_record(path: str | Path, command: str, legacy_keys: Iterable[str] = ())
 
 def owned_outputs(out: str | Path, record: str, command: str, *, legacy_outputs: Iterable[str] = (),
                   legacy_keys: Iterable[str] = ()) -> set[str]:
-    """The relative paths ``command``'s record ``out/record`` lists, itself included (a legacy record:
-    ``legacy_outputs``); empty without one."""
+    """List the relative paths ``command``'s record ``out/record`` owns, the record itself included.
+
+    Parameters
+    ----------
+    out : str or Path
+        The output folder.
+    record : str
+        The record's file name inside ``out``.
+    command : str
+        The subcommand whose record it must be.
+    legacy_outputs : Iterable[str], optional
+        What a legacy record (one without an ``outputs`` list) owns.
+    legacy_keys : Iterable[str], optional
+        The keys that make a record without ``written_by`` a legacy one (:func:`read_record`).
+
+    Returns
+    -------
+    set[str]
+        The owned relative paths (posix); empty when there is no record of ``command``.
+    """
     doc = read_record(Path(out) / record, command, legacy_keys)
     if doc is None:
         return set()
@@ -49,12 +98,25 @@ def owned_outputs(out: str | Path, record: str, command: str, *, legacy_outputs:
 
 
 def _option(option: str | Option) -> Option:
-    """An option given by its flag alone as an :class:`Option`."""
+    """Turn an option given by its flag alone into an :class:`Option`."""
     return option if isinstance(option, Option) else Option(option, option.lstrip("-").replace("-", "_"))
 
 
 def owns(rel: str, own: Iterable[str]) -> bool:
-    """Whether a record listing ``own`` owns ``rel``: listed, or inside a listed folder (older records list folders)."""
+    """Tell whether a record listing ``own`` owns ``rel``: listed, or inside a listed folder (older records list them).
+
+    Parameters
+    ----------
+    rel : str
+        A relative posix path.
+    own : Iterable[str]
+        The record's listed paths.
+
+    Returns
+    -------
+    bool
+        True when ``rel`` or one of its parent folders is listed.
+    """
     own = set(own)
     parts = PurePosixPath(rel).parts
     return any("/".join(parts[:i]) in own for i in range(1, len(parts) + 1))
@@ -68,8 +130,33 @@ def _refuse_file(p: Path, command: str, option: Option, where, why: str) -> None
 
 def refuse_unowned(paths: Iterable[str | Path], owned: Iterable[str | Path], *, command: str, option: str | Option,
                    where: str | Path, why: str, overwrite: bool) -> None:
-    """InputError naming the first of ``paths`` that exists and is not ``owned``: a file or link always, a folder
-    unless ``overwrite``.  ``why``: how ``command`` knows its own; ``option``/``where``: what named the location."""
+    """Refuse to write over the first of ``paths`` that exists and is not ``owned``.
+
+    A file or link that exists is refused always, a folder unless ``overwrite``.
+
+    Parameters
+    ----------
+    paths : Iterable[str or Path]
+        The paths about to be written.
+    owned : Iterable[str or Path]
+        The paths ``command`` may replace.
+    command : str
+        The subcommand writing (named in the message).
+    option : str or pipeline.runtime.errors.Option
+        The option that named the location (a bare flag is turned into an Option).
+    where : str or Path
+        The value of ``option``, named in the message.
+    why : str
+        How ``command`` knows its own files, for the message.
+    overwrite : bool
+        Whether the user passed ``--overwrite`` (``overwrite=True``): then an existing folder is written into.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        One of ``paths`` exists and is not owned (a folder: only without ``overwrite``); one line naming it, the
+        option and the way out.
+    """
     mine = {Path(p).absolute() for p in owned}
     opt = _option(option)
     for p in paths:
@@ -88,7 +175,28 @@ def refuse_unowned(paths: Iterable[str | Path], owned: Iterable[str | Path], *, 
 
 def refuse_foreign_files(folder: str | Path, own: Iterable[str], *, command: str, option: str | Option,
                          where: str | Path, why: str) -> None:
-    """InputError naming the first file or link under ``folder`` not in ``own`` (for a command replacing it whole)."""
+    """Refuse to replace ``folder`` whole while it holds a file or link not in ``own``.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The folder about to be replaced; absent: nothing to refuse.
+    own : Iterable[str]
+        The relative posix paths the command owns there.
+    command : str
+        The subcommand writing (named in the message).
+    option : str or pipeline.runtime.errors.Option
+        The option that named the location.
+    where : str or Path
+        The value of ``option``, named in the message.
+    why : str
+        How ``command`` knows its own files, for the message.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        A file or link under ``folder`` is not in ``own``; one line naming the first, in sorted order.
+    """
     folder, own = Path(folder), set(own)
     if not folder.is_dir():
         return
@@ -100,8 +208,33 @@ def refuse_foreign_files(folder: str | Path, own: Iterable[str], *, command: str
 def check_outputs(out: str | Path, targets: Iterable[str], record: str, command: str, *, overwrite: bool,
                   option: str | Option = OUT, legacy_outputs: Iterable[str] = (), legacy_keys: Iterable[str] = ()
                   ) -> None:
-    """InputError before anything is written when ``out`` is a file, or when one of ``targets`` (relative paths; the
-    record too) or a folder on the way to one exists there and ``command``'s record does not own it."""
+    """Check, before anything is written, that ``command`` may write ``targets`` and its record into ``out``.
+
+    Refused: ``out`` is a file, or one of ``targets``, the record or a folder on the way to one exists there and
+    ``command``'s record does not own it (an unowned existing folder is accepted with ``overwrite``).
+
+    Parameters
+    ----------
+    out : str or Path
+        The output folder.
+    targets : Iterable[str]
+        The relative posix paths about to be written.
+    record : str
+        The record's file name inside ``out``.
+    command : str
+        The subcommand writing.
+    overwrite : bool
+        Whether the user passed ``--overwrite``.
+    option : str or pipeline.runtime.errors.Option, optional
+        The option that named ``out`` (default ``--out``).
+    legacy_outputs, legacy_keys : Iterable[str], optional
+        How a record from before ``written_by`` is recognised and what it owns (:func:`owned_outputs`).
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        ``out`` is a file, or a path in the way is not owned; one line naming it.
+    """
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError("{}: is a file, not a folder", _option(option)(out))
@@ -115,8 +248,24 @@ def check_outputs(out: str | Path, targets: Iterable[str], record: str, command:
 
 
 def remove_stale(out: str | Path, previous: Iterable[str], current: Iterable[str]) -> list[str]:
-    """Remove the files of ``previous`` not in ``current`` and the folders that leaves empty (never a listed folder's
-    contents); the removed relative paths."""
+    """Remove the files of ``previous`` not in ``current``, and the folders that leaves empty.
+
+    A listed folder's contents are never removed: only files and links listed in ``previous`` themselves.
+
+    Parameters
+    ----------
+    out : str or Path
+        The output folder.
+    previous : Iterable[str]
+        The relative paths the last run's record listed.
+    current : Iterable[str]
+        The relative paths this run writes.
+
+    Returns
+    -------
+    list[str]
+        The relative paths of the files removed, sorted.
+    """
     out, keep, removed = Path(out), set(current), []
     for rel in sorted(set(previous) - keep):
         p = out / rel
@@ -133,15 +282,57 @@ def remove_stale(out: str | Path, previous: Iterable[str], current: Iterable[str
 
 def record_fields(out: str | Path, record: str, command: str, targets: Iterable[str],
                   legacy_outputs: Iterable[str] = (), legacy_keys: Iterable[str] = ()) -> dict:
-    """``written_by`` and ``outputs`` (what the record listed, ``targets``, itself) of a record ``command`` writes."""
+    """Build the ``written_by`` and ``outputs`` fields of the record ``command`` writes.
+
+    Parameters
+    ----------
+    out : str or Path
+        The output folder.
+    record : str
+        The record's file name inside ``out``.
+    command : str
+        The subcommand writing.
+    targets : Iterable[str]
+        The relative paths this run writes.
+    legacy_outputs, legacy_keys : Iterable[str], optional
+        How a record from before ``written_by`` is recognised and what it owns (:func:`owned_outputs`).
+
+    Returns
+    -------
+    dict
+        ``{WRITTEN_BY: signature(command), OUTPUTS: [...]}``, the outputs sorted: what the existing record owned,
+        ``targets`` and the record itself.
+    """
     own = owned_outputs(out, record, command, legacy_outputs=legacy_outputs, legacy_keys=legacy_keys)
     return {WRITTEN_BY: signature(command), OUTPUTS: sorted(own | set(targets) | {record})}
 
 
 def claim_outputs(out: str | Path, targets: Iterable[str], record: str, command: str,
                   fields: Mapping | None = None, **legacy) -> dict:
-    """Write (and return) the record ``out/record`` listing ``targets`` before the outputs, so that the next run
-    recognises a killed one's files; ``fields``: the record's other fields."""
+    """Write the record ``out/record`` listing ``targets``, before the outputs, atomically.
+
+    Written first, so that the next run recognises the files of a run that was killed.
+
+    Parameters
+    ----------
+    out : str or Path
+        The output folder.
+    targets : Iterable[str]
+        The relative paths this run writes.
+    record : str
+        The record's file name inside ``out``.
+    command : str
+        The subcommand writing.
+    fields : Mapping, optional
+        The record's other fields; ``written_by`` and ``outputs`` take precedence over theirs.
+    **legacy
+        ``legacy_outputs`` and ``legacy_keys``, passed to :func:`record_fields`.
+
+    Returns
+    -------
+    dict
+        The record as written.
+    """
     doc = {**dict(fields or {}), **record_fields(out, record, command, targets, **legacy)}
     write_json(Path(out) / record, doc)
     return doc

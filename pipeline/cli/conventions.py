@@ -1,7 +1,8 @@
-"""Conventions shared by every command, the stage scripts' and the user tools': ``--params``, ``--set``,
-``--device``; logs on stderr; a user error is one line and exit code 2, an operating-system failure one line
-naming the path and exit code 1.  The stage scripts (``stages/``) import them from here; nothing under
-``pipeline/`` imports ``stages/``.
+"""Conventions shared by every command, the stage scripts' and the user tools'.
+
+``--params``, ``--set``, ``--device``; logs on stderr; a user error is one line and exit code 2, an
+operating-system failure one line naming the path and exit code 1.  The stage scripts (``stages/``) import them
+from here; nothing under ``pipeline/`` imports ``stages/``.
 """
 
 from __future__ import annotations
@@ -27,6 +28,10 @@ __all__ = ["setup_logging", "one_line_errors", "overwrite_option", "skip_bad_opt
 
 
 def setup_logging() -> None:
+    """Send log records to stderr, at the level ``GEODISTILL_LOG`` names (default INFO; an unknown name: INFO).
+
+    Calls :func:`logging.basicConfig`, so it does nothing when the root logger already has a handler.
+    """
     level = os.environ.get("GEODISTILL_LOG", "INFO").upper()
     logging.basicConfig(stream=sys.stderr, level=getattr(logging, level, logging.INFO),
                         format="%(asctime)s %(name)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
@@ -39,7 +44,7 @@ _OS_WHAT = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quo
 
 
 def os_error_line(e: OSError) -> str:
-    """One line for an operating-system failure: ``out/masks: no space left on the device (ENOSPC)``."""
+    """Spell an operating-system failure as one line: ``out/masks: no space left on the device (ENOSPC)``."""
     what = _OS_WHAT.get(e.errno) or (e.strerror or str(e) or type(e).__name__)
     name = errno.errorcode.get(e.errno) if e.errno else None
     path = e.filename if e.filename is not None else None
@@ -51,8 +56,25 @@ def os_error_line(e: OSError) -> str:
 
 @contextlib.contextmanager
 def one_line_errors(command: str):
-    """Run a command's body; an InputError ends it with ``geodistill <command>: error: <line>`` and exit
-    code 2, an OSError with one line naming the path and exit code 1.  Inside, messages name flags.
+    """Run a command's body so that a user error or an OS failure ends it with one line, never a traceback.
+
+    Inside, :class:`pipeline.runtime.errors.InputError` messages name the command-line flags.
+
+    Parameters
+    ----------
+    command : str
+        The subcommand's name, printed as ``geodistill <command>: error: <line>``.
+
+    Yields
+    ------
+    None
+        Control to the command's body.
+
+    Raises
+    ------
+    SystemExit
+        Code 2 after an :class:`~pipeline.runtime.errors.InputError` (its first line printed on stderr), code 1
+        after an :class:`OSError` (one line naming the path); anything else propagates with its traceback.
     """
     try:
         with calling(CLI):
@@ -90,7 +112,20 @@ bit_depth_option = click.option(
 
 
 def teacher_workers_options(fn):
-    """``--workers`` / ``--address``: the teacher's Ray Data executor (teacher stage and label)."""
+    """Add ``--workers`` and ``--address``, the teacher's Ray Data executor, to a click command.
+
+    For the teacher stage and ``geodistill label``.
+
+    Parameters
+    ----------
+    fn : Callable
+        The command's function, before ``click.command``.
+
+    Returns
+    -------
+    Callable
+        ``fn`` with the two options, passed as keywords ``workers`` and ``address``.
+    """
     fn = click.option("--address", default=None, metavar="ADDRESS",
                       help="Ray cluster to join with --workers (default: RAY_ADDRESS, else an embedded local Ray)")(fn)
     return click.option("--workers", default=0, show_default=True, type=click.IntRange(0),
@@ -112,7 +147,18 @@ def teacher_choice_options(refused: str = ""):
 
 
 def stage_code_version(stage_file: str) -> str:
-    """Code version of a stage script: the hash of every project file it imports."""
+    """Hash a stage script's code: every project file it imports (:func:`pipeline.runtime.codeversion.code_version_of`).
+
+    Parameters
+    ----------
+    stage_file : str
+        The script's path (its ``__file__``), under the repository root.
+
+    Returns
+    -------
+    str
+        The code version, 16 hex digits.
+    """
     return code_version_of(module_name(Path(stage_file).resolve(), ROOT))
 
 
@@ -122,10 +168,31 @@ ProfileLoader = Callable[[Any, Iterable[str], str], dict]
 
 def stage_command(name: str, default_profile: str | None = None, profile_loader: ProfileLoader | None = None
                   ) -> Callable:
-    """Decorate ``fn(params, device, **options)`` into a click command with the shared options.
+    """Make a decorator turning ``fn(params, device, **options)`` into a click command with the shared options.
 
-    ``default_profile`` with its ``profile_loader``: without ``--params`` the params are that profile's
-    (commands that run outside a project, e.g. ``label``).
+    The command gets ``--params``, ``--set`` and ``--device``; it sets up logging, loads and validates the params
+    and runs ``fn`` under :func:`one_line_errors`.  ``fn``'s docstring is the command's help.
+
+    Parameters
+    ----------
+    name : str
+        The command's name.
+    default_profile : str, optional
+        The profile whose params apply without ``--params`` (commands that run outside a project, e.g. ``label``);
+        None: ``--params`` defaults to :data:`pipeline.catalog.PARAMS_FILE`.
+    profile_loader : ProfileLoader, optional
+        ``load(params_file, overrides, default_profile) -> params``; given exactly when ``default_profile`` is
+        (no stage may import :mod:`pipeline.profiles`).
+
+    Returns
+    -------
+    Callable
+        The decorator: ``fn`` -> :class:`click.Command`.
+
+    Raises
+    ------
+    TypeError
+        Only one of ``default_profile`` and ``profile_loader`` is given.
     """
     if (default_profile is None) != (profile_loader is None):
         raise TypeError(f"stage_command({name!r}): default_profile and profile_loader go together")

@@ -1,5 +1,6 @@
-"""The ``geodistill`` console script: the DAG's stage commands and the user tools, imported lazily so that
-``geodistill --help`` starts no torch.
+"""The ``geodistill`` console script: the DAG's stage commands and the user tools.
+
+The commands are imported lazily, so that ``geodistill --help`` starts no torch.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ __all__ = ["main"]
 
 
 def command_name(stage: str) -> str:
-    """The ``geodistill`` command of a DVC stage: its name with "-" for "_" (dvc.yaml keeps the stage's)."""
+    """Name the ``geodistill`` command of a DVC stage: its name with "-" for "_" (dvc.yaml keeps the stage's)."""
     return stage.replace("_", "-")
 
 
@@ -42,10 +43,14 @@ ALIASES = {stage: command_name(stage) for stage in stage_modules() if command_na
 
 
 class LazyGroup(click.Group):
+    """The command group that imports a subcommand's module only when that subcommand is asked for."""
+
     def list_commands(self, ctx):
+        """List the subcommands whose module can be found (an optional extra's may not be installed)."""
         return sorted(n for n, m in COMMANDS.items() if importlib.util.find_spec(m.split(":")[0]) is not None)
 
     def get_command(self, ctx, name):
+        """Import and return subcommand ``name`` (an alias resolved), or None when it is unknown or not installed."""
         name = ALIASES.get(name, name)
         if name not in COMMANDS:
             return None
@@ -55,7 +60,7 @@ class LazyGroup(click.Group):
         return getattr(importlib.import_module(mod), attr or "main")
 
     def invoke(self, ctx):
-        """Every subcommand under :func:`pipeline.cli.conventions.one_line_errors`: one line, never a traceback."""
+        """Run every subcommand under :func:`pipeline.cli.conventions.one_line_errors`: one line, no traceback."""
         args = [*getattr(ctx, "_protected_args", []), *ctx.args] or [""]
         with one_line_errors(args[0] or PROGRAM):
             return super().invoke(ctx)

@@ -1,5 +1,6 @@
-"""``geodistill plots``: DVC's own ``dvc plots show|diff`` with a page template that inlines the chart library,
-so the page renders without network (DVC's default page loads it from a CDN).
+"""``geodistill plots``: DVC's own ``dvc plots show|diff``, with a page that renders without network.
+
+The page template inlines the chart library (DVC's default page loads it from a CDN).
 """
 
 from __future__ import annotations

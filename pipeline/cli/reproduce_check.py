@@ -1,5 +1,6 @@
-"""``geodistill reproduce-check``: do this run's student metrics reproduce the ones committed at ``--ref``,
-within :data:`pipeline.reproducibility.TOLERANCE`?  Exit 0 yes, 1 no, 2 bad input.
+"""``geodistill reproduce-check``: check that this run's student metrics reproduce the committed ones.
+
+Those committed at ``--ref``, within :data:`pipeline.reproducibility.TOLERANCE`.  Exit 0 yes, 1 no, 2 bad input.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ __all__ = ["main"]
 
 
 def _git(args: list[str], cwd: Path) -> str:
-    """Stdout of ``git args`` in ``cwd``; InputError when git fails."""
+    """Run ``git args`` in ``cwd`` and return its stdout; InputError when git fails."""
     try:
         out = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True)
     except FileNotFoundError:
@@ -33,6 +34,7 @@ def _git(args: list[str], cwd: Path) -> str:
 
 
 def _parse(text: str, where: str) -> dict[str, float]:
+    """Read a DVC metrics file's text, a JSON object of numbers; InputError naming ``where`` otherwise."""
     try:
         data = json.loads(text)
     except json.JSONDecodeError as e:
@@ -44,7 +46,7 @@ def _parse(text: str, where: str) -> dict[str, float]:
 
 
 def committed_metrics(metrics_dir: Path, ref: str) -> dict[str, dict[str, float]]:
-    """``{<group>/<method>.json: metrics}`` of ``metrics_dir`` as committed at ``ref``."""
+    """Read ``{<group>/<method>.json: metrics}`` of ``metrics_dir`` as committed at ``ref``."""
     top = Path(_git(["rev-parse", "--show-toplevel"], Path.cwd()).strip())
     try:
         rel = metrics_dir.resolve().relative_to(top.resolve()).as_posix()
@@ -58,7 +60,7 @@ def committed_metrics(metrics_dir: Path, ref: str) -> dict[str, dict[str, float]
 
 
 def fresh_metrics(metrics_dir: Path) -> dict[str, dict[str, float]]:
-    """``{<group>/<method>.json: metrics}`` of the files in ``metrics_dir`` ({} when it does not exist)."""
+    """Read ``{<group>/<method>.json: metrics}`` of the files in ``metrics_dir`` ({} when it does not exist)."""
     if not metrics_dir.is_dir():
         return {}
     return {p.relative_to(metrics_dir).as_posix(): _parse(p.read_text(), str(p))

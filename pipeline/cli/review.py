@@ -39,9 +39,10 @@ def review():
                    "default: Label Studio local files of the labelled folder (see review upload)")
 @overwrite_option
 def export_main(label_dir, out, top, ranking, student, ls_shape, coco_shape, image_url, overwrite):
-    """Write the images of a label output folder that most need a person, best first: a Label Studio
-    import (labelstudio/tasks.json + label_config.xml), a CVAT import (cvat/instances_default.json, COCO
-    1.0) and ranked.csv, under --out only.
+    """Write the images of a label output folder that most need a person, best first.
+
+    A Label Studio import (labelstudio/tasks.json + label_config.xml), a CVAT import
+    (cvat/instances_default.json, COCO 1.0) and ranked.csv, under --out only.
     """
     setup_logging()
     with one_line_errors("review export"):
@@ -67,9 +68,10 @@ def export_main(label_dir, out, top, ranking, student, ls_shape, coco_shape, ima
               help="your API token: a legacy token or a personal access token (env LABEL_STUDIO_API_KEY)")
 @click.option("--title", default=None, help="the project's title (default: geodistill review <export id>)")
 def upload_main(review_dir, url, token, title):
-    """Create a Label Studio project for a review export through the API: its labelling interface, the
-    Local files storage connection that serves the images, and the tasks; then check the first image
-    is served.  Label Studio must run with the two variables review export printed.
+    """Create a Label Studio project for a review export through the API.
+
+    Its labelling interface, the Local files storage connection that serves the images, and the tasks; then
+    check the first image is served.  Label Studio must run with the two variables review export printed.
     """
     setup_logging()
     with one_line_errors("review upload"):
@@ -88,8 +90,9 @@ def upload_main(review_dir, url, token, title):
               help="labelstudio (JSON export), cvat (COCO 1.0 export), png (a folder of <image id>.png)")
 @overwrite_option
 def import_main(source, review_dir, out, fmt, overwrite):
-    """Read corrected masks (a Label Studio JSON export, a CVAT COCO 1.0 export or a folder of PNGs) into
-    the versioned corrections artifact.
+    """Read corrected masks into the versioned corrections artifact.
+
+    From a Label Studio JSON export, a CVAT COCO 1.0 export or a folder of PNGs.
     """
     setup_logging()
     with one_line_errors("review import"):

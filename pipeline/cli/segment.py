@@ -1,5 +1,7 @@
-"""``geodistill segment``: binary spacecraft masks at each image's original size, with a trained or exported
-student (docs/own-data.md); the logic is :func:`pipeline.deploy.segmenting.segment_images`.
+"""``geodistill segment``: binary spacecraft masks at each image's original size, with a trained student.
+
+The student is a checkpoint or an exported bundle (docs/own-data.md); the logic is
+:func:`pipeline.deploy.segmenting.segment_images`.
 """
 
 from __future__ import annotations

@@ -29,8 +29,9 @@ NO_RAY = ("geodistill run needs Ray: pip install -e '.[cluster]' "
 
 
 class RunLock:
-    """Exclusive, non-blocking ``flock`` on :data:`LOCK_FILE`: a second driver gets :class:`InputError`; the
-    kernel releases it however the holder dies.
+    """Hold an exclusive, non-blocking ``flock`` on :data:`LOCK_FILE` while ``geodistill run`` drives.
+
+    A second driver gets :class:`InputError`; the kernel releases the lock however the holder dies.
     """
 
     def __init__(self, root: Path):
@@ -60,7 +61,7 @@ class RunLock:
 
 
 def dvc(root: Path, *args: str, env: dict | None = None) -> str:
-    """Stdout of ``python -m dvc ARGS`` in ``root``; DVC's first error line as :class:`InputError`."""
+    """Run ``python -m dvc ARGS`` in ``root`` and return its stdout; DVC's error line as :class:`InputError`."""
     proc = subprocess.run([sys.executable, "-m", "dvc", *args], cwd=root, env=env, capture_output=True, text=True)
     if proc.returncode != 0:
         raise InputError(f"dvc {' '.join(args)}: {plan.error_line(proc.stderr + proc.stdout)}")
@@ -68,7 +69,7 @@ def dvc(root: Path, *args: str, env: dict | None = None) -> str:
 
 
 def read_plan(root: Path, targets: tuple[str, ...] = ()) -> tuple[list[str], dict[str, set[str]], set[str]]:
-    """(stages in DVC's order, {stage: upstream}, stale stages) from ``dvc dag --dot`` and ``dvc status``."""
+    """Read (stages in DVC's order, {stage: upstream}, stale stages) from ``dvc dag --dot`` and ``dvc status``."""
     order, needs = plan.parse_dot(dvc(root, "dag", "--dot"))
     unknown = [t for t in targets if t not in needs]
     if unknown:
@@ -79,7 +80,7 @@ def read_plan(root: Path, targets: tuple[str, ...] = ()) -> tuple[list[str], dic
 
 
 def child_env(extra: dict[str, str], threads: int, gpus: float) -> dict[str, str]:
-    """The stage process's environment: this worker's, ``extra``, ``threads`` per pool, no GPU unless it holds one."""
+    """Build a stage process's environment: this worker's, ``extra``, ``threads`` per pool, no GPU unless it has one."""
     env = {**os.environ, **extra}
     env.update({k: str(max(1, threads)) for k in (*THREAD_ENV_VARS, STAGE_CPUS_ENV)})
     if gpus <= 0:
@@ -89,8 +90,9 @@ def child_env(extra: dict[str, str], threads: int, gpus: float) -> dict[str, str
 
 def run_stage(root: str, stage: str, extra_env: dict, threads: int, gpus: float, log_path: str, t0: float,
               *upstream: dict) -> dict:
-    """A stage's Ray task: ``dvc --wait-for-lock repro --single-item STAGE`` under the guard, output to
-    ``log_path``; ``not_run`` when an ``upstream`` result did not succeed.
+    """Run one stage as a Ray task: ``dvc --wait-for-lock repro --single-item STAGE`` under the guard.
+
+    Its output goes to ``log_path``; the result is ``not_run`` when an ``upstream`` result did not succeed.
     """
     import ray
 
@@ -111,14 +113,14 @@ def run_stage(root: str, stage: str, extra_env: dict, threads: int, gpus: float,
 
 
 def driver_env() -> dict[str, str]:
-    """PATH with this interpreter's folder first (stage commands say ``python``), PYTHONPATH, GEODISTILL_*."""
+    """Pass on PATH with this interpreter's folder first (stage commands say ``python``), PYTHONPATH, GEODISTILL_*."""
     env = {"PATH": os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])}
     env.update({k: v for k, v in os.environ.items() if k == "PYTHONPATH" or k.startswith("GEODISTILL_")})
     return env
 
 
 def read_costs(path: Path) -> dict[str, float]:
-    """Seconds each stage took when it last ran ({} without a previous timeline)."""
+    """Read the seconds each stage took when it last ran ({} without a previous timeline)."""
     try:
         return {str(n): float(v) for n, v in json.loads(Path(path).read_text())["costs"].items()}
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
@@ -126,18 +128,19 @@ def read_costs(path: Path) -> dict[str, float]:
 
 
 def stage_log(stage: str) -> str:
+    """Name a stage's log file in the run's log folder."""
     return catalog.output_file("run_logs", "stage_log").format(stage=stage)
 
 
 def write_timeline(path: Path, results: dict[str, dict], resources: dict, wall_s: float,
                    costs: dict[str, float]) -> Path:
-    """The run as JSON (atomic), ``costs`` updated with the seconds of the stages that ran."""
+    """Write the run as JSON (atomic), ``costs`` updated with the seconds of the stages that ran."""
     ran = {n: r["end"] - r["start"] for n, r in results.items() if r.get("status") == "ran"}
     return write_json(path, {"wall_s": wall_s, "resources": resources, "stages": results, "costs": {**costs, **ran}})
 
 
 def sizing(ray, stage_cpus: float | None, train_gpu_fraction: float, train_threads: int = 0) -> plan.Sizing:
-    """What the connected Ray cluster offers (a CPU stage's default: half the largest node, at least 1)."""
+    """Measure what the connected Ray cluster offers (a CPU stage's default: half the largest node, at least 1)."""
     nodes = [n for n in ray.nodes() if n.get("Alive")]
     node_cpus = max((n["Resources"].get("CPU", 0.0) for n in nodes), default=1.0) or 1.0
     total = ray.cluster_resources()
@@ -147,7 +150,7 @@ def sizing(ray, stage_cpus: float | None, train_gpu_fraction: float, train_threa
 
 
 def pinned_train_threads(root: Path) -> int:
-    """``train.num_threads`` of params.yaml; 0 when unreadable (DVC reports a bad params file itself)."""
+    """Read ``train.num_threads`` of params.yaml; 0 when unreadable (DVC reports a bad params file itself)."""
     try:
         value = read_yaml_mapping(root / DEFAULT_PARAMS).get("train", {}).get("num_threads", 0)
         return max(0, int(value or 0))
@@ -157,6 +160,8 @@ def pinned_train_threads(root: Path) -> int:
 
 @dataclasses.dataclass
 class RunResult:
+    """What :func:`run_pipeline` ran: each stage's result record (``status`` among them) and the wall time."""
+
     results: dict[str, dict]
     wall_s: float
 
@@ -171,8 +176,41 @@ class RunResult:
 def run_pipeline(root: Path, targets: tuple[str, ...] = (), address: str | None = None,
                  stage_cpus: float | None = None, train_gpu_fraction: float = 0.25, dry_run: bool = False,
                  echo: Callable[[str], None] = print) -> RunResult | None:
-    """``geodistill run`` without the CLI (None for a dry run): in this process's Ray session if there is one,
-    else an embedded local one, or ``address``/``RAY_ADDRESS``.
+    """Run the DVC pipeline's stale stages as Ray tasks: ``geodistill run`` without the CLI.
+
+    Each submitted stage runs ``dvc --wait-for-lock repro --single-item STAGE`` once its upstream stages have
+    finished and the cluster has room (:mod:`pipeline.cluster.plan`), so DVC records every stage as ``dvc repro``
+    would; a failed stage's dependents do not run.  Ray: this process's session if there is one, else
+    ``address``, ``RAY_ADDRESS`` or an embedded local one; a session this call opens is shut down at the end.
+    Logs and the timeline go to the ``run_logs`` artifact.
+
+    Parameters
+    ----------
+    root : Path
+        The project folder (holding dvc.yaml).
+    targets : tuple[str, ...], optional
+        The stages asked for (with their upstream stages); empty: the whole pipeline.
+    address : str, optional
+        The Ray cluster to join when no session is open; None: ``RAY_ADDRESS``, else a local one.
+    stage_cpus : float, optional
+        The CPUs a CPU stage takes; None: half the largest node, at least 1.
+    train_gpu_fraction : float, optional
+        The share of a GPU one training run takes.
+    dry_run : bool, optional
+        Print each stage's resources and upstream stages through ``echo`` instead of running.
+    echo : Callable[[str], None], optional
+        Where the progress lines go.
+
+    Returns
+    -------
+    RunResult or None
+        Each stage's result and the wall seconds (no stages: an empty result); None for a dry run.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        ``root`` holds no dvc.yaml, another ``geodistill run`` holds the project's lock, Ray is not installed,
+        a target is no stage, or a ``dvc`` command fails.
     """
     root = Path(root).resolve()
     if not (root / catalog.DVC_FILE).is_file():
@@ -208,8 +246,10 @@ def run_pipeline(root: Path, targets: tuple[str, ...] = (), address: str | None 
 
 def _submit(ray, root: Path, sequence: list[str], graph: dict[str, set[str]], size: plan.Sizing, log_dir: Path,
             costs: dict[str, float], dry_run: bool, echo) -> RunResult | None:
-    """Run the stages of ``sequence`` as Ray tasks, each handed to Ray when its upstream stages have finished and
-    the cluster has room (:func:`pipeline.cluster.plan.startable`, in ``sequence``'s priority); wait for all.
+    """Run the stages of ``sequence`` as Ray tasks and wait for all.
+
+    Each is handed to Ray when its upstream stages have finished and the cluster has room
+    (:func:`pipeline.cluster.plan.startable`, in ``sequence``'s priority).
     """
     res = {n: plan.stage_resources(n, size) for n in sequence}
     echo(f"geodistill run: Ray cluster with {size.node_cpus:g} CPUs on its largest node, {size.gpus:g} GPUs")
