@@ -134,8 +134,21 @@ def teacher_workers_options(fn):
 
 
 def teacher_choice_options(refused: str = ""):
-    """``--backend`` and each backend row's folder option (``--checkpoint``, ``--imported-dir``: the table's
-    ``folder``), handed to the command as keyword arguments; ``refused``: the end of ``--backend``'s help."""
+    """Add ``--backend`` and each backend row's folder option to a click command.
+
+    The folder options (``--checkpoint``, ``--imported-dir``) come from the teacher table's ``folder`` column and
+    reach the command as keyword arguments.
+
+    Parameters
+    ----------
+    refused : str
+        The end of ``--backend``'s help text.
+
+    Returns
+    -------
+    callable
+        A decorator for a click command.
+    """
     def add(fn):
         for name, (option, help_) in reversed(folder_options().items()):
             fn = click.option(option.flag, option.keyword, default=None, type=click.Path(),
