@@ -11,7 +11,9 @@ from pipeline.runtime.errors import InputError
 
 
 @dataclasses.dataclass
-class Inputs:
+class FolderScan:
+    """What :func:`scan_inputs` found under one input path: the images, and each entry it skipped or left unused."""
+
     root: Path                       # the input folder, or the parent of the single input file
     files: list[Path]                # images to segment, sorted
     skipped: list[tuple[str, str]]   # (path, reason): bad entries -- links not followed, non-regular files
@@ -19,7 +21,7 @@ class Inputs:
     unused: list[tuple[str, str]] = dataclasses.field(default_factory=list)  # not images: listed, not an error
 
 
-def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> Inputs:
+def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> FolderScan:
     """The images under ``input_path`` (a file: as given); hidden entries and non-images are ``unused``, bad
     ones ``skipped``: links leaving the folder or to folders, special files, broken links (unless
     ``keep_broken_links``: in ``files``, for the caller's decode pass to report)."""
@@ -29,7 +31,7 @@ def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> I
     if not p.exists():
         raise InputError(f"--input {p}: not found")
     if not p.is_dir():
-        return Inputs(p.parent, [p], [], False)
+        return FolderScan(p.parent, [p], [], False)
     root_r = p.resolve()
     files: list[Path] = []
     skipped: list[tuple[str, str]] = []
@@ -70,4 +72,4 @@ def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> I
                 skipped.append((str(f), "not a regular file"))
                 continue
             files.append(f)
-    return Inputs(p, sorted(files), sorted(skipped), True, sorted(unused))
+    return FolderScan(p, sorted(files), sorted(skipped), True, sorted(unused))
