@@ -1,4 +1,4 @@
-"""The export and segment stages' logic, called directly (pipeline.deploy.export, pipeline.deploy.segmenting): the
+"""The export and segment stages' logic, called directly (pipeline.deploy.export, pipeline.deploy.image_files): the
 stage scripts only wire options to these functions."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pipeline.runtime.errors import InputError
 from pipeline.deploy.bundle import is_deploy_bundle
 from pipeline.deploy.export import export_lines, plan_export, write_export
 from pipeline.params import load_params
-from pipeline.deploy.segmenting import check_options, model_resolution, segment_images
+from pipeline.deploy.image_files import check_options, model_resolution, segment_images
 from tests.builders.deploy import PARAMS, RES, make_checkpoint, make_thresholds
 
 
