@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pipeline.params import SOURCES, validate_section  # noqa: F401  (SOURCES: re-exported)
+from pipeline.params import validate_section
 
 # not fingerprinted: where things are cached, and a guard whose effect shows in the content digest
 NON_CONTENT_KEYS = ("cache_dir", "contact_sheet_images", "max_pixels")

@@ -1,9 +1,8 @@
-"""Where a training run's per-epoch resume state lives (:class:`Checkpointer`): nowhere, in memory, or on disk in
-the train stage's resume folder (torch imported lazily: the stages start without it)."""
+"""Where a training run's per-epoch resume state lives (:class:`Checkpointer`): nowhere, or on disk in the train
+stage's resume folder (torch imported lazily: the stages start without it)."""
 
 from __future__ import annotations
 
-import copy
 import logging
 import os
 from pathlib import Path
@@ -74,44 +73,6 @@ class NoCheckpointer:
             The resume state (discarded).
         """
         pass
-
-
-class MemoryCheckpointer:
-    """Resume state held in memory (a deep copy of the last saved state); for tests and notebooks.
-
-    Attributes
-    ----------
-    state : dict or None
-        The last saved state (None: nothing saved yet).
-    """
-
-    def __init__(self) -> None:
-        self.state: dict | None = None
-
-    def load(self, run_key: Mapping[str, Any]) -> dict | None:
-        """Load a deep copy of the last saved state, whatever its key.
-
-        Parameters
-        ----------
-        run_key : Mapping
-            The run's key (unread here: :func:`train` compares it with the state's).
-
-        Returns
-        -------
-        dict or None
-            A deep copy of the last saved state, or None when nothing was saved.
-        """
-        return copy.deepcopy(self.state)
-
-    def save(self, state: dict) -> None:
-        """Keep a deep copy of ``state``, replacing the one before.
-
-        Parameters
-        ----------
-        state : dict
-            The resume state after an epoch.
-        """
-        self.state = copy.deepcopy(state)
 
 
 class FileCheckpointer:

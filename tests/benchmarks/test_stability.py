@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from tests.builders.training import assert_same_state, clone_state, load_arrays, tiny_cfg
-from pipeline.training.checkpointing import FileCheckpointer, MemoryCheckpointer, NoCheckpointer
+from pipeline.training.checkpointing import FileCheckpointer, NoCheckpointer
+from tests.builders.training import MemoryCheckpointer
 
 
 # --------------------------------------------------------------------------------------------------

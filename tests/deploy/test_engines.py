@@ -12,8 +12,8 @@ from click.testing import CliRunner
 from pipeline.catalog import META_FILE
 from pipeline.deploy import benchmark as bench
 from pipeline.deploy.bundle import DEPLOY_JSON
-from pipeline.deploy.engines import ENGINES, MODEL_ENGINES, SEGMENT_ENGINES, Source, unavailable
-from pipeline.engine_table import ENGINE_ALIASES, ENGINE_TABLE, engine_name
+from pipeline.deploy.engines import ENGINES, Source, unavailable
+from pipeline.engine_table import ENGINE_ALIASES, ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES, engine_name
 from pipeline.engine_table import ENGINE_CHOICES as SEGMENT_CHOICES
 from pipeline.deploy.segmenter import load_segmenter, resolve_engine
 from pipeline.runtime.errors import InputError

@@ -23,7 +23,8 @@ from pipeline.training.streaming import spill_rows
 from tests.builders.training import (REPO, assert_same_state, build_tiny_artifacts, clone_state, load_arrays, shape_mask,
                                      tiny_cfg, train_cli, train_params_file)
 from pipeline.training.settings import loss_constants
-from pipeline.training.checkpointing import FileCheckpointer, MemoryCheckpointer, NoCheckpointer
+from pipeline.training.checkpointing import FileCheckpointer, NoCheckpointer
+from tests.builders.training import MemoryCheckpointer
 
 
 def _run(method_name, art, cfg, seed=42, init_state=None, resume_dir=None, checkpointer=None, **kw):
@@ -138,7 +139,7 @@ def test_train_runs_from_arrays_with_an_in_memory_checkpointer_and_resumes():
 @pytest.mark.parametrize("method", ["plain", "geodistill", "gabi", "no_gate"])
 def test_training_loss_is_the_losses_module_objective(tiny, method):
     """The logged epoch-1 terms of a one-batch run (lr 0) equal losses.refine_loss (eq:refine-loss) with
-    the plan's weights -- and, for Stage I, losses.raw_loss (eq:raw-loss) -- on the untrained model."""
+    the plan's weights -- and, for Stage I, losses.raw_terms (eq:raw-loss) -- on the untrained model."""
     from pipeline import losses
     from pipeline.training import loop as training
     from pipeline.methods import get_method, resolve_plan
@@ -165,7 +166,7 @@ def test_training_loss_is_the_losses_module_objective(tiny, method):
     ref = losses.refine_loss(out, targets, gates, weights, loss_constants(cfg))
     for k, v in ref.items():
         assert row[k] == pytest.approx(v.item(), rel=1e-5), k
-    assert row["raw"] == pytest.approx(losses.raw_loss(out["mask"], targets["mask"]).item(), rel=1e-5)
+    assert row["raw"] == pytest.approx(losses.raw_terms(out["mask"], targets["mask"])["raw"].item(), rel=1e-5)
     if method == "plain":
         assert row["loss"] == pytest.approx(row["raw"], rel=1e-6)
         assert set(ref) == {"loss", "raw", "bbce", "dice"}

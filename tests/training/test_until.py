@@ -12,7 +12,8 @@ from pipeline.methods import get_method
 from tests.builders.training import REPO, assert_same_state, clone_state, load_arrays, tiny_cfg
 from pipeline.training import schedule
 from pipeline.training.settings import Settings
-from pipeline.training.checkpointing import MemoryCheckpointer, NoCheckpointer
+from pipeline.training.checkpointing import NoCheckpointer
+from tests.builders.training import MemoryCheckpointer
 
 
 def test_plateau_rule_is_a_doubling_that_gains_too_little():
