@@ -31,6 +31,7 @@ from pipeline.datasets.params import check_data_params
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import load_params, section
 from pipeline.training.streaming import LazyRows, row_means
+from pipeline.training.checkpointing import NoCheckpointer
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -90,7 +91,7 @@ def child_train(folder: Path, mode: str, method_name: str, max_batches: int) -> 
         in_order = training._epoch_batches_in_order
         training._epoch_batches_in_order = lambda run, epoch: itertools.islice(in_order(run, epoch), max_batches)
     before = rss_mb()
-    t = seconds(lambda: training.train(method, cfg, data, None, 42, checkpointer=training.NoCheckpointer(),
+    t = seconds(lambda: training.train(method, cfg, data, None, 42, checkpointer=NoCheckpointer(),
                                        init_state=init, device="cpu", show_progress=False))
     steps = min(max_batches or n, -(-n // int(cfg["batch_size"])))
     return {"peak_mb": peak_mb(), "rss_before_mb": before, "seconds": t, "batches": steps}

@@ -19,7 +19,7 @@ import numpy as np
 from benchmarks.common import medians, minima, parser, round_robin, seconds
 from pipeline.artifacts.lineage import make_meta
 from pipeline.datasets.loading import read_rgb, resize_image
-from pipeline.deploy import files as F
+from pipeline.deploy import image_files as F
 from pipeline.deploy.segmenter import load_segmenter
 from pipeline.engine_table import ENGINE_TABLE, SEGMENT_ENGINES, engine_name
 from pipeline.runtime.errors import InputError

@@ -18,6 +18,7 @@ from pipeline.runtime.device import resolve_device
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.params import load_params, section
 from pipeline.training.inputs import TrainData, ValData
+from pipeline.training.checkpointing import NoCheckpointer
 
 PAPER_IMAGES = 270
 
@@ -44,7 +45,7 @@ def train_variant(cfg: dict, data, val, device, seed: int) -> dict:
     """Train ``plain`` with ``cfg``; per-epoch training seconds (callback marks) and final val metrics."""
     from pipeline.training import loop as training
     marks = [time.perf_counter()]
-    res = training.train(get_method(STAGE_ONE), cfg, data, None, seed, checkpointer=training.NoCheckpointer(),
+    res = training.train(get_method(STAGE_ONE), cfg, data, None, seed, checkpointer=NoCheckpointer(),
                          device=device, callback=lambda epoch, row: marks.append(time.perf_counter()),
                          show_progress=False)
     out = {"epoch_seconds": list(np.diff(marks)), "autocast": res.info["autocast"],

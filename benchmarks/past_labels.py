@@ -38,6 +38,7 @@ from pipeline.training.inputs import read_rows
 from pipeline.training import loop as training
 from pipeline.training.loop import build_model
 from pipeline.training.self_training import flip_tta_probs, fused_targets
+from pipeline.training.checkpointing import NoCheckpointer
 
 #: a relabelling forward pass, in training images (forward + backward ~ 3 forward passes)
 RELABEL_WEIGHT = 1.0 / 3.0
@@ -135,7 +136,7 @@ def _trained(job: Mapping[str, Any], method: str, data):
         return (model.eval(), record["steps_run"], record["stopped"], curve,
                 f"benchmarks.memorisation run {run.name} at commit {record['commit']}")
     res = training.train(get_method(method), job["cfg"], data, _DATA["val"], job["seed"],
-                         checkpointer=training.NoCheckpointer(), device=job["device"], show_progress=False)
+                         checkpointer=NoCheckpointer(), device=job["device"], show_progress=False)
     return (res.model, res.info["steps_run"], res.info.get("stopped"), [float(v) for v in res.log["val_iou_cal"]],
             "trained here")
 

@@ -26,6 +26,7 @@ from pipeline.review.ranking import DEFAULT_RANKING, scores
 from pipeline.stats import paired_seed_image_t
 from pipeline.thresholds import mask_from_probs
 from pipeline.training.inputs import read_rows, load_inputs, replace_targets
+from pipeline.training.checkpointing import NoCheckpointer
 
 CAVEAT = ("on this benchmark the simulated teacher builds its bad masks from the gate's own factors "
           "(pipeline/teachers/simulated.py): a gate-based ranking (gate, and combined through g) wins partly by "
@@ -82,7 +83,7 @@ def run_study(artifacts: Path, cfg: dict, ks, seeds, draws: int, device: str = "
             model = load_student(Path(k0_checkpoints) / str(seed), device)[0]
         else:
             model = training.train(method, cfg, replace_targets(data, truth) if chosen else data, val, seed,
-                                   checkpointer=training.NoCheckpointer(), device=device, show_progress=False).model
+                                   checkpointer=NoCheckpointer(), device=device, show_progress=False).model
         tau = score_run(model, val, test_images, test_masks, device)["tau_cal"]
         ious = image_ious(mask_from_probs(predict_probs(model, test_images, device=device, precision="fp32"), tau),
                           test_masks)

@@ -23,6 +23,7 @@ from pipeline.params import RECIPES
 from pipeline.profiles import load_profile
 from pipeline.training import loop as training
 from pipeline.training import schedule
+from pipeline.training.checkpointing import NoCheckpointer
 
 #: the resolution the cost is counted at
 COST_RESOLUTION = 128
@@ -80,7 +81,7 @@ def run_one(job: dict) -> dict:
     cfg = job["cfg"]
     data = _DATA["soft"] if cfg.get("soft_targets") else _DATA[STAGE_ONE]
     t0 = time.perf_counter()
-    res = training.train(get_method(STAGE_ONE), cfg, data, None, job["seed"], checkpointer=training.NoCheckpointer(),
+    res = training.train(get_method(STAGE_ONE), cfg, data, None, job["seed"], checkpointer=NoCheckpointer(),
                          device=job["device"], show_progress=False)
     seconds = time.perf_counter() - t0
     scores = training.validation_scores(res.model, _DATA["val"], job["device"], precision="fp32",

@@ -32,6 +32,7 @@ from pipeline.report.analysis import noise_floor_key, noise_floor_records
 from pipeline.reproducibility import TOLERANCE
 from pipeline.stats import ONE_SIDED_95_Z
 from pipeline.thresholds import TAU_RULES, mask_from_probs, tau_by_rule, threshold_grid
+from pipeline.training.checkpointing import NoCheckpointer
 
 #: the RECIPES key of the paper's own recipe: the reference of every other recipe's "no worse" condition
 PAPER_RECIPE = "paper"
@@ -103,7 +104,7 @@ def run_one(job: dict) -> dict:
     init = None
     for m in METHODS:
         data = _DATA[PROPOSED if m == PROPOSED else STAGE_ONE]  # the continuation reads Stage I's pseudo-masks
-        res = training.train(get_method(m), cfg, data, _DATA["val"], seed, checkpointer=training.NoCheckpointer(),
+        res = training.train(get_method(m), cfg, data, _DATA["val"], seed, checkpointer=NoCheckpointer(),
                              init_state=init, show_progress=False)
         if m == STAGE_ONE:
             init = res.model.mask_path_state_dict()

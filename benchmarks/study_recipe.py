@@ -34,6 +34,7 @@ from pipeline.metrics import image_ious
 from pipeline.profiles import load_profile
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 from pipeline.training.inputs import read_rows, load_inputs
+from pipeline.training.checkpointing import NoCheckpointer
 
 REPO = Path(__file__).resolve().parents[1]
 #: the Stage-I (Plain Student) recipe and the same recipe on reference masks (the supervised ceiling)
@@ -173,7 +174,7 @@ def run_one(job: dict) -> dict:
     t0 = time.perf_counter()
     cfg = job["cfg"]
     res = training.train(get_method(job["method"]), cfg, _DATA[job["method"]], _DATA["val"], job["seed"],
-                         checkpointer=training.NoCheckpointer(), device=job["device"], show_progress=False)
+                         checkpointer=NoCheckpointer(), device=job["device"], show_progress=False)
     log = res.log[res.log["epoch"] >= 1]
     out = {k: job[k] for k in ("variant", "method", "seed")}
     out.update(selected_epoch=res.selected_epoch, max_jump=max_adjacent_jump(log["val_iou"].to_numpy()),

@@ -196,7 +196,7 @@ OUTPUT_FILES: dict[str, dict[str, OutputFile]] = {
         ("ls_tasks", "tasks.json", "in labelstudio/"), ("ls_config", "label_config.xml", "in labelstudio/"),
         ("cvat_coco", "instances_default.json", "in cvat/")),
     "segment": _files(  # <out>/<the input's relative path without its suffix><suffix> per image
-        "pipeline.deploy.files", ("mask", ".mask.png", "suffix of each input's mask"),
+        "pipeline.deploy.image_files", ("mask", ".mask.png", "suffix of each input's mask"),
         ("prob", ".prob.png", "suffix of each input's probability map (--save-prob)"),
         ("overlay", ".overlay.png", "suffix of each input's overlay (--overlay)"), ("skipped", SKIPPED_FILE),
         ("confidence", "confidence.csv", "one row per mask: its path and the frame's confidence"),

@@ -97,11 +97,6 @@ MODEL_ENGINES: tuple[str, ...] = tuple(n for n in SEGMENT_ENGINES if ENGINE_TABL
 BENCHMARK_VARIANTS: list[str] = [n for n, e in ENGINE_TABLE.items() if e.benchmark]
 
 
-def engines_reading(key: str) -> tuple[str, ...]:
-    """List the engines that run bundle file ``key`` (a :data:`pipeline.catalog.DEPLOY_BUNDLE` key)."""
-    return tuple(n for n, e in ENGINE_TABLE.items() if e.reads == key)
-
-
 def engine_name(name: str) -> str:
     """Resolve an old engine name to the one it stands for (:data:`ENGINE_ALIASES`).
 

@@ -159,29 +159,6 @@ def raw_terms(logits: torch.Tensor, targets: torch.Tensor, dice_weight: float = 
     return {"raw": bbce + dice_weight * dice, "bbce": bbce, "dice": dice}
 
 
-def raw_loss(logits: torch.Tensor, targets: torch.Tensor, dice_weight: float = _PAPER.dice_weight,
-             max_weight: float = _PAPER.pos_weight_max) -> torch.Tensor:
-    """Return L_raw (eq:raw-loss) as a scalar.
-
-    Parameters
-    ----------
-    logits : torch.Tensor
-        Mask logits Z [B, ...].
-    targets : torch.Tensor
-        Voted pseudo-masks M^T.
-    dice_weight : float, optional
-        eq:raw-loss's 0.2.
-    max_weight : float, optional
-        pi's upper clip (default 500).
-
-    Returns
-    -------
-    torch.Tensor
-        float32 scalar.
-    """
-    return raw_terms(logits, targets, dice_weight, max_weight)["raw"]
-
-
 def boundary_band(target_sdf: torch.Tensor, band: float = _PAPER.sdf_band) -> torch.Tensor:
     """Pseudo-boundary band B_i(x) = [|D_i^T(x)| <= 0.55] (eq:pseudo-boundary-band).
 

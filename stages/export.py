@@ -7,7 +7,8 @@ import click
 
 from pipeline.catalog import dvc_path
 from pipeline.runtime.device import resolve_device
-from pipeline.deploy.export import bundle_files, export_lines, is_bundle_dir, plan_export, write_export
+from pipeline.deploy.bundle import is_deploy_bundle
+from pipeline.deploy.export import bundle_files, export_lines, plan_export, write_export
 from pipeline.artifacts.ownership import refuse_foreign_files, refuse_unowned
 from stages._common import overwrite_option, stage_command, stage_context
 
@@ -28,7 +29,7 @@ def main(params, device, checkpoint, thresholds, tau, out, art, no_onnx, no_int8
     """Export the mask path (TorchScript + ONNX) with its calibrated tau and a parity check.  --out is
     replaced whole when it holds an earlier bundle (its meta.json) and nothing else; a folder without
     a bundle is refused unless --overwrite, and a file in it that is not a bundle's is always refused."""
-    refuse_unowned([out], [out] if is_bundle_dir(out) else [], command="export", option="--out", where=out,
+    refuse_unowned([out], [out] if is_deploy_bundle(out) else [], command="export", option="--out", where=out,
                    why="no deploy bundle's meta.json in it", overwrite=overwrite)
     # the bundle is swapped in whole: a file in it that no earlier bundle lists is refused, never lost
     refuse_foreign_files(out, bundle_files(out), command="export", option="--out", where=out,

@@ -218,12 +218,13 @@ def stage1_state(tiny) -> dict:
     """The mask-path state of a one-epoch Stage-I ``plain`` run on ``tiny`` (seed 42): the warm start
     of the Stage-II methods."""
     from pipeline.training import loop as training
+    from pipeline.training.checkpointing import NoCheckpointer
     from pipeline.methods import get_method
     from tests.builders.training import load_arrays, tiny_cfg
 
     cfg = tiny_cfg(epochs_stage1=1)
     data, val = load_arrays(tiny, "plain", cfg)
-    return training.train(get_method("plain"), cfg, data, val, 42, checkpointer=training.NoCheckpointer(),
+    return training.train(get_method("plain"), cfg, data, val, 42, checkpointer=NoCheckpointer(),
                           show_progress=False).model.mask_path_state_dict()
 
 

@@ -7,6 +7,7 @@ from here; nothing under ``pipeline/`` imports ``stages/``.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import errno
 import logging
@@ -24,7 +25,7 @@ from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER, load_params
 from pipeline.teacher_table import TEACHER_GROUP, TEACHER_TABLE, folder_options
 
 __all__ = ["setup_logging", "one_line_errors", "overwrite_option", "skip_bad_option", "quiet_option",
-           "max_pixels_option", "bit_depth_option", "teacher_workers_options", "stage_code_version", "stage_command"]
+           "max_pixels_option", "bit_depth_option", "teacher_workers_options", "teacher_choice_options", "stage_code_version", "stage_command"]
 
 
 def setup_logging() -> None:
@@ -80,13 +81,42 @@ def one_line_errors(command: str):
         with calling(CLI):
             yield
     except InputError as e:
+        _settle_pending_reads()
         line = e.render(CLI)
         msg = line.splitlines()[0] if line else type(e).__name__
         click.echo(f"geodistill {command}: error: {msg}", err=True)
         sys.exit(EXIT_INPUT)
     except OSError as e:
+        _settle_pending_reads()
         click.echo(f"geodistill {command}: error: {os_error_line(e).splitlines()[0]}", err=True)
         sys.exit(EXIT_OS)
+
+
+#: how long a failing command waits for the reads it cancelled (seconds): a cancelled read ends at once
+SETTLE_SECONDS = 5.0
+
+
+def _settle_pending_reads(timeout: float = SETTLE_SECONDS) -> None:
+    """Cancel and await the chunk reads zarr left pending on its I/O loop, the siblings of a read that failed.
+
+    zarr v3 reads a selection's chunks concurrently on its own event loop; when one fails (a corrupt chunk), the
+    others keep running, and zarr's exit hook closes the loop under them: asyncio then prints "Task was
+    destroyed but it is pending!" lines after the command's one line.  The command is ending, so every task
+    there is cancelled.  zarr is not imported here: a command that never read one has nothing pending.
+    """
+    sync = sys.modules.get("zarr.core.sync")
+    loop = getattr(sync, "loop", [None])[0]
+    if loop is None or loop.is_closed() or not loop.is_running():
+        return
+
+    async def cancel_the_others() -> None:
+        tasks = asyncio.all_tasks() - {asyncio.current_task()}
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    with contextlib.suppress(Exception):  # a read that does not end in time is left to zarr's own exit
+        asyncio.run_coroutine_threadsafe(cancel_the_others(), loop).result(timeout)
 
 
 overwrite_option = click.option(

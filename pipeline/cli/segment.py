@@ -1,7 +1,7 @@
 """``geodistill segment``: binary spacecraft masks at each image's original size, with a trained student.
 
 The student is a checkpoint or an exported bundle (docs/own-data.md); the logic is
-:func:`pipeline.deploy.segmenting.segment_images`.
+:func:`pipeline.deploy.image_files.segment_images`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import click
 from pipeline.catalog import PARAMS_FILE, dvc_path
 from pipeline.engine_table import AUTO, ENGINE_ALIASES, ENGINE_CHOICES, MODEL_ENGINES
 from pipeline.params import load_params
-from pipeline.deploy.segmenting import segment_images
+from pipeline.deploy.image_files import segment_images
 from pipeline.runtime.progress import quiet_bars
 from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, one_line_errors, overwrite_option,
                                       quiet_option, setup_logging, skip_bad_option)

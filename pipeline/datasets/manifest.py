@@ -80,7 +80,7 @@ class BadInputPolicy:
         self.report(image_id, error.path, error.reason, error.fix, error.options)
 
     def report_scan(self, found) -> None:
-        """:meth:`report` the bad entries of a :class:`pipeline.datasets.scan.Inputs` and :meth:`record` its
+        """:meth:`report` the bad entries of a :class:`pipeline.datasets.scan.FolderScan` and :meth:`record` its
         unused files, each under its id in ``found.root`` (:func:`relative_id`).
         """
         for tell, entries in ((self.report, found.skipped), (self.record, found.unused)):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pipeline.params import PAPER, SOURCES, validate_section  # noqa: F401  (SOURCES: re-exported)
+from pipeline.params import PAPER, validate_section
 
 __all__ = ["check_data_params", "fingerprint_params"]
 

@@ -15,7 +15,9 @@ __all__ = ["scan_inputs"]
 
 
 @dataclasses.dataclass
-class Inputs:
+class FolderScan:
+    """What :func:`scan_inputs` found under one input path: the images, and each entry it skipped or left unused."""
+
     root: Path                       # the input folder, or the parent of the single input file
     files: list[Path]                # images to segment, sorted
     skipped: list[tuple[str, str]]   # (path, reason): bad entries -- links not followed, non-regular files
@@ -23,7 +25,7 @@ class Inputs:
     unused: list[tuple[str, str]] = dataclasses.field(default_factory=list)  # not images: listed, not an error
 
 
-def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> Inputs:
+def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> FolderScan:
     """List the images under ``input_path`` (a file: as given), sorting out the entries that are not.
 
     Hidden entries and non-images are ``unused``; bad ones are ``skipped``: links leaving the folder or to
@@ -38,7 +40,7 @@ def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> I
 
     Returns
     -------
-    Inputs
+    FolderScan
         The folder (or the file's parent), the image files sorted, the skipped and unused entries with their
         reasons, and whether ``input_path`` is a folder.
 
@@ -53,7 +55,7 @@ def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> I
     if not p.exists():
         raise InputError(f"--input {p}: not found")
     if not p.is_dir():
-        return Inputs(p.parent, [p], [], False)
+        return FolderScan(p.parent, [p], [], False)
     root_r = p.resolve()
     files: list[Path] = []
     skipped: list[tuple[str, str]] = []
@@ -94,4 +96,4 @@ def scan_inputs(input_path: str | Path, *, keep_broken_links: bool = False) -> I
                 skipped.append((str(f), "not a regular file"))
                 continue
             files.append(f)
-    return Inputs(p, sorted(files), sorted(skipped), True, sorted(unused))
+    return FolderScan(p, sorted(files), sorted(skipped), True, sorted(unused))

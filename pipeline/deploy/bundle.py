@@ -189,7 +189,21 @@ def frame_reading(frames: dict | None = None) -> dict:
 
 
 def is_deploy_bundle(path: str | Path) -> bool:
-    return (Path(path) / DEPLOY_JSON).is_file()
+    """Whether ``path`` holds a deploy bundle: its meta.json records the ``deploy`` schema.
+
+    The one bundle check of export (what it may replace) and of the engines (a bundle or a checkpoint folder).
+
+    Parameters
+    ----------
+    path : str or Path
+        A folder (it need not exist).
+
+    Returns
+    -------
+    bool
+        True for a deploy bundle.
+    """
+    return read_json(Path(path) / META_FILE).get("schema") == "deploy"
 
 
 def read_deploy_info(path: str | Path) -> dict:

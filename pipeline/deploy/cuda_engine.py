@@ -86,12 +86,3 @@ class FastStudent:
         if not self.cuda_graphs:
             return self._forward(uint8_to_input(host.to(self.device, non_blocking=True)))
         return self._replay(host, uint8=True)
-
-    def probs_uint8(self, images: np.ndarray, batch_size: int = 64) -> np.ndarray:
-        """P = sigmoid(Z) float32 [N,H,W] of uint8 images [N,H,W,3]."""
-        images = np.asarray(images)
-        out = np.empty(images.shape[:3], np.float32)
-        for s in range(0, len(images), batch_size):
-            z = self.logits_uint8(images[s:s + batch_size])
-            out[s:s + batch_size] = torch.sigmoid(z[:, 0]).cpu().numpy()
-        return out

@@ -18,7 +18,7 @@ from pipeline.deploy import openvino_engine
 from pipeline.deploy.cuda_engine import FastStudent
 from pipeline.deploy.mask_path import ONNX_INPUT, load_torchscript, onnx_unavailable_reason, ort_session
 from pipeline.runtime.device import BF16_FLAGS, cpu_supports_bf16
-from pipeline.engine_table import ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES, EngineSpec  # noqa: F401
+from pipeline.engine_table import ENGINE_TABLE, EngineSpec
 from pipeline.model import mask_path_model
 
 

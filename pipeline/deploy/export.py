@@ -18,22 +18,6 @@ from pipeline.params import section
 from pipeline.thresholds import resolve_resolution, resolve_tau, tau_candidates
 
 
-def is_bundle_dir(path) -> bool:
-    """Whether ``path`` holds a deploy artifact's meta.json.
-
-    Parameters
-    ----------
-    path : str or Path
-        A folder.
-
-    Returns
-    -------
-    bool
-        True for a deploy bundle.
-    """
-    return read_json(Path(path) / META_FILE).get("schema") == "deploy"
-
-
 def bundle_files(path) -> set[str]:
     """List the files of the deploy bundle in ``path``: what export may replace there.
 
@@ -47,7 +31,9 @@ def bundle_files(path) -> set[str]:
     set of str
         The files deploy.json lists, deploy.json and meta.json; empty when ``path`` holds no bundle.
     """
-    if not is_bundle_dir(path):
+    from pipeline.deploy.bundle import is_deploy_bundle  # torch
+
+    if not is_deploy_bundle(path):
         return set()
     listed = read_json(Path(path) / bundle_file("deploy_json")).get("files") or {}
     return {str(f) for f in listed} | {bundle_file("deploy_json"), META_FILE}

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from pipeline.datasets.loading import check_bit_depth, pixel_limit, probs_to_size, read_rgb, resize_image, to_rgb8
-from pipeline.deploy.confidence import confidence_rank_check, frame_confidence  # noqa: F401
+from pipeline.deploy.confidence import frame_confidence
 from pipeline.deploy.bundle import (INT8_FILE, ONNX_FILE, checkpoint_resolution, frame_reading, is_deploy_bundle,
                                    read_deploy_info)
 from pipeline.deploy.engines import ENGINES, Source

@@ -1,5 +1,6 @@
-"""The evaluation on the test split: every run's per-image scores at its calibrated and the fixed tau,
-the seed summaries, and the gains over the method table's reference points (the ``evaluate`` stage's logic).
+"""The evaluation of the students: each run's tau calibrated on the validation split (the ``calibrate`` stage's
+logic), and on the test split every run's per-image scores at its calibrated and the fixed tau, the seed
+summaries, and the gains over the method table's reference points (the ``evaluate`` stage's logic).
 """
 
 from __future__ import annotations
@@ -12,16 +13,18 @@ import pandas as pd
 
 from pipeline import catalog
 from pipeline.artifacts.store import read_chunk_rows
-from pipeline.evaluation.diagnostics import target_fractions, target_size_class
+from pipeline.evaluation.diagnostics import (area_ratio_curve, expected_calibration_error, median_area_ratio,
+                                           reliability_bins, target_fractions, target_size_class)
 from pipeline.runtime.errors import ArtifactError
 from pipeline.evaluation.inference import load_student, predict_probs
 from pipeline.methods import BASELINE, GAIN_CONTROLS, gain_treatments
-from pipeline.metrics import score_masks, scoring_reference
+from pipeline.metrics import iou_curve, score_masks, scoring_reference
 from pipeline.runtime.progress import progress
 from pipeline.stats import DEFAULT_INTERVAL, method_gains, seed_summary, vs_column
-from pipeline.thresholds import mask_from_probs, tau_candidates
+from pipeline.thresholds import (NO_VALIDATION_MASKS, calibrate_threshold, mask_from_probs, rule_options, tau_candidates,
+                                 threshold_grid)
 
-__all__ = ["score_runs", "summarize"]
+__all__ = ["score_runs", "summarize", "calibrate_runs", "fixed_thresholds"]
 
 GAIN_METRICS = ("iou", "bf1", "precision", "recall")
 SUMMARY_METRICS = ("iou", "bf1", "precision", "recall", "area_ratio", "small_iou", "area_vs_reference")
@@ -31,6 +34,79 @@ INFO_COLUMNS = ["image_id", "dataset", "domain", "group", "spacecraft"]
 CHUNK = 64  # test images per batch: bounded memory
 #: the reference side (~5 bytes a pixel) is kept for every run up to this many test pixels, else rebuilt per run
 REFERENCE_CACHE_PIXELS = 1 << 26
+
+
+def fixed_thresholds(runs: Sequence[tuple[str, int, Path]], fixed_tau: float) -> pd.DataFrame:
+    """thresholds.parquet when no validation image has a mask: every run gets the fixed tau.
+
+    Export and segment then use it, and the report says that no masks were available.
+
+    Parameters
+    ----------
+    runs : sequence of (str, int, Path)
+        The runs (method, seed, checkpoint folder).
+    fixed_tau : float
+        ``calibrate.fixed_tau``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per run: ``tau`` = ``fixed_tau``, ``val_iou`` NaN, ``n_val`` 0, ``tau_source`` saying why.
+    """
+    return pd.DataFrame([{"method": method, "seed": int(seed), "tau": fixed_tau, "val_iou": float("nan"),
+                          "fixed_tau": fixed_tau, "fixed_val_iou": float("nan"), "n_val": 0,
+                          "tau_source": NO_VALIDATION_MASKS} for method, seed, _ in runs])
+
+
+def calibrate_runs(runs: Sequence[tuple[str, int, Path]], val_images: np.ndarray, val_masks: np.ndarray,
+                   cfg: Mapping, device) -> pd.DataFrame:
+    """thresholds.parquet: each run's tau by mean validation Image IoU over the grid (eq:inference-mask).
+
+    tau follows ``calibrate.tau_rule`` (:func:`pipeline.thresholds.calibrate_threshold`); each row also holds
+    the whole curve, the Image IoU at the fixed tau, the reliability diagram and its ECE, and the median
+    predicted over reference area ratio across the grid.  The reference masks only calibrate here.
+
+    Parameters
+    ----------
+    runs : sequence of (str, int, Path)
+        The runs (method, seed, checkpoint folder).
+    val_images : numpy.ndarray
+        The validation images [N,R,R,C], N >= 1.
+    val_masks : numpy.ndarray
+        Their reference masks, bool [N,R,R].
+    cfg : Mapping
+        The validated ``calibrate`` section.
+    device : str or torch.device
+        Where the students run.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per run, in the order of ``runs``.
+
+    Raises
+    ------
+    InputError
+        As :func:`pipeline.thresholds.calibrate_threshold`.
+    """
+    grid, fixed_tau = threshold_grid(cfg), cfg["fixed_tau"]
+    rows = []
+    for method, seed, path in progress(runs, desc="calibrate"):
+        model, _ = load_student(path, device)
+        probs = predict_probs(model, val_images, device=device)
+        tau, curve = calibrate_threshold(probs, val_masks, grid, **rule_options(cfg))
+        rel = reliability_bins(probs, val_masks, cfg["reliability_bins"])
+        area = median_area_ratio(area_ratio_curve(probs, val_masks, grid))
+        rows.append({"method": method, "seed": int(seed), "tau": tau, "val_iou": float(curve.max()),
+                     "fixed_tau": fixed_tau, "fixed_val_iou": float(iou_curve(probs, val_masks, [fixed_tau]).mean()),
+                     "n_val": len(val_masks), "grid": grid.tolist(), "curve": curve.tolist(),
+                     "ece": expected_calibration_error(rel.confidence, rel.frequency, rel.count),
+                     "rel_confidence": rel.confidence.tolist(), "rel_frequency": rel.frequency.tolist(),
+                     "rel_count": rel.count.tolist(), "area_curve": area.tolist(),
+                     # tau is a grid point (select_tau): its area ratio is on the curve already
+                     "area_ratio": float(area[int(np.flatnonzero(grid == tau)[0])]),
+                     "fixed_area_ratio": float(median_area_ratio(area_ratio_curve(probs, val_masks, [fixed_tau]))[0])})
+    return pd.DataFrame(rows)
 
 
 def run_thresholds(thresholds: pd.DataFrame, method: str, seed: int, path) -> tuple[float, float]:

@@ -54,7 +54,7 @@ def find_images(input_dir: str | Path):
 
     Returns
     -------
-    pipeline.datasets.scan.Inputs
+    pipeline.datasets.scan.FolderScan
         The folder's images and the entries left out.
 
     Raises

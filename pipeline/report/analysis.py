@@ -1,6 +1,7 @@
-"""Teacher, gate, diagnostics and noise-floor analyses for the report: pure functions on DataFrames.  The
-teacher table (``teacher_metrics.parquet``) has a row per image and source: ``prompt_<k>``, ``vote``
-(eq:majority-vote) or ``val_selected`` (the prompt chosen on the validation split).
+"""Teacher, gate, diagnostics and noise-floor analyses for the report: pure functions on DataFrames, and the
+teacher table they read (:func:`teacher_metrics`, the ``analyze_teacher`` stage's logic).  The teacher table
+(``teacher_metrics.parquet``) has a row per image and source: ``prompt_<k>``, ``vote`` (eq:majority-vote) or
+``val_selected`` (the prompt chosen on the validation split).
 """
 
 from __future__ import annotations
@@ -11,13 +12,19 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
+from pipeline.artifacts.store import read_chunk_rows
 from pipeline.methods import BASELINE, CONTINUATION, PROPOSED, SUPERVISED_CEILING
+from pipeline.metrics import per_image_metrics
+from pipeline.params import PAPER
+from pipeline.runtime.errors import InputError
+from pipeline.runtime.progress import progress
 from pipeline.stats import (GAIN_SUPPORTED, LOSS_SUPPORTED, NO_DIFFERENCE, NOT_ESTIMATED, ONE_SEED, claim_status,
                             paired_seed_t_interval, seed_summary, spearman, vs_column)
 
 __all__ = ["prompt_source", "select_prompt", "teacher_prompt_quality", "teacher_domain_quality", "gate_analysis",
            "teacher_vote_means", "epoch_swings", "size_split", "tau_text", "PRIMARY_ENDPOINT", "fixed_tau_findings",
-           "noise_floor_records", "noise_floor_key", "select_noise_floor", "gain_noise_floor", "noise_floor_note"]
+           "noise_floor_records", "noise_floor_key", "select_noise_floor", "gain_noise_floor", "noise_floor_note",
+           "teacher_metrics", "base_prompt_index"]
 
 METRICS = ("iou", "bf1", "precision", "recall")
 
@@ -39,6 +46,87 @@ def select_prompt(tm: pd.DataFrame, split: str = "val", metric: str = "iou") -> 
     means = sub.groupby("source")[metric].mean()
     means = means.reindex([s for s in prompt_sources(tm) if s in means.index])
     return str(means.idxmax()), means
+
+
+#: images per block of :func:`teacher_metrics` (memory only)
+TEACHER_CHUNK = 32
+#: the manifest columns the teacher table keeps
+TEACHER_INFO = ["image_id", "dataset", "domain", "split", "group", "spacecraft"]
+
+
+def base_prompt_index(teacher_meta) -> int:
+    """The base prompt's index as recorded in the teacher artifact's params.
+
+    Parameters
+    ----------
+    teacher_meta : pipeline.artifacts.lineage.Meta
+        The teacher artifact's meta.
+
+    Returns
+    -------
+    int
+        ``teacher.base_prompt_index`` as recorded (unvalidated); the schema's default when absent.
+    """
+    p = teacher_meta.params or {}
+    cfg = p.get("teacher", p)
+    default = PAPER.teacher.base_prompt_index
+    # unvalidated: a recorded artifact's params, written before the key existed
+    return int(cfg.get("base_prompt_index", default)) if isinstance(cfg, dict) else default
+
+
+def teacher_metrics(manifest, reference, teacher, consensus, tolerance: float, max_fraction: float
+                    ) -> tuple[pd.DataFrame, str | None, pd.Series]:
+    """The teacher table: each prompt's and the vote's per-image metrics on the validation and test images.
+
+    Reference masks measure here only (post hoc), nothing feeds training.  The prompt with the best mean
+    validation IoU (:func:`select_prompt`) is repeated as source ``val_selected``.
+
+    Parameters
+    ----------
+    manifest, reference, teacher, consensus : pipeline.artifacts.store.Artifact
+        The opened artifacts of one run.
+    tolerance : float
+        The boundary F1 tolerance in pixels (``evaluate.bf1_tolerance``).
+    max_fraction : float
+        The small-region limit (``evaluate.small_region_max_fraction``).
+
+    Returns
+    -------
+    tuple
+        (the table, the selected prompt's source or None, the per-prompt mean validation IoU).
+
+    Raises
+    ------
+    InputError
+        No validation or test image has a reference mask.
+    """
+    mdf = manifest.df
+    prompts = list(teacher.attrs.get("prompts", []))
+    k_prompts = teacher["masks"].shape[1]
+    idx = np.flatnonzero(mdf["split"].isin(["val", "test"]).to_numpy() & reference.numpy("has_mask").astype(bool))
+    if idx.size == 0:
+        raise InputError(f"{manifest.path}: no validation/test image has a reference mask; nothing to analyse")
+    info = mdf.iloc[idx][TEACHER_INFO].reset_index(drop=True)
+    frames = []
+    for s in progress(range(0, idx.size, TEACHER_CHUNK), desc="analyze_teacher"):
+        rows = idx[s:s + TEACHER_CHUNK]
+        gts = read_chunk_rows(reference["mask"], rows).astype(bool)
+        masks = read_chunk_rows(teacher["masks"], rows).astype(bool)
+        voted = read_chunk_rows(consensus["voted"], rows).astype(bool)
+        sources = [(prompt_source(k), prompts[k] if k < len(prompts) else f"prompt {k}", masks[:, k])
+                   for k in range(k_prompts)]
+        sources.append(("vote", f"{k_prompts}-prompt majority vote", voted))
+        for name, text, pred in sources:
+            part = info.iloc[s:s + len(rows)].copy()
+            part["source"], part["prompt"] = name, text
+            for k, v in per_image_metrics(pred, gts, tolerance, max_fraction=max_fraction).items():
+                part[k] = v
+            frames.append(part)
+    tm = pd.concat(frames, ignore_index=True)
+    selected, val_means = select_prompt(tm, "val")
+    if selected is not None:
+        tm = pd.concat([tm, tm[tm["source"] == selected].assign(source="val_selected")], ignore_index=True)
+    return tm, selected, val_means
 
 
 def teacher_prompt_quality(tm: pd.DataFrame, group: str, base_source: str, selected_source: str | None,

@@ -35,7 +35,6 @@ class Teacher(Protocol):
     """What the teacher stage needs from a backend."""
 
     backend: str
-    needs_reference: bool   # the simulator reads reference.zarr; real teachers never do
     use_cache: bool         # False where reading the source is as cheap as the cache (imported)
 
     def fingerprint(self) -> dict:
@@ -52,11 +51,6 @@ class RegisteredTeacher:
     ``predict``."""
 
     backend: str
-
-    @property
-    def needs_reference(self) -> bool:
-        """Only a SIMULATOR reads the reference masks."""
-        return teacher_spec(self.backend).simulator
 
     @property
     def use_cache(self) -> bool:

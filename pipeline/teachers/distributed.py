@@ -12,7 +12,7 @@ import numpy as np
 
 from pipeline.runtime.errors import InputError
 from pipeline.teachers.cache import TeacherCache
-from pipeline.teachers.jobs import InputLoader, TeacherJob, TeacherSpec, answer_job
+from pipeline.teachers.jobs import InputLoader, TeacherBuildArgs, TeacherJob, answer_job
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +30,7 @@ def decode_jobs(batch: dict, jobs: Sequence[TeacherJob], load: InputLoader) -> d
 class TeacherWorker:
     """Ray Data actor: one teacher (built once per actor) answering jobs into the cache."""
 
-    def __init__(self, spec: TeacherSpec, cache_root: str, fingerprint: str, jobs: Sequence[TeacherJob]):
+    def __init__(self, spec: TeacherBuildArgs, cache_root: str, fingerprint: str, jobs: Sequence[TeacherJob]):
         self.teacher = spec.build()
         self.cache = TeacherCache(cache_root, fingerprint)
         self.jobs = jobs
@@ -74,7 +74,7 @@ def ray_session(address: str | None = None):
             ray.shutdown()
 
 
-def fill_with_ray(jobs: Sequence[TeacherJob], load: InputLoader, spec: TeacherSpec, cache_root: str,
+def fill_with_ray(jobs: Sequence[TeacherJob], load: InputLoader, spec: TeacherBuildArgs, cache_root: str,
                   fingerprint: str, workers: int, address: str | None = None,
                   on_job: Callable[[int], None] | None = None) -> int:
     """Run ``jobs`` on a Ray Data actor pool of ``workers`` teachers; returns the entries written.

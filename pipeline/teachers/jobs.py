@@ -29,7 +29,7 @@ def in_view(array: np.ndarray, view: str) -> np.ndarray:
 
 
 @dataclasses.dataclass(frozen=True)
-class TeacherSpec:
+class TeacherBuildArgs:
     """What a worker needs to build the same teacher: :func:`pipeline.teachers.make_teacher` arguments."""
 
     cfg: Mapping[str, Any]

@@ -16,7 +16,7 @@ from pipeline.teachers import teacher_fingerprint
 from pipeline.teachers.base import VIEWS, Teacher
 from pipeline.teachers.cache import TeacherCache
 from pipeline.teachers.distributed import fill_with_ray
-from pipeline.teachers.jobs import InputLoader, TeacherJob, TeacherSpec, answer_job, predict_view
+from pipeline.teachers.jobs import InputLoader, TeacherBuildArgs, TeacherJob, answer_job, predict_view
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +55,7 @@ class TeacherRunner:
 
     def __init__(self, teacher: Teacher, cache: TeacherCache, prompts: Sequence[str],
                  image_sha: Callable[[int], str], load: InputLoader, vflip_prompt: str | None = None,
-                 batch_size: int = 1, spec: TeacherSpec | None = None):
+                 batch_size: int = 1, spec: TeacherBuildArgs | None = None):
         self.teacher = teacher
         self.cache = cache
         self.prompts = list(prompts)
@@ -122,7 +122,7 @@ class TeacherRunner:
         jobs = self.jobs(todo)
         if workers > 0 and jobs:
             if self.spec is None:
-                raise ValueError("TeacherRunner.fill(workers > 0) needs the runner's TeacherSpec")
+                raise ValueError("TeacherRunner.fill(workers > 0) needs the runner's TeacherBuildArgs")
             self.stats.answers_computed += fill_with_ray(jobs, self.load, self.spec, self.cache.location,
                                                          self.cache.teacher_fingerprint, workers, address,
                                                          on_job=lambda j: finished(len(jobs[j].rows)))
@@ -173,7 +173,7 @@ def open_runner(cfg: Mapping[str, Any], resolution: tuple[int, int], device: str
                 shas: Sequence[str], vflip_prompt: str | None = None) -> tuple[TeacherRunner, str]:
     """(runner, fingerprint) of the teacher of the validated ``teacher:`` section ``cfg``; images per job:
     ``teacher.batch_size``, or with 0 the backend's own unit or 2."""
-    spec = TeacherSpec(dict(cfg), tuple(resolution), device)
+    spec = TeacherBuildArgs(dict(cfg), tuple(resolution), device)
     teacher = spec.build()
     t_fp = teacher_fingerprint(teacher)
     shas = list(shas)

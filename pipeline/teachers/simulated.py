@@ -302,15 +302,10 @@ class SimulatedFoundationTeacher(RegisteredTeacher):
         """A view-independent uniform draw for (image, prompt): other prompts never change this one's answer."""
         return float(_rng(what, item.image_sha256, prompt, self.seed, SIMULATOR_VERSION).random())
 
-    def answer(self, item: TeacherInput, prompt: str, scene: SceneDraw) -> tuple[np.ndarray, float]:
-        """One (mask, score) answer of the simulated teacher; score 0 and an empty mask for a miss."""
-        mask, score, _ = self.answer_with_draw(item, prompt, scene)
-        return mask, score
-
     def answer_with_draw(self, item: TeacherInput, prompt: str, scene: SceneDraw
                          ) -> tuple[np.ndarray, float, PromptDraw]:
-        """:meth:`answer` and what it drew (:class:`PromptDraw`); the same random draws in the same order, so the
-        answer is the one :meth:`answer` gives."""
+        """One (mask, score) answer of the simulated teacher, and what it drew (:class:`PromptDraw`); score 0 and an
+        empty mask for a miss."""
         gt = np.asarray(item.reference["mask"], dtype=bool)
         parts = item.reference.get("parts")
         parts = None if parts is None else np.asarray(parts)

@@ -1,16 +1,78 @@
-"""Per-epoch resume state on disk, in the train stage's resume folder (torch imported lazily: the stages start
-without it)."""
+"""Where a training run's per-epoch resume state lives (:class:`Checkpointer`): nowhere, or on disk in the train
+stage's resume folder (torch imported lazily: the stages start without it)."""
 
 from __future__ import annotations
 
 import logging
 import os
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Protocol
 
 from pipeline.catalog import RESUME_STATE_FILE as STATE_FILE
 
 log = logging.getLogger(__name__)
+
+
+class Checkpointer(Protocol):
+    """Where a run's per-epoch resume state lives: ``load(run_key)`` the last saved (or None), ``save(state)``."""
+
+    def load(self, run_key: Mapping[str, Any]) -> dict | None:
+        """Load the last saved resume state.
+
+        Parameters
+        ----------
+        run_key : Mapping
+            The run's key: what a state must have been saved under to be resumed (the method, seed, epochs,
+            training image ids, threads, autocast dtype and, under ``until: plateau``, the stopping rule).  A
+            checkpointer may return a state of another key; :func:`train` compares the keys.
+
+        Returns
+        -------
+        dict or None
+            The state :meth:`save` was last given, or None: there is none.
+        """
+        ...
+
+    def save(self, state: dict) -> None:
+        """Save the resume state after an epoch, replacing the one before.
+
+        Parameters
+        ----------
+        state : dict
+            The complete resume state (version, run key, epoch, model, optimizer, scheduler, torch RNG, log,
+            the selection candidate and, where used, the weight averages and the ``until: plateau`` state); its
+            weights on the CPU, the optimizer's state on the training device.
+        """
+        ...
+
+
+class NoCheckpointer:
+    """No resume: nothing is loaded, saves are dropped."""
+
+    def load(self, run_key: Mapping[str, Any]) -> dict | None:
+        """Load nothing.
+
+        Parameters
+        ----------
+        run_key : Mapping
+            The run's key (unread).
+
+        Returns
+        -------
+        None
+            Always: every run starts at epoch 1.
+        """
+        return None
+
+    def save(self, state: dict) -> None:
+        """Drop ``state``.
+
+        Parameters
+        ----------
+        state : dict
+            The resume state (discarded).
+        """
+        pass
 
 
 class FileCheckpointer:

@@ -14,7 +14,7 @@ import logging
 import math
 import tempfile
 import time
-from typing import Any, Callable, Mapping, Protocol
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
@@ -30,6 +30,7 @@ from pipeline.model import TinyUNet, model_options, recompute_bn_stats
 from pipeline.params import PAPER
 from pipeline.runtime.progress import progress
 from pipeline.training.averaging import average_update, ema_update, in_average
+from pipeline.training.checkpointing import Checkpointer
 from pipeline.training.inputs import TrainData, ValData
 from pipeline.training.schedule import (PLATEAU_Z, decay_epochs, decay_steps, holdout, low_resolution, lr_lambda,
                                         over_budget, plateau_reached, plateau_window, stable_cap, steps_per_epoch,
@@ -49,106 +50,6 @@ TIMING_COLUMNS = ("epoch", "seconds")
 #: params that only bound a ``train.until: plateau`` run: a run under another budget resumes the same state
 BUDGET_PARAMS = ("train.step_budget", "train.time_budget")
 STATE_VERSION = 1
-
-
-class Checkpointer(Protocol):
-    """Where a run's per-epoch resume state lives: ``load(run_key)`` the last saved (or None), ``save(state)``."""
-
-    def load(self, run_key: Mapping[str, Any]) -> dict | None:
-        """Load the last saved resume state.
-
-        Parameters
-        ----------
-        run_key : Mapping
-            The run's key: what a state must have been saved under to be resumed (the method, seed, epochs,
-            training image ids, threads, autocast dtype and, under ``until: plateau``, the stopping rule).  A
-            checkpointer may return a state of another key; :func:`train` compares the keys.
-
-        Returns
-        -------
-        dict or None
-            The state :meth:`save` was last given, or None: there is none.
-        """
-        ...
-
-    def save(self, state: dict) -> None:
-        """Save the resume state after an epoch, replacing the one before.
-
-        Parameters
-        ----------
-        state : dict
-            The complete resume state (version, run key, epoch, model, optimizer, scheduler, torch RNG, log,
-            the selection candidate and, where used, the weight averages and the ``until: plateau`` state); its
-            weights on the CPU, the optimizer's state on the training device.
-        """
-        ...
-
-
-class NoCheckpointer:
-    """No resume: nothing is loaded, saves are dropped."""
-
-    def load(self, run_key: Mapping[str, Any]) -> dict | None:
-        """Load nothing.
-
-        Parameters
-        ----------
-        run_key : Mapping
-            The run's key (unread).
-
-        Returns
-        -------
-        None
-            Always: every run starts at epoch 1.
-        """
-        return None
-
-    def save(self, state: dict) -> None:
-        """Drop ``state``.
-
-        Parameters
-        ----------
-        state : dict
-            The resume state (discarded).
-        """
-        pass
-
-
-class MemoryCheckpointer:
-    """Resume state held in memory (a deep copy of the last saved state); for tests and notebooks.
-
-    Attributes
-    ----------
-    state : dict or None
-        The last saved state (None: nothing saved yet).
-    """
-
-    def __init__(self) -> None:
-        self.state: dict | None = None
-
-    def load(self, run_key: Mapping[str, Any]) -> dict | None:
-        """Load a deep copy of the last saved state, whatever its key.
-
-        Parameters
-        ----------
-        run_key : Mapping
-            The run's key (unread here: :func:`train` compares it with the state's).
-
-        Returns
-        -------
-        dict or None
-            A deep copy of the last saved state, or None when nothing was saved.
-        """
-        return copy.deepcopy(self.state)
-
-    def save(self, state: dict) -> None:
-        """Keep a deep copy of ``state``, replacing the one before.
-
-        Parameters
-        ----------
-        state : dict
-            The resume state after an epoch.
-        """
-        self.state = copy.deepcopy(state)
 
 
 def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: Mapping | None = None):
@@ -779,7 +680,7 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
     seed : int
         Seeds the model's initialisation, the batch order and the augmentation.
     checkpointer : Checkpointer
-        Where the per-epoch resume state is saved and loaded (:class:`NoCheckpointer`: none).
+        Where the per-epoch resume state is saved and loaded (:class:`pipeline.training.checkpointing.NoCheckpointer`: none).
     init_state : Mapping or None
         The Stage-I mask path that warm-started methods start from (``method.init == "stage1"``).
     device : str or torch.device

@@ -221,3 +221,50 @@ def test_read_chunk_rows_slices_equal_zarrs_orthogonal_selection(tmp_path):
     assert row_runs(np.array([2, 3, 4, 9])) == [(2, 5, 0), (9, 10, 3)]
     with pytest.raises(IndexError):
         read_chunk_rows(arr, np.array([1, 1]))
+
+
+#: a command that reads an array with one corrupt chunk beside a read that is still pending (slowed here), then
+#: says how many tasks zarr's loop holds when the process exits (before zarr's own exit hook closes it)
+PENDING_READ_SCRIPT = """
+import asyncio, atexit, sys
+from zarr.core import sync
+from zarr.storage import LocalStore
+from pipeline.artifacts.store import open_artifact
+from pipeline.cli.conventions import one_line_errors
+
+def pending():
+    async def count():
+        return len(asyncio.all_tasks() - {asyncio.current_task()})
+    print("pending", asyncio.run_coroutine_threadsafe(count(), sync.loop[0]).result(5))
+
+atexit.register(pending)  # after zarr's hook: runs before it
+read = LocalStore.get
+
+async def slow(self, key, *args, **kwargs):
+    if key.startswith("agreement/c/1/"):
+        await asyncio.sleep(60)
+    return await read(self, key, *args, **kwargs)
+
+LocalStore.get = slow
+with one_line_errors("consensus"):
+    open_artifact(sys.argv[1])["agreement"][...]
+"""
+
+
+def test_a_corrupt_chunk_read_leaves_one_line_and_no_pending_read(tmp_path):
+    """Issue 64: the stage's one line, nothing after it -- the sibling reads zarr left pending are cancelled
+    and awaited before the exit, so asyncio prints no "Task was destroyed but it is pending!"."""
+    path = tmp_path / "c.zarr"
+    with ZarrWriter(path, _meta(), shard_images=1) as w:  # one file per image: one read per row
+        for name, value in _consensus_arrays(n=3).items():
+            w.write_all(name, value)
+    first = path / "agreement" / "c" / "0" / "0" / "0"
+    data = bytearray(first.read_bytes())
+    data[5] ^= 0xFF
+    first.write_bytes(bytes(data))
+    res = subprocess.run([sys.executable, "-c", PENDING_READ_SCRIPT, str(path)], capture_output=True, text=True,
+                         timeout=120, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])})
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.splitlines() == [f"geodistill consensus: error: {path}: array 'agreement': corrupt chunk "
+                                       "(ValueError); rerun the producing stage"]
+    assert res.stdout.splitlines() == ["pending 0"]

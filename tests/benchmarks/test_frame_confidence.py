@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.deploy.segmenter import Segmenter, confidence_rank_check, frame_confidence
+from pipeline.deploy.confidence import confidence_rank_check, frame_confidence
+from pipeline.deploy.segmenter import Segmenter
 from pipeline.metrics import image_iou
 from pipeline.model import TinyUNet
 

@@ -7,6 +7,7 @@ import numpy as np
 
 from benchmarks import review_value as rv
 from tests.builders.training import tiny_cfg
+from pipeline.training.checkpointing import NoCheckpointer
 
 
 def test_selections_pick_the_lowest_gate_and_the_shipped_ranking(tiny):
@@ -51,7 +52,7 @@ def test_k0_can_be_scored_from_existing_plain_checkpoints(tiny, tmp_path):
 
     cfg = tiny_cfg(epochs_stage1=1)
     data, val, _ = load_inputs(tiny, get_method("plain"), cfg)
-    other = training.train(get_method("plain"), cfg, data, val, 43, checkpointer=training.NoCheckpointer(),
+    other = training.train(get_method("plain"), cfg, data, val, 43, checkpointer=NoCheckpointer(),
                            show_progress=False).model
     (tmp_path / "42").mkdir()  # seed 43's weights under seed 42's name: the scores must be seed 43's
     write_weights(tmp_path / "42", other.mask_path_state_dict(), other.config)

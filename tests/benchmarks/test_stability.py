@@ -11,6 +11,8 @@ import pytest
 import torch
 
 from tests.builders.training import assert_same_state, clone_state, load_arrays, tiny_cfg
+from pipeline.training.checkpointing import FileCheckpointer, NoCheckpointer
+from tests.builders.training import MemoryCheckpointer
 
 
 # --------------------------------------------------------------------------------------------------
@@ -85,9 +87,9 @@ def test_weight_averaging_gives_the_mean_of_the_last_epochs_with_bn_recomputed(t
     cfg = tiny_cfg(epochs_stage1=3, lr_stage1=2e-3, average_last=2)
     data, val = load_arrays(tiny, "plain", cfg)
     states = []
-    res = training.train(get_method("plain"), cfg, data, val, 42, checkpointer=training.NoCheckpointer(),
+    res = training.train(get_method("plain"), cfg, data, val, 42, checkpointer=NoCheckpointer(),
                          show_progress=False)
-    ck = training.MemoryCheckpointer()  # the same trajectory without averaging: the weights after each epoch
+    ck = MemoryCheckpointer()  # the same trajectory without averaging: the weights after each epoch
     training.train(get_method("plain"), {**cfg, "average_last": 0}, data, val, 42, checkpointer=ck,
                    show_progress=False, callback=lambda e, r: states.append(ck.state["model"]))
     assert "mean weights of the last 2 epochs" in res.info["selection"] and res.selected_epoch == 3
@@ -121,7 +123,6 @@ def test_changing_num_threads_does_not_resume_the_old_state(tiny, tmp_path):
     the run key holds the effective thread count and autocast dtype."""
     from pipeline.training import loop as training
     from pipeline.methods import get_method
-    from pipeline.training.checkpointing import FileCheckpointer
 
     before = torch.get_num_threads()
     try:
@@ -138,7 +139,7 @@ def test_changing_num_threads_does_not_resume_the_old_state(tiny, tmp_path):
         res2 = training.train(get_method("plain"), two, data, val, 42, checkpointer=ck, show_progress=False,
                               callback=lambda e, r: seen.append(e))
         assert seen == [1, 2]  # trained afresh under 2 threads
-        fresh = training.train(get_method("plain"), two, data, val, 42, checkpointer=training.NoCheckpointer(),
+        fresh = training.train(get_method("plain"), two, data, val, 42, checkpointer=NoCheckpointer(),
                                show_progress=False)
         assert_same_state(clone_state(res2.model), clone_state(fresh.model))
     finally:

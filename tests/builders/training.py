@@ -7,9 +7,11 @@ pipeline.artifacts; it does not run any other stage.
 
 from __future__ import annotations
 
+import copy
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any, Mapping
 
 import numpy as np
 import pandas as pd
@@ -161,3 +163,41 @@ def train_cli(*args, cwd, env=None):
     env = {"GEODISTILL_QUIET": "1", "PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), **(env or {})}
     return subprocess.run([sys.executable, "-m", "stages.train", *args], cwd=cwd, env=env,
                           capture_output=True, text=True)
+
+
+class MemoryCheckpointer:
+    """Resume state held in memory (a deep copy of the last saved state); the tests' checkpointer (no file).
+
+    Attributes
+    ----------
+    state : dict or None
+        The last saved state (None: nothing saved yet).
+    """
+
+    def __init__(self) -> None:
+        self.state: dict | None = None
+
+    def load(self, run_key: Mapping[str, Any]) -> dict | None:
+        """Load a deep copy of the last saved state, whatever its key.
+
+        Parameters
+        ----------
+        run_key : Mapping
+            The run's key (unread here: :func:`train` compares it with the state's).
+
+        Returns
+        -------
+        dict or None
+            A deep copy of the last saved state, or None when nothing was saved.
+        """
+        return copy.deepcopy(self.state)
+
+    def save(self, state: dict) -> None:
+        """Keep a deep copy of ``state``, replacing the one before.
+
+        Parameters
+        ----------
+        state : dict
+            The resume state after an epoch.
+        """
+        self.state = copy.deepcopy(state)

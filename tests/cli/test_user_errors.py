@@ -78,7 +78,7 @@ def test_a_bad_checkpoint_is_named_as_the_user_gave_it(tmp_path):
     import pipeline
     from click.testing import CliRunner
     from pipeline.cli.main import main
-    from pipeline.deploy.segmenting import segment_images
+    from pipeline.deploy.image_files import segment_images
     from tests.builders.teacher import make_image_folder
 
     images, _ = make_image_folder(tmp_path / "data", n=2, masks=False)

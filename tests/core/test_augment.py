@@ -16,6 +16,7 @@ from pipeline.augment import (DEFAULT_SPEC, GeometryConstants, augment_batch, au
                               photometric)
 from pipeline.geometry import area_ratio, sdf_target, skeleton_target
 from pipeline.training.settings import Settings
+from pipeline.training.checkpointing import NoCheckpointer
 
 
 def _mask(h=40, w=40, seed=0) -> np.ndarray:
@@ -177,7 +178,7 @@ def test_augmented_training_is_seeded_and_differs_from_the_plain_batches(tiny):
     cfg = tiny_cfg(epochs_stage2=1, augment=True)
     data, val = load_arrays(tiny, "geodistill", cfg)
     init = training.build_model(get_method("plain"), cfg, 0).mask_path_state_dict()
-    runs = [training.train(m, c, data, val, 7, init_state=init, checkpointer=training.NoCheckpointer(),
+    runs = [training.train(m, c, data, val, 7, init_state=init, checkpointer=NoCheckpointer(),
                            show_progress=False) for c in (cfg, cfg, {**cfg, "augment": False})]
     assert_same_state(clone_state(runs[0].model), clone_state(runs[1].model))
     a, off = clone_state(runs[0].model), clone_state(runs[2].model)

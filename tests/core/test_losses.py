@@ -95,7 +95,7 @@ def test_raw_loss_is_bbce_plus_point_two_dice():
     z = t([[[2.0, -1.0]], [[0.5, 0.0]]])
     m = t([[[1.0, 0.0]], [[0.0, 0.0]]])
     expected = losses.balanced_bce(z, m) + 0.2 * losses.dice_loss(torch.sigmoid(z), m)
-    assert losses.raw_loss(z, m).item() == pytest.approx(expected.item(), rel=1e-6)
+    assert losses.raw_terms(z, m)["raw"].item() == pytest.approx(expected.item(), rel=1e-6)
     parts = losses.raw_terms(z, m, dice_weight=0.5)
     assert parts["bbce"].item() == pytest.approx(losses.balanced_bce(z, m).item(), rel=1e-6)
     assert parts["dice"].item() == pytest.approx(losses.dice_loss(torch.sigmoid(z), m).item(), rel=1e-6)
@@ -145,7 +145,7 @@ def test_refine_loss_combination_and_single_gating():
     g = t([0.7, 0.2])
     out = losses.refine_loss({"mask": z, "sdf": d_s, "skeleton": zk},
                              {"mask": m, "sdf": d_t, "skeleton": k, "area": a}, g)
-    raw = losses.raw_loss(z, m)
+    raw = losses.raw_terms(z, m)["raw"]
     sdf = losses.sdf_loss(d_s, d_t, g)
     skel = losses.balanced_bce(zk, k, g)
     area = losses.area_loss(torch.sigmoid(z), a, g)
@@ -172,7 +172,7 @@ def test_refine_loss_with_method_weights_sums_exactly_the_named_terms():
     out, tgt, g = _batch()
     stage1 = losses.refine_loss(out, tgt, g, {"region": 1.0})
     assert set(stage1) == {"loss", "raw", "bbce", "dice"}
-    assert stage1["loss"].item() == pytest.approx(losses.raw_loss(out["mask"], tgt["mask"]).item(), rel=1e-6)
+    assert stage1["loss"].item() == pytest.approx(losses.raw_terms(out["mask"], tgt["mask"])["raw"].item(), rel=1e-6)
     gabi = losses.refine_loss(out, tgt, g, {"region": 1.0, "dist": 0.5, "boundary": 0.25})
     dist = losses.distance_regression_loss(out["sdf"], tgt["sdf"])
     bnd = losses.boundary_weighted_bce(out["mask"], tgt["mask"], tgt["sdf"])
@@ -186,7 +186,7 @@ def test_refine_loss_with_method_weights_sums_exactly_the_named_terms():
     assert geo_only["loss"].item() == pytest.approx(expected.item(), rel=1e-6)
     c = losses.LossConstants(dice_weight=0.5, sdf_band=0.2)
     other = losses.refine_loss(out, tgt, g, constants=c)
-    assert other["raw"].item() == pytest.approx(losses.raw_loss(out["mask"], tgt["mask"], 0.5).item(), rel=1e-6)
+    assert other["raw"].item() == pytest.approx(losses.raw_terms(out["mask"], tgt["mask"], 0.5)["raw"].item(), rel=1e-6)
     assert other["sdf"].item() == pytest.approx(losses.sdf_loss(out["sdf"], tgt["sdf"], g, 0.2).item(), rel=1e-6)
     with pytest.raises(ValueError, match="unknown loss term"):
         losses.refine_loss(out, tgt, g, {"vibes": 1.0})
@@ -196,7 +196,7 @@ def test_gradients_flow_and_are_finite():
     z = torch.zeros(1, 1, 3, 3, requires_grad=True)
     m = torch.zeros(1, 1, 3, 3)
     m[0, 0, 1, 1] = 1
-    losses.raw_loss(z, m).backward()
+    losses.raw_terms(z, m)["raw"].backward()
     assert torch.isfinite(z.grad).all() and z.grad[0, 0, 1, 1] < 0 < z.grad[0, 0, 0, 0]
 
 

@@ -13,6 +13,7 @@ from pipeline.artifacts.store import open_artifact
 from pipeline.runtime.errors import InputError
 from pipeline.methods import METHODS, adaptive_mode, get_method, input_artifacts, param_keys, resolve_plan
 from pipeline.training.filters import afs_fuse, afs_keep, confidence_pass, mean_valid_score, pass_ratio
+from pipeline.training.checkpointing import NoCheckpointer
 from tests.builders.training import load_arrays, tiny_cfg
 
 
@@ -180,7 +181,7 @@ def test_adaptive_run_decides_mode_from_training_pseudo_labels(tiny, stage1_stat
     cfg = tiny_cfg(epochs_stage2=1, confidence={"criterion": "agreement", "threshold": 0.0, "min_valid": min_valid})
     data, val = load_arrays(tiny, m.name, cfg)
     assert len(data) == 8  # the adaptive method filters nothing; r only picks the mode
-    res = training.train(m, cfg, data, val, 42, init_state=stage1_state, checkpointer=training.NoCheckpointer(),
+    res = training.train(m, cfg, data, val, 42, init_state=stage1_state, checkpointer=NoCheckpointer(),
                          show_progress=False)
     assert res.info["mode"] == mode
     assert res.info["confidence_pass_ratio"] == (1.0 if mode == "anchored" else 0.0)
@@ -206,7 +207,7 @@ def test_every_method_trains_and_writes_a_loadable_checkpoint(tiny, stage1_state
     cfg = tiny_cfg(epochs_stage1=1, epochs_stage2=1, gabi={"epochs": 1, "lambda_dist": 0.002, "lambda_boundary": 0.05})
     data, val = load_arrays(tiny, name, cfg)
     res = training.train(m, cfg, data, val, 42, init_state=stage1_state if m.init == "stage1" else None,
-                         checkpointer=training.NoCheckpointer(), show_progress=False)
+                         checkpointer=NoCheckpointer(), show_progress=False)
     assert np.isfinite(res.log["loss"].dropna()).all() and len(res.log["loss"].dropna()) >= 1
     for term in m.terms:
         if term != "region" or not res.info["mode"] == "geometry_only":

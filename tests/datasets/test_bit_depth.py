@@ -112,7 +112,7 @@ def test_prepares_reader_and_its_fingerprint_follow_data_bit_depth(tmp_path):
 
 
 def test_segment_and_the_segmenter_read_frames_at_their_bit_depth(tmp_path):
-    from pipeline.deploy.files import _load
+    from pipeline.deploy.image_files import _load
     from pipeline.deploy.segmenter import Segmenter
 
     raw = twelve_bit_frame(32, 32)

@@ -9,10 +9,11 @@ import torch
 import yaml
 from click.testing import CliRunner
 
+from pipeline.catalog import META_FILE
 from pipeline.deploy import benchmark as bench
 from pipeline.deploy.bundle import DEPLOY_JSON
-from pipeline.deploy.engines import ENGINES, MODEL_ENGINES, SEGMENT_ENGINES, Source, unavailable
-from pipeline.engine_table import ENGINE_ALIASES, ENGINE_TABLE, engine_name
+from pipeline.deploy.engines import ENGINES, Source, unavailable
+from pipeline.engine_table import ENGINE_ALIASES, ENGINE_TABLE, MODEL_ENGINES, SEGMENT_ENGINES, engine_name
 from pipeline.engine_table import ENGINE_CHOICES as SEGMENT_CHOICES
 from pipeline.deploy.segmenter import load_segmenter, resolve_engine
 from pipeline.runtime.errors import InputError
@@ -62,6 +63,7 @@ def test_an_old_engine_name_is_accepted_in_python_params_and_the_benchmark(tmp_p
     bundle = tmp_path / "bundle"
     bundle.mkdir()
     (bundle / DEPLOY_JSON).write_text("{}")
+    (bundle / META_FILE).write_text('{"schema": "deploy"}')  # what makes a folder a bundle (is_deploy_bundle)
     assert resolve_engine(bundle, "onnx") == "onnxruntime_fp32" and resolve_engine(bundle, "int8") == "onnxruntime_int8"
     with pytest.raises(InputError, match="onnxruntime_int8: needs a deploy bundle"):
         load_segmenter(ckpt, "int8")

@@ -1,4 +1,4 @@
-"""The export and segment stages' logic, called directly (pipeline.deploy.export, pipeline.deploy.segmenting): the
+"""The export and segment stages' logic, called directly (pipeline.deploy.export, pipeline.deploy.image_files): the
 stage scripts only wire options to these functions."""
 
 from __future__ import annotations
@@ -15,9 +15,10 @@ from pipeline.artifacts.lineage import make_meta
 from pipeline.artifacts.store import open_artifact
 from pipeline.catalog import bundle_file
 from pipeline.runtime.errors import InputError
-from pipeline.deploy.export import export_lines, is_bundle_dir, plan_export, write_export
+from pipeline.deploy.bundle import is_deploy_bundle
+from pipeline.deploy.export import export_lines, plan_export, write_export
 from pipeline.params import load_params
-from pipeline.deploy.segmenting import check_options, model_resolution, segment_images
+from pipeline.deploy.image_files import check_options, model_resolution, segment_images
 from tests.builders.deploy import PARAMS, RES, make_checkpoint, make_thresholds
 
 
@@ -54,7 +55,7 @@ def test_plan_export_picks_the_calibrated_tau_and_the_resolution(exported):
 def test_write_export_writes_the_bundle_and_export_lines_report_it(exported):
     root, ckpt, thr, params, plan, info = exported
     out = root / "deploy"
-    assert is_bundle_dir(out) and not is_bundle_dir(root) and not is_bundle_dir(root / "missing")
+    assert is_deploy_bundle(out) and not is_deploy_bundle(root) and not is_deploy_bundle(root / "missing")
     assert (out / bundle_file("torchscript")).exists() and not (out / bundle_file("onnx")).exists()
     written = json.loads((out / bundle_file("deploy_json")).read_text())
     assert written["tau"] == 0.42 and written["source"]["bundle_fingerprint"] == open_artifact(out).meta.fingerprint

@@ -37,8 +37,6 @@ def test_fast_student_cpu_fallback_is_the_torch_engine_bit_for_bit():
     np.testing.assert_array_equal(fast.logits(x).numpy(), ref)
     # uint8 in, conversion "on the device": the same logits
     np.testing.assert_array_equal(fast.logits_uint8(images).numpy(), ref)
-    probs = fast.probs_uint8(images, batch_size=2)
-    np.testing.assert_allclose(probs, 1 / (1 + np.exp(-ref[:, 0])), rtol=1e-6)
     with pytest.raises(InputError, match="precision"):
         FastStudent(model, "cpu", precision="fp8")
     with pytest.raises(InputError, match="uint8"):

@@ -72,7 +72,7 @@ def test_a_letterboxed_object_maps_back_to_its_place():
 
 
 def test_segment_writes_letterboxed_masks_at_the_input_size(tmp_path):
-    from pipeline.deploy.files import MASK_SUFFIX, output_path, segment_files
+    from pipeline.deploy.image_files import MASK_SUFFIX, output_path, segment_files
 
     img, box = wide_frame()
     f = tmp_path / "wide.png"

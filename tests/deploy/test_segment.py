@@ -16,7 +16,7 @@ from click.testing import CliRunner
 
 from pipeline.deploy.bundle import INT8_FILE
 
-from pipeline.deploy.files import plan_outputs
+from pipeline.deploy.image_files import plan_outputs
 from pipeline.datasets.loading import read_rgb, resize_image
 from pipeline.runtime.errors import InputError
 from pipeline.evaluation.inference import load_student

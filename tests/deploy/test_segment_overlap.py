@@ -1,4 +1,4 @@
-"""segment's overlapped I/O (pipeline.deploy.files.segment_files, ``workers`` >= 1) against the serial
+"""segment's overlapped I/O (pipeline.deploy.image_files.segment_files, ``workers`` >= 1) against the serial
 loop (``workers=0``): the same bytes in the same files, the same skips in the same order, errors of the
 reader, the engine and the writer raised with the same files left behind, and reads that stay a bounded
 distance ahead of the inference."""
@@ -12,10 +12,10 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.deploy import files as F
+from pipeline.deploy import image_files as F
 from pipeline.deploy.segmenter import load_segmenter
 from pipeline.runtime.errors import InputError
-from pipeline.deploy.segmenting import segment_images
+from pipeline.deploy.image_files import segment_images
 from tests.builders.deploy import make_checkpoint
 
 RES = 32

@@ -67,7 +67,7 @@ LAYERS = (
       "pipeline/training/inputs.py", "pipeline/training/schedule.py", "pipeline/training/averaging.py",
       "pipeline/training/settings.py", "pipeline/training/self_training.py", "pipeline/training/loop.py", "pipeline/training/budget.py",
       "pipeline/evaluation/inference.py",
-      "pipeline/evaluation/evaluate.py", "pipeline/deploy/export.py", "pipeline/deploy/segmenting.py", "pipeline/deploy/",
+      "pipeline/evaluation/evaluate.py", "pipeline/deploy/export.py", "pipeline/deploy/image_files.py", "pipeline/deploy/",
       "pipeline/report/", "pipeline/cluster/", "pipeline/labeling/", "pipeline/review/")),
     ("api", "the Python API of the user tools: label, distill, a standalone project",
      ("pipeline/orchestration/standalone.py", "pipeline/api.py")),
@@ -144,15 +144,19 @@ def _targets(node: ast.AST, path: Path, root: Path) -> list[str]:
 
 
 def _imports(path: Path, root: Path = ROOT) -> tuple[list[tuple[str, int]], list[tuple[str, int]]]:
-    """(top-level imports, imports inside functions) of ``path`` as (module, line)."""
+    """(top-level imports, imports inside functions) of ``path`` as (module, line); those under ``if
+    TYPE_CHECKING:`` run for a type checker only, never at run time, and are left out."""
     tree = ast.parse(path.read_text(), filename=str(path))
     inner: set[int] = set()
+    typing_only: set[int] = set()
     for fn in ast.walk(tree):
         if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
             inner.update(id(n) for n in ast.walk(fn) if isinstance(n, (ast.Import, ast.ImportFrom)))
+        elif isinstance(fn, ast.If) and getattr(fn.test, "id", getattr(fn.test, "attr", None)) == "TYPE_CHECKING":
+            typing_only.update(id(n) for stmt in fn.body for n in ast.walk(stmt))
     top, lazy = [], []
     for n in ast.walk(tree):
-        if isinstance(n, (ast.Import, ast.ImportFrom)):
+        if isinstance(n, (ast.Import, ast.ImportFrom)) and id(n) not in typing_only:
             (lazy if id(n) in inner else top).extend((m, n.lineno) for m in _targets(n, path, root))
     return top, lazy
 

@@ -15,7 +15,7 @@ from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.cache import TeacherCache
 from pipeline.teachers.distributed import JOBS_PER_BLOCK, TeacherWorker, decode_jobs, job_blocks
 from pipeline.teachers import runner as runner_module
-from pipeline.teachers.jobs import TeacherSpec, in_view
+from pipeline.teachers.jobs import TeacherBuildArgs, in_view
 from pipeline.teachers.runner import TeacherRunner
 from pipeline.teachers.simulated import PERSONAS, SimulatedFoundationTeacher
 from tests.builders.teacher import FAST, build_artifacts, cli, make_image_folder, run_stage, teacher_items
@@ -46,7 +46,7 @@ class Loader:
 
 
 def _runner(root, items, batch_size=3):
-    spec = TeacherSpec({"backend": "simulated", "seed": 0, "cache_dir": str(root)}, RES, "cpu")
+    spec = TeacherBuildArgs({"backend": "simulated", "seed": 0, "cache_dir": str(root)}, RES, "cpu")
     teacher = SimulatedFoundationTeacher(seed=0, resolution=RES)
     cache = TeacherCache(root, "fp-test")
     return TeacherRunner(teacher, cache, PROMPTS, image_sha=lambda r: items[r].image_sha256, load=Loader(items),

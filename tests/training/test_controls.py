@@ -14,6 +14,7 @@ from pipeline.artifacts.store import open_artifact, write_zarr
 from pipeline.runtime.errors import InputError
 from pipeline.methods import (METHODS, SUPERVISED_CEILING, Method, check_reference_boundary, gain_treatments,
                               get_method, param_keys, resolve_plan)
+from pipeline.training.checkpointing import NoCheckpointer
 from tests.builders.training import build_tiny_artifacts, load_arrays, tiny_cfg, train_cli, train_params_file
 
 
@@ -21,7 +22,7 @@ def _train(tiny, name, cfg, init_state=None, art=None):
     from pipeline.training import loop as training
     data, val = load_arrays(art or tiny, name, cfg)
     return training.train(get_method(name), cfg, data, val, 42, init_state=init_state,
-                          checkpointer=training.NoCheckpointer(), show_progress=False)
+                          checkpointer=NoCheckpointer(), show_progress=False)
 
 
 # ---- 2a: the budget-matched continuation ---------------------------------------------------------

@@ -12,6 +12,7 @@ from pipeline.training import loop as training
 from tests.builders.training import load_arrays, tiny_cfg
 from pipeline.training import schedule
 from pipeline.training.settings import Settings
+from pipeline.training.checkpointing import NoCheckpointer
 
 
 def test_a_batch_at_half_the_side_keeps_a_hard_mask_hard():
@@ -41,7 +42,7 @@ def test_a_soft_target_run_trains_its_half_side_epochs_on_the_averaged_map(tiny,
         return step(run, b, epoch, i)
 
     monkeypatch.setattr(training, "_step", spy)
-    training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
+    training.train(get_method("plain"), cfg, data, val, 5, checkpointer=NoCheckpointer(),
                    show_progress=False)
     assert any(fractional for epoch, fractional in seen if epoch == 1)  # not thresholded at half the side
 
@@ -57,7 +58,7 @@ def test_the_first_epochs_train_at_half_the_side_then_full(tiny, monkeypatch):
         return step(run, b, epoch, i)
 
     monkeypatch.setattr(training, "_step", spy)
-    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
+    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=NoCheckpointer(),
                          show_progress=False)
     side = data.images.shape[1]
     assert {e: s for e, s, _ in seen} == {1: side // 2, 2: side // 2, 3: side}
@@ -89,7 +90,7 @@ def test_under_until_plateau_the_rule_scores_the_epochs_after_the_schedule(tiny,
         return step(run, b, epoch, i)
 
     monkeypatch.setattr(training, "_step", spy)
-    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
+    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=NoCheckpointer(),
                          show_progress=False)
     # the rule waits for 4 scored epochs (4-7) after the 3 at half the side; then 2 decay epochs at full side
     assert res.info["stable_epochs"] == 7 and res.info["stopped"].startswith("plateau") and res.info["epochs"] == 9
@@ -105,7 +106,7 @@ def test_a_cap_inside_the_schedule_decays_at_full_resolution(tiny, monkeypatch):
     step = training._step
     monkeypatch.setattr(training, "_step", lambda run, b, e, i: (sides.__setitem__(e, b["x"].shape[-1]),
                                                                  step(run, b, e, i))[1])
-    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
+    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=NoCheckpointer(),
                          show_progress=False)
     side = data.images.shape[1]  # the budget ends the stable phase inside the schedule; epoch 3 is the decay
     assert res.info["stable_epochs"] == 2 and res.info["epochs"] == 3 and res.info["low_res_epochs"] == 2
@@ -147,7 +148,7 @@ def test_half_side_epochs_go_unvalidated_unless_asked_and_the_weights_are_the_sa
     cfg = tiny_cfg(until="plateau", epochs_stage1=6, average_last=1, schedule="wsd", low_res_fraction=0.5)
     data, val = load_arrays(tiny, "plain", cfg)
     runs = {on: training.train(get_method("plain"), {**cfg, "validate_low_res": on}, data, val, 5,
-                               checkpointer=training.NoCheckpointer(), show_progress=False) for on in (False, True)}
+                               checkpointer=NoCheckpointer(), show_progress=False) for on in (False, True)}
     fast, full = runs[False], runs[True]
     assert fast.info["low_res_epochs"] == 3 and fast.info["epochs"] == full.info["epochs"] == 6
     assert all(torch.equal(a, b) for a, b in zip(fast.model.state_dict().values(), full.model.state_dict().values()))
@@ -160,6 +161,6 @@ def test_half_side_epochs_go_unvalidated_unless_asked_and_the_weights_are_the_sa
 def test_a_best_validation_pick_without_an_average_still_validates_every_epoch(tiny):
     cfg = tiny_cfg(epochs_stage1=3, low_res_fraction=0.67, validate_low_res=False)  # Plain picks its best val epoch
     data, val = load_arrays(tiny, "plain", cfg)
-    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
+    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=NoCheckpointer(),
                          show_progress=False)
     assert res.info["low_res_epochs"] == 2 and res.log["val_iou"].notna().all()

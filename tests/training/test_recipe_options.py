@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 from tests.builders.training import load_arrays, tiny_cfg
+from pipeline.training.checkpointing import NoCheckpointer
 
 
 def _batchnorms(model):
@@ -135,7 +136,7 @@ def test_precise_bn_changes_running_statistics_only(tiny):
     runs = {}
     for flag in (False, True):  # no validation data: the last epoch is selected in both runs
         runs[flag] = training.train(get_method("plain"), {**cfg, "precise_bn": flag}, data, None, 42,
-                                    checkpointer=training.NoCheckpointer(), show_progress=False).model
+                                    checkpointer=NoCheckpointer(), show_progress=False).model
     a, b = runs[False].state_dict(), runs[True].state_dict()
     for k in a:
         if "running_" in k:
@@ -157,7 +158,7 @@ def test_precise_bn_in_the_train_stage_log_differs_from_ema(tiny):
     cfg = tiny_cfg(epochs_stage1=1)
     data, val = load_arrays(tiny, "plain", cfg)
     logs = [training.train(get_method("plain"), {**cfg, "precise_bn": f}, data, val, 42,
-                           checkpointer=training.NoCheckpointer(), show_progress=False).log for f in (False, True)]
+                           checkpointer=NoCheckpointer(), show_progress=False).log for f in (False, True)]
     assert logs[0]["loss"].tolist() == logs[1]["loss"].tolist()
     assert logs[0]["val_iou"].tolist() != logs[1]["val_iou"].tolist()
 
@@ -244,7 +245,7 @@ def test_ema_final_model_is_the_moving_average_of_the_steps(tiny):
     import unittest.mock as mock
 
     with mock.patch.object(training, "_step", spy):
-        res = training.train(get_method("plain"), cfg, data, val, 3, checkpointer=training.NoCheckpointer(),
+        res = training.train(get_method("plain"), cfg, data, val, 3, checkpointer=NoCheckpointer(),
                              show_progress=False)
     first = training.build_model(get_method("plain"), cfg, 3)
     ema = [p.detach().clone() for p in first.parameters()]
@@ -254,7 +255,7 @@ def test_ema_final_model_is_the_moving_average_of_the_steps(tiny):
         torch.testing.assert_close(got, want)
     assert "moving average" in res.info["selection"]
     plain = training.train(get_method("plain"), tiny_cfg(epochs_stage1=1), data, val, 3,
-                           checkpointer=training.NoCheckpointer(), show_progress=False)
+                           checkpointer=NoCheckpointer(), show_progress=False)
     assert not all(torch.equal(a, b) for a, b in zip(plain.model.parameters(), res.model.parameters()))
 
 

@@ -23,16 +23,17 @@ from pipeline.training.streaming import spill_rows
 from tests.builders.training import (REPO, assert_same_state, build_tiny_artifacts, clone_state, load_arrays, shape_mask,
                                      tiny_cfg, train_cli, train_params_file)
 from pipeline.training.settings import loss_constants
+from pipeline.training.checkpointing import FileCheckpointer, NoCheckpointer
+from tests.builders.training import MemoryCheckpointer
 
 
 def _run(method_name, art, cfg, seed=42, init_state=None, resume_dir=None, checkpointer=None, **kw):
     from pipeline.training import loop as training
     from pipeline.methods import get_method
-    from pipeline.training.checkpointing import FileCheckpointer
 
     data, val = load_arrays(art, method_name, cfg)
     if checkpointer is None:
-        checkpointer = FileCheckpointer(resume_dir) if resume_dir is not None else training.NoCheckpointer()
+        checkpointer = FileCheckpointer(resume_dir) if resume_dir is not None else NoCheckpointer()
     return training.train(get_method(method_name), cfg, data, val, seed, init_state=init_state,
                           checkpointer=checkpointer, show_progress=False, **kw)
 
@@ -109,7 +110,7 @@ def test_train_runs_from_arrays_with_an_in_memory_checkpointer_and_resumes():
     val = training.ValData(image_ids=["v0", "v1"], images=images[5:], masks=masks[5:])
     cfg = tiny_cfg(epochs_stage1=3, lr_stage1=2e-3, batch_size=2)
     m = get_method("plain")
-    full = training.train(m, cfg, data, val, 42, checkpointer=training.NoCheckpointer(), show_progress=False)
+    full = training.train(m, cfg, data, val, 42, checkpointer=NoCheckpointer(), show_progress=False)
     assert list(full.log["epoch"]) == [1, 2, 3] and full.log["val_iou"].notna().all()
 
     class Killed(Exception):
@@ -119,7 +120,7 @@ def test_train_runs_from_arrays_with_an_in_memory_checkpointer_and_resumes():
         if epoch == 1:
             raise Killed
 
-    ck = training.MemoryCheckpointer()
+    ck = MemoryCheckpointer()
     with pytest.raises(Killed):
         training.train(m, cfg, data, val, 42, checkpointer=ck, callback=kill_after_1, show_progress=False)
     assert ck.state["epoch"] == 1 and len(ck.state["log"]) == 1
@@ -138,7 +139,7 @@ def test_train_runs_from_arrays_with_an_in_memory_checkpointer_and_resumes():
 @pytest.mark.parametrize("method", ["plain", "geodistill", "gabi", "no_gate"])
 def test_training_loss_is_the_losses_module_objective(tiny, method):
     """The logged epoch-1 terms of a one-batch run (lr 0) equal losses.refine_loss (eq:refine-loss) with
-    the plan's weights -- and, for Stage I, losses.raw_loss (eq:raw-loss) -- on the untrained model."""
+    the plan's weights -- and, for Stage I, losses.raw_terms (eq:raw-loss) -- on the untrained model."""
     from pipeline import losses
     from pipeline.training import loop as training
     from pipeline.methods import get_method, resolve_plan
@@ -148,7 +149,7 @@ def test_training_loss_is_the_losses_module_objective(tiny, method):
                    gabi={"epochs": 1, "lambda_dist": 0.002, "lambda_boundary": 0.05})
     init = _run("plain", tiny, cfg).model.mask_path_state_dict() if m.init == "stage1" else None
     data, val = load_arrays(tiny, method, cfg)
-    res = training.train(m, cfg, data, val, 42, init_state=init, checkpointer=training.NoCheckpointer(),
+    res = training.train(m, cfg, data, val, 42, init_state=init, checkpointer=NoCheckpointer(),
                          show_progress=False)
     row = res.log.set_index("epoch").loc[1]
 
@@ -165,7 +166,7 @@ def test_training_loss_is_the_losses_module_objective(tiny, method):
     ref = losses.refine_loss(out, targets, gates, weights, loss_constants(cfg))
     for k, v in ref.items():
         assert row[k] == pytest.approx(v.item(), rel=1e-5), k
-    assert row["raw"] == pytest.approx(losses.raw_loss(out["mask"], targets["mask"]).item(), rel=1e-5)
+    assert row["raw"] == pytest.approx(losses.raw_terms(out["mask"], targets["mask"])["raw"].item(), rel=1e-5)
     if method == "plain":
         assert row["loss"] == pytest.approx(row["raw"], rel=1e-6)
         assert set(ref) == {"loss", "raw", "bbce", "dice"}
@@ -370,7 +371,7 @@ def test_streaming_data_gives_the_in_memory_batches_andclone_state(tiny18, metho
     spilled = []
     monkeypatch.setattr(training, "spill_rows", lambda *a: spilled.append(a[0]) or spill_rows(*a))
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    runs = [training.train(m, cfg, d, val, 7, init_state=init, checkpointer=training.NoCheckpointer(),
+    runs = [training.train(m, cfg, d, val, 7, init_state=init, checkpointer=NoCheckpointer(),
                            show_progress=False) for d in (lazy, memory)]
     assert_same_state(clone_state(runs[0].model), clone_state(runs[1].model))
     timing = [c for c in runs[0].log.columns if "sec" in c or "time" in c]

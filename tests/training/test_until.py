@@ -12,6 +12,8 @@ from pipeline.methods import get_method
 from tests.builders.training import REPO, assert_same_state, clone_state, load_arrays, tiny_cfg
 from pipeline.training import schedule
 from pipeline.training.settings import Settings
+from pipeline.training.checkpointing import NoCheckpointer
+from tests.builders.training import MemoryCheckpointer
 
 
 def test_plateau_rule_is_a_doubling_that_gains_too_little():
@@ -43,7 +45,7 @@ def _run(tiny, checkpointer=None, val=True, **over):
                       "schedule": "wsd", "plateau_min_steps": 0, **over})
     data, v = load_arrays(tiny, "plain", cfg)
     return training.train(get_method("plain"), cfg, data, v if val else None, 5,
-                          checkpointer=checkpointer or training.NoCheckpointer(), show_progress=False)
+                          checkpointer=checkpointer or NoCheckpointer(), show_progress=False)
 
 
 def test_stops_at_the_plateau_then_decays(tiny):
@@ -66,14 +68,14 @@ NEVER = 10**6
 
 
 def test_a_stop_at_the_plateau_is_not_resumed_under_another_rule(tiny):
-    ckpt = training.MemoryCheckpointer()
+    ckpt = MemoryCheckpointer()
     assert _run(tiny, ckpt, plateau_min_epochs=2, plateau_gain=1.0).info["stopped"].startswith("plateau")
     other = _run(tiny, ckpt, plateau_min_epochs=NEVER, step_budget=8)  # another rule: trained, not the saved stop
     assert other.info["stopped"].startswith("the step budget") and other.info["steps_run"] == 8
 
 
 def test_a_budget_stops_it_and_a_larger_one_continues_the_saved_run(tiny):
-    ckpt = training.MemoryCheckpointer()
+    ckpt = MemoryCheckpointer()
     short = _run(tiny, ckpt, plateau_min_epochs=NEVER, step_budget=8)  # never a plateau: the budget binds
     assert short.info["stopped"].startswith("the step budget") and short.info["steps_run"] == 8
     assert short.info["stable_epochs"] == 3
@@ -105,7 +107,7 @@ def test_the_paper_recipe_keeps_its_fixed_length(tiny):
     cfg = tiny_cfg()
     assert cfg["until"] == "epochs"
     data, val = load_arrays(tiny, "plain", cfg)
-    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=training.NoCheckpointer(),
+    res = training.train(get_method("plain"), cfg, data, val, 5, checkpointer=NoCheckpointer(),
                          show_progress=False)
     assert "stopped" not in res.info and res.info["epochs"] == cfg["epochs_stage1"]
 
