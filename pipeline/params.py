@@ -45,7 +45,7 @@ _Loader.add_implicit_resolver(
 
 
 def load_yaml(text: str):
-    """``yaml.safe_load`` with scientific notation read as numbers (:class:`_Loader`)."""
+    """Parse YAML like ``yaml.safe_load``, with scientific notation read as numbers (:class:`_Loader`)."""
     return yaml.load(text, Loader=_Loader)
 
 
@@ -63,7 +63,7 @@ def _f(default, description: str = "", **bounds):
 
 
 def _must(test, message: str) -> AfterValidator:
-    """A field check: ValueError ``message`` where ``test(value)`` fails."""
+    """Build a field check: ValueError ``message`` where ``test(value)`` fails."""
     def check(v):
         if not test(v):
             raise ValueError(message)
@@ -178,7 +178,7 @@ class TeacherParams(_Section):
     @field_validator("options")
     @classmethod
     def _options(cls, v: dict, info: ValidationInfo) -> dict:
-        """The backend's own settings through its spec's model (``TeacherSpec.options``); a spec without one takes none."""
+        """Validate the backend's own settings through its spec's model (``TeacherSpec.options``); none without one."""
         if "backend" not in info.data:  # refused already
             return v
         model = teacher_spec(info.data["backend"]).options
@@ -188,8 +188,10 @@ class TeacherParams(_Section):
 
     @model_serializer(mode="wrap")
     def _unset_options_unwritten(self, dump):
-        """No ``options`` key while empty: params.yaml, label.json and the fingerprints of the built-in backends
-        stay as they were."""
+        """Leave out the ``options`` key while it is empty.
+
+        So params.yaml, label.json and the fingerprints of the built-in backends stay as they were.
+        """
         out = dump(self)
         if not out.get("options"):
             out.pop("options", None)
@@ -237,8 +239,10 @@ class AdaptiveParams(_Section):
 
 
 def with_recipe_parts(fields: type[_Section], section: str) -> type[_Section]:
-    """A section model: ``fields``'s fields with ``section``'s recipe parts (:data:`pipeline.methods.PARTS`) placed among
-    them, each ``type | None`` defaulting to None (the recipe's value) with its declared bounds and doc line.
+    """Build a section model: ``fields``'s fields with ``section``'s recipe parts placed among them.
+
+    The recipe parts are those of :data:`pipeline.methods.PARTS`; each is ``type | None``, defaulting to None (the
+    recipe's value), with its declared bounds and doc line.
 
     Parameters
     ----------
@@ -262,8 +266,9 @@ def with_recipe_parts(fields: type[_Section], section: str) -> type[_Section]:
 
 
 def fill_recipe(data, section: str, recipe: str):
-    """Raw section ``data`` with every absent or None recipe part set to ``recipe``'s value (anything
-    else is returned as is, for the schema to name).
+    """Set every absent or None recipe part of raw section ``data`` to ``recipe``'s value.
+
+    Anything else (not a mapping, an unknown recipe) is returned as is, for the schema to name.
     """
     if not isinstance(data, Mapping) or recipe not in RECIPES:
         return data
@@ -275,7 +280,21 @@ def fill_recipe(data, section: str, recipe: str):
 
 
 def unresolved(values: Mapping[str, Any], raw: Mapping[str, Any]) -> dict:
-    """Validated ``values`` with the recipe parts ``raw`` left null set back to None, as params.yaml shows them."""
+    """Set the recipe parts that ``raw`` left null back to None in validated ``values``, as params.yaml shows them.
+
+    Parameters
+    ----------
+    values : Mapping
+        Validated params (every recipe part resolved to its recipe's value).
+    raw : Mapping
+        The params as written, before validation.
+
+    Returns
+    -------
+    dict
+        A deep copy of ``values`` with each recipe part (:func:`pipeline.methods.recipe_parts`) that ``raw``
+        leaves absent or null set to None.
+    """
     out = copy.deepcopy(dict(values))
     for dotted in recipe_parts():
         sec, key = dotted.split(".")
@@ -553,8 +572,26 @@ PAPER = Params()
 
 
 def validate(raw: Mapping[str, Any], origin: str = "params", model: type[BaseModel] = Params) -> dict:
-    """The effective params (defaults filled in) of a whole mapping (or of one section's ``model``);
-    InputError naming the first bad key.
+    """Validate a whole params mapping (or one section's, with its ``model``) and fill in the defaults.
+
+    Parameters
+    ----------
+    raw : Mapping
+        The params as read (a whole file, or one section).
+    origin : str
+        What the error line names first (the file, or ``params: SECTION``).
+    model : type of pydantic.BaseModel
+        The schema: :class:`Params` for a whole file, a section's model for one section.
+
+    Returns
+    -------
+    dict
+        The effective params (defaults filled in, recipe parts resolved).
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        On the first bad value or unknown key, one line naming ``origin`` and the dotted key.
     """
     try:
         return model.model_validate(dict(raw)).model_dump(mode="python")
@@ -569,11 +606,45 @@ def validate(raw: Mapping[str, Any], origin: str = "params", model: type[BaseMod
 
 
 def validate_section(name: str, cfg: Mapping[str, Any]) -> dict:
-    """Validate one section on its own (library entry points called outside a stage)."""
+    """Validate one section on its own (library entry points called outside a stage).
+
+    Parameters
+    ----------
+    name : str
+        The section's key in :class:`Params` (``"train"``, ``"deploy"``, ...).
+    cfg : Mapping
+        The section's raw values.
+
+    Returns
+    -------
+    dict
+        The section's effective values (defaults filled in).
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        From :func:`validate`, naming ``params: NAME`` and the bad key.
+    """
     return validate(cfg, f"params: {name}", Params.model_fields[name].annotation)
 
 
 def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict:
+    """Merge ``over`` into a copy of ``base``, mapping by mapping.
+
+    ``protocol.runs`` (the key ``runs``) is replaced whole, not merged: a profile's runs are the runs.
+
+    Parameters
+    ----------
+    base : Mapping
+        The values overridden.
+    over : Mapping
+        The overriding values; a nested mapping merges into ``base``'s mapping at the same key.
+
+    Returns
+    -------
+    dict
+        A new mapping; neither argument is changed.
+    """
     out = copy.deepcopy(dict(base))
     for k, v in over.items():
         if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) and k != "runs":
@@ -584,7 +655,23 @@ def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict:
 
 
 def parse_override(item: str) -> tuple[list[str], Any]:
-    """``"train.epochs_stage1=3"`` -> (["train", "epochs_stage1"], 3); the value is parsed as YAML."""
+    """Parse one ``--set`` override: ``"train.epochs_stage1=3"`` -> (["train", "epochs_stage1"], 3).
+
+    Parameters
+    ----------
+    item : str
+        ``key.path=value``; the value is parsed as YAML (YAML 1.2 numbers: ``1e-4`` is a float).
+
+    Returns
+    -------
+    tuple of (list of str, object)
+        The key path and the parsed value.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        When ``item`` has no ``=``, an empty key or a value that is not valid YAML.
+    """
     if "=" not in item:
         raise InputError(f"--set {item!r}: expected key.path=value")
     key, _, raw = item.partition("=")
@@ -599,6 +686,7 @@ def parse_override(item: str) -> tuple[list[str], Any]:
 
 
 def set_path(d: dict, keys: list[str], value: Any) -> None:
+    """Set ``d[k1][k2]...[kn] = value``, creating (or replacing non-mapping) intermediate levels."""
     for k in keys[:-1]:
         if not isinstance(d.get(k), dict):
             d[k] = {}
@@ -607,6 +695,20 @@ def set_path(d: dict, keys: list[str], value: Any) -> None:
 
 
 def get_path(d: Mapping[str, Any], dotted: str) -> Any:
+    """Read the value at a dotted key path (``"train.epochs_stage1"``).
+
+    Parameters
+    ----------
+    d : Mapping
+        Nested mappings (params).
+    dotted : str
+        The key path, levels joined by ``.``.
+
+    Returns
+    -------
+    object
+        The value there (a missing key raises KeyError).
+    """
     cur: Any = d
     for k in dotted.split("."):
         cur = cur[k]
@@ -614,7 +716,25 @@ def get_path(d: Mapping[str, Any], dotted: str) -> Any:
 
 
 def read_yaml_mapping(path: str | Path, what: str = "params file") -> dict:
-    """A YAML file whose top level is a mapping (params, protocol files); InputError naming the file."""
+    """Read a YAML file whose top level is a mapping (params, protocol files).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    what : str
+        What the file is, for the error line (``"params file"``).
+
+    Returns
+    -------
+    dict
+        Its top-level mapping (an empty file reads as ``{}``).
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        Naming the file when it is missing, is not valid YAML or is not a mapping at the top level.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: {what} not found")
@@ -633,9 +753,29 @@ PROFILE_KEY = "profile"
 
 def load_params(path: str | Path = DEFAULT_PARAMS, overrides: Iterable[str] = (),
                 base: Mapping[str, Any] | None = None) -> dict:
-    """The validated params of ``path`` (or of raw ``base``, ``path`` naming it) with ``--set`` overrides.
+    """Load and validate the params of ``path`` (or of raw ``base``, ``path`` naming it) with ``--set`` overrides.
 
     ``--set profile=NAME`` is refused: only the commands that switch profile read profiles.
+
+    Parameters
+    ----------
+    path : str or Path
+        The params file (default :data:`DEFAULT_PARAMS`); with ``base`` it only names the params in errors.
+    overrides : iterable of str
+        ``key.path=value`` overrides (:func:`parse_override`), applied in order over the file.
+    base : Mapping, optional
+        Raw params to use instead of reading ``path``.
+
+    Returns
+    -------
+    dict
+        The effective params (:func:`validate`).
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        When an override sets :data:`PROFILE_KEY`; also from :func:`parse_override`, :func:`read_yaml_mapping`
+        and :func:`validate`.
     """
     parsed = [parse_override(o) for o in overrides]
     if any(keys == [PROFILE_KEY] for keys, _ in parsed):
@@ -648,7 +788,25 @@ def load_params(path: str | Path = DEFAULT_PARAMS, overrides: Iterable[str] = ()
 
 
 def section(params: Mapping[str, Any], name: str) -> dict:
-    """One section of validated params (a copy); InputError if absent."""
+    """Copy one section out of validated params.
+
+    Parameters
+    ----------
+    params : Mapping
+        Validated params.
+    name : str
+        The section's key.
+
+    Returns
+    -------
+    dict
+        A deep copy of the section.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        When ``params`` has no mapping at ``name``.
+    """
     if not isinstance(params.get(name), Mapping):
         raise InputError(f"params: section {name!r} missing")
     return copy.deepcopy(dict(params[name]))
@@ -656,7 +814,31 @@ def section(params: Mapping[str, Any], name: str) -> dict:
 
 def require(cfg: Mapping[str, Any], key: str, where: str, *, kind: type | tuple = object,
             lo: float | None = None, hi: float | None = None) -> Any:
-    """``cfg[key]`` checked for type and range (mappings the schema does not cover); InputError names ``where.key``."""
+    """Read ``cfg[key]``, checked for type and range (for mappings the schema does not cover).
+
+    Parameters
+    ----------
+    cfg : Mapping
+        The mapping read.
+    key : str
+        The key required in it.
+    where : str
+        The mapping's dotted place, for the error line (``where.key``).
+    kind : type or tuple of type
+        The accepted type(s); ``object`` accepts any.  A bool is refused where a number is asked for.
+    lo, hi : float, optional
+        Inclusive bounds; None leaves that side open.
+
+    Returns
+    -------
+    object
+        The value, unchanged.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        Naming ``where.key`` when it is missing, of the wrong type or out of ``[lo, hi]``.
+    """
     if key not in cfg:
         raise InputError(f"params: {where}.{key} missing")
     v = cfg[key]

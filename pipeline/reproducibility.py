@@ -1,6 +1,7 @@
-"""What "the same published number" means: a rerun reproduces a student metric when every test group's mean
-is within :data:`TOLERANCE` of the published one (keys: the DVC metrics files' ``iou`` and ``bf1``), and
-CI's check of a fresh demo against the committed metrics.
+"""What "the same published number" means, and CI's check of a fresh demo against the committed metrics.
+
+A rerun reproduces a student metric when every test group's mean is within :data:`TOLERANCE` of the published
+one (keys: the DVC metrics files' ``iou`` and ``bf1``).
 """
 
 from __future__ import annotations
@@ -17,8 +18,20 @@ SLACK = 1e-9
 
 @dataclasses.dataclass(frozen=True)
 class MetricDiff:
-    """One (metrics file, key) compared; ``status``: ok | over (the tolerance) | missing (in the fresh run) |
-    extra (not committed).
+    """One (metrics file, key) compared.
+
+    Attributes
+    ----------
+    file : str
+        The metrics file's path relative to the metrics folder.
+    key : str
+        The metric (a key of :data:`TOLERANCE`).
+    committed, fresh : float or None
+        The committed and the fresh value; None where that side lacks it.
+    tolerance : float
+        The largest accepted absolute difference.
+    status : str
+        ok | over (the tolerance) | missing (in the fresh run) | extra (not committed).
     """
 
     file: str
@@ -30,13 +43,26 @@ class MetricDiff:
 
     @property
     def diff(self) -> float | None:
+        """Fresh minus committed; None where a side is missing."""
         return None if self.committed is None or self.fresh is None else self.fresh - self.committed
 
 
 def compare_metrics(committed: Mapping[str, Mapping[str, float]], fresh: Mapping[str, Mapping[str, float]],
                     tolerance: Mapping[str, float] = TOLERANCE) -> list[MetricDiff]:
-    """Every ``tolerance`` key of every metrics file (``{relative path: {key: value}}`` on both sides)
-    compared, sorted by file, then key.
+    """Compare every ``tolerance`` key of every metrics file, committed against fresh.
+
+    Parameters
+    ----------
+    committed, fresh : Mapping
+        The metrics files on each side, ``{relative path: {key: value}}``.
+    tolerance : Mapping
+        Key -> the largest accepted absolute difference (default :data:`TOLERANCE`); other keys are not
+        compared.
+
+    Returns
+    -------
+    list of MetricDiff
+        One row per (file, key) that either side holds, sorted by file, then by ``tolerance``'s key order.
     """
     rows = []
     for file in sorted(set(committed) | set(fresh)):
@@ -58,7 +84,18 @@ def compare_metrics(committed: Mapping[str, Mapping[str, float]], fresh: Mapping
 
 
 def reproduced(rows: Sequence[MetricDiff]) -> bool:
-    """True when there is something to compare and every row is ``ok``."""
+    """Tell whether a comparison reproduced the published numbers.
+
+    Parameters
+    ----------
+    rows : sequence of MetricDiff
+        :func:`compare_metrics`.
+
+    Returns
+    -------
+    bool
+        True when there is something to compare and every row is ``ok``.
+    """
     return bool(rows) and all(r.status == "ok" for r in rows)
 
 
@@ -67,7 +104,18 @@ STATUS_TEXT = {"ok": "ok", "over": "DIFFERS", "missing": "MISSING in the fresh r
 
 
 def difference_table(rows: Sequence[MetricDiff]) -> str:
-    """The comparison as a Markdown table."""
+    """Write the comparison as a Markdown table.
+
+    Parameters
+    ----------
+    rows : sequence of MetricDiff
+        :func:`compare_metrics`.
+
+    Returns
+    -------
+    str
+        The table: file, metric, both values, their difference, the tolerance and the status, a line per row.
+    """
     def num(v, sign=False):
         return "--" if v is None else (f"{v:+.4f}" if sign else f"{v:.4f}")
 

@@ -1,6 +1,7 @@
-"""Teacher, gate, diagnostics and noise-floor analyses for the report: pure functions on DataFrames, and the
-teacher table they read (:func:`teacher_metrics`, the ``analyze_teacher`` stage's logic).  The teacher table
-(``teacher_metrics.parquet``) has a row per image and source: ``prompt_<k>``, ``vote`` (eq:majority-vote) or
+"""Teacher, gate, diagnostics and noise-floor analyses for the report: pure functions on DataFrames.
+
+Also the teacher table they read (:func:`teacher_metrics`, the ``analyze_teacher`` stage's logic).  The teacher
+table (``teacher_metrics.parquet``) has a row per image and source: ``prompt_<k>``, ``vote`` (eq:majority-vote) or
 ``val_selected`` (the prompt chosen on the validation split).
 """
 
@@ -30,16 +31,45 @@ METRICS = ("iou", "bf1", "precision", "recall")
 
 
 def prompt_source(k: int) -> str:
+    """Name the teacher-table source of prompt ``k`` (``prompt_<k>``).
+
+    Parameters
+    ----------
+    k : int
+        The prompt's index in ``teacher.prompts`` (0-based).
+
+    Returns
+    -------
+    str
+        ``"prompt_<k>"``.
+    """
     return f"prompt_{int(k)}"
 
 
 def prompt_sources(tm: pd.DataFrame) -> list[str]:
+    """List the single-prompt sources of teacher table ``tm``, by prompt index."""
     ks = sorted(int(s.split("_", 1)[1]) for s in tm["source"].unique() if str(s).startswith("prompt_"))
     return [prompt_source(k) for k in ks]
 
 
 def select_prompt(tm: pd.DataFrame, split: str = "val", metric: str = "iou") -> tuple[str | None, pd.Series]:
-    """(the prompt with the highest mean ``metric`` on ``split``, ties to the lowest k; the per-prompt means)."""
+    """Select the single prompt with the highest mean ``metric`` on ``split`` (ties to the lowest k).
+
+    Parameters
+    ----------
+    tm : pandas.DataFrame
+        The teacher table (``teacher_metrics.parquet``): a row per image and source.
+    split : str
+        The split the prompt is chosen on (the validation split: the test split never selects).
+    metric : str
+        The column compared (``iou``, ``bf1``, ...).
+
+    Returns
+    -------
+    tuple of (str or None, pandas.Series)
+        The chosen source (``prompt_<k>``; None when ``split`` has no single-prompt row) and the mean
+        ``metric`` per prompt source, in prompt order.
+    """
     sub = tm[(tm["split"] == split) & tm["source"].isin(prompt_sources(tm))]
     if sub.empty:
         return None, pd.Series(dtype=float)
@@ -55,7 +85,7 @@ TEACHER_INFO = ["image_id", "dataset", "domain", "split", "group", "spacecraft"]
 
 
 def base_prompt_index(teacher_meta) -> int:
-    """The base prompt's index as recorded in the teacher artifact's params.
+    """Read the base prompt's index as recorded in the teacher artifact's params.
 
     Parameters
     ----------
@@ -76,7 +106,7 @@ def base_prompt_index(teacher_meta) -> int:
 
 def teacher_metrics(manifest, reference, teacher, consensus, tolerance: float, max_fraction: float
                     ) -> tuple[pd.DataFrame, str | None, pd.Series]:
-    """The teacher table: each prompt's and the vote's per-image metrics on the validation and test images.
+    """Build the teacher table: each prompt's and the vote's per-image metrics on the validation and test images.
 
     Reference masks measure here only (post hoc), nothing feeds training.  The prompt with the best mean
     validation IoU (:func:`select_prompt`) is repeated as source ``val_selected``.
@@ -131,9 +161,29 @@ def teacher_metrics(manifest, reference, teacher, consensus, tolerance: float, m
 
 def teacher_prompt_quality(tm: pd.DataFrame, group: str, base_source: str, selected_source: str | None,
                            prompts: list[str] | None = None) -> pd.DataFrame:
-    """Paper Table teacher-prompt-quality for one group: base prompt, validation-selected prompt, mean ± std
-    over the K separately evaluated prompts (not a fusion), K-prompt vote; columns config, <metric>,
-    <metric>_std (the mean row only), n.
+    """Tabulate the teacher's prompt quality on one group (paper Table ``tab:teacher-prompt-quality``).
+
+    Rows: the base prompt, the validation-selected prompt, the mean ± std over the K separately evaluated
+    prompts (not a fusion) and the K-prompt vote (eq:majority-vote).
+
+    Parameters
+    ----------
+    tm : pandas.DataFrame
+        The teacher table (``teacher_metrics.parquet``).
+    group : str
+        The test group tabulated.
+    base_source : str
+        The base prompt's source (``prompt_<k>``).
+    selected_source : str or None
+        The validation-selected prompt's source (:func:`select_prompt`); None leaves its row out.
+    prompts : list of str, optional
+        The prompt texts (``teacher.prompts``), shown in place of ``prompt_<k>``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``config``, ``n`` (images), and per metric ``<metric>`` and ``<metric>_std`` (the std is NaN but
+        on the mean-over-prompts row).
     """
     g = tm[tm["group"] == group]
     srcs = prompt_sources(tm)
@@ -145,7 +195,7 @@ def teacher_prompt_quality(tm: pd.DataFrame, group: str, base_source: str, selec
     rows = []
 
     def add(config, part, per_prompt=False):
-        """A row of ``part``'s means (NaN std), or (``per_prompt``) the mean ± std of its prompts' means."""
+        """Add a row of ``part``'s means (NaN std), or (``per_prompt``) the mean ± std of its prompts' means."""
         means = part.groupby("source")[list(METRICS)].mean() if per_prompt else part
         r = {"config": config, "n": int(part["image_id"].nunique())}
         for m in METRICS:
@@ -162,8 +212,22 @@ def teacher_prompt_quality(tm: pd.DataFrame, group: str, base_source: str, selec
 
 
 def teacher_domain_quality(tm: pd.DataFrame, source: str = "vote", split: str = "test") -> pd.DataFrame:
-    """Paper Table teacher-domain-quality: mean metrics of ``source`` per dataset / domain / group of ``split``,
-    plus an ``all`` row per dataset/domain with several groups.
+    """Tabulate one teacher source's quality per domain (paper Table ``tab:teacher-domain-quality``).
+
+    Parameters
+    ----------
+    tm : pandas.DataFrame
+        The teacher table (``teacher_metrics.parquet``).
+    source : str
+        The source scored (``vote``: eq:majority-vote; or ``prompt_<k>``, ``val_selected``).
+    split : str
+        The split scored.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``dataset``, ``domain``, ``group``, the mean metrics and ``n`` (images): a row per dataset /
+        domain / group, plus a ``group="all"`` row for each dataset / domain with several groups.
     """
     sub = tm[(tm["source"] == source) & (tm["split"] == split)]
     per = _means(sub, ["dataset", "domain", "group"], sort=True).reset_index()
@@ -173,7 +237,7 @@ def teacher_domain_quality(tm: pd.DataFrame, source: str = "vote", split: str = 
 
 
 def _means(df: pd.DataFrame, keys, sort: bool) -> pd.DataFrame:
-    """The mean :data:`METRICS` and the number of images ``n`` per ``keys``."""
+    """Average :data:`METRICS` and count the images ``n`` per ``keys``."""
     out = df.groupby(keys, sort=sort)[list(METRICS)].mean()
     out["n"] = df.groupby(keys, sort=sort)["image_id"].nunique()
     return out
@@ -181,9 +245,27 @@ def _means(df: pd.DataFrame, keys, sort: bool) -> pd.DataFrame:
 
 def gate_analysis(tm: pd.DataFrame, gates: pd.DataFrame, group: str | None = None,
                   split: str = "test") -> dict:
-    """Spearman rho (and p) between the gate g and the vote's Image IoU / Boundary F1 on one group (None: all
-    of ``split``), and the g = 0 against g > 0 table: {"group", "n", "rho_iou", "p_iou", "rho_bf1", "p_bf1",
-    "table": DataFrame[state, images, iou, bf1]}.
+    """Relate the reliability gate g (eq:reliability-gate) to the vote's quality (paper Table ``tab:gate-groups``).
+
+    Spearman's rho (with its p-value) between g and the vote's Image IoU / Boundary F1, and the mean quality of
+    the images with g = 0 (geometry suppressed) against g > 0.
+
+    Parameters
+    ----------
+    tm : pandas.DataFrame
+        The teacher table (``teacher_metrics.parquet``); its ``vote`` rows are used.
+    gates : pandas.DataFrame
+        The gates table (``gates.parquet``): ``image_id`` and ``g``.
+    group : str, optional
+        The test group; None takes all of ``split``.
+    split : str
+        The split analysed.
+
+    Returns
+    -------
+    dict
+        ``group`` (``"all"`` for None), ``n`` (images with a gate), ``rho_iou``, ``p_iou``, ``rho_bf1``,
+        ``p_bf1`` and ``table``: a DataFrame with columns ``state``, ``images``, ``iou``, ``bf1``.
     """
     v = tm[(tm["source"] == "vote") & (tm["split"] == split)]
     if group is not None:
@@ -199,14 +281,39 @@ def gate_analysis(tm: pd.DataFrame, gates: pd.DataFrame, group: str | None = Non
 
 
 def teacher_vote_means(tm: pd.DataFrame, split: str = "test") -> pd.DataFrame:
-    """The teacher vote scored as a predictor: its mean :data:`METRICS` and n per group of ``split``."""
+    """Score the teacher vote (eq:majority-vote) as a predictor: its mean metrics per group of ``split``.
+
+    Parameters
+    ----------
+    tm : pandas.DataFrame
+        The teacher table (``teacher_metrics.parquet``).
+    split : str
+        The split scored.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Indexed by group, in order of appearance: the mean ``iou``, ``bf1``, ``precision``, ``recall`` and
+        ``n`` (images).
+    """
     return _means(tm[(tm["source"] == "vote") & (tm["split"] == split)], "group", sort=False)
 
 
 def epoch_swings(logs: pd.DataFrame) -> pd.DataFrame:
-    """Per (method, stage): the largest (with its seed and epoch) and the median change of validation Image
-    IoU between adjacent epochs of a run, at the fixed tau and at each epoch's calibrated tau, and that
-    tau's range.
+    """Measure how much validation Image IoU changes between adjacent epochs of a run, per (method, stage).
+
+    Parameters
+    ----------
+    logs : pandas.DataFrame
+        Training logs: ``method``, ``stage``, ``seed``, ``epoch``, ``val_iou`` (at the fixed tau), and where
+        recorded ``val_iou_cal`` (at each epoch's calibrated tau) and ``val_tau_cal``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Per (method, stage) with a finite change: ``max_swing`` with its ``max_seed`` and ``max_epoch``,
+        ``median_swing``, the same at the calibrated tau (``max_swing_cal``, ``median_swing_cal``; NaN
+        without) and the calibrated tau's range (``tau_min``, ``tau_max``).
     """
     rows = []
     has_cal = "val_iou_cal" in logs.columns
@@ -233,12 +340,35 @@ def epoch_swings(logs: pd.DataFrame) -> pd.DataFrame:
 
 
 def size_split(metrics: pd.DataFrame) -> pd.DataFrame:
-    """Seed summary of Image IoU, Boundary F1 and area per method, threshold mode and target size."""
+    """Summarise Image IoU, Boundary F1 and area over seeds per method, threshold mode and target size.
+
+    Parameters
+    ----------
+    metrics : pandas.DataFrame
+        Per-image test metrics (``metrics.parquet``) with ``target_size`` (tiny under
+        ``evaluate.tiny_target_max_fraction`` of the frame, or regular).
+
+    Returns
+    -------
+    pandas.DataFrame
+        :func:`pipeline.stats.seed_summary` of ``iou``, ``bf1`` and ``area_vs_reference``.
+    """
     return seed_summary(metrics, ["method", "threshold_mode", "target_size"], ["iou", "bf1", "area_vs_reference"])
 
 
 def tau_text(tau: float | None) -> str:
-    """The fixed tau in the report's words: its value, or its param's name when unknown."""
+    """Write the fixed tau in the report's words: its value, or its param's name when unknown.
+
+    Parameters
+    ----------
+    tau : float or None
+        The fixed threshold (``calibrate.fixed_tau``, eq:inference-mask), None when not recorded.
+
+    Returns
+    -------
+    str
+        The value (``f"{tau:g}"``), or for None the param's name ``calibrate.fixed_tau`` in Markdown backticks.
+    """
     return "`calibrate.fixed_tau`" if tau is None else f"{tau:g}"
 
 
@@ -298,7 +428,7 @@ def _per_seed_difference(table: pd.DataFrame, treatment: str, control: str, colu
 
 
 def _threshold_findings(thresholds: pd.DataFrame | None, c: _Cast) -> tuple[list[str], float, float]:
-    """The calibrated tau of treatment against control, and their validation ECE; (sentences, tau_t, tau_c)."""
+    """Compare the calibrated tau of treatment and control, and their validation ECE; (sentences, tau_t, tau_c)."""
     if thresholds is None or not {c.treatment, c.control} <= set(thresholds["method"]):
         return [], np.nan, np.nan
     tau_t, tau_c = _mean_tau(thresholds, c.treatment), _mean_tau(thresholds, c.control)
@@ -323,7 +453,7 @@ INTERVAL_SIDE = {GAIN_SUPPORTED: "CI above 0", LOSS_SUPPORTED: "CI below 0", NO_
 
 
 def _gain_findings(summary: pd.DataFrame | None, c: _Cast) -> tuple[list[str], bool | None]:
-    """The sign of the Boundary F1 / Image IoU gain per group at both taus; (sentences, reversal)."""
+    """Give the sign of the Boundary F1 / Image IoU gain per group at both taus; (sentences, reversal)."""
     if summary is None:
         return [], None
     gains, verdicts = {}, {}
@@ -369,7 +499,7 @@ def _area_findings(metrics: pd.DataFrame | None, c: _Cast) -> tuple[list[str], b
 
 
 def _reading(reversal: bool | None, inflation: bool | None, tau_t: float, tau_c: float, c: _Cast) -> list[str]:
-    """The verdict on the fixed-tau reversal, from the three facts above."""
+    """Give the verdict on the fixed-tau reversal, from the three facts above."""
     if reversal is None or not np.isfinite(tau_t):
         return []
     facts = [reversal, tau_t > tau_c, bool(inflation)]
@@ -422,7 +552,7 @@ def _continuation_findings(summary: pd.DataFrame | None, noise_floor: dict | Non
 
 
 def _ceiling_finding(summary: pd.DataFrame | None, c: _Cast) -> list[str]:
-    """The supervised ceiling minus control at the calibrated tau, against control's seed spread."""
+    """Compare the supervised ceiling minus control at the calibrated tau with control's seed spread."""
     if summary is None or c.ceiling not in set(summary["method"]):
         return []
     s = summary[summary["threshold_mode"] == "calibrated"].set_index(["method", "group"])
@@ -441,7 +571,7 @@ def _ceiling_finding(summary: pd.DataFrame | None, c: _Cast) -> list[str]:
 
 
 def _vote_finding(vote: pd.DataFrame | None, summary: pd.DataFrame | None, c: _Cast) -> list[str]:
-    """The teacher vote's Image IoU minus the treatment's, per group."""
+    """Give the teacher vote's Image IoU minus the treatment's, per group."""
     if vote is None or summary is None or not len(vote):
         return []
     s = summary[summary["threshold_mode"] == "calibrated"].set_index(["method", "group"])
@@ -455,7 +585,7 @@ def _vote_finding(vote: pd.DataFrame | None, summary: pd.DataFrame | None, c: _C
 
 
 def _size_finding(metrics: pd.DataFrame | None, c: _Cast) -> list[str]:
-    """The treatment's Image IoU difference to the control on tiny targets and on the rest."""
+    """Give the treatment's Image IoU difference to the control on tiny targets and on the rest."""
     if metrics is None or "target_size" not in metrics.columns or "seed" not in metrics.columns:
         return []
     per_seed = metrics.groupby(["method", "threshold_mode", "target_size", "seed"])["iou"].mean()
@@ -476,7 +606,7 @@ def _size_finding(metrics: pd.DataFrame | None, c: _Cast) -> list[str]:
 
 
 def _swing_finding(logs: pd.DataFrame | None, c: _Cast) -> list[str]:
-    """The largest per-epoch change of validation IoU at the fixed tau against that at the calibrated tau."""
+    """Compare the largest per-epoch change of validation IoU at the fixed tau with that at the calibrated tau."""
     if logs is None or "val_iou_cal" not in logs.columns:
         return []
     sw = epoch_swings(logs)
@@ -496,8 +626,41 @@ def fixed_tau_findings(summary: pd.DataFrame | None, thresholds: pd.DataFrame | 
                        treatment: str = PROPOSED, control: str = BASELINE, continuation: str = CONTINUATION,
                        ceiling: str = SUPERVISED_CEILING, label=lambda m: m, noise_floor: dict | None = None,
                        fixed_tau: float | None = None) -> list[str]:
-    """What the diagnostics show about the fixed-tau reversal, in sentences whose every verdict compares the
-    numbers it quotes: one finding per ``_*_finding(s)`` function, where its inputs exist.
+    """Write what the diagnostics show about the fixed-tau reversal, in sentences.
+
+    Every verdict compares the numbers it quotes: one finding per ``_*_finding(s)`` function, where its inputs
+    exist (a missing table drops its findings).
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame or None
+        The seed summary (``summary.parquet``): per method, group and threshold mode, the metric means, stds and
+        gains with their seed-aware CIs.
+    thresholds : pandas.DataFrame or None
+        The calibrated thresholds (``thresholds.parquet``): ``method``, ``seed``, ``tau``, and ``ece`` where
+        recorded.
+    metrics : pandas.DataFrame or None
+        Per-image test metrics (``metrics.parquet``).
+    logs : pandas.DataFrame or None
+        Training logs (:func:`epoch_swings`).
+    vote : pandas.DataFrame or None
+        The teacher vote's means per group (:func:`teacher_vote_means`).
+    groups : list of str
+        The test groups, in report order.
+    treatment, control, continuation, ceiling : str
+        The methods compared: the proposed recipe, its control, the budget-matched continuation and the
+        supervised ceiling.
+    label : callable
+        Method name -> its name in the report.
+    noise_floor : dict, optional
+        The noise-floor record of this configuration (:func:`select_noise_floor`); None: CIs alone decide.
+    fixed_tau : float, optional
+        The fixed threshold (``calibrate.fixed_tau``); None names the param instead (:func:`tau_text`).
+
+    Returns
+    -------
+    list of str
+        Markdown paragraphs.
     """
     c = _Cast(treatment, control, continuation, ceiling, list(groups), label, tau_text(fixed_tau), label(treatment),
               label(control), label(continuation))
@@ -515,7 +678,19 @@ NOISE_FLOOR_NOT_MEASURED = ("noise floor not measured in this report's configura
 
 
 def noise_floor_records(doc: dict | None) -> dict[str, dict]:
-    """Key -> record of a noise-floor file (a former single-record file: the record of its ``info.recipe``)."""
+    """Read the records of a noise-floor file (reports/noise_floor.json) by key.
+
+    Parameters
+    ----------
+    doc : dict or None
+        The parsed file: ``{"recipes": {key: record}}``, or a former single-record file (with ``numbers``).
+
+    Returns
+    -------
+    dict
+        Key (:func:`noise_floor_key`) -> record; a single-record file's key is its ``info.recipe``.  Empty for
+        None or an empty file.
+    """
     if not doc:
         return {}
     if "numbers" in doc:
@@ -524,7 +699,22 @@ def noise_floor_records(doc: dict | None) -> dict[str, dict]:
 
 
 def noise_floor_key(recipe: str, profile: str | None = None, resolution: int | None = None) -> str:
-    """A record's key in reports/noise_floor.json: the recipe (demo profile), else ``<recipe>@<profile>-<res>``."""
+    """Key a record in reports/noise_floor.json: the recipe (demo profile), else ``<recipe>@<profile>-<res>``.
+
+    Parameters
+    ----------
+    recipe : str
+        The training recipe (``train.recipe``).
+    profile : str, optional
+        The params profile; None or ``"demo"`` keys by the recipe alone.
+    resolution : int, optional
+        The working resolution (``data.resolution``).
+
+    Returns
+    -------
+    str
+        The key.
+    """
     if profile in (None, "demo"):
         return recipe
     return f"{recipe}@{profile}-{resolution}"
@@ -532,8 +722,26 @@ def noise_floor_key(recipe: str, profile: str | None = None, resolution: int | N
 
 def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | None = None,
                        profile: str | None = None) -> dict | None:
-    """The record of ``doc`` measured in the report's own configuration (recipe, resolution, profile; an
-    unknown side is not compared), with ``applies_to``; None when there is none or ``recipe`` is None.
+    """Select the noise-floor record measured in the report's own configuration.
+
+    A floor measured elsewhere is never applied: the record must match the recipe, and the resolution and
+    profile where both sides know them.
+
+    Parameters
+    ----------
+    doc : dict or None
+        The parsed noise-floor file (:func:`noise_floor_records`).
+    recipe : str or None
+        The report's training recipe; None (several recipes, or unknown) selects nothing.
+    resolution : int, optional
+        The report's working resolution; None is not compared.
+    profile : str, optional
+        The report's params profile; None is not compared.
+
+    Returns
+    -------
+    dict or None
+        The record with ``applies_to`` (``recipe``, ``resolution``, ``profile``) added; None when none matches.
     """
     if recipe is None:
         return None
@@ -550,7 +758,22 @@ def select_noise_floor(doc: dict | None, recipe: str | None, resolution: int | N
 
 
 def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
-    """The largest ``floor`` of any gain ``<treatment>-<control>/<group>/<metric>`` in ``record``; NaN without."""
+    """Read the noise floor of a gain: the largest ``floor`` of any ``<treatment>-<control>/<group>/<metric>``.
+
+    Parameters
+    ----------
+    record : dict or None
+        A noise-floor record (:func:`select_noise_floor`).
+    group : str
+        The test group.
+    metric : str
+        The metric (``iou``, ``bf1``).
+
+    Returns
+    -------
+    float
+        The largest finite floor (a former record's ``pert``), or NaN when there is none.
+    """
     if not record:
         return float("nan")
     vals = [v.get("floor", v.get("pert")) for k, v in record.get("numbers", {}).items()
@@ -560,7 +783,18 @@ def gain_noise_floor(record: dict | None, group: str, metric: str) -> float:
 
 
 def noise_floor_note(record: dict | None) -> str:
-    """One sentence naming where the floor comes from, or that it was not measured in this configuration."""
+    """Write one sentence naming where the noise floor comes from, or that it was not measured here.
+
+    Parameters
+    ----------
+    record : dict or None
+        The noise-floor record of this configuration (:func:`select_noise_floor`).
+
+    Returns
+    -------
+    str
+        The sentence (:data:`NOISE_FLOOR_NOT_MEASURED` for None).
+    """
     if not record:
         return NOISE_FLOOR_NOT_MEASURED + "."
     i = record.get("info", {})

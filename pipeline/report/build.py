@@ -1,5 +1,6 @@
-"""Gather the evaluation artifacts into one :class:`Report` and the plot tables DVC shows; a missing input
-never fails the report: its section names the stage that produces it.
+"""Gather the evaluation artifacts into one :class:`Report` and the plot tables DVC shows.
+
+A missing input never fails the report: its section names the stage that produces it.
 """
 
 from __future__ import annotations
@@ -45,30 +46,59 @@ EPOCH_AXIS = "epoch (of the run's own schedule)"
 
 @dataclasses.dataclass
 class Inputs:
+    """What the report read: the opened inputs, a note per missing one, and what the runs recorded.
+
+    Attributes
+    ----------
+    art : Path
+        The artifacts folder.
+    found : dict
+        Catalogue name (:data:`INPUTS`) -> its opened artifact.
+    missing : dict
+        Catalogue name -> the :class:`Missing` note naming the stage that produces it.
+    logs : pandas.DataFrame or None
+        The training logs of every active run (:func:`training_logs`).
+    runs : list
+        The training runs (:func:`pipeline.report.environment.training_runs`).
+    no_masks : bool
+        No validation or test image has a mask (a distill project without ``--val-masks``).
+    noise_floor : dict or None
+        The noise-floor record measured in this configuration (:func:`noise_floor_for_runs`).
+    fixed_tau : float or None
+        ``calibrate.fixed_tau`` as the runs recorded it (:func:`recorded_fixed_tau`).
+    run_review : dict
+        The runs trained on human corrections (:func:`recorded_review`).
+    departures : dict
+        Each method's departures from eq:raw-loss (:func:`recorded_departures`).
+    corrected_validation : int
+        The corrected training images calibrate used as validation images.
+    """
+
     art: Path
     found: dict[str, Any]
     missing: dict[str, Missing]
     logs: pd.DataFrame | None = None
-    runs: list = dataclasses.field(default_factory=list)  # pipeline.report.environment.training_runs
-    no_masks: bool = False  # no validation or test image has a mask (a distill project without --val-masks)
-    noise_floor: dict | None = None  # the record measured in this configuration (:func:`noise_floor_for_runs`)
-    fixed_tau: float | None = None  # :func:`recorded_fixed_tau`
-    run_review: dict = dataclasses.field(default_factory=dict)  # :func:`recorded_review`
-    departures: dict = dataclasses.field(default_factory=dict)  # :func:`recorded_departures`
-    corrected_validation: int = 0  # corrected training images calibrate used as validation images
+    runs: list = dataclasses.field(default_factory=list)
+    no_masks: bool = False
+    noise_floor: dict | None = None
+    fixed_tau: float | None = None
+    run_review: dict = dataclasses.field(default_factory=dict)
+    departures: dict = dataclasses.field(default_factory=dict)
+    corrected_validation: int = 0
 
     def get(self, name):
+        """Return the opened input ``name``, or None when it is missing."""
         return self.found.get(name)
 
     def need(self, *names) -> list:
-        """A note per missing input; without any mask, one :data:`NOT_COMPUTED` sentence instead."""
+        """List a note per missing input of ``names``; without any mask, one :data:`NOT_COMPUTED` sentence instead."""
         if self.no_masks and any(n in MASK_INPUTS for n in names):
             return [Text(NOT_COMPUTED)]
         return [self.missing[n] for n in names if n in self.missing]
 
 
 def load_inputs(art: str | Path, profile: str | None = None) -> Inputs:
-    """Open every input that exists, a :class:`Missing` note for each other; ``profile``: the runs' params profile."""
+    """Open every input that exists and a :class:`Missing` note for each other; ``profile``: the runs' profile."""
     art = Path(art)
     found, missing = {}, {}
     for name in INPUTS:
@@ -90,14 +120,14 @@ def load_inputs(art: str | Path, profile: str | None = None) -> Inputs:
 
 
 def recorded_review(checkpoints: Path) -> dict[str, dict]:
-    """{method: {"corrections", "mode"}} of the runs whose checkpoint records human corrections in the loss."""
+    """Map each method whose checkpoint records human corrections in the loss to ``{"corrections", "mode"}``."""
     extras = [(method, ckpt.meta.extra or {}) for method, _, ckpt in opened_runs(checkpoints)]
     return {method: {"corrections": int(e.get("human_corrections", 0)), "mode": e["corrections_mode"]}
             for method, e in extras if e.get("annotation_free") is False and e.get("corrections_mode")}
 
 
 def recorded_departures(checkpoints: Path) -> dict[str, list[str]]:
-    """{method: the departures from eq:raw-loss its runs recorded} (:func:`pipeline.methods.departures`)."""
+    """Map each method to the departures from eq:raw-loss its runs recorded (:func:`pipeline.methods.departures`)."""
     out: dict[str, list[str]] = {}
     for method, _, ckpt in opened_runs(checkpoints):
         # unvalidated: the params a run recorded (an older run records fewer keys)
@@ -108,7 +138,7 @@ def recorded_departures(checkpoints: Path) -> dict[str, list[str]]:
 
 
 def corrections_note(inp: Inputs) -> str | None:
-    """A sentence on the human corrections this run used, None without."""
+    """Write a sentence on the human corrections and loss departures this run used; None without."""
     parts = []
     if inp.corrected_validation:
         parts.append(f"**{inp.corrected_validation} training images a person corrected are validation images** "
@@ -126,7 +156,7 @@ def corrections_note(inp: Inputs) -> str | None:
 
 
 def noise_floor_for_runs(path: Path, runs: list, images, profile: str | None = None) -> dict | None:
-    """The noise-floor record at ``path`` measured with the runs' recipe, the images' resolution and ``profile``."""
+    """Select the noise-floor record at ``path`` measured with the runs' recipe, resolution and ``profile``."""
     doc = json.loads(path.read_text()) if path.is_file() else None
     recipes = {r["recipe"] for r in runs if r.get("recipe")}
     resolution = int(images["image"].shape[1]) if images is not None and "image" in images else None
@@ -134,12 +164,12 @@ def noise_floor_for_runs(path: Path, runs: list, images, profile: str | None = N
 
 
 def gain_interval(summary) -> str | None:
-    """evaluate.interval as ``summary`` recorded it (None: recorded before it was)."""
+    """Read ``evaluate.interval`` as ``summary`` recorded it (None: recorded before it was)."""
     return ((summary.meta.extra or {}).get("interval")) if summary is not None else None
 
 
 def recorded_fixed_tau(thresholds, metrics) -> float | None:
-    """calibrate.fixed_tau as recorded in thresholds, else in the fixed-mode metrics; None unless one value."""
+    """Read ``calibrate.fixed_tau`` as recorded in thresholds, else in the fixed-mode metrics; None unless one."""
     for art, column, rows in ((thresholds, "fixed_tau", None), (metrics, "tau", "fixed")):
         if art is None or column not in art.df.columns:
             continue
@@ -151,7 +181,7 @@ def recorded_fixed_tau(thresholds, metrics) -> float | None:
 
 
 def training_logs(checkpoints: Path) -> pd.DataFrame | None:
-    """All active runs' training logs stacked, with method and seed columns (None when none)."""
+    """Stack all active runs' training logs, with method and seed columns (None when none)."""
     frames = []
     for method, seed, ckpt in opened_runs(checkpoints):
         try:
@@ -164,7 +194,11 @@ def training_logs(checkpoints: Path) -> pd.DataFrame | None:
 
 
 def teacher_note(backend: str) -> str:
-    """The report's sentence on the teacher's numbers (its row of :data:`pipeline.teacher_table.TEACHER_TABLE`)."""
+    """Write the report's sentence on the teacher's numbers (``backend``'s row of the teacher table).
+
+    The row is :data:`pipeline.teacher_table.TEACHER_TABLE` ``[backend]``, plug-ins included; an unknown backend is
+    named as is.
+    """
     spec = find_teacher(backend)
     return spec.note if spec is not None and spec.note else f"Teacher backend: `{backend}`."
 
@@ -184,7 +218,7 @@ FIXED_TAU_NOTE = ("**Threshold: the fixed tau = {tau:g}** (`calibrate.fixed_tau`
 
 
 def no_reference_masks(manifest_df: pd.DataFrame, reference) -> bool:
-    """True when no validation or test image has a reference mask."""
+    """Tell whether no validation or test image has a reference mask (False without a reference artifact)."""
     if reference is None:
         return False
     held_out = manifest_df["split"].isin(["val", "test"]).to_numpy()
@@ -192,16 +226,17 @@ def no_reference_masks(manifest_df: pd.DataFrame, reference) -> bool:
 
 
 def test_groups(manifest_df: pd.DataFrame) -> list[str]:
-    """Test groups in manifest order (the first is the paper's KCP role: ablations, qualitative)."""
+    """List the test groups in manifest order (the first has the paper's KCP role: ablations, qualitative)."""
     return list(dict.fromkeys(manifest_df.loc[manifest_df["split"] == "test", "group"]))
 
 
 def _modes(df: pd.DataFrame) -> list[str]:
+    """List the threshold modes of :data:`MODES` that ``df`` has rows of."""
     return [mode for mode in MODES if (df["threshold_mode"] == mode).any()]
 
 
 def _figure(key: str, title: str, caption: str, chart, name: str) -> Figure:
-    """A report figure of ``chart`` (PNG and SVG) saved as :data:`FIGURES` ``[name]``."""
+    """Make a report figure of ``chart`` (PNG and SVG) saved as :data:`FIGURES` ``[name]``."""
     return Figure(key, title, caption, F.png_bytes(chart), FIGURES[name], F.svg_bytes(chart))
 
 
@@ -221,14 +256,15 @@ def _spread(n_total: int, n: int) -> np.ndarray:
 
 
 def _student_masks(inp: Inputs, methods, seed: int, images: np.ndarray, tau, device) -> dict:
-    """{method: its seed's student masks of ``images`` at ``tau(method)``} (eq:inference-mask)."""
+    """Predict each method's student masks of ``images`` (its ``seed``) at ``tau(method)`` (eq:inference-mask)."""
     students = {m: load_student(inp.art / "checkpoints" / m / str(seed), device)[0] for m in methods}
     return {m: mask_from_probs(predict_probs(model, images, device=device), tau(m)) for m, model in students.items()}
 
 
 def _section(title: str, needs: tuple[str, ...] = ()):
-    """Make a function that returns a section's blocks return the :class:`Section` ``title`` of them; without
-    an input of ``needs``, the section holds :meth:`Inputs.need`'s notes instead.
+    """Make a function that returns a section's blocks return the :class:`Section` ``title`` of them.
+
+    Without an input of ``needs``, the section holds :meth:`Inputs.need`'s notes instead.
     """
     def decorate(blocks):
         @functools.wraps(blocks)
@@ -303,7 +339,18 @@ def spacecraft_counts(inp: Inputs) -> dict[str, int] | None:
 
 
 def vote_means(inp: Inputs) -> pd.DataFrame | None:
-    """The teacher vote scored as a predictor per test group (teacher_metrics.parquet), or None."""
+    """Score the teacher vote as a predictor per test group (``teacher_metrics.parquet``).
+
+    Parameters
+    ----------
+    inp : Inputs
+        The report's inputs (:func:`build_report` returns them).
+
+    Returns
+    -------
+    pandas.DataFrame or None
+        :func:`pipeline.report.analysis.teacher_vote_means` of the teacher metrics; None when they are missing.
+    """
     tm = inp.get("teacher_metrics")
     return teacher_vote_means(tm.df) if tm is not None else None
 
@@ -317,8 +364,9 @@ def ordered_groups(inp: Inputs, present) -> list[str]:
 
 @_section("Controls and threshold diagnostics")
 def diagnostics_section(inp: Inputs, plots: dict) -> list:
-    """Controls and threshold/calibration diagnostics: the fixed-tau reversal, the budget-matched control,
-    calibration, per-epoch stability, target size.
+    """Report the controls and threshold/calibration diagnostics.
+
+    They cover the fixed-tau reversal, the budget-matched control, calibration, per-epoch stability and target size.
     """
     if inp.no_masks:
         return [Text(NOT_COMPUTED)]
@@ -345,12 +393,12 @@ def diagnostics_section(inp: Inputs, plots: dict) -> list:
 
 
 def _seed_mean(part: pd.DataFrame, column: str) -> np.ndarray:
-    """The element-wise mean over the rows (seeds) of a list column, NaN-aware."""
+    """Average a list column element-wise over the rows (seeds), NaN-aware."""
     return np.nanmean(np.stack([np.asarray(v, float) for v in part[column]]), axis=0)
 
 
 def calibration_blocks(thr: pd.DataFrame, plots: dict, fixed_tau: float | None = None) -> list:
-    """The calibration table, the reliability diagram and the area-vs-tau figure (mean over seeds per method)."""
+    """Build the calibration table, the reliability diagram and the area-vs-tau figure (seed means per method)."""
     blocks = [T.calibration_table(thr, fixed_tau)]
     rel, area, long = [], [], []
     for method, part in thr.groupby("method", sort=False):
@@ -497,8 +545,10 @@ def training_section(inp: Inputs, plots: dict) -> list:
 @_section("Qualitative results")
 def qualitative_section(inp: Inputs, n_images: int, device="cpu", treatment: str = PROPOSED,
                         control: str = BASELINE) -> list:
-    """Paper Fig. qualitative-results: control vs treatment on the first test group, same seed, calibrated
-    thresholds; images evenly spaced by rank of the per-image IoU gain, from the largest gain to the largest loss.
+    """Show control vs treatment on the first test group (paper Fig. ``fig:qualitative-results``).
+
+    Same seed, calibrated thresholds; images evenly spaced by rank of the per-image IoU gain, from the largest
+    gain to the largest loss.
     """
     if inp.no_masks:
         return pseudo_label_panels(inp, n_images, device, (control, treatment))
@@ -548,8 +598,10 @@ def gate_extremes(g: np.ndarray, n_images: int) -> np.ndarray:
 
 def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu",
                         methods: tuple[str, ...] = (BASELINE, PROPOSED)) -> list:
-    """Without any mask: the students' masks beside their pseudo-labels (the vote M) for the lowest- and the
-    highest-gate training images (:func:`gate_extremes`), at each run's fixed tau; agreement, not accuracy.
+    """Show, without any mask, the students' masks beside their pseudo-labels (the vote M).
+
+    The lowest- and the highest-gate training images (:func:`gate_extremes`), at each run's fixed tau;
+    agreement, not accuracy.
     """
     if miss := inp.need("thresholds", "images", "consensus", "gates", "manifest"):
         return miss
@@ -591,7 +643,7 @@ def pseudo_label_panels(inp: Inputs, n_images: int, device="cpu",
 
 
 def gate_distribution_blocks(inp: Inputs) -> list:
-    """The training images' reliability gate g as a histogram with one sentence of counts."""
+    """Plot the training images' reliability gate g (eq:reliability-gate) as a histogram with a sentence of counts."""
     gates = inp.get("gates")
     if gates is None:
         return inp.need("gates")
@@ -612,7 +664,7 @@ def gate_distribution_blocks(inp: Inputs) -> list:
 
 
 def loss_figure(logs: pd.DataFrame) -> Figure:
-    """The training loss per epoch (mean over seeds per method), for a run without validation masks."""
+    """Plot the training loss per epoch (mean over seeds per method), for a run without validation masks."""
     img = F.line_plot(_mean_curves(logs, "epoch", "loss"), "Training loss", EPOCH_AXIS, "loss")
     return _figure("fig:training-loss", "Training loss", "Training loss per epoch (mean over seeds per method; "
                    "Stage I and Stage II losses differ in their terms, so compare a method with itself).", img,
@@ -657,6 +709,7 @@ def pseudo_target_section(inp: Inputs, n_images: int) -> list:
 
 
 def provenance_section(inp: Inputs) -> Section:
+    """Tabulate every input artifact's schema, stage and fingerprint, and the missing ones."""
     rows = [[f"`{catalog.ARTIFACTS[n].path}`", a.meta.schema, a.meta.stage, a.fingerprint[:16]]
             for n, a in inp.found.items()]
     rows += [[f"`{catalog.ARTIFACTS[n].path}`", "--", "--",
@@ -667,7 +720,26 @@ def provenance_section(inp: Inputs) -> Section:
 
 def build_report(art: str | Path, cfg: dict, profile: str = "", device="cpu",
                  environment: dict | None = None) -> tuple[Report, dict, Inputs]:
-    """-> (report, plot tables {name: DataFrame}, opened inputs); ``environment``: the report machine's record."""
+    """Build the report from the artifacts under ``art``; a missing input becomes a note, never a failure.
+
+    Parameters
+    ----------
+    art : str or Path
+        The artifacts folder.
+    cfg : dict
+        The validated ``report`` params section (``report.qualitative_images``, ``report.pseudo_target_images``).
+    profile : str
+        The params profile the runs used (in the title; selects the noise floor); "" when unknown.
+    device : str or torch.device
+        Where the students predict the qualitative panels.
+    environment : dict, optional
+        The report machine's record (:func:`pipeline.artifacts.provenance.collect`); None: not recorded.
+
+    Returns
+    -------
+    tuple of (Report, dict, Inputs)
+        The report, the plot tables DVC shows (name -> DataFrame) and the opened inputs.
+    """
     inp = load_inputs(art, profile or None)
     plots: dict[str, pd.DataFrame] = {}
     with T.human_trained(inp.run_review, inp.departures):

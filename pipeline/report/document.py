@@ -1,6 +1,7 @@
-"""A tiny document model (sections of text, tables, figures, "missing input" notes) rendered to
-Markdown and to ONE self-contained HTML page (CSS inline, figures as base64 PNG data URIs, no
-scripts, no external requests).
+"""A tiny document model (sections of text, tables, figures, "missing input" notes) and its two renderings.
+
+The model renders to Markdown and to ONE self-contained HTML page (CSS inline, figures as base64 PNG data URIs,
+no scripts, no external requests).
 """
 
 from __future__ import annotations
@@ -16,14 +17,36 @@ __all__ = ["Text", "Table", "Figure", "Missing", "Section", "Report", "render_ma
 
 @dataclasses.dataclass
 class Text:
-    """A paragraph; supports `code` and **bold** inline markup."""
+    """A paragraph; supports `code` and **bold** inline markup.
+
+    Attributes
+    ----------
+    text : str
+        The paragraph, Markdown inline markup allowed.
+    """
 
     text: str
 
 
 @dataclasses.dataclass
 class Table:
-    key: str                  # an id for tests and the HTML's data-key (e.g. "tab:spacesense-results"), never shown
+    """A table of preformatted cells with a title and notes under it.
+
+    Attributes
+    ----------
+    key : str
+        An id for tests and the HTML's ``data-key`` (e.g. ``"tab:spacesense-results"``), never shown.
+    title : str
+        The caption above the table.
+    header : list of str
+        The column headings.
+    rows : list of list of str
+        The cells, row by row, already formatted.
+    notes : list of str
+        Notes printed under the table, one paragraph each.
+    """
+
+    key: str
     title: str
     header: list[str]
     rows: list[list[str]]
@@ -32,12 +55,30 @@ class Table:
 
 @dataclasses.dataclass
 class Figure:
+    """A figure: a PNG (embedded in the HTML, linked from the Markdown) and optionally its SVG.
+
+    Attributes
+    ----------
+    key : str
+        An id for tests and the HTML's ``data-key``, never shown.
+    title : str
+        The figure's title (also the image's alt text).
+    caption : str
+        The caption under it.
+    png : bytes
+        The encoded PNG.
+    filename : str
+        The PNG's file name, written under ``figures/``.
+    svg : bytes or None
+        The vector form of the figure (text as paths), written beside the PNG as ``<stem>.svg``; None: none.
+    """
+
     key: str
     title: str
     caption: str
     png: bytes
-    filename: str             # written under figures/
-    svg: bytes | None = None  # the vector form of the figure (text as paths), written beside it as <stem>.svg
+    filename: str
+    svg: bytes | None = None
 
     @property
     def svg_filename(self) -> str:
@@ -47,7 +88,15 @@ class Figure:
 
 @dataclasses.dataclass
 class Missing:
-    """An input that was not there: the report says so instead of failing."""
+    """An input that was not there: the report says so instead of failing.
+
+    Attributes
+    ----------
+    what : str
+        What is missing (shown in bold).
+    detail : str
+        Why, and how to produce it.
+    """
 
     what: str
     detail: str
@@ -58,27 +107,76 @@ Block = Union[Text, Table, Figure, Missing]
 
 @dataclasses.dataclass
 class Section:
+    """A titled section of the report.
+
+    Attributes
+    ----------
+    title : str
+        The heading.
+    blocks : list of Text, Table, Figure or Missing
+        Its content, in order.
+    """
+
     title: str
     blocks: list[Block] = dataclasses.field(default_factory=list)
 
 
 @dataclasses.dataclass
 class Report:
+    """A whole report: a title and its sections.
+
+    Attributes
+    ----------
+    title : str
+        The report's title (the page's heading).
+    sections : list of Section
+        The sections, in order.
+    """
+
     title: str
     sections: list[Section]
 
     def figures(self) -> list[Figure]:
+        """List the report's figures.
+
+        Returns
+        -------
+        list of Figure
+            Every :class:`Figure` block, in document order.
+        """
         return [b for s in self.sections for b in s.blocks if isinstance(b, Figure)]
 
     def tables(self) -> list[Table]:
+        """List the report's tables.
+
+        Returns
+        -------
+        list of Table
+            Every :class:`Table` block, in document order.
+        """
         return [b for s in self.sections for b in s.blocks if isinstance(b, Table)]
 
 
 def _md_row(cells) -> str:
+    """Write one Markdown table row, ``|`` escaped and line breaks flattened."""
     return "| " + " | ".join(str(c).replace("|", "\\|").replace("\n", " ") for c in cells) + " |"
 
 
 def render_markdown(report: Report, figure_dir: str = "figures") -> str:
+    """Render ``report`` as Markdown, figures linked (not embedded).
+
+    Parameters
+    ----------
+    report : Report
+        The document.
+    figure_dir : str
+        The folder, relative to the Markdown file, that holds each figure's ``filename`` (and SVG).
+
+    Returns
+    -------
+    str
+        The Markdown text, ending with one newline.
+    """
     out = [f"# {report.title}", ""]
     for sec in report.sections:
         out += [f"## {sec.title}", ""]
@@ -115,6 +213,7 @@ code{background:#f4f4f4;padding:0 .2em}
 
 
 def _inline(text: str) -> str:
+    """Escape ``text`` for HTML and turn its `code` and **bold** markup into tags."""
     s = html.escape(str(text))
     s = re.sub(r"`([^`]+)`", r"<code>\1</code>", s)
     s = re.sub(r"\*\*([^*]+)\*\*", r"<b>\1</b>", s)
@@ -122,7 +221,20 @@ def _inline(text: str) -> str:
 
 
 def render_html(report: Report) -> str:
-    """One self-contained page: no external resource of any kind."""
+    """Render ``report`` as one self-contained HTML page: no external resource of any kind.
+
+    The CSS is inline, the figures are base64 PNG data URIs, and there are no scripts.
+
+    Parameters
+    ----------
+    report : Report
+        The document.
+
+    Returns
+    -------
+    str
+        The HTML page, ending with one newline.
+    """
     parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
              f"<title>{html.escape(report.title)}</title>", f"<style>{CSS}</style></head><body>",
              f"<h1>{html.escape(report.title)}</h1>"]

@@ -1,5 +1,7 @@
-"""The report's "Environment" section and ``environment.json``: the machine that built the report and where
-each training run ran (provenance only; nothing here is fingerprinted).
+"""The report's "Environment" section and ``environment.json``.
+
+They record the machine that built the report and where each training run ran (provenance only; nothing here
+is fingerprinted).
 """
 
 from __future__ import annotations
@@ -20,7 +22,19 @@ NOT_RECORDED = "not recorded"
 
 
 def opened_runs(checkpoints: str | Path) -> list:
-    """(method, seed, opened checkpoint) of every active run that opens; [] without checkpoints."""
+    """Open the checkpoint of every active run that opens.
+
+    Parameters
+    ----------
+    checkpoints : str or Path
+        The checkpoints folder (``artifacts/checkpoints``).
+
+    Returns
+    -------
+    list of tuple
+        ``(method, seed, opened checkpoint)`` per run; a run whose checkpoint does not open is left out, and
+        there are none without a readable checkpoints folder.
+    """
     try:
         runs = list(iter_runs(checkpoints))
     except ArtifactError:
@@ -35,8 +49,19 @@ def opened_runs(checkpoints: str | Path) -> list:
 
 
 def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
-    """One record per active run: method, seed, ``recipe`` (train.recipe), ``precision`` (the autocast it used),
-    ``runtime`` (``extra.runtime``, None before it was recorded) and ``torch``.
+    """Record where and how each active training run ran, from its checkpoint's meta.json.
+
+    Parameters
+    ----------
+    checkpoints : str or Path
+        The checkpoints folder.
+
+    Returns
+    -------
+    list of dict
+        One record per run (:func:`opened_runs`): ``method``, ``seed``, ``recipe`` (``train.recipe``),
+        ``precision`` (the autocast it used), ``runtime`` (``extra.runtime``) and ``torch`` (its version); each
+        is None where the run did not record it.
     """
     # unvalidated: the params each run recorded (a run before train.recipe has none)
     return [{"method": method, "seed": int(seed), "recipe": (c.meta.params.get("params") or {}).get("train.recipe"),
@@ -45,12 +70,25 @@ def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
 
 
 def environment_record(env: Mapping[str, Any] | None, runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """What ``environment.json`` holds: ``{"report": env, "training_runs": runs}``."""
+    """Assemble what ``environment.json`` holds.
+
+    Parameters
+    ----------
+    env : Mapping or None
+        The report machine's record (:func:`pipeline.artifacts.provenance.collect`); None: not recorded.
+    runs : sequence of Mapping
+        The training runs' records (:func:`training_runs`).
+
+    Returns
+    -------
+    dict
+        ``{"report": env, "training_runs": runs}``, copied.
+    """
     return {"report": dict(env) if env is not None else None, "training_runs": [dict(r) for r in runs]}
 
 
 def _run_config(run: Mapping[str, Any]) -> tuple[str, ...]:
-    """The columns of the training table for one run (runs with equal columns share a row)."""
+    """Give the columns of the training table for one run (runs with equal columns share a row)."""
     rt = run.get("runtime") or {}
     device = rt.get("device", NOT_RECORDED) + (f" ({rt['gpu']})" if rt.get("gpu") else "")
     precision = PRECISION_TEXT.get(run.get("precision"), run.get("precision") or NOT_RECORDED)
@@ -60,7 +98,7 @@ def _run_config(run: Mapping[str, Any]) -> tuple[str, ...]:
 
 
 def training_table(runs: Sequence[Mapping[str, Any]]) -> Table:
-    """Training runs grouped by identical (device, precision, threads, CPU, kernels, flags, torch)."""
+    """Tabulate the training runs grouped by identical (device, precision, threads, CPU, kernels, flags, torch)."""
     groups: dict[tuple[str, ...], list[str]] = {}
     for r in runs:
         groups.setdefault(_run_config(r), []).append(f"{r['method']} s{r['seed']}")
@@ -73,12 +111,14 @@ def training_table(runs: Sequence[Mapping[str, Any]]) -> Table:
 
 
 def software_table(env: Mapping[str, Any]) -> Table:
+    """Tabulate the Python and library versions of the installation that built the report."""
     rows = [["Python", env["python"]]] + [[name, version] for name, version in env["libraries"].items()]
     return Table("tab:environment-software", "Software of the installation that built this report",
                  ["Package", "Version"], rows)
 
 
 def machine_table(env: Mapping[str, Any]) -> Table:
+    """Tabulate the report machine: platform, CPU, torch build, its kernels and libraries, GPUs and threads."""
     t, c = env["torch"], env["cpu"]
     settings = t.get("settings", {})
     onednn = next((x for x in t.get("components", []) if "MKL-DNN" in x or "oneDNN" in x), "--")
@@ -100,7 +140,7 @@ def machine_table(env: Mapping[str, Any]) -> Table:
 
 
 def lock_text(lock: Mapping[str, Any]) -> str:
-    """One sentence on the installed packages against the lock file."""
+    """Write one sentence on the installed packages against the lock file."""
     if not lock.get("found"):
         return (f"No lock file (`{lock.get('file')}`) was found beside the code, so the installed versions "
                 f"were not compared with a lock.")
@@ -114,7 +154,21 @@ def lock_text(lock: Mapping[str, Any]) -> str:
 
 
 def environment_section(env: Mapping[str, Any] | None, runs: Sequence[Mapping[str, Any]]) -> Section:
-    """The "Environment" section: the report machine's software, torch build and CPU, and each run's record."""
+    """Build the "Environment" section: the report machine's software, torch build and CPU, and each run's record.
+
+    Parameters
+    ----------
+    env : Mapping or None
+        The report machine's record (:func:`pipeline.artifacts.provenance.collect`); None: a sentence says it
+        was not recorded.
+    runs : sequence of Mapping
+        The training runs' records (:func:`training_runs`).
+
+    Returns
+    -------
+    Section
+        The section's text and tables.
+    """
     blocks = [Text("Where these numbers were computed. Provenance only: none of it enters an artifact's fingerprint. "
                    "The same record, machine-readable: `environment.json` beside this page."),
               training_table(runs) if runs else

@@ -36,7 +36,7 @@ QUALITY = ("iou", "bf1", "precision", "recall")
 
 
 def mode_text(mode: str, fixed_tau: float | None) -> str:
-    """A threshold mode in words (``fixed_tau``: calibrate.fixed_tau as recorded; None names the param)."""
+    """Write a threshold mode in words (``fixed_tau``: calibrate.fixed_tau as recorded; None names the param)."""
     return {"calibrated": "validation-calibrated tau", "fixed": f"fixed tau = {tau_text(fixed_tau)}"}.get(mode, mode)
 
 
@@ -51,8 +51,23 @@ _DEPARTURES: contextvars.ContextVar[Mapping] = contextvars.ContextVar("departure
 @contextlib.contextmanager
 def human_trained(run_review: Mapping[str, Mapping], departures: Mapping[str, list] | None = None
                   ) -> Iterator[None]:
-    """Within the block, :func:`label` marks the runs trained on human corrections NOT annotation-free, and names
-    the departures from eq:raw-loss a method's runs trained with (``departures``: {method: names}).
+    """Label runs by how they trained while the block runs (a context manager).
+
+    Within the block, :func:`label` marks the runs trained on human corrections NOT annotation-free, and names the
+    departures from eq:raw-loss a method's runs trained with.
+
+    Parameters
+    ----------
+    run_review : Mapping
+        Method -> the ``review`` params its runs trained under (:func:`pipeline.report.build.recorded_review`).
+    departures : Mapping, optional
+        Method -> the names of its runs' departures from eq:raw-loss
+        (:func:`pipeline.report.build.recorded_departures`).
+
+    Yields
+    ------
+    None
+        Control, with the labels in force; they are restored on leaving.
     """
     tokens = _RUN_REVIEW.set(dict(run_review)), _DEPARTURES.set(dict(departures or {}))
     try:
@@ -63,8 +78,19 @@ def human_trained(run_review: Mapping[str, Mapping], departures: Mapping[str, li
 
 
 def label(method: str) -> str:
-    """The method's display label, for the run it names (:func:`human_trained`): "Plain Student + bootstrapped
-    targets, beta 0.8" where its runs departed from eq:raw-loss.
+    """Give the method's display label, for the runs it names (:func:`human_trained`).
+
+    Parameters
+    ----------
+    method : str
+        The method's name (a key of :data:`pipeline.methods.METHODS`, or any other name).
+
+    Returns
+    -------
+    str
+        Its label (:func:`pipeline.methods.run_label`), marked NOT annotation-free where its runs trained on human
+        corrections, and followed by ``+ <departure names>`` where they departed from eq:raw-loss (e.g.
+        "Plain Student + bootstrapped targets, beta 0.8").
     """
     base = run_label(METHODS[method], _RUN_REVIEW.get().get(method)) if method in METHODS else method_label(method)
     names = _DEPARTURES.get().get(method)
@@ -72,45 +98,50 @@ def label(method: str) -> str:
 
 
 def not_annotation_free(methods: Sequence[str]) -> list[str]:
+    """List the methods (each once, in order) that are not annotation-free."""
     free = set(annotation_free_methods(methods))
     return [m for m in dict.fromkeys(methods) if m not in free]
 
 
 def _finite(x) -> bool:
+    """Tell whether ``x`` is a finite number (not None)."""
     return x is not None and bool(np.isfinite(x))
 
 
 def fmt(x, digits: int = 4) -> str:
+    """Format ``x`` with ``digits`` decimals; ``--`` when it is missing or not finite."""
     return f"{x:.{digits}f}" if _finite(x) else "--"
 
 
 def fmt_pm(mean, std, digits: int = 4) -> str:
-    """"m ± s"; the std is omitted where undefined (one seed)."""
+    """Format ``mean ± std``; the std is omitted where undefined (one seed)."""
     return fmt(mean, digits) + (f" ± {std:.{digits}f}" if _finite(mean) and _finite(std) else "")
 
 
 def fmt_ci(gain, lo, hi, digits: int = 4) -> str:
+    """Format a signed gain and its CI, ``+g [lo, hi]``; ``--`` without a finite gain."""
     return f"{gain:+.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]" if _finite(gain) else "--"
 
 
 def fmt_p(p) -> str:
+    """Format a p-value (scientific below 1e-3); ``--`` when it is not finite."""
     return (f"{p:.2e}" if p < 1e-3 else f"{p:.4f}") if _finite(p) else "--"
 
 
 def _ms(r, key: str, digits: int = 4) -> str:
-    """``<key>_mean ± <key>_std`` of a summary row."""
+    """Format ``<key>_mean ± <key>_std`` of a summary row."""
     return fmt_pm(r.get(f"{key}_mean"), r.get(f"{key}_std"), digits)
 
 
 def main_methods(methods: Sequence[str]) -> list[str]:
-    """The main comparison's methods present, in the paper's order (unknown names last, ablations out)."""
+    """Order the main comparison's methods present as the paper does (unknown names last, ablations out)."""
     present = annotation_free_methods(list(dict.fromkeys(methods)))
     known = [m for m in MAIN_ORDER if m in present]
     return known + sorted(m for m in present if m not in MAIN_ORDER and m not in ABLATIONS)
 
 
 def group_method_rows(summary: pd.DataFrame, mode: str, groups: Sequence[str]):
-    """(group, method, summary row) at threshold ``mode``, groups in the given order, main methods in order."""
+    """Yield (group, method, summary row) at threshold ``mode``: groups in the given order, main methods in order."""
     s = summary[summary["threshold_mode"] == mode]
     for g in groups:
         part = s[s["group"] == g].set_index("method")
@@ -119,14 +150,16 @@ def group_method_rows(summary: pd.DataFrame, mode: str, groups: Sequence[str]):
 
 
 def is_primary(group: str, treatment: str, control: str, mode: str) -> bool:
-    """Whether this Image IoU difference is the report's one primary endpoint."""
+    """Tell whether this Image IoU difference is the report's one primary endpoint."""
     e = PRIMARY_ENDPOINT
     return (group, treatment, control, mode) == (e.group, e.treatment, e.control, e.threshold_mode)
 
 
 def family_holm(entries) -> dict:
-    """{(key, metric): Holm-adjusted p} over one table's family; ``entries``: (key, summary row, suffix,
-    is_primary) per shown difference.  The primary endpoint is tested alone, outside every family.
+    """Holm-adjust the p-values of one table's family: ``{(key, metric): adjusted p}``.
+
+    ``entries``: (key, summary row, suffix, is_primary) per shown difference.  The primary endpoint is tested
+    alone, outside every family.
     """
     keys, ps = [], []
     for key, r, suffix, primary in entries:
@@ -139,9 +172,11 @@ def family_holm(entries) -> dict:
 
 
 def _gain_cells(r, suffix: str, group: str, key, holm: Mapping, primary: bool, noise_floor) -> list[str]:
-    """The CI of each :data:`CLAIM_METRICS` gain ``gain_<metric><suffix>`` of a summary row, the group's noise
-    floor and the claim: :func:`pipeline.stats.claim_status` of each gain against the floor, with the p-value
-    ``holm[(key, metric)]`` (:func:`family_holm`); ``primary``: the row holds the primary endpoint.
+    """Write a summary row's gain cells: each gain's CI, the group's noise floor and the claim.
+
+    The CI of each :data:`CLAIM_METRICS` gain ``gain_<metric><suffix>``; the claim is
+    :func:`pipeline.stats.claim_status` of each gain against the floor, with the p-value ``holm[(key, metric)]``
+    (:func:`family_holm`); ``primary``: the row holds the primary endpoint.
     """
     cis, claims = [], []
     for k, name in CLAIM_METRICS:
@@ -155,12 +190,23 @@ def _gain_cells(r, suffix: str, group: str, key, holm: Mapping, primary: bool, n
 
 
 def spacecraft_per_group(manifest: pd.DataFrame) -> dict[str, int]:
-    """{group: distinct spacecraft} of a manifest's images (the data table and the interval footnotes)."""
+    """Count the distinct spacecraft per group (for the data table and the interval footnotes).
+
+    Parameters
+    ----------
+    manifest : pandas.DataFrame
+        The image manifest: ``group`` and ``spacecraft`` per image.
+
+    Returns
+    -------
+    dict
+        Group -> its number of distinct spacecraft, in manifest order.
+    """
     return {str(g): int(n) for g, n in manifest.groupby("group", sort=False)["spacecraft"].nunique().items()}
 
 
 def spacecraft_words(spacecraft: Mapping[str, int] | None, groups: Sequence[str]) -> str:
-    """"3 spacecraft" (or "1-3 spacecraft") in ``groups``; "few spacecraft" when unknown."""
+    """Write how many spacecraft ``groups`` hold, "3 spacecraft" (or "1-3 spacecraft"); "few spacecraft" unknown."""
     counts = sorted({int(spacecraft[g]) for g in groups if g in spacecraft}) if spacecraft else []
     if not counts:
         return "few spacecraft"
@@ -169,12 +215,12 @@ def spacecraft_words(spacecraft: Mapping[str, int] | None, groups: Sequence[str]
 
 def interval_text(interval: str | None, spacecraft: Mapping[str, int] | None = None,
                   groups: Sequence[str] = ()) -> str:
-    """How a table's CIs were made (``interval``: evaluate.interval as recorded; None: the former bootstrap)."""
+    """Write how a table's CIs were made (``interval``: evaluate.interval as recorded; None: the former bootstrap)."""
     return INTERVAL_TEXT[interval or SEED_BOOTSTRAP].format(spacecraft=spacecraft_words(spacecraft, groups))
 
 
 def multiplicity_note(holm: Mapping) -> str:
-    """The primary endpoint, the family and the procedure (a summary without p-values: not adjusted)."""
+    """Name the primary endpoint, the family and the procedure (a summary without p-values: not adjusted)."""
     e = PRIMARY_ENDPOINT
     family_size = sum(np.isfinite(p) for p in holm.values())
     if holm and not family_size:
@@ -190,7 +236,7 @@ def multiplicity_note(holm: Mapping) -> str:
 
 
 def floor_cell(group: str, noise_floor) -> str:
-    """"IoU x / BF1 y" noise floor of a group, or "not measured"."""
+    """Write a group's noise floor as ``IoU / BF1``, or "not measured"."""
     vals = [gain_noise_floor(noise_floor, group, k) for k in ("iou", "bf1")]
     return "not measured" if not all(np.isfinite(vals)) else f"{fmt(vals[0])} / {fmt(vals[1])}"
 
@@ -198,8 +244,35 @@ def floor_cell(group: str, noise_floor) -> str:
 def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise_floor: dict | None = None,
                   fixed_tau: float | None = None, interval: str | None = DEFAULT_INTERVAL,
                   spacecraft: Mapping[str, int] | None = None) -> Table:
-    """Paper Table spacesense-results: per group and method, Image IoU and Boundary F1 over seeds, the gains
-    against Plain Student with their CIs, the noise floor (None: not measured) and the claim.
+    """Tabulate the main results (paper Table ``tab:spacesense-results``).
+
+    Per group and method: Image IoU and Boundary F1 over seeds, the gains against Plain Student with their CIs,
+    the noise floor and the claim (Holm-adjusted over the table's family, the primary endpoint alone).
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The seed summary (``summary.parquet``): per group, method and threshold mode, the metrics' seed means and
+        stds and the gains with their CIs, p-values and seed counts.
+    mode : str
+        The threshold mode shown: ``"calibrated"`` or ``"fixed"``.
+    groups : sequence of str
+        The test groups, in table order.
+    noise_floor : dict, optional
+        The noise-floor record of this configuration (:func:`pipeline.report.analysis.select_noise_floor`); None:
+        not measured, the claims rest on the CIs and the multiplicity rule alone.
+    fixed_tau : float, optional
+        ``calibrate.fixed_tau`` as the runs recorded it, for the caption; None names the param.
+    interval : str or None
+        ``evaluate.interval`` as the summary recorded it (the footnote says how the CIs were made); None: the
+        former seed-aware bootstrap.
+    spacecraft : Mapping, optional
+        Group -> its number of distinct spacecraft (:func:`spacecraft_per_group`), for the interval footnote.
+
+    Returns
+    -------
+    Table
+        The table, with its interval, noise-floor and multiplicity notes.
     """
     shown = list(group_method_rows(summary, mode, groups))
     gains = [((g, m), r, "", is_primary(g, m, BASELINE, mode))
@@ -221,7 +294,25 @@ def results_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], noise
 
 
 def diagnostics_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], fixed_tau: float | None = None) -> Table:
-    """Precision, recall, predicted foreground fraction and small-region IoU (shaped like tab:external-results)."""
+    """Tabulate precision, recall, predicted foreground fraction and small-region IoU (like tab:external-results).
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The seed summary (``summary.parquet``): per group, method and threshold mode, the metrics' seed means and
+        stds and the gains with their CIs, p-values and seed counts.
+    mode : str
+        The threshold mode shown: ``"calibrated"`` or ``"fixed"``.
+    groups : sequence of str
+        The test groups, in table order.
+    fixed_tau : float, optional
+        ``calibrate.fixed_tau`` as the runs recorded it, for the caption; None names the param.
+
+    Returns
+    -------
+    Table
+        Per group and method, each metric's mean ± std over seeds.
+    """
     rows = [[g, label(m)] + [_ms(r, k) for k in ("precision", "recall", "area_ratio", "small_iou")]
             for g, m, r in group_method_rows(summary, mode, groups)]
     return Table("tab:diagnostics", f"Foreground precision, recall and diagnostics ({mode_text(mode, fixed_tau)})",
@@ -233,6 +324,21 @@ def diagnostics_table(summary: pd.DataFrame, mode: str, groups: Sequence[str], f
 
 
 def thresholds_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Table:
+    """Tabulate the calibrated threshold tau of each run (eq:inference-mask) and its validation Image IoU.
+
+    Parameters
+    ----------
+    thr : pandas.DataFrame
+        The calibrated thresholds (``thresholds.parquet``): ``method``, ``seed``, ``tau``, ``val_iou``, and where
+        recorded ``fixed_val_iou`` and ``n_val``.
+    fixed_tau : float, optional
+        ``calibrate.fixed_tau`` as the runs recorded it, for the caption; None names the param.
+
+    Returns
+    -------
+    Table
+        A row per (method, seed).
+    """
     rows = [[label(r["method"]), str(int(r["seed"])), fmt(r["tau"], 2), fmt(r["val_iou"]),
              fmt(r.get("fixed_val_iou", np.nan)), str(int(r.get("n_val", 0)))]
             for _, r in thr.sort_values(["method", "seed"]).iterrows()]
@@ -245,13 +351,30 @@ def thresholds_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Table
 
 
 def ablation_means(metrics: pd.DataFrame, group: str, seed: int, mode: str) -> pd.DataFrame:
-    """Mean Image IoU / Boundary F1 per method on one group for one seed (single-seed mechanistic ablations)."""
+    """Average Image IoU / Boundary F1 per method on one group for one seed (single-seed mechanistic ablations).
+
+    Parameters
+    ----------
+    metrics : pandas.DataFrame
+        Per-image test metrics (``metrics.parquet``).
+    group : str
+        The test group.
+    seed : int
+        The seed.
+    mode : str
+        The threshold mode shown: ``"calibrated"`` or ``"fixed"``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Indexed by method: the mean ``iou`` and ``bf1``.
+    """
     sub = metrics[(metrics["group"] == group) & (metrics["seed"] == seed) & (metrics["threshold_mode"] == mode)]
     return sub.groupby("method")[["iou", "bf1"]].mean()
 
 
 def _epochs(m: str, epochs: Mapping[str, int]):
-    """(Stage I, Stage II, total) epoch strings from the training logs' epoch counts."""
+    """Write (Stage I, Stage II, total) epochs of method ``m`` from the training logs' epoch counts."""
     spec = METHODS.get(m)
     own = epochs.get(m)
     if own is None:
@@ -265,14 +388,35 @@ def _epochs(m: str, epochs: Mapping[str, int]):
 
 
 def _ablation_rows(order: Sequence[str], means: pd.DataFrame) -> list[str] | None:
-    """The rows of ``order`` present in ``means``; None when no ablation ran."""
+    """Pick the rows of ``order`` present in ``means``; None when no ablation ran."""
     present = [m for m in order if m in means.index]
     return present if any(m in ABLATIONS for m in present) else None
 
 
 def warm_start_table(means: pd.DataFrame, epochs: Mapping[str, int], group: str, seed: int, mode: str,
                      fixed_tau: float | None = None) -> Table | None:
-    """Paper Table warm-start-ablation (rows present in ``means`` only); None when no ablation ran."""
+    """Tabulate the warm-start ablation (paper Table ``tab:warm-start-ablation``), rows present in ``means`` only.
+
+    Parameters
+    ----------
+    means : pandas.DataFrame
+        Per-method means on the ablation's group and seed (:func:`ablation_means`).
+    epochs : Mapping
+        Method -> its epochs, from the training logs.
+    group : str
+        The test group the ablation ran on (the first: the paper's KCP role).
+    seed : int
+        The seed shown.
+    mode : str
+        The threshold mode shown: ``"calibrated"`` or ``"fixed"``.
+    fixed_tau : float, optional
+        ``calibrate.fixed_tau`` as the runs recorded it, for the caption; None names the param.
+
+    Returns
+    -------
+    Table or None
+        The table; None when no ablation ran.
+    """
     if (present := _ablation_rows(WARM_START_ROWS, means)) is None:
         return None
     rows = [[label(m), *_epochs(m, epochs), fmt(means.loc[m, "iou"]), fmt(means.loc[m, "bf1"])] for m in present]
@@ -285,7 +429,29 @@ def warm_start_table(means: pd.DataFrame, epochs: Mapping[str, int], group: str,
 
 def component_table(means: pd.DataFrame, group: str, seed: int, mode: str,
                     fixed_tau: float | None = None) -> Table | None:
-    """Paper Table component-ablation; check marks come from the method definitions (pipeline.methods)."""
+    """Tabulate the component ablation (paper Table ``tab:component-ablation``).
+
+    The check marks (SDF, skeleton, area terms and the gate) come from the method definitions
+    (:data:`pipeline.methods.METHODS`).
+
+    Parameters
+    ----------
+    means : pandas.DataFrame
+        Per-method means on the ablation's group and seed (:func:`ablation_means`).
+    group : str
+        The test group the ablation ran on (the first: the paper's KCP role).
+    seed : int
+        The seed shown.
+    mode : str
+        The threshold mode shown: ``"calibrated"`` or ``"fixed"``.
+    fixed_tau : float, optional
+        ``calibrate.fixed_tau`` as the runs recorded it, for the caption; None names the param.
+
+    Returns
+    -------
+    Table or None
+        The table; None when no ablation ran.
+    """
     if (present := _ablation_rows(COMPONENT_ROWS, means)) is None:
         return None
     rows = []
@@ -299,6 +465,22 @@ def component_table(means: pd.DataFrame, group: str, seed: int, mode: str,
 
 
 def teacher_prompt_table(q: pd.DataFrame, group: str, teacher_note: str) -> Table:
+    """Tabulate the teacher's prompting configurations on one group (paper Table ``tab:teacher-prompt-quality``).
+
+    Parameters
+    ----------
+    q : pandas.DataFrame
+        :func:`pipeline.report.analysis.teacher_prompt_quality` of the group.
+    group : str
+        The test group, for the caption.
+    teacher_note : str
+        The sentence on the teacher's numbers (:func:`pipeline.report.build.teacher_note`), a footnote.
+
+    Returns
+    -------
+    Table
+        A row per configuration: Image IoU, Boundary F1, precision and recall (mean ± std on the mean row).
+    """
     rows = [[r["config"]] + [fmt_pm(r[m], r[f"{m}_std"]) for m in QUALITY] for _, r in q.iterrows()]
     return Table("tab:teacher-prompt-quality", f"Pseudo-mask quality of teacher prompting configurations on {group}",
                  ["Teacher configuration", "Image IoU", "Boundary F1", "Precision", "Recall"], rows,
@@ -307,6 +489,20 @@ def teacher_prompt_table(q: pd.DataFrame, group: str, teacher_note: str) -> Tabl
 
 
 def teacher_domain_table(d: pd.DataFrame, teacher_note: str) -> Table:
+    """Tabulate the voted teacher masks' quality per dataset / domain (paper Table ``tab:teacher-domain-quality``).
+
+    Parameters
+    ----------
+    d : pandas.DataFrame
+        :func:`pipeline.report.analysis.teacher_domain_quality`.
+    teacher_note : str
+        The sentence on the teacher's numbers (:func:`pipeline.report.build.teacher_note`), a footnote.
+
+    Returns
+    -------
+    Table
+        A row per dataset / domain / group: images, Image IoU, Boundary F1, precision and recall.
+    """
     rows = [[f"{r['dataset']} / {r['domain']} ({r['group']})", str(int(r["n"]))] + [fmt(r[m]) for m in QUALITY]
             for _, r in d.iterrows()]
     return Table("tab:teacher-domain-quality", "Multi-prompt (voted) teacher pseudo-mask quality per dataset / domain",
@@ -315,6 +511,20 @@ def teacher_domain_table(d: pd.DataFrame, teacher_note: str) -> Table:
 
 
 def gate_table(analyses: Sequence[dict], teacher_note: str) -> Table:
+    """Tabulate the teacher's quality on images the gate suppresses or keeps (paper Table ``tab:gate-groups``).
+
+    Parameters
+    ----------
+    analyses : sequence of dict
+        :func:`pipeline.report.analysis.gate_analysis` per group (eq:reliability-gate).
+    teacher_note : str
+        The sentence on the teacher's numbers (:func:`pipeline.report.build.teacher_note`), a footnote.
+
+    Returns
+    -------
+    Table
+        Two rows per group (g = 0, g > 0), with each group's Spearman rho in the notes.
+    """
     rows = [[a["group"], r["state"], str(int(r["images"])), fmt(r["iou"]), fmt(r["bf1"])]
             for a in analyses for _, r in a["table"].iterrows()]
     notes = [f"Spearman rho between g and the voted teacher mask's quality on {a['group']} (n = {a['n']}): "
@@ -327,7 +537,19 @@ def gate_table(analyses: Sequence[dict], teacher_note: str) -> Table:
 
 
 def efficiency_table(eff: pd.DataFrame) -> Table:
-    """Paper Table efficiency from efficiency.parquet, with the speed-up and the mask agreement against fp32."""
+    """Tabulate the deployed student's cost (paper Table ``tab:efficiency``), with speed-up and fp32 agreement.
+
+    Parameters
+    ----------
+    eff : pandas.DataFrame
+        The benchmark table (``efficiency.parquet``): a row per variant.
+
+    Returns
+    -------
+    Table
+        A row per variant: parameters, GFLOPs, latency, throughput, peak memory, and the optional columns
+        (speed-up, IoU change and agreement against fp32, resolution, device) that hold a value.
+    """
     labels = {"speedup": "Speed-up vs fp32 eager", "iou_delta": "Val Image IoU change vs fp32",
               "iou_vs_fp32": "Mask IoU with fp32 (val)", "resolution": "Resolution", "device": "Device"}
     # a column with no value at all (the IoU columns without validation masks) is left out, not shown as "--"
@@ -356,7 +578,7 @@ def efficiency_table(eff: pd.DataFrame) -> Table:
 
 
 def _ordered_with_ceiling_last(methods: Sequence[str]) -> list[str]:
-    """Annotation-free methods (main order, then ablations by name), then the not-annotation-free ones."""
+    """Order annotation-free methods (main order, then ablations by name), then the not-annotation-free ones."""
     present = list(dict.fromkeys(methods))
     free = main_methods(present)
     free += sorted(m for m in present if m in ABLATIONS and m not in free)
@@ -369,9 +591,35 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
                    noise_floor: dict | None = None, fixed_tau: float | None = None,
                    interval: str | None = DEFAULT_INTERVAL, spacecraft: Mapping[str, int] | None = None
                    ) -> Table | None:
-    """The budget-matched control per group: Continuation - Plain (the extra epochs alone), each warm-started
-    method - Continuation (geometry at a matched budget) and GeoDistill-Refine - Plain; None without a
-    continuation run.
+    """Tabulate the budget-matched control per group: where the gain comes from.
+
+    Continuation - Plain (the extra epochs alone), each warm-started method - Continuation (geometry at a
+    matched budget) and GeoDistill-Refine - Plain, each with its CI, noise floor and claim.
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The seed summary (``summary.parquet``): per group, method and threshold mode, the metrics' seed means and
+        stds and the gains with their CIs, p-values and seed counts.
+    mode : str
+        The threshold mode shown: ``"calibrated"`` or ``"fixed"``.
+    groups : sequence of str
+        The test groups, in table order.
+    noise_floor : dict, optional
+        The noise-floor record of this configuration (:func:`pipeline.report.analysis.select_noise_floor`); None:
+        not measured, the claims rest on the CIs and the multiplicity rule alone.
+    fixed_tau : float, optional
+        ``calibrate.fixed_tau`` as the runs recorded it, for the caption; None names the param.
+    interval : str or None
+        ``evaluate.interval`` as the summary recorded it (the footnote says how the CIs were made); None: the
+        former seed-aware bootstrap.
+    spacecraft : Mapping, optional
+        Group -> its number of distinct spacecraft (:func:`spacecraft_per_group`), for the interval footnote.
+
+    Returns
+    -------
+    Table or None
+        The table; None without a continuation run (or its gains) in ``summary``.
     """
     s = summary[summary["threshold_mode"] == mode]
     if CONTINUATION not in set(s["method"]) or f"gain_iou{VS_CONTINUATION}" not in s.columns:
@@ -402,8 +650,29 @@ def controls_table(summary: pd.DataFrame, mode: str, groups: Sequence[str],
 
 def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mode: str,
                            groups: Sequence[str], fixed_tau: float | None = None) -> Table | None:
-    """Reference points beside the students, never compared with CIs: the teacher vote scored as a predictor
-    (``vote``: per-group means) and the supervised ceiling, with Plain Student for context.
+    """Tabulate the reference points beside the students, never compared with CIs.
+
+    The teacher vote scored as a predictor and the supervised ceiling, with Plain Student and GeoDistill-Refine
+    for context; each student's distillation efficiency (IoU ÷ vote) and label cost (÷ ceiling).
+
+    Parameters
+    ----------
+    summary : pandas.DataFrame
+        The seed summary (``summary.parquet``): per group, method and threshold mode, the metrics' seed means and
+        stds and the gains with their CIs, p-values and seed counts.
+    vote : pandas.DataFrame or None
+        The teacher vote's means per group (:func:`pipeline.report.analysis.teacher_vote_means`).
+    mode : str
+        The threshold mode shown: ``"calibrated"`` or ``"fixed"``.
+    groups : sequence of str
+        The test groups, in table order.
+    fixed_tau : float, optional
+        ``calibrate.fixed_tau`` as the runs recorded it, for the caption; None names the param.
+
+    Returns
+    -------
+    Table or None
+        The table; None with neither a not-annotation-free run nor a vote.
     """
     s = summary[summary["threshold_mode"] == mode]
     ceiling = not_annotation_free(s["method"].unique())
@@ -445,7 +714,7 @@ def reference_points_table(summary: pd.DataFrame, vote: pd.DataFrame | None, mod
 
 
 def efficiency_targets_note(verdicts: Sequence[tuple[str, bool | None]]) -> str:
-    """The distillation-efficiency targets and on how many groups each is met (``verdicts``: (method, met))."""
+    """Name the distillation-efficiency targets and on how many groups each is met (``verdicts``: (method, met))."""
     parts = []
     for m, (target, on_interval) in EFFICIENCY_TARGETS.items():
         judged = [v for mm, v in verdicts if mm == m and v is not None]
@@ -457,12 +726,26 @@ def efficiency_targets_note(verdicts: Sequence[tuple[str, bool | None]]) -> str:
 
 
 def efficiency_text(e: float, lo: float, hi: float) -> str:
-    """``0.84 [0.80, 0.88]`` from a (ratio, low, high); ``--`` without a vote."""
+    """Format a (ratio, low, high) as ``0.84 [0.80, 0.88]``; ``--`` without a vote."""
     return fmt(e, 2) + (f" [{lo:.2f}, {hi:.2f}]" if _finite(e) and _finite(lo) else "")
 
 
 def calibration_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Table:
-    """Per method, mean ± std over seeds of the validation-split calibration diagnostics."""
+    """Tabulate, per method, the validation-split calibration diagnostics (mean ± std over seeds).
+
+    Parameters
+    ----------
+    thr : pandas.DataFrame
+        The calibrated thresholds (``thresholds.parquet``): ``tau``, ``val_iou`` and where recorded
+        ``fixed_val_iou``, ``ece``, ``area_ratio``, ``fixed_area_ratio`` per method and seed.
+    fixed_tau : float, optional
+        ``calibrate.fixed_tau`` as the runs recorded it, for the caption; None names the param.
+
+    Returns
+    -------
+    Table
+        A row per method, annotation-free ones first.
+    """
     rows = []
     for m in _ordered_with_ceiling_last(thr["method"].unique()):
         part = thr[thr["method"] == m]
@@ -482,7 +765,20 @@ def calibration_table(thr: pd.DataFrame, fixed_tau: float | None = None) -> Tabl
 
 
 def epoch_swing_table(swings: pd.DataFrame, fixed_tau: float | None = None) -> Table:
-    """Per method and stage: the changes of validation Image IoU between adjacent epochs (:func:`epoch_swings`)."""
+    """Tabulate the changes of validation Image IoU between adjacent epochs, per method and stage.
+
+    Parameters
+    ----------
+    swings : pandas.DataFrame
+        :func:`pipeline.report.analysis.epoch_swings`.
+    fixed_tau : float, optional
+        ``calibrate.fixed_tau`` as the runs recorded it, for the caption; None names the param.
+
+    Returns
+    -------
+    Table
+        A row per method and stage.
+    """
     rows = [[label(m), str(int(r["stage"])), f"{fmt(r['max_swing'], 3)} (seed {int(r['max_seed'])}, "
              f"epochs {int(r['max_epoch']) - 1}->{int(r['max_epoch'])})", fmt(r["median_swing"], 3),
              fmt(r["max_swing_cal"], 3), fmt(r["median_swing_cal"], 3),
@@ -500,7 +796,24 @@ def epoch_swing_table(swings: pd.DataFrame, fixed_tau: float | None = None) -> T
 
 def size_split_table(split: pd.DataFrame, mode: str, max_fraction: float | None,
                      fixed_tau: float | None = None) -> Table:
-    """Metrics split by target size, pooled over the test groups (``split``: :func:`size_split`)."""
+    """Tabulate the metrics split by target size, pooled over the test groups.
+
+    Parameters
+    ----------
+    split : pandas.DataFrame
+        :func:`pipeline.report.analysis.size_split` (with ``n_images``).
+    mode : str
+        The threshold mode shown: ``"calibrated"`` or ``"fixed"``.
+    max_fraction : float or None
+        ``evaluate.tiny_target_max_fraction`` as used (the tiny/regular boundary); None names the param.
+    fixed_tau : float, optional
+        ``calibrate.fixed_tau`` as the runs recorded it, for the caption; None names the param.
+
+    Returns
+    -------
+    Table
+        A row per method and size class (tiny, regular, empty).
+    """
     s = split[split["threshold_mode"] == mode]
     rows = []
     for m in _ordered_with_ceiling_last(s["method"].unique()):

@@ -1,5 +1,7 @@
-"""Stage ``corrections``: a ``corrections`` artifact checked against this run's manifest (training images of
-the right size) -> the ``corrected`` artifact at the working resolution, which the train stage reads.
+"""Stage ``corrections``: a person's corrected masks, checked, at the working resolution.
+
+A ``corrections`` artifact is checked against this run's manifest (training images of the right size) and
+written as the ``corrected`` artifact at the working resolution, which the train stage reads.
 """
 
 from __future__ import annotations
@@ -22,8 +24,35 @@ CORRECTIONS = Option("--corrections", "corrections")
 
 def corrected_masks(corrections, manifest, resolution: int, mode: str, source: str
                     ) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """(image ids, manifest rows int64 [M], masks bool [M,R,R]) of a ``corrections`` artifact checked against
-    the ``manifest`` and resized to ``resolution`` (nearest, as prepare sizes the reference masks).
+    """Check a ``corrections`` artifact against the run's ``manifest`` and resize its masks to ``resolution``.
+
+    The masks are resized nearest-neighbour, as prepare sizes the reference masks.
+
+    Parameters
+    ----------
+    corrections : artifact
+        The opened ``corrections`` artifact (``geodistill review import --out``; ``review.corrections``).
+    manifest : artifact
+        This run's opened manifest: ``image_id``, ``split``, ``width`` and ``height`` per image.
+    resolution : int
+        The working resolution (``data.resolution``).
+    mode : str
+        ``review.mode``: ``validate`` or ``replace``.
+    source : str
+        ``data.source``; ``validate`` is allowed only for a folder of one's own (:data:`OWN_FOLDER_SOURCES`).
+
+    Returns
+    -------
+    tuple of (list of str, numpy.ndarray, numpy.ndarray)
+        The corrected image ids, their manifest rows (int64 [M]) and their masks (bool [M,R,R]), in the
+        artifact's order.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        For an unknown ``mode``; ``validate`` on a source whose validation split is spacecraft-disjoint from
+        training; a corrected image not in the manifest, of another size or not a training image; or an
+        artifact holding no mask.
     """
     if mode not in MODES:
         raise InputError(f"params: {MODE_KEY}={mode!r}: expected one of {', '.join(MODES)}")
@@ -58,6 +87,27 @@ def corrected_masks(corrections, manifest, resolution: int, mode: str, source: s
 
 
 def write_corrected(out, ids: list[str], rows: np.ndarray, masks: np.ndarray, mode: str, meta):
-    """Write the ``corrected`` artifact (``mask`` [M,R,R], ``row`` [M]; attrs image_ids, mode); its path."""
+    """Write the ``corrected`` artifact the train stage reads.
+
+    Parameters
+    ----------
+    out : str or Path
+        The artifact's path.
+    ids : list of str
+        The corrected image ids (attrs ``image_ids``).
+    rows : numpy.ndarray
+        Their manifest rows, int64 [M] (array ``row``).
+    masks : numpy.ndarray
+        Their masks at the working resolution, bool [M,R,R] (array ``mask``).
+    mode : str
+        ``review.mode`` (attrs ``mode``).
+    meta : pipeline.artifacts.lineage.Meta
+        The artifact's metadata.
+
+    Returns
+    -------
+    Path
+        The artifact's path (:func:`pipeline.artifacts.store.write_zarr`).
+    """
     return write_zarr(out, {"mask": masks, "row": rows}, meta, attrs={"image_ids": list(ids), "mode": mode})
 

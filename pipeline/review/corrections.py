@@ -1,7 +1,8 @@
-"""``geodistill review import SOURCE --review DIR``: corrected masks (a Label Studio JSON export, a CVAT COCO 1.0
-export or a folder of ``<image id>.png``) -> the ``corrections`` artifact, one row per corrected image.  These
-are MANUAL masks: like reference masks they may select, calibrate and evaluate, never enter an
-annotation-free method's loss.
+"""``geodistill review import SOURCE --review DIR``: corrected masks -> the ``corrections`` artifact.
+
+The corrected masks come as a Label Studio JSON export, a CVAT COCO 1.0 export or a folder of
+``<image id>.png``; the artifact holds one row per corrected image.  These are MANUAL masks: like reference
+masks they may select, calibrate and evaluate, never enter an annotation-free method's loss.
 """
 
 from __future__ import annotations
@@ -39,7 +40,23 @@ FORMATS = ("auto", "labelstudio", "cvat", "png")
 
 
 def read_review(review_dir: str | Path) -> dict:
-    """The record of a complete ``review export`` folder; InputError naming ``--review`` otherwise."""
+    """Read the record of a complete ``review export`` folder.
+
+    Parameters
+    ----------
+    review_dir : str or Path
+        The folder ``geodistill review export`` (or the DAG stage ``review_export``) wrote.
+
+    Returns
+    -------
+    dict
+        The export's record: ``export_id``, ``images`` (image id, file, size, voted mask, rank per image), ...
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        Naming ``--review`` when the folder holds no complete record of an export.
+    """
     d = Path(review_dir)
     rec = read_record(d / EXPORT_OUTPUTS["record"], EXPORT_COMMAND)
     if rec is None or not rec.get("complete"):
@@ -49,7 +66,7 @@ def read_review(review_dir: str | Path) -> dict:
 
 
 def detect_format(source: Path) -> str:
-    """``png`` for a folder, ``labelstudio`` for a JSON list, ``cvat`` for a COCO object."""
+    """Tell the format of ``source``: ``png`` for a folder, ``labelstudio`` for a JSON list, ``cvat`` for COCO."""
     if source.is_dir():
         return "png"
     doc = _read_json(source)
@@ -180,7 +197,7 @@ READERS = {"labelstudio": _labelstudio, "cvat": _cvat, "png": _png}
 
 
 def source_digest(source: Path) -> str:
-    """sha256 of the source's bytes (a folder: its files' relative paths and bytes, sorted)."""
+    """Hash the source's bytes with sha256 (a folder: its files' relative paths and bytes, sorted)."""
     if source.is_dir():
         return files_digest(source, sorted(p for p in source.rglob("*") if p.is_file()))
     return hashlib.sha256(source.read_bytes()).hexdigest()
@@ -188,8 +205,37 @@ def source_digest(source: Path) -> str:
 
 def import_corrections(source: str | Path, review_dir: str | Path, out: str | Path, *, fmt: str = "auto",
                        code_version: str = "", overwrite: bool = False):
-    """Read the corrections in ``source``, check them against the export in ``review_dir`` and write the
-    ``corrections`` artifact to ``out`` (replacing only an earlier one, or with ``overwrite``); it, opened.
+    """Read the corrections in ``source``, check them against the export in ``review_dir``, write the artifact.
+
+    The ``corrections`` artifact at ``out`` replaces only an earlier corrections artifact (anything else only with
+    ``overwrite``).  Its rows follow the export's order (its rank); tasks or images nobody annotated are left out.
+
+    Parameters
+    ----------
+    source : str or Path
+        A Label Studio JSON export, a CVAT COCO 1.0 file, or a folder of ``<image id>.png`` masks.
+    review_dir : str or Path
+        The ``review export`` folder the corrections were made from.
+    out : str or Path
+        The ``corrections`` artifact (a parquet file).
+    fmt : str
+        One of :data:`FORMATS`; ``auto`` tells it from ``source``.
+    code_version : str
+        The code version recorded in the artifact's metadata.
+    overwrite : bool
+        Replace ``out`` even when it is not a corrections artifact.
+
+    Returns
+    -------
+    artifact
+        The written artifact, opened: per image ``image_id``, ``file``, ``width``, ``height``, ``rle`` (COCO
+        counts), ``pixels``, ``source``, ``iou_to_voted`` (against the voted mask, eq:majority-vote) and ``rank``.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        For an unknown ``fmt``, a missing ``source``, a ``fmt`` that does not read that kind of ``source``, or
+        a ``source`` holding no corrected mask; the readers raise one line naming the bad task, image or file.
     """
     import pandas as pd
 
@@ -224,10 +270,33 @@ def import_corrections(source: str | Path, review_dir: str | Path, out: str | Pa
 
 
 def coco_decode(rle: dict) -> np.ndarray:
-    """Bool [H,W] of a compressed COCO RLE ``{"size", "counts": str}``."""
+    """Decode a compressed COCO RLE into a mask.
+
+    Parameters
+    ----------
+    rle : dict
+        ``{"size": [H, W], "counts": str}``.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W].
+    """
     return coco_segmentation_mask(rle, *rle["size"])
 
 
 def correction_masks(artifact) -> dict[str, np.ndarray]:
+    """Decode every corrected mask of a ``corrections`` artifact.
+
+    Parameters
+    ----------
+    artifact : artifact
+        The opened ``corrections`` artifact (:func:`import_corrections`).
+
+    Returns
+    -------
+    dict
+        Image id -> its corrected mask, bool [H,W] at the image's own size, in the artifact's order.
+    """
     return {r.image_id: coco_decode({"size": [int(r.height), int(r.width)], "counts": r.rle})
             for r in artifact.table.itertuples(index=False)}

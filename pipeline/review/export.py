@@ -1,6 +1,8 @@
-"""``geodistill review export LABEL_DIR --out DIR`` and the DAG stage ``review_export``: the images that most
-need a person, ranked, as a Label Studio import, a CVAT import and a CSV, with ``review.json`` (the export id,
-a hash of the teacher, options and rows, and each image's voted mask) that ``review import`` checks against.
+"""``geodistill review export LABEL_DIR --out DIR`` and the DAG stage ``review_export``.
+
+Both write the images that most need a person, ranked, as a Label Studio import, a CVAT import and a CSV, with
+``review.json`` (the export id, a hash of the teacher, options and rows, and each image's voted mask) that
+``review import`` checks against.
 """
 
 from __future__ import annotations
@@ -52,14 +54,28 @@ LS_RECORD_KEY = "label_studio"   # review.json: {"document_root", "storage_path"
 
 @dataclasses.dataclass
 class ReviewExport:
+    """What an export wrote.
+
+    Attributes
+    ----------
+    out : Path
+        The export folder.
+    table : pandas.DataFrame
+        The exported rows, ranked (:func:`pipeline.review.ranking.rank`).
+    export_id : str
+        The export's id: a hash of the teacher's identity, the options and the rows.
+    ranking : str
+        The ranking used.
+    """
+
     out: Path
-    table: object   # pandas.DataFrame, ranked
+    table: object
     export_id: str
     ranking: str
 
 
 def read_label_folder(label_dir: str | Path):
-    """(record, table) of a complete ``geodistill label`` output folder with PNG masks; InputError otherwise."""
+    """Read (record, table) of a complete ``geodistill label`` output folder with PNG masks; InputError otherwise."""
     import pandas as pd
 
     d = Path(label_dir)
@@ -77,8 +93,9 @@ def read_label_folder(label_dir: str | Path):
 
 
 def voted_mask(path: Path, width: int, height: int) -> np.ndarray:
-    """The voted mask label wrote at ``path`` (:func:`pipeline.labeling.run.mask_file`); InputError when its size
-    is not the image's.
+    """Read the voted mask label wrote at ``path`` (:func:`pipeline.labeling.run.mask_file`).
+
+    An InputError names the file when its size is not the image's.
     """
     mask = read_mask(path)
     if mask.shape != (height, width):
@@ -87,7 +104,7 @@ def voted_mask(path: Path, width: int, height: int) -> np.ndarray:
 
 
 def mask_digest(mask: np.ndarray) -> str:
-    """sha256 of a bool mask's shape and packed bits (the content, not a file encoding)."""
+    """Hash a bool mask's shape and packed bits with sha256 (the content, not a file encoding)."""
     m = np.asarray(mask, bool)
     return hashlib.sha256(f"{m.shape[0]}x{m.shape[1]}:".encode() + np.packbits(m).tobytes()).hexdigest()
 
@@ -95,8 +112,10 @@ def mask_digest(mask: np.ndarray) -> str:
 # Label Studio (1.23.2) serves /data/local-files/?d=PATH only with both ENV_* variables set, PATH relative to
 # the document root, under a Local files storage whose path (a strict sub-folder of that root) holds the file
 def local_files_layout(image_paths: list[Path], image_root: Path | None = None) -> dict:
-    """``{"document_root", "storage_path"}`` serving ``image_paths``: the storage path is ``image_root`` (default:
-    the folder they share; relative paths stay relative), the document root its parent.
+    """Lay out the Local files storage serving ``image_paths``: ``{"document_root", "storage_path"}``.
+
+    The storage path is ``image_root`` (default: the folder they share; relative paths stay relative), the
+    document root its parent.  An InputError says so when the images share no folder below the root.
     """
     if image_root is not None:
         storage = Path(image_root)
@@ -116,17 +135,30 @@ def local_files_layout(image_paths: list[Path], image_root: Path | None = None) 
 
 
 def local_files_url(path: Path, layout: dict) -> str:
-    """The task URL of ``path``: its path from the document root, percent-encoded (``+&#`` would change the query)."""
+    """Make the task URL of ``path``: its path from the document root, percent-encoded (``+&#`` alter the query)."""
     rel = Path(path).resolve().relative_to(Path(layout["document_root"]).resolve()).as_posix()
     return LOCAL_FILES_URL + urllib.parse.quote(rel, safe="/")
 
 
 def server_env(layout: dict) -> dict:
-    """The environment variables Label Studio must start with to serve ``layout``'s images."""
+    """Name the environment variables Label Studio must start with to serve ``layout``'s images.
+
+    Parameters
+    ----------
+    layout : dict
+        The export's Local files layout (``review.json`` :data:`LS_RECORD_KEY`): ``document_root``,
+        ``storage_path``.
+
+    Returns
+    -------
+    dict
+        Variable name -> value: local-files serving on, and the document root (absolute).
+    """
     return {ENV_SERVING: "true", ENV_ROOT: str(Path(layout["document_root"]).resolve())}
 
 
 def _check_options(top, ls_shape: str, coco_shape: str) -> None:
+    """Refuse a ``--top`` below 1 or an unknown shape, naming the option."""
     if top is not None and int(top) < 1:
         raise InputError("{}: must be at least 1 (leave it out to export every image)", TOP(top))
     for option, value, allowed in ((LS_SHAPE, ls_shape, LS_SHAPES), (COCO_SHAPE, coco_shape, COCO_SHAPES)):
@@ -135,8 +167,9 @@ def _check_options(top, ls_shape: str, coco_shape: str) -> None:
 
 
 def check_export_outputs(out: Path, overwrite: bool) -> None:
-    """Refuse before anything is written: a user's file inside a folder the export replaces whole
-    (``overwrite`` or not), then what else is in the way.
+    """Refuse before anything is written: first a user's file inside a folder the export replaces whole.
+
+    Such a file is refused with ``overwrite`` or not; then whatever else is in the way (without ``overwrite``).
     """
     for folder, files in FOLDER_FILES.items():  # first: --overwrite would not save such a file either
         refuse_foreign_files(out / folder, files, command=COMMAND, option=OUT, where=out,
@@ -147,8 +180,42 @@ def check_export_outputs(out: Path, overwrite: bool) -> None:
 def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = None, ranking: str = DEFAULT_RANKING,
                   ls_shape: str = "brush", coco_shape: str = "rle", image_url: str | None = None,
                   predict: Callable[[Path], np.ndarray] | None = None, overwrite: bool = False) -> ReviewExport:
-    """``geodistill review export``: rank the images of ``label_dir`` and write the top ``top`` (None: all) under
-    ``out``; ``image_url``: the tasks' URL prefix (None: local files); ``predict(path) -> bool [H,W]``: a student.
+    """Rank the images of a ``geodistill label`` folder and write the top ones for a person (``review export``).
+
+    Parameters
+    ----------
+    label_dir : str or Path
+        A complete ``geodistill label`` output folder with PNG masks.
+    out : str or Path
+        The export folder.
+    top : int, optional
+        Export the first ``top`` images; None exports all.
+    ranking : str
+        A ranking of :data:`pipeline.review.ranking.RANKINGS`.
+    ls_shape : str
+        How the Label Studio predictions draw the voted mask: one of :data:`LS_SHAPES` (``brush``, ``polygon``).
+    coco_shape : str
+        How the CVAT COCO annotations draw it: one of :data:`COCO_SHAPES` (``rle``, ``polygon``).
+    image_url : str or None
+        The tasks' image URL prefix (``<image_url><file>``); None: Label Studio's local-files URLs, served by a
+        Local files storage (:func:`server_env`).
+    predict : callable, optional
+        ``predict(image path) -> bool [H,W]``: a student whose disagreement with the vote the table gains
+        (:func:`pipeline.review.ranking.student_disagreement`); None: no student.
+    overwrite : bool
+        Replace the export's output paths even where no review.json of this command owns them (never a user's
+        file inside a folder it replaces whole).
+
+    Returns
+    -------
+    ReviewExport
+        The folder, the ranked table written, the export id and the ranking.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        From the checks it calls: a bad option, an unfinished or foreign label folder, a mask of the wrong size,
+        or an output in the way.
     """
     _check_options(top, ls_shape, coco_shape)
     label_dir, out = Path(label_dir), Path(out)
@@ -172,10 +239,43 @@ def export_review(label_dir: str | Path, out: str | Path, *, top: int | None = N
 def write_export(out: Path, table, mask_of: Callable[[str], np.ndarray], *, top: int | None, ranking: str,
                  ls_shape: str, coco_shape: str, image_url: str | None, identity: dict, options: dict | None = None,
                  record: dict | None = None, image_root: Path | None = None) -> ReviewExport:
-    """The export shared by ``review export`` and the DAG stage: rank ``table`` (image_id, file, width, height,
-    g, h, ...), take each voted mask from ``mask_of(image id)`` and write review.json, ranked.csv, the Label
-    Studio tasks and the CVAT COCO file under ``out``.  ``image_root``: the folder ``file`` is relative to;
-    ``identity`` and the options make the export id; ``record``: the record's fields about the source.
+    """Write an export: the part ``review export`` and the DAG stage share.
+
+    It ranks ``table``, takes each voted mask from ``mask_of`` and writes review.json, ranked.csv, the Label
+    Studio tasks and the CVAT COCO file under ``out`` (its outputs claimed first; review.json complete last).
+
+    Parameters
+    ----------
+    out : Path
+        The export folder.
+    table : pandas.DataFrame
+        The label table: ``image_id``, ``file``, ``width``, ``height``, ``g``, ``h`` and what ``ranking`` reads.
+    mask_of : callable
+        Image id -> its voted mask (eq:majority-vote), bool [H,W] at the image's own size.
+    top : int or None
+        Export the first ``top`` ranked images; None exports all.
+    ranking : str
+        A ranking of :data:`pipeline.review.ranking.RANKINGS`.
+    ls_shape : str
+        How the Label Studio predictions draw the voted mask: one of :data:`LS_SHAPES` (``brush``, ``polygon``).
+    coco_shape : str
+        How the CVAT COCO annotations draw it: one of :data:`COCO_SHAPES` (``rle``, ``polygon``).
+    image_url : str or None
+        The tasks' image URL prefix (``<image_url><file>``); None: Label Studio's local-files URLs, served by a
+        Local files storage (:func:`server_env`).
+    identity : dict
+        What identifies the source (the teacher's fingerprint); with the options and rows it makes the export id.
+    options : dict, optional
+        Options recorded beside the shapes, ranking and top (``student``: whether a student ranked).
+    record : dict, optional
+        The record's fields about the source (``label_dir``, ``input``, ``simulator``).
+    image_root : Path, optional
+        The folder ``file`` is relative to; None: the working directory.
+
+    Returns
+    -------
+    ReviewExport
+        The folder, the ranked table written, the export id and the ranking.
     """
     ranked = rank(table, ranking, top)
     masks = {i: mask_of(i) for i in ranked["image_id"]}
@@ -226,7 +326,7 @@ RUN_SPLIT = "train"
 
 
 def run_table(manifest_df, gates_df, h: np.ndarray):
-    """The label-table view of a run's training images (image_id, file, width, height, the gates' columns, h)."""
+    """Build the label-table view of a run's training images (image_id, file, width, height, gate columns, h)."""
     ids = manifest_df["image_id"].astype(str).to_numpy()
     if list(gates_df["image_id"].astype(str)) != list(ids) or len(h) != len(ids):
         raise InputError("gates and consensus do not follow the manifest's images (artifacts of different runs?)")
@@ -241,8 +341,49 @@ def run_table(manifest_df, gates_df, h: np.ndarray):
 def export_run(manifest, consensus, gates, out: str | Path, *, top: int | None, ranking: str = DEFAULT_RANKING,
                letterbox: bool = PAPER.data.letterbox, ls_shape: str = "brush", coco_shape: str = "rle",
                image_url: str | None = None, simulator: bool = False, overwrite: bool = False) -> ReviewExport:
-    """The DAG stage ``review_export``: :func:`write_export` of a run's training images, each voted mask brought
-    to the image's own size as the deployed student's is (``letterbox``: data.letterbox).
+    """Export a run's training images for review (the DAG stage ``review_export``), via :func:`write_export`.
+
+    Each voted mask is brought to the image's own size as the deployed student's is.
+
+    Parameters
+    ----------
+    manifest : artifact
+        The run's opened manifest (``image_id``, ``image_path``, ``width``, ``height``, ``split``).
+    consensus : artifact
+        The run's opened consensus (``voted`` masks at the working resolution, ``h``: the prompt disagreement).
+    gates : artifact
+        The run's opened gates (eq:reliability-gate), row for row with the manifest.
+    out : str or Path
+        The export folder.
+    top : int or None
+        Export the first ``top`` ranked images (``review.top``); None exports all.
+    ranking : str
+        A ranking of :data:`pipeline.review.ranking.RANKINGS` (``review.ranking``).
+    letterbox : bool
+        ``data.letterbox``: how the working-resolution mask maps back to the image's size.
+    ls_shape : str
+        How the Label Studio predictions draw the voted mask: one of :data:`LS_SHAPES` (``brush``, ``polygon``).
+    coco_shape : str
+        How the CVAT COCO annotations draw it: one of :data:`COCO_SHAPES` (``rle``, ``polygon``).
+    image_url : str or None
+        The tasks' image URL prefix (``<image_url><file>``); None: Label Studio's local-files URLs, served by a
+        Local files storage (:func:`server_env`).
+    simulator : bool
+        The teacher is the SIMULATOR (recorded in review.json).
+    overwrite : bool
+        Replace the export's output paths even where no review.json of this command owns them (never a user's
+        file inside a folder it replaces whole).
+
+    Returns
+    -------
+    ReviewExport
+        The folder, the ranked table written, the export id and the ranking.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        When the consensus has no prompt disagreement h (an older consensus stage), or from the checks it calls
+        (bad options, gates or consensus of another run, outputs in the way).
     """
     _check_options(top, ls_shape, coco_shape)
     if "h" not in consensus:

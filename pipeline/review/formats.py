@@ -1,6 +1,8 @@
-"""The review formats, pure functions on arrays: Label Studio brush RLE (thi.ng ``rle-pack`` bits, as
-label-studio-converter writes them) and polygons, COCO 1.0 for CVAT (uncompressed RLE with ``iscrowd: 1``, as
-CVAT exports masks).  A polygon is each region's outer contour, so its round trip is not pixel-exact.
+"""The review formats, pure functions on arrays.
+
+Label Studio brush RLE (thi.ng ``rle-pack`` bits, as label-studio-converter writes them) and polygons; COCO 1.0
+for CVAT (uncompressed RLE with ``iscrowd: 1``, as CVAT exports masks).  A polygon is each region's outer
+contour, so its round trip is not pixel-exact.
 """
 
 from __future__ import annotations
@@ -26,8 +28,9 @@ class FormatError(ValueError):
 
 
 def _run_bits(length: int, value: int) -> str:
-    """One run segment as label-studio-converter's ``encode_rle`` writes it: the narrowest length field, else
-    16-bit fields in pieces of 2**16 values.
+    """Write one run segment as label-studio-converter's ``encode_rle`` does.
+
+    The narrowest length field that holds it, else 16-bit fields in pieces of 2**16 values.
     """
     word = format(value, f"0{LS_WORD_SIZE}b")
     for index, width in enumerate(LS_RLE_SIZES[:3]):
@@ -42,12 +45,28 @@ def _run_bits(length: int, value: int) -> str:
 
 
 def ls_rle_encode(mask: np.ndarray) -> list[int]:
-    """Label Studio brush RLE (byte values) of a bool [H,W] mask, opaque in all four channels."""
+    """Encode a bool [H,W] mask as Label Studio brush RLE (byte values), opaque in all four channels."""
     return ls_rle_encode_values(ls_brush_rgba(np.asarray(mask, bool).astype(np.uint8) * LS_OPAQUE))
 
 
 def ls_brush_rgba(alpha: np.ndarray) -> np.ndarray:
-    """The RGBA values Label Studio's editor encodes for a brush layer of ``alpha`` (copied into R, G and B)."""
+    """Give the RGBA values Label Studio's editor encodes for a brush layer of ``alpha``.
+
+    Parameters
+    ----------
+    alpha : numpy.ndarray
+        The layer's alpha, [H,W] (cast to uint8); it is copied into R, G and B.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 [4 H W]: R, G, B, A per pixel, row-major.
+
+    Raises
+    ------
+    FormatError
+        When ``alpha`` is not two-dimensional.
+    """
     alpha = np.asarray(alpha, np.uint8)
     if alpha.ndim != 2:
         raise FormatError(f"alpha: expected [H,W], got shape {alpha.shape}")
@@ -55,7 +74,19 @@ def ls_brush_rgba(alpha: np.ndarray) -> np.ndarray:
 
 
 def ls_rle_encode_values(values: np.ndarray) -> list[int]:
-    """rle-pack bytes of uint8 values, runs only: byte for byte label-studio-converter's ``brush.encode_rle``."""
+    """Pack uint8 values as rle-pack bytes, runs only: byte for byte label-studio-converter's ``brush.encode_rle``.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        The values (flattened; RGBA of :func:`ls_brush_rgba` for a brush).
+
+    Returns
+    -------
+    list of int
+        The RLE's byte values: the header (count, word size, the four run-length field sizes), then one segment
+        per run, zero-padded to whole bytes.
+    """
     flat = np.asarray(values, np.uint8).ravel()
     n = flat.size
     bits = [format(n, "032b"), format(LS_WORD_SIZE - 1, "05b"), "".join(format(s - 1, "04b") for s in LS_RLE_SIZES)]
@@ -71,7 +102,27 @@ def ls_rle_encode_values(values: np.ndarray) -> list[int]:
 
 
 def ls_rle_decode(rle, height: int, width: int) -> np.ndarray:
-    """Bool [H,W] (alpha > 0) of a Label Studio brush RLE, literal stretches included; FormatError if invalid."""
+    """Decode a Label Studio brush RLE, literal stretches included, into a mask (alpha > 0).
+
+    Parameters
+    ----------
+    rle : list of int
+        The RLE's byte values (a brush result's ``value.rle``).
+    height, width : int
+        The image's size; the RLE must hold 4 x height x width values.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W].
+
+    Raises
+    ------
+    FormatError
+        When ``rle`` is not a list of byte values, ends early, or holds another number of values.
+    ValueError
+        Only as :class:`FormatError`, its subclass (a malformed list's own ValueError is turned into one).
+    """
     try:
         data = np.asarray(rle, np.int64)
         if data.ndim != 1 or data.size < 5 or (data < 0).any() or (data > 255).any():
@@ -108,7 +159,18 @@ def ls_rle_decode(rle, height: int, width: int) -> np.ndarray:
 
 
 def ls_label_config(shape: str = "brush") -> str:
-    """The Label Studio labelling interface (XML): an image and one label."""
+    """Write the Label Studio labelling interface (XML): an image and one label.
+
+    Parameters
+    ----------
+    shape : str
+        ``brush`` (BrushLabels) or ``polygon`` (PolygonLabels).
+
+    Returns
+    -------
+    str
+        The XML, its tags named :data:`LS_TO_NAME` and :data:`LS_FROM_NAME`, its label :data:`LABEL`.
+    """
     tag = {"brush": "BrushLabels", "polygon": "PolygonLabels"}[shape]
     return (f'<View>\n  <Image name="{LS_TO_NAME}" value="$image" zoom="true"/>\n'
             f'  <{tag} name="{LS_FROM_NAME}" toName="{LS_TO_NAME}">\n'
@@ -116,7 +178,23 @@ def ls_label_config(shape: str = "brush") -> str:
 
 
 def ls_results(mask: np.ndarray, shape: str = "brush", result_id: str = "r0") -> list[dict]:
-    """The ``result`` list of one prediction: one brush result, or one polygon per region (holes filled)."""
+    """Write the ``result`` list of one Label Studio prediction of ``mask``.
+
+    Parameters
+    ----------
+    mask : numpy.ndarray
+        bool [H,W] at the image's own size.
+    shape : str
+        ``brush``: one brush result; ``polygon``: one polygon per region, its outer contour (holes filled), in
+        per cent of the image size.
+    result_id : str
+        The result's id (a polygon's: ``<result_id>p<k>``).
+
+    Returns
+    -------
+    list of dict
+        The results; empty for an empty mask.
+    """
     mask = np.asarray(mask, bool)
     h, w = mask.shape
     common = {"from_name": LS_FROM_NAME, "to_name": LS_TO_NAME, "original_width": int(w), "original_height": int(h),
@@ -132,7 +210,22 @@ def ls_results(mask: np.ndarray, shape: str = "brush", result_id: str = "r0") ->
 
 
 def polygon_mask(polygons, height: int, width: int, scale=(1.0, 1.0)) -> np.ndarray:
-    """Bool [H,W]: the union of filled polygons with coordinates times ``scale`` (W/100, H/100 for per cent)."""
+    """Fill polygons into a mask: their union.
+
+    Parameters
+    ----------
+    polygons : iterable of array_like
+        Each a sequence of (x, y) points (flat or paired); one with under 3 points is skipped.
+    height, width : int
+        The mask's size.
+    scale : tuple of float
+        (x, y) factors applied to the coordinates: (W/100, H/100) for Label Studio's per cent.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W].
+    """
     import cv2
 
     out = np.zeros((height, width), np.uint8)
@@ -144,7 +237,10 @@ def polygon_mask(polygons, height: int, width: int, scale=(1.0, 1.0)) -> np.ndar
 
 
 def coco_uncompressed_rle(mask: np.ndarray) -> dict:
-    """``{"size": [h, w], "counts": [...]}``: column-major runs starting with background."""
+    """Encode a mask as COCO's uncompressed RLE, ``{"size": [h, w], "counts": [...]}``, column-major runs.
+
+    The runs start with background (a leading 0 when the first pixel is foreground).
+    """
     mask = np.asarray(mask, bool)
     flat = mask.ravel(order="F")
     change = np.flatnonzero(flat[1:] != flat[:-1]) + 1
@@ -157,7 +253,27 @@ def coco_uncompressed_rle(mask: np.ndarray) -> dict:
 
 def coco_review_annotation(mask: np.ndarray, annotation_id: int, image_id: int, shape: str = "rle",
                            **extra) -> dict | None:
-    """One COCO annotation of a mask for CVAT; None for an empty mask."""
+    """Build one COCO annotation of a mask for CVAT.
+
+    Parameters
+    ----------
+    mask : numpy.ndarray
+        bool [H,W] at the image's own size.
+    annotation_id : int
+        The annotation's id.
+    image_id : int
+        The COCO image id.
+    shape : str
+        ``rle``: uncompressed RLE with ``iscrowd: 1`` (as CVAT exports masks); else one polygon per region
+        (``iscrowd: 0``).
+    **extra
+        Further fields of the annotation.
+
+    Returns
+    -------
+    dict or None
+        The annotation (:func:`pipeline.labeling.formats.coco_annotation`); None for an empty mask.
+    """
     if shape == "rle":
         return coco_annotation(mask, annotation_id, image_id, coco_uncompressed_rle, 1, **extra)
     return coco_annotation(mask, annotation_id, image_id, lambda m: [
@@ -165,7 +281,26 @@ def coco_review_annotation(mask: np.ndarray, annotation_id: int, image_id: int, 
 
 
 def coco_segmentation_mask(segmentation, height: int, width: int) -> np.ndarray:
-    """Bool [H,W] of a COCO segmentation (polygons, uncompressed or compressed RLE); FormatError if unreadable."""
+    """Decode a COCO segmentation (polygons, uncompressed or compressed RLE) into a mask.
+
+    Parameters
+    ----------
+    segmentation : list or dict
+        Polygons (flat coordinate lists; one with under 3 points is skipped), or an RLE ``{"size", "counts"}``.
+    height, width : int
+        The image's size; an RLE must have it.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W]; all False for polygons that are all too short.
+
+    Raises
+    ------
+    FormatError
+        When the segmentation is neither polygons nor RLE, its RLE size is not the image's, or it cannot be
+        decoded.
+    """
     try:
         if isinstance(segmentation, list):
             polys = [p for p in segmentation if len(p) >= 6]

@@ -1,6 +1,7 @@
-"""Label Studio through its HTTP API (``geodistill review upload``): a project for a review export, the
-Local files storage that serves its images (without it the local-files URLs give 404s:
-:func:`pipeline.review.export.local_files_layout`), and its tasks.
+"""Label Studio through its HTTP API (``geodistill review upload``).
+
+It makes a project for a review export, the Local files storage that serves its images (without it the
+local-files URLs give 404s: :func:`pipeline.review.export.local_files_layout`), and its tasks.
 """
 
 from __future__ import annotations
@@ -21,7 +22,21 @@ STORAGE_API = "/api/storages/localfiles"
 
 
 class Client:
-    """A Label Studio server at ``url`` with ``token``: a legacy API token or a personal access token (a JWT)."""
+    """A Label Studio server at ``url`` with ``token``: a legacy API token or a personal access token (a JWT).
+
+    A personal access token is exchanged for its access token once, on construction.
+
+    Parameters
+    ----------
+    url : str
+        The server's base URL (a trailing ``/`` is dropped).
+    token : str
+        A legacy API token, or a personal access token (a JWT refresh token: three ``.``-separated parts).
+    opener : callable
+        Opens a :class:`urllib.request.Request` (``urllib.request.urlopen``; tests pass a fake server).
+    timeout : float
+        Seconds to wait for each answer.
+    """
 
     def __init__(self, url: str, token: str, opener: Callable = urllib.request.urlopen, timeout: float = 120):
         self.url, self.opener, self.timeout = url.rstrip("/"), opener, timeout
@@ -30,7 +45,32 @@ class Client:
             self.auth = f"Bearer {self.request('POST', '/api/token/refresh', {'refresh': token}, auth=False)['access']}"
 
     def request(self, method: str, path: str, data=None, *, raw: bool = False, auth: bool = True):
-        """``method path`` with a JSON body; the JSON answer (``raw``: its bytes); one-line InputError on failure."""
+        """Send ``method path`` with a JSON body and read the answer.
+
+        Parameters
+        ----------
+        method : str
+            The HTTP method (``GET``, ``POST``).
+        path : str
+            The path from the server's base URL (``/api/projects``).
+        data : object, optional
+            The JSON body; None sends none.
+        raw : bool
+            Return the answer's bytes instead of its parsed JSON.
+        auth : bool
+            Send the ``Authorization`` header (off for the token exchange itself).
+
+        Returns
+        -------
+        object
+            The parsed JSON answer (None for an empty one), or its bytes with ``raw``.
+
+        Raises
+        ------
+        pipeline.runtime.errors.InputError
+            One line naming the server, method and path, on an HTTP error (with the start of its body) or when
+            the server cannot be reached.
+        """
         headers = {"Content-Type": "application/json"}
         if auth:
             headers["Authorization"] = self.auth
@@ -49,8 +89,10 @@ class Client:
 
 def upload(client: Client, tasks: list[dict], label_config: str, layout: dict | None, title: str,
            first_image: Path | None = None) -> dict:
-    """Create a project, its Local files storage for ``layout`` (None: served elsewhere) and ``tasks``; check
-    the first task's URL serves ``first_image``.  -> ``{"project", "storage", "tasks", "served"}``.
+    """Create a project, its Local files storage for ``layout`` (None: served elsewhere) and ``tasks``.
+
+    When the tasks' URLs are on this server, the first one is checked to serve ``first_image``
+    (:func:`check_served`).  Returns ``{"project", "storage", "tasks", "served"}``.
     """
     project = client.request("POST", "/api/projects", {"title": title, "label_config": label_config})
     storage = None
@@ -67,7 +109,23 @@ def upload(client: Client, tasks: list[dict], label_config: str, layout: dict | 
 
 
 def upload_review(client: Client, review_dir: str | Path, title: str | None = None) -> dict:
-    """:func:`upload` of a ``review export`` folder (``title`` default ``geodistill review <export id>``)."""
+    """Upload a ``review export`` folder to Label Studio: a project, its image storage and its tasks.
+
+    Parameters
+    ----------
+    client : Client
+        The server.
+    review_dir : str or Path
+        The ``review export`` folder (its record, Label Studio tasks and labelling config).
+    title : str, optional
+        The project's title; None: ``geodistill review <export id>``.
+
+    Returns
+    -------
+    dict
+        ``project`` (its id), ``storage`` (the Local files storage's id, None when the images are served
+        elsewhere), ``tasks`` (how many) and ``served`` (whether the first image was checked to be served).
+    """
     rec = read_review(review_dir)
     folder = Path(review_dir) / OUTPUTS["labelstudio"]
     tasks = json.loads((folder / LS_TASKS).read_text())
@@ -79,7 +137,25 @@ def upload_review(client: Client, review_dir: str | Path, title: str | None = No
 
 
 def check_served(client: Client, url: str, image: Path, layout: dict | None) -> None:
-    """InputError unless the task URL ``url`` returns the bytes of ``image``."""
+    """Check that the task URL ``url`` returns the bytes of ``image``.
+
+    Parameters
+    ----------
+    client : Client
+        The server.
+    url : str
+        The task's image URL (a path on the server).
+    image : Path
+        The image file it should serve.
+    layout : dict or None
+        The export's Local files layout (:func:`pipeline.review.export.local_files_layout`), for the hint
+        naming the environment Label Studio must start with; None: no hint.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        Naming ``image`` when the server does not serve it, or serves other bytes.
+    """
     try:
         got = client.request("GET", url, raw=True)
     except InputError as e:

@@ -1,5 +1,7 @@
-"""The rankings of ``review export --ranking``: each scores an image in [0, 1], higher = more in need of a
-person, ties by image id (the default ``combined``: docs/decisions.md).
+"""The rankings of ``review export --ranking`` (and ``review.ranking``).
+
+Each scores an image in [0, 1], higher = more in need of a person, ties by image id (the default,
+:data:`DEFAULT_RANKING`: docs/decisions.md).
 """
 
 from __future__ import annotations
@@ -19,9 +21,21 @@ STUDENT_COLUMN = "student_disagreement"
 
 @dataclasses.dataclass(frozen=True)
 class Ranking:
+    """One ranking of the images to review.
+
+    Attributes
+    ----------
+    name : str
+        Its name (``--ranking``, ``review.ranking``).
+    description : str
+        What it scores, for ``--help``.
+    needs : tuple of str
+        The label table's columns it reads.
+    """
+
     name: str
     description: str
-    needs: tuple[str, ...]   # the label table's columns it reads
+    needs: tuple[str, ...]
 
 
 RANKINGS = {r.name: r for r in (
@@ -34,14 +48,37 @@ DEFAULT_RANKING = "combined"
 
 
 def _pct(values) -> np.ndarray:
-    """Percentile ranks in (0, 1] (ties share their average rank)."""
+    """Rank ``values`` as percentiles in (0, 1] (ties share their average rank)."""
     import pandas as pd
 
     return pd.Series(np.asarray(values, np.float64)).rank(method="average", pct=True).to_numpy()
 
 
 def scores(table, ranking: str = DEFAULT_RANKING) -> np.ndarray:
-    """The score of every row of a label ``table`` under ``ranking``; InputError on an unknown one or column."""
+    """Score every row of a label ``table`` under ``ranking``: higher = more in need of a person.
+
+    ``gate``: 1 - g (eq:reliability-gate); ``disagreement``: the prompt disagreement h
+    (:func:`pipeline.consensus.agreement_entropy`); ``student``: the student disagreement column;
+    ``combined``: the mean percentile rank of 1 - g, h and (when the table has it) the student disagreement.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        The label table (``labels.parquet`` of ``geodistill label``, or the DAG's view of the training images).
+    ranking : str
+        A key of :data:`RANKINGS` (default :data:`DEFAULT_RANKING`).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 [len(table)], in [0, 1].
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        Naming ``--ranking`` for an unknown ranking or a column the table lacks (the student's: pass
+        ``--student``).
+    """
     if ranking not in RANKINGS:
         raise InputError(f"{{}}: unknown ranking (choose one of {', '.join(RANKINGS)})", RANKING(ranking))
     missing = [c for c in RANKINGS[ranking].needs if c not in table.columns]
@@ -60,7 +97,22 @@ def scores(table, ranking: str = DEFAULT_RANKING) -> np.ndarray:
 
 
 def rank(table, ranking: str = DEFAULT_RANKING, top: int | None = None):
-    """The first ``top`` rows (None: all) of ``table`` by :func:`scores`, then image id, with ``rank`` and ``score``."""
+    """Order ``table`` by :func:`scores` (highest first), ties by image id.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        The label table (``image_id`` and the columns ``ranking`` reads).
+    ranking : str
+        A key of :data:`RANKINGS`.
+    top : int, optional
+        Keep the first ``top`` rows; None keeps all.
+
+    Returns
+    -------
+    pandas.DataFrame
+        A copy with ``rank`` (1-based) and ``score`` columns first, re-indexed from 0.
+    """
     out = table.copy()
     out.insert(0, "score", scores(table, ranking))
     out = out.sort_values(["score", "image_id"], ascending=[False, True], kind="mergesort").reset_index(drop=True)
@@ -69,5 +121,18 @@ def rank(table, ranking: str = DEFAULT_RANKING, top: int | None = None):
 
 
 def student_disagreement(student: np.ndarray, voted: np.ndarray) -> float:
-    """1 - Image IoU of the student's and the vote's masks."""
+    """Measure how much the student disagrees with the teacher vote: 1 - Image IoU of their masks.
+
+    Parameters
+    ----------
+    student : numpy.ndarray
+        The student's binary mask (eq:inference-mask).
+    voted : numpy.ndarray
+        The voted pseudo-mask (eq:majority-vote), the same shape.
+
+    Returns
+    -------
+    float
+        1 - :func:`pipeline.metrics.image_iou` (student, voted), in [0, 1].
+    """
     return 1.0 - image_iou(student, voted)

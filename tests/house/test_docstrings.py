@@ -60,11 +60,11 @@ UNFINISHED = (
     "pipeline/datasets/loading.py", "pipeline/datasets/manifest.py", "pipeline/datasets/synthetic.py",
     "pipeline/evaluation/diagnostics.py", "pipeline/evaluation/evaluate.py",
     "pipeline/evaluation/inference.py", "pipeline/orchestration/dag.py", "pipeline/orchestration/standalone.py",
-    "pipeline/params.py", "pipeline/report/analysis.py", "pipeline/report/build.py", "pipeline/report/document.py",
-    "pipeline/report/dvc_results.py", "pipeline/report/environment.py", "pipeline/report/tables.py",
-    "pipeline/reproducibility.py", "pipeline/review/apply.py", "pipeline/review/corrections.py",
-    "pipeline/review/export.py", "pipeline/review/formats.py", "pipeline/review/labelstudio.py",
-    "pipeline/review/ranking.py", "pipeline/training/filters.py", "pipeline/training/inputs.py",
+    
+    
+    
+    
+    "pipeline/training/filters.py", "pipeline/training/inputs.py",
     "pipeline/training/streaming.py",
 )
 
