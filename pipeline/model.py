@@ -1,5 +1,7 @@
 """The TinyUNet student: a three-level U-Net (channels 24, 48, 96) whose mask head gives the deployed logits Z, plus
-the training-only SDF (tanh) and skeleton heads of Stage II on the same decoded features."""
+the training-only SDF (tanh) and skeleton heads of Stage II on the same decoded features.  Training-time capacity that
+folds away: RepVGG's branches beside each 3x3 convolution (``train.expand_branches``; :func:`expand_branches`,
+:func:`fold_branches`)."""
 
 from __future__ import annotations
 
@@ -231,12 +233,12 @@ def fold_branches(model: "TinyUNet", batches: Iterable[torch.Tensor] | None = No
         return model
     sums = {id(bn): [0, 0.0, 0.0] for bn in folded}
 
-    def collect(bn, args):
-        x = args[0].double()
+    def collect(bn, args):  # per-channel batch statistics, summed in float64 (no float64 copy of the batch)
+        x = args[0].float()
         acc = sums[id(bn)]
         acc[0] += 1
-        acc[1] = acc[1] + x.mean(dim=(0, 2, 3))
-        acc[2] = acc[2] + x.transpose(0, 1).flatten(1).var(dim=1, unbiased=True)
+        acc[1] = acc[1] + x.mean(dim=(0, 2, 3)).double()
+        acc[2] = acc[2] + x.var(dim=(0, 2, 3), unbiased=True).double()
 
     hooks = [bn.register_forward_pre_hook(collect) for bn in folded]
     was_training = model.training

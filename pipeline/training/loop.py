@@ -352,7 +352,8 @@ class TrainResult:
     Attributes
     ----------
     model : pipeline.model.TinyUNet
-        The selected (or weight-averaged) model, on the CPU in eval mode.
+        The selected (or weight-averaged) model, on the CPU in eval mode; with ``train.expand_branches``, folded
+        into the plain TinyUNet (:func:`pipeline.model.fold_branches`).
     log : pandas.DataFrame
         One row per epoch (epoch 0: a warm-started method's starting point), columns :data:`LOG_COLUMNS`
         (schema ``training_log``); NaN where a method does not use a term or an epoch was not validated.
@@ -361,7 +362,9 @@ class TrainResult:
     info : dict
         ``selected_epoch``, ``selection`` (the rule, in words), ``epochs``, ``lr``, ``steps_run``,
         ``low_res_epochs``, ``mode``, ``loss_weights``, ``epoch0_eligible``, ``autocast``, ``channels_last``,
-        the training data's stats and, under ``until: plateau``, ``stable_epochs`` and ``stopped`` (why).
+        the training data's stats, under ``until: plateau`` ``stable_epochs`` and ``stopped`` (why) and, with
+        ``train.expand_branches``, ``folded`` (the parameters trained and deployed, the folding's largest |logit
+        change| on the first training batch).
     timings : list of dict
         ``{"epoch", "seconds"}`` per log row (:data:`TIMING_COLUMNS`): wall-clock seconds, kept out of the log so
         that it is reproducible.

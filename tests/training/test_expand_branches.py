@@ -39,7 +39,7 @@ def _x(images: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255.0
 
 
-def _trained_expanded(steps: int = 12, seed: int = 0) -> tuple[TinyUNet, torch.Tensor]:
+def _trained_expanded(steps: int = 8, seed: int = 0) -> tuple[TinyUNet, torch.Tensor]:
     """An expanded TinyUNet after ``steps`` AdamW steps in train mode (running BN statistics far from 0 and 1) and
     the images it saw."""
     torch.manual_seed(seed)
