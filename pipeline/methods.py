@@ -379,6 +379,11 @@ PARTS: tuple[RecipePart, ...] = (
                "1/2, where the prompts split, leave eq:raw-loss (weight 0); 0 = none (the paper) -- a departure from "
                "eq:raw-loss, named in every table", {"ge": 0, "le": 0.5}, departure="ignore band {v:g}",
                stage_one=True, home="losses", schema_after="bootstrap_beta", common_after="bootstrap_beta"),
+    RecipePart("train.expand_branches", bool, False, "RepVGG branches: each 3x3 convolution trains beside a 1x1 "
+               "convolution and, where input and output channels match, the identity, each with its own BatchNorm, "
+               "folded into the plain TinyUNet at each stage's end; the deployed network and the loss stay the "
+               "paper's; needs norm: batch (docs/decisions.md)", home="settings", schema_after="norm",
+               common_after="norm"),
     RecipePart("calibrate.tau_rule", Literal["argmax", "plateau", "smooth"], "argmax",
                "argmax of the validation IoU curve | plateau = centre of the near-optimal plateau | smooth = argmax "
                "of the smoothed curve (pipeline.thresholds)", schema_after=FIRST, common=False),

@@ -1,5 +1,7 @@
 """The TinyUNet student: a three-level U-Net (channels 24, 48, 96) whose mask head gives the deployed logits Z, plus
-the training-only SDF (tanh) and skeleton heads of Stage II on the same decoded features."""
+the training-only SDF (tanh) and skeleton heads of Stage II on the same decoded features.  Training-time capacity that
+folds away: RepVGG's branches beside each 3x3 convolution (``train.expand_branches``; :func:`expand_branches`,
+:func:`fold_branches`)."""
 
 from __future__ import annotations
 
@@ -42,6 +44,222 @@ class ConvBNReLU(nn.Sequential):
 class DoubleConv(nn.Sequential):
     def __init__(self, cin: int, cout: int, **norm: Any):
         super().__init__(ConvBNReLU(cin, cout, **norm), ConvBNReLU(cout, cout, **norm))
+
+
+def _bn_affine(bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:
+    """BatchNorm in eval mode as y = s x + t per channel, in float64: s = gamma / sqrt(var + eps), t = beta - s mu."""
+    s = bn.weight.double() / torch.sqrt(bn.running_var.double() + bn.eps)
+    return s, bn.bias.double() - s * bn.running_mean.double()
+
+
+class ExpandedConvBNReLU(nn.Module):
+    """A :class:`ConvBNReLU` trained with RepVGG's extra linear branches (Ding et al., CVPR 2021), ``train.expand_branches``.
+
+    relu(BN_3(W_3 * x) + BN_1(W_1 * x) + BN_id(x)): the 3x3 convolution and its BatchNorm (the plain block's own
+    modules), a 1x1 convolution with its own BatchNorm, and, where input and output channels match at stride 1, an
+    identity branch that is a BatchNorm alone.  In eval mode every branch is affine in x, so the sum is one 3x3
+    convolution plus a bias (:meth:`folded`): the capacity is training-time only.  Per-branch BN cannot fold under
+    GroupNorm (its statistics are per sample), so the block needs BatchNorm.
+
+    Parameters
+    ----------
+    block : ConvBNReLU
+        The plain block; its convolution and BatchNorm become the 3x3 branch (shared, not copied).
+    zero_init : bool
+        Start the new branches at zero (their BN gamma 0), so the block computes exactly ``block``'s function
+        (a warm start: Stage II from a folded Stage-I checkpoint); False = PyTorch's initialisation (gamma 1), as
+        RepVGG trains from scratch.
+
+    Raises
+    ------
+    ValueError
+        ``block``'s normalisation is not BatchNorm.
+    """
+
+    def __init__(self, block: ConvBNReLU, zero_init: bool):
+        super().__init__()
+        conv, norm = block[0], block[1]
+        if not isinstance(norm, nn.BatchNorm2d):
+            raise ValueError(f"RepVGG branches fold only through BatchNorm, not {type(norm).__name__}")
+        cin, cout = conv.in_channels, conv.out_channels
+        like = {"device": conv.weight.device, "dtype": conv.weight.dtype}
+        self.conv, self.norm, self.relu = conv, norm, block[2]
+        self.conv1x1 = nn.Conv2d(cin, cout, 1, bias=False, **like)
+        self.norm1x1 = nn.BatchNorm2d(cout, momentum=norm.momentum, **like)
+        identity = cin == cout and tuple(conv.stride) == (1, 1)
+        self.norm_identity = nn.BatchNorm2d(cout, momentum=norm.momentum, **like) if identity else None
+        if zero_init:
+            for bn in self.branch_norms():
+                nn.init.zeros_(bn.weight)
+
+    def branch_norms(self) -> list[nn.BatchNorm2d]:
+        """The BatchNorms of the extra branches (1x1, then identity where there is one)."""
+        return [self.norm1x1] + ([self.norm_identity] if self.norm_identity is not None else [])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.norm(self.conv(x)) + self.norm1x1(self.conv1x1(x))
+        if self.norm_identity is not None:
+            y = y + self.norm_identity(x)
+        return self.relu(y)
+
+    @torch.no_grad()
+    def fused(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The eval-mode block before its ReLU as one 3x3 convolution: (kernel K [out,in,3,3], bias b [out]), float64.
+
+        K = s_3 W_3 + s_1 pad(W_1) + s_id I and b = t_3 + t_1 + t_id, each BN in eval mode being s x + t per channel
+        (:func:`_bn_affine`), pad(W_1) the 1x1 kernel at the centre of a 3x3 one and I the identity kernel (the
+        zero padding of the 3x3 convolution leaves the centre taps exact at the border).
+        """
+        s3, t3 = _bn_affine(self.norm)
+        s1, t1 = _bn_affine(self.norm1x1)
+        kernel = self.conv.weight.double() * s3[:, None, None, None]
+        kernel[:, :, 1, 1] += self.conv1x1.weight.double()[:, :, 0, 0] * s1[:, None]
+        bias = t3 + t1
+        if self.norm_identity is not None:
+            sid, tid = _bn_affine(self.norm_identity)
+            idx = torch.arange(kernel.shape[0], device=kernel.device)
+            kernel[idx, idx, 1, 1] += sid
+            bias = bias + tid
+        return kernel, bias
+
+    @torch.no_grad()
+    def folded(self) -> ConvBNReLU:
+        """The plain :class:`ConvBNReLU` (3x3 convolution without bias, BatchNorm, ReLU) with this block's eval output.
+
+        Its convolution is W = a K, a per output channel the ratio of the 3x3 branch's kernel norm to ||K|| (so a
+        later warm start steps the kernel at the scale the 3x3 branch trained at); its BatchNorm holds the mean
+        a m and variance a^2 v of W x, m = sum_k s_k mu_k exact and v = (sum_k |s_k| sigma_k)^2 a bound (the
+        branches' covariance is not kept; :func:`fold_branches` measures it given images), with
+        gamma = sqrt(a^2 v + eps) / a and beta = b + m, so that BN(W x) = K x + b in eval mode.  Draws no random
+        number.
+        """
+        kernel, bias = self.fused()
+        sigma = lambda bn: torch.sqrt(bn.running_var.double())  # noqa: E731
+        s3, _ = _bn_affine(self.norm)
+        mean = s3 * self.norm.running_mean.double()
+        spread = s3.abs() * sigma(self.norm)
+        for bn in self.branch_norms():
+            s, _ = _bn_affine(bn)
+            mean, spread = mean + s * bn.running_mean.double(), spread + s.abs() * sigma(bn)
+        k_norm = kernel.flatten(1).norm(dim=1)
+        w3_norm = self.conv.weight.double().flatten(1).norm(dim=1)
+        a = torch.where((k_norm > 0) & (w3_norm > 0), w3_norm / k_norm.clamp_min(1e-300), torch.ones_like(k_norm))
+        with torch.random.fork_rng(devices=[]):  # the new convolution's initialisation is overwritten
+            plain = ConvBNReLU(self.conv.in_channels, self.conv.out_channels, "batch", self.norm.momentum)
+        plain = plain.to(device=self.conv.weight.device, dtype=self.conv.weight.dtype)
+        conv, bn = plain[0], plain[1]
+        bn.eps = self.norm.eps
+        conv.weight.copy_(kernel * a[:, None, None, None])
+        bn.running_mean.copy_(a * mean)
+        bn.running_var.copy_(a * a * spread * spread)
+        bn.weight.copy_(torch.sqrt(a * a * spread * spread + bn.eps) / a)
+        bn.bias.copy_(bias + mean)
+        bn.num_batches_tracked.copy_(self.norm.num_batches_tracked)
+        return plain
+
+
+def _double_convs(model: nn.Module) -> list[DoubleConv]:
+    return [m for m in model.modules() if isinstance(m, DoubleConv)]
+
+
+def has_branches(model: nn.Module) -> bool:
+    """Whether ``model`` holds RepVGG training branches (:class:`ExpandedConvBNReLU`) still to fold."""
+    return any(isinstance(m, ExpandedConvBNReLU) for m in model.modules())
+
+
+def expand_branches(model: "TinyUNet", zero_init: bool = False) -> "TinyUNet":
+    """Give every 3x3 convolution of ``model`` RepVGG's training branches (:class:`ExpandedConvBNReLU`), in place.
+
+    The identity branch exists where input and output channels match: the second convolution of each of the five
+    :class:`DoubleConv`, 5 of the 10.  The 3x3 branches are ``model``'s own modules (the same weights, the same
+    random draws before this call); the new branches draw their initialisation from the global torch RNG.
+
+    Parameters
+    ----------
+    model : TinyUNet
+        A plain TinyUNet with BatchNorm (``train.norm: batch``).
+    zero_init : bool
+        New branches start at zero (:class:`ExpandedConvBNReLU`): the expanded model computes ``model``'s function.
+
+    Returns
+    -------
+    TinyUNet
+        ``model``, expanded.
+
+    Raises
+    ------
+    ValueError
+        ``model`` normalises with GroupNorm, or is expanded already.
+    """
+    if has_branches(model):
+        raise ValueError("the model already holds RepVGG branches")
+    for double in _double_convs(model):
+        for i, block in enumerate(double):
+            double[i] = ExpandedConvBNReLU(block, zero_init)
+    return model
+
+
+@torch.no_grad()
+def fold_branches(model: "TinyUNet", batches: Iterable[torch.Tensor] | None = None) -> "TinyUNet":
+    """Fold every :class:`ExpandedConvBNReLU` of ``model`` into a plain :class:`ConvBNReLU`, in place.
+
+    The eval-mode function is kept (:meth:`ExpandedConvBNReLU.folded`: exact up to rounding, the fusion in float64);
+    the result is the plain TinyUNet, whose state dict and ``config`` are those of a model trained without branches.
+    With ``batches``, each folded BatchNorm's running mean and variance become those of its input over the batches
+    (the mean of the batch means and of the unbiased batch variances, as :func:`recompute_bn_stats` averages),
+    measured in eval mode and with gamma and beta set so that the eval function stays the same; training mode (a
+    warm start) then normalises about as evaluation does.
+
+    Parameters
+    ----------
+    model : TinyUNet
+        A model expanded by :func:`expand_branches` (a plain one is returned unchanged).
+    batches : iterable of torch.Tensor or None
+        Images [B,3,H,W] on the model's device (the training images); None keeps the bound of
+        :meth:`ExpandedConvBNReLU.folded` for the variance.
+
+    Returns
+    -------
+    TinyUNet
+        ``model``, folded, in the train/eval mode it was in.
+    """
+    folded: list[nn.BatchNorm2d] = []
+    for double in _double_convs(model):
+        for i, block in enumerate(double):
+            if isinstance(block, ExpandedConvBNReLU):
+                double[i] = block.folded().train(block.training)
+                folded.append(double[i][1])
+    if batches is None or not folded:
+        return model
+    sums = {id(bn): [0, 0.0, 0.0] for bn in folded}
+
+    def collect(bn, args):  # per-channel batch statistics, summed in float64 (no float64 copy of the batch)
+        x = args[0].float()
+        acc = sums[id(bn)]
+        acc[0] += 1
+        acc[1] = acc[1] + x.mean(dim=(0, 2, 3)).double()
+        acc[2] = acc[2] + x.var(dim=(0, 2, 3), unbiased=True).double()
+
+    hooks = [bn.register_forward_pre_hook(collect) for bn in folded]
+    was_training = model.training
+    try:
+        model.eval()
+        for x in batches:
+            model(x)
+    finally:
+        for h in hooks:
+            h.remove()
+        model.train(was_training)
+    for bn in folded:
+        n, mean_sum, var_sum = sums[id(bn)]
+        if n:
+            s, t = _bn_affine(bn)  # the eval function s x + t, kept
+            mean, var = mean_sum / n, var_sum / n
+            bn.running_mean.copy_(mean)
+            bn.running_var.copy_(var)
+            bn.weight.copy_(s * torch.sqrt(var + bn.eps))
+            bn.bias.copy_(t + s * mean)
+    return model
 
 
 class GeometryHeads(nn.Module):
@@ -129,6 +347,9 @@ class ExportMaskPath(nn.Module):
 
     def __init__(self, unet: TinyUNet):
         super().__init__()
+        if has_branches(unet):
+            raise ValueError("ExportMaskPath takes the plain TinyUNet: fold its RepVGG branches first "
+                             "(pipeline.model.fold_branches)")
         src = copy.deepcopy(unet).float().eval()
         first: nn.Conv2d = src.enc1[0][0]
         folded = nn.Conv2d(first.in_channels, first.out_channels, first.kernel_size, padding=0, bias=True)

@@ -386,6 +386,13 @@ class TrainParams(with_recipe_parts(_TrainFields, "train")):
         return fill_recipe(data, "train", data.get("recipe", "paper") if isinstance(data, Mapping) else "paper")
 
     @model_validator(mode="after")
+    def _branches_fold_through_batch_norm(self):
+        if self.expand_branches and self.norm != "batch":
+            raise ValueError(f"train.expand_branches needs train.norm: batch (each branch's BatchNorm folds into "
+                             f"its convolution; {self.norm} normalisation does not fold)")
+        return self
+
+    @model_validator(mode="after")
     def _plateau_decay(self):
         if self.until == "plateau" and self.decay_fraction >= 1:
             raise ValueError("train.decay_fraction must be < 1 under until: plateau (its decay is f / (1 - f) of "

@@ -38,7 +38,8 @@ def step_seconds(cfg: Mapping[str, Any], resolution: int, device: str = "cpu", s
 
     if int(cfg["num_threads"]) > 0:
         torch.set_num_threads(int(cfg["num_threads"]))
-    model = build_model(get_method(STAGE_ONE), cfg, 0).to(device).train()
+    # the model that will train: with train.expand_branches, its RepVGG branches too
+    model = build_model(get_method(STAGE_ONE), cfg, 0, expand=bool(cfg["expand_branches"])).to(device).train()
     opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
     gen = torch.Generator().manual_seed(0)
     x = torch.rand(PROBE_BATCH, 3, int(resolution), int(resolution), generator=gen).to(device)

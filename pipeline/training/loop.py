@@ -26,7 +26,8 @@ from pipeline.runtime.errors import InputError, TrainingDiverged
 from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import Method, Plan, resolve_plan
 from pipeline.metrics import boundary_f1, image_ious
-from pipeline.model import TinyUNet, model_options, recompute_bn_stats
+from pipeline.model import (TinyUNet, count_parameters, expand_branches, fold_branches, model_options,
+                            recompute_bn_stats)
 from pipeline.params import PAPER
 from pipeline.runtime.progress import progress
 from pipeline.training.averaging import average_update, ema_update, in_average
@@ -52,12 +53,16 @@ BUDGET_PARAMS = ("train.step_budget", "train.time_budget")
 STATE_VERSION = 1
 
 
-def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: Mapping | None = None):
+def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: Mapping | None = None, *,
+                expand: bool = False):
     """Build the TinyUNet a method trains: seeded, or the Stage-I mask path of ``init_state``.
 
     The global torch RNG is seeded with ``seed`` before the mask path is built and, for a warm-started method,
     again after ``init_state`` is loaded, so its geometry heads (added where the method has them) are fresh and
-    seeded rather than following the discarded initialisation's draws.
+    seeded rather than following the discarded initialisation's draws.  With ``expand``
+    (``train.expand_branches``) the RepVGG branches come last (:func:`pipeline.model.expand_branches`): the plain
+    model's draws are those of a run without them, and a warm-started model re-expands with branches at zero, so
+    it starts as the (folded) Stage-I checkpoint.
 
     Parameters
     ----------
@@ -70,11 +75,14 @@ def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: M
         Seeds the global torch RNG (a side effect that the run's later draws follow).
     init_state : Mapping or None
         The Stage-I model's state dict (the mask path), for a warm-started method; ignored otherwise.
+    expand : bool
+        Give every 3x3 convolution RepVGG's training branches (zero at the start of a warm-started method).
 
     Returns
     -------
     pipeline.model.TinyUNet
-        On the CPU, in train mode.
+        On the CPU, in train mode; with ``expand``, holding branches that :func:`pipeline.model.fold_branches`
+        folds.
 
     Raises
     ------
@@ -95,6 +103,8 @@ def build_model(method: Method, cfg: Mapping[str, Any], seed: int, init_state: M
         torch.manual_seed(int(seed))
     if method.geometry_heads:
         model.add_geometry_heads()
+    if expand:
+        expand_branches(model, zero_init=method.init == "stage1")
     return model
 
 
@@ -243,7 +253,8 @@ class TrainResult:
     Attributes
     ----------
     model : pipeline.model.TinyUNet
-        The selected (or weight-averaged) model, on the CPU in eval mode.
+        The selected (or weight-averaged) model, on the CPU in eval mode; with ``train.expand_branches``, folded
+        into the plain TinyUNet (:func:`pipeline.model.fold_branches`).
     log : pandas.DataFrame
         One row per epoch (epoch 0: a warm-started method's starting point), columns :data:`LOG_COLUMNS`
         (schema ``training_log``); NaN where a method does not use a term or an epoch was not validated.
@@ -252,7 +263,9 @@ class TrainResult:
     info : dict
         ``selected_epoch``, ``selection`` (the rule, in words), ``epochs``, ``lr``, ``steps_run``,
         ``low_res_epochs``, ``mode``, ``loss_weights``, ``epoch0_eligible``, ``autocast``, ``channels_last``,
-        the training data's stats and, under ``until: plateau``, ``stable_epochs`` and ``stopped`` (why).
+        the training data's stats, under ``until: plateau`` ``stable_epochs`` and ``stopped`` (why) and, with
+        ``train.expand_branches``, ``folded`` (the parameters trained and deployed, the folding's largest |logit
+        change| on the first training batch).
     timings : list of dict
         ``{"epoch", "seconds"}`` per log row (:data:`TIMING_COLUMNS`): wall-clock seconds, kept out of the log so
         that it is reproducible.
@@ -315,9 +328,9 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
     They are built in the order that fixes the torch RNG stream.
     """
     amp = autocast_dtype(device, s.precision)
-    model = build_model(method, cfg, seed, init_state)
+    model = build_model(method, cfg, seed, init_state, expand=s.expand_branches)
     anchor, scratch = None, None
-    if "anchor" in plan.weights:
+    if "anchor" in plan.weights:  # from the folded (plain) Stage-I model: never expanded
         frozen = build_model(dataclasses.replace(method, terms=("region",)), cfg, seed, init_state)
         if isinstance(data.images, RowSource):
             scratch = tempfile.TemporaryDirectory(prefix="geodistill_anchor_")
@@ -334,7 +347,9 @@ def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data
                **({"until": s.until, "step_budget": s.step_budget,  # a finished stop is kept only under its rule
                    "plateau_rule": [s.plateau_gain, s.plateau_min_epochs, s.plateau_min_steps, PLATEAU_Z]} if s.until != "epochs" else {}),
                "train_ids": list(data.image_ids), "num_threads": int(torch.get_num_threads()),
-               "autocast": str(amp).replace("torch.", "") if amp is not None else "fp32"}
+               "autocast": str(amp).replace("torch.", "") if amp is not None else "fp32",
+               # the states of a run with RepVGG branches hold the expanded weights; off, the key is as before
+               **({"expand_branches": True} if s.expand_branches else {})}
     run = _Run(method=method, seed=int(seed), settings=s, plan=plan, device=device, amp=amp, model=model,
                opt=opt, sched=None, tensors=_tensors(data, device, anchor), n_train=len(data), run_key=run_key,
                scratch=scratch, geometry=data.geometry, soft_mask=soft_region(data.mask))
@@ -498,14 +513,38 @@ def _empty_row(run: _Run, epoch: int) -> dict:
             **{k: float("nan") for k in LOG_TERMS}, "lr": float("nan")}
 
 
+def _image_batches(run: _Run):
+    """Yield the training images in manifest order, in training batches, on the run's device (no target is read)."""
+    n, bs = run.n_train, run.settings.batch_size
+    inputs = {k: run.tensors[k] for k in ("image", "area", "gate")}
+    return (_batch(inputs, torch.arange(i, min(i + bs, n), device=run.device), None,
+                   run.settings.channels_last)["x"] for i in range(0, n, bs))
+
+
 def _precise_bn(run: _Run) -> int:
     """Precise BN over the training images in manifest order and training batches (no weight, no random draw)."""
-    n, bs = run.n_train, run.settings.batch_size
-    inputs = {k: run.tensors[k] for k in ("image", "area", "gate")}  # the images only: no target is read
-    batches = (_batch(inputs, torch.arange(i, min(i + bs, n), device=run.device), None,
-                      run.settings.channels_last)["x"] for i in range(0, n, bs))
     with autocast(run.device, run.amp):
-        return recompute_bn_stats(run.model, batches)
+        return recompute_bn_stats(run.model, _image_batches(run))
+
+
+@torch.no_grad()
+def _fold(run: _Run) -> dict:
+    """Fold the RepVGG branches of ``run.model`` into the plain TinyUNet; what the fold did, for the run's info.
+
+    :func:`pipeline.model.fold_branches` measures the folded BN statistics over the training images in fp32.  The folded model's largest |logit change| on the first training batch (fp32, eval mode) is measured here, so
+    each checkpoint records its own folding error.
+    """
+    x = next(iter(_image_batches(run)))
+    was_training = run.model.training
+    run.model.eval()
+    before, trained = run.model(x).float(), count_parameters(run.model)
+    fold_branches(run.model, _image_batches(run))
+    err = float((run.model(x).float() - before).abs().max())
+    run.model.train(was_training)
+    return {"branches": "RepVGG (train.expand_branches), folded at the end of the stage, after any weight average "
+                        "and its BN recompute",
+            "parameters_trained": trained, "parameters_deployed": count_parameters(run.model),
+            "fold_max_abs_logit_diff": err}
 
 
 def validation_read(run: _Run, epoch: int) -> bool:
@@ -640,6 +679,7 @@ def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainRe
     if run.ema is not None or run.avg is not None:  # averaged weights, BN statistics recomputed for them
         _precise_bn(run)
         run.best = {"epoch": run.epochs, "score": None, "state": None}
+    folded = _fold(run) if s.expand_branches else None  # after the average and its BN recompute
     model = run.model.to("cpu").to(memory_format=torch.contiguous_format).eval()
     info = {"selected_epoch": int(run.best["epoch"]), "selection": selection, "epochs": run.epochs, "lr": s.lr,
             "steps_run": int(run.epochs * run.steps_per_epoch),
@@ -649,6 +689,8 @@ def _result(run: _Run, val: ValData | None, stats: Mapping[str, Any]) -> TrainRe
             "autocast": run.run_key["autocast"], "channels_last": s.channels_last, **stats}
     if run.until is not None:
         info.update(stable_epochs=run.until["stable_end"], stopped=run.until["reason"])
+    if folded is not None:  # off: the info (and the checkpoint's metadata) as before
+        info["folded"] = folded
     return TrainResult(model=model, log=pd.DataFrame(run.rows, columns=list(LOG_COLUMNS)),
                        selected_epoch=int(run.best["epoch"]), info=info,
                        timings=[{k: r[k] for k in TIMING_COLUMNS} for r in run.rows])
