@@ -20,6 +20,7 @@ from pipeline.datasets import synthetic as syn
 from pipeline.datasets.loading import BadFileError, DecodeCache, Loaded, load_labels, load_mask, load_rgb, mask_kind
 from pipeline.datasets.manifest import (BadInputPolicy, DatasetSpec, check_rows, drop_duplicate_ids,
                                         enforce_spacecraft_disjoint)
+from pipeline.datasets.params import FrameSettings
 from pipeline.runtime.errors import InputError
 from pipeline.runtime.progress import progress
 
@@ -39,18 +40,12 @@ def _png(arr: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-def view_options(syn_cfg: dict) -> dict:
-    """The generator's view-sampling knobs from ``data.synthetic`` (defaults in synthetic.sample_view)."""
-    keys = ("tiny_range", "regular_range", "tiny_probability", "hard_case_probability", "background_weights")
-    return {k: syn_cfg[k] for k in keys if k in syn_cfg}
-
-
 def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) -> DatasetSpec:
     """Render the synthetic benchmark (params ``data``) into ``<out_dir>/synthetic`` and list it."""
     size, seed = int(cfg["resolution"]), int(cfg["seed"])
     syn_cfg = cfg["synthetic"]
     plan = syn.synthetic_plan(syn_cfg)
-    opts = view_options(syn_cfg)
+    opts = syn.sampling_options(syn_cfg)
     final = Path(out_dir) / SYNTHETIC_DIR
     rows = []
     total = sum(p.views for p in plan)
@@ -75,8 +70,7 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
                                          background=view.background, hard_case=view.hard_case,
                                          area_fraction=view.area_fraction))
                 bar.update(1)
-    return DatasetSpec(rows=pd.DataFrame(rows), protocol={"name": "synthetic", "plan": [vars(p) for p in plan]},
-                       max_pixels=cfg["max_pixels"], letterbox=cfg["letterbox"])
+    return DatasetSpec(rows=pd.DataFrame(rows), protocol={"name": "synthetic", "plan": [vars(p) for p in plan]})
 
 
 def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = None) -> DatasetSpec:
@@ -84,7 +78,6 @@ def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = 
     synthetic files survive a switch of source.
     """
     spec = adapters.build_source(cfg, policy)
-    spec.max_pixels, spec.bit_depth, spec.letterbox = cfg["max_pixels"], cfg["bit_depth"], cfg["letterbox"]
     if out_dir is not None:
         with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:
             (tmp / output_file("synthetic_files", "readme")).write_text(
@@ -106,17 +99,17 @@ def _has(v) -> bool:
     return isinstance(v, str) and v != ""
 
 
-def _load(spec: DatasetSpec, col: str, path: str, size: int, cache: DecodeCache | None):
+def _load(spec: DatasetSpec, frames: FrameSettings, col: str, path: str, size: int, cache: DecodeCache | None):
     """The file of column ``col`` read by its rule (image, mask or part labels) at ``size``."""
-    kw = {"max_pixels": spec.max_pixels, "letterbox": spec.letterbox}
+    kw = {"max_pixels": frames.max_pixels, "letterbox": frames.letterbox}
     if col == "image_path":
-        return load_rgb(path, size, cache, bit_depth=spec.bit_depth, **kw)
+        return load_rgb(path, size, cache, bit_depth=frames.bit_depth, **kw)
     if col == "mask_path":
         return load_mask(path, size, cache, spec.mask_threshold, **kw)
     return load_labels(path, size, cache, spec.part_colors, **kw)
 
 
-def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeCache | None,
+def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, frames: FrameSettings, size: int, cache: DecodeCache | None,
                 policy: BadInputPolicy) -> pd.DataFrame:
     """First pass: decode every file (into the cache) and fill width/height/sha256; a row with a bad file, or a
     mask/part of another size than its image, goes through the policy and its other files are listed.
@@ -124,12 +117,12 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
     kept: dict[int, Loaded] = {}   # row -> its image
     for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):
         try:
-            img = _load(spec, "image_path", r.image_path, size, cache)
+            img = _load(spec, frames, "image_path", r.image_path, size, cache)
             for col in ("mask_path", "part_path"):
                 path = getattr(r, col)
                 if not _has(path):
                     continue
-                got = _load(spec, col, path, size, cache)
+                got = _load(spec, frames, col, path, size, cache)
                 if got.native_hw != img.native_hw:
                     raise BadFileError(path, f"{col.split('_')[0]} size {got.native_hw[1]}x{got.native_hw[0]} differs "
                                              f"from image {r.image_path} size {img.native_hw[1]}x{img.native_hw[0]}")
@@ -156,11 +149,11 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
     return out
 
 
-def iter_arrays(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeCache | None
+def iter_arrays(rows: pd.DataFrame, spec: DatasetSpec, frames: FrameSettings, size: int, cache: DecodeCache | None
                 ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]]:
     """Yield ``(row, image uint8 [S,S,3], mask bool [S,S] | None, parts uint8 [S,S] | None)``."""
     for i, r in enumerate(rows.itertuples(index=False)):
-        img, mask, parts = (_load(spec, col, p, size, cache).array if _has(p) else None
+        img, mask, parts = (_load(spec, frames, col, p, size, cache).array if _has(p) else None
                             for col, p in (("image_path", r.image_path), ("mask_path", r.mask_path),
                                            ("part_path", r.part_path)))
         yield i, img, mask, parts

@@ -149,7 +149,7 @@ def check_bit_depth(bit_depth) -> str | int:
                      "16-bit frame's sensor; auto = the file's full range)", BIT_DEPTH(bit_depth))
 
 
-def scale_16bit(arr: np.ndarray, bit_depth=PAPER.data.bit_depth) -> tuple[np.ndarray, str | None]:
+def scale_16bit(arr: np.ndarray, bit_depth: str | int) -> tuple[np.ndarray, str | None]:
     """``(uint8 array, warning or None)`` of a uint16 array: ``auto``/16 = ``round(v / 257)``;
     10/12/14 = ``round(min(v, 2**bits - 1) * 255 / (2**bits - 1))``.
     """
@@ -171,7 +171,7 @@ def scale_16bit(arr: np.ndarray, bit_depth=PAPER.data.bit_depth) -> tuple[np.nda
     return a8, note
 
 
-def rgb8_and_note(arr: np.ndarray, path: str | Path = "<array>", bit_depth=PAPER.data.bit_depth) -> tuple[np.ndarray, str | None]:
+def rgb8_and_note(arr: np.ndarray, path: str | Path, bit_depth: str | int) -> tuple[np.ndarray, str | None]:
     """:func:`to_rgb8` without its warning: ``(RGB uint8 [H, W, 3], note or None)``; the decode cache
     keeps the note, so a cached frame is warned about too.
     """
@@ -513,6 +513,6 @@ def load_labels(path, size: int, cache: DecodeCache | None = None,
     if colors:
         table = as_color_table(colors)
         return _load(path, size, table.kind(), cache,
-                     lambda a: parts_from_colors(rgb8_and_note(a, path)[0], table, path), max_pixels, letterbox)
+                     lambda a: parts_from_colors(rgb8_and_note(a, path, AUTO_BIT_DEPTH)[0], table, path), max_pixels, letterbox)
     return _load(path, size, "labels", cache, lambda a: np.clip(a[..., 0] if a.ndim == 3 else a, 0, 255)
                  .astype(np.uint8), max_pixels, letterbox)

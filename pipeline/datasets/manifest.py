@@ -13,7 +13,7 @@ import pandas as pd
 
 from pipeline.artifacts.atomic import write_csv
 from pipeline.runtime.errors import SKIP_BAD, InputError, Option, literal
-from pipeline.params import PAPER, SPLITS
+from pipeline.params import SPLITS
 
 __all__ = ["ROW_COLUMNS", "DatasetSpec", "BadInputPolicy", "write_skipped_csv", "drop_duplicate_ids", "relative_id",
            "enforce_spacecraft_disjoint", "check_rows"]
@@ -32,7 +32,7 @@ class DatasetSpec:
 
     ``mask_threshold``: foreground = max channel > threshold (None: the loader's rule); ``part_colors``:
     the colour table of colour-coded part masks (None: label images or none); ``protocol``: kept in the
-    manifest metadata; ``max_pixels``, ``bit_depth``, ``letterbox``: the ``data`` params of the same name.
+    manifest metadata.
     """
 
     rows: pd.DataFrame
@@ -40,9 +40,6 @@ class DatasetSpec:
     part_colors: dict | None = None
     spacecraft_disjoint: bool = True
     protocol: dict = dataclasses.field(default_factory=dict)
-    max_pixels: int | None = None
-    bit_depth: str | int = PAPER.data.bit_depth
-    letterbox: bool = PAPER.data.letterbox
 
 
 #: what a refusal suggests, ``{}`` naming ``--skip-bad`` / ``skip_bad=True`` in the caller's terms

@@ -8,16 +8,17 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import inspect
 import math
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import cv2
 import numpy as np
 
 from pipeline.params import PAPER
 
-__all__ = ["PART_NAMES", "stable_hash", "make_spacecraft", "sample_view", "rasterize", "synthetic_plan", "view_rng",
-           "generate_view"]
+__all__ = ["PART_NAMES", "stable_hash", "make_spacecraft", "sample_view", "rasterize", "synthetic_plan",
+           "sampling_options", "view_rng", "generate_view"]
 
 PART_BACKGROUND, PART_BUS, PART_PANEL, PART_BOOM, PART_DISH, PART_PAYLOAD = range(6)
 PART_NAMES = ("background", "bus", "panel", "antenna/boom/truss", "dish", "payload")
@@ -735,6 +736,23 @@ def synthetic_plan(cfg: dict) -> list[PlannedSpacecraft]:
         plan += [PlannedSpacecraft(f"syn-{g}-{i}", "test", str(g), int(cfg["test_views"]))
                  for i in range(int(cfg["test_spacecraft_per_group"]))]
     return plan
+
+
+def sampling_options(cfg: Mapping) -> dict:
+    """Pick the view-sampling knobs out of ``data.synthetic``: the keywords :func:`sample_view` takes.
+
+    Parameters
+    ----------
+    cfg : Mapping
+        The validated ``data.synthetic`` section.
+
+    Returns
+    -------
+    dict
+        ``{keyword: value}`` for each keyword-only parameter of :func:`sample_view` that ``cfg`` holds.
+    """
+    keys = [p.name for p in inspect.signature(sample_view).parameters.values() if p.kind is p.KEYWORD_ONLY]
+    return {k: cfg[k] for k in keys if k in cfg}
 
 
 def view_rng(seed: int, spacecraft: str, view_index: int) -> np.random.Generator:
