@@ -582,7 +582,7 @@ def rasterize(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.
     rng : numpy.random.Generator
         The view's generator (image-plane placement).
     rasterizer : str
-        ``cv2`` or ``numpy`` (:data:`RASTERIZERS`; the same buffer).
+        ``cv2`` or ``numpy`` (:data:`RASTERIZERS`; a baseline differing only in which boundary pixels count).
 
     Returns
     -------
@@ -871,7 +871,7 @@ def generate_view(model: SpacecraftModel, view_index: int, size: int, seed: int,
     view_options : dict, optional
         Keywords of :func:`sample_view` (:func:`sampling_options`); None: its defaults.
     rasterizer : str
-        ``cv2`` or ``numpy`` (the same pixels).
+        ``cv2`` or ``numpy`` (:func:`rasterize`).
 
     Returns
     -------
