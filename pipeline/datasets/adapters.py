@@ -1,5 +1,6 @@
-"""Real-dataset readers: a root directory + a protocol file (``data_manifests/*.yaml``) -> manifest rows, files
-unopened (layouts: docs/real-data.md; choices: docs/decisions.md, "Dataset readers").
+"""Real-dataset readers: a root directory + a protocol file (``data_manifests/*.yaml``) -> manifest rows.
+
+The files are not opened here (layouts: docs/real-data.md; choices: docs/decisions.md, "Dataset readers").
 """
 
 from __future__ import annotations
@@ -74,6 +75,36 @@ def _root(cfg: dict) -> Path:
 
 
 def row(image_id, dataset, domain, split, group, spacecraft, image_path, mask_path=None, part_path=None, **extra):
+    """Make one manifest row (the columns :data:`pipeline.datasets.manifest.ROW_COLUMNS`, then ``extra``).
+
+    Parameters
+    ----------
+    image_id : str
+        The row's unique id (every N-indexed artifact is keyed by it).
+    dataset : str
+        The source's name (``synthetic``, ``spark``, ...).
+    domain : str
+        The imaging domain (SPEED+: ``lightbox``, ``sunlamp``, ``synthetic``; else the dataset's name).
+    split : str
+        ``train``, ``val`` or ``test``.
+    group : str
+        The evaluation group (a test group, or the split's name).
+    spacecraft : str
+        The spacecraft identity that eq:spacecraft-disjoint keeps within one split.
+    image_path : str or Path
+        The image file.
+    mask_path : str or Path, optional
+        The reference mask file (None or empty: none).
+    part_path : str or Path, optional
+        The part-label file (None or empty: none).
+    **extra
+        Further columns kept as given (a trajectory, the official split, ...).
+
+    Returns
+    -------
+    dict
+        ``{column: value}``; paths as strings, absent masks and parts as None.
+    """
     return {"image_id": image_id, "dataset": dataset, "domain": domain, "split": split, "group": group,
             "spacecraft": spacecraft, "image_path": str(image_path),
             "mask_path": str(mask_path) if mask_path else None,
@@ -85,8 +116,9 @@ def _frame(rows: list[dict]) -> pd.DataFrame:
 
 
 def _parse_colors(proto: dict, where: Path) -> ColorTable | None:
-    """The protocol's ``part_colors`` ("R,G,B": label), ``color_tolerance`` and ``color_blends`` as a
-    :class:`~pipeline.datasets.loading.ColorTable`; None when the table is empty.
+    """Read the protocol's ``part_colors`` ("R,G,B": label), ``color_tolerance`` and ``color_blends``.
+
+    Returns a :class:`~pipeline.datasets.loading.ColorTable`, or None when the table is empty.
     """
     out = {}
     for key, label in (proto.get("part_colors") or {}).items():
@@ -113,8 +145,9 @@ def _parse_colors(proto: dict, where: Path) -> ColorTable | None:
 
 def _disjoint_plan(found: dict[str, list], splits: dict, where: Path, root: Path, seed: int, name: str
                    ) -> list[tuple[str, str, str, int]]:
-    """eq:spacecraft-disjoint plan ``[(spacecraft, split, group, images)]`` from a protocol's ``splits``:
-    test groups, then val and train, each named spacecraft or a seeded draw of ``count`` from the rest.
+    """Plan eq:spacecraft-disjoint ``[(spacecraft, split, group, images)]`` from a protocol's ``splits``.
+
+    Test groups first, then val and train, each of named spacecraft or a seeded draw of ``count`` from the rest.
     """
     groups = _get(splits, "test_groups", where, dict)
     used: set[str] = set()
@@ -155,8 +188,9 @@ def _disjoint_plan(found: dict[str, list], splits: dict, where: Path, root: Path
 
 def _disjoint_source(name: str, found: dict[str, list[tuple[str, Path, Path]]], cfg: dict, proto: dict,
                      where: Path, root: Path, column: str, mask_threshold: float) -> DatasetSpec:
-    """Rows of a spacecraft-disjoint dataset from ``found`` {spacecraft: [(sub, image, mask)]}: id
-    ``<spacecraft>__<sub>__<image stem>``, ``sub`` kept in ``column``; masks on validation and test rows.
+    """List the rows of a spacecraft-disjoint dataset from ``found`` {spacecraft: [(sub, image, mask)]}.
+
+    Each id is ``<spacecraft>__<sub>__<image stem>``, ``sub`` kept in ``column``; masks on validation and test rows.
     """
     seed = int(cfg["seed"])
     plan = _disjoint_plan(found, _get(proto, "splits", where, dict), where, root, seed, name)
@@ -212,7 +246,7 @@ SPARK_COLUMNS = ("Class", "Image name", "Mask name")
 
 
 def _read_spark_csv(path: Path) -> list[dict]:
-    """The rows of a SPARK list (columns :data:`SPARK_COLUMNS`, others ignored)."""
+    """Read the rows of a SPARK list (columns :data:`SPARK_COLUMNS`, others ignored)."""
     try:
         with path.open(newline="", encoding="utf-8-sig") as f:
             reader = csv.DictReader(f)
@@ -355,8 +389,9 @@ def tango_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
 
 
 def _folder_entries(d: Path, policy: BadInputPolicy) -> list[tuple[str, Path]]:
-    """(id, path) of the image files under ``d`` (:func:`pipeline.datasets.scan.scan_inputs`); id = the
-    posix path relative to ``d`` without its suffix.  Bad entries go through the policy.
+    """List ``(id, path)`` of the image files under ``d`` (:func:`pipeline.datasets.scan.scan_inputs`).
+
+    The id is the posix path relative to ``d`` without its suffix.  Bad entries go through the policy.
     """
     found = scan_inputs(d, keep_broken_links=True)
     policy.report_scan(found)
@@ -417,7 +452,26 @@ SCANNING_ADAPTERS = {"folder"}   # adapters that report unused files themselves 
 
 
 def build_source(cfg: dict, policy: BadInputPolicy | None = None) -> DatasetSpec:
-    """Rows of the real dataset named by ``data.source`` under ``data.root`` with its protocol file."""
+    """List the rows of the real dataset named by ``data.source`` under ``data.root``, by its protocol file.
+
+    Parameters
+    ----------
+    cfg : dict
+        The validated ``data:`` section (``source``, ``root``, ``protocol``, ``seed``, ``domain``).
+    policy : BadInputPolicy, optional
+        The bad-input policy a scanning source (``folder``) reports unusable entries to; None: refuse them.
+
+    Returns
+    -------
+    DatasetSpec
+        The rows, the protocol's reading rules (mask threshold, part colours) and what it records.
+
+    Raises
+    ------
+    InputError
+        A missing root, protocol file or list, a protocol key of the wrong type, or an impossible split
+        (raised by the source's reader, naming the file).
+    """
     source = cfg["source"]
     extra = (policy or BadInputPolicy(False),) if source in SCANNING_ADAPTERS else ()
     return ADAPTERS[source](cfg, *load_protocol(source, cfg.get("protocol")), *extra)

@@ -1,5 +1,7 @@
-"""Assemble a dataset for the ``prepare`` stage: source rows -> checked manifest -> every file decoded once
-(under the bad-input policy, into the decode cache) -> working-resolution arrays.
+"""Assemble a dataset for the ``prepare`` stage.
+
+Source rows -> checked manifest -> every file decoded once (under the bad-input policy, into the decode cache)
+-> working-resolution arrays.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from pipeline.datasets import synthetic as syn
 from pipeline.datasets.loading import BadFileError, DecodeCache, Loaded, load_labels, load_mask, load_rgb, mask_kind
 from pipeline.datasets.manifest import (BadInputPolicy, DatasetSpec, check_rows, drop_duplicate_ids,
                                         enforce_spacecraft_disjoint)
+from pipeline.datasets.params import FrameSettings
 from pipeline.runtime.errors import InputError
 from pipeline.runtime.progress import progress
 
@@ -39,18 +42,27 @@ def _png(arr: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-def view_options(syn_cfg: dict) -> dict:
-    """The generator's view-sampling knobs from ``data.synthetic`` (defaults in synthetic.sample_view)."""
-    keys = ("tiny_range", "regular_range", "tiny_probability", "hard_case_probability", "background_weights")
-    return {k: syn_cfg[k] for k in keys if k in syn_cfg}
-
-
 def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) -> DatasetSpec:
-    """Render the synthetic benchmark (params ``data``) into ``<out_dir>/synthetic`` and list it."""
+    """Render the synthetic benchmark into ``<out_dir>/synthetic`` and list it.
+
+    Parameters
+    ----------
+    cfg : dict
+        The validated ``data:`` section (``resolution``, ``seed`` and the ``synthetic`` knobs).
+    out_dir : str or Path
+        The artifacts folder; its ``synthetic`` folder is replaced whole.
+    cache : DecodeCache or None
+        Receives the rendered arrays under the written files' hashes, so the decode pass reads none back.
+
+    Returns
+    -------
+    DatasetSpec
+        The rows (one per view, with its background, hard case and area fraction) and the plan as protocol.
+    """
     size, seed = int(cfg["resolution"]), int(cfg["seed"])
     syn_cfg = cfg["synthetic"]
     plan = syn.synthetic_plan(syn_cfg)
-    opts = view_options(syn_cfg)
+    opts = syn.sampling_options(syn_cfg)
     final = Path(out_dir) / SYNTHETIC_DIR
     rows = []
     total = sum(p.views for p in plan)
@@ -75,16 +87,30 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
                                          background=view.background, hard_case=view.hard_case,
                                          area_fraction=view.area_fraction))
                 bar.update(1)
-    return DatasetSpec(rows=pd.DataFrame(rows), protocol={"name": "synthetic", "plan": [vars(p) for p in plan]},
-                       max_pixels=cfg["max_pixels"], letterbox=cfg["letterbox"])
+    return DatasetSpec(rows=pd.DataFrame(rows), protocol={"name": "synthetic", "plan": [vars(p) for p in plan]})
 
 
 def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = None) -> DatasetSpec:
-    """Rows of a real dataset; ``<out_dir>/synthetic`` (a DVC output) is replaced by a note, so no stale
-    synthetic files survive a switch of source.
+    """List the rows of a real dataset (:func:`pipeline.datasets.adapters.build_source`).
+
+    ``<out_dir>/synthetic`` (a DVC output) is replaced by a note, so no stale synthetic files survive a switch of
+    source.
+
+    Parameters
+    ----------
+    cfg : dict
+        The validated ``data:`` section.
+    policy : BadInputPolicy
+        Where a scanning source reports unusable entries.
+    out_dir : str or Path, optional
+        The artifacts folder whose ``synthetic`` folder becomes the note; None: nothing is written.
+
+    Returns
+    -------
+    DatasetSpec
+        The source's rows and reading rules.
     """
     spec = adapters.build_source(cfg, policy)
-    spec.max_pixels, spec.bit_depth, spec.letterbox = cfg["max_pixels"], cfg["bit_depth"], cfg["letterbox"]
     if out_dir is not None:
         with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:
             (tmp / output_file("synthetic_files", "readme")).write_text(
@@ -94,7 +120,27 @@ def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = 
 
 
 def check_manifest(spec: DatasetSpec, policy: BadInputPolicy, where: str = "manifest") -> pd.DataFrame:
-    """Columns/splits, unique image ids, and eq:spacecraft-disjoint when the protocol requires it."""
+    """Check a source's rows: columns, splits, unique image ids, and eq:spacecraft-disjoint where required.
+
+    Parameters
+    ----------
+    spec : DatasetSpec
+        The source's rows; ``spec.spacecraft_disjoint`` says whether its protocol requires the split rule.
+    policy : BadInputPolicy
+        Refuses a duplicate id or a spacecraft in two splits, or (``skip_bad``) lists it and drops the row.
+    where : str
+        What the refusals name (``data.source=...``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        The rows kept.
+
+    Raises
+    ------
+    InputError
+        Missing columns, unknown split names or no rows (never skipped), or a refused row.
+    """
     rows = check_rows(spec.rows, where)
     rows = drop_duplicate_ids(rows, policy)
     if spec.spacecraft_disjoint:
@@ -106,30 +152,59 @@ def _has(v) -> bool:
     return isinstance(v, str) and v != ""
 
 
-def _load(spec: DatasetSpec, col: str, path: str, size: int, cache: DecodeCache | None):
-    """The file of column ``col`` read by its rule (image, mask or part labels) at ``size``."""
-    kw = {"max_pixels": spec.max_pixels, "letterbox": spec.letterbox}
+def _load(spec: DatasetSpec, frames: FrameSettings, col: str, path: str, size: int, cache: DecodeCache | None):
+    """Read the file of column ``col`` by its rule (image, mask or part labels) at ``size``."""
+    kw = {"max_pixels": frames.max_pixels, "letterbox": frames.letterbox}
     if col == "image_path":
-        return load_rgb(path, size, cache, bit_depth=spec.bit_depth, **kw)
+        return load_rgb(path, size, cache, bit_depth=frames.bit_depth, **kw)
     if col == "mask_path":
         return load_mask(path, size, cache, spec.mask_threshold, **kw)
     return load_labels(path, size, cache, spec.part_colors, **kw)
 
 
-def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeCache | None,
+def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, frames: FrameSettings, size: int, cache: DecodeCache | None,
                 policy: BadInputPolicy) -> pd.DataFrame:
-    """First pass: decode every file (into the cache) and fill width/height/sha256; a row with a bad file, or a
-    mask/part of another size than its image, goes through the policy and its other files are listed.
+    """Decode every file once (into the cache) and fill the width, height and sha256 columns.
+
+    A row with a bad file, or a mask or part file of another size than its image, goes through the policy, and
+    its other files are listed as not used.
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        The checked manifest rows (:func:`check_manifest`).
+    spec : DatasetSpec
+        The source's reading rules (mask threshold, part colours).
+    frames : FrameSettings
+        How a frame file is read (``data.bit_depth``, ``data.letterbox``, ``data.max_pixels``).
+    size : int
+        The working resolution (``data.resolution``).
+    cache : DecodeCache or None
+        The decode cache (None: none).
+    policy : BadInputPolicy
+        Refuses a bad file or lists it.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The rows kept, with ``width``, ``height`` (as displayed) and ``sha256`` (of the pixels as shown).
+
+    Raises
+    ------
+    BadFileError
+        A mask or part file whose size differs from its image's, when the policy refuses it.
+    InputError
+        When no image is left, or a bad file the policy refuses.
     """
     kept: dict[int, Loaded] = {}   # row -> its image
     for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):
         try:
-            img = _load(spec, "image_path", r.image_path, size, cache)
+            img = _load(spec, frames, "image_path", r.image_path, size, cache)
             for col in ("mask_path", "part_path"):
                 path = getattr(r, col)
                 if not _has(path):
                     continue
-                got = _load(spec, col, path, size, cache)
+                got = _load(spec, frames, col, path, size, cache)
                 if got.native_hw != img.native_hw:
                     raise BadFileError(path, f"{col.split('_')[0]} size {got.native_hw[1]}x{got.native_hw[0]} differs "
                                              f"from image {r.image_path} size {img.native_hw[1]}x{img.native_hw[0]}")
@@ -156,18 +231,48 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeC
     return out
 
 
-def iter_arrays(rows: pd.DataFrame, spec: DatasetSpec, size: int, cache: DecodeCache | None
+def iter_arrays(rows: pd.DataFrame, spec: DatasetSpec, frames: FrameSettings, size: int, cache: DecodeCache | None
                 ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]]:
-    """Yield ``(row, image uint8 [S,S,3], mask bool [S,S] | None, parts uint8 [S,S] | None)``."""
+    """Read each row's arrays at the working resolution, in manifest order.
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        Decoded manifest rows (:func:`decode_rows`).
+    spec : DatasetSpec
+        The source's reading rules.
+    frames : FrameSettings
+        How a frame file is read.
+    size : int
+        The working resolution S.
+    cache : DecodeCache or None
+        The decode cache (None: none).
+
+    Yields
+    ------
+    tuple
+        ``(row index, image uint8 [S,S,3], mask bool [S,S] or None, parts uint8 [S,S] or None)``.
+    """
     for i, r in enumerate(rows.itertuples(index=False)):
-        img, mask, parts = (_load(spec, col, p, size, cache).array if _has(p) else None
+        img, mask, parts = (_load(spec, frames, col, p, size, cache).array if _has(p) else None
                             for col, p in (("image_path", r.image_path), ("mask_path", r.mask_path),
                                            ("part_path", r.part_path)))
         yield i, img, mask, parts
 
 
 def content_digest(rows: pd.DataFrame) -> str:
-    """sha256 over (image_id, split, group, file sha256) in manifest order: the data's identity for the fingerprint."""
+    """Hash the data's identity for the fingerprint: (image_id, split, group, file sha256) in manifest order.
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        Decoded manifest rows.
+
+    Returns
+    -------
+    str
+        The sha256 hex digest.
+    """
     h = hashlib.sha256()
     for iid, split, group, s in zip(rows["image_id"], rows["split"], rows["group"], rows["sha256"]):
         h.update(f"{iid}\0{split}\0{group}\0{s}\n".encode())

@@ -12,7 +12,22 @@ CONTOUR_RGB = (0, 255, 0)
 
 
 def sample_for_sheet(rows: pd.DataFrame, n: int, seed: int) -> np.ndarray:
-    """Row indices: round-robin over (split, group) so every group shows, seeded within a group."""
+    """Pick the rows a contact sheet shows: round-robin over (split, group), seeded within a group.
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        Manifest rows (``split`` and ``group`` columns).
+    n : int
+        How many to pick (``data.contact_sheet_images``); fewer when there are fewer rows.
+    seed : int
+        The shuffle's seed within each group (``data.seed``).
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 row indices, every group shown before any shows twice.
+    """
     rng = np.random.default_rng(seed)
     groups = [rng.permutation(idx.to_numpy()) for _, idx in rows.groupby(["split", "group"], sort=True).groups.items()]
     out: list[int] = []
@@ -26,7 +41,24 @@ def sample_for_sheet(rows: pd.DataFrame, n: int, seed: int) -> np.ndarray:
 
 
 def tile(image: np.ndarray, mask: np.ndarray | None, label: str, size: int) -> np.ndarray:
-    """One tile: the image upscaled (nearest) to ``size``, GT contour in green, a caption."""
+    """Draw one tile: the image upscaled (nearest) to ``size``, its reference contour in green, a caption.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        RGB uint8 [R, R, 3].
+    mask : numpy.ndarray or None
+        Bool [R, R] reference mask (None or empty: no contour).
+    label : str
+        The caption, wrapped so it is never cut (:func:`caption_lines`).
+    size : int
+        The tile's side in pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        RGB uint8 [size, size, 3].
+    """
     t = cv2.resize(image, (size, size), interpolation=cv2.INTER_NEAREST) if image.shape[0] != size else image.copy()
     if mask is not None and mask.any():
         m = cv2.resize(mask.astype(np.uint8), (size, size), interpolation=cv2.INTER_NEAREST)
@@ -41,9 +73,10 @@ def tile(image: np.ndarray, mask: np.ndarray | None, label: str, size: int) -> n
 
 
 def caption_lines(label: str, width: int, scale: float, min_scale: float = 0.25) -> tuple[list[str], float]:
-    """``label`` wrapped at spaces and ``/`` into lines of at most ``width`` pixels at font ``scale`` --
-    shrunk (down to ``min_scale``) while a single word is wider, then broken inside the word -- so that
-    a caption is never cut: (lines, scale).
+    """Wrap ``label`` at spaces and ``/`` into lines of at most ``width`` pixels at font ``scale``.
+
+    The scale shrinks (down to ``min_scale``) while a single word is wider, then a word is broken inside, so
+    that a caption is never cut: ``(lines, scale)``.
     """
     def fits(text: str, sc: float) -> bool:
         return cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, sc, 1)[0][0] <= width
@@ -69,7 +102,22 @@ def caption_lines(label: str, width: int, scale: float, min_scale: float = 0.25)
 
 
 def contact_sheet(tiles: list[np.ndarray], columns: int = 4, pad: int = 2) -> np.ndarray:
-    """Grid of equally sized RGB tiles (row-major), separated by ``pad`` grey pixels."""
+    """Lay equally sized RGB tiles out in a grid (row-major), separated by ``pad`` grey pixels.
+
+    Parameters
+    ----------
+    tiles : list of numpy.ndarray
+        RGB uint8 [s, s, 3] each.
+    columns : int
+        Tiles per row (fewer when there are fewer tiles).
+    pad : int
+        Grey pixels between and around the tiles.
+
+    Returns
+    -------
+    numpy.ndarray
+        The sheet, RGB uint8; an 8 x 8 black image when there are no tiles.
+    """
     if not tiles:
         return np.zeros((8, 8, 3), np.uint8)
     s = tiles[0].shape[0]

@@ -1,5 +1,6 @@
-"""Width and height of a PNG, JPEG, TIFF (classic and BigTIFF) or BMP file from its header, the format told by
-the content as OpenCV does (why not Pillow: docs/dependencies.md).
+"""Width and height of a PNG, JPEG, TIFF (classic and BigTIFF) or BMP file from its header.
+
+The format is told by the content, as OpenCV does (why not Pillow: docs/dependencies.md).
 """
 
 from __future__ import annotations
@@ -20,8 +21,9 @@ def _png(data: bytes) -> tuple[int, int] | None:
 
 
 def _jpeg_segments(data: bytes):
-    """Yield (marker, offset, length) of a JPEG's marker segments with a length field, in file order; stop at
-    bytes that are not a marker or a segment shorter than its length field.
+    """Yield (marker, offset, length) of a JPEG's marker segments with a length field, in file order.
+
+    Stop at bytes that are not a marker, or at a segment shorter than its length field.
     """
     i, n = 2, len(data)
     while i + 4 <= n:
@@ -96,8 +98,18 @@ def _bmp(data: bytes) -> tuple[int, int] | None:
 
 
 def header_size(data: bytes) -> tuple[int, int] | None:
-    """``(width, height)`` declared by the header of a PNG, JPEG, TIFF or BMP file's bytes; None when
-    the bytes start with none of them, or the header is cut short, malformed or declares a zero size.
+    """Read the size a PNG, JPEG, TIFF or BMP file's header declares, without decoding the pixels.
+
+    Parameters
+    ----------
+    data : bytes
+        The file's bytes (its header at least).
+
+    Returns
+    -------
+    tuple of int or None
+        ``(width, height)``; None when the bytes start with none of these formats, or the header is cut short,
+        malformed or declares a zero size.
     """
     try:
         if data.startswith(PNG_SIGNATURE):
@@ -122,7 +134,7 @@ ORIENTATION_TAG = 0x0112
 
 
 def _exif_orientation(tiff: bytes) -> int:
-    """The Orientation tag of IFD0 of an EXIF block's TIFF structure (1 when absent or malformed)."""
+    """Read the Orientation tag of IFD0 of an EXIF block's TIFF structure (1 when absent or malformed)."""
     e = {b"II": "<", b"MM": ">"}.get(tiff[:2])
     if e is None or struct.unpack(e + "H", tiff[2:4])[0] != 42:
         return 1
@@ -138,9 +150,18 @@ def _exif_orientation(tiff: bytes) -> int:
 
 
 def jpeg_orientation(data: bytes) -> int:
-    """The EXIF orientation (1-8, TIFF/EXIF convention) of a JPEG file's bytes: how a viewer turns or flips
-    the stored pixels to show them; 1 (shown as stored) for any other format, a JPEG without EXIF or
-    with a value outside 1-8, or a malformed header.
+    """Read a JPEG file's EXIF orientation: how a viewer turns or flips the stored pixels to show them.
+
+    Parameters
+    ----------
+    data : bytes
+        The file's bytes.
+
+    Returns
+    -------
+    int
+        1-8 (the TIFF/EXIF convention); 1 (shown as stored) for any other format, a JPEG without EXIF or with a
+        value outside 1-8, or a malformed header.
     """
     if not data.startswith(b"\xff\xd8\xff"):
         return 1

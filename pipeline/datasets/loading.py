@@ -1,6 +1,8 @@
-"""One image/mask loader for every source: RGB uint8 images, bool masks by ``foreground = value > 0`` unless a
-protocol sets a threshold, the header's size checked against ``max_pixels`` before decoding, and a decode
-cache keyed by (sha256, kind, resolution) (docs/decisions.md, "Image and mask decoding").
+"""One image/mask loader for every source.
+
+RGB uint8 images, bool masks by ``foreground = value > 0`` unless a protocol sets a threshold, the header's size
+checked against ``max_pixels`` before decoding, and a decode cache keyed by (sha256, kind, resolution)
+(docs/decisions.md, "Image and mask decoding").
 """
 
 from __future__ import annotations
@@ -34,8 +36,18 @@ UNDECODABLE = "corrupt or undecodable image"
 
 
 class BadFileError(InputError):
-    """A file that cannot be used: ``{path}: {reason} ({fix})``; ``reason`` names no option (the
-    skipped-file listings hold it), ``fix`` names the ``options`` that would let the file in.
+    """A file that cannot be used: ``{path}: {reason} ({fix})``.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    reason : str
+        Why it cannot be used; names no option (the skipped-file listings hold it).
+    fix : str
+        What would let the file in, naming ``options`` with ``{}``; empty: nothing.
+    *options : Option
+        The options ``fix`` names, spelled in the caller's terms (``--max-pixels`` or ``max_pixels=``).
     """
 
     def __init__(self, path: str | Path, reason: str, fix: str = "", *options: Option):
@@ -45,12 +57,23 @@ class BadFileError(InputError):
         text = f"{literal(path)}: {literal(reason)}" if options else f"{path}: {reason}"
         super().__init__(text + (f" ({fix})" if fix else ""), *options)
 
-    def __reduce__(self):  # pickled across Ray workers: rebuilt from its own arguments
+    def __reduce__(self):  # noqa: D105 -- pickled across Ray workers: rebuilt from its own arguments
         return type(self), (self.path, self.reason, self.fix, *self.options)
 
 
 def broken_link_reason(p: Path) -> str:
-    """The one wording of a broken symbolic link (the folder scan and the decode pass say the same)."""
+    """Word a broken symbolic link's reason once (the folder scan and the decode pass say the same).
+
+    Parameters
+    ----------
+    p : Path
+        The link.
+
+    Returns
+    -------
+    str
+        The reason, naming the missing target when it can be read.
+    """
     try:
         return f"broken symbolic link (its target {os.readlink(p)} does not exist)"
     except OSError:
@@ -79,7 +102,24 @@ def read_bytes(path: str | Path) -> bytes:
 
 
 def pixel_limit(max_pixels: int | None = None) -> int:
-    """``max_pixels`` checked (a whole number >= 1), or :data:`DEFAULT_MAX_PIXELS` when None."""
+    """Check a pixel limit: a whole number >= 1.
+
+    Parameters
+    ----------
+    max_pixels : int, optional
+        Width x height above which a file is refused; None: ``data.max_pixels``'s schema default
+        (:data:`DEFAULT_MAX_PIXELS`).
+
+    Returns
+    -------
+    int
+        The limit.
+
+    Raises
+    ------
+    InputError
+        Not a whole number >= 1, naming ``--max-pixels`` / ``max_pixels=``.
+    """
     if max_pixels is None:
         return DEFAULT_MAX_PIXELS
     if isinstance(max_pixels, bool) or not isinstance(max_pixels, (int, np.integer)) or max_pixels < 1:
@@ -89,8 +129,9 @@ def pixel_limit(max_pixels: int | None = None) -> int:
 
 
 def check_header(data: bytes, path: str | Path, max_pixels: int | None = None) -> tuple[int, int]:
-    """``(width, height)`` from the file header; :class:`BadFileError` when there is none or the image
-    is above ``max_pixels``.
+    """Read ``(width, height)`` from the file header and check it against ``max_pixels``.
+
+    :class:`BadFileError` when there is no header or the image is above the limit.
     """
     limit = pixel_limit(max_pixels)
     size = header_size(data)
@@ -111,9 +152,11 @@ def read_image_bytes(path: str | Path, max_pixels: int | None = None) -> bytes:
 
 
 def as_displayed(arr: np.ndarray, orientation: int) -> np.ndarray:
-    """``arr`` [H, W, ...] as a viewer shows it under EXIF ``orientation`` (1-8; 1: as stored): 2 mirrored,
-    3 turned 180 degrees, 4 flipped top-bottom, 5 transposed, 6 turned 90 degrees clockwise, 7 transposed
-    across the other diagonal, 8 turned 90 degrees anticlockwise (what OpenCV's ``imread`` does by default).
+    """Turn ``arr`` [H, W, ...] as a viewer shows it under EXIF ``orientation`` (1-8; 1: as stored).
+
+    2 mirrored, 3 turned 180 degrees, 4 flipped top-bottom, 5 transposed, 6 turned 90 degrees clockwise,
+    7 transposed across the other diagonal, 8 turned 90 degrees anticlockwise (what OpenCV's ``imread`` does by
+    default).
     """
     o = int(orientation)
     if o in (5, 6, 7, 8):
@@ -125,8 +168,9 @@ def as_displayed(arr: np.ndarray, orientation: int) -> np.ndarray:
 
 
 def _decode(data: bytes, path: str | Path) -> np.ndarray:
-    """The one decode of every image and mask file: its pixels as displayed, a JPEG's EXIF orientation
-    applied (``IMREAD_UNCHANGED`` keeps 16 bits and alpha but ignores the orientation, so it is applied here).
+    """Decode an image or mask file's bytes (the one decode of every file): its pixels as displayed.
+
+    A JPEG's EXIF orientation is applied here, since ``IMREAD_UNCHANGED`` keeps 16 bits and alpha but ignores it.
     """
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None or arr.size == 0:
@@ -142,16 +186,33 @@ LOW_RANGE_NOTE = "16-bit frame whose brightest value is"
 
 
 def check_bit_depth(bit_depth) -> str | int:
-    """``bit_depth`` checked against :data:`pipeline.params.BIT_DEPTHS` (the Python API's ``bit_depth=``)."""
+    """Check a bit depth against :data:`pipeline.params.BIT_DEPTHS` (the Python API's ``bit_depth=``).
+
+    Parameters
+    ----------
+    bit_depth : str or int
+        ``auto`` or the bits a 16-bit frame's sensor fills.
+
+    Returns
+    -------
+    str or int
+        ``bit_depth``.
+
+    Raises
+    ------
+    InputError
+        A value outside the list (a bool included), naming ``--bit-depth`` / ``bit_depth=``.
+    """
     if not isinstance(bit_depth, bool) and bit_depth in BIT_DEPTHS:
         return bit_depth
     raise InputError(f"{{}}: expected one of {', '.join(map(str, BIT_DEPTHS))} (bits of a "
                      "16-bit frame's sensor; auto = the file's full range)", BIT_DEPTH(bit_depth))
 
 
-def scale_16bit(arr: np.ndarray, bit_depth=PAPER.data.bit_depth) -> tuple[np.ndarray, str | None]:
-    """``(uint8 array, warning or None)`` of a uint16 array: ``auto``/16 = ``round(v / 257)``;
-    10/12/14 = ``round(min(v, 2**bits - 1) * 255 / (2**bits - 1))``.
+def scale_16bit(arr: np.ndarray, bit_depth: str | int) -> tuple[np.ndarray, str | None]:
+    """Scale a uint16 array to uint8: ``(array, warning or None)``.
+
+    ``auto`` and 16: ``round(v / 257)``; 10/12/14: ``round(min(v, 2**bits - 1) * 255 / (2**bits - 1))``.
     """
     bit_depth = check_bit_depth(bit_depth)
     peak = int(arr.max()) if arr.size else 0
@@ -171,9 +232,10 @@ def scale_16bit(arr: np.ndarray, bit_depth=PAPER.data.bit_depth) -> tuple[np.nda
     return a8, note
 
 
-def rgb8_and_note(arr: np.ndarray, path: str | Path = "<array>", bit_depth=PAPER.data.bit_depth) -> tuple[np.ndarray, str | None]:
-    """:func:`to_rgb8` without its warning: ``(RGB uint8 [H, W, 3], note or None)``; the decode cache
-    keeps the note, so a cached frame is warned about too.
+def rgb8_and_note(arr: np.ndarray, path: str | Path, bit_depth: str | int) -> tuple[np.ndarray, str | None]:
+    """Convert as :func:`to_rgb8` does, without its warning: ``(RGB uint8 [H, W, 3], note or None)``.
+
+    The decode cache keeps the note, so a cached frame is warned about too.
     """
     note = None
     if arr.dtype == np.uint8:
@@ -196,14 +258,57 @@ def rgb8_and_note(arr: np.ndarray, path: str | Path = "<array>", bit_depth=PAPER
 
 
 def to_rgb8(arr: np.ndarray, path: str | Path = "<array>", bit_depth=PAPER.data.bit_depth) -> np.ndarray:
-    """Decoded OpenCV array (grey, BGR, BGRA; 8/16-bit or float) -> RGB uint8 [H, W, 3]."""
+    """Convert a decoded OpenCV array (grey, BGR, BGRA; 8/16-bit or float) to RGB uint8 [H, W, 3].
+
+    A 16-bit frame is scaled by ``bit_depth``; what is worth knowing about its values is warned once.
+
+    Parameters
+    ----------
+    arr : numpy.ndarray
+        The decoded pixels, OpenCV's channel order.
+    path : str or Path
+        The file the pixels came from, for the messages.
+    bit_depth : str or int
+        ``data.bit_depth``'s meaning: ``auto`` or the bits a 16-bit frame's sensor fills.
+
+    Returns
+    -------
+    numpy.ndarray
+        RGB uint8 [H, W, 3].
+
+    Raises
+    ------
+    InputError
+        ``bit_depth`` outside :data:`pipeline.params.BIT_DEPTHS`; a :class:`BadFileError` for an unsupported pixel
+        type, shape or channel count.
+    """
     rgb, note = rgb8_and_note(arr, path, bit_depth)
     warn_frame_once(path, note)
     return rgb
 
 
 def read_rgb(path: str | Path, *, max_pixels: int | None = None, bit_depth=PAPER.data.bit_depth) -> np.ndarray:
-    """Any supported image file as RGB uint8 [H, W, 3] at native size."""
+    """Read any supported image file as RGB uint8 [H, W, 3] at native size.
+
+    Parameters
+    ----------
+    path : str or Path
+        The image file (:data:`SUPPORTED_SUFFIXES`).
+    max_pixels : int, optional
+        Refuse a file above this many pixels, read from its header (None: ``data.max_pixels``'s default).
+    bit_depth : str or int
+        ``auto`` or the bits a 16-bit frame's sensor fills (``data.bit_depth``).
+
+    Returns
+    -------
+    numpy.ndarray
+        RGB uint8 [H, W, 3], as displayed (EXIF orientation applied).
+
+    Raises
+    ------
+    BadFileError
+        A missing, unreadable, zero-byte, unsupported, corrupt or oversized file.
+    """
     return to_rgb8(_decode(read_image_bytes(path, max_pixels), path), path, bit_depth)
 
 
@@ -212,8 +317,9 @@ _warned_frames: set[tuple[str, str]] = set()
 
 
 def warn_frame_once(path: str | Path, note: str | None) -> None:
-    """The one warning per (absolute file path, note) about how a frame's values were read; a dark
-    16-bit frame's once per run (:func:`reset_frame_warnings`).
+    """Warn once per (absolute file path, note) about how a frame's values were read.
+
+    A dark 16-bit frame is warned about once per run (:func:`reset_frame_warnings`).
     """
     dark = bool(note) and note.startswith(LOW_RANGE_NOTE)
     key = ("", LOW_RANGE_NOTE) if dark else (os.path.abspath(path), note)
@@ -224,12 +330,12 @@ def warn_frame_once(path: str | Path, note: str | None) -> None:
 
 
 def reset_frame_warnings() -> None:
-    """A new run's frames are warned about again."""
+    """Forget the frames warned about, so that a new run's frames are warned about again."""
     _warned_frames.clear()
 
 
 def warn_mask_once(path: str | Path, note: str | None) -> None:
-    """The one warning per file (per process) for a multi-valued mask read with the default rule."""
+    """Warn once per file (per process) about a multi-valued mask read with the default rule."""
     if note and str(path) not in _warned:
         _warned.add(str(path))
         log.warning("%s: %s: %s (set an explicit mask_threshold in the protocol file for another rule)",
@@ -237,8 +343,10 @@ def warn_mask_once(path: str | Path, note: str | None) -> None:
 
 
 def binarize_mask(arr: np.ndarray, threshold: float | None = None) -> tuple[np.ndarray, str | None]:
-    """``(bool mask, note)``: foreground = max over channels > ``threshold`` (None: > 0); ``note``
-    describes a multi-valued mask under the default rule (more than one non-zero value).
+    """Binarise a decoded mask: ``(bool mask, note)``, foreground = max over channels > ``threshold``.
+
+    ``threshold`` None means > 0; ``note`` describes a multi-valued mask under that default rule (more than one
+    non-zero value).
     """
     a = arr.max(axis=2) if arr.ndim == 3 else arr
     if threshold is not None:
@@ -252,7 +360,27 @@ def binarize_mask(arr: np.ndarray, threshold: float | None = None) -> tuple[np.n
 
 
 def read_mask(path: str | Path, threshold: float | None = None, *, max_pixels: int | None = None) -> np.ndarray:
-    """A mask file as bool [H, W] at native size, warning once per file about a multi-valued mask."""
+    """Read a mask file as bool [H, W] at native size, warning once per file about a multi-valued mask.
+
+    Parameters
+    ----------
+    path : str or Path
+        The mask file.
+    threshold : float, optional
+        Foreground = max over channels > ``threshold``; None: > 0.
+    max_pixels : int, optional
+        Refuse a file above this many pixels, read from its header (None: ``data.max_pixels``'s default).
+
+    Returns
+    -------
+    numpy.ndarray
+        Bool [H, W], as displayed.
+
+    Raises
+    ------
+    BadFileError
+        A missing, unreadable, zero-byte, unsupported, corrupt or oversized file.
+    """
     mask, note = binarize_mask(_decode(read_image_bytes(path, max_pixels), path), threshold)
     warn_mask_once(path, note)
     return mask
@@ -266,22 +394,43 @@ BACKGROUND_RGB = (0, 0, 0)
 class ColorTable:
     """A colour-coded part mask's class table ``{(r, g, b): label}``, black = background unless listed.
 
-    ``tolerance``: per channel, for a pixel to take a colour; ``blends``: a pixel within ``tolerance`` of
-    the line between two colours (a JPEG boundary between two classes) takes the nearer one's label.
+    Attributes
+    ----------
+    colors : dict
+        ``{(r, g, b): label}``.
+    tolerance : int
+        Per channel, how far a pixel may be from a colour and take it.
+    blends : bool
+        Whether a pixel within ``tolerance`` of the line between two colours (a JPEG boundary between two
+        classes) takes the nearer one's label.
     """
 
     colors: dict
     tolerance: int = 0
     blends: bool = False
 
-    def __bool__(self) -> bool:  # an empty table is no table: there are no part labels to read
+    def __bool__(self) -> bool:  # noqa: D105 -- an empty table is no table: there are no part labels to read
         return bool(self.colors)
 
     def entries(self) -> dict[tuple[int, int, int], int]:
+        """List the table with background.
+
+        Returns
+        -------
+        dict
+            ``{(r, g, b): label}``, black mapped to 0 unless the table maps it.
+        """
         return {BACKGROUND_RGB: 0, **{tuple(int(v) for v in k): int(lbl) for k, lbl in self.colors.items()}}
 
     def kind(self) -> str:
-        """Decode-cache kind: the table, its tolerance and the rule ("refuse-unknown")."""
+        """Name the decode-cache kind of labels read by this table.
+
+        Returns
+        -------
+        str
+            ``parts<10 hex digits>``: a hash of the table, its tolerance, blending and the rule
+            ("refuse-unknown").
+        """
         key = repr((sorted(self.entries().items()), int(self.tolerance), bool(self.blends), "refuse-unknown"))
         return f"parts{hashlib.sha256(key.encode()).hexdigest()[:10]}"
 
@@ -291,8 +440,9 @@ def as_color_table(colors: dict | ColorTable) -> ColorTable:
 
 
 def parts_from_colors(rgb: np.ndarray, colors: dict | ColorTable, path: str | Path = "<array>") -> np.ndarray:
-    """Colour-coded part mask (RGB uint8) -> part labels uint8 by the table (a dict: exact colours); a
-    colour outside it is a :class:`BadFileError` naming the most frequent one.
+    """Map a colour-coded part mask (RGB uint8) to part labels uint8 by the table (a dict: exact colours).
+
+    A colour outside the table is a :class:`BadFileError` naming the most frequent one.
     """
     table = as_color_table(colors)
     entries = table.entries()
@@ -345,7 +495,24 @@ def pad_to_square(img: np.ndarray) -> np.ndarray:
 
 def resize_image(img: np.ndarray, size: int, letterbox: bool = PAPER.data.letterbox, interpolation: int = cv2.INTER_AREA
                  ) -> np.ndarray:
-    """Square working resolution, area interpolation; ``letterbox``: padded to a square first."""
+    """Resize an image to the square working resolution, area interpolation by default.
+
+    Parameters
+    ----------
+    img : numpy.ndarray
+        [H, W, ...] at native size.
+    size : int
+        The working resolution R.
+    letterbox : bool
+        Pad to a square with zeros first (aspect kept, ``data.letterbox``); else squash.
+    interpolation : int
+        The OpenCV interpolation flag.
+
+    Returns
+    -------
+    numpy.ndarray
+        [R, R, ...]; ``img`` itself when it is already R x R (and not padded).
+    """
     if letterbox:
         img = pad_to_square(img)
     if img.shape[0] == size and img.shape[1] == size:
@@ -354,8 +521,10 @@ def resize_image(img: np.ndarray, size: int, letterbox: bool = PAPER.data.letter
 
 
 def _frame_samples(n: int, offset: int, side: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Bilinear taps ``(i0, i1, weight of i1)`` along one axis of a frame's ``n`` pixels at ``offset`` in the
-    padded square, clamped to the working pixels holding some of the frame (no tap on pure pad).
+    """Place bilinear taps ``(i0, i1, weight of i1)`` along one axis of a frame in its padded square.
+
+    The frame's ``n`` pixels lie at ``offset``; the taps are clamped to the working pixels holding some of the
+    frame (no tap on pure pad).
     """
     scale = size / side
     lo = int(np.floor(offset * scale))
@@ -367,8 +536,22 @@ def _frame_samples(n: int, offset: int, side: int, size: int) -> tuple[np.ndarra
 
 
 def probs_to_size(probs: np.ndarray, height: int, width: int, letterbox: bool = PAPER.data.letterbox) -> np.ndarray:
-    """Bilinear resize of a probability map [R,R] back to [height, width]; ``letterbox``: the pad is cropped
-    and never sampled (:func:`_frame_samples`).
+    """Resize a probability map [R, R] back to its frame's [height, width], bilinearly.
+
+    Parameters
+    ----------
+    probs : numpy.ndarray
+        Probabilities [R, R] at the working resolution.
+    height, width : int
+        The frame's size as displayed.
+    letterbox : bool
+        Whether the frame was letterboxed (``data.letterbox``): the pad is then cropped and never sampled
+        (:func:`_frame_samples`).
+
+    Returns
+    -------
+    numpy.ndarray
+        Probabilities [height, width], clipped to [0, 1].
     """
     if not letterbox:
         if probs.shape == (height, width):
@@ -384,13 +567,32 @@ def probs_to_size(probs: np.ndarray, height: int, width: int, letterbox: bool = 
 
 
 def resize_nearest(lbl: np.ndarray, size: int, letterbox: bool = PAPER.data.letterbox) -> np.ndarray:
-    """Nearest-neighbour resize of a label/mask array to size x size (``letterbox`` as :func:`resize_image`)."""
+    """Resize a label or mask array to size x size, nearest neighbour.
+
+    Parameters
+    ----------
+    lbl : numpy.ndarray
+        Labels or a mask [H, W].
+    size : int
+        The working resolution.
+    letterbox : bool
+        Pad to a square first, as :func:`resize_image` does.
+
+    Returns
+    -------
+    numpy.ndarray
+        [size, size], of ``lbl``'s dtype.
+    """
     return resize_image(lbl.astype(np.uint8), size, letterbox, cv2.INTER_NEAREST).astype(lbl.dtype)
 
 
 class DecodeCache:
-    """Content-addressed cache of decoded, resized arrays (``<sha[:2]>/<sha>-<kind>-<size>.npz``);
-    ``root=None`` disables it.
+    """Content-addressed cache of decoded, resized arrays (``<sha[:2]>/<sha>-<kind>-<size>.npz``).
+
+    Parameters
+    ----------
+    root : str or Path, optional
+        The cache folder (``data.cache_dir``); None disables the cache.
     """
 
     def __init__(self, root: str | Path | None = DEFAULT_CACHE_DIR):
@@ -400,29 +602,95 @@ class DecodeCache:
 
     @staticmethod
     def key(sha: str, kind: str, size: int) -> str:
+        """Name an entry: ``<sha>-<kind>-<size>``, also stored inside it.
+
+        Parameters
+        ----------
+        sha : str
+            sha256 of the file's bytes.
+        kind : str
+            How the file was read (``rgb``, ``maskgt0``, ``parts...``, with ``-letterbox``/``-exif<n>``).
+        size : int
+            The working resolution.
+
+        Returns
+        -------
+        str
+            The key.
+        """
         return f"{sha}-{kind}-{int(size)}"
 
     def path(self, sha: str, kind: str, size: int) -> Path:
+        """Locate an entry's file under the root.
+
+        Parameters
+        ----------
+        sha : str
+            sha256 of the file's bytes.
+        kind : str
+            How the file was read.
+        size : int
+            The working resolution.
+
+        Returns
+        -------
+        Path
+            ``<root>/<sha[:2]>/<key>.npz``.
+        """
         return self.root / sha[:2] / f"{self.key(sha, kind, size)}.npz"
 
     def get(self, sha: str, kind: str, size: int) -> tuple[np.ndarray, tuple[int, int], str | None] | None:
-        """``(array, native_hw, note)`` or None (miss, unreadable entry, or an entry of another key)."""
+        """Look an entry up.
+
+        Parameters
+        ----------
+        sha : str
+            sha256 of the file's bytes.
+        kind : str
+            How the file was read.
+        size : int
+            The working resolution.
+
+        Returns
+        -------
+        tuple or None
+            ``(array, native_hw, note or None)``; None on a miss, an unreadable entry, or an entry of another key
+            (the cache disabled included).
+        """
         if self.root is None:
             return None
+        hit = None
         try:
             with np.load(self.path(sha, kind, size), allow_pickle=False) as z:
-                if str(z["k"]) != self.key(sha, kind, size):
-                    raise ValueError("entry of another key")
-                arr, hw = z["a"], tuple(int(v) for v in z["hw"])
-                note = str(z["w"]) or None
-        except Exception:  # noqa: BLE001 -- a missing, torn, foreign or misplaced entry is a miss; it is rewritten
+                if str(z["k"]) == self.key(sha, kind, size):  # else an entry of another key, misplaced: a miss
+                    hit = z["a"], tuple(int(v) for v in z["hw"]), str(z["w"]) or None
+        except Exception:  # noqa: BLE001 -- a missing, torn or foreign entry is a miss; it is rewritten
+            pass
+        if hit is None:
             self.misses += 1
-            return None
-        self.hits += 1
-        return arr, hw, note
+        else:
+            self.hits += 1
+        return hit
 
     def put(self, sha: str, kind: str, size: int, arr: np.ndarray, native_hw: tuple[int, int],
             note: str | None = None) -> None:
+        """Store an entry atomically (a temporary file, then a rename); nothing when the cache is disabled.
+
+        Parameters
+        ----------
+        sha : str
+            sha256 of the file's bytes.
+        kind : str
+            How the file was read.
+        size : int
+            The working resolution.
+        arr : numpy.ndarray
+            The array at the working resolution.
+        native_hw : tuple of int
+            ``(height, width)`` of the file as displayed.
+        note : str, optional
+            What the reader would warn about (kept, so a cached read warns too).
+        """
         if self.root is None:
             return
         p = self.path(sha, kind, size)
@@ -439,15 +707,30 @@ class DecodeCache:
 
 @dataclasses.dataclass
 class Loaded:
-    array: np.ndarray            # at the working resolution
-    sha256: str                  # of the file bytes
-    native_hw: tuple[int, int]   # (height, width) of the file as displayed (EXIF orientation applied)
-    orientation: int = 1         # the file's EXIF orientation (1: shown as stored)
+    """One file read at the working resolution.
+
+    Attributes
+    ----------
+    array : numpy.ndarray
+        The pixels, labels or mask at the working resolution.
+    sha256 : str
+        sha256 of the file's bytes.
+    native_hw : tuple of int
+        ``(height, width)`` of the file as displayed (EXIF orientation applied).
+    orientation : int
+        The file's EXIF orientation (1: shown as stored).
+    """
+
+    array: np.ndarray
+    sha256: str
+    native_hw: tuple[int, int]
+    orientation: int = 1
 
     @property
     def content_sha256(self) -> str:
-        """The key of the pixels a model sees: :attr:`sha256`, or for a file shown turned or flipped
-        (EXIF orientation other than 1) a sha256 over it and the orientation, so answers cached before
+        """The key of the pixels a model sees: :attr:`sha256`, or a hash over it and the orientation.
+
+        A file shown turned or flipped (EXIF orientation other than 1) gets the latter, so answers cached before
         the orientation was applied are not reused.
         """
         if self.orientation == 1:
@@ -457,8 +740,10 @@ class Loaded:
 
 def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pixels: int | None,
           letterbox: bool = PAPER.data.letterbox) -> Loaded:
-    """``decode(array) -> array`` or ``(array, note)``; the note is cached with the entry and warned about
-    once per file.  The pixel limit is checked first, so a cached entry made under a higher limit is refused.
+    """Read ``path`` through the cache: ``decode(array)`` returns an array or ``(array, note)``.
+
+    The note is cached with the entry and warned about once per file.  The pixel limit is checked first, so a
+    cached entry made under a higher limit is refused.
     """
     data = read_image_bytes(path, max_pixels)
     sha = hashlib.sha256(data).hexdigest()
@@ -485,8 +770,32 @@ def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pix
 
 def load_rgb(path, size: int, cache: DecodeCache | None = None, *, max_pixels: int | None = None,
              bit_depth=PAPER.data.bit_depth, letterbox: bool = PAPER.data.letterbox) -> Loaded:
-    """RGB uint8 [size, size, 3] (area interpolation), its sha256 and native size; cached (kind ``rgb``, or
-    ``rgb<bits>bit`` under a stated bit depth).
+    """Read an image file at the working resolution (area interpolation), through the decode cache.
+
+    Parameters
+    ----------
+    path : str or Path
+        The image file.
+    size : int
+        The working resolution S (``data.resolution``).
+    cache : DecodeCache, optional
+        The decode cache (kind ``rgb``, or ``rgb<bits>bit`` under a stated bit depth); None: none.
+    max_pixels : int, optional
+        Refuse a file above this many pixels, read from its header (None: ``data.max_pixels``'s default).
+    bit_depth : str or int
+        ``auto`` or the bits a 16-bit frame's sensor fills (``data.bit_depth``).
+    letterbox : bool
+        Pad to a square before resizing (``data.letterbox``); else squash.
+
+    Returns
+    -------
+    Loaded
+        RGB uint8 [S, S, 3], the file's sha256, its size as displayed and its EXIF orientation.
+
+    Raises
+    ------
+    InputError
+        ``bit_depth`` outside :data:`pipeline.params.BIT_DEPTHS`; a :class:`BadFileError` for a bad file.
     """
     bit_depth = check_bit_depth(bit_depth)
     kind = "rgb" if bit_depth == AUTO_BIT_DEPTH else f"rgb{int(bit_depth)}bit"
@@ -495,13 +804,50 @@ def load_rgb(path, size: int, cache: DecodeCache | None = None, *, max_pixels: i
 
 
 def mask_kind(threshold: float | None) -> str:
-    """Decode-cache kind of a mask read with ``threshold``."""
+    """Name the decode-cache kind of a mask read with ``threshold``.
+
+    Parameters
+    ----------
+    threshold : float or None
+        The mask's threshold (None: the loader's rule, > 0).
+
+    Returns
+    -------
+    str
+        ``maskgt0`` or ``mask<threshold>``.
+    """
     return "maskgt0" if threshold is None else f"mask{threshold}"
 
 
 def load_mask(path, size: int, cache: DecodeCache | None = None, threshold: float | None = None, *,
               max_pixels: int | None = None, letterbox: bool = PAPER.data.letterbox) -> Loaded:
-    """Bool [size, size] (nearest), binarised by :func:`binarize_mask`; cached per threshold."""
+    """Read a mask file at the working resolution (nearest), binarised by :func:`binarize_mask`.
+
+    Parameters
+    ----------
+    path : str or Path
+        The mask file.
+    size : int
+        The working resolution S.
+    cache : DecodeCache, optional
+        The decode cache (one entry per threshold); None: none.
+    threshold : float, optional
+        Foreground = max over channels > ``threshold``; None: > 0.
+    max_pixels : int, optional
+        Refuse a file above this many pixels, read from its header (None: ``data.max_pixels``'s default).
+    letterbox : bool
+        Pad to a square before resizing, as its image is (``data.letterbox``).
+
+    Returns
+    -------
+    Loaded
+        Bool [S, S], the file's sha256, size as displayed and EXIF orientation.
+
+    Raises
+    ------
+    BadFileError
+        A missing, unreadable, zero-byte, unsupported, corrupt or oversized file.
+    """
     return _load(path, size, mask_kind(threshold), cache, lambda a: binarize_mask(a, threshold), max_pixels,
                  letterbox)
 
@@ -509,10 +855,36 @@ def load_mask(path, size: int, cache: DecodeCache | None = None, threshold: floa
 def load_labels(path, size: int, cache: DecodeCache | None = None,
                 colors: dict | ColorTable | None = None, *, max_pixels: int | None = None,
                 letterbox: bool = PAPER.data.letterbox) -> Loaded:
-    """Part labels uint8 [size, size] (nearest): a label image, or a colour-coded one mapped by ``colors``."""
+    """Read a part-label file at the working resolution (nearest).
+
+    Parameters
+    ----------
+    path : str or Path
+        A label image (value = label) or a colour-coded part mask.
+    size : int
+        The working resolution S.
+    cache : DecodeCache, optional
+        The decode cache; None: none.
+    colors : dict or ColorTable, optional
+        The colour table of a colour-coded mask; None or empty: a label image.
+    max_pixels : int, optional
+        Refuse a file above this many pixels, read from its header (None: ``data.max_pixels``'s default).
+    letterbox : bool
+        Pad to a square before resizing, as its image is (``data.letterbox``).
+
+    Returns
+    -------
+    Loaded
+        Labels uint8 [S, S], the file's sha256, size as displayed and EXIF orientation.
+
+    Raises
+    ------
+    BadFileError
+        A bad file, or a colour outside the table.
+    """
     if colors:
         table = as_color_table(colors)
         return _load(path, size, table.kind(), cache,
-                     lambda a: parts_from_colors(rgb8_and_note(a, path)[0], table, path), max_pixels, letterbox)
+                     lambda a: parts_from_colors(rgb8_and_note(a, path, AUTO_BIT_DEPTH)[0], table, path), max_pixels, letterbox)
     return _load(path, size, "labels", cache, lambda a: np.clip(a[..., 0] if a.ndim == 3 else a, 0, 255)
                  .astype(np.uint8), max_pixels, letterbox)

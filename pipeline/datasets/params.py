@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
-from pipeline.params import PAPER, validate_section
+import dataclasses
+from typing import Literal, Mapping
 
-__all__ = ["check_data_params", "fingerprint_params"]
+from pipeline.params import BIT_DEPTHS, PAPER, validate_section
+
+__all__ = ["check_data_params", "fingerprint_params", "FrameSettings"]
 
 # not fingerprinted: where things are cached, and a guard whose effect shows in the content digest
 NON_CONTENT_KEYS = ("cache_dir", "contact_sheet_images", "max_pixels")
@@ -49,3 +52,50 @@ def fingerprint_params(cfg: dict) -> dict:
     if cfg.get("source") != "synthetic":
         out.pop("synthetic", None)
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameSettings:
+    """How the reader turns a frame file into a working image: the ``data`` params of the same names.
+
+    Read once from the validated section and handed down to the reader
+    (:func:`pipeline.datasets.loading.load_rgb`) as one value.  No defaults and no bounds here: both are the
+    schema's (:class:`pipeline.params.DataParams`), which every instance is checked against.
+
+    Attributes
+    ----------
+    bit_depth : str or int
+        ``data.bit_depth``: the bits a 16-bit frame's sensor fills (one of :data:`pipeline.params.BIT_DEPTHS`).
+    letterbox : bool
+        ``data.letterbox``: pad each frame (and its masks) to a square before resizing, instead of squashing it.
+    max_pixels : int
+        ``data.max_pixels``: a file above this many pixels, read from its header, is refused before decoding.
+
+    Raises
+    ------
+    InputError
+        A value the schema refuses, naming ``params: data.<key>``.
+    """
+
+    bit_depth: Literal[BIT_DEPTHS]
+    letterbox: bool
+    max_pixels: int
+
+    def __post_init__(self):  # noqa: D105 -- the check the class docstring's Raises names
+        validate_section("data", dataclasses.asdict(self))  # the schema's rules, the only ones
+
+    @classmethod
+    def from_params(cls, cfg: Mapping) -> FrameSettings:
+        """Read the frame settings of a validated ``data`` section.
+
+        Parameters
+        ----------
+        cfg : Mapping
+            The validated ``data:`` section.
+
+        Returns
+        -------
+        FrameSettings
+            Its ``bit_depth``, ``letterbox`` and ``max_pixels``.
+        """
+        return cls(**{f.name: cfg[f.name] for f in dataclasses.fields(cls)})

@@ -22,7 +22,7 @@ from pipeline.datasets import build
 from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
 from pipeline.datasets.loading import DecodeCache
 from pipeline.datasets.manifest import BadInputPolicy
-from pipeline.datasets.params import fingerprint_params
+from pipeline.datasets.params import FrameSettings, fingerprint_params
 from pipeline.datasets.synthetic import PART_NAMES
 from pipeline.runtime.progress import progress
 
@@ -62,14 +62,15 @@ def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
     """
     out = Path(out)
     size = cfg["resolution"]
+    frames = FrameSettings.from_params(cfg)  # data.bit_depth, letterbox, max_pixels: read here once, for the reader
+    fp_data = fingerprint_params(cfg)
     cache = DecodeCache(cfg["cache_dir"])
     policy = BadInputPolicy(cfg["skip_bad"])
     spec = (build.synthetic_source(cfg, out, cache) if cfg["source"] == "synthetic"
             else build.real_source(cfg, policy, out))
     rows = build.check_manifest(spec, policy, where=f"data.source={cfg['source']}")
-    rows = build.decode_rows(rows, spec, size, cache, policy)
-    fp_params = {"data": fingerprint_params(cfg), "protocol": spec.protocol,
-                 "content_sha256": build.content_digest(rows)}
+    rows = build.decode_rows(rows, spec, frames, size, cache, policy)
+    fp_params = {"data": fp_data, "protocol": spec.protocol, "content_sha256": build.content_digest(rows)}
     ids = rows["image_id"].tolist()
     n = len(rows)
     has_parts = rows["part_path"].notna().to_numpy()
@@ -82,7 +83,7 @@ def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
         if has_parts.any():
             wr.create("parts", (n, size, size), np.uint8)
             wr.create("has_parts", (n,), bool)
-        for i, img, mask, parts in progress(build.iter_arrays(rows, spec, size, cache), total=n, desc="write arrays"):
+        for i, img, mask, parts in progress(build.iter_arrays(rows, spec, frames, size, cache), total=n, desc="write arrays"):
             wi.write("image", i, img)
             wr.write("mask", i, mask if mask is not None else np.zeros((size, size), bool))
             wr.write("has_mask", i, mask is not None)
@@ -96,11 +97,12 @@ def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
     write_parquet(catalog.path("manifest", out), rows,
                   meta("manifest", params=fp_params, protocol=spec.protocol, resolution=size,
                        spacecraft_disjoint=spec.spacecraft_disjoint))
-    write_contact_sheet(catalog.path("contact_sheet", out), rows, spec, cfg, cache)
+    write_contact_sheet(catalog.path("contact_sheet", out), rows, spec, frames, cfg, cache)
     return Prepared(rows, policy, cache)
 
 
-def write_contact_sheet(path: Path, rows: pd.DataFrame, spec, cfg: dict, cache: DecodeCache) -> None:
+def write_contact_sheet(path: Path, rows: pd.DataFrame, spec, frames: FrameSettings, cfg: dict,
+                        cache: DecodeCache) -> None:
     """Write the contact sheet PNG: ``data.contact_sheet_images`` seeded picks, each with its mask outline."""
     size = cfg["resolution"]
     pick = sample_for_sheet(rows, cfg["contact_sheet_images"], cfg["seed"])
@@ -108,7 +110,7 @@ def write_contact_sheet(path: Path, rows: pd.DataFrame, spec, cfg: dict, cache: 
     tiles = []
     for i in pick:
         r = rows.iloc[int(i)]
-        img, mask, _ = next(build.iter_arrays(rows.iloc[[int(i)]], spec, size, cache))[1:]
+        img, mask, _ = next(build.iter_arrays(rows.iloc[[int(i)]], spec, frames, size, cache))[1:]
         tiles.append(tile(img, mask, f"{r['group']} {r['spacecraft']}", tsize))
     # atomic_path, not write_png: a stage's output, whose killed temporaries the next run removes
     with atomic_path(path) as tmp:

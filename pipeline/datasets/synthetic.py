@@ -8,16 +8,17 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import inspect
 import math
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import cv2
 import numpy as np
 
 from pipeline.params import PAPER
 
-__all__ = ["PART_NAMES", "stable_hash", "make_spacecraft", "sample_view", "rasterize", "synthetic_plan", "view_rng",
-           "generate_view"]
+__all__ = ["PART_NAMES", "stable_hash", "make_spacecraft", "sample_view", "rasterize", "synthetic_plan",
+           "sampling_options", "view_rng", "generate_view"]
 
 PART_BACKGROUND, PART_BUS, PART_PANEL, PART_BOOM, PART_DISH, PART_PAYLOAD = range(6)
 PART_NAMES = ("background", "bus", "panel", "antenna/boom/truss", "dish", "payload")
@@ -45,7 +46,18 @@ _MAT_ALBEDO, _MAT_KS, _MAT_SHIN, _MAT_CRINKLE = (np.array(col, np.float32) for c
 
 
 def stable_hash(text: str) -> int:
-    """32-bit hash of a string that is the same in every process (unlike ``hash``)."""
+    """Hash a string to 32 bits, the same in every process (unlike ``hash``).
+
+    Parameters
+    ----------
+    text : str
+        The string.
+
+    Returns
+    -------
+    int
+        The first 4 bytes of its sha256, little-endian.
+    """
     return int.from_bytes(hashlib.sha256(text.encode()).digest()[:4], "little")
 
 
@@ -105,7 +117,7 @@ class _Builder:
                   seg_part=part)
 
     def box(self, center, axes, half, mats, part):
-        """Closed box: ``axes`` orthonormal rows, ``half`` half-sizes, ``mats`` 6 materials (+x,-x,+y,-y,+z,-z)."""
+        """Add a closed box: ``axes`` orthonormal rows, ``half`` half-sizes, ``mats`` 6 materials (+x..-z)."""
         c = np.asarray(center, float)
         ax = np.asarray(axes, float)
         for k, (i, s) in enumerate([(0, 1), (0, -1), (1, 1), (1, -1), (2, 1), (2, -1)]):
@@ -115,7 +127,7 @@ class _Builder:
             self.face([fc - u - v, fc + u - v, fc + u + v, fc - u + v], s * ax[i], mats[k], part)
 
     def prism(self, center, axes, radius, half_h, n, side_mat, cap_mat, part):
-        """Closed regular n-gon prism along ``axes[2]`` (n >= 12 reads as a cylinder)."""
+        """Add a closed regular n-gon prism along ``axes[2]`` (n >= 12 reads as a cylinder)."""
         c = np.asarray(center, float)
         ex, ey, ez = np.asarray(axes, float)
         ang = np.arange(n) * 2 * np.pi / n + self.rng.uniform(0, 2 * np.pi / n)
@@ -190,7 +202,22 @@ def _surface_point(kind: str, dims: tuple, direction: np.ndarray) -> np.ndarray:
 
 
 def make_spacecraft(name: str, seed: int) -> SpacecraftModel:
-    """Procedural spacecraft identity fixed by ``(seed, name)``: bus, solar wings, booms, dishes, payloads."""
+    """Build the procedural spacecraft identity fixed by ``(seed, name)``.
+
+    Bus, solar wings, booms, dishes and payloads, each part labelled (:data:`PART_NAMES`).
+
+    Parameters
+    ----------
+    name : str
+        The spacecraft's name (``syn-<group>-<i>``), one identity each.
+    seed : int
+        ``data.seed``.
+
+    Returns
+    -------
+    SpacecraftModel
+        Its object-frame geometry: convex faces and thick segments with materials and part labels.
+    """
     rng = np.random.default_rng([int(seed), stable_hash(name)])
     b = _Builder(rng)
     eye = np.eye(3)
@@ -214,7 +241,7 @@ def make_spacecraft(name: str, seed: int) -> SpacecraftModel:
         b.prism((0, 0, 0), eye, r_xy, half_h, n, primary, secondary, PART_BUS)
 
     def random_mount() -> tuple[np.ndarray, np.ndarray]:
-        """A random unit direction and the point where it leaves the bus."""
+        """Draw a random unit direction and the point where it leaves the bus."""
         d = _random_unit(rng)
         return d, _surface_point(kind, dims, d)
 
@@ -326,7 +353,30 @@ def sample_view(rng: np.random.Generator, *, tiny_range: Sequence[float] = PAPER
     """Draw a view: rotation, sun, apparent size, background, hard case.
 
     Apparent size (the projected solid parts' convex hull over the frame) is log-uniform in ``tiny_range``
-    with probability ``tiny_probability`` (approach shots), else in ``regular_range``.
+    with probability ``tiny_probability`` (approach shots), else in ``regular_range``.  The keywords' defaults
+    are the ``data.synthetic`` params of the same names.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        The view's generator (:func:`view_rng`).
+    tiny_range : sequence of float
+        ``(low, high)`` hull fraction of a tiny view (``data.synthetic.tiny_range``).
+    regular_range : sequence of float
+        ``(low, high)`` hull fraction of a regular view (``data.synthetic.regular_range``).
+    tiny_probability : float
+        Probability of a tiny view (``data.synthetic.tiny_probability``).
+    hard_case_probability : float
+        Probability of a hard case (glare, flare, underexposure, noise, blur;
+        ``data.synthetic.hard_case_probability``).
+    background_weights : sequence of float
+        Relative weights of the stars, earth-limb and dark-lab backgrounds
+        (``data.synthetic.background_weights``).
+
+    Returns
+    -------
+    ViewSpec
+        Rotation, sun direction, hull fraction, field of view, background and hard case.
     """
     a, b = tiny_range if rng.random() < tiny_probability else regular_range
     frac = math.exp(rng.uniform(math.log(float(a)), math.log(float(b))))
@@ -519,7 +569,26 @@ class Rasterized:
 
 def rasterize(model: SpacecraftModel, spec: ViewSpec, size: int, rng: np.random.Generator,
               rasterizer: str = "cv2") -> Rasterized:
-    """Camera distance and placement, then all primitives far-to-near into the record-id buffer."""
+    """Rasterise a view: camera distance and placement, then all primitives far-to-near into a record-id buffer.
+
+    Parameters
+    ----------
+    model : SpacecraftModel
+        The spacecraft.
+    spec : ViewSpec
+        The view (:func:`sample_view`).
+    size : int
+        The image side in pixels.
+    rng : numpy.random.Generator
+        The view's generator (image-plane placement).
+    rasterizer : str
+        ``cv2`` or ``numpy`` (:data:`RASTERIZERS`; a baseline differing only in which boundary pixels count).
+
+    Returns
+    -------
+    Rasterized
+        The record-id buffer [size, size] (0 = background) and each record's shading attributes.
+    """
     rast = RASTERIZERS[rasterizer]
     R = spec.rotation
     f = (size / 2) / math.tan(math.radians(spec.fov_deg) / 2)
@@ -726,7 +795,18 @@ class PlannedSpacecraft:
 
 
 def synthetic_plan(cfg: dict) -> list[PlannedSpacecraft]:
-    """Spacecraft-disjoint split mirroring SpaceSense-Bench (eq:spacecraft-disjoint): names encode the group."""
+    """Plan the spacecraft-disjoint split mirroring SpaceSense-Bench (eq:spacecraft-disjoint).
+
+    Parameters
+    ----------
+    cfg : dict
+        The validated ``data.synthetic`` section (spacecraft and views per split, the test groups).
+
+    Returns
+    -------
+    list of PlannedSpacecraft
+        One per spacecraft, train then val then each test group; its name encodes its group.
+    """
     plan = [PlannedSpacecraft(f"syn-train-{i:02d}", "train", "train", int(cfg["train_views"]))
             for i in range(int(cfg["train_spacecraft"]))]
     plan += [PlannedSpacecraft(f"syn-val-{i:02d}", "val", "val", int(cfg["val_views"]))
@@ -737,13 +817,67 @@ def synthetic_plan(cfg: dict) -> list[PlannedSpacecraft]:
     return plan
 
 
+def sampling_options(cfg: Mapping) -> dict:
+    """Pick the view-sampling knobs out of ``data.synthetic``: the keywords :func:`sample_view` takes.
+
+    Parameters
+    ----------
+    cfg : Mapping
+        The validated ``data.synthetic`` section.
+
+    Returns
+    -------
+    dict
+        ``{keyword: value}`` for each keyword-only parameter of :func:`sample_view` that ``cfg`` holds.
+    """
+    keys = [p.name for p in inspect.signature(sample_view).parameters.values() if p.kind is p.KEYWORD_ONLY]
+    return {k: cfg[k] for k in keys if k in cfg}
+
+
 def view_rng(seed: int, spacecraft: str, view_index: int) -> np.random.Generator:
+    """Seed one view's generator from ``(seed, spacecraft, view index)`` alone.
+
+    Parameters
+    ----------
+    seed : int
+        ``data.seed``.
+    spacecraft : str
+        The spacecraft's name.
+    view_index : int
+        The view's index.
+
+    Returns
+    -------
+    numpy.random.Generator
+        The same stream in every process, whatever else was drawn.
+    """
     return np.random.default_rng([int(seed), stable_hash(spacecraft), int(view_index)])
 
 
 def generate_view(model: SpacecraftModel, view_index: int, size: int, seed: int,
                   view_options: dict | None = None, rasterizer: str = "cv2") -> SyntheticView:
-    """Deterministic view ``view_index`` of ``model`` at ``size`` px (same inputs -> same pixels)."""
+    """Render view ``view_index`` of ``model`` at ``size`` px, deterministically (same inputs, same pixels).
+
+    Parameters
+    ----------
+    model : SpacecraftModel
+        The spacecraft (:func:`make_spacecraft`).
+    view_index : int
+        Which view.
+    size : int
+        The image side in pixels (``data.resolution``).
+    seed : int
+        ``data.seed``.
+    view_options : dict, optional
+        Keywords of :func:`sample_view` (:func:`sampling_options`); None: its defaults.
+    rasterizer : str
+        ``cv2`` or ``numpy`` (:func:`rasterize`).
+
+    Returns
+    -------
+    SyntheticView
+        RGB image, ground-truth mask and part labels, with the view's background, hard case and area fraction.
+    """
     rng = view_rng(seed, model.name, view_index)
     spec = sample_view(rng, **(view_options or {}))
     return render_view(model, spec, size, rng, rasterizer=rasterizer)

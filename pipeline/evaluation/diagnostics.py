@@ -1,5 +1,7 @@
-"""Threshold diagnostics: the pixel reliability diagram and ECE of P = sigmoid(Z), the predicted over
-reference foreground area across tau, and the target size classes.
+"""Threshold diagnostics of P = sigmoid(Z).
+
+The pixel reliability diagram and ECE, the predicted over reference foreground area across tau, and the target
+size classes.
 """
 
 from __future__ import annotations
@@ -17,8 +19,18 @@ __all__ = ["reliability_bins", "expected_calibration_error", "area_ratio_curve",
 
 @dataclasses.dataclass(frozen=True)
 class Reliability:
-    """A reliability diagram: per bin the mean P (``confidence``), the reference-foreground fraction
-    (``frequency``; both NaN when empty) and the pixel ``count``; ``edges`` [B+1].
+    """A reliability diagram of B bins.
+
+    Attributes
+    ----------
+    edges : numpy.ndarray
+        The bin edges [B+1], 0 to 1.
+    confidence : numpy.ndarray
+        The mean P per bin [B] (NaN when the bin is empty).
+    frequency : numpy.ndarray
+        The reference-foreground fraction per bin [B] (NaN when empty).
+    count : numpy.ndarray
+        The pixels per bin [B], int64.
     """
 
     edges: np.ndarray
@@ -28,8 +40,28 @@ class Reliability:
 
 
 def reliability_bins(probs, gts, n_bins: int = 10, *, chunk: int = 16) -> Reliability:
-    """Reliability diagram of ``probs`` [N,H,W] in [0, 1] against ``gts`` in ``n_bins`` equal-width bins (P = 1 in
-    the last), ``chunk`` images at a time.
+    """Bin the pixels' probabilities against their reference masks: a reliability diagram.
+
+    Parameters
+    ----------
+    probs : array_like
+        P [N, H, W], finite and in [0, 1].
+    gts : array_like
+        Reference masks [N, H, W].
+    n_bins : int
+        Equal-width bins over [0, 1] (P = 1 falls in the last), at least 1.
+    chunk : int
+        Images binned at a time (bounded memory).
+
+    Returns
+    -------
+    Reliability
+        Per bin the mean P, the reference-foreground fraction and the pixel count.
+
+    Raises
+    ------
+    InputError
+        Shapes that differ or are not [N, H, W], ``n_bins`` < 1, or a probability outside [0, 1] or not finite.
     """
     p_all, g_all = np.asarray(probs), np.asarray(gts, dtype=bool)
     if p_all.shape != g_all.shape or p_all.ndim != 3:
@@ -56,7 +88,24 @@ def reliability_bins(probs, gts, n_bins: int = 10, *, chunk: int = 16) -> Reliab
 
 
 def expected_calibration_error(confidence, frequency, count) -> float:
-    """ECE = sum_b (n_b / N) |frequency_b - confidence_b| over the non-empty bins; NaN when all are empty."""
+    """Compute the expected calibration error of a reliability diagram.
+
+    ECE = sum_b (n_b / N) |frequency_b - confidence_b| over the non-empty bins b, N = sum_b n_b.
+
+    Parameters
+    ----------
+    confidence : array_like
+        Mean P per bin.
+    frequency : array_like
+        Reference-foreground fraction per bin.
+    count : array_like
+        Pixels per bin, n_b.
+
+    Returns
+    -------
+    float
+        The ECE; NaN when every bin is empty.
+    """
     conf = np.asarray(confidence, dtype=np.float64)
     freq = np.asarray(frequency, dtype=np.float64)
     n = np.asarray(count, dtype=np.float64)
@@ -68,8 +117,25 @@ def expected_calibration_error(confidence, frequency, count) -> float:
 
 
 def area_ratio_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
-    """|[P >= tau]| / |G| (eq:inference-mask) for every image and tau of ``grid`` -> float64 [N, G]; NaN where
-    the reference is empty.
+    """Compute the predicted over reference foreground area, |[P >= tau]| / |G|, per image and tau.
+
+    The predicted mask is eq:inference-mask, M(x) = [P(x) >= tau].
+
+    Parameters
+    ----------
+    probs : array_like
+        P [N, H, W].
+    gts : array_like
+        Reference masks G [N, H, W].
+    grid : array_like
+        The thresholds tau [T].
+    chunk : int
+        Images counted at a time (bounded memory).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 [N, T]; NaN where the reference is empty.
     """
     n_pred, _, n_ref = threshold_counts(probs, gts, grid, chunk=chunk)
     ref = n_ref[:, None]
@@ -78,7 +144,18 @@ def area_ratio_curve(probs, gts, grid, *, chunk: int = 16) -> np.ndarray:
 
 
 def median_area_ratio(ratios) -> np.ndarray:
-    """Median over images of an :func:`area_ratio_curve`, NaN skipped (NaN where every image is)."""
+    """Take the median over images of an :func:`area_ratio_curve`, NaN skipped.
+
+    Parameters
+    ----------
+    ratios : array_like
+        Area ratios [N, T].
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 [T]; NaN where every image is.
+    """
     r = np.asarray(ratios, dtype=np.float64)
     out = np.full(r.shape[1:], np.nan)
     ok = np.isfinite(r).any(axis=0)
@@ -88,7 +165,23 @@ def median_area_ratio(ratios) -> np.ndarray:
 
 
 def target_fractions(gts) -> np.ndarray:
-    """|G| / (H W) of each mask of ``gts`` [N,H,W] -> float64 [N]."""
+    """Compute each reference mask's target fraction, |G| / (H W).
+
+    Parameters
+    ----------
+    gts : array_like
+        Masks [N, H, W].
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 [N].
+
+    Raises
+    ------
+    InputError
+        ``gts`` is not [N, H, W].
+    """
     g = np.asarray(gts)
     if g.ndim != 3:
         raise InputError(f"target_fractions: expected [N,H,W] masks, got shape {g.shape}")
@@ -98,7 +191,25 @@ def target_fractions(gts) -> np.ndarray:
 
 
 def target_size_class(fraction, max_fraction: float) -> np.ndarray:
-    """``"empty"`` (f = 0), ``"tiny"`` (0 < f < ``max_fraction``) or ``"regular"``, per target fraction."""
+    """Class each target by its fraction f: ``"empty"`` (f = 0), ``"tiny"`` (0 < f < ``max_fraction``) or ``"regular"``.
+
+    Parameters
+    ----------
+    fraction : array_like
+        Target fractions (:func:`target_fractions`).
+    max_fraction : float
+        The tiny class's upper bound, in [0, 1] (``evaluate.tiny_target_max_fraction``).
+
+    Returns
+    -------
+    numpy.ndarray
+        The class names, of ``fraction``'s shape.
+
+    Raises
+    ------
+    InputError
+        ``max_fraction`` outside [0, 1].
+    """
     f = np.asarray(fraction, dtype=np.float64)
     if not 0 <= float(max_fraction) <= 1:
         raise InputError(f"target_size_class: max_fraction={max_fraction} must lie in [0, 1]")

@@ -1,6 +1,7 @@
-"""The evaluation of the students: each run's tau calibrated on the validation split (the ``calibrate`` stage's
-logic), and on the test split every run's per-image scores at its calibrated and the fixed tau, the seed
-summaries, and the gains over the method table's reference points (the ``evaluate`` stage's logic).
+"""The evaluation of the students (the ``calibrate`` and ``evaluate`` stages' logic).
+
+Each run's tau calibrated on the validation split; on the test split every run's per-image scores at its calibrated
+and the fixed tau, the seed summaries, and the gains over the method table's reference points.
 """
 
 from __future__ import annotations
@@ -110,7 +111,29 @@ def calibrate_runs(runs: Sequence[tuple[str, int, Path]], val_images: np.ndarray
 
 
 def run_thresholds(thresholds: pd.DataFrame, method: str, seed: int, path) -> tuple[float, float]:
-    """(calibrated tau, fixed tau) of one run as calibrate recorded them."""
+    """Read one run's (calibrated tau, fixed tau) as calibrate recorded them.
+
+    Parameters
+    ----------
+    thresholds : pandas.DataFrame
+        thresholds.parquet.
+    method : str
+        The run's method.
+    seed : int
+        The run's seed.
+    path : str or Path
+        The run's checkpoint, named by the error.
+
+    Returns
+    -------
+    tuple of float
+        ``(calibrated tau, fixed tau)``.
+
+    Raises
+    ------
+    ArtifactError
+        No calibrated threshold for the run: rerun calibrate.
+    """
     taus = tau_candidates(payload={"method": method, "seed": seed}, thresholds=thresholds)
     if "thresholds" not in taus:
         raise ArtifactError(f"{path}: no calibrated threshold for {method}/{seed} in {catalog.ARTIFACTS['thresholds'].path}; "
@@ -119,7 +142,7 @@ def run_thresholds(thresholds: pd.DataFrame, method: str, seed: int, path) -> tu
 
 
 def _chunk_references(reference_masks, test: np.ndarray, tolerance: float, small_fraction: float):
-    """``get(start, idx)``: a test chunk's target fractions and :class:`pipeline.metrics.ScoringReference`."""
+    """Make ``get(start, idx)``: a test chunk's target fractions and :class:`pipeline.metrics.ScoringReference`."""
     cache: dict[int, tuple] = {}
 
     def get(start: int, idx: np.ndarray) -> tuple:
@@ -135,7 +158,7 @@ def _chunk_references(reference_masks, test: np.ndarray, tolerance: float, small
 
 def _score_chunk(probs: np.ndarray, info: pd.DataFrame, target: np.ndarray, ref, method: str, seed: int,
                  taus: Mapping[str, float], tiny_fraction: float) -> list[pd.DataFrame]:
-    """One chunk of one run's rows, a frame per threshold mode (``taus``: mode -> tau)."""
+    """Score one chunk of one run: a frame per threshold mode (``taus``: mode -> tau)."""
     frames = []
     for mode, tau in taus.items():
         scores = score_masks(mask_from_probs(probs, tau), ref)  # eq:inference-mask
@@ -150,7 +173,41 @@ def _score_chunk(probs: np.ndarray, info: pd.DataFrame, target: np.ndarray, ref,
 
 def score_runs(runs: Sequence[tuple[str, int, Path]], manifest: pd.DataFrame, images, reference, test: np.ndarray,
                thresholds: pd.DataFrame, cfg: Mapping, device) -> pd.DataFrame:
-    """metrics.parquet: every run ``(method, seed, checkpoint)`` on the ``test`` rows at both taus (``cfg``: evaluate.*)."""
+    """Score every run on the test rows at its calibrated and the fixed tau: the rows of metrics.parquet.
+
+    Each image's mask is eq:inference-mask, M(x) = [P(x) >= tau], scored against its reference.
+
+    Parameters
+    ----------
+    runs : sequence of tuple
+        ``(method, seed, checkpoint path)`` per run.
+    manifest : pandas.DataFrame
+        The manifest (its info columns are copied to each row).
+    images : zarr group
+        images.zarr (``image`` [N, R, R, 3]).
+    reference : zarr group
+        reference.zarr (``mask`` [N, R, R]).
+    test : numpy.ndarray
+        The test rows' manifest indices.
+    thresholds : pandas.DataFrame
+        thresholds.parquet: each run's calibrated and fixed tau.
+    cfg : Mapping
+        The validated ``evaluate:`` section (``bf1_tolerance``, ``small_region_max_fraction``,
+        ``tiny_target_max_fraction``).
+    device : str or torch.device
+        Where the students run.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per (run, image, threshold mode): the keys :data:`METRICS_KEY` first, then the scores, the
+        target fraction and size class, and the area over the reference's.
+
+    Raises
+    ------
+    ArtifactError
+        A run without a calibrated threshold (from :func:`run_thresholds`).
+    """
     info = manifest.iloc[test][INFO_COLUMNS].reset_index(drop=True)
     refs = _chunk_references(reference["mask"], test, cfg["bf1_tolerance"], cfg["small_region_max_fraction"])
     frames = []
@@ -169,7 +226,7 @@ def score_runs(runs: Sequence[tuple[str, int, Path]], manifest: pd.DataFrame, im
 
 def control_gains(metrics: pd.DataFrame, control: str, n_boot: int, ci: float, seed: int,
                   interval: str = DEFAULT_INTERVAL) -> pd.DataFrame:
-    """Gains over ``control`` of the methods :func:`pipeline.methods.gain_treatments` compares with it."""
+    """Compute the gains over ``control`` of the methods :func:`pipeline.methods.gain_treatments` compares with it."""
     keep = [*gain_treatments(control, metrics["method"].unique()), control]
     return method_gains(metrics[metrics["method"].isin(keep)], GAIN_METRICS, control=control,
                         by=[c for c in SUMMARY_BY if c != "method"], n_resamples=n_boot, ci=ci, seed=seed,
@@ -177,8 +234,28 @@ def control_gains(metrics: pd.DataFrame, control: str, n_boot: int, ci: float, s
 
 
 def summarize(metrics: pd.DataFrame, n_boot: int, ci: float, seed: int, interval: str = DEFAULT_INTERVAL) -> pd.DataFrame:
-    """summary.parquet: the seed summary with the gains over BASELINE (always) and over every other evaluated
-    reference point (:func:`pipeline.stats.vs_column`).
+    """Summarise the metrics over seeds, with the gains over the reference points: summary.parquet.
+
+    The gains are over BASELINE (always) and over every other evaluated reference point, each in its
+    :func:`pipeline.stats.vs_column` columns.
+
+    Parameters
+    ----------
+    metrics : pandas.DataFrame
+        metrics.parquet (:func:`score_runs`).
+    n_boot : int
+        Bootstrap resamples of a gain's interval (``evaluate.bootstrap_resamples``).
+    ci : float
+        The intervals' confidence level (``evaluate.ci``).
+    seed : int
+        The resampling's seed (``evaluate.bootstrap_seed``).
+    interval : str
+        How a gain's interval is computed (``evaluate.interval``; docs/intervals.md).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per (dataset, group, method, threshold mode).
     """
     summary = seed_summary(metrics, SUMMARY_BY, SUMMARY_METRICS)
     present = set(metrics["method"])

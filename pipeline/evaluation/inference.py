@@ -1,5 +1,7 @@
-"""Student checkpoints (saving, loading, the runs under ``checkpoints/``), batched inference of the mask
-path, and the validation images a run reads.
+"""Student checkpoints and inference.
+
+Saving, loading, the runs under ``checkpoints/``, batched inference of the mask path, and the validation images a
+run reads.
 """
 
 from __future__ import annotations
@@ -23,7 +25,23 @@ __all__ = ["iter_runs", "load_student", "images_to_tensor", "predict_probs", "sa
 
 
 def iter_runs(checkpoints_dir: str | Path) -> Iterator[tuple[str, int, Path]]:
-    """(method, seed, path) of every run under ``checkpoints/<method>/<seed>/``, sorted."""
+    """List every run under ``checkpoints/<method>/<seed>/`` that holds a checkpoint, sorted.
+
+    Parameters
+    ----------
+    checkpoints_dir : str or Path
+        The checkpoints folder.
+
+    Yields
+    ------
+    tuple
+        ``(method, seed, run folder)``; hidden folders and folders without metadata are passed over.
+
+    Raises
+    ------
+    ArtifactError
+        The folder does not exist (on the first step of the iteration).
+    """
     root = Path(checkpoints_dir)
     if not root.exists():
         raise ArtifactError(f"{root}: checkpoints directory not found")
@@ -35,7 +53,26 @@ def iter_runs(checkpoints_dir: str | Path) -> Iterator[tuple[str, int, Path]]:
 
 
 def load_student(path: str | Path, device="cpu"):
-    """(TinyUNet mask path in eval mode, payload) of a checkpoint or bundle directory or a weights file."""
+    """Load a student's mask path from a checkpoint or bundle folder, or a weights file.
+
+    Parameters
+    ----------
+    path : str or Path
+        A checkpoint folder, a deploy bundle folder or a weights file.
+    device : str or torch.device
+        Where the model is placed.
+
+    Returns
+    -------
+    tuple
+        ``(TinyUNet in eval mode, payload)``; the payload holds the config, the state and what was recorded
+        (method, seed, tau, ...).
+
+    Raises
+    ------
+    ArtifactError
+        Weights that do not build the model.
+    """
     from pipeline.model import TinyUNet
     from pipeline.artifacts.weights import read_weights, weights_path
 
@@ -51,7 +88,23 @@ def load_student(path: str | Path, device="cpu"):
 
 
 def images_to_tensor(images: np.ndarray):
-    """uint8 [N,H,W,3] (or [H,W,3]) -> float32 tensor [N,3,H,W] in [0,1]."""
+    """Convert uint8 images [N,H,W,3] (or one [H,W,3]) to the model's input, float32 [N,3,H,W] in [0, 1].
+
+    Parameters
+    ----------
+    images : numpy.ndarray
+        uint8, channels last.
+
+    Returns
+    -------
+    torch.Tensor
+        float32 [N, 3, H, W], values / 255.
+
+    Raises
+    ------
+    ValueError
+        Images that are not uint8.
+    """
     import torch
 
     arr = np.asarray(images)
@@ -64,7 +117,28 @@ def images_to_tensor(images: np.ndarray):
 
 def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: str = "fp32",
                   channels_last: bool = PAPER.train.channels_last) -> np.ndarray:
-    """P = sigmoid(Z) float32 [N,H,W] of uint8 images [N,H,W,3] (an array or a zarr, read a batch at a time)."""
+    """Compute the mask path's probabilities P = sigmoid(Z) of uint8 images, a batch at a time.
+
+    Parameters
+    ----------
+    model : torch.nn.Module
+        The student (its mask path's logit Z on channel 0).
+    images : array_like or zarr array
+        uint8 [N, H, W, 3], read a batch at a time.
+    device : str or torch.device
+        Where the model runs.
+    batch_size : int
+        Images per forward pass.
+    precision : str
+        ``fp32``, or a mixed precision the device supports (:func:`pipeline.runtime.device.autocast_dtype`).
+    channels_last : bool
+        Run in channels-last memory format (``train.channels_last``).
+
+    Returns
+    -------
+    numpy.ndarray
+        P, float32 [N, H, W].
+    """
     import torch
 
     device = torch.device(device)
@@ -84,8 +158,25 @@ def predict_probs(model, images, device="cpu", batch_size: int = 16, precision: 
 
 
 def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
-    """Write a checkpoint directory atomically (``meta``: its schema ``checkpoint`` metadata); ``payload`` adds
-    JSON fields to model.json (method, seed, stage, ...).
+    """Write a checkpoint folder atomically: the weights, model.json and the training log.
+
+    Parameters
+    ----------
+    path : str or Path
+        The checkpoint folder, replaced whole.
+    model : TinyUNet
+        The student (its mask path, and its geometry heads when it has them).
+    meta : Meta
+        The folder's ``checkpoint`` metadata; the training log's is derived from it.
+    log : pandas.DataFrame
+        The training log (one row per epoch).
+    **payload
+        JSON fields added to model.json (method, seed, stage, ...).
+
+    Returns
+    -------
+    Path
+        The folder written.
     """
     from pipeline.artifacts.weights import write_weights
 
@@ -99,8 +190,28 @@ def save_checkpoint(path: str | Path, model, meta, log, **payload) -> Path:
 
 
 def open_labelled_split(artifacts: str | Path, split: str, purpose: str, allow_empty: bool = False):
-    """``(manifest, images, reference, indices)``: the ``split`` rows with a reference mask; InputError when
-    there are none (``purpose`` completes the message) unless ``allow_empty``.
+    """Open the prepared artifacts and find the ``split`` rows that have a reference mask.
+
+    Parameters
+    ----------
+    artifacts : str or Path
+        The artifacts folder.
+    split : str
+        ``train``, ``val`` or ``test``.
+    purpose : str
+        Completes the error's message (what needed the masks).
+    allow_empty : bool
+        Return no rows instead of refusing.
+
+    Returns
+    -------
+    tuple
+        ``(manifest, images, reference, indices)``: the opened artifacts and the rows' manifest indices.
+
+    Raises
+    ------
+    InputError
+        No ``split`` row has a reference mask, unless ``allow_empty``.
     """
     manifest = open_artifact(catalog.path("manifest", artifacts), "manifest")
     images = open_artifact(catalog.path("images", artifacts), "images")
@@ -121,7 +232,25 @@ CORRECTED_VALIDATION = "corrected_validation"
 
 
 def validation_corrections(artifacts: str | Path, review) -> Artifact | None:
-    """The opened ``corrected`` artifact when ``review.mode: validate`` with ``review.corrections`` set, else None."""
+    """Open the ``corrected`` artifact when the review's corrections are validation masks.
+
+    Parameters
+    ----------
+    artifacts : str or Path
+        The artifacts folder.
+    review : Mapping or None
+        The validated ``review:`` section.
+
+    Returns
+    -------
+    Artifact or None
+        The artifact when ``review.mode: validate`` with ``review.corrections`` set; else None.
+
+    Raises
+    ------
+    InputError
+        The artifact was written for another review mode (:func:`require_mode`).
+    """
     if not (review and review.get("corrections") and review.get("mode") == VALIDATE):
         return None
     corrected = open_artifact(catalog.path("corrected", artifacts), "corrected")
@@ -130,14 +259,40 @@ def validation_corrections(artifacts: str | Path, review) -> Artifact | None:
 
 
 def require_mode(corrected, mode: str) -> None:
-    """InputError unless the opened ``corrected`` artifact was written for ``review.mode`` = ``mode``."""
+    """Check that the opened ``corrected`` artifact was written for ``review.mode`` = ``mode``.
+
+    Parameters
+    ----------
+    corrected : Artifact
+        The opened ``corrected`` artifact.
+    mode : str
+        The review mode the params say.
+
+    Raises
+    ------
+    InputError
+        It was written for another mode: rerun the corrections stage.
+    """
     if corrected.attrs.get("mode") != mode:
         raise InputError(f"{corrected.path}: written for {REVIEW_MODE_KEY}={corrected.attrs.get('mode')!r}, the "
                          f"params say {mode!r}; rerun the corrections stage")
 
 
 def corrected_validation(corrected, images) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """(image ids, images [M,R,R,C], masks bool [M,R,R]) of the corrected images, in ascending manifest row."""
+    """Read the corrected images and their masks, in ascending manifest row.
+
+    Parameters
+    ----------
+    corrected : Artifact
+        The opened ``corrected`` artifact.
+    images : Artifact
+        The opened images artifact.
+
+    Returns
+    -------
+    tuple
+        ``(image ids, images [M,R,R,C], masks bool [M,R,R])``.
+    """
     rows = np.asarray(corrected["row"], dtype=np.int64)
     order = np.argsort(rows, kind="stable")  # chunk reads want ascending rows; keep ids in step
     ids = [list(corrected.attrs["image_ids"])[i] for i in order]
@@ -146,7 +301,24 @@ def corrected_validation(corrected, images) -> tuple[list[str], np.ndarray, np.n
 
 def with_validation_corrections(val_images: np.ndarray, val_masks: np.ndarray, corrected, images
                                 ) -> tuple[np.ndarray, np.ndarray]:
-    """The validation images and masks with the corrected ones appended (none when ``corrected`` is None)."""
+    """Append the corrected images and masks to the validation ones.
+
+    Parameters
+    ----------
+    val_images : numpy.ndarray
+        Validation images [V, R, R, C].
+    val_masks : numpy.ndarray
+        Their reference masks [V, R, R].
+    corrected : Artifact or None
+        The opened ``corrected`` artifact (:func:`validation_corrections`); None: nothing appended.
+    images : Artifact
+        The opened images artifact.
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        ``(images, masks)``.
+    """
     if corrected is None:
         return val_images, val_masks
     _, imgs, masks = corrected_validation(corrected, images)
@@ -156,7 +328,25 @@ def with_validation_corrections(val_images: np.ndarray, val_masks: np.ndarray, c
 
 
 def active_runs(checkpoints_dir: str | Path, purpose: str) -> list[tuple[str, int, Path]]:
-    """:func:`iter_runs` as a list; InputError when there is no trained checkpoint to ``purpose``."""
+    """List the trained runs (:func:`iter_runs`), refusing when there is none.
+
+    Parameters
+    ----------
+    checkpoints_dir : str or Path
+        The checkpoints folder.
+    purpose : str
+        What needs them, completing the error's message.
+
+    Returns
+    -------
+    list of tuple
+        ``(method, seed, run folder)`` per run.
+
+    Raises
+    ------
+    InputError
+        No trained checkpoint.
+    """
     runs = list(iter_runs(checkpoints_dir))
     if not runs:
         raise InputError(f"{checkpoints_dir}: no trained checkpoint to {purpose}")

@@ -1,5 +1,7 @@
-"""The DVC DAG, derived rather than typed: dvc.yaml from the catalogue, the method table and the stages'
-imports (one ``train_<method>`` stage per method, active runs only), and params.yaml for a profile.
+"""The DVC DAG, derived rather than typed.
+
+dvc.yaml from the catalogue, the method table and the stages' imports (one ``train_<method>`` stage per method,
+active runs only), and params.yaml for a profile.
 """
 
 from __future__ import annotations
@@ -34,8 +36,10 @@ def _paths(names) -> list[str]:
 
 def _stage_entry(spec, matrix: dict | None = None, code_root: Path | None = None,
                  data_deps: dict[str, list[str]] | None = None) -> dict:
-    """The dvc.yaml entry of a stage: code deps, data deps, input artifacts; params; outs and metrics (those
-    outside artifacts/ uncached, so git tracks them).  ``data_deps`` ({stage: paths}) replace the spec's.
+    """Write the dvc.yaml entry of a stage: code deps, data deps, input artifacts; params; outs and metrics.
+
+    Outs and metrics outside artifacts/ are uncached, so git tracks them.  ``data_deps`` ({stage: paths}) replace
+    the spec's.
     """
     entry: dict[str, Any] = {"matrix": matrix} if matrix else {}
     entry["cmd"] = f"python -m {spec.module} {_fill(spec.args)}"
@@ -54,7 +58,7 @@ TRAIN_MODULE = "stages.train"
 
 
 def upstream_stages() -> list[str]:
-    """The catalogue stages upstream of the training stages, in catalogue order."""
+    """List the catalogue stages upstream of the training stages, in catalogue order."""
     producer = {a: s.name for s in STAGES.values() for a in s.outs}
     todo = [a for m in METHODS.values() for a in input_artifacts(m)]
     need: set[str] = set()
@@ -67,15 +71,23 @@ def upstream_stages() -> list[str]:
 
 
 def stage_modules() -> dict[str, str]:
-    """Every stage of the DAG -> its script module, in DAG order (``train`` for all ``train_<method>``)."""
+    """Map every stage of the DAG to its script module, in DAG order.
+
+    Returns
+    -------
+    dict
+        ``{stage: module}``; one ``train`` entry stands for all ``train_<method>`` stages.
+    """
     up = upstream_stages()
     return {**{n: STAGES[n].module for n in up}, "train": TRAIN_MODULE,
             **{n: s.module for n, s in STAGES.items() if n not in up}}
 
 
 def train_stage(method_name: str, code_root: Path | None = None, seeds: list[int] | None = None) -> dict:
-    """The ``train_<method>`` matrix stage over ``protocol.runs.<method>`` (``seeds`` None), or one stage
-    training ``seeds`` in one process, each seed with its own outs.
+    """Write the ``train_<method>`` stage entry.
+
+    A matrix stage over ``protocol.runs.<method>`` (``seeds`` None), or one stage training ``seeds`` in one
+    process, each seed with its own outs.
     """
     m = METHODS[method_name]
     items = ["${item.seed}"] if seeds is None else [str(s) for s in seeds]
@@ -97,8 +109,9 @@ SEEDS_PER_STAGE_KEY = "protocol.seeds_per_stage"
 
 
 def train_stage_name(method_name: str, seeds: list[int] | None = None, all_seeds: list[int] | None = None) -> str:
-    """``train_<method>`` for the matrix stage or a group of all the method's seeds, else
-    ``train_<method>-<seed>-<seed>...``.
+    """Name a training stage: ``train_<method>``, or ``train_<method>-<seed>-<seed>...`` for a group of seeds.
+
+    The short name serves the matrix stage and a group holding all the method's seeds.
     """
     if seeds is None or all_seeds is None or list(seeds) == list(all_seeds):
         return f"train_{method_name}"
@@ -106,8 +119,9 @@ def train_stage_name(method_name: str, seeds: list[int] | None = None, all_seeds
 
 
 def seed_groups(params: dict | None) -> dict[str, list[list[int]]] | None:
-    """{method: its seeds in groups of ``protocol.seeds_per_stage``} from params.yaml as read; None when
-    the key is 1 or absent (one templated stage per run).
+    """Group each method's seeds by ``protocol.seeds_per_stage``, from params.yaml as read.
+
+    ``{method: [[seed, ...], ...]}``; None when the key is 1 or absent (one templated stage per run).
     """
     protocol = (params or {}).get("protocol") or {}  # unvalidated: params.yaml as read
     per_stage = protocol.get(SEEDS_PER_STAGE_KEY.split(".")[-1]) or 1
@@ -118,7 +132,7 @@ def seed_groups(params: dict | None) -> dict[str, list[list[int]]] | None:
 
 
 def train_stages(code_root: Path | None = None, groups: dict[str, list[list[int]]] | None = None) -> dict[str, dict]:
-    """The training stages in method-table order: a matrix stage per method, or a stage per group of seeds."""
+    """List the training stages in method-table order: a matrix stage per method, or one per group of seeds."""
     if groups is None:
         return {f"train_{name}": train_stage(name, code_root) for name in METHODS}
     everyone = {m: [s for g in gs for s in g] for m, gs in groups.items()}
@@ -139,7 +153,7 @@ REVIEW_VALIDATION_PARAMS = ("review.corrections", "review.mode")
 
 
 def optional_stages_on(params: dict | None) -> tuple[str, ...]:
-    """The :data:`OPTIONAL_STAGES` whose key is set in ``params``, and the :data:`OPTIONAL_PARAMS` set there."""
+    """List the :data:`OPTIONAL_STAGES` whose key is set in ``params``, and the :data:`OPTIONAL_PARAMS` set there."""
     def get(key):
         with contextlib.suppress(KeyError, TypeError):
             return get_path(params or {}, key)
@@ -207,7 +221,20 @@ LIVE_PLOT_METRIC = "loss"
 
 
 def live_plots(runs: dict[str, list[int]], metric: str = LIVE_PLOT_METRIC) -> list[dict]:
-    """A top-level plot of the runs' DVCLive logs, one line per run: a project without validation masks."""
+    """Plot the runs' DVCLive logs, one line per run: the plot of a project without validation masks.
+
+    Parameters
+    ----------
+    runs : dict
+        ``{method: [seed, ...]}``.
+    metric : str
+        The DVCLive column plotted.
+
+    Returns
+    -------
+    list of dict
+        One dvc.yaml top-level plot; empty when there is no run.
+    """
     y = {f"{dvc_path('train_live', method=m, seed=s)}/plots/metrics/{metric}.tsv": metric
          for m, seeds in runs.items() for s in seeds}
     if not y:
@@ -220,11 +247,30 @@ def live_plots(runs: dict[str, list[int]], metric: str = LIVE_PLOT_METRIC) -> li
 def render_dvc_yaml(code_root: Path | None = None, data_deps: dict[str, list[str]] | None = None,
                     header: str = DVC_HEADER, omit: tuple[str, ...] = (), extra_plots: list[dict] = (),
                     optional: tuple[str, ...] = (), groups: dict[str, list[list[int]]] | None = None) -> str:
-    """dvc.yaml text; by default this repository's DAG.
+    """Render dvc.yaml's text; by default this repository's DAG.
 
-    A distill project passes ``code_root`` (code deps as absolute paths of the installed code),
-    ``data_deps`` ({stage: paths}), the stages to ``omit`` and ``extra_plots``.  ``optional``: the
-    :data:`OPTIONAL_STAGES` to render and the :data:`OPTIONAL_PARAMS` to track; ``groups``: :func:`seed_groups`.
+    Parameters
+    ----------
+    code_root : Path, optional
+        Where the code deps point: a distill project names the installed code by absolute path; None: this
+        repository, by relative path.
+    data_deps : dict, optional
+        ``{stage: paths}`` replacing the catalogue's data deps (a distill project's input folder).
+    header : str
+        The comment opening the file.
+    omit : tuple of str
+        Stages left out; their outputs leave their readers' deps.
+    extra_plots : list of dict
+        Top-level plots added after the catalogue's (:func:`live_plots`).
+    optional : tuple of str
+        The :data:`OPTIONAL_STAGES` to render and the :data:`OPTIONAL_PARAMS` to track (:func:`optional_stages_on`).
+    groups : dict, optional
+        Seeds grouped per training stage (:func:`seed_groups`); None: a matrix stage per method.
+
+    Returns
+    -------
+    str
+        The YAML text.
     """
     doc = {"stages": dvc_stages(code_root, data_deps, omit, optional, groups),
            "plots": dvc_plots(omit) + list(extra_plots)}
@@ -232,7 +278,18 @@ def render_dvc_yaml(code_root: Path | None = None, data_deps: dict[str, list[str
 
 
 def project_dvc_yaml(params: dict | None) -> str:
-    """This repository's dvc.yaml for ``params`` (params.yaml as read, or None), as ``geodistill dag`` writes it."""
+    """Render this repository's dvc.yaml for ``params``, as ``geodistill dag`` writes it.
+
+    Parameters
+    ----------
+    params : dict or None
+        params.yaml as read (its optional stages and seed groups); None: neither.
+
+    Returns
+    -------
+    str
+        The YAML text.
+    """
     return render_dvc_yaml(optional=optional_stages_on(params), groups=seed_groups(params))
 
 
@@ -274,7 +331,18 @@ GENERATED_PARAMS_MARK = "# GeoDistill-Refine params"
 
 
 def is_generated_params(path: str | Path) -> bool:
-    """Whether ``path`` is a params file written by ``geodistill profile`` / ``distill``."""
+    """Tell whether ``path`` is a params file written by ``geodistill profile`` / ``distill``.
+
+    Parameters
+    ----------
+    path : str or Path
+        A file.
+
+    Returns
+    -------
+    bool
+        Whether its first line is :data:`GENERATED_PARAMS_MARK`'s; False when it cannot be read.
+    """
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
             return f.readline().startswith(GENERATED_PARAMS_MARK)
@@ -283,7 +351,27 @@ def is_generated_params(path: str | Path) -> bool:
 
 
 def render_params_yaml(profile: str, overrides: dict | None = None, header: str | None = None) -> str:
-    """params.yaml text of ``profile`` with nested ``overrides`` merged over it; ``header`` replaces the standard one."""
+    """Render params.yaml's text for ``profile``: every key with its value and the schema's description.
+
+    Parameters
+    ----------
+    profile : str
+        A profile of :mod:`pipeline.profiles` (``demo``, ``reduced``, ``paper``, ...).
+    overrides : dict, optional
+        Nested values merged over the profile's.
+    header : str, optional
+        Replaces the standard header (:data:`PARAMS_HEADER`).
+
+    Returns
+    -------
+    str
+        The YAML text, validated.
+
+    Raises
+    ------
+    InputError
+        An override the schema refuses (from :func:`pipeline.params.validate`).
+    """
     raw = deep_merge(profile_params(profile), overrides or {})
     values = unresolved(validate(raw, f"profile {profile}"), raw)  # recipe parts: null = the recipe's value
     lines: list[str] = []

@@ -1,5 +1,6 @@
-"""``geodistill distill``: a folder of images in, a trained student, deploy bundle and report out, by running
-the same DAG in a DVC project of its own in the output folder (docs/own-data.md: what it writes, git,
+"""``geodistill distill``: a folder of images in, a trained student, deploy bundle and report out.
+
+It runs the same DAG in a DVC project of its own in the output folder (docs/own-data.md: what it writes, git,
 validation masks, ``--labels``).
 """
 
@@ -74,7 +75,7 @@ PARAMS_HEADER = """\
 
 
 def check_folder(path: str | Path, what: Option) -> Path:
-    """An existing folder as an absolute path; InputError naming option ``what`` otherwise."""
+    """Resolve an existing folder to an absolute path; InputError naming option ``what`` otherwise."""
     p = Path(path)
     if not p.exists():
         raise InputError("{}: folder not found", what(p))
@@ -123,9 +124,41 @@ def _env(device: str = "auto") -> dict:
 def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
                   val_masks: str | Path | None = None, overwrite: bool = False,
                   labels: str | Path | None = None, benchmark: bool = True) -> Path:
-    """Create or update the DVC project in ``out`` for ``input_dir`` from validated ``params``; returns ``out``.
+    """Create or update the DVC project in ``out`` for the images of ``input_dir``.
 
-    ``labels``: the label folder ``params`` came from (recorded); ``benchmark=False``: no benchmark stage.
+    It writes the run record first, then params.yaml (the folder source), the folder protocol, dvc.yaml (the
+    repository's DAG with its code deps by absolute path) and ``.dvcignore``; a new folder becomes a git project
+    with one commit when git is installed.
+
+    Parameters
+    ----------
+    input_dir : str or Path
+        The folder of images (``INPUT``).
+    out : str or Path
+        The project folder (``--out``); not the input folder or inside it.
+    params : Mapping
+        Validated params, the folder source merged over them here.
+    val_masks : str or Path, optional
+        A folder of validation masks named like the images (``--val-masks``), at least 2; None: none, and the
+        stages that need masks are left out.
+    overwrite : bool
+        Replace what an earlier run of another input wrote (``--overwrite``).
+    labels : str or Path, optional
+        The label folder ``params`` came from, recorded.
+    benchmark : bool
+        Keep the benchmark stage.
+
+    Returns
+    -------
+    Path
+        ``out``, absolute.
+
+    Raises
+    ------
+    InputError
+        ``out`` is the input folder or inside it, the teacher is the SIMULATOR (it needs ground-truth masks of the
+        training images), ``dvc init`` or its config fails, or (from the checks) a missing folder, too few
+        validation masks, no image, or outputs of another run without ``overwrite``.
     """
     input_dir = check_folder(input_dir, INPUT)
     find_images(input_dir)  # one line when there is no image at all
@@ -180,7 +213,7 @@ def write_project(input_dir: str | Path, out: str | Path, params: Mapping, *,
 
 
 def dvc_folder_files(project: Path, lock: Mapping, rel: str) -> set[str] | None:
-    """The files DVC recorded in the output folder ``rel`` (its ``.dir`` listing in the cache), or None."""
+    """List the files DVC recorded in the output folder ``rel`` (its ``.dir`` listing in the cache), or None."""
     for stage in (lock.get("stages") or {}).values():
         for o in stage.get("outs") or []:
             md5 = str(o.get("md5", ""))
@@ -219,8 +252,9 @@ def refuse_foreign_outputs(out: str | Path) -> None:
 
 
 def git_outputs(out: Path) -> tuple[str, ...]:
-    """:data:`GIT_OUTPUTS` when ``out`` is to become a new git project (git installed, no .dvc, .git or
-    .gitignore there), else ().
+    """List what a new git project adds to ``out``: :data:`GIT_OUTPUTS`, or () when it is not to be one.
+
+    ``out`` becomes a git project when git is installed and no .dvc, .git or .gitignore is there.
     """
     if shutil.which("git") is None or any((Path(out) / f).exists() for f in (".dvc", *GIT_OUTPUTS)):
         return ()
@@ -254,8 +288,24 @@ _DVC_ERROR = re.compile(r"^ERROR: ")
 
 
 def run_project(out: str | Path, device: str = "auto", quiet: bool = False) -> None:
-    """``dvc repro`` in the project ``out``, its output streamed.  A failed stage's own one-line error is
-    raised once as an InputError in the caller's terms, instead of DVC's "failed to reproduce".
+    """Run ``dvc repro`` in the project ``out``, its output streamed.
+
+    A failed stage's own one-line error is raised once as an InputError in the caller's terms, instead of DVC's
+    "failed to reproduce".
+
+    Parameters
+    ----------
+    out : str or Path
+        The project folder (:func:`write_project`).
+    device : str
+        The stages' device (``auto``, ``cpu``, ``cuda``, ...).
+    quiet : bool
+        DVC's ``-q`` and the stages' warnings only.
+
+    Raises
+    ------
+    InputError
+        A stage failed: its own one-line error, or DVC's first error line.
     """
     out = Path(out)
     env = _env(device)
@@ -292,7 +342,18 @@ def _relay_stdout(stream) -> None:
 
 
 def project_outputs(out: str | Path) -> dict[str, Path]:
-    """Where a finished project's results are: deploy bundle, report, thresholds, checkpoints."""
+    """Locate a finished project's results: deploy bundle, report, thresholds, checkpoints.
+
+    Parameters
+    ----------
+    out : str or Path
+        The project folder.
+
+    Returns
+    -------
+    dict
+        ``{"deploy", "report", "thresholds", "checkpoints": path}``, the report under the project's profile.
+    """
     out = Path(out)
     art = out / catalog.ARTIFACTS_DIR
     profile = read_yaml_mapping(out / PARAMS_FILE).get("profile", PROFILE)
@@ -306,8 +367,19 @@ MIN_VOTE_IOU = 0.05
 
 
 def efficiency_line(out: str | Path) -> str | None:
-    """The deployed student's distillation efficiency ("0.93 × the teacher vote's Image IoU") per group, from
-    the report's ``metrics_efficiency`` files; None without them (no masks).
+    """Word the deployed student's distillation efficiency ("0.93 × the teacher vote's Image IoU") per group.
+
+    No ratio is given for a group whose teacher-vote Image IoU is below :data:`MIN_VOTE_IOU`: the line says why.
+
+    Parameters
+    ----------
+    out : str or Path
+        The project folder (its report's ``metrics_efficiency`` files).
+
+    Returns
+    -------
+    str or None
+        The line; None without those files (no validation masks).
     """
     out = Path(out)
     art = out / catalog.ARTIFACTS_DIR
@@ -342,7 +414,18 @@ def efficiency_line(out: str | Path) -> str | None:
 
 
 def training_line(out: str | Path) -> str | None:
-    """Stage I's optimizer steps and why it stopped (first seed); None without its checkpoint record."""
+    """Word Stage I's optimizer steps and why it stopped (first seed), with its departures from eq:raw-loss.
+
+    Parameters
+    ----------
+    out : str or Path
+        The project folder.
+
+    Returns
+    -------
+    str or None
+        The line; None without Stage I's checkpoint record.
+    """
     out = Path(out)
     runs = (read_yaml_mapping(out / PARAMS_FILE).get("protocol") or {}).get("runs") or {}
     seeds = runs.get(STAGE_ONE) or []
@@ -370,8 +453,33 @@ def _metric(path: Path, key: str) -> float | None:
 
 def time_budget_params(params: dict, time_budget: str | None, out: str | Path, device: str = "auto",
                        input_dir: str | Path | None = None, val_masks: str | Path | None = None) -> dict:
-    """``params`` with ``--time`` as Stage I's step budget, reusing what ``out`` recorded for the same time; the
-    steps are priced over the training images of ``input_dir`` (:func:`pipeline.training.budget.training_images`).
+    """Turn ``--time`` into Stage I's step budget (:func:`pipeline.training.budget.with_time_budget`).
+
+    Parameters
+    ----------
+    params : dict
+        Validated params.
+    time_budget : str or None
+        The wall time for Stage I (``--time``, ``"20m"``); None: ``params`` unchanged.
+    out : str or Path
+        The project folder: what its params.yaml recorded for the same time is reused (no new measurement).
+    device : str
+        The device the steps are priced on.
+    input_dir : str or Path, optional
+        The folder of images: the steps are priced over its training images
+        (:func:`pipeline.training.budget.training_images`); None: every step at full side.
+    val_masks : str or Path, optional
+        The validation masks' folder (they leave the training images).
+
+    Returns
+    -------
+    dict
+        ``params`` with ``train.time_budget`` and ``train.step_budget`` set.
+
+    Raises
+    ------
+    InputError
+        A missing input or mask folder, or a duration that cannot be read.
     """
     if time_budget is None:
         return params

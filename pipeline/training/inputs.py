@@ -1,5 +1,7 @@
-"""What a training run reads, torch-free: pseudo-targets for training, reference masks for validation (and for the
-supervised ceiling only), and human corrections; from opened artifacts or an artifacts directory.
+"""What a training run reads, torch-free, from opened artifacts or an artifacts directory.
+
+Pseudo-targets for training, reference masks for validation (and for the supervised ceiling only), and human
+corrections.
 """
 
 from __future__ import annotations
@@ -30,8 +32,29 @@ MODE_KEY = REVIEW_MODE_KEY
 
 @dataclasses.dataclass
 class TrainData:
-    """A method's training rows (manifest order) as arrays or row sources: region target ``mask``, pseudo-geometry
-    ``sdf``/``skeleton`` (or None), a_i ``area`` and g_i ``gate``; ``stats``: the filter's outcome.
+    """A method's training rows, in manifest order, as arrays or row sources.
+
+    Attributes
+    ----------
+    image_ids : list of str
+        The rows' image ids.
+    images : numpy.ndarray or RowSource
+        uint8 [N, R, R, 3].
+    mask : numpy.ndarray or RowSource
+        The region target [N, R, R]: the voted mask M^T (bool), the agreement map A (float32), a fused AFS mask,
+        or a reference mask for the supervised ceiling.
+    area : numpy.ndarray
+        a_i = (1 / HW) sum_x M_i^T(x) (eq:pseudo-area), float32 [N].
+    gate : numpy.ndarray
+        g_i (eq:reliability-gate), float32 [N] in [0, 1]; 1 where the method applies no gate.
+    sdf : numpy.ndarray or RowSource or None
+        The pseudo signed distance target D^T [N, R, R] (eq:sdf-target); None without geometry.
+    skeleton : numpy.ndarray or RowSource or None
+        The skeleton target K^T [N, R, R]; None without geometry.
+    stats : dict
+        The filter's outcome (rows, pass ratios, corrections applied), recorded with the run.
+    geometry : GeometryConstants
+        The constants ``sdf`` and ``skeleton`` were computed with: an augmented rescale recomputes them alike.
     """
 
     image_ids: list
@@ -42,14 +65,26 @@ class TrainData:
     sdf: np.ndarray | RowSource | None = None
     skeleton: np.ndarray | RowSource | None = None
     stats: dict = dataclasses.field(default_factory=dict)
-    #: the constants ``sdf``/``skeleton`` were computed with: an augmented rescale recomputes them alike
     geometry: GeometryConstants = dataclasses.field(default_factory=GeometryConstants)
 
-    def __len__(self) -> int:
+    def __len__(self) -> int:  # noqa: D105 -- the rows
         return len(self.image_ids)
 
     def subset(self, sel: np.ndarray, **changes) -> TrainData:
-        """The rows ``sel`` (nothing read from disk), with ``changes``."""
+        """Select rows, nothing read from disk.
+
+        Parameters
+        ----------
+        sel : numpy.ndarray
+            Row positions.
+        **changes
+            Fields replaced in the result (``stats=...``).
+
+        Returns
+        -------
+        TrainData
+            The rows ``sel``, with ``changes``.
+        """
         rows = {f: select_rows(getattr(self, f), sel) for f in ("images", "mask", "sdf", "skeleton")
                 if getattr(self, f) is not None}
         return dataclasses.replace(self, image_ids=[self.image_ids[k] for k in sel], area=self.area[sel],
@@ -58,13 +93,23 @@ class TrainData:
 
 @dataclasses.dataclass
 class ValData:
-    """Validation images and their reference masks (``split == "val"`` rows with a mask), in memory."""
+    """Validation images and their reference masks (``split == "val"`` rows with a mask), in memory.
+
+    Attributes
+    ----------
+    image_ids : list of str
+        The rows' image ids.
+    images : numpy.ndarray
+        uint8 [V, R, R, 3].
+    masks : numpy.ndarray
+        Reference masks, bool [V, R, R].
+    """
 
     image_ids: list
     images: np.ndarray
     masks: np.ndarray
 
-    def __len__(self) -> int:
+    def __len__(self) -> int:  # noqa: D105 -- the rows
         return len(self.image_ids)
 
 
@@ -76,11 +121,27 @@ def _check_order(art, ids: list, what: str) -> None:
 
 
 def read_rows(art, name: str, idx: np.ndarray) -> np.ndarray:
+    """Read rows of one array of an opened artifact (:class:`LazyRows`).
+
+    Parameters
+    ----------
+    art : Artifact
+        An opened zarr artifact.
+    name : str
+        The array's name.
+    idx : numpy.ndarray
+        Row indices.
+
+    Returns
+    -------
+    numpy.ndarray
+        The rows, in ``idx``'s order.
+    """
     return np.asarray(LazyRows(art[name], idx))
 
 
 def training_inputs(method: Method, cfg: Mapping[str, Any]) -> tuple[str, ...]:
-    """The artifacts :func:`training_data` reads for ``method`` (never ``reference``)."""
+    """List the artifacts :func:`training_data` reads for ``method`` (never ``reference``)."""
     return tuple(n for n in input_artifacts(method, cfg["confidence"]["criterion"]) if n != "reference")
 
 
@@ -103,16 +164,18 @@ def _gate_table(gates, train_ids: list):
 
 
 def agreement_target(method: Method, cfg: Mapping[str, Any]) -> bool:
-    """Whether ``method``'s region target is read as the agreement map A (eq:agreement-map) rather than the voted
-    mask M^T (eq:majority-vote): ``train.soft_targets`` (A is the target), or Stage I's ``train.ignore_band``
-    (M^T = [A >= 1/2] is the target, A says which pixels leave the loss).
+    """Tell whether ``method``'s region target is the agreement map A (eq:agreement-map), not M^T.
+
+    A is read instead of the voted mask M^T (eq:majority-vote) under ``train.soft_targets`` (A is the target), or
+    Stage I's ``train.ignore_band`` (M^T = [A >= 1/2] is the target, A says which pixels leave the loss).
     """
     return bool(cfg["soft_targets"]) or (method.stage == 1 and float(cfg["ignore_band"]) > 0)
 
 
 def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Any]) -> TrainData:
-    """The pseudo-targets of the training rows ``method``'s data filter keeps, from the opened ``inputs`` (by name;
-    a ``reference`` among them is refused).
+    """Read the pseudo-targets of the training rows ``method``'s data filter keeps, from the opened ``inputs``.
+
+    ``inputs`` are named by artifact; a ``reference`` among them is refused.
     """
     if "reference" in inputs:
         raise ValueError("training_data: reference masks never enter training (use validation_data)")
@@ -164,7 +227,7 @@ def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, A
 
 
 def geometry_constants(geometry) -> GeometryConstants:
-    """The ``geometry.*`` constants recorded in geometry.zarr's params (the defaults where it records none)."""
+    """Read the ``geometry.*`` constants recorded in geometry.zarr's params (the defaults where it records none)."""
     params = getattr(getattr(geometry, "meta", None), "params", None) or {}
     nested = params.get("geometry") if isinstance(params.get("geometry"), Mapping) else {}
     keys = {"quantile": "sdf_quantile", "min_scale": "sdf_min_scale", "min_distance": "skeleton_min_distance"}
@@ -205,12 +268,12 @@ def _afs_targets(teacher, train_idx, a: Mapping[str, Any]) -> tuple[MappedRows, 
 
 
 def validation_rows(manifest) -> np.ndarray:
-    """Indices of the manifest's ``split == "val"`` rows (the only rows whose reference masks are read)."""
+    """Find the manifest's ``split == "val"`` rows (the only rows whose reference masks are read)."""
     return np.flatnonzero((manifest.df["split"] == "val").to_numpy())
 
 
 def validation_data(manifest, images, reference) -> ValData | None:
-    """Validation images and reference masks of the ``split == "val"`` rows with a mask (None: no such row)."""
+    """Read the validation images and reference masks of the ``split == "val"`` rows with a mask (None: none)."""
     ids = manifest.df["image_id"].astype(str).tolist()
     val_idx = validation_rows(manifest)
     if len(val_idx) == 0:
@@ -231,8 +294,9 @@ def require_supervised_ceiling(method: Method) -> None:
 
 
 def ceiling_training_data(method: Method, inputs: Mapping[str, Any], reference) -> TrainData:
-    """The supervised ceiling's training rows with their REFERENCE masks: the one place such masks enter a loss (NOT
-    annotation-free).  ``inputs``: opened ``manifest`` and ``images``.
+    """Read the supervised ceiling's training rows with their REFERENCE masks (NOT annotation-free).
+
+    The one place such masks enter a loss.  ``inputs``: opened ``manifest`` and ``images``.
     """
     require_supervised_ceiling(method)
     ids, train_idx = _train_rows(inputs["manifest"])
@@ -253,8 +317,31 @@ def ceiling_training_data(method: Method, inputs: Mapping[str, Any], reference) 
 
 def load_inputs(artifacts: str | Path, spec: Method, cfg: Mapping[str, Any], review: Mapping[str, Any] | None = None
                 ) -> tuple[TrainData, ValData | None, list]:
-    """(TrainData, ValData or None, the opened artifacts) of a run of ``spec``; ``review`` (params) with
-    ``corrections`` set applies the ``corrected`` artifact in its ``mode``.
+    """Read everything a run of ``spec`` trains and validates on.
+
+    Parameters
+    ----------
+    artifacts : str or Path
+        The artifacts folder.
+    spec : Method
+        The run's method (:data:`pipeline.methods.METHODS`).
+    cfg : Mapping
+        The validated ``train:`` section (the method's filter and target settings).
+    review : Mapping, optional
+        The validated ``review:`` section: with ``corrections`` set, the ``corrected`` artifact is applied in its
+        ``mode`` (:data:`MODES`).
+
+    Returns
+    -------
+    tuple
+        ``(TrainData, ValData or None, the opened artifacts)``; the artifacts are the run's lineage.
+
+    Raises
+    ------
+    ArtifactError
+        Inputs from different runs of a stage, or an image order that differs from the manifest's.
+    InputError
+        No training row, none passing the method's filter, or corrections that leave nothing to train on.
     """
 
     def opened(name: str):
@@ -319,8 +406,10 @@ def _positions(data: TrainData, ids: list[str]) -> dict[int, str]:
 
 
 def apply_to_training(data: TrainData, corrected, mode: str) -> TrainData:
-    """``data`` with the opened ``corrected`` artifact applied: ``validate`` drops the corrected images,
-    ``replace`` trains on their corrected masks (:func:`replace_targets`).
+    """Apply the opened ``corrected`` artifact to ``data`` in ``mode``.
+
+    ``validate`` drops the corrected images, ``replace`` trains on their corrected masks
+    (:func:`replace_targets`).
     """
     require_mode(corrected, mode)
     ids = list(corrected.attrs["image_ids"])
@@ -341,8 +430,24 @@ def apply_to_training(data: TrainData, corrected, mode: str) -> TrainData:
 
 def replace_targets(data: TrainData, masks: Mapping[str, np.ndarray], stats: Mapping[str, Any] | None = None
                     ) -> TrainData:
-    """``data`` whose images in ``masks`` ({image id: bool [R,R]}) train on those masks (NOT annotation-free):
-    region target, g = 1, a and the geometry targets recomputed; images ``data`` lacks are left out.
+    """Train the images in ``masks`` on those masks (NOT annotation-free).
+
+    The region target is replaced, g = 1, and a and the geometry targets are recomputed; images ``data`` lacks
+    are left out.
+
+    Parameters
+    ----------
+    data : TrainData
+        The training rows.
+    masks : Mapping
+        ``{image id: bool [R, R]}``.
+    stats : Mapping, optional
+        The stats to start from (None: ``data.stats``).
+
+    Returns
+    -------
+    TrainData
+        A new value, its ``stats`` saying how many targets were replaced.
     """
     pos = _positions(data, list(masks))
     stats = dict(data.stats if stats is None else stats)
@@ -362,7 +467,7 @@ def replace_targets(data: TrainData, masks: Mapping[str, np.ndarray], stats: Map
 
 
 def apply_to_validation(val: ValData | None, corrected, images) -> ValData:
-    """``val`` (None: no validation masks) with the corrected images, read from ``images``, and masks appended."""
+    """Append the corrected images, read from ``images``, and their masks to ``val`` (None: no validation masks)."""
     ids, imgs, masks = corrected_validation(corrected, images)
     if val is None:
         return ValData(image_ids=ids, images=imgs, masks=masks)
@@ -371,5 +476,5 @@ def apply_to_validation(val: ValData | None, corrected, images) -> ValData:
 
 
 def _as_rows(x) -> RowSource:
-    """A row source over ``x`` (an array too, so that :class:`PatchedRows` reads it alike)."""
+    """Wrap ``x`` as a row source (an array too, so that :class:`PatchedRows` reads it alike)."""
     return x if isinstance(x, RowSource) else LazyRows(np.asarray(x), np.arange(len(x)))

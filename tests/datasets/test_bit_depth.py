@@ -15,7 +15,7 @@ import pytest
 from pipeline.datasets import loading
 from pipeline.datasets.build import iter_arrays
 from pipeline.datasets.manifest import DatasetSpec
-from pipeline.datasets.params import fingerprint_params
+from pipeline.datasets.params import FrameSettings, fingerprint_params
 from pipeline.runtime.errors import InputError
 from pipeline.params import PAPER, validate_section
 
@@ -103,8 +103,8 @@ def test_prepares_reader_and_its_fingerprint_follow_data_bit_depth(tmp_path):
     f = tmp_path / "frame.tif"
     cv2.imwrite(str(f), twelve_bit_frame(32, 32))
     rows = pd.DataFrame({"image_path": [str(f)], "mask_path": [None], "part_path": [None]})
-    dark = next(iter_arrays(rows, DatasetSpec(rows), 32, None))[1]
-    bright = next(iter_arrays(rows, DatasetSpec(rows, bit_depth=12), 32, None))[1]
+    dark = next(iter_arrays(rows, DatasetSpec(rows), FrameSettings.from_params(PAPER.data.model_dump()), 32, None))[1]
+    bright = next(iter_arrays(rows, DatasetSpec(rows), FrameSettings.from_params(PAPER.data.model_dump() | {"bit_depth": 12}), 32, None))[1]
     assert dark.max() <= 16 and bright.max() >= 250
     data = PAPER.data.model_dump()
     assert "bit_depth" not in fingerprint_params(data)      # the default leaves earlier fingerprints alone

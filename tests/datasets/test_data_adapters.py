@@ -10,7 +10,11 @@ import yaml
 from pipeline.datasets import adapters, build
 from pipeline.datasets.loading import DecodeCache
 from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec, spacecraft_split_violations
+from pipeline.datasets.params import FrameSettings
+from pipeline.params import PAPER
 from pipeline.runtime.errors import InputError
+
+PAPER_FRAMES = FrameSettings.from_params(PAPER.data.model_dump())  # data.bit_depth, letterbox, max_pixels
 
 
 def _img(path, h=24, w=24, value=90):
@@ -42,7 +46,7 @@ def _grey_mask(path, h=24, w=24, value=200):
 def _decode(spec, tmp_path, size=16, skip=False):
     policy = BadInputPolicy(skip)
     rows = build.check_manifest(spec, policy)
-    rows = build.decode_rows(rows, spec, size, DecodeCache(tmp_path / "cache"), policy)
+    rows = build.decode_rows(rows, spec, PAPER_FRAMES, size, DecodeCache(tmp_path / "cache"), policy)
     return rows, policy
 
 
@@ -190,7 +194,7 @@ def test_speedplus_adapter(tmp_path):
     assert rows[rows.split == "train"]["mask_path"].isna().all()
     assert rows[rows.split != "train"]["mask_path"].notna().all()
     assert rows["image_path"].str.contains("/sunlamp/images/").all()
-    m = build.iter_arrays(rows[rows.split == "val"].head(1), spec, 24, DecodeCache(tmp_path / "cache"))
+    m = build.iter_arrays(rows[rows.split == "val"].head(1), spec, PAPER_FRAMES, 24, DecodeCache(tmp_path / "cache"))
     _, _, mask, _ = next(m)
     assert mask[10, 10] and not mask[0, 0]         # 200 > 128 foreground; 100 background
     with pytest.raises(InputError, match="data.domain"):

@@ -15,8 +15,12 @@ from pipeline.artifacts.store import open_artifact
 from pipeline.datasets import adapters, build
 from pipeline.datasets.loading import BadFileError, ColorTable, DecodeCache, load_labels, load_mask, parts_from_colors
 from pipeline.datasets.manifest import BadInputPolicy, spacecraft_split_violations
+from pipeline.datasets.params import FrameSettings
+from pipeline.params import PAPER
 from pipeline.runtime.errors import InputError
 from tests.builders.teacher import REPO, cli
+
+PAPER_FRAMES = FrameSettings.from_params(PAPER.data.model_dump())  # data.bit_depth, letterbox, max_pixels
 
 S = 24                                           # image side (px)
 CLASSES = ("Cheops", "Proba2", "Smart1", "Soho", "VenusExpress", "XMM Newton")   # a space in a class name
@@ -84,7 +88,8 @@ def test_spark_reader_pools_both_lists_and_splits_by_class(tmp_path):
     assert spec.spacecraft_disjoint and spec.mask_threshold == 127
     assert spec.part_colors == ColorTable({(255, 0, 0): 1, (0, 0, 255): 2}, TOL, True)
     policy = BadInputPolicy(False)
-    rows = build.decode_rows(build.check_manifest(spec, policy), spec, S, DecodeCache(tmp_path / "c"), policy)
+    rows = build.decode_rows(build.check_manifest(spec, policy), spec, PAPER_FRAMES, S, DecodeCache(tmp_path / "c"),
+                             policy)
     assert not policy.skipped and set(rows["spacecraft"]) == set(CLASSES)
     assert rows.groupby("split")["spacecraft"].nunique().to_dict() == {"test": 2, "val": 1, "train": 3}
     assert not spacecraft_split_violations(rows)

@@ -11,6 +11,7 @@ import pandas as pd
 from pipeline.datasets import loading
 from pipeline.datasets.build import iter_arrays
 from pipeline.datasets.manifest import DatasetSpec
+from pipeline.datasets.params import FrameSettings
 from pipeline.deploy.segmenter import Segmenter
 from pipeline.params import PAPER
 
@@ -92,7 +93,7 @@ def test_prepare_letterboxes_images_and_masks_together(tmp_path):
     cv2.imwrite(str(fi), img[..., ::-1])
     cv2.imwrite(str(fm), box.astype(np.uint8) * 255)
     rows = pd.DataFrame({"image_path": [str(fi)], "mask_path": [str(fm)], "part_path": [None]})
-    _, image, mask, _ = next(iter_arrays(rows, DatasetSpec(rows, letterbox=True), R, None))
+    _, image, mask, _ = next(iter_arrays(rows, DatasetSpec(rows), FrameSettings.from_params(PAPER.data.model_dump() | {"letterbox": True}), R, None))
     assert image.shape == (R, R, 3) and mask.shape == (R, R)
     side_pad = R * 30 // 90                                 # 30 pad rows of 90 -> about R/3 at R
     assert (image[:side_pad - 1] == 0).all() and not mask[:side_pad].any() and not mask[-side_pad:].any()
