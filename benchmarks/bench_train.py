@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import statistics
 import time
 from pathlib import Path
@@ -149,33 +150,39 @@ def step_profile(run, steps: int) -> dict[str, float]:
     s, n = run.settings, run.n_train
     order = np.random.default_rng([run.seed, 0]).permutation(n)
     spans: dict[str, list[float]] = {p: [] for p in (*PHASES, "step")}
+
+    def now() -> float:  # a phase ends when its device work does
+        if run.device.type == "cuda":
+            torch.cuda.synchronize(run.device)
+        return time.perf_counter()
+
     for k in range(steps):
         idx = order[(k * s.batch_size) % n:][:s.batch_size]
-        t = [time.perf_counter()]
+        t = [now()]
         idx_dev = torch.from_numpy(idx).to(run.device)
         rows = {key: loop._take(v, idx_dev).cpu().numpy() for key, v in run.tensors.items()}
-        t.append(time.perf_counter())
+        t.append(now())
         if s.augment is not None:
             images = rows.pop("image")
             images, targets = augment_batch(images, rows, [[run.seed, 0, int(i)] for i in idx], s.augment,
                                             run.geometry)
             rows = {"image": images, **targets}
-        t.append(time.perf_counter())
+        t.append(now())
         dev = {key: torch.from_numpy(np.ascontiguousarray(v)).to(run.device) for key, v in rows.items()}
         b = loop._batch(dev, torch.arange(len(idx), device=run.device), None, s.channels_last)
-        t.append(time.perf_counter())
+        t.append(now())
         with autocast(run.device, run.amp):
             out = run.model.forward_train(b["x"])
-        t.append(time.perf_counter())
+        t.append(now())
         terms = losses.refine_loss(out, b, b["gate"], run.plan.weights, s.constants)
         float(terms["loss"].detach())  # the loop's finiteness check reads it every step
-        t.append(time.perf_counter())
+        t.append(now())
         terms["loss"].backward()
-        t.append(time.perf_counter())
+        t.append(now())
         run.opt.step()
         run.sched.step()
         run.opt.zero_grad(set_to_none=True)
-        t.append(time.perf_counter())
+        t.append(now())
         if k == 0 and s.augment is not None:  # the same batch as the loop builds
             ref = loop._augmented_batch(run, idx, 0)
             assert all(torch.equal(ref[key], b[key]) for key in ref), "step_profile's batch is not the loop's"
@@ -254,7 +261,7 @@ def main(argv=None) -> dict:
             out["sizes"][str(size)]["compile_speedup_median"] = rows[PROFILE]["median_seconds"] / c["median_seconds"]
 
     if args.profile_size:
-        limits = host_limits()
+        limits = host_limits() if device.type == "cpu" else None  # the CPU's matmul peaks; none on a GPU
         images, masks = synthetic_set(max(args.images, batch), args.profile_size, args.seed)
         data = train_data(images, masks)
         prof = {}
@@ -263,11 +270,12 @@ def main(argv=None) -> dict:
             step_profile(run, 1)  # warm-up
             phases = step_profile(run, args.profile_steps)
             flops = step_flops(run, args.profile_size)
-            peak = limits["bf16_gflops"] if run.amp is not None else limits["fp32_gflops"]
+            peak = (limits["bf16_gflops"] if run.amp is not None else limits["fp32_gflops"]) if limits else None
             compute = phases["forward"] + phases["backward"]
             prof[name] = {"phases": phases, "gflop_per_step": flops / 1e9, "peak_gflops": peak,
-                          "compute_gflops": flops / 1e9 / compute, "limit_seconds": flops / 1e9 / peak,
-                          "limit_share": flops / 1e9 / peak / phases["step"]}
+                          "compute_gflops": flops / 1e9 / compute,
+                          "limit_seconds": flops / 1e9 / peak if peak else None,
+                          "limit_share": flops / 1e9 / peak / phases["step"] if peak else None}
         out["profile"] = {"size": args.profile_size, "host_limits": limits, "load": load_average(), "variants": prof}
 
     if args.epochs:
@@ -304,15 +312,16 @@ def print_summary(out: Mapping) -> None:
               + (f"; torch.compile / eager: {r['compile_speedup_median']:.2f}x" if "compile_speedup_median" in r else ""))
     if "profile" in out:
         p = out["profile"]
-        lim = p["host_limits"]
-        print(f"one step at {p['size']}^2 (medians), matmul peak fp32 {lim['fp32_gflops']:.0f} / bf16 "
-              f"{lim['bf16_gflops'] or float('nan'):.0f} GFLOP/s; load {p['load']}")
+        lim = p["host_limits"] or {}
+        print(f"one step at {p['size']}^2 (medians), CPU matmul peak fp32 {lim.get('fp32_gflops') or math.nan:.0f} / "
+              f"bf16 {lim.get('bf16_gflops') or math.nan:.0f} GFLOP/s; load {p['load']}")
         for name, v in p["variants"].items():
             ph = v["phases"]
             parts = ", ".join(f"{k} {1e3 * ph[k]:.1f}" for k in PHASES)
             print(f"  {name}: step {1e3 * ph['step']:.1f} ms ({parts} ms); {v['gflop_per_step']:.2f} GFLOP, "
-                  f"forward+backward at {v['compute_gflops']:.0f} GFLOP/s of {v['peak_gflops']:.0f}; the peak's "
-                  f"step {1e3 * v['limit_seconds']:.1f} ms = {100 * v['limit_share']:.0f} % of the measured step")
+                  f"forward+backward at {v['compute_gflops']:.0f} GFLOP/s of {v['peak_gflops'] or math.nan:.0f}; "
+                  f"the peak's step {1e3 * (v['limit_seconds'] or math.nan):.1f} ms = "
+                  f"{100 * (v['limit_share'] or math.nan):.0f} % of the measured step")
     if "accuracy" in out:
         a = out["accuracy"]
         for name, v in a["variants"].items():
