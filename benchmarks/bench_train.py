@@ -136,10 +136,10 @@ def step_flops(run, size: int) -> int:
     return int(counter.get_total_flops())
 
 
-def step_profile(run, steps: int) -> dict[str, float]:
-    """Median wall seconds of each of :data:`PHASES` over ``steps`` training steps of ``run``, composed of the
+def step_profile(run, steps: int) -> dict[str, list[float]]:
+    """Wall seconds of each of :data:`PHASES` in each of ``steps`` training steps of ``run``, composed of the
     loop's own pieces in the loop's order (the batch is checked against the loop's :func:`_augmented_batch` /
-    :func:`_batch` so the profile cannot drift from it); ``step``: the median of the phases' sum."""
+    :func:`_batch` so the profile cannot drift from it); ``step``: the phases' sum."""
     import torch
 
     from pipeline import losses
@@ -189,7 +189,7 @@ def step_profile(run, steps: int) -> dict[str, float]:
         for p, a, z in zip(PHASES, t, t[1:]):
             spans[p].append(z - a)
         spans["step"].append(t[-1] - t[0])
-    return {p: statistics.median(v) for p, v in spans.items()}
+    return spans
 
 
 def accuracy(cfg: Mapping, data: TrainData, val: ValData, device, seed: int, epochs: int) -> dict:
@@ -255,7 +255,9 @@ def main(argv=None) -> dict:
         out["sizes"][str(size)] = {"variants": rows, "warmup_seconds": warm, "load_before": load_before,
                                    "load_after": load_average(),
                                    "speedup_median": rows[BASELINE]["median_seconds"] / rows[PROFILE]["median_seconds"],
-                                   "speedup_min": rows[BASELINE]["min_seconds"] / rows[PROFILE]["min_seconds"]}
+                                   "speedup_min": rows[BASELINE]["min_seconds"] / rows[PROFILE]["min_seconds"],
+                                   # each round's pair ran back to back: its ratio sees the same load
+                                   "speedup_rounds": [b / f for b, f in zip(times[BASELINE], times[PROFILE])]}
         if args.compile:
             c = rows[names[-1]]
             out["sizes"][str(size)]["compile_speedup_median"] = rows[PROFILE]["median_seconds"] / c["median_seconds"]
@@ -264,11 +266,12 @@ def main(argv=None) -> dict:
         limits = host_limits() if device.type == "cpu" else None  # the CPU's matmul peaks; none on a GPU
         images, masks = synthetic_set(max(args.images, batch), args.profile_size, args.seed)
         data = train_data(images, masks)
-        prof = {}
-        for name, cfg in cfgs.items():
-            run = open_run(cfg, data, device, args.seed)
-            step_profile(run, 1)  # warm-up
-            phases = step_profile(run, args.profile_steps)
+        prof, runs = {}, {name: open_run(cfg, data, device, args.seed) for name, cfg in cfgs.items()}
+        # one step of each variant a round, so that the host's load hits both alike
+        spans = round_robin({name: (lambda i, run=run: step_profile(run, 1)) for name, run in runs.items()},
+                            1 + args.profile_steps, order="rotate")
+        for name, run in runs.items():
+            phases = {p: statistics.median(r[p][0] for r in spans[name][1:]) for p in spans[name][0]}
             flops = step_flops(run, args.profile_size)
             peak = (limits["bf16_gflops"] if run.amp is not None else limits["fp32_gflops"]) if limits else None
             compute = phases["forward"] + phases["backward"]
@@ -308,7 +311,8 @@ def print_summary(out: Mapping) -> None:
                   f"{v['images_per_second']:7.1f} {v['images_per_second_best']:7.1f} {v['seconds_per_step']:7.3f}  "
                   f"{r['load_before']} / {r['load_after']}")
         print(f"{size:>5s} speed-up {PROFILE} / {BASELINE}: {r['speedup_median']:.2f}x median, "
-              f"{r['speedup_min']:.2f}x of the minima"
+              f"{r['speedup_min']:.2f}x of the minima, per round "
+              f"{', '.join(f'{x:.2f}' for x in r['speedup_rounds'])}"
               + (f"; torch.compile / eager: {r['compile_speedup_median']:.2f}x" if "compile_speedup_median" in r else ""))
     if "profile" in out:
         p = out["profile"]
