@@ -34,11 +34,11 @@ from unittest import mock
 
 import numpy as np
 
-from benchmarks.common import best_of, medians, parser, round_robin
+from benchmarks.common import LIMIT_FLAGS, best_of, host_limits, medians, parser, round_robin
 from pipeline.artifacts.atomic import write_json
 from pipeline.metrics import image_ious
 from pipeline.params import PAPER_PROMPTS as PROMPTS
-from pipeline.runtime.device import cpu_flags, teacher_cpu_dtype
+from pipeline.runtime.device import cpu_flags
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.distributed import ray_session
@@ -240,40 +240,6 @@ def fidelity(masks, scores, ref_masks, ref_scores) -> dict:
     return {"mean_iou": mean_iou, "min_iou": float(ious.min()) if ious.size else float("nan"),
             "pairs": int(a.shape[0]), "pairs_both_empty": int(both_empty.sum()), "max_score_diff": score_diff,
             "passes": bool(ious.size and mean_iou >= GATE_IOU and score_diff <= GATE_SCORE)}
-
-
-#: CPU flags that tell which matrix units a host has (/proc/cpuinfo names)
-LIMIT_FLAGS = ("avx2", "fma", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16")
-
-
-def matmul_peak(dtype, n: int = 2048, repeats: int = 5) -> tuple[float, float]:
-    """(best, median) GFLOP/s of an n x n matmul in ``dtype`` on this process's threads: the measured limit."""
-    import torch
-
-    a, b = torch.randn(n, n).to(dtype), torch.randn(n, n).to(dtype)
-    a @ b
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        a @ b
-        ts.append(time.perf_counter() - t0)
-    return 2 * n ** 3 / min(ts) / 1e9, 2 * n ** 3 / statistics.median(ts) / 1e9
-
-
-def host_limits() -> dict:
-    """The host's fp32 / bf16 / AMX limits: which its flags allow, and the measured matmul peaks (a bf16 matmul
-    runs on the AMX tiles where the host has them, so the AMX row is the bf16 peak there, n/a elsewhere)."""
-    import torch
-
-    flags = cpu_flags()
-    has = {f: f in flags for f in LIMIT_FLAGS}
-    fp32 = matmul_peak(torch.float32)
-    # native bf16 by the teacher's own rule (the flags, and an ONEDNN_MAX_CPU_ISA cap): emulated bf16 is no limit
-    bf16 = matmul_peak(torch.bfloat16) if teacher_cpu_dtype() == "bf16" else None
-    return {"flags": has, "threads": torch.get_num_threads(),
-            "fp32_gflops": fp32[0], "fp32_gflops_median": fp32[1],
-            "bf16_gflops": bf16[0] if bf16 else None, "bf16_gflops_median": bf16[1] if bf16 else None,
-            "amx_gflops": bf16[0] if bf16 and has["amx_bf16"] else None}
 
 
 def sdpa_cpu_flops(query_shape, key_shape, value_shape, *args, out_shape=None, **kwargs) -> int:

@@ -1,26 +1,47 @@
-"""Training speed of Stage-I ``plain``: fp32 eager NCHW against the fast path (channels_last + bf16 autocast),
-seconds per epoch (interleaved one-epoch rounds: median, minimum, ratio), then an ``--epochs`` run of each for
-validation Image IoU / Boundary F1 on held-out images of an in-memory synthetic set (ellipse + bar on noise).
+"""Training speed of Stage-I ``plain`` at ``distill``'s settings: images per second of fp32 eager NCHW against
+``distill``'s resolved settings (its ``train.precision`` autocast on this host and ``train.channels_last``), at each
+``--sizes`` side and ``distill``'s batch size, each epoch timed round-robin (medians and minima, absolute seconds);
+then a profile of one step at ``--profile-size``: FLOPs per step against the host's measured matmul peak
+(:func:`benchmarks.common.host_limits`) and where the step's time goes (data, augmentation, normalisation, forward,
+loss, backward, optimizer).  Both variants train the loop's own epochs (:func:`pipeline.training.loop._train_epoch`)
+on an in-memory synthetic set (ellipse + bar on noise), with ``distill``'s augmentation; only the precision and the
+memory format differ.  ``--compile`` adds ``distill``'s settings with ``torch.compile`` of the model's training
+forward (and so its backward), and reports its final loss beside eager's; ``--epochs N`` trains each variant N
+epochs and scores held-out images (validation Image IoU / Boundary F1).
 
-    python -m benchmarks.bench_train [--quick] [--images 270 --size 384 --epochs 2 --device cuda]
+    python -m benchmarks.bench_train [--sizes 64 128 384] [--threads 2] [--reps 3] [--compile] [--out FILE]
 """
 
 from __future__ import annotations
 
+import copy
 import json
+import math
+import statistics
 import time
 from pathlib import Path
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from benchmarks.common import parser, round_robin
-from pipeline.runtime.device import resolve_device
+from benchmarks.common import host_limits, parser, round_robin
 from pipeline.methods import STAGE_ONE, get_method
-from pipeline.params import load_params, section
+from pipeline.runtime.device import resolve_device
 from pipeline.training.inputs import TrainData, ValData
 from pipeline.training.checkpointing import NoCheckpointer
+from pipeline.artifacts.atomic import write_json
+from pipeline.augment import augment_batch
+from pipeline.methods import resolve_plan
+from pipeline.params import PAPER
+from pipeline.profiles import load_profile
+from pipeline.runtime.device import autocast
 
 PAPER_IMAGES = 270
+#: the profile whose settings are timed against fp32 eager NCHW
+PROFILE = "distill"
+BASELINE = "fp32 eager NCHW"
+#: the phases of one training step, in order (:func:`step_profile`)
+PHASES = ("data", "augmentation", "normalisation", "forward", "loss", "backward", "optimizer")
 
 
 def synthetic_set(n: int, size: int, seed: int):
@@ -41,80 +62,275 @@ def synthetic_set(n: int, size: int, seed: int):
     return images, masks
 
 
-def train_variant(cfg: dict, data, val, device, seed: int) -> dict:
-    """Train ``plain`` with ``cfg``; per-epoch training seconds (callback marks) and final val metrics."""
-    from pipeline.training import loop as training
-    marks = [time.perf_counter()]
-    res = training.train(get_method(STAGE_ONE), cfg, data, None, seed, checkpointer=NoCheckpointer(),
-                         device=device, callback=lambda epoch, row: marks.append(time.perf_counter()),
-                         show_progress=False)
-    out = {"epoch_seconds": list(np.diff(marks)), "autocast": res.info["autocast"],
-           "final_loss": float(res.log["loss"].iloc[-1])}
-    if val is not None:
-        out["val_iou"], out["val_bf1"] = training.validate(res.model, val, device, precision=cfg["precision"],
-                                                           channels_last=cfg["channels_last"],
-                                                           tolerance=cfg["val_bf1_tolerance"])
-    return out
+def train_data(images: np.ndarray, masks: np.ndarray) -> TrainData:
+    """Stage-I rows of ``images`` with ``masks`` as their targets (every gate 1)."""
+    n = len(images)
+    return TrainData(image_ids=[f"b{i}" for i in range(n)], images=images, mask=masks,
+                     area=masks.reshape(n, -1).mean(1).astype(np.float32), gate=np.ones(n, np.float32))
+
+
+def variants(overrides: list[str] = ()) -> dict[str, dict]:
+    """``{name: train section}``: fp32 eager NCHW and :data:`PROFILE`'s own settings, both with the rest of
+    :data:`PROFILE`'s train section; every epoch at the timed side (no half-side epochs), no stopping rule."""
+
+    train = load_profile(PROFILE, overrides)["train"]
+    train.update({"num_threads": 0, "low_res_fraction": 0.0, "until": "epochs", "epochs_stage1": 10_000})
+    return {BASELINE: {**train, "precision": "fp32", "channels_last": False}, PROFILE: train}
+
+
+def open_run(cfg: Mapping[str, Any], data: TrainData, device, seed: int, compiled: bool = False):
+    """A training run of ``plain`` set up as :func:`pipeline.training.loop.train` sets it up (``compiled``: its
+    model's ``forward_train`` through ``torch.compile``), ready for :func:`pipeline.training.loop._train_epoch`."""
+    import torch
+
+    from pipeline.training import loop
+    from pipeline.training.settings import Settings
+
+    method = get_method(STAGE_ONE)
+    s = Settings.from_params(method, cfg, PAPER.calibrate.fixed_tau)
+    run = loop._setup(method, cfg, s, resolve_plan(method, cfg, None), data, seed, None, torch.device(device))
+    if compiled:
+        run.model.forward_train = torch.compile(run.model.forward_train)
+    return run
+
+
+def epoch_timer(run) -> Callable[[int], float]:
+    """A round-robin case: train ``run``'s next epoch (the loop's own) and return its wall seconds."""
+    from pipeline.training import loop
+
+    state = {"epoch": 0}
+
+    def one(_round: int) -> float:
+        state["epoch"] += 1
+        t0 = time.perf_counter()
+        row = loop._train_epoch(run, state["epoch"], None, None)
+        state["loss"] = row["loss"]
+        return time.perf_counter() - t0
+
+    one.state = state
+    return one
+
+
+def speed_rows(times: Mapping[str, list[float]], n_images: int, batch: int) -> dict[str, dict]:
+    """Per variant: its epoch seconds, their median and minimum, images per second of each and seconds a step."""
+    steps = -(-n_images // batch)
+    return {name: {"epoch_seconds": list(t), "median_seconds": statistics.median(t), "min_seconds": min(t),
+                   "images_per_second": n_images / statistics.median(t), "images_per_second_best": n_images / min(t),
+                   "seconds_per_step": statistics.median(t) / steps} for name, t in times.items()}
+
+
+def step_flops(run, size: int) -> int:
+    """FLOPs of one training step's forward and backward (``torch.utils.flop_counter``) at ``run``'s batch size
+    and side ``size``, under ``run``'s autocast and memory format; the optimizer's elementwise work is not counted."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from pipeline import losses
+
+    model = copy.deepcopy(run.model)
+    fmt = torch.channels_last if run.settings.channels_last else torch.contiguous_format
+    x = torch.rand(run.settings.batch_size, 3, size, size).contiguous(memory_format=fmt)
+    y = (torch.rand(run.settings.batch_size, 1, size, size) > 0.5).float()
+    b = {"x": x, "mask": y, "gate": torch.ones(len(x)), "area": y.mean((1, 2, 3))}
+    with FlopCounterMode(display=False) as counter:
+        with autocast(run.device, run.amp):
+            out = model.forward_train(x)
+        losses.refine_loss(out, b, b["gate"], run.plan.weights, run.settings.constants)["loss"].backward()
+    return int(counter.get_total_flops())
+
+
+def step_profile(run, steps: int) -> dict[str, list[float]]:
+    """Wall seconds of each of :data:`PHASES` in each of ``steps`` training steps of ``run``, composed of the
+    loop's own pieces in the loop's order (the batch is checked against the loop's :func:`_augmented_batch` /
+    :func:`_batch` so the profile cannot drift from it); ``step``: the phases' sum."""
+    import torch
+
+    from pipeline import losses
+    from pipeline.training import loop
+
+    s, n = run.settings, run.n_train
+    order = np.random.default_rng([run.seed, 0]).permutation(n)
+    spans: dict[str, list[float]] = {p: [] for p in (*PHASES, "step")}
+
+    def now() -> float:  # a phase ends when its device work does
+        if run.device.type == "cuda":
+            torch.cuda.synchronize(run.device)
+        return time.perf_counter()
+
+    for k in range(steps):
+        idx = order[(k * s.batch_size) % n:][:s.batch_size]
+        t = [now()]
+        idx_dev = torch.from_numpy(idx).to(run.device)
+        rows = {key: loop._take(v, idx_dev).cpu().numpy() for key, v in run.tensors.items()}
+        t.append(now())
+        if s.augment is not None:
+            images = rows.pop("image")
+            images, targets = augment_batch(images, rows, [[run.seed, 0, int(i)] for i in idx], s.augment,
+                                            run.geometry)
+            rows = {"image": images, **targets}
+        t.append(now())
+        dev = {key: torch.from_numpy(np.ascontiguousarray(v)).to(run.device) for key, v in rows.items()}
+        b = loop._batch(dev, torch.arange(len(idx), device=run.device), None, s.channels_last)
+        t.append(now())
+        with autocast(run.device, run.amp):
+            out = run.model.forward_train(b["x"])
+        t.append(now())
+        terms = losses.refine_loss(out, b, b["gate"], run.plan.weights, s.constants)
+        float(terms["loss"].detach())  # the loop's finiteness check reads it every step
+        t.append(now())
+        terms["loss"].backward()
+        t.append(now())
+        run.opt.step()
+        run.sched.step()
+        run.opt.zero_grad(set_to_none=True)
+        t.append(now())
+        if k == 0 and s.augment is not None:  # the same batch as the loop builds
+            ref = loop._augmented_batch(run, idx, 0)
+            assert all(torch.equal(ref[key], b[key]) for key in ref), "step_profile's batch is not the loop's"
+        for p, a, z in zip(PHASES, t, t[1:]):
+            spans[p].append(z - a)
+        spans["step"].append(t[-1] - t[0])
+    return spans
+
+
+def accuracy(cfg: Mapping, data: TrainData, val: ValData, device, seed: int, epochs: int) -> dict:
+    """Train ``plain`` ``epochs`` epochs with ``cfg`` through :func:`pipeline.training.loop.train`; val metrics."""
+    from pipeline.training import loop
+
+    res = loop.train(get_method(STAGE_ONE), {**cfg, "epochs_stage1": epochs}, data, None, seed,
+                     checkpointer=NoCheckpointer(), device=device, show_progress=False)
+    iou, bf1 = loop.validate(res.model, val, device, precision=cfg["precision"], channels_last=cfg["channels_last"],
+                             tolerance=cfg["val_bf1_tolerance"])
+    return {"val_iou": iou, "val_bf1": bf1, "final_loss": float(res.log["loss"].iloc[-1])}
+
+
+def load_average() -> str:
+    """``/proc/loadavg`` (the host's load beside each measurement), or ``n/a``."""
+    try:
+        return Path("/proc/loadavg").read_text().strip()
+    except OSError:
+        return "n/a"
 
 
 def main(argv=None) -> dict:
-    ap = parser(__doc__, device="auto")
-    ap.add_argument("--images", type=int, default=PAPER_IMAGES)
-    ap.add_argument("--size", type=int, default=384)
-    ap.add_argument("--epochs", type=int, default=2)
+    ap = parser(__doc__, device="cpu", threads=2, out=None)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 384])
+    ap.add_argument("--images", type=int, default=64, help="images per timed epoch")
+    ap.add_argument("--reps", type=int, default=3, help="round-robin rounds (after one warm-up round)")
+    ap.add_argument("--profile-size", type=int, default=128, help="side of the one-step profile (0 = none)")
+    ap.add_argument("--profile-steps", type=int, default=5)
+    ap.add_argument("--compile", action="store_true", help="also time distill's settings under torch.compile")
+    ap.add_argument("--epochs", type=int, default=0, help="accuracy runs of this many epochs (0 = none)")
     ap.add_argument("--val-images", type=int, default=16)
-    ap.add_argument("--reps", type=int, default=3, help="interleaved one-epoch timing rounds")
-    ap.add_argument("--quick", action="store_true", help="32 images at 256^2, 3 epochs, 2 timing rounds")
-    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
     ap.add_argument("--seed", type=int, default=42)
-    ap.add_argument("--fast-precision", default="auto", help="precision of the fast path (auto|bf16)")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                    help=f"an override of the {PROFILE} profile's params (repeatable)")
     args = ap.parse_args(argv)
-    if args.quick:
-        args.images, args.size, args.epochs, args.reps = 32, 256, 3, 2
 
     import torch
-
 
     device = resolve_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
-    images, masks = synthetic_set(args.images + args.val_images, args.size, args.seed)
-    n = args.images
-    data = TrainData(image_ids=[f"b{i}" for i in range(n)], images=images[:n], mask=masks[:n],
-                     area=masks[:n].reshape(n, -1).mean(1).astype(np.float32), gate=np.ones(n, np.float32))
-    val = ValData(image_ids=[f"v{i}" for i in range(args.val_images)], images=images[n:], masks=masks[n:])
-    base = section(load_params(Path(__file__).resolve().parents[1] / "params.yaml"), "train")
-    base.update({"epochs_stage1": args.epochs, "num_threads": 0})
+    cfgs = variants(args.sets)
+    batch = int(cfgs[PROFILE]["batch_size"])
+    out: dict[str, Any] = {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__,
+                           "images": args.images, "batch_size": batch, "reps": args.reps, "sizes": {},
+                           "settings": {name: {"precision": c["precision"], "channels_last": c["channels_last"]}
+                                        for name, c in cfgs.items()}}
+    names = list(cfgs) + ([f"{PROFILE} + torch.compile"] if args.compile else [])
+    for size in args.sizes:
+        images, masks = synthetic_set(args.images, size, args.seed)
+        data = train_data(images, masks)
+        runs = {name: open_run(cfgs[name.split(" + ")[0]], data, device, args.seed, compiled="compile" in name)
+                for name in names}
+        cases = {name: epoch_timer(run) for name, run in runs.items()}
+        load_before = load_average()
+        t0 = time.perf_counter()
+        round_robin(cases, 1)  # warm-up: oneDNN primitives, the allocator, torch.compile's compilation
+        warm = time.perf_counter() - t0
+        times = round_robin(cases, max(args.reps, 1), order="rotate")
+        rows = speed_rows(times, args.images, batch)
+        for name, run in runs.items():
+            rows[name].update(autocast=run.run_key["autocast"], loss_after=cases[name].state["loss"])
+        out["sizes"][str(size)] = {"variants": rows, "warmup_seconds": warm, "load_before": load_before,
+                                   "load_after": load_average(),
+                                   "speedup_median": rows[BASELINE]["median_seconds"] / rows[PROFILE]["median_seconds"],
+                                   "speedup_min": rows[BASELINE]["min_seconds"] / rows[PROFILE]["min_seconds"],
+                                   # each round's pair ran back to back: its ratio sees the same load
+                                   "speedup_rounds": [b / f for b, f in zip(times[BASELINE], times[PROFILE])]}
+        if args.compile:
+            c = rows[names[-1]]
+            out["sizes"][str(size)]["compile_speedup_median"] = rows[PROFILE]["median_seconds"] / c["median_seconds"]
 
-    variants = {"fp32 eager NCHW": {**base, "precision": "fp32", "channels_last": False},
-                "channels_last + autocast": {**base, "precision": args.fast_precision, "channels_last": True}}
-    one_epoch = {name: (lambda i, cfg=cfg: train_variant({**cfg, "epochs_stage1": 1}, data, None, device,
-                                                        args.seed)["epoch_seconds"][0]) for name, cfg in variants.items()}
-    round_robin(one_epoch, 1)  # warm-up: oneDNN primitive creation, allocator
-    timing = round_robin(one_epoch, max(args.reps, 1))
-    results = []
-    for name, cfg in variants.items():
-        acc = train_variant({**cfg, "epochs_stage1": args.epochs}, data, val, device, args.seed)
-        results.append({"variant": name, "precision": cfg["precision"], "channels_last": cfg["channels_last"],
-                        "autocast": acc["autocast"], "timing_seconds": timing[name],
-                        "seconds_per_epoch": float(np.median(timing[name])),
-                        "min_seconds_per_epoch": float(np.min(timing[name])),
-                        "accuracy_run_epoch_seconds": acc["epoch_seconds"], "val_iou": acc["val_iou"],
-                        "val_bf1": acc["val_bf1"], "final_loss": acc["final_loss"]})
-    ratio = results[0]["seconds_per_epoch"] / results[1]["seconds_per_epoch"]
-    print(f"device {device} ({torch.get_num_threads()} threads), {n} images at {args.size}^2, "
-          f"batch {base['batch_size']}; timing: median of {args.reps} interleaved epochs; "
-          f"accuracy: {args.epochs} epochs, {args.val_images} val images; torch {torch.__version__}")
-    print(f"{'variant':28s} {'autocast':>9s} {'s/epoch':>9s} {'min':>7s} {'s/epoch@270':>12s} {'val IoU':>8s} {'val BF1':>8s}")
-    for r in results:
-        print(f"{r['variant']:28s} {r['autocast']:>9s} {r['seconds_per_epoch']:9.2f} {r['min_seconds_per_epoch']:7.2f} "
-              f"{r['seconds_per_epoch'] * PAPER_IMAGES / n:12.1f} {r['val_iou']:8.4f} {r['val_bf1']:8.4f}")
-    print(f"speed-up (fp32 eager / fast, median): {ratio:.2f}x  "
-          f"(min: {results[0]['min_seconds_per_epoch'] / results[1]['min_seconds_per_epoch']:.2f}x; target >= 3x)")
-    out = {"device": str(device), "images": n, "size": args.size, "epochs": args.epochs, "reps": args.reps,
-           "ratio": ratio, "results": results}
+    if args.profile_size:
+        limits = host_limits() if device.type == "cpu" else None  # the CPU's matmul peaks; none on a GPU
+        images, masks = synthetic_set(max(args.images, batch), args.profile_size, args.seed)
+        data = train_data(images, masks)
+        prof, runs = {}, {name: open_run(cfg, data, device, args.seed) for name, cfg in cfgs.items()}
+        # one step of each variant a round, so that the host's load hits both alike
+        spans = round_robin({name: (lambda i, run=run: step_profile(run, 1)) for name, run in runs.items()},
+                            1 + args.profile_steps, order="rotate")
+        for name, run in runs.items():
+            phases = {p: statistics.median(r[p][0] for r in spans[name][1:]) for p in spans[name][0]}
+            flops = step_flops(run, args.profile_size)
+            peak = (limits["bf16_gflops"] if run.amp is not None else limits["fp32_gflops"]) if limits else None
+            compute = phases["forward"] + phases["backward"]
+            prof[name] = {"phases": phases, "gflop_per_step": flops / 1e9, "peak_gflops": peak,
+                          "compute_gflops": flops / 1e9 / compute,
+                          "limit_seconds": flops / 1e9 / peak if peak else None,
+                          "limit_share": flops / 1e9 / peak / phases["step"] if peak else None}
+        out["profile"] = {"size": args.profile_size, "host_limits": limits, "load": load_average(), "variants": prof}
+
+    if args.epochs:
+        images, masks = synthetic_set(args.images + args.val_images, args.sizes[0], args.seed)
+        data = train_data(images[:args.images], masks[:args.images])
+        val = ValData(image_ids=[f"v{i}" for i in range(args.val_images)], images=images[args.images:],
+                      masks=masks[args.images:])
+        out["accuracy"] = {"size": args.sizes[0], "epochs": args.epochs,
+                           "variants": {name: accuracy(cfg, data, val, device, args.seed, args.epochs)
+                                        for name, cfg in cfgs.items()}}
+    print_summary(out)
+    if args.out:
+
+        write_json(args.out, out)
     print(json.dumps(out))
     return out
+
+
+def print_summary(out: Mapping) -> None:
+    """The tables of :func:`main`'s result."""
+    print(f"device {out['device']} ({out['threads']} threads), torch {out['torch']}; {out['images']} images an "
+          f"epoch, batch {out['batch_size']} ({PROFILE}'s); {out['reps']} round-robin epochs after a warm-up; "
+          f"settings {out['settings']}")
+    print(f"{'size':>5s} {'variant':34s} {'autocast':>9s} {'s/epoch':>8s} {'min':>7s} {'img/s':>7s} {'best':>7s} "
+          f"{'s/step':>7s}  load before / after")
+    for size, r in out["sizes"].items():
+        for name, v in r["variants"].items():
+            print(f"{size:>5s} {name:34s} {v['autocast']:>9s} {v['median_seconds']:8.3f} {v['min_seconds']:7.3f} "
+                  f"{v['images_per_second']:7.1f} {v['images_per_second_best']:7.1f} {v['seconds_per_step']:7.3f}  "
+                  f"{r['load_before']} / {r['load_after']}")
+        print(f"{size:>5s} speed-up {PROFILE} / {BASELINE}: {r['speedup_median']:.2f}x median, "
+              f"{r['speedup_min']:.2f}x of the minima, per round "
+              f"{', '.join(f'{x:.2f}' for x in r['speedup_rounds'])}"
+              + (f"; torch.compile / eager: {r['compile_speedup_median']:.2f}x" if "compile_speedup_median" in r else ""))
+    if "profile" in out:
+        p = out["profile"]
+        lim = p["host_limits"] or {}
+        print(f"one step at {p['size']}^2 (medians), CPU matmul peak fp32 {lim.get('fp32_gflops') or math.nan:.0f} / "
+              f"bf16 {lim.get('bf16_gflops') or math.nan:.0f} GFLOP/s; load {p['load']}")
+        for name, v in p["variants"].items():
+            ph = v["phases"]
+            parts = ", ".join(f"{k} {1e3 * ph[k]:.1f}" for k in PHASES)
+            print(f"  {name}: step {1e3 * ph['step']:.1f} ms ({parts} ms); {v['gflop_per_step']:.2f} GFLOP, "
+                  f"forward+backward at {v['compute_gflops']:.0f} GFLOP/s of {v['peak_gflops'] or math.nan:.0f}; "
+                  f"the peak's step {1e3 * (v['limit_seconds'] or math.nan):.1f} ms = "
+                  f"{100 * (v['limit_share'] or math.nan):.0f} % of the measured step")
+    if "accuracy" in out:
+        a = out["accuracy"]
+        for name, v in a["variants"].items():
+            print(f"accuracy {a['epochs']} epochs at {a['size']}^2, {name}: val IoU {v['val_iou']:.4f}, "
+                  f"val BF1 {v['val_bf1']:.4f}, final loss {v['final_loss']:.4f}")
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+from pipeline.runtime.device import cpu_bf16_native, cpu_flags
 
 #: the options the benchmarks share: name -> ``add_argument`` keywords (each script gives the default)
 OPTIONS: dict[str, dict] = {
@@ -117,3 +118,38 @@ def resumed_runs(out: str | Path, info: Mapping[str, Any], jobs: list[dict], run
             sink.flush()
             done[_run_key(r)] = r
     return done
+
+
+#: CPU flags that tell which matrix units a host has (/proc/cpuinfo names)
+LIMIT_FLAGS = ("avx2", "fma", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16")
+
+
+def matmul_peak(dtype, n: int = 2048, repeats: int = 5) -> tuple[float, float]:
+    """(best, median) GFLOP/s of an n x n matmul in ``dtype`` on this process's threads: the measured limit."""
+    import torch
+
+    a, b = torch.randn(n, n).to(dtype), torch.randn(n, n).to(dtype)
+    a @ b
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        a @ b
+        ts.append(time.perf_counter() - t0)
+    return 2 * n ** 3 / min(ts) / 1e9, 2 * n ** 3 / statistics.median(ts) / 1e9
+
+
+def host_limits() -> dict:
+    """The host's fp32 / bf16 / AMX limits: which its flags allow, and the measured matmul peaks (a bf16 matmul
+    runs on the AMX tiles where the host has them, so the AMX row is the bf16 peak there, n/a elsewhere)."""
+    import torch
+
+
+    flags = cpu_flags()
+    has = {f: f in flags for f in LIMIT_FLAGS}
+    fp32 = matmul_peak(torch.float32)
+    # native bf16 by the one rule (the flags, and an ONEDNN_MAX_CPU_ISA cap): emulated bf16 is no limit
+    bf16 = matmul_peak(torch.bfloat16) if cpu_bf16_native() else None
+    return {"flags": has, "threads": torch.get_num_threads(),
+            "fp32_gflops": fp32[0], "fp32_gflops_median": fp32[1],
+            "bf16_gflops": bf16[0] if bf16 else None, "bf16_gflops_median": bf16[1] if bf16 else None,
+            "amx_gflops": bf16[0] if bf16 and has["amx_bf16"] else None}

@@ -290,10 +290,12 @@ def augment_sample(image: np.ndarray, targets: Mapping[str, Any], rng: np.random
         pixel["mask"] = resample(pixel["mask"] if soft else pixel["mask"].astype(bool), window, nearest=not soft)
         if "anchor" in pixel:
             pixel["anchor"] = resample(pixel["anchor"].astype(np.float32), window, nearest=False)
-        sdf, skel, area = recompute_geometry(hard_region(pixel["mask"]), geometry)
-        pixel.update({k: v for k, v in (("sdf", sdf), ("skeleton", skel)) if k in pixel})
+        region = hard_region(pixel["mask"])
+        if "sdf" in pixel or "skeleton" in pixel:  # Stage I trains on neither: no distance transforms per step
+            sdf, skel, _ = recompute_geometry(region, geometry)
+            pixel.update({k: v for k, v in (("sdf", sdf), ("skeleton", skel)) if k in pixel})
         if "area" in out:
-            out["area"] = area
+            out["area"] = area_ratio(region)
     # 3. photometric: the image only
     if rng.random() < spec.photometric_probability:
         image = photometric(image, spec, rng)

@@ -21,7 +21,7 @@ from pipeline.artifacts.lineage import require_same_run
 from pipeline.artifacts.store import open_artifact, read_chunk_rows
 from pipeline.runtime.errors import ArtifactError
 from pipeline.evaluation.inference import CORRECTED_VALIDATION, load_student, predict_probs
-from pipeline.methods import BASELINE, PROPOSED, departures
+from pipeline.methods import BASELINE, METHODS, PROPOSED, STAGE_ONE, departures
 from pipeline.metrics import image_iou
 from pipeline.report import figures as F
 from pipeline.report import tables as T
@@ -41,7 +41,10 @@ FIGURES = catalog.output_names("report_figures")
 INPUTS = ("manifest", "images", "reference", "teacher", "consensus", "geometry", "gates", "thresholds", "metrics",
           "summary", "teacher_metrics", "efficiency")
 MODES = ("calibrated", "fixed")
-EPOCH_AXIS = "epoch (of the run's own schedule)"
+#: the training-curve figures' x axis (:func:`on_one_epoch_axis`)
+EPOCH_AXIS = "epoch (Stage II after its Stage-I run's last epoch)"
+#: the column :func:`on_one_epoch_axis` adds
+AXIS_EPOCH = "axis_epoch"
 
 
 @dataclasses.dataclass
@@ -250,6 +253,37 @@ def _mean_curves(df: pd.DataFrame, x: str, y: str, marker=None) -> list[dict]:
     return series
 
 
+def on_one_epoch_axis(logs: pd.DataFrame) -> pd.DataFrame:
+    """Add column :data:`AXIS_EPOCH` to ``logs``: where each run's epochs sit on the training-curve figures' one axis.
+
+    A run that starts from scratch keeps its own epochs.  A warm-started run (a method with ``init: stage1``) sits
+    after the last epoch of the Stage-I run it started from (:data:`pipeline.methods.STAGE_ONE` at its seed), so its
+    epoch 0 -- the Stage-I model -- falls on that run's last epoch; each seed's own, since a plateau rule stops each
+    Stage-I run at its own epoch.  Where that Stage-I log is absent, the run keeps its own epochs.
+
+    Parameters
+    ----------
+    logs : pandas.DataFrame
+        Stacked training logs with ``method``, ``seed`` and ``epoch`` columns (:func:`training_logs`).
+
+    Returns
+    -------
+    pandas.DataFrame
+        A copy of ``logs`` with :data:`AXIS_EPOCH` added.
+    """
+    out = logs.copy()
+    last = out[out["method"] == STAGE_ONE].groupby("seed")["epoch"].max()
+    warm = out["method"].map(lambda m: m in METHODS and METHODS[m].init == "stage1").astype(bool)
+    offset = out["seed"].map(last).where(warm, 0).fillna(0)
+    out[AXIS_EPOCH] = out["epoch"] + offset.astype(out["epoch"].dtype)
+    return out
+
+
+def _epoch_curves(logs: pd.DataFrame, y: str) -> list[dict]:
+    """:func:`_mean_curves` of ``y`` on the figures' one epoch axis (:func:`on_one_epoch_axis`)."""
+    return _mean_curves(on_one_epoch_axis(logs), AXIS_EPOCH, y)
+
+
 def _spread(n_total: int, n: int) -> np.ndarray:
     """``min(n, n_total)`` positions evenly spaced over ``range(n_total)``."""
     return np.unique(np.linspace(0, n_total - 1, min(n, n_total)).round().astype(int))
@@ -433,11 +467,12 @@ def calibration_blocks(thr: pd.DataFrame, plots: dict, fixed_tau: float | None =
 
 def epoch_calibrated_figure(logs: pd.DataFrame, fixed_tau: float | None = None) -> Figure:
     """Per-epoch validation Image IoU at each epoch's calibrated tau (mean over seeds per method)."""
-    img = F.line_plot(_mean_curves(logs, "epoch", "val_iou_cal"), "Validation Image IoU at the per-epoch "
+    img = F.line_plot(_epoch_curves(logs, "val_iou_cal"), "Validation Image IoU at the per-epoch "
                       "calibrated tau", EPOCH_AXIS, "val Image IoU at calibrated tau")
     return _figure("fig:training-curves-calibrated", "Training curves at the calibrated tau",
                    "Validation Image IoU per epoch at the tau maximising it at that epoch (mean over seeds per "
-                   f"method); compare with the tau = {tau_text(fixed_tau)} curves in the training-curves section.",
+                   "method; a warm-started Stage-II run is drawn after its Stage-I run's last epoch, at its seed); "
+                   f"compare with the tau = {tau_text(fixed_tau)} curves in the training-curves section.",
                    img, "training_curves_calibrated")
 
 
@@ -535,10 +570,11 @@ def training_section(inp: Inputs, plots: dict) -> list:
     cols = [c for c in ("epoch", "val_iou", "val_bf1", "val_iou_cal", "val_tau_cal", "loss", "stage", "method", "seed")
             if c in logs.columns]
     plots["training_curves"] = logs[cols].reset_index(drop=True)
-    img = F.line_plot(_mean_curves(logs, "epoch", "val_iou"), f"Validation Image IoU during training "
+    img = F.line_plot(_epoch_curves(logs, "val_iou"), f"Validation Image IoU during training "
                       f"(tau {tau_text(inp.fixed_tau)})", EPOCH_AXIS, "val Image IoU")
     return [_figure("fig:training-curves", "Training curves", "Validation Image IoU per epoch (mean over "
-                    "seeds per method; warm-started Stage-II runs count their own epochs from 1).", img,
+                    "seeds per method; a warm-started Stage-II run is drawn after its Stage-I run's last epoch, at "
+                    "its seed).", img,
                     "training_curves")]
 
 
@@ -665,7 +701,7 @@ def gate_distribution_blocks(inp: Inputs) -> list:
 
 def loss_figure(logs: pd.DataFrame) -> Figure:
     """Plot the training loss per epoch (mean over seeds per method), for a run without validation masks."""
-    img = F.line_plot(_mean_curves(logs, "epoch", "loss"), "Training loss", EPOCH_AXIS, "loss")
+    img = F.line_plot(_epoch_curves(logs, "loss"), "Training loss", EPOCH_AXIS, "loss")
     return _figure("fig:training-loss", "Training loss", "Training loss per epoch (mean over seeds per method; "
                    "Stage I and Stage II losses differ in their terms, so compare a method with itself).", img,
                    "training_loss")

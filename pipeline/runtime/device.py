@@ -59,17 +59,28 @@ ONEDNN_BF16_ISAS = ("AVX512_CORE_BF16", "AVX512_CORE_FP16", "AVX512_CORE_AMX", "
                     "ALL", "DEFAULT")
 
 
+def cpu_bf16_native() -> bool:
+    """The rule for bf16 on this CPU (the teacher's ``dtype: auto`` and training's ``precision: auto``): True where
+    the CPU has native bf16 units (:func:`cpu_supports_bf16`, read from its flags, never a timing probe) and
+    ``ONEDNN_MAX_CPU_ISA``, where set, does not cap oneDNN below them (:data:`ONEDNN_BF16_ISAS`); else False,
+    where bf16 would be emulated and slower than fp32.
+
+    Returns
+    -------
+    bool
+        Whether bf16 runs natively here."""
+    isa = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
+    if isa and isa not in ONEDNN_BF16_ISAS:
+        return False
+    return cpu_supports_bf16()
+
+
 def teacher_cpu_dtype() -> str:
-    """``teacher.dtype: auto`` on a CPU: ``bf16`` where the CPU has native bf16 units
-    (:func:`cpu_supports_bf16`, read from its flags, never a timing probe) and ``ONEDNN_MAX_CPU_ISA``, where set,
-    does not cap oneDNN below them; else ``fp32``, where bf16 would be emulated and slower.
+    """``teacher.dtype: auto`` on a CPU: ``bf16`` where :func:`cpu_bf16_native`, else ``fp32``.
 
     Measured (docs/performance.md): on a 2-core avx512_bf16 host the real-size SAM 3 in bf16 takes a fraction
     of fp32's time per image with the same masks (the fidelity gate of benchmarks/bench_teacher.py)."""
-    isa = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
-    if isa and isa not in ONEDNN_BF16_ISAS:
-        return "fp32"
-    return "bf16" if cpu_supports_bf16() else "fp32"
+    return "bf16" if cpu_bf16_native() else "fp32"
 
 
 def autocast(device, dtype, cache_enabled: bool = True):
@@ -83,7 +94,28 @@ def autocast(device, dtype, cache_enabled: bool = True):
 
 
 def autocast_dtype(device, precision: str):
-    """Map a ``precision`` param (fp32 | bf16 | auto) to an autocast dtype or None (= fp32)."""
+    """The autocast dtype of a ``precision`` param (fp32 | bf16 | auto), None meaning fp32.
+
+    ``auto``: bf16 on a CUDA device that supports it; on a CPU, bf16 where :func:`cpu_bf16_native` (the
+    teacher's rule: the flags and the ``ONEDNN_MAX_CPU_ISA`` cap), else fp32.
+
+    Parameters
+    ----------
+    device : torch.device
+        The device that trains or predicts.
+    precision : str
+        ``fp32`` | ``bf16`` | ``auto``.
+
+    Returns
+    -------
+    torch.dtype or None
+        ``torch.bfloat16`` or None (fp32: no autocast).
+
+    Raises
+    ------
+    InputError
+        ``precision`` is none of the three.
+    """
     import torch
 
     if precision not in ("fp32", "bf16", "auto"):
@@ -94,4 +126,4 @@ def autocast_dtype(device, precision: str):
         return torch.bfloat16
     if device.type == "cuda":
         return torch.bfloat16 if torch.cuda.is_bf16_supported() else None
-    return torch.bfloat16 if cpu_supports_bf16() else None
+    return torch.bfloat16 if cpu_bf16_native() else None

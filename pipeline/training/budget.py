@@ -11,6 +11,7 @@ from typing import Any, Mapping
 from pipeline.datasets.scan import scan_inputs
 from pipeline.runtime.errors import InputError
 from pipeline.methods import STAGE_ONE, get_method
+from pipeline.runtime.device import autocast, autocast_dtype
 
 _UNITS = {"s": 1, "m": 60, "h": 3600}
 
@@ -29,8 +30,27 @@ PROBE_BATCH = 2
 
 
 def step_seconds(cfg: Mapping[str, Any], resolution: int, device: str = "cpu", steps: int = 2) -> float:
-    """Seconds of one Stage-I optimizer step at ``resolution``: the median of ``steps`` probe steps after a warm-up,
-    scaled to ``train.batch_size``."""
+    """Seconds of one Stage-I optimizer step at ``resolution``, in the precision and memory format that will train
+    (``train.precision``'s autocast, :func:`pipeline.runtime.device.autocast_dtype`, and ``train.channels_last``, as
+    :func:`pipeline.training.loop.train` sets them): the median of ``steps`` probe steps after a warm-up, scaled to
+    ``train.batch_size``.
+
+    Parameters
+    ----------
+    cfg : Mapping
+        The validated ``train`` section.
+    resolution : int
+        The image side of the probe.
+    device : str
+        The training device.
+    steps : int
+        Timed probe steps (one more warms up).
+
+    Returns
+    -------
+    float
+        Seconds per optimizer step of ``train.batch_size`` images.
+    """
     import torch
 
     from pipeline.losses import raw_terms
@@ -38,16 +58,22 @@ def step_seconds(cfg: Mapping[str, Any], resolution: int, device: str = "cpu", s
 
     if int(cfg["num_threads"]) > 0:
         torch.set_num_threads(int(cfg["num_threads"]))
+    amp = autocast_dtype(torch.device(device), cfg["precision"])
+    memory_format = torch.channels_last if cfg["channels_last"] else torch.contiguous_format
     # the model that will train: with train.expand_branches, its RepVGG branches too
-    model = build_model(get_method(STAGE_ONE), cfg, 0, expand=bool(cfg["expand_branches"])).to(device).train()
+    model = build_model(get_method(STAGE_ONE), cfg, 0, expand=bool(cfg["expand_branches"])).to(device)
+    model = model.to(memory_format=memory_format).train()
     opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
     gen = torch.Generator().manual_seed(0)
     x = torch.rand(PROBE_BATCH, 3, int(resolution), int(resolution), generator=gen).to(device)
+    x = x.contiguous(memory_format=memory_format)
     y = (torch.rand(x.shape[0], 1, x.shape[2], x.shape[3], generator=gen) > 0.7).float().to(device)
     times = []
     for i in range(steps + 1):
         t0 = time.perf_counter()
-        loss = raw_terms(model.forward_train(x)["mask"], y)["raw"]
+        with autocast(device, amp):  # the forward under autocast, the loss outside it: as the training step
+            logits = model.forward_train(x)["mask"]
+        loss = raw_terms(logits, y)["raw"]
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

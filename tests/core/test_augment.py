@@ -91,6 +91,27 @@ def test_scale_and_crop_recompute_sdf_skeleton_and_area_from_the_augmented_mask(
     assert changed >= 6  # the rescale really changes the frame
 
 
+def test_a_rescale_without_sdf_or_skeleton_targets_skips_the_distance_transforms(monkeypatch):
+    """Stage I trains on the mask and the area only: a rescale then computes no SDF or skeleton (per-step host
+    work), and its image, mask and area are those of the same draws with every target."""
+    import pipeline.augment as augment
+
+    m = _mask()
+    spec = _spec(scale_probability=1.0, scale_range=(0.6, 1.6), photometric_probability=1.0)
+    full = [augment_sample(_image(m), _targets(m), np.random.default_rng(seed), spec) for seed in range(4)]
+
+    def no_transforms(*a, **k):
+        raise AssertionError("distance transforms for targets nobody trains on")
+
+    monkeypatch.setattr(augment, "recompute_geometry", no_transforms)
+    for seed, (img_full, t_full) in enumerate(full):
+        targets = {k: v for k, v in _targets(m).items() if k not in ("sdf", "skeleton")}
+        img, t = augment_sample(_image(m), targets, np.random.default_rng(seed), spec)
+        assert set(t) == set(targets) and t["area"] == t_full["area"] == area_ratio(t["mask"])
+        np.testing.assert_array_equal(img, img_full)
+        np.testing.assert_array_equal(t["mask"], t_full["mask"])
+
+
 def test_a_region_target_is_soft_by_its_type_and_its_region_is_the_vote_of_it():
     agreement = np.array([[0.0, 0.49], [0.5, 1.0]], np.float32)  # A (eq:agreement-map)
     assert soft_region(agreement) and not soft_region(agreement >= 0.5) and not soft_region(np.ones(2, np.uint8))

@@ -100,3 +100,38 @@ def test_distill_time_writes_the_budget_into_the_project(tmp_path, monkeypatch):
     assert r.exit_code == 2 and "--time 'later'" in r.output
     r = CliRunner().invoke(main, [*args, "--val-masks", str(tmp_path / "none")])  # the images are counted first
     assert r.exit_code == 2 and "--val-masks" in r.output and "Traceback" not in r.output
+
+
+@pytest.mark.parametrize("precision, channels_last", [("fp32", False), ("bf16", True), ("auto", True)])
+def test_the_probe_times_the_precision_and_memory_format_that_will_train(monkeypatch, precision, channels_last):
+    """The probe's forward runs under the autocast the training step uses and on channels_last inputs and
+    weights exactly when ``train.channels_last`` is set (it timed fp32 NCHW whatever trained)."""
+    import torch
+
+    from pipeline.runtime.device import autocast_dtype
+    from pipeline.training import loop
+
+    seen = []
+    build = loop.build_model
+
+    def recording_model(*a, **k):
+        model = build(*a, **k)
+        forward = model.forward_train
+
+        def forward_train(x):
+            seen.append((torch.is_autocast_enabled("cpu") and torch.get_autocast_dtype("cpu"),
+                         x.is_contiguous(memory_format=torch.channels_last),
+                         all(w.is_contiguous(memory_format=torch.channels_last)
+                             for w in model.parameters() if w.dim() == 4)))
+            return forward(x)
+
+        model.forward_train = forward_train
+        return model
+
+    monkeypatch.setattr(loop, "build_model", recording_model)
+    cfg = load_profile("distill", ["train.channels=[4,8,16]", f"train.precision={precision}",
+                                   f"train.channels_last={str(channels_last).lower()}"])["train"]
+    assert budget.step_seconds(cfg, 16) > 0
+    amp = autocast_dtype(torch.device("cpu"), precision)
+    assert len(seen) == 3 and all(s[0] == (amp if amp is not None else False) for s in seen), seen
+    assert all(s[1] == s[2] == channels_last for s in seen), seen

@@ -1,0 +1,47 @@
+"""bench_train in-process at a tiny size: it times fp32 eager NCHW against ``distill``'s resolved settings, and its
+one-step profile adds up and counts the FLOPs of a training step (no timing is asserted)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+
+def test_bench_train_times_distill_s_settings_and_profiles_one_step():
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from benchmarks import bench_train
+    from pipeline.profiles import load_profile
+    from pipeline.runtime.device import autocast_dtype
+
+    threads = torch.get_num_threads()
+    try:
+        out = bench_train.main(["--images", "4", "--sizes", "32", "--reps", "1", "--profile-size", "32",
+                                "--profile-steps", "2", "--threads", "1", "--set", "train.channels=[4,8,16]"])
+    finally:
+        torch.set_num_threads(threads)
+    distill = load_profile("distill")["train"]
+    assert out["batch_size"] == distill["batch_size"]
+    assert out["settings"] == {"fp32 eager NCHW": {"precision": "fp32", "channels_last": False},
+                               "distill": {"precision": distill["precision"],
+                                           "channels_last": distill["channels_last"]}}
+    rows = out["sizes"]["32"]["variants"]
+    amp = autocast_dtype(torch.device("cpu"), distill["precision"])
+    assert rows["distill"]["autocast"] == (str(amp).replace("torch.", "") if amp is not None else "fp32")
+    assert rows["fp32 eager NCHW"]["autocast"] == "fp32"
+    for r in rows.values():
+        assert len(r["epoch_seconds"]) == 1 and r["min_seconds"] <= r["median_seconds"]
+        assert r["images_per_second"] == pytest.approx(4 / r["median_seconds"]) and math.isfinite(r["loss_after"])
+    profile = out["profile"]["variants"]
+    model = bench_train.open_run(bench_train.variants(["train.channels=[4,8,16]"])["fp32 eager NCHW"],
+                                 bench_train.train_data(*bench_train.synthetic_set(8, 32, 0)), "cpu", 0).model
+    with FlopCounterMode(display=False) as forward:
+        model.forward_train(torch.rand(distill["batch_size"], 3, 32, 32))
+    for v in profile.values():
+        phases = v["phases"]
+        assert set(phases) == {*bench_train.PHASES, "step"} and all(t >= 0 for t in phases.values())
+        # a training step's forward + backward: about three forwards (the backward computes two products a layer)
+        assert 2.5 <= v["gflop_per_step"] * 1e9 / forward.get_total_flops() <= 3.5
+        assert v["limit_seconds"] == pytest.approx(v["gflop_per_step"] / v["peak_gflops"])
