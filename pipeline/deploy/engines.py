@@ -115,7 +115,7 @@ class Engine:
 
 
 def _eager(channels_last: bool | str, bf16: bool = False) -> Callable[[Source], Runner]:
-    """Build the PyTorch eager loader; ``channels_last``: True, False or ``"cpu"`` (on the CPU only, as calibrate ran)."""
+    """Build the PyTorch eager loader; ``channels_last``: True, False or ``"cpu"`` (on the CPU only, as calibrate)."""
     def load(src: Source) -> Runner:
         dev = src.device
         cl = channels_last is True or (channels_last == "cpu" and dev.type == "cpu")

@@ -130,7 +130,6 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
     """
     from pipeline.deploy.bundle import checkpoint_resolution, frame_reading  # torch
     from pipeline.deploy.mask_path import onnx_unavailable_reason
-    from pipeline.datasets.params import FrameSettings  # the image reader: cv2
     from pipeline.deploy.quantize import Int8Settings, read_calibration_images
 
     cfg = section(params, "deploy")
@@ -153,8 +152,7 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
         calib, calib_inputs, calib_note = read_calibration_images(artifacts, int8_settings.int8_calibration_images,
                                                                   int(resolution))
         inputs += calib_inputs
-    reading = FrameSettings.from_params(params["data"])
-    frames = frame_reading({"bit_depth": reading.bit_depth, "letterbox": reading.letterbox})
+    frames = frame_reading({k: params["data"][k] for k in ("bit_depth", "letterbox")})  # validated: both there
     settings = {"opset": cfg["opset"], "atol": cfg["parity_atol"], "int8_settings": int8_settings, "frames": frames}
     deploy_params = {"opset": cfg["opset"], "parity_atol": cfg["parity_atol"], "onnx": onnx, "int8": calib is not None,
                      **dataclasses.asdict(int8_settings)}

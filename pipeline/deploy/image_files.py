@@ -231,8 +231,8 @@ class SegmentResult:
 IO_WORKERS = 1
 
 
-def _load(f: Path, resolution: int, max_pixels: int | None, keep_image: bool, bit_depth: str | int,
-          letterbox: bool):
+def _load(f: Path, resolution: int, max_pixels: int | None, keep_image: bool,
+          bit_depth: str | int = PAPER.data.bit_depth, letterbox: bool = PAPER.data.letterbox):
     """Read one frame: (the R x R working image, the original (h, w), the original image when ``keep_image``)."""
     img = read_rgb(f, max_pixels=max_pixels, bit_depth=bit_depth)
     return resize_image(img, resolution, letterbox), img.shape[:2], img if keep_image else None

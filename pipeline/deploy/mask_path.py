@@ -123,7 +123,7 @@ _WRITER_RECORDS = ("version", "byteorder", ".data/serialization_id")
 
 
 def save_without_debug_records(module, path: str | Path) -> Path:
-    """Save like ``torch.jit.save``, less the ``*.debug_pkl`` records (absolute source paths), by torch's own zip writer.
+    """Save like ``torch.jit.save``, less the ``*.debug_pkl`` records (absolute source paths), by torch's zip writer.
 
     Parameters
     ----------

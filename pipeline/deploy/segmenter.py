@@ -76,7 +76,7 @@ class Segmenter:
         return f"Segmenter(engine={self.engine!r}, resolution={self.resolution}, tau={tau})"
 
     @classmethod
-    def from_bundle(cls, path: str | Path, *, engine: str = "auto", device="cpu", tau: float | None = None,
+    def from_bundle(cls, path: str | Path, *, engine: str = AUTO, device="cpu", tau: float | None = None,
                     resolution: int | None = None, max_pixels: int | None = None, bit_depth=None,
                     letterbox: bool | None = None) -> "Segmenter":
         """Open a deploy bundle or a checkpoint folder for notebooks, tau and resolution resolved once.
