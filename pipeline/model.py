@@ -1,7 +1,10 @@
-"""The TinyUNet student: a three-level U-Net (channels 24, 48, 96) whose mask head gives the deployed logits Z, plus
-the training-only SDF (tanh) and skeleton heads of Stage II on the same decoded features.  Training-time capacity that
-folds away: RepVGG's branches beside each 3x3 convolution (``train.expand_branches``; :func:`expand_branches`,
-:func:`fold_branches`)."""
+"""The TinyUNet student.
+
+A three-level U-Net (widths ``train.channels``) whose mask head gives the deployed logits Z, plus the training-only
+SDF (tanh) and skeleton heads of Stage II on the same decoded features.  Training-time capacity that folds away:
+RepVGG's branches beside each 3x3 convolution (``train.expand_branches``; :func:`expand_branches`,
+:func:`fold_branches`).
+"""
 
 from __future__ import annotations
 
@@ -12,14 +15,20 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-#: normalisation layers of :class:`TinyUNet` (``train.norm``); "batch" is the paper's
+from pipeline.params import PAPER
+
+__all__ = ["NORMS", "model_options", "ConvBNReLU", "ExpandedConvBNReLU", "has_branches", "expand_branches",
+           "fold_branches", "TinyUNet", "mask_path_model", "ExportMaskPath", "recompute_bn_stats", "count_parameters",
+           "count_flops"]
+
+#: normalisation layers of :class:`TinyUNet` (``train.norm``); the first, BatchNorm, is the paper's, and the one a
+#: model ``config`` without a ``norm`` key means (checkpoints written before the option keep their bytes)
 NORMS = ("batch", "group")
 GROUP_CHANNELS = 8  # channels per GroupNorm group: 24/48/96 channels -> 3/6/12 groups
-DEFAULT_BN_MOMENTUM = 0.1  # PyTorch's
 
 
-def norm_layer(kind: str, channels: int, bn_momentum: float = DEFAULT_BN_MOMENTUM) -> nn.Module:
-    """The normalisation after each 3x3 convolution: BatchNorm, or GroupNorm of :data:`GROUP_CHANNELS` per group."""
+def norm_layer(kind: str, channels: int, bn_momentum: float) -> nn.Module:
+    """Build the normalisation after each 3x3 convolution: BatchNorm, or GroupNorm of :data:`GROUP_CHANNELS` a group."""
     if kind == "batch":
         return nn.BatchNorm2d(channels, momentum=bn_momentum)
     if kind == "group":
@@ -31,29 +40,58 @@ def norm_layer(kind: str, channels: int, bn_momentum: float = DEFAULT_BN_MOMENTU
 
 
 def model_options(cfg: Mapping[str, Any]) -> dict:
-    """TinyUNet keyword arguments from the ``train`` params."""
+    """Read the TinyUNet keyword arguments from the ``train`` params.
+
+    Parameters
+    ----------
+    cfg : Mapping
+        The validated ``train:`` section.
+
+    Returns
+    -------
+    dict
+        ``norm`` and ``bn_momentum``.
+    """
     return {"norm": str(cfg["norm"]), "bn_momentum": float(cfg["bn_momentum"])}
 
 
 class ConvBNReLU(nn.Sequential):
-    def __init__(self, cin: int, cout: int, norm: str = "batch", bn_momentum: float = DEFAULT_BN_MOMENTUM):
+    """A 3x3 convolution without bias, its normalisation and a ReLU.
+
+    Parameters
+    ----------
+    cin : int
+        Input channels.
+    cout : int
+        Output channels.
+    norm : str
+        One of :data:`NORMS` (the first, BatchNorm, unless given).
+    bn_momentum : float
+        BatchNorm's running-statistics momentum (``train.bn_momentum`` unless given).
+    """
+
+    def __init__(self, cin: int, cout: int, norm: str = NORMS[0], bn_momentum: float = PAPER.train.bn_momentum):
         super().__init__(nn.Conv2d(cin, cout, 3, padding=1, bias=False), norm_layer(norm, cout, bn_momentum),
                          nn.ReLU(inplace=True))
 
 
 class DoubleConv(nn.Sequential):
+    """Two :class:`ConvBNReLU`, the second keeping the channels: one level of the U-Net."""
+
     def __init__(self, cin: int, cout: int, **norm: Any):
         super().__init__(ConvBNReLU(cin, cout, **norm), ConvBNReLU(cout, cout, **norm))
 
 
 def _bn_affine(bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:
-    """BatchNorm in eval mode as y = s x + t per channel, in float64: s = gamma / sqrt(var + eps), t = beta - s mu."""
+    """Write eval-mode BatchNorm as y = s x + t per channel, float64: s = gamma / sqrt(var + eps), t = beta - s mu."""
     s = bn.weight.double() / torch.sqrt(bn.running_var.double() + bn.eps)
     return s, bn.bias.double() - s * bn.running_mean.double()
 
 
 class ExpandedConvBNReLU(nn.Module):
-    """A :class:`ConvBNReLU` trained with RepVGG's extra linear branches (Ding et al., CVPR 2021), ``train.expand_branches``.
+    """A :class:`ConvBNReLU` trained with RepVGG's extra linear branches (Ding et al., CVPR 2021).
+
+    The block of ``train.expand_branches``.
 
     relu(BN_3(W_3 * x) + BN_1(W_1 * x) + BN_id(x)): the 3x3 convolution and its BatchNorm (the plain block's own
     modules), a 1x1 convolution with its own BatchNorm, and, where input and output channels match at stride 1, an
@@ -69,14 +107,16 @@ class ExpandedConvBNReLU(nn.Module):
         Start the new branches at zero (their BN gamma 0), so the block computes exactly ``block``'s function
         (a warm start: Stage II from a folded Stage-I checkpoint); False = PyTorch's initialisation (gamma 1), as
         RepVGG trains from scratch.
-
-    Raises
-    ------
-    ValueError
-        ``block``'s normalisation is not BatchNorm.
     """
 
     def __init__(self, block: ConvBNReLU, zero_init: bool):
+        """Add the 1x1 and identity branches beside ``block``'s own convolution and BatchNorm.
+
+        Raises
+        ------
+        ValueError
+            ``block``'s normalisation is not BatchNorm.
+        """
         super().__init__()
         conv, norm = block[0], block[1]
         if not isinstance(norm, nn.BatchNorm2d):
@@ -93,10 +133,28 @@ class ExpandedConvBNReLU(nn.Module):
                 nn.init.zeros_(bn.weight)
 
     def branch_norms(self) -> list[nn.BatchNorm2d]:
-        """The BatchNorms of the extra branches (1x1, then identity where there is one)."""
+        """List the BatchNorms of the extra branches.
+
+        Returns
+        -------
+        list of nn.BatchNorm2d
+            The 1x1 branch's, then the identity branch's where there is one.
+        """
         return [self.norm1x1] + ([self.norm_identity] if self.norm_identity is not None else [])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Compute relu(BN_3(W_3 * x) + BN_1(W_1 * x) + BN_id(x)).
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            Features [B, in, H, W].
+
+        Returns
+        -------
+        torch.Tensor
+            Features [B, out, H, W].
+        """
         y = self.norm(self.conv(x)) + self.norm1x1(self.conv1x1(x))
         if self.norm_identity is not None:
             y = y + self.norm_identity(x)
@@ -104,11 +162,16 @@ class ExpandedConvBNReLU(nn.Module):
 
     @torch.no_grad()
     def fused(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The eval-mode block before its ReLU as one 3x3 convolution: (kernel K [out,in,3,3], bias b [out]), float64.
+        """Fuse the eval-mode block before its ReLU into one 3x3 convolution, in float64.
 
         K = s_3 W_3 + s_1 pad(W_1) + s_id I and b = t_3 + t_1 + t_id, each BN in eval mode being s x + t per channel
         (:func:`_bn_affine`), pad(W_1) the 1x1 kernel at the centre of a 3x3 one and I the identity kernel (the
         zero padding of the 3x3 convolution leaves the centre taps exact at the border).
+
+        Returns
+        -------
+        tuple of torch.Tensor
+            (kernel K [out, in, 3, 3], bias b [out]), float64.
         """
         s3, t3 = _bn_affine(self.norm)
         s1, t1 = _bn_affine(self.norm1x1)
@@ -124,7 +187,7 @@ class ExpandedConvBNReLU(nn.Module):
 
     @torch.no_grad()
     def folded(self) -> ConvBNReLU:
-        """The plain :class:`ConvBNReLU` (3x3 convolution without bias, BatchNorm, ReLU) with this block's eval output.
+        """Fold the block into the plain :class:`ConvBNReLU` (3x3 convolution, BatchNorm, ReLU) of the same eval output.
 
         Its convolution is W = a K, a per output channel the ratio of the 3x3 branch's kernel norm to ||K|| (so a
         later warm start steps the kernel at the scale the 3x3 branch trained at); its BatchNorm holds the mean
@@ -132,6 +195,11 @@ class ExpandedConvBNReLU(nn.Module):
         branches' covariance is not kept; :func:`fold_branches` measures it given images), with
         gamma = sqrt(a^2 v + eps) / a and beta = b + m, so that BN(W x) = K x + b in eval mode.  Draws no random
         number.
+
+        Returns
+        -------
+        ConvBNReLU
+            The plain block, on this block's device and dtype.
         """
         kernel, bias = self.fused()
         sigma = lambda bn: torch.sqrt(bn.running_var.double())  # noqa: E731
@@ -163,7 +231,18 @@ def _double_convs(model: nn.Module) -> list[DoubleConv]:
 
 
 def has_branches(model: nn.Module) -> bool:
-    """Whether ``model`` holds RepVGG training branches (:class:`ExpandedConvBNReLU`) still to fold."""
+    """Tell whether ``model`` holds RepVGG training branches still to fold.
+
+    Parameters
+    ----------
+    model : nn.Module
+        A TinyUNet.
+
+    Returns
+    -------
+    bool
+        True when an :class:`ExpandedConvBNReLU` is in it.
+    """
     return any(isinstance(m, ExpandedConvBNReLU) for m in model.modules())
 
 
@@ -263,7 +342,7 @@ def fold_branches(model: "TinyUNet", batches: Iterable[torch.Tensor] | None = No
 
 
 class GeometryHeads(nn.Module):
-    """Training-only SDF (tanh) and skeleton (logit) heads on the shared decoded features."""
+    """Training-only SDF (tanh) and skeleton (logit) heads on the shared decoded features (Stage II)."""
 
     def __init__(self, features: int):
         super().__init__()
@@ -271,11 +350,12 @@ class GeometryHeads(nn.Module):
         self.skeleton = nn.Conv2d(features, 1, 1)
 
     def forward(self, feats: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Compute both heads: ``sdf`` D^S in [-1, 1] (tanh, eq:sdf-loss), ``skeleton`` logits (eq:skeleton-loss)."""
         return {"sdf": torch.tanh(self.sdf(feats)), "skeleton": self.skeleton(feats)}
 
 
 def _unet(m: nn.Module, x: torch.Tensor, sizes=None) -> torch.Tensor:
-    """The decoded features of ``m``'s encoder-decoder; ``sizes``: the two upsampling sizes (default: the skips')."""
+    """Decode ``x`` through ``m``'s encoder-decoder; ``sizes``: the two upsampling sizes (default: the skips')."""
     e1 = m.enc1(x)
     e2 = m.enc2(F.max_pool2d(e1, 2))
     e3 = m.enc3(F.max_pool2d(e2, 2))
@@ -287,18 +367,43 @@ def _unet(m: nn.Module, x: torch.Tensor, sizes=None) -> torch.Tensor:
 
 
 class TinyUNet(nn.Module):
+    """The student: a three-level U-Net whose mask head gives the deployed logits Z.
+
+    Images are float RGB in [0, 1], normalised inside the model by :attr:`MEAN` and :attr:`STD` so that exported
+    models take the same input.  Stage II adds the training-only geometry heads (:meth:`add_geometry_heads`).
+
+    Parameters
+    ----------
+    in_channels : int
+        Input channels (RGB: 3).
+    channels : Sequence of int
+        The three encoder widths (``train.channels`` unless given).
+    norm : str
+        One of :data:`NORMS`; the first, BatchNorm (the paper's), is what a ``config`` without ``norm`` means.
+    bn_momentum : float
+        BatchNorm's running-statistics momentum (``train.bn_momentum`` unless given); acts in training only.
+
+    Attributes
+    ----------
+    config : dict
+        The keyword arguments that rebuild the deployed model (checkpoints, export): ``in_channels``,
+        ``channels``, and ``norm`` only where it is not BatchNorm.
+    geometry_heads : GeometryHeads or None
+        The SDF and skeleton heads (Stage II training only).
+    """
+
     # images are float in [0, 1], normalised inside the model so that exported models take the same input
     MEAN = 0.5
     STD = 0.25
 
-    def __init__(self, in_channels: int = 3, channels: Sequence[int] = (24, 48, 96), norm: str = "batch",
-                 bn_momentum: float = DEFAULT_BN_MOMENTUM):
+    def __init__(self, in_channels: int = 3, channels: Sequence[int] = tuple(PAPER.train.channels),
+                 norm: str = NORMS[0], bn_momentum: float = PAPER.train.bn_momentum):
         super().__init__()
         c1, c2, c3 = (int(c) for c in channels)
         # ``config`` rebuilds the deployed model (checkpoints, export): ``norm`` only where it is not the
         # paper's BatchNorm, so default checkpoints stay byte-identical; the momentum only acts in training
         self.config = {"in_channels": int(in_channels), "channels": [c1, c2, c3]}
-        if norm != "batch":
+        if norm != NORMS[0]:
             self.config["norm"] = str(norm)
         kw = {"norm": norm, "bn_momentum": float(bn_momentum)}
         self.enc1 = DoubleConv(in_channels, c1, **kw)
@@ -310,19 +415,60 @@ class TinyUNet(nn.Module):
         self.geometry_heads: GeometryHeads | None = None  # training only, Stage II
 
     def decode(self, x: torch.Tensor) -> torch.Tensor:
+        """Compute the decoded features the heads share.
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            float RGB [B, 3, H, W] in [0, 1].
+
+        Returns
+        -------
+        torch.Tensor
+            Features [B, channels[0], H, W].
+        """
         return _unet(self, (x - self.MEAN) / self.STD)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Mask logits Z [B,1,H,W], the deployed output (eq:inference-mask thresholds sigmoid(Z))."""
+        """Compute the mask logits Z, the deployed output (eq:inference-mask thresholds sigmoid(Z)).
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            float RGB [B, 3, H, W] in [0, 1].
+
+        Returns
+        -------
+        torch.Tensor
+            Z [B, 1, H, W].
+        """
         return self.mask_head(self.decode(x))
 
     def add_geometry_heads(self) -> "TinyUNet":
-        """Create fresh SDF and skeleton heads (start of Stage II); the mask path is untouched."""
+        """Create fresh SDF and skeleton heads (start of Stage II); the mask path is untouched.
+
+        Returns
+        -------
+        TinyUNet
+            This model.
+        """
         ref = self.mask_head.weight
         self.geometry_heads = GeometryHeads(self.config["channels"][0]).to(device=ref.device, dtype=ref.dtype)
         return self
 
     def forward_train(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Compute every head's output for the training losses.
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            float RGB [B, 3, H, W] in [0, 1].
+
+        Returns
+        -------
+        dict
+            ``mask`` logits [B, 1, H, W]; with the geometry heads, ``sdf`` (tanh) and ``skeleton`` logits too.
+        """
         feats = self.decode(x)
         out = {"mask": self.mask_head(feats)}
         if self.geometry_heads is not None:
@@ -330,22 +476,54 @@ class TinyUNet(nn.Module):
         return out
 
     def mask_path_state_dict(self) -> dict[str, torch.Tensor]:
-        """Weights of the deployed path only (no geometry heads)."""
+        """Select the weights of the deployed path (no geometry heads).
+
+        Returns
+        -------
+        dict
+            The state dict less ``geometry_heads.*``.
+        """
         return {k: v for k, v in self.state_dict().items() if not k.startswith("geometry_heads.")}
 
 
 def mask_path_model(model: TinyUNet) -> TinyUNet:
-    """A float32 CPU copy of the deployed mask path (TinyUNet without the geometry heads), eval mode."""
+    """Copy the deployed mask path: the TinyUNet without its geometry heads.
+
+    Parameters
+    ----------
+    model : TinyUNet
+        The student (any device, dtype or mode).
+
+    Returns
+    -------
+    TinyUNet
+        A float32 CPU copy in eval mode, without gradients.
+    """
     deployed = TinyUNet(**model.config)
     deployed.load_state_dict(model.mask_path_state_dict())
     return deployed.float().eval().requires_grad_(False)
 
 
 class ExportMaskPath(nn.Module):
-    """A TinyUNet's mask path for export and int8 inference (docs/decisions.md): the normalisation folded into the
-    first conv, conv(W, pad_0((x - m) / s)) = conv(W / s, pad_m(x)) - (m / s) sum(W); sizes from the input's shape."""
+    """A TinyUNet's mask path for export and int8 inference (docs/decisions.md).
+
+    The normalisation is folded into the first convolution, conv(W, pad_0((x - m) / s)) = conv(W / s, pad_m(x)) -
+    (m / s) sum(W); the upsampling sizes come from the input's shape.
+
+    Parameters
+    ----------
+    unet : TinyUNet
+        The plain student (copied, float32, eval mode).
+    """
 
     def __init__(self, unet: TinyUNet):
+        """Copy ``unet``'s mask path with its normalisation folded into the first convolution.
+
+        Raises
+        ------
+        ValueError
+            ``unet`` still holds RepVGG branches (:func:`fold_branches` first).
+        """
         super().__init__()
         if has_branches(unet):
             raise ValueError("ExportMaskPath takes the plain TinyUNet: fold its RepVGG branches first "
@@ -366,14 +544,40 @@ class ExportMaskPath(nn.Module):
         self.dec2, self.dec1, self.mask_head = src.dec2, src.dec1, src.mask_head
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Compute the mask logits Z, as :meth:`TinyUNet.forward` does.
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            float RGB [B, 3, H, W] in [0, 1].
+
+        Returns
+        -------
+        torch.Tensor
+            Z [B, 1, H, W].
+        """
         h, w = x.shape[-2], x.shape[-1]
         return self.mask_head(_unet(self, F.pad(x, self.padding, value=self.pad_value), ((h // 2, w // 2), (h, w))))
 
 
 @torch.no_grad()
 def recompute_bn_stats(model: nn.Module, batches: Iterable[torch.Tensor]) -> int:
-    """Precise BN: every BatchNorm's running statistics become the plain average of the batch statistics over
-    ``batches`` with the current weights; the number of batches used (0: nothing changed)."""
+    """Recompute every BatchNorm's running statistics (precise BN, ``train.precise_bn``).
+
+    They become the plain average of the batch statistics over ``batches`` with the current weights.
+
+    Parameters
+    ----------
+    model : nn.Module
+        The model (its train/eval mode is kept).
+    batches : iterable of torch.Tensor
+        Input batches on the model's device.
+
+    Returns
+    -------
+    int
+        The number of batches used (0: nothing changed).
+    """
     bns = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm) and m.track_running_stats]
     if not bns:
         return 0
@@ -398,13 +602,41 @@ def recompute_bn_stats(model: nn.Module, batches: Iterable[torch.Tensor]) -> int
 
 
 def count_parameters(model: nn.Module, deployed_only: bool = True) -> int:
-    """Number of parameters; ``deployed_only`` excludes the training-only geometry heads."""
+    """Count a model's parameters.
+
+    Parameters
+    ----------
+    model : nn.Module
+        The model.
+    deployed_only : bool
+        Leave out the training-only geometry heads.
+
+    Returns
+    -------
+    int
+        The number of parameters.
+    """
     return sum(p.numel() for n, p in model.named_parameters()
                if not (deployed_only and n.startswith("geometry_heads.")))
 
 
-def count_flops(model: nn.Module, height: int = 384, width: int = 384) -> int:
-    """FLOPs of one forward pass of the deployed path (torch's FlopCounterMode: a multiply-add is 2)."""
+def count_flops(model: nn.Module, height: int = PAPER.data.resolution, width: int = PAPER.data.resolution) -> int:
+    """Count the FLOPs of one forward pass (torch's FlopCounterMode: a multiply-add is 2).
+
+    Parameters
+    ----------
+    model : nn.Module
+        The model (the deployed mask path for the deployed figure).
+    height : int
+        The input's height (``data.resolution`` unless given).
+    width : int
+        The input's width (``data.resolution`` unless given).
+
+    Returns
+    -------
+    int
+        The FLOPs of a batch-1 forward pass.
+    """
     from torch.utils.flop_counter import FlopCounterMode
 
     ref = next(model.parameters())

@@ -19,9 +19,15 @@ from pipeline.runtime.errors import InputError
 from pipeline.metrics import iou_curve
 from pipeline.params import PAPER, require
 
+__all__ = ["TIE_TOLERANCE", "logit_threshold", "mask_from_probs", "check_tau", "threshold_grid", "EPOCH_TAU_GRID",
+           "select_tau", "TAU_RULES", "plateau_tau", "smooth_curve", "tau_by_rule", "rule_options",
+           "calibrate_threshold", "NO_VALIDATION_MASKS", "TAU_LABELS", "TAU_SOURCES", "resolve_tau", "tau_candidates",
+           "RESOLUTION_LABELS", "MIN_RESOLUTION", "resolve_resolution"]
+
 log = logging.getLogger(__name__)
 
-TIE_TOLERANCE = 1e-12  # mean IoUs closer than this are a tie (select_tau)
+#: mean IoUs closer than this are a tie (:func:`select_tau`)
+TIE_TOLERANCE = 1e-12
 
 
 def logit_threshold(tau: float) -> float:
@@ -227,7 +233,9 @@ def smooth_curve(curve, halfwidth: int) -> np.ndarray:
     return (s[hi] - s[lo]) / (hi - lo)
 
 
-def tau_by_rule(grid, curve, rule: str = "argmax", *, tolerance: float = 0.005, halfwidth: int = 5) -> float:
+def tau_by_rule(grid, curve, rule: str = PAPER.calibrate.tau_rule, *,
+                tolerance: float = PAPER.calibrate.plateau_tolerance,
+                halfwidth: int = PAPER.calibrate.smooth_halfwidth) -> float:
     """Calibrate tau from a curve by a named rule.
 
     Parameters
@@ -237,12 +245,12 @@ def tau_by_rule(grid, curve, rule: str = "argmax", *, tolerance: float = 0.005, 
     curve : array_like
         Mean validation Image IoU at each grid point.
     rule : {"argmax", "plateau", "smooth"}, optional
-        :func:`select_tau` (the paper's, default), :func:`plateau_tau`, or :func:`select_tau` of
-        :func:`smooth_curve`.
+        :func:`select_tau` (argmax, the paper's), :func:`plateau_tau`, or :func:`select_tau` of
+        :func:`smooth_curve`; ``calibrate.tau_rule`` unless given.
     tolerance : float, optional
-        The plateau rule's tolerance (default 0.005).
+        The plateau rule's tolerance (``calibrate.plateau_tolerance`` unless given).
     halfwidth : int, optional
-        The smooth rule's half window (default 5).
+        The smooth rule's half window (``calibrate.smooth_halfwidth`` unless given).
 
     Returns
     -------
@@ -279,8 +287,9 @@ def rule_options(cfg) -> dict:
     return {"rule": cfg["tau_rule"], "tolerance": cfg["plateau_tolerance"], "halfwidth": cfg["smooth_halfwidth"]}
 
 
-def calibrate_threshold(probs, gts, grid, rule: str = "argmax", *, tolerance: float = 0.005,
-                        halfwidth: int = 5) -> tuple[float, np.ndarray]:
+def calibrate_threshold(probs, gts, grid, rule: str = PAPER.calibrate.tau_rule, *,
+                        tolerance: float = PAPER.calibrate.plateau_tolerance,
+                        halfwidth: int = PAPER.calibrate.smooth_halfwidth) -> tuple[float, np.ndarray]:
     """Calibrate tau on the validation split (eq:inference-mask).
 
     curve[g] = mean over images of the Image IoU of [P >= grid[g]]; tau = :func:`tau_by_rule` of the curve
@@ -295,11 +304,11 @@ def calibrate_threshold(probs, gts, grid, rule: str = "argmax", *, tolerance: fl
     grid : array_like
         Strictly increasing thresholds (:func:`threshold_grid`).
     rule : str, optional
-        A rule of :data:`TAU_RULES` (default ``"argmax"``, the paper's).
+        A rule of :data:`TAU_RULES` (``calibrate.tau_rule`` unless given: argmax, the paper's).
     tolerance : float, optional
-        The plateau rule's tolerance (default 0.005).
+        The plateau rule's tolerance (``calibrate.plateau_tolerance`` unless given).
     halfwidth : int, optional
-        The smooth rule's half window (default 5).
+        The smooth rule's half window (``calibrate.smooth_halfwidth`` unless given).
 
     Returns
     -------
@@ -323,6 +332,7 @@ def calibrate_threshold(probs, gts, grid, rule: str = "argmax", *, tolerance: fl
 NO_VALIDATION_MASKS = "fixed tau: no validation masks"
 
 
+#: tau's candidate sources, in :func:`resolve_tau`'s order, with the text naming each
 TAU_LABELS = {"option": "--tau", "bundle": "deploy bundle", "checkpoint": "checkpoint payload",
               "thresholds": "thresholds table", "fixed": "calibrate.fixed_tau"}
 TAU_SOURCES = tuple(TAU_LABELS)
@@ -358,7 +368,7 @@ def resolve_tau(option=None, bundle=None, checkpoint=None, thresholds=None, fixe
 
 
 def _given(labels: Mapping[str, str], *candidates):
-    """(name, value, source text) of each candidate given (None, a number or ``(number, text)``), in order."""
+    """Yield (name, value, source text) of each candidate given (None, a number or ``(number, text)``), in order."""
     for name, cand in zip(labels, candidates):
         if cand is not None and not (isinstance(cand, tuple) and cand[0] is None):
             yield (name, *cand) if isinstance(cand, tuple) else (name, cand, labels[name])
@@ -433,6 +443,7 @@ def _thresholds_table(thresholds):
     return open_artifact(thresholds, "thresholds").df if Path(thresholds).exists() else None
 
 
+#: the working resolution's candidate sources, in :func:`resolve_resolution`'s order, with the text naming each
 RESOLUTION_LABELS = {"option": "--resolution", "benchmark": "deploy.benchmark_resolution",
                      "recorded": "the model's recorded resolution", "params": "data.resolution"}
 #: the smallest working resolution a model runs at (the student's four 2x poolings need 8 pixels)

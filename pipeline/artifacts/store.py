@@ -20,8 +20,12 @@ from pipeline.artifacts.schemas import check_kind, get_schema, missing_files
 from pipeline.catalog import META_FILE, TRAINING_LOG_FILE
 from pipeline.runtime.errors import ArtifactError
 
+__all__ = ["SHARD_IMAGES", "ZarrWriter", "write_zarr", "write_parquet", "artifact_dir", "Artifact", "ZarrArtifact",
+           "VerifiedArray", "TableArtifact", "DirArtifact", "open_artifact", "row_runs", "read_chunk_rows"]
+
 META_KEY = PROGRAM
 CHUNKS_KEY = "geodistill_chunk_files"  # array -> number of chunk files that must exist
+#: images per shard file of a Zarr array (:class:`ZarrWriter`)
 SHARD_IMAGES = 256
 
 

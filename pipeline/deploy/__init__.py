@@ -1,2 +1,4 @@
-"""Deployment of the student's mask path M = [Z >= logit(tau)] (eq:inference-mask): export, int8, the
-deploy bundle, the engines, segmenting image files and the efficiency benchmark."""
+"""Deployment of the student's mask path M = [Z >= logit(tau)] (eq:inference-mask).
+
+Export, int8, the deploy bundle, the engines, segmenting image files and the efficiency benchmark.
+"""

@@ -1,6 +1,9 @@
-"""Efficiency benchmark of the deployed mask path on this machine: per variant, parameters and GFLOPs,
-batch-1 latency (timed round-robin), best-batch throughput, peak memory and the validation IoU change at
-the deployed tau (eq:inference-mask); the fast path and its verdicts (docs/decisions.md)."""
+"""Efficiency benchmark of the deployed mask path on this machine.
+
+Per variant: parameters and GFLOPs, batch-1 latency (timed round-robin), best-batch throughput, peak memory and
+the validation IoU change at the deployed tau (eq:inference-mask); the fast path and its verdicts
+(docs/decisions.md).
+"""
 
 from __future__ import annotations
 
@@ -30,20 +33,47 @@ from pipeline.model import count_flops, count_parameters, mask_path_model
 from pipeline.engine_table import BENCHMARK_VARIANTS, engine_name
 from pipeline.thresholds import mask_from_probs, resolve_tau, tau_candidates
 
+__all__ = ["BASELINE_VARIANT", "VARIANTS", "SLOW_FACTOR", "PROBE_CALLS", "OK", "SKIPPED", "CUDA_MAX_BATCH", "Variant",
+           "time_calls", "interleaved_times", "build_variants", "slow_status", "variant_remark", "measure_variants",
+           "Sweep", "throughput_batches", "throughput_sweep", "fastest_within", "benchmark_settings", "Target",
+           "open_target", "read_benchmark_data", "prepare_onnx_models", "fast_path_summary", "fast_path_line",
+           "format_table", "format_sweep", "benchmark_result"]
+
+#: the variant every speed-up and IoU change is measured against
 BASELINE_VARIANT = "fp32_eager_nchw"
+#: every benchmark variant (pipeline.engine_table)
 VARIANTS = tuple(BENCHMARK_VARIANTS)
-SLOW_FACTOR = 4.0  # a variant probed more than this many times slower than the baseline is not fully timed
-PROBE_CALLS = 2    # timed batch-1 calls of the probe
+#: a variant probed more than this many times slower than the baseline is not fully timed
+SLOW_FACTOR = 4.0
+#: timed batch-1 calls of the probe
+PROBE_CALLS = 2
+#: the status of a fully timed variant
 OK = "ok"
-SKIPPED = "skipped"  # the status of a variant never called on this host: "skipped: <why>"
+#: the status of a variant never called on this host: "skipped: <why>"
+SKIPPED = "skipped"
 clock = time.perf_counter  # a module attribute: a test puts a fake clock in its place
-CUDA_MAX_BATCH = 256  # the CUDA throughput sweep's largest batch
+#: the CUDA throughput sweep's largest batch
+CUDA_MAX_BATCH = 256
 INT8_VARIANTS = tuple(n for n in VARIANTS if ENGINES[n].needs == INT8_FILE)
 
 
 @dataclasses.dataclass
 class Variant:
-    """One way of running the mask path: ``run(x float32 NCHW tensor) -> logits``."""
+    """One way of running the mask path.
+
+    Attributes
+    ----------
+    name : str
+        The engine's name.
+    description : str
+        What it runs.
+    run : Callable
+        ``run(x float32 NCHW tensor) -> logits``.
+    device : str
+        Where it runs (``cpu`` or ``cuda``).
+    sync : Callable
+        Waits for the device's queued work (CUDA), so that a timing covers it.
+    """
 
     name: str
     description: str
@@ -61,7 +91,7 @@ def _status_kb(field: str) -> int | None:
 
 
 class PeakMemory:
-    """Peak memory growth (MiB) over a block: the CPU's VmHWM after a reset, CUDA's max_memory_allocated."""
+    """Measure the peak memory growth (MiB) over a block: the CPU's VmHWM after a reset, CUDA's max_memory_allocated."""
 
     def __init__(self, device: str):
         self.device = device
@@ -96,7 +126,26 @@ class PeakMemory:
 
 
 def time_calls(fn: Callable, x, warmup: int, iters: int, sync: Callable[[], None]) -> list[float]:
-    """Wall-clock seconds of ``iters`` calls after ``warmup`` untimed ones."""
+    """Time ``iters`` calls after ``warmup`` untimed ones.
+
+    Parameters
+    ----------
+    fn : Callable
+        The function called as ``fn(x)``.
+    x : Any
+        Its argument.
+    warmup : int
+        Untimed calls first.
+    iters : int
+        Timed calls.
+    sync : Callable
+        Called after each call, inside its timing (a device synchronisation).
+
+    Returns
+    -------
+    list of float
+        The wall-clock seconds of each timed call (:data:`clock`).
+    """
     for _ in range(warmup):
         fn(x)
     sync()
@@ -110,8 +159,27 @@ def time_calls(fn: Callable, x, warmup: int, iters: int, sync: Callable[[], None
 
 
 def interleaved_times(variants: Sequence["Variant"], x, iters: int, block: int = 3) -> dict[str, list[float]]:
-    """Call times (s) of every variant on ``x``, round-robin until each has ``iters``: per round one untimed
-    call and up to ``block`` timed ones, so a drift of the machine's load falls on all variants alike."""
+    """Time every variant on ``x`` round-robin until each has ``iters`` calls.
+
+    Per round each variant gets one untimed call and up to ``block`` timed ones, so a drift of the machine's
+    load falls on all variants alike.
+
+    Parameters
+    ----------
+    variants : Sequence of Variant
+        The variants timed.
+    x : Any
+        Their input.
+    iters : int
+        Timed calls per variant.
+    block : int
+        The most timed calls of a variant per round.
+
+    Returns
+    -------
+    dict
+        Variant name -> the seconds of its ``iters`` calls.
+    """
     times: dict[str, list[float]] = {v.name: [] for v in variants}
     while any(len(t) < iters for t in times.values()):
         for v in variants:
@@ -123,7 +191,33 @@ def interleaved_times(variants: Sequence["Variant"], x, iters: int, block: int =
 
 def build_variants(model, device, resolution: int, names: Sequence[str], onnx_path: str | Path | None = None,
                    int8_path: str | Path | None = None) -> tuple[list[Variant], dict[str, str]]:
-    """(variants, {skipped name: why}): the engines ``names`` (old names too) that can run here."""
+    """Load the engines ``names`` (old names too) that can run here.
+
+    Parameters
+    ----------
+    model : TinyUNet
+        The student.
+    device : str or torch.device
+        The device asked for.
+    resolution : int
+        The working resolution.
+    names : Sequence of str
+        Benchmark variants (:data:`VARIANTS`).
+    onnx_path : str or Path or None
+        The fp32 ONNX model, for the ONNX variants.
+    int8_path : str or Path or None
+        The int8 ONNX model, for the int8 variants.
+
+    Returns
+    -------
+    tuple
+        ``(variants, skipped)``: the loaded :class:`Variant` list, and ``{name: why}`` of those that cannot run.
+
+    Raises
+    ------
+    InputError
+        A name is not a benchmark variant (``deploy.benchmark_variants``).
+    """
     dev = torch.device(device)
     sync = (lambda: torch.cuda.synchronize()) if dev.type == "cuda" else (lambda: None)
     # ONNX Runtime sessions used for timing do not spin: idle pools must not steal the timed cores
@@ -144,12 +238,12 @@ def build_variants(model, device, resolution: int, names: Sequence[str], onnx_pa
 
 
 def mean_image_iou(masks: np.ndarray, reference: np.ndarray) -> float:
-    """Mean per-image IoU; NaN without images."""
+    """Average the per-image IoU; NaN without images."""
     return float(np.mean(image_ious(masks, reference))) if len(masks) else float("nan")
 
 
 def variant_probs(variant: Variant, images: np.ndarray, batch_size: int) -> np.ndarray:
-    """P = sigmoid(Z) float32 [N,H,W] of a variant on uint8 images [N,H,W,3]."""
+    """Run a variant on uint8 images [N,H,W,3]: P = sigmoid(Z) float32 [N,H,W]."""
     out = np.empty(images.shape[:3], np.float32)
     for s in range(0, len(images), batch_size):
         z = variant.run(images_to_tensor(np.asarray(images[s:s + batch_size])))
@@ -158,7 +252,22 @@ def variant_probs(variant: Variant, images: np.ndarray, batch_size: int) -> np.n
 
 
 def slow_status(probe_ms: float, baseline_probe_ms: float | None, factor: float = SLOW_FACTOR) -> str | None:
-    """The status of a variant probed more than ``factor`` x the baseline's probe, else None (time it fully)."""
+    """Mark a variant slow when its probe took more than ``factor`` x the baseline's.
+
+    Parameters
+    ----------
+    probe_ms : float
+        The variant's probe, ms.
+    baseline_probe_ms : float or None
+        The baseline's probe, ms (None: not probed).
+    factor : float
+        The slowdown beyond which a variant is not fully timed.
+
+    Returns
+    -------
+    str or None
+        The variant's status when too slow, else None (time it fully).
+    """
     if baseline_probe_ms is None or not baseline_probe_ms > 0 or not probe_ms > factor * baseline_probe_ms:
         return None
     return (f"slow on this CPU (probe: {probe_ms:.1f} ms, {probe_ms / baseline_probe_ms:.1f}x the "
@@ -166,7 +275,22 @@ def slow_status(probe_ms: float, baseline_probe_ms: float | None, factor: float 
 
 
 def variant_remark(status: str, probe_ms: float, baseline_probe_ms: float | None) -> str:
-    """The efficiency table's note on why a variant was not run or not fully timed ("" otherwise)."""
+    """Say in the efficiency table why a variant was not run or not fully timed.
+
+    Parameters
+    ----------
+    status : str
+        The variant's status (:data:`OK`, :data:`SKIPPED` with its reason, or :func:`slow_status`).
+    probe_ms : float
+        Its probe, ms.
+    baseline_probe_ms : float or None
+        The baseline's probe, ms.
+
+    Returns
+    -------
+    str
+        The note; "" for a fully timed variant.
+    """
     if status.startswith(SKIPPED):
         return "not run: " + status.split(": ", 1)[-1]
     if status == OK:
@@ -178,7 +302,7 @@ def variant_remark(status: str, probe_ms: float, baseline_probe_ms: float | None
 
 def _row(name: str, description: str, device: str, params: int, gflops: float, resolution: int, status: str,
          probe: float = float("nan"), base_probe: float | None = None, mem: PeakMemory | None = None) -> dict:
-    """A variant's row before its timing (every measurement NaN)."""
+    """Start a variant's row before its timing (every measurement NaN)."""
     nan = float("nan")
     return {"variant": name, "description": description, "device": device, "params": params, "gflops": gflops,
             "throughput": nan, "batch": 0, "peak_mb": mem.peak_mb if mem else nan,
@@ -188,13 +312,56 @@ def _row(name: str, description: str, device: str, params: int, gflops: float, r
 
 def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence[str], warmup: int, iters: int,
                      batches: Sequence[int], tau: float | None = None, val_images: np.ndarray | None = None,
-                     val_masks: np.ndarray | None = None, onnx_path=None, int8_path=None, seed: int = 0,
+                     val_masks: np.ndarray | None = None, onnx_path=None, int8_path=None,
+                     seed: int = 0,  # not a param: the timing inputs' random stream
                      on_variant: Callable[[str], None] = lambda name: None,
                      slow_factor: float | None = None) -> tuple[list[dict], dict]:
-    """(rows in the order of ``variants``, info): per variant ``peak_mb`` over ``max(1, warmup)`` warm-up calls,
-    the probe, latency (median of ``iters`` batch-1 calls), throughput (best of :func:`throughput_sweep`),
-    ``iou`` of [P >= tau] (eq:inference-mask) and against the baseline ``iou_delta``, ``iou_vs_fp32``,
-    ``speedup``; params and GFLOPs are the PyTorch graph's for every variant."""
+    """Measure every variant: memory, probe, latency, throughput and validation IoU.
+
+    Per variant: ``peak_mb`` over ``max(1, warmup)`` warm-up calls, the probe, latency (median of ``iters``
+    batch-1 calls, timed round-robin by :func:`interleaved_times`), throughput (best of
+    :func:`throughput_sweep`), ``iou`` of [P >= tau] (eq:inference-mask) and, against the baseline,
+    ``iou_delta``, ``iou_vs_fp32`` and ``speedup``.  Params and GFLOPs are the PyTorch graph's for every variant.
+
+    Parameters
+    ----------
+    model : TinyUNet
+        The student.
+    resolution : int
+        The side of the timed images.
+    device : str or torch.device
+        The device asked for.
+    variants : Sequence of str
+        The variants (``deploy.benchmark_variants``).
+    warmup : int
+        Untimed calls before the timing (``deploy.benchmark_warmup``).
+    iters : int
+        Timed batch-1 calls (``deploy.benchmark_iters``).
+    batches : Sequence of int
+        The batch sizes of the throughput sweep (``deploy.benchmark_batches``).
+    tau : float or None
+        The mask threshold; None: no IoU.
+    val_images : np.ndarray or None
+        uint8 [N,R,R,3] validation images; None: no IoU.
+    val_masks : np.ndarray or None
+        bool [N,R,R] their reference masks (accuracy only).
+    onnx_path : str or Path or None
+        The fp32 ONNX model.
+    int8_path : str or Path or None
+        The int8 ONNX model.
+    seed : int
+        The seed of the random timing inputs.
+    on_variant : Callable
+        Called with each variant's name before it is measured (progress).
+    slow_factor : float or None
+        The probe slowdown beyond which a variant is not fully timed; None: :data:`SLOW_FACTOR` as it is now.
+
+    Returns
+    -------
+    tuple
+        ``(rows, info)``: one dict per variant in the order of ``variants`` (skipped ones with their status),
+        and the run's conditions (threads, device, timing, sweeps, slow and skipped variants).
+    """
     slow_factor = SLOW_FACTOR if slow_factor is None else slow_factor  # None: the constant as it is at call time
     dev = torch.device(device)
     deployed = mask_path_model(model)
@@ -257,7 +424,19 @@ def measure_variants(model, *, resolution: int, device="cpu", variants: Sequence
 
 @dataclasses.dataclass
 class Sweep:
-    """A throughput sweep: images/s per batch tried, the best, and the batch that ran out of memory."""
+    """A throughput sweep.
+
+    Attributes
+    ----------
+    images_per_s : dict
+        Batch size -> images/s.
+    best : float
+        The best images/s.
+    batch : int
+        The batch size that gave it.
+    oom_batch : int or None
+        The batch that ran out of GPU memory and ended the sweep.
+    """
 
     images_per_s: dict[int, float]
     best: float
@@ -265,13 +444,32 @@ class Sweep:
     oom_batch: int | None = None
 
     def record(self) -> dict:
-        """JSON-friendly: the batches as strings."""
+        """Record the sweep for JSON.
+
+        Returns
+        -------
+        dict
+            ``images_per_s`` (its batches as strings), ``best_batch`` and ``oom_batch``.
+        """
         return {"images_per_s": {str(b): tp for b, tp in self.images_per_s.items()}, "best_batch": self.batch,
                 "oom_batch": self.oom_batch}
 
 
 def throughput_batches(batches: Sequence[int], device: str) -> list[int]:
-    """``batches``, and on CUDA every power of two up to :data:`CUDA_MAX_BATCH` too."""
+    """List the batch sizes a throughput sweep tries.
+
+    Parameters
+    ----------
+    batches : Sequence of int
+        The configured batch sizes (``deploy.benchmark_batches``).
+    device : str
+        The variant's device.
+
+    Returns
+    -------
+    list of int
+        ``batches``, and on CUDA every power of two up to :data:`CUDA_MAX_BATCH` too, ascending.
+    """
     tried = {int(b) for b in batches}
     if str(device).startswith("cuda"):
         tried |= {2 ** k for k in range(CUDA_MAX_BATCH.bit_length()) if 2 ** k <= CUDA_MAX_BATCH}
@@ -280,8 +478,31 @@ def throughput_batches(batches: Sequence[int], device: str) -> list[int]:
 
 def throughput_sweep(variant: Variant, channels: int, resolution: int, batches: Sequence[int], iters: int,
                      generator) -> Sweep:
-    """Images/s of ``variant`` at each of ``batches`` (b / median of max(2, ceil(iters / b)) calls); the first
-    batch out of GPU memory ends the sweep (raised when it is the first)."""
+    """Measure the images/s of ``variant`` at each batch size.
+
+    At batch b: b / the median of max(2, ceil(iters / b)) calls.  The first batch out of GPU memory ends the
+    sweep (and is raised when it is the first batch).
+
+    Parameters
+    ----------
+    variant : Variant
+        The variant.
+    channels : int
+        The input's channels.
+    resolution : int
+        The input's side.
+    batches : Sequence of int
+        The batch sizes (:func:`throughput_batches`).
+    iters : int
+        The calls at batch 1; fewer at larger batches.
+    generator : torch.Generator
+        The random inputs' stream.
+
+    Returns
+    -------
+    Sweep
+        The images/s per batch, the best, and the batch out of memory.
+    """
     tps: dict[int, float] = {}
     oom = None
     for b in sorted(int(b) for b in batches):
@@ -303,14 +524,39 @@ def throughput_sweep(variant: Variant, channels: int, resolution: int, batches: 
 
 
 def fastest_within(rows: Sequence[dict], max_iou_drop: float) -> dict | None:
-    """The lowest-latency fully timed variant with |iou_delta| <= ``max_iou_drop`` (NaN passes)."""
+    """Pick the lowest-latency fully timed variant within the IoU budget.
+
+    Parameters
+    ----------
+    rows : Sequence of dict
+        :func:`measure_variants` rows.
+    max_iou_drop : float
+        The largest |iou_delta| allowed (``deploy.target_iou_drop``); a NaN delta passes.
+
+    Returns
+    -------
+    dict or None
+        The fastest such row, or None.
+    """
     ok = [r for r in rows if r.get("status", OK) == OK and math.isfinite(r["latency_ms"])
           and not (abs(r["iou_delta"]) > max_iou_drop)]
     return min(ok, key=lambda r: r["latency_ms"]) if ok else None
 
 
 def benchmark_settings(cfg: dict) -> dict:
-    """The benchmark's ``deploy`` params."""
+    """Read the benchmark's settings from a validated ``deploy`` section.
+
+    Parameters
+    ----------
+    cfg : dict
+        The validated ``deploy:`` section.
+
+    Returns
+    -------
+    dict
+        ``warmup``, ``iters``, ``batches``, ``variants``, ``int8_settings``, ``target_ms``, ``max_drop``,
+        ``target_res``, ``opset`` and ``resolution``.
+    """
     return {"warmup": cfg["benchmark_warmup"], "iters": cfg["benchmark_iters"], "batches": cfg["benchmark_batches"],
             "variants": cfg["benchmark_variants"], "int8_settings": q8.Int8Settings.from_params(cfg),
             "target_ms": float(cfg["target_latency_ms"]),
@@ -320,7 +566,27 @@ def benchmark_settings(cfg: dict) -> dict:
 
 @dataclasses.dataclass
 class Target:
-    """The model under test: from a deploy bundle or a checkpoint."""
+    """The model under test: from a deploy bundle or a checkpoint.
+
+    Attributes
+    ----------
+    model : object
+        The student, on the CPU.
+    tau : float
+        Its threshold (eq:inference-mask).
+    tau_source : str
+        Where ``tau`` came from.
+    resolution : int or None
+        Its recorded working resolution.
+    onnx_path : Path or None
+        The bundle's fp32 ONNX model.
+    int8_path : Path or None
+        The bundle's int8 ONNX model.
+    int8_info : dict
+        deploy.json's ``int8`` entry.
+    inputs : list
+        The artifacts opened, for the lineage.
+    """
 
     model: object
     tau: float
@@ -333,7 +599,31 @@ class Target:
 
 
 def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, params=None) -> Target:
-    """Exactly one of a deploy bundle or a checkpoint directory on the CPU, with its tau (eq:inference-mask)."""
+    """Open the model under test: exactly one of a deploy bundle or a checkpoint folder, on the CPU.
+
+    Parameters
+    ----------
+    deploy_dir : str or Path or None
+        A deploy bundle (``--deploy``).
+    checkpoint : str or Path or None
+        A checkpoint folder (``--checkpoint``).
+    thresholds : str or Path or None
+        The checkpoint's thresholds table (a tau candidate).
+    tau : float or None
+        A threshold overriding the model's.
+    params : dict or None
+        Params whose ``calibrate.fixed_tau`` is the last tau candidate.
+
+    Returns
+    -------
+    Target
+        The model with its tau (eq:inference-mask) and files.
+
+    Raises
+    ------
+    InputError
+        Neither or both of ``deploy_dir`` and ``checkpoint`` are given.
+    """
     if (deploy_dir is None) == (checkpoint is None):
         raise InputError("give exactly one of --deploy (a bundle) or --checkpoint")
     if deploy_dir is not None:
@@ -351,8 +641,23 @@ def open_target(deploy_dir=None, checkpoint=None, thresholds=None, tau=None, par
 
 
 def read_benchmark_data(art: str | Path, n_calib: int):
-    """(val images and masks, int8 calibration images as export picks them, opened artifacts); Nones without
-    the artifacts.  The reference masks only measure accuracy here."""
+    """Read the benchmark's data from an artifacts folder.
+
+    The reference masks only measure accuracy here.
+
+    Parameters
+    ----------
+    art : str or Path
+        The artifacts folder.
+    n_calib : int
+        The most int8 calibration images (``deploy.int8_calibration_images``).
+
+    Returns
+    -------
+    tuple
+        ``(val_images, val_masks, calibration_images, opened)``: validation images and their masks, the int8
+        calibration images as export picks them, and the artifacts opened; Nones and [] without the artifacts.
+    """
     reference_path = catalog.path("reference", art)
     calib, opened, _ = q8.read_calibration_images(art, n_calib) if reference_path.exists() else (None, [], "")
     if not opened:
@@ -366,8 +671,34 @@ def read_benchmark_data(art: str | Path, n_calib: int):
 
 def prepare_onnx_models(target: Target, variants: Sequence[str], workdir: str | Path, *, resolution: int,
                         opset: int, calibration_images: np.ndarray | None, int8_settings: q8.Int8Settings) -> tuple:
-    """(onnx_path, int8_path, notes): the bundle's models, else exported or quantised into ``workdir`` (int8 on
-    ``calibration_images``, else smooth noise; only for an int8 variant); ``notes`` say how, or why none."""
+    """Find or make the ONNX models the variants need.
+
+    The bundle's models, else exported or quantised into ``workdir``: int8 on ``calibration_images``, else on
+    smooth noise, and only for an int8 variant.
+
+    Parameters
+    ----------
+    target : Target
+        The model under test.
+    variants : Sequence of str
+        The variants to run.
+    workdir : str or Path
+        A scratch folder for exported models.
+    resolution : int
+        The export's example size.
+    opset : int
+        The ONNX opset (``deploy.opset``).
+    calibration_images : np.ndarray or None
+        uint8 training images for int8 calibration.
+    int8_settings : Int8Settings
+        The int8 calibration.
+
+    Returns
+    -------
+    tuple
+        ``(onnx_path, int8_path, notes)``: the models (None when absent) and notes saying how they were made,
+        or why there are none.
+    """
     reason = onnx_unavailable_reason()
     if reason is not None:
         return None, None, {"onnx": reason}
@@ -388,14 +719,32 @@ def prepare_onnx_models(target: Target, variants: Sequence[str], workdir: str | 
 
 
 def clean(v):
-    """JSON value: non-finite floats -> None."""
+    """Make a JSON value: non-finite floats -> None."""
     return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
 def fast_path_summary(rows: Sequence[dict], resolution: int, *, target_ms: float, target_res: int,
                       max_drop: float) -> dict | None:
-    """The fast path (:func:`fastest_within`) and its verdicts, or None; the latency target is judged only at
-    ``target_res``."""
+    """Sum up the fast path (:func:`fastest_within`) and its verdicts.
+
+    Parameters
+    ----------
+    rows : Sequence of dict
+        :func:`measure_variants` rows.
+    resolution : int
+        The resolution timed.
+    target_ms : float
+        The latency target (``deploy.target_latency_ms``).
+    target_res : int
+        The resolution the target is judged at (``deploy.target_resolution``); at any other, not judged.
+    max_drop : float
+        The IoU budget (``deploy.target_iou_drop``).
+
+    Returns
+    -------
+    dict or None
+        The fast path's variant, latency, speed-up, IoU change and verdicts; None when no variant qualifies.
+    """
     fast = fastest_within(rows, max_drop)
     if fast is None:
         return None
@@ -407,7 +756,26 @@ def fast_path_summary(rows: Sequence[dict], resolution: int, *, target_ms: float
 
 
 def fast_path_line(summary: dict, rows: Sequence[dict], resolution: int, target_ms: float, target_res: int) -> str:
-    """The fast path, its speed-up over the baseline and the latency verdict."""
+    """Say the fast path, its speed-up over the baseline and the latency verdict in one line.
+
+    Parameters
+    ----------
+    summary : dict
+        :func:`fast_path_summary`.
+    rows : Sequence of dict
+        :func:`measure_variants` rows (the baseline's latency).
+    resolution : int
+        The resolution timed.
+    target_ms : float
+        The latency target.
+    target_res : int
+        The resolution the target is judged at.
+
+    Returns
+    -------
+    str
+        The line.
+    """
     base = next((r for r in rows if r["variant"] == BASELINE_VARIANT), None)
     return (f"fast path: {summary['variant']} {summary['latency_ms']:.1f} ms/image at {resolution}px batch 1 "
             f"({summary['speedup']:.1f}x the {BASELINE_VARIANT} baseline"
@@ -416,13 +784,25 @@ def fast_path_line(summary: dict, rows: Sequence[dict], resolution: int, target_
 
 
 def _cell(v, spec: str, width: int) -> str:
-    """``v`` formatted by ``spec``, or ``--`` when it is missing or not finite."""
+    """Format ``v`` by ``spec``, or ``--`` when it is missing or not finite."""
     return format(v, spec) if v is not None and math.isfinite(v) else f"{'--':>{width}s}"
 
 
 def format_table(rows: Sequence[dict]) -> str:
-    """The efficiency table for stdout: a variant skipped or only probed shows its status; no IoU columns
-    without any IoU."""
+    """Format the efficiency table for stdout.
+
+    A variant skipped or only probed shows its status; there are no IoU columns without any IoU.
+
+    Parameters
+    ----------
+    rows : Sequence of dict
+        :func:`measure_variants` rows.
+
+    Returns
+    -------
+    str
+        The table, its header and a footnote.
+    """
     timed = [r for r in rows if r.get("status", OK) == OK]
     scored = any(_cell(r.get("iou"), ".4f", 1) != "--" for r in timed)
     head = (f"{'variant':22s} {'latency ms':>10s} {'x base':>7s} {'img/s':>8s} {'batch':>5s} {'peak MB':>8s}"
@@ -444,7 +824,18 @@ def format_table(rows: Sequence[dict]) -> str:
 
 
 def format_sweep(run_info: dict) -> str:
-    """One line per variant swept beyond ``deploy.benchmark_batches`` (CUDA); "" when none was."""
+    """Format one line per variant swept beyond ``deploy.benchmark_batches`` (CUDA).
+
+    Parameters
+    ----------
+    run_info : dict
+        :func:`measure_variants`' info.
+
+    Returns
+    -------
+    str
+        The lines; "" when no variant was.
+    """
     configured = {str(b) for b in run_info["batches"]}
     lines = []
     for name, sw in run_info.get("throughput_sweep", {}).items():
@@ -458,7 +849,28 @@ def format_sweep(run_info: dict) -> str:
 
 def benchmark_result(rows: Sequence[dict], run_info: dict, settings: dict, *, tau: float, summary: dict | None,
                      notes: dict) -> dict:
-    """The JSON document of a benchmark run (non-finite numbers as null)."""
+    """Build the JSON document of a benchmark run (non-finite numbers as null).
+
+    Parameters
+    ----------
+    rows : Sequence of dict
+        :func:`measure_variants` rows.
+    run_info : dict
+        :func:`measure_variants`' info.
+    settings : dict
+        :func:`benchmark_settings`.
+    tau : float
+        The threshold used.
+    summary : dict or None
+        :func:`fast_path_summary`.
+    notes : dict
+        How the ONNX models were made (:func:`prepare_onnx_models`).
+
+    Returns
+    -------
+    dict
+        The document.
+    """
     return {
         "resolution": run_info["resolution"], "device": run_info["device"], "threads": run_info["threads"],
         "tau": tau, "n_val": run_info["n_val"], "warmup": settings["warmup"], "iters": settings["iters"],

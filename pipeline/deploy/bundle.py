@@ -1,5 +1,7 @@
-"""The deploy bundle (its files: :data:`pipeline.catalog.DEPLOY_BUNDLE`): writing it with its contract and
-golden pair, reading deploy.json, and a checkpoint's working resolution."""
+"""The deploy bundle (its files: :data:`pipeline.catalog.DEPLOY_BUNDLE`).
+
+Writing it with its contract and golden pair, reading deploy.json, and a checkpoint's working resolution.
+"""
 
 from __future__ import annotations
 
@@ -18,12 +20,18 @@ from pipeline.deploy.mask_path import (ONNX_INPUT, ONNX_OUTPUT, check_parity, ex
                                     mask_path_model, onnx_unavailable_reason, require_parity, torch_logits)
 from pipeline.runtime.errors import ArtifactError
 from pipeline.model import count_flops, count_parameters
+from pipeline.params import PAPER
 from pipeline.thresholds import logit_threshold
 from pipeline.artifacts.atomic import read_json
 from pipeline.artifacts.weights import write_weights
 
+__all__ = ["DEPLOY_JSON", "TORCHSCRIPT_FILE", "ONNX_FILE", "INT8_FILE", "CONTRACT_FILE", "GOLDEN_FILES",
+           "CONTRACT_VERSION", "file_sha256", "write_bundle", "golden_frame", "write_contract", "frame_reading",
+           "is_deploy_bundle", "read_deploy_info", "checkpoint_resolution"]
+
 log = logging.getLogger(__name__)
 
+#: the bundle's file names (pipeline.catalog.DEPLOY_BUNDLE)
 DEPLOY_JSON = bundle_file("deploy_json")
 TORCHSCRIPT_FILE = bundle_file("torchscript")
 ONNX_FILE = bundle_file("onnx")
@@ -35,6 +43,18 @@ CONTRACT_VERSION = 1
 
 
 def file_sha256(path: str | Path) -> str:
+    """Hash a file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Returns
+    -------
+    str
+        Its SHA-256, hexadecimal.
+    """
     with open(path, "rb") as f:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
@@ -43,11 +63,54 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
                  opset: int, atol: float, onnx: bool = True, source: dict | None = None,
                  int8_settings: q8.Int8Settings, calibration_images: np.ndarray | None = None,
                  calibration_note: str | None = None, device=None, frames: dict | None = None) -> dict:
-    """Fill the bundle folder ``tmp``; its deploy.json content.  :class:`ParityError` when an export fails its
-    parity check; the int8 model (``int8_settings``) only with model.onnx and ``calibration_images`` (training
-    split), and left out when it misses ``int8_settings.int8_min_mask_iou`` on a checked instruction set
-    (``int8_note`` says why).
-    ``frames``: how training frames were read (data.bit_depth, data.letterbox)."""
+    """Fill the bundle folder ``tmp``: weights, TorchScript, ONNX, int8, contract, golden pair and deploy.json.
+
+    The int8 model comes only with model.onnx and ``calibration_images`` (training split), and is left out when
+    it misses ``int8_settings.int8_min_mask_iou`` on a checked instruction set (``int8_note`` says why).
+
+    Parameters
+    ----------
+    tmp : str or Path
+        The bundle folder being written (the caller makes it atomic).
+    model : TinyUNet
+        The student (its mask path is exported).
+    payload : dict
+        The checkpoint's payload (its method and seed are recorded).
+    tau : float
+        The mask threshold (eq:inference-mask).
+    tau_source : str
+        Where ``tau`` came from.
+    resolution : int
+        The working resolution.
+    opset : int
+        The ONNX opset (``deploy.opset``).
+    atol : float
+        The parity tolerance on the logits (``deploy.parity_atol``).
+    onnx : bool
+        Export ONNX (and so int8).
+    source : dict or None
+        deploy.json's ``source``: the checkpoint and fingerprints.
+    int8_settings : Int8Settings
+        The int8 calibration and its gate.
+    calibration_images : np.ndarray or None
+        uint8 [N,R,R,3] training-split images (never masks); None: no int8 model.
+    calibration_note : str or None
+        What the calibration images are, or why there are none.
+    device : str or torch.device or None
+        A CUDA device to report parity on as well.
+    frames : dict or None
+        How training frames were read (``data.bit_depth``, ``data.letterbox``; :func:`frame_reading`).
+
+    Returns
+    -------
+    dict
+        The deploy.json content.
+
+    Raises
+    ------
+    ParityError
+        TorchScript or ONNX does not reproduce the PyTorch mask path (:func:`pipeline.deploy.mask_path.require_parity`).
+    """
     tmp = Path(tmp)
     deployed = mask_path_model(model)
     method, seed = payload.get("method"), payload.get("seed")
@@ -111,7 +174,18 @@ def write_bundle(tmp: str | Path, model, payload: dict, *, tau: float, tau_sourc
 
 
 def golden_frame(resolution: int) -> np.ndarray:
-    """The golden input, RGB uint8 [R,R,3]: a lit ellipse with panels on a dark noisy background, seeded."""
+    """Draw the golden input: a lit ellipse with panels on a dark noisy background, seeded.
+
+    Parameters
+    ----------
+    resolution : int
+        R, its side.
+
+    Returns
+    -------
+    np.ndarray
+        RGB uint8 [R,R,3].
+    """
     rng = np.random.default_rng(20261126)
     r = int(resolution)
     yy, xx = np.mgrid[0:r, 0:r] / max(r - 1, 1)
@@ -124,10 +198,37 @@ def golden_frame(resolution: int) -> np.ndarray:
 
 
 def write_contract(tmp: str | Path, deployed, *, tau: float, resolution: int, frames: dict | None = None,
-                   atol: float = 1e-4, onnx_file: str | None = ONNX_FILE, int8: dict | None = None,
+                   atol: float = PAPER.deploy.parity_atol, onnx_file: str | None = ONNX_FILE, int8: dict | None = None,
                    int8_note: str | None = None) -> dict:
-    """Write contract.json (enough to run model.onnx with numpy alone) and the golden pair (PyTorch fp32 on
-    the CPU); the contract.  ``atol``: the logits' parity tolerance, which bounds P's (|dP| <= |dZ| / 4)."""
+    """Write contract.json (enough to run model.onnx with numpy alone) and the golden pair (PyTorch fp32 on the CPU).
+
+    Parameters
+    ----------
+    tmp : str or Path
+        The bundle folder being written.
+    deployed : TinyUNet
+        The mask path (PyTorch, fp32, CPU) the golden pair comes from.
+    tau : float
+        The mask threshold (eq:inference-mask).
+    resolution : int
+        The working resolution R.
+    frames : dict or None
+        How frames are read (:func:`frame_reading`).
+    atol : float
+        The logits' parity tolerance (``deploy.parity_atol`` unless given), which bounds P's
+        (|dP| <= |dZ| / 4).
+    onnx_file : str or None
+        The ONNX model's file name; None when the bundle has none.
+    int8 : dict or None
+        deploy.json's ``int8`` entry, when the bundle has the int8 model.
+    int8_note : str or None
+        Why it has none.
+
+    Returns
+    -------
+    dict
+        The contract written.
+    """
     tmp = Path(tmp)
     r = int(resolution)
     frames = frame_reading(frames)
@@ -183,9 +284,22 @@ def write_contract(tmp: str | Path, deployed, *, tau: float, resolution: int, fr
 
 
 def frame_reading(frames: dict | None = None) -> dict:
-    """deploy.json's ``frames``, absent keys as older bundles were made: auto, squash."""
+    """Complete deploy.json's ``frames``: an absent key as older bundles were made, before the key existed.
+
+    Parameters
+    ----------
+    frames : dict or None
+        ``bit_depth`` and ``letterbox``, either or both.
+
+    Returns
+    -------
+    dict
+        Both keys; an absent one takes its schema default (``data.bit_depth``, ``data.letterbox``: what every
+        bundle made before the key was recorded used).
+    """
     frames = frames or {}
-    return {"bit_depth": frames.get("bit_depth", "auto"), "letterbox": bool(frames.get("letterbox", False))}
+    return {"bit_depth": frames.get("bit_depth", PAPER.data.bit_depth),
+            "letterbox": bool(frames.get("letterbox", PAPER.data.letterbox))}
 
 
 def is_deploy_bundle(path: str | Path) -> bool:
@@ -207,6 +321,23 @@ def is_deploy_bundle(path: str | Path) -> bool:
 
 
 def read_deploy_info(path: str | Path) -> dict:
+    """Read a bundle's deploy.json.
+
+    Parameters
+    ----------
+    path : str or Path
+        The bundle folder.
+
+    Returns
+    -------
+    dict
+        The deploy.json content.
+
+    Raises
+    ------
+    ArtifactError
+        There is no deploy.json, or it is unreadable.
+    """
     p = Path(path) / DEPLOY_JSON
     try:
         return json.loads(p.read_text())
@@ -217,7 +348,20 @@ def read_deploy_info(path: str | Path) -> dict:
 
 
 def checkpoint_resolution(path: str | Path, payload: dict) -> int | None:
-    """The working resolution recorded with a checkpoint (payload or meta.json extra), else None."""
+    """Read the working resolution recorded with a checkpoint.
+
+    Parameters
+    ----------
+    path : str or Path
+        The checkpoint folder (its meta.json's ``extra``).
+    payload : dict
+        The checkpoint's payload, read first.
+
+    Returns
+    -------
+    int or None
+        Its ``resolution`` (or older ``image_size``), else None.
+    """
     for record in (payload, read_json(Path(path) / META_FILE).get("extra") or {}):
         for key in ("resolution", "image_size"):
             if isinstance(record.get(key), int):

@@ -1,5 +1,8 @@
-"""GPU fast path of the mask path: CUDA graphs captured per input shape, bf16 autocast with channels_last,
-uint8 images converted on the device; on a CPU, eager fp32 channels_last (numerically the engine ``torch``)."""
+"""GPU fast path of the mask path.
+
+CUDA graphs captured per input shape, bf16 autocast with channels_last, uint8 images converted on the device;
+on a CPU, eager fp32 channels_last (numerically the engine ``torch``).
+"""
 
 from __future__ import annotations
 
@@ -10,20 +13,58 @@ from pipeline.runtime.device import autocast
 from pipeline.runtime.errors import InputError
 from pipeline.model import mask_path_model
 
+__all__ = ["uint8_to_input", "FastStudent"]
+
+#: the precisions :class:`FastStudent` accepts; ``auto`` = bf16 on CUDA, fp32 on a CPU
+PRECISIONS = ("auto", "bf16", "fp32")
+
 
 def uint8_to_input(images_u8):
-    """uint8 [N,H,W,3] tensor -> float32 [N,3,H,W] in [0, 1], channels_last, on its device."""
+    """Convert uint8 images to the mask path's input on their device.
+
+    Parameters
+    ----------
+    images_u8 : torch.Tensor
+        uint8 [N,H,W,3] RGB.
+
+    Returns
+    -------
+    torch.Tensor
+        float32 [N,3,H,W] in [0, 1], channels_last, on the same device.
+    """
     return images_u8.permute(0, 3, 1, 2).float().div_(255.0).contiguous(memory_format=torch.channels_last)
 
 
 class FastStudent:
-    """The mask path as a fast inference function; ``precision`` auto = bf16 on CUDA, fp32 on a CPU;
-    ``compile``: torch.compile (minutes of compilation: for long jobs)."""
+    """The mask path as a fast inference function.
 
-    def __init__(self, model, device="cuda", *, precision: str = "auto", cuda_graphs: bool = True,
-                 compile: bool = False):
+    Parameters
+    ----------
+    model : TinyUNet
+        The student (its mask path is taken).
+    device : str or torch.device
+        Where it runs.
+    precision : str
+        One of :data:`PRECISIONS`: ``auto`` = bf16 on CUDA, fp32 on a CPU (the engine table's option).
+    cuda_graphs : bool
+        Capture and replay a CUDA graph per input shape (on CUDA only).
+    compile : bool
+        torch.compile the mask path (minutes of compilation: for long jobs).
+    """
+
+    def __init__(self, model, device="cuda", *,
+                 precision: str = PRECISIONS[0],  # not a param: the engine table's option, not train.precision
+                 cuda_graphs: bool = True,
+                 compile: bool = False):  # not a param: an engine option, not teacher.compile
+        """Put the mask path on the device, channels_last (and compiled when asked).
+
+        Raises
+        ------
+        InputError
+            ``precision`` is not one of :data:`PRECISIONS`.
+        """
         self.device = torch.device(device)
-        if precision not in ("auto", "bf16", "fp32"):
+        if precision not in PRECISIONS:
             raise InputError(f"precision {precision!r}: expected auto, bf16 or fp32")
         on_cuda = self.device.type == "cuda"
         self.precision = ("bf16" if on_cuda else "fp32") if precision == "auto" else precision
@@ -61,7 +102,19 @@ class FastStudent:
         return self._graphs[key]
 
     def logits(self, x):
-        """float32 [N,3,H,W] in [0, 1] -> logits [N,1,H,W] on the device (on CUDA a graph's output buffer)."""
+        """Run the mask path on float images.
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            float32 [N,3,H,W] RGB in [0, 1], on any device.
+
+        Returns
+        -------
+        torch.Tensor
+            The logits [N,1,H,W] on the device; on CUDA with graphs, the graph's output buffer (overwritten by
+            the next call: copy to keep it).
+        """
         x = x.to(self.device, non_blocking=True)
         return self._replay(x, uint8=False) if self.cuda_graphs else self._forward(x)
 
@@ -72,7 +125,23 @@ class FastStudent:
         return static_out
 
     def logits_uint8(self, images: np.ndarray):
-        """uint8 [N,H,W,3] numpy -> logits [N,1,H,W] on the device, through a pinned staging buffer."""
+        """Run the mask path on uint8 images, converted on the device through a pinned staging buffer.
+
+        Parameters
+        ----------
+        images : np.ndarray
+            uint8 [N,H,W,3] RGB.
+
+        Returns
+        -------
+        torch.Tensor
+            The logits [N,1,H,W] on the device (on CUDA with graphs, the graph's output buffer).
+
+        Raises
+        ------
+        InputError
+            ``images`` is not a uint8 array of four dimensions.
+        """
         images = np.ascontiguousarray(images)
         if images.dtype != np.uint8 or images.ndim != 4:
             raise InputError(f"logits_uint8: expected uint8 [N,H,W,3], got {images.dtype} {images.shape}")

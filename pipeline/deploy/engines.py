@@ -1,6 +1,9 @@
-"""The engine registry: each row of :data:`pipeline.engine_table.ENGINE_TABLE` with its loader,
-shared by the Segmenter and the benchmark.  A runner maps x float32 [N,3,H,W] RGB in [0, 1] (CPU) to
-the logits [N,1,H,W], a torch tensor that survives the next call."""
+"""The engine registry: each row of :data:`pipeline.engine_table.ENGINE_TABLE` with its loader.
+
+Shared by the Segmenter and the benchmark.  A runner maps x float32 [N,3,H,W] RGB in [0, 1] (CPU) to the
+logits Z [N,1,H,W] of the mask path (eq:inference-mask thresholds them), a torch tensor that survives the next
+call.
+"""
 
 from __future__ import annotations
 
@@ -21,11 +24,26 @@ from pipeline.runtime.device import BF16_FLAGS, cpu_supports_bf16
 from pipeline.engine_table import ENGINE_TABLE, EngineSpec
 from pipeline.model import mask_path_model
 
+__all__ = ["Source", "Runner", "Engine", "LOADERS", "ENGINES", "unavailable"]
+
 
 @dataclasses.dataclass
 class Source:
-    """What an engine loads: the PyTorch model (None when only files are used), the device, the working
-    resolution, the bundle files (name -> path or None); ``spinning``: ONNX Runtime's idle threads spin."""
+    """What an engine loads.
+
+    Attributes
+    ----------
+    model : Any
+        The PyTorch TinyUNet (None when only bundle files are used).
+    device : torch.device
+        The device asked for.
+    resolution : int or None
+        The working resolution (the traced engines need it).
+    files : Mapping
+        Bundle file name (a :data:`pipeline.catalog.DEPLOY_BUNDLE` key) -> its path, or None when absent.
+    spinning : bool
+        ONNX Runtime's idle threads spin (fast for back-to-back calls, busy between them).
+    """
 
     model: Any
     device: torch.device
@@ -36,7 +54,15 @@ class Source:
 
 @dataclasses.dataclass
 class Runner:
-    """A loaded engine: ``run(x) -> logits`` and what it reports about itself."""
+    """A loaded engine.
+
+    Attributes
+    ----------
+    run : Callable
+        ``run(x float32 [N,3,H,W]) -> logits [N,1,H,W]`` (a torch tensor).
+    info : dict
+        What it reports about itself (the fast path: its precision and whether it replays CUDA graphs).
+    """
 
     run: Callable
     info: dict = dataclasses.field(default_factory=dict)
@@ -44,7 +70,25 @@ class Runner:
 
 @dataclasses.dataclass(frozen=True)
 class Engine:
-    """One registry entry; ``needs``: ``model`` or the bundle file it runs."""
+    """One registry entry.
+
+    Attributes
+    ----------
+    description : str
+        What it runs (the engine table's description).
+    load : Callable
+        ``load(Source) -> Runner``.
+    needs : str
+        ``"model"``, or the bundle file it runs.
+    requires : Callable
+        ``requires() -> str or None``: why it cannot run on this host (a package missing), or None.
+    cpu_only : bool
+        It runs on the CPU whatever the device asked for.
+    cuda_only : bool
+        It needs a CUDA device.
+    bf16 : bool
+        It computes in bf16 whatever the hardware.
+    """
 
     description: str
     load: Callable[[Source], Runner]
@@ -55,12 +99,23 @@ class Engine:
     bf16: bool = False
 
     def device(self, device: torch.device) -> str:
-        """Where it runs for a requested ``device``."""
+        """Tell where it runs for a requested ``device``.
+
+        Parameters
+        ----------
+        device : torch.device
+            The device asked for.
+
+        Returns
+        -------
+        str
+            ``"cpu"`` for a CPU-only engine, else ``device``'s type.
+        """
         return "cpu" if self.cpu_only else device.type
 
 
 def _eager(channels_last: bool | str, bf16: bool = False) -> Callable[[Source], Runner]:
-    """PyTorch eager; ``channels_last``: True, False or ``"cpu"`` (on the CPU only, as calibrate ran)."""
+    """Build the PyTorch eager loader; ``channels_last``: True, False or ``"cpu"`` (on the CPU only, as calibrate)."""
     def load(src: Source) -> Runner:
         dev = src.device
         cl = channels_last is True or (channels_last == "cpu" and dev.type == "cpu")
@@ -80,7 +135,7 @@ def _eager(channels_last: bool | str, bf16: bool = False) -> Callable[[Source], 
 
 
 def _torchscript_frozen(src: Source) -> Runner:
-    """The mask path traced, frozen and (CPU) optimised for inference here."""
+    """Load the mask path traced, frozen and (CPU) optimised for inference here."""
     dev = src.device
     example = torch.zeros(1, src.model.config["in_channels"], src.resolution, src.resolution, device=dev)
     with torch.no_grad(), warnings.catch_warnings():
@@ -144,11 +199,25 @@ def _engine(spec: EngineSpec) -> Engine:
                   cpu_only=spec.cpu_only, cuda_only=spec.cuda_only, bf16=spec.bf16)
 
 
+#: engine name -> its loaded registry entry, one per row of the engine table
 ENGINES: dict[str, Engine] = {name: _engine(spec) for name, spec in ENGINE_TABLE.items()}
 
 
 def unavailable(name: str, src: Source) -> str | None:
-    """Why engine ``name`` cannot run on ``src`` (a package, the device, the CPU's flags, a file), or None."""
+    """Tell why an engine cannot run on a source.
+
+    Parameters
+    ----------
+    name : str
+        An engine of :data:`ENGINES`.
+    src : Source
+        What it would load, and the device.
+
+    Returns
+    -------
+    str or None
+        Why not (a package, the device, the CPU's flags, a bundle file missing), or None when it can run.
+    """
     engine = ENGINES[name]
     if engine.cuda_only and src.device.type != "cuda":
         return "needs a CUDA device (--device cuda)"

@@ -17,6 +17,8 @@ from pipeline.evaluation.inference import load_student
 from pipeline.params import section
 from pipeline.thresholds import resolve_resolution, resolve_tau, tau_candidates
 
+__all__ = ["bundle_files", "ExportPlan", "plan_export", "write_export", "export_lines"]
+
 
 def bundle_files(path) -> set[str]:
     """List the files of the deploy bundle in ``path``: what export may replace there.
@@ -150,8 +152,7 @@ def plan_export(checkpoint, params: Mapping, *, thresholds=None, tau: float | No
         calib, calib_inputs, calib_note = read_calibration_images(artifacts, int8_settings.int8_calibration_images,
                                                                   int(resolution))
         inputs += calib_inputs
-    frames = frame_reading({k: params["data"].get(k) for k in ("bit_depth", "letterbox")
-                            if params["data"].get(k) is not None})
+    frames = frame_reading({k: params["data"][k] for k in ("bit_depth", "letterbox")})  # validated: both there
     settings = {"opset": cfg["opset"], "atol": cfg["parity_atol"], "int8_settings": int8_settings, "frames": frames}
     deploy_params = {"opset": cfg["opset"], "parity_atol": cfg["parity_atol"], "onnx": onnx, "int8": calib is not None,
                      **dataclasses.asdict(int8_settings)}

@@ -1,7 +1,9 @@
-"""``geodistill segment``'s logic (``pipeline/cli/segment.py`` is its wiring): image files in, mask files out,
-M = [P >= tau] (eq:inference-mask) at each frame's own size, with a checkpoint or a deploy bundle loaded as a
-:class:`pipeline.deploy.segmenter.Segmenter`.  Every output is planned (and refused) before anything is written;
-reading and writing overlap the inference.  Output names and refusals: docs/real-data.md."""
+"""``geodistill segment``'s logic (``pipeline/cli/segment.py`` is its wiring): image files in, mask files out.
+
+The masks are M = [P >= tau] (eq:inference-mask) at each frame's own size, with a checkpoint or a deploy bundle
+loaded as a :class:`pipeline.deploy.segmenter.Segmenter`.  Every output is planned (and refused) before anything
+is written; reading and writing overlap the inference.  Output names and refusals: docs/real-data.md.
+"""
 
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ from pipeline.datasets.manifest import BadInputPolicy, write_skipped_csv
 from pipeline.datasets.scan import scan_inputs
 from pipeline.deploy.confidence import frame_confidence
 from pipeline.engine_table import AUTO
+from pipeline.params import PAPER
 from pipeline.runtime.device import resolve_device
 from pipeline.runtime.errors import CHECKPOINT, InputError
 from pipeline.runtime.progress import progress
@@ -36,23 +39,55 @@ from pipeline.thresholds import MIN_RESOLUTION, RESOLUTION_LABELS, mask_from_pro
 if TYPE_CHECKING:  # torch: loaded by segment_images once the options are checked
     from pipeline.deploy.segmenter import Segmenter
 
+__all__ = ["MASK_SUFFIX", "PROB_SUFFIX", "OVERLAY_SUFFIX", "OUTPUT_SUFFIXES", "SKIPPED_CSV", "CONFIDENCE_CSV", "RECORD",
+           "output_path", "output_suffixes", "plan_outputs", "SegmentResult", "IO_WORKERS", "segment_files",
+           "check_options", "segment_images", "model_resolution"]
+
+#: the output files' suffixes (pipeline.catalog): the mask, the probabilities and the overlay of one input
 MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX = output_names("segment", "mask", "prob", "overlay").values()
 OUTPUT_SUFFIXES = (MASK_SUFFIX, PROB_SUFFIX, OVERLAY_SUFFIX)
+#: the run's own files in the output folder: skipped inputs, frame confidences, and the record of its outputs
 SKIPPED_CSV, CONFIDENCE_CSV, RECORD = (output_file("segment", k) for k in ("skipped", "confidence", "record"))
 
 
 def output_path(stem: Path, suffix: str) -> Path:
-    """``<stem><suffix>``; the stem is the output folder joined with the input's relative path."""
+    """Name one output file: ``<stem><suffix>``.
+
+    Parameters
+    ----------
+    stem : Path
+        The output folder joined with the input's relative path (:func:`plan_outputs`).
+    suffix : str
+        One of :data:`OUTPUT_SUFFIXES`.
+
+    Returns
+    -------
+    Path
+        The output file.
+    """
     return stem.with_name(stem.name + suffix)
 
 
 def output_suffixes(save_prob: bool = False, overlay: bool = False) -> tuple[str, ...]:
-    """The output kinds one run writes."""
+    """List the output kinds one run writes.
+
+    Parameters
+    ----------
+    save_prob : bool
+        The probabilities are written too (``--save-prob``).
+    overlay : bool
+        The overlays are written too (``--overlay``).
+
+    Returns
+    -------
+    tuple of str
+        :data:`MASK_SUFFIX`, then the others asked for.
+    """
     return (MASK_SUFFIX,) + ((PROB_SUFFIX,) if save_prob else ()) + ((OVERLAY_SUFFIX,) if overlay else ())
 
 
 def _relative(f: Path, root: Path, root_r: Path) -> Path:
-    """``f`` relative to the input folder, by its own (link) name when it lies lexically under it."""
+    """Place ``f`` relative to the input folder, by its own (link) name when it lies lexically under it."""
     try:
         return f.relative_to(root)
     except ValueError:
@@ -60,7 +95,7 @@ def _relative(f: Path, root: Path, root_r: Path) -> Path:
 
 
 def _blocking_file(folder: Path, cache: dict[Path, Path | None]) -> Path | None:
-    """The first existing non-folder among ``folder`` and its parents (mkdir would fail on it), else None."""
+    """Find the first existing non-folder among ``folder`` and its parents (mkdir would fail on it), else None."""
     found = None
     for p in (folder, *folder.parents):
         if p in cache or p.is_symlink() or p.exists():
@@ -72,10 +107,35 @@ def _blocking_file(folder: Path, cache: dict[Path, Path | None]) -> Path | None:
 
 def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_is_dir: bool, *,
                  suffixes: Sequence[str] = (MASK_SUFFIX,), overwrite: bool = False) -> list[Path]:
-    """The output stem per input, ``<out>/<relative folder>/<whole input name>``, after every check that can
-    refuse the run (one InputError line): a file in the way, outputs inside the input folder, differing only
-    in letter case, replacing an input or a folder, or (unless ``overwrite``) files no earlier run's record
-    lists (:mod:`pipeline.artifacts.ownership`)."""
+    """Plan the output stem of each input, after every check that can refuse the run.
+
+    Parameters
+    ----------
+    root : Path
+        The input folder (or the input file's folder).
+    files : Sequence of Path
+        The input image files.
+    out_dir : str or Path
+        The output folder (``--output``).
+    input_is_dir : bool
+        The input is a folder (outputs keep its relative layout), not one file.
+    suffixes : Sequence of str
+        The output kinds written (:func:`output_suffixes`).
+    overwrite : bool
+        Replace files no earlier run's record lists (``--overwrite``).
+
+    Returns
+    -------
+    list of Path
+        ``<out>/<relative folder>/<whole input name>`` per input, in the order of ``files``.
+
+    Raises
+    ------
+    InputError
+        One line on the first refusal: a file in the way, outputs inside the input folder, two inputs
+        differing only in letter case, an output replacing an input or a folder, or (unless ``overwrite``)
+        files no earlier run's record lists (:mod:`pipeline.artifacts.ownership`).
+    """
     out = Path(out_dir).absolute()
     cache: dict[Path, Path | None] = {}
     blocked = _blocking_file(out, cache)
@@ -124,14 +184,14 @@ def plan_outputs(root: Path, files: Sequence[Path], out_dir: str | Path, input_i
 
 
 def relative_outputs(out_dir: str | Path, stems: Sequence[Path], suffixes: Sequence[str]) -> list[str]:
-    """What ``segment.json`` lists: the output files, skipped.csv and confidence.csv, relative to ``out_dir``."""
+    """List what the run's record holds: the output files, skipped.csv and confidence.csv, relative to ``out_dir``."""
     out = Path(out_dir).absolute().resolve()
     return ([output_path(s, x).relative_to(out).as_posix() for s in stems for x in suffixes]
             + [SKIPPED_CSV, CONFIDENCE_CSV])
 
 
 def overlay_image(image: np.ndarray, mask: np.ndarray, color=(255, 40, 40), alpha: float = 0.45) -> np.ndarray:
-    """RGB uint8 overlay: mask tinted with ``color`` at ``alpha``, its inner contour drawn opaque."""
+    """Draw an RGB uint8 overlay: the mask tinted with ``color`` at ``alpha``, its inner contour drawn opaque."""
     import cv2
 
     out = image.astype(np.float32)
@@ -144,6 +204,22 @@ def overlay_image(image: np.ndarray, mask: np.ndarray, color=(255, 40, 40), alph
 
 @dataclasses.dataclass
 class SegmentResult:
+    """What a segment run did.
+
+    Attributes
+    ----------
+    written : list of Path
+        The mask files written, in input order.
+    skipped : list of tuple
+        ``(input path, reason)`` of each input the reader rejected.
+    model_seconds : float
+        Seconds inside the engine.
+    total_seconds : float
+        Seconds of the whole loop (reading, inference, writing).
+    scores : list of float
+        The frame confidence of each written mask (:func:`pipeline.deploy.confidence.frame_confidence`).
+    """
+
     written: list[Path]
     skipped: list[tuple[str, str]]  # (input path, reason)
     model_seconds: float = 0.0      # inside the engine
@@ -155,17 +231,19 @@ class SegmentResult:
 IO_WORKERS = 1
 
 
-def _load(f: Path, resolution: int, max_pixels: int | None, keep_image: bool, bit_depth="auto",
-          letterbox: bool = False):
-    """(the R x R working image, the original (h, w), the original image when ``keep_image``)."""
+def _load(f: Path, resolution: int, max_pixels: int | None, keep_image: bool,
+          bit_depth: str | int = PAPER.data.bit_depth, letterbox: bool = PAPER.data.letterbox):
+    """Read one frame: (the R x R working image, the original (h, w), the original image when ``keep_image``)."""
     img = read_rgb(f, max_pixels=max_pixels, bit_depth=bit_depth)
     return resize_image(img, resolution, letterbox), img.shape[:2], img if keep_image else None
 
 
 def _save(stem: Path, p: np.ndarray, shape: tuple[int, int], img: np.ndarray | None, tau: float,
-          save_prob: bool, overlay: bool, letterbox: bool = False) -> tuple[Path, float]:
-    """P back to the original size, M = [P >= tau] (eq:inference-mask) and the PNGs of one image; (its mask
-    path, the frame's confidence from the working-resolution P)."""
+          save_prob: bool, overlay: bool, letterbox: bool) -> tuple[Path, float]:
+    """Write the PNGs of one image: P back to the original size, M = [P >= tau] (eq:inference-mask).
+
+    Returns (its mask path, the frame's confidence from the working-resolution P).
+    """
     h, w = shape
     p_full = probs_to_size(p, h, w, letterbox)
     mask = mask_from_probs(p_full, tau)
@@ -179,9 +257,11 @@ def _save(stem: Path, p: np.ndarray, shape: tuple[int, int], img: np.ndarray | N
 
 
 class _Writer:
-    """Runs :func:`_save` on jobs in order: in the caller's thread (``depth`` 0), else in a thread through a
-    queue of ``depth`` (memory stays flat), where the first error drops later jobs and :meth:`flush` raises it
-    in the caller's thread."""
+    """Run :func:`_save` on jobs in order.
+
+    In the caller's thread (``depth`` 0), else in a thread through a queue of ``depth`` (memory stays flat),
+    where the first error drops later jobs and :meth:`flush` raises it in the caller's thread.
+    """
 
     def __init__(self, depth: int, done: Callable[[], None]):
         self.written: list[tuple[Path, float]] = []  # (mask path, frame confidence) per written image
@@ -235,9 +315,47 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
                   resolution: int, batch_size: int = 8, save_prob: bool = False, overlay: bool = False,
                   on_skip: Callable[[str, str, InputError], None] | None = None,
                   max_pixels: int | None = None, workers: int = IO_WORKERS) -> SegmentResult:
-    """Segment image files in batches into ``<stem>.mask.png`` (and ``.prob.png``, ``.overlay.png``); a file the
-    reader rejects is skipped and handed to ``on_skip(path, reason, error)``.  ``workers`` >= 1 threads read
-    ahead and one writes behind; ``workers=0``, the serial loop, leaves the same bytes, even after an error."""
+    """Segment image files in batches into ``<stem>.mask.png`` (and ``.prob.png``, ``.overlay.png``).
+
+    A file the reader rejects is skipped and handed to ``on_skip``.  ``workers`` >= 1 threads read ahead and one
+    writes behind; ``workers=0``, the serial loop, leaves the same bytes, even after an error.  Frames are read
+    as ``segmenter`` says (its ``bit_depth`` and ``letterbox``).
+
+    Parameters
+    ----------
+    segmenter : Segmenter
+        The loaded model and engine.
+    files : Sequence of Path
+        The input image files.
+    stems : Sequence of Path
+        Their output stems (:func:`plan_outputs`).
+    tau : float
+        The mask threshold (eq:inference-mask).
+    resolution : int
+        The working resolution R.
+    batch_size : int
+        Images per engine call.
+    save_prob : bool
+        Write the probabilities too.
+    overlay : bool
+        Write the overlays too.
+    on_skip : Callable or None
+        ``on_skip(path, reason, error)`` per rejected file (it may raise to stop the run).
+    max_pixels : int or None
+        Refuse image files above this many pixels, read from their header (None: ``data.max_pixels``).
+    workers : int
+        Reader threads beside the inference (:data:`IO_WORKERS`); 0: the serial loop.
+
+    Returns
+    -------
+    SegmentResult
+        The masks written, the files skipped, the timings and the frame confidences.
+
+    Raises
+    ------
+    InputError
+        ``workers`` is negative.
+    """
     if workers < 0:
         raise InputError(f"workers={workers}: must be >= 0 (0 = the serial loop)")
     bar = progress(total=len(files), desc="segment", unit="img")
@@ -309,7 +427,7 @@ def segment_files(segmenter: Segmenter, files: Sequence[Path], stems: Sequence[P
 
 def write_confidence_csv(path: str | Path, out_dir: str | Path, written: Sequence[Path],
                          scores: Sequence[float]) -> Path:
-    """``confidence.csv``: each written mask (relative to ``out_dir``) and its frame confidence."""
+    """Write ``confidence.csv``: each written mask (relative to ``out_dir``) and its frame confidence."""
     out = Path(out_dir)
     return write_csv(path, ["mask", "confidence"],
                      [(Path(m).relative_to(out).as_posix(), f"{c:.6f}") for m, c in zip(written, scores)])
@@ -320,7 +438,26 @@ def _stderr(line: str) -> None:
 
 
 def check_options(checkpoint, input_path, output, batch_size: int, resolution: int | None) -> None:
-    """InputError naming the first missing or invalid option."""
+    """Check segment's options before anything is read.
+
+    Parameters
+    ----------
+    checkpoint : str or Path or None
+        ``--checkpoint``: a checkpoint folder or a deploy bundle.
+    input_path : str or Path or None
+        ``--input``: an image file or a folder.
+    output : str or Path or None
+        ``--output``: the masks' folder.
+    batch_size : int
+        ``--batch-size``.
+    resolution : int or None
+        ``--resolution``, when given.
+
+    Raises
+    ------
+    InputError
+        Naming the first missing or invalid option.
+    """
     if not checkpoint:
         raise InputError("{} missing: a checkpoint directory or a deploy bundle (geodistill export)", CHECKPOINT)
     if not input_path:
@@ -336,13 +473,66 @@ def check_options(checkpoint, input_path, output, batch_size: int, resolution: i
 def segment_images(checkpoint, input_path, output, *, tau: float | None = None, resolution: int | None = None,
                    thresholds=None, engine: str = AUTO, batch_size: int = 8, save_prob: bool = False,
                    overlay: bool = False, device="auto", params: Mapping | None = None, overwrite: bool = False,
-                   skip_bad: bool = False, max_pixels: int | None = None, echo: Callable[[str], None] = _stderr,
-                   workers: int | None = None, bit_depth: str | int | None = None, quiet: bool = False):
-    """Segment one image file or a folder; :func:`segment_files`' result.  The inputs are
-    found and every output planned before anything is written; tau as :func:`pipeline.thresholds.resolve_tau`
-    (``params``: the fixed tau); the resolution given or recorded, never guessed; ``workers``: reader threads
-    (0: the serial loop, the same bytes); ``bit_depth``: None = what the bundle records; ``quiet``: only
-    warnings, errors and the summary line on ``echo``."""
+                   skip_bad: bool = PAPER.data.skip_bad, max_pixels: int | None = None,
+                   echo: Callable[[str], None] = _stderr, workers: int | None = None,
+                   bit_depth: str | int | None = None, quiet: bool = False):
+    """Segment one image file or a folder.
+
+    The inputs are found and every output planned before anything is written; tau as
+    :func:`pipeline.thresholds.resolve_tau`; the resolution given or recorded, never guessed.
+
+    Parameters
+    ----------
+    checkpoint : str or Path
+        A checkpoint folder or a deploy bundle.
+    input_path : str or Path
+        An image file or a folder of images.
+    output : str or Path
+        The folder the masks go to.
+    tau : float or None
+        A threshold overriding the model's.
+    resolution : int or None
+        A working resolution overriding the recorded one.
+    thresholds : str or Path or None
+        A checkpoint's thresholds table (a tau candidate).
+    engine : str
+        An engine name, or ``auto`` (:func:`pipeline.deploy.segmenter.resolve_engine`).
+    batch_size : int
+        Images per engine call.
+    save_prob : bool
+        Write the probabilities too.
+    overlay : bool
+        Write the overlays too.
+    device : str
+        Where torch engines run (``auto``: :func:`pipeline.runtime.device.resolve_device`).
+    params : Mapping or None
+        Params whose ``calibrate.fixed_tau`` is the last tau candidate.
+    overwrite : bool
+        Replace files no earlier run's record lists.
+    skip_bad : bool
+        Leave unreadable files out (listed in skipped.csv) instead of stopping; ``data.skip_bad`` unless given.
+    max_pixels : int or None
+        Refuse image files above this many pixels (None: ``data.max_pixels``).
+    echo : Callable
+        Where the lines go (stderr).
+    workers : int or None
+        Reader threads (0: the serial loop, the same bytes); None: :data:`IO_WORKERS`.
+    bit_depth : str or int or None
+        The bits a 16-bit frame's sensor fills; None: what the bundle records.
+    quiet : bool
+        Only warnings, errors and the summary line on ``echo``.
+
+    Returns
+    -------
+    SegmentResult
+        :func:`segment_files`' result.
+
+    Raises
+    ------
+    InputError
+        An option is missing or invalid, the input has no image files, an output is refused
+        (:func:`plan_outputs`), a bad file without ``skip_bad``, or no file could be read.
+    """
     from pipeline.deploy.segmenter import load_segmenter  # torch
 
     check_options(checkpoint, input_path, output, batch_size, resolution)
@@ -359,7 +549,7 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
     root = found.root if found.is_dir else None
 
     def image_id(path) -> str:
-        """The id label gives the file: its path relative to the input folder, without the suffix."""
+        """Name the file as label does: its path relative to the input folder, without the suffix."""
         p = Path(path)
         try:
             return (p.relative_to(root) if root is not None else Path(p.name)).with_suffix("").as_posix()
@@ -414,7 +604,24 @@ def segment_images(checkpoint, input_path, output, *, tau: float | None = None, 
 
 def model_resolution(trained: int | None, option: int | None, checkpoint,
                      echo: Callable[[str], None] = _stderr) -> tuple[int, str]:
-    """(resolution, source): ``option`` (--resolution, with a warning when it differs) > the recorded one."""
+    """Pick the working resolution: ``option`` (with a warning when it differs) over the recorded one.
+
+    Parameters
+    ----------
+    trained : int or None
+        The resolution recorded with the model.
+    option : int or None
+        ``--resolution``, when given.
+    checkpoint : str or Path
+        The checkpoint or bundle (named in messages).
+    echo : Callable
+        Where the warning goes.
+
+    Returns
+    -------
+    tuple
+        ``(resolution, source)``: the value and where it came from (:data:`pipeline.thresholds.RESOLUTION_LABELS`).
+    """
     from pipeline.deploy.bundle import DEPLOY_JSON, is_deploy_bundle  # torch
 
     recorded_in = f"{Path(checkpoint) / DEPLOY_JSON}" if is_deploy_bundle(checkpoint) else f"checkpoint {checkpoint}"

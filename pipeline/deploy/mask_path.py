@@ -1,5 +1,8 @@
-"""The deployed mask path Z = f(x) (x float32 [B,3,H,W] RGB in [0, 1]; M = [Z >= logit(tau)],
-eq:inference-mask) exported to TorchScript and ONNX, and its parity with PyTorch (docs/decisions.md)."""
+"""The deployed mask path exported to TorchScript and ONNX, and its parity with PyTorch (docs/decisions.md).
+
+The mask path is Z = f(x), x float32 [B,3,H,W] RGB in [0, 1]; its mask is M = [Z >= logit(tau)], the same as
+[sigmoid(Z) >= tau] (eq:inference-mask).
+"""
 
 from __future__ import annotations
 
@@ -15,6 +18,11 @@ from pipeline.metrics import mask_agreement
 from pipeline.model import ExportMaskPath, mask_path_model
 from pipeline.thresholds import logit_threshold
 
+__all__ = ["ONNX_INPUT", "ONNX_OUTPUT", "ParityError", "parity_inputs", "onnx_unavailable_reason", "export_torchscript",
+           "export_onnx", "ort_session", "load_torchscript", "torch_logits", "compare_logits", "check_parity",
+           "device_parity", "require_parity"]
+
+#: the ONNX model's input and output names
 ONNX_INPUT = "image"
 ONNX_OUTPUT = "logits"
 
@@ -24,12 +32,39 @@ class ParityError(RuntimeError):
 
 
 def export_module(model):
-    """The mask path with its normalisation folded into the first convolution, float32 CPU, eval mode."""
+    """Build the module exported: the mask path with its normalisation folded into the first convolution.
+
+    Parameters
+    ----------
+    model : TinyUNet
+        The student.
+
+    Returns
+    -------
+    ExportMaskPath
+        Float32 on the CPU, in eval mode, without gradients.
+    """
     return ExportMaskPath(mask_path_model(model)).eval().requires_grad_(False)
 
 
-def parity_inputs(resolution: int, n: int = 2, seed: int = 0):
-    """Deterministic smooth random RGB images float32 [n,3,R,R] in [0,1]: blobs plus fine noise."""
+def parity_inputs(resolution: int, n: int = 2,
+                  seed: int = 0):  # not a param: the parity images' random stream
+    """Draw deterministic smooth random RGB images: blobs plus fine noise.
+
+    Parameters
+    ----------
+    resolution : int
+        R, their side.
+    n : int
+        How many.
+    seed : int
+        The seed of their random stream.
+
+    Returns
+    -------
+    torch.Tensor
+        float32 [n,3,R,R] in [0, 1].
+    """
     g = torch.Generator().manual_seed(seed)
     low = torch.rand(n, 3, max(2, resolution // 8), max(2, resolution // 8), generator=g)
     x = torch.nn.functional.interpolate(low, size=(resolution, resolution), mode="bilinear",
@@ -39,7 +74,13 @@ def parity_inputs(resolution: int, n: int = 2, seed: int = 0):
 
 
 def onnx_unavailable_reason() -> str | None:
-    """None when ONNX export and ONNX Runtime work here, else why not (naming the extra)."""
+    """Tell why ONNX export or ONNX Runtime cannot be used here.
+
+    Returns
+    -------
+    str or None
+        None when ``onnx`` and ``onnxruntime`` import, else which do not (naming the extra to install).
+    """
     missing = []
     for mod in ("onnx", "onnxruntime"):
         try:
@@ -53,7 +94,22 @@ def onnx_unavailable_reason() -> str | None:
 
 
 def export_torchscript(model, path: str | Path, resolution: int) -> Path:
-    """The traced mask path saved unfrozen (it still moves between devices), without debug records."""
+    """Save the traced mask path as TorchScript, unfrozen (it still moves between devices), without debug records.
+
+    Parameters
+    ----------
+    model : TinyUNet
+        The student.
+    path : str or Path
+        The file written.
+    resolution : int
+        The side of the example image it is traced with.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     deployed = export_module(model)
     example = torch.zeros(1, deployed.config["in_channels"], resolution, resolution)
     with torch.no_grad(), warnings.catch_warnings():
@@ -67,7 +123,20 @@ _WRITER_RECORDS = ("version", "byteorder", ".data/serialization_id")
 
 
 def save_without_debug_records(module, path: str | Path) -> Path:
-    """``torch.jit.save`` minus the ``*.debug_pkl`` records (absolute source paths), by torch's own zip writer."""
+    """Save like ``torch.jit.save``, less the ``*.debug_pkl`` records (absolute source paths), by torch's zip writer.
+
+    Parameters
+    ----------
+    module : torch.jit.ScriptModule
+        The scripted or traced module.
+    path : str or Path
+        The file written.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     buf = io.BytesIO()
     torch.jit.save(module, buf)
     buf.seek(0)
@@ -84,7 +153,24 @@ def save_without_debug_records(module, path: str | Path) -> Path:
 
 
 def export_onnx(model, path: str | Path, resolution: int, opset: int) -> Path:
-    """The mask path in ONNX, batch, height and width dynamic (the TorchScript-based exporter)."""
+    """Save the mask path as ONNX, batch, height and width dynamic (the TorchScript-based exporter).
+
+    Parameters
+    ----------
+    model : TinyUNet
+        The student.
+    path : str or Path
+        The file written.
+    resolution : int
+        The side of the example image it is exported with.
+    opset : int
+        The ONNX opset (``deploy.opset``).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     deployed = export_module(model)
     example = torch.zeros(1, deployed.config["in_channels"], resolution, resolution)
     axes = {0: "batch", 2: "height", 3: "width"}
@@ -97,7 +183,24 @@ def export_onnx(model, path: str | Path, resolution: int, opset: int) -> Path:
 
 
 def ort_session(path: str | Path, threads: int | None = None, optimize: bool = True, spinning: bool = True):
-    """ONNX Runtime CPU session with torch's thread count unless ``threads``; ``spinning=False``: idle pools sleep."""
+    """Open an ONNX Runtime CPU session.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ONNX model.
+    threads : int or None
+        Intra-op threads; None: torch's thread count.
+    optimize : bool
+        Apply every graph optimisation (``ORT_ENABLE_ALL``); False disables them.
+    spinning : bool
+        Idle thread pools spin; False: they sleep.
+
+    Returns
+    -------
+    onnxruntime.InferenceSession
+        The session, on the CPU execution provider.
+    """
     import onnxruntime as ort
 
     so = ort.SessionOptions()
@@ -113,20 +216,67 @@ def ort_session(path: str | Path, threads: int | None = None, optimize: bool = T
 
 
 def load_torchscript(path: str | Path, device="cpu"):
-    """torch.jit.load in eval mode, torch 2.13's deprecation notice silenced."""
+    """Load a TorchScript file in eval mode, torch 2.13's deprecation notice silenced.
+
+    Parameters
+    ----------
+    path : str or Path
+        The TorchScript file.
+    device : str or torch.device
+        Where its tensors are mapped.
+
+    Returns
+    -------
+    torch.jit.ScriptModule
+        The module, in eval mode.
+    """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         return torch.jit.load(str(path), map_location=device).eval()
 
 
 def torch_logits(model, x) -> np.ndarray:
+    """Run a module without gradients and return its output as numpy.
+
+    Parameters
+    ----------
+    model : Callable
+        The mask path (a torch module or TorchScript).
+    x : torch.Tensor
+        float32 [B,3,H,W] RGB in [0, 1], on the module's device.
+
+    Returns
+    -------
+    np.ndarray
+        The logits, float32 [B,1,H,W], on the CPU.
+    """
     with torch.inference_mode():
         return model(x).float().cpu().numpy()
 
 
 def compare_logits(reference: np.ndarray, logits: np.ndarray, tau: float, atol: float) -> dict:
-    """Parity of ``logits`` with the PyTorch ``reference``: finite and max |dZ| <= ``atol``; the masks
-    [Z >= logit(tau)] (eq:inference-mask) compared too."""
+    """Check the parity of ``logits`` with the PyTorch ``reference``.
+
+    It passes when the logits are finite and max |dZ| <= ``atol``; the masks [Z >= logit(tau)]
+    (eq:inference-mask) are compared too, and reported.
+
+    Parameters
+    ----------
+    reference : np.ndarray
+        The PyTorch mask path's logits.
+    logits : np.ndarray
+        The exported model's logits on the same inputs.
+    tau : float
+        The mask threshold.
+    atol : float
+        The largest absolute logit difference allowed (``deploy.parity_atol``).
+
+    Returns
+    -------
+    dict
+        ``passed``, ``max_abs_diff``, ``atol``, ``masks_identical``, ``mask_pixels_differ`` and ``pixels`` (a
+        shape mismatch fails, with a ``note``).
+    """
     reference = np.asarray(reference, np.float64)
     logits = np.asarray(logits, np.float64)
     if reference.shape != logits.shape:
@@ -143,8 +293,34 @@ def compare_logits(reference: np.ndarray, logits: np.ndarray, tau: float, atol: 
 
 def check_parity(model, tau: float, resolution: int, atol: float, torchscript: str | Path | None = None,
                  onnx: str | Path | None = None, device=None) -> dict:
-    """:func:`compare_logits` of each given file on :func:`parity_inputs`; on a CUDA ``device`` also
-    :func:`device_parity` (reported only).  Does not raise (:func:`require_parity`)."""
+    """Check each given exported file against the PyTorch mask path on :func:`parity_inputs`.
+
+    Each file is compared on the CPU by :func:`compare_logits`; on a CUDA ``device`` :func:`device_parity` is
+    reported too.  It does not raise: :func:`require_parity` does.
+
+    Parameters
+    ----------
+    model : TinyUNet
+        The student.
+    tau : float
+        The mask threshold.
+    resolution : int
+        The side of the parity images.
+    atol : float
+        The largest absolute logit difference allowed (``deploy.parity_atol``).
+    torchscript : str or Path or None
+        The TorchScript file, when checked.
+    onnx : str or Path or None
+        The ONNX file, when checked.
+    device : str or torch.device or None
+        A device to report parity on as well (CUDA only).
+
+    Returns
+    -------
+    dict
+        ``inputs``, ``tau`` and the :func:`compare_logits` result of each format checked (``torchscript``,
+        ``onnx``), plus ``device`` (:func:`device_parity`) on CUDA.
+    """
     x = parity_inputs(resolution)
     ref = torch_logits(mask_path_model(model), x)
     out: dict = {"inputs": f"{x.shape[0]} deterministic smooth random images {resolution}x{resolution} (seed 0)",
@@ -161,8 +337,29 @@ def check_parity(model, tau: float, resolution: int, atol: float, torchscript: s
 
 
 def device_parity(model, tau: float, resolution: int, atol: float, device, torchscript=None) -> dict:
-    """The TorchScript file and the fast engine on ``device`` against the fp32 PyTorch mask path there, with
-    ``mask_iou`` (:func:`pipeline.metrics.mask_agreement`)."""
+    """Check the TorchScript file and the fast engine on ``device`` against the fp32 PyTorch mask path there.
+
+    Parameters
+    ----------
+    model : TinyUNet
+        The student.
+    tau : float
+        The mask threshold.
+    resolution : int
+        The side of the parity images.
+    atol : float
+        The largest absolute logit difference allowed.
+    device : str or torch.device
+        Where all three run (TF32 off for the fp32 pair).
+    torchscript : str or Path or None
+        The TorchScript file, when checked.
+
+    Returns
+    -------
+    dict
+        ``device``, ``fast_engine`` and (with ``torchscript``) ``torchscript``: each a :func:`compare_logits`
+        result with ``mask_iou`` (:func:`pipeline.metrics.mask_agreement`).
+    """
     dev = torch.device(device)
     x = parity_inputs(resolution)
     z_tau = logit_threshold(tau)
@@ -185,7 +382,18 @@ def device_parity(model, tau: float, resolution: int, atol: float, device, torch
 
 
 def require_parity(parity: dict) -> None:
-    """Raise :class:`ParityError` when a checked format failed its parity check."""
+    """Raise when a checked format failed its parity check.
+
+    Parameters
+    ----------
+    parity : dict
+        A :func:`check_parity` result.
+
+    Raises
+    ------
+    ParityError
+        TorchScript or ONNX was checked and did not pass.
+    """
     for fmt in ("torchscript", "onnx"):
         res = parity.get(fmt)
         if res is not None and not res["passed"]:

@@ -1,5 +1,7 @@
-"""OpenVINO's CPU plugin for the bundle's int8 ONNX model (the optional extra ``openvino``): it fuses the QDQ
-pairs into int8 convolutions, faster than ONNX Runtime on the same file."""
+"""OpenVINO's CPU plugin for the bundle's int8 ONNX model (the optional extra ``openvino``).
+
+It fuses the QDQ pairs into int8 convolutions, faster than ONNX Runtime on the same file.
+"""
 
 from __future__ import annotations
 
@@ -7,9 +9,17 @@ from pathlib import Path
 
 import numpy as np
 
+__all__ = ["openvino_unavailable_reason", "OpenVinoRunner"]
+
 
 def openvino_unavailable_reason() -> str | None:
-    """None when OpenVINO imports, else why not (naming the extra)."""
+    """Tell why OpenVINO cannot be used here.
+
+    Returns
+    -------
+    str or None
+        None when OpenVINO imports, else why not (naming the extra to install).
+    """
     try:
         import openvino  # noqa: F401
     except Exception:  # noqa: BLE001 -- ImportError or a broken binary wheel
@@ -18,7 +28,17 @@ def openvino_unavailable_reason() -> str | None:
 
 
 class OpenVinoRunner:
-    """``runner(x float32 [B,3,H,W]) -> logits [B,1,H,W]``, compiled once per input shape (static shapes)."""
+    """The int8 model on OpenVINO's CPU plugin: ``runner(x float32 [B,3,H,W]) -> logits [B,1,H,W]``.
+
+    Compiled once per input shape (static shapes).
+
+    Parameters
+    ----------
+    path : str or Path
+        The ONNX model (the bundle's ``model.int8.onnx``).
+    threads : int or None
+        Inference threads; None: torch's thread count, like every other variant.
+    """
 
     def __init__(self, path: str | Path, threads: int | None = None):
         import openvino as ov
@@ -46,6 +66,18 @@ class OpenVinoRunner:
         return req
 
     def __call__(self, x) -> np.ndarray:
+        """Run the model on one batch.
+
+        Parameters
+        ----------
+        x : array-like
+            float32 [B,3,H,W] RGB in [0, 1].
+
+        Returns
+        -------
+        np.ndarray
+            The logits, float32 [B,1,H,W], a copy (the request reuses its output buffer).
+        """
         x = np.ascontiguousarray(np.asarray(x), np.float32)
         out = self._request(tuple(x.shape)).infer({0: x})
         return np.array(out[0], np.float32, copy=True)  # the request reuses its output buffer

@@ -1,5 +1,8 @@
-"""The int8 mask path: ONNX Runtime static QDQ quantisation calibrated on training images (never masks),
-and its agreement gate against PyTorch on every checked instruction set (docs/decisions.md, "int8")."""
+"""The int8 mask path.
+
+ONNX Runtime static QDQ quantisation calibrated on training images (never masks), and its agreement gate
+against PyTorch on every checked instruction set (docs/decisions.md, "int8").
+"""
 
 from __future__ import annotations
 
@@ -20,20 +23,39 @@ from pipeline import catalog
 from pipeline.artifacts.store import open_artifact, read_chunk_rows
 from pipeline.datasets.loading import resize_image
 from pipeline.deploy import openvino_engine
-from pipeline.deploy.mask_path import ONNX_INPUT, mask_path_model, ort_session, torch_logits
+from pipeline.deploy.mask_path import ONNX_INPUT, ort_session, torch_logits
 from pipeline.artifacts.provenance import cpu
 from pipeline.runtime.errors import InputError
 from pipeline.evaluation.inference import images_to_tensor
 from pipeline.metrics import image_ious
+from pipeline.model import mask_path_model
 from pipeline.params import INT8_CALIBRATIONS, INT8_WEIGHT_BITS, validate
 from pipeline.thresholds import logit_threshold
+
+__all__ = ["Int8Settings", "calibration_rows", "read_calibration_images", "int8_agreement", "check_int8_parity",
+           "int8_miss", "host_isa", "EMULATED_ISAS", "openvino_logits", "CALIBRATION_CHUNK", "quantize_onnx_int8",
+           "output_convolutions", "int8_description"]
 
 
 @dataclasses.dataclass(frozen=True)
 class Int8Settings:
-    """The int8 export settings: the ``deploy`` params named ``int8_*``, under the same names from params.yaml
-    down to :func:`quantize_onnx_int8`.  No defaults and no bounds here: both are the schema's
-    (:class:`pipeline.params.DeployParams`), which every instance is checked against.
+    """The int8 export settings: the ``deploy`` params named ``int8_*``.
+
+    They keep the same names from params.yaml down to :func:`quantize_onnx_int8`.  No defaults and no bounds
+    here: both are the schema's (:class:`pipeline.params.DeployParams`), which every instance is checked against.
+
+    Attributes
+    ----------
+    int8_calibration_images : int
+        ``deploy.int8_calibration_images``: training-split images (never masks) the activation ranges come from.
+    int8_calibration : str
+        ``deploy.int8_calibration``: how a range is read from them, ``percentile`` or ``minmax``.
+    int8_percentile : float
+        ``deploy.int8_percentile``: the percentile of the ``percentile`` calibration.
+    int8_weight_bits : int
+        ``deploy.int8_weight_bits``: 7 (no int16 saturation on CPUs without VNNI) or 8.
+    int8_min_mask_iou : float
+        ``deploy.int8_min_mask_iou``: below this mean int8-vs-PyTorch mask IoU the bundle ships fp32 only.
 
     Raises
     ------
@@ -48,16 +70,41 @@ class Int8Settings:
     int8_min_mask_iou: float
 
     def __post_init__(self):
+        """Check the values against the schema (the class docstring's Raises)."""
         validate({"deploy": dataclasses.asdict(self)})  # the schema's rules, the only ones
 
     @classmethod
     def from_params(cls, cfg: Mapping) -> Int8Settings:
-        """The settings of a validated ``deploy`` section."""
+        """Read the int8 settings of a validated ``deploy`` section.
+
+        Parameters
+        ----------
+        cfg : Mapping
+            The validated ``deploy:`` section.
+
+        Returns
+        -------
+        Int8Settings
+            Its ``int8_*`` values.
+        """
         return cls(**{f.name: cfg[f.name] for f in dataclasses.fields(cls)})
 
 
 def calibration_rows(splits: Sequence[str], n: int) -> np.ndarray:
-    """Up to ``n`` training-split rows, evenly spaced in manifest order."""
+    """Pick the calibration rows: up to ``n`` training-split rows, evenly spaced in manifest order.
+
+    Parameters
+    ----------
+    splits : Sequence of str
+        The manifest's ``split`` column.
+    n : int
+        The most rows picked (``deploy.int8_calibration_images``).
+
+    Returns
+    -------
+    np.ndarray
+        The picked row indices, ascending.
+    """
     train = np.flatnonzero(np.asarray(splits).astype(str) == "train")
     if len(train) <= n:
         return train
@@ -65,8 +112,23 @@ def calibration_rows(splits: Sequence[str], n: int) -> np.ndarray:
 
 
 def read_calibration_images(art: str | Path, n: int, resolution: int | None = None):
-    """``(images uint8 [M,R,R,3] or None, opened artifacts, note)``: :func:`calibration_rows` of images.zarr,
-    resized to ``resolution`` as segment does; None with the reason when there are none."""
+    """Read the int8 calibration images: the :func:`calibration_rows` of images.zarr.
+
+    Parameters
+    ----------
+    art : str or Path
+        The artifacts directory (its ``manifest`` and ``images``).
+    n : int
+        The most images read (``deploy.int8_calibration_images``).
+    resolution : int or None
+        The side they are resized to, as segment resizes; None keeps the stored size.
+
+    Returns
+    -------
+    tuple
+        ``(images, opened, note)``: uint8 [M,R,R,3] (None when there are none), the artifacts opened (for the
+        caller's lineage) and a line saying what was read, or why nothing was.
+    """
     paths = (catalog.path("manifest", art), catalog.path("images", art))
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
@@ -82,8 +144,26 @@ def read_calibration_images(art: str | Path, n: int, resolution: int | None = No
 
 
 def int8_agreement(reference: np.ndarray, logits: np.ndarray, tau: float, min_mask_iou: float) -> dict:
-    """int8 logits [N,...] against the PyTorch ``reference`` at tau (eq:inference-mask): max and mean |dZ|, the
-    agreeing mask pixels, and the per-image mask IoU; ``passed`` = finite and mean IoU >= ``min_mask_iou``."""
+    """Compare int8 logits with the PyTorch ``reference`` at tau (the masks of eq:inference-mask).
+
+    Parameters
+    ----------
+    reference : np.ndarray
+        The PyTorch mask path's logits [N, ...].
+    logits : np.ndarray
+        The int8 model's logits on the same inputs.
+    tau : float
+        The mask threshold.
+    min_mask_iou : float
+        The smallest mean per-image mask IoU that passes (``deploy.int8_min_mask_iou``).
+
+    Returns
+    -------
+    dict
+        ``passed`` (finite and mean IoU >= ``min_mask_iou``), max and mean |dZ|, the share of agreeing mask
+        pixels, the mean and least per-image mask IoU, ``mask_pixels_differ`` and ``pixels`` (a shape mismatch
+        fails, with a ``note``).
+    """
     reference = np.asarray(reference, np.float64)
     logits = np.asarray(logits, np.float64)
     if reference.shape != logits.shape or reference.size == 0:
@@ -109,7 +189,29 @@ def int8_agreement(reference: np.ndarray, logits: np.ndarray, tau: float, min_ma
 
 def check_int8_parity(model, int8_path: str | Path, images: np.ndarray, tau: float, min_mask_iou: float,
                       batch_size: int = 8) -> dict:
-    """:func:`int8_agreement` of the int8 model on uint8 images [N,R,R,3], with ``isas`` (:func:`isa_checks`)."""
+    """Check the int8 model against the PyTorch mask path on calibration images.
+
+    Parameters
+    ----------
+    model : TinyUNet
+        The student.
+    int8_path : str or Path
+        The int8 ONNX model.
+    images : np.ndarray
+        uint8 [N,R,R,3] images.
+    tau : float
+        The mask threshold.
+    min_mask_iou : float
+        The smallest mean per-image mask IoU that passes (``deploy.int8_min_mask_iou``).
+    batch_size : int
+        Images per forward pass.
+
+    Returns
+    -------
+    dict
+        :func:`int8_agreement` of the host's ONNX Runtime run, with ``images``, ``inputs`` and ``isas`` (the
+        check per instruction set, :func:`isa_checks`).
+    """
     deployed = mask_path_model(model)
     sess = ort_session(int8_path)
     ref, got = [], []
@@ -126,14 +228,38 @@ def check_int8_parity(model, int8_path: str | Path, images: np.ndarray, tau: flo
 
 
 def int8_miss(report: dict, where: str) -> str:
-    """Why the int8 model is left out of a bundle."""
+    """Say why the int8 model is left out of a bundle.
+
+    Parameters
+    ----------
+    report : dict
+        The failed :func:`int8_agreement` (or :func:`check_int8_parity`) result.
+    where : str
+        Where it failed (this host, an instruction set).
+
+    Returns
+    -------
+    str
+        The reason, for deploy.json and the log.
+    """
     return (f"its masks overlap PyTorch's with a mean IoU of {report['mask_iou_mean']:.4f} on {where}, below "
             f"deploy.int8_min_mask_iou = {report['min_mask_iou']:g} (max |dZ| = {report['max_abs_diff']:.3g}): "
             "the bundle ships fp32 only")
 
 
 def host_isa(flags=None) -> str:
-    """The widest integer dot-product instruction set of the CPU ``flags`` (default this one's)."""
+    """Name the widest integer dot-product instruction set of a CPU.
+
+    Parameters
+    ----------
+    flags : iterable of str or None
+        The CPU's flags; None: this host's.
+
+    Returns
+    -------
+    str
+        ``amx_int8``, ``avx512_vnni``, ``avx_vnni``, ``avx2`` or ``baseline``.
+    """
     flags = set(cpu()["flags"] if flags is None else flags)
     return next((isa for isa in ("amx_int8", "avx512_vnni", "avx_vnni", "avx2") if isa in flags), "baseline")
 
@@ -153,7 +279,27 @@ np.save(sys.argv[3], np.concatenate([run(x[i:i + 8]) for i in range(0, len(x), 8
 
 
 def openvino_logits(int8_path: str | Path, x: np.ndarray, isa: str) -> np.ndarray:
-    """The int8 model's logits of x [N,3,H,W] on OpenVINO restricted to the oneDNN instruction set ``isa``."""
+    """Run the int8 model on OpenVINO restricted to one oneDNN instruction set, in a child process.
+
+    Parameters
+    ----------
+    int8_path : str or Path
+        The int8 ONNX model.
+    x : np.ndarray
+        float32 [N,3,H,W] RGB in [0, 1].
+    isa : str
+        The ``ONEDNN_MAX_CPU_ISA`` value (one of :data:`EMULATED_ISAS`).
+
+    Returns
+    -------
+    np.ndarray
+        The logits [N,1,H,W].
+
+    Raises
+    ------
+    RuntimeError
+        The child process failed (its last line of stderr).
+    """
     with tempfile.TemporaryDirectory() as td:
         xin, out = Path(td) / "x.npy", Path(td) / "z.npy"
         np.save(xin, np.asarray(x, np.float32))
@@ -167,7 +313,10 @@ def openvino_logits(int8_path: str | Path, x: np.ndarray, isa: str) -> np.ndarra
 
 def isa_checks(native: dict, int8_path: str | Path, x: np.ndarray, reference: np.ndarray, tau: float,
                min_mask_iou: float) -> list[dict]:
-    """The host's check (``native``, ONNX Runtime) and one per :data:`EMULATED_ISAS` (OpenVINO, if installed)."""
+    """List the int8 check per instruction set.
+
+    The host's check (``native``, ONNX Runtime) and one per :data:`EMULATED_ISAS` (OpenVINO, if installed).
+    """
     import onnxruntime
 
     checks = [{"isa": host_isa(), "runtime": f"onnxruntime {onnxruntime.__version__}", "how": "this host",
@@ -188,14 +337,38 @@ def isa_checks(native: dict, int8_path: str | Path, x: np.ndarray, reference: np
     return checks
 
 
-CALIBRATION_CHUNK = 4  # images per pass: ORT holds every activation of a pass (~375 MB per 384² image)
+#: images per calibration pass: ONNX Runtime holds every activation of a pass (~375 MB per 384² image)
+CALIBRATION_CHUNK = 4
 
 
 def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_images: np.ndarray,
                        int8_settings: Int8Settings) -> Path:
-    """Static QDQ int8 model of an ONNX mask path: the input pinned to scale 1/255, u8 activation ranges from
-    ``calibration_images`` (``int8_settings.int8_calibration``: ``percentile`` or ``minmax``), s8 per-channel
-    weights in ``int8_settings.int8_weight_bits`` bits, the head fp32."""
+    """Quantise an ONNX mask path to a static QDQ int8 model.
+
+    The input is pinned to scale 1/255 (exact for 8-bit images), u8 activation ranges come from
+    ``calibration_images``, s8 per-channel weights, and the head stays fp32.
+
+    Parameters
+    ----------
+    onnx_path : str or Path
+        The fp32 ONNX mask path.
+    out_path : str or Path
+        The int8 model written.
+    calibration_images : np.ndarray
+        uint8 [N,H,W,3] training images (never masks).
+    int8_settings : Int8Settings
+        The calibration (``percentile`` or ``minmax``), its percentile, and the weight bits.
+
+    Returns
+    -------
+    Path
+        ``out_path``.
+
+    Raises
+    ------
+    InputError
+        ``calibration_images`` holds no image, or is not [N,H,W,3].
+    """
     from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
                                           quantize_static)
     from onnxruntime.quantization.calibrate import create_calibrator
@@ -254,7 +427,18 @@ def quantize_onnx_int8(onnx_path: str | Path, out_path: str | Path, calibration_
 
 
 def output_convolutions(onnx_path: str | Path) -> list[str]:
-    """The convolutions that write a graph output (the mask head): they stay fp32."""
+    """Name the convolutions that write a graph output (the mask head): they stay fp32.
+
+    Parameters
+    ----------
+    onnx_path : str or Path
+        The ONNX model.
+
+    Returns
+    -------
+    list of str
+        Their node names.
+    """
     import onnx
 
     graph = onnx.load(str(onnx_path)).graph
@@ -263,8 +447,10 @@ def output_convolutions(onnx_path: str | Path) -> list[str]:
 
 
 def shapes_from_quantized(graph) -> int:
-    """Every Shape node reading a DequantizeLinear output reads its integer input instead (same shape): a DQ
-    with two consumers is not fused into the int8 kernels.  In place; the number of nodes moved."""
+    """Point every Shape node reading a DequantizeLinear output at its integer input instead (same shape).
+
+    A DQ with two consumers is not fused into the int8 kernels.  In place; returns the number of nodes moved.
+    """
     producer = {out: node for node in graph.node for out in node.output}
     moved = 0
     for node in graph.node:
@@ -276,7 +462,18 @@ def shapes_from_quantized(graph) -> int:
 
 
 def int8_description(int8_settings: Int8Settings) -> str:
-    """How :func:`quantize_onnx_int8` quantises with ``int8_settings``, in words (deploy.json, contract.json)."""
+    """Say in words how :func:`quantize_onnx_int8` quantises (deploy.json, contract.json).
+
+    Parameters
+    ----------
+    int8_settings : Int8Settings
+        The settings used.
+
+    Returns
+    -------
+    str
+        One sentence: the runtime, input scale, activation ranges and weights.
+    """
     how = f"{int8_settings.int8_percentile:g}th-percentile" if int8_settings.int8_calibration == "percentile" \
         else "MinMax"
     weights = ("7-bit symmetric per-channel weights in [-64, 64] (no int16 saturation on CPUs without VNNI)"

@@ -24,6 +24,8 @@ from pipeline.engine_table import AUTO, ENGINE_CHOICES, MODEL_ENGINES, engine_na
 from pipeline.params import PAPER
 from pipeline.thresholds import mask_from_probs, resolve_resolution, resolve_tau, tau_candidates
 
+__all__ = ["Segmenter", "resolve_engine", "load_segmenter"]
+
 
 @dataclasses.dataclass
 class Segmenter:
@@ -51,9 +53,10 @@ class Segmenter:
     max_pixels : int or None
         Larger image files are refused on their header (None: ``data.max_pixels``).
     bit_depth : str or int
-        Bits a 16-bit frame's sensor fills, or ``"auto"``.
+        Bits a 16-bit frame's sensor fills, or ``"auto"`` (``data.bit_depth`` unless given).
     letterbox : bool
-        Whether frames are letterboxed (aspect kept) rather than stretched to R x R.
+        Whether frames are letterboxed (aspect kept) rather than stretched to R x R (``data.letterbox`` unless
+        given).
     """
 
     engine: str
@@ -64,8 +67,8 @@ class Segmenter:
     tau: float | None = None  # what predict binarises with (set by from_bundle)
     tau_source: str = ""
     max_pixels: int | None = None  # larger image files are refused on their header (None: data.max_pixels)
-    bit_depth: str | int = "auto"
-    letterbox: bool = False
+    bit_depth: str | int = PAPER.data.bit_depth
+    letterbox: bool = PAPER.data.letterbox
 
     def __repr__(self) -> str:
         """Return one short line, without the deploy.json in ``info``."""
@@ -73,7 +76,7 @@ class Segmenter:
         return f"Segmenter(engine={self.engine!r}, resolution={self.resolution}, tau={tau})"
 
     @classmethod
-    def from_bundle(cls, path: str | Path, *, engine: str = "auto", device="cpu", tau: float | None = None,
+    def from_bundle(cls, path: str | Path, *, engine: str = AUTO, device="cpu", tau: float | None = None,
                     resolution: int | None = None, max_pixels: int | None = None, bit_depth=None,
                     letterbox: bool | None = None) -> "Segmenter":
         """Open a deploy bundle or a checkpoint folder for notebooks, tau and resolution resolved once.

@@ -1,5 +1,8 @@
-"""DVC plots that draw one line per method (:data:`METHOD_LINES`, the Vega-Lite template dvc.yaml's ``plots:``
-name) and render without network (:func:`offline_page` inlines the chart library DVC's own page loads from a CDN)."""
+"""DVC plots that draw one line per method and render without network.
+
+:data:`METHOD_LINES` is the Vega-Lite template dvc.yaml's ``plots:`` name; :func:`offline_page` inlines the chart
+library DVC's own page loads from a CDN.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +14,9 @@ from typing import Sequence
 from pipeline.catalog import PLOT_TEMPLATE
 from pipeline.runtime.errors import InputError
 
+__all__ = ["VEGA_PACKAGE", "VEGA_FILES", "METHOD_LINES", "template_text", "template_path", "vega_scripts",
+           "offline_page", "dvc_plots_command"]
+
 #: the installed package whose files are the chart library (vega 5, vega-lite 5, vega-embed 6), in load order
 VEGA_PACKAGE = "js_lib_vega_embed"
 VEGA_FILES = ("vega5.js", "vega-lite5.js", "vega-embed6.js")
@@ -20,6 +26,7 @@ COLOURS = ("#4c78a8", "#f58518", "#54a24b", "#b79a20", "#439894", "#e45756", "#7
            "#9e765f", "#9ecae9", "#ffbf79", "#88d27a", "#f2cf5b", "#83bcb6", "#ff9d98", "#bab0ac", "#fcbfd2",
            "#d6a5c9", "#d8b5a5")
 
+#: the Vega-Lite template: one line per method (colour), one dash per revision, the mean over seeds
 METHOD_LINES = {
     "$schema": "https://vega.github.io/schema/vega-lite/v5.json",
     "data": {"values": "<DVC_METRIC_DATA>"},
@@ -39,16 +46,45 @@ METHOD_LINES = {
 
 
 def template_text() -> str:
-    """The committed ``.dvc/plots/<PLOT_TEMPLATE>.json``."""
+    """Render the plot template's file content.
+
+    Returns
+    -------
+    str
+        The committed ``.dvc/plots/<PLOT_TEMPLATE>.json``: :data:`METHOD_LINES` as JSON.
+    """
     return json.dumps(METHOD_LINES, indent=1) + "\n"
 
 
 def template_path(repo_root: str | Path) -> Path:
+    """Locate the plot template in a repository.
+
+    Parameters
+    ----------
+    repo_root : str or Path
+        The repository (its ``.dvc`` folder).
+
+    Returns
+    -------
+    Path
+        ``<repo_root>/.dvc/plots/<PLOT_TEMPLATE>.json``.
+    """
     return Path(repo_root) / ".dvc" / "plots" / f"{PLOT_TEMPLATE}.json"
 
 
 def vega_scripts() -> list[tuple[str, str]]:
-    """``[(file name, JavaScript)]`` of :data:`VEGA_FILES`; InputError when the package is not installed."""
+    """Read the chart library's scripts from the installed package.
+
+    Returns
+    -------
+    list of tuple
+        ``(file name, JavaScript)`` of each of :data:`VEGA_FILES`, in load order.
+
+    Raises
+    ------
+    InputError
+        :data:`VEGA_PACKAGE` is not installed, or a file of it is missing.
+    """
     spec = importlib.util.find_spec(VEGA_PACKAGE)
     if spec is None or not spec.submodule_search_locations:
         raise InputError(f"{VEGA_PACKAGE}: not installed (pip install django-js-lib-vega-embed); "
@@ -69,7 +105,22 @@ def _inline(code: str) -> str:
 
 
 def offline_page(scripts: Sequence[tuple[str, str]], title: str = "GeoDistill-Refine plots") -> str:
-    """A ``dvc plots show --html-template`` page: ``scripts`` inlined (no ``{scripts}``: DVC adds no CDN tag)."""
+    """Build a ``dvc plots show --html-template`` page with the chart library inlined.
+
+    The page has no ``{scripts}`` placeholder, so DVC adds no CDN tag.
+
+    Parameters
+    ----------
+    scripts : Sequence of tuple
+        ``(file name, JavaScript)`` pairs (:func:`vega_scripts`).
+    title : str
+        The page's title.
+
+    Returns
+    -------
+    str
+        The HTML template, with DVC's ``{plot_divs}`` placeholder.
+    """
     blocks = "\n".join(f"<script>/* {name} */\n{_inline(code)}\n</script>" for name, code in scripts)
     return ("<!DOCTYPE html>\n<html>\n<head>\n<meta charset=\"utf-8\">\n"
             f"<title>{title}</title>\n{blocks}\n"
@@ -79,7 +130,26 @@ def offline_page(scripts: Sequence[tuple[str, str]], title: str = "GeoDistill-Re
 
 def dvc_plots_command(page: str | Path, out: str | Path, revs: Sequence[str] = (),
                       targets: Sequence[str] = (), open_browser: bool = False) -> list[str]:
-    """The ``dvc plots show`` (no ``revs``) or ``dvc plots diff REV...`` arguments rendering into ``out``."""
+    """Build the DVC arguments that render the plots into ``out`` with the offline page.
+
+    Parameters
+    ----------
+    page : str or Path
+        The HTML template (:func:`offline_page`).
+    out : str or Path
+        The output folder.
+    revs : Sequence of str
+        Revisions to compare (``dvc plots diff``); none: ``dvc plots show``.
+    targets : Sequence of str
+        Plot targets; none: every plot of dvc.yaml.
+    open_browser : bool
+        Open the page when rendered.
+
+    Returns
+    -------
+    list of str
+        The arguments after ``dvc``.
+    """
     cmd = ["plots", "diff", *revs] if revs else ["plots", "show"]
     if targets:
         cmd += ["--targets", *targets] if revs else list(targets)

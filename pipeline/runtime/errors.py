@@ -1,6 +1,9 @@
-"""Error types.  :class:`InputError` is the one type for user mistakes: one line, exit code 2 from a command,
-naming each parameter in the caller's terms (a flag on the command line, a keyword in Python:
-docs/own-data.md, section 3a); anything else is a bug and keeps its traceback."""
+"""Error types, and the user parameters their messages name.
+
+:class:`InputError` is the one type for user mistakes: one line, exit code 2 from a command, naming each
+parameter in the caller's terms (a flag on the command line, a keyword in Python: docs/own-data.md, section 3a);
+anything else is a bug and keeps its traceback.
+"""
 
 from __future__ import annotations
 
@@ -10,13 +13,35 @@ import dataclasses
 import re
 from typing import Any, Iterator
 
+__all__ = ["CLI", "API", "Option", "INPUT", "OUT", "CHECKPOINT", "BACKEND", "IMPORTED_DIR", "REFERENCE_MASKS",
+           "VAL_MASKS", "FORMAT", "SKIP_BAD", "OVERWRITE", "MAX_PIXELS", "LABELS", "BIT_DEPTH", "SET", "OPTIONS",
+           "caller", "calling", "literal", "InputError", "ArtifactError", "TrainingDiverged"]
+
+#: the two callers a message is rendered for: a command's flags, or the Python API's keywords
 CLI, API = "command line", "python"
 
 
 @dataclasses.dataclass(frozen=True)
 class Option:
-    """A user parameter as each caller spells it: ``flag`` (``--max-pixels``, ``INPUT``) and ``keyword``
-    (``max_pixels``).  ``OPTION(value)`` binds a value; a ``many`` option takes a list, one item per flag."""
+    """A user parameter as each caller spells it.
+
+    ``OPTION(value)`` binds a value; a ``many`` option takes a list, one item per flag.
+
+    Attributes
+    ----------
+    flag : str
+        Its command-line spelling: ``--max-pixels``, or ``INPUT`` for an argument.
+    keyword : str
+        Its Python API spelling: ``max_pixels``.
+    is_flag : bool
+        A boolean flag (``--skip-bad``): spelled without a value.
+    many : bool
+        Repeatable: the bound value is a list, spelled as one flag per item.
+    value : Any
+        The bound value (not part of equality).
+    bound : bool
+        Whether a value is bound (not part of equality).
+    """
 
     flag: str
     keyword: str
@@ -26,10 +51,35 @@ class Option:
     bound: bool = dataclasses.field(default=False, compare=False)
 
     def __call__(self, value: Any) -> "Option":
+        """Bind ``value`` to a copy of this option.
+
+        Parameters
+        ----------
+        value : Any
+            The value the user gave (a list for a ``many`` option).
+
+        Returns
+        -------
+        Option
+            The same option, bound to ``value``.
+        """
         return dataclasses.replace(self, value=value, bound=True)
 
     def spell(self, caller: str) -> str:
-        """``--max-pixels 5`` / ``max_pixels=5``; unbound ``--max-pixels`` / ``max_pixels=``."""
+        """Spell the option for ``caller``.
+
+        ``--max-pixels 5`` / ``max_pixels=5``; unbound, ``--max-pixels`` / ``max_pixels=``.
+
+        Parameters
+        ----------
+        caller : str
+            :data:`CLI` or :data:`API`.
+
+        Returns
+        -------
+        str
+            The option (and its value when bound) as that caller writes it.
+        """
         if caller == CLI:
             if self.many and self.bound:
                 return " ".join(f"{self.flag} {v}" for v in self.value)
@@ -66,13 +116,30 @@ _CALLER: contextvars.ContextVar[str] = contextvars.ContextVar("geodistill_caller
 
 
 def caller() -> str:
-    """Who reads the library's messages now: :data:`CLI` inside :func:`calling`, else :data:`API`."""
+    """Tell who reads the library's messages now.
+
+    Returns
+    -------
+    str
+        :data:`CLI` inside :func:`calling`, else :data:`API`.
+    """
     return _CALLER.get()
 
 
 @contextlib.contextmanager
 def calling(who: str) -> Iterator[None]:
-    """Render messages for ``who`` (:data:`CLI` or :data:`API`) inside the block."""
+    """Render messages for ``who`` inside the block.
+
+    Parameters
+    ----------
+    who : str
+        :data:`CLI` or :data:`API`.
+
+    Yields
+    ------
+    None
+        Control, with :func:`caller` returning ``who`` until the block ends.
+    """
     token = _CALLER.set(who)
     try:
         yield
@@ -81,7 +148,18 @@ def calling(who: str) -> Iterator[None]:
 
 
 def literal(text: Any) -> str:
-    """``text`` as a literal part of a message template (braces doubled)."""
+    """Quote ``text`` as a literal part of an :class:`InputError` template.
+
+    Parameters
+    ----------
+    text : Any
+        The text (its ``str``).
+
+    Returns
+    -------
+    str
+        ``text`` with its braces doubled, so that ``str.format`` leaves it as written.
+    """
     return str(text).replace("{", "{{").replace("}", "}}")
 
 
@@ -90,6 +168,13 @@ class InputError(ValueError):
 
     ``InputError(template, *options)``: each ``{}`` is an :class:`Option`, spelled for the caller by
     :meth:`render`; with options, literal text goes through :func:`literal`.
+
+    Parameters
+    ----------
+    message : str
+        The message, or with ``options`` its template (one ``{}`` per option).
+    *options : Option
+        The parameters the message names, in template order.
     """
 
     def __init__(self, message: str = "", *options: Option):
@@ -98,17 +183,42 @@ class InputError(ValueError):
         self.options = tuple(options)
 
     def render(self, caller: str = API) -> str:
-        """The message for ``caller`` (:data:`CLI` or :data:`API`)."""
+        """Render the message for ``caller``.
+
+        Parameters
+        ----------
+        caller : str
+            :data:`CLI` or :data:`API`.
+
+        Returns
+        -------
+        str
+            The template with each option spelled as ``caller`` writes it.
+        """
         if not self.options:
             return self.template
         return self.template.format(*(o.spell(caller) for o in self.options))
 
     def __str__(self) -> str:
+        """Render the message for the Python API (a command renders it with :meth:`render`)."""
         return self.render(API)
 
     @classmethod
     def from_line(cls, line: str, known: tuple[Option, ...] = OPTIONS) -> "InputError":
-        """An error from a command's rendered line (a stage run in a subprocess), its flags options again."""
+        """Rebuild an error from a command's rendered line (a stage run in a subprocess), its flags options again.
+
+        Parameters
+        ----------
+        line : str
+            The one line the command printed.
+        known : tuple of Option
+            The options whose flags are recognised in ``line``.
+
+        Returns
+        -------
+        InputError
+            An error whose template holds the flags of ``line`` as options, so that it renders for either caller.
+        """
         by_flag = {o.flag: o for o in known if o.flag.startswith("--")}
         if not by_flag:
             return cls(line)
