@@ -88,8 +88,8 @@ def child_train(folder: Path, mode: str, method_name: str, max_batches: int) -> 
     init = (training.build_model(get_method(STAGE_ONE), cfg, 0).mask_path_state_dict()
             if method.init == "stage1" else None)
     if max_batches > 0:  # the epoch's first K batches (the loop itself is unchanged)
-        in_order = training._epoch_batches_in_order
-        training._epoch_batches_in_order = lambda run, epoch: itertools.islice(in_order(run, epoch), max_batches)
+        in_order = training.epoch_batches_in_order
+        training.epoch_batches_in_order = lambda run, epoch: itertools.islice(in_order(run, epoch), max_batches)
     before = rss_mb()
     t = seconds(lambda: training.train(method, cfg, data, None, 42, checkpointer=NoCheckpointer(),
                                        init_state=init, device="cpu", show_progress=False))

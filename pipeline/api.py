@@ -26,7 +26,12 @@ from pipeline.profiles import load_params_or_profile
 from pipeline.orchestration.standalone import project_outputs, run_project, time_budget_params, write_project
 from pipeline.teacher_table import find_teacher, folder_options, is_simulator, load
 
+__all__ = ["LABEL_PROFILE", "DISTILL_PROFILE", "TEACHER_RUN_KEYS", "effective_params", "teacher_overrides",
+           "choose_teacher", "params_from_labels", "distill_params", "with_data_options", "label", "distill"]
+
+#: the profile whose values ``label`` uses without a params file
 LABEL_PROFILE = "paper"
+#: the profile whose values ``distill`` uses without a params file
 DISTILL_PROFILE = "distill"
 #: the teacher keys that do not change its answers; ``distill --labels`` takes every other one from label.json
 TEACHER_RUN_KEYS = ("base_prompt_index", "vflip_base_prompt", "splits", "batch_size", "compile", "cache_dir")
@@ -154,8 +159,10 @@ def params_from_labels(params: dict, labels: str | Path, input_dir: str | Path, 
         The label output folder.
     input_dir : str or Path
         The images it labelled.
-    backend, folders : optional
-        The teacher options (:func:`teacher_overrides`); each must agree with label.json.
+    backend : str, optional
+        The teacher backend (:func:`teacher_overrides`); it must agree with label.json.
+    folders : mapping of str to (str or Path or None), optional
+        The folder options by setting (:func:`teacher_overrides`); each must agree with label.json.
     default_profile : str, optional
         The profile whose values count as not set by the caller (default :data:`DISTILL_PROFILE`).
 
@@ -190,7 +197,7 @@ def params_from_labels(params: dict, labels: str | Path, input_dir: str | Path, 
 
 
 def distill_params(params: dict, input_dir: str | Path, labels: str | Path | None, backend: str | None,
-                   folders: Mapping[str, str | Path | None], skip_bad: bool = False,
+                   folders: Mapping[str, str | Path | None], skip_bad: bool | None = None,
                    max_pixels: int | None = None, bit_depth: str | int | None = None) -> dict:
     """Return the params of a distill project (command and API).
 
@@ -205,10 +212,13 @@ def distill_params(params: dict, input_dir: str | Path, labels: str | Path | Non
         The images to train on.
     labels : str or Path or None
         A label output folder of the same images, or None.
-    backend, folders : optional
-        The teacher options (:func:`teacher_overrides`).
+    backend : str, optional
+        The teacher backend (:func:`teacher_overrides`).
+    folders : mapping of str to (str or Path or None)
+        The folder options by setting (:func:`teacher_overrides`).
     skip_bad : bool, optional
-        Leave unreadable images out (listed) instead of stopping.
+        True: leave unreadable images out (listed) instead of stopping; None (default) or False: the params'
+        ``data.skip_bad`` (:func:`with_data_options`).
     max_pixels : int, optional
         Refuse images above this many pixels (None: the params' value).
     bit_depth : str or int, optional
@@ -231,7 +241,7 @@ def distill_params(params: dict, input_dir: str | Path, labels: str | Path | Non
     return with_data_options(params, skip_bad, max_pixels, bit_depth)
 
 
-def with_data_options(params: dict, skip_bad: bool = False, max_pixels: int | None = None,
+def with_data_options(params: dict, skip_bad: bool | None = None, max_pixels: int | None = None,
                       bit_depth: str | int | None = None) -> dict:
     """Return ``params`` with the data options of label and distill applied.
 
@@ -240,7 +250,8 @@ def with_data_options(params: dict, skip_bad: bool = False, max_pixels: int | No
     params : dict
         Validated params.
     skip_bad : bool, optional
-        True sets ``data.skip_bad`` (``--skip-bad``); False never turns it off.
+        True sets ``data.skip_bad`` (``--skip-bad``); None (default) or False keeps the params' value: the
+        option never turns it off.
     max_pixels : int, optional
         ``data.max_pixels`` (``--max-pixels``), checked; None keeps the params' value.
     bit_depth : str or int, optional
@@ -270,7 +281,7 @@ def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None =
           formats: str | Sequence[str] | None = None, backend: str | None = None,
           imported_dir: str | Path | None = None, reference_masks: str | Path | None = None,
           params: str | Path | None = None, overrides: Mapping | Iterable[str] | None = None,
-          device: str = "auto", skip_bad: bool = False, overwrite: bool = False,
+          device: str = "auto", skip_bad: bool | None = None, overwrite: bool = False,
           max_pixels: int | None = None, bit_depth: str | int | None = None) -> LabelResult:
     """Pseudo-label the images under ``input`` into ``out`` (``geodistill label``).
 
@@ -306,12 +317,13 @@ def label(input: str | Path, *, out: str | Path, checkpoint: str | Path | None =
     device : str, optional
         ``auto`` (default), ``cpu`` or ``cuda``: where the teacher runs.
     skip_bad : bool, optional
-        Leave unreadable images out and list them with the reason (default: stop at the first, naming it).
+        True: leave unreadable images out and list them with the reason; None (default) or False: the params'
+        ``data.skip_bad`` (the profile's: stop at the first, naming it).
     overwrite : bool, optional
         Write into an existing output folder this command did not make; a file of yours where an output goes
         is refused by name either way.
     max_pixels : int, optional
-        Refuse images above this many pixels, read from the file header (None: ``data.max_pixels``, 2**26).
+        Refuse images above this many pixels, read from the file header (None: ``data.max_pixels``).
     bit_depth : str or int, optional
         Bits a 16-bit frame's sensor fills: ``auto``, 10, 12, 14 or 16 (None: ``data.bit_depth``).
 
@@ -339,7 +351,7 @@ def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None 
             checkpoint: str | Path | None = None, backend: str | None = None,
             imported_dir: str | Path | None = None, params: str | Path | None = None,
             overrides: Mapping | Iterable[str] | None = None, device: str = "auto", run: bool = True,
-            skip_bad: bool = False, overwrite: bool = False, max_pixels: int | None = None,
+            skip_bad: bool | None = None, overwrite: bool = False, max_pixels: int | None = None,
             labels: str | Path | None = None, bit_depth: str | int | None = None, benchmark: bool = True,
             time: str | None = None) -> dict:
     """Train a deployable student on the images under ``input`` (``geodistill distill``).
@@ -355,7 +367,7 @@ def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None 
         The project folder (created).
     val_masks : str or Path, optional
         Masks named like some of the images: those become validation/test images (threshold calibration,
-        checkpoint choice, report scores).  Without: tau = ``calibrate.fixed_tau`` (0.5) and the last epoch.
+        checkpoint choice, report scores).  Without: tau = ``calibrate.fixed_tau`` and the last epoch.
     checkpoint : str or Path, optional
         A SAM 3 folder; implies ``backend="sam3"``.
     backend : str, optional

@@ -1,8 +1,11 @@
-"""Training methods as data: the loss terms, gating, initialisation, epochs, data filter and checkpoint
-selection of each ``--method`` and what it is in the study (docs/pipeline.md, "Methods"); the data filters
-themselves are :mod:`pipeline.training.filters`.  The training loop has no per-method branch.  Also the recipe
-parts, each declared once (:class:`RecipePart`, :data:`PARTS`), and the recipes that bundle them (:data:`RECIPES`).
-This module imports no torch and no pydantic."""
+"""Training methods as data, and the recipe parts, each declared once.
+
+The loss terms, gating, initialisation, epochs, data filter and checkpoint selection of each ``--method`` and
+what it is in the study (docs/pipeline.md, "Methods"); the data filters themselves are
+:mod:`pipeline.training.filters`.  The training loop has no per-method branch.  Also the recipe parts, each
+declared once (:class:`RecipePart`, :data:`PARTS`), and the recipes that bundle them (:data:`RECIPES`).  This
+module imports no torch and no pydantic.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +14,22 @@ from typing import Any, Callable, Literal, Mapping
 
 from pipeline.runtime.errors import InputError
 
+__all__ = [
+    # the method table
+    "TERMS", "ROLES", "ABLATION_TABLES", "GAIN_SCOPES", "Method", "METHODS", "SUPERVISED_CEILING",
+    "HUMAN_TARGETS_LABEL", "run_annotation_free", "run_label", "check_reference_boundary", "check_method_table",
+    "the_method", "PROPOSED", "BASELINE", "CONTINUATION", "STAGE_ONE", "GAIN_CONTROLS", "methods_with_role",
+    "in_table_order", "ablation_table_rows",
+    # the recipe parts
+    "HOMES", "FIRST", "RecipePart", "PARTS", "interleave", "part", "parts_of", "off_value", "recipe_parts",
+    "recipe_values", "departs", "with_part_fields", "RECIPES", "DEPARTURES", "departures",
+    # a method in a run
+    "method_label", "annotation_free_methods", "gain_treatments", "get_method", "method_epochs", "method_lr",
+    "COMMON_KEYS", "TERM_KEYS", "SELECTION_TAU_KEY", "param_keys", "fingerprint_params", "uses_confidence",
+    "input_artifacts", "adaptive_mode", "Plan", "resolve_plan",
+]
+
+#: the loss terms a method may use (:attr:`Method.terms`; their params: :data:`TERM_KEYS`)
 TERMS = ("region", "anchor", "sdf", "dist", "skel", "area", "boundary")
 #: what a method is in the study (:attr:`Method.role`)
 ROLES = ("main", "proposed", "external", "control", "ablation")
@@ -22,14 +41,54 @@ GAIN_SCOPES = ("annotation_free", "warm_started")
 
 @dataclasses.dataclass(frozen=True)
 class Method:
-    """One training method.
+    """One training method: a row of the method table (:data:`METHODS`).
 
-    ``epochs``: train keys whose values are summed ("gabi.epochs" = ``train.gabi.epochs``); ``lr``: the train
-    key of its peak rate; ``init``: scratch | stage1 (warm start from ``--init``); ``data``: all | confidence
-    | afs | reference (the supervised ceiling's manual masks); ``terms``: of :data:`TERMS`; ``gate``: g | one
-    (g = 1); ``select``: best_val | stage2 (``train.stage2_select``); ``uses``: train sub-sections it reads.
     ``label``, ``role``, ``ablation_tables``, ``reference_for`` and ``table_order`` place it in the study
     (:func:`check_method_table`); ``color``, ``dash`` and ``symbol`` draw it in every figure.
+
+    Attributes
+    ----------
+    name : str
+        The ``--method`` name.
+    stage : int
+        The training stage it counts as: 1 or 2.
+    init : str
+        ``scratch`` | ``stage1`` (warm start from ``--init``, the Stage-I checkpoint).
+    epochs : tuple of str
+        Train keys whose values are summed into its epochs ("gabi.epochs" = ``train.gabi.epochs``).
+    lr : str
+        The train key of its peak learning rate.
+    data : str
+        Its training images and targets: ``all`` | ``confidence`` | ``afs`` | ``reference`` (the supervised
+        ceiling's manual masks).
+    terms : tuple of str
+        Its loss terms, of :data:`TERMS`.
+    gate : str
+        ``g`` (the reliability gate, eq:reliability-gate) | ``one`` (g = 1).
+    select : str
+        Its checkpoint selection: ``best_val`` | ``stage2`` (``train.stage2_select`` decides).
+    adaptive : bool
+        The quality-adaptive mode switch on the pass ratio r (:func:`adaptive_mode`).
+    uses : tuple of str
+        Train sub-sections it reads (``confidence``, ``afs``, ``gabi``, ``adaptive``).
+    description : str
+        One line on what it is.
+    color : str
+        Its colour in every figure.
+    dash : str
+        Its line style in every figure.
+    symbol : str
+        Its marker in every figure.
+    label : str
+        Its name in the report's tables and figures (unique).
+    role : str
+        What it is in the study, of :data:`ROLES`.
+    ablation_tables : tuple of str
+        The paper's ablation tables it is a row of, of :data:`ABLATION_TABLES` (an ablation has one at least).
+    reference_for : str
+        "" or a scope of :data:`GAIN_SCOPES`: whose gains it is the reference point of.
+    table_order : int
+        Its row in the report's tables (unique; :func:`in_table_order`).
     """
 
     name: str
@@ -137,27 +196,78 @@ HUMAN_TARGETS_LABEL = "(trained on human corrections; not annotation-free)"
 
 
 def run_annotation_free(method: Method, review: Mapping[str, Any] | None = None) -> bool:
-    """Whether a run is annotation-free: the method is, and ``review`` puts no human correction in its loss."""
+    """Tell whether a run is annotation-free: the method is, and ``review`` puts no human correction in its loss.
+
+    Parameters
+    ----------
+    method : Method
+        The run's method.
+    review : Mapping or None, optional
+        The params ``review`` section the run read (None: no review).
+
+    Returns
+    -------
+    bool
+        False for the supervised ceiling, and for a run whose ``review.mode`` is ``replace`` with corrections.
+    """
     replaces = bool(review and review.get("corrections") and review.get("mode") == "replace")
     return method.annotation_free and not replaces
 
 
 def run_label(method: Method, review: Mapping[str, Any] | None = None) -> str:
-    """The method's label in a table, with :data:`HUMAN_TARGETS_LABEL` when the run trained on corrections."""
+    """Return the method's label in a table, with :data:`HUMAN_TARGETS_LABEL` when the run trained on corrections.
+
+    Parameters
+    ----------
+    method : Method
+        The run's method.
+    review : Mapping or None, optional
+        The params ``review`` section the run read (None: no review).
+
+    Returns
+    -------
+    str
+        :attr:`Method.label`, extended when an annotation-free method's run was not (:func:`run_annotation_free`).
+    """
     return method.label if run_annotation_free(method, review) or not method.annotation_free \
         else f"{method.label} {HUMAN_TARGETS_LABEL}"
 
 
 def check_reference_boundary(methods: Mapping[str, Method]) -> None:
-    """ValueError naming any method but :data:`SUPERVISED_CEILING` that trains on reference masks."""
+    """Check that no method but :data:`SUPERVISED_CEILING` trains on reference masks.
+
+    Parameters
+    ----------
+    methods : Mapping
+        Name -> :class:`Method` (a method table).
+
+    Raises
+    ------
+    ValueError
+        Naming the other methods whose ``data`` is ``reference``.
+    """
     bad = [m.name for m in methods.values() if not m.annotation_free and m.name != SUPERVISED_CEILING]
     if bad:
         raise ValueError(f"methods {bad} ask for reference-mask targets; only {SUPERVISED_CEILING!r} may")
 
 
 def check_method_table(methods: Mapping[str, Method]) -> None:
-    """ValueError naming the method whose study facts do not hold together (label, role, tables, scope,
-    unique labels and table orders, the reference boundary)."""
+    """Check that the methods' study facts hold together.
+
+    Each has a label, a role of :data:`ROLES`, ablation tables of :data:`ABLATION_TABLES` (one at least for an
+    ablation) and a scope of :data:`GAIN_SCOPES` or none; labels and table orders are unique; the reference
+    boundary holds (:func:`check_reference_boundary`).
+
+    Parameters
+    ----------
+    methods : Mapping
+        Name -> :class:`Method` (a method table).
+
+    Raises
+    ------
+    ValueError
+        Naming the method, or the field two methods share.
+    """
     for m in methods.values():
         if not m.label or m.role not in ROLES or not set(m.ablation_tables) <= set(ABLATION_TABLES) \
                 or (m.role == "ablation" and not m.ablation_tables) or m.reference_for not in ("", *GAIN_SCOPES):
@@ -174,13 +284,34 @@ check_method_table(METHODS)
 
 
 def the_method(what: str, test, methods: Mapping[str, Method] = METHODS) -> str:
-    """The one method for which ``test`` holds; ValueError naming ``what`` when none or several do."""
+    """Return the one method for which ``test`` holds.
+
+    Parameters
+    ----------
+    what : str
+        What the method is, for the error (``"proposed method"``).
+    test : callable
+        ``test(method) -> bool``.
+    methods : Mapping, optional
+        The method table (default :data:`METHODS`).
+
+    Returns
+    -------
+    str
+        The method's name.
+
+    Raises
+    ------
+    ValueError
+        None or several methods pass ``test`` (naming ``what``).
+    """
     found = [m.name for m in methods.values() if test(m)]
     if len(found) != 1:
         raise ValueError(f"the method table must have exactly one {what}; it has {found}")
     return found[0]
 
 
+#: the paper's proposed method (GeoDistill-Refine)
 PROPOSED = the_method("proposed method", lambda m: m.role == "proposed")
 #: the reference point of every annotation-free method's gain
 BASELINE = the_method("reference point of every gain", lambda m: m.reference_for == "annotation_free")
@@ -189,23 +320,57 @@ CONTINUATION = the_method("budget-matched control", lambda m: m.reference_for ==
 #: where every warm-started method starts, at the same seed
 STAGE_ONE = the_method("Stage-I method", lambda m: m.stage == 1 and m.init == "scratch" and m.data == "all"
                        and m.terms == ("region",))
+#: the methods that are a reference point of some gain (:attr:`Method.reference_for`)
 GAIN_CONTROLS = tuple(n for n, m in METHODS.items() if m.reference_for)
 
 
 def methods_with_role(*roles: str) -> list[str]:
-    """The methods whose role is one of ``roles``, in the table's row order."""
+    """List the methods whose role is one of ``roles``, in the method table's order.
+
+    Parameters
+    ----------
+    *roles : str
+        Roles of :data:`ROLES`.
+
+    Returns
+    -------
+    list of str
+        Method names.
+    """
     return [n for n, m in METHODS.items() if m.role in roles]
 
 
 def in_table_order(names) -> list[str]:
-    """``names`` (distinct) by :attr:`Method.table_order`; unknown names keep their order, last."""
+    """Sort ``names`` by :attr:`Method.table_order`.
+
+    Parameters
+    ----------
+    names : iterable of str
+        Method names (a repeat counts once).
+
+    Returns
+    -------
+    list of str
+        The distinct names, known ones by table order, then unknown ones in their order.
+    """
     names = list(dict.fromkeys(names))
     known = sorted((n for n in names if n in METHODS), key=lambda n: METHODS[n].table_order)
     return known + [n for n in names if n not in METHODS]
 
 
 def ablation_table_rows(table: str) -> list[str]:
-    """The rows of ablation table ``table``, in table order."""
+    """List the rows of ablation table ``table``, in table order.
+
+    Parameters
+    ----------
+    table : str
+        A key of :data:`ABLATION_TABLES`.
+
+    Returns
+    -------
+    list of str
+        The names of the methods that are its rows.
+    """
     return in_table_order(n for n, m in METHODS.items() if table in m.ablation_tables)
 
 
@@ -274,6 +439,7 @@ class RecipePart:
     common_after: str = ""
 
     def __post_init__(self):
+        """Refuse a declaration whose ``home`` is not one of :data:`HOMES` or whose key is not section.name."""
         if self.home not in HOMES:
             raise ValueError(f"recipe part {self.key}: home {self.home!r} is not one of {HOMES}")
         if self.key.count(".") != 1:
@@ -291,8 +457,10 @@ class RecipePart:
 
     @property
     def description(self) -> str:
-        """The schema field's description: the prefix that marks a recipe part (and, outside ``train``, that
-        ``train.recipe`` sets it), then :attr:`doc`."""
+        """The schema field's description: the "recipe part" prefix, then :attr:`doc`.
+
+        The prefix says Stage I for a ``stage_one`` part and, outside ``train``, that ``train.recipe`` sets it.
+        """
         where = ", Stage I" if self.stage_one else "" if self.section == "train" else " (train.recipe)"
         return f"recipe part{where}: {self.doc}"
 
@@ -312,7 +480,7 @@ class RecipePart:
         return bool(self.departure) and value != self.off
 
     def value_for(self, cfg: Mapping[str, Any], stage_one: bool) -> Any:
-        """The part's value in a run: ``cfg``'s, or :attr:`off` outside Stage I for a Stage-I part.
+        """Return the part's value in a run: ``cfg``'s, or :attr:`off` outside Stage I for a Stage-I part.
 
         Parameters
         ----------
@@ -395,7 +563,7 @@ if len(_BY_KEY) != len(PARTS):
 
 
 def interleave(keys, placed: Mapping[str, str]) -> list[str]:
-    """``keys`` with each of ``placed`` inserted after the key it names (recursively: a part may follow a part).
+    """Insert each of ``placed`` after the key it names in ``keys`` (recursively: a part may follow a part).
 
     Parameters
     ----------
@@ -437,7 +605,7 @@ def interleave(keys, placed: Mapping[str, str]) -> list[str]:
 
 
 def part(key: str) -> RecipePart:
-    """The declaration of recipe part ``key``.
+    """Return the declaration of recipe part ``key``.
 
     Parameters
     ----------
@@ -458,14 +626,14 @@ def part(key: str) -> RecipePart:
 
 
 def parts_of(section: str, home: str | None = None) -> tuple[RecipePart, ...]:
-    """The parts of one params section, in declaration order; with ``home``, only those read there.
+    """List the parts of one params section, in declaration order; with ``home``, only those read there.
 
     Parameters
     ----------
     section : str
         A params section (``train``, ``calibrate``).
-    home : str or None
-        One of :data:`HOMES`, or None for every part of the section.
+    home : str or None, optional
+        One of :data:`HOMES`, or None (default) for every part of the section.
 
     Returns
     -------
@@ -476,7 +644,7 @@ def parts_of(section: str, home: str | None = None) -> tuple[RecipePart, ...]:
 
 
 def off_value(key: str) -> Any:
-    """The paper recipe's value of part ``key``: where it is off.
+    """Return the paper recipe's value of part ``key``: where it is off.
 
     Parameters
     ----------
@@ -497,7 +665,7 @@ def off_value(key: str) -> Any:
 
 
 def recipe_parts() -> list[str]:
-    """Dotted keys of every recipe part (``train.precision``, ``calibrate.tau_rule``, ...), by section.
+    """List the dotted keys of every recipe part (``train.precision``, ``calibrate.tau_rule``, ...), by section.
 
     Returns
     -------
@@ -508,7 +676,7 @@ def recipe_parts() -> list[str]:
 
 
 def recipe_values(**changes: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
-    """A recipe: section -> part -> value, every part at its :attr:`RecipePart.off` unless ``changes`` sets it.
+    """Build a recipe: section -> part -> value, each part at its :attr:`RecipePart.off` unless ``changes`` sets it.
 
     Parameters
     ----------
@@ -534,7 +702,7 @@ def recipe_values(**changes: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
 
 
 def departs(key: str, value: Any) -> bool:
-    """Whether recorded ``value`` of part ``key`` departs from the paper's loss (:meth:`RecipePart.departs`).
+    """Tell whether recorded ``value`` of part ``key`` departs from the paper's loss (:meth:`RecipePart.departs`).
 
     Parameters
     ----------
@@ -557,8 +725,10 @@ def departs(key: str, value: Any) -> bool:
 
 
 def with_part_fields(base: type, home: str, *, defaults: bool = False) -> type:
-    """A frozen dataclass: ``base``'s fields, then a field for each ``train`` part read at ``home``, named as the
-    part, its docstring's Attributes extended with the parts' doc lines.
+    """Make a frozen dataclass of ``base``'s fields and a field for each ``train`` part read at ``home``.
+
+    Each part's field is named as the part; the docstring's Attributes section is extended with the parts' doc
+    lines.
 
     Parameters
     ----------
@@ -566,7 +736,7 @@ def with_part_fields(base: type, home: str, *, defaults: bool = False) -> type:
         A frozen dataclass whose docstring ends with its Attributes section.
     home : str
         One of :data:`HOMES` but "": ``settings`` or ``losses``.
-    defaults : bool
+    defaults : bool, optional
         Give each part field the part's :attr:`RecipePart.off` as its default (``base``'s fields must then have
         defaults too).
 
@@ -609,25 +779,73 @@ DEPARTURES: dict[str, tuple[Callable[[Any], bool], str]] = {p.key: (p.departs, p
 
 
 def departures(recorded: Mapping[str, Any]) -> list[str]:
-    """The names of the departures from eq:raw-loss a run's recorded params hold (:data:`DEPARTURES`), in order;
-    a key the run did not record (an older run) departs from nothing."""
+    """List the departures from eq:raw-loss that a run's recorded params hold (:data:`DEPARTURES`), in order.
+
+    Parameters
+    ----------
+    recorded : Mapping
+        Dotted params key -> the value the run recorded; a key it did not record (an older run) departs from
+        nothing.
+
+    Returns
+    -------
+    list of str
+        Each departure's name in a table, formatted with its value.
+    """
     return [name.format(v=recorded[k]) for k, (on, name) in DEPARTURES.items()
             if recorded.get(k) is not None and on(recorded[k])]
 
 
 def method_label(name: str) -> str:
-    """The display label of method ``name``; an unknown name as is."""
+    """Return the display label of method ``name``.
+
+    Parameters
+    ----------
+    name : str
+        A method name.
+
+    Returns
+    -------
+    str
+        :attr:`Method.label`; an unknown name as is.
+    """
     return METHODS[name].label if name in METHODS else name
 
 
 def annotation_free_methods(names) -> list[str]:
-    """``names`` without the methods that train on reference masks (unknown names are kept)."""
+    """Drop the methods that train on reference masks from ``names``.
+
+    Parameters
+    ----------
+    names : iterable of str
+        Method names.
+
+    Returns
+    -------
+    list of str
+        ``names`` in order, less the supervised ceiling; unknown names are kept.
+    """
     return [n for n in names if n not in METHODS or METHODS[n].annotation_free]
 
 
 def gain_treatments(control: str, names) -> list[str]:
-    """The methods of ``names`` compared with reference point ``control``: every annotation-free method
-    against :data:`BASELINE`, the warm-started ones against :data:`CONTINUATION`; never the control itself."""
+    """List the methods of ``names`` that are compared with reference point ``control``.
+
+    Every annotation-free method against :data:`BASELINE`, the warm-started ones against :data:`CONTINUATION`;
+    never the control itself.
+
+    Parameters
+    ----------
+    control : str
+        A reference point (:data:`GAIN_CONTROLS`).
+    names : iterable of str
+        The methods run.
+
+    Returns
+    -------
+    list of str
+        The treatments, in the order of ``names``.
+    """
     free = [n for n in annotation_free_methods(names) if n != control]
     if control in METHODS and METHODS[control].reference_for == "warm_started":
         return [n for n in free if n in METHODS and METHODS[n].init == "stage1"]
@@ -635,7 +853,23 @@ def gain_treatments(control: str, names) -> list[str]:
 
 
 def get_method(name: str) -> Method:
-    """The :class:`Method` called ``name``; InputError listing the valid names otherwise."""
+    """Return the :class:`Method` called ``name``.
+
+    Parameters
+    ----------
+    name : str
+        A ``--method`` name.
+
+    Returns
+    -------
+    Method
+        Its row of :data:`METHODS`.
+
+    Raises
+    ------
+    InputError
+        No method has that name (listing the valid ones).
+    """
     try:
         return METHODS[name]
     except KeyError:
@@ -643,6 +877,7 @@ def get_method(name: str) -> Method:
 
 
 def _get(cfg: Mapping[str, Any], dotted: str, prefix: str = "train.") -> Any:
+    """Read key ``dotted`` of ``cfg``; InputError naming ``prefix + dotted`` when it is missing."""
     cur: Any = cfg
     for k in dotted.split("."):
         if not isinstance(cur, Mapping) or k not in cur:
@@ -652,7 +887,25 @@ def _get(cfg: Mapping[str, Any], dotted: str, prefix: str = "train.") -> Any:
 
 
 def method_epochs(method: Method, cfg: Mapping[str, Any]) -> int:
-    """The sum of the train params named in ``method.epochs`` (validated train section ``cfg``)."""
+    """Return a method's epochs: the sum of the train params named in ``method.epochs``.
+
+    Parameters
+    ----------
+    method : Method
+        The method.
+    cfg : Mapping
+        The validated ``train`` section.
+
+    Returns
+    -------
+    int
+        The epochs, >= 1.
+
+    Raises
+    ------
+    InputError
+        The sum is below 1 (naming the keys); a key is missing.
+    """
     total = sum(int(_get(cfg, key)) for key in method.epochs)
     if total < 1:
         raise InputError(f"params: {' + '.join('train.' + k for k in method.epochs)} must be >= 1")
@@ -660,7 +913,20 @@ def method_epochs(method: Method, cfg: Mapping[str, Any]) -> int:
 
 
 def method_lr(method: Method, cfg: Mapping[str, Any]) -> float:
-    """The peak learning rate ``train.<method.lr>``, times ``train.lr_scale`` for Stage I's rate."""
+    """Return a method's peak learning rate: ``train.<method.lr>``, times ``train.lr_scale`` for Stage I's rate.
+
+    Parameters
+    ----------
+    method : Method
+        The method.
+    cfg : Mapping
+        The validated ``train`` section.
+
+    Returns
+    -------
+    float
+        The peak learning rate.
+    """
     return float(_get(cfg, method.lr)) * (float(_get(cfg, "lr_scale")) if method.lr == "lr_stage1" else 1.0)
 
 
@@ -681,7 +947,19 @@ SELECTION_TAU_KEY = "calibrate.fixed_tau"
 
 
 def param_keys(method: Method) -> tuple[str, ...]:
-    """The dotted params keys a run of ``method`` reads: what DVC tracks for its stage and its fingerprint holds."""
+    """List the dotted params keys a run of ``method`` reads: what DVC tracks for its stage and its fingerprint holds.
+
+    Parameters
+    ----------
+    method : Method
+        The method.
+
+    Returns
+    -------
+    tuple of str
+        :data:`COMMON_KEYS`, its epochs and learning rate, its terms' keys (:data:`TERM_KEYS`), its selection
+        and sub-sections, each under ``train.``; then :data:`SELECTION_TAU_KEY`.
+    """
     keys = [*COMMON_KEYS, *method.epochs, method.lr, *(k for t in method.terms for k in TERM_KEYS[t]),
             *(["stage2_select"] if method.select == "stage2" else []), *method.uses]
     # a whole sub-section (``uses``) covers its own keys
@@ -690,19 +968,54 @@ def param_keys(method: Method) -> tuple[str, ...]:
 
 
 def fingerprint_params(method: Method, params: Mapping[str, Any]) -> dict:
-    """``{dotted key: value}`` of :func:`param_keys` in validated ``params``."""
+    """Collect the values of a run's params keys (:func:`param_keys`): what its fingerprint holds.
+
+    Parameters
+    ----------
+    method : Method
+        The method.
+    params : Mapping
+        Validated params.
+
+    Returns
+    -------
+    dict
+        ``{dotted key: value}``.
+    """
     return {k: _get(params, k, prefix="") for k in param_keys(method)}
 
 
 def uses_confidence(method: Method) -> bool:
-    """Whether the method evaluates the confidence criterion (the filter, or the adaptive pass ratio r)."""
+    """Tell whether the method evaluates the confidence criterion (the filter, or the adaptive pass ratio r).
+
+    Parameters
+    ----------
+    method : Method
+        The method.
+
+    Returns
+    -------
+    bool
+        Its data is ``confidence`` or it is adaptive.
+    """
     return method.data == "confidence" or method.adaptive
 
 
 def input_artifacts(method: Method, criterion: str | None = None) -> tuple[str, ...]:
-    """Catalogue names of the artifacts a run reads (``reference``: validation selection only).
+    """List the catalogue names of the artifacts a run of ``method`` reads.
 
-    ``criterion``: ``train.confidence.criterion``; None means either (the superset dvc.yaml tracks).
+    Parameters
+    ----------
+    method : Method
+        The method.
+    criterion : str or None, optional
+        ``train.confidence.criterion``; None (default): either (the superset dvc.yaml tracks).
+
+    Returns
+    -------
+    tuple of str
+        ``manifest``, ``images``, ``reference`` (validation selection only), then those of ``gates``,
+        ``teacher``, ``consensus`` and ``geometry`` the method needs.
     """
     wanted = {"gates": method.needs_gates,
               "teacher": method.data == "afs" or (uses_confidence(method) and criterion in (None, "mean_score")),
@@ -711,14 +1024,39 @@ def input_artifacts(method: Method, criterion: str | None = None) -> tuple[str, 
 
 
 def adaptive_mode(r: float, boundary: float = 0.5) -> str:
-    """The quality-adaptive mode: ``anchored`` when the training pass ratio r >= boundary, else ``geometry_only``."""
+    """Choose the quality-adaptive mode from the training pass ratio r.
+
+    Parameters
+    ----------
+    r : float
+        The share of training images passing the confidence criterion.
+    boundary : float, optional
+        ``train.adaptive.ratio_boundary`` (:func:`resolve_plan` passes the params' value; the default is the
+        paper's).
+
+    Returns
+    -------
+    str
+        ``anchored`` when r >= boundary, else ``geometry_only``.
+    """
     return "anchored" if float(r) >= float(boundary) else "geometry_only"
 
 
 @dataclasses.dataclass(frozen=True)
 class Plan:
-    """A method resolved for one run: ``weights[term]`` (absent: not computed), ``select`` (best_val |
-    last) and whether the initial (warm-start) model is a candidate."""
+    """A method resolved for one run (:func:`resolve_plan`).
+
+    Attributes
+    ----------
+    weights : dict
+        Loss term -> its weight (eq:refine-loss); a term absent is not computed.
+    select : str
+        The checkpoint selection: ``best_val`` | ``last``.
+    epoch0_eligible : bool
+        Whether the initial (warm-start) model is a candidate.
+    mode : str
+        The quality-adaptive mode (:func:`adaptive_mode`); "" for other methods.
+    """
 
     weights: dict
     select: str
@@ -727,8 +1065,29 @@ class Plan:
 
 
 def resolve_plan(method: Method, cfg: Mapping[str, Any], pass_ratio_r: float | None = None) -> Plan:
-    """Term weights (region 1, the others their eq:refine-loss or baseline lambda) and the selection rule;
-    the adaptive method needs ``pass_ratio_r``."""
+    """Resolve a method for one run: its term weights and its selection rule.
+
+    Parameters
+    ----------
+    method : Method
+        The method.
+    cfg : Mapping
+        The validated ``train`` section.
+    pass_ratio_r : float or None, optional
+        The training pass ratio r; the adaptive method needs it (:func:`adaptive_mode`).
+
+    Returns
+    -------
+    Plan
+        Weights: region 1, the others their eq:refine-loss or baseline lambda (the last key of
+        :data:`TERM_KEYS`); the adaptive method's mode drops the region term (and, unless
+        ``train.adaptive.anchor_geometry_only``, the anchor) in ``geometry_only``.
+
+    Raises
+    ------
+    ValueError
+        The adaptive method without ``pass_ratio_r``.
+    """
     weights = {t: 1.0 if t == "region" else float(_get(cfg, TERM_KEYS[t][-1])) for t in method.terms}
     select = _get(cfg, "stage2_select") if method.select == "stage2" else method.select
     if not method.adaptive:

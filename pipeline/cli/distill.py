@@ -13,6 +13,8 @@ from pipeline.runtime.progress import quiet_bars
 from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option,
                                       skip_bad_option, stage_command, teacher_choice_options)
 
+__all__ = ["main"]
+
 
 @stage_command("distill", default_profile="distill", profile_loader=load_params_or_profile)
 @click.argument("input_dir", metavar="INPUT", type=click.Path())
@@ -40,10 +42,12 @@ from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overw
 @quiet_option
 def main(params, device, input_dir, out, val_masks, backend, labels, time_budget, no_run, no_benchmark, skip_bad,
          max_pixels, bit_depth, overwrite, quiet, **folders):
-    """Train a deployable student on a folder of images: SAM 3 pseudo-labels, Stage I, Stage II, threshold,
-    export, report.  --out becomes a DVC project running the pipeline's own DAG, so a rerun resumes; a file
-    of yours where a project file goes is refused by name (docs/own-data.md).  --labels LABEL_DIR reuses an
-    unmodified `geodistill label` output's teacher answers."""
+    """Train a deployable student on a folder of images.
+
+    SAM 3 pseudo-labels, Stage I, Stage II, threshold, export, report.  --out becomes a DVC project running the
+    pipeline's own DAG, so a rerun resumes; a file of yours where a project file goes is refused by name
+    (docs/own-data.md).  --labels LABEL_DIR reuses an unmodified `geodistill label` output's teacher answers.
+    """
     params = distill_params(params, input_dir, labels, backend, folders, skip_bad, max_pixels, bit_depth)
     params = time_budget_params(params, time_budget, out, device, input_dir, val_masks)
     project = write_project(input_dir, out, params, val_masks=val_masks, overwrite=overwrite, labels=labels,

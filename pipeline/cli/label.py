@@ -20,6 +20,8 @@ from pipeline.runtime.progress import quiet_bars
 from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overwrite_option, quiet_option,
                                       skip_bad_option, stage_command, teacher_choice_options, teacher_workers_options)
 
+__all__ = ["main", "summary_line"]
+
 
 @stage_command("label", default_profile="paper", profile_loader=load_params_or_profile)
 @click.argument("input_dir", metavar="INPUT", type=click.Path())
@@ -41,10 +43,13 @@ from pipeline.cli.conventions import (bit_depth_option, max_pixels_option, overw
 @teacher_workers_options
 def main(params, device, input_dir, out, backend, reference_masks, formats, copy_images, quiet, skip_bad, max_pixels,
          bit_depth, overwrite, workers, address, **folders):
-    """Label a folder of images with the multi-prompt teacher: voted pseudo-masks as PNG, COCO (RLE) and
-    YOLO files, a table of agreement c, valid ratio v, area a and gate g per image, and a contact sheet.
-    Without --params the paper's values are used.  Reruns resume from the teacher cache inside OUT; a file
-    of yours where an output goes is refused by name (docs/own-data.md).  The step log: GEODISTILL_LOG=INFO."""
+    """Label a folder of images with the multi-prompt teacher.
+
+    Voted pseudo-masks as PNG, COCO (RLE) and YOLO files, a table of agreement c, valid ratio v, area a and
+    gate g per image, and a contact sheet.  Without --params the paper's values are used.  Reruns resume from
+    the teacher cache inside OUT; a file of yours where an output goes is refused by name (docs/own-data.md).
+    The step log: GEODISTILL_LOG=INFO.
+    """
     fmts = parse_formats(formats)  # checked before any work
     params = with_data_options(choose_teacher(params, backend, folders), skip_bad, max_pixels, bit_depth)
     with quiet_bars(quiet), _step_log_off():  # -q keeps the cost lines: they are the summary's
@@ -60,7 +65,7 @@ def main(params, device, input_dir, out, backend, reference_masks, formats, copy
 
 @contextlib.contextmanager
 def _step_log_off():
-    """The INFO step log off (warnings stay) unless GEODISTILL_LOG names a level: the summary line says it."""
+    """Turn the INFO step log off (warnings stay) unless GEODISTILL_LOG names a level: the summary line says it."""
     logger = logging.getLogger("pipeline")
     before = logger.level
     if "GEODISTILL_LOG" not in os.environ:
@@ -72,14 +77,27 @@ def _step_log_off():
 
 
 def empty_line(result) -> str | None:
-    """The summary's plain word when every mask is empty (still exit 0), with the likely causes; else None."""
+    """Return the summary's plain word when every mask is empty (still exit 0), with the likely causes; else None."""
     if len(result.table) and not (result.table["mask_pixels"] > 0).any():
         return f"label: all {len(result.table)} masks are empty. {NoForeground().render(CLI)}"
     return None
 
 
 def summary_line(result) -> str:
-    """The command's one summary line: images, formats, the teacher's work, the gates, the YOLO split."""
+    """Return the command's one summary line: images, formats, the teacher's work, the gates, the YOLO split.
+
+    Parameters
+    ----------
+    result : pipeline.labeling.LabelResult
+        What ``label`` wrote; its label.json is read for the teacher's work.
+
+    Returns
+    -------
+    str
+        The parts joined by "; ": images and formats, teacher answers computed and cached (and the measured
+        seconds per image), the gate g's median and count above 0, each format's own summary, the teacher's
+        note, and the SIMULATOR's name where the backend is one.
+    """
     record = json.loads((result.out / OUTPUTS["record"]).read_text())
     g = result.table["g"]
     parts = [f"label: {len(result.table)} images -> {result.out} ({', '.join(result.formats)})",

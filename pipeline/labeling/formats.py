@@ -20,6 +20,10 @@ from pipeline.catalog import OUTPUT_FILES, OutputFile
 from pipeline.runtime.errors import InputError
 from pipeline.teacher_table import FORMAT_GROUP, plugin
 
+__all__ = ["LabelFormat", "LABEL_FORMATS", "register_format", "unregister_format", "find_format",
+           "SPACECRAFT_CATEGORY", "rle_encode", "mask_bbox", "coco_annotation", "coco_document", "yolo_polygons",
+           "yolo_lines", "yolo_split", "yolo_image_list", "yolo_data_yaml", "yolo_readme"]
+
 
 @dataclasses.dataclass(frozen=True)
 class LabelFormat:
@@ -135,12 +139,14 @@ def find_format(name: str) -> LabelFormat | None:
             raise InputError(f"{where}: {e}") from None
     return LABEL_FORMATS.get(name)
 
+
 SPACECRAFT_CATEGORY = {"id": 1, "name": "spacecraft", "supercategory": "object"}
 YOLO_CLASS = 0  # the one class of the YOLO labels (data.yaml names it "spacecraft")
 YOLO_DECIMALS = 6
 
 
 def _as_mask(mask: np.ndarray) -> np.ndarray:
+    """Return ``mask`` as a bool [H,W] array; InputError naming its shape when it is not 2-D."""
     mask = np.asarray(mask)
     if mask.ndim != 2:
         raise InputError(f"mask: expected [H,W], got shape {mask.shape}")

@@ -19,24 +19,71 @@ __all__ = ["TEACHER_TABLE", "VIEWS", "Teacher", "TeacherInput", "finalize_answer
 
 
 def check_teacher_params(cfg: Mapping[str, Any]) -> dict:
-    """Validate the ``teacher:`` section against the params schema (:mod:`pipeline.params`)."""
+    """Validate the ``teacher:`` section against the params schema (:mod:`pipeline.params`).
+
+    Parameters
+    ----------
+    cfg : Mapping
+        A ``teacher:`` section.
+
+    Returns
+    -------
+    dict
+        The validated section, every default filled in.
+    """
     return validate_section("teacher", cfg)
 
 
 def make_teacher(cfg: Mapping[str, Any], resolution: tuple[int, int], device: str = "auto") -> Teacher:
-    """The backend named by ``cfg['backend']`` (:data:`TEACHER_TABLE`) working at ``resolution`` (H, W) of
-    images.zarr."""
+    """Build the teacher backend that ``cfg['backend']`` names (:data:`TEACHER_TABLE`; a plug-in's loaded now).
+
+    Parameters
+    ----------
+    cfg : Mapping
+        The ``teacher:`` section, validated here (:func:`check_teacher_params`).
+    resolution : tuple of int
+        (H, W) of images.zarr: the working resolution of its answers.
+    device : str, optional
+        ``auto`` (default), ``cpu`` or ``cuda``.
+
+    Returns
+    -------
+    Teacher
+        The backend's ``from_params(cfg, resolution, device)``.
+    """
     cfg = check_teacher_params(cfg)
     return teacher_class(cfg["backend"]).from_params(cfg, resolution, device)
 
 
 def teacher_record(teacher: Teacher) -> dict:
-    """``teacher.fingerprint()``, with a plug-in's ``"distribution"`` (its package's name and version: DVC and the
-    code version do not see its code); a built-in backend's is its own fingerprint, unchanged."""
+    """Return what determines a teacher's answers: its fingerprint, with a plug-in's distribution.
+
+    Parameters
+    ----------
+    teacher : Teacher
+        A built teacher.
+
+    Returns
+    -------
+    dict
+        ``teacher.fingerprint()``, with a plug-in's ``"distribution"`` (its package's name and version: DVC and
+        the code version do not see its code); a built-in backend's is its own fingerprint, unchanged.
+    """
     dist = teacher_spec(teacher.backend).distribution
     return teacher.fingerprint() | ({"distribution": dist} if dist else {})
 
 
 def teacher_fingerprint(teacher: Teacher) -> str:
-    """sha256 of the canonical JSON of :func:`teacher_record` (the cache's teacher component)."""
+    """Hash what determines a teacher's answers (the teacher cache's teacher component).
+
+    Parameters
+    ----------
+    teacher : Teacher
+        A built teacher.
+
+    Returns
+    -------
+    str
+        The sha256 hex digest of the canonical JSON of :func:`teacher_record`.
+    """
     return hashlib.sha256(canonical_json(teacher_record(teacher)).encode()).hexdigest()

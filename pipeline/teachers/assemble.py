@@ -1,5 +1,7 @@
-"""The teacher stage's work (eq:prompt-set, eq:teacher-prediction) without the CLI: a teacher behind its cache
-over a manifest's rows -> ``teacher.zarr`` and the score table."""
+"""The teacher stage's work (eq:prompt-set, eq:teacher-prediction) without the CLI.
+
+A teacher behind its cache over a manifest's rows -> ``teacher.zarr`` and the score table.
+"""
 
 from __future__ import annotations
 
@@ -22,6 +24,9 @@ from pipeline.teachers.base import manifest_extras
 from pipeline.teachers.inputs import ArtifactInputs
 from pipeline.teachers.runner import RunStats, TeacherRunner, open_runner
 
+__all__ = ["SCORE_COLUMNS", "check_alignment", "vflip_prompt", "fingerprint_params", "score_rows", "score_table",
+           "TeacherRun", "open_teacher_run"]
+
 log = logging.getLogger(__name__)
 
 #: teacher_scores.parquet: one row per (image, prompt)
@@ -29,7 +34,22 @@ SCORE_COLUMNS = ("image_id", "prompt_index", "prompt", "score", "valid", "mask_a
 
 
 def check_alignment(manifest: pd.DataFrame, images, reference) -> None:
-    """images.zarr (and reference.zarr, if given) have the manifest's rows in its order."""
+    """Check that images.zarr (and reference.zarr, if given) have the manifest's rows in its order.
+
+    Parameters
+    ----------
+    manifest : pandas.DataFrame
+        The manifest, in row order.
+    images : pipeline.artifacts.store.Artifact
+        The opened ``images`` artifact.
+    reference : pipeline.artifacts.store.Artifact or None
+        The opened ``reference`` artifact, or None.
+
+    Raises
+    ------
+    InputError
+        An artifact's row count, or its ``image_ids`` attribute, differs from the manifest's (naming it).
+    """
     n = len(manifest)
     ids = [str(i) for i in manifest["image_id"]]
     for art, name in ((images, "image"), (reference, "mask")):
@@ -43,19 +63,62 @@ def check_alignment(manifest: pd.DataFrame, images, reference) -> None:
 
 
 def vflip_prompt(cfg: Mapping[str, Any]) -> str | None:
-    """The base prompt if ``vflip_base_prompt`` (also run on the flipped image: the annotation-free-style control)."""
+    """Return the prompt also run on the flipped image (the annotation-free-style control), if any.
+
+    Parameters
+    ----------
+    cfg : Mapping
+        The validated ``teacher:`` section.
+
+    Returns
+    -------
+    str or None
+        The base prompt (``prompts[base_prompt_index]``) when ``vflip_base_prompt``; else None.
+    """
     return cfg["prompts"][cfg["base_prompt_index"]] if cfg["vflip_base_prompt"] else None
 
 
 def fingerprint_params(cfg: Mapping[str, Any]) -> dict:
-    """The ``teacher:`` section as the artifacts' fingerprint holds it: where the cache lives changes nothing."""
+    """Return the ``teacher:`` section as the artifacts' fingerprint holds it.
+
+    Parameters
+    ----------
+    cfg : Mapping
+        The validated ``teacher:`` section.
+
+    Returns
+    -------
+    dict
+        ``cfg`` without ``cache_dir``: where the cache lives changes nothing.
+    """
     return {k: v for k, v in cfg.items() if k != "cache_dir"}
 
 
 def score_rows(image_id: str, prompts: Sequence[str], masks: np.ndarray, scores: np.ndarray, split: str,
                ran: bool) -> list[tuple]:
-    """One image's rows of the score table: per prompt its score, validity (score > 0, eq:valid-set) and
-    mask area (eq:pseudo-area applied to M_ik)."""
+    """Build one image's rows of the score table (:data:`SCORE_COLUMNS`).
+
+    Parameters
+    ----------
+    image_id : str
+        The image's id.
+    prompts : sequence of str
+        The K prompts.
+    masks : numpy.ndarray
+        bool [K,H,W]: M_ik of eq:teacher-prediction.
+    scores : numpy.ndarray
+        float [K]: s_ik.
+    split : str
+        The image's split.
+    ran : bool
+        Whether the teacher ran on it (its split is in ``teacher.splits``).
+
+    Returns
+    -------
+    list of tuple
+        Per prompt: its score, validity (score > 0: in the valid-prompt set V_i of eq:agreement-map) and mask
+        area (eq:pseudo-area applied to M_ik).
+    """
     k = len(prompts)
     areas = masks.reshape(k, -1).mean(axis=1)
     return [(image_id, j, prompts[j], float(scores[j]), bool(scores[j] > 0), float(areas[j]), split, ran)
@@ -63,7 +126,18 @@ def score_rows(image_id: str, prompts: Sequence[str], masks: np.ndarray, scores:
 
 
 def score_table(rows: Sequence[tuple]) -> pd.DataFrame:
-    """teacher_scores.parquet's frame from :func:`score_rows` (score float32, prompt_index int16)."""
+    """Build teacher_scores.parquet's frame.
+
+    Parameters
+    ----------
+    rows : sequence of tuple
+        Rows of :func:`score_rows`.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns :data:`SCORE_COLUMNS`; score float32, prompt_index int16.
+    """
     table = pd.DataFrame(rows, columns=list(SCORE_COLUMNS))
     table["score"] = table["score"].astype(np.float32)
     table["prompt_index"] = table["prompt_index"].astype(np.int16)
@@ -72,7 +146,25 @@ def score_table(rows: Sequence[tuple]) -> pd.DataFrame:
 
 @dataclasses.dataclass
 class TeacherRun:
-    """The teacher of one ``teacher:`` section behind its cache, over the rows of one manifest."""
+    """The teacher of one ``teacher:`` section behind its cache, over the rows of one manifest.
+
+    Attributes
+    ----------
+    cfg : dict
+        The validated ``teacher:`` section.
+    runner : TeacherRunner
+        The teacher behind its cache.
+    fingerprint : str
+        The teacher's fingerprint (the cache's teacher component).
+    manifest : pandas.DataFrame
+        The manifest, indexed 0..N-1.
+    shape : tuple of int
+        (N, H, W) of images.zarr.
+    inputs : list
+        The opened artifacts the outputs descend from (manifest, images[, reference]).
+    rows : list of int
+        The rows in ``teacher.splits``, in manifest order.
+    """
 
     cfg: dict
     runner: TeacherRunner
@@ -84,21 +176,55 @@ class TeacherRun:
 
     @property
     def teacher(self):
+        """The teacher (:class:`pipeline.teachers.base.Teacher`)."""
         return self.runner.teacher
 
     @property
     def prompts(self) -> list[str]:
+        """The K prompts (eq:prompt-set), in order."""
         return list(self.cfg["prompts"])
 
     def fill(self, rows: Sequence[int], workers: int = 0, address: str | None = None) -> RunStats:
-        """Compute and cache what ``rows`` (of :attr:`rows`) lack (:meth:`TeacherRunner.fill`)."""
+        """Compute and cache what ``rows`` (of :attr:`rows`) lack (:meth:`TeacherRunner.fill`).
+
+        Parameters
+        ----------
+        rows : sequence of int
+            Manifest rows.
+        workers : int, optional
+            Teachers in a Ray Data pool; 0 (default): serial, the same answers.
+        address : str, optional
+            The Ray cluster to join with ``workers``.
+
+        Returns
+        -------
+        RunStats
+            The answers computed and reused so far.
+        """
         stats = self.runner.fill(rows, workers=workers, address=address)
         log.info("teacher: computed %d answers on %d images; %d cached answers reused",
                  stats.answers_computed, stats.images_computed, stats.cache_hits)
         return stats
 
     def write(self, out: str | Path, scores: str | Path, meta: Callable[[str], Meta]) -> pd.DataFrame:
-        """Assemble teacher.zarr and teacher_scores.parquet from the cache in manifest order; returns the table."""
+        """Assemble teacher.zarr and teacher_scores.parquet from the cache, in manifest order.
+
+        A row outside :attr:`rows` gets empty masks and zero scores (``ran`` False).
+
+        Parameters
+        ----------
+        out : str or Path
+            Where teacher.zarr goes.
+        scores : str or Path
+            Where teacher_scores.parquet goes.
+        meta : callable
+            Artifact name -> its :class:`pipeline.artifacts.lineage.Meta`.
+
+        Returns
+        -------
+        pandas.DataFrame
+            The score table written (:func:`score_table`).
+        """
         n, h, w = self.shape
         prompts, vflip, k = self.prompts, vflip_prompt(self.cfg), len(self.prompts)
         ids = self.manifest["image_id"].astype(str).tolist()
@@ -141,8 +267,26 @@ class TeacherRun:
 
 def open_teacher_run(cfg: Mapping[str, Any], manifest, images, reference: str | Path,
                      device: str = "auto") -> TeacherRun:
-    """The teacher of the validated ``teacher:`` section over the opened ``manifest`` and ``images``, checked
-    to come from one run; ``reference`` (a path) is opened only for a backend whose row is marked ``simulator``."""
+    """Open the teacher of a ``teacher:`` section over a manifest's images, checked to come from one run.
+
+    Parameters
+    ----------
+    cfg : Mapping
+        The validated ``teacher:`` section.
+    manifest : pipeline.artifacts.store.Artifact
+        The opened manifest.
+    images : pipeline.artifacts.store.Artifact
+        The opened ``images`` artifact.
+    reference : str or Path
+        The ``reference`` artifact, opened only for a backend whose row is marked ``simulator``.
+    device : str, optional
+        ``auto`` (default), ``cpu`` or ``cuda``.
+
+    Returns
+    -------
+    TeacherRun
+        The teacher behind its cache, over the rows in ``teacher.splits``.
+    """
     df = manifest.df.reset_index(drop=True)
     n, h, w = images["image"].shape[:3]
     rows = [i for i, s in enumerate(df["split"].astype(str)) if s in cfg["splits"]]

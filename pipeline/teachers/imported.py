@@ -1,5 +1,7 @@
-"""Teacher answers produced elsewhere (e.g. SAM 3 on a GPU cluster) in the layout of docs/real-data.md; already
-a cache of the real teacher, so this backend bypasses the teacher cache."""
+"""Teacher answers produced elsewhere (e.g. SAM 3 on a GPU cluster) in the layout of docs/real-data.md.
+
+They are already a cache of the real teacher, so this backend bypasses the teacher cache.
+"""
 
 from __future__ import annotations
 
@@ -16,11 +18,27 @@ from pipeline.teachers.base import RegisteredTeacher, TeacherInput, files_digest
 if TYPE_CHECKING:
     import pandas as pd
 
+__all__ = ["MAX_PROMPT_INDEX", "read_mask_png", "ImportedTeacher"]
+
+#: the largest ``prompt_index`` of the scores table (int16, as teacher_scores.parquet stores it)
 MAX_PROMPT_INDEX = 32767
 
 
 def read_mask_png(path: Path, shape: tuple[int, int]) -> np.ndarray:
-    """Any-bit-depth PNG -> bool [H,W] at ``shape`` (nearest-neighbour resize when sizes differ)."""
+    """Read an imported mask: any-bit-depth PNG -> bool [H,W] at ``shape``.
+
+    Parameters
+    ----------
+    path : Path
+        The PNG (value > 0: foreground, :func:`pipeline.datasets.loading.read_mask`).
+    shape : tuple of int
+        (H, W) of the working resolution; a mask of another size is resized (nearest neighbour).
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W].
+    """
     import cv2
 
     from pipeline.datasets.loading import read_mask
@@ -32,15 +50,58 @@ def read_mask_png(path: Path, shape: tuple[int, int]) -> np.ndarray:
 
 
 class ImportedTeacher(RegisteredTeacher):
-    """Reads masks and scores from ``root`` (layout: docs/real-data.md)."""
+    """The teacher that reads masks and scores from a folder (layout: docs/real-data.md).
+
+    Attributes
+    ----------
+    root : Path
+        ``teacher.imported_dir``.
+    resolution : tuple of int
+        (H, W) of the working resolution.
+    scores_path : Path
+        Its scores table (scores.parquet, else scores.csv).
+    table : pandas.DataFrame
+        The checked scores table, indexed by (image_id, prompt, view).
+    """
 
     backend = BACKEND
 
     @classmethod
     def from_params(cls, cfg, resolution: tuple[int, int], device: str = "auto") -> "ImportedTeacher":
+        """Build the teacher of a validated ``teacher:`` section.
+
+        Parameters
+        ----------
+        cfg : Mapping
+            The validated ``teacher:`` section: its ``imported_dir`` is read.
+        resolution : tuple of int
+            (H, W) of the working resolution.
+        device : str, optional
+            Unused: nothing runs on a device.
+
+        Returns
+        -------
+        ImportedTeacher
+            The teacher.
+        """
         return cls(cfg["imported_dir"], resolution=resolution)
 
     def __init__(self, root: str | Path, resolution: tuple[int, int]):
+        """Open ``root`` and check every row of its scores table.
+
+        Parameters
+        ----------
+        root : str or Path
+            The folder (layout: docs/real-data.md).
+        resolution : tuple of int
+            (H, W) of the working resolution.
+
+        Raises
+        ------
+        InputError
+            ``root`` is not a folder, holds no scores table, or the table is unreadable, lacks a column or has a
+            bad row (naming the file and row).
+        """
         self.root = Path(root)
         self.resolution = tuple(resolution)
         if not self.root.is_dir():
@@ -63,12 +124,13 @@ class ImportedTeacher(RegisteredTeacher):
         self._fp: str | None = None
 
     def _where(self, i: int, table: pd.DataFrame | None = None) -> str:
+        """Name row ``i`` of the scores table: file, row, CSV line and, given ``table``, its image and prompt."""
         line = f", line {i + 2}" if self.scores_path.suffix == ".csv" else ""
         what = f" (image {table.at[i, 'image_id']!r}, prompt {table.at[i, 'prompt']!r})" if table is not None else ""
         return f"{self.scores_path}: row {i}{line}{what}"
 
     def _refuse_first(self, bad, table: pd.DataFrame | None, why) -> None:
-        """InputError naming the first row where ``bad`` holds; ``why(i)`` says what is wrong with row i."""
+        """Refuse the first row where ``bad`` holds: InputError naming it; ``why(i)`` says what is wrong."""
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise InputError(f"{self._where(i, table)}: {why(i)}")
@@ -116,16 +178,30 @@ class ImportedTeacher(RegisteredTeacher):
         return table
 
     def content_hash(self) -> str:
-        """sha256 over the scores table and every mask file (relative path + bytes), sorted."""
+        """Hash the imported answers: what determines them, computed once.
+
+        Returns
+        -------
+        str
+            The sha256 hex digest over the scores table and every mask file (relative path + bytes), sorted.
+        """
         if self._fp is None:
             masks = sorted((self.root / "masks").rglob("*.png")) if (self.root / "masks").is_dir() else []
             self._fp = files_digest(self.root, masks, hashlib.sha256(self.scores_path.read_bytes()))
         return self._fp
 
     def fingerprint(self) -> dict:
+        """Describe what determines the answers (:meth:`pipeline.teachers.base.Teacher.fingerprint`).
+
+        Returns
+        -------
+        dict
+            The backend, :meth:`content_hash` and the resolution.
+        """
         return {"backend": BACKEND, "content": self.content_hash(), "resolution": list(self.resolution)}
 
     def _answer(self, image_id: str, prompt: str, view: str) -> tuple[np.ndarray, float]:
+        """Read one answer: (mask, score); InputError naming a missing row or mask file."""
         try:
             row = self.table.loc[(image_id, prompt, view)]
         except KeyError:
@@ -141,7 +217,22 @@ class ImportedTeacher(RegisteredTeacher):
         return read_mask_png(path, self.resolution), score
 
     def predict(self, batch: Sequence[TeacherInput], prompts: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        """Imported answers; a ``vflip`` mask is stored flipped back, so it is flipped here for the runner to undo."""
+        """Read the imported answers of ``batch`` (eq:teacher-prediction, computed elsewhere).
+
+        A ``vflip`` mask is stored flipped back, so it is flipped here for the runner to undo.
+
+        Parameters
+        ----------
+        batch : sequence of TeacherInput
+            B images (their ids and views are read).
+        prompts : sequence of str
+            The K prompts.
+
+        Returns
+        -------
+        tuple of numpy.ndarray
+            Masks bool [B,K,H,W] and scores float32 [B,K] (:func:`pipeline.teachers.base.finalize_answers`).
+        """
         masks = np.zeros((len(batch), len(prompts), *self.resolution), bool)
         scores = np.zeros((len(batch), len(prompts)), np.float32)
         for b, item in enumerate(batch):

@@ -1,5 +1,7 @@
-"""Plan, shard, compute and collect teacher answers through the cache (the teacher stage and ``geodistill
-label``): only the answers the cache lacks are computed, here or on Ray (docs/decisions.md, "Teacher runs")."""
+"""Plan, shard, compute and collect teacher answers through the cache (the teacher stage and ``geodistill label``).
+
+Only the answers the cache lacks are computed, here or on Ray (docs/decisions.md, "Teacher runs").
+"""
 
 from __future__ import annotations
 
@@ -18,11 +20,29 @@ from pipeline.teachers.cache import TeacherCache
 from pipeline.teachers.distributed import fill_with_ray
 from pipeline.teachers.jobs import InputLoader, TeacherBuildArgs, TeacherJob, answer_job, predict_view
 
+__all__ = ["parse_shard", "shard_rows", "RunStats", "TeacherRunner", "open_runner"]
+
 log = logging.getLogger(__name__)
 
 
 def parse_shard(text: str | None) -> tuple[int, int] | None:
-    """``"i/n"`` -> (i, n) with 0 <= i < n; None passes through; InputError names ``--shard`` otherwise."""
+    """Parse ``--shard``: ``"i/n"`` -> (i, n) with 0 <= i < n.
+
+    Parameters
+    ----------
+    text : str or None
+        ``"i/n"``, or None (no sharding).
+
+    Returns
+    -------
+    tuple of int or None
+        (i, n); None for None.
+
+    Raises
+    ------
+    InputError
+        Not ``i/n`` with n >= 1 and 0 <= i < n, naming ``--shard``.
+    """
     if text is None:
         return None
     m = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", str(text))
@@ -35,12 +55,39 @@ def parse_shard(text: str | None) -> tuple[int, int] | None:
 
 
 def shard_rows(rows: Sequence[int], shard: tuple[int, int] | None) -> list[int]:
-    """The rows shard (i, n) owns: positions i, i+n, ... of ``rows`` (all rows when shard is None)."""
+    """Select the rows shard (i, n) owns.
+
+    Parameters
+    ----------
+    rows : sequence of int
+        The rows to share out.
+    shard : tuple of int or None
+        (i, n) of :func:`parse_shard`; None: every row.
+
+    Returns
+    -------
+    list of int
+        Positions i, i+n, ... of ``rows``.
+    """
     return list(rows) if shard is None else list(rows)[shard[0]::shard[1]]
 
 
 @dataclasses.dataclass
 class RunStats:
+    """What a :class:`TeacherRunner` did.
+
+    Attributes
+    ----------
+    images_computed : int
+        Images the teacher was asked about.
+    answers_computed : int
+        (image, prompt, view) answers computed.
+    cache_hits : int
+        Answers found by listing the cache at planning time.
+    cache_corrupt : int
+        Entries found corrupt at assembly (and recomputed).
+    """
+
     images_computed: int = 0
     answers_computed: int = 0
     cache_hits: int = 0      # answers found by listing at planning time
@@ -50,8 +97,32 @@ class RunStats:
 class TeacherRunner:
     """Fill the cache for some rows, then read every row's answers back.
 
-    ``image_sha``: row -> sha256; ``load``: (row, view) -> :class:`TeacherInput`; ``spec``: how the Ray
-    executor builds the teacher again.  A teacher without ``use_cache`` is asked directly."""
+    A teacher without ``use_cache`` is asked directly.
+
+    Parameters
+    ----------
+    teacher : Teacher
+        The teacher.
+    cache : TeacherCache
+        Its cache.
+    prompts : sequence of str
+        The prompts of eq:prompt-set, answered in the identity view.
+    image_sha : callable
+        Row -> the image's pixel sha256.
+    load : InputLoader
+        (row, view) -> :class:`~pipeline.teachers.base.TeacherInput`.
+    vflip_prompt : str, optional
+        The prompt also answered on the flipped image (:func:`pipeline.teachers.assemble.vflip_prompt`).
+    batch_size : int, optional
+        Images per job (at least 1).
+    spec : TeacherBuildArgs, optional
+        How the Ray executor builds the teacher again; needed with ``workers``.
+
+    Attributes
+    ----------
+    stats : RunStats
+        What the runner did.
+    """
 
     def __init__(self, teacher: Teacher, cache: TeacherCache, prompts: Sequence[str],
                  image_sha: Callable[[int], str], load: InputLoader, vflip_prompt: str | None = None,
@@ -67,14 +138,31 @@ class TeacherRunner:
         self.stats = RunStats()
 
     def requests(self) -> list[tuple[str, str]]:
-        """(prompt, view) pairs answered per image."""
+        """List the (prompt, view) pairs answered per image.
+
+        Returns
+        -------
+        list of tuple of str
+            Each prompt in the identity view, then the vflip prompt's, if any.
+        """
         req = [(p, "identity") for p in self.prompts]
         if self.vflip_prompt is not None:
             req.append((self.vflip_prompt, "vflip"))
         return req
 
     def missing(self, rows: Sequence[int]) -> dict[str, dict[int, list[str]]]:
-        """view -> row -> prompts without a cache entry, from one listing of the cache (nothing read)."""
+        """Find the answers the cache lacks, from one listing of it (nothing read); count the hits.
+
+        Parameters
+        ----------
+        rows : sequence of int
+            The rows.
+
+        Returns
+        -------
+        dict
+            View -> row -> its prompts without a cache entry (empty for a teacher without ``use_cache``).
+        """
         out: dict[str, dict[int, list[str]]] = {v: {} for v in VIEWS}
         if not self.teacher.use_cache:
             return out
@@ -89,7 +177,18 @@ class TeacherRunner:
         return out
 
     def jobs(self, todo: dict[str, dict[int, list[str]]]) -> list[TeacherJob]:
-        """The batches of ``batch_size`` rows per view that compute ``todo`` (identity first)."""
+        """Plan the batches of ``batch_size`` rows per view that compute ``todo`` (identity first).
+
+        Parameters
+        ----------
+        todo : dict
+            :meth:`missing`'s view -> row -> prompts.
+
+        Returns
+        -------
+        list of TeacherJob
+            One forward per job, over the union of its rows' missing prompts.
+        """
         jobs = []
         for view in VIEWS:
             pending = sorted(todo[view])
@@ -102,9 +201,30 @@ class TeacherRunner:
 
     def fill(self, rows: Sequence[int], workers: int = 0, address: str | None = None,
              on_batch: Callable[[int, int], None] | None = None) -> RunStats:
-        """Compute and cache every missing answer of ``rows``, here (``workers=0``) or on a Ray pool;
-        ``on_batch(images done, images to do)`` after each finished batch (a job: one view of its rows; an image
-        asked in two views counts half when one is done)."""
+        """Compute and cache every missing answer of ``rows``, here (``workers=0``) or on a Ray pool.
+
+        Parameters
+        ----------
+        rows : sequence of int
+            The rows.
+        workers : int, optional
+            Teachers in a Ray Data pool; 0 (default): serial, the same answers.
+        address : str, optional
+            The Ray cluster to join with ``workers``.
+        on_batch : callable, optional
+            ``on_batch(images done, images to do)`` after each finished batch (a job: one view of its rows; an
+            image asked in two views counts half when one is done).
+
+        Returns
+        -------
+        RunStats
+            :attr:`stats`, updated.
+
+        Raises
+        ------
+        ValueError
+            ``workers > 0`` for a runner built without ``spec``.
+        """
         if not self.teacher.use_cache:
             return self.stats
         todo = self.missing(rows)
@@ -138,8 +258,18 @@ class TeacherRunner:
         return self.stats
 
     def answers(self, row: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, float | None]:
-        """(masks bool [K,H,W], scores float32 [K], vflip mask or None, vflip score or None) of one row;
-        an entry missing or corrupt here is computed on the spot."""
+        """Read one row's answers; an entry missing or corrupt here is computed on the spot.
+
+        Parameters
+        ----------
+        row : int
+            The row.
+
+        Returns
+        -------
+        tuple
+            (masks bool [K,H,W], scores float32 [K], vflip mask or None, vflip score or None).
+        """
         results: dict[tuple[str, str], tuple[np.ndarray, float]] = {}
         if self.teacher.use_cache:
             sha = self.image_sha(row)
@@ -171,8 +301,29 @@ class TeacherRunner:
 
 def open_runner(cfg: Mapping[str, Any], resolution: tuple[int, int], device: str, load: InputLoader,
                 shas: Sequence[str], vflip_prompt: str | None = None) -> tuple[TeacherRunner, str]:
-    """(runner, fingerprint) of the teacher of the validated ``teacher:`` section ``cfg``; images per job:
-    ``teacher.batch_size``, or with 0 the backend's own unit or 2."""
+    """Build the teacher of a validated ``teacher:`` section behind its cache.
+
+    Parameters
+    ----------
+    cfg : Mapping
+        The validated ``teacher:`` section; images per job: ``teacher.batch_size``, or with 0 the backend's
+        own ``runner_batch_size`` (else 2).
+    resolution : tuple of int
+        (H, W) of the working resolution.
+    device : str
+        ``auto``, ``cpu`` or ``cuda``.
+    load : InputLoader
+        (row, view) -> :class:`~pipeline.teachers.base.TeacherInput`.
+    shas : sequence of str
+        Each row's pixel sha256.
+    vflip_prompt : str, optional
+        The prompt also answered on the flipped image.
+
+    Returns
+    -------
+    tuple of (TeacherRunner, str)
+        The runner and the teacher's fingerprint.
+    """
     spec = TeacherBuildArgs(dict(cfg), tuple(resolution), device)
     teacher = spec.build()
     t_fp = teacher_fingerprint(teacher)

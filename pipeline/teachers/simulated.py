@@ -1,5 +1,7 @@
-"""A SIMULATOR of a six-prompt foundation teacher's errors (eq:teacher-prediction), for the synthetic benchmark
-only: it degrades the synthetic ground truth one persona per prompt (docs/decisions.md, "The simulated teacher")."""
+"""A SIMULATOR of a six-prompt foundation teacher's errors (eq:teacher-prediction), for the synthetic benchmark only.
+
+It degrades the synthetic ground truth, one persona per prompt (docs/decisions.md, "The simulated teacher").
+"""
 
 from __future__ import annotations
 
@@ -12,16 +14,24 @@ import numpy as np
 
 from pipeline.runtime.errors import InputError
 from pipeline.metrics import image_iou
+from pipeline.params import PAPER
 from pipeline.teacher_table import SIMULATED as BACKEND
 from pipeline.teachers.base import RegisteredTeacher, TeacherInput, finalize_answers
 
+__all__ = ["SIMULATOR_VERSION", "BUS", "PANEL", "THIN", "DISH", "PAYLOAD", "MODES", "Persona", "PERSONAS",
+           "HARD_CASE_MODES", "GENERIC_PERSONA", "SimulatorConfig", "dilate", "erode", "open_mask", "drop_thin",
+           "bus_only", "bright_region", "glare_blob", "scale_difficulty", "scene_difficulty", "SceneDraw", "MISS",
+           "PromptDraw", "SimulatedFoundationTeacher", "persona_for"]
+
 log = logging.getLogger(__name__)
 
+#: the simulator's version, in its fingerprint: a change of its draws or constants gets a new one
 SIMULATOR_VERSION = 1
 
-# parts codes of reference.zarr `parts`
+#: parts codes of reference.zarr ``parts``
 BUS, PANEL, THIN, DISH, PAYLOAD = 1, 2, 3, 4, 5
 
+#: the failure modes of an answer (``clean``: the ground truth itself)
 MODES = ("clean", "dilate", "erode", "drop_thin", "bus_only", "false_positive", "wrong_object")
 
 
@@ -29,10 +39,26 @@ MODES = ("clean", "dilate", "erode", "drop_thin", "bus_only", "false_positive", 
 class Persona:
     """Failure profile of one prompt.
 
-    P(miss) = ``miss + miss_slope * d``; ``modes`` weigh the failure modes on an easy image, ``hard_modes``
-    add weight per unit difficulty; ``boundary_frac``: boundary bias of dilate/erode as a fraction of the
-    object's equivalent radius; ``survivor``: P(still answers in a breakdown); ``shares``: P(takes part
-    in an image's shared error).
+    Attributes
+    ----------
+    name : str
+        The persona's name.
+    miss : float
+        P(miss) on an easy image: P(miss) = ``miss + miss_slope * d``, d the scene difficulty.
+    miss_slope : float
+        P(miss)'s increase per unit difficulty.
+    modes : Mapping
+        Weights of the failure modes (:data:`MODES`) on an easy image.
+    hard_modes : Mapping
+        Weight added to each mode per unit difficulty.
+    boundary_frac : float
+        Boundary bias of dilate/erode as a fraction of the object's equivalent radius.
+    survivor : float
+        P(still answers in a breakdown).
+    shares : float
+        P(takes part in an image's shared error).
+    score_bias : float
+        Added to the answer's score.
     """
 
     name: str
@@ -47,11 +73,12 @@ class Persona:
 
 
 def _m(**kw) -> dict[str, float]:
+    """Return a weight for every mode of :data:`MODES`, 0 where ``kw`` gives none."""
     return {m: float(kw.get(m, 0.0)) for m in MODES}
 
 
-# One persona per prompt of eq:prompt-set: the category-level prompts are the least specific, the
-# structural ones describe the full silhouette best.
+#: one persona per prompt of eq:prompt-set: the category-level prompts are the least specific, the
+#: structural ones describe the full silhouette best
 PERSONAS: dict[str, Persona] = {
     "spacecraft": Persona(
         "spacecraft", miss=0.06, miss_slope=0.15,
@@ -78,7 +105,7 @@ PERSONAS: dict[str, Persona] = {
         modes=_m(clean=6.0, dilate=1.5, erode=0.5, drop_thin=0.4, bus_only=0.2, false_positive=1.5, wrong_object=0.5),
         hard_modes=_m(false_positive=1.5, wrong_object=0.8, drop_thin=0.5), survivor=0.12),
 }
-# Scene hard cases of the synthetic benchmark that favour particular failure modes (added weights).
+#: scene hard cases of the synthetic benchmark that favour particular failure modes (added weights)
 HARD_CASE_MODES: dict[str, dict[str, float]] = {
     "glare": {"false_positive": 1.5, "wrong_object": 0.5},
     "flare": {"false_positive": 1.5, "wrong_object": 0.5},
@@ -87,6 +114,7 @@ HARD_CASE_MODES: dict[str, dict[str, float]] = {
     "noise": {"dilate": 0.5, "erode": 0.5},
 }
 
+#: the persona of a prompt outside eq:prompt-set
 GENERIC_PERSONA = Persona(
     "generic", miss=0.25, miss_slope=0.35,
     modes=_m(clean=2.0, dilate=1.0, erode=1.0, drop_thin=1.0, bus_only=0.8, false_positive=0.8, wrong_object=1.0),
@@ -95,7 +123,38 @@ GENERIC_PERSONA = Persona(
 
 @dataclasses.dataclass(frozen=True)
 class SimulatorConfig:
-    """Image-level constants of the simulator (part of its fingerprint through SIMULATOR_VERSION)."""
+    """Image-level constants of the simulator (part of its fingerprint through :data:`SIMULATOR_VERSION`).
+
+    The scene difficulty is d = clip(w_scale * scale + w_hard_case * hard case + w_bright_background * bright
+    background + w_noise * (noise - 0.5), 0, 1) (:func:`scene_difficulty`).
+
+    Attributes
+    ----------
+    easy_area : float
+        Area fraction at and above which scale adds no difficulty.
+    hard_area : float
+        Area fraction at and below which the scale difficulty is 1.
+    w_scale : float
+        d's weight of the scale difficulty.
+    w_hard_case : float
+        d's weight of a hard case.
+    w_bright_background : float
+        d's weight of a bright background (Earth, limb, planet, moon, cloud).
+    w_noise : float
+        d's weight of the image's uniform noise draw, centred.
+    breakdown_base : float
+        P(breakdown) = base + slope * d (clipped to [0, 0.95]).
+    breakdown_slope : float
+        See ``breakdown_base``.
+    shared_thin_base : float
+        P(shared thin-structure loss) = base + slope * scale difficulty.
+    shared_thin_slope : float
+        See ``shared_thin_base``.
+    shared_fp_base : float
+        P(shared glare / Earth-limb region) = base + slope * d.
+    shared_fp_slope : float
+        See ``shared_fp_base``.
+    """
 
     easy_area: float = 0.10          # area fraction at and above which scale adds no difficulty
     hard_area: float = 0.004         # area fraction at and below which scale difficulty is 1
@@ -112,12 +171,13 @@ class SimulatorConfig:
 
 
 def _rng(*parts: Any) -> np.random.Generator:
-    """numpy Generator seeded by sha256 over the string forms of ``parts``."""
+    """Return a numpy Generator seeded by sha256 over the string forms of ``parts``."""
     h = hashlib.sha256("\x1f".join(str(p) for p in parts).encode()).digest()
     return np.random.Generator(np.random.PCG64(int.from_bytes(h[:16], "little")))
 
 
 def _morph(op: str, mask: np.ndarray, radius: int) -> np.ndarray:
+    """Apply cv2's ``op`` with an elliptical element of ``radius`` px (radius 0: a copy)."""
     import cv2
 
     if radius <= 0:
@@ -128,23 +188,79 @@ def _morph(op: str, mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
-    """Boundary pushed outwards by ``radius`` px (elliptical structuring element); radius 0 = identity."""
+    """Push the boundary outwards by ``radius`` px (elliptical structuring element).
+
+    Parameters
+    ----------
+    mask : numpy.ndarray
+        bool [H,W].
+    radius : int
+        Pixels; 0: the identity.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W].
+    """
     return _morph("dilate", mask, radius)
 
 
 def erode(mask: np.ndarray, radius: int) -> np.ndarray:
-    """Boundary pulled inwards by ``radius`` px; radius 0 = identity."""
+    """Pull the boundary inwards by ``radius`` px (elliptical structuring element).
+
+    Parameters
+    ----------
+    mask : numpy.ndarray
+        bool [H,W].
+    radius : int
+        Pixels; 0: the identity.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W].
+    """
     return _morph("erode", mask, radius)
 
 
 def open_mask(mask: np.ndarray, radius: int) -> np.ndarray:
-    """Morphological opening: removes structures thinner than ~2*radius px."""
+    """Open the mask morphologically: remove structures thinner than about 2 * radius px.
+
+    Parameters
+    ----------
+    mask : numpy.ndarray
+        bool [H,W].
+    radius : int
+        Pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W], within ``mask``.
+    """
     return dilate(erode(mask, radius), radius) & mask
 
 
 def drop_thin(mask: np.ndarray, parts: np.ndarray | None, radius: int, drop_dish: bool) -> np.ndarray:
-    """Mask without thin appendages (booms and, with ``drop_dish``, dishes); without part labels, an
-    opening of ``radius`` px instead."""
+    """Remove thin appendages: booms and, with ``drop_dish``, dishes.
+
+    Parameters
+    ----------
+    mask : numpy.ndarray
+        bool [H,W].
+    parts : numpy.ndarray or None
+        The parts codes [H,W] (:data:`THIN`, :data:`DISH`, ...); without thin parts (or None), an opening of
+        ``radius`` px instead.
+    radius : int
+        The opening's radius.
+    drop_dish : bool
+        Remove dishes too.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W]; ``mask`` itself (a copy) when nothing would be left.
+    """
     if parts is not None and (parts == THIN).any():
         out = mask & ~np.isin(parts, (THIN, DISH) if drop_dish else (THIN,))
     else:
@@ -153,7 +269,20 @@ def drop_thin(mask: np.ndarray, parts: np.ndarray | None, radius: int, drop_dish
 
 
 def bus_only(mask: np.ndarray, parts: np.ndarray | None) -> np.ndarray:
-    """Only the spacecraft bus (+ payload); without parts, a strong opening keeps the compact core."""
+    """Keep only the spacecraft bus (and payload).
+
+    Parameters
+    ----------
+    mask : numpy.ndarray
+        bool [H,W].
+    parts : numpy.ndarray or None
+        The parts codes [H,W]; without (or with no bus), a strong opening keeps the compact core.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W].
+    """
     if parts is not None:
         core = mask & np.isin(parts, (BUS, PAYLOAD))
         if core.any():
@@ -165,8 +294,23 @@ def bus_only(mask: np.ndarray, parts: np.ndarray | None) -> np.ndarray:
 
 
 def bright_region(image: np.ndarray, exclude: np.ndarray, min_fraction: float = 0.01) -> np.ndarray:
-    """Largest connected region outside ``exclude`` with luminance >= max(120, its 90th percentile)
-    (the Earth limb or a glare patch); empty when it covers less than ``min_fraction`` of the frame."""
+    """Find the largest bright region outside ``exclude``: the Earth limb or a glare patch.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        uint8 [H,W,3].
+    exclude : numpy.ndarray
+        bool [H,W]: where the region may not lie.
+    min_fraction : float, optional
+        The smallest share of the frame it may cover.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W]: the largest 8-connected region with luminance >= max(120, its 90th percentile outside
+        ``exclude``); empty when it covers less than ``min_fraction`` of the frame.
+    """
     import cv2
 
     lum = image.astype(np.float32).mean(axis=-1)
@@ -184,8 +328,23 @@ def bright_region(image: np.ndarray, exclude: np.ndarray, min_fraction: float = 
 
 
 def glare_blob(mask: np.ndarray, rng: np.random.Generator, attached: bool) -> np.ndarray:
-    """An elliptical glare blob: ``attached`` touches the object's boundary (a flare on the hull),
-    otherwise it lies elsewhere in the frame (a reflection or star-tracker ghost)."""
+    """Draw an elliptical glare blob.
+
+    Parameters
+    ----------
+    mask : numpy.ndarray
+        bool [H,W]: the object.
+    rng : numpy.random.Generator
+        The draws.
+    attached : bool
+        The blob touches the object's boundary (a flare on the hull); otherwise it lies elsewhere in the frame
+        (a reflection or star-tracker ghost).
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [H,W].
+    """
     h, w = mask.shape
     n = max(np.count_nonzero(mask), 1)
     r_obj = np.sqrt(n / np.pi)
@@ -205,6 +364,7 @@ def glare_blob(mask: np.ndarray, rng: np.random.Generator, attached: bool) -> np
 
 
 def _truthy(x: Any) -> bool:
+    """Read a manifest flag: empty, 0, false, no, none, nan and NaN are False."""
     if isinstance(x, str):
         return x.strip().lower() not in ("", "0", "false", "no", "none", "nan")
     try:
@@ -214,7 +374,20 @@ def _truthy(x: Any) -> bool:
 
 
 def scale_difficulty(area_fraction: float, cfg: SimulatorConfig = SimulatorConfig()) -> float:
-    """0 for targets covering >= ``easy_area`` of the frame, 1 at <= ``hard_area``, log-linear between."""
+    """Rate how hard a target's size makes it.
+
+    Parameters
+    ----------
+    area_fraction : float
+        The share of the frame the target covers.
+    cfg : SimulatorConfig, optional
+        The constants (``easy_area``, ``hard_area``).
+
+    Returns
+    -------
+    float
+        0 for targets covering >= ``easy_area`` of the frame, 1 at <= ``hard_area``, log-linear between.
+    """
     a = max(float(area_fraction), 1e-8)
     t = (np.log(cfg.easy_area) - np.log(a)) / (np.log(cfg.easy_area) - np.log(cfg.hard_area))
     return float(np.clip(t, 0.0, 1.0))
@@ -222,7 +395,29 @@ def scale_difficulty(area_fraction: float, cfg: SimulatorConfig = SimulatorConfi
 
 def scene_difficulty(area_fraction: float, hard_case: bool, bright_background: bool, noise: float,
                      cfg: SimulatorConfig = SimulatorConfig()) -> float:
-    """d = clip(w_scale*scale + w_hard*hard_case + w_bg*bright_background + w_noise*(noise - 0.5), 0, 1)."""
+    """Rate an image's difficulty d for the simulated teacher.
+
+    d = clip(w_scale * scale + w_hard_case * hard_case + w_bright_background * bright_background
+    + w_noise * (noise - 0.5), 0, 1), scale = :func:`scale_difficulty`.
+
+    Parameters
+    ----------
+    area_fraction : float
+        The share of the frame the target covers.
+    hard_case : bool
+        The scene is a hard case.
+    bright_background : bool
+        The background is bright (Earth, limb, ...).
+    noise : float
+        A uniform draw in [0, 1).
+    cfg : SimulatorConfig, optional
+        The weights.
+
+    Returns
+    -------
+    float
+        d in [0, 1].
+    """
     d = (cfg.w_scale * scale_difficulty(area_fraction, cfg) + cfg.w_hard_case * float(hard_case)
          + cfg.w_bright_background * float(bright_background) + cfg.w_noise * (noise - 0.5))
     return float(np.clip(d, 0.0, 1.0))
@@ -230,7 +425,23 @@ def scene_difficulty(area_fraction: float, hard_case: bool, bright_background: b
 
 @dataclasses.dataclass
 class SceneDraw:
-    """Image-level draws, shared by all prompts (and both views) of one image."""
+    """Image-level draws, shared by all prompts (and both views) of one image.
+
+    Attributes
+    ----------
+    difficulty : float
+        d (:func:`scene_difficulty`).
+    scale : float
+        The scale difficulty (:func:`scale_difficulty`).
+    breakdown : bool
+        The teacher breaks down on this image: most prompts miss.
+    shared_thin : bool
+        Thin structures are lost by several prompts.
+    shared_fp : bool
+        One glare / Earth-limb region is included by several prompts.
+    shared_fp_seed : int
+        Seeds the shared glare blob.
+    """
 
     difficulty: float
     scale: float
@@ -248,10 +459,20 @@ MISS = "miss"
 class PromptDraw:
     """What the SIMULATOR drew for one (image, prompt) answer, beside the answer itself.
 
-    ``mode``: one of :data:`MODES`, or :data:`MISS`; ``radius``: the dilate/erode radius in px (drawn for every
-    answered mode, used by ``dilate`` and ``erode`` only); ``shared_thin`` / ``shared_fp``: this answer took part in
-    the image's shared thin-structure loss / shared glare region (:class:`SceneDraw`); ``jitter``: the independent
-    boundary jitter in px (> 0 dilates, < 0 erodes, 0 none).  An answered mode may still end empty (score 0).
+    An answered mode may still end empty (score 0).
+
+    Attributes
+    ----------
+    mode : str
+        One of :data:`MODES`, or :data:`MISS`.
+    radius : int
+        The dilate/erode radius in px (drawn for every answered mode, used by ``dilate`` and ``erode`` only).
+    shared_thin : bool
+        This answer took part in the image's shared thin-structure loss (:class:`SceneDraw`).
+    shared_fp : bool
+        This answer took part in the image's shared glare region (:class:`SceneDraw`).
+    jitter : int
+        The independent boundary jitter in px (> 0 dilates, < 0 erodes, 0 none).
     """
 
     mode: str
@@ -262,25 +483,73 @@ class PromptDraw:
 
 
 class SimulatedFoundationTeacher(RegisteredTeacher):
-    """SIMULATOR of a six-prompt foundation teacher: answers from the synthetic ground truth, degraded."""
+    """SIMULATOR of a six-prompt foundation teacher: answers from the synthetic ground truth, degraded.
+
+    Its answers need each image's reference mask (:attr:`pipeline.teachers.base.TeacherInput.reference`): it is
+    never a real teacher, and its numbers are labelled SIMULATOR.
+
+    Parameters
+    ----------
+    seed : int, optional
+        ``teacher.seed``: seeds every draw (with the image's sha256, the prompt and :data:`SIMULATOR_VERSION`).
+    resolution : tuple of int, optional
+        (H, W) of the working resolution, recorded in the fingerprint.
+    config : SimulatorConfig, optional
+        The image-level constants.
+    """
 
     backend = BACKEND
 
     @classmethod
     def from_params(cls, cfg, resolution: tuple[int, int], device: str = "auto") -> "SimulatedFoundationTeacher":
+        """Build the SIMULATOR of a validated ``teacher:`` section.
+
+        Parameters
+        ----------
+        cfg : Mapping
+            The validated ``teacher:`` section: its ``seed`` is read.
+        resolution : tuple of int
+            (H, W) of the working resolution.
+        device : str, optional
+            Unused: it runs on the CPU.
+
+        Returns
+        -------
+        SimulatedFoundationTeacher
+            The SIMULATOR.
+        """
         return cls(seed=cfg["seed"], resolution=resolution)
 
-    def __init__(self, seed: int = 0, resolution: tuple[int, int] | None = None,
+    def __init__(self, seed: int = PAPER.teacher.seed, resolution: tuple[int, int] | None = None,
                  config: SimulatorConfig = SimulatorConfig()):
         self.seed = int(seed)
         self.resolution = tuple(resolution) if resolution is not None else None
         self.config = config
 
     def fingerprint(self) -> dict:
+        """Describe what determines the answers (:meth:`pipeline.teachers.base.Teacher.fingerprint`).
+
+        Returns
+        -------
+        dict
+            The backend, ``simulator: True``, :data:`SIMULATOR_VERSION`, the seed and the resolution.
+        """
         return {"backend": BACKEND, "simulator": True, "simulator_version": SIMULATOR_VERSION,
                 "seed": self.seed, "resolution": list(self.resolution) if self.resolution else None}
 
     def scene(self, item: TeacherInput) -> SceneDraw:
+        """Draw an image's scene: its difficulty and the errors its prompts share.
+
+        Parameters
+        ----------
+        item : TeacherInput
+            The image, with its reference mask and extras (``area_fraction``, ``hard_case``, ``background``).
+
+        Returns
+        -------
+        SceneDraw
+            The draws, seeded by the image's sha256 and the seed (the same in both views).
+        """
         cfg = self.config
         gt = np.asarray(item.reference["mask"], dtype=bool)
         ex = item.extras or {}
@@ -299,13 +568,27 @@ class SimulatedFoundationTeacher(RegisteredTeacher):
         return SceneDraw(d, scale, bool(breakdown), bool(shared_thin), bool(shared_fp), int(rng.integers(2**31)))
 
     def _prompt_draw(self, item: TeacherInput, prompt: str, what: str) -> float:
-        """A view-independent uniform draw for (image, prompt): other prompts never change this one's answer."""
+        """Draw a view-independent uniform number for (image, prompt): other prompts never change this one's."""
         return float(_rng(what, item.image_sha256, prompt, self.seed, SIMULATOR_VERSION).random())
 
     def answer_with_draw(self, item: TeacherInput, prompt: str, scene: SceneDraw
                          ) -> tuple[np.ndarray, float, PromptDraw]:
-        """One (mask, score) answer of the simulated teacher, and what it drew (:class:`PromptDraw`); score 0 and an
-        empty mask for a miss."""
+        """Answer one prompt for one image, and say what was drawn.
+
+        Parameters
+        ----------
+        item : TeacherInput
+            The image in its view, with its reference mask (and optional parts).
+        prompt : str
+            The prompt (its persona: :func:`persona_for`).
+        scene : SceneDraw
+            The image's scene draws (:meth:`scene`).
+
+        Returns
+        -------
+        tuple of (numpy.ndarray, float, PromptDraw)
+            The mask bool [H,W], the score (0 and an empty mask for a miss) and what it drew.
+        """
         gt = np.asarray(item.reference["mask"], dtype=bool)
         parts = item.reference.get("parts")
         parts = None if parts is None else np.asarray(parts)
@@ -358,6 +641,7 @@ class SimulatedFoundationTeacher(RegisteredTeacher):
 
     @staticmethod
     def _apply(mode: str, gt, parts, image, rng: np.random.Generator, r: int, scene: SceneDraw) -> np.ndarray:
+        """Apply failure mode ``mode`` to the ground truth ``gt``; ValueError for an unknown mode."""
         if mode == "clean":
             return gt.copy()
         if mode == "dilate":
@@ -382,14 +666,45 @@ class SimulatedFoundationTeacher(RegisteredTeacher):
         raise ValueError(f"unknown simulator mode {mode!r}")
 
     def predict(self, batch: Sequence[TeacherInput], prompts: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        """Answers of the SIMULATOR: masks bool [B,K,H,W], scores float32 [B,K] (0 = invalid)."""
+        """Answer every prompt for every image (eq:teacher-prediction, simulated).
+
+        Parameters
+        ----------
+        batch : sequence of TeacherInput
+            B images, each with its reference mask.
+        prompts : sequence of str
+            The K prompts.
+
+        Returns
+        -------
+        tuple of numpy.ndarray
+            Masks bool [B,K,H,W] and scores float32 [B,K] (0 = invalid), as :meth:`predict_with_draws`.
+        """
         masks, scores, _ = self.predict_with_draws(batch, prompts)
         return masks, scores
 
     def predict_with_draws(self, batch: Sequence[TeacherInput], prompts: Sequence[str]
                            ) -> tuple[np.ndarray, np.ndarray, list[tuple[SceneDraw, list[PromptDraw]]]]:
-        """:meth:`predict`'s (masks, scores) and, per image, its :class:`SceneDraw` and one :class:`PromptDraw` per
-        prompt (``prompts`` order): what each answer drew, for diagnostics (``benchmarks/memorisation.py``)."""
+        """Answer as :meth:`predict` does, and say what each answer drew (diagnostics: benchmarks/memorisation.py).
+
+        Parameters
+        ----------
+        batch : sequence of TeacherInput
+            B images, each with its reference mask.
+        prompts : sequence of str
+            The K prompts.
+
+        Returns
+        -------
+        tuple
+            Masks bool [B,K,H,W], scores float32 [B,K] (:func:`pipeline.teachers.base.finalize_answers`) and,
+            per image, its :class:`SceneDraw` and one :class:`PromptDraw` per prompt (``prompts`` order).
+
+        Raises
+        ------
+        InputError
+            An image has no reference mask, or one of another size.
+        """
         if not batch:
             return np.zeros((0, len(prompts), 0, 0), bool), np.zeros((0, len(prompts)), np.float32), []
         out_masks, out_scores, out_draws = [], [], []
@@ -410,5 +725,16 @@ class SimulatedFoundationTeacher(RegisteredTeacher):
 
 
 def persona_for(prompt: str) -> Persona:
-    """The persona of a prompt of eq:prompt-set; any other prompt gets the generic persona."""
+    """Return the persona of a prompt of eq:prompt-set.
+
+    Parameters
+    ----------
+    prompt : str
+        A prompt (case and surrounding blanks ignored).
+
+    Returns
+    -------
+    Persona
+        Its persona of :data:`PERSONAS`; any other prompt gets :data:`GENERIC_PERSONA`.
+    """
     return PERSONAS.get(prompt.strip().lower(), GENERIC_PERSONA)

@@ -1,5 +1,8 @@
-"""Where a training run's per-epoch resume state lives (:class:`Checkpointer`): nowhere, or on disk in the train
-stage's resume folder (torch imported lazily: the stages start without it)."""
+"""Where a training run's per-epoch resume state lives (:class:`Checkpointer`).
+
+Nowhere (:class:`NoCheckpointer`), or on disk in the train stage's resume folder (:class:`FileCheckpointer`;
+torch imported lazily: the stages start without it).
+"""
 
 from __future__ import annotations
 
@@ -9,6 +12,8 @@ from pathlib import Path
 from typing import Any, Mapping, Protocol
 
 from pipeline.catalog import RESUME_STATE_FILE as STATE_FILE
+
+__all__ = ["Checkpointer", "NoCheckpointer", "FileCheckpointer"]
 
 log = logging.getLogger(__name__)
 
@@ -24,7 +29,8 @@ class Checkpointer(Protocol):
         run_key : Mapping
             The run's key: what a state must have been saved under to be resumed (the method, seed, epochs,
             training image ids, threads, autocast dtype and, under ``until: plateau``, the stopping rule).  A
-            checkpointer may return a state of another key; :func:`train` compares the keys.
+            checkpointer may return a state of another key; :func:`pipeline.training.loop.train` compares the
+            keys.
 
         Returns
         -------
@@ -76,16 +82,39 @@ class NoCheckpointer:
 
 
 class FileCheckpointer:
-    """Per-epoch resume state in ``<directory>/state.pt``, replaced atomically."""
+    """Per-epoch resume state in ``<directory>/state.pt``, replaced atomically.
+
+    Parameters
+    ----------
+    directory : str or Path
+        The resume folder (made at the first save).
+
+    Attributes
+    ----------
+    directory : Path
+        The resume folder.
+    """
 
     def __init__(self, directory: str | Path):
         self.directory = Path(directory)
 
     def __repr__(self) -> str:
+        """Return the resume folder's path (the train stage's log names the checkpointer by it)."""
         return str(self.directory)
 
     def load(self, run_key: Mapping[str, Any]) -> dict | None:
-        """The saved state, or None when there is none or it cannot be read."""
+        """Load the saved state (torch ``weights_only``: nothing loaded executes code).
+
+        Parameters
+        ----------
+        run_key : Mapping
+            The run's key (unread here: :func:`pipeline.training.loop.train` compares it with the state's).
+
+        Returns
+        -------
+        dict or None
+            The state last saved, on the CPU; None when there is none or it cannot be read (a warning says so).
+        """
         import torch
 
         path = self.directory / STATE_FILE
@@ -98,6 +127,13 @@ class FileCheckpointer:
             return None
 
     def save(self, state: dict) -> None:
+        """Save ``state`` in the folder (:data:`pipeline.catalog.RESUME_STATE_FILE`), replacing the last atomically.
+
+        Parameters
+        ----------
+        state : dict
+            The complete resume state (:meth:`Checkpointer.save`).
+        """
         import torch
 
         self.directory.mkdir(parents=True, exist_ok=True)

@@ -40,6 +40,10 @@ from pipeline.training.settings import Settings
 from pipeline.training.streaming import LazyRows, RowSource, prefetch, spill_rows
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
 
+__all__ = ["LOG_TERMS", "LOG_COLUMNS", "TIMING_COLUMNS", "BUDGET_PARAMS", "STATE_VERSION", "ANCHOR_BATCH",
+           "TrainData", "ValData", "TrainResult", "build_model", "validation_scores", "validate", "validation_read",
+           "epoch_batches_in_order", "select", "train"]
+
 log = logging.getLogger(__name__)
 
 #: loss-term columns of the training log (NaN where a method does not use the term)
@@ -50,6 +54,7 @@ LOG_COLUMNS = ("epoch", "stage", "loss", *LOG_TERMS, "val_iou", "val_bf1", "val_
 TIMING_COLUMNS = ("epoch", "seconds")
 #: params that only bound a ``train.until: plateau`` run: a run under another budget resumes the same state
 BUDGET_PARAMS = ("train.step_budget", "train.time_budget")
+#: the layout of the resume state (:func:`train`'s checkpointer): a state of another version is not resumed
 STATE_VERSION = 1
 
 
@@ -127,7 +132,7 @@ def _streaming(t: Mapping[str, torch.Tensor | RowSource]) -> bool:
 
 
 def _take(v: torch.Tensor | RowSource, idx: torch.Tensor) -> torch.Tensor:
-    """``v[idx]`` on ``idx``'s device."""
+    """Return ``v[idx]`` on ``idx``'s device (a row source's rows read from disk)."""
     if isinstance(v, RowSource):
         return torch.from_numpy(v[idx.cpu().numpy()]).to(idx.device)
     return v[idx]
@@ -135,7 +140,7 @@ def _take(v: torch.Tensor | RowSource, idx: torch.Tensor) -> torch.Tensor:
 
 def _batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor | None,
            channels_last: bool) -> dict[str, torch.Tensor]:
-    """One batch: images float [B,3,H,W] in [0,1], pixel targets float [B,1,H,W], ``area`` and ``gate`` [B]."""
+    """Build one batch: images float [B,3,H,W] in [0,1], pixel targets float [B,1,H,W], ``area``, ``gate`` [B]."""
     x = _take(t["image"], idx).permute(0, 3, 1, 2).float().div_(255.0)
     x = x.contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
     b = {"x": x, "area": t["area"][idx], "gate": t["gate"][idx]}
@@ -163,6 +168,7 @@ def _augmented_batch(run: _Run, idx: np.ndarray, epoch: int) -> dict[str, torch.
 
 
 def _has_val(val: ValData | None) -> bool:
+    """Tell whether there are validation images."""
     return val is not None and len(val) > 0
 
 
@@ -309,6 +315,7 @@ class _Run:
 
     @property
     def steps_per_epoch(self) -> int:
+        """Optimizer steps per epoch (the last batch may be short)."""
         return steps_per_epoch(self.n_train, self.settings.batch_size)
 
     @property
@@ -318,6 +325,7 @@ class _Run:
 
 
 def _cpu_state(model) -> dict:
+    """Copy ``model``'s state dict to the CPU, detached."""
     return {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}
 
 
@@ -412,7 +420,7 @@ def _anchor_probs(frozen, images: np.ndarray | RowSource, device: torch.device, 
 
 
 def _resume(run: _Run, checkpointer: Checkpointer) -> int:
-    """Restore this run's saved state; the first epoch still to train (1 without one)."""
+    """Restore this run's saved state; return the first epoch still to train (1 without one)."""
     state = checkpointer.load(run.run_key)
     if state is None or state.get("version") != STATE_VERSION:
         return 1
@@ -509,6 +517,7 @@ def _average(run: _Run, epoch: int) -> None:
 
 
 def _empty_row(run: _Run, epoch: int) -> dict:
+    """Start epoch ``epoch``'s log row: every loss term and the lr NaN."""
     return {"epoch": epoch, "stage": run.method.stage, "loss": float("nan"),
             **{k: float("nan") for k in LOG_TERMS}, "lr": float("nan")}
 
@@ -607,12 +616,28 @@ def _step(run: _Run, b: Mapping[str, torch.Tensor], epoch: int, step: int) -> di
 
 def _epoch_batches(run: _Run, epoch: int):
     """Yield the epoch's (size, batch) pairs in a ``[seed, epoch]`` order; streamed data read two batches ahead."""
-    batches = _epoch_batches_in_order(run, epoch)
+    batches = epoch_batches_in_order(run, epoch)
     return prefetch(batches, depth=2) if _streaming(run.tensors) else batches
 
 
-def _epoch_batches_in_order(run: _Run, epoch: int):
-    """:func:`_epoch_batches` without the prefetching thread; the order and flips go to the device once."""
+def epoch_batches_in_order(run: _Run, epoch: int):
+    """Yield an epoch's batches in the order ``[seed, epoch]`` draws, without a prefetching thread.
+
+    The order and flips go to the device once.  The epoch loop reads its batches through this module's name,
+    so a benchmark may bound an epoch by replacing it (benchmarks/bench_memory.py, ``--max-batches``).
+
+    Parameters
+    ----------
+    run : _Run
+        The run: its seed, settings (batch size, ``augment``, ``hflip``, ``channels_last``) and tensors.
+    epoch : int
+        The epoch, 1-based: with the seed, it seeds the batch order, the flips and the augmentation.
+
+    Yields
+    ------
+    tuple of (int, dict)
+        (images in the batch, the batch as :func:`_batch` builds it) for each batch of the epoch.
+    """
     n, bs = run.n_train, run.settings.batch_size
     order = np.random.default_rng([run.seed, epoch]).permutation(n)
     if run.settings.augment is not None:  # it replaces augment_hflip
