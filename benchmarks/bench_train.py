@@ -3,7 +3,7 @@
 ``--sizes`` side and ``distill``'s batch size, each epoch timed round-robin (medians and minima, absolute seconds);
 then a profile of one step at ``--profile-size``: FLOPs per step against the host's measured matmul peak
 (:func:`benchmarks.common.host_limits`) and where the step's time goes (data, augmentation, normalisation, forward,
-loss, backward, optimizer).  Both variants train the loop's own epochs (:func:`pipeline.training.loop._train_epoch`)
+loss, backward, optimizer).  Both variants train the loop's own epochs (:func:`pipeline.training.loop.train_epoch`)
 on an in-memory synthetic set (ellipse + bar on noise), with ``distill``'s augmentation; only the precision and the
 memory format differ.  ``--compile`` adds ``distill``'s settings with ``torch.compile`` of the model's training
 forward (and so its backward), and reports its final loss beside eager's; ``--epochs N`` trains each variant N
@@ -80,7 +80,7 @@ def variants(overrides: list[str] = ()) -> dict[str, dict]:
 
 def open_run(cfg: Mapping[str, Any], data: TrainData, device, seed: int, compiled: bool = False):
     """A training run of ``plain`` set up as :func:`pipeline.training.loop.train` sets it up (``compiled``: its
-    model's ``forward_train`` through ``torch.compile``), ready for :func:`pipeline.training.loop._train_epoch`."""
+    model's ``forward_train`` through ``torch.compile``), ready for :func:`pipeline.training.loop.train_epoch`."""
     import torch
 
     from pipeline.training import loop
@@ -88,7 +88,7 @@ def open_run(cfg: Mapping[str, Any], data: TrainData, device, seed: int, compile
 
     method = get_method(STAGE_ONE)
     s = Settings.from_params(method, cfg, PAPER.calibrate.fixed_tau)
-    run = loop._setup(method, cfg, s, resolve_plan(method, cfg, None), data, seed, None, torch.device(device))
+    run = loop.setup_run(method, cfg, s, resolve_plan(method, cfg, None), data, seed, None, torch.device(device))
     if compiled:
         run.model.forward_train = torch.compile(run.model.forward_train)
     return run
@@ -103,7 +103,7 @@ def epoch_timer(run) -> Callable[[int], float]:
     def one(_round: int) -> float:
         state["epoch"] += 1
         t0 = time.perf_counter()
-        row = loop._train_epoch(run, state["epoch"], None, None)
+        row = loop.train_epoch(run, state["epoch"], None, None)
         state["loss"] = row["loss"]
         return time.perf_counter() - t0
 
@@ -141,8 +141,8 @@ def step_flops(run, size: int) -> int:
 
 def step_profile(run, steps: int) -> dict[str, list[float]]:
     """Wall seconds of each of :data:`PHASES` in each of ``steps`` training steps of ``run``, composed of the
-    loop's own pieces in the loop's order (the batch is checked against the loop's :func:`_augmented_batch` /
-    :func:`_batch` so the profile cannot drift from it); ``step``: the phases' sum."""
+    loop's own pieces in the loop's order (the batch is checked against the loop's :func:`augmented_batch` /
+    :func:`make_batch` so the profile cannot drift from it); ``step``: the phases' sum."""
     import torch
 
     from pipeline import losses
@@ -161,7 +161,7 @@ def step_profile(run, steps: int) -> dict[str, list[float]]:
         idx = order[(k * s.batch_size) % n:][:s.batch_size]
         t = [now()]
         idx_dev = torch.from_numpy(idx).to(run.device)
-        rows = {key: loop._take(v, idx_dev).cpu().numpy() for key, v in run.tensors.items()}
+        rows = {key: loop.take_rows(v, idx_dev).cpu().numpy() for key, v in run.tensors.items()}
         t.append(now())
         if s.augment is not None:
             images = rows.pop("image")
@@ -170,7 +170,7 @@ def step_profile(run, steps: int) -> dict[str, list[float]]:
             rows = {"image": images, **targets}
         t.append(now())
         dev = {key: torch.from_numpy(np.ascontiguousarray(v)).to(run.device) for key, v in rows.items()}
-        b = loop._batch(dev, torch.arange(len(idx), device=run.device), None, s.channels_last)
+        b = loop.make_batch(dev, torch.arange(len(idx), device=run.device), None, s.channels_last)
         t.append(now())
         with autocast(run.device, run.amp):
             out = run.model.forward_train(b["x"])
@@ -185,7 +185,7 @@ def step_profile(run, steps: int) -> dict[str, list[float]]:
         run.opt.zero_grad(set_to_none=True)
         t.append(now())
         if k == 0 and s.augment is not None:  # the same batch as the loop builds
-            ref = loop._augmented_batch(run, idx, 0)
+            ref = loop.augmented_batch(run, idx, 0)
             assert all(torch.equal(ref[key], b[key]) for key in ref), "step_profile's batch is not the loop's"
         for p, a, z in zip(PHASES, t, t[1:]):
             spans[p].append(z - a)

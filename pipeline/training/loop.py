@@ -42,7 +42,8 @@ from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_p
 
 __all__ = ["LOG_TERMS", "LOG_COLUMNS", "TIMING_COLUMNS", "BUDGET_PARAMS", "STATE_VERSION", "ANCHOR_BATCH",
            "TrainData", "ValData", "TrainResult", "build_model", "validation_scores", "validate", "validation_read",
-           "epoch_batches_in_order", "select", "train"]
+           "epoch_batches_in_order", "select", "train", "take_rows", "make_batch", "augmented_batch", "setup_run",
+           "train_epoch"]
 
 log = logging.getLogger(__name__)
 
@@ -131,22 +132,52 @@ def _streaming(t: Mapping[str, torch.Tensor | RowSource]) -> bool:
     return any(isinstance(v, RowSource) for v in t.values())
 
 
-def _take(v: torch.Tensor | RowSource, idx: torch.Tensor) -> torch.Tensor:
-    """Return ``v[idx]`` on ``idx``'s device (a row source's rows read from disk)."""
+def take_rows(v: torch.Tensor | RowSource, idx: torch.Tensor) -> torch.Tensor:
+    """Return ``v[idx]`` on ``idx``'s device (a row source's rows read from disk).
+
+    Parameters
+    ----------
+    v : torch.Tensor or pipeline.training.streaming.RowSource
+        Rows in memory, or on disk.
+    idx : torch.Tensor
+        Row indices (int64).
+
+    Returns
+    -------
+    torch.Tensor
+        The rows, on ``idx``'s device.
+    """
     if isinstance(v, RowSource):
         return torch.from_numpy(v[idx.cpu().numpy()]).to(idx.device)
     return v[idx]
 
 
-def _batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor | None,
+def make_batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor | None,
            channels_last: bool) -> dict[str, torch.Tensor]:
-    """Build one batch: images float [B,3,H,W] in [0,1], pixel targets float [B,1,H,W], ``area``, ``gate`` [B]."""
-    x = _take(t["image"], idx).permute(0, 3, 1, 2).float().div_(255.0)
+    """Build one batch: images float [B,3,H,W] in [0,1], pixel targets float [B,1,H,W], ``area``, ``gate`` [B].
+
+    Parameters
+    ----------
+    t : Mapping
+        The run's tensors: ``image`` uint8 [N,H,W,3], the pixel targets [N,H,W] and ``area``, ``gate`` [N].
+    idx : torch.Tensor
+        The rows of the batch.
+    flip : torch.Tensor or None
+        bool [B]: flip those images and their targets left-right; None: no flip.
+    channels_last : bool
+        Lay the images out channels-last (``train.channels_last``).
+
+    Returns
+    -------
+    dict of str to torch.Tensor
+        ``x``, ``area``, ``gate`` and the targets the run has (``mask``, ``sdf``, ``skeleton``, ``anchor``).
+    """
+    x = take_rows(t["image"], idx).permute(0, 3, 1, 2).float().div_(255.0)
     x = x.contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
     b = {"x": x, "area": t["area"][idx], "gate": t["gate"][idx]}
     for k in ("mask", "sdf", "skeleton", "anchor"):
         if k in t:
-            b[k] = _take(t[k], idx).unsqueeze(1).float()
+            b[k] = take_rows(t[k], idx).unsqueeze(1).float()
     if flip is not None:  # None when no image flips: deciding that here would sync the device
         for k in ("x", "mask", "sdf", "skeleton", "anchor"):
             if k in b:
@@ -154,17 +185,32 @@ def _batch(t: Mapping[str, torch.Tensor], idx: torch.Tensor, flip: torch.Tensor 
     return b
 
 
-def _augmented_batch(run: _Run, idx: np.ndarray, epoch: int) -> dict[str, torch.Tensor]:
-    """Build the batch of rows ``idx``, each image augmented with the seed ``[seed, epoch, row]``."""
+def augmented_batch(run: _Run, idx: np.ndarray, epoch: int) -> dict[str, torch.Tensor]:
+    """Build the batch of rows ``idx``, each image augmented with the seed ``[seed, epoch, row]``.
+
+    Parameters
+    ----------
+    run : _Run
+        The run (:func:`setup_run`), with ``train.augment`` on.
+    idx : numpy.ndarray
+        The rows of the batch.
+    epoch : int
+        The epoch (part of each image's augmentation seed).
+
+    Returns
+    -------
+    dict of str to torch.Tensor
+        The batch as :func:`make_batch` builds it, from the augmented images and targets.
+    """
     idx_dev = torch.from_numpy(idx).to(run.device)
-    rows = {k: _take(v, idx_dev).cpu().numpy() for k, v in run.tensors.items()}
+    rows = {k: take_rows(v, idx_dev).cpu().numpy() for k, v in run.tensors.items()}
     images = rows.pop("image")
     images, targets = augment_batch(images, rows,
                                     [[run.seed, epoch, int(i)] for i in idx], run.settings.augment,
                                     run.geometry)
     dev = {"image": torch.from_numpy(images).to(run.device),
            **{k: torch.from_numpy(np.ascontiguousarray(v)).to(run.device) for k, v in targets.items()}}
-    return _batch(dev, torch.arange(len(idx), device=run.device), None, run.settings.channels_last)
+    return make_batch(dev, torch.arange(len(idx), device=run.device), None, run.settings.channels_last)
 
 
 def _has_val(val: ValData | None) -> bool:
@@ -329,11 +375,35 @@ def _cpu_state(model) -> dict:
     return {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}
 
 
-def _setup(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data: TrainData, seed: int,
+def setup_run(method: Method, cfg: Mapping[str, Any], s: Settings, plan: Plan, data: TrainData, seed: int,
            init_state: Mapping | None, device: torch.device) -> _Run:
     """Set up a run: the model, the frozen Stage-I anchor if the plan uses one, AdamW, schedule and tensors.
 
     They are built in the order that fixes the torch RNG stream.
+
+    Parameters
+    ----------
+    method : pipeline.methods.Method
+        The method.
+    cfg : Mapping
+        The validated ``train`` section.
+    s : pipeline.training.settings.Settings
+        The run's settings.
+    plan : pipeline.methods.Plan
+        The resolved loss weights and selection rule.
+    data : TrainData
+        The training rows.
+    seed : int
+        The run's seed.
+    init_state : Mapping or None
+        The Stage-I weights a warm-started method starts from.
+    device : torch.device
+        Where the run trains.
+
+    Returns
+    -------
+    _Run
+        The run's state, ready for :func:`train_epoch`.
     """
     amp = autocast_dtype(device, s.precision)
     model = build_model(method, cfg, seed, init_state, expand=s.expand_branches)
@@ -526,7 +596,7 @@ def _image_batches(run: _Run):
     """Yield the training images in manifest order, in training batches, on the run's device (no target is read)."""
     n, bs = run.n_train, run.settings.batch_size
     inputs = {k: run.tensors[k] for k in ("image", "area", "gate")}
-    return (_batch(inputs, torch.arange(i, min(i + bs, n), device=run.device), None,
+    return (make_batch(inputs, torch.arange(i, min(i + bs, n), device=run.device), None,
                    run.settings.channels_last)["x"] for i in range(0, n, bs))
 
 
@@ -636,24 +706,46 @@ def epoch_batches_in_order(run: _Run, epoch: int):
     Yields
     ------
     tuple of (int, dict)
-        (images in the batch, the batch as :func:`_batch` builds it) for each batch of the epoch.
+        (images in the batch, the batch as :func:`make_batch` builds it) for each batch of the epoch.
     """
     n, bs = run.n_train, run.settings.batch_size
     order = np.random.default_rng([run.seed, epoch]).permutation(n)
     if run.settings.augment is not None:  # it replaces augment_hflip
         for s in range(0, n, bs):
-            yield min(bs, n - s), _augmented_batch(run, order[s:s + bs], epoch)
+            yield min(bs, n - s), augmented_batch(run, order[s:s + bs], epoch)
         return
     flips = np.random.default_rng([run.seed, epoch, 1]).random(n) < 0.5 if run.settings.hflip else None
     order_dev = torch.from_numpy(order).to(run.device)
     flips_dev = torch.from_numpy(flips[order]).to(run.device) if flips is not None else None
     for s in range(0, n, bs):
         flip = flips_dev[s:s + bs] if flips is not None and flips[order[s:s + bs]].any() else None
-        yield min(bs, n - s), _batch(run.tensors, order_dev[s:s + bs], flip, run.settings.channels_last)
+        yield min(bs, n - s), make_batch(run.tensors, order_dev[s:s + bs], flip, run.settings.channels_last)
 
 
-def _train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
-    """Train one epoch; its log row (sample-weighted mean terms, the starting lr, validation)."""
+def train_epoch(run: _Run, epoch: int, val: ValData | None, bar) -> dict:
+    """Train one epoch of ``run`` and return its log row.
+
+    Parameters
+    ----------
+    run : _Run
+        The run (:func:`setup_run`).
+    epoch : int
+        The epoch, from 1.
+    val : ValData or None
+        The validation images; None: no validation.
+    bar : object or None
+        A progress bar to advance per batch (None: none).
+
+    Returns
+    -------
+    dict
+        The sample-weighted mean loss terms, the epoch's starting learning rate and the validation scores.
+
+    Raises
+    ------
+    TrainingDiverged
+        A non-finite loss or non-finite weights in the epoch.
+    """
     t0 = time.perf_counter()
     lr_epoch = run.opt.param_groups[0]["lr"]
     # the last scored epoch's (half-side epochs may go unvalidated: train.validate_low_res)
@@ -779,7 +871,7 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
         torch.set_num_threads(s.num_threads)
     plan = resolve_plan(method, cfg, data.stats.get("confidence_pass_ratio"))
     data, held = holdout(data, s.holdout_fraction) if s.until == "plateau" and not _has_val(val) else (data, None)
-    run = _setup(method, cfg, s, plan, data, seed, init_state, device)
+    run = setup_run(method, cfg, s, plan, data, seed, init_state, device)
     run.holdout = held
     try:
         return _train_run(run, val, checkpointer, callback, show_progress, data.stats)
@@ -802,7 +894,7 @@ def _train_run(run: _Run, val: ValData | None, checkpointer: Checkpointer,
     bar = progress(total=total, desc=f"train {method.name} s{seed}") if show_progress and total > 0 else None
     epoch = start
     while epoch <= run.epochs:
-        row = _train_epoch(run, epoch, val, bar)
+        row = train_epoch(run, epoch, val, bar)
         run.rows.append(row)
         if run.until is not None and run.until["stable_end"] is None:
             _stop_stable(run, epoch, row)

@@ -211,8 +211,8 @@ def test_augmented_training_is_seeded_and_differs_from_the_plain_batches(tiny):
                                sdf=np.stack([sdf_target(x) for x in masks]),
                                skeleton=np.stack([skeleton_target(x) for x in masks]))
     s = Settings.from_params(m, cfg, 0.5)
-    run = training._setup(m, cfg, s, training.resolve_plan(m, cfg, None), data, 7, init, torch.device("cpu"))
-    b = training._augmented_batch(run, np.arange(len(data)), 1)
+    run = training.setup_run(m, cfg, s, training.resolve_plan(m, cfg, None), data, 7, init, torch.device("cpu"))
+    b = training.augmented_batch(run, np.arange(len(data)), 1)
     for i in range(len(data)):
         mask = b["mask"][i, 0].numpy() > 0.5
         np.testing.assert_array_equal(b["sdf"][i, 0].numpy(), sdf_target(mask))

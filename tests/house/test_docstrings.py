@@ -40,10 +40,8 @@ PROPERTIES = ("property", "cached_property")
 # ignores D on them (pyproject.toml, the per-file-ignores entry marked PENDING, checked equal to this list
 # below) and this test skips them.  A folder ends with "/".
 PENDING = (
-    "pipeline/teacher_table.py", "pipeline/labeling/formats.py", "pipeline/labeling/run.py", "pipeline/api.py",
-    "pipeline/cli/label.py", "pipeline/cli/distill.py", "pipeline/teachers/",
-    "pipeline/training/loop.py", "pipeline/training/checkpointing.py", "pipeline/training/budget.py",
-    "pipeline/runtime/device.py", "pipeline/profiles.py", "pipeline/report/figures.py", "pipeline/methods.py",
+    "pipeline/teachers/sam3.py", "pipeline/teachers/tiny_sam3.py", "pipeline/training/budget.py",
+    "pipeline/runtime/device.py", "pipeline/profiles.py", "pipeline/report/figures.py",
 )
 
 # UNFINISHED (issue 64): library modules whose exported names had no full contract yet when this pass stopped
@@ -201,7 +199,8 @@ def check_source(source: str, where: str, names: list[str] | None = None,
         return not name.startswith("_") or name in CALLED_DUNDERS
 
     for node in tree.body:
-        if getattr(node, "name", None) not in (names or ()) or _decorator_names(node) & set(exempt):
+        if getattr(node, "name", None) not in (names or ()) or \
+                _decorator_names(node) & (set(exempt) | {e.rsplit(".", 1)[-1] for e in exempt if e.startswith("pipeline.")}):
             continue
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
             check_function(node, node.name)

@@ -366,8 +366,8 @@ def test_streaming_data_gives_the_in_memory_batches_andclone_state(tiny18, metho
     assert training._streaming(t_lazy) and not training._streaming(t_mem)
     idx = torch.tensor([5, 0, 3])
     flip = torch.tensor([True, False, True])
-    for k, v in training._batch(t_mem, idx, flip, True).items():
-        assert torch.equal(v, training._batch(t_lazy, idx, flip, True)[k]), k
+    for k, v in training.make_batch(t_mem, idx, flip, True).items():
+        assert torch.equal(v, training.make_batch(t_lazy, idx, flip, True)[k]), k
     spilled = []
     monkeypatch.setattr(training, "spill_rows", lambda *a: spilled.append(a[0]) or spill_rows(*a))
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
