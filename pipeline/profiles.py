@@ -1,6 +1,8 @@
-"""Profiles: named overrides of the schema defaults (docs/pipeline.md).  Only the commands that switch
-profile read them (``profile``, ``label``, ``distill``, the notebook API), so editing one marks no DVC
-stage stale."""
+"""Profiles: named overrides of the schema defaults (docs/pipeline.md).
+
+Only the commands that switch profile read them (``profile``, ``label``, ``distill``, the notebook API), so
+editing one marks no DVC stage stale.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +12,10 @@ from typing import Any, Iterable
 from pipeline.runtime.errors import InputError
 from pipeline.methods import methods_with_role
 from pipeline.params import PAPER, PROFILE_KEY, deep_merge, load_params, parse_override, unresolved
+
+__all__ = ["SEEDS", "FIVE_SEEDS", "TEN_SEEDS", "ABLATION_SEED", "MAIN_METHODS", "ABLATIONS", "CONTROLS",
+           "full_protocol", "STRONG_STUDY_METHODS", "FULL_PROTOCOL", "PUBLISHED_THREADS", "DEMO_THREADS",
+           "DISTILL_BENCHMARK", "PROFILES", "profile_params", "load_profile", "load_params_or_profile"]
 
 SEEDS = [42, 3407, 2026]
 FIVE_SEEDS = SEEDS + [7, 11]
@@ -21,7 +27,18 @@ CONTROLS = methods_with_role("control")
 
 
 def full_protocol(seeds: list[int]) -> dict:
-    """The paper's protocol plus the controls: the main methods and the controls at ``seeds``."""
+    """Return the paper's protocol plus the controls: the main methods and the controls at ``seeds``.
+
+    Parameters
+    ----------
+    seeds : list of int
+        The seeds of every main method and control; each ablation runs at :data:`ABLATION_SEED` only.
+
+    Returns
+    -------
+    dict
+        A ``protocol`` section: ``runs`` (method -> seeds) and ``supervised_ceiling``.
+    """
     return {"runs": {**{m: list(seeds) for m in MAIN_METHODS + CONTROLS},
                      **{a: [ABLATION_SEED] for a in ABLATIONS}},
             "supervised_ceiling": True}
@@ -80,7 +97,23 @@ PROFILES: dict[str, dict[str, Any]] = {
 
 
 def profile_params(name: str) -> dict:
-    """Schema defaults + the profile's overrides (not yet validated: callers validate)."""
+    """Return the schema defaults with the overrides of profile ``name`` merged in (not yet validated).
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`PROFILES`.
+
+    Returns
+    -------
+    dict
+        The params, ``profile`` naming ``name``; callers validate them.
+
+    Raises
+    ------
+    InputError
+        ``name`` is no profile.
+    """
     if name not in PROFILES:
         raise InputError(f"profile {name!r}: expected one of {', '.join(PROFILES)}")
     out = deep_merge(unresolved(PAPER.model_dump(mode="python"), {}), PROFILES[name])
@@ -89,13 +122,43 @@ def profile_params(name: str) -> dict:
 
 
 def load_profile(name: str, overrides: Iterable[str] = ()) -> dict:
-    """The validated params of profile ``name`` with ``--set key.path=value`` overrides applied."""
+    """Load the validated params of profile ``name`` with ``--set key.path=value`` overrides applied.
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`PROFILES`.
+    overrides : iterable of str
+        ``key.path=value`` items (:func:`pipeline.params.parse_override`).
+
+    Returns
+    -------
+    dict
+        The validated params (:func:`pipeline.params.load_params`).
+    """
     return load_params(f"profile {name}", overrides, base=profile_params(name))
 
 
 def load_params_or_profile(params_file: str | Path | None, overrides: Iterable[str], default_profile: str) -> dict:
-    """The params of a command that switches profile: ``--set profile=NAME``'s, else ``params_file``'s, else
-    ``default_profile``'s."""
+    """Load the params of a command that switches profile.
+
+    They are ``--set profile=NAME``'s, else ``params_file``'s, else ``default_profile``'s, with the other
+    overrides applied.
+
+    Parameters
+    ----------
+    params_file : str or Path or None
+        A params file, read unless ``overrides`` names a profile; None: a profile.
+    overrides : iterable of str
+        ``key.path=value`` items; ``profile=NAME`` among them picks the profile.
+    default_profile : str
+        The profile without a params file or a ``profile`` override.
+
+    Returns
+    -------
+    dict
+        The validated params.
+    """
     items = list(overrides)
     parsed = [parse_override(i) for i in items]
     named = next((value for keys, value in parsed if keys == [PROFILE_KEY]), None)

@@ -1,5 +1,7 @@
-"""Figures drawn with matplotlib on the Agg canvas (PNG for the page, SVG for papers), byte-identical across
-renders; image panels (paper Fig. qualitative-results, eq:sdf-target) are numpy/OpenCV RGB tiles."""
+"""Figures drawn with matplotlib on the Agg canvas (PNG for the page, SVG for papers), byte-identical across renders.
+
+Image panels (paper Fig. qualitative-results, eq:sdf-target) are numpy/OpenCV RGB tiles.
+"""
 
 from __future__ import annotations
 
@@ -17,6 +19,11 @@ from matplotlib.ticker import MaxNLocator
 
 from pipeline.methods import METHODS
 
+__all__ = ["GT_CONTOUR", "PALETTE", "UNKNOWN_METHOD", "REFERENCE_LINE", "CHART_FONT", "PNG_DPI", "Tile",
+           "MAX_TILE_INCHES", "method_style", "png_bytes", "svg_bytes", "error_overlay", "qualitative_row",
+           "pseudo_target_row", "caption_inches", "wrap_caption", "image_grid", "line_plot", "histogram"]
+
+#: the error overlay's colours (:func:`error_overlay`): true positive, false positive, false negative
 TP = (40, 200, 60)
 FP = (230, 40, 40)
 FN = (40, 90, 240)
@@ -32,7 +39,19 @@ PNG_DPI = 120
 
 
 def method_style(method: str) -> dict:
-    """A method's series style from the method table; grey dots for other names (e.g. the teacher vote)."""
+    """Return a method's series style from the method table.
+
+    Parameters
+    ----------
+    method : str
+        A method name; another name (e.g. the teacher vote) gets :data:`UNKNOWN_METHOD`'s grey dots.
+
+    Returns
+    -------
+    dict
+        ``color``, ``style``, ``symbol`` and, for a method of the table, ``key``: the keys :func:`line_plot`
+        reads of a series.
+    """
     m = METHODS.get(method)
     if m is None:
         return dict(UNKNOWN_METHOD)
@@ -40,6 +59,18 @@ def method_style(method: str) -> dict:
 
 
 def png_bytes(fig: Chart) -> bytes:
+    """Render ``fig`` as PNG at :data:`PNG_DPI`, byte-identical across renders.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure.
+
+    Returns
+    -------
+    bytes
+        The PNG file, without a timestamp or software tag.
+    """
     return _save(fig, "png")
 
 
@@ -51,6 +82,7 @@ def _resize(arr: np.ndarray, size: int, nearest: bool) -> np.ndarray:
 
 
 def to_rgb(image: np.ndarray) -> np.ndarray:
+    """Return ``image`` (grey or RGB(A)) as a contiguous uint8 RGB array."""
     img = np.asarray(image)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
@@ -58,6 +90,7 @@ def to_rgb(image: np.ndarray) -> np.ndarray:
 
 
 def mask_tile(mask: np.ndarray, size: int) -> np.ndarray:
+    """Return a binary mask as a white-on-black RGB tile of ``size`` px (nearest-neighbour)."""
     m = _resize(np.asarray(mask, dtype=np.uint8) * 255, size, nearest=True)
     return np.repeat(m[..., None], 3, axis=2)
 
@@ -71,6 +104,29 @@ def draw_contour(rgb: np.ndarray, mask: np.ndarray, color=GT_CONTOUR, thickness:
 
 def error_overlay(image: np.ndarray, pred: np.ndarray, gt: np.ndarray, size: int, alpha: float = 0.55,
                   contour: bool = True) -> np.ndarray:
+    """Draw a prediction's errors over its image: :data:`TP` green, :data:`FP` red, :data:`FN` blue.
+
+    Each marked pixel becomes (1 - ``alpha``) image + ``alpha`` colour; the ground truth's contour is drawn in
+    :data:`GT_CONTOUR` on top.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        The image, grey or RGB.
+    pred, gt : numpy.ndarray
+        The predicted and the reference binary masks.
+    size : int
+        The side of the square tile in pixels (the masks resized nearest-neighbour).
+    alpha : float
+        The opacity of the error colours.
+    contour : bool
+        Whether to draw the ground truth's contour.
+
+    Returns
+    -------
+    numpy.ndarray
+        The RGB uint8 tile, ``size`` x ``size``.
+    """
     img = _resize(to_rgb(image), size, nearest=False).astype(np.float32)
     p = _resize(np.asarray(pred, dtype=np.uint8), size, nearest=True).astype(bool)
     g = _resize(np.asarray(gt, dtype=np.uint8), size, nearest=True).astype(bool)
@@ -83,7 +139,29 @@ def error_overlay(image: np.ndarray, pred: np.ndarray, gt: np.ndarray, size: int
 
 
 def colorize(values: np.ndarray, size: int, vmin: float, vmax: float, kind: str = "viridis") -> np.ndarray:
-    """A float array as RGB: ``viridis`` or ``diverging`` (blue-white-red around 0)."""
+    """Colour a float array as RGB: ``viridis`` or ``diverging`` (blue-white-red around 0).
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        The 2-D values.
+    size : int
+        The side of the square tile in pixels.
+    vmin, vmax : float
+        The values mapped to the two ends of the colour map (clipped outside).
+    kind : str
+        ``viridis`` or ``diverging``.
+
+    Returns
+    -------
+    numpy.ndarray
+        The RGB uint8 tile, ``size`` x ``size``.
+
+    Raises
+    ------
+    ValueError
+        ``kind`` is neither colour map.
+    """
     v = np.asarray(values, dtype=np.float32)
     t = np.clip((v - vmin) / max(vmax - vmin, 1e-12), 0.0, 1.0)
     t = _resize(t, size, nearest=False)
@@ -100,6 +178,7 @@ def colorize(values: np.ndarray, size: int, vmin: float, vmax: float, kind: str 
 
 
 def skeleton_overlay(image: np.ndarray, mask: np.ndarray, skeleton: np.ndarray, size: int) -> np.ndarray:
+    """Return ``image`` dimmed outside ``mask`` with the ``skeleton`` pixels dotted in magenta, ``size`` px."""
     img = _resize(to_rgb(image), size, nearest=False).astype(np.float32)
     m = _resize(np.asarray(mask, dtype=np.uint8), size, nearest=True).astype(bool)
     img[~m] *= 0.35
@@ -119,7 +198,30 @@ Tile = tuple[np.ndarray, Sequence[str]]
 def qualitative_row(image: np.ndarray, gt: np.ndarray, preds: Mapping[str, np.ndarray],
                     scores: Mapping[str, str], title: str, size: int = 160,
                     reference: Sequence[str] = ("ground truth", "(yellow contour)")) -> list[Tile]:
-    """One row of :func:`image_grid`: image | reference contour | a TP/FP/FN overlay per method."""
+    """Build one row of :func:`image_grid`: image | reference contour | a TP/FP/FN overlay per method.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        The image, grey or RGB.
+    gt : numpy.ndarray
+        The reference binary mask.
+    preds : Mapping
+        Method name -> its binary mask, in column order (:func:`error_overlay`).
+    scores : Mapping
+        Method name -> the score line under its name ("" where missing).
+    title : str
+        The first tile's caption.
+    size : int
+        The side of each tile in pixels.
+    reference : sequence of str
+        The caption of the reference tile.
+
+    Returns
+    -------
+    list of Tile
+        The row's tiles with their captions.
+    """
     img = _resize(to_rgb(image), size, nearest=False)
     gt_view = draw_contour(img.copy(), _resize(np.asarray(gt, np.uint8), size, nearest=True))
     return [(img, [title]), (gt_view, list(reference)),
@@ -129,7 +231,36 @@ def qualitative_row(image: np.ndarray, gt: np.ndarray, preds: Mapping[str, np.nd
 def pseudo_target_row(image: np.ndarray, prompt_masks: np.ndarray, prompt_labels: Sequence[str],
                       agreement: np.ndarray, voted: np.ndarray, sdf: np.ndarray, skeleton: np.ndarray,
                       gate_text: Sequence[str], title: str, size: int = 128) -> list[Tile]:
-    """One row of :func:`image_grid` (paper Fig. pseudo-geometry): image, prompt masks, A, M, D and K."""
+    """Build one row of :func:`image_grid` (paper Fig. pseudo-geometry): image, prompt masks, A, M, D and K.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        The image, grey or RGB.
+    prompt_masks : numpy.ndarray
+        The teacher's mask of each prompt, stacked.
+    prompt_labels : sequence of str
+        The caption of each prompt mask.
+    agreement : numpy.ndarray
+        A, the per-pixel agreement of the prompts in [0, 1].
+    voted : numpy.ndarray
+        M, the voted mask.
+    sdf : numpy.ndarray
+        D, the signed distance target (eq:sdf-target), positive inside; drawn over [-1, 1].
+    skeleton : numpy.ndarray
+        K, the skeleton of M.
+    gate_text : sequence of str
+        The gate's caption lines under ``title``.
+    title : str
+        The first tile's caption.
+    size : int
+        The side of each tile in pixels.
+
+    Returns
+    -------
+    list of Tile
+        The row's tiles with their captions.
+    """
     return [(_resize(to_rgb(image), size, nearest=False), [title, *gate_text]),
             *((mask_tile(m, size), [lab]) for m, lab in zip(prompt_masks, prompt_labels)),
             (colorize(agreement, size, 0.0, 1.0, "viridis"), ["agreement A"]),
@@ -145,11 +276,36 @@ MAX_TILE_INCHES = 2.4
 
 
 def caption_inches(line: str) -> float:
+    """Measure the width of a caption line at :data:`CAPTION_FONT`.
+
+    Parameters
+    ----------
+    line : str
+        One caption line.
+
+    Returns
+    -------
+    float
+        Its width in inches; 0 for a blank line.
+    """
     return TextPath((0, 0), line, size=CAPTION_FONT).get_extents().width / 72.0 if line.strip() else 0.0
 
 
 def wrap_caption(line: str, width: float = MAX_TILE_INCHES) -> list[str]:
-    """``line`` wrapped to ``width`` inches at the caption font (inside a word wider than a line): never cut."""
+    """Wrap ``line`` to ``width`` inches at the caption font, inside a word only where it is wider than a line.
+
+    Parameters
+    ----------
+    line : str
+        One caption line.
+    width : float
+        The widest a line may be, in inches.
+
+    Returns
+    -------
+    list of str
+        The lines, none wider than ``width`` unless it holds a single character: no caption is cut.
+    """
     lines = [""]
     for word in line.split(" "):
         joined = f"{lines[-1]} {word}" if lines[-1] else word
@@ -168,8 +324,22 @@ def wrap_caption(line: str, width: float = MAX_TILE_INCHES) -> list[str]:
 
 
 def image_grid(rows: Sequence[Sequence[Tile]], tile_inches: float = TILE_INCHES) -> Chart:
-    """Rows of image tiles as one figure, each pixel for pixel with its caption above; tiles widen (up to
-    :data:`MAX_TILE_INCHES`, then captions wrap) so no caption is cut or runs into the next."""
+    """Draw rows of image tiles as one figure, each tile pixel for pixel with its caption above.
+
+    Tiles widen (up to :data:`MAX_TILE_INCHES`, then captions wrap) so no caption is cut or runs into the next.
+
+    Parameters
+    ----------
+    rows : sequence of sequence of Tile
+        The rows (:func:`qualitative_row`, :func:`pseudo_target_row`); a short row leaves its last cells blank.
+    tile_inches : float
+        The least side of a tile in inches.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure (:func:`png_bytes`, :func:`svg_bytes`).
+    """
     rows = [[(tile, [part for line in cap for part in wrap_caption(line)]) for tile, cap in row] for row in rows]
     nrows = len(rows)
     ncols = max((len(r) for r in rows), default=1)
@@ -199,6 +369,18 @@ def image_grid(rows: Sequence[Sequence[Tile]], tile_inches: float = TILE_INCHES)
 
 
 def svg_bytes(fig: Chart) -> bytes:
+    """Render ``fig`` as SVG, byte-identical across renders (fixed hash salt, text as paths, no date).
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure.
+
+    Returns
+    -------
+    bytes
+        The SVG file.
+    """
     return _save(fig, "svg")
 
 
@@ -232,9 +414,28 @@ def _chart(width: int, height: int, title: str, xlabel: str, ylabel: str, **grid
 
 def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, width: int = 640,
               height: int = 380, ylim: tuple[float, float] | None = None) -> Chart:
-    """A line chart of ``series`` (dicts: ``x``, ``y``, ``label``, optional ``marker`` (an x to dot), ``color``,
-    ``style``, ``symbol``, ``key`` (SVG id ``series-<key>``)), axes ``width`` x ``height`` px, legend at the
-    right.  Earlier series are drawn wider and under later ones, so coinciding curves both show."""
+    """Draw a line chart of ``series`` with the legend at the right.
+
+    Earlier series are drawn wider and under later ones, so coinciding curves both show; non-finite points are
+    left out, and whole-number x values get whole-number ticks.
+
+    Parameters
+    ----------
+    series : sequence of dict
+        Each with ``x``, ``y``, ``label`` and optionally ``marker`` (an x to dot), ``color``, ``style``,
+        ``symbol`` and ``key`` (SVG id ``series-<key>``); :func:`method_style` gives a method's.
+    title, xlabel, ylabel : str
+        The chart's title and axis labels.
+    width, height : int
+        The axes' size in pixels.
+    ylim : tuple of float or None
+        The y range; None: matplotlib's.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure (:func:`png_bytes`, :func:`svg_bytes`).
+    """
     with _chart(width, height, title, xlabel, ylabel) as (fig, ax):
         n = len(series)
         for i, s in enumerate(series):
@@ -250,7 +451,24 @@ def line_plot(series: Sequence[dict], title: str, xlabel: str, ylabel: str, widt
 
 
 def histogram(values, bins, title: str, xlabel: str, ylabel: str, width: int = 640, height: int = 300) -> Chart:
-    """A histogram of ``values`` over the bin edges ``bins``, whole-number counts on the y axis."""
+    """Draw a histogram of ``values`` over the bin edges ``bins``, whole-number counts on the y axis.
+
+    Parameters
+    ----------
+    values : array_like
+        The values counted.
+    bins : array_like
+        The bin edges, increasing.
+    title, xlabel, ylabel : str
+        The chart's title and axis labels.
+    width, height : int
+        The axes' size in pixels.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure (:func:`png_bytes`, :func:`svg_bytes`).
+    """
     counts, edges = np.histogram(np.asarray(values, float), bins=np.asarray(bins, float))
     with _chart(width, height, title, xlabel, ylabel, axis="y") as (fig, ax):
         ax.bar(edges[:-1], counts, width=np.diff(edges), align="edge", color=_mpl_color(PALETTE[0]),

@@ -7,9 +7,28 @@ import os
 
 from pipeline.runtime.errors import InputError
 
+__all__ = ["STAGE_CPUS_ENV", "BF16_FLAGS", "ONEDNN_BF16_ISAS", "resolve_device", "stage_cores", "cpu_flags",
+           "cpu_supports_bf16", "cpu_bf16_native", "teacher_cpu_dtype", "autocast", "autocast_dtype"]
+
 
 def resolve_device(name: str = "auto"):
-    """``auto`` -> cuda when available, else cpu.  ``cuda`` without a GPU is a user error."""
+    """Return the torch device a ``--device`` value names.
+
+    Parameters
+    ----------
+    name : str
+        ``auto`` (cuda when available, else cpu), ``cpu``, ``cuda`` or ``cuda:N``.
+
+    Returns
+    -------
+    torch.device
+        The device.
+
+    Raises
+    ------
+    InputError
+        ``name`` is none of these, or it names CUDA on a machine without it.
+    """
     import torch
 
     if name not in ("auto", "cpu", "cuda") and not str(name).startswith("cuda:"):
@@ -27,7 +46,13 @@ STAGE_CPUS_ENV = "GEODISTILL_STAGE_CPUS"
 
 
 def stage_cores() -> int:
-    """The cores this stage may use: :data:`STAGE_CPUS_ENV` where a scheduler set it, else ``os.cpu_count()``."""
+    """Return the cores this stage may use.
+
+    Returns
+    -------
+    int
+        :data:`STAGE_CPUS_ENV` where a scheduler set it to a positive number, else ``os.cpu_count()``; at least 1.
+    """
     try:
         given = int(float(os.environ.get(STAGE_CPUS_ENV) or 0))
     except ValueError:
@@ -40,7 +65,13 @@ BF16_FLAGS = ("avx512_bf16", "amx_bf16")
 
 
 def cpu_flags() -> frozenset[str]:
-    """The CPU's feature flags from /proc/cpuinfo (empty where there is none: not Linux)."""
+    """Return the CPU's feature flags from /proc/cpuinfo.
+
+    Returns
+    -------
+    frozenset of str
+        The flags; empty where there is no /proc/cpuinfo (not Linux).
+    """
     try:
         with open("/proc/cpuinfo") as f:
             return frozenset(w for line in f if line.startswith("flags") for w in line.split(":", 1)[1].split())
@@ -49,7 +80,13 @@ def cpu_flags() -> frozenset[str]:
 
 
 def cpu_supports_bf16() -> bool:
-    """True where the CPU has native bf16 matrix units (:data:`BF16_FLAGS`), so bf16 autocast pays off."""
+    """Tell whether the CPU has native bf16 matrix units (:data:`BF16_FLAGS`), so bf16 autocast pays off.
+
+    Returns
+    -------
+    bool
+        True where one of :data:`BF16_FLAGS` is among :func:`cpu_flags`.
+    """
     return not cpu_flags().isdisjoint(BF16_FLAGS)
 
 
@@ -60,15 +97,17 @@ ONEDNN_BF16_ISAS = ("AVX512_CORE_BF16", "AVX512_CORE_FP16", "AVX512_CORE_AMX", "
 
 
 def cpu_bf16_native() -> bool:
-    """The rule for bf16 on this CPU (the teacher's ``dtype: auto`` and training's ``precision: auto``): True where
-    the CPU has native bf16 units (:func:`cpu_supports_bf16`, read from its flags, never a timing probe) and
-    ``ONEDNN_MAX_CPU_ISA``, where set, does not cap oneDNN below them (:data:`ONEDNN_BF16_ISAS`); else False,
-    where bf16 would be emulated and slower than fp32.
+    """Apply the rule for bf16 on this CPU (the teacher's ``dtype: auto`` and training's ``precision: auto``).
+
+    True where the CPU has native bf16 units (:func:`cpu_supports_bf16`, read from its flags, never a timing
+    probe) and ``ONEDNN_MAX_CPU_ISA``, where set, does not cap oneDNN below them (:data:`ONEDNN_BF16_ISAS`);
+    else False, where bf16 would be emulated and slower than fp32.
 
     Returns
     -------
     bool
-        Whether bf16 runs natively here."""
+        Whether bf16 runs natively here.
+    """
     isa = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
     if isa and isa not in ONEDNN_BF16_ISAS:
         return False
@@ -76,16 +115,36 @@ def cpu_bf16_native() -> bool:
 
 
 def teacher_cpu_dtype() -> str:
-    """``teacher.dtype: auto`` on a CPU: ``bf16`` where :func:`cpu_bf16_native`, else ``fp32``.
+    """Resolve ``teacher.dtype: auto`` on a CPU.
 
     Measured (docs/performance.md): on a 2-core avx512_bf16 host the real-size SAM 3 in bf16 takes a fraction
-    of fp32's time per image with the same masks (the fidelity gate of benchmarks/bench_teacher.py)."""
+    of fp32's time per image with the same masks (the fidelity gate of benchmarks/bench_teacher.py).
+
+    Returns
+    -------
+    str
+        ``bf16`` where :func:`cpu_bf16_native`, else ``fp32``.
+    """
     return "bf16" if cpu_bf16_native() else "fp32"
 
 
 def autocast(device, dtype, cache_enabled: bool = True):
-    """The autocast context of ``dtype`` on ``device`` (None: fp32).  ``cache_enabled=False`` where the
-    weight-cast cache must not outlive a CUDA-graph capture."""
+    """Return the autocast context of ``dtype`` on ``device``.
+
+    Parameters
+    ----------
+    device : torch.device or str
+        The device that runs under the context.
+    dtype : torch.dtype or None
+        The autocast dtype (:func:`autocast_dtype`); None: fp32, no autocast.
+    cache_enabled : bool
+        False where the weight-cast cache must not outlive a CUDA-graph capture.
+
+    Returns
+    -------
+    contextlib.AbstractContextManager
+        ``torch.autocast``, or a null context for fp32.
+    """
     import torch
 
     if dtype is None:
@@ -94,7 +153,7 @@ def autocast(device, dtype, cache_enabled: bool = True):
 
 
 def autocast_dtype(device, precision: str):
-    """The autocast dtype of a ``precision`` param (fp32 | bf16 | auto), None meaning fp32.
+    """Return the autocast dtype of a ``precision`` param (fp32 | bf16 | auto), None meaning fp32.
 
     ``auto``: bf16 on a CUDA device that supports it; on a CPU, bf16 where :func:`cpu_bf16_native` (the
     teacher's rule: the flags and the ``ONEDNN_MAX_CPU_ISA`` cap), else fp32.

@@ -1,5 +1,8 @@
-"""A wall-clock budget for Stage I (``distill --time``), converted once on this host into optimizer steps
-(``train.step_budget``, kept in the run's params so that a rerun with the same ``--time`` does nothing)."""
+"""A wall-clock budget for Stage I (``distill --time``), converted once on this host into optimizer steps.
+
+The steps go into ``train.step_budget``, kept in the run's params so that a rerun with the same ``--time`` does
+nothing.
+"""
 
 from __future__ import annotations
 
@@ -13,11 +16,30 @@ from pipeline.runtime.errors import InputError
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.runtime.device import autocast, autocast_dtype
 
+__all__ = ["PROBE_BATCH", "parse_duration", "step_seconds", "steps_for", "scheduled_steps", "training_images",
+           "with_time_budget"]
+
 _UNITS = {"s": 1, "m": 60, "h": 3600}
 
 
 def parse_duration(text: str) -> float:
-    """Seconds of a duration such as ``90s``, ``20m``, ``1.5h`` or ``1h30m``; InputError naming ``--time``."""
+    """Return the seconds of a duration such as ``90s``, ``20m``, ``1.5h`` or ``1h30m``.
+
+    Parameters
+    ----------
+    text : str
+        The ``--time`` value: numbers each followed by a unit (``s``, ``m`` or ``h``), summed.
+
+    Returns
+    -------
+    float
+        The duration in seconds, > 0.
+
+    Raises
+    ------
+    InputError
+        ``text`` is no such duration, or it comes to 0 s (one line naming ``--time``).
+    """
     parts = re.fullmatch(r"\s*((\d+(\.\d+)?)\s*([smh])\s*)+", str(text))
     seconds = sum(float(n) * _UNITS[u] for n, _, u in re.findall(r"(\d+(\.\d+)?)\s*([smh])", str(text))) if parts else 0
     if seconds <= 0:
@@ -30,9 +52,12 @@ PROBE_BATCH = 2
 
 
 def step_seconds(cfg: Mapping[str, Any], resolution: int, device: str = "cpu", steps: int = 2) -> float:
-    """Seconds of one Stage-I optimizer step at ``resolution``, in the precision and memory format that will train
-    (``train.precision``'s autocast, :func:`pipeline.runtime.device.autocast_dtype`, and ``train.channels_last``, as
-    :func:`pipeline.training.loop.train` sets them): the median of ``steps`` probe steps after a warm-up, scaled to
+    """Measure the seconds of one Stage-I optimizer step at ``resolution`` on this host.
+
+    The step runs in the precision and memory format that will train (``train.precision``'s autocast,
+    :func:`pipeline.runtime.device.autocast_dtype`, and ``train.channels_last``, as
+    :func:`pipeline.training.loop.train` sets them), on :data:`PROBE_BATCH` random images with
+    ``train.num_threads`` torch threads: the median of ``steps`` probe steps after a warm-up, scaled to
     ``train.batch_size``.
 
     Parameters
@@ -85,22 +110,53 @@ def step_seconds(cfg: Mapping[str, Any], resolution: int, device: str = "cpu", s
 
 
 def steps_for(seconds: float, per_step: float) -> int:
-    """Optimizer steps that fit in ``seconds`` at ``per_step`` seconds each (at least 1)."""
+    """Return the optimizer steps that fit in ``seconds`` at ``per_step`` seconds each.
+
+    Parameters
+    ----------
+    seconds : float
+        The time budget.
+    per_step : float
+        Seconds of one optimizer step (:func:`step_seconds`).
+
+    Returns
+    -------
+    int
+        floor(``seconds`` / ``per_step``), at least 1.
+    """
     return max(1, int(seconds // max(per_step, 1e-9)))
 
 
 def scheduled_steps(seconds: float, full_step: float, half_step: float, cfg: Mapping[str, Any],
                     steps_per_epoch: int) -> int:
-    """Optimizer steps B of the longest Stage-I run under ``until: plateau`` whose planned time fits ``seconds``,
-    with the resolution schedule (``train.low_res_fraction``) priced in.
+    """Return the optimizer steps B of the longest Stage-I run under ``until: plateau`` that fits ``seconds``.
 
-    E stable epochs, their first min(E, L) at half the side (t_h a step), the rest and the decay D(E) at full
-    side (t_f): spe (min(E, L) t_h + (max(E - L, 0) + D(E)) t_f) <= ``seconds``, B = (E + D(E)) spe, so the run's
-    stable cap (:func:`pipeline.training.schedule.stable_cap`) is that E.  When the epochs cap fits, the time left
-    buys full-side steps on top (a later, longer ``--time`` continues the run).
+    The resolution schedule (``train.low_res_fraction``) is priced in.  E stable epochs, their first min(E, L)
+    at half the side (t_h a step), the rest and the decay D(E) at full side (t_f):
+    spe (min(E, L) t_h + (max(E - L, 0) + D(E)) t_f) <= ``seconds``, B = (E + D(E)) spe, so the run's stable cap
+    (:func:`pipeline.training.schedule.stable_cap`) is that E; E runs up to ``train.epochs_stage1`` with its
+    decay.  When the epochs cap fits, the time left buys full-side steps on top (a later, longer ``--time``
+    continues the run).  When not one stable epoch and its decay fit, the run trains that one anyway and B is
+    :func:`steps_for` at full side.
 
-    full_step, half_step: t_f and t_h (:func:`step_seconds`); cfg: the train section; steps_per_epoch: spe, from
-    the training images (:func:`training_images`)."""
+    Parameters
+    ----------
+    seconds : float
+        The time budget.
+    full_step : float
+        t_f, seconds of a full-side step (:func:`step_seconds`).
+    half_step : float
+        t_h, seconds of a half-side step (:func:`step_seconds` at the low resolution).
+    cfg : Mapping
+        The validated ``train`` section (``epochs_stage1``, ``decay_fraction``, ``low_res_fraction``).
+    steps_per_epoch : int
+        spe, from the training images (:func:`training_images`); at least 1 is used.
+
+    Returns
+    -------
+    int
+        B, optimizer steps, at least 1.
+    """
     from pipeline.training.schedule import decay_epochs
     from pipeline.training.settings import Settings
 
@@ -122,10 +178,27 @@ def scheduled_steps(seconds: float, full_step: float, half_step: float, cfg: Map
 
 
 def training_images(input_dir: str | Path, val_masks: str | Path | None, holdout_fraction: float) -> int:
-    """The images Stage I of ``distill`` trains on: those under ``input_dir`` without a mask in ``val_masks``
-    (matched by relative path without suffix, as the folder reader does), less the held-out share the plateau
-    rule scores when there are no validation masks (:func:`pipeline.training.schedule.holdout_size`).  Unreadable
-    files still count: an estimate for pricing the time, not the split."""
+    """Count the images Stage I of ``distill`` trains on.
+
+    Those under ``input_dir`` without a mask in ``val_masks`` (matched by relative path without suffix, as the
+    folder reader does), less the held-out share the plateau rule scores when there are no validation masks
+    (:func:`pipeline.training.schedule.holdout_size`).  Unreadable files still count: an estimate for pricing
+    the time, not the split.
+
+    Parameters
+    ----------
+    input_dir : str or Path
+        The folder of training images.
+    val_masks : str or Path or None
+        The folder of validation masks; None: the plateau rule holds images out instead.
+    holdout_fraction : float
+        The held-out share without validation masks (``train.holdout_fraction``).
+
+    Returns
+    -------
+    int
+        The number of training images.
+    """
     from pipeline.datasets.manifest import relative_id
     from pipeline.training.schedule import holdout_size
 
@@ -139,12 +212,32 @@ def training_images(input_dir: str | Path, val_masks: str | Path | None, holdout
 
 def with_time_budget(params: dict, text: str | None, previous: Mapping | None = None, device: str = "cpu",
                      n_train: int | None = None) -> dict:
-    """``params`` with ``train.time_budget`` = ``text`` and ``train.step_budget`` its steps on this host (those of
-    ``previous`` params holding the same ``text``: no new measurement); ``text`` None: unchanged.
+    """Return ``params`` with ``train.time_budget`` = ``text`` and ``train.step_budget`` its steps on this host.
 
-    Under a resolution schedule the steps are priced by :func:`scheduled_steps`, the half-side ones at their
-    own probed time, over ``n_train`` training images (:func:`training_images`); without ``n_train`` every
-    step is priced at full side (fewer steps than the time allows)."""
+    The steps are those of ``previous`` params holding the same ``text`` (no new measurement), else measured
+    (:func:`step_seconds`).  Under a resolution schedule the steps are priced by :func:`scheduled_steps`, the
+    half-side ones at their own probed time, over ``n_train`` training images (:func:`training_images`); without
+    ``n_train`` every step is priced at full side (fewer steps than the time allows).  A budget needs the
+    stop-and-decay schedule, so ``train.until`` becomes ``plateau``.
+
+    Parameters
+    ----------
+    params : dict
+        The validated params.
+    text : str or None
+        The ``--time`` value (:func:`parse_duration`); None: ``params`` unchanged.
+    previous : Mapping or None
+        The params of the previous run, whose step budget is reused for the same ``text``.
+    device : str
+        The training device the probe runs on.
+    n_train : int or None
+        The training images (:func:`training_images`); None: every step priced at full side.
+
+    Returns
+    -------
+    dict
+        A new params dict (``params`` is not modified).
+    """
     if text is None:
         return params
     seconds = parse_duration(text)
