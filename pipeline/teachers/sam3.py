@@ -398,6 +398,12 @@ class Sam3Teacher(RegisteredTeacher):
                 "score_threshold": self.score_threshold, "mask_threshold": self.mask_threshold,
                 "text_max_length": TEXT_MAX_LENGTH}
 
+    def path(self) -> str:
+        """The path the answers take, as ``label``'s projection and summary name it: backend, engine, dtype and
+        device, e.g. ``sam3 torch eager bf16 on cpu``."""
+        return (f"{BACKEND} torch {'compiled' if self.compile else 'eager'} {self.dtype_name}"
+                f"{'+tf32' if self.tf32 else ''} on {self.device.type}")
+
     def cache_note(self) -> str | None:
         """Why a CPU's answers cached before ``auto`` chose bf16 there are computed again (the dtype is part of
         the fingerprint); None where ``auto`` still means fp32 or the dtype was pinned."""
