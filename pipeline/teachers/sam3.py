@@ -252,6 +252,38 @@ def _embed_pixels_no_clone(self, backbone_features, encoder_hidden_states):
     return self.pixel_decoder(backbone_visual_feats)
 
 
+def _rpb_matrix_one_pass(self, reference_boxes, spatial_shape):
+    """transformers' ``Sam3DetrDecoder._get_rpb_matrix`` with its last sum written straight into the
+    [batch, heads, queries, height * width] layout the attention reads, instead of summing in
+    [batch, queries, height, width, heads] and copying with ``.permute(...).contiguous()``: the same sums, one pass
+    over the largest tensor of the DETR decoder fewer per layer."""
+    import math
+
+    import torch
+    from transformers.models.sam3.modeling_sam3 import box_cxcywh_to_xyxy
+
+    height, width = spatial_shape
+    boxes_xyxy = box_cxcywh_to_xyxy(reference_boxes)
+    batch_size, num_queries, _ = boxes_xyxy.shape
+    coords_h, coords_w = self._get_coords(height, width, dtype=reference_boxes.dtype, device=reference_boxes.device)
+    deltas_y = coords_h.view(1, -1, 1) - boxes_xyxy.reshape(-1, 1, 4)[:, :, 1:4:2]
+    deltas_y = deltas_y.view(batch_size, num_queries, -1, 2)
+    deltas_x = coords_w.view(1, -1, 1) - boxes_xyxy.reshape(-1, 1, 4)[:, :, 0:3:2]
+    deltas_x = deltas_x.view(batch_size, num_queries, -1, 2)
+    deltas_x_log = deltas_x * 8
+    deltas_x_log = torch.sign(deltas_x_log) * torch.log2(torch.abs(deltas_x_log) + 1.0) / math.log2(8)
+    deltas_y_log = deltas_y * 8
+    deltas_y_log = torch.sign(deltas_y_log) * torch.log2(torch.abs(deltas_y_log) + 1.0) / math.log2(8)
+    deltas_x = self.box_rpb_embed_x(deltas_x_log)  # [batch_size, num_queries, width, num_heads]
+    deltas_y = self.box_rpb_embed_y(deltas_y_log)  # [batch_size, num_queries, height, num_heads]
+    rows, cols, heads = deltas_y.shape[2], deltas_x.shape[2], deltas_x.shape[3]
+    rpb_matrix = torch.empty(batch_size, heads, num_queries, rows * cols,
+                             dtype=torch.result_type(deltas_y, deltas_x), device=deltas_x.device)
+    torch.add(deltas_y.unsqueeze(3), deltas_x.unsqueeze(2),
+              out=rpb_matrix.view(batch_size, heads, num_queries, rows, cols).permute(0, 2, 3, 4, 1))
+    return rpb_matrix
+
+
 #: what :func:`exact_savings` replaces in transformers' ``modeling_sam3``: (owner name, attribute) -> (the
 #: replacement, sha256 of the upstream source it was written against). A transformers whose source differs
 #: keeps its own code (the saving is lost, never the answer); tests/teachers/test_sam3_patches.py fails then.
@@ -260,6 +292,8 @@ SAM3_PATCHES = {
         _rope_fewer_passes, "1fa3bc56888d6f69e291a7651315a43ea1c3f5f7e175d3a7143e2a0054ffe7dc"),
     ("modeling_sam3", "window_partition"): (
         _window_partition_no_empty_pad, "b28eb8bc3a59517f7446bcf78ac96568cfd676e8fef180fe2e9811fd8208d1b9"),
+    ("Sam3DetrDecoder", "_get_rpb_matrix"): (
+        _rpb_matrix_one_pass, "223c200503a5510cc5f7530f166c77d98bd70ded4abe29cabb8022f2647ed770"),
     ("Sam3MaskDecoder", "_embed_pixels"): (
         _embed_pixels_no_clone, "c3953291fe55957f22f7aa0a68a63156fc70174e95e3f37f9df4036080f01342"),
 }
@@ -283,6 +317,8 @@ def upstream_source_digest(owner: str, name: str) -> str | None:
         return None
 
 
+#: the Sam3Model attribute holding each patched class's instance (its method is replaced on that instance only)
+_INSTANCE_OWNERS = {"Sam3DetrDecoder": "detr_decoder", "Sam3MaskDecoder": "mask_decoder"}
 _PATCHES_THAT_FIT: list | None = None
 
 
@@ -305,11 +341,12 @@ def _patches_that_fit() -> list:
 def exact_savings(model):
     """Context: transformers' SAM 3 with copies and memory passes it does not need removed, the answers bit for
     bit the same in fp32 and bf16 (issue 65 item 1; tests/teachers/test_sam3_patches.py): RoPE's rotation in fewer
-    passes, no zero-padding copy before the window partition, no clone of every FPN level in the mask decoder.
+    passes, no zero-padding copy before the window partition, the DETR decoder's box bias summed into its final
+    layout, no clone of every FPN level in the mask decoder.
 
     The two module-level functions are swapped in ``modeling_sam3`` for the context's duration (one teacher per
     process calls the model; a second thread inside the context would see them too, with the same answers), the
-    method on ``model.mask_decoder`` only. Only patches whose upstream source matches :data:`SAM3_PATCHES` apply.
+    methods on ``model.detr_decoder`` and ``model.mask_decoder`` only. Only patches whose upstream source matches :data:`SAM3_PATCHES` apply.
 
     Parameters
     ----------
@@ -329,9 +366,10 @@ def exact_savings(model):
         if owner == "modeling_sam3":
             saved.append((name, getattr(modeling, name)))
             setattr(modeling, name, replacement)
-        elif owner == "Sam3MaskDecoder" and getattr(model, "mask_decoder", None) is not None:
-            setattr(model.mask_decoder, name, types.MethodType(replacement, model.mask_decoder))
-            instance.append((model.mask_decoder, name))
+        elif owner in _INSTANCE_OWNERS and getattr(model, _INSTANCE_OWNERS[owner], None) is not None:
+            module = getattr(model, _INSTANCE_OWNERS[owner])
+            setattr(module, name, types.MethodType(replacement, module))
+            instance.append((module, name))
     try:
         yield
     finally:

@@ -91,9 +91,9 @@ def test_a_windowed_backbone_gives_the_same_outputs_with_the_savings():
     with torch.inference_mode():
         ref = model(pixel_values=pixels, input_ids=ids)
         with exact_savings(model):
-            assert modeling.window_partition is not before[1]
+            assert modeling.window_partition is not before[1] and "_get_rpb_matrix" in vars(model.detr_decoder)
             got = model(pixel_values=pixels, input_ids=ids)
     assert (modeling.apply_rotary_pos_emb_2d, modeling.window_partition) == before
-    assert "_embed_pixels" not in vars(model.mask_decoder)
+    assert "_embed_pixels" not in vars(model.mask_decoder) and "_get_rpb_matrix" not in vars(model.detr_decoder)
     for name in ("pred_masks", "pred_logits", "presence_logits", "semantic_seg"):
         assert torch.equal(getattr(ref, name), getattr(got, name)), name
