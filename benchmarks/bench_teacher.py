@@ -7,7 +7,10 @@ With ``--roofline``: the teacher at the CPU's limit -- FLOPs per image for six p
 once per image, text once per run, the six detector and mask-head passes), a per-module CPU time profile, the
 host's fp32 / bf16 / AMX limits from its flags and a measured matmul peak, fp32 eager against the default path
 (``teacher.dtype: auto``) round-robin with medians and minima, measured / limit, and the fidelity gate (mean mask
-IoU >= 0.99 against fp32 eager with score_threshold 0, pairs of two empty masks left out).  Random weights test
+IoU >= 0.99 against fp32 eager with score_threshold 0, pairs of two empty masks left out). fp32 eager runs the code
+of main at 3056231 (the pinned baseline of issue 65), timed beside the default path as 3056231 ran it and as it
+runs now; both defaults also get per-module times and the shares of attention, matmul, copies and elementwise
+work in torch.profiler's self CPU time.  Random weights test
 the numerics only, not the masks of a trained SAM 3.
 
     python -m benchmarks.bench_teacher [--size real --device cuda --images 16 --compile] [--ray-workers 1,2]
@@ -223,8 +226,6 @@ def steady_rate(stamps: list[float], per_image: int) -> float:
 #: the fidelity gate of a faster teacher path against fp32 eager (issue 58): mean mask IoU over the pairs that are
 #: not both empty, and the largest score difference allowed (scores are products of two sigmoids, in [0, 1])
 GATE_IOU, GATE_SCORE = 0.99, 0.02
-#: the roofline's third path (:class:`EveryPromptFirstAttention`)
-BEFORE = "fp32 eager, first attention per prompt"
 
 
 def fidelity(masks, scores, ref_masks, ref_scores) -> dict:
@@ -249,10 +250,9 @@ def sdpa_cpu_flops(query_shape, key_shape, value_shape, *args, out_shape=None, *
     return sdpa_flop_count(query_shape, key_shape, value_shape)
 
 
-def module_flops_and_times(teacher, items, prompts) -> tuple[dict, dict, float]:
-    """One call of ``teacher.predict`` counted (FLOPs per top-level module, torch's counter plus CPU attention)
-    and, in a second call, timed per top-level module (wall seconds between each module's forward hooks);
-    text features are counted apart on a fresh tokenisation (once per run)."""
+def module_flops(teacher, items, prompts) -> dict:
+    """FLOPs of one call of ``teacher.predict`` per top-level module (torch's counter plus CPU attention); the
+    text features counted apart on a fresh tokenisation (once per run)."""
     import torch
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -272,6 +272,32 @@ def module_flops_and_times(teacher, items, prompts) -> tuple[dict, dict, float]:
             flops[parts[1]] = int(sum(v.values()))
     flops["total"] = int(counter.get_total_flops())
     flops["text_encoder (once per run)"] = int(text)
+    return flops
+
+
+#: how :func:`module_times_and_shares` sorts torch.profiler's operators (self CPU time); anything else is "other"
+#: (normalisations, upsampling, reductions, the profiler's own rows)
+OP_KINDS = {
+    "attention": ("aten::_scaled_dot_product_flash_attention_for_cpu", "aten::_scaled_dot_product_attention_math",
+                  "aten::_softmax"),
+    "matmul": ("aten::addmm", "aten::mm", "aten::bmm", "aten::mkldnn_convolution", "aten::_mkldnn_linear",
+               "aten::mkldnn_linear"),
+    "copies": ("aten::copy_", "aten::cat", "aten::fill_", "aten::zero_", "aten::index_select", "aten::index",
+               "aten::repeat_interleave", "aten::clone", "aten::_to_copy", "aten::flip", "aten::constant_pad_nd"),
+    "elementwise": ("aten::add", "aten::add_", "aten::mul", "aten::mul_", "aten::sub", "aten::div", "aten::neg",
+                    "aten::clamp_min", "aten::clamp", "aten::gelu", "aten::relu", "aten::sigmoid", "aten::sin",
+                    "aten::cos", "aten::sign", "aten::abs", "aten::log2", "aten::log", "aten::exp", "aten::pow",
+                    "aten::rsub", "aten::where", "aten::gt", "aten::lt"),
+}
+
+
+def module_times_and_shares(teacher, items, prompts) -> tuple[dict, dict, float]:
+    """One call of ``teacher.predict`` under torch.profiler: wall seconds per top-level module (between its
+    forward hooks), the share of self CPU time per :data:`OP_KINDS` kind, and the call's wall seconds (the
+    profiler adds a little to it)."""
+    import torch
+
+    model = teacher.load()
     times: dict[str, float] = {}
     hooks = []
     for name, child in model.named_children():
@@ -283,16 +309,32 @@ def module_flops_and_times(teacher, items, prompts) -> tuple[dict, dict, float]:
         hooks += [child.register_forward_pre_hook(pre), child.register_forward_hook(post)]
     t0 = time.perf_counter()
     try:
-        teacher.predict(items, prompts)
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+            teacher.predict(items, prompts)
     finally:
         for h in hooks:
             h.remove()
-    return flops, times, time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    kind_of = {op: kind for kind, ops in OP_KINDS.items() for op in ops}
+    self_s: dict[str, float] = {kind: 0.0 for kind in [*OP_KINDS, "other"]}
+    for row in prof.key_averages():
+        if row.key.startswith("aten::"):
+            self_s[kind_of.get(row.key, "other")] += row.self_cpu_time_total / 1e6
+    total = sum(self_s.values()) or 1.0
+    return times, {k: {"seconds": v, "share": v / total} for k, v in self_s.items()}, wall
+
+
+#: the roofline's paths: fp32 eager and the default as the code of 3056231 ran them (:class:`AsOf3056231`, the
+#: pinned baseline of issue 65), and the default path as it runs now
+FP32, OLD_DEFAULT, DEFAULT = "fp32 eager", "default at 3056231", "default"
+#: the roofline's targets for default / fp32 eager (medians), by host kind (issue 65)
+TARGETS = "<= 0.35 on avx512_bf16, <= 0.25 on AMX, <= 1 on AVX2"
 
 
 def roofline(args) -> None:
-    """fp32 eager against the default path (round-robin, the same images, threads, batch and input size),
-    the FLOPs and per-module times of the default path, the host's limits, measured / limit, the gate."""
+    """fp32 eager (3056231's code) against the default path of 3056231 and today's (round-robin, the same images,
+    threads, batch and input size), the FLOPs of the default path, per-module times and op-kind shares of both
+    defaults, the host's limits, measured / limit, the gate."""
     import torch
 
     rng = np.random.default_rng(0)
@@ -303,14 +345,15 @@ def roofline(args) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         ckpt = sam3_checkpoint(args, tmp)
         kw = dict(device=args.device, batch_size=args.batch_size or 1, resolution=(r, r), score_threshold=0.0)
-        paths = {"fp32 eager": Sam3Teacher(ckpt, dtype="fp32", **kw), "default": Sam3Teacher(ckpt, dtype=args.dtype, **kw)}
-        paths[BEFORE] = EveryPromptFirstAttention(paths["fp32 eager"])
+        default = Sam3Teacher(ckpt, dtype=args.dtype, **kw)
+        paths = {FP32: AsOf3056231(Sam3Teacher(ckpt, dtype="fp32", **kw)), OLD_DEFAULT: AsOf3056231(default),
+                 DEFAULT: default}
         for t in paths.values():
             t.load()
             t.text_features(PROMPTS)  # once per run, as in a run
             if not args.no_warmup:
                 t.predict(items[:1], PROMPTS)  # oneDNN primitives are made per shape and dtype
-        n_params = sum(p.numel() for p in paths["default"].load().parameters())
+        n_params = sum(p.numel() for p in default.load().parameters())
         answers = {}
 
         def call(name):
@@ -319,19 +362,19 @@ def roofline(args) -> None:
             return time.perf_counter() - t0
 
         times = round_robin({k: (lambda rep, k=k: call(k)) for k in paths}, args.repeats, order="alternate")
-        gate = fidelity(*answers["default"], *answers["fp32 eager"])
-        same = all(np.array_equal(a, b) for a, b in zip(answers["fp32 eager"], answers[BEFORE]))
-        flops, module_s, profiled_s = module_flops_and_times(paths["default"], items, PROMPTS)
+        gate = fidelity(*answers[DEFAULT], *answers[FP32])
+        same = all(np.array_equal(a, b) for a, b in zip(answers[DEFAULT], answers[OLD_DEFAULT]))
+        flops = module_flops(default, items, PROMPTS)
+        profiled = {k: module_times_and_shares(paths[k], items, PROMPTS) for k in (OLD_DEFAULT, DEFAULT)}
         limits = host_limits()
-        default_dtype = paths["default"].dtype_name
-        model_input = "x".join(map(str, paths["default"].input_size))  # the processor's size: 1008 at real size
+        default_dtype = default.dtype_name
+        model_input = "x".join(map(str, default.input_size))  # the processor's size: 1008 at real size
     n = args.images
     med = {k: v / n for k, v in medians(times).items()}
     low = {k: min(v) / n for k, v in times.items()}
     per_image = {k: v / n for k, v in flops.items() if not k.startswith("text_encoder") and k != "total"}
     image_flops = flops["total"] / n
-    peak = {"fp32 eager": limits["fp32_gflops"], BEFORE: limits["fp32_gflops"],
-            "default": limits["bf16_gflops"] if default_dtype == "bf16" else limits["fp32_gflops"]}
+    peak = {k: limits["bf16_gflops"] if paths_dtype(paths, k) == "bf16" else limits["fp32_gflops"] for k in paths}
     host = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "node": platform.node(),
             "cpu": cpu_model(), "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
             "flags": sorted(f for f in cpu_flags() if f in LIMIT_FLAGS),
@@ -350,31 +393,37 @@ def roofline(args) -> None:
     print(f"  FLOPs per image, {len(PROMPTS)} prompts: {image_flops / 1e12:.2f} TFLOP "
           + ", ".join(f"{k} {v / 1e9:.4g} G" for k, v in sorted(per_image.items(), key=lambda kv: -kv[1]))
           + f"; text once per run {flops['text_encoder (once per run)'] / 1e9:.4g} G")
-    print(f"  per-module wall time of the default path ({default_dtype}), one profiled call of {profiled_s:.1f} s: "
-          + ", ".join(f"{k} {v:.1f} s" for k, v in sorted(module_s.items(), key=lambda kv: -kv[1])))
+    for k, (module_s, shares, wall) in profiled.items():
+        print(f"  per-module wall time, {k} ({paths_dtype(paths, k)}), one profiled call of {wall:.1f} s: "
+              + ", ".join(f"{m} {v:.1f} s" for m, v in sorted(module_s.items(), key=lambda kv: -kv[1])))
+        print("    shares of self CPU time: " + ", ".join(f"{kind} {v['share']:.0%} ({v['seconds']:.1f} s)"
+                                                          for kind, v in shares.items()))
     for k in paths:
         att = image_flops / med[k] / 1e9
-        print(f"  {k:10s} ({paths_dtype(paths, k)}): median {med[k]:8.2f} s/image, min {low[k]:8.2f}  "
+        print(f"  {k:18s} ({paths_dtype(paths, k)}): median {med[k]:8.2f} s/image, min {low[k]:8.2f}  "
               f"[{', '.join(f'{t / n:.2f}' for t in times[k])}]  {att:6.1f} GFLOP/s = "
               f"{att / peak[k]:.2f} of the {paths_dtype(paths, k)} matmul peak")
-    ratio = med["default"] / med["fp32 eager"]
-    ratio_before = med["default"] / med[BEFORE]
-    print(f"  default / fp32 eager (medians): {ratio:.3f}  (target <= 0.5 on avx512_bf16, <= 0.25 on AMX, <= 1 on AVX2)"
-          f"; / {BEFORE}: {ratio_before:.3f}")
+    ratio, ratio_old = med[DEFAULT] / med[FP32], med[OLD_DEFAULT] / med[FP32]
+    pairs = [d / f for d, f in zip(times[DEFAULT], times[FP32])]
+    print(f"  {DEFAULT} / {FP32} (medians): {ratio:.3f}  (targets {TARGETS}); per round-robin pair "
+          f"{', '.join(f'{x:.3f}' for x in pairs)}; {OLD_DEFAULT} / {FP32}: {ratio_old:.3f}; "
+          f"{DEFAULT} / {OLD_DEFAULT}: {med[DEFAULT] / med[OLD_DEFAULT]:.3f}")
     print(f"  fidelity vs fp32 eager: mean mask IoU {gate['mean_iou']:.4f} over {gate['pairs'] - gate['pairs_both_empty']}"
           f" pairs (min {gate['min_iou']:.4f}; {gate['pairs_both_empty']} pairs both empty, left out), max |score "
           f"difference| {gate['max_score_diff']:.2e}; gate (IoU >= {GATE_IOU}, scores within {GATE_SCORE}): "
           f"{'passes' if gate['passes'] else 'FAILS'}")
-    print(f"  first self-attention once per image: answers {'identical' if same else 'DIFFERENT'} (fp32) to running it "
-          f"per prompt")
+    print(f"  {DEFAULT} against {OLD_DEFAULT}: answers {'identical' if same else 'DIFFERENT'} (masks and scores)")
     if args.json:
         doc = {"host": host, "limits": limits, "model": {"size": args.size, "parameters": n_params,
                "weights": "random", "input": model_input}, "images": n, "resolution": r,
                "prompts": len(PROMPTS), "batch_size": kw["batch_size"], "repeats": args.repeats,
                "default_dtype": default_dtype, "seconds": times, "median_s_per_image": med, "min_s_per_image": low,
-               "default_over_fp32": ratio, "default_over_fp32_before": ratio_before, "flops_per_image": per_image,
-               "text_flops_per_run": flops["text_encoder (once per run)"], "module_seconds": module_s,
-               "fidelity": gate, "first_attention_once_per_image_identical": same}
+               "default_over_fp32": ratio, "default_over_fp32_pairs": pairs, "old_default_over_fp32": ratio_old,
+               "targets": TARGETS, "flops_per_image": per_image,
+               "text_flops_per_run": flops["text_encoder (once per run)"],
+               "module_seconds": {k: v[0] for k, v in profiled.items()},
+               "op_shares": {k: v[1] for k, v in profiled.items()}, "fidelity": gate,
+               "default_identical_to_3056231": same}
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
         print(f"  written {args.json}")
@@ -384,10 +433,20 @@ def fmt_load(load) -> str:
     return " ".join(f"{x:.1f}" for x in load)
 
 
-class EveryPromptFirstAttention:
-    """A teacher whose DETR encoder runs its first self-attention once per (image, prompt), as transformers runs
-    it: the fp32 path before that layer ran once per image (the roofline's third path, so that the default is
-    also timed against the code the issue measured)."""
+def _repeat_vision_copies(vision, k: int):
+    """``Sam3Teacher._repeat_vision`` as of 3056231: every FPN level and position encoding copied per prompt."""
+    from transformers.models.sam3.modeling_sam3 import Sam3VisionEncoderOutput
+
+    rep = lambda ts: tuple(t.repeat_interleave(k, dim=0) for t in ts)  # noqa: E731
+    return Sam3VisionEncoderOutput(last_hidden_state=vision.last_hidden_state,
+                                   fpn_hidden_states=rep(vision.fpn_hidden_states),
+                                   fpn_position_encoding=rep(vision.fpn_position_encoding))
+
+
+class AsOf3056231:
+    """A teacher run with the code of main at 3056231, pinned as the baseline of issue 65: transformers' SAM 3
+    without :func:`pipeline.teachers.sam3.exact_savings`, every FPN level repeated per prompt (the DETR encoder's
+    first self-attention once per image, as at 3056231)."""
 
     def __init__(self, teacher: Sam3Teacher):
         self.teacher = teacher
@@ -396,8 +455,9 @@ class EveryPromptFirstAttention:
         return getattr(self.teacher, name)
 
     def predict(self, items, prompts):
-        every = lambda model, copies: contextlib.nullcontext()  # noqa: E731
-        with mock.patch.object(sam3_module, "first_self_attention_once_per_image", every):
+        none = lambda model: contextlib.nullcontext()  # noqa: E731
+        with mock.patch.object(sam3_module, "exact_savings", none), \
+                mock.patch.object(Sam3Teacher, "_repeat_vision", staticmethod(_repeat_vision_copies)):
             return self.teacher.predict(items, prompts)
 
 

@@ -145,7 +145,7 @@ class TeacherParams(_Section):
     checkpoint: str | None = _f(None, "sam3: local SAM 3 directory (save_pretrained layout)")
     imported_dir: str | None = _f(None, "imported: directory in the documented layout")
     dtype: Literal["auto", "fp32", "bf16"] = _f(
-        "auto", "sam3: auto = bf16 on CUDA (fp32+TF32 without bf16), fp32 on CPU")
+        "auto", "sam3: auto = bf16 on CUDA (fp32+TF32 without bf16); on CPU bf16 with avx512_bf16 or AMX, else fp32")
     batch_size: int = _f(0, "images per SAM 3 forward; 0 = from free GPU memory (2 on a CPU)", ge=0, le=4096)
     compile: bool = _f(False, "sam3: torch.compile the vision encoder on CUDA (pays after warm-up)")
     score_threshold: float = _f(0.3, "sam3: queries scoring <= this are no candidate", ge=0, le=1)

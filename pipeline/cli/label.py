@@ -102,7 +102,9 @@ def summary_line(result) -> str:
     g = result.table["g"]
     parts = [f"label: {len(result.table)} images -> {result.out} ({', '.join(result.formats)})",
              f"teacher answers {record['teacher_answers_computed']} computed, {record['teacher_cache_hits']} cached"
-             + (f" ({record['teacher_seconds_per_image']:.2f} s per image, measured on {record['teacher_images_timed']:.3g})"
+             + (f" ({record['teacher_seconds_per_image']:.2f} s per image"
+                + (f" on {record['teacher_path']}" if record.get("teacher_path") else "")
+                + f", measured on {record['teacher_images_timed']:.3g})"
                 if record.get("teacher_seconds_per_image") is not None else ""),
              f"gate g median {g.median():.3f}, {int((g > 0).sum())} with g > 0"]
     parts += [LABEL_FORMATS[f].summary(result.out, len(result.table)) for f in result.formats

@@ -454,7 +454,8 @@ class FolderInputs:
 
 
 def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: bool, fmts: Sequence[str],
-                device: str = "auto", workers: int = 0, address: str | None = None, on_batch=None) -> LabelJob:
+                device: str = "auto", workers: int = 0, address: str | None = None, on_batch=None,
+                on_teacher=None) -> LabelJob:
     """Plan, read and answer a label run.
 
     Plans the run, reads every image (a bad one stops it before any output folder stays), claims the outputs in
@@ -484,6 +485,9 @@ def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
     on_batch : callable, optional
         The runner's callback after each batch (:meth:`~pipeline.teachers.runner.TeacherRunner.fill`), e.g.
         :class:`~pipeline.labeling.run.TeacherClock`; None (default): none.
+    on_teacher : callable, optional
+        Called with the run's teacher once it is made, before the fill (``label`` names its path in the
+        projection); None (default): none.
 
     Returns
     -------
@@ -507,6 +511,8 @@ def open_folder(input_dir, out, params: Mapping, reference_masks, overwrite: boo
     job.runner, job.fingerprint = open_runner(job.tcfg, (job.size, job.size), device, inputs, job.shas)
     if job.simulated:
         log.warning("label: %s", SIMULATOR_NOTE)
+    if on_teacher is not None:
+        on_teacher(job.runner.teacher)
     job.stats = job.runner.fill(range(len(job.files)), workers=workers, address=address, on_batch=on_batch)
     log.info("label: teacher computed %d answers on %d images; %d cached answers reused",
              job.stats.answers_computed, job.stats.images_computed, job.stats.cache_hits)

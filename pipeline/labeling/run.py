@@ -135,6 +135,8 @@ class TeacherClock:
 
     Attributes
     ----------
+    path : str or None
+        The teacher's path (:func:`teacher_path`), named in the projection; None: not named.
     start : float
         ``clock()`` when the clock was made.
     first : tuple of (int, float) or None
@@ -148,6 +150,7 @@ class TeacherClock:
     def __init__(self, report: Callable[[str], None] | None, workers: int = 0, clock=time.perf_counter):
         self.report, self.workers, self.clock = report, int(workers), clock
         self.start = clock()
+        self.path: str | None = None
         self.first: tuple[int, float] | None = None   # (images, seconds) at the first finished batch
         self.images = 0.0
         self.seconds = 0.0
@@ -172,8 +175,9 @@ class TeacherClock:
                    f"(the first batch's rate x {self.workers} workers keeping pace)")
         else:
             how = f"about {duration(per_image * todo)} serially"
+        on = f" on {self.path}" if self.path else ""
         line = (f"label: teacher's first batch: {done:.3g} image(s) in {self.seconds:.1f} s ({per_image:.2f} s per "
-                f"image); projected for the {todo} image(s) to label: {how}")
+                f"image{on}); projected for the {todo} image(s) to label: {how}")
         if self.report is not None:
             self.report(line)
         else:
@@ -183,6 +187,23 @@ class TeacherClock:
     def seconds_per_image(self) -> float | None:
         """Measured wall seconds per image the teacher answered (None: every answer was cached)."""
         return self.seconds / self.images if self.images else None
+
+
+def teacher_path(teacher) -> str | None:
+    """Return the path the teacher's answers take (engine, dtype, device), from its optional ``path()``.
+
+    Parameters
+    ----------
+    teacher : Teacher
+        The run's teacher.
+
+    Returns
+    -------
+    str or None
+        E.g. ``sam3 torch eager bf16 on cpu``; None for a teacher without one to name (the SIMULATOR).
+    """
+    describe = getattr(teacher, "path", None)
+    return describe() if callable(describe) else None
 
 
 def teacher_note(teacher, computed: int) -> str | None:
@@ -336,7 +357,7 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
     fmts = parse_formats(formats)
     clock = TeacherClock(report, workers)
     job = open_folder(input_dir, out, params, reference_masks, overwrite, fmts, device, workers, address,
-                      on_batch=clock)
+                      on_batch=clock, on_teacher=lambda teacher: setattr(clock, "path", teacher_path(teacher)))
     job.copy_images = copy_images
     vote_threshold = float(section(params, "consensus")["vote_threshold"])
     v = write_votes(job, fmts, folder_votes(job, vote_threshold))
@@ -349,7 +370,7 @@ def label_folder(input_dir: str | Path, out: str | Path, params: Mapping, *, dev
         "prompts": list(tcfg["prompts"]), "resolution": job.size, "vote_threshold": vote_threshold, "a0": gates.a0,
         "geometry": job.geo, "teacher_answers_computed": stats.answers_computed,
         "teacher_cache_hits": stats.cache_hits, "teacher_seconds_per_image": clock.seconds_per_image,
-        "teacher_images_timed": clock.images, "teacher_dtype": getattr(job.runner.teacher, "dtype_name", None),
+        "teacher_images_timed": clock.images, "teacher_path": clock.path, "teacher_dtype": getattr(job.runner.teacher, "dtype_name", None),
         "teacher_note": teacher_note(job.runner.teacher, stats.answers_computed),
         "complete": True, "teacher": tcfg})
     # the summary is the caller's one line (pipeline/cli/label.py), not also a log line

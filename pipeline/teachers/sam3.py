@@ -6,8 +6,12 @@ the best query's mask and score, invalid when no query is above ``teacher.score_
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import inspect
 import json
 import logging
+import math
+import types
 from pathlib import Path
 from typing import Sequence
 
@@ -201,6 +205,180 @@ def first_self_attention_once_per_image(model, copies: int):
         del attn.forward
 
 
+def _rope_fewer_passes(q, k, cos, sin):
+    """transformers' ``apply_rotary_pos_emb_2d`` with the same arithmetic in fewer memory passes: the pairwise
+    rotation times ``sin``, ``rotate_pairwise(x) * sin``, equals ``swap_pairs(x) * sin_signed`` bit for bit
+    (negation is exact), so the negated half and the stacked copy become one swapped copy, and the sum is
+    taken in place; the fp32 round trip of a bf16 input stays (its rounding is the model's)."""
+    import torch
+
+    sin_signed = (sin.unflatten(-1, (-1, 2)) * torch.tensor([-1.0, 1.0], dtype=sin.dtype, device=sin.device)
+                  ).flatten(-2)
+
+    def rotate(x):
+        xf = x.float()
+        out = xf * cos
+        swapped = xf.unflatten(-1, (-1, 2)).flip(-1).flatten(-2)
+        swapped.mul_(sin_signed)
+        out.add_(swapped)
+        return out.type_as(x)
+
+    return rotate(q), rotate(k)
+
+
+def _window_partition_no_empty_pad(hidden_state, window_size):
+    """transformers' ``window_partition`` without its ``F.pad`` copy when nothing is padded (SAM 3's 72 x 72
+    tokens in 24 x 24 windows): the same windows, one copy fewer per windowed layer."""
+    import torch.nn.functional as F
+
+    batch_size, height, width, num_channels = hidden_state.shape
+    pad_height = (window_size - height % window_size) % window_size
+    pad_width = (window_size - width % window_size) % window_size
+    if pad_height or pad_width:
+        hidden_state = F.pad(hidden_state, (0, 0, 0, pad_width, 0, pad_height))
+    padded_height, padded_width = height + pad_height, width + pad_width
+    hidden_state = hidden_state.view(
+        batch_size, padded_height // window_size, window_size, padded_width // window_size, window_size, num_channels)
+    windows = hidden_state.permute(0, 1, 3, 2, 4, 5).contiguous().view(-1, window_size, window_size, num_channels)
+    return windows, (padded_height, padded_width)
+
+
+def _embed_pixels_no_clone(self, backbone_features, encoder_hidden_states):
+    """transformers' ``Sam3MaskDecoder._embed_pixels`` without cloning every FPN level per (image, prompt): the
+    pixel decoder only reads them (its sums make new tensors), so a list of the same tensors gives the same answer."""
+    backbone_visual_feats = list(backbone_features)
+    spatial_dim = backbone_features[-1].shape[-2] * backbone_features[-1].shape[-1]
+    encoder_visual_embed = encoder_hidden_states[:, :spatial_dim, :]
+    batch_size, _, hidden_size = encoder_visual_embed.shape
+    height, width = backbone_features[-1].shape[-2:]
+    encoder_visual_embed = encoder_visual_embed.transpose(1, 2).reshape(batch_size, hidden_size, height, width)
+    backbone_visual_feats[-1] = encoder_visual_embed
+    return self.pixel_decoder(backbone_visual_feats)
+
+
+def _rpb_matrix_one_pass(self, reference_boxes, spatial_shape):
+    """transformers' ``Sam3DetrDecoder._get_rpb_matrix`` with its last sum written straight into the
+    [batch, heads, queries, height * width] layout the attention reads, instead of summing in
+    [batch, queries, height, width, heads] and copying with ``.permute(...).contiguous()``: the same sums, one pass
+    over the largest tensor of the DETR decoder fewer per layer."""
+
+    import torch
+    from transformers.models.sam3.modeling_sam3 import box_cxcywh_to_xyxy
+
+    height, width = spatial_shape
+    boxes_xyxy = box_cxcywh_to_xyxy(reference_boxes)
+    batch_size, num_queries, _ = boxes_xyxy.shape
+    coords_h, coords_w = self._get_coords(height, width, dtype=reference_boxes.dtype, device=reference_boxes.device)
+    deltas_y = coords_h.view(1, -1, 1) - boxes_xyxy.reshape(-1, 1, 4)[:, :, 1:4:2]
+    deltas_y = deltas_y.view(batch_size, num_queries, -1, 2)
+    deltas_x = coords_w.view(1, -1, 1) - boxes_xyxy.reshape(-1, 1, 4)[:, :, 0:3:2]
+    deltas_x = deltas_x.view(batch_size, num_queries, -1, 2)
+    deltas_x_log = deltas_x * 8
+    deltas_x_log = torch.sign(deltas_x_log) * torch.log2(torch.abs(deltas_x_log) + 1.0) / math.log2(8)
+    deltas_y_log = deltas_y * 8
+    deltas_y_log = torch.sign(deltas_y_log) * torch.log2(torch.abs(deltas_y_log) + 1.0) / math.log2(8)
+    deltas_x = self.box_rpb_embed_x(deltas_x_log)  # [batch_size, num_queries, width, num_heads]
+    deltas_y = self.box_rpb_embed_y(deltas_y_log)  # [batch_size, num_queries, height, num_heads]
+    rows, cols, heads = deltas_y.shape[2], deltas_x.shape[2], deltas_x.shape[3]
+    rpb_matrix = torch.empty(batch_size, heads, num_queries, rows * cols,
+                             dtype=torch.result_type(deltas_y, deltas_x), device=deltas_x.device)
+    torch.add(deltas_y.unsqueeze(3), deltas_x.unsqueeze(2),
+              out=rpb_matrix.view(batch_size, heads, num_queries, rows, cols).permute(0, 2, 3, 4, 1))
+    return rpb_matrix
+
+
+#: what :func:`exact_savings` replaces in transformers' ``modeling_sam3``: (owner name, attribute) -> (the
+#: replacement, sha256 of the upstream source it was written against). A transformers whose source differs
+#: keeps its own code (the saving is lost, never the answer); tests/teachers/test_sam3_patches.py fails then.
+SAM3_PATCHES = {
+    ("modeling_sam3", "apply_rotary_pos_emb_2d"): (
+        _rope_fewer_passes, "1fa3bc56888d6f69e291a7651315a43ea1c3f5f7e175d3a7143e2a0054ffe7dc"),
+    ("modeling_sam3", "window_partition"): (
+        _window_partition_no_empty_pad, "b28eb8bc3a59517f7446bcf78ac96568cfd676e8fef180fe2e9811fd8208d1b9"),
+    ("Sam3DetrDecoder", "_get_rpb_matrix"): (
+        _rpb_matrix_one_pass, "223c200503a5510cc5f7530f166c77d98bd70ded4abe29cabb8022f2647ed770"),
+    ("Sam3MaskDecoder", "_embed_pixels"): (
+        _embed_pixels_no_clone, "c3953291fe55957f22f7aa0a68a63156fc70174e95e3f37f9df4036080f01342"),
+}
+
+
+def upstream_source_digest(owner: str, name: str) -> str | None:
+    """sha256 of the source of ``modeling_sam3.<name>`` (owner ``"modeling_sam3"``) or of
+    ``modeling_sam3.<owner>.<name>``; None when transformers has no such function or method."""
+
+    import transformers.models.sam3.modeling_sam3 as modeling
+
+    target = modeling if owner == "modeling_sam3" else getattr(modeling, owner, None)
+    fn = getattr(target, name, None) if target is not None else None
+    if fn is None:
+        return None
+    try:
+        return hashlib.sha256(inspect.getsource(fn).encode()).hexdigest()
+    except (OSError, TypeError):
+        return None
+
+
+#: the Sam3Model attribute holding each patched class's instance (its method is replaced on that instance only)
+_INSTANCE_OWNERS = {"Sam3DetrDecoder": "detr_decoder", "Sam3MaskDecoder": "mask_decoder"}
+_PATCHES_THAT_FIT: list | None = None
+
+
+def _patches_that_fit() -> list:
+    """The :data:`SAM3_PATCHES` whose upstream source is the one each was written against (checked once)."""
+    global _PATCHES_THAT_FIT
+    if _PATCHES_THAT_FIT is None:
+        fit = []
+        for (owner, name), (replacement, digest) in SAM3_PATCHES.items():
+            if upstream_source_digest(owner, name) == digest:
+                fit.append((owner, name, replacement))
+            else:
+                log.info("sam3: transformers' %s.%s differs from the code its saving was written for; kept as is",
+                         owner, name)
+        _PATCHES_THAT_FIT = fit
+    return _PATCHES_THAT_FIT
+
+
+@contextlib.contextmanager
+def exact_savings(model):
+    """Context: transformers' SAM 3 with copies and memory passes it does not need removed, the answers bit for
+    bit the same in fp32 and bf16 (issue 65 item 1; tests/teachers/test_sam3_patches.py): RoPE's rotation in fewer
+    passes, no zero-padding copy before the window partition, the DETR decoder's box bias summed into its final
+    layout, no clone of every FPN level in the mask decoder.
+
+    The two module-level functions are swapped in ``modeling_sam3`` for the context's duration (one teacher per
+    process calls the model; a second thread inside the context would see them too, with the same answers), the
+    methods on ``model.detr_decoder`` and ``model.mask_decoder`` only. Only patches whose upstream source matches :data:`SAM3_PATCHES` apply.
+
+    Parameters
+    ----------
+    model : transformers.Sam3Model
+        The loaded model.
+
+    Yields
+    ------
+    None
+    """
+
+    import transformers.models.sam3.modeling_sam3 as modeling
+
+    saved, instance = [], []
+    for owner, name, replacement in _patches_that_fit():
+        if owner == "modeling_sam3":
+            saved.append((name, getattr(modeling, name)))
+            setattr(modeling, name, replacement)
+        elif owner in _INSTANCE_OWNERS and getattr(model, _INSTANCE_OWNERS[owner], None) is not None:
+            module = getattr(model, _INSTANCE_OWNERS[owner])
+            setattr(module, name, types.MethodType(replacement, module))
+            instance.append((module, name))
+    try:
+        yield
+    finally:
+        for name, original in saved:
+            setattr(modeling, name, original)
+        for obj, name in instance:
+            delattr(obj, name)
+
+
 class Sam3Teacher(RegisteredTeacher):
     """Frozen SAM 3 answering text prompts: vision encoder once per image batch, text features once per run."""
 
@@ -257,6 +435,12 @@ class Sam3Teacher(RegisteredTeacher):
                 "resolution": list(self.resolution) if self.resolution else None,
                 "score_threshold": self.score_threshold, "mask_threshold": self.mask_threshold,
                 "text_max_length": TEXT_MAX_LENGTH}
+
+    def path(self) -> str:
+        """The path the answers take, as ``label``'s projection and summary name it: backend, engine, dtype and
+        device, e.g. ``sam3 torch eager bf16 on cpu``."""
+        return (f"{BACKEND} torch {'compiled' if self.compile else 'eager'} {self.dtype_name}"
+                f"{'+tf32' if self.tf32 else ''} on {self.device.type}")
 
     def cache_note(self) -> str | None:
         """Why a CPU's answers cached before ``auto`` chose bf16 there are computed again (the dtype is part of
@@ -324,15 +508,20 @@ class Sam3Teacher(RegisteredTeacher):
         import torch
 
         model = self.load()
-        with torch.inference_mode():
+        with torch.inference_mode(), exact_savings(model):
             return model.get_vision_features(pixel_values=self.preprocess(images))
 
     @staticmethod
     def _repeat_vision(vision, k: int):
-        """Each image's FPN features repeated for its ``k`` prompts: batch B -> B*k (image-major)."""
+        """Each image's FPN features repeated for its ``k`` prompts: batch B -> B*k (image-major). One image:
+        views that repeat nothing in memory (stride 0 over the prompts; the model only reads them, and the DETR
+        encoder's flattening copies its level once), so the same answers without writing every level k times."""
         from transformers.models.sam3.modeling_sam3 import Sam3VisionEncoderOutput
 
-        rep = lambda ts: tuple(t.repeat_interleave(k, dim=0) for t in ts)  # noqa: E731
+        if vision.fpn_hidden_states[0].shape[0] == 1:
+            rep = lambda ts: tuple(t.expand(k, *t.shape[1:]) for t in ts)  # noqa: E731
+        else:
+            rep = lambda ts: tuple(t.repeat_interleave(k, dim=0) for t in ts)  # noqa: E731
         return Sam3VisionEncoderOutput(last_hidden_state=vision.last_hidden_state,
                                        fpn_hidden_states=rep(vision.fpn_hidden_states),
                                        fpn_position_encoding=rep(vision.fpn_position_encoding))
@@ -347,7 +536,7 @@ class Sam3Teacher(RegisteredTeacher):
         k = len(prompts)
         feats, mask = self.text_features(prompts)
         text = BaseModelOutputWithPooling(pooler_output=feats.repeat(n_images, 1, 1))
-        with torch.inference_mode(), first_self_attention_once_per_image(model, k):
+        with torch.inference_mode(), first_self_attention_once_per_image(model, k), exact_savings(model):
             out = model(vision_embeds=self._repeat_vision(vision, k), text_embeds=text,
                         attention_mask=mask.repeat(n_images, 1))
             scores = out.pred_logits.float().sigmoid()                       # [B*K, Q]

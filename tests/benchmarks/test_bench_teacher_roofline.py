@@ -1,6 +1,7 @@
 """Smoke test of ``benchmarks.bench_teacher --roofline`` on the tiny random SAM 3: every row of the table
-printed and written as JSON (FLOPs by module, per-module times, host limits, round-robin medians of the three
-paths, the ratios, the gate, and whether the once-per-image first attention kept the fp32 answers)."""
+printed and written as JSON (FLOPs by module, per-module times and op-kind shares of the two defaults, host
+limits, round-robin medians of the three paths, the ratios, the gate, and whether today's default gave the answers
+of 3056231's)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ pytest.importorskip("transformers")
 
 
 def test_roofline_prints_and_writes_its_table(tmp_path, capsys, tiny_sam3):
-    from benchmarks.bench_teacher import BEFORE, main
+    from benchmarks.bench_teacher import DEFAULT, FP32, OLD_DEFAULT, main
 
     out = tmp_path / "roofline.json"
     main(["--roofline", "--checkpoint", str(tiny_sam3), "--images", "1", "--repeats", "2", "--resolution", "32",
@@ -21,15 +22,22 @@ def test_roofline_prints_and_writes_its_table(tmp_path, capsys, tiny_sam3):
     text = capsys.readouterr().out
     for pattern in (r"limits \(measured 2048\^3 matmul, best / median\): fp32 \d+ / \d+ GFLOP/s",
                     r"FLOPs per image, 6 prompts: .*backbone [\d.]+ G.*; text once per run [\d.e+-]+ G",
-                    r"per-module wall time of the default path", r"fp32 eager \(fp32\): median +[\d.]+ s/image",
-                    r"default / fp32 eager \(medians\): \d\.\d{3}", r"fidelity vs fp32 eager: mean mask IoU"):
+                    r"per-module wall time, default at 3056231 ", r"per-module wall time, default ",
+                    r"shares of self CPU time: attention \d+% \([\d.]+ s\), matmul .*copies .*elementwise",
+                    r"fp32 eager +\(fp32\): median +[\d.]+ s/image",
+                    r"default / fp32 eager \(medians\): \d\.\d{3}  \(targets <= 0.35 on avx512_bf16",
+                    r"fidelity vs fp32 eager: mean mask IoU",
+                    r"default against default at 3056231: answers identical"):
         assert re.search(pattern, text), (pattern, text)
     doc = json.loads(out.read_text())
-    assert set(doc["seconds"]) == {"fp32 eager", "default", BEFORE} and all(len(v) == 2 for v in doc["seconds"].values())
+    assert set(doc["seconds"]) == {FP32, OLD_DEFAULT, DEFAULT} and all(len(v) == 2 for v in doc["seconds"].values())
     med = doc["median_s_per_image"]
-    assert doc["default_over_fp32"] == pytest.approx(med["default"] / med["fp32 eager"])
-    assert doc["default_over_fp32_before"] == pytest.approx(med["default"] / med[BEFORE])
-    assert doc["first_attention_once_per_image_identical"] is True  # the same fp32 answers either way
+    assert doc["default_over_fp32"] == pytest.approx(med[DEFAULT] / med[FP32])
+    assert doc["old_default_over_fp32"] == pytest.approx(med[OLD_DEFAULT] / med[FP32])
+    assert doc["default_identical_to_3056231"] is True  # the savings are exact
+    for shares in doc["op_shares"].values():
+        assert set(shares) == {"attention", "matmul", "copies", "elementwise", "other"}
+        assert sum(v["share"] for v in shares.values()) == pytest.approx(1.0) and shares["matmul"]["seconds"] > 0
     flops = doc["flops_per_image"]
     assert {"backbone", "detr_encoder", "detr_decoder", "mask_decoder"} <= set(flops) and min(flops.values()) >= 0
     assert flops["backbone"] > 0 and flops["detr_encoder"] > 0 and doc["text_flops_per_run"] > 0

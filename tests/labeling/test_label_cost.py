@@ -59,7 +59,8 @@ def test_label_prints_seconds_per_image_and_its_projection_with_q(tmp_path):
 
 def test_label_summary_says_why_cpu_caches_miss_under_auto_bf16(tmp_path, tiny_sam3, monkeypatch):
     """On a CPU whose flags make ``auto`` bf16, label's summary says that fp32-cached answers are not reused and
-    how to keep them; with ``teacher.dtype: fp32`` pinned it says nothing of the kind."""
+    how to keep them; with ``teacher.dtype: fp32`` pinned it says nothing of the kind. The first-batch projection
+    and the summary name the path (engine, dtype, device) either way."""
     from pipeline.runtime import device
 
     monkeypatch.setattr(device, "cpu_flags", lambda: frozenset({"avx2", "avx512_bf16"}))
@@ -70,4 +71,8 @@ def test_label_summary_says_why_cpu_caches_miss_under_auto_bf16(tmp_path, tiny_s
         assert res.exit_code == 0, res.output
         summary = [line for line in res.output.splitlines() if line.startswith("label: 2 images")][0]
         assert ("teacher.dtype auto is bf16 on this CPU" in summary) == said, summary
+        # the projection and the summary name the path the answers took
+        path = f"sam3 torch eager {'bf16' if said else 'fp32'} on cpu"
+        assert re.search(rf"first batch: .* s per image on {path}\); projected", res.output), res.output
+        assert re.search(rf"s per image on {path}, measured on 2\)", summary), summary
         assert json.loads((tmp_path / dtype / "label.json").read_text())["teacher_dtype"] == ("bf16" if said else "fp32")
