@@ -1,7 +1,8 @@
-"""SAM 3 text-prompt teacher through transformers (>= 5), from a local ``save_pretrained`` directory only.
+r"""SAM 3 text-prompt teacher through transformers (>= 5), from a local ``save_pretrained`` directory only.
 
-eq:teacher-prediction: a query's score is :math:`\\sigma(\\ell_q)\\,\\sigma(\\ell_{presence})`; the answer is
-the best query's mask and score, invalid when no query is above ``teacher.score_threshold``."""
+eq:teacher-prediction: a query's score is :math:`\sigma(\ell_q)\,\sigma(\ell_{presence})`; the answer is
+the best query's mask and score, invalid when no query is above ``teacher.score_threshold``.
+"""
 
 from __future__ import annotations
 
@@ -26,31 +27,76 @@ from pipeline.teacher_table import SAM3 as BACKEND
 from pipeline.runtime.progress import library_bars_off
 from pipeline.teachers.base import RegisteredTeacher, TeacherInput, files_digest, finalize_answers
 
+__all__ = ["TEXT_MAX_LENGTH", "SAM3_MODEL_TYPES", "checkpoint_hash", "checkpoint_stat", "memoised_checkpoint_hash",
+           "read_processor_config", "check_checkpoint_dir", "resolve_teacher_dtype", "allow_tf32", "MAX_AUTO_BATCH",
+           "auto_batch_size", "local_hash_memo", "first_self_attention_once_per_image", "SAM3_PATCHES",
+           "upstream_source_digest", "exact_savings", "Sam3Teacher"]
+
 log = logging.getLogger(__name__)
 
-TEXT_MAX_LENGTH = 32  # Sam3Processor pads prompts to 32 tokens
+#: tokens per prompt: Sam3Processor pads prompts to 32 tokens
+TEXT_MAX_LENGTH = 32
+#: ``model_type`` values of a checkpoint's config.json that :func:`check_checkpoint_dir` accepts
 SAM3_MODEL_TYPES = ("sam3", "sam3_video")
 _WEIGHT_SUFFIXES = (".safetensors", ".bin", ".pt", ".pth")
 
 
 def checkpoint_hash(directory: Path) -> str:
-    """sha256 over the checkpoint's files (name + bytes, sorted): weights, configs and tokenizer."""
+    """Hash the checkpoint's files: sha256 over name and bytes, sorted (weights, configs and tokenizer).
+
+    Parameters
+    ----------
+    directory : Path
+        The checkpoint directory; hidden files are left out.
+
+    Returns
+    -------
+    str
+        The hex sha256 (:func:`pipeline.teachers.base.files_digest`).
+    """
     return files_digest(directory, _checkpoint_files(directory))
 
 
 def _checkpoint_files(directory: Path) -> list[Path]:
+    """List the checkpoint's files, at any depth and sorted; hidden files are left out."""
     return sorted(q for q in directory.rglob("*") if q.is_file() and not q.name.startswith("."))
 
 
 def checkpoint_stat(directory: Path) -> list[list]:
-    """[relative path, size, mtime_ns] of every checkpoint file, sorted: what the hash memo is keyed on."""
+    """Stat every checkpoint file: what the hash memo is keyed on.
+
+    Parameters
+    ----------
+    directory : Path
+        The checkpoint directory.
+
+    Returns
+    -------
+    list of list
+        ``[relative path, size, mtime_ns]`` per file, sorted by path.
+    """
     return [[str(p.relative_to(directory)), int((st := p.stat()).st_size), int(st.st_mtime_ns)]
             for p in _checkpoint_files(directory)]
 
 
 def memoised_checkpoint_hash(directory: Path, memo: Path | None) -> str:
-    """:func:`checkpoint_hash`, remembered in the JSON file ``memo`` (None: always hash) while no file's
-    size or mtime changes; an unreadable memo is recomputed."""
+    """Hash the checkpoint once: :func:`checkpoint_hash`, remembered while no file's size or mtime changes.
+
+    An unreadable memo is recomputed (and rewritten, atomically).
+
+    Parameters
+    ----------
+    directory : Path
+        The checkpoint directory.
+    memo : Path or None
+        The JSON file of remembered hashes, keyed by the resolved directory and its :func:`checkpoint_stat`;
+        None: always hash.
+
+    Returns
+    -------
+    str
+        The hex sha256 of the checkpoint.
+    """
     if memo is None:
         return checkpoint_hash(directory)
     memo = Path(memo)
@@ -65,7 +111,23 @@ def memoised_checkpoint_hash(directory: Path, memo: Path | None) -> str:
 
 
 def read_processor_config(directory: Path) -> dict:
-    """Image-processor settings from ``preprocessor_config.json`` or ``processor_config.json``."""
+    """Read the image-processor settings from ``preprocessor_config.json`` or ``processor_config.json``.
+
+    Parameters
+    ----------
+    directory : Path
+        The checkpoint directory; the first of the two files found is read.
+
+    Returns
+    -------
+    dict
+        The settings (a ``processor_config.json``'s ``image_processor`` section where it has one).
+
+    Raises
+    ------
+    InputError
+        The file found is not valid JSON, or neither file exists (naming the file or directory).
+    """
     for name in ("preprocessor_config.json", "processor_config.json"):
         p = directory / name
         if p.exists():
@@ -79,11 +141,30 @@ def read_processor_config(directory: Path) -> dict:
 
 
 def check_checkpoint_dir(directory: str | Path, option: Option | None = None) -> Path:
-    """The checkpoint directory, or an InputError saying why it is not a local SAM 3 checkpoint.
-    ``option``: the user option that named it; None: the params key ``teacher.checkpoint``."""
+    """Check that ``directory`` is a local SAM 3 checkpoint: config, weights and CLIP tokenizer files.
+
+    Parameters
+    ----------
+    directory : str or Path
+        The checkpoint directory (``~`` expanded); nothing is downloaded.
+    option : Option or None, optional
+        The user option that named it, for the error line; None: the params key ``teacher.checkpoint``.
+
+    Returns
+    -------
+    Path
+        The directory.
+
+    Raises
+    ------
+    InputError
+        It is not a directory, has no (valid JSON) config.json, its ``model_type`` is not in
+        :data:`SAM3_MODEL_TYPES`, or it lacks weights or tokenizer files (one line saying which).
+    """
     d = Path(directory).expanduser()
 
     def refuse(where: Path | None, why: str) -> InputError:  # where: a file in it (None: the folder itself)
+        """Build the error naming ``where`` (or the folder, or the option) and ``why``."""
         if option is None:
             return InputError(f"{where or d}: {why}" if where is not None or d.is_dir() else
                               f"teacher.checkpoint={str(directory)!r}: {why}")
@@ -109,9 +190,28 @@ def check_checkpoint_dir(directory: str | Path, option: Option | None = None) ->
 
 
 def resolve_teacher_dtype(dtype: str, device) -> tuple[str, bool]:
-    """(weights dtype "fp32" | "bf16", TF32 on) for ``teacher.dtype`` on ``device``: ``auto`` is bf16 on a
-    CUDA GPU that supports it, else fp32 with TF32 on CUDA; on a CPU the rule on its flags,
-    :func:`pipeline.runtime.device.teacher_cpu_dtype` (bf16 with avx512_bf16 or AMX, else fp32)."""
+    """Resolve ``teacher.dtype`` on ``device`` to the weights' dtype and whether TF32 is on.
+
+    ``auto`` is bf16 on a CUDA GPU that supports it, else fp32 with TF32 on CUDA; on a CPU the rule on its flags,
+    :func:`pipeline.runtime.device.teacher_cpu_dtype` (bf16 with avx512_bf16 or AMX, else fp32).
+
+    Parameters
+    ----------
+    dtype : str
+        ``auto``, ``fp32`` or ``bf16``; a pinned dtype is kept, TF32 off.
+    device : str or torch.device
+        The device the teacher runs on.
+
+    Returns
+    -------
+    tuple of (str, bool)
+        (``"fp32"`` or ``"bf16"``, TF32 on).
+
+    Raises
+    ------
+    InputError
+        ``dtype`` is none of the three.
+    """
     import torch
 
     if dtype not in ("auto", "fp32", "bf16"):
@@ -125,7 +225,17 @@ def resolve_teacher_dtype(dtype: str, device) -> tuple[str, bool]:
 
 @contextlib.contextmanager
 def allow_tf32(on: bool):
-    """Context: TF32 matmuls and cuDNN convolutions while ``on`` (restored after); a no-op when off."""
+    """Allow TF32 matmuls and cuDNN convolutions inside the context (restored after); a no-op when off.
+
+    Parameters
+    ----------
+    on : bool
+        Whether to turn TF32 on.
+
+    Yields
+    ------
+    None
+    """
     import torch
 
     old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
@@ -143,8 +253,28 @@ MAX_AUTO_BATCH = 16
 
 def auto_batch_size(device, used_bytes: int | None = None, free_bytes: int | None = None,
                     headroom: float = 0.7) -> int:
-    """Images per forward filling ``headroom`` of the free GPU memory, the peak memory of one image's
-    forward above the model (``used_bytes``) being the per-image cost; in [1, :data:`MAX_AUTO_BATCH`], 2 on a CPU."""
+    """Size the images per forward to fill ``headroom`` of the free GPU memory.
+
+    The per-image cost is the peak memory of one image's forward above the model (``used_bytes``):
+    ``min(MAX_AUTO_BATCH, max(1, headroom * free_bytes // used_bytes))``.
+
+    Parameters
+    ----------
+    device : str or torch.device
+        The device; on a CPU (with either figure not given) the answer is 2.
+    used_bytes : int or None, optional
+        One image's forward's peak memory above the model; None: measured by torch's peak-memory counters
+        (reset before that forward).
+    free_bytes : int or None, optional
+        Free device memory; None: asked of the GPU.
+    headroom : float, optional
+        Fraction of the free memory to fill.
+
+    Returns
+    -------
+    int
+        Images per forward, in [1, :data:`MAX_AUTO_BATCH`].
+    """
     import torch
 
     if torch.device(device).type != "cuda" and (used_bytes is None or free_bytes is None):
@@ -158,14 +288,25 @@ def auto_batch_size(device, used_bytes: int | None = None, free_bytes: int | Non
 
 
 def local_hash_memo(cache_dir: str) -> Path | None:
-    """Where the checkpoint-hash memo lives: beside a local teacher cache; None for object storage."""
+    """Place the checkpoint-hash memo beside a local teacher cache.
+
+    Parameters
+    ----------
+    cache_dir : str
+        ``teacher.cache_dir``: a local path or an fsspec URL.
+
+    Returns
+    -------
+    Path or None
+        ``<cache_dir>/checkpoint_hashes.json``; None for object storage (the hash is computed each run).
+    """
     fs, path = url_to_fs(str(cache_dir))
     return Path(path) / "checkpoint_hashes.json" if isinstance(fs, LocalFileSystem) else None
 
 
 @contextlib.contextmanager
 def first_self_attention_once_per_image(model, copies: int):
-    """Context: the DETR encoder's first self-attention runs once per image instead of once per (image, prompt).
+    """Run the DETR encoder's first self-attention once per image instead of once per (image, prompt).
 
     Its input is the image's features and position encoding only (the prompt enters at the cross-attention that
     follows), and :meth:`Sam3Teacher.heads` repeats each image's features ``copies`` times image-major, so rows
@@ -193,6 +334,7 @@ def first_self_attention_once_per_image(model, copies: int):
     forward = attn.forward
 
     def once_per_image(query, key, value, attention_mask=None, **kwargs):
+        """Attend over row ``b * copies`` of each image and repeat it; any other call runs unchanged."""
         if attention_mask is not None or query.shape[0] % copies:
             return forward(query, key, value, attention_mask=attention_mask, **kwargs)
         out, _ = forward(query[::copies], key[::copies], value[::copies], **kwargs)
@@ -206,16 +348,19 @@ def first_self_attention_once_per_image(model, copies: int):
 
 
 def _rope_fewer_passes(q, k, cos, sin):
-    """transformers' ``apply_rotary_pos_emb_2d`` with the same arithmetic in fewer memory passes: the pairwise
-    rotation times ``sin``, ``rotate_pairwise(x) * sin``, equals ``swap_pairs(x) * sin_signed`` bit for bit
-    (negation is exact), so the negated half and the stacked copy become one swapped copy, and the sum is
-    taken in place; the fp32 round trip of a bf16 input stays (its rounding is the model's)."""
+    """Apply transformers' ``apply_rotary_pos_emb_2d`` with the same arithmetic in fewer memory passes.
+
+    The pairwise rotation times ``sin``, ``rotate_pairwise(x) * sin``, equals ``swap_pairs(x) * sin_signed`` bit
+    for bit (negation is exact), so the negated half and the stacked copy become one swapped copy, and the sum is
+    taken in place; the fp32 round trip of a bf16 input stays (its rounding is the model's).
+    """
     import torch
 
     sin_signed = (sin.unflatten(-1, (-1, 2)) * torch.tensor([-1.0, 1.0], dtype=sin.dtype, device=sin.device)
                   ).flatten(-2)
 
     def rotate(x):
+        """Rotate ``x`` in fp32 and cast back to its dtype."""
         xf = x.float()
         out = xf * cos
         swapped = xf.unflatten(-1, (-1, 2)).flip(-1).flatten(-2)
@@ -227,8 +372,10 @@ def _rope_fewer_passes(q, k, cos, sin):
 
 
 def _window_partition_no_empty_pad(hidden_state, window_size):
-    """transformers' ``window_partition`` without its ``F.pad`` copy when nothing is padded (SAM 3's 72 x 72
-    tokens in 24 x 24 windows): the same windows, one copy fewer per windowed layer."""
+    """Partition like transformers' ``window_partition``, without its ``F.pad`` copy when nothing is padded.
+
+    SAM 3's 72 x 72 tokens fall in 24 x 24 windows: the same windows, one copy fewer per windowed layer.
+    """
     import torch.nn.functional as F
 
     batch_size, height, width, num_channels = hidden_state.shape
@@ -244,8 +391,11 @@ def _window_partition_no_empty_pad(hidden_state, window_size):
 
 
 def _embed_pixels_no_clone(self, backbone_features, encoder_hidden_states):
-    """transformers' ``Sam3MaskDecoder._embed_pixels`` without cloning every FPN level per (image, prompt): the
-    pixel decoder only reads them (its sums make new tensors), so a list of the same tensors gives the same answer."""
+    """Embed pixels like transformers' ``Sam3MaskDecoder._embed_pixels``, without cloning every FPN level.
+
+    The pixel decoder only reads the levels (its sums make new tensors), so a list of the same tensors gives the
+    same answer, with no copy per (image, prompt).
+    """
     backbone_visual_feats = list(backbone_features)
     spatial_dim = backbone_features[-1].shape[-2] * backbone_features[-1].shape[-1]
     encoder_visual_embed = encoder_hidden_states[:, :spatial_dim, :]
@@ -257,11 +407,12 @@ def _embed_pixels_no_clone(self, backbone_features, encoder_hidden_states):
 
 
 def _rpb_matrix_one_pass(self, reference_boxes, spatial_shape):
-    """transformers' ``Sam3DetrDecoder._get_rpb_matrix`` with its last sum written straight into the
-    [batch, heads, queries, height * width] layout the attention reads, instead of summing in
-    [batch, queries, height, width, heads] and copying with ``.permute(...).contiguous()``: the same sums, one pass
-    over the largest tensor of the DETR decoder fewer per layer."""
+    """Compute transformers' ``Sam3DetrDecoder._get_rpb_matrix`` with its last sum written in its final layout.
 
+    The sum goes straight into the [batch, heads, queries, height * width] layout the attention reads, instead of
+    summing in [batch, queries, height, width, heads] and copying with ``.permute(...).contiguous()``: the same
+    sums, one pass over the largest tensor of the DETR decoder fewer per layer.
+    """
     import torch
     from transformers.models.sam3.modeling_sam3 import box_cxcywh_to_xyxy
 
@@ -303,9 +454,21 @@ SAM3_PATCHES = {
 
 
 def upstream_source_digest(owner: str, name: str) -> str | None:
-    """sha256 of the source of ``modeling_sam3.<name>`` (owner ``"modeling_sam3"``) or of
-    ``modeling_sam3.<owner>.<name>``; None when transformers has no such function or method."""
+    """Hash the source of a function or method of transformers' ``modeling_sam3``.
 
+    Parameters
+    ----------
+    owner : str
+        ``"modeling_sam3"`` for a module-level function, else the class name in that module.
+    name : str
+        The function's or method's name.
+
+    Returns
+    -------
+    str or None
+        The hex sha256 of ``modeling_sam3.<name>``'s or ``modeling_sam3.<owner>.<name>``'s source; None when
+        transformers has no such function or method, or its source cannot be read.
+    """
     import transformers.models.sam3.modeling_sam3 as modeling
 
     target = modeling if owner == "modeling_sam3" else getattr(modeling, owner, None)
@@ -324,7 +487,7 @@ _PATCHES_THAT_FIT: list | None = None
 
 
 def _patches_that_fit() -> list:
-    """The :data:`SAM3_PATCHES` whose upstream source is the one each was written against (checked once)."""
+    """List the :data:`SAM3_PATCHES` whose upstream source is the one each was written against (checked once)."""
     global _PATCHES_THAT_FIT
     if _PATCHES_THAT_FIT is None:
         fit = []
@@ -340,14 +503,16 @@ def _patches_that_fit() -> list:
 
 @contextlib.contextmanager
 def exact_savings(model):
-    """Context: transformers' SAM 3 with copies and memory passes it does not need removed, the answers bit for
-    bit the same in fp32 and bf16 (issue 65 item 1; tests/teachers/test_sam3_patches.py): RoPE's rotation in fewer
+    """Run transformers' SAM 3 without the copies and memory passes it does not need, answers bit for bit the same.
+
+    The same in fp32 and bf16 (issue 65 item 1; tests/teachers/test_sam3_patches.py): RoPE's rotation in fewer
     passes, no zero-padding copy before the window partition, the DETR decoder's box bias summed into its final
     layout, no clone of every FPN level in the mask decoder.
 
     The two module-level functions are swapped in ``modeling_sam3`` for the context's duration (one teacher per
     process calls the model; a second thread inside the context would see them too, with the same answers), the
-    methods on ``model.detr_decoder`` and ``model.mask_decoder`` only. Only patches whose upstream source matches :data:`SAM3_PATCHES` apply.
+    methods on ``model.detr_decoder`` and ``model.mask_decoder`` only. Only patches whose upstream source
+    matches :data:`SAM3_PATCHES` apply.
 
     Parameters
     ----------
@@ -358,7 +523,6 @@ def exact_savings(model):
     ------
     None
     """
-
     import transformers.models.sam3.modeling_sam3 as modeling
 
     saved, instance = [], []
@@ -380,12 +544,88 @@ def exact_savings(model):
 
 
 class Sam3Teacher(RegisteredTeacher):
-    """Frozen SAM 3 answering text prompts: vision encoder once per image batch, text features once per run."""
+    r"""Frozen SAM 3 answering text prompts: vision encoder once per image batch, text features once per run.
+
+    eq:teacher-prediction: each (image, prompt) gets the best query's mask and score
+    :math:`\sigma(\ell_q)\,\sigma(\ell_{presence})`, invalid (score 0, empty mask) at or below
+    ``score_threshold``.
+
+    Parameters
+    ----------
+    checkpoint : str or Path
+        A local SAM 3 checkpoint directory (:func:`check_checkpoint_dir`).
+    device : str, optional
+        ``auto``, ``cpu``, ``cuda``, ... (:func:`pipeline.runtime.device.resolve_device`).
+    dtype : str, optional
+        ``teacher.dtype``: ``auto``, ``fp32`` or ``bf16`` (:func:`resolve_teacher_dtype`).
+    batch_size : int, optional
+        Images per forward; 0: sized to the free GPU memory after one image (:func:`auto_batch_size`), 2 on a CPU.
+    resolution : tuple of int or None, optional
+        (H, W) of the working resolution, part of the fingerprint.
+    score_threshold : float, optional
+        A best score at or below it makes the prompt invalid.
+    mask_threshold : float, optional
+        Threshold on the best query's mask probability, upsampled to the image.
+    hash_memo : str or Path or None, optional
+        The checkpoint-hash memo file (:func:`memoised_checkpoint_hash`); None: hash each run.
+    compile : bool, optional
+        ``torch.compile`` the vision encoder; on a GPU only (ignored on a CPU).
+
+    Attributes
+    ----------
+    checkpoint : Path
+        The checked checkpoint directory.
+    device : torch.device
+        The resolved device.
+    dtype_asked : str
+        ``dtype`` as given.
+    dtype_name : str
+        The weights' dtype, ``fp32`` or ``bf16``.
+    tf32 : bool
+        Whether TF32 matmuls are on while predicting.
+    torch_dtype : torch.dtype
+        ``dtype_name`` as a torch dtype.
+    batch_size : int
+        Images per forward (0 until the first forward measures it on a GPU).
+    compile : bool
+        Whether the vision encoder is compiled.
+    runner_batch_size : int
+        Images handed over per call by the teacher stage's runner (the cache's unit of work).
+    resolution : tuple of int or None
+        The working resolution.
+    score_threshold, mask_threshold : float
+        The thresholds.
+    input_size : tuple of int
+        (H, W) the images are resized to (the processor config's ``size``).
+    do_resize, do_normalize : bool
+        The processor config's switches.
+    rescale : float
+        The pixel scale factor (1 when the processor does not rescale).
+    mean, std : torch.Tensor
+        Normalisation [1,3,1,1].
+    """
 
     backend = BACKEND
 
     @classmethod
     def from_params(cls, cfg, resolution: tuple[int, int], device: str = "auto") -> "Sam3Teacher":
+        """Build the teacher of a validated ``teacher:`` section.
+
+        Parameters
+        ----------
+        cfg : Mapping
+            The validated ``teacher:`` section: its ``checkpoint``, ``dtype``, ``batch_size``, ``score_threshold``,
+            ``mask_threshold``, ``compile`` and ``cache_dir`` (where the hash memo lives, :func:`local_hash_memo`).
+        resolution : tuple of int
+            (H, W) of the working resolution.
+        device : str, optional
+            The device to run on.
+
+        Returns
+        -------
+        Sam3Teacher
+            The teacher (its model is loaded on first use).
+        """
         return cls(cfg["checkpoint"], device=device, dtype=cfg["dtype"], batch_size=cfg["batch_size"],
                    resolution=resolution, score_threshold=cfg["score_threshold"],
                    mask_threshold=cfg["mask_threshold"], compile=cfg["compile"],
@@ -394,6 +634,14 @@ class Sam3Teacher(RegisteredTeacher):
     def __init__(self, checkpoint: str | Path, *, device: str = "auto", dtype: str = "auto", batch_size: int = 0,
                  resolution: tuple[int, int] | None = None, score_threshold: float = 0.3,
                  mask_threshold: float = 0.5, hash_memo: str | Path | None = None, compile: bool = False):
+        """Check the checkpoint and read its processor config; the model is loaded on first use.
+
+        Raises
+        ------
+        InputError
+            The checkpoint is not a local SAM 3 checkpoint, its processor config is missing or unreadable or
+            has no usable ``size``, or ``dtype`` is unknown.
+        """
         import torch
 
         self.checkpoint = check_checkpoint_dir(checkpoint)
@@ -427,6 +675,16 @@ class Sam3Teacher(RegisteredTeacher):
         self._text: dict[tuple[str, ...], tuple] = {}
 
     def fingerprint(self) -> dict:
+        """Describe what determines the answers (:meth:`pipeline.teachers.base.Teacher.fingerprint`).
+
+        The checkpoint is hashed on the first call (memoised, :func:`memoised_checkpoint_hash`).
+
+        Returns
+        -------
+        dict
+            Backend, checkpoint hash, dtype (``+tf32`` when on), resolution, both thresholds and the prompts'
+            token length.
+        """
         if self._hash is None:
             log.info("sam3: hashing checkpoint %s for the cache key", self.checkpoint)
             self._hash = memoised_checkpoint_hash(self.checkpoint, self._hash_memo)
@@ -437,21 +695,43 @@ class Sam3Teacher(RegisteredTeacher):
                 "text_max_length": TEXT_MAX_LENGTH}
 
     def path(self) -> str:
-        """The path the answers take, as ``label``'s projection and summary name it: backend, engine, dtype and
-        device, e.g. ``sam3 torch eager bf16 on cpu``."""
+        """Name the path the answers take, as ``label``'s projection and summary name it.
+
+        Returns
+        -------
+        str
+            Backend, engine, dtype and device, e.g. ``sam3 torch eager bf16 on cpu``.
+        """
         return (f"{BACKEND} torch {'compiled' if self.compile else 'eager'} {self.dtype_name}"
                 f"{'+tf32' if self.tf32 else ''} on {self.device.type}")
 
     def cache_note(self) -> str | None:
-        """Why a CPU's answers cached before ``auto`` chose bf16 there are computed again (the dtype is part of
-        the fingerprint); None where ``auto`` still means fp32 or the dtype was pinned."""
+        """Say why a CPU's answers cached before ``auto`` chose bf16 there are computed again.
+
+        Returns
+        -------
+        str or None
+            The note (the dtype is part of the fingerprint); None where ``auto`` still means fp32 or the dtype
+            was pinned.
+        """
         if self.dtype_asked == "auto" and self.device.type == "cpu" and self.dtype_name == "bf16":
             return ("teacher.dtype auto is bf16 on this CPU (native bf16 units): answers cached under fp32 are not "
                     "reused; set teacher.dtype: fp32 to keep them")
         return None
 
     def load(self):
-        """Load model and tokenizer once (local files only)."""
+        """Load model and tokenizer once (local files only), on the device, in eval mode.
+
+        Returns
+        -------
+        transformers.Sam3Model
+            The model (its vision encoder compiled where ``compile``).
+
+        Raises
+        ------
+        InputError
+            transformers has no SAM 3 (needs >= 5), or the checkpoint cannot be loaded (naming it and why).
+        """
         if self._model is None:
             import torch
 
@@ -474,7 +754,18 @@ class Sam3Teacher(RegisteredTeacher):
         return self._model
 
     def text_features(self, prompts: Sequence[str]):
-        """(projected text features [K,L,D], attention mask [K,L]) of ``prompts``; computed once per run."""
+        """Encode ``prompts`` once per run (remembered per prompt tuple).
+
+        Parameters
+        ----------
+        prompts : sequence of str
+            The K prompts, padded or truncated to :data:`TEXT_MAX_LENGTH` tokens.
+
+        Returns
+        -------
+        tuple of torch.Tensor
+            Projected text features [K,L,D] and attention mask [K,L].
+        """
         import torch
 
         key = tuple(prompts)
@@ -490,7 +781,18 @@ class Sam3Teacher(RegisteredTeacher):
         return self._text[key]
 
     def preprocess(self, images: Sequence[np.ndarray]):
-        """uint8 [H,W,3] images -> pixel_values [B,3,S,S] (resize, rescale, normalise; no torchvision)."""
+        """Turn images into the model's pixel values: resize, rescale, normalise (no torchvision).
+
+        Parameters
+        ----------
+        images : sequence of numpy.ndarray
+            B uint8 [H,W,3] images of one size.
+
+        Returns
+        -------
+        torch.Tensor
+            pixel_values [B,3,S,S] on the device, in the weights' dtype.
+        """
         import torch
         import torch.nn.functional as F
 
@@ -504,7 +806,18 @@ class Sam3Teacher(RegisteredTeacher):
         return x.to(self.torch_dtype)
 
     def encode_images(self, images: Sequence[np.ndarray]):
-        """Vision encoder output for a batch of images (one pass, reused by every prompt)."""
+        """Run the vision encoder over a batch of images (one pass, reused by every prompt).
+
+        Parameters
+        ----------
+        images : sequence of numpy.ndarray
+            B uint8 [H,W,3] images of one size.
+
+        Returns
+        -------
+        transformers.models.sam3.modeling_sam3.Sam3VisionEncoderOutput
+            The vision features of the B images.
+        """
         import torch
 
         model = self.load()
@@ -513,9 +826,12 @@ class Sam3Teacher(RegisteredTeacher):
 
     @staticmethod
     def _repeat_vision(vision, k: int):
-        """Each image's FPN features repeated for its ``k`` prompts: batch B -> B*k (image-major). One image:
-        views that repeat nothing in memory (stride 0 over the prompts; the model only reads them, and the DETR
-        encoder's flattening copies its level once), so the same answers without writing every level k times."""
+        """Repeat each image's FPN features for its ``k`` prompts: batch B -> B*k (image-major).
+
+        One image: views that repeat nothing in memory (stride 0 over the prompts; the model only reads them, and
+        the DETR encoder's flattening copies its level once), so the same answers without writing every level k
+        times.
+        """
         from transformers.models.sam3.modeling_sam3 import Sam3VisionEncoderOutput
 
         if vision.fpn_hidden_states[0].shape[0] == 1:
@@ -527,7 +843,25 @@ class Sam3Teacher(RegisteredTeacher):
                                        fpn_position_encoding=rep(vision.fpn_position_encoding))
 
     def heads(self, vision, prompts: Sequence[str], n_images: int, out_size: tuple[int, int]):
-        """Detector heads for every (image, prompt): masks bool [B,K,H,W], scores float32 [B,K]."""
+        """Run the detector heads for every (image, prompt) and keep each one's best query (eq:teacher-prediction).
+
+        Parameters
+        ----------
+        vision : Sam3VisionEncoderOutput
+            :meth:`encode_images` of the ``n_images`` images.
+        prompts : sequence of str
+            The K prompts.
+        n_images : int
+            B, the images ``vision`` holds.
+        out_size : tuple of int
+            (H, W) the masks are upsampled to.
+
+        Returns
+        -------
+        tuple of numpy.ndarray
+            Masks bool [B,K,H,W] and scores float32 [B,K]; a score at or below ``score_threshold`` is 0, its mask
+            empty (:func:`pipeline.teachers.base.finalize_answers`).
+        """
         import torch
         import torch.nn.functional as F
         from transformers.modeling_outputs import BaseModelOutputWithPooling
@@ -553,7 +887,27 @@ class Sam3Teacher(RegisteredTeacher):
         return finalize_answers(masks, best_score)
 
     def predict(self, batch: Sequence[TeacherInput], prompts: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        """All prompts for all images, ``batch_size`` images per forward (vision encoded once per image)."""
+        """Answer all prompts for all images, ``batch_size`` images per forward (vision encoded once per image).
+
+        With ``batch_size`` 0 the first forward holds one image and sizes the rest (:func:`auto_batch_size`).
+
+        Parameters
+        ----------
+        batch : sequence of TeacherInput
+            B images of one size, each in its view.
+        prompts : sequence of str
+            The K prompts.
+
+        Returns
+        -------
+        tuple of numpy.ndarray
+            Masks bool [B,K,H,W] and scores float32 [B,K] (eq:teacher-prediction; 0 = invalid).
+
+        Raises
+        ------
+        InputError
+            The images of ``batch`` differ in size.
+        """
         if not batch:
             return np.zeros((0, len(prompts), 0, 0), bool), np.zeros((0, len(prompts)), np.float32)
         out_size = tuple(batch[0].image.shape[:2])
@@ -578,8 +932,22 @@ class Sam3Teacher(RegisteredTeacher):
         return np.concatenate(masks), np.concatenate(scores)
 
     def predict_one_prompt_at_a_time(self, batch: Sequence[TeacherInput], prompts: Sequence[str]):
-        """Reference path for tests and the benchmark: one full forward per image and prompt, no feature
-        reuse; the same answers as :meth:`predict`."""
+        """Answer like :meth:`predict` with one full forward per image and prompt, no feature reuse.
+
+        The reference path of the tests and the benchmark: the same answers as :meth:`predict`.
+
+        Parameters
+        ----------
+        batch : sequence of TeacherInput
+            B images of one size (not empty).
+        prompts : sequence of str
+            The K prompts.
+
+        Returns
+        -------
+        tuple of numpy.ndarray
+            Masks bool [B,K,H,W] and scores float32 [B,K].
+        """
         out_size = tuple(batch[0].image.shape[:2])
         masks = np.zeros((len(batch), len(prompts), *out_size), bool)
         scores = np.zeros((len(batch), len(prompts)), np.float32)

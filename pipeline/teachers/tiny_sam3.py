@@ -1,5 +1,8 @@
-"""A tiny, randomly initialised SAM 3 checkpoint (transformers' test config, a tokenizer written here) for
-offline tests and the teacher benchmark; ``size="real"`` builds the full architecture for GPU timing."""
+"""A tiny, randomly initialised SAM 3 checkpoint for offline tests and the teacher benchmark.
+
+transformers' test config and a tokenizer written here; ``size="real"`` builds the full architecture for GPU
+timing.  A test model, no teacher: its answers are random (or, fitted, those of :func:`box_scenes`).
+"""
 
 from __future__ import annotations
 
@@ -10,10 +13,28 @@ import numpy as np
 
 from pipeline.teachers.sam3 import TEXT_MAX_LENGTH, Sam3Teacher
 
+__all__ = ["write_clip_vocab", "tiny_sam3_config", "preprocessor_config", "build_tiny_sam3", "box_scenes",
+           "FIT_IMAGE_SIZE", "FIT_STEPS", "FIT_BATCH", "FIT_LR", "FIT_SCORE_TARGET", "fit_tiny_sam3"]
+
 
 def write_clip_vocab(directory: str | Path, words: tuple[str, ...] = ()) -> tuple[Path, Path]:
-    """Write a minimal CLIP BPE vocabulary (``vocab.json`` + ``merges.txt``): the byte symbols, with and
-    without ``</w>``, the two special tokens, and whole-word merges for ``words``."""
+    """Write a minimal CLIP BPE vocabulary (``vocab.json`` + ``merges.txt``).
+
+    It holds the byte symbols, with and without ``</w>``, the two special tokens, and whole-word merges for
+    ``words``.
+
+    Parameters
+    ----------
+    directory : str or Path
+        Where both files are written (created if missing; existing files of those names are replaced).
+    words : tuple of str, optional
+        Words that become single tokens.
+
+    Returns
+    -------
+    tuple of Path
+        The ``vocab.json`` and ``merges.txt`` paths.
+    """
     from transformers.convert_slow_tokenizer import bytes_to_unicode  # GPT-2 / CLIP byte-level alphabet
 
     directory = Path(directory)
@@ -40,8 +61,23 @@ def write_clip_vocab(directory: str | Path, words: tuple[str, ...] = ()) -> tupl
 
 
 def tiny_sam3_config(image_size: int = 56, num_queries: int = 5, initializer_range: float = 0.2):
-    """The small Sam3Config of transformers' SAM 3 tests (image 56 = 4 x 14 patches); ``initializer_range``
-    10x the default, so the random model's answers depend visibly on the image and the prompt."""
+    """Build the small Sam3Config of transformers' SAM 3 tests (image 56 = 4 x 14 patches).
+
+    Parameters
+    ----------
+    image_size : int, optional
+        Input side in pixels (14-pixel patches; attention windows of half the patch grid's side).
+    num_queries : int, optional
+        DETR decoder queries.
+    initializer_range : float, optional
+        The weights' initial spread in every sub-config; the default is 10x transformers', so the random
+        model's answers depend visibly on the image and the prompt.
+
+    Returns
+    -------
+    transformers.Sam3Config
+        The config.
+    """
     from transformers.models.sam3.configuration_sam3 import (
         Sam3Config, Sam3DETRDecoderConfig, Sam3DETREncoderConfig, Sam3GeometryEncoderConfig,
         Sam3MaskDecoderConfig, Sam3VisionConfig, Sam3ViTConfig)
@@ -73,7 +109,18 @@ def tiny_sam3_config(image_size: int = 56, num_queries: int = 5, initializer_ran
 
 
 def preprocessor_config(image_size: int) -> dict:
-    """The image-processor settings SAM 3 checkpoints ship (resize to a square, rescale, normalise)."""
+    """Write out the image-processor settings SAM 3 checkpoints ship (resize to a square, rescale, normalise).
+
+    Parameters
+    ----------
+    image_size : int
+        Side of the square the images are resized to.
+
+    Returns
+    -------
+    dict
+        The contents of ``preprocessor_config.json``.
+    """
     return {"image_processor_type": "Sam3ImageProcessor", "do_resize": True,
             "size": {"height": image_size, "width": image_size}, "resample": 2,
             "do_rescale": True, "rescale_factor": 1 / 255, "do_normalize": True,
@@ -82,8 +129,33 @@ def preprocessor_config(image_size: int) -> dict:
 
 def build_tiny_sam3(directory: str | Path, *, image_size: int = 56, seed: int = 0, size: str = "tiny",
                     words: tuple[str, ...] = (), initializer_range: float = 0.2) -> Path:
-    """Save a randomly initialised SAM 3 (``size`` tiny | real) with tokenizer and processor config;
-    ``initializer_range``: the tiny model's (:func:`tiny_sam3_config`)."""
+    """Save a randomly initialised SAM 3 with tokenizer and processor config.
+
+    Parameters
+    ----------
+    directory : str or Path
+        Where the checkpoint is written (created if missing; its files are replaced).
+    image_size : int, optional
+        The tiny model's input side (:func:`tiny_sam3_config`); the real model keeps its own.
+    seed : int, optional
+        Torch seed of the random weights.
+    size : str, optional
+        ``tiny`` (:func:`tiny_sam3_config`) or ``real`` (transformers' default Sam3Config, for GPU timing).
+    words : tuple of str, optional
+        Words the tokenizer holds as single tokens (:func:`write_clip_vocab`).
+    initializer_range : float, optional
+        The tiny model's initial weight spread (:func:`tiny_sam3_config`).
+
+    Returns
+    -------
+    Path
+        ``directory``.
+
+    Raises
+    ------
+    ValueError
+        ``size`` is neither ``tiny`` nor ``real``.
+    """
     import torch
     from transformers import CLIPTokenizer, Sam3Config, Sam3Model
 

@@ -35,16 +35,15 @@ IMPORTERS = ("pipeline", "stages", "benchmarks", "tools")
 #: decorators whose function is a property: its docstring describes the value, with no Returns section
 PROPERTIES = ("property", "cached_property")
 
-# PENDING (issue 64): files other engineers were editing while the exported surface got its contracts; they
-# get their ``__all__`` and docstrings once those branches are merged, and then leave this list.  Until then ruff
-# ignores D on them (pyproject.toml, the per-file-ignores entry marked PENDING, checked equal to this list
-# below) and this test skips them.  A folder ends with "/".
-PENDING = ("pipeline/teachers/sam3.py", "pipeline/teachers/tiny_sam3.py")
+# PENDING (issue 64): library files kept out of the contract while another branch edits them: ruff ignores D on
+# them (a per-file-ignores entry in pyproject.toml, checked equal to this list below) and this test skips them.
+# A folder ends with "/".  Empty: every library module has its ``__all__`` and contracts.
+PENDING: tuple[str, ...] = ()
 
-# UNFINISHED (issue 64): library modules whose exported names had no full contract yet when this pass stopped
-# (the volume outran it); they have their ``__all__`` (checked below), ruff ignores D on them (the per-file-ignores
-# entry marked UNFINISHED) and the contract check skips them.  Each leaves the list with its contracts written.
-UNFINISHED: tuple[str, ...] = ()  # every library module outside PENDING has its contracts now
+# UNFINISHED (issue 64): library modules that have their ``__all__`` (checked below) but whose exported names
+# have no full contract yet; ruff ignores D on them (a per-file-ignores entry) and the contract check skips them.
+# Empty: every exported name has its contract.
+UNFINISHED: tuple[str, ...] = ()
 
 
 def pending(rel: str) -> bool:
