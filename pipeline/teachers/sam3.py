@@ -21,6 +21,7 @@ from fsspec.core import url_to_fs
 from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.artifacts.atomic import read_json, write_json
+from pipeline.params import PAPER
 from pipeline.runtime.device import resolve_device, teacher_cpu_dtype
 from pipeline.runtime.errors import InputError, Option, literal
 from pipeline.teacher_table import SAM3 as BACKEND
@@ -631,9 +632,11 @@ class Sam3Teacher(RegisteredTeacher):
                    mask_threshold=cfg["mask_threshold"], compile=cfg["compile"],
                    hash_memo=local_hash_memo(cfg["cache_dir"]))
 
-    def __init__(self, checkpoint: str | Path, *, device: str = "auto", dtype: str = "auto", batch_size: int = 0,
-                 resolution: tuple[int, int] | None = None, score_threshold: float = 0.3,
-                 mask_threshold: float = 0.5, hash_memo: str | Path | None = None, compile: bool = False):
+    def __init__(self, checkpoint: str | Path, *, device: str = "auto", dtype: str = PAPER.teacher.dtype,
+                 batch_size: int = PAPER.teacher.batch_size, resolution: tuple[int, int] | None = None,
+                 score_threshold: float = PAPER.teacher.score_threshold,
+                 mask_threshold: float = PAPER.teacher.mask_threshold, hash_memo: str | Path | None = None,
+                 compile: bool = PAPER.teacher.compile):
         """Check the checkpoint and read its processor config; the model is loaded on first use.
 
         Raises

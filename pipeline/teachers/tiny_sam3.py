@@ -127,7 +127,8 @@ def preprocessor_config(image_size: int) -> dict:
             "image_mean": [0.5, 0.5, 0.5], "image_std": [0.5, 0.5, 0.5], "do_convert_rgb": True}
 
 
-def build_tiny_sam3(directory: str | Path, *, image_size: int = 56, seed: int = 0, size: str = "tiny",
+def build_tiny_sam3(directory: str | Path, *, image_size: int = 56, seed: int = 0,  # not a param: init seed
+                    size: str = "tiny",
                     words: tuple[str, ...] = (), initializer_range: float = 0.2) -> Path:
     """Save a randomly initialised SAM 3 with tokenizer and processor config.
 
@@ -214,7 +215,8 @@ def box_scenes(rng, n: int, size: int = 40):
 FIT_IMAGE_SIZE, FIT_STEPS, FIT_BATCH, FIT_LR, FIT_SCORE_TARGET = 112, 300, 8, 3e-3, 0.9
 
 
-def fit_tiny_sam3(directory: str | Path, prompts: tuple[str, ...], *, seed: int = 0, steps: int = FIT_STEPS,
+def fit_tiny_sam3(directory: str | Path, prompts: tuple[str, ...], *, seed: int = 0,  # not a param: fit seed
+                  steps: int = FIT_STEPS,
                   scene_size: int = 40) -> Path:
     """Build a tiny SAM 3 and fit it to :func:`box_scenes`, so that its mask logits have a trained model's margins.
 
