@@ -23,11 +23,13 @@ from typing import Any, Mapping
 import numpy as np
 
 from benchmarks.common import parser
+from benchmarks.memorisation import BOOTSTRAP_RESAMPLES, bootstrap_mean
 from pipeline.artifacts.atomic import write_text_if_changed
+from pipeline.stats import NO_DIFFERENCE
 
-#: a paired difference that clears this (seeds and numerics at 64², docs/student.md) counts as an effect
+#: a paired difference that clears this counts as an effect: the largest noise floor (seeds and numerics) measured
+#: at 64² (``plateau@reduced-64`` in reports/noise_floor.json; docs/student.md)
 NOISE_FLOOR = 0.020
-BOOTSTRAP = 2000
 
 
 def _sets(info: Mapping[str, Any]) -> dict[str, str]:
@@ -88,11 +90,7 @@ def paired(a: list[float], b: list[float], rng: np.random.Generator) -> list[flo
     list of float
         ``[mean, lo, hi]``.
     """
-    d = np.asarray(b) - np.asarray(a)
-    idx = rng.integers(0, len(d), (BOOTSTRAP, len(d)))
-    means = d[idx].mean(1)
-    return [round(float(d.mean()), 4), round(float(np.percentile(means, 2.5)), 4),
-            round(float(np.percentile(means, 97.5)), 4)]
+    return [round(v, 4) for v in bootstrap_mean(np.asarray(b) - np.asarray(a), rng, BOOTSTRAP_RESAMPLES)]
 
 
 def verdict(ci: list[float], floor: float = NOISE_FLOOR) -> str:
@@ -110,7 +108,7 @@ def verdict(ci: list[float], floor: float = NOISE_FLOOR) -> str:
     str
         The verdict.
     """
-    return "gain" if ci[1] > floor else "loss" if ci[2] < -floor else "no difference detected"
+    return "gain" if ci[1] > floor else "loss" if ci[2] < -floor else NO_DIFFERENCE
 
 
 def comparisons(rows: list[dict], base: str, seed: int = 0) -> list[dict]:
@@ -217,7 +215,7 @@ def main(argv=None) -> dict:
             rows += read_point(label, Path(p), root)
     doc = {"info": {"what": "fit of the student to its own training images against optimizer steps and channels "
                             "(issue 63 item 1); teacher SIMULATOR (synthetic benchmark); one seed",
-                    "noise_floor": NOISE_FLOOR, "bootstrap": f"{BOOTSTRAP} paired resamples of the training images",
+                    "noise_floor": NOISE_FLOOR, "bootstrap": f"{BOOTSTRAP_RESAMPLES} paired resamples of the training images",
                     "base": args.base},
            "runs": rows, "comparisons": comparisons(rows, args.base)}
     write_text_if_changed(Path(args.out), json.dumps(doc, indent=1) + "\n")

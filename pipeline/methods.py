@@ -22,7 +22,7 @@ __all__ = [
     "in_table_order", "ablation_table_rows",
     # the recipe parts
     "HOMES", "FIRST", "RecipePart", "PARTS", "interleave", "part", "parts_of", "off_value", "recipe_parts",
-    "recipe_values", "departs", "with_part_fields", "RECIPES", "DEPARTURES", "departures",
+    "recipe_values", "with_part_fields", "RECIPES", "DEPARTURES", "departures",
     # a method in a run
     "method_label", "annotation_free_methods", "gain_treatments", "get_method", "method_epochs", "method_lr",
     "COMMON_KEYS", "TERM_KEYS", "SELECTION_TAU_KEY", "param_keys", "fingerprint_params", "uses_confidence",
@@ -699,29 +699,6 @@ def recipe_values(**changes: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
             part(f"{sec}.{k}")  # KeyError naming an unknown part
             out[sec][k] = v
     return out
-
-
-def departs(key: str, value: Any) -> bool:
-    """Tell whether recorded ``value`` of part ``key`` departs from the paper's loss (:meth:`RecipePart.departs`).
-
-    Parameters
-    ----------
-    key : str
-        A dotted key.
-    value : Any
-        Its recorded value.
-
-    Returns
-    -------
-    bool
-        The part is a departure and ``value`` is not its off value.
-
-    Raises
-    ------
-    KeyError
-        ``key`` is not a recipe part.
-    """
-    return part(key).departs(value)
 
 
 def with_part_fields(base: type, home: str, *, defaults: bool = False) -> type:
