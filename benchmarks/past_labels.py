@@ -57,7 +57,17 @@ VARIANTS: dict[str, tuple[dict, str, str]] = {
                     "leave the loss -- departs from eq:raw-loss"),
     "soft": ({"soft_targets": True}, "agreement", "Plain + the agreement map as the target -- departs from "
                                                   "eq:raw-loss"),
+    # issue 63: distill's speed settings at equal steps (not a lever: its gain should be nil), and the folding
+    # capacity, on the vote and on the reference
+    "bf16": ({"precision": "auto", "channels_last": True}, "voted", "Plain in distill's speed settings (bf16 "
+             "autocast where the CPU has bf16 units, channels_last) at the same steps -- not a departure"),
+    "expand": ({"expand_branches": True}, "voted", "Plain + RepVGG branches, folded at the end of the stage into "
+               "the same TinyUNet -- a training-time departure"),
+    "ceiling_expand": ({"expand_branches": True}, "reference", "supervised ceiling + RepVGG branches: the "
+                       "reference masks, NOT annotation-free"),
 }
+#: variants trained on the reference masks (NOT annotation-free) are compared with the ceiling, not with Plain
+CEILING = "ceiling"
 #: self-training's fusion (pipeline.training.self_training.fused_targets)
 FUSION, FUSION_WEIGHT = "mix", 0.5
 
@@ -147,7 +157,7 @@ def run_one(job: dict) -> dict:
 
     t0 = time.perf_counter()
     data, relabel = _train_data(job)
-    method = SUPERVISED_CEILING if job["variant"] == "ceiling" else STAGE_ONE
+    method = SUPERVISED_CEILING if VARIANTS[job["variant"]][1] == "reference" else STAGE_ONE
     model, steps, stopped, curve, source = _trained(job, method, data)
     if job["variant"] == "plain":  # self-training's starting point
         torch.save(model.state_dict(), _DATA["workdir"] / f"plain-s{job['seed']}.pt")
@@ -182,7 +192,7 @@ def summarize(results: list[dict]) -> list[dict]:
                "cost": float(np.mean([cost(r, by) for r in rs if v != "self_training" or ("plain", r["seed"]) in by]
                                      or [float("nan")]))}
         rows.append(row)
-    ceiling = next((r for r in rows if r["variant"] == "ceiling"), None)
+    ceiling = next((r for r in rows if r["variant"] == CEILING), None)
     for r in rows:
         r["of_vote"] = {g: r["groups"][g] / r["vote_groups"][g] for g in r["groups"]}
         if ceiling is not None:
@@ -200,20 +210,22 @@ def gains(runs: list[dict], spacecraft: np.ndarray, groups: np.ndarray, floor: M
           control: str = "plain", ci: float = 0.95) -> list[dict]:
     """Each variant minus ``control`` per test group, paired by seed and image: the seed-aware t interval
     (:func:`pipeline.stats.paired_seed_image_t`, the effect on these spacecraft) and the signed verdict against the
-    noise floor ``floor`` {group: IoU} (:func:`pipeline.stats.claim_status`)."""
+    noise floor ``floor`` {group: IoU} (:func:`pipeline.stats.claim_status`).  A variant trained on the reference
+    masks is compared with :data:`CEILING` instead."""
     by = {(r["variant"], r["seed"]): np.asarray(r["image_ious"]) for r in runs}
     out = []
     for v in dict.fromkeys(r["variant"] for r in runs):
-        seeds = sorted(s for (w, s) in by if w == v and (control, s) in by)
-        if v in (control, "ceiling") or not seeds:
+        base = CEILING if VARIANTS[v][1] == "reference" else control
+        seeds = sorted(s for (w, s) in by if w == v and (base, s) in by)
+        if v == base or not seeds:
             continue
         for g in dict.fromkeys(groups):
             sel = groups == g
             t = np.stack([by[(v, s)][sel] for s in seeds])
-            c = np.stack([by[(control, s)][sel] for s in seeds])
+            c = np.stack([by[(base, s)][sel] for s in seeds])
             iv = paired_seed_image_t(t, c, spacecraft[sel], ci)
             gain, lo, hi = float(np.mean(t - c)), float(iv.low), float(iv.high)
-            out.append({"variant": v, "group": str(g), "seeds": seeds, "gain": gain, "low": lo, "high": hi,
+            out.append({"variant": v, "control": base, "group": str(g), "seeds": seeds, "gain": gain, "low": lo, "high": hi,
                         "noise_floor": floor.get(str(g)),
                         "verdict": claim_status(gain, lo, hi, floor.get(str(g)), n_seeds=len(seeds))})
     return out
@@ -271,10 +283,11 @@ def table(doc: Mapping[str, Any]) -> str:
         lines.append(f"| {r['variant']} | {r['n_seeds']} | " + " | ".join(f"{r['groups'][g]:.3f}" for g in groups)
                      + f" | {ratio(r['of_ceiling']) if 'of_ceiling' in r else '--'} | {ratio(r['of_vote'])} | "
                      f"{r['cost']:,.0f} |")
-    lines += ["", "| lever - Plain | group | seeds | gain [95 % CI] | noise floor | verdict |", "|---|---|---|---|---|---|"]
+    lines += ["", "| lever - its control | group | seeds | gain [95 % CI] | noise floor | verdict |",
+              "|---|---|---|---|---|---|"]
     for g in doc["gains"]:
         floor = "--" if g["noise_floor"] is None else f"{g['noise_floor']:.3f}"
-        lines.append(f"| {g['variant']} | {g['group']} | {len(g['seeds'])} | {g['gain']:+.3f} [{g['low']:+.3f}, "
+        lines.append(f"| {g['variant']} - {g.get('control', 'plain')} | {g['group']} | {len(g['seeds'])} | {g['gain']:+.3f} [{g['low']:+.3f}, "
                      f"{g['high']:+.3f}] | {floor} | {g['verdict']} |")
     return "\n".join(lines)
 
@@ -299,7 +312,7 @@ def main(argv=None) -> dict:
         print(table(doc))
         return doc
     imported = dict(args.import_run)
-    if set(imported) - {"plain", "ceiling"}:
+    if set(imported) - {"plain", CEILING}:
         ap.error("--import-run: only plain and ceiling runs can be imported")
     device = str(resolve_device(args.device))
     sets = [f"data.resolution={args.resolution}", "protocol.supervised_ceiling=true"] + data_size_sets(args) + args.sets

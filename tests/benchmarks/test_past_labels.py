@@ -18,6 +18,8 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
     assert set(runs) == set(past_labels.VARIANTS)
     assert all(0 <= r["iou_cal"] <= 1 and set(r["groups"]) == set(r["vote_groups"]) for r in runs.values())
     assert runs["ceiling"]["trained"] == "supervised_ceiling" and runs["plain"]["trained"] == "plain"
+    assert runs["ceiling_expand"]["trained"] == "supervised_ceiling" and runs["expand"]["trained"] == "plain"
+    assert runs["bf16"]["steps_run"] == runs["plain"]["steps_run"]  # equal steps: only the precision differs
     # self-training relabels every training image twice (flip TTA) and counts plain's training in its cost
     st = runs["self_training"]
     assert st["relabel_passes"] == past_labels.TTA_PASSES * st["n_train"] and st["n_train"] == runs["plain"]["n_train"]
@@ -34,6 +36,9 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
                              "--out", str(tmp_path / "both.json"), "--noise-floor", str(tmp_path / "none.json")])
     assert both["runs"] == doc["runs"] and both["info"]["noise_floor"] == {}
     assert {g["variant"] for g in both["gains"]} == set(past_labels.VARIANTS) - {"plain", "ceiling"}
+    # a variant on the reference masks is compared with the ceiling, every other with Plain
+    assert {g["variant"]: g["control"] for g in both["gains"]}["ceiling_expand"] == "ceiling"
+    assert {g["control"] for g in both["gains"] if g["variant"] != "ceiling_expand"} == {"plain"}
     # one seed: no verdict speaks of support (a one-spacecraft group has no interval: not estimated)
     assert {g["verdict"] for g in both["gains"]} <= {"one seed", "not estimated"}
     assert "| bootstrap |" in capsys.readouterr().out
