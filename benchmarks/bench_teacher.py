@@ -43,6 +43,7 @@ from pipeline.metrics import image_ious
 from pipeline.params import PAPER_PROMPTS as PROMPTS
 from pipeline.runtime.device import cpu_flags
 from pipeline.teachers import check_teacher_params
+from pipeline.teachers.attention import OPENVINO_ATTENTION_EVENT
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.distributed import ray_session
 from pipeline.teachers.jobs import in_view
@@ -279,7 +280,7 @@ def module_flops(teacher, items, prompts) -> dict:
 #: (normalisations, upsampling, reductions, the profiler's own rows)
 OP_KINDS = {
     "attention": ("aten::_scaled_dot_product_flash_attention_for_cpu", "aten::_scaled_dot_product_attention_math",
-                  "aten::_softmax"),
+                  "aten::_softmax", OPENVINO_ATTENTION_EVENT),
     "matmul": ("aten::addmm", "aten::mm", "aten::bmm", "aten::mkldnn_convolution", "aten::_mkldnn_linear",
                "aten::mkldnn_linear"),
     "copies": ("aten::copy_", "aten::cat", "aten::fill_", "aten::zero_", "aten::index_select", "aten::index",
@@ -318,15 +319,16 @@ def module_times_and_shares(teacher, items, prompts) -> tuple[dict, dict, float]
     kind_of = {op: kind for kind, ops in OP_KINDS.items() for op in ops}
     self_s: dict[str, float] = {kind: 0.0 for kind in [*OP_KINDS, "other"]}
     for row in prof.key_averages():
-        if row.key.startswith("aten::"):
+        if row.key.startswith("aten::") or row.key == OPENVINO_ATTENTION_EVENT:
             self_s[kind_of.get(row.key, "other")] += row.self_cpu_time_total / 1e6
     total = sum(self_s.values()) or 1.0
     return times, {k: {"seconds": v, "share": v / total} for k, v in self_s.items()}, wall
 
 
 #: the roofline's paths: fp32 eager and the default as the code of 3056231 ran them (:class:`AsOf3056231`, the
-#: pinned baseline of issue 65), and the default path as it runs now
-FP32, OLD_DEFAULT, DEFAULT = "fp32 eager", "default at 3056231", "default"
+#: pinned baseline of issue 65), the default dtype with torch's attention (``teacher.engine: torch``: the exact
+#: savings only), and the default path as it runs now (``teacher.engine: auto``)
+FP32, OLD_DEFAULT, TORCH_ENGINE, DEFAULT = "fp32 eager", "default at 3056231", "torch attention", "default"
 #: the roofline's targets for default / fp32 eager (medians), by host kind (issue 65)
 TARGETS = "<= 0.35 on avx512_bf16, <= 0.25 on AMX, <= 1 on AVX2"
 
@@ -346,8 +348,9 @@ def roofline(args) -> None:
         ckpt = sam3_checkpoint(args, tmp)
         kw = dict(device=args.device, batch_size=args.batch_size or 1, resolution=(r, r), score_threshold=0.0)
         default = Sam3Teacher(ckpt, dtype=args.dtype, **kw)
-        paths = {FP32: AsOf3056231(Sam3Teacher(ckpt, dtype="fp32", **kw)), OLD_DEFAULT: AsOf3056231(default),
-                 DEFAULT: default}
+        torch_engine = Sam3Teacher(ckpt, dtype=args.dtype, engine="torch", **kw)
+        paths = {FP32: AsOf3056231(Sam3Teacher(ckpt, dtype="fp32", engine="torch", **kw)),
+                 OLD_DEFAULT: AsOf3056231(torch_engine), TORCH_ENGINE: torch_engine, DEFAULT: default}
         for t in paths.values():
             t.load()
             t.text_features(PROMPTS)  # once per run, as in a run
@@ -363,11 +366,12 @@ def roofline(args) -> None:
 
         times = round_robin({k: (lambda rep, k=k: call(k)) for k in paths}, args.repeats, order="alternate")
         gate = fidelity(*answers[DEFAULT], *answers[FP32])
-        same = all(np.array_equal(a, b) for a, b in zip(answers[DEFAULT], answers[OLD_DEFAULT]))
-        flops = module_flops(default, items, PROMPTS)
-        profiled = {k: module_times_and_shares(paths[k], items, PROMPTS) for k in (OLD_DEFAULT, DEFAULT)}
+        gate_torch = fidelity(*answers[TORCH_ENGINE], *answers[FP32])
+        same = all(np.array_equal(a, b) for a, b in zip(answers[TORCH_ENGINE], answers[OLD_DEFAULT]))
+        flops = module_flops(torch_engine, items, PROMPTS)  # torch's counter does not see OpenVINO's attention
+        profiled = {k: module_times_and_shares(paths[k], items, PROMPTS) for k in (OLD_DEFAULT, TORCH_ENGINE, DEFAULT)}
         limits = host_limits()
-        default_dtype = default.dtype_name
+        default_dtype, default_path = default.dtype_name, default.path()
         model_input = "x".join(map(str, default.input_size))  # the processor's size: 1008 at real size
     n = args.images
     med = {k: v / n for k, v in medians(times).items()}
@@ -405,25 +409,27 @@ def roofline(args) -> None:
               f"{att / peak[k]:.2f} of the {paths_dtype(paths, k)} matmul peak")
     ratio, ratio_old = med[DEFAULT] / med[FP32], med[OLD_DEFAULT] / med[FP32]
     pairs = [d / f for d, f in zip(times[DEFAULT], times[FP32])]
-    print(f"  {DEFAULT} / {FP32} (medians): {ratio:.3f}  (targets {TARGETS}); per round-robin pair "
-          f"{', '.join(f'{x:.3f}' for x in pairs)}; {OLD_DEFAULT} / {FP32}: {ratio_old:.3f}; "
-          f"{DEFAULT} / {OLD_DEFAULT}: {med[DEFAULT] / med[OLD_DEFAULT]:.3f}")
-    print(f"  fidelity vs fp32 eager: mean mask IoU {gate['mean_iou']:.4f} over {gate['pairs'] - gate['pairs_both_empty']}"
-          f" pairs (min {gate['min_iou']:.4f}; {gate['pairs_both_empty']} pairs both empty, left out), max |score "
-          f"difference| {gate['max_score_diff']:.2e}; gate (IoU >= {GATE_IOU}, scores within {GATE_SCORE}): "
-          f"{'passes' if gate['passes'] else 'FAILS'}")
-    print(f"  {DEFAULT} against {OLD_DEFAULT}: answers {'identical' if same else 'DIFFERENT'} (masks and scores)")
+    print(f"  {DEFAULT} ({default_path}) / {FP32} (medians): {ratio:.3f}  (targets {TARGETS}); per round-robin "
+          f"pair {', '.join(f'{x:.3f}' for x in pairs)}; {OLD_DEFAULT} / {FP32}: {ratio_old:.3f}; {TORCH_ENGINE} / "
+          f"{FP32}: {med[TORCH_ENGINE] / med[FP32]:.3f}; {DEFAULT} / {OLD_DEFAULT}: "
+          f"{med[DEFAULT] / med[OLD_DEFAULT]:.3f}")
+    for name, g in ((DEFAULT, gate), (TORCH_ENGINE, gate_torch)):
+        print(f"  fidelity of {name} vs fp32 eager: mean mask IoU {g['mean_iou']:.4f} over "
+              f"{g['pairs'] - g['pairs_both_empty']} pairs (min {g['min_iou']:.4f}; {g['pairs_both_empty']} pairs "
+              f"both empty, left out), max |score difference| {g['max_score_diff']:.2e}; gate (IoU >= {GATE_IOU}, "
+              f"scores within {GATE_SCORE}): {'passes' if g['passes'] else 'FAILS'}")
+    print(f"  {TORCH_ENGINE} against {OLD_DEFAULT}: answers {'identical' if same else 'DIFFERENT'} (masks and scores)")
     if args.json:
         doc = {"host": host, "limits": limits, "model": {"size": args.size, "parameters": n_params,
                "weights": "random", "input": model_input}, "images": n, "resolution": r,
                "prompts": len(PROMPTS), "batch_size": kw["batch_size"], "repeats": args.repeats,
-               "default_dtype": default_dtype, "seconds": times, "median_s_per_image": med, "min_s_per_image": low,
+               "default_dtype": default_dtype, "default_path": default_path, "seconds": times, "median_s_per_image": med, "min_s_per_image": low,
                "default_over_fp32": ratio, "default_over_fp32_pairs": pairs, "old_default_over_fp32": ratio_old,
                "targets": TARGETS, "flops_per_image": per_image,
                "text_flops_per_run": flops["text_encoder (once per run)"],
                "module_seconds": {k: v[0] for k, v in profiled.items()},
                "op_shares": {k: v[1] for k, v in profiled.items()}, "fidelity": gate,
-               "default_identical_to_3056231": same}
+               "fidelity_torch_attention": gate_torch, "torch_attention_identical_to_3056231": same}
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
         print(f"  written {args.json}")

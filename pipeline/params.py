@@ -19,7 +19,7 @@ from pipeline.engine_table import BENCHMARK_VARIANTS, engine_name  # pure Python
 from pipeline.runtime.errors import InputError
 from pipeline.methods import METHODS, PROPOSED, STAGE_ONE  # pure Python, no torch: this module stays torch-free
 from pipeline.methods import RECIPES, interleave, parts_of, recipe_parts  # each recipe part, declared once
-from pipeline.teacher_table import SIMULATED, load, teacher_spec  # pure Python: the teacher names, one table
+from pipeline.teacher_table import SIMULATED, TEACHER_ENGINES, load, teacher_spec  # pure Python: the teacher names, one table
 
 __all__ = ["RECIPES", "DEFAULT_PARAMS", "SOURCES", "SPLITS", "AUTO_BIT_DEPTH", "BIT_DEPTHS", "PAPER_PROMPTS",
            "unresolved", "INT8_CALIBRATIONS", "INT8_WEIGHT_BITS", "Params", "PAPER", "validate", "validate_section",
@@ -146,6 +146,8 @@ class TeacherParams(_Section):
     imported_dir: str | None = _f(None, "imported: directory in the documented layout")
     dtype: Literal["auto", "fp32", "bf16"] = _f(
         "auto", "sam3: auto = bf16 on CUDA (fp32+TF32 without bf16); on CPU bf16 with avx512_bf16 or AMX, else fp32")
+    engine: Literal[TEACHER_ENGINES] = _f(
+        "auto", "sam3: where bf16 attention runs; auto = OpenVINO on a CPU with avx512_bf16 and no AMX, else torch")
     batch_size: int = _f(0, "images per SAM 3 forward; 0 = from free GPU memory (2 on a CPU)", ge=0, le=4096)
     compile: bool = _f(False, "sam3: torch.compile the vision encoder on CUDA (pays after warm-up)")
     score_threshold: float = _f(0.3, "sam3: queries scoring <= this are no candidate", ge=0, le=1)

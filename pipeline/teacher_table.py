@@ -19,9 +19,11 @@ from pipeline.runtime.errors import InputError, Option
 
 __all__ = ["SIMULATED", "SAM3", "IMPORTED", "TEACHER_GROUP", "FORMAT_GROUP", "TeacherSpec", "TEACHER_TABLE",
            "BACKENDS", "plugin", "find_teacher", "teacher_spec", "is_simulator", "folder_options", "load",
-           "teacher_class", "register_teacher", "unregister_teacher"]
+           "teacher_class", "register_teacher", "unregister_teacher", "TEACHER_ENGINES"]
 
 SIMULATED, SAM3, IMPORTED = "simulated", "sam3", "imported"
+#: ``teacher.engine``: where SAM 3's bf16 attention runs (pipeline.teachers.attention)
+TEACHER_ENGINES = ("auto", "torch", "openvino")
 #: the entry-point groups of plug-ins: ``name = "module:OBJECT"``, a :class:`TeacherSpec` / a ``LabelFormat``
 TEACHER_GROUP, FORMAT_GROUP = "geodistill.teachers", "geodistill.label_formats"
 

@@ -8,7 +8,8 @@ import os
 from pipeline.runtime.errors import InputError
 
 __all__ = ["STAGE_CPUS_ENV", "BF16_FLAGS", "ONEDNN_BF16_ISAS", "resolve_device", "stage_cores", "cpu_flags",
-           "cpu_supports_bf16", "cpu_bf16_native", "teacher_cpu_dtype", "autocast", "autocast_dtype"]
+           "cpu_supports_bf16", "cpu_bf16_native", "teacher_cpu_dtype", "OPENVINO_ATTENTION_FLAGS",
+           "teacher_cpu_engine", "autocast", "autocast_dtype"]
 
 
 def resolve_device(name: str = "auto"):
@@ -126,6 +127,34 @@ def teacher_cpu_dtype() -> str:
         ``bf16`` where :func:`cpu_bf16_native`, else ``fp32``.
     """
     return "bf16" if cpu_bf16_native() else "fp32"
+
+
+#: the CPU flags under which ``teacher.engine: auto`` runs SAM 3's bf16 attention in OpenVINO: measured on
+#: avx512_bf16 without AMX (docs/performance.md); AMX is not measured, so it keeps torch's AMX attention
+OPENVINO_ATTENTION_FLAGS = ("avx512_bf16",)
+
+
+def teacher_cpu_engine(dtype_name: str) -> str:
+    """Resolve ``teacher.engine: auto`` on a CPU, from its flags (never a timing probe).
+
+    Measured (docs/performance.md, "The teacher's attention"): on a 2-core avx512_bf16 host without AMX,
+    OpenVINO's fused attention ran SAM 3's attention shapes 1.8-2.6x faster than torch's bf16 flash kernel.
+    Not measured on AMX (torch's kernel uses the tiles there) nor on fp32 hosts: torch there.
+
+    Parameters
+    ----------
+    dtype_name : str
+        The teacher's resolved dtype, ``fp32`` or ``bf16``.
+
+    Returns
+    -------
+    str
+        ``openvino`` for bf16 on a CPU with one of :data:`OPENVINO_ATTENTION_FLAGS` and no ``amx_bf16``, else
+        ``torch``.
+    """
+    flags = cpu_flags()
+    measured = not flags.isdisjoint(OPENVINO_ATTENTION_FLAGS) and "amx_bf16" not in flags
+    return "openvino" if dtype_name == "bf16" and measured else "torch"
 
 
 def autocast(device, dtype, cache_enabled: bool = True):

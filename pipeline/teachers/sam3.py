@@ -26,6 +26,7 @@ from pipeline.runtime.device import resolve_device, teacher_cpu_dtype
 from pipeline.runtime.errors import InputError, Option, literal
 from pipeline.teacher_table import SAM3 as BACKEND
 from pipeline.runtime.progress import library_bars_off
+from pipeline.teachers.attention import OpenVINOAttention, attention_engine, openvino_version, resolve_teacher_engine
 from pipeline.teachers.base import RegisteredTeacher, TeacherInput, files_digest, finalize_answers
 
 __all__ = ["TEXT_MAX_LENGTH", "SAM3_MODEL_TYPES", "checkpoint_hash", "checkpoint_stat", "memoised_checkpoint_hash",
@@ -571,6 +572,9 @@ class Sam3Teacher(RegisteredTeacher):
         The checkpoint-hash memo file (:func:`memoised_checkpoint_hash`); None: hash each run.
     compile : bool, optional
         ``torch.compile`` the vision encoder; on a GPU only (ignored on a CPU).
+    engine : str, optional
+        ``teacher.engine``: ``auto``, ``torch`` or ``openvino``, where the bf16 attention runs
+        (:func:`pipeline.teachers.attention.resolve_teacher_engine`).
 
     Attributes
     ----------
@@ -590,6 +594,10 @@ class Sam3Teacher(RegisteredTeacher):
         Images per forward (0 until the first forward measures it on a GPU).
     compile : bool
         Whether the vision encoder is compiled.
+    engine : str
+        The resolved engine, ``torch`` or ``openvino``.
+    engine_note : str or None
+        One line where the engine asked is not the one that runs (logged at load).
     runner_batch_size : int
         Images handed over per call by the teacher stage's runner (the cache's unit of work).
     resolution : tuple of int or None
@@ -616,7 +624,7 @@ class Sam3Teacher(RegisteredTeacher):
         ----------
         cfg : Mapping
             The validated ``teacher:`` section: its ``checkpoint``, ``dtype``, ``batch_size``, ``score_threshold``,
-            ``mask_threshold``, ``compile`` and ``cache_dir`` (where the hash memo lives, :func:`local_hash_memo`).
+            ``mask_threshold``, ``compile``, ``engine`` and ``cache_dir`` (where the hash memo lives, :func:`local_hash_memo`).
         resolution : tuple of int
             (H, W) of the working resolution.
         device : str, optional
@@ -629,21 +637,21 @@ class Sam3Teacher(RegisteredTeacher):
         """
         return cls(cfg["checkpoint"], device=device, dtype=cfg["dtype"], batch_size=cfg["batch_size"],
                    resolution=resolution, score_threshold=cfg["score_threshold"],
-                   mask_threshold=cfg["mask_threshold"], compile=cfg["compile"],
+                   mask_threshold=cfg["mask_threshold"], compile=cfg["compile"], engine=cfg["engine"],
                    hash_memo=local_hash_memo(cfg["cache_dir"]))
 
     def __init__(self, checkpoint: str | Path, *, device: str = "auto", dtype: str = PAPER.teacher.dtype,
                  batch_size: int = PAPER.teacher.batch_size, resolution: tuple[int, int] | None = None,
                  score_threshold: float = PAPER.teacher.score_threshold,
                  mask_threshold: float = PAPER.teacher.mask_threshold, hash_memo: str | Path | None = None,
-                 compile: bool = PAPER.teacher.compile):
+                 compile: bool = PAPER.teacher.compile, engine: str = PAPER.teacher.engine):
         """Check the checkpoint and read its processor config; the model is loaded on first use.
 
         Raises
         ------
         InputError
             The checkpoint is not a local SAM 3 checkpoint, its processor config is missing or unreadable or
-            has no usable ``size``, or ``dtype`` is unknown.
+            has no usable ``size``, or ``dtype`` or ``engine`` is unknown.
         """
         import torch
 
@@ -654,6 +662,8 @@ class Sam3Teacher(RegisteredTeacher):
         self.torch_dtype = torch.bfloat16 if self.dtype_name == "bf16" else torch.float32
         self.batch_size = int(batch_size) if int(batch_size) > 0 else (0 if self.device.type == "cuda" else 2)
         self.compile = bool(compile) and self.device.type == "cuda"  # torch.compile pays on a GPU only
+        self.engine, self.engine_note = resolve_teacher_engine(engine, self.device, self.dtype_name)
+        self._attention = None  # OpenVINOAttention, made at load
         # images handed over per call by the teacher stage's runner (the cache's unit of work)
         self.runner_batch_size = self.batch_size or MAX_AUTO_BATCH
         self.resolution = tuple(resolution) if resolution is not None else None
@@ -686,7 +696,8 @@ class Sam3Teacher(RegisteredTeacher):
         -------
         dict
             Backend, checkpoint hash, dtype (``+tf32`` when on), resolution, both thresholds and the prompts'
-            token length.
+            token length; with the openvino engine also it and OpenVINO's version (the torch engine's fingerprint
+            is the one from before the setting, so no cached answer is computed again).
         """
         if self._hash is None:
             log.info("sam3: hashing checkpoint %s for the cache key", self.checkpoint)
@@ -695,7 +706,9 @@ class Sam3Teacher(RegisteredTeacher):
                 "dtype": self.dtype_name + ("+tf32" if self.tf32 else ""),
                 "resolution": list(self.resolution) if self.resolution else None,
                 "score_threshold": self.score_threshold, "mask_threshold": self.mask_threshold,
-                "text_max_length": TEXT_MAX_LENGTH}
+                "text_max_length": TEXT_MAX_LENGTH,
+                **({"engine": "openvino attention", "openvino": openvino_version()} if self.engine == "openvino"
+                   else {})}
 
     def path(self) -> str:
         """Name the path the answers take, as ``label``'s projection and summary name it.
@@ -703,10 +716,11 @@ class Sam3Teacher(RegisteredTeacher):
         Returns
         -------
         str
-            Backend, engine, dtype and device, e.g. ``sam3 torch eager bf16 on cpu``.
+            Backend, engine, dtype and device, e.g. ``sam3 torch eager bf16 + openvino attention on cpu``.
         """
         return (f"{BACKEND} torch {'compiled' if self.compile else 'eager'} {self.dtype_name}"
-                f"{'+tf32' if self.tf32 else ''} on {self.device.type}")
+                f"{'+tf32' if self.tf32 else ''}{' + openvino attention' if self.engine == 'openvino' else ''} "
+                f"on {self.device.type}")
 
     def cache_note(self) -> str | None:
         """Say why a CPU's answers cached before ``auto`` chose bf16 there are computed again.
@@ -753,6 +767,12 @@ class Sam3Teacher(RegisteredTeacher):
             model = model.to(self.device).eval()
             if self.compile:  # the vision encoder: about half the time, 2.3x faster compiled (H100, bf16)
                 model.vision_encoder = torch.compile(model.vision_encoder)
+            if self.engine_note:
+                log.warning("sam3: %s", self.engine_note)
+            if self.engine == "openvino":
+                from transformers.integrations.sdpa_attention import sdpa_attention_forward
+
+                self._attention = OpenVINOAttention(sdpa_attention_forward, torch.get_num_threads())
             self._model = model
         return self._model
 
@@ -824,7 +844,7 @@ class Sam3Teacher(RegisteredTeacher):
         import torch
 
         model = self.load()
-        with torch.inference_mode(), exact_savings(model):
+        with torch.inference_mode(), exact_savings(model), attention_engine(self._attention):
             return model.get_vision_features(pixel_values=self.preprocess(images))
 
     @staticmethod
@@ -873,7 +893,8 @@ class Sam3Teacher(RegisteredTeacher):
         k = len(prompts)
         feats, mask = self.text_features(prompts)
         text = BaseModelOutputWithPooling(pooler_output=feats.repeat(n_images, 1, 1))
-        with torch.inference_mode(), first_self_attention_once_per_image(model, k), exact_savings(model):
+        with torch.inference_mode(), first_self_attention_once_per_image(model, k), exact_savings(model), \
+                attention_engine(self._attention):
             out = model(vision_embeds=self._repeat_vision(vision, k), text_embeds=text,
                         attention_mask=mask.repeat(n_images, 1))
             scores = out.pred_logits.float().sigmoid()                       # [B*K, Q]

@@ -1,7 +1,7 @@
 """Smoke test of ``benchmarks.bench_teacher --roofline`` on the tiny random SAM 3: every row of the table
 printed and written as JSON (FLOPs by module, per-module times and op-kind shares of the two defaults, host
-limits, round-robin medians of the three paths, the ratios, the gate, and whether today's default gave the answers
-of 3056231's)."""
+limits, round-robin medians of the four paths, the ratios, the gate of both engines, and whether the torch
+engine gave the answers of 3056231's default)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ pytest.importorskip("transformers")
 
 
 def test_roofline_prints_and_writes_its_table(tmp_path, capsys, tiny_sam3):
-    from benchmarks.bench_teacher import DEFAULT, FP32, OLD_DEFAULT, main
+    from benchmarks.bench_teacher import DEFAULT, FP32, OLD_DEFAULT, TORCH_ENGINE, main
 
     out = tmp_path / "roofline.json"
     main(["--roofline", "--checkpoint", str(tiny_sam3), "--images", "1", "--repeats", "2", "--resolution", "32",
@@ -23,18 +23,22 @@ def test_roofline_prints_and_writes_its_table(tmp_path, capsys, tiny_sam3):
     for pattern in (r"limits \(measured 2048\^3 matmul, best / median\): fp32 \d+ / \d+ GFLOP/s",
                     r"FLOPs per image, 6 prompts: .*backbone [\d.]+ G.*; text once per run [\d.e+-]+ G",
                     r"per-module wall time, default at 3056231 ", r"per-module wall time, default ",
+                    r"per-module wall time, torch attention ",
                     r"shares of self CPU time: attention \d+% \([\d.]+ s\), matmul .*copies .*elementwise",
                     r"fp32 eager +\(fp32\): median +[\d.]+ s/image",
-                    r"default / fp32 eager \(medians\): \d\.\d{3}  \(targets <= 0.35 on avx512_bf16",
-                    r"fidelity vs fp32 eager: mean mask IoU",
-                    r"default against default at 3056231: answers identical"):
+                    r"default \(sam3 torch eager \w+.*on cpu\) / fp32 eager \(medians\): [\d.]+  \(targets <= 0.35 "
+                    r"on avx512_bf16", r"torch attention / fp32 eager: [\d.]+",
+                    r"fidelity of default vs fp32 eager: mean mask IoU", r"fidelity of torch attention vs fp32 eager",
+                    r"torch attention against default at 3056231: answers identical"):
         assert re.search(pattern, text), (pattern, text)
     doc = json.loads(out.read_text())
-    assert set(doc["seconds"]) == {FP32, OLD_DEFAULT, DEFAULT} and all(len(v) == 2 for v in doc["seconds"].values())
+    assert set(doc["seconds"]) == {FP32, OLD_DEFAULT, TORCH_ENGINE, DEFAULT} and all(len(v) == 2 for v in doc["seconds"].values())
     med = doc["median_s_per_image"]
     assert doc["default_over_fp32"] == pytest.approx(med[DEFAULT] / med[FP32])
     assert doc["old_default_over_fp32"] == pytest.approx(med[OLD_DEFAULT] / med[FP32])
-    assert doc["default_identical_to_3056231"] is True  # the savings are exact
+    assert doc["torch_attention_identical_to_3056231"] is True  # the savings are exact
+    assert doc["default_path"].startswith("sam3 torch eager") and set(doc["op_shares"]) == {OLD_DEFAULT, TORCH_ENGINE,
+                                                                                          DEFAULT}
     for shares in doc["op_shares"].values():
         assert set(shares) == {"attention", "matmul", "copies", "elementwise", "other"}
         assert sum(v["share"] for v in shares.values()) == pytest.approx(1.0) and shares["matmul"]["seconds"] > 0
@@ -42,7 +46,7 @@ def test_roofline_prints_and_writes_its_table(tmp_path, capsys, tiny_sam3):
     assert {"backbone", "detr_encoder", "detr_decoder", "mask_decoder"} <= set(flops) and min(flops.values()) >= 0
     assert flops["backbone"] > 0 and flops["detr_encoder"] > 0 and doc["text_flops_per_run"] > 0
     assert doc["limits"]["fp32_gflops"] > 0 and doc["host"]["load_average_before"]
-    assert doc["fidelity"]["pairs"] == 6 and "passes" in doc["fidelity"]
+    assert doc["fidelity"]["pairs"] == 6 and "passes" in doc["fidelity"] and "passes" in doc["fidelity_torch_attention"]
 
 
 def test_batch_sweep_times_each_batch_and_path_and_writes_it(tmp_path, capsys, tiny_sam3):

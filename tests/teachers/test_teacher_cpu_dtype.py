@@ -82,12 +82,14 @@ def test_bf16_on_the_random_tiny_sam3_keeps_layout_and_prompts(tiny_sam3):
     assert g["pairs_both_empty"] < g["pairs"] and 0.9 <= g["mean_iou"] <= 1.0 and g["max_score_diff"] <= 0.03, g
 
 
-def test_bf16_passes_the_fidelity_gate_on_a_fitted_tiny_sam3(fitted_tiny_sam3):
+@pytest.mark.parametrize("engine", ["torch", "openvino"])
+def test_bf16_passes_the_fidelity_gate_on_a_fitted_tiny_sam3(fitted_tiny_sam3, engine):
     """The fidelity gate (mean mask IoU >= 0.99 against fp32 eager, score_threshold 0, pairs of two empty masks
     left out; scores within 0.02) on held-out box scenes, for the tiny SAM 3 fitted so that its logits have a
     trained model's margins (weights fitted to synthetic boxes: numerics only). The fp32 answers must find the
     boxes (IoU >= 0.7; 0.85 here), so a model that learned nothing cannot pass by agreeing on noise. Measured
-    on an avx512_bf16 host: 0.997, scores within 0.002 (0.995-0.998 over fitting seeds 0-2)."""
+    on an avx512_bf16 host: 0.997, scores within 0.002 (0.995-0.998 over fitting seeds 0-2). Both engines of
+    the bf16 attention (``teacher.engine``) pass it."""
     from pipeline.params import PAPER_PROMPTS
     from pipeline.teachers.base import TeacherInput
     from pipeline.teachers.tiny_sam3 import box_scenes
@@ -96,7 +98,11 @@ def test_bf16_passes_the_fidelity_gate_on_a_fitted_tiny_sam3(fitted_tiny_sam3):
     items = [TeacherInput(f"img{i}", f"sha{i}", img) for i, (img, _) in enumerate(scenes)]
     kw = dict(device="cpu", resolution=(40, 40), score_threshold=0.0)
     ref = Sam3Teacher(fitted_tiny_sam3, dtype="fp32", **kw).predict(items, PAPER_PROMPTS)
-    got = Sam3Teacher(fitted_tiny_sam3, dtype="bf16", **kw).predict(items, PAPER_PROMPTS)
+    if engine == "openvino":
+        pytest.importorskip("openvino")
+    teacher = Sam3Teacher(fitted_tiny_sam3, dtype="bf16", engine=engine, **kw)
+    assert teacher.engine == engine
+    got = teacher.predict(items, PAPER_PROMPTS)
     boxes = np.repeat(np.stack([m for _, m in scenes]), len(PAPER_PROMPTS), axis=0)  # one per (image, prompt)
     found = image_ious(ref[0].reshape(-1, 40, 40), boxes).mean()
     assert found >= 0.7, found
