@@ -167,15 +167,22 @@ def as_displayed(arr: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
-def _decode(data: bytes, path: str | Path) -> np.ndarray:
+def _decode(data: bytes, path: str | Path, orientation: int) -> np.ndarray:
     """Decode an image or mask file's bytes (the one decode of every file): its pixels as displayed.
 
-    A JPEG's EXIF orientation is applied here, since ``IMREAD_UNCHANGED`` keeps 16 bits and alpha but ignores it.
+    The JPEG EXIF ``orientation`` (read once, from the header) is applied here, since ``IMREAD_UNCHANGED`` keeps
+    16 bits and alpha but ignores it.
     """
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None or arr.size == 0:
         raise BadFileError(path, UNDECODABLE)
-    return as_displayed(arr, jpeg_orientation(data))
+    return as_displayed(arr, orientation)
+
+
+def _read_displayed(path: str | Path, max_pixels: int | None) -> np.ndarray:
+    """:func:`read_image_bytes`, then :func:`_decode` under the header's orientation: a file's pixels as shown."""
+    data = read_image_bytes(path, max_pixels)
+    return _decode(data, path, jpeg_orientation(data))
 
 
 #: under ``auto``, a 16-bit frame darker than this is most likely a 10-14-bit sensor's: warned about
@@ -309,7 +316,7 @@ def read_rgb(path: str | Path, *, max_pixels: int | None = None, bit_depth=PAPER
     BadFileError
         A missing, unreadable, zero-byte, unsupported, corrupt or oversized file.
     """
-    return to_rgb8(_decode(read_image_bytes(path, max_pixels), path), path, bit_depth)
+    return to_rgb8(_read_displayed(path, max_pixels), path, bit_depth)
 
 
 _warned: set[str] = set()
@@ -381,7 +388,7 @@ def read_mask(path: str | Path, threshold: float | None = None, *, max_pixels: i
     BadFileError
         A missing, unreadable, zero-byte, unsupported, corrupt or oversized file.
     """
-    mask, note = binarize_mask(_decode(read_image_bytes(path, max_pixels), path), threshold)
+    mask, note = binarize_mask(_read_displayed(path, max_pixels), threshold)
     warn_mask_once(path, note)
     return mask
 
@@ -758,7 +765,7 @@ def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pix
         if hit is not None:
             warn(path, hit[2])
             return Loaded(hit[0], sha, hit[1], orientation)
-    full = decode(_decode(data, path))
+    full = decode(_decode(data, path, orientation))
     full, note = full if isinstance(full, tuple) else (full, None)
     warn(path, note)
     hw = (int(full.shape[0]), int(full.shape[1]))
