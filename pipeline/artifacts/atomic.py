@@ -24,7 +24,7 @@ import numpy as np
 from pipeline.runtime.errors import InputError
 
 __all__ = ["atomic_path", "write_text_if_changed", "read_json", "write_json", "folders_gone_on_failure", "write_png",
-           "write_csv"]
+           "png_bytes", "write_csv"]
 
 FAULT_ENV = "GEODISTILL_FAULT"
 _RENAME_EXCHANGE = 2
@@ -250,13 +250,40 @@ def write_png(path: Path, array: np.ndarray) -> None:
     pipeline.runtime.errors.InputError
         OpenCV could not encode the array, or the file could not be written (one line naming ``path``).
     """
+    data = png_bytes(array, path)
+    _replace_file(path, lambda tmp: tmp.write_bytes(data))
+
+
+def png_bytes(array: np.ndarray, what: str | Path = "array", compression: int | None = None) -> bytes:
+    """Encode an array as PNG bytes; an RGB array is converted to OpenCV's BGR first.
+
+    Parameters
+    ----------
+    array : numpy.ndarray
+        uint8 or uint16 [H,W] or RGB [H,W,3].
+    what : str or Path
+        What the error names (the file it is for).
+    compression : int, optional
+        zlib level 0-9 (``IMWRITE_PNG_COMPRESSION``); None: OpenCV's default.
+
+    Returns
+    -------
+    bytes
+        The PNG file's bytes.
+
+    Raises
+    ------
+    pipeline.runtime.errors.InputError
+        OpenCV could not encode the array (one line naming ``what``).
+    """
     import cv2
 
     arr = array[..., ::-1] if array.ndim == 3 else array
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr))
+    params = [] if compression is None else [cv2.IMWRITE_PNG_COMPRESSION, compression]
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr), params)
     if not ok:
-        raise InputError(f"{path}: PNG encoding failed")
-    _replace_file(path, lambda tmp: tmp.write_bytes(buf.tobytes()))
+        raise InputError(f"{what}: PNG encoding failed")
+    return buf.tobytes()
 
 
 def _replace_file(path: Path, write: Callable[[Path], object]) -> Path:

@@ -1,6 +1,7 @@
 """Assemble a dataset for the ``prepare`` stage.
 
-Source rows -> checked manifest -> every file decoded once (under the bad-input policy, into the decode cache)
+Source rows -> (checked by :func:`pipeline.datasets.manifest.check_manifest`) every file decoded once, a row's
+files by one :func:`pipeline.datasets.loading.load_row` call (under the bad-input policy, into the decode cache)
 -> working-resolution arrays.
 """
 
@@ -11,35 +12,24 @@ import logging
 from pathlib import Path
 from typing import Iterator
 
-import cv2
 import numpy as np
 import pandas as pd
 
-from pipeline.artifacts.atomic import atomic_path
+from pipeline.artifacts.atomic import atomic_path, png_bytes
 from pipeline.catalog import output_file
 from pipeline.datasets import adapters
 from pipeline.datasets import synthetic as syn
-from pipeline.datasets.loading import BadFileError, DecodeCache, Loaded, load_labels, load_mask, load_rgb, mask_kind
-from pipeline.datasets.manifest import (BadInputPolicy, DatasetSpec, check_rows, drop_duplicate_ids,
-                                        enforce_spacecraft_disjoint)
+from pipeline.datasets.loading import BadFileError, DecodeCache, Loaded, has_file, load_row, mask_kind
+from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec
 from pipeline.datasets.params import FrameSettings
 from pipeline.runtime.errors import InputError
 from pipeline.runtime.progress import progress
 
-__all__ = ["synthetic_source", "real_source", "check_manifest", "decode_rows", "iter_arrays", "content_digest"]
+__all__ = ["synthetic_source", "real_source", "decode_rows", "iter_arrays"]
 
 log = logging.getLogger(__name__)
 
 SYNTHETIC_DIR = "synthetic"
-
-
-def _png(arr: np.ndarray) -> bytes:
-    if arr.ndim == 3:
-        arr = arr[..., ::-1]  # RGB -> BGR for OpenCV
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise RuntimeError("PNG encoding failed")
-    return buf.tobytes()
 
 
 def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) -> DatasetSpec:
@@ -74,8 +64,9 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
             for v in range(sc.views):
                 view = syn.generate_view(model, v, size, seed, opts)
                 iid = f"{sc.name}_v{v:03d}"
-                files = {"images": _png(view.image), "masks": _png(view.mask.astype(np.uint8) * 255),
-                         "parts": _png(view.parts)}
+                files = {sub: png_bytes(arr, iid, compression=1)  # fast: the files are read back once
+                         for sub, arr in (("images", view.image), ("masks", view.mask.astype(np.uint8) * 255),
+                                          ("parts", view.parts))}
                 for sub, data in files.items():
                     (tmp / sub / f"{iid}.png").write_bytes(data)
                 if cache is not None:  # the arrays are in hand: cache them under the bytes' hashes
@@ -119,49 +110,6 @@ def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = 
     return spec
 
 
-def check_manifest(spec: DatasetSpec, policy: BadInputPolicy, where: str = "manifest") -> pd.DataFrame:
-    """Check a source's rows: columns, splits, unique image ids, and eq:spacecraft-disjoint where required.
-
-    Parameters
-    ----------
-    spec : DatasetSpec
-        The source's rows; ``spec.spacecraft_disjoint`` says whether its protocol requires the split rule.
-    policy : BadInputPolicy
-        Refuses a duplicate id or a spacecraft in two splits, or (``skip_bad``) lists it and drops the row.
-    where : str
-        What the refusals name (``data.source=...``).
-
-    Returns
-    -------
-    pandas.DataFrame
-        The rows kept.
-
-    Raises
-    ------
-    InputError
-        Missing columns, unknown split names or no rows (never skipped), or a refused row.
-    """
-    rows = check_rows(spec.rows, where)
-    rows = drop_duplicate_ids(rows, policy)
-    if spec.spacecraft_disjoint:
-        rows = enforce_spacecraft_disjoint(rows, policy)
-    return rows
-
-
-def _has(v) -> bool:
-    return isinstance(v, str) and v != ""
-
-
-def _load(spec: DatasetSpec, frames: FrameSettings, col: str, path: str, size: int, cache: DecodeCache | None):
-    """Read the file of column ``col`` by its rule (image, mask or part labels) at ``size``."""
-    kw = {"max_pixels": frames.max_pixels, "letterbox": frames.letterbox}
-    if col == "image_path":
-        return load_rgb(path, size, cache, bit_depth=frames.bit_depth, **kw)
-    if col == "mask_path":
-        return load_mask(path, size, cache, spec.mask_threshold, **kw)
-    return load_labels(path, size, cache, spec.part_colors, **kw)
-
-
 def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, frames: FrameSettings, size: int, cache: DecodeCache | None,
                 policy: BadInputPolicy) -> pd.DataFrame:
     """Decode every file once (into the cache) and fill the width, height and sha256 columns.
@@ -199,20 +147,13 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, frames: FrameSettings, si
     kept: dict[int, Loaded] = {}   # row -> its image
     for i, r in enumerate(progress(rows.itertuples(index=False), total=len(rows), desc="decode")):
         try:
-            img = _load(spec, frames, "image_path", r.image_path, size, cache)
-            for col in ("mask_path", "part_path"):
-                path = getattr(r, col)
-                if not _has(path):
-                    continue
-                got = _load(spec, frames, col, path, size, cache)
-                if got.native_hw != img.native_hw:
-                    raise BadFileError(path, f"{col.split('_')[0]} size {got.native_hw[1]}x{got.native_hw[0]} differs "
-                                             f"from image {r.image_path} size {img.native_hw[1]}x{img.native_hw[0]}")
+            img = load_row(r.image_path, r.mask_path, r.part_path, size, cache, frames, spec.mask_threshold,
+                           spec.part_colors)[0]
         except BadFileError as e:
             policy.report_error(r.image_id, e)
             for col in ("image_path", "mask_path", "part_path"):
                 other = getattr(r, col)
-                if _has(other) and other != e.path and (Path(other).exists() or Path(other).is_symlink()):
+                if has_file(other) and other != e.path and (Path(other).exists() or Path(other).is_symlink()):
                     policy.record(r.image_id, other, f"not used: image {r.image_id!r} was left out "
                                                      f"({Path(e.path).name}: {e.reason})")
             continue
@@ -222,7 +163,7 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, frames: FrameSettings, si
     out["height"] = np.asarray([im.native_hw[0] for im in kept.values()], np.int64)
     out["sha256"] = [im.content_sha256 for im in kept.values()]  # an EXIF-turned file: its pixels as shown
     for col in ("mask_path", "part_path"):
-        out[col] = [p if _has(p) else None for p in out[col]]
+        out[col] = [p if has_file(p) else None for p in out[col]]
     if out.empty:
         raise InputError("no usable images left after skipping bad files (see the skipped-files table)")
     for split in ("train", "val", "test"):
@@ -254,26 +195,6 @@ def iter_arrays(rows: pd.DataFrame, spec: DatasetSpec, frames: FrameSettings, si
         ``(row index, image uint8 [S,S,3], mask bool [S,S] or None, parts uint8 [S,S] or None)``.
     """
     for i, r in enumerate(rows.itertuples(index=False)):
-        img, mask, parts = (_load(spec, frames, col, p, size, cache).array if _has(p) else None
-                            for col, p in (("image_path", r.image_path), ("mask_path", r.mask_path),
-                                           ("part_path", r.part_path)))
-        yield i, img, mask, parts
-
-
-def content_digest(rows: pd.DataFrame) -> str:
-    """Hash the data's identity for the fingerprint: (image_id, split, group, file sha256) in manifest order.
-
-    Parameters
-    ----------
-    rows : pandas.DataFrame
-        Decoded manifest rows.
-
-    Returns
-    -------
-    str
-        The sha256 hex digest.
-    """
-    h = hashlib.sha256()
-    for iid, split, group, s in zip(rows["image_id"], rows["split"], rows["group"], rows["sha256"]):
-        h.update(f"{iid}\0{split}\0{group}\0{s}\n".encode())
-    return h.hexdigest()
+        files = load_row(r.image_path, r.mask_path, r.part_path, size, cache, frames, spec.mask_threshold,
+                         spec.part_colors)
+        yield i, *(None if f is None else f.array for f in files)

@@ -23,7 +23,8 @@ from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER
 
 __all__ = ["SUPPORTED_SUFFIXES", "BadFileError", "broken_link_reason", "pixel_limit", "check_bit_depth", "to_rgb8",
            "read_rgb", "reset_frame_warnings", "read_mask", "ColorTable", "resize_image", "probs_to_size",
-           "resize_nearest", "DecodeCache", "Loaded", "load_rgb", "mask_kind", "load_mask", "load_labels"]
+           "resize_nearest", "DecodeCache", "Loaded", "load_rgb", "mask_kind", "load_mask", "load_labels",
+           "has_file", "load_row"]
 
 log = logging.getLogger(__name__)
 
@@ -167,15 +168,22 @@ def as_displayed(arr: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
-def _decode(data: bytes, path: str | Path) -> np.ndarray:
+def _decode(data: bytes, path: str | Path, orientation: int) -> np.ndarray:
     """Decode an image or mask file's bytes (the one decode of every file): its pixels as displayed.
 
-    A JPEG's EXIF orientation is applied here, since ``IMREAD_UNCHANGED`` keeps 16 bits and alpha but ignores it.
+    The JPEG EXIF ``orientation`` (read once, from the header) is applied here, since ``IMREAD_UNCHANGED`` keeps
+    16 bits and alpha but ignores it.
     """
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None or arr.size == 0:
         raise BadFileError(path, UNDECODABLE)
-    return as_displayed(arr, jpeg_orientation(data))
+    return as_displayed(arr, orientation)
+
+
+def _read_displayed(path: str | Path, max_pixels: int | None) -> np.ndarray:
+    """:func:`read_image_bytes`, then :func:`_decode` under the header's orientation: a file's pixels as shown."""
+    data = read_image_bytes(path, max_pixels)
+    return _decode(data, path, jpeg_orientation(data))
 
 
 #: under ``auto``, a 16-bit frame darker than this is most likely a 10-14-bit sensor's: warned about
@@ -309,7 +317,7 @@ def read_rgb(path: str | Path, *, max_pixels: int | None = None, bit_depth=PAPER
     BadFileError
         A missing, unreadable, zero-byte, unsupported, corrupt or oversized file.
     """
-    return to_rgb8(_decode(read_image_bytes(path, max_pixels), path), path, bit_depth)
+    return to_rgb8(_read_displayed(path, max_pixels), path, bit_depth)
 
 
 _warned: set[str] = set()
@@ -381,7 +389,7 @@ def read_mask(path: str | Path, threshold: float | None = None, *, max_pixels: i
     BadFileError
         A missing, unreadable, zero-byte, unsupported, corrupt or oversized file.
     """
-    mask, note = binarize_mask(_decode(read_image_bytes(path, max_pixels), path), threshold)
+    mask, note = binarize_mask(_read_displayed(path, max_pixels), threshold)
     warn_mask_once(path, note)
     return mask
 
@@ -758,7 +766,7 @@ def _load(path, size: int, kind: str, cache: DecodeCache | None, decode, max_pix
         if hit is not None:
             warn(path, hit[2])
             return Loaded(hit[0], sha, hit[1], orientation)
-    full = decode(_decode(data, path))
+    full = decode(_decode(data, path, orientation))
     full, note = full if isinstance(full, tuple) else (full, None)
     warn(path, note)
     hw = (int(full.shape[0]), int(full.shape[1]))
@@ -888,3 +896,68 @@ def load_labels(path, size: int, cache: DecodeCache | None = None,
                      lambda a: parts_from_colors(rgb8_and_note(a, path, AUTO_BIT_DEPTH)[0], table, path), max_pixels, letterbox)
     return _load(path, size, "labels", cache, lambda a: np.clip(a[..., 0] if a.ndim == 3 else a, 0, 255)
                  .astype(np.uint8), max_pixels, letterbox)
+
+
+def has_file(value) -> bool:
+    """Tell whether a manifest cell names a file (a non-empty string; None, NaN or ``""``: none).
+
+    Parameters
+    ----------
+    value : object
+        A ``mask_path`` or ``part_path`` cell.
+
+    Returns
+    -------
+    bool
+        True when it names a file.
+    """
+    return isinstance(value, str) and value != ""
+
+
+def load_row(image_path, mask_path, part_path, size: int, cache: DecodeCache | None, frames,
+             mask_threshold: float | None = None, part_colors: dict | ColorTable | None = None
+             ) -> tuple[Loaded, Loaded | None, Loaded | None]:
+    """Read one manifest row's files at the working resolution: its image, then its mask and part labels.
+
+    Parameters
+    ----------
+    image_path : str or Path
+        The image file.
+    mask_path, part_path : str, Path or None
+        The mask and part-label files; none when :func:`has_file` says so.
+    size : int
+        The working resolution S (``data.resolution``).
+    cache : DecodeCache or None
+        The decode cache (None: none).
+    frames : pipeline.datasets.params.FrameSettings
+        How a frame file is read (``data.bit_depth``, ``data.letterbox``, ``data.max_pixels``); not imported here,
+        so a stage that reads files does not depend on the params module.
+    mask_threshold : float, optional
+        The source's mask threshold (:func:`load_mask`).
+    part_colors : dict or ColorTable, optional
+        The source's part colour table (:func:`load_labels`).
+
+    Returns
+    -------
+    tuple
+        ``(image, mask or None, parts or None)``, each a :class:`Loaded`.
+
+    Raises
+    ------
+    BadFileError
+        A bad file, or a mask or part file whose size as displayed differs from the image's.
+    """
+    kw = {"max_pixels": frames.max_pixels, "letterbox": frames.letterbox}
+    img = load_rgb(image_path, size, cache, bit_depth=frames.bit_depth, **kw)
+    mask = load_mask(mask_path, size, cache, mask_threshold, **kw) if has_file(mask_path) else None
+    _same_size(mask, "mask", mask_path, img, image_path)  # checked before the part file is read
+    parts = load_labels(part_path, size, cache, part_colors, **kw) if has_file(part_path) else None
+    _same_size(parts, "part", part_path, img, image_path)
+    return img, mask, parts
+
+
+def _same_size(got: Loaded | None, what: str, path, img: Loaded, image_path) -> None:
+    """Refuse a mask or part file whose size as displayed differs from its image's (:class:`BadFileError`)."""
+    if got is not None and got.native_hw != img.native_hw:
+        raise BadFileError(path, f"{what} size {got.native_hw[1]}x{got.native_hw[0]} differs from image "
+                                 f"{image_path} size {img.native_hw[1]}x{img.native_hw[0]}")

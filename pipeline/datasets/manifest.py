@@ -6,6 +6,7 @@ A bad file is a one-line :class:`InputError`, or with ``skip_bad`` a listed ``(i
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 from pathlib import Path
 from typing import Iterable
@@ -17,7 +18,7 @@ from pipeline.runtime.errors import SKIP_BAD, InputError, Option, literal
 from pipeline.params import SPLITS
 
 __all__ = ["ROW_COLUMNS", "DatasetSpec", "BadInputPolicy", "write_skipped_csv", "drop_duplicate_ids", "relative_id",
-           "enforce_spacecraft_disjoint", "check_rows"]
+           "enforce_spacecraft_disjoint", "check_rows", "check_manifest", "content_digest"]
 
 log = logging.getLogger(__name__)
 
@@ -347,3 +348,51 @@ def check_rows(rows: pd.DataFrame, where: str) -> pd.DataFrame:
     if rows.empty:
         raise InputError(f"{where}: no images found")
     return rows
+
+
+def check_manifest(spec: DatasetSpec, policy: BadInputPolicy, where: str = "manifest") -> pd.DataFrame:
+    """Check a source's rows: columns, splits, unique image ids, and eq:spacecraft-disjoint where required.
+
+    Parameters
+    ----------
+    spec : DatasetSpec
+        The source's rows; ``spec.spacecraft_disjoint`` says whether its protocol requires the split rule.
+    policy : BadInputPolicy
+        Refuses a duplicate id or a spacecraft in two splits, or (``skip_bad``) lists it and drops the row.
+    where : str
+        What the refusals name (``data.source=...``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        The rows kept.
+
+    Raises
+    ------
+    InputError
+        Missing columns, unknown split names or no rows (never skipped), or a refused row.
+    """
+    rows = check_rows(spec.rows, where)
+    rows = drop_duplicate_ids(rows, policy)
+    if spec.spacecraft_disjoint:
+        rows = enforce_spacecraft_disjoint(rows, policy)
+    return rows
+
+
+def content_digest(rows: pd.DataFrame) -> str:
+    """Hash the data's identity for the fingerprint: (image_id, split, group, file sha256) in manifest order.
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        Decoded manifest rows.
+
+    Returns
+    -------
+    str
+        The sha256 hex digest.
+    """
+    h = hashlib.sha256()
+    for iid, split, group, s in zip(rows["image_id"], rows["split"], rows["group"], rows["sha256"]):
+        h.update(f"{iid}\0{split}\0{group}\0{s}\n".encode())
+    return h.hexdigest()

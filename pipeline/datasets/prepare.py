@@ -10,18 +10,17 @@ import dataclasses
 from pathlib import Path
 from typing import Callable
 
-import cv2
 import numpy as np
 import pandas as pd
 
 from pipeline import catalog
-from pipeline.artifacts.atomic import atomic_path
+from pipeline.artifacts.atomic import atomic_path, png_bytes
 from pipeline.artifacts.lineage import Meta
 from pipeline.artifacts.store import ZarrWriter, write_parquet
 from pipeline.datasets import build
 from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
 from pipeline.datasets.loading import DecodeCache
-from pipeline.datasets.manifest import BadInputPolicy
+from pipeline.datasets.manifest import BadInputPolicy, check_manifest, content_digest
 from pipeline.datasets.params import FrameSettings, fingerprint_params
 from pipeline.datasets.synthetic import PART_NAMES
 from pipeline.runtime.progress import progress
@@ -68,9 +67,9 @@ def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
     policy = BadInputPolicy(cfg["skip_bad"])
     spec = (build.synthetic_source(cfg, out, cache) if cfg["source"] == "synthetic"
             else build.real_source(cfg, policy, out))
-    rows = build.check_manifest(spec, policy, where=f"data.source={cfg['source']}")
+    rows = check_manifest(spec, policy, where=f"data.source={cfg['source']}")
     rows = build.decode_rows(rows, spec, frames, size, cache, policy)
-    fp_params = {"data": fp_data, "protocol": spec.protocol, "content_sha256": build.content_digest(rows)}
+    fp_params = {"data": fp_data, "protocol": spec.protocol, "content_sha256": content_digest(rows)}
     ids = rows["image_id"].tolist()
     n = len(rows)
     has_parts = rows["part_path"].notna().to_numpy()
@@ -114,4 +113,4 @@ def write_contact_sheet(path: Path, rows: pd.DataFrame, spec, frames: FrameSetti
         tiles.append(tile(img, mask, f"{r['group']} {r['spacecraft']}", tsize))
     # atomic_path, not write_png: a stage's output, whose killed temporaries the next run removes
     with atomic_path(path) as tmp:
-        tmp.write_bytes(cv2.imencode(".png", contact_sheet(tiles, columns=4)[..., ::-1])[1].tobytes())
+        tmp.write_bytes(png_bytes(contact_sheet(tiles, columns=4), path))

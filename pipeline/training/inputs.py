@@ -16,14 +16,16 @@ from pipeline import catalog
 from pipeline.artifacts.lineage import require_same_run
 from pipeline.artifacts.store import open_artifact
 from pipeline.augment import GeometryConstants, recompute_geometry
-from pipeline.evaluation.inference import REVIEW_MODE_KEY, corrected_validation, require_mode
+from pipeline.evaluation.inference import REVIEW_MODE_KEY, corrected_validation, load_student, require_mode
 from pipeline.geometry import area_ratio
-from pipeline.methods import SUPERVISED_CEILING, Method, input_artifacts, uses_confidence
+from pipeline.methods import SUPERVISED_CEILING, Method, get_method, input_artifacts, uses_confidence
 from pipeline.training.filters import afs_fuse, afs_keep, confidence_pass, mean_valid_score, pass_ratio
+from pipeline.params import section
 from pipeline.runtime.errors import ArtifactError, InputError
 from pipeline.training.streaming import LazyRows, MappedRows, RowSource, row_means, select_rows
 
-__all__ = ["MODES", "MODE_KEY", "TrainData", "ValData", "read_rows", "load_inputs", "replace_targets"]
+__all__ = ["MODES", "MODE_KEY", "TrainData", "ValData", "read_rows", "load_inputs", "replace_targets", "load_init",
+           "MethodInputs", "open_method"]
 
 #: how the corrected artifact enters a run (:mod:`pipeline.review.apply` says what each means)
 MODES = ("validate", "replace")
@@ -478,3 +480,99 @@ def apply_to_validation(val: ValData | None, corrected, images) -> ValData:
 def _as_rows(x) -> RowSource:
     """Wrap ``x`` as a row source (an array too, so that :class:`PatchedRows` reads it alike)."""
     return x if isinstance(x, RowSource) else LazyRows(np.asarray(x), np.arange(len(x)))
+
+
+def load_init(path: str | Path) -> tuple[dict, Any]:
+    """Open a Stage-I checkpoint for a warm start.
+
+    Parameters
+    ----------
+    path : str or Path
+        The checkpoint folder (``--init``).
+
+    Returns
+    -------
+    tuple
+        ``(mask-path state dict, its artifact for the lineage)``.
+
+    Raises
+    ------
+    ArtifactError
+        ``path`` holds no checkpoint, or one that does not open.
+    """
+    p = Path(path)
+    if not (p / catalog.META_FILE).exists():
+        raise ArtifactError(f"--init {p}: not a checkpoint directory (run train_plain first)")
+    art = open_artifact(p, "checkpoint")
+    model, _ = load_student(p)
+    return model.mask_path_state_dict(), art
+
+
+@dataclasses.dataclass(frozen=True)
+class MethodInputs:
+    """What every seed of one method reads, opened once (:func:`open_method`).
+
+    Attributes
+    ----------
+    spec : Method
+        The method.
+    stage : int
+        Its stage (1 or 2).
+    cfg : dict
+        The validated ``train:`` section.
+    data : TrainData
+        The training rows.
+    val : ValData or None
+        The validation rows.
+    inputs : tuple
+        The artifacts read, for the lineage.
+    context : Any
+        The stage's context: ``context.meta(schema, inputs, params=..., **extra)`` stamps a checkpoint.
+    """
+
+    spec: Any
+    stage: int
+    cfg: dict
+    data: Any
+    val: Any
+    inputs: tuple
+    context: Any
+
+
+def open_method(params: Mapping[str, Any], stage: int, method: str, artifacts: str | Path,
+                context: Any) -> MethodInputs:
+    """Check a method against ``--stage`` and the params, then open what its runs read.
+
+    Parameters
+    ----------
+    params : Mapping
+        The validated params.
+    stage : int
+        The stage asked for (``--stage``).
+    method : str
+        The method's name (``--method``).
+    artifacts : str or Path
+        The artifacts folder.
+    context : Any
+        The stage's context (kept in the result, stamps the checkpoints).
+
+    Returns
+    -------
+    MethodInputs
+        The method, its settings, arrays and lineage.
+
+    Raises
+    ------
+    InputError
+        The method belongs to the other stage, or trains on reference masks while
+        ``protocol.supervised_ceiling`` is off; or an input the reader refuses.
+    """
+    cfg = section(params, "train")
+    spec = get_method(method)
+    if spec.stage != stage:
+        raise InputError(f"--stage {stage}: method {method!r} belongs to --stage {spec.stage}")
+    if not spec.annotation_free and not params["protocol"][SUPERVISED_CEILING]:
+        raise InputError(f"--method {method}: trains on reference masks (not annotation-free); "
+                         f"needs params protocol.{SUPERVISED_CEILING}: true")
+    data, val, inputs = load_inputs(artifacts, spec, cfg, review=section(params, "review"))
+    return MethodInputs(spec, stage, cfg, data, val, tuple(inputs), context)

@@ -76,7 +76,7 @@ def test_missing_config_is_one_clear_error(tmp_path):
 def test_old_model_pt_checkpoint_is_still_read(tmp_path):
     """A checkpoint of an older version (model.pt only): it validates, loads to the same model, warm-starts
     Stage II, and exports to a bundle that carries safetensors."""
-    from stages.train import load_init
+    from pipeline.training.inputs import load_init
 
     new = make_checkpoint(tmp_path / "new", seed=5, geometry=True)
     old = to_legacy(make_checkpoint(tmp_path / "old", seed=5, geometry=True))

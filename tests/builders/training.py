@@ -126,7 +126,7 @@ def tiny_cfg(**over) -> dict:
 def load_arrays(art, method_name, cfg):
     """(TrainData, ValData) of a method from the tiny artifacts, opened by the stage's wiring."""
     from pipeline.methods import get_method
-    from stages.train import load_inputs
+    from pipeline.training.inputs import load_inputs
 
     data, val, _ = load_inputs(art, get_method(method_name), cfg)
     return data, val

@@ -19,7 +19,7 @@ from tests.builders.training import load_arrays, tiny_cfg
 
 def _load(tiny, name, cfg):
     """(TrainData, the artifacts opened) of a method, through the train stage's wiring."""
-    from stages.train import load_inputs
+    from pipeline.training.inputs import load_inputs
 
     data, _, inputs = load_inputs(tiny, get_method(name), cfg)
     return data, inputs

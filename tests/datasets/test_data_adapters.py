@@ -9,7 +9,7 @@ import yaml
 
 from pipeline.datasets import adapters, build
 from pipeline.datasets.loading import DecodeCache
-from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec, spacecraft_split_violations
+from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec, check_manifest, spacecraft_split_violations
 from pipeline.datasets.params import FrameSettings
 from pipeline.params import PAPER
 from pipeline.runtime.errors import InputError
@@ -45,7 +45,7 @@ def _grey_mask(path, h=24, w=24, value=200):
 
 def _decode(spec, tmp_path, size=16, skip=False):
     policy = BadInputPolicy(skip)
-    rows = build.check_manifest(spec, policy)
+    rows = check_manifest(spec, policy)
     rows = build.decode_rows(rows, spec, PAPER_FRAMES, size, DecodeCache(tmp_path / "cache"), policy)
     return rows, policy
 
@@ -259,9 +259,9 @@ def test_spacecraft_in_two_splits_is_an_error_or_skipped(tmp_path):
          "image_path": str(a), "mask_path": None, "part_path": None}])
     spec = DatasetSpec(rows=rows, spacecraft_disjoint=True)
     with pytest.raises(InputError, match="Kepler.*eq:spacecraft-disjoint"):
-        build.check_manifest(spec, BadInputPolicy(False))
+        check_manifest(spec, BadInputPolicy(False))
     policy = BadInputPolicy(True)
-    kept = build.check_manifest(spec, policy)
+    kept = check_manifest(spec, policy)
     assert kept["image_id"].tolist() == ["x2", "x3"]                  # the training copy is left out
     assert policy.table()["image_id"].tolist() == ["x1"]
     assert "eq:spacecraft-disjoint" in policy.table()["reason"].iloc[0]

@@ -66,6 +66,7 @@ LAYERS = (
      ("pipeline/datasets/", "pipeline/datasets/prepare.py", "pipeline/teachers/", "pipeline/pseudo_labels.py",
       "pipeline/training/inputs.py", "pipeline/training/schedule.py", "pipeline/training/averaging.py",
       "pipeline/training/settings.py", "pipeline/training/self_training.py", "pipeline/training/loop.py", "pipeline/training/budget.py",
+      "pipeline/training/seeds.py",
       "pipeline/evaluation/inference.py",
       "pipeline/evaluation/evaluate.py", "pipeline/deploy/export.py", "pipeline/deploy/image_files.py", "pipeline/deploy/",
       "pipeline/report/", "pipeline/cluster/", "pipeline/labeling/", "pipeline/review/")),

@@ -165,7 +165,7 @@ def test_grouped_seeds_write_the_bytes_of_separate_processes_and_resume(tiny, tm
 def test_a_group_runs_in_the_cores_over_its_threads_and_the_recorded_command_leaves_jobs_out(monkeypatch):
     from pipeline.cluster.driver import child_env
     from pipeline.runtime.device import STAGE_CPUS_ENV
-    from stages.train import auto_jobs, seeds_argv
+    from pipeline.training.seeds import auto_jobs, seeds_argv
 
     monkeypatch.delenv(STAGE_CPUS_ENV, raising=False)
     cores = __import__("os").cpu_count()
