@@ -723,18 +723,22 @@ class Sam3Teacher(RegisteredTeacher):
                 f"on {self.device.type}")
 
     def cache_note(self) -> str | None:
-        """Say why a CPU's answers cached before ``auto`` chose bf16 there are computed again.
+        """Say why a CPU's answers cached before ``auto`` chose bf16 or OpenVINO's attention there are computed again.
 
         Returns
         -------
         str or None
-            The note (the dtype is part of the fingerprint); None where ``auto`` still means fp32 or the dtype
-            was pinned.
+            The note (the dtype and the engine are part of the fingerprint); None where ``auto`` still means fp32
+            and torch, or both were pinned.
         """
+        notes = []
         if self.dtype_asked == "auto" and self.device.type == "cpu" and self.dtype_name == "bf16":
-            return ("teacher.dtype auto is bf16 on this CPU (native bf16 units): answers cached under fp32 are not "
-                    "reused; set teacher.dtype: fp32 to keep them")
-        return None
+            notes.append("teacher.dtype auto is bf16 on this CPU (native bf16 units): answers cached under fp32 are "
+                         "not reused; set teacher.dtype: fp32 to keep them")
+        if self.engine == "openvino":
+            notes.append("teacher.engine runs the attention in OpenVINO: answers cached by the torch engine are not "
+                         "reused; set teacher.engine: torch to keep them")
+        return "; ".join(notes) or None
 
     def load(self):
         """Load model and tokenizer once (local files only), on the device, in eval mode.

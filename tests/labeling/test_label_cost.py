@@ -62,6 +62,7 @@ def test_label_summary_says_why_cpu_caches_miss_under_auto_bf16(tmp_path, tiny_s
     how to keep them; with ``teacher.dtype: fp32`` pinned it says nothing of the kind. The first-batch projection
     and the summary name the path (engine, dtype, device) either way."""
     from pipeline.runtime import device
+    from pipeline.teachers import attention
 
     monkeypatch.setattr(device, "cpu_flags", lambda: frozenset({"avx2", "avx512_bf16"}))
     images, _ = make_image_folder(tmp_path / "data", n=2, masks=False)
@@ -71,8 +72,10 @@ def test_label_summary_says_why_cpu_caches_miss_under_auto_bf16(tmp_path, tiny_s
         assert res.exit_code == 0, res.output
         summary = [line for line in res.output.splitlines() if line.startswith("label: 2 images")][0]
         assert ("teacher.dtype auto is bf16 on this CPU" in summary) == said, summary
+        assert ("set teacher.engine: torch to keep them" in summary) == bool(said and attention.openvino_version())
         # the projection and the summary name the path the answers took
-        path = f"sam3 torch eager {'bf16' if said else 'fp32'} on cpu"
+        engine = " + openvino attention" if said and attention.openvino_version() else ""  # auto: avx512_bf16
+        path = re.escape(f"sam3 torch eager {'bf16' if said else 'fp32'}{engine} on cpu")
         assert re.search(rf"first batch: .* s per image on {path}\); projected", res.output), res.output
         assert re.search(rf"s per image on {path}, measured on 2\)", summary), summary
         assert json.loads((tmp_path / dtype / "label.json").read_text())["teacher_dtype"] == ("bf16" if said else "fp32")
