@@ -1,38 +1,21 @@
 """GPU fast path of the mask path.
 
-CUDA graphs captured per input shape, bf16 autocast with channels_last, uint8 images converted on the device;
-on a CPU, eager fp32 channels_last (numerically the engine ``torch``).
+CUDA graphs captured per input shape, bf16 autocast with channels_last; on a CPU, eager fp32 channels_last
+(numerically the engine ``torch``).
 """
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from pipeline.runtime.device import autocast
 from pipeline.runtime.errors import InputError
 from pipeline.model import mask_path_model
 
-__all__ = ["uint8_to_input", "FastStudent"]
+__all__ = ["FastStudent"]
 
 #: the precisions :class:`FastStudent` accepts; ``auto`` = bf16 on CUDA, fp32 on a CPU
 PRECISIONS = ("auto", "bf16", "fp32")
-
-
-def uint8_to_input(images_u8):
-    """Convert uint8 images to the mask path's input on their device.
-
-    Parameters
-    ----------
-    images_u8 : torch.Tensor
-        uint8 [N,H,W,3] RGB.
-
-    Returns
-    -------
-    torch.Tensor
-        float32 [N,3,H,W] in [0, 1], channels_last, on the same device.
-    """
-    return images_u8.permute(0, 3, 1, 2).float().div_(255.0).contiguous(memory_format=torch.channels_last)
 
 
 class FastStudent:
@@ -72,22 +55,20 @@ class FastStudent:
         net = mask_path_model(model).to(self.device).to(memory_format=torch.channels_last)
         self.net = torch.compile(net, dynamic=False) if compile else net
         self._graphs: dict[tuple, tuple] = {}      # shape -> (graph, static input, static output)
-        self._pinned: dict[tuple, object] = {}     # shape -> pinned uint8 host buffer
 
     def _forward(self, x):
         dtype = torch.bfloat16 if self.precision == "bf16" else None
         with torch.inference_mode(), autocast(self.device, dtype, cache_enabled=False):
             return self.net(x.contiguous(memory_format=torch.channels_last)).float()
 
-    def _graph(self, shape: tuple, uint8: bool):
+    def _graph(self, shape: tuple):
         """(graph, static input, static output) for ``shape``, captured on first use after 3 warm-up calls."""
-        key = (shape, uint8)
+        key = shape
         if key not in self._graphs:
-            static_in = torch.zeros(shape, dtype=torch.uint8 if uint8 else torch.float32, device=self.device)
+            static_in = torch.zeros(shape, dtype=torch.float32, device=self.device)
 
             def body():
-                x = uint8_to_input(static_in) if uint8 else static_in
-                return self._forward(x)
+                return self._forward(static_in)
 
             side = torch.cuda.Stream()
             side.wait_stream(torch.cuda.current_stream())
@@ -116,42 +97,10 @@ class FastStudent:
             the next call: copy to keep it).
         """
         x = x.to(self.device, non_blocking=True)
-        return self._replay(x, uint8=False) if self.cuda_graphs else self._forward(x)
+        return self._replay(x) if self.cuda_graphs else self._forward(x)
 
-    def _replay(self, x, uint8: bool):
-        graph, static_in, static_out = self._graph(tuple(x.shape), uint8)
-        static_in.copy_(x, non_blocking=uint8)
+    def _replay(self, x):
+        graph, static_in, static_out = self._graph(tuple(x.shape))
+        static_in.copy_(x)
         graph.replay()
         return static_out
-
-    def logits_uint8(self, images: np.ndarray):
-        """Run the mask path on uint8 images, converted on the device through a pinned staging buffer.
-
-        Parameters
-        ----------
-        images : np.ndarray
-            uint8 [N,H,W,3] RGB.
-
-        Returns
-        -------
-        torch.Tensor
-            The logits [N,1,H,W] on the device (on CUDA with graphs, the graph's output buffer).
-
-        Raises
-        ------
-        InputError
-            ``images`` is not a uint8 array of four dimensions.
-        """
-        images = np.ascontiguousarray(images)
-        if images.dtype != np.uint8 or images.ndim != 4:
-            raise InputError(f"logits_uint8: expected uint8 [N,H,W,3], got {images.dtype} {images.shape}")
-        if self.device.type != "cuda":
-            return self._forward(uint8_to_input(torch.from_numpy(images)))
-        shape = images.shape
-        host = self._pinned.get(shape)
-        if host is None:
-            host = self._pinned[shape] = torch.empty(shape, dtype=torch.uint8, pin_memory=True)
-        host.numpy()[...] = images
-        if not self.cuda_graphs:
-            return self._forward(uint8_to_input(host.to(self.device, non_blocking=True)))
-        return self._replay(host, uint8=True)

@@ -35,12 +35,8 @@ def test_fast_student_cpu_fallback_is_the_torch_engine_bit_for_bit():
     x = images_to_tensor(images)
     ref = ENGINES["torch"].load(Source(model, torch.device("cpu"))).run(x).numpy()  # eager, channels_last
     np.testing.assert_array_equal(fast.logits(x).numpy(), ref)
-    # uint8 in, conversion "on the device": the same logits
-    np.testing.assert_array_equal(fast.logits_uint8(images).numpy(), ref)
     with pytest.raises(InputError, match="precision"):
         FastStudent(model, "cpu", precision="fp8")
-    with pytest.raises(InputError, match="uint8"):
-        fast.logits_uint8(images.astype(np.float32))
 
 
 def test_auto_engine_is_cuda_on_a_gpu_and_the_cuda_engine_runs_on_a_cpu(tmp_path):

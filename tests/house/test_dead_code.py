@@ -39,9 +39,6 @@ KEPT = {
     # click calls a group's hooks
     "pipeline/cli/main.py:LazyGroup.list_commands": "click.Group hook",
     "pipeline/cli/main.py:LazyGroup.get_command": "click.Group hook",
-    # the CUDA engine's uint8 input path (pinned host buffer, conversion on the GPU): no engine calls it now;
-    # removing it and its CUDA-graph branch wants a GPU run (issue 64's report)
-    "pipeline/deploy/cuda_engine.py:FastStudent.logits_uint8": "CUDA path; its removal awaits a GPU check",
     # the suite's fitted tiny SAM 3 (tests/conftest.py); docs/performance.md's bf16 gate is measured on it
     "pipeline/teachers/tiny_sam3.py:fit_tiny_sam3": "the fitted tiny teacher of the suite and of the bf16 gate",
 }
