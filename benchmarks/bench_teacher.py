@@ -18,6 +18,9 @@ the numerics only, not the masks of a trained SAM 3.
     python -m benchmarks.bench_teacher --batch-sweep 1,2,4,8,16,32 --size real --device cuda --dtype bf16 \\
         --paths compiled,eager --deadline 200 --json teacher_gpu.json
 
+With ``--attention-kernels``: SAM 3's attention shapes alone, torch's bf16 kernel against ``teacher.engine: openvino``'s
+(:func:`attention_kernels`).
+
 With ``--batch-sweep`` (issue 58 item 4, reports/gpu/run.sh's ``teacher`` section): per batch size, each path's
 first call (the compilation), ms per image round-robin and peak GPU memory; see :func:`batch_sweep`.
 """
@@ -37,7 +40,7 @@ from unittest import mock
 
 import numpy as np
 
-from benchmarks.common import LIMIT_FLAGS, best_of, host_limits, medians, parser, round_robin
+from benchmarks.common import LIMIT_FLAGS, best_of, host_limits, medians, parser, round_robin, seconds
 from pipeline.artifacts.atomic import write_json
 from pipeline.metrics import image_ious
 from pipeline.params import PAPER_PROMPTS as PROMPTS
@@ -81,10 +84,63 @@ def main(argv: list[str] | None = None) -> None:
                     help="--batch-sweep: the paths timed round-robin (default: compiled with --compile, else eager)")
     ap.add_argument("--deadline", type=float, default=float("inf"),
                     help="--batch-sweep: seconds from the start after which no new batch starts")
+    ap.add_argument("--attention-kernels", action="store_true",
+                    help="SAM 3's attention shapes alone: torch's bf16 kernel against teacher.engine openvino's, "
+                         "round-robin, with their error against fp32 (--shapes)")
+    ap.add_argument("--shapes", default="real", choices=sorted(ATTENTION_SHAPES),
+                    help="--attention-kernels: SAM 3's real attention shapes, or tiny ones (the smoke test)")
     args = ap.parse_args(argv)
     mode = (ray_throughput if args.ray_workers else roofline if args.roofline else
-            batch_sweep if args.batch_sweep else encoder_reuse)
+            batch_sweep if args.batch_sweep else attention_kernels if args.attention_kernels else encoder_reuse)
     mode(args)
+
+
+#: SAM 3's attention calls at real size, [B, H, N, D] (one image, six prompts): the backbone's 9 windows of 24²
+#: tokens and its global attention over 72² tokens (16 heads of 64), the DETR encoder's self-attention (8 of 32)
+ATTENTION_SHAPES = {"real": {"backbone window": (9, 16, 576, 64), "backbone global": (1, 16, 5184, 64),
+                             "DETR encoder": (6, 8, 5184, 32)},
+                    "tiny": {"tiny": (2, 2, 49, 16)}}
+
+
+def attention_kernels(args) -> dict:
+    """torch's bf16 attention against :class:`pipeline.teachers.attention.OpenVINOAttention` on SAM 3's shapes:
+    round-robin (alternating order), median and minimum seconds, GFLOP/s (Q K^T and P V) and the largest |error|
+    of each against fp32 attention; Q, K and V laid out [B, N, H, D] as the model's projections leave them."""
+    import torch
+    import torch.nn.functional as F
+    from transformers.integrations.sdpa_attention import sdpa_attention_forward
+
+    from pipeline.teachers.attention import OpenVINOAttention
+
+    ov = OpenVINOAttention(sdpa_attention_forward, torch.get_num_threads())
+    module = torch.nn.Module()
+    out = {"threads": torch.get_num_threads(), "repeats": args.repeats, "load_average_before": os.getloadavg(),
+           "shapes": {}}
+    for name, (b, h, n, d) in ATTENTION_SHAPES[args.shapes].items():
+        g = torch.Generator().manual_seed(0)
+        q, k, v = (torch.randn(b, n, h, d, generator=g).bfloat16().transpose(1, 2) for _ in range(3))
+        ref = F.scaled_dot_product_attention(q.float(), k.float(), v.float()).transpose(1, 2)
+        qkv = (q, k, v)
+        paths = {"torch bf16": lambda a=qkv: F.scaled_dot_product_attention(*a).transpose(1, 2).contiguous(),
+                 "openvino bf16": lambda a=qkv: ov(module, *a)[0]}
+        error = {p: float((f().float() - ref).abs().max()) for p, f in paths.items()}  # also the warm-up
+        times = round_robin({p: (lambda rep, f=f: seconds(f)) for p, f in paths.items()}, args.repeats,
+                            order="alternate")
+        flops = 4 * b * h * n * n * d
+        row = {p: {"median_s": statistics.median(t), "min_s": min(t), "gflops": flops / statistics.median(t) / 1e9,
+                   "max_abs_error_vs_fp32": error[p]} for p, t in times.items()}
+        row["torch_over_openvino"] = row["torch bf16"]["median_s"] / row["openvino bf16"]["median_s"]
+        out["shapes"][name] = {"shape": [b, h, n, d], **row}
+        print(f"  {name} {b}x{h}x{n}x{d}: " + "; ".join(
+            f"{p} median {r['median_s'] * 1e3:.1f} ms (min {r['min_s'] * 1e3:.1f}), {r['gflops']:.0f} GFLOP/s, "
+            f"max |error| vs fp32 {r['max_abs_error_vs_fp32']:.1e}" for p, r in row.items() if isinstance(r, dict))
+              + f"; torch / openvino {row['torch_over_openvino']:.2f}x", flush=True)
+    out["load_average_after"] = os.getloadavg()
+    print(f"attention kernels: {args.repeats} round-robin repeats, {out['threads']} threads, load average "
+          f"{fmt_load(out['load_average_before'])} before, {fmt_load(out['load_average_after'])} after")
+    if args.json:
+        write_json(Path(args.json), out)
+    return out
 
 
 def sam3_checkpoint(args, tmp: str) -> Path:

@@ -92,3 +92,20 @@ def test_batch_sweep_refuses_an_unknown_path(tiny_sam3):
 
     with pytest.raises(SystemExit, match="--paths 'fast'"):
         main(["--batch-sweep", "1", "--checkpoint", str(tiny_sam3), "--paths", "fast"])
+
+
+def test_attention_kernels_times_both_engines_on_tiny_shapes(tmp_path, capsys):
+    """``--attention-kernels --shapes tiny``: torch's bf16 attention and OpenVINO's, round-robin, each with its
+    GFLOP/s and its error against fp32 (both within bf16 rounding), and their ratio, printed and written."""
+    pytest.importorskip("openvino")
+    from benchmarks.bench_teacher import main
+
+    out = tmp_path / "kernels.json"
+    main(["--attention-kernels", "--shapes", "tiny", "--repeats", "2", "--json", str(out)])
+    text = capsys.readouterr().out
+    assert re.search(r"tiny 2x2x49x16: torch bf16 median [\d.]+ ms .*openvino bf16 median .*torch / openvino "
+                     r"[\d.]+x", text), text
+    row = json.loads(out.read_text())["shapes"]["tiny"]
+    assert row["shape"] == [2, 2, 49, 16] and row["torch_over_openvino"] > 0
+    for engine in ("torch bf16", "openvino bf16"):
+        assert 0 < row[engine]["min_s"] <= row[engine]["median_s"] and row[engine]["max_abs_error_vs_fp32"] < 0.02
