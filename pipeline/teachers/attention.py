@@ -4,8 +4,8 @@ On a 2-core avx512_bf16 host (no AMX), torch's bf16 flash-attention kernel was b
 default path's time at real size. OpenVINO's CPU plugin runs the same ``ScaledDotProductAttention`` as one fused
 node, 1.8-2.6x faster on SAM 3's shapes (docs/performance.md, "The teacher's attention"). So ``openvino`` runs
 every unmasked bf16 attention call of transformers' ``modeling_sam3`` through a small OpenVINO graph (parameters
-Q, K, V, one SDPA node, no weights: nothing to convert per checkpoint, nothing to cache on disk); everything else
-stays in torch. A call with a mask, a causal or dropout call, or an fp32 one runs transformers' own SDPA.
+Q, K, V and the call's mask, one SDPA node, no weights: nothing to convert per checkpoint, nothing to cache on
+disk); everything else stays in torch. A causal or dropout call, or an fp32 one, runs transformers' own SDPA.
 
 The rule of ``auto`` (:func:`pipeline.runtime.device.teacher_cpu_engine`) reads CPU flags, never a timing probe.
 """
@@ -97,13 +97,15 @@ class OpenVINOAttention:
 
     :math:`\mathrm{softmax}(s\,QK^\top)V` per head, as torch's SDPA; Q, K and V are handed over without a
     copy where they are laid out [B, N, H, D] or [B, H, N, D] in memory, and the result is written straight into
-    the [B, N, H, D] tensor transformers expects. One compiled graph per (scale, layout), dynamic shapes.
+    the [B, N, H, D] tensor transformers expects. A mask is a boolean one (True: attend, as torch's) or an additive
+    bf16 bias, 4-D and broadcast over Q K^T's [B, H, N, M] (the DETR encoder's text padding, the DETR decoder's box
+    bias). One compiled graph per (scale, layout, mask kind), dynamic shapes.
 
     Parameters
     ----------
     fallback : callable
-        transformers' SDPA attention function: every call this class does not take (a mask, causal, dropout,
-        not bf16, grouped heads).
+        transformers' SDPA attention function: every call this class does not take (causal, dropout, not bf16,
+        grouped heads, a mask of another kind).
     threads : int
         OpenVINO's inference threads (torch's count); one stream.
     """
@@ -112,11 +114,11 @@ class OpenVINOAttention:
         """Keep the fallback; OpenVINO is imported at the first call it takes."""
         self.fallback = fallback
         self.threads = int(threads)
-        self._requests: dict[tuple[float, str], object] = {}
+        self._requests: dict[tuple[float, str, str | None], object] = {}
 
-    def _request(self, scale: float, layout: str):
-        """Return the infer request of the graph for ``scale`` and ``layout`` (``bnhd`` or ``bhnd``), compiled once."""
-        key = (scale, layout)
+    def _request(self, scale: float, layout: str, mask: str | None):
+        """Return the infer request for ``scale``, ``layout`` (``bnhd``, ``bhnd``), ``mask`` (None, bool, bias)."""
+        key = (scale, layout, mask)
         if key not in self._requests:
             import openvino as ov
             import openvino.opset13 as ops
@@ -125,7 +127,12 @@ class OpenVINOAttention:
             perm = ops.constant(np.array([0, 2, 1, 3], dtype=np.int64))
             # fp32 in the graph, so that the scale is exact; the bf16 hint runs the fused node in bf16
             qkv = [ops.convert(ops.transpose(p, perm) if layout == "bnhd" else p, ov.Type.f32) for p in params]
-            out = ops.scaled_dot_product_attention(*qkv, None, ops.constant(np.float32(scale)), causal=False)
+            bias = None
+            if mask is not None:
+                params.append(ops.parameter([-1, -1, -1, -1], ov.Type.boolean if mask == "bool" else ov.Type.bf16,
+                                            name="mask"))
+                bias = params[-1] if mask == "bool" else ops.convert(params[-1], ov.Type.f32)
+            out = ops.scaled_dot_product_attention(*qkv, bias, ops.constant(np.float32(scale)), causal=False)
             model = ov.Model([ops.convert(ops.transpose(out, perm), ov.Type.bf16)], params, "sam3_attention")
             compiled = ov.Core().compile_model(model, "CPU", {"INFERENCE_PRECISION_HINT": "bf16",
                                                               "INFERENCE_NUM_THREADS": self.threads,
@@ -134,14 +141,14 @@ class OpenVINOAttention:
         return self._requests[key]
 
     def takes(self, query, key, value, attention_mask, dropout: float, is_causal) -> bool:
-        """Tell whether a call goes to OpenVINO: bf16, unmasked, not causal, no dropout, as many heads in Q as in K/V.
+        """Tell whether a call goes to OpenVINO: bf16, not causal, no dropout, heads alike, a bool or bf16 mask or none.
 
         Parameters
         ----------
         query, key, value : torch.Tensor
             [B, H, N, D] (N may differ between ``query`` and ``key``/``value``).
         attention_mask : torch.Tensor or None
-            Any mask sends the call to the fallback.
+            A mask of another dtype or rank sends the call to the fallback.
         dropout : float
             Any dropout sends the call to the fallback.
         is_causal : bool or None
@@ -154,7 +161,9 @@ class OpenVINOAttention:
         """
         import torch
 
-        return (attention_mask is None and not dropout and not is_causal
+        mask_ok = attention_mask is None or (attention_mask.dim() == 4
+                                             and attention_mask.dtype in (torch.bool, torch.bfloat16))
+        return (mask_ok and not dropout and not is_causal
                 and all(t.dtype == torch.bfloat16 and t.dim() == 4 for t in (query, key, value))
                 and query.shape[1] == key.shape[1] == value.shape[1] and query.shape[-1] == key.shape[-1]
                 and min(query.shape[2], key.shape[2]) > 0)
@@ -170,7 +179,7 @@ class OpenVINOAttention:
         query, key, value : torch.Tensor
             [B, H, N, D].
         attention_mask : torch.Tensor or None
-            An additive or boolean mask (to the fallback).
+            A boolean mask (True: attend) or an additive bias, broadcast over [B, H, N, M].
         dropout : float
             Attention dropout (to the fallback when non-zero).
         scaling : float or None
@@ -203,9 +212,15 @@ class OpenVINOAttention:
         out = torch.empty((b, n, h, value.shape[-1]), dtype=torch.bfloat16)
 
         def wrap(t):  # OpenVINO reads and writes the torch tensor's memory (no copy); numpy has no bf16
+            if t.dtype == torch.bool:
+                return ov.Tensor(t.numpy(), ov.Shape(list(t.shape)), ov.Type.boolean)
             return ov.Tensor(t.view(torch.int16).numpy(), ov.Shape(list(t.shape)), ov.Type.bf16)
 
-        request = self._request(scale, layout)
+        mask = None
+        if attention_mask is not None:
+            mask = "bool" if attention_mask.dtype == torch.bool else "bias"
+            inputs.append(attention_mask.contiguous())
+        request = self._request(scale, layout, mask)
         with torch.profiler.record_function(OPENVINO_ATTENTION_EVENT):
             for i, t in enumerate(inputs):
                 request.set_input_tensor(i, wrap(t))

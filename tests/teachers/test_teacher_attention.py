@@ -1,7 +1,8 @@
 """``teacher.engine``: SAM 3's bf16 attention in OpenVINO's fused CPU kernel (pipeline/teachers/attention.py).
 
 The rule of ``auto`` reads CPU flags; the OpenVINO function gives torch's attention within bf16 rounding in
-every memory layout, hands every call it does not take to transformers' own SDPA, and leaves transformers'
+every memory layout and with either kind of mask SAM 3 passes, hands every call it does not take to transformers'
+own SDPA, and leaves transformers'
 interface as it found it; the torch engine's fingerprint is the one from before the setting. The fidelity gate
 on the fitted tiny SAM 3 runs with both engines in test_teacher_cpu_dtype.py."""
 
@@ -98,6 +99,29 @@ def test_openvino_attention_matches_torch_in_every_layout(layout):
     assert torch.allclose(default_scale.float(), _reference(q, k, v, d ** -0.5), atol=2e-2)
 
 
+@pytest.mark.parametrize("kind", ["bool", "bias"])
+def test_openvino_attention_applies_sam3s_masks_as_torch_does(kind):
+    """The DETR encoder's text padding (boolean, True = attend, broadcast over heads) and the DETR decoder's box
+    bias (additive bf16 per head): the same attention as torch's within bf16 rounding."""
+    pytest.importorskip("openvino")
+    g = torch.Generator().manual_seed(1)
+    b, h, n, m, d = 2, 4, 21, 33, 16
+    q, k, v = (torch.randn(b, h, length, d, generator=g).bfloat16() for length in (n, m, m))
+    if kind == "bool":
+        mask = torch.rand(b, 1, n, m, generator=g) > 0.4
+        mask[..., 0] = True                        # every query attends to something, as with text padding
+    else:
+        mask = (torch.randn(b, h, n, m, generator=g) * 3).bfloat16()
+    calls = []
+    fn = OpenVINOAttention(lambda *a, **kw: calls.append(a), threads=1)
+    out, _ = fn(torch.nn.Identity(), q, k, v, attention_mask=mask, scaling=0.25)
+    ref = F.scaled_dot_product_attention(q.float(), k.float(), v.float(), attn_mask=mask if kind == "bool"
+                                         else mask.float(), scale=0.25).transpose(1, 2)
+    torch_bf16 = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, scale=0.25).transpose(1, 2).float()
+    assert not calls and out.shape == (b, n, h, d)
+    assert (out.float() - ref).abs().max() <= 4 * (torch_bf16 - ref).abs().max() + 2 ** -8
+
+
 def test_calls_it_does_not_take_go_to_transformers_sdpa_and_the_interface_is_restored():
     from transformers.modeling_utils import ALL_ATTENTION_FUNCTIONS
 
@@ -106,7 +130,7 @@ def test_calls_it_does_not_take_go_to_transformers_sdpa_and_the_interface_is_res
                            ("fallback", None), threads=1)
     q = torch.randn(1, 2, 5, 8).bfloat16()
     module = torch.nn.Identity()
-    assert fn(module, q, q, q, attention_mask=torch.zeros(1, 1, 5, 5))[0] == "fallback"   # a mask (a bias)
+    assert fn(module, q, q, q, attention_mask=torch.zeros(1, 1, 5, 5))[0] == "fallback"   # an fp32 bias
     assert fn(module, q.float(), q.float(), q.float())[0] == "fallback"                  # fp32: bit for bit torch
     assert fn(module, q, q, q, dropout=0.1)[0] == "fallback"
     assert fn(module, q, q, q, is_causal=True)[0] == "fallback"
