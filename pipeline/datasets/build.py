@@ -1,13 +1,13 @@
 """Assemble a dataset for the ``prepare`` stage.
 
-Source rows -> (checked by :func:`pipeline.datasets.manifest.check_manifest`) every file decoded once, a row's
-files by one :func:`pipeline.datasets.loading.load_row` call (under the bad-input policy, into the decode cache)
+Source rows (the synthetic benchmark rendered, or a real dataset listed) -> (checked by
+:func:`pipeline.datasets.manifest.check_manifest`) every file decoded once, a row's files by one
+:func:`pipeline.datasets.loading.load_row` call (under the bad-input policy, into the decode cache)
 -> working-resolution arrays.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from pathlib import Path
 from typing import Iterator
@@ -19,20 +19,21 @@ from pipeline.artifacts.atomic import atomic_path, png_bytes
 from pipeline.catalog import output_file
 from pipeline.datasets import adapters
 from pipeline.datasets import synthetic as syn
-from pipeline.datasets.loading import BadFileError, DecodeCache, Loaded, has_file, load_row, mask_kind
+from pipeline.datasets.loading import BadFileError, DecodeCache, Loaded, has_file, load_row
 from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec
 from pipeline.datasets.params import FrameSettings
+from pipeline.params import SPLITS
 from pipeline.runtime.errors import InputError
 from pipeline.runtime.progress import progress
 
-__all__ = ["synthetic_source", "real_source", "decode_rows", "iter_arrays"]
+__all__ = ["source", "synthetic_source", "decode_rows", "iter_arrays"]
 
 log = logging.getLogger(__name__)
 
 SYNTHETIC_DIR = "synthetic"
 
 
-def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) -> DatasetSpec:
+def synthetic_source(cfg: dict, out_dir: str | Path) -> DatasetSpec:
     """Render the synthetic benchmark into ``<out_dir>/synthetic`` and list it.
 
     Parameters
@@ -41,8 +42,6 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
         The validated ``data:`` section (``resolution``, ``seed`` and the ``synthetic`` knobs).
     out_dir : str or Path
         The artifacts folder; its ``synthetic`` folder is replaced whole.
-    cache : DecodeCache or None
-        Receives the rendered arrays under the written files' hashes, so the decode pass reads none back.
 
     Returns
     -------
@@ -64,15 +63,11 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
             for v in range(sc.views):
                 view = syn.generate_view(model, v, size, seed, opts)
                 iid = f"{sc.name}_v{v:03d}"
-                files = {sub: png_bytes(arr, iid, compression=1)  # fast: the files are read back once
+                files = {sub: png_bytes(arr, iid, compression=1)  # fast: the decode pass reads them back once
                          for sub, arr in (("images", view.image), ("masks", view.mask.astype(np.uint8) * 255),
                                           ("parts", view.parts))}
                 for sub, data in files.items():
                     (tmp / sub / f"{iid}.png").write_bytes(data)
-                if cache is not None:  # the arrays are in hand: cache them under the bytes' hashes
-                    for data, kind, arr in zip(files.values(), ("rgb", mask_kind(None), "labels"),
-                                               (view.image, view.mask, view.parts)):
-                        cache.put(hashlib.sha256(data).hexdigest(), kind, size, arr, (size, size))
                 rows.append(adapters.row(iid, "synthetic", "synthetic", sc.split, sc.group, sc.name,
                                          *(final / sub / f"{iid}.png" for sub in files), view_index=v,
                                          background=view.background, hard_case=view.hard_case,
@@ -81,32 +76,33 @@ def synthetic_source(cfg: dict, out_dir: str | Path, cache: DecodeCache | None) 
     return DatasetSpec(rows=pd.DataFrame(rows), protocol={"name": "synthetic", "plan": [vars(p) for p in plan]})
 
 
-def real_source(cfg: dict, policy: BadInputPolicy, out_dir: str | Path | None = None) -> DatasetSpec:
-    """List the rows of a real dataset (:func:`pipeline.datasets.adapters.build_source`).
+def source(cfg: dict, out_dir: str | Path, policy: BadInputPolicy) -> DatasetSpec:
+    """List the rows of ``data.source``: the synthetic benchmark rendered, or a real dataset's rows.
 
-    ``<out_dir>/synthetic`` (a DVC output) is replaced by a note, so no stale synthetic files survive a switch of
-    source.
+    A real dataset's rows come from :func:`pipeline.datasets.adapters.build_source`, and ``<out_dir>/synthetic``
+    (a DVC output) is replaced by a note, so no stale synthetic files survive a switch of source.
 
     Parameters
     ----------
     cfg : dict
         The validated ``data:`` section.
+    out_dir : str or Path
+        The artifacts folder: its ``synthetic`` folder holds the rendered files, or the note.
     policy : BadInputPolicy
         Where a scanning source reports unusable entries.
-    out_dir : str or Path, optional
-        The artifacts folder whose ``synthetic`` folder becomes the note; None: nothing is written.
 
     Returns
     -------
     DatasetSpec
         The source's rows and reading rules.
     """
+    if cfg["source"] == "synthetic":
+        return synthetic_source(cfg, out_dir)
     spec = adapters.build_source(cfg, policy)
-    if out_dir is not None:
-        with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:
-            (tmp / output_file("synthetic_files", "readme")).write_text(
-                f"data.source={cfg['source']}: the synthetic benchmark was not generated; the manifest points "
-                f"into {cfg['root']}\n")
+    with atomic_path(Path(out_dir) / SYNTHETIC_DIR, is_dir=True) as tmp:
+        (tmp / output_file("synthetic_files", "readme")).write_text(
+            f"data.source={cfg['source']}: the synthetic benchmark was not generated; the manifest points "
+            f"into {cfg['root']}\n")
     return spec
 
 
@@ -114,8 +110,8 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, frames: FrameSettings, si
                 policy: BadInputPolicy) -> pd.DataFrame:
     """Decode every file once (into the cache) and fill the width, height and sha256 columns.
 
-    A row with a bad file, or a mask or part file of another size than its image, goes through the policy, and
-    its other files are listed as not used.
+    A row with a bad file, or a mask or part file of another size than its image, goes through the policy, which
+    lists its other files as not used (:meth:`BadInputPolicy.report_error`).
 
     Parameters
     ----------
@@ -149,13 +145,8 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, frames: FrameSettings, si
         try:
             img = load_row(r.image_path, r.mask_path, r.part_path, size, cache, frames, spec.mask_threshold,
                            spec.part_colors)[0]
-        except BadFileError as e:
-            policy.report_error(r.image_id, e)
-            for col in ("image_path", "mask_path", "part_path"):
-                other = getattr(r, col)
-                if has_file(other) and other != e.path and (Path(other).exists() or Path(other).is_symlink()):
-                    policy.record(r.image_id, other, f"not used: image {r.image_id!r} was left out "
-                                                     f"({Path(e.path).name}: {e.reason})")
+        except BadFileError as e:  # the policy also lists the row's other files as not used
+            policy.report_error(r.image_id, e, [f for f in (r.image_path, r.mask_path, r.part_path) if has_file(f)])
             continue
         kept[i] = img
     out = rows.iloc[list(kept)].reset_index(drop=True).copy()
@@ -166,7 +157,7 @@ def decode_rows(rows: pd.DataFrame, spec: DatasetSpec, frames: FrameSettings, si
         out[col] = [p if has_file(p) else None for p in out[col]]
     if out.empty:
         raise InputError("no usable images left after skipping bad files (see the skipped-files table)")
-    for split in ("train", "val", "test"):
+    for split in SPLITS:
         if not (out["split"] == split).any():
             log.warning("split %r has no images", split)
     return out

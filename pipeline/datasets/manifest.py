@@ -112,8 +112,11 @@ class BadInputPolicy:
         log.info("skipping %s", msg)
         self.skipped.append({"image_id": image_id or "", "path": str(path), "reason": reason})
 
-    def report_error(self, image_id: str | None, error) -> None:
+    def report_error(self, image_id: str | None, error, row_files: Iterable[str] = ()) -> None:
         """:meth:`report` a :class:`pipeline.datasets.loading.BadFileError` (its path, reason, fix).
+
+        With ``skip_bad`` its row is left out, so the row's other files that exist are then :meth:`record`-ed as
+        not used.
 
         Parameters
         ----------
@@ -121,6 +124,8 @@ class BadInputPolicy:
             The row the file belongs to.
         error : BadFileError
             The refusal to report.
+        row_files : iterable of str
+            The files of the row (image, mask, part); empty: the file alone is reported.
 
         Raises
         ------
@@ -128,6 +133,10 @@ class BadInputPolicy:
             Without ``skip_bad`` (:meth:`report`).
         """
         self.report(image_id, error.path, error.reason, error.fix, error.options)
+        for other in row_files:
+            if other != error.path and (Path(other).exists() or Path(other).is_symlink()):
+                self.record(image_id, other, f"not used: image {image_id!r} was left out "
+                                             f"({Path(error.path).name}: {error.reason})")
 
     def report_scan(self, found) -> None:
         """:meth:`report` a folder scan's bad entries and :meth:`record` its unused files.

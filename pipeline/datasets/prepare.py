@@ -63,11 +63,10 @@ def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
     size = cfg["resolution"]
     frames = FrameSettings.from_params(cfg)  # data.bit_depth, letterbox, max_pixels: read here once, for the reader
     fp_data = fingerprint_params(cfg)
-    cache = DecodeCache(cfg["cache_dir"])
     policy = BadInputPolicy(cfg["skip_bad"])
-    spec = (build.synthetic_source(cfg, out, cache) if cfg["source"] == "synthetic"
-            else build.real_source(cfg, policy, out))
+    spec = build.source(cfg, out, policy)
     rows = check_manifest(spec, policy, where=f"data.source={cfg['source']}")
+    cache = DecodeCache(cfg["cache_dir"])
     rows = build.decode_rows(rows, spec, frames, size, cache, policy)
     fp_params = {"data": fp_data, "protocol": spec.protocol, "content_sha256": content_digest(rows)}
     ids = rows["image_id"].tolist()
