@@ -46,7 +46,7 @@ from pipeline.metrics import image_ious
 from pipeline.params import PAPER_PROMPTS as PROMPTS
 from pipeline.runtime.device import cpu_flags
 from pipeline.teachers import check_teacher_params
-from pipeline.teachers.attention import OPENVINO_ATTENTION_EVENT
+from pipeline.teachers.attention import OPENVINO_ATTENTION_EVENT, OpenVINOAttention
 from pipeline.teachers.base import TeacherInput
 from pipeline.teachers.distributed import ray_session
 from pipeline.teachers.jobs import in_view
@@ -109,8 +109,6 @@ def attention_kernels(args) -> dict:
     import torch
     import torch.nn.functional as F
     from transformers.integrations.sdpa_attention import sdpa_attention_forward
-
-    from pipeline.teachers.attention import OpenVINOAttention
 
     ov = OpenVINOAttention(sdpa_attention_forward, torch.get_num_threads())
     module = torch.nn.Module()
