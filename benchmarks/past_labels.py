@@ -68,6 +68,8 @@ VARIANTS: dict[str, tuple[dict, str, str]] = {
 }
 #: variants trained on the reference masks (NOT annotation-free) are compared with the ceiling, not with Plain
 CEILING = "ceiling"
+#: the gains' pooled row: every scored test image, held to the largest group's noise floor
+ALL = "all"
 #: self-training's fusion (pipeline.training.self_training.fused_targets)
 FUSION, FUSION_WEIGHT = "mix", 0.5
 
@@ -210,8 +212,9 @@ def gains(runs: list[dict], spacecraft: np.ndarray, groups: np.ndarray, floor: M
           control: str = "plain", ci: float = 0.95) -> list[dict]:
     """Each variant minus ``control`` per test group, paired by seed and image: the seed-aware t interval
     (:func:`pipeline.stats.paired_seed_image_t`, the effect on these spacecraft) and the signed verdict against the
-    noise floor ``floor`` {group: IoU} (:func:`pipeline.stats.claim_status`).  A variant trained on the reference
-    masks is compared with :data:`CEILING` instead."""
+    noise floor ``floor`` {group: IoU} (:func:`pipeline.stats.claim_status`), then the same over every test image
+    (:data:`ALL`, against the largest floor).  A variant trained on the reference masks is compared with
+    :data:`CEILING` instead."""
     by = {(r["variant"], r["seed"]): np.asarray(r["image_ious"]) for r in runs}
     out = []
     for v in dict.fromkeys(r["variant"] for r in runs):
@@ -219,15 +222,17 @@ def gains(runs: list[dict], spacecraft: np.ndarray, groups: np.ndarray, floor: M
         seeds = sorted(s for (w, s) in by if w == v and (base, s) in by)
         if v == base or not seeds:
             continue
-        for g in dict.fromkeys(groups):
-            sel = groups == g
+        # per group, then every test image (ALL), held to the largest group floor
+        for g in [*dict.fromkeys(groups), ALL]:
+            sel = np.ones(len(groups), bool) if g == ALL else groups == g
+            g_floor = max(floor.values(), default=None) if g == ALL else floor.get(str(g))
             t = np.stack([by[(v, s)][sel] for s in seeds])
             c = np.stack([by[(base, s)][sel] for s in seeds])
             iv = paired_seed_image_t(t, c, spacecraft[sel], ci)
             gain, lo, hi = float(np.mean(t - c)), float(iv.low), float(iv.high)
-            out.append({"variant": v, "control": base, "group": str(g), "seeds": seeds, "gain": gain, "low": lo, "high": hi,
-                        "noise_floor": floor.get(str(g)),
-                        "verdict": claim_status(gain, lo, hi, floor.get(str(g)), n_seeds=len(seeds))})
+            out.append({"variant": v, "control": base, "group": str(g), "seeds": seeds, "gain": gain, "low": lo,
+                        "high": hi, "noise_floor": g_floor,
+                        "verdict": claim_status(gain, lo, hi, g_floor, n_seeds=len(seeds))})
     return out
 
 

@@ -76,9 +76,25 @@ def test_gains_pair_seeds_and_images_and_clear_the_noise_floor():
     runs += [{"variant": "soft", "seed": 1, "image_ious": list(base[1])}]
     craft = np.repeat(["a", "b", "c", "d"], 3)
     groups = np.array(["G"] * 12)
-    rows = {r["variant"]: r for r in past_labels.gains(runs, craft, groups, {"G": 0.01})}
+    got = past_labels.gains(runs, craft, groups, {"G": 0.01})
+    assert [r["group"] for r in got if r["variant"] == "bootstrap"] == ["G", past_labels.ALL]  # one group = all
+    rows = {r["variant"]: r for r in got if r["group"] == "G"}
     assert rows["bootstrap"]["seeds"] == [1, 2, 3] and rows["bootstrap"]["gain"] == pytest.approx(0.05, abs=0.005)
     assert rows["bootstrap"]["low"] > 0.01 and rows["bootstrap"]["verdict"] == "gain supported"
     assert rows["soft"]["gain"] == 0 and rows["soft"]["verdict"] == "one seed"  # one seed holds no training noise
-    rows = {r["variant"]: r for r in past_labels.gains(runs, craft, groups, {"G": 0.06})}
+    rows = {r["variant"]: r for r in past_labels.gains(runs, craft, groups, {"G": 0.06}) if r["group"] == "G"}
     assert rows["bootstrap"]["verdict"] == "no difference detected"  # its bound does not clear the floor
+
+
+def test_the_pooled_row_takes_every_image_and_the_largest_floor():
+    import numpy as np
+
+    rng = np.random.default_rng(1)
+    base = {s: rng.uniform(0.3, 0.7, 12) for s in (1, 2, 3)}
+    lift = np.r_[np.full(6, 0.02), np.full(6, 0.06)]            # group A gains 0.02, group B 0.06
+    runs = [{"variant": "plain", "seed": s, "image_ious": list(v)} for s, v in base.items()]
+    runs += [{"variant": "bootstrap", "seed": s, "image_ious": list(v + lift)} for s, v in base.items()]
+    groups = np.repeat(["A", "B"], 6)
+    rows = {r["group"]: r for r in past_labels.gains(runs, np.repeat(list("abcdef"), 2), groups, {"A": 0.01, "B": 0.03})}
+    assert set(rows) == {"A", "B", past_labels.ALL}
+    assert rows[past_labels.ALL]["gain"] == pytest.approx(0.04) and rows[past_labels.ALL]["noise_floor"] == 0.03
