@@ -137,8 +137,8 @@ OPENVINO_ATTENTION_FLAGS = ("avx512_bf16",)
 def teacher_cpu_engine(dtype_name: str) -> str:
     """Resolve ``teacher.engine: auto`` on a CPU, from its flags (never a timing probe).
 
-    Measured (docs/performance.md, "The teacher's attention"): on a 2-core avx512_bf16 host without AMX,
-    OpenVINO's fused attention ran SAM 3's attention shapes 1.8-2.6x faster than torch's bf16 flash kernel.
+    Measured (docs/performance.md, "The teacher's attention in OpenVINO"): on a 2-core avx512_bf16 host without AMX,
+    OpenVINO's fused attention ran SAM 3's attention shapes 2.2-3.1x faster than torch's bf16 flash kernel.
     Not measured on AMX (torch's kernel uses the tiles there) nor on fp32 hosts: torch there.
 
     Parameters

@@ -2,7 +2,7 @@
 
 On a 2-core avx512_bf16 host (no AMX), torch's bf16 flash-attention kernel was bound by its softmax: 52 % of the
 default path's time at real size. OpenVINO's CPU plugin runs the same ``ScaledDotProductAttention`` as one fused
-node, 1.8-2.6x faster on SAM 3's shapes (docs/performance.md, "The teacher's attention"). So ``openvino`` runs
+node, 2.2-3.1x faster on SAM 3's shapes (docs/performance.md, "The teacher's attention in OpenVINO"). So ``openvino`` runs
 every unmasked bf16 attention call of transformers' ``modeling_sam3`` through a small OpenVINO graph (parameters
 Q, K, V and the call's mask, one SDPA node, no weights: nothing to convert per checkpoint, nothing to cache on
 disk); everything else stays in torch. A causal or dropout call, or an fp32 one, runs transformers' own SDPA.

@@ -26,7 +26,8 @@ from pipeline.runtime.device import resolve_device, teacher_cpu_dtype
 from pipeline.runtime.errors import InputError, Option, literal
 from pipeline.teacher_table import SAM3 as BACKEND
 from pipeline.runtime.progress import library_bars_off
-from pipeline.teachers.attention import OpenVINOAttention, attention_engine, openvino_version, resolve_teacher_engine
+from pipeline.teachers import attention
+from pipeline.teachers.attention import OpenVINOAttention, attention_engine, resolve_teacher_engine
 from pipeline.teachers.base import RegisteredTeacher, TeacherInput, files_digest, finalize_answers
 
 __all__ = ["TEXT_MAX_LENGTH", "SAM3_MODEL_TYPES", "checkpoint_hash", "checkpoint_stat", "memoised_checkpoint_hash",
@@ -663,6 +664,8 @@ class Sam3Teacher(RegisteredTeacher):
         self.batch_size = int(batch_size) if int(batch_size) > 0 else (0 if self.device.type == "cuda" else 2)
         self.compile = bool(compile) and self.device.type == "cuda"  # torch.compile pays on a GPU only
         self.engine, self.engine_note = resolve_teacher_engine(engine, self.device, self.dtype_name)
+        # read once per teacher (a package lookup), not at every fingerprint
+        self._openvino = attention.openvino_version() if self.engine == "openvino" else None
         self._attention = None  # OpenVINOAttention, made at load
         # images handed over per call by the teacher stage's runner (the cache's unit of work)
         self.runner_batch_size = self.batch_size or MAX_AUTO_BATCH
@@ -707,7 +710,7 @@ class Sam3Teacher(RegisteredTeacher):
                 "resolution": list(self.resolution) if self.resolution else None,
                 "score_threshold": self.score_threshold, "mask_threshold": self.mask_threshold,
                 "text_max_length": TEXT_MAX_LENGTH,
-                **({"engine": "openvino attention", "openvino": openvino_version()} if self.engine == "openvino"
+                **({"engine": "openvino attention", "openvino": self._openvino} if self.engine == "openvino"
                    else {})}
 
     def path(self) -> str:
