@@ -574,6 +574,12 @@ class Params(_Section):
         if self.geometry.n_prompts != len(self.teacher.prompts):
             raise ValueError(f"geometry.n_prompts={self.geometry.n_prompts} must equal the "
                              f"{len(self.teacher.prompts)} teacher.prompts")
+        # the export stage reads this run's checkpoint: refused here in one line, not by dvc repro at the end
+        method, seed = self.deploy.export_method, self.deploy.export_seed
+        trained = self.protocol.runs.get(method, [])
+        if seed not in trained:
+            raise ValueError(f"deploy.export_seed={seed}: protocol.runs has no {method} run with this seed "
+                             f"(its seeds: {trained}); set deploy.export_seed to one of them")
         return self
 
 

@@ -137,6 +137,8 @@ def test_distill_with_validation_masks(folder, distill_with_masks):
     ("few_masks", "at least 2"),
     ("not_project", "params.yaml exists and was not written by geodistill distill"),
     ("no_teacher", "--checkpoint SAM3_DIR is required"),
+    # the export stage would fail at the end of dvc repro: refused before anything runs
+    ("export_seed", "deploy.export_seed=42: protocol.runs has no geodistill run with this seed"),
 ])
 def test_distill_errors_are_one_line_exit_2(folder, tmp_path, tiny_sam3, case, message):  # noqa: F811
     images, val = folder
@@ -153,7 +155,9 @@ def test_distill_errors_are_one_line_exit_2(folder, tmp_path, tiny_sam3, case, m
     args = {"missing": [tmp_path / "nope", *out, *ck], "empty": [empty, *out, *ck],
             "simulated": [images, *out, "--backend", "simulated"],
             "few_masks": [images, *out, *ck, "--val-masks", one],
-            "not_project": [images, "--out", busy, "--no-run", *ck], "no_teacher": [images, *out]}[case]
+            "not_project": [images, "--out", busy, "--no-run", *ck], "no_teacher": [images, *out],
+            "export_seed": [images, *out, *ck, "--set", "protocol.runs.plain=[43]",
+                            "--set", "protocol.runs.geodistill=[43]"]}[case]
     res = cli("distill", *args)
     assert res.exit_code == 2, res.output
     lines = [ln for ln in res.output.splitlines() if ln.strip()]

@@ -1,0 +1,253 @@
+"""`distill` at the same wall time (issue 63 item 5): today's `distill` settings against the new ones, each given the
+Stage-I step budget that ``--time`` converts on this host, paired over seeds.
+
+The images are the synthetic benchmark's (``--profile`` at ``--resolution``), given to ``geodistill distill`` as a
+user gives them: a folder of PNGs, the teacher's answers as ``--backend imported`` (the answers of the benchmark's
+teacher SIMULATOR, exported from its ``teacher.zarr`` in the layout of docs/real-data.md) and the validation and
+test images' reference masks as ``--val-masks`` (distill splits them into validation and test images itself).
+
+1. ``export``: the folders above, from the profile's artifacts (built in ``--workdir`` unless given).
+2. ``probe``: per setting, ``geodistill distill --time T --no-run``: the step budget that this host's probe converts
+   (quiet cores, ``--threads`` threads: what a user's run gets).
+3. ``run``: per setting and seed, ``geodistill distill`` with that step budget fixed (``--jobs`` at a time, one
+   thread each: the steps, not the wall time, decide the result), and its wall seconds per stage.
+4. The deployed student's test Image IoU per image (the report's ``metrics_per_image``), paired by seed and image:
+   new - today with the seed-aware t interval (:func:`pipeline.stats.paired_seed_image_t`) and the signed verdict
+   (:func:`pipeline.stats.claim_status`).
+
+    python -m benchmarks.distill_time --time 10m --seeds 42 43 44 --workdir W --out reports/distill_time/x.json
+
+Finished runs are kept in ``--workdir``: a rerun runs only what is missing (distill itself resumes a killed run).
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from benchmarks.common import parser
+from benchmarks.study_recipe import build_artifacts
+from pipeline import catalog
+from pipeline.artifacts.atomic import write_text_if_changed
+from pipeline.artifacts.store import open_artifact
+from pipeline.runtime.device import cpu_flags
+from pipeline.stats import claim_status, paired_seed_image_t
+from pipeline.training.inputs import read_rows
+
+#: setting -> the ``--set`` items that make it, over the `distill` profile. ``today``: distill before issue 63
+#: (fp32 with channels_last, the issue's "1.27x"); ``new``: the distill profile as it ships (bf16 autocast where the
+#: CPU has bf16 units, channels_last)
+SETTINGS: dict[str, list[str]] = {"today": ["train.precision=fp32"], "new": []}
+#: the deployed student, whose test Image IoU is compared
+DEPLOYED = "geodistill"
+
+
+# ----------------------------------------------------------------------------------------------- export
+
+
+def export_inputs(artifacts: Path, dest: Path) -> dict[str, Path]:
+    """Write ``images/``, ``masks/`` (validation and test images' reference masks) and ``imported/`` (the teacher
+    SIMULATOR's answers: ``scores.parquet`` and ``masks/<image_id>/<prompt_index>.png``) under ``dest``, unless
+    ``dest/export.json`` says they are complete."""
+
+    from pipeline.artifacts.atomic import png_bytes
+
+    folders = {n: dest / n for n in ("images", "masks", "imported")}
+    if (dest / "export.json").is_file():
+        return folders
+    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest").df
+    teacher = open_artifact(catalog.path("teacher", artifacts), "teacher")
+    scores = open_artifact(catalog.path("teacher_scores", artifacts), "teacher_scores").df
+    for f in folders.values():
+        f.mkdir(parents=True, exist_ok=True)
+    rows = np.arange(len(manifest))
+    masks = read_rows(teacher, "masks", rows)  # [N, P, H, W] bool
+    for i, r in enumerate(manifest.itertuples()):
+        shutil.copyfile(r.image_path, folders["images"] / f"{r.image_id}.png")
+        if r.split != "train" and isinstance(r.mask_path, str) and r.mask_path:
+            shutil.copyfile(r.mask_path, folders["masks"] / f"{r.image_id}.png")
+        out = folders["imported"] / "masks" / r.image_id
+        out.mkdir(parents=True, exist_ok=True)
+        for k in range(masks.shape[1]):
+            (out / f"{k}.png").write_bytes(png_bytes(masks[i, k].astype(np.uint8) * 255))
+    table = scores[["image_id", "prompt_index", "prompt", "score"]].copy()
+    table["score"] = table["score"].where(scores["valid"], 0.0)
+    table.to_parquet(folders["imported"] / "scores.parquet", index=False)
+    write_text_if_changed(dest / "export.json", json.dumps({"artifacts": str(artifacts), "images": len(manifest),
+                                                            "prompts": int(masks.shape[1])}))
+    return folders
+
+
+# ----------------------------------------------------------------------------------------------- distill
+
+
+def distill_argv(folders: Mapping[str, Path], out: Path, sets: Sequence[str], extra: Sequence[str] = ()) -> list[str]:
+    """The ``geodistill distill`` command of one run."""
+    return [sys.executable, "-m", "pipeline.cli", "distill", str(folders["images"]), "--out", str(out),
+            "--val-masks", str(folders["masks"]), "--backend", "imported", "--imported-dir", str(folders["imported"]),
+            "--device", "cpu", "--no-benchmark", "--quiet", *extra, *[a for kv in sets for a in ("--set", kv)]]
+
+
+def run_command(argv: list[str], env: Mapping[str, str] | None = None) -> float:
+    """Wall seconds of ``argv``; a failed run stops the benchmark with its error's tail."""
+    t0 = time.perf_counter()
+    r = subprocess.run(argv, capture_output=True, text=True, env={**os.environ, **(env or {})})
+    if r.returncode != 0:
+        raise SystemExit(f"distill_time: {' '.join(argv[4:7])} ... failed:\n{r.stderr[-3000:]}")
+    return time.perf_counter() - t0
+
+
+def step_budget(project: Path) -> int:
+    """The ``train.step_budget`` that ``--time`` wrote into ``project``'s params.yaml."""
+    import yaml
+
+    return int(yaml.safe_load((project / catalog.PARAMS_FILE).read_text())["train"]["step_budget"])
+
+
+def probe(folders: Mapping[str, Path], work: Path, setting: str, budget: str, sets: Sequence[str],
+          threads: int) -> int:
+    """The step budget ``--time budget`` converts for ``setting`` (a ``--no-run`` project in ``work``)."""
+    project = work / f"probe-{setting}"
+    if not (project / catalog.PARAMS_FILE).is_file():
+        run_command(distill_argv(folders, project, [*sets, *SETTINGS[setting], f"train.num_threads={threads}"],
+                                 ["--time", budget, "--no-run"]))
+    return step_budget(project)
+
+
+def run_sets(setting: str, seed: int, budget: str, steps: int, sets: Sequence[str], threads: int) -> list[str]:
+    """The ``--set`` items of one run: the setting, its fixed step budget (what ``--time`` writes), the seed."""
+    return [*sets, *SETTINGS[setting], f"train.time_budget={budget}", f"train.step_budget={steps}",
+            "train.until=plateau", f"train.num_threads={threads}", f"protocol.runs.plain=[{seed}]",
+            f"protocol.runs.{DEPLOYED}=[{seed}]", f"deploy.export_seed={seed}"]
+
+
+def _created(meta: Path) -> datetime.datetime:
+    return datetime.datetime.fromisoformat(json.loads(meta.read_text())["created_at"])
+
+
+def run_record(project: Path, setting: str, seed: int, steps: int, wall: float | None) -> dict:
+    """One finished run: per test image the deployed student's and Plain's Image IoU at the calibrated tau
+    (``artifacts/metrics.parquet``), Stage I's steps and stop, and the stages' wall seconds from the artifacts'
+    ``created_at`` (the vote's gates -> Stage I -> Stage II)."""
+    import pandas as pd
+
+    art = project / catalog.ARTIFACTS_DIR
+    m = pd.read_parquet(catalog.path("metrics", art))
+    m = m[m["threshold_mode"] == "calibrated"].sort_values("image_id")
+    ious = {meth: m[m["method"] == meth].set_index("image_id")["iou"] for meth in ("plain", DEPLOYED)}
+    ck = catalog.path("checkpoints", art)
+    stage1, stage2 = ck / "plain" / str(seed) / "meta.json", ck / DEPLOYED / str(seed) / "meta.json"
+    extra = json.loads(stage1.read_text())["extra"]
+    gates = catalog.path("gates", art) / "zarr.json"
+    t0 = datetime.datetime.fromtimestamp(gates.stat().st_mtime, datetime.timezone.utc)
+    return {"setting": setting, "seed": seed, "step_budget": steps, "steps_run": int(extra["steps_run"]),
+            "epochs": int(extra["epochs"]), "stopped": extra["stopped"], "autocast": extra.get("autocast"),
+            "stage1_seconds": (_created(stage1) - t0).total_seconds(),
+            "stage2_seconds": (_created(stage2) - _created(stage1)).total_seconds(), "wall_seconds": wall,
+            "image_ids": list(ious[DEPLOYED].index), "image_ious": ious[DEPLOYED].tolist(),
+            "plain_image_ious": ious["plain"].reindex(ious[DEPLOYED].index).tolist()}
+
+
+def comparison(runs: Sequence[Mapping[str, Any]], clusters: Mapping[str, str], groups: Mapping[str, str],
+               key: str = "image_ious", ci: float = 0.95) -> list[dict]:
+    """new - today per test group and over every test image (``all``), paired by seed and image: the seed-aware t
+    interval (:func:`pipeline.stats.paired_seed_image_t`, clusters = spacecraft) and the signed verdict (no noise
+    floor exists for this configuration, so the interval alone decides)."""
+    by = {(r["setting"], r["seed"]): r for r in runs}
+    seeds = sorted(s for (w, s) in by if w == "new" and ("today", s) in by)
+    if not seeds:
+        return []
+    ids = by[("new", seeds[0])]["image_ids"]
+    for s in seeds:
+        if by[("new", s)]["image_ids"] != ids or by[("today", s)]["image_ids"] != ids:
+            raise SystemExit("distill_time: the runs scored different test images; they cannot be paired")
+    g = np.array([groups[i] for i in ids])
+    sc = np.array([clusters[i] for i in ids])
+    out = []
+    for name in [*dict.fromkeys(g.tolist()), "all"]:
+        sel = np.ones(len(ids), bool) if name == "all" else g == name
+        t = np.stack([np.asarray(by[("new", s)][key])[sel] for s in seeds])
+        c = np.stack([np.asarray(by[("today", s)][key])[sel] for s in seeds])
+        iv = paired_seed_image_t(t, c, sc[sel], ci)
+        gain = float(np.mean(t - c))
+        out.append({"group": name, "seeds": seeds, "images": int(sel.sum()), "today": float(c.mean()),
+                    "new": float(t.mean()), "gain": gain, "low": float(iv.low), "high": float(iv.high),
+                    "verdict": claim_status(gain, float(iv.low), float(iv.high), None, n_seeds=len(seeds))})
+    return out
+
+
+def table(doc: Mapping[str, Any]) -> str:
+    """Markdown: the runs, then new - today per group for the deployed student and for Plain."""
+    lines = ["| setting | seed | step budget | steps run | epochs | stopped | Stage I s | Stage II s | "
+             f"{DEPLOYED} test IoU | Plain test IoU |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in doc["runs"]:
+        lines.append(f"| {r['setting']} | {r['seed']} | {r['step_budget']:,} | {r['steps_run']:,} | {r['epochs']} | "
+                     f"{r['stopped']} | {r['stage1_seconds']:.0f} | {r['stage2_seconds']:.0f} | "
+                     f"{np.mean(r['image_ious']):.3f} | {np.mean(r['plain_image_ious']):.3f} |")
+    for student, rows in (("deployed student (" + DEPLOYED + ")", doc["gain"]), ("Plain (Stage I)", doc["plain_gain"])):
+        lines += ["", f"new - today, {student}:", "",
+                  "| group | seeds | images | today | new | gain [95 % CI] | verdict |", "|---|---|---|---|---|---|---|"]
+        lines += [f"| {r['group']} | {len(r['seeds'])} | {r['images']} | {r['today']:.3f} | {r['new']:.3f} | "
+                  f"{r['gain']:+.3f} [{r['low']:+.3f}, {r['high']:+.3f}] | {r['verdict']} |" for r in rows]
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    ap = parser(__doc__, artifacts=None, workdir="distill-time-work", profile="reduced", resolution=128, set=[],
+                seeds=[42, 43, 44], jobs=2, threads=2, out="distill_time.json")
+    ap.add_argument("--time", default="10m", help="the --time each setting's step budget is converted from")
+    ap.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
+    args = ap.parse_args(argv)
+    work = Path(args.workdir).resolve()
+    sets = [f"data.resolution={args.resolution}", *args.sets]
+    artifacts = Path(args.artifacts) if args.artifacts else build_artifacts(
+        work / "data", args.profile, [f"data.resolution={args.resolution}"], "cpu")
+    folders = export_inputs(artifacts, work / "inputs")
+    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest").df
+    clusters = dict(zip(manifest["image_id"], manifest["spacecraft"].astype(str)))
+    groups = dict(zip(manifest["image_id"], manifest["group"].astype(str)))
+    # the probes first, one at a time on the whole machine (``--threads``): the budgets a user's run gets
+    budgets = {s: probe(folders, work, s, args.time, sets, args.threads) for s in args.settings}
+    print("distill_time: step budgets for --time " + args.time + ": "
+          + ", ".join(f"{s} {n:,}" for s, n in budgets.items()), flush=True)
+    jobs = [(s, seed) for seed in args.seeds for s in args.settings]
+    walls: dict[tuple[str, int], float | None] = {}
+
+    def one(job):
+        s, seed = job
+        project = work / f"{s}-s{seed}"
+        done = (project / catalog.ARTIFACTS_DIR / "metrics.parquet").is_file()
+        walls[job] = None if done else run_command(distill_argv(
+            folders, project, run_sets(s, seed, args.time, budgets[s], sets, max(1, args.threads // args.jobs))))
+        print(f"  done {s} s{seed} ({walls[job] or 0:.0f} s)", flush=True)
+
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        list(pool.map(one, jobs))
+    runs = [run_record(work / f"{s}-s{seed}", s, seed, budgets[s], walls[(s, seed)]) for s, seed in jobs]
+    doc = {"date": datetime.date.today().isoformat(), "host": {"machine": platform.machine(), "flags": sorted(cpu_flags())},
+           "time": args.time, "resolution": args.resolution, "profile": args.profile, "sets": sets,
+           "settings": {s: SETTINGS[s] for s in args.settings}, "budgets": budgets, "runs": runs,
+           "gain": comparison(runs, clusters, groups), "plain_gain": comparison(runs, clusters, groups,
+                                                                                 key="plain_image_ious"),
+           "teacher": "the synthetic benchmark's SIMULATOR (imported answers)"}
+    out = Path(args.out)
+    write_text_if_changed(out, json.dumps(doc, indent=1))
+    write_text_if_changed(out.with_suffix(".md"), table(doc) + "\n")
+    print(table(doc))
+    return doc
+
+
+if __name__ == "__main__":
+    main()
