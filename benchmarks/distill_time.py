@@ -26,7 +26,6 @@ import datetime
 import json
 import os
 import platform
-import shutil
 import subprocess
 import sys
 import time
@@ -40,6 +39,7 @@ from benchmarks.study_recipe import build_artifacts
 from pipeline import catalog
 from pipeline.artifacts.atomic import write_text_if_changed
 from pipeline.artifacts.store import open_artifact
+from pipeline.profiles import load_profile
 from pipeline.runtime.device import cpu_flags
 from pipeline.stats import claim_status, paired_seed_image_t
 from pipeline.training.inputs import read_rows
@@ -55,10 +55,12 @@ DEPLOYED = "geodistill"
 # ----------------------------------------------------------------------------------------------- export
 
 
-def export_inputs(artifacts: Path, dest: Path) -> dict[str, Path]:
-    """Write ``images/``, ``masks/`` (validation and test images' reference masks) and ``imported/`` (the teacher
-    SIMULATOR's answers: ``scores.parquet`` and ``masks/<image_id>/<prompt_index>.png``) under ``dest``, unless
-    ``dest/export.json`` says they are complete."""
+def export_inputs(artifacts: Path, dest: Path, prompts: Sequence[str]) -> dict[str, Path]:
+    """Write ``images/``, ``masks/`` (the validation and test images' reference masks) and ``imported/`` (the teacher
+    SIMULATOR's answers: ``scores.parquet`` and ``masks/<image_id>/<prompt_index>.png``, docs/real-data.md) under
+    ``dest`` from the prepared arrays, unless ``dest/export.json`` says they are complete.  ``prompts`` are the
+    teacher's, in the order of ``teacher.zarr``'s prompt axis."""
+    import pandas as pd
 
     from pipeline.artifacts.atomic import png_bytes
 
@@ -66,25 +68,28 @@ def export_inputs(artifacts: Path, dest: Path) -> dict[str, Path]:
     if (dest / "export.json").is_file():
         return folders
     manifest = open_artifact(catalog.path("manifest", artifacts), "manifest").df
+    rows = np.arange(len(manifest))
+    images = read_rows(open_artifact(catalog.path("images", artifacts), "images"), "image", rows)
+    reference = open_artifact(catalog.path("reference", artifacts), "reference")
+    gt, has_mask = read_rows(reference, "mask", rows), read_rows(reference, "has_mask", rows)
     teacher = open_artifact(catalog.path("teacher", artifacts), "teacher")
-    scores = open_artifact(catalog.path("teacher_scores", artifacts), "teacher_scores").df
+    masks, scores = read_rows(teacher, "masks", rows), read_rows(teacher, "scores", rows)  # [N, P, H, W], [N, P]
+    if masks.shape[1] != len(prompts):
+        raise SystemExit(f"distill_time: {masks.shape[1]} teacher prompts in the artifacts, {len(prompts)} in params")
     for f in folders.values():
         f.mkdir(parents=True, exist_ok=True)
-    rows = np.arange(len(manifest))
-    masks = read_rows(teacher, "masks", rows)  # [N, P, H, W] bool
-    for i, r in enumerate(manifest.itertuples()):
-        shutil.copyfile(r.image_path, folders["images"] / f"{r.image_id}.png")
-        if r.split != "train" and isinstance(r.mask_path, str) and r.mask_path:
-            shutil.copyfile(r.mask_path, folders["masks"] / f"{r.image_id}.png")
-        out = folders["imported"] / "masks" / r.image_id
+    table = []
+    for i, (iid, split) in enumerate(zip(manifest["image_id"], manifest["split"])):
+        (folders["images"] / f"{iid}.png").write_bytes(png_bytes(images[i]))
+        if split != "train" and has_mask[i]:  # never a training image's: distill would not train on it
+            (folders["masks"] / f"{iid}.png").write_bytes(png_bytes(gt[i].astype(np.uint8) * 255))
+        out = folders["imported"] / "masks" / iid
         out.mkdir(parents=True, exist_ok=True)
-        for k in range(masks.shape[1]):
+        for k, prompt in enumerate(prompts):
             (out / f"{k}.png").write_bytes(png_bytes(masks[i, k].astype(np.uint8) * 255))
-    table = scores[["image_id", "prompt_index", "prompt", "score"]].copy()
-    table["score"] = table["score"].where(scores["valid"], 0.0)
-    table.to_parquet(folders["imported"] / "scores.parquet", index=False)
-    write_text_if_changed(dest / "export.json", json.dumps({"artifacts": str(artifacts), "images": len(manifest),
-                                                            "prompts": int(masks.shape[1])}))
+            table.append({"image_id": iid, "prompt_index": k, "prompt": prompt, "score": float(scores[i, k])})
+    pd.DataFrame(table).to_parquet(folders["imported"] / "scores.parquet", index=False)
+    write_text_if_changed(dest / "export.json", json.dumps({"artifacts": str(artifacts), "images": len(rows)}))
     return folders
 
 
@@ -148,8 +153,10 @@ def run_record(project: Path, setting: str, seed: int, steps: int, wall: float |
     ck = catalog.path("checkpoints", art)
     stage1, stage2 = ck / "plain" / str(seed) / "meta.json", ck / DEPLOYED / str(seed) / "meta.json"
     extra = json.loads(stage1.read_text())["extra"]
-    gates = catalog.path("gates", art) / "zarr.json"
-    t0 = datetime.datetime.fromtimestamp(gates.stat().st_mtime, datetime.timezone.utc)
+    # Stage I starts when the last data stage before it has written (dvc runs the stages one after another)
+    last = max((p / "zarr.json" if p.is_dir() else p).stat().st_mtime
+               for p in (catalog.path("consensus", art), catalog.path("gates", art)))
+    t0 = datetime.datetime.fromtimestamp(last, datetime.timezone.utc)
     return {"setting": setting, "seed": seed, "step_budget": steps, "steps_run": int(extra["steps_run"]),
             "epochs": int(extra["epochs"]), "stopped": extra["stopped"], "autocast": extra.get("autocast"),
             "stage1_seconds": (_created(stage1) - t0).total_seconds(),
@@ -212,7 +219,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     sets = [f"data.resolution={args.resolution}", *args.sets]
     artifacts = Path(args.artifacts) if args.artifacts else build_artifacts(
         work / "data", args.profile, [f"data.resolution={args.resolution}"], "cpu")
-    folders = export_inputs(artifacts, work / "inputs")
+    folders = export_inputs(artifacts, work / "inputs", load_profile("distill", sets)["teacher"]["prompts"])
     manifest = open_artifact(catalog.path("manifest", artifacts), "manifest").df
     clusters = dict(zip(manifest["image_id"], manifest["spacecraft"].astype(str)))
     groups = dict(zip(manifest["image_id"], manifest["group"].astype(str)))

@@ -86,16 +86,50 @@ def load_data(artifacts: Path, cfg: Mapping[str, Any]) -> dict:
 
 
 def scores(model, data: Mapping[str, Any], device) -> dict:
-    """Test Image IoU at the tau calibrated on the validation images, pooled and per group, and the vote's."""
+    """Test Image IoU at the tau calibrated on the validation images, pooled and per group, and the vote's; and the
+    fit: the same model's Image IoU on its own TRAINING images against their reference masks (which only score)."""
     vp = predict_probs(model, data["val"].images, device=device, precision="fp32")
     tau, _ = calibrate_threshold(vp, data["val"].masks, EPOCH_TAU_GRID)
     tp = predict_probs(model, data["test_images"], device=device, precision="fp32")
     ious = image_ious(mask_from_probs(tp, tau), data["test_masks"])
     vote = image_ious(data["test_voted"], data["test_masks"])
     groups = data["test_groups"]
+    train = data[SUPERVISED_CEILING]  # the training images with their reference masks, in the vote's order
+    fit = image_ious(mask_from_probs(predict_probs(model, train.images, device=device, precision="fp32"), tau),
+                     np.asarray(train.mask).astype(bool))
     return {"tau_cal": float(tau), "iou_cal": float(ious.mean()), "image_ious": [float(v) for v in ious],
             "groups": {g: float(ious[groups == g].mean()) for g in dict.fromkeys(groups)},
-            "vote_groups": {g: float(vote[groups == g].mean()) for g in dict.fromkeys(groups)}}
+            "vote_groups": {g: float(vote[groups == g].mean()) for g in dict.fromkeys(groups)},
+            "train_ious": [float(v) for v in fit]}
+
+
+def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], device: str) -> dict:
+    """Plain reaches its labels? The saved ``plain-s<seed>.pt`` runs (beside ``artifacts``) scored on their own
+    TRAINING images against the reference masks, paired per seed and image with the vote's IoU there (the seed-aware
+    t interval, clusters = spacecraft; :func:`pipeline.stats.paired_seed_image_t`)."""
+    import torch
+
+    data = load_data(artifacts, cfg)
+    train = data[SUPERVISED_CEILING]
+    gt = np.asarray(train.mask).astype(bool)
+    vote = image_ious(np.asarray(data[STAGE_ONE].mask).astype(bool), gt)
+    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest").df
+    clusters = manifest["spacecraft"].to_numpy()[(manifest["split"] == "train").to_numpy()].astype(str)
+    if len(clusters) != len(vote):
+        raise SystemExit("past_labels: the training images are not the manifest's train rows")
+    fits = {}
+    for s in seeds:
+        model = build_model(get_method(STAGE_ONE), cfg, s)
+        model.load_state_dict(torch.load(artifacts.parent / f"plain-s{s}.pt", map_location="cpu", weights_only=True))
+        fits[s] = np.asarray(scores(model.eval(), data, device)["train_ious"])
+    t, c = np.stack([fits[s] for s in seeds]), np.stack([vote] * len(seeds))
+    iv = paired_seed_image_t(t, c, clusters, 0.95)
+    gain = float(np.mean(t - c))
+    return {"seeds": seeds, "images": len(vote), "plain": {str(s): float(f.mean()) for s, f in fits.items()},
+            "vote": float(vote.mean()), "plain_minus_vote": gain, "low": float(iv.low), "high": float(iv.high),
+            "verdict": claim_status(gain, float(iv.low), float(iv.high), None, n_seeds=len(seeds)),
+            "what": "Image IoU on the training images against their reference masks (score only), Plain at its "
+                    "calibrated tau; teacher = the synthetic benchmark's SIMULATOR"}
 
 
 _DATA: dict = {}
@@ -309,6 +343,9 @@ def main(argv=None) -> dict:
                     help="write one document (--out) from these output files of this benchmark (same artifacts): "
                          "their runs, the summary and each lever's gain over Plain; nothing trains")
     ap.add_argument("--noise-floor", type=Path, default=Path("reports/noise_floor.json"))
+    ap.add_argument("--fit-of-saved", action="store_true",
+                    help="train nothing: score the saved plain-s<seed>.pt beside the artifacts on their own training "
+                         "images against the vote's fit there (:func:`fit_of_saved`)")
     args = ap.parse_args(argv)
     if args.combine:
         key = f"{load_profile(args.profile, args.sets)['train']['recipe']}@{args.profile}-{args.resolution}"
@@ -327,6 +364,13 @@ def main(argv=None) -> dict:
     base = {**params["train"], "num_threads": args.threads}
     if args.epochs is not None:
         base["epochs_stage1"] = args.epochs
+    if args.fit_of_saved:
+        doc = fit_of_saved(artifacts, {**base, **VARIANTS["plain"][0]}, args.seeds, device)
+        Path(args.out).write_text(json.dumps(doc, indent=1))
+        print(f"fit on the training images: Plain {np.mean(list(doc['plain'].values())):.3f} vs the vote "
+              f"{doc['vote']:.3f}: {doc['plain_minus_vote']:+.3f} [{doc['low']:+.3f}, {doc['high']:+.3f}] "
+              f"({doc['verdict']})")
+        return doc
     info = {"artifacts": str(artifacts), "device": device, "resolution": args.resolution, "profile": args.profile,
             "epochs": base["epochs_stage1"], "n_train": None, "recipe": base["recipe"], "seeds": args.seeds,
             "threads": args.threads, "jobs": args.jobs, "simulator": "the teacher is the synthetic benchmark's SIMULATOR"}

@@ -42,6 +42,13 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
     # one seed: no verdict speaks of support (a one-spacecraft group has no interval: not estimated)
     assert {g["verdict"] for g in both["gains"]} <= {"one seed", "not estimated"}
     assert "| bootstrap |" in capsys.readouterr().out
+    # the fit of the saved plain run on its own training images, against the vote's fit there
+    assert len(runs["plain"]["train_ious"]) == runs["plain"]["n_train"]
+    fit = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1",
+                            "--fit-of-saved", "--out", str(tmp_path / "fit.json")])
+    assert fit["images"] == runs["plain"]["n_train"] and fit["verdict"] == "one seed"
+    assert fit["plain"]["1"] == pytest.approx(sum(runs["plain"]["train_ious"]) / fit["images"])
+    assert fit["plain_minus_vote"] == pytest.approx(fit["plain"]["1"] - fit["vote"])
 
 
 def test_a_saved_run_is_scored_instead_of_trained(tiny, tmp_path):
