@@ -414,7 +414,9 @@ def efficiency_line(out: str | Path) -> str | None:
 
 
 def training_line(out: str | Path) -> str | None:
-    """Word Stage I's optimizer steps and why it stopped (first seed), with its departures from eq:raw-loss.
+    """Word Stage I's steps and stop (first seed), its departures from eq:raw-loss, and Stage II's steps on top.
+
+    ``--time`` bounds Stage I only: the deployed Stage-II method's run at the same seed adds its own steps.
 
     Parameters
     ----------
@@ -427,12 +429,13 @@ def training_line(out: str | Path) -> str | None:
         The line; None without Stage I's checkpoint record.
     """
     out = Path(out)
-    runs = (read_yaml_mapping(out / PARAMS_FILE).get("protocol") or {}).get("runs") or {}
+    params = read_yaml_mapping(out / PARAMS_FILE)
+    runs = (params.get("protocol") or {}).get("runs") or {}
     seeds = runs.get(STAGE_ONE) or []
     if not seeds:
         return None
-    meta = catalog.path("checkpoints", out / catalog.ARTIFACTS_DIR) / STAGE_ONE / str(seeds[0]) / catalog.META_FILE
-    record = read_json(meta)
+    checkpoints = catalog.path("checkpoints", out / catalog.ARTIFACTS_DIR)
+    record = read_json(checkpoints / STAGE_ONE / str(seeds[0]) / catalog.META_FILE)
     extra = record.get("extra") or {}
     if "steps_run" not in extra:
         return None
@@ -441,8 +444,14 @@ def training_line(out: str | Path) -> str | None:
     # unvalidated: the params the checkpoint recorded
     lever = departures((record.get("params") or {}).get("params") or {})
     lever_text = f"; with {', '.join(lever)} (a departure from eq:raw-loss)" if lever else ""
+    # the deployed method's own run at the same seed, when it is a Stage-II one (warm-started from Stage I)
+    method = str((params.get("deploy") or {}).get("export_method", PROPOSED))
+    stage2 = (read_json(checkpoints / method / str(seeds[0]) / catalog.META_FILE).get("extra") or {}) \
+        if method != STAGE_ONE and seeds[0] in (runs.get(method) or []) else {}
+    then = (f"; then Stage II ({method}) {int(stage2['steps_run']):,} more ({stage2.get('epochs')} epochs), "
+            f"which --time does not bound") if "steps_run" in stage2 else ""
     return (f"Stage I trained {int(extra['steps_run']):,} optimizer steps ({extra.get('epochs')} epochs{low}){why}"
-            f"{lever_text}")
+            f"{lever_text}{then}")
 
 
 def _metric(path: Path, key: str) -> float | None:

@@ -141,6 +141,13 @@ def test_distills_summary_says_how_many_epochs_ran_at_half_the_side(tmp_path):
     # a Stage I that departed from eq:raw-loss says so (its recorded params)
     meta.write_text(json.dumps({"extra": extra, "params": {"params": {"train.bootstrap_beta": 0.8}}}))
     assert training_line(tmp_path).endswith("; with bootstrapped targets, beta 0.8 (a departure from eq:raw-loss)")
+    # the deployed Stage-II run at the same seed: its steps on top, which --time does not bound
+    (tmp_path / PARAMS_FILE).write_text(yaml.safe_dump({"protocol": {"runs": {"plain": [42], "geodistill": [42]}}}))
+    stage2 = meta.parents[1].parent / "geodistill" / "42" / catalog.META_FILE
+    stage2.parent.mkdir(parents=True)
+    stage2.write_text(json.dumps({"extra": {"steps_run": 1360, "epochs": 40}}))
+    assert training_line(tmp_path).endswith("; then Stage II (geodistill) 1,360 more (40 epochs), which --time does "
+                                            "not bound")
 
 
 def test_half_side_epochs_go_unvalidated_unless_asked_and_the_weights_are_the_same(tiny):
