@@ -10,7 +10,9 @@ test images' reference masks as ``--val-masks`` (distill splits them into valida
 2. ``probe``: per setting, ``geodistill distill --time T --no-run``: the step budget that this host's probe converts
    (quiet cores, ``--threads`` threads: what a user's run gets).
 3. ``run``: per setting and seed, ``geodistill distill`` with that step budget fixed (``--jobs`` at a time, one
-   thread each: the steps, not the wall time, decide the result), and its wall seconds per stage.
+   thread each: the steps, not the wall time, decide the result), and its wall seconds per stage.  A budget at or
+   above Stage I's epoch cap never binds (:func:`cap_steps`): such a run is the same at every ``--time`` and is
+   shared between them (:func:`project_name`).
 4. The deployed student's test Image IoU per image (the report's ``metrics_per_image``), paired by seed and image:
    new - today with the seed-aware t interval (:func:`pipeline.stats.paired_seed_image_t`) and the signed verdict
    (:func:`pipeline.stats.claim_status`).
@@ -122,11 +124,28 @@ def step_budget(project: Path) -> int:
 def probe(folders: Mapping[str, Path], work: Path, setting: str, budget: str, sets: Sequence[str],
           threads: int) -> int:
     """The step budget ``--time budget`` converts for ``setting`` (a ``--no-run`` project in ``work``)."""
-    project = work / f"probe-{setting}"
+    project = work / f"probe-{setting}-{budget}"
     if not (project / catalog.PARAMS_FILE).is_file():
         run_command(distill_argv(folders, project, [*sets, *SETTINGS[setting], f"train.num_threads={threads}"],
                                  ["--time", budget, "--no-run"]))
     return step_budget(project)
+
+
+def cap_steps(folders: Mapping[str, Path], setting: str, sets: Sequence[str]) -> int:
+    """Stage I's steps at its epoch cap (``train.epochs_stage1`` epochs of the training images): a step budget at
+    or above it never binds, so the run is the same at every such ``--time``."""
+    from pipeline.training.budget import training_images
+    from pipeline.training.schedule import steps_per_epoch
+
+    train = load_profile("distill", [*sets, *SETTINGS[setting]])["train"]
+    n = training_images(folders["images"], folders["masks"], train["holdout_fraction"])
+    return int(train["epochs_stage1"]) * steps_per_epoch(n, int(train["batch_size"]))
+
+
+def project_name(setting: str, steps: int, cap: int, seed: int) -> str:
+    """A run's folder: the setting, the steps its budget can bind (``cap`` when it cannot) and the seed, so that
+    two ``--time`` values whose budgets both reach the cap share one run."""
+    return f"{setting}-{min(steps, cap)}-s{seed}"
 
 
 def run_sets(setting: str, seed: int, budget: str, steps: int, sets: Sequence[str], threads: int) -> list[str]:
@@ -227,12 +246,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
     budgets = {s: probe(folders, work, s, args.time, sets, args.threads) for s in args.settings}
     print("distill_time: step budgets for --time " + args.time + ": "
           + ", ".join(f"{s} {n:,}" for s, n in budgets.items()), flush=True)
+    caps = {s: cap_steps(folders, s, sets) for s in args.settings}
     jobs = [(s, seed) for seed in args.seeds for s in args.settings]
     walls: dict[tuple[str, int], float | None] = {}
 
     def one(job):
         s, seed = job
-        project = work / f"{s}-s{seed}"
+        project = work / project_name(s, budgets[s], caps[s], seed)
         done = (project / catalog.ARTIFACTS_DIR / "metrics.parquet").is_file()
         walls[job] = None if done else run_command(distill_argv(
             folders, project, run_sets(s, seed, args.time, budgets[s], sets, max(1, args.threads // args.jobs))))
@@ -242,10 +262,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         list(pool.map(one, jobs))
-    runs = [run_record(work / f"{s}-s{seed}", s, seed, budgets[s], walls[(s, seed)]) for s, seed in jobs]
+    runs = [run_record(work / project_name(s, budgets[s], caps[s], seed), s, seed, budgets[s], walls[(s, seed)])
+            for s, seed in jobs]
     doc = {"date": datetime.date.today().isoformat(), "host": {"machine": platform.machine(), "flags": sorted(cpu_flags())},
            "time": args.time, "resolution": args.resolution, "profile": args.profile, "sets": sets,
-           "settings": {s: SETTINGS[s] for s in args.settings}, "budgets": budgets, "runs": runs,
+           "settings": {s: SETTINGS[s] for s in args.settings}, "budgets": budgets, "cap_steps": caps, "runs": runs,
            "gain": comparison(runs, clusters, groups), "plain_gain": comparison(runs, clusters, groups,
                                                                                  key="plain_image_ious"),
            "teacher": "the synthetic benchmark's SIMULATOR (imported answers)"}

@@ -16,6 +16,7 @@ from benchmarks import distill_time
 def test_export_is_what_the_imported_teacher_reads(tiny, tmp_path):
     from pipeline import catalog
     from pipeline.artifacts.store import open_artifact
+    from pipeline.profiles import load_profile
     from pipeline.teachers.base import TeacherInput
     from pipeline.teachers.imported import ImportedTeacher
     from pipeline.training.inputs import read_rows
@@ -37,6 +38,14 @@ def test_export_is_what_the_imported_teacher_reads(tiny, tmp_path):
     valid = want_scores > 0  # an answer with score 0 is no candidate: its mask is empty (finalize_answers)
     np.testing.assert_array_equal(got_masks[valid], want_masks[valid])
     np.testing.assert_allclose(got_scores, want_scores, rtol=1e-6)
+    # Stage I's steps at the cap: the training images (those without a mask) at distill's batch, epochs_stage1 times
+    n_train = int((manifest.split == "train").sum())
+    train = load_profile("distill", ["data.resolution=32"])["train"]
+    cap = distill_time.cap_steps(folders, "new", ["data.resolution=32"])
+    assert cap == train["epochs_stage1"] * -(-n_train // train["batch_size"])
+    # two --time values whose budgets both reach the cap share one run; a binding budget has its own
+    assert distill_time.project_name("new", cap + 5, cap, 1) == distill_time.project_name("new", cap * 3, cap, 1)
+    assert distill_time.project_name("today", cap - 1, cap, 1) == f"today-{cap - 1}-s1"
     # complete: a second call writes nothing
     (folders["images"] / f"{ids[0]}.png").write_bytes(b"mine")
     distill_time.export_inputs(tiny, tmp_path / "inputs", PROMPTS)
