@@ -444,7 +444,7 @@ def training_line(out: str | Path) -> str | None:
     # unvalidated: the params the checkpoint recorded
     lever = departures((record.get("params") or {}).get("params") or {})
     lever_text = f"; with {', '.join(lever)} (a departure from eq:raw-loss)" if lever else ""
-    # the deployed method's own run at the same seed, when it is a Stage-II one (warm-started from Stage I)
+    # the deployed method's own run at the same seed (none when Stage I itself is deployed)
     method = str((params.get("deploy") or {}).get("export_method", PROPOSED))
     stage2 = (read_json(checkpoints / method / str(seeds[0]) / catalog.META_FILE).get("extra") or {}) \
         if method != STAGE_ONE and seeds[0] in (runs.get(method) or []) else {}
