@@ -169,6 +169,8 @@ def run_record(project: Path, setting: str, seed: int, steps: int, wall: float |
     m = pd.read_parquet(catalog.path("metrics", art))
     m = m[m["threshold_mode"] == "calibrated"].sort_values("image_id")
     ious = {meth: m[m["method"] == meth].set_index("image_id")["iou"] for meth in ("plain", DEPLOYED)}
+    teacher = pd.read_parquet(catalog.path("teacher_metrics", art))
+    vote = teacher[teacher["source"] == "vote"].set_index("image_id")["iou"]
     ck = catalog.path("checkpoints", art)
     stage1, stage2 = ck / "plain" / str(seed) / "meta.json", ck / DEPLOYED / str(seed) / "meta.json"
     extra = json.loads(stage1.read_text())["extra"]
@@ -181,21 +183,24 @@ def run_record(project: Path, setting: str, seed: int, steps: int, wall: float |
             "stage1_seconds": (_created(stage1) - t0).total_seconds(),
             "stage2_seconds": (_created(stage2) - _created(stage1)).total_seconds(), "wall_seconds": wall,
             "image_ids": list(ious[DEPLOYED].index), "image_ious": ious[DEPLOYED].tolist(),
-            "plain_image_ious": ious["plain"].reindex(ious[DEPLOYED].index).tolist()}
+            "plain_image_ious": ious["plain"].reindex(ious[DEPLOYED].index).tolist(),
+            "vote_image_ious": vote.reindex(ious[DEPLOYED].index).tolist()}
 
 
 def comparison(runs: Sequence[Mapping[str, Any]], clusters: Mapping[str, str], groups: Mapping[str, str],
-               key: str = "image_ious", ci: float = 0.95) -> list[dict]:
+               key: str = "image_ious", ci: float = 0.95, control: tuple[str, str] | None = None) -> list[dict]:
     """new - today per test group and over every test image (``all``), paired by seed and image: the seed-aware t
     interval (:func:`pipeline.stats.paired_seed_image_t`, clusters = spacecraft) and the signed verdict (no noise
-    floor exists for this configuration, so the interval alone decides)."""
+    floor exists for this configuration, so the interval alone decides).  ``control`` = (setting, key) compares
+    ``key`` of the ``new`` runs with that instead (the vote: ``("new", "vote_image_ious")``)."""
+    setting, ckey = control or ("today", key)
     by = {(r["setting"], r["seed"]): r for r in runs}
-    seeds = sorted(s for (w, s) in by if w == "new" and ("today", s) in by)
+    seeds = sorted(s for (w, s) in by if w == "new" and (setting, s) in by)
     if not seeds:
         return []
     ids = by[("new", seeds[0])]["image_ids"]
     for s in seeds:
-        if by[("new", s)]["image_ids"] != ids or by[("today", s)]["image_ids"] != ids:
+        if by[("new", s)]["image_ids"] != ids or by[(setting, s)]["image_ids"] != ids:
             raise SystemExit("distill_time: the runs scored different test images; they cannot be paired")
     g = np.array([groups[i] for i in ids])
     sc = np.array([clusters[i] for i in ids])
@@ -203,11 +208,12 @@ def comparison(runs: Sequence[Mapping[str, Any]], clusters: Mapping[str, str], g
     for name in [*dict.fromkeys(g.tolist()), "all"]:
         sel = np.ones(len(ids), bool) if name == "all" else g == name
         t = np.stack([np.asarray(by[("new", s)][key])[sel] for s in seeds])
-        c = np.stack([np.asarray(by[("today", s)][key])[sel] for s in seeds])
+        c = np.stack([np.asarray(by[(setting, s)][ckey])[sel] for s in seeds])
         iv = paired_seed_image_t(t, c, sc[sel], ci)
         gain = float(np.mean(t - c))
-        out.append({"group": name, "seeds": seeds, "images": int(sel.sum()), "today": float(c.mean()),
-                    "new": float(t.mean()), "gain": gain, "low": float(iv.low), "high": float(iv.high),
+        out.append({"group": name, "seeds": seeds, "images": int(sel.sum()), "control": float(c.mean()),
+                    "new": float(t.mean()), "ratio": float(t.mean() / c.mean()) if c.mean() > 0 else None,
+                    "gain": gain, "low": float(iv.low), "high": float(iv.high),
                     "verdict": claim_status(gain, float(iv.low), float(iv.high), None, n_seeds=len(seeds))})
     return out
 
@@ -220,11 +226,16 @@ def table(doc: Mapping[str, Any]) -> str:
         lines.append(f"| {r['setting']} | {r['seed']} | {r['step_budget']:,} | {r['steps_run']:,} | {r['epochs']} | "
                      f"{r['stopped']} | {r['stage1_seconds']:.0f} | {r['stage2_seconds']:.0f} | "
                      f"{np.mean(r['image_ious']):.3f} | {np.mean(r['plain_image_ious']):.3f} |")
-    for student, rows in (("deployed student (" + DEPLOYED + ")", doc["gain"]), ("Plain (Stage I)", doc["plain_gain"])):
-        lines += ["", f"new - today, {student}:", "",
-                  "| group | seeds | images | today | new | gain [95 % CI] | verdict |", "|---|---|---|---|---|---|---|"]
-        lines += [f"| {r['group']} | {len(r['seeds'])} | {r['images']} | {r['today']:.3f} | {r['new']:.3f} | "
-                  f"{r['gain']:+.3f} [{r['low']:+.3f}, {r['high']:+.3f}] | {r['verdict']} |" for r in rows]
+    for title, control, rows in (
+            (f"new - today, the deployed student ({DEPLOYED})", "today", doc["gain"]),
+            ("new - today, Plain (Stage I)", "today", doc["plain_gain"]),
+            (f"the deployed student ({DEPLOYED}, new settings) - the teacher's vote", "vote", doc["vote_gain"]),
+            ("Plain (new settings) - the teacher's vote", "vote", doc["plain_vote_gain"])):
+        lines += ["", f"{title}:", "", f"| group | seeds | images | {control} | new | new / {control} | "
+                  "gain [95 % CI] | verdict |", "|---|---|---|---|---|---|---|---|"]
+        lines += [f"| {r['group']} | {len(r['seeds'])} | {r['images']} | {r['control']:.3f} | {r['new']:.3f} | "
+                  f"{r['ratio']:.2f} | {r['gain']:+.3f} [{r['low']:+.3f}, {r['high']:+.3f}] | {r['verdict']} |"
+                  for r in rows]
     return "\n".join(lines)
 
 
@@ -267,8 +278,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
     doc = {"date": datetime.date.today().isoformat(), "host": {"machine": platform.machine(), "flags": sorted(cpu_flags())},
            "time": args.time, "resolution": args.resolution, "profile": args.profile, "sets": sets,
            "settings": {s: SETTINGS[s] for s in args.settings}, "budgets": budgets, "cap_steps": caps, "runs": runs,
-           "gain": comparison(runs, clusters, groups), "plain_gain": comparison(runs, clusters, groups,
-                                                                                 key="plain_image_ious"),
+           "gain": comparison(runs, clusters, groups),
+           "plain_gain": comparison(runs, clusters, groups, key="plain_image_ious"),
+           "vote_gain": comparison(runs, clusters, groups, control=("new", "vote_image_ious")),
+           "plain_vote_gain": comparison(runs, clusters, groups, key="plain_image_ious",
+                                         control=("new", "vote_image_ious")),
            "teacher": "the synthetic benchmark's SIMULATOR (imported answers)"}
     out = Path(args.out)
     write_text_if_changed(out, json.dumps(doc, indent=1))

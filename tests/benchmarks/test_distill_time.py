@@ -69,14 +69,20 @@ def test_a_finished_project_is_read_and_paired(distill_with_masks):
     today = distill_time.run_record(out, "today", 42, steps=10, wall=1.0)
     assert today["steps_run"] > 0 and today["stage1_seconds"] >= 0 and today["stage2_seconds"] >= 0
     n = len(today["image_ids"])
-    assert n > 0 and len(today["image_ious"]) == n == len(today["plain_image_ious"])
+    assert n > 0 and len(today["image_ious"]) == n == len(today["plain_image_ious"]) == len(today["vote_image_ious"])
+    assert all(0 <= v <= 1 for v in today["vote_image_ious"])  # the vote scored on the same test images
     new = {**today, "setting": "new", "image_ious": [v + 0.01 for v in today["image_ious"]]}
     clusters = {i: f"sc{k % 2}" for k, i in enumerate(today["image_ids"])}
     groups = dict.fromkeys(today["image_ids"], "g")
     (g, pooled) = distill_time.comparison([today, new], clusters, groups)
     assert g["group"] == "g" and pooled["group"] == "all" and pooled["images"] == n
     assert pooled["gain"] == pytest.approx(0.01) and pooled["verdict"] == "one seed"
-    text = distill_time.table({"runs": [today, new], "gain": [g, pooled], "plain_gain": [pooled]})
-    assert "| today | 42 | 10 |" in text and "+0.010" in text
+    # against the vote: the new runs' own vote scores are the control
+    (_, vs_vote) = distill_time.comparison([today, new], clusters, groups, control=("new", "vote_image_ious"))
+    assert vs_vote["gain"] == pytest.approx(np.mean(new["image_ious"]) - np.mean(today["vote_image_ious"]))
+    assert vs_vote["ratio"] == pytest.approx(np.mean(new["image_ious"]) / np.mean(today["vote_image_ious"]))
+    text = distill_time.table({"runs": [today, new], "gain": [g, pooled], "plain_gain": [pooled],
+                               "vote_gain": [vs_vote], "plain_vote_gain": [vs_vote]})
+    assert "| today | 42 | 10 |" in text and "+0.010" in text and "the teacher's vote" in text
     with pytest.raises(SystemExit, match="different test images"):
         distill_time.comparison([today, {**new, "image_ids": today["image_ids"][::-1]}], clusters, groups)
