@@ -31,20 +31,24 @@ import platform
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
+import yaml
 
 from benchmarks.common import parser
 from benchmarks.study_recipe import build_artifacts
 from pipeline import catalog
-from pipeline.artifacts.atomic import write_text_if_changed
+from pipeline.artifacts.atomic import png_bytes, write_text_if_changed
 from pipeline.artifacts.store import open_artifact
 from pipeline.profiles import load_profile
 from pipeline.runtime.device import cpu_flags
 from pipeline.stats import claim_status, paired_seed_image_t
+from pipeline.training.budget import training_images
 from pipeline.training.inputs import read_rows
+from pipeline.training.schedule import steps_per_epoch
 
 #: setting -> the ``--set`` items that make it, over the `distill` profile. ``today``: distill before issue 63
 #: (fp32 with channels_last, the issue's "1.27x"); ``new``: the distill profile as it ships (bf16 autocast where the
@@ -63,8 +67,6 @@ def export_inputs(artifacts: Path, dest: Path, prompts: Sequence[str]) -> dict[s
     ``dest`` from the prepared arrays, unless ``dest/export.json`` says they are complete.  ``prompts`` are the
     teacher's, in the order of ``teacher.zarr``'s prompt axis."""
     import pandas as pd
-
-    from pipeline.artifacts.atomic import png_bytes
 
     folders = {n: dest / n for n in ("images", "masks", "imported")}
     if (dest / "export.json").is_file():
@@ -116,8 +118,6 @@ def run_command(argv: list[str], env: Mapping[str, str] | None = None) -> float:
 
 def step_budget(project: Path) -> int:
     """The ``train.step_budget`` that ``--time`` wrote into ``project``'s params.yaml."""
-    import yaml
-
     return int(yaml.safe_load((project / catalog.PARAMS_FILE).read_text())["train"]["step_budget"])
 
 
@@ -134,9 +134,6 @@ def probe(folders: Mapping[str, Path], work: Path, setting: str, budget: str, se
 def cap_steps(folders: Mapping[str, Path], setting: str, sets: Sequence[str]) -> int:
     """Stage I's steps at its epoch cap (``train.epochs_stage1`` epochs of the training images): a step budget at
     or above it never binds, so the run is the same at every such ``--time``."""
-    from pipeline.training.budget import training_images
-    from pipeline.training.schedule import steps_per_epoch
-
     train = load_profile("distill", [*sets, *SETTINGS[setting]])["train"]
     n = training_images(folders["images"], folders["masks"], train["holdout_fraction"])
     return int(train["epochs_stage1"]) * steps_per_epoch(n, int(train["batch_size"]))
@@ -268,8 +265,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
         walls[job] = None if done else run_command(distill_argv(
             folders, project, run_sets(s, seed, args.time, budgets[s], sets, max(1, args.threads // args.jobs))))
         print(f"  done {s} s{seed} ({walls[job] or 0:.0f} s)", flush=True)
-
-    from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         list(pool.map(one, jobs))

@@ -430,6 +430,7 @@ def training_line(out: str | Path) -> str | None:
     """
     out = Path(out)
     params = read_yaml_mapping(out / PARAMS_FILE)
+    # unvalidated: the project's params.yaml as read, for a summary line (an absent key says nothing)
     runs = (params.get("protocol") or {}).get("runs") or {}
     seeds = runs.get(STAGE_ONE) or []
     if not seeds:
@@ -445,6 +446,7 @@ def training_line(out: str | Path) -> str | None:
     lever = departures((record.get("params") or {}).get("params") or {})
     lever_text = f"; with {', '.join(lever)} (a departure from eq:raw-loss)" if lever else ""
     # the deployed method's own run at the same seed (none when Stage I itself is deployed)
+    # unvalidated: read as above; the schema's default deploys PROPOSED
     method = str((params.get("deploy") or {}).get("export_method", PROPOSED))
     stage2 = (read_json(checkpoints / method / str(seeds[0]) / catalog.META_FILE).get("extra") or {}) \
         if method != STAGE_ONE and seeds[0] in (runs.get(method) or []) else {}
