@@ -152,14 +152,10 @@ def run_sets(setting: str, seed: int, budget: str, steps: int, sets: Sequence[st
             f"protocol.runs.{DEPLOYED}=[{seed}]", f"deploy.export_seed={seed}"]
 
 
-def _created(meta: Path) -> datetime.datetime:
-    return datetime.datetime.fromisoformat(json.loads(meta.read_text())["created_at"])
-
-
 def run_record(project: Path, setting: str, seed: int, steps: int, wall: float | None) -> dict:
     """One finished run: per test image the deployed student's and Plain's Image IoU at the calibrated tau
-    (``artifacts/metrics.parquet``), Stage I's steps and stop, and the stages' wall seconds from the artifacts'
-    ``created_at`` (the vote's gates -> Stage I -> Stage II)."""
+    (``artifacts/metrics.parquet``), Stage I's steps and stop, and each stage's training seconds (the sum of its
+    epochs' in the run's timings file)."""
     import pandas as pd
 
     art = project / catalog.ARTIFACTS_DIR
@@ -168,17 +164,15 @@ def run_record(project: Path, setting: str, seed: int, steps: int, wall: float |
     ious = {meth: m[m["method"] == meth].set_index("image_id")["iou"] for meth in ("plain", DEPLOYED)}
     teacher = pd.read_parquet(catalog.path("teacher_metrics", art))
     vote = teacher[teacher["source"] == "vote"].set_index("image_id")["iou"]
-    ck = catalog.path("checkpoints", art)
-    stage1, stage2 = ck / "plain" / str(seed) / "meta.json", ck / DEPLOYED / str(seed) / "meta.json"
-    extra = json.loads(stage1.read_text())["extra"]
-    # Stage I starts when the last data stage before it has written (dvc runs the stages one after another)
-    last = max((p / "zarr.json" if p.is_dir() else p).stat().st_mtime
-               for p in (catalog.path("consensus", art), catalog.path("gates", art)))
-    t0 = datetime.datetime.fromtimestamp(last, datetime.timezone.utc)
+    extra = json.loads((catalog.path("checkpoints", art) / "plain" / str(seed) / catalog.META_FILE).read_text())["extra"]
+
+    def seconds(method: str) -> float:  # the run's epochs (the timings file: wall time stays out of the log)
+        timings = json.loads(catalog.path("train_timings", art, method=method, seed=seed).read_text())
+        return float(sum(e["seconds"] for e in timings["epochs"]))
+
     return {"setting": setting, "seed": seed, "step_budget": steps, "steps_run": int(extra["steps_run"]),
             "epochs": int(extra["epochs"]), "stopped": extra["stopped"], "autocast": extra.get("autocast"),
-            "stage1_seconds": (_created(stage1) - t0).total_seconds(),
-            "stage2_seconds": (_created(stage2) - _created(stage1)).total_seconds(), "wall_seconds": wall,
+            "stage1_seconds": seconds("plain"), "stage2_seconds": seconds(DEPLOYED), "wall_seconds": wall,
             "image_ids": list(ious[DEPLOYED].index), "image_ious": ious[DEPLOYED].tolist(),
             "plain_image_ious": ious["plain"].reindex(ious[DEPLOYED].index).tolist(),
             "vote_image_ious": vote.reindex(ious[DEPLOYED].index).tolist()}
