@@ -354,16 +354,32 @@ class GeometryHeads(nn.Module):
         return {"sdf": torch.tanh(self.sdf(feats)), "skeleton": self.skeleton(feats)}
 
 
+def _dense_channels_last_grad(grad: torch.Tensor) -> torch.Tensor:
+    return grad.contiguous(memory_format=torch.channels_last)
+
+
+def _upsample(x: torch.Tensor, size) -> torch.Tensor:
+    """Bilinear upsampling to ``size`` (the decoder's; align_corners False).
+
+    Training in channels_last, the gradient reaching it is a channel slice of the skip concatenation's gradient,
+    which is not channels_last-contiguous, and the CPU's upsampling backward then takes its slow path (about 10x, 13
+    of a 138 ms bf16 step at 128²; docs/performance.md).  A hook makes that gradient contiguous first: the same
+    numbers, bit for bit (tests/core/test_model.py), for one copy.
+    """
+    y = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+    if y.requires_grad and y.is_contiguous(memory_format=torch.channels_last) and y.shape[1] > 1:
+        y.register_hook(_dense_channels_last_grad)
+    return y
+
+
 def _unet(m: nn.Module, x: torch.Tensor, sizes=None) -> torch.Tensor:
     """Decode ``x`` through ``m``'s encoder-decoder; ``sizes``: the two upsampling sizes (default: the skips')."""
     e1 = m.enc1(x)
     e2 = m.enc2(F.max_pool2d(e1, 2))
     e3 = m.enc3(F.max_pool2d(e2, 2))
     s2, s1 = sizes or (e2.shape[-2:], e1.shape[-2:])
-    d2 = F.interpolate(e3, size=s2, mode="bilinear", align_corners=False)
-    d2 = m.dec2(torch.cat([d2, e2], dim=1))
-    d1 = F.interpolate(d2, size=s1, mode="bilinear", align_corners=False)
-    return m.dec1(torch.cat([d1, e1], dim=1))
+    d2 = m.dec2(torch.cat([_upsample(e3, s2), e2], dim=1))
+    return m.dec1(torch.cat([_upsample(d2, s1), e1], dim=1))
 
 
 class TinyUNet(nn.Module):

@@ -55,3 +55,39 @@ def test_channels_last_and_bf16_autocast_agree_with_fp32():
             bf = torch.sigmoid(mc(x.contiguous(memory_format=torch.channels_last)).float())
     assert torch.allclose(cl, ref, atol=1e-5)
     assert (bf - ref).abs().max() < 0.05
+
+
+def test_channels_last_training_gives_the_upsampling_a_dense_gradient_with_the_same_numbers(monkeypatch):
+    """The decoder's upsampling gets a channels_last-contiguous gradient (its fast CPU backward): every parameter
+    gradient bit-identical to the path without the hook, in fp32 and under bf16 autocast."""
+    from pipeline import model as model_module
+
+    seen = []
+    real = model_module._dense_channels_last_grad
+
+    def counting(grad):
+        out = real(grad)
+        seen.append(out.is_contiguous(memory_format=torch.channels_last))
+        return out
+
+    def grads(hooked: bool, amp: bool) -> dict:
+        monkeypatch.setattr(model_module, "_dense_channels_last_grad", counting if hooked else (lambda g: g))
+        torch.manual_seed(0)
+        net = TinyUNet().add_geometry_heads().to(memory_format=torch.channels_last).train()
+        x = torch.rand(2, 3, 32, 32).contiguous(memory_format=torch.channels_last)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
+            out = net.forward_train(x)
+        sum(v.float().square().mean() for v in out.values()).backward()
+        return {k: p.grad.clone() for k, p in net.named_parameters()}
+
+    for amp in (False, True):
+        seen.clear()
+        hooked, plain = grads(True, amp), grads(False, amp)
+        assert seen == [True, True]  # both upsamplings, once each
+        assert all(torch.equal(hooked[k], plain[k]) for k in plain)
+    # inference (no grad) registers nothing
+    seen.clear()
+    monkeypatch.setattr(model_module, "_dense_channels_last_grad", counting)
+    with torch.no_grad():
+        TinyUNet().to(memory_format=torch.channels_last).eval()(torch.rand(1, 3, 32, 32))
+    assert seen == []
