@@ -31,7 +31,7 @@ def run_command(argv: list[str]) -> float:
     def call():
         r = subprocess.run(argv, capture_output=True, text=True)
         if r.returncode != 0:
-            raise SystemExit(f"bench_distill: {' '.join(argv[3:6])} ... failed:\n{r.stderr[-2000:]}")
+            raise SystemExit(f"geodistill {' '.join(argv[3:7])} ... failed:\n{r.stderr[-2000:]}")
     return seconds(call)
 
 

@@ -26,11 +26,7 @@ from __future__ import annotations
 
 import datetime
 import json
-import os
 import platform
-import subprocess
-import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -38,6 +34,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import yaml
 
+from benchmarks import bench_distill
 from benchmarks.common import parser
 from benchmarks.study_recipe import build_artifacts
 from pipeline import catalog
@@ -101,19 +98,10 @@ def export_inputs(artifacts: Path, dest: Path, prompts: Sequence[str]) -> dict[s
 
 
 def distill_argv(folders: Mapping[str, Path], out: Path, sets: Sequence[str], extra: Sequence[str] = ()) -> list[str]:
-    """The ``geodistill distill`` command of one run."""
-    return [sys.executable, "-m", "pipeline.cli", "distill", str(folders["images"]), "--out", str(out),
-            "--val-masks", str(folders["masks"]), "--backend", "imported", "--imported-dir", str(folders["imported"]),
-            "--device", "cpu", "--no-benchmark", "--quiet", *extra, *[a for kv in sets for a in ("--set", kv)]]
-
-
-def run_command(argv: list[str], env: Mapping[str, str] | None = None) -> float:
-    """Wall seconds of ``argv``; a failed run stops the benchmark with its error's tail."""
-    t0 = time.perf_counter()
-    r = subprocess.run(argv, capture_output=True, text=True, env={**os.environ, **(env or {})})
-    if r.returncode != 0:
-        raise SystemExit(f"distill_time: {' '.join(argv[4:7])} ... failed:\n{r.stderr[-3000:]}")
-    return time.perf_counter() - t0
+    """The ``geodistill distill`` command of one run (:func:`benchmarks.bench_distill.distill_argv`)."""
+    teacher = ["--val-masks", str(folders["masks"]), "--backend", "imported", "--imported-dir",
+               str(folders["imported"]), "--device", "cpu", "--no-benchmark", "--quiet", *extra]
+    return bench_distill.distill_argv(str(folders["images"]), out, teacher, sets)
 
 
 def step_budget(project: Path) -> int:
@@ -126,8 +114,8 @@ def probe(folders: Mapping[str, Path], work: Path, setting: str, budget: str, se
     """The step budget ``--time budget`` converts for ``setting`` (a ``--no-run`` project in ``work``)."""
     project = work / f"probe-{setting}-{budget}"
     if not (project / catalog.PARAMS_FILE).is_file():
-        run_command(distill_argv(folders, project, [*sets, *SETTINGS[setting], f"train.num_threads={threads}"],
-                                 ["--time", budget, "--no-run"]))
+        bench_distill.run_command(distill_argv(folders, project, [*sets, *SETTINGS[setting],
+                                                              f"train.num_threads={threads}"], ["--time", budget, "--no-run"]))
     return step_budget(project)
 
 
@@ -256,7 +244,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         s, seed = job
         project = work / project_name(s, budgets[s], caps[s], seed)
         done = (project / catalog.ARTIFACTS_DIR / "metrics.parquet").is_file()
-        walls[job] = None if done else run_command(distill_argv(
+        walls[job] = None if done else bench_distill.run_command(distill_argv(
             folders, project, run_sets(s, seed, args.time, budgets[s], sets, max(1, args.threads // args.jobs))))
         print(f"  done {s} s{seed} ({walls[job] or 0:.0f} s)", flush=True)
 

@@ -367,7 +367,7 @@ def _upsample(x: torch.Tensor, size) -> torch.Tensor:
     numbers, bit for bit (tests/core/test_model.py), for one copy.
     """
     y = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
-    if y.requires_grad and y.is_contiguous(memory_format=torch.channels_last) and y.shape[1] > 1:
+    if y.requires_grad and y.is_contiguous(memory_format=torch.channels_last):
         y.register_hook(_dense_channels_last_grad)
     return y
 
