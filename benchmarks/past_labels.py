@@ -103,33 +103,74 @@ def scores(model, data: Mapping[str, Any], device) -> dict:
             "train_ious": [float(v) for v in fit]}
 
 
-def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], device: str) -> dict:
-    """Plain reaches its labels? The saved ``plain-s<seed>.pt`` runs (beside ``artifacts``) scored on their own
-    TRAINING images against the reference masks, paired per seed and image with the vote's IoU there (the seed-aware
-    t interval, clusters = spacecraft; :func:`pipeline.stats.paired_seed_image_t`)."""
+def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], device: str,
+                 saved: Path | None = None) -> dict:
+    """Plain reaches its labels? The saved ``plain-s<seed>.pt`` runs (in ``saved``, else beside ``artifacts``)
+    scored on their own TRAINING images against the reference masks, paired per seed and image with the vote's IoU
+    there (the seed-aware t interval, clusters = spacecraft; :func:`pipeline.stats.paired_seed_image_t`).  Each
+    seed's per-image scores (:func:`scores`) are kept, so that :func:`compare_fits` can pair two such documents."""
     import torch
 
+    saved = Path(saved) if saved is not None else artifacts.parent
     data = load_data(artifacts, cfg)
     train = data[SUPERVISED_CEILING]
     gt = np.asarray(train.mask).astype(bool)
     vote = image_ious(np.asarray(data[STAGE_ONE].mask).astype(bool), gt)
-    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest").df
-    clusters = manifest["spacecraft"].to_numpy()[(manifest["split"] == "train").to_numpy()].astype(str)
+    clusters = train_spacecraft(artifacts)
     if len(clusters) != len(vote):
         raise SystemExit("past_labels: the training images are not the manifest's train rows")
-    fits = {}
+    runs = {}
     for s in seeds:
         model = build_model(get_method(STAGE_ONE), cfg, s)
-        model.load_state_dict(torch.load(artifacts.parent / f"plain-s{s}.pt", map_location="cpu", weights_only=True))
-        fits[s] = np.asarray(scores(model.eval(), data, device)["train_ious"])
-    t, c = np.stack([fits[s] for s in seeds]), np.stack([vote] * len(seeds))
+        model.load_state_dict(torch.load(saved / f"plain-s{s}.pt", map_location="cpu", weights_only=True))
+        runs[s] = scores(model.eval(), data, device)
+    t, c = np.stack([runs[s]["train_ious"] for s in seeds]), np.stack([vote] * len(seeds))
     iv = paired_seed_image_t(t, c, clusters, 0.95)
     gain = float(np.mean(t - c))
-    return {"seeds": seeds, "images": len(vote), "plain": {str(s): float(f.mean()) for s, f in fits.items()},
+    return {"seeds": seeds, "images": len(vote), "saved": str(saved),
+            "plain": {str(s): float(np.mean(r["train_ious"])) for s, r in runs.items()},
             "vote": float(vote.mean()), "plain_minus_vote": gain, "low": float(iv.low), "high": float(iv.high),
             "verdict": claim_status(gain, float(iv.low), float(iv.high), None, n_seeds=len(seeds)),
+            "vote_train_ious": [float(v) for v in vote], "runs": {str(s): r for s, r in runs.items()},
             "what": "Image IoU on the training images against their reference masks (score only), Plain at its "
                     "calibrated tau; teacher = the synthetic benchmark's SIMULATOR"}
+
+
+def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: Path, ci: float = 0.95) -> dict:
+    """``other`` − ``base``, two :func:`fit_of_saved` documents of the same artifacts (say, Plain at 1x and at 2x
+    the optimizer steps), paired by their common seeds and by image: on the training images' fit and on the test
+    images (the seed-aware t interval, clusters = spacecraft); and each document's fit against the vote and test
+    IoU per group as a share of the vote's (the moonshot's readout).  One seed holds no seed noise: its verdict
+    says so (:func:`pipeline.stats.claim_status`)."""
+    seeds = sorted(set(base["runs"]) & set(other["runs"]), key=int)
+    if not seeds:
+        raise SystemExit("past_labels --compare-fits: the two documents share no seed")
+    manifest, test = scored_test_rows(artifacts)
+    groups = manifest.df["group"].to_numpy()[test].astype(str)
+    where = {"train": ("train_ious", train_spacecraft(artifacts), np.ones(len(base["vote_train_ious"]), bool)),
+             **{g: ("image_ious", test_spacecraft(artifacts), groups == g) for g in dict.fromkeys(groups)},
+             ALL: ("image_ious", test_spacecraft(artifacts), np.ones(len(groups), bool))}
+    rows = []
+    for name, (key, clusters, sel) in where.items():
+        t = np.stack([np.asarray(other["runs"][s][key])[sel] for s in seeds])
+        c = np.stack([np.asarray(base["runs"][s][key])[sel] for s in seeds])
+        iv = paired_seed_image_t(t, c, clusters[sel], ci)
+        gain = float(np.mean(t - c))
+        rows.append({"images": name, "seeds": [int(s) for s in seeds], "base": float(c.mean()),
+                     "other": float(t.mean()), "gain": gain, "low": float(iv.low), "high": float(iv.high),
+                     "verdict": claim_status(gain, float(iv.low), float(iv.high), None, n_seeds=len(seeds))})
+
+    def of_vote(doc):
+        rs = [doc["runs"][s] for s in seeds]
+        return {g: float(np.mean([r["groups"][g] for r in rs]) / rs[0]["vote_groups"][g]) for g in rs[0]["groups"]}
+
+    return {"seeds": [int(s) for s in seeds], "gains": rows, "base_of_vote": of_vote(base),
+            "other_of_vote": of_vote(other),
+            "fit_minus_vote": {"base": {k: base[k] for k in ("plain_minus_vote", "low", "high", "verdict")},
+                               "other": {k: other[k] for k in ("plain_minus_vote", "low", "high", "verdict")}},
+            "what": "other - base, Plain's Image IoU at its calibrated tau, paired by seed and image; the train row "
+                    "scores the training images against their reference masks (score only); teacher = the "
+                    "synthetic benchmark's SIMULATOR"}
 
 
 _DATA: dict = {}
@@ -242,6 +283,12 @@ def test_spacecraft(artifacts: Path) -> np.ndarray:
     return manifest.df["spacecraft"].to_numpy()[test].astype(str)
 
 
+def train_spacecraft(artifacts: Path) -> np.ndarray:
+    """The spacecraft of each training image, in the order of a run's ``train_ious`` (the manifest's train rows)."""
+    manifest = open_artifact(catalog.path("manifest", artifacts), "manifest").df
+    return manifest["spacecraft"].to_numpy()[(manifest["split"] == "train").to_numpy()].astype(str)
+
+
 def gains(runs: list[dict], spacecraft: np.ndarray, groups: np.ndarray, floor: Mapping[str, float],
           control: str = "plain", ci: float = 0.95) -> list[dict]:
     """Each variant minus ``control`` per test group, paired by seed and image: the seed-aware t interval
@@ -331,6 +378,18 @@ def table(doc: Mapping[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def fits_table(doc: Mapping[str, Any]) -> str:
+    """Markdown of :func:`compare_fits`: the paired gains, then each side's test IoU as a share of the vote's."""
+    lines = ["| images | seeds | base | other | other - base [95 % CI] | verdict |", "|---|---|---|---|---|---|"]
+    lines += [f"| {r['images']} | {len(r['seeds'])} | {r['base']:.3f} | {r['other']:.3f} | {r['gain']:+.3f} "
+              f"[{r['low']:+.3f}, {r['high']:+.3f}] | {r['verdict']} |" for r in doc["gains"]]
+    groups = list(doc["base_of_vote"])
+    lines += ["", "| of the vote | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups)]
+    lines += [f"| {side} | " + " | ".join(f"{doc[side + '_of_vote'][g]:.2f}" for g in groups) + " |"
+              for side in ("base", "other")]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> dict:
     ap = parser(__doc__, artifacts=None, workdir="past_labels", profile="reduced", resolution=64, epochs=None,
                 seeds=[42], device="cpu", jobs=1, threads=2, out="past_labels.json", set=[])
@@ -346,7 +405,20 @@ def main(argv=None) -> dict:
     ap.add_argument("--fit-of-saved", action="store_true",
                     help="train nothing: score the saved plain-s<seed>.pt beside the artifacts on their own training "
                          "images against the vote's fit there (:func:`fit_of_saved`)")
+    ap.add_argument("--saved-dir", type=Path, default=None,
+                    help="--fit-of-saved: where the plain-s<seed>.pt lie (default: beside the artifacts)")
+    ap.add_argument("--compare-fits", nargs=2, type=Path, default=None, metavar=("BASE_JSON", "OTHER_JSON"),
+                    help="train nothing: OTHER - BASE, two --fit-of-saved outputs of the same artifacts "
+                         "(--artifacts), paired by seed and image (:func:`compare_fits`)")
     args = ap.parse_args(argv)
+    if args.compare_fits:
+        if not args.artifacts:
+            ap.error("--compare-fits needs --artifacts (the runs' artifacts)")
+        base, other = (json.loads(Path(p).read_text()) for p in args.compare_fits)
+        doc = compare_fits(base, other, Path(args.artifacts))
+        Path(args.out).write_text(json.dumps(doc, indent=1))
+        print(fits_table(doc))
+        return doc
     if args.combine:
         key = f"{load_profile(args.profile, args.sets)['train']['recipe']}@{args.profile}-{args.resolution}"
         doc = combine(args.combine, key, args.noise_floor)
@@ -365,7 +437,7 @@ def main(argv=None) -> dict:
     if args.epochs is not None:
         base["epochs_stage1"] = args.epochs
     if args.fit_of_saved:
-        doc = fit_of_saved(artifacts, {**base, **VARIANTS["plain"][0]}, args.seeds, device)
+        doc = fit_of_saved(artifacts, {**base, **VARIANTS["plain"][0]}, args.seeds, device, args.saved_dir)
         Path(args.out).write_text(json.dumps(doc, indent=1))
         print(f"fit on the training images: Plain {np.mean(list(doc['plain'].values())):.3f} vs the vote "
               f"{doc['vote']:.3f}: {doc['plain_minus_vote']:+.3f} [{doc['low']:+.3f}, {doc['high']:+.3f}] "

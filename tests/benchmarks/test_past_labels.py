@@ -49,6 +49,22 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
     assert fit["images"] == runs["plain"]["n_train"] and fit["verdict"] == "one seed"
     assert fit["plain"]["1"] == pytest.approx(sum(runs["plain"]["train_ious"]) / fit["images"])
     assert fit["plain_minus_vote"] == pytest.approx(fit["plain"]["1"] - fit["vote"])
+    assert fit["runs"]["1"]["image_ious"] == runs["plain"]["image_ious"]  # the test images too, per image
+    # two fit documents paired by seed and image (say 1x and 2x the steps): a saved run in its own folder, lifted
+    moved = tmp_path / "saved"
+    moved.mkdir()
+    (moved / "plain-s1.pt").write_bytes((tiny.parent / "plain-s1.pt").read_bytes())
+    fit2 = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1",
+                             "--fit-of-saved", "--saved-dir", str(moved), "--out", str(tmp_path / "fit2.json")])
+    assert fit2["runs"] == fit["runs"] and fit2["saved"] == str(moved)
+    fit2["runs"]["1"]["train_ious"] = [v + 0.1 for v in fit2["runs"]["1"]["train_ious"]]
+    (tmp_path / "fit2.json").write_text(json.dumps(fit2))
+    cmp = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--compare-fits",
+                            str(tmp_path / "fit.json"), str(tmp_path / "fit2.json"), "--out", str(tmp_path / "c.json")])
+    rows = {r["images"]: r for r in cmp["gains"]}
+    assert rows["train"]["gain"] == pytest.approx(0.1) and rows[past_labels.ALL]["gain"] == 0
+    assert set(rows) == {"train", past_labels.ALL, *fit["runs"]["1"]["groups"]} and cmp["seeds"] == [1]
+    assert cmp["base_of_vote"] == cmp["other_of_vote"] and "| train | 1 |" in capsys.readouterr().out
 
 
 def test_a_saved_run_is_scored_instead_of_trained(tiny, tmp_path):
