@@ -181,7 +181,6 @@ def _init_worker(artifacts: str, cfg: dict, threads: int) -> None:
 
     torch.set_num_threads(threads)
     _DATA.update(load_data(Path(artifacts), cfg))
-    _DATA["workdir"] = Path(artifacts).parent
 
 
 def _train_data(job: Mapping[str, Any]):
@@ -196,7 +195,7 @@ def _train_data(job: Mapping[str, Any]):
     data = _DATA[STAGE_ONE]
     if kind == "voted":
         return data, 0
-    saved = _DATA["workdir"] / f"plain-s{job['seed']}.pt"
+    saved = Path(job["saved"]) / f"plain-s{job['seed']}.pt"
     if not saved.exists():
         raise RuntimeError(f"{saved}: run variant plain at seed {job['seed']} first")
     model = build_model(get_method(STAGE_ONE), job["cfg"], job["seed"])
@@ -237,7 +236,7 @@ def run_one(job: dict) -> dict:
     method = SUPERVISED_CEILING if VARIANTS[job["variant"]][1] == "reference" else STAGE_ONE
     model, steps, stopped, curve, source = _trained(job, method, data)
     if job["variant"] == "plain":  # self-training's starting point
-        torch.save(model.state_dict(), _DATA["workdir"] / f"plain-s{job['seed']}.pt")
+        torch.save(model.state_dict(), Path(job["saved"]) / f"plain-s{job['seed']}.pt")
     out = {"variant": job["variant"], "method": job["method"], "trained": method, "seed": job["seed"],
            "steps_run": steps, "stopped": stopped, "images_seen": int(steps) * int(job["cfg"]["batch_size"]),
            "relabel_passes": relabel, "n_train": len(data), "val_iou_cal_curve": curve, "source": source}
@@ -406,7 +405,9 @@ def main(argv=None) -> dict:
                     help="train nothing: score the saved plain-s<seed>.pt beside the artifacts on their own training "
                          "images against the vote's fit there (:func:`fit_of_saved`)")
     ap.add_argument("--saved-dir", type=Path, default=None,
-                    help="--fit-of-saved: where the plain-s<seed>.pt lie (default: beside the artifacts)")
+                    help="where Plain's trained plain-s<seed>.pt go (self-training's start) and --fit-of-saved reads "
+                         "them (default: beside the artifacts; give each step budget its own, or a run replaces "
+                         "another's)")
     ap.add_argument("--compare-fits", nargs=2, type=Path, default=None, metavar=("BASE_JSON", "OTHER_JSON"),
                     help="train nothing: OTHER - BASE, two --fit-of-saved outputs of the same artifacts "
                          "(--artifacts), paired by seed and image (:func:`compare_fits`)")
@@ -436,20 +437,22 @@ def main(argv=None) -> dict:
     base = {**params["train"], "num_threads": args.threads}
     if args.epochs is not None:
         base["epochs_stage1"] = args.epochs
+    saved = Path(args.saved_dir) if args.saved_dir else artifacts.parent
     if args.fit_of_saved:
-        doc = fit_of_saved(artifacts, {**base, **VARIANTS["plain"][0]}, args.seeds, device, args.saved_dir)
+        doc = fit_of_saved(artifacts, {**base, **VARIANTS["plain"][0]}, args.seeds, device, saved)
         Path(args.out).write_text(json.dumps(doc, indent=1))
         print(f"fit on the training images: Plain {np.mean(list(doc['plain'].values())):.3f} vs the vote "
               f"{doc['vote']:.3f}: {doc['plain_minus_vote']:+.3f} [{doc['low']:+.3f}, {doc['high']:+.3f}] "
               f"({doc['verdict']})")
         return doc
+    saved.mkdir(parents=True, exist_ok=True)
     info = {"artifacts": str(artifacts), "device": device, "resolution": args.resolution, "profile": args.profile,
             "epochs": base["epochs_stage1"], "n_train": None, "recipe": base["recipe"], "seeds": args.seeds,
             "threads": args.threads, "jobs": args.jobs, "simulator": "the teacher is the synthetic benchmark's SIMULATOR"}
     # plain before self_training: a round starts from plain's saved model
     order = sorted(args.variants, key=lambda v: VARIANTS[v][1] == "self_training")
     jobs = [{"variant": v, "method": v, "seed": s, "device": device, "cfg": {**base, **VARIANTS[v][0]},
-             "imported": imported.get(v)} for s in args.seeds for v in order]
+             "imported": imported.get(v), "saved": str(saved)} for s in args.seeds for v in order]
     t0 = time.perf_counter()
 
     def run_all(todo):

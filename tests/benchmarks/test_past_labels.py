@@ -51,9 +51,12 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
     assert fit["plain_minus_vote"] == pytest.approx(fit["plain"]["1"] - fit["vote"])
     assert fit["runs"]["1"]["image_ious"] == runs["plain"]["image_ious"]  # the test images too, per image
     # two fit documents paired by seed and image (say 1x and 2x the steps): a saved run in its own folder, lifted
-    moved = tmp_path / "saved"
-    moved.mkdir()
-    (moved / "plain-s1.pt").write_bytes((tiny.parent / "plain-s1.pt").read_bytes())
+    moved = tmp_path / "saved"  # another step budget's run, saved in its own folder, leaves the first in place
+    before = (tiny.parent / "plain-s1.pt").read_bytes()
+    past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--epochs", "2", "--seeds", "1", "--threads",
+                      "1", "--variants", "plain", "--saved-dir", str(moved), "--out", str(tmp_path / "x2.json")])
+    assert (tiny.parent / "plain-s1.pt").read_bytes() == before and (moved / "plain-s1.pt").is_file()
+    (moved / "plain-s1.pt").write_bytes(before)
     fit2 = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1",
                              "--fit-of-saved", "--saved-dir", str(moved), "--out", str(tmp_path / "fit2.json")])
     assert fit2["runs"] == fit["runs"] and fit2["saved"] == str(moved)
