@@ -398,8 +398,8 @@ def _folder_entries(d: Path, policy: BadInputPolicy) -> list[tuple[str, Path]]:
     return [(relative_id(d, p), p) for p in found.files]
 
 
-def folder_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
-    policy = BadInputPolicy(bool(cfg.get("skip_bad")))  # refuses at once; what it lists travels in the spec
+def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | None = None) -> DatasetSpec:
+    policy = policy or BadInputPolicy(False)  # what it lists travels in the spec
     root = _root(cfg)
     img_dir = root / str(proto.get("images_dir", "images"))
     masks_name = proto.get("masks_dir", "masks")  # null: no masks at all (distill without --val-masks)
@@ -448,6 +448,7 @@ def folder_source(cfg: dict, proto: dict, where: Path) -> DatasetSpec:
 
 ADAPTERS = {"spacesense": spacesense_source, "spark": spark_source, "speedplus": speedplus_source,
             "tango": tango_source, "folder": folder_source}
+SCANNING_ADAPTERS = {"folder"}   # adapters that report unused files themselves (take the policy)
 
 
 def build_source(cfg: dict) -> DatasetSpec:
@@ -470,4 +471,8 @@ def build_source(cfg: dict) -> DatasetSpec:
         A missing root, protocol file or list, a protocol key of the wrong type, or an impossible split
         (raised by the source's reader, naming the file).
     """
-    return ADAPTERS[cfg["source"]](cfg, *load_protocol(cfg["source"], cfg.get("protocol")))
+    source = cfg["source"]
+    proto, where = load_protocol(source, cfg.get("protocol"))
+    # a scanning source refuses at once, or lists what it leaves out in DatasetSpec.skipped
+    scanning = (BadInputPolicy(bool(cfg.get("skip_bad"))),) if source in SCANNING_ADAPTERS else ()
+    return ADAPTERS[source](cfg, proto, where, *scanning)
