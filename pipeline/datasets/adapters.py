@@ -399,7 +399,7 @@ def _folder_entries(d: Path, policy: BadInputPolicy) -> list[tuple[str, Path]]:
 
 
 def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | None = None) -> DatasetSpec:
-    policy = policy or BadInputPolicy(False)
+    policy = policy or BadInputPolicy(False)  # what it lists travels in the spec
     root = _root(cfg)
     img_dir = root / str(proto.get("images_dir", "images"))
     masks_name = proto.get("masks_dir", "masks")  # null: no masks at all (distill without --val-masks)
@@ -443,7 +443,7 @@ def folder_source(cfg: dict, proto: dict, where: Path, policy: BadInputPolicy | 
     if not rows:
         raise InputError(f"{img_dir}: no files")
     return DatasetSpec(rows=_frame(rows), mask_threshold=proto.get("mask_threshold"), spacecraft_disjoint=False,
-                       protocol={"name": "folder", "file": str(where)})
+                       protocol={"name": "folder", "file": str(where)}, skipped=policy.skipped)
 
 
 ADAPTERS = {"spacesense": spacesense_source, "spark": spark_source, "speedplus": speedplus_source,
@@ -451,15 +451,14 @@ ADAPTERS = {"spacesense": spacesense_source, "spark": spark_source, "speedplus":
 SCANNING_ADAPTERS = {"folder"}   # adapters that report unused files themselves (take the policy)
 
 
-def build_source(cfg: dict, policy: BadInputPolicy | None = None) -> DatasetSpec:
+def build_source(cfg: dict) -> DatasetSpec:
     """List the rows of the real dataset named by ``data.source`` under ``data.root``, by its protocol file.
 
     Parameters
     ----------
     cfg : dict
-        The validated ``data:`` section (``source``, ``root``, ``protocol``, ``seed``, ``domain``).
-    policy : BadInputPolicy, optional
-        The bad-input policy a scanning source (``folder``) reports unusable entries to; None: refuse them.
+        The validated ``data:`` section (``source``, ``root``, ``protocol``, ``seed``, ``domain``; ``skip_bad``: a
+        scanning source, ``folder``, lists unusable entries in :attr:`DatasetSpec.skipped`, else refuses them).
 
     Returns
     -------
@@ -473,5 +472,7 @@ def build_source(cfg: dict, policy: BadInputPolicy | None = None) -> DatasetSpec
         (raised by the source's reader, naming the file).
     """
     source = cfg["source"]
-    extra = (policy or BadInputPolicy(False),) if source in SCANNING_ADAPTERS else ()
-    return ADAPTERS[source](cfg, *load_protocol(source, cfg.get("protocol")), *extra)
+    proto, where = load_protocol(source, cfg.get("protocol"))
+    # a scanning source refuses at once, or lists what it leaves out in DatasetSpec.skipped
+    scanning = (BadInputPolicy(bool(cfg.get("skip_bad"))),) if source in SCANNING_ADAPTERS else ()
+    return ADAPTERS[source](cfg, proto, where, *scanning)

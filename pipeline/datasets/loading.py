@@ -2,7 +2,9 @@
 
 RGB uint8 images, bool masks by ``foreground = value > 0`` unless a protocol sets a threshold, the header's size
 checked against ``max_pixels`` before decoding, and a decode cache keyed by (sha256, kind, resolution)
-(docs/decisions.md, "Image and mask decoding").
+(docs/decisions.md, "Image and mask decoding").  The prepare stage reads its manifest rows here: every file
+decoded once (:func:`decode_rows`, :func:`content_digest`), then the working-resolution arrays
+(:func:`iter_arrays`).
 """
 
 from __future__ import annotations
@@ -13,18 +15,19 @@ import logging
 import os
 import uuid
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
 
 from pipeline.datasets.image_header import header_size, jpeg_orientation
 from pipeline.runtime.errors import BIT_DEPTH, MAX_PIXELS, InputError, Option, caller, literal
-from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER
+from pipeline.params import AUTO_BIT_DEPTH, BIT_DEPTHS, PAPER, SPLITS
 
 __all__ = ["SUPPORTED_SUFFIXES", "BadFileError", "broken_link_reason", "pixel_limit", "check_bit_depth", "to_rgb8",
            "read_rgb", "reset_frame_warnings", "read_mask", "ColorTable", "resize_image", "probs_to_size",
            "resize_nearest", "DecodeCache", "Loaded", "load_rgb", "mask_kind", "load_mask", "load_labels",
-           "has_file", "load_row"]
+           "has_file", "load_row", "decode_rows", "content_digest", "iter_arrays"]
 
 log = logging.getLogger(__name__)
 
@@ -961,3 +964,112 @@ def _same_size(got: Loaded | None, what: str, path, img: Loaded, image_path) -> 
     if got is not None and got.native_hw != img.native_hw:
         raise BadFileError(path, f"{what} size {got.native_hw[1]}x{got.native_hw[0]} differs from image "
                                  f"{image_path} size {img.native_hw[1]}x{img.native_hw[0]}")
+
+
+def decode_rows(rows, spec, frames, size: int, cache: DecodeCache | None, policy, bar=None):
+    """Decode every file of the manifest rows once (into the cache) and fill the width, height and sha256 columns.
+
+    A row with a bad file, or a mask or part file of another size than its image, goes through the policy, which
+    lists its other files as not used (``BadInputPolicy.report_error``).  The rows, spec and policy are
+    :mod:`pipeline.datasets.manifest`'s and the bar :mod:`pipeline.runtime.progress`'s, not imported here, so
+    that a stage that reads files does not depend on them (as ``frames`` in :func:`load_row`).
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        The checked manifest rows (:func:`pipeline.datasets.manifest.check_manifest`).
+    spec : pipeline.datasets.manifest.DatasetSpec
+        The source's reading rules (mask threshold, part colours).
+    frames : pipeline.datasets.params.FrameSettings
+        How a frame file is read (``data.bit_depth``, ``data.letterbox``, ``data.max_pixels``).
+    size : int
+        The working resolution (``data.resolution``).
+    cache : DecodeCache or None
+        The decode cache (None: none).
+    policy : pipeline.datasets.manifest.BadInputPolicy
+        Refuses a bad file or lists it.
+    bar : callable, optional
+        Wraps the rows as they are decoded in a progress bar, called as
+        :func:`pipeline.runtime.progress.progress` is (``bar(iterable, total=, desc=)``); None: no bar.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The rows kept, with ``width``, ``height`` (as displayed) and ``sha256`` (of the pixels as shown).
+
+    Raises
+    ------
+    BadFileError
+        A mask or part file whose size differs from its image's, when the policy refuses it.
+    InputError
+        When no image is left, or a bad file the policy refuses.
+    """
+    kept: dict[int, Loaded] = {}   # row -> its image
+    listed = rows.itertuples(index=False)
+    for i, r in enumerate(listed if bar is None else bar(listed, total=len(rows), desc="decode")):
+        try:
+            img = load_row(r.image_path, r.mask_path, r.part_path, size, cache, frames, spec.mask_threshold,
+                           spec.part_colors)[0]
+        except BadFileError as e:  # the policy also lists the row's other files as not used
+            policy.report_error(r.image_id, e, [f for f in (r.image_path, r.mask_path, r.part_path) if has_file(f)])
+            continue
+        kept[i] = img
+    out = rows.iloc[list(kept)].reset_index(drop=True).copy()
+    out["width"] = np.asarray([im.native_hw[1] for im in kept.values()], np.int64)
+    out["height"] = np.asarray([im.native_hw[0] for im in kept.values()], np.int64)
+    out["sha256"] = [im.content_sha256 for im in kept.values()]  # an EXIF-turned file: its pixels as shown
+    for col in ("mask_path", "part_path"):
+        out[col] = [p if has_file(p) else None for p in out[col]]
+    if out.empty:
+        raise InputError("no usable images left after skipping bad files (see the skipped-files table)")
+    for split in SPLITS:
+        if not (out["split"] == split).any():
+            log.warning("split %r has no images", split)
+    return out
+
+
+def content_digest(rows) -> str:
+    """Hash the data's identity for the fingerprint: (image_id, split, group, file sha256) in manifest order.
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        Decoded manifest rows (:func:`decode_rows`).
+
+    Returns
+    -------
+    str
+        The sha256 hex digest.
+    """
+    h = hashlib.sha256()
+    for iid, split, group, s in zip(rows["image_id"], rows["split"], rows["group"], rows["sha256"]):
+        h.update(f"{iid}\0{split}\0{group}\0{s}\n".encode())
+    return h.hexdigest()
+
+
+def iter_arrays(rows, spec, frames, size: int, cache: DecodeCache | None
+                ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]]:
+    """Read each row's arrays at the working resolution, in manifest order.
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        Decoded manifest rows (:func:`decode_rows`).
+    spec : pipeline.datasets.manifest.DatasetSpec
+        The source's reading rules.
+    frames : pipeline.datasets.params.FrameSettings
+        How a frame file is read.
+    size : int
+        The working resolution S.
+    cache : DecodeCache or None
+        The decode cache (None: none).
+
+    Yields
+    ------
+    tuple
+        ``(row index, image uint8 [S,S,3], mask bool [S,S] or None, parts uint8 [S,S] or None)``.
+    """
+    for i, r in enumerate(rows.itertuples(index=False)):
+        files = load_row(r.image_path, r.mask_path, r.part_path, size, cache, frames, spec.mask_threshold,
+                         spec.part_colors)
+        yield i, *(None if f is None else f.array for f in files)

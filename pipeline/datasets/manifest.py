@@ -6,7 +6,6 @@ A bad file is a one-line :class:`InputError`, or with ``skip_bad`` a listed ``(i
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import logging
 from pathlib import Path
 from typing import Iterable
@@ -18,7 +17,7 @@ from pipeline.runtime.errors import SKIP_BAD, InputError, Option, literal
 from pipeline.params import SPLITS
 
 __all__ = ["ROW_COLUMNS", "DatasetSpec", "BadInputPolicy", "write_skipped_csv", "drop_duplicate_ids", "relative_id",
-           "enforce_spacecraft_disjoint", "check_rows", "check_manifest", "content_digest"]
+           "enforce_spacecraft_disjoint", "check_rows", "check_manifest"]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +46,8 @@ class DatasetSpec:
         Whether the protocol requires eq:spacecraft-disjoint (checked, and enforced under ``skip_bad``).
     protocol : dict
         What the protocol records, kept in the manifest metadata.
+    skipped : list of dict
+        What a scanning source left out or did not use (:attr:`BadInputPolicy.skipped` entries), listed first.
     """
 
     rows: pd.DataFrame
@@ -54,6 +55,7 @@ class DatasetSpec:
     part_colors: dict | None = None
     spacecraft_disjoint: bool = True
     protocol: dict = dataclasses.field(default_factory=dict)
+    skipped: list[dict] = dataclasses.field(default_factory=list)
 
 
 #: what a refusal suggests, ``{}`` naming ``--skip-bad`` / ``skip_bad=True`` in the caller's terms
@@ -367,7 +369,8 @@ def check_manifest(spec: DatasetSpec, policy: BadInputPolicy, where: str = "mani
     spec : DatasetSpec
         The source's rows; ``spec.spacecraft_disjoint`` says whether its protocol requires the split rule.
     policy : BadInputPolicy
-        Refuses a duplicate id or a spacecraft in two splits, or (``skip_bad``) lists it and drops the row.
+        Takes over what the source listed (``spec.skipped``); refuses a duplicate id or a spacecraft in two splits,
+        or (``skip_bad``) lists it and drops the row.
     where : str
         What the refusals name (``data.source=...``).
 
@@ -381,27 +384,10 @@ def check_manifest(spec: DatasetSpec, policy: BadInputPolicy, where: str = "mani
     InputError
         Missing columns, unknown split names or no rows (never skipped), or a refused row.
     """
+    policy.skipped.extend(spec.skipped)
     rows = check_rows(spec.rows, where)
     rows = drop_duplicate_ids(rows, policy)
     if spec.spacecraft_disjoint:
         rows = enforce_spacecraft_disjoint(rows, policy)
     return rows
 
-
-def content_digest(rows: pd.DataFrame) -> str:
-    """Hash the data's identity for the fingerprint: (image_id, split, group, file sha256) in manifest order.
-
-    Parameters
-    ----------
-    rows : pandas.DataFrame
-        Decoded manifest rows.
-
-    Returns
-    -------
-    str
-        The sha256 hex digest.
-    """
-    h = hashlib.sha256()
-    for iid, split, group, s in zip(rows["image_id"], rows["split"], rows["group"], rows["sha256"]):
-        h.update(f"{iid}\0{split}\0{group}\0{s}\n".encode())
-    return h.hexdigest()

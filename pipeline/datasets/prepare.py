@@ -19,8 +19,8 @@ from pipeline.artifacts.lineage import Meta
 from pipeline.artifacts.store import ZarrWriter, write_parquet
 from pipeline.datasets import build
 from pipeline.datasets.contact_sheet import contact_sheet, sample_for_sheet, tile
-from pipeline.datasets.loading import DecodeCache
-from pipeline.datasets.manifest import BadInputPolicy, check_manifest, content_digest
+from pipeline.datasets.loading import DecodeCache, content_digest, decode_rows, iter_arrays
+from pipeline.datasets.manifest import BadInputPolicy, check_manifest
 from pipeline.datasets.params import FrameSettings, fingerprint_params
 from pipeline.datasets.synthetic import PART_NAMES
 from pipeline.runtime.progress import progress
@@ -63,12 +63,13 @@ def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
     size = cfg["resolution"]
     frames = FrameSettings.from_params(cfg)  # data.bit_depth, letterbox, max_pixels: read here once, for the reader
     fp_data = fingerprint_params(cfg)
+    spec = build.source(cfg, out)
     policy = BadInputPolicy(cfg["skip_bad"])
-    spec = build.source(cfg, out, policy)
     rows = check_manifest(spec, policy, where=f"data.source={cfg['source']}")
     cache = DecodeCache(cfg["cache_dir"])
-    rows = build.decode_rows(rows, spec, frames, size, cache, policy)
+    rows = decode_rows(rows, spec, frames, size, cache, policy, bar=progress)
     fp_params = {"data": fp_data, "protocol": spec.protocol, "content_sha256": content_digest(rows)}
+    arrays = iter_arrays(rows, spec, frames, size, cache)  # a generator: each row is read as it is written
     ids = rows["image_id"].tolist()
     n = len(rows)
     has_parts = rows["part_path"].notna().to_numpy()
@@ -81,7 +82,7 @@ def prepare(cfg: dict, out: str | Path, meta: Callable[..., Meta]) -> Prepared:
         if has_parts.any():
             wr.create("parts", (n, size, size), np.uint8)
             wr.create("has_parts", (n,), bool)
-        for i, img, mask, parts in progress(build.iter_arrays(rows, spec, frames, size, cache), total=n, desc="write arrays"):
+        for i, img, mask, parts in progress(arrays, total=n, desc="write arrays"):
             wi.write("image", i, img)
             wr.write("mask", i, mask if mask is not None else np.zeros((size, size), bool))
             wr.write("has_mask", i, mask is not None)
@@ -108,7 +109,7 @@ def write_contact_sheet(path: Path, rows: pd.DataFrame, spec, frames: FrameSetti
     tiles = []
     for i in pick:
         r = rows.iloc[int(i)]
-        img, mask, _ = next(build.iter_arrays(rows.iloc[[int(i)]], spec, frames, size, cache))[1:]
+        img, mask, _ = next(iter_arrays(rows.iloc[[int(i)]], spec, frames, size, cache))[1:]
         tiles.append(tile(img, mask, f"{r['group']} {r['spacecraft']}", tsize))
     # atomic_path, not write_png: a stage's output, whose killed temporaries the next run removes
     with atomic_path(path) as tmp:

@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 from pipeline.datasets import loading
-from pipeline.datasets.build import iter_arrays
+from pipeline.datasets.loading import iter_arrays
 from pipeline.datasets.manifest import DatasetSpec
 from pipeline.datasets.params import FrameSettings, fingerprint_params
 from pipeline.runtime.errors import InputError

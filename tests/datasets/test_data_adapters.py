@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from pipeline.datasets import adapters, build
-from pipeline.datasets.loading import DecodeCache
+from pipeline.datasets.loading import DecodeCache, decode_rows, iter_arrays
 from pipeline.datasets.manifest import BadInputPolicy, DatasetSpec, check_manifest, spacecraft_split_violations
 from pipeline.datasets.params import FrameSettings
 from pipeline.params import PAPER
@@ -46,7 +46,7 @@ def _grey_mask(path, h=24, w=24, value=200):
 def _decode(spec, tmp_path, size=16, skip=False):
     policy = BadInputPolicy(skip)
     rows = check_manifest(spec, policy)
-    rows = build.decode_rows(rows, spec, PAPER_FRAMES, size, DecodeCache(tmp_path / "cache"), policy)
+    rows = decode_rows(rows, spec, PAPER_FRAMES, size, DecodeCache(tmp_path / "cache"), policy)
     return rows, policy
 
 
@@ -194,7 +194,7 @@ def test_speedplus_adapter(tmp_path):
     assert rows[rows.split == "train"]["mask_path"].isna().all()
     assert rows[rows.split != "train"]["mask_path"].notna().all()
     assert rows["image_path"].str.contains("/sunlamp/images/").all()
-    m = build.iter_arrays(rows[rows.split == "val"].head(1), spec, PAPER_FRAMES, 24, DecodeCache(tmp_path / "cache"))
+    m = iter_arrays(rows[rows.split == "val"].head(1), spec, PAPER_FRAMES, 24, DecodeCache(tmp_path / "cache"))
     _, _, mask, _ = next(m)
     assert mask[10, 10] and not mask[0, 0]         # 200 > 128 foreground; 100 background
     with pytest.raises(InputError, match="data.domain"):

@@ -12,8 +12,9 @@ import pytest
 import yaml
 
 from pipeline.artifacts.store import open_artifact
-from pipeline.datasets import adapters, build
-from pipeline.datasets.loading import BadFileError, ColorTable, DecodeCache, load_labels, load_mask, parts_from_colors
+from pipeline.datasets import adapters
+from pipeline.datasets.loading import (BadFileError, ColorTable, DecodeCache, decode_rows, load_labels, load_mask,
+                                       parts_from_colors)
 from pipeline.datasets.manifest import BadInputPolicy, check_manifest, spacecraft_split_violations
 from pipeline.datasets.params import FrameSettings
 from pipeline.params import PAPER
@@ -88,8 +89,7 @@ def test_spark_reader_pools_both_lists_and_splits_by_class(tmp_path):
     assert spec.spacecraft_disjoint and spec.mask_threshold == 127
     assert spec.part_colors == ColorTable({(255, 0, 0): 1, (0, 0, 255): 2}, TOL, True)
     policy = BadInputPolicy(False)
-    rows = build.decode_rows(check_manifest(spec, policy), spec, PAPER_FRAMES, S, DecodeCache(tmp_path / "c"),
-                             policy)
+    rows = decode_rows(check_manifest(spec, policy), spec, PAPER_FRAMES, S, DecodeCache(tmp_path / "c"), policy)
     assert not policy.skipped and set(rows["spacecraft"]) == set(CLASSES)
     assert rows.groupby("split")["spacecraft"].nunique().to_dict() == {"test": 2, "val": 1, "train": 3}
     assert not spacecraft_split_violations(rows)

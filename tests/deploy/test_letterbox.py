@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.datasets import loading
-from pipeline.datasets.build import iter_arrays
+from pipeline.datasets.loading import iter_arrays
 from pipeline.datasets.manifest import DatasetSpec
 from pipeline.datasets.params import FrameSettings
 from pipeline.deploy.segmenter import Segmenter
