@@ -136,12 +136,15 @@ def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], devi
                     "calibrated tau; teacher = the synthetic benchmark's SIMULATOR"}
 
 
-def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: Path, ci: float = 0.95) -> dict:
+def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: Path,
+                 floor: Mapping[str, float] | None = None, ci: float = 0.95) -> dict:
     """``other`` − ``base``, two :func:`fit_of_saved` documents of the same artifacts (say, Plain at 1x and at 2x
     the optimizer steps), paired by their common seeds and by image: on the training images' fit and on the test
     images (the seed-aware t interval, clusters = spacecraft); and each document's fit against the vote and test
-    IoU per group as a share of the vote's (the moonshot's readout).  One seed holds no seed noise: its verdict
-    says so (:func:`pipeline.stats.claim_status`)."""
+    IoU per group as a share of the vote's (the moonshot's readout).  A verdict clears the noise floor ``floor``
+    {group: IoU} where given (the training images and every test image: its largest), else the interval alone
+    decides; one seed holds no seed noise, and its verdict says so (:func:`pipeline.stats.claim_status`)."""
+    floor = dict(floor or {})
     seeds = sorted(set(base["runs"]) & set(other["runs"]), key=int)
     if not seeds:
         raise SystemExit("past_labels --compare-fits: the two documents share no seed")
@@ -156,9 +159,11 @@ def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: P
         c = np.stack([np.asarray(base["runs"][s][key])[sel] for s in seeds])
         iv = paired_seed_image_t(t, c, clusters[sel], ci)
         gain = float(np.mean(t - c))
+        g_floor = floor.get(name, max(floor.values(), default=None))
         rows.append({"images": name, "seeds": [int(s) for s in seeds], "base": float(c.mean()),
                      "other": float(t.mean()), "gain": gain, "low": float(iv.low), "high": float(iv.high),
-                     "verdict": claim_status(gain, float(iv.low), float(iv.high), None, n_seeds=len(seeds))})
+                     "noise_floor": g_floor,
+                     "verdict": claim_status(gain, float(iv.low), float(iv.high), g_floor, n_seeds=len(seeds))})
 
     def of_vote(doc):
         rs = [doc["runs"][s] for s in seeds]
@@ -379,9 +384,12 @@ def table(doc: Mapping[str, Any]) -> str:
 
 def fits_table(doc: Mapping[str, Any]) -> str:
     """Markdown of :func:`compare_fits`: the paired gains, then each side's test IoU as a share of the vote's."""
-    lines = ["| images | seeds | base | other | other - base [95 % CI] | verdict |", "|---|---|---|---|---|---|"]
+    lines = ["| images | seeds | base | other | other - base [95 % CI] | noise floor | verdict |",
+             "|---|---|---|---|---|---|---|"]
     lines += [f"| {r['images']} | {len(r['seeds'])} | {r['base']:.3f} | {r['other']:.3f} | {r['gain']:+.3f} "
-              f"[{r['low']:+.3f}, {r['high']:+.3f}] | {r['verdict']} |" for r in doc["gains"]]
+              f"[{r['low']:+.3f}, {r['high']:+.3f}] | "
+              f"{'--' if r['noise_floor'] is None else format(r['noise_floor'], '.3f')} | {r['verdict']} |"
+              for r in doc["gains"]]
     groups = list(doc["base_of_vote"])
     lines += ["", "| of the vote | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups)]
     lines += [f"| {side} | " + " | ".join(f"{doc[side + '_of_vote'][g]:.2f}" for g in groups) + " |"
@@ -408,6 +416,9 @@ def main(argv=None) -> dict:
                     help="where Plain's trained plain-s<seed>.pt go (self-training's start) and --fit-of-saved reads "
                          "them (default: beside the artifacts; give each step budget its own, or a run replaces "
                          "another's)")
+    ap.add_argument("--floor-key", default=None,
+                    help="--compare-fits: the noise floor record (<recipe>@<profile>-<resolution>) its verdicts "
+                         "clear (default: this run's own)")
     ap.add_argument("--compare-fits", nargs=2, type=Path, default=None, metavar=("BASE_JSON", "OTHER_JSON"),
                     help="train nothing: OTHER - BASE, two --fit-of-saved outputs of the same artifacts "
                          "(--artifacts), paired by seed and image (:func:`compare_fits`)")
@@ -416,7 +427,10 @@ def main(argv=None) -> dict:
         if not args.artifacts:
             ap.error("--compare-fits needs --artifacts (the runs' artifacts)")
         base, other = (json.loads(Path(p).read_text()) for p in args.compare_fits)
-        doc = compare_fits(base, other, Path(args.artifacts))
+        key = (args.floor_key
+               or f"{load_profile(args.profile, args.sets)['train']['recipe']}@{args.profile}-{args.resolution}")
+        doc = {**compare_fits(base, other, Path(args.artifacts), noise_floor(args.noise_floor, key)),
+               "noise_floor_key": key}
         Path(args.out).write_text(json.dumps(doc, indent=1))
         print(fits_table(doc))
         return doc

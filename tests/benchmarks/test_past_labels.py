@@ -68,6 +68,10 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
     assert rows["train"]["gain"] == pytest.approx(0.1) and rows[past_labels.ALL]["gain"] == 0
     assert set(rows) == {"train", past_labels.ALL, *fit["runs"]["1"]["groups"]} and cmp["seeds"] == [1]
     assert cmp["base_of_vote"] == cmp["other_of_vote"] and "| train | 1 |" in capsys.readouterr().out
+    assert rows["train"]["noise_floor"] is None  # no floor recorded for this run's key: the interval decides
+    floors = {g: 0.01 * (i + 1) for i, g in enumerate(fit["runs"]["1"]["groups"])}
+    held = {r["images"]: r["noise_floor"] for r in past_labels.compare_fits(fit, fit2, tiny, floors)["gains"]}
+    assert held == {**floors, "train": max(floors.values()), past_labels.ALL: max(floors.values())}
 
 
 def test_a_saved_run_is_scored_instead_of_trained(tiny, tmp_path):
