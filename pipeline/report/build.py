@@ -28,7 +28,7 @@ from pipeline.report import tables as T
 from pipeline.report.analysis import (epoch_swings, fixed_tau_findings, gate_analysis, select_noise_floor, size_split,
                                       tau_text, teacher_domain_quality, teacher_prompt_quality, teacher_vote_means)
 from pipeline.report.document import Figure, Missing, Report, Section, Table, Text
-from pipeline.report.environment import environment_section, opened_runs, training_runs
+from pipeline.report.environment import ending_table, environment_section, opened_runs, training_runs
 from pipeline.report.glossary import glossary_section
 from pipeline.teacher_table import find_teacher, is_simulator
 from pipeline.thresholds import mask_from_probs
@@ -575,7 +575,7 @@ def training_section(inp: Inputs, plots: dict) -> list:
     return [_figure("fig:training-curves", "Training curves", "Validation Image IoU per epoch (mean over "
                     "seeds per method; a warm-started Stage-II run is drawn after its Stage-I run's last epoch, at "
                     "its seed).", img,
-                    "training_curves")]
+                    "training_curves"), *([ending_table(inp.runs)] if inp.runs else [])]
 
 
 @_section("Qualitative results")

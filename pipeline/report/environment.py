@@ -14,7 +14,7 @@ from pipeline.runtime.errors import ArtifactError
 from pipeline.evaluation.inference import iter_runs
 from pipeline.report.document import Section, Table, Text
 
-__all__ = ["opened_runs", "training_runs", "environment_record", "environment_section"]
+__all__ = ["opened_runs", "training_runs", "environment_record", "environment_section", "ending_table"]
 
 #: ``extra.autocast`` of a checkpoint -> the precision as the report names it
 PRECISION_TEXT = {"bfloat16": "bf16 autocast", "float16": "fp16 autocast", "fp32": "fp32"}
@@ -60,13 +60,17 @@ def training_runs(checkpoints: str | Path) -> list[dict[str, Any]]:
     -------
     list of dict
         One record per run (:func:`opened_runs`): ``method``, ``seed``, ``recipe`` (``train.recipe``),
-        ``precision`` (the autocast it used), ``runtime`` (``extra.runtime``) and ``torch`` (its version); each
-        is None where the run did not record it.
+        ``precision`` (the autocast it used), ``runtime`` (``extra.runtime``), ``torch`` (its version), and how it
+        ended: ``steps`` (optimizer steps run), ``epochs``, ``stopped`` (the rule that ended it) and ``selection``
+        (the weights it returned); each is None where the run did not record it.
     """
     # unvalidated: the params each run recorded (a run before train.recipe has none)
     return [{"method": method, "seed": int(seed), "recipe": (c.meta.params.get("params") or {}).get("train.recipe"),
              "precision": (c.meta.extra or {}).get("autocast"), "runtime": (c.meta.extra or {}).get("runtime"),
-             "torch": (c.meta.library_versions or {}).get("torch")} for method, seed, c in opened_runs(checkpoints)]
+             "torch": (c.meta.library_versions or {}).get("torch"),
+             **{k: (c.meta.extra or {}).get(key) for k, key in (("steps", "steps_run"), ("epochs", "epochs"),
+                                                                ("stopped", "stopped"), ("selection", "selection"))}}
+            for method, seed, c in opened_runs(checkpoints)]
 
 
 def environment_record(env: Mapping[str, Any] | None, runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -108,6 +112,35 @@ def training_table(runs: Sequence[Mapping[str, Any]]) -> Table:
                  ["Runs", "Device", "Precision", "torch threads", "CPU", "torch CPU kernels", "CPU flags", "torch"],
                  rows, notes=["Precision = the autocast actually used (train.precision resolved on that device); "
                               "threads = torch.get_num_threads() during training."])
+
+
+def ending_table(runs: Sequence[Mapping[str, Any]]) -> Table:
+    """Tabulate how each training run ended: its steps and epochs, the rule that stopped it, the weights it returned.
+
+    Parameters
+    ----------
+    runs : sequence of Mapping
+        The training runs' records (:func:`training_runs`); runs of one method that ended alike share a row.
+
+    Returns
+    -------
+    Table
+        Method, seeds, steps, epochs, what stopped the run and the returned weights.  A run with steps but no stop
+        recorded trained its fixed epochs (Stage II); one without steps did not record them (an older run).
+    """
+    groups: dict[tuple, list[str]] = {}
+    for r in runs:
+        steps = r.get("steps")
+        stopped = r.get("stopped") or ("its fixed epochs (no stopping rule)" if steps is not None else NOT_RECORDED)
+        key = (r["method"], NOT_RECORDED if steps is None else f"{steps:,}",
+               NOT_RECORDED if r.get("epochs") is None else str(r["epochs"]), stopped,
+               r.get("selection") or NOT_RECORDED)
+        groups.setdefault(key, []).append(str(r["seed"]))
+    rows = [[key[0], ", ".join(seeds), *key[1:]] for key, seeds in groups.items()]
+    return Table("tab:training-ending", "How each training run ended (from its checkpoint's meta.json)",
+                 ["Method", "Seeds", "Optimizer steps", "Epochs", "Stopped by", "Returned weights"], rows,
+                 notes=["A run stopped by its epochs cap has not shown a plateau: its curve may still rise there "
+                        "(docs/student.md)."])
 
 
 def software_table(env: Mapping[str, Any]) -> Table:

@@ -95,6 +95,22 @@ def test_training_table_groups_identical_runs_and_says_what_is_missing():
     assert rows[1][:4] == ["continuation s42", R.NOT_RECORDED, R.NOT_RECORDED, R.NOT_RECORDED]
 
 
+def test_ending_table_says_what_stopped_each_run_and_groups_seeds_that_ended_alike():
+    cap = "the epochs cap (train.epochs_stage1)"
+    avg = "mean weights of the last 4 epochs (BN statistics recomputed)"
+    runs = [{"method": "plain", "seed": s, "steps": 7480, "epochs": 220, "stopped": cap, "selection": avg}
+            for s in (42, 3407)]
+    runs += [{"method": "plain", "seed": 7, "steps": 5440, "epochs": 160, "stopped": "the plateau rule",
+              "selection": avg},
+             {"method": "geodistill", "seed": 42, "steps": 680, "epochs": 20, "stopped": None, "selection": avg},
+             {"method": "continuation", "seed": 42}]  # an older run: nothing recorded
+    rows = R.ending_table(runs).rows
+    assert rows[0] == ["plain", "42, 3407", "7,480", "220", cap, avg]
+    assert rows[1][:5] == ["plain", "7", "5,440", "160", "the plateau rule"]
+    assert rows[2][4] == "its fixed epochs (no stopping rule)"
+    assert rows[3] == ["continuation", "42", *[R.NOT_RECORDED] * 4]
+
+
 def test_environment_section_renders_software_machine_and_runs():
     env = E.collect()
     sec = R.environment_section(env, [])
