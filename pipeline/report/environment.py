@@ -12,6 +12,7 @@ from typing import Any, Mapping, Sequence
 from pipeline.artifacts.store import open_artifact
 from pipeline.runtime.errors import ArtifactError
 from pipeline.evaluation.inference import iter_runs
+from pipeline.methods import method_label
 from pipeline.report.document import Section, Table, Text
 
 __all__ = ["opened_runs", "training_runs", "environment_record", "environment_section", "ending_table"]
@@ -120,7 +121,8 @@ def ending_table(runs: Sequence[Mapping[str, Any]]) -> Table:
     Parameters
     ----------
     runs : sequence of Mapping
-        The training runs' records (:func:`training_runs`); runs of one method that ended alike share a row.
+        The training runs' records (:func:`training_runs`); runs of one method that ended alike share a row, the
+        method named by its label (the ceiling's says it is not annotation-free).
 
     Returns
     -------
@@ -132,7 +134,7 @@ def ending_table(runs: Sequence[Mapping[str, Any]]) -> Table:
     for r in runs:
         steps = r.get("steps")
         stopped = r.get("stopped") or ("its fixed epochs (no stopping rule)" if steps is not None else NOT_RECORDED)
-        key = (r["method"], NOT_RECORDED if steps is None else f"{steps:,}",
+        key = (method_label(r["method"]), NOT_RECORDED if steps is None else f"{steps:,}",
                NOT_RECORDED if r.get("epochs") is None else str(r["epochs"]), stopped,
                r.get("selection") or NOT_RECORDED)
         groups.setdefault(key, []).append(str(r["seed"]))

@@ -4,6 +4,7 @@ text, the lock comparison, this installation against requirements/lock.txt, and 
 from __future__ import annotations
 
 from pipeline.artifacts import provenance as E
+from pipeline.methods import method_label
 from pipeline.report import environment as R
 from pipeline.report.document import Report, render_markdown
 
@@ -104,11 +105,14 @@ def test_ending_table_says_what_stopped_each_run_and_groups_seeds_that_ended_ali
               "selection": avg},
              {"method": "geodistill", "seed": 42, "steps": 680, "epochs": 20, "stopped": None, "selection": avg},
              {"method": "continuation", "seed": 42}]  # an older run: nothing recorded
+    runs += [{"method": "supervised_ceiling", "seed": 42, "steps": 7480, "epochs": 220, "stopped": cap}]
     rows = R.ending_table(runs).rows
-    assert rows[0] == ["plain", "42, 3407", "7,480", "220", cap, avg]
-    assert rows[1][:5] == ["plain", "7", "5,440", "160", "the plateau rule"]
+    plain = method_label("plain")
+    assert rows[0] == [plain, "42, 3407", "7,480", "220", cap, avg]
+    assert rows[1][:5] == [plain, "7", "5,440", "160", "the plateau rule"]
     assert rows[2][4] == "its fixed epochs (no stopping rule)"
-    assert rows[3] == ["continuation", "42", *[R.NOT_RECORDED] * 4]
+    assert rows[3] == [method_label("continuation"), "42", *[R.NOT_RECORDED] * 4]
+    assert "not annotation-free" in rows[4][0]  # the ceiling is labelled as such in every table
 
 
 def test_environment_section_renders_software_machine_and_runs():

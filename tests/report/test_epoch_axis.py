@@ -47,7 +47,7 @@ def test_both_training_curve_figures_draw_the_shared_axis(monkeypatch):
         return line_plot(series, title, xlabel, ylabel, **kw)
 
     monkeypatch.setattr(build.F, "line_plot", recording)
-    inp = SimpleNamespace(logs=LOGS, no_masks=False, fixed_tau=0.5, need=lambda *a: [])
+    inp = SimpleNamespace(logs=LOGS, no_masks=False, fixed_tau=0.5, need=lambda *a: [], runs=[])
     build.training_section(inp, {})
     build.epoch_calibrated_figure(LOGS, 0.5)
     assert set(drawn) == {"val Image IoU", "val Image IoU at calibrated tau"}
