@@ -150,9 +150,10 @@ def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: P
         raise SystemExit("past_labels --compare-fits: the two documents share no seed")
     manifest, test = scored_test_rows(artifacts)
     groups = manifest.df["group"].to_numpy()[test].astype(str)
+    craft = test_spacecraft(artifacts)
     where = {"train": ("train_ious", train_spacecraft(artifacts), np.ones(len(base["vote_train_ious"]), bool)),
-             **{g: ("image_ious", test_spacecraft(artifacts), groups == g) for g in dict.fromkeys(groups)},
-             ALL: ("image_ious", test_spacecraft(artifacts), np.ones(len(groups), bool))}
+             **{g: ("image_ious", craft, groups == g) for g in dict.fromkeys(groups)},
+             ALL: ("image_ious", craft, np.ones(len(groups), bool))}
     rows = []
     for name, (key, clusters, sel) in where.items():
         t = np.stack([np.asarray(other["runs"][s][key])[sel] for s in seeds])
@@ -423,20 +424,20 @@ def main(argv=None) -> dict:
                     help="train nothing: OTHER - BASE, two --fit-of-saved outputs of the same artifacts "
                          "(--artifacts), paired by seed and image (:func:`compare_fits`)")
     args = ap.parse_args(argv)
+    # the noise floor record of this run's configuration (reports/noise_floor.json)
+    own_key = f"{load_profile(args.profile, args.sets)['train']['recipe']}@{args.profile}-{args.resolution}"
     if args.compare_fits:
         if not args.artifacts:
             ap.error("--compare-fits needs --artifacts (the runs' artifacts)")
         base, other = (json.loads(Path(p).read_text()) for p in args.compare_fits)
-        key = (args.floor_key
-               or f"{load_profile(args.profile, args.sets)['train']['recipe']}@{args.profile}-{args.resolution}")
+        key = args.floor_key or own_key
         doc = {**compare_fits(base, other, Path(args.artifacts), noise_floor(args.noise_floor, key)),
                "noise_floor_key": key}
         Path(args.out).write_text(json.dumps(doc, indent=1))
         print(fits_table(doc))
         return doc
     if args.combine:
-        key = f"{load_profile(args.profile, args.sets)['train']['recipe']}@{args.profile}-{args.resolution}"
-        doc = combine(args.combine, key, args.noise_floor)
+        doc = combine(args.combine, own_key, args.noise_floor)
         Path(args.out).write_text(json.dumps(doc, indent=1))
         print(table(doc))
         return doc
