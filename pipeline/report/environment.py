@@ -127,8 +127,9 @@ def ending_table(runs: Sequence[Mapping[str, Any]]) -> Table:
     Returns
     -------
     Table
-        Method, seeds, steps, epochs, what stopped the run and the returned weights.  A run with steps but no stop
-        recorded trained its fixed epochs (Stage II); one without steps did not record them (an older run).
+        Method, seeds (in numeric order), steps, epochs, what stopped the run and the returned weights.  A run with
+        steps but no stop recorded trained its fixed epochs (Stage II, or a recipe without a stopping rule); one
+        without steps did not record them (an older run).
     """
     groups: dict[tuple, list[str]] = {}
     for r in runs:
@@ -137,8 +138,8 @@ def ending_table(runs: Sequence[Mapping[str, Any]]) -> Table:
         key = (method_label(r["method"]), NOT_RECORDED if steps is None else f"{steps:,}",
                NOT_RECORDED if r.get("epochs") is None else str(r["epochs"]), stopped,
                r.get("selection") or NOT_RECORDED)
-        groups.setdefault(key, []).append(str(r["seed"]))
-    rows = [[key[0], ", ".join(seeds), *key[1:]] for key, seeds in groups.items()]
+        groups.setdefault(key, []).append(int(r["seed"]))
+    rows = [[key[0], ", ".join(map(str, sorted(seeds))), *key[1:]] for key, seeds in groups.items()]
     return Table("tab:training-ending", "How each training run ended (from its checkpoint's meta.json)",
                  ["Method", "Seeds", "Optimizer steps", "Epochs", "Stopped by", "Returned weights"], rows,
                  notes=["A run stopped by its epochs cap has not shown a plateau: its curve may still rise there "
