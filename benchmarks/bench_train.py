@@ -6,10 +6,13 @@ then a profile of one step at ``--profile-size``: FLOPs per step against the hos
 loss, backward, optimizer).  Both variants train the loop's own epochs (:func:`pipeline.training.loop.train_epoch`)
 on an in-memory synthetic set (ellipse + bar on noise), with ``distill``'s augmentation; only the precision and the
 memory format differ.  ``--compile`` adds ``distill``'s settings with ``torch.compile`` of the model's training
-forward (and so its backward), and reports its final loss beside eager's; ``--epochs N`` trains each variant N
-epochs and scores held-out images (validation Image IoU / Boundary F1).
+forward (and so its backward), and reports its final loss beside eager's; ``--batches N ...`` adds ``distill``'s
+settings at each other batch size to the same round-robin (does a larger batch feed the matrix units faster? images
+per second; the learning rate that batch needs is a training question, not timed here); ``--epochs N`` trains each
+variant N epochs and scores held-out images (validation Image IoU / Boundary F1).
 
-    python -m benchmarks.bench_train [--sizes 64 128 384] [--threads 2] [--reps 3] [--compile] [--out FILE]
+    python -m benchmarks.bench_train [--sizes 64 128 384] [--threads 2] [--reps 3] [--compile] [--batches 16 32]
+        [--out FILE]
 """
 
 from __future__ import annotations
@@ -69,13 +72,22 @@ def train_data(images: np.ndarray, masks: np.ndarray) -> TrainData:
                      area=masks.reshape(n, -1).mean(1).astype(np.float32), gate=np.ones(n, np.float32))
 
 
-def variants(overrides: list[str] = ()) -> dict[str, dict]:
+def batch_variant(batch: int) -> str:
+    """The name of :data:`PROFILE`'s settings at another batch size (``--batches``)."""
+    return f"{PROFILE} @ batch {batch}"
+
+
+def variants(overrides: list[str] = (), batches: list[int] = ()) -> dict[str, dict]:
     """``{name: train section}``: fp32 eager NCHW and :data:`PROFILE`'s own settings, both with the rest of
-    :data:`PROFILE`'s train section; every epoch at the timed side (no half-side epochs), no stopping rule."""
+    :data:`PROFILE`'s train section; every epoch at the timed side (no half-side epochs), no stopping rule.
+    Each of ``batches`` other than the profile's own adds :data:`PROFILE`'s settings at that batch size
+    (:func:`batch_variant`)."""
 
     train = load_profile(PROFILE, overrides)["train"]
     train.update({"num_threads": 0, "low_res_fraction": 0.0, "until": "epochs", "epochs_stage1": 10_000})
-    return {BASELINE: {**train, "precision": "fp32", "channels_last": False}, PROFILE: train}
+    out = {BASELINE: {**train, "precision": "fp32", "channels_last": False}, PROFILE: train}
+    out.update({batch_variant(b): {**train, "batch_size": int(b)} for b in batches if b != train["batch_size"]})
+    return out
 
 
 def open_run(cfg: Mapping[str, Any], data: TrainData, device, seed: int, compiled: bool = False):
@@ -111,12 +123,13 @@ def epoch_timer(run) -> Callable[[int], float]:
     return one
 
 
-def speed_rows(times: Mapping[str, list[float]], n_images: int, batch: int) -> dict[str, dict]:
-    """Per variant: its epoch seconds, their median and minimum, images per second of each and seconds a step."""
-    steps = -(-n_images // batch)
+def speed_rows(times: Mapping[str, list[float]], n_images: int, batches: Mapping[str, int]) -> dict[str, dict]:
+    """Per variant: its epoch seconds, their median and minimum, images per second of each and seconds a step
+    (``batches``: each variant's batch size)."""
     return {name: {"epoch_seconds": list(t), "median_seconds": statistics.median(t), "min_seconds": min(t),
                    "images_per_second": n_images / statistics.median(t), "images_per_second_best": n_images / min(t),
-                   "seconds_per_step": statistics.median(t) / steps} for name, t in times.items()}
+                   "batch_size": batches[name], "seconds_per_step": statistics.median(t) / -(-n_images // batches[name])}
+            for name, t in times.items()}
 
 
 def step_flops(run, size: int) -> int:
@@ -220,6 +233,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--profile-size", type=int, default=128, help="side of the one-step profile (0 = none)")
     ap.add_argument("--profile-steps", type=int, default=5)
     ap.add_argument("--compile", action="store_true", help="also time distill's settings under torch.compile")
+    ap.add_argument("--batches", type=int, nargs="+", default=[],
+                    help=f"also time {PROFILE}'s settings at these batch sizes (images per second)")
     ap.add_argument("--epochs", type=int, default=0, help="accuracy runs of this many epochs (0 = none)")
     ap.add_argument("--val-images", type=int, default=16)
     ap.add_argument("--seed", type=int, default=42)
@@ -232,13 +247,14 @@ def main(argv=None) -> dict:
     device = resolve_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
-    cfgs = variants(args.sets)
+    cfgs = variants(args.sets, args.batches)
     batch = int(cfgs[PROFILE]["batch_size"])
     out: dict[str, Any] = {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__,
                            "images": args.images, "batch_size": batch, "reps": args.reps, "sizes": {},
                            "settings": {name: {"precision": c["precision"], "channels_last": c["channels_last"]}
                                         for name, c in cfgs.items()}}
     names = list(cfgs) + ([f"{PROFILE} + torch.compile"] if args.compile else [])
+    batches = {name: int(cfgs[name.split(" + ")[0]]["batch_size"]) for name in names}
     for size in args.sizes:
         images, masks = synthetic_set(args.images, size, args.seed)
         data = train_data(images, masks)
@@ -250,7 +266,7 @@ def main(argv=None) -> dict:
         round_robin(cases, 1)  # warm-up: oneDNN primitives, the allocator, torch.compile's compilation
         warm = time.perf_counter() - t0
         times = round_robin(cases, max(args.reps, 1), order="rotate")
-        rows = speed_rows(times, args.images, batch)
+        rows = speed_rows(times, args.images, batches)
         for name, run in runs.items():
             rows[name].update(autocast=run.run_key["autocast"], loss_after=cases[name].state["loss"])
         out["sizes"][str(size)] = {"variants": rows, "warmup_seconds": warm, "load_before": load_before,
@@ -259,6 +275,8 @@ def main(argv=None) -> dict:
                                    "speedup_min": rows[BASELINE]["min_seconds"] / rows[PROFILE]["min_seconds"],
                                    # each round's pair ran back to back: its ratio sees the same load
                                    "speedup_rounds": [b / f for b, f in zip(times[BASELINE], times[PROFILE])]}
+        out["sizes"][str(size)]["batch_speedup_median"] = {
+            name: rows[BASELINE]["median_seconds"] / rows[name]["median_seconds"] for name in cfgs if name != BASELINE}
         if args.compile:
             c = rows[names[-1]]
             out["sizes"][str(size)]["compile_speedup_median"] = rows[PROFILE]["median_seconds"] / c["median_seconds"]
@@ -267,7 +285,7 @@ def main(argv=None) -> dict:
         limits = host_limits() if device.type == "cpu" else None  # the CPU's matmul peaks; none on a GPU
         images, masks = synthetic_set(max(args.images, batch), args.profile_size, args.seed)
         data = train_data(images, masks)
-        prof, runs = {}, {name: open_run(cfg, data, device, args.seed) for name, cfg in cfgs.items()}
+        prof, runs = {}, {name: open_run(cfgs[name], data, device, args.seed) for name in (BASELINE, PROFILE)}
         # one step of each variant a round, so that the host's load hits both alike
         spans = round_robin({name: (lambda i, run=run: step_profile(run, 1)) for name, run in runs.items()},
                             1 + args.profile_steps, order="rotate")
@@ -289,7 +307,7 @@ def main(argv=None) -> dict:
                       masks=masks[args.images:])
         out["accuracy"] = {"size": args.sizes[0], "epochs": args.epochs,
                            "variants": {name: accuracy(cfg, data, val, device, args.seed, args.epochs)
-                                        for name, cfg in cfgs.items()}}
+                                        for name, cfg in cfgs.items() if name in (BASELINE, PROFILE)}}
     print_summary(out)
     if args.out:
 
@@ -314,6 +332,9 @@ def print_summary(out: Mapping) -> None:
               f"{r['speedup_min']:.2f}x of the minima, per round "
               f"{', '.join(f'{x:.2f}' for x in r['speedup_rounds'])}"
               + (f"; torch.compile / eager: {r['compile_speedup_median']:.2f}x" if "compile_speedup_median" in r else ""))
+        for name, x in r.get("batch_speedup_median", {}).items():
+            if name != PROFILE:
+                print(f"{size:>5s} speed-up {name} / {BASELINE} (batch {out['batch_size']}): {x:.2f}x median")
     if "profile" in out:
         p = out["profile"]
         lim = p["host_limits"] or {}

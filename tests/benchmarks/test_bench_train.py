@@ -45,3 +45,25 @@ def test_bench_train_times_distill_s_settings_and_profiles_one_step():
         # a training step's forward + backward: about three forwards (the backward computes two products a layer)
         assert 2.5 <= v["gflop_per_step"] * 1e9 / forward.get_total_flops() <= 3.5
         assert v["limit_seconds"] == pytest.approx(v["gflop_per_step"] / v["peak_gflops"])
+
+
+def test_bench_train_times_distill_s_settings_at_other_batch_sizes():
+    from benchmarks import bench_train
+    from pipeline.profiles import load_profile
+
+    own = load_profile("distill")["train"]["batch_size"]
+    threads = torch.get_num_threads()
+    try:
+        out = bench_train.main(["--images", "4", "--sizes", "32", "--reps", "1", "--profile-size", "0",
+                                "--threads", "1", "--set", "train.channels=[4,8,16]", "--batches", "2", str(own)])
+    finally:
+        torch.set_num_threads(threads)
+    rows, size = out["sizes"]["32"]["variants"], out["sizes"]["32"]
+    # the profile's own batch is not timed twice; batch 2 is distill's settings at that batch
+    assert set(rows) == {"fp32 eager NCHW", "distill", bench_train.batch_variant(2)}
+    assert out["settings"][bench_train.batch_variant(2)] == out["settings"]["distill"]
+    other = rows[bench_train.batch_variant(2)]
+    assert other["batch_size"] == 2 and rows["distill"]["batch_size"] == own
+    assert other["seconds_per_step"] == pytest.approx(other["median_seconds"] / 2)  # 4 images, 2 a step
+    assert size["batch_speedup_median"][bench_train.batch_variant(2)] == pytest.approx(
+        rows["fp32 eager NCHW"]["median_seconds"] / other["median_seconds"])
