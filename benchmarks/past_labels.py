@@ -31,6 +31,7 @@ from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.metrics import image_ious
 from pipeline.profiles import load_profile
+from pipeline.report.dvc_results import distillation_efficiency
 from pipeline.runtime.device import resolve_device
 from pipeline.stats import claim_status, paired_seed_image_t
 from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
@@ -141,7 +142,8 @@ def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: P
     """``other`` − ``base``, two :func:`fit_of_saved` documents of the same artifacts (say, Plain at 1x and at 2x
     the optimizer steps), paired by their common seeds and by image: on the training images' fit and on the test
     images (the seed-aware t interval, clusters = spacecraft); and each document's fit against the vote and test
-    IoU per group as a share of the vote's (the moonshot's readout).  A verdict clears the noise floor ``floor``
+    IoU per group as a share of the vote's, with its interval over the seeds (the moonshot's readout;
+    :func:`pipeline.report.dvc_results.distillation_efficiency`, NaN at one seed).  A verdict clears the noise floor ``floor``
     {group: IoU} where given (the training images and every test image: its largest), else the interval alone
     decides; one seed holds no seed noise, and its verdict says so (:func:`pipeline.stats.claim_status`)."""
     floor = dict(floor or {})
@@ -166,12 +168,17 @@ def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: P
                      "noise_floor": g_floor,
                      "verdict": claim_status(gain, float(iv.low), float(iv.high), g_floor, n_seeds=len(seeds))})
 
-    def of_vote(doc):
+    def of_vote(doc):  # {group: (ratio, low, high)}, the report's distillation efficiency over the seeds
         rs = [doc["runs"][s] for s in seeds]
-        return {g: float(np.mean([r["groups"][g] for r in rs]) / rs[0]["vote_groups"][g]) for g in rs[0]["groups"]}
+        return {g: distillation_efficiency(float(np.mean(m := [r["groups"][g] for r in rs])),
+                                           float(np.std(m, ddof=1)) if len(m) > 1 else float("nan"), len(m),
+                                           rs[0]["vote_groups"][g], ci)
+                for g in rs[0]["groups"]}
 
-    return {"seeds": [int(s) for s in seeds], "gains": rows, "base_of_vote": of_vote(base),
-            "other_of_vote": of_vote(other),
+    sides = {"base": of_vote(base), "other": of_vote(other)}
+    return {"seeds": [int(s) for s in seeds], "gains": rows,
+            **{f"{side}_of_vote": {g: r[0] for g, r in v.items()} for side, v in sides.items()},
+            "of_vote_interval": {side: {g: [r[1], r[2]] for g, r in v.items()} for side, v in sides.items()},
             "fit_minus_vote": {"base": {k: base[k] for k in ("plain_minus_vote", "low", "high", "verdict")},
                                "other": {k: other[k] for k in ("plain_minus_vote", "low", "high", "verdict")}},
             "what": "other - base, Plain's Image IoU at its calibrated tau, paired by seed and image; the train row "
@@ -393,7 +400,9 @@ def fits_table(doc: Mapping[str, Any]) -> str:
               for r in doc["gains"]]
     groups = list(doc["base_of_vote"])
     lines += ["", "| of the vote | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups)]
-    lines += [f"| {side} | " + " | ".join(f"{doc[side + '_of_vote'][g]:.2f}" for g in groups) + " |"
+    ivs = doc.get("of_vote_interval", {})  # documents written before the intervals have none
+    lines += [f"| {side} | " + " | ".join(f"{doc[side + '_of_vote'][g]:.2f}" + (
+        " [{:.2f}, {:.2f}]".format(*ivs[side][g]) if side in ivs else "") for g in groups) + " |"
               for side in ("base", "other")]
     return "\n".join(lines)
 

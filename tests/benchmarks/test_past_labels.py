@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from benchmarks import past_labels
+from pipeline.report.dvc_results import distillation_efficiency
 
 
 def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
@@ -72,6 +74,18 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
     floors = {g: 0.01 * (i + 1) for i, g in enumerate(fit["runs"]["1"]["groups"])}
     held = {r["images"]: r["noise_floor"] for r in past_labels.compare_fits(fit, fit2, tiny, floors)["gains"]}
     assert held == {**floors, "train": max(floors.values()), past_labels.ALL: max(floors.values())}
+    # the moonshot's readout over three seeds: each group's share of the vote with the report's interval
+    three = {**fit, "runs": {str(s): {**fit["runs"]["1"], "groups": {g: v * f for g, v in
+                                                                      fit["runs"]["1"]["groups"].items()}}
+                             for s, f in ((1, 0.9), (2, 1.0), (3, 1.2))}}
+    moon = past_labels.compare_fits(three, three, tiny)
+    assert moon["seeds"] == [1, 2, 3]
+    for g, v in fit["runs"]["1"]["groups"].items():
+        vote = fit["runs"]["1"]["vote_groups"][g]
+        want = distillation_efficiency(v * 31 / 30, float(np.std([0.9 * v, v, 1.2 * v], ddof=1)), 3, vote)
+        assert moon["other_of_vote"][g] == pytest.approx(want[0])
+        assert moon["of_vote_interval"]["other"][g] == pytest.approx(list(want[1:]))
+        assert f"{want[0]:.2f} [{want[1]:.2f}, {want[2]:.2f}]" in past_labels.fits_table(moon)
 
 
 def test_a_saved_run_is_scored_instead_of_trained(tiny, tmp_path):
