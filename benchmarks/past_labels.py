@@ -23,6 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from benchmarks.common import parser, resumed_runs, run_jobs
+from benchmarks.memorisation import COUNTS, REGIONS, band_px, error_counts, region_labels, thin_radius
 from benchmarks.study_recipe import (add_data_size_options, build_artifacts, data_size_sets, load_study_data,
                                      scored_test_rows)
 from pipeline import catalog
@@ -92,7 +93,8 @@ def scores(model, data: Mapping[str, Any], device) -> dict:
     vp = predict_probs(model, data["val"].images, device=device, precision="fp32")
     tau, _ = calibrate_threshold(vp, data["val"].masks, EPOCH_TAU_GRID)
     tp = predict_probs(model, data["test_images"], device=device, precision="fp32")
-    ious = image_ious(mask_from_probs(tp, tau), data["test_masks"])
+    pred = mask_from_probs(tp, tau)
+    ious = image_ious(pred, data["test_masks"])
     vote = image_ious(data["test_voted"], data["test_masks"])
     groups = data["test_groups"]
     train = data[SUPERVISED_CEILING]  # the training images with their reference masks, in the vote's order
@@ -101,7 +103,25 @@ def scores(model, data: Mapping[str, Any], device) -> dict:
     return {"tau_cal": float(tau), "iou_cal": float(ious.mean()), "image_ious": [float(v) for v in ious],
             "groups": {g: float(ious[groups == g].mean()) for g in dict.fromkeys(groups)},
             "vote_groups": {g: float(vote[groups == g].mean()) for g in dict.fromkeys(groups)},
-            "train_ious": [float(v) for v in fit]}
+            "train_ious": [float(v) for v in fit],
+            **({"test_region_counts": error_counts(pred, data["test_masks"], data["test_voted"],
+                                                   data["test_regions"]).tolist()} if "test_regions" in data else {})}
+
+
+def region_deficit(doc: Mapping[str, Any], groups: np.ndarray, seeds: list[str]) -> dict[str, dict[str, dict]]:
+    """Where the student loses to the vote on the test images: per group and region
+    (:data:`benchmarks.memorisation.REGIONS`), the pixels per image it gets wrong where the vote is right (``own``),
+    those it gets right where the vote is wrong (``corrected``) and ``net`` = own − corrected, means over ``seeds``
+    of ``doc``'s runs (their ``test_region_counts``, :func:`fit_of_saved`)."""
+    counts = np.mean([np.asarray(doc["runs"][s]["test_region_counts"], np.float64) for s in seeds], axis=0)
+    vote_wrong, copied, _, own_wrong = (counts[..., COUNTS.index(c)] for c in COUNTS)
+    out = {}
+    for g in dict.fromkeys(groups):
+        sel = groups == g
+        own, corrected = own_wrong[sel].mean(0), (vote_wrong - copied)[sel].mean(0)
+        out[str(g)] = {r: {"own": float(own[k]), "corrected": float(corrected[k]), "net": float(own[k] - corrected[k])}
+                       for k, r in enumerate(REGIONS)}
+    return out
 
 
 def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], device: str,
@@ -109,11 +129,15 @@ def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], devi
     """Plain reaches its labels? The saved ``plain-s<seed>.pt`` runs (in ``saved``, else beside ``artifacts``)
     scored on their own TRAINING images against the reference masks, paired per seed and image with the vote's IoU
     there (the seed-aware t interval, clusters = spacecraft; :func:`pipeline.stats.paired_seed_image_t`).  Each
-    seed's per-image scores (:func:`scores`) are kept, so that :func:`compare_fits` can pair two such documents."""
+    seed's per-image scores (:func:`scores`) are kept, so that :func:`compare_fits` can pair two such documents;
+    with them each test image's error counts per region against the vote
+    (:func:`benchmarks.memorisation.error_counts`)."""
     import torch
 
     saved = Path(saved) if saved is not None else artifacts.parent
     data = load_data(artifacts, cfg)
+    side = int(np.asarray(data["test_masks"]).shape[-1])
+    data["test_regions"] = region_labels(data["test_masks"], data["test_voted"], band_px(side), thin_radius(side))
     train = data[SUPERVISED_CEILING]
     gt = np.asarray(train.mask).astype(bool)
     vote = image_ious(np.asarray(data[STAGE_ONE].mask).astype(bool), gt)
@@ -143,7 +167,8 @@ def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: P
     the optimizer steps), paired by their common seeds and by image: on the training images' fit and on the test
     images (the seed-aware t interval, clusters = spacecraft); and each document's fit against the vote and test
     IoU per group as a share of the vote's, with its interval over the seeds (the moonshot's readout;
-    :func:`pipeline.report.dvc_results.distillation_efficiency`, NaN at one seed).  A verdict clears the noise floor ``floor``
+    :func:`pipeline.report.dvc_results.distillation_efficiency`, NaN at one seed); and, where both documents hold
+    them, each side's :func:`region_deficit` (where on the test images it loses to the vote).  A verdict clears the noise floor ``floor``
     {group: IoU} where given (the training images and every test image: its largest), else the interval alone
     decides; one seed holds no seed noise, and its verdict says so (:func:`pipeline.stats.claim_status`)."""
     floor = dict(floor or {})
@@ -179,6 +204,8 @@ def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: P
     return {"seeds": [int(s) for s in seeds], "gains": rows,
             **{f"{side}_of_vote": {g: r[0] for g, r in v.items()} for side, v in sides.items()},
             "of_vote_interval": {side: {g: [r[1], r[2]] for g, r in v.items()} for side, v in sides.items()},
+            **({"regions": {side: region_deficit(doc, groups, seeds) for side, doc in (("base", base), ("other", other))}}
+               if all("test_region_counts" in d["runs"][s] for d in (base, other) for s in seeds) else {}),
             "fit_minus_vote": {"base": {k: base[k] for k in ("plain_minus_vote", "low", "high", "verdict")},
                                "other": {k: other[k] for k in ("plain_minus_vote", "low", "high", "verdict")}},
             "what": "other - base, Plain's Image IoU at its calibrated tau, paired by seed and image; the train row "
@@ -404,6 +431,12 @@ def fits_table(doc: Mapping[str, Any]) -> str:
     lines += [f"| {side} | " + " | ".join(f"{doc[side + '_of_vote'][g]:.2f}" + (
         " [{:.2f}, {:.2f}]".format(*ivs[side][g]) if side in ivs else "") for g in groups) + " |"
               for side in ("base", "other")]
+    if "regions" in doc:
+        lines += ["", "| test pixels per image the student gets wrong where the vote is right, less those it corrects "
+                  "| " + " | ".join(REGIONS) + " | total |", "|---|" + "---|" * (len(REGIONS) + 1)]
+        lines += [f"| {side} {g} | " + " | ".join(f"{by[r]['net']:+.1f}" for r in REGIONS)
+                  + f" | {sum(v['net'] for v in by.values()):+.1f} |"
+                  for side in ("base", "other") for g, by in doc["regions"][side].items()]
     return "\n".join(lines)
 
 

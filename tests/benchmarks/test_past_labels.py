@@ -70,6 +70,9 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
     assert rows["train"]["gain"] == pytest.approx(0.1) and rows[past_labels.ALL]["gain"] == 0
     assert set(rows) == {"train", past_labels.ALL, *fit["runs"]["1"]["groups"]} and cmp["seeds"] == [1]
     assert cmp["base_of_vote"] == cmp["other_of_vote"] and "| train | 1 |" in capsys.readouterr().out
+    # where each side loses to the vote, per group and region: the same saved model on both sides
+    assert cmp["regions"]["base"] == cmp["regions"]["other"] and set(cmp["regions"]["base"]) == set(
+        fit["runs"]["1"]["groups"])
     assert rows["train"]["noise_floor"] is None  # no floor recorded for this run's key: the interval decides
     floors = {g: 0.01 * (i + 1) for i, g in enumerate(fit["runs"]["1"]["groups"])}
     held = {r["images"]: r["noise_floor"] for r in past_labels.compare_fits(fit, fit2, tiny, floors)["gains"]}
@@ -142,3 +145,22 @@ def test_the_pooled_row_takes_every_image_and_the_largest_floor():
     rows = {r["group"]: r for r in past_labels.gains(runs, np.repeat(list("abcdef"), 2), groups, {"A": 0.01, "B": 0.03})}
     assert set(rows) == {"A", "B", past_labels.ALL}
     assert rows[past_labels.ALL]["gain"] == pytest.approx(0.04) and rows[past_labels.ALL]["noise_floor"] == 0.03
+
+
+def test_region_deficit_counts_own_errors_less_corrections_per_group_and_seed():
+    from benchmarks.memorisation import COUNTS, REGIONS
+
+    def counts(own_boundary, copied_blob):  # 3 images: [image, region, count]
+        c = np.zeros((3, len(REGIONS), len(COUNTS)), int)
+        c[:, REGIONS.index("boundary"), COUNTS.index("own_wrong")] = own_boundary
+        c[:, REGIONS.index("fp_blob"), COUNTS.index("vote_wrong")] = 10
+        c[:, REGIONS.index("fp_blob"), COUNTS.index("copied")] = copied_blob
+        return c.tolist()
+
+    doc = {"runs": {"1": {"test_region_counts": counts([4, 6, 1], [10, 10, 2])},
+                    "2": {"test_region_counts": counts([6, 8, 3], [10, 10, 6])}}}
+    out = past_labels.region_deficit(doc, np.array(["a", "a", "b"]), ["1", "2"])
+    assert out["a"]["boundary"] == {"own": 6.0, "corrected": 0.0, "net": 6.0}  # (4 + 6 + 6 + 8) / 4
+    # group b: 10 of the vote's wrong blob pixels, 2 then 6 copied: 8 then 4 corrected
+    assert out["b"]["fp_blob"] == {"own": 0.0, "corrected": 6.0, "net": -6.0}
+    assert out["b"]["boundary"]["net"] == 2.0 and out["a"]["thin"]["net"] == 0.0
