@@ -17,6 +17,7 @@ scores (``scores/final.npz``) when ``--workdir-root`` is given, else only the JS
 from __future__ import annotations
 
 import json
+import zlib
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -128,7 +129,6 @@ def comparisons(rows: list[dict], base: str, seed: int = 0) -> list[dict]:
     list of dict
         One comparison per non-base row.
     """
-    rng = np.random.default_rng(seed)
     ref = {r["method"]: r for r in rows if r["label"] == base}
     out = []
     for r in rows:
@@ -138,7 +138,9 @@ def comparisons(rows: list[dict], base: str, seed: int = 0) -> list[dict]:
         c = {"method": r["method"], "label": r["label"], "minus": base,
              "unpaired": round(r["final_iou_ref"][0] - b["final_iou_ref"][0], 4)}
         if r["per_image"] and b["per_image"]:
-            c["paired"] = paired(b["per_image"], r["per_image"], rng)
+            # a stream of its own per comparison: its interval does not move when another run is added
+            key = zlib.crc32(f"{r['method']}|{r['label']}|{base}".encode())
+            c["paired"] = paired(b["per_image"], r["per_image"], np.random.default_rng([seed, key]))
             c["verdict"] = verdict(c["paired"])
         out.append(c)
     return out

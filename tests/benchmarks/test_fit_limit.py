@@ -40,3 +40,7 @@ def test_fit_limit_pairs_runs_per_image(tmp_path):
     assert by["wide"]["verdict"] == "no difference detected" and abs(by["wide"]["paired"][0]) < 0.005
     assert [r["channels"] for r in doc["runs"]][-1] == "[36,72,144]"
     assert fig.stat().st_size > 1000 and json.loads((tmp_path / "out.json").read_text())["info"]["base"] == "1x"
+    # a comparison's interval is its own: the same without the 2x run beside it
+    alone = fit_limit.main(["--run", f"1x={one}", "--run", f"wide={same}", "--workdir-root", str(tmp_path / "work"),
+                            "--out", str(tmp_path / "alone.json")])
+    assert alone["comparisons"][0]["paired"] == by["wide"]["paired"]
