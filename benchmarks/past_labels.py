@@ -72,6 +72,8 @@ VARIANTS: dict[str, tuple[dict, str, str]] = {
 CEILING = "ceiling"
 #: the gains' pooled row: every scored test image, held to the largest group's noise floor
 ALL = "all"
+#: the taus at which --fit-of-saved scores the test images for :func:`tau_transfer` (a diagnosis only)
+TAU_DIAGNOSIS = tuple(round(0.3 + 0.05 * k, 2) for k in range(14))
 #: self-training's fusion (pipeline.training.self_training.fused_targets)
 FUSION, FUSION_WEIGHT = "mix", 0.5
 
@@ -105,7 +107,28 @@ def scores(model, data: Mapping[str, Any], device) -> dict:
             "vote_groups": {g: float(vote[groups == g].mean()) for g in dict.fromkeys(groups)},
             "train_ious": [float(v) for v in fit],
             **({"test_region_counts": error_counts(pred, data["test_masks"], data["test_voted"],
-                                                   data["test_regions"]).tolist()} if "test_regions" in data else {})}
+                                                   data["test_regions"]).tolist(),
+                # a DIAGNOSIS of the threshold's transfer, never a choice: test IoU per group at each tau of
+                # TAU_DIAGNOSIS (picking tau on the test images would be test leakage)
+                "test_tau_curve": {g: [float(image_ious(mask_from_probs(tp, t), data["test_masks"])[groups == g].mean())
+                                       for t in TAU_DIAGNOSIS] for g in dict.fromkeys(groups)}}
+               if "test_regions" in data else {})}
+
+
+def tau_transfer(doc: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+    """A DIAGNOSIS, not a method: per test group, the seeds' mean test IoU at their calibrated tau and at the
+    single tau of :data:`TAU_DIAGNOSIS` that is best on the test images (an oracle), each also as a share of the
+    vote's IoU there; from :func:`fit_of_saved`'s ``test_tau_curve``.  How much of the gap to the vote is the
+    threshold's transfer from the validation images."""
+    runs = list(doc["runs"].values())
+    out = {}
+    for g, vote in runs[0]["vote_groups"].items():
+        curve = np.mean([r["test_tau_curve"][g] for r in runs], axis=0)
+        k = int(np.argmax(curve))
+        cal = float(np.mean([r["groups"][g] for r in runs]))
+        out[g] = {"calibrated_taus": [r["tau_cal"] for r in runs], "calibrated": cal, "calibrated_of_vote": cal / vote,
+                  "oracle_tau": float(TAU_DIAGNOSIS[k]), "oracle": float(curve[k]), "oracle_of_vote": float(curve[k]) / vote}
+    return out
 
 
 def region_deficit(doc: Mapping[str, Any], groups: np.ndarray, seeds: list[str]) -> dict[str, dict[str, dict]]:
@@ -501,6 +524,10 @@ def main(argv=None) -> dict:
         print(f"fit on the training images: Plain {np.mean(list(doc['plain'].values())):.3f} vs the vote "
               f"{doc['vote']:.3f}: {doc['plain_minus_vote']:+.3f} [{doc['low']:+.3f}, {doc['high']:+.3f}] "
               f"({doc['verdict']})")
+        for g, v in tau_transfer(doc).items():
+            print(f"{g}: test IoU {v['calibrated']:.3f} at the calibrated tau ({v['calibrated_of_vote']:.2f} of the "
+                  f"vote); {v['oracle']:.3f} at tau {v['oracle_tau']:.2f}, the test images' best "
+                  f"({v['oracle_of_vote']:.2f}; an oracle, a diagnosis only)")
         return doc
     saved.mkdir(parents=True, exist_ok=True)
     info = {"artifacts": str(artifacts), "device": device, "resolution": args.resolution, "profile": args.profile,

@@ -52,6 +52,16 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
     assert fit["plain"]["1"] == pytest.approx(sum(runs["plain"]["train_ious"]) / fit["images"])
     assert fit["plain_minus_vote"] == pytest.approx(fit["plain"]["1"] - fit["vote"])
     assert fit["runs"]["1"]["image_ious"] == runs["plain"]["image_ious"]  # the test images too, per image
+    # the threshold's transfer (a diagnosis): the oracle tau's IoU is the curve's best, never below the calibrated
+    # tau's when that tau is on the diagnosis grid
+    transfer = past_labels.tau_transfer(fit)
+    for g, v in transfer.items():
+        curve = fit["runs"]["1"]["test_tau_curve"][g]
+        assert len(curve) == len(past_labels.TAU_DIAGNOSIS) and v["oracle"] == max(curve)
+        assert v["oracle_tau"] == past_labels.TAU_DIAGNOSIS[curve.index(max(curve))]
+        assert v["calibrated"] == fit["runs"]["1"]["groups"][g]
+        if round(fit["runs"]["1"]["tau_cal"], 2) in past_labels.TAU_DIAGNOSIS:
+            assert v["oracle"] >= v["calibrated"] - 1e-9
     # two fit documents paired by seed and image (say 1x and 2x the steps): a saved run in its own folder, lifted
     moved = tmp_path / "saved"  # another step budget's run, saved in its own folder, leaves the first in place
     before = (tiny.parent / "plain-s1.pt").read_bytes()
