@@ -23,7 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from benchmarks.common import parser, resumed_runs, run_jobs
-from benchmarks.memorisation import COUNTS, REGIONS, band_px, error_counts, region_labels, thin_radius
+from benchmarks.memorisation import REGIONS, band_px, error_counts, region_labels, thin_radius
 from benchmarks.study_recipe import (add_data_size_options, build_artifacts, data_size_sets, load_study_data,
                                      scored_test_rows)
 from pipeline import catalog
@@ -110,9 +110,14 @@ def scores(model, data: Mapping[str, Any], device) -> dict:
                                                    data["test_regions"]).tolist(),
                 # a DIAGNOSIS of the threshold's transfer, never a choice: test IoU per group at each tau of
                 # TAU_DIAGNOSIS (picking tau on the test images would be test leakage)
-                "test_tau_curve": {g: [float(image_ious(mask_from_probs(tp, t), data["test_masks"])[groups == g].mean())
-                                       for t in TAU_DIAGNOSIS] for g in dict.fromkeys(groups)}}
+                "test_tau_curve": tau_curve(tp, data["test_masks"], groups)}
                if "test_regions" in data else {})}
+
+
+def tau_curve(probs: np.ndarray, masks: np.ndarray, groups: np.ndarray) -> dict[str, list[float]]:
+    """{group: mean Image IoU at each tau of :data:`TAU_DIAGNOSIS`}: each threshold scored once over every image."""
+    ious = np.stack([image_ious(mask_from_probs(probs, t), masks) for t in TAU_DIAGNOSIS])  # [taus, images]
+    return {g: [float(row[groups == g].mean()) for row in ious] for g in dict.fromkeys(groups)}
 
 
 def tau_transfer(doc: Mapping[str, Any]) -> dict[str, dict[str, float]]:
@@ -137,7 +142,7 @@ def region_deficit(doc: Mapping[str, Any], groups: np.ndarray, seeds: list[str])
     those it gets right where the vote is wrong (``corrected``) and ``net`` = own − corrected, means over ``seeds``
     of ``doc``'s runs (their ``test_region_counts``, :func:`fit_of_saved`)."""
     counts = np.mean([np.asarray(doc["runs"][s]["test_region_counts"], np.float64) for s in seeds], axis=0)
-    vote_wrong, copied, _, own_wrong = (counts[..., COUNTS.index(c)] for c in COUNTS)
+    vote_wrong, copied, _, own_wrong = np.moveaxis(counts, -1, 0)  # the COUNTS, in their order
     out = {}
     for g in dict.fromkeys(groups):
         sel = groups == g
