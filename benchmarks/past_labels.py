@@ -29,7 +29,7 @@ from benchmarks.study_recipe import (add_data_size_options, build_artifacts, dat
 from pipeline import catalog
 from pipeline.artifacts.store import open_artifact
 from pipeline.evaluation.inference import predict_probs
-from pipeline.methods import STAGE_ONE, SUPERVISED_CEILING, get_method
+from pipeline.methods import CONTINUATION, PROPOSED, STAGE_ONE, SUPERVISED_CEILING, get_method
 from pipeline.metrics import image_ious
 from pipeline.profiles import load_profile
 from pipeline.report.dvc_results import distillation_efficiency
@@ -74,14 +74,16 @@ CEILING = "ceiling"
 ALL = "all"
 #: the taus at which --fit-of-saved scores the test images for :func:`tau_transfer` (a diagnosis only)
 TAU_DIAGNOSIS = tuple(round(0.3 + 0.05 * k, 2) for k in range(14))
+#: --refine: the Stage-II methods a saved Plain run warm-starts (the paper's method, its budget-matched control)
+REFINE = (PROPOSED, CONTINUATION)
 #: self-training's fusion (pipeline.training.self_training.fused_targets)
 FUSION, FUSION_WEIGHT = "mix", 0.5
 
 
-def load_data(artifacts: Path, cfg: Mapping[str, Any]) -> dict:
-    """The study data of :func:`benchmarks.study_recipe.load_study_data`, the agreement-map training data, and
-    the test images' voted masks (the vote's own test IoU)."""
-    out = load_study_data(artifacts, cfg, methods=(STAGE_ONE, SUPERVISED_CEILING))
+def load_data(artifacts: Path, cfg: Mapping[str, Any], methods: tuple[str, ...] = ()) -> dict:
+    """The study data of :func:`benchmarks.study_recipe.load_study_data` (Plain's, the ceiling's and those of
+    ``methods``), the agreement-map training data, and the test images' voted masks (the vote's own test IoU)."""
+    out = load_study_data(artifacts, cfg, methods=tuple(dict.fromkeys((STAGE_ONE, SUPERVISED_CEILING, *methods))))
     out["agreement"] = load_study_data(artifacts, {**cfg, "soft_targets": True}, methods=(STAGE_ONE,))[STAGE_ONE]
     consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
     _, test = scored_test_rows(artifacts)
@@ -152,18 +154,40 @@ def region_deficit(doc: Mapping[str, Any], groups: np.ndarray, seeds: list[str])
     return out
 
 
+def refined(plain, method: str, cfg: Mapping[str, Any], data: Mapping[str, Any], seed: int, device: str,
+            saved: Path):
+    """The Stage-II ``method`` (:data:`REFINE`) warm-started from the Plain model ``plain`` of ``seed``: read from
+    ``saved``/``<method>-s<seed>.pt`` when a run left it there, else trained here (the method's own epochs and
+    targets; the continuation reads Stage I's voted masks) and saved there, so a rerun scores without training."""
+    import torch
+
+    path = saved / f"{method}-s{seed}.pt"
+    model = build_model(get_method(method), cfg, seed, init_state=plain.mask_path_state_dict())
+    if path.exists():
+        model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+        return model
+    res = training.train(get_method(method), cfg, data[method if method == PROPOSED else STAGE_ONE], data["val"],
+                         seed, checkpointer=NoCheckpointer(), init_state=plain.mask_path_state_dict(), device=device,
+                         show_progress=False)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(res.model.state_dict(), tmp)
+    tmp.replace(path)  # atomic: a killed run leaves no half-written model to be read as done
+    return res.model
+
+
 def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], device: str,
-                 saved: Path | None = None) -> dict:
+                 saved: Path | None = None, refine: str | None = None) -> dict:
     """Plain reaches its labels? The saved ``plain-s<seed>.pt`` runs (in ``saved``, else beside ``artifacts``)
     scored on their own TRAINING images against the reference masks, paired per seed and image with the vote's IoU
     there (the seed-aware t interval, clusters = spacecraft; :func:`pipeline.stats.paired_seed_image_t`).  Each
     seed's per-image scores (:func:`scores`) are kept, so that :func:`compare_fits` can pair two such documents;
     with them each test image's error counts per region against the vote
-    (:func:`benchmarks.memorisation.error_counts`)."""
+    (:func:`benchmarks.memorisation.error_counts`).  With ``refine`` (a :data:`REFINE` method) each saved Plain
+    run warm-starts that Stage-II method (:func:`refined`) and the document scores the refined model instead."""
     import torch
 
     saved = Path(saved) if saved is not None else artifacts.parent
-    data = load_data(artifacts, cfg)
+    data = load_data(artifacts, cfg, (refine,) if refine else ())
     side = int(np.asarray(data["test_masks"]).shape[-1])
     data["test_regions"] = region_labels(data["test_masks"], data["test_voted"], band_px(side), thin_radius(side))
     train = data[SUPERVISED_CEILING]
@@ -176,11 +200,13 @@ def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], devi
     for s in seeds:
         model = build_model(get_method(STAGE_ONE), cfg, s)
         model.load_state_dict(torch.load(saved / f"plain-s{s}.pt", map_location="cpu", weights_only=True))
+        if refine:
+            model = refined(model, refine, cfg, data, s, device, saved)
         runs[s] = scores(model.eval(), data, device)
     t, c = np.stack([runs[s]["train_ious"] for s in seeds]), np.stack([vote] * len(seeds))
     iv = paired_seed_image_t(t, c, clusters, 0.95)
     gain = float(np.mean(t - c))
-    return {"seeds": seeds, "images": len(vote), "saved": str(saved),
+    return {"seeds": seeds, "images": len(vote), "saved": str(saved), "method": refine or STAGE_ONE,
             "plain": {str(s): float(np.mean(r["train_ious"])) for s, r in runs.items()},
             "vote": float(vote.mean()), "plain_minus_vote": gain, "low": float(iv.low), "high": float(iv.high),
             "verdict": claim_status(gain, float(iv.low), float(iv.high), None, n_seeds=len(seeds)),
@@ -483,6 +509,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--fit-of-saved", action="store_true",
                     help="train nothing: score the saved plain-s<seed>.pt beside the artifacts on their own training "
                          "images against the vote's fit there (:func:`fit_of_saved`)")
+    ap.add_argument("--refine", choices=REFINE, default=None,
+                    help="--fit-of-saved: warm-start this Stage-II method from each saved Plain run (trained once, "
+                         "saved beside it as <method>-s<seed>.pt) and score it instead (:func:`refined`)")
     ap.add_argument("--saved-dir", type=Path, default=None,
                     help="where Plain's trained plain-s<seed>.pt go (self-training's start) and --fit-of-saved reads "
                          "them (default: beside the artifacts; give each step budget its own, or a run replaces "
@@ -524,9 +553,9 @@ def main(argv=None) -> dict:
         base["epochs_stage1"] = args.epochs
     saved = Path(args.saved_dir) if args.saved_dir else artifacts.parent
     if args.fit_of_saved:
-        doc = fit_of_saved(artifacts, {**base, **VARIANTS["plain"][0]}, args.seeds, device, saved)
+        doc = fit_of_saved(artifacts, {**base, **VARIANTS["plain"][0]}, args.seeds, device, saved, args.refine)
         Path(args.out).write_text(json.dumps(doc, indent=1))
-        print(f"fit on the training images: Plain {np.mean(list(doc['plain'].values())):.3f} vs the vote "
+        print(f"fit on the training images: {doc['method']} {np.mean(list(doc['plain'].values())):.3f} vs the vote "
               f"{doc['vote']:.3f}: {doc['plain_minus_vote']:+.3f} [{doc['low']:+.3f}, {doc['high']:+.3f}] "
               f"({doc['verdict']})")
         for g, v in tau_transfer(doc).items():

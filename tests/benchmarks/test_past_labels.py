@@ -62,6 +62,16 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
         assert v["calibrated"] == fit["runs"]["1"]["groups"][g]
         if round(fit["runs"]["1"]["tau_cal"], 2) in past_labels.TAU_DIAGNOSIS:
             assert v["oracle"] >= v["calibrated"] - 1e-9
+    # the saved Plain run warm-starts each Stage-II method once; the refined model is saved and scored instead
+    for method in past_labels.REFINE:
+        argv_r = ["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1", "--fit-of-saved",
+                  "--set", "train.epochs_stage2=1", "--refine", method, "--out", str(tmp_path / f"{method}.json")]
+        ref = past_labels.main(argv_r)
+        path = tiny.parent / f"{method}-s1.pt"
+        assert ref["method"] == method and path.is_file() and ref["runs"]["1"]["image_ious"] != fit["runs"]["1"]["image_ious"]
+        stamp = path.stat().st_mtime_ns
+        assert past_labels.main(argv_r)["runs"] == ref["runs"] and path.stat().st_mtime_ns == stamp  # not retrained
+    assert fit["method"] == "plain"
     # two fit documents paired by seed and image (say 1x and 2x the steps): a saved run in its own folder, lifted
     moved = tmp_path / "saved"  # another step budget's run, saved in its own folder, leaves the first in place
     before = (tiny.parent / "plain-s1.pt").read_bytes()
