@@ -397,7 +397,8 @@ def distill(input: str | Path, *, out: str | Path, val_masks: str | Path | None 
         False: no efficiency benchmark stage (``--no-benchmark``).
     time : str, optional
         Stage I's budget, e.g. ``"20m"`` or ``"1h30m"`` (``--time``), converted once on this host into
-        ``train.step_budget``.
+        ``train.step_budget``; a time that allows the whole run at more epochs raises ``train.epochs_stage1``
+        (:func:`pipeline.training.budget.raised_cap`).
 
     Returns
     -------

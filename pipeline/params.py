@@ -358,6 +358,13 @@ class _TrainFields(_Section):
                              "(0 = none; distill --time writes it)", ge=0)
     time_budget: str | None = _f(None, "what distill --time converted into train.step_budget (a record; not read "
                                        "by training)")
+    time_cap_factor: float = _f(4.0, "distill --time: when the time allows the whole Stage-I run at more epochs, "
+                                      "raise train.epochs_stage1 up to this multiple of it (the resolution "
+                                      "schedule scales with it; until: plateau may still stop sooner). 4 = the "
+                                      "largest measured (docs/student.md, four times the steps at 128^2); 1 = the "
+                                      "cap never moves", ge=1)
+    time_raised_from: int = _f(0, "what train.epochs_stage1 was before distill --time raised it (a record; 0 = "
+                                  "not raised; not read by training)", ge=0)
     plateau_gain: float = _f(0.005, "until: plateau: the stable phase stops when its second half gains less "
                                     "than this validation Image IoU over its first half", ge=0)
     plateau_min_epochs: int = _f(8, "until: plateau: stable epochs before the rule may stop", ge=2)

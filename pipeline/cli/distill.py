@@ -31,7 +31,9 @@ __all__ = ["main"]
 @click.option("--time", "time_budget", default=None, metavar="DURATION",
               help="bound Stage I's training, e.g. 20m or 1h30m: converted once on this host into "
                    "train.step_budget in the project's params (a rerun with the same --time does nothing; a "
-                   "longer one continues the saved run); the teacher, Stage II and export come on top")
+                   "longer one continues the saved run); a time that allows the whole run at more epochs "
+                   "raises the epochs cap, up to train.time_cap_factor times; the teacher, Stage II and export "
+                   "come on top")
 @click.option("--no-run", is_flag=True, help="only write the DVC project (run it later with `dvc repro` in --out)")
 @click.option("--no-benchmark", is_flag=True, help="leave out the efficiency benchmark of the deploy bundle "
               "(time it later: `geodistill benchmark --deploy artifacts/deploy` in --out)")

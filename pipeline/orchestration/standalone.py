@@ -442,6 +442,10 @@ def training_line(out: str | Path) -> str | None:
         return None
     why = f", stopped at {extra['stopped']}" if extra.get("stopped") else " (its fixed length)"
     low = f", the first {extra['low_res_epochs']} at half the side" if extra.get("low_res_epochs") else ""
+    train = params.get("train") or {}  # unvalidated: as above
+    if int(train.get("time_raised_from") or 0):
+        why += (f"; --time {train.get('time_budget')} raised the epochs cap from {int(train['time_raised_from'])} "
+                f"to {train.get('epochs_stage1')}")
     # unvalidated: the params the checkpoint recorded
     lever = departures((record.get("params") or {}).get("params") or {})
     lever_text = f"; with {', '.join(lever)} (a departure from eq:raw-loss)" if lever else ""

@@ -6,6 +6,8 @@ nothing.
 
 from __future__ import annotations
 
+import bisect
+import math
 import re
 import time
 from pathlib import Path
@@ -16,8 +18,8 @@ from pipeline.runtime.errors import InputError
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.runtime.device import autocast, autocast_dtype
 
-__all__ = ["PROBE_BATCH", "parse_duration", "step_seconds", "steps_for", "scheduled_steps", "training_images",
-           "with_time_budget"]
+__all__ = ["PROBE_BATCH", "parse_duration", "step_seconds", "steps_for", "scheduled_steps", "raised_cap",
+           "training_images", "with_time_budget"]
 
 _UNITS = {"s": 1, "m": 60, "h": 3600}
 
@@ -177,6 +179,54 @@ def scheduled_steps(seconds: float, full_step: float, half_step: float, cfg: Map
     return best[0] * spe + (int((seconds - best[1]) // max(full_step, 1e-9)) if cap_fits else 0)
 
 
+def raised_cap(seconds: float, full_step: float, half_step: float, cfg: Mapping[str, Any], steps_per_epoch: int,
+               factor: float) -> int:
+    """Return the Stage-I epochs cap that ``--time`` raises ``train.epochs_stage1`` to when the time allows more.
+
+    C is the largest cap in [E0, floor(``factor`` E0)] (E0 = ``train.epochs_stage1``) whose whole run fits
+    ``seconds``: its most stable epochs E with E + D(E) <= C (D = :func:`pipeline.training.schedule.decay_epochs`),
+    the first L(C) = :func:`pipeline.training.schedule.low_res_epochs` of them at half the side (t_h a step), the
+    rest and the decay at full side (t_f): spe (min(E, L) t_h + (max(E - L, 0) + D(E)) t_f) <= ``seconds``.  The
+    resolution schedule scales with the cap (``train.low_res_fraction`` is a share of it).  E0 when no larger cap
+    fits or ``factor`` < (E0 + 1) / E0: then the cap stays and the budget stops the run (:func:`scheduled_steps`).
+
+    Parameters
+    ----------
+    seconds : float
+        The time budget.
+    full_step : float
+        t_f, seconds of a full-side step (:func:`step_seconds`).
+    half_step : float
+        t_h, seconds of a half-side step (t_f where no epoch trains at half the side).
+    cfg : Mapping
+        The validated ``train`` section (``epochs_stage1``, ``decay_fraction``, ``low_res_fraction``).
+    steps_per_epoch : int
+        spe, from the training images (:func:`training_images`); at least 1 is used.
+    factor : float
+        ``train.time_cap_factor``: the cap rises to this multiple of E0 at most.
+
+    Returns
+    -------
+    int
+        C, in [E0, max(E0, floor(``factor`` E0))].
+    """
+    from pipeline.training.schedule import decay_epochs, low_res_epochs
+    from pipeline.training.settings import Settings
+
+    s = Settings.from_params(get_method(STAGE_ONE), cfg, 0.5)
+    top = max(s.epochs, math.floor(float(factor) * s.epochs))
+    spe, frac = max(1, int(steps_per_epoch)), float(cfg["low_res_fraction"] or 0)
+    ends = [e + decay_epochs(e, s.decay_fraction) for e in range(1, top + 1)]  # E + D(E), non-decreasing in E
+
+    def cost(cap: int) -> float:
+        e = bisect.bisect_right(ends, cap)  # the most stable epochs whose run ends by the cap
+        low = low_res_epochs(cap, frac)
+        return spe * (min(e, low) * half_step + (max(e - low, 0) + decay_epochs(e, s.decay_fraction)) * full_step)
+
+    # every cap is priced: one more epoch of cap can make the run cheaper (one more of them at half the side)
+    return max((c for c in range(s.epochs, top + 1) if cost(c) <= seconds), default=s.epochs)
+
+
 def training_images(input_dir: str | Path, val_masks: str | Path | None, holdout_fraction: float) -> int:
     """Count the images Stage I of ``distill`` trains on.
 
@@ -217,8 +267,10 @@ def with_time_budget(params: dict, text: str | None, previous: Mapping | None = 
     The steps are those of ``previous`` params holding the same ``text`` (no new measurement), else measured
     (:func:`step_seconds`).  Under a resolution schedule the steps are priced by :func:`scheduled_steps`, the
     half-side ones at their own probed time, over ``n_train`` training images (:func:`training_images`); without
-    ``n_train`` every step is priced at full side (fewer steps than the time allows).  A budget needs the
-    stop-and-decay schedule, so ``train.until`` becomes ``plateau``.
+    ``n_train`` every step is priced at full side (fewer steps than the time allows).  When the time allows the
+    whole run at a larger epochs cap, ``train.epochs_stage1`` rises to it (:func:`raised_cap`, up to
+    ``train.time_cap_factor`` times) and ``train.time_raised_from`` records the cap it replaced.  A budget needs
+    the stop-and-decay schedule, so ``train.until`` becomes ``plateau``.
 
     Parameters
     ----------
@@ -241,17 +293,26 @@ def with_time_budget(params: dict, text: str | None, previous: Mapping | None = 
     if text is None:
         return params
     seconds = parse_duration(text)
+    # unvalidated: the previous run's params as read (an absent key says nothing)
     old = (previous or {}).get("train") or {}
-    train, res = params["train"], int(params["data"]["resolution"])
-    if old.get("time_budget") == text and int(old.get("step_budget") or 0) > 0:
-        steps = int(old["step_budget"])
-    elif float(train["low_res_fraction"]) > 0 and n_train:
+    train, res = dict(params["train"]), int(params["data"]["resolution"])
+    base = int(train["epochs_stage1"])
+    if (old.get("time_budget") == text and int(old.get("step_budget") or 0) > 0
+            and int(old.get("time_raised_from") or old.get("epochs_stage1") or 0) == base
+            and float(old.get("time_cap_factor") or 1) == float(train["time_cap_factor"])):
+        steps, cap = int(old["step_budget"]), int(old["epochs_stage1"])
+    elif n_train:
         from pipeline.training.schedule import LOW_RES_FACTOR, steps_per_epoch
 
-        full, half = step_seconds(train, res, device), step_seconds(train, max(1, res // LOW_RES_FACTOR), device)
-        steps = scheduled_steps(seconds, full, half, train, steps_per_epoch(n_train, int(train["batch_size"])))
-    else:
-        steps = steps_for(seconds, step_seconds(train, res, device))
+        spe = steps_per_epoch(n_train, int(train["batch_size"]))
+        full, scheduled = step_seconds(train, res, device), float(train["low_res_fraction"]) > 0
+        half = step_seconds(train, max(1, res // LOW_RES_FACTOR), device) if scheduled else full
+        cap = raised_cap(seconds, full, half, train, spe, float(train["time_cap_factor"]))
+        steps = (scheduled_steps(seconds, full, half, {**train, "epochs_stage1": cap}, spe) if scheduled
+                 else steps_for(seconds, full))
+    else:  # no training images to count: every step priced at full side, the cap kept
+        steps, cap = steps_for(seconds, step_seconds(train, res, device)), base
     # a budget needs the stop-and-decay schedule
-    train = {**params["train"], "time_budget": text, "step_budget": steps, "until": "plateau"}
+    train.update(time_budget=text, step_budget=steps, until="plateau", epochs_stage1=cap,
+                 time_raised_from=base if cap > base else 0)
     return {**params, "train": train}

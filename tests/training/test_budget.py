@@ -135,3 +135,47 @@ def test_the_probe_times_the_precision_and_memory_format_that_will_train(monkeyp
     amp = autocast_dtype(torch.device("cpu"), precision)
     assert len(seen) == 3 and all(s[0] == (amp if amp is not None else False) for s in seen), seen
     assert all(s[1] == s[2] == channels_last for s in seen), seen
+
+
+def test_time_that_allows_more_raises_the_epochs_cap_with_its_schedule(monkeypatch):
+    """`progressive` (220 epochs, 160 at half the side, decay 0.2), t_f = 1 s, t_h = 0.25 s, 2 steps an epoch:
+    the whole run at cap C costs 2 (L(C) x 0.25 + (C - L(C)) x 1) s, 200 s at 220.  400 s buy the run at 440
+    (320 at half the side: 2 (80 + 120) = 400 s), never more than time_cap_factor x 220; less time keeps 220."""
+    from pipeline.methods import STAGE_ONE, get_method
+    from pipeline.training.schedule import stable_cap
+    from pipeline.training.settings import Settings
+
+    train = load_profile("distill")["train"]
+    assert budget.raised_cap(400, 1.0, 0.25, train, 2, 4.0) == 440
+    from pipeline.training.schedule import decay_epochs, low_res_epochs
+
+    def cost(cap):  # the whole run at ``cap``, priced independently: the most stable epochs that end by it
+        e = max(k for k in range(1, cap + 1) if k + decay_epochs(k, 0.2) <= cap)
+        low = low_res_epochs(cap, train["low_res_fraction"])
+        return 2 * (min(e, low) * 0.25 + (e - min(e, low) + decay_epochs(e, 0.2)) * 1.0)
+
+    for seconds in (401, 555, 777):  # the largest cap whose run fits, also where one more cap costs less
+        cap = budget.raised_cap(seconds, 1.0, 0.25, train, 2, 4.0)
+        assert cost(cap) <= seconds and all(cost(c) > seconds for c in range(cap + 1, 881))
+    assert budget.raised_cap(10_000, 1.0, 0.25, train, 2, 4.0) == 880  # the factor bounds it
+    assert budget.raised_cap(10_000, 1.0, 0.25, train, 2, 1.0) == 220  # 1: the cap never moves
+    assert budget.raised_cap(100, 1.0, 0.25, train, 2, 4.0) == 220  # the run at the cap does not fit: kept
+    monkeypatch.setattr(budget, "step_seconds", lambda cfg, res, device="cpu": 1.0 if res == 384 else 0.25)
+    params = load_profile("distill")
+    out = budget.with_time_budget(params, "400s", n_train=16)  # batch 8: 2 steps an epoch
+    t = out["train"]
+    assert (t["epochs_stage1"], t["time_raised_from"], t["step_budget"], t["until"]) == (440, 220, 880, "plateau")
+    run = Settings.from_params(get_method(STAGE_ONE), t, 0.5)
+    assert run.low_res_epochs == 320 and stable_cap(run, 2) == 352  # 352 + 88 decay = 440: the priced run
+    assert params["train"]["epochs_stage1"] == 220  # the params given are not modified
+
+    def no_probe(*a, **k):
+        raise AssertionError("measured again")
+
+    monkeypatch.setattr(budget, "step_seconds", no_probe)  # the same --time on the same cap: reused, as recorded
+    assert budget.with_time_budget(params, "400s", previous=out, n_train=16)["train"] == t
+    with pytest.raises(AssertionError, match="measured again"):  # another cap is priced again
+        budget.with_time_budget(load_profile("distill", ["train.epochs_stage1=300"]), "400s", previous=out, n_train=16)
+    monkeypatch.setattr(budget, "step_seconds", lambda cfg, res, device="cpu": 1.0 if res == 384 else 0.25)
+    kept = budget.with_time_budget(load_profile("distill", ["train.time_cap_factor=1"]), "400s", n_train=16)["train"]
+    assert (kept["epochs_stage1"], kept["time_raised_from"], kept["step_budget"]) == (220, 0, 440 + 200)  # the rest buys full-side steps

@@ -136,6 +136,12 @@ def test_distills_summary_says_how_many_epochs_ran_at_half_the_side(tmp_path):
     meta.write_text(json.dumps({"extra": extra}))
     assert training_line(tmp_path) == ("Stage I trained 7,480 optimizer steps (220 epochs, the first 160 at half the "
                                        "side), stopped at the epochs cap (train.epochs_stage1)")
+    # a cap that --time raised says so
+    (tmp_path / PARAMS_FILE).write_text(yaml.safe_dump({"protocol": {"runs": {"plain": [42]}}, "train": {
+        "time_budget": "40m", "time_raised_from": 220, "epochs_stage1": 880}}))
+    assert training_line(tmp_path).endswith("stopped at the epochs cap (train.epochs_stage1); --time 40m raised the "
+                                            "epochs cap from 220 to 880")
+    (tmp_path / PARAMS_FILE).write_text(yaml.safe_dump({"protocol": {"runs": {"plain": [42]}}}))
     meta.write_text(json.dumps({"extra": {**extra, "low_res_epochs": 0}}))
     assert "half the side" not in training_line(tmp_path)
     # a Stage I that departed from eq:raw-loss says so (its recorded params)
