@@ -48,9 +48,10 @@ from pipeline.training.inputs import read_rows
 from pipeline.training.schedule import steps_per_epoch
 
 #: setting -> the ``--set`` items that make it, over the `distill` profile. ``today``: distill before issue 63
-#: (fp32 with channels_last, the issue's "1.27x"); ``new``: the distill profile as it ships (bf16 autocast where the
-#: CPU has bf16 units, channels_last)
-SETTINGS: dict[str, list[str]] = {"today": ["train.precision=fp32"], "new": []}
+#: (fp32 with channels_last, the issue's "1.27x"; its epochs cap never moves); ``new``: the distill profile as it
+#: ships (bf16 autocast where the CPU has bf16 units, channels_last; a ``--time`` that allows more raises the
+#: epochs cap, :func:`pipeline.training.budget.raised_cap`)
+SETTINGS: dict[str, list[str]] = {"today": ["train.precision=fp32", "train.time_cap_factor=1"], "new": []}
 #: the deployed student, whose test Image IoU is compared
 DEPLOYED = "geodistill"
 
@@ -104,14 +105,17 @@ def distill_argv(folders: Mapping[str, Path], out: Path, sets: Sequence[str], ex
     return bench_distill.distill_argv(str(folders["images"]), out, teacher, sets)
 
 
-def step_budget(project: Path) -> int:
-    """The ``train.step_budget`` that ``--time`` wrote into ``project``'s params.yaml."""
-    return int(yaml.safe_load((project / catalog.PARAMS_FILE).read_text())["train"]["step_budget"])
+def step_budget(project: Path) -> tuple[int, int]:
+    """(``train.step_budget``, ``train.epochs_stage1``) that ``--time`` wrote into ``project``'s params.yaml (the
+    epochs cap, raised where the time allows more)."""
+    train = yaml.safe_load((project / catalog.PARAMS_FILE).read_text())["train"]
+    return int(train["step_budget"]), int(train["epochs_stage1"])
 
 
 def probe(folders: Mapping[str, Path], work: Path, setting: str, budget: str, sets: Sequence[str],
-          threads: int) -> int:
-    """The step budget ``--time budget`` converts for ``setting`` (a ``--no-run`` project in ``work``)."""
+          threads: int) -> tuple[int, int]:
+    """(step budget, epochs cap) that ``--time budget`` converts for ``setting`` (a ``--no-run`` project in
+    ``work``)."""
     project = work / f"probe-{setting}-{budget}"
     if not (project / catalog.PARAMS_FILE).is_file():
         bench_distill.run_command(distill_argv(folders, project, [*sets, *SETTINGS[setting],
@@ -119,12 +123,12 @@ def probe(folders: Mapping[str, Path], work: Path, setting: str, budget: str, se
     return step_budget(project)
 
 
-def cap_steps(folders: Mapping[str, Path], setting: str, sets: Sequence[str]) -> int:
-    """Stage I's steps at its epoch cap (``train.epochs_stage1`` epochs of the training images): a step budget at
-    or above it never binds, so the run is the same at every such ``--time``."""
+def cap_steps(folders: Mapping[str, Path], setting: str, sets: Sequence[str], epochs: int | None = None) -> int:
+    """Stage I's steps at its epoch cap (``epochs``, else ``train.epochs_stage1``, epochs of the training images):
+    a step budget at or above it never binds, so the run is the same at every such ``--time``."""
     train = load_profile("distill", [*sets, *SETTINGS[setting]])["train"]
     n = training_images(folders["images"], folders["masks"], train["holdout_fraction"])
-    return int(train["epochs_stage1"]) * steps_per_epoch(n, int(train["batch_size"]))
+    return int(epochs or train["epochs_stage1"]) * steps_per_epoch(n, int(train["batch_size"]))
 
 
 def project_name(setting: str, steps: int, cap: int, seed: int) -> str:
@@ -133,9 +137,12 @@ def project_name(setting: str, steps: int, cap: int, seed: int) -> str:
     return f"{setting}-{min(steps, cap)}-s{seed}"
 
 
-def run_sets(setting: str, seed: int, budget: str, steps: int, sets: Sequence[str], threads: int) -> list[str]:
-    """The ``--set`` items of one run: the setting, its fixed step budget (what ``--time`` writes), the seed."""
-    return [*sets, *SETTINGS[setting], f"train.time_budget={budget}", f"train.step_budget={steps}",
+def run_sets(setting: str, seed: int, budget: str, steps: int, sets: Sequence[str], threads: int,
+             epochs: int | None = None) -> list[str]:
+    """The ``--set`` items of one run: the setting, its fixed step budget and epochs cap (what ``--time`` writes;
+    ``epochs`` None: the profile's cap), the seed."""
+    cap = [f"train.epochs_stage1={epochs}"] if epochs is not None else []
+    return [*sets, *SETTINGS[setting], f"train.time_budget={budget}", f"train.step_budget={steps}", *cap,
             "train.until=plateau", f"train.num_threads={threads}", f"protocol.runs.plain=[{seed}]",
             f"protocol.runs.{DEPLOYED}=[{seed}]", f"deploy.export_seed={seed}"]
 
@@ -233,10 +240,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
     clusters = dict(zip(manifest["image_id"], manifest["spacecraft"].astype(str)))
     groups = dict(zip(manifest["image_id"], manifest["group"].astype(str)))
     # the probes first, one at a time on the whole machine (``--threads``): the budgets a user's run gets
-    budgets = {s: probe(folders, work, s, args.time, sets, args.threads) for s in args.settings}
+    probed = {s: probe(folders, work, s, args.time, sets, args.threads) for s in args.settings}
+    budgets, epochs = {s: b for s, (b, _) in probed.items()}, {s: e for s, (_, e) in probed.items()}
     print("distill_time: step budgets for --time " + args.time + ": "
-          + ", ".join(f"{s} {n:,}" for s, n in budgets.items()), flush=True)
-    caps = {s: cap_steps(folders, s, sets) for s in args.settings}
+          + ", ".join(f"{s} {n:,} ({epochs[s]} epochs cap)" for s, n in budgets.items()), flush=True)
+    caps = {s: cap_steps(folders, s, sets, epochs[s]) for s in args.settings}
+    default_cap = {s: int(load_profile("distill", [*sets, *SETTINGS[s]])["train"]["epochs_stage1"])
+                   for s in args.settings}
     jobs = [(s, seed) for seed in args.seeds for s in args.settings]
     walls: dict[tuple[str, int], float | None] = {}
 
@@ -245,7 +255,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         project = work / project_name(s, budgets[s], caps[s], seed)
         done = (project / catalog.ARTIFACTS_DIR / "metrics.parquet").is_file()
         walls[job] = None if done else bench_distill.run_command(distill_argv(
-            folders, project, run_sets(s, seed, args.time, budgets[s], sets, max(1, args.threads // args.jobs))))
+            folders, project, run_sets(s, seed, args.time, budgets[s], sets, max(1, args.threads // args.jobs),
+                                       epochs[s] if epochs[s] != default_cap[s] else None)))
         print(f"  done {s} s{seed} ({walls[job] or 0:.0f} s)", flush=True)
 
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
@@ -254,7 +265,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
             for s, seed in jobs]
     doc = {"date": datetime.date.today().isoformat(), "host": {"machine": platform.machine(), "flags": sorted(cpu_flags())},
            "time": args.time, "resolution": args.resolution, "profile": args.profile, "sets": sets,
-           "settings": {s: SETTINGS[s] for s in args.settings}, "budgets": budgets, "cap_steps": caps, "runs": runs,
+           "settings": {s: SETTINGS[s] for s in args.settings}, "budgets": budgets, "epochs_caps": epochs,
+           "cap_steps": caps, "runs": runs,
            "gain": comparison(runs, clusters, groups),
            "plain_gain": comparison(runs, clusters, groups, key="plain_image_ious"),
            "vote_gain": comparison(runs, clusters, groups, control=("new", "vote_image_ious")),

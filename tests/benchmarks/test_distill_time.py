@@ -43,6 +43,7 @@ def test_export_is_what_the_imported_teacher_reads(tiny, tmp_path):
     train = load_profile("distill", ["data.resolution=32"])["train"]
     cap = distill_time.cap_steps(folders, "new", ["data.resolution=32"])
     assert cap == train["epochs_stage1"] * -(-n_train // train["batch_size"])
+    assert distill_time.cap_steps(folders, "new", ["data.resolution=32"], 3 * train["epochs_stage1"]) == 3 * cap
     # two --time values whose budgets both reach the cap share one run; a binding budget has its own
     assert distill_time.project_name("new", cap + 5, cap, 1) == distill_time.project_name("new", cap * 3, cap, 1)
     assert distill_time.project_name("today", cap - 1, cap, 1) == f"today-{cap - 1}-s1"
@@ -61,6 +62,10 @@ def test_a_run_trains_the_seed_it_exports_at_the_fixed_budget():
     assert params["train"]["precision"] == "fp32" and params["train"]["channels_last"] is True
     assert params["protocol"]["runs"]["plain"] == [43] and params["deploy"]["export_seed"] == 43
     assert load_profile("distill", distill_time.run_sets("new", 43, "10m", 1, [], 1))["train"]["precision"] == "auto"
+    # today's cap never moves (distill before issue 63); a cap --time raised travels with the run's budget
+    assert params["train"]["time_cap_factor"] == 1 and params["train"]["epochs_stage1"] == 220
+    raised = load_profile("distill", distill_time.run_sets("new", 43, "30m", 19_000, [], 1, epochs=570))["train"]
+    assert (raised["epochs_stage1"], raised["step_budget"], raised["time_cap_factor"]) == (570, 19_000, 4)
 
 
 def test_a_finished_project_is_read_and_paired(distill_with_masks):
