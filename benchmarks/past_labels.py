@@ -23,7 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from benchmarks.common import parser, resumed_runs, run_jobs
-from benchmarks.memorisation import REGIONS, band_px, error_counts, region_labels, thin_radius
+from benchmarks.memorisation import COUNTS, REGIONS, band_px, error_counts, region_labels, thin_radius
 from benchmarks.study_recipe import (add_data_size_options, build_artifacts, data_size_sets, load_study_data,
                                      scored_test_rows)
 from pipeline import catalog
@@ -173,6 +173,30 @@ def refined(plain, method: str, cfg: Mapping[str, Any], data: Mapping[str, Any],
     torch.save(res.model.state_dict(), tmp)
     tmp.replace(path)  # atomic: a killed run leaves no half-written model to be read as done
     return res.model
+
+
+def by_hard_case(doc: Mapping[str, Any], artifacts: Path) -> dict[str, dict[str, dict[str, float]]]:
+    """Where the student's test images lose, by the synthetic benchmark's image-only degradation (the manifest's
+    ``hard_case``: none, glare, flare, underexposed, noise, blur): per group and case, the images, the seeds' mean
+    test Image IoU of ``doc``'s runs (a :func:`fit_of_saved` document) and the vote's on the same images, and the
+    student's own false-positive pixels per image on background where the vote is right (``test_region_counts``).
+    Empty when the manifest has no ``hard_case`` (not the synthetic benchmark)."""
+    manifest, test = scored_test_rows(artifacts)
+    if "hard_case" not in manifest.df:
+        return {}
+    rows = manifest.df.iloc[test]
+    cases, groups = rows["hard_case"].astype(str).to_numpy(), rows["group"].astype(str).to_numpy()
+    consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
+    reference = open_artifact(catalog.path("reference", artifacts), "reference")
+    vote = image_ious(read_rows(consensus, "voted", test).astype(bool), read_rows(reference, "mask", test).astype(bool))
+    runs = list(doc["runs"].values())
+    student = np.mean([r["image_ious"] for r in runs], axis=0)
+    own_bg = np.mean([np.asarray(r["test_region_counts"])[:, REGIONS.index("background"), COUNTS.index("own_wrong")]
+                      for r in runs], axis=0)
+    return {g: {c: {"images": int(k.sum()), "student": float(student[k].mean()), "vote": float(vote[k].mean()),
+                    "own_background_px": float(own_bg[k].mean())}
+                for c in dict.fromkeys(sorted(cases[groups == g])) for k in [(groups == g) & (cases == c)]}
+            for g in dict.fromkeys(groups)}
 
 
 def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], device: str,
@@ -519,12 +543,28 @@ def main(argv=None) -> dict:
     ap.add_argument("--floor-key", default=None,
                     help="--compare-fits: the noise floor record (<recipe>@<profile>-<resolution>) its verdicts "
                          "clear (default: this run's own)")
+    ap.add_argument("--by-hard-case", type=Path, default=None, metavar="FIT_JSON",
+                    help="train nothing: a --fit-of-saved output's test images by the benchmark's degradation "
+                         "(:func:`by_hard_case`), with --artifacts")
     ap.add_argument("--compare-fits", nargs=2, type=Path, default=None, metavar=("BASE_JSON", "OTHER_JSON"),
                     help="train nothing: OTHER - BASE, two --fit-of-saved outputs of the same artifacts "
                          "(--artifacts), paired by seed and image (:func:`compare_fits`)")
     args = ap.parse_args(argv)
     # the noise floor record of this run's configuration (reports/noise_floor.json)
     own_key = f"{load_profile(args.profile, args.sets)['train']['recipe']}@{args.profile}-{args.resolution}"
+    if args.by_hard_case:
+        if not args.artifacts:
+            ap.error("--by-hard-case needs --artifacts (the runs' artifacts)")
+        doc = {"fit": str(args.by_hard_case),
+               "groups": by_hard_case(json.loads(args.by_hard_case.read_text()), Path(args.artifacts))}
+        Path(args.out).write_text(json.dumps(doc, indent=1))
+        print("| group | degradation | images | student | vote | student - vote | own background px per image |\n"
+              "|---|---|---|---|---|---|---|")
+        for g, by in doc["groups"].items():
+            for c, v in by.items():
+                print(f"| {g} | {c} | {v['images']} | {v['student']:.3f} | {v['vote']:.3f} | "
+                      f"{v['student'] - v['vote']:+.3f} | {v['own_background_px']:.0f} |")
+        return doc
     if args.compare_fits:
         if not args.artifacts:
             ap.error("--compare-fits needs --artifacts (the runs' artifacts)")

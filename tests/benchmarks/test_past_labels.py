@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import types
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ from benchmarks import past_labels
 from pipeline.report.dvc_results import distillation_efficiency
 
 
-def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
+def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys, monkeypatch):
     out = tmp_path / "p.json"
     argv = ["--artifacts", str(tiny), "--resolution", "32", "--epochs", "1", "--seeds", "1", "--threads", "1",
             "--variants", *past_labels.VARIANTS, "--out", str(out)]
@@ -62,6 +63,26 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys):
         assert v["calibrated"] == fit["runs"]["1"]["groups"][g]
         if round(fit["runs"]["1"]["tau_cal"], 2) in past_labels.TAU_DIAGNOSIS:
             assert v["oracle"] >= v["calibrated"] - 1e-9
+    # the test images by the benchmark's degradation: every scored image in one case, the means re-weighted
+    hard_argv = ["--artifacts", str(tiny), "--resolution", "32", "--by-hard-case", str(tmp_path / "fit.json"),
+                 "--out", str(tmp_path / "hard.json")]
+    assert past_labels.main(hard_argv)["groups"] == {}  # no hard_case in the manifest: not the synthetic benchmark
+    real = past_labels.scored_test_rows
+
+    def with_cases(artifacts):
+        manifest, test = real(artifacts)
+        df = manifest.df.assign(hard_case=["glare" if i % 2 else "none" for i in range(len(manifest.df))])
+        return types.SimpleNamespace(df=df), test
+
+    monkeypatch.setattr(past_labels, "scored_test_rows", with_cases)
+    hard = past_labels.main(hard_argv)["groups"]
+    monkeypatch.undo()
+    assert set(hard) == set(fit["runs"]["1"]["groups"]) and all(set(by) == {"glare", "none"} for by in hard.values())
+    for g, by in hard.items():
+        n = sum(v["images"] for v in by.values())
+        assert sum(v["images"] * v["student"] for v in by.values()) / n == pytest.approx(fit["runs"]["1"]["groups"][g])
+        assert sum(v["images"] * v["vote"] for v in by.values()) / n == pytest.approx(fit["runs"]["1"]["vote_groups"][g])
+    assert "| degradation |" in capsys.readouterr().out
     # the saved Plain run warm-starts each Stage-II method once; the refined model is saved and scored instead
     for method in past_labels.REFINE:
         argv_r = ["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1", "--fit-of-saved",
