@@ -18,8 +18,8 @@ from pipeline.runtime.errors import InputError
 from pipeline.methods import STAGE_ONE, get_method
 from pipeline.runtime.device import autocast, autocast_dtype
 
-__all__ = ["PROBE_BATCH", "parse_duration", "step_seconds", "steps_for", "scheduled_steps", "raised_cap",
-           "training_images", "with_time_budget"]
+__all__ = ["PROBE_BATCH", "parse_duration", "step_seconds", "steps_for", "plan_seconds", "scheduled_steps",
+           "raised_cap", "training_images", "with_time_budget"]
 
 _UNITS = {"s": 1, "m": 60, "h": 3600}
 
@@ -129,6 +129,31 @@ def steps_for(seconds: float, per_step: float) -> int:
     return max(1, int(seconds // max(per_step, 1e-9)))
 
 
+def plan_seconds(stable: int, decay: int, low: int, steps_per_epoch: int, full_step: float,
+                 half_step: float) -> float:
+    """Price a Stage-I plan: spe (min(E, L) t_h + (max(E - L, 0) + D) t_f) seconds.
+
+    Parameters
+    ----------
+    stable : int
+        E, the stable epochs.
+    decay : int
+        D, the decay epochs after them (at full side).
+    low : int
+        L, the epochs at half the side (:func:`pipeline.training.schedule.low_res_epochs`).
+    steps_per_epoch : int
+        spe, optimizer steps per epoch.
+    full_step, half_step : float
+        t_f and t_h, seconds of a full-side and a half-side step (:func:`step_seconds`).
+
+    Returns
+    -------
+    float
+        The plan's seconds.
+    """
+    return steps_per_epoch * (min(stable, low) * half_step + (max(stable - low, 0) + decay) * full_step)
+
+
 def scheduled_steps(seconds: float, full_step: float, half_step: float, cfg: Mapping[str, Any],
                     steps_per_epoch: int) -> int:
     """Return the optimizer steps B of the longest Stage-I run under ``until: plateau`` that fits ``seconds``.
@@ -169,7 +194,7 @@ def scheduled_steps(seconds: float, full_step: float, half_step: float, cfg: Map
         d = decay_epochs(e, s.decay_fraction)
         if e + d > s.epochs:
             continue
-        cost = spe * (min(e, s.low_res_epochs) * half_step + (max(e - s.low_res_epochs, 0) + d) * full_step)
+        cost = plan_seconds(e, d, s.low_res_epochs, spe, full_step, half_step)
         if cost > seconds:
             cap_fits = False
             break
@@ -192,16 +217,8 @@ def raised_cap(seconds: float, full_step: float, half_step: float, cfg: Mapping[
 
     Parameters
     ----------
-    seconds : float
-        The time budget.
-    full_step : float
-        t_f, seconds of a full-side step (:func:`step_seconds`).
-    half_step : float
-        t_h, seconds of a half-side step (t_f where no epoch trains at half the side).
-    cfg : Mapping
-        The validated ``train`` section (``epochs_stage1``, ``decay_fraction``, ``low_res_fraction``).
-    steps_per_epoch : int
-        spe, from the training images (:func:`training_images`); at least 1 is used.
+    seconds, full_step, half_step, cfg, steps_per_epoch
+        As in :func:`scheduled_steps` (t_h = t_f where no epoch trains at half the side).
     factor : float
         ``train.time_cap_factor``: the cap rises to this multiple of E0 at most.
 
@@ -220,8 +237,7 @@ def raised_cap(seconds: float, full_step: float, half_step: float, cfg: Mapping[
 
     def cost(cap: int) -> float:
         e = bisect.bisect_right(ends, cap)  # the most stable epochs whose run ends by the cap
-        low = low_res_epochs(cap, frac)
-        return spe * (min(e, low) * half_step + (max(e - low, 0) + decay_epochs(e, s.decay_fraction)) * full_step)
+        return plan_seconds(e, decay_epochs(e, s.decay_fraction), low_res_epochs(cap, frac), spe, full_step, half_step)
 
     # every cap is priced: one more epoch of cap can make the run cheaper (one more of them at half the side)
     return max((c for c in range(s.epochs, top + 1) if cost(c) <= seconds), default=s.epochs)
