@@ -315,7 +315,8 @@ def with_time_budget(params: dict, text: str | None, previous: Mapping | None = 
     base = int(train["epochs_stage1"])
     if (old.get("time_budget") == text and int(old.get("step_budget") or 0) > 0
             and int(old.get("time_raised_from") or old.get("epochs_stage1") or 0) == base
-            and float(old.get("time_cap_factor") or 1) == float(train["time_cap_factor"])):
+            # a project written before time_cap_factor existed keeps its budget and cap: same --time, same run
+            and float(old.get("time_cap_factor", train["time_cap_factor"])) == float(train["time_cap_factor"])):
         steps, cap = int(old["step_budget"]), int(old["epochs_stage1"])
     elif n_train:
         from pipeline.training.schedule import LOW_RES_FACTOR, steps_per_epoch

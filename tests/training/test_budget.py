@@ -174,6 +174,10 @@ def test_time_that_allows_more_raises_the_epochs_cap_with_its_schedule(monkeypat
 
     monkeypatch.setattr(budget, "step_seconds", no_probe)  # the same --time on the same cap: reused, as recorded
     assert budget.with_time_budget(params, "400s", previous=out, n_train=16)["train"] == t
+    before = {**out, "train": {k: v for k, v in params["train"].items()
+                               if k not in ("time_cap_factor", "time_raised_from")}}
+    before["train"].update(time_budget="400s", step_budget=640)  # a project written before the cap could rise
+    assert budget.with_time_budget(params, "400s", previous=before, n_train=16)["train"]["epochs_stage1"] == 220
     with pytest.raises(AssertionError, match="measured again"):  # another cap is priced again
         budget.with_time_budget(load_profile("distill", ["train.epochs_stage1=300"]), "400s", previous=out, n_train=16)
     monkeypatch.setattr(budget, "step_seconds", lambda cfg, res, device="cpu": 1.0 if res == 384 else 0.25)
