@@ -27,6 +27,7 @@ from benchmarks.memorisation import COUNTS, REGIONS, band_px, error_counts, regi
 from benchmarks.study_recipe import (add_data_size_options, build_artifacts, data_size_sets, load_study_data,
                                      scored_test_rows)
 from pipeline import catalog
+from pipeline.artifacts.atomic import atomic_path
 from pipeline.artifacts.store import open_artifact
 from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import CONTINUATION, PROPOSED, STAGE_ONE, SUPERVISED_CEILING, get_method
@@ -161,17 +162,15 @@ def refined(plain, method: str, cfg: Mapping[str, Any], data: Mapping[str, Any],
     targets; the continuation reads Stage I's voted masks) and saved there, so a rerun scores without training."""
     import torch
 
-    path = saved / f"{method}-s{seed}.pt"
-    model = build_model(get_method(method), cfg, seed, init_state=plain.mask_path_state_dict())
+    path, init = saved / f"{method}-s{seed}.pt", plain.mask_path_state_dict()
     if path.exists():
+        model = build_model(get_method(method), cfg, seed, init_state=init)
         model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
         return model
     res = training.train(get_method(method), cfg, data[method if method == PROPOSED else STAGE_ONE], data["val"],
-                         seed, checkpointer=NoCheckpointer(), init_state=plain.mask_path_state_dict(), device=device,
-                         show_progress=False)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(res.model.state_dict(), tmp)
-    tmp.replace(path)  # atomic: a killed run leaves no half-written model to be read as done
+                         seed, checkpointer=NoCheckpointer(), init_state=init, device=device, show_progress=False)
+    with atomic_path(path) as tmp:  # a killed run leaves no half-written model to be read as done
+        torch.save(res.model.state_dict(), tmp)
     return res.model
 
 
