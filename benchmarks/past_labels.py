@@ -48,6 +48,8 @@ RELABEL_WEIGHT = 1.0 / 3.0
 #: flip test-time augmentation: two forward passes per image
 TTA_PASSES = 2
 
+#: the ``photometric`` variants' changes of ``train.augmentation`` (merged into the base's section: :func:`overlay`)
+PHOTOMETRIC = {"flare_probability": 0.3, "exposure_range": [0.25, 2.0]}
 #: variant -> (``train.*`` changes of the base recipe, which training data, what it is).  One lever each.
 VARIANTS: dict[str, tuple[dict, str, str]] = {
     "plain": ({}, "voted", "Plain Student: the base recipe on the voted masks"),
@@ -68,6 +70,13 @@ VARIANTS: dict[str, tuple[dict, str, str]] = {
                "the same TinyUNet -- a training-time departure"),
     "ceiling_expand": ({"expand_branches": True}, "reference", "supervised ceiling + RepVGG branches: the "
                        "reference masks, NOT annotation-free"),
+    # the HJM gap's flare and underexposed images (docs/student.md): generic photometric cases the augmentation
+    # lacked, drawn a priori (a flare in 3 of 10 photometric draws, -2 to +1 stops of exposure), not fitted
+    "photometric": ({"augmentation": PHOTOMETRIC}, "voted", "Plain + lens flares and exposure gain in the "
+                    "augmentation (train.augmentation.flare_probability 0.3, exposure_range [0.25, 2]) -- a "
+                    "training-time change, the loss is the paper's"),
+    "ceiling_photometric": ({"augmentation": PHOTOMETRIC}, "reference", "supervised ceiling + lens flares and "
+                            "exposure gain: the reference masks, NOT annotation-free"),
 }
 #: variants trained on the reference masks (NOT annotation-free) are compared with the ceiling, not with Plain
 CEILING = "ceiling"
@@ -199,8 +208,9 @@ def by_hard_case(doc: Mapping[str, Any], artifacts: Path) -> dict[str, dict[str,
 
 
 def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], device: str,
-                 saved: Path | None = None, refine: str | None = None) -> dict:
-    """Plain reaches its labels? The saved ``plain-s<seed>.pt`` runs (in ``saved``, else beside ``artifacts``)
+                 saved: Path | None = None, refine: str | None = None, variant: str = "plain") -> dict:
+    """Plain reaches its labels? The saved ``<variant>-s<seed>.pt`` runs (in ``saved``, else beside ``artifacts``;
+    ``variant`` an annotation-free one of :data:`VARIANTS`, Plain by default)
     scored on their own TRAINING images against the reference masks, paired per seed and image with the vote's IoU
     there (the seed-aware t interval, clusters = spacecraft; :func:`pipeline.stats.paired_seed_image_t`).  Each
     seed's per-image scores (:func:`scores`) are kept, so that :func:`compare_fits` can pair two such documents;
@@ -222,14 +232,14 @@ def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], devi
     runs = {}
     for s in seeds:
         model = build_model(get_method(STAGE_ONE), cfg, s)
-        model.load_state_dict(torch.load(saved / f"plain-s{s}.pt", map_location="cpu", weights_only=True))
+        model.load_state_dict(torch.load(saved / f"{variant}-s{s}.pt", map_location="cpu", weights_only=True))
         if refine:
             model = refined(model, refine, cfg, data, s, device, saved)
         runs[s] = scores(model.eval(), data, device)
     t, c = np.stack([runs[s]["train_ious"] for s in seeds]), np.stack([vote] * len(seeds))
     iv = paired_seed_image_t(t, c, clusters, 0.95)
     gain = float(np.mean(t - c))
-    return {"seeds": seeds, "images": len(vote), "saved": str(saved), "method": refine or STAGE_ONE,
+    return {"seeds": seeds, "images": len(vote), "saved": str(saved), "method": refine or STAGE_ONE, "variant": variant,
             "plain": {str(s): float(np.mean(r["train_ious"])) for s, r in runs.items()},
             "vote": float(vote.mean()), "plain_minus_vote": gain, "low": float(iv.low), "high": float(iv.high),
             "verdict": claim_status(gain, float(iv.low), float(iv.high), None, n_seeds=len(seeds)),
@@ -352,8 +362,8 @@ def run_one(job: dict) -> dict:
     data, relabel = _train_data(job)
     method = SUPERVISED_CEILING if VARIANTS[job["variant"]][1] == "reference" else STAGE_ONE
     model, steps, stopped, curve, source = _trained(job, method, data)
-    if job["variant"] == "plain":  # self-training's starting point
-        torch.save(model.state_dict(), Path(job["saved"]) / f"plain-s{job['seed']}.pt")
+    if VARIANTS[job["variant"]][1] != "reference":  # plain's: self-training's starting point; each: --fit-of-saved
+        torch.save(model.state_dict(), Path(job["saved"]) / f"{job['variant']}-s{job['seed']}.pt")
     out = {"variant": job["variant"], "method": job["method"], "trained": method, "seed": job["seed"],
            "steps_run": steps, "stopped": stopped, "images_seen": int(steps) * int(job["cfg"]["batch_size"]),
            "relabel_passes": relabel, "n_train": len(data), "val_iou_cal_curve": curve, "source": source}
@@ -397,6 +407,12 @@ def test_spacecraft(artifacts: Path) -> np.ndarray:
     """The spacecraft of each scored test image, in the order of a run's ``image_ious`` (:func:`load_data`)."""
     manifest, test = scored_test_rows(artifacts)
     return manifest.df["spacecraft"].to_numpy()[test].astype(str)
+
+
+def overlay(base: Mapping[str, Any], changes: Mapping[str, Any]) -> dict:
+    """``base`` with a variant's ``changes``; a mapping value (a sub-section, ``augmentation``) merges into
+    ``base``'s instead of replacing it."""
+    return {**base, **{k: {**base[k], **v} if isinstance(v, Mapping) else v for k, v in changes.items()}}
 
 
 def train_spacecraft(artifacts: Path) -> np.ndarray:
@@ -536,9 +552,12 @@ def main(argv=None) -> dict:
                     help="--fit-of-saved: warm-start this Stage-II method from each saved Plain run (trained once, "
                          "saved beside it as <method>-s<seed>.pt) and score it instead (:func:`refined`)")
     ap.add_argument("--saved-dir", type=Path, default=None,
-                    help="where Plain's trained plain-s<seed>.pt go (self-training's start) and --fit-of-saved reads "
-                         "them (default: beside the artifacts; give each step budget its own, or a run replaces "
-                         "another's)")
+                    help="where each annotation-free variant's trained <variant>-s<seed>.pt go (plain's: "
+                         "self-training's start) and --fit-of-saved reads them (default: beside the artifacts; give "
+                         "each step budget its own, or a run replaces another's)")
+    ap.add_argument("--saved-variant", default="plain",
+                    choices=[v for v, (_, kind, _) in VARIANTS.items() if kind != "reference"],
+                    help="--fit-of-saved: the variant whose saved runs it scores (default: plain)")
     ap.add_argument("--floor-key", default=None,
                     help="--compare-fits: the noise floor record (<recipe>@<profile>-<resolution>) its verdicts "
                          "clear (default: this run's own)")
@@ -592,7 +611,8 @@ def main(argv=None) -> dict:
         base["epochs_stage1"] = args.epochs
     saved = Path(args.saved_dir) if args.saved_dir else artifacts.parent
     if args.fit_of_saved:
-        doc = fit_of_saved(artifacts, {**base, **VARIANTS["plain"][0]}, args.seeds, device, saved, args.refine)
+        doc = fit_of_saved(artifacts, overlay(base, VARIANTS[args.saved_variant][0]), args.seeds, device, saved,
+                           args.refine, args.saved_variant)
         Path(args.out).write_text(json.dumps(doc, indent=1))
         print(f"fit on the training images: {doc['method']} {np.mean(list(doc['plain'].values())):.3f} vs the vote "
               f"{doc['vote']:.3f}: {doc['plain_minus_vote']:+.3f} [{doc['low']:+.3f}, {doc['high']:+.3f}] "
@@ -608,7 +628,7 @@ def main(argv=None) -> dict:
             "threads": args.threads, "jobs": args.jobs, "simulator": "the teacher is the synthetic benchmark's SIMULATOR"}
     # plain before self_training: a round starts from plain's saved model
     order = sorted(args.variants, key=lambda v: VARIANTS[v][1] == "self_training")
-    jobs = [{"variant": v, "method": v, "seed": s, "device": device, "cfg": {**base, **VARIANTS[v][0]},
+    jobs = [{"variant": v, "method": v, "seed": s, "device": device, "cfg": overlay(base, VARIANTS[v][0]),
              "imported": imported.get(v), "saved": str(saved)} for s in args.seeds for v in order]
     t0 = time.perf_counter()
 

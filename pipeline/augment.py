@@ -15,7 +15,8 @@ import numpy as np
 from pipeline.geometry import area_ratio, pseudo_targets
 from pipeline.params import PAPER
 
-__all__ = ["AugmentSpec", "GeometryConstants", "soft_region", "hard_region", "recompute_geometry", "augment_batch"]
+__all__ = ["AugmentSpec", "GeometryConstants", "soft_region", "hard_region", "recompute_geometry", "lens_flare",
+           "augment_batch"]
 
 #: the pixel targets that move with the image; ``sdf``/``skeleton`` are recomputed after a rescale
 PIXEL_TARGETS = ("mask", "sdf", "skeleton", "anchor")
@@ -52,6 +53,11 @@ class AugmentSpec:
         x: gamma is drawn in [1/(1+x), 1+x], log-uniform (``train.augmentation.gamma``).
     glare_probability : float
         Probability of a saturated glare spot (``train.augmentation.glare_probability``).
+    flare_probability : float
+        Probability of a lens flare (:func:`lens_flare`; ``train.augmentation.flare_probability``).
+    exposure_range : tuple[float, float]
+        The exposure gain's range, drawn log-uniform and applied first; ``(1, 1)`` draws nothing
+        (``train.augmentation.exposure_range``).
     blur_probability : float
         Probability of a Gaussian blur (``train.augmentation.blur_probability``).
     blur_sigma : float
@@ -70,6 +76,8 @@ class AugmentSpec:
     contrast: float
     gamma: float
     glare_probability: float
+    flare_probability: float
+    exposure_range: tuple[float, float]
     blur_probability: float
     blur_sigma: float
     noise_std: float
@@ -91,13 +99,14 @@ class AugmentSpec:
         Raises
         ------
         KeyError
-            ``section`` lacks ``scale_range``.
+            ``section`` lacks ``scale_range`` or ``exposure_range``.
         TypeError
             ``section`` lacks another field.
         """
         fields = {f.name for f in dataclasses.fields(cls)}
         values = {k: v for k, v in section.items() if k in fields}
-        values["scale_range"] = tuple(float(x) for x in values["scale_range"])
+        for name in ("scale_range", "exposure_range"):
+            values[name] = tuple(float(x) for x in values[name])
         return cls(**values)
 
 
@@ -217,10 +226,56 @@ def recompute_geometry(mask: np.ndarray, geometry: GeometryConstants) -> tuple[n
     return sdf[0], skel[0], area_ratio(mask)
 
 
+def lens_flare(h: int, w: int, rng: np.random.Generator) -> np.ndarray:
+    """Draw a lens flare's added light: a bright source and ghost discs along a line through it.
+
+    The model of albumentations' ``RandomSunFlare``, not the synthetic benchmark's renderer: the source lies
+    anywhere in or just outside the frame (the sun often is), with a saturating core and a wide halo; 3 to 7
+    ghosts (internal reflections) sit along a line through it at a random angle, each a soft-edged disc with its
+    own tint.  Sizes scale with D = max(h, w)::
+
+        L(p) = a_c exp(-|p - s|^2 / 2 r_c^2) + a_h exp(-|p - s|^2 / 2 r_h^2) + sum_k t_k disc(p; s + u_k d, r_k)
+
+    Parameters
+    ----------
+    h, w : int
+        The frame's height and width.
+    rng : np.random.Generator
+        The image's own generator.
+
+    Returns
+    -------
+    np.ndarray
+        float32 [h, w, 3] light to add to an image in [0, 1] (the core exceeds 1: it saturates).
+    """
+    d = float(max(h, w))
+    sy, sx = rng.uniform(-0.1, 1.1) * h, rng.uniform(-0.1, 1.1) * w
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    r2 = (yy - sy) ** 2 + (xx - sx) ** 2
+    rc, rh = rng.uniform(0.015, 0.04) * d, rng.uniform(0.08, 0.2) * d
+    light = rng.uniform(1.0, 2.0) * np.exp(-r2 / (2 * rc * rc)) + rng.uniform(0.1, 0.4) * np.exp(-r2 / (2 * rh * rh))
+    out = np.repeat(light[..., None], 3, axis=2).astype(np.float32)
+    theta = rng.uniform(0.0, math.pi)
+    dy, dx = math.sin(theta), math.cos(theta)
+    for _ in range(int(rng.integers(3, 8))):
+        u, r = rng.uniform(-1.0, 1.0) * d, rng.uniform(0.01, 0.08) * d
+        tint = rng.uniform(0.05, 0.3) * rng.uniform(0.7, 1.0, 3).astype(np.float32)
+        dist = np.sqrt((yy - sy - u * dy) ** 2 + (xx - sx - u * dx) ** 2)
+        out += np.clip(r - dist + 0.5, 0.0, 1.0)[..., None] * tint  # a one-pixel soft edge
+    return out
+
+
 def photometric(image: np.ndarray, spec: AugmentSpec, rng: np.random.Generator) -> np.ndarray:
-    """Apply brightness, contrast, gamma, glare, blur and sensor noise drawn from ``rng`` to uint8 [H,W,C]."""
+    """Apply exposure, brightness, contrast, gamma, glare, a lens flare, blur and sensor noise to uint8 [H,W,C].
+
+    Each is drawn from ``rng``.  A part at its "none" value (``exposure_range`` (1, 1), ``flare_probability`` 0)
+    draws nothing, so the other parts' draws are those made without it.
+    """
     x = image.astype(np.float32) / 255.0
     h, w = x.shape[:2]
+    if spec.exposure_range != (1.0, 1.0):  # the scene's light before the camera's other changes
+        lo, hi = spec.exposure_range
+        x = x * math.exp(rng.uniform(math.log(lo), math.log(hi)))
     b = rng.uniform(-spec.brightness, spec.brightness)
     c = math.exp(rng.uniform(-math.log1p(spec.contrast), math.log1p(spec.contrast)))
     g = math.exp(rng.uniform(-math.log1p(spec.gamma), math.log1p(spec.gamma)))
@@ -232,6 +287,8 @@ def photometric(image: np.ndarray, spec: AugmentSpec, rng: np.random.Generator) 
         yy, xx = np.mgrid[0:h, 0:w]
         spot = np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / (2 * r * r)).astype(np.float32)
         x = x + rng.uniform(1.2, 2.5) * spot[..., None]  # peak above full scale: the core saturates
+    if spec.flare_probability > 0 and rng.random() < spec.flare_probability:
+        x = x + lens_flare(h, w, rng)
     if rng.random() < spec.blur_probability:
         import cv2
 

@@ -72,6 +72,7 @@ def _must(test, message: str) -> AfterValidator:
 
 
 _FRACTION_RANGE = _must(lambda v: 0 < v[0] < v[1] <= 1, "must be [lo, hi] with 0 < lo < hi <= 1")
+_POSITIVE_RANGE = _must(lambda v: 0 < v[0] <= v[1], "must be [lo, hi] with 0 < lo <= hi")
 
 
 class SyntheticParams(_Section):
@@ -312,13 +313,19 @@ class AugmentParams(_Section):
     vflip: float = _f(0.5, "probability of an up-down flip", ge=0, le=1)
     rot90: bool = _f(True, "a uniformly drawn multiple of 90 degrees (square images; 180 otherwise)")
     scale_probability: float = _f(0.5, "probability of a scale/crop jitter", ge=0, le=1)
-    scale_range: Annotated[list[float], _must(lambda v: 0 < v[0] <= v[1], "must be [lo, hi] with 0 < lo <= hi")] = _f(
+    scale_range: Annotated[list[float], _POSITIVE_RANGE] = _f(
         [0.75, 1.33], "zoom factor range (log-uniform; < 1 zooms out, padding black)", min_length=2, max_length=2)
     photometric_probability: float = _f(0.8, "probability of the photometric part", ge=0, le=1)
     brightness: float = _f(0.15, "additive brightness shift up to this (fraction of full scale)", ge=0, le=1)
     contrast: float = _f(0.3, "contrast factor in [1/(1+x)..1+x] about the image mean", ge=0, le=10)
     gamma: float = _f(0.3, "gamma in [1/(1+x), 1+x] (log-uniform)", ge=0, le=10)
     glare_probability: float = _f(0.15, "probability of a saturated glare spot", ge=0, le=1)
+    flare_probability: float = _f(0.0, "probability of a lens flare: a bright source, maybe off the frame, with ghost "
+                                  "discs along a line through it (albumentations' RandomSunFlare model; "
+                                  "docs/decisions.md); 0 = none", ge=0, le=1)
+    exposure_range: Annotated[list[float], _POSITIVE_RANGE] = _f(
+        [1.0, 1.0], "exposure gain range (log-uniform), applied before the other photometric changes; < 1 "
+        "underexposes; [1, 1] = none", min_length=2, max_length=2)
     blur_probability: float = _f(0.2, "probability of a Gaussian blur", ge=0, le=1)
     blur_sigma: float = _f(1.5, "largest blur sigma (px)", ge=0, le=50)
     noise_std: float = _f(0.03, "largest Gaussian sensor-noise std (fraction of full scale)", ge=0, le=1)

@@ -23,6 +23,7 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys, monkeyp
     assert runs["ceiling"]["trained"] == "supervised_ceiling" and runs["plain"]["trained"] == "plain"
     assert runs["ceiling_expand"]["trained"] == "supervised_ceiling" and runs["expand"]["trained"] == "plain"
     assert runs["bf16"]["steps_run"] == runs["plain"]["steps_run"]  # equal steps: only the precision differs
+    assert runs["photometric"]["trained"] == "plain" and runs["ceiling_photometric"]["trained"] == "supervised_ceiling"
     # self-training relabels every training image twice (flip TTA) and counts plain's training in its cost
     st = runs["self_training"]
     assert st["relabel_passes"] == past_labels.TTA_PASSES * st["n_train"] and st["n_train"] == runs["plain"]["n_train"]
@@ -40,8 +41,10 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys, monkeyp
     assert both["runs"] == doc["runs"] and both["info"]["noise_floor"] == {}
     assert {g["variant"] for g in both["gains"]} == set(past_labels.VARIANTS) - {"plain", "ceiling"}
     # a variant on the reference masks is compared with the ceiling, every other with Plain
-    assert {g["variant"]: g["control"] for g in both["gains"]}["ceiling_expand"] == "ceiling"
-    assert {g["control"] for g in both["gains"] if g["variant"] != "ceiling_expand"} == {"plain"}
+    on_reference = {v for v, (_, kind, _) in past_labels.VARIANTS.items() if kind == "reference"} - {"ceiling"}
+    assert on_reference == {"ceiling_expand", "ceiling_photometric"}
+    assert {g["control"] for g in both["gains"] if g["variant"] in on_reference} == {"ceiling"}
+    assert {g["control"] for g in both["gains"] if g["variant"] not in on_reference} == {"plain"}
     # one seed: no verdict speaks of support (a one-spacecraft group has no interval: not estimated)
     assert {g["verdict"] for g in both["gains"]} <= {"one seed", "not estimated"}
     assert "| bootstrap |" in capsys.readouterr().out
@@ -92,7 +95,12 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys, monkeyp
         assert ref["method"] == method and path.is_file() and ref["runs"]["1"]["image_ious"] != fit["runs"]["1"]["image_ious"]
         stamp = path.stat().st_mtime_ns
         assert past_labels.main(argv_r)["runs"] == ref["runs"] and path.stat().st_mtime_ns == stamp  # not retrained
-    assert fit["method"] == "plain"
+    assert fit["method"] == "plain" and fit["variant"] == "plain"
+    # another annotation-free variant's saved run, scored as Plain's is
+    other = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1",
+                              "--fit-of-saved", "--saved-variant", "photometric", "--out", str(tmp_path / "fp.json")])
+    assert other["variant"] == "photometric" and other["runs"]["1"]["image_ious"] == runs["photometric"]["image_ious"]
+    assert not (tiny.parent / "ceiling_photometric-s1.pt").exists()  # a run on the reference masks is not saved
     # two fit documents paired by seed and image (say 1x and 2x the steps): a saved run in its own folder, lifted
     moved = tmp_path / "saved"  # another step budget's run, saved in its own folder, leaves the first in place
     before = (tiny.parent / "plain-s1.pt").read_bytes()
@@ -151,6 +159,14 @@ def test_a_saved_run_is_scored_instead_of_trained(tiny, tmp_path):
         past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1",
                           "--variants", "ceiling", "--import-run", "ceiling", str(run),
                           "--out", str(tmp_path / "c.json")])
+
+
+def test_a_variant_merges_its_sub_section_into_the_base_recipe():
+    base = {"lr_stage1": 5e-4, "augmentation": {"hflip": 0.5, "flare_probability": 0.0}}
+    cfg = past_labels.overlay(base, past_labels.VARIANTS["photometric"][0])
+    assert cfg["augmentation"] == {"hflip": 0.5, **past_labels.PHOTOMETRIC} and cfg["lr_stage1"] == 5e-4
+    assert base["augmentation"]["flare_probability"] == 0.0  # the base is not changed
+    assert past_labels.overlay(base, {"lr_stage1": 1e-3})["augmentation"] is base["augmentation"]
 
 
 def test_gains_pair_seeds_and_images_and_clear_the_noise_floor():

@@ -8,12 +8,13 @@ same seeds give the same batch; the paper and stable recipes never augment.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 
 import numpy as np
 import pytest
 
-from pipeline.augment import (DEFAULT_SPEC, GeometryConstants, augment_batch, augment_sample, dihedral, hard_region, soft_region,
-                              photometric)
+from pipeline.augment import (DEFAULT_SPEC, GeometryConstants, augment_batch, augment_sample, dihedral, hard_region,
+                              lens_flare, photometric, soft_region)
 from pipeline.geometry import area_ratio, sdf_target, skeleton_target
 from pipeline.training.settings import Settings
 from pipeline.training.checkpointing import NoCheckpointer
@@ -219,3 +220,47 @@ def test_augmented_training_is_seeded_and_differs_from_the_plain_batches(tiny):
         np.testing.assert_array_equal(b["skeleton"][i, 0].numpy() > 0.5, skeleton_target(mask))
     np.testing.assert_array_equal(b["gate"].numpy(), data.gate)
     assert not torch.equal(b["mask"][:, 0].bool(), torch.from_numpy(masks))  # augmented
+
+
+def test_the_flare_and_exposure_parts_draw_nothing_when_off():
+    # the generator's state after each of 20 images under the schema's defaults, recorded at a05ad27, before the
+    # two parts existed: off, they leave every other draw where it was (so today's runs are today's runs)
+    m, img = _mask(), _image(_mask())
+    states = []
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        augment_sample(img, {"mask": m}, rng, DEFAULT_SPEC)
+        states.append(rng.bit_generator.state["state"]["state"])
+    assert DEFAULT_SPEC.flare_probability == 0 and DEFAULT_SPEC.exposure_range == (1.0, 1.0)
+    assert hashlib.sha256(repr(states).encode()).hexdigest()[:16] == "b2c26b148f54c042"
+
+
+def test_exposure_scales_the_image_by_a_gain_from_its_range():
+    img = _image(_mask())
+    quiet = dict(brightness=0.0, contrast=0.0, gamma=0.0, glare_probability=0.0, blur_probability=0.0, noise_std=0.0)
+    out = photometric(img, _spec(exposure_range=(0.25, 0.25), **quiet), np.random.default_rng(0))
+    np.testing.assert_allclose(out, img * 0.25, atol=1.0)  # the gain, within uint8 rounding
+    gains = [photometric(img, _spec(exposure_range=(0.5, 2.0), **quiet), np.random.default_rng(s)).astype(float).sum()
+             / img.astype(float).sum() for s in range(40)]
+    assert min(gains) >= 0.49 and max(gains) <= 2.0 and min(gains) < 0.8 and max(gains) > 1.2
+
+
+def test_a_lens_flare_adds_light_from_a_saturating_source_and_only_when_drawn():
+    for seed in range(10):
+        light = lens_flare(48, 64, np.random.default_rng(seed))
+        assert light.shape == (48, 64, 3) and light.dtype == np.float32 and light.min() >= 0
+        np.testing.assert_array_equal(light, lens_flare(48, 64, np.random.default_rng(seed)))
+    # a source drawn inside the frame saturates its core (its position: the generator's first two draws)
+    inside = 0
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        sy, sx = rng.uniform(-0.1, 1.1) * 200, rng.uniform(-0.1, 1.1) * 200
+        if 0 <= sy < 200 and 0 <= sx < 200:
+            inside += 1
+            assert lens_flare(200, 200, np.random.default_rng(seed))[int(sy), int(sx)].min() >= 1.0
+    assert inside >= 5
+    dark = np.zeros((40, 40, 3), np.uint8)
+    spec = _spec(flare_probability=1.0, glare_probability=0.0, blur_probability=0.0, noise_std=0.0)
+    assert all(photometric(dark, spec, np.random.default_rng(s)).astype(float).mean() > 1 for s in range(5))
+    off = _spec(flare_probability=0.0, glare_probability=0.0, blur_probability=0.0, noise_std=0.0, brightness=0.0)
+    assert photometric(dark, off, np.random.default_rng(0)).max() == 0
