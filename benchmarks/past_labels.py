@@ -73,8 +73,8 @@ VARIANTS: dict[str, tuple[dict, str, str]] = {
     # the HJM gap's flare and underexposed images (docs/student.md): generic photometric cases the augmentation
     # lacked, drawn a priori (a flare in 3 of 10 photometric draws, -2 to +1 stops of exposure), not fitted
     "photometric": ({"augmentation": PHOTOMETRIC}, "voted", "Plain + lens flares and exposure gain in the "
-                    "augmentation (train.augmentation.flare_probability 0.3, exposure_range [0.25, 2]) -- a "
-                    "training-time change, the loss is the paper's"),
+                    f"augmentation (train.augmentation {PHOTOMETRIC}) -- a training-time change, the loss is the "
+                    "paper's"),
     "ceiling_photometric": ({"augmentation": PHOTOMETRIC}, "reference", "supervised ceiling + lens flares and "
                             "exposure gain: the reference masks, NOT annotation-free"),
 }
