@@ -183,12 +183,14 @@ def refined(plain, method: str, cfg: Mapping[str, Any], data: Mapping[str, Any],
     return res.model
 
 
-def by_hard_case(doc: Mapping[str, Any], artifacts: Path) -> dict[str, dict[str, dict[str, float]]]:
+def by_hard_case(doc: Mapping[str, Any], artifacts: Path, variant: str = "plain"
+                 ) -> dict[str, dict[str, dict[str, float]]]:
     """Where the student's test images lose, by the synthetic benchmark's image-only degradation (the manifest's
     ``hard_case``: none, glare, flare, underexposed, noise, blur): per group and case, the images, the seeds' mean
-    test Image IoU of ``doc``'s runs (a :func:`fit_of_saved` document) and the vote's on the same images, and the
-    student's own false-positive pixels per image on background where the vote is right (``test_region_counts``).
-    Empty when the manifest has no ``hard_case`` (not the synthetic benchmark)."""
+    test Image IoU of ``doc``'s runs (a :func:`fit_of_saved` document, or the ``variant`` runs of a runs or
+    :func:`combine` document) and the vote's on the same images, and, where the runs kept them
+    (``test_region_counts``, a fit document), the student's own false-positive pixels per image on background where
+    the vote is right (else None).  Empty when the manifest has no ``hard_case`` (not the synthetic benchmark)."""
     manifest, test = scored_test_rows(artifacts)
     if "hard_case" not in manifest.df:
         return {}
@@ -197,12 +199,15 @@ def by_hard_case(doc: Mapping[str, Any], artifacts: Path) -> dict[str, dict[str,
     consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
     reference = open_artifact(catalog.path("reference", artifacts), "reference")
     vote = image_ious(read_rows(consensus, "voted", test).astype(bool), read_rows(reference, "mask", test).astype(bool))
-    runs = list(doc["runs"].values())
+    runs = (list(doc["runs"].values()) if isinstance(doc["runs"], Mapping)
+            else [r for r in doc["runs"] if r["variant"] == variant])
+    if not runs:
+        raise SystemExit(f"past_labels --by-hard-case: no runs of variant {variant} in the document")
     student = np.mean([r["image_ious"] for r in runs], axis=0)
-    own_bg = np.mean([np.asarray(r["test_region_counts"])[:, REGIONS.index("background"), COUNTS.index("own_wrong")]
-                      for r in runs], axis=0)
+    own_bg = (np.mean([np.asarray(r["test_region_counts"])[:, REGIONS.index("background"), COUNTS.index("own_wrong")]
+                       for r in runs], axis=0) if all("test_region_counts" in r for r in runs) else None)
     return {g: {c: {"images": int(k.sum()), "student": float(student[k].mean()), "vote": float(vote[k].mean()),
-                    "own_background_px": float(own_bg[k].mean())}
+                    "own_background_px": None if own_bg is None else float(own_bg[k].mean())}
                 for c in dict.fromkeys(sorted(cases[groups == g])) for k in [(groups == g) & (cases == c)]}
             for g in dict.fromkeys(groups)}
 
@@ -557,7 +562,8 @@ def main(argv=None) -> dict:
                          "each step budget its own, or a run replaces another's)")
     ap.add_argument("--saved-variant", default="plain",
                     choices=[v for v, (_, kind, _) in VARIANTS.items() if kind != "reference"],
-                    help="--fit-of-saved: the variant whose saved runs it scores (default: plain)")
+                    help="--fit-of-saved: the variant whose saved runs it scores; --by-hard-case: the variant it "
+                         "reads from a runs or --combine document (default: plain)")
     ap.add_argument("--floor-key", default=None,
                     help="--compare-fits: the noise floor record (<recipe>@<profile>-<resolution>) its verdicts "
                          "clear (default: this run's own)")
@@ -573,15 +579,17 @@ def main(argv=None) -> dict:
     if args.by_hard_case:
         if not args.artifacts:
             ap.error("--by-hard-case needs --artifacts (the runs' artifacts)")
-        doc = {"fit": str(args.by_hard_case),
-               "groups": by_hard_case(json.loads(args.by_hard_case.read_text()), Path(args.artifacts))}
+        doc = {"fit": str(args.by_hard_case), "variant": args.saved_variant,
+               "groups": by_hard_case(json.loads(args.by_hard_case.read_text()), Path(args.artifacts),
+                                      args.saved_variant)}
         Path(args.out).write_text(json.dumps(doc, indent=1))
         print("| group | degradation | images | student | vote | student - vote | own background px per image |\n"
               "|---|---|---|---|---|---|---|")
         for g, by in doc["groups"].items():
             for c, v in by.items():
                 print(f"| {g} | {c} | {v['images']} | {v['student']:.3f} | {v['vote']:.3f} | "
-                      f"{v['student'] - v['vote']:+.3f} | {v['own_background_px']:.0f} |")
+                      f"{v['student'] - v['vote']:+.3f} | "
+                      f"{'--' if v['own_background_px'] is None else format(v['own_background_px'], '.0f')} |")
         return doc
     if args.compare_fits:
         if not args.artifacts:

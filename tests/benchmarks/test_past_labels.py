@@ -79,6 +79,14 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys, monkeyp
 
     monkeypatch.setattr(past_labels, "scored_test_rows", with_cases)
     hard = past_labels.main(hard_argv)["groups"]
+    # a variant's runs in a runs document (no region counts kept there)
+    assert runs["expand"]["image_ious"] != runs["plain"]["image_ious"]  # so the variant read is told apart
+    by_variant = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--by-hard-case", str(out),
+                                   "--saved-variant", "expand", "--out", str(tmp_path / "hard-e.json")])
+    for g, by in by_variant["groups"].items():
+        n = sum(v["images"] for v in by.values())
+        assert sum(v["images"] * v["student"] for v in by.values()) / n == pytest.approx(runs["expand"]["groups"][g])
+        assert all(v["own_background_px"] is None for v in by.values())
     monkeypatch.undo()
     assert set(hard) == set(fit["runs"]["1"]["groups"]) and all(set(by) == {"glare", "none"} for by in hard.values())
     for g, by in hard.items():
