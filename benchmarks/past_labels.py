@@ -212,6 +212,28 @@ def by_hard_case(doc: Mapping[str, Any], artifacts: Path, variant: str = "plain"
             for g in dict.fromkeys(groups)}
 
 
+def vote_by_hard_case(artifacts: Path) -> dict[str, dict[str, dict[str, float]]]:
+    """What the student's only label says on each degradation: the vote against the reference masks on the training
+    and on the scored test images, per split and the manifest's ``hard_case``: the images, the vote's mean Image IoU,
+    and its pixels per image marked spacecraft that are not (``too_many_px``) and missed (``missed_px``).  Empty when
+    the manifest has no ``hard_case`` (not the synthetic benchmark)."""
+    manifest, test = scored_test_rows(artifacts)
+    if "hard_case" not in manifest.df:
+        return {}
+    consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
+    reference = open_artifact(catalog.path("reference", artifacts), "reference")
+    train = np.flatnonzero((manifest.df["split"] == "train").to_numpy())
+    out = {}
+    for split, rows in (("train", train[read_rows(reference, "has_mask", train).astype(bool)]), ("test", test)):
+        vote, ref = read_rows(consensus, "voted", rows).astype(bool), read_rows(reference, "mask", rows).astype(bool)
+        cases, iou = manifest.df["hard_case"].to_numpy()[rows].astype(str), image_ious(vote, ref)
+        out[split] = {c: {"images": int(k.sum()), "vote": float(iou[k].mean()),
+                          "too_many_px": float((vote[k] & ~ref[k]).sum((1, 2)).mean()),
+                          "missed_px": float((ref[k] & ~vote[k]).sum((1, 2)).mean())}
+                      for c in sorted(set(cases)) for k in [cases == c]}
+    return out
+
+
 def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], device: str,
                  saved: Path | None = None, refine: str | None = None, variant: str = "plain") -> dict:
     """Plain reaches its labels? The saved ``<variant>-s<seed>.pt`` runs (in ``saved``, else beside ``artifacts``;
@@ -581,7 +603,8 @@ def main(argv=None) -> dict:
             ap.error("--by-hard-case needs --artifacts (the runs' artifacts)")
         doc = {"fit": str(args.by_hard_case), "variant": args.saved_variant,
                "groups": by_hard_case(json.loads(args.by_hard_case.read_text()), Path(args.artifacts),
-                                      args.saved_variant)}
+                                      args.saved_variant),
+               "vote": vote_by_hard_case(Path(args.artifacts))}
         Path(args.out).write_text(json.dumps(doc, indent=1))
         print("| group | degradation | images | student | vote | student - vote | own background px per image |\n"
               "|---|---|---|---|---|---|---|")
@@ -590,6 +613,11 @@ def main(argv=None) -> dict:
                 print(f"| {g} | {c} | {v['images']} | {v['student']:.3f} | {v['vote']:.3f} | "
                       f"{v['student'] - v['vote']:+.3f} | "
                       f"{'--' if v['own_background_px'] is None else format(v['own_background_px'], '.0f')} |")
+        print("\n| split | degradation | images | the vote's IoU | px too many | px missed |\n|---|---|---|---|---|---|")
+        for split, by in doc["vote"].items():
+            for c, v in by.items():
+                print(f"| {split} | {c} | {v['images']} | {v['vote']:.3f} | {v['too_many_px']:.0f} | "
+                      f"{v['missed_px']:.0f} |")
         return doc
     if args.compare_fits:
         if not args.artifacts:

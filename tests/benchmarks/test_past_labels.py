@@ -69,7 +69,8 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys, monkeyp
     # the test images by the benchmark's degradation: every scored image in one case, the means re-weighted
     hard_argv = ["--artifacts", str(tiny), "--resolution", "32", "--by-hard-case", str(tmp_path / "fit.json"),
                  "--out", str(tmp_path / "hard.json")]
-    assert past_labels.main(hard_argv)["groups"] == {}  # no hard_case in the manifest: not the synthetic benchmark
+    plain_doc = past_labels.main(hard_argv)
+    assert plain_doc["groups"] == {} and plain_doc["vote"] == {}  # no hard_case in the manifest: not the synthetic benchmark
     real = past_labels.scored_test_rows
 
     def with_cases(artifacts):
@@ -78,7 +79,19 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys, monkeyp
         return types.SimpleNamespace(df=df), test
 
     monkeypatch.setattr(past_labels, "scored_test_rows", with_cases)
-    hard = past_labels.main(hard_argv)["groups"]
+    hard_doc = past_labels.main(hard_argv)
+    hard = hard_doc["groups"]
+    # the vote against the reference per degradation, on the training and the scored test images
+    _, test_rows = with_cases(tiny)
+    assert sum(v["images"] for v in hard_doc["vote"]["test"].values()) == len(test_rows)
+    assert sum(v["images"] for v in hard_doc["vote"]["train"].values()) == runs["plain"]["n_train"]
+    pooled = sum(v["images"] * v["vote"] for v in hard_doc["vote"]["test"].values()) / len(test_rows)
+    assert pooled == pytest.approx(float(np.mean(past_labels.image_ious(
+        past_labels.read_rows(past_labels.open_artifact(past_labels.catalog.path("consensus", tiny), "consensus"),
+                              "voted", test_rows).astype(bool),
+        past_labels.read_rows(past_labels.open_artifact(past_labels.catalog.path("reference", tiny), "reference"),
+                              "mask", test_rows).astype(bool)))))
+    assert all(v["too_many_px"] >= 0 and v["missed_px"] >= 0 for by in hard_doc["vote"].values() for v in by.values())
     # a variant's runs in a runs document (no region counts kept there)
     assert runs["expand"]["image_ious"] != runs["plain"]["image_ious"]  # so the variant read is told apart
     by_variant = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--by-hard-case", str(out),
