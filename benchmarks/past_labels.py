@@ -196,9 +196,7 @@ def by_hard_case(doc: Mapping[str, Any], artifacts: Path, variant: str = "plain"
         return {}
     rows = manifest.df.iloc[test]
     cases, groups = rows["hard_case"].astype(str).to_numpy(), rows["group"].astype(str).to_numpy()
-    consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
-    reference = open_artifact(catalog.path("reference", artifacts), "reference")
-    vote = image_ious(read_rows(consensus, "voted", test).astype(bool), read_rows(reference, "mask", test).astype(bool))
+    vote = image_ious(*vote_and_reference(artifacts, test))
     runs = (list(doc["runs"].values()) if isinstance(doc["runs"], Mapping)
             else [r for r in doc["runs"] if r["variant"] == variant])
     if not runs:
@@ -212,6 +210,13 @@ def by_hard_case(doc: Mapping[str, Any], artifacts: Path, variant: str = "plain"
             for g in dict.fromkeys(groups)}
 
 
+def vote_and_reference(artifacts: Path, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The voted masks and the reference masks of ``rows`` (manifest rows), as bool arrays."""
+    consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
+    reference = open_artifact(catalog.path("reference", artifacts), "reference")
+    return read_rows(consensus, "voted", rows).astype(bool), read_rows(reference, "mask", rows).astype(bool)
+
+
 def vote_by_hard_case(artifacts: Path) -> dict[str, dict[str, dict[str, float]]]:
     """What the student's only label says on each degradation: the vote against the reference masks on the training
     and on the scored test images, per split and the manifest's ``hard_case``: the images, the vote's mean Image IoU,
@@ -220,12 +225,11 @@ def vote_by_hard_case(artifacts: Path) -> dict[str, dict[str, dict[str, float]]]
     manifest, test = scored_test_rows(artifacts)
     if "hard_case" not in manifest.df:
         return {}
-    consensus = open_artifact(catalog.path("consensus", artifacts), "consensus")
     reference = open_artifact(catalog.path("reference", artifacts), "reference")
     train = np.flatnonzero((manifest.df["split"] == "train").to_numpy())
     out = {}
     for split, rows in (("train", train[read_rows(reference, "has_mask", train).astype(bool)]), ("test", test)):
-        vote, ref = read_rows(consensus, "voted", rows).astype(bool), read_rows(reference, "mask", rows).astype(bool)
+        vote, ref = vote_and_reference(artifacts, rows)
         cases, iou = manifest.df["hard_case"].to_numpy()[rows].astype(str), image_ious(vote, ref)
         out[split] = {c: {"images": int(k.sum()), "vote": float(iou[k].mean()),
                           "too_many_px": float((vote[k] & ~ref[k]).sum((1, 2)).mean()),
