@@ -381,8 +381,16 @@ def module_times_and_shares(teacher, items, prompts) -> tuple[dict, dict, float]
 
 #: the roofline's paths: fp32 eager and the default as the code of 3056231 ran them (:class:`AsOf3056231`, the
 #: pinned baseline of issue 65), the default dtype with torch's attention (``teacher.engine: torch``: the exact
-#: savings only), and the default path as it runs now (``teacher.engine: auto``)
+#: savings only), and the default path as it runs now (``teacher.engine: auto``); then each other engine that can
+#: run here (:func:`engine_path`)
 FP32, OLD_DEFAULT, TORCH_ENGINE, DEFAULT = "fp32 eager", "default at 3056231", "torch attention", "default"
+#: the engines the roofline tries beside the default's (``teacher.engine``), each as its own path where it runs here
+OTHER_ENGINES = ("openvino", "onednn")
+
+
+def engine_path(engine: str) -> str:
+    """Name the roofline's path of ``teacher.engine: <engine>``."""
+    return f"engine {engine}"
 #: the roofline's targets for default / fp32 eager (medians), by host kind (issue 65)
 TARGETS = "<= 0.35 on avx512_bf16, <= 0.25 on AMX, <= 1 on AVX2"
 
@@ -405,6 +413,10 @@ def roofline(args) -> None:
         torch_engine = Sam3Teacher(ckpt, dtype=args.dtype, engine="torch", **kw)
         paths = {FP32: AsOf3056231(Sam3Teacher(ckpt, dtype="fp32", engine="torch", **kw)),
                  OLD_DEFAULT: AsOf3056231(torch_engine), TORCH_ENGINE: torch_engine, DEFAULT: default}
+        for engine in OTHER_ENGINES:  # each engine tried, where it runs here and is not the default's
+            other = Sam3Teacher(ckpt, dtype=args.dtype, engine=engine, **kw)
+            if other.engine == engine != default.engine:
+                paths[engine_path(engine)] = other
         for t in paths.values():
             t.load()
             t.text_features(PROMPTS)  # once per run, as in a run
@@ -419,8 +431,8 @@ def roofline(args) -> None:
             return time.perf_counter() - t0
 
         times = round_robin({k: (lambda rep, k=k: call(k)) for k in paths}, args.repeats, order="alternate")
-        gate = fidelity(*answers[DEFAULT], *answers[FP32])
-        gate_torch = fidelity(*answers[TORCH_ENGINE], *answers[FP32])
+        gates = {k: fidelity(*answers[k], *answers[FP32]) for k in paths if k not in (FP32, OLD_DEFAULT)}
+        gate, gate_torch = gates[DEFAULT], gates[TORCH_ENGINE]
         same = all(np.array_equal(a, b) for a, b in zip(answers[TORCH_ENGINE], answers[OLD_DEFAULT]))
         flops = module_flops(torch_engine, items, PROMPTS)  # torch's counter does not see OpenVINO's attention
         profiled = {k: module_times_and_shares(paths[k], items, PROMPTS) for k in (OLD_DEFAULT, TORCH_ENGINE, DEFAULT)}
@@ -467,7 +479,10 @@ def roofline(args) -> None:
           f"pair {', '.join(f'{x:.3f}' for x in pairs)}; {OLD_DEFAULT} / {FP32}: {ratio_old:.3f}; {TORCH_ENGINE} / "
           f"{FP32}: {med[TORCH_ENGINE] / med[FP32]:.3f}; {DEFAULT} / {OLD_DEFAULT}: "
           f"{med[DEFAULT] / med[OLD_DEFAULT]:.3f}")
-    for name, g in ((DEFAULT, gate), (TORCH_ENGINE, gate_torch)):
+    for k in paths:
+        if k.startswith("engine "):
+            print(f"  {k} / {FP32} (medians): {med[k] / med[FP32]:.3f}; / {DEFAULT}: {med[k] / med[DEFAULT]:.3f}")
+    for name, g in gates.items():
         print(f"  fidelity of {name} vs fp32 eager: mean mask IoU {g['mean_iou']:.4f} over "
               f"{g['pairs'] - g['pairs_both_empty']} pairs (min {g['min_iou']:.4f}; {g['pairs_both_empty']} pairs "
               f"both empty, left out), max |score difference| {g['max_score_diff']:.2e}; gate (IoU >= {GATE_IOU}, "
@@ -483,7 +498,8 @@ def roofline(args) -> None:
                "text_flops_per_run": flops["text_encoder (once per run)"],
                "module_seconds": {k: v[0] for k, v in profiled.items()},
                "op_shares": {k: v[1] for k, v in profiled.items()}, "fidelity": gate,
-               "fidelity_torch_attention": gate_torch, "torch_attention_identical_to_3056231": same}
+               "fidelity_torch_attention": gate_torch, "torch_attention_identical_to_3056231": same,
+               "fidelity_by_path": gates, "paths": {k: paths[k].path() for k in paths}}
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
         print(f"  written {args.json}")

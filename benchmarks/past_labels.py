@@ -178,9 +178,17 @@ def refined(plain, method: str, cfg: Mapping[str, Any], data: Mapping[str, Any],
         return model
     res = training.train(get_method(method), cfg, data[method if method == PROPOSED else STAGE_ONE], data["val"],
                          seed, checkpointer=NoCheckpointer(), init_state=init, device=device, show_progress=False)
-    with atomic_path(path) as tmp:  # a killed run leaves no half-written model to be read as done
-        torch.save(res.model.state_dict(), tmp)
+    save_model(res.model, path)
     return res.model
+
+
+def save_model(model, path: Path) -> None:
+    """Write ``model``'s weights to ``path`` atomically: a killed run leaves no half-written model to be read as
+    done (a saved model is reused, not retrained)."""
+    import torch
+
+    with atomic_path(path) as tmp:
+        torch.save(model.state_dict(), tmp)
 
 
 def by_hard_case(doc: Mapping[str, Any], artifacts: Path, variant: str = "plain"
@@ -387,14 +395,13 @@ def _trained(job: Mapping[str, Any], method: str, data):
 
 def run_one(job: dict) -> dict:
     """Train one (variant, seed), or import its run, and score it."""
-    import torch
 
     t0 = time.perf_counter()
     data, relabel = _train_data(job)
     method = SUPERVISED_CEILING if VARIANTS[job["variant"]][1] == "reference" else STAGE_ONE
     model, steps, stopped, curve, source = _trained(job, method, data)
     if VARIANTS[job["variant"]][1] != "reference":  # plain's: self-training's starting point; each: --fit-of-saved
-        torch.save(model.state_dict(), Path(job["saved"]) / f"{job['variant']}-s{job['seed']}.pt")
+        save_model(model, Path(job["saved"]) / f"{job['variant']}-s{job['seed']}.pt")
     out = {"variant": job["variant"], "method": job["method"], "trained": method, "seed": job["seed"],
            "steps_run": steps, "stopped": stopped, "images_seen": int(steps) * int(job["cfg"]["batch_size"]),
            "relabel_passes": relabel, "n_train": len(data), "val_iou_cal_curve": curve, "source": source}

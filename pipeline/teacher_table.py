@@ -22,8 +22,9 @@ __all__ = ["SIMULATED", "SAM3", "IMPORTED", "TEACHER_GROUP", "FORMAT_GROUP", "Te
            "teacher_class", "register_teacher", "unregister_teacher", "TEACHER_ENGINES"]
 
 SIMULATED, SAM3, IMPORTED = "simulated", "sam3", "imported"
-#: ``teacher.engine``: where SAM 3's bf16 attention runs (pipeline.teachers.attention)
-TEACHER_ENGINES = ("auto", "torch", "openvino")
+#: ``teacher.engine``: how SAM 3's bf16 CPU path runs (pipeline.teachers.attention): torch's ops, the attention in
+#: OpenVINO, or each MLP's activation fused into its first linear layer by oneDNN
+TEACHER_ENGINES = ("auto", "torch", "openvino", "onednn")
 #: the entry-point groups of plug-ins: ``name = "module:OBJECT"``, a :class:`TeacherSpec` / a ``LabelFormat``
 TEACHER_GROUP, FORMAT_GROUP = "geodistill.teachers", "geodistill.label_formats"
 

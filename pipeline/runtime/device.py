@@ -137,9 +137,11 @@ OPENVINO_ATTENTION_FLAGS = ("avx512_bf16",)
 def teacher_cpu_engine(dtype_name: str) -> str:
     """Resolve ``teacher.engine: auto`` on a CPU, from its flags (never a timing probe).
 
-    Measured (docs/performance.md, "The teacher's attention in OpenVINO"): on a 2-core avx512_bf16 host without AMX,
-    OpenVINO's fused attention ran SAM 3's attention shapes 2.2-3.1x faster than torch's bf16 flash kernel.
-    Not measured on AMX (torch's kernel uses the tiles there) nor on fp32 hosts: torch there.
+    Measured (docs/performance.md, "The teacher's attention in OpenVINO" and "The teacher on AMX"): on a 2-core
+    avx512_bf16 host without AMX, OpenVINO's fused attention ran SAM 3's attention shapes 2.2-3.1x faster than
+    torch's bf16 flash kernel; on a 2-core AMX host torch's kernel was the faster (OpenVINO's took 1.05-1.3x its
+    time), and fusing each MLP's activation into its first linear layer (oneDNN) cut the default path from 11.5 to
+    9.7 s per image at real size. fp32 CPUs and pinned fp32: torch.
 
     Parameters
     ----------
@@ -149,12 +151,15 @@ def teacher_cpu_engine(dtype_name: str) -> str:
     Returns
     -------
     str
-        ``openvino`` for bf16 on a CPU with one of :data:`OPENVINO_ATTENTION_FLAGS` and no ``amx_bf16``, else
-        ``torch``.
+        For bf16: ``onednn`` on a CPU with ``amx_bf16``, ``openvino`` on one with one of
+        :data:`OPENVINO_ATTENTION_FLAGS` and no ``amx_bf16``; else ``torch``.
     """
     flags = cpu_flags()
-    measured = not flags.isdisjoint(OPENVINO_ATTENTION_FLAGS) and "amx_bf16" not in flags
-    return "openvino" if dtype_name == "bf16" and measured else "torch"
+    if dtype_name != "bf16":
+        return "torch"
+    if "amx_bf16" in flags:
+        return "onednn"
+    return "openvino" if not flags.isdisjoint(OPENVINO_ATTENTION_FLAGS) else "torch"
 
 
 def autocast(device, dtype, cache_enabled: bool = True):

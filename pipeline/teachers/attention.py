@@ -1,4 +1,4 @@
-"""Where the SAM 3 teacher's attention runs (``teacher.engine``, issue 65 items 2-3).
+"""How the SAM 3 teacher's bf16 CPU path runs: where its attention runs, and its fused MLPs (``teacher.engine``).
 
 On a 2-core avx512_bf16 host (no AMX), torch's bf16 flash-attention kernel was bound by its softmax: 52 % of the
 default path's time at real size. OpenVINO's CPU plugin runs the same ``ScaledDotProductAttention`` as one fused
@@ -6,6 +6,10 @@ node, 2.2-3.1x faster on SAM 3's shapes (docs/performance.md, "The teacher's att
 every unmasked bf16 attention call of transformers' ``modeling_sam3`` through a small OpenVINO graph (parameters
 Q, K, V and the call's mask, one SDPA node, no weights: nothing to convert per checkpoint, nothing to cache on
 disk); everything else stays in torch. A causal or dropout call, or an fp32 one, runs transformers' own SDPA.
+
+On a 2-core AMX host the other way round: torch's bf16 kernel beat OpenVINO's on every shape, and what paid was
+oneDNN running each MLP's activation inside its first linear layer (``onednn``,
+:func:`pipeline.teachers.sam3.fused_mlp_activations`; docs/performance.md, "The teacher on AMX").
 
 The rule of ``auto`` (:func:`pipeline.runtime.device.teacher_cpu_engine`) reads CPU flags, never a timing probe.
 """
@@ -23,8 +27,8 @@ from pipeline.runtime.device import teacher_cpu_engine
 from pipeline.runtime.errors import InputError
 from pipeline.teacher_table import TEACHER_ENGINES as ENGINES
 
-__all__ = ["OPENVINO_ATTENTION_EVENT", "resolve_teacher_engine", "openvino_version", "OpenVINOAttention",
-           "attention_engine"]
+__all__ = ["OPENVINO_ATTENTION_EVENT", "resolve_teacher_engine", "openvino_version", "onednn_fusion_available",
+           "OpenVINOAttention", "attention_engine"]
 
 log = logging.getLogger(__name__)
 
@@ -48,17 +52,31 @@ def openvino_version() -> str | None:
         return None
 
 
+def onednn_fusion_available() -> bool:
+    """Say whether torch offers oneDNN's linear layer with a fused activation (``teacher.engine: onednn``).
+
+    Returns
+    -------
+    bool
+        True where torch is built with oneDNN and has ``torch.ops.mkldnn._linear_pointwise``.
+    """
+    import torch
+
+    return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+
 def resolve_teacher_engine(engine: str, device, dtype_name: str) -> tuple[str, str | None]:
     """Resolve ``teacher.engine`` for a teacher on ``device`` with weights in ``dtype_name``.
 
-    ``openvino`` runs the bf16 attention only: with fp32 weights, on CUDA, or without openvino installed it
-    resolves to ``torch``, and the note says why in one line. ``auto`` follows
-    :func:`pipeline.runtime.device.teacher_cpu_engine` on a CPU; CUDA always uses torch.
+    ``openvino`` runs the bf16 attention only, ``onednn`` fuses the bf16 MLPs only: with fp32 weights, on CUDA,
+    or without openvino installed (a torch without oneDNN's fused linear layer) each resolves to ``torch``, and
+    the note says why in one line. ``auto`` follows :func:`pipeline.runtime.device.teacher_cpu_engine` on a CPU;
+    CUDA always uses torch.
 
     Parameters
     ----------
     engine : str
-        ``auto``, ``torch`` or ``openvino``.
+        ``auto``, ``torch``, ``openvino`` or ``onednn``.
     device : str or torch.device
         The teacher's device.
     dtype_name : str
@@ -67,7 +85,8 @@ def resolve_teacher_engine(engine: str, device, dtype_name: str) -> tuple[str, s
     Returns
     -------
     tuple of (str, str or None)
-        (``"torch"`` or ``"openvino"``, a one-line note where the engine asked is not the one that runs).
+        (``"torch"``, ``"openvino"`` or ``"onednn"``, a one-line note where the engine asked is not the one that
+        runs).
 
     Raises
     ------
@@ -81,14 +100,19 @@ def resolve_teacher_engine(engine: str, device, dtype_name: str) -> tuple[str, s
     if engine == "torch":
         return "torch", None
     if torch.device(device).type != "cpu":
-        return "torch", (None if engine == "auto" else "teacher.engine openvino: CPU only; torch runs on "
+        return "torch", (None if engine == "auto" else f"teacher.engine {engine}: CPU only; torch runs on "
                          f"{torch.device(device).type}")
-    wanted = teacher_cpu_engine(dtype_name) if engine == "auto" else "openvino"
+    wanted = teacher_cpu_engine(dtype_name) if engine == "auto" else engine
     if wanted == "openvino" and dtype_name != "bf16":
         return "torch", f"teacher.engine {engine}: OpenVINO runs the bf16 attention only; fp32 runs in torch"
     if wanted == "openvino" and openvino_version() is None:
         return "torch", (f"teacher.engine {engine}: openvino is not installed (pip install '.[sam3]'); attention "
                          "runs in torch")
+    if wanted == "onednn" and dtype_name != "bf16":
+        return "torch", f"teacher.engine {engine}: oneDNN fuses the bf16 MLPs only; fp32 runs in torch"
+    if wanted == "onednn" and not onednn_fusion_available():
+        return "torch", (f"teacher.engine {engine}: this torch has no oneDNN linear layer with a fused activation; "
+                         "the MLPs run in torch")
     return wanted, None
 
 

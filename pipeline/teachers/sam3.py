@@ -7,6 +7,7 @@ the best query's mask and score, invalid when no query is above ``teacher.score_
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import inspect
 import json
@@ -546,6 +547,102 @@ def exact_savings(model):
             delattr(obj, name)
 
 
+#: what the onednn engine adds to the teacher's path and fingerprint
+ONEDNN_PATH = "onednn fused MLP activations"
+#: transformers' ``Sam3MLP.forward`` as :func:`fused_mlp_activations` was written against (fc1, dropout, the
+#: activation, fc2); a transformers whose source differs keeps its own MLPs (tests/teachers/test_sam3_patches.py fails)
+FUSED_MLP_TARGET = ("Sam3MLP", "forward", "e47b656ce6cca5d4216c4cac51512d1a37aec38300e69180032a13a366106afa")
+
+
+def onednn_post_op(activation) -> tuple[str, str] | None:
+    """Name oneDNN's post-op for an MLP's activation module.
+
+    Parameters
+    ----------
+    activation : torch.nn.Module
+        The MLP's ``activation_fn``.
+
+    Returns
+    -------
+    tuple of (str, str) or None
+        (attribute, algorithm) of ``torch.ops.mkldnn._linear_pointwise``: ``("relu", "")`` for ``nn.ReLU``,
+        ``("gelu", "none")`` for transformers' exact (erf) GELU; None for any other activation.
+    """
+    import torch
+    from transformers.activations import GELUActivation
+
+    if type(activation) is torch.nn.ReLU:
+        return "relu", ""
+    if type(activation) is GELUActivation and activation.act is torch.nn.functional.gelu:
+        return "gelu", "none"
+    return None
+
+
+def _fused_mlp_forward(self, hidden_states):
+    """Compute ``Sam3MLP.forward`` with ``activation(fc1(x))`` in one oneDNN kernel.
+
+    The activation runs on the fp32 accumulator before the one rounding to bf16, instead of on the rounded bf16
+    output in a second pass (ReLU: the same bits; GELU: one rounding fewer). Anything but a bf16 CPU tensor in
+    eval mode runs upstream's code.
+    """
+    import torch
+
+    post_op = onednn_post_op(self.activation_fn)
+    if (self.training or post_op is None or hidden_states.dtype != torch.bfloat16
+            or hidden_states.device.type != "cpu"):
+        return type(self).forward(self, hidden_states)
+    shape = hidden_states.shape
+    fused = torch.ops.mkldnn._linear_pointwise(hidden_states.reshape(-1, shape[-1]), self.fc1.weight, self.fc1.bias,
+                                               post_op[0], [], post_op[1])
+    return self.fc2(fused.view(*shape[:-1], -1))  # dropout: identity in eval mode
+
+
+@functools.cache
+def _fused_mlp_fits() -> bool:
+    """Whether transformers' ``Sam3MLP.forward`` is the source :data:`FUSED_MLP_TARGET` names (checked once)."""
+    owner, name, digest = FUSED_MLP_TARGET
+    if upstream_source_digest(owner, name) == digest:
+        return True
+    log.info("sam3: transformers' %s.%s differs from the code its fusion was written for; kept as is", owner, name)
+    return False
+
+
+@contextlib.contextmanager
+def fused_mlp_activations(model):
+    """Run each ``Sam3MLP``'s activation inside its first linear layer's oneDNN kernel (``teacher.engine: onednn``).
+
+    The backbone's 32 MLPs (GELU) and the DETR encoder's and decoder's (ReLU) apply their activation as a separate
+    pass over the largest tensors of the model, 4736 and 2048 channels wide; oneDNN applies it to the accumulator
+    in the matmul's own pass. On a 2-core AMX host, real size, one 256² image and six prompts: about 1.4 s of 11 s
+    per image (docs/performance.md, "The teacher on AMX"). Not bit-identical in bf16 (GELU is applied before the
+    output's rounding, not after it): the fidelity gate holds it (tests/teachers/test_teacher_cpu_dtype.py,
+    ``bench_teacher --roofline``). The forward is replaced on each instance for the context's duration; a
+    transformers whose ``Sam3MLP.forward`` differs from :data:`FUSED_MLP_TARGET`'s source keeps its own.
+
+    Parameters
+    ----------
+    model : transformers.Sam3Model
+        The loaded model.
+
+    Yields
+    ------
+    int
+        The MLPs fused (0 where the upstream source differs).
+    """
+    import transformers.models.sam3.modeling_sam3 as modeling
+
+    mlps = []
+    if _fused_mlp_fits():
+        mlps = [m for m in model.modules() if isinstance(m, modeling.Sam3MLP) and onednn_post_op(m.activation_fn)]
+    for m in mlps:
+        m.forward = types.MethodType(_fused_mlp_forward, m)  # an instance attribute: nn.Module.__call__ reads it
+    try:
+        yield len(mlps)
+    finally:
+        for m in mlps:
+            del m.forward
+
+
 class Sam3Teacher(RegisteredTeacher):
     r"""Frozen SAM 3 answering text prompts: vision encoder once per image batch, text features once per run.
 
@@ -574,8 +671,8 @@ class Sam3Teacher(RegisteredTeacher):
     compile : bool, optional
         ``torch.compile`` the vision encoder; on a GPU only (ignored on a CPU).
     engine : str, optional
-        ``teacher.engine``: ``auto``, ``torch`` or ``openvino``, where the bf16 attention runs
-        (:func:`pipeline.teachers.attention.resolve_teacher_engine`).
+        ``teacher.engine``: ``auto``, ``torch``, ``openvino`` (the bf16 attention in OpenVINO) or ``onednn`` (the
+        bf16 MLPs' activations fused by oneDNN; :func:`pipeline.teachers.attention.resolve_teacher_engine`).
 
     Attributes
     ----------
@@ -596,7 +693,7 @@ class Sam3Teacher(RegisteredTeacher):
     compile : bool
         Whether the vision encoder is compiled.
     engine : str
-        The resolved engine, ``torch`` or ``openvino``.
+        The resolved engine, ``torch``, ``openvino`` or ``onednn``.
     engine_note : str or None
         One line where the engine asked is not the one that runs (logged at load).
     runner_batch_size : int
@@ -699,8 +796,9 @@ class Sam3Teacher(RegisteredTeacher):
         -------
         dict
             Backend, checkpoint hash, dtype (``+tf32`` when on), resolution, both thresholds and the prompts'
-            token length; with the openvino engine also it and OpenVINO's version (the torch engine's fingerprint
-            is the one from before the setting, so no cached answer is computed again).
+            token length; with the openvino engine also it and OpenVINO's version, with the onednn engine its
+            fusion (the torch engine's fingerprint is the one from before the setting, so no cached answer is
+            computed again).
         """
         if self._hash is None:
             log.info("sam3: hashing checkpoint %s for the cache key", self.checkpoint)
@@ -711,7 +809,11 @@ class Sam3Teacher(RegisteredTeacher):
                 "score_threshold": self.score_threshold, "mask_threshold": self.mask_threshold,
                 "text_max_length": TEXT_MAX_LENGTH,
                 **({"engine": "openvino attention", "openvino": self._openvino} if self.engine == "openvino"
-                   else {})}
+                   else {"engine": ONEDNN_PATH} if self.engine == "onednn" else {})}
+
+    def _fused(self, model):
+        """Return the context of ``teacher.engine: onednn`` (:func:`fused_mlp_activations`), a no-op otherwise."""
+        return fused_mlp_activations(model) if self.engine == "onednn" else contextlib.nullcontext()
 
     def path(self) -> str:
         """Name the path the answers take, as ``label``'s projection and summary name it.
@@ -719,14 +821,15 @@ class Sam3Teacher(RegisteredTeacher):
         Returns
         -------
         str
-            Backend, engine, dtype and device, e.g. ``sam3 torch eager bf16 + openvino attention on cpu``.
+            Backend, engine, dtype and device, e.g. ``sam3 torch eager bf16 + openvino attention on cpu`` or
+            ``sam3 torch eager bf16 + onednn fused MLP activations on cpu``.
         """
         return (f"{BACKEND} torch {'compiled' if self.compile else 'eager'} {self.dtype_name}"
-                f"{'+tf32' if self.tf32 else ''}{' + openvino attention' if self.engine == 'openvino' else ''} "
-                f"on {self.device.type}")
+                f"{'+tf32' if self.tf32 else ''}{' + openvino attention' if self.engine == 'openvino' else ''}"
+                f"{' + ' + ONEDNN_PATH if self.engine == 'onednn' else ''} on {self.device.type}")
 
     def cache_note(self) -> str | None:
-        """Say why a CPU's answers cached before ``auto`` chose bf16 or OpenVINO's attention there are computed again.
+        """Say why a CPU's answers cached before ``auto`` chose bf16 or another engine there are computed again.
 
         Returns
         -------
@@ -740,6 +843,9 @@ class Sam3Teacher(RegisteredTeacher):
                          "not reused; set teacher.dtype: fp32 to keep them")
         if self.engine == "openvino":
             notes.append("teacher.engine runs the attention in OpenVINO: answers cached by the torch engine are not "
+                         "reused; set teacher.engine: torch to keep them")
+        if self.engine == "onednn":
+            notes.append(f"teacher.engine runs the {ONEDNN_PATH}: answers cached by the torch engine are not "
                          "reused; set teacher.engine: torch to keep them")
         return "; ".join(notes) or None
 
@@ -851,7 +957,7 @@ class Sam3Teacher(RegisteredTeacher):
         import torch
 
         model = self.load()
-        with torch.inference_mode(), exact_savings(model), attention_engine(self._attention):
+        with torch.inference_mode(), exact_savings(model), attention_engine(self._attention), self._fused(model):
             return model.get_vision_features(pixel_values=self.preprocess(images))
 
     @staticmethod
@@ -901,7 +1007,7 @@ class Sam3Teacher(RegisteredTeacher):
         feats, mask = self.text_features(prompts)
         text = BaseModelOutputWithPooling(pooler_output=feats.repeat(n_images, 1, 1))
         with torch.inference_mode(), first_self_attention_once_per_image(model, k), exact_savings(model), \
-                attention_engine(self._attention):
+                attention_engine(self._attention), self._fused(model):
             out = model(vision_embeds=self._repeat_vision(vision, k), text_embeds=text,
                         attention_mask=mask.repeat(n_images, 1))
             scores = out.pred_logits.float().sigmoid()                       # [B*K, Q]

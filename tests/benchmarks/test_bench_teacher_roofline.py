@@ -14,11 +14,11 @@ pytest.importorskip("transformers")
 
 
 def test_roofline_prints_and_writes_its_table(tmp_path, capsys, tiny_sam3):
-    from benchmarks.bench_teacher import DEFAULT, FP32, OLD_DEFAULT, TORCH_ENGINE, main
+    from benchmarks.bench_teacher import DEFAULT, FP32, OLD_DEFAULT, OTHER_ENGINES, TORCH_ENGINE, engine_path, main
 
     out = tmp_path / "roofline.json"
     main(["--roofline", "--checkpoint", str(tiny_sam3), "--images", "1", "--repeats", "2", "--resolution", "32",
-          "--no-warmup", "--json", str(out)])
+          "--no-warmup", "--dtype", "bf16", "--json", str(out)])
     text = capsys.readouterr().out
     for pattern in (r"limits \(measured 2048\^3 matmul, best / median\): fp32 \d+ / \d+ GFLOP/s",
                     r"FLOPs per image, 6 prompts: .*backbone [\d.]+ G.*; text once per run [\d.e+-]+ G",
@@ -32,7 +32,14 @@ def test_roofline_prints_and_writes_its_table(tmp_path, capsys, tiny_sam3):
                     r"torch attention against default at 3056231: answers identical"):
         assert re.search(pattern, text), (pattern, text)
     doc = json.loads(out.read_text())
-    assert set(doc["seconds"]) == {FP32, OLD_DEFAULT, TORCH_ENGINE, DEFAULT} and all(len(v) == 2 for v in doc["seconds"].values())
+    base = {FP32, OLD_DEFAULT, TORCH_ENGINE, DEFAULT}
+    engines = set(doc["seconds"]) - base  # each other engine that runs here, beside the default's
+    assert base <= set(doc["seconds"]) and all(len(v) == 2 for v in doc["seconds"].values())
+    assert engines <= {engine_path(e) for e in OTHER_ENGINES}
+    assert ("onednn" in doc["paths"][DEFAULT]) != (engine_path("onednn") in engines)  # tried once, default or not
+    for k in engines:
+        assert k.split()[-1] in doc["paths"][k] and "passes" in doc["fidelity_by_path"][k]
+        assert re.search(rf"{k} / fp32 eager \(medians\): [\d.]+; / default: [\d.]+", text), text
     med = doc["median_s_per_image"]
     assert doc["default_over_fp32"] == pytest.approx(med[DEFAULT] / med[FP32])
     assert doc["old_default_over_fp32"] == pytest.approx(med[OLD_DEFAULT] / med[FP32])

@@ -182,6 +182,26 @@ def test_a_saved_run_is_scored_instead_of_trained(tiny, tmp_path):
                           "--out", str(tmp_path / "c.json")])
 
 
+def test_a_saved_model_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
+    import torch
+
+    model, path = torch.nn.Linear(3, 2), tmp_path / "plain-s1.pt"
+    past_labels.save_model(model, path)
+    assert torch.load(path, weights_only=True).keys() == model.state_dict().keys()
+
+    def killed(obj, f):  # the process dies part-way through the write
+        open(f, "wb").write(b"torn")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torch, "save", killed)
+    with pytest.raises(KeyboardInterrupt):
+        past_labels.save_model(model, tmp_path / "plain-s2.pt")
+    assert not (tmp_path / "plain-s2.pt").exists()  # a rerun trains it again instead of reading a torn file
+    with pytest.raises(KeyboardInterrupt):
+        past_labels.save_model(model, path)
+    assert torch.load(path, weights_only=True).keys() == model.state_dict().keys()  # the earlier one is intact
+
+
 def test_a_variant_merges_its_sub_section_into_the_base_recipe():
     base = {"lr_stage1": 5e-4, "augmentation": {"hflip": 0.5, "flare_probability": 0.0}}
     cfg = past_labels.overlay(base, past_labels.VARIANTS["photometric"][0])

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from benchmarks.bench_teacher import AsOf3056231, fidelity
-from pipeline.teachers.sam3 import SAM3_PATCHES, Sam3Teacher, exact_savings, upstream_source_digest
+from pipeline.teachers.sam3 import (FUSED_MLP_TARGET, SAM3_PATCHES, Sam3Teacher, exact_savings,
+                                    fused_mlp_activations, upstream_source_digest)
 
 pytest.importorskip("transformers")
 
@@ -22,6 +23,45 @@ def test_every_patch_target_exists_with_the_source_it_was_written_for(owner, nam
     assert digest == SAM3_PATCHES[owner, name][1], (
         f"transformers' {owner}.{name} changed: check that {SAM3_PATCHES[owner, name][0].__name__} still computes "
         "the same and record the new digest")
+
+
+def test_the_fused_mlp_target_exists_with_the_source_it_was_written_for():
+    owner, name, digest = FUSED_MLP_TARGET
+    assert upstream_source_digest(owner, name) == digest, (
+        f"transformers' {owner}.{name} changed: check that _fused_mlp_forward still computes the same and record "
+        "the new digest")
+
+
+@pytest.mark.parametrize("act", ["relu", "gelu"])
+def test_the_fused_mlp_computes_upstreams_mlp_within_bf16_rounding_and_leaves_the_rest_alone(act):
+    """oneDNN's fused activation against ``Sam3MLP``'s own forward: within a bf16 rounding of the output (GELU
+    applied before the rounding, not after); fp32 and training run upstream's code bit for bit; the context
+    restores every forward."""
+    import copy
+    import types
+
+    import torch
+    import transformers.models.sam3.modeling_sam3 as modeling
+
+    torch.manual_seed(0)
+    mlp32 = modeling.Sam3MLP(types.SimpleNamespace(hidden_act=act, hidden_size=32, intermediate_size=96,
+                                                   hidden_dropout=0.0)).eval()
+    mlp16 = copy.deepcopy(mlp32).bfloat16()
+    model = torch.nn.ModuleDict({"a": mlp32, "b": mlp16})
+    x = torch.randn(2, 50, 32)
+    with torch.inference_mode():
+        ref32, ref16 = mlp32(x), mlp16(x.bfloat16())
+        with fused_mlp_activations(model) as fused:
+            got16, got32 = mlp16(x.bfloat16()), mlp32(x)
+            mlp32.train()
+            trained = mlp32(x)
+            mlp32.eval()
+    assert fused == 2 and "forward" not in vars(mlp16) and "forward" not in vars(mlp32)
+    assert got16.dtype == torch.bfloat16 and got16.shape == ref16.shape
+    assert not torch.equal(got16, torch.zeros_like(got16))
+    assert torch.allclose(got16.float(), ref16.float(), rtol=2e-2, atol=2e-2)
+    assert (got16.float() - ref32).abs().max() <= 2 * (ref16.float() - ref32).abs().max() + 1e-3
+    assert torch.equal(got32, ref32) and torch.equal(trained, ref32)
 
 
 @pytest.mark.parametrize("dtype", ["float32", "bfloat16"])

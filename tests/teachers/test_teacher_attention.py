@@ -24,7 +24,8 @@ AVX512_BF16 = frozenset({"avx2", "avx512f", "avx512_bf16"})
 
 @pytest.mark.parametrize("flags, dtype, expect", [
     (AVX512_BF16, "bf16", "openvino"),                                   # measured: OpenVINO's attention is faster
-    (AVX512_BF16 | {"amx_tile", "amx_bf16"}, "bf16", "torch"),           # AMX: not measured, torch's AMX kernel
+    (AVX512_BF16 | {"amx_tile", "amx_bf16"}, "bf16", "onednn"),          # AMX: torch's attention, fused MLPs
+    (AVX512_BF16 | {"amx_tile", "amx_bf16"}, "fp32", "torch"),           # AMX, pinned fp32: torch
     ({"avx2", "fma"}, "fp32", "torch"),                                  # AVX2: fp32 teacher, torch
     (AVX512_BF16, "fp32", "torch"),                                      # a pinned fp32 stays in torch
 ])
@@ -49,6 +50,18 @@ def test_what_cannot_run_in_openvino_runs_in_torch_and_says_so_in_one_line(monke
         resolve_teacher_engine("onnx", "cpu", "bf16")
 
 
+def test_what_cannot_run_fused_by_onednn_runs_in_torch_and_says_so_in_one_line(monkeypatch):
+    assert resolve_teacher_engine("onednn", "cpu", "bf16") == ("onednn", None)  # this torch has the fused layer
+    for dtype_name, device_name, why in (("fp32", "cpu", "bf16 MLPs only"), ("bf16", "cuda", "CPU only")):
+        engine, note = resolve_teacher_engine("onednn", device_name, dtype_name)
+        assert engine == "torch" and why in note and "\n" not in note
+    monkeypatch.setattr(attention, "onednn_fusion_available", lambda: False)
+    engine, note = resolve_teacher_engine("onednn", "cpu", "bf16")
+    assert engine == "torch" and "fused activation" in note and "\n" not in note
+    monkeypatch.setattr(device, "cpu_flags", lambda: AVX512_BF16 | {"amx_tile", "amx_bf16"})
+    assert resolve_teacher_engine("auto", "cpu", "bf16")[0] == "torch"  # auto on AMX without the op: torch
+
+
 def test_the_fingerprint_and_path_name_the_engine_and_the_torch_engine_keeps_its_fingerprint(tiny_sam3, monkeypatch,
                                                                                           caplog):
     from pipeline.teachers.sam3 import Sam3Teacher
@@ -69,6 +82,11 @@ def test_the_fingerprint_and_path_name_the_engine_and_the_torch_engine_keeps_its
     with caplog.at_level(logging.WARNING):
         fallen.load()
     assert [r.getMessage() for r in caplog.records if "openvino" in r.getMessage()] == [f"sam3: {fallen.engine_note}"]
+    monkeypatch.setattr(device, "cpu_flags", lambda: AVX512_BF16 | {"amx_tile", "amx_bf16"})
+    fused = Sam3Teacher(tiny_sam3, engine="auto", **kw)
+    assert fused.fingerprint() == {**fp, "engine": "onednn fused MLP activations"}
+    assert fused.path() == "sam3 torch eager bf16 + onednn fused MLP activations on cpu"
+    assert "set teacher.engine: torch to keep them" in fused.cache_note()
 
 
 def _reference(q, k, v, scale):

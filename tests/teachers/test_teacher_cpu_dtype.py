@@ -82,14 +82,14 @@ def test_bf16_on_the_random_tiny_sam3_keeps_layout_and_prompts(tiny_sam3):
     assert g["pairs_both_empty"] < g["pairs"] and 0.9 <= g["mean_iou"] <= 1.0 and g["max_score_diff"] <= 0.03, g
 
 
-@pytest.mark.parametrize("engine", ["torch", "openvino"])
+@pytest.mark.parametrize("engine", ["torch", "openvino", "onednn"])
 def test_bf16_passes_the_fidelity_gate_on_a_fitted_tiny_sam3(fitted_tiny_sam3, engine):
     """The fidelity gate (mean mask IoU >= 0.99 against fp32 eager, score_threshold 0, pairs of two empty masks
     left out; scores within 0.02) on held-out box scenes, for the tiny SAM 3 fitted so that its logits have a
     trained model's margins (weights fitted to synthetic boxes: numerics only). The fp32 answers must find the
     boxes (IoU >= 0.7; 0.85 here), so a model that learned nothing cannot pass by agreeing on noise. Measured
-    on an avx512_bf16 host: 0.997, scores within 0.002 (0.995-0.998 over fitting seeds 0-2). Both engines of
-    the bf16 attention (``teacher.engine``) pass it."""
+    on an avx512_bf16 host: 0.997, scores within 0.002 (0.995-0.998 over fitting seeds 0-2). Every bf16 engine
+    (``teacher.engine``: torch, OpenVINO's attention, oneDNN's fused MLPs) passes it."""
     from pipeline.params import PAPER_PROMPTS
     from pipeline.teachers.base import TeacherInput
     from pipeline.teachers.tiny_sam3 import box_scenes
