@@ -9,8 +9,9 @@ host's fp32 / bf16 / AMX limits from its flags and a measured matmul peak, fp32 
 (``teacher.dtype: auto``) round-robin with medians and minima, measured / limit, and the fidelity gate (mean mask
 IoU >= 0.99 against fp32 eager with score_threshold 0, pairs of two empty masks left out). fp32 eager runs the code
 of main at 3056231 (the pinned baseline of issue 65), timed beside the default path as 3056231 ran it and as it
-runs now; both defaults also get per-module times and the shares of attention, matmul, copies and elementwise
-work in torch.profiler's self CPU time.  Random weights test
+runs now, beside the torch engine and each other ``teacher.engine`` that runs here (OpenVINO's attention, oneDNN's
+fused MLPs), each with its fidelity gate; both defaults and the torch engine also get per-module times and the
+shares of attention, matmul, copies and elementwise work in torch.profiler's self CPU time.  Random weights test
 the numerics only, not the masks of a trained SAM 3.
 
     python -m benchmarks.bench_teacher [--size real --device cuda --images 16 --compile] [--ray-workers 1,2]
