@@ -613,8 +613,8 @@ def fused_mlp_activations(model):
 
     The backbone's 32 MLPs (GELU) and the DETR encoder's and decoder's (ReLU) apply their activation as a separate
     pass over the largest tensors of the model, 4736 and 2048 channels wide; oneDNN applies it to the accumulator
-    in the matmul's own pass. On a 2-core AMX host, real size, one 256² image and six prompts: about 1.4 s of 11 s
-    per image (docs/performance.md, "The teacher on AMX"). Not bit-identical in bf16 (GELU is applied before the
+    in the matmul's own pass. On a 2-core AMX host, real size, one 256² image and six prompts: 10.65 -> 9.66 s per
+    image against the torch engine (docs/performance.md, "The teacher on AMX"). Not bit-identical in bf16 (GELU is applied before the
     output's rounding, not after it): the fidelity gate holds it (tests/teachers/test_teacher_cpu_dtype.py,
     ``bench_teacher --roofline``). The forward is replaced on each instance for the context's duration; a
     transformers whose ``Sam3MLP.forward`` differs from :data:`FUSED_MLP_TARGET`'s source keeps its own.
@@ -622,7 +622,7 @@ def fused_mlp_activations(model):
     Parameters
     ----------
     model : transformers.Sam3Model
-        The loaded model.
+        The loaded model, whose ``Sam3MLP`` modules run fused inside the context.
 
     Yields
     ------
