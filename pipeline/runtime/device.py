@@ -9,7 +9,7 @@ from pipeline.runtime.errors import InputError
 
 __all__ = ["STAGE_CPUS_ENV", "BF16_FLAGS", "ONEDNN_BF16_ISAS", "resolve_device", "stage_cores", "cpu_flags",
            "cpu_supports_bf16", "cpu_bf16_native", "teacher_cpu_dtype", "OPENVINO_ATTENTION_FLAGS",
-           "teacher_cpu_engine", "autocast", "autocast_dtype"]
+           "teacher_cpu_engine", "cpu_amx_native", "autocast", "autocast_dtype"]
 
 
 def resolve_device(name: str = "auto"):
@@ -130,8 +130,23 @@ def teacher_cpu_dtype() -> str:
 
 
 #: the CPU flags under which ``teacher.engine: auto`` runs SAM 3's bf16 attention in OpenVINO: measured on
-#: avx512_bf16 without AMX (docs/performance.md); AMX is not measured, so it keeps torch's AMX attention
+#: avx512_bf16 without AMX (docs/performance.md); with AMX in use torch's attention was the faster
 OPENVINO_ATTENTION_FLAGS = ("avx512_bf16",)
+#: the ``ONEDNN_MAX_CPU_ISA`` values of :data:`ONEDNN_BF16_ISAS` that leave oneDNN its AMX kernels
+ONEDNN_AMX_ISAS = tuple(isa for isa in ONEDNN_BF16_ISAS if "AMX" in isa or isa in ("ALL", "DEFAULT"))
+
+
+def cpu_amx_native() -> bool:
+    """Tell whether oneDNN runs bf16 on AMX tiles here: the flag ``amx_bf16``, and no ``ONEDNN_MAX_CPU_ISA`` cap below it.
+
+    Returns
+    -------
+    bool
+        True where ``amx_bf16`` is among :func:`cpu_flags` and ``ONEDNN_MAX_CPU_ISA``, where set, is one of
+        :data:`ONEDNN_AMX_ISAS`.
+    """
+    isa = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
+    return "amx_bf16" in cpu_flags() and (not isa or isa in ONEDNN_AMX_ISAS)
 
 
 def teacher_cpu_engine(dtype_name: str) -> str:
@@ -151,15 +166,15 @@ def teacher_cpu_engine(dtype_name: str) -> str:
     Returns
     -------
     str
-        For bf16: ``onednn`` on a CPU with ``amx_bf16``, ``openvino`` on one with one of
-        :data:`OPENVINO_ATTENTION_FLAGS` and no ``amx_bf16``; else ``torch``.
+        For bf16: ``onednn`` where oneDNN runs on AMX (:func:`cpu_amx_native`), else ``openvino`` on a CPU with one
+        of :data:`OPENVINO_ATTENTION_FLAGS` (an AMX CPU capped below AMX by ``ONEDNN_MAX_CPU_ISA`` runs as an
+        avx512_bf16 one); else ``torch``.
     """
-    flags = cpu_flags()
     if dtype_name != "bf16":
         return "torch"
-    if "amx_bf16" in flags:
+    if cpu_amx_native():
         return "onednn"
-    return "openvino" if not flags.isdisjoint(OPENVINO_ATTENTION_FLAGS) else "torch"
+    return "openvino" if not cpu_flags().isdisjoint(OPENVINO_ATTENTION_FLAGS) else "torch"
 
 
 def autocast(device, dtype, cache_enabled: bool = True):

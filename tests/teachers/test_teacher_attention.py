@@ -30,6 +30,7 @@ AVX512_BF16 = frozenset({"avx2", "avx512f", "avx512_bf16"})
     (AVX512_BF16, "fp32", "torch"),                                      # a pinned fp32 stays in torch
 ])
 def test_auto_follows_the_cpu_flags(monkeypatch, flags, dtype, expect):
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
     monkeypatch.setattr(device, "cpu_flags", lambda: frozenset(flags))
     monkeypatch.setattr(attention, "openvino_version", lambda: "2026.4.1")
     assert device.teacher_cpu_engine(dtype) == expect
@@ -48,6 +49,14 @@ def test_what_cannot_run_in_openvino_runs_in_torch_and_says_so_in_one_line(monke
     assert engine == "torch" and "bf16 attention only" in note
     with pytest.raises(InputError, match="teacher.engine='onnx'"):
         resolve_teacher_engine("onnx", "cpu", "bf16")
+
+
+def test_an_amx_cpu_capped_below_amx_runs_as_an_avx512_bf16_one(monkeypatch):
+    monkeypatch.setattr(device, "cpu_flags", lambda: AVX512_BF16 | {"amx_tile", "amx_bf16"})
+    monkeypatch.setattr(attention, "openvino_version", lambda: "2026.4.1")
+    for isa, expect in (("AVX512_CORE_AMX", "onednn"), ("", "onednn"), ("AVX512_CORE_BF16", "openvino")):
+        monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", isa)
+        assert device.teacher_cpu_engine("bf16") == expect, isa
 
 
 def test_what_cannot_run_fused_by_onednn_runs_in_torch_and_says_so_in_one_line(monkeypatch):
