@@ -9,7 +9,7 @@ from pipeline.runtime.errors import InputError
 
 __all__ = ["STAGE_CPUS_ENV", "BF16_FLAGS", "ONEDNN_BF16_ISAS", "resolve_device", "stage_cores", "cpu_flags",
            "cpu_supports_bf16", "cpu_bf16_native", "teacher_cpu_dtype", "OPENVINO_ATTENTION_FLAGS",
-           "teacher_cpu_engine", "cpu_amx_native", "autocast", "autocast_dtype"]
+           "teacher_cpu_engine", "onednn_isa_cap", "cpu_amx_native", "autocast", "autocast_dtype"]
 
 
 def resolve_device(name: str = "auto"):
@@ -97,6 +97,17 @@ ONEDNN_BF16_ISAS = ("AVX512_CORE_BF16", "AVX512_CORE_FP16", "AVX512_CORE_AMX", "
                     "ALL", "DEFAULT")
 
 
+def onednn_isa_cap() -> str:
+    """Read oneDNN's ISA cap, ``ONEDNN_MAX_CPU_ISA``.
+
+    Returns
+    -------
+    str
+        Its value in upper case, stripped; empty where it is not set.
+    """
+    return os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
+
+
 def cpu_bf16_native() -> bool:
     """Apply the rule for bf16 on this CPU (the teacher's ``dtype: auto`` and training's ``precision: auto``).
 
@@ -109,7 +120,7 @@ def cpu_bf16_native() -> bool:
     bool
         Whether bf16 runs natively here.
     """
-    isa = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
+    isa = onednn_isa_cap()
     if isa and isa not in ONEDNN_BF16_ISAS:
         return False
     return cpu_supports_bf16()
@@ -145,7 +156,7 @@ def cpu_amx_native() -> bool:
         True where ``amx_bf16`` is among :func:`cpu_flags` and ``ONEDNN_MAX_CPU_ISA``, where set, is one of
         :data:`ONEDNN_AMX_ISAS`.
     """
-    isa = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
+    isa = onednn_isa_cap()
     return "amx_bf16" in cpu_flags() and (not isa or isa in ONEDNN_AMX_ISAS)
 
 
@@ -155,8 +166,9 @@ def teacher_cpu_engine(dtype_name: str) -> str:
     Measured (docs/performance.md, "The teacher's attention in OpenVINO" and "The teacher on AMX"): on a 2-core
     avx512_bf16 host without AMX, OpenVINO's fused attention ran SAM 3's attention shapes 2.2-3.1x faster than
     torch's bf16 flash kernel; on a 2-core AMX host torch's kernel was the faster (OpenVINO's took 1.05-1.3x its
-    time), and fusing each MLP's activation into its first linear layer (oneDNN) cut the default path from 11.5 to
-    9.7 s per image at real size. fp32 CPUs and pinned fp32: torch.
+    time), and fusing each MLP's activation into its first linear layer (oneDNN) took the teacher from 10.65 to
+    9.66 s per image at real size (the torch engine against onednn, one round-robin run). fp32 CPUs and pinned fp32:
+    torch.
 
     Parameters
     ----------

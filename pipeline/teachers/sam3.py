@@ -34,7 +34,8 @@ from pipeline.teachers.base import RegisteredTeacher, TeacherInput, files_digest
 __all__ = ["TEXT_MAX_LENGTH", "SAM3_MODEL_TYPES", "checkpoint_hash", "checkpoint_stat", "memoised_checkpoint_hash",
            "read_processor_config", "check_checkpoint_dir", "resolve_teacher_dtype", "allow_tf32", "MAX_AUTO_BATCH",
            "auto_batch_size", "local_hash_memo", "first_self_attention_once_per_image", "SAM3_PATCHES",
-           "upstream_source_digest", "exact_savings", "Sam3Teacher"]
+           "upstream_source_digest", "upstream_matches", "exact_savings", "ONEDNN_PATH", "FUSED_MLP_TARGET",
+           "onednn_post_op", "fused_mlp_activations", "Sam3Teacher"]
 
 log = logging.getLogger(__name__)
 
@@ -494,15 +495,35 @@ def _patches_that_fit() -> list:
     """List the :data:`SAM3_PATCHES` whose upstream source is the one each was written against (checked once)."""
     global _PATCHES_THAT_FIT
     if _PATCHES_THAT_FIT is None:
-        fit = []
-        for (owner, name), (replacement, digest) in SAM3_PATCHES.items():
-            if upstream_source_digest(owner, name) == digest:
-                fit.append((owner, name, replacement))
-            else:
-                log.info("sam3: transformers' %s.%s differs from the code its saving was written for; kept as is",
-                         owner, name)
-        _PATCHES_THAT_FIT = fit
+        _PATCHES_THAT_FIT = [(owner, name, replacement)
+                             for (owner, name), (replacement, digest) in SAM3_PATCHES.items()
+                             if upstream_matches(owner, name, digest, "saving")]
     return _PATCHES_THAT_FIT
+
+
+def upstream_matches(owner: str, name: str, digest: str, what: str) -> bool:
+    """Tell whether transformers' source of ``owner.name`` is the one a replacement was written against.
+
+    Where not, log that it is kept as is (the replacement is skipped: the saving is lost, never the answer).
+
+    Parameters
+    ----------
+    owner, name : str
+        As :func:`upstream_source_digest` takes them.
+    digest : str
+        The sha256 of the source the replacement was written against.
+    what : str
+        What the replacement is (``saving``, ``fusion``), for the log line.
+
+    Returns
+    -------
+    bool
+        Whether the source's digest is ``digest``.
+    """
+    if upstream_source_digest(owner, name) == digest:
+        return True
+    log.info("sam3: transformers' %s.%s differs from the code its %s was written for; kept as is", owner, name, what)
+    return False
 
 
 @contextlib.contextmanager
@@ -578,18 +599,16 @@ def onednn_post_op(activation) -> tuple[str, str] | None:
     return None
 
 
-def _fused_mlp_forward(self, hidden_states):
+def _fused_mlp_forward(self, hidden_states, post_op: tuple[str, str]):
     """Compute ``Sam3MLP.forward`` with ``activation(fc1(x))`` in one oneDNN kernel.
 
-    The activation runs on the fp32 accumulator before the one rounding to bf16, instead of on the rounded bf16
+    ``post_op`` is the MLP's :func:`onednn_post_op`, found once when the forward is patched. The activation runs on the fp32 accumulator before the one rounding to bf16, instead of on the rounded bf16
     output in a second pass (ReLU: the same bits; GELU: one rounding fewer). Anything but a bf16 CPU tensor in
     eval mode runs upstream's code.
     """
     import torch
 
-    post_op = onednn_post_op(self.activation_fn)
-    if (self.training or post_op is None or hidden_states.dtype != torch.bfloat16
-            or hidden_states.device.type != "cpu"):
+    if self.training or hidden_states.dtype != torch.bfloat16 or hidden_states.device.type != "cpu":
         return type(self).forward(self, hidden_states)
     shape = hidden_states.shape
     fused = torch.ops.mkldnn._linear_pointwise(hidden_states.reshape(-1, shape[-1]), self.fc1.weight, self.fc1.bias,
@@ -600,11 +619,7 @@ def _fused_mlp_forward(self, hidden_states):
 @functools.cache
 def _fused_mlp_fits() -> bool:
     """Whether transformers' ``Sam3MLP.forward`` is the source :data:`FUSED_MLP_TARGET` names (checked once)."""
-    owner, name, digest = FUSED_MLP_TARGET
-    if upstream_source_digest(owner, name) == digest:
-        return True
-    log.info("sam3: transformers' %s.%s differs from the code its fusion was written for; kept as is", owner, name)
-    return False
+    return upstream_matches(*FUSED_MLP_TARGET, "fusion")
 
 
 @contextlib.contextmanager
@@ -614,9 +629,9 @@ def fused_mlp_activations(model):
     The backbone's 32 MLPs (GELU) and the DETR encoder's and decoder's (ReLU) apply their activation as a separate
     pass over the largest tensors of the model, 4736 and 2048 channels wide; oneDNN applies it to the accumulator
     in the matmul's own pass. On a 2-core AMX host, real size, one 256² image and six prompts: 10.65 -> 9.66 s per
-    image against the torch engine (docs/performance.md, "The teacher on AMX"). Not bit-identical in bf16 (GELU is applied before the
-    output's rounding, not after it): the fidelity gate holds it (tests/teachers/test_teacher_cpu_dtype.py,
-    ``bench_teacher --roofline``). The forward is replaced on each instance for the context's duration; a
+    image against the torch engine (docs/performance.md, "The teacher on AMX"). Not bit-identical in bf16 (GELU
+    is applied before the output's rounding, not after it): the fidelity gate holds it
+    (tests/teachers/test_teacher_cpu_dtype.py, ``bench_teacher --roofline``). The forward is replaced on each instance for the context's duration; a
     transformers whose ``Sam3MLP.forward`` differs from :data:`FUSED_MLP_TARGET`'s source keeps its own.
 
     Parameters
@@ -631,11 +646,12 @@ def fused_mlp_activations(model):
     """
     import transformers.models.sam3.modeling_sam3 as modeling
 
-    mlps = []
+    mlps = {}
     if _fused_mlp_fits():
-        mlps = [m for m in model.modules() if isinstance(m, modeling.Sam3MLP) and onednn_post_op(m.activation_fn)]
-    for m in mlps:
-        m.forward = types.MethodType(_fused_mlp_forward, m)  # an instance attribute: nn.Module.__call__ reads it
+        mlps = {m: op for m in model.modules()
+                if isinstance(m, modeling.Sam3MLP) and (op := onednn_post_op(m.activation_fn)) is not None}
+    for m, op in mlps.items():  # an instance attribute: nn.Module.__call__ reads it
+        m.forward = types.MethodType(functools.partial(_fused_mlp_forward, post_op=op), m)
     try:
         yield len(mlps)
     finally:
