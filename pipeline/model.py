@@ -17,8 +17,8 @@ from torch import nn
 
 from pipeline.params import PAPER
 
-__all__ = ["NORMS", "model_options", "ConvBNReLU", "ExpandedConvBNReLU", "has_branches", "expand_branches",
-           "fold_branches", "TinyUNet", "mask_path_model", "ExportMaskPath", "recompute_bn_stats", "count_parameters",
+__all__ = ["NORMS", "model_options", "batch_norm_relu", "ConvBNReLU", "ExpandedConvBNReLU", "has_branches",
+           "expand_branches", "fold_branches", "TinyUNet", "mask_path_model", "ExportMaskPath", "recompute_bn_stats", "count_parameters",
            "count_flops"]
 
 #: normalisation layers of :class:`TinyUNet` (``train.norm``); the first, BatchNorm, is the paper's, and the one a
@@ -55,6 +55,114 @@ def model_options(cfg: Mapping[str, Any]) -> dict:
     return {"norm": str(cfg["norm"]), "bn_momentum": float(cfg["bn_momentum"])}
 
 
+#: SIMD lanes the CPU's channels_last BatchNorm kernels vectorise over (AVX-512: 16 floats, 32 bf16): a channel
+#: count that is not a multiple of it leaves a tail in every pixel's row, and aten's kernel slows 3-4x (24 channels)
+_LANES = 16
+
+
+def _wide_columns(channels: int) -> int:
+    """Count the pixels per row of the wide view: the fewest k with k * channels a multiple of 32 (bf16 lanes)."""
+    k = 1
+    while (k * channels) % (2 * _LANES):
+        k += 1
+    return k
+
+
+class _WideBatchNormReLU(torch.autograd.Function):
+    """Training-mode BatchNorm + ReLU on a channels_last tensor, computed on a wide 2-D view of its memory.
+
+    The channels_last memory of x [N, C, H, W] is a matrix [N H W, C]; viewed as [N H W / k, k C] with k C a
+    multiple of the SIMD width, aten's 2-D BatchNorm kernels (statistics, the affine map, the backward's sums)
+    vectorise fully.  The k column groups are combined per channel: the mean of the k means, and the mean of the k
+    biased variances plus the variance of the k means (equal group sizes: the exact pooled variance).  The backward
+    is aten's eval-mode BatchNorm backward on the wide view (dx = gamma invstd g, and the per-column sums of g and of
+    g x_hat), plus the training-mode terms -gamma invstd (sum g + x_hat sum g x_hat) / M as one more affine map,
+    with the ReLU's mask applied first (threshold_backward).  Every coefficient stays float; only tensors round to
+    the input's dtype, as in aten's kernel.
+    """
+
+    @staticmethod
+    def forward(ctx, x, weight, bias, running_mean, running_var, momentum: float, eps: float):
+        n, c, h, w = x.shape
+        m = n * h * w
+        k = _wide_columns(c)
+        xv = x.permute(0, 2, 3, 1).reshape(m // k, k * c)
+        # float statistics of a bf16 input need float running buffers; momentum 0 leaves these scratch ones as given
+        mean_k, var_k = torch.batch_norm_update_stats(xv, torch.zeros(k * c, device=x.device),
+                                                      torch.ones(k * c, device=x.device), 0.0)
+        mean_k, var_k = mean_k.view(k, c), var_k.view(k, c)
+        mean = mean_k.mean(0)
+        var = var_k.mean(0) + (mean_k - mean).square().mean(0)
+        with torch.no_grad():
+            running_mean.mul_(1 - momentum).add_(mean, alpha=momentum)
+            running_var.mul_(1 - momentum).add_(var * (m / max(m - 1, 1)), alpha=momentum)
+        yv = F.batch_norm(xv, mean.repeat(k), var.repeat(k), weight.repeat(k), bias.repeat(k), False, 0.0, eps)
+        yv = yv.relu_()
+        ctx.save_for_backward(xv, yv, weight, mean, var)
+        ctx.shape, ctx.k, ctx.eps = (n, c, h, w), k, eps
+        return yv.view(n, h, w, c).permute(0, 3, 1, 2)
+
+    @staticmethod
+    def backward(ctx, grad):
+        xv, yv, weight, mean, var = ctx.saved_tensors
+        (n, c, h, w), k, eps = ctx.shape, ctx.k, ctx.eps
+        m = n * h * w
+        gv = grad.contiguous(memory_format=torch.channels_last).permute(0, 2, 3, 1).reshape(m // k, k * c)
+        gz = torch.ops.aten.threshold_backward(gv, yv, 0)
+        dxv, dot_k, sum_k = torch.ops.aten.native_batch_norm_backward(
+            gz, xv, weight.repeat(k), mean.repeat(k), var.repeat(k), None, None, False, eps, [True, True, True])
+        sum_g, dot = sum_k.view(k, c).sum(0), dot_k.view(k, c).sum(0)  # sum g and sum g x_hat per channel
+        invstd = torch.rsqrt(var + eps)
+        alpha = -weight * invstd * invstd * dot / m  # dx += alpha x + beta
+        beta = -weight * invstd * sum_g / m - alpha * mean
+        zeros, ones = torch.zeros_like(alpha), torch.ones_like(alpha)
+        # eval-mode batch_norm with mean 0, variance 1 and eps 0 is the float affine map alpha x + beta, rounded once
+        dxv += F.batch_norm(xv, zeros.repeat(k), ones.repeat(k), alpha.repeat(k), beta.repeat(k), False, 0.0, 0.0)
+        return dxv.view(n, h, w, c).permute(0, 3, 1, 2), dot, sum_g, None, None, None, None
+
+
+def _wide_path_applies(x: torch.Tensor, norm: nn.Module) -> bool:
+    """Whether :func:`batch_norm_relu` takes the wide view (see there); otherwise aten's own kernels run."""
+    return (isinstance(norm, nn.BatchNorm2d) and norm.training and norm.track_running_stats and norm.affine
+            and norm.momentum is not None and not norm._forward_hooks and not norm._forward_pre_hooks
+            and x.dtype == torch.bfloat16 and x.device.type == "cpu" and x.dim() == 4
+            and x.shape[1] % _LANES != 0 and x.numel() % (_wide_columns(x.shape[1]) * x.shape[1]) == 0
+            and x.is_contiguous(memory_format=torch.channels_last) and x.shape[0] * x.shape[2] * x.shape[3] > 1)
+
+
+def batch_norm_relu(x: torch.Tensor, norm: nn.Module, relu: nn.Module | None = None) -> torch.Tensor:
+    """Apply ``norm`` then a ReLU: relu(gamma (x - mu) / sqrt(sigma^2 + eps) + beta), mu and sigma^2 per channel.
+
+    In training, bf16 on a CPU, channels_last, with a channel count that is not a multiple of the SIMD width (the
+    TinyUNet's 24), aten's channels_last BatchNorm leaves most of each vector empty and runs 3-4x slower than in
+    NCHW; :class:`_WideBatchNormReLU` computes the same function on a wide view of the same memory instead (13.3
+    against 5.6 ms forward and backward for 8 x 24 x 128², docs/performance.md), equal to aten's within bf16
+    rounding (tests/core/test_model.py), with the same running statistics and ``num_batches_tracked``.  Everything
+    else (fp32, so that fp32 runs keep their bits; eval; NCHW; hooks on ``norm``; a cumulative momentum) runs
+    aten's kernels.
+
+    Parameters
+    ----------
+    x : torch.Tensor
+        The convolution's output [N, C, H, W].
+    norm : nn.Module
+        The block's normalisation (BatchNorm2d or GroupNorm).
+    relu : nn.Module or None
+        The block's ReLU module, called on aten's path so that traces and exports see the module they always saw
+        (None: the in-place functional ReLU).
+
+    Returns
+    -------
+    torch.Tensor
+        The block's output, channels_last where ``x`` is.
+    """
+    if not _wide_path_applies(x, norm):
+        return relu(norm(x)) if relu is not None else F.relu(norm(x), inplace=True)
+    norm.num_batches_tracked.add_(1)
+    return _WideBatchNormReLU.apply(x, norm.weight, norm.bias, norm.running_mean, norm.running_var,
+                                    float(norm.momentum), float(norm.eps))
+
+
 class ConvBNReLU(nn.Sequential):
     """A 3x3 convolution without bias, its normalisation and a ReLU.
 
@@ -73,6 +181,22 @@ class ConvBNReLU(nn.Sequential):
     def __init__(self, cin: int, cout: int, norm: str = NORMS[0], bn_momentum: float = PAPER.train.bn_momentum):
         super().__init__(nn.Conv2d(cin, cout, 3, padding=1, bias=False), norm_layer(norm, cout, bn_momentum),
                          nn.ReLU(inplace=True))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Compute relu(norm(conv(x))) through :func:`batch_norm_relu`.
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            [N, cin, H, W].
+
+        Returns
+        -------
+        torch.Tensor
+            [N, cout, H, W].
+        """
+        conv, norm, relu = self
+        return batch_norm_relu(conv(x), norm, relu)
 
 
 class DoubleConv(nn.Sequential):

@@ -91,3 +91,71 @@ def test_channels_last_training_gives_the_upsampling_a_dense_gradient_with_the_s
     with torch.no_grad():
         TinyUNet().to(memory_format=torch.channels_last).eval()(torch.rand(1, 3, 32, 32))
     assert seen == []
+
+
+def _block_step(block, x, grad, wide: bool):
+    """One bf16 forward and backward of a ConvBNReLU; ``wide`` False runs aten's modules one after the other."""
+    x = x.clone().requires_grad_(True)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = block(x) if wide else block[2](block[1](block[0](x)))
+    y.backward(grad.to(y.dtype))
+    bn = block[1]
+    return {"y": y.float(), "dx": x.grad, "conv": block[0].weight.grad, "gamma": bn.weight.grad, "beta": bn.bias.grad,
+            "running_mean": bn.running_mean, "running_var": bn.running_var, "tracked": bn.num_batches_tracked}
+
+
+def test_wide_batch_norm_relu_matches_aten_within_bf16_rounding(monkeypatch):
+    """The 24-channel BatchNorm + ReLU on the wide view (bf16, channels_last, training) gives aten's outputs,
+    gradients and running statistics within bf16 rounding, and counts the batch; 48 channels keep aten's kernel."""
+    import copy
+
+    from pipeline import model as model_module
+    from pipeline.model import ConvBNReLU
+
+    calls = []
+    real = model_module._WideBatchNormReLU.apply
+    torch.manual_seed(0)
+    for cin, cout in ((3, 24), (24, 48)):
+        block = ConvBNReLU(cin, cout).train()
+        with torch.no_grad():  # non-trivial affine parameters and running statistics
+            block[1].weight.uniform_(0.5, 1.5)
+            block[1].bias.uniform_(-0.3, 0.3)
+            block[1].running_mean.uniform_(-0.1, 0.1)
+        reference = copy.deepcopy(block)
+        x = (torch.randn(4, cin, 16, 12) * 2 + 0.5).contiguous(memory_format=torch.channels_last)
+        grad = torch.randn(4, cout, 16, 12).contiguous(memory_format=torch.channels_last)
+        calls.clear()
+        monkeypatch.setattr(model_module._WideBatchNormReLU, "apply", lambda *a: calls.append(1) or real(*a))
+        got = _block_step(block, x, grad, wide=True)
+        monkeypatch.undo()
+        want = _block_step(reference, x, grad, wide=False)
+        assert calls == ([1] if cout % 16 else [])
+        assert got["y"].is_contiguous(memory_format=torch.channels_last)
+        assert got["dx"].is_contiguous(memory_format=torch.channels_last)
+        for key, ref in want.items():
+            diff = (got[key].float() - ref.float()).abs().max().item()
+            scale = ref.float().abs().max().item()
+            # bf16 tensors: one rounding step (2^-8 of the largest value); float statistics: float rounding
+            assert diff <= scale * (2.0 ** -7 if key in ("y", "dx", "conv") else 1e-3) + 1e-6, (cout, key, diff, scale)
+        assert int(got["tracked"]) == 1
+
+
+def test_wide_batch_norm_relu_leaves_fp32_eval_and_nchw_to_aten():
+    """fp32 (its bits kept), eval, NCHW and a cumulative momentum take aten's path: the same bits as the modules."""
+    from pipeline.model import ConvBNReLU, _wide_path_applies, batch_norm_relu
+
+    torch.manual_seed(1)
+    block = ConvBNReLU(3, 24).train()
+    x = torch.rand(2, 3, 8, 8).contiguous(memory_format=torch.channels_last)
+    assert torch.equal(block(x), block[2](block[1](block[0](x))))  # fp32 channels_last training
+    y = block[0](x).to(torch.bfloat16)
+    assert not _wide_path_applies(y.contiguous(), block[1])  # NCHW
+    assert _wide_path_applies(y, block[1])
+    block[1].momentum = None
+    assert not _wide_path_applies(y, block[1])  # recompute_bn_stats' cumulative average
+    block[1].momentum = 0.1
+    block.eval()
+    assert not _wide_path_applies(y, block[1])
+    with torch.no_grad():
+        assert torch.equal(batch_norm_relu(y, block[1]), torch.relu(block[1](y)))
+
