@@ -18,7 +18,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from pipeline.datasets.image_header import header_size
+from pipeline.datasets.loading import header_size
 from pipeline.datasets.loading import (DEFAULT_MAX_PIXELS, BadFileError, DecodeCache, load_rgb, pixel_limit,
                                        read_mask, read_rgb)
 from pipeline.datasets.manifest import BadInputPolicy

@@ -334,3 +334,12 @@ def test_the_torch_free_core_imports_without_torch():
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True)
     assert run.stdout.strip() == "False"
+
+
+def test_the_file_reader_calls_no_other_datasets_module():
+    """pipeline/datasets/loading.py is where prepare's rows become arrays: the header, the decode and the cache in
+    one room.  A call from it into another pipeline/datasets module and back (the header reader was one) is a
+    return on prepare's data flow (`farm-studio walk pipeline/datasets/prepare.py:prepare:cfg`: 0 returns)."""
+    path = ROOT / "pipeline/datasets/loading.py"
+    top, lazy = _imports(path)
+    assert [m for m, _ in top + lazy if m.startswith("pipeline.datasets")] == []

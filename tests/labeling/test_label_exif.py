@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.datasets.image_header import jpeg_orientation
+from pipeline.datasets.loading import jpeg_orientation
 from pipeline.datasets.loading import DecodeCache, load_rgb, read_rgb
 from pipeline.teachers.base import finalize_answers
 from pipeline.teachers.simulated import SimulatedFoundationTeacher
