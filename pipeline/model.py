@@ -136,8 +136,10 @@ def batch_norm_relu(x: torch.Tensor, norm: nn.Module, relu: nn.Module | None = N
     In training, bf16 on a CPU, channels_last, with a channel count that is not a multiple of the SIMD width (the
     TinyUNet's 24), aten's channels_last BatchNorm leaves most of each vector empty and runs 3-4x slower than in
     NCHW; :class:`_WideBatchNormReLU` computes the same function on a wide view of the same memory instead (13.3
-    against 5.6 ms forward and backward for 8 x 24 x 128², docs/performance.md), equal to aten's within bf16
-    rounding (tests/core/test_model.py), with the same running statistics and ``num_batches_tracked``.  Everything
+    against 5.6 ms forward and backward for 8 x 24 x 128², docs/performance.md): within bf16 rounding of a float64
+    reference and no further from it than aten's kernel (tests/core/test_model.py; where the ReLU's input is within
+    rounding of 0 the two may pick different sides, as any two roundings may), with the same running statistics
+    and ``num_batches_tracked``.  Everything
     else (fp32, so that fp32 runs keep their bits; eval; NCHW; hooks on ``norm``; a cumulative momentum) runs
     aten's kernels.
 
