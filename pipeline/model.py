@@ -103,6 +103,7 @@ class _WideBatchNormReLU(torch.autograd.Function):
         return yv.view(n, h, w, c).permute(0, 3, 1, 2)
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
         xv, yv, weight, mean, var = ctx.saved_tensors
         (n, c, h, w), k, eps = ctx.shape, ctx.k, ctx.eps
