@@ -18,8 +18,8 @@ from torch import nn
 from pipeline.params import PAPER
 
 __all__ = ["NORMS", "model_options", "batch_norm_relu", "ConvBNReLU", "ExpandedConvBNReLU", "has_branches",
-           "expand_branches", "fold_branches", "TinyUNet", "mask_path_model", "ExportMaskPath", "recompute_bn_stats", "count_parameters",
-           "count_flops"]
+           "expand_branches", "fold_branches", "TinyUNet", "mask_path_model", "ExportMaskPath", "recompute_bn_stats",
+           "count_parameters", "count_flops"]
 
 #: normalisation layers of :class:`TinyUNet` (``train.norm``); the first, BatchNorm, is the paper's, and the one a
 #: model ``config`` without a ``norm`` key means (checkpoints written before the option keep their bytes)
@@ -140,9 +140,8 @@ def batch_norm_relu(x: torch.Tensor, norm: nn.Module, relu: nn.Module | None = N
     against 5.6 ms forward and backward for 8 x 24 x 128², docs/performance.md): within bf16 rounding of a float64
     reference and no further from it than aten's kernel (tests/core/test_model.py; where the ReLU's input is within
     rounding of 0 the two may pick different sides, as any two roundings may), with the same running statistics
-    and ``num_batches_tracked``.  Everything
-    else (fp32, so that fp32 runs keep their bits; eval; NCHW; hooks on ``norm``; a cumulative momentum) runs
-    aten's kernels.
+    and ``num_batches_tracked``.  Everything else (fp32, so that fp32 runs keep their bits; eval; NCHW; hooks on
+    ``norm``; a cumulative momentum) runs aten's kernels.
 
     Parameters
     ----------
