@@ -58,6 +58,10 @@ def model_options(cfg: Mapping[str, Any]) -> dict:
 #: SIMD lanes the CPU's channels_last BatchNorm kernels vectorise over (AVX-512: 16 floats, 32 bf16): a channel
 #: count that is not a multiple of it leaves a tail in every pixel's row, and aten's kernel slows 3-4x (24 channels)
 _LANES = 16
+#: the fewest pixels (N H W) a batch takes the wide view at: below it the view's extra small ops cost more than the
+#: tail (per pixel count, interleaved with aten's, AMX host: 0.69x at 4 096, 0.94x at 32 768, 1.10x at 73 728, 1.31x
+#: at 131 072 and 1.44x at 294 912 -- aten's time over the view's; docs/performance.md)
+_WIDE_MIN_PIXELS = 65536
 
 
 def _wide_columns(channels: int) -> int:
@@ -128,20 +132,22 @@ def _wide_path_applies(x: torch.Tensor, norm: nn.Module) -> bool:
             and norm.momentum is not None and not norm._forward_hooks and not norm._forward_pre_hooks
             and x.dtype == torch.bfloat16 and x.device.type == "cpu" and x.dim() == 4
             and x.shape[1] % _LANES != 0 and x.numel() % (_wide_columns(x.shape[1]) * x.shape[1]) == 0
-            and x.is_contiguous(memory_format=torch.channels_last) and x.shape[0] * x.shape[2] * x.shape[3] > 1)
+            and x.is_contiguous(memory_format=torch.channels_last)
+            and x.shape[0] * x.shape[2] * x.shape[3] >= max(_WIDE_MIN_PIXELS, 2))
 
 
 def batch_norm_relu(x: torch.Tensor, norm: nn.Module, relu: nn.Module | None = None) -> torch.Tensor:
     """Apply ``norm`` then a ReLU: relu(gamma (x - mu) / sqrt(sigma^2 + eps) + beta), mu and sigma^2 per channel.
 
-    In training, bf16 on a CPU, channels_last, with a channel count that is not a multiple of the SIMD width (the
-    TinyUNet's 24), aten's channels_last BatchNorm leaves most of each vector empty and runs 3-4x slower than in
-    NCHW; :class:`_WideBatchNormReLU` computes the same function on a wide view of the same memory instead (13.3
-    against 5.6 ms forward and backward for 8 x 24 x 128², docs/performance.md): within bf16 rounding of a float64
-    reference and no further from it than aten's kernel (tests/core/test_model.py; where the ReLU's input is within
-    rounding of 0 the two may pick different sides, as any two roundings may), with the same running statistics
-    and ``num_batches_tracked``.  Everything else (fp32, so that fp32 runs keep their bits; eval; NCHW; hooks on
-    ``norm``; a cumulative momentum) runs aten's kernels.
+    In training, bf16 on a CPU, channels_last, at least :data:`_WIDE_MIN_PIXELS` pixels a batch, with a channel
+    count that is not a multiple of the SIMD width (the TinyUNet's 24), aten's channels_last BatchNorm leaves part of
+    each vector empty; :class:`_WideBatchNormReLU` computes the same function on a wide view of the same memory
+    instead (forward and backward for 8 x 24 x 128², interleaved with aten's: 13.1 against 17.1 ms;
+    docs/performance.md): within bf16 rounding of a float64 reference and no further from it than aten's kernel
+    (tests/core/test_model.py; where the ReLU's input is within rounding of 0 the two may pick different sides, as
+    any two roundings may), with the same running statistics and ``num_batches_tracked``.  Everything else (fp32,
+    so that fp32 runs keep their bits; fewer pixels; eval; NCHW; hooks on ``norm``; a cumulative momentum) runs
+    aten's kernels.
 
     Parameters
     ----------

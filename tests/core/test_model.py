@@ -135,6 +135,7 @@ def test_wide_batch_norm_relu_is_as_accurate_as_aten(monkeypatch):
     calls = []
     real = model_module._WideBatchNormReLU.apply
     monkeypatch.setattr(model_module._WideBatchNormReLU, "apply", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(model_module, "_WIDE_MIN_PIXELS", 1)  # tiny tensors take the view too
     for channels in (24, 48):
         torch.manual_seed(channels)
         norm = torch.nn.BatchNorm2d(channels).train()
@@ -163,22 +164,29 @@ def test_wide_batch_norm_relu_is_as_accurate_as_aten(monkeypatch):
 
 
 def test_wide_batch_norm_relu_leaves_fp32_eval_and_nchw_to_aten(monkeypatch):
-    """fp32 (its bits kept), eval, NCHW and a cumulative momentum take aten's path: the same bits as the modules."""
+    """fp32 (its bits kept), too few pixels, eval, NCHW and a cumulative momentum take aten's path: the same bits as
+    the modules."""
+    from pipeline import model as model_module
     from pipeline.model import ConvBNReLU, _wide_path_applies, batch_norm_relu
 
     torch.manual_seed(1)
     block = ConvBNReLU(3, 24).train()
     x = torch.rand(2, 3, 8, 8).contiguous(memory_format=torch.channels_last)
     assert torch.equal(block(x), block[2](block[1](block[0](x))))  # fp32 channels_last training
-    from pipeline import model as model_module
-
     calls = []
     real = model_module._WideBatchNormReLU.apply
     monkeypatch.setattr(model_module._WideBatchNormReLU, "apply", lambda *a: calls.append(1) or real(*a))
-    with torch.autocast("cpu", dtype=torch.bfloat16):  # the block itself takes the wide view under bf16
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # 2 x 8 x 8 pixels: too few for the view
+        block(x)
+    assert calls == []
+    monkeypatch.setattr(model_module, "_WIDE_MIN_PIXELS", 2 * 8 * 8)
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # enough pixels: the block itself takes the wide view
         wide, plain = block(x), block[2](block[1](block[0](x)))
     assert calls == [1] and (wide.float() - plain.float()).abs().max() <= 2.0 ** -6 * plain.float().abs().max()
     y = block[0](x).to(torch.bfloat16)
+    monkeypatch.setattr(model_module, "_WIDE_MIN_PIXELS", 2 * 8 * 8 + 1)
+    assert not _wide_path_applies(y, block[1])  # one pixel short
+    monkeypatch.setattr(model_module, "_WIDE_MIN_PIXELS", 2 * 8 * 8)
     assert not _wide_path_applies(y.contiguous(), block[1])  # NCHW
     assert _wide_path_applies(y, block[1])
     block[1].momentum = None
