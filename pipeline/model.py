@@ -100,29 +100,30 @@ class _WideBatchNormReLU(torch.autograd.Function):
         with torch.no_grad():
             running_mean.mul_(1 - momentum).add_(mean, alpha=momentum)
             running_var.mul_(1 - momentum).add_(var * (m / max(m - 1, 1)), alpha=momentum)
-        yv = F.batch_norm(xv, mean.repeat(k), var.repeat(k), weight.repeat(k), bias.repeat(k), False, 0.0, eps)
-        yv = yv.relu_()
-        ctx.save_for_backward(xv, yv, weight, mean, var)
+        # per column (the channel's value repeated k times), computed once for the forward and the backward
+        mean_col, var_col, weight_col = mean.repeat(k), var.repeat(k), weight.repeat(k)
+        yv = F.batch_norm(xv, mean_col, var_col, weight_col, bias.repeat(k), False, 0.0, eps).relu_()
+        ctx.save_for_backward(xv, yv, weight, mean, var, weight_col, mean_col, var_col)
         ctx.shape, ctx.k, ctx.eps = (n, c, h, w), k, eps
         return yv.view(n, h, w, c).permute(0, 3, 1, 2)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
-        xv, yv, weight, mean, var = ctx.saved_tensors
+        xv, yv, weight, mean, var, weight_col, mean_col, var_col = ctx.saved_tensors
         (n, c, h, w), k, eps = ctx.shape, ctx.k, ctx.eps
         m = n * h * w
         gv = grad.contiguous(memory_format=torch.channels_last).permute(0, 2, 3, 1).reshape(m // k, k * c)
         gz = torch.ops.aten.threshold_backward(gv, yv, 0)
         dxv, dot_k, sum_k = torch.ops.aten.native_batch_norm_backward(
-            gz, xv, weight.repeat(k), mean.repeat(k), var.repeat(k), None, None, False, eps, [True, True, True])
+            gz, xv, weight_col, mean_col, var_col, None, None, False, eps, [True, True, True])
         sum_g, dot = sum_k.view(k, c).sum(0), dot_k.view(k, c).sum(0)  # sum g and sum g x_hat per channel
         invstd = torch.rsqrt(var + eps)
         alpha = -weight * invstd * invstd * dot / m  # dx += alpha x + beta
         beta = -weight * invstd * sum_g / m - alpha * mean
-        zeros, ones = torch.zeros_like(alpha), torch.ones_like(alpha)
+        zeros, ones = torch.zeros_like(mean_col), torch.ones_like(var_col)
         # eval-mode batch_norm with mean 0, variance 1 and eps 0 is the float affine map alpha x + beta, rounded once
-        dxv += F.batch_norm(xv, zeros.repeat(k), ones.repeat(k), alpha.repeat(k), beta.repeat(k), False, 0.0, 0.0)
+        dxv += F.batch_norm(xv, zeros, ones, alpha.repeat(k), beta.repeat(k), False, 0.0, 0.0)
         return dxv.view(n, h, w, c).permute(0, 3, 1, 2), dot, sum_g, None, None, None, None
 
 

@@ -148,7 +148,7 @@ ONEDNN_AMX_ISAS = tuple(isa for isa in ONEDNN_BF16_ISAS if "AMX" in isa or isa i
 
 
 def cpu_amx_native() -> bool:
-    """Tell whether oneDNN runs bf16 on AMX tiles here: the flag ``amx_bf16``, and no ``ONEDNN_MAX_CPU_ISA`` cap below it.
+    """Tell whether oneDNN runs bf16 on AMX tiles here: ``amx_bf16``, and no ``ONEDNN_MAX_CPU_ISA`` cap below it.
 
     Returns
     -------

@@ -602,9 +602,10 @@ def onednn_post_op(activation) -> tuple[str, str] | None:
 def _fused_mlp_forward(self, hidden_states, post_op: tuple[str, str]):
     """Compute ``Sam3MLP.forward`` with ``activation(fc1(x))`` in one oneDNN kernel.
 
-    ``post_op`` is the MLP's :func:`onednn_post_op`, found once when the forward is patched. The activation runs on the fp32 accumulator before the one rounding to bf16, instead of on the rounded bf16
-    output in a second pass (ReLU: the same bits; GELU: one rounding fewer). Anything but a bf16 CPU tensor in
-    eval mode runs upstream's code.
+    ``post_op`` is the MLP's :func:`onednn_post_op`, found once when the forward is patched. The activation runs on
+    the fp32 accumulator before the one rounding to bf16, instead of on the rounded bf16 output in a second pass
+    (ReLU: the same bits; GELU: one rounding fewer). Anything but a bf16 CPU tensor in eval mode runs upstream's
+    code.
     """
     import torch
 
@@ -631,8 +632,9 @@ def fused_mlp_activations(model):
     in the matmul's own pass. On a 2-core AMX host, real size, one 256² image and six prompts: 10.65 -> 9.66 s per
     image against the torch engine (docs/performance.md, "The teacher on AMX"). Not bit-identical in bf16 (GELU
     is applied before the output's rounding, not after it): the fidelity gate holds it
-    (tests/teachers/test_teacher_cpu_dtype.py, ``bench_teacher --roofline``). The forward is replaced on each instance for the context's duration; a
-    transformers whose ``Sam3MLP.forward`` differs from :data:`FUSED_MLP_TARGET`'s source keeps its own.
+    (tests/teachers/test_teacher_cpu_dtype.py, ``bench_teacher --roofline``). The forward is replaced on each
+    instance for the context's duration; a transformers whose ``Sam3MLP.forward`` differs from
+    :data:`FUSED_MLP_TARGET`'s source keeps its own.
 
     Parameters
     ----------
