@@ -1,6 +1,8 @@
 """Training speed of Stage-I ``plain`` at ``distill``'s settings: images per second of fp32 eager NCHW against
 ``distill``'s resolved settings (its ``train.precision`` autocast on this host and ``train.channels_last``), at each
-``--sizes`` side and ``distill``'s batch size, each epoch timed round-robin (medians and minima, absolute seconds);
+``--sizes`` side and ``distill``'s batch size, each epoch timed round-robin (medians and minima, absolute seconds),
+each variant's run in a spawned process of its own (``--in-process``: all in this one) with the heap reused between
+steps as ``train()`` has it (:func:`pipeline.runtime.device.reuse_freed_memory`);
 then a profile of one step at ``--profile-size``: FLOPs per step against the host's measured matmul peak
 (:func:`benchmarks.common.host_limits`) and where the step's time goes (data, augmentation, normalisation, forward,
 loss, backward, optimizer).  Both variants train the loop's own epochs (:func:`pipeline.training.loop.train_epoch`)
@@ -12,7 +14,7 @@ per second; the learning rate that batch needs is a training question, not timed
 variant N epochs and scores held-out images (validation Image IoU / Boundary F1).
 
     python -m benchmarks.bench_train [--sizes 64 128 384] [--threads 2] [--reps 3] [--compile] [--batches 16 32]
-        [--out FILE]
+        [--in-process] [--out FILE]
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import numpy as np
 
 from benchmarks.common import host_limits, parser, round_robin
 from pipeline.methods import STAGE_ONE, get_method
-from pipeline.runtime.device import resolve_device
+from pipeline.runtime.device import resolve_device, reuse_freed_memory
 from pipeline.training.inputs import TrainData, ValData
 from pipeline.training.checkpointing import NoCheckpointer
 from pipeline.artifacts.atomic import write_json
@@ -107,10 +109,12 @@ def open_run(cfg: Mapping[str, Any], data: TrainData, device, seed: int, compile
 
 
 def epoch_timer(run) -> Callable[[int], float]:
-    """A round-robin case: train ``run``'s next epoch (the loop's own) and return its wall seconds."""
+    """A round-robin case: train ``run``'s next epoch (the loop's own) and return its wall seconds.
+
+    Its ``state`` holds the run's ``autocast`` and the last epoch's ``loss``."""
     from pipeline.training import loop
 
-    state = {"epoch": 0}
+    state = {"epoch": 0, "autocast": run.run_key["autocast"]}
 
     def one(_round: int) -> float:
         state["epoch"] += 1
@@ -120,6 +124,67 @@ def epoch_timer(run) -> Callable[[int], float]:
         return time.perf_counter() - t0
 
     one.state = state
+    return one
+
+
+def _serve_epochs(conn, cfg: Mapping[str, Any], size: int, n_images: int, seed: int, device: str, threads: int,
+                  compiled: bool) -> None:
+    """A spawned process's loop: open the run, then train one epoch per ``"epoch"`` received, until ``"stop"``."""
+    import torch
+
+    try:
+        if threads:
+            torch.set_num_threads(threads)
+        if torch.device(device).type == "cpu":  # as train() does
+            reuse_freed_memory()
+        one = epoch_timer(open_run(cfg, train_data(*synthetic_set(n_images, size, seed)), device, seed, compiled))
+        conn.send(("ready", one.state["autocast"]))
+        while conn.recv() == "epoch":
+            seconds = one(0)
+            conn.send(("epoch", (seconds, one.state["loss"])))
+    except Exception as e:  # handed to the parent, which raises it
+        conn.send(("error", f"{type(e).__name__}: {e}"))
+
+
+def process_timer(cfg: Mapping[str, Any], size: int, n_images: int, seed: int, device: str, threads: int,
+                  compiled: bool = False) -> Callable[[int], float]:
+    """A round-robin case whose run lives in a spawned process of its own: one epoch per call, its wall seconds.
+
+    Timed in-process, one variant's freed memory, allocator thresholds and caches shaped the next variant's epoch
+    (glibc raises its mmap threshold when a large block is freed, so the fp32 variant's frees spared ``distill``'s
+    epochs page faults that a ``distill`` process alone pays).  Each process times what a training process of its
+    own gets.  ``state`` as :func:`epoch_timer`'s; ``close()`` ends the process.
+    """
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_serve_epochs, args=(child, dict(cfg), size, n_images, seed, device, threads, compiled),
+                       daemon=True)
+    proc.start()
+
+    def reply():
+        kind, value = parent.recv()
+        if kind == "error":
+            proc.join()
+            raise RuntimeError(f"bench_train worker ({size}², {cfg['precision']}): {value}")
+        return value
+
+    state: dict[str, Any] = {}
+
+    def one(_round: int) -> float:
+        if "autocast" not in state:  # the processes start side by side; each is waited for at its first epoch
+            state["autocast"] = reply()
+        parent.send("epoch")
+        seconds, state["loss"] = reply()
+        return seconds
+
+    def close() -> None:
+        if proc.is_alive():
+            parent.send("stop")
+        proc.join()
+
+    one.state, one.close = state, close
     return one
 
 
@@ -238,6 +303,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--epochs", type=int, default=0, help="accuracy runs of this many epochs (0 = none)")
     ap.add_argument("--val-images", type=int, default=16)
     ap.add_argument("--seed", type=int, default=42)
+    ap.add_argument("--in-process", action="store_true",
+                    help="time every variant in this process (default: each in a spawned process of its own)")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                     help=f"an override of the {PROFILE} profile's params (repeatable)")
     args = ap.parse_args(argv)
@@ -247,28 +314,36 @@ def main(argv=None) -> dict:
     device = resolve_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
+    # as train() does, process-wide: both variants run with it (a glibc MALLOC_* setting in the environment, e.g.
+    # MALLOC_TRIM_THRESHOLD_=131072, times both without it)
+    heap_reuse = reuse_freed_memory() if device.type == "cpu" else False
     cfgs = variants(args.sets, args.batches)
     batch = int(cfgs[PROFILE]["batch_size"])
     out: dict[str, Any] = {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__,
+                           "heap_reuse": heap_reuse, "timed_in": "this process" if args.in_process else
+                           "a process per variant",
                            "images": args.images, "batch_size": batch, "reps": args.reps, "sizes": {},
                            "settings": {name: {"precision": c["precision"], "channels_last": c["channels_last"]}
                                         for name, c in cfgs.items()}}
     names = list(cfgs) + ([f"{PROFILE} + torch.compile"] if args.compile else [])
     batches = {name: int(cfgs[name.split(" + ")[0]]["batch_size"]) for name in names}
     for size in args.sizes:
-        images, masks = synthetic_set(args.images, size, args.seed)
-        data = train_data(images, masks)
-        runs = {name: open_run(cfgs[name.split(" + ")[0]], data, device, args.seed, compiled="compile" in name)
-                for name in names}
-        cases = {name: epoch_timer(run) for name, run in runs.items()}
+        if args.in_process:
+            data = train_data(*synthetic_set(args.images, size, args.seed))
+            cases = {name: epoch_timer(open_run(cfgs[name.split(" + ")[0]], data, device, args.seed,
+                                                compiled="compile" in name)) for name in names}
+        else:
+            cases = {name: process_timer(cfgs[name.split(" + ")[0]], size, args.images, args.seed, str(device),
+                                         args.threads, compiled="compile" in name) for name in names}
         load_before = load_average()
         t0 = time.perf_counter()
         round_robin(cases, 1)  # warm-up: oneDNN primitives, the allocator, torch.compile's compilation
         warm = time.perf_counter() - t0
         times = round_robin(cases, max(args.reps, 1), order="rotate")
         rows = speed_rows(times, args.images, batches)
-        for name, run in runs.items():
-            rows[name].update(autocast=run.run_key["autocast"], loss_after=cases[name].state["loss"])
+        for name, case in cases.items():
+            rows[name].update(autocast=case.state["autocast"], loss_after=case.state["loss"])
+            getattr(case, "close", lambda: None)()
         out["sizes"][str(size)] = {"variants": rows, "warmup_seconds": warm, "load_before": load_before,
                                    "load_after": load_average(),
                                    "speedup_median": rows[BASELINE]["median_seconds"] / rows[PROFILE]["median_seconds"],
@@ -320,7 +395,8 @@ def print_summary(out: Mapping) -> None:
     """The tables of :func:`main`'s result."""
     print(f"device {out['device']} ({out['threads']} threads), torch {out['torch']}; {out['images']} images an "
           f"epoch, batch {out['batch_size']} ({PROFILE}'s); {out['reps']} round-robin epochs after a warm-up; "
-          f"settings {out['settings']}")
+          f"settings {out['settings']}; the heap reused between steps: {out.get('heap_reuse', False)}; timed in "
+          f"{out.get('timed_in', 'this process')}")
     print(f"{'size':>5s} {'variant':34s} {'autocast':>9s} {'s/epoch':>8s} {'min':>7s} {'img/s':>7s} {'best':>7s} "
           f"{'s/step':>7s}  load before / after")
     for size, r in out["sizes"].items():

@@ -16,7 +16,7 @@ from typing import Any, Mapping
 from pipeline.datasets.scan import scan_inputs
 from pipeline.runtime.errors import InputError
 from pipeline.methods import STAGE_ONE, get_method
-from pipeline.runtime.device import autocast, autocast_dtype
+from pipeline.runtime.device import autocast, autocast_dtype, reuse_freed_memory
 
 __all__ = ["PROBE_BATCH", "parse_duration", "step_seconds", "steps_for", "plan_seconds", "scheduled_steps",
            "raised_cap", "training_images", "with_time_budget"]
@@ -59,8 +59,8 @@ def step_seconds(cfg: Mapping[str, Any], resolution: int, device: str = "cpu", s
     The step runs in the precision and memory format that will train (``train.precision``'s autocast,
     :func:`pipeline.runtime.device.autocast_dtype`, and ``train.channels_last``, as
     :func:`pipeline.training.loop.train` sets them), on :data:`PROBE_BATCH` random images with
-    ``train.num_threads`` torch threads: the median of ``steps`` probe steps after a warm-up, scaled to
-    ``train.batch_size``.
+    ``train.num_threads`` torch threads and the heap's reuse (:func:`pipeline.runtime.device.reuse_freed_memory`):
+    the median of ``steps`` probe steps after a warm-up, scaled to ``train.batch_size``.
 
     Parameters
     ----------
@@ -85,6 +85,8 @@ def step_seconds(cfg: Mapping[str, Any], resolution: int, device: str = "cpu", s
 
     if int(cfg["num_threads"]) > 0:
         torch.set_num_threads(int(cfg["num_threads"]))
+    if torch.device(device).type == "cpu":  # as train() will: the probe times the steps that will train
+        reuse_freed_memory()
     amp = autocast_dtype(torch.device(device), cfg["precision"])
     memory_format = torch.channels_last if cfg["channels_last"] else torch.contiguous_format
     # the model that will train: with train.expand_branches, its RepVGG branches too

@@ -21,7 +21,7 @@ import torch
 
 from pipeline import losses
 from pipeline.augment import GeometryConstants, augment_batch, soft_region
-from pipeline.runtime.device import autocast, autocast_dtype
+from pipeline.runtime.device import autocast, autocast_dtype, reuse_freed_memory
 from pipeline.runtime.errors import InputError, TrainingDiverged
 from pipeline.evaluation.inference import predict_probs
 from pipeline.methods import Method, Plan, resolve_plan
@@ -869,6 +869,8 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
     device = torch.device(device)
     if s.num_threads > 0:
         torch.set_num_threads(s.num_threads)
+    if device.type == "cpu":  # each step reuses the memory the last one freed: the same bits, sooner
+        reuse_freed_memory()
     plan = resolve_plan(method, cfg, data.stats.get("confidence_pass_ratio"))
     data, held = holdout(data, s.holdout_fraction) if s.until == "plateau" and not _has_val(val) else (data, None)
     run = setup_run(method, cfg, s, plan, data, seed, init_state, device)

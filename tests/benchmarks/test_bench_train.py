@@ -1,5 +1,6 @@
-"""bench_train in-process at a tiny size: it times fp32 eager NCHW against ``distill``'s resolved settings, and its
-one-step profile adds up and counts the FLOPs of a training step (no timing is asserted)."""
+"""bench_train at a tiny size, each variant in a process of its own (and, ``--in-process``, all in this one): it times
+fp32 eager NCHW against ``distill``'s resolved settings, and its one-step profile adds up and counts the FLOPs of a
+training step (no timing is asserted)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ def test_bench_train_times_distill_s_settings_and_profiles_one_step():
 
     from benchmarks import bench_train
     from pipeline.profiles import load_profile
-    from pipeline.runtime.device import autocast_dtype
+    from pipeline.runtime.device import autocast_dtype, reuse_freed_memory
 
     threads = torch.get_num_threads()
     try:
@@ -23,6 +24,7 @@ def test_bench_train_times_distill_s_settings_and_profiles_one_step():
     finally:
         torch.set_num_threads(threads)
     distill = load_profile("distill")["train"]
+    assert out["timed_in"] == "a process per variant" and out["heap_reuse"] == reuse_freed_memory()
     assert out["batch_size"] == distill["batch_size"]
     assert out["settings"] == {"fp32 eager NCHW": {"precision": "fp32", "channels_last": False},
                                "distill": {"precision": distill["precision"],
@@ -55,7 +57,8 @@ def test_bench_train_times_distill_s_settings_at_other_batch_sizes():
     threads = torch.get_num_threads()
     try:
         out = bench_train.main(["--images", "4", "--sizes", "32", "--reps", "1", "--profile-size", "0",
-                                "--threads", "1", "--set", "train.channels=[4,8,16]", "--batches", "2", str(own)])
+                                "--threads", "1", "--set", "train.channels=[4,8,16]", "--batches", "2", str(own),
+                                "--in-process"])
     finally:
         torch.set_num_threads(threads)
     rows, size = out["sizes"]["32"]["variants"], out["sizes"]["32"]
@@ -67,3 +70,12 @@ def test_bench_train_times_distill_s_settings_at_other_batch_sizes():
     assert other["seconds_per_step"] == pytest.approx(other["median_seconds"] / 2)  # 4 images, 2 a step
     assert size["batch_speedup_median"][bench_train.batch_variant(2)] == pytest.approx(
         rows["fp32 eager NCHW"]["median_seconds"] / other["median_seconds"])
+
+
+def test_a_variant_process_that_fails_raises_here_with_its_error():
+    from benchmarks import bench_train
+
+    one = bench_train.process_timer({"precision": "fp32"}, 16, 2, 0, "cpu", 1)  # no other train key: it fails
+    with pytest.raises(RuntimeError, match="bench_train worker .*KeyError"):
+        one(0)
+    one.close()
