@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import multiprocessing as mp
 import statistics
 import time
 from pathlib import Path
@@ -155,8 +156,6 @@ def process_timer(cfg: Mapping[str, Any], size: int, n_images: int, seed: int, d
     epochs page faults that a ``distill`` process alone pays).  Each process times what a training process of its
     own gets.  ``state`` as :func:`epoch_timer`'s; ``close()`` ends the process.
     """
-    import multiprocessing as mp
-
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()
     proc = ctx.Process(target=_serve_epochs, args=(child, dict(cfg), size, n_images, seed, device, threads, compiled),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 
 from pipeline.runtime.errors import InputError
@@ -292,8 +293,6 @@ def reuse_freed_memory(libc=None) -> bool:
     if any(os.environ.get(name) for name in GLIBC_MALLOC_ENV):
         return False
     if libc is None:
-        import ctypes
-
         libc = ctypes.CDLL(None)
     mallopt = getattr(libc, "mallopt", None)
     if mallopt is None or not hasattr(libc, "gnu_get_libc_version"):
