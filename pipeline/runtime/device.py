@@ -1,4 +1,4 @@
-"""Device and precision selection shared by training, teacher inference and deployment, and the CPU heap's reuse."""
+"""Device and precision selection shared by training, teacher inference and deployment, and the reuse of freed memory."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pipeline.runtime.errors import InputError
 __all__ = ["STAGE_CPUS_ENV", "BF16_FLAGS", "ONEDNN_BF16_ISAS", "resolve_device", "stage_cores", "cpu_flags",
            "cpu_supports_bf16", "cpu_bf16_native", "teacher_cpu_dtype", "OPENVINO_ATTENTION_FLAGS",
            "teacher_cpu_engine", "onednn_isa_cap", "cpu_amx_native", "autocast", "autocast_dtype", "GLIBC_MALLOC_ENV",
-           "HEAP_ALLOCATION_LIMIT", "HEAP_RETAINED", "reuse_freed_memory"]
+           "HEAP_RETAINED", "reuse_freed_memory"]
 
 
 def resolve_device(name: str = "auto"):
@@ -255,27 +255,26 @@ def autocast_dtype(device, precision: str):
 #: leaves malloc as the user chose it
 GLIBC_MALLOC_ENV = ("GLIBC_TUNABLES", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_",
                     "MALLOC_MMAP_MAX_")
-#: allocations below this many bytes come from malloc's heap, whose freed memory the next step reuses (glibc's
-#: largest M_MMAP_THRESHOLD on 64 bits); the default, 128 KiB and adapting, maps most activations afresh
-HEAP_ALLOCATION_LIMIT = 32 * 2**20
 #: freed memory at the heap's top kept before glibc returns it to the system (M_TRIM_THRESHOLD)
 HEAP_RETAINED = 2**30
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's malloc.h
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4  # glibc's malloc.h
 _FREED_MEMORY_REUSED = False
 
 
 def reuse_freed_memory(libc=None) -> bool:
-    """Let glibc's malloc keep the memory a training step frees for the next step (process-wide).
+    """Let glibc's malloc keep the memory a training step or a teacher call frees for the next (process-wide).
 
-    With glibc's defaults, an activation of a few MiB is mapped from the system when allocated and returned when
-    freed, so every step faults in and zero-fills fresh pages: about 10,000 page faults and 22 ms of kernel time
-    per step of ``distill``'s bf16 settings at 128², batch 8 (2 cores). ``mallopt(M_MMAP_THRESHOLD,``
-    :data:`HEAP_ALLOCATION_LIMIT` ``)`` and ``mallopt(M_TRIM_THRESHOLD,`` :data:`HEAP_RETAINED` ``)`` keep such
-    memory in the heap for reuse: epochs about 10 % shorter, in bf16 and in fp32 (docs/performance.md). Where
-    tensors live changes, not what is computed: the trained weights are the same bits. The process keeps up to
-    its peak of freed memory instead of returning it between steps. Applied once; a glibc setting in the
-    environment (:data:`GLIBC_MALLOC_ENV`, e.g. ``MALLOC_TRIM_THRESHOLD_=131072``) leaves malloc as chosen, and
-    a C library without ``mallopt`` (not glibc) is left alone.
+    With glibc's defaults, a block above its mmap threshold (128 KiB, adapting up to 32 MiB) is mapped from the
+    system when allocated and returned when freed, so every step faults in and zero-fills fresh pages: about 10,000
+    page faults and 22 ms of kernel time per step of ``distill``'s bf16 settings at 128², batch 8, and about 2
+    million faults and 3 s of kernel time per SAM 3 call on a 256² image (2 cores). ``mallopt(M_MMAP_MAX, 0)``
+    serves every block from the heap and ``mallopt(M_TRIM_THRESHOLD,`` :data:`HEAP_RETAINED` ``)`` keeps up to
+    1 GiB of freed memory at its top, so a step or call reuses what the last one freed: training epochs about 10 %
+    shorter in bf16 and fp32, SAM 3 calls about 20 % (docs/performance.md). Where tensors live changes, not what
+    is computed: the trained weights and the teacher's answers are the same bits. The process keeps the memory it
+    freed below the heap's top instead of returning it. Applied once; a glibc setting in the environment
+    (:data:`GLIBC_MALLOC_ENV`, e.g. ``MALLOC_TRIM_THRESHOLD_=131072``) leaves malloc as chosen, and a C library
+    without ``mallopt`` (not glibc) is left alone.
 
     Parameters
     ----------
@@ -297,6 +296,5 @@ def reuse_freed_memory(libc=None) -> bool:
     mallopt = getattr(libc, "mallopt", None)
     if mallopt is None or not hasattr(libc, "gnu_get_libc_version"):
         return False
-    _FREED_MEMORY_REUSED = bool(mallopt(_M_MMAP_THRESHOLD, HEAP_ALLOCATION_LIMIT)) and bool(
-        mallopt(_M_TRIM_THRESHOLD, HEAP_RETAINED))
+    _FREED_MEMORY_REUSED = bool(mallopt(_M_MMAP_MAX, 0)) and bool(mallopt(_M_TRIM_THRESHOLD, HEAP_RETAINED))
     return _FREED_MEMORY_REUSED

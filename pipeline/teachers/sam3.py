@@ -23,7 +23,7 @@ from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.artifacts.atomic import read_json, write_json
 from pipeline.params import PAPER
-from pipeline.runtime.device import resolve_device, teacher_cpu_dtype
+from pipeline.runtime.device import resolve_device, reuse_freed_memory, teacher_cpu_dtype
 from pipeline.runtime.errors import InputError, Option, literal
 from pipeline.teacher_table import SAM3 as BACKEND
 from pipeline.runtime.progress import library_bars_off
@@ -888,6 +888,8 @@ class Sam3Teacher(RegisteredTeacher):
             except ImportError as e:
                 raise InputError(f"teacher.backend=sam3 needs transformers>=5 with SAM 3 "
                                  f"(pip install '.[sam3]'): {e}") from None
+            if self.device.type == "cpu":  # each call reuses the memory the last one freed: the same answers, sooner
+                reuse_freed_memory()
             try:
                 with library_bars_off():  # no "Loading weights" bar of transformers' own
                     model = Sam3Model.from_pretrained(self.checkpoint, local_files_only=True, dtype=self.torch_dtype)

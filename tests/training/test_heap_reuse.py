@@ -1,6 +1,6 @@
-"""Training reuses the heap between steps (``pipeline.runtime.device.reuse_freed_memory``): glibc's two malloc
-settings, left alone where the user chose their own, applied by ``train()`` and the ``--time`` probe, and the same
-trained bits with and without them."""
+"""Training and the SAM 3 teacher reuse freed memory (``pipeline.runtime.device.reuse_freed_memory``): glibc's
+two malloc settings, left alone where the user chose their own, applied by ``train()``, the ``--time`` probe and
+the teacher's load, and the same trained bits with and without them."""
 
 from __future__ import annotations
 
@@ -42,8 +42,8 @@ def fresh(monkeypatch):
 def test_the_heap_keeps_what_a_step_frees(fresh):
     libc = FakeLibc()
     assert device.reuse_freed_memory(libc) is True
-    # M_MMAP_THRESHOLD (-3) to glibc's largest, M_TRIM_THRESHOLD (-1) to 1 GiB (malloc.h)
-    assert libc.calls == [(-3, 32 * 2**20), (-1, 2**30)]
+    # M_MMAP_MAX (-4) 0: every block from the heap; M_TRIM_THRESHOLD (-1) 1 GiB (malloc.h)
+    assert libc.calls == [(-4, 0), (-1, 2**30)]
     assert device.reuse_freed_memory(FakeLibc()) is True  # once per process
     assert device.reuse_freed_memory() is True
 
@@ -109,3 +109,12 @@ def test_the_same_bits_with_and_without_the_heap_reuse():
             for e in (env, {**env, "MALLOC_TRIM_THRESHOLD_": "131072"})]
     assert [r["applied"] for r in runs] == [True, False]
     assert runs[0]["digest"] == runs[1]["digest"]
+
+
+def test_the_sam3_teacher_reuses_the_heap_on_a_cpu(monkeypatch, tiny_sam3):
+    from pipeline.teachers import sam3
+
+    seen = []
+    monkeypatch.setattr(sam3, "reuse_freed_memory", lambda: seen.append("teacher"))
+    sam3.Sam3Teacher(tiny_sam3, device="cpu", dtype="fp32", resolution=(40, 40)).load()
+    assert seen == ["teacher"]
