@@ -1,4 +1,4 @@
-"""Device and precision selection shared by training, teacher inference and deployment, and the reuse of freed memory."""
+"""Device, precision and allocator settings shared by training, teacher inference and deployment."""
 
 from __future__ import annotations
 
@@ -266,7 +266,7 @@ def reuse_freed_memory(libc=None) -> bool:
 
     With glibc's defaults, a block above its mmap threshold (128 KiB, adapting up to 32 MiB) is mapped from the
     system when allocated and returned when freed, so every step faults in and zero-fills fresh pages: about 10,000
-    page faults and 22 ms of kernel time per step of ``distill``'s bf16 settings at 128², batch 8, and about 2
+    page faults and 28 ms of kernel time per step of ``distill``'s bf16 settings at 128², batch 8, and about 2
     million faults and 3 s of kernel time per SAM 3 call on a 256² image (2 cores). ``mallopt(M_MMAP_MAX, 0)``
     serves every block from the heap and ``mallopt(M_TRIM_THRESHOLD,`` :data:`HEAP_RETAINED` ``)`` keeps up to
     1 GiB of freed memory at its top, so a step or call reuses what the last one freed: training epochs about 10 %
