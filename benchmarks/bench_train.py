@@ -313,8 +313,8 @@ def main(argv=None) -> dict:
     device = resolve_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
-    # as train() does, process-wide: both variants run with it (a glibc MALLOC_* setting in the environment, e.g.
-    # MALLOC_TRIM_THRESHOLD_=131072, times both without it)
+    # as train() does, process-wide: both variants run with it (GLIBC_TUNABLES=glibc.malloc.tcache_count=7 in the
+    # environment times both with glibc's defaults; reuse_freed_memory)
     heap_reuse = reuse_freed_memory() if device.type == "cpu" else False
     cfgs = variants(args.sets, args.batches)
     batch = int(cfgs[PROFILE]["batch_size"])

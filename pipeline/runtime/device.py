@@ -273,8 +273,9 @@ def reuse_freed_memory(libc=None) -> bool:
     shorter in bf16 and fp32, SAM 3 calls about 20 % (docs/performance.md). Where tensors live changes, not what
     is computed: the trained weights and the teacher's answers are the same bits. The process keeps the memory it
     freed below the heap's top instead of returning it. Applied once; a glibc setting in the environment
-    (:data:`GLIBC_MALLOC_ENV`, e.g. ``MALLOC_TRIM_THRESHOLD_=131072``) leaves malloc as chosen, and a C library
-    without ``mallopt`` (not glibc) is left alone.
+    (:data:`GLIBC_MALLOC_ENV`) leaves malloc as chosen: ``GLIBC_TUNABLES=glibc.malloc.tcache_count=7`` (a default
+    value) keeps glibc's adaptive defaults, a ``MALLOC_*_`` threshold fixes glibc's thresholds; a C library without
+    ``mallopt`` (not glibc) is left alone.
 
     Parameters
     ----------
