@@ -136,8 +136,7 @@ def _serve_epochs(conn, cfg: Mapping[str, Any], size: int, n_images: int, seed: 
     try:
         if threads:
             torch.set_num_threads(threads)
-        if torch.device(device).type == "cpu":  # as train() does
-            reuse_freed_memory()
+        reuse_freed_memory(device)  # as train() does
         one = epoch_timer(open_run(cfg, train_data(*synthetic_set(n_images, size, seed)), device, seed, compiled))
         conn.send(("ready", one.state["autocast"]))
         while conn.recv() == "epoch":
@@ -315,7 +314,7 @@ def main(argv=None) -> dict:
         torch.set_num_threads(args.threads)
     # as train() does, process-wide: both variants run with it (GLIBC_TUNABLES=glibc.malloc.tcache_count=7 in the
     # environment times both with glibc's defaults; reuse_freed_memory)
-    heap_reuse = reuse_freed_memory() if device.type == "cpu" else False
+    heap_reuse = reuse_freed_memory(device)
     cfgs = variants(args.sets, args.batches)
     batch = int(cfgs[PROFILE]["batch_size"])
     out: dict[str, Any] = {"device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__,

@@ -261,8 +261,10 @@ _M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4  # glibc's malloc.h
 _FREED_MEMORY_REUSED = False
 
 
-def reuse_freed_memory(libc=None) -> bool:
+def reuse_freed_memory(device="cpu", libc=None) -> bool:
     """Let glibc's malloc keep the memory a training step or a teacher call frees for the next (process-wide).
+
+    Only where ``device`` is a CPU: a GPU's tensors are not malloc's.
 
     With glibc's defaults, a block above its mmap threshold (128 KiB, adapting up to 32 MiB) is mapped from the
     system when allocated and returned when freed, so every step faults in and zero-fills fresh pages: about 10,000
@@ -279,6 +281,8 @@ def reuse_freed_memory(libc=None) -> bool:
 
     Parameters
     ----------
+    device : torch.device or str
+        The device that trains or predicts; anything but a CPU leaves malloc alone.
     libc : object, optional
         The C library (its ``mallopt``); default: this process's, through ``ctypes``.
 
@@ -288,6 +292,8 @@ def reuse_freed_memory(libc=None) -> bool:
         True where the settings are in place (now or by an earlier call), False where they were left.
     """
     global _FREED_MEMORY_REUSED
+    if str(device).split(":")[0] != "cpu":
+        return False
     if _FREED_MEMORY_REUSED:
         return True
     if any(os.environ.get(name) for name in GLIBC_MALLOC_ENV):

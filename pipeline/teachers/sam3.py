@@ -888,8 +888,7 @@ class Sam3Teacher(RegisteredTeacher):
             except ImportError as e:
                 raise InputError(f"teacher.backend=sam3 needs transformers>=5 with SAM 3 "
                                  f"(pip install '.[sam3]'): {e}") from None
-            if self.device.type == "cpu":  # each call reuses the memory the last one freed: the same answers, sooner
-                reuse_freed_memory()
+            reuse_freed_memory(self.device)  # on a CPU each call reuses what the last one freed: the same answers
             try:
                 with library_bars_off():  # no "Loading weights" bar of transformers' own
                     model = Sam3Model.from_pretrained(self.checkpoint, local_files_only=True, dtype=self.torch_dtype)

@@ -85,8 +85,7 @@ def step_seconds(cfg: Mapping[str, Any], resolution: int, device: str = "cpu", s
 
     if int(cfg["num_threads"]) > 0:
         torch.set_num_threads(int(cfg["num_threads"]))
-    if torch.device(device).type == "cpu":  # as train() will: the probe times the steps that will train
-        reuse_freed_memory()
+    reuse_freed_memory(device)  # as train() will: the probe times the steps that will train
     amp = autocast_dtype(torch.device(device), cfg["precision"])
     memory_format = torch.channels_last if cfg["channels_last"] else torch.contiguous_format
     # the model that will train: with train.expand_branches, its RepVGG branches too

@@ -869,8 +869,7 @@ def train(method: Method, cfg: Mapping[str, Any], data: TrainData, val: ValData 
     device = torch.device(device)
     if s.num_threads > 0:
         torch.set_num_threads(s.num_threads)
-    if device.type == "cpu":  # each step reuses the memory the last one freed: the same bits, sooner
-        reuse_freed_memory()
+    reuse_freed_memory(device)  # on a CPU each step reuses the memory the last one freed: the same bits, sooner
     plan = resolve_plan(method, cfg, data.stats.get("confidence_pass_ratio"))
     data, held = holdout(data, s.holdout_fraction) if s.until == "plateau" and not _has_val(val) else (data, None)
     run = setup_run(method, cfg, s, plan, data, seed, init_state, device)

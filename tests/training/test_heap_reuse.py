@@ -41,10 +41,10 @@ def fresh(monkeypatch):
 
 def test_the_heap_keeps_what_a_step_frees(fresh):
     libc = FakeLibc()
-    assert device.reuse_freed_memory(libc) is True
+    assert device.reuse_freed_memory(libc=libc) is True
     # M_MMAP_MAX (-4) 0: every block from the heap; M_TRIM_THRESHOLD (-1) 1 GiB (malloc.h)
     assert libc.calls == [(-4, 0), (-1, 2**30)]
-    assert device.reuse_freed_memory(FakeLibc()) is True  # once per process
+    assert device.reuse_freed_memory(libc=FakeLibc()) is True  # once per process
     assert device.reuse_freed_memory() is True
 
 
@@ -52,15 +52,20 @@ def test_the_heap_keeps_what_a_step_frees(fresh):
 def test_a_users_own_malloc_setting_is_left_as_chosen(fresh, name):
     fresh.setenv(name, "131072")
     libc = FakeLibc()
-    assert device.reuse_freed_memory(libc) is False and libc.calls == []
+    assert device.reuse_freed_memory(libc=libc) is False and libc.calls == []
 
 
 def test_another_c_library_or_a_refused_setting_is_left_alone(fresh):
     other = FakeLibc(glibc=False)
-    assert device.reuse_freed_memory(other) is False and other.calls == []
+    assert device.reuse_freed_memory(libc=other) is False and other.calls == []
     refused = FakeLibc(accepts=0)
-    assert device.reuse_freed_memory(refused) is False
-    assert device.reuse_freed_memory(FakeLibc()) is True  # a refusal is not remembered as done
+    assert device.reuse_freed_memory(libc=refused) is False
+    assert device.reuse_freed_memory(libc=FakeLibc()) is True  # a refusal is not remembered as done
+
+
+def test_a_gpu_leaves_malloc_alone(fresh):
+    libc = FakeLibc()
+    assert device.reuse_freed_memory("cuda:0", libc=libc) is False and libc.calls == []
 
 
 def test_train_and_the_time_probe_reuse_the_heap_on_a_cpu(monkeypatch):
@@ -70,8 +75,8 @@ def test_train_and_the_time_probe_reuse_the_heap_on_a_cpu(monkeypatch):
     from pipeline.training.checkpointing import NoCheckpointer
 
     seen = []
-    monkeypatch.setattr(loop, "reuse_freed_memory", lambda: seen.append("train"))
-    monkeypatch.setattr(budget, "reuse_freed_memory", lambda: seen.append("probe"))
+    monkeypatch.setattr(loop, "reuse_freed_memory", lambda device: seen.append("train"))
+    monkeypatch.setattr(budget, "reuse_freed_memory", lambda device: seen.append("probe"))
     assert budget.step_seconds(load_profile("distill", ["train.channels=[4,8,16]"])["train"], 16) > 0
     rng = np.random.default_rng(0)
     masks = np.stack([shape_mask(rng, 16) for _ in range(2)])
@@ -115,6 +120,6 @@ def test_the_sam3_teacher_reuses_the_heap_on_a_cpu(monkeypatch, tiny_sam3):
     from pipeline.teachers import sam3
 
     seen = []
-    monkeypatch.setattr(sam3, "reuse_freed_memory", lambda: seen.append("teacher"))
+    monkeypatch.setattr(sam3, "reuse_freed_memory", lambda device: seen.append("teacher"))
     sam3.Sam3Teacher(tiny_sam3, device="cpu", dtype="fp32", resolution=(40, 40)).load()
     assert seen == ["teacher"]
