@@ -112,7 +112,8 @@ def open_run(cfg: Mapping[str, Any], data: TrainData, device, seed: int, compile
 def epoch_timer(run) -> Callable[[int], float]:
     """A round-robin case: train ``run``'s next epoch (the loop's own) and return its wall seconds.
 
-    Its ``state`` holds the run's ``autocast`` and the last epoch's ``loss``."""
+    Its ``state`` holds the run's ``autocast`` and the last epoch's ``loss``; ``close()`` does nothing (as
+    :func:`process_timer`'s, which ends its process)."""
     from pipeline.training import loop
 
     state = {"epoch": 0, "autocast": run.run_key["autocast"]}
@@ -124,7 +125,7 @@ def epoch_timer(run) -> Callable[[int], float]:
         state["loss"] = row["loss"]
         return time.perf_counter() - t0
 
-    one.state = state
+    one.state, one.close = state, lambda: None
     return one
 
 
@@ -341,7 +342,7 @@ def main(argv=None) -> dict:
         rows = speed_rows(times, args.images, batches)
         for name, case in cases.items():
             rows[name].update(autocast=case.state["autocast"], loss_after=case.state["loss"])
-            getattr(case, "close", lambda: None)()
+            case.close()
         out["sizes"][str(size)] = {"variants": rows, "warmup_seconds": warm, "load_before": load_before,
                                    "load_after": load_average(),
                                    "speedup_median": rows[BASELINE]["median_seconds"] / rows[PROFILE]["median_seconds"],
