@@ -89,6 +89,46 @@ def test_rope_and_window_partition_replacements_are_bit_identical(dtype):
         assert ref_pad == got_pad and torch.equal(ref, got)
 
 
+@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
+def test_rope_as_a_complex_product_is_bit_identical_where_it_applies(dtype):
+    """The complex product against transformers' rotation at head size 64 (SAM 3's), at shapes and thread counts
+    where ATen's thread split lands mid-vector (the product must not apply there) and where it does not; the
+    real window shape at 2 threads takes it. Fails when a torch build fuses the vectorised product's terms."""
+    import torch
+    import transformers.models.sam3.modeling_sam3 as modeling
+
+    from pipeline.teachers import sam3
+
+    dt = getattr(torch, dtype)
+    g = torch.Generator().manual_seed(1)
+    threads, applied = torch.get_num_threads(), []
+    try:
+        for batch, heads, tokens, threads_now in [(9, 16, 576, 2), (1, 3, 1111, 2), (1, 3, 1111, 3),
+                                                  (1, 3, 1111, 5), (2, 2, 9, 4), (1, 1, 1025, 7)]:
+            torch.set_num_threads(threads_now)
+            lin = (torch.randn(batch, tokens, heads * 64, generator=g) * 8).to(dt)
+            q = lin.view(batch, tokens, heads, 64).transpose(1, 2)
+            k = (lin * 0.25 + 1).view(batch, tokens, heads, 64).transpose(1, 2)
+            freqs = torch.rand(tokens, 2, 16, generator=g) * 40
+            rec = lambda f: torch.cat([f[:, 0], f[:, 1]], -1)[None].repeat_interleave(2, -1)  # noqa: E731
+            cos, sin = rec(freqs.cos()), rec(freqs.sin())
+            applied.append(sam3._complex_rotation_is_exact(q, cos, sin, threads_now))
+            before = q.clone()
+            for ref, got in zip(modeling.apply_rotary_pos_emb_2d(q, k, cos, sin),
+                                sam3._rope_fewer_passes(q, k, cos, sin)):
+                assert ref.dtype == got.dtype
+                assert [st for st, n in zip(ref.stride(), ref.shape) if n > 1] == [  # the same layout
+                    st for st, n in zip(got.stride(), got.shape) if n > 1]
+                assert torch.equal(ref.view(torch.int16 if dt == torch.bfloat16 else torch.int32),
+                                   got.view(torch.int16 if dt == torch.bfloat16 else torch.int32))
+            assert torch.equal(q, before)  # the input is not rotated in place (fp32: no copy by .float())
+    finally:
+        torch.set_num_threads(threads)
+    assert applied == [True, True, True, False, True, True]
+    cos_unpaired = torch.rand(1, 576, 64, generator=g)
+    assert not sam3._complex_rotation_is_exact(q, cos_unpaired, cos_unpaired, 2)
+
+
 @pytest.mark.parametrize("dtype", ["fp32", "bf16"])
 def test_the_default_path_gives_the_answers_of_3056231_bit_for_bit(fitted_tiny_sam3, dtype):
     """The teacher with the savings (views instead of repeated FPN levels for one image per forward, the patches)
