@@ -363,7 +363,7 @@ def _rope_fewer_passes(q, k, cos, sin):
     """
     import torch
 
-    if _complex_rotation_is_exact(q, cos, sin, torch.get_num_threads()):
+    if k.shape == q.shape and _complex_rotation_is_exact(q, cos, sin, torch.get_num_threads()):
         rotation = torch.complex(cos[..., 0::2].float(), sin[..., 0::2].float())
 
         def rotate(x):
@@ -412,7 +412,7 @@ def _complex_rotation_is_exact(x, cos, sin, threads: int) -> bool:
     Parameters
     ----------
     x : torch.Tensor
-        The query or key, ``[..., head_dim]``; the key has the query's shape.
+        The query, ``[..., head_dim]`` (the caller checks that the key has its shape).
     cos, sin : torch.Tensor
         ``[..., head_dim]``, broadcast against ``x``.
     threads : int
