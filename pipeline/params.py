@@ -146,7 +146,8 @@ class TeacherParams(_Section):
     checkpoint: str | None = _f(None, "sam3: local SAM 3 directory (save_pretrained layout)")
     imported_dir: str | None = _f(None, "imported: directory in the documented layout")
     dtype: Literal["auto", "fp32", "bf16"] = _f(
-        "auto", "sam3: auto = bf16 on CUDA (fp32+TF32 without bf16); on CPU bf16 with avx512_bf16 or AMX, else fp32")
+        "auto", "sam3: auto = bf16 on CUDA (fp32+TF32 without bf16); on CPU bf16 with AMX, or avx512_bf16 on AMD, "
+        "else fp32")
     engine: Literal[TEACHER_ENGINES] = _f(
         "auto", "sam3: how the bf16 CPU path runs; auto = oneDNN-fused MLPs with AMX, OpenVINO's attention with "
         "avx512_bf16 and no AMX, else torch")

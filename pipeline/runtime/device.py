@@ -9,6 +9,7 @@ import os
 from pipeline.runtime.errors import InputError
 
 __all__ = ["STAGE_CPUS_ENV", "BF16_FLAGS", "ONEDNN_BF16_ISAS", "resolve_device", "stage_cores", "cpu_flags",
+           "cpu_vendor", "BF16_WITHOUT_AMX_VENDORS",
            "cpu_supports_bf16", "cpu_bf16_native", "teacher_cpu_dtype", "OPENVINO_ATTENTION_FLAGS",
            "teacher_cpu_engine", "onednn_isa_cap", "cpu_amx_native", "autocast", "autocast_dtype", "GLIBC_MALLOC_ENV",
            "HEAP_RETAINED", "reuse_freed_memory"]
@@ -82,6 +83,21 @@ def cpu_flags() -> frozenset[str]:
         return frozenset()
 
 
+def cpu_vendor() -> str:
+    """Return the CPU's vendor string from /proc/cpuinfo (``GenuineIntel``, ``AuthenticAMD``, ...).
+
+    Returns
+    -------
+    str
+        The first ``vendor_id``; empty where there is none (not Linux, or not x86).
+    """
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next((line.split(":", 1)[1].strip() for line in f if line.startswith("vendor_id")), "")
+    except OSError:
+        return ""
+
+
 def cpu_supports_bf16() -> bool:
     """Tell whether the CPU has native bf16 matrix units (:data:`BF16_FLAGS`), so bf16 autocast pays off.
 
@@ -110,22 +126,34 @@ def onednn_isa_cap() -> str:
     return os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
 
 
+#: the CPU vendors whose avx512_bf16 units, without AMX, run bf16 matrix products faster than fp32 ones: measured on
+#: a 2-core AMD EPYC (oneDNN's bf16 matmul 1,034 GFLOP/s against MKL's fp32 239; SAM 3 in bf16 0.32-0.47 of fp32's
+#: time).  An Intel core's avx512_bf16 path (an AMX host with oneDNN capped at AVX512_CORE_BF16, as where AMX is not
+#: granted) ran bf16 matmuls at half the fp32 rate (206 against 412 GFLOP/s) and SAM 3's default at 1.33x fp32's
+#: time, so Intel bf16 needs AMX (docs/performance.md, "bf16 without AMX on an Intel core")
+BF16_WITHOUT_AMX_VENDORS = ("AuthenticAMD",)
+
+
 def cpu_bf16_native() -> bool:
     """Apply the rule for bf16 on this CPU (the teacher's ``dtype: auto`` and training's ``precision: auto``).
 
-    True where the CPU has native bf16 units (:func:`cpu_supports_bf16`, read from its flags, never a timing
-    probe) and ``ONEDNN_MAX_CPU_ISA``, where set, does not cap oneDNN below them (:data:`ONEDNN_BF16_ISAS`);
-    else False, where bf16 would be emulated and slower than fp32.
+    True where oneDNN runs bf16 on AMX tiles (:func:`cpu_amx_native`), or where the CPU has avx512_bf16, comes
+    from one of :data:`BF16_WITHOUT_AMX_VENDORS`, and ``ONEDNN_MAX_CPU_ISA``, where set, does not cap oneDNN below
+    bf16 (:data:`ONEDNN_BF16_ISAS`); else False: bf16 would be emulated (no bf16 flag), or, on an Intel core
+    without AMX, its bf16 matrix products are slower than fp32's.  Read from the flags and the vendor, never a
+    timing probe.
 
     Returns
     -------
     bool
-        Whether bf16 runs natively here.
+        Whether bf16 pays off here.
     """
     isa = onednn_isa_cap()
     if isa and isa not in ONEDNN_BF16_ISAS:
         return False
-    return cpu_supports_bf16()
+    if cpu_amx_native():
+        return True
+    return "avx512_bf16" in cpu_flags() and cpu_vendor() in BF16_WITHOUT_AMX_VENDORS
 
 
 def teacher_cpu_dtype() -> str:

@@ -198,7 +198,7 @@ def resolve_teacher_dtype(dtype: str, device) -> tuple[str, bool]:
     """Resolve ``teacher.dtype`` on ``device`` to the weights' dtype and whether TF32 is on.
 
     ``auto`` is bf16 on a CUDA GPU that supports it, else fp32 with TF32 on CUDA; on a CPU the rule on its flags,
-    :func:`pipeline.runtime.device.teacher_cpu_dtype` (bf16 with avx512_bf16 or AMX, else fp32).
+    :func:`pipeline.runtime.device.teacher_cpu_dtype` (bf16 with AMX, or avx512_bf16 on AMD, else fp32).
 
     Parameters
     ----------

@@ -1,5 +1,5 @@
 """``teacher.dtype: auto`` on a CPU follows a rule on its flags (never a timing probe): bf16 where the CPU has
-native bf16 units (avx512_bf16, AMX), fp32 elsewhere; the dtype is in the fingerprint, so a changed ``auto``
+native bf16 units that pay off (AMX; avx512_bf16 from a vendor measured to gain), fp32 elsewhere; the dtype is in the fingerprint, so a changed ``auto``
 makes CPU caches miss (and says so) while a pinned fp32 keeps them; and the fidelity gate's arithmetic."""
 
 from __future__ import annotations
@@ -15,15 +15,18 @@ from pipeline.teachers.sam3 import TEXT_MAX_LENGTH, Sam3Teacher, resolve_teacher
 pytest.importorskip("transformers")
 
 
-@pytest.mark.parametrize("flags, isa, expect", [
-    ({"avx2", "fma"}, None, "fp32"),                                   # AVX2 only: bf16 would be emulated
-    ({"avx2", "avx512f", "avx512_bf16"}, None, "bf16"),                # avx512_bf16 (this project's CPU host)
-    ({"avx2", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16"}, None, "bf16"),  # AMX
-    ({"avx2", "avx512f", "avx512_bf16"}, "AVX2", "fp32"),              # oneDNN capped below bf16 (the AVX2 proxy)
-    ({"avx2", "avx512f", "avx512_bf16"}, "avx512_core_amx", "bf16"),   # a cap that keeps bf16 native
+@pytest.mark.parametrize("flags, vendor, isa, expect", [
+    ({"avx2", "fma"}, "GenuineIntel", None, "fp32"),                   # AVX2 only: bf16 would be emulated
+    ({"avx2", "avx512f", "avx512_bf16"}, "AuthenticAMD", None, "bf16"),  # avx512_bf16 on the EPYC
+    ({"avx2", "avx512f", "avx512_bf16"}, "GenuineIntel", None, "fp32"),  # Intel without AMX: 1.33x fp32's time
+    ({"avx2", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16"}, "GenuineIntel", None, "bf16"),  # AMX
+    ({"avx2", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16"}, "GenuineIntel", "AVX512_CORE_BF16", "fp32"),
+    ({"avx2", "avx512f", "avx512_bf16"}, "AuthenticAMD", "AVX2", "fp32"),  # capped below bf16 (the AVX2 proxy)
+    ({"avx2", "avx512f", "avx512_bf16"}, "AuthenticAMD", "avx512_core_amx", "bf16"),  # a cap that keeps bf16
 ])
-def test_auto_on_a_cpu_follows_its_flags(monkeypatch, flags, isa, expect):
+def test_auto_on_a_cpu_follows_its_flags(monkeypatch, flags, vendor, isa, expect):
     monkeypatch.setattr(device, "cpu_flags", lambda: frozenset(flags))
+    monkeypatch.setattr(device, "cpu_vendor", lambda: vendor)
     if isa is None:
         monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
     else:
@@ -35,6 +38,7 @@ def test_auto_on_a_cpu_follows_its_flags(monkeypatch, flags, isa, expect):
 
 def test_pinned_fp32_keeps_the_fingerprint_and_auto_bf16_says_caches_miss(tiny_sam3, monkeypatch):
     monkeypatch.setattr(device, "cpu_flags", lambda: frozenset({"avx512_bf16"}))
+    monkeypatch.setattr(device, "cpu_vendor", lambda: "AuthenticAMD")
     pinned = Sam3Teacher(tiny_sam3, device="cpu", dtype="fp32", resolution=(40, 40))
     auto = Sam3Teacher(tiny_sam3, device="cpu", dtype="auto", resolution=(40, 40))
     fp = pinned.fingerprint()

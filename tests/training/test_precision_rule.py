@@ -1,6 +1,6 @@
 """``train.precision: auto`` on a CPU follows the teacher's rule (pipeline.runtime.device.cpu_bf16_native): bf16
-autocast where the CPU's flags show native bf16 units and ``ONEDNN_MAX_CPU_ISA`` does not cap oneDNN below them,
-fp32 elsewhere; pinned precisions ignore the host."""
+autocast where oneDNN runs bf16 on AMX, or on avx512_bf16 from a vendor measured to gain from it, and
+``ONEDNN_MAX_CPU_ISA`` does not cap oneDNN below them, fp32 elsewhere; pinned precisions ignore the host."""
 
 from __future__ import annotations
 
@@ -12,17 +12,26 @@ from pipeline.runtime import device
 CPU = torch.device("cpu")
 
 
-@pytest.mark.parametrize("flags, isa, bf16", [
-    ({"avx2", "fma"}, None, False),                                    # AVX2 only: bf16 would be emulated
-    ({"avx2", "avx512f", "avx512_bf16"}, None, True),                  # avx512_bf16
-    ({"avx2", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16"}, None, True),  # AMX
-    ({"avx2", "avx512f", "avx512_bf16"}, "AVX2", False),               # capped below bf16 (the AVX2 proxy)
-    ({"avx2", "avx512f", "avx512_bf16", "amx_bf16"}, "avx512_core_vnni", False),  # capped below bf16
-    ({"avx2", "avx512f", "avx512_bf16"}, "avx512_core_amx", True),     # a cap that keeps bf16 native
-    ({"avx2", "fma"}, "ALL", False),                                   # no cap gives units the CPU lacks
+AMD, INTEL = "AuthenticAMD", "GenuineIntel"
+AVX512_BF16 = {"avx2", "avx512f", "avx512_bf16"}
+AMX = AVX512_BF16 | {"amx_tile", "amx_bf16"}
+
+
+@pytest.mark.parametrize("flags, vendor, isa, bf16", [
+    ({"avx2", "fma"}, INTEL, None, False),                   # AVX2 only: bf16 would be emulated
+    (AVX512_BF16, AMD, None, True),                          # avx512_bf16 on the EPYC: bf16 matmuls 4x fp32's
+    (AVX512_BF16, INTEL, None, False),                       # Intel without AMX: its bf16 matmuls half fp32's
+    (AMX, INTEL, None, True),                                # AMX
+    (AMX, INTEL, "AVX512_CORE_BF16", False),                 # AMX capped away: Intel's avx512_bf16 path
+    (AVX512_BF16, AMD, "AVX2", False),                       # capped below bf16 (the AVX2 proxy)
+    (AMX, INTEL, "avx512_core_vnni", False),                 # capped below bf16
+    (AVX512_BF16, AMD, "avx512_core_amx", True),             # a cap that keeps bf16 native
+    (AMX, INTEL, "avx512_core_amx", True),                   # a cap that keeps AMX
+    ({"avx2", "fma"}, AMD, "ALL", False),                    # no cap gives units the CPU lacks
 ])
-def test_auto_training_precision_follows_the_teacher_s_rule(monkeypatch, flags, isa, bf16):
+def test_auto_training_precision_follows_the_teacher_s_rule(monkeypatch, flags, vendor, isa, bf16):
     monkeypatch.setattr(device, "cpu_flags", lambda: frozenset(flags))
+    monkeypatch.setattr(device, "cpu_vendor", lambda: vendor)
     if isa is None:
         monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
     else:
@@ -31,3 +40,17 @@ def test_auto_training_precision_follows_the_teacher_s_rule(monkeypatch, flags, 
     assert device.teacher_cpu_dtype() == ("bf16" if bf16 else "fp32")   # one rule for both
     assert device.autocast_dtype(CPU, "fp32") is None                    # pinned: whatever the host
     assert device.autocast_dtype(CPU, "bf16") == torch.bfloat16
+
+
+def test_cpu_vendor_reads_the_first_vendor_id(monkeypatch, tmp_path):
+    """The vendor comes from /proc/cpuinfo's first ``vendor_id``; empty without one."""
+    import builtins
+
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nflags\t\t: avx2\nvendor_id\t: GenuineIntel\n")
+    real_open = builtins.open
+    monkeypatch.setattr(builtins, "open", lambda path, *a, **k: real_open(
+        info if path == "/proc/cpuinfo" else path, *a, **k))
+    assert device.cpu_vendor() == "AuthenticAMD"
+    info.write_text("processor\t: 0\nflags\t\t: avx2\n")
+    assert device.cpu_vendor() == ""
