@@ -10,7 +10,7 @@ from pipeline.runtime.errors import InputError
 
 __all__ = ["STAGE_CPUS_ENV", "BF16_FLAGS", "ONEDNN_BF16_ISAS", "resolve_device", "stage_cores", "cpu_flags",
            "cpu_vendor", "BF16_WITHOUT_AMX_VENDORS",
-           "cpu_supports_bf16", "cpu_bf16_native", "teacher_cpu_dtype", "OPENVINO_ATTENTION_FLAGS",
+           "cpu_supports_bf16", "cpu_bf16_native", "cpu_bf16_pays_off", "teacher_cpu_dtype", "OPENVINO_ATTENTION_FLAGS",
            "teacher_cpu_engine", "onednn_isa_cap", "cpu_amx_native", "autocast", "autocast_dtype", "GLIBC_MALLOC_ENV",
            "HEAP_RETAINED", "reuse_freed_memory"]
 
@@ -135,25 +135,37 @@ BF16_WITHOUT_AMX_VENDORS = ("AuthenticAMD",)
 
 
 def cpu_bf16_native() -> bool:
-    """Apply the rule for bf16 on this CPU (the teacher's ``dtype: auto`` and training's ``precision: auto``).
+    """Tell whether bf16 runs natively here.
 
-    True where oneDNN runs bf16 on AMX tiles (:func:`cpu_amx_native`), or where the CPU has avx512_bf16, comes
-    from one of :data:`BF16_WITHOUT_AMX_VENDORS`, and ``ONEDNN_MAX_CPU_ISA``, where set, does not cap oneDNN below
-    bf16 (:data:`ONEDNN_BF16_ISAS`); else False: bf16 would be emulated (no bf16 flag), or, on an Intel core
-    without AMX, its bf16 matrix products are slower than fp32's.  Read from the flags and the vendor, never a
-    timing probe.
+    The CPU has bf16 units (:func:`cpu_supports_bf16`, read from its flags, never a timing probe) and
+    ``ONEDNN_MAX_CPU_ISA``, where set, does not cap oneDNN below them (:data:`ONEDNN_BF16_ISAS`).  Native is not
+    the same as faster than fp32: :func:`cpu_bf16_pays_off`.
 
     Returns
     -------
     bool
-        Whether bf16 pays off here.
+        False where bf16 would be emulated.
     """
     isa = onednn_isa_cap()
     if isa and isa not in ONEDNN_BF16_ISAS:
         return False
-    if cpu_amx_native():
-        return True
-    return "avx512_bf16" in cpu_flags() and cpu_vendor() in BF16_WITHOUT_AMX_VENDORS
+    return cpu_supports_bf16()
+
+
+def cpu_bf16_pays_off() -> bool:
+    """Apply the rule for bf16 on this CPU (the teacher's ``dtype: auto`` and training's ``precision: auto``).
+
+    True where oneDNN runs bf16 on AMX tiles (:func:`cpu_amx_native`), or where bf16 is native
+    (:func:`cpu_bf16_native`) on a CPU of one of :data:`BF16_WITHOUT_AMX_VENDORS`; else False: bf16 would be
+    emulated, or, on an Intel core without AMX, its matrix products are slower than fp32's.  Read from the flags,
+    the vendor and the ``ONEDNN_MAX_CPU_ISA`` cap, never a timing probe.
+
+    Returns
+    -------
+    bool
+        Whether ``auto`` means bf16 here.
+    """
+    return cpu_bf16_native() and (cpu_amx_native() or cpu_vendor() in BF16_WITHOUT_AMX_VENDORS)
 
 
 def teacher_cpu_dtype() -> str:
@@ -165,9 +177,9 @@ def teacher_cpu_dtype() -> str:
     Returns
     -------
     str
-        ``bf16`` where :func:`cpu_bf16_native`, else ``fp32``.
+        ``bf16`` where :func:`cpu_bf16_pays_off`, else ``fp32``.
     """
-    return "bf16" if cpu_bf16_native() else "fp32"
+    return "bf16" if cpu_bf16_pays_off() else "fp32"
 
 
 #: the CPU flags under which ``teacher.engine: auto`` runs SAM 3's bf16 attention in OpenVINO: measured on
@@ -246,8 +258,8 @@ def autocast(device, dtype, cache_enabled: bool = True):
 def autocast_dtype(device, precision: str):
     """Return the autocast dtype of a ``precision`` param (fp32 | bf16 | auto), None meaning fp32.
 
-    ``auto``: bf16 on a CUDA device that supports it; on a CPU, bf16 where :func:`cpu_bf16_native` (the
-    teacher's rule: the flags and the ``ONEDNN_MAX_CPU_ISA`` cap), else fp32.
+    ``auto``: bf16 on a CUDA device that supports it; on a CPU, bf16 where :func:`cpu_bf16_pays_off` (the
+    teacher's rule: the flags, the vendor and the ``ONEDNN_MAX_CPU_ISA`` cap), else fp32.
 
     Parameters
     ----------
@@ -276,7 +288,7 @@ def autocast_dtype(device, precision: str):
         return torch.bfloat16
     if device.type == "cuda":
         return torch.bfloat16 if torch.cuda.is_bf16_supported() else None
-    return torch.bfloat16 if cpu_bf16_native() else None
+    return torch.bfloat16 if cpu_bf16_pays_off() else None
 
 
 #: glibc's malloc settings a user may have chosen (environment); where one is set, :func:`reuse_freed_memory`

@@ -1,4 +1,4 @@
-"""``train.precision: auto`` on a CPU follows the teacher's rule (pipeline.runtime.device.cpu_bf16_native): bf16
+"""``train.precision: auto`` on a CPU follows the teacher's rule (pipeline.runtime.device.cpu_bf16_pays_off): bf16
 autocast where oneDNN runs bf16 on AMX, or on avx512_bf16 from a vendor measured to gain from it, and
 ``ONEDNN_MAX_CPU_ISA`` does not cap oneDNN below them, fp32 elsewhere; pinned precisions ignore the host."""
 
@@ -54,3 +54,22 @@ def test_cpu_vendor_reads_the_first_vendor_id(monkeypatch, tmp_path):
     assert device.cpu_vendor() == "AuthenticAMD"
     info.write_text("processor\t: 0\nflags\t\t: avx2\n")
     assert device.cpu_vendor() == ""
+
+
+@pytest.mark.parametrize("flags, vendor, isa, native", [
+    (AVX512_BF16, INTEL, None, True),          # native, yet not worth it without AMX (the rule above: fp32)
+    (AMX, INTEL, "AVX512_CORE_BF16", True),    # capped to the avx512_bf16 path: still native
+    (AMX, INTEL, "AVX2", False),               # capped below bf16: emulated
+    ({"avx2", "fma"}, AMD, None, False),
+])
+def test_native_bf16_is_the_flags_and_the_cap_whatever_the_vendor(monkeypatch, flags, vendor, isa, native):
+    """``cpu_bf16_native`` (what the benchmarks' bf16 peak needs) is the flags and the cap alone; the vendor only
+    enters whether bf16 pays off."""
+    monkeypatch.setattr(device, "cpu_flags", lambda: frozenset(flags))
+    monkeypatch.setattr(device, "cpu_vendor", lambda: vendor)
+    if isa is None:
+        monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+    else:
+        monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", isa)
+    assert device.cpu_bf16_native() == native
+    assert not device.cpu_bf16_pays_off() or native
