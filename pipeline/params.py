@@ -150,7 +150,7 @@ class TeacherParams(_Section):
         "else fp32")
     engine: Literal[TEACHER_ENGINES] = _f(
         "auto", "sam3: how the bf16 CPU path runs; auto = oneDNN-fused MLPs with AMX, OpenVINO's attention with "
-        "avx512_bf16 and no AMX, else torch")
+        "avx512_bf16 on AMD, else torch")
     batch_size: int = _f(0, "images per SAM 3 forward; 0 = from free GPU memory (2 on a CPU)", ge=0, le=4096)
     compile: bool = _f(False, "sam3: torch.compile the vision encoder on CUDA (pays after warm-up)")
     score_threshold: float = _f(0.3, "sam3: queries scoring <= this are no candidate", ge=0, le=1)

@@ -11,6 +11,7 @@ from pipeline.runtime.errors import InputError
 __all__ = ["STAGE_CPUS_ENV", "BF16_FLAGS", "ONEDNN_BF16_ISAS", "resolve_device", "stage_cores", "cpu_flags",
            "cpu_vendor", "BF16_WITHOUT_AMX_VENDORS",
            "cpu_supports_bf16", "cpu_bf16_native", "cpu_bf16_pays_off", "teacher_cpu_dtype", "OPENVINO_ATTENTION_FLAGS",
+           "OPENVINO_ATTENTION_VENDORS",
            "teacher_cpu_engine", "onednn_isa_cap", "cpu_amx_native", "autocast", "autocast_dtype", "GLIBC_MALLOC_ENV",
            "HEAP_RETAINED", "reuse_freed_memory"]
 
@@ -185,6 +186,10 @@ def teacher_cpu_dtype() -> str:
 #: the CPU flags under which ``teacher.engine: auto`` runs SAM 3's bf16 attention in OpenVINO: measured on
 #: avx512_bf16 without AMX (docs/performance.md); with AMX in use torch's attention was the faster
 OPENVINO_ATTENTION_FLAGS = ("avx512_bf16",)
+#: ... and the CPU vendors it was measured faster on: the AMD EPYC (its attention 2.2-3.1x torch's bf16 flash
+#: kernel); on an Intel core it lost with AMX (1.05-1.3x torch's time) and without (the AMX host with oneDNN capped
+#: at AVX512_CORE_BF16: a bf16 call 43.5 s against 36.0 s in torch; docs/performance.md)
+OPENVINO_ATTENTION_VENDORS = ("AuthenticAMD",)
 #: the ``ONEDNN_MAX_CPU_ISA`` values of :data:`ONEDNN_BF16_ISAS` that leave oneDNN its AMX kernels
 ONEDNN_AMX_ISAS = tuple(isa for isa in ONEDNN_BF16_ISAS if "AMX" in isa or isa in ("ALL", "DEFAULT"))
 
@@ -203,12 +208,12 @@ def cpu_amx_native() -> bool:
 
 
 def teacher_cpu_engine(dtype_name: str) -> str:
-    """Resolve ``teacher.engine: auto`` on a CPU, from its flags (never a timing probe).
+    """Resolve ``teacher.engine: auto`` on a CPU, from its flags and vendor (never a timing probe).
 
     Measured (docs/performance.md, "The teacher's attention in OpenVINO" and "The teacher on AMX"): on a 2-core
-    avx512_bf16 host without AMX, OpenVINO's fused attention ran SAM 3's attention shapes 2.2-3.1x faster than
-    torch's bf16 flash kernel; on a 2-core AMX host torch's kernel was the faster (OpenVINO's took 1.05-1.3x its
-    time), and fusing each MLP's activation into its first linear layer (oneDNN) took the teacher from 10.65 to
+    avx512_bf16 AMD EPYC, OpenVINO's fused attention ran SAM 3's attention shapes 2.2-3.1x faster than torch's
+    bf16 flash kernel; on a 2-core Intel AMX host torch's kernel was the faster (OpenVINO's took 1.05-1.3x its
+    time), also with oneDNN capped below AMX (a bf16 call 43.5 against 36.0 s), and fusing each MLP's activation into its first linear layer (oneDNN) took the teacher from 10.65 to
     9.66 s per image at real size (the torch engine against onednn, one round-robin run). fp32 CPUs and pinned fp32:
     torch.
 
@@ -221,14 +226,16 @@ def teacher_cpu_engine(dtype_name: str) -> str:
     -------
     str
         For bf16: ``onednn`` where oneDNN runs on AMX (:func:`cpu_amx_native`), else ``openvino`` on a CPU with one
-        of :data:`OPENVINO_ATTENTION_FLAGS` (an AMX CPU capped below AMX by ``ONEDNN_MAX_CPU_ISA`` runs as an
-        avx512_bf16 one); else ``torch``.
+        of :data:`OPENVINO_ATTENTION_FLAGS` from one of :data:`OPENVINO_ATTENTION_VENDORS`; else ``torch`` (an
+        AMX CPU capped below AMX by ``ONEDNN_MAX_CPU_ISA`` runs as an Intel avx512_bf16 one: torch).
     """
     if dtype_name != "bf16":
         return "torch"
     if cpu_amx_native():
         return "onednn"
-    return "openvino" if not cpu_flags().isdisjoint(OPENVINO_ATTENTION_FLAGS) else "torch"
+    if not cpu_flags().isdisjoint(OPENVINO_ATTENTION_FLAGS) and cpu_vendor() in OPENVINO_ATTENTION_VENDORS:
+        return "openvino"
+    return "torch"
 
 
 def autocast(device, dtype, cache_enabled: bool = True):

@@ -22,16 +22,18 @@ F = torch.nn.functional
 AVX512_BF16 = frozenset({"avx2", "avx512f", "avx512_bf16"})
 
 
-@pytest.mark.parametrize("flags, dtype, expect", [
-    (AVX512_BF16, "bf16", "openvino"),                                   # measured: OpenVINO's attention is faster
-    (AVX512_BF16 | {"amx_tile", "amx_bf16"}, "bf16", "onednn"),          # AMX: torch's attention, fused MLPs
-    (AVX512_BF16 | {"amx_tile", "amx_bf16"}, "fp32", "torch"),           # AMX, pinned fp32: torch
-    ({"avx2", "fma"}, "fp32", "torch"),                                  # AVX2: fp32 teacher, torch
-    (AVX512_BF16, "fp32", "torch"),                                      # a pinned fp32 stays in torch
+@pytest.mark.parametrize("flags, vendor, dtype, expect", [
+    (AVX512_BF16, "AuthenticAMD", "bf16", "openvino"),                   # measured: OpenVINO's attention is faster
+    (AVX512_BF16, "GenuineIntel", "bf16", "torch"),                      # measured (AMX capped away): it is slower
+    (AVX512_BF16 | {"amx_tile", "amx_bf16"}, "GenuineIntel", "bf16", "onednn"),  # AMX: torch's attention, fused MLPs
+    (AVX512_BF16 | {"amx_tile", "amx_bf16"}, "GenuineIntel", "fp32", "torch"),   # AMX, pinned fp32: torch
+    ({"avx2", "fma"}, "GenuineIntel", "fp32", "torch"),                  # AVX2: fp32 teacher, torch
+    (AVX512_BF16, "AuthenticAMD", "fp32", "torch"),                      # a pinned fp32 stays in torch
 ])
-def test_auto_follows_the_cpu_flags(monkeypatch, flags, dtype, expect):
+def test_auto_follows_the_cpu_flags(monkeypatch, flags, vendor, dtype, expect):
     monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
     monkeypatch.setattr(device, "cpu_flags", lambda: frozenset(flags))
+    monkeypatch.setattr(device, "cpu_vendor", lambda: vendor)
     monkeypatch.setattr(attention, "openvino_version", lambda: "2026.4.1")
     assert device.teacher_cpu_engine(dtype) == expect
     assert resolve_teacher_engine("auto", "cpu", dtype) == (expect, None)
@@ -51,10 +53,13 @@ def test_what_cannot_run_in_openvino_runs_in_torch_and_says_so_in_one_line(monke
         resolve_teacher_engine("onnx", "cpu", "bf16")
 
 
-def test_an_amx_cpu_capped_below_amx_runs_as_an_avx512_bf16_one(monkeypatch):
+def test_an_amx_cpu_capped_below_amx_runs_as_an_intel_avx512_bf16_one(monkeypatch):
+    """Capped below AMX, an Intel AMX CPU is an Intel avx512_bf16 one: a pinned bf16 runs torch's attention there
+    (OpenVINO's was slower on it: docs/performance.md), and ``auto`` gives fp32 anyway."""
     monkeypatch.setattr(device, "cpu_flags", lambda: AVX512_BF16 | {"amx_tile", "amx_bf16"})
+    monkeypatch.setattr(device, "cpu_vendor", lambda: "GenuineIntel")
     monkeypatch.setattr(attention, "openvino_version", lambda: "2026.4.1")
-    for isa, expect in (("AVX512_CORE_AMX", "onednn"), ("", "onednn"), ("AVX512_CORE_BF16", "openvino")):
+    for isa, expect in (("AVX512_CORE_AMX", "onednn"), ("", "onednn"), ("AVX512_CORE_BF16", "torch")):
         monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", isa)
         assert device.teacher_cpu_engine("bf16") == expect, isa
 
@@ -76,6 +81,7 @@ def test_the_fingerprint_and_path_name_the_engine_and_the_torch_engine_keeps_its
     from pipeline.teachers.sam3 import Sam3Teacher
 
     monkeypatch.setattr(device, "cpu_flags", lambda: AVX512_BF16)
+    monkeypatch.setattr(device, "cpu_vendor", lambda: "AuthenticAMD")
     monkeypatch.setattr(attention, "openvino_version", lambda: "2026.4.1")
     kw = dict(device="cpu", dtype="bf16", resolution=(40, 40))
     ov, pinned = Sam3Teacher(tiny_sam3, engine="auto", **kw), Sam3Teacher(tiny_sam3, engine="torch", **kw)
