@@ -505,64 +505,14 @@ def _upsample(x: torch.Tensor, size) -> torch.Tensor:
     return y
 
 
-def _hooked(*modules: nn.Module) -> bool:
-    """Whether a forward hook (the modules' own, or a global one) would see a call that bypasses ``modules``."""
-    from torch.nn.modules import module as module_state
-
-    return any(m._forward_hooks or m._forward_pre_hooks for m in modules) or any(
-        getattr(module_state, name, None) for name in ("_global_forward_hooks", "_global_forward_pre_hooks"))
-
-
-def _split_skip_applies(level: nn.Module, skip: torch.Tensor) -> bool:
-    """Whether :func:`decode_level` sums two convolutions instead of convolving the concatenation (see there)."""
-    first = level[0] if isinstance(level, DoubleConv) else None
-    return (type(first) is ConvBNReLU and first.training and skip.device.type == "cpu"
-            and torch.is_autocast_enabled("cpu") and torch.get_autocast_dtype("cpu") == torch.bfloat16
-            and not _hooked(level, first, *first))
-
-
-def decode_level(level: nn.Module, up: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
-    """Apply a decoder level to the concatenation of the upsampled features and the skip: level(cat([up, skip])).
-
-    In training under bf16 autocast on a CPU, the level's first convolution over the concatenation is computed as
-    the sum of two convolutions, one per part of its weight: conv(cat([u, s]), W) = conv(u, W_u) + conv(s, W_s),
-    the same function, so the concatenation (72 channels at full side) and the copies of its gradient's slices are
-    never made: about 6 % of `distill`'s bf16 step at 128² on AMX (docs/performance.md).  Each part is rounded to
-    bf16 before the sum, where the concatenated convolution rounds once; the block stays within bf16 rounding of a
-    float64 reference (tests/core/test_model.py).  fp32 (so fp32 runs keep their bits), eval (so exports and
-    scores are unchanged), the RepVGG-expanded blocks, hooks on the level and other devices take
-    the concatenation.
-
-    Parameters
-    ----------
-    level : nn.Module
-        A :class:`DoubleConv` of the decoder.
-    up : torch.Tensor
-        The upsampled deeper features [N, C_u, H, W].
-    skip : torch.Tensor
-        The encoder's features at this side [N, C_s, H, W].
-
-    Returns
-    -------
-    torch.Tensor
-        The level's output [N, C_out, H, W].
-    """
-    if not _split_skip_applies(level, skip):
-        return level(torch.cat([up, skip], dim=1))
-    conv, norm, relu = level[0]
-    w_up, w_skip = conv.weight.split([up.shape[1], skip.shape[1]], dim=1)
-    y = conv._conv_forward(up, w_up, conv.bias) + conv._conv_forward(skip, w_skip, None)
-    return level[1](batch_norm_relu(y, norm, relu))
-
-
 def _unet(m: nn.Module, x: torch.Tensor, sizes=None) -> torch.Tensor:
     """Decode ``x`` through ``m``'s encoder-decoder; ``sizes``: the two upsampling sizes (default: the skips')."""
     e1 = m.enc1(x)
     e2 = m.enc2(F.max_pool2d(e1, 2))
     e3 = m.enc3(F.max_pool2d(e2, 2))
     s2, s1 = sizes or (e2.shape[-2:], e1.shape[-2:])
-    d2 = decode_level(m.dec2, _upsample(e3, s2), e2)
-    return decode_level(m.dec1, _upsample(d2, s1), e1)
+    d2 = m.dec2(torch.cat([_upsample(e3, s2), e2], dim=1))
+    return m.dec1(torch.cat([_upsample(d2, s1), e1], dim=1))
 
 
 class TinyUNet(nn.Module):
