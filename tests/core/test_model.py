@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import copy
+
 import torch
 
-from pipeline.model import TinyUNet, count_flops, count_parameters
+from pipeline.model import TinyUNet, _affine_output_is_nan_free, count_flops, count_parameters
 
 
 def test_deployed_parameter_count_matches_the_paper():
@@ -128,7 +130,6 @@ def test_wide_batch_norm_relu_is_as_accurate_as_aten(monkeypatch):
     reference: its output, gradients and running statistics are within bf16 rounding of it, no further from it
     than aten's kernel is (beside a margin of two bf16 steps), and it counts the batch; 48 channels keep aten's
     kernel."""
-    import copy
 
     from pipeline import model as model_module
 
@@ -161,6 +162,83 @@ def test_wide_batch_norm_relu_is_as_accurate_as_aten(monkeypatch):
             err = (got[key] - ref[key]).abs().max().item()
             err_aten = (aten[key] - ref_aten[key]).abs().max().item()
             assert err <= err_aten + 2 * 2.0 ** -8 * ref[key].abs().max().item(), (channels, key, err, err_aten)
+
+
+def _bf16_patterns() -> torch.Tensor:
+    """Every one of the 65,536 bf16 bit patterns, as bf16."""
+    return torch.arange(-(2 ** 15), 2 ** 15, dtype=torch.int32).to(torch.int16).view(torch.bfloat16)
+
+
+def test_relu_by_sign_bit_is_atens_relu_on_every_bf16_number():
+    """The integer ReLU against aten's float kernel over every bf16 bit pattern: the same bits everywhere but -0.0
+    (+0.0: an equal value) and the NaNs, which the wide path never hands it (each would become 0); and aten's
+    backward mask on its output is the mask on aten's own output, bit for bit."""
+    from pipeline.model import _relu_by_sign_bit_
+
+    x = _bf16_patterns()
+    got, want = _relu_by_sign_bit_(x.clone()), torch.relu(x)
+    nan, negative_zero = torch.isnan(x), x.view(torch.int16) == -(2 ** 15)
+    same = torch.eq(got.view(torch.int16), want.view(torch.int16))
+    assert bool(same[~nan & ~negative_zero].all())
+    assert bool(torch.eq(got[negative_zero], want[negative_zero]).all())  # -0.0 -> +0.0, equal values
+    assert int(nan.sum()) == 254 and not bool(torch.isnan(got[~nan]).any())
+    g = x[torch.randperm(len(x), generator=torch.Generator().manual_seed(0))]
+    keep = ~nan
+    assert torch.equal(torch.ops.aten.threshold_backward(g[keep], got[keep], 0).view(torch.int16),
+                       torch.ops.aten.threshold_backward(g[keep], want[keep], 0).view(torch.int16))
+
+
+def test_affine_output_is_nan_free_refuses_what_could_give_a_nan():
+    """The guard of the integer ReLU: True for ordinary statistics, False for an inf or NaN statistic, an overflowing
+    scale (inf * 0 would be NaN) or a huge shift."""
+    from pipeline.model import _affine_output_is_nan_free
+
+    mean, var, w, b = torch.zeros(24), torch.ones(24), torch.ones(24), torch.zeros(24)
+    assert _affine_output_is_nan_free(mean, var, w, b, 1e-5)
+    for name, value in (("mean", float("nan")), ("mean", float("inf")), ("var", float("inf")),
+                        ("var", float("nan")), ("w", 1e36), ("b", float("-inf")), ("b", 1e31)):
+        args = {"mean": mean.clone(), "var": var.clone(), "w": w.clone(), "b": b.clone()}
+        args[name][3] = value
+        assert not _affine_output_is_nan_free(args["mean"], args["var"], args["w"], args["b"], 1e-5), (name, value)
+
+
+def test_wide_batch_norm_relu_gives_aten_relus_bits_and_keeps_nans(monkeypatch):
+    """The wide block with the integer ReLU against the same block with aten's ReLU (the guard forced False): the
+    same output values, gradients and running statistics bit for bit; a NaN in the input takes aten's ReLU, so
+    the NaN reaches the output as it would through aten's modules."""
+    from pipeline import model as model_module
+    from pipeline.model import batch_norm_relu
+
+    monkeypatch.setattr(model_module, "_WIDE_MIN_PIXELS", 1)
+    torch.manual_seed(3)
+    base = torch.nn.BatchNorm2d(24).train()
+    with torch.no_grad():
+        base.weight.uniform_(-1.5, 1.5)  # negative gammas too
+        base.bias.uniform_(-0.3, 0.3)
+    x = (torch.randn(4, 24, 16, 12) * 2).to(torch.bfloat16).contiguous(memory_format=torch.channels_last)
+    grad = torch.randn(x.shape).to(torch.bfloat16).contiguous(memory_format=torch.channels_last)
+    runs = {}
+    for guard in (True, False):
+        norm = copy.deepcopy(base)
+        monkeypatch.setattr(model_module, "_affine_output_is_nan_free",
+                            _affine_output_is_nan_free if guard else lambda *a: False)
+        xi = x.clone().requires_grad_(True)
+        y = batch_norm_relu(xi, norm)
+        y.backward(grad)
+        runs[guard] = (y.detach(), xi.grad, norm.weight.grad, norm.bias.grad, norm.running_mean, norm.running_var)
+    assert bool((runs[True][0] > 0).any()) and bool((runs[True][0] == 0).any())
+    assert torch.equal(runs[True][0], runs[False][0])
+    for a, b in zip(runs[True][1:], runs[False][1:]):
+        assert torch.equal(a.view(torch.int16) if a.dtype == torch.bfloat16 else a,
+                           b.view(torch.int16) if b.dtype == torch.bfloat16 else b)
+    monkeypatch.setattr(model_module, "_affine_output_is_nan_free", _affine_output_is_nan_free)
+    x_nan = x.clone()
+    x_nan[0, 5, 3, 4] = float("nan")
+    with torch.no_grad():
+        norm = copy.deepcopy(base)
+        y = batch_norm_relu(x_nan, norm)
+        ref = torch.relu(copy.deepcopy(base)(x_nan))
+    assert torch.equal(torch.isnan(y), torch.isnan(ref)) and bool(torch.isnan(y[:, 5]).all())
 
 
 def test_wide_batch_norm_relu_leaves_fp32_eval_and_nchw_to_aten(monkeypatch):
