@@ -114,8 +114,8 @@ def _relu_by_sign_bit_(y: torch.Tensor) -> torch.Tensor:
     every negative number to +0 and keeps every other one: aten's ReLU, bit for bit, except that -0.0 becomes +0.0
     (equal values).  A NaN whose sign bit is set (bf16's own NaN, 0xFFFF) would become 0 where aten keeps it, so the
     caller vouches for no NaN (:func:`_affine_output_is_nan_free`).  Why: aten's bf16 ReLU converts to float and
-    back: 4-5x the time of the integer clamp on a 6 MB tensor out of cache, 3-4 ms of `distill`'s 128² step on AMX
-    (docs/performance.md).
+    back: 4-5x the time of the integer clamp on a 6 MB tensor out of cache; in `distill`'s 128² step on AMX the
+    forward is 2-4 ms shorter (docs/performance.md).
 
     Parameters
     ----------
