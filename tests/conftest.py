@@ -268,3 +268,20 @@ def ckpts(tmp_path_factory) -> dict[str, Path]:
     common = dict(method="geodistill", seed=42, stage=1, selected_epoch=1, tau=0.5)
     return {"with": save_checkpoint(root / "with", tiny_model(3), meta, log, resolution=RES, **common),
             "without": save_checkpoint(root / "without", tiny_model(3), meta, log, **common)}
+
+
+@pytest.fixture
+def cpu_host(monkeypatch):
+    """Pose as a CPU host for the precision and engine rules: ``cpu_host(flags, vendor, isa)`` sets
+    ``pipeline.runtime.device``'s flags and vendor, and ``ONEDNN_MAX_CPU_ISA`` (None: unset)."""
+    from pipeline.runtime import device
+
+    def pose(flags, vendor: str = "GenuineIntel", isa: str | None = None) -> None:
+        monkeypatch.setattr(device, "cpu_flags", lambda: frozenset(flags))
+        monkeypatch.setattr(device, "cpu_vendor", lambda: vendor)
+        if isa is None:
+            monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+        else:
+            monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", isa)
+
+    return pose

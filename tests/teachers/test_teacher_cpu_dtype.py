@@ -24,13 +24,8 @@ pytest.importorskip("transformers")
     ({"avx2", "avx512f", "avx512_bf16"}, "AuthenticAMD", "AVX2", "fp32"),  # capped below bf16 (the AVX2 proxy)
     ({"avx2", "avx512f", "avx512_bf16"}, "AuthenticAMD", "avx512_core_amx", "bf16"),  # a cap that keeps bf16
 ])
-def test_auto_on_a_cpu_follows_its_flags(monkeypatch, flags, vendor, isa, expect):
-    monkeypatch.setattr(device, "cpu_flags", lambda: frozenset(flags))
-    monkeypatch.setattr(device, "cpu_vendor", lambda: vendor)
-    if isa is None:
-        monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
-    else:
-        monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", isa)
+def test_auto_on_a_cpu_follows_its_flags(cpu_host, flags, vendor, isa, expect):
+    cpu_host(flags, vendor, isa)
     assert device.teacher_cpu_dtype() == expect
     assert resolve_teacher_dtype("auto", "cpu") == (expect, False)
     assert resolve_teacher_dtype("fp32", "cpu") == ("fp32", False)     # pinned: whatever the flags

@@ -29,13 +29,8 @@ AMX = AVX512_BF16 | {"amx_tile", "amx_bf16"}
     (AMX, INTEL, "avx512_core_amx", True),                   # a cap that keeps AMX
     ({"avx2", "fma"}, AMD, "ALL", False),                    # no cap gives units the CPU lacks
 ])
-def test_auto_training_precision_follows_the_teacher_s_rule(monkeypatch, flags, vendor, isa, bf16):
-    monkeypatch.setattr(device, "cpu_flags", lambda: frozenset(flags))
-    monkeypatch.setattr(device, "cpu_vendor", lambda: vendor)
-    if isa is None:
-        monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
-    else:
-        monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", isa)
+def test_auto_training_precision_follows_the_teacher_s_rule(cpu_host, flags, vendor, isa, bf16):
+    cpu_host(flags, vendor, isa)
     assert device.autocast_dtype(CPU, "auto") == (torch.bfloat16 if bf16 else None)
     assert device.teacher_cpu_dtype() == ("bf16" if bf16 else "fp32")   # one rule for both
     assert device.autocast_dtype(CPU, "fp32") is None                    # pinned: whatever the host
@@ -62,14 +57,9 @@ def test_cpu_vendor_reads_the_first_vendor_id(monkeypatch, tmp_path):
     (AMX, INTEL, "AVX2", False),               # capped below bf16: emulated
     ({"avx2", "fma"}, AMD, None, False),
 ])
-def test_native_bf16_is_the_flags_and_the_cap_whatever_the_vendor(monkeypatch, flags, vendor, isa, native):
+def test_native_bf16_is_the_flags_and_the_cap_whatever_the_vendor(cpu_host, flags, vendor, isa, native):
     """``cpu_bf16_native`` (what the benchmarks' bf16 peak needs) is the flags and the cap alone; the vendor only
     enters whether bf16 pays off."""
-    monkeypatch.setattr(device, "cpu_flags", lambda: frozenset(flags))
-    monkeypatch.setattr(device, "cpu_vendor", lambda: vendor)
-    if isa is None:
-        monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
-    else:
-        monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", isa)
+    cpu_host(flags, vendor, isa)
     assert device.cpu_bf16_native() == native
     assert not device.cpu_bf16_pays_off() or native
