@@ -100,7 +100,9 @@ def cpu_vendor() -> str:
 
 
 def cpu_supports_bf16() -> bool:
-    """Tell whether the CPU has native bf16 matrix units (:data:`BF16_FLAGS`), so bf16 autocast pays off.
+    """Tell whether the CPU has native bf16 matrix units (:data:`BF16_FLAGS`), so bf16 is not emulated.
+
+    Whether it is also faster than fp32 there is :func:`cpu_bf16_pays_off`'s question.
 
     Returns
     -------
