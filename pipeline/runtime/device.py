@@ -188,7 +188,7 @@ def teacher_cpu_dtype() -> str:
 #: the CPU flags under which ``teacher.engine: auto`` runs SAM 3's bf16 attention in OpenVINO: measured on
 #: avx512_bf16 without AMX (docs/performance.md); with AMX in use torch's attention was the faster
 OPENVINO_ATTENTION_FLAGS = ("avx512_bf16",)
-#: ... and the CPU vendors it was measured faster on: the AMD EPYC (its attention 2.2-3.1x torch's bf16 flash
+#: the CPU vendors on which that attention was measured faster: the AMD EPYC (its attention 2.2-3.1x torch's bf16 flash
 #: kernel); on an Intel core it lost with AMX (1.05-1.3x torch's time) and without (the AMX host with oneDNN capped
 #: at AVX512_CORE_BF16: a bf16 call 43.5 s against 36.0 s in torch; docs/performance.md)
 OPENVINO_ATTENTION_VENDORS = ("AuthenticAMD",)
@@ -215,9 +215,9 @@ def teacher_cpu_engine(dtype_name: str) -> str:
     Measured (docs/performance.md, "The teacher's attention in OpenVINO" and "The teacher on AMX"): on a 2-core
     avx512_bf16 AMD EPYC, OpenVINO's fused attention ran SAM 3's attention shapes 2.2-3.1x faster than torch's
     bf16 flash kernel; on a 2-core Intel AMX host torch's kernel was the faster (OpenVINO's took 1.05-1.3x its
-    time), also with oneDNN capped below AMX (a bf16 call 43.5 against 36.0 s), and fusing each MLP's activation into its first linear layer (oneDNN) took the teacher from 10.65 to
-    9.66 s per image at real size (the torch engine against onednn, one round-robin run). fp32 CPUs and pinned fp32:
-    torch.
+    time), also with oneDNN capped below AMX (a bf16 call 43.5 against 36.0 s), and fusing each MLP's activation
+    into its first linear layer (oneDNN) took the teacher from 10.65 to 9.66 s per image at real size (the torch
+    engine against onednn, one round-robin run). fp32 CPUs and pinned fp32: torch.
 
     Parameters
     ----------
