@@ -14,6 +14,7 @@ from pathlib import Path
 import yaml
 
 from benchmarks.common import parser
+from pipeline.cluster.driver import run_pipeline
 
 
 def lock_outs(repo: Path) -> dict[tuple[str, str], str]:
@@ -33,8 +34,6 @@ def main(argv=None) -> dict:
 
     import ray
     from ray.cluster_utils import Cluster
-
-    from pipeline.cluster.driver import run_pipeline
 
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": args.cpus, "num_gpus": args.gpus})
     cluster.add_node(num_cpus=args.cpus, num_gpus=args.gpus)

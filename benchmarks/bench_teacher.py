@@ -41,11 +41,11 @@ from unittest import mock
 
 import numpy as np
 
-from benchmarks.common import LIMIT_FLAGS, best_of, host_limits, medians, parser, round_robin, seconds
+from benchmarks.common import best_of, host_limits, host_record, medians, parser, round_robin, seconds
 from pipeline.artifacts.atomic import write_json
+from pipeline.artifacts.provenance import cpu
 from pipeline.metrics import image_ious
 from pipeline.params import PAPER_PROMPTS as PROMPTS
-from pipeline.runtime.device import cpu_flags
 from pipeline.teachers import check_teacher_params
 from pipeline.teachers.attention import OPENVINO_ATTENTION_EVENT, OpenVINOAttention
 from pipeline.teachers.base import TeacherInput
@@ -400,7 +400,6 @@ def roofline(args) -> None:
     """fp32 eager (3056231's code) against the default path of 3056231 and today's (round-robin, the same images,
     threads, batch and input size), the FLOPs of the default path, per-module times and op-kind shares of both
     defaults, the host's limits, measured / limit, the gate."""
-    import torch
 
     rng = np.random.default_rng(0)
     r = args.resolution
@@ -446,14 +445,11 @@ def roofline(args) -> None:
     per_image = {k: v / n for k, v in flops.items() if not k.startswith("text_encoder") and k != "total"}
     image_flops = flops["total"] / n
     peak = {k: limits["bf16_gflops"] if paths_dtype(paths, k) == "bf16" else limits["fp32_gflops"] for k in paths}
-    host = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "node": platform.node(),
-            "cpu": cpu_model(), "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-            "flags": sorted(f for f in cpu_flags() if f in LIMIT_FLAGS),
-            "load_average_before": load_before, "load_average_after": os.getloadavg()}
+    host = {**host_record(), "load_average_before": load_before, "load_average_after": os.getloadavg()}
     print(f"teacher roofline: SAM 3 {args.size} ({n_params / 1e6:.0f} M parameters, random weights: numerics "
           f"only), {n} image(s) {r}x{r} -> input {model_input}, {len(PROMPTS)} prompts, batch "
           f"{kw['batch_size']}, {args.repeats} round-robin repeats on {args.device}")
-    print(f"  host {host['cpu']}, {host['cores']} cores, torch threads {host['torch_threads']}, flags "
+    print(f"  host {host['cpu']}, {host['logical_cpus']} logical CPUs, torch threads {host['torch_threads']}, flags "
           f"{' '.join(host['flags'])}; {host['date']}; load average {fmt_load(load_before)} before, "
           f"{fmt_load(host['load_average_after'])} after (other processes share the cores)")
     print(f"  limits (measured {2048}^3 matmul, best / median): fp32 {limits['fp32_gflops']:.0f} / "
@@ -565,7 +561,7 @@ def batch_sweep(args, clock=time.perf_counter) -> dict:
     bad = [p for p in path_names if p not in ("compiled", "eager")]
     if bad or not path_names:
         raise SystemExit(f"bench_teacher: --paths {args.paths!r}: expected a comma-separated subset of compiled,eager")
-    card = torch.cuda.get_device_name() if cuda else cpu_model()
+    card = torch.cuda.get_device_name() if cuda else cpu()["model"]
     record = {"what": "real-size SAM 3 teacher (random weights: cost only, not answers), six prompts, "
                       f"{args.dtype}, Sam3Teacher.predict of b images per call at each batch b; medians and minima "
                       f"of {args.repeats} round-robin calls per path",
@@ -665,18 +661,6 @@ def timed_call(teacher, items, path: dict, cuda: bool, clock=time.perf_counter) 
 
 def fmt_gib(n: int | None) -> str:
     return "n/a (not CUDA)" if n is None else f"{n / 2 ** 30:.2f} GiB above the weights"
-
-
-def cpu_model() -> str:
-    """The CPU's model name from /proc/cpuinfo (platform's processor string elsewhere)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 if __name__ == "__main__":

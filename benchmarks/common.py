@@ -6,12 +6,15 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
+import platform
 import statistics
 import time
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from pipeline.runtime.device import cpu_bf16_native, cpu_flags
+from pipeline.artifacts.provenance import cpu, numerics_env, numpy_simd
+from pipeline.runtime.device import cpu_bf16_native, cpu_flags, cpu_vendor
 
 #: the options the benchmarks share: name -> ``add_argument`` keywords (each script gives the default)
 OPTIONS: dict[str, dict] = {
@@ -136,6 +139,26 @@ def matmul_peak(dtype, n: int = 2048, repeats: int = 5) -> tuple[float, float]:
         a @ b
         ts.append(time.perf_counter() - t0)
     return 2 * n ** 3 / min(ts) / 1e9, 2 * n ** 3 / statistics.median(ts) / 1e9
+
+
+def host_record() -> dict[str, Any]:
+    """Say where a benchmark ran, for its JSON: two hosts' runs are paired only knowing this.
+
+    Returns
+    -------
+    dict
+        ``date`` (UTC), ``node``, ``cpu`` (model), ``vendor``, ``logical_cpus``, ``flags`` (the numeric kernels'
+        CPU flags, :func:`pipeline.artifacts.provenance.cpu`), ``numpy_simd`` (numpy's dispatch targets: they
+        decide the synthetic benchmark's rendered pixels), ``torch``, ``torch_threads`` and ``env`` (the thread
+        and numerics variables set).
+    """
+    import torch
+
+    c = cpu()
+    return {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "node": platform.node(), "cpu": c["model"],
+            "vendor": cpu_vendor(), "logical_cpus": c["logical_cpus"], "flags": c["flags"],
+            "numpy_simd": numpy_simd(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+            "env": numerics_env(os.environ)}
 
 
 def host_limits() -> dict:

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import datetime
 import json
-import platform
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -35,13 +34,12 @@ import numpy as np
 import yaml
 
 from benchmarks import bench_distill
-from benchmarks.common import parser
+from benchmarks.common import host_record, parser
 from benchmarks.study_recipe import build_artifacts
 from pipeline import catalog
 from pipeline.artifacts.atomic import png_bytes, write_text_if_changed
 from pipeline.artifacts.store import open_artifact
 from pipeline.profiles import load_profile
-from pipeline.runtime.device import cpu_flags
 from pipeline.stats import claim_status, paired_seed_image_t
 from pipeline.training.budget import training_images
 from pipeline.training.inputs import read_rows
@@ -263,7 +261,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         list(pool.map(one, jobs))
     runs = [run_record(work / project_name(s, budgets[s], caps[s], seed), s, seed, budgets[s], walls[(s, seed)])
             for s, seed in jobs]
-    doc = {"date": datetime.date.today().isoformat(), "host": {"machine": platform.machine(), "flags": sorted(cpu_flags())},
+    doc = {"date": datetime.date.today().isoformat(), "host": host_record(),
            "time": args.time, "resolution": args.resolution, "profile": args.profile, "sets": sets,
            "settings": {s: SETTINGS[s] for s in args.settings}, "budgets": budgets, "epochs_caps": epochs,
            "cap_steps": caps, "runs": runs,

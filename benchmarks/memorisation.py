@@ -23,7 +23,6 @@ from __future__ import annotations
 import datetime
 import json
 import os
-import platform
 import subprocess
 import time
 from pathlib import Path
@@ -31,7 +30,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from benchmarks.common import parser
+from benchmarks.common import host_record, parser
 from benchmarks.study_recipe import build_artifacts
 from pipeline import catalog
 from pipeline.artifacts.atomic import write_text_if_changed
@@ -579,8 +578,8 @@ def main(argv=None) -> dict:
     doc: dict[str, Any] = {
         "info": {"what": "memorisation diagnosis (issue 57 item 1): students scored on their TRAINING images against "
                          "the reference masks; teacher SIMULATOR (synthetic benchmark)",
-                 "commit": commit, "date": datetime.date.today().isoformat(), "host": platform.node(),
-                 "cpu": platform.processor() or platform.machine(), "threads": args.threads,
+                 "commit": commit, "date": datetime.date.today().isoformat(), "host": host_record(),
+                 "threads": args.threads,
                  "profile": args.profile, "resolution": args.resolution, "sets": sets,
                  "recipe": params["train"]["recipe"], "seed": args.seed, "n_train": len(rows), "n_val": len(val),
                  "simulator_version": SIMULATOR_VERSION, "teacher_seed": teacher_attrs["teacher"]["seed"],

@@ -22,7 +22,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from benchmarks.common import parser, resumed_runs, run_jobs
+from benchmarks.common import host_record, parser, resumed_runs, run_jobs
 from benchmarks.memorisation import COUNTS, REGIONS, band_px, error_counts, region_labels, thin_radius
 from benchmarks.study_recipe import (add_data_size_options, build_artifacts, data_size_sets, load_study_data,
                                      scored_test_rows)
@@ -283,7 +283,7 @@ def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], devi
             "vote": float(vote.mean()), "plain_minus_vote": gain, "low": float(iv.low), "high": float(iv.high),
             "verdict": claim_status(gain, float(iv.low), float(iv.high), None, n_seeds=len(seeds)),
             "vote_train_ious": [float(v) for v in vote], "runs": {str(s): r for s, r in runs.items()},
-            "what": "Image IoU on the training images against their reference masks (score only), Plain at its "
+            "host": host_record(), "what": "Image IoU on the training images against their reference masks (score only), Plain at its "
                     "calibrated tau; teacher = the synthetic benchmark's SIMULATOR"}
 
 
@@ -404,7 +404,8 @@ def run_one(job: dict) -> dict:
         save_model(model, Path(job["saved"]) / f"{job['variant']}-s{job['seed']}.pt")
     out = {"variant": job["variant"], "method": job["method"], "trained": method, "seed": job["seed"],
            "steps_run": steps, "stopped": stopped, "images_seen": int(steps) * int(job["cfg"]["batch_size"]),
-           "relabel_passes": relabel, "n_train": len(data), "val_iou_cal_curve": curve, "source": source}
+           "relabel_passes": relabel, "n_train": len(data), "val_iou_cal_curve": curve, "source": source,
+           "host": host_record()}  # per run: a resumed study may finish on another CPU (docs/stability.md)
     out.update(scores(model, _DATA, job["device"]))
     out["seconds"] = time.perf_counter() - t0
     print(f"  done {job['variant']:14s} s{job['seed']}: test IoU {out['iou_cal']:.3f} {out['groups']} "

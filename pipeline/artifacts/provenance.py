@@ -16,7 +16,13 @@ from typing import Any, Mapping
 
 from pipeline.artifacts.lineage import library_versions
 
-__all__ = ["THREAD_ENV_VARS", "cpu", "collect", "training_runtime"]
+try:  # numpy's own record of its SIMD dispatch (np.show_runtime reads it); private, so guarded
+    from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+    _NUMPY_CPU: tuple[list[str], dict[str, bool]] | None = (list(__cpu_dispatch__), dict(__cpu_features__))
+except ImportError:
+    _NUMPY_CPU = None
+
+__all__ = ["THREAD_ENV_VARS", "cpu", "collect", "numerics_env", "numpy_simd", "training_runtime"]
 
 ROOT = Path(__file__).resolve().parents[2]
 LOCK_FILE = ROOT / "requirements" / "lock.txt"
@@ -33,7 +39,8 @@ THREAD_ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
 
 NUMERIC_ENV_VARS = ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE", "ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA",
                     "DNNL_MAX_CPU_ISA", "ONEDNN_DEFAULT_FPMATH_MODE", "MKL_CBWR", "CUBLAS_WORKSPACE_CONFIG",
-                    "NVIDIA_TF32_OVERRIDE")
+                    "NVIDIA_TF32_OVERRIDE", "NPY_DISABLE_CPU_FEATURES", "NPY_ENABLE_CPU_FEATURES",
+                    "OPENCV_CPU_DISABLE")
 
 #: torch build settings worth a line in a report
 TORCH_SETTINGS = ("TORCH_VERSION", "COMMIT_SHA", "USE_CUDA", "CUDA_VERSION", "CUDNN_VERSION", "BLAS_INFO",
@@ -111,7 +118,18 @@ def lock_status(pins: Mapping[str, str], installed: Mapping[str, str]) -> dict[s
 
 
 def numerics_env(environ: Mapping[str, str]) -> dict[str, str]:
-    """Select the thread-count and numerics environment variables that are set (name -> value)."""
+    """Select the thread-count and numerics environment variables that are set.
+
+    Parameters
+    ----------
+    environ : Mapping
+        An environment (``os.environ``).
+
+    Returns
+    -------
+    dict
+        ``{name: value}`` of :data:`THREAD_ENV_VARS` and :data:`NUMERIC_ENV_VARS` set there.
+    """
     return {k: environ[k] for k in THREAD_ENV_VARS + NUMERIC_ENV_VARS if k in environ}
 
 
@@ -133,6 +151,25 @@ def cpu() -> dict[str, Any]:
     if not info["logical_cpus"]:
         info["logical_cpus"] = os.cpu_count() or 0
     return info
+
+
+def numpy_simd() -> list[str] | None:
+    """Name the SIMD targets numpy dispatches to on this CPU, beyond its build's baseline (``np.show_runtime``'s).
+
+    They decide the last bits of numpy's vectorised ``exp``, ``sin``, ``cos``...: the synthetic benchmark renders
+    its images with them, so another level can render a pixel one 8-bit step apart (docs/stability.md, "The
+    benchmark's own data across CPU kinds").
+
+    Returns
+    -------
+    list of str or None
+        The dispatch targets found and enabled (``NPY_DISABLE_CPU_FEATURES`` removes some), in numpy's order;
+        None where this numpy does not say.
+    """
+    if _NUMPY_CPU is None:
+        return None
+    dispatch, features = _NUMPY_CPU
+    return [f for f in dispatch if features.get(f)]
 
 
 def installed_versions() -> dict[str, str]:
@@ -183,7 +220,7 @@ def collect(lock: str | Path = LOCK_FILE) -> dict[str, Any]:
     -------
     dict
         ``python``, ``platform``, ``libraries`` (the project's and :data:`EXTRA_LIBRARIES`), ``torch`` (its build),
-        ``cpu``, ``threads`` (torch's intra- and inter-op), ``env`` (the numerics variables set) and ``lock``.
+        ``cpu``, ``numpy_simd`` (:func:`numpy_simd`), ``threads`` (torch's intra- and inter-op), ``env`` (the numerics variables set) and ``lock``.
     """
     import torch
 
@@ -194,6 +231,7 @@ def collect(lock: str | Path = LOCK_FILE) -> dict[str, Any]:
             libs[name] = installed[normalize_name(name)]
     return {"python": f"{platform.python_implementation()} {platform.python_version()}",
             "platform": platform.platform(), "libraries": libs, "torch": torch_build(), "cpu": cpu(),
+            "numpy_simd": numpy_simd(),
             "threads": {"torch": torch.get_num_threads(), "torch_interop": torch.get_num_interop_threads()},
             "env": numerics_env(os.environ), "lock": lock_record(lock, installed)}
 

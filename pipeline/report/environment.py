@@ -162,6 +162,7 @@ def machine_table(env: Mapping[str, Any]) -> Table:
     rows = [["Platform", env["platform"]],
             ["CPU", f"{c['model']} ({c['logical_cpus']} logical CPUs)"],
             ["CPU flags (numeric kernels)", " ".join(c["flags"]) or "--"],
+            ["numpy SIMD dispatch", " ".join(env.get("numpy_simd") or []) or "not recorded"],
             ["torch build", f"{t['version']} ({'CUDA ' + t['cuda'] if t.get('cuda') else 'CPU-only'}; git "
                             f"{str(t.get('git') or '--')[:12]})"],
             ["torch CPU kernels", str(t.get("cpu_capability"))],

@@ -28,6 +28,9 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys, monkeyp
     st = runs["self_training"]
     assert st["relabel_passes"] == past_labels.TTA_PASSES * st["n_train"] and st["n_train"] == runs["plain"]["n_train"]
     assert runs["plain"]["relabel_passes"] == 0
+    # each run names the CPU it trained on: runs of two hosts are paired only knowing it
+    assert all(r["host"]["cpu"] and "numpy_simd" in r["host"] and r["host"]["vendor"] is not None
+               for r in runs.values())
     rows = {r["variant"]: r for r in doc["summary"]}
     assert rows["self_training"]["cost"] == pytest.approx(
         st["images_seen"] + runs["plain"]["images_seen"] + past_labels.RELABEL_WEIGHT * st["relabel_passes"])
@@ -53,6 +56,7 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys, monkeyp
     fit = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1",
                             "--fit-of-saved", "--out", str(tmp_path / "fit.json")])
     assert fit["images"] == runs["plain"]["n_train"] and fit["verdict"] == "one seed"
+    assert fit["host"]["flags"] == runs["plain"]["host"]["flags"]
     assert fit["plain"]["1"] == pytest.approx(sum(runs["plain"]["train_ious"]) / fit["images"])
     assert fit["plain_minus_vote"] == pytest.approx(fit["plain"]["1"] - fit["vote"])
     assert fit["runs"]["1"]["image_ious"] == runs["plain"]["image_ious"]  # the test images too, per image

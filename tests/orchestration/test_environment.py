@@ -3,6 +3,10 @@ text, the lock comparison, this installation against requirements/lock.txt, and 
 
 from __future__ import annotations
 
+import os
+
+import pytest
+
 from pipeline.artifacts import provenance as E
 from pipeline.methods import method_label
 from pipeline.report import environment as R
@@ -115,6 +119,31 @@ def test_ending_table_says_what_stopped_each_run_and_groups_seeds_that_ended_ali
     assert "not annotation-free" in rows[4][0]  # the ceiling is labelled as such in every table
 
 
+def test_numpy_simd_names_the_dispatch_targets_a_process_was_given():
+    """numpy's SIMD level decides the synthetic images' last bits (docs/stability.md): the record must follow
+    ``NPY_DISABLE_CPU_FEATURES``, which takes targets away in a new process."""
+    import subprocess
+    import sys
+
+    found = E.numpy_simd()
+    assert found is not None and "numpy_simd" in E.collect()
+    if not found:
+        pytest.skip("numpy dispatches to no SIMD target beyond its baseline on this CPU")
+    code = "from pipeline.artifacts.provenance import numpy_simd; print(' '.join(numpy_simd()))"
+    env = {**os.environ, "NPY_DISABLE_CPU_FEATURES": found[-1]}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    assert out.split() == found[:-1]
+    assert E.numerics_env(env)["NPY_DISABLE_CPU_FEATURES"] == found[-1]
+
+
+def test_host_record_names_cpu_vendor_flags_and_numpy_level():
+    from benchmarks.common import host_record
+
+    host, c = host_record(), E.cpu()
+    assert (host["cpu"], host["flags"], host["logical_cpus"]) == (c["model"], c["flags"], c["logical_cpus"])
+    assert host["numpy_simd"] == E.numpy_simd() and host["torch_threads"] >= 1 and "UTC" in host["date"]
+
+
 def test_environment_section_renders_software_machine_and_runs():
     env = E.collect()
     sec = R.environment_section(env, [])
@@ -122,5 +151,6 @@ def test_environment_section_renders_software_machine_and_runs():
     assert "## Environment" in md and "Software of the installation that built this report" in md
     assert "Machine and torch build that built this report" in md and "tab:environment" not in md  # no raw keys
     assert f"| torch | {env['libraries']['torch']} |" in md
+    assert f"| numpy SIMD dispatch | {' '.join(env['numpy_simd']) or 'not recorded'} |" in md
     assert "No training run was found" in md
     assert R.environment_record(env, [])["report"]["cpu"] == env["cpu"]
