@@ -27,6 +27,7 @@ from benchmarks.memorisation import COUNTS, REGIONS, band_px, error_counts, regi
 from benchmarks.study_recipe import (add_data_size_options, build_artifacts, data_size_sets, load_study_data,
                                      scored_test_rows)
 from pipeline import catalog
+from pipeline.catalog import RESUME_STATE_FILE
 from pipeline.artifacts.atomic import atomic_path
 from pipeline.artifacts.store import open_artifact
 from pipeline.evaluation.inference import predict_probs
@@ -41,7 +42,7 @@ from pipeline.training.inputs import read_rows
 from pipeline.training import loop as training
 from pipeline.training.loop import build_model
 from pipeline.training.self_training import flip_tta_probs, fused_targets
-from pipeline.training.checkpointing import NoCheckpointer
+from pipeline.training.checkpointing import FileCheckpointer, NoCheckpointer
 
 #: a relabelling forward pass, in training images (forward + backward ~ 3 forward passes)
 RELABEL_WEIGHT = 1.0 / 3.0
@@ -387,10 +388,34 @@ def _trained(job: Mapping[str, Any], method: str, data):
         curve = [float("nan") if v is None else float(v) for v in record["val_iou_cal"]]
         return (model.eval(), record["steps_run"], record["stopped"], curve,
                 f"benchmarks.memorisation run {run.name} at commit {record['commit']}")
+    resume = resume_dir(job)
+    if (resume / RESUME_STATE_FILE).exists():
+        print(f"  {job['variant']} s{job['seed']}: resuming from {resume}", flush=True)
     res = training.train(get_method(method), job["cfg"], data, _DATA["val"], job["seed"],
-                         checkpointer=NoCheckpointer(), device=job["device"], show_progress=False)
+                         checkpointer=FileCheckpointer(resume), device=job["device"], show_progress=False,
+                         callback=_progress(job))
     return (res.model, res.info["steps_run"], res.info.get("stopped"), [float(v) for v in res.log["val_iou_cal"]],
             "trained here")
+
+
+def resume_dir(job: Mapping[str, Any]) -> Path:
+    """The folder of a job's per-epoch resume state: ``<saved>/resume/<variant>-s<seed>``.  A run killed midway (a
+    session's end, a reboot) resumes there after its last epoch, with the same weights as a run never stopped
+    (:func:`pipeline.training.loop.train`; the state names its run key, so other settings start afresh); the
+    state is removed once the run is scored and saved."""
+    return Path(job["saved"]) / "resume" / f"{job['variant']}-s{job['seed']}"
+
+
+def _progress(job: Mapping[str, Any]):
+    """A training callback printing every tenth of Stage I's epochs: a study of hours says where it is."""
+    total = int(job["cfg"].get("epochs_stage1") or 0)
+    every = max(1, total // 10)
+
+    def show(epoch: int, row: Mapping[str, Any]) -> None:
+        if epoch % every == 0:
+            print(f"  {job['variant']} s{job['seed']}: epoch {epoch}/{total or '?'}, loss {row.get('loss', float('nan')):.4f}",
+                  flush=True)
+    return show
 
 
 def run_one(job: dict) -> dict:
@@ -407,7 +432,12 @@ def run_one(job: dict) -> dict:
            "relabel_passes": relabel, "n_train": len(data), "val_iou_cal_curve": curve, "source": source,
            "host": host_record()}  # per run: a resumed study may finish on another CPU (docs/stability.md)
     out.update(scores(model, _DATA, job["device"]))
-    out["seconds"] = time.perf_counter() - t0
+    out["seconds"] = time.perf_counter() - t0  # this process's share: a resumed run's earlier epochs are not in it
+    state = resume_dir(job) / RESUME_STATE_FILE
+    if state.exists():  # this run's own state, written by its training above
+        state.unlink()
+        if not any(state.parent.iterdir()):
+            state.parent.rmdir()
     print(f"  done {job['variant']:14s} s{job['seed']}: test IoU {out['iou_cal']:.3f} {out['groups']} "
           f"({out['steps_run']} steps, {out['seconds']:.0f} s)", flush=True)
     return out

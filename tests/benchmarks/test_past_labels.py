@@ -266,3 +266,42 @@ def test_region_deficit_counts_own_errors_less_corrections_per_group_and_seed():
     # group b: 10 of the vote's wrong blob pixels, 2 then 6 copied: 8 then 4 corrected
     assert out["b"]["fp_blob"] == {"own": 0.0, "corrected": 6.0, "net": -6.0}
     assert out["b"]["boundary"]["net"] == 2.0 and out["a"]["thin"]["net"] == 0.0
+
+
+def test_a_killed_run_resumes_after_its_last_epoch_with_the_same_weights(tiny, tmp_path, monkeypatch, capsys):
+    """A study of hours survives its process: the run restarts from its per-epoch state, not from epoch 1, and
+    ends with the weights of a run never stopped; the state goes once the run is saved."""
+    argv = ["--artifacts", str(tiny), "--resolution", "32", "--epochs", "3", "--seeds", "1", "--threads", "1",
+            "--variants", "plain"]
+    whole = past_labels.main(argv + ["--out", str(tmp_path / "whole.json"), "--saved-dir", str(tmp_path / "w")])
+    real = past_labels.training.train
+
+    class Killed(Exception):
+        pass
+
+    def killed_after_epoch_two(*a, callback=None, **kw):
+        def cb(epoch, row):
+            callback(epoch, row)
+            if epoch == 2:
+                raise Killed
+
+        return real(*a, callback=cb, **kw)
+
+    monkeypatch.setattr(past_labels.training, "train", killed_after_epoch_two)
+    with pytest.raises(Killed):
+        past_labels.main(argv + ["--out", str(tmp_path / "cut.json"), "--saved-dir", str(tmp_path / "c")])
+    job = {"saved": str(tmp_path / "c"), "variant": "plain", "seed": 1}
+    assert (past_labels.resume_dir(job) / "state.pt").exists()
+    trained = []
+
+    def counted(*a, callback=None, **kw):
+        return real(*a, callback=lambda e, row: (trained.append(e), callback(e, row)), **kw)
+
+    monkeypatch.setattr(past_labels.training, "train", counted)
+    capsys.readouterr()
+    cut = past_labels.main(argv + ["--out", str(tmp_path / "cut.json"), "--saved-dir", str(tmp_path / "c")])
+    assert "resuming from" in capsys.readouterr().out and trained == [3]  # only the epoch still to train
+    (a,), (b,) = whole["runs"], cut["runs"]
+    assert b["steps_run"] == a["steps_run"] and b["image_ious"] == a["image_ious"]
+    assert (tmp_path / "w" / "plain-s1.pt").read_bytes() == (tmp_path / "c" / "plain-s1.pt").read_bytes()
+    assert not past_labels.resume_dir(job).exists()
