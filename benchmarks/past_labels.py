@@ -284,7 +284,8 @@ def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], devi
             "vote": float(vote.mean()), "plain_minus_vote": gain, "low": float(iv.low), "high": float(iv.high),
             "verdict": claim_status(gain, float(iv.low), float(iv.high), None, n_seeds=len(seeds)),
             "vote_train_ious": [float(v) for v in vote], "runs": {str(s): r for s, r in runs.items()},
-            "host": host_record(), "what": "Image IoU on the training images against their reference masks (score only), Plain at its "
+            "host": host_record(),
+            "what": "Image IoU on the training images against their reference masks (score only), Plain at its "
                     "calibrated tau; teacher = the synthetic benchmark's SIMULATOR"}
 
 
@@ -413,8 +414,9 @@ def _progress(job: Mapping[str, Any]):
 
     def show(epoch: int, row: Mapping[str, Any]) -> None:
         if epoch % every == 0:
-            print(f"  {job['variant']} s{job['seed']}: epoch {epoch}/{total or '?'}, loss {row.get('loss', float('nan')):.4f}",
-                  flush=True)
+            loss = row.get("loss", float("nan"))
+            print(f"  {job['variant']} s{job['seed']}: epoch {epoch}/{total or '?'}, loss {loss:.4f}", flush=True)
+
     return show
 
 
