@@ -14,7 +14,7 @@ from pathlib import Path
 import yaml
 
 from benchmarks.common import parser
-from pipeline.cluster.driver import run_pipeline
+from pipeline.cluster import driver
 
 
 def lock_outs(repo: Path) -> dict[tuple[str, str], str]:
@@ -40,7 +40,7 @@ def main(argv=None) -> dict:
     ray.init(address=cluster.address, log_to_driver=False, logging_level="WARNING")
     try:
         t = time.time()
-        result = run_pipeline(args.repo, tuple(args.targets), echo=print)
+        result = driver.run_pipeline(args.repo, tuple(args.targets), echo=print)
         wall = time.time() - t
         nodes = {n: r.get("node_id", "")[:8] for n, r in result.results.items()}
     finally:
