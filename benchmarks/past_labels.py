@@ -250,7 +250,8 @@ def vote_by_hard_case(artifacts: Path) -> dict[str, dict[str, dict[str, float]]]
 def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], device: str,
                  saved: Path | None = None, refine: str | None = None, variant: str = "plain") -> dict:
     """Plain reaches its labels? The saved ``<variant>-s<seed>.pt`` runs (in ``saved``, else beside ``artifacts``;
-    ``variant`` an annotation-free one of :data:`VARIANTS`, Plain by default)
+    ``variant`` one of :data:`VARIANTS`, Plain by default; a ceiling's fit is that of the masks it trained on, NOT
+    annotation-free, and a document pair of Plain and the ceiling at the same steps gives the label cost)
     scored on their own TRAINING images against the reference masks, paired per seed and image with the vote's IoU
     there (the seed-aware t interval, clusters = spacecraft; :func:`pipeline.stats.paired_seed_image_t`).  Each
     seed's per-image scores (:func:`scores`) are kept, so that :func:`compare_fits` can pair two such documents;
@@ -260,6 +261,9 @@ def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], devi
     import torch
 
     saved = Path(saved) if saved is not None else artifacts.parent
+    trained = SUPERVISED_CEILING if VARIANTS[variant][1] == "reference" else STAGE_ONE
+    if refine and trained != STAGE_ONE:
+        raise SystemExit(f"past_labels --refine: Stage II warm-starts from Plain's Stage I, not from {variant!r}")
     data = load_data(artifacts, cfg, (refine,) if refine else ())
     side = int(np.asarray(data["test_masks"]).shape[-1])
     data["test_regions"] = region_labels(data["test_masks"], data["test_voted"], band_px(side), thin_radius(side))
@@ -271,7 +275,7 @@ def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], devi
         raise SystemExit("past_labels: the training images are not the manifest's train rows")
     runs = {}
     for s in seeds:
-        model = build_model(get_method(STAGE_ONE), cfg, s)
+        model = build_model(get_method(trained), cfg, s)
         model.load_state_dict(torch.load(saved / f"{variant}-s{s}.pt", map_location="cpu", weights_only=True))
         if refine:
             model = refined(model, refine, cfg, data, s, device, saved)
@@ -279,7 +283,7 @@ def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], devi
     t, c = np.stack([runs[s]["train_ious"] for s in seeds]), np.stack([vote] * len(seeds))
     iv = paired_seed_image_t(t, c, clusters, 0.95)
     gain = float(np.mean(t - c))
-    return {"seeds": seeds, "images": len(vote), "saved": str(saved), "method": refine or STAGE_ONE, "variant": variant,
+    return {"seeds": seeds, "images": len(vote), "saved": str(saved), "method": refine or trained, "variant": variant,
             "plain": {str(s): float(np.mean(r["train_ious"])) for s, r in runs.items()},
             "vote": float(vote.mean()), "plain_minus_vote": gain, "low": float(iv.low), "high": float(iv.high),
             "verdict": claim_status(gain, float(iv.low), float(iv.high), None, n_seeds=len(seeds)),
@@ -317,7 +321,7 @@ def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: P
         gain = float(np.mean(t - c))
         g_floor = floor.get(name, max(floor.values(), default=None))
         rows.append({"images": name, "seeds": [int(s) for s in seeds], "base": float(c.mean()),
-                     "other": float(t.mean()), "gain": gain, "low": float(iv.low), "high": float(iv.high),
+                     "other": float(t.mean()), "other_of_base": float(t.mean() / c.mean()), "gain": gain, "low": float(iv.low), "high": float(iv.high),
                      "noise_floor": g_floor,
                      "verdict": claim_status(gain, float(iv.low), float(iv.high), g_floor, n_seeds=len(seeds))})
 
@@ -427,8 +431,8 @@ def run_one(job: dict) -> dict:
     data, relabel = _train_data(job)
     method = SUPERVISED_CEILING if VARIANTS[job["variant"]][1] == "reference" else STAGE_ONE
     model, steps, stopped, curve, source = _trained(job, method, data)
-    if VARIANTS[job["variant"]][1] != "reference":  # plain's: self-training's starting point; each: --fit-of-saved
-        save_model(model, Path(job["saved"]) / f"{job['variant']}-s{job['seed']}.pt")
+    # plain's: self-training's starting point; each (the ceiling's too, NOT annotation-free): --fit-of-saved
+    save_model(model, Path(job["saved"]) / f"{job['variant']}-s{job['seed']}.pt")
     out = {"variant": job["variant"], "method": job["method"], "trained": method, "seed": job["seed"],
            "steps_run": steps, "stopped": stopped, "images_seen": int(steps) * int(job["cfg"]["batch_size"]),
            "relabel_passes": relabel, "n_train": len(data), "val_iou_cal_curve": curve, "source": source,
@@ -583,9 +587,10 @@ def table(doc: Mapping[str, Any]) -> str:
 
 def fits_table(doc: Mapping[str, Any]) -> str:
     """Markdown of :func:`compare_fits`: the paired gains, then each side's test IoU as a share of the vote's."""
-    lines = ["| images | seeds | base | other | other - base [95 % CI] | noise floor | verdict |",
-             "|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['images']} | {len(r['seeds'])} | {r['base']:.3f} | {r['other']:.3f} | {r['gain']:+.3f} "
+    lines = ["| images | seeds | base | other | other / base | other - base [95 % CI] | noise floor | verdict |",
+             "|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['images']} | {len(r['seeds'])} | {r['base']:.3f} | {r['other']:.3f} | "
+              f"{r['other'] / r['base']:.3f} | {r['gain']:+.3f} "
               f"[{r['low']:+.3f}, {r['high']:+.3f}] | "
               f"{'--' if r['noise_floor'] is None else format(r['noise_floor'], '.3f')} | {r['verdict']} |"
               for r in doc["gains"]]
@@ -623,13 +628,14 @@ def main(argv=None) -> dict:
                     help="--fit-of-saved: warm-start this Stage-II method from each saved Plain run (trained once, "
                          "saved beside it as <method>-s<seed>.pt) and score it instead (:func:`refined`)")
     ap.add_argument("--saved-dir", type=Path, default=None,
-                    help="where each annotation-free variant's trained <variant>-s<seed>.pt go (plain's: "
+                    help="where each variant's trained <variant>-s<seed>.pt go (plain's: "
                          "self-training's start) and --fit-of-saved reads them (default: beside the artifacts; give "
                          "each step budget its own, or a run replaces another's)")
     ap.add_argument("--saved-variant", default="plain",
-                    choices=[v for v, (_, kind, _) in VARIANTS.items() if kind != "reference"],
-                    help="--fit-of-saved: the variant whose saved runs it scores; --by-hard-case: the variant it "
-                         "reads from a runs or --combine document (default: plain)")
+                    choices=list(VARIANTS),
+                    help="--fit-of-saved: the variant whose saved runs it scores (a ceiling's: NOT annotation-free; "
+                         "with a Plain document at the same steps, --compare-fits gives the label cost); "
+                         "--by-hard-case: the variant it reads from a runs or --combine document (default: plain)")
     ap.add_argument("--floor-key", default=None,
                     help="--compare-fits: the noise floor record (<recipe>@<profile>-<resolution>) its verdicts "
                          "clear (default: this run's own)")

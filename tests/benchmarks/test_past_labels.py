@@ -125,7 +125,18 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys, monkeyp
     other = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1",
                               "--fit-of-saved", "--saved-variant", "photometric", "--out", str(tmp_path / "fp.json")])
     assert other["variant"] == "photometric" and other["runs"]["1"]["image_ious"] == runs["photometric"]["image_ious"]
-    assert not (tiny.parent / "ceiling_photometric-s1.pt").exists()  # a run on the reference masks is not saved
+    # the ceiling's saved run (NOT annotation-free) scored the same way: with Plain's at the same steps, the label cost
+    ceil = past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1",
+                             "--fit-of-saved", "--saved-variant", "ceiling", "--out", str(tmp_path / "fc.json")])
+    assert ceil["method"] == "supervised_ceiling" and ceil["runs"]["1"]["image_ious"] == runs["ceiling"]["image_ious"]
+    assert ceil["runs"]["1"]["train_ious"] == runs["ceiling"]["train_ious"]
+    cost = {r["images"]: r for r in past_labels.compare_fits(ceil, fit, tiny)["gains"]}
+    assert cost[past_labels.ALL]["other_of_base"] == pytest.approx(
+        np.mean(runs["plain"]["image_ious"]) / np.mean(runs["ceiling"]["image_ious"]))
+    with pytest.raises(SystemExit, match="Stage II warm-starts from Plain"):
+        past_labels.main(["--artifacts", str(tiny), "--resolution", "32", "--seeds", "1", "--threads", "1",
+                          "--fit-of-saved", "--saved-variant", "ceiling", "--refine", past_labels.REFINE[0],
+                          "--out", str(tmp_path / "fr.json")])
     # two fit documents paired by seed and image (say 1x and 2x the steps): a saved run in its own folder, lifted
     moved = tmp_path / "saved"  # another step budget's run, saved in its own folder, leaves the first in place
     before = (tiny.parent / "plain-s1.pt").read_bytes()
