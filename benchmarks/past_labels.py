@@ -91,6 +91,12 @@ REFINE = (PROPOSED, CONTINUATION)
 FUSION, FUSION_WEIGHT = "mix", 0.5
 
 
+def trained_method(variant: str) -> str:
+    """The method a variant trains: the supervised ceiling (NOT annotation-free) for those on the reference masks,
+    Stage I (Plain) for the rest."""
+    return SUPERVISED_CEILING if VARIANTS[variant][1] == "reference" else STAGE_ONE
+
+
 def load_data(artifacts: Path, cfg: Mapping[str, Any], methods: tuple[str, ...] = ()) -> dict:
     """The study data of :func:`benchmarks.study_recipe.load_study_data` (Plain's, the ceiling's and those of
     ``methods``), the agreement-map training data, and the test images' voted masks (the vote's own test IoU)."""
@@ -261,7 +267,7 @@ def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], devi
     import torch
 
     saved = Path(saved) if saved is not None else artifacts.parent
-    trained = SUPERVISED_CEILING if VARIANTS[variant][1] == "reference" else STAGE_ONE
+    trained = trained_method(variant)
     if refine and trained != STAGE_ONE:
         raise SystemExit(f"past_labels --refine: Stage II warm-starts from Plain's Stage I, not from {variant!r}")
     data = load_data(artifacts, cfg, (refine,) if refine else ())
@@ -321,8 +327,8 @@ def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: P
         gain = float(np.mean(t - c))
         g_floor = floor.get(name, max(floor.values(), default=None))
         rows.append({"images": name, "seeds": [int(s) for s in seeds], "base": float(c.mean()),
-                     "other": float(t.mean()), "other_of_base": float(t.mean() / c.mean()), "gain": gain, "low": float(iv.low), "high": float(iv.high),
-                     "noise_floor": g_floor,
+                     "other": float(t.mean()), "other_of_base": float(t.mean() / c.mean()), "gain": gain,
+                     "low": float(iv.low), "high": float(iv.high), "noise_floor": g_floor,
                      "verdict": claim_status(gain, float(iv.low), float(iv.high), g_floor, n_seeds=len(seeds))})
 
     def of_vote(doc):  # {group: (ratio, low, high)}, the report's distillation efficiency over the seeds
@@ -429,7 +435,7 @@ def run_one(job: dict) -> dict:
 
     t0 = time.perf_counter()
     data, relabel = _train_data(job)
-    method = SUPERVISED_CEILING if VARIANTS[job["variant"]][1] == "reference" else STAGE_ONE
+    method = trained_method(job["variant"])
     model, steps, stopped, curve, source = _trained(job, method, data)
     # plain's: self-training's starting point; each (the ceiling's too, NOT annotation-free): --fit-of-saved
     save_model(model, Path(job["saved"]) / f"{job['variant']}-s{job['seed']}.pt")
