@@ -63,6 +63,8 @@ VARIANTS: dict[str, tuple[dict, str, str]] = {
                     "leave the loss -- departs from eq:raw-loss"),
     "soft": ({"soft_targets": True}, "agreement", "Plain + the agreement map as the target -- departs from "
                                                   "eq:raw-loss"),
+    "agreement_weight": ({"agreement_weight": 1.0}, "agreement", "Plain + each pixel weighted by |2A - 1|, how "
+                         "unanimous its prompts are -- departs from eq:raw-loss"),
     # issue 63: distill's speed settings at equal steps (not a lever: its gain should be nil), and the folding
     # capacity, on the vote and on the reference
     "bf16": ({"precision": "auto", "channels_last": True}, "voted", "Plain in distill's speed settings (bf16 "

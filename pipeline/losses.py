@@ -440,11 +440,13 @@ class _LossConstants:
     @property
     def robust_region(self) -> bool:
         """Whether Stage I's region term departs from eq:raw-loss (:func:`region_terms`)."""
-        return self.bootstrap_beta != _BETA_OFF or self.ignore_band != _BAND_OFF
+        return (self.bootstrap_beta != _BETA_OFF or self.ignore_band != _BAND_OFF
+                or self.agreement_weight != _GAMMA_OFF)
 
 
 LossConstants = with_part_fields(_LossConstants, "losses", defaults=True)
 _BETA_OFF, _BAND_OFF = off_value("train.bootstrap_beta"), off_value("train.ignore_band")
+_GAMMA_OFF = off_value("train.agreement_weight")
 
 
 def region_terms(logits: torch.Tensor, targets: Mapping[str, torch.Tensor], gates: torch.Tensor,
@@ -452,10 +454,12 @@ def region_terms(logits: torch.Tensor, targets: Mapping[str, torch.Tensor], gate
     """Compute the region term: L_raw (eq:raw-loss) on ``targets["mask"]``, with Stage I's label-noise levers.
 
     With every lever off this is :func:`raw_terms`.  Otherwise, with A the agreement map (eq:agreement-map) that
-    ``mask`` then holds under ``ignore_band``, P = sigmoid(Z) and w the pixel weights:
+    ``mask`` then holds under ``ignore_band`` or ``agreement_weight``, P = sigmoid(Z) and w the pixel weights:
 
     - ``ignore_band`` b > 0: w(x) = [|A(x) - 1/2| >= b], pixels where the prompts split leave the loss; the
       target is M = [A >= 1/2] (eq:majority-vote), or A itself under ``soft_targets``;
+    - ``agreement_weight`` gamma > 0: w(x) = |2 A(x) - 1|^gamma (times the band's w), so a pixel counts by how
+      unanimous its prompts are (1 where all agree, 0 where they split evenly); the target as under the band;
     - ``bootstrap_beta`` beta < 1: the target is beta M + (1 - beta) P, P detached (Reed et al. 2015, soft).
 
     L = L_BBCE(Z, T; w) + 0.2 L_Dice(P w, T w): the weighted BBCE of :func:`balanced_bce` (pi from the weighted
@@ -485,8 +489,10 @@ def region_terms(logits: torch.Tensor, targets: Mapping[str, torch.Tensor], gate
     w = torch.ones_like(t)
     if c.ignore_band != _BAND_OFF:
         w = (torch.abs(t - 0.5) >= c.ignore_band).float()
-        if not c.soft_targets:
-            t = (t >= 0.5).float()
+    if c.agreement_weight != _GAMMA_OFF:
+        w = w * torch.abs(2.0 * t - 1.0).pow(c.agreement_weight)
+    if (c.ignore_band != _BAND_OFF or c.agreement_weight != _GAMMA_OFF) and not c.soft_targets:
+        t = (t >= 0.5).float()
     if c.bootstrap_beta != _BETA_OFF:
         t = c.bootstrap_beta * t + (1.0 - c.bootstrap_beta) * probs.detach()
     bbce = balanced_bce(logits, t, w, c.max_weight)

@@ -547,6 +547,11 @@ PARTS: tuple[RecipePart, ...] = (
                "1/2, where the prompts split, leave eq:raw-loss (weight 0); 0 = none (the paper) -- a departure from "
                "eq:raw-loss, named in every table", {"ge": 0, "le": 0.5}, departure="ignore band {v:g}",
                stage_one=True, home="losses", schema_after="bootstrap_beta", common_after="bootstrap_beta"),
+    RecipePart("train.agreement_weight", float, 0.0, "each pixel's weight in eq:raw-loss is |2A(x) - 1|^gamma, A "
+               "the agreement map (eq:agreement-map): pixels where the prompts split count less, unanimous ones "
+               "fully; gamma this value, 0 = every pixel weight 1 (the paper) -- a departure from eq:raw-loss, "
+               "named in every table", {"ge": 0}, departure="agreement-weighted loss, gamma {v:g}",
+               stage_one=True, home="losses", schema_after="low_res_fraction", common_after="ignore_band"),
     RecipePart("train.expand_branches", bool, False, "RepVGG branches: each 3x3 convolution trains beside a 1x1 "
                "convolution and, where input and output channels match, the identity, each with its own BatchNorm, "
                "folded into the plain TinyUNet at each stage's end; the deployed network and the loss stay the "

@@ -169,9 +169,11 @@ def agreement_target(method: Method, cfg: Mapping[str, Any]) -> bool:
     """Tell whether ``method``'s region target is the agreement map A (eq:agreement-map), not M^T.
 
     A is read instead of the voted mask M^T (eq:majority-vote) under ``train.soft_targets`` (A is the target), or
-    Stage I's ``train.ignore_band`` (M^T = [A >= 1/2] is the target, A says which pixels leave the loss).
+    Stage I's ``train.ignore_band`` or ``train.agreement_weight`` (M^T = [A >= 1/2] is the target, A says which
+    pixels leave the loss or how much each counts).
     """
-    return bool(cfg["soft_targets"]) or (method.stage == 1 and float(cfg["ignore_band"]) > 0)
+    return bool(cfg["soft_targets"]) or (method.stage == 1 and (float(cfg["ignore_band"]) > 0
+                                                               or float(cfg["agreement_weight"]) > 0))
 
 
 def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Any]) -> TrainData:

@@ -27,8 +27,8 @@ def loss_constants(cfg: Mapping[str, Any], stage_one: bool = False) -> losses.Lo
     cfg : Mapping
         A validated ``train`` section.
     stage_one : bool
-        Whether the run is Stage I, where the label-noise levers (``bootstrap_beta``, ``ignore_band``) apply;
-        elsewhere they are off.
+        Whether the run is Stage I, where the label-noise levers (``bootstrap_beta``, ``ignore_band``,
+        ``agreement_weight``) apply; elsewhere they are off.
 
     Returns
     -------

@@ -54,7 +54,8 @@ def test_the_paper_recipe_is_the_published_behaviour():
                                           "epochs_stage1": 20, "epochs_stage2": 10, "schedule": "cosine",
                                           "augment": False, "ema_decay": 0.0, "soft_targets": False,
                                           "until": "epochs", "lr_scale": 1.0, "low_res_fraction": 0.0,
-                                          "bootstrap_beta": 1.0, "ignore_band": 0.0, "expand_branches": False},
+                                          "bootstrap_beta": 1.0, "ignore_band": 0.0, "agreement_weight": 0.0,
+                                          "expand_branches": False},
                                 "calibrate": {"tau_rule": "argmax"}}
     f0, f = lr_lambda("cosine", 100), lr_lambda("cosine", 100, 0)
     assert [f0(s) for s in range(0, 101, 7)] == [f(s) for s in range(0, 101, 7)]

@@ -44,6 +44,27 @@ def test_the_ignore_band_drops_the_pixels_where_the_prompts_split():
     assert torch.allclose(kept["raw"], ref["raw"])
 
 
+def test_the_agreement_weight_counts_each_pixel_by_how_unanimous_its_prompts_are():
+    z, a = _batch()
+    c = dataclasses.replace(losses.LossConstants(), agreement_weight=1.0)
+    got = losses.region_terms(z, {"mask": a}, torch.ones(2), c, torch.sigmoid(z))
+    w, m = (2 * a - 1).abs(), (a >= 0.5).float()  # |2A - 1|: 1 unanimous, 1/3 at 2 or 4 of 6, 0 at 3 of 6
+    p = torch.sigmoid(z)
+    assert torch.allclose(got["bbce"], losses.balanced_bce(z, m, w, c.max_weight))
+    assert torch.allclose(got["dice"], losses.dice_loss(p * w, m * w))
+    got["raw"].backward()
+    split = a == 0.5
+    assert split.any() and torch.all(z.grad[split] == 0) and torch.all(z.grad[~split] != 0)
+    # on a unanimous map every weight is 1: eq:raw-loss on the vote
+    z2, unanimous = z.detach().clone().requires_grad_(True), (a >= 0.5).float()
+    same = losses.region_terms(z2, {"mask": unanimous}, torch.ones(2), c, torch.sigmoid(z2))
+    assert torch.allclose(same["raw"], losses.raw_terms(z2, unanimous)["raw"])
+    # a larger gamma weighs the 2-of-6 and 4-of-6 pixels less
+    sharper = losses.region_terms(z, {"mask": a}, torch.ones(2), dataclasses.replace(c, agreement_weight=3.0),
+                                  torch.sigmoid(z))
+    assert torch.allclose(sharper["bbce"], losses.balanced_bce(z, m, w ** 3, c.max_weight))
+
+
 def test_bootstrapped_targets_mix_in_the_detached_prediction():
     z, a = _batch()
     m = (a >= 0.5).float()
@@ -62,6 +83,9 @@ def test_the_levers_apply_to_stage_one_only():
     cfg = tiny_cfg(bootstrap_beta=0.5, ignore_band=0.1)
     assert loss_constants(cfg, stage_one=True).robust_region
     assert not loss_constants(cfg, stage_one=False).robust_region
+    weighted = tiny_cfg(agreement_weight=1.0)
+    assert loss_constants(weighted, stage_one=True).robust_region
+    assert not loss_constants(weighted, stage_one=False).robust_region
 
 
 def test_fused_targets_follow_their_rule():
@@ -85,6 +109,7 @@ def test_a_departure_from_eq_raw_loss_is_named_in_every_table():
     recorded = {"train.soft_targets": False, "train.bootstrap_beta": 0.8, "train.ignore_band": 0.0}
     assert departures(recorded) == ["bootstrapped targets, beta 0.8"]
     assert departures({"train.bootstrap_beta": 1.0, "train.ignore_band": 0.2}) == ["ignore band 0.2"]
+    assert departures({"train.agreement_weight": 1.0}) == ["agreement-weighted loss, gamma 1"]
     assert departures({}) == []  # a run recorded before the levers departs from nothing
     plain = T.label("plain")
     with T.human_trained({}, {"plain": departures(recorded)}):

@@ -259,6 +259,22 @@ def test_ema_final_model_is_the_moving_average_of_the_steps(tiny):
     assert not all(torch.equal(a, b) for a, b in zip(plain.model.parameters(), res.model.parameters()))
 
 
+def test_the_agreement_weight_reads_the_agreement_map_in_stage_one_only(tiny):
+    """train.agreement_weight: Stage I reads A (its weights come from it; the loss takes M^T = [A >= 1/2] as the
+    target), a Stage-II method the voted mask, as without the part."""
+    from pipeline.artifacts.store import open_artifact
+    from pipeline.methods import get_method
+    from pipeline.training.inputs import agreement_target
+
+    cfg = tiny_cfg(agreement_weight=1.0)
+    assert agreement_target(get_method("plain"), cfg) and not agreement_target(get_method("plain"), tiny_cfg())
+    assert not agreement_target(get_method("geodistill"), cfg)
+    data, _ = load_arrays(tiny, "plain", cfg)
+    agreement = open_artifact(tiny / "consensus.zarr").numpy("agreement")
+    rows = np.arange(len(data))
+    assert np.array_equal(np.asarray(data.mask[rows]), agreement[: len(rows)])
+
+
 def test_soft_targets_train_on_the_agreement_map(tiny):
     """train.soft_targets: the region target is A (eq:agreement-map), float in [0, 1], not M^T."""
     from pipeline.artifacts.store import open_artifact
