@@ -424,6 +424,9 @@ class RecipePart:
         :data:`FIRST` = its start (:func:`interleave`).
     common_after : str
         The ``COMMON_KEYS`` key it follows (the order of the DAG's tracked params), as ``schema_after``.
+    reads_agreement : bool
+        When not ``off`` (in the stages it applies to), the run's region input is the agreement map A
+        (eq:agreement-map) instead of the voted mask (:func:`pipeline.training.inputs.agreement_target`).
     """
 
     key: str
@@ -437,6 +440,7 @@ class RecipePart:
     common: bool = True
     schema_after: str = ""
     common_after: str = ""
+    reads_agreement: bool = False
 
     def __post_init__(self):
         """Refuse a declaration whose ``home`` is not one of :data:`HOMES` or whose key is not section.name."""
@@ -527,7 +531,7 @@ PARTS: tuple[RecipePart, ...] = (
     RecipePart("train.soft_targets", bool, False, "the region target is the agreement map A (eq:agreement-map) "
                "instead of the voted mask M^T in eq:raw-loss -- a departure from the paper, named in every table",
                departure="agreement-map targets", home="losses", schema_after="ema_decay",
-               common_after="ema_decay"),
+               common_after="ema_decay", reads_agreement=True),
     RecipePart("train.until", Literal["epochs", "plateau"], "epochs", "epochs = train epochs_stage1 epochs | "
                "plateau = stop the stable phase when the validation IoU stops improving (train.plateau_gain) or the "
                "step budget is spent, then decay (docs/student.md); epochs_stage1 caps the run", stage_one=True,
@@ -546,12 +550,14 @@ PARTS: tuple[RecipePart, ...] = (
     RecipePart("train.ignore_band", float, 0.0, "pixels whose agreement A (eq:agreement-map) lies within this of "
                "1/2, where the prompts split, leave eq:raw-loss (weight 0); 0 = none (the paper) -- a departure from "
                "eq:raw-loss, named in every table", {"ge": 0, "le": 0.5}, departure="ignore band {v:g}",
-               stage_one=True, home="losses", schema_after="bootstrap_beta", common_after="bootstrap_beta"),
+               stage_one=True, home="losses", schema_after="bootstrap_beta", common_after="bootstrap_beta",
+               reads_agreement=True),
     RecipePart("train.agreement_weight", float, 0.0, "each pixel's weight in eq:raw-loss is |2A(x) - 1|^gamma, A "
                "the agreement map (eq:agreement-map): pixels where the prompts split count less, unanimous ones "
                "fully; gamma this value, 0 = every pixel weight 1 (the paper) -- a departure from eq:raw-loss, "
                "named in every table", {"ge": 0}, departure="agreement-weighted loss, gamma {v:g}",
-               stage_one=True, home="losses", schema_after="low_res_fraction", common_after="ignore_band"),
+               stage_one=True, home="losses", schema_after="low_res_fraction", common_after="ignore_band",
+               reads_agreement=True),
     RecipePart("train.expand_branches", bool, False, "RepVGG branches: each 3x3 convolution trains beside a 1x1 "
                "convolution and, where input and output channels match, the identity, each with its own BatchNorm, "
                "folded into the plain TinyUNet at each stage's end; the deployed network and the loss stay the "

@@ -18,7 +18,7 @@ from pipeline.artifacts.store import open_artifact
 from pipeline.augment import GeometryConstants, recompute_geometry
 from pipeline.evaluation.inference import REVIEW_MODE_KEY, corrected_validation, load_student, require_mode
 from pipeline.geometry import area_ratio
-from pipeline.methods import SUPERVISED_CEILING, Method, get_method, input_artifacts, uses_confidence
+from pipeline.methods import PARTS, SUPERVISED_CEILING, Method, get_method, input_artifacts, uses_confidence
 from pipeline.training.filters import afs_fuse, afs_keep, confidence_pass, mean_valid_score, pass_ratio
 from pipeline.params import section
 from pipeline.runtime.errors import ArtifactError, InputError
@@ -168,12 +168,12 @@ def _gate_table(gates, train_ids: list):
 def agreement_target(method: Method, cfg: Mapping[str, Any]) -> bool:
     """Tell whether ``method``'s region target is the agreement map A (eq:agreement-map), not M^T.
 
-    A is read instead of the voted mask M^T (eq:majority-vote) under ``train.soft_targets`` (A is the target), or
+    A is read instead of the voted mask M^T (eq:majority-vote) where a part declared with ``reads_agreement``
+    (:data:`pipeline.methods.PARTS`) is on in ``method``'s stage: ``train.soft_targets`` (A is the target), or
     Stage I's ``train.ignore_band`` or ``train.agreement_weight`` (M^T = [A >= 1/2] is the target, A says which
     pixels leave the loss or how much each counts).
     """
-    return bool(cfg["soft_targets"]) or (method.stage == 1 and (float(cfg["ignore_band"]) > 0
-                                                               or float(cfg["agreement_weight"]) > 0))
+    return any(p.value_for(cfg, method.stage == 1) != p.off for p in PARTS if p.reads_agreement)
 
 
 def training_data(method: Method, cfg: Mapping[str, Any], inputs: Mapping[str, Any]) -> TrainData:
