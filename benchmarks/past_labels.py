@@ -37,7 +37,8 @@ from pipeline.profiles import load_profile
 from pipeline.report.dvc_results import distillation_efficiency
 from pipeline.runtime.device import resolve_device
 from pipeline.stats import claim_status, paired_seed_image_t
-from pipeline.thresholds import EPOCH_TAU_GRID, calibrate_threshold, mask_from_probs
+from pipeline.thresholds import (EPOCH_TAU_GRID, calibrate_relative_threshold, calibrate_threshold,
+                                 mask_from_probs, masks_from_relative)
 from pipeline.training.inputs import read_rows
 from pipeline.training import loop as training
 from pipeline.training.loop import build_model
@@ -118,6 +119,9 @@ def scores(model, data: Mapping[str, Any], device) -> dict:
     tp = predict_probs(model, data["test_images"], device=device, precision="fp32")
     pred = mask_from_probs(tp, tau)
     ious = image_ious(pred, data["test_masks"])
+    # a DEPARTURE screened beside the paper's single tau, never what the document's verdicts score: a threshold per
+    # image from its largest probability, calibrated on the same validation masks (docs/student.md)
+    relative = calibrate_relative_threshold(vp, data["val"].masks)
     vote = image_ious(data["test_voted"], data["test_masks"])
     groups = data["test_groups"]
     train = data[SUPERVISED_CEILING]  # the training images with their reference masks, in the vote's order
@@ -127,6 +131,8 @@ def scores(model, data: Mapping[str, Any], device) -> dict:
             "groups": {g: float(ious[groups == g].mean()) for g in dict.fromkeys(groups)},
             "vote_groups": {g: float(vote[groups == g].mean()) for g in dict.fromkeys(groups)},
             "train_ious": [float(v) for v in fit],
+            "relative_rule": relative,
+            "image_ious_relative": [float(v) for v in image_ious(masks_from_relative(tp, relative), data["test_masks"])],
             **({"test_region_counts": error_counts(pred, data["test_masks"], data["test_voted"],
                                                    data["test_regions"]).tolist(),
                 # a DIAGNOSIS of the threshold's transfer, never a choice: test IoU per group at each tau of
@@ -301,6 +307,42 @@ def fit_of_saved(artifacts: Path, cfg: Mapping[str, Any], seeds: list[int], devi
                     "calibrated tau; teacher = the synthetic benchmark's SIMULATOR"}
 
 
+def paired_row(name: str, other: np.ndarray, base: np.ndarray, clusters: np.ndarray, floor: Mapping[str, float],
+               seeds, ci: float = 0.95) -> dict:
+    """One row of ``other`` − ``base`` [seeds, images], paired by seed and image (the seed-aware t interval,
+    clusters = spacecraft), its verdict held to ``floor[name]`` (else the largest floor; none: the interval alone)."""
+    iv = paired_seed_image_t(other, base, clusters, ci)
+    gain = float(np.mean(other - base))
+    g_floor = floor.get(name, max(floor.values(), default=None))
+    return {"images": name, "seeds": [int(s) for s in seeds], "base": float(base.mean()), "other": float(other.mean()),
+            "other_of_base": float(other.mean() / base.mean()), "gain": gain, "low": float(iv.low),
+            "high": float(iv.high), "noise_floor": g_floor,
+            "verdict": claim_status(gain, float(iv.low), float(iv.high), g_floor, n_seeds=len(other))}
+
+
+def relative_tau_gain(doc: Mapping[str, Any], artifacts: Path, floor: Mapping[str, float] | None = None,
+                      ci: float = 0.95) -> list[dict]:
+    """A SCREEN of a departure: each test group's Image IoU with a threshold per image
+    (:func:`pipeline.thresholds.masks_from_relative`, calibrated on the validation images) against the same runs at
+    their single calibrated tau, paired by seed and image (:func:`paired_row`), from :func:`fit_of_saved`'s runs;
+    ``other_of_vote`` the relative rule's share of the vote."""
+    seeds = sorted(doc["runs"], key=int)
+    manifest, test = scored_test_rows(artifacts)
+    groups = manifest.df["group"].to_numpy()[test].astype(str)
+    craft = test_spacecraft(artifacts)
+    rows = []
+    for name in [*dict.fromkeys(groups), ALL]:
+        sel = np.ones(len(groups), bool) if name == ALL else groups == name
+        rel = np.stack([np.asarray(doc["runs"][s]["image_ious_relative"])[sel] for s in seeds])
+        one = np.stack([np.asarray(doc["runs"][s]["image_ious"])[sel] for s in seeds])
+        row = paired_row(name, rel, one, craft[sel], dict(floor or {}), seeds, ci)
+        if name != ALL:
+            vote = float(np.mean([doc["runs"][s]["vote_groups"][name] for s in seeds]))
+            row.update(base_of_vote=row["base"] / vote, other_of_vote=row["other"] / vote)
+        rows.append(row)
+    return rows
+
+
 def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: Path,
                  floor: Mapping[str, float] | None = None, ci: float = 0.95) -> dict:
     """``other`` − ``base``, two :func:`fit_of_saved` documents of the same artifacts (say, Plain at 1x and at 2x
@@ -321,17 +363,9 @@ def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: P
     where = {"train": ("train_ious", train_spacecraft(artifacts), np.ones(len(base["vote_train_ious"]), bool)),
              **{g: ("image_ious", craft, groups == g) for g in dict.fromkeys(groups)},
              ALL: ("image_ious", craft, np.ones(len(groups), bool))}
-    rows = []
-    for name, (key, clusters, sel) in where.items():
-        t = np.stack([np.asarray(other["runs"][s][key])[sel] for s in seeds])
-        c = np.stack([np.asarray(base["runs"][s][key])[sel] for s in seeds])
-        iv = paired_seed_image_t(t, c, clusters[sel], ci)
-        gain = float(np.mean(t - c))
-        g_floor = floor.get(name, max(floor.values(), default=None))
-        rows.append({"images": name, "seeds": [int(s) for s in seeds], "base": float(c.mean()),
-                     "other": float(t.mean()), "other_of_base": float(t.mean() / c.mean()), "gain": gain,
-                     "low": float(iv.low), "high": float(iv.high), "noise_floor": g_floor,
-                     "verdict": claim_status(gain, float(iv.low), float(iv.high), g_floor, n_seeds=len(seeds))})
+    rows = [paired_row(name, np.stack([np.asarray(other["runs"][s][key])[sel] for s in seeds]),
+                       np.stack([np.asarray(base["runs"][s][key])[sel] for s in seeds]), clusters[sel], floor, seeds, ci)
+            for name, (key, clusters, sel) in where.items()]
 
     def of_vote(doc):  # {group: (ratio, low, high)}, the report's distillation efficiency over the seeds
         rs = [doc["runs"][s] for s in seeds]
@@ -707,6 +741,9 @@ def main(argv=None) -> dict:
     if args.fit_of_saved:
         doc = fit_of_saved(artifacts, overlay(base, VARIANTS[args.saved_variant][0]), args.seeds, device, saved,
                            args.refine, args.saved_variant)
+        key = args.floor_key or own_key
+        doc["relative_tau"] = {"noise_floor_key": key,
+                               "gains": relative_tau_gain(doc, artifacts, noise_floor(args.noise_floor, key))}
         Path(args.out).write_text(json.dumps(doc, indent=1))
         print(f"fit on the training images: {doc['method']} {np.mean(list(doc['plain'].values())):.3f} vs the vote "
               f"{doc['vote']:.3f}: {doc['plain_minus_vote']:+.3f} [{doc['low']:+.3f}, {doc['high']:+.3f}] "
@@ -715,6 +752,10 @@ def main(argv=None) -> dict:
             print(f"{g}: test IoU {v['calibrated']:.3f} at the calibrated tau ({v['calibrated_of_vote']:.2f} of the "
                   f"vote); {v['oracle']:.3f} at tau {v['oracle_tau']:.2f}, the test images' best "
                   f"({v['oracle_of_vote']:.2f}; an oracle, a diagnosis only)")
+        for r in doc["relative_tau"]["gains"]:
+            print(f"{r['images']}: a threshold per image (a departure, screened): {r['other']:.3f} against "
+                  f"{r['base']:.3f}, {r['gain']:+.3f} [{r['low']:+.3f}, {r['high']:+.3f}] ({r['verdict']})"
+                  + (f"; {r['other_of_vote']:.2f} of the vote" if "other_of_vote" in r else ""))
         return doc
     saved.mkdir(parents=True, exist_ok=True)
     info = {"artifacts": str(artifacts), "device": device, "resolution": args.resolution, "profile": args.profile,

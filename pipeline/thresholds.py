@@ -21,7 +21,9 @@ from pipeline.params import PAPER, require
 
 __all__ = ["TIE_TOLERANCE", "logit_threshold", "mask_from_probs", "check_tau", "threshold_grid", "EPOCH_TAU_GRID",
            "select_tau", "TAU_RULES", "plateau_tau", "smooth_curve", "tau_by_rule", "rule_options",
-           "calibrate_threshold", "NO_VALIDATION_MASKS", "TAU_LABELS", "TAU_SOURCES", "resolve_tau", "tau_candidates",
+           "calibrate_threshold", "RELATIVE_TAU_GRID", "RELATIVE_SLOPES", "image_peaks", "relative_taus",
+           "calibrate_relative_threshold", "masks_from_relative", "NO_VALIDATION_MASKS", "TAU_LABELS", "TAU_SOURCES",
+           "resolve_tau", "tau_candidates",
            "RESOLUTION_LABELS", "MIN_RESOLUTION", "resolve_resolution"]
 
 log = logging.getLogger(__name__)
@@ -326,6 +328,123 @@ def calibrate_threshold(probs, gts, grid, rule: str = PAPER.calibrate.tau_rule, 
         raise InputError(f"calibrate_threshold: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
     curve = iou_curve(probs, gts, grid).mean(axis=0)
     return tau_by_rule(grid, curve, rule, tolerance=tolerance, halfwidth=halfwidth), curve
+
+
+#: the per-image threshold's search (docs/student.md, "A threshold per image"): taus on a 0.01 grid over
+#: [0.30, 0.98], which also bounds every tau_i, and slopes b in [-0.6, 0.6] by 0.05 -- fixed before its screens
+RELATIVE_TAU_GRID = np.round(np.arange(30, 99) / 100, 9)
+RELATIVE_SLOPES = np.round(np.arange(-12, 13) * 0.05, 9)
+
+
+def image_peaks(probs) -> np.ndarray:
+    """Compute the per-image threshold's feature: each image's largest probability, f_i = max_x P_i(x).
+
+    Parameters
+    ----------
+    probs : array_like
+        Probabilities P, float [N,H,W].
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 [N].
+
+    Raises
+    ------
+    InputError
+        ``probs`` is not [N,H,W] with N >= 1.
+    """
+    if np.ndim(probs) != 3 or np.shape(probs)[0] == 0:
+        raise InputError(f"image_peaks: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
+    return np.asarray(probs, dtype=np.float64).reshape(np.shape(probs)[0], -1).max(axis=1)
+
+
+def relative_taus(peaks, rule: Mapping[str, float]) -> np.ndarray:
+    """Per-image thresholds: tau_i = clip(a + b (f_i - lo) / span, tau_min, tau_max).
+
+    A DEPARTURE from eq:inference-mask's single tau, screened only (docs/student.md, "A threshold per image"):
+    with b > 0 an image whose largest probability is lower gets a lower threshold.  ``lo`` and ``span`` are the
+    calibration images' 5th percentile of f and its 5th-95th percentile range, so that a and b do not depend on
+    the scale of f; [tau_min, tau_max] is :data:`RELATIVE_TAU_GRID`'s range.
+
+    Parameters
+    ----------
+    peaks : array_like
+        f_i, the images' :func:`image_peaks`.
+    rule : Mapping
+        ``a``, ``b``, ``lo`` and ``span`` (> 0), as :func:`calibrate_relative_threshold` returns them.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, the shape of ``peaks``.
+    """
+    f = np.asarray(peaks, dtype=np.float64)
+    tau = rule["a"] + rule["b"] * (f - rule["lo"]) / rule["span"]
+    return np.clip(tau, RELATIVE_TAU_GRID[0], RELATIVE_TAU_GRID[-1])
+
+
+def calibrate_relative_threshold(probs, gts, slopes=RELATIVE_SLOPES) -> dict[str, float]:
+    """Calibrate :func:`relative_taus` on the validation split, as :func:`calibrate_threshold` calibrates tau.
+
+    (a, b) = argmax over a in :data:`RELATIVE_TAU_GRID` and b in ``slopes`` of the mean Image IoU of
+    [P_i >= tau_i], each image's IoU read at the grid tau nearest its tau_i; the first maximum within
+    :data:`TIE_TOLERANCE` in (b, a) order.  b = 0 is a single tau, so the rule fits the validation images at least
+    as well as a single tau on the same grid.
+
+    Parameters
+    ----------
+    probs : array_like
+        Validation probabilities, float [N,H,W], N >= 1.
+    gts : array_like
+        Validation reference masks, bool or 0/1 [N,H,W].
+    slopes : array_like, optional
+        The b values searched (:data:`RELATIVE_SLOPES` unless given).
+
+    Returns
+    -------
+    dict
+        ``a``, ``b``, ``lo``, ``span`` (the rule) and ``iou`` (its mean validation Image IoU).
+
+    Raises
+    ------
+    InputError
+        As :func:`image_peaks` and :func:`pipeline.metrics.iou_curve`.
+    """
+    grid = RELATIVE_TAU_GRID
+    f = image_peaks(probs)
+    curve = iou_curve(probs, gts, grid)  # [N, G]
+    lo, hi = np.percentile(f, [5, 95])
+    span = float(max(hi - lo, 1e-9))
+    slopes = np.asarray(slopes, dtype=np.float64)
+    rows = np.arange(len(f))
+    means = np.empty((len(slopes), len(grid)))
+    for j, b in enumerate(slopes):
+        tau = np.clip(grid[:, None] + b * (f[None, :] - lo) / span, grid[0], grid[-1])  # [a, N]
+        k = np.clip(np.rint((tau - grid[0]) / (grid[1] - grid[0])).astype(int), 0, len(grid) - 1)
+        means[j] = curve[rows[None, :], k].mean(axis=1)
+    best = int(np.flatnonzero(means.ravel() >= means.max() - TIE_TOLERANCE)[0])
+    j, i = divmod(best, len(grid))
+    return {"a": float(grid[i]), "b": float(slopes[j]), "lo": float(lo), "span": span, "iou": float(means[j, i])}
+
+
+def masks_from_relative(probs, rule: Mapping[str, float]) -> np.ndarray:
+    """Binarise each image at its own threshold: M_i = [P_i >= tau_i] (:func:`relative_taus`).
+
+    Parameters
+    ----------
+    probs : array_like
+        Probabilities P, float [N,H,W].
+    rule : Mapping
+        As :func:`relative_taus`.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool [N,H,W].
+    """
+    tau = relative_taus(image_peaks(probs), rule)
+    return np.asarray(probs) >= tau[:, None, None]
 
 
 #: thresholds.parquet ``tau_source`` of a run without validation masks (its tau is ``calibrate.fixed_tau``)

@@ -70,6 +70,19 @@ def test_every_variant_trains_scores_and_resumes(tiny, tmp_path, capsys, monkeyp
         assert v["calibrated"] == fit["runs"]["1"]["groups"][g]
         if round(fit["runs"]["1"]["tau_cal"], 2) in past_labels.TAU_DIAGNOSIS:
             assert v["oracle"] >= v["calibrated"] - 1e-9
+    # a threshold per image (a departure, screened beside the single tau): one row per group and one pooled, each
+    # pairing the same run's test images under the two rules
+    run = fit["runs"]["1"]
+    assert set(run["relative_rule"]) == {"a", "b", "lo", "span", "iou"}
+    assert len(run["image_ious_relative"]) == len(run["image_ious"])
+    rel = {r["images"]: r for r in fit["relative_tau"]["gains"]}
+    assert set(rel) == {*run["groups"], past_labels.ALL}
+    assert rel[past_labels.ALL]["base"] == pytest.approx(np.mean(run["image_ious"]))
+    assert rel[past_labels.ALL]["other"] == pytest.approx(np.mean(run["image_ious_relative"]))
+    for g in run["groups"]:
+        assert rel[g]["base"] == pytest.approx(run["groups"][g])
+        assert rel[g]["other_of_vote"] == pytest.approx(rel[g]["other"] / run["vote_groups"][g])
+    assert "a threshold per image" in capsys.readouterr().out
     # the test images by the benchmark's degradation: every scored image in one case, the means re-weighted
     hard_argv = ["--artifacts", str(tiny), "--resolution", "32", "--by-hard-case", str(tmp_path / "fit.json"),
                  "--out", str(tmp_path / "hard.json")]

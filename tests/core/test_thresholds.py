@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline import thresholds as T
+from pipeline.metrics import image_ious, iou_curve
 from pipeline.runtime.errors import InputError
 
 
@@ -104,3 +105,49 @@ def test_resolve_tau_warns_on_the_fixed_fallback_and_refuses_nothing_or_bad_valu
         T.resolve_tau()
     with pytest.raises(InputError, match="--tau"):
         T.resolve_tau(option=1.5, bundle=0.5)  # an invalid higher-precedence value is an error, not skipped
+
+
+# ---- a threshold per image (a departure, screened: docs/student.md, "A threshold per image") ----------------
+def _halo_images(peaks, side=16):
+    """Each image: a spacecraft square at probability f_i, a halo ring around it at f_i - 0.2, background at 0.
+    The reference is the square, so image i is segmented exactly by any tau in (f_i - 0.2, f_i]."""
+    probs, gts = [], []
+    for f in peaks:
+        p = np.zeros((side, side))
+        p[2:14, 2:14] = f - 0.2
+        p[5:11, 5:11] = f
+        probs.append(p)
+        gts.append(p == f)
+    return np.stack(probs), np.stack(gts)
+
+
+def test_relative_taus_follow_the_formula_and_stay_on_the_grid():
+    rule = {"a": 0.5, "b": 0.2, "lo": 0.8, "span": 0.1}
+    peaks = np.array([0.8, 0.85, 0.9, 5.0, -5.0])
+    tau = T.relative_taus(peaks, rule)
+    assert tau[:3] == pytest.approx([0.5, 0.6, 0.7])
+    # clipped to the search grid's range, so that no image is thresholded where calibration never looked
+    assert tau[3] == T.RELATIVE_TAU_GRID[-1] and tau[4] == T.RELATIVE_TAU_GRID[0]
+    probs = np.stack([np.full((2, 2), 0.55), np.full((2, 2), 0.55)])
+    masks = T.masks_from_relative(probs, {"a": 0.5, "b": 0.0, "lo": 0.0, "span": 1.0})
+    assert masks.dtype == bool and masks.shape == probs.shape and masks.all()
+    assert not T.masks_from_relative(probs, {"a": 0.6, "b": 0.0, "lo": 0.0, "span": 1.0}).any()
+
+
+def test_the_relative_rule_segments_what_no_single_tau_can():
+    peaks = np.linspace(0.55, 0.95, 9)  # image i is exact for tau in (f_i - 0.2, f_i]: no common tau
+    probs, gts = _halo_images(peaks)
+    rule = T.calibrate_relative_threshold(probs, gts)
+    assert rule["b"] > 0 and rule["iou"] == pytest.approx(1.0)
+    assert image_ious(T.masks_from_relative(probs, rule), gts).min() == pytest.approx(1.0)
+    assert np.array_equal(T.image_peaks(probs), peaks)
+    # b = 0 is a single tau: its fit is the single-tau curve's best on the same grid, and below the rule's
+    single = T.calibrate_relative_threshold(probs, gts, slopes=[0.0])
+    curve = iou_curve(probs, gts, T.RELATIVE_TAU_GRID).mean(axis=0)
+    assert single["b"] == 0.0 and single["iou"] == pytest.approx(curve.max()) and single["iou"] < 0.99
+    assert single["a"] == pytest.approx(T.RELATIVE_TAU_GRID[int(np.argmax(curve))])
+
+
+def test_image_peaks_refuses_a_batch_that_is_not_n_h_w():
+    with pytest.raises(InputError, match="image_peaks"):
+        T.image_peaks(np.zeros((4, 4)))
