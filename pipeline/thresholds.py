@@ -289,6 +289,11 @@ def rule_options(cfg) -> dict:
     return {"rule": cfg["tau_rule"], "tolerance": cfg["plateau_tolerance"], "halfwidth": cfg["smooth_halfwidth"]}
 
 
+def _check_batch(probs, where: str) -> None:
+    if np.ndim(probs) != 3 or np.shape(probs)[0] == 0:
+        raise InputError(f"{where}: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
+
+
 def calibrate_threshold(probs, gts, grid, rule: str = PAPER.calibrate.tau_rule, *,
                         tolerance: float = PAPER.calibrate.plateau_tolerance,
                         halfwidth: int = PAPER.calibrate.smooth_halfwidth) -> tuple[float, np.ndarray]:
@@ -324,8 +329,7 @@ def calibrate_threshold(probs, gts, grid, rule: str = PAPER.calibrate.tau_rule, 
         :func:`tau_by_rule`.
     """
     grid = np.asarray(grid, dtype=np.float64)
-    if np.ndim(probs) != 3 or np.shape(probs)[0] == 0:
-        raise InputError(f"calibrate_threshold: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
+    _check_batch(probs, "calibrate_threshold")
     curve = iou_curve(probs, gts, grid).mean(axis=0)
     return tau_by_rule(grid, curve, rule, tolerance=tolerance, halfwidth=halfwidth), curve
 
@@ -354,8 +358,7 @@ def image_peaks(probs) -> np.ndarray:
     InputError
         ``probs`` is not [N,H,W] with N >= 1.
     """
-    if np.ndim(probs) != 3 or np.shape(probs)[0] == 0:
-        raise InputError(f"image_peaks: expected probs [N,H,W] with N >= 1, got shape {np.shape(probs)}")
+    _check_batch(probs, "image_peaks")
     return np.asarray(probs, dtype=np.float64).reshape(np.shape(probs)[0], -1).max(axis=1)
 
 
