@@ -9,6 +9,10 @@ annotation-free variant's loss.  ``ceiling`` trains on them: NOT annotation-free
 Cost is counted in training images seen (optimizer steps x batch) plus relabelling forward passes at
 :data:`RELABEL_WEIGHT` of a training image each (a forward pass is about a third of a forward and backward).
 
+``--fit-of-saved`` scores saved runs: their fit on the training images, the test images at the calibrated tau,
+and, screened beside it, a threshold per image (:func:`pipeline.thresholds.calibrate_relative_threshold`, on the
+same validation masks; :func:`relative_tau_gain`), a departure that no verdict scores.
+
     python -m benchmarks.past_labels --profile reduced --resolution 64 --set train.recipe=progressive \
         --seeds 42 --variants plain ceiling self_training bootstrap ignore_band --out past_labels.json
 """
