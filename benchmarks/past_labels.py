@@ -331,9 +331,7 @@ def relative_tau_gain(doc: Mapping[str, Any], artifacts: Path, floor: Mapping[st
     their single calibrated tau, paired by seed and image (:func:`paired_row`), from :func:`fit_of_saved`'s runs;
     ``other_of_vote`` the relative rule's share of the vote."""
     seeds = sorted(doc["runs"], key=int)
-    manifest, test = scored_test_rows(artifacts)
-    groups = manifest.df["group"].to_numpy()[test].astype(str)
-    craft = test_spacecraft(artifacts)
+    groups, craft = test_column(artifacts, "group"), test_column(artifacts, "spacecraft")
     rows = []
     for name in [*dict.fromkeys(groups), ALL]:
         sel = np.ones(len(groups), bool) if name == ALL else groups == name
@@ -361,9 +359,7 @@ def compare_fits(base: Mapping[str, Any], other: Mapping[str, Any], artifacts: P
     seeds = sorted(set(base["runs"]) & set(other["runs"]), key=int)
     if not seeds:
         raise SystemExit("past_labels --compare-fits: the two documents share no seed")
-    manifest, test = scored_test_rows(artifacts)
-    groups = manifest.df["group"].to_numpy()[test].astype(str)
-    craft = test_spacecraft(artifacts)
+    groups, craft = test_column(artifacts, "group"), test_column(artifacts, "spacecraft")
     where = {"train": ("train_ious", train_spacecraft(artifacts), np.ones(len(base["vote_train_ious"]), bool)),
              **{g: ("image_ious", craft, groups == g) for g in dict.fromkeys(groups)},
              ALL: ("image_ious", craft, np.ones(len(groups), bool))}
@@ -524,10 +520,11 @@ def summarize(results: list[dict]) -> list[dict]:
     return rows
 
 
-def test_spacecraft(artifacts: Path) -> np.ndarray:
-    """The spacecraft of each scored test image, in the order of a run's ``image_ious`` (:func:`load_data`)."""
+def test_column(artifacts: Path, column: str) -> np.ndarray:
+    """A manifest column (``group``, ``spacecraft``) of each scored test image, in the order of a run's
+    ``image_ious`` (:func:`load_data`)."""
     manifest, test = scored_test_rows(artifacts)
-    return manifest.df["spacecraft"].to_numpy()[test].astype(str)
+    return manifest.df[column].to_numpy()[test].astype(str)
 
 
 def overlay(base: Mapping[str, Any], changes: Mapping[str, Any]) -> dict:
@@ -607,7 +604,7 @@ def combine(paths: list[Path], floor_key: str, floors: Path) -> dict:
                      "noise_floor": floor},
             "variants": {k: v for d in docs for k, v in d["variants"].items()},
             "relabel_weight": RELABEL_WEIGHT, "summary": summarize(runs),
-            "gains": gains(runs, test_spacecraft(art), groups, floor), "runs": runs}
+            "gains": gains(runs, test_column(art, "spacecraft"), groups, floor), "runs": runs}
 
 
 def table(doc: Mapping[str, Any]) -> str:

@@ -445,6 +445,11 @@ def masks_from_relative(probs, rule: Mapping[str, float]) -> np.ndarray:
     -------
     numpy.ndarray
         bool [N,H,W].
+
+    Raises
+    ------
+    InputError
+        ``probs`` is not [N,H,W] with N >= 1 (:func:`image_peaks`).
     """
     tau = relative_taus(image_peaks(probs), rule)
     return np.asarray(probs) >= tau[:, None, None]
